@@ -1,0 +1,1 @@
+"""twinwatch.twin."""
