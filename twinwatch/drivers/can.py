@@ -1,0 +1,660 @@
+"""CAN bus driver: decode DBC signals from a live bus or a log file into twin samples.
+
+The driver listens to a python-can bus (``socketcan``, ``pcan``, ``virtual``, ...) or replays a
+log file through :func:`can.LogReader` (candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ...),
+decodes the frames it needs with a DBC loaded by cantools, and emits one :class:`Sample` each
+time the configured *sync message* arrives. The sample holds the latest value of every mapped
+signal (sample-and-hold: signals sent at a lower rate than the sync message keep their last
+value), converted to the twin's unit as ``value_twin = value_dbc * scale + offset``.
+
+The driver never transmits: it does not even call ``send``. It shuts down a bus it opened
+itself and leaves alone a bus it was given (``CanDriver(config, bus=...)``), so a simulated
+plant can share an in-process ``virtual`` bus with it.
+
+Bad input is counted, logged once, and skipped (see :class:`~twinwatch.drivers.base.DriverStats`):
+
+* frames whose id is not needed (not in the DBC, or not mapped) count in ``stats.frames`` only;
+* frames of needed messages that cannot be decoded (too short, unknown multiplexer value, ...)
+  count in ``stats.bad_frames``; frames *longer* than the DBC says are decoded (padding is
+  common) and logged once;
+* NaN or infinite decoded values count in ``stats.bad_values`` and are delivered as they are;
+* a sample-counter jump of ``n > 1`` adds ``n - 1`` to ``stats.gaps``; a counter that goes back
+  counts in ``stats.extra["counter_resets"]``;
+* error frames and remote (RTR) frames count in ``stats.extra["error_frames"]`` /
+  ``stats.extra["remote_frames"]`` (ODrive masters poll with RTR frames: they are normal);
+* a sync message that arrives before every mapped signal has been seen once produces no sample
+  and counts in ``stats.extra["incomplete_syncs"]`` (the start-up transient).
+
+Example configuration (TOML, the ``[driver]`` table of a machine config)::
+
+    [driver]
+    type = "can"
+    interface = "socketcan"
+    channel = "can0"
+    dbc = "dcmotor.dbc"                   # relative to the config file's directory
+    sync_message = "TW_Motor_Sample"
+    time_source = "counter"               # t = sample_counter * sample_period
+    counter_signal = "TW_Motor_Sample.sample_counter"
+    sample_period = 0.01
+    [driver.signals]
+    Va = { message = "TW_Motor_Electrical", signal = "Va", unit = "V" }
+    omega = { message = "TW_Motor_Mechanical", signal = "omega", unit = "rad/s" }
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+import math
+import time
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+import can
+import cantools
+import cantools.database
+from cantools.database.can import Database
+from cantools.database.can import Message as DbcMessage
+from cantools.database.errors import DecodeError
+from cantools.database.errors import Error as CantoolsError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from twinwatch.drivers.base import (
+    Driver,
+    DriverInitializationError,
+    DriverOperationError,
+    EndOfStream,
+    Sample,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CanDriver", "CanDriverConfig", "CanSignalMap"]
+
+_TIME_SIGNAL_PREFIX = "signal:"
+
+
+def _split_signal_ref(ref: str) -> tuple[str, str]:
+    """Split ``"MESSAGE.SIGNAL"`` into its two names (DBC names cannot contain dots)."""
+    parts = ref.split(".")
+    if len(parts) != 2 or not all(parts):
+        raise ValueError(f"expected 'MESSAGE.SIGNAL', got {ref!r}")
+    return parts[0], parts[1]
+
+
+class CanSignalMap(BaseModel):
+    """Where one twin channel comes from: ``value_twin = value_dbc * scale + offset``.
+
+    ``value_dbc`` is the physical value cantools decodes (DBC factor and offset applied), in the
+    DBC's unit; ``unit`` documents the twin-side unit and is not used for computation.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    message: str = Field(min_length=1)
+    signal: str = Field(min_length=1)
+    scale: float = Field(default=1.0, allow_inf_nan=False)
+    offset: float = Field(default=0.0, allow_inf_nan=False)
+    unit: str | None = None
+
+
+class CanDriverConfig(BaseModel):
+    """Configuration of :class:`CanDriver` (the ``[driver]`` table with ``type = "can"``).
+
+    Attributes:
+        type: always ``"can"``.
+        interface: python-can interface name (``"socketcan"``, ``"pcan"``, ``"virtual"``, ...).
+            Required for a live bus; ignored with ``log_file`` or when a bus is passed in.
+        channel: python-can channel (``"can0"``, ``"PCAN_USBBUS1"``, ``0``, ...).
+        bitrate: bus bit rate [bit/s]; None leaves the interface's setting alone.
+        bus_options: extra keyword arguments for :class:`can.Bus` (e.g. ``fd = true``).
+        dbc: path of the CAN database (DBC, or any format cantools loads); a relative path is
+            resolved against the configuration file's directory (``base_dir``).
+        log_file: replay this log (any suffix :func:`can.LogReader` knows) instead of a live
+            bus; relative to ``base_dir`` like ``dbc``. The end of the log raises
+            :class:`~twinwatch.drivers.base.EndOfStream`.
+        realtime: for ``log_file`` only: pace the replay by the log's time stamps (as
+            :class:`can.MessageSync` does); False replays as fast as the caller reads.
+        sync_message: DBC message whose arrival emits one sample.
+        time_source: ``"frame"``: t [s] is the sync frame's time stamp (bus or log clock);
+            ``"counter"``: t = ``counter_signal`` * ``sample_period`` (the plant's clock);
+            ``"signal:MESSAGE.SIGNAL"``: t is that signal's latest value, in seconds.
+        counter_signal: ``"MESSAGE.SIGNAL"`` of a sample counter (+1 per sample). Optional;
+            when given, counter jumps are counted in ``stats.gaps``.
+        sample_period: nominal sample period [s] (> 0).
+        signals: twin channel name -> :class:`CanSignalMap`, at least one. The order of the
+            table is the order of :attr:`CanDriver.channels`.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["can"]
+    interface: str | None = None
+    channel: str | int | None = None
+    bitrate: int | None = Field(default=None, gt=0)
+    bus_options: dict[str, str | int | float | bool] = Field(default_factory=dict)
+    dbc: Path
+    log_file: Path | None = None
+    realtime: bool = False
+    sync_message: str = Field(min_length=1)
+    time_source: str = "frame"
+    counter_signal: str | None = None
+    sample_period: float = Field(gt=0, allow_inf_nan=False)
+    signals: dict[str, CanSignalMap] = Field(min_length=1)
+
+    @field_validator("interface")
+    @classmethod
+    def _known_interface(cls, value: str | None) -> str | None:
+        if value is not None and value not in can.interfaces.VALID_INTERFACES:
+            close = difflib.get_close_matches(value, sorted(can.interfaces.VALID_INTERFACES), 1)
+            hint = (
+                f"did you mean {close[0]!r}?"
+                if close
+                else "known: " + ", ".join(sorted(can.interfaces.VALID_INTERFACES))
+            )
+            raise ValueError(f"python-can has no interface {value!r}; {hint}")
+        return value
+
+    @field_validator("counter_signal")
+    @classmethod
+    def _counter_ref(cls, value: str | None) -> str | None:
+        if value is not None:
+            _split_signal_ref(value)
+        return value
+
+    @field_validator("time_source")
+    @classmethod
+    def _time_source_syntax(cls, value: str) -> str:
+        if value in ("frame", "counter"):
+            return value
+        if value.startswith(_TIME_SIGNAL_PREFIX):
+            _split_signal_ref(value.removeprefix(_TIME_SIGNAL_PREFIX))
+            return value
+        raise ValueError(f"expected 'frame', 'counter' or 'signal:MESSAGE.SIGNAL', got {value!r}")
+
+    @model_validator(mode="after")
+    def _counter_needed(self) -> CanDriverConfig:
+        if self.time_source == "counter" and self.counter_signal is None:
+            raise ValueError("time_source = 'counter' needs counter_signal = 'MESSAGE.SIGNAL'")
+        return self
+
+    def resolved(self, base_dir: Path | None) -> CanDriverConfig:
+        """Return a copy whose relative ``dbc`` and ``log_file`` are joined to ``base_dir``."""
+        if base_dir is None:
+            return self
+        update: dict[str, Path] = {"dbc": _resolve(self.dbc, base_dir)}
+        if self.log_file is not None:
+            update["log_file"] = _resolve(self.log_file, base_dir)
+        return self.model_copy(update=update)
+
+
+def _resolve(path: Path, base_dir: Path) -> Path:
+    path = path.expanduser()
+    return path if path.is_absolute() else Path(base_dir) / path
+
+
+# -- decoding plan ------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class _MessagePlan:
+    """What to do with one needed DBC message when its frame arrives."""
+
+    message: DbcMessage
+    #: (twin channel, DBC signal, scale, offset)
+    channels: list[tuple[str, str, float, float]] = field(default_factory=list)
+    counter_signal: str | None = None
+    time_signal: str | None = None
+    is_sync: bool = False
+
+
+def _as_float(raw: object) -> float:
+    """A decoded signal value as float (NaN for anything that is not a number)."""
+    return float(raw) if isinstance(raw, int | float) else math.nan
+
+
+def _did_you_mean(name: str, available: Iterable[str], *, limit: int = 20) -> str:
+    names = sorted(available)
+    close = difflib.get_close_matches(name, names, n=3)
+    if close:
+        return "did you mean " + " or ".join(repr(c) for c in close) + "?"
+    shown = ", ".join(names[:limit])
+    more = f", ... ({len(names) - limit} more)" if len(names) > limit else ""
+    return f"available: {shown}{more}" if names else "the DBC defines none"
+
+
+def _find_signal(db: Database, key: str, message_name: str, signal_name: str | None) -> DbcMessage:
+    """Return the DBC message, checking that it (and ``signal_name``) exist; ``key`` names
+    the configuration entry in the error."""
+    try:
+        message = db.get_message_by_name(message_name)
+    except KeyError:
+        hint = _did_you_mean(message_name, (m.name for m in db.messages))
+        raise DriverInitializationError(
+            f"{key}: message {message_name!r} not in DBC; {hint}"
+        ) from None
+    if signal_name is not None and signal_name not in {s.name for s in message.signals}:
+        hint = _did_you_mean(signal_name, (s.name for s in message.signals))
+        raise DriverInitializationError(
+            f"{key}: message {message_name!r} has no signal {signal_name!r}; {hint}"
+        )
+    return message
+
+
+# -- frame sources ------------------------------------------------------------------------
+
+
+class _FrameSource(Protocol):
+    #: True if ``recv`` may wait (a live bus, a paced replay): the read deadline then applies.
+    waits: bool
+
+    def recv(self, timeout: float | None) -> can.Message | None: ...
+
+    def close(self) -> None: ...
+
+
+class _BusSource:
+    waits = True
+
+    def __init__(self, bus: can.BusABC, *, owned: bool) -> None:
+        self.bus = bus
+        self.owned = owned
+
+    def recv(self, timeout: float | None) -> can.Message | None:
+        try:
+            return self.bus.recv(timeout)
+        except can.CanError as exc:
+            raise DriverOperationError(
+                f"CAN receive failed on {self.bus.channel_info}: {exc}"
+            ) from exc
+
+    def close(self) -> None:
+        if self.owned:
+            self.bus.shutdown()
+
+
+class _LogSource:
+    """Frames of a log file, optionally paced by their time stamps (see can.MessageSync).
+
+    The pacing is done here rather than with :class:`can.MessageSync` because MessageSync
+    sleeps inside its iterator and so cannot honour ``read(timeout)``.
+    """
+
+    def __init__(self, path: Path, *, realtime: bool) -> None:
+        self.path = path
+        self.realtime = realtime
+        self.waits = realtime
+        try:
+            self._reader = can.LogReader(path)
+        except (OSError, ValueError, ImportError) as exc:
+            raise DriverInitializationError(f"log_file: cannot read {str(path)!r}: {exc}") from exc
+        self._frames: Iterator[can.Message] = iter(self._reader)
+        self._pending: can.Message | None = None
+        self._origin: tuple[float, float] | None = None  # (wall clock, log time) of 1st frame
+
+    def recv(self, timeout: float | None) -> can.Message | None:
+        if self._pending is None:
+            try:
+                self._pending = next(self._frames)
+            except StopIteration:
+                raise EndOfStream(f"end of CAN log {str(self.path)!r}") from None
+            except (ValueError, OSError, EOFError) as exc:
+                raise DriverOperationError(
+                    f"CAN log {str(self.path)!r} is corrupt or unreadable: {exc}"
+                ) from exc
+        if self.realtime:
+            now = time.monotonic()
+            if self._origin is None:
+                self._origin = (now, self._pending.timestamp)
+            wait = self._origin[0] + (self._pending.timestamp - self._origin[1]) - now
+            if wait > 0:
+                if timeout is not None and wait > timeout:
+                    time.sleep(max(timeout, 0.0))
+                    return None
+                time.sleep(wait)
+        frame, self._pending = self._pending, None
+        return frame
+
+    def close(self) -> None:
+        self._reader.stop()
+
+
+# -- the driver ---------------------------------------------------------------------------
+
+
+class CanDriver(Driver):
+    """Twin samples from DBC-decoded CAN frames (live bus or log replay); never transmits.
+
+    Args:
+        config: the validated configuration (see :class:`CanDriverConfig`).
+        bus: an already open python-can bus to listen on (e.g. a ``virtual`` bus shared with a
+            simulated plant). The driver never shuts it down; the caller owns it. When given,
+            ``interface``, ``channel``, ``bitrate`` and ``bus_options`` are ignored.
+        base_dir: directory that relative ``dbc`` and ``log_file`` paths are resolved against
+            (the configuration file's directory); None means the current directory.
+
+    Attributes:
+        channels: twin channel names, in the order of ``config.signals``.
+        sample_period: ``config.sample_period`` [s].
+        database: the loaded cantools database.
+
+    Raises:
+        DriverInitializationError: the DBC cannot be loaded, a configured message or signal
+            is not in it (the message names the config key and the closest names), the log
+            file cannot be opened, or the bus cannot be opened.
+    """
+
+    def __init__(
+        self,
+        config: CanDriverConfig,
+        *,
+        bus: can.BusABC | None = None,
+        base_dir: Path | None = None,
+    ) -> None:
+        super().__init__()
+        self._source: _FrameSource | None = None
+        try:
+            self._setup(config.resolved(base_dir), bus)
+        except BaseException:
+            self.close()
+            raise
+
+    @classmethod
+    def from_config(
+        cls,
+        config: CanDriverConfig | Mapping[str, Any],
+        *,
+        base_dir: Path,
+        bus: can.BusABC | None = None,
+    ) -> CanDriver:
+        """Build a driver from a validated config or a raw ``[driver]`` table.
+
+        Raises:
+            DriverInitializationError: the table does not validate, or see :class:`CanDriver`.
+        """
+        if not isinstance(config, CanDriverConfig):
+            try:
+                config = CanDriverConfig.model_validate(config)
+            except ValidationError as exc:
+                raise DriverInitializationError(f"invalid CAN driver config: {exc}") from exc
+        return cls(config, bus=bus, base_dir=base_dir)
+
+    # -- construction -----------------------------------------------------------------------
+    def _setup(self, config: CanDriverConfig, bus: can.BusABC | None) -> None:
+        self.config = config
+        self.channels = tuple(config.signals)
+        self.sample_period = config.sample_period
+        self.database = self._load_dbc(config.dbc)
+        self._plans = self._make_plan(config, self.database)
+        #: frames we decode, by (arbitration id, extended id flag)
+        self._by_id: dict[tuple[int, bool], _MessagePlan] = {
+            (p.message.frame_id, bool(p.message.is_extended_frame)): p for p in self._plans.values()
+        }
+        #: twin channel -> DBC message name, for diagnostics
+        self._channel_message = {ch: m.message for ch, m in config.signals.items()}
+        self._time_mode = (
+            "signal" if config.time_source.startswith(_TIME_SIGNAL_PREFIX) else config.time_source
+        )
+
+        # decoding state
+        self._latest: dict[str, float] = {}
+        self._time_value: float | None = None
+        self._counter_raw: int | None = None
+        self._counter: int | None = None  # unwrapped
+        counter_bits = self._counter_bits(config)
+        self._counter_modulus: int | None = None if counter_bits is None else 1 << counter_bits
+
+        self._source = self._open_source(config, bus)
+        logger.info(
+            "CAN driver ready: %s, DBC %s, sync on %s, channels %s",
+            self._describe_source(),
+            config.dbc,
+            config.sync_message,
+            ", ".join(self.channels),
+        )
+
+    @staticmethod
+    def _load_dbc(path: Path) -> Database:
+        if not path.is_file():
+            raise DriverInitializationError(f"dbc: file {str(path)!r} not found")
+        try:
+            db = cantools.database.load_file(path)
+        except (OSError, ValueError, CantoolsError) as exc:
+            raise DriverInitializationError(f"dbc: cannot load {str(path)!r}: {exc}") from exc
+        if not isinstance(db, Database):
+            raise DriverInitializationError(f"dbc: {str(path)!r} is not a CAN database")
+        return db
+
+    @staticmethod
+    def _make_plan(config: CanDriverConfig, db: Database) -> dict[str, _MessagePlan]:
+        plans: dict[str, _MessagePlan] = {}
+
+        def plan_for(key: str, message_name: str, signal_name: str | None) -> _MessagePlan:
+            message = _find_signal(db, key, message_name, signal_name)
+            return plans.setdefault(message.name, _MessagePlan(message))
+
+        for channel, sig in config.signals.items():
+            plan_for(f"signals.{channel}", sig.message, sig.signal).channels.append(
+                (channel, sig.signal, sig.scale, sig.offset)
+            )
+        plan_for("sync_message", config.sync_message, None).is_sync = True
+        if config.counter_signal is not None:
+            msg, sig_name = _split_signal_ref(config.counter_signal)
+            plan_for("counter_signal", msg, sig_name).counter_signal = sig_name
+        if config.time_source.startswith(_TIME_SIGNAL_PREFIX):
+            msg, sig_name = _split_signal_ref(config.time_source.removeprefix(_TIME_SIGNAL_PREFIX))
+            plan_for("time_source", msg, sig_name).time_signal = sig_name
+        return plans
+
+    def _counter_bits(self, config: CanDriverConfig) -> int | None:
+        """Bit width of an unsigned integer counter (it wraps modulo 2**bits), else None."""
+        if config.counter_signal is None:
+            return None
+        msg, sig_name = _split_signal_ref(config.counter_signal)
+        signal = self.database.get_message_by_name(msg).get_signal_by_name(sig_name)
+        if signal.is_float or signal.is_signed or signal.scale != 1 or signal.offset != 0:
+            return None
+        return int(signal.length)
+
+    def _open_source(self, config: CanDriverConfig, bus: can.BusABC | None) -> _FrameSource:
+        if bus is not None:
+            if config.log_file is not None:
+                raise DriverInitializationError("log_file and a bus were both given; pick one")
+            return _BusSource(bus, owned=False)
+        if config.log_file is not None:
+            return _LogSource(config.log_file, realtime=config.realtime)
+        if config.interface is None or config.channel is None:
+            raise DriverInitializationError(
+                "interface and channel are required for a live bus (or give log_file)"
+            )
+        kwargs: dict[str, Any] = dict(config.bus_options)
+        if config.bitrate is not None:
+            kwargs["bitrate"] = config.bitrate
+        # Only the frames we decode reach us (filtered in the kernel/adapter where possible).
+        kwargs.setdefault(
+            "can_filters",
+            [
+                {
+                    "can_id": frame_id,
+                    "can_mask": 0x1FFFFFFF if extended else 0x7FF,
+                    "extended": extended,
+                }
+                for frame_id, extended in self._by_id
+            ],
+        )
+        try:
+            opened = can.Bus(interface=config.interface, channel=config.channel, **kwargs)
+        except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
+            raise DriverInitializationError(
+                f"cannot open CAN interface {config.interface!r} channel {config.channel!r}: {exc}"
+            ) from exc
+        return _BusSource(opened, owned=True)
+
+    def _describe_source(self) -> str:
+        if isinstance(self._source, _LogSource):
+            mode = "real time" if self._source.realtime else "as fast as possible"
+            return f"log {str(self._source.path)!r} ({mode})"
+        if isinstance(self._source, _BusSource):
+            owner = "own" if self._source.owned else "shared"
+            return f"{owner} bus {self._source.bus.channel_info}"
+        return "no source"
+
+    # -- reading ----------------------------------------------------------------------------
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        source = self._source
+        if source is None:  # pragma: no cover - only after a failed construction
+            raise DriverOperationError("CAN driver has no frame source")
+        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            frame = source.recv(remaining)
+            if frame is None:
+                return None
+            sample = self._on_frame(frame)
+            if sample is not None:
+                return sample
+            if source.waits and deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    def _bump(self, key: str) -> None:
+        self.stats.extra[key] = self.stats.extra.get(key, 0) + 1
+
+    def _on_frame(self, frame: can.Message) -> Sample | None:
+        """Account for one frame; return a sample if it was a complete sync message."""
+        self.stats.frames += 1
+        if frame.is_error_frame:
+            self._bump("error_frames")
+            return None
+        if frame.is_remote_frame:
+            self._bump("remote_frames")
+            return None
+        plan = self._by_id.get((frame.arbitration_id, bool(frame.is_extended_id)))
+        if plan is None:
+            return None
+        message = plan.message
+        data = bytes(frame.data)
+        try:
+            decoded = message.decode(
+                data, decode_choices=False, scaling=True, allow_truncated=False, allow_excess=True
+            )
+        except (DecodeError, ValueError, KeyError, IndexError) as exc:
+            self.stats.bad_frames += 1
+            self.log_once(
+                f"decode:{message.name}",
+                "CAN frame 0x%X (%s, %d bytes) not decodable: %s; counted in stats.bad_frames",
+                frame.arbitration_id,
+                message.name,
+                len(data),
+                exc,
+            )
+            return None
+        if not isinstance(decoded, dict):  # container frames decode to lists
+            self.stats.bad_frames += 1
+            self.log_once(
+                f"container:{message.name}", "CAN container message %s ignored", message.name
+            )
+            return None
+        if len(data) > message.length:
+            self.log_once(
+                f"long:{message.name}",
+                "CAN frame 0x%X (%s) has %d bytes, DBC says %d; extra bytes ignored",
+                frame.arbitration_id,
+                message.name,
+                len(data),
+                message.length,
+                level=logging.INFO,
+            )
+
+        for channel, signal, scale, offset in plan.channels:
+            raw = decoded.get(signal)
+            if raw is None:  # multiplexed signal not in this frame
+                continue
+            value = _as_float(raw) * scale + offset
+            if not math.isfinite(value):
+                self.stats.bad_values += 1
+                self.log_once(
+                    f"nonfinite:{channel}",
+                    "CAN signal %s.%s -> %s decoded to %s; counted in stats.bad_values",
+                    message.name,
+                    signal,
+                    channel,
+                    value,
+                )
+            self._latest[channel] = value
+        if plan.time_signal is not None and plan.time_signal in decoded:
+            self._time_value = _as_float(decoded[plan.time_signal])
+        if plan.counter_signal is not None and plan.counter_signal in decoded:
+            self._on_counter(_as_float(decoded[plan.counter_signal]))
+        if plan.is_sync:
+            return self._assemble(frame)
+        return None
+
+    def _on_counter(self, value: float) -> None:
+        if not value.is_integer():
+            self.stats.bad_values += 1
+            self.log_once("counter:nonint", "CAN sample counter is not an integer: %s", value)
+            return
+        raw = int(value)
+        if self._counter_raw is None or self._counter is None:
+            self._counter_raw, self._counter = raw, raw
+            return
+        step = raw - self._counter_raw
+        if self._counter_modulus is not None:
+            step %= self._counter_modulus
+            backwards = step >= self._counter_modulus // 2
+        else:
+            backwards = step <= 0
+        if backwards or step == 0:
+            self._bump("counter_resets")
+            self.log_once(
+                "counter:reset",
+                "CAN sample counter went from %d to %d (source restarted or repeated a sample)",
+                self._counter_raw,
+                raw,
+            )
+            self._counter_raw, self._counter = raw, raw
+            return
+        if step > 1:
+            self.stats.gaps += step - 1
+            self.log_once(
+                "counter:gap",
+                "CAN sample counter jumped from %d to %d: %d samples lost; counted in stats.gaps",
+                self._counter_raw,
+                raw,
+                step - 1,
+            )
+        self._counter_raw = raw
+        self._counter += step
+
+    def _assemble(self, frame: can.Message) -> Sample | None:
+        missing = [ch for ch in self.channels if ch not in self._latest]
+        t: float | None
+        if self._time_mode == "frame":
+            t = float(frame.timestamp)
+        elif self._time_mode == "counter":
+            t = None if self._counter is None else self._counter * self.sample_period
+        else:
+            t = self._time_value
+        if missing or t is None:
+            self._bump("incomplete_syncs")
+            self.log_once(
+                "incomplete",
+                "CAN sync message %s arrived before %s; no sample yet (waiting for %s)",
+                self.config.sync_message,
+                ", ".join(missing) if missing else "the time source",
+                ", ".join(sorted({self._channel_message[ch] for ch in missing}))
+                if missing
+                else self.config.time_source,
+                level=logging.INFO,
+            )
+            return None
+        return Sample(t, {ch: self._latest[ch] for ch in self.channels})
+
+    # -- closing ----------------------------------------------------------------------------
+    def _close_internal(self) -> None:
+        source, self._source = self._source, None
+        if source is not None:
+            source.close()
+            logger.debug("CAN driver closed (%s)", self.stats.as_dict())
