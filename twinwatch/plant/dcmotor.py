@@ -1,0 +1,242 @@
+"""Simulated DC motor plant with its PI speed drive (paper Section 5.1-5.2).
+
+The plant is the "real machine" of the paper's virtual environment: Eq. 11-12 integrated at
+1e-4 s, a PI speed controller (Kp 0.3, Ki 0.1) updated every plant step as in a drive, set-point
+steps among 0-20 rad/s, load torque Tload = 0.006*omega, and the paper's fault scenarios
+(formulas from ../shared/paper/NOTES.md):
+
+* ``nominal``: Table 3 parameters throughout.
+* ``resistance_degradation``: Ra(t) = 6.5 - 0.044*(exp(0.003*(t-160)) - 1) for t >= 160 s.
+* ``bearing_wear``: D(t) = 0.00143 + 0.00003806*(exp(0.003*(t-160)) - 1) for t >= 160 s.
+* ``unbalanced_shaft``: omega gets + dt*5*sin(10*t) every step (Eq. 13).
+
+One plant step (dt = 1e-4 s), in this order::
+
+    e      = setpoint - omega
+    Va     = Kp*e + Ki*z            (z: integrator state, rad)
+    z     += dt*e
+    ia    += dt*(Va - Ra*ia - Ke*omega)/La                          (Eq. 11)
+    omega += dt*(Kt*ia - Tload - D*omega)/J [+ dt*5*sin(10*t)]      (Eq. 12 / 13)
+
+A sample at t_k reports the state reached at t_k, the voltage the drive applies from t_k on, the
+set-point in force from t_k on and Tload = c_load*omega. Measurement noise (percent of reading,
+Gaussian) and quantisation are applied to the reported values only, never to the plant state.
+The loop over plant steps is compiled with numba (120 000 samples of 100 steps take ~0.1 s).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numba import njit
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from twinwatch.drivers.base import EndOfStream, Sample
+
+logger = logging.getLogger(__name__)
+
+Scenario = Literal["nominal", "resistance_degradation", "bearing_wear", "unbalanced_shaft"]
+_SCENARIO_CODE = {"nominal": 0, "resistance_degradation": 1, "bearing_wear": 2,
+                  "unbalanced_shaft": 3}
+
+#: Measured channels, in the order the plant reports them.
+CHANNELS: tuple[str, ...] = ("Va", "ia", "omega", "Tload", "setpoint")
+
+
+class SetpointSchedule(BaseModel):
+    """Speed set-point schedule.
+
+    Either explicit ``steps`` ([[t_s, value_rad_s], ...], first at t = 0) or a seeded random
+    schedule: levels drawn from ``levels`` (never the current one), each held for a whole number
+    of seconds drawn uniformly from [dwell_min, dwell_max]. The PI loop settles in tens of
+    seconds, so dwells of 20-60 s let the motor approach steady state (our choice; the paper only
+    says "at different times").
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    steps: list[tuple[float, float]] | None = None
+    initial: float = Field(10.0, description="set-point from t = 0 [rad/s]")
+    levels: list[float] = Field(default_factory=lambda: [5.0, 10.0, 15.0, 20.0])
+    dwell_min: float = Field(20.0, gt=0)
+    dwell_max: float = Field(60.0, gt=0)
+    seed: int = 1
+
+    @model_validator(mode="after")
+    def _check(self) -> SetpointSchedule:
+        if self.dwell_max < self.dwell_min:
+            raise ValueError("dwell_max must be >= dwell_min")
+        if self.steps is not None:
+            if not self.steps or self.steps[0][0] != 0:
+                raise ValueError("steps must start at t = 0")
+            times = [s[0] for s in self.steps]
+            if any(b <= a for a, b in zip(times, times[1:], strict=False)):
+                raise ValueError("steps must have increasing times")
+        if len(self.levels) < 2 and self.steps is None:
+            raise ValueError("levels needs at least two values")
+        return self
+
+    def build(self, duration: float) -> tuple[np.ndarray, np.ndarray]:
+        """Return (change times [s], values [rad/s]) covering [0, duration]."""
+        if self.steps is not None:
+            arr = np.asarray(self.steps, dtype=float)
+            return arr[:, 0], arr[:, 1]
+        rng = np.random.default_rng(self.seed)
+        times, values = [0.0], [self.initial]
+        t = 0.0
+        while t < duration:
+            t += float(rng.integers(int(self.dwell_min), int(self.dwell_max) + 1))
+            choices = [v for v in self.levels if v != values[-1]]
+            times.append(t)
+            values.append(float(rng.choice(choices)))
+        return np.asarray(times), np.asarray(values)
+
+
+class DCMotorPlantConfig(BaseModel):
+    """Configuration of the simulated DC motor plant (table ``[driver.plant]``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    scenario: Scenario = "resistance_degradation"
+    duration: float = Field(1200.0, gt=0, description="simulated time [s]")
+    sample_period: float = Field(0.01, gt=0, description="acquisition period [s]")
+    step: float = Field(1e-4, gt=0, description="integration step [s]")
+    Ra: float = Field(6.5, gt=0)
+    La: float = Field(0.673, gt=0)
+    J: float = Field(0.001171, gt=0)
+    Ke: float = Field(0.038, gt=0)
+    Kt: float = Field(0.038, gt=0)
+    D: float = Field(0.00143, ge=0)
+    load_coefficient: float = Field(0.006, ge=0, description="Tload = c*omega [N m s/rad]")
+    kp: float = 0.3
+    ki: float = 0.1
+    fault_start: float = Field(160.0, ge=0, description="scenario onset [s]")
+    unbalance_amplitude: float = Field(5.0, description="Eq. 13 amplitude [rad/s^2]")
+    unbalance_frequency: float = Field(10.0, description="Eq. 13 frequency [rad/s]")
+    setpoint: SetpointSchedule = Field(default_factory=SetpointSchedule)
+    noise: dict[str, float] = Field(
+        default_factory=dict,
+        description="channel -> Gaussian noise standard deviation, percent of reading",
+    )
+    quantisation: dict[str, float] = Field(
+        default_factory=dict, description="channel -> quantisation step in the channel's unit"
+    )
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _check(self) -> DCMotorPlantConfig:
+        ratio = self.sample_period / self.step
+        if abs(ratio - round(ratio)) > 1e-6 * ratio or round(ratio) < 1:
+            raise ValueError("sample_period must be a whole multiple of step")
+        for table, name in ((self.noise, "noise"), (self.quantisation, "quantisation")):
+            for ch, v in table.items():
+                if ch not in CHANNELS:
+                    raise ValueError(f"{name}.{ch}: unknown channel; use one of {CHANNELS}")
+                if v < 0:
+                    raise ValueError(f"{name}.{ch}: must be >= 0")
+        return self
+
+
+@njit(cache=True)
+def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, unb_a, unb_w):  # pragma: no cover
+    """Advance ``state = [ia, omega, z]`` by ``n_sub`` steps from step index ``k0``.
+
+    ``p = [Ra0, La, J, Ke, Kt, D0, c_load, Kp, Ki]``. Returns the Va of the last step.
+    """
+    ia, w, z = state[0], state[1], state[2]
+    ra0, la, j, ke, kt, d0, c, kp, ki = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8]
+    for s in range(n_sub):
+        t = (k0 + s) * dt
+        ra = ra0
+        d = d0
+        if scenario == 1 and t >= t_fault:
+            ra = ra0 - 0.044 * (math.exp(0.003 * (t - t_fault)) - 1.0)
+        elif scenario == 2 and t >= t_fault:
+            d = d0 + 0.00003806 * (math.exp(0.003 * (t - t_fault)) - 1.0)
+        e = sp - w
+        va = kp * e + ki * z
+        z += dt * e
+        ia = ia + dt * (va - ra * ia - ke * w) / la
+        w_new = w + dt * (kt * ia - c * w - d * w) / j
+        if scenario == 3:
+            w_new += dt * unb_a * math.sin(unb_w * (t + dt))
+        w = w_new
+    state[0], state[1], state[2] = ia, w, z
+    return 0.0
+
+
+@dataclass
+class PlantTruth:
+    """The plant's true parameters at a time (for tests and benchmarks)."""
+
+    Ra: float
+    D: float
+
+
+class DCMotorPlant:
+    """The simulated DC motor plant; one call to :meth:`next_sample` per acquisition sample.
+
+    Args:
+        config: plant configuration.
+
+    Raises:
+        EndOfStream: from :meth:`next_sample` after ``config.duration`` seconds.
+    """
+
+    channels = CHANNELS
+
+    def __init__(self, config: DCMotorPlantConfig | None = None) -> None:
+        self.config = config or DCMotorPlantConfig()
+        c = self.config
+        self.sample_period = c.sample_period
+        self.n_sub = int(round(c.sample_period / c.step))
+        self._p = np.array([c.Ra, c.La, c.J, c.Ke, c.Kt, c.D, c.load_coefficient, c.kp, c.ki])
+        self._scenario = _SCENARIO_CODE[c.scenario]
+        self._sp_times, self._sp_values = c.setpoint.build(c.duration)
+        self._state = np.zeros(3)  # ia, omega, z: the motor starts at rest
+        self._k = 0  # sample index
+        self._n_samples = int(round(c.duration / c.sample_period)) + 1
+        self._rng = np.random.default_rng(c.seed)
+
+    @property
+    def t(self) -> float:
+        """Plant time of the next sample [s]."""
+        return self._k * self.sample_period
+
+    def setpoint_at(self, t: float) -> float:
+        idx = int(np.searchsorted(self._sp_times, t + 1e-9, side="right")) - 1
+        return float(self._sp_values[max(idx, 0)])
+
+    def truth(self, t: float) -> PlantTruth:
+        """True Ra [ohm] and D [N m s/rad] at plant time ``t`` [s]."""
+        c = self.config
+        x = math.exp(0.003 * (t - c.fault_start)) - 1.0 if t >= c.fault_start else 0.0
+        ra = c.Ra - 0.044 * x if c.scenario == "resistance_degradation" else c.Ra
+        d = c.D + 0.00003806 * x if c.scenario == "bearing_wear" else c.D
+        return PlantTruth(Ra=ra, D=d)
+
+    def next_sample(self) -> Sample:
+        """Report the sample at the current time, then advance the plant one sample period."""
+        if self._k >= self._n_samples:
+            raise EndOfStream(f"simulated plant reached its duration ({self.config.duration} s)")
+        c = self.config
+        t = self.t
+        sp = self.setpoint_at(t)
+        ia, w, z = (float(v) for v in self._state)
+        va = c.kp * (sp - w) + c.ki * z
+        values = {"Va": va, "ia": ia, "omega": w, "Tload": c.load_coefficient * w,
+                  "setpoint": sp}
+        for ch, pct in c.noise.items():
+            if pct > 0:
+                values[ch] += float(self._rng.normal(0.0, pct / 100.0 * abs(values[ch])))
+        for ch, q in c.quantisation.items():
+            if q > 0:
+                values[ch] = round(values[ch] / q) * q
+        _advance(self._state, self._k * self.n_sub, self.n_sub, c.step, sp, self._p,
+                 self._scenario, c.fault_start, c.unbalance_amplitude, c.unbalance_frequency)
+        self._k += 1
+        return Sample(t=t, values=values)

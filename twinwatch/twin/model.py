@@ -1,0 +1,220 @@
+"""The twin model contract: a white-box physics model that simulates a whole swarm at once.
+
+Paper Section 3.1 (the DT step): the twin is a parameterised, modular white-box model. A machine
+plugs into twinwatch by providing one :class:`TwinModel` subclass (registered in
+:mod:`twinwatch.twin.registry`) and a configuration; the daemon never needs to change.
+
+Conventions (after python-control's ``nlsys``): a model names its parameters (with SI units and
+nominal values), its input channels, its output channels and its options; :meth:`TwinModel.simulate`
+is the fast, vectorised path that the estimator calls with a whole swarm.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class ParameterSpec:
+    """A physical parameter of a twin model.
+
+    Attributes:
+        name: standard symbol (``Ra``, ``La``, ``J``, ``Ke``, ``Kt``, ``D``, ...).
+        unit: SI unit as text (``ohm``, ``H``, ``kg m^2``, ...).
+        nominal: nameplate value used when nothing else is configured.
+        description: what it is, in words.
+        meaning: what a drift of it usually means for the machine (for the health report).
+    """
+
+    name: str
+    unit: str
+    nominal: float
+    description: str
+    meaning: str = ""
+
+
+@dataclass(slots=True)
+class WindowData:
+    """One acquisition window, as the twin sees it.
+
+    Attributes:
+        t: sample times [s], shape (N,), strictly increasing, (nearly) uniform.
+        channels: channel name -> samples, each of shape (N,), in SI units.
+        index: window index (0, 1, ...) since the daemon started.
+    """
+
+    t: FloatArray
+    channels: dict[str, FloatArray]
+    index: int = 0
+
+    @property
+    def n(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def sample_period(self) -> float:
+        """Median sample period [s]."""
+        return float(np.median(np.diff(self.t))) if self.n > 1 else 0.0
+
+    def __getitem__(self, name: str) -> FloatArray:
+        return self.channels[name]
+
+
+@dataclass(frozen=True, slots=True)
+class OutputSpec:
+    """An output of the twin compared with a measured channel.
+
+    Attributes:
+        name: channel name (``ia``, ``omega``, ...).
+        unit: SI unit as text.
+        scale: typical magnitude used to normalise residuals when a window's own RMS is
+            smaller (a floor that keeps a near-zero signal from dominating the RMSE).
+    """
+
+    name: str
+    unit: str
+    scale: float
+
+
+@dataclass
+class TwinModel(abc.ABC):
+    """Base class of every twin model.
+
+    Subclasses define :attr:`parameters`, :attr:`inputs`, :attr:`outputs` and implement
+    :meth:`simulate`.
+    """
+
+    parameters: tuple[ParameterSpec, ...] = field(init=False, default=())
+    inputs: tuple[str, ...] = field(init=False, default=())
+    outputs: tuple[OutputSpec, ...] = field(init=False, default=())
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return tuple(o.name for o in self.outputs)
+
+    def parameter(self, name: str) -> ParameterSpec:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(f"unknown parameter {name!r}; the model has {list(self.parameter_names)}")
+
+    def nominal_vector(self, values: Mapping[str, float] | None = None) -> FloatArray:
+        """Full parameter vector (n_params,) in :attr:`parameters` order, nominal unless given."""
+        values = values or {}
+        return np.array([float(values.get(p.name, p.nominal)) for p in self.parameters])
+
+    def required_channels(self) -> tuple[str, ...]:
+        """Channels a window must hold: the inputs and the outputs."""
+        return tuple(dict.fromkeys((*self.inputs, *self.output_names)))
+
+    @abc.abstractmethod
+    def simulate(self, theta: FloatArray, window: WindowData) -> FloatArray:
+        """Simulate the window for every parameter vector of a swarm.
+
+        Args:
+            theta: full parameter vectors, shape (P, n_params), in :attr:`parameters` order.
+            window: the measured window; the simulation starts from its first sample's
+                measured state and is driven by its measured inputs.
+
+        Returns:
+            Simulated outputs, shape (P, N, n_outputs), in :attr:`outputs` order. Rows of
+            parameter vectors that make the model blow up contain ``nan`` or ``inf``; they never
+            raise.
+        """
+
+    def describe(self) -> str:
+        """Human-readable summary: parameters, inputs, outputs."""
+        lines = [f"{type(self).__name__}:"]
+        lines.append("  inputs:  " + ", ".join(self.inputs))
+        lines.append("  outputs: " + ", ".join(f"{o.name} [{o.unit}]" for o in self.outputs))
+        lines.append("  parameters:")
+        for p in self.parameters:
+            lines.append(f"    {p.name:<8} = {p.nominal:<12g} {p.unit:<12} {p.description}")
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.describe()
+
+
+def composite_zoh(a: FloatArray, b: FloatArray, n_sub: int) -> tuple[FloatArray, FloatArray]:
+    """Compose ``n_sub`` steps of the linear map ``x' = A x + B u`` with ``u`` held.
+
+    Returns ``Phi = A^n`` and ``Gamma = sum_{j<n} A^j B``, computed exactly (to rounding) by
+    squaring the augmented matrix ``[[A, B], [0, I]]``. This is the exact zero-order-hold
+    discretisation of the sub-stepped model: one 10 ms sample of a model integrated at 1e-4 s
+    costs about log2(100) = 7 small matrix products instead of 100 steps.
+
+    Args:
+        a: shape (P, n, n).
+        b: shape (P, n, m).
+        n_sub: number of sub-steps per sample (>= 1).
+
+    Returns:
+        (Phi, Gamma) with shapes (P, n, n) and (P, n, m).
+    """
+    p, n, _ = a.shape
+    m = b.shape[2]
+    aug = np.zeros((p, n + m, n + m))
+    aug[:, :n, :n] = a
+    aug[:, :n, n:] = b
+    aug[:, n:, n:] = np.eye(m)
+    powered = np.linalg.matrix_power(aug, n_sub)
+    return powered[:, :n, :n], powered[:, :n, n:]
+
+
+@njit(cache=True)
+def _propagate_kernel(phi, gamma, u, x):  # pragma: no cover - compiled
+    p, nk, n = x.shape
+    m = u.shape[1]
+    for q in range(p):
+        for k in range(nk - 1):
+            for i in range(n):
+                acc = 0.0
+                for j in range(m):
+                    acc += gamma[q, i, j] * u[k, j]
+                for j in range(n):
+                    acc += phi[q, i, j] * x[q, k, j]
+                x[q, k + 1, i] = acc
+
+
+def propagate(
+    phi: FloatArray, gamma: FloatArray, x0: FloatArray, u: FloatArray
+) -> FloatArray:
+    """Run ``x[k+1] = Phi x[k] + Gamma u[k]`` for a swarm.
+
+    The recursion is compiled with numba: a Python loop over 200 samples costs ~1 ms whatever
+    the swarm size, the compiled one ~10 us for 15 particles (profiled; see benchmarks/).
+
+    Args:
+        phi: shape (P, n, n).
+        gamma: shape (P, n, m).
+        x0: initial states, shape (P, n) or (n,).
+        u: inputs held over each sample, shape (N, m); ``u[k]`` drives step k -> k+1.
+
+    Returns:
+        States, shape (P, N, n), with ``x[:, 0] = x0``. Overflow gives inf/nan, never raises.
+    """
+    p, n, _ = phi.shape
+    nk = u.shape[0]
+    x = np.empty((p, nk, n))
+    x[:, 0] = x0
+    _propagate_kernel(np.ascontiguousarray(phi), np.ascontiguousarray(gamma),
+                      np.ascontiguousarray(u, dtype=float), x)
+    return x
+
+
+def ensure_2d(theta: Sequence[float] | FloatArray) -> FloatArray:
+    arr = np.asarray(theta, dtype=float)
+    return arr[None, :] if arr.ndim == 1 else arr
