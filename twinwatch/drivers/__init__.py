@@ -1,1 +1,139 @@
-"""twinwatch.drivers."""
+"""Acquisition drivers and their registry.
+
+Like python-can's ``can/interfaces/__init__.py``: a table maps a driver name (the ``type`` of a
+``[driver]`` configuration table) to the module and class implementing it. The table is
+extended by the entry-point group ``twinwatch.drivers`` (``name = "package.module:Class"``), and
+a driver's module is imported only when that driver is used, so a missing optional dependency
+only matters to the configurations that need it.
+
+Every driver class provides ``from_config(config, *, base_dir) -> Driver`` (``config`` is its
+validated configuration model or the raw table; ``base_dir`` resolves relative paths).
+
+The base contract (:class:`Driver`, :class:`Sample`, the errors) is re-exported here.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import logging
+from collections.abc import Mapping
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any
+
+from twinwatch.drivers.base import (
+    Driver,
+    DriverError,
+    DriverInitializationError,
+    DriverOperationError,
+    DriverStats,
+    EndOfStream,
+    Sample,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "BUILTIN_DRIVERS",
+    "ENTRY_POINT_GROUP",
+    "Driver",
+    "DriverError",
+    "DriverInitializationError",
+    "DriverOperationError",
+    "DriverStats",
+    "EndOfStream",
+    "Sample",
+    "create_driver",
+    "driver_table",
+    "get_driver_class",
+]
+
+#: Entry-point group through which other packages add drivers.
+ENTRY_POINT_GROUP = "twinwatch.drivers"
+
+#: Built-in drivers: name => (module, class name).
+BUILTIN_DRIVERS: Mapping[str, tuple[str, str]] = {
+    "can": ("twinwatch.drivers.can", "CanDriver"),
+    "file": ("twinwatch.drivers.file", "FileDriver"),
+    "simulated": ("twinwatch.drivers.simulated", "SimulatedDriver"),
+}
+
+
+@functools.cache
+def driver_table() -> Mapping[str, tuple[str, str]]:
+    """All known drivers: name => (module, class name).
+
+    The built-in drivers, plus those registered in the ``twinwatch.drivers`` entry-point group
+    (read once). A plug-in cannot replace a built-in driver: the clash is logged and ignored.
+    """
+    table = dict(BUILTIN_DRIVERS)
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name in BUILTIN_DRIVERS:
+            logger.warning(
+                "entry point %s = %r ignored: %r is a built-in driver", ep.name, ep.value, ep.name
+            )
+            continue
+        module, _, attr = ep.value.partition(":")
+        table[ep.name] = (module.strip(), attr.strip())
+    return table
+
+
+def get_driver_class(name: str) -> type[Driver]:
+    """Import and return the driver class registered as ``name``.
+
+    Raises:
+        DriverInitializationError: no driver has that name, or its module cannot be imported
+            (a missing optional dependency), or it does not define a :class:`Driver` subclass.
+    """
+    table = driver_table()
+    try:
+        module_name, class_name = table[name]
+    except KeyError:
+        raise DriverInitializationError(
+            f"unknown driver {name!r}; known drivers: {', '.join(sorted(table))}"
+        ) from None
+    try:
+        module = importlib.import_module(module_name)
+        cls = getattr(module, class_name)
+    except (ImportError, AttributeError) as exc:
+        raise DriverInitializationError(
+            f"driver {name!r} not available: {exc} (is the package that provides "
+            f"{module_name}.{class_name} installed, with its extras?)"
+        ) from exc
+    if not (isinstance(cls, type) and issubclass(cls, Driver)):
+        raise DriverInitializationError(
+            f"driver {name!r}: {module_name}.{class_name} is not a twinwatch Driver"
+        )
+    return cls
+
+
+def create_driver(config: Any, *, base_dir: Path, **kwargs: Any) -> Driver:
+    """Create the driver that ``config`` describes.
+
+    Args:
+        config: a driver configuration model (with a ``type`` attribute, e.g.
+            :class:`~twinwatch.drivers.can.CanDriverConfig`) or a raw mapping with a ``"type"``
+            key (the ``[driver]`` table of a machine config).
+        base_dir: directory against which relative paths in the configuration are resolved
+            (the configuration file's directory).
+        **kwargs: passed on to the driver's ``from_config`` (e.g. ``bus=`` for ``"can"``).
+
+    Returns:
+        An open driver; the caller closes it (or uses it as a context manager).
+
+    Raises:
+        DriverInitializationError: unknown or unavailable driver, invalid configuration, or
+            the driver could not be opened.
+    """
+    name = config.get("type") if isinstance(config, Mapping) else getattr(config, "type", None)
+    if not isinstance(name, str):
+        raise DriverInitializationError("driver configuration has no 'type'")
+    cls = get_driver_class(name)
+    from_config = getattr(cls, "from_config", None)
+    if from_config is None:
+        raise DriverInitializationError(f"driver {name!r}: {cls.__name__} has no from_config()")
+    driver = from_config(config, base_dir=base_dir, **kwargs)
+    if not isinstance(driver, Driver):
+        raise DriverInitializationError(f"driver {name!r}: from_config() returned {driver!r}")
+    return driver

@@ -1,0 +1,394 @@
+"""File replay driver: twin samples from a recording (CSV or MATLAB ``.mat``).
+
+The whole recording is loaded when the driver is opened (recordings of a few hours at 100 Hz
+are a few tens of MB) and replayed row by row, as fast as the caller reads or paced by the wall
+clock (``realtime = true``). After the last row :meth:`~twinwatch.drivers.base.Driver.read`
+raises :class:`~twinwatch.drivers.base.EndOfStream`.
+
+Time stamps: ``t = k * sample_period`` where ``k`` is the row's index in the file (0-based,
+counted before ``start`` is applied, so a cut recording keeps its own clock), or, with
+``time_column``, ``t = value * time_scale`` read from that column.
+
+Formats:
+
+* CSV: one header row naming the columns, then one row per sample; cells are decimal numbers.
+  An empty or non-numeric cell is read as NaN; a row with fewer cells than the header has NaN
+  in the missing cells. Blank lines are skipped.
+* MAT (MATLAB v5/v7, read with :func:`scipy.io.loadmat`; v7.3/HDF5 is not supported): every
+  mapped "column" is a numeric variable holding a vector (N x 1, 1 x N or N), all of the same
+  length N. MAT files usually hold no time vector, hence ``sample_period``.
+
+Bad input is counted, logged once, and the driver goes on (see
+:class:`~twinwatch.drivers.base.DriverStats`): NaN or infinite values count in
+``stats.bad_values`` and are delivered as they are; a row whose time stamp is not a number is
+skipped and counts in ``stats.bad_frames``.
+
+Example configuration (TOML) for the MotoShield recording::
+
+    [driver]
+    type = "file"
+    path = "../../shared/data/motoshield/aprbsResult.mat"  # relative to the config file
+    sample_period = 0.02
+    [driver.columns]
+    Va = { column = "u" }
+    omega = { column = "y" }
+    ia = { column = "ifltr" }
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import logging
+import math
+import time
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+import scipy.io
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from twinwatch.drivers.base import Driver, DriverInitializationError, EndOfStream, Sample
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["FileColumnMap", "FileDriver", "FileDriverConfig"]
+
+_CSV_SUFFIXES = {".csv": ",", ".txt": ",", ".tsv": "\t"}
+_MAT_SUFFIXES = {".mat"}
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class FileColumnMap(BaseModel):
+    """Where one twin channel comes from: ``value_twin = value_file * scale + offset``.
+
+    ``column`` is a CSV header name or a MAT variable name.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    column: str = Field(min_length=1)
+    scale: float = Field(default=1.0, allow_inf_nan=False)
+    offset: float = Field(default=0.0, allow_inf_nan=False)
+    unit: str | None = None
+
+
+class FileDriverConfig(BaseModel):
+    """Configuration of :class:`FileDriver` (the ``[driver]`` table with ``type = "file"``).
+
+    Attributes:
+        type: always ``"file"``.
+        path: the recording; a relative path is resolved against the configuration file's
+            directory (``base_dir``).
+        format: ``"csv"``, ``"mat"`` or ``"auto"`` (by suffix: ``.csv``, ``.txt``, ``.tsv``
+            are CSV, ``.mat`` is MAT).
+        sample_period: sample period [s] (> 0). Required unless ``time_column`` is given;
+            with a time column it is the nominal period (default: the median time step).
+        time_column: column (or MAT variable) holding the time stamps; None: t = k *
+            sample_period.
+        time_scale: seconds per unit of ``time_column`` (0.001 for a column in ms).
+        delimiter: CSV field separator (one character); default ``","`` (tab for ``.tsv``).
+        columns: twin channel name -> :class:`FileColumnMap`, at least one. The order of the
+            table is the order of :attr:`FileDriver.channels`.
+        realtime: False replays as fast as the caller reads; True delivers each row when its
+            time stamp is due on the wall clock (relative to the first row delivered).
+        start: index of the first row to replay (0-based, like a Python slice; default 0).
+        stop: index one past the last row to replay (default: the end of the file).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["file"]
+    path: Path
+    format: Literal["csv", "mat", "auto"] = "auto"
+    sample_period: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    time_column: str | None = Field(default=None, min_length=1)
+    time_scale: float = Field(default=1.0, gt=0, allow_inf_nan=False)
+    delimiter: str | None = Field(default=None, min_length=1, max_length=1)
+    columns: dict[str, FileColumnMap] = Field(min_length=1)
+    realtime: bool = False
+    start: int | None = Field(default=None, ge=0)
+    stop: int | None = Field(default=None, ge=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> FileDriverConfig:
+        if self.sample_period is None and self.time_column is None:
+            raise ValueError("sample_period is required unless time_column is given")
+        if self.start is not None and self.stop is not None and self.stop < self.start:
+            raise ValueError(f"stop ({self.stop}) is before start ({self.start})")
+        return self
+
+    def resolved(self, base_dir: Path | None) -> FileDriverConfig:
+        """Return a copy whose relative ``path`` is joined to ``base_dir``."""
+        if base_dir is None:
+            return self
+        path = self.path.expanduser()
+        if path.is_absolute():
+            return self
+        return self.model_copy(update={"path": Path(base_dir) / path})
+
+
+def _available(name: str, names: Iterable[str]) -> str:
+    names = sorted(names)
+    close = difflib.get_close_matches(name, names, n=3)
+    listing = "available: " + (", ".join(names) if names else "none")
+    if close:
+        return "did you mean " + " or ".join(repr(c) for c in close) + "? " + listing
+    return listing
+
+
+class FileDriver(Driver):
+    """Replay a recorded CSV or MAT file as twin samples.
+
+    Args:
+        config: the validated configuration (see :class:`FileDriverConfig`).
+        base_dir: directory that a relative ``path`` is resolved against (the configuration
+            file's directory); None means the current directory.
+
+    Attributes:
+        channels: twin channel names, in the order of ``config.columns``.
+        sample_period: ``config.sample_period`` [s], or the median time step of
+            ``time_column`` when no period is configured.
+        n_rows: number of rows that will be replayed (after ``start``/``stop``).
+
+    Raises:
+        DriverInitializationError: the file is missing or unreadable, its format is unknown, a
+            mapped column or variable is missing (the message names the config key and lists
+            the available ones), a MAT variable is not a numeric vector, or the variables have
+            different lengths.
+    """
+
+    def __init__(self, config: FileDriverConfig, *, base_dir: Path | None = None) -> None:
+        super().__init__()
+        try:
+            self._setup(config.resolved(base_dir))
+        except BaseException:
+            self.close()
+            raise
+
+    @classmethod
+    def from_config(
+        cls, config: FileDriverConfig | Mapping[str, Any], *, base_dir: Path
+    ) -> FileDriver:
+        """Build a driver from a validated config or a raw ``[driver]`` table.
+
+        Raises:
+            DriverInitializationError: the table does not validate, or see :class:`FileDriver`.
+        """
+        if not isinstance(config, FileDriverConfig):
+            try:
+                config = FileDriverConfig.model_validate(config)
+            except ValidationError as exc:
+                raise DriverInitializationError(f"invalid file driver config: {exc}") from exc
+        return cls(config, base_dir=base_dir)
+
+    # -- loading ----------------------------------------------------------------------------
+    def _setup(self, config: FileDriverConfig) -> None:
+        self.config = config
+        self.channels = tuple(config.columns)
+        path = config.path
+        if not path.is_file():
+            raise DriverInitializationError(f"path: file {str(path)!r} not found")
+        fmt = config.format
+        if fmt == "auto":
+            suffix = path.suffix.lower()
+            if suffix in _CSV_SUFFIXES:
+                fmt = "csv"
+            elif suffix in _MAT_SUFFIXES:
+                fmt = "mat"
+            else:
+                raise DriverInitializationError(
+                    f"format: cannot tell the format of {str(path)!r} from its suffix "
+                    f"{suffix!r}; set format = 'csv' or 'mat'"
+                )
+        if fmt == "csv":
+            delimiter = config.delimiter or _CSV_SUFFIXES.get(path.suffix.lower(), ",")
+            table = self._load_csv(path, delimiter)
+        else:
+            table = self._load_mat(path)
+        n_total = len(next(iter(table.values())))
+
+        # values: one row per sample, one column per channel, in the twin's units
+        values = np.empty((n_total, len(self.channels)), dtype=np.float64)
+        for j, mapping in enumerate(config.columns.values()):
+            values[:, j] = table[mapping.column] * mapping.scale + mapping.offset
+        if config.time_column is not None:
+            t = table[config.time_column] * config.time_scale
+        else:
+            assert config.sample_period is not None  # checked by the config model
+            t = np.arange(n_total, dtype=np.float64) * config.sample_period
+
+        lo, hi, _ = slice(config.start, config.stop).indices(n_total)
+        self._t: FloatArray = t[lo:hi]
+        self._values: FloatArray = values[lo:hi]
+        self.n_rows = len(self._t)
+        self.sample_period = (
+            config.sample_period
+            if config.sample_period is not None
+            else self._median_step(self._t, config.time_column)
+        )
+        self._next = 0
+        self._origin: tuple[float, float] | None = None  # (wall clock, file time) of 1st row
+        logger.info(
+            "file driver ready: %s (%s), rows %d..%d of %d, sample period %g s, channels %s",
+            path,
+            fmt,
+            lo,
+            hi,
+            n_total,
+            self.sample_period,
+            ", ".join(self.channels),
+        )
+
+    @staticmethod
+    def _median_step(t: FloatArray, column: str | None) -> float:
+        steps = np.diff(t[np.isfinite(t)])
+        steps = steps[steps > 0]
+        if steps.size == 0:
+            raise DriverInitializationError(
+                f"sample_period: cannot infer it from time_column {column!r} "
+                "(fewer than two increasing time stamps); set sample_period"
+            )
+        return float(np.median(steps))
+
+    def _load_csv(self, path: Path, delimiter: str) -> dict[str, FloatArray]:
+        try:
+            with path.open(newline="", encoding="utf-8-sig") as f:
+                reader = csv.reader(f, delimiter=delimiter)
+                header = next(reader, None)
+                rows = [row for row in reader if any(cell.strip() for cell in row)]
+        except (OSError, UnicodeDecodeError, csv.Error) as exc:
+            raise DriverInitializationError(f"path: cannot read CSV {str(path)!r}: {exc}") from exc
+        if header is None:
+            raise DriverInitializationError(f"path: CSV {str(path)!r} is empty (no header row)")
+        header = [h.strip() for h in header]
+        index: dict[str, int] = {}
+        for key, column in self._keys():
+            if header.count(column) > 1:
+                raise DriverInitializationError(
+                    f"{key}: column {column!r} appears {header.count(column)} times in "
+                    f"{str(path)!r}"
+                )
+            if column not in header:
+                raise DriverInitializationError(
+                    f"{key}: column {column!r} not in {path.name}; {_available(column, header)}"
+                )
+            index[column] = header.index(column)
+        if not rows:
+            raise DriverInitializationError(f"path: CSV {str(path)!r} has no data rows")
+
+        table: dict[str, FloatArray] = {}
+        for column, j in index.items():
+            out = np.full(len(rows), np.nan)
+            not_numbers = 0
+            for k, row in enumerate(rows):
+                cell = row[j].strip() if j < len(row) else ""
+                if not cell:
+                    continue
+                try:
+                    out[k] = float(cell)
+                except ValueError:
+                    not_numbers += 1
+            if not_numbers:
+                logger.warning(
+                    "CSV %s column %r: %d cells are not numbers; read as NaN",
+                    path.name,
+                    column,
+                    not_numbers,
+                )
+            table[column] = out
+        return table
+
+    def _load_mat(self, path: Path) -> dict[str, FloatArray]:
+        try:
+            mat = scipy.io.loadmat(path)
+        except NotImplementedError as exc:  # MATLAB v7.3 files are HDF5
+            raise DriverInitializationError(
+                f"path: {str(path)!r} is a MATLAB v7.3 (HDF5) file; save it with -v7: {exc}"
+            ) from exc
+        except (OSError, ValueError, TypeError) as exc:
+            raise DriverInitializationError(f"path: cannot read MAT {str(path)!r}: {exc}") from exc
+        variables = [name for name in mat if not name.startswith("__")]
+        table: dict[str, FloatArray] = {}
+        length: tuple[str, int] | None = None
+        for key, name in self._keys():
+            if name not in mat or name.startswith("__"):
+                raise DriverInitializationError(
+                    f"{key}: variable {name!r} not in {path.name}; {_available(name, variables)}"
+                )
+            array = np.asarray(mat[name])
+            if array.dtype.kind not in "biuf" or sum(d > 1 for d in array.shape) > 1:
+                raise DriverInitializationError(
+                    f"{key}: variable {name!r} in {path.name} is not a numeric vector "
+                    f"(dtype {array.dtype}, shape {array.shape})"
+                )
+            vector = array.astype(np.float64).ravel()
+            if length is not None and vector.size != length[1]:
+                raise DriverInitializationError(
+                    f"{key}: variable {name!r} has {vector.size} samples, "
+                    f"{length[0]!r} has {length[1]}"
+                )
+            length = (name, vector.size)
+            table[name] = vector
+        if length is None or length[1] == 0:
+            raise DriverInitializationError(f"path: {str(path)!r}: the variables are empty")
+        return table
+
+    def _keys(self) -> list[tuple[str, str]]:
+        """(config key, column) of every column to load; the key names it in errors."""
+        keys = [(f"columns.{ch}", m.column) for ch, m in self.config.columns.items()]
+        if self.config.time_column is not None:
+            keys.append(("time_column", self.config.time_column))
+        return keys
+
+    # -- reading ----------------------------------------------------------------------------
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        while True:
+            k = self._next
+            if k >= self.n_rows:
+                raise EndOfStream(f"end of {self.config.path.name} after {self.n_rows} rows")
+            t = float(self._t[k])
+            if self.config.realtime and math.isfinite(t) and not self._wait_until(t, timeout):
+                return None
+            self._next = k + 1
+            self.stats.frames += 1
+            if not math.isfinite(t):
+                self.stats.bad_frames += 1
+                self.log_once(
+                    "time",
+                    "%s row %d has no valid time stamp; row skipped (stats.bad_frames)",
+                    self.config.path.name,
+                    k,
+                )
+                continue
+            row = self._values[k]
+            values = {ch: float(v) for ch, v in zip(self.channels, row, strict=True)}
+            bad = [ch for ch, v in values.items() if not math.isfinite(v)]
+            if bad:
+                self.stats.bad_values += len(bad)
+                self.log_once(
+                    "nonfinite",
+                    "%s row %d: %s empty or not finite; delivered as NaN (stats.bad_values)",
+                    self.config.path.name,
+                    k,
+                    ", ".join(bad),
+                )
+            return Sample(t, values)
+
+    def _wait_until(self, t: float, timeout: float | None) -> bool:
+        """Sleep until file time ``t`` is due; False if ``timeout`` [s] ran out first."""
+        now = time.monotonic()
+        if self._origin is None:
+            self._origin = (now, t)
+        wait = self._origin[0] + (t - self._origin[1]) - now
+        if wait <= 0:
+            return True
+        if timeout is not None and wait > timeout:
+            time.sleep(max(timeout, 0.0))
+            return False
+        time.sleep(wait)
+        return True
