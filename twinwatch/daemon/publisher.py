@@ -1,0 +1,462 @@
+"""Publishing machine health over zenoh.
+
+One :class:`HealthPublisher` per monitored machine. It owns one zenoh session and declares,
+with ``P = {key_prefix}/{machine}``:
+
+* a publisher on ``P/health``: one JSON document per acquisition window
+  (encoding ``application/json``), see :meth:`HealthPublisher.publish`;
+* publishers on ``P/<suffix>`` created on first use by :meth:`HealthPublisher.publish_json`
+  (``P/alarm``, ...);
+* a liveliness token ``P/alive``, present while the publisher is open: a remote process sees the
+  machine appear and disappear with ``session.liveliness().declare_subscriber(...)`` or polls it
+  with ``session.liveliness().get(...)``;
+* one queryable on ``P/**`` that answers a ``session.get(selector)`` with the *latest* payload of
+  every topic above whose key intersects the selector: ``get("twinwatch/m1/health")`` returns
+  the last health document, ``get("twinwatch/m1/**")`` the last health and the last alarm.
+  Topics not published yet are not answered (the get ends with no reply).
+
+Every session is configured by :func:`to_zenoh_config`: explicit endpoints only, multicast and
+gossip scouting off, so the daemon never talks to anything it was not told to.
+
+An external process subscribes with (``pip install eclipse-zenoh``)::
+
+    import json, zenoh
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:7447"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    with zenoh.open(conf) as session:
+        for reply in session.get("twinwatch/motor1/health", timeout=2.0):
+            if reply.ok is not None:
+                print("latest:", json.loads(reply.ok.payload.to_string()))
+        with session.declare_subscriber("twinwatch/*/health") as sub:
+            for sample in sub:
+                print(sample.key_expr, json.loads(sample.payload.to_string()))
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+import threading
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from datetime import date, datetime
+from enum import Enum
+from pathlib import PurePath
+from types import TracebackType
+from typing import Any, Literal, Self
+
+import numpy as np
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "HealthPublisher",
+    "PublisherError",
+    "ZenohConfig",
+    "open_session",
+    "to_json",
+    "to_zenoh_config",
+]
+
+_ENDPOINT_RE = re.compile(
+    r"^(?P<proto>tcp|udp|tls|quic|ws)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*))"
+    r":(?P<port>[0-9]{1,5})$"
+)
+# One key-expression chunk without wildcards or the characters zenoh reserves.
+_CHUNK_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
+# " at /root/.cargo/.../unicast.rs:338." suffixes of zenoh error messages.
+_RUST_LOCATION_RE = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+
+class PublisherError(Exception):
+    """The zenoh session or one of its declarations could not be created.
+
+    The message names the endpoint involved and what to change in the configuration.
+    """
+
+
+class ZenohConfig(BaseModel):
+    """The ``[zenoh]`` section of a machine configuration.
+
+    Attributes:
+        mode: zenoh node kind. ``"peer"`` (default) listens on :attr:`listen` and may also
+            connect to :attr:`connect`; ``"client"`` only connects (``connect`` must be set,
+            ``listen`` must not); ``"router"`` listens and routes for clients, standing in for a
+            ``zenohd`` when there is none.
+        listen: endpoints ``proto/host:port`` to listen on, e.g. ``"tcp/127.0.0.1:7447"``.
+        connect: endpoints to connect to (a router or another peer).
+        key_prefix: first chunk(s) of every key, ``"twinwatch"`` gives
+            ``twinwatch/<machine>/health``. ``/``-separated chunks, no wildcards.
+        enabled: when false, :class:`HealthPublisher` opens no session and publishing is a no-op.
+
+    Unknown keys are an error (``extra="forbid"``).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    key_prefix: str = "twinwatch"
+    enabled: bool = True
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _check_endpoints(cls, value: list[str]) -> list[str]:
+        for endpoint in value:
+            match = _ENDPOINT_RE.match(endpoint)
+            if match is None:
+                raise ValueError(
+                    f"endpoint {endpoint!r} is not of the form proto/host:port "
+                    "(proto one of tcp, udp, tls, quic, ws), e.g. 'tcp/127.0.0.1:7447'"
+                )
+            port = int(match["port"])
+            if not 1 <= port <= 65535:
+                raise ValueError(f"endpoint {endpoint!r}: port {port} is not in 1..65535")
+        return value
+
+    @field_validator("key_prefix")
+    @classmethod
+    def _check_prefix(cls, value: str) -> str:
+        _check_key(value, what="key_prefix")
+        return value
+
+    @model_validator(mode="after")
+    def _check_mode(self) -> Self:
+        if self.mode == "client":
+            if not self.connect:
+                raise ValueError("mode 'client' needs at least one [zenoh].connect endpoint")
+            if "listen" in self.model_fields_set and self.listen:
+                raise ValueError(
+                    "mode 'client' does not listen: remove [zenoh].listen or use mode 'peer'"
+                )
+        elif not self.listen and not self.connect:
+            raise ValueError(
+                f"mode {self.mode!r} needs a [zenoh].listen or a [zenoh].connect endpoint"
+            )
+        return self
+
+
+def _check_key(key: str, *, what: str) -> None:
+    """Raise :class:`ValueError` unless ``key`` is ``/``-separated plain chunks."""
+    if not key or any(_CHUNK_RE.match(chunk) is None for chunk in key.split("/")):
+        raise ValueError(
+            f"{what} {key!r} must be non-empty chunks of letters, digits, '_', '-' or '.' "
+            "separated by '/' (no wildcards, no leading or trailing '/')"
+        )
+
+
+def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+    """Build the :class:`zenoh.Config` for ``cfg``.
+
+    Multicast and gossip scouting are always off: the session only uses the endpoints given.
+    In client mode no listen endpoint is set.
+
+    Raises:
+        PublisherError: zenoh rejected a value (should not happen for a validated ``cfg``).
+    """
+    conf = zenoh.Config()
+    listen = [] if cfg.mode == "client" else list(cfg.listen)
+    try:
+        conf.insert_json5("mode", json.dumps(cfg.mode))
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+        conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("scouting/gossip/enabled", "false")
+    except zenoh.ZError as exc:
+        raise PublisherError(f"invalid zenoh configuration {cfg!r}: {exc}") from exc
+    return conf
+
+
+def open_session(cfg: ZenohConfig) -> zenoh.Session:
+    """Open a zenoh session for ``cfg`` (see :func:`to_zenoh_config`).
+
+    The caller owns the session and must ``close()`` it (or use it as a context manager).
+
+    Raises:
+        PublisherError: the session could not open; the message says which endpoint failed
+            and what to change (port already in use, nothing listening, unknown host).
+    """
+    conf = to_zenoh_config(cfg)
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise PublisherError(_explain_open_failure(cfg, str(exc))) from exc
+    logger.debug(
+        "zenoh session %s open (mode=%s, listen=%s, connect=%s)",
+        session.zid(),
+        cfg.mode,
+        cfg.listen if cfg.mode != "client" else [],
+        cfg.connect,
+    )
+    return session
+
+
+def _explain_open_failure(cfg: ZenohConfig, message: str) -> str:
+    message = _RUST_LOCATION_RE.sub("", message).strip()
+    lowered = message.lower()
+    if "address already in use" in lowered:
+        endpoint = next((e for e in cfg.listen if e in message), None) or ", ".join(cfg.listen)
+        host_port = endpoint.split("/", 1)[-1]
+        host, _, port = host_port.rpartition(":")
+        return (
+            f"cannot listen on {endpoint}: port {port} already in use on {host}: another "
+            "twinwatch or zenoh peer is listening; set [zenoh].listen to another port "
+            f"(zenoh: {message})"
+        )
+    if "unable to connect" in lowered:
+        return (
+            f"cannot connect to {', '.join(cfg.connect)}: nothing answers there; start the zenoh "
+            "router/peer first or fix [zenoh].connect "
+            f"(zenoh: {message})"
+        )
+    if "lookup address" in lowered or "name or service not known" in lowered:
+        return (
+            f"cannot resolve a host in listen={cfg.listen} connect={cfg.connect}: "
+            f"fix the endpoint host in [zenoh] (zenoh: {message})"
+        )
+    return (
+        f"cannot open zenoh session (mode={cfg.mode}, listen={cfg.listen}, "
+        f"connect={cfg.connect}): {message}"
+    )
+
+
+def _jsonable(value: Any) -> Any:
+    """Convert ``value`` to plain JSON types; NaN and infinities become ``None``."""
+    if value is None or isinstance(value, bool | str | int):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return [_jsonable(v) for v in value.tolist()]
+    if isinstance(value, np.generic):
+        return _jsonable(value.item())
+    if isinstance(value, Enum):
+        return _jsonable(value.value)
+    if isinstance(value, datetime | date):
+        return value.isoformat()
+    if isinstance(value, PurePath):
+        return str(value)
+    if isinstance(value, Sequence | set | frozenset):
+        return [_jsonable(v) for v in value]
+    raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
+
+
+def to_json(payload: Mapping[str, Any]) -> str:
+    """Serialise ``payload`` to compact, strictly valid JSON.
+
+    numpy scalars and arrays become numbers and lists, enums their value, dates ISO 8601
+    strings; NaN and infinities become ``null`` (JSON has no NaN).
+
+    Raises:
+        TypeError: a value of another type.
+    """
+    return json.dumps(_jsonable(payload), separators=(",", ":"), allow_nan=False)
+
+
+class HealthPublisher:
+    """Publishes one machine's health (and other JSON topics) on zenoh.
+
+    Keys, with ``P = {config.key_prefix}/{machine}``: ``P/health`` (publisher and queryable
+    answering the latest document), ``P/<suffix>`` for :meth:`publish_json`, liveliness token
+    ``P/alive``. See the module docstring for how a remote process reads them.
+
+    :meth:`publish` and :meth:`publish_json` may be called from a worker thread while
+    :meth:`close` is called from another; a failing put is logged once (then at DEBUG until a
+    put succeeds again), counted in :attr:`errors`, and never raised. After :meth:`close`,
+    publishing is a silent no-op. With ``config.enabled`` false nothing is opened and
+    publishing is a no-op.
+
+    Args:
+        config: the ``[zenoh]`` configuration.
+        machine: machine name, one key chunk (letters, digits, ``_``, ``-``, ``.``).
+
+    Raises:
+        ValueError: ``machine`` is not a valid key chunk.
+        PublisherError: the session or a declaration could not be created.
+    """
+
+    def __init__(self, config: ZenohConfig, machine: str) -> None:
+        self._closed = True  # until fully open, so __del__ and close() are safe
+        if "/" in machine:
+            raise ValueError(f"machine {machine!r} must be a single key chunk (no '/')")
+        _check_key(machine, what="machine")
+        self.config = config
+        self.machine = machine
+        self.base_key = f"{config.key_prefix}/{machine}"
+        self.health_key = f"{self.base_key}/health"
+        self.alive_key = f"{self.base_key}/alive"
+        self.published = 0
+        self.errors = 0
+        self._lock = threading.Lock()
+        self._failing = False
+        self._latest: dict[str, str] = {}
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._session: zenoh.Session | None = None
+        self._token: zenoh.LivelinessToken | None = None
+        self._queryable: zenoh.Queryable[None] | None = None
+        if not config.enabled:
+            logger.info("zenoh publishing disabled for %s", machine)
+            return
+        session = open_session(config)
+        try:
+            self._publishers[self.health_key] = session.declare_publisher(
+                self.health_key, encoding=zenoh.Encoding.APPLICATION_JSON
+            )
+            self._queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
+            self._token = session.liveliness().declare_token(self.alive_key)
+        except zenoh.ZError as exc:
+            session.close()
+            raise PublisherError(
+                f"cannot declare zenoh entities under {self.base_key}: {exc}"
+            ) from exc
+        self._session = session
+        self._closed = False
+        logger.info(
+            "publishing health of %s on %s (mode=%s, listen=%s, connect=%s)",
+            machine,
+            self.health_key,
+            config.mode,
+            config.listen if config.mode != "client" else [],
+            config.connect,
+        )
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` has run (or when publishing is disabled)."""
+        return self._closed
+
+    @property
+    def session(self) -> zenoh.Session | None:
+        """The underlying zenoh session (``None`` when disabled)."""
+        return self._session
+
+    def publish(self, health: Mapping[str, Any]) -> None:
+        """Publish one health document on ``P/health`` and keep it as the latest.
+
+        Args:
+            health: JSON-serialisable mapping (see :func:`to_json`).
+        """
+        self._put(self.health_key, health)
+
+    def publish_json(self, key_suffix: str, payload: Mapping[str, Any]) -> None:
+        """Publish ``payload`` as JSON on ``P/{key_suffix}`` and keep it as the latest.
+
+        Args:
+            key_suffix: one or more ``/``-separated key chunks, e.g. ``"alarm"``; not
+                ``"alive"`` (reserved for liveliness).
+            payload: JSON-serialisable mapping (see :func:`to_json`).
+
+        Raises:
+            ValueError: ``key_suffix`` is not a plain key or is ``"alive"``.
+        """
+        _check_key(key_suffix, what="key_suffix")
+        if key_suffix == "alive":
+            raise ValueError("key_suffix 'alive' is reserved for the liveliness token")
+        self._put(f"{self.base_key}/{key_suffix}", payload)
+
+    def _put(self, key: str, payload: Mapping[str, Any]) -> None:
+        with self._lock:
+            if self._closed:
+                logger.debug("publisher closed, dropping %s", key)
+                return
+            assert self._session is not None
+            try:
+                text = to_json(payload)
+                publisher = self._publishers.get(key)
+                if publisher is None:
+                    publisher = self._session.declare_publisher(
+                        key, encoding=zenoh.Encoding.APPLICATION_JSON
+                    )
+                    self._publishers[key] = publisher
+                publisher.put(text)
+            except (zenoh.ZError, TypeError, ValueError) as exc:
+                self.errors += 1
+                if not self._failing:
+                    logger.error("publishing on %s failed: %s", key, exc)
+                    self._failing = True
+                else:
+                    logger.debug("publishing on %s failed again: %s", key, exc)
+                return
+            self._latest[key] = text
+            self.published += 1
+            if self._failing:
+                logger.info("publishing on %s works again", key)
+                self._failing = False
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        """Answer a get with the latest payload of every topic its key expression intersects."""
+        with self._lock:
+            latest = list(self._latest.items())
+        try:
+            for key, text in latest:
+                if query.key_expr.intersects(key):
+                    query.reply(key, text, encoding=zenoh.Encoding.APPLICATION_JSON)
+        except zenoh.ZError as exc:
+            logger.debug("replying to query %s failed: %s", query.selector, exc)
+        finally:
+            query.drop()
+
+    def close(self) -> None:
+        """Undeclare the token, queryable and publishers, then close the session. Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            token, queryable, session = self._token, self._queryable, self._session
+            publishers = list(self._publishers.values())
+            self._token = self._queryable = None
+            self._publishers.clear()
+        # Outside the lock: undeclaring the queryable waits for a running _on_query callback.
+        steps: list[tuple[str, Callable[[], Any]]] = []
+        if token is not None:
+            steps.append(("liveliness token", token.undeclare))
+        if queryable is not None:
+            steps.append(("queryable", queryable.undeclare))
+        steps += [("publisher", p.undeclare) for p in publishers]
+        if session is not None:
+            steps.append(("session", session.close))
+        for what, step in steps:
+            try:
+                step()
+            except zenoh.ZError as exc:
+                logger.warning("closing zenoh %s of %s failed: %s", what, self.machine, exc)
+        logger.info(
+            "zenoh publisher of %s closed (%d published, %d errors)",
+            self.machine,
+            self.published,
+            self.errors,
+        )
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if not getattr(self, "_closed", True):
+            warnings.warn(
+                f"HealthPublisher for {self.machine!r} was never closed",
+                ResourceWarning,
+                stacklevel=2,
+            )
+            self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"HealthPublisher({self.health_key!r}, {state}, published={self.published})"
