@@ -215,14 +215,17 @@ def _as_float(raw: object) -> float:
     return float(raw) if isinstance(raw, int | float) else math.nan
 
 
-def _did_you_mean(name: str, available: Iterable[str], *, limit: int = 20) -> str:
-    names = sorted(available)
-    close = difflib.get_close_matches(name, names, n=3)
-    if close:
-        return "did you mean " + " or ".join(repr(c) for c in close) + "?"
-    shown = ", ".join(names[:limit])
-    more = f", ... ({len(names) - limit} more)" if len(names) > limit else ""
-    return f"available: {shown}{more}" if names else "the DBC defines none"
+def _did_you_mean(name: str, available: Iterable[str], *, what: str, limit: int = 20) -> str:
+    """``"did you mean 'X'? available: ..."`` for an error message (the list only if short)."""
+    names = sorted(set(available))
+    by_lower = {n.lower(): n for n in names}
+    close = difflib.get_close_matches(name.lower(), list(by_lower), n=1)
+    hint = f"did you mean {by_lower[close[0]]!r}? " if close else ""
+    if not names:
+        return hint + f"the DBC defines no {what}"
+    if len(names) <= limit:
+        return hint + f"available {what}: " + ", ".join(names)
+    return hint + f"the DBC defines {len(names)} {what} (list them with `cantools dump`)"
 
 
 def _find_signal(db: Database, key: str, message_name: str, signal_name: str | None) -> DbcMessage:
@@ -231,12 +234,12 @@ def _find_signal(db: Database, key: str, message_name: str, signal_name: str | N
     try:
         message = db.get_message_by_name(message_name)
     except KeyError:
-        hint = _did_you_mean(message_name, (m.name for m in db.messages))
+        hint = _did_you_mean(message_name, (m.name for m in db.messages), what="messages")
         raise DriverInitializationError(
             f"{key}: message {message_name!r} not in DBC; {hint}"
         ) from None
     if signal_name is not None and signal_name not in {s.name for s in message.signals}:
-        hint = _did_you_mean(signal_name, (s.name for s in message.signals))
+        hint = _did_you_mean(signal_name, (s.name for s in message.signals), what="signals")
         raise DriverInitializationError(
             f"{key}: message {message_name!r} has no signal {signal_name!r}; {hint}"
         )
