@@ -133,12 +133,12 @@ class FileDriverConfig(BaseModel):
 
 
 def _available(name: str, names: Iterable[str]) -> str:
-    names = sorted(names)
-    close = difflib.get_close_matches(name, names, n=3)
-    listing = "available: " + (", ".join(names) if names else "none")
-    if close:
-        return "did you mean " + " or ".join(repr(c) for c in close) + "? " + listing
-    return listing
+    """``"did you mean 'X'? available: ..."`` for an error message (case-insensitive match)."""
+    names = sorted(set(names))
+    by_lower = {n.lower(): n for n in names}
+    close = difflib.get_close_matches(name.lower(), list(by_lower), n=1)
+    hint = f"did you mean {by_lower[close[0]]!r}? " if close else ""
+    return hint + "available: " + (", ".join(names) if names else "none")
 
 
 class FileDriver(Driver):
