@@ -399,6 +399,21 @@ def test_driver_shuts_down_the_bus_it_opened(channel: str) -> None:
         driver.read(0)
 
 
+def test_read_zero_returns_a_sample_already_queued(
+    channel: str, tx: can.BusABC, plant_db: Database
+) -> None:
+    values = {"Va": 1.0, "ia": 2.0, "omega": 3.0, "Tload": 4.0, "setpoint": 5.0}
+    with CanDriver(CanDriverConfig.model_validate(plant_config(channel))) as driver:
+        for k in range(2):
+            for msg in plant_frames(plant_db, k, values):
+                tx.send(msg)
+        assert [driver.read(0), driver.read(0), driver.read(0)] == [
+            Sample(0.0, values),
+            Sample(TS, values),
+            None,
+        ]
+
+
 def test_read_times_out_with_none(channel: str) -> None:
     with CanDriver(CanDriverConfig.model_validate(plant_config(channel))) as driver:
         start = time.monotonic()

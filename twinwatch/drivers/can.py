@@ -74,6 +74,8 @@ logger = logging.getLogger(__name__)
 __all__ = ["CanDriver", "CanDriverConfig", "CanSignalMap"]
 
 _TIME_SIGNAL_PREFIX = "signal:"
+#: frames read(timeout) still processes, without waiting, once its timeout has run out
+_MAX_OVERTIME_FRAMES = 1000
 
 
 def _split_signal_ref(ref: str) -> tuple[str, str]:
@@ -250,17 +252,12 @@ def _find_signal(db: Database, key: str, message_name: str, signal_name: str | N
 
 
 class _FrameSource(Protocol):
-    #: True if ``recv`` may wait (a live bus, a paced replay): the read deadline then applies.
-    waits: bool
-
     def recv(self, timeout: float | None) -> can.Message | None: ...
 
     def close(self) -> None: ...
 
 
 class _BusSource:
-    waits = True
-
     def __init__(self, bus: can.BusABC, *, owned: bool) -> None:
         self.bus = bus
         self.owned = owned
@@ -288,7 +285,6 @@ class _LogSource:
     def __init__(self, path: Path, *, realtime: bool) -> None:
         self.path = path
         self.realtime = realtime
-        self.waits = realtime
         try:
             self._reader = can.LogReader(path)
         except (OSError, ValueError, ImportError) as exc:
@@ -509,7 +505,12 @@ class CanDriver(Driver):
         source = self._source
         if source is None:  # pragma: no cover - only after a failed construction
             raise DriverOperationError("CAN driver has no frame source")
+        # Frames already received are processed even when the timeout has run out (so that
+        # read(0) returns a sample that is complete in the queue), but at most
+        # _MAX_OVERTIME_FRAMES of them, so that a flood without sync messages cannot hold
+        # the caller beyond its timeout.
         deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        overtime = 0
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
             frame = source.recv(remaining)
@@ -518,8 +519,10 @@ class CanDriver(Driver):
             sample = self._on_frame(frame)
             if sample is not None:
                 return sample
-            if source.waits and deadline is not None and time.monotonic() >= deadline:
-                return None
+            if remaining == 0.0:
+                overtime += 1
+                if overtime >= _MAX_OVERTIME_FRAMES:
+                    return None
 
     def _bump(self, key: str) -> None:
         self.stats.extra[key] = self.stats.extra.get(key, 0) + 1
