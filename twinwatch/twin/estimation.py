@@ -90,11 +90,17 @@ class EstimationConfig(BaseModel):
     polish: bool = Field(True, description="least-squares polish after the PSO")
     time_budget: float = Field(0.5, gt=0, description="PSO time cap per window [s]")
     max_rel_std: float = Field(
-        0.002, gt=0, description="largest relative standard error of a published estimate"
+        0.01, gt=0, description="largest relative standard error of a published estimate"
     )
     model_error: float = Field(
         1e-4, ge=0, description="floor of the normalised residual level used for the "
         "standard errors (model and discretisation error of noise-free data)"
+    )
+    trust_rel_std: float = Field(
+        5e-4, gt=0, description="an estimate becomes the trusted value (held by later windows "
+        "that cannot determine it) only if its relative standard error is below this; much "
+        "tighter than max_rel_std because a held value's error propagates to every estimate "
+        "that trades off with it (D = Ke*ia/omega - c amplifies a Ke error about 5 times)"
     )
     trust_rmse: float = Field(
         0.05, gt=0, description="a window whose normalised RMSE exceeds this does not "
@@ -341,8 +347,9 @@ class Estimator:
         estimated = {names_est[k]: values[names_est[k]] for k in selected}
         trusted = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse)
         if trusted:
-            for n in estimated:
-                self.trusted[self.names.index(n)] = values[n]
+            for k, n in zip(selected, (names_est[k] for k in selected), strict=True):
+                if rel_std.get(k, math.inf) <= cfg.trust_rel_std:
+                    self.trusted[self.names.index(n)] = values[n]
             for dep, src in self._ties:
                 self.trusted[dep] = self.trusted[src]
         return WindowEstimate(
@@ -414,27 +421,40 @@ class Estimator:
         out[np.linalg.norm(jac, axis=0) == 0] = np.inf
         return out
 
-    def _select(self, jac: FloatArray, r: FloatArray) -> tuple[list[int], dict[int, float], dict[int, str]]:
-        """Admit parameters in priority order while all admitted stay determined."""
+    def _select(
+        self, jac: FloatArray, r: FloatArray
+    ) -> tuple[list[int], dict[int, float], dict[int, str]]:
+        """Admit parameters in priority order while all admitted stay determined.
+
+        The priority list is a hierarchy: once a parameter cannot be determined, it and every
+        parameter after it are held. Otherwise a lower-priority parameter that trades off with
+        a held one (Ke with D in a quasi-static window) would absorb the held one's drift.
+        """
         limit = self.config.max_rel_std
         selected: list[int] = []
         rel: dict[int, float] = {}
         reasons: dict[int, str] = {}
+        blocked: str | None = None
         for k in range(jac.shape[1]):
+            name = self.names[self.est_idx[k]]
+            if blocked is not None:
+                reasons[k] = (f"held with {blocked} (lower priority): held at last trusted "
+                              "value")
+                continue
             cand = [*selected, k]
             sd = self._rel_std(jac[:, cand], r)
             if np.all(sd <= limit):
                 selected = cand
                 rel = dict(zip(cand, sd, strict=True))
+                continue
+            blocked = name
+            alone = float(self._rel_std(jac[:, [k]], r)[0])
+            if alone > limit:
+                reasons[k] = (f"not determined by this window (relative std {alone:.2g} > "
+                              f"{limit:.2g}): held at last trusted value")
             else:
-                alone = float(self._rel_std(jac[:, [k]], r)[0])
-                name = self.names[self.est_idx[k]]
-                if alone > limit:
-                    reasons[k] = (f"not determined by this window (relative std "
-                                  f"{alone:.2g} > {limit:.2g}): held at last trusted value")
-                else:
-                    worst = max(range(len(cand)), key=lambda i: sd[i] / limit)
-                    other = self.names[self.est_idx[cand[worst]]]
-                    reasons[k] = (f"not separable from {other if other != name else 'the others'}"
-                                  f" in this window: held at last trusted value")
+                worst = max(range(len(cand) - 1), key=lambda i: sd[i] / limit, default=None)
+                other = self.names[self.est_idx[cand[worst]]] if worst is not None else "others"
+                reasons[k] = (f"not separable from {other} in this window: held at last "
+                              "trusted value")
         return selected, rel, reasons

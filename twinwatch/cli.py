@@ -1,0 +1,174 @@
+"""Command line: ``twinwatch run``, ``twinwatch check-config``, ``twinwatch sample-config``.
+
+The only module that prints. Everything else logs.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import click
+
+from twinwatch import __version__
+from twinwatch.config.loader import ConfigError, default_config, load_config
+
+logger = logging.getLogger("twinwatch")
+
+_SAMPLE_CONFIG = Path(__file__).parent / "config" / "default.toml"
+
+
+def _setup_logging(level: str) -> None:
+    logging.basicConfig(
+        level=getattr(logging, level.upper()),
+        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+@click.group()
+@click.version_option(__version__, prog_name="twinwatch")
+def main() -> None:
+    """twinwatch: an interpretable digital twin that makes a machine self-aware.
+
+    Each acquisition window it re-estimates the machine's unmeasured parameters (PSO, paper
+    by Vilar-Dias et al., Sensors 2024) and publishes their drift as health over Zenoh.
+    """
+
+
+@main.command()
+@click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Stop after this many seconds of source time (plant or recording time).")
+@click.option("--log-level", default="warning", show_default=True,
+              type=click.Choice(["debug", "info", "warning", "error"], case_sensitive=False))
+@click.option("--no-progress", is_flag=True, help="Do not show the progress bar.")
+def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool) -> None:
+    """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
+    degradation, as fast as possible, recording to ./twinwatch.rrd)."""
+    _setup_logging(log_level)
+    try:
+        cfg = load_config(config) if config else default_config()
+    except ConfigError as exc:
+        raise click.ClickException(str(exc)) from None
+    base_dir = config.resolve().parent if config else Path.cwd()
+
+    from twinwatch.daemon.runner import Daemon
+    from twinwatch.drivers.base import DriverError
+
+    try:
+        daemon = Daemon(cfg, base_dir=base_dir)
+    except (DriverError, ValueError, OSError) as exc:
+        raise click.ClickException(f"cannot start: {exc}") from None
+    except Exception as exc:  # PublisherError, RecorderError: their messages say what to do
+        raise click.ClickException(f"cannot start: {exc}") from None
+
+    def _on_signal(signum: int, frame: FrameType | None) -> None:
+        logger.warning("%s received: finishing the queued windows and stopping",
+                       signal.Signals(signum).name)
+        daemon.stop()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _on_signal)
+        signal.signal(signal.SIGTERM, _on_signal)
+
+    total = duration
+    if total is None and cfg.driver.type == "simulated":
+        total = cfg.driver.plant.duration  # type: ignore[union-attr]
+    bar: Any = None
+    if not no_progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=round(total, 2) if total else None, unit="s", unit_scale=False,
+                   desc=f"{cfg.machine.name}", dynamic_ncols=True, file=sys.stderr,
+                   bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s plant time [{elapsed}<"
+                   "{remaining}{postfix}]")
+        t0: list[float] = []
+
+        def _progress(health: dict[str, Any]) -> None:
+            if not t0:
+                t0.append(health["t_start"])
+            bar.n = health["t_end"] - t0[0]
+            bar.set_postfix_str(f"window {health['window']}, "
+                                f"nRMSE {health['nrmse'] or float('nan'):.1e}", refresh=False)
+            bar.refresh()
+
+        daemon.add_callback(_progress)
+    try:
+        daemon.run(duration=duration)
+    finally:
+        daemon.close()
+        if bar is not None:
+            bar.close()
+    _print_summary(cfg, daemon)
+
+
+def _print_summary(cfg: Any, daemon: Any) -> None:
+    last = daemon.latest
+    c = daemon.counters()
+    click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
+               f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
+               f"(gaps/bad samples), {c['numeric_failures']} numeric failures")
+    if last is None:
+        click.echo("no window was completed: the source delivered fewer samples than one window")
+        return
+    click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
+               f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
+    for name, p in last["parameters"].items():
+        status = "estimated" if not p["held"] else f"held: {p['reason']}"
+        dev = p["deviation_pct"]
+        click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
+                   f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
+                   f"{status}")
+    times = sorted(h["elapsed_s"] for h in daemon.history)
+    if times:
+        med = times[len(times) // 2]
+        click.echo(f"estimation time per window: median {med * 1e3:.0f} ms, max "
+                   f"{times[-1] * 1e3:.0f} ms (window length "
+                   f"{cfg.acquisition.window * cfg.acquisition.sample_period:g} s)")
+    if cfg.recording.enabled:
+        click.echo(f"recording: {Path(cfg.recording.path).resolve()} "
+                   f"(open with: rerun {cfg.recording.path})")
+    if cfg.zenoh.enabled:
+        click.echo(f"health was published on {cfg.zenoh.key_prefix}/{cfg.machine.name}/health "
+                   f"(zenoh, listening on {', '.join(cfg.zenoh.listen) or 'nothing'})")
+
+
+@main.command("check-config")
+@click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
+def check_config(config: Path) -> None:
+    """Validate CONFIG; exit 0 if it is usable, 1 naming each bad key otherwise."""
+    try:
+        cfg = load_config(config)
+    except ConfigError as exc:
+        click.echo(str(exc), err=True)
+        sys.exit(1)
+    # Drivers validate what only they can check (DBC names, files, columns) at open time;
+    # open them without starting acquisition where that cannot touch a device.
+    if cfg.driver.type in ("file",) or (cfg.driver.type == "can"
+                                        and getattr(cfg.driver, "log_file", None)):
+        from twinwatch.drivers import create_driver
+        from twinwatch.drivers.base import DriverError
+
+        try:
+            create_driver(cfg.driver, base_dir=config.resolve().parent).close()
+        except DriverError as exc:
+            click.echo(f"{config}: driver: {exc}", err=True)
+            sys.exit(1)
+    click.echo(f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
+               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate)})")
+
+
+@main.command("sample-config")
+def sample_config() -> None:
+    """Print a commented sample configuration (the built-in default)."""
+    click.echo(_SAMPLE_CONFIG.read_text(encoding="utf-8"), nl=False)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,115 @@
+"""The configuration schema: one TOML file per machine, validated strictly.
+
+Every table refuses unknown keys (pydantic ``extra = "forbid"``), so a misspelt key stops the
+daemon at start-up with the key's path instead of being silently ignored (as in Telegraf).
+Each part validates itself: driver tables are defined by their drivers, the Zenoh and Rerun
+tables by the daemon's sinks, the estimation table by the estimator, the plant by the plant.
+
+Layout::
+
+    [machine]          name, model, nominal parameters, model options
+    [acquisition]      sample period, window length, gap and queue settings
+    [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
+    [driver]           type = "simulated" | "can" | "file" (+ its own keys)
+    [zenoh]            session mode and endpoints (loopback by default)
+    [recording]        Rerun .rrd path
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from twinwatch.daemon.publisher import ZenohConfig
+from twinwatch.daemon.recorder import RecordingConfig
+from twinwatch.drivers.can import CanDriverConfig
+from twinwatch.drivers.file import FileDriverConfig
+from twinwatch.drivers.simulated import SimulatedDriverConfig
+from twinwatch.twin.estimation import EstimationConfig
+from twinwatch.twin.registry import create_model
+
+_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+class MachineConfig(BaseModel):
+    """``[machine]``: what is monitored."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(description="machine name: the Zenoh key segment (letters, digits, _ -)")
+    model: str = Field("dc_motor", description="twin model (registry name)")
+    parameters: dict[str, float] = Field(
+        default_factory=dict, description="nominal (nameplate) values [SI] overriding the "
+        "model's defaults; deviations are reported against them")
+    options: dict[str, Any] = Field(default_factory=dict,
+                                    description="model options (structure, load, gains, ...)")
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not _NAME.match(v):
+            raise ValueError("use letters, digits, '_' and '-' only (it is a Zenoh key segment)")
+        return v
+
+
+class AcquisitionConfig(BaseModel):
+    """``[acquisition]``: windows and buffering (paper: 200 samples every 10 ms)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    sample_period: float = Field(0.01, gt=0, description="nominal sample period [s]")
+    window: int = Field(200, ge=10, description="samples per estimation window")
+    max_gap: float = Field(1.5, gt=1, description="largest time-stamp step, in sample periods")
+    queue: int = Field(4, ge=1, description="windows waiting for the estimator")
+    history: int = Field(1000, ge=1, description="health messages kept in memory")
+    stall_timeout: float = Field(5.0, gt=0, description="seconds without a sample before a "
+                                 "stall is reported")
+    shutdown_timeout: float = Field(10.0, gt=0, description="seconds to finish queued windows")
+    abandon_on_stop: bool = Field(False, description="on stop, drop queued windows instead "
+                                  "of estimating them")
+
+
+DriverConfig = Annotated[
+    SimulatedDriverConfig | CanDriverConfig | FileDriverConfig, Field(discriminator="type")
+]
+
+
+class TwinwatchConfig(BaseModel):
+    """The whole configuration file."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    machine: MachineConfig
+    acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
+    estimation: EstimationConfig = Field(default_factory=EstimationConfig)
+    driver: DriverConfig
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
+    recording: RecordingConfig = Field(default_factory=RecordingConfig)
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> TwinwatchConfig:
+        try:
+            model = create_model(self.machine.model, self.machine.options)
+        except ValueError as exc:
+            raise ValueError(f"machine: {exc}") from exc
+        for name in self.machine.parameters:
+            if name not in model.parameter_names:
+                raise ValueError(f"machine.parameters.{name}: unknown parameter; the "
+                                 f"{self.machine.model} model has {list(model.parameter_names)}")
+        self.estimation.check_against(model)
+        try:
+            model.n_sub(self.acquisition.sample_period)  # type: ignore[attr-defined]
+        except AttributeError:
+            pass
+        except ValueError as exc:
+            raise ValueError(f"acquisition.sample_period: {exc}") from exc
+        driver_period = getattr(self.driver, "sample_period", None)
+        if isinstance(self.driver, SimulatedDriverConfig):
+            driver_period = self.driver.plant.sample_period
+        if driver_period is not None and abs(driver_period - self.acquisition.sample_period) > 1e-12:
+            raise ValueError(
+                f"driver sample period {driver_period} s differs from acquisition.sample_period "
+                f"{self.acquisition.sample_period} s")
+        return self

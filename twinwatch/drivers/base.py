@@ -1,0 +1,169 @@
+"""The acquisition driver contract.
+
+Modelled on python-can's ``BusABC``: one abstract base owns the public :meth:`Driver.read`,
+backends override the protected :meth:`Driver._read_internal`; :meth:`Driver.close` is
+idempotent, a driver is a context manager, and a driver never closed warns when collected.
+
+A driver delivers :class:`Sample` objects: one time stamp [s] and one value per twin channel
+(for the DC motor ``Va``, ``ia``, ``omega``, ``Tload``, ``setpoint``). Channel names are the
+twin's, never the bus's: mapping bus signals to twin channels (with unit scaling) is the
+driver's job and lives in its configuration.
+
+Errors follow the lifecycle, as in ``can/exceptions.py``:
+
+* :class:`DriverInitializationError` while opening (bad port, DBC not found, ...),
+* :class:`DriverOperationError` for a failure while reading that the driver could not survive,
+* :class:`EndOfStream` when a finite source (a file, a simulation of fixed duration) is exhausted.
+
+Recoverable bad input (an undecodable frame, a NaN, a gap) is *not* raised: it is counted in
+:attr:`Driver.stats`, logged once, and the driver goes on.
+"""
+
+from __future__ import annotations
+
+import abc
+import logging
+import warnings
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Self
+
+logger = logging.getLogger(__name__)
+
+
+class DriverError(Exception):
+    """Base class of every driver error."""
+
+
+class DriverInitializationError(DriverError):
+    """The driver could not be opened (device, file, DBC or mapping problem)."""
+
+
+class DriverOperationError(DriverError):
+    """The driver failed while reading and cannot go on."""
+
+
+class EndOfStream(DriverError):  # noqa: N818 - mirrors StopIteration, not an error condition
+    """A finite source has delivered its last sample."""
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One acquisition sample.
+
+    Attributes:
+        t: time stamp [s] on the source's clock (plant time for the simulated plant, the
+            recording's time for a file, the frame's time stamp on a bus).
+        values: twin channel name -> value in the twin's SI unit.
+    """
+
+    t: float
+    values: dict[str, float]
+
+
+@dataclass(slots=True)
+class DriverStats:
+    """Counters every driver keeps. They are published with health and never reset."""
+
+    frames: int = 0  #: raw frames / rows / register reads received
+    samples: int = 0  #: samples delivered to the caller
+    bad_frames: int = 0  #: frames that could not be decoded (unknown id, wrong length, ...)
+    bad_values: int = 0  #: decoded values that were NaN, inf or out of range
+    gaps: int = 0  #: missing samples detected from time stamps or counters
+    errors: int = 0  #: recoverable read errors (timeouts, dropped links)
+    extra: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, int]:
+        d = {
+            "frames": self.frames,
+            "samples": self.samples,
+            "bad_frames": self.bad_frames,
+            "bad_values": self.bad_values,
+            "gaps": self.gaps,
+            "errors": self.errors,
+        }
+        d.update(self.extra)
+        return d
+
+
+class Driver(abc.ABC):
+    """Base class of every acquisition driver.
+
+    Subclasses set :attr:`channels` and implement :meth:`_read_internal` and, if they hold
+    resources, :meth:`_close_internal`.
+    """
+
+    #: The twin channels this driver delivers, in a fixed order.
+    channels: tuple[str, ...] = ()
+    #: Nominal sample period [s] (used by the daemon to detect gaps).
+    sample_period: float = 0.01
+
+    def __init__(self) -> None:
+        self.stats = DriverStats()
+        self._closed = False
+        self._logged_once: set[str] = set()
+
+    # -- public API -----------------------------------------------------------------------
+    def read(self, timeout: float | None = None) -> Sample | None:
+        """Return the next sample, or None if none arrived within ``timeout`` seconds.
+
+        Args:
+            timeout: seconds to wait; None waits until a sample arrives or the stream ends.
+
+        Raises:
+            EndOfStream: the source is exhausted (file replayed, simulation finished).
+            DriverOperationError: the driver failed and cannot recover.
+        """
+        if self._closed:
+            raise DriverOperationError(f"{type(self).__name__} is closed")
+        sample = self._read_internal(timeout)
+        if sample is not None:
+            self.stats.samples += 1
+        return sample
+
+    def close(self) -> None:
+        """Release the driver's resources. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._close_internal()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def log_once(self, key: str, msg: str, *args: object, level: int = logging.WARNING) -> None:
+        """Log ``msg`` at ``level`` the first time ``key`` is seen, at DEBUG afterwards."""
+        if key in self._logged_once:
+            logger.debug(msg, *args)
+        else:
+            self._logged_once.add(key)
+            logger.log(level, msg, *args)
+
+    # -- for subclasses -------------------------------------------------------------------
+    @abc.abstractmethod
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        """Read one sample; see :meth:`read`."""
+
+    def _close_internal(self) -> None:  # noqa: B027 - optional hook
+        """Release resources; called once by :meth:`close`."""
+
+    # -- context manager ------------------------------------------------------------------
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if not getattr(self, "_closed", True):
+            warnings.warn(
+                f"{type(self).__name__} was not closed; call close() or use it as a context manager",
+                ResourceWarning,
+                stacklevel=2,
+            )

@@ -1,0 +1,166 @@
+"""The built-in simulated plant, delivered over a python-can virtual bus.
+
+The plant (:mod:`twinwatch.plant.dcmotor`) encodes each sample's measurements with the DBC
+shipped in the package (``twinwatch/plant/dcmotor.dbc``: float32 signals ``Va``, ``ia``,
+``omega``, ``Tload``, ``setpoint`` and a ``sample_counter``) and sends them on an in-process
+python-can ``virtual`` bus; a :class:`~twinwatch.drivers.can.CanDriver` listening on the same
+channel decodes them exactly as it would decode a real drive's frames. The sample clock is the
+plant's (``sample_counter * sample_period``), so a run is the same as fast as possible or in
+real time.
+
+The plant is stepped lazily, one sample whenever the CAN driver has nothing left to decode: as
+fast as possible, acquisition and simulation move in lock step and nothing queues up. With
+``realtime = true`` each sample is sent when the wall clock reaches its plant time.
+
+Monitoring only: the plant sends on a ``virtual`` bus and nothing else (enforced by the
+config); twinwatch never transmits on a real bus.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+import can
+import cantools
+from pydantic import BaseModel, ConfigDict, Field
+
+from twinwatch.drivers.base import Driver, DriverInitializationError, Sample
+from twinwatch.drivers.can import CanDriver, CanDriverConfig
+from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
+
+logger = logging.getLogger(__name__)
+
+_MESSAGES = (
+    ("TW_Motor_Electrical", ("Va", "ia")),
+    ("TW_Motor_Mechanical", ("omega", "Tload")),
+    ("TW_Motor_Sample", ("setpoint",)),
+)
+_channel_ids = itertools.count()
+
+
+def plant_dbc_path() -> Path:
+    """Path of the DBC the simulated DC motor plant uses."""
+    return Path(str(resources.files("twinwatch.plant").joinpath("dcmotor.dbc")))
+
+
+class SimulatedDriverConfig(BaseModel):
+    """The ``[driver]`` table with ``type = "simulated"``.
+
+    Attributes:
+        machine: which simulated plant (only ``dc_motor`` so far).
+        plant: the plant's scenario, duration, noise, set-points, ... (``[driver.plant]``).
+        channel: name of the in-process virtual CAN channel ("auto": a unique name).
+        realtime: pace the plant by the wall clock instead of running as fast as possible.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["simulated"]
+    machine: Literal["dc_motor"] = "dc_motor"
+    plant: DCMotorPlantConfig = Field(default_factory=DCMotorPlantConfig)
+    interface: Literal["virtual"] = Field(
+        "virtual", description="only the in-process virtual bus: twinwatch never sends on a "
+        "real bus")
+    channel: str = "auto"
+    realtime: bool = False
+
+
+class SimulatedDriver(Driver):
+    """Simulated plant -> DBC-encoded frames -> virtual CAN bus -> :class:`CanDriver`.
+
+    Args:
+        config: the driver configuration.
+
+    Raises:
+        DriverInitializationError: the packaged DBC or the virtual bus cannot be opened.
+        EndOfStream: from :meth:`read` once the plant reaches its duration.
+    """
+
+    def __init__(self, config: SimulatedDriverConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.plant = DCMotorPlant(config.plant)
+        self.sample_period = config.plant.sample_period
+        self.live = config.realtime
+        channel = config.channel
+        if channel == "auto":
+            channel = f"twinwatch-sim-{next(_channel_ids)}"
+        dbc = plant_dbc_path()
+        self._tx: can.BusABC | None = None
+        self._rx: can.BusABC | None = None
+        self._can: CanDriver | None = None
+        try:
+            self._db = cantools.database.load_file(str(dbc))
+            self._messages = [(self._db.get_message_by_name(m), sigs) for m, sigs in _MESSAGES]
+            self._rx = can.Bus(interface="virtual", channel=channel)
+            self._tx = can.Bus(interface="virtual", channel=channel)
+            can_cfg = CanDriverConfig(
+                type="can",
+                dbc=dbc,
+                sync_message="TW_Motor_Sample",
+                time_source="counter",
+                counter_signal="TW_Motor_Sample.sample_counter",
+                sample_period=config.plant.sample_period,
+                signals={ch: {"message": m, "signal": ch} for m, sigs in _MESSAGES
+                         for ch in sigs},
+            )
+            self._can = CanDriver(can_cfg, bus=self._rx)
+        except Exception as exc:
+            self.close()
+            if isinstance(exc, DriverInitializationError):
+                raise
+            raise DriverInitializationError(f"simulated plant could not start: {exc}") from exc
+        self.channels = self._can.channels
+        self.stats = self._can.stats  # one set of counters: the CAN driver's
+        self._t0_wall: float | None = None
+        logger.info("simulated %s plant, scenario %s, %.0f s, on virtual CAN channel %r",
+                    config.machine, config.plant.scenario, config.plant.duration, channel)
+
+    @classmethod
+    def from_config(cls, config: SimulatedDriverConfig, *, base_dir: Path | None = None
+                    ) -> SimulatedDriver:
+        if not isinstance(config, SimulatedDriverConfig):
+            config = SimulatedDriverConfig.model_validate(config)
+        return cls(config)
+
+    def _send_next(self) -> None:
+        """Advance the plant one sample and put its frames on the bus."""
+        assert self._tx is not None
+        sample = self.plant.next_sample()  # raises EndOfStream at the end
+        if self.config.realtime:
+            if self._t0_wall is None:
+                self._t0_wall = time.monotonic() - sample.t
+            delay = self._t0_wall + sample.t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        counter = int(round(sample.t / self.sample_period)) & 0xFFFFFFFF
+        for msg, sigs in self._messages:
+            data = {s: sample.values[s] for s in sigs}
+            if msg.name == "TW_Motor_Sample":
+                data["sample_counter"] = counter
+            self._tx.send(can.Message(arbitration_id=msg.frame_id, data=msg.encode(data),
+                                      is_extended_id=False))
+
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        assert self._can is not None
+        sample = self._can.read(timeout=0.0)
+        if sample is not None:
+            self.stats.samples -= 1  # counted again by Driver.read of this driver
+            return sample
+        self._send_next()
+        sample = self._can.read(timeout=1.0 if timeout is None else max(timeout, 0.05))
+        if sample is not None:
+            self.stats.samples -= 1
+        return sample
+
+    def _close_internal(self) -> None:
+        if self._can is not None:
+            self._can.close()
+        for bus in (self._tx, self._rx):
+            if bus is not None:
+                bus.shutdown()
