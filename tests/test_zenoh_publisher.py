@@ -364,7 +364,7 @@ def test_disabled_publisher_opens_nothing() -> None:
 
 def test_config_validation() -> None:
     assert ZenohConfig().listen == ["tcp/127.0.0.1:7447"]
-    for bad in (
+    bad_configs: list[dict[str, Any]] = [
         {"listen": ["127.0.0.1:7447"]},
         {"listen": ["tcp/127.0.0.1"]},
         {"listen": ["tcp/127.0.0.1:70000"]},
@@ -375,7 +375,8 @@ def test_config_validation() -> None:
         {"key_prefix": "/twinwatch"},
         {"listen": [], "connect": []},
         {"lisen": ["tcp/127.0.0.1:7447"]},
-    ):
+    ]
+    for bad in bad_configs:
         with pytest.raises(ValidationError):
             ZenohConfig.model_validate(bad)
     with pytest.raises(ValueError):
