@@ -97,10 +97,10 @@ class EstimationConfig(BaseModel):
         "standard errors (model and discretisation error of noise-free data)"
     )
     trust_rel_std: float = Field(
-        5e-4, gt=0, description="an estimate becomes the trusted value (held by later windows "
-        "that cannot determine it) only if its relative standard error is below this; much "
-        "tighter than max_rel_std because a held value's error propagates to every estimate "
-        "that trades off with it (D = Ke*ia/omega - c amplifies a Ke error about 5 times)"
+        0.01, gt=0, description="an estimate becomes the trusted value (held by later windows "
+        "that cannot determine it) only if its relative standard error is below this; set it "
+        "tighter than max_rel_std when a held value's error would propagate (D = Ke*ia/omega "
+        "- c amplifies a Ke error about 5 times)"
     )
     trust_rmse: float = Field(
         0.05, gt=0, description="a window whose normalised RMSE exceeds this does not "
@@ -406,9 +406,22 @@ class Estimator:
         return out, n_ev
 
     def _rel_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
-        """Relative 1-sigma standard errors of the columns of ``jac`` (ln-parameters)."""
+        """Relative 1-sigma standard errors of the columns of ``jac`` (ln-parameters).
+
+        ``cov(ln p) = s^2 (J^T J)^-1`` with ``s^2`` the residual variance, floored by
+        ``model_error`` and inflated by ``(1 + rho)/(1 - rho)``, rho being the residuals' lag-1
+        autocorrelation (the AR(1) effective-sample-size correction): white noise leaves it
+        alone, while smooth model error (a parameter drifting within the window) is not
+        allowed to pass for hundreds of independent samples.
+        """
         m, n = jac.shape
         s2 = max(float(r @ r) / max(m - n, 1) * m, self.config.model_error**2) / m
+        n_out = len(self.model.outputs)
+        res = r.reshape(-1, n_out)
+        num = float(np.sum(res[1:] * res[:-1]))
+        den = float(np.sum(res * res))
+        rho = min(max(num / den, 0.0), 0.99) if den > 0 else 0.0
+        s2 *= (1.0 + rho) / (1.0 - rho)
         jtj = jac.T @ jac
         try:
             cov = np.linalg.pinv(jtj, rcond=1e-15, hermitian=True) * s2

@@ -1,0 +1,5 @@
+"""python -m twinwatch."""
+
+from twinwatch.cli import main
+
+main()
