@@ -27,6 +27,12 @@ Two structures are offered (option ``structure``):
   really is held between samples (e.g. a commanded, piecewise-constant voltage as in the
   MotoShield recording) and the only choice when the controller is unknown.
 
+Option ``current_filter`` models a first-order low-pass on the current measurement (time
+constant ``tau_i`` [s], an extra parameter): ``ia_meas' = (ia - ia_meas)/tau_i``. Drives and
+evaluation boards often report a filtered current (the MotoShield's ``ifltr``); fitting a filtered
+current with an unfiltered model drives J to zero, because only a rotor without inertia avoids the
+start-up current spike that the filter hides.
+
 The load torque is either ``viscous`` (Tload = c_load*omega, the paper's 0.006*omega, folded into
 the dynamics) or ``measured`` (the Tload channel drives the twin, held over each sample).
 
@@ -81,6 +87,8 @@ class DCMotorTwin(TwinModel):
         sub_step: integration sub-step [s] (paper: 1e-4); the sample period must be a whole
             multiple of it (to 1e-6 relative).
         current_scale, speed_scale, voltage_scale: residual normalisation floors [A, rad/s, V].
+        current_filter: the measured current is low-pass filtered with time constant tau_i
+            (adds the parameter ``tau_i`` [s]); the twin's ia output is the filtered current.
     """
 
     structure: Literal["closed_loop", "open_loop"] = "closed_loop"
@@ -92,10 +100,15 @@ class DCMotorTwin(TwinModel):
     current_scale: float = 0.1
     speed_scale: float = 1.0
     voltage_scale: float = 1.0
+    current_filter: bool = False
     _cache: dict[str, object] = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.parameters = DC_MOTOR_PARAMETERS
+        if self.current_filter:
+            self.parameters = (*DC_MOTOR_PARAMETERS, ParameterSpec(
+                "tau_i", "s", 0.05, "time constant of the current measurement's low-pass filter",
+                "a change of the current sensor or its filtering"))
         inputs = ["setpoint"] if self.structure == "closed_loop" else ["Va"]
         if self.load == "measured":
             inputs.append("Tload")
@@ -128,7 +141,8 @@ class DCMotorTwin(TwinModel):
         """One sub-step of Eq. 11-12 (plus the PI loop) as ``x' = A x + B u``.
 
         Args:
-            theta: (P, 6) parameters in the order Ra, La, J, Ke, Kt, D.
+            theta: (P, 6) parameters in the order Ra, La, J, Ke, Kt, D (then tau_i with
+                ``current_filter``).
             dt: sub-step [s].
 
         Returns:
@@ -164,6 +178,18 @@ class DCMotorTwin(TwinModel):
         a[:, 1, 1] += 1.0 - dt * (d + c) / j
         b[:, 1, :] = g[:, None] * b[:, 0, :]
         b[:, 1, 1] += -dt / j
+        if self.current_filter:
+            # Filtered current, appended as the last state: f' = f + dt/tau*(i' - f).
+            n = a.shape[1]
+            g_f = dt / theta[:, 6]
+            a2 = np.zeros((p, n + 1, n + 1))
+            b2 = np.zeros((p, n + 1, 2))
+            a2[:, :n, :n] = a
+            b2[:, :n] = b
+            a2[:, n, :n] = g_f[:, None] * a[:, 0, :]
+            a2[:, n, n] = 1.0 - g_f
+            b2[:, n] = g_f[:, None] * b[:, 0, :]
+            a, b = a2, b2
         return a, b
 
     def simulate(self, theta: FloatArray, window: WindowData) -> FloatArray:
@@ -187,13 +213,17 @@ class DCMotorTwin(TwinModel):
         if self.structure == "closed_loop":
             sp, va = window["setpoint"], window["Va"]
             z0 = (va[0] - self.kp * (sp[0] - omega[0])) / self.ki
-            x0 = np.array([ia[0], omega[0], z0])
+            x0 = [ia[0], omega[0], z0]
             u = np.column_stack([sp, tl])
         else:
-            x0 = np.array([ia[0], omega[0]])
+            x0 = [ia[0], omega[0]]
             u = np.column_stack([window["Va"], tl])
-        x = propagate(phi, gamma, np.broadcast_to(x0, (p, x0.size)), u)
+        if self.current_filter:
+            x0.append(ia[0])  # the true current at the start is taken as the filtered one
+        x0_arr = np.array(x0)
+        x = propagate(phi, gamma, np.broadcast_to(x0_arr, (p, x0_arr.size)), u)
+        i_out = x[:, :, -1] if self.current_filter else x[:, :, 0]
         if self.structure == "closed_loop":
             va_sim = self.kp * (u[None, :, 0] - x[:, :, 1]) + self.ki * x[:, :, 2]
-            return np.stack([x[:, :, 0], x[:, :, 1], va_sim], axis=2)
-        return x
+            return np.stack([i_out, x[:, :, 1], va_sim], axis=2)
+        return np.stack([i_out, x[:, :, 1]], axis=2)
