@@ -21,34 +21,49 @@ def _step_window():
     return plant_windows(cfg, 1, skip=10)[1][0]
 
 
-def _quasi_static_window():
-    cfg = DCMotorPlantConfig(scenario="nominal", duration=200,
-                             setpoint=SetpointSchedule(steps=[(0.0, 10.0)]))
-    return plant_windows(cfg, 1, skip=90)[1][0]
-
-
-def test_transient_window_determines_all_five_parameters():
-    est = Estimator(DCMotorTwin(), EstimationConfig())
-    # Start far from the truth: the swarm, not the warm start, must find it.
-    est.trusted *= np.array([1.3, 0.7, 1.4, 1.2, 1.2, 0.6])
+def test_transient_window_determines_electrical_and_mechanical_dynamics():
+    """A set-point step pins Ra, Ke and La (D at nameplate), found from a far start; J, the
+    last in priority, is estimated only if the window pins it too, and held otherwise."""
+    cfg = EstimationConfig(estimate=["Ra", "Ke", "La", "J"])
+    est = Estimator(DCMotorTwin(), cfg)
+    est.trusted *= np.array([1.3, 0.7, 1.0, 1.2, 1.2, 1.0])  # J, D at their true values
     r = est.estimate(_step_window())
-    assert set(r.estimated) == set(TRUE)
-    for name, true in TRUE.items():
-        assert r.values[name] == pytest.approx(true, rel=1e-4), name
+    assert {"Ra", "Ke", "La"} <= set(r.estimated)
+    for name in r.estimated:
+        assert r.values[name] == pytest.approx(TRUE[name], rel=1e-4), name
     assert r.values["Kt"] == r.values["Ke"]  # tied
-    assert r.held == {"Kt": "tied to Ke"}
-    assert r.nrmse < 1e-8
+    assert r.held["Kt"] == "tied to Ke" and r.held["D"] == "fixed (nameplate)"
+    if "J" in r.held:
+        assert "held at last trusted value" in r.held["J"]
+    assert r.nrmse < 1e-6
+
+
+def test_ke_and_d_trade_off_even_in_a_transient_window():
+    """With the viscous load c = 0.006 >> D = 0.00143, D = Ke*ia/omega - c amplifies a Ke
+    error about 5 times: freeing Ke makes D undetermined, so with the default priority
+    (D before Ke) Ke is held and D estimated."""
+    r = Estimator(DCMotorTwin(), EstimationConfig()).estimate(_step_window())
+    assert {"Ra", "D"} <= set(r.estimated)
+    assert "Ke" in r.held and "not separable from D" in r.held["Ke"]
+    assert r.values["D"] == pytest.approx(TRUE["D"], rel=1e-4)
+    assert r.values["Ra"] == pytest.approx(TRUE["Ra"], rel=1e-5)
 
 
 def test_quasi_static_window_holds_what_it_cannot_determine():
+    """Long after the last step, with 1 % measurement noise: Ra and D are determined by the
+    steady state, Ke, La and J are not (no transient)."""
+    cfg = DCMotorPlantConfig(scenario="nominal", duration=400, noise={"ia": 1.0, "omega": 1.0},
+                             setpoint=SetpointSchedule(steps=[(0.0, 10.0)]))
+    win = plant_windows(cfg, 1, skip=190)[1][0]
     est = Estimator(DCMotorTwin(), EstimationConfig())
-    r = est.estimate(_quasi_static_window())
+    r = est.estimate(win)
     assert set(r.estimated) == {"Ra", "D"}
     for name in ("Ke", "La", "J"):
         assert name in r.held and "held at last trusted value" in r.held[name]
         assert r.values[name] == pytest.approx(TRUE[name], rel=1e-12)
-    assert r.values["Ra"] == pytest.approx(6.5, rel=1e-4)
-    assert r.values["D"] == pytest.approx(0.00143, rel=1e-3)
+    assert r.values["Ra"] == pytest.approx(6.5, rel=0.01)
+    assert r.values["D"] == pytest.approx(0.00143, rel=0.02)
+    assert 0 < r.rel_std["Ra"] < 0.01 and 0 < r.rel_std["D"] < 0.01
 
 
 def test_same_seed_same_result():
@@ -79,7 +94,7 @@ def test_bad_config_names_the_parameter():
 
 
 def test_non_finite_window_is_refused():
-    win = _quasi_static_window()
+    win = _step_window()
     win.channels["ia"][10] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         Estimator(DCMotorTwin(), EstimationConfig()).estimate(win)
