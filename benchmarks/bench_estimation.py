@@ -20,7 +20,6 @@ import argparse
 import os
 import platform
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -99,7 +98,8 @@ def main() -> None:
     print(f"\ndefault: median {np.median(d[:, 0]) * 1e3:.0f} ms, p95 "
           f"{np.percentile(d[:, 0], 95) * 1e3:.0f} ms, max {d[:, 0].max() * 1e3:.0f} ms per "
           f"{window_s:g} s window = {np.max(d[:, 0]) / window_s * 100:.1f} % of the window at "
-          f"worst; speed-up over the paper's settings x{np.median(p[:, 0]) / np.median(d[:, 0]):.0f}")
+          f"worst; speed-up over the paper's settings "
+          f"x{np.median(p[:, 0]) / np.median(d[:, 0]):.0f}")
 
 
 if __name__ == "__main__":

@@ -108,7 +108,8 @@ class TwinwatchConfig(BaseModel):
         driver_period = getattr(self.driver, "sample_period", None)
         if isinstance(self.driver, SimulatedDriverConfig):
             driver_period = self.driver.plant.sample_period
-        if driver_period is not None and abs(driver_period - self.acquisition.sample_period) > 1e-12:
+        acq_period = self.acquisition.sample_period
+        if driver_period is not None and abs(driver_period - acq_period) > 1e-12:
             raise ValueError(
                 f"driver sample period {driver_period} s differs from acquisition.sample_period "
                 f"{self.acquisition.sample_period} s")

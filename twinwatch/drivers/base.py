@@ -67,7 +67,7 @@ class DriverStats:
 
     frames: int = 0  #: raw frames / rows / register reads received
     samples: int = 0  #: samples delivered to the caller
-    bad_frames: int = 0  #: frames that could not be decoded (unknown id, wrong length, ...)
+    bad_frames: int = 0  #: frames of a mapped message that could not be decoded
     bad_values: int = 0  #: decoded values that were NaN, inf or out of range
     gaps: int = 0  #: missing samples detected from time stamps or counters
     errors: int = 0  #: recoverable read errors (timeouts, dropped links)
@@ -133,12 +133,15 @@ class Driver(abc.ABC):
         return self._closed
 
     def log_once(self, key: str, msg: str, *args: object, level: int = logging.WARNING) -> None:
-        """Log ``msg`` at ``level`` the first time ``key`` is seen, at DEBUG afterwards."""
+        """Log ``msg`` at ``level`` the first time ``key`` is seen, at DEBUG afterwards.
+
+        Logs through the driver module's logger (``twinwatch.drivers.can``, ...)."""
+        log = logging.getLogger(type(self).__module__)
         if key in self._logged_once:
-            logger.debug(msg, *args)
+            log.debug(msg, *args)
         else:
             self._logged_once.add(key)
-            logger.log(level, msg, *args)
+            log.log(level, msg, *args)
 
     # -- for subclasses -------------------------------------------------------------------
     @abc.abstractmethod
@@ -163,7 +166,8 @@ class Driver(abc.ABC):
     def __del__(self) -> None:
         if not getattr(self, "_closed", True):
             warnings.warn(
-                f"{type(self).__name__} was not closed; call close() or use it as a context manager",
+                f"{type(self).__name__} was not closed; call close() or use it as a "
+                "context manager",
                 ResourceWarning,
                 stacklevel=2,
             )

@@ -30,7 +30,7 @@ import cantools
 from pydantic import BaseModel, ConfigDict, Field
 
 from twinwatch.drivers.base import Driver, DriverInitializationError, Sample
-from twinwatch.drivers.can import CanDriver, CanDriverConfig
+from twinwatch.drivers.can import CanDriver, CanDriverConfig, CanSignalMap
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
 logger = logging.getLogger(__name__)
@@ -95,7 +95,9 @@ class SimulatedDriver(Driver):
         self._rx: can.BusABC | None = None
         self._can: CanDriver | None = None
         try:
-            self._db = cantools.database.load_file(str(dbc))
+            db = cantools.database.load_file(str(dbc))
+            assert isinstance(db, cantools.database.can.Database)
+            self._db = db
             self._messages = [(self._db.get_message_by_name(m), sigs) for m, sigs in _MESSAGES]
             self._rx = can.Bus(interface="virtual", channel=channel)
             self._tx = can.Bus(interface="virtual", channel=channel)
@@ -106,7 +108,7 @@ class SimulatedDriver(Driver):
                 time_source="counter",
                 counter_signal="TW_Motor_Sample.sample_counter",
                 sample_period=config.plant.sample_period,
-                signals={ch: {"message": m, "signal": ch} for m, sigs in _MESSAGES
+                signals={ch: CanSignalMap(message=m, signal=ch) for m, sigs in _MESSAGES
                          for ch in sigs},
             )
             self._can = CanDriver(can_cfg, bus=self._rx)
