@@ -7,7 +7,6 @@ channel, the way the simulated plant or a real drive would put them on the wire.
 from __future__ import annotations
 
 import math
-import threading
 import time
 import tomllib
 import uuid
@@ -41,13 +40,7 @@ ODRIVE_CONFIG = REPO / "config" / "dc-motor-odrive.toml"
 TS = 0.01  # [s] plant sample period used in these tests
 
 
-@pytest.fixture(autouse=True)
-def no_thread_leak() -> Iterator[None]:
-    """Fail a test that leaves threads behind (as pymodbus' conftest does)."""
-    before = set(threading.enumerate())
-    yield
-    leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()]
-    assert not leaked, f"threads leaked: {leaked}"
+# Thread leaks fail every test: see the autouse fixture in tests/conftest.py.
 
 
 @pytest.fixture

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import math
-import threading
 import time
-from collections.abc import Iterator
 from importlib.metadata import EntryPoint
 from pathlib import Path
 from typing import Any
@@ -33,13 +31,7 @@ APRBS_TS = 0.02  # [s], MotoShield sample period (not stored in the file)
 APRBS_N = 4801
 
 
-@pytest.fixture(autouse=True)
-def no_thread_leak() -> Iterator[None]:
-    """Fail a test that leaves threads behind (as pymodbus' conftest does)."""
-    before = set(threading.enumerate())
-    yield
-    leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()]
-    assert not leaked, f"threads leaked: {leaked}"
+# Thread leaks fail every test: see the autouse fixture in tests/conftest.py.
 
 
 def replay(driver: Driver) -> list[Sample]:

@@ -61,21 +61,30 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     from twinwatch.daemon.runner import Daemon
     from twinwatch.drivers.base import DriverError
 
+    # Signals first: a SIGTERM while the drivers and sinks start must stop cleanly too.
+    stop_requested = threading.Event()
+    holder: list[Any] = []
+
+    def _on_signal(signum: int, frame: FrameType | None) -> None:
+        logger.warning("%s received: finishing the queued windows and stopping",
+                       signal.Signals(signum).name)
+        stop_requested.set()
+        for d in holder:
+            d.stop()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _on_signal)
+        signal.signal(signal.SIGTERM, _on_signal)
+
     try:
         daemon = Daemon(cfg, base_dir=base_dir)
     except (DriverError, ValueError, OSError) as exc:
         raise click.ClickException(f"cannot start: {exc}") from None
     except Exception as exc:  # PublisherError, RecorderError: their messages say what to do
         raise click.ClickException(f"cannot start: {exc}") from None
-
-    def _on_signal(signum: int, frame: FrameType | None) -> None:
-        logger.warning("%s received: finishing the queued windows and stopping",
-                       signal.Signals(signum).name)
+    holder.append(daemon)
+    if stop_requested.is_set():
         daemon.stop()
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, _on_signal)
-        signal.signal(signal.SIGTERM, _on_signal)
 
     total = duration
     if total is None and cfg.driver.type == "simulated":

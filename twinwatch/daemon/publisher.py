@@ -42,17 +42,17 @@ import logging
 import math
 import re
 import threading
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from datetime import date, datetime
 from enum import Enum
 from pathlib import PurePath
-from types import TracebackType
 from typing import Any, Literal, Self
 
 import numpy as np
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from twinwatch._lifecycle import Closeable
 
 logger = logging.getLogger(__name__)
 
@@ -263,7 +263,7 @@ def to_json(payload: Mapping[str, Any]) -> str:
     return json.dumps(_jsonable(payload), separators=(",", ":"), allow_nan=False)
 
 
-class HealthPublisher:
+class HealthPublisher(Closeable):
     """Publishes one machine's health (and other JSON topics) on zenoh.
 
     Keys, with ``P = {config.key_prefix}/{machine}``: ``P/health`` (publisher and queryable
@@ -436,26 +436,6 @@ class HealthPublisher:
             self.published,
             self.errors,
         )
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        if not getattr(self, "_closed", True):
-            warnings.warn(
-                f"HealthPublisher for {self.machine!r} was never closed",
-                ResourceWarning,
-                stacklevel=2,
-            )
-            self.close()
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"

@@ -32,17 +32,16 @@ import logging
 import os
 import threading
 import uuid
-import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 from pydantic import BaseModel, ConfigDict, field_validator
 
+from twinwatch._lifecycle import Closeable
 from twinwatch.daemon.publisher import to_json
 
 logger = logging.getLogger(__name__)
@@ -128,7 +127,7 @@ def _check_writable(path: Path) -> None:
         raise RecorderError(f"cannot record to {path}: {exc.strerror or exc}") from exc
 
 
-class RerunRecorder:
+class RerunRecorder(Closeable):
     """Records measured vs twin outputs, parameter estimates and health to a ``.rrd`` file.
 
     :meth:`log_window` may be called from a worker thread while :meth:`close` is called from
@@ -377,26 +376,6 @@ class RerunRecorder:
         logger.info(
             "recording of %s closed: %d windows in %s", self.machine, self.windows, self.path
         )
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        if not getattr(self, "_closed", True):
-            warnings.warn(
-                f"RerunRecorder for {self.machine!r} was never closed",
-                ResourceWarning,
-                stacklevel=2,
-            )
-            self.close()
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"

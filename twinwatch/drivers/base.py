@@ -23,10 +23,9 @@ from __future__ import annotations
 
 import abc
 import logging
-import warnings
 from dataclasses import dataclass, field
-from types import TracebackType
-from typing import Self
+
+from twinwatch._lifecycle import Closeable
 
 logger = logging.getLogger(__name__)
 
@@ -86,7 +85,7 @@ class DriverStats:
         return d
 
 
-class Driver(abc.ABC):
+class Driver(Closeable, abc.ABC):
     """Base class of every acquisition driver.
 
     Subclasses set :attr:`channels` and implement :meth:`_read_internal` and, if they hold
@@ -150,24 +149,3 @@ class Driver(abc.ABC):
 
     def _close_internal(self) -> None:  # noqa: B027 - optional hook
         """Release resources; called once by :meth:`close`."""
-
-    # -- context manager ------------------------------------------------------------------
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        if not getattr(self, "_closed", True):
-            warnings.warn(
-                f"{type(self).__name__} was not closed; call close() or use it as a "
-                "context manager",
-                ResourceWarning,
-                stacklevel=2,
-            )
