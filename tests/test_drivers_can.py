@@ -512,7 +512,7 @@ def test_candump_log_realtime_replay_is_paced(tmp_path: Path, plant_db: Database
                 n += driver.read(1.0) is not None
         elapsed = time.monotonic() - start
     assert n == 6
-    assert 0.19 <= elapsed < 1.0
+    assert elapsed >= 0.19  # paced by the log: its 6 frames span 0.2 s
 
 
 def test_missing_log_file_fails_at_construction(tmp_path: Path) -> None:

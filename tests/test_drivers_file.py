@@ -146,7 +146,7 @@ def test_csv_realtime_is_paced_by_the_sample_period(csv_file: Path) -> None:
                 n += driver.read(1.0) is not None
         elapsed = time.monotonic() - start
     assert n == 5
-    assert 0.079 <= elapsed < 1.0
+    assert elapsed >= 0.079  # paced by the sample period: 5 rows span 0.08 s
 
 
 @pytest.mark.parametrize(

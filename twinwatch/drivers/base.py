@@ -25,6 +25,8 @@ import abc
 import logging
 from dataclasses import dataclass, field
 
+from pydantic import BaseModel, ConfigDict, Field
+
 from twinwatch._lifecycle import Closeable
 
 logger = logging.getLogger(__name__)
@@ -58,6 +60,22 @@ class Sample:
 
     t: float
     values: dict[str, float]
+
+
+class ScaledChannel(BaseModel):
+    """How a source value becomes a twin channel value: ``value = raw * scale + offset``.
+
+    Attributes:
+        scale: factor to the twin's SI unit (e.g. 2*pi for rev/s -> rad/s).
+        offset: added after scaling, in the twin's unit.
+        unit: the twin channel's unit, for documentation and display.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scale: float = Field(default=1.0, allow_inf_nan=False)
+    offset: float = Field(default=0.0, allow_inf_nan=False)
+    unit: str | None = None
 
 
 @dataclass(slots=True)

@@ -67,6 +67,7 @@ from twinwatch.drivers.base import (
     DriverOperationError,
     EndOfStream,
     Sample,
+    ScaledChannel,
 )
 
 logger = logging.getLogger(__name__)
@@ -86,20 +87,15 @@ def _split_signal_ref(ref: str) -> tuple[str, str]:
     return parts[0], parts[1]
 
 
-class CanSignalMap(BaseModel):
+class CanSignalMap(ScaledChannel):
     """Where one twin channel comes from: ``value_twin = value_dbc * scale + offset``.
 
     ``value_dbc`` is the physical value cantools decodes (DBC factor and offset applied), in the
     DBC's unit; ``unit`` documents the twin-side unit and is not used for computation.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
     message: str = Field(min_length=1)
     signal: str = Field(min_length=1)
-    scale: float = Field(default=1.0, allow_inf_nan=False)
-    offset: float = Field(default=0.0, allow_inf_nan=False)
-    unit: str | None = None
 
 
 class CanDriverConfig(BaseModel):

@@ -51,7 +51,13 @@ import numpy.typing as npt
 import scipy.io
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from twinwatch.drivers.base import Driver, DriverInitializationError, EndOfStream, Sample
+from twinwatch.drivers.base import (
+    Driver,
+    DriverInitializationError,
+    EndOfStream,
+    Sample,
+    ScaledChannel,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -63,18 +69,13 @@ _MAT_SUFFIXES = {".mat"}
 FloatArray = npt.NDArray[np.float64]
 
 
-class FileColumnMap(BaseModel):
+class FileColumnMap(ScaledChannel):
     """Where one twin channel comes from: ``value_twin = value_file * scale + offset``.
 
     ``column`` is a CSV header name or a MAT variable name.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
     column: str = Field(min_length=1)
-    scale: float = Field(default=1.0, allow_inf_nan=False)
-    offset: float = Field(default=0.0, allow_inf_nan=False)
-    unit: str | None = None
 
 
 class FileDriverConfig(BaseModel):
