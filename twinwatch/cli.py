@@ -58,6 +58,8 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         raise click.ClickException(str(exc)) from None
     base_dir = config.resolve().parent if config else Path.cwd()
 
+    from twinwatch.daemon.publisher import PublisherError
+    from twinwatch.daemon.recorder import RecorderError
     from twinwatch.daemon.runner import Daemon
     from twinwatch.drivers.base import DriverError
 
@@ -78,9 +80,8 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
 
     try:
         daemon = Daemon(cfg, base_dir=base_dir)
-    except (DriverError, ValueError, OSError) as exc:
-        raise click.ClickException(f"cannot start: {exc}") from None
-    except Exception as exc:  # PublisherError, RecorderError: their messages say what to do
+    except (DriverError, PublisherError, RecorderError, ValueError, OSError) as exc:
+        # Each of these says what failed and what to do; a traceback would add nothing.
         raise click.ClickException(f"cannot start: {exc}") from None
     holder.append(daemon)
     if stop_requested.is_set():

@@ -145,7 +145,7 @@ class DCMotorPlantConfig(BaseModel):
 def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, unb_a, unb_w):  # pragma: no cover
     """Advance ``state = [ia, omega, z]`` by ``n_sub`` steps from step index ``k0``.
 
-    ``p = [Ra0, La, J, Ke, Kt, D0, c_load, Kp, Ki]``. Returns the Va of the last step.
+    ``p = [Ra0, La, J, Ke, Kt, D0, c_load, Kp, Ki]``; ``state`` is updated in place.
     """
     ia, w, z = state[0], state[1], state[2]
     ra0, la, j, ke, kt, d0, c, kp, ki = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8]
@@ -166,7 +166,6 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, unb_a, unb_w):  # p
             w_new += dt * unb_a * math.sin(unb_w * (t + dt))
         w = w_new
     state[0], state[1], state[2] = ia, w, z
-    return 0.0
 
 
 @dataclass

@@ -43,7 +43,7 @@ estimator decides per window which parameters the data determine.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -101,7 +101,6 @@ class DCMotorTwin(TwinModel):
     speed_scale: float = 1.0
     voltage_scale: float = 1.0
     current_filter: bool = False
-    _cache: dict[str, object] = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.parameters = DC_MOTOR_PARAMETERS

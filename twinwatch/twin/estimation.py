@@ -298,17 +298,10 @@ class Estimator:
         else:
             q_best, pso_cost = q0, float(cost(q0[None, :])[0])
 
-        # 2. Least-squares polish of every estimated parameter.
-        active = np.arange(idx.size)
-        if cfg.polish and idx.size:
-            q_best, n_ev = self._polish(q_best, active, idx, base, window, meas, scale, xl, xu)
-            evals += n_ev
-
-        # 3. Identifiability: which of them does this window determine?
-        theta_best = self._full(q_best[None, :], idx, base)
-        r_best = self._residuals(theta_best, window, meas, scale)[0]
-        jac, n_ev = self._jacobian(q_best, active, idx, base, window, meas, scale, r_best)
-        evals += n_ev
+        # 2. Least-squares polish of every estimated parameter, and
+        # 3. identifiability: which of them does this window determine?
+        fit = _Fit(self, window, meas, scale, idx, base, xl, xu)
+        q_best, r_best, jac = fit.refine(q_best, np.arange(idx.size), polish=cfg.polish)
         selected, rel_std, reasons = self._select(jac, r_best)
         held: dict[str, str] = {}
         names_est = [self.names[i] for i in idx]
@@ -321,15 +314,11 @@ class Estimator:
             held_pos = [k for k in range(idx.size) if k not in selected]
             q_fit[held_pos] = np.log(base[idx[held_pos]])
             if selected:
-                sel = np.array(selected, dtype=int)
-                q_fit, n_ev = self._polish(q_fit, sel, idx, base, window, meas, scale, xl, xu)
-                evals += n_ev
-                theta_fit = self._full(q_fit[None, :], idx, base)
-                r_fit = self._residuals(theta_fit, window, meas, scale)[0]
-                jac_s, n_ev = self._jacobian(q_fit, sel, idx, base, window, meas, scale, r_fit)
-                evals += n_ev
+                q_fit, r_fit, jac_s = fit.refine(q_fit, np.array(selected, dtype=int),
+                                                 polish=True)
                 rel_std = dict(zip(selected, self._rel_std(jac_s, r_fit), strict=True))
             q_best = q_fit
+        evals += fit.evaluations
 
         theta = self._full(q_best[None, :], idx, base)
         y = self.model.simulate(theta, window)[0]
@@ -369,42 +358,6 @@ class Estimator:
         )
 
     # -- helpers --------------------------------------------------------------------------
-    def _jacobian(self, q, active, idx, base, window, meas, scale, r0):  # type: ignore[no-untyped-def]
-        """Forward-difference Jacobian d r / d ln p over ``active`` columns: one twin call."""
-        h = 1e-6
-        qs = np.repeat(q[None, :], active.size, axis=0)
-        qs[np.arange(active.size), active] += h
-        r = self._residuals(self._full(qs, idx, base), window, meas, scale)
-        return ((r - r0[None, :]) / h).T, active.size
-
-    def _polish(self, q, active, idx, base, window, meas, scale, xl, xu):  # type: ignore[no-untyped-def]
-        """Bounded least squares over the ``active`` entries of q, the rest held."""
-        n_ev = 0
-
-        def fun(x: FloatArray) -> FloatArray:
-            nonlocal n_ev
-            qq = q.copy()
-            qq[active] = x
-            n_ev += 1
-            return self._residuals(self._full(qq[None, :], idx, base), window, meas, scale)[0]
-
-        def jac(x: FloatArray) -> FloatArray:
-            nonlocal n_ev
-            qq = q.copy()
-            qq[active] = x
-            r0 = fun(x)
-            j, k = self._jacobian(qq, active, idx, base, window, meas, scale, r0)
-            n_ev += k
-            return j
-
-        lo, hi = xl[active], xu[active]
-        x0 = np.clip(q[active], lo + 1e-12, hi - 1e-12)
-        sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf",
-                            x_scale=1.0, xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
-        out = q.copy()
-        out[active] = sol.x
-        return out, n_ev
-
     def _rel_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
         """Relative 1-sigma standard errors of the columns of ``jac`` (ln-parameters).
 
@@ -471,3 +424,57 @@ class Estimator:
                 reasons[k] = (f"not separable from {other} in this window: held at last "
                               "trusted value")
         return selected, rel, reasons
+
+
+class _Fit:
+    """The local part of one window's estimation: polish over a subset of the ln-parameters
+    (the rest held) and the residuals and Jacobian at the result, counting twin evaluations."""
+
+    def __init__(self, est: Estimator, window: WindowData, meas: FloatArray, scale: FloatArray,
+                 idx: np.ndarray, base: FloatArray, xl: FloatArray, xu: FloatArray) -> None:
+        self.est, self.window, self.meas, self.scale = est, window, meas, scale
+        self.idx, self.base, self.xl, self.xu = idx, base, xl, xu
+        self.evaluations = 0
+
+    def residuals(self, q: FloatArray) -> FloatArray:
+        """Normalised residuals (P, M) for ln-parameter rows q (P, n_est)."""
+        self.evaluations += q.shape[0]
+        theta = self.est._full(q, self.idx, self.base)
+        return self.est._residuals(theta, self.window, self.meas, self.scale)
+
+    def jacobian(self, q: FloatArray, active: np.ndarray, r0: FloatArray) -> FloatArray:
+        """Forward-difference d r / d ln p over the ``active`` columns: one twin call."""
+        h = 1e-6
+        qs = np.repeat(q[None, :], active.size, axis=0)
+        qs[np.arange(active.size), active] += h
+        return ((self.residuals(qs) - r0[None, :]) / h).T
+
+    def refine(self, q: FloatArray, active: np.ndarray, *, polish: bool
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Polish the ``active`` entries of q (bounded least squares, trust-region reflective),
+        then return (q, residuals (M,), Jacobian (M, len(active))) at the result."""
+        q = q.copy()
+        if polish and active.size:
+            last: dict[str, FloatArray] = {}
+
+            def fun(x: FloatArray) -> FloatArray:
+                qq = q.copy()
+                qq[active] = x
+                r = self.residuals(qq[None, :])[0]
+                last["x"], last["r"] = x.copy(), r
+                return r
+
+            def jac(x: FloatArray) -> FloatArray:
+                # least_squares asks for the Jacobian where it just evaluated fun: reuse it.
+                r0 = last["r"] if "x" in last and np.array_equal(last["x"], x) else fun(x)
+                qq = q.copy()
+                qq[active] = x
+                return self.jacobian(qq, active, r0)
+
+            lo, hi = self.xl[active], self.xu[active]
+            x0 = np.clip(q[active], lo + 1e-12, hi - 1e-12)
+            sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
+                                xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
+            q[active] = sol.x
+        r = self.residuals(q[None, :])[0]
+        return q, r, self.jacobian(q, active, r)

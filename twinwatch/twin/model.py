@@ -12,7 +12,7 @@ is the fast, vectorised path that the estimator calls with a whole swarm.
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -213,8 +213,3 @@ def propagate(
     _propagate_kernel(np.ascontiguousarray(phi), np.ascontiguousarray(gamma),
                       np.ascontiguousarray(u, dtype=float), x)
     return x
-
-
-def ensure_2d(theta: Sequence[float] | FloatArray) -> FloatArray:
-    arr = np.asarray(theta, dtype=float)
-    return arr[None, :] if arr.ndim == 1 else arr
