@@ -46,7 +46,7 @@ def test_composite_zoh_equals_explicit_sub_stepping():
     a, b = twin.step_matrices(theta, 1e-4)
     phi, gamma = composite_zoh(a, b, 100)
     x = np.array([1.0, 5.0, 20.0])
-    u = np.array([10.0, 0.0])
+    u = np.array([10.0, 0.0, 3.0, -2.0])  # set-point, Tload, f_omega, f_ia
     x_loop = x.copy()
     for _ in range(100):
         x_loop = a[0] @ x_loop + b[0] @ u

@@ -36,6 +36,11 @@ start-up current spike that the filter hides.
 The load torque is either ``viscous`` (Tload = c_load*omega, the paper's 0.006*omega, folded into
 the dynamics) or ``measured`` (the Tload channel drives the twin, held over each sample).
 
+Meta-model terms (discovery, paper Eq. 3 and 13) attach additively to the state equations:
+``d(omega)/dt`` [rad/s^2] (an unknown torque per inertia: an unbalanced shaft adds a periodic
+one) and ``d(ia)/dt`` [A/s]. Each enters the sub-step recursion as an extra input held over the
+sample, so the composed twin stays one exact linear map per sample for the whole swarm.
+
 Identifiability (measured, see docs/architecture.md): with a viscous load, J, Kt and D cannot be
 told apart unless Kt is tied to Ke; in windows without a transient Ra and Ke trade off. The
 estimator decides per window which parameters the data determine.
@@ -43,12 +48,14 @@ estimator decides per window which parameters the data determine.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
 from twinwatch.twin.model import (
+    AttachPoint,
     FloatArray,
     OutputSpec,
     ParameterSpec,
@@ -122,6 +129,10 @@ class DCMotorTwin(TwinModel):
             outputs.append(OutputSpec("Va", "V", self.voltage_scale))
         self.inputs = tuple(inputs)
         self.outputs = tuple(outputs)
+        self.attach_points = (
+            AttachPoint("d(omega)/dt", "additive", "rad/s^2", "shaft speed"),
+            AttachPoint("d(ia)/dt", "additive", "A/s", "armature current"),
+        )
         if self.structure == "closed_loop" and self.ki == 0:
             raise ValueError("closed_loop structure needs a non-zero integral gain ki")
 
@@ -145,9 +156,11 @@ class DCMotorTwin(TwinModel):
             dt: sub-step [s].
 
         Returns:
-            A of shape (P, n, n), B of shape (P, n, 2). Closed loop: x = [ia, omega, z]
-            (z the PI integrator state, rad), u = [setpoint, Tload_measured]. Open loop:
-            x = [ia, omega], u = [Va, Tload_measured].
+            A of shape (P, n, n), B of shape (P, n, 4). Closed loop: x = [ia, omega, z]
+            (z the PI integrator state, rad), u = [setpoint, Tload_measured, f_omega, f_ia].
+            Open loop: x = [ia, omega], u = [Va, Tload_measured, f_omega, f_ia]. ``f_omega``
+            [rad/s^2] and ``f_ia`` [A/s] are the meta-model terms added to d(omega)/dt and
+            d(ia)/dt.
         """
         ra, la, j, ke, kt, d = (theta[:, k] for k in range(6))
         c = self.load_coefficient if self.load == "viscous" else 0.0
@@ -156,7 +169,7 @@ class DCMotorTwin(TwinModel):
         g = dt * kt / j
         if self.structure == "closed_loop":
             a = np.zeros((p, 3, 3))
-            b = np.zeros((p, 3, 2))
+            b = np.zeros((p, 3, 4))
             # i' = i + dt/La*(Kp*(sp - w) + Ki*z - Ra*i - Ke*w)
             a[:, 0, 0] = 1.0 - a_el * ra
             a[:, 0, 1] = -a_el * (self.kp + ke)
@@ -168,21 +181,23 @@ class DCMotorTwin(TwinModel):
             b[:, 2, 0] = dt
         else:
             a = np.zeros((p, 2, 2))
-            b = np.zeros((p, 2, 2))
+            b = np.zeros((p, 2, 4))
             a[:, 0, 0] = 1.0 - a_el * ra
             a[:, 0, 1] = -a_el * ke
             b[:, 0, 0] = a_el
+        b[:, 0, 3] = dt  # i' += dt*f_ia
         # w' = w + dt/J*(Kt*i' - c*w - D*w - Tload)   (semi-implicit: uses the new current)
         a[:, 1, :] = g[:, None] * a[:, 0, :]
         a[:, 1, 1] += 1.0 - dt * (d + c) / j
         b[:, 1, :] = g[:, None] * b[:, 0, :]
         b[:, 1, 1] += -dt / j
+        b[:, 1, 2] += dt  # w' += dt*f_omega
         if self.current_filter:
             # Filtered current, appended as the last state: f' = f + dt/tau*(i' - f).
             n = a.shape[1]
             g_f = dt / theta[:, 6]
             a2 = np.zeros((p, n + 1, n + 1))
-            b2 = np.zeros((p, n + 1, 2))
+            b2 = np.zeros((p, n + 1, b.shape[2]))
             a2[:, :n, :n] = a
             b2[:, :n] = b
             a2[:, n, :n] = g_f[:, None] * a[:, 0, :]
@@ -191,12 +206,15 @@ class DCMotorTwin(TwinModel):
             a, b = a2, b2
         return a, b
 
-    def simulate(self, theta: FloatArray, window: WindowData) -> FloatArray:
+    def simulate(self, theta: FloatArray, window: WindowData,
+                 terms: Mapping[str, FloatArray] | None = None) -> FloatArray:
         """Simulate the window for a swarm; see :meth:`TwinModel.simulate`.
 
         Args:
             theta: (P, 6) parameters (Ra, La, J, Ke, Kt, D).
             window: needs ``ia``, ``omega`` and the inputs of the structure.
+            terms: ``d(omega)/dt`` [rad/s^2] and/or ``d(ia)/dt`` [A/s] -> values (N,) or
+                (P, N), added to that state equation and held over each sample.
 
         Returns:
             (P, N, n_outputs): ia [A], omega [rad/s] and, closed loop, Va [V].
@@ -213,16 +231,28 @@ class DCMotorTwin(TwinModel):
             sp, va = window["setpoint"], window["Va"]
             z0 = (va[0] - self.kp * (sp[0] - omega[0])) / self.ki
             x0 = [ia[0], omega[0], z0]
-            u = np.column_stack([sp, tl])
+            drive = sp
         else:
             x0 = [ia[0], omega[0]]
-            u = np.column_stack([window["Va"], tl])
+            drive = window["Va"]
+        u = np.column_stack([drive, tl, np.zeros_like(tl), np.zeros_like(tl)])
+        if terms:
+            unknown = set(terms) - {"d(omega)/dt", "d(ia)/dt"}
+            if unknown:
+                raise KeyError(f"unknown attach point(s) {sorted(unknown)}; the DC motor "
+                               "twin offers d(omega)/dt and d(ia)/dt")
+            rows = max(np.ndim(v) == 2 and np.shape(v)[0] or 1 for v in terms.values())
+            u3 = np.repeat(u[None], rows, axis=0)
+            for col, name in ((2, "d(omega)/dt"), (3, "d(ia)/dt")):
+                if name in terms:
+                    u3[:, :, col] = terms[name]
+            u = u3
         if self.current_filter:
             x0.append(ia[0])  # the true current at the start is taken as the filtered one
         x0_arr = np.array(x0)
         x = propagate(phi, gamma, np.broadcast_to(x0_arr, (p, x0_arr.size)), u)
         i_out = x[:, :, -1] if self.current_filter else x[:, :, 0]
         if self.structure == "closed_loop":
-            va_sim = self.kp * (u[None, :, 0] - x[:, :, 1]) + self.ki * x[:, :, 2]
+            va_sim = self.kp * (drive[None, :] - x[:, :, 1]) + self.ki * x[:, :, 2]
             return np.stack([i_out, x[:, :, 1], va_sim], axis=2)
         return np.stack([i_out, x[:, :, 1]], axis=2)

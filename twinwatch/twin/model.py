@@ -14,6 +14,7 @@ from __future__ import annotations
 import abc
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numba import njit
@@ -84,6 +85,31 @@ class OutputSpec:
     scale: float
 
 
+@dataclass(frozen=True, slots=True)
+class AttachPoint:
+    """A place in the twin's equations where a meta-model term can attach (paper Eq. 3).
+
+    The specialist's configuration (``[discovery]``) picks attach points by :attr:`name`; the
+    discovery fits meta-model terms there and the twin composes them (DT'' = DT + sum U_i).
+
+    Attributes:
+        name: the equation, as it reads in reports: ``d(omega)/dt`` for a state equation,
+            ``p`` for an output (algebraic) equation.
+        mode: ``additive``: the term's value, in :attr:`unit`, is added to the equation's
+            right-hand side and held over each sample (the value passed for sample k drives the
+            step k -> k+1); ``multiplicative``: the equation's value at sample k is multiplied
+            by ``1 + U[k]`` (U dimensionless).
+        unit: unit of an additive term (``rad/s^2``); ``1`` for a multiplicative one.
+        quantity: what the equation governs, in words (``shaft speed``, ``pressure``): the
+            interpretation says where the unknown component acts.
+    """
+
+    name: str
+    mode: Literal["additive", "multiplicative"]
+    unit: str
+    quantity: str
+
+
 @dataclass
 class TwinModel(abc.ABC):
     """Base class of every twin model.
@@ -95,6 +121,7 @@ class TwinModel(abc.ABC):
     parameters: tuple[ParameterSpec, ...] = field(init=False, default=())
     inputs: tuple[str, ...] = field(init=False, default=())
     outputs: tuple[OutputSpec, ...] = field(init=False, default=())
+    attach_points: tuple[AttachPoint, ...] = field(init=False, default=())
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -115,18 +142,30 @@ class TwinModel(abc.ABC):
         values = values or {}
         return np.array([float(values.get(p.name, p.nominal)) for p in self.parameters])
 
+    def attach_point(self, name: str) -> AttachPoint:
+        for a in self.attach_points:
+            if a.name == name:
+                return a
+        raise KeyError(f"unknown attach point {name!r}; the model offers "
+                       f"{[a.name for a in self.attach_points]}")
+
     def required_channels(self) -> tuple[str, ...]:
         """Channels a window must hold: the inputs and the outputs."""
         return tuple(dict.fromkeys((*self.inputs, *self.output_names)))
 
     @abc.abstractmethod
-    def simulate(self, theta: FloatArray, window: WindowData) -> FloatArray:
+    def simulate(self, theta: FloatArray, window: WindowData,
+                 terms: Mapping[str, FloatArray] | None = None) -> FloatArray:
         """Simulate the window for every parameter vector of a swarm.
 
         Args:
             theta: full parameter vectors, shape (P, n_params), in :attr:`parameters` order.
             window: the measured window; the simulation starts from its first sample's
                 measured state and is driven by its measured inputs.
+            terms: meta-model terms composed into the twin (DT'', paper Eq. 3): attach-point
+                name (one of :attr:`attach_points`) -> the summed terms' values at each sample,
+                shape (N,) (the same for every particle) or (P, N). ``None`` or empty: the
+                plain DT.
 
         Returns:
             Simulated outputs, shape (P, N, n_outputs), in :attr:`outputs` order. Rows of
@@ -177,13 +216,15 @@ def composite_zoh(a: FloatArray, b: FloatArray, n_sub: int) -> tuple[FloatArray,
 @njit(cache=True)
 def _propagate_kernel(phi, gamma, u, x):  # pragma: no cover - compiled
     p, nk, n = x.shape
-    m = u.shape[1]
+    m = u.shape[2]
+    shared = u.shape[0] == 1
     for q in range(p):
+        qu = 0 if shared else q
         for k in range(nk - 1):
             for i in range(n):
                 acc = 0.0
                 for j in range(m):
-                    acc += gamma[q, i, j] * u[k, j]
+                    acc += gamma[q, i, j] * u[qu, k, j]
                 for j in range(n):
                     acc += phi[q, i, j] * x[q, k, j]
                 x[q, k + 1, i] = acc
@@ -201,15 +242,21 @@ def propagate(
         phi: shape (P, n, n).
         gamma: shape (P, n, m).
         x0: initial states, shape (P, n) or (n,).
-        u: inputs held over each sample, shape (N, m); ``u[k]`` drives step k -> k+1.
+        u: inputs held over each sample, shape (N, m) (shared by the swarm) or (P, N, m)
+            (per particle, e.g. meta-model terms); ``u[..., k, :]`` drives step k -> k+1.
 
     Returns:
         States, shape (P, N, n), with ``x[:, 0] = x0``. Overflow gives inf/nan, never raises.
     """
     p, n, _ = phi.shape
-    nk = u.shape[0]
+    u3 = np.asarray(u, dtype=float)
+    if u3.ndim == 2:
+        u3 = u3[None]
+    if u3.shape[0] not in (1, p):
+        raise ValueError(f"u has {u3.shape[0]} rows of inputs for a swarm of {p}")
+    nk = u3.shape[1]
     x = np.empty((p, nk, n))
     x[:, 0] = x0
     _propagate_kernel(np.ascontiguousarray(phi), np.ascontiguousarray(gamma),
-                      np.ascontiguousarray(u, dtype=float), x)
+                      np.ascontiguousarray(u3), x)
     return x
