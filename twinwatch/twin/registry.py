@@ -15,6 +15,7 @@ from twinwatch.twin.model import TwinModel
 #: name -> (module, class)
 BUILTIN_MODELS: dict[str, tuple[str, str]] = {
     "dc_motor": ("twinwatch.twin.dcmotor", "DCMotorTwin"),
+    "hydraulic_actuator": ("twinwatch.twin.hydraulic", "HydraulicActuatorTwin"),
 }
 
 

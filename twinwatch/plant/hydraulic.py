@@ -1,0 +1,278 @@
+"""Simulated hydraulic actuator plant with its valve PID (paper Section 4.2 and 5.3).
+
+The plant is the "real machine" of the paper's second case study: a constant-displacement pump
+feeds a piston cylinder, a controlled valve returns fluid to the reservoir, and a 1000 kg load
+sits on the piston. Equations (paper Eq. 6-10, 14-18; reading of ../shared/paper/NOTES.md), one
+plant step j -> j+1 of dt = 1e-4 s::
+
+    q_valve   = A_valve * sqrt(2 * p_j)                         (Eq. 6-7, density left out)
+    v_{j+1}   = (q_pump - q_valve) / A_piston                   (Eq. 8, uses p_j)
+    x_{j+1}   = x_j + dt * v_{j+1}                              (Eq. 14-15)
+    p_{j+1}   = (1 + C) * (F_load + k_spring*x_{j+1} + D*v_{j+1} + F_resist) / A_piston
+                                                                (Eq. 16; Eq. 18 with C != 0)
+
+``v_{j+1}`` is the velocity over the step (the paper's ``v_{k-1}`` of Eq. 14); the same value
+enters the damping force of Eq. 16. ``C`` is 0 except in the internal-leak scenario.
+
+**Valve controller (Eq. 17).** A discrete PID with a filtered derivative, forward-Euler form
+``A = e*(Kp + Ki*Ts/(z-1) + Kd*N/(1 + N*Ts/(z-1)))``::
+
+    e      = x - x_ref                      (opening the valve lowers the piston: NOTES.md)
+    d      = N*(Kd*e - f)                   (derivative through the filter state f)
+    u      = Kp*e + I + d
+    A      = clip(u, 0, A_max)
+    I     += Ki*Ts*e   unless A is clamped and e pushes further into the clamp (anti-windup)
+    f     += Ts*d
+
+**Where the PID runs: every plant step (Ts = 1e-4 s).** The paper calls Ts in Eq. 17 "the
+integration time step", and with these gains the loop is only stable at that rate: the plant
+gain is dv/dA = -sqrt(2p)/A_piston ~ -1620 m/s per m^2, so the integral loop oscillates at
+sqrt(1620*Ki) ~ 75 rad/s with damping ratio ~ 0.006. Run every 10 ms (0.75 rad per period) the
+forward-Euler integral makes it unstable: measured, a limit cycle of +-3.9 mm with the valve
+slamming between 0 and A_max. At 1e-4 s it tracks within 8e-8 m. Consequence for the twin: the
+valve area changes within a sample, so an open-loop twin holding the sampled area is slightly
+biased; :class:`twinwatch.twin.hydraulic.HydraulicActuatorTwin` interpolates it linearly
+between samples by default (see there for the measured effect).
+
+**Reference and start.** x_ref(t) = offset + amplitude*sin(2*pi*f*t) (0.5 m + 0.45 m at
+0.005 Hz: the offset is our choice, so the piston stays in its stroke). The plant starts in
+steady tracking: x_0 = x_ref(0), the integrator holding the area that gives v = dx_ref/dt.
+
+**Scenarios** (onset ``fault_start`` = 160 s, time of the step start ``t_j = j*dt``):
+
+* ``nominal``: Table 4 parameters throughout.
+* ``fluid_degradation``: D(t) = D + 36.5*(exp(0.003*(t - 160)) - 1) for t >= 160 s (about 200
+  N/(m/s) at 600 s; NOTES.md's reading of the paper's ramp).
+* ``internal_leak``: C = ``leak_coefficient`` (0.2) for t >= 160 s (Eq. 18).
+
+Measured figures (nominal, 400 s, tested in tests/test_twin_hydraulic.py): tracking error below
+1e-7 m, pressure 50.0-50.9 kPa, valve area 5.4e-5-7.2e-5 m^2; the leak lifts the pressure 20 %.
+
+A sample at t_k reports the state reached at t_k (x, p), the valve area the controller applies
+from t_k on, F_load and x_ref(t_k). Measurement noise (percent of reading, Gaussian) is applied
+to the reported values only, never to the plant state or the controller's input.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numba import njit
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from twinwatch.drivers.base import EndOfStream, Sample
+
+logger = logging.getLogger(__name__)
+
+GRAVITY = 9.81  # m/s^2
+DEGRADATION_GAIN = 36.5  # N/(m/s), D(t) = D + 36.5*(exp(0.003*(t - t_fault)) - 1)
+DEGRADATION_RATE = 0.003  # 1/s
+
+Scenario = Literal["nominal", "fluid_degradation", "internal_leak"]
+_SCENARIO_CODE = {"nominal": 0, "fluid_degradation": 1, "internal_leak": 2}
+
+#: Measured channels, in the order the plant reports them.
+CHANNELS: tuple[str, ...] = ("x", "p", "A_valve", "F_load", "x_ref")
+#: Units of :data:`CHANNELS`.
+CHANNEL_UNITS: dict[str, str] = {"x": "m", "p": "Pa", "A_valve": "m^2", "F_load": "N",
+                                 "x_ref": "m"}
+
+
+class HydraulicPlantConfig(BaseModel):
+    """Configuration of the simulated hydraulic actuator (table ``[driver.plant]``).
+
+    Defaults are the paper's Table 4 and Eq. 17 values (NOTES.md).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    scenario: Scenario = "fluid_degradation"
+    duration: float = Field(600.0, gt=0, description="simulated time [s]")
+    sample_period: float = Field(0.01, gt=0, description="acquisition period [s]")
+    step: float = Field(1e-4, gt=0, description="integration step (and PID period) [s]")
+    k_spring: float = Field(200.0, ge=0, description="spring constant [N/m]")
+    D: float = Field(100.0, ge=0, description="damping coefficient [N/(m/s)]")
+    q_pump: float = Field(0.02, gt=0, description="pump flow [m^3/s]")
+    A_max: float = Field(1e-4, gt=0, description="largest valve cross-section [m^2]")
+    A_piston: float = Field(0.196349375, gt=0, description="piston area [m^2]")
+    F_resist: float = Field(0.0, description="internal resistance force [N]")
+    mass: float = Field(1000.0, gt=0, description="load mass [kg]; F_load = mass*9.81")
+    kp: float = Field(0.000346, description="PID proportional gain [m^2/m]")
+    ki: float = Field(3.513406, description="PID integral gain [m^2/(m s)]")
+    kd: float = Field(0.000119, description="PID derivative gain [m^2 s/m]")
+    n_filter: float = Field(2.076743, gt=0, description="PID derivative filter N [1/s]")
+    ref_offset: float = Field(0.5, description="position reference offset [m]")
+    ref_amplitude: float = Field(0.45, description="position reference amplitude [m]")
+    ref_frequency: float = Field(0.005, ge=0, description="position reference frequency [Hz]")
+    fault_start: float = Field(160.0, ge=0, description="scenario onset [s]")
+    leak_coefficient: float = Field(0.2, gt=-1, description="C of Eq. 18 (internal_leak)")
+    noise: dict[str, float] = Field(
+        default_factory=dict,
+        description="channel -> Gaussian noise standard deviation, percent of reading",
+    )
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _check(self) -> HydraulicPlantConfig:
+        ratio = self.sample_period / self.step
+        if abs(ratio - round(ratio)) > 1e-6 * ratio or round(ratio) < 1:
+            raise ValueError("sample_period must be a whole multiple of step")
+        for ch, v in self.noise.items():
+            if ch not in CHANNELS:
+                raise ValueError(f"noise.{ch}: unknown channel; use one of {CHANNELS}")
+            if v < 0:
+                raise ValueError(f"noise.{ch}: must be >= 0")
+        return self
+
+    @property
+    def F_load(self) -> float:  # noqa: N802 - the paper's symbol
+        """Load force [N]: the mass's weight."""
+        return self.mass * GRAVITY
+
+
+@njit(cache=True)
+def _pid(state, e, ts, kp, ki, kd, nf, a_max):  # pragma: no cover - compiled
+    """One Eq. 17 PID update; ``state = [x, p, I, f, A]``: sets A, advances I and f."""
+    i_state, f_state = state[2], state[3]
+    d = nf * (kd * e - f_state)
+    u = kp * e + i_state + d
+    if u > a_max:
+        a = a_max
+        if e < 0.0:
+            i_state += ki * ts * e
+    elif u < 0.0:
+        a = 0.0
+        if e > 0.0:
+            i_state += ki * ts * e
+    else:
+        a = u
+        i_state += ki * ts * e
+    state[2] = i_state
+    state[3] = f_state + ts * d
+    state[4] = a
+
+
+@njit(cache=True)
+def _advance(state, j0, n_sub, dt, prm, scenario, t_fault, c_leak):  # pragma: no cover
+    """Advance ``state = [x, p, I, f, A]`` by ``n_sub`` plant steps from step index ``j0``.
+
+    ``prm = [k_spring, D0, q_pump, A_max, A_piston, F_resist, F_load, Kp, Ki, Kd, N,
+    ref_offset, ref_amplitude, ref_frequency]``. On entry ``state[4]`` is the area applied over
+    step j0; on exit it is the area the controller applies from step j0 + n_sub on.
+    """
+    ks, d0, qp, a_max, ap, fr, fl = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
+    kp, ki, kd, nf = prm[7], prm[8], prm[9], prm[10]
+    r0, r1, rf = prm[11], prm[12], prm[13]
+    x, p = state[0], state[1]
+    for s in range(n_sub):
+        t = (j0 + s) * dt
+        d = d0
+        c = 0.0
+        if t >= t_fault:
+            if scenario == 1:
+                d = d0 + DEGRADATION_GAIN * (math.exp(DEGRADATION_RATE * (t - t_fault)) - 1.0)
+            elif scenario == 2:
+                c = c_leak
+        v = (qp - state[4] * math.sqrt(2.0 * p)) / ap
+        x = x + dt * v
+        p = (1.0 + c) * (fl + ks * x + d * v + fr) / ap
+        state[0], state[1] = x, p
+        t_next = t + dt
+        ref = r0 + r1 * math.sin(2.0 * math.pi * rf * t_next)
+        _pid(state, x - ref, dt, kp, ki, kd, nf, a_max)
+
+
+@dataclass
+class HydraulicTruth:
+    """The plant's true fault parameters at a time (for tests and benchmarks).
+
+    Attributes:
+        D: damping coefficient [N/(m/s)].
+        C: leak coefficient of Eq. 18 (0 without a leak).
+    """
+
+    D: float
+    C: float
+
+
+class HydraulicPlant:
+    """The simulated hydraulic actuator; one call to :meth:`next_sample` per sample.
+
+    Args:
+        config: plant configuration (defaults: the paper's fluid-degradation scenario).
+
+    Raises:
+        EndOfStream: from :meth:`next_sample` after ``config.duration`` seconds.
+    """
+
+    channels = CHANNELS
+
+    def __init__(self, config: HydraulicPlantConfig | None = None) -> None:
+        self.config = config or HydraulicPlantConfig()
+        c = self.config
+        self.sample_period = c.sample_period
+        self.n_sub = int(round(c.sample_period / c.step))
+        self._prm = np.array([c.k_spring, c.D, c.q_pump, c.A_max, c.A_piston, c.F_resist,
+                              c.F_load, c.kp, c.ki, c.kd, c.n_filter, c.ref_offset,
+                              c.ref_amplitude, c.ref_frequency])
+        self._scenario = _SCENARIO_CODE[c.scenario]
+        self._k = 0
+        self._n_samples = int(round(c.duration / c.sample_period)) + 1
+        self._rng = np.random.default_rng(c.seed)
+        # Start in steady tracking: on the reference, moving with it, the integrator holding
+        # the area that gives that velocity (bumpless start).
+        truth = self.truth(0.0)
+        x0 = self.reference(0.0)
+        v0 = 2.0 * math.pi * c.ref_frequency * c.ref_amplitude
+        p0 = (1.0 + truth.C) * (c.F_load + c.k_spring * x0 + truth.D * v0 + c.F_resist) \
+            / c.A_piston
+        i0 = (c.q_pump - v0 * c.A_piston) / math.sqrt(2.0 * p0)
+        self._state = np.array([x0, p0, i0, 0.0, 0.0])
+        _pid(self._state, 0.0, c.step, c.kp, c.ki, c.kd, c.n_filter, c.A_max)
+
+    @property
+    def t(self) -> float:
+        """Plant time of the next sample [s]."""
+        return self._k * self.sample_period
+
+    def reference(self, t: float) -> float:
+        """Position reference x_ref(t) [m]."""
+        c = self.config
+        return c.ref_offset + c.ref_amplitude * math.sin(2.0 * math.pi * c.ref_frequency * t)
+
+    def truth(self, t: float) -> HydraulicTruth:
+        """True D [N/(m/s)] and leak coefficient C at plant time ``t`` [s]."""
+        c = self.config
+        on = t >= c.fault_start
+        ramp = math.exp(DEGRADATION_RATE * (t - c.fault_start)) - 1.0 if on else 0.0
+        d = c.D + DEGRADATION_GAIN * ramp if c.scenario == "fluid_degradation" else c.D
+        leak = c.leak_coefficient if (c.scenario == "internal_leak" and on) else 0.0
+        return HydraulicTruth(D=d, C=leak)
+
+    def next_sample(self) -> Sample:
+        """Report the sample at the current time, then advance the plant one sample period.
+
+        Returns:
+            A sample with x [m], p [Pa], A_valve [m^2] (applied from this sample on),
+            F_load [N] and x_ref [m].
+
+        Raises:
+            EndOfStream: after ``config.duration`` seconds.
+        """
+        if self._k >= self._n_samples:
+            raise EndOfStream(f"simulated plant reached its duration ({self.config.duration} s)")
+        c = self.config
+        t = self.t
+        x, p, _, _, a = (float(v) for v in self._state)
+        values = {"x": x, "p": p, "A_valve": a, "F_load": c.F_load, "x_ref": self.reference(t)}
+        for ch, pct in c.noise.items():
+            if pct > 0:
+                values[ch] += float(self._rng.normal(0.0, pct / 100.0 * abs(values[ch])))
+        _advance(self._state, self._k * self.n_sub, self.n_sub, c.step, self._prm,
+                 self._scenario, c.fault_start, c.leak_coefficient)
+        self._k += 1
+        return Sample(t=t, values=values)
