@@ -130,8 +130,8 @@ class DCMotorTwin(TwinModel):
         self.inputs = tuple(inputs)
         self.outputs = tuple(outputs)
         self.attach_points = (
-            AttachPoint("d(omega)/dt", "additive", "rad/s^2", "shaft speed"),
-            AttachPoint("d(ia)/dt", "additive", "A/s", "armature current"),
+            AttachPoint("d(omega)/dt", "additive", "rad/s^2", "shaft speed", scale=50.0),
+            AttachPoint("d(ia)/dt", "additive", "A/s", "armature current", scale=50.0),
         )
         if self.structure == "closed_loop" and self.ki == 0:
             raise ValueError("closed_loop structure needs a non-zero integral gain ki")

@@ -234,10 +234,14 @@ class Estimator:
         return meas, scale
 
     def _residuals(
-        self, theta: FloatArray, window: WindowData, meas: FloatArray, scale: FloatArray
+        self, theta: FloatArray, window: WindowData, meas: FloatArray, scale: FloatArray,
+        terms: Mapping[str, FloatArray] | None = None,
     ) -> FloatArray:
-        """Normalised residuals (P, M) such that ||r||_2 = RMSE_n; rows that blew up are inf."""
-        y = self.model.simulate(theta, window)[:, 1:, :]
+        """Normalised residuals (P, M) such that ||r||_2 = RMSE_n; rows that blew up are inf.
+
+        ``terms``: meta-model terms composed into the twin (see :meth:`TwinModel.simulate`).
+        """
+        y = self.model.simulate(theta, window, terms)[:, 1:, :]
         r = (y - meas[None, 1:, :]) / scale
         r = r.reshape(r.shape[0], -1) / math.sqrt(r.shape[1] * r.shape[2])
         bad = ~np.all(np.isfinite(r), axis=1)
@@ -245,11 +249,14 @@ class Estimator:
         return r
 
     # -- main entry -----------------------------------------------------------------------
-    def estimate(self, window: WindowData) -> WindowEstimate:
+    def estimate(self, window: WindowData,
+                 terms: Mapping[str, FloatArray] | None = None) -> WindowEstimate:
         """Estimate the parameters on one window.
 
         Args:
             window: N samples of every channel in ``model.required_channels()``, finite.
+            terms: the accepted meta-model terms (DT'', paper Eq. 3), attach point -> values
+                (N,), held fixed while the physical parameters are estimated.
 
         Returns:
             The window's estimate; :attr:`trusted` is updated if the fit is good.
@@ -274,7 +281,7 @@ class Estimator:
         def cost(q: FloatArray) -> FloatArray:
             nonlocal evals
             evals += q.shape[0]
-            r = self._residuals(self._full(q, idx, base), window, meas, scale)
+            r = self._residuals(self._full(q, idx, base), window, meas, scale, terms)
             return np.sqrt(np.sum(r * r, axis=1))
 
         # 1. PSO, warm-started with the trusted estimate as one particle.
@@ -300,7 +307,7 @@ class Estimator:
 
         # 2. Least-squares polish of every estimated parameter, and
         # 3. identifiability: which of them does this window determine?
-        fit = _Fit(self, window, meas, scale, idx, base, xl, xu)
+        fit = _Fit(self, window, meas, scale, idx, base, xl, xu, terms)
         q_best, r_best, jac = fit.refine(q_best, np.arange(idx.size), polish=cfg.polish)
         selected, rel_std, reasons = self._select(jac, r_best)
         held: dict[str, str] = {}
@@ -321,7 +328,7 @@ class Estimator:
         evals += fit.evaluations
 
         theta = self._full(q_best[None, :], idx, base)
-        y = self.model.simulate(theta, window)[0]
+        y = self.model.simulate(theta, window, terms)[0]
         evals += 1
         err = y - meas
         rmse = {o: float(np.sqrt(np.mean(err[:, j] ** 2)))
@@ -431,16 +438,18 @@ class _Fit:
     (the rest held) and the residuals and Jacobian at the result, counting twin evaluations."""
 
     def __init__(self, est: Estimator, window: WindowData, meas: FloatArray, scale: FloatArray,
-                 idx: np.ndarray, base: FloatArray, xl: FloatArray, xu: FloatArray) -> None:
+                 idx: np.ndarray, base: FloatArray, xl: FloatArray, xu: FloatArray,
+                 terms: Mapping[str, FloatArray] | None = None) -> None:
         self.est, self.window, self.meas, self.scale = est, window, meas, scale
         self.idx, self.base, self.xl, self.xu = idx, base, xl, xu
+        self.terms = terms
         self.evaluations = 0
 
     def residuals(self, q: FloatArray) -> FloatArray:
         """Normalised residuals (P, M) for ln-parameter rows q (P, n_est)."""
         self.evaluations += q.shape[0]
         theta = self.est._full(q, self.idx, self.base)
-        return self.est._residuals(theta, self.window, self.meas, self.scale)
+        return self.est._residuals(theta, self.window, self.meas, self.scale, self.terms)
 
     def jacobian(self, q: FloatArray, active: np.ndarray, r0: FloatArray) -> FloatArray:
         """Forward-difference d r / d ln p over the ``active`` columns: one twin call."""

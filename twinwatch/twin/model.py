@@ -102,12 +102,15 @@ class AttachPoint:
         unit: unit of an additive term (``rad/s^2``); ``1`` for a multiplicative one.
         quantity: what the equation governs, in words (``shaft speed``, ``pressure``): the
             interpretation says where the unknown component acts.
+        scale: largest plausible magnitude of a term here, in :attr:`unit` (the discovery's
+            default search bound; configurable per candidate).
     """
 
     name: str
     mode: Literal["additive", "multiplicative"]
     unit: str
     quantity: str
+    scale: float = 1.0
 
 
 @dataclass
