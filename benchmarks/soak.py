@@ -1,0 +1,166 @@
+"""Soak benchmark: the whole daemon on the simulated plant for hours of plant time, as fast as
+possible, watching memory (issue #5, item 7: "memory must stay flat").
+
+Runs :class:`twinwatch.daemon.runner.Daemon` exactly as ``twinwatch run`` does (simulated plant
+over the virtual CAN bus, the adaptation worker, optionally Zenoh and Rerun) and prints:
+
+* windows processed, overruns, numeric failures, wall time and plant-time/wall-time ratio;
+* resident memory (VmRSS from ``/proc/self/status``) at start (after start-up, before the first
+  window), after the first window (numba has compiled), every ``--every`` windows and at the end;
+* the RSS slope over the second half of the run in kB per 1000 windows (flat means ~0; note the
+  daemon keeps the last ``[acquisition] history`` health messages, 1000 by default, in memory, so
+  RSS legitimately grows until that many windows have been processed);
+* with ``--tracemalloc``, the ten Python allocation sites that grew most between the first
+  report after warm-up and the end.
+
+Usage (6 h of plant time is the default; on 2 shared cores it takes roughly 25-30 minutes)::
+
+    python benchmarks/soak.py                       # 21600 s, no Zenoh, no recording
+    python benchmarks/soak.py --duration 600 --every 50
+    python benchmarks/soak.py --zenoh --record /tmp/soak.rrd --tracemalloc
+
+Not part of the test suite.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+from twinwatch.config.loader import default_config
+from twinwatch.daemon.runner import Daemon
+
+logger = logging.getLogger(__name__)
+
+
+def rss_kib() -> int:
+    """Resident set size of this process [KiB] (``VmRSS`` of ``/proc/self/status``)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    try:
+        import psutil
+
+        return int(psutil.Process().memory_info().rss // 1024)
+    except ImportError:  # pragma: no cover
+        return -1
+
+
+def _slope_kib_per_1000(points: list[tuple[int, int]]) -> float:
+    """Least-squares slope of RSS [KiB] against window index, per 1000 windows."""
+    if len(points) < 2:
+        return float("nan")
+    n = len(points)
+    mx = sum(p[0] for p in points) / n
+    my = sum(p[1] for p in points) / n
+    sxx = sum((p[0] - mx) ** 2 for p in points)
+    if sxx == 0:
+        return float("nan")
+    sxy = sum((p[0] - mx) * (p[1] - my) for p in points)
+    return sxy / sxx * 1000.0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration", type=float, default=21600.0,
+                    help="plant time to simulate [s] (default 21600 = 6 h)")
+    ap.add_argument("--scenario", default="resistance_degradation",
+                    help="plant scenario (nominal | resistance_degradation | bearing_wear | ...)")
+    ap.add_argument("--every", type=int, default=300, help="report RSS every N windows")
+    ap.add_argument("--zenoh", action="store_true", help="publish health over Zenoh")
+    ap.add_argument("--zenoh-listen", default="tcp/127.0.0.1:17447",
+                    help="Zenoh listen endpoint when --zenoh is given (loopback)")
+    ap.add_argument("--record", metavar="PATH", default=None,
+                    help="record to this .rrd file (default: no recording)")
+    ap.add_argument("--tracemalloc", action="store_true",
+                    help="trace Python allocations and print the top growth (slower)")
+    ap.add_argument("--log-level", default="warning")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()),
+                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+
+    cfg = default_config()
+    cfg.driver.plant.duration = args.duration  # type: ignore[union-attr]
+    cfg.driver.plant.scenario = args.scenario  # type: ignore[union-attr]
+    cfg.zenoh.listen = [args.zenoh_listen]
+    if args.record:
+        cfg.recording.path = str(Path(args.record).resolve())
+    cfg.recording.enabled = bool(args.record)
+    cfg.zenoh.enabled = bool(args.zenoh)
+
+    if args.tracemalloc:
+        tracemalloc.start(10)
+    t_wall0 = time.monotonic()
+    daemon = Daemon(cfg, publish=args.zenoh, record=bool(args.record))
+    rss0 = rss_kib()
+    print(f"soak: {args.duration:.0f} s of plant time ({args.scenario}), zenoh "
+          f"{'on' if args.zenoh else 'off'}, recording {args.record or 'off'}, pid {os.getpid()}")
+    print(f"RSS at start (daemon constructed): {rss0 / 1024:.1f} MiB")
+    points: list[tuple[int, int]] = []
+    snap: list[Any] = []
+    first: list[int] = []
+    elapsed: list[float] = []
+
+    def _on_window(health: dict[str, Any]) -> None:
+        w = int(health["window"])
+        elapsed.append(float(health["elapsed_s"]))
+        if not first:
+            first.append(w)
+            r = rss_kib()
+            points.append((w, r))
+            print(f"RSS after first window {w} (numba compiled): {r / 1024:.1f} MiB", flush=True)
+            return
+        if w % args.every == 0:
+            r = rss_kib()
+            points.append((w, r))
+            c = health["counters"]
+            print(f"window {w:6d}  t={health['t_end']:8.0f} s  RSS {r / 1024:7.1f} MiB  "
+                  f"overruns {c.get('overruns', 0)}  numeric failures "
+                  f"{c.get('numeric_failures', 0)}  wall {time.monotonic() - t_wall0:6.0f} s",
+                  flush=True)
+            if args.tracemalloc and not snap:
+                snap.append(tracemalloc.take_snapshot())
+
+    daemon.add_callback(_on_window)
+    try:
+        daemon.run()
+    finally:
+        daemon.close()
+    wall = time.monotonic() - t_wall0
+    rss_end = rss_kib()
+    c = daemon.counters()
+    points.append((c["windows_estimated"], rss_end))
+    half = [p for p in points if p[0] >= c["windows_estimated"] / 2]
+    elapsed.sort()
+    print("---")
+    print(f"windows processed: {c['windows_estimated']} (completed {c['windows_completed']}, "
+          f"abandoned {c['windows_abandoned']})")
+    print(f"overruns: {c['overruns']}  numeric failures: {c['numeric_failures']}")
+    print(f"wall time: {wall:.1f} s  ({args.duration / wall:.1f}x real time)")
+    if elapsed:
+        print(f"estimation per window: median {elapsed[len(elapsed) // 2] * 1e3:.0f} ms, "
+              f"max {elapsed[-1] * 1e3:.0f} ms")
+    print(f"RSS start {rss0 / 1024:.1f} MiB, after first window "
+          f"{points[0][1] / 1024:.1f} MiB, end {rss_end / 1024:.1f} MiB")
+    print(f"RSS slope over the second half: {_slope_kib_per_1000(half):.0f} KiB per 1000 windows "
+          f"(history kept in memory: {cfg.acquisition.history} health messages)")
+    if args.tracemalloc and snap:
+        end = tracemalloc.take_snapshot()
+        print("top Python allocation growth since the first report:")
+        for stat in end.compare_to(snap[0], "lineno")[:10]:
+            print(f"  {stat}")
+    return 0 if c["numeric_failures"] == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

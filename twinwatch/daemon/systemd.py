@@ -1,0 +1,246 @@
+"""systemd service notifications (``sd_notify(3)``) and the watchdog, without a C extension.
+
+Under ``Type=notify`` systemd passes ``$NOTIFY_SOCKET``, an ``AF_UNIX`` datagram socket (a path,
+or an abstract name written with a leading ``@``), and, with ``WatchdogSec=``, ``$WATCHDOG_USEC``
+(and ``$WATCHDOG_PID``). The protocol is one datagram of newline-separated ``KEY=VALUE``
+assignments per notification: ``READY=1``, ``STATUS=...``, ``WATCHDOG=1``, ``RELOADING=1``
+(with ``MONOTONIC_USEC=``, required by ``Type=notify-reload`` from systemd 253), ``STOPPING=1``,
+``EXTEND_TIMEOUT_USEC=``. Outside systemd (no ``$NOTIFY_SOCKET``) every call is a no-op.
+
+Why not a library: ``systemd-python`` needs libsystemd headers and a C compiler on the target (a
+fresh edge PC has neither); ``sdnotify`` (0.3.2, last release 2019) is 40 lines that swallow every
+exception with a bare ``except``, connect once (a datagram to a socket systemd re-created after
+``daemon-reexec`` is lost) and know nothing of the watchdog interval or ``MONOTONIC_USEC``. The
+protocol itself is the ~30 lines of :meth:`Notifier.notify`, tested against a real socket.
+
+Errors never propagate: a monitoring daemon must not stop because systemd did not hear it. The
+first failure is logged as a WARNING, later ones at DEBUG (the watchdog will say the rest).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable, Mapping
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Notifier", "Watchdog"]
+
+
+def _monotonic_usec() -> int:
+    """CLOCK_MONOTONIC in microseconds (the clock systemd compares ``MONOTONIC_USEC`` with)."""
+    return time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
+
+
+class Notifier:
+    """Sends ``sd_notify`` messages to the service manager; a no-op outside systemd.
+
+    Args:
+        env: environment to read ``NOTIFY_SOCKET``, ``WATCHDOG_USEC`` and ``WATCHDOG_PID`` from
+            (default ``os.environ``; tests pass a dict).
+        unset_environment: remove those variables from ``os.environ`` after reading them, so
+            child processes do not notify on our behalf (as ``sd_notify(1, ...)``).
+
+    Attributes:
+        enabled: a notification socket was given (we run under ``Type=notify``).
+        watchdog_usec: ``WatchdogSec=`` in microseconds, or None when the watchdog is off or
+            meant for another process (``WATCHDOG_PID`` differs from our pid).
+
+    Thread-safe: each notification is one ``sendto`` under a lock.
+    """
+
+    def __init__(self, *, env: Mapping[str, str] | None = None,
+                 unset_environment: bool = False) -> None:
+        e = os.environ if env is None else env
+        self._address: str | None = None
+        self._sock: socket.socket | None = None
+        self._lock = threading.Lock()
+        self._failed = False
+        raw = e.get("NOTIFY_SOCKET", "")
+        if raw.startswith("@"):
+            self._address = "\0" + raw[1:]  # Linux abstract namespace
+        elif raw.startswith("/"):
+            self._address = raw
+        elif raw:
+            logger.warning("NOTIFY_SOCKET=%r is not an AF_UNIX address (vsock is not "
+                           "supported): systemd will not be told when twinwatch is ready", raw)
+        self.watchdog_usec: int | None = None
+        wd = e.get("WATCHDOG_USEC", "")
+        pid = e.get("WATCHDOG_PID", "")
+        if wd:
+            try:
+                usec = int(wd)
+                if usec > 0 and (not pid or int(pid) == os.getpid()):
+                    self.watchdog_usec = usec
+            except ValueError:
+                logger.warning("ignoring WATCHDOG_USEC=%r / WATCHDOG_PID=%r: not integers",
+                               wd, pid)
+        if unset_environment and env is None:
+            for k in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID"):
+                os.environ.pop(k, None)
+
+    @property
+    def enabled(self) -> bool:
+        return self._address is not None
+
+    @property
+    def watchdog_interval(self) -> float | None:
+        """Seconds between ``WATCHDOG=1`` pings: half of ``WatchdogSec=`` (as systemd
+        recommends), or None when the watchdog is off."""
+        return None if self.watchdog_usec is None else self.watchdog_usec / 2e6
+
+    def notify(self, *assignments: str) -> bool:
+        """Send one datagram with the given ``KEY=VALUE`` assignments.
+
+        Returns:
+            True if it was sent, False outside systemd or on a (logged) socket error.
+        """
+        if self._address is None:
+            return False
+        payload = "\n".join(assignments).encode("utf-8", "replace")
+        with self._lock:
+            try:
+                if self._sock is None:
+                    self._sock = socket.socket(socket.AF_UNIX,
+                                               socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+                self._sock.sendto(payload, self._address)
+            except OSError as exc:
+                if not self._failed:
+                    logger.warning("cannot notify systemd at %r (%s): readiness and watchdog "
+                                   "pings are lost; check NotifyAccess= and the unit file",
+                                   self._address.replace("\0", "@"), exc)
+                    self._failed = True
+                else:
+                    logger.debug("sd_notify failed: %s", exc)
+                return False
+            if self._failed:
+                logger.info("systemd notifications work again")
+                self._failed = False
+        return True
+
+    # -- the messages twinwatch sends --------------------------------------------------------
+    def ready(self, status: str | None = None) -> bool:
+        """``READY=1``: start-up finished (drivers, publisher and recorder open), or a reload
+        finished. systemd starts units ordered after us only now."""
+        return self.notify("READY=1", *self._status(status))
+
+    def status(self, text: str) -> bool:
+        """``STATUS=text``: one line shown by ``systemctl status`` (newlines are replaced)."""
+        return self.notify(*self._status(text))
+
+    def watchdog(self) -> bool:
+        """``WATCHDOG=1``: we are alive; must come at least every ``WatchdogSec=``."""
+        return self.notify("WATCHDOG=1")
+
+    def reloading(self, status: str | None = None) -> bool:
+        """``RELOADING=1`` with ``MONOTONIC_USEC``: a reload (SIGHUP) started. Send
+        :meth:`ready` when the new configuration runs (or the old one was kept)."""
+        return self.notify("RELOADING=1", f"MONOTONIC_USEC={_monotonic_usec()}",
+                           *self._status(status))
+
+    def stopping(self, status: str | None = None) -> bool:
+        """``STOPPING=1``: shutdown started (SIGTERM/SIGINT)."""
+        return self.notify("STOPPING=1", *self._status(status))
+
+    def extend_timeout(self, seconds: float) -> bool:
+        """``EXTEND_TIMEOUT_USEC``: ask for ``seconds`` more before systemd's start/stop
+        timeout fires (e.g. while the worker finishes queued windows on stop)."""
+        return self.notify(f"EXTEND_TIMEOUT_USEC={max(0, int(seconds * 1e6))}")
+
+    @staticmethod
+    def _status(text: str | None) -> tuple[str, ...]:
+        if text is None:
+            return ()
+        return ("STATUS=" + " ".join(text.splitlines()),)
+
+    def close(self) -> None:
+        """Close the socket (idempotent; a later notification reopens it)."""
+        with self._lock:
+            if self._sock is not None:
+                self._sock.close()
+                self._sock = None
+
+    def __enter__(self) -> Notifier:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Watchdog:
+    """When to send ``WATCHDOG=1``: from the acquisition loop, at the notifier's interval, and
+    only while the adaptation worker is not stuck in one window.
+
+    The acquisition loop calls :meth:`tick` every iteration (``Driver.read`` returns within
+    0.2 s, with or without a sample), so a hung driver read or a dead main loop stops the pings.
+    The worker calls :meth:`busy` before and :meth:`idle` after each window; a window that takes
+    longer than ``max_busy`` seconds (default ``WatchdogSec=``) stops the pings too, and systemd
+    restarts the service (``Restart=on-failure`` covers the watchdog). A silent source (machine
+    switched off, bus idle) does *not*: the runner's stall detection reports it instead of
+    restarting the daemon in a loop.
+
+    Args:
+        notifier: where to send the pings.
+        max_busy: seconds one window may take before the worker counts as stuck.
+        clock: monotonic clock (tests inject one).
+    """
+
+    def __init__(self, notifier: Notifier, *, max_busy: float | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.notifier = notifier
+        self.interval = notifier.watchdog_interval
+        if max_busy is None and self.interval is not None:
+            max_busy = 2.0 * self.interval
+        self.max_busy = max_busy
+        self._clock = clock
+        self._last_ping: float | None = None
+        self._busy_since: float | None = None
+        self._stuck_logged = False
+        self.pings = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.interval is not None and self.notifier.enabled
+
+    def busy(self) -> None:
+        """The worker starts a window (called from the worker thread)."""
+        self._busy_since = self._clock()
+
+    def idle(self) -> None:
+        """The worker finished a window, successfully or not (worker thread)."""
+        self._busy_since = None
+
+    def healthy(self) -> bool:
+        """False while the worker has been in one window for more than ``max_busy`` s."""
+        since = self._busy_since
+        return since is None or self.max_busy is None or self._clock() - since <= self.max_busy
+
+    def tick(self) -> bool:
+        """Send ``WATCHDOG=1`` if one is due and the daemon is healthy (acquisition thread).
+
+        Returns:
+            True if a ping was sent now.
+        """
+        if not self.enabled:
+            return False
+        now = self._clock()
+        if not self.healthy():
+            if not self._stuck_logged:
+                logger.error("the adaptation worker has been in one window for %.0f s: "
+                             "watchdog pings stop and systemd will restart twinwatch",
+                             now - (self._busy_since or now))
+                self._stuck_logged = True
+            return False
+        self._stuck_logged = False
+        assert self.interval is not None
+        if self._last_ping is not None and now - self._last_ping < self.interval:
+            return False
+        self._last_ping = now
+        if self.notifier.watchdog():
+            self.pings += 1
+            return True
+        return False
