@@ -56,6 +56,7 @@ ENTRY_POINT_GROUP = "twinwatch.drivers"
 BUILTIN_DRIVERS: Mapping[str, tuple[str, str]] = {
     "can": ("twinwatch.drivers.can", "CanDriver"),
     "file": ("twinwatch.drivers.file", "FileDriver"),
+    "modbus": ("twinwatch.drivers.modbus", "ModbusDriver"),
     "simulated": ("twinwatch.drivers.simulated", "SimulatedDriver"),
 }
 

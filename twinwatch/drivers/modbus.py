@@ -1,0 +1,817 @@
+"""Modbus driver: poll a device's registers (TCP or RTU) into twin samples; never writes.
+
+A background thread (``twinwatch-modbus-poll``) owns the pymodbus client. It polls the
+configured registers every ``poll_period`` (default: ``sample_period``), decodes them with
+pymodbus' own :meth:`~pymodbus.client.mixin.ModbusClientMixin.convert_from_registers` and
+hands complete samples to :meth:`~twinwatch.drivers.base.Driver.read` through a queue. The
+thread exists so that ``read(timeout)`` never blocks much longer than ``timeout``: a pymodbus
+sync request cannot be given a per-call deadline, and a device that stops answering holds a
+request for ``timeout * (retries + 1)`` seconds.
+
+Register map
+    ``[driver.registers]`` maps each twin channel to a register:
+    ``{address, table = "input"|"holding", type = int16|uint16|int32|uint32|float32,
+    word_order = "big"|"little", scale, offset, unit}`` (see :class:`ModbusChannelMap`); the
+    twin value is ``raw * scale + offset``. Addresses are 0-based protocol addresses (the PDU
+    address, as pymodbus uses them: "40001" in a manual is holding address 0). 32-bit types
+    take two registers; ``word_order = "big"`` puts the high word first (Modbus convention),
+    ``"little"`` the low word first; bytes inside a register are always big-endian.
+
+Requests
+    The registers of one table are read as one block spanning the lowest to the highest mapped
+    address, split only where a block would exceed the protocol's 125 registers per read. A
+    block includes the unmapped registers between channels: the device must answer reads of
+    them. The block holding the counter is read first in each poll.
+
+Time source (``time_source``)
+    ``"clock"``: t [s] is :func:`time.monotonic` at the middle of the poll's first request
+    (the acquisition computer's clock); a poll that falls more than one period behind its
+    schedule counts the missed polls in ``stats.gaps``. ``"counter"``: t = counter *
+    ``sample_period`` where ``counter`` is a uint16/uint32 register the device increments once
+    per sample (unwrapped modulo 2**16 / 2**32), i.e. the device's own clock. Whenever a
+    counter is configured (with either time source): a counter that has not advanced since the
+    previous poll is a duplicate poll and the sample is skipped (``stats.extra["duplicates"]``);
+    a jump of ``n > 1`` adds ``n - 1`` to ``stats.gaps`` (the ring buffer downstream abandons
+    the window the gap falls in); a counter that goes back counts in
+    ``stats.extra["counter_resets"]`` and restarts the clock from the new value.
+
+Lock-step (``lockstep = true``)
+    For a simulated device that advances one sample each time its counter block is read
+    (:class:`~twinwatch.plant.modbus_server.PlantModbusServer` with ``pacing="lockstep"``): the
+    driver polls as fast as the caller consumes (one sample queued), so acquisition and
+    simulation move together and nothing is lost; ``live`` is then False (the daemon waits
+    instead of dropping windows). Needs ``time_source = "counter"``. Otherwise ``live`` is True.
+
+Failures
+    A request that times out, a refused or dropped connection, and an exception response that
+    means "busy / failed / gateway" count in ``stats.errors`` (and in ``stats.extra``:
+    ``timeouts``, ``connect_failures``, ``exception_responses``). The client is then closed and
+    reopened after a jittered exponential backoff (0.1 s doubling up to ``backoff_max``). An
+    outage is logged at ERROR once, at DEBUG while it lasts, and at WARNING on recovery with its
+    duration (``stats.extra["outages"]``, ``["reconnects"]``); pymodbus' own error messages
+    from the polling thread are demoted to DEBUG meanwhile. While the device is down,
+    ``read(timeout)`` returns None after ``timeout``. An exception response ILLEGAL FUNCTION,
+    ILLEGAL DATA ADDRESS or ILLEGAL DATA VALUE means the register map does not match the device:
+    the polling stops and ``read`` raises :class:`~twinwatch.drivers.base.DriverOperationError`.
+    A decoded NaN or infinite value counts in ``stats.bad_values`` and is delivered as it is;
+    a response with the wrong number of registers counts in ``stats.bad_frames``.
+
+Monitoring only: the driver sends read requests (function codes 3 and 4) and nothing else.
+
+Example configuration (TOML, the ``[driver]`` table of a machine config)::
+
+    [driver]
+    type = "modbus"
+    transport = "tcp"                 # or "rtu" with serial_port, baudrate, parity, ...
+    host = "127.0.0.1"
+    port = 5020
+    device_id = 1
+    timeout = 0.5                     # per request [s]
+    sample_period = 0.01
+    time_source = "counter"
+    counter = { address = 0, table = "input", type = "uint32" }
+    [driver.registers]
+    x = { address = 2, table = "input", type = "float32", unit = "m" }
+    p = { address = 4, table = "input", type = "float32", word_order = "little", unit = "Pa" }
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import random
+import threading
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.client.mixin import ModbusClientMixin
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+from pymodbus.pdu import ExceptionResponse
+
+from twinwatch.drivers.base import (
+    Driver,
+    DriverInitializationError,
+    DriverOperationError,
+    Sample,
+    ScaledChannel,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "MAX_READ_REGISTERS",
+    "ModbusChannelMap",
+    "ModbusCounterMap",
+    "ModbusDriver",
+    "ModbusDriverConfig",
+    "ModbusRegister",
+    "RegisterTable",
+    "RegisterType",
+    "plan_blocks",
+]
+
+RegisterType = Literal["int16", "uint16", "int32", "uint32", "float32"]
+RegisterTable = Literal["input", "holding"]
+WordOrder = Literal["big", "little"]
+
+#: Largest number of registers one read request (function code 3 or 4) may ask for.
+MAX_READ_REGISTERS = 125
+#: Function code of a read request per table.
+FUNCTION_CODES: Mapping[str, int] = {"holding": 3, "input": 4}
+
+_DATATYPE: Mapping[str, ModbusClientMixin.DATATYPE] = {
+    "int16": ModbusClientMixin.DATATYPE.INT16,
+    "uint16": ModbusClientMixin.DATATYPE.UINT16,
+    "int32": ModbusClientMixin.DATATYPE.INT32,
+    "uint32": ModbusClientMixin.DATATYPE.UINT32,
+    "float32": ModbusClientMixin.DATATYPE.FLOAT32,
+}
+#: (min, max) of the integer types
+_INT_RANGE: Mapping[str, tuple[int, int]] = {
+    "int16": (-(1 << 15), (1 << 15) - 1),
+    "uint16": (0, (1 << 16) - 1),
+    "int32": (-(1 << 31), (1 << 31) - 1),
+    "uint32": (0, (1 << 32) - 1),
+}
+#: exception codes that mean "the register map does not fit this device" (not transient)
+_FATAL_EXCEPTION_CODES = {1: "ILLEGAL FUNCTION", 2: "ILLEGAL DATA ADDRESS", 3: "ILLEGAL DATA VALUE"}
+_BACKOFF_INITIAL = 0.1  # [s]
+_POLL_THREAD_NAME = "twinwatch-modbus-poll"
+
+
+# -- the register map (shared with twinwatch.plant.modbus_server) ----------------------------
+
+
+class ModbusRegister(BaseModel):
+    """Where a value lives on the device and how it is encoded.
+
+    Attributes:
+        address: 0-based address of the first register (the PDU address).
+        table: ``"input"`` (function code 4) or ``"holding"`` (function code 3) registers.
+        type: ``int16``, ``uint16`` (one register), ``int32``, ``uint32``, ``float32``
+            (IEEE 754 single; two registers).
+        word_order: for two-register types: ``"big"`` = high word at ``address``,
+            ``"little"`` = low word at ``address``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    address: int = Field(ge=0, le=65535)
+    table: RegisterTable = "holding"
+    type: RegisterType = "float32"
+    word_order: WordOrder = "big"
+
+    @model_validator(mode="after")
+    def _fits(self) -> ModbusRegister:
+        if self.address + self.count - 1 > 65535:
+            raise ValueError(f"a {self.type} at address {self.address} runs past 65535")
+        return self
+
+    @property
+    def count(self) -> int:
+        """Number of 16-bit registers the value takes (1 or 2)."""
+        return 1 if self.type in ("int16", "uint16") else 2
+
+    @property
+    def end(self) -> int:
+        """One past the last register's address."""
+        return self.address + self.count
+
+    def decode(self, registers: Sequence[int]) -> float:
+        """Decode ``registers`` (exactly :attr:`count` of them) to the raw number.
+
+        Raises:
+            ModbusException: wrong number of registers.
+        """
+        value = ModbusClientMixin.convert_from_registers(
+            list(registers), _DATATYPE[self.type], word_order=self.word_order
+        )
+        if not isinstance(value, int | float):  # pragma: no cover - one value, numeric type
+            raise ModbusException(f"{self.type} decoded to {value!r}")
+        return float(value)
+
+    def encode(self, raw: float) -> tuple[list[int], bool]:
+        """Encode the raw number into :attr:`count` registers.
+
+        Integer types round to the nearest integer and saturate at the type's range; NaN
+        becomes 0 for them. float32 keeps NaN and infinities.
+
+        Returns:
+            (registers, exact): ``exact`` is False when the value had to be saturated or was
+            NaN for an integer type.
+        """
+        exact = True
+        value: int | float
+        if self.type == "float32":
+            value = float(raw)
+        else:
+            lo, hi = _INT_RANGE[self.type]
+            if math.isnan(raw):
+                value, exact = 0, False
+            else:
+                clipped = min(max(raw, lo), hi)
+                exact = clipped == raw
+                value = int(round(clipped))
+        regs = ModbusClientMixin.convert_to_registers(
+            value, _DATATYPE[self.type], word_order=self.word_order
+        )
+        return regs, exact
+
+    def describe(self) -> str:
+        """``"holding 10-11 (float32, big)"`` for messages."""
+        span = str(self.address) if self.count == 1 else f"{self.address}-{self.end - 1}"
+        return f"{self.table} {span} ({self.type}, {self.word_order} word order)"
+
+
+class ModbusChannelMap(ScaledChannel, ModbusRegister):
+    """One twin channel's register: ``value_twin = raw * scale + offset``.
+
+    ``raw`` is the decoded register value (an integer, or the float32 as stored); ``unit``
+    documents the twin-side unit.
+    """
+
+
+class ModbusCounterMap(ModbusRegister):
+    """The device's sample-counter register (incremented by one per sample)."""
+
+    type: Literal["uint16", "uint32"] = "uint32"
+
+    @property
+    def modulus(self) -> int:
+        """The counter wraps modulo this (2**16 or 2**32)."""
+        return 1 << (16 * self.count)
+
+
+@dataclass(frozen=True, slots=True)
+class RegisterBlock:
+    """One read request: ``count`` registers of ``table`` from ``address`` on."""
+
+    table: RegisterTable
+    address: int
+    count: int
+
+    def covers(self, reg: ModbusRegister) -> bool:
+        return (
+            reg.table == self.table
+            and reg.address >= self.address
+            and reg.end <= self.address + self.count
+        )
+
+
+def plan_blocks(
+    registers: Iterable[ModbusRegister], *, first: ModbusRegister | None = None
+) -> list[RegisterBlock]:
+    """Group registers into as few read requests as possible.
+
+    One block per table from its lowest to its highest register, split where a block would
+    exceed :data:`MAX_READ_REGISTERS` (a value is never split across two blocks).
+
+    Args:
+        registers: the registers to read (overlaps allowed).
+        first: put the block holding this register first (the counter in lock-step).
+
+    Returns:
+        The blocks, the one holding ``first`` first, then input before holding registers.
+    """
+    by_table: dict[str, list[ModbusRegister]] = {}
+    for reg in registers:
+        by_table.setdefault(reg.table, []).append(reg)
+    blocks: list[RegisterBlock] = []
+    for table in ("input", "holding"):
+        regs = sorted(by_table.get(table, []), key=lambda r: r.address)
+        start: int | None = None
+        end = 0
+        for reg in regs:
+            if start is None:
+                start, end = reg.address, reg.end
+            elif max(end, reg.end) - start <= MAX_READ_REGISTERS:
+                end = max(end, reg.end)
+            else:
+                blocks.append(RegisterBlock(table, start, end - start))
+                start, end = reg.address, reg.end
+        if start is not None:
+            blocks.append(RegisterBlock(table, start, end - start))
+    if first is not None:
+        blocks.sort(key=lambda b: not b.covers(first))
+    return blocks
+
+
+def check_overlaps(entries: Mapping[str, ModbusRegister]) -> None:
+    """Refuse two entries that share a register of the same table.
+
+    Args:
+        entries: config key (``"registers.x"``, ``"counter"``) -> register.
+
+    Raises:
+        ValueError: naming both keys and the registers.
+    """
+    items = sorted(entries.items(), key=lambda kv: (kv[1].table, kv[1].address))
+    for (key_a, a), (key_b, b) in zip(items, items[1:], strict=False):
+        if a.table == b.table and b.address < a.end:
+            raise ValueError(f"{key_b} ({b.describe()}) overlaps {key_a} ({a.describe()})")
+
+
+# -- configuration ----------------------------------------------------------------------------
+
+
+class ModbusDriverConfig(BaseModel):
+    """Configuration of :class:`ModbusDriver` (the ``[driver]`` table with ``type = "modbus"``).
+
+    Attributes:
+        type: always ``"modbus"``.
+        transport: ``"tcp"`` (Modbus TCP) or ``"rtu"`` (Modbus RTU on a serial line).
+        host: TCP: the device's address (default the loopback 127.0.0.1).
+        port: TCP: the device's port (default 502).
+        serial_port: RTU: serial device path (``/dev/ttyUSB0``, a pseudo-terminal, ...).
+        baudrate: RTU: line speed [bit/s].
+        parity: RTU: ``"N"``, ``"E"`` or ``"O"``.
+        stopbits: RTU: 1 or 2.
+        bytesize: RTU: 7 or 8 data bits.
+        device_id: Modbus unit / slave id (0-247).
+        timeout: seconds to wait for one response (and for a TCP connect).
+        retries: times pymodbus re-sends a request that timed out (0: the next poll retries).
+        backoff_max: cap [s] of the reconnect delay (starts at 0.1 s, doubles, jittered).
+        sample_period: nominal sample period [s] of the device's data (> 0).
+        poll_period: seconds between polls; default ``sample_period``. With a counter, polling
+            faster than the device samples (e.g. half the period) catches every sample; the
+            extra polls are skipped as duplicates.
+        time_source: ``"clock"`` or ``"counter"`` (see the module docstring).
+        counter: the sample-counter register (uint16 or uint32); required by
+            ``time_source = "counter"`` and by ``lockstep``.
+        lockstep: poll only when the caller has taken the previous sample, as fast as it reads
+            (for a simulated device that advances on each read of its counter block).
+        registers: twin channel -> :class:`ModbusChannelMap`, at least one; the table order is
+            the order of :attr:`ModbusDriver.channels`.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["modbus"]
+    transport: Literal["tcp", "rtu"] = "tcp"
+    host: str = Field(default="127.0.0.1", min_length=1)
+    port: int = Field(default=502, ge=1, le=65535)
+    serial_port: str | None = Field(default=None, min_length=1)
+    baudrate: int = Field(default=19200, gt=0)
+    parity: Literal["N", "E", "O"] = "N"
+    stopbits: Literal[1, 2] = 1
+    bytesize: Literal[7, 8] = 8
+    device_id: int = Field(default=1, ge=0, le=247)
+    timeout: float = Field(default=1.0, gt=0, allow_inf_nan=False)
+    retries: int = Field(default=0, ge=0, le=10)
+    backoff_max: float = Field(default=5.0, ge=_BACKOFF_INITIAL, allow_inf_nan=False)
+    sample_period: float = Field(gt=0, allow_inf_nan=False)
+    poll_period: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    time_source: Literal["clock", "counter"] = "clock"
+    counter: ModbusCounterMap | None = None
+    lockstep: bool = False
+    registers: dict[str, ModbusChannelMap] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ModbusDriverConfig:
+        if self.transport == "rtu" and self.serial_port is None:
+            raise ValueError("serial_port is required with transport = 'rtu'")
+        if self.transport == "tcp" and self.serial_port is not None:
+            raise ValueError("serial_port is only for transport = 'rtu'")
+        if self.time_source == "counter" and self.counter is None:
+            raise ValueError("time_source = 'counter' needs counter = { address = ..., ... }")
+        if self.lockstep and self.time_source != "counter":
+            raise ValueError("lockstep = true needs time_source = 'counter'")
+        if any(not name for name in self.registers):
+            raise ValueError("registers: empty channel name")
+        entries: dict[str, ModbusRegister] = {f"registers.{k}": v for k, v in self.registers.items()}
+        if self.counter is not None:
+            entries["counter"] = self.counter
+        check_overlaps(entries)
+        return self
+
+    @property
+    def effective_poll_period(self) -> float:
+        """``poll_period``, or ``sample_period`` when not set [s]."""
+        return self.sample_period if self.poll_period is None else self.poll_period
+
+    def describe_endpoint(self) -> str:
+        """``"tcp 127.0.0.1:502 device 1"`` / ``"rtu /dev/ttyUSB0 19200 8N1 device 1"``."""
+        if self.transport == "tcp":
+            return f"tcp {self.host}:{self.port} device {self.device_id}"
+        return (
+            f"rtu {self.serial_port} {self.baudrate} {self.bytesize}{self.parity}{self.stopbits}"
+            f" device {self.device_id}"
+        )
+
+
+# -- pymodbus log noise -------------------------------------------------------------------------
+
+
+class _DemoteFromPollThreads(logging.Filter):
+    """Demote pymodbus' records emitted from our polling threads to DEBUG.
+
+    pymodbus logs every failed connect and every timeout at ERROR; the driver reports an
+    outage itself (ERROR once, DEBUG while it lasts, WARNING on recovery).
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno > logging.DEBUG and threading.current_thread().name.startswith(
+            _POLL_THREAD_NAME
+        ):
+            record.levelno = logging.DEBUG
+            record.levelname = logging.getLevelName(logging.DEBUG)
+        return True
+
+
+_PYMODBUS_LOGGER = logging.getLogger("pymodbus.logging")
+if not any(isinstance(f, _DemoteFromPollThreads) for f in _PYMODBUS_LOGGER.filters):
+    _PYMODBUS_LOGGER.addFilter(_DemoteFromPollThreads())
+
+
+# -- the driver -------------------------------------------------------------------------------
+
+
+class _DeviceFailure(Exception):
+    """A recoverable failure of one poll; ``kind`` names the stats.extra counter."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+_EXTRA_COUNTERS = (
+    "polls",
+    "duplicates",
+    "counter_resets",
+    "timeouts",
+    "connect_failures",
+    "exception_responses",
+    "outages",
+    "reconnects",
+    "dropped",
+)
+#: samples a live driver keeps for a caller that does not read (older ones are dropped)
+_LIVE_QUEUE = 1024
+
+
+class ModbusDriver(Driver):
+    """Twin samples polled from a Modbus TCP or RTU device; read requests only.
+
+    Args:
+        config: the validated configuration (see :class:`ModbusDriverConfig`).
+
+    Attributes:
+        channels: twin channel names, in the order of ``config.registers``.
+        sample_period: ``config.sample_period`` [s].
+        live: False in lock-step mode, True otherwise.
+        blocks: the read requests of one poll, in order.
+        client: the pymodbus sync client (owned by the polling thread; do not use it).
+
+    Raises:
+        DriverInitializationError: the client cannot be created (e.g. pyserial missing for
+            RTU). An unreachable device is *not* an error here: the driver keeps trying.
+    """
+
+    def __init__(self, config: ModbusDriverConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.channels = tuple(config.registers)
+        self.sample_period = config.sample_period
+        self.live = not config.lockstep
+        self.stats.extra.update({k: 0 for k in _EXTRA_COUNTERS})  # fixed keys: thread-safe reads
+        self.blocks = plan_blocks(
+            [*config.registers.values(), *([config.counter] if config.counter else [])],
+            first=config.counter,
+        )
+        self._where = [  # channel -> (block index, offset in block, map)
+            (ch, self._block_of(m), m) for ch, m in config.registers.items()
+        ]
+        self._counter_where = (
+            None if config.counter is None else self._block_of(config.counter)
+        )
+        self._counter_raw: int | None = None
+        self._counter: int | None = None  # unwrapped
+        self._queue: queue.Queue[Sample] = queue.Queue(maxsize=1 if config.lockstep else _LIVE_QUEUE)
+        self._stop = threading.Event()
+        self._fatal: str | None = None
+        self._down_since: float | None = None
+        self._rng = random.Random()
+        self.client = self._make_client(config)
+        self._thread = threading.Thread(
+            target=self._run, name=f"{_POLL_THREAD_NAME}-{config.describe_endpoint()}", daemon=True
+        )
+        self._thread.start()
+        logger.info(
+            "Modbus driver polling %s every %.4g s (%s): %d request(s) per poll, channels %s",
+            config.describe_endpoint(),
+            config.effective_poll_period,
+            "lock-step" if config.lockstep else f"time source {config.time_source}",
+            len(self.blocks),
+            ", ".join(self.channels),
+        )
+
+    @classmethod
+    def from_config(
+        cls, config: ModbusDriverConfig | Mapping[str, Any], *, base_dir: Path | None = None
+    ) -> ModbusDriver:
+        """Build a driver from a validated config or a raw ``[driver]`` table.
+
+        ``base_dir`` is accepted for the driver contract; no path in this config is relative.
+
+        Raises:
+            DriverInitializationError: the table does not validate (the message names the key),
+                or see :class:`ModbusDriver`.
+        """
+        if not isinstance(config, ModbusDriverConfig):
+            try:
+                config = ModbusDriverConfig.model_validate(config)
+            except ValidationError as exc:
+                raise DriverInitializationError(f"invalid Modbus driver config: {exc}") from exc
+        return cls(config)
+
+    # -- construction -----------------------------------------------------------------------
+    def _block_of(self, reg: ModbusRegister) -> tuple[int, int]:
+        for i, block in enumerate(self.blocks):
+            if block.covers(reg):
+                return i, reg.address - block.address
+        raise AssertionError(f"no block covers {reg.describe()}")  # pragma: no cover
+
+    @staticmethod
+    def _make_client(config: ModbusDriverConfig) -> ModbusTcpClient | ModbusSerialClient:
+        try:
+            if config.transport == "tcp":
+                return ModbusTcpClient(
+                    config.host,
+                    port=config.port,
+                    timeout=config.timeout,
+                    retries=config.retries,
+                    name="twinwatch",
+                )
+            assert config.serial_port is not None
+            return ModbusSerialClient(
+                config.serial_port,
+                baudrate=config.baudrate,
+                parity=config.parity,
+                stopbits=config.stopbits,
+                bytesize=config.bytesize,
+                timeout=config.timeout,
+                retries=config.retries,
+                name="twinwatch",
+            )
+        except (RuntimeError, TypeError, ValueError) as exc:
+            raise DriverInitializationError(
+                f"cannot create the Modbus {config.transport} client: {exc}"
+            ) from exc
+
+    # -- reading (caller's thread) ----------------------------------------------------------
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        while True:
+            self._raise_if_failed()
+            remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
+            try:
+                if remaining <= 0:
+                    return self._queue.get_nowait()
+                return self._queue.get(timeout=remaining)
+            except queue.Empty:
+                if deadline is not None and time.monotonic() >= deadline:
+                    self._raise_if_failed()
+                    return None
+
+    def _raise_if_failed(self) -> None:
+        if self._fatal is not None:
+            raise DriverOperationError(self._fatal)
+
+    # -- polling (the driver's thread) ------------------------------------------------------
+    def _run(self) -> None:
+        period = self.config.effective_poll_period
+        next_due = time.monotonic()
+        backoff = _BACKOFF_INITIAL
+        while not self._stop.is_set():
+            if not self.config.lockstep:
+                wait = next_due - time.monotonic()
+                if wait > 0 and self._stop.wait(wait):
+                    break
+            try:
+                t, regs = self._poll()
+            except _DeviceFailure as exc:
+                self._on_failure(exc)
+                delay = backoff * (0.5 + 0.5 * self._rng.random())
+                backoff = min(2 * backoff, self.config.backoff_max)
+                if self._stop.wait(delay):
+                    break
+                next_due = time.monotonic()
+                continue
+            except _FatalConfigError as exc:
+                self._fatal = str(exc)
+                logger.error("Modbus driver stopped: %s", exc)
+                break
+            backoff = _BACKOFF_INITIAL
+            self._on_success()
+            now = time.monotonic()
+            next_due += period
+            if next_due < now - period:  # fell behind: skip the polls we missed
+                missed = int((now - next_due) // period)
+                if self.config.counter is None:
+                    self.stats.gaps += missed
+                next_due += missed * period
+            sample = self._assemble(t, regs)
+            if sample is None:
+                if self.config.lockstep:  # a lock-step source that stopped: don't spin
+                    self._stop.wait(period)
+                continue
+            self._deliver(sample)
+        self._close_client()
+
+    def _poll(self) -> tuple[float, list[list[int]]]:
+        """Read every block once; returns (clock time of the first request, registers)."""
+        client = self.client
+        if not client.connected and not client.connect():
+            raise _DeviceFailure(
+                "connect_failures", f"cannot connect to {self.config.describe_endpoint()}"
+            )
+        self.stats.extra["polls"] += 1
+        out: list[list[int]] = []
+        t_clock = 0.0
+        for i, block in enumerate(self.blocks):
+            t0 = time.monotonic()
+            try:
+                if block.table == "input":
+                    rr = client.read_input_registers(
+                        block.address, count=block.count, device_id=self.config.device_id
+                    )
+                else:
+                    rr = client.read_holding_registers(
+                        block.address, count=block.count, device_id=self.config.device_id
+                    )
+            except ModbusIOException as exc:
+                self._close_client()
+                raise _DeviceFailure("timeouts", f"no response: {exc}") from exc
+            except (ConnectionException, OSError) as exc:
+                self._close_client()
+                raise _DeviceFailure("connect_failures", f"connection lost: {exc}") from exc
+            except ModbusException as exc:
+                self._close_client()
+                raise _DeviceFailure("timeouts", f"request failed: {exc}") from exc
+            if i == 0:
+                t_clock = 0.5 * (t0 + time.monotonic())
+            self.stats.frames += 1
+            if isinstance(rr, ExceptionResponse) or rr.isError():
+                code = int(getattr(rr, "exception_code", 0))
+                what = (
+                    f"{block.table} registers {block.address}-{block.address + block.count - 1}"
+                    f" (device {self.config.device_id})"
+                )
+                if code in _FATAL_EXCEPTION_CODES:
+                    raise _FatalConfigError(
+                        f"{self.config.describe_endpoint()} answered {_FATAL_EXCEPTION_CODES[code]}"
+                        f" to a read of {what}: the register map does not match the device"
+                    )
+                raise _DeviceFailure("exception_responses", f"exception {code} reading {what}")
+            regs = list(rr.registers)
+            if len(regs) != block.count:
+                self.stats.bad_frames += 1
+                self.log_once(
+                    "short",
+                    "Modbus response with %d registers to a read of %d; counted in "
+                    "stats.bad_frames",
+                    len(regs),
+                    block.count,
+                )
+                raise _DeviceFailure("exception_responses", "response of the wrong length")
+            out.append(regs)
+        return t_clock, out
+
+    def _assemble(self, t_clock: float, regs: list[list[int]]) -> Sample | None:
+        """Decode one poll; None for a duplicate poll (counter has not advanced)."""
+        t = t_clock
+        if self._counter_where is not None:
+            assert self.config.counter is not None
+            bi, off = self._counter_where
+            counter = self.config.counter
+            raw = int(counter.decode(regs[bi][off : off + counter.count]))
+            if not self._on_counter(raw, counter.modulus):
+                return None
+            if self.config.time_source == "counter":
+                assert self._counter is not None
+                t = self._counter * self.sample_period
+        values: dict[str, float] = {}
+        for ch, (bi, off), m in self._where:
+            value = m.decode(regs[bi][off : off + m.count]) * m.scale + m.offset
+            if not math.isfinite(value):
+                self.stats.bad_values += 1
+                self.log_once(
+                    f"nonfinite:{ch}",
+                    "Modbus %s -> %s decoded to %s; counted in stats.bad_values",
+                    m.describe(),
+                    ch,
+                    value,
+                )
+            values[ch] = value
+        return Sample(t, values)
+
+    def _on_counter(self, raw: int, modulus: int) -> bool:
+        """Account for a counter reading; False if the poll is a duplicate."""
+        if self._counter_raw is None or self._counter is None:
+            self._counter_raw, self._counter = raw, raw
+            return True
+        step = (raw - self._counter_raw) % modulus
+        if step == 0:
+            self.stats.extra["duplicates"] += 1
+            return False
+        if step >= modulus // 2:
+            self.stats.extra["counter_resets"] += 1
+            self.log_once(
+                "counter:reset",
+                "Modbus sample counter went back from %d to %d (device restarted?)",
+                self._counter_raw,
+                raw,
+            )
+            self._counter_raw, self._counter = raw, raw
+            return True
+        if step > 1:
+            self.stats.gaps += step - 1
+            self.log_once(
+                "counter:gap",
+                "Modbus sample counter jumped from %d to %d: %d samples missed; counted in "
+                "stats.gaps",
+                self._counter_raw,
+                raw,
+                step - 1,
+            )
+        self._counter_raw = raw
+        self._counter += step
+        return True
+
+    def _deliver(self, sample: Sample) -> None:
+        if self.config.lockstep:
+            while not self._stop.is_set():
+                try:
+                    self._queue.put(sample, timeout=0.1)
+                    return
+                except queue.Full:
+                    continue
+            return
+        try:
+            self._queue.put_nowait(sample)
+        except queue.Full:
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:  # pragma: no cover - the reader just emptied it
+                pass
+            self.stats.extra["dropped"] += 1
+            self.log_once(
+                "dropped",
+                "Modbus driver: %d samples not read; dropping the oldest (stats.extra.dropped)",
+                _LIVE_QUEUE,
+            )
+            self._queue.put_nowait(sample)
+
+    def _on_failure(self, exc: _DeviceFailure) -> None:
+        self.stats.errors += 1
+        self.stats.extra[exc.kind] += 1
+        if self._down_since is None:
+            self._down_since = time.monotonic()
+            self.stats.extra["outages"] += 1
+            logger.error(
+                "Modbus device %s not available: %s; retrying with backoff up to %.3g s "
+                "(further failures at DEBUG)",
+                self.config.describe_endpoint(),
+                exc,
+                self.config.backoff_max,
+            )
+        else:
+            logger.debug("Modbus device %s still down: %s", self.config.describe_endpoint(), exc)
+
+    def _on_success(self) -> None:
+        if self._down_since is not None:
+            down = time.monotonic() - self._down_since
+            self._down_since = None
+            self.stats.extra["reconnects"] += 1
+            logger.warning(
+                "Modbus device %s is back after %.2f s down (%d errors so far)",
+                self.config.describe_endpoint(),
+                down,
+                self.stats.errors,
+            )
+
+    def _close_client(self) -> None:
+        try:
+            self.client.close()
+        except (OSError, ModbusException) as exc:  # pragma: no cover - closing a dead socket
+            logger.debug("closing the Modbus client: %s", exc)
+
+    # -- closing ----------------------------------------------------------------------------
+    def _close_internal(self) -> None:
+        self._stop.set()
+        thread = getattr(self, "_thread", None)
+        if thread is not None and thread.is_alive():
+            thread.join(self.config.timeout * (self.config.retries + 1) + 2.0)
+            if thread.is_alive():  # pragma: no cover - a request hung beyond its timeout
+                logger.warning("Modbus polling thread did not stop in time")
+        logger.debug("Modbus driver closed (%s)", self.stats.as_dict())
+
+
+class _FatalConfigError(Exception):
+    """The device refused the register map (illegal function / address / value)."""
