@@ -1,0 +1,367 @@
+"""Alarms on parameter drift: warning and alarm thresholds on the deviation from nominal, with
+hysteresis and minimum durations, so a parameter drifting near a threshold does not flap.
+
+The health message gives each parameter's ``deviation_pct`` (estimate vs nominal, percent) and
+whether it was ``held`` (this window could not determine it, so the published value is the last
+trusted one). :class:`AlarmEvaluator` turns the stream of health messages into alarm-state
+changes, one event per change, to publish on ``twinwatch/<machine>/alarm``.
+
+Per parameter (``[alarms.parameters.<name>]``) a rule gives thresholds in percent of nominal,
+either symmetric on ``|deviation_pct|`` (``warning``, ``alarm``) or one-sided (``warning_high``,
+``alarm_high`` > 0; ``warning_low``, ``alarm_low`` < 0), and:
+
+* ``hysteresis`` [percentage points]: a level entered at threshold ``T`` is left only once the
+  deviation is back inside ``T - hysteresis`` (for a symmetric or high threshold);
+* ``raise_after_s`` / ``raise_after_windows``: the deviation must stay beyond the threshold this
+  long (plant time, from the first window's start to the last one's end) *and* for this many
+  consecutive evidence windows before the level is raised;
+* ``clear_after_s`` / ``clear_after_windows``: likewise, inside the threshold minus the
+  hysteresis, before it is lowered.
+
+Held parameters and non-finite deviations are not evidence: they neither start, extend nor
+interrupt a run (the run's duration is measured in plant time, so held windows in between still
+count as time).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["LEVELS", "AlarmConfig", "AlarmEvaluator", "AlarmRule", "Level"]
+
+Level = Literal["normal", "warning", "alarm"]
+LEVELS: tuple[Level, ...] = ("normal", "warning", "alarm")
+_RANK = {lvl: i for i, lvl in enumerate(LEVELS)}
+
+_DEFAULT_ACTION: dict[str, str] = {
+    "warning": "plan an inspection of the part this parameter describes at the next stop",
+    "alarm": "inspect the machine now; if the deviation is real, take it out of service "
+             "before it fails",
+    "normal": "no action needed",
+}
+
+
+class AlarmRule(BaseModel):
+    """``[alarms.parameters.<name>]``: thresholds on one parameter's deviation from nominal.
+
+    All thresholds and the hysteresis are in percent of the nominal value (``deviation_pct`` of
+    the health message). Give ``warning``/``alarm`` (symmetric on the magnitude) or the
+    one-sided ``*_high`` (> 0) / ``*_low`` (< 0) keys, not both for the same level.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    warning: float | None = Field(None, gt=0, description="warning when |deviation| >= this [%]")
+    alarm: float | None = Field(None, gt=0, description="alarm when |deviation| >= this [%]")
+    warning_high: float | None = Field(None, gt=0, description="warning when deviation >= this")
+    alarm_high: float | None = Field(None, gt=0, description="alarm when deviation >= this [%]")
+    warning_low: float | None = Field(None, lt=0, description="warning when deviation <= this")
+    alarm_low: float | None = Field(None, lt=0, description="alarm when deviation <= this [%]")
+    hysteresis: float = Field(1.0, ge=0, description="percentage points inside a threshold "
+                              "before its level may clear")
+    raise_after_s: float = Field(10.0, ge=0, description="plant seconds beyond a threshold "
+                                 "before the level is raised")
+    raise_after_windows: int = Field(3, ge=1, description="consecutive evidence windows beyond "
+                                     "a threshold before the level is raised")
+    clear_after_s: float = Field(30.0, ge=0, description="plant seconds back inside before the "
+                                 "level is lowered")
+    clear_after_windows: int = Field(3, ge=1, description="consecutive evidence windows back "
+                                     "inside before the level is lowered")
+    action: str | None = Field(None, description="what the operator should do on warning/alarm "
+                               "(default: a generic instruction)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> AlarmRule:
+        for lvl in ("warning", "alarm"):
+            if getattr(self, lvl) is not None and (getattr(self, f"{lvl}_high") is not None
+                                                   or getattr(self, f"{lvl}_low") is not None):
+                raise ValueError(f"{lvl}: give either {lvl} (symmetric) or {lvl}_high/"
+                                 f"{lvl}_low, not both")
+        if all(getattr(self, k) is None for k in ("warning", "alarm", "warning_high",
+                                                  "alarm_high", "warning_low", "alarm_low")):
+            raise ValueError("no threshold: set warning and/or alarm (percent of nominal)")
+        hi_w = self.warning if self.warning is not None else self.warning_high
+        hi_a = self.alarm if self.alarm is not None else self.alarm_high
+        if hi_w is not None and hi_a is not None and hi_w >= hi_a:
+            raise ValueError(f"alarm: the alarm threshold ({hi_a} %) must be beyond the "
+                             f"warning threshold ({hi_w} %)")
+        lo_w = -self.warning if self.warning is not None else self.warning_low
+        lo_a = -self.alarm if self.alarm is not None else self.alarm_low
+        if lo_w is not None and lo_a is not None and lo_w <= lo_a:
+            raise ValueError(f"alarm_low: the alarm threshold ({lo_a} %) must be beyond the "
+                             f"warning threshold ({lo_w} %)")
+        smallest = min(abs(v) for v in (hi_w, hi_a, lo_w, lo_a) if v is not None)
+        if self.hysteresis >= smallest:
+            raise ValueError(f"hysteresis: {self.hysteresis} percentage points is not smaller "
+                             f"than the smallest threshold ({smallest} %): the level could "
+                             "never clear")
+        return self
+
+    def thresholds(self, level: Level) -> tuple[float | None, float | None]:
+        """(high, low) signed thresholds [%] of ``level`` (``warning`` or ``alarm``)."""
+        sym = getattr(self, level)
+        if sym is not None:
+            return float(sym), -float(sym)
+        return getattr(self, f"{level}_high"), getattr(self, f"{level}_low")
+
+    def beyond(self, level: Level, deviation: float, margin: float = 0.0) -> float | None:
+        """The (signed) threshold of ``level`` that ``deviation`` is beyond, moved inwards by
+        ``margin`` percentage points (the hysteresis when the level is already active), or
+        None."""
+        high, low = self.thresholds(level)
+        if high is not None and deviation >= high - margin:
+            return high
+        if low is not None and deviation <= low + margin:
+            return low
+        return None
+
+
+class AlarmConfig(BaseModel):
+    """``[alarms]``: per-parameter alarm rules; published on ``twinwatch/<machine>/alarm``.
+
+    Example::
+
+        [alarms.parameters.Ra]
+        warning = 5.0          # % of nominal
+        alarm = 10.0
+        hysteresis = 1.0       # percentage points
+        raise_after_s = 10.0
+        clear_after_s = 30.0
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="evaluate alarms and publish their changes")
+    parameters: dict[str, AlarmRule] = Field(default_factory=dict,
+                                             description="parameter name -> rule")
+
+    def check_against(self, parameter_names: Iterable[str],
+                      estimated: Iterable[str] | None = None) -> None:
+        """Cross-check against the twin model (call from the config's model validator).
+
+        Raises:
+            ValueError: naming ``alarms.parameters.<name>`` for a parameter the model does not
+                have, or one that is never estimated (fixed or tied: its deviation cannot move).
+        """
+        names = list(parameter_names)
+        est = None if estimated is None else set(estimated)
+        for name in self.parameters:
+            if name not in names:
+                raise ValueError(f"alarms.parameters.{name}: unknown parameter; the model has "
+                                 f"{names}")
+            if est is not None and name not in est:
+                raise ValueError(f"alarms.parameters.{name}: {name} is not estimated (fixed or "
+                                 f"tied), its deviation never changes; estimate it or put the "
+                                 f"rule on the parameter it is tied to")
+
+
+@dataclass
+class _Run:
+    """A run of consecutive evidence windows on one side of a threshold."""
+
+    since_t: float
+    windows: int
+
+
+@dataclass
+class _ParamState:
+    level: Level = "normal"
+    since_t: float | None = None
+    since_window: int | None = None
+    deviation: float | None = None
+    up: _Run | None = None        # run beyond the next level up (escalation)
+    up_level: Level | None = None
+    down: _Run | None = None      # run back inside the current level (clearing)
+    down_level: Level | None = None
+
+
+class AlarmEvaluator:
+    """Alarm state per parameter, updated by each health message.
+
+    Args:
+        config: the ``[alarms]`` table.
+        machine: machine name for the events (default: taken from each health message).
+
+    Thread-safe: :meth:`update` runs on the adaptation worker, :meth:`state` may be read from
+    a Zenoh queryable thread.
+    """
+
+    def __init__(self, config: AlarmConfig, machine: str | None = None) -> None:
+        self.config = config
+        self.machine = machine
+        self._lock = threading.Lock()
+        self._state: dict[str, _ParamState] = {n: _ParamState() for n in config.parameters}
+
+    # -- public ---------------------------------------------------------------------------
+    def update(self, health: Mapping[str, Any]) -> list[dict[str, Any]]:
+        """Feed one health message; return the alarm-state changes it caused.
+
+        Returns:
+            One event per parameter whose level changed: ``machine``, ``parameter``, ``level``
+            and ``previous`` (``normal|warning|alarm``), ``deviation_pct``, ``threshold_pct``
+            (the signed threshold crossed; for a clear, the one left), ``value``, ``unit``,
+            ``nominal``, ``t`` (the window's ``t_end`` [s]), ``window``, ``since_t`` (plant
+            time the evidence run began), ``message`` (for an operator: what happened and
+            what to do). Empty when nothing changed or alarms are disabled.
+        """
+        if not self.config.enabled:
+            return []
+        events: list[dict[str, Any]] = []
+        params = health.get("parameters", {})
+        t_start = float(health["t_start"])
+        t_end = float(health["t_end"])
+        n = int(health.get("samples") or 0)
+        dt = (t_end - t_start) / (n - 1) if n > 1 else 0.0
+        with self._lock:
+            for name, rule in self.config.parameters.items():
+                p = params.get(name)
+                if p is None or p.get("held"):
+                    continue
+                dev = p.get("deviation_pct")
+                if dev is None or not math.isfinite(dev):
+                    continue
+                ev = self._step(name, rule, float(dev), p, health, t_start, t_end, dt)
+                if ev is not None:
+                    events.append(ev)
+        for ev in events:
+            log = logger.warning if ev["level"] != "normal" else logger.info
+            log("%s", ev["message"])
+        return events
+
+    def state(self) -> dict[str, dict[str, Any]]:
+        """Snapshot for the health message (``health["alarms"]``) and the state store:
+        parameter -> ``level``, ``since_t``, ``since_window`` (when the level was entered),
+        ``deviation_pct`` (last evidence), ``pending`` (level a running evidence run would
+        move to, or None)."""
+        with self._lock:
+            out: dict[str, dict[str, Any]] = {}
+            for name, s in self._state.items():
+                pending: Level | None = None
+                if s.up is not None:
+                    pending = s.up_level
+                elif s.down is not None:
+                    pending = s.down_level
+                out[name] = {"level": s.level, "since_t": s.since_t,
+                             "since_window": s.since_window, "deviation_pct": s.deviation,
+                             "pending": pending}
+            return out
+
+    def restore(self, snapshot: Mapping[str, Mapping[str, Any]]) -> None:
+        """Re-seed levels from a :meth:`state` snapshot (e.g. from the state store at start),
+        so a restart neither re-raises nor silently clears an active alarm. Unknown
+        parameters and bad levels are ignored with a warning."""
+        with self._lock:
+            for name, snap in snapshot.items():
+                s = self._state.get(name)
+                level = snap.get("level")
+                if s is None or level not in _RANK:
+                    logger.warning("alarm state for %r (%r) not restored: no such rule or "
+                                   "level", name, level)
+                    continue
+                s.level = level
+                s.since_t = snap.get("since_t")
+                s.since_window = snap.get("since_window")
+                s.deviation = snap.get("deviation_pct")
+
+    # -- internals --------------------------------------------------------------------------
+    def _target(self, rule: AlarmRule, dev: float, current: Level) -> tuple[Level, float | None]:
+        """Level the deviation supports, with hysteresis for levels already active."""
+        for lvl in ("alarm", "warning"):
+            margin = rule.hysteresis if _RANK[current] >= _RANK[lvl] else 0.0
+            th = rule.beyond(lvl, dev, margin)  # type: ignore[arg-type]
+            if th is not None:
+                return lvl, th  # type: ignore[return-value]
+        return "normal", None
+
+    def _step(self, name: str, rule: AlarmRule, dev: float, p: Mapping[str, Any],
+              health: Mapping[str, Any], t_start: float, t_end: float, dt: float
+              ) -> dict[str, Any] | None:
+        s = self._state[name]
+        s.deviation = dev
+        target, th = self._target(rule, dev, s.level)
+        new: Level | None = None
+        if _RANK[target] > _RANK[s.level]:
+            s.down = None
+            s.down_level = None
+            if s.up is None:
+                s.up = _Run(t_start, 0)
+            s.up.windows += 1
+            # The run counts for the highest level reached; falling back from alarm to
+            # warning territory keeps the run (it is still beyond warning).
+            s.up_level = target
+            if (s.up.windows >= rule.raise_after_windows
+                    and t_end - s.up.since_t + dt >= rule.raise_after_s - 1e-9):
+                new = target
+        elif _RANK[target] < _RANK[s.level]:
+            s.up = None
+            s.up_level = None
+            if s.down is None:
+                s.down = _Run(t_start, 0)
+            s.down.windows += 1
+            s.down_level = target
+            if (s.down.windows >= rule.clear_after_windows
+                    and t_end - s.down.since_t + dt >= rule.clear_after_s - 1e-9):
+                new = target
+        else:
+            s.up = s.down = None
+            s.up_level = s.down_level = None
+        if new is None:
+            return None
+        run = s.up if s.up is not None else s.down
+        assert run is not None
+        previous = s.level
+        if _RANK[new] < _RANK[previous]:  # lowered: report the threshold that was left
+            high, low = rule.thresholds(previous)
+            th = high if (dev >= 0 and high is not None) or low is None else low
+        s.level, s.since_t, s.since_window = new, t_end, int(health["window"])
+        s.up = s.down = None
+        s.up_level = s.down_level = None
+        return self._event(name, rule, new, previous, dev, th, p, health, t_end, run.since_t)
+
+    def _event(self, name: str, rule: AlarmRule, level: Level, previous: Level, dev: float,
+               threshold: float | None, p: Mapping[str, Any], health: Mapping[str, Any],
+               t: float, since_t: float) -> dict[str, Any]:
+        machine = self.machine or str(health.get("machine", "?"))
+        meaning = p.get("meaning")
+        what = f"{name} ({meaning})" if meaning else name
+        unit = p.get("unit") or ""
+        value, nominal = p.get("value"), p.get("nominal")
+        side = "above" if dev >= 0 else "below"
+        vals = (f" ({value:.6g} {unit} vs nominal {nominal:.6g} {unit})"
+                if isinstance(value, float | int) and isinstance(nominal, float | int) else "")
+        th = f"{threshold:+g} %" if threshold is not None else "n/a"
+        if _RANK[level] > _RANK[previous]:
+            action = rule.action or _DEFAULT_ACTION[level]
+            msg = (f"{machine}: {level.upper()}: {what} is {abs(dev):.2f} % {side} nominal"
+                   f"{vals} since plant time {since_t:.0f} s, beyond the {level} threshold "
+                   f"{th}: {action}")
+        else:
+            msg = (f"{machine}: {previous} cleared to {level}: {what} is back to {dev:+.2f} % "
+                   f"of nominal{vals} (inside {th} minus {rule.hysteresis:g} points of "
+                   f"hysteresis since plant time {since_t:.0f} s)"
+                   + ("" if level == "normal" else
+                      f"; still {level}: {rule.action or _DEFAULT_ACTION[level]}"))
+        return {
+            "machine": machine,
+            "parameter": name,
+            "level": level,
+            "previous": previous,
+            "deviation_pct": dev,
+            "threshold_pct": threshold,
+            "value": value,
+            "unit": unit,
+            "nominal": nominal,
+            "t": t,
+            "window": int(health["window"]),
+            "since_t": since_t,
+            "message": msg,
+        }
