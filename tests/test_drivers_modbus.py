@@ -312,7 +312,8 @@ def test_server_restart_outage_logged_once_counted_and_recovered(
     assert len(errors) == 1 and "not available" in errors[0].message
     assert len(recovered) == 1
     assert not [r for r in caplog.records if r.name.startswith("pymodbus")
-                and r.levelno >= logging.WARNING and r.threadName.startswith("twinwatch-modbus-poll")]
+                and r.levelno >= logging.WARNING
+                and str(r.threadName).startswith("twinwatch-modbus-poll")]
     assert stats["outages"] == 1 and stats["reconnects"] == 1
     assert stats["errors"] >= 2  # the dropped link, then refused connects with backoff
     assert stats["errors"] <= 12  # ... but backed off (1.2 s at 0.1 -> 0.4 s, jittered)

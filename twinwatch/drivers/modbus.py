@@ -384,7 +384,9 @@ class ModbusDriverConfig(BaseModel):
             raise ValueError("lockstep = true needs time_source = 'counter'")
         if any(not name for name in self.registers):
             raise ValueError("registers: empty channel name")
-        entries: dict[str, ModbusRegister] = {f"registers.{k}": v for k, v in self.registers.items()}
+        entries: dict[str, ModbusRegister] = {
+            f"registers.{k}": v for k, v in self.registers.items()
+        }
         if self.counter is not None:
             entries["counter"] = self.counter
         check_overlaps(entries)
@@ -492,7 +494,9 @@ class ModbusDriver(Driver):
         )
         self._counter_raw: int | None = None
         self._counter: int | None = None  # unwrapped
-        self._queue: queue.Queue[Sample] = queue.Queue(maxsize=1 if config.lockstep else _LIVE_QUEUE)
+        self._queue: queue.Queue[Sample] = queue.Queue(
+            maxsize=1 if config.lockstep else _LIVE_QUEUE
+        )
         self._stop = threading.Event()
         self._fatal: str | None = None
         self._down_since: float | None = None

@@ -3,8 +3,9 @@
 :class:`PlantModbusServer` runs a pymodbus async server in a background thread
 (``twinwatch-modbus-server``) with its own asyncio loop. Each plant sample is encoded into
 registers with the *same* register map model the driver decodes with
-(:class:`~twinwatch.drivers.modbus.ModbusChannelMap`, :class:`~twinwatch.drivers.modbus.ModbusCounterMap`),
-using pymodbus' :meth:`~pymodbus.client.mixin.ModbusClientMixin.convert_to_registers`:
+(:class:`~twinwatch.drivers.modbus.ModbusChannelMap`,
+:class:`~twinwatch.drivers.modbus.ModbusCounterMap`), using pymodbus'
+:meth:`~pymodbus.client.mixin.ModbusClientMixin.convert_to_registers`:
 ``raw = (value - offset) / scale``, integers rounded and saturated (logged once). A sample
 counter register (``round(t / sample_period)``, wrapping) lets a client tell new samples from
 repeated ones.
@@ -71,8 +72,15 @@ _START_TIMEOUT = 5.0  # [s]
 class PlantSource(Protocol):
     """What the server needs from a plant (e.g. :class:`~twinwatch.plant.dcmotor.DCMotorPlant`)."""
 
-    sample_period: float
-    channels: tuple[str, ...]
+    @property
+    def sample_period(self) -> float:
+        """Seconds between samples."""
+        ...
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Names of the values in each sample."""
+        ...
 
     def next_sample(self) -> Sample:
         """The next sample; raises EndOfStream after the last one."""
@@ -145,12 +153,8 @@ class PlantModbusServer:
         self.host = host
         self.port = port
         self.serial_port = serial_port
-        self._serial = {
-            "baudrate": baudrate,
-            "parity": parity,
-            "stopbits": stopbits,
-            "bytesize": bytesize,
-        }
+        self.baudrate, self.parity, self.stopbits, self.bytesize = (
+            baudrate, parity, stopbits, bytesize)
         self.device_id = device_id
         self.sample_period = float(plant.sample_period)
         #: samples taken from the plant so far
@@ -266,10 +270,10 @@ class PlantModbusServer:
             server = ModbusSerialServer(
                 device,
                 port=self.serial_port,
-                baudrate=int(self._serial["baudrate"]),
-                parity=str(self._serial["parity"]),
-                stopbits=int(self._serial["stopbits"]),
-                bytesize=int(self._serial["bytesize"]),
+                baudrate=self.baudrate,
+                parity=self.parity,
+                stopbits=self.stopbits,
+                bytesize=self.bytesize,
                 reconnect_delay=0.0,
             )
         else:
@@ -372,7 +376,9 @@ class PlantModbusServer:
             sample = self.plant.next_sample()
         except EndOfStream:
             self._finished = True
-            logger.info("plant finished after %d samples; serving the last one", self.samples_served)
+            logger.info(
+                "plant finished after %d samples; serving the last one", self.samples_served
+            )
             return
         self.samples_served += 1
         self.last_sample = sample
