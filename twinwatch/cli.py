@@ -135,6 +135,20 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
         click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
                    f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
                    f"{status}")
+    disc = last.get("discovery") or {}
+    if disc.get("enabled"):
+        terms = last.get("terms") or []
+        res = last.get("residual") or {}
+        click.echo(f"twin structure (DT''): {len(terms)} meta-model term(s)"
+                   + (":" if terms else ": the physical model explains the data"))
+        for term in terms:
+            click.echo(f"  {term['equation']}  [{term['meaning']}]")
+        worst = {k: (res.get(v) or {}).get("max_abs") or {} for k, v in
+                 (("DT'", "dt_prime"), ("DT''", "dt_second"))}
+        if terms:
+            click.echo("  worst error in the last window: " + "; ".join(
+                f"{k} " + ", ".join(f"{o} {e:.3g}" for o, e in w.items() if e is not None)
+                for k, w in worst.items() if w))
     times = sorted(h["elapsed_s"] for h in daemon.history)
     if times:
         med = times[len(times) // 2]

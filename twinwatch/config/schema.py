@@ -10,6 +10,7 @@ Layout::
     [machine]          name, model, nominal parameters, model options
     [acquisition]      sample period, window length, gap and queue settings
     [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
+    [discovery]        meta-model candidates (kind, input, attach point) and when to search
     [driver]           type = "simulated" | "can" | "file" (+ its own keys)
     [zenoh]            session mode and endpoints (loopback by default)
     [recording]        Rerun .rrd path
@@ -27,6 +28,7 @@ from twinwatch.daemon.recorder import RecordingConfig
 from twinwatch.drivers.can import CanDriverConfig
 from twinwatch.drivers.file import FileDriverConfig
 from twinwatch.drivers.simulated import SimulatedDriverConfig
+from twinwatch.twin.discovery import DiscoveryConfig
 from twinwatch.twin.estimation import EstimationConfig
 from twinwatch.twin.registry import create_model
 
@@ -84,6 +86,7 @@ class TwinwatchConfig(BaseModel):
     machine: MachineConfig
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
     estimation: EstimationConfig = Field(default_factory=EstimationConfig)
+    discovery: DiscoveryConfig = Field(default_factory=DiscoveryConfig)
     driver: DriverConfig
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
@@ -99,6 +102,7 @@ class TwinwatchConfig(BaseModel):
                 raise ValueError(f"machine.parameters.{name}: unknown parameter; the "
                                  f"{self.machine.model} model has {list(model.parameter_names)}")
         self.estimation.check_against(model)
+        self.discovery.check_against(model)
         try:
             model.n_sub(self.acquisition.sample_period)  # type: ignore[attr-defined]
         except AttributeError:

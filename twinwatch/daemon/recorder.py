@@ -10,7 +10,12 @@ process). Entity paths, with ``M`` the machine name and ``plant_time`` the timel
 * ``M/parameters/<name>``: each parameter estimate, one point at the window's last time stamp;
 * ``M/health``: the window's health document (:class:`rerun.TextDocument`, markdown with the
   JSON in a code block);
-* ``M/log``: one :class:`rerun.TextLog` line per window.
+* ``M/log``: one :class:`rerun.TextLog` line per window;
+* ``M/residual/<output>``: the twin's residual (measured - twin) over the window, and
+  ``M/residual_rmse/<output>/dt_prime`` and ``.../dt_second``: per window, the RMSE of the twin
+  without and with its meta-model terms (from the health message's ``residual``);
+* ``M/model``: the twin's discovered structure DT'' as plain-text equations
+  (:class:`rerun.TextDocument`), logged at the start and whenever a term is added or dropped.
 
 The file also carries a default blueprint: one time-series view per output, a grid with one
 view per parameter (their scales differ by orders of magnitude), the health document and log.
@@ -219,7 +224,13 @@ class RerunRecorder(Closeable):
         right: list[rrb.Container | rrb.View] = []
         if parameter_views:
             right.append(rrb.Grid(*parameter_views, name="parameters"))
-        right.append(rrb.TextDocumentView(origin="/" + _entity(m, "health"), name="health"))
+        right.append(rrb.TimeSeriesView(origin="/" + _entity(m, "residual"), name="residual"))
+        right.append(rrb.TimeSeriesView(origin="/" + _entity(m, "residual_rmse"),
+                                        name="residual RMSE: DT' vs DT''"))
+        right.append(rrb.Tabs(
+            rrb.TextDocumentView(origin="/" + _entity(m, "model"), name="model (DT'')"),
+            rrb.TextDocumentView(origin="/" + _entity(m, "health"), name="health"),
+        ))
         right.append(rrb.TextLogView(origin="/" + _entity(m, "log"), name="log"))
         return rrb.Blueprint(
             rrb.Horizontal(
@@ -293,6 +304,7 @@ class RerunRecorder(Closeable):
         simulated: Mapping[str, np.ndarray],
         parameters: Mapping[str, float],
         health: Mapping[str, Any],
+        terms_changed: bool = False,
     ) -> None:
         """Record one acquisition window, then flush it to the file.
 
@@ -305,6 +317,8 @@ class RerunRecorder(Closeable):
                 must be one of the declared ``parameters``.
             health: the window's health document, JSON-serialisable (see
                 :func:`twinwatch.daemon.publisher.to_json`).
+            terms_changed: the twin's meta-model terms changed in this window: log the model
+                document (``health["terms"]``) again. The first window always logs it.
 
         Raises:
             ValueError: a shape, name or value that does not fit the above (nothing recorded).
@@ -332,7 +346,22 @@ class RerunRecorder(Closeable):
                         indexes=index,
                         columns=rr.Scalars.columns(scalars=values),
                     )
+            for name in meas.keys() & sim.keys():
+                rec.send_columns(
+                    _entity(m, "residual", name),
+                    indexes=index,
+                    columns=rr.Scalars.columns(scalars=meas[name] - sim[name]),
+                )
             rec.set_time(TIMELINE, duration=t_end)
+            residual = health.get("residual") or {}
+            for variant in ("dt_prime", "dt_second"):
+                rmse = (residual.get(variant) or {}).get("rmse") or {}
+                for name, value in rmse.items():
+                    if value is not None:
+                        rec.log(_entity(m, "residual_rmse", name, variant), rr.Scalars(value))
+            if terms_changed or self.windows == 0:
+                rec.log(_entity(m, "model"), rr.TextDocument(
+                    _model_document(m, t_end, health), media_type=rr.MediaType.MARKDOWN))
             for name, value in estimates.items():
                 rec.log(_entity(m, "parameters", name), rr.Scalars(value))
             document = f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{health_json}\n```\n"
@@ -384,9 +413,25 @@ class RerunRecorder(Closeable):
         )
 
 
+def _model_document(machine: str, t: float, health: Mapping[str, Any]) -> str:
+    """The twin's structure as markdown: DT plus each kept meta-model term with its meaning."""
+    terms = health.get("terms") or []
+    lines = [f"## {machine}: twin structure at t = {t:.3f} s", ""]
+    if not terms:
+        lines.append("DT'' = DT: no meta-model term (the physical model explains the data).")
+    else:
+        lines.append("DT'' = DT + the terms below (paper Eq. 3):")
+        lines.append("")
+        for term in terms:
+            lines.append(f"* `{term.get('equation')}`  \n  {term.get('meaning')}")
+    return "\n".join(lines) + "\n"
+
+
 def _is_problem(health: Mapping[str, Any]) -> bool:
     """True if the health document flags an alarm (``alarm`` truthy or a problem ``status``)."""
     status = health.get("status")
+    if (health.get("discovery") or {}).get("changed"):
+        return True
     return bool(health.get("alarm")) or (
         isinstance(status, str) and status.lower() in _PROBLEM_STATUSES
     )

@@ -29,7 +29,7 @@ from twinwatch.config.schema import TwinwatchConfig
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, EndOfStream
-from twinwatch.twin.estimation import Estimator, WindowEstimate
+from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
 from twinwatch.twin.health import build_health, summary_line
 from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.registry import create_model
@@ -72,7 +72,9 @@ class Daemon:
         self.model: TwinModel = create_model(config.machine.model, config.machine.options)
         self.nominal = {p.name: config.machine.parameters.get(p.name, p.nominal)
                         for p in self.model.parameters}
-        self.estimator = Estimator(self.model, config.estimation, self.nominal)
+        self.adapter = TwinAdapter(self.model, config.estimation, config.discovery,
+                                   self.nominal)
+        self.estimator = self.adapter.estimator
         acq = config.acquisition
         self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
                                sample_period=acq.sample_period, max_gap=acq.max_gap)
@@ -232,12 +234,15 @@ class Daemon:
                                  "counted in counters.numeric_failures", item.index)
 
     def process_window(self, window: WindowData) -> dict[str, Any]:
-        """Estimate one window, publish and record its health. Returns the health message."""
-        est: WindowEstimate = self.estimator.estimate(window)
+        """Adapt the twin to one window (estimation, then discovery when needed), publish and
+        record its health. Returns the health message."""
+        result: AdaptationResult = self.adapter.process(window)
+        est = result.estimate
         self.windows_estimated += 1
         health = build_health(machine=self.machine, model_name=self.config.machine.model,
                               model=self.model, window=window, estimate=est,
-                              nominal=self.nominal, counters=self.counters())
+                              nominal=self.nominal, counters=self.counters(),
+                              adaptation=result, discovery_enabled=self.adapter.enabled)
         with self._lock:
             self.latest = health
             self.history.append(health)
@@ -252,6 +257,7 @@ class Daemon:
                 simulated={o: est.simulated[:, j] for j, o in enumerate(outs)},
                 parameters=est.values,
                 health=health,
+                terms_changed=result.changed,
             )
         for fn in self._callbacks:
             fn(health)

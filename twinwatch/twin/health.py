@@ -10,10 +10,15 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from typing import TYPE_CHECKING
+
 from twinwatch.twin.estimation import WindowEstimate
 from twinwatch.twin.model import TwinModel, WindowData
 
-SCHEMA_VERSION = 1
+if TYPE_CHECKING:
+    from twinwatch.twin.adaptation import AdaptationResult
+
+SCHEMA_VERSION = 2
 
 
 def _num(x: float) -> float | None:
@@ -30,6 +35,8 @@ def build_health(
     estimate: WindowEstimate,
     nominal: Mapping[str, float],
     counters: Mapping[str, int] | None = None,
+    adaptation: AdaptationResult | None = None,
+    discovery_enabled: bool = False,
 ) -> dict[str, Any]:
     """Build the health message of one window.
 
@@ -41,6 +48,9 @@ def build_health(
         estimate: the window's estimate.
         nominal: parameter -> nominal (nameplate) value the deviation is measured from.
         counters: daemon and driver counters (windows, overruns, bad frames, ...).
+        adaptation: the window's adaptation (meta-model terms, DT' and DT'' residuals,
+            discovery status); without it ``terms`` is empty.
+        discovery_enabled: whether the machine's configuration enables discovery.
 
     Returns:
         A dict ready for ``json.dumps``: see the README for every field.
@@ -60,6 +70,8 @@ def build_health(
             "reason": estimate.held.get(spec.name),
             "rel_std_pct": _num(rel * 100.0) if rel is not None else None,
         }
+    extra: dict[str, Any] = (adaptation.health_fields(discovery_enabled) if adaptation
+                             else {"terms": [], "residual": None, "discovery": None})
     return {
         "schema": SCHEMA_VERSION,
         "machine": machine,
@@ -76,6 +88,7 @@ def build_health(
         "generations": estimate.generations,
         "time_capped": estimate.time_capped,
         "evaluations": estimate.evaluations,
+        **extra,
         "counters": dict(counters or {}),
     }
 
@@ -92,5 +105,7 @@ def summary_line(health: Mapping[str, Any]) -> str:
                      else f"{name}{mark}{p['value']}")
     nrmse = health.get("nrmse")
     rm = f"{nrmse:.2e}" if nrmse is not None else "n/a"
+    terms = health.get("terms") or []
+    extra = f" +{len(terms)} term{'s' if len(terms) > 1 else ''}" if terms else ""
     return (f"window {health['window']} [{health['t_start']:.2f}-{health['t_end']:.2f} s] "
-            + " ".join(parts) + f" nRMSE {rm} in {health['elapsed_s'] * 1e3:.0f} ms")
+            + " ".join(parts) + f"{extra} nRMSE {rm} in {health['elapsed_s'] * 1e3:.0f} ms")

@@ -1,0 +1,288 @@
+"""One window of twin adaptation: DT' (estimation) then, when needed, DT'' (discovery).
+
+:class:`TwinAdapter` is what the daemon's adaptation worker calls for each window (paper Fig. 2):
+
+1. the physical parameters are re-estimated with the kept meta-model terms in place
+   (:class:`~twinwatch.twin.estimation.Estimator`);
+2. the kept terms are polished and re-validated (:meth:`Discovery.revalidate`); a term that no
+   longer earns its place is switched off;
+3. the residual is compared with the exit criterion: too large means RMSE above
+   ``residual_ratio`` times the white-noise level estimated from the residual itself, and a
+   normalised RMSE above ``min_nrmse``. A window whose residual is too large does not update
+   the trusted parameters (its estimates are biased by the missing component);
+4. after ``trigger_windows`` such windows in a row, discovery searches the candidates
+   (:meth:`Discovery.discover`); new terms join DT'', the window is re-estimated with them, and
+   the change is reported. A discovery that keeps nothing waits ``retry_after`` windows.
+
+Without a ``[discovery]`` table (or with ``enabled = false``) only step 1 runs, exactly as before.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from twinwatch.twin.discovery import (
+    Discovery,
+    DiscoveryConfig,
+    DiscoveryReport,
+    Term,
+    compose,
+    format_terms,
+    noise_level,
+)
+from twinwatch.twin.estimation import EstimationConfig, Estimator, WindowEstimate
+from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class Residual:
+    """Fit of one twin variant (DT' or DT'') on a window.
+
+    Attributes:
+        rmse: output -> RMSE [output unit].
+        max_abs: output -> worst absolute error [output unit].
+        nrmse: normalised RMSE (the estimator's fitness).
+    """
+
+    rmse: dict[str, float]
+    max_abs: dict[str, float]
+    nrmse: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"rmse": {k: _num(v) for k, v in self.rmse.items()},
+                "max_abs": {k: _num(v) for k, v in self.max_abs.items()},
+                "nrmse": _num(self.nrmse)}
+
+
+def _num(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+@dataclass
+class AdaptationResult:
+    """What one window did to the twin.
+
+    Attributes:
+        estimate: the window's parameter estimate; ``simulated``, ``rmse`` and ``nrmse`` are
+            those of the final twin (DT'' when terms are kept).
+        terms: the kept terms after this window (DT'' = DT + their sum).
+        dt_prime: residual of the twin without terms, at the same parameters.
+        dt_second: residual with the terms (None without terms).
+        noise: output -> estimated white-noise level of the final residual.
+        too_large: the final residual is above the exit criterion.
+        consecutive: windows in a row with a too-large residual.
+        discovery: the discovery run in this window, if any.
+        revalidation: the re-validation of the kept terms, if any.
+        changed: terms were added or dropped in this window.
+    """
+
+    estimate: WindowEstimate
+    terms: list[Term]
+    dt_prime: Residual
+    dt_second: Residual | None
+    noise: dict[str, float]
+    too_large: bool
+    consecutive: int
+    discovery: DiscoveryReport | None = None
+    revalidation: DiscoveryReport | None = None
+    changed: bool = False
+    events: list[str] = field(default_factory=list)
+
+    def health_fields(self, enabled: bool) -> dict[str, Any]:
+        """The health message's ``terms``, ``residual`` and ``discovery`` fields."""
+        disc = self.discovery
+        reval = self.revalidation
+        return {
+            "terms": [t.as_dict() for t in self.terms],
+            "residual": {
+                "dt_prime": self.dt_prime.as_dict(),
+                "dt_second": self.dt_second.as_dict() if self.dt_second else None,
+                "noise": {k: _num(v) for k, v in self.noise.items()},
+            },
+            "discovery": {
+                "enabled": enabled,
+                "too_large": self.too_large,
+                "consecutive": self.consecutive,
+                "ran": bool(disc and disc.ran),
+                "elapsed_s": (disc.elapsed_s if disc else 0.0)
+                + (reval.elapsed_s if reval else 0.0),
+                "kept": [t.equation() for t in disc.kept] if disc else [],
+                "dropped": [t.equation() for t in reval.dropped] if reval else [],
+                "changed": self.changed,
+            },
+        }
+
+
+class TwinAdapter:
+    """Estimation and discovery for one twin, window after window.
+
+    Args:
+        model: the twin.
+        estimation: the ``[estimation]`` table.
+        discovery: the ``[discovery]`` table (None: estimation only).
+        nominal: parameter -> nameplate value [SI].
+
+    Raises:
+        ValueError: a configuration names a parameter, attach point or input the model lacks.
+    """
+
+    def __init__(self, model: TwinModel, estimation: EstimationConfig,
+                 discovery: DiscoveryConfig | None = None,
+                 nominal: Mapping[str, float] | None = None) -> None:
+        self.model = model
+        self.estimator = Estimator(model, estimation, nominal)
+        self.config = discovery or DiscoveryConfig()
+        self.discovery = (Discovery(model, self.config, self.estimator)
+                          if self.config.enabled else None)
+        self.terms: list[Term] = []
+        self.consecutive = 0
+        self._cooldown = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.discovery is not None
+
+    # -- one window -----------------------------------------------------------------------
+    def process(self, window: WindowData) -> AdaptationResult:
+        """Adapt the twin to one window (see the module docstring).
+
+        Raises:
+            ValueError: a required channel is missing or not finite.
+        """
+        t0 = time.perf_counter()
+        est_ = self.estimator
+        snapshot = est_.trusted.copy()
+        est = est_.estimate(window, compose(self.terms, window) if self.terms else None)
+        if self.discovery is None:
+            res = self._residual(window, est.simulated)
+            return AdaptationResult(est, [], res, None, self._noise(window, est.simulated),
+                                    False, 0)
+        theta = self._theta(est)
+        reval = None
+        changed = False
+        events: list[str] = []
+        if self.terms:
+            reval = self.discovery.revalidate(window, theta, self.terms)
+            for t in reval.dropped:
+                changed = True
+                events.append(f"dropped: {t.describe()}")
+                logger.warning("window %d: meta-model term switched off (no longer earns its "
+                               "place): %s", window.index, t.describe())
+            est = self._resimulate(est, window, theta)
+        too_large = self._too_large(window, est)
+        self.consecutive = self.consecutive + 1 if too_large else 0
+        if too_large and est.trusted:
+            # The window misses a component: its estimates are biased, do not trust them.
+            est_.trusted[:] = snapshot
+            est = dataclasses.replace(est, trusted=False)
+        disc = None
+        if self._cooldown > 0:
+            self._cooldown -= 1
+        elif (self.consecutive >= self.config.trigger_windows
+              and len(self.terms) < self.config.max_terms):
+            disc = self.discovery.discover(window, theta, self.terms)[1]
+            if disc.kept:
+                self.terms.extend(disc.kept)
+                changed = True
+                for t in disc.kept:
+                    events.append(f"discovered: {t.describe()}")
+                    logger.warning("window %d: unknown component discovered in %.2f s: %s",
+                                   window.index, disc.elapsed_s, t.describe())
+                est = est_.estimate(window, compose(self.terms, window))
+                theta = self._theta(est)
+                self.discovery.polish_terms(window, theta, self.terms)
+                est = self._resimulate(est, window, theta)
+                too_large = self._too_large(window, est)
+                self.consecutive = 0
+            else:
+                self._cooldown = self.config.retry_after
+                logger.info("window %d: discovery ran (%.2f s, %d candidates) and no "
+                            "meta-model earned its place; next try in %d windows",
+                            window.index, disc.elapsed_s, disc.tried, self._cooldown)
+        if changed:
+            logger.info("DT'' is now:\n%s", format_terms(self.terms) or "(no terms)")
+        y_dt = (self.model.simulate(theta[None, :], window)[0] if self.terms
+                else est.simulated)
+        est = dataclasses.replace(est, elapsed_s=time.perf_counter() - t0)
+        return AdaptationResult(
+            estimate=est,
+            terms=list(self.terms),
+            dt_prime=self._residual(window, y_dt),
+            dt_second=self._residual(window, est.simulated) if self.terms else None,
+            noise=self._noise(window, est.simulated),
+            too_large=too_large,
+            consecutive=self.consecutive,
+            discovery=disc,
+            revalidation=reval,
+            changed=changed,
+            events=events,
+        )
+
+    # -- persistence ----------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """The accepted twin: trusted parameters and kept terms (JSON-serialisable)."""
+        return {
+            "trusted": dict(zip(self.model.parameter_names,
+                                (float(v) for v in self.estimator.trusted), strict=True)),
+            "terms": [t.as_dict() for t in self.terms],
+        }
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Resume from :meth:`state` (unknown parameters are ignored with a warning)."""
+        for name, value in state.get("trusted", {}).items():
+            if name in self.model.parameter_names:
+                self.estimator.trusted[self.model.parameter_names.index(name)] = float(value)
+            else:
+                logger.warning("saved state names unknown parameter %r: ignored", name)
+        self.terms = [Term.from_dict(d, self.model) for d in state.get("terms", [])]
+
+    # -- helpers --------------------------------------------------------------------------
+    def _theta(self, est: WindowEstimate) -> FloatArray:
+        return np.array([est.values[n] for n in self.model.parameter_names])
+
+    def _meas(self, window: WindowData) -> FloatArray:
+        return np.column_stack([window[o] for o in self.model.output_names])
+
+    def _residual(self, window: WindowData, y: FloatArray) -> Residual:
+        meas, scale = self.estimator._prepare(window)
+        err = y - meas
+        names = self.model.output_names
+        return Residual(
+            rmse={o: float(np.sqrt(np.mean(err[:, j] ** 2))) for j, o in enumerate(names)},
+            max_abs={o: float(np.max(np.abs(err[:, j]))) for j, o in enumerate(names)},
+            nrmse=float(np.sqrt(np.mean((err[1:] / scale) ** 2))),
+        )
+
+    def _noise(self, window: WindowData, y: FloatArray) -> dict[str, float]:
+        lvl = noise_level(y - self._meas(window))
+        return dict(zip(self.model.output_names, (float(v) for v in lvl), strict=True))
+
+    def _too_large(self, window: WindowData, est: WindowEstimate) -> bool:
+        """The exit criterion: RMSE above ``residual_ratio`` x noise level on some output,
+        and a normalised RMSE above ``min_nrmse``."""
+        if not math.isfinite(est.nrmse):
+            return True
+        if est.nrmse <= self.config.min_nrmse:
+            return False
+        err = est.simulated - self._meas(window)
+        rmse = np.sqrt(np.mean(err**2, axis=0))
+        noise = noise_level(err)
+        return bool(np.any(rmse > self.config.residual_ratio * noise))
+
+    def _resimulate(self, est: WindowEstimate, window: WindowData, theta: FloatArray
+                    ) -> WindowEstimate:
+        """The estimate with the (re-polished) terms' simulation and fit."""
+        y = self.model.simulate(theta[None, :], window,
+                                compose(self.terms, window) if self.terms else None)[0]
+        res = self._residual(window, y)
+        return dataclasses.replace(est, simulated=y, rmse=res.rmse, nrmse=res.nrmse)
