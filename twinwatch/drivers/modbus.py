@@ -421,6 +421,9 @@ class _DemoteFromPollThreads(logging.Filter):
         if record.levelno > logging.DEBUG and threading.current_thread().name.startswith(
             _POLL_THREAD_NAME
         ):
+            # the logger's level check has passed at the record's original level: redo it
+            if not _PYMODBUS_LOGGER.isEnabledFor(logging.DEBUG):
+                return False
             record.levelno = logging.DEBUG
             record.levelname = logging.getLevelName(logging.DEBUG)
         return True
