@@ -10,6 +10,7 @@ import ast
 import inspect
 import logging
 import math
+import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -334,6 +335,23 @@ def test_device_absent_from_the_start_read_returns_none_in_time(
     assert drv.stats.errors >= 1 and drv.stats.extra["connect_failures"] >= 1
     assert len([r for r in caplog.records if r.name == "twinwatch.drivers.modbus"
                 and r.levelno == logging.ERROR]) == 1
+
+
+def test_silent_device_times_out_without_blocking_the_reader() -> None:
+    """A TCP peer that accepts (kernel backlog) but never answers: timeouts, counted."""
+    regs = {"x": ModbusChannelMap(address=2, table="input")}
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as mute:
+        mute.bind(("127.0.0.1", 0))
+        mute.listen(8)
+        cfg = driver_config(mute.getsockname()[1], regs, lockstep=False, timeout=0.2)
+        with ModbusDriver(cfg) as drv:
+            t_end = time.monotonic() + 0.8
+            while time.monotonic() < t_end:
+                t0 = time.monotonic()
+                assert drv.read(0.05) is None
+                assert time.monotonic() - t0 < 0.05 + 0.1
+    assert drv.stats.extra["timeouts"] >= 2 and drv.stats.extra["outages"] == 1
+    assert drv.stats.errors == drv.stats.extra["timeouts"] + drv.stats.extra["connect_failures"]
 
 
 def test_register_map_the_device_refuses_is_fatal() -> None:
