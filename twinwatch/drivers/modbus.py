@@ -445,6 +445,10 @@ class _DeviceFailure(Exception):
         self.kind = kind
 
 
+class _FatalConfigError(Exception):
+    """The device refused the register map (illegal function / address / value)."""
+
+
 _EXTRA_COUNTERS = (
     "polls",
     "duplicates",
@@ -818,7 +822,3 @@ class ModbusDriver(Driver):
             if thread.is_alive():  # pragma: no cover - a request hung beyond its timeout
                 logger.warning("Modbus polling thread did not stop in time")
         logger.debug("Modbus driver closed (%s)", self.stats.as_dict())
-
-
-class _FatalConfigError(Exception):
-    """The device refused the register map (illegal function / address / value)."""
