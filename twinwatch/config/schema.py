@@ -11,7 +11,7 @@ Layout::
     [acquisition]      sample period, window length, gap and queue settings
     [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
     [discovery]        meta-model candidates (kind, input, attach point) and when to search
-    [driver]           type = "simulated" | "can" | "file" (+ its own keys)
+    [driver]           type = "simulated" | "can" | "file" | "modbus" (+ its own keys)
     [zenoh]            session mode and endpoints (loopback by default)
     [recording]        Rerun .rrd path
 """
@@ -27,6 +27,7 @@ from twinwatch.daemon.publisher import ZenohConfig
 from twinwatch.daemon.recorder import RecordingConfig
 from twinwatch.drivers.can import CanDriverConfig
 from twinwatch.drivers.file import FileDriverConfig
+from twinwatch.drivers.modbus import ModbusDriverConfig
 from twinwatch.drivers.simulated import SimulatedDriverConfig
 from twinwatch.twin.discovery import DiscoveryConfig
 from twinwatch.twin.estimation import EstimationConfig
@@ -74,7 +75,8 @@ class AcquisitionConfig(BaseModel):
 
 
 DriverConfig = Annotated[
-    SimulatedDriverConfig | CanDriverConfig | FileDriverConfig, Field(discriminator="type")
+    SimulatedDriverConfig | CanDriverConfig | FileDriverConfig | ModbusDriverConfig,
+    Field(discriminator="type"),
 ]
 
 
