@@ -208,6 +208,11 @@ class Estimator:
         for n in config.estimate:
             nom = self.nominal[self.names.index(n)]
             b = config.bounds.get(n, (nom / 5.0, nom * 5.0))
+            if not 0 < b[0] < b[1]:
+                raise ValueError(
+                    f"estimation.bounds.{n}: the nominal value {nom:g} gives no positive default "
+                    "range; parameters are estimated on a log scale, so set a positive "
+                    f"[low, high] for {n} (or do not estimate it)")
             lo.append(b[0])
             hi.append(b[1])
         self.lower = np.array(lo)
@@ -382,12 +387,17 @@ class Estimator:
         den = float(np.sum(res * res))
         rho = min(max(num / den, 0.0), 0.99) if den > 0 else 0.0
         s2 *= (1.0 + rho) / (1.0 - rho)
-        jtj = jac.T @ jac
+        # Equilibrate the columns before inverting: the hydraulic twin's J^T J has a condition
+        # number ~1e15 in raw form (pressure in Pa against a piston area in m^2), where pinv
+        # returns meaningless variances (D reported at 2e-7 relative instead of ~3).
+        norms = np.linalg.norm(jac, axis=0)
+        safe = np.where(norms > 0, norms, 1.0)
+        js = jac / safe
         try:
-            cov = np.linalg.pinv(jtj, rcond=1e-15, hermitian=True) * s2
+            cov = np.linalg.pinv(js.T @ js, rcond=1e-15, hermitian=True) * s2
         except np.linalg.LinAlgError:
             return np.full(n, np.inf)
-        d = np.diag(cov)
+        d = np.diag(cov) / safe**2
         with np.errstate(invalid="ignore"):
             out = np.sqrt(np.where(d > 0, d, np.inf))
         # A column the outputs do not respond to at all is not determined.
