@@ -13,10 +13,11 @@ over the virtual CAN bus, the adaptation worker, optionally Zenoh and Rerun) and
 * with ``--tracemalloc``, the ten Python allocation sites that grew most between the first
   report after warm-up and the end.
 
-Usage (6 h of plant time is the default; on 2 shared cores it takes roughly 25-30 minutes)::
+Usage, from the repository root or with twinwatch installed (6 h of plant time is the
+default: at the measured ~21x real time on 2 shared cores, about 17 minutes)::
 
-    python benchmarks/soak.py                       # 21600 s, no Zenoh, no recording
-    python benchmarks/soak.py --duration 600 --every 50
+    PYTHONPATH=. python benchmarks/soak.py          # 21600 s, no Zenoh, no recording
+    python benchmarks/soak.py --duration 600 --every 50 --history 50
     python benchmarks/soak.py --zenoh --record /tmp/soak.rrd --tracemalloc
 
 Not part of the test suite.
@@ -84,6 +85,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="record to this .rrd file (default: no recording)")
     ap.add_argument("--tracemalloc", action="store_true",
                     help="trace Python allocations and print the top growth (slower)")
+    ap.add_argument("--history", type=int, default=None,
+                    help="health messages the daemon keeps in memory ([acquisition] history, "
+                    "default 1000); a small value shows within a short run whether RSS is "
+                    "flat once that buffer is full")
     ap.add_argument("--log-level", default="warning")
     args = ap.parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level.upper()),
@@ -97,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
         cfg.recording.path = str(Path(args.record).resolve())
     cfg.recording.enabled = bool(args.record)
     cfg.zenoh.enabled = bool(args.zenoh)
+    if args.history is not None:
+        cfg.acquisition.history = args.history
 
     if args.tracemalloc:
         tracemalloc.start(10)
