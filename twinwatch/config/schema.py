@@ -29,6 +29,7 @@ from twinwatch.drivers.can import CanDriverConfig
 from twinwatch.drivers.file import FileDriverConfig
 from twinwatch.drivers.modbus import ModbusDriverConfig
 from twinwatch.drivers.simulated import SimulatedDriverConfig
+from twinwatch.drivers.simulated_modbus import SimulatedModbusDriverConfig
 from twinwatch.twin.discovery import DiscoveryConfig
 from twinwatch.twin.estimation import EstimationConfig
 from twinwatch.twin.registry import create_model
@@ -75,7 +76,8 @@ class AcquisitionConfig(BaseModel):
 
 
 DriverConfig = Annotated[
-    SimulatedDriverConfig | CanDriverConfig | FileDriverConfig | ModbusDriverConfig,
+    SimulatedDriverConfig | CanDriverConfig | FileDriverConfig | ModbusDriverConfig
+    | SimulatedModbusDriverConfig,
     Field(discriminator="type"),
 ]
 
@@ -112,7 +114,7 @@ class TwinwatchConfig(BaseModel):
         except ValueError as exc:
             raise ValueError(f"acquisition.sample_period: {exc}") from exc
         driver_period = getattr(self.driver, "sample_period", None)
-        if isinstance(self.driver, SimulatedDriverConfig):
+        if isinstance(self.driver, SimulatedDriverConfig | SimulatedModbusDriverConfig):
             driver_period = self.driver.plant.sample_period
         acq_period = self.acquisition.sample_period
         if driver_period is not None and abs(driver_period - acq_period) > 1e-12:

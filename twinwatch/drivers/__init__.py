@@ -58,6 +58,7 @@ BUILTIN_DRIVERS: Mapping[str, tuple[str, str]] = {
     "file": ("twinwatch.drivers.file", "FileDriver"),
     "modbus": ("twinwatch.drivers.modbus", "ModbusDriver"),
     "simulated": ("twinwatch.drivers.simulated", "SimulatedDriver"),
+    "simulated_modbus": ("twinwatch.drivers.simulated_modbus", "SimulatedModbusDriver"),
 }
 
 
