@@ -101,7 +101,8 @@ class DiscoveryConfig(BaseModel):
     trigger_windows: int = Field(3, ge=1, description="consecutive windows whose residual is "
                                  "too large before discovery runs (K)")
     residual_ratio: float = Field(3.0, gt=1, description="a residual is too large when its "
-                                  "RMSE exceeds this many times the estimated noise level")
+                                  "normalised RMSE exceeds this many times the normalised noise "
+                                  "level estimated from the residual")
     min_nrmse: float = Field(2e-3, ge=0, description="... and its normalised RMSE exceeds this")
     bic_threshold: float = Field(10.0, ge=0, description="BIC decrease a term must bring")
     min_improvement: float = Field(0.2, ge=0, lt=1, description="fraction of the residual RMSE "
@@ -225,8 +226,10 @@ class Term:
         meta = get_meta_model(d["kind"])
         params = np.array([float(d["params"].get(n, 0.0)) for n in meta.params])
         active = tuple(n in d["params"] for n in meta.params)
+        sig = d.get("significance")
         return cls(meta=meta, attach=model.attach_point(d["attach"]), input=d["input"],
                    params=params, active=active, t_ref=float(d.get("t_ref", 0.0)),
+                   significance=math.inf if sig is None else float(sig),
                    since_window=int(d.get("since_window", 0)))
 
 

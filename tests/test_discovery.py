@@ -1,0 +1,177 @@
+"""Unknown-component discovery on single windows (paper Section 3.3 and 5.2.4)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from tests.conftest import ROOT, plant_windows
+from twinwatch.config.loader import load_config
+from twinwatch.plant.dcmotor import DCMotorPlantConfig
+from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.dcmotor import DCMotorTwin
+from twinwatch.twin.discovery import (
+    CandidateConfig,
+    Discovery,
+    DiscoveryConfig,
+    Term,
+    compose,
+    delta_bic,
+)
+from twinwatch.twin.estimation import Estimator
+from twinwatch.twin.metamodels import get_meta_model
+
+UNBALANCED_CONFIG = ROOT / "config" / "dc-motor-unbalanced-sim.toml"
+
+
+def _setup(**overrides):  # type: ignore[no-untyped-def]
+    cfg = load_config(UNBALANCED_CONFIG)
+    twin = DCMotorTwin(**cfg.machine.options)
+    disc = cfg.discovery.model_copy(update=overrides)
+    return cfg, twin, disc
+
+
+def _truth_term(twin: DCMotorTwin) -> Term:
+    """The plant's Eq. 13 forcing, 5*sin(10*t) rad/s^2 on d(omega)/dt."""
+    return Term(get_meta_model("periodic"), twin.attach_point("d(omega)/dt"), "t",
+                np.array([5.0, 10.0, 0.0, 0.0]), (True, True, True, False))
+
+
+def test_the_composed_twin_reproduces_the_unbalanced_plant() -> None:
+    """DT'' = DT + U with the true U reproduces Eq. 13: the mid-step evaluation of a held term
+    is exact to ~1e-4 rad/s (the plant's own worst speed error without it: 0.5 rad/s)."""
+    _, twin, _ = _setup()
+    _, wins = plant_windows(DCMotorPlantConfig(scenario="unbalanced_shaft", duration=30),
+                            2, skip=5)
+    theta = twin.nominal_vector()[None, :]
+    for w in wins:
+        plain = twin.simulate(theta, w)[0]
+        composed = twin.simulate(theta, w, compose([_truth_term(twin)], w))[0]
+        assert np.max(np.abs(plain[:, 1] - w["omega"])) > 0.4
+        assert np.max(np.abs(composed[:, 1] - w["omega"])) < 1e-3
+        # A swarm of term values is one call: row k of (P, N) goes with particle k.
+        vals = compose([_truth_term(twin)], w)["d(omega)/dt"]
+        y = twin.simulate(np.repeat(theta, 3, axis=0), w,
+                          {"d(omega)/dt": np.stack([vals, 0 * vals, vals])})
+        np.testing.assert_allclose(y[0], composed, rtol=1e-12)
+        np.testing.assert_allclose(y[1], plain, rtol=1e-12)
+
+
+@pytest.mark.parametrize("skip", [4, 23, 57])
+def test_discovery_finds_the_unbalanced_shaft(skip: int) -> None:
+    """Paper 5.2.4: one periodic term, amplitude within 2 % of 5 rad/s^2 and frequency within
+    0.5 % of 10 rad/s (equivalent sign/phase forms are made canonical), nothing else."""
+    cfg, twin, disc_cfg = _setup()
+    est = Estimator(twin, cfg.estimation)
+    disc = Discovery(twin, disc_cfg, est)
+    _, (w,) = plant_windows(DCMotorPlantConfig(scenario="unbalanced_shaft", duration=130),
+                            1, skip=skip)
+    new, report = disc.discover(w, twin.nominal_vector(), [])
+    assert [t.meta.kind for t in new] == ["periodic"], [t.describe() for t in new]
+    term = new[0]
+    a, b, c, _ = term.params
+    assert abs(a - 5.0) / 5.0 < 0.02
+    assert abs(b - 10.0) / 10.0 < 0.005
+    assert not term.active[3]  # the offset d did not earn its place
+    # The same function of time as the plant's 5*sin(10 t), whatever the form.
+    truth = _truth_term(twin).values(w)
+    assert np.max(np.abs(term.values(w) - truth)) < 0.1
+    assert term.equation().startswith("d(omega)/dt += 5.0")
+    assert term.equation().endswith("rad/s^2")
+    assert "unbalanced shaft" in term.meaning() and "shaft speed" in term.meaning()
+    assert report.tried == 6 + 5  # six candidates, then the five others with it in place
+    assert report.elapsed_s > 0
+
+
+def test_forced_discovery_on_noisy_nominal_windows_keeps_nothing() -> None:
+    """No false discovery even when the search is forced on every window: 1 % noise is
+    white, and no meta-model earns its place against it (BIC, improvement, significance)."""
+    cfg, twin, disc_cfg = _setup(trigger_windows=1, residual_ratio=1.0000001, min_nrmse=0.0,
+                                 retry_after=1)
+    adapter = TwinAdapter(twin, cfg.estimation, disc_cfg)
+    _, wins = plant_windows(DCMotorPlantConfig(scenario="nominal", duration=40,
+                                               noise={"ia": 1.0, "omega": 1.0}, seed=3), 8)
+    ran = 0
+    for w in wins:
+        r = adapter.process(w)
+        ran += bool(r.discovery and r.discovery.ran)
+        assert r.terms == []
+    assert ran >= 3
+
+
+def test_a_term_that_stops_earning_its_place_is_dropped() -> None:
+    """Re-validation: a periodic term kept on a healthy machine fails every window and is
+    switched off after ``drop_after`` windows."""
+    cfg, twin, disc_cfg = _setup(drop_after=2)
+    adapter = TwinAdapter(twin, cfg.estimation, disc_cfg)
+    adapter.terms = [Term(get_meta_model("periodic"), twin.attach_point("d(omega)/dt"), "t",
+                          np.array([0.05, 10.0, 0.0, 0.0]), (True, True, True, False))]
+    _, wins = plant_windows(DCMotorPlantConfig(scenario="nominal", duration=20), 3, skip=2)
+    first = adapter.process(wins[0])
+    assert len(first.terms) == 1 and not first.changed
+    second = adapter.process(wins[1])
+    assert second.terms == [] and second.changed
+    assert second.events and second.events[0].startswith("dropped: d(omega)/dt +=")
+
+
+def test_health_fields_and_state_round_trip() -> None:
+    cfg, twin, disc_cfg = _setup()
+    adapter = TwinAdapter(twin, cfg.estimation, disc_cfg)
+    adapter.terms = [_truth_term(twin)]
+    _, (w,) = plant_windows(DCMotorPlantConfig(scenario="unbalanced_shaft", duration=30), 1,
+                            skip=3)
+    r = adapter.process(w)
+    fields = r.health_fields(True)
+    (term,) = fields["terms"]
+    assert term["kind"] == "periodic" and term["attach"] == "d(omega)/dt"
+    assert term["input"] == "t" and set(term["params"]) == {"a", "b", "c"}
+    assert term["weight"] == pytest.approx(5.0, rel=0.02)
+    assert term["equation"].startswith("d(omega)/dt += ")
+    assert "unbalanced shaft" in term["meaning"]
+    res = fields["residual"]
+    assert res["dt_prime"]["max_abs"]["omega"] > 0.4
+    assert res["dt_second"]["max_abs"]["omega"] < 0.02
+    # Persistence: the accepted twin comes back as it was.
+    other = TwinAdapter(twin, cfg.estimation, disc_cfg)
+    other.restore(adapter.state())
+    assert [t.as_dict() for t in other.terms] == [t.as_dict() for t in adapter.terms]
+    np.testing.assert_array_equal(other.estimator.trusted, adapter.estimator.trusted)
+
+
+def test_bic_prefers_the_simpler_model_on_white_noise() -> None:
+    rng = np.random.default_rng(0)
+    r0 = rng.normal(size=600)
+    r1 = r0 * 0.999  # an extra parameter that explains 0.1 % of white noise
+    assert delta_bic(r0, r1, 2, 3) > 0
+    assert delta_bic(r0, 0.1 * r0, 2, 3) < -100
+
+
+def test_discovery_config_errors_name_the_key() -> None:
+    twin = DCMotorTwin()
+    with pytest.raises(ValidationError, match="unknown meta-model 'cubic'"):
+        CandidateConfig(attach="d(omega)/dt", kinds=["cubic"])
+    with pytest.raises(ValidationError, match="candidates: discovery is enabled but no"):
+        DiscoveryConfig(enabled=True)
+    bad = DiscoveryConfig(enabled=True, candidates=[CandidateConfig(attach="d(theta)/dt")])
+    with pytest.raises(ValueError, match=r"candidates\[0\].attach: unknown attach point"):
+        bad.check_against(twin)
+    bad = DiscoveryConfig(enabled=True, candidates=[CandidateConfig(attach="d(omega)/dt",
+                                                                    input="pressure")])
+    with pytest.raises(ValueError, match=r"candidates\[0\].input: 'pressure' is neither"):
+        bad.check_against(twin)
+
+
+def test_term_rendering_matches_the_issue() -> None:
+    twin = DCMotorTwin()
+    t = Term(get_meta_model("periodic"), twin.attach_point("d(omega)/dt"), "t",
+             np.array([4.98, 10.0, 2.12, 0.0]), (True, True, True, False))
+    assert t.describe() == ("d(omega)/dt += 4.98*sin(10.00*t + 2.12) rad/s^2  [periodic on "
+                            "shaft speed: unbalanced shaft, shaft misalignment, machine "
+                            "unsteadiness]")
+    t2 = Term(get_meta_model("negative_exponential"), twin.attach_point("d(ia)/dt"), "t",
+              np.array([0.5, 0.01, 0.0, 0.0])[:2], (True, True), t_ref=160.0)
+    assert t2.equation() == "d(ia)/dt += 0.50*exp(-0.0100*(t - 160.00)) A/s"
+    assert math.isinf(t2.significance)
