@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     wall = time.monotonic() - t_wall0
     rss_end = rss_kib()
     c = daemon.counters()
-    points.append((c["windows_estimated"], rss_end))
+    # slope over the in-run reports only: closing the sinks (Rerun's final flush) moves RSS
     half = [p for p in points if p[0] >= c["windows_estimated"] / 2]
     elapsed.sort()
     print("---")
@@ -158,8 +158,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"estimation per window: median {elapsed[len(elapsed) // 2] * 1e3:.0f} ms, "
               f"max {elapsed[-1] * 1e3:.0f} ms")
     print(f"RSS start {rss0 / 1024:.1f} MiB, after first window "
-          f"{points[0][1] / 1024:.1f} MiB, end {rss_end / 1024:.1f} MiB")
-    print(f"RSS slope over the second half: {_slope_kib_per_1000(half):.0f} KiB per 1000 windows "
+          f"{points[0][1] / 1024:.1f} MiB, last in-run report {points[-1][1] / 1024:.1f} MiB, "
+          f"after close {rss_end / 1024:.1f} MiB")
+    print(f"RSS slope over the second half of the run: "
+          f"{_slope_kib_per_1000(half):.0f} KiB per 1000 windows "
           f"(history kept in memory: {cfg.acquisition.history} health messages)")
     if args.tracemalloc and snap:
         end = tracemalloc.take_snapshot()
