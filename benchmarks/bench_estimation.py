@@ -36,8 +36,9 @@ from twinwatch.twin.model import WindowData  # noqa: E402
 class OneCallPerParticle(DCMotorTwin):
     """The paper's evaluation: the twin simulated once per particle."""
 
-    def simulate(self, theta, window):  # type: ignore[no-untyped-def]
-        return np.concatenate([super(OneCallPerParticle, self).simulate(th[None, :], window)
+    def simulate(self, theta, window, terms=None):  # type: ignore[no-untyped-def]
+        return np.concatenate([super(OneCallPerParticle, self).simulate(th[None, :], window,
+                                                                        terms)
                                for th in np.atleast_2d(theta)])
 
 

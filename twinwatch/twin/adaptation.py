@@ -6,9 +6,9 @@
    (:class:`~twinwatch.twin.estimation.Estimator`);
 2. the kept terms are polished and re-validated (:meth:`Discovery.revalidate`); a term that no
    longer earns its place is switched off;
-3. the residual is compared with the exit criterion: too large means RMSE above
-   ``residual_ratio`` times the white-noise level estimated from the residual itself, and a
-   normalised RMSE above ``min_nrmse``. A window whose residual is too large does not update
+3. the residual is compared with the exit criterion: too large means a normalised RMSE above
+   ``residual_ratio`` times the normalised white-noise level estimated from the residual itself
+   (first differences), and above ``min_nrmse``. A window whose residual is too large does not update
    the trusted parameters (its estimates are biased by the missing component);
 4. after ``trigger_windows`` such windows in a row, discovery searches the candidates
    (:meth:`Discovery.discover`); new terms join DT'', the window is re-estimated with them, and
@@ -37,6 +37,7 @@ from twinwatch.twin.discovery import (
     compose,
     format_terms,
     noise_level,
+    residual_too_large,
 )
 from twinwatch.twin.estimation import EstimationConfig, Estimator, WindowEstimate
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
@@ -268,16 +269,13 @@ class TwinAdapter:
         return dict(zip(self.model.output_names, (float(v) for v in lvl), strict=True))
 
     def _too_large(self, window: WindowData, est: WindowEstimate) -> bool:
-        """The exit criterion: RMSE above ``residual_ratio`` x noise level on some output,
-        and a normalised RMSE above ``min_nrmse``."""
+        """The exit criterion (:func:`~twinwatch.twin.discovery.residual_too_large`) on the
+        final twin's residual."""
         if not math.isfinite(est.nrmse):
             return True
-        if est.nrmse <= self.config.min_nrmse:
-            return False
-        err = est.simulated - self._meas(window)
-        rmse = np.sqrt(np.mean(err**2, axis=0))
-        noise = noise_level(err)
-        return bool(np.any(rmse > self.config.residual_ratio * noise))
+        meas, scale = self.estimator._prepare(window)
+        r = ((est.simulated - meas)[1:] / scale).reshape(-1)
+        return residual_too_large(r / math.sqrt(r.size), len(self.model.outputs), self.config)
 
     def _resimulate(self, est: WindowEstimate, window: WindowData, theta: FloatArray
                     ) -> WindowEstimate:
