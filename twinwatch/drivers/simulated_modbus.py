@@ -12,7 +12,8 @@ Pacing (``pacing``):
   and the driver polls as fast as the daemon consumes; nothing is lost and a run is as fast as
   the estimation allows. The driver is not ``live`` (the daemon waits instead of dropping).
 * ``"realtime"``: the server advances the plant by the wall clock (one sample every
-  ``plant.sample_period``); the driver polls at that rate and is ``live``. Stopping the server
+  ``plant.sample_period``); the driver polls twice per sample period (a poll that finds the
+  counter unchanged is a duplicate, skipped) and is ``live``. Stopping the server
   (:attr:`SimulatedModbusDriver.server`) makes the driver count the outage and reconnect with
   its capped backoff; the plant's clock runs on meanwhile, so the counter jumps and the gap is
   counted (``stats.gaps``) and the ring buffer abandons the window it falls in.
@@ -147,6 +148,9 @@ class SimulatedModbusDriverConfig(BaseModel):
             timeout=self.timeout,
             backoff_max=self.backoff_max,
             sample_period=self.plant.sample_period,
+            # real time: poll twice per sample, so scheduling jitter never skips a sample (the
+            # extra polls are duplicates, skipped); lock-step polls as fast as it is read
+            poll_period=self.plant.sample_period / 2 if self.pacing == "realtime" else None,
             time_source="counter",
             counter=self.counter,
             lockstep=self.pacing == "lockstep",

@@ -1,0 +1,278 @@
+"""The hydraulic actuator (paper Sections 4.2, 5.3) end to end over Modbus, through the daemon.
+
+simulated plant (Eq. 14-18, PID Eq. 17 every 1e-4 s) -> PlantModbusServer on 127.0.0.1 ->
+Modbus TCP (or RTU over a pseudo-terminal pair) -> ModbusDriver -> ring buffer -> adaptation
+worker (estimation, discovery) -> health messages. The daemon is the DC motor's, unchanged.
+The assertions carry the paper's and the issue's numbers.
+
+Run lengths are cut to what shows each claim (2 cores shared, the file well under 3 minutes);
+each cut is stated where it is made. The full 600 s fluid-degradation run is measured in the
+report of issue 4 (same figures).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from twinwatch.config.loader import load_config
+from twinwatch.config.schema import TwinwatchConfig
+from twinwatch.daemon.runner import Daemon
+from twinwatch.drivers.modbus import ModbusDriver, ModbusDriverConfig
+from twinwatch.drivers.simulated_modbus import (
+    DEFAULT_COUNTER,
+    DEFAULT_REGISTERS,
+    SimulatedModbusDriver,
+    SimulatedModbusDriverConfig,
+)
+from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
+from twinwatch.plant.modbus_server import PlantModbusServer, PtyLink
+
+from .conftest import ROOT
+
+SIM = ROOT / "config" / "hydraulic-modbus-sim.toml"
+LEAK = ROOT / "config" / "hydraulic-modbus-leak-sim.toml"
+
+#: The reference 0.5 + 0.45 sin(2 pi 0.005 t) reverses (v = 0) at t = 50 + 100 n s.
+REVERSALS = tuple(50.0 + 100.0 * n for n in range(6))
+
+
+def _config(path: Path, **plant: Any) -> TwinwatchConfig:
+    """The example config, its simulated device on a free port, no Zenoh, no recording."""
+    cfg = load_config(path)
+    assert isinstance(cfg.driver, SimulatedModbusDriverConfig)
+    cfg.driver.port = 0  # any free port on 127.0.0.1
+    for k, v in plant.items():
+        setattr(cfg.driver.plant, k, v)
+    return cfg
+
+
+def _run(cfg: TwinwatchConfig) -> tuple[HydraulicPlant, Daemon]:
+    assert isinstance(cfg.driver, SimulatedModbusDriverConfig)
+    with SimulatedModbusDriver(cfg.driver) as driver:
+        with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
+            daemon.run()
+    assert daemon.overruns == 0 and daemon.numeric_failures == 0
+    # lock-step: every sample crossed Modbus exactly once, nothing lost
+    assert driver.stats.gaps == 0 and driver.stats.errors == 0
+    assert driver.stats.bad_frames == 0 and driver.stats.bad_values == 0
+    return driver.plant, daemon
+
+
+def _touches_reversal(h: dict[str, Any]) -> bool:
+    """The window holds a reversal (v = 0) or ends one sample before it."""
+    return any(h["t_start"] - 0.015 <= r <= h["t_end"] + 0.015 for r in REVERSALS)
+
+
+# -- fluid degradation (paper Section 5.3.1) ----------------------------------------------------
+
+
+def test_fluid_degradation_over_modbus_d_within_three_percent():
+    """Paper: the estimated D follows the fluid degradation within 3 %, with spikes where the
+    piston reverses. Cut: the ramp D(t) = 100 + 36.5 (exp(0.003 (t - t0)) - 1) starts at
+    t0 = 0 s instead of 160 s and the run lasts 240 s (120 windows, 100 -> 138 N/(m/s), two
+    reversals at 50 s and 150 s) instead of 600 s: the same ramp shape and the same number of
+    reversals per window, without 160 s of fault-free plant first. Measured on the full 600 s
+    run over Modbus: 220 of 220 windows from 160 s published, median error 0.003 %, max 0.12 %.
+
+    Over Modbus (float32 pressure, 0.004 Pa resolution) the residual is white quantisation
+    noise: the identifiability gate then determines D to 0.08-0.18 % even in the windows
+    touching a reversal, below the configured 0.5 % limit, so they are published (and are
+    within 0.12 % of the plant's D): no spike. Whatever the gate holds carries its reason and
+    is never published as an estimate.
+    """
+    cfg = _config(SIM, duration=240.0, fault_start=0.0)
+    plant, daemon = _run(cfg)
+    hist = list(daemon.history)
+    assert len(hist) == 120
+    errors, published, held = [], 0, []
+    rel_std: dict[bool, list[float]] = {True: [], False: []}
+    for h in hist:
+        d = h["parameters"]["D"]
+        if d["held"]:
+            held.append(h)
+            assert d["reason"] and d["rel_std_pct"] is None
+            continue
+        published += 1
+        true_d = plant.truth(0.5 * (h["t_start"] + h["t_end"])).D
+        errors.append(abs(d["value"] / true_d - 1.0) * 100.0)
+        assert d["rel_std_pct"] is not None and d["rel_std_pct"] <= 0.5  # max_rel_std
+        rel_std[_touches_reversal(h)].append(d["rel_std_pct"])
+    err = np.asarray(errors)
+    # the paper's 3 % in at least 95 % of the windows (all windows count: a held one is a miss)
+    assert np.sum(err <= 3.0) >= 0.95 * len(hist), np.percentile(err, [50, 95, 100])
+    assert np.percentile(err, 95) < 0.1  # measured 0.03 %
+    # the ramp really moved D (+38 %) and the twin followed it
+    assert hist[-1]["parameters"]["D"]["value"] == pytest.approx(plant.truth(239.0).D, rel=0.01)
+    assert plant.truth(239.0).D > 135.0
+    # the reversals are where D is least determined (little velocity: D*v ~ 0), by a factor
+    assert min(rel_std[True], default=math.inf) > 1.2 * np.median(rel_std[False])
+    # ... and a window is held only there (none is, with these settings over Modbus)
+    assert all(_touches_reversal(h) for h in held)
+    assert all(h["parameters"]["q_pump"]["held"] is False for h in hist)
+
+
+def test_windows_without_excitation_are_held_not_published():
+    """The piston at rest (no reference motion: v = 0, D*v = 0) gives D no excitation at all:
+    every window holds D with a reason and publishes q_pump, over the same Modbus path."""
+    cfg = _config(SIM, duration=8.0, ref_frequency=0.0, scenario="nominal")
+    _, daemon = _run(cfg)
+    hist = list(daemon.history)
+    assert len(hist) == 4
+    for h in hist:
+        d = h["parameters"]["D"]
+        assert d["held"] and d["reason"] and d["rel_std_pct"] is None, d
+        assert not h["parameters"]["q_pump"]["held"]
+
+
+# -- internal leak and discovery (paper Section 5.3.2, Eq. 18-20) -------------------------------
+
+
+def test_internal_leak_discovery_finds_the_pressure_term_of_0p2():
+    """Eq. 18, C = 0.2: discovery keeps a multiplicative term on the pressure, p = (1 + U) p'
+    (the paper's Eq. 20 prints p = p' - 0.19999991 p' in its own sign convention), whose
+    coefficient is within 2 % of 0.2, and the pressure error of DT'' falls below 1 % of the
+    pressure. Cut: the leak starts at 20 s instead of 160 s and the run lasts 70 s."""
+    cfg = _config(LEAK, duration=70.0, fault_start=20.0)
+    _, daemon = _run(cfg)
+    hist = list(daemon.history)
+    assert len(hist) == 35
+    before = [h for h in hist if h["t_end"] < 20.0]
+    assert before and all(not h["terms"] for h in before)
+    after = [h for h in hist if h["t_start"] >= 30.0]  # 3 trigger windows + search after onset
+    assert after
+    for h in after:
+        terms = [t for t in h["terms"] if t["attach"] == "p"]
+        assert len(terms) == 1, h["terms"]
+        term = terms[0]
+        assert term["mode"] == "multiplicative"
+        assert term["weight"] == pytest.approx(0.2, rel=0.02), term["equation"]
+        # The term is a constant factor over the window (a power or linear meta-model whose
+        # shape parameter is ~0): U stays within 2 % of 0.2 across the run.
+        assert h["residual"]["dt_second"] is not None
+        p_err = h["residual"]["dt_second"]["max_abs"]["p"]
+        assert p_err / 50.0e3 < 0.01  # below 1 % of the pressure (>= 50 kPa; measured 1e-7)
+    # without the term the twin is ~20 % off: the DT' residual shows the leak
+    assert after[-1]["residual"]["dt_prime"]["max_abs"]["p"] > 0.15 * 50.0e3
+
+
+# -- the data path: reconnects, RTU, the command line -------------------------------------------
+
+
+def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
+    """Real-time pacing over Modbus TCP on loopback: the Modbus server stops mid-run for 1.5 s
+    and starts again on the same port. The daemon keeps running, the driver counts the outage
+    and reconnects, the plant's clock ran on (the counter jumps: a gap of ~150 samples), the
+    ring buffer abandons the window the gap falls in, and windows are estimated again."""
+    cfg = _config(SIM, duration=60.0, scenario="nominal")
+    assert isinstance(cfg.driver, SimulatedModbusDriverConfig)
+    cfg.driver.pacing = "realtime"
+    cfg.driver.timeout = 0.3
+    cfg.driver.backoff_max = 0.4
+    errors: list[BaseException] = []
+    with SimulatedModbusDriver(cfg.driver) as driver:
+        assert driver.live
+        with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
+
+            def run() -> None:
+                try:
+                    daemon.run()
+                except BaseException as exc:  # noqa: BLE001 - reported below
+                    errors.append(exc)
+
+            runner = threading.Thread(target=run, name="test-daemon-run")
+            runner.start()
+            try:
+                _wait(lambda: daemon.windows_estimated >= 2, 20.0)
+                driver.server.stop()
+                time.sleep(1.5)
+                driver.server.start()  # same port
+                t_back = driver.server.last_sample.t  # type: ignore[union-attr]
+                _wait(lambda: any(h["t_start"] >= t_back for h in list(daemon.history)[-2:])
+                      and daemon.windows_estimated >= 4, 20.0)
+            finally:
+                daemon.stop()
+                runner.join(15.0)
+        assert not runner.is_alive() and not errors, errors
+        stats = driver.stats.as_dict()
+    assert stats["outages"] == 1 and stats["reconnects"] == 1
+    assert stats["errors"] >= 1
+    assert stats["gaps"] >= 100  # 1.5 s at 10 ms: ~150 samples not served
+    c = daemon.counters()
+    assert c["windows_abandoned"] >= 1 and c["numeric_failures"] == 0
+    last = daemon.latest
+    assert last is not None and last["t_start"] >= t_back
+    # the gap is reported in the health message's counters
+    hc = last["counters"]
+    assert hc["driver_gaps"] >= 100 and hc["driver_reconnects"] == 1
+    assert hc["windows_abandoned"] >= 1
+    assert not last["parameters"]["q_pump"]["held"]
+
+
+def _wait(cond: Any, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def test_modbus_rtu_over_a_pseudo_terminal_pair_through_the_daemon():
+    """Modbus RTU (115200 baud 8N1, device 3) over a pty pair, lock-step, the default register
+    map: three windows estimated, every sample delivered once."""
+    cfg = _config(SIM, scenario="nominal")
+    assert isinstance(cfg.driver, SimulatedModbusDriverConfig)
+    plant = HydraulicPlant(HydraulicPlantConfig(scenario="nominal", duration=60.0))
+    with PtyLink() as link:
+        with PlantModbusServer(plant, DEFAULT_REGISTERS, counter=DEFAULT_COUNTER,
+                               pacing="lockstep", serial_port=link.port_a, baudrate=115200,
+                               device_id=3):
+            rtu = ModbusDriverConfig(
+                type="modbus", transport="rtu", serial_port=link.port_b, baudrate=115200,
+                device_id=3, timeout=0.5, sample_period=0.01, time_source="counter",
+                counter=DEFAULT_COUNTER, lockstep=True, registers=dict(DEFAULT_REGISTERS))
+            with ModbusDriver(rtu) as driver:
+                with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
+                    daemon.run(duration=6.0)
+                stats = driver.stats.as_dict()
+    assert daemon.windows_estimated == 3
+    assert stats["samples"] == 601 and stats["gaps"] == 0 and stats["errors"] == 0
+    for h in daemon.history:
+        assert h["parameters"]["D"]["value"] == pytest.approx(100.0, rel=0.03)
+        assert h["parameters"]["q_pump"]["value"] == pytest.approx(0.02, rel=1e-4)
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) != 0
+
+
+def test_twinwatch_run_the_example_config_exits_0(tmp_path: Path):
+    """``twinwatch run config/hydraulic-modbus-sim.toml --duration 20``, as a user runs it.
+    If the example's ports (Modbus 5020, Zenoh 7448) are taken, a copy on free ports runs."""
+    config = SIM
+    if not (_port_free(5020) and _port_free(7448)):
+        from twinwatch.plant.modbus_server import free_tcp_port
+
+        text = SIM.read_text().replace("port = 5020", f"port = {free_tcp_port()}")
+        text = text.replace("tcp/127.0.0.1:7448", f"tcp/127.0.0.1:{free_tcp_port()}")
+        config = tmp_path / "hydraulic-modbus-sim.toml"
+        config.write_text(text)
+    exe = Path(sys.executable).parent / "twinwatch"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "twinwatch"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run([*cmd, "run", str(config), "--duration", "20", "--no-progress"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240)
+    assert out.returncode == 0, out.stderr
+    assert "10 windows estimated, 0 overruns, 0 windows abandoned" in out.stdout
+    assert "D   = " in out.stdout and "estimated" in out.stdout
+    assert (tmp_path / "twinwatch-hydraulic.rrd").stat().st_size > 0
