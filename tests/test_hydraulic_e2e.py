@@ -173,7 +173,12 @@ def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
     """Real-time pacing over Modbus TCP on loopback: the Modbus server stops mid-run for 1.5 s
     and starts again on the same port. The daemon keeps running, the driver counts the outage
     and reconnects, the plant's clock ran on (the counter jumps: a gap of ~150 samples), the
-    ring buffer abandons the window the gap falls in, and windows are estimated again."""
+    ring buffer abandons the window the gap falls in, and windows are estimated again.
+
+    Measured (2 cores, loaded): down 1.6 s, 7 refused connects, 1 outage, 1 reconnect, ~187
+    samples counted as gaps: ~150 from the outage, the rest real-time jitter (plant server, poll
+    thread and estimator share one process and its GIL here; a late server tick serves only the
+    latest sample)."""
     cfg = _config(SIM, duration=60.0, scenario="nominal")
     assert isinstance(cfg.driver, SimulatedModbusDriverConfig)
     cfg.driver.pacing = "realtime"
@@ -194,6 +199,7 @@ def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
             runner.start()
             try:
                 _wait(lambda: daemon.windows_estimated >= 2, 20.0)
+                t_down = driver.server.last_sample.t  # type: ignore[union-attr]
                 driver.server.stop()
                 time.sleep(1.5)
                 driver.server.start()  # same port
@@ -216,6 +222,8 @@ def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
     hc = last["counters"]
     assert hc["driver_gaps"] >= 100 and hc["driver_reconnects"] == 1
     assert hc["windows_abandoned"] >= 1
+    # no window spans the outage: the one it fell in was abandoned, not estimated
+    assert not [h for h in daemon.history if h["t_start"] <= t_down and h["t_end"] >= t_back]
     assert not last["parameters"]["q_pump"]["held"]
 
 

@@ -78,7 +78,7 @@ __all__ = [
 ]
 
 #: The only address the simulated device listens on and the driver connects to.
-LOOPBACK = "127.0.0.1"
+LOOPBACK: Literal["127.0.0.1"] = "127.0.0.1"
 
 #: The default sample-counter register (see the module docstring).
 DEFAULT_COUNTER = ModbusCounterMap(address=0, table="input", type="uint32", word_order="big")
