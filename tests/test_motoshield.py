@@ -37,3 +37,55 @@ def test_motoshield_recording_every_window_estimated_plausibly_and_stably():
         assert set(h["rmse"]) == {"ia", "omega"}
         for p in h["parameters"].values():
             assert p["value"] > 0  # every published parameter is physical
+
+
+def test_motoshield_discovery_fit_first_half_validate_second():
+    """Issue #3 on real data: discovery runs on every window of the first half (forced: the
+    linear twin's residual is always 'too large' here) with the config's candidates; whatever
+    it keeps is then frozen, with the first half's median parameters, and scored on the second
+    half against the physical twin alone. Finding (README): no meta-model earns its place for
+    good; a term kept in one window fails re-validation and is switched off, and it would make
+    the held-out fit worse."""
+    shared_path("data", "motoshield", "aprbsResult.mat")
+    cfg_path = ROOT / "config" / "dc-motor-motoshield.toml"
+    cfg = load_config(cfg_path)
+    disc = cfg.discovery.model_copy(update={"enabled": True, "trigger_windows": 1,
+                                            "retry_after": 1})
+    cfg = cfg.model_copy(update={"discovery": disc})
+    with Daemon(cfg, base_dir=cfg_path.parent, publish=False, record=False) as daemon:
+        windows = []
+        orig = daemon.process_window
+
+        def capture(w):  # type: ignore[no-untyped-def]
+            windows.append(w)
+            if w.index >= 12:  # the second half is held out: no adaptation
+                return None
+            return orig(w)
+
+        daemon.process_window = capture  # type: ignore[method-assign]
+        daemon.run()
+        first = list(daemon.history)
+        adapter = daemon.adapter
+    assert len(first) == 12 and len(windows) == 24
+    ran = sum(h["discovery"]["ran"] for h in first)
+    assert ran >= 6  # the search really ran on most windows of the first half
+    assert first[-1]["terms"] == []  # nothing earned its place for good
+    model = adapter.model
+    theta = np.median([[h["parameters"][n]["value"] for n in model.parameter_names]
+                       for h in first], axis=0)
+    ever = [t for h in first for t in h["terms"]]
+
+    def nrmse(w, terms) -> float:  # type: ignore[no-untyped-def]
+        from twinwatch.twin.discovery import Term, compose
+
+        objs = [Term.from_dict(t, model) for t in terms]
+        y = model.simulate(theta[None], w, compose(objs, w) if objs else None)[0]
+        meas, scale = adapter.estimator._prepare(w)
+        return float(np.sqrt(np.mean(((y - meas)[1:] / scale) ** 2)))
+
+    held_out = windows[12:]
+    without = np.median([nrmse(w, []) for w in held_out])
+    assert 0.05 < without < 0.25  # the physical twin alone: ~0.13 (README)
+    if ever:  # a transiently kept term does not generalise to the held-out half
+        with_term = np.median([nrmse(w, ever[:1]) for w in held_out])
+        assert with_term >= without * 0.98
