@@ -281,8 +281,9 @@ class MetaModel:
         """
         f = lambda x: _fmt(float(x), precision)  # noqa: E731
 
-        def plus(x: float) -> str:
-            return f" - {f(-x)}" if x < 0 else f" + {f(x)}"
+        def plus(x: float) -> str:  # an addend reads in fixed point: "+ 0.00", not "+ 6.5e-07"
+            text = f"{abs(x):.{precision}f}"
+            return f" - {text}" if x < 0 and float(text) != 0 else f" + {text}"
 
         if self.kind == "linear":
             if p[0] == 0:
