@@ -175,3 +175,31 @@ def test_term_rendering_matches_the_issue() -> None:
               np.array([0.5, 0.01, 0.0, 0.0])[:2], (True, True), t_ref=160.0)
     assert t2.equation() == "d(ia)/dt += 0.50*exp(-0.0100*(t - 160.00)) A/s"
     assert math.isinf(t2.significance)
+
+
+def test_the_recording_carries_the_model_document_and_residual_trace(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Rerun: the twin's structure is logged as a text document at start and whenever it
+    changes, and the residual trace every window."""
+    from tests.test_rerun_recorder import rerun_cli
+    from twinwatch.daemon.recorder import RecordingConfig, RerunRecorder
+
+    twin = DCMotorTwin()
+    term = _truth_term(twin).as_dict()
+    path = tmp_path / "d.rrd"
+    with RerunRecorder(RecordingConfig(path=str(path)), "m1", outputs=("ia", "omega"),
+                       parameters={"Ra": "ohm"}) as rec:
+        for k in range(4):
+            t = 2.0 * k + 0.01 * np.arange(200)
+            health = {"window": k, "terms": [term] if k >= 2 else [],
+                      "residual": {"dt_prime": {"rmse": {"omega": 0.3}},
+                                   "dt_second": {"rmse": {"omega": 1e-5}} if k >= 2 else None},
+                      "discovery": {"changed": k == 2}}
+            rec.log_window(t=t, measured={"ia": np.sin(t), "omega": np.cos(t)},
+                           simulated={"ia": np.sin(t), "omega": 0.9 * np.cos(t)},
+                           parameters={"Ra": 6.5}, health=health, terms_changed=k == 2)
+    stats = rerun_cli("rrd", "stats", path)
+    assert stats.returncode == 0, stats.stderr
+    out = stats.stdout + stats.stderr
+    assert "/m1/model: 2" in out  # start, then the discovery in window 2
+    assert "/m1/residual/omega: 4" in out
+    assert "/m1/residual_rmse/omega/dt_second: 2" in out
