@@ -8,8 +8,8 @@
    longer earns its place is switched off;
 3. the residual is compared with the exit criterion: too large means a normalised RMSE above
    ``residual_ratio`` times the normalised white-noise level estimated from the residual itself
-   (first differences), and above ``min_nrmse``. A window whose residual is too large does not update
-   the trusted parameters (its estimates are biased by the missing component);
+   (first differences), and above ``min_nrmse``. A window whose residual is too large does not
+   update the trusted parameters (its estimates are biased by the missing component);
 4. after ``trigger_windows`` such windows in a row, discovery searches the candidates
    (:meth:`Discovery.discover`); new terms join DT'', the window is re-estimated with them, and
    the change is reported. A discovery that keeps nothing waits ``retry_after`` windows.

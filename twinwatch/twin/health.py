@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
-
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from twinwatch.twin.estimation import WindowEstimate
 from twinwatch.twin.model import TwinModel, WindowData

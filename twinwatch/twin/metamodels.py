@@ -27,8 +27,8 @@ coordinates ``u = z / z_ref`` (``z_ref`` the input's largest magnitude over the 
 window, or the window length for time), so that the same bounds suit every input; the fitted
 values are converted back to the input's own units (:meth:`MetaModel.to_raw`) before they are
 reported or evaluated. Offsets (``b`` of the linear and logarithmic models, ``d`` of the
-periodic one) and the linear slope are *optional*: the discovery also tries the form without them and keeps the
-simpler one unless the offset earns its place.
+periodic one) and the linear slope are *optional*: the discovery also tries the form without
+them and keeps the simpler one unless the offset earns its place.
 """
 
 from __future__ import annotations
