@@ -1,7 +1,16 @@
-"""Loading and validating configuration files (TOML, read with :mod:`tomllib`)."""
+"""Loading and validating configuration files (TOML, read with :mod:`tomllib`).
+
+Secrets: a private key or password file named by ``[zenoh.tls]``/``[zenoh.auth]``, and a
+configuration file that holds a secret inline (``*_private_key_base64``, ``[zenoh.auth]
+password``), are refused when others can read them (mode ``o+r``): install them
+``0640 root:twinwatch`` (the unit's group). Certificate and key paths are relative to the
+configuration file's directory.
+"""
 
 from __future__ import annotations
 
+import os
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -55,7 +64,39 @@ def load_config(path: str | Path) -> TwinwatchConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    return validate_config(data, str(p))
+    cfg = validate_config(data, str(p))
+    cfg.zenoh.resolve_paths(p.resolve().parent)
+    check_secrets(cfg, p)
+    return cfg
+
+
+def _readable_by_others(path: Path) -> bool:
+    return bool(os.stat(path).st_mode & stat.S_IROTH)
+
+
+def check_secrets(cfg: TwinwatchConfig, path: Path) -> None:
+    """Refuse secrets that other users can read (see the module docstring).
+
+    Raises:
+        ConfigError: naming the file, the key and the ``chmod`` that fixes it.
+    """
+    inline = cfg.zenoh.inline_secrets()
+    if inline and _readable_by_others(path):
+        raise ConfigError(
+            f"{path}: holds secrets ({', '.join(inline)}) and is readable by other users "
+            f"(mode {stat.filemode(os.stat(path).st_mode)}): run `chmod o-rwx {path}` (install "
+            f"it 0640 root:twinwatch), or move the key to a file readable only by the service")
+    for key, file in cfg.zenoh.secret_files().items():
+        f = Path(file)
+        try:
+            bad = _readable_by_others(f)
+        except OSError:
+            continue  # a missing file is reported when the session opens, naming the key
+        if bad:
+            raise ConfigError(
+                f"{path}: {key} = {f} is a secret readable by other users (mode "
+                f"{stat.filemode(os.stat(f).st_mode)}): run `chmod o-rwx {f}` (install it "
+                f"0640 root:twinwatch)")
 
 
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("default.toml")

@@ -14,6 +14,8 @@ Layout::
     [driver]           type = "simulated" | "can" | "file" | "modbus" (+ its own keys)
     [zenoh]            session mode and endpoints (loopback by default)
     [recording]        Rerun .rrd path
+    [alarms]           per-parameter warning/alarm thresholds ([alarms.parameters.<name>])
+    [state]            state database: health history and the last accepted twin
 """
 
 from __future__ import annotations
@@ -23,8 +25,10 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from twinwatch.daemon.alarms import AlarmConfig
 from twinwatch.daemon.publisher import ZenohConfig
 from twinwatch.daemon.recorder import RecordingConfig
+from twinwatch.daemon.store import StateConfig
 from twinwatch.drivers.can import CanDriverConfig
 from twinwatch.drivers.file import FileDriverConfig
 from twinwatch.drivers.modbus import ModbusDriverConfig
@@ -94,6 +98,8 @@ class TwinwatchConfig(BaseModel):
     driver: DriverConfig
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
+    alarms: AlarmConfig = Field(default_factory=AlarmConfig)
+    state: StateConfig = Field(default_factory=StateConfig)
 
     @model_validator(mode="after")
     def _cross_checks(self) -> TwinwatchConfig:
@@ -107,6 +113,7 @@ class TwinwatchConfig(BaseModel):
                                  f"{self.machine.model} model has {list(model.parameter_names)}")
         self.estimation.check_against(model)
         self.discovery.check_against(model)
+        self.alarms.check_against(model.parameter_names, estimated=self.estimation.estimate)
         try:
             model.n_sub(self.acquisition.sample_period)  # type: ignore[attr-defined]
         except AttributeError:

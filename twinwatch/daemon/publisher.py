@@ -15,8 +15,21 @@ with ``P = {key_prefix}/{machine}``:
   the last health document, ``get("twinwatch/m1/**")`` the last health and the last alarm.
   Topics not published yet are not answered (the get ends with no reply).
 
+* handlers added with :meth:`HealthPublisher.add_query_handler` answer their own key under the
+  same queryable (the daemon serves ``P/history?t_from=..;t_to=..;by=wall;limit=..`` from the
+  state database this way).
+
 Every session is configured by :func:`to_zenoh_config`: explicit endpoints only, multicast and
-gossip scouting off, so the daemon never talks to anything it was not told to.
+gossip scouting off, so the daemon never talks to anything it was not told to. TLS/mTLS
+(``[zenoh.tls]``), user/password authentication (``[zenoh.auth]``) and zenoh's access control
+(``[zenoh.access_control]``, zenoh's own table, passed through verbatim and validated by zenoh
+at load time) come from the configuration.
+
+With ``retry_connect=True`` (the daemon) a session whose router cannot be reached at start is
+opened in the background, with a delay that doubles up to ``[zenoh].retry_max`` seconds:
+publishing is a counted no-op until then (the state database keeps every window, and the
+history queryable serves them once the router is there). A connection lost later is restored
+by zenoh itself.
 
 An external process subscribes with (``pip install eclipse-zenoh``)::
 
@@ -40,13 +53,14 @@ from __future__ import annotations
 import json
 import logging
 import math
+import random
 import re
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from datetime import date, datetime
 from enum import Enum
-from pathlib import PurePath
-from typing import Any, Literal, Self
+from pathlib import Path, PurePath
+from typing import Any, ClassVar, Literal, Self
 
 import numpy as np
 import zenoh
@@ -59,7 +73,9 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "HealthPublisher",
     "PublisherError",
+    "ZenohAuthConfig",
     "ZenohConfig",
+    "ZenohTlsConfig",
     "open_session",
     "to_json",
     "to_zenoh_config",
@@ -82,6 +98,53 @@ class PublisherError(Exception):
     """
 
 
+class ZenohTlsConfig(BaseModel):
+    """``[zenoh.tls]``: TLS for ``tls/`` endpoints, mutual TLS with ``enable_mtls`` (zenoh's
+    ``transport/link/tls``). Paths are relative to the configuration file's directory.
+
+    Private keys are secrets: a key file that others can read (mode ``o+r``) is refused at
+    load, and a configuration holding a key inline (``*_private_key_base64``) must not be
+    readable by others either (install it ``0640 root:twinwatch``).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    root_ca_certificate: str | None = Field(
+        None, description="CA certificate (PEM) that signs the peer's certificate")
+    listen_certificate: str | None = Field(None, description="our certificate on listen/tls")
+    listen_private_key: str | None = Field(None, description="its private key (PEM)")
+    connect_certificate: str | None = Field(None, description="our client certificate (mTLS)")
+    connect_private_key: str | None = Field(None, description="its private key (PEM, mTLS)")
+    listen_private_key_base64: str | None = Field(None, description="listen key inline, base64")
+    connect_private_key_base64: str | None = Field(None, description="connect key inline")
+    enable_mtls: bool = Field(False, description="require and present client certificates")
+    verify_name_on_connect: bool = Field(True, description="check the server name against "
+                                         "its certificate")
+    close_link_on_expiration: bool = Field(False, description="close a link when the peer's "
+                                           "certificate expires")
+
+    FILES: ClassVar[tuple[str, ...]] = ("root_ca_certificate", "listen_certificate",
+                                        "listen_private_key", "connect_certificate",
+                                        "connect_private_key")
+    SECRET_FILES: ClassVar[tuple[str, ...]] = ("listen_private_key", "connect_private_key")
+    INLINE_SECRETS: ClassVar[tuple[str, ...]] = ("listen_private_key_base64",
+                                                 "connect_private_key_base64")
+
+
+class ZenohAuthConfig(BaseModel):
+    """``[zenoh.auth]``: zenoh user/password authentication (``transport/auth/usrpwd``).
+
+    ``password`` inline makes the configuration a secret (it must not be readable by others);
+    ``dictionary_file`` (``user:password`` lines, the routers' side) is a secret file.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    user: str | None = None
+    password: str | None = None
+    dictionary_file: str | None = None
+
+
 class ZenohConfig(BaseModel):
     """The ``[zenoh]`` section of a machine configuration.
 
@@ -95,6 +158,11 @@ class ZenohConfig(BaseModel):
         key_prefix: first chunk(s) of every key, ``"twinwatch"`` gives
             ``twinwatch/<machine>/health``. ``/``-separated chunks, no wildcards.
         enabled: when false, :class:`HealthPublisher` opens no session and publishing is a no-op.
+        retry_max: longest delay [s] between attempts to reach an unreachable router at start.
+        tls: ``[zenoh.tls]`` (:class:`ZenohTlsConfig`), needed by ``tls/`` endpoints.
+        auth: ``[zenoh.auth]`` (:class:`ZenohAuthConfig`).
+        access_control: zenoh's ``access_control`` table verbatim (``enabled``,
+            ``default_permission``, ``rules``, ``subjects``, ``policies``), validated by zenoh.
 
     Unknown keys are an error (``extra="forbid"``).
     """
@@ -106,6 +174,61 @@ class ZenohConfig(BaseModel):
     connect: list[str] = Field(default_factory=list)
     key_prefix: str = "twinwatch"
     enabled: bool = True
+    retry_max: float = Field(30.0, gt=0)
+    tls: ZenohTlsConfig | None = None
+    auth: ZenohAuthConfig | None = None
+    access_control: dict[str, Any] | None = None
+
+    @field_validator("access_control")
+    @classmethod
+    def _check_access_control(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
+        if value is not None:
+            try:
+                zenoh.Config().insert_json5("access_control", json.dumps(value))
+            except zenoh.ZError as exc:
+                msg = _RUST_LOCATION_RE.sub("", str(exc)).strip()
+                raise ValueError(f"zenoh refuses this access_control table: {msg}") from None
+        return value
+
+    def file_paths(self) -> dict[str, str]:
+        """Dotted key -> path of every file the session reads (certificates, keys)."""
+        out: dict[str, str] = {}
+        if self.tls is not None:
+            for k in ZenohTlsConfig.FILES:
+                v = getattr(self.tls, k)
+                if v:
+                    out[f"zenoh.tls.{k}"] = v
+        if self.auth is not None and self.auth.dictionary_file:
+            out["zenoh.auth.dictionary_file"] = self.auth.dictionary_file
+        return out
+
+    def secret_files(self) -> dict[str, str]:
+        """Dotted key -> path of the files holding secrets (private keys, password lists)."""
+        secret = {f"zenoh.tls.{k}" for k in ZenohTlsConfig.SECRET_FILES}
+        secret.add("zenoh.auth.dictionary_file")
+        return {k: v for k, v in self.file_paths().items() if k in secret}
+
+    def inline_secrets(self) -> list[str]:
+        """Dotted keys of secrets written in the configuration itself."""
+        keys = []
+        if self.tls is not None:
+            keys += [f"zenoh.tls.{k}" for k in ZenohTlsConfig.INLINE_SECRETS
+                     if getattr(self.tls, k)]
+        if self.auth is not None and self.auth.password:
+            keys.append("zenoh.auth.password")
+        return keys
+
+    def resolve_paths(self, base_dir: Path) -> None:
+        """Make relative certificate/key paths absolute against ``base_dir`` (the config
+        file's directory); ``~`` is expanded."""
+        for obj, keys in ((self.tls, ZenohTlsConfig.FILES), (self.auth, ("dictionary_file",))):
+            if obj is None:
+                continue
+            for k in keys:
+                v = getattr(obj, k)
+                if v:
+                    p = Path(v).expanduser()
+                    setattr(obj, k, str(p if p.is_absolute() else (base_dir / p).resolve()))
 
     @field_validator("listen", "connect")
     @classmethod
@@ -141,6 +264,22 @@ class ZenohConfig(BaseModel):
             raise ValueError(
                 f"mode {self.mode!r} needs a [zenoh].listen or a [zenoh].connect endpoint"
             )
+        listen = [] if self.mode == "client" else self.listen
+        tls = self.tls
+        if any(e.startswith("tls/") for e in listen):
+            if tls is None or not tls.listen_certificate or not (
+                    tls.listen_private_key or tls.listen_private_key_base64):
+                raise ValueError("a tls/ listen endpoint needs [zenoh.tls] listen_certificate "
+                                 "and listen_private_key")
+        if any(e.startswith("tls/") for e in self.connect):
+            if tls is None or not tls.root_ca_certificate:
+                raise ValueError("a tls/ connect endpoint needs [zenoh.tls] root_ca_certificate "
+                                 "(the CA that signed the router's certificate)")
+        if tls is not None and tls.enable_mtls and self.connect and not (
+                tls.connect_certificate and (tls.connect_private_key
+                                             or tls.connect_private_key_base64)):
+            raise ValueError("enable_mtls with connect endpoints needs [zenoh.tls] "
+                             "connect_certificate and connect_private_key")
         return self
 
 
@@ -170,8 +309,18 @@ def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("scouting/gossip/enabled", "false")
+        if cfg.tls is not None:
+            for key, value in cfg.tls.model_dump(exclude_none=True).items():
+                conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+        if cfg.auth is not None:
+            for key, value in cfg.auth.model_dump(exclude_none=True).items():
+                conf.insert_json5(f"transport/auth/usrpwd/{key}", json.dumps(value))
+        if cfg.access_control is not None:
+            conf.insert_json5("access_control", json.dumps(cfg.access_control))
     except zenoh.ZError as exc:
-        raise PublisherError(f"invalid zenoh configuration {cfg!r}: {exc}") from exc
+        # never echo the config: it may hold secrets
+        raise PublisherError(f"invalid zenoh configuration (mode={cfg.mode}): "
+                             f"{_RUST_LOCATION_RE.sub('', str(exc)).strip()}") from exc
     return conf
 
 
@@ -184,6 +333,14 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
         PublisherError: the session could not open; the message says which endpoint failed
             and what to change (port already in use, nothing listening, unknown host).
     """
+    for key, path in cfg.file_paths().items():
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            raise PublisherError(f"cannot read {key} = {path}: {exc.strerror or exc}; fix the "
+                                 f"path in [zenoh.tls]/[zenoh.auth] or the file's permissions "
+                                 f"(the service user must read it)") from exc
     conf = to_zenoh_config(cfg)
     try:
         session = zenoh.open(conf)
@@ -285,7 +442,8 @@ class HealthPublisher(Closeable):
         PublisherError: the session or a declaration could not be created.
     """
 
-    def __init__(self, config: ZenohConfig, machine: str) -> None:
+    def __init__(self, config: ZenohConfig, machine: str, *,
+                 retry_connect: bool = False) -> None:
         self._closed = True  # until fully open, so __del__ and close() are safe
         if "/" in machine:
             raise ValueError(f"machine {machine!r} must be a single key chunk (no '/')")
@@ -297,38 +455,102 @@ class HealthPublisher(Closeable):
         self.alive_key = f"{self.base_key}/alive"
         self.published = 0
         self.errors = 0
+        self.not_connected = 0
         self._lock = threading.Lock()
         self._failing = False
         self._latest: dict[str, str] = {}
+        self._handlers: dict[str, Callable[[zenoh.Query], Any]] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._session: zenoh.Session | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._queryable: zenoh.Queryable[None] | None = None
+        self._give_up = threading.Event()
+        self._connector: threading.Thread | None = None
         if not config.enabled:
             logger.info("zenoh publishing disabled for %s", machine)
             return
-        session = open_session(config)
         try:
-            self._publishers[self.health_key] = session.declare_publisher(
+            session = open_session(config)
+        except PublisherError as exc:
+            unreachable = "nothing answers there" in str(exc)
+            if not (retry_connect and unreachable):
+                raise
+            logger.warning("%s; twinwatch runs on (estimation, state database) and keeps "
+                           "trying every %g s at most; subscribers catch up on the missed "
+                           "windows with the history query", exc, config.retry_max)
+            self._closed = False
+            self._connector = threading.Thread(target=self._connect_loop,
+                                               name="twinwatch-zenoh-connect", daemon=True)
+            self._connector.start()
+            return
+        self._attach(session)
+        self._closed = False
+
+    def _attach(self, session: zenoh.Session) -> None:
+        """Declare the health publisher, queryable and token on ``session`` and use it."""
+        try:
+            publisher = session.declare_publisher(
                 self.health_key, encoding=zenoh.Encoding.APPLICATION_JSON
             )
-            self._queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
-            self._token = session.liveliness().declare_token(self.alive_key)
+            queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
+            token = session.liveliness().declare_token(self.alive_key)
         except zenoh.ZError as exc:
             session.close()
             raise PublisherError(
                 f"cannot declare zenoh entities under {self.base_key}: {exc}"
             ) from exc
-        self._session = session
-        self._closed = False
+        with self._lock:
+            self._publishers[self.health_key] = publisher
+            self._queryable, self._token, self._session = queryable, token, session
+        cfg = self.config
         logger.info(
             "publishing health of %s on %s (mode=%s, listen=%s, connect=%s)",
-            machine,
+            self.machine,
             self.health_key,
-            config.mode,
-            config.listen if config.mode != "client" else [],
-            config.connect,
+            cfg.mode,
+            cfg.listen if cfg.mode != "client" else [],
+            cfg.connect,
         )
+
+    def _connect_loop(self) -> None:
+        """Open the session in the background until it works or :meth:`close` is called;
+        the delay doubles from 0.5 s up to ``retry_max``, with +-20 % jitter."""
+        delay = 0.5
+        while not self._give_up.wait(delay * random.uniform(0.8, 1.2)):
+            try:
+                session = open_session(self.config)
+            except PublisherError as exc:
+                logger.debug("zenoh still unreachable: %s", exc)
+                delay = min(2 * delay, self.config.retry_max)
+                continue
+            if self._give_up.is_set():
+                session.close()
+                return
+            try:
+                self._attach(session)
+            except PublisherError as exc:
+                logger.error("%s", exc)
+                return
+            logger.warning("zenoh reached (%s) after %d windows were not published: "
+                           "publishing resumes", ", ".join(self.config.connect),
+                           self.not_connected)
+            return
+
+    @property
+    def connected(self) -> bool:
+        """A session is open (False while the router is still being reached at start)."""
+        return self._session is not None
+
+    def add_query_handler(self, key_suffix: str, handler: Callable[[zenoh.Query], Any]) -> None:
+        """Answer gets on ``P/{key_suffix}`` with ``handler(query)`` (called on a zenoh thread):
+        a mapping is replied as JSON on that key; a :class:`ValueError` is replied as an error
+        with its message.
+
+        Raises:
+            ValueError: ``key_suffix`` is not a plain key.
+        """
+        _check_key(key_suffix, what="key_suffix")
+        self._handlers[f"{self.base_key}/{key_suffix}"] = handler
 
     @property
     def closed(self) -> bool:
@@ -369,7 +591,10 @@ class HealthPublisher(Closeable):
             if self._closed:
                 logger.debug("publisher closed, dropping %s", key)
                 return
-            assert self._session is not None
+            if self._session is None:  # router not reached yet (retry_connect)
+                self.not_connected += 1
+                self._latest[key] = to_json(payload)
+                return
             try:
                 text = to_json(payload)
                 publisher = self._publishers.get(key)
@@ -401,6 +626,19 @@ class HealthPublisher(Closeable):
             for key, text in latest:
                 if query.key_expr.intersects(key):
                     query.reply(key, text, encoding=zenoh.Encoding.APPLICATION_JSON)
+            for key, handler in self._handlers.items():
+                if not query.key_expr.intersects(key):
+                    continue
+                try:
+                    answer = handler(query)
+                except ValueError as exc:
+                    query.reply_err(str(exc))
+                    continue
+                except Exception as exc:  # noqa: BLE001 - a query must not kill zenoh's thread
+                    logger.exception("answering %s failed", query.selector)
+                    query.reply_err(f"internal error: {exc}")
+                    continue
+                query.reply(key, to_json(answer), encoding=zenoh.Encoding.APPLICATION_JSON)
         except zenoh.ZError as exc:
             logger.debug("replying to query %s failed: %s", query.selector, exc)
         finally:
@@ -408,6 +646,10 @@ class HealthPublisher(Closeable):
 
     def close(self) -> None:
         """Undeclare the token, queryable and publishers, then close the session. Idempotent."""
+        self._give_up.set()
+        connector, self._connector = self._connector, None
+        if connector is not None:
+            connector.join(timeout=30)
         with self._lock:
             if self._closed:
                 return

@@ -28,6 +28,15 @@ stop (SIGKILL, ``os._exit``, SIGTERM with its default action, power loss) leaves
 footer: the viewer opens it and ``rerun rrd verify --check-footers false FILE`` accepts it,
 plain ``rerun rrd verify`` reports "Missing RRD footer"; ``rerun rrd optimize FILE -o OUT``
 writes a complete copy. The daemon must therefore turn SIGTERM into a normal shutdown.
+
+Memory and rotation: to write the footer, the Rerun SDK (0.41) keeps every chunk's manifest
+entry in memory for the life of the file (``rerun.save(..., write_footer=True)``): about
+13 kB per window here (some 20 chunks per window: one per entity and flush), 13-23 MiB per 1000
+windows, so a service writing one file for months would grow without bound. The recorder
+therefore rotates: after ``[recording] rotate_windows`` windows (default 1800, one hour of 2 s
+windows) it closes the file (footer written, the manifest freed), renames it to
+``<stem>.<UTC time>.rrd`` beside it and starts a new ``path``; ``keep_files`` rotated files
+are kept (oldest deleted first). ``path`` is always the file being written.
 """
 
 from __future__ import annotations
@@ -36,6 +45,7 @@ import json
 import logging
 import os
 import threading
+import time
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -44,7 +54,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from twinwatch._lifecycle import Closeable
 from twinwatch.daemon.publisher import to_json
@@ -84,6 +94,9 @@ class RecordingConfig(BaseModel):
         enabled: when false, :class:`RerunRecorder` writes nothing and logging is a no-op.
         application_id: Rerun application id; the viewer groups recordings by it.
 
+        rotate_windows: windows per file before it is closed and renamed (0: one file).
+        keep_files: rotated files kept (0: all).
+
     Unknown keys are an error (``extra="forbid"``).
     """
 
@@ -92,6 +105,10 @@ class RecordingConfig(BaseModel):
     path: str = "twinwatch.rrd"
     enabled: bool = True
     application_id: str = "twinwatch"
+    rotate_windows: int = Field(1800, ge=0, description="start a new file after this many "
+                                "windows (0: never; Rerun keeps each chunk's footer entry "
+                                "in memory until its file is closed)")
+    keep_files: int = Field(48, ge=0, description="rotated files kept beside path (0: all)")
 
     @field_validator("path", "application_id")
     @classmethod
@@ -185,22 +202,62 @@ class RerunRecorder(Closeable):
         self._failing = False
         self._lock = threading.Lock()
         self._rec: rr.RecordingStream | None = None
+        self.rotations = 0
+        self._file_windows = 0
         if not config.enabled:
             logger.info("rerun recording disabled for %s", machine)
             return
         _check_writable(self.path)
-        rec = rr.RecordingStream(config.application_id, recording_id=uuid.uuid4())
+        self._rec = self._open_stream()
+        self._closed = False
+        logger.info("recording %s to %s", machine, self.path)
+
+    def _open_stream(self) -> rr.RecordingStream:
+        """A new recording stream saving to :attr:`path` (styles and blueprint sent)."""
+        rec = rr.RecordingStream(self.config.application_id, recording_id=uuid.uuid4())
         try:
             rec.save(self.path, default_blueprint=self._blueprint())
         except (OSError, RuntimeError, ValueError) as exc:
             raise RecorderError(f"rerun cannot write {self.path}: {exc}") from exc
         if not rr.is_enabled(rec):
             logger.warning("rerun logging is disabled (RERUN=off?): %s stays empty", self.path)
-        rec.send_recording_name(f"{machine} twin")
+        rec.send_recording_name(f"{self.machine} twin")
         self._log_styles(rec)
-        self._rec = rec
-        self._closed = False
-        logger.info("recording %s to %s", machine, self.path)
+        return rec
+
+    def _rotate(self) -> None:
+        """Close the current file (footer, manifest memory freed), rename it with the UTC
+        time, open a new one at :attr:`path`, and delete rotated files beyond ``keep_files``.
+        Called with the lock held. A failure keeps writing the current file."""
+        rec = self._rec
+        assert rec is not None
+        self._flush(rec)
+        rec.disconnect()
+        self._rec = None
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
+                                    f"{self.path.suffix}")
+        try:
+            self.path.rename(aside)
+            self._rec = self._open_stream()
+        except (OSError, RecorderError) as exc:
+            self.errors += 1
+            logger.error("cannot rotate the recording %s (%s): recording stops; fix the "
+                         "directory's permissions or space and restart", self.path, exc)
+            self._closed = True
+            return
+        self.rotations += 1
+        self._file_windows = 0
+        logger.info("recording rotated: %s closed, now writing %s", aside, self.path)
+        keep = self.config.keep_files
+        if keep:
+            rotated = sorted(self.path.parent.glob(f"{self.path.stem}.*{self.path.suffix}"))
+            rotated = [p for p in rotated if p != self.path]
+            for old in rotated[:-keep]:
+                try:
+                    old.unlink()
+                except OSError as exc:
+                    logger.warning("cannot delete old recording %s: %s", old, exc)
 
     @property
     def closed(self) -> bool:
@@ -359,7 +416,7 @@ class RerunRecorder(Closeable):
                 for name, value in rmse.items():
                     if value is not None:
                         rec.log(_entity(m, "residual_rmse", name, variant), rr.Scalars(value))
-            if terms_changed or self.windows == 0:
+            if terms_changed or self._file_windows == 0:
                 rec.log(_entity(m, "model"), rr.TextDocument(
                     _model_document(m, t_end, health), media_type=rr.MediaType.MARKDOWN))
             for name, value in estimates.items():
@@ -375,6 +432,9 @@ class RerunRecorder(Closeable):
             )
             self._flush(rec)
             self.windows += 1
+            self._file_windows += 1
+            if self.config.rotate_windows and self._file_windows >= self.config.rotate_windows:
+                self._rotate()
 
     def _flush(self, rec: rr.RecordingStream) -> None:
         try:

@@ -6,7 +6,11 @@ Threads (see docs/architecture.md):
   fills the ring buffer and hands each full window to the worker. It never estimates, so
   acquisition is never blocked by the optimiser.
 * ``twinwatch-adaptation`` (one worker thread) estimates each window, builds its health
-  message, publishes it over Zenoh and records it to Rerun.
+  message, evaluates the alarms, stores the window (and the twin, when trusted) in the state
+  database, then publishes it over Zenoh and records it to Rerun. Stored before published: a
+  health message a subscriber has seen is always in the database, also after SIGKILL.
+* zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
+  database (one SQLite connection per thread, WAL: readers never block the worker).
 
 Between them a bounded queue. For a live source (a bus, a real-time replay) a full queue means
 the estimation does not keep up: the window is dropped and counted as an *overrun* (published in
@@ -26,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from twinwatch.config.schema import TwinwatchConfig
+from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, EndOfStream
@@ -40,6 +45,24 @@ _STOP = object()
 
 HealthCallback = Callable[[dict[str, Any]], None]
 
+HISTORY_LIMIT = 1000
+"""Most windows one history query returns (page on with ``t_from``)."""
+
+SINKS = ("publisher", "recorder", "store")
+"""What a reload may hand from the old daemon to the new one (:meth:`Daemon.close` ``keep``)."""
+
+
+def sink_config(config: TwinwatchConfig, name: str) -> Any:
+    """The part of ``config`` a sink depends on: equal parts let a reload keep the sink open."""
+    m = config.machine
+    if name == "publisher":
+        return (m.name, config.zenoh.model_dump())
+    if name == "recorder":
+        return (m.name, m.model, m.options, config.recording.model_dump())
+    if name == "store":
+        return config.state.model_dump()
+    raise ValueError(name)
+
 
 class Daemon:
     """One machine's monitor.
@@ -51,10 +74,20 @@ class Daemon:
         driver: an already-open driver to use instead of the configured one (tests).
         publish: open the Zenoh publisher (``config.zenoh.enabled`` must also be true).
         record: open the Rerun recorder (``config.recording.enabled`` must also be true).
+        persist: open the state database (``config.state.enabled`` must also be true):
+            restore the last accepted twin and the alarm levels from it, save every window,
+            serve the history query. Off by default for library use and tests; the CLI turns
+            it on.
+        watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
+            each window).
+        reuse: sinks (``publisher``, ``recorder``, ``store``) handed over from a previous
+            daemon by a reload (see :meth:`close`); each is used only if its part of the
+            configuration is unchanged (:func:`sink_config`), else closed.
 
     Raises:
         twinwatch.drivers.base.DriverInitializationError, PublisherError, RecorderError,
-        ValueError: on a start-up problem, with a message that says what to fix.
+        StoreError, ValueError: on a start-up problem, with a message that says what to fix.
+        The state database is opened first: a store error fails before the device is touched.
     """
 
     def __init__(
@@ -65,6 +98,9 @@ class Daemon:
         driver: Driver | None = None,
         publish: bool = True,
         record: bool = True,
+        persist: bool = False,
+        watchdog: Any = None,
+        reuse: dict[str, tuple[Any, Any]] | None = None,
     ) -> None:
         self.config = config
         self.base_dir = base_dir or Path.cwd()
@@ -80,6 +116,10 @@ class Daemon:
                                sample_period=acq.sample_period, max_gap=acq.max_gap)
         self.publisher: Any = None
         self.recorder: Any = None
+        self.store: Any = None
+        self.watchdog = watchdog
+        self.alarms = AlarmEvaluator(config.alarms, self.machine)
+        self.restored: dict[str, Any] | None = None
         self.driver: Driver | None = None
         self._own_driver = driver is None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
@@ -91,9 +131,33 @@ class Daemon:
         self.history: deque[dict[str, Any]] = deque(maxlen=acq.history)
         self.latest: dict[str, Any] | None = None
         self._callbacks: list[HealthCallback] = []
+        self._ticks: list[Callable[[], None]] = []
         self._lock = threading.Lock()
+        self.abandon = config.acquisition.abandon_on_stop
+        handed = dict(reuse or {})
         try:
-            if record and config.recording.enabled:
+            for name in SINKS:
+                item = handed.pop(name, None)
+                if item is None:
+                    continue
+                obj, cfg_part = item
+                if cfg_part == sink_config(config, name):
+                    setattr(self, name, obj)
+                    logger.info("reload: the %s is kept open (its configuration is unchanged)",
+                                name)
+                else:
+                    obj.close()
+            if persist and config.state.enabled and self.store is None:
+                from twinwatch.daemon.store import StateStore
+
+                st = config.state
+                self.store = StateStore(Path(st.path).expanduser(),
+                                        synchronous=st.synchronous,
+                                        keep_days=st.keep_days, keep_rows=st.keep_rows,
+                                        recover_corrupt=st.recover_corrupt)
+            if self.store is not None:
+                self._restore()
+            if record and config.recording.enabled and self.recorder is None:
                 from twinwatch.daemon.recorder import RerunRecorder
 
                 rec = config.recording.model_copy()
@@ -103,16 +167,78 @@ class Daemon:
                 self.recorder = RerunRecorder(
                     rec, self.machine, outputs=self.model.output_names,
                     parameters={p.name: p.unit for p in self.model.parameters})
-            if publish and config.zenoh.enabled:
+            if publish and config.zenoh.enabled and self.publisher is None:
                 from twinwatch.daemon.publisher import HealthPublisher
 
-                self.publisher = HealthPublisher(config.zenoh, self.machine)
+                self.publisher = HealthPublisher(config.zenoh, self.machine,
+                                                 retry_connect=True)
+            if self.publisher is not None and self.store is not None:
+                self.publisher.add_query_handler("history", self._on_history_query)
             self.driver = driver or create_driver(config.driver, base_dir=self.base_dir)
         except BaseException:
             self.close()
             raise
 
+    # -- persistence ------------------------------------------------------------------------
+    def _restore(self) -> None:
+        """Resume from the state database: the last accepted twin (trusted parameters and
+        meta-model terms) and the alarm levels of the last window."""
+        state = self.store.load_twin_state(self.machine)
+        if state is not None:
+            try:
+                self.adapter.restore(state)
+            except (KeyError, TypeError, ValueError) as exc:
+                logger.error("the saved twin of %s in %s cannot be used with this "
+                             "configuration (%s): starting from the nominal values", self.machine,
+                             self.store.path, exc)
+            else:
+                self.restored = state
+                logger.warning("resumed the twin of %s from %s: %s; %d meta-model term(s)",
+                               self.machine, self.store.path,
+                               ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
+                               len(state.get("terms", [])))
+        last = self.store.latest_health(self.machine)
+        if last is not None and last.get("alarms"):
+            self.alarms.restore(last["alarms"])
+
+    def stored_history(self, t_from: float | None = None, t_to: float | None = None,
+                limit: int | None = HISTORY_LIMIT, by: str = "plant") -> list[dict[str, Any]]:
+        """Stored health messages of this machine in a time range (see
+        :meth:`StateStore.history`); empty without a state database."""
+        if self.store is None:
+            return []
+        return self.store.history(t_from, t_to, limit, by=by,  # type: ignore[arg-type]
+                                  machine=self.machine)
+
+    def _on_history_query(self, query: Any) -> dict[str, Any]:
+        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread)."""
+        params = query.parameters
+
+        def num(key: str) -> float | None:
+            raw = params.get(key)
+            if raw in (None, ""):
+                return None
+            try:
+                return float(raw)
+            except ValueError:
+                raise ValueError(f"{key}={raw!r} is not a number [s]") from None
+
+        by = params.get("by") or "plant"
+        if by not in ("plant", "wall"):
+            raise ValueError(f"by={by!r}: use by=plant (source time) or by=wall (epoch s)")
+        lim = num("limit")
+        limit = HISTORY_LIMIT if lim is None else max(1, min(int(lim), HISTORY_LIMIT))
+        t_from, t_to = num("t_from"), num("t_to")
+        windows = self.stored_history(t_from, t_to, limit, by=by)
+        more = len(windows) == limit
+        return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to,
+                "count": len(windows), "more": more, "windows": windows}
+
     # -- lifecycle --------------------------------------------------------------------------
+    def add_tick(self, fn: Callable[[], None]) -> None:
+        """Call ``fn()`` from the acquisition loop every iteration (at least every 0.2 s)."""
+        self._ticks.append(fn)
+
     def add_callback(self, fn: HealthCallback) -> None:
         """Call ``fn(health)`` from the worker thread after each window."""
         self._callbacks.append(fn)
@@ -135,6 +261,9 @@ class Daemon:
         if self.publisher is not None:
             c["zenoh_published"] = int(getattr(self.publisher, "published", 0))
             c["zenoh_errors"] = int(getattr(self.publisher, "errors", 0))
+            c["zenoh_not_connected"] = int(getattr(self.publisher, "not_connected", 0))
+        if self.store is not None:
+            c["store_errors"] = int(self.store.errors)
         return c
 
     def run(self, duration: float | None = None) -> int:
@@ -146,6 +275,7 @@ class Daemon:
         """
         assert self.driver is not None
         live = bool(getattr(self.driver, "live", False))
+        self._stop.clear()
         self._worker = threading.Thread(target=self._work, name="twinwatch-adaptation",
                                         daemon=True)
         self._worker.start()
@@ -155,6 +285,10 @@ class Daemon:
         stalled = False
         try:
             while not self._stop.is_set():
+                if self.watchdog is not None:
+                    self.watchdog.tick()
+                for fn in self._ticks:
+                    fn()
                 try:
                     sample = self.driver.read(timeout=0.2)
                 except EndOfStream as exc:
@@ -224,14 +358,20 @@ class Daemon:
             item = self._queue.get()
             if item is _STOP:
                 return
-            if self._stop.is_set() and self.config.acquisition.abandon_on_stop:
+            if self._stop.is_set() and self.abandon:
+                logger.info("window %d abandoned on stop", item.index)
                 continue
+            if self.watchdog is not None:
+                self.watchdog.busy()
             try:
                 self.process_window(item)
             except Exception:  # contained to the window: the daemon goes on
                 self.numeric_failures += 1
                 logger.exception("window %d could not be estimated; it is skipped and "
                                  "counted in counters.numeric_failures", item.index)
+            finally:
+                if self.watchdog is not None:
+                    self.watchdog.idle()
 
     def process_window(self, window: WindowData) -> dict[str, Any]:
         """Adapt the twin to one window (estimation, then discovery when needed), publish and
@@ -243,12 +383,18 @@ class Daemon:
                               model=self.model, window=window, estimate=est,
                               nominal=self.nominal, counters=self.counters(),
                               adaptation=result, discovery_enabled=self.adapter.enabled)
+        events = self.alarms.update(health)
+        health["alarms"] = self.alarms.state()
+        if self.store is not None:  # stored before published: nothing seen is ever lost
+            self.store.save_window(health, self.adapter.state() if est.trusted else None)
         with self._lock:
             self.latest = health
             self.history.append(health)
         logger.info("%s", summary_line(health))
         if self.publisher is not None:
             self.publisher.publish(health)
+            for ev in events:
+                self.publisher.publish_json("alarm", ev)
         if self.recorder is not None:
             outs = self.model.output_names
             self.recorder.log_window(
@@ -263,22 +409,41 @@ class Daemon:
             fn(health)
         return health
 
-    def close(self) -> None:
-        """Stop everything and release drivers, publisher and recorder. Idempotent."""
+    def close(self, keep: tuple[str, ...] = ()) -> dict[str, tuple[Any, Any]]:
+        """Stop everything and release driver, publisher, recorder and state database (after
+        the worker has drained). Idempotent.
+
+        Args:
+            keep: sinks (names in :data:`SINKS`) to leave open for a new daemon (reload).
+
+        Returns:
+            name -> (sink, its configuration part) for the kept sinks: pass as ``reuse``.
+        """
         self._stop.set()
         self._drain()
-        for name in ("driver", "publisher", "recorder"):
+        kept: dict[str, tuple[Any, Any]] = {}
+        for name in ("driver", "publisher", "recorder", "store"):
             obj = getattr(self, name, None)
             if obj is None or (name == "driver" and not self._own_driver):
                 continue
-            try:
-                obj.close()
-            except Exception:
-                logger.exception("error while closing the %s", name)
+            if name in keep:
+                if name == "publisher":
+                    obj.add_query_handler("history", _no_history)
+                kept[name] = (obj, sink_config(self.config, name))
+            else:
+                try:
+                    obj.close()
+                except Exception:
+                    logger.exception("error while closing the %s", name)
             setattr(self, name, None)
+        return kept
 
     def __enter__(self) -> Daemon:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _no_history(query: Any) -> dict[str, Any]:
+    raise ValueError("the daemon is reloading: ask again in a moment")

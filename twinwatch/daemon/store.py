@@ -44,11 +44,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
+from pydantic import BaseModel, ConfigDict, Field
+
 from twinwatch._lifecycle import Closeable
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SCHEMA_VERSION", "StateStore", "StoreError"]
+__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError"]
 
 SCHEMA_VERSION = 1
 
@@ -78,6 +80,31 @@ CREATE TABLE IF NOT EXISTS twin (
     state TEXT NOT NULL
 );
 """
+
+
+class StateConfig(BaseModel):
+    """``[state]``: the state database (health history and last accepted twin).
+
+    Example::
+
+        [state]
+        path = "state.sqlite"      # relative to the working directory (the unit's StateDirectory)
+        synchronous = "FULL"       # FULL: survives power loss; NORMAL: survives SIGKILL only
+        keep_days = 30
+        keep_rows = 1000000
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="keep the history and the twin; restore at start")
+    path: str = Field("state.sqlite", min_length=1,
+                      description="SQLite file, relative to the working directory")
+    synchronous: Literal["FULL", "NORMAL"] = Field(
+        "FULL", description="FULL fsyncs every window (power-loss safe), NORMAL does not")
+    keep_days: float = Field(30.0, gt=0, description="delete history older than this [days]")
+    keep_rows: int = Field(1_000_000, ge=1, description="keep at most this many windows")
+    recover_corrupt: bool = Field(False, description="move a corrupt database aside and start "
+                                  "a new one instead of refusing to start")
 
 
 class StoreError(Exception):
