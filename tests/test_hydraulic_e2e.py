@@ -184,6 +184,12 @@ def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
     cfg.driver.pacing = "realtime"
     cfg.driver.timeout = 0.3
     cfg.driver.backoff_max = 0.4
+    # Plant server, poll thread and estimator share this process: the twin's compiled kernel
+    # holds the GIL for a whole swarm call (~8 ms for 15 particles, near the 10 ms sample
+    # period), and a late poll misses a sample, which abandons the window. A swarm of 5 keeps
+    # the GIL holds short; this test is about the data path, not the estimate.
+    cfg.estimation.pso.pop_size = 5
+    cfg.estimation.pso.max_generations = 3
     errors: list[BaseException] = []
     with SimulatedModbusDriver(cfg.driver) as driver:
         assert driver.live
@@ -198,14 +204,15 @@ def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
             runner = threading.Thread(target=run, name="test-daemon-run")
             runner.start()
             try:
-                _wait(lambda: daemon.windows_estimated >= 2, 20.0)
+                _wait(lambda: daemon.windows_estimated >= 2, 45.0, lambda: daemon.counters())
                 t_down = driver.server.last_sample.t  # type: ignore[union-attr]
                 driver.server.stop()
                 time.sleep(1.5)
                 driver.server.start()  # same port
                 t_back = driver.server.last_sample.t  # type: ignore[union-attr]
-                _wait(lambda: any(h["t_start"] >= t_back for h in list(daemon.history)[-2:])
-                      and daemon.windows_estimated >= 4, 20.0)
+                # jitter on a loaded machine abandons some windows too: allow time for one
+                _wait(lambda: any(h["t_start"] >= t_back for h in list(daemon.history)[-2:]),
+                      45.0, lambda: daemon.counters())
             finally:
                 daemon.stop()
                 runner.join(15.0)
@@ -227,10 +234,10 @@ def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
     assert not last["parameters"]["q_pump"]["held"]
 
 
-def _wait(cond: Any, timeout: float) -> None:
+def _wait(cond: Any, timeout: float, state: Any = None) -> None:
     deadline = time.monotonic() + timeout
     while not cond():
-        assert time.monotonic() < deadline, "timed out"
+        assert time.monotonic() < deadline, f"timed out; {state() if state else ''}"
         time.sleep(0.05)
 
 
