@@ -1,0 +1,280 @@
+"""The daemon as a service (issue #5): persistence, history over Zenoh, alarms, SIGHUP reload,
+SIGKILL mid-window, restart from the saved twin.
+
+Every Zenoh session is on 127.0.0.1 with explicit endpoints and scouting off; every port is
+picked free at run time (never 7447). The subprocess tests run ``python -m twinwatch run`` in a
+temporary working directory, so ``state.sqlite`` lands there.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from twinwatch.config.loader import default_config
+from twinwatch.daemon.alarms import AlarmConfig, AlarmRule
+from twinwatch.daemon.runner import Daemon
+from twinwatch.daemon.store import StateStore
+
+from .conftest import ROOT
+from .test_zenoh_publisher import endpoint, free_port
+
+
+def zsession(mode: str, *, listen: list[str] = (), connect: list[str] = ()) -> zenoh.Session:
+    """A zenoh session on loopback, scouting off (as in tests/test_zenoh_publisher.py)."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return zenoh.open(conf)
+
+
+def wait_for(pred: Callable[[], Any], timeout: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.05)
+    pytest.fail(f"timed out after {timeout} s waiting for {what}")
+
+
+def get_json(session: zenoh.Session, selector: str) -> list[Any]:
+    out = []
+    for r in session.get(selector, timeout=5.0):
+        if r.ok is not None:
+            out.append(json.loads(r.ok.payload.to_string()))
+        else:
+            out.append({"error": r.err.payload.to_string()})
+    return out
+
+
+def db_rows(path: Path, run: str | None = None) -> list[dict[str, Any]]:
+    """Health rows of the state database (read-only, while the daemon may be writing)."""
+    if not path.exists():
+        return []
+    con = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5)
+    try:
+        sql = "SELECT run, doc FROM health ORDER BY id"
+        rows = [(r, json.loads(d)) for r, d in con.execute(sql)]
+    except sqlite3.OperationalError:  # tables not created yet
+        return []
+    finally:
+        con.close()
+    return [d | {"_run": r} for r, d in rows if run is None or r == run]
+
+
+# -- in process: history queryable and alarms -----------------------------------------------
+def _service_config(tmp_path: Path, port: int, duration: float = 12.0) -> Any:
+    cfg = default_config()
+    cfg.driver.plant.duration = duration  # type: ignore[union-attr]
+    cfg.driver.plant.scenario = "nominal"  # type: ignore[union-attr]
+    cfg.zenoh.listen = [endpoint(port)]
+    cfg.recording.enabled = False
+    cfg.state.path = str(tmp_path / "state.sqlite")
+    cfg.machine.parameters["Ra"] = 6.0  # nameplate 6.0, plant 6.5: +8.3 %, alarm at once
+    cfg.alarms = AlarmConfig(parameters={"Ra": AlarmRule(
+        warning=2.0, alarm=5.0, hysteresis=0.5, raise_after_s=0.0, raise_after_windows=1)})
+    return cfg
+
+
+def test_history_is_served_by_time_range_and_alarms_are_published(tmp_path: Path) -> None:
+    port = free_port()
+    cfg = _service_config(tmp_path, port)
+    alarms: list[dict[str, Any]] = []
+    with Daemon(cfg, persist=True, record=False) as daemon:
+        with zsession("client", connect=[endpoint(port)]) as s:
+            sub = s.declare_subscriber(f"twinwatch/{cfg.machine.name}/alarm",
+                                       lambda smp: alarms.append(
+                                           json.loads(smp.payload.to_string())))
+            daemon.run()
+            wait_for(lambda: alarms, 5, "the alarm event")
+            base = f"twinwatch/{cfg.machine.name}/history"
+            everything = get_json(s, base)
+            middle = get_json(s, base + "?t_from=3;t_to=7")
+            page = get_json(s, base + "?limit=2")
+            wall = get_json(s, base + f"?by=wall;t_from={time.time() - 600}")
+            bad = get_json(s, base + "?by=moon")
+            latest_alarm = get_json(s, f"twinwatch/{cfg.machine.name}/alarm")
+            sub.undeclare()
+    n = daemon.windows_estimated
+    assert n == 6
+    assert everything[0]["count"] == n and not everything[0]["more"]
+    assert [h["window"] for h in everything[0]["windows"]] == list(range(n))
+    # plant time [3, 7] s overlaps windows [2, 4), [4, 6), [6, 8)
+    assert [h["window"] for h in middle[0]["windows"]] == [1, 2, 3]
+    assert page[0]["count"] == 2 and page[0]["more"]
+    assert wall[0]["count"] == n
+    assert "by='moon'" in bad[0]["error"]
+    # the published alarm: Ra +8.3 % vs nameplate 6.0, beyond the 5 % alarm threshold
+    assert alarms[0]["parameter"] == "Ra" and alarms[0]["level"] == "alarm"
+    assert alarms[0]["deviation_pct"] == pytest.approx(100 * (6.5 / 6.0 - 1), abs=0.1)
+    assert "inspect the machine now" in alarms[0]["message"]
+    assert latest_alarm and latest_alarm[0]["level"] == "alarm"
+    # every stored health message carries the alarm state
+    assert everything[0]["windows"][-1]["alarms"]["Ra"]["level"] == "alarm"
+
+    # restart: the alarm is restored (not raised a second time) and the twin resumes
+    cfg2 = _service_config(tmp_path, free_port(), duration=4.0)
+    with Daemon(cfg2, persist=True, record=False, publish=False) as d2:
+        assert d2.restored is not None
+        assert d2.alarms.state()["Ra"]["level"] == "alarm"
+        events: list[Any] = []
+        orig = d2.alarms.update
+        d2.alarms.update = lambda h: events.extend(orig(h)) or []  # type: ignore[method-assign]
+        d2.run()
+    assert events == []
+
+
+# -- subprocesses: SIGKILL mid-window, restart from the saved twin, SIGHUP reload --------------
+def _env() -> dict[str, str]:
+    return dict(os.environ, PYTHONPATH=str(ROOT), CI="true")
+
+
+def _write_config(path: Path, text: str) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)  # atomic: a reload never reads half a file
+
+
+def _unbalanced(connect: str, duration: float = 300.0) -> str:
+    text = (ROOT / "config" / "dc-motor-unbalanced-sim.toml").read_text()
+    text = text.replace('mode = "peer"', 'mode = "client"')
+    text = text.replace('listen = ["tcp/127.0.0.1:7447"]', f'connect = ["{connect}"]')
+    text = text.replace("\nconnect = []", "")
+    text = text.replace("duration = 300.0", f"duration = {duration}")
+    return text.replace("[recording]", "[recording]\nenabled = false")
+
+
+class Collector:
+    """Health messages received by a subscriber on the test's router."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.items: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+        self.sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, smp: zenoh.Sample) -> None:
+        with self._lock:
+            self.items.append(json.loads(smp.payload.to_string()))
+
+    def snapshot(self) -> list[dict[str, Any]]:
+        with self._lock:
+            return list(self.items)
+
+
+def _run(cfg: Path, cwd: Path, *args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(cfg), "--no-progress",
+                             "--log-level", "info", *args], cwd=cwd, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_sigkill_mid_window_loses_nothing_and_restart_resumes_the_twin(tmp_path: Path) -> None:
+    port = free_port()
+    cfg = tmp_path / "m.toml"
+    _write_config(cfg, _unbalanced(endpoint(port)))
+    db = tmp_path / "state.sqlite"
+    with zsession("router", listen=[endpoint(port)]) as router:
+        seen = Collector(router, "twinwatch/dc-motor-unbalanced/health")
+        proc = _run(cfg, tmp_path)
+        try:
+            # run until the unbalanced shaft is discovered (window <= 5) and a few windows more
+            wait_for(lambda: any(h["terms"] for h in seen.snapshot())
+                     and len(seen.snapshot()) >= 7, 60, "a discovered term")
+            proc.send_signal(signal.SIGKILL)  # as fast as possible: always mid-window
+            proc.wait(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        published = {h["window"] for h in seen.snapshot()}
+        stored = db_rows(db)
+        assert published <= {h["window"] for h in stored}, "a published window is not stored"
+        last_trusted = StateStore(db)
+        saved = last_trusted.load_twin_state("dc-motor-unbalanced")
+        last_trusted.close()
+        assert saved is not None and saved["terms"], "the discovered term was saved"
+        run1 = stored[0]["_run"]
+
+        # restart: the first health message shows the saved twin (term and held values)
+        seen.items.clear()
+        proc = _run(cfg, tmp_path, "--duration", "4")
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert "resumed the twin of dc-motor-unbalanced" in err
+    first = min(seen.snapshot(), key=lambda h: h["window"])
+    assert first["window"] == 0
+    assert [t["kind"] for t in first["terms"]] == [t["kind"] for t in saved["terms"]]
+    assert first["discovery"]["ran"] is False  # resumed, not rediscovered
+    for name, p in first["parameters"].items():
+        if p["held"] and not (p["reason"] or "").startswith(("fixed", "tied")):
+            assert p["value"] == pytest.approx(saved["trusted"][name], rel=1e-9)
+    rows2 = [h for h in db_rows(db) if h["_run"] != run1]
+    assert rows2[0]["window"] == 0 and rows2[0]["terms"]
+
+
+def test_sighup_reloads_a_valid_config_and_refuses_a_bad_one(tmp_path: Path) -> None:
+    base = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+    base = base.replace("[zenoh]", "[zenoh]\nenabled = false")
+    base = base.replace("[recording]", "[recording]\nenabled = false")
+    base = base.replace("duration = 1200.0", "duration = 100000.0")
+    cfg = tmp_path / "m.toml"
+    _write_config(cfg, base)
+    db = tmp_path / "state.sqlite"
+    proc = _run(cfg, tmp_path)
+    try:
+        wait_for(lambda: len(db_rows(db)) >= 2, 60, "two stored windows")
+        # a bad new config: refused, the old one keeps running
+        _write_config(cfg, base.replace("[estimation]", "[estimation]\nestimat = ['Ra']"))
+        proc.send_signal(signal.SIGHUP)
+        n = len(db_rows(db))
+        wait_for(lambda: len(db_rows(db)) >= n + 3, 30, "windows after a refused reload")
+        assert proc.poll() is None
+        # a good one (nameplate Ra 6.0): applied, the twin resumes from the state database
+        _write_config(cfg, base.replace("Ra = 6.5 ", "Ra = 6.0 "))
+        proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: any(h["parameters"]["Ra"]["nominal"] == 6.0 for h in db_rows(db)),
+                 60, "a window under the new configuration")
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+        stop_s = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert stop_s < 15
+    assert "reload refused, the running configuration goes on" in err
+    assert "estimation.estimat: unknown key" in err
+    assert "configuration reloaded" in err and "resumed the twin of dc-motor-sim" in err
+    rows = db_rows(db)
+    runs = list(dict.fromkeys(h["_run"] for h in rows))
+    assert len(runs) == 1, "the state database stays open across a reload"
+    assert rows[-1]["parameters"]["Ra"]["nominal"] == 6.0
+    assert "windows estimated" in out
+
+
+def test_bad_config_at_start_exits_78(tmp_path: Path) -> None:
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text((ROOT / "config" / "dc-motor-sim.toml").read_text()
+                   .replace("[zenoh]", "[zenoh]\nmulticast = true"))
+    r = subprocess.run([sys.executable, "-m", "twinwatch", "run", str(cfg)], cwd=tmp_path,
+                       env=_env(), capture_output=True, text=True, timeout=60)
+    assert r.returncode == 78  # EX_CONFIG: the unit's RestartPreventExitStatus
+    assert "zenoh.multicast: unknown key" in r.stderr
+
