@@ -85,40 +85,46 @@ def test_fluid_degradation_over_modbus_d_within_three_percent():
     reversals per window, without 160 s of fault-free plant first. Measured on the full 600 s
     run over Modbus: 220 of 220 windows from 160 s published, median error 0.003 %, max 0.12 %.
 
-    Over Modbus (float32 pressure, 0.004 Pa resolution) the residual is white quantisation
-    noise: the identifiability gate then determines D to 0.08-0.18 % even in the windows
-    touching a reversal, below the configured 0.5 % limit, so they are published (and are
-    within 0.12 % of the plant's D): no spike. Whatever the gate holds carries its reason and
-    is never published as an estimate.
+    Windows where the piston reverses give D little excitation (D*v is a fraction of a pascal):
+    they are flagged and D is held there with the reason, rather than published. (Over Modbus
+    the float32 pressure's 0.004 Pa resolution leaves a white residual, so the statistical gate
+    alone would call D determined there; the twin's excitation test, RMS piston speed below
+    ``min_speed``, is what holds it.) All windows count for the 95 %: a held value must still
+    be within 3 % of the plant's D.
     """
     cfg = _config(SIM, duration=240.0, fault_start=0.0)
     plant, daemon = _run(cfg)
     hist = list(daemon.history)
     assert len(hist) == 120
-    errors, published, held = [], 0, []
-    rel_std: dict[bool, list[float]] = {True: [], False: []}
+    errors, held = [], []
     for h in hist:
         d = h["parameters"]["D"]
+        true_d = plant.truth(0.5 * (h["t_start"] + h["t_end"])).D
+        errors.append(abs(d["value"] / true_d - 1.0) * 100.0)
         if d["held"]:
             held.append(h)
             assert d["reason"] and d["rel_std_pct"] is None
-            continue
-        published += 1
-        true_d = plant.truth(0.5 * (h["t_start"] + h["t_end"])).D
-        errors.append(abs(d["value"] / true_d - 1.0) * 100.0)
-        assert d["rel_std_pct"] is not None and d["rel_std_pct"] <= 0.5  # max_rel_std
-        rel_std[_touches_reversal(h)].append(d["rel_std_pct"])
+        else:
+            assert d["rel_std_pct"] is not None and d["rel_std_pct"] <= 0.5  # max_rel_std
     err = np.asarray(errors)
-    # the paper's 3 % in at least 95 % of the windows (all windows count: a held one is a miss)
+    # the paper's 3 % in at least 95 % of the windows, held ones included
     assert np.sum(err <= 3.0) >= 0.95 * len(hist), np.percentile(err, [50, 95, 100])
-    assert np.percentile(err, 95) < 0.1  # measured 0.03 %
+    published = np.asarray([e for e, h in zip(errors, hist, strict=True)
+                            if not h["parameters"]["D"]["held"]])
+    assert np.percentile(published, 95) < 0.1  # measured 0.03 %
     # the ramp really moved D (+38 %) and the twin followed it
     assert hist[-1]["parameters"]["D"]["value"] == pytest.approx(plant.truth(239.0).D, rel=0.01)
     assert plant.truth(239.0).D > 135.0
-    # the reversals are where D is least determined (little velocity: D*v ~ 0), by a factor
-    assert min(rel_std[True], default=math.inf) > 1.2 * np.median(rel_std[False])
-    # ... and a window is held only there (none is, with these settings over Modbus)
-    assert all(_touches_reversal(h) for h in held)
+    # every window touching a reversal is flagged and held, with the excitation reason ...
+    at_reversal = [h for h in hist if _touches_reversal(h)]
+    assert at_reversal
+    for h in at_reversal:
+        d = h["parameters"]["D"]
+        assert d["held"] and "too little excitation" in d["reason"], (h["t_start"], d)
+    # ... and D is held only near the reversals (within 4 s), while q_pump is always estimated
+    assert all(min(abs(0.5 * (h["t_start"] + h["t_end"]) - r) for r in REVERSALS) < 4.0
+               for h in held)
+    assert len(held) <= 0.1 * len(hist)
     assert all(h["parameters"]["q_pump"]["held"] is False for h in hist)
 
 

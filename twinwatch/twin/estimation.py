@@ -314,7 +314,7 @@ class Estimator:
         # 3. identifiability: which of them does this window determine?
         fit = _Fit(self, window, meas, scale, idx, base, xl, xu, terms)
         q_best, r_best, jac = fit.refine(q_best, np.arange(idx.size), polish=cfg.polish)
-        selected, rel_std, reasons = self._select(jac, r_best)
+        selected, rel_std, reasons = self._select(jac, r_best, self.model.excitation(window))
         held: dict[str, str] = {}
         names_est = [self.names[i] for i in idx]
         for k, name in enumerate(names_est):
@@ -405,9 +405,12 @@ class Estimator:
         return out
 
     def _select(
-        self, jac: FloatArray, r: FloatArray
+        self, jac: FloatArray, r: FloatArray, unexcited: Mapping[str, str] | None = None
     ) -> tuple[list[int], dict[int, float], dict[int, str]]:
         """Admit parameters in priority order while all admitted stay determined.
+
+        ``unexcited``: parameters the model says this window does not excite
+        (:meth:`TwinModel.excitation`), with the reason; they are held like undetermined ones.
 
         The priority list is a hierarchy: once a parameter cannot be determined, it and every
         parameter after it are held. Otherwise a lower-priority parameter that trades off with
@@ -423,6 +426,10 @@ class Estimator:
             if blocked is not None:
                 reasons[k] = (f"held with {blocked} (lower priority): held at last trusted "
                               "value")
+                continue
+            if unexcited and name in unexcited:
+                blocked = name
+                reasons[k] = f"{unexcited[name]}: held at last trusted value"
                 continue
             cand = [*selected, k]
             sd = self._rel_std(jac[:, cand], r)

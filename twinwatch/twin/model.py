@@ -176,6 +176,22 @@ class TwinModel(abc.ABC):
             raise.
         """
 
+    def excitation(self, window: WindowData) -> dict[str, str]:
+        """Parameters this window does not excite physically, with the reason.
+
+        The estimator's identifiability gate judges what the data determine statistically;
+        this hook adds the physics the data cannot show: with very clean data (float32
+        registers) a damping coefficient is "determined" even while the piston stands still,
+        where the paper expects it to be held. Default: every parameter is excited.
+
+        Args:
+            window: the measured window.
+
+        Returns:
+            parameter name -> reason (held, with this reason, at its last trusted value).
+        """
+        return {}
+
     def describe(self) -> str:
         """Human-readable summary: parameters, inputs, outputs."""
         lines = [f"{type(self).__name__}:"]
