@@ -12,7 +12,6 @@ report of issue 4 (same figures).
 
 from __future__ import annotations
 
-import math
 import os
 import socket
 import subprocess
