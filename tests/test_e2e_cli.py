@@ -64,6 +64,21 @@ def _rerun() -> str:
     return exe
 
 
+def _stored(db: Path) -> int:
+    """Health rows in the state database (0 before it exists)."""
+    import sqlite3
+
+    if not db.exists():
+        return 0
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5)
+    try:
+        return int(con.execute("SELECT COUNT(*) FROM health").fetchone()[0])
+    except sqlite3.OperationalError:
+        return 0
+    finally:
+        con.close()
+
+
 def _twinwatch(*args: str) -> list[str]:
     return [sys.executable, "-m", "twinwatch", *args]
 
@@ -123,13 +138,24 @@ def test_recording_is_valid_after_a_signal(tmp_path: Path, env, sig):
                               cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
     rrd = tmp_path / "twinwatch.rrd"
+    db = tmp_path / "state.sqlite"
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and (not rrd.exists() or rrd.stat().st_size < 20000):
+    while time.monotonic() < deadline and _stored(db) < 2:  # mid-run: windows are estimated
         time.sleep(0.1)
+    t0 = time.monotonic()
     daemon.send_signal(sig)
     out, err = daemon.communicate(timeout=60)
+    stop_s = time.monotonic() - t0
     assert daemon.returncode == 0, err
     assert "received: finishing the queued windows and stopping" in err
+    # bounded: the queued windows (acquisition.queue = 4, about 0.1 s each) and the sinks
+    assert stop_s < 15, f"took {stop_s:.1f} s to stop"
+    # every estimated window is in the state database, which was closed cleanly (no WAL left)
+    import re
+
+    estimated = int(re.search(r"(\d+) windows estimated", out).group(1))  # type: ignore[union-attr]
+    assert _stored(db) == estimated >= 2
+    assert "recording of dc-motor-sim closed" in err and "zenoh" not in out
     verify = subprocess.run([_rerun(), "rrd", "verify", str(rrd)], capture_output=True,
                             text=True, env=env, timeout=120)
     assert verify.returncode == 0, verify.stderr

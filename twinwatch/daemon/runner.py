@@ -275,7 +275,6 @@ class Daemon:
         """
         assert self.driver is not None
         live = bool(getattr(self.driver, "live", False))
-        self._stop.clear()
         self._worker = threading.Thread(target=self._work, name="twinwatch-adaptation",
                                         daemon=True)
         self._worker.start()
