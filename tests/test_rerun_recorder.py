@@ -75,10 +75,13 @@ def expected_rows(machine: str, windows: int) -> Counter[str]:
     for o in OUTPUTS:
         counts[f"/{machine}/outputs/{o}/measured"] = N * windows
         counts[f"/{machine}/outputs/{o}/twin"] = N * windows
+        counts[f"/{machine}/residual/{o}"] = N * windows  # measured - twin, every sample
     for p in PARAMETERS:
         counts[f"/{machine}/parameters/{p}"] = windows
     counts[f"/{machine}/health"] = windows
     counts[f"/{machine}/log"] = windows
+    if windows:
+        counts[f"/{machine}/model"] = 1  # the twin's structure, logged with the first window
     return counts
 
 
