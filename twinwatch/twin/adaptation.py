@@ -119,6 +119,7 @@ class AdaptationResult:
                 + (reval.elapsed_s if reval else 0.0),
                 "kept": [t.equation() for t in disc.kept] if disc else [],
                 "dropped": [t.equation() for t in reval.dropped] if reval else [],
+                "simplified": [t.equation() for t in reval.kept] if reval else [],
                 "changed": self.changed,
             },
         }
@@ -179,6 +180,10 @@ class TwinAdapter:
                 events.append(f"dropped: {t.describe()}")
                 logger.warning("window %d: meta-model term switched off (no longer earns its "
                                "place): %s", window.index, t.describe())
+            for t in reval.kept:
+                events.append(f"simplified to: {t.describe()}")
+                logger.warning("window %d: meta-model term simplified to %s", window.index,
+                               t.describe())
             est = self._resimulate(est, window, theta)
         too_large = self._too_large(window, est)
         self.consecutive = self.consecutive + 1 if too_large else 0

@@ -422,24 +422,20 @@ class Discovery:
         deadline = t0 + cfg.time_budget
         pool = list(self.candidates)
         for _ in range(cfg.max_terms - len(kept)):
-            best: _Fitted | None = None
+            fitted: list[_Fitted] = []
             for i, cand in enumerate(pool):
                 left = deadline - time.perf_counter()
                 if left <= 0:
                     logger.warning("discovery reached its time budget (%.2f s) after %d "
                                    "candidates", cfg.time_budget, report.tried)
                     break
-                fitted = self._fit_candidate(cand, window, theta, base_vals, r_base, n_out,
-                                             left / (len(pool) - i))
+                f = self._fit_candidate(cand, window, theta, base_vals, r_base, n_out,
+                                        left / (len(pool) - i))
                 report.tried += 1
-                if fitted is not None and (best is None or fitted.dbic < best.dbic):
-                    best = fitted
-            if best is None or not self._earns_place(best):
-                if best is not None:
-                    logger.debug("best candidate %s on %s does not earn its place "
-                                 "(dBIC %.1f, improvement %.0f %%, significance %.1f)",
-                                 best.cand.meta.kind, best.cand.attach.name, best.dbic,
-                                 100 * best.improvement, best.significance)
+                if f is not None:
+                    fitted.append(f)
+            best = self._select_term(fitted)
+            if best is None:
                 break
             term = best.to_term(window.index)
             new.append(term)
@@ -454,6 +450,26 @@ class Discovery:
         report.elapsed_s = time.perf_counter() - t0
         report.evaluations = self.evaluations
         return new, report
+
+    def _select_term(self, fitted: Sequence[_Fitted]) -> _Fitted | None:
+        """The candidate to keep: among those that earn their place, the lowest BIC, unless a
+        candidate with fewer parameters comes within ``bic_threshold`` of it (the extra
+        parameters must earn their place too: a constant leak is a constant, not an
+        exponential whose base fits to 1.0000)."""
+        ok = [f for f in fitted if self._earns_place(f)]
+        if not ok:
+            if fitted:
+                f = min(fitted, key=lambda f: f.dbic)
+                logger.debug("best candidate %s on %s does not earn its place (dBIC %.1f, "
+                             "improvement %.0f %%, significance %.1f)", f.cand.meta.kind,
+                             f.cand.attach.name, f.dbic, 100 * f.improvement, f.significance)
+            return None
+        best = min(ok, key=lambda f: f.dbic)
+        simpler = [f for f in ok if sum(f.active) < sum(best.active)
+                   and f.dbic - best.dbic < self.config.bic_threshold]
+        if simpler:
+            best = min(simpler, key=lambda f: (sum(f.active), f.dbic))
+        return best
 
     def _earns_place(self, f: _Fitted) -> bool:
         cfg = self.config
@@ -673,9 +689,41 @@ class Discovery:
                 terms.remove(term)
                 report.dropped.append(term)
                 r_all = self.residuals(theta, window, compose(terms, window))[0]
+                continue
+            simple = self._simplify(window, theta, terms, term, r_all, n_out)
+            if simple is not None:
+                terms[terms.index(term)] = simple
+                report.dropped.append(term)
+                report.kept.append(simple)
+                r_all = self.residuals(theta, window, compose(terms, window))[0]
         report.elapsed_s = time.perf_counter() - t0
         report.evaluations = self.evaluations
         return report
+
+    def _simplify(self, window: WindowData, theta: FloatArray, terms: list[Term], term: Term,
+                  r_all: FloatArray, n_out: int) -> Term | None:
+        """A constant in place of a kept exponential, negative exponential or power term
+        whose shape no longer earns its place (its nonlinear parameter has gone to the neutral
+        value: a base of 1, a rate or an exponent of 0). Discovered during a transient, such a
+        term can fit the transient; once it has settled, the constant is the honest reading.
+
+        Returns the constant term (linear meta-model, slope switched off) if it fits within
+        ``bic_threshold`` of the kept term, else None."""
+        if term.meta.kind not in ("exponential", "negative_exponential", "power"):
+            return None
+        level = float(np.mean(term.values(window)))
+        const = Term(get_meta_model("linear"), term.attach, term.input,
+                     np.array([0.0, level]), (False, True), t_ref=0.0,
+                     since_window=term.since_window)
+        trial = [const if t is term else t for t in terms]
+        self.polish_terms(window, theta, trial)
+        r_const = self.residuals(theta, window, compose(trial, window))[0]
+        extra = sum(term.active) - 1
+        if delta_bic(r_const, r_all, extra, n_out) > -self.config.bic_threshold:
+            logger.info("meta-model term %s simplified to the constant %s: its shape no "
+                        "longer earns its place", term.expression(), const.expression())
+            return const
+        return None
 
     def polish_terms(self, window: WindowData, theta: FloatArray, terms: list[Term]) -> None:
         """Joint bounded least squares over every kept term's active parameters, from their
