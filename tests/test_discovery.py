@@ -83,7 +83,6 @@ def test_discovery_finds_the_unbalanced_shaft(skip: int) -> None:
     assert term.equation().endswith("rad/s^2")
     assert "unbalanced shaft" in term.meaning() and "shaft speed" in term.meaning()
     assert report.tried == 6  # six candidates; with the term in place the residual is noise
-    assert report.elapsed_s > 0
 
 
 def test_forced_discovery_on_noisy_nominal_windows_keeps_nothing() -> None:

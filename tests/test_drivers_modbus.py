@@ -255,20 +255,17 @@ def test_lockstep_serves_every_dcmotor_sample_once_in_order() -> None:
     channels = DCMotorPlant.channels
     regs = {ch: ModbusChannelMap(address=2 + 2 * i, table="input", type="float32")
             for i, ch in enumerate(channels)}
-    t0 = time.monotonic()
     with PlantModbusServer(DCMotorPlant(cfg), regs, counter=COUNTER, pacing="lockstep") as srv:
         with create_driver(driver_config(srv.port, regs).model_dump(), base_dir=REPO) as drv:
             assert isinstance(drv, ModbusDriver) and not drv.live
             got = read_all(drv, 10_000, timeout=0.3)
         assert srv.finished and srv.samples_served == 501
-    elapsed = time.monotonic() - t0
     assert len(got) == len(expected) == 501
     assert [s.t for s in got] == pytest.approx([k * 0.01 for k in range(501)], abs=1e-12)
     for s, e in zip(got, expected, strict=True):
         for ch in channels:
             assert s.values[ch] == float(np.float32(e.values[ch])), (s.t, ch)
     assert drv.stats.gaps == 0 and drv.stats.errors == 0 and drv.stats.samples == 501
-    assert elapsed < 8.0
 
 
 # -- outages ------------------------------------------------------------------------------------

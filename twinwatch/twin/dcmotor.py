@@ -63,6 +63,7 @@ from twinwatch.twin.model import (
     WindowData,
     composite_zoh,
     propagate,
+    sub_steps,
 )
 
 DC_MOTOR_PARAMETERS: tuple[ParameterSpec, ...] = (
@@ -138,14 +139,7 @@ class DCMotorTwin(TwinModel):
 
     def n_sub(self, sample_period: float) -> int:
         """Number of sub-steps per sample; raises ValueError if not a whole number."""
-        ratio = sample_period / self.sub_step
-        n = int(round(ratio))
-        if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
-            raise ValueError(
-                f"sample period {sample_period:g} s is not a whole multiple of the twin's "
-                f"sub-step {self.sub_step:g} s"
-            )
-        return n
+        return sub_steps(sample_period, self.sub_step)
 
     def step_matrices(self, theta: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
         """One sub-step of Eq. 11-12 (plus the PI loop) as ``x' = A x + B u``.

@@ -79,6 +79,7 @@ from twinwatch.twin.model import (
     ParameterSpec,
     TwinModel,
     WindowData,
+    sub_steps,
 )
 
 logger = logging.getLogger(__name__)
@@ -215,14 +216,7 @@ class HydraulicActuatorTwin(TwinModel):
 
     def n_sub(self, sample_period: float) -> int:
         """Number of sub-steps per sample; raises ValueError if not a whole number."""
-        ratio = sample_period / self.sub_step
-        n = int(round(ratio))
-        if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
-            raise ValueError(
-                f"sample period {sample_period:g} s is not a whole multiple of the twin's "
-                f"sub-step {self.sub_step:g} s"
-            )
-        return n
+        return sub_steps(sample_period, self.sub_step)
 
     @staticmethod
     def _term(values: FloatArray | None, p: int, n: int, name: str) -> FloatArray:

@@ -206,6 +206,25 @@ class TwinModel(abc.ABC):
         return self.describe()
 
 
+def sub_steps(sample_period: float, sub_step: float) -> int:
+    """Number of integration sub-steps [-] in one sample.
+
+    Args:
+        sample_period: acquisition sample period [s].
+        sub_step: the twin's integration step [s] (paper: 1e-4).
+
+    Raises:
+        ValueError: the sample period is not a whole multiple of the sub-step (to 1e-6
+            relative); the message names both.
+    """
+    ratio = sample_period / sub_step
+    n = int(round(ratio))
+    if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
+        raise ValueError(f"sample period {sample_period:g} s is not a whole multiple of the "
+                         f"twin's sub-step {sub_step:g} s")
+    return n
+
+
 def composite_zoh(a: FloatArray, b: FloatArray, n_sub: int) -> tuple[FloatArray, FloatArray]:
     """Compose ``n_sub`` steps of the linear map ``x' = A x + B u`` with ``u`` held.
 
