@@ -62,8 +62,13 @@ def _run(cfg: TwinwatchConfig) -> tuple[HydraulicPlant, Daemon]:
         with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
             daemon.run()
     assert daemon.overruns == 0 and daemon.numeric_failures == 0
-    # lock-step: every sample crossed Modbus exactly once, nothing lost
-    assert driver.stats.gaps == 0 and driver.stats.errors == 0
+    # lock-step: every sample crossed Modbus exactly once, nothing lost. A request that timed out
+    # on a loaded machine is retried after a reconnect (counted, not lost): the plant only
+    # advances when its sample has been read, so the record stays whole either way.
+    n = round(cfg.driver.plant.duration / cfg.driver.plant.sample_period)
+    assert daemon.windows_estimated == n // cfg.acquisition.window
+    assert driver.stats.samples >= n and driver.stats.gaps == 0
+    assert driver.stats.errors == driver.stats.extra["timeouts"]
     assert driver.stats.bad_frames == 0 and driver.stats.bad_values == 0
     return driver.plant, daemon
 

@@ -141,7 +141,7 @@ class DCMotorPlantConfig(BaseModel):
         return self
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, unb_a, unb_w):  # pragma: no cover
     """Advance ``state = [ia, omega, z]`` by ``n_sub`` steps from step index ``k0``.
 

@@ -136,7 +136,7 @@ class HydraulicPlantConfig(BaseModel):
         return self.mass * GRAVITY
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _pid(state, e, ts, kp, ki, kd, nf, a_max):  # pragma: no cover - compiled
     """One Eq. 17 PID update; ``state = [x, p, I, f, A]``: sets A, advances I and f."""
     i_state, f_state = state[2], state[3]
@@ -158,7 +158,7 @@ def _pid(state, e, ts, kp, ki, kd, nf, a_max):  # pragma: no cover - compiled
     state[4] = a
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _advance(state, j0, n_sub, dt, prm, scenario, t_fault, c_leak):  # pragma: no cover
     """Advance ``state = [x, p, I, f, A]`` by ``n_sub`` plant steps from step index ``j0``.
 

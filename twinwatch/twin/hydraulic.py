@@ -103,7 +103,7 @@ HYDRAULIC_PARAMETERS: tuple[ParameterSpec, ...] = (
 _ATTACH = ("p", "d(x)/dt")
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
     # pragma: no cover - compiled
     """Sub-step Eq. 14-16 for every particle; fills ``y`` (P, N, 2) with x and p.

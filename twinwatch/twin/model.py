@@ -251,7 +251,7 @@ def composite_zoh(a: FloatArray, b: FloatArray, n_sub: int) -> tuple[FloatArray,
     return powered[:, :n, :n], powered[:, :n, n:]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _propagate_kernel(phi, gamma, u, x):  # pragma: no cover - compiled
     p, nk, n = x.shape
     m = u.shape[2]
