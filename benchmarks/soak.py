@@ -19,6 +19,8 @@ default: at the measured ~21x real time on 2 shared cores, about 17 minutes)::
     PYTHONPATH=. python benchmarks/soak.py          # 21600 s, no Zenoh, no recording
     python benchmarks/soak.py --duration 600 --every 50 --history 50
     python benchmarks/soak.py --zenoh --record /tmp/soak.rrd --tracemalloc
+    python benchmarks/soak.py --zenoh --record /tmp/soak/tw.rrd --state /tmp/soak/state.sqlite
+                                      # the service as deployed: publish, record, persist
 
 Not part of the test suite.
 """
@@ -83,6 +85,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="Zenoh listen endpoint when --zenoh is given (loopback)")
     ap.add_argument("--record", metavar="PATH", default=None,
                     help="record to this .rrd file (default: no recording)")
+    ap.add_argument("--rotate-windows", type=int, default=None,
+                    help="with --record: windows per recording file ([recording] "
+                    "rotate_windows, default 1800; 0 keeps one file, whose in-memory footer "
+                    "manifest grows ~22 MiB per 1000 windows)")
+    ap.add_argument("--state", metavar="PATH", default=None,
+                    help="keep the health history and the twin in this SQLite file, as the "
+                    "service does (default: no state store); the file size is printed")
     ap.add_argument("--tracemalloc", action="store_true",
                     help="trace Python allocations and print the top growth (slower)")
     ap.add_argument("--history", type=int, default=None,
@@ -101,6 +110,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.record:
         cfg.recording.path = str(Path(args.record).resolve())
     cfg.recording.enabled = bool(args.record)
+    if args.rotate_windows is not None:
+        cfg.recording.rotate_windows = args.rotate_windows
+    if args.state:
+        cfg.state.path = str(Path(args.state).resolve())
+    cfg.state.enabled = bool(args.state)
     cfg.zenoh.enabled = bool(args.zenoh)
     if args.history is not None:
         cfg.acquisition.history = args.history
@@ -108,10 +122,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.tracemalloc:
         tracemalloc.start(10)
     t_wall0 = time.monotonic()
-    daemon = Daemon(cfg, publish=args.zenoh, record=bool(args.record))
+    daemon = Daemon(cfg, publish=args.zenoh, record=bool(args.record), persist=bool(args.state))
     rss0 = rss_kib()
     print(f"soak: {args.duration:.0f} s of plant time ({args.scenario}), zenoh "
-          f"{'on' if args.zenoh else 'off'}, recording {args.record or 'off'}, pid {os.getpid()}")
+          f"{'on' if args.zenoh else 'off'}, recording {args.record or 'off'} (rotate every "
+          f"{cfg.recording.rotate_windows} windows), state {args.state or 'off'}, "
+          f"pid {os.getpid()}")
     print(f"RSS at start (daemon constructed): {rss0 / 1024:.1f} MiB")
     points: list[tuple[int, int]] = []
     snap: list[Any] = []
@@ -163,6 +179,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"RSS slope over the second half of the run: "
           f"{_slope_kib_per_1000(half):.0f} KiB per 1000 windows "
           f"(history kept in memory: {cfg.acquisition.history} health messages)")
+    if args.state:
+        size = sum(p.stat().st_size for p in Path(cfg.state.path).parent.glob(
+            Path(cfg.state.path).name + "*"))
+        print(f"state store {cfg.state.path}: {size / 2**20:.1f} MiB (with -wal/-shm)")
+    if args.record:
+        rec = Path(cfg.recording.path)
+        files = sorted(rec.parent.glob(rec.stem + "*.rrd"))
+        print(f"recording: {len(files)} file(s), "
+              f"{sum(f.stat().st_size for f in files) / 2**20:.1f} MiB")
     if args.tracemalloc and snap:
         end = tracemalloc.take_snapshot()
         print("top Python allocation growth since the first report:")

@@ -225,3 +225,33 @@ def test_watchdog_pings_at_interval_and_stops_when_worker_stuck(
     wd.idle()
     assert wd.tick() and wd.pings == 3
     n.close()
+
+
+def test_watchdog_pings_only_while_windows_finish(
+        systemd_socket: tuple[socket.socket, str]) -> None:
+    sock, path = systemd_socket
+    now = [0.0]
+    n = Notifier(env={"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "10000000"})  # WatchdogSec=10
+    strict = Watchdog(n, clock=lambda: now[0])
+    alive = Watchdog(n, clock=lambda: now[0], require_windows=False)
+    assert strict.max_quiet == 10.0
+    assert strict.tick() and alive.tick()  # start-up: the quiet clock starts at the first tick
+    now[0] = 9.0
+    assert strict.tick() and alive.tick()  # no window yet, but within WatchdogSec
+    strict.busy(), strict.idle()           # a window finishes at 9 s
+    now[0] = 18.9
+    assert strict.tick() and alive.tick()
+    now[0] = 19.5                          # 10.5 s without a finished window
+    assert not strict.healthy() and alive.healthy()
+    now[0] = 24.0                          # a ping is due
+    assert not strict.tick() and alive.tick()
+    strict.busy()                          # a window is being processed: the busy limit applies
+    assert strict.healthy()
+    strict.idle()
+    assert strict.tick()
+    while True:
+        try:
+            sock.recv(4096)
+        except TimeoutError:
+            break
+    n.close()

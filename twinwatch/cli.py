@@ -5,6 +5,7 @@ The only module that prints. Everything else logs.
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import signal
 import sys
@@ -66,6 +67,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
 
     notifier = Notifier(unset_environment=True)
     _setup_logging(log_level)
+    # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the journal)
+    # first, so a stuck worker or a hung driver read shows where it was.
+    faulthandler.enable()
     try:
         cfg = load_config(config) if config else default_config()
     except ConfigError as exc:

@@ -21,7 +21,7 @@ Layout::
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -74,6 +74,11 @@ class AcquisitionConfig(BaseModel):
     history: int = Field(1000, ge=1, description="health messages kept in memory")
     stall_timeout: float = Field(5.0, gt=0, description="seconds without a sample before a "
                                  "stall is reported")
+    watchdog: Literal["windows", "alive"] = Field(
+        "windows", description="when systemd's watchdog is pinged: 'windows' while windows are "
+        "processed (a source silent for WatchdogSec= restarts the service), 'alive' while the "
+        "daemon is alive (for machines idle for long: a silent source is reported, not "
+        "restarted)")
     shutdown_timeout: float = Field(10.0, gt=0, description="seconds to finish queued windows")
     abandon_on_stop: bool = Field(False, description="on stop, drop queued windows instead "
                                   "of estimating them")

@@ -278,6 +278,9 @@ class Daemon:
         self._worker = threading.Thread(target=self._work, name="twinwatch-adaptation",
                                         daemon=True)
         self._worker.start()
+        if self.watchdog is not None:
+            self.watchdog.require_windows = self.config.acquisition.watchdog == "windows"
+            self.watchdog.reset()
         t_first: float | None = None
         stall_timeout = self.config.acquisition.stall_timeout
         last_sample = time.monotonic()

@@ -173,33 +173,50 @@ class Notifier:
 
 class Watchdog:
     """When to send ``WATCHDOG=1``: from the acquisition loop, at the notifier's interval, and
-    only while the adaptation worker is not stuck in one window.
+    only while windows are being processed.
 
     The acquisition loop calls :meth:`tick` every iteration (``Driver.read`` returns within
     0.2 s, with or without a sample), so a hung driver read or a dead main loop stops the pings.
-    The worker calls :meth:`busy` before and :meth:`idle` after each window; a window that takes
-    longer than ``max_busy`` seconds (default ``WatchdogSec=``) stops the pings too, and systemd
-    restarts the service (``Restart=on-failure`` covers the watchdog). A silent source (machine
-    switched off, bus idle) does *not*: the runner's stall detection reports it instead of
-    restarting the daemon in a loop.
+    The worker calls :meth:`busy` before and :meth:`idle` after each window. The pings stop, and
+    systemd restarts the service (``Restart=on-failure`` covers the watchdog), when
+
+    * the worker has been in one window for more than ``max_busy`` seconds (stuck), or
+    * with ``require_windows`` (``[acquisition] watchdog = "windows"``, the default), no window
+      has finished for more than ``max_quiet`` seconds: the source went silent (the runner
+      reports the stall after ``stall_timeout``; if the driver does not recover it within
+      ``WatchdogSec=``, a fresh process is the next recovery step).
+
+    With ``require_windows`` off (``watchdog = "alive"``, for machines that are idle for long,
+    e.g. switched off at night) a silent source does not stop the pings: the stall is reported
+    and the daemon waits for data instead of restarting every ``WatchdogSec=``.
 
     Args:
         notifier: where to send the pings.
-        max_busy: seconds one window may take before the worker counts as stuck.
+        max_busy: seconds one window may take before the worker counts as stuck (default
+            ``WatchdogSec=``, twice the ping interval).
+        max_quiet: seconds without a finished window before the pings stop (default
+            ``WatchdogSec=``); counted from the first :meth:`tick`, so start-up has as long.
+        require_windows: stop the pings when no window finishes for ``max_quiet`` seconds.
         clock: monotonic clock (tests inject one).
     """
 
     def __init__(self, notifier: Notifier, *, max_busy: float | None = None,
+                 max_quiet: float | None = None, require_windows: bool = True,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.notifier = notifier
         self.interval = notifier.watchdog_interval
         if max_busy is None and self.interval is not None:
             max_busy = 2.0 * self.interval
+        if max_quiet is None and self.interval is not None:
+            max_quiet = 2.0 * self.interval
         self.max_busy = max_busy
+        self.max_quiet = max_quiet
+        self.require_windows = require_windows
         self._clock = clock
         self._last_ping: float | None = None
         self._busy_since: float | None = None
-        self._stuck_logged = False
+        self._last_window: float | None = None
+        self._why_logged: str | None = None
         self.pings = 0
 
     @property
@@ -213,11 +230,36 @@ class Watchdog:
     def idle(self) -> None:
         """The worker finished a window, successfully or not (worker thread)."""
         self._busy_since = None
+        self._last_window = self._clock()
+
+    def reset(self) -> None:
+        """Restart the quiet clock (a reload restarts the daemon: its first window needs a
+        window's worth of samples again)."""
+        self._last_window = self._clock()
+
+    def _unhealthy(self) -> tuple[str, str] | None:
+        """Why the pings must stop now (a key and an operator message), or None."""
+        now = self._clock()
+        since = self._busy_since
+        if since is not None and self.max_busy is not None and now - since > self.max_busy:
+            return "stuck", (f"the adaptation worker has been in one window for "
+                             f"{now - since:.0f} s: watchdog pings stop and systemd will "
+                             "restart twinwatch")
+        if self._last_window is None:
+            self._last_window = now
+        quiet = now - self._last_window
+        if (self.require_windows and since is None and self.max_quiet is not None
+                and quiet > self.max_quiet):
+            return "quiet", (f"no window processed for {quiet:.0f} s (the source is silent, "
+                             "see the stall report above): watchdog pings stop and systemd "
+                             "will restart twinwatch; for a machine that is idle for long, "
+                             'set [acquisition] watchdog = "alive"')
+        return None
 
     def healthy(self) -> bool:
-        """False while the worker has been in one window for more than ``max_busy`` s."""
-        since = self._busy_since
-        return since is None or self.max_busy is None or self._clock() - since <= self.max_busy
+        """False while the worker is stuck in one window or, with ``require_windows``, no
+        window has finished for more than ``max_quiet`` seconds."""
+        return self._unhealthy() is None
 
     def tick(self) -> bool:
         """Send ``WATCHDOG=1`` if one is due and the daemon is healthy (acquisition thread).
@@ -227,15 +269,14 @@ class Watchdog:
         """
         if not self.enabled:
             return False
-        now = self._clock()
-        if not self.healthy():
-            if not self._stuck_logged:
-                logger.error("the adaptation worker has been in one window for %.0f s: "
-                             "watchdog pings stop and systemd will restart twinwatch",
-                             now - (self._busy_since or now))
-                self._stuck_logged = True
+        why = self._unhealthy()
+        if why is not None:
+            if why[0] != self._why_logged:  # logged once per episode
+                logger.error("%s", why[1])
+                self._why_logged = why[0]
             return False
-        self._stuck_logged = False
+        self._why_logged = None
+        now = self._clock()
         assert self.interval is not None
         if self._last_ping is not None and now - self._last_ping < self.interval:
             return False
