@@ -23,6 +23,7 @@ from twinwatch.twin.discovery import (
 )
 from twinwatch.twin.estimation import Estimator
 from twinwatch.twin.metamodels import get_meta_model
+from twinwatch.twin.registry import create_model
 
 UNBALANCED_CONFIG = ROOT / "config" / "dc-motor-unbalanced-sim.toml"
 
@@ -174,6 +175,16 @@ def test_term_rendering_matches_the_issue() -> None:
               np.array([0.5, 0.01, 0.0, 0.0])[:2], (True, True), t_ref=160.0)
     assert t2.equation() == "d(ia)/dt += 0.50*exp(-0.0100*(t - 160.00)) A/s"
     assert math.isinf(t2.significance)
+    # a linear term without slope is a constant, read as the paper reads the leak
+    hyd = create_model("hydraulic_actuator")
+    leak = Term(get_meta_model("linear"), hyd.attach_point("p"), "t",
+                np.array([0.0, 0.2]), (False, True))
+    assert leak.describe() == ("p *= 1 + (0.20)  [constant on pressure: a steady gain (a leak, "
+                               "a constant load or loss; Table 1 linear: friction, "
+                               "misalignment, backlash)]")
+    slope = Term(get_meta_model("linear"), twin.attach_point("d(omega)/dt"), "omega",
+                 np.array([0.1, 0.0]), (True, False))
+    assert slope.meaning() == "linear on shaft speed: friction, misalignment, backlash"
 
 
 def test_the_recording_carries_the_model_document_and_residual_trace(tmp_path) -> None:  # type: ignore[no-untyped-def]

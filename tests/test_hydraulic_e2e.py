@@ -172,6 +172,10 @@ def test_internal_leak_discovery_finds_the_pressure_term_of_0p2():
         assert h["residual"]["dt_second"] is not None
         p_err = h["residual"]["dt_second"]["max_abs"]["p"]
         assert p_err / 50.0e3 < 0.01  # below 1 % of the pressure (>= 50 kPa; measured 1e-7)
+    # the term has settled to a constant, read as the paper reads it: a leak
+    (last,) = [t for t in after[-1]["terms"] if t["attach"] == "p"]
+    assert last["equation"] == "p *= 1 + (0.20)", last["equation"]
+    assert last["meaning"].startswith("constant on pressure: a steady gain (a leak")
     # without the term the twin is ~20 % off: the DT' residual shows the leak
     assert after[-1]["residual"]["dt_prime"]["max_abs"]["p"] > 0.15 * 50.0e3
 

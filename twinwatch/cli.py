@@ -155,7 +155,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     notifier.ready(status=_status_line(cfg, daemon))
 
     total = duration
-    if total is None and cfg.driver.type == "simulated":
+    if total is None and cfg.driver.type in ("simulated", "simulated_modbus"):
         total = cfg.driver.plant.duration  # type: ignore[union-attr]
     bar: Any = None
     if not no_progress:

@@ -198,7 +198,15 @@ class Term:
         return f"{self.attach.name} *= 1 + ({self.expression(precision)})"
 
     def meaning(self) -> str:
-        """Interpretation: the kind and where it acts, with Table 1's working conditions."""
+        """Interpretation: the kind and where it acts, with Table 1's working conditions.
+
+        A linear term without slope is a constant: a steady offset (additive) or gain change
+        (multiplicative) of the quantity, which the paper reads as a leak on the hydraulic
+        pressure (Section 5.3.2); Table 1's linear conditions are named after it."""
+        if self.meta.kind == "linear" and not self.active[0]:
+            what = "gain" if self.attach.mode == "multiplicative" else "offset"
+            return (f"constant on {self.attach.quantity}: a steady {what} (a leak, a constant "
+                    f"load or loss; Table 1 linear: {self.meta.meaning})")
         kind = self.meta.kind.replace("_", " ")
         return f"{kind} on {self.attach.quantity}: {self.meta.meaning}"
 
