@@ -34,9 +34,10 @@ entry in memory for the life of the file (``rerun.save(..., write_footer=True)``
 13 kB per window here (some 20 chunks per window: one per entity and flush), 13-23 MiB per 1000
 windows, so a service writing one file for months would grow without bound. The recorder
 therefore rotates: after ``[recording] rotate_windows`` windows (default 1800, one hour of 2 s
-windows) it closes the file (footer written, the manifest freed), renames it to
-``<stem>.<UTC time>.rrd`` beside it and starts a new ``path``; ``keep_files`` rotated files
-are kept (oldest deleted first). ``path`` is always the file being written.
+windows) it renames the file to ``<stem>.<UTC time>.<n>.rrd`` beside it and points the same
+recording stream at a new ``path`` (the renamed file is finalised: footer written, manifest
+freed); ``keep_files`` rotated files are kept (oldest deleted first). ``path`` is always the
+file being written; ``<stem>.rbl`` holds the viewer layout for the rotated files.
 """
 
 from __future__ import annotations
@@ -213,38 +214,64 @@ class RerunRecorder(Closeable):
         logger.info("recording %s to %s", machine, self.path)
 
     def _open_stream(self) -> rr.RecordingStream:
-        """A new recording stream saving to :attr:`path` (styles and blueprint sent)."""
+        """The recorder's one recording stream, saving to :attr:`path` with the default
+        blueprint; the blueprint is also written once to :attr:`blueprint_path`."""
         rec = rr.RecordingStream(self.config.application_id, recording_id=uuid.uuid4())
-        try:
-            rec.save(self.path, default_blueprint=self._blueprint())
-        except (OSError, RuntimeError, ValueError) as exc:
-            raise RecorderError(f"rerun cannot write {self.path}: {exc}") from exc
+        self._attach_file(rec, blueprint=True)
         if not rr.is_enabled(rec):
             logger.warning("rerun logging is disabled (RERUN=off?): %s stays empty", self.path)
-        rec.send_recording_name(f"{self.machine} twin")
-        self._log_styles(rec)
+        try:
+            self._blueprint().save(self.config.application_id, self.blueprint_path)
+        except (OSError, RuntimeError, ValueError) as exc:
+            logger.warning("cannot write the blueprint %s (%s): rotated files open with the "
+                           "viewer's default layout", self.blueprint_path, exc)
         return rec
 
+    def _attach_file(self, rec: rr.RecordingStream, *, blueprint: bool) -> None:
+        """Point ``rec`` at a new file at :attr:`path` (the previous file sink, if any, is
+        finalised: footer written) and send what each file needs on its own (recording name,
+        series styles)."""
+        try:
+            rec.save(self.path, default_blueprint=self._blueprint() if blueprint else None)
+        except (OSError, RuntimeError, ValueError) as exc:
+            raise RecorderError(f"rerun cannot write {self.path}: {exc}") from exc
+        rec.send_recording_name(f"{self.machine} twin")
+        self._log_styles(rec)
+
+    @property
+    def blueprint_path(self) -> Path:
+        """``<stem>.rbl`` beside :attr:`path`: the viewer layout, for rotated files
+        (``rerun twinwatch.*.rrd twinwatch.rbl``)."""
+        return self.path.with_suffix(".rbl")
+
     def _rotate(self) -> None:
-        """Close the current file (footer, manifest memory freed), rename it with the UTC
-        time, open a new one at :attr:`path`, and delete rotated files beyond ``keep_files``.
-        Called with the lock held. A failure keeps writing the current file."""
+        """Rename the current file with the UTC time, point the recording stream at a new file
+        at :attr:`path` (the renamed file's footer is written and its manifest memory freed),
+        and delete rotated files beyond ``keep_files``. Called with the lock held. A failure
+        stops the recording (logged once).
+
+        The stream is kept, not replaced: the Rerun SDK (0.41) never frees a Python recording
+        stream (rerun-io/rerun#2116: its batcher threads live on after ``disconnect``), so a new
+        stream per file leaked about 1 MiB and two threads per rotation. Every file of one run
+        therefore shares one recording id: opened together, the viewer shows them as one
+        recording. The blueprint is sent to the first file only (each send is a new stream);
+        the others use :attr:`blueprint_path`."""
         rec = self._rec
         assert rec is not None
         self._flush(rec)
-        rec.disconnect()
-        self._rec = None
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
                                     f"{self.path.suffix}")
         try:
-            self.path.rename(aside)
-            self._rec = self._open_stream()
+            self.path.rename(aside)  # the open file sink keeps writing to the renamed file
+            self._attach_file(rec, blueprint=False)
         except (OSError, RecorderError) as exc:
             self.errors += 1
             logger.error("cannot rotate the recording %s (%s): recording stops; fix the "
                          "directory's permissions or space and restart", self.path, exc)
             self._closed = True
+            self._rec = None
+            rec.disconnect()
             return
         self.rotations += 1
         self._file_windows = 0
