@@ -34,7 +34,7 @@ def _client_config(port: int) -> str:
     text = SIM.replace('mode = "peer"', 'mode = "client"')
     text = text.replace('listen = ["tcp/127.0.0.1:7447"]', f'connect = ["{endpoint(port)}"]')
     text = text.replace("\nconnect = []", "\nretry_max = 0.5")
-    text = text.replace("duration = 1200.0", "duration = 100000.0")
+    text = text.replace("duration = 1200.0", "duration = 100000.0\nfault_period = 1200.0")
     return text.replace("[recording]", "[recording]\nenabled = false")
 
 

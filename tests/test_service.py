@@ -231,7 +231,7 @@ def test_sighup_reloads_a_valid_config_and_refuses_a_bad_one(tmp_path: Path) -> 
     base = (ROOT / "config" / "dc-motor-sim.toml").read_text()
     base = base.replace("[zenoh]", "[zenoh]\nenabled = false")
     base = base.replace("[recording]", "[recording]\nenabled = false")
-    base = base.replace("duration = 1200.0", "duration = 100000.0")
+    base = base.replace("duration = 1200.0", "duration = 100000.0\nfault_period = 1200.0")
     cfg = tmp_path / "m.toml"
     _write_config(cfg, base)
     db = tmp_path / "state.sqlite"

@@ -68,8 +68,12 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     notifier = Notifier(unset_environment=True)
     _setup_logging(log_level)
     # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the journal)
-    # first, so a stuck worker or a hung driver read shows where it was.
-    faulthandler.enable()
+    # first, so a stuck worker or a hung driver read shows where it was. (An stderr without a
+    # file descriptor, e.g. click's test runner, has nowhere to write it.)
+    try:
+        faulthandler.enable()
+    except (AttributeError, ValueError, OSError):
+        logger.debug("faulthandler not enabled: stderr has no file descriptor")
     try:
         cfg = load_config(config) if config else default_config()
     except ConfigError as exc:
