@@ -9,12 +9,15 @@ over the virtual CAN bus, the adaptation worker, optionally Zenoh and Rerun) and
   window), after the first window (numba has compiled), every ``--every`` windows and at the end;
 * the RSS slope over the second half of the run in kB per 1000 windows (flat means ~0; note the
   daemon keeps the last ``[acquisition] history`` health messages, 1000 by default, in memory, so
-  RSS legitimately grows until that many windows have been processed);
+  RSS legitimately grows until that many windows have been processed); with ``--record``, also
+  the RSS just after each rotation and its slope (within a file RSS saw-tooths: Rerun keeps the
+  file's footer manifest until the file is rotated), so use an ``--every`` that divides
+  ``rotate_windows`` (1800);
 * with ``--tracemalloc``, the ten Python allocation sites that grew most between the first
   report after warm-up and the end.
 
 Usage, from the repository root or with twinwatch installed (6 h of plant time is the
-default: at the measured ~21x real time on 2 shared cores, about 17 minutes)::
+default: at the measured ~19x real time on 2 shared cores, about 19 minutes)::
 
     PYTHONPATH=. python benchmarks/soak.py          # 21600 s, no Zenoh, no recording
     python benchmarks/soak.py --duration 600 --every 50 --history 50
@@ -209,6 +212,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"RSS slope over the second half of the run: "
           f"{_slope_kib_per_1000(half):.0f} KiB per 1000 windows "
           f"(history kept in memory: {cfg.acquisition.history} health messages)")
+    rotate = cfg.recording.rotate_windows if args.record else 0
+    if rotate:
+        # Within a recording file RSS rises (Rerun's footer manifest) and falls at rotation:
+        # compare points at the same phase, just after each rotation.
+        at_rotation = [p for p in points if p[0] > 0 and p[0] % rotate == 0]
+        print("RSS just after each rotation: "
+              + ", ".join(f"{p[1] / 1024:.1f}" for p in at_rotation)
+              + f" MiB; slope {_slope_kib_per_1000(at_rotation):.0f} KiB per 1000 windows")
     if args.state:
         size = sum(p.stat().st_size for p in Path(cfg.state.path).parent.glob(
             Path(cfg.state.path).name + "*"))
