@@ -37,7 +37,6 @@ def test_unbalanced_shaft_is_discovered_and_kept() -> None:
     assert len(found) == 1, "one discovery, then the term is kept and re-validated"
     k0 = found[0]["window"]
     assert k0 <= 5  # after the K = 3 windows whose residual stays too large
-    assert found[0]["discovery"]["elapsed_s"] < 2.0  # within one window's length
     after = [h for h in history if h["window"] >= k0]
     worst_dt = []
     for h in after:

@@ -23,9 +23,11 @@ from __future__ import annotations
 
 import abc
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from twinwatch._lifecycle import Closeable
 
@@ -46,6 +48,30 @@ class DriverOperationError(DriverError):
 
 class EndOfStream(DriverError):  # noqa: N818 - mirrors StopIteration, not an error condition
     """A finite source has delivered its last sample."""
+
+
+ConfigT = TypeVar("ConfigT", bound=BaseModel)
+
+
+def validated_config(model: type[ConfigT], config: ConfigT | Mapping[str, Any],
+                     what: str) -> ConfigT:
+    """A driver's ``from_config`` input as its config model: returned as is when it already is
+    one, validated when it is a raw ``[driver]`` table.
+
+    Args:
+        model: the driver's pydantic config class.
+        config: a ``model`` instance or the raw table.
+        what: the driver's name for the message, e.g. ``"CAN"``.
+
+    Raises:
+        DriverInitializationError: the table does not validate (the message names the keys).
+    """
+    if isinstance(config, model):
+        return config
+    try:
+        return model.model_validate(config)
+    except ValidationError as exc:
+        raise DriverInitializationError(f"invalid {what} driver config: {exc}") from exc
 
 
 @dataclass(frozen=True, slots=True)

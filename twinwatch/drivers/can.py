@@ -59,7 +59,7 @@ from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 from cantools.database.errors import DecodeError
 from cantools.database.errors import Error as CantoolsError
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -68,6 +68,7 @@ from twinwatch.drivers.base import (
     EndOfStream,
     Sample,
     ScaledChannel,
+    validated_config,
 )
 
 logger = logging.getLogger(__name__)
@@ -369,11 +370,7 @@ class CanDriver(Driver):
         Raises:
             DriverInitializationError: the table does not validate, or see :class:`CanDriver`.
         """
-        if not isinstance(config, CanDriverConfig):
-            try:
-                config = CanDriverConfig.model_validate(config)
-            except ValidationError as exc:
-                raise DriverInitializationError(f"invalid CAN driver config: {exc}") from exc
+        config = validated_config(CanDriverConfig, config, "CAN")
         return cls(config, bus=bus, base_dir=base_dir)
 
     # -- construction -----------------------------------------------------------------------

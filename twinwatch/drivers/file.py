@@ -49,7 +49,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 import scipy.io
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -57,6 +57,7 @@ from twinwatch.drivers.base import (
     EndOfStream,
     Sample,
     ScaledChannel,
+    validated_config,
 )
 
 logger = logging.getLogger(__name__)
@@ -180,11 +181,7 @@ class FileDriver(Driver):
         Raises:
             DriverInitializationError: the table does not validate, or see :class:`FileDriver`.
         """
-        if not isinstance(config, FileDriverConfig):
-            try:
-                config = FileDriverConfig.model_validate(config)
-            except ValidationError as exc:
-                raise DriverInitializationError(f"invalid file driver config: {exc}") from exc
+        config = validated_config(FileDriverConfig, config, "file")
         return cls(config, base_dir=base_dir)
 
     # -- loading ----------------------------------------------------------------------------

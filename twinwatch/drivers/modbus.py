@@ -88,7 +88,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
@@ -100,6 +100,7 @@ from twinwatch.drivers.base import (
     DriverOperationError,
     Sample,
     ScaledChannel,
+    validated_config,
 )
 
 logger = logging.getLogger(__name__)
@@ -534,11 +535,7 @@ class ModbusDriver(Driver):
             DriverInitializationError: the table does not validate (the message names the key),
                 or see :class:`ModbusDriver`.
         """
-        if not isinstance(config, ModbusDriverConfig):
-            try:
-                config = ModbusDriverConfig.model_validate(config)
-            except ValidationError as exc:
-                raise DriverInitializationError(f"invalid Modbus driver config: {exc}") from exc
+        config = validated_config(ModbusDriverConfig, config, "Modbus")
         return cls(config)
 
     # -- construction -----------------------------------------------------------------------

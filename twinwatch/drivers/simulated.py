@@ -29,7 +29,7 @@ import can
 import cantools
 from pydantic import BaseModel, ConfigDict, Field
 
-from twinwatch.drivers.base import Driver, DriverInitializationError, Sample
+from twinwatch.drivers.base import Driver, DriverInitializationError, Sample, validated_config
 from twinwatch.drivers.can import CanDriver, CanDriverConfig, CanSignalMap
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
@@ -126,8 +126,7 @@ class SimulatedDriver(Driver):
     @classmethod
     def from_config(cls, config: SimulatedDriverConfig, *, base_dir: Path | None = None
                     ) -> SimulatedDriver:
-        if not isinstance(config, SimulatedDriverConfig):
-            config = SimulatedDriverConfig.model_validate(config)
+        config = validated_config(SimulatedDriverConfig, config, "simulated")
         return cls(config)
 
     def _send_next(self) -> None:

@@ -49,13 +49,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
     DriverInitializationError,
     EndOfStream,
     Sample,
+    validated_config,
 )
 from twinwatch.drivers.modbus import (
     ModbusChannelMap,
@@ -213,12 +214,7 @@ class SimulatedModbusDriver(Driver):
         Raises:
             DriverInitializationError: the table does not validate, or see the class.
         """
-        if not isinstance(config, SimulatedModbusDriverConfig):
-            try:
-                config = SimulatedModbusDriverConfig.model_validate(config)
-            except ValidationError as exc:
-                raise DriverInitializationError(
-                    f"invalid simulated Modbus driver config: {exc}") from exc
+        config = validated_config(SimulatedModbusDriverConfig, config, "simulated Modbus")
         return cls(config)
 
     def _take(self, timeout: float) -> Sample | None:
