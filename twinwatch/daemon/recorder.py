@@ -217,22 +217,24 @@ class RerunRecorder(Closeable):
         """The recorder's one recording stream, saving to :attr:`path` with the default
         blueprint; the blueprint is also written once to :attr:`blueprint_path`."""
         rec = rr.RecordingStream(self.config.application_id, recording_id=uuid.uuid4())
-        self._attach_file(rec, blueprint=True)
+        blueprint = self._blueprint()
+        self._attach_file(rec, blueprint=blueprint)
         if not rr.is_enabled(rec):
             logger.warning("rerun logging is disabled (RERUN=off?): %s stays empty", self.path)
         try:
-            self._blueprint().save(self.config.application_id, self.blueprint_path)
+            blueprint.save(self.config.application_id, self.blueprint_path)
         except (OSError, RuntimeError, ValueError) as exc:
             logger.warning("cannot write the blueprint %s (%s): rotated files open with the "
                            "viewer's default layout", self.blueprint_path, exc)
         return rec
 
-    def _attach_file(self, rec: rr.RecordingStream, *, blueprint: bool) -> None:
+    def _attach_file(self, rec: rr.RecordingStream, *,
+                     blueprint: rrb.Blueprint | None = None) -> None:
         """Point ``rec`` at a new file at :attr:`path` (the previous file sink, if any, is
         finalised: footer written) and send what each file needs on its own (recording name,
-        series styles)."""
+        series styles; the default blueprint when given)."""
         try:
-            rec.save(self.path, default_blueprint=self._blueprint() if blueprint else None)
+            rec.save(self.path, default_blueprint=blueprint)
         except (OSError, RuntimeError, ValueError) as exc:
             raise RecorderError(f"rerun cannot write {self.path}: {exc}") from exc
         rec.send_recording_name(f"{self.machine} twin")
@@ -252,7 +254,8 @@ class RerunRecorder(Closeable):
 
         The stream is kept, not replaced: the Rerun SDK (0.41) never frees a Python recording
         stream (rerun-io/rerun#2116: its batcher threads live on after ``disconnect``), so a new
-        stream per file leaked about 1 MiB and two threads per rotation. Every file of one run
+        stream per file (and one per blueprint sent) leaked about 1 MiB and four threads per
+        rotation. Every file of one run
         therefore shares one recording id: opened together, the viewer shows them as one
         recording. The blueprint is sent to the first file only (each send is a new stream);
         the others use :attr:`blueprint_path`."""
@@ -264,7 +267,7 @@ class RerunRecorder(Closeable):
                                     f"{self.path.suffix}")
         try:
             self.path.rename(aside)  # the open file sink keeps writing to the renamed file
-            self._attach_file(rec, blueprint=False)
+            self._attach_file(rec)
         except (OSError, RecorderError) as exc:
             self.errors += 1
             logger.error("cannot rotate the recording %s (%s): recording stops; fix the "

@@ -250,10 +250,11 @@ class Watchdog:
         quiet = now - self._last_window
         if (self.require_windows and since is None and self.max_quiet is not None
                 and quiet > self.max_quiet):
-            return "quiet", (f"no window processed for {quiet:.0f} s (the source is silent, "
-                             "see the stall report above): watchdog pings stop and systemd "
-                             "will restart twinwatch; for a machine that is idle for long, "
-                             'set [acquisition] watchdog = "alive"')
+            return "quiet", (f"no window processed for {quiet:.0f} s (no samples, or every "
+                             "window abandoned for gaps or bad values: see the warnings "
+                             "above): watchdog pings stop and systemd will restart twinwatch; "
+                             "for a machine that is idle for long, set [acquisition] "
+                             'watchdog = "alive"')
         return None
 
     def healthy(self) -> bool:
