@@ -150,7 +150,7 @@ class DCMotorPlantConfig(BaseModel):
             age = self.duration - self.fault_start
             if self.fault_period is not None:
                 age = min(age, self.fault_period)
-            ra_min = self.Ra - 0.044 * (math.exp(0.003 * max(age, 0.0)) - 1.0)
+            ra_min = self.Ra - RA_DROP * _ramp(age)
             if ra_min < 0.1 * self.Ra:
                 raise ValueError(
                     f"duration: under resistance_degradation Ra(t) = Ra - 0.044 (exp(0.003 (t - "
@@ -158,6 +158,18 @@ class DCMotorPlantConfig(BaseModel):
                     f"10 % of Ra (the plant is no longer a motor); shorten the run or set "
                     f"fault_period (e.g. 1200 s: the part is replaced every 20 min)")
         return self
+
+
+#: The paper's degradation laws (NOTES.md): Ra(t) = Ra - RA_DROP*x, D(t) = D + D_RISE*x with
+#: x = exp(RATE*age) - 1, age = t - fault_start [s] (modulo fault_period when set).
+RA_DROP = 0.044          # ohm
+D_RISE = 0.00003806      # N m s/rad
+RATE = 0.003             # 1/s
+
+
+def _ramp(age: float) -> float:
+    """x = exp(RATE*age) - 1 of the degradation laws; 0 before the onset (age < 0)."""
+    return math.exp(RATE * age) - 1.0 if age >= 0 else 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -177,9 +189,9 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # p
         if period > 0.0 and age > 0.0:
             age = age % period
         if scenario == 1 and t >= t_fault:
-            ra = ra0 - 0.044 * (math.exp(0.003 * age) - 1.0)
+            ra = ra0 - RA_DROP * (math.exp(RATE * age) - 1.0)
         elif scenario == 2 and t >= t_fault:
-            d = d0 + 0.00003806 * (math.exp(0.003 * age) - 1.0)
+            d = d0 + D_RISE * (math.exp(RATE * age) - 1.0)
         e = sp - w
         va = kp * e + ki * z
         z += dt * e
@@ -239,9 +251,9 @@ class DCMotorPlant:
         age = t - c.fault_start
         if c.fault_period is not None and age > 0:
             age %= c.fault_period
-        x = math.exp(0.003 * age) - 1.0 if t >= c.fault_start else 0.0
-        ra = c.Ra - 0.044 * x if c.scenario == "resistance_degradation" else c.Ra
-        d = c.D + 0.00003806 * x if c.scenario == "bearing_wear" else c.D
+        x = _ramp(age)
+        ra = c.Ra - RA_DROP * x if c.scenario == "resistance_degradation" else c.Ra
+        d = c.D + D_RISE * x if c.scenario == "bearing_wear" else c.D
         return PlantTruth(Ra=ra, D=d)
 
     def next_sample(self) -> Sample:
