@@ -35,6 +35,7 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -53,6 +54,9 @@ from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 logger = logging.getLogger(__name__)
 
 _BAD_COST = 1e6  # fitness of a particle whose simulation blew up
+
+#: What a published parameter value is: see :attr:`WindowEstimate.status`.
+ParameterStatus = Literal["estimated", "held", "tied", "fixed"]
 
 
 class PSOSettings(BaseModel):
@@ -151,6 +155,9 @@ class WindowEstimate:
         generations: PSO iterations run; ``time_capped`` tells whether the time budget hit.
         evaluations: twin simulations of one parameter vector (particles + polish).
         trusted: whether this window updated the trusted parameters.
+        status: every model parameter -> ``estimated`` (determined by this window),
+            ``held`` (not determined: its last trusted value, reason in :attr:`held`),
+            ``tied`` (equals another parameter) or ``fixed`` (nameplate, not estimated).
     """
 
     values: dict[str, float]
@@ -167,6 +174,7 @@ class WindowEstimate:
     trusted: bool = False
     pso_nrmse: float = math.nan
     extra: dict[str, object] = field(default_factory=dict)
+    status: dict[str, ParameterStatus] = field(default_factory=dict)
 
 
 class _SwarmProblem(Problem):  # type: ignore[misc]
@@ -346,6 +354,16 @@ class Estimator:
             elif n not in names_est:
                 held.setdefault(n, "fixed (nameplate)")
         estimated = {names_est[k]: values[names_est[k]] for k in selected}
+        status: dict[str, ParameterStatus] = {}
+        for n in self.names:
+            if n in estimated:
+                status[n] = "estimated"
+            elif n in self.config.tie:
+                status[n] = "tied"
+            elif n not in names_est:
+                status[n] = "fixed"
+            else:
+                status[n] = "held"
         trusted = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse)
         if trusted:
             for k, n in zip(selected, (names_est[k] for k in selected), strict=True):
@@ -367,6 +385,7 @@ class Estimator:
             evaluations=evals,
             trusted=trusted,
             pso_nrmse=pso_cost,
+            status=status,
         )
 
     # -- helpers --------------------------------------------------------------------------
