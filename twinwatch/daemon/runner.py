@@ -182,8 +182,13 @@ class Daemon:
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
         """Resume from the state database: the last accepted twin (trusted parameters and
-        meta-model terms) and the alarm levels of the last window."""
+        meta-model terms) and the alarm levels of the last window. Both are read before
+        either is used: a corrupt database (moved aside by ``recover_corrupt``) resumes
+        nothing."""
         state = self.store.load_twin_state(self.machine)
+        last = self.store.latest_health(self.machine)
+        if self.store.recovered:
+            state = last = None
         if state is not None:
             try:
                 self.adapter.restore(state)
@@ -197,7 +202,6 @@ class Daemon:
                                self.machine, self.store.path,
                                ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
                                len(state.get("terms", [])))
-        last = self.store.latest_health(self.machine)
         if last is not None and last.get("alarms"):
             self.alarms.restore(last["alarms"])
 

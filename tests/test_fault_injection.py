@@ -1,0 +1,176 @@
+"""Fault injection: bad input, broken files and resources, and a new user's first run.
+
+Each case injects one fault and returns what it observed as a small dict of facts; the test
+compares it with the case's ``expected`` dict, so a failure prints case, expected and observed
+side by side. The cases are registered with :func:`case` in the order of issue #10's list;
+read them top to bottom as a table (``pytest tests/test_fault_injection.py -v`` lists them).
+
+Faults tested elsewhere: CAN bad frames and NaN (test_drivers_can.py), gaps, NaN windows,
+overruns and a failing window (test_daemon.py), a Modbus server that goes away
+(test_drivers_modbus.py), a silent source (test_watchdog.py), SIGKILL mid-write
+(test_store.py, test_service.py).
+
+Runs are short (a few 2 s windows of the simulated motor, Zenoh and the recording off unless
+the case is about them); every socket is on 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from twinwatch.cli import main
+from twinwatch.daemon.store import StateStore
+
+from .conftest import ROOT
+
+SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    expected: dict[str, Any]
+    run: Callable[[Context], dict[str, Any]]
+
+
+@dataclass
+class Context:
+    tmp: Path
+    caplog: pytest.LogCaptureFixture
+    monkeypatch: pytest.MonkeyPatch
+
+
+CASES: list[Case] = []
+
+
+def case(name: str, **expected: Any) -> Callable[[Callable[[Context], dict[str, Any]]],
+                                                  Callable[[Context], dict[str, Any]]]:
+    """Register the decorated function as a fault case: it returns the observed facts."""
+
+    def register(fn: Callable[[Context], dict[str, Any]]) -> Callable[[Context], dict[str, Any]]:
+        CASES.append(Case(name, expected, fn))
+        return fn
+
+    return register
+
+
+# -- helpers ------------------------------------------------------------------------------
+def sim_config(tmp: Path, *, duration: float = 6.0, zenoh: bool = False,
+               recording: bool = False, extra: str = "", **replace: str) -> Path:
+    """The simulated motor's example config, short, written to ``tmp/m.toml``."""
+    text = SIM.replace("duration = 1200.0", f"duration = {duration}")
+    if not zenoh:
+        text = text.replace("[zenoh]", "[zenoh]\nenabled = false")
+    if not recording:
+        text = text.replace("[recording]", "[recording]\nenabled = false")
+    text = text.replace('path = "state.sqlite"', f'path = "{tmp / "state.sqlite"}"')
+    for old, new in replace.items():
+        assert old in text, old
+        text = text.replace(old, new)
+    path = tmp / "m.toml"
+    path.write_text(text + extra)
+    return path
+
+
+def cli(*args: str) -> Any:
+    """``twinwatch ARGS`` in this process (click's runner): exit code and output."""
+    return CliRunner().invoke(main, list(args), catch_exceptions=True)
+
+
+def health(window: int, machine: str = "dc-motor-sim") -> dict[str, Any]:
+    return {"machine": machine, "window": window, "t_start": 2.0 * window,
+            "t_end": 2.0 * window + 1.99, "parameters": {}, "alarms": {}}
+
+
+def corrupt_pages(db: Path, first_page: int = 6, pages: int = 20) -> None:
+    """Overwrite pages in the middle of a database, leaving its header intact."""
+    con = sqlite3.connect(db)
+    con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    con.close()
+    with db.open("r+b") as f:
+        f.seek(4096 * first_page)
+        f.write(b"\x5a" * (4096 * pages))
+
+
+def filled_store(db: Path, windows: int = 300) -> None:
+    twin = {"parameters": {"Ra": 6.0}, "trusted": {"Ra": 6.0}, "terms": []}
+    with StateStore(db) as st:
+        for w in range(windows):
+            st.save_window(health(w), twin)
+
+
+# -- 1. the state database ------------------------------------------------------------------
+@case("state db: header intact, pages corrupt, recover_corrupt = true: `run` at start",
+      exit_code=0, moved_aside=1, resumed=False, says_set_recover_corrupt=False,
+      windows_stored=3)
+def _corrupt_pages_at_start(ctx: Context) -> dict[str, Any]:
+    db = ctx.tmp / "state.sqlite"
+    filled_store(db)
+    corrupt_pages(db)
+    cfg = sim_config(ctx.tmp, extra="recover_corrupt = true\n")
+    r = cli("run", str(cfg), "--no-progress", "--log-level", "info")
+    with StateStore(db) as st:
+        stored = st.count()
+    text = r.output + ctx.caplog.text
+    return {"exit_code": r.exit_code,
+            "moved_aside": len(list(ctx.tmp.glob("state.sqlite.corrupt-*"))) - len(
+                list(ctx.tmp.glob("state.sqlite.corrupt-*-*"))),
+            "resumed": "resumed the twin" in text,
+            "says_set_recover_corrupt": "set [state] recover_corrupt" in text
+            or "set recover_corrupt" in text,
+            "windows_stored": stored}
+
+
+@case("state db: header intact, pages corrupt, recover_corrupt = false: `run` at start",
+      exit_code=1, names_the_fix="set [state] recover_corrupt = true", moved_aside=0)
+def _corrupt_pages_no_recovery(ctx: Context) -> dict[str, Any]:
+    db = ctx.tmp / "state.sqlite"
+    filled_store(db)
+    corrupt_pages(db)
+    r = cli("run", str(sim_config(ctx.tmp)), "--no-progress")
+    fix = "set [state] recover_corrupt = true"
+    return {"exit_code": r.exit_code,
+            "names_the_fix": fix if fix in r.output else r.output[-300:],
+            "moved_aside": len(list(ctx.tmp.glob("state.sqlite.corrupt-*")))}
+
+
+@case("state db: corruption found at run time by a history query (another thread)",
+      moved_aside=1, history_after=0, next_window_stored=True, rows_in_new_db=1)
+def _corrupt_pages_at_run_time(ctx: Context) -> dict[str, Any]:
+    db = ctx.tmp / "state.sqlite"
+    with StateStore(db, recover_corrupt=True) as st:
+        for w in range(300):
+            st.save_window(health(w), None)
+        corrupt_pages(db)
+        got: list[Any] = []
+        reader = threading.Thread(target=lambda: got.append(st.history(limit=None)),
+                                  name="zenoh-history-query")
+        reader.start()
+        reader.join()
+        stored = st.save_window(health(300), None)
+        rows = st.count()
+    return {"moved_aside": len(list(ctx.tmp.glob("state.sqlite.corrupt-*"))),
+            "history_after": len(got[0]) if got else None,
+            "next_window_stored": stored, "rows_in_new_db": rows}
+
+
+# -- the table ------------------------------------------------------------------------------
+@pytest.mark.parametrize("fault", CASES, ids=[c.name for c in CASES])
+def test_fault(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,
+               monkeypatch: pytest.MonkeyPatch) -> None:
+    caplog.set_level(logging.INFO)
+    monkeypatch.chdir(tmp_path)
+    observed = fault.run(Context(tmp_path, caplog, monkeypatch))
+    assert observed == fault.expected, (
+        f"\ncase:     {fault.name}\nexpected: {json.dumps(fault.expected)}\n"
+        f"observed: {json.dumps(observed, default=str)}")
