@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import can
+import cantools
 import pytest
 from click.testing import CliRunner
 
@@ -162,6 +164,89 @@ def _corrupt_pages_at_run_time(ctx: Context) -> dict[str, Any]:
     return {"moved_aside": len(list(ctx.tmp.glob("state.sqlite.corrupt-*"))),
             "history_after": len(got[0]) if got else None,
             "next_window_stored": stored, "rows_in_new_db": rows}
+
+
+# -- 3. a malformed line in a CAN log --------------------------------------------------------
+PLANT_DBC = ROOT / "twinwatch" / "plant" / "dcmotor.dbc"
+
+
+def candump_log(path: Path, n: int, bad_lines: dict[int, str] | None = None) -> None:
+    """A candump log of ``n`` plant samples (3 frames each), with some lines replaced."""
+    db = cantools.database.load_file(PLANT_DBC)
+    lines = []
+    for k in range(n):
+        for name, sig in (("TW_Motor_Electrical", {"Va": 2.0, "ia": 0.5}),
+                          ("TW_Motor_Mechanical", {"omega": 10.0 * k, "Tload": 0.0}),
+                          ("TW_Motor_Sample", {"setpoint": 1.0, "sample_counter": k})):
+            msg = db.get_message_by_name(name)
+            lines.append(f"({k * 0.01:.6f}) can0 {msg.frame_id:03X}#"
+                         f"{msg.encode(sig).hex().upper()}")
+    for i, text in (bad_lines or {}).items():
+        lines[i] = text
+    path.write_text("\n".join(lines) + "\n")
+
+
+def can_log_driver(log: Path) -> dict[str, Any]:
+    return {"type": "can", "dbc": str(PLANT_DBC), "log_file": str(log),
+            "sync_message": "TW_Motor_Sample", "time_source": "counter",
+            "counter_signal": "TW_Motor_Sample.sample_counter", "sample_period": 0.01,
+            "signals": {"Va": {"message": "TW_Motor_Electrical", "signal": "Va"},
+                        "ia": {"message": "TW_Motor_Electrical", "signal": "ia"},
+                        "omega": {"message": "TW_Motor_Mechanical", "signal": "omega"},
+                        "Tload": {"message": "TW_Motor_Mechanical", "signal": "Tload"},
+                        "setpoint": {"message": "TW_Motor_Sample", "signal": "setpoint"}}}
+
+
+def replay(driver_table: dict[str, Any], base_dir: Path) -> tuple[list[Any], Any, str]:
+    """Read a driver to its end: samples, stats, and how it ended."""
+    from twinwatch.drivers import DriverError, EndOfStream, create_driver
+
+    samples = []
+    with create_driver(driver_table, base_dir=base_dir) as drv:
+        try:
+            while (s := drv.read(0)) is not None or True:
+                if s is not None:
+                    samples.append(s)
+        except EndOfStream:
+            end = "end of stream"
+        except DriverError as exc:
+            end = f"{type(exc).__name__}: {exc}"
+    return samples, drv.stats, end
+
+
+@case("CAN candump log: one malformed line in the middle of 50 samples",
+      end="end of stream", samples=49, bad_frames=1, logged_line_number=True)
+def _can_log_malformed_line(ctx: Context) -> dict[str, Any]:
+    log = ctx.tmp / "m.log"
+    candump_log(log, 50, {77: "(0.250000) can0 this-is-not-a-frame"})  # sample 25 sync
+    samples, stats, end = replay(can_log_driver(log), ctx.tmp)
+    return {"end": end, "samples": len(samples), "bad_frames": stats.bad_frames,
+            "logged_line_number": "CAN log line 78 is malformed" in ctx.caplog.text}
+
+
+@case("CAN candump log: three malformed lines (garbage, short, bad hex)",
+      end="end of stream", samples=47, bad_frames=3)
+def _can_log_three_malformed_lines(ctx: Context) -> dict[str, Any]:
+    log = ctx.tmp / "m.log"
+    candump_log(log, 50, {2: "garbage", 32: "(0.1) can0", 62: "(0.2) can0 12Z#ZZ"})
+    samples, stats, end = replay(can_log_driver(log), ctx.tmp)
+    return {"end": end, "samples": len(samples), "bad_frames": stats.bad_frames}
+
+
+@case("CAN .csv log (python-can format, with a header): one malformed line",
+      end="end of stream", samples=19, bad_frames=1)
+def _can_csv_log_malformed_line(ctx: Context) -> dict[str, Any]:
+    src = ctx.tmp / "m.log"
+    candump_log(src, 20)
+    csv_log = ctx.tmp / "m.csv"
+    with can.LogReader(src) as reader, can.CSVWriter(csv_log) as writer:
+        for msg in reader:
+            writer.on_message_received(msg)
+    lines = csv_log.read_text().splitlines()
+    lines[33] = "0.1,not,a,frame"  # sample 10: its sync frame (lines[0] is the header)
+    csv_log.write_text("\n".join(lines) + "\n")
+    samples, stats, end = replay(can_log_driver(csv_log), ctx.tmp)
+    return {"end": end, "samples": len(samples), "bad_frames": stats.bad_frames}
 
 
 # -- the table ------------------------------------------------------------------------------
