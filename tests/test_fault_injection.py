@@ -249,6 +249,59 @@ def _can_csv_log_malformed_line(ctx: Context) -> dict[str, Any]:
     return {"end": end, "samples": len(samples), "bad_frames": stats.bad_frames}
 
 
+# -- 4. configuration values that must be refused --------------------------------------------
+def refused(ctx: Context, key: str, **replace: str) -> dict[str, Any]:
+    """check-config and run on the simulated motor's config with ``replace`` applied."""
+    cfg = sim_config(ctx.tmp, **replace)
+    check = cli("check-config", str(cfg))
+    run = cli("run", str(cfg), "--no-progress")
+    return {"check_config": check.exit_code, "run": run.exit_code,
+            "names_the_key": key in check.output and key in run.output,
+            "traceback": "Traceback" in check.output + run.output
+            or not isinstance(check.exception, SystemExit | None)
+            or not isinstance(run.exception, SystemExit | None)}
+
+
+REFUSED = {"check_config": 1, "run": 78, "names_the_key": True, "traceback": False}
+
+
+@case("config: [machine.parameters] Ra = nan (the alarm could never fire)", **REFUSED)
+def _nan_nameplate(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "machine.parameters.Ra", **{"Ra = 6.5 ": "Ra = nan "})
+
+
+@case("config: [machine.parameters] Ra = -6.5", **REFUSED)
+def _negative_nameplate(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "machine.parameters", **{"Ra = 6.5 ": "Ra = -6.5 "})
+
+
+@case("config: acquisition.window = 1000000000 (numpy would die allocating it)", **REFUSED)
+def _huge_window(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "acquisition.window", **{"window = 200": "window = 1000000000"})
+
+
+@case("config: acquisition.sample_period = inf", **REFUSED)
+def _infinite_sample_period(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "acquisition.sample_period",
+                   **{"sample_period = 0.01": "sample_period = inf"})
+
+
+@case("config: estimation.bounds Ra = [1.0, inf]", **REFUSED)
+def _infinite_bound(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "estimation.bounds.Ra", **{"Ra = [1.0, 30.0]": "Ra = [1.0, inf]"})
+
+
+@case("config: machine.name of 1 MB", **REFUSED)
+def _huge_machine_name(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "machine.name",
+                   **{'name = "dc-motor-sim"': f'name = "{"m" * 1_000_000}"'})
+
+
+@case("config: machine.options.sub_step = 0 (a division by zero in the model)", **REFUSED)
+def _zero_sub_step(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "machine", **{"sub_step = 1e-4": "sub_step = 0.0"})
+
+
 # -- the table ------------------------------------------------------------------------------
 @pytest.mark.parametrize("fault", CASES, ids=[c.name for c in CASES])
 def test_fault(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,
