@@ -302,6 +302,50 @@ def _zero_sub_step(ctx: Context) -> dict[str, Any]:
     return refused(ctx, "machine", **{"sub_step = 1e-4": "sub_step = 0.0"})
 
 
+# -- 8. the history query ------------------------------------------------------------------
+@case("history query: limit=inf, t_from=inf, limit=0, t_from>t_to, a misspelt key; then 30 "
+      "more bad queries",
+      replies=["error: limit='inf'", "error: t_from='inf'", "error: limit='0'",
+               "error: t_from=5 is after t_to=1", "error: unknown parameter 'tfrom'",
+               "ok: 2 windows"],
+      log_lines=1, tracebacks=0)
+def _history_bad_parameters(ctx: Context) -> dict[str, Any]:
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.runner import Daemon
+
+    from .test_service import zsession
+    from .test_zenoh_publisher import endpoint, free_port
+
+    port = free_port()
+    cfg = default_config()
+    cfg.zenoh.listen = [endpoint(port)]
+    cfg.recording.enabled = False
+    cfg.state.path = str(ctx.tmp / "state.sqlite")
+    replies = []
+    with Daemon(cfg, persist=True, record=False) as daemon:
+        for w in range(2):
+            daemon.store.save_window(health(w), None)
+        base = f"twinwatch/{cfg.machine.name}/history"
+        ctx.caplog.clear()
+        with zsession("client", connect=[endpoint(port)]) as s:
+            for sel in ("limit=inf", "t_from=inf", "limit=0", "t_from=5;t_to=1", "tfrom=3",
+                        "t_from=0;t_to=10;limit=5"):
+                for r in s.get(f"{base}?{sel}", timeout=5.0):
+                    if r.ok is not None:
+                        replies.append(f"ok: {json.loads(r.ok.payload.to_string())['count']} "
+                                       f"windows")
+                    else:
+                        replies.append("error: " + r.err.payload.to_string())
+            for _ in range(30):
+                list(s.get(f"{base}?limit=inf", timeout=5.0))
+    logged = [r for r in ctx.caplog.records if "query" in r.getMessage()
+              and r.levelno >= logging.WARNING]
+    return {"replies": [r.split(":")[0] + ": " + r.split(": ", 1)[1].split(":")[0]
+                        if r.startswith("error") else r for r in replies],
+            "log_lines": len(logged),
+            "tracebacks": sum(r.exc_info is not None for r in ctx.caplog.records)}
+
+
 # -- the table ------------------------------------------------------------------------------
 @pytest.mark.parametrize("fault", CASES, ids=[c.name for c in CASES])
 def test_fault(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,

@@ -21,6 +21,7 @@ as fast as possible) the acquisition waits instead, so no window is ever lost.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -215,24 +216,12 @@ class Daemon:
                                   machine=self.machine)
 
     def _on_history_query(self, query: Any) -> dict[str, Any]:
-        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread)."""
-        params = query.parameters
+        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread).
 
-        def num(key: str) -> float | None:
-            raw = params.get(key)
-            if raw in (None, ""):
-                return None
-            try:
-                return float(raw)
-            except ValueError:
-                raise ValueError(f"{key}={raw!r} is not a number [s]") from None
-
-        by = params.get("by") or "plant"
-        if by not in ("plant", "wall"):
-            raise ValueError(f"by={by!r}: use by=plant (source time) or by=wall (epoch s)")
-        lim = num("limit")
-        limit = HISTORY_LIMIT if lim is None else max(1, min(int(lim), HISTORY_LIMIT))
-        t_from, t_to = num("t_from"), num("t_to")
+        Raises:
+            ValueError: a bad parameter (replied as an error naming it).
+        """
+        t_from, t_to, limit, by = history_parameters(query.parameters)
         windows = self.stored_history(t_from, t_to, limit, by=by)
         more = len(windows) == limit
         return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to,
@@ -449,6 +438,62 @@ class Daemon:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit")
+
+
+def history_parameters(params: Any) -> tuple[float | None, float | None, int, str]:
+    """The history query's parameters, checked: ``t_from`` and ``t_to`` finite seconds (either
+    may be absent), ``t_from <= t_to``, ``by`` ``plant`` or ``wall``, ``limit`` a whole number
+    from 1 (at most :data:`HISTORY_LIMIT` are returned).
+
+    Args:
+        params: the selector's parameters (a mapping with ``get``, zenoh's ``Parameters``).
+
+    Returns:
+        ``(t_from, t_to, limit, by)``.
+
+    Raises:
+        ValueError: naming the bad parameter.
+    """
+    unknown = [k for k, _ in _items(params) if k not in HISTORY_PARAMETERS]
+    if unknown:
+        raise ValueError(f"unknown parameter {unknown[0]!r}: use "
+                         f"{', '.join(HISTORY_PARAMETERS)}")
+
+    def num(key: str) -> float | None:
+        raw = params.get(key)
+        if raw in (None, ""):
+            return None
+        try:
+            value = float(raw)
+        except ValueError:
+            raise ValueError(f"{key}={raw!r} is not a number [s]") from None
+        if not math.isfinite(value):
+            raise ValueError(f"{key}={raw!r}: give a finite time [s], or leave it out for "
+                             f"an open end")
+        return value
+
+    by = params.get("by") or "plant"
+    if by not in ("plant", "wall"):
+        raise ValueError(f"by={by!r}: use by=plant (source time) or by=wall (epoch s)")
+    t_from, t_to = num("t_from"), num("t_to")
+    if t_from is not None and t_to is not None and t_from > t_to:
+        raise ValueError(f"t_from={t_from:g} is after t_to={t_to:g}")
+    lim = num("limit")
+    if lim is not None and (lim < 1 or not lim.is_integer()):
+        raise ValueError(f"limit={params.get('limit')!r}: give a whole number from 1 "
+                         f"(at most {HISTORY_LIMIT} are returned)")
+    limit = HISTORY_LIMIT if lim is None else min(int(lim), HISTORY_LIMIT)
+    return t_from, t_to, limit, by
+
+
+def _items(params: Any) -> list[tuple[str, str]]:
+    """(key, value) pairs of zenoh ``Parameters`` or a plain mapping."""
+    if isinstance(params, dict):
+        return list(params.items())
+    return [(str(k), str(v)) for k, v in params]
 
 
 def _no_history(query: Any) -> dict[str, Any]:
