@@ -346,6 +346,63 @@ def _history_bad_parameters(ctx: Context) -> dict[str, Any]:
             "tracebacks": sum(r.exc_info is not None for r in ctx.caplog.records)}
 
 
+# -- 9. reload, CSV quotes, file modes -------------------------------------------------------
+@case("SIGHUP reload keeps the state database open: the window index goes on under the "
+      "same run id", runs=1, windows=[0, 1, 2, 3, 4, 5], duplicate_rows=0)
+def _reload_window_index(ctx: Context) -> dict[str, Any]:
+    from twinwatch.config.loader import load_config
+    from twinwatch.daemon.runner import SINKS, Daemon
+
+    cfg = load_config(sim_config(ctx.tmp))
+    first = Daemon(cfg, persist=True, publish=False, record=False)
+    first.run()
+    kept = first.close(keep=SINKS)  # what the CLI does on SIGHUP
+    second = Daemon(cfg, persist=True, publish=False, record=False, reuse=kept)
+    second.run()
+    second.close()
+    con = sqlite3.connect(ctx.tmp / "state.sqlite")
+    rows = con.execute("SELECT run, window FROM health ORDER BY id").fetchall()
+    con.close()
+    return {"runs": len({r for r, _ in rows}), "windows": [w for _, w in rows],
+            "duplicate_rows": len(rows) - len(set(rows))}
+
+
+@case("CSV recording: one unterminated quote on line 304 of 1001",
+      samples=1000, bad_values=2, rows_after_it_read=True, names_the_line=True)
+def _csv_unterminated_quote(ctx: Context) -> dict[str, Any]:
+    lines = ["t,Va,omega"] + [f"{k * 0.01:.2f},{k},{2 * k}" for k in range(1000)]
+    lines[303] = '3.02,"302,604'  # row 302: line 304 of the file (line 1: header)
+    data = ctx.tmp / "rec.csv"
+    data.write_text("\n".join(lines) + "\n")
+    samples, stats, _ = replay({"type": "file", "path": str(data), "time_column": "t",
+                                "sample_period": 0.01,
+                                "columns": {"Va": {"column": "Va"},
+                                            "omega": {"column": "omega"}}}, ctx.tmp)
+    return {"samples": len(samples), "bad_values": stats.bad_values,
+            "rows_after_it_read": samples[-1].values["omega"] == 1998.0,
+            "names_the_line": "(first: line 304)" in ctx.caplog.text}
+
+
+@case("files `run` creates outside systemd, with umask 022: not readable by others",
+      exit_code=0, others_can_read=[], umask_restored=True)
+def _file_modes(ctx: Context) -> dict[str, Any]:
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        r = cli("run", str(sim_config(ctx.tmp, duration=4.0, recording=True)), "--no-progress")
+        after = os.umask(0o022)
+    finally:
+        os.umask(old)
+    made = [p for p in ctx.tmp.iterdir() if p.name != "m.toml"]
+    assert {"state.sqlite", "twinwatch.rrd", "twinwatch.rbl"} <= {p.name for p in made}
+    return {"exit_code": r.exit_code,
+            "others_can_read": sorted(p.name for p in made
+                                      if p.stat().st_mode & stat.S_IROTH),
+            "umask_restored": after == 0o022}
+
+
 # -- the table ------------------------------------------------------------------------------
 @pytest.mark.parametrize("fault", CASES, ids=[c.name for c in CASES])
 def test_fault(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,

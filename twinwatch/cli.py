@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import faulthandler
 import logging
+import os
 import signal
 import sys
 import threading
@@ -67,6 +68,11 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
 
     notifier = Notifier(unset_environment=True)
     _setup_logging(log_level)
+    # Files the daemon creates (state database, recordings, layout) are 0640 and directories
+    # 0750, as under the unit's UMask=0027, also when run by hand; a stricter umask is kept.
+    old_umask = os.umask(0o027)
+    os.umask(old_umask | 0o027)
+    click.get_current_context().call_on_close(lambda: os.umask(old_umask))
     # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the journal)
     # first, so a stuck worker or a hung driver read shows where it was. (An stderr without a
     # file descriptor, e.g. click's test runner, has nowhere to write it.)

@@ -32,6 +32,8 @@ class RingBuffer:
         sample_period: nominal sample period [s].
         capacity: ring size in samples (default 4 windows).
         max_gap: largest allowed step between time stamps, in sample periods.
+        first_index: index of the first window (a reload goes on from the last window of the
+            run instead of numbering from 0 again).
     """
 
     def __init__(
@@ -42,6 +44,7 @@ class RingBuffer:
         sample_period: float = 0.01,
         capacity: int | None = None,
         max_gap: float = 1.5,
+        first_index: int = 0,
     ) -> None:
         if window < 2:
             raise ValueError("window must hold at least 2 samples")
@@ -58,6 +61,7 @@ class RingBuffer:
         self._count = 0  # samples in the current (partial) window
         self._last_t: float | None = None
         self._windows = 0
+        self.first_index = first_index
         self.discarded: Counter[str] = Counter()  #: reason -> partial windows abandoned
         self.bad_samples = 0
         self._warned: set[str] = set()
@@ -108,7 +112,7 @@ class RingBuffer:
         win = WindowData(
             t=self._t[idx].copy(),
             channels={c: self._v[idx, j].copy() for j, c in enumerate(self.channels)},
-            index=self._windows,
+            index=self.first_index + self._windows,
         )
         self._windows += 1
         return win

@@ -136,6 +136,7 @@ class Daemon:
         self._lock = threading.Lock()
         self.abandon = config.acquisition.abandon_on_stop
         handed = dict(reuse or {})
+        handed_store = handed.get("store", (None, None))[0]
         try:
             for name in SINKS:
                 item = handed.pop(name, None)
@@ -157,6 +158,9 @@ class Daemon:
                                         keep_days=st.keep_days, keep_rows=st.keep_rows,
                                         recover_corrupt=st.recover_corrupt)
             if self.store is not None:
+                if handed_store is not None and self.store is handed_store:
+                    # a reload: same run id, so the windows go on from the last one stored
+                    self.ring.first_index = self.store.next_window(self.machine)
                 self._restore()
             if record and config.recording.enabled and self.recorder is None:
                 from twinwatch.daemon.recorder import RerunRecorder

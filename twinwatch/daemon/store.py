@@ -545,6 +545,17 @@ class StateStore(Closeable):
             sql + " ORDER BY id DESC LIMIT 1", args).fetchone())
         return None if row is None else dict(json.loads(row[0]))
 
+    def next_window(self, machine: str) -> int:
+        """The window index after the last one this run saved for ``machine`` (0 if none),
+        counting the windows still waiting in memory: where a reload goes on numbering."""
+        with self._write_lock:
+            waiting = [r[2] for r in self._pending if r[0] == machine]
+        row = self._read("cannot read the history", lambda conn: conn.execute(
+            "SELECT MAX(window) FROM health WHERE run = ? AND machine = ?",
+            (self.run_id, machine)).fetchone())
+        last = max([*waiting, -1 if row is None or row[0] is None else int(row[0])])
+        return last + 1
+
     def count(self) -> int:
         """Health rows stored."""
         return int(self._read("cannot count the history", lambda conn: conn.execute(

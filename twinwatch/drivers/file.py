@@ -11,9 +11,10 @@ counted before ``start`` is applied, so a cut recording keeps its own clock), or
 
 Formats:
 
-* CSV: one header row naming the columns, then one row per sample; cells are decimal numbers.
+* CSV: one header row naming the columns, then one row per line; cells are decimal numbers.
   An empty or non-numeric cell is read as NaN; a row with fewer cells than the header has NaN
-  in the missing cells. Blank lines are skipped.
+  in the missing cells. Blank lines are skipped. A quote left open is logged with its line
+  number and costs that row only.
 * MAT (MATLAB v5/v7, read with :func:`scipy.io.loadmat`; v7.3/HDF5 is not supported): every
   mapped "column" is a numeric variable holding a vector (N x 1, 1 x N or N), all of the same
   length N. MAT files usually hold no time vector, hence ``sample_period``.
@@ -254,13 +255,34 @@ class FileDriver(Driver):
         return float(np.median(steps))
 
     def _load_csv(self, path: Path, delimiter: str) -> dict[str, FloatArray]:
+        # One physical line is one row: a numeric recording never quotes a line break, so a
+        # quote left open costs its own row only (read as NaN, named by its line), never the
+        # rest of the file (the csv module would read it all as one cell).
+        header: list[str] | None = None
+        rows: list[list[str]] = []
+        open_quotes: list[int] = []
         try:
             with path.open(newline="", encoding="utf-8-sig") as f:
-                reader = csv.reader(f, delimiter=delimiter)
-                header = next(reader, None)
-                rows = [row for row in reader if any(cell.strip() for cell in row)]
+                for lineno, line in enumerate(f, start=1):
+                    if not line.strip():
+                        continue
+                    if line.count('"') % 2:
+                        open_quotes.append(lineno)
+                    row = next(csv.reader((line.rstrip("\r\n"),), delimiter=delimiter), [])
+                    if header is None:
+                        header = row
+                    elif any(cell.strip() for cell in row):
+                        rows.append(row)
         except (OSError, UnicodeDecodeError, csv.Error) as exc:
             raise DriverInitializationError(f"path: cannot read CSV {str(path)!r}: {exc}") from exc
+        if open_quotes:
+            logger.warning(
+                "CSV %s: a quote is not closed on %d line(s) (first: line %d); each such "
+                "row is read up to its end and its cells that are not numbers are NaN",
+                path.name,
+                len(open_quotes),
+                open_quotes[0],
+            )
         if header is None:
             raise DriverInitializationError(f"path: CSV {str(path)!r} is empty (no header row)")
         header = [h.strip() for h in header]
