@@ -46,6 +46,27 @@ def main() -> None:
 EX_CONFIG = 78
 """Exit status for an invalid configuration (sysexits.h); the unit does not restart on it."""
 
+EX_IOERR = 74
+"""Exit status when estimated windows were lost: not stored or not recorded (sysexits.h)."""
+
+
+def _last_line(exc: BaseException) -> str:
+    return str(exc).strip().splitlines()[-1].strip()
+
+
+def _load_runnable(config: Path | None, base_dir: Path) -> Any:
+    """Load CONFIG (or the built-in default) and check it can run here (the check
+    ``check-config`` makes too).
+
+    Raises:
+        ConfigError: naming each bad key or missing file or directory.
+    """
+    from twinwatch.config.preflight import check_runnable
+
+    cfg = load_config(config) if config else default_config()
+    check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir)
+    return cfg
+
 
 @main.command()
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
@@ -54,9 +75,20 @@ EX_CONFIG = 78
 @click.option("--log-level", default="warning", show_default=True,
               type=click.Choice(["debug", "info", "warning", "error"], case_sensitive=False))
 @click.option("--no-progress", is_flag=True, help="Do not show the progress bar.")
-def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool) -> None:
+@click.option("--fresh", is_flag=True,
+              help="Start from the nameplate twin and normal alarm levels instead of resuming "
+              "those saved in the state database (its history is kept).")
+def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
+        fresh: bool) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
+
+    The twin and the alarm levels saved in the state database by the previous run are resumed
+    (a line says so); --fresh starts from the nameplate values.
+
+    Exit status: 0; 1 when the daemon cannot start or its driver fails; 78 for a configuration
+    that cannot run here (the systemd unit does not restart on it); 74 when estimated windows
+    were lost (not stored in the state database or not recorded).
 
     Signals: SIGTERM/SIGINT finish the windows already queued (a second one abandons them),
     close the driver, Zenoh, the Rerun file and the state database, and exit 0. SIGHUP
@@ -80,19 +112,19 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         faulthandler.enable()
     except (AttributeError, ValueError, OSError):
         logger.debug("faulthandler not enabled: stderr has no file descriptor")
+    base_dir = config.resolve().parent if config else Path.cwd()
     try:
-        cfg = load_config(config) if config else default_config()
+        cfg = _load_runnable(config, base_dir)
     except ConfigError as exc:
         click.echo(f"Error: {exc}", err=True)
-        notifier.notify(f"STATUS=invalid configuration: {exc}".splitlines()[0])
+        notifier.notify(f"STATUS=invalid configuration: {_last_line(exc)}")
         sys.exit(EX_CONFIG)
-    base_dir = config.resolve().parent if config else Path.cwd()
 
     from twinwatch.daemon.publisher import PublisherError
     from twinwatch.daemon.recorder import RecorderError
     from twinwatch.daemon.runner import SINKS, Daemon
     from twinwatch.daemon.store import StoreError
-    from twinwatch.drivers.base import DriverError
+    from twinwatch.drivers.base import DriverConfigError, DriverError
 
     start_errors = (DriverError, PublisherError, RecorderError, StoreError, ValueError, OSError)
 
@@ -135,7 +167,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         notifier.reloading("reloading the configuration")
         source = str(config) if config else "the built-in default"
         try:
-            new_cfg = load_config(config) if config else default_config()
+            new_cfg = _load_runnable(config, base_dir)
         except ConfigError as exc:
             logger.error("reload refused, the running configuration goes on: %s", exc)
             notifier.ready(status=f"reload refused ({str(exc).splitlines()[-1].strip()}); "
@@ -147,20 +179,34 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         for d in holder:
             d.stop()
 
-    def _start(c: Any, reuse: dict[str, Any] | None = None) -> Any:
-        d = Daemon(c, base_dir=base_dir, persist=True, watchdog=watchdog, reuse=reuse)
+    problems: list[list[str]] = [[]]
+
+    def _watch_problems(health: dict[str, Any]) -> None:
+        """Worker thread, after each window: systemd's STATUS follows what is degraded."""
+        now = holder[-1].problems() if holder else []
+        if now != problems[0]:
+            problems[0] = now
+            notifier.status(_status_line(cfg, holder[-1]))
+
+    def _start(c: Any, reuse: dict[str, Any] | None = None, resume: bool = True) -> Any:
+        d = Daemon(c, base_dir=base_dir, persist=True, watchdog=watchdog, reuse=reuse,
+                   resume=resume)
         d.add_tick(_check_reload)
+        d.add_callback(_watch_problems)
         return d
 
     try:
-        daemon = _start(cfg)
+        daemon = _start(cfg, resume=not fresh)
     except start_errors as exc:
         # Each of these says what failed and what to do; a traceback would add nothing.
         notifier.notify(f"STATUS=cannot start: {exc}".splitlines()[0])
-        raise click.ClickException(f"cannot start: {exc}") from None
+        click.echo(f"Error: cannot start: {exc}", err=True)
+        sys.exit(EX_CONFIG if isinstance(exc, DriverConfigError) else 1)
     holder.append(daemon)
     if stop_requested.is_set():
         daemon.stop()
+    if daemon.resumed is not None:
+        click.echo(_resumed_line(daemon), err=True)
     _warm_up(daemon)
     notifier.ready(status=_status_line(cfg, daemon))
 
@@ -205,6 +251,10 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
             holder.append(daemon)
             logger.warning("configuration reloaded; the twin resumes from the state database")
             notifier.ready(status=_status_line(cfg, daemon))
+    except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
+        logger.debug("run failed", exc_info=True)
+        daemon.failure = (f"internal error: {type(exc).__name__}: {exc} (run with --log-level "
+                          f"debug for the traceback, and please report it)")
     finally:
         notifier.stopping("stopping: finishing the queued windows")
         notifier.extend_timeout(cfg.acquisition.shutdown_timeout + 10)
@@ -212,6 +262,14 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         if bar is not None:
             bar.close()
     _print_summary(cfg, daemon)
+    lost = daemon.lost()
+    if daemon.failure is not None:
+        notifier.status(f"stopped: {daemon.failure}")
+        click.echo(f"Error: {daemon.failure}", err=True)
+        sys.exit(1)
+    if lost:
+        notifier.status("stopped: " + "; ".join(daemon.problems()))
+        sys.exit(EX_IOERR)
 
 
 def _warm_up(daemon: Any) -> None:
@@ -240,7 +298,26 @@ def _status_line(cfg: Any, daemon: Any) -> str:
         parts.append(f"state {daemon.store.path}")
     if daemon.restored is not None:
         parts.append("twin resumed")
+    problems = daemon.problems()
+    if problems:
+        parts.append("DEGRADED: " + "; ".join(problems))
     return ", ".join(parts)
+
+
+def _resumed_line(daemon: Any) -> str:
+    """One line saying what was resumed from the state database, and how not to."""
+    r = daemon.resumed
+    what = []
+    if daemon.restored is not None:
+        where = (f" of window {r['window']} (t = {r['t_end']:.2f} s)"
+                 if r.get("window") is not None and r.get("t_end") is not None else "")
+        values = ", ".join(f"{k} = {v:.6g}" for k, v in r["trusted"].items())
+        what.append(f"the twin{where} ({values}"
+                    + (f"; {r['terms']} meta-model term(s)" if r["terms"] else "") + ")")
+    if r["alarms"]:
+        what.append("alarm levels " + ", ".join(f"{k} {v}" for k, v in r["alarms"].items()))
+    return (f"twinwatch: resumed from {r['path']}: {' and '.join(what) or 'the last state'}; "
+            f"to start from the nameplate values instead: twinwatch run --fresh")
 
 
 def _print_summary(cfg: Any, daemon: Any) -> None:
@@ -249,8 +326,11 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
                f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
                f"(gaps/bad samples), {c['numeric_failures']} numeric failures")
+    for line in _source_lines(cfg, daemon):
+        click.echo(line)
     if last is None:
-        click.echo("no window was completed: the source delivered fewer samples than one window")
+        for line in _loss_lines(daemon):
+            click.echo(line)
         return
     click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
                f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
@@ -286,14 +366,75 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     if cfg.zenoh.enabled:
         click.echo(f"health was published on {cfg.zenoh.key_prefix}/{cfg.machine.name}/health "
                    f"(zenoh, listening on {', '.join(cfg.zenoh.listen) or 'nothing'})")
+    for line in _loss_lines(daemon):
+        click.echo(line)
+
+
+def _source_lines(cfg: Any, daemon: Any) -> list[str]:
+    """What the source delivered and what was lost of it, by reason, with the cause when no
+    window could be completed."""
+    ring = daemon.ring
+    lost = sum(ring.lost.values())
+    window = cfg.acquisition.window
+    lines = []
+    if lost:
+        reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
+        lines.append(f"source: {ring.samples} samples received, {lost} not in any window "
+                     f"({reasons})")
+    if daemon.latest is not None or daemon.windows_estimated:
+        return lines
+    if ring.samples == 0:
+        lines.append(f"no window was completed: the {cfg.driver.type} driver delivered no "
+                     "sample (see the log for why)")
+    elif not lost:
+        lines.append(f"no window was completed: the source delivered {ring.samples} samples, "
+                     f"fewer than one window ({window})")
+    elif ring.windows == 0:
+        reason, n = ring.lost.most_common(1)[0]
+        cause = f"{n} of {ring.samples} samples lost to {reason}"
+        if reason.startswith("sample without channel"):
+            ch = reason.split("channel ", 1)[1]
+            cause = f"every sample lacks channel {ch}" if n == ring.samples else cause
+            cause += f": map {ch} in [driver]"
+            if ch == "'setpoint'" and getattr(daemon.model, "structure", None) == "closed_loop":
+                cause += ' or use machine.options.structure = "open_loop"'
+        elif reason.startswith("NaN or inf"):
+            cause += ": check the mapping (scale, units) and the sensor"
+        elif "time stamp" in reason:
+            cause += (f": the time stamps do not step by acquisition.sample_period "
+                      f"({cfg.acquisition.sample_period:g} s)")
+        lines.append(f"no window was completed: {cause}")
+    else:
+        lines.append("no window was estimated (see the log for why)")
+    return lines
+
+
+def _loss_lines(daemon: Any) -> list[str]:
+    """Windows estimated but not stored, not published or not recorded."""
+    lines = []
+    store = daemon.store_stats
+    if store["not_stored"]:
+        late = store["not_stored"] - store["lost"] - store["waiting"]
+        lines.append(f"state database: {store['not_stored']} windows could not be stored when "
+                     f"estimated, so they were not published ({max(late, 0)} written later, "
+                     f"served by the history query; {store['lost']} lost)")
+    lost = daemon.lost()
+    if "recording" in lost:
+        lines.append(f"recording: {lost['recording']} windows could not be recorded (the "
+                     "Rerun file writer failed: see the log)")
+    if lost:
+        lines.append("twinwatch: estimated windows were lost: exit status 74")
+    return lines
 
 
 @main.command("check-config")
 @click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
 def check_config(config: Path) -> None:
-    """Validate CONFIG; exit 0 if it is usable, 1 naming each bad key otherwise."""
+    """Validate CONFIG and check it can run here (the files it names and the directories it
+    writes to exist, the driver delivers every channel the twin needs: what `run` checks
+    before it starts); exit 0 if it is usable, 1 naming each bad key otherwise."""
     try:
-        cfg = load_config(config)
+        cfg = _load_runnable(config, config.resolve().parent)
     except ConfigError as exc:
         click.echo(str(exc), err=True)
         sys.exit(1)

@@ -34,7 +34,7 @@ from twinwatch.config.schema import TwinwatchConfig
 from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
-from twinwatch.drivers.base import Driver, EndOfStream
+from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
 from twinwatch.twin.health import build_health, summary_line
 from twinwatch.twin.model import TwinModel, WindowData
@@ -102,6 +102,7 @@ class Daemon:
         persist: bool = False,
         watchdog: Any = None,
         reuse: dict[str, tuple[Any, Any]] | None = None,
+        resume: bool = True,
     ) -> None:
         self.config = config
         self.base_dir = base_dir or Path.cwd()
@@ -121,6 +122,11 @@ class Daemon:
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
         self.restored: dict[str, Any] | None = None
+        self.resumed: dict[str, Any] | None = None
+        self.failure: str | None = None
+        self.not_stored = 0  #: windows the state database could not take when estimated
+        self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
+        self._closed_sinks: dict[str, Any] = {}
         self.driver: Driver | None = None
         self._own_driver = driver is None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
@@ -149,6 +155,14 @@ class Daemon:
                                 name)
                 else:
                     obj.close()
+            # Every exclusive resource before any file is touched: the Zenoh port, then the
+            # state database's lock, then the recording's lock (and only then its truncation),
+            # so a second twinwatch in the same directory fails without harming the first.
+            if publish and config.zenoh.enabled and self.publisher is None:
+                from twinwatch.daemon.publisher import HealthPublisher
+
+                self.publisher = HealthPublisher(config.zenoh, self.machine,
+                                                 retry_connect=True)
             if persist and config.state.enabled and self.store is None:
                 from twinwatch.daemon.store import StateStore
 
@@ -157,11 +171,6 @@ class Daemon:
                                         synchronous=st.synchronous,
                                         keep_days=st.keep_days, keep_rows=st.keep_rows,
                                         recover_corrupt=st.recover_corrupt)
-            if self.store is not None:
-                if handed_store is not None and self.store is handed_store:
-                    # a reload: same run id, so the windows go on from the last one stored
-                    self.ring.first_index = self.store.next_window(self.machine)
-                self._restore()
             if record and config.recording.enabled and self.recorder is None:
                 from twinwatch.daemon.recorder import RerunRecorder
 
@@ -172,11 +181,12 @@ class Daemon:
                 self.recorder = RerunRecorder(
                     rec, self.machine, outputs=self.model.output_names,
                     parameters={p.name: p.unit for p in self.model.parameters})
-            if publish and config.zenoh.enabled and self.publisher is None:
-                from twinwatch.daemon.publisher import HealthPublisher
-
-                self.publisher = HealthPublisher(config.zenoh, self.machine,
-                                                 retry_connect=True)
+            if self.store is not None:
+                if handed_store is not None and self.store is handed_store:
+                    # a reload: same run id, so the windows go on from the last one stored
+                    self.ring.first_index = self.store.next_window(self.machine)
+                if resume:
+                    self._restore()
             if self.publisher is not None and self.store is not None:
                 self.publisher.add_query_handler("history", self._on_history_query)
             self.driver = driver or create_driver(config.driver, base_dir=self.base_dir)
@@ -203,12 +213,23 @@ class Daemon:
                              self.store.path, exc)
             else:
                 self.restored = state
-                logger.warning("resumed the twin of %s from %s: %s; %d meta-model term(s)",
-                               self.machine, self.store.path,
-                               ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
-                               len(state.get("terms", [])))
+                logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
+                            self.machine, self.store.path,
+                            ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
+                            len(state.get("terms", [])))
         if last is not None and last.get("alarms"):
             self.alarms.restore(last["alarms"])
+        if self.restored is not None or (last is not None and last.get("alarms")):
+            self.resumed = {
+                "path": str(self.store.path),
+                "window": None if last is None else last.get("window"),
+                "t_end": None if last is None else last.get("t_end"),
+                "trusted": dict((self.restored or {}).get("trusted") or {}),
+                "terms": len((self.restored or {}).get("terms") or []),
+                "alarms": {k: a.get("level") for k, a in
+                           ((last or {}).get("alarms") or {}).items()
+                           if a.get("level") not in (None, "normal")},
+            }
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = HISTORY_LIMIT, by: str = "plant") -> list[dict[str, Any]]:
@@ -261,7 +282,57 @@ class Daemon:
             c["zenoh_not_connected"] = int(getattr(self.publisher, "not_connected", 0))
         if self.store is not None:
             c["store_errors"] = int(self.store.errors)
+            c["store_waiting"] = int(self.store.waiting)
+            c["store_lost"] = int(self.store.lost)
+            c["windows_not_stored"] = self.not_stored
+        if self.recorder is not None:
+            c["recording_lost"] = int(getattr(self.recorder, "lost", 0))
+        c["samples_received"] = self.ring.samples
+        c["samples_lost"] = sum(self.ring.lost.values())
         return c
+
+    def _sink(self, name: str) -> Any:
+        """The open sink, or the one :meth:`close` closed (its counters stay readable)."""
+        obj = getattr(self, name)
+        return obj if obj is not None else self._closed_sinks.get(name)
+
+    def problems(self) -> list[str]:
+        """What is degraded right now (for systemd's STATUS and the log), empty if nothing."""
+        out = []
+        store = self._sink("store")
+        if store is not None and store.failing:
+            out.append(f"state database not writable: {store.waiting} windows waiting "
+                       f"in memory, not published")
+        if store is not None and store.lost:
+            out.append(f"{store.lost} windows lost (never stored)")
+        problem = getattr(self._sink("recorder"), "problem", None)
+        if problem:
+            out.append(problem)
+        return out
+
+    def lost(self) -> dict[str, int]:
+        """Windows estimated but lost: never stored (``store``), not recorded
+        (``recording``). Nonzero values make ``twinwatch run`` exit with status 74."""
+        out = {}
+        store = self._sink("store")
+        if store is not None and store.lost:
+            out["store"] = int(store.lost)
+        recorder = self._sink("recorder")
+        not_recorded = int(getattr(recorder, "lost", 0)) if recorder is not None else 0
+        if not_recorded:
+            out["recording"] = not_recorded
+        return out
+
+    @property
+    def store_stats(self) -> dict[str, int]:
+        """The state database's account: ``errors`` (failed writes), ``waiting`` (windows in
+        memory), ``lost`` (never stored), ``not_stored`` (windows not stored when estimated,
+        hence not published). Zeros without a state database."""
+        store = self._sink("store")
+        if store is None:
+            return {"errors": 0, "waiting": 0, "lost": 0, "not_stored": 0}
+        return {"errors": int(store.errors), "waiting": int(store.waiting),
+                "lost": int(store.lost), "not_stored": self.not_stored}
 
     def run(self, duration: float | None = None) -> int:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
@@ -292,6 +363,12 @@ class Daemon:
                     sample = self.driver.read(timeout=0.2)
                 except EndOfStream as exc:
                     logger.info("source finished: %s", exc)
+                    break
+                except DriverError as exc:
+                    # the driver gave up: one clear line (the driver said what failed), then
+                    # the queued windows are finished and the caller decides (the CLI exits 1)
+                    self.failure = f"the {self.config.driver.type} driver failed: {exc}"
+                    logger.error("%s", self.failure)
                     break
                 now = time.monotonic()
                 if sample is None:
@@ -384,16 +461,26 @@ class Daemon:
                               adaptation=result, discovery_enabled=self.adapter.enabled)
         events = self.alarms.update(health)
         health["alarms"] = self.alarms.state()
+        stored = True
         if self.store is not None:  # stored before published: nothing seen is ever lost
-            self.store.save_window(health, self.adapter.state() if est.trusted else None)
+            stored = self.store.save_window(health, self.adapter.state() if est.trusted
+                                            else None)
+            self.not_stored += not stored
         with self._lock:
             self.latest = health
             self.history.append(health)
         logger.info("%s", summary_line(health))
         if self.publisher is not None:
-            self.publisher.publish(health)
-            for ev in events:
-                self.publisher.publish_json("alarm", ev)
+            if stored:
+                self.publisher.publish(health)
+                for ev in (*self._held_events, *events):
+                    self.publisher.publish_json("alarm", ev)
+                self._held_events.clear()
+            else:
+                # Not stored (yet: it waits in the store's backlog): not published, so that a
+                # subscriber never sees a window SIGKILL could lose; the history query serves
+                # it once written. Alarm events wait for the next stored window.
+                self._held_events.extend(events)
         if self.recorder is not None:
             outs = self.model.output_names
             self.recorder.log_window(
@@ -434,6 +521,7 @@ class Daemon:
                     obj.close()
                 except Exception:
                     logger.exception("error while closing the %s", name)
+                self._closed_sinks[name] = obj  # for the final accounting (lost windows)
             setattr(self, name, None)
         return kept
 

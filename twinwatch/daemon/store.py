@@ -50,6 +50,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from twinwatch._lifecycle import Closeable
+from twinwatch.daemon.locks import FileLock, LockedError
 
 logger = logging.getLogger(__name__)
 
@@ -164,8 +165,10 @@ class StateStore(Closeable):
         check: run ``PRAGMA quick_check`` at open (reads the whole file).
 
     Raises:
-        StoreError: the file is not a database, is corrupt, is locked, or was written by a
-            newer twinwatch (schema version above :data:`SCHEMA_VERSION`).
+        StoreError: the file is in use by another process (an exclusive ``flock`` is taken on
+            it before SQLite opens it, and held until :meth:`close`), is not a database, is
+            corrupt, is locked, or was written by a newer twinwatch (schema version above
+            :data:`SCHEMA_VERSION`).
     """
 
     def __init__(
@@ -205,16 +208,56 @@ class StateStore(Closeable):
         self.errors = 0
         self.dropped = 0
         self.pruned = 0
+        self.lost = 0
         self.recovered = 0
         self.recover_corrupt = recover_corrupt
         self._check = check
+        self._lock: FileLock | None = None
+        self._lock_file()
         try:
             self._open(check)
         except StoreError as exc:
             if not (recover_corrupt and self.path.exists() and exc.corrupt):
+                self._close_all()
+                self._release()
                 raise
-            self._recover(exc)
+            try:
+                self._recover(exc)
+            except BaseException:
+                self._close_all()
+                self._release()
+                raise
+        except BaseException:
+            self._close_all()
+            self._release()
+            raise
         self._closed = False
+
+    def _lock_file(self) -> None:
+        """Take the exclusive lock on the database file before SQLite opens it."""
+        try:
+            self._lock = FileLock(self.path, "state database",
+                                  "stop it, or give this one its own [state] path")
+        except LockedError as exc:
+            raise StoreError(str(exc)) from None
+        except OSError as exc:
+            raise self._error("cannot open", exc) from exc
+
+    def _release(self) -> None:
+        """Release the file lock (only once SQLite's connections are closed: see locks.py)."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
+
+    @property
+    def waiting(self) -> int:
+        """Windows kept in memory because the database could not be written (yet)."""
+        return len(self._pending)
+
+    @property
+    def failing(self) -> bool:
+        """The last write failed (the windows since then are :attr:`waiting`)."""
+        return self._failing
 
     # -- connections --------------------------------------------------------------------------
     def _connect(self) -> sqlite3.Connection:
@@ -252,8 +295,10 @@ class StateStore(Closeable):
         elif "readonly" in msg or "unable to open" in msg or isinstance(exc, PermissionError):
             hint = ("check that the directory exists and is writable by the service user "
                     "(StateDirectory= in the unit)")
-        elif "full" in msg:
-            hint = "the disk is full: free space or lower the retention (keep_days, keep_rows)"
+        elif "full" in msg or "disk I/O" in msg:
+            hint = ("the disk is full, failing or read-only: free space (or lower the retention, "
+                    "keep_days, keep_rows); windows wait in memory, not published, until it can "
+                    "be written")
         else:
             hint = "check the file and the disk"
         return StoreError(f"state database {self.path}: {what}: {msg}: {hint}", corrupt=corrupt,
@@ -281,6 +326,8 @@ class StateStore(Closeable):
                 if side.exists():
                     side.rename(Path(str(aside) + suffix))
             self.path.rename(aside)
+            self._release()
+            self._lock_file()
         except OSError as err:
             raise StoreError(f"state database {self.path} is corrupt ({why}) and cannot be "
                              f"moved aside ({err.strerror or err}): move it away by hand",
@@ -376,6 +423,10 @@ class StateStore(Closeable):
         with self._write_lock:
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
+                self.lost += 1
+                logger.error("state database %s: %d windows waiting in memory, the most it "
+                             "keeps: window %d is lost", self.path, len(self._pending),
+                             self._pending[0][2])
             self._pending.append(row)
             if twin_state is not None:
                 self._twin_pending = (machine, self.run_id, row[2], row[4], w,
@@ -580,8 +631,11 @@ class StateStore(Closeable):
         with self._write_lock:
             if self._pending or self._twin_pending is not None:
                 if not self._flush():
+                    self.lost += len(self._pending)
                     logger.error("state database %s: %d windows could not be written and are "
                                  "lost", self.path, len(self._pending))
+                    self._pending.clear()
         self._close_all()
+        self._release()
         self._closed_for_good = True
         self._closed = True

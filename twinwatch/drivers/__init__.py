@@ -24,6 +24,7 @@ from typing import Any
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfigError,
     DriverError,
     DriverInitializationError,
     DriverOperationError,
@@ -38,6 +39,7 @@ __all__ = [
     "BUILTIN_DRIVERS",
     "ENTRY_POINT_GROUP",
     "Driver",
+    "DriverConfigError",
     "DriverError",
     "DriverInitializationError",
     "DriverOperationError",
@@ -92,7 +94,7 @@ def get_driver_class(name: str) -> type[Driver]:
     try:
         module_name, class_name = table[name]
     except KeyError:
-        raise DriverInitializationError(
+        raise DriverConfigError(
             f"unknown driver {name!r}; known drivers: {', '.join(sorted(table))}"
         ) from None
     try:

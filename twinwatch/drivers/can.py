@@ -66,6 +66,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfigError,
     DriverInitializationError,
     DriverOperationError,
     EndOfStream,
@@ -182,6 +183,18 @@ class CanDriverConfig(BaseModel):
             raise ValueError("time_source = 'counter' needs counter_signal = 'MESSAGE.SIGNAL'")
         return self
 
+    def twin_channels(self) -> tuple[str, ...]:
+        """The twin channels this driver delivers (``signals``)."""
+        return tuple(self.signals)
+
+    def required_files(self, base_dir: Path) -> dict[str, Path]:
+        """Config key -> file that must exist to start (``dbc``, ``log_file``)."""
+        cfg = self.resolved(base_dir)
+        files = {"driver.dbc": cfg.dbc}
+        if cfg.log_file is not None:
+            files["driver.log_file"] = cfg.log_file
+        return files
+
     def resolved(self, base_dir: Path | None) -> CanDriverConfig:
         """Return a copy whose relative ``dbc`` and ``log_file`` are joined to ``base_dir``."""
         if base_dir is None:
@@ -237,12 +250,12 @@ def _find_signal(db: Database, key: str, message_name: str, signal_name: str | N
         message = db.get_message_by_name(message_name)
     except KeyError:
         hint = _did_you_mean(message_name, (m.name for m in db.messages), what="messages")
-        raise DriverInitializationError(
+        raise DriverConfigError(
             f"{key}: message {message_name!r} not in DBC; {hint}"
         ) from None
     if signal_name is not None and signal_name not in {s.name for s in message.signals}:
         hint = _did_you_mean(signal_name, (s.name for s in message.signals), what="signals")
-        raise DriverInitializationError(
+        raise DriverConfigError(
             f"{key}: message {message_name!r} has no signal {signal_name!r}; {hint}"
         )
     return message
@@ -330,7 +343,7 @@ class _LogSource:
         try:
             self._reader = can.LogReader(path)
         except (OSError, ValueError, ImportError) as exc:
-            raise DriverInitializationError(f"log_file: cannot read {str(path)!r}: {exc}") from exc
+            raise DriverConfigError(f"log_file: cannot read {str(path)!r}: {exc}") from exc
         self._lines: _Lines | None = None
         self._skip: set[int] = set()
         if isinstance(self._reader, TextIOMessageReader) and path.suffix.lower() != ".gz":
@@ -373,8 +386,8 @@ class _LogSource:
                 if len(self._skip) > _MAX_BAD_LINES:
                     raise DriverOperationError(
                         f"CAN log {str(self.path)!r}: more than {_MAX_BAD_LINES} malformed "
-                        f"lines (the last at line {bad}): is it a "
-                        f"{self._text_reader.__name__.removesuffix('Reader')} log?"
+                        f"lines (the last at line {bad}): is it really a "
+                        f"{self.path.suffix} CAN log ({self._text_reader.__name__})?"
                     ) from exc
                 if self._on_bad is not None:
                     self._on_bad(bad, exc)
@@ -430,9 +443,10 @@ class CanDriver(Driver):
         database: the loaded cantools database.
 
     Raises:
-        DriverInitializationError: the DBC cannot be loaded, a configured message or signal
-            is not in it (the message names the config key and the closest names), the log
-            file cannot be opened, or the bus cannot be opened.
+        DriverConfigError: the DBC cannot be loaded, a configured message or signal is not in
+            it (the message names the config key and the closest names), or the log file
+            cannot be opened.
+        DriverInitializationError: the bus cannot be opened.
     """
 
     def __init__(
@@ -503,13 +517,13 @@ class CanDriver(Driver):
     @staticmethod
     def _load_dbc(path: Path) -> Database:
         if not path.is_file():
-            raise DriverInitializationError(f"dbc: file {str(path)!r} not found")
+            raise DriverConfigError(f"dbc: file {str(path)!r} not found")
         try:
             db = cantools.database.load_file(path)
         except (OSError, ValueError, CantoolsError) as exc:
-            raise DriverInitializationError(f"dbc: cannot load {str(path)!r}: {exc}") from exc
+            raise DriverConfigError(f"dbc: cannot load {str(path)!r}: {exc}") from exc
         if not isinstance(db, Database):
-            raise DriverInitializationError(f"dbc: {str(path)!r} is not a CAN database")
+            raise DriverConfigError(f"dbc: {str(path)!r} is not a CAN database")
         return db
 
     @staticmethod
@@ -546,13 +560,13 @@ class CanDriver(Driver):
     def _open_source(self, config: CanDriverConfig, bus: can.BusABC | None) -> _FrameSource:
         if bus is not None:
             if config.log_file is not None:
-                raise DriverInitializationError("log_file and a bus were both given; pick one")
+                raise DriverConfigError("log_file and a bus were both given; pick one")
             return _BusSource(bus, owned=False)
         if config.log_file is not None:
             return _LogSource(config.log_file, realtime=config.realtime,
                               on_bad=self._on_bad_line)
         if config.interface is None or config.channel is None:
-            raise DriverInitializationError(
+            raise DriverConfigError(
                 "interface and channel are required for a live bus (or give log_file)"
             )
         kwargs: dict[str, Any] = dict(config.bus_options)

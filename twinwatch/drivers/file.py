@@ -54,7 +54,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
-    DriverInitializationError,
+    DriverConfigError,
     EndOfStream,
     Sample,
     ScaledChannel,
@@ -125,6 +125,14 @@ class FileDriverConfig(BaseModel):
             raise ValueError(f"stop ({self.stop}) is before start ({self.start})")
         return self
 
+    def twin_channels(self) -> tuple[str, ...]:
+        """The twin channels this driver delivers (``columns``)."""
+        return tuple(self.columns)
+
+    def required_files(self, base_dir: Path) -> dict[str, Path]:
+        """Config key -> file that must exist to start (``path``)."""
+        return {"driver.path": self.resolved(base_dir).path}
+
     def resolved(self, base_dir: Path | None) -> FileDriverConfig:
         """Return a copy whose relative ``path`` is joined to ``base_dir``."""
         if base_dir is None:
@@ -191,7 +199,7 @@ class FileDriver(Driver):
         self.channels = tuple(config.columns)
         path = config.path
         if not path.is_file():
-            raise DriverInitializationError(f"path: file {str(path)!r} not found")
+            raise DriverConfigError(f"path: file {str(path)!r} not found")
         fmt = config.format
         if fmt == "auto":
             suffix = path.suffix.lower()
@@ -200,7 +208,7 @@ class FileDriver(Driver):
             elif suffix in _MAT_SUFFIXES:
                 fmt = "mat"
             else:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"format: cannot tell the format of {str(path)!r} from its suffix "
                     f"{suffix!r}; set format = 'csv' or 'mat'"
                 )
@@ -248,7 +256,7 @@ class FileDriver(Driver):
         steps = np.diff(t[np.isfinite(t)])
         steps = steps[steps > 0]
         if steps.size == 0:
-            raise DriverInitializationError(
+            raise DriverConfigError(
                 f"sample_period: cannot infer it from time_column {column!r} "
                 "(fewer than two increasing time stamps); set sample_period"
             )
@@ -274,7 +282,7 @@ class FileDriver(Driver):
                     elif any(cell.strip() for cell in row):
                         rows.append(row)
         except (OSError, UnicodeDecodeError, csv.Error) as exc:
-            raise DriverInitializationError(f"path: cannot read CSV {str(path)!r}: {exc}") from exc
+            raise DriverConfigError(f"path: cannot read CSV {str(path)!r}: {exc}") from exc
         if open_quotes:
             logger.warning(
                 "CSV %s: a quote is not closed on %d line(s) (first: line %d); each such "
@@ -284,22 +292,22 @@ class FileDriver(Driver):
                 open_quotes[0],
             )
         if header is None:
-            raise DriverInitializationError(f"path: CSV {str(path)!r} is empty (no header row)")
+            raise DriverConfigError(f"path: CSV {str(path)!r} is empty (no header row)")
         header = [h.strip() for h in header]
         index: dict[str, int] = {}
         for key, column in self._keys():
             if header.count(column) > 1:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: column {column!r} appears {header.count(column)} times in "
                     f"{str(path)!r}"
                 )
             if column not in header:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: column {column!r} not in {path.name}; {_available(column, header)}"
                 )
             index[column] = header.index(column)
         if not rows:
-            raise DriverInitializationError(f"path: CSV {str(path)!r} has no data rows")
+            raise DriverConfigError(f"path: CSV {str(path)!r} has no data rows")
 
         table: dict[str, FloatArray] = {}
         for column, j in index.items():
@@ -327,35 +335,35 @@ class FileDriver(Driver):
         try:
             mat = scipy.io.loadmat(path)
         except NotImplementedError as exc:  # MATLAB v7.3 files are HDF5
-            raise DriverInitializationError(
+            raise DriverConfigError(
                 f"path: {str(path)!r} is a MATLAB v7.3 (HDF5) file; save it with -v7: {exc}"
             ) from exc
         except (OSError, ValueError, TypeError) as exc:
-            raise DriverInitializationError(f"path: cannot read MAT {str(path)!r}: {exc}") from exc
+            raise DriverConfigError(f"path: cannot read MAT {str(path)!r}: {exc}") from exc
         variables = [name for name in mat if not name.startswith("__")]
         table: dict[str, FloatArray] = {}
         length: tuple[str, int] | None = None
         for key, name in self._keys():
             if name not in mat or name.startswith("__"):
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: variable {name!r} not in {path.name}; {_available(name, variables)}"
                 )
             array = np.asarray(mat[name])
             if array.dtype.kind not in "biuf" or sum(d > 1 for d in array.shape) > 1:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: variable {name!r} in {path.name} is not a numeric vector "
                     f"(dtype {array.dtype}, shape {array.shape})"
                 )
             vector = array.astype(np.float64).ravel()
             if length is not None and vector.size != length[1]:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: variable {name!r} has {vector.size} samples, "
                     f"{length[0]!r} has {length[1]}"
                 )
             length = (name, vector.size)
             table[name] = vector
         if length is None or length[1] == 0:
-            raise DriverInitializationError(f"path: {str(path)!r}: the variables are empty")
+            raise DriverConfigError(f"path: {str(path)!r}: the variables are empty")
         return table
 
     def _keys(self) -> list[tuple[str, str]]:

@@ -69,6 +69,10 @@ class SimulatedDriverConfig(BaseModel):
     channel: str = "auto"
     realtime: bool = False
 
+    def twin_channels(self) -> tuple[str, ...]:
+        """The plant's channels, as its DBC carries them."""
+        return tuple(ch for _, sigs in _MESSAGES for ch in sigs)
+
 
 class SimulatedDriver(Driver):
     """Simulated plant -> DBC-encoded frames -> virtual CAN bus -> :class:`CanDriver`.
