@@ -663,15 +663,19 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
                 if "not written yet" in line:  # the state database failed: free space
                     proc.send_signal(signal.SIGUSR1)
 
-        reader = threading.Thread(target=read_stderr, name="stderr-reader")
+        reader = threading.Thread(target=read_stderr, name="stderr-reader", daemon=True)
         reader.start()
         try:
-            out, _ = proc.communicate(timeout=180)
+            proc.wait(timeout=180)  # stderr is the reader's alone (communicate would share it)
         finally:
             if proc.poll() is None:
                 proc.kill()
-                proc.communicate()
+                proc.wait()
             reader.join(timeout=10)
+            assert proc.stdout is not None and proc.stderr is not None
+            out = proc.stdout.read()
+            proc.stdout.close()
+            proc.stderr.close()
         published = {h["window"] for h in col.snapshot()}
     with StateStore(ctx.tmp / "state.sqlite") as st:
         stored = [h["window"] for h in st.history(limit=None)]

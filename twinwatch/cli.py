@@ -22,9 +22,6 @@ from twinwatch.config.loader import ConfigError, default_config, load_config
 
 logger = logging.getLogger("twinwatch")
 
-_SAMPLE_CONFIG = Path(__file__).parent / "config" / "default.toml"
-
-
 def _setup_logging(level: str) -> None:
     logging.basicConfig(
         level=getattr(logging, level.upper()),
@@ -340,6 +337,14 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
         click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
                    f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
                    f"{status}")
+    raised = {k: a for k, a in (last.get("alarms") or {}).items()
+              if a.get("level") not in (None, "normal")}
+    if raised:
+        click.echo("alarms: " + "; ".join(
+            f"{k} {a['level']}"
+            + (f" since plant time {a['since_t']:.0f} s" if a.get("since_t") is not None else "")
+            + (f" ({a['deviation_pct']:+.2f} % vs nominal)" if a.get("deviation_pct") is not None
+               else "") for k, a in raised.items()))
     disc = last.get("discovery") or {}
     if disc.get("enabled"):
         terms = last.get("terms") or []
@@ -455,9 +460,17 @@ def check_config(config: Path) -> None:
 
 
 @main.command("sample-config")
-def sample_config() -> None:
-    """Print a commented sample configuration (the built-in default)."""
-    click.echo(_SAMPLE_CONFIG.read_text(encoding="utf-8"), nl=False)
+@click.option("--driver", type=click.Choice(["simulated", "can", "file", "modbus",
+                                             "simulated_modbus"]),
+              default="simulated", show_default=True,
+              help="Print the complete example for this driver (every key documented).")
+def sample_config(driver: str) -> None:
+    """Print a commented sample configuration: every key of every table it uses, optional ones
+    commented out with their default (without --driver: the built-in default, the simulated
+    DC motor)."""
+    from twinwatch.config.samples import sample_config as sample
+
+    click.echo(sample(driver), nl=False)
 
 
 if __name__ == "__main__":  # pragma: no cover
