@@ -590,16 +590,41 @@ def run_with_subscriber(ctx: Context, cfg_text_kw: dict[str, Any], *args: str
 @case("state database full for windows 2-4, writable again from window 5 (of 10)",
       exit_code=0, published_not_stored=[], not_published=[2, 3, 4], stored=list(range(10)),
       summary="3 windows could not be stored when estimated, so they were not published "
-              "(3 written later, served by the history query; 0 lost)")
+              "(3 written later, served by the history query; 0 lost)",
+      systemd_status=["DEGRADED: state database not writable: 1 windows waiting in memory, "
+                      "not published", "recovered"])
 def _disk_full_then_space(ctx: Context) -> dict[str, Any]:
+    import socket
+
     DiskFull(ctx.monkeypatch, range(2, 5))
-    r, published, stored = run_with_subscriber(ctx, {"duration": 20.0}, "--no-progress")
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)  # systemd's NOTIFY_SOCKET
+    notify.bind(str(ctx.tmp / "notify"))
+    notify.settimeout(0)
+    ctx.monkeypatch.setenv("NOTIFY_SOCKET", str(ctx.tmp / "notify"))
+    try:
+        r, published, stored = run_with_subscriber(ctx, {"duration": 20.0}, "--no-progress")
+        statuses = []
+        while True:
+            try:
+                msg = notify.recv(4096).decode()
+            except BlockingIOError:
+                break
+            statuses += [ln.removeprefix("STATUS=") for ln in msg.splitlines()
+                         if ln.startswith("STATUS=")]
+    finally:
+        notify.close()
     line = [ln for ln in r.output.splitlines() if ln.startswith("state database:")]
+    degraded = [st for st in statuses if "DEGRADED" in st]
+    after = statuses[statuses.index(degraded[0]) + 1:] if degraded else []
     return {"exit_code": r.exit_code,
             "published_not_stored": sorted(set(published) - set(stored)),
             "not_published": sorted(set(range(10)) - set(published)),
             "stored": stored,
-            "summary": line[0].removeprefix("state database: ") if line else r.output}
+            "summary": line[0].removeprefix("state database: ") if line else r.output,
+            "systemd_status": [
+                "DEGRADED: " + degraded[0].split("DEGRADED: ", 1)[1] if degraded else statuses,
+                "recovered" if any(st.startswith("monitoring") and "DEGRADED" not in st
+                                   for st in after) else after]}
 
 
 @case("state database full from window 3 to the end (of 5): nothing of it published",

@@ -441,10 +441,12 @@ class Daemon:
                 self.watchdog.busy()
             try:
                 self.process_window(item)
-            except Exception:  # contained to the window: the daemon goes on
+            except Exception as exc:  # contained to the window: the daemon goes on
                 self.numeric_failures += 1
-                logger.exception("window %d could not be estimated; it is skipped and "
-                                 "counted in counters.numeric_failures", item.index)
+                logger.error("window %d could not be estimated (%s: %s); it is skipped and "
+                             "counted in counters.numeric_failures", item.index,
+                             type(exc).__name__, exc)
+                logger.debug("window %d failed", item.index, exc_info=True)
             finally:
                 if self.watchdog is not None:
                     self.watchdog.idle()
@@ -519,8 +521,10 @@ class Daemon:
             else:
                 try:
                     obj.close()
-                except Exception:
-                    logger.exception("error while closing the %s", name)
+                except Exception as exc:  # noqa: BLE001 - the other sinks still close
+                    logger.error("error while closing the %s: %s: %s", name,
+                                 type(exc).__name__, exc)
+                    logger.debug("closing the %s failed", name, exc_info=True)
                 self._closed_sinks[name] = obj  # for the final accounting (lost windows)
             setattr(self, name, None)
         return kept
