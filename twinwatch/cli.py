@@ -19,6 +19,7 @@ import click
 
 from twinwatch import __version__
 from twinwatch.config.loader import ConfigError, default_config, load_config
+from twinwatch.config.samples import DRIVERS as SAMPLE_DRIVERS
 
 logger = logging.getLogger("twinwatch")
 
@@ -460,9 +461,8 @@ def check_config(config: Path) -> None:
 
 
 @main.command("sample-config")
-@click.option("--driver", type=click.Choice(["simulated", "can", "file", "modbus",
-                                             "simulated_modbus"]),
-              default="simulated", show_default=True,
+@click.option("--driver", type=click.Choice(list(SAMPLE_DRIVERS)), default="simulated",
+              show_default=True,
               help="Print the complete example for this driver (every key documented).")
 def sample_config(driver: str) -> None:
     """Print a commented sample configuration: every key of every table it uses, optional ones
