@@ -7,7 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from twinwatch.twin.metamodels import META_MODELS, WORKING_CONDITIONS, get_meta_model
+from twinwatch.twin.metamodels import META_MODELS, TABLE_1, get_meta_model, working_conditions
+
+WORKING_CONDITIONS = working_conditions()
 
 # One parameter set per kind, with the input range each is used on (z > 0 for power/log).
 CASES = {

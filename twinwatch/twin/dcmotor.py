@@ -56,6 +56,7 @@ import numpy as np
 
 from twinwatch.twin.model import (
     AttachPoint,
+    EstimationDefaults,
     FloatArray,
     OutputSpec,
     ParameterSpec,
@@ -137,9 +138,22 @@ class DCMotorTwin(TwinModel):
         if self.structure == "closed_loop" and self.ki == 0:
             raise ValueError("closed_loop structure needs a non-zero integral gain ki")
 
+    @property
+    def estimation_defaults(self) -> EstimationDefaults:
+        """Ra, D, Ke, La, J in that priority (then tau_i with the current filter), Kt tied to
+        Ke: with a viscous load (J, Kt, D) -> (sJ, sKt, s(D+c)-c) leaves the outputs unchanged,
+        so Kt cannot be estimated beside them; in SI units Kt [N m/A] = Ke [V s/rad]. D comes
+        before Ke: with c_load >> D a Ke error is amplified five times in D."""
+        extra = ("tau_i",) if self.current_filter else ()
+        return EstimationDefaults(("Ra", "D", "Ke", "La", "J", *extra), {"Kt": "Ke"})
+
     def n_sub(self, sample_period: float) -> int:
         """Number of sub-steps per sample; raises ValueError if not a whole number."""
         return sub_steps(sample_period, self.sub_step)
+
+    def check_sample_period(self, sample_period: float) -> None:
+        """The sample period must be a whole number of sub-steps (ValueError otherwise)."""
+        self.n_sub(sample_period)
 
     def step_matrices(self, theta: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
         """One sub-step of Eq. 11-12 (plus the PI loop) as ``x' = A x + B u``.
