@@ -27,15 +27,24 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ValidationError
 
 from twinwatch._lifecycle import Closeable
+from twinwatch.io.sample import DriverError, EndOfStream, Sample, ScaledChannel
 
 logger = logging.getLogger(__name__)
 
-
-class DriverError(Exception):
-    """Base class of every driver error."""
+__all__ = [
+    "Driver",
+    "DriverError",
+    "DriverInitializationError",
+    "DriverOperationError",
+    "DriverStats",
+    "EndOfStream",
+    "Sample",
+    "ScaledChannel",
+    "validated_config",
+]
 
 
 class DriverInitializationError(DriverError):
@@ -44,10 +53,6 @@ class DriverInitializationError(DriverError):
 
 class DriverOperationError(DriverError):
     """The driver failed while reading and cannot go on."""
-
-
-class EndOfStream(DriverError):  # noqa: N818 - mirrors StopIteration, not an error condition
-    """A finite source has delivered its last sample."""
 
 
 ConfigT = TypeVar("ConfigT", bound=BaseModel)
@@ -72,36 +77,6 @@ def validated_config(model: type[ConfigT], config: ConfigT | Mapping[str, Any],
         return model.model_validate(config)
     except ValidationError as exc:
         raise DriverInitializationError(f"invalid {what} driver config: {exc}") from exc
-
-
-@dataclass(frozen=True, slots=True)
-class Sample:
-    """One acquisition sample.
-
-    Attributes:
-        t: time stamp [s] on the source's clock (plant time for the simulated plant, the
-            recording's time for a file, the frame's time stamp on a bus).
-        values: twin channel name -> value in the twin's SI unit.
-    """
-
-    t: float
-    values: dict[str, float]
-
-
-class ScaledChannel(BaseModel):
-    """How a source value becomes a twin channel value: ``value = raw * scale + offset``.
-
-    Attributes:
-        scale: factor to the twin's SI unit (e.g. 2*pi for rev/s -> rad/s).
-        offset: added after scaling, in the twin's unit.
-        unit: the twin channel's unit, for documentation and display.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    scale: float = Field(default=1.0, allow_inf_nan=False)
-    offset: float = Field(default=0.0, allow_inf_nan=False)
-    unit: str | None = None
 
 
 @dataclass(slots=True)
