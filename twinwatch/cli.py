@@ -80,9 +80,10 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     cfg = supervisor.config
     assert cfg is not None
 
-    total = duration
-    if total is None and cfg.driver.type in ("simulated", "simulated_modbus"):
-        total = cfg.driver.plant.duration  # type: ignore[union-attr]
+    from twinwatch.drivers import get_driver_class
+
+    total = duration if duration is not None else (
+        get_driver_class(cfg.driver.type).duration(cfg.driver))
     bar: Any = None
     if not no_progress:
         from tqdm import tqdm
@@ -169,11 +170,9 @@ def check_config(config: Path) -> None:
         sys.exit(1)
     # Drivers validate what only they can check (DBC names, files, columns) at open time;
     # open them without starting acquisition where that cannot touch a device.
-    if cfg.driver.type in ("file",) or (cfg.driver.type == "can"
-                                        and getattr(cfg.driver, "log_file", None)):
-        from twinwatch.drivers import create_driver
-        from twinwatch.drivers.base import DriverError
+    from twinwatch.drivers import DriverError, create_driver, get_driver_class
 
+    if get_driver_class(cfg.driver.type).safe_to_probe(cfg.driver):
         try:
             create_driver(cfg.driver, base_dir=config.resolve().parent).close()
         except DriverError as exc:

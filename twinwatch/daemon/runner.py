@@ -278,7 +278,7 @@ class Daemon:
             The number of windows estimated.
         """
         assert self.driver is not None
-        live = bool(getattr(self.driver, "live", False))
+        live = self.driver.live
         self._worker = threading.Thread(target=self._work, name="twinwatch-adaptation",
                                         daemon=True)
         self._worker.start()
