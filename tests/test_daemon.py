@@ -108,11 +108,11 @@ def test_a_failing_window_is_contained_and_counted():
         orig = daemon.estimator.estimate
         calls = []
 
-        def flaky(window, terms=None):
+        def flaky(window, terms=None, **kwargs):
             calls.append(window.index)
             if window.index == 1:
                 raise FloatingPointError("simulated numeric failure")
-            return orig(window, terms)
+            return orig(window, terms, **kwargs)
 
         daemon.estimator.estimate = flaky  # type: ignore[method-assign]
         daemon.run()

@@ -25,7 +25,13 @@ def test_motoshield_recording_every_window_estimated_plausibly_and_stably():
     assert counters["numeric_failures"] == 0 and counters["windows_abandoned"] == 0
     ke = np.array([h["parameters"]["Ke"]["value"] for h in hist])
     ke_estimated = [not h["parameters"]["Ke"]["held"] for h in hist]
-    assert all(ke_estimated)  # the speed response determines Ke in every window
+    # The speed response determines Ke within the config's 5 % gate in about half the windows;
+    # no parameter is ever published as an estimate above the gate (issue 9: the re-fit with
+    # the others held used to publish Ke at 13 %).
+    assert sum(ke_estimated) >= 8
+    for h in hist:
+        for p in h["parameters"].values():
+            assert p["held"] or p["rel_std_pct"] <= cfg.estimation.max_rel_std * 100
     # Physically plausible: a small motor, about 900 rad/s at 4.7 V -> Ke ~ 0.005 V s/rad.
     assert np.all((ke > 0.004) & (ke < 0.0055))
     spread = (np.percentile(ke, 75) - np.percentile(ke, 25)) / np.median(ke)
@@ -76,12 +82,12 @@ def test_motoshield_discovery_fit_first_half_validate_second():
     ever = [t for h in first for t in h["terms"]]
 
     def nrmse(w, terms) -> float:  # type: ignore[no-untyped-def]
-        from twinwatch.twin.discovery import Term, compose
+        from twinwatch.twin.terms import Term, compose
 
         objs = [Term.from_dict(t, model) for t in terms]
-        y = model.simulate(theta[None], w, compose(objs, w) if objs else None)[0]
-        meas, scale = adapter.estimator._prepare(w)
-        return float(np.sqrt(np.mean(((y - meas)[1:] / scale) ** 2)))
+        fit = adapter.estimator.window_fit(w)
+        y = fit.simulate(theta[None], compose(objs, w) if objs else None)[0]
+        return fit.residual(y).nrmse
 
     held_out = windows[12:]
     without = np.median([nrmse(w, []) for w in held_out])

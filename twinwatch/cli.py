@@ -179,7 +179,7 @@ def check_config(config: Path) -> None:
             click.echo(f"{config}: driver: {exc}", err=True)
             sys.exit(1)
     click.echo(f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
-               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate)})")
+               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})")
 
 
 @main.command("sample-config")

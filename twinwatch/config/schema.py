@@ -145,13 +145,12 @@ class TwinwatchConfig(BaseModel):
             if name not in model.parameter_names:
                 raise ValueError(f"machine.parameters.{name}: unknown parameter; the "
                                  f"{self.machine.model} model has {list(model.parameter_names)}")
-        self.estimation.check_against(model)
+        self.estimation = self.estimation.resolved(model)  # estimate/tie: the model's default
         self.discovery.check_against(model)
-        self.alarms.check_against(model.parameter_names, estimated=self.estimation.estimate)
+        self.alarms.check_against(model.parameter_names,
+                                  estimated=self.estimation.estimate or [])
         try:
-            model.n_sub(self.acquisition.sample_period)  # type: ignore[attr-defined]
-        except AttributeError:
-            pass
+            model.check_sample_period(self.acquisition.sample_period)
         except ValueError as exc:
             raise ValueError(f"acquisition.sample_period: {exc}") from exc
         driver_period = get_driver_class(self.driver.type).nominal_sample_period(self.driver)

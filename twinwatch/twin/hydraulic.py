@@ -74,6 +74,7 @@ from numba import njit
 
 from twinwatch.twin.model import (
     AttachPoint,
+    EstimationDefaults,
     FloatArray,
     OutputSpec,
     ParameterSpec,
@@ -214,9 +215,19 @@ class HydraulicActuatorTwin(TwinModel):
         return {"D": f"too little excitation: the piston nearly stands still (RMS speed "
                      f"{rms:.2g} m/s < {self.min_speed:g} m/s, e.g. reversing)"}
 
+    @property
+    def estimation_defaults(self) -> EstimationDefaults:
+        """q_pump then D (a reversal then holds D alone); k_spring, A_piston and F_resist trade
+        off with D within one window and A_max is never excited: kept at nameplate."""
+        return EstimationDefaults(("q_pump", "D"))
+
     def n_sub(self, sample_period: float) -> int:
         """Number of sub-steps per sample; raises ValueError if not a whole number."""
         return sub_steps(sample_period, self.sub_step)
+
+    def check_sample_period(self, sample_period: float) -> None:
+        """The sample period must be a whole number of sub-steps (ValueError otherwise)."""
+        self.n_sub(sample_period)
 
     @staticmethod
     def _term(values: FloatArray | None, p: int, n: int, name: str) -> FloatArray:

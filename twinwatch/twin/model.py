@@ -113,6 +113,21 @@ class AttachPoint:
     scale: float = 1.0
 
 
+@dataclass(frozen=True, slots=True)
+class EstimationDefaults:
+    """What a model estimates when the configuration does not say (``[estimation]`` keys
+    ``estimate`` and ``tie`` left out).
+
+    Attributes:
+        estimate: parameters to estimate, in priority order (the first are kept when a window
+            cannot determine them all).
+        tie: dependent parameter -> the parameter it equals (``Kt = Ke`` in SI units).
+    """
+
+    estimate: tuple[str, ...]
+    tie: Mapping[str, str] = field(default_factory=dict)
+
+
 @dataclass
 class TwinModel(abc.ABC):
     """Base class of every twin model.
@@ -133,6 +148,16 @@ class TwinModel(abc.ABC):
     @property
     def output_names(self) -> tuple[str, ...]:
         return tuple(o.name for o in self.outputs)
+
+    @property
+    def estimation_defaults(self) -> EstimationDefaults:
+        """What to estimate, and the ties, when the configuration does not say; every
+        parameter, untied, unless the model knows better (override)."""
+        return EstimationDefaults(self.parameter_names)
+
+    def check_sample_period(self, sample_period: float) -> None:  # noqa: B027 - optional hook
+        """Raise ValueError (saying why) if the twin cannot run at this sample period [s]
+        (e.g. it is not a whole number of integration sub-steps). Default: any period."""
 
     def parameter(self, name: str) -> ParameterSpec:
         for p in self.parameters:
