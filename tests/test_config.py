@@ -56,7 +56,7 @@ BASE = (ROOT / "config" / "dc-motor-sim.toml").read_text()
     [
         (("[estimation]", "[estimation]\nestimat = ['Ra']"), "estimation.estimat: unknown key"),
         (('scenario = "resistance_degradation"', 'scenario = "melting"'),
-         "driver.simulated.plant.scenario"),
+         "driver.plant.scenario: Input should be"),
         (("window = 200", "window = 2"), "acquisition.window"),
         (('estimate = ["Ra", "D", "Ke", "La", "J"]', 'estimate = ["Ra", "Rb"]'),
          "estimation.estimate: unknown parameter 'Rb'"),

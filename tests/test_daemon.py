@@ -59,6 +59,10 @@ class _PlantDriver(Driver):
     live = True
     channels = ("Va", "ia", "omega", "Tload", "setpoint")
 
+    @classmethod
+    def from_config(cls, config, *, base_dir=None):  # type: ignore[no-untyped-def]
+        raise NotImplementedError("built by the test, not from a configuration")
+
     def __init__(self, duration: float, nan_at: float | None = None) -> None:
         super().__init__()
         self.plant = DCMotorPlant(DCMotorPlantConfig(scenario="nominal", duration=duration))

@@ -123,6 +123,18 @@ def test_relative_and_type_checking_imports_are_read_correctly() -> None:
     assert not any(t.startswith("twinwatch.plant") for t in found)
 
 
+def test_no_import_cycle_between_packages() -> None:
+    graph = package_graph()
+    for pkg in CORE:
+        assert (ROOT / pkg).is_dir(), pkg
+    cycle = find_cycle(graph)
+    if cycle is not None:
+        evidence = "\n".join(
+            f"  {a} -> {b}: {', '.join(graph[a][b][:3])}" for a, b in zip(cycle, cycle[1:],
+                                                                       strict=False))
+        raise AssertionError(f"import cycle {' -> '.join(cycle)}:\n{evidence}")
+
+
 def test_plant_does_not_import_the_drivers() -> None:
     """The simulated plants and the drivers share only twinwatch.io (sample, register map)."""
     graph = package_graph()

@@ -5,19 +5,18 @@ The only module that prints. Everything else logs.
 
 from __future__ import annotations
 
-import faulthandler
 import logging
-import signal
 import sys
-import threading
 from pathlib import Path
-from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from twinwatch import __version__
 from twinwatch.config.loader import ConfigError, default_config, load_config
+
+if TYPE_CHECKING:
+    from twinwatch.config.schema import TwinwatchConfig
 
 logger = logging.getLogger("twinwatch")
 
@@ -63,104 +62,28 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     the running configuration goes on; a good one restarts the daemon in-process, keeping the
     Zenoh session, the Rerun file and the state database open when their tables are unchanged,
     and resuming the twin from the state database."""
-    from twinwatch.daemon.systemd import Notifier, Watchdog
+    from twinwatch.daemon.supervisor import StartError, Supervisor
 
-    notifier = Notifier(unset_environment=True)
+    def load() -> TwinwatchConfig:
+        return load_config(config) if config else default_config()
+
+    supervisor = Supervisor(load, base_dir=config.resolve().parent if config else Path.cwd(),
+                            source=str(config) if config else "the built-in default")
     _setup_logging(log_level)
-    # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the journal)
-    # first, so a stuck worker or a hung driver read shows where it was. (An stderr without a
-    # file descriptor, e.g. click's test runner, has nowhere to write it.)
     try:
-        faulthandler.enable()
-    except (AttributeError, ValueError, OSError):
-        logger.debug("faulthandler not enabled: stderr has no file descriptor")
-    try:
-        cfg = load_config(config) if config else default_config()
+        supervisor.start()
     except ConfigError as exc:
         click.echo(f"Error: {exc}", err=True)
-        notifier.notify(f"STATUS=invalid configuration: {exc}".splitlines()[0])
         sys.exit(EX_CONFIG)
-    base_dir = config.resolve().parent if config else Path.cwd()
-
-    from twinwatch.daemon.publisher import PublisherError
-    from twinwatch.daemon.recorder import RecorderError
-    from twinwatch.daemon.runner import SINKS, Daemon
-    from twinwatch.daemon.store import StoreError
-    from twinwatch.drivers.base import DriverError
-
-    start_errors = (DriverError, PublisherError, RecorderError, StoreError, ValueError, OSError)
-
-    # Signals first: a SIGTERM while the drivers and sinks start must stop cleanly too.
-    # The handlers only set flags (a handler that logged to systemd's socket or took a lock
-    # the interrupted code holds could deadlock); the main loop acts on them.
-    stop_requested = threading.Event()
-    reload_requested = threading.Event()
-    holder: list[Any] = []
-
-    def _on_signal(signum: int, frame: FrameType | None) -> None:
-        if stop_requested.is_set():
-            for d in holder:
-                d.abandon = True
-            logger.warning("%s received again: abandoning the queued windows",
-                           signal.Signals(signum).name)
-            return
-        logger.warning("%s received: finishing the queued windows and stopping",
-                       signal.Signals(signum).name)
-        stop_requested.set()
-        for d in holder:
-            d.stop()
-
-    def _on_hup(signum: int, frame: FrameType | None) -> None:
-        reload_requested.set()
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, _on_signal)
-        signal.signal(signal.SIGTERM, _on_signal)
-        signal.signal(signal.SIGHUP, _on_hup)
-
-    watchdog = Watchdog(notifier)
-    pending: list[Any] = []  # a validated new configuration waiting for the restart
-
-    def _check_reload() -> None:
-        """Acquisition-loop tick: validate a requested reload without stopping acquisition."""
-        if not reload_requested.is_set() or stop_requested.is_set():
-            return
-        reload_requested.clear()
-        notifier.reloading("reloading the configuration")
-        source = str(config) if config else "the built-in default"
-        try:
-            new_cfg = load_config(config) if config else default_config()
-        except ConfigError as exc:
-            logger.error("reload refused, the running configuration goes on: %s", exc)
-            notifier.ready(status=f"reload refused ({str(exc).splitlines()[-1].strip()}); "
-                           "running the previous configuration")
-            return
-        logger.warning("reloading %s: restarting the daemon with the new configuration",
-                       source)
-        pending.append(new_cfg)
-        for d in holder:
-            d.stop()
-
-    def _start(c: Any, reuse: dict[str, Any] | None = None) -> Any:
-        d = Daemon(c, base_dir=base_dir, persist=True, watchdog=watchdog, reuse=reuse)
-        d.add_tick(_check_reload)
-        return d
-
-    try:
-        daemon = _start(cfg)
-    except start_errors as exc:
-        # Each of these says what failed and what to do; a traceback would add nothing.
-        notifier.notify(f"STATUS=cannot start: {exc}".splitlines()[0])
+    except StartError as exc:
         raise click.ClickException(f"cannot start: {exc}") from None
-    holder.append(daemon)
-    if stop_requested.is_set():
-        daemon.stop()
-    _warm_up(daemon)
-    notifier.ready(status=_status_line(cfg, daemon))
+    cfg = supervisor.config
+    assert cfg is not None
 
-    total = duration
-    if total is None and cfg.driver.type in ("simulated", "simulated_modbus"):
-        total = cfg.driver.plant.duration  # type: ignore[union-attr]
+    from twinwatch.drivers import get_driver_class
+
+    total = duration if duration is not None else (
+        get_driver_class(cfg.driver.type).duration(cfg.driver))
     bar: Any = None
     if not no_progress:
         from tqdm import tqdm
@@ -179,62 +102,16 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
                                 f"nRMSE {health['nrmse'] or float('nan'):.1e}", refresh=False)
             bar.refresh()
 
+        supervisor.add_callback(_progress)
     try:
-        while True:
-            if bar is not None:
-                daemon.add_callback(_progress)
-            daemon.run(duration=duration)
-            if stop_requested.is_set() or not pending:
-                break
-            new_cfg = pending.pop()
-            kept = daemon.close(keep=SINKS)
-            holder.clear()
-            try:
-                daemon = _start(new_cfg, reuse=kept)
-                cfg = new_cfg
-            except start_errors as exc:
-                logger.error("the new configuration cannot start (%s): going back to the "
-                             "previous one", exc)
-                daemon = _start(cfg)
-            holder.append(daemon)
-            logger.warning("configuration reloaded; the twin resumes from the state database")
-            notifier.ready(status=_status_line(cfg, daemon))
+        supervisor.run(duration=duration)
+    except StartError as exc:
+        raise click.ClickException(f"cannot restart after a reload: {exc}") from None
     finally:
-        notifier.stopping("stopping: finishing the queued windows")
-        notifier.extend_timeout(cfg.acquisition.shutdown_timeout + 10)
-        daemon.close()
         if bar is not None:
             bar.close()
-    _print_summary(cfg, daemon)
-
-
-def _warm_up(daemon: Any) -> None:
-    """Compile the twin's numba kernels before READY=1 (cached on disk after the first run),
-    so the first window does not look like a stuck worker to the watchdog."""
-    try:
-        import numpy as np
-
-        from twinwatch.twin.model import WindowData
-
-        n = daemon.config.acquisition.window
-        dt = daemon.config.acquisition.sample_period
-        t = np.arange(n) * dt
-        chans = {c: np.zeros(n) for c in daemon.model.required_channels()}
-        theta = np.array([[daemon.nominal[p] for p in daemon.model.parameter_names]])
-        daemon.model.simulate(theta, WindowData(t=t, channels=chans, index=-1))
-    except Exception:  # noqa: BLE001 - best effort: the first window compiles otherwise
-        logger.debug("numba warm-up skipped", exc_info=True)
-
-
-def _status_line(cfg: Any, daemon: Any) -> str:
-    parts = [f"monitoring {cfg.machine.name} ({cfg.machine.model}, {cfg.driver.type} driver)"]
-    if daemon.publisher is not None:
-        parts.append(f"health on {cfg.zenoh.key_prefix}/{cfg.machine.name}/health")
-    if daemon.store is not None:
-        parts.append(f"state {daemon.store.path}")
-    if daemon.restored is not None:
-        parts.append("twin resumed")
-    return ", ".join(parts)
+    assert supervisor.config is not None and supervisor.daemon is not None
+    _print_summary(supervisor.config, supervisor.daemon)
 
 
 def _print_summary(cfg: Any, daemon: Any) -> None:
@@ -293,11 +170,9 @@ def check_config(config: Path) -> None:
         sys.exit(1)
     # Drivers validate what only they can check (DBC names, files, columns) at open time;
     # open them without starting acquisition where that cannot touch a device.
-    if cfg.driver.type in ("file",) or (cfg.driver.type == "can"
-                                        and getattr(cfg.driver, "log_file", None)):
-        from twinwatch.drivers import create_driver
-        from twinwatch.drivers.base import DriverError
+    from twinwatch.drivers import DriverError, create_driver, get_driver_class
 
+    if get_driver_class(cfg.driver.type).safe_to_probe(cfg.driver):
         try:
             create_driver(cfg.driver, base_dir=config.resolve().parent).close()
         except DriverError as exc:

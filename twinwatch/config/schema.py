@@ -2,8 +2,11 @@
 
 Every table refuses unknown keys (pydantic ``extra = "forbid"``), so a misspelt key stops the
 daemon at start-up with the key's path instead of being silently ignored (as in Telegraf).
-Each part validates itself: driver tables are defined by their drivers, the Zenoh and Rerun
-tables by the daemon's sinks, the estimation table by the estimator, the plant by the plant.
+Each part validates itself: the ``[driver]`` table by the driver its ``type`` names (looked up
+in the driver registry, :func:`twinwatch.drivers.validate_driver_config`, which imports only
+that driver's module: built-in or registered through the ``twinwatch.drivers`` entry points),
+the Zenoh and Rerun tables by the daemon's sinks, the estimation table by the estimator, the
+plant by the plant (through its simulated driver).
 
 Layout::
 
@@ -11,7 +14,8 @@ Layout::
     [acquisition]      sample period, window length, gap and queue settings
     [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
     [discovery]        meta-model candidates (kind, input, attach point) and when to search
-    [driver]           type = "simulated" | "can" | "file" | "modbus" (+ its own keys)
+    [driver]           type = a registered driver ("simulated", "can", "file", "modbus",
+                       "simulated_modbus", or a plug-in's) + that driver's own keys
     [zenoh]            session mode and endpoints (loopback by default)
     [recording]        Rerun .rrd path
     [alarms]           per-parameter warning/alarm thresholds ([alarms.parameters.<name>])
@@ -21,19 +25,29 @@ Layout::
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializeAsAny,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from twinwatch.daemon.alarms import AlarmConfig
 from twinwatch.daemon.publisher import ZenohConfig
 from twinwatch.daemon.recorder import RecordingConfig
 from twinwatch.daemon.store import StateConfig
-from twinwatch.drivers.can import CanDriverConfig
-from twinwatch.drivers.file import FileDriverConfig
-from twinwatch.drivers.modbus import ModbusDriverConfig
-from twinwatch.drivers.simulated import SimulatedDriverConfig
-from twinwatch.drivers.simulated_modbus import SimulatedModbusDriverConfig
+from twinwatch.drivers import (
+    DriverConfig,
+    DriverInitializationError,
+    get_driver_class,
+    validate_driver_config,
+)
 from twinwatch.twin.discovery import DiscoveryConfig
 from twinwatch.twin.estimation import EstimationConfig
 from twinwatch.twin.registry import create_model
@@ -84,11 +98,21 @@ class AcquisitionConfig(BaseModel):
                                   "of estimating them")
 
 
-DriverConfig = Annotated[
-    SimulatedDriverConfig | CanDriverConfig | FileDriverConfig | ModbusDriverConfig
-    | SimulatedModbusDriverConfig,
-    Field(discriminator="type"),
-]
+def _driver_table(value: Any) -> DriverConfig:
+    """``[driver]``: validated by the model of the driver its ``type`` names.
+
+    Errors keep their location inside the table (``driver.signals.ia.message``); an unknown
+    or unavailable driver is reported at ``driver.type`` with the known names.
+    """
+    if not isinstance(value, DriverConfig | dict):
+        raise ValueError("must be a table with a 'type' key naming the driver")
+    try:
+        return validate_driver_config(value)
+    except DriverInitializationError as exc:
+        raise ValidationError.from_exception_data("driver", [InitErrorDetails(
+            type=PydanticCustomError("driver_type", "{reason}", {"reason": str(exc)}),
+            loc=("type",), input=value.get("type") if isinstance(value, dict) else value,
+        )]) from None
 
 
 class TwinwatchConfig(BaseModel):
@@ -100,11 +124,16 @@ class TwinwatchConfig(BaseModel):
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
     estimation: EstimationConfig = Field(default_factory=EstimationConfig)
     discovery: DiscoveryConfig = Field(default_factory=DiscoveryConfig)
-    driver: DriverConfig
+    driver: SerializeAsAny[DriverConfig]
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
     alarms: AlarmConfig = Field(default_factory=AlarmConfig)
     state: StateConfig = Field(default_factory=StateConfig)
+
+    @field_validator("driver", mode="before")
+    @classmethod
+    def _driver(cls, value: Any) -> DriverConfig:
+        return _driver_table(value)
 
     @model_validator(mode="after")
     def _cross_checks(self) -> TwinwatchConfig:
@@ -124,9 +153,7 @@ class TwinwatchConfig(BaseModel):
             model.check_sample_period(self.acquisition.sample_period)
         except ValueError as exc:
             raise ValueError(f"acquisition.sample_period: {exc}") from exc
-        driver_period = getattr(self.driver, "sample_period", None)
-        if isinstance(self.driver, SimulatedDriverConfig | SimulatedModbusDriverConfig):
-            driver_period = self.driver.plant.sample_period
+        driver_period = get_driver_class(self.driver.type).nominal_sample_period(self.driver)
         acq_period = self.acquisition.sample_period
         if driver_period is not None and abs(driver_period - acq_period) > 1e-12:
             raise ValueError(

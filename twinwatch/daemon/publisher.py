@@ -60,13 +60,16 @@ from collections.abc import Callable, Mapping, Sequence
 from datetime import date, datetime
 from enum import Enum
 from pathlib import Path, PurePath
-from typing import Any, ClassVar, Literal, Self
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
 import numpy as np
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinwatch._lifecycle import Closeable
+
+if TYPE_CHECKING:
+    from twinwatch.daemon.pipeline import ProcessedWindow
 
 logger = logging.getLogger(__name__)
 
@@ -585,6 +588,13 @@ class HealthPublisher(Closeable):
         if key_suffix == "alive":
             raise ValueError("key_suffix 'alive' is reserved for the liveliness token")
         self._put(f"{self.base_key}/{key_suffix}", payload)
+
+    def write(self, out: ProcessedWindow) -> None:
+        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
+        the window's health on ``P/health``, then its alarm events on ``P/alarm``."""
+        self.publish(out.health)
+        for event in out.events:
+            self.publish_json("alarm", event)
 
     def _put(self, key: str, payload: Mapping[str, Any]) -> None:
         with self._lock:

@@ -50,7 +50,7 @@ import time
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rerun as rr
@@ -59,6 +59,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from twinwatch._lifecycle import Closeable
 from twinwatch.daemon.publisher import to_json
+
+if TYPE_CHECKING:
+    from twinwatch.daemon.pipeline import ProcessedWindow
 
 logger = logging.getLogger(__name__)
 
@@ -465,6 +468,19 @@ class RerunRecorder(Closeable):
             self._file_windows += 1
             if self.config.rotate_windows and self._file_windows >= self.config.rotate_windows:
                 self._rotate()
+
+    def write(self, out: ProcessedWindow) -> None:
+        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
+        :meth:`log_window` with the window's measured and twin outputs, estimates and health."""
+        est = out.result.estimate
+        self.log_window(
+            t=out.window.t,
+            measured={o: out.window[o] for o in self.outputs},
+            simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
+            parameters=est.values,
+            health=out.health,
+            terms_changed=out.result.changed,
+        )
 
     def _flush(self, rec: rr.RecordingStream) -> None:
         try:

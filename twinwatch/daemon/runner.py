@@ -1,14 +1,14 @@
-"""The daemon: driver -> ring buffer -> adaptation worker -> Zenoh and Rerun.
+"""The daemon: driver -> ring buffer -> adaptation worker -> window pipeline -> sinks.
 
 Threads (see docs/architecture.md):
 
-* the caller's thread (the CLI's main thread) runs :meth:`Daemon.run`: it reads the driver,
-  fills the ring buffer and hands each full window to the worker. It never estimates, so
-  acquisition is never blocked by the optimiser.
-* ``twinwatch-adaptation`` (one worker thread) estimates each window, builds its health
-  message, evaluates the alarms, stores the window (and the twin, when trusted) in the state
-  database, then publishes it over Zenoh and records it to Rerun. Stored before published: a
-  health message a subscriber has seen is always in the database, also after SIGKILL.
+* the caller's thread (the supervisor's, i.e. the CLI's main thread) runs :meth:`Daemon.run`:
+  it reads the driver, fills the ring buffer and hands each full window to the worker. It never
+  estimates, so acquisition is never blocked by the optimiser.
+* ``twinwatch-adaptation`` (one worker thread) runs the window pipeline
+  (:class:`~twinwatch.daemon.pipeline.WindowPipeline`): estimation, health message, alarms,
+  then the sinks in order: state database, Zenoh, Rerun. Stored before published: a health
+  message a subscriber has seen is always in the database, also after SIGKILL.
 * zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
   database (one SQLite connection per thread, WAL: readers never block the worker).
 
@@ -25,43 +25,36 @@ import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from twinwatch.config.schema import TwinwatchConfig
 from twinwatch.daemon.alarms import AlarmEvaluator
+from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline, WindowSink
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, EndOfStream
-from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
-from twinwatch.twin.health import build_health, summary_line
+from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.registry import create_model
+
+if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
+    from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.publisher import HealthPublisher
+    from twinwatch.daemon.recorder import RerunRecorder
+    from twinwatch.daemon.store import StateStore
+    from twinwatch.daemon.systemd import Watchdog
 
 logger = logging.getLogger(__name__)
 
 _STOP = object()
 
-HealthCallback = Callable[[dict[str, Any]], None]
-
 HISTORY_LIMIT = 1000
 """Most windows one history query returns (page on with ``t_from``)."""
 
-SINKS = ("publisher", "recorder", "store")
-"""What a reload may hand from the old daemon to the new one (:meth:`Daemon.close` ``keep``)."""
-
-
-def sink_config(config: TwinwatchConfig, name: str) -> Any:
-    """The part of ``config`` a sink depends on: equal parts let a reload keep the sink open."""
-    m = config.machine
-    if name == "publisher":
-        return (m.name, config.zenoh.model_dump())
-    if name == "recorder":
-        return (m.name, m.model, m.options, config.recording.model_dump())
-    if name == "store":
-        return config.state.model_dump()
-    raise ValueError(name)
+SINKS = ("store", "publisher", "recorder")
+"""The daemon's sinks, in the order each window is written to them (stored before published);
+a reload may hand them from the old daemon to the new one (:meth:`Daemon.close` ``keep``)."""
 
 
 class Daemon:
@@ -80,9 +73,9 @@ class Daemon:
             it on.
         watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
             each window).
-        reuse: sinks (``publisher``, ``recorder``, ``store``) handed over from a previous
-            daemon by a reload (see :meth:`close`); each is used only if its part of the
-            configuration is unchanged (:func:`sink_config`), else closed.
+        reuse: open sinks (names in :data:`SINKS`) handed over from a previous daemon by a
+            reload (see :meth:`close`), used instead of opening new ones. The caller (the
+            supervisor) hands over only sinks whose configuration is unchanged.
 
     Raises:
         twinwatch.drivers.base.DriverInitializationError, PublisherError, RecorderError,
@@ -99,8 +92,8 @@ class Daemon:
         publish: bool = True,
         record: bool = True,
         persist: bool = False,
-        watchdog: Any = None,
-        reuse: dict[str, tuple[Any, Any]] | None = None,
+        watchdog: Watchdog | None = None,
+        reuse: Mapping[str, WindowSink] | None = None,
     ) -> None:
         self.config = config
         self.base_dir = base_dir or Path.cwd()
@@ -114,11 +107,15 @@ class Daemon:
         acq = config.acquisition
         self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
                                sample_period=acq.sample_period, max_gap=acq.max_gap)
-        self.publisher: Any = None
-        self.recorder: Any = None
-        self.store: Any = None
+        self.publisher: HealthPublisher | None = None
+        self.recorder: RerunRecorder | None = None
+        self.store: StateStore | None = None
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
+        self.pipeline = WindowPipeline(
+            adapter=self.adapter, alarms=self.alarms, machine=self.machine,
+            model_name=config.machine.model, nominal=self.nominal, counters=self.counters,
+            history=acq.history)
         self.restored: dict[str, Any] | None = None
         self.driver: Driver | None = None
         self._own_driver = driver is None
@@ -127,26 +124,14 @@ class Daemon:
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
-        self.windows_estimated = 0
-        self.history: deque[dict[str, Any]] = deque(maxlen=acq.history)
-        self.latest: dict[str, Any] | None = None
-        self._callbacks: list[HealthCallback] = []
         self._ticks: list[Callable[[], None]] = []
-        self._lock = threading.Lock()
         self.abandon = config.acquisition.abandon_on_stop
-        handed = dict(reuse or {})
         try:
-            for name in SINKS:
-                item = handed.pop(name, None)
-                if item is None:
-                    continue
-                obj, cfg_part = item
-                if cfg_part == sink_config(config, name):
-                    setattr(self, name, obj)
-                    logger.info("reload: the %s is kept open (its configuration is unchanged)",
-                                name)
-                else:
-                    obj.close()
+            for name, sink in (reuse or {}).items():
+                if name not in SINKS:
+                    raise ValueError(f"unknown sink {name!r}; the sinks are {SINKS}")
+                setattr(self, name, sink)
+                logger.info("reload: the %s is kept open (its configuration is unchanged)", name)
             if persist and config.state.enabled and self.store is None:
                 from twinwatch.daemon.store import StateStore
 
@@ -178,11 +163,30 @@ class Daemon:
         except BaseException:
             self.close()
             raise
+        self.pipeline.sinks = [s for s in (self.store, self.publisher, self.recorder)
+                               if s is not None]
+
+    # -- the window pipeline's results ------------------------------------------------------
+    @property
+    def windows_estimated(self) -> int:
+        """Windows the pipeline processed."""
+        return self.pipeline.windows_estimated
+
+    @property
+    def latest(self) -> dict[str, Any] | None:
+        """The last health message."""
+        return self.pipeline.latest
+
+    @property
+    def history(self) -> deque[dict[str, Any]]:
+        """The last ``[acquisition] history`` health messages."""
+        return self.pipeline.history
 
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
         """Resume from the state database: the last accepted twin (trusted parameters and
         meta-model terms) and the alarm levels of the last window."""
+        assert self.store is not None
         state = self.store.load_twin_state(self.machine)
         if state is not None:
             try:
@@ -241,7 +245,7 @@ class Daemon:
 
     def add_callback(self, fn: HealthCallback) -> None:
         """Call ``fn(health)`` from the worker thread after each window."""
-        self._callbacks.append(fn)
+        self.pipeline.callbacks.append(fn)
 
     def stop(self) -> None:
         """Ask :meth:`run` to return after the current sample (thread- and signal-safe)."""
@@ -274,7 +278,7 @@ class Daemon:
             The number of windows estimated.
         """
         assert self.driver is not None
-        live = bool(getattr(self.driver, "live", False))
+        live = self.driver.live
         self._worker = threading.Thread(target=self._work, name="twinwatch-adaptation",
                                         daemon=True)
         self._worker.start()
@@ -376,42 +380,12 @@ class Daemon:
                     self.watchdog.idle()
 
     def process_window(self, window: WindowData) -> dict[str, Any]:
-        """Adapt the twin to one window (estimation, then discovery when needed), publish and
-        record its health. Returns the health message."""
-        result: AdaptationResult = self.adapter.process(window)
-        est = result.estimate
-        self.windows_estimated += 1
-        health = build_health(machine=self.machine, model_name=self.config.machine.model,
-                              model=self.model, window=window, estimate=est,
-                              nominal=self.nominal, counters=self.counters(),
-                              adaptation=result, discovery_enabled=self.adapter.enabled)
-        events = self.alarms.update(health)
-        health["alarms"] = self.alarms.state()
-        if self.store is not None:  # stored before published: nothing seen is ever lost
-            self.store.save_window(health, self.adapter.state() if est.trusted else None)
-        with self._lock:
-            self.latest = health
-            self.history.append(health)
-        logger.info("%s", summary_line(health))
-        if self.publisher is not None:
-            self.publisher.publish(health)
-            for ev in events:
-                self.publisher.publish_json("alarm", ev)
-        if self.recorder is not None:
-            outs = self.model.output_names
-            self.recorder.log_window(
-                t=window.t,
-                measured={o: window[o] for o in outs},
-                simulated={o: est.simulated[:, j] for j, o in enumerate(outs)},
-                parameters=est.values,
-                health=health,
-                terms_changed=result.changed,
-            )
-        for fn in self._callbacks:
-            fn(health)
-        return health
+        """Adapt the twin to one window and write it to the sinks (the pipeline's
+        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`). Returns the health
+        message."""
+        return self.pipeline.process(window)
 
-    def close(self, keep: tuple[str, ...] = ()) -> dict[str, tuple[Any, Any]]:
+    def close(self, keep: tuple[str, ...] = ()) -> dict[str, WindowSink]:
         """Stop everything and release driver, publisher, recorder and state database (after
         the worker has drained). Idempotent.
 
@@ -419,11 +393,11 @@ class Daemon:
             keep: sinks (names in :data:`SINKS`) to leave open for a new daemon (reload).
 
         Returns:
-            name -> (sink, its configuration part) for the kept sinks: pass as ``reuse``.
+            name -> sink for the kept sinks: pass (those still compatible) as ``reuse``.
         """
         self._stop.set()
         self._drain()
-        kept: dict[str, tuple[Any, Any]] = {}
+        kept: dict[str, WindowSink] = {}
         for name in ("driver", "publisher", "recorder", "store"):
             obj = getattr(self, name, None)
             if obj is None or (name == "driver" and not self._own_driver):
@@ -431,13 +405,14 @@ class Daemon:
             if name in keep:
                 if name == "publisher":
                     obj.add_query_handler("history", _no_history)
-                kept[name] = (obj, sink_config(self.config, name))
+                kept[name] = obj
             else:
                 try:
                     obj.close()
                 except Exception:
                     logger.exception("error while closing the %s", name)
             setattr(self, name, None)
+        self.pipeline.sinks = []
         return kept
 
     def __enter__(self) -> Daemon:

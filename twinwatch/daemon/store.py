@@ -42,11 +42,14 @@ import time
 from collections import deque
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from twinwatch._lifecycle import Closeable
+
+if TYPE_CHECKING:
+    from twinwatch.daemon.pipeline import ProcessedWindow
 
 logger = logging.getLogger(__name__)
 
@@ -319,6 +322,11 @@ class StateStore(Closeable):
                 self._since_prune = 0
                 self.prune()
         return ok
+
+    def write(self, out: ProcessedWindow) -> None:
+        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
+        :meth:`save_window` with the window's health and, when it was trusted, the twin."""
+        self.save_window(out.health, out.twin_state)
 
     def _flush(self) -> bool:
         conn = self._connect()

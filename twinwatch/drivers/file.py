@@ -49,10 +49,11 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 import scipy.io
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfig,
     DriverInitializationError,
     EndOfStream,
     Sample,
@@ -79,7 +80,7 @@ class FileColumnMap(ScaledChannel):
     column: str = Field(min_length=1)
 
 
-class FileDriverConfig(BaseModel):
+class FileDriverConfig(DriverConfig):
     """Configuration of :class:`FileDriver` (the ``[driver]`` table with ``type = "file"``).
 
     Attributes:
@@ -164,6 +165,13 @@ class FileDriver(Driver):
             different lengths.
     """
 
+    config_class = FileDriverConfig
+
+    @classmethod
+    def safe_to_probe(cls, config: DriverConfig) -> bool:
+        """Opening reads the file's header and checks the mapped columns: no device."""
+        return True
+
     def __init__(self, config: FileDriverConfig, *, base_dir: Path | None = None) -> None:
         super().__init__()
         try:
@@ -174,7 +182,7 @@ class FileDriver(Driver):
 
     @classmethod
     def from_config(
-        cls, config: FileDriverConfig | Mapping[str, Any], *, base_dir: Path
+        cls, config: FileDriverConfig | Mapping[str, Any], *, base_dir: Path | None = None
     ) -> FileDriver:
         """Build a driver from a validated config or a raw ``[driver]`` table.
 

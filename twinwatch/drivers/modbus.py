@@ -87,13 +87,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfig,
     DriverInitializationError,
     DriverOperationError,
     Sample,
@@ -138,7 +139,7 @@ _POLL_THREAD_NAME = "twinwatch-modbus-poll"
 # -- configuration ----------------------------------------------------------------------------
 
 
-class ModbusDriverConfig(BaseModel):
+class ModbusDriverConfig(DriverConfig):
     """Configuration of :class:`ModbusDriver` (the ``[driver]`` table with ``type = "modbus"``).
 
     Attributes:
@@ -299,6 +300,8 @@ class ModbusDriver(Driver):
         DriverInitializationError: the client cannot be created (e.g. pyserial missing for
             RTU). An unreachable device is *not* an error here: the driver keeps trying.
     """
+
+    config_class = ModbusDriverConfig
 
     def __init__(self, config: ModbusDriverConfig) -> None:
         super().__init__()

@@ -1,0 +1,134 @@
+"""One window's way from the twin to the sinks (the adaptation worker's job, paper Fig. 2).
+
+:class:`WindowPipeline` runs, for each window the ring buffer completes::
+
+    adapt (TwinAdapter: estimation, re-validation, discovery)
+      -> health message (twinwatch.twin.health)
+      -> alarms (AlarmEvaluator: levels, hysteresis, events)
+      -> sinks, in order: state store, Zenoh, Rerun
+      -> callbacks (the CLI's progress bar)
+
+The sinks share one small protocol, :class:`WindowSink`: ``write(ProcessedWindow)`` and
+``close()``. Their order is the guarantee "stored before published": a health message a
+subscriber has seen is always in the state database, also after SIGKILL.
+
+The pipeline holds no thread: :class:`~twinwatch.daemon.runner.Daemon` calls
+:meth:`WindowPipeline.process` from its ``twinwatch-adaptation`` worker, one window at a time.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from twinwatch.daemon.alarms import AlarmEvaluator
+from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
+from twinwatch.twin.health import build_health, summary_line
+from twinwatch.twin.model import WindowData
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline", "WindowSink"]
+
+HealthCallback = Callable[[dict[str, Any]], None]
+
+
+@dataclass(frozen=True)
+class ProcessedWindow:
+    """Everything the sinks need about one processed window.
+
+    Attributes:
+        window: the acquisition window (times, channels, index).
+        result: what adaptation did (estimate, terms, residuals, discovery).
+        health: the window's health message (README "The health message"), with ``alarms``.
+        events: alarm-state changes this window caused (published on ``<machine>/alarm``).
+        twin_state: the accepted twin to persist (``TwinAdapter.state()``) when this window
+            was trusted, else None (the stored twin is kept).
+    """
+
+    window: WindowData
+    result: AdaptationResult
+    health: dict[str, Any]
+    events: list[dict[str, Any]]
+    twin_state: dict[str, Any] | None
+
+
+class WindowSink(Protocol):
+    """Where processed windows go: the state store, the Zenoh publisher, the Rerun recorder."""
+
+    def write(self, out: ProcessedWindow) -> None:
+        """Take one processed window (called from the adaptation worker)."""
+
+    def close(self) -> None:
+        """Release the sink; idempotent."""
+
+
+class WindowPipeline:
+    """Adapt the twin to each window and hand the result to the sinks.
+
+    Args:
+        adapter: the twin's estimation and discovery.
+        alarms: the alarm evaluator (restored from the state store by the daemon).
+        machine: machine name (the Zenoh key segment).
+        model_name: registry name of the twin model, for the health message.
+        nominal: parameter -> nominal value the deviations are measured from.
+        counters: returns the daemon's counters for the health message.
+        history: health messages kept in memory (:attr:`history`).
+
+    Attributes:
+        sinks: written in order for each window (the store first: stored before published).
+        latest: the last health message; ``history`` the last ``history`` of them.
+        windows_estimated: windows processed.
+    """
+
+    def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
+                 model_name: str, nominal: Mapping[str, float],
+                 counters: Callable[[], Mapping[str, int]], history: int) -> None:
+        self.adapter = adapter
+        self.alarms = alarms
+        self.machine = machine
+        self.model_name = model_name
+        self.nominal = dict(nominal)
+        self._counters = counters
+        self.sinks: list[WindowSink] = []
+        self.callbacks: list[HealthCallback] = []
+        self.latest: dict[str, Any] | None = None
+        self.history: deque[dict[str, Any]] = deque(maxlen=history)
+        self.windows_estimated = 0
+        self._lock = threading.Lock()
+
+    def process(self, window: WindowData) -> dict[str, Any]:
+        """Adapt the twin to one window (estimation, then discovery when needed), evaluate
+        the alarms, write the window to every sink, call the callbacks.
+
+        Returns:
+            The health message.
+
+        Raises:
+            Exception: whatever the adaptation raises on a bad window (the daemon counts it
+                as a numeric failure and goes on).
+        """
+        result = self.adapter.process(window)
+        est = result.estimate
+        self.windows_estimated += 1
+        health = build_health(machine=self.machine, model_name=self.model_name,
+                              model=self.adapter.model, window=window, estimate=est,
+                              nominal=self.nominal, counters=self._counters(),
+                              adaptation=result, discovery_enabled=self.adapter.enabled)
+        events = self.alarms.update(health)
+        health["alarms"] = self.alarms.state()
+        out = ProcessedWindow(window=window, result=result, health=health, events=events,
+                              twin_state=self.adapter.state() if est.trusted else None)
+        with self._lock:
+            self.latest = health
+            self.history.append(health)
+        logger.info("%s", summary_line(health))
+        for sink in self.sinks:
+            sink.write(out)
+        for fn in self.callbacks:
+            fn(health)
+        return health
