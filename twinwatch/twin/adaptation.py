@@ -221,12 +221,16 @@ class TwinAdapter:
         return {
             "trusted": self.estimator.trusted_values(),
             "terms": [t.as_dict() for t in self.terms],
+            "fusion": self.estimator.fusion_state(),
         }
 
     def restore(self, state: Mapping[str, Any]) -> None:
         """Resume from :meth:`state` (unknown parameters are ignored with a warning)."""
         for name in self.estimator.set_trusted(state.get("trusted", {})):
             logger.warning("saved state names unknown parameter %r: ignored", name)
+        if not self.estimator.set_fusion_state(state.get("fusion")) and state.get("fusion"):
+            logger.warning("saved fusion state does not fit the estimated parameters: the "
+                           "fusion starts again from the trusted values")
         self.terms = [Term.from_dict(d, self.model) for d in state.get("terms", [])]
 
     # -- helpers --------------------------------------------------------------------------

@@ -391,13 +391,22 @@ def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: floa
     if levels is not None:
         var = np.maximum(np.asarray(levels, dtype=float) ** 2, floor**2)
         return covariance(jac, np.tile(var / m, res.shape[0]))
-    var = np.mean(res * res, axis=0) * m * m / max(m - n, 1)
+    return covariance(jac, residual_variances(r, n_out, floor, n))
+
+
+def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int) -> FloatArray:
+    """Variance of each normalised residual row (M,), estimated per output: the mean square
+    (corrected for ``n_fitted`` fitted variables), floored by ``floor`` (a normalised RMS) and
+    inflated by the output's AR(1) factor ``(1 + rho)/(1 - rho)``
+    (see :func:`parameter_covariance`)."""
+    m = r.size
+    res = r.reshape(-1, n_out)
+    var = np.mean(res * res, axis=0) * m * m / max(m - n_fitted, 1)
     var = np.maximum(var, floor**2)
     for j in range(n_out):
         rho = ar1(res[:, j], 1)
         var[j] *= (1.0 + rho) / (1.0 - rho)
-    weights = np.tile(var / m, res.shape[0])
-    return covariance(jac, weights)
+    return np.tile(var / m, res.shape[0])
 
 
 class SwarmProblem(Problem):  # type: ignore[misc]
