@@ -126,7 +126,8 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
                f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
     for name, p in last["parameters"].items():
-        status = "estimated" if not p["held"] else f"held: {p['reason']}"
+        status = {"estimated": "estimated", "held": f"held: {p['reason']}"}.get(
+            p["status"], p["reason"] or p["status"])  # tied, fixed: the reason says to what
         dev = p["deviation_pct"]
         click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
                    f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "

@@ -58,7 +58,7 @@ import rerun.blueprint as rrb
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from twinwatch._lifecycle import Closeable
-from twinwatch.daemon.publisher import to_json
+from twinwatch.io.encoding import to_json
 
 if TYPE_CHECKING:
     from twinwatch.daemon.pipeline import ProcessedWindow
@@ -406,7 +406,7 @@ class RerunRecorder(Closeable):
             parameters: parameter name -> estimate at ``t[-1]`` (unit as declared); every key
                 must be one of the declared ``parameters``.
             health: the window's health document, JSON-serialisable (see
-                :func:`twinwatch.daemon.publisher.to_json`).
+                :func:`twinwatch.io.encoding.to_json`).
             terms_changed: the twin's meta-model terms changed in this window: log the model
                 document (``health["terms"]``) again. The first window always logs it.
 
@@ -478,7 +478,7 @@ class RerunRecorder(Closeable):
             measured={o: out.window[o] for o in self.outputs},
             simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
             parameters=est.values,
-            health=out.health,
+            health=out.message,
             terms_changed=out.result.changed,
         )
 
