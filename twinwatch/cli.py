@@ -1,6 +1,7 @@
 """Command line: ``twinwatch run``, ``twinwatch check-config``, ``twinwatch sample-config``.
 
-The only module that prints. Everything else logs.
+The only module that prints. Everything else logs. Each command imports what it needs when it
+runs, so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_startup.py``).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from twinwatch import __version__
-from twinwatch.config.loader import ConfigError, default_config, load_config
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
@@ -62,6 +62,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     the running configuration goes on; a good one restarts the daemon in-process, keeping the
     Zenoh session, the Rerun file and the state database open when their tables are unchanged,
     and resuming the twin from the state database."""
+    from twinwatch.config.loader import ConfigError, default_config, load_config
     from twinwatch.daemon.supervisor import StartError, Supervisor
 
     def load() -> TwinwatchConfig:
@@ -164,6 +165,8 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
 @click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
 def check_config(config: Path) -> None:
     """Validate CONFIG; exit 0 if it is usable, 1 naming each bad key otherwise."""
+    from twinwatch.config.loader import ConfigError, load_config
+
     try:
         cfg = load_config(config)
     except ConfigError as exc:

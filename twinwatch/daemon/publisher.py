@@ -59,14 +59,18 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
-import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from twinwatch._lazy import lazy_module
 from twinwatch._lifecycle import Closeable
 from twinwatch.io.encoding import to_json
 
 if TYPE_CHECKING:
+    import zenoh
+
     from twinwatch.daemon.pipeline import ProcessedWindow
+else:  # imported when a session opens: loading a configuration does not load zenoh
+    zenoh = lazy_module("zenoh")
 
 logger = logging.getLogger(__name__)
 

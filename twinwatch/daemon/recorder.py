@@ -53,15 +53,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from twinwatch._lazy import lazy_module
 from twinwatch._lifecycle import Closeable
 from twinwatch.io.encoding import to_json
 
 if TYPE_CHECKING:
+    import rerun as rr
+    import rerun.blueprint as rrb
+
     from twinwatch.daemon.pipeline import ProcessedWindow
+else:  # imported when a recording opens: loading a configuration does not load rerun
+    rr = lazy_module("rerun")
+    rrb = lazy_module("rerun.blueprint")
 
 logger = logging.getLogger(__name__)
 
