@@ -151,11 +151,12 @@ def _drive_kernel(phis, gams, seg_len, seg_type, ev_sample, ev_sub, ev_tick_s, e
     ``mode``: 0 the measured voltage drives the motor (open loop), 1 the current loop runs on
     the measured current reference (the speed loop at its limit), 2 the whole drive runs.
     ``idx`` = [ia output state, omega output state, angle state or -1, current filter state or
-    -1, speed filter state or -1]. ``y`` (P, N, 3): ia, omega, Va.
+    -1, speed filter state or -1]. ``x0`` (P, n) and ``ctrl0`` (P, 4) [I_s, f_s, I_c, f_c]:
+    each particle's initial state. ``y`` (P, N, 3): ia, omega, Va.
     """
     n_p = y.shape[0]
     n_ev = ev_sample.shape[0]
-    n = x0.shape[0]
+    n = x0.shape[1]
     shared_f = f_w.shape[0] == 1
     i_out, w_out, ang, i_fi, i_fw = idx[0], idx[1], idx[2], idx[3], idx[4]
     x = np.empty(n)
@@ -164,8 +165,8 @@ def _drive_kernel(phis, gams, seg_len, seg_type, ev_sample, ev_sub, ev_tick_s, e
     for q in range(n_p):
         qf = 0 if shared_f else q
         for j in range(n):
-            x[j] = x0[j]
-        i_s, f_s, i_c, f_c = ctrl0[0], ctrl0[1], ctrl0[2], ctrl0[3]
+            x[j] = x0[q, j]
+        i_s, f_s, i_c, f_c = ctrl0[q, 0], ctrl0[q, 1], ctrl0[q, 2], ctrl0[q, 3]
         va, iref = hold0[0], hold0[1]
         prev_angle = 0.0
         kc = 0
@@ -346,6 +347,9 @@ class DCMotorTwin(TwinModel):
                 inputs.append("current_reference")
         self.inputs = tuple(inputs)
         self.outputs = tuple(outputs)
+        self.exogenous = tuple(c for c in inputs if c in ("setpoint", "Tload")
+                               or (c == "Va" and not closed))
+        self.initial_states = ("ia", "omega")
         self.attach_points = (
             AttachPoint("d(omega)/dt", "additive", "rad/s^2", "shaft speed", scale=50.0),
             AttachPoint("d(ia)/dt", "additive", "A/s", "armature current", scale=50.0),
@@ -460,7 +464,8 @@ class DCMotorTwin(TwinModel):
 
     # -- simulation -------------------------------------------------------------------------
     def simulate(self, theta: FloatArray, window: WindowData,
-                 terms: Mapping[str, FloatArray] | None = None) -> FloatArray:
+                 terms: Mapping[str, FloatArray] | None = None,
+                 initial: FloatArray | None = None) -> FloatArray:
         """Simulate the window for a swarm; see :meth:`TwinModel.simulate`.
 
         Args:
@@ -468,24 +473,33 @@ class DCMotorTwin(TwinModel):
             window: needs ``ia``, ``omega`` and the inputs of the structure.
             terms: ``d(omega)/dt`` [rad/s^2] and/or ``d(ia)/dt`` [A/s] -> values (N,) or
                 (P, N), added to that state equation and held over each sample.
+            initial: offsets [A, rad/s] (2,) or (P, 2) added to the measured ia and omega of
+                the first sample (the estimator's initial-state estimate); None: 0.
 
         Returns:
             (P, N, n_outputs): ia [A], omega [rad/s] and, closed loop, Va [V].
         """
         theta = np.atleast_2d(np.asarray(theta, dtype=float))
         n = window.n
-        f_w, f_i = self._terms(terms, theta.shape[0], n)
+        p = theta.shape[0]
+        f_w, f_i = self._terms(terms, p, n)
+        rows = max(p, f_w.shape[0])
+        if rows > p:
+            theta = np.repeat(theta[:1], rows, axis=0)
+        off = np.zeros((rows, 2)) if initial is None else np.broadcast_to(
+            np.atleast_2d(np.asarray(initial, dtype=float)), (rows, 2))
         if self._fast:
-            return self._simulate_fast(theta, window, f_w, f_i)
+            return self._simulate_fast(theta, window, f_w, f_i, off)
         if self.structure != "closed_loop":
-            return self._simulate_events(theta, window, f_w, f_i, 0, 0)[:, :, :2]
+            return self._simulate_events(theta, window, f_w, f_i, 0, 0, off)[:, :, :2]
         # A drive at a limit hides its integrator: the window is cut where the limits are left
         # and each part restarts from the measured state there (module notes), in the mode the
         # measurements allow: the measured voltage drives the motor while it sits at its limit;
         # the current loop runs on the measured reference while the speed loop sits at its.
-        y = np.empty((theta.shape[0], n, len(self.outputs)))
+        y = np.empty((rows, n, len(self.outputs)))
         for k0, stop, mode in self._segments(window):
-            y[:, k0:stop] = self._simulate_events(theta, window, f_w, f_i, k0, mode, stop=stop)
+            y[:, k0:stop] = self._simulate_events(theta, window, f_w, f_i, k0, mode,
+                                                  off if k0 == 0 else None, stop=stop)
         return y
 
     def _segments(self, window: WindowData) -> list[tuple[int, int, int]]:
@@ -546,22 +560,25 @@ class DCMotorTwin(TwinModel):
         return tuple(np.ascontiguousarray(np.broadcast_to(a, (rows, n))) if a.shape[0] != rows
                      else a for a in out)  # type: ignore[return-value]
 
-    def _initial_state(self, window: WindowData, k: int, pos: Mapping[str, int]) -> FloatArray:
-        """The motor's state at sample ``k`` from the measurements (see the module notes:
-        a filtered or averaged measurement stands in for the state it filters)."""
-        x0 = np.zeros(len(pos))
+    def _initial_state(self, window: WindowData, k: int, pos: Mapping[str, int],
+                       off: FloatArray) -> FloatArray:
+        """Each particle's motor state (P, n) at sample ``k`` from the measurements plus the
+        offsets ``off`` (P, 2) on ia and omega (a filtered or averaged measurement stands in
+        for the state it filters)."""
+        p = off.shape[0]
+        x0 = np.zeros((p, len(pos)))
         ia, omega = window["ia"], window["omega"]
-        x0[0] = ia[k]
         w0 = omega[k]
         if self.speed_measurement == "average" and k + 1 < window.n:
             w0 = 0.5 * (omega[k] + omega[k + 1])  # the means over the periods either side
-        x0[1] = w0
+        x0[:, 0] = ia[k] + off[:, 0]
+        x0[:, 1] = w0 + off[:, 1]
         if "fi" in pos:
-            x0[pos["fi"]] = ia[k]
+            x0[:, pos["fi"]] = ia[k] + off[:, 0]
         if "fw" in pos:
-            x0[pos["fw"]] = omega[k]
+            x0[:, pos["fw"]] = omega[k] + off[:, 1]
         if "v" in pos:
-            x0[pos["v"]] = window["Va"][k]
+            x0[:, pos["v"]] = window["Va"][k]
         return x0
 
     def _outputs(self, x: FloatArray, pos: Mapping[str, int], ts: float, omega0: float
@@ -578,7 +595,7 @@ class DCMotorTwin(TwinModel):
         return i_out, w_out
 
     def _simulate_fast(self, theta: FloatArray, window: WindowData, f_w: FloatArray,
-                       f_i: FloatArray) -> FloatArray:
+                       f_i: FloatArray, off: FloatArray) -> FloatArray:
         """The exact linear map per sample, composed by matrix squaring (ideal drive)."""
         ts = window.sample_period
         n_sub = self.n_sub(ts)
@@ -589,12 +606,11 @@ class DCMotorTwin(TwinModel):
             phi, gamma = composite_zoh(a, b, n_sub)
         ia = window["ia"]
         tl = window["Tload"] if self.load == "measured" else np.zeros_like(ia)
-        p = theta.shape[0]
-        x0 = self._initial_state(window, 0, pos)
+        x0 = self._initial_state(window, 0, pos, off)
         if closed:
             sp, va = window["setpoint"], window["Va"]
             kp, ki = self._drive.speed.kp, self._drive.speed.ki
-            x0[pos["z"]] = (va[0] - kp * (sp[0] - window["omega"][0])) / ki
+            x0[:, pos["z"]] = (va[0] - kp * (sp[0] - x0[:, 1])) / ki
             drive = sp
         elif "v" in pos:
             va = window["Va"]
@@ -607,7 +623,7 @@ class DCMotorTwin(TwinModel):
         u[:, :, 1] = tl
         u[:, :, 2] = f_w
         u[:, :, 3] = f_i
-        x = propagate(phi, gamma, np.broadcast_to(x0, (p, x0.size)), u)
+        x = propagate(phi, gamma, x0, u)
         i_out, w_out = self._outputs(x, pos, ts, float(window["omega"][0]))
         if closed:
             va_sim = kp * (drive[None, :] - x[:, :, 1]) + ki * x[:, :, pos["z"]]
@@ -615,44 +631,50 @@ class DCMotorTwin(TwinModel):
         return np.stack([i_out, w_out], axis=2)
 
     def _controller_state(self, window: WindowData, k: int, t_s: float, t_c: float,
-                          ticked_s: bool, ticked_c: bool) -> tuple[FloatArray, FloatArray]:
+                          ticked_s: bool, ticked_c: bool, omega0: FloatArray, ia0: FloatArray
+                          ) -> tuple[FloatArray, FloatArray]:
         """The drive's states [I_s, f_s, I_c, f_c] and held outputs [Va, iref] at sample ``k``,
-        recovered from the measured outputs (module :mod:`twinwatch.twin.drive`). When no
+        recovered from the measured outputs (module :mod:`twinwatch.twin.drive`), for each
+        particle's initial speed and current ``omega0``, ``ia0`` (P,): (P, 4) and (2,). When no
         update falls on the sample, the last one is taken to have seen the sample's error."""
         dr = self._drive
         r = float(window["setpoint"][k])
         sp = dr.speed
         sign = 1.0 if sp.action == "reverse" else -1.0
         omega = window["omega"]
-        e = sign * (r - float(omega[k]))
+        e = sign * (r - omega0)
         # The derivative filter's state: the derivative term taken as kd times the error's
         # slope over the next sample (the set-point held), f = kd*e - d/N.
-        d0, f0 = 0.0, 0.0
+        d0 = 0.0
+        f0: FloatArray | float = 0.0
         if sp.kd != 0 and sp.n_filter:
             slope = -sign * (float(omega[k + 1]) - float(omega[k])) / window.sample_period \
                 if k + 1 < window.n else 0.0
             d0 = sp.kd * slope
             f0 = sp.kd * e - d0 / sp.n_filter
         va = float(window["Va"][k])
+        out = np.zeros((omega0.size, 4))
         if dr.current is None:
             i_s = va - sp.kp * e - sp.feedforward * r - d0
             if not ticked_s:
-                i_s += sp.ki * t_s * e
-            return (np.array([i_s, f0, 0.0, 0.0]), np.array([va, 0.0]))
+                i_s = i_s + sp.ki * t_s * e
+            out[:, 0], out[:, 1] = i_s, f0
+            return out, np.array([va, 0.0])
         iref = float(window["current_reference"][k])
         i_s = iref - sp.kp * e - sp.feedforward * r - d0
         if not ticked_s:
-            i_s += sp.ki * t_s * e
+            i_s = i_s + sp.ki * t_s * e
         cur = dr.current
-        ec = cur.pack()[9] * (iref - float(window["ia"][k]))
+        ec = cur.pack()[9] * (iref - ia0)
         i_c = va - cur.kp * ec - cur.feedforward * iref
         if not ticked_c:
-            i_c += cur.ki * t_c * ec
-        return (np.array([i_s, f0, i_c, cur.kd * ec]), np.array([va, iref]))
+            i_c = i_c + cur.ki * t_c * ec
+        out[:, 0], out[:, 1], out[:, 2], out[:, 3] = i_s, f0, i_c, cur.kd * ec
+        return out, np.array([va, iref])
 
     def _simulate_events(self, theta: FloatArray, window: WindowData, f_w: FloatArray,
-                         f_i: FloatArray, k0: int, mode: int, *, stop: int | None = None
-                         ) -> FloatArray:
+                         f_i: FloatArray, k0: int, mode: int, off: FloatArray | None = None,
+                         *, stop: int | None = None) -> FloatArray:
         """Samples ``k0 .. stop-1`` through the event kernel (drive updates, nonlinear
         elements), starting from the measured state at ``k0``; ``mode`` 0: the measured voltage
         drives the motor, 1: the current loop runs on the measured current reference, 2: the
@@ -709,10 +731,12 @@ class DCMotorTwin(TwinModel):
         for col, name in ((7, "tau_i"), (8, "tau_w"), (9, "Tc")):
             if name in names:
                 prm[:, col] = theta[:, names.index(name)]
-        ctrl0, hold0 = np.zeros(4), np.zeros(2)
+        x0 = self._initial_state(window, k0, pos, np.zeros((p, 2)) if off is None else off)
+        ctrl0, hold0 = np.zeros((p, 4)), np.zeros(2)
         if closed:
             ctrl0, hold0 = self._controller_state(window, k0, m * dt, mc * dt,
-                                                  bool(ev_tick_s[0]), bool(ev_tick_c[0]))
+                                                  bool(ev_tick_s[0]), bool(ev_tick_c[0]),
+                                                  x0[:, 1], x0[:, 0])
         sl = slice(k0, stop)
         tl = window["Tload"][sl] if self.load == "measured" else np.zeros(count)
         sp = window["setpoint"][sl] if closed else np.zeros(count)
@@ -725,7 +749,7 @@ class DCMotorTwin(TwinModel):
         _drive_kernel(np.ascontiguousarray(phis), np.ascontiguousarray(gams),
                       types.astype(np.int64), seg_type.astype(np.int64), ev_sample,
                       ev_sub.astype(np.int64), ev_tick_s, ev_tick_c,
-                      self._initial_state(window, k0, pos), ctrl0, hold0, mode,
+                      np.ascontiguousarray(x0), np.ascontiguousarray(ctrl0), hold0, mode,
                       np.ascontiguousarray(sp, dtype=float), va, iref,
                       np.ascontiguousarray(tl, dtype=float),
                       np.ascontiguousarray(f_w[:, sl]), np.ascontiguousarray(f_i[:, sl]),

@@ -40,8 +40,17 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from twinwatch.twin.fit import LocalFit, ParameterMap, WindowFit, pso_minimize, relative_std
+from twinwatch.twin.fit import (
+    LocalFit,
+    ParameterMap,
+    WindowFit,
+    explained_rms,
+    parameter_covariance,
+    pso_minimize,
+    relative_std,
+)
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+from twinwatch.twin.statistics import ModelCheck, check_model, noise_level
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +69,19 @@ class PSOSettings(BaseModel):
     c1: float = Field(2.0, description="cognitive parameter")
     c2: float = Field(2.0, description="social parameter")
     adaptive: bool = Field(False, description="pymoo's adaptive w/c1/c2 (off: the paper's)")
+
+
+class ValidationConfig(BaseModel):
+    """Per-window model validation (table ``[estimation.validation]``; Ljung, System
+    Identification, ch. 16): the residual of a twin that describes the machine is white and
+    independent of the inputs."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="check every window's residuals")
+    alpha: float = Field(0.01, gt=0, lt=0.5, description="level of the whiteness and "
+                         "residual-input tests")
+    lags: int = Field(20, ge=1, le=1000, description="lags of both tests (samples)")
 
 
 class EstimationConfig(BaseModel):
@@ -106,6 +128,11 @@ class EstimationConfig(BaseModel):
         0.05, gt=0, description="a window whose normalised RMSE exceeds this does not "
         "update the trusted parameters"
     )
+    validation: ValidationConfig = Field(default_factory=ValidationConfig)
+    initial_state: bool = Field(
+        True, description="estimate each window's initial state (offsets to the first "
+        "sample's measured outputs) with the parameters: a noisy first sample otherwise leaves "
+        "a transient in the residual and biases the estimates")
     seed: int = 0
 
     @model_validator(mode="after")
@@ -173,6 +200,10 @@ class WindowEstimate:
         generations: PSO iterations run; ``time_capped`` tells whether the time budget hit.
         evaluations: twin simulations of one parameter vector (particles + polish).
         trusted: whether this window updated the trusted parameters.
+        initial: the window's estimated initial-state offsets (``model.initial_states``, in
+            their units), or None.
+        model_check: the window's model validation (None when disabled); a window that fails
+            it does not update the trusted values and its standard errors are widened.
         status: every model parameter -> ``estimated`` (determined by this window),
             ``held`` (not determined: its last trusted value, reason in :attr:`held`),
             ``tied`` (equals another parameter) or ``fixed`` (nameplate, not estimated).
@@ -193,6 +224,8 @@ class WindowEstimate:
     pso_nrmse: float = math.nan
     extra: dict[str, object] = field(default_factory=dict)
     status: dict[str, ParameterStatus] = field(default_factory=dict)
+    initial: FloatArray | None = None
+    model_check: ModelCheck | None = None
 
 
 @dataclass(frozen=True)
@@ -321,11 +354,16 @@ class Estimator:
         else:
             q_best, pso_cost = q0, float(cost(q0[None, :])[0])
 
-        # 2. Least-squares polish of every estimated parameter, and
-        # 3. identifiability: which of them does this window determine?
-        local = LocalFit(wfit, pmap, base, xl, xu, terms)
-        q_best, r_best, jac = local.refine(q_best, np.arange(n_est), polish=cfg.polish)
-        selected, rel_std, reasons = self._select(jac, r_best, self.model.excitation(window))
+        # 2. Least-squares polish of every estimated parameter (and the window's initial
+        # state), and 3. identifiability: which of them does this window determine?
+        local = LocalFit(wfit, pmap, base, xl, xu, terms,
+                         initial=cfg.initial_state and bool(self.model.initial_states))
+        nuis = local.nuisance
+        v_best, r_best, jac = local.refine(local.start(q_best),
+                                           np.arange(n_est + nuis.size), polish=cfg.polish)
+        jac_final, r_final = jac, r_best
+        selected, rel_std, reasons = self._select(jac, r_best, self.model.excitation(window),
+                                                  nuis.size)
         held: dict[str, str] = {}
         names_est = list(cfg.estimate or [])
         for k, name in enumerate(names_est):
@@ -333,25 +371,46 @@ class Estimator:
                 held[name] = reasons[k]
         if len(selected) < n_est:
             # Re-fit the determined ones with the others held at their trusted values.
-            q_fit = q_best.copy()
+            v_fit = v_best.copy()
             held_pos = [k for k in range(n_est) if k not in selected]
-            q_fit[held_pos] = np.log(base[pmap.idx[held_pos]])
-            if selected:
-                q_fit, r_fit, jac_s = local.refine(q_fit, np.array(selected, dtype=int))
-                rel_std = dict(zip(selected, self._rel_std(jac_s, r_fit), strict=True))
-            q_best = q_fit
-        # The gate holds: nothing is published as an estimate above max_rel_std (the re-fit
-        # with the others held can leave one a little above it).
-        for k in list(selected):
-            if not rel_std.get(k, math.inf) <= cfg.max_rel_std:
-                selected.remove(k)
-                held[names_est[k]] = (f"not determined by this window (relative std "
-                                      f"{rel_std.get(k, math.inf):.2g} > {cfg.max_rel_std:.2g} "
-                                      "after the re-fit): held at last trusted value")
-
+            v_fit[held_pos] = np.log(base[pmap.idx[held_pos]])
+            active = np.concatenate([np.array(selected, dtype=int), nuis])
+            if active.size:
+                v_fit, r_fit, jac_s = local.refine(v_fit, active)
+                sd = self._rel_std(jac_s, r_fit)[:len(selected)]
+                rel_std = dict(zip(selected, sd, strict=True))
+                jac_final, r_final = jac_s, r_fit
+            v_best = v_fit
+        q_best = v_best[:n_est]
+        initial = local.initial(v_best)
+        wfit.initial = initial
         theta = pmap.full(q_best[None, :], base)
         y = wfit.simulate(theta, terms)[0]
         res = wfit.residual(y)
+        # 4. Model validation: is the residual what a twin that describes the machine leaves?
+        check = None
+        if cfg.validation.enabled:
+            # What the white noise alone does to the estimates, and so to a noise-free
+            # output's residual (the residual's own level would count model error as noise).
+            n_out = len(self.model.outputs)
+            white = noise_level(r_final.reshape(-1, n_out)) * math.sqrt(r_final.size)
+            cov = parameter_covariance(jac_final, r_final, n_out, cfg.model_error, white)
+            n_par = jac_final.shape[1] - nuis.size
+            check = self.check(wfit, y, explained_rms(jac_final, cov, n_out),
+                               drift=self._drift_residual(wfit, r_final, jac_final[:, :n_par]))
+        if check is not None and not check.passed:
+            rel_std = {k: v * check.widen for k, v in rel_std.items()}
+        # The gate holds: nothing is published as an estimate above max_rel_std (the re-fit
+        # with the others held, or a failed model check, can leave one above it).
+        for k in list(selected):
+            if not rel_std.get(k, math.inf) <= cfg.max_rel_std:
+                selected.remove(k)
+                why = ("the model check failed" if check is not None and not check.passed
+                       else "after the re-fit")
+                held[names_est[k]] = (f"not determined by this window (relative std "
+                                      f"{rel_std.get(k, math.inf):.2g} > {cfg.max_rel_std:.2g} "
+                                      f"{why}): held at last trusted value")
+
         values = dict(zip(self.names, (float(v) for v in theta[0]), strict=True))
         tie = cfg.tie or {}
         for n in self.names:
@@ -371,7 +430,8 @@ class Estimator:
             else:
                 status[n] = "held"
         nrmse = res.nrmse
-        trusted = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse)
+        trusted = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse
+                       and (check is None or check.passed))
         if trusted:
             for k in selected:
                 n = names_est[k]
@@ -393,7 +453,57 @@ class Estimator:
             trusted=trusted,
             pso_nrmse=pso_cost,
             status=status,
+            initial=initial,
+            model_check=check,
         )
+
+    def check(self, fit: WindowFit, y: FloatArray, explained: FloatArray | None = None,
+              drift: FloatArray | None = None) -> ModelCheck:
+        """Validate the twin on a window from its simulated outputs ``y`` (N, n_out)
+        (:func:`~twinwatch.twin.statistics.check_model`, the ``[estimation.validation]``
+        settings, the ``model_error`` floor, the model's exogenous inputs); ``explained``:
+        per output, the residual RMS the estimates' uncertainty explains; ``drift``: the
+        residual matrix to test instead, with what a drift of the estimated parameters within
+        the window explains removed (:meth:`_drift_residual`)."""
+        v = self.config.validation
+        win = fit.window
+        exog = [c for c in self.model.exogenous if c in win.channels]
+        inputs = np.column_stack([win[c][1:] for c in exog]) if exog else None
+        res = fit.error_matrix(y) if drift is None else drift
+        return check_model(res, fit.names, inputs, alpha=v.alpha,
+                           lags=min(v.lags, max(1, win.n // 4)),
+                           floor=self.config.model_error, explained=explained)
+
+    @staticmethod
+    def _drift_residual(fit: WindowFit, r: FloatArray, jac: FloatArray) -> FloatArray | None:
+        """The residual (N-1, n_out), normalised per output, with what a linear drift of the
+        estimated parameters within the window explains removed.
+
+        The paper's faults are slow degradations: a parameter that moves within the window
+        leaves a smooth residual although the model is right. Its effect at sample k is about
+        ``J_k (t_k - t_mid) rate`` (exact where the output follows the parameter without memory,
+        as the hydraulic pressure follows D; close where the memory is short against the
+        window); the rates come from linear least squares on the residual, and the model check
+        tests what is left.
+
+        Args:
+            fit: the window's fit.
+            r: (M,) normalised residuals at the estimate.
+            jac: (M, n) their Jacobian with respect to the estimated ln-parameters.
+
+        Returns:
+            The residual matrix, or None without estimated parameters.
+        """
+        if jac.shape[1] == 0:
+            return None
+        n_out = fit.n_out
+        t = fit.window.t[1:]
+        tau = np.repeat((t - 0.5 * (t[0] + t[-1])) / max(float(t[-1] - t[0]), 1e-12), n_out)
+        ramp = jac * tau[:, None]
+        rates, *_ = np.linalg.lstsq(ramp, r, rcond=None)
+        left = (r - ramp @ rates).reshape(-1, n_out)
+        # back to the per-output normalisation of WindowFit.error_matrix (no weights, no 1/sqrt(M))
+        return left * math.sqrt(r.size) / np.where(fit.weights != 0, fit.weights, 1.0)
 
     # -- helpers --------------------------------------------------------------------------
     def _rel_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
@@ -406,10 +516,14 @@ class Estimator:
         return self._rel_std(jac, r)
 
     def _select(
-        self, jac: FloatArray, r: FloatArray, unexcited: Mapping[str, str] | None = None
+        self, jac: FloatArray, r: FloatArray, unexcited: Mapping[str, str] | None = None,
+        n_nuisance: int = 0,
     ) -> tuple[list[int], dict[int, float], dict[int, str]]:
         """Admit parameters in priority order while all admitted stay determined.
 
+        ``jac``: (M, n_est + n_nuisance), the parameters' columns then the nuisance ones (the
+        window's initial state), which are always in the fit: a parameter is determined only
+        if it is determined beside them.
         ``unexcited``: parameters the model says this window does not excite
         (:meth:`TwinModel.excitation`), with the reason; they are held like undetermined ones.
 
@@ -422,7 +536,9 @@ class Estimator:
         rel: dict[int, float] = {}
         reasons: dict[int, str] = {}
         blocked: str | None = None
-        for k in range(jac.shape[1]):
+        n_par = jac.shape[1] - n_nuisance
+        nuis = list(range(n_par, jac.shape[1]))
+        for k in range(n_par):
             name = self.names[self.pmap.idx[k]]
             if blocked is not None:
                 reasons[k] = (f"held with {blocked} (lower priority): held at last trusted "
@@ -433,13 +549,13 @@ class Estimator:
                 reasons[k] = f"{unexcited[name]}: held at last trusted value"
                 continue
             cand = [*selected, k]
-            sd = self._rel_std(jac[:, cand], r)
+            sd = self._rel_std(jac[:, cand + nuis], r)[:len(cand)]
             if np.all(sd <= limit):
                 selected = cand
                 rel = dict(zip(cand, sd, strict=True))
                 continue
             blocked = name
-            alone = float(self._rel_std(jac[:, [k]], r)[0])
+            alone = float(self._rel_std(jac[:, [k, *nuis]], r)[0])
             if alone > limit:
                 reasons[k] = (f"not determined by this window (relative std {alone:.2g} > "
                               f"{limit:.2g}): held at last trusted value")

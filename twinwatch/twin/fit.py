@@ -95,32 +95,44 @@ class WindowFit:
         self._norm = self.weights / self.scale
         self._den = math.sqrt(max(self.meas.shape[0] - 1, 1) * self.n_out)
         self.evaluations = 0
+        #: Scale of each initial-state offset (the output's normalisation).
+        self.initial_scale = np.array([self.scale[self.names.index(o)]
+                                       for o in model.initial_states])
+        #: The window's estimated initial-state offsets (n_init,) in the outputs' units, used by
+        #: every simulation that does not pass its own (None: the measured first sample).
+        self.initial: FloatArray | None = None
 
     @property
     def n(self) -> int:
         """Samples in the window."""
         return int(self.meas.shape[0])
 
-    def simulate(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None
-                 ) -> FloatArray:
+    def simulate(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None,
+                 initial: FloatArray | None = None) -> FloatArray:
         """The twin's outputs (P, N, n_out) for parameter vectors ``theta`` (P, n_params);
-        ``terms``: attach point -> values (N,) or (P, N) (DT'', paper Eq. 3)."""
+        ``terms``: attach point -> values (N,) or (P, N) (DT'', paper Eq. 3); ``initial``:
+        initial-state offsets (n_init,) or (P, n_init) (default :attr:`initial`)."""
         theta = np.atleast_2d(np.asarray(theta, dtype=float))
         p = theta.shape[0]
         for v in (terms or {}).values():
             if np.ndim(v) == 2:
                 p = max(p, np.shape(v)[0])
+        if initial is not None and np.ndim(initial) == 2:
+            p = max(p, np.shape(initial)[0])
         if p > theta.shape[0]:
             theta = np.repeat(theta[:1], p, axis=0)
         self.evaluations += p
-        return self.model.simulate(theta, self.window, terms or None)
+        init = self.initial if initial is None else initial
+        if init is None or not self.model.initial_states:
+            return self.model.simulate(theta, self.window, terms or None)
+        return self.model.simulate(theta, self.window, terms or None, initial=init)
 
-    def residuals(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None
-                  ) -> FloatArray:
+    def residuals(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None,
+                  initial: FloatArray | None = None) -> FloatArray:
         """Normalised residuals (P, M), ``M = (N-1)*n_out`` (the first sample is the initial
         state), such that ``||r||_2`` is the normalised RMSE; a row whose simulation blew up
         is :data:`BAD_RESIDUAL` everywhere."""
-        return self.residuals_of(self.simulate(theta, terms))
+        return self.residuals_of(self.simulate(theta, terms, initial))
 
     def residuals_of(self, y: FloatArray) -> FloatArray:
         """Normalised residuals of simulated outputs ``y`` (P, N, n_out) or (N, n_out)."""
@@ -195,88 +207,121 @@ class LocalFit:
     """The local part of a window's estimation: bounded least-squares polish of some of the
     search variables (the others held) and the residuals and Jacobian at the result.
 
+    The search vector is ``[ln p (n_est), d (n_init)]``: the estimated parameters' logarithms,
+    then, with ``initial``, the window's initial-state offsets in units of each output's scale
+    (bounded to +-0.5: an error of the first sample, not a new operating point).
+
     Args:
         fit: the window's fit.
         pmap: the parameter map.
         base: the full parameter vector supplying the parameters that are not searched.
-        lower, upper: bounds of the search variables (n_est,), ln scale.
+        lower, upper: bounds of the ln-parameters (n_est,).
         terms: meta-model term values held fixed (attach point -> (N,)).
+        initial: also fit the initial-state offsets of ``fit.model.initial_states``.
     """
+
+    #: Bound of the normalised initial-state offsets.
+    INITIAL_BOUND = 0.5
 
     def __init__(self, fit: WindowFit, pmap: ParameterMap, base: FloatArray,
                  lower: FloatArray, upper: FloatArray,
-                 terms: Mapping[str, FloatArray] | None = None) -> None:
+                 terms: Mapping[str, FloatArray] | None = None, initial: bool = False) -> None:
         self.fit, self.pmap, self.base = fit, pmap, base
-        self.lower, self.upper = lower, upper
+        self.n_est = pmap.idx.size
+        self.n_init = len(fit.model.initial_states) if initial else 0
+        b = self.INITIAL_BOUND
+        self.lower = np.concatenate([lower, np.full(self.n_init, -b)])
+        self.upper = np.concatenate([upper, np.full(self.n_init, b)])
         self.terms = terms
 
-    def residuals(self, q: FloatArray) -> FloatArray:
-        """Normalised residuals (P, M) for ln-parameter rows ``q`` (P, n_est)."""
-        return self.fit.residuals(self.pmap.full(q, self.base), self.terms)
+    @property
+    def nuisance(self) -> np.ndarray:
+        """Positions of the initial-state offsets in the search vector."""
+        return np.arange(self.n_est, self.n_est + self.n_init)
 
-    def jacobian(self, q: FloatArray, active: np.ndarray, r0: FloatArray) -> FloatArray:
-        """Forward-difference ``d r / d ln p`` over the ``active`` columns (M, n_active): one
+    def start(self, q: FloatArray) -> FloatArray:
+        """A search vector from ln-parameters ``q`` (n_est,), offsets 0."""
+        return np.concatenate([np.asarray(q, dtype=float), np.zeros(self.n_init)])
+
+    def initial(self, v: FloatArray) -> FloatArray | None:
+        """The initial-state offsets of search vector(s) ``v`` in the outputs' units (None
+        when not fitted)."""
+        if not self.n_init:
+            return None
+        return np.asarray(v)[..., self.n_est:] * self.fit.initial_scale
+
+    def residuals(self, v: FloatArray) -> FloatArray:
+        """Normalised residuals (P, M) for search-vector rows ``v`` (P, n_est + n_init)."""
+        v = np.atleast_2d(v)
+        theta = self.pmap.full(v[:, :self.n_est], self.base)
+        return self.fit.residuals(theta, self.terms,
+                                  self.initial(v) if self.n_init else None)
+
+    def jacobian(self, v: FloatArray, active: np.ndarray, r0: FloatArray) -> FloatArray:
+        """Forward-difference ``d r / d v`` over the ``active`` columns (M, n_active): one
         twin call for all columns."""
         h = 1e-6
-        qs = np.repeat(q[None, :], active.size, axis=0)
-        qs[np.arange(active.size), active] += h
-        return ((self.residuals(qs) - r0[None, :]) / h).T
+        vs = np.repeat(v[None, :], active.size, axis=0)
+        vs[np.arange(active.size), active] += h
+        return ((self.residuals(vs) - r0[None, :]) / h).T
 
-    def refine(self, q: FloatArray, active: np.ndarray, *, polish: bool = True
+    def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True
                ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Polish the ``active`` entries of ``q`` (bounded least squares, trust-region
-        reflective, Jacobian from one batched twin call), then return (q, residuals (M,),
+        """Polish the ``active`` entries of ``v`` (bounded least squares, trust-region
+        reflective, Jacobian from one batched twin call), then return (v, residuals (M,),
         Jacobian (M, len(active))) at the result."""
-        q = np.array(q, dtype=float, copy=True)
+        v = np.array(v, dtype=float, copy=True)
         if polish and active.size:
             last: dict[str, FloatArray] = {}
 
             def fun(x: FloatArray) -> FloatArray:
-                qq = q.copy()
-                qq[active] = x
-                r = self.residuals(qq[None, :])[0]
+                vv = v.copy()
+                vv[active] = x
+                r = self.residuals(vv[None, :])[0]
                 last["x"], last["r"] = x.copy(), r
                 return r
 
             def jac(x: FloatArray) -> FloatArray:
                 # least_squares asks for the Jacobian where it just evaluated fun: reuse it.
                 r0 = last["r"] if "x" in last and np.array_equal(last["x"], x) else fun(x)
-                qq = q.copy()
-                qq[active] = x
-                return self.jacobian(qq, active, r0)
+                vv = v.copy()
+                vv[active] = x
+                return self.jacobian(vv, active, r0)
 
             lo, hi = self.lower[active], self.upper[active]
-            x0 = np.clip(q[active], lo + 1e-12, hi - 1e-12)
+            x0 = np.clip(v[active], lo + 1e-12, hi - 1e-12)
             sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
                                 xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
-            q[active] = sol.x
-        r = self.residuals(q[None, :])[0]
-        return q, r, self.jacobian(q, active, r)
+            v[active] = sol.x
+        r = self.residuals(v[None, :])[0]
+        return v, r, self.jacobian(v, active, r)
 
 
-def covariance(jac: FloatArray, scale2: float) -> FloatArray:
-    """``scale2 * (J^T J)^-1`` with the columns equilibrated before the (pseudo-)inverse.
+def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
+    """The least-squares covariance ``A^-1 (J^T W J) A^-1`` with ``A = J^T J`` (the sandwich:
+    the residual variance may differ from row to row, e.g. between outputs).
 
-    The hydraulic twin's ``J^T J`` has a condition number of ~1e15 in raw form (pressure in Pa
-    against a piston area in m^2), where an unequilibrated pseudo-inverse returns meaningless
-    variances. A column the outputs do not respond to at all gets an infinite variance.
+    The columns are equilibrated before the (pseudo-)inverse: the hydraulic twin's ``J^T J``
+    has a condition number of ~1e15 in raw form (pressure in Pa against a piston area in m^2),
+    where an unequilibrated pseudo-inverse returns meaningless variances. A column the outputs
+    do not respond to at all gets an infinite variance.
 
     Args:
-        jac: (M, n) Jacobian of normalised residuals.
-        scale2: the residual variance per normalised residual entry times M (so that
-            ``scale2 (J^T J)^-1`` is the covariance).
+        jac: (M, n) Jacobian of the residuals.
+        weights: (M,) variance of each residual row.
 
     Returns:
-        (n, n) covariance; ``inf`` on the diagonal of unresponsive columns.
+        (n, n) covariance; ``inf`` on the rows and columns of unresponsive columns.
     """
     n = jac.shape[1]
     norms = np.linalg.norm(jac, axis=0)
     safe = np.where(norms > 0, norms, 1.0)
     js = jac / safe
     try:
-        cov = np.linalg.pinv(js.T @ js, rcond=1e-15, hermitian=True) * scale2
+        a_inv = np.linalg.pinv(js.T @ js, rcond=1e-15, hermitian=True)
     except np.linalg.LinAlgError:
         return np.full((n, n), np.inf)
+    cov = a_inv @ ((js * weights[:, None]).T @ js) @ a_inv
     cov = cov / np.outer(safe, safe)
     dead = norms == 0
     cov[dead, :] = np.inf
@@ -285,45 +330,74 @@ def covariance(jac: FloatArray, scale2: float) -> FloatArray:
 
 
 def relative_std(jac: FloatArray, r: FloatArray, n_out: int, floor: float) -> FloatArray:
-    """Relative 1-sigma standard errors of ln-parameters at a least-squares optimum.
-
-    ``cov(ln p) = s^2 (J^T J)^-1``: ``s^2`` is the residual variance, floored by ``floor``
-    (the normalised model and discretisation error of noise-free data) and inflated by
-    ``(1 + rho)/(1 - rho)``, rho being the residuals' lag-1 autocorrelation (the AR(1)
-    effective-sample-size correction): white noise leaves it alone, while smooth model error
-    (a parameter drifting within the window) is not allowed to pass for hundreds of independent
-    samples.
-
-    Args:
-        jac: (M, n) Jacobian of the normalised residuals with respect to ln p.
-        r: (M,) normalised residuals at the optimum.
-        n_out: outputs interleaved in ``r``.
-        floor: smallest residual level (normalised RMSE) assumed.
-
-    Returns:
-        (n,) relative standard errors (``inf`` for a parameter the outputs do not respond to).
-    """
-    m, n = jac.shape
-    s2 = max(float(r @ r) / max(m - n, 1) * m, floor**2) / m
-    rho = ar1(r, n_out)
-    s2 *= (1.0 + rho) / (1.0 - rho)
-    d = np.diag(covariance(jac, s2))
+    """Standard errors of the search variables at a least-squares optimum (relative for
+    ln-parameters): the square roots of :func:`parameter_covariance`'s diagonal."""
+    d = np.diag(parameter_covariance(jac, r, n_out, floor))
     with np.errstate(invalid="ignore"):
         return np.sqrt(np.where(d > 0, d, np.inf))
 
 
-__all__ = [
-    "BAD_RESIDUAL",
-    "LocalFit",
-    "ParameterMap",
-    "Residual",
-    "SwarmProblem",
-    "SwarmResult",
-    "WindowFit",
-    "covariance",
-    "pso_minimize",
-    "relative_std",
-]
+def explained_rms(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
+    """Per output, the RMS of the residual (in units of the residual entries times sqrt(M))
+    that the search variables' uncertainty ``cov`` explains: ``sqrt(mean_k J_k cov J_k^T)``
+    over each output's rows. An output measured without noise (a drive's voltage) is never
+    white: its residual is what the other outputs' noise does to the estimates, and this is
+    how large that is.
+
+    Args:
+        jac: (M, n) Jacobian of the normalised residuals, ``n_out`` outputs interleaved.
+        cov: (n, n) covariance of the search variables.
+        n_out: outputs.
+
+    Returns:
+        (n_out,).
+    """
+    m = jac.shape[0]
+    finite = np.all(np.isfinite(cov), axis=0)
+    if not np.any(finite):
+        return np.zeros(n_out)
+    j = jac[:, finite] * math.sqrt(m)
+    c = cov[np.ix_(finite, finite)]
+    var = np.einsum("ij,jk,ik->i", j, c, j).reshape(-1, n_out)
+    return np.sqrt(np.maximum(np.mean(var, axis=0), 0.0))
+
+
+def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
+                         levels: FloatArray | None = None) -> FloatArray:
+    """Covariance of the search variables at a least-squares optimum.
+
+    Each output's residual variance is estimated on its own (an output measured without noise,
+    such as a closed-loop drive's voltage, must not lower the noise of the others), floored by
+    ``floor`` (the normalised model and discretisation error of noise-free data) and inflated
+    by ``(1 + rho)/(1 - rho)``, rho being that output's lag-1 autocorrelation (the AR(1)
+    effective-sample-size correction): white noise leaves it alone, while smooth model error
+    (a parameter drifting within the window) is not allowed to pass for hundreds of
+    independent samples. The covariance is the sandwich of :func:`covariance`.
+
+    Args:
+        jac: (M, n) Jacobian of the normalised residuals with respect to the search variables.
+        r: (M,) normalised residuals at the optimum, ``n_out`` outputs interleaved.
+        n_out: outputs interleaved in ``r``.
+        floor: smallest normalised residual level assumed.
+        levels: per output, a normalised noise level to use instead of the residual's (the
+            white noise alone, e.g. to ask what noise does to the estimates); no AR(1)
+            inflation then.
+
+    Returns:
+        (n, n) covariance (``inf`` for a variable the outputs do not respond to).
+    """
+    m, n = jac.shape
+    res = r.reshape(-1, n_out)
+    if levels is not None:
+        var = np.maximum(np.asarray(levels, dtype=float) ** 2, floor**2)
+        return covariance(jac, np.tile(var / m, res.shape[0]))
+    var = np.mean(res * res, axis=0) * m * m / max(m - n, 1)
+    var = np.maximum(var, floor**2)
+    for j in range(n_out):
+        rho = ar1(res[:, j], 1)
+        var[j] *= (1.0 + rho) / (1.0 - rho)
+    weights = np.tile(var / m, res.shape[0])
+    return covariance(jac, weights)
 
 
 class SwarmProblem(Problem):  # type: ignore[misc]

@@ -22,6 +22,7 @@ What is here and where it comes from:
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -197,11 +198,128 @@ def cross_correlation_test(e: FloatArray, u: FloatArray, lags: int) -> tuple[flo
 
 
 __all__ = [
+    "ModelCheck",
+    "OutputCheck",
     "ar1",
     "autocorrelation",
+    "check_model",
     "cross_correlation_test",
     "delta_bic",
     "ljung_box",
     "long_run_factor",
     "noise_level",
 ]
+
+
+@dataclass
+class OutputCheck:
+    """Model validation of one output's residual (normalised by the output's scale).
+
+    Attributes:
+        rms: residual RMS.
+        noise: white-noise level (:func:`noise_level`).
+        whiteness_p: Ljung-Box p-value (small: the residual is not white).
+        cross_p: residual-input test p-value (small: the residual depends on the input), the
+            smallest over the exogenous inputs; 1 without inputs.
+        passed: the output's residual is white and independent of the inputs, or below the
+            floor (numerical and accepted model error).
+    """
+
+    rms: float
+    noise: float
+    whiteness_p: float
+    cross_p: float
+    passed: bool
+
+
+@dataclass
+class ModelCheck:
+    """Per-window model validation (Ljung, System Identification, ch. 16; MATLAB ``resid``).
+
+    Attributes:
+        passed: every output passed.
+        reasons: why it failed, one line per failing output (empty when passed).
+        outputs: output name -> its :class:`OutputCheck`.
+        widen: factor the window's standard errors were multiplied by (1 when passed).
+    """
+
+    passed: bool
+    reasons: list[str] = field(default_factory=list)
+    outputs: dict[str, OutputCheck] = field(default_factory=dict)
+    widen: float = 1.0
+
+    def as_dict(self) -> dict[str, object]:
+        def num(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        return {
+            "passed": self.passed,
+            "reasons": list(self.reasons),
+            "widen": num(self.widen),
+            "outputs": {k: {"rms": num(v.rms), "noise": num(v.noise),
+                            "whiteness_p": num(v.whiteness_p), "cross_p": num(v.cross_p),
+                            "passed": v.passed} for k, v in self.outputs.items()},
+        }
+
+
+def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | None, *,
+                alpha: float, lags: int, floor: float,
+                explained: FloatArray | None = None) -> ModelCheck:
+    """Validate a twin on one window from its residuals.
+
+    An output fails when its residual is not white (Ljung-Box) or depends on an exogenous
+    input (cross-correlation test), each at level ``alpha``, and its RMS is material: above
+    ``floor`` (the model and discretisation error accepted in noise-free data: below it,
+    rounding and a parameter drifting within the window are not evidence against the model)
+    and above twice what the white noise and the estimates' own uncertainty explain
+    (``sqrt(noise^2 + explained^2)``: a noise-free output, such as a closed-loop drive's
+    voltage, carries the smooth trace of the other outputs' noise on the estimates). A failing
+    window's standard errors are widened by ``sqrt(L) * rms / sqrt(noise^2 + explained^2)``
+    of its worst output: ``L`` the long-run variance factor of the structured residual.
+
+    Args:
+        res: normalised residuals (N, n_out).
+        names: output names (n_out).
+        inputs: exogenous inputs (N, n_u), or None.
+        alpha: test level (e.g. 0.01).
+        lags: lags of both tests (e.g. 20).
+        floor: normalised RMS below which an output passes.
+        explained: per output, the residual RMS the estimates' uncertainty explains
+            (:func:`twinwatch.twin.fit.explained_rms`); None: 0.
+
+    Returns:
+        The window's check.
+    """
+    res = np.asarray(res, dtype=float)
+    n = res.shape[0]
+    lvl = noise_level(res)
+    check = ModelCheck(passed=True)
+    widen = 1.0
+    for j, name in enumerate(names):
+        e = res[:, j]
+        rms = float(np.sqrt(np.mean(e * e)))
+        _, p_white = ljung_box(e, lags)
+        p_cross = 1.0
+        if inputs is not None:
+            for col in range(inputs.shape[1]):
+                p_cross = min(p_cross, cross_correlation_test(e, inputs[:, col], lags)[1])
+        expected = math.hypot(float(lvl[j]), float(explained[j]) if explained is not None
+                              else 0.0)
+        material = rms > floor and rms > 2.0 * expected
+        ok = not material or (p_white >= alpha and p_cross >= alpha)
+        check.outputs[name] = OutputCheck(rms, float(lvl[j]), p_white, p_cross, ok)
+        if ok:
+            continue
+        check.passed = False
+        what = []
+        if p_white < alpha:
+            what.append(f"not white (Ljung-Box p = {p_white:.2g})")
+        if p_cross < alpha:
+            what.append(f"correlated with the input (p = {p_cross:.2g})")
+        check.reasons.append(f"residual of {name} {' and '.join(what)}, RMS {rms:.2g} of "
+                             f"its scale, {rms / max(expected, 1e-300):.3g} times what noise "
+                             "and the estimates' uncertainty explain")
+        big_l = long_run_factor(e, 1, lags=max(1, n // 4))
+        widen = max(widen, math.sqrt(big_l) * max(1.0, rms / max(expected, floor)))
+    check.widen = widen
+    return check
