@@ -49,11 +49,13 @@ def _held_when_undetermined(history: list[dict[str, Any]]) -> None:
     assert held_la > 0.8 * len(history)
     for h in history:
         for name, p in h["parameters"].items():
+            assert p["held"] == (p["status"] != "estimated")
             if p["held"]:
                 assert p["reason"], name
                 assert p["rel_std_pct"] is None
             else:
                 assert p["rel_std_pct"] is not None and p["rel_std_pct"] <= 1.0
+        assert h["parameters"]["Kt"]["status"] == "tied"
         assert h["parameters"]["Kt"]["reason"] == "tied to Ke"
 
 

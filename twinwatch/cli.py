@@ -1,6 +1,7 @@
 """Command line: ``twinwatch run``, ``twinwatch check-config``, ``twinwatch sample-config``.
 
-The only module that prints. Everything else logs.
+The only module that prints. Everything else logs. Each command imports what it needs when it
+runs, so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_startup.py``).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from twinwatch import __version__
-from twinwatch.config.loader import ConfigError, default_config, load_config
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
@@ -62,6 +62,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     the running configuration goes on; a good one restarts the daemon in-process, keeping the
     Zenoh session, the Rerun file and the state database open when their tables are unchanged,
     and resuming the twin from the state database."""
+    from twinwatch.config.loader import ConfigError, default_config, load_config
     from twinwatch.daemon.supervisor import StartError, Supervisor
 
     def load() -> TwinwatchConfig:
@@ -126,7 +127,8 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
                f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
     for name, p in last["parameters"].items():
-        status = "estimated" if not p["held"] else f"held: {p['reason']}"
+        status = {"estimated": "estimated", "held": f"held: {p['reason']}"}.get(
+            p["status"], p["reason"] or p["status"])  # tied, fixed: the reason says to what
         dev = p["deviation_pct"]
         click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
                    f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
@@ -163,6 +165,8 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
 @click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
 def check_config(config: Path) -> None:
     """Validate CONFIG; exit 0 if it is usable, 1 naming each bad key otherwise."""
+    from twinwatch.config.loader import ConfigError, load_config
+
     try:
         cfg = load_config(config)
     except ConfigError as exc:

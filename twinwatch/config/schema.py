@@ -8,6 +8,10 @@ that driver's module: built-in or registered through the ``twinwatch.drivers`` e
 the Zenoh and Rerun tables by the daemon's sinks, the estimation table by the estimator, the
 plant by the plant (through its simulated driver).
 
+Importing this module loads none of the backends (zenoh, rerun, pymodbus, cantools, numba, pymoo,
+scipy): the sinks import theirs when they open, and the twin's tables (``[estimation]``,
+``[discovery]``) and model are imported when a configuration is validated, as is the driver's.
+
 Layout::
 
     [machine]          name, model, nominal parameters, model options
@@ -24,11 +28,13 @@ Layout::
 
 from __future__ import annotations
 
+import importlib
 import re
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     SerializeAsAny,
@@ -48,11 +54,39 @@ from twinwatch.drivers import (
     get_driver_class,
     validate_driver_config,
 )
-from twinwatch.twin.discovery import DiscoveryConfig
-from twinwatch.twin.estimation import EstimationConfig
-from twinwatch.twin.registry import create_model
 
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def _twin_class(path: str) -> Any:
+    """``"module:Class"``, imported now (the twin's modules load pymoo, scipy and numba)."""
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def _twin_table(path: str) -> Any:
+    """A table whose model the twin owns (``"module:Class"``), imported when a configuration
+    is validated rather than when this module is; errors keep their location in the table."""
+
+    def validate(value: Any) -> Any:
+        cls = _twin_class(path)
+        return value if isinstance(value, cls) else cls.model_validate(value)
+
+    return Annotated[Any, BeforeValidator(validate)]
+
+
+_ESTIMATION = "twinwatch.twin.estimation:EstimationConfig"
+_DISCOVERY = "twinwatch.twin.discovery:DiscoveryConfig"
+
+if TYPE_CHECKING:
+    from twinwatch.twin.discovery import DiscoveryConfig
+    from twinwatch.twin.estimation import EstimationConfig
+
+    EstimationTable = EstimationConfig
+    DiscoveryTable = DiscoveryConfig
+else:
+    EstimationTable = _twin_table(_ESTIMATION)
+    DiscoveryTable = _twin_table(_DISCOVERY)
 
 
 class MachineConfig(BaseModel):
@@ -122,8 +156,8 @@ class TwinwatchConfig(BaseModel):
 
     machine: MachineConfig
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
-    estimation: EstimationConfig = Field(default_factory=EstimationConfig)
-    discovery: DiscoveryConfig = Field(default_factory=DiscoveryConfig)
+    estimation: EstimationTable = Field(default_factory=lambda: _twin_class(_ESTIMATION)())
+    discovery: DiscoveryTable = Field(default_factory=lambda: _twin_class(_DISCOVERY)())
     driver: SerializeAsAny[DriverConfig]
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
@@ -137,6 +171,8 @@ class TwinwatchConfig(BaseModel):
 
     @model_validator(mode="after")
     def _cross_checks(self) -> TwinwatchConfig:
+        from twinwatch.twin.registry import create_model
+
         try:
             model = create_model(self.machine.model, self.machine.options)
         except ValueError as exc:

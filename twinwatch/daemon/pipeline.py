@@ -8,7 +8,9 @@
       -> sinks, in order: state store, Zenoh, Rerun
       -> callbacks (the CLI's progress bar)
 
-The sinks share one small protocol, :class:`WindowSink`: ``write(ProcessedWindow)`` and
+The health message is typed (:class:`~twinwatch.twin.health.HealthMessage`), built once and
+encoded once (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): every sink writes the same
+text. The sinks share one small protocol, :class:`WindowSink`: ``write(ProcessedWindow)`` and
 ``close()``. Their order is the guarantee "stored before published": a health message a
 subscriber has seen is always in the state database, also after SIGKILL.
 
@@ -18,6 +20,7 @@ The pipeline holds no thread: :class:`~twinwatch.daemon.runner.Daemon` calls
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 from collections import deque
@@ -27,7 +30,7 @@ from typing import Any, Protocol
 
 from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
-from twinwatch.twin.health import build_health, summary_line
+from twinwatch.twin.health import AlarmStatus, HealthMessage, build_health, summary_line
 from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
@@ -45,6 +48,8 @@ class ProcessedWindow:
         window: the acquisition window (times, channels, index).
         result: what adaptation did (estimate, terms, residuals, discovery).
         health: the window's health message (README "The health message"), with ``alarms``.
+        health_json: ``health`` encoded, once, by the one encoder: what every sink writes.
+        message: ``health_json`` decoded: the message as a subscriber reads it.
         events: alarm-state changes this window caused (published on ``<machine>/alarm``).
         twin_state: the accepted twin to persist (``TwinAdapter.state()``) when this window
             was trusted, else None (the stored twin is kept).
@@ -52,7 +57,9 @@ class ProcessedWindow:
 
     window: WindowData
     result: AdaptationResult
-    health: dict[str, Any]
+    health: HealthMessage
+    health_json: str
+    message: dict[str, Any]
     events: list[dict[str, Any]]
     twin_state: dict[str, Any] | None
 
@@ -106,29 +113,33 @@ class WindowPipeline:
         the alarms, write the window to every sink, call the callbacks.
 
         Returns:
-            The health message.
+            The health message, as a subscriber reads it (plain JSON types).
 
         Raises:
             Exception: whatever the adaptation raises on a bad window (the daemon counts it
                 as a numeric failure and goes on).
         """
         result = self.adapter.process(window)
-        est = result.estimate
         self.windows_estimated += 1
         health = build_health(machine=self.machine, model_name=self.model_name,
-                              model=self.adapter.model, window=window, estimate=est,
+                              model=self.adapter.model, window=window, adaptation=result,
                               nominal=self.nominal, counters=self._counters(),
-                              adaptation=result, discovery_enabled=self.adapter.enabled)
-        events = self.alarms.update(health)
-        health["alarms"] = self.alarms.state()
-        out = ProcessedWindow(window=window, result=result, health=health, events=events,
-                              twin_state=self.adapter.state() if est.trusted else None)
+                              discovery_enabled=self.adapter.enabled)
+        events = self.alarms.update(health.as_dict())
+        health.alarms = {name: AlarmStatus.model_validate(state)
+                         for name, state in self.alarms.state().items()}
+        text = health.to_json()
+        message: dict[str, Any] = json.loads(text)
+        out = ProcessedWindow(window=window, result=result, health=health, health_json=text,
+                              message=message, events=events,
+                              twin_state=self.adapter.state() if result.estimate.trusted
+                              else None)
         with self._lock:
-            self.latest = health
-            self.history.append(health)
+            self.latest = message
+            self.history.append(message)
         logger.info("%s", summary_line(health))
         for sink in self.sinks:
             sink.write(out)
         for fn in self.callbacks:
-            fn(health)
-        return health
+            fn(message)
+        return message

@@ -47,6 +47,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from twinwatch._lifecycle import Closeable
+from twinwatch.io.encoding import to_json
 
 if TYPE_CHECKING:
     from twinwatch.daemon.pipeline import ProcessedWindow
@@ -114,19 +115,9 @@ class StoreError(Exception):
     """The state database cannot be used; the message says what happened and what to do."""
 
 
-def _jsonable(obj: Any) -> Any:
-    """``json.dumps`` default: numpy scalars and arrays, sets, paths."""
-    if hasattr(obj, "tolist"):
-        return obj.tolist()
-    if isinstance(obj, set | frozenset | tuple):
-        return list(obj)
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
-
-
 def _dumps(obj: Any) -> str:
-    return json.dumps(obj, default=_jsonable, separators=(",", ":"))
+    """The one encoder (:func:`twinwatch.io.encoding.to_json`): NaN and infinities -> null."""
+    return to_json(obj)
 
 
 class StateStore(Closeable):
@@ -326,7 +317,7 @@ class StateStore(Closeable):
     def write(self, out: ProcessedWindow) -> None:
         """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
         :meth:`save_window` with the window's health and, when it was trusted, the twin."""
-        self.save_window(out.health, out.twin_state)
+        self.save_window(out.message, out.twin_state)
 
     def _flush(self) -> bool:
         conn = self._connect()

@@ -46,10 +46,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["AdaptationResult", "Residual", "TwinAdapter"]
 
 
-def _num(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
 @dataclass
 class AdaptationResult:
     """What one window did to the twin.
@@ -79,31 +75,6 @@ class AdaptationResult:
     revalidation: DiscoveryReport | None = None
     changed: bool = False
     events: list[str] = field(default_factory=list)
-
-    def health_fields(self, enabled: bool) -> dict[str, Any]:
-        """The health message's ``terms``, ``residual`` and ``discovery`` fields."""
-        disc = self.discovery
-        reval = self.revalidation
-        return {
-            "terms": [t.as_dict() for t in self.terms],
-            "residual": {
-                "dt_prime": self.dt_prime.as_dict(),
-                "dt_second": self.dt_second.as_dict() if self.dt_second else None,
-                "noise": {k: _num(v) for k, v in self.noise.items()},
-            },
-            "discovery": {
-                "enabled": enabled,
-                "too_large": self.too_large,
-                "consecutive": self.consecutive,
-                "ran": bool(disc and disc.ran),
-                "elapsed_s": (disc.elapsed_s if disc else 0.0)
-                + (reval.elapsed_s if reval else 0.0),
-                "kept": [t.equation() for t in disc.kept] if disc else [],
-                "dropped": [t.equation() for t in reval.dropped] if reval else [],
-                "simplified": [t.equation() for t in reval.kept] if reval else [],
-                "changed": self.changed,
-            },
-        }
 
 
 class TwinAdapter:
