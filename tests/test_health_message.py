@@ -130,13 +130,19 @@ def _message(processed: tuple[Any, Any, Any], **over: Any) -> HealthMessage:
 
 def test_each_parameter_has_a_typed_status(processed) -> None:  # type: ignore[no-untyped-def]
     h = _message(processed)
-    assert h.as_dict()["schema"] == SCHEMA_VERSION == 3
+    assert h.as_dict()["schema"] == SCHEMA_VERSION == 4
     status = {n: p.status for n, p in h.parameters.items()}
     assert status["Kt"] == "tied" and status["Ra"] == "estimated"
     for p in h.parameters.values():
         assert p.held == (p.status != "estimated")
         assert (p.reason is None) == (p.status == "estimated")
-        assert (p.rel_std_pct is None) == (p.status != "estimated")
+        assert (p.rel_std_pct is None) == (p.status not in ("estimated", "fused"))
+        # every estimated parameter carries the fused evidence and its interval
+        assert (p.fused is not None) == (p.status in ("estimated", "fused", "held"))
+        if p.fused is not None:
+            assert p.fused.low <= p.fused.value <= p.fused.high
+    assert h.model_check is not None and h.model_check.passed  # the twin is the plant
+    assert set(h.model_check.outputs) == {"ia", "omega", "Va"}
     line = summary_line(h)
     assert "Ra6.5" in line and "Kt" not in line  # tied and fixed are left out, by status
     with pytest.raises(ValidationError):

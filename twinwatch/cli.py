@@ -127,8 +127,14 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
                f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
     for name, p in last["parameters"].items():
-        status = {"estimated": "estimated", "held": f"held: {p['reason']}"}.get(
+        fused = p.get("fused") or {}
+        status = {"estimated": "estimated",
+                  "fused": f"fused over the windows (this one alone: {p['reason']})",
+                  "held": f"held: {p['reason']}"}.get(
             p["status"], p["reason"] or p["status"])  # tied, fixed: the reason says to what
+        if fused.get("value") is not None and p["status"] in ("estimated", "held"):
+            status += (f"; fused {fused['value']:.6g} +- {2 * fused['rel_std_pct']:.2g} % "
+                       "(2 sigma)")
         dev = p["deviation_pct"]
         click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
                    f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
@@ -137,8 +143,15 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     if disc.get("enabled"):
         terms = last.get("terms") or []
         res = last.get("residual") or {}
-        click.echo(f"twin structure (DT''): {len(terms)} meta-model term(s)"
-                   + (":" if terms else ": the physical model explains the data"))
+        check = last.get("model_check") or {}
+        if terms:
+            verdict = ":"
+        elif disc.get("too_large") or check.get("passed") is False:
+            verdict = (": none kept, yet the residual is too large for the physical model "
+                       "(no candidate meta-model describes what it misses)")
+        else:
+            verdict = ": the physical model explains the data"
+        click.echo(f"twin structure (DT''): {len(terms)} meta-model term(s){verdict}")
         for term in terms:
             click.echo(f"  {term['equation']}  [{term['meaning']}]")
         worst = {k: (res.get(v) or {}).get("max_abs") or {} for k, v in
@@ -147,6 +160,13 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
             click.echo("  worst error in the last window: " + "; ".join(
                 f"{k} " + ", ".join(f"{o} {e:.3g}" for o, e in w.items() if e is not None)
                 for k, w in worst.items() if w))
+    checks = [h["model_check"]["passed"] for h in daemon.history if h.get("model_check")]
+    if checks:
+        failed = len(checks) - sum(checks)
+        reasons = (last.get("model_check") or {}).get("reasons") or []
+        click.echo(f"model check: passed in {sum(checks)} of {len(checks)} windows"
+                   + (f"; failing windows are not trusted and their intervals widened (last: "
+                      f"{reasons[0]})" if failed and reasons else ""))
     times = sorted(h["elapsed_s"] for h in daemon.history)
     if times:
         med = times[len(times) // 2]

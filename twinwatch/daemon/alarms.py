@@ -2,8 +2,9 @@
 hysteresis and minimum durations, so a parameter drifting near a threshold does not flap.
 
 The health message gives each parameter's ``deviation_pct`` (estimate vs nominal, percent) and
-its ``status``: only an ``estimated`` value is evidence (a ``held`` one is the last trusted
-value, not this window's; ``tied`` and ``fixed`` ones are not estimated at all).
+its ``status``: an ``estimated`` value (this window's) or a ``fused`` one (the evidence of the
+windows so far) is evidence; a ``held`` one is the last trusted value, not new evidence;
+``tied`` and ``fixed`` ones are not estimated at all.
 :class:`AlarmEvaluator` turns the stream of health messages into alarm-state changes, one event
 per change, to publish on ``twinwatch/<machine>/alarm``.
 
@@ -225,7 +226,7 @@ class AlarmEvaluator:
         with self._lock:
             for name, rule in self.config.parameters.items():
                 p = params.get(name)
-                if p is None or p.get("status") != "estimated":
+                if p is None or p.get("status") not in ("estimated", "fused"):
                     continue
                 dev = p.get("deviation_pct")
                 if dev is None or not math.isfinite(dev):

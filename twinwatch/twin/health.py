@@ -10,6 +10,11 @@ non-finite numbers become ``null`` everywhere.
 The README's table "The health message" documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 4: ``status`` may be ``fused`` (not determined by this window alone but by the evidence
+  of the windows so far, :mod:`twinwatch.twin.fusion`); each estimated parameter carries its
+  fused value, interval and rate (``fused``); the window's model validation (``model_check``:
+  residual whiteness and residual-input tests per output; a window that fails it is not trusted
+  and its intervals are widened).
 * 3: each parameter's ``status`` (``estimated`` / ``held`` / ``tied`` / ``fixed``) next to the
   human ``reason``; non-finite numbers are ``null`` in every copy (the state store kept a bare
   ``NaN`` token before); ``discovery.simplified`` documented.
@@ -36,6 +41,9 @@ __all__ = [
     "SCHEMA_VERSION",
     "AlarmStatus",
     "DiscoveryStatus",
+    "FusedHealth",
+    "ModelCheckHealth",
+    "OutputCheckHealth",
     "HealthMessage",
     "ParameterHealth",
     "ResidualFit",
@@ -45,7 +53,7 @@ __all__ = [
     "summary_line",
 ]
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 
 def _finite(x: Any) -> Any:
@@ -63,6 +71,16 @@ class _Part(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
+class FusedHealth(_Part):
+    """``parameters.<name>.fused``: the evidence of every window so far on an estimated
+    parameter (Kalman filter, :mod:`twinwatch.twin.fusion`)."""
+
+    value: Num = Field(description="fused value [SI]")
+    rel_std_pct: Num = Field(description="its 1-sigma relative standard error [%]")
+    low: Num = Field(description="2-sigma interval, lower end [SI]")
+    high: Num = Field(description="2-sigma interval, upper end [SI]")
+
+
 class ParameterHealth(_Part):
     """``parameters.<name>``: one model parameter in this window."""
 
@@ -72,12 +90,16 @@ class ParameterHealth(_Part):
     nominal: float = Field(description="nameplate value [SI] the deviation is measured from")
     deviation_pct: Num = Field(description="value vs nominal [%]")
     status: ParameterStatus = Field(
-        description="estimated (determined by this window), held (not determined: the last "
-        "trusted value), tied (equals another parameter), fixed (nameplate, not estimated)")
+        description="estimated (determined by this window), fused (by the windows so far), "
+        "held (neither: the last trusted value), tied (equals another parameter), fixed "
+        "(nameplate, not estimated)")
+    fused: FusedHealth | None = Field(
+        None, description="the fused evidence on an estimated parameter (null when fusion "
+        "is off or the parameter is not estimated)")
     held: bool = Field(description="status is not 'estimated' (the v2 flag, kept for readers "
                        "of schema 2)")
-    reason: str | None = Field(description="why it is not estimated, for a person (null when "
-                               "estimated); never parse it: use status")
+    reason: str | None = Field(description="why this window does not estimate it, for a "
+                               "person (null when estimated); never parse it: use status")
     rel_std_pct: Num = Field(description="1-sigma relative standard error of an estimate [%] "
                              "(null when not estimated)")
 
@@ -142,6 +164,28 @@ class AlarmStatus(_Part):
         description="level a running evidence run would move to")
 
 
+class OutputCheckHealth(_Part):
+    """``model_check.outputs.<output>``: one output's residual tests."""
+
+    rms: Num = Field(description="residual RMS, relative to the output's scale")
+    noise: Num = Field(description="its white-noise level, same unit")
+    whiteness_p: Num = Field(description="Ljung-Box p-value (small: not white)")
+    cross_p: Num = Field(description="residual-input test p-value (small: depends on the "
+                         "input)")
+    passed: bool
+
+
+class ModelCheckHealth(_Part):
+    """``model_check``: does the twin describe this window (Ljung, System Identification,
+    ch. 16)?"""
+
+    passed: bool = Field(description="every output's residual is white and independent of the "
+                         "inputs (or below the model-error floor)")
+    reasons: list[str] = Field(description="why not, one line per failing output")
+    widen: Num = Field(description="factor the window's standard errors were multiplied by")
+    outputs: dict[str, OutputCheckHealth]
+
+
 class HealthMessage(_Part):
     """One window's health: the message on ``twinwatch/<machine>/health`` (README: "The health
     message"). Build it with :func:`build_health`; serialise it with :meth:`to_json`."""
@@ -161,6 +205,8 @@ class HealthMessage(_Part):
     generations: int = Field(description="PSO iterations")
     time_capped: bool = Field(description="the time budget stopped the PSO")
     evaluations: int = Field(description="twin simulations of one parameter vector")
+    model_check: ModelCheckHealth | None = Field(
+        None, description="the window's model validation (null when disabled)")
     terms: list[TermHealth]
     residual: ResidualHealth
     discovery: DiscoveryStatus
@@ -219,12 +265,19 @@ def build_health(
         nom = float(nominal.get(spec.name, spec.nominal))
         status = est.status[spec.name]
         rel = est.rel_std.get(spec.name)
+        fused = None
+        if spec.name in est.fused:
+            f_val, f_std = est.fused[spec.name]
+            fused = FusedHealth(value=f_val, rel_std_pct=f_std * 100.0,
+                                low=f_val * math.exp(-2.0 * f_std),
+                                high=f_val * math.exp(2.0 * f_std))
         params[spec.name] = ParameterHealth(
             value=value,
             unit=spec.unit,
             nominal=nom,
             deviation_pct=(value / nom - 1.0) * 100.0 if nom else None,
             status=status,
+            fused=fused,
             held=status != "estimated",
             reason=est.held.get(spec.name),
             rel_std_pct=rel * 100.0 if rel is not None else None,
@@ -246,6 +299,8 @@ def build_health(
         generations=est.generations,
         time_capped=est.time_capped,
         evaluations=est.evaluations,
+        model_check=(ModelCheckHealth.model_validate(est.model_check.as_dict())
+                     if est.model_check is not None else None),
         terms=[TermHealth.model_validate(t.as_dict()) for t in adaptation.terms],
         residual=ResidualHealth(
             dt_prime=_residual(adaptation.dt_prime),
