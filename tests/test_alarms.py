@@ -21,7 +21,8 @@ def health(window: int, devs: dict[str, float | None], *, held: tuple[str, ...] 
         params[name] = {
             "value": None if dev is None else nominal * (1 + dev / 100),
             "unit": "ohm", "nominal": nominal, "deviation_pct": dev,
-            "held": name in held, "reason": "held at last trusted value" if name in held else None,
+            "status": "held" if name in held else "estimated", "held": name in held,
+            "reason": "held at last trusted value" if name in held else None,
             "rel_std_pct": None,
         }
         if meaning:

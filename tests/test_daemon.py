@@ -59,6 +59,10 @@ class _PlantDriver(Driver):
     live = True
     channels = ("Va", "ia", "omega", "Tload", "setpoint")
 
+    @classmethod
+    def from_config(cls, config, *, base_dir=None):  # type: ignore[no-untyped-def]
+        raise NotImplementedError("built by the test, not from a configuration")
+
     def __init__(self, duration: float, nan_at: float | None = None) -> None:
         super().__init__()
         self.plant = DCMotorPlant(DCMotorPlantConfig(scenario="nominal", duration=duration))
@@ -104,11 +108,11 @@ def test_a_failing_window_is_contained_and_counted():
         orig = daemon.estimator.estimate
         calls = []
 
-        def flaky(window, terms=None):
+        def flaky(window, terms=None, **kwargs):
             calls.append(window.index)
             if window.index == 1:
                 raise FloatingPointError("simulated numeric failure")
-            return orig(window, terms)
+            return orig(window, terms, **kwargs)
 
         daemon.estimator.estimate = flaky  # type: ignore[method-assign]
         daemon.run()

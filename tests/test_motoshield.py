@@ -12,7 +12,7 @@ from twinwatch.daemon.runner import Daemon
 from .conftest import ROOT, shared_path
 
 
-def test_motoshield_recording_every_window_estimated_plausibly_and_stably():
+def test_motoshield_linear_twin_is_flagged_by_the_model_check_in_every_window():
     shared_path("data", "motoshield", "aprbsResult.mat")
     cfg_path = ROOT / "config" / "dc-motor-motoshield.toml"
     cfg = load_config(cfg_path)
@@ -23,13 +23,14 @@ def test_motoshield_recording_every_window_estimated_plausibly_and_stably():
     # 4801 samples at 0.02 s in windows of 200: 24 windows, none lost, none failed.
     assert len(hist) == 24
     assert counters["numeric_failures"] == 0 and counters["windows_abandoned"] == 0
-    ke = np.array([h["parameters"]["Ke"]["value"] for h in hist])
-    ke_estimated = [not h["parameters"]["Ke"]["held"] for h in hist]
-    assert all(ke_estimated)  # the speed response determines Ke in every window
-    # Physically plausible: a small motor, about 900 rad/s at 4.7 V -> Ke ~ 0.005 V s/rad.
-    assert np.all((ke > 0.004) & (ke < 0.0055))
-    spread = (np.percentile(ke, 75) - np.percentile(ke, 25)) / np.median(ke)
-    assert spread < 0.10, spread
+    # The linear twin of this config does not describe the motor (issue 9: its residual is far
+    # from white in every window): the model check says so and widens the intervals, and
+    # nothing is published as an estimate above the 5 % gate: Ke, which the speed used to
+    # "determine" at 2-13 %, is held at the config's value.
+    for h in hist:
+        for p in h["parameters"].values():
+            assert p["held"] or p["rel_std_pct"] <= cfg.estimation.max_rel_std * 100
+        assert h["parameters"]["Ke"]["held"]
     # Every window publishes its fit; the linear model fits this motor only roughly.
     nrmse = np.array([h["nrmse"] for h in hist])
     assert np.all(np.isfinite(nrmse)) and np.median(nrmse) < 0.2
@@ -76,12 +77,12 @@ def test_motoshield_discovery_fit_first_half_validate_second():
     ever = [t for h in first for t in h["terms"]]
 
     def nrmse(w, terms) -> float:  # type: ignore[no-untyped-def]
-        from twinwatch.twin.discovery import Term, compose
+        from twinwatch.twin.terms import Term, compose
 
         objs = [Term.from_dict(t, model) for t in terms]
-        y = model.simulate(theta[None], w, compose(objs, w) if objs else None)[0]
-        meas, scale = adapter.estimator._prepare(w)
-        return float(np.sqrt(np.mean(((y - meas)[1:] / scale) ** 2)))
+        fit = adapter.estimator.window_fit(w)
+        y = fit.simulate(theta[None], compose(objs, w) if objs else None)[0]
+        return fit.residual(y).nrmse
 
     held_out = windows[12:]
     without = np.median([nrmse(w, []) for w in held_out])

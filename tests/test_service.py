@@ -221,7 +221,7 @@ def test_sigkill_mid_window_loses_nothing_and_restart_resumes_the_twin(tmp_path:
     assert [t["kind"] for t in first["terms"]] == [t["kind"] for t in saved["terms"]]
     assert first["discovery"]["ran"] is False  # resumed, not rediscovered
     for name, p in first["parameters"].items():
-        if p["held"] and not (p["reason"] or "").startswith(("fixed", "tied")):
+        if p["status"] == "held":
             assert p["value"] == pytest.approx(saved["trusted"][name], rel=1e-9)
     rows2 = [h for h in db_rows(db) if h["_run"] != run1]
     assert rows2[0]["window"] == 0 and rows2[0]["terms"]

@@ -1,25 +1,24 @@
 """Command line: ``twinwatch run``, ``twinwatch check-config``, ``twinwatch sample-config``.
 
-The only module that prints. Everything else logs.
+The only module that prints. Everything else logs. Each command imports what it needs when it
+runs, so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_startup.py``).
 """
 
 from __future__ import annotations
 
-import faulthandler
 import logging
 import os
-import signal
 import sys
-import threading
 from pathlib import Path
-from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from twinwatch import __version__
-from twinwatch.config.loader import ConfigError, default_config, load_config
 from twinwatch.config.samples import DRIVERS as SAMPLE_DRIVERS
+
+if TYPE_CHECKING:
+    from twinwatch.config.schema import TwinwatchConfig
 
 logger = logging.getLogger("twinwatch")
 
@@ -48,17 +47,15 @@ EX_IOERR = 74
 """Exit status when estimated windows were lost: not stored or not recorded (sysexits.h)."""
 
 
-def _last_line(exc: BaseException) -> str:
-    return str(exc).strip().splitlines()[-1].strip()
-
-
-def _load_runnable(config: Path | None, base_dir: Path) -> Any:
-    """Load CONFIG (or the built-in default) and check it can run here (the check
-    ``check-config`` makes too).
+def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
+    """Load CONFIG (or the built-in default) and check it can run here: the files it names
+    and the directories it writes to exist, the driver delivers every channel the twin needs
+    (:mod:`twinwatch.config.preflight`, the check ``check-config`` makes too).
 
     Raises:
-        ConfigError: naming each bad key or missing file or directory.
+        ConfigError: naming each bad key, missing file or directory, unmapped channel.
     """
+    from twinwatch.config.loader import default_config, load_config
     from twinwatch.config.preflight import check_runnable
 
     cfg = load_config(config) if config else default_config()
@@ -94,123 +91,39 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     the running configuration goes on; a good one restarts the daemon in-process, keeping the
     Zenoh session, the Rerun file and the state database open when their tables are unchanged,
     and resuming the twin from the state database."""
-    from twinwatch.daemon.systemd import Notifier, Watchdog
+    from twinwatch.config.loader import ConfigError
+    from twinwatch.daemon.supervisor import StartError, Supervisor
 
-    notifier = Notifier(unset_environment=True)
+    base_dir = config.resolve().parent if config else Path.cwd()
+
+    def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
+        return _load_runnable(config, base_dir)
+
+    supervisor = Supervisor(load, base_dir=base_dir, resume=not fresh,
+                            source=str(config) if config else "the built-in default")
     _setup_logging(log_level)
     # Files the daemon creates (state database, recordings, layout) are 0640 and directories
     # 0750, as under the unit's UMask=0027, also when run by hand; a stricter umask is kept.
     old_umask = os.umask(0o027)
     os.umask(old_umask | 0o027)
     click.get_current_context().call_on_close(lambda: os.umask(old_umask))
-    # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the journal)
-    # first, so a stuck worker or a hung driver read shows where it was. (An stderr without a
-    # file descriptor, e.g. click's test runner, has nowhere to write it.)
     try:
-        faulthandler.enable()
-    except (AttributeError, ValueError, OSError):
-        logger.debug("faulthandler not enabled: stderr has no file descriptor")
-    base_dir = config.resolve().parent if config else Path.cwd()
-    try:
-        cfg = _load_runnable(config, base_dir)
+        supervisor.start()
     except ConfigError as exc:
         click.echo(f"Error: {exc}", err=True)
-        notifier.notify(f"STATUS=invalid configuration: {_last_line(exc)}")
         sys.exit(EX_CONFIG)
-
-    from twinwatch.daemon.publisher import PublisherError
-    from twinwatch.daemon.recorder import RecorderError
-    from twinwatch.daemon.runner import SINKS, Daemon
-    from twinwatch.daemon.store import StoreError
-    from twinwatch.drivers.base import DriverConfigError, DriverError
-
-    start_errors = (DriverError, PublisherError, RecorderError, StoreError, ValueError, OSError)
-
-    # Signals first: a SIGTERM while the drivers and sinks start must stop cleanly too.
-    # The handlers only set flags (a handler that logged to systemd's socket or took a lock
-    # the interrupted code holds could deadlock); the main loop acts on them.
-    stop_requested = threading.Event()
-    reload_requested = threading.Event()
-    holder: list[Any] = []
-
-    def _on_signal(signum: int, frame: FrameType | None) -> None:
-        if stop_requested.is_set():
-            for d in holder:
-                d.abandon = True
-            logger.warning("%s received again: abandoning the queued windows",
-                           signal.Signals(signum).name)
-            return
-        logger.warning("%s received: finishing the queued windows and stopping",
-                       signal.Signals(signum).name)
-        stop_requested.set()
-        for d in holder:
-            d.stop()
-
-    def _on_hup(signum: int, frame: FrameType | None) -> None:
-        reload_requested.set()
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, _on_signal)
-        signal.signal(signal.SIGTERM, _on_signal)
-        signal.signal(signal.SIGHUP, _on_hup)
-
-    watchdog = Watchdog(notifier)
-    pending: list[Any] = []  # a validated new configuration waiting for the restart
-
-    def _check_reload() -> None:
-        """Acquisition-loop tick: validate a requested reload without stopping acquisition."""
-        if not reload_requested.is_set() or stop_requested.is_set():
-            return
-        reload_requested.clear()
-        notifier.reloading("reloading the configuration")
-        source = str(config) if config else "the built-in default"
-        try:
-            new_cfg = _load_runnable(config, base_dir)
-        except ConfigError as exc:
-            logger.error("reload refused, the running configuration goes on: %s", exc)
-            notifier.ready(status=f"reload refused ({str(exc).splitlines()[-1].strip()}); "
-                           "running the previous configuration")
-            return
-        logger.warning("reloading %s: restarting the daemon with the new configuration",
-                       source)
-        pending.append(new_cfg)
-        for d in holder:
-            d.stop()
-
-    problems: list[list[str]] = [[]]
-
-    def _watch_problems(health: dict[str, Any]) -> None:
-        """Worker thread, after each window: systemd's STATUS follows what is degraded."""
-        now = holder[-1].problems() if holder else []
-        if now != problems[0]:
-            problems[0] = now
-            notifier.status(_status_line(cfg, holder[-1]))
-
-    def _start(c: Any, reuse: dict[str, Any] | None = None, resume: bool = True) -> Any:
-        d = Daemon(c, base_dir=base_dir, persist=True, watchdog=watchdog, reuse=reuse,
-                   resume=resume)
-        d.add_tick(_check_reload)
-        d.add_callback(_watch_problems)
-        return d
-
-    try:
-        daemon = _start(cfg, resume=not fresh)
-    except start_errors as exc:
-        # Each of these says what failed and what to do; a traceback would add nothing.
-        notifier.notify(f"STATUS=cannot start: {exc}".splitlines()[0])
+    except StartError as exc:
         click.echo(f"Error: cannot start: {exc}", err=True)
-        sys.exit(EX_CONFIG if isinstance(exc, DriverConfigError) else 1)
-    holder.append(daemon)
-    if stop_requested.is_set():
-        daemon.stop()
-    if daemon.resumed is not None:
-        click.echo(_resumed_line(daemon), err=True)
-    _warm_up(daemon)
-    notifier.ready(status=_status_line(cfg, daemon))
+        sys.exit(EX_CONFIG if exc.config_error else 1)
+    cfg = supervisor.config
+    assert cfg is not None and supervisor.daemon is not None
+    if supervisor.daemon.resumed is not None:
+        click.echo(_resumed_line(supervisor.daemon), err=True)
 
-    total = duration
-    if total is None and cfg.driver.type in ("simulated", "simulated_modbus"):
-        total = cfg.driver.plant.duration  # type: ignore[union-attr]
+    from twinwatch.drivers import get_driver_class
+
+    total = duration if duration is not None else (
+        get_driver_class(cfg.driver.type).duration(cfg.driver))
     bar: Any = None
     if not no_progress:
         from tqdm import tqdm
@@ -229,77 +142,30 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
                                 f"nRMSE {health['nrmse'] or float('nan'):.1e}", refresh=False)
             bar.refresh()
 
+        supervisor.add_callback(_progress)
+    failure: str | None = None
     try:
-        while True:
-            if bar is not None:
-                daemon.add_callback(_progress)
-            daemon.run(duration=duration)
-            if stop_requested.is_set() or not pending:
-                break
-            new_cfg = pending.pop()
-            kept = daemon.close(keep=SINKS)
-            holder.clear()
-            try:
-                daemon = _start(new_cfg, reuse=kept)
-                cfg = new_cfg
-            except start_errors as exc:
-                logger.error("the new configuration cannot start (%s): going back to the "
-                             "previous one", exc)
-                daemon = _start(cfg)
-            holder.append(daemon)
-            logger.warning("configuration reloaded; the twin resumes from the state database")
-            notifier.ready(status=_status_line(cfg, daemon))
+        supervisor.run(duration=duration)
+    except StartError as exc:
+        failure = f"cannot restart after a reload: {exc}"
     except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
         logger.debug("run failed", exc_info=True)
-        daemon.failure = (f"internal error: {type(exc).__name__}: {exc} (run with --log-level "
-                          f"debug for the traceback, and please report it)")
+        failure = (f"internal error: {type(exc).__name__}: {exc} (run with --log-level debug "
+                   f"for the traceback, and please report it)")
     finally:
-        notifier.stopping("stopping: finishing the queued windows")
-        notifier.extend_timeout(cfg.acquisition.shutdown_timeout + 10)
-        daemon.close()
         if bar is not None:
             bar.close()
-    _print_summary(cfg, daemon)
-    lost = daemon.lost()
-    if daemon.failure is not None:
-        notifier.status(f"stopped: {daemon.failure}")
-        click.echo(f"Error: {daemon.failure}", err=True)
+    assert supervisor.config is not None and supervisor.daemon is not None
+    daemon = supervisor.daemon
+    _print_summary(supervisor.config, daemon)
+    failure = failure or daemon.failure
+    if failure is not None:
+        supervisor.notifier.status(f"stopped: {failure}")
+        click.echo(f"Error: {failure}", err=True)
         sys.exit(1)
-    if lost:
-        notifier.status("stopped: " + "; ".join(daemon.problems()))
+    if daemon.lost():
+        supervisor.notifier.status("stopped: " + "; ".join(daemon.problems()))
         sys.exit(EX_IOERR)
-
-
-def _warm_up(daemon: Any) -> None:
-    """Compile the twin's numba kernels before READY=1 (cached on disk after the first run),
-    so the first window does not look like a stuck worker to the watchdog."""
-    try:
-        import numpy as np
-
-        from twinwatch.twin.model import WindowData
-
-        n = daemon.config.acquisition.window
-        dt = daemon.config.acquisition.sample_period
-        t = np.arange(n) * dt
-        chans = {c: np.zeros(n) for c in daemon.model.required_channels()}
-        theta = np.array([[daemon.nominal[p] for p in daemon.model.parameter_names]])
-        daemon.model.simulate(theta, WindowData(t=t, channels=chans, index=-1))
-    except Exception:  # noqa: BLE001 - best effort: the first window compiles otherwise
-        logger.debug("numba warm-up skipped", exc_info=True)
-
-
-def _status_line(cfg: Any, daemon: Any) -> str:
-    parts = [f"monitoring {cfg.machine.name} ({cfg.machine.model}, {cfg.driver.type} driver)"]
-    if daemon.publisher is not None:
-        parts.append(f"health on {cfg.zenoh.key_prefix}/{cfg.machine.name}/health")
-    if daemon.store is not None:
-        parts.append(f"state {daemon.store.path}")
-    if daemon.restored is not None:
-        parts.append("twin resumed")
-    problems = daemon.problems()
-    if problems:
-        parts.append("DEGRADED: " + "; ".join(problems))
-    return ", ".join(parts)
 
 
 def _resumed_line(daemon: Any) -> str:
@@ -333,7 +199,14 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
                f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
     for name, p in last["parameters"].items():
-        status = "estimated" if not p["held"] else f"held: {p['reason']}"
+        fused = p.get("fused") or {}
+        status = {"estimated": "estimated",
+                  "fused": f"fused over the windows (this one alone: {p['reason']})",
+                  "held": f"held: {p['reason']}"}.get(
+            p["status"], p["reason"] or p["status"])  # tied, fixed: the reason says to what
+        if fused.get("value") is not None and p["status"] in ("estimated", "held"):
+            status += (f"; fused {fused['value']:.6g} +- {2 * fused['rel_std_pct']:.2g} % "
+                       "(2 sigma)")
         dev = p["deviation_pct"]
         click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
                    f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
@@ -350,8 +223,15 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     if disc.get("enabled"):
         terms = last.get("terms") or []
         res = last.get("residual") or {}
-        click.echo(f"twin structure (DT''): {len(terms)} meta-model term(s)"
-                   + (":" if terms else ": the physical model explains the data"))
+        check = last.get("model_check") or {}
+        if terms:
+            verdict = ":"
+        elif disc.get("too_large") or check.get("passed") is False:
+            verdict = (": none kept, yet the residual is too large for the physical model "
+                       "(no candidate meta-model describes what it misses)")
+        else:
+            verdict = ": the physical model explains the data"
+        click.echo(f"twin structure (DT''): {len(terms)} meta-model term(s){verdict}")
         for term in terms:
             click.echo(f"  {term['equation']}  [{term['meaning']}]")
         worst = {k: (res.get(v) or {}).get("max_abs") or {} for k, v in
@@ -360,6 +240,13 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
             click.echo("  worst error in the last window: " + "; ".join(
                 f"{k} " + ", ".join(f"{o} {e:.3g}" for o, e in w.items() if e is not None)
                 for k, w in worst.items() if w))
+    checks = [h["model_check"]["passed"] for h in daemon.history if h.get("model_check")]
+    if checks:
+        failed = len(checks) - sum(checks)
+        reasons = (last.get("model_check") or {}).get("reasons") or []
+        click.echo(f"model check: passed in {sum(checks)} of {len(checks)} windows"
+                   + (f"; failing windows are not trusted and their intervals widened (last: "
+                      f"{reasons[0]})" if failed and reasons else ""))
     times = sorted(h["elapsed_s"] for h in daemon.history)
     if times:
         med = times[len(times) // 2]
@@ -439,6 +326,8 @@ def check_config(config: Path) -> None:
     """Validate CONFIG and check it can run here (the files it names and the directories it
     writes to exist, the driver delivers every channel the twin needs: what `run` checks
     before it starts); exit 0 if it is usable, 1 naming each bad key otherwise."""
+    from twinwatch.config.loader import ConfigError
+
     try:
         cfg = _load_runnable(config, config.resolve().parent)
     except ConfigError as exc:
@@ -446,18 +335,117 @@ def check_config(config: Path) -> None:
         sys.exit(1)
     # Drivers validate what only they can check (DBC names, files, columns) at open time;
     # open them without starting acquisition where that cannot touch a device.
-    if cfg.driver.type in ("file",) or (cfg.driver.type == "can"
-                                        and getattr(cfg.driver, "log_file", None)):
-        from twinwatch.drivers import create_driver
-        from twinwatch.drivers.base import DriverError
+    from twinwatch.drivers import DriverError, create_driver, get_driver_class
 
+    if get_driver_class(cfg.driver.type).safe_to_probe(cfg.driver):
         try:
             create_driver(cfg.driver, base_dir=config.resolve().parent).close()
         except DriverError as exc:
             click.echo(f"{config}: driver: {exc}", err=True)
             sys.exit(1)
     click.echo(f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
-               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate)})")
+               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})")
+
+
+def _fraction_range(value: str | None) -> tuple[float, float] | None:
+    if value is None:
+        return None
+    try:
+        a, b = (float(x) for x in value.split(":"))
+    except ValueError:
+        raise click.BadParameter(f"{value!r}: give START:END as fractions, e.g. 0:0.5") from None
+    return a, b
+
+
+@main.command()
+@click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--train", "train", default=None, metavar="START:END",
+              help="Training range, fractions of the recording (default [identify] train, "
+              "0:0.5).")
+@click.option("--validate", "validate", default=None, metavar="START:END",
+              help="Validation range (default [identify] validate, 0.5:1).")
+@click.option("--weight", "weights", multiple=True, metavar="OUTPUT=W",
+              help="Weight of an output in the fitness (repeatable; default 1).")
+@click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Read this many seconds of source time (a live bus); default: to its end.")
+@click.option("--record", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write the fits and residuals of both ranges to this Rerun file.")
+@click.option("--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the [machine.parameters] block to this file.")
+@click.option("--log-level", default="warning", show_default=True,
+              type=click.Choice(["debug", "info", "warning", "error"], case_sensitive=False))
+def identify(config: Path, train: str | None, validate: str | None, weights: tuple[str, ...],
+             duration: float | None, record: Path | None, output: Path | None,
+             log_level: str) -> None:
+    """Commission the baseline: identify the parameters CONFIG estimates from its recording.
+
+    Reads the whole source of CONFIG (a file, a CAN log, a simulated plant, or a live bus for
+    --duration), fits the twin to the training range with the daemon's global and local search
+    (one free-run simulation over the whole range), gives every parameter its interval,
+    scores the fit on the validation range (fit % per output), and prints a
+    [machine.parameters] block with the bounds it used, ready to paste into the monitoring
+    configuration. Exit 78 for a bad configuration, 1 if the recording cannot be identified
+    from."""
+    from twinwatch.config.loader import ConfigError, load_config
+
+    _setup_logging(log_level)
+    try:
+        cfg = load_config(config)
+        update: dict[str, Any] = {}
+        for key, value in (("train", _fraction_range(train)),
+                           ("validate_", _fraction_range(validate))):
+            if value is not None:
+                update[key] = value
+        if weights:
+            w = dict(cfg.identify.weights)
+            for item in weights:
+                name, _, val = item.partition("=")
+                try:
+                    w[name.strip()] = float(val)
+                except ValueError:
+                    raise click.BadParameter(f"{item!r}: give OUTPUT=WEIGHT") from None
+            update["weights"] = w
+        if update:
+            table = cfg.identify.model_dump(by_alias=True)
+            table.update({("validate" if k == "validate_" else k): v for k, v in update.items()})
+            cfg = cfg.model_copy(update={"identify": type(cfg.identify).model_validate(table)})
+            for name in cfg.identify.weights:
+                if name not in _outputs(cfg):
+                    raise ConfigError(f"--weight {name}: not an output of the twin")
+    except ConfigError as exc:
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(EX_CONFIG)
+    except ValueError as exc:  # a bad --train/--validate range
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(EX_CONFIG)
+    from twinwatch.daemon.commission import CommissionError, commission, report
+    from twinwatch.drivers import DriverError
+    from twinwatch.twin.identify import parameters_block
+
+    try:
+        result, data = commission(cfg, config.resolve().parent, duration=duration,
+                                  record=record)
+    except (CommissionError, DriverError) as exc:
+        click.echo(f"Error: cannot identify: {exc}", err=True)
+        sys.exit(1)
+    click.echo(f"{data.t.size} samples from {data.source}"
+               + (f" ({data.dropped} left out: a channel missing or not finite)"
+                  if data.dropped else ""))
+    click.echo(report(result))
+    block = parameters_block(result, f"{config} ({data.t.size} samples)")
+    click.echo("")
+    click.echo(block, nl=False)
+    if output is not None:
+        output.write_text(block, encoding="utf-8")
+        click.echo(f"written to {output}")
+    if record is not None:
+        click.echo(f"fits and residuals: {record} (open with: rerun {record})")
+
+
+def _outputs(cfg: Any) -> list[str]:
+    from twinwatch.twin.registry import create_model
+
+    return list(create_model(cfg.machine.model, cfg.machine.options).output_names)
 
 
 @main.command("sample-config")

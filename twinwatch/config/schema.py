@@ -2,8 +2,15 @@
 
 Every table refuses unknown keys (pydantic ``extra = "forbid"``), so a misspelt key stops the
 daemon at start-up with the key's path instead of being silently ignored (as in Telegraf).
-Each part validates itself: driver tables are defined by their drivers, the Zenoh and Rerun
-tables by the daemon's sinks, the estimation table by the estimator, the plant by the plant.
+Each part validates itself: the ``[driver]`` table by the driver its ``type`` names (looked up
+in the driver registry, :func:`twinwatch.drivers.validate_driver_config`, which imports only
+that driver's module: built-in or registered through the ``twinwatch.drivers`` entry points),
+the Zenoh and Rerun tables by the daemon's sinks, the estimation table by the estimator, the
+plant by the plant (through its simulated driver).
+
+Importing this module loads none of the backends (zenoh, rerun, pymodbus, cantools, numba, pymoo,
+scipy): the sinks import theirs when they open, and the twin's tables (``[estimation]``,
+``[discovery]``) and model are imported when a configuration is validated, as is the driver's.
 
 Layout::
 
@@ -11,7 +18,9 @@ Layout::
     [acquisition]      sample period, window length, gap and queue settings
     [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
     [discovery]        meta-model candidates (kind, input, attach point) and when to search
-    [driver]           type = "simulated" | "can" | "file" | "modbus" (+ its own keys)
+    [identify]         commissioning: training/validation ranges of `twinwatch identify`
+    [driver]           type = a registered driver ("simulated", "can", "file", "modbus",
+                       "simulated_modbus", or a plug-in's) + that driver's own keys
     [zenoh]            session mode and endpoints (loopback by default)
     [recording]        Rerun .rrd path
     [alarms]           per-parameter warning/alarm thresholds ([alarms.parameters.<name>])
@@ -20,30 +29,74 @@ Layout::
 
 from __future__ import annotations
 
+import importlib
 import math
 import re
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    SerializeAsAny,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from twinwatch.daemon.alarms import AlarmConfig
 from twinwatch.daemon.publisher import ZenohConfig
 from twinwatch.daemon.recorder import RecordingConfig
 from twinwatch.daemon.store import StateConfig
-from twinwatch.drivers.can import CanDriverConfig
-from twinwatch.drivers.file import FileDriverConfig
-from twinwatch.drivers.modbus import ModbusDriverConfig
-from twinwatch.drivers.simulated import SimulatedDriverConfig
-from twinwatch.drivers.simulated_modbus import SimulatedModbusDriverConfig
-from twinwatch.twin.discovery import DiscoveryConfig
-from twinwatch.twin.estimation import EstimationConfig
-from twinwatch.twin.registry import create_model
+from twinwatch.drivers import (
+    DriverConfig,
+    DriverInitializationError,
+    get_driver_class,
+    validate_driver_config,
+)
 
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 
 MAX_WINDOW = 100_000
 """Most samples per window: the ring buffer holds 4 windows of every channel, and the twin
 simulates a window per candidate (100,000 samples is 1000 s at 10 ms)."""
+
+
+def _twin_class(path: str) -> Any:
+    """``"module:Class"``, imported now (the twin's modules load pymoo, scipy and numba)."""
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def _twin_table(path: str) -> Any:
+    """A table whose model the twin owns (``"module:Class"``), imported when a configuration
+    is validated rather than when this module is; errors keep their location in the table."""
+
+    def validate(value: Any) -> Any:
+        cls = _twin_class(path)
+        return value if isinstance(value, cls) else cls.model_validate(value)
+
+    return Annotated[Any, BeforeValidator(validate)]
+
+
+_ESTIMATION = "twinwatch.twin.estimation:EstimationConfig"
+_DISCOVERY = "twinwatch.twin.discovery:DiscoveryConfig"
+_IDENTIFY = "twinwatch.twin.identify:IdentifyConfig"
+
+if TYPE_CHECKING:
+    from twinwatch.twin.discovery import DiscoveryConfig
+    from twinwatch.twin.estimation import EstimationConfig
+    from twinwatch.twin.identify import IdentifyConfig
+
+    EstimationTable = EstimationConfig
+    DiscoveryTable = DiscoveryConfig
+    IdentifyTable = IdentifyConfig
+else:
+    EstimationTable = _twin_table(_ESTIMATION)
+    DiscoveryTable = _twin_table(_DISCOVERY)
+    IdentifyTable = _twin_table(_IDENTIFY)
 
 
 class MachineConfig(BaseModel):
@@ -101,11 +154,21 @@ class AcquisitionConfig(BaseModel):
                                   "of estimating them")
 
 
-DriverConfig = Annotated[
-    SimulatedDriverConfig | CanDriverConfig | FileDriverConfig | ModbusDriverConfig
-    | SimulatedModbusDriverConfig,
-    Field(discriminator="type"),
-]
+def _driver_table(value: Any) -> DriverConfig:
+    """``[driver]``: validated by the model of the driver its ``type`` names.
+
+    Errors keep their location inside the table (``driver.signals.ia.message``); an unknown
+    or unavailable driver is reported at ``driver.type`` with the known names.
+    """
+    if not isinstance(value, DriverConfig | dict):
+        raise ValueError("must be a table with a 'type' key naming the driver")
+    try:
+        return validate_driver_config(value)
+    except DriverInitializationError as exc:
+        raise ValidationError.from_exception_data("driver", [InitErrorDetails(
+            type=PydanticCustomError("driver_type", "{reason}", {"reason": str(exc)}),
+            loc=("type",), input=value.get("type") if isinstance(value, dict) else value,
+        )]) from None
 
 
 class TwinwatchConfig(BaseModel):
@@ -115,16 +178,24 @@ class TwinwatchConfig(BaseModel):
 
     machine: MachineConfig
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
-    estimation: EstimationConfig = Field(default_factory=EstimationConfig)
-    discovery: DiscoveryConfig = Field(default_factory=DiscoveryConfig)
-    driver: DriverConfig
+    estimation: EstimationTable = Field(default_factory=lambda: _twin_class(_ESTIMATION)())
+    discovery: DiscoveryTable = Field(default_factory=lambda: _twin_class(_DISCOVERY)())
+    identify: IdentifyTable = Field(default_factory=lambda: _twin_class(_IDENTIFY)())
+    driver: SerializeAsAny[DriverConfig]
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
     alarms: AlarmConfig = Field(default_factory=AlarmConfig)
     state: StateConfig = Field(default_factory=StateConfig)
 
+    @field_validator("driver", mode="before")
+    @classmethod
+    def _driver(cls, value: Any) -> DriverConfig:
+        return _driver_table(value)
+
     @model_validator(mode="after")
     def _cross_checks(self) -> TwinwatchConfig:
+        from twinwatch.twin.registry import create_model
+
         try:
             model = create_model(self.machine.model, self.machine.options)
         except (ValueError, ArithmeticError, TypeError) as exc:
@@ -134,18 +205,19 @@ class TwinwatchConfig(BaseModel):
             if name not in model.parameter_names:
                 raise ValueError(f"machine.parameters.{name}: unknown parameter; the "
                                  f"{self.machine.model} model has {list(model.parameter_names)}")
-        self.estimation.check_against(model)
+        self.estimation = self.estimation.resolved(model)  # estimate/tie: the model's default
         self.discovery.check_against(model)
-        self.alarms.check_against(model.parameter_names, estimated=self.estimation.estimate)
+        for name in self.identify.weights:
+            if name not in model.output_names:
+                raise ValueError(f"identify.weights.{name}: not an output of the model "
+                                 f"{list(model.output_names)}")
+        self.alarms.check_against(model.parameter_names,
+                                  estimated=self.estimation.estimate or [])
         try:
-            model.n_sub(self.acquisition.sample_period)  # type: ignore[attr-defined]
-        except AttributeError:
-            pass
+            model.check_sample_period(self.acquisition.sample_period)
         except ValueError as exc:
             raise ValueError(f"acquisition.sample_period: {exc}") from exc
-        driver_period = getattr(self.driver, "sample_period", None)
-        if isinstance(self.driver, SimulatedDriverConfig | SimulatedModbusDriverConfig):
-            driver_period = self.driver.plant.sample_period
+        driver_period = get_driver_class(self.driver.type).nominal_sample_period(self.driver)
         acq_period = self.acquisition.sample_period
         if driver_period is not None and abs(driver_period - acq_period) > 1e-12:
             raise ValueError(

@@ -2,9 +2,11 @@
 hysteresis and minimum durations, so a parameter drifting near a threshold does not flap.
 
 The health message gives each parameter's ``deviation_pct`` (estimate vs nominal, percent) and
-whether it was ``held`` (this window could not determine it, so the published value is the last
-trusted one). :class:`AlarmEvaluator` turns the stream of health messages into alarm-state
-changes, one event per change, to publish on ``twinwatch/<machine>/alarm``.
+its ``status``: an ``estimated`` value (this window's) or a ``fused`` one (the evidence of the
+windows so far) is evidence; a ``held`` one is the last trusted value, not new evidence;
+``tied`` and ``fixed`` ones are not estimated at all.
+:class:`AlarmEvaluator` turns the stream of health messages into alarm-state changes, one event
+per change, to publish on ``twinwatch/<machine>/alarm``.
 
 Per parameter (``[alarms.parameters.<name>]``) a rule gives thresholds in percent of nominal,
 either symmetric on ``|deviation_pct|`` (``warning``, ``alarm``) or one-sided (``warning_high``,
@@ -18,9 +20,9 @@ either symmetric on ``|deviation_pct|`` (``warning``, ``alarm``) or one-sided (`
 * ``clear_after_s`` / ``clear_after_windows``: likewise, inside the threshold minus the
   hysteresis, before it is lowered.
 
-Held parameters and non-finite deviations are not evidence: they neither start, extend nor
-interrupt a run (the run's duration is measured in plant time, so held windows in between still
-count as time).
+Parameters not estimated in a window and non-finite deviations are not evidence: they neither
+start, extend nor interrupt a run (the run's duration is measured in plant time, so held windows
+in between still count as time).
 """
 
 from __future__ import annotations
@@ -224,7 +226,7 @@ class AlarmEvaluator:
         with self._lock:
             for name, rule in self.config.parameters.items():
                 p = params.get(name)
-                if p is None or p.get("held"):
+                if p is None or p.get("status") not in ("estimated", "fused"):
                     continue
                 dev = p.get("deviation_pct")
                 if dev is None or not math.isfinite(dev):

@@ -57,17 +57,22 @@ import random
 import re
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
-from datetime import date, datetime
-from enum import Enum
-from pathlib import Path, PurePath
-from typing import Any, ClassVar, Literal, Self
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
-import numpy as np
-import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from twinwatch._lazy import lazy_module
 from twinwatch._lifecycle import Closeable
+from twinwatch.io.encoding import to_json
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from twinwatch.daemon.pipeline import ProcessedWindow
+else:  # imported when a session opens: loading a configuration does not load zenoh
+    zenoh = lazy_module("zenoh")
 
 logger = logging.getLogger(__name__)
 
@@ -386,41 +391,6 @@ def _explain_open_failure(cfg: ZenohConfig, message: str) -> str:
     )
 
 
-def _jsonable(value: Any) -> Any:
-    """Convert ``value`` to plain JSON types; NaN and infinities become ``None``."""
-    if value is None or isinstance(value, bool | str | int):
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, np.ndarray):
-        return [_jsonable(v) for v in value.tolist()]
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    if isinstance(value, Enum):
-        return _jsonable(value.value)
-    if isinstance(value, datetime | date):
-        return value.isoformat()
-    if isinstance(value, PurePath):
-        return str(value)
-    if isinstance(value, Sequence | set | frozenset):
-        return [_jsonable(v) for v in value]
-    raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
-
-
-def to_json(payload: Mapping[str, Any]) -> str:
-    """Serialise ``payload`` to compact, strictly valid JSON.
-
-    numpy scalars and arrays become numbers and lists, enums their value, dates ISO 8601
-    strings; NaN and infinities become ``null`` (JSON has no NaN).
-
-    Raises:
-        TypeError: a value of another type.
-    """
-    return json.dumps(_jsonable(payload), separators=(",", ":"), allow_nan=False)
-
-
 QUERY_LOG_INTERVAL = 60.0
 """Seconds between two log lines about one client's bad or failing queries [s]."""
 
@@ -494,6 +464,9 @@ class HealthPublisher(Closeable):
         ValueError: ``machine`` is not a valid key chunk.
         PublisherError: the session or a declaration could not be created.
     """
+
+    publishes = True
+    """The window pipeline gives it only the windows the state store has stored."""
 
     def __init__(self, config: ZenohConfig, machine: str, *,
                  retry_connect: bool = False) -> None:
@@ -640,17 +613,25 @@ class HealthPublisher(Closeable):
             raise ValueError("key_suffix 'alive' is reserved for the liveliness token")
         self._put(f"{self.base_key}/{key_suffix}", payload)
 
-    def _put(self, key: str, payload: Mapping[str, Any]) -> None:
+    def write(self, out: ProcessedWindow) -> None:
+        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
+        the window's health on ``P/health`` (its one encoding), then its alarm events on
+        ``P/alarm``."""
+        self._put(self.health_key, out.health_json)
+        for event in out.events:
+            self.publish_json("alarm", event)
+
+    def _put(self, key: str, payload: Mapping[str, Any] | str) -> None:
         with self._lock:
             if self._closed:
                 logger.debug("publisher closed, dropping %s", key)
                 return
             if self._session is None:  # router not reached yet (retry_connect)
                 self.not_connected += 1
-                self._latest[key] = to_json(payload)
+                self._latest[key] = payload if isinstance(payload, str) else to_json(payload)
                 return
             try:
-                text = to_json(payload)
+                text = payload if isinstance(payload, str) else to_json(payload)
                 publisher = self._publishers.get(key)
                 if publisher is None:
                     publisher = self._session.declare_publisher(

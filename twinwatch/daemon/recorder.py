@@ -65,16 +65,24 @@ import time
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from twinwatch._lazy import lazy_module
 from twinwatch._lifecycle import Closeable
 from twinwatch.daemon.locks import FileLock, LockedError
-from twinwatch.daemon.publisher import to_json
+from twinwatch.io.encoding import to_json
+
+if TYPE_CHECKING:
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    from twinwatch.daemon.pipeline import ProcessedWindow
+else:  # imported when a recording opens: loading a configuration does not load rerun
+    rr = lazy_module("rerun")
+    rrb = lazy_module("rerun.blueprint")
 
 logger = logging.getLogger(__name__)
 
@@ -539,7 +547,7 @@ class RerunRecorder(Closeable):
             parameters: parameter name -> estimate at ``t[-1]`` (unit as declared); every key
                 must be one of the declared ``parameters``.
             health: the window's health document, JSON-serialisable (see
-                :func:`twinwatch.daemon.publisher.to_json`).
+                :func:`twinwatch.io.encoding.to_json`).
             terms_changed: the twin's meta-model terms changed in this window: log the model
                 document (``health["terms"]``) again. The first window always logs it.
 
@@ -617,6 +625,19 @@ class RerunRecorder(Closeable):
             self._file_windows += 1
             if self.config.rotate_windows and self._file_windows >= self.config.rotate_windows:
                 self._rotate()
+
+    def write(self, out: ProcessedWindow) -> None:
+        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
+        :meth:`log_window` with the window's measured and twin outputs, estimates and health."""
+        est = out.result.estimate
+        self.log_window(
+            t=out.window.t,
+            measured={o: out.window[o] for o in self.outputs},
+            simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
+            parameters=est.values,
+            health=out.message,
+            terms_changed=out.result.changed,
+        )
 
     def _flush(self, rec: rr.RecordingStream) -> bool:
         """Flush to the file; False (logged once, counted) if it failed. A file writer that

@@ -1,14 +1,14 @@
-"""The daemon: driver -> ring buffer -> adaptation worker -> Zenoh and Rerun.
+"""The daemon: driver -> ring buffer -> adaptation worker -> window pipeline -> sinks.
 
 Threads (see docs/architecture.md):
 
-* the caller's thread (the CLI's main thread) runs :meth:`Daemon.run`: it reads the driver,
-  fills the ring buffer and hands each full window to the worker. It never estimates, so
-  acquisition is never blocked by the optimiser.
-* ``twinwatch-adaptation`` (one worker thread) estimates each window, builds its health
-  message, evaluates the alarms, stores the window (and the twin, when trusted) in the state
-  database, then publishes it over Zenoh and records it to Rerun. Stored before published: a
-  health message a subscriber has seen is always in the database, also after SIGKILL.
+* the caller's thread (the supervisor's, i.e. the CLI's main thread) runs :meth:`Daemon.run`:
+  it reads the driver, fills the ring buffer and hands each full window to the worker. It never
+  estimates, so acquisition is never blocked by the optimiser.
+* ``twinwatch-adaptation`` (one worker thread) runs the window pipeline
+  (:class:`~twinwatch.daemon.pipeline.WindowPipeline`): estimation, health message, alarms,
+  then the sinks in order: state database, Zenoh, Rerun. Stored before published: a health
+  message a subscriber has seen is always in the database, also after SIGKILL.
 * zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
   database (one SQLite connection per thread, WAL: readers never block the worker).
 
@@ -26,43 +26,36 @@ import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from twinwatch.config.schema import TwinwatchConfig
 from twinwatch.daemon.alarms import AlarmEvaluator
+from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline, WindowSink
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
-from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
-from twinwatch.twin.health import build_health, summary_line
+from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.registry import create_model
+
+if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
+    from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.publisher import HealthPublisher
+    from twinwatch.daemon.recorder import RerunRecorder
+    from twinwatch.daemon.store import StateStore
+    from twinwatch.daemon.systemd import Watchdog
 
 logger = logging.getLogger(__name__)
 
 _STOP = object()
 
-HealthCallback = Callable[[dict[str, Any]], None]
-
 HISTORY_LIMIT = 1000
 """Most windows one history query returns (page on with ``t_from``)."""
 
-SINKS = ("publisher", "recorder", "store")
-"""What a reload may hand from the old daemon to the new one (:meth:`Daemon.close` ``keep``)."""
-
-
-def sink_config(config: TwinwatchConfig, name: str) -> Any:
-    """The part of ``config`` a sink depends on: equal parts let a reload keep the sink open."""
-    m = config.machine
-    if name == "publisher":
-        return (m.name, config.zenoh.model_dump())
-    if name == "recorder":
-        return (m.name, m.model, m.options, config.recording.model_dump())
-    if name == "store":
-        return config.state.model_dump()
-    raise ValueError(name)
+SINKS = ("store", "publisher", "recorder")
+"""The daemon's sinks, in the order each window is written to them (stored before published);
+a reload may hand them from the old daemon to the new one (:meth:`Daemon.close` ``keep``)."""
 
 
 class Daemon:
@@ -81,14 +74,17 @@ class Daemon:
             it on.
         watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
             each window).
-        reuse: sinks (``publisher``, ``recorder``, ``store``) handed over from a previous
-            daemon by a reload (see :meth:`close`); each is used only if its part of the
-            configuration is unchanged (:func:`sink_config`), else closed.
+        reuse: open sinks (names in :data:`SINKS`) handed over from a previous daemon by a
+            reload (see :meth:`close`), used instead of opening new ones. The caller (the
+            supervisor) hands over only sinks whose configuration is unchanged.
+        resume: restore the saved twin and alarm levels from the state database (False:
+            start from the nameplate values, ``twinwatch run --fresh``).
 
     Raises:
         twinwatch.drivers.base.DriverInitializationError, PublisherError, RecorderError,
         StoreError, ValueError: on a start-up problem, with a message that says what to fix.
-        The state database is opened first: a store error fails before the device is touched.
+        Every exclusive resource is taken before any file is touched (the Zenoh port, the
+        state database's lock, the recording's lock), and the device last.
     """
 
     def __init__(
@@ -100,8 +96,8 @@ class Daemon:
         publish: bool = True,
         record: bool = True,
         persist: bool = False,
-        watchdog: Any = None,
-        reuse: dict[str, tuple[Any, Any]] | None = None,
+        watchdog: Watchdog | None = None,
+        reuse: Mapping[str, WindowSink] | None = None,
         resume: bool = True,
     ) -> None:
         self.config = config
@@ -116,16 +112,18 @@ class Daemon:
         acq = config.acquisition
         self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
                                sample_period=acq.sample_period, max_gap=acq.max_gap)
-        self.publisher: Any = None
-        self.recorder: Any = None
-        self.store: Any = None
+        self.publisher: HealthPublisher | None = None
+        self.recorder: RerunRecorder | None = None
+        self.store: StateStore | None = None
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
+        self.pipeline = WindowPipeline(
+            adapter=self.adapter, alarms=self.alarms, machine=self.machine,
+            model_name=config.machine.model, nominal=self.nominal, counters=self.counters,
+            history=acq.history)
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.failure: str | None = None
-        self.not_stored = 0  #: windows the state database could not take when estimated
-        self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
         self._closed_sinks: dict[str, Any] = {}
         self.driver: Driver | None = None
         self._own_driver = driver is None
@@ -134,27 +132,14 @@ class Daemon:
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
-        self.windows_estimated = 0
-        self.history: deque[dict[str, Any]] = deque(maxlen=acq.history)
-        self.latest: dict[str, Any] | None = None
-        self._callbacks: list[HealthCallback] = []
         self._ticks: list[Callable[[], None]] = []
-        self._lock = threading.Lock()
         self.abandon = config.acquisition.abandon_on_stop
-        handed = dict(reuse or {})
-        handed_store = handed.get("store", (None, None))[0]
         try:
-            for name in SINKS:
-                item = handed.pop(name, None)
-                if item is None:
-                    continue
-                obj, cfg_part = item
-                if cfg_part == sink_config(config, name):
-                    setattr(self, name, obj)
-                    logger.info("reload: the %s is kept open (its configuration is unchanged)",
-                                name)
-                else:
-                    obj.close()
+            for name, sink in (reuse or {}).items():
+                if name not in SINKS:
+                    raise ValueError(f"unknown sink {name!r}; the sinks are {SINKS}")
+                setattr(self, name, sink)
+                logger.info("reload: the %s is kept open (its configuration is unchanged)", name)
             # Every exclusive resource before any file is touched: the Zenoh port, then the
             # state database's lock, then the recording's lock (and only then its truncation),
             # so a second twinwatch in the same directory fails without harming the first.
@@ -182,7 +167,7 @@ class Daemon:
                     rec, self.machine, outputs=self.model.output_names,
                     parameters={p.name: p.unit for p in self.model.parameters})
             if self.store is not None:
-                if handed_store is not None and self.store is handed_store:
+                if "store" in (reuse or {}):
                     # a reload: same run id, so the windows go on from the last one stored
                     self.ring.first_index = self.store.next_window(self.machine)
                 if resume:
@@ -193,6 +178,25 @@ class Daemon:
         except BaseException:
             self.close()
             raise
+        self.pipeline.sinks = [s for s in (self.store, self.publisher, self.recorder)
+                               if s is not None]
+        self.pipeline.gate = self.store  # a window it cannot store is not published
+
+    # -- the window pipeline's results ------------------------------------------------------
+    @property
+    def windows_estimated(self) -> int:
+        """Windows the pipeline processed."""
+        return self.pipeline.windows_estimated
+
+    @property
+    def latest(self) -> dict[str, Any] | None:
+        """The last health message."""
+        return self.pipeline.latest
+
+    @property
+    def history(self) -> deque[dict[str, Any]]:
+        """The last ``[acquisition] history`` health messages."""
+        return self.pipeline.history
 
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
@@ -200,6 +204,7 @@ class Daemon:
         meta-model terms) and the alarm levels of the last window. Both are read before
         either is used: a corrupt database (moved aside by ``recover_corrupt``) resumes
         nothing."""
+        assert self.store is not None
         state = self.store.load_twin_state(self.machine)
         last = self.store.latest_health(self.machine)
         if self.store.recovered:
@@ -259,7 +264,7 @@ class Daemon:
 
     def add_callback(self, fn: HealthCallback) -> None:
         """Call ``fn(health)`` from the worker thread after each window."""
-        self._callbacks.append(fn)
+        self.pipeline.callbacks.append(fn)
 
     def stop(self) -> None:
         """Ask :meth:`run` to return after the current sample (thread- and signal-safe)."""
@@ -284,9 +289,9 @@ class Daemon:
             c["store_errors"] = int(self.store.errors)
             c["store_waiting"] = int(self.store.waiting)
             c["store_lost"] = int(self.store.lost)
-            c["windows_not_stored"] = self.not_stored
+            c["windows_not_stored"] = self.pipeline.not_stored
         if self.recorder is not None:
-            c["recording_lost"] = int(getattr(self.recorder, "lost", 0))
+            c["recording_lost"] = int(self.recorder.lost)
         c["samples_received"] = self.ring.samples
         c["samples_lost"] = sum(self.ring.lost.values())
         return c
@@ -332,7 +337,7 @@ class Daemon:
         if store is None:
             return {"errors": 0, "waiting": 0, "lost": 0, "not_stored": 0}
         return {"errors": int(store.errors), "waiting": int(store.waiting),
-                "lost": int(store.lost), "not_stored": self.not_stored}
+                "lost": int(store.lost), "not_stored": self.pipeline.not_stored}
 
     def run(self, duration: float | None = None) -> int:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
@@ -342,7 +347,7 @@ class Daemon:
             The number of windows estimated.
         """
         assert self.driver is not None
-        live = bool(getattr(self.driver, "live", False))
+        live = self.driver.live
         self._worker = threading.Thread(target=self._work, name="twinwatch-adaptation",
                                         daemon=True)
         self._worker.start()
@@ -452,52 +457,12 @@ class Daemon:
                     self.watchdog.idle()
 
     def process_window(self, window: WindowData) -> dict[str, Any]:
-        """Adapt the twin to one window (estimation, then discovery when needed), publish and
-        record its health. Returns the health message."""
-        result: AdaptationResult = self.adapter.process(window)
-        est = result.estimate
-        self.windows_estimated += 1
-        health = build_health(machine=self.machine, model_name=self.config.machine.model,
-                              model=self.model, window=window, estimate=est,
-                              nominal=self.nominal, counters=self.counters(),
-                              adaptation=result, discovery_enabled=self.adapter.enabled)
-        events = self.alarms.update(health)
-        health["alarms"] = self.alarms.state()
-        stored = True
-        if self.store is not None:  # stored before published: nothing seen is ever lost
-            stored = self.store.save_window(health, self.adapter.state() if est.trusted
-                                            else None)
-            self.not_stored += not stored
-        with self._lock:
-            self.latest = health
-            self.history.append(health)
-        logger.info("%s", summary_line(health))
-        if self.publisher is not None:
-            if stored:
-                self.publisher.publish(health)
-                for ev in (*self._held_events, *events):
-                    self.publisher.publish_json("alarm", ev)
-                self._held_events.clear()
-            else:
-                # Not stored (yet: it waits in the store's backlog): not published, so that a
-                # subscriber never sees a window SIGKILL could lose; the history query serves
-                # it once written. Alarm events wait for the next stored window.
-                self._held_events.extend(events)
-        if self.recorder is not None:
-            outs = self.model.output_names
-            self.recorder.log_window(
-                t=window.t,
-                measured={o: window[o] for o in outs},
-                simulated={o: est.simulated[:, j] for j, o in enumerate(outs)},
-                parameters=est.values,
-                health=health,
-                terms_changed=result.changed,
-            )
-        for fn in self._callbacks:
-            fn(health)
-        return health
+        """Adapt the twin to one window and write it to the sinks (the pipeline's
+        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`). Returns the health
+        message."""
+        return self.pipeline.process(window)
 
-    def close(self, keep: tuple[str, ...] = ()) -> dict[str, tuple[Any, Any]]:
+    def close(self, keep: tuple[str, ...] = ()) -> dict[str, WindowSink]:
         """Stop everything and release driver, publisher, recorder and state database (after
         the worker has drained). Idempotent.
 
@@ -505,11 +470,11 @@ class Daemon:
             keep: sinks (names in :data:`SINKS`) to leave open for a new daemon (reload).
 
         Returns:
-            name -> (sink, its configuration part) for the kept sinks: pass as ``reuse``.
+            name -> sink for the kept sinks: pass (those still compatible) as ``reuse``.
         """
         self._stop.set()
         self._drain()
-        kept: dict[str, tuple[Any, Any]] = {}
+        kept: dict[str, WindowSink] = {}
         for name in ("driver", "publisher", "recorder", "store"):
             obj = getattr(self, name, None)
             if obj is None or (name == "driver" and not self._own_driver):
@@ -517,7 +482,7 @@ class Daemon:
             if name in keep:
                 if name == "publisher":
                     obj.add_query_handler("history", _no_history)
-                kept[name] = (obj, sink_config(self.config, name))
+                kept[name] = obj
             else:
                 try:
                     obj.close()
@@ -527,6 +492,7 @@ class Daemon:
                     logger.debug("closing the %s failed", name, exc_info=True)
                 self._closed_sinks[name] = obj  # for the final accounting (lost windows)
             setattr(self, name, None)
+        self.pipeline.sinks = []
         return kept
 
     def __enter__(self) -> Daemon:

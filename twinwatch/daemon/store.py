@@ -45,12 +45,16 @@ import time
 from collections import deque
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from twinwatch._lifecycle import Closeable
 from twinwatch.daemon.locks import FileLock, LockedError
+from twinwatch.io.encoding import to_json
+
+if TYPE_CHECKING:
+    from twinwatch.daemon.pipeline import ProcessedWindow
 
 logger = logging.getLogger(__name__)
 
@@ -132,19 +136,9 @@ def _is_corrupt(exc: BaseException) -> bool:
                                                       or "malformed" in msg)
 
 
-def _jsonable(obj: Any) -> Any:
-    """``json.dumps`` default: numpy scalars and arrays, sets, paths."""
-    if hasattr(obj, "tolist"):
-        return obj.tolist()
-    if isinstance(obj, set | frozenset | tuple):
-        return list(obj)
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
-
-
 def _dumps(obj: Any) -> str:
-    return json.dumps(obj, default=_jsonable, separators=(",", ":"))
+    """The one encoder (:func:`twinwatch.io.encoding.to_json`): NaN and infinities -> null."""
+    return to_json(obj)
 
 
 class StateStore(Closeable):
@@ -438,6 +432,16 @@ class StateStore(Closeable):
                 self._since_prune = 0
                 self.prune()
         return ok
+
+    def write(self, out: ProcessedWindow) -> bool:
+        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
+        :meth:`save_window` with the window's health and, when it was trusted, the twin.
+
+        Returns:
+            True if the window is stored; False if it waits in memory (the pipeline then does
+            not publish it: stored before published).
+        """
+        return self.save_window(out.message, out.twin_state)
 
     def _flush(self, retry: bool = True) -> bool:
         try:

@@ -6,8 +6,11 @@ extended by the entry-point group ``twinwatch.drivers`` (``name = "package.modul
 a driver's module is imported only when that driver is used, so a missing optional dependency
 only matters to the configurations that need it.
 
-Every driver class provides ``from_config(config, *, base_dir) -> Driver`` (``config`` is its
-validated configuration model or the raw table; ``base_dir`` resolves relative paths).
+Every driver class declares its configuration model (:attr:`Driver.config_class`) and provides
+``from_config(config, *, base_dir) -> Driver`` (``config`` is its validated configuration model
+or the raw table; ``base_dir`` resolves relative paths). :func:`validate_driver_config` is how
+the configuration loader validates a ``[driver]`` table: by its ``type``, importing only that
+driver's module. Adding a driver is one module plus one line here (or one entry point).
 
 The base contract (:class:`Driver`, :class:`Sample`, the errors) is re-exported here.
 """
@@ -24,6 +27,7 @@ from typing import Any
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfig,
     DriverConfigError,
     DriverError,
     DriverInitializationError,
@@ -39,6 +43,7 @@ __all__ = [
     "BUILTIN_DRIVERS",
     "ENTRY_POINT_GROUP",
     "Driver",
+    "DriverConfig",
     "DriverConfigError",
     "DriverError",
     "DriverInitializationError",
@@ -49,6 +54,7 @@ __all__ = [
     "create_driver",
     "driver_table",
     "get_driver_class",
+    "validate_driver_config",
 ]
 
 #: Entry-point group through which other packages add drivers.
@@ -112,6 +118,38 @@ def get_driver_class(name: str) -> type[Driver]:
     return cls
 
 
+def validate_driver_config(table: Mapping[str, Any] | DriverConfig) -> DriverConfig:
+    """Validate a ``[driver]`` table with the model of the driver its ``type`` names.
+
+    Only that driver's module is imported (a built-in one or an entry point's).
+
+    Args:
+        table: the raw table, or an already validated driver configuration (returned as is
+            if it is an instance of the named driver's :attr:`~Driver.config_class`).
+
+    Raises:
+        DriverInitializationError: no ``type``, an unknown type (the message names the known
+            ones), a driver that cannot be imported, or one that declares no config class.
+        pydantic.ValidationError: the table does not fit the driver's model (each error's
+            location is relative to the table, e.g. ``("signals", "ia", "message")``).
+    """
+    name = table.type if isinstance(table, DriverConfig) else table.get("type")
+    if not isinstance(name, str):
+        raise DriverInitializationError(
+            f"required key is missing (the driver's name; known drivers: "
+            f"{', '.join(sorted(driver_table()))})")
+    cls = get_driver_class(name)
+    model = getattr(cls, "config_class", None)
+    if not (isinstance(model, type) and issubclass(model, DriverConfig)):
+        raise DriverInitializationError(
+            f"driver {name!r}: {cls.__module__}.{cls.__name__} declares no config_class "
+            "(a twinwatch.drivers.DriverConfig subclass)")
+    if isinstance(table, model):
+        return table
+    data = table.model_dump() if isinstance(table, DriverConfig) else table
+    return model.model_validate(data)
+
+
 def create_driver(config: Any, *, base_dir: Path, **kwargs: Any) -> Driver:
     """Create the driver that ``config`` describes.
 
@@ -134,10 +172,7 @@ def create_driver(config: Any, *, base_dir: Path, **kwargs: Any) -> Driver:
     if not isinstance(name, str):
         raise DriverInitializationError("driver configuration has no 'type'")
     cls = get_driver_class(name)
-    from_config = getattr(cls, "from_config", None)
-    if from_config is None:
-        raise DriverInitializationError(f"driver {name!r}: {cls.__name__} has no from_config()")
-    driver = from_config(config, base_dir=base_dir, **kwargs)
+    driver = cls.from_config(config, base_dir=base_dir, **kwargs)
     if not isinstance(driver, Driver):
         raise DriverInitializationError(f"driver {name!r}: from_config() returned {driver!r}")
     return driver

@@ -19,6 +19,13 @@ Errors follow the lifecycle, as in ``can/exceptions.py``:
 
 Recoverable bad input (an undecodable frame, a NaN, a gap) is *not* raised: it is counted in
 :attr:`Driver.stats`, logged once, and the driver goes on.
+
+A driver owns its configuration: :attr:`Driver.config_class` is the pydantic model of its
+``[driver]`` table (a :class:`DriverConfig`), through which the configuration loader validates
+the table (by its ``type``, via the registry in :mod:`twinwatch.drivers`), and the classmethods
+:meth:`Driver.from_config`, :meth:`Driver.nominal_sample_period`, :meth:`Driver.duration` and
+:meth:`Driver.safe_to_probe` answer what the daemon and the command line need to know about a
+configured source without naming it.
 """
 
 from __future__ import annotations
@@ -27,17 +34,28 @@ import abc
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from twinwatch._lifecycle import Closeable
+from twinwatch.io.sample import DriverError, EndOfStream, Sample, ScaledChannel
 
 logger = logging.getLogger(__name__)
 
-
-class DriverError(Exception):
-    """Base class of every driver error."""
+__all__ = [
+    "Driver",
+    "DriverError",
+    "DriverInitializationError",
+    "DriverOperationError",
+    "DriverConfig",
+    "DriverStats",
+    "EndOfStream",
+    "Sample",
+    "ScaledChannel",
+    "validated_config",
+]
 
 
 class DriverInitializationError(DriverError):
@@ -54,8 +72,17 @@ class DriverOperationError(DriverError):
     """The driver failed while reading and cannot go on."""
 
 
-class EndOfStream(DriverError):  # noqa: N818 - mirrors StopIteration, not an error condition
-    """A finite source has delivered its last sample."""
+class DriverConfig(BaseModel):
+    """Base of every driver's configuration model (its ``[driver]`` table).
+
+    Attributes:
+        type: the driver's registry name (``"can"``, ``"file"``, ...); subclasses narrow it
+            to their own name (``type: Literal["can"]``).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: str
 
 
 ConfigT = TypeVar("ConfigT", bound=BaseModel)
@@ -80,36 +107,6 @@ def validated_config(model: type[ConfigT], config: ConfigT | Mapping[str, Any],
         return model.model_validate(config)
     except ValidationError as exc:
         raise DriverConfigError(f"invalid {what} driver config: {exc}") from exc
-
-
-@dataclass(frozen=True, slots=True)
-class Sample:
-    """One acquisition sample.
-
-    Attributes:
-        t: time stamp [s] on the source's clock (plant time for the simulated plant, the
-            recording's time for a file, the frame's time stamp on a bus).
-        values: twin channel name -> value in the twin's SI unit.
-    """
-
-    t: float
-    values: dict[str, float]
-
-
-class ScaledChannel(BaseModel):
-    """How a source value becomes a twin channel value: ``value = raw * scale + offset``.
-
-    Attributes:
-        scale: factor to the twin's SI unit (e.g. 2*pi for rev/s -> rad/s).
-        offset: added after scaling, in the twin's unit.
-        unit: the twin channel's unit, for documentation and display.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    scale: float = Field(default=1.0, allow_inf_nan=False)
-    offset: float = Field(default=0.0, allow_inf_nan=False)
-    unit: str | None = None
 
 
 @dataclass(slots=True)
@@ -140,14 +137,61 @@ class DriverStats:
 class Driver(Closeable, abc.ABC):
     """Base class of every acquisition driver.
 
-    Subclasses set :attr:`channels` and implement :meth:`_read_internal` and, if they hold
-    resources, :meth:`_close_internal`.
+    Subclasses set :attr:`config_class`, :attr:`channels` (and :attr:`live` if the source
+    cannot wait), implement :meth:`from_config`, :meth:`_read_internal` and, if they hold
+    resources, :meth:`_close_internal`, and override the configuration queries
+    (:meth:`nominal_sample_period`, :meth:`duration`, :meth:`safe_to_probe`) where the
+    defaults do not fit.
     """
 
+    #: The pydantic model of this driver's ``[driver]`` table (a :class:`DriverConfig`).
+    config_class: ClassVar[type[DriverConfig]]
     #: The twin channels this driver delivers, in a fixed order.
     channels: tuple[str, ...] = ()
     #: Nominal sample period [s] (used by the daemon to detect gaps).
     sample_period: float = 0.01
+    #: The source cannot wait (a live bus, a real-time replay): when the estimation falls
+    #: behind, the daemon drops windows and counts overruns instead of waiting.
+    live: bool = False
+
+    # -- what a configuration says about the source ---------------------------------------
+    @classmethod
+    @abc.abstractmethod
+    def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Driver:
+        """Open a driver from its configuration (a driver may take further keyword-only
+        arguments, e.g. an open ``bus=`` for CAN).
+
+        Args:
+            config: a :attr:`config_class` instance or the raw ``[driver]`` table (use
+                :func:`validated_config`).
+            base_dir: directory relative paths in the configuration are resolved against (the
+                configuration file's directory); None: the current directory.
+
+        Raises:
+            DriverInitializationError: the table does not validate (naming the key), or the
+                source cannot be opened.
+        """
+
+    @classmethod
+    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
+        """The sample period [s] the configured source delivers, or None when only the data
+        tell (cross-checked against ``acquisition.sample_period`` at load time). Default: the
+        table's ``sample_period`` key, if any."""
+        value = getattr(config, "sample_period", None)
+        return None if value is None else float(value)
+
+    @classmethod
+    def duration(cls, config: DriverConfig) -> float | None:
+        """Source time [s] a finite configured source lasts (a simulation's duration), or None
+        when unknown before reading (a bus, a file). Used for the progress bar's total."""
+        return None
+
+    @classmethod
+    def safe_to_probe(cls, config: DriverConfig) -> bool:
+        """Whether ``check-config`` may open (and close, without reading) the configured
+        driver to check what only opening can (a file's columns, a DBC's names). True only
+        where opening cannot touch a device: a file, a log replay. Default: False."""
+        return False
 
     def __init__(self) -> None:
         self.stats = DriverStats()

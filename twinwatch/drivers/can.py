@@ -62,10 +62,11 @@ from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 from cantools.database.errors import DecodeError
 from cantools.database.errors import Error as CantoolsError
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfig,
     DriverConfigError,
     DriverInitializationError,
     DriverOperationError,
@@ -103,7 +104,7 @@ class CanSignalMap(ScaledChannel):
     signal: str = Field(min_length=1)
 
 
-class CanDriverConfig(BaseModel):
+class CanDriverConfig(DriverConfig):
     """Configuration of :class:`CanDriver` (the ``[driver]`` table with ``type = "can"``).
 
     Attributes:
@@ -449,6 +450,13 @@ class CanDriver(Driver):
         DriverInitializationError: the bus cannot be opened.
     """
 
+    config_class = CanDriverConfig
+
+    @classmethod
+    def safe_to_probe(cls, config: DriverConfig) -> bool:
+        """A log replay can be opened to check its DBC names and log file; a live bus not."""
+        return getattr(config, "log_file", None) is not None
+
     def __init__(
         self,
         config: CanDriverConfig,
@@ -469,7 +477,7 @@ class CanDriver(Driver):
         cls,
         config: CanDriverConfig | Mapping[str, Any],
         *,
-        base_dir: Path,
+        base_dir: Path | None = None,
         bus: can.BusABC | None = None,
     ) -> CanDriver:
         """Build a driver from a validated config or a raw ``[driver]`` table.

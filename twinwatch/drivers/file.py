@@ -50,10 +50,11 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 import scipy.io
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfig,
     DriverConfigError,
     EndOfStream,
     Sample,
@@ -80,7 +81,7 @@ class FileColumnMap(ScaledChannel):
     column: str = Field(min_length=1)
 
 
-class FileDriverConfig(BaseModel):
+class FileDriverConfig(DriverConfig):
     """Configuration of :class:`FileDriver` (the ``[driver]`` table with ``type = "file"``).
 
     Attributes:
@@ -167,11 +168,18 @@ class FileDriver(Driver):
         n_rows: number of rows that will be replayed (after ``start``/``stop``).
 
     Raises:
-        DriverInitializationError: the file is missing or unreadable, its format is unknown, a
+        DriverConfigError: the file is missing or unreadable, its format is unknown, a
             mapped column or variable is missing (the message names the config key and lists
             the available ones), a MAT variable is not a numeric vector, or the variables have
             different lengths.
     """
+
+    config_class = FileDriverConfig
+
+    @classmethod
+    def safe_to_probe(cls, config: DriverConfig) -> bool:
+        """Opening reads the file's header and checks the mapped columns: no device."""
+        return True
 
     def __init__(self, config: FileDriverConfig, *, base_dir: Path | None = None) -> None:
         super().__init__()
@@ -183,12 +191,12 @@ class FileDriver(Driver):
 
     @classmethod
     def from_config(
-        cls, config: FileDriverConfig | Mapping[str, Any], *, base_dir: Path
+        cls, config: FileDriverConfig | Mapping[str, Any], *, base_dir: Path | None = None
     ) -> FileDriver:
         """Build a driver from a validated config or a raw ``[driver]`` table.
 
         Raises:
-            DriverInitializationError: the table does not validate, or see :class:`FileDriver`.
+            DriverConfigError: the table does not validate, or see :class:`FileDriver`.
         """
         config = validated_config(FileDriverConfig, config, "file")
         return cls(config, base_dir=base_dir)

@@ -83,245 +83,63 @@ import queue
 import random
 import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
-from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfig,
     DriverInitializationError,
     DriverOperationError,
     Sample,
-    ScaledChannel,
     validated_config,
+)
+from twinwatch.io.modbus_registers import (
+    FUNCTION_CODES,
+    MAX_READ_REGISTERS,
+    ModbusChannelMap,
+    ModbusCounterMap,
+    ModbusRegister,
+    RegisterBlock,
+    RegisterTable,
+    RegisterType,
+    check_overlaps,
+    plan_blocks,
 )
 
 logger = logging.getLogger(__name__)
 
-__all__ = [
+__all__ = [  # the register map is re-exported from twinwatch.io.modbus_registers
+    "FUNCTION_CODES",
     "MAX_READ_REGISTERS",
     "ModbusChannelMap",
     "ModbusCounterMap",
     "ModbusDriver",
     "ModbusDriverConfig",
     "ModbusRegister",
+    "RegisterBlock",
     "RegisterTable",
     "RegisterType",
+    "check_overlaps",
     "plan_blocks",
 ]
 
-RegisterType = Literal["int16", "uint16", "int32", "uint32", "float32"]
-RegisterTable = Literal["input", "holding"]
-WordOrder = Literal["big", "little"]
-
-#: Largest number of registers one read request (function code 3 or 4) may ask for.
-MAX_READ_REGISTERS = 125
-#: Function code of a read request per table.
-FUNCTION_CODES: Mapping[str, int] = {"holding": 3, "input": 4}
-
-_DATATYPE: Mapping[str, ModbusClientMixin.DATATYPE] = {
-    "int16": ModbusClientMixin.DATATYPE.INT16,
-    "uint16": ModbusClientMixin.DATATYPE.UINT16,
-    "int32": ModbusClientMixin.DATATYPE.INT32,
-    "uint32": ModbusClientMixin.DATATYPE.UINT32,
-    "float32": ModbusClientMixin.DATATYPE.FLOAT32,
-}
-#: (min, max) of the integer types
-_INT_RANGE: Mapping[str, tuple[int, int]] = {
-    "int16": (-(1 << 15), (1 << 15) - 1),
-    "uint16": (0, (1 << 16) - 1),
-    "int32": (-(1 << 31), (1 << 31) - 1),
-    "uint32": (0, (1 << 32) - 1),
-}
 #: exception codes that mean "the register map does not fit this device" (not transient)
 _FATAL_EXCEPTION_CODES = {1: "ILLEGAL FUNCTION", 2: "ILLEGAL DATA ADDRESS", 3: "ILLEGAL DATA VALUE"}
 _BACKOFF_INITIAL = 0.1  # [s]
 _POLL_THREAD_NAME = "twinwatch-modbus-poll"
 
 
-# -- the register map (shared with twinwatch.plant.modbus_server) ----------------------------
-
-
-class ModbusRegister(BaseModel):
-    """Where a value lives on the device and how it is encoded.
-
-    Attributes:
-        address: 0-based address of the first register (the PDU address).
-        table: ``"input"`` (function code 4) or ``"holding"`` (function code 3) registers.
-        type: ``int16``, ``uint16`` (one register), ``int32``, ``uint32``, ``float32``
-            (IEEE 754 single; two registers).
-        word_order: for two-register types: ``"big"`` = high word at ``address``,
-            ``"little"`` = low word at ``address``.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    address: int = Field(ge=0, le=65535)
-    table: RegisterTable = "holding"
-    type: RegisterType = "float32"
-    word_order: WordOrder = "big"
-
-    @model_validator(mode="after")
-    def _fits(self) -> ModbusRegister:
-        if self.address + self.count - 1 > 65535:
-            raise ValueError(f"a {self.type} at address {self.address} runs past 65535")
-        return self
-
-    @property
-    def count(self) -> int:
-        """Number of 16-bit registers the value takes (1 or 2)."""
-        return 1 if self.type in ("int16", "uint16") else 2
-
-    @property
-    def end(self) -> int:
-        """One past the last register's address."""
-        return self.address + self.count
-
-    def decode(self, registers: Sequence[int]) -> float:
-        """Decode ``registers`` (exactly :attr:`count` of them) to the raw number.
-
-        Raises:
-            ModbusException: wrong number of registers.
-        """
-        value = ModbusClientMixin.convert_from_registers(
-            list(registers), _DATATYPE[self.type], word_order=self.word_order
-        )
-        if not isinstance(value, int | float):  # pragma: no cover - one value, numeric type
-            raise ModbusException(f"{self.type} decoded to {value!r}")
-        return float(value)
-
-    def encode(self, raw: float) -> tuple[list[int], bool]:
-        """Encode the raw number into :attr:`count` registers.
-
-        Integer types round to the nearest integer and saturate at the type's range; NaN
-        becomes 0 for them. float32 keeps NaN and infinities.
-
-        Returns:
-            (registers, exact): ``exact`` is False when the value had to be saturated or was
-            NaN for an integer type.
-        """
-        exact = True
-        value: int | float
-        if self.type == "float32":
-            value = float(raw)
-        else:
-            lo, hi = _INT_RANGE[self.type]
-            if math.isnan(raw):
-                value, exact = 0, False
-            else:
-                clipped = min(max(raw, lo), hi)
-                exact = clipped == raw
-                value = int(round(clipped))
-        regs = ModbusClientMixin.convert_to_registers(
-            value, _DATATYPE[self.type], word_order=self.word_order
-        )
-        return regs, exact
-
-    def describe(self) -> str:
-        """``"holding 10-11 (float32, big)"`` for messages."""
-        span = str(self.address) if self.count == 1 else f"{self.address}-{self.end - 1}"
-        return f"{self.table} {span} ({self.type}, {self.word_order} word order)"
-
-
-class ModbusChannelMap(ScaledChannel, ModbusRegister):
-    """One twin channel's register: ``value_twin = raw * scale + offset``.
-
-    ``raw`` is the decoded register value (an integer, or the float32 as stored); ``unit``
-    documents the twin-side unit.
-    """
-
-
-class ModbusCounterMap(ModbusRegister):
-    """The device's sample-counter register (incremented by one per sample)."""
-
-    type: Literal["uint16", "uint32"] = "uint32"
-
-    @property
-    def modulus(self) -> int:
-        """The counter wraps modulo this (2**16 or 2**32)."""
-        return 1 << (16 * self.count)
-
-
-@dataclass(frozen=True, slots=True)
-class RegisterBlock:
-    """One read request: ``count`` registers of ``table`` from ``address`` on."""
-
-    table: RegisterTable
-    address: int
-    count: int
-
-    def covers(self, reg: ModbusRegister) -> bool:
-        return (
-            reg.table == self.table
-            and reg.address >= self.address
-            and reg.end <= self.address + self.count
-        )
-
-
-def plan_blocks(
-    registers: Iterable[ModbusRegister], *, first: ModbusRegister | None = None
-) -> list[RegisterBlock]:
-    """Group registers into as few read requests as possible.
-
-    One block per table from its lowest to its highest register, split where a block would
-    exceed :data:`MAX_READ_REGISTERS` (a value is never split across two blocks).
-
-    Args:
-        registers: the registers to read (overlaps allowed).
-        first: put the block holding this register first (the counter in lock-step).
-
-    Returns:
-        The blocks, the one holding ``first`` first, then input before holding registers.
-    """
-    by_table: dict[str, list[ModbusRegister]] = {}
-    for reg in registers:
-        by_table.setdefault(reg.table, []).append(reg)
-    blocks: list[RegisterBlock] = []
-    for table in ("input", "holding"):
-        regs = sorted(by_table.get(table, []), key=lambda r: r.address)
-        start: int | None = None
-        end = 0
-        for reg in regs:
-            if start is None:
-                start, end = reg.address, reg.end
-            elif max(end, reg.end) - start <= MAX_READ_REGISTERS:
-                end = max(end, reg.end)
-            else:
-                blocks.append(RegisterBlock(table, start, end - start))
-                start, end = reg.address, reg.end
-        if start is not None:
-            blocks.append(RegisterBlock(table, start, end - start))
-    if first is not None:
-        blocks.sort(key=lambda b: not b.covers(first))
-    return blocks
-
-
-def check_overlaps(entries: Mapping[str, ModbusRegister]) -> None:
-    """Refuse two entries that share a register of the same table.
-
-    Args:
-        entries: config key (``"registers.x"``, ``"counter"``) -> register.
-
-    Raises:
-        ValueError: naming both keys and the registers.
-    """
-    items = sorted(entries.items(), key=lambda kv: (kv[1].table, kv[1].address))
-    for (key_a, a), (key_b, b) in zip(items, items[1:], strict=False):
-        if a.table == b.table and b.address < a.end:
-            raise ValueError(f"{key_b} ({b.describe()}) overlaps {key_a} ({a.describe()})")
-
-
 # -- configuration ----------------------------------------------------------------------------
 
 
-class ModbusDriverConfig(BaseModel):
+class ModbusDriverConfig(DriverConfig):
     """Configuration of :class:`ModbusDriver` (the ``[driver]`` table with ``type = "modbus"``).
 
     Attributes:
@@ -486,6 +304,8 @@ class ModbusDriver(Driver):
         DriverInitializationError: the client cannot be created (e.g. pyserial missing for
             RTU). An unreachable device is *not* an error here: the driver keeps trying.
     """
+
+    config_class = ModbusDriverConfig
 
     def __init__(self, config: ModbusDriverConfig) -> None:
         super().__init__()

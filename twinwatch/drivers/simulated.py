@@ -21,17 +21,26 @@ from __future__ import annotations
 import itertools
 import logging
 import time
+from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal
 
-import can
-import cantools
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
-from twinwatch.drivers.base import Driver, DriverInitializationError, Sample, validated_config
-from twinwatch.drivers.can import CanDriver, CanDriverConfig, CanSignalMap
+from twinwatch.drivers.base import (
+    Driver,
+    DriverConfig,
+    DriverInitializationError,
+    Sample,
+    validated_config,
+)
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
+
+if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no CAN stack
+    import can
+
+    from twinwatch.drivers.can import CanDriver
 
 logger = logging.getLogger(__name__)
 
@@ -48,7 +57,7 @@ def plant_dbc_path() -> Path:
     return Path(str(resources.files("twinwatch.plant").joinpath("dcmotor.dbc")))
 
 
-class SimulatedDriverConfig(BaseModel):
+class SimulatedDriverConfig(DriverConfig):
     """The ``[driver]`` table with ``type = "simulated"``.
 
     Attributes:
@@ -85,7 +94,26 @@ class SimulatedDriver(Driver):
         EndOfStream: from :meth:`read` once the plant reaches its duration.
     """
 
+    config_class = SimulatedDriverConfig
+
+    @classmethod
+    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
+        """The plant's sample period [s]."""
+        assert isinstance(config, SimulatedDriverConfig)
+        return config.plant.sample_period
+
+    @classmethod
+    def duration(cls, config: DriverConfig) -> float | None:
+        """The plant's duration [s of plant time]."""
+        assert isinstance(config, SimulatedDriverConfig)
+        return config.plant.duration
+
     def __init__(self, config: SimulatedDriverConfig) -> None:
+        import can
+        import cantools
+
+        from twinwatch.drivers.can import CanDriver, CanDriverConfig, CanSignalMap
+
         super().__init__()
         self.config = config
         self.plant = DCMotorPlant(config.plant)
@@ -103,6 +131,7 @@ class SimulatedDriver(Driver):
             assert isinstance(db, cantools.database.can.Database)
             self._db = db
             self._messages = [(self._db.get_message_by_name(m), sigs) for m, sigs in _MESSAGES]
+            self._message = can.Message
             self._rx = can.Bus(interface="virtual", channel=channel)
             self._tx = can.Bus(interface="virtual", channel=channel)
             can_cfg = CanDriverConfig(
@@ -128,8 +157,8 @@ class SimulatedDriver(Driver):
                     config.machine, config.plant.scenario, config.plant.duration, channel)
 
     @classmethod
-    def from_config(cls, config: SimulatedDriverConfig, *, base_dir: Path | None = None
-                    ) -> SimulatedDriver:
+    def from_config(cls, config: SimulatedDriverConfig | Mapping[str, Any], *,
+                    base_dir: Path | None = None) -> SimulatedDriver:
         config = validated_config(SimulatedDriverConfig, config, "simulated")
         return cls(config)
 
@@ -148,8 +177,8 @@ class SimulatedDriver(Driver):
             data = {s: sample.values[s] for s in sigs}
             if msg.name == "TW_Motor_Sample":
                 data["sample_counter"] = counter
-            self._tx.send(can.Message(arbitration_id=msg.frame_id, data=msg.encode(data),
-                                      is_extended_id=False))
+            self._tx.send(self._message(arbitration_id=msg.frame_id, data=msg.encode(data),
+                                        is_extended_id=False))
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
         assert self._can is not None

@@ -47,26 +47,23 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
+    DriverConfig,
     DriverInitializationError,
     EndOfStream,
     Sample,
     validated_config,
 )
-from twinwatch.drivers.modbus import (
-    ModbusChannelMap,
-    ModbusCounterMap,
-    ModbusDriver,
-    ModbusDriverConfig,
-    check_overlaps,
-)
+from twinwatch.io.modbus_registers import ModbusChannelMap, ModbusCounterMap, check_overlaps
 from twinwatch.plant.hydraulic import CHANNELS, HydraulicPlant, HydraulicPlantConfig
-from twinwatch.plant.modbus_server import PlantModbusServer
+
+if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no pymodbus
+    from twinwatch.drivers.modbus import ModbusDriver, ModbusDriverConfig
 
 logger = logging.getLogger(__name__)
 
@@ -95,7 +92,7 @@ DEFAULT_REGISTERS: Mapping[str, ModbusChannelMap] = {
 }
 
 
-class SimulatedModbusDriverConfig(BaseModel):
+class SimulatedModbusDriverConfig(DriverConfig):
     """The ``[driver]`` table with ``type = "simulated_modbus"``.
 
     Attributes:
@@ -145,6 +142,8 @@ class SimulatedModbusDriverConfig(BaseModel):
 
     def modbus_config(self, port: int) -> ModbusDriverConfig:
         """The :class:`ModbusDriverConfig` that reads the simulated device on ``port``."""
+        from twinwatch.drivers.modbus import ModbusDriverConfig
+
         return ModbusDriverConfig(
             type="modbus",
             transport="tcp",
@@ -181,7 +180,24 @@ class SimulatedModbusDriver(Driver):
             sample served has been delivered.
     """
 
+    config_class = SimulatedModbusDriverConfig
+
+    @classmethod
+    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
+        """The plant's sample period [s]."""
+        assert isinstance(config, SimulatedModbusDriverConfig)
+        return config.plant.sample_period
+
+    @classmethod
+    def duration(cls, config: DriverConfig) -> float | None:
+        """The plant's duration [s of plant time]."""
+        assert isinstance(config, SimulatedModbusDriverConfig)
+        return config.plant.duration
+
     def __init__(self, config: SimulatedModbusDriverConfig) -> None:
+        from twinwatch.drivers.modbus import ModbusDriver
+        from twinwatch.plant.modbus_server import PlantModbusServer
+
         super().__init__()
         self.config = config
         self.plant = HydraulicPlant(config.plant)

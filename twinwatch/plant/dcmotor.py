@@ -17,16 +17,29 @@ of hours (the soak benchmark) stay within the law's physical range. The paper's 
 
 One plant step (dt = 1e-4 s), in this order::
 
-    e      = setpoint - omega
-    Va     = Kp*e + Ki*z            (z: integrator state, rad)
-    z     += dt*e
-    ia    += dt*(Va - Ra*ia - Ke*omega)/La                          (Eq. 11)
-    omega += dt*(Kt*ia - Tload - D*omega)/J [+ dt*5*sin(10*t)]      (Eq. 12 / 13)
+    if the drive updates now (every ``drive.period``; every step by default):
+        Va  = the drive's speed loop on (setpoint, omega)        (twinwatch.twin.drive)
+              [through its current loop on (speed loop output, ia)]
+    ia    += dt*(Va - Ra*ia - Ke*omega)/La                           (Eq. 11)
+    ia     = max(ia, 0)                    with power_stage = "unidirectional"
+    omega += dt*(Kt*ia - Tload - D*omega - Tc*sign(omega))/J [+ dt*5*sin(10*t)]  (Eq. 12 / 13)
+    angle += dt*omega
 
-A sample at t_k reports the state reached at t_k, the voltage the drive applies from t_k on, the
-set-point in force from t_k on and Tload = c_load*omega. Measurement noise (percent of reading,
-Gaussian) and quantisation are applied to the reported values only, never to the plant state.
-The loop over plant steps is compiled with numba (120 000 samples of 100 steps take ~0.1 s).
+The drive (:class:`~twinwatch.twin.drive.DriveConfig`, ``[driver.plant.drive]``) runs as a real
+drive does: it updates every ``period`` and holds its output in between, clamps it to its limits
+with anti-windup, and may have an inner current loop; without a ``drive`` table it is the
+paper's PI (``kp``, ``ki``) updated every step. The variants a real drive has, for testing the
+twin on machines unlike it: ``coulomb_friction`` Tc [N m], ``power_stage = "unidirectional"``
+(a single switch and a freewheeling diode: the current cannot reverse), sensor low-pass filters
+on the reported current and speed (``current_filter``, ``speed_filter`` [s]; first order, stepped
+with the plant), and an incremental encoder (``encoder_cpr``: the reported speed is the encoder
+count of the last sample period times 2*pi/(cpr*Ts)).
+
+A sample at t_k reports the state reached at t_k (through the sensor filters), the voltage the
+drive applies from t_k on (after an update at t_k), the set-point in force from t_k on and Tload
+= c_load*omega. Measurement noise (percent of reading, Gaussian) and quantisation are applied to
+the reported values only, never to the plant state or the drive's feedback. The loop over plant
+steps is compiled with numba (120 000 samples of 100 steps take ~0.1 s).
 """
 
 from __future__ import annotations
@@ -40,7 +53,8 @@ import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from twinwatch.drivers.base import EndOfStream, Sample
+from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.twin.drive import DriveConfig, LoopConfig
 
 logger = logging.getLogger(__name__)
 
@@ -133,7 +147,28 @@ class DCMotorPlantConfig(BaseModel):
     quantisation: dict[str, float] = Field(
         default_factory=dict, description="channel -> quantisation step in the channel's unit"
     )
+    drive: DriveConfig | None = Field(
+        None, description="the drive as it runs (update period, limits, anti-windup, current "
+        "loop; twinwatch.twin.drive); default: the PI kp/ki above, updated every step")
+    coulomb_friction: float = Field(0.0, ge=0, description="Coulomb friction torque Tc [N m]")
+    power_stage: Literal["bidirectional", "unidirectional"] = Field(
+        "bidirectional", description="unidirectional: the armature current cannot reverse "
+        "(one switch and a freewheeling diode)")
+    current_filter: float | None = Field(
+        None, gt=0, description="time constant [s] of a first-order low-pass filter on the "
+        "reported current")
+    speed_filter: float | None = Field(
+        None, gt=0, description="time constant [s] of a first-order low-pass filter on the "
+        "reported speed")
+    encoder_cpr: int | None = Field(
+        None, ge=1, description="encoder counts per revolution: the reported speed is the "
+        "count of the last sample period times 2*pi/(cpr*sample_period)")
     seed: int = 0
+
+    @property
+    def drive_config(self) -> DriveConfig:
+        """The drive: ``drive``, or the paper's PI (``kp``, ``ki``) updated every step."""
+        return self.drive or DriveConfig(speed=LoopConfig(kp=self.kp, ki=self.ki))
 
     @model_validator(mode="after")
     def _check(self) -> DCMotorPlantConfig:
@@ -146,6 +181,13 @@ class DCMotorPlantConfig(BaseModel):
                     raise ValueError(f"{name}.{ch}: unknown channel; use one of {CHANNELS}")
                 if v < 0:
                     raise ValueError(f"{name}.{ch}: must be >= 0")
+        try:
+            self.drive_config.ticks(self.step)
+        except ValueError as exc:
+            raise ValueError(f"drive.{exc}") from None
+        if self.drive is not None and (self.kp, self.ki) != (0.3, 0.1):
+            raise ValueError("kp, ki: with a [drive] table set the gains there "
+                             "(drive.speed.kp, drive.speed.ki)")
         if self.scenario == "resistance_degradation":
             age = self.duration - self.fault_start
             if self.fault_period is not None:
@@ -172,17 +214,60 @@ def _ramp(age: float) -> float:
     return math.exp(RATE * age) - 1.0 if age >= 0 else 0.0
 
 
+# State vector of the compiled plant (indices).
+_IA, _W, _IS, _FS, _IC, _FC, _VA, _IREF, _ANGLE, _FI, _FW, _LAST = range(12)
+
+
+@njit(cache=True, nogil=True)
+def _pid_tick(loop, i_s, f_s, r, y, period):  # pragma: no cover - compiled
+    """One update of a drive loop (twinwatch.twin.drive); returns (u, I, f)."""
+    kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
+    lo, hi, aw, tt, kff, sgn = loop[4], loop[5], loop[6], loop[7], loop[8], loop[9]
+    e = sgn * (r - y)
+    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
+    u_pid = kp * e + i_s + d + kff * r
+    u = min(max(u_pid, lo), hi)
+    if aw == 1.0:
+        if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):
+            i_s += ki * period * e
+    elif aw == 2.0:
+        i_s += ki * period * e + (period / tt) * (u - u_pid)
+    else:
+        i_s += ki * period * e
+    return u, i_s, f_s + period * d
+
+
+@njit(cache=True, nogil=True)
+def _tick(state, j, sp, speed, current, has_current, m, mc, ph, dt):  # pragma: no cover
+    """Run the drive's updates due at step ``j`` (once per step: ``state[_LAST]``)."""
+    if state[_LAST] == j:
+        return
+    state[_LAST] = j
+    if j >= ph and (j - ph) % m == 0:
+        u, state[_IS], state[_FS] = _pid_tick(speed, state[_IS], state[_FS], sp, state[_W],
+                                              m * dt)
+        if has_current:
+            state[_IREF] = u
+        else:
+            state[_VA] = u
+    if has_current and j >= ph and (j - ph) % mc == 0:
+        state[_VA], state[_IC], state[_FC] = _pid_tick(current, state[_IC], state[_FC],
+                                                       state[_IREF], state[_IA], mc * dt)
+
+
 @njit(cache=True, nogil=True)
 def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # pragma: no cover
-             unb_w):
-    """Advance ``state = [ia, omega, z]`` by ``n_sub`` steps from step index ``k0``.
+             unb_w, speed, current, has_current, m, mc, ph, stage, tc, tau_i, tau_w):
+    """Advance the plant ``state`` (see the ``_IA``... indices) by ``n_sub`` steps from step
+    index ``k0``, the drive updating when due.
 
-    ``p = [Ra0, La, J, Ke, Kt, D0, c_load, Kp, Ki]``; ``state`` is updated in place.
+    ``p = [Ra0, La, J, Ke, Kt, D0, c_load]``; ``state`` is updated in place.
     """
-    ia, w, z = state[0], state[1], state[2]
-    ra0, la, j, ke, kt, d0, c, kp, ki = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8]
+    ra0, la, j, ke, kt, d0, c = p[0], p[1], p[2], p[3], p[4], p[5], p[6]
     for s in range(n_sub):
-        t = (k0 + s) * dt
+        k = k0 + s
+        _tick(state, k, sp, speed, current, has_current, m, mc, ph, dt)
+        t = k * dt
         ra = ra0
         d = d0
         age = t - t_fault
@@ -192,15 +277,22 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # p
             ra = ra0 - RA_DROP * (math.exp(RATE * age) - 1.0)
         elif scenario == 2 and t >= t_fault:
             d = d0 + D_RISE * (math.exp(RATE * age) - 1.0)
-        e = sp - w
-        va = kp * e + ki * z
-        z += dt * e
-        ia = ia + dt * (va - ra * ia - ke * w) / la
-        w_new = w + dt * (kt * ia - c * w - d * w) / j
+        ia, w = state[_IA], state[_W]
+        ia = ia + dt * (state[_VA] - ra * ia - ke * w) / la
+        if stage == 1 and ia < 0.0:
+            ia = 0.0
+        fric = 0.0
+        if tc > 0.0:
+            fric = tc if w > 0.0 else (-tc if w < 0.0 else 0.0)
+        w_new = w + dt * (kt * ia - c * w - d * w - fric) / j
         if scenario == 3:
             w_new += dt * unb_a * math.sin(unb_w * (t + dt))
-        w = w_new
-    state[0], state[1], state[2] = ia, w, z
+        state[_IA], state[_W] = ia, w_new
+        state[_ANGLE] += dt * w_new
+        if tau_i > 0.0:
+            state[_FI] += dt / tau_i * (ia - state[_FI])
+        if tau_w > 0.0:
+            state[_FW] += dt / tau_w * (w_new - state[_FW])
 
 
 @dataclass
@@ -228,13 +320,21 @@ class DCMotorPlant:
         c = self.config
         self.sample_period = c.sample_period
         self.n_sub = int(round(c.sample_period / c.step))
-        self._p = np.array([c.Ra, c.La, c.J, c.Ke, c.Kt, c.D, c.load_coefficient, c.kp, c.ki])
+        self._p = np.array([c.Ra, c.La, c.J, c.Ke, c.Kt, c.D, c.load_coefficient])
         self._scenario = _SCENARIO_CODE[c.scenario]
         self._sp_times, self._sp_values = c.setpoint.build(c.duration)
-        self._state = np.zeros(3)  # ia, omega, z: the motor starts at rest
+        drive = c.drive_config
+        self._speed = drive.speed.pack()
+        self._current = (drive.current or LoopConfig()).pack()
+        self._has_current = drive.current is not None
+        self._m, self._mc, self._ph = drive.ticks(c.step)
+        # The motor starts at rest, the drive's states at zero (see the _IA... indices).
+        self._state = np.zeros(12)
+        self._state[_LAST] = -1.0
         self._k = 0  # sample index
         self._n_samples = int(round(c.duration / c.sample_period)) + 1
         self._rng = np.random.default_rng(c.seed)
+        self._counts = 0  # encoder count at the last sample
 
     @property
     def t(self) -> float:
@@ -263,18 +363,33 @@ class DCMotorPlant:
         c = self.config
         t = self.t
         sp = self.setpoint_at(t)
-        ia, w, z = (float(v) for v in self._state)
-        va = c.kp * (sp - w) + c.ki * z
-        values = {"Va": va, "ia": ia, "omega": w, "Tload": c.load_coefficient * w,
-                  "setpoint": sp}
+        j0 = self._k * self.n_sub
+        st = self._state
+        # The drive's update at t_k (if one is due) decides the voltage applied from t_k on.
+        _tick(st, j0, sp, self._speed, self._current, self._has_current, self._m, self._mc,
+              self._ph, c.step)
+        w = float(st[_W])
+        values = {"Va": float(st[_VA]),
+                  "ia": float(st[_FI] if c.current_filter else st[_IA]),
+                  "omega": float(st[_FW] if c.speed_filter else w),
+                  "Tload": c.load_coefficient * w, "setpoint": sp}
+        if c.encoder_cpr:
+            counts = math.floor(float(st[_ANGLE]) * c.encoder_cpr / (2 * math.pi))
+            values["omega"] = ((counts - self._counts) * 2 * math.pi
+                               / (c.encoder_cpr * c.sample_period))
+            self._counts = counts
+        if self._has_current:
+            values["current_reference"] = float(st[_IREF])
         for ch, pct in c.noise.items():
             if pct > 0:
                 values[ch] += float(self._rng.normal(0.0, pct / 100.0 * abs(values[ch])))
         for ch, q in c.quantisation.items():
             if q > 0:
                 values[ch] = round(values[ch] / q) * q
-        _advance(self._state, self._k * self.n_sub, self.n_sub, c.step, sp, self._p,
-                 self._scenario, c.fault_start, c.fault_period or 0.0, c.unbalance_amplitude,
-                 c.unbalance_frequency)
+        _advance(st, j0, self.n_sub, c.step, sp, self._p, self._scenario, c.fault_start,
+                 c.fault_period or 0.0, c.unbalance_amplitude, c.unbalance_frequency,
+                 self._speed, self._current, self._has_current, self._m, self._mc, self._ph,
+                 1 if c.power_stage == "unidirectional" else 0, c.coulomb_friction,
+                 c.current_filter or 0.0, c.speed_filter or 0.0)
         self._k += 1
         return Sample(t=t, values=values)

@@ -66,7 +66,7 @@ import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from twinwatch.drivers.base import EndOfStream, Sample
+from twinwatch.io.sample import EndOfStream, Sample
 
 logger = logging.getLogger(__name__)
 

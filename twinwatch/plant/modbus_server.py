@@ -51,14 +51,14 @@ from typing import Literal, Protocol, Self
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from twinwatch.drivers.base import EndOfStream, Sample
-from twinwatch.drivers.modbus import (
+from twinwatch.io.modbus_registers import (
     FUNCTION_CODES,
     ModbusChannelMap,
     ModbusCounterMap,
     ModbusRegister,
     check_overlaps,
 )
+from twinwatch.io.sample import EndOfStream, Sample
 
 logger = logging.getLogger(__name__)
 

@@ -33,40 +33,17 @@ from twinwatch.twin.discovery import (
     Discovery,
     DiscoveryConfig,
     DiscoveryReport,
-    Term,
-    compose,
-    format_terms,
-    noise_level,
     residual_too_large,
 )
 from twinwatch.twin.estimation import EstimationConfig, Estimator, WindowEstimate
+from twinwatch.twin.fit import Residual, WindowFit
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+from twinwatch.twin.statistics import noise_level
+from twinwatch.twin.terms import Term, compose, format_terms
 
 logger = logging.getLogger(__name__)
 
-
-@dataclass
-class Residual:
-    """Fit of one twin variant (DT' or DT'') on a window.
-
-    Attributes:
-        rmse: output -> RMSE [output unit].
-        max_abs: output -> worst absolute error [output unit].
-        nrmse: normalised RMSE (the estimator's fitness).
-    """
-
-    rmse: dict[str, float]
-    max_abs: dict[str, float]
-    nrmse: float
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"rmse": {k: _num(v) for k, v in self.rmse.items()},
-                "max_abs": {k: _num(v) for k, v in self.max_abs.items()},
-                "nrmse": _num(self.nrmse)}
-
-
-def _num(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
+__all__ = ["AdaptationResult", "Residual", "TwinAdapter"]
 
 
 @dataclass
@@ -98,31 +75,6 @@ class AdaptationResult:
     revalidation: DiscoveryReport | None = None
     changed: bool = False
     events: list[str] = field(default_factory=list)
-
-    def health_fields(self, enabled: bool) -> dict[str, Any]:
-        """The health message's ``terms``, ``residual`` and ``discovery`` fields."""
-        disc = self.discovery
-        reval = self.revalidation
-        return {
-            "terms": [t.as_dict() for t in self.terms],
-            "residual": {
-                "dt_prime": self.dt_prime.as_dict(),
-                "dt_second": self.dt_second.as_dict() if self.dt_second else None,
-                "noise": {k: _num(v) for k, v in self.noise.items()},
-            },
-            "discovery": {
-                "enabled": enabled,
-                "too_large": self.too_large,
-                "consecutive": self.consecutive,
-                "ran": bool(disc and disc.ran),
-                "elapsed_s": (disc.elapsed_s if disc else 0.0)
-                + (reval.elapsed_s if reval else 0.0),
-                "kept": [t.equation() for t in disc.kept] if disc else [],
-                "dropped": [t.equation() for t in reval.dropped] if reval else [],
-                "simplified": [t.equation() for t in reval.kept] if reval else [],
-                "changed": self.changed,
-            },
-        }
 
 
 class TwinAdapter:
@@ -163,18 +115,19 @@ class TwinAdapter:
         """
         t0 = time.perf_counter()
         est_ = self.estimator
-        snapshot = est_.trusted.copy()
-        est = est_.estimate(window, compose(self.terms, window) if self.terms else None)
+        fit = est_.window_fit(window)
+        snapshot = est_.snapshot()
+        est = est_.estimate(window, compose(self.terms, window) if self.terms else None,
+                            fit=fit)
         if self.discovery is None:
-            res = self._residual(window, est.simulated)
-            return AdaptationResult(est, [], res, None, self._noise(window, est.simulated),
-                                    False, 0)
+            return AdaptationResult(est, [], fit.residual(est.simulated), None,
+                                    self._noise(fit, est.simulated), False, 0)
         theta = self._theta(est)
         reval = None
         changed = False
         events: list[str] = []
         if self.terms:
-            reval = self.discovery.revalidate(window, theta, self.terms)
+            reval = self.discovery.revalidate(fit, theta, self.terms)
             for t in reval.dropped:
                 changed = True
                 events.append(f"dropped: {t.describe()}")
@@ -184,19 +137,19 @@ class TwinAdapter:
                 events.append(f"simplified to: {t.describe()}")
                 logger.warning("window %d: meta-model term simplified to %s", window.index,
                                t.describe())
-            est = self._resimulate(est, window, theta)
-        too_large = self._too_large(window, est)
+            est = self._resimulate(est, fit, theta)
+        too_large = self._too_large(fit, est)
         self.consecutive = self.consecutive + 1 if too_large else 0
         if too_large and est.trusted:
             # The window misses a component: its estimates are biased, do not trust them.
-            est_.trusted[:] = snapshot
+            est_.rollback(snapshot)
             est = dataclasses.replace(est, trusted=False)
         disc = None
         if self._cooldown > 0:
             self._cooldown -= 1
         elif (self.consecutive >= self.config.trigger_windows
               and len(self.terms) < self.config.max_terms):
-            disc = self.discovery.discover(window, theta, self.terms)[1]
+            disc = self.discovery.discover(fit, theta, self.terms)[1]
             if disc.kept:
                 self.terms.extend(disc.kept)
                 changed = True
@@ -204,11 +157,11 @@ class TwinAdapter:
                     events.append(f"discovered: {t.describe()}")
                     logger.warning("window %d: unknown component discovered in %.2f s: %s",
                                    window.index, disc.elapsed_s, t.describe())
-                est = est_.estimate(window, compose(self.terms, window))
+                est = est_.estimate(window, compose(self.terms, window), fit=fit)
                 theta = self._theta(est)
-                self.discovery.polish_terms(window, theta, self.terms)
-                est = self._resimulate(est, window, theta)
-                too_large = self._too_large(window, est)
+                self.discovery.polish_terms(fit, theta, self.terms)
+                est = self._resimulate(est, fit, theta)
+                too_large = self._too_large(fit, est)
                 self.consecutive = 0
             else:
                 self._cooldown = self.config.retry_after
@@ -217,15 +170,14 @@ class TwinAdapter:
                             window.index, disc.elapsed_s, disc.tried, self._cooldown)
         if changed:
             logger.info("DT'' is now:\n%s", format_terms(self.terms) or "(no terms)")
-        y_dt = (self.model.simulate(theta[None, :], window)[0] if self.terms
-                else est.simulated)
+        y_dt = fit.simulate(theta[None, :])[0] if self.terms else est.simulated
         est = dataclasses.replace(est, elapsed_s=time.perf_counter() - t0)
         return AdaptationResult(
             estimate=est,
             terms=list(self.terms),
-            dt_prime=self._residual(window, y_dt),
-            dt_second=self._residual(window, est.simulated) if self.terms else None,
-            noise=self._noise(window, est.simulated),
+            dt_prime=fit.residual(y_dt),
+            dt_second=fit.residual(est.simulated) if self.terms else None,
+            noise=self._noise(fit, est.simulated),
             too_large=too_large,
             consecutive=self.consecutive,
             discovery=disc,
@@ -238,54 +190,40 @@ class TwinAdapter:
     def state(self) -> dict[str, Any]:
         """The accepted twin: trusted parameters and kept terms (JSON-serialisable)."""
         return {
-            "trusted": dict(zip(self.model.parameter_names,
-                                (float(v) for v in self.estimator.trusted), strict=True)),
+            "trusted": self.estimator.trusted_values(),
             "terms": [t.as_dict() for t in self.terms],
+            "fusion": self.estimator.fusion_state(),
         }
 
     def restore(self, state: Mapping[str, Any]) -> None:
         """Resume from :meth:`state` (unknown parameters are ignored with a warning)."""
-        for name, value in state.get("trusted", {}).items():
-            if name in self.model.parameter_names:
-                self.estimator.trusted[self.model.parameter_names.index(name)] = float(value)
-            else:
-                logger.warning("saved state names unknown parameter %r: ignored", name)
+        for name in self.estimator.set_trusted(state.get("trusted", {})):
+            logger.warning("saved state names unknown parameter %r: ignored", name)
+        if not self.estimator.set_fusion_state(state.get("fusion")) and state.get("fusion"):
+            logger.warning("saved fusion state does not fit the estimated parameters: the "
+                           "fusion starts again from the trusted values")
         self.terms = [Term.from_dict(d, self.model) for d in state.get("terms", [])]
 
     # -- helpers --------------------------------------------------------------------------
     def _theta(self, est: WindowEstimate) -> FloatArray:
         return np.array([est.values[n] for n in self.model.parameter_names])
 
-    def _meas(self, window: WindowData) -> FloatArray:
-        return np.column_stack([window[o] for o in self.model.output_names])
+    def _noise(self, fit: WindowFit, y: FloatArray) -> dict[str, float]:
+        lvl = noise_level(y - fit.meas)
+        return dict(zip(fit.names, (float(v) for v in lvl), strict=True))
 
-    def _residual(self, window: WindowData, y: FloatArray) -> Residual:
-        meas, scale = self.estimator._prepare(window)
-        err = y - meas
-        names = self.model.output_names
-        return Residual(
-            rmse={o: float(np.sqrt(np.mean(err[:, j] ** 2))) for j, o in enumerate(names)},
-            max_abs={o: float(np.max(np.abs(err[:, j]))) for j, o in enumerate(names)},
-            nrmse=float(np.sqrt(np.mean((err[1:] / scale) ** 2))),
-        )
-
-    def _noise(self, window: WindowData, y: FloatArray) -> dict[str, float]:
-        lvl = noise_level(y - self._meas(window))
-        return dict(zip(self.model.output_names, (float(v) for v in lvl), strict=True))
-
-    def _too_large(self, window: WindowData, est: WindowEstimate) -> bool:
+    def _too_large(self, fit: WindowFit, est: WindowEstimate) -> bool:
         """The exit criterion (:func:`~twinwatch.twin.discovery.residual_too_large`) on the
         final twin's residual."""
         if not math.isfinite(est.nrmse):
             return True
-        meas, scale = self.estimator._prepare(window)
-        r = ((est.simulated - meas)[1:] / scale).reshape(-1)
-        return residual_too_large(r / math.sqrt(r.size), len(self.model.outputs), self.config)
+        r = fit.error_matrix(est.simulated).reshape(-1)
+        return residual_too_large(r / math.sqrt(r.size), fit.n_out, self.config)
 
-    def _resimulate(self, est: WindowEstimate, window: WindowData, theta: FloatArray
+    def _resimulate(self, est: WindowEstimate, fit: WindowFit, theta: FloatArray
                     ) -> WindowEstimate:
         """The estimate with the (re-polished) terms' simulation and fit."""
-        y = self.model.simulate(theta[None, :], window,
-                                compose(self.terms, window) if self.terms else None)[0]
-        res = self._residual(window, y)
+        y = fit.simulate(theta[None, :],
+                         compose(self.terms, fit.window) if self.terms else None)[0]
+        res = fit.residual(y)
         return dataclasses.replace(est, simulated=y, rmse=res.rmse, nrmse=res.nrmse)

@@ -74,6 +74,7 @@ from numba import njit
 
 from twinwatch.twin.model import (
     AttachPoint,
+    EstimationDefaults,
     FloatArray,
     OutputSpec,
     ParameterSpec,
@@ -109,9 +110,10 @@ def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
     """Sub-step Eq. 14-16 for every particle; fills ``y`` (P, N, 2) with x and p.
 
     ``theta`` (P, 6): k_spring, D, q_pump, A_max, A_piston, F_resist. ``a_in``, ``f_in`` (N,)
-    measured area and load. ``u_p`` (1 or P, N): multiplicative pressure term, ``U[k]`` on the
-    sub-steps of step k-1 -> k. ``f_x`` (1 or P, N): additive velocity term, ``f_x[k]`` on the
-    sub-steps of step k -> k+1. A particle whose state stops being finite gets nan from there.
+    measured area and load. ``x0``, ``p0`` (P,): each particle's initial state. ``u_p`` (1 or
+    P, N): multiplicative pressure term, ``U[k]`` on the sub-steps of step k-1 -> k. ``f_x``
+    (1 or P, N): additive velocity term, ``f_x[k]`` on the sub-steps of step k -> k+1. A
+    particle whose state stops being finite gets nan from there.
     """
     n_p, n_k = y.shape[0], y.shape[1]
     shared_u = u_p.shape[0] == 1
@@ -122,7 +124,7 @@ def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
                                     theta[q, 4], theta[q, 5])
         qu = 0 if shared_u else q
         qf = 0 if shared_f else q
-        x, p = x0, p0
+        x, p = x0[q], p0[q]
         y[q, 0, 0] = x
         y[q, 0, 1] = p
         inv_ap = 1.0 / ap
@@ -198,6 +200,10 @@ class HydraulicActuatorTwin(TwinModel):
             OutputSpec("x", "m", self.position_scale),
             OutputSpec("p", "Pa", self.pressure_scale),
         )
+        self.exogenous = ("A_valve", "F_load")
+        # x is the state; p follows from it algebraically (Eq. 16) and enters only the first
+        # sub-step's valve flow, so its offset would wander undetermined.
+        self.initial_states = ("x",)
         self.attach_points = (
             AttachPoint("p", "multiplicative", "1", "pressure"),
             AttachPoint("d(x)/dt", "additive", "m/s", "piston position"),
@@ -214,9 +220,19 @@ class HydraulicActuatorTwin(TwinModel):
         return {"D": f"too little excitation: the piston nearly stands still (RMS speed "
                      f"{rms:.2g} m/s < {self.min_speed:g} m/s, e.g. reversing)"}
 
+    @property
+    def estimation_defaults(self) -> EstimationDefaults:
+        """q_pump then D (a reversal then holds D alone); k_spring, A_piston and F_resist trade
+        off with D within one window and A_max is never excited: kept at nameplate."""
+        return EstimationDefaults(("q_pump", "D"))
+
     def n_sub(self, sample_period: float) -> int:
         """Number of sub-steps per sample; raises ValueError if not a whole number."""
         return sub_steps(sample_period, self.sub_step)
+
+    def check_sample_period(self, sample_period: float) -> None:
+        """The sample period must be a whole number of sub-steps (ValueError otherwise)."""
+        self.n_sub(sample_period)
 
     @staticmethod
     def _term(values: FloatArray | None, p: int, n: int, name: str) -> FloatArray:
@@ -234,7 +250,8 @@ class HydraulicActuatorTwin(TwinModel):
         return np.ascontiguousarray(arr)
 
     def simulate(self, theta: FloatArray, window: WindowData,
-                 terms: Mapping[str, FloatArray] | None = None) -> FloatArray:
+                 terms: Mapping[str, FloatArray] | None = None,
+                 initial: FloatArray | None = None) -> FloatArray:
         """Simulate the window for a swarm; see :meth:`TwinModel.simulate`.
 
         Args:
@@ -246,6 +263,8 @@ class HydraulicActuatorTwin(TwinModel):
                 sub-steps of step k-1 -> k, so sample k's pressure) and/or ``d(x)/dt`` [m/s]
                 (``f_x[k]`` added to the piston velocity over step k -> k+1); values of shape
                 (N,) or (P, N).
+            initial: offsets [m] (1,) or (P, 1) added to the measured x of the first sample
+                (the estimator's initial-state estimate); None: 0.
 
         Returns:
             (P, N, 2): x [m], p [Pa]. A particle that blows up (non-finite state, negative
@@ -272,7 +291,11 @@ class HydraulicActuatorTwin(TwinModel):
         f_x = self._term(terms.get("d(x)/dt"), p, n, "d(x)/dt")
         a_in = np.ascontiguousarray(window["A_valve"], dtype=float)
         f_in = np.ascontiguousarray(window["F_load"], dtype=float)
+        off = np.zeros((p, 1)) if initial is None else np.broadcast_to(
+            np.atleast_2d(np.asarray(initial, dtype=float)), (p, 1))
+        x0 = np.ascontiguousarray(float(window["x"][0]) + off[:, 0])
+        p0 = np.full(p, float(window["p"][0]))
         y = np.empty((p, n, 2))
-        _simulate_kernel(theta, a_in, f_in, float(window["x"][0]), float(window["p"][0]),
-                         n_sub, self.sub_step, self.input_hold == "linear", u_p, f_x, y)
+        _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, self.sub_step,
+                         self.input_hold == "linear", u_p, f_x, y)
         return y

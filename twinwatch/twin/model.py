@@ -113,6 +113,21 @@ class AttachPoint:
     scale: float = 1.0
 
 
+@dataclass(frozen=True, slots=True)
+class EstimationDefaults:
+    """What a model estimates when the configuration does not say (``[estimation]`` keys
+    ``estimate`` and ``tie`` left out).
+
+    Attributes:
+        estimate: parameters to estimate, in priority order (the first are kept when a window
+            cannot determine them all).
+        tie: dependent parameter -> the parameter it equals (``Kt = Ke`` in SI units).
+    """
+
+    estimate: tuple[str, ...]
+    tie: Mapping[str, str] = field(default_factory=dict)
+
+
 @dataclass
 class TwinModel(abc.ABC):
     """Base class of every twin model.
@@ -125,6 +140,14 @@ class TwinModel(abc.ABC):
     inputs: tuple[str, ...] = field(init=False, default=())
     outputs: tuple[OutputSpec, ...] = field(init=False, default=())
     attach_points: tuple[AttachPoint, ...] = field(init=False, default=())
+    #: Outputs whose first sample sets the twin's initial state; :meth:`simulate` takes offsets
+    #: to them (``initial``), which the estimator fits per window (a noisy first sample would
+    #: otherwise leave a transient in every residual). Empty: the model takes none.
+    initial_states: tuple[str, ...] = field(init=False, default=())
+    #: Inputs set from outside the machine's loop (a closed loop's set-point, an open loop's
+    #: command): the model validation tests the residual's independence from them. Default:
+    #: every input.
+    exogenous: tuple[str, ...] = field(init=False, default=())
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -133,6 +156,16 @@ class TwinModel(abc.ABC):
     @property
     def output_names(self) -> tuple[str, ...]:
         return tuple(o.name for o in self.outputs)
+
+    @property
+    def estimation_defaults(self) -> EstimationDefaults:
+        """What to estimate, and the ties, when the configuration does not say; every
+        parameter, untied, unless the model knows better (override)."""
+        return EstimationDefaults(self.parameter_names)
+
+    def check_sample_period(self, sample_period: float) -> None:  # noqa: B027 - optional hook
+        """Raise ValueError (saying why) if the twin cannot run at this sample period [s]
+        (e.g. it is not a whole number of integration sub-steps). Default: any period."""
 
     def parameter(self, name: str) -> ParameterSpec:
         for p in self.parameters:
@@ -158,7 +191,8 @@ class TwinModel(abc.ABC):
 
     @abc.abstractmethod
     def simulate(self, theta: FloatArray, window: WindowData,
-                 terms: Mapping[str, FloatArray] | None = None) -> FloatArray:
+                 terms: Mapping[str, FloatArray] | None = None,
+                 initial: FloatArray | None = None) -> FloatArray:
         """Simulate the window for every parameter vector of a swarm.
 
         Args:
@@ -169,6 +203,9 @@ class TwinModel(abc.ABC):
                 name (one of :attr:`attach_points`) -> the summed terms' values at each sample,
                 shape (N,) (the same for every particle) or (P, N). ``None`` or empty: the
                 plain DT.
+            initial: offsets added to the measured first sample of :attr:`initial_states`,
+                shape (n_init,) or (P, n_init), in their units; None: none (models without
+                :attr:`initial_states` ignore it).
 
         Returns:
             Simulated outputs, shape (P, N, n_outputs), in :attr:`outputs` order. Rows of

@@ -1,0 +1,176 @@
+"""The health message: one typed layout, documented field by field, one encoder (issue 11).
+
+* the README's table "The health message" names every field of
+  :class:`~twinwatch.twin.health.HealthMessage` and no field it does not have;
+* a parameter's ``status`` is typed (no prose to parse), and the built message carries it;
+* non-finite numbers are ``null`` in every copy: Zenoh, the state database, the recording.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import re
+import sqlite3
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pydantic import BaseModel, ValidationError
+
+from tests.conftest import ROOT, plant_windows
+from twinwatch.config.loader import default_config
+from twinwatch.daemon.pipeline import ProcessedWindow
+from twinwatch.daemon.store import StateStore
+from twinwatch.plant.dcmotor import DCMotorPlantConfig
+from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.health import SCHEMA_VERSION, HealthMessage, build_health, summary_line
+from twinwatch.twin.registry import create_model
+
+PLACEHOLDER = re.compile(r"<[^>]+>")
+
+
+# -- the README table against the model -------------------------------------------------------
+def _unwrap(tp: Any) -> Any:
+    """The type inside Optional/Annotated."""
+    while True:
+        origin = typing.get_origin(tp)
+        if origin is typing.Annotated:
+            tp = typing.get_args(tp)[0]
+        elif origin in (typing.Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            if len(args) != 1:
+                return tp
+            tp = args[0]
+        else:
+            return tp
+
+
+def model_paths(model: type[BaseModel], prefix: str = "") -> set[str]:
+    """Every leaf of the layout: ``parameters.<>.value``, ``terms[].kind``, ``rmse.<>``,
+    ``discovery.kept`` (``<>``: a key, e.g. a parameter or output name; ``[]``: each item)."""
+    out: set[str] = set()
+    for name, field in model.model_fields.items():
+        path = prefix + (field.alias or name)
+        tp = _unwrap(field.annotation)
+        while True:
+            origin = typing.get_origin(tp)
+            if origin is dict:
+                path += ".<>"
+                tp = _unwrap(typing.get_args(tp)[1])
+            elif origin is list:
+                item = _unwrap(typing.get_args(tp)[0])
+                if not (isinstance(item, type) and issubclass(item, BaseModel)):
+                    break  # a list of strings is one field (discovery.kept)
+                path += "[]"
+                tp = item
+            else:
+                break
+        if isinstance(tp, type) and issubclass(tp, BaseModel):
+            out |= model_paths(tp, path + ".")
+        else:
+            out.add(path)
+    return out
+
+
+def _expand(spec: str) -> list[str]:
+    """``a.{b, c}.d`` -> ``a.b.d``, ``a.c.d`` (any number of brace groups)."""
+    parts = re.split(r"(\{[^}]*\})", spec)
+    choices = [[c.strip() for c in p[1:-1].split(",")] if p.startswith("{") else [p]
+               for p in parts]
+    return ["".join(c) for c in itertools.product(*choices)]
+
+
+def readme_paths() -> set[str]:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text.split("## The health message", 1)[1].split("\n## ", 1)[0]
+    rows = [ln for ln in section.splitlines() if ln.startswith("| `")]
+    assert rows, "no field table under '## The health message'"
+    out: set[str] = set()
+    for row in rows:
+        first = row.split("|")[1]
+        for spec in re.findall(r"`([^`]+)`", first):
+            out |= {PLACEHOLDER.sub("<>", p) for p in _expand(spec)}
+    return out
+
+
+def test_the_readme_documents_every_field_of_the_message_and_no_other() -> None:
+    model = model_paths(HealthMessage)
+    documented = readme_paths()
+    assert "parameters.<>.status" in model and "residual.dt_second.rmse.<>" in model
+    assert model - documented == set(), "fields missing from the README's table"
+    assert documented - model == set(), "README documents fields the message does not have"
+
+
+def test_the_table_reader_expands_groups() -> None:
+    assert _expand("residual.{dt_prime, dt_second}.{rmse.<output>, nrmse}") == [
+        "residual.dt_prime.rmse.<output>", "residual.dt_prime.nrmse",
+        "residual.dt_second.rmse.<output>", "residual.dt_second.nrmse"]
+
+
+# -- the message as built ---------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def processed() -> tuple[Any, Any, Any]:
+    cfg = default_config()
+    model = create_model(cfg.machine.model, cfg.machine.options)
+    adapter = TwinAdapter(model, cfg.estimation, cfg.discovery)
+    _, (w,) = plant_windows(DCMotorPlantConfig(scenario="nominal", duration=10), 1, skip=1)
+    result = adapter.process(w)
+    return model, w, result
+
+
+def _message(processed: tuple[Any, Any, Any], **over: Any) -> HealthMessage:
+    model, w, result = processed
+    return build_health(machine="m1", model_name="dc_motor", model=model, window=w,
+                        adaptation=result, nominal={}, counters={"overruns": 0}, **over)
+
+
+def test_each_parameter_has_a_typed_status(processed) -> None:  # type: ignore[no-untyped-def]
+    h = _message(processed)
+    assert h.as_dict()["schema"] == SCHEMA_VERSION == 4
+    status = {n: p.status for n, p in h.parameters.items()}
+    assert status["Kt"] == "tied" and status["Ra"] == "estimated"
+    for p in h.parameters.values():
+        assert p.held == (p.status != "estimated")
+        assert (p.reason is None) == (p.status == "estimated")
+        assert (p.rel_std_pct is None) == (p.status not in ("estimated", "fused"))
+        # every estimated parameter carries the fused evidence and its interval
+        assert (p.fused is not None) == (p.status in ("estimated", "fused", "held"))
+        if p.fused is not None:
+            assert p.fused.low <= p.fused.value <= p.fused.high
+    assert h.model_check is not None and h.model_check.passed  # the twin is the plant
+    assert set(h.model_check.outputs) == {"ia", "omega", "Va"}
+    line = summary_line(h)
+    assert "Ra6.5" in line and "Kt" not in line  # tied and fixed are left out, by status
+    with pytest.raises(ValidationError):
+        h.parameters["Ra"].status = "guessed"  # type: ignore[assignment]
+    with pytest.raises(ValidationError):
+        HealthMessage.model_validate({**h.as_dict(), "colour": "red"})  # no undocumented field
+
+
+def test_non_finite_numbers_are_null_in_every_copy(processed, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    h = _message(processed)
+    h.nrmse = math.nan
+    h.parameters["Ra"].deviation_pct = math.inf
+    assert h.nrmse is None and h.parameters["Ra"].deviation_pct is None
+    text = h.to_json()
+    assert "NaN" not in text and "Infinity" not in text
+    msg = json.loads(text)
+    assert msg["nrmse"] is None and msg["parameters"]["Ra"]["deviation_pct"] is None
+    model, w, result = processed
+    out = ProcessedWindow(window=w, result=result, health=h, health_json=text, message=msg,
+                          events=[], twin_state={"trusted": {"Ra": math.nan}})
+    with StateStore(tmp_path / "s.sqlite") as store:
+        store.write(out)
+        # a message handed to the store as a plain mapping goes through the same encoder
+        store.save_window({**msg, "window": 1, "nrmse": math.nan}, None)
+    con = sqlite3.connect(tmp_path / "s.sqlite")
+    rows = [r[0] for r in con.execute("SELECT doc FROM health ORDER BY window")]
+    twin = con.execute("SELECT state FROM twin").fetchone()[0]
+    con.close()
+    assert rows[0] == text  # stored byte for byte as published
+    assert '"nrmse":null' in rows[1] and "NaN" not in rows[1]
+    assert json.loads(twin) == {"trusted": {"Ra": None}}

@@ -1,0 +1,175 @@
+"""One window's way from the twin to the sinks (the adaptation worker's job, paper Fig. 2).
+
+:class:`WindowPipeline` runs, for each window the ring buffer completes::
+
+    adapt (TwinAdapter: estimation, re-validation, discovery)
+      -> health message (twinwatch.twin.health)
+      -> alarms (AlarmEvaluator: levels, hysteresis, events)
+      -> sinks, in order: state store, Zenoh, Rerun
+      -> callbacks (the CLI's progress bar)
+
+The health message is typed (:class:`~twinwatch.twin.health.HealthMessage`), built once and
+encoded once (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): every sink writes the same
+text. The sinks share one small protocol, :class:`WindowSink`: ``write(ProcessedWindow)`` and
+``close()``. Their order is the guarantee "stored before published": a health message a
+subscriber has seen is always in the state database, also after SIGKILL. The state store is the
+pipeline's :attr:`~WindowPipeline.gate`: a window it cannot store (a full disk, a read-only
+file; it waits in the store's backlog) is not given to the sinks that publish
+(``publishes = True``, the Zenoh publisher), and its alarm events wait for the next window
+that is stored; the recorder still records it.
+
+The pipeline holds no thread: :class:`~twinwatch.daemon.runner.Daemon` calls
+:meth:`WindowPipeline.process` from its ``twinwatch-adaptation`` worker, one window at a time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import threading
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from twinwatch.daemon.alarms import AlarmEvaluator
+from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
+from twinwatch.twin.health import AlarmStatus, HealthMessage, build_health, summary_line
+from twinwatch.twin.model import WindowData
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline", "WindowSink"]
+
+HealthCallback = Callable[[dict[str, Any]], None]
+
+
+@dataclass(frozen=True)
+class ProcessedWindow:
+    """Everything the sinks need about one processed window.
+
+    Attributes:
+        window: the acquisition window (times, channels, index).
+        result: what adaptation did (estimate, terms, residuals, discovery).
+        health: the window's health message (README "The health message"), with ``alarms``.
+        health_json: ``health`` encoded, once, by the one encoder: what every sink writes.
+        message: ``health_json`` decoded: the message as a subscriber reads it.
+        events: alarm-state changes this window caused (published on ``<machine>/alarm``).
+        twin_state: the accepted twin to persist (``TwinAdapter.state()``) when this window
+            was trusted, else None (the stored twin is kept).
+    """
+
+    window: WindowData
+    result: AdaptationResult
+    health: HealthMessage
+    health_json: str
+    message: dict[str, Any]
+    events: list[dict[str, Any]]
+    twin_state: dict[str, Any] | None
+
+
+class WindowSink(Protocol):
+    """Where processed windows go: the state store, the Zenoh publisher, the Rerun recorder.
+
+    A sink with a true ``publishes`` attribute makes the window visible to others (Zenoh): it
+    gets only the windows the pipeline's gate (the state store) has stored."""
+
+    def write(self, out: ProcessedWindow) -> Any:
+        """Take one processed window (called from the adaptation worker); the gate returns
+        False when it could not take it."""
+
+    def close(self) -> None:
+        """Release the sink; idempotent."""
+
+
+class WindowPipeline:
+    """Adapt the twin to each window and hand the result to the sinks.
+
+    Args:
+        adapter: the twin's estimation and discovery.
+        alarms: the alarm evaluator (restored from the state store by the daemon).
+        machine: machine name (the Zenoh key segment).
+        model_name: registry name of the twin model, for the health message.
+        nominal: parameter -> nominal value the deviations are measured from.
+        counters: returns the daemon's counters for the health message.
+        history: health messages kept in memory (:attr:`history`).
+
+    Attributes:
+        sinks: written in order for each window (the store first: stored before published).
+        gate: the sink that must take a window before the publishing sinks get it (the state
+            store), or None.
+        latest: the last health message; ``history`` the last ``history`` of them.
+        windows_estimated: windows processed.
+        not_stored: windows the gate could not take when they were processed (not published).
+    """
+
+    def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
+                 model_name: str, nominal: Mapping[str, float],
+                 counters: Callable[[], Mapping[str, int]], history: int) -> None:
+        self.adapter = adapter
+        self.alarms = alarms
+        self.machine = machine
+        self.model_name = model_name
+        self.nominal = dict(nominal)
+        self._counters = counters
+        self.sinks: list[WindowSink] = []
+        self.gate: WindowSink | None = None
+        self.not_stored = 0
+        self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
+        self.callbacks: list[HealthCallback] = []
+        self.latest: dict[str, Any] | None = None
+        self.history: deque[dict[str, Any]] = deque(maxlen=history)
+        self.windows_estimated = 0
+        self._lock = threading.Lock()
+
+    def process(self, window: WindowData) -> dict[str, Any]:
+        """Adapt the twin to one window (estimation, then discovery when needed), evaluate
+        the alarms, write the window to every sink, call the callbacks.
+
+        Returns:
+            The health message, as a subscriber reads it (plain JSON types).
+
+        Raises:
+            Exception: whatever the adaptation raises on a bad window (the daemon counts it
+                as a numeric failure and goes on).
+        """
+        result = self.adapter.process(window)
+        self.windows_estimated += 1
+        health = build_health(machine=self.machine, model_name=self.model_name,
+                              model=self.adapter.model, window=window, adaptation=result,
+                              nominal=self.nominal, counters=self._counters(),
+                              discovery_enabled=self.adapter.enabled)
+        events = self.alarms.update(health.as_dict())
+        health.alarms = {name: AlarmStatus.model_validate(state)
+                         for name, state in self.alarms.state().items()}
+        text = health.to_json()
+        message: dict[str, Any] = json.loads(text)
+        out = ProcessedWindow(window=window, result=result, health=health, health_json=text,
+                              message=message, events=events,
+                              twin_state=self.adapter.state() if result.estimate.trusted
+                              else None)
+        with self._lock:
+            self.latest = message
+            self.history.append(message)
+        logger.info("%s", summary_line(health))
+        stored = True
+        for sink in self.sinks:
+            if sink is self.gate:
+                stored = sink.write(out) is not False
+                self.not_stored += not stored
+            elif getattr(sink, "publishes", False):
+                if not stored:  # served by the history query once the store has written it
+                    self._held_events.extend(out.events)
+                    continue
+                if self._held_events:
+                    sink.write(dataclasses.replace(out, events=[*self._held_events,
+                                                                *out.events]))
+                    self._held_events.clear()
+                else:
+                    sink.write(out)
+            else:
+                sink.write(out)
+        for fn in self.callbacks:
+            fn(message)
+        return message

@@ -1,0 +1,56 @@
+"""The sample a source delivers, and how it ends.
+
+A source (an acquisition driver, :mod:`twinwatch.drivers`, or a simulated plant,
+:mod:`twinwatch.plant`) delivers :class:`Sample` objects: one time stamp [s] and one value per
+twin channel (for the DC motor ``Va``, ``ia``, ``omega``, ``Tload``, ``setpoint``). A finite
+source (a file, a simulation of fixed duration) raises :class:`EndOfStream` after its last
+sample. Channel names are the twin's, never the bus's; :class:`ScaledChannel` is how a source
+value becomes a twin channel value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["DriverError", "EndOfStream", "Sample", "ScaledChannel"]
+
+
+class DriverError(Exception):
+    """Base class of every error a sample source raises (see :mod:`twinwatch.drivers.base`
+    for the errors by lifecycle phase)."""
+
+
+class EndOfStream(DriverError):  # noqa: N818 - mirrors StopIteration, not an error condition
+    """A finite source has delivered its last sample."""
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One acquisition sample.
+
+    Attributes:
+        t: time stamp [s] on the source's clock (plant time for the simulated plant, the
+            recording's time for a file, the frame's time stamp on a bus).
+        values: twin channel name -> value in the twin's SI unit.
+    """
+
+    t: float
+    values: dict[str, float]
+
+
+class ScaledChannel(BaseModel):
+    """How a source value becomes a twin channel value: ``value = raw * scale + offset``.
+
+    Attributes:
+        scale: factor to the twin's SI unit (e.g. 2*pi for rev/s -> rad/s).
+        offset: added after scaling, in the twin's unit.
+        unit: the twin channel's unit, for documentation and display.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scale: float = Field(default=1.0, allow_inf_nan=False)
+    offset: float = Field(default=0.0, allow_inf_nan=False)
+    unit: str | None = None

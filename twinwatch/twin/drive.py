@@ -1,0 +1,179 @@
+"""How a drive's controller runs: the description shared by a closed-loop twin and a plant.
+
+A real drive does not run its controller continuously: it samples its feedback every controller
+period, computes a new output, and holds that output until the next update (zero-order hold),
+clamped to what its power stage can deliver. A twin that updates the controller on every
+integration sub-step, or not at all, is biased against such a drive (issue 9: 0.7-2.9 % on Ra).
+:class:`LoopConfig` and :class:`DriveConfig` state the controller as the drive runs it; the twin
+(:mod:`twinwatch.twin.dcmotor`, :mod:`twinwatch.twin.hydraulic`) and the simulated plants
+(:mod:`twinwatch.plant`) each implement exactly this algorithm, in their own code.
+
+**One update (tick)** of a loop, at time ``t_c = phase + j*period``, from the feedback ``y`` and the
+reference ``r`` at ``t_c``::
+
+    e      = r - y               (action "reverse", e.g. speed: more error, more voltage)
+           = y - r               (action "direct", e.g. a valve that lowers the piston)
+    d      = N*(kd*e - f)        (derivative through its filter state f, paper Eq. 17)
+    u_pid  = kp*e + I + d + kff*r
+    u      = clip(u_pid, output_min, output_max)
+    I     += ki*T*e              unless anti-windup "clamping" and u_pid is beyond a limit with
+                                 e pushing further into it
+    I     += ki*T*e + (T/Tt)*(u - u_pid)     with anti-windup "back_calculation"
+    f     += T*d
+
+``T`` is the period; ``u`` is applied from ``t_c`` until the next tick. ``I`` is the integrator in
+the output's unit (``I = ki*z`` with ``z`` the integral of the error). With a current loop, the
+speed loop's output is the current reference and the current loop's output is the armature
+voltage; the current loop ticks every ``current_period`` (default: the drive's period).
+
+**Initial state of a window.** A twin starts every window from the measured state; the controller's
+integrator is recovered from the measured output of the window's first tick (``I = u - kp*e -
+kff*r - d``; exact when a tick falls on the sample, which ``phase`` aligns). While the output sits
+at a limit the integrator cannot be recovered from it: the twin then drives the plant with the
+measured (limited) output until the first sample whose output is inside the limits, and restarts
+from the measured state there. The derivative filter starts at rest (``f = kd*e``); with a
+current loop the speed loop's integrator is recovered from the channel ``current_reference``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from twinwatch.twin.model import FloatArray
+
+#: Anti-windup codes in :func:`LoopConfig.pack`.
+ANTI_WINDUP = {"none": 0, "clamping": 1, "back_calculation": 2}
+
+#: Layout of :meth:`LoopConfig.pack` (the numba kernels read these positions).
+PACKED = ("kp", "ki", "kd", "n_filter", "output_min", "output_max", "anti_windup",
+          "tracking_time", "feedforward", "sign")
+
+
+class LoopConfig(BaseModel):
+    """One discrete PID loop of a drive (see the module docstring for the update).
+
+    Attributes:
+        kp: proportional gain [output unit per error unit].
+        ki: integral gain [output unit per (error unit * s)].
+        kd: derivative gain [output unit * s per error unit]; needs ``n_filter``.
+        n_filter: derivative filter coefficient N [1/s] (paper Eq. 17).
+        output_min, output_max: output limits [output unit]; None: unlimited.
+        anti_windup: ``clamping`` (stop integrating into a limit), ``back_calculation``
+            (bleed the integrator with time constant ``tracking_time``) or ``none``.
+        tracking_time: Tt [s] of back-calculation; default kp/ki (the integral time), or 1 s.
+        feedforward: reference feed-forward gain kff [output unit per reference unit] (e.g. the
+            back-EMF constant for a speed loop driving a voltage).
+        action: ``reverse`` (e = r - y) or ``direct`` (e = y - r).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    kp: float = Field(0.0, allow_inf_nan=False)
+    ki: float = Field(0.0, allow_inf_nan=False)
+    kd: float = Field(0.0, allow_inf_nan=False)
+    n_filter: float | None = Field(None, gt=0, allow_inf_nan=False)
+    output_min: float | None = Field(None, allow_inf_nan=False)
+    output_max: float | None = Field(None, allow_inf_nan=False)
+    anti_windup: Literal["clamping", "back_calculation", "none"] = "clamping"
+    tracking_time: float | None = Field(None, gt=0, allow_inf_nan=False)
+    feedforward: float = Field(0.0, allow_inf_nan=False)
+    action: Literal["reverse", "direct"] = "reverse"
+
+    @model_validator(mode="after")
+    def _check(self) -> LoopConfig:
+        if self.kd != 0 and self.n_filter is None:
+            raise ValueError("kd: a derivative needs its filter coefficient n_filter [1/s]")
+        lo, hi = self.output_min, self.output_max
+        if lo is not None and hi is not None and not lo < hi:
+            raise ValueError(f"output_min must be < output_max, got [{lo}, {hi}]")
+        return self
+
+    @property
+    def limited(self) -> bool:
+        """Whether the output has a limit."""
+        return self.output_min is not None or self.output_max is not None
+
+    def pack(self) -> FloatArray:
+        """The loop as floats for a compiled kernel, in :data:`PACKED` order (limits +-inf
+        when absent)."""
+        tt = self.tracking_time
+        if tt is None:
+            tt = abs(self.kp / self.ki) if self.ki != 0 and self.kp != 0 else 1.0
+        return np.array([
+            self.kp, self.ki, self.kd, self.n_filter or 0.0,
+            -math.inf if self.output_min is None else self.output_min,
+            math.inf if self.output_max is None else self.output_max,
+            float(ANTI_WINDUP[self.anti_windup]), tt, self.feedforward,
+            1.0 if self.action == "reverse" else -1.0,
+        ])
+
+
+class DriveConfig(BaseModel):
+    """A DC motor drive: speed loop, optional inner current loop, update period.
+
+    Attributes:
+        period: controller update period [s]: a whole number of integration sub-steps; the
+            output is held between updates. None: every sub-step (an ideal fast drive: the
+            paper's plant).
+        phase: time of the first update after t = 0 [s], in [0, period) (the drive's clock
+            against the acquisition's; 0 when they are aligned).
+        speed: the speed loop (reference: the set-point [rad/s]; feedback: omega [rad/s];
+            output: Va [V], or the current reference [A] with a current loop). Default: the
+            paper's PI, Kp 0.3, Ki 0.1, unlimited.
+        current: the inner current loop (reference: the speed loop's output [A]; feedback:
+            ia [A]; output: Va [V]), or None.
+        current_period: the current loop's period [s] (default: ``period``).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    period: float | None = Field(None, gt=0, allow_inf_nan=False)
+    phase: float = Field(0.0, ge=0, allow_inf_nan=False)
+    speed: LoopConfig = Field(default_factory=lambda: LoopConfig(kp=0.3, ki=0.1))
+    current: LoopConfig | None = None
+    current_period: float | None = Field(None, gt=0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _check(self) -> DriveConfig:
+        if self.period is not None and self.phase >= self.period:
+            raise ValueError(f"phase: must be in [0, period), got {self.phase} for period "
+                             f"{self.period}")
+        if self.current_period is not None and self.current is None:
+            raise ValueError("current_period: set only with a current loop ([...drive.current])")
+        return self
+
+    @property
+    def ideal(self) -> bool:
+        """Updated every sub-step, unlimited, a PI speed loop alone: the linear drive the
+        paper's plant runs (the twin composes it into one exact linear map per sample)."""
+        s = self.speed
+        return (self.period is None and self.current is None and not s.limited
+                and s.kd == 0 and self.phase == 0)
+
+    def ticks(self, sub_step: float) -> tuple[int, int, int]:
+        """(speed period, current period, phase) in whole sub-steps.
+
+        Raises:
+            ValueError: a period or the phase is not a whole number of sub-steps (to 1e-6
+                relative); the message names the key.
+        """
+        def whole(value: float, key: str) -> int:
+            ratio = value / sub_step
+            n = int(round(ratio))
+            if abs(ratio - n) > 1e-6 * max(1.0, ratio) or (n < 1 and key != "phase"):
+                raise ValueError(f"{key} = {value:g} s is not a whole number of integration "
+                                 f"sub-steps ({sub_step:g} s)")
+            return n
+
+        m = whole(self.period, "period") if self.period is not None else 1
+        mc = (whole(self.current_period, "current_period") if self.current_period is not None
+              else m)
+        ph = whole(self.phase, "phase") if self.phase else 0
+        return m, mc, ph
+
+
+__all__ = ["ANTI_WINDUP", "PACKED", "DriveConfig", "LoopConfig"]

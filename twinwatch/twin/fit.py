@@ -1,0 +1,483 @@
+"""The fit of a twin to one window: residuals, RMSE, Jacobian and covariance, built once.
+
+The estimation (DT', paper Section 3.2), the discovery (DT'', Section 3.3) and the adaptation
+all score a twin on a window the same way, so they share this module:
+
+* :class:`WindowFit` holds the window's measured outputs and their normalisation (built once per
+  window) and turns a swarm's simulation into normalised residuals, with the paper's fitness
+  (Eq. 2, normalised): ``RMSE_n = sqrt(mean_j mean_k (w_j (y_sim - y_meas)/s_j)^2)``, with
+  ``s_j = max(rms(y_meas_j), floor_j)`` per output j so that current [A], speed [rad/s] and
+  voltage [V] weigh alike, and optional per-output weights ``w_j`` (default 1).
+* :class:`ParameterMap` maps the estimator's search variables (the natural logarithms of the
+  estimated parameters: every parameter is positive, and a log scale makes a relative step the
+  same for an ohm and a kg m^2) to full parameter vectors, with ties (Kt = Ke) applied.
+* :class:`LocalFit` polishes a subset of them by bounded least squares and returns the residuals
+  and the Jacobian at the result; :func:`relative_std` turns the Jacobian into relative standard
+  errors.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+from twinwatch.twin.statistics import ar1
+
+#: Residual given to every sample of a particle whose simulation blew up.
+BAD_RESIDUAL = 1e6
+
+
+def _num(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+@dataclass
+class Residual:
+    """Fit of one twin variant (DT' or DT'') on a window.
+
+    Attributes:
+        rmse: output -> RMSE [output unit].
+        max_abs: output -> worst absolute error [output unit].
+        nrmse: normalised RMSE (the estimator's fitness).
+    """
+
+    rmse: dict[str, float]
+    max_abs: dict[str, float]
+    nrmse: float
+
+    def as_dict(self) -> dict[str, object]:
+        return {"rmse": {k: _num(v) for k, v in self.rmse.items()},
+                "max_abs": {k: _num(v) for k, v in self.max_abs.items()},
+                "nrmse": _num(self.nrmse)}
+
+
+class WindowFit:
+    """One window's fit problem.
+
+    Args:
+        model: the twin.
+        window: the measured window (every channel in ``model.required_channels()``).
+        weights: output name -> weight ``w_j`` in the fitness (default 1 for every output).
+
+    Attributes:
+        meas: measured outputs, shape (N, n_out), in ``model.outputs`` order.
+        scale: per-output normalisation ``s_j`` (n_out,).
+        evaluations: simulations of one parameter vector run through this fit.
+    """
+
+    def __init__(self, model: TwinModel, window: WindowData,
+                 weights: Mapping[str, float] | None = None) -> None:
+        self.model = model
+        self.window = window
+        self.names = model.output_names
+        self.n_out = len(self.names)
+        self.meas = np.column_stack([window[o] for o in self.names])
+        floors = np.array([o.scale for o in model.outputs])
+        self.scale = np.maximum(np.sqrt(np.mean(self.meas**2, axis=0)), floors)
+        w = weights or {}
+        self.weights = np.array([float(w.get(o, 1.0)) for o in self.names])
+        self._norm = self.weights / self.scale
+        self._den = math.sqrt(max(self.meas.shape[0] - 1, 1) * self.n_out)
+        self.evaluations = 0
+        #: Scale of each initial-state offset (the output's normalisation).
+        self.initial_scale = np.array([self.scale[self.names.index(o)]
+                                       for o in model.initial_states])
+        #: The window's estimated initial-state offsets (n_init,) in the outputs' units, used by
+        #: every simulation that does not pass its own (None: the measured first sample).
+        self.initial: FloatArray | None = None
+
+    @property
+    def n(self) -> int:
+        """Samples in the window."""
+        return int(self.meas.shape[0])
+
+    def simulate(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None,
+                 initial: FloatArray | None = None) -> FloatArray:
+        """The twin's outputs (P, N, n_out) for parameter vectors ``theta`` (P, n_params);
+        ``terms``: attach point -> values (N,) or (P, N) (DT'', paper Eq. 3); ``initial``:
+        initial-state offsets (n_init,) or (P, n_init) (default :attr:`initial`)."""
+        theta = np.atleast_2d(np.asarray(theta, dtype=float))
+        p = theta.shape[0]
+        for v in (terms or {}).values():
+            if np.ndim(v) == 2:
+                p = max(p, np.shape(v)[0])
+        if initial is not None and np.ndim(initial) == 2:
+            p = max(p, np.shape(initial)[0])
+        if p > theta.shape[0]:
+            theta = np.repeat(theta[:1], p, axis=0)
+        self.evaluations += p
+        init = self.initial if initial is None else initial
+        if init is None or not self.model.initial_states:
+            return self.model.simulate(theta, self.window, terms or None)
+        return self.model.simulate(theta, self.window, terms or None, initial=init)
+
+    def residuals(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None,
+                  initial: FloatArray | None = None) -> FloatArray:
+        """Normalised residuals (P, M), ``M = (N-1)*n_out`` (the first sample is the initial
+        state), such that ``||r||_2`` is the normalised RMSE; a row whose simulation blew up
+        is :data:`BAD_RESIDUAL` everywhere."""
+        return self.residuals_of(self.simulate(theta, terms, initial))
+
+    def residuals_of(self, y: FloatArray) -> FloatArray:
+        """Normalised residuals of simulated outputs ``y`` (P, N, n_out) or (N, n_out)."""
+        y3 = y if y.ndim == 3 else y[None]
+        r = (y3[:, 1:, :] - self.meas[None, 1:, :]) * self._norm
+        r = r.reshape(r.shape[0], -1) / self._den
+        bad = ~np.all(np.isfinite(r), axis=1)
+        r[bad] = BAD_RESIDUAL
+        return r if y.ndim == 3 else r[0]
+
+    def cost(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None
+             ) -> FloatArray:
+        """The fitness (normalised RMSE) of each row of ``theta``, shape (P,)."""
+        r = self.residuals(theta, terms)
+        return np.sqrt(np.sum(r * r, axis=1))
+
+    def error_matrix(self, y: FloatArray) -> FloatArray:
+        """Normalised errors of one trajectory ``y`` (N, n_out) as a matrix (N-1, n_out), each
+        column the output's error over its scale (weights left out)."""
+        return (y[1:] - self.meas[1:]) / self.scale
+
+    def residual(self, y: FloatArray) -> Residual:
+        """RMSE, worst error (per output, in its unit) and nRMSE of one trajectory (N, n_out)."""
+        err = y - self.meas
+        return Residual(
+            rmse={o: float(np.sqrt(np.mean(err[:, j] ** 2))) for j, o in enumerate(self.names)},
+            max_abs={o: float(np.max(np.abs(err[:, j]))) for j, o in enumerate(self.names)},
+            nrmse=float(np.sqrt(np.mean(((err[1:]) * self._norm) ** 2))),
+        )
+
+
+class ParameterMap:
+    """Search variables (ln of the estimated parameters) <-> full parameter vectors.
+
+    Args:
+        names: every model parameter, in ``model.parameters`` order.
+        estimate: the estimated parameters, in priority order.
+        ties: dependent parameter -> the parameter it equals.
+
+    Attributes:
+        idx: positions of the estimated parameters in the full vector (n_est,).
+    """
+
+    def __init__(self, names: Sequence[str], estimate: Sequence[str],
+                 ties: Mapping[str, str] | None = None) -> None:
+        self.names = tuple(names)
+        self.estimate = tuple(estimate)
+        self.idx = np.array([self.names.index(n) for n in self.estimate], dtype=int)
+        self.ties = [(self.names.index(d), self.names.index(s))
+                     for d, s in (ties or {}).items()]
+
+    def full(self, q: FloatArray, base: FloatArray) -> FloatArray:
+        """Full parameter vectors (P, n_params) from ln-parameter rows ``q`` (P, n_est), the
+        others taken from ``base`` (n_params,), ties applied."""
+        q = np.atleast_2d(q)
+        theta = np.repeat(np.asarray(base, dtype=float)[None, :], q.shape[0], axis=0)
+        theta[:, self.idx] = np.exp(q)
+        self.apply_ties(theta)
+        return theta
+
+    def apply_ties(self, theta: FloatArray) -> None:
+        """Set each tied parameter to its source, in place; ``theta`` (n_params,) or (P, ...)."""
+        for dep, src in self.ties:
+            theta[..., dep] = theta[..., src]
+
+    def ln(self, theta: FloatArray) -> FloatArray:
+        """The search variables of a full vector (n_params,) -> (n_est,)."""
+        return np.log(np.asarray(theta, dtype=float)[self.idx])
+
+
+class LocalFit:
+    """The local part of a window's estimation: bounded least-squares polish of some of the
+    search variables (the others held) and the residuals and Jacobian at the result.
+
+    The search vector is ``[ln p (n_est), d (n_init)]``: the estimated parameters' logarithms,
+    then, with ``initial``, the window's initial-state offsets in units of each output's scale
+    (bounded to +-0.5: an error of the first sample, not a new operating point).
+
+    Args:
+        fit: the window's fit.
+        pmap: the parameter map.
+        base: the full parameter vector supplying the parameters that are not searched.
+        lower, upper: bounds of the ln-parameters (n_est,).
+        terms: meta-model term values held fixed (attach point -> (N,)).
+        initial: also fit the initial-state offsets of ``fit.model.initial_states``.
+    """
+
+    #: Bound of the normalised initial-state offsets.
+    INITIAL_BOUND = 0.5
+
+    def __init__(self, fit: WindowFit, pmap: ParameterMap, base: FloatArray,
+                 lower: FloatArray, upper: FloatArray,
+                 terms: Mapping[str, FloatArray] | None = None, initial: bool = False) -> None:
+        self.fit, self.pmap, self.base = fit, pmap, base
+        self.n_est = pmap.idx.size
+        self.n_init = len(fit.model.initial_states) if initial else 0
+        b = self.INITIAL_BOUND
+        self.lower = np.concatenate([lower, np.full(self.n_init, -b)])
+        self.upper = np.concatenate([upper, np.full(self.n_init, b)])
+        self.terms = terms
+
+    @property
+    def nuisance(self) -> np.ndarray:
+        """Positions of the initial-state offsets in the search vector."""
+        return np.arange(self.n_est, self.n_est + self.n_init)
+
+    def start(self, q: FloatArray) -> FloatArray:
+        """A search vector from ln-parameters ``q`` (n_est,), offsets 0."""
+        return np.concatenate([np.asarray(q, dtype=float), np.zeros(self.n_init)])
+
+    def initial(self, v: FloatArray) -> FloatArray | None:
+        """The initial-state offsets of search vector(s) ``v`` in the outputs' units (None
+        when not fitted)."""
+        if not self.n_init:
+            return None
+        return np.asarray(v)[..., self.n_est:] * self.fit.initial_scale
+
+    def residuals(self, v: FloatArray) -> FloatArray:
+        """Normalised residuals (P, M) for search-vector rows ``v`` (P, n_est + n_init)."""
+        v = np.atleast_2d(v)
+        theta = self.pmap.full(v[:, :self.n_est], self.base)
+        return self.fit.residuals(theta, self.terms,
+                                  self.initial(v) if self.n_init else None)
+
+    def jacobian(self, v: FloatArray, active: np.ndarray, r0: FloatArray) -> FloatArray:
+        """Forward-difference ``d r / d v`` over the ``active`` columns (M, n_active): one
+        twin call for all columns."""
+        h = 1e-6
+        vs = np.repeat(v[None, :], active.size, axis=0)
+        vs[np.arange(active.size), active] += h
+        return ((self.residuals(vs) - r0[None, :]) / h).T
+
+    def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Polish the ``active`` entries of ``v`` (bounded least squares, trust-region
+        reflective, Jacobian from one batched twin call), then return (v, residuals (M,),
+        Jacobian (M, len(active))) at the result."""
+        v = np.array(v, dtype=float, copy=True)
+        if polish and active.size:
+            last: dict[str, FloatArray] = {}
+
+            def fun(x: FloatArray) -> FloatArray:
+                vv = v.copy()
+                vv[active] = x
+                r = self.residuals(vv[None, :])[0]
+                last["x"], last["r"] = x.copy(), r
+                return r
+
+            def jac(x: FloatArray) -> FloatArray:
+                # least_squares asks for the Jacobian where it just evaluated fun: reuse it.
+                r0 = last["r"] if "x" in last and np.array_equal(last["x"], x) else fun(x)
+                vv = v.copy()
+                vv[active] = x
+                return self.jacobian(vv, active, r0)
+
+            from scipy.optimize import least_squares  # loaded on first use
+
+            lo, hi = self.lower[active], self.upper[active]
+            x0 = np.clip(v[active], lo + 1e-12, hi - 1e-12)
+            sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
+                                xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
+            v[active] = sol.x
+        r = self.residuals(v[None, :])[0]
+        return v, r, self.jacobian(v, active, r)
+
+
+def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
+    """The least-squares covariance ``A^-1 (J^T W J) A^-1`` with ``A = J^T J`` (the sandwich:
+    the residual variance may differ from row to row, e.g. between outputs).
+
+    The columns are equilibrated before the (pseudo-)inverse: the hydraulic twin's ``J^T J``
+    has a condition number of ~1e15 in raw form (pressure in Pa against a piston area in m^2),
+    where an unequilibrated pseudo-inverse returns meaningless variances. A column the outputs
+    do not respond to at all gets an infinite variance.
+
+    Args:
+        jac: (M, n) Jacobian of the residuals.
+        weights: (M,) variance of each residual row.
+
+    Returns:
+        (n, n) covariance; ``inf`` on the rows and columns of unresponsive columns.
+    """
+    n = jac.shape[1]
+    norms = np.linalg.norm(jac, axis=0)
+    safe = np.where(norms > 0, norms, 1.0)
+    js = jac / safe
+    try:
+        a_inv = np.linalg.pinv(js.T @ js, rcond=1e-15, hermitian=True)
+    except np.linalg.LinAlgError:
+        return np.full((n, n), np.inf)
+    cov = a_inv @ ((js * weights[:, None]).T @ js) @ a_inv
+    cov = cov / np.outer(safe, safe)
+    dead = norms == 0
+    cov[dead, :] = np.inf
+    cov[:, dead] = np.inf
+    return cov
+
+
+def relative_std(jac: FloatArray, r: FloatArray, n_out: int, floor: float) -> FloatArray:
+    """Standard errors of the search variables at a least-squares optimum (relative for
+    ln-parameters): the square roots of :func:`parameter_covariance`'s diagonal."""
+    d = np.diag(parameter_covariance(jac, r, n_out, floor))
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.where(d > 0, d, np.inf))
+
+
+def explained_rms(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
+    """Per output, the RMS of the residual (in units of the residual entries times sqrt(M))
+    that the search variables' uncertainty ``cov`` explains: ``sqrt(mean_k J_k cov J_k^T)``
+    over each output's rows. An output measured without noise (a drive's voltage) is never
+    white: its residual is what the other outputs' noise does to the estimates, and this is
+    how large that is.
+
+    Args:
+        jac: (M, n) Jacobian of the normalised residuals, ``n_out`` outputs interleaved.
+        cov: (n, n) covariance of the search variables.
+        n_out: outputs.
+
+    Returns:
+        (n_out,).
+    """
+    m = jac.shape[0]
+    finite = np.all(np.isfinite(cov), axis=0)
+    if not np.any(finite):
+        return np.zeros(n_out)
+    j = jac[:, finite] * math.sqrt(m)
+    c = cov[np.ix_(finite, finite)]
+    var = np.einsum("ij,jk,ik->i", j, c, j).reshape(-1, n_out)
+    return np.sqrt(np.maximum(np.mean(var, axis=0), 0.0))
+
+
+def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
+                         levels: FloatArray | None = None) -> FloatArray:
+    """Covariance of the search variables at a least-squares optimum.
+
+    Each output's residual variance is estimated on its own (an output measured without noise,
+    such as a closed-loop drive's voltage, must not lower the noise of the others), floored by
+    ``floor`` (the normalised model and discretisation error of noise-free data) and inflated
+    by ``(1 + rho)/(1 - rho)``, rho being that output's lag-1 autocorrelation (the AR(1)
+    effective-sample-size correction): white noise leaves it alone, while smooth model error
+    (a parameter drifting within the window) is not allowed to pass for hundreds of
+    independent samples. The covariance is the sandwich of :func:`covariance`.
+
+    Args:
+        jac: (M, n) Jacobian of the normalised residuals with respect to the search variables.
+        r: (M,) normalised residuals at the optimum, ``n_out`` outputs interleaved.
+        n_out: outputs interleaved in ``r``.
+        floor: smallest normalised residual level assumed.
+        levels: per output, a normalised noise level to use instead of the residual's (the
+            white noise alone, e.g. to ask what noise does to the estimates); no AR(1)
+            inflation then.
+
+    Returns:
+        (n, n) covariance (``inf`` for a variable the outputs do not respond to).
+    """
+    m, n = jac.shape
+    res = r.reshape(-1, n_out)
+    if levels is not None:
+        var = np.maximum(np.asarray(levels, dtype=float) ** 2, floor**2)
+        return covariance(jac, np.tile(var / m, res.shape[0]))
+    return covariance(jac, residual_variances(r, n_out, floor, n))
+
+
+def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int) -> FloatArray:
+    """Variance of each normalised residual row (M,), estimated per output: the mean square
+    (corrected for ``n_fitted`` fitted variables), floored by ``floor`` (a normalised RMS) and
+    inflated by the output's AR(1) factor ``(1 + rho)/(1 - rho)``
+    (see :func:`parameter_covariance`)."""
+    m = r.size
+    res = r.reshape(-1, n_out)
+    var = np.mean(res * res, axis=0) * m * m / max(m - n_fitted, 1)
+    var = np.maximum(var, floor**2)
+    for j in range(n_out):
+        rho = ar1(res[:, j], 1)
+        var[j] *= (1.0 + rho) / (1.0 - rho)
+    return np.tile(var / m, res.shape[0])
+
+
+@functools.cache
+def _swarm_problem_class() -> type:
+    """pymoo's ``Problem`` subclass, built on first use (pymoo is imported then, not when a
+    configuration is validated)."""
+    from pymoo.core.problem import Problem
+
+    class SwarmProblem(Problem):  # type: ignore[misc]
+        """pymoo problem whose ``_evaluate`` is one vectorised call for the whole swarm (as
+        pymoo's ``problems/single``): ``cost_fn(X (P, n)) -> (P,)``."""
+
+        def __init__(self, cost_fn: Callable[[FloatArray], FloatArray], xl: FloatArray,
+                     xu: FloatArray) -> None:
+            super().__init__(n_var=xl.size, n_obj=1, xl=xl, xu=xu)
+            self._cost_fn = cost_fn
+
+        def _evaluate(self, x, out, *args, **kwargs):  # type: ignore[no-untyped-def]
+            out["F"] = self._cost_fn(x)[:, None]
+
+    return SwarmProblem
+
+
+@dataclass
+class SwarmResult:
+    """Outcome of :func:`pso_minimize`: best point, its cost, iterations run, and whether the
+    time cap (rather than the iteration limit or convergence) stopped it."""
+
+    x: FloatArray
+    cost: float
+    generations: int
+    time_capped: bool
+
+
+def pso_minimize(cost_fn: Callable[[FloatArray], FloatArray], lower: FloatArray,
+                 upper: FloatArray, settings: Any, *, rng: np.random.Generator,
+                 time_budget: float, seeds: FloatArray | None = None,
+                 patience: int | None = None) -> SwarmResult:
+    """Particle swarm optimisation (paper Eq. 1-2, pymoo's PSO) within bounds.
+
+    Args:
+        cost_fn: vectorised cost, (P, n) -> (P,).
+        lower, upper: bounds (n,).
+        settings: swarm settings with ``pop_size``, ``max_generations``, ``w``, ``c1``, ``c2``,
+            ``adaptive`` (:class:`~twinwatch.twin.estimation.PSOSettings`).
+        rng: the random generator (the initial Latin hypercube and pymoo's seed come from it:
+            same generator state, same result when the time cap is not hit).
+        time_budget: wall-time cap [s].
+        seeds: rows (k, n) placed as the first particles (a warm start, periodogram peaks).
+        patience: also stop once the best cost has not moved (1e-9) for this many iterations.
+
+    Returns:
+        The best particle found.
+    """
+    from pymoo.algorithms.soo.nonconvex.pso import PSO
+    from pymoo.core.population import Population
+    from pymoo.operators.sampling.lhs import LHS
+    from pymoo.optimize import minimize
+    from pymoo.termination.collection import TerminationCollection
+    from pymoo.termination.ftol import SingleObjectiveSpaceTermination
+    from pymoo.termination.max_gen import MaximumGenerationTermination
+    from pymoo.termination.max_time import TimeBasedTermination
+    from pymoo.termination.robust import RobustTermination
+
+    problem = _swarm_problem_class()(cost_fn, lower, upper)
+    init = LHS()(problem, settings.pop_size, random_state=rng).get("X")
+    if seeds is not None:
+        for k, row in enumerate(np.atleast_2d(seeds)[: settings.pop_size]):
+            init[k] = np.clip(row, lower, upper)
+    algo = PSO(pop_size=settings.pop_size, sampling=Population.new(X=init), w=settings.w,
+               c1=settings.c1, c2=settings.c2, adaptive=settings.adaptive)
+    parts: list[Any] = [MaximumGenerationTermination(settings.max_generations),
+                        TimeBasedTermination(time_budget)]
+    if patience is not None:
+        parts.append(RobustTermination(SingleObjectiveSpaceTermination(tol=1e-9),
+                                       period=patience))
+    res = minimize(problem, algo, TerminationCollection(*parts),
+                   seed=int(rng.integers(2**31)), verbose=False, copy_algorithm=False)
+    gens = int(res.algorithm.n_gen)
+    return SwarmResult(x=np.asarray(res.X, dtype=float).reshape(-1),
+                       cost=float(np.asarray(res.F).reshape(-1)[0]), generations=gens,
+                       time_capped=gens < settings.max_generations and patience is None)

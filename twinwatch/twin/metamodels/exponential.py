@@ -1,0 +1,52 @@
+"""Exponential meta-model ``a*b^z`` (paper Table 1: current leaking, deterioration, wear and
+tear, corrosion)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from twinwatch.twin.metamodels.base import MetaModel, fmt
+from twinwatch.twin.model import FloatArray
+
+
+class Exponential(MetaModel):
+    """``U(z) = a*b^z`` (b > 0); nonlinear in the base ``b``."""
+
+    kind = "exponential"
+    equation = "a*b^z"
+    conditions = "current leaking, deterioration, wear and tear, corrosion"
+    params = ("a", "b")
+    nonlinear = ("b",)
+    simplifies_to_constant = True
+
+    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
+        p = np.atleast_2d(np.asarray(p, dtype=float))
+        z = np.asarray(z, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return p[:, 0, None] * np.exp(z * np.log(np.abs(p[:, 1, None])))
+
+    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
+        nl = np.atleast_2d(np.asarray(nl, dtype=float))
+        u = np.asarray(u, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return np.exp(u * np.log(np.abs(nl[:, :1])))[:, None, :]
+
+    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
+               ) -> tuple[FloatArray, FloatArray]:
+        a = float(amplitude)
+        return np.array([-a, math.exp(-3.0)]), np.array([a, math.exp(3.0)])
+
+    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
+        q = np.array(p, dtype=float, copy=True)
+        q[..., 1] = np.abs(q[..., 1]) ** (1.0 / z_ref)
+        return q
+
+    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
+        q = np.array(p, dtype=float, copy=True)
+        q[..., 1] = np.abs(q[..., 1]) ** z_ref
+        return q
+
+    def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
+        return f"{fmt(float(p[0]), precision)}*{fmt(float(p[1]), max(precision, 4))}^{z}"

@@ -1,0 +1,50 @@
+"""Power meta-model ``a*z^b`` (paper Table 1: hard stops, overloading, mechanical shock)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twinwatch.twin.metamodels.base import MetaModel, fmt
+from twinwatch.twin.model import FloatArray
+
+
+class Power(MetaModel):
+    """``U(z) = a*z^b`` for ``z > 0``; nonlinear in the exponent ``b``."""
+
+    kind = "power"
+    equation = "a*z^b"
+    conditions = "hard stops, overloading, mechanical shock"
+    params = ("a", "b")
+    positive_input = True
+    nonlinear = ("b",)
+    simplifies_to_constant = True
+
+    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
+        p = np.atleast_2d(np.asarray(p, dtype=float))
+        z = np.asarray(z, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return p[:, 0, None] * np.where(z > 0, z, np.nan) ** p[:, 1, None]
+
+    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
+        nl = np.atleast_2d(np.asarray(nl, dtype=float))
+        u = np.asarray(u, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return (np.where(u > 0, u, np.nan) ** nl[:, :1])[:, None, :]
+
+    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
+               ) -> tuple[FloatArray, FloatArray]:
+        a = float(amplitude)
+        return np.array([-a, 0.0]), np.array([a, 3.0])
+
+    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
+        q = np.array(p, dtype=float, copy=True)
+        q[..., 0] = q[..., 0] / z_ref ** q[..., 1]
+        return q
+
+    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
+        q = np.array(p, dtype=float, copy=True)
+        q[..., 0] = q[..., 0] * z_ref ** q[..., 1]
+        return q
+
+    def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
+        return f"{fmt(float(p[0]), precision)}*{z}^{fmt(float(p[1]), precision)}"

@@ -1,0 +1,325 @@
+"""Residual statistics shared by estimation, discovery and adaptation.
+
+Every function here works on *normalised* residuals: the output errors of one window divided by
+each output's scale (see :class:`twinwatch.twin.fit.WindowFit`), either as a matrix ``(N, n_out)``
+(one column per output) or as the flat vector ``(N*n_out,)`` the optimisers minimise, with the
+outputs interleaved (``r.reshape(-1, n_out)`` gives the matrix back).
+
+What is here and where it comes from:
+
+* :func:`noise_level`: the white-noise level of a residual from its first differences (a smooth,
+  model-error residual hardly changes from sample to sample, white noise does).
+* :func:`ar1`: the residuals' pooled lag-1 autocorrelation, and :func:`long_run_factor`, the
+  ratio of the long-run to the short-run variance (Bartlett-weighted autocorrelations, as in the
+  Newey-West estimator): how many samples one independent piece of evidence is worth.
+* :func:`delta_bic`: the Bayesian information criterion change of a model with ``k`` more
+  parameters, on an effective sample size corrected for autocorrelation (discovery's test).
+* :func:`ljung_box` and :func:`cross_correlation_test`: the residual tests of model validation
+  (Ljung, *System Identification*, 2nd ed., Section 16.6; MATLAB ``resid``): a model that
+  describes the data leaves residuals that are white and independent of past inputs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def _matrix(r: FloatArray, n_out: int) -> FloatArray:
+    a = np.asarray(r, dtype=float)
+    return a.reshape(-1, n_out) if a.ndim == 1 else a
+
+
+def noise_level(residual: FloatArray) -> FloatArray:
+    """Per-output white-noise level from first differences.
+
+    ``std(diff(e))/sqrt(2)`` is the standard deviation of white noise and nearly blind to a
+    smooth (model-error) residual.
+
+    Args:
+        residual: shape (N, n_out).
+
+    Returns:
+        Shape (n_out,), in the residual's unit.
+    """
+    d = np.diff(np.asarray(residual, dtype=float), axis=0)
+    return np.sqrt(np.mean(d * d, axis=0) / 2.0)
+
+
+def ar1(r: FloatArray, n_out: int) -> float:
+    """Pooled lag-1 autocorrelation of residuals, clipped to [0, 0.99].
+
+    Args:
+        r: normalised residuals, (M,) interleaved or (N, n_out).
+        n_out: number of outputs.
+    """
+    res = _matrix(r, n_out)
+    den = float(np.sum(res * res))
+    if den <= 0:
+        return 0.0
+    return min(max(float(np.sum(res[1:] * res[:-1])) / den, 0.0), 0.99)
+
+
+def autocorrelation(x: FloatArray, lags: int) -> FloatArray:
+    """Sample autocorrelation ``rho[0..lags]`` of a series (not mean-removed: a residual's
+    offset is model error too), ``rho[0] = 1``; zeros for an all-zero series."""
+    x = np.asarray(x, dtype=float)
+    n = x.size
+    den = float(x @ x)
+    out = np.zeros(lags + 1)
+    if den <= 0:
+        return out
+    for k in range(min(lags, n - 1) + 1):
+        out[k] = float(x[k:] @ x[:n - k]) / den
+    return out
+
+
+def long_run_factor(r: FloatArray, n_out: int, lags: int | None = None) -> float:
+    """Long-run over short-run variance of the residuals (>= 1).
+
+    ``1 + 2 sum_k w_k rho_k`` with Bartlett weights ``w_k = 1 - k/(L+1)`` (the Newey-West
+    estimator of the long-run variance, normalised), pooled over the outputs. White residuals
+    give about 1; a residual that is one smooth excursion over the window gives up to about
+    ``L``. The parameter covariance computed as if the residuals were white is multiplied by it.
+
+    Args:
+        r: normalised residuals, (M,) interleaved or (N, n_out).
+        n_out: number of outputs.
+        lags: L; default ``N // 4``.
+    """
+    res = _matrix(r, n_out)
+    n = res.shape[0]
+    if n < 4:
+        return 1.0
+    big_l = max(1, min(lags if lags is not None else n // 4, n - 1))
+    den = float(np.sum(res * res))
+    if den <= 0:
+        return 1.0
+    total = 0.0
+    for k in range(1, big_l + 1):
+        rho = float(np.sum(res[k:] * res[:-k])) / den
+        total += (1.0 - k / (big_l + 1.0)) * rho
+    return float(min(max(1.0 + 2.0 * total, 1.0), float(n)))
+
+
+def delta_bic(r_base: FloatArray, r_new: FloatArray, k: int, n_out: int) -> float:
+    """BIC(new) - BIC(base) for ``k`` extra parameters, with the sample size corrected for
+    the new residuals' lag-1 autocorrelation (effective n = n (1 - rho)/(1 + rho)).
+
+    Args:
+        r_base, r_new: normalised residuals (M,), ``M = (N - 1)*n_out``.
+        k: parameters the new model adds.
+        n_out: outputs interleaved in the residual vectors.
+
+    Returns:
+        Negative when the new model is better; ``-inf`` for a perfect new fit.
+    """
+    rho = ar1(r_new, n_out)
+    n_eff = max(r_new.size * (1.0 - rho) / (1.0 + rho), float(k + 2))
+    rss0, rss1 = float(r_base @ r_base), float(r_new @ r_new)
+    if rss1 <= 0:
+        return -math.inf
+    tiny = 1e-300
+    return n_eff * math.log(max(rss1, tiny) / max(rss0, tiny)) + k * math.log(n_eff)
+
+
+def _chi2_sf(x: float, dof: int) -> float:
+    from scipy.stats import chi2
+
+    return float(chi2.sf(x, dof))
+
+
+def ljung_box(e: FloatArray, lags: int) -> tuple[float, float]:
+    """Ljung-Box whiteness test of one residual series.
+
+    ``Q = N (N + 2) sum_{k=1..m} rho_k^2 / (N - k)``, chi-square with m degrees of freedom
+    for white residuals (Ljung, System Identification, eq. 16.63).
+
+    Args:
+        e: residual series (N,).
+        lags: m.
+
+    Returns:
+        (Q, p-value); a small p-value means the residual is not white (the model misses
+        dynamics, or the noise is coloured). An all-zero series gives (0, 1).
+    """
+    e = np.asarray(e, dtype=float)
+    n = e.size
+    m = max(1, min(lags, n - 2))
+    rho = autocorrelation(e, m)
+    if rho[0] == 0:
+        return 0.0, 1.0
+    k = np.arange(1, m + 1)
+    q = float(n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k)))
+    return q, _chi2_sf(q, m)
+
+
+def cross_correlation_test(e: FloatArray, u: FloatArray, lags: int) -> tuple[float, float]:
+    """Residual-input independence test (Ljung, System Identification, eq. 16.67; MATLAB
+    ``resid``): the cross-correlations of the residual with the input at lags 0..m.
+
+    ``S = N r^T R_u^-1 r``, with ``r_tau`` the normalised cross-covariance of ``e(t)`` and
+    ``u(t - tau)`` (means removed) and ``R_u`` the input's autocorrelation matrix (so a slowly
+    varying input, whose cross-correlations at neighbouring lags are not independent, is not
+    counted m + 1 times); chi-square with m + 1 degrees of freedom when the residual is white
+    and independent of the input.
+
+    Args:
+        e: residual series (N,).
+        u: input series (N,) (an exogenous input: the set-point of a closed loop, the voltage
+            of an open loop).
+        lags: m.
+
+    Returns:
+        (S, p-value); (0, 1) when either series is constant.
+    """
+    e = np.asarray(e, dtype=float) - float(np.mean(e))
+    u = np.asarray(u, dtype=float) - float(np.mean(u))
+    n = e.size
+    m = max(0, min(lags, n - 2))
+    se, su = float(np.sqrt(e @ e / n)), float(np.sqrt(u @ u / n))
+    if se == 0 or su == 0:
+        return 0.0, 1.0
+    r = np.array([float(e[k:] @ u[:n - k]) / (n * se * su) for k in range(m + 1)])
+    ru = autocorrelation(u, m)
+    toe = ru[np.abs(np.subtract.outer(np.arange(m + 1), np.arange(m + 1)))]
+    # The input's correlation matrix is nearly singular for a step set-point; its pseudo-inverse
+    # counts only the independent directions, and so do the degrees of freedom.
+    w, v = np.linalg.eigh(toe)
+    keep = w > 1e-6 * max(float(w.max()), 1e-300)
+    proj = v[:, keep].T @ r
+    s = float(n * np.sum(proj**2 / w[keep]))
+    return s, _chi2_sf(s, int(keep.sum()))
+
+
+__all__ = [
+    "ModelCheck",
+    "OutputCheck",
+    "ar1",
+    "autocorrelation",
+    "check_model",
+    "cross_correlation_test",
+    "delta_bic",
+    "ljung_box",
+    "long_run_factor",
+    "noise_level",
+]
+
+
+@dataclass
+class OutputCheck:
+    """Model validation of one output's residual (normalised by the output's scale).
+
+    Attributes:
+        rms: residual RMS.
+        noise: white-noise level (:func:`noise_level`).
+        whiteness_p: Ljung-Box p-value (small: the residual is not white).
+        cross_p: residual-input test p-value (small: the residual depends on the input), the
+            smallest over the exogenous inputs; 1 without inputs.
+        passed: the output's residual is white and independent of the inputs, or below the
+            floor (numerical and accepted model error).
+    """
+
+    rms: float
+    noise: float
+    whiteness_p: float
+    cross_p: float
+    passed: bool
+
+
+@dataclass
+class ModelCheck:
+    """Per-window model validation (Ljung, System Identification, ch. 16; MATLAB ``resid``).
+
+    Attributes:
+        passed: every output passed.
+        reasons: why it failed, one line per failing output (empty when passed).
+        outputs: output name -> its :class:`OutputCheck`.
+        widen: factor the window's standard errors were multiplied by (1 when passed).
+    """
+
+    passed: bool
+    reasons: list[str] = field(default_factory=list)
+    outputs: dict[str, OutputCheck] = field(default_factory=dict)
+    widen: float = 1.0
+
+    def as_dict(self) -> dict[str, object]:
+        def num(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        return {
+            "passed": self.passed,
+            "reasons": list(self.reasons),
+            "widen": num(self.widen),
+            "outputs": {k: {"rms": num(v.rms), "noise": num(v.noise),
+                            "whiteness_p": num(v.whiteness_p), "cross_p": num(v.cross_p),
+                            "passed": v.passed} for k, v in self.outputs.items()},
+        }
+
+
+def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | None, *,
+                alpha: float, lags: int, floor: float,
+                explained: FloatArray | None = None) -> ModelCheck:
+    """Validate a twin on one window from its residuals.
+
+    An output fails when its residual is not white (Ljung-Box) or depends on an exogenous
+    input (cross-correlation test), each at level ``alpha``, and its RMS is material: above
+    ``floor`` (the model and discretisation error accepted in noise-free data: below it,
+    rounding and a parameter drifting within the window are not evidence against the model)
+    and above twice what the white noise and the estimates' own uncertainty explain
+    (``sqrt(noise^2 + explained^2)``: a noise-free output, such as a closed-loop drive's
+    voltage, carries the smooth trace of the other outputs' noise on the estimates). A failing
+    window's standard errors are widened by ``sqrt(L) * rms / sqrt(noise^2 + explained^2)``
+    of its worst output: ``L`` the long-run variance factor of the structured residual.
+
+    Args:
+        res: normalised residuals (N, n_out).
+        names: output names (n_out).
+        inputs: exogenous inputs (N, n_u), or None.
+        alpha: test level (e.g. 0.01).
+        lags: lags of both tests (e.g. 20).
+        floor: normalised RMS below which an output passes.
+        explained: per output, the residual RMS the estimates' uncertainty explains
+            (:func:`twinwatch.twin.fit.explained_rms`); None: 0.
+
+    Returns:
+        The window's check.
+    """
+    res = np.asarray(res, dtype=float)
+    n = res.shape[0]
+    lvl = noise_level(res)
+    check = ModelCheck(passed=True)
+    widen = 1.0
+    for j, name in enumerate(names):
+        e = res[:, j]
+        rms = float(np.sqrt(np.mean(e * e)))
+        _, p_white = ljung_box(e, lags)
+        p_cross = 1.0
+        if inputs is not None:
+            for col in range(inputs.shape[1]):
+                p_cross = min(p_cross, cross_correlation_test(e, inputs[:, col], lags)[1])
+        expected = math.hypot(float(lvl[j]), float(explained[j]) if explained is not None
+                              else 0.0)
+        material = rms > floor and rms > 2.0 * expected
+        ok = not material or (p_white >= alpha and p_cross >= alpha)
+        check.outputs[name] = OutputCheck(rms, float(lvl[j]), p_white, p_cross, ok)
+        if ok:
+            continue
+        check.passed = False
+        what = []
+        if p_white < alpha:
+            what.append(f"not white (Ljung-Box p = {p_white:.2g})")
+        if p_cross < alpha:
+            what.append(f"correlated with the input (p = {p_cross:.2g})")
+        check.reasons.append(f"residual of {name} {' and '.join(what)}, RMS {rms:.2g} of "
+                             f"its scale, {rms / max(expected, 1e-300):.3g} times what noise "
+                             "and the estimates' uncertainty explain")
+        big_l = long_run_factor(e, 1, lags=max(1, n // 4))
+        widen = max(widen, math.sqrt(big_l) * max(1.0, rms / max(expected, floor)))
+    check.widen = widen
+    return check
