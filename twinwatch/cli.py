@@ -216,9 +216,10 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     if raised:
         click.echo("alarms: " + "; ".join(
             f"{k} {a['level']}"
-            + (f" since plant time {a['since_t']:.0f} s" if a.get("since_t") is not None else "")
-            + (f" ({a['deviation_pct']:+.2f} % vs nominal)" if a.get("deviation_pct") is not None
-               else "") for k, a in raised.items()))
+            + (f" (raised at plant time {a['since_t']:.0f} s)" if a.get("since_t") is not None
+               else "")
+            + (f", last {a['deviation_pct']:+.2f} % vs nominal"
+               if a.get("deviation_pct") is not None else "") for k, a in raised.items()))
     disc = last.get("discovery") or {}
     if disc.get("enabled"):
         terms = last.get("terms") or []
