@@ -18,10 +18,10 @@ The model is nonlinear (sqrt) and has no exact sample map, so one compiled kerne
 sub-steps for every particle of the swarm and every sample of the window; a window of 200
 samples x 100 sub-steps costs about 0.5 ms per particle (7.6 ms for a swarm of 15, measured).
 
-**Structure: open loop.** The measured valve area and load drive the twin; it starts each window
-from the measured x and p of the window's first sample. The plant's Eq. 17 PID runs every
-1e-4 s (with these gains it is unstable at 10 ms; see :mod:`twinwatch.plant.hydraulic`), so the
-area moves within a sample. Option ``input_hold``:
+**Structure: open loop** (the default). The measured valve area and load drive the twin; it
+starts each window from the measured x and p of the window's first sample. The plant's Eq. 17
+PID runs every 1e-4 s (with these gains it is unstable from a 0.2 ms period on; see
+:mod:`twinwatch.plant.hydraulic`), so the area moves within a sample. Option ``input_hold``:
 
 * ``linear`` (default): the area (and load) is interpolated linearly between consecutive samples
   over the sub-steps (first-order hold). Measured against the plant at its true parameters:
@@ -34,6 +34,50 @@ area moves within a sample. Option ``input_hold``:
 
 The measured area is clipped to [0, A_max] (the valve cannot open further), so A_max matters
 only when a reading exceeds it: a window never determines A_max.
+
+An open loop on the sampled area is biased wherever the area moved within a sample in a way
+the hold does not describe: against a valve controller that updates every 0.5-2 ms and holds
+its output (a staircase), the linear hold errs by 6e-6 to 2.4e-5 of x and 2e-7 to 1e-6 of p in
+the worst window (at the valve's limit), 1e-7 to 7e-7 of x in the median one
+(tests/test_hydraulic_drive.py). With a well-tuned drive this stays below D's share of the
+pressure, so D is still estimated within 0.012 % there; but the twin does not reproduce the
+machine, and a window where the valve leaves its limit fails the model check.
+
+**Structure: closed loop** (``structure = "closed_loop"``, option ``drive``,
+:class:`ValveDriveConfig`). The twin contains the valve controller as the drive runs it
+(:mod:`twinwatch.twin.drive`: an update every ``period`` from x and the reference, the area
+held in between, clamped to the loop's limits, by default the valve's own [0, A_max], with
+clamping or back-calculation anti-windup; no table: the paper's PID every sub-step). It is
+driven by the measured reference ``x_ref`` (interpolated to the updates between samples by
+``reference_hold``: a cubic through the four nearest samples by default, exact at the
+samples) and the load, and the area becomes an output compared with the measurement. Each
+window starts from the measured x (with the estimator's offset) and p, and the controller's
+state is recovered from the data:
+
+* the integrator, exactly, from the measured area of the first sample (``I = A - kp*e -
+  d - kff*r``, the update on the sample reproducing the measured area);
+* where the measured area sits at a limit the integrator is hidden: the measured area drives
+  the piston (its residual is zero there) while the controller keeps running on the twin's
+  position, and at the first sample inside the limits the twin restarts from the measured x
+  and p with the integrator recovered there (the window is cut, as the DC twin does);
+* the derivative filter's state is not measured. Where the stretch inside the limits is at
+  least 3 samples long, it is set so that the closed loop's area over the next
+  :data:`SPLIT_SAMPLES` samples matches the measured one (secant steps until the area is
+  affine in it to rounding): exact when the twin's parameters are the machine's, and the
+  window's only fitted controller state. In a shorter stretch it keeps the value the
+  controller ran to (at the first sample: at rest, d = 0).
+
+Measured against the plant with its controller at 0.5, 1 and 2 ms, the valve at its limit
+28 % of the run: every window to rounding (x within 3e-15, p 4e-16, the area 2e-13 of their
+largest values), where the open loop errs by up to 2.4e-5 of x; the paper's PID every
+sub-step to 1e-14 of x and 6e-12 of the area (the integrator's rounding over 100 updates per
+sample). Approximate: a controller whose updates do not fall on the samples
+(``phase``: the update before a window's first sample is taken to have seen that sample's
+error; 0.3 ms measured: median 1e-11, worst 5e-6 of x, in the windows that restart), a stretch
+inside the limits shorter than 3 samples (a valve that slams between its limits, as with the
+paper's gains from a 0.3 ms period on: worst 1.5e-6 of x), and noise on the area or the
+position at a restart (the integrator takes it). A swarm of 15 costs about 20 % more than the
+open loop (the secant runs of the derivative filter's state).
 
 **Meta-model terms** (attach points, :attr:`HydraulicActuatorTwin.attach_points`):
 
@@ -54,7 +98,9 @@ x is nearly linear and v nearly constant, so D*v trades with the pressure level:
 (tests/test_twin_hydraulic.py, relative standard errors at a 1e-7 residual floor) q_pump and D
 together are determined (~1e-6 and ~1e-3), D with k_spring, A_piston or F_resist is not (a few
 percent and more), and A_max never (the valve does not saturate). Estimate q_pump and D; keep
-the others at nameplate.
+the others at nameplate. The closed loop compares the area too: D enters it through the
+controller's response to the pressure (about half of D's share of p), and the estimator
+reaches the same figures (tests/test_hydraulic_drive.py).
 
 Paper numbers (Table 4, Eq. 17): k_spring 200 N/m, D 100 N/(m/s), q_pump 0.02 m^3/s, A_max 1e-4
 m^2, A_piston 0.196349375 m^2, load 1000 kg; PID Kp 0.000346, Ki 3.513406, Kd 0.000119, N
@@ -115,8 +161,10 @@ _ATTACH = ("p", "d(x)/dt")
 #: A measured area within this fraction of the limits' span of a limit sits at it.
 LIMIT_TOLERANCE = 1e-9
 
-#: Samples over which the closed loop's area sets the derivative filter's state at a restart.
+#: Samples over which the closed loop's area sets the derivative filter's state at a restart,
+#: and the secant steps at most.
 SPLIT_SAMPLES = 20
+SPLIT_ITERATIONS = 3
 
 #: The paper's valve PID (Eq. 17, NOTES.md): opening the valve lowers the piston, so the error
 #: is e = x - x_ref (action ``direct``); clamping anti-windup at the valve's limits.
@@ -332,8 +380,8 @@ def _ahead(x, p, i_s, f_s, area, k, count, t_off, m, r_t, loop, period, hi, n_su
 
 
 @njit(cache=True, nogil=True)
-def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x0, a0, n_sub,
-                   dt, linear, loop, hi_is_amax, tol, n_ahead, u_p, f_x,
+def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x0, n_sub, dt,
+                   linear, loop, hi_is_amax, tol, n_ahead, u_p, f_x,
                    y):  # pragma: no cover - compiled
     """The closed loop (valve controller inside the twin) for every particle; fills ``y``
     (P, N, 3) with x, p and the valve area.
@@ -341,8 +389,8 @@ def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x
     ``a_in``, ``x_in``, ``p_in``, ``f_in``, ``r_s`` (N,): measured area, position, pressure,
     load and reference. ``r_t``: the reference at the controller's updates, which fall on the
     sub-steps ``t_off + n*m`` (relative to the window's first sample). ``stretch`` (N,): the
-    first sample at a limit after each sample (N if none). ``x0``, ``a0`` (P,): each
-    particle's initial position and area. ``loop``: the packed controller; its upper limit is
+    first sample at a limit after each sample (N if none). ``x0`` (P,): each particle's
+    initial position. ``loop``: the packed controller; its upper limit is
     the particle's A_max when ``hi_is_amax``. ``tol`` [m^2]: a measured area within it of a
     limit sits at the limit.
 
@@ -372,13 +420,13 @@ def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x
         x, p = x0[q], p_in[0]
         f_s = kd * sgn * (r_s[0] - x)  # the derivative filter at rest (d = 0) to begin with
         i_s = 0.0
-        area = a0[q]
+        area = a_in[0]
         limited = True  # at the first sample the controller is recovered if inside
         ok = True
         for k in range(n_k):
             j = k * n_sub
             ticked = j >= t_off and (j - t_off) % m == 0
-            meas = a0[q] if k == 0 else a_in[k]
+            meas = a_in[k]
             at_limit = meas <= lo + tol or meas >= hi - tol
             if ok and limited and not at_limit:
                 if k > 0:  # restart from the measured state
@@ -388,21 +436,25 @@ def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x
                 count = min(n_ahead, stretch[k] - 1 - k)
                 if kd != 0.0 and nf > 0.0 and count >= 2:
                     # the split between the integrator and the derivative term
-                    _ahead(x, p, i_s, f_s, meas, k, count, t_off, m, r_t, loop, period, hi,
-                           n_sub, linear, f_in, u_q, f_q, prm, dt, out0)
                     eps = 1e-6 * (hi - lo) / nf
-                    i_e = _recover_integrator(loop, f_s + eps, r, x, meas, period, ticked)
-                    _ahead(x, p, i_e, f_s + eps, meas, k, count, t_off, m, r_t, loop, period,
-                           hi, n_sub, linear, f_in, u_q, f_q, prm, dt, out1)
-                    num = 0.0
-                    den = 0.0
-                    for i in range(count):
-                        g = (out1[i] - out0[i]) / eps
-                        num += g * (a_in[k + 1 + i] - out0[i])
-                        den += g * g
-                    if den > 0.0 and math.isfinite(num) and math.isfinite(den):
+                    for _ in range(SPLIT_ITERATIONS):
+                        _ahead(x, p, i_s, f_s, meas, k, count, t_off, m, r_t, loop, period, hi,
+                               n_sub, linear, f_in, u_q, f_q, prm, dt, out0)
+                        i_e = _recover_integrator(loop, f_s + eps, r, x, meas, period, ticked)
+                        _ahead(x, p, i_e, f_s + eps, meas, k, count, t_off, m, r_t, loop,
+                               period, hi, n_sub, linear, f_in, u_q, f_q, prm, dt, out1)
+                        num = 0.0
+                        den = 0.0
+                        for i in range(count):
+                            g = (out1[i] - out0[i]) / eps
+                            num += g * (a_in[k + 1 + i] - out0[i])
+                            den += g * g
+                        if not (den > 0.0 and math.isfinite(num) and math.isfinite(den)):
+                            break
                         f_s += num / den
                         i_s = _recover_integrator(loop, f_s, r, x, meas, period, ticked)
+                        if abs(num / den) * nf <= 1e-13 * (hi - lo):
+                            break  # the area is affine in it to rounding from here
                 area = meas
             if ok and ticked:
                 u, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(j - t_off) // m], x, period, hi)
@@ -509,9 +561,10 @@ class HydraulicActuatorTwin(TwinModel):
             self.inputs = ("x_ref", "F_load", "A_valve")
             self.outputs = (*self.outputs, OutputSpec("A_valve", "m^2", self.area_scale))
             self.exogenous = ("x_ref", "F_load")
-            # x and the area (the integrator) start from the measurement, with offsets; p
-            # follows x algebraically (Eq. 16).
-            self.initial_states = ("x", "A_valve")
+            # x starts from the measurement (with an offset); p follows x algebraically (Eq.
+            # 16); the integrator follows from the measured area (an offset there would do
+            # nothing in a window that starts at a limit: a dead column in the fit).
+            self.initial_states = ("x",)
         else:
             self.inputs = ("A_valve", "F_load")
             self.exogenous = ("A_valve", "F_load")
@@ -610,13 +663,11 @@ class HydraulicActuatorTwin(TwinModel):
         f_x = self._term(terms.get("d(x)/dt"), p, n, "d(x)/dt")
         a_in = np.ascontiguousarray(window["A_valve"], dtype=float)
         f_in = np.ascontiguousarray(window["F_load"], dtype=float)
-        n_init = len(self.initial_states)
-        off = np.zeros((p, n_init)) if initial is None else np.broadcast_to(
-            np.atleast_2d(np.asarray(initial, dtype=float)), (p, n_init))
+        off = np.zeros((p, 1)) if initial is None else np.broadcast_to(
+            np.atleast_2d(np.asarray(initial, dtype=float)), (p, 1))
         x0 = np.ascontiguousarray(float(window["x"][0]) + off[:, 0])
         if self.structure == "closed_loop":
-            return self._simulate_closed(theta, window, n_sub, u_p, f_x, x0,
-                                         np.ascontiguousarray(a_in[0] + off[:, 1]))
+            return self._simulate_closed(theta, window, n_sub, u_p, f_x, x0)
         p0 = np.full(p, float(window["p"][0]))
         y = np.empty((p, n, 2))
         _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, self.sub_step,
@@ -624,8 +675,7 @@ class HydraulicActuatorTwin(TwinModel):
         return y
 
     def _simulate_closed(self, theta: FloatArray, window: WindowData, n_sub: int,
-                         u_p: FloatArray, f_x: FloatArray, x0: FloatArray, a0: FloatArray
-                         ) -> FloatArray:
+                         u_p: FloatArray, f_x: FloatArray, x0: FloatArray) -> FloatArray:
         """The closed loop through :func:`_closed_kernel`: (P, N, 3) x, p, A_valve."""
         dr = self._drive
         m, ph = dr.ticks(self.sub_step)
@@ -653,8 +703,8 @@ class HydraulicActuatorTwin(TwinModel):
                        np.ascontiguousarray(window["p"], dtype=float),
                        np.ascontiguousarray(window["F_load"], dtype=float), r_s, r_t,
                        int(t_off), int(m), np.ascontiguousarray(stretch, dtype=np.int64), x0,
-                       a0, n_sub, self.sub_step, self.input_hold == "linear", loop, hi_is_amax,
-                       tol, SPLIT_SAMPLES, u_p, f_x, y)
+                       n_sub, self.sub_step, self.input_hold == "linear", loop, hi_is_amax, tol,
+                       SPLIT_SAMPLES, u_p, f_x, y)
         return y
 
     @staticmethod
