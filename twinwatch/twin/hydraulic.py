@@ -400,8 +400,8 @@ def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x
     twin (re)starts from the measured position and pressure, the integrator recovered from
     the measured area, and the derivative filter's state set so that the closed loop's area
     over the next ``n_ahead`` samples (at most; within the stretch inside the limits) best
-    matches the measured one (one secant step: the area is affine in it). Terms as in
-    :func:`_simulate_kernel`.
+    matches the measured one (secant steps, at most :data:`SPLIT_ITERATIONS`, until the area is
+    affine in it to rounding). Terms as in :func:`_simulate_kernel`.
     """
     n_p, n_k = y.shape[0], y.shape[1]
     shared_u = u_p.shape[0] == 1
@@ -629,8 +629,9 @@ class HydraulicActuatorTwin(TwinModel):
         Args:
             theta: (P, 6) parameters: k_spring [N/m], D [N/(m/s)], q_pump [m^3/s],
                 A_max [m^2], A_piston [m^2], F_resist [N].
-            window: needs ``A_valve``, ``F_load``, ``x`` and ``p`` (N samples); the twin starts
-                from the measured x and p of the first sample.
+            window: needs ``A_valve``, ``F_load``, ``x``, ``p`` and, closed loop, ``x_ref``
+                (N samples); the twin starts from the measured x and p of the first sample
+                (closed loop: the controller from the measured area, module docstring).
             terms: ``p`` (dimensionless; ``U[k]`` multiplies the pressure equation on the
                 sub-steps of step k-1 -> k, so sample k's pressure) and/or ``d(x)/dt`` [m/s]
                 (``f_x[k]`` added to the piston velocity over step k -> k+1); values of shape
@@ -639,8 +640,9 @@ class HydraulicActuatorTwin(TwinModel):
                 (the estimator's initial-state estimate); None: 0.
 
         Returns:
-            (P, N, 2): x [m], p [Pa]. A particle that blows up (non-finite state, negative
-            pressure) gives nan from that sample on; nothing raises.
+            (P, N, 2): x [m], p [Pa]; closed loop (P, N, 3): x, p, A_valve [m^2]. A particle
+            that blows up (non-finite state, negative pressure) gives nan from that sample on;
+            nothing raises.
 
         Raises:
             KeyError: an unknown attach point in ``terms``.
