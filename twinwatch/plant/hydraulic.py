@@ -34,6 +34,18 @@ valve area changes within a sample, so an open-loop twin holding the sampled are
 biased; :class:`twinwatch.twin.hydraulic.HydraulicActuatorTwin` interpolates it linearly
 between samples by default (see there for the measured effect).
 
+**The controller as a drive runs it** (``drive``, table ``[driver.plant.drive]``,
+:class:`~twinwatch.twin.hydraulic.ValveDriveConfig`; the update of :mod:`twinwatch.twin.drive`
+with action ``direct``): an update every ``period`` (from ``phase``), the area held in between,
+clamped to the loop's limits (default the valve's [0, A_max]; they must lie within it), with
+clamping or back-calculation anti-windup; keys left out of ``[driver.plant.drive.valve]`` take
+the paper's gains. Without the table the plant is the PID above every step, bit for bit. With
+the paper's gains a drive period is unstable from 0.2 ms on (measured: 0.2 ms grows
+by about 1.4x every 5 s; 0.3-0.5 ms reach a limit cycle of about 1 mm within 10-35 s, the valve
+hitting A_max; 1, 2, 5 and 10 ms: 1.2, 1.4, 2.3 and 3.9 mm): a 0.5-2 ms drive needs gains for
+its period, e.g. Kp 0.01, Ki 0.25 (the paper's Kd and N; about 20 rad/s, damping about 0.4;
+tests/test_hydraulic_drive.py).
+
 **Reference and start.** x_ref(t) = offset + amplitude*sin(2*pi*f*t) (0.5 m + 0.45 m at
 0.005 Hz: the offset is our choice, so the piston stays in its stroke). The plant starts in
 steady tracking: x_0 = x_ref(0), the integrator holding the area that gives v = dx_ref/dt.
@@ -67,6 +79,8 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.twin.drive import LoopConfig
+from twinwatch.twin.hydraulic import ValveDriveConfig
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +90,9 @@ DEGRADATION_RATE = 0.003  # 1/s
 
 Scenario = Literal["nominal", "fluid_degradation", "internal_leak"]
 _SCENARIO_CODE = {"nominal": 0, "fluid_degradation": 1, "internal_leak": 2}
+
+#: The paper's Eq. 17 gains (kp, ki, kd, n_filter), the defaults of the plant's PID.
+_PAPER_GAINS = (0.000346, 3.513406, 0.000119, 2.076743)
 
 #: Measured channels, in the order the plant reports them.
 CHANNELS: tuple[str, ...] = ("x", "p", "A_valve", "F_load", "x_ref")
@@ -95,7 +112,8 @@ class HydraulicPlantConfig(BaseModel):
     scenario: Scenario = "fluid_degradation"
     duration: float = Field(600.0, gt=0, description="simulated time [s]")
     sample_period: float = Field(0.01, gt=0, description="acquisition period [s]")
-    step: float = Field(1e-4, gt=0, description="integration step (and PID period) [s]")
+    step: float = Field(1e-4, gt=0, description="integration step (and the PID's period "
+                        "without a drive table) [s]")
     k_spring: float = Field(200.0, ge=0, description="spring constant [N/m]")
     D: float = Field(100.0, ge=0, description="damping coefficient [N/(m/s)]")
     q_pump: float = Field(0.02, gt=0, description="pump flow [m^3/s]")
@@ -103,10 +121,11 @@ class HydraulicPlantConfig(BaseModel):
     A_piston: float = Field(0.196349375, gt=0, description="piston area [m^2]")
     F_resist: float = Field(0.0, description="internal resistance force [N]")
     mass: float = Field(1000.0, gt=0, description="load mass [kg]; F_load = mass*9.81")
-    kp: float = Field(0.000346, description="PID proportional gain [m^2/m]")
-    ki: float = Field(3.513406, description="PID integral gain [m^2/(m s)]")
-    kd: float = Field(0.000119, description="PID derivative gain [m^2 s/m]")
-    n_filter: float = Field(2.076743, gt=0, description="PID derivative filter N [1/s]")
+    kp: float = Field(_PAPER_GAINS[0], description="PID proportional gain [m^2/m]")
+    ki: float = Field(_PAPER_GAINS[1], description="PID integral gain [m^2/(m s)]")
+    kd: float = Field(_PAPER_GAINS[2], description="PID derivative gain [m^2 s/m]")
+    n_filter: float = Field(_PAPER_GAINS[3], gt=0,
+                            description="PID derivative filter N [1/s]")
     ref_offset: float = Field(0.5, description="position reference offset [m]")
     ref_amplitude: float = Field(0.45, description="position reference amplitude [m]")
     ref_frequency: float = Field(0.005, ge=0, description="position reference frequency [Hz]")
@@ -116,7 +135,19 @@ class HydraulicPlantConfig(BaseModel):
         default_factory=dict,
         description="channel -> Gaussian noise standard deviation, percent of reading",
     )
+    drive: ValveDriveConfig | None = Field(
+        None, description="the valve controller as it runs (update period with the area held, "
+        "limits, anti-windup; twinwatch.twin.hydraulic.ValveDriveConfig); default: the PID "
+        "kp, ki, kd, n_filter above every step, clamped to [0, A_max]")
     seed: int = 0
+
+    @property
+    def drive_config(self) -> ValveDriveConfig:
+        """The valve controller: ``drive``, or the paper's PID (``kp``, ``ki``, ``kd``,
+        ``n_filter``) every step, clamped to [0, A_max]."""
+        return self.drive or ValveDriveConfig(valve=LoopConfig(
+            kp=self.kp, ki=self.ki, kd=self.kd, n_filter=self.n_filter, output_min=0.0,
+            output_max=self.A_max, anti_windup="clamping", action="direct"))
 
     @model_validator(mode="after")
     def _check(self) -> HydraulicPlantConfig:
@@ -128,6 +159,22 @@ class HydraulicPlantConfig(BaseModel):
                 raise ValueError(f"noise.{ch}: unknown channel; use one of {CHANNELS}")
             if v < 0:
                 raise ValueError(f"noise.{ch}: must be >= 0")
+        if self.drive is not None:
+            if (self.kp, self.ki, self.kd, self.n_filter) != _PAPER_GAINS:
+                raise ValueError("kp, ki, kd, n_filter: with a [drive] table set the gains "
+                                 "there (drive.valve.kp, ...)")
+            try:
+                self.drive.ticks(self.step)
+            except ValueError as exc:
+                raise ValueError(f"drive.{exc}") from None
+            lo, hi = self.drive.limits(self.A_max)
+            for key, lim in (("output_min", lo), ("output_max", hi)):
+                if not 0.0 <= lim <= self.A_max:
+                    raise ValueError(f"drive.valve.{key}: {lim:g} m^2 is outside the valve's "
+                                     f"range [0, A_max = {self.A_max:g}]")
+            if not lo < hi:
+                raise ValueError(f"drive.valve.output_min must be < output_max, got "
+                                 f"[{lo:g}, {hi:g}]")
         return self
 
     @property
@@ -137,38 +184,42 @@ class HydraulicPlantConfig(BaseModel):
 
 
 @njit(cache=True, nogil=True)
-def _pid(state, e, ts, kp, ki, kd, nf, a_max):  # pragma: no cover - compiled
-    """One Eq. 17 PID update; ``state = [x, p, I, f, A]``: sets A, advances I and f."""
-    i_state, f_state = state[2], state[3]
-    d = nf * (kd * e - f_state)
-    u = kp * e + i_state + d
-    if u > a_max:
-        a = a_max
-        if e < 0.0:
-            i_state += ki * ts * e
-    elif u < 0.0:
-        a = 0.0
-        if e > 0.0:
-            i_state += ki * ts * e
+def _pid(state, loop, r, period):  # pragma: no cover - compiled
+    """One update of the valve controller (:mod:`twinwatch.twin.drive`, paper Eq. 17) on the
+    reference ``r``; ``state = [x, p, I, f, A]``: sets A, advances I and f. ``loop``: the
+    packed loop (limits resolved)."""
+    kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
+    lo, hi, aw, tt, kff, sgn = loop[4], loop[5], loop[6], loop[7], loop[8], loop[9]
+    e = sgn * (r - state[0])
+    i_s, f_s = state[2], state[3]
+    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
+    u_pid = kp * e + i_s + d + kff * r
+    u = min(max(u_pid, lo), hi)
+    if aw == 1.0:
+        if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):
+            i_s += ki * period * e
+    elif aw == 2.0:
+        i_s += ki * period * e + (period / tt) * (u - u_pid)
     else:
-        a = u
-        i_state += ki * ts * e
-    state[2] = i_state
-    state[3] = f_state + ts * d
-    state[4] = a
+        i_s += ki * period * e
+    state[2] = i_s
+    state[3] = f_s + period * d
+    state[4] = u
 
 
 @njit(cache=True, nogil=True)
-def _advance(state, j0, n_sub, dt, prm, scenario, t_fault, c_leak):  # pragma: no cover
+def _advance(state, j0, n_sub, dt, prm, scenario, t_fault, c_leak, loop, m,
+             ph):  # pragma: no cover - compiled
     """Advance ``state = [x, p, I, f, A]`` by ``n_sub`` plant steps from step index ``j0``.
 
-    ``prm = [k_spring, D0, q_pump, A_max, A_piston, F_resist, F_load, Kp, Ki, Kd, N,
-    ref_offset, ref_amplitude, ref_frequency]``. On entry ``state[4]`` is the area applied over
-    step j0; on exit it is the area the controller applies from step j0 + n_sub on.
+    ``prm = [k_spring, D0, q_pump, A_max, A_piston, F_resist, F_load, ref_offset,
+    ref_amplitude, ref_frequency]``; ``loop``: the packed valve controller, updated at the steps
+    j >= ``ph`` with (j - ph) % ``m`` == 0. On entry ``state[4]`` is the area applied over step
+    j0; on exit it is the area applied from step j0 + n_sub on.
     """
-    ks, d0, qp, a_max, ap, fr, fl = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
-    kp, ki, kd, nf = prm[7], prm[8], prm[9], prm[10]
-    r0, r1, rf = prm[11], prm[12], prm[13]
+    ks, d0, qp, ap, fr, fl = prm[0], prm[1], prm[2], prm[4], prm[5], prm[6]
+    r0, r1, rf = prm[7], prm[8], prm[9]
+    period = m * dt
     x, p = state[0], state[1]
     for s in range(n_sub):
         t = (j0 + s) * dt
@@ -183,9 +234,11 @@ def _advance(state, j0, n_sub, dt, prm, scenario, t_fault, c_leak):  # pragma: n
         x = x + dt * v
         p = (1.0 + c) * (fl + ks * x + d * v + fr) / ap
         state[0], state[1] = x, p
-        t_next = t + dt
-        ref = r0 + r1 * math.sin(2.0 * math.pi * rf * t_next)
-        _pid(state, x - ref, dt, kp, ki, kd, nf, a_max)
+        j = j0 + s + 1
+        if j >= ph and (j - ph) % m == 0:
+            t_next = t + dt
+            ref = r0 + r1 * math.sin(2.0 * math.pi * rf * t_next)
+            _pid(state, loop, ref, period)
 
 
 @dataclass
@@ -219,8 +272,10 @@ class HydraulicPlant:
         self.sample_period = c.sample_period
         self.n_sub = int(round(c.sample_period / c.step))
         self._prm = np.array([c.k_spring, c.D, c.q_pump, c.A_max, c.A_piston, c.F_resist,
-                              c.F_load, c.kp, c.ki, c.kd, c.n_filter, c.ref_offset,
-                              c.ref_amplitude, c.ref_frequency])
+                              c.F_load, c.ref_offset, c.ref_amplitude, c.ref_frequency])
+        drive = c.drive_config
+        self._loop = drive.pack(c.A_max)
+        self._m, self._ph = drive.ticks(c.step)
         self._scenario = _SCENARIO_CODE[c.scenario]
         self._k = 0
         self._n_samples = int(round(c.duration / c.sample_period)) + 1
@@ -233,8 +288,10 @@ class HydraulicPlant:
         p0 = (1.0 + truth.C) * (c.F_load + c.k_spring * x0 + truth.D * v0 + c.F_resist) \
             / c.A_piston
         i0 = (c.q_pump - v0 * c.A_piston) / math.sqrt(2.0 * p0)
-        self._state = np.array([x0, p0, i0, 0.0, 0.0])
-        _pid(self._state, 0.0, c.step, c.kp, c.ki, c.kd, c.n_filter, c.A_max)
+        lo, hi = drive.limits(c.A_max)
+        self._state = np.array([x0, p0, i0, 0.0, min(max(i0, lo), hi)])
+        if self._ph == 0:  # the first update at t = 0, on the reference: e = 0
+            _pid(self._state, self._loop, x0, self._m * c.step)
 
     @property
     def t(self) -> float:
@@ -275,6 +332,7 @@ class HydraulicPlant:
             if pct > 0:
                 values[ch] += float(self._rng.normal(0.0, pct / 100.0 * abs(values[ch])))
         _advance(self._state, self._k * self.n_sub, self.n_sub, c.step, self._prm,
-                 self._scenario, c.fault_start, c.leak_coefficient)
+                 self._scenario, c.fault_start, c.leak_coefficient, self._loop, self._m,
+                 self._ph)
         self._k += 1
         return Sample(t=t, values=values)

@@ -18,10 +18,10 @@ The model is nonlinear (sqrt) and has no exact sample map, so one compiled kerne
 sub-steps for every particle of the swarm and every sample of the window; a window of 200
 samples x 100 sub-steps costs about 0.5 ms per particle (7.6 ms for a swarm of 15, measured).
 
-**Structure: open loop.** The measured valve area and load drive the twin; it starts each window
-from the measured x and p of the window's first sample. The plant's Eq. 17 PID runs every
-1e-4 s (with these gains it is unstable at 10 ms; see :mod:`twinwatch.plant.hydraulic`), so the
-area moves within a sample. Option ``input_hold``:
+**Structure: open loop** (the default). The measured valve area and load drive the twin; it
+starts each window from the measured x and p of the window's first sample. The plant's Eq. 17
+PID runs every 1e-4 s (with these gains it is unstable from a 0.2 ms period on; see
+:mod:`twinwatch.plant.hydraulic`), so the area moves within a sample. Option ``input_hold``:
 
 * ``linear`` (default): the area (and load) is interpolated linearly between consecutive samples
   over the sub-steps (first-order hold). Measured against the plant at its true parameters:
@@ -34,6 +34,50 @@ area moves within a sample. Option ``input_hold``:
 
 The measured area is clipped to [0, A_max] (the valve cannot open further), so A_max matters
 only when a reading exceeds it: a window never determines A_max.
+
+An open loop on the sampled area is biased wherever the area moved within a sample in a way
+the hold does not describe: against a valve controller that updates every 0.5-2 ms and holds
+its output (a staircase), the linear hold errs by 6e-6 to 2.4e-5 of x and 2e-7 to 1e-6 of p in
+the worst window (at the valve's limit), 1e-7 to 7e-7 of x in the median one
+(tests/test_hydraulic_drive.py). With a well-tuned drive this stays below D's share of the
+pressure, so D is still estimated within 0.012 % there; but the twin does not reproduce the
+machine, and a window where the valve leaves its limit fails the model check.
+
+**Structure: closed loop** (``structure = "closed_loop"``, option ``drive``,
+:class:`ValveDriveConfig`). The twin contains the valve controller as the drive runs it
+(:mod:`twinwatch.twin.drive`: an update every ``period`` from x and the reference, the area
+held in between, clamped to the loop's limits, by default the valve's own [0, A_max], with
+clamping or back-calculation anti-windup; no table: the paper's PID every sub-step). It is
+driven by the measured reference ``x_ref`` (interpolated to the updates between samples by
+``reference_hold``: a cubic through the four nearest samples by default, exact at the
+samples) and the load, and the area becomes an output compared with the measurement. Each
+window starts from the measured x (with the estimator's offset) and p, and the controller's
+state is recovered from the data:
+
+* the integrator, exactly, from the measured area of the first sample (``I = A - kp*e -
+  d - kff*r``, the update on the sample reproducing the measured area);
+* where the measured area sits at a limit the integrator is hidden: the measured area drives
+  the piston (its residual is zero there) while the controller keeps running on the twin's
+  position, and at the first sample inside the limits the twin restarts from the measured x
+  and p with the integrator recovered there (the window is cut, as the DC twin does);
+* the derivative filter's state is not measured. Where the stretch inside the limits is at
+  least 3 samples long, it is set so that the closed loop's area over the next
+  :data:`SPLIT_SAMPLES` samples matches the measured one (secant steps until the area is
+  affine in it to rounding): exact when the twin's parameters are the machine's, and the
+  window's only fitted controller state. In a shorter stretch it keeps the value the
+  controller ran to (at the first sample: at rest, d = 0).
+
+Measured against the plant with its controller at 0.5, 1 and 2 ms, the valve at its limit
+28 % of the run: every window to rounding (x within 3e-15, p 4e-16, the area 2e-13 of their
+largest values), where the open loop errs by up to 2.4e-5 of x; the paper's PID every
+sub-step to 1e-14 of x and 6e-12 of the area (the integrator's rounding over 100 updates per
+sample). Approximate: a controller whose updates do not fall on the samples
+(``phase``: the update before a window's first sample is taken to have seen that sample's
+error; 0.3 ms measured: median 1e-11, worst 5e-6 of x, in the windows that restart), a stretch
+inside the limits shorter than 3 samples (a valve that slams between its limits, as with the
+paper's gains from a 0.3 ms period on: worst 1.5e-6 of x), and noise on the area or the
+position at a restart (the integrator takes it). A swarm of 15 costs about 20 % more than the
+open loop (the secant runs of the derivative filter's state).
 
 **Meta-model terms** (attach points, :attr:`HydraulicActuatorTwin.attach_points`):
 
@@ -54,7 +98,9 @@ x is nearly linear and v nearly constant, so D*v trades with the pressure level:
 (tests/test_twin_hydraulic.py, relative standard errors at a 1e-7 residual floor) q_pump and D
 together are determined (~1e-6 and ~1e-3), D with k_spring, A_piston or F_resist is not (a few
 percent and more), and A_max never (the valve does not saturate). Estimate q_pump and D; keep
-the others at nameplate.
+the others at nameplate. The closed loop compares the area too: D enters it through the
+controller's response to the pressure (about half of D's share of p), and the estimator
+reaches the same figures (tests/test_hydraulic_drive.py).
 
 Paper numbers (Table 4, Eq. 17): k_spring 200 N/m, D 100 N/(m/s), q_pump 0.02 m^3/s, A_max 1e-4
 m^2, A_piston 0.196349375 m^2, load 1000 kg; PID Kp 0.000346, Ki 3.513406, Kd 0.000119, N
@@ -67,11 +113,20 @@ import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numba import njit
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
+from twinwatch.twin.drive import DriveConfig, LoopConfig
 from twinwatch.twin.model import (
     AttachPoint,
     EstimationDefaults,
@@ -102,6 +157,82 @@ HYDRAULIC_PARAMETERS: tuple[ParameterSpec, ...] = (
 )
 
 _ATTACH = ("p", "d(x)/dt")
+
+#: A measured area within this fraction of the limits' span of a limit sits at it.
+LIMIT_TOLERANCE = 1e-9
+
+#: Samples over which the closed loop's area sets the derivative filter's state at a restart,
+#: and the secant steps at most.
+SPLIT_SAMPLES = 20
+SPLIT_ITERATIONS = 3
+
+#: The paper's valve PID (Eq. 17, NOTES.md): opening the valve lowers the piston, so the error
+#: is e = x - x_ref (action ``direct``); clamping anti-windup at the valve's limits.
+PAPER_VALVE_LOOP: dict[str, Any] = {"kp": 0.000346, "ki": 3.513406, "kd": 0.000119,
+                                    "n_filter": 2.076743, "anti_windup": "clamping",
+                                    "action": "direct"}
+
+
+class ValveDriveConfig(BaseModel):
+    """The valve controller as it runs (table ``drive``; :mod:`twinwatch.twin.drive` semantics).
+
+    One update every ``period`` from the position ``x`` [m] (feedback) and the reference
+    ``x_ref`` [m]; the area [m^2] it computes is held until the next update (zero-order hold)
+    and clamped to the loop's limits, by default the valve's own range [0, A_max].
+
+    Attributes:
+        period: update period [s], a whole number of integration steps; None: every step (the
+            paper's plant, Eq. 17 with Ts the integration step).
+        phase: time of the first update after t = 0 [s], in [0, period).
+        valve: the PID (:class:`~twinwatch.twin.drive.LoopConfig`); the keys a table leaves
+            out take the paper's values (:data:`PAPER_VALVE_LOOP`: Kp 0.000346, Ki 3.513406,
+            Kd 0.000119, N 2.076743, clamping, action ``direct``); ``output_min`` None: 0,
+            ``output_max`` None: A_max (the valve's largest area).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    period: float | None = Field(None, gt=0, allow_inf_nan=False)
+    phase: float = Field(0.0, ge=0, allow_inf_nan=False)
+    valve: LoopConfig = Field(default_factory=lambda: LoopConfig(**PAPER_VALVE_LOOP))
+
+    @field_validator("valve", mode="before")
+    @classmethod
+    def _paper_gains(cls, value: Any) -> Any:
+        """A partial table keeps the paper's values for the keys it leaves out."""
+        if isinstance(value, Mapping):
+            return {**PAPER_VALVE_LOOP, **value}
+        return value
+
+    @model_validator(mode="after")
+    def _check(self) -> ValveDriveConfig:
+        if self.period is not None and self.phase >= self.period:
+            raise ValueError(f"phase: must be in [0, period), got {self.phase} for period "
+                             f"{self.period}")
+        return self
+
+    def ticks(self, sub_step: float) -> tuple[int, int]:
+        """(period, phase) in whole integration steps.
+
+        Raises:
+            ValueError: the period or the phase is not a whole number of steps (to 1e-6
+                relative); the message names the key.
+        """
+        m, _, ph = DriveConfig(period=self.period, phase=self.phase).ticks(sub_step)
+        return m, ph
+
+    def limits(self, a_max: float) -> tuple[float, float]:
+        """The controller's output limits [m^2]: the loop's, or the valve's range [0, a_max]."""
+        v = self.valve
+        return (0.0 if v.output_min is None else v.output_min,
+                a_max if v.output_max is None else v.output_max)
+
+    def pack(self, a_max: float) -> FloatArray:
+        """The loop for a compiled kernel (:data:`twinwatch.twin.drive.PACKED` order), its
+        limits resolved with :meth:`limits`."""
+        packed = self.valve.pack()
+        packed[4], packed[5] = self.limits(a_max)
+        return packed
 
 
 @njit(cache=True, nogil=True)
@@ -164,50 +295,291 @@ def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
             y[q, k + 1, 1] = p
 
 
+@njit(cache=True, nogil=True)
+def _loop_tick(loop, i_s, f_s, r, y, period, hi):  # pragma: no cover - compiled
+    """One update of the valve controller (:mod:`twinwatch.twin.drive`, paper Eq. 17) with the
+    upper limit ``hi``; returns (u, I, f)."""
+    kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
+    lo, aw, tt, kff, sgn = loop[4], loop[6], loop[7], loop[8], loop[9]
+    e = sgn * (r - y)
+    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
+    u_pid = kp * e + i_s + d + kff * r
+    u = min(max(u_pid, lo), hi)
+    if aw == 1.0:
+        if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):
+            i_s += ki * period * e
+    elif aw == 2.0:
+        i_s += ki * period * e + (period / tt) * (u - u_pid)
+    else:
+        i_s += ki * period * e
+    return u, i_s, f_s + period * d
+
+
+@njit(cache=True, nogil=True)
+def _recover_integrator(loop, f_s, r, y, area, period, ticked):  # pragma: no cover
+    """The integrator (before the update when ``ticked``) that makes an update on (r, y) with
+    the derivative filter state ``f_s`` give ``area``; without an update on the sample, the
+    integrator after an update taken to have seen this error."""
+    kp, ki, kd, nf, kff, sgn = loop[0], loop[1], loop[2], loop[3], loop[8], loop[9]
+    e = sgn * (r - y)
+    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
+    i_s = area - kp * e - d - kff * r
+    if not ticked:
+        i_s += ki * period * e
+    return i_s
+
+
+@njit(cache=True, nogil=True)
+def _interval(x, p, i_s, f_s, area, limited, j, t_off, m, r_t, loop, period, hi, n_sub,
+              linear, l0, l1, gain, fx, prm, dt):  # pragma: no cover - compiled
+    """Sub-steps of one sample from the sub-step ``j`` (the update on the sample itself is
+    the caller's): the controller updates when due (its output applied unless ``limited``),
+    the piston Eq. 14-16. ``prm`` = (k_spring, D, q_pump, A_max, 1/A_piston, F_resist).
+    Returns (x, p, I, f, area)."""
+    ks, d, qp, a_max, inv_ap, fr = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
+    inv = 1.0 / n_sub
+    for s in range(n_sub):
+        js = j + s
+        if s > 0 and js >= t_off and (js - t_off) % m == 0:
+            u, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(js - t_off) // m], x, period, hi)
+            if not limited:
+                area = u
+        fl = l0 + (l1 - l0) * (s * inv) if linear else l0
+        a = area
+        if a < 0.0:
+            a = 0.0
+        elif a > a_max:
+            a = a_max
+        if p >= 0.0:
+            q_valve = a * math.sqrt(2.0 * p)
+        else:
+            q_valve = np.nan  # cavitation: outside the model
+        v = (qp - q_valve) * inv_ap + fx
+        x = x + dt * v
+        p = gain * (fl + ks * x + d * v + fr) * inv_ap
+    return x, p, i_s, f_s, area
+
+
+@njit(cache=True, nogil=True)
+def _ahead(x, p, i_s, f_s, area, k, count, t_off, m, r_t, loop, period, hi, n_sub, linear,
+           f_in, u_p, f_x, prm, dt, out):  # pragma: no cover - compiled
+    """The closed loop from sample ``k`` (controller recovered, before the update on the
+    sample) over ``count`` samples; ``out[i]``: the area at sample k + 1 + i."""
+    j = k * n_sub
+    if j >= t_off and (j - t_off) % m == 0:
+        area, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(j - t_off) // m], x, period, hi)
+    for i in range(count):
+        kk = k + i
+        x, p, i_s, f_s, area = _interval(x, p, i_s, f_s, area, False, kk * n_sub, t_off, m,
+                                         r_t, loop, period, hi, n_sub, linear, f_in[kk],
+                                         f_in[kk + 1], 1.0 + u_p[kk + 1], f_x[kk], prm, dt)
+        jn = (kk + 1) * n_sub
+        if jn >= t_off and (jn - t_off) % m == 0:
+            area, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(jn - t_off) // m], x, period, hi)
+        out[i] = area
+
+
+@njit(cache=True, nogil=True)
+def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x0, n_sub, dt,
+                   linear, loop, hi_is_amax, tol, n_ahead, u_p, f_x,
+                   y):  # pragma: no cover - compiled
+    """The closed loop (valve controller inside the twin) for every particle; fills ``y``
+    (P, N, 3) with x, p and the valve area.
+
+    ``a_in``, ``x_in``, ``p_in``, ``f_in``, ``r_s`` (N,): measured area, position, pressure,
+    load and reference. ``r_t``: the reference at the controller's updates, which fall on the
+    sub-steps ``t_off + n*m`` (relative to the window's first sample). ``stretch`` (N,): the
+    first sample at a limit after each sample (N if none). ``x0`` (P,): each particle's
+    initial position. ``loop``: the packed controller; its upper limit is
+    the particle's A_max when ``hi_is_amax``. ``tol`` [m^2]: a measured area within it of a
+    limit sits at the limit.
+
+    Where the measured area sits at a limit it drives the piston (the integrator is hidden)
+    while the controller keeps running on the twin's position (its derivative filter follows);
+    at the first sample and at each first sample inside the limits after one at a limit, the
+    twin (re)starts from the measured position and pressure, the integrator recovered from
+    the measured area, and the derivative filter's state set so that the closed loop's area
+    over the next ``n_ahead`` samples (at most; within the stretch inside the limits) best
+    matches the measured one (secant steps, at most :data:`SPLIT_ITERATIONS`, until the area is
+    affine in it to rounding). Terms as in :func:`_simulate_kernel`.
+    """
+    n_p, n_k = y.shape[0], y.shape[1]
+    shared_u = u_p.shape[0] == 1
+    shared_f = f_x.shape[0] == 1
+    period = m * dt
+    lo, kd, nf, sgn = loop[4], loop[2], loop[3], loop[9]
+    prm = np.empty(6)
+    out0 = np.empty(max(n_ahead, 1))
+    out1 = np.empty(max(n_ahead, 1))
+    for q in range(n_p):
+        prm[0], prm[1], prm[2], prm[3] = theta[q, 0], theta[q, 1], theta[q, 2], theta[q, 3]
+        prm[4], prm[5] = 1.0 / theta[q, 4], theta[q, 5]
+        hi = theta[q, 3] if hi_is_amax else loop[5]
+        u_q = u_p[0] if shared_u else u_p[q]
+        f_q = f_x[0] if shared_f else f_x[q]
+        x, p = x0[q], p_in[0]
+        f_s = kd * sgn * (r_s[0] - x)  # the derivative filter at rest (d = 0) to begin with
+        i_s = 0.0
+        area = a_in[0]
+        limited = True  # at the first sample the controller is recovered if inside
+        ok = True
+        for k in range(n_k):
+            j = k * n_sub
+            ticked = j >= t_off and (j - t_off) % m == 0
+            meas = a_in[k]
+            at_limit = meas <= lo + tol or meas >= hi - tol
+            if ok and limited and not at_limit:
+                if k > 0:  # restart from the measured state
+                    x, p = x_in[k], p_in[k]
+                r = r_t[(j - t_off) // m] if ticked else r_s[k]
+                i_s = _recover_integrator(loop, f_s, r, x, meas, period, ticked)
+                count = min(n_ahead, stretch[k] - 1 - k)
+                if kd != 0.0 and nf > 0.0 and count >= 2:
+                    # the split between the integrator and the derivative term
+                    eps = 1e-6 * (hi - lo) / nf
+                    for _ in range(SPLIT_ITERATIONS):
+                        _ahead(x, p, i_s, f_s, meas, k, count, t_off, m, r_t, loop, period, hi,
+                               n_sub, linear, f_in, u_q, f_q, prm, dt, out0)
+                        i_e = _recover_integrator(loop, f_s + eps, r, x, meas, period, ticked)
+                        _ahead(x, p, i_e, f_s + eps, meas, k, count, t_off, m, r_t, loop,
+                               period, hi, n_sub, linear, f_in, u_q, f_q, prm, dt, out1)
+                        num = 0.0
+                        den = 0.0
+                        for i in range(count):
+                            g = (out1[i] - out0[i]) / eps
+                            num += g * (a_in[k + 1 + i] - out0[i])
+                            den += g * g
+                        if not (den > 0.0 and math.isfinite(num) and math.isfinite(den)):
+                            break
+                        f_s += num / den
+                        i_s = _recover_integrator(loop, f_s, r, x, meas, period, ticked)
+                        if abs(num / den) * nf <= 1e-13 * (hi - lo):
+                            break  # the area is affine in it to rounding from here
+                area = meas
+            if ok and ticked:
+                u, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(j - t_off) // m], x, period, hi)
+                area = u
+            if at_limit:
+                area = meas
+            limited = at_limit
+            if not ok:
+                y[q, k, 0] = np.nan
+                y[q, k, 1] = np.nan
+                y[q, k, 2] = np.nan
+                continue
+            y[q, k, 0] = x
+            y[q, k, 1] = p
+            y[q, k, 2] = area
+            if k == n_k - 1:
+                break
+            x, p, i_s, f_s, area = _interval(x, p, i_s, f_s, area, limited, j, t_off, m, r_t,
+                                             loop, period, hi, n_sub, linear, f_in[k],
+                                             f_in[k + 1], 1.0 + u_q[k + 1], f_q[k], prm, dt)
+            if not (math.isfinite(x) and math.isfinite(p)):
+                ok = False
+
+
 @dataclass
 class HydraulicActuatorTwin(TwinModel):
-    """Hydraulic actuator twin (open loop); see the module docstring for the equations.
+    """Hydraulic actuator twin; see the module docstring for the equations.
 
-    Inputs: ``A_valve`` [m^2] and ``F_load`` [N]. Outputs: ``x`` [m] and ``p`` [Pa].
+    Open loop: inputs ``A_valve`` [m^2] and ``F_load`` [N]; outputs ``x`` [m] and ``p`` [Pa].
+    Closed loop: inputs ``x_ref`` [m], ``F_load`` and ``A_valve`` (the initial state of the
+    controller and the area while it sits at a limit); outputs ``x``, ``p`` and ``A_valve``.
 
     Args:
-        sub_step: integration sub-step [s] (paper: 1e-4); the sample period must be a whole
-            multiple of it (to 1e-6 relative).
+        structure: ``open_loop`` (default: the measured area drives the piston) or
+            ``closed_loop`` (the valve controller inside the twin, driven by ``x_ref``).
+        drive: closed loop: the valve controller as it runs
+            (:class:`ValveDriveConfig` or its table: update period, phase, the PID with its
+            limits and anti-windup); default: the paper's Eq. 17 PID every sub-step, clamped
+            to [0, A_max].
+        sub_step: integration sub-step [s] (paper: 1e-4); the sample period (and the drive's
+            period) must be a whole multiple of it (to 1e-6 relative).
         input_hold: ``linear`` (interpolate the inputs between samples; default) or ``zoh``
-            (hold each sample's inputs until the next one).
+            (hold each sample's inputs until the next one): the area and the load in open
+            loop, the load in closed loop.
+        reference_hold: closed loop: the reference between samples at the controller's
+            updates: ``cubic`` (default: the cubic through the four nearest samples; a smooth
+            trajectory), ``linear`` or ``zoh`` (a set-point written once per sample).
         position_scale: residual normalisation floor for x [m].
         pressure_scale: residual normalisation floor for p [Pa].
+        area_scale: closed loop: residual normalisation floor for the valve area [m^2].
         min_speed: D is held in a window whose RMS piston speed (from the measured x) is
             below this [m/s]: the damping force D*v is then a fraction of a pascal (the piston
             reversing; the paper's error spikes). 0.0015 m/s is about 10 % of the paper's
             largest speed; 0 disables the test.
+
+    Raises:
+        ValueError: an option that cannot work (the message names it).
     """
 
+    structure: Literal["open_loop", "closed_loop"] = "open_loop"
+    drive: ValveDriveConfig | dict[str, Any] | None = None
     sub_step: float = 1e-4
     input_hold: Literal["linear", "zoh"] = "linear"
+    reference_hold: Literal["cubic", "linear", "zoh"] = "cubic"
     position_scale: float = 0.01
     pressure_scale: float = 1000.0
+    area_scale: float = 1e-5
     min_speed: float = 0.0015
 
     def __post_init__(self) -> None:
-        if self.sub_step <= 0:
+        for key, value, allowed in (
+                ("structure", self.structure, ("open_loop", "closed_loop")),
+                ("input_hold", self.input_hold, ("linear", "zoh")),
+                ("reference_hold", self.reference_hold, ("cubic", "linear", "zoh"))):
+            if value not in allowed:
+                raise ValueError(f"{key} must be one of {list(allowed)}, not {value!r}")
+        if not self.sub_step > 0:
             raise ValueError("sub_step must be > 0")
-        if self.input_hold not in ("linear", "zoh"):
-            raise ValueError(f"input_hold must be 'linear' or 'zoh', not {self.input_hold!r}")
+        closed = self.structure == "closed_loop"
+        if self.drive is not None and not closed:
+            raise ValueError("drive: describes the valve controller of a closed-loop twin; an "
+                             "open-loop twin is driven by the measured valve area")
+        if isinstance(self.drive, Mapping):
+            try:
+                self.drive = ValveDriveConfig.model_validate(self.drive)
+            except ValidationError as exc:
+                err = exc.errors()[0]
+                loc = ".".join(str(part) for part in err["loc"])
+                raise ValueError(f"drive{'.' + loc if loc else ''}: {err['msg']}") from None
+        self._drive = self.drive or ValveDriveConfig()
+        if closed:
+            try:
+                self._drive.ticks(self.sub_step)
+            except ValueError as exc:
+                raise ValueError(f"drive.{exc}") from None
         self.parameters = HYDRAULIC_PARAMETERS
-        self.inputs = ("A_valve", "F_load")
         self.outputs = (
             OutputSpec("x", "m", self.position_scale),
             OutputSpec("p", "Pa", self.pressure_scale),
         )
-        self.exogenous = ("A_valve", "F_load")
-        # x is the state; p follows from it algebraically (Eq. 16) and enters only the first
-        # sub-step's valve flow, so its offset would wander undetermined.
-        self.initial_states = ("x",)
+        if closed:
+            # A_valve: the controller's initial state (its integrator) and the area while it
+            # sits at a limit, and an output compared with the measurement.
+            self.inputs = ("x_ref", "F_load", "A_valve")
+            self.outputs = (*self.outputs, OutputSpec("A_valve", "m^2", self.area_scale))
+            self.exogenous = ("x_ref", "F_load")
+            # x starts from the measurement (with an offset); p follows x algebraically (Eq.
+            # 16); the integrator follows from the measured area (an offset there would do
+            # nothing in a window that starts at a limit: a dead column in the fit).
+            self.initial_states = ("x",)
+        else:
+            self.inputs = ("A_valve", "F_load")
+            self.exogenous = ("A_valve", "F_load")
+            # x is the state; p follows from it algebraically (Eq. 16) and enters only the
+            # first sub-step's valve flow, so its offset would wander undetermined.
+            self.initial_states = ("x",)
         self.attach_points = (
             AttachPoint("p", "multiplicative", "1", "pressure"),
             AttachPoint("d(x)/dt", "additive", "m/s", "piston position"),
         )
+
+    @property
+    def drive_config(self) -> ValveDriveConfig:
+        """The valve controller the closed-loop twin runs (``drive``, or the paper's PID)."""
+        return self._drive
 
     def excitation(self, window: WindowData) -> dict[str, str]:
         """D is not excited while the piston nearly stands still (see ``min_speed``)."""
@@ -257,8 +629,9 @@ class HydraulicActuatorTwin(TwinModel):
         Args:
             theta: (P, 6) parameters: k_spring [N/m], D [N/(m/s)], q_pump [m^3/s],
                 A_max [m^2], A_piston [m^2], F_resist [N].
-            window: needs ``A_valve``, ``F_load``, ``x`` and ``p`` (N samples); the twin starts
-                from the measured x and p of the first sample.
+            window: needs ``A_valve``, ``F_load``, ``x``, ``p`` and, closed loop, ``x_ref``
+                (N samples); the twin starts from the measured x and p of the first sample
+                (closed loop: the controller from the measured area, module docstring).
             terms: ``p`` (dimensionless; ``U[k]`` multiplies the pressure equation on the
                 sub-steps of step k-1 -> k, so sample k's pressure) and/or ``d(x)/dt`` [m/s]
                 (``f_x[k]`` added to the piston velocity over step k -> k+1); values of shape
@@ -267,8 +640,9 @@ class HydraulicActuatorTwin(TwinModel):
                 (the estimator's initial-state estimate); None: 0.
 
         Returns:
-            (P, N, 2): x [m], p [Pa]. A particle that blows up (non-finite state, negative
-            pressure) gives nan from that sample on; nothing raises.
+            (P, N, 2): x [m], p [Pa]; closed loop (P, N, 3): x, p, A_valve [m^2]. A particle
+            that blows up (non-finite state, negative pressure) gives nan from that sample on;
+            nothing raises.
 
         Raises:
             KeyError: an unknown attach point in ``terms``.
@@ -294,8 +668,68 @@ class HydraulicActuatorTwin(TwinModel):
         off = np.zeros((p, 1)) if initial is None else np.broadcast_to(
             np.atleast_2d(np.asarray(initial, dtype=float)), (p, 1))
         x0 = np.ascontiguousarray(float(window["x"][0]) + off[:, 0])
+        if self.structure == "closed_loop":
+            return self._simulate_closed(theta, window, n_sub, u_p, f_x, x0)
         p0 = np.full(p, float(window["p"][0]))
         y = np.empty((p, n, 2))
         _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, self.sub_step,
                          self.input_hold == "linear", u_p, f_x, y)
         return y
+
+    def _simulate_closed(self, theta: FloatArray, window: WindowData, n_sub: int,
+                         u_p: FloatArray, f_x: FloatArray, x0: FloatArray) -> FloatArray:
+        """The closed loop through :func:`_closed_kernel`: (P, N, 3) x, p, A_valve."""
+        dr = self._drive
+        m, ph = dr.ticks(self.sub_step)
+        n = window.n
+        # The controller's clock is absolute (phase from t = 0): its updates relative to the
+        # window's first sample.
+        j0 = int(round(float(window.t[0]) / self.sub_step))
+        t_off = ph - j0 if ph >= j0 else (ph - j0) % m
+        ticks = np.arange(t_off, (n - 1) * n_sub + 1, m)
+        r_s = np.ascontiguousarray(window["x_ref"], dtype=float)
+        r_t = self._interpolate(r_s, ticks / n_sub, self.reference_hold)
+        loop = dr.pack(math.inf)
+        hi_is_amax = dr.valve.output_max is None
+        span = (float(np.max(theta[:, 3])) if hi_is_amax else loop[5]) - loop[4]
+        lo = loop[4]
+        a_meas = np.asarray(window["A_valve"], dtype=float)
+        tol = LIMIT_TOLERANCE * abs(span)
+        limited = (a_meas <= lo + tol) | (a_meas >= lo + span - tol)
+        # the first sample at a limit after each sample (n if none)
+        nxt = np.where(limited, np.arange(n), n)
+        stretch = np.minimum.accumulate(np.append(nxt, n)[::-1])[::-1][1:]
+        y = np.empty((theta.shape[0], n, 3))
+        _closed_kernel(theta, np.ascontiguousarray(a_meas),
+                       np.ascontiguousarray(window["x"], dtype=float),
+                       np.ascontiguousarray(window["p"], dtype=float),
+                       np.ascontiguousarray(window["F_load"], dtype=float), r_s, r_t,
+                       int(t_off), int(m), np.ascontiguousarray(stretch, dtype=np.int64), x0,
+                       n_sub, self.sub_step, self.input_hold == "linear", loop, hi_is_amax, tol,
+                       SPLIT_SAMPLES, u_p, f_x, y)
+        return y
+
+    @staticmethod
+    def _interpolate(r_s: FloatArray, u: FloatArray, how: str) -> FloatArray:
+        """A sampled signal ``r_s`` (N,) at fractional sample positions ``u`` (M,): ``zoh``,
+        ``linear`` or ``cubic`` (Lagrange through the four nearest samples, one-sided at the
+        ends); exact at the samples."""
+        n = r_s.size
+        k = np.minimum(np.floor(u).astype(np.int64), n - 1)
+        w = u - k
+        if how == "zoh" or n == 1:
+            return np.ascontiguousarray(r_s[k])
+        if how == "linear" or n < 4:
+            k1 = np.minimum(k + 1, n - 1)
+            return np.ascontiguousarray(r_s[k] + w * (r_s[k1] - r_s[k]))
+        # Lagrange cubic through the four nearest samples (one-sided at the window's ends)
+        base = np.clip(k - 1, 0, n - 4)
+        t = u - base  # position in the four-node stencil 0..3
+        out = np.zeros_like(u)
+        for i in range(4):
+            li = np.ones_like(u)
+            for jn in range(4):
+                if jn != i:
+                    li *= (t - jn) / (i - jn)
+            out += li * r_s[base + i]
+        return np.ascontiguousarray(out)
