@@ -45,6 +45,13 @@ class IdentifyConfig(BaseModel):
         "recording [start, end); the fit is scored there, never fitted")
     weights: dict[str, float] = Field(default_factory=dict, description="output -> weight in "
                                       "the fitness (default 1)")
+    estimate: list[str] | None = Field(
+        None, description="parameters to identify (default: [estimation] estimate); a long "
+        "recording determines more than one window (a warm-up law, the sensing's "
+        "hypotheses), which the monitoring then holds at the identified values")
+    bounds: dict[str, tuple[float, float]] = Field(
+        default_factory=dict, description="parameter -> [low, high] in SI units for the "
+        "identification, over [estimation] bounds (a cold start searches wider than a window)")
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(pop_size=30,
                                                                  max_generations=100))
     time_budget: float = Field(120.0, gt=0, allow_inf_nan=False,
@@ -62,7 +69,37 @@ class IdentifyConfig(BaseModel):
         for name, w in self.weights.items():
             if not (w >= 0 and math.isfinite(w)):
                 raise ValueError(f"weights.{name}: must be a finite number >= 0")
+        if self.estimate is not None and len(set(self.estimate)) != len(self.estimate):
+            raise ValueError("estimate: a parameter is listed twice")
+        for name, (lo, hi) in self.bounds.items():
+            if not (0 < lo < hi and math.isfinite(hi)):
+                raise ValueError(f"bounds.{name}: need 0 < low < high, got [{lo}, {hi}]")
         return self
+
+    def check_against(self, model: TwinModel) -> None:
+        """Raise ValueError naming the key (``identify.<key>``) if an output or a parameter
+        is not the model's."""
+        for name in self.weights:
+            if name not in model.output_names:
+                raise ValueError(f"identify.weights.{name}: not an output of the model "
+                                 f"{list(model.output_names)}")
+        names = model.parameter_names
+        for key, group in (("estimate", self.estimate or []), ("bounds", list(self.bounds))):
+            for name in group:
+                if name not in names:
+                    raise ValueError(f"identify.{key}: unknown parameter {name!r}; the model "
+                                     f"has {sorted(names)}")
+
+    def estimation(self, estimation: EstimationConfig) -> EstimationConfig:
+        """The ``[estimation]`` table as the identification uses it: this table's
+        ``estimate`` and ``bounds`` over it (a tie whose parameter is identified is dropped).
+        """
+        if self.estimate is None and not self.bounds:
+            return estimation
+        estimate = list(self.estimate) if self.estimate is not None else estimation.estimate
+        tie = {d: s for d, s in (estimation.tie or {}).items() if d not in (estimate or [])}
+        return estimation.model_copy(update={"estimate": estimate, "tie": tie,
+                                             "bounds": {**estimation.bounds, **self.bounds}})
 
 
 @dataclass
@@ -148,7 +185,8 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     Args:
         model: the twin (its structure and options as configured).
         estimation: the ``[estimation]`` table: which parameters, their bounds, ties, the
-            ``model_error`` floor and the validation settings.
+            ``model_error`` floor and the validation settings (``config.estimate`` and
+            ``config.bounds`` override the first two).
         config: the ``[identify]`` table.
         train, validation: contiguous stretches of the recording, every channel the model
             needs, finite.
@@ -171,7 +209,7 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
                 raise ValueError(f"the recording has no channel {ch!r} ({what} range)")
             if not np.all(np.isfinite(w.channels[ch])):
                 raise ValueError(f"channel {ch!r} holds NaN or inf in the {what} range")
-    est = Estimator(model, estimation, nominal)
+    est = Estimator(model, config.estimation(estimation), nominal)
     cfg = est.config
     names_est = list(cfg.estimate or [])
     fit = WindowFit(model, train, config.weights)
