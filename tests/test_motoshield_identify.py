@@ -17,7 +17,6 @@ import pytest
 from twinwatch.config.loader import load_config
 from twinwatch.daemon.commission import commission
 from twinwatch.daemon.runner import Daemon
-from twinwatch.twin.estimation import PSOSettings
 from twinwatch.twin.identify import Identification
 
 from .conftest import ROOT, shared_path
@@ -32,14 +31,14 @@ TARGET = {"omega": 80.0, "ia": 50.0}
 @pytest.fixture(scope="module")
 def commissioned() -> tuple[Any, Identification]:
     """The identify command on the config, started from the model's generic defaults (the
-    config's values came from this command: starting there would prove nothing), with a tenth
-    of the config's search budget (20 x 30 PSO instead of 40 x 150)."""
+    config's values came from this command: starting there would prove nothing), with one of
+    the config's four starts (a quarter of its search budget)."""
     shared_path("data", "motoshield", "aprbsResult.mat")
     cfg = load_config(CONFIG)
+    assert cfg.identify.starts == 4 and cfg.identify.pso.pop_size == 20
     cold = cfg.model_copy(update={
         "machine": cfg.machine.model_copy(update={"parameters": {}}),
-        "identify": cfg.identify.model_copy(update={
-            "pso": PSOSettings(pop_size=20, max_generations=30)})})
+        "identify": cfg.identify.model_copy(update={"starts": 1})})
     result, data = commission(cold, CONFIG.parent)
     assert data.t.size == 4801 and data.dropped == 0
     return cfg, result

@@ -186,20 +186,26 @@ def test_options_are_checked_and_named():
 
 
 def test_identify_recovers_a_synthetic_motor_with_the_identify_table():
-    """Commissioning on a recording made by the twin itself (speed quantised as the encoder
-    quantises it): ``[identify] estimate`` and ``bounds`` widen what the monitoring estimates;
-    the identified values cover the truth within their intervals."""
+    """Commissioning on a recording made by the twin itself (the speed counted in encoder
+    edges, as the MotoShield counts it): ``[identify] estimate`` and ``bounds`` widen what the
+    monitoring estimates; the identified values cover the truth within their intervals."""
     model = _motoshield()
     rec = _record(model, 1600, TRUE, seed=3)
-    tick = 2 * math.pi / 14 / TS
-    rec.channels["omega"] = np.round(rec["omega"] / tick) * tick
+    # the encoder: 14 edges per turn counted over each sample (the angle is the mean speed's sum)
+    edges = np.floor(np.cumsum(rec["omega"]) * TS / (2 * math.pi / 14))
+    rec.channels["omega"] = np.diff(edges, prepend=0.0) * (2 * math.pi / 14 / TS)
     train, val = _cut(rec, 0, 800), _cut(rec, 800, 1600)
     start = dict(TRUE, Ke=0.005, Kt=0.005, J=2e-8, D=1e-8, Ra=60.0)
     est = EstimationConfig(estimate=["Ke"], tie={"Kt": "Ke"}, model_error=0.0)
     names = ["Ra", "Ke", "J", "D"]
     cfg = IdentifyConfig(estimate=names, bounds={"Ra": (10.0, 1000.0), "J": (1e-10, 1e-6)},
-                         pso=PSOSettings(pop_size=10, max_generations=10), time_budget=20.0)
+                         pso=PSOSettings(pop_size=10, max_generations=10), time_budget=20.0,
+                         starts=2)
     r = identify(model, est, cfg, train, val, start)
+    # Two starts: the second swarm continues the generator; the best training fit is kept.
+    assert len(r.starts) == 2 and r.nrmse == min(r.starts)
+    one = identify(model, est, cfg.model_copy(update={"starts": 1}), train, val, start)
+    assert one.starts == [r.starts[0]] and r.nrmse <= one.nrmse
     assert r.estimated == names and r.values["Kt"] == r.values["Ke"]
     assert r.bounds["Ra"] == (10.0, 1000.0) and r.bounds["J"] == (1e-10, 1e-6)
     assert r.bounds["Ke"] == pytest.approx((0.001, 0.025))  # the default: nominal/5 .. *5
@@ -207,7 +213,7 @@ def test_identify_recovers_a_synthetic_motor_with_the_identify_table():
         assert abs(math.log(r.values[name] / TRUE[name])) <= max(3 * r.rel_std[name], 1e-3), \
             (name, r.values[name], r.rel_std[name])
     assert r.values["Ke"] == pytest.approx(TRUE["Ke"], rel=0.01)
-    assert r.validation.fit_pct["omega"] > 90 and r.validation.fit_pct["ia"] > 99
+    assert r.validation.fit_pct["omega"] > 85 and r.validation.fit_pct["ia"] > 99  # counts cap it
 
 
 def test_identify_table_names_a_bad_key(tmp_path):

@@ -18,6 +18,7 @@ residuals of both stretches go through the model check of the monitoring
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Mapping
@@ -30,6 +31,8 @@ from twinwatch.twin.estimation import EstimationConfig, Estimator, PSOSettings
 from twinwatch.twin.fit import LocalFit, WindowFit, pso_minimize, relative_std
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 from twinwatch.twin.statistics import ModelCheck
+
+logger = logging.getLogger(__name__)
 
 
 class IdentifyConfig(BaseModel):
@@ -55,7 +58,11 @@ class IdentifyConfig(BaseModel):
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(pop_size=30,
                                                                  max_generations=100))
     time_budget: float = Field(120.0, gt=0, allow_inf_nan=False,
-                               description="wall-time cap of the global search [s]")
+                               description="wall-time cap of the global searches [s], shared "
+                               "by the starts")
+    starts: int = Field(1, ge=1, le=100, description="independent global searches, each "
+                        "polished by least squares; the best training fit is kept (a long "
+                        "free-run problem has local optima a single swarm may settle in)")
     seed: int = 0
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
@@ -139,6 +146,8 @@ class Identification:
         estimated, tied, fixed: the parameters by role.
         train, validation: the scores on both stretches.
         elapsed_s: wall time [s]; evaluations: twin simulations of one parameter vector.
+        nrmse: the training fitness (weighted normalised RMSE) at the result.
+        starts: the training fitness each start reached (``[identify] starts``), in order.
     """
 
     values: dict[str, float]
@@ -151,6 +160,8 @@ class Identification:
     elapsed_s: float
     evaluations: int
     units: dict[str, str] = field(default_factory=dict)
+    nrmse: float = math.nan
+    starts: list[float] = field(default_factory=list)
 
 
 def fit_percent(measured: FloatArray, simulated: FloatArray) -> float:
@@ -222,15 +233,33 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         return fit.cost(pmap.full(q, base))
 
     q0 = np.clip(pmap.ln(base), xl, xu)
-    sw = pso_minimize(cost, xl, xu, config.pso, rng=rng, time_budget=config.time_budget,
-                      seeds=q0[None, :])
-    q_best = sw.x if sw.cost <= float(cost(q0[None, :])[0]) else q0
+    cost0 = float(cost(q0[None, :])[0])
     local = LocalFit(fit, pmap, base, xl, xu, None,
                      initial=cfg.initial_state and bool(model.initial_states))
     n_est = len(names_est)
-    v, r, jac = local.refine(local.start(q_best), np.arange(n_est + local.n_init))
-    # a second polish from the first: the long free-run problem is stiffer than a window's
-    v, r, jac = local.refine(v, np.arange(n_est + local.n_init))
+    active = np.arange(n_est + local.n_init)
+    best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
+    reached: list[float] = []
+    t_global = time.perf_counter()
+    for start in range(config.starts):
+        # Each start: a swarm of its own (the configured values one of its particles), then
+        # the local polish; the best training fit of all starts is kept.
+        left = config.time_budget - (time.perf_counter() - t_global)
+        sw = pso_minimize(cost, xl, xu, config.pso, rng=rng,
+                          time_budget=max(left / (config.starts - start), 1e-3),
+                          seeds=q0[None, :])
+        q_best = sw.x if sw.cost <= cost0 else q0
+        v, r, jac = local.refine(local.start(q_best), active)
+        # a second polish from the first: the long free-run problem is stiffer than a window's
+        v, r, jac = local.refine(v, active)
+        sse = float(r @ r)
+        logger.info("identify start %d/%d: PSO %d generations, cost %.6g; polished %.6g",
+                    start + 1, config.starts, sw.generations, sw.cost, math.sqrt(sse))
+        reached.append(math.sqrt(sse))
+        if best is None or sse < best[0]:
+            best = (sse, v, r, jac)
+    assert best is not None
+    _, v, r, jac = best
     sd = relative_std(jac, r, fit.n_out, cfg.model_error)[:n_est]
     theta = pmap.full(v[None, :n_est], base)[0]
     values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
@@ -246,6 +275,8 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         validation=_score(model, est, validation, theta, config.weights, None),
         elapsed_s=time.perf_counter() - t_start,
         evaluations=fit.evaluations,
+        nrmse=math.sqrt(best[0]),
+        starts=reached,
         units={p.name: p.unit for p in model.parameters},
     )
 
