@@ -36,10 +36,12 @@ from twinwatch.twin.model import WindowData  # noqa: E402
 class OneCallPerParticle(DCMotorTwin):
     """The paper's evaluation: the twin simulated once per particle."""
 
-    def simulate(self, theta, window, terms=None):  # type: ignore[no-untyped-def]
-        return np.concatenate([super(OneCallPerParticle, self).simulate(th[None, :], window,
-                                                                        terms)
-                               for th in np.atleast_2d(theta)])
+    def simulate(self, theta, window, terms=None, initial=None):  # type: ignore[no-untyped-def]
+        init = None if initial is None else np.broadcast_to(
+            np.atleast_2d(initial), (np.atleast_2d(theta).shape[0], 2))
+        return np.concatenate([super(OneCallPerParticle, self).simulate(
+            th[None, :], window, terms, None if init is None else init[k])
+            for k, th in enumerate(np.atleast_2d(theta))])
 
 
 def windows(n: int) -> tuple[DCMotorPlant, list[WindowData]]:

@@ -92,7 +92,7 @@ def run_dc(name: str, twin: DCMotorTwin, plant_drive: DriveConfig, noise: dict[s
            "max": float(a.max()) * 100, "within": float(np.mean(a <= target)) * 100,
            "honest": 100.0 * honest / n_est if n_est else math.nan,
            "ms": float(np.median(times)) * 1e3}
-    print(f"{name:<38} {n:>4} {n_est:>4} {flagged:>4}  {row['median']:7.3f} {row['p95']:7.3f} "
+    print(f"{name:<42} {n:>4} {n_est:>4} {flagged:>4}  {row['median']:7.3f} {row['p95']:7.3f} "
           f"{row['max']:7.3f}  {row['within']:6.1f}  {row['honest']:6.1f}  {row['ms']:5.0f}",
           flush=True)
     return row
@@ -161,7 +161,7 @@ def main() -> None:
     ap.add_argument("--skip-fusion", action="store_true")
     args = ap.parse_args()
     n = args.windows
-    print(f"{'scenario (Ra error, %)':<38} {'win':>4} {'est':>4} {'flag':>4}  {'median':>7} "
+    print(f"{'scenario (Ra error, %)':<42} {'win':>4} {'est':>4} {'flag':>4}  {'median':>7} "
           f"{'p95':>7} {'max':>7}  {'within':>6}  {'honest':>6}  {'ms':>5}")
     noisy = {"ia": 1.0, "omega": 1.0}
     for tag, noise in (("noise-free", {}), ("1 % noise", noisy)):

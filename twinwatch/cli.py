@@ -7,6 +7,7 @@ runs, so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_s
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -14,14 +15,12 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from twinwatch import __version__
+from twinwatch.config.samples import DRIVERS as SAMPLE_DRIVERS
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
 
 logger = logging.getLogger("twinwatch")
-
-_SAMPLE_CONFIG = Path(__file__).parent / "config" / "default.toml"
-
 
 def _setup_logging(level: str) -> None:
     logging.basicConfig(
@@ -44,6 +43,25 @@ def main() -> None:
 EX_CONFIG = 78
 """Exit status for an invalid configuration (sysexits.h); the unit does not restart on it."""
 
+EX_IOERR = 74
+"""Exit status when estimated windows were lost: not stored or not recorded (sysexits.h)."""
+
+
+def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
+    """Load CONFIG (or the built-in default) and check it can run here: the files it names
+    and the directories it writes to exist, the driver delivers every channel the twin needs
+    (:mod:`twinwatch.config.preflight`, the check ``check-config`` makes too).
+
+    Raises:
+        ConfigError: naming each bad key, missing file or directory, unmapped channel.
+    """
+    from twinwatch.config.loader import default_config, load_config
+    from twinwatch.config.preflight import check_runnable
+
+    cfg = load_config(config) if config else default_config()
+    check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir)
+    return cfg
+
 
 @main.command()
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
@@ -52,9 +70,20 @@ EX_CONFIG = 78
 @click.option("--log-level", default="warning", show_default=True,
               type=click.Choice(["debug", "info", "warning", "error"], case_sensitive=False))
 @click.option("--no-progress", is_flag=True, help="Do not show the progress bar.")
-def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool) -> None:
+@click.option("--fresh", is_flag=True,
+              help="Start from the nameplate twin and normal alarm levels instead of resuming "
+              "those saved in the state database (its history is kept).")
+def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
+        fresh: bool) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
+
+    The twin and the alarm levels saved in the state database by the previous run are resumed
+    (a line says so); --fresh starts from the nameplate values.
+
+    Exit status: 0; 1 when the daemon cannot start or its driver fails; 78 for a configuration
+    that cannot run here (the systemd unit does not restart on it); 74 when estimated windows
+    were lost (not stored in the state database or not recorded).
 
     Signals: SIGTERM/SIGINT finish the windows already queued (a second one abandons them),
     close the driver, Zenoh, the Rerun file and the state database, and exit 0. SIGHUP
@@ -62,24 +91,34 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     the running configuration goes on; a good one restarts the daemon in-process, keeping the
     Zenoh session, the Rerun file and the state database open when their tables are unchanged,
     and resuming the twin from the state database."""
-    from twinwatch.config.loader import ConfigError, default_config, load_config
+    from twinwatch.config.loader import ConfigError
     from twinwatch.daemon.supervisor import StartError, Supervisor
 
-    def load() -> TwinwatchConfig:
-        return load_config(config) if config else default_config()
+    base_dir = config.resolve().parent if config else Path.cwd()
 
-    supervisor = Supervisor(load, base_dir=config.resolve().parent if config else Path.cwd(),
+    def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
+        return _load_runnable(config, base_dir)
+
+    supervisor = Supervisor(load, base_dir=base_dir, resume=not fresh,
                             source=str(config) if config else "the built-in default")
     _setup_logging(log_level)
+    # Files the daemon creates (state database, recordings, layout) are 0640 and directories
+    # 0750, as under the unit's UMask=0027, also when run by hand; a stricter umask is kept.
+    old_umask = os.umask(0o027)
+    os.umask(old_umask | 0o027)
+    click.get_current_context().call_on_close(lambda: os.umask(old_umask))
     try:
         supervisor.start()
     except ConfigError as exc:
         click.echo(f"Error: {exc}", err=True)
         sys.exit(EX_CONFIG)
     except StartError as exc:
-        raise click.ClickException(f"cannot start: {exc}") from None
+        click.echo(f"Error: cannot start: {exc}", err=True)
+        sys.exit(EX_CONFIG if exc.config_error else 1)
     cfg = supervisor.config
-    assert cfg is not None
+    assert cfg is not None and supervisor.daemon is not None
+    if supervisor.daemon.resumed is not None:
+        click.echo(_resumed_line(supervisor.daemon), err=True)
 
     from twinwatch.drivers import get_driver_class
 
@@ -104,15 +143,45 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
             bar.refresh()
 
         supervisor.add_callback(_progress)
+    failure: str | None = None
     try:
         supervisor.run(duration=duration)
     except StartError as exc:
-        raise click.ClickException(f"cannot restart after a reload: {exc}") from None
+        failure = f"cannot restart after a reload: {exc}"
+    except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
+        logger.debug("run failed", exc_info=True)
+        failure = (f"internal error: {type(exc).__name__}: {exc} (run with --log-level debug "
+                   f"for the traceback, and please report it)")
     finally:
         if bar is not None:
             bar.close()
     assert supervisor.config is not None and supervisor.daemon is not None
-    _print_summary(supervisor.config, supervisor.daemon)
+    daemon = supervisor.daemon
+    _print_summary(supervisor.config, daemon)
+    failure = failure or daemon.failure
+    if failure is not None:
+        supervisor.notifier.status(f"stopped: {failure}")
+        click.echo(f"Error: {failure}", err=True)
+        sys.exit(1)
+    if daemon.lost():
+        supervisor.notifier.status("stopped: " + "; ".join(daemon.problems()))
+        sys.exit(EX_IOERR)
+
+
+def _resumed_line(daemon: Any) -> str:
+    """One line saying what was resumed from the state database, and how not to."""
+    r = daemon.resumed
+    what = []
+    if daemon.restored is not None:
+        where = (f" of window {r['window']} (t = {r['t_end']:.2f} s)"
+                 if r.get("window") is not None and r.get("t_end") is not None else "")
+        values = ", ".join(f"{k} = {v:.6g}" for k, v in r["trusted"].items())
+        what.append(f"the twin{where} ({values}"
+                    + (f"; {r['terms']} meta-model term(s)" if r["terms"] else "") + ")")
+    if r["alarms"]:
+        what.append("alarm levels " + ", ".join(f"{k} {v}" for k, v in r["alarms"].items()))
+    return (f"twinwatch: resumed from {r['path']}: {' and '.join(what) or 'the last state'}; "
+            f"to start from the nameplate values instead: twinwatch run --fresh")
 
 
 def _print_summary(cfg: Any, daemon: Any) -> None:
@@ -121,8 +190,11 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
                f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
                f"(gaps/bad samples), {c['numeric_failures']} numeric failures")
+    for line in _source_lines(cfg, daemon):
+        click.echo(line)
     if last is None:
-        click.echo("no window was completed: the source delivered fewer samples than one window")
+        for line in _loss_lines(daemon):
+            click.echo(line)
         return
     click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
                f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
@@ -139,6 +211,14 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
         click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
                    f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
                    f"{status}")
+    raised = {k: a for k, a in (last.get("alarms") or {}).items()
+              if a.get("level") not in (None, "normal")}
+    if raised:
+        click.echo("alarms: " + "; ".join(
+            f"{k} {a['level']}"
+            + (f" since plant time {a['since_t']:.0f} s" if a.get("since_t") is not None else "")
+            + (f" ({a['deviation_pct']:+.2f} % vs nominal)" if a.get("deviation_pct") is not None
+               else "") for k, a in raised.items()))
     disc = last.get("discovery") or {}
     if disc.get("enabled"):
         terms = last.get("terms") or []
@@ -179,16 +259,77 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
     if cfg.zenoh.enabled:
         click.echo(f"health was published on {cfg.zenoh.key_prefix}/{cfg.machine.name}/health "
                    f"(zenoh, listening on {', '.join(cfg.zenoh.listen) or 'nothing'})")
+    for line in _loss_lines(daemon):
+        click.echo(line)
+
+
+def _source_lines(cfg: Any, daemon: Any) -> list[str]:
+    """What the source delivered and what was lost of it, by reason, with the cause when no
+    window could be completed."""
+    ring = daemon.ring
+    lost = sum(ring.lost.values())
+    window = cfg.acquisition.window
+    lines = []
+    if lost:
+        reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
+        lines.append(f"source: {ring.samples} samples received, {lost} not in any window "
+                     f"({reasons})")
+    if daemon.latest is not None or daemon.windows_estimated:
+        return lines
+    if ring.samples == 0:
+        lines.append(f"no window was completed: the {cfg.driver.type} driver delivered no "
+                     "sample (see the log for why)")
+    elif not lost:
+        lines.append(f"no window was completed: the source delivered {ring.samples} samples, "
+                     f"fewer than one window ({window})")
+    elif ring.windows == 0:
+        reason, n = ring.lost.most_common(1)[0]
+        cause = f"{n} of {ring.samples} samples lost to {reason}"
+        if reason.startswith("sample without channel"):
+            ch = reason.split("channel ", 1)[1]
+            cause = f"every sample lacks channel {ch}" if n == ring.samples else cause
+            cause += f": map {ch} in [driver]"
+            if ch == "'setpoint'" and getattr(daemon.model, "structure", None) == "closed_loop":
+                cause += ' or use machine.options.structure = "open_loop"'
+        elif reason.startswith("NaN or inf"):
+            cause += ": check the mapping (scale, units) and the sensor"
+        elif "time stamp" in reason:
+            cause += (f": the time stamps do not step by acquisition.sample_period "
+                      f"({cfg.acquisition.sample_period:g} s)")
+        lines.append(f"no window was completed: {cause}")
+    else:
+        lines.append("no window was estimated (see the log for why)")
+    return lines
+
+
+def _loss_lines(daemon: Any) -> list[str]:
+    """Windows estimated but not stored, not published or not recorded."""
+    lines = []
+    store = daemon.store_stats
+    if store["not_stored"]:
+        late = store["not_stored"] - store["lost"] - store["waiting"]
+        lines.append(f"state database: {store['not_stored']} windows could not be stored when "
+                     f"estimated, so they were not published ({max(late, 0)} written later, "
+                     f"served by the history query; {store['lost']} lost)")
+    lost = daemon.lost()
+    if "recording" in lost:
+        lines.append(f"recording: {lost['recording']} windows could not be recorded (the "
+                     "Rerun file writer failed: see the log)")
+    if lost:
+        lines.append("twinwatch: estimated windows were lost: exit status 74")
+    return lines
 
 
 @main.command("check-config")
 @click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
 def check_config(config: Path) -> None:
-    """Validate CONFIG; exit 0 if it is usable, 1 naming each bad key otherwise."""
-    from twinwatch.config.loader import ConfigError, load_config
+    """Validate CONFIG and check it can run here (the files it names and the directories it
+    writes to exist, the driver delivers every channel the twin needs: what `run` checks
+    before it starts); exit 0 if it is usable, 1 naming each bad key otherwise."""
+    from twinwatch.config.loader import ConfigError
 
     try:
-        cfg = load_config(config)
+        cfg = _load_runnable(config, config.resolve().parent)
     except ConfigError as exc:
         click.echo(str(exc), err=True)
         sys.exit(1)
@@ -308,9 +449,16 @@ def _outputs(cfg: Any) -> list[str]:
 
 
 @main.command("sample-config")
-def sample_config() -> None:
-    """Print a commented sample configuration (the built-in default)."""
-    click.echo(_SAMPLE_CONFIG.read_text(encoding="utf-8"), nl=False)
+@click.option("--driver", type=click.Choice(list(SAMPLE_DRIVERS)), default="simulated",
+              show_default=True,
+              help="Print the complete example for this driver (every key documented).")
+def sample_config(driver: str) -> None:
+    """Print a commented sample configuration: every key of every table it uses, optional ones
+    commented out with their default (without --driver: the built-in default, the simulated
+    DC motor)."""
+    from twinwatch.config.samples import sample_config as sample
+
+    click.echo(sample(driver), nl=False)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,6 +9,7 @@ configuration file's directory.
 
 from __future__ import annotations
 
+import math
 import os
 import stat
 import tomllib
@@ -37,16 +38,33 @@ def _format(exc: ValidationError, source: str) -> str:
     return "\n".join(lines)
 
 
+def _non_finite(data: Any, path: str = "") -> list[str]:
+    """Keys holding ``nan`` or ``inf`` (TOML has both): no key of a configuration takes them."""
+    if isinstance(data, float):
+        return [] if math.isfinite(data) else [f"  {path}: must be a finite number, not {data}"]
+    if isinstance(data, dict):
+        return [e for k, v in data.items() for e in _non_finite(v, f"{path}.{k}" if path else k)]
+    if isinstance(data, list):
+        return [e for i, v in enumerate(data) for e in _non_finite(v, f"{path}.{i}")]
+    return []
+
+
 def validate_config(data: dict[str, Any], source: str = "<config>") -> TwinwatchConfig:
     """Validate a parsed configuration.
 
     Raises:
-        ConfigError: naming each bad key and why.
+        ConfigError: naming each bad key and why (``nan`` and ``inf`` are refused anywhere).
     """
+    bad = _non_finite(data)
+    if bad:
+        raise ConfigError("\n".join([f"{source}: invalid configuration", *bad]))
     try:
         return TwinwatchConfig.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_format(exc, source)) from None
+    except (ArithmeticError, TypeError) as exc:  # a validator computing with a huge value
+        raise ConfigError(f"{source}: invalid configuration: a value is out of range "
+                          f"({type(exc).__name__}: {exc})") from None
 
 
 def load_config(path: str | Path) -> TwinwatchConfig:

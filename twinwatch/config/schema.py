@@ -30,6 +30,7 @@ Layout::
 from __future__ import annotations
 
 import importlib
+import math
 import re
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -57,6 +58,10 @@ from twinwatch.drivers import (
 )
 
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+
+MAX_WINDOW = 100_000
+"""Most samples per window: the ring buffer holds 4 windows of every channel, and the twin
+simulates a window per candidate (100,000 samples is 1000 s at 10 ms)."""
 
 
 def _twin_class(path: str) -> Any:
@@ -99,7 +104,9 @@ class MachineConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    name: str = Field(description="machine name: the Zenoh key segment (letters, digits, _ -)")
+    name: str = Field(max_length=64,
+                      description="machine name: the Zenoh key segment (letters, digits, _ -; "
+                      "at most 64)")
     model: str = Field("dc_motor", description="twin model (registry name)")
     parameters: dict[str, float] = Field(
         default_factory=dict, description="nominal (nameplate) values [SI] overriding the "
@@ -114,17 +121,27 @@ class MachineConfig(BaseModel):
             raise ValueError("use letters, digits, '_' and '-' only (it is a Zenoh key segment)")
         return v
 
+    @field_validator("parameters")
+    @classmethod
+    def _physical(cls, v: dict[str, float]) -> dict[str, float]:
+        for name, value in v.items():
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"{name} = {value}: a nameplate value must be a finite "
+                                 f"number >= 0 (the deviation and the alarms are measured "
+                                 f"from it)")
+        return v
+
 
 class AcquisitionConfig(BaseModel):
     """``[acquisition]``: windows and buffering (paper: 200 samples every 10 ms)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    sample_period: float = Field(0.01, gt=0, description="nominal sample period [s]")
-    window: int = Field(200, ge=10, description="samples per estimation window")
+    sample_period: float = Field(0.01, gt=0, le=3600, description="nominal sample period [s]")
+    window: int = Field(200, ge=10, le=MAX_WINDOW, description="samples per estimation window")
     max_gap: float = Field(1.5, gt=1, description="largest time-stamp step, in sample periods")
-    queue: int = Field(4, ge=1, description="windows waiting for the estimator")
-    history: int = Field(1000, ge=1, description="health messages kept in memory")
+    queue: int = Field(4, ge=1, le=1000, description="windows waiting for the estimator")
+    history: int = Field(1000, ge=1, le=100_000, description="health messages kept in memory")
     stall_timeout: float = Field(5.0, gt=0, description="seconds without a sample before a "
                                  "stall is reported")
     watchdog: Literal["windows", "alive"] = Field(
@@ -181,8 +198,9 @@ class TwinwatchConfig(BaseModel):
 
         try:
             model = create_model(self.machine.model, self.machine.options)
-        except ValueError as exc:
-            raise ValueError(f"machine: {exc}") from exc
+        except (ValueError, ArithmeticError, TypeError) as exc:
+            # a model option out of range may fail in arithmetic, not only in validation
+            raise ValueError(f"machine: {exc or type(exc).__name__}") from exc
         for name in self.machine.parameters:
             if name not in model.parameter_names:
                 raise ValueError(f"machine.parameters.{name}: unknown parameter; the "

@@ -12,7 +12,11 @@ The health message is typed (:class:`~twinwatch.twin.health.HealthMessage`), bui
 encoded once (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): every sink writes the same
 text. The sinks share one small protocol, :class:`WindowSink`: ``write(ProcessedWindow)`` and
 ``close()``. Their order is the guarantee "stored before published": a health message a
-subscriber has seen is always in the state database, also after SIGKILL.
+subscriber has seen is always in the state database, also after SIGKILL. The state store is the
+pipeline's :attr:`~WindowPipeline.gate`: a window it cannot store (a full disk, a read-only
+file; it waits in the store's backlog) is not given to the sinks that publish
+(``publishes = True``, the Zenoh publisher), and its alarm events wait for the next window
+that is stored; the recorder still records it.
 
 The pipeline holds no thread: :class:`~twinwatch.daemon.runner.Daemon` calls
 :meth:`WindowPipeline.process` from its ``twinwatch-adaptation`` worker, one window at a time.
@@ -20,6 +24,7 @@ The pipeline holds no thread: :class:`~twinwatch.daemon.runner.Daemon` calls
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import threading
@@ -65,10 +70,14 @@ class ProcessedWindow:
 
 
 class WindowSink(Protocol):
-    """Where processed windows go: the state store, the Zenoh publisher, the Rerun recorder."""
+    """Where processed windows go: the state store, the Zenoh publisher, the Rerun recorder.
 
-    def write(self, out: ProcessedWindow) -> None:
-        """Take one processed window (called from the adaptation worker)."""
+    A sink with a true ``publishes`` attribute makes the window visible to others (Zenoh): it
+    gets only the windows the pipeline's gate (the state store) has stored."""
+
+    def write(self, out: ProcessedWindow) -> Any:
+        """Take one processed window (called from the adaptation worker); the gate returns
+        False when it could not take it."""
 
     def close(self) -> None:
         """Release the sink; idempotent."""
@@ -88,8 +97,11 @@ class WindowPipeline:
 
     Attributes:
         sinks: written in order for each window (the store first: stored before published).
+        gate: the sink that must take a window before the publishing sinks get it (the state
+            store), or None.
         latest: the last health message; ``history`` the last ``history`` of them.
         windows_estimated: windows processed.
+        not_stored: windows the gate could not take when they were processed (not published).
     """
 
     def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
@@ -102,6 +114,9 @@ class WindowPipeline:
         self.nominal = dict(nominal)
         self._counters = counters
         self.sinks: list[WindowSink] = []
+        self.gate: WindowSink | None = None
+        self.not_stored = 0
+        self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
         self.callbacks: list[HealthCallback] = []
         self.latest: dict[str, Any] | None = None
         self.history: deque[dict[str, Any]] = deque(maxlen=history)
@@ -138,8 +153,23 @@ class WindowPipeline:
             self.latest = message
             self.history.append(message)
         logger.info("%s", summary_line(health))
+        stored = True
         for sink in self.sinks:
-            sink.write(out)
+            if sink is self.gate:
+                stored = sink.write(out) is not False
+                self.not_stored += not stored
+            elif getattr(sink, "publishes", False):
+                if not stored:  # served by the history query once the store has written it
+                    self._held_events.extend(out.events)
+                    continue
+                if self._held_events:
+                    sink.write(dataclasses.replace(out, events=[*self._held_events,
+                                                                *out.events]))
+                    self._held_events.clear()
+                else:
+                    sink.write(out)
+            else:
+                sink.write(out)
         for fn in self.callbacks:
             fn(message)
         return message

@@ -52,9 +52,11 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import random
 import re
 import threading
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
@@ -389,6 +391,58 @@ def _explain_open_failure(cfg: ZenohConfig, message: str) -> str:
     )
 
 
+QUERY_LOG_INTERVAL = 60.0
+"""Seconds between two log lines about one client's bad or failing queries [s]."""
+
+
+class RateLimitedLog:
+    """At most one log line per key every ``interval`` seconds; the next line says how many
+    were suppressed (any peer on the network can send queries: it must not flood the journal).
+
+    Args:
+        log: the logger to write to.
+        interval: seconds between two lines of one key.
+        max_keys: keys remembered (the oldest is forgotten beyond it).
+    """
+
+    def __init__(self, log: logging.Logger, interval: float, max_keys: int = 1000) -> None:
+        self._log = log
+        self.interval = interval
+        self.max_keys = max_keys
+        self._last: dict[str, tuple[float, int]] = {}
+        self._lock = threading.Lock()
+
+    def log(self, key: str, level: int, msg: str, *args: object) -> bool:
+        """Log ``msg % args`` at ``level`` unless ``key`` logged less than ``interval`` ago.
+
+        Returns:
+            True if the line was written.
+        """
+        now = time.monotonic()
+        with self._lock:
+            last, suppressed = self._last.get(key, (-math.inf, 0))
+            if now - last < self.interval:
+                self._last[key] = (last, suppressed + 1)
+                return False
+            self._last.pop(key, None)
+            self._last[key] = (now, 0)
+            while len(self._last) > self.max_keys:
+                self._last.pop(next(iter(self._last)))
+        if suppressed:
+            msg += " (%d similar from %s suppressed in the last %.0f s)"
+            args = (*args, suppressed, key, self.interval)
+        self._log.log(level, msg, *args)
+        return True
+
+
+def _client(query: zenoh.Query) -> str:
+    """Who sent ``query``: its source's zenoh id when the peer sent one, else "a peer"."""
+    info = query.source_info
+    source = getattr(info, "source_id", None) if info is not None else None
+    zid = getattr(source, "zid", None)
+    return f"peer {zid}" if zid is not None else "a peer"
+
+
 class HealthPublisher(Closeable):
     """Publishes one machine's health (and other JSON topics) on zenoh.
 
@@ -410,6 +464,9 @@ class HealthPublisher(Closeable):
         ValueError: ``machine`` is not a valid key chunk.
         PublisherError: the session or a declaration could not be created.
     """
+
+    publishes = True
+    """The window pipeline gives it only the windows the state store has stored."""
 
     def __init__(self, config: ZenohConfig, machine: str, *,
                  retry_connect: bool = False) -> None:
@@ -435,6 +492,7 @@ class HealthPublisher(Closeable):
         self._queryable: zenoh.Queryable[None] | None = None
         self._give_up = threading.Event()
         self._connector: threading.Thread | None = None
+        self._query_log = RateLimitedLog(logger, QUERY_LOG_INTERVAL)
         if not config.enabled:
             logger.info("zenoh publishing disabled for %s", machine)
             return
@@ -610,10 +668,15 @@ class HealthPublisher(Closeable):
                     answer = handler(query)
                 except ValueError as exc:
                     query.reply_err(str(exc))
+                    self._query_log.log(_client(query), logging.WARNING,
+                                        "query %s refused: %s", query.selector, exc)
                     continue
                 except Exception as exc:  # noqa: BLE001 - a query must not kill zenoh's thread
-                    logger.exception("answering %s failed", query.selector)
                     query.reply_err(f"internal error: {exc}")
+                    self._query_log.log(_client(query), logging.ERROR,
+                                        "answering %s failed: %s: %s", query.selector,
+                                        type(exc).__name__, exc)
+                    logger.debug("answering %s failed", query.selector, exc_info=True)
                     continue
                 query.reply(key, to_json(answer), encoding=zenoh.Encoding.APPLICATION_JSON)
         except zenoh.ZError as exc:

@@ -29,6 +29,21 @@ footer: the viewer opens it and ``rerun rrd verify --check-footers false FILE`` 
 plain ``rerun rrd verify`` reports "Missing RRD footer"; ``rerun rrd optimize FILE -o OUT``
 writes a complete copy. The daemon must therefore turn SIGTERM into a normal shutdown.
 
+Faults: the file is locked (``flock``) before it is truncated, so a second twinwatch in the same
+directory fails at start instead of destroying the file of the one running. The disk must keep
+``RerunRecorder.min_free`` bytes free (64 MiB): below that the recording pauses (logged once,
+the windows counted in :attr:`RerunRecorder.lost`) and resumes when there is room again, so a
+slowly filling disk leaves its last space to the state database and never kills the Rerun
+file writer. When the writer dies anyway (the disk filled at once, "File-writer thread shut
+down prematurely" or a flush that times out), the recorder says so (an ERROR, and
+:attr:`RerunRecorder.problem` until it recovers), keeps the broken file under a rotated name
+(its windows are readable; ``rerun rrd optimize`` adds the footer), counts the windows it
+cannot record, and opens a new file at ``path`` on a *new* recording stream after
+``reopen_after`` seconds (doubling while it keeps failing). The dead stream is never touched
+again: with the Rerun SDK 0.41 a flush, a new file or a disconnect on it, and its exit hook,
+wait forever, so its helpers are disabled and Rerun's exit hook is unregistered (the recorder
+closes its own stream).
+
 Memory and rotation: to write the footer, the Rerun SDK (0.41) keeps every chunk's manifest
 entry in memory for the life of the file (``rerun.save(..., write_footer=True)``): about
 13 kB per window here (some 20 chunks per window: one per entity and flush), 13-23 MiB per 1000
@@ -57,6 +72,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from twinwatch._lazy import lazy_module
 from twinwatch._lifecycle import Closeable
+from twinwatch.daemon.locks import FileLock, LockedError
 from twinwatch.io.encoding import to_json
 
 if TYPE_CHECKING:
@@ -132,8 +148,12 @@ def _entity(*parts: str) -> str:
     return "/".join(rr.escape_entity_path_part(p) for p in parts)
 
 
-def _check_writable(path: Path) -> None:
-    """Raise :class:`RecorderError` unless ``path`` can be created or overwritten."""
+def _check_writable(path: Path) -> FileLock:
+    """Lock ``path`` (created empty if absent, not truncated) for this recorder.
+
+    Raises:
+        RecorderError: ``path`` cannot be created or written, or another process holds it.
+    """
     parent = path.parent
     if path.is_dir():
         raise RecorderError(
@@ -152,8 +172,9 @@ def _check_writable(path: Path) -> None:
             "fix its permissions or set [recording].path"
         )
     try:
-        with open(path, "ab"):
-            pass
+        return FileLock(path, "recording", "stop it, or set another [recording].path")
+    except LockedError as exc:
+        raise RecorderError(str(exc)) from None
     except OSError as exc:
         raise RecorderError(f"cannot record to {path}: {exc.strerror or exc}") from exc
 
@@ -186,6 +207,13 @@ class RerunRecorder(Closeable):
     flush_timeout: float = 10.0
     """Seconds a flush may take before the window is counted as an error [s]."""
 
+    reopen_after: float = 30.0
+    """Seconds before the file is reopened after the file writer died; doubles while it keeps
+    dying, up to 30 min [s]."""
+
+    min_free: int = 64 * 2**20
+    """Bytes the disk must keep free for the recording to go on [B]."""
+
     def __init__(
         self,
         config: RecordingConfig,
@@ -208,23 +236,34 @@ class RerunRecorder(Closeable):
         self.path = Path(config.path).expanduser()
         self.windows = 0
         self.errors = 0
-        self._failing = False
+        self.lost = 0
+        self._dead_since: float | None = None  # monotonic time the file writer died
+        self._broken: str | None = None  # why recording stopped for good
+        self._paused: str | None = None  # why recording waits for disk space
+        self._reopen_at = 0.0
+        self._reopen_delay = self.reopen_after
         self._lock = threading.Lock()
         self._rec: rr.RecordingStream | None = None
+        self._file_lock: FileLock | None = None
         self.rotations = 0
         self._file_windows = 0
         if not config.enabled:
             logger.info("rerun recording disabled for %s", machine)
             return
-        _check_writable(self.path)
-        self._rec = self._open_stream()
+        self._file_lock = _check_writable(self.path)
+        self._recording_id = uuid.uuid4()  # every file of this recorder shares it
+        try:
+            self._rec = self._open_stream()
+        except BaseException:
+            self._file_lock.release()
+            raise
         self._closed = False
         logger.info("recording %s to %s", machine, self.path)
 
     def _open_stream(self) -> rr.RecordingStream:
         """The recorder's one recording stream, saving to :attr:`path` with the default
         blueprint; the blueprint is also written once to :attr:`blueprint_path`."""
-        rec = rr.RecordingStream(self.config.application_id, recording_id=uuid.uuid4())
+        rec = rr.RecordingStream(self.config.application_id, recording_id=self._recording_id)
         blueprint = self._blueprint()
         self._attach_file(rec, blueprint=blueprint)
         if not rr.is_enabled(rec):
@@ -269,20 +308,24 @@ class RerunRecorder(Closeable):
         the others use :attr:`blueprint_path`."""
         rec = self._rec
         assert rec is not None
-        self._flush(rec)
+        if not self._flush(rec):
+            return  # the writer died: the file was kept aside and a new one will be opened
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
                                     f"{self.path.suffix}")
         try:
             self.path.rename(aside)  # the open file sink keeps writing to the renamed file
+            self._relock()
             self._attach_file(rec)
         except (OSError, RecorderError) as exc:
             self.errors += 1
             logger.error("cannot rotate the recording %s (%s): recording stops; fix the "
                          "directory's permissions or space and restart", self.path, exc)
             self._closed = True
+            self._broken = f"recording stopped: cannot rotate {self.path} ({exc})"
             self._rec = None
             rec.disconnect()
+            self._release()
             return
         self.rotations += 1
         self._file_windows = 0
@@ -296,6 +339,99 @@ class RerunRecorder(Closeable):
                     old.unlink()
                 except OSError as exc:
                     logger.warning("cannot delete old recording %s: %s", old, exc)
+
+    def _relock(self) -> None:
+        """Lock the file now at :attr:`path` (after a rename) and release the old one."""
+        old = self._file_lock
+        self._file_lock = _check_writable(self.path)
+        if old is not None:
+            old.release()
+
+    def _release(self) -> None:
+        lock, self._file_lock = self._file_lock, None
+        if lock is not None:
+            lock.release()
+
+    @property
+    def problem(self) -> str | None:
+        """Why windows are not being recorded right now (None while recording works)."""
+        if self._broken is not None:
+            return f"{self._broken}; {self.lost} windows not recorded"
+        if self._paused is not None:
+            return f"{self._paused}; {self.lost} windows not recorded"
+        if self._dead_since is None:
+            return None
+        return (f"recording to {self.path} stopped (the file writer died: disk full?); "
+                f"{self.lost} windows not recorded")
+
+    def _free(self) -> int | None:
+        """Free bytes on the recording's file system (None if unknown)."""
+        try:
+            st = os.statvfs(self.path.parent)
+        except OSError:
+            return None
+        return st.f_bavail * st.f_frsize
+
+    def _room(self) -> bool:
+        """True if the disk has ``min_free`` bytes free; pauses and resumes (logged once)."""
+        free = self._free()
+        if free is None or free >= self.min_free:
+            if self._paused is not None:
+                logger.warning("recording to %s resumes: the disk has room again (%d windows "
+                               "were not recorded)", self.path, self.lost)
+                self._paused = None
+            return True
+        if self._paused is None:
+            self._paused = (f"recording to {self.path} paused: {free / 2**20:.0f} MiB free on "
+                            f"its disk, it keeps {self.min_free / 2**20:.0f} MiB for the state "
+                            f"database")
+            logger.error("%s; it resumes when there is room", self._paused)
+        return False
+
+    def _writer_died(self, rec: rr.RecordingStream, exc: BaseException) -> None:
+        """The file sink is gone: abandon the stream (see the module docstring), keep the
+        broken file under a rotated name, and schedule a new file. Called with the lock held."""
+        now = time.monotonic()
+        _bury(rec)
+        self._rec = None
+        if self._dead_since is None:
+            self._dead_since = now
+            logger.error("recording to %s stopped: %s (disk full?); the windows recorded so "
+                         "far are kept, the next ones are counted as not recorded until a new "
+                         "file is opened (in %g s)", self.path, exc, self._reopen_delay)
+        else:
+            self._reopen_delay = min(2 * self._reopen_delay, 1800.0)
+            logger.debug("recording to %s failed again: %s", self.path, exc)
+        if self._file_windows:
+            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+            aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
+                                        f"{self.path.suffix}")
+            try:
+                self.path.rename(aside)
+                self.rotations += 1
+                logger.error("the recording up to the failure is %s (no footer: "
+                             "`rerun rrd optimize` completes it)", aside)
+            except OSError as err:
+                logger.error("cannot keep the broken recording %s aside (%s): it will be "
+                             "overwritten when recording resumes", self.path, err)
+        self._reopen_at = now + self._reopen_delay
+        self._file_windows = 0
+
+    def _reopen(self) -> bool:
+        """A new stream and file at :attr:`path` once ``_reopen_at`` has passed. Called with
+        the lock held. Returns True if recording can go on."""
+        if time.monotonic() < self._reopen_at:
+            return False
+        self._reopen_at = time.monotonic() + self._reopen_delay
+        try:
+            self._relock()
+            self._rec = self._open_stream()
+        except (OSError, RecorderError) as exc:
+            logger.debug("reopening the recording %s failed: %s", self.path, exc)
+            return False
+        logger.warning("recording to %s reopened (a new file) after %.0f s", self.path,
+                       time.monotonic() - (self._dead_since or 0.0))
+        return True
 
     @property
     def closed(self) -> bool:
@@ -419,8 +555,9 @@ class RerunRecorder(Closeable):
             ValueError: a shape, name or value that does not fit the above (nothing recorded).
             TypeError: ``health`` is not JSON-serialisable (nothing recorded).
 
-        A flush that fails or times out is logged (ERROR once, then DEBUG until a flush
-        succeeds) and counted in :attr:`errors`; it is not raised.
+        A flush that fails or times out means the file writer died (a full disk): it is
+        logged once, counted in :attr:`errors`, never raised; the windows that follow are
+        counted in :attr:`lost` until the file is reopened (see the module docstring).
         """
         times, meas, sim, estimates = self._validate(t, measured, simulated, parameters)
         health_json = json.dumps(json.loads(to_json(health)), indent=2)
@@ -430,9 +567,16 @@ class RerunRecorder(Closeable):
         t_end = float(times[-1])
         with self._lock:
             rec = self._rec
-            if self._closed or rec is None:
+            if self._closed:
+                if self._broken is not None:
+                    self.lost += 1
                 logger.debug("recorder of %s closed, dropping window at t=%.3f s", m, t_end)
                 return
+            if not self._room() or (rec is None and not self._reopen()):
+                self.lost += 1
+                return
+            rec = self._rec
+            assert rec is not None
             index = [rr.TimeColumn(TIMELINE, duration=times)]
             for kind, channels in (("measured", meas), ("twin", sim)):
                 for name, values in channels.items():
@@ -468,7 +612,15 @@ class RerunRecorder(Closeable):
                 _entity(m, "log"),
                 rr.TextLog(_summary(float(times[0]), t_end, health), level=level),
             )
-            self._flush(rec)
+            if not self._flush(rec):
+                self.lost += 1
+                return
+            if self._dead_since is not None:
+                logger.warning("recording to %s works again after %.0f s: %d windows were "
+                               "not recorded", self.path, time.monotonic() - self._dead_since,
+                               self.lost)
+                self._dead_since = None
+                self._reopen_delay = self.reopen_after
             self.windows += 1
             self._file_windows += 1
             if self.config.rotate_windows and self._file_windows >= self.config.rotate_windows:
@@ -487,20 +639,19 @@ class RerunRecorder(Closeable):
             terms_changed=out.result.changed,
         )
 
-    def _flush(self, rec: rr.RecordingStream) -> None:
+    def _flush(self, rec: rr.RecordingStream) -> bool:
+        """Flush to the file; False (logged once, counted) if it failed. A file writer that
+        died is detected here (:meth:`_writer_died`)."""
         try:
             rec.flush(timeout_sec=self.flush_timeout)
         except Exception as exc:  # noqa: BLE001 - rerun raises plain exceptions on timeout
+            # "File-writer thread shut down prematurely", or, when it died during this
+            # flush, "Flush timed out": either way the file sink is gone (flushing it again
+            # would block every window for flush_timeout)
             self.errors += 1
-            if not self._failing:
-                logger.error("flushing the recording to %s failed: %s", self.path, exc)
-                self._failing = True
-            else:
-                logger.debug("flushing the recording to %s failed again: %s", self.path, exc)
-            return
-        if self._failing:
-            logger.info("recording to %s works again", self.path)
-            self._failing = False
+            self._writer_died(rec, exc)
+            return False
+        return True
 
     def close(self) -> None:
         """Flush, write the footer and close the file. Idempotent; the file is then complete."""
@@ -509,10 +660,12 @@ class RerunRecorder(Closeable):
                 return
             self._closed = True
             rec, self._rec = self._rec, None
-            if rec is None:
+            if rec is None:  # never opened, or its file writer died (abandoned)
+                self._release()
                 return
-            self._flush(rec)
-            rec.disconnect()
+            if self._flush(rec):
+                rec.disconnect()
+            self._release()
         logger.info(
             "recording of %s closed: %d windows in %s", self.machine, self.windows, self.path
         )
@@ -522,6 +675,22 @@ class RerunRecorder(Closeable):
         return (
             f"RerunRecorder({str(self.path)!r}, {self.machine!r}, {state}, windows={self.windows})"
         )
+
+
+_GRAVEYARD: list[Any] = []
+"""Recording streams whose file writer died: kept referenced so that nothing frees them."""
+
+
+def _bury(rec: rr.RecordingStream) -> None:
+    """Abandon a stream whose file writer died. With the Rerun SDK 0.41 every later flush,
+    disconnect or new file on it, its ``__del__`` (a sweep of orphaned recordings) and the
+    SDK's exit hook wait forever for the dead writer: disable the instance's helpers, keep it
+    referenced for the life of the process, and unregister the exit hook (each recorder
+    disconnects its own stream in :meth:`RerunRecorder.close`)."""
+    rec._flush = lambda *args, **kwargs: None  # type: ignore[method-assign]
+    rec._disconnect_orphaned_recordings = lambda *args, **kwargs: None
+    _GRAVEYARD.append((rec, getattr(rec, "inner", None)))
+    rr.unregister_shutdown()
 
 
 def _model_document(machine: str, t: float, health: Mapping[str, Any]) -> str:

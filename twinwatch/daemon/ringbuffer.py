@@ -4,10 +4,15 @@ The acquisition side appends one sample at a time; every ``window`` consecutive 
 become one :class:`~twinwatch.twin.model.WindowData`. Memory is allocated once.
 
 A window is only ever made of consecutive, finite samples on a regular clock: a time-stamp gap
-(more than ``max_gap`` sample periods), a jump backwards, or a NaN/inf value abandons the
-partial window (counted by reason in :attr:`RingBuffer.discarded`, logged once) and
-acquisition starts a fresh window at the next good sample. Nothing is estimated silently on
-broken data.
+(more than ``max_gap`` sample periods), a jump backwards, a missing channel or a NaN/inf value
+abandons the partial window (logged once per reason) and acquisition starts a fresh window at
+the next good sample. Nothing is estimated silently on broken data.
+
+Loss accounting: :attr:`RingBuffer.lost` counts, by reason, the samples received that did not
+become part of a window (the bad sample itself and the good ones of the partial window it
+cut). :attr:`RingBuffer.discarded` counts, by reason, the *windows* abandoned: a stretch of
+lost samples between two completed windows costs ``ceil(lost / window)`` windows, so a source
+whose every other sample is NaN loses 20 windows over 20 windows of samples, not one per cut.
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ class RingBuffer:
         sample_period: nominal sample period [s].
         capacity: ring size in samples (default 4 windows).
         max_gap: largest allowed step between time stamps, in sample periods.
+        first_index: index of the first window (a reload goes on from the last window of the
+            run instead of numbering from 0 again).
     """
 
     def __init__(
@@ -42,6 +49,7 @@ class RingBuffer:
         sample_period: float = 0.01,
         capacity: int | None = None,
         max_gap: float = 1.5,
+        first_index: int = 0,
     ) -> None:
         if window < 2:
             raise ValueError("window must hold at least 2 samples")
@@ -58,13 +66,28 @@ class RingBuffer:
         self._count = 0  # samples in the current (partial) window
         self._last_t: float | None = None
         self._windows = 0
-        self.discarded: Counter[str] = Counter()  #: reason -> partial windows abandoned
+        self.first_index = first_index
+        self.discarded: Counter[str] = Counter()  #: reason -> windows abandoned
+        self.lost: Counter[str] = Counter()  #: reason -> samples received but not in a window
+        self.samples = 0  #: samples received
         self.bad_samples = 0
+        self._stretch_lost = 0  # samples lost since the last completed window
+        self._stretch_windows = 0  # windows counted as abandoned for them
         self._warned: set[str] = set()
 
-    def _abandon(self, reason: str, t: float) -> None:
-        if self._count:
-            self.discarded[reason] += 1
+    def _lose(self, reason: str, n: int) -> None:
+        """Account ``n`` lost samples to ``reason`` (see the module docstring)."""
+        if n <= 0:
+            return
+        self.lost[reason] += n
+        self._stretch_lost += n
+        windows = -(-self._stretch_lost // self.window)
+        if windows > self._stretch_windows:
+            self.discarded[reason] += windows - self._stretch_windows
+            self._stretch_windows = windows
+
+    def _abandon(self, reason: str, t: float, bad: int = 0) -> None:
+        self._lose(reason, self._count + bad)
         msg = "%s at t=%.3f s: partial window of %d samples abandoned, a fresh window starts"
         if reason not in self._warned:
             self._warned.add(reason)
@@ -79,6 +102,7 @@ class RingBuffer:
 
         Missing channels and non-finite values abandon the partial window (counted).
         """
+        self.samples += 1
         if self._last_t is not None:
             dt = t - self._last_t
             if dt <= 0:
@@ -90,11 +114,12 @@ class RingBuffer:
             row = [float(values[c]) for c in self.channels]
         except KeyError as exc:
             self.bad_samples += 1
-            self._abandon(f"sample without channel {exc.args[0]!r}", t)
+            self._abandon(f"sample without channel {exc.args[0]!r}", t, bad=1)
             return None
         if not all(np.isfinite(row)):
             self.bad_samples += 1
-            self._abandon("NaN or inf value", t)
+            bad = [c for c, v in zip(self.channels, row, strict=True) if not np.isfinite(v)]
+            self._abandon(f"NaN or inf in {', '.join(repr(c) for c in bad)}", t, bad=1)
             self._last_t = t
             return None
         self._t[self._head] = t
@@ -104,11 +129,12 @@ class RingBuffer:
         if self._count < self.window:
             return None
         self._count = 0
+        self._stretch_lost = self._stretch_windows = 0
         idx = (self._head - self.window + np.arange(self.window)) % self.capacity
         win = WindowData(
             t=self._t[idx].copy(),
             channels={c: self._v[idx, j].copy() for j, c in enumerate(self.channels)},
-            index=self._windows,
+            index=self.first_index + self._windows,
         )
         self._windows += 1
         return win
@@ -117,3 +143,8 @@ class RingBuffer:
     def windows(self) -> int:
         """Windows completed so far."""
         return self._windows
+
+    @property
+    def pending(self) -> int:
+        """Samples in the partial window being filled."""
+        return self._count

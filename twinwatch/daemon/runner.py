@@ -21,6 +21,7 @@ as fast as possible) the acquisition waits instead, so no window is ever lost.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -33,7 +34,7 @@ from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline, WindowSink
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
-from twinwatch.drivers.base import Driver, EndOfStream
+from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.registry import create_model
@@ -76,11 +77,14 @@ class Daemon:
         reuse: open sinks (names in :data:`SINKS`) handed over from a previous daemon by a
             reload (see :meth:`close`), used instead of opening new ones. The caller (the
             supervisor) hands over only sinks whose configuration is unchanged.
+        resume: restore the saved twin and alarm levels from the state database (False:
+            start from the nameplate values, ``twinwatch run --fresh``).
 
     Raises:
         twinwatch.drivers.base.DriverInitializationError, PublisherError, RecorderError,
         StoreError, ValueError: on a start-up problem, with a message that says what to fix.
-        The state database is opened first: a store error fails before the device is touched.
+        Every exclusive resource is taken before any file is touched (the Zenoh port, the
+        state database's lock, the recording's lock), and the device last.
     """
 
     def __init__(
@@ -94,6 +98,7 @@ class Daemon:
         persist: bool = False,
         watchdog: Watchdog | None = None,
         reuse: Mapping[str, WindowSink] | None = None,
+        resume: bool = True,
     ) -> None:
         self.config = config
         self.base_dir = base_dir or Path.cwd()
@@ -117,6 +122,9 @@ class Daemon:
             model_name=config.machine.model, nominal=self.nominal, counters=self.counters,
             history=acq.history)
         self.restored: dict[str, Any] | None = None
+        self.resumed: dict[str, Any] | None = None
+        self.failure: str | None = None
+        self._closed_sinks: dict[str, Any] = {}
         self.driver: Driver | None = None
         self._own_driver = driver is None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
@@ -132,6 +140,14 @@ class Daemon:
                     raise ValueError(f"unknown sink {name!r}; the sinks are {SINKS}")
                 setattr(self, name, sink)
                 logger.info("reload: the %s is kept open (its configuration is unchanged)", name)
+            # Every exclusive resource before any file is touched: the Zenoh port, then the
+            # state database's lock, then the recording's lock (and only then its truncation),
+            # so a second twinwatch in the same directory fails without harming the first.
+            if publish and config.zenoh.enabled and self.publisher is None:
+                from twinwatch.daemon.publisher import HealthPublisher
+
+                self.publisher = HealthPublisher(config.zenoh, self.machine,
+                                                 retry_connect=True)
             if persist and config.state.enabled and self.store is None:
                 from twinwatch.daemon.store import StateStore
 
@@ -140,8 +156,6 @@ class Daemon:
                                         synchronous=st.synchronous,
                                         keep_days=st.keep_days, keep_rows=st.keep_rows,
                                         recover_corrupt=st.recover_corrupt)
-            if self.store is not None:
-                self._restore()
             if record and config.recording.enabled and self.recorder is None:
                 from twinwatch.daemon.recorder import RerunRecorder
 
@@ -152,11 +166,12 @@ class Daemon:
                 self.recorder = RerunRecorder(
                     rec, self.machine, outputs=self.model.output_names,
                     parameters={p.name: p.unit for p in self.model.parameters})
-            if publish and config.zenoh.enabled and self.publisher is None:
-                from twinwatch.daemon.publisher import HealthPublisher
-
-                self.publisher = HealthPublisher(config.zenoh, self.machine,
-                                                 retry_connect=True)
+            if self.store is not None:
+                if "store" in (reuse or {}):
+                    # a reload: same run id, so the windows go on from the last one stored
+                    self.ring.first_index = self.store.next_window(self.machine)
+                if resume:
+                    self._restore()
             if self.publisher is not None and self.store is not None:
                 self.publisher.add_query_handler("history", self._on_history_query)
             self.driver = driver or create_driver(config.driver, base_dir=self.base_dir)
@@ -165,6 +180,7 @@ class Daemon:
             raise
         self.pipeline.sinks = [s for s in (self.store, self.publisher, self.recorder)
                                if s is not None]
+        self.pipeline.gate = self.store  # a window it cannot store is not published
 
     # -- the window pipeline's results ------------------------------------------------------
     @property
@@ -185,9 +201,14 @@ class Daemon:
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
         """Resume from the state database: the last accepted twin (trusted parameters and
-        meta-model terms) and the alarm levels of the last window."""
+        meta-model terms) and the alarm levels of the last window. Both are read before
+        either is used: a corrupt database (moved aside by ``recover_corrupt``) resumes
+        nothing."""
         assert self.store is not None
         state = self.store.load_twin_state(self.machine)
+        last = self.store.latest_health(self.machine)
+        if self.store.recovered:
+            state = last = None
         if state is not None:
             try:
                 self.adapter.restore(state)
@@ -197,13 +218,23 @@ class Daemon:
                              self.store.path, exc)
             else:
                 self.restored = state
-                logger.warning("resumed the twin of %s from %s: %s; %d meta-model term(s)",
-                               self.machine, self.store.path,
-                               ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
-                               len(state.get("terms", [])))
-        last = self.store.latest_health(self.machine)
+                logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
+                            self.machine, self.store.path,
+                            ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
+                            len(state.get("terms", [])))
         if last is not None and last.get("alarms"):
             self.alarms.restore(last["alarms"])
+        if self.restored is not None or (last is not None and last.get("alarms")):
+            self.resumed = {
+                "path": str(self.store.path),
+                "window": None if last is None else last.get("window"),
+                "t_end": None if last is None else last.get("t_end"),
+                "trusted": dict((self.restored or {}).get("trusted") or {}),
+                "terms": len((self.restored or {}).get("terms") or []),
+                "alarms": {k: a.get("level") for k, a in
+                           ((last or {}).get("alarms") or {}).items()
+                           if a.get("level") not in (None, "normal")},
+            }
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = HISTORY_LIMIT, by: str = "plant") -> list[dict[str, Any]]:
@@ -215,24 +246,12 @@ class Daemon:
                                   machine=self.machine)
 
     def _on_history_query(self, query: Any) -> dict[str, Any]:
-        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread)."""
-        params = query.parameters
+        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread).
 
-        def num(key: str) -> float | None:
-            raw = params.get(key)
-            if raw in (None, ""):
-                return None
-            try:
-                return float(raw)
-            except ValueError:
-                raise ValueError(f"{key}={raw!r} is not a number [s]") from None
-
-        by = params.get("by") or "plant"
-        if by not in ("plant", "wall"):
-            raise ValueError(f"by={by!r}: use by=plant (source time) or by=wall (epoch s)")
-        lim = num("limit")
-        limit = HISTORY_LIMIT if lim is None else max(1, min(int(lim), HISTORY_LIMIT))
-        t_from, t_to = num("t_from"), num("t_to")
+        Raises:
+            ValueError: a bad parameter (replied as an error naming it).
+        """
+        t_from, t_to, limit, by = history_parameters(query.parameters)
         windows = self.stored_history(t_from, t_to, limit, by=by)
         more = len(windows) == limit
         return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to,
@@ -268,7 +287,57 @@ class Daemon:
             c["zenoh_not_connected"] = int(getattr(self.publisher, "not_connected", 0))
         if self.store is not None:
             c["store_errors"] = int(self.store.errors)
+            c["store_waiting"] = int(self.store.waiting)
+            c["store_lost"] = int(self.store.lost)
+            c["windows_not_stored"] = self.pipeline.not_stored
+        if self.recorder is not None:
+            c["recording_lost"] = int(self.recorder.lost)
+        c["samples_received"] = self.ring.samples
+        c["samples_lost"] = sum(self.ring.lost.values())
         return c
+
+    def _sink(self, name: str) -> Any:
+        """The open sink, or the one :meth:`close` closed (its counters stay readable)."""
+        obj = getattr(self, name)
+        return obj if obj is not None else self._closed_sinks.get(name)
+
+    def problems(self) -> list[str]:
+        """What is degraded right now (for systemd's STATUS and the log), empty if nothing."""
+        out = []
+        store = self._sink("store")
+        if store is not None and store.failing:
+            out.append(f"state database not writable: {store.waiting} windows waiting "
+                       f"in memory, not published")
+        if store is not None and store.lost:
+            out.append(f"{store.lost} windows lost (never stored)")
+        problem = getattr(self._sink("recorder"), "problem", None)
+        if problem:
+            out.append(problem)
+        return out
+
+    def lost(self) -> dict[str, int]:
+        """Windows estimated but lost: never stored (``store``), not recorded
+        (``recording``). Nonzero values make ``twinwatch run`` exit with status 74."""
+        out = {}
+        store = self._sink("store")
+        if store is not None and store.lost:
+            out["store"] = int(store.lost)
+        recorder = self._sink("recorder")
+        not_recorded = int(getattr(recorder, "lost", 0)) if recorder is not None else 0
+        if not_recorded:
+            out["recording"] = not_recorded
+        return out
+
+    @property
+    def store_stats(self) -> dict[str, int]:
+        """The state database's account: ``errors`` (failed writes), ``waiting`` (windows in
+        memory), ``lost`` (never stored), ``not_stored`` (windows not stored when estimated,
+        hence not published). Zeros without a state database."""
+        store = self._sink("store")
+        if store is None:
+            return {"errors": 0, "waiting": 0, "lost": 0, "not_stored": 0}
+        return {"errors": int(store.errors), "waiting": int(store.waiting),
+                "lost": int(store.lost), "not_stored": self.pipeline.not_stored}
 
     def run(self, duration: float | None = None) -> int:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
@@ -299,6 +368,12 @@ class Daemon:
                     sample = self.driver.read(timeout=0.2)
                 except EndOfStream as exc:
                     logger.info("source finished: %s", exc)
+                    break
+                except DriverError as exc:
+                    # the driver gave up: one clear line (the driver said what failed), then
+                    # the queued windows are finished and the caller decides (the CLI exits 1)
+                    self.failure = f"the {self.config.driver.type} driver failed: {exc}"
+                    logger.error("%s", self.failure)
                     break
                 now = time.monotonic()
                 if sample is None:
@@ -371,10 +446,12 @@ class Daemon:
                 self.watchdog.busy()
             try:
                 self.process_window(item)
-            except Exception:  # contained to the window: the daemon goes on
+            except Exception as exc:  # contained to the window: the daemon goes on
                 self.numeric_failures += 1
-                logger.exception("window %d could not be estimated; it is skipped and "
-                                 "counted in counters.numeric_failures", item.index)
+                logger.error("window %d could not be estimated (%s: %s); it is skipped and "
+                             "counted in counters.numeric_failures", item.index,
+                             type(exc).__name__, exc)
+                logger.debug("window %d failed", item.index, exc_info=True)
             finally:
                 if self.watchdog is not None:
                     self.watchdog.idle()
@@ -409,8 +486,11 @@ class Daemon:
             else:
                 try:
                     obj.close()
-                except Exception:
-                    logger.exception("error while closing the %s", name)
+                except Exception as exc:  # noqa: BLE001 - the other sinks still close
+                    logger.error("error while closing the %s: %s: %s", name,
+                                 type(exc).__name__, exc)
+                    logger.debug("closing the %s failed", name, exc_info=True)
+                self._closed_sinks[name] = obj  # for the final accounting (lost windows)
             setattr(self, name, None)
         self.pipeline.sinks = []
         return kept
@@ -420,6 +500,62 @@ class Daemon:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit")
+
+
+def history_parameters(params: Any) -> tuple[float | None, float | None, int, str]:
+    """The history query's parameters, checked: ``t_from`` and ``t_to`` finite seconds (either
+    may be absent), ``t_from <= t_to``, ``by`` ``plant`` or ``wall``, ``limit`` a whole number
+    from 1 (at most :data:`HISTORY_LIMIT` are returned).
+
+    Args:
+        params: the selector's parameters (a mapping with ``get``, zenoh's ``Parameters``).
+
+    Returns:
+        ``(t_from, t_to, limit, by)``.
+
+    Raises:
+        ValueError: naming the bad parameter.
+    """
+    unknown = [k for k, _ in _items(params) if k not in HISTORY_PARAMETERS]
+    if unknown:
+        raise ValueError(f"unknown parameter {unknown[0]!r}: use "
+                         f"{', '.join(HISTORY_PARAMETERS)}")
+
+    def num(key: str) -> float | None:
+        raw = params.get(key)
+        if raw in (None, ""):
+            return None
+        try:
+            value = float(raw)
+        except ValueError:
+            raise ValueError(f"{key}={raw!r} is not a number [s]") from None
+        if not math.isfinite(value):
+            raise ValueError(f"{key}={raw!r}: give a finite time [s], or leave it out for "
+                             f"an open end")
+        return value
+
+    by = params.get("by") or "plant"
+    if by not in ("plant", "wall"):
+        raise ValueError(f"by={by!r}: use by=plant (source time) or by=wall (epoch s)")
+    t_from, t_to = num("t_from"), num("t_to")
+    if t_from is not None and t_to is not None and t_from > t_to:
+        raise ValueError(f"t_from={t_from:g} is after t_to={t_to:g}")
+    lim = num("limit")
+    if lim is not None and (lim < 1 or not lim.is_integer()):
+        raise ValueError(f"limit={params.get('limit')!r}: give a whole number from 1 "
+                         f"(at most {HISTORY_LIMIT} are returned)")
+    limit = HISTORY_LIMIT if lim is None else min(int(lim), HISTORY_LIMIT)
+    return t_from, t_to, limit, by
+
+
+def _items(params: Any) -> list[tuple[str, str]]:
+    """(key, value) pairs of zenoh ``Parameters`` or a plain mapping."""
+    if isinstance(params, dict):
+        return list(params.items())
+    return [(str(k), str(v)) for k, v in params]
 
 
 def _no_history(query: Any) -> dict[str, Any]:

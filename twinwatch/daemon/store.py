@@ -20,11 +20,14 @@ in WAL mode readers never block the writer nor see a half-written window, which 
 connection behind a lock would not give (a long history query would stall the worker). All
 connections are closed by :meth:`StateStore.close`.
 
-Faults. A database that is not SQLite or is corrupt raises :class:`StoreError` at open with what
-to do (or, with ``recover_corrupt=True``, is moved aside to ``<name>.corrupt-<time>`` and a new
-one started, logged as an ERROR). A locked or full database at save time does not stop the
-daemon: the window stays in a bounded in-memory backlog, is written with the next successful
-save, and the failure is logged once at ERROR (then DEBUG until it recovers).
+Faults. A database that is not SQLite or is corrupt raises :class:`StoreError` with what to do
+(or, with ``recover_corrupt=True``, is moved aside to ``<name>.corrupt-<time>`` and a new one
+started, logged as an ERROR). Corruption is recognised wherever SQLite reports it: at open, in
+any read (the twin and alarm restore at start, a history query) and in a write at run time, not
+only in the file header; the windows waiting to be written go to the new database. A locked or
+full database at save time does not stop the daemon: the window stays in a bounded in-memory
+backlog, is written with the next successful save, and the failure is logged once at ERROR (then
+DEBUG until it recovers).
 
 Size: a DC-motor health message is about 2 kB of JSON, so one machine writes about 85 MB a day;
 the defaults keep 30 days or 1,000,000 windows (about 2 GB), whichever is less, pruned in batches.
@@ -47,6 +50,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from twinwatch._lifecycle import Closeable
+from twinwatch.daemon.locks import FileLock, LockedError
 from twinwatch.io.encoding import to_json
 
 if TYPE_CHECKING:
@@ -112,7 +116,24 @@ class StateConfig(BaseModel):
 
 
 class StoreError(Exception):
-    """The state database cannot be used; the message says what happened and what to do."""
+    """The state database cannot be used; the message says what happened and what to do.
+
+    Attributes:
+        corrupt: the file is corrupt or not a database (SQLite's SQLITE_CORRUPT/NOTADB).
+        detail: SQLite's own message, without the advice.
+    """
+
+    def __init__(self, message: str, *, corrupt: bool = False, detail: str = "") -> None:
+        super().__init__(message)
+        self.corrupt = corrupt
+        self.detail = detail or message
+
+
+def _is_corrupt(exc: BaseException) -> bool:
+    """SQLite's "database disk image is malformed" / "file is not a database"."""
+    msg = str(exc)
+    return isinstance(exc, sqlite3.DatabaseError) and ("not a database" in msg
+                                                      or "malformed" in msg)
 
 
 def _dumps(obj: Any) -> str:
@@ -138,8 +159,10 @@ class StateStore(Closeable):
         check: run ``PRAGMA quick_check`` at open (reads the whole file).
 
     Raises:
-        StoreError: the file is not a database, is corrupt, is locked, or was written by a
-            newer twinwatch (schema version above :data:`SCHEMA_VERSION`).
+        StoreError: the file is in use by another process (an exclusive ``flock`` is taken on
+            it before SQLite opens it, and held until :meth:`close`), is not a database, is
+            corrupt, is locked, or was written by a newer twinwatch (schema version above
+            :data:`SCHEMA_VERSION`).
     """
 
     def __init__(
@@ -179,23 +202,56 @@ class StateStore(Closeable):
         self.errors = 0
         self.dropped = 0
         self.pruned = 0
+        self.lost = 0
+        self.recovered = 0
+        self.recover_corrupt = recover_corrupt
+        self._check = check
+        self._lock: FileLock | None = None
+        self._lock_file()
         try:
             self._open(check)
-        except StoreError:
-            if not recover_corrupt or not self.path.exists():
+        except StoreError as exc:
+            if not (recover_corrupt and self.path.exists() and exc.corrupt):
+                self._close_all()
+                self._release()
                 raise
-            stamp = time.strftime("%Y%m%dT%H%M%S")
-            aside = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
+            try:
+                self._recover(exc)
+            except BaseException:
+                self._close_all()
+                self._release()
+                raise
+        except BaseException:
             self._close_all()
-            for suffix in ("-wal", "-shm"):
-                side = Path(str(self.path) + suffix)
-                if side.exists():
-                    side.rename(Path(str(aside) + suffix))
-            self.path.rename(aside)
-            logger.error("state database %s was corrupt: moved aside to %s and started a new "
-                         "one; the history before now is only in that file", self.path, aside)
-            self._open(check)
+            self._release()
+            raise
         self._closed = False
+
+    def _lock_file(self) -> None:
+        """Take the exclusive lock on the database file before SQLite opens it."""
+        try:
+            self._lock = FileLock(self.path, "state database",
+                                  "stop it, or give this one its own [state] path")
+        except LockedError as exc:
+            raise StoreError(str(exc)) from None
+        except OSError as exc:
+            raise self._error("cannot open", exc) from exc
+
+    def _release(self) -> None:
+        """Release the file lock (only once SQLite's connections are closed: see locks.py)."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
+
+    @property
+    def waiting(self) -> int:
+        """Windows kept in memory because the database could not be written (yet)."""
+        return len(self._pending)
+
+    @property
+    def failing(self) -> bool:
+        """The last write failed (the windows since then are :attr:`waiting`)."""
+        return self._failing
 
     # -- connections --------------------------------------------------------------------------
     def _connect(self) -> sqlite3.Connection:
@@ -219,22 +275,81 @@ class StateStore(Closeable):
 
     def _error(self, what: str, exc: BaseException) -> StoreError:
         msg = str(exc)
-        if isinstance(exc, sqlite3.DatabaseError) and ("not a database" in msg
-                                                      or "malformed" in msg):
+        corrupt = _is_corrupt(exc)
+        if corrupt:
             hint = (f"the file is corrupt or not a twinwatch database: stop the service, move "
                     f"it aside (mv {self.path} {self.path}.bad) and start again to begin a new "
-                    f"history, or set recover_corrupt to do this automatically")
+                    f"history")
+            hint += (" (recover_corrupt is set but moving it aside failed)"
+                     if getattr(self, "recover_corrupt", False) else
+                     ", or set [state] recover_corrupt = true to do this automatically")
         elif "locked" in msg or "busy" in msg:
             hint = ("another process holds a lock on it (a second twinwatch on the same state "
                     "directory, or an open sqlite3 shell in a transaction): stop that process")
         elif "readonly" in msg or "unable to open" in msg or isinstance(exc, PermissionError):
             hint = ("check that the directory exists and is writable by the service user "
                     "(StateDirectory= in the unit)")
-        elif "full" in msg:
-            hint = "the disk is full: free space or lower the retention (keep_days, keep_rows)"
+        elif "full" in msg or "disk I/O" in msg:
+            hint = ("the disk is full, failing or read-only: free space (or lower the retention, "
+                    "keep_days, keep_rows); windows wait in memory, not published, until it can "
+                    "be written")
         else:
             hint = "check the file and the disk"
-        return StoreError(f"state database {self.path}: {what}: {msg}: {hint}")
+        return StoreError(f"state database {self.path}: {what}: {msg}: {hint}", corrupt=corrupt,
+                          detail=f"{what}: {msg}")
+
+    def _recover(self, exc: BaseException) -> None:
+        """Move the corrupt database (and its WAL and shared-memory files) aside to
+        ``<name>.corrupt-<time>`` and start a new one; the windows waiting to be written stay
+        pending. Every thread's connection is closed (each reconnects on its next use).
+
+        Raises:
+            StoreError: the file cannot be moved or the new database cannot be created.
+        """
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        aside = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
+        n = 1
+        while aside.exists():
+            aside = self.path.with_name(f"{self.path.name}.corrupt-{stamp}-{n}")
+            n += 1
+        why = exc.detail if isinstance(exc, StoreError) else str(exc)
+        self._close_all()
+        try:
+            for suffix in ("-wal", "-shm"):
+                side = Path(str(self.path) + suffix)
+                if side.exists():
+                    side.rename(Path(str(aside) + suffix))
+            self.path.rename(aside)
+            self._release()
+            self._lock_file()
+        except OSError as err:
+            raise StoreError(f"state database {self.path} is corrupt ({why}) and cannot be "
+                             f"moved aside ({err.strerror or err}): move it away by hand",
+                             corrupt=True) from err
+        self.recovered += 1
+        logger.error("state database %s was corrupt (%s): moved aside to %s and started a new "
+                     "one; the history before now is only in that file", self.path, why, aside)
+        self._open(self._check)
+
+    def _read(self, what: str, fn: Any) -> Any:
+        """Run ``fn(connection)`` for a read; a corrupt database is moved aside and the read
+        retried once on the new one when ``recover_corrupt`` is set.
+
+        Raises:
+            StoreError: the read failed (the message says what to do).
+        """
+        try:
+            return fn(self._connect())
+        except sqlite3.Error as exc:
+            err = self._error(what, exc)
+        if not (err.corrupt and self.recover_corrupt):
+            raise err
+        with self._write_lock:
+            self._recover(err)
+        try:
+            return fn(self._connect())
+        except sqlite3.Error as exc:
+            raise self._error(what, exc) from exc
 
     def _open(self, check: bool) -> None:
         conn = self._connect()
@@ -302,6 +417,10 @@ class StateStore(Closeable):
         with self._write_lock:
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
+                self.lost += 1
+                logger.error("state database %s: %d windows waiting in memory, the most it "
+                             "keeps: window %d is lost", self.path, len(self._pending),
+                             self._pending[0][2])
             self._pending.append(row)
             if twin_state is not None:
                 self._twin_pending = (machine, self.run_id, row[2], row[4], w,
@@ -314,13 +433,21 @@ class StateStore(Closeable):
                 self.prune()
         return ok
 
-    def write(self, out: ProcessedWindow) -> None:
+    def write(self, out: ProcessedWindow) -> bool:
         """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
-        :meth:`save_window` with the window's health and, when it was trusted, the twin."""
-        self.save_window(out.message, out.twin_state)
+        :meth:`save_window` with the window's health and, when it was trusted, the twin.
 
-    def _flush(self) -> bool:
-        conn = self._connect()
+        Returns:
+            True if the window is stored; False if it waits in memory (the pipeline then does
+            not publish it: stored before published).
+        """
+        return self.save_window(out.message, out.twin_state)
+
+    def _flush(self, retry: bool = True) -> bool:
+        try:
+            conn = self._connect()
+        except StoreError as exc:
+            return self._flush_failed(exc)
         try:
             conn.execute("BEGIN IMMEDIATE")
             conn.executemany("INSERT INTO health (machine, run, window, t_start, t_end, wall, "
@@ -335,15 +462,13 @@ class StateStore(Closeable):
                     conn.execute("ROLLBACK")
                 except sqlite3.Error:
                     pass
-            self.errors += 1
-            err = self._error(f"window {self._pending[-1][2]} not written yet "
-                              f"({len(self._pending)} waiting in memory)", exc)
-            if not self._failing:
-                logger.error("%s", err)
-                self._failing = True
-            else:
-                logger.debug("%s", err)
-            return False
+            if retry and self.recover_corrupt and _is_corrupt(exc):
+                try:
+                    self._recover(exc)
+                except StoreError as err:
+                    return self._flush_failed(err)
+                return self._flush(retry=False)
+            return self._flush_failed(exc)
         if self._failing:
             logger.warning("state database %s writable again: %d delayed windows written",
                            self.path, len(self._pending))
@@ -352,6 +477,18 @@ class StateStore(Closeable):
         self._pending.clear()
         self._twin_pending = None
         return True
+
+    def _flush_failed(self, exc: BaseException) -> bool:
+        self.errors += 1
+        err = exc if isinstance(exc, StoreError) else self._error(
+            f"window {self._pending[-1][2]} not written yet ({len(self._pending)} waiting in "
+            f"memory)", exc)
+        if not self._failing:
+            logger.error("%s", err)
+            self._failing = True
+        else:
+            logger.debug("%s", err)
+        return False
 
     def prune(self, now: float | None = None) -> int:
         """Delete health rows beyond the retention, ``prune_batch`` rows per transaction.
@@ -398,16 +535,14 @@ class StateStore(Closeable):
         Args:
             machine: whose twin (default: the most recently saved one).
         """
-        conn = self._connect()
-        try:
+        def read(conn: sqlite3.Connection) -> Any:
             if machine is None:
-                row = conn.execute("SELECT state FROM twin ORDER BY wall DESC LIMIT 1"
-                                   ).fetchone()
-            else:
-                row = conn.execute("SELECT state FROM twin WHERE machine = ?",
-                                   (machine,)).fetchone()
-        except sqlite3.Error as exc:
-            raise self._error("cannot read the twin state", exc) from exc
+                return conn.execute("SELECT state FROM twin ORDER BY wall DESC LIMIT 1"
+                                    ).fetchone()
+            return conn.execute("SELECT state FROM twin WHERE machine = ?",
+                                (machine,)).fetchone()
+
+        row = self._read("cannot read the twin state", read)
         return None if row is None else dict(json.loads(row[0]))
 
     def history(self, t_from: float | None = None, t_to: float | None = None,
@@ -450,11 +585,8 @@ class StateStore(Closeable):
         if limit is not None:
             sql += " LIMIT ?"
             args.append(int(limit))
-        conn = self._connect()
-        try:
-            rows = conn.execute(sql, args).fetchall()
-        except sqlite3.Error as exc:
-            raise self._error("cannot read the history", exc) from exc
+        rows = self._read("cannot read the history",
+                          lambda conn: conn.execute(sql, args).fetchall())
         return [json.loads(r[0]) for r in rows]
 
     def latest_health(self, machine: str | None = None) -> dict[str, Any] | None:
@@ -464,16 +596,25 @@ class StateStore(Closeable):
         if machine is not None:
             sql += " WHERE machine = ?"
             args = (machine,)
-        conn = self._connect()
-        try:
-            row = conn.execute(sql + " ORDER BY id DESC LIMIT 1", args).fetchone()
-        except sqlite3.Error as exc:
-            raise self._error("cannot read the history", exc) from exc
+        row = self._read("cannot read the history", lambda conn: conn.execute(
+            sql + " ORDER BY id DESC LIMIT 1", args).fetchone())
         return None if row is None else dict(json.loads(row[0]))
+
+    def next_window(self, machine: str) -> int:
+        """The window index after the last one this run saved for ``machine`` (0 if none),
+        counting the windows still waiting in memory: where a reload goes on numbering."""
+        with self._write_lock:
+            waiting = [r[2] for r in self._pending if r[0] == machine]
+        row = self._read("cannot read the history", lambda conn: conn.execute(
+            "SELECT MAX(window) FROM health WHERE run = ? AND machine = ?",
+            (self.run_id, machine)).fetchone())
+        last = max([*waiting, -1 if row is None or row[0] is None else int(row[0])])
+        return last + 1
 
     def count(self) -> int:
         """Health rows stored."""
-        return int(self._connect().execute("SELECT COUNT(*) FROM health").fetchone()[0])
+        return int(self._read("cannot count the history", lambda conn: conn.execute(
+            "SELECT COUNT(*) FROM health").fetchone()[0]))
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _close_all(self) -> None:
@@ -494,8 +635,11 @@ class StateStore(Closeable):
         with self._write_lock:
             if self._pending or self._twin_pending is not None:
                 if not self._flush():
+                    self.lost += len(self._pending)
                     logger.error("state database %s: %d windows could not be written and are "
                                  "lost", self.path, len(self._pending))
+                    self._pending.clear()
         self._close_all()
+        self._release()
         self._closed_for_good = True
         self._closed = True

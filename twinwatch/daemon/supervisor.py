@@ -50,7 +50,16 @@ __all__ = ["StartError", "Supervisor", "sink_config", "status_line", "warm_up"]
 
 class StartError(Exception):
     """The daemon cannot start (a device, a port, the recording or the state database); the
-    message says what failed and what to do."""
+    message says what failed and what to do.
+
+    Attributes:
+        config_error: the configuration (or a file it names) is at fault, not the machine:
+            starting again will not help (``twinwatch run`` exits 78).
+    """
+
+    def __init__(self, message: str, *, config_error: bool = False) -> None:
+        super().__init__(message)
+        self.config_error = config_error
 
 
 def sink_config(config: TwinwatchConfig, name: str) -> Any:
@@ -101,6 +110,9 @@ def status_line(config: TwinwatchConfig, daemon: Daemon) -> str:
         parts.append(f"state {daemon.store.path}")
     if daemon.restored is not None:
         parts.append("twin resumed")
+    problems = daemon.problems()
+    if problems:
+        parts.append("DEGRADED: " + "; ".join(problems))
     return ", ".join(parts)
 
 
@@ -113,6 +125,8 @@ class Supervisor:
             naming the bad key.
         base_dir: directory relative paths in the configuration are resolved against.
         source: how to name the configuration in messages (its path).
+        resume: resume the twin and alarm levels saved in the state database at start
+            (False: the nameplate values, ``twinwatch run --fresh``; a reload always resumes).
 
     Attributes:
         config: the running configuration (after :meth:`start`).
@@ -122,7 +136,7 @@ class Supervisor:
     """
 
     def __init__(self, load: Callable[[], TwinwatchConfig], *, base_dir: Path,
-                 source: str) -> None:
+                 source: str, resume: bool = True) -> None:
         self.notifier = Notifier(unset_environment=True)
         self.watchdog = Watchdog(self.notifier)
         self._load = load
@@ -135,6 +149,8 @@ class Supervisor:
         self._reload_requested = threading.Event()
         self._pending: list[TwinwatchConfig] = []  # a validated configuration to restart with
         self._previous_handlers: dict[int, Any] = {}
+        self._resume = resume
+        self._problems: list[str] = []
 
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -160,7 +176,7 @@ class Supervisor:
         self.config = cfg
         self._install_signal_handlers()
         try:
-            daemon = self._open(cfg)
+            daemon = self._open(cfg, resume=self._resume)
         except StartError as exc:
             self.notifier.notify(f"STATUS=cannot start: {exc}".splitlines()[0])
             self._restore_signal_handlers()
@@ -177,8 +193,8 @@ class Supervisor:
         if self.daemon is not None:
             self.daemon.add_callback(fn)
 
-    def _open(self, cfg: TwinwatchConfig, reuse: dict[str, WindowSink] | None = None
-              ) -> Daemon:
+    def _open(self, cfg: TwinwatchConfig, reuse: dict[str, WindowSink] | None = None,
+              resume: bool = True) -> Daemon:
         """A daemon on ``cfg`` (driver and sinks open), with the reload tick and callbacks.
 
         Raises:
@@ -188,20 +204,33 @@ class Supervisor:
         from twinwatch.daemon.recorder import RecorderError
         from twinwatch.daemon.runner import Daemon
         from twinwatch.daemon.store import StoreError
-        from twinwatch.drivers.base import DriverError
+        from twinwatch.drivers.base import DriverConfigError, DriverError
 
         start_errors = (DriverError, PublisherError, RecorderError, StoreError, ValueError,
                         OSError)
         try:
             daemon = Daemon(cfg, base_dir=self.base_dir, persist=True, watchdog=self.watchdog,
-                            reuse=reuse)
+                            reuse=reuse, resume=resume)
         except start_errors as exc:
             # Each of these says what failed and what to do; a traceback would add nothing.
-            raise StartError(str(exc)) from exc
+            raise StartError(str(exc),
+                             config_error=isinstance(exc, DriverConfigError)) from exc
         daemon.add_tick(self._check_reload)
+        daemon.add_callback(self._watch_problems)
         for fn in self._callbacks:
             daemon.add_callback(fn)
         return daemon
+
+    def _watch_problems(self, health: dict[str, Any]) -> None:
+        """After each window (worker thread): systemd's STATUS follows what is degraded (the
+        state database not writable, the recording stopped), and returns to normal."""
+        daemon, cfg = self.daemon, self.config
+        if daemon is None or cfg is None:
+            return
+        now = daemon.problems()
+        if now != self._problems:
+            self._problems = now
+            self.notifier.status(status_line(cfg, daemon))
 
     # -- signals ------------------------------------------------------------------------------
     def _install_signal_handlers(self) -> None:

@@ -28,6 +28,7 @@ from typing import Any
 from twinwatch.drivers.base import (
     Driver,
     DriverConfig,
+    DriverConfigError,
     DriverError,
     DriverInitializationError,
     DriverOperationError,
@@ -43,6 +44,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "Driver",
     "DriverConfig",
+    "DriverConfigError",
     "DriverError",
     "DriverInitializationError",
     "DriverOperationError",
@@ -98,7 +100,7 @@ def get_driver_class(name: str) -> type[Driver]:
     try:
         module_name, class_name = table[name]
     except KeyError:
-        raise DriverInitializationError(
+        raise DriverConfigError(
             f"unknown driver {name!r}; known drivers: {', '.join(sorted(table))}"
         ) from None
     try:

@@ -11,7 +11,9 @@ driver's job and lives in its configuration.
 
 Errors follow the lifecycle, as in ``can/exceptions.py``:
 
-* :class:`DriverInitializationError` while opening (bad port, DBC not found, ...),
+* :class:`DriverInitializationError` while opening (bad port, device absent, ...), its subclass
+  :class:`DriverConfigError` when the configuration or a file it names is at fault (DBC not
+  found, a mapped column missing, ...),
 * :class:`DriverOperationError` for a failure while reading that the driver could not survive,
 * :class:`EndOfStream` when a finite source (a file, a simulation of fixed duration) is exhausted.
 
@@ -60,6 +62,12 @@ class DriverInitializationError(DriverError):
     """The driver could not be opened (device, file, DBC or mapping problem)."""
 
 
+class DriverConfigError(DriverInitializationError):
+    """The driver cannot start because of its configuration or the files it names (a DBC
+    without the configured message, a recording without the mapped column, ...): starting
+    again will not help (``twinwatch run`` exits 78, EX_CONFIG)."""
+
+
 class DriverOperationError(DriverError):
     """The driver failed while reading and cannot go on."""
 
@@ -98,7 +106,7 @@ def validated_config(model: type[ConfigT], config: ConfigT | Mapping[str, Any],
     try:
         return model.model_validate(config)
     except ValidationError as exc:
-        raise DriverInitializationError(f"invalid {what} driver config: {exc}") from exc
+        raise DriverConfigError(f"invalid {what} driver config: {exc}") from exc
 
 
 @dataclass(slots=True)

@@ -23,7 +23,9 @@ Bad input is counted, logged once, and skipped (see :class:`~twinwatch.drivers.b
 * error frames and remote (RTR) frames count in ``stats.extra["error_frames"]`` /
   ``stats.extra["remote_frames"]`` (ODrive masters poll with RTR frames: they are normal);
 * a sync message that arrives before every mapped signal has been seen once produces no sample
-  and counts in ``stats.extra["incomplete_syncs"]`` (the start-up transient).
+  and counts in ``stats.extra["incomplete_syncs"]`` (the start-up transient);
+* a malformed line of a text log (candump ``.log``, ``.asc``, ``.csv``, ``.trc``) is skipped
+  and counts in ``stats.frames`` and ``stats.bad_frames``; the replay goes on.
 
 Example configuration (TOML, the ``[driver]`` table of a machine config)::
 
@@ -47,7 +49,7 @@ import difflib
 import logging
 import math
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -55,6 +57,7 @@ from typing import Any, Literal, Protocol
 import can
 import cantools
 import cantools.database
+from can.io.generic import TextIOMessageReader
 from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 from cantools.database.errors import DecodeError
@@ -64,6 +67,7 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 from twinwatch.drivers.base import (
     Driver,
     DriverConfig,
+    DriverConfigError,
     DriverInitializationError,
     DriverOperationError,
     EndOfStream,
@@ -180,6 +184,18 @@ class CanDriverConfig(DriverConfig):
             raise ValueError("time_source = 'counter' needs counter_signal = 'MESSAGE.SIGNAL'")
         return self
 
+    def twin_channels(self) -> tuple[str, ...]:
+        """The twin channels this driver delivers (``signals``)."""
+        return tuple(self.signals)
+
+    def required_files(self, base_dir: Path) -> dict[str, Path]:
+        """Config key -> file that must exist to start (``dbc``, ``log_file``)."""
+        cfg = self.resolved(base_dir)
+        files = {"driver.dbc": cfg.dbc}
+        if cfg.log_file is not None:
+            files["driver.log_file"] = cfg.log_file
+        return files
+
     def resolved(self, base_dir: Path | None) -> CanDriverConfig:
         """Return a copy whose relative ``dbc`` and ``log_file`` are joined to ``base_dir``."""
         if base_dir is None:
@@ -235,12 +251,12 @@ def _find_signal(db: Database, key: str, message_name: str, signal_name: str | N
         message = db.get_message_by_name(message_name)
     except KeyError:
         hint = _did_you_mean(message_name, (m.name for m in db.messages), what="messages")
-        raise DriverInitializationError(
+        raise DriverConfigError(
             f"{key}: message {message_name!r} not in DBC; {hint}"
         ) from None
     if signal_name is not None and signal_name not in {s.name for s in message.signals}:
         hint = _did_you_mean(signal_name, (s.name for s in message.signals), what="signals")
-        raise DriverInitializationError(
+        raise DriverConfigError(
             f"{key}: message {message_name!r} has no signal {signal_name!r}; {hint}"
         )
     return message
@@ -273,34 +289,122 @@ class _BusSource:
             self.bus.shutdown()
 
 
+class _Lines:
+    """The lines of a text log, as the file object a python-can text reader iterates,
+    skipping the line numbers in ``skip`` (1-based) and counting the lines handed out."""
+
+    def __init__(self, path: Path, skip: set[int]) -> None:
+        self._file = path.open(encoding="utf-8", errors="replace", newline=None)
+        self.skip = skip
+        self.lineno = 0
+
+    def __iter__(self) -> _Lines:
+        return self
+
+    def __next__(self) -> str:
+        while True:
+            line = next(self._file)
+            self.lineno += 1
+            if self.lineno not in self.skip:
+                return line
+
+    def readline(self) -> str:
+        try:
+            return next(self)
+        except StopIteration:
+            return ""
+
+    def close(self) -> None:
+        self._file.close()
+
+
+#: a text log with more malformed lines than this is refused as not a CAN log at all
+_MAX_BAD_LINES = 1000
+
+
 class _LogSource:
     """Frames of a log file, optionally paced by their time stamps (see can.MessageSync).
 
     The pacing is done here rather than with :class:`can.MessageSync` because MessageSync
     sleeps inside its iterator and so cannot honour ``read(timeout)``.
+
+    A malformed line of a text log (candump ``.log``, ``.asc``, ``.csv``, ``.trc``) is skipped
+    and reported through ``on_bad(line, error)``: python-can's readers are generators that end
+    at the first parse error, so the reader is started again on the same lines (candump: its
+    lines are independent) or from the top with that line left out (formats with a header),
+    skipping the frames already delivered. A binary log (``.blf``, ``.mf4``) cannot be resumed
+    after a corrupt block: the error ends the replay with one clear line.
     """
 
-    def __init__(self, path: Path, *, realtime: bool) -> None:
+    def __init__(self, path: Path, *, realtime: bool,
+                 on_bad: Callable[[int, BaseException], None] | None = None) -> None:
         self.path = path
         self.realtime = realtime
+        self._on_bad = on_bad
         try:
             self._reader = can.LogReader(path)
         except (OSError, ValueError, ImportError) as exc:
-            raise DriverInitializationError(f"log_file: cannot read {str(path)!r}: {exc}") from exc
+            raise DriverConfigError(f"log_file: cannot read {str(path)!r}: {exc}") from exc
+        self._lines: _Lines | None = None
+        self._skip: set[int] = set()
+        if isinstance(self._reader, TextIOMessageReader) and path.suffix.lower() != ".gz":
+            self._reader.stop()
+            self._text_reader: type[TextIOMessageReader] | None = type(self._reader)
+            self._reopen(skip_frames=0)
+        else:
+            self._text_reader = None
         self._frames: Iterator[can.Message] = iter(self._reader)
+        self._delivered = 0
         self._pending: can.Message | None = None
         self._origin: tuple[float, float] | None = None  # (wall clock, log time) of 1st frame
 
-    def recv(self, timeout: float | None) -> can.Message | None:
-        if self._pending is None:
+    def _reopen(self, skip_frames: int) -> None:
+        """Start the text reader on the lines (again), without the lines in ``_skip``."""
+        assert self._text_reader is not None
+        if self._lines is not None:
+            self._lines.close()
+        self._lines = _Lines(self.path, self._skip)
+        self._reader = self._text_reader(file=self._lines)  # type: ignore[call-arg,arg-type]
+        self._frames = iter(self._reader)
+        for _ in range(skip_frames):
+            next(self._frames)
+
+    def _next_frame(self) -> can.Message:
+        while True:
             try:
-                self._pending = next(self._frames)
+                frame = next(self._frames)
             except StopIteration:
                 raise EndOfStream(f"end of CAN log {str(self.path)!r}") from None
-            except (ValueError, OSError, EOFError) as exc:
-                raise DriverOperationError(
-                    f"CAN log {str(self.path)!r} is corrupt or unreadable: {exc}"
-                ) from exc
+            except (ValueError, IndexError, KeyError, TypeError, OSError, EOFError,
+                    can.CanError) as exc:
+                if self._lines is None or self._text_reader is None:
+                    raise DriverOperationError(
+                        f"CAN log {str(self.path)!r} is corrupt after frame {self._delivered} "
+                        f"({type(exc).__name__}: {exc}); the rest of it cannot be read"
+                    ) from exc
+                bad = self._lines.lineno
+                self._skip.add(bad)
+                if len(self._skip) > _MAX_BAD_LINES:
+                    raise DriverOperationError(
+                        f"CAN log {str(self.path)!r}: more than {_MAX_BAD_LINES} malformed "
+                        f"lines (the last at line {bad}): is it really a "
+                        f"{self.path.suffix} CAN log ({self._text_reader.__name__})?"
+                    ) from exc
+                if self._on_bad is not None:
+                    self._on_bad(bad, exc)
+                if self._text_reader is can.CanutilsLogReader:
+                    # candump lines are independent: go on with the next line
+                    self._reader = self._text_reader(file=self._lines)  # type: ignore[call-arg,arg-type]
+                    self._frames = iter(self._reader)
+                else:
+                    self._reopen(skip_frames=self._delivered)
+                continue
+            self._delivered += 1
+            return frame
+
+    def recv(self, timeout: float | None) -> can.Message | None:
+        if self._pending is None:
+            self._pending = self._next_frame()
         if self.realtime:
             now = time.monotonic()
             if self._origin is None:
@@ -316,6 +420,8 @@ class _LogSource:
 
     def close(self) -> None:
         self._reader.stop()
+        if self._lines is not None:
+            self._lines.close()
 
 
 # -- the driver ---------------------------------------------------------------------------
@@ -338,9 +444,10 @@ class CanDriver(Driver):
         database: the loaded cantools database.
 
     Raises:
-        DriverInitializationError: the DBC cannot be loaded, a configured message or signal
-            is not in it (the message names the config key and the closest names), the log
-            file cannot be opened, or the bus cannot be opened.
+        DriverConfigError: the DBC cannot be loaded, a configured message or signal is not in
+            it (the message names the config key and the closest names), or the log file
+            cannot be opened.
+        DriverInitializationError: the bus cannot be opened.
     """
 
     config_class = CanDriverConfig
@@ -418,13 +525,13 @@ class CanDriver(Driver):
     @staticmethod
     def _load_dbc(path: Path) -> Database:
         if not path.is_file():
-            raise DriverInitializationError(f"dbc: file {str(path)!r} not found")
+            raise DriverConfigError(f"dbc: file {str(path)!r} not found")
         try:
             db = cantools.database.load_file(path)
         except (OSError, ValueError, CantoolsError) as exc:
-            raise DriverInitializationError(f"dbc: cannot load {str(path)!r}: {exc}") from exc
+            raise DriverConfigError(f"dbc: cannot load {str(path)!r}: {exc}") from exc
         if not isinstance(db, Database):
-            raise DriverInitializationError(f"dbc: {str(path)!r} is not a CAN database")
+            raise DriverConfigError(f"dbc: {str(path)!r} is not a CAN database")
         return db
 
     @staticmethod
@@ -461,12 +568,13 @@ class CanDriver(Driver):
     def _open_source(self, config: CanDriverConfig, bus: can.BusABC | None) -> _FrameSource:
         if bus is not None:
             if config.log_file is not None:
-                raise DriverInitializationError("log_file and a bus were both given; pick one")
+                raise DriverConfigError("log_file and a bus were both given; pick one")
             return _BusSource(bus, owned=False)
         if config.log_file is not None:
-            return _LogSource(config.log_file, realtime=config.realtime)
+            return _LogSource(config.log_file, realtime=config.realtime,
+                              on_bad=self._on_bad_line)
         if config.interface is None or config.channel is None:
-            raise DriverInitializationError(
+            raise DriverConfigError(
                 "interface and channel are required for a live bus (or give log_file)"
             )
         kwargs: dict[str, Any] = dict(config.bus_options)
@@ -524,6 +632,12 @@ class CanDriver(Driver):
                 overtime += 1
                 if overtime >= _MAX_OVERTIME_FRAMES:
                     return None
+
+    def _on_bad_line(self, line: int, exc: BaseException) -> None:
+        self.stats.frames += 1
+        self.stats.bad_frames += 1
+        self.log_once("log-line", "CAN log line %d is malformed (%s: %s): skipped, counted in "
+                      "stats.bad_frames; the replay goes on", line, type(exc).__name__, exc)
 
     def _bump(self, key: str) -> None:
         self.stats.extra[key] = self.stats.extra.get(key, 0) + 1

@@ -11,9 +11,10 @@ counted before ``start`` is applied, so a cut recording keeps its own clock), or
 
 Formats:
 
-* CSV: one header row naming the columns, then one row per sample; cells are decimal numbers.
+* CSV: one header row naming the columns, then one row per line; cells are decimal numbers.
   An empty or non-numeric cell is read as NaN; a row with fewer cells than the header has NaN
-  in the missing cells. Blank lines are skipped.
+  in the missing cells. Blank lines are skipped. A quote left open is logged with its line
+  number and costs that row only.
 * MAT (MATLAB v5/v7, read with :func:`scipy.io.loadmat`; v7.3/HDF5 is not supported): every
   mapped "column" is a numeric variable holding a vector (N x 1, 1 x N or N), all of the same
   length N. MAT files usually hold no time vector, hence ``sample_period``.
@@ -54,7 +55,7 @@ from pydantic import ConfigDict, Field, model_validator
 from twinwatch.drivers.base import (
     Driver,
     DriverConfig,
-    DriverInitializationError,
+    DriverConfigError,
     EndOfStream,
     Sample,
     ScaledChannel,
@@ -125,6 +126,14 @@ class FileDriverConfig(DriverConfig):
             raise ValueError(f"stop ({self.stop}) is before start ({self.start})")
         return self
 
+    def twin_channels(self) -> tuple[str, ...]:
+        """The twin channels this driver delivers (``columns``)."""
+        return tuple(self.columns)
+
+    def required_files(self, base_dir: Path) -> dict[str, Path]:
+        """Config key -> file that must exist to start (``path``)."""
+        return {"driver.path": self.resolved(base_dir).path}
+
     def resolved(self, base_dir: Path | None) -> FileDriverConfig:
         """Return a copy whose relative ``path`` is joined to ``base_dir``."""
         if base_dir is None:
@@ -159,7 +168,7 @@ class FileDriver(Driver):
         n_rows: number of rows that will be replayed (after ``start``/``stop``).
 
     Raises:
-        DriverInitializationError: the file is missing or unreadable, its format is unknown, a
+        DriverConfigError: the file is missing or unreadable, its format is unknown, a
             mapped column or variable is missing (the message names the config key and lists
             the available ones), a MAT variable is not a numeric vector, or the variables have
             different lengths.
@@ -187,7 +196,7 @@ class FileDriver(Driver):
         """Build a driver from a validated config or a raw ``[driver]`` table.
 
         Raises:
-            DriverInitializationError: the table does not validate, or see :class:`FileDriver`.
+            DriverConfigError: the table does not validate, or see :class:`FileDriver`.
         """
         config = validated_config(FileDriverConfig, config, "file")
         return cls(config, base_dir=base_dir)
@@ -198,7 +207,7 @@ class FileDriver(Driver):
         self.channels = tuple(config.columns)
         path = config.path
         if not path.is_file():
-            raise DriverInitializationError(f"path: file {str(path)!r} not found")
+            raise DriverConfigError(f"path: file {str(path)!r} not found")
         fmt = config.format
         if fmt == "auto":
             suffix = path.suffix.lower()
@@ -207,7 +216,7 @@ class FileDriver(Driver):
             elif suffix in _MAT_SUFFIXES:
                 fmt = "mat"
             else:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"format: cannot tell the format of {str(path)!r} from its suffix "
                     f"{suffix!r}; set format = 'csv' or 'mat'"
                 )
@@ -255,37 +264,58 @@ class FileDriver(Driver):
         steps = np.diff(t[np.isfinite(t)])
         steps = steps[steps > 0]
         if steps.size == 0:
-            raise DriverInitializationError(
+            raise DriverConfigError(
                 f"sample_period: cannot infer it from time_column {column!r} "
                 "(fewer than two increasing time stamps); set sample_period"
             )
         return float(np.median(steps))
 
     def _load_csv(self, path: Path, delimiter: str) -> dict[str, FloatArray]:
+        # One physical line is one row: a numeric recording never quotes a line break, so a
+        # quote left open costs its own row only (read as NaN, named by its line), never the
+        # rest of the file (the csv module would read it all as one cell).
+        header: list[str] | None = None
+        rows: list[list[str]] = []
+        open_quotes: list[int] = []
         try:
             with path.open(newline="", encoding="utf-8-sig") as f:
-                reader = csv.reader(f, delimiter=delimiter)
-                header = next(reader, None)
-                rows = [row for row in reader if any(cell.strip() for cell in row)]
+                for lineno, line in enumerate(f, start=1):
+                    if not line.strip():
+                        continue
+                    if line.count('"') % 2:
+                        open_quotes.append(lineno)
+                    row = next(csv.reader((line.rstrip("\r\n"),), delimiter=delimiter), [])
+                    if header is None:
+                        header = row
+                    elif any(cell.strip() for cell in row):
+                        rows.append(row)
         except (OSError, UnicodeDecodeError, csv.Error) as exc:
-            raise DriverInitializationError(f"path: cannot read CSV {str(path)!r}: {exc}") from exc
+            raise DriverConfigError(f"path: cannot read CSV {str(path)!r}: {exc}") from exc
+        if open_quotes:
+            logger.warning(
+                "CSV %s: a quote is not closed on %d line(s) (first: line %d); each such "
+                "row is read up to its end and its cells that are not numbers are NaN",
+                path.name,
+                len(open_quotes),
+                open_quotes[0],
+            )
         if header is None:
-            raise DriverInitializationError(f"path: CSV {str(path)!r} is empty (no header row)")
+            raise DriverConfigError(f"path: CSV {str(path)!r} is empty (no header row)")
         header = [h.strip() for h in header]
         index: dict[str, int] = {}
         for key, column in self._keys():
             if header.count(column) > 1:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: column {column!r} appears {header.count(column)} times in "
                     f"{str(path)!r}"
                 )
             if column not in header:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: column {column!r} not in {path.name}; {_available(column, header)}"
                 )
             index[column] = header.index(column)
         if not rows:
-            raise DriverInitializationError(f"path: CSV {str(path)!r} has no data rows")
+            raise DriverConfigError(f"path: CSV {str(path)!r} has no data rows")
 
         table: dict[str, FloatArray] = {}
         for column, j in index.items():
@@ -313,35 +343,35 @@ class FileDriver(Driver):
         try:
             mat = scipy.io.loadmat(path)
         except NotImplementedError as exc:  # MATLAB v7.3 files are HDF5
-            raise DriverInitializationError(
+            raise DriverConfigError(
                 f"path: {str(path)!r} is a MATLAB v7.3 (HDF5) file; save it with -v7: {exc}"
             ) from exc
         except (OSError, ValueError, TypeError) as exc:
-            raise DriverInitializationError(f"path: cannot read MAT {str(path)!r}: {exc}") from exc
+            raise DriverConfigError(f"path: cannot read MAT {str(path)!r}: {exc}") from exc
         variables = [name for name in mat if not name.startswith("__")]
         table: dict[str, FloatArray] = {}
         length: tuple[str, int] | None = None
         for key, name in self._keys():
             if name not in mat or name.startswith("__"):
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: variable {name!r} not in {path.name}; {_available(name, variables)}"
                 )
             array = np.asarray(mat[name])
             if array.dtype.kind not in "biuf" or sum(d > 1 for d in array.shape) > 1:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: variable {name!r} in {path.name} is not a numeric vector "
                     f"(dtype {array.dtype}, shape {array.shape})"
                 )
             vector = array.astype(np.float64).ravel()
             if length is not None and vector.size != length[1]:
-                raise DriverInitializationError(
+                raise DriverConfigError(
                     f"{key}: variable {name!r} has {vector.size} samples, "
                     f"{length[0]!r} has {length[1]}"
                 )
             length = (name, vector.size)
             table[name] = vector
         if length is None or length[1] == 0:
-            raise DriverInitializationError(f"path: {str(path)!r}: the variables are empty")
+            raise DriverConfigError(f"path: {str(path)!r}: the variables are empty")
         return table
 
     def _keys(self) -> list[tuple[str, str]]:

@@ -191,6 +191,10 @@ class ModbusDriverConfig(DriverConfig):
     lockstep: bool = False
     registers: dict[str, ModbusChannelMap] = Field(min_length=1)
 
+    def twin_channels(self) -> tuple[str, ...]:
+        """The twin channels this driver delivers (``registers``)."""
+        return tuple(self.registers)
+
     @model_validator(mode="after")
     def _consistent(self) -> ModbusDriverConfig:
         if self.transport == "rtu" and self.serial_port is None:

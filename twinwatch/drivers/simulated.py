@@ -78,6 +78,10 @@ class SimulatedDriverConfig(DriverConfig):
     channel: str = "auto"
     realtime: bool = False
 
+    def twin_channels(self) -> tuple[str, ...]:
+        """The plant's channels, as its DBC carries them."""
+        return tuple(ch for _, sigs in _MESSAGES for ch in sigs)
+
 
 class SimulatedDriver(Driver):
     """Simulated plant -> DBC-encoded frames -> virtual CAN bus -> :class:`CanDriver`.

@@ -131,6 +131,10 @@ class SimulatedModbusDriverConfig(DriverConfig):
                         "counter": self.counter})
         return self
 
+    def twin_channels(self) -> tuple[str, ...]:
+        """The plant channels served (``registers``)."""
+        return tuple(self.registers)
+
     @property
     def sample_period(self) -> float:
         """The plant's sample period [s] (cross-checked against acquisition.sample_period)."""

@@ -1,0 +1,975 @@
+"""Fault injection: bad input, broken files and resources, and a new user's first run.
+
+Each case injects one fault and returns what it observed as a small dict of facts; the test
+compares it with the case's ``expected`` dict, so a failure prints case, expected and observed
+side by side. The cases are registered with :func:`case` in the order of issue #10's list;
+read them top to bottom as a table (``pytest tests/test_fault_injection.py -v`` lists them).
+
+The first cases are issue #5's (Zenoh unreachable, secrets readable by others), the rest issue
+#10's. Faults tested elsewhere: CAN bad frames and NaN (test_drivers_can.py), gaps, NaN windows,
+overruns and a failing window (test_daemon.py), a Modbus server that goes away
+(test_drivers_modbus.py), a silent source (test_watchdog.py), SIGKILL mid-write
+(test_store.py, test_service.py).
+
+Runs are short (a few 2 s windows of the simulated motor, Zenoh and the recording off unless
+the case is about them); every socket is on 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import cantools
+import pytest
+from click.testing import CliRunner
+
+from twinwatch.cli import main
+from twinwatch.daemon.store import StateStore
+
+from .conftest import ROOT
+
+SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    expected: dict[str, Any]
+    run: Callable[[Context], dict[str, Any]]
+
+
+@dataclass
+class Context:
+    tmp: Path
+    caplog: pytest.LogCaptureFixture
+    monkeypatch: pytest.MonkeyPatch
+
+
+CASES: list[Case] = []
+
+
+def case(name: str, **expected: Any) -> Callable[[Callable[[Context], dict[str, Any]]],
+                                                  Callable[[Context], dict[str, Any]]]:
+    """Register the decorated function as a fault case: it returns the observed facts."""
+
+    def register(fn: Callable[[Context], dict[str, Any]]) -> Callable[[Context], dict[str, Any]]:
+        CASES.append(Case(name, expected, fn))
+        return fn
+
+    return register
+
+
+# -- helpers ------------------------------------------------------------------------------
+def sim_config(tmp: Path, *, duration: float = 6.0, zenoh: bool = False,
+               recording: bool = False, extra: str = "", **replace: str) -> Path:
+    """The simulated motor's example config, short, written to ``tmp/m.toml``."""
+    text = SIM.replace("duration = 1200.0", f"duration = {duration}")
+    if not zenoh:
+        text = text.replace("[zenoh]", "[zenoh]\nenabled = false")
+    if not recording:
+        text = text.replace("[recording]", "[recording]\nenabled = false")
+    text = text.replace('path = "state.sqlite"', f'path = "{tmp / "state.sqlite"}"')
+    for old, new in replace.items():
+        assert old in text, old
+        text = text.replace(old, new)
+    path = tmp / "m.toml"
+    path.write_text(text + extra)
+    return path
+
+
+def with_driver(tmp: Path, driver: str, **kw: Any) -> Path:
+    """:func:`sim_config` with its ``[driver]`` tables replaced by ``driver`` (TOML)."""
+    path = sim_config(tmp, **kw)
+    text = path.read_text()
+    start, end = text.index("[driver]"), text.index("[zenoh]")
+    path.write_text(text[:start] + driver.strip() + "\n\n" + text[end:])
+    return path
+
+
+def cli(*args: str) -> Any:
+    """``twinwatch ARGS`` in this process (click's runner): exit code and output."""
+    return CliRunner().invoke(main, list(args), catch_exceptions=True)
+
+
+def health(window: int, machine: str = "dc-motor-sim") -> dict[str, Any]:
+    return {"machine": machine, "window": window, "t_start": 2.0 * window,
+            "t_end": 2.0 * window + 1.99, "parameters": {}, "alarms": {}}
+
+
+def corrupt_pages(db: Path, first_page: int = 6, pages: int = 20) -> None:
+    """Overwrite pages in the middle of a database, leaving its header intact."""
+    con = sqlite3.connect(db)
+    con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    con.close()
+    with db.open("r+b") as f:
+        f.seek(4096 * first_page)
+        f.write(b"\x5a" * (4096 * pages))
+
+
+def filled_store(db: Path, windows: int = 300) -> None:
+    twin = {"parameters": {"Ra": 6.0}, "trusted": {"Ra": 6.0}, "terms": []}
+    with StateStore(db) as st:
+        for w in range(windows):
+            st.save_window(health(w), twin)
+
+
+# -- issue #5's faults: Zenoh unreachable, secrets readable by others ------------------------
+def _client_config(port: int) -> str:
+    from .test_zenoh_publisher import endpoint
+
+    text = SIM.replace('mode = "peer"', 'mode = "client"')
+    text = text.replace('listen = ["tcp/127.0.0.1:7447"]', f'connect = ["{endpoint(port)}"]')
+    text = text.replace("\nconnect = []", "\nretry_max = 0.5")
+    text = text.replace("duration = 1200.0", "duration = 100000.0\nfault_period = 1200.0")
+    return text.replace("[recording]", "[recording]\nenabled = false")
+
+
+@case("Zenoh router unreachable at start, then lost mid-run (a Python zenoh session in "
+      "router mode stands in for zenohd)",
+      stored_without_zenoh=True, first_live_window_at_least_3=True, history_fills_gap=True,
+      stored_while_lost=True, history_fills_second_gap=True, exit_code=0, logged=True)
+def _zenoh_unreachable_then_lost(ctx: Context) -> dict[str, Any]:
+    import signal
+    import subprocess
+    import sys
+
+    from .test_service import Collector, _env, db_rows, get_json, wait_for, zsession
+    from .test_zenoh_publisher import endpoint, free_port
+
+    port = free_port()
+    cfg = ctx.tmp / "m.toml"
+    cfg.write_text(_client_config(port))
+    db = ctx.tmp / "state.sqlite"
+    proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(cfg), "--no-progress",
+                             "--log-level", "info"], cwd=ctx.tmp, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    key = "twinwatch/dc-motor-sim"
+    out: dict[str, Any] = {}
+    try:
+        # nobody listens: the daemon runs anyway and stores every window
+        out["stored_without_zenoh"] = bool(
+            wait_for(lambda: len(db_rows(db)) >= 3, 60, "windows stored without zenoh"))
+        with zsession("router", listen=[endpoint(port)]) as router:
+            seen = Collector(router, f"{key}/health")
+            wait_for(seen.snapshot, 20, "health once the router is up")
+            first_live = min(h["window"] for h in seen.snapshot())
+            out["first_live_window_at_least_3"] = first_live >= 3
+            # the history fills the gap: windows 0 .. first_live - 1 were never published
+            hist = get_json(router, f"{key}/history?limit=1000")[0]["windows"]
+            out["history_fills_gap"] = (
+                [h["window"] for h in hist[:first_live]] == list(range(first_live))
+                and hist[0]["counters"].get("zenoh_published", 0) == 0)
+        # the router goes away mid-run: estimation and storage go on
+        n = len(db_rows(db))
+        out["stored_while_lost"] = bool(wait_for(lambda: len(db_rows(db)) >= n + 3, 30,
+                                                 "windows stored while zenoh is lost")
+                                        and proc.poll() is None)
+        with zsession("router", listen=[endpoint(port)]) as router:
+            seen = Collector(router, f"{key}/health")
+            wait_for(seen.snapshot, 30, "health after the router came back")
+            gap_from = n - 1
+            back = min(h["window"] for h in seen.snapshot())
+            hist = get_json(router, f"{key}/history?t_from={2 * gap_from}")[0]["windows"]
+            out["history_fills_second_gap"] = {h["window"] for h in hist} >= set(
+                range(gap_from, back))
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    out["exit_code"] = proc.returncode
+    out["logged"] = "nothing answers there" in err and "publishing resumes" in err
+    return out
+
+
+def _tls_config(tmp: Path, **extra: str) -> Path:
+    lines = "".join(f'{k} = "{v}"\n' for k, v in extra.items())
+    text = SIM.replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tls/localhost:17448"]')
+    text += ('\n[zenoh.tls]\nroot_ca_certificate = "ca.pem"\nlisten_certificate = "srv.pem"\n'
+             + ("" if "listen_private_key_base64" in extra
+                else 'listen_private_key = "srv.key"\n') + lines)
+    cfg = tmp / "tls.toml"
+    cfg.write_text(text)
+    for name in ("ca.pem", "srv.pem", "srv.key"):
+        (tmp / name).write_text("placeholder\n")
+    return cfg
+
+
+@case("Zenoh TLS: the private key file is readable by others (0644)",
+      refused_naming_the_file=True, names_the_fix=True, run_exit_code=78,
+      accepted_at_0640=True, certificates_relative_to_config=True)
+def _secret_key_readable_by_others(ctx: Context) -> dict[str, Any]:
+    from twinwatch.config.loader import ConfigError, load_config
+
+    cfg = _tls_config(ctx.tmp)
+    key = ctx.tmp / "srv.key"
+    key.chmod(0o644)
+    with pytest.raises(ConfigError) as exc:
+        load_config(cfg)
+    r = cli("run", str(cfg))
+    key.chmod(0o640)
+    loaded = load_config(cfg)  # certificates are public: 0644 is fine for them
+    return {"refused_naming_the_file": f"zenoh.tls.listen_private_key = {key} is a secret "
+            "readable by other users" in str(exc.value),
+            "names_the_fix": f"chmod o-rwx {key}" in str(exc.value),
+            "run_exit_code": r.exit_code if "readable by other users" in r.output else r.output,
+            "accepted_at_0640": loaded.zenoh.tls is not None,
+            "certificates_relative_to_config": loaded.zenoh.tls is not None
+            and loaded.zenoh.tls.root_ca_certificate == str(ctx.tmp / "ca.pem")}
+
+
+@case("a configuration holding a private key inline is readable by others (0644)",
+      refused=True, names_the_fix=True, accepted_at_0640=True)
+def _inline_secret_readable_by_others(ctx: Context) -> dict[str, Any]:
+    from twinwatch.config.loader import ConfigError, load_config
+
+    cfg = _tls_config(ctx.tmp, listen_private_key_base64="TUlJQ...")
+    cfg.chmod(0o644)
+    with pytest.raises(ConfigError) as exc:
+        load_config(cfg)
+    cfg.chmod(0o640)
+    return {"refused": "holds secrets (zenoh.tls.listen_private_key_base64)" in str(exc.value),
+            "names_the_fix": f"chmod o-rwx {cfg}" in str(exc.value),
+            "accepted_at_0640": load_config(cfg).zenoh.inline_secrets()
+            == ["zenoh.tls.listen_private_key_base64"]}
+
+
+# -- 1. the state database ------------------------------------------------------------------
+@case("state db: header intact, pages corrupt, recover_corrupt = true: `run` at start",
+      exit_code=0, moved_aside=1, resumed=False, says_set_recover_corrupt=False,
+      windows_stored=3)
+def _corrupt_pages_at_start(ctx: Context) -> dict[str, Any]:
+    db = ctx.tmp / "state.sqlite"
+    filled_store(db)
+    corrupt_pages(db)
+    cfg = sim_config(ctx.tmp, extra="recover_corrupt = true\n")
+    r = cli("run", str(cfg), "--no-progress", "--log-level", "info")
+    with StateStore(db) as st:
+        stored = st.count()
+    text = r.output + ctx.caplog.text
+    return {"exit_code": r.exit_code,
+            "moved_aside": len(list(ctx.tmp.glob("state.sqlite.corrupt-*"))) - len(
+                list(ctx.tmp.glob("state.sqlite.corrupt-*-*"))),
+            "resumed": "resumed the twin" in text,
+            "says_set_recover_corrupt": "set [state] recover_corrupt" in text
+            or "set recover_corrupt" in text,
+            "windows_stored": stored}
+
+
+@case("state db: header intact, pages corrupt, recover_corrupt = false: `run` at start",
+      exit_code=1, names_the_fix="set [state] recover_corrupt = true", moved_aside=0)
+def _corrupt_pages_no_recovery(ctx: Context) -> dict[str, Any]:
+    db = ctx.tmp / "state.sqlite"
+    filled_store(db)
+    corrupt_pages(db)
+    r = cli("run", str(sim_config(ctx.tmp)), "--no-progress")
+    fix = "set [state] recover_corrupt = true"
+    return {"exit_code": r.exit_code,
+            "names_the_fix": fix if fix in r.output else r.output[-300:],
+            "moved_aside": len(list(ctx.tmp.glob("state.sqlite.corrupt-*")))}
+
+
+@case("state db: corruption found at run time by a history query (another thread)",
+      moved_aside=1, history_after=0, next_window_stored=True, rows_in_new_db=1)
+def _corrupt_pages_at_run_time(ctx: Context) -> dict[str, Any]:
+    db = ctx.tmp / "state.sqlite"
+    with StateStore(db, recover_corrupt=True) as st:
+        for w in range(300):
+            st.save_window(health(w), None)
+        corrupt_pages(db)
+        got: list[Any] = []
+        reader = threading.Thread(target=lambda: got.append(st.history(limit=None)),
+                                  name="zenoh-history-query")
+        reader.start()
+        reader.join()
+        stored = st.save_window(health(300), None)
+        rows = st.count()
+    return {"moved_aside": len(list(ctx.tmp.glob("state.sqlite.corrupt-*"))),
+            "history_after": len(got[0]) if got else None,
+            "next_window_stored": stored, "rows_in_new_db": rows}
+
+
+# -- 3. a malformed line in a CAN log --------------------------------------------------------
+PLANT_DBC = ROOT / "twinwatch" / "plant" / "dcmotor.dbc"
+
+
+def candump_log(path: Path, n: int, bad_lines: dict[int, str] | None = None) -> None:
+    """A candump log of ``n`` plant samples (3 frames each), with some lines replaced."""
+    db = cantools.database.load_file(PLANT_DBC)
+    lines = []
+    for k in range(n):
+        for name, sig in (("TW_Motor_Electrical", {"Va": 2.0, "ia": 0.5}),
+                          ("TW_Motor_Mechanical", {"omega": 10.0 * k, "Tload": 0.0}),
+                          ("TW_Motor_Sample", {"setpoint": 1.0, "sample_counter": k})):
+            msg = db.get_message_by_name(name)
+            lines.append(f"({k * 0.01:.6f}) can0 {msg.frame_id:03X}#"
+                         f"{msg.encode(sig).hex().upper()}")
+    for i, text in (bad_lines or {}).items():
+        lines[i] = text
+    path.write_text("\n".join(lines) + "\n")
+
+
+def can_log_driver(log: Path) -> dict[str, Any]:
+    return {"type": "can", "dbc": str(PLANT_DBC), "log_file": str(log),
+            "sync_message": "TW_Motor_Sample", "time_source": "counter",
+            "counter_signal": "TW_Motor_Sample.sample_counter", "sample_period": 0.01,
+            "signals": {"Va": {"message": "TW_Motor_Electrical", "signal": "Va"},
+                        "ia": {"message": "TW_Motor_Electrical", "signal": "ia"},
+                        "omega": {"message": "TW_Motor_Mechanical", "signal": "omega"},
+                        "Tload": {"message": "TW_Motor_Mechanical", "signal": "Tload"},
+                        "setpoint": {"message": "TW_Motor_Sample", "signal": "setpoint"}}}
+
+
+def replay(driver_table: dict[str, Any], base_dir: Path) -> tuple[list[Any], Any, str]:
+    """Read a driver to its end: samples, stats, and how it ended."""
+    from twinwatch.drivers import DriverError, EndOfStream, create_driver
+
+    samples = []
+    with create_driver(driver_table, base_dir=base_dir) as drv:
+        try:
+            while (s := drv.read(0)) is not None or True:
+                if s is not None:
+                    samples.append(s)
+        except EndOfStream:
+            end = "end of stream"
+        except DriverError as exc:
+            end = f"{type(exc).__name__}: {exc}"
+    return samples, drv.stats, end
+
+
+@case("CAN candump log: one malformed line in the middle of 50 samples",
+      end="end of stream", samples=49, bad_frames=1, logged_line_number=True)
+def _can_log_malformed_line(ctx: Context) -> dict[str, Any]:
+    log = ctx.tmp / "m.log"
+    candump_log(log, 50, {77: "(0.250000) can0 this-is-not-a-frame"})  # sample 25 sync
+    samples, stats, end = replay(can_log_driver(log), ctx.tmp)
+    return {"end": end, "samples": len(samples), "bad_frames": stats.bad_frames,
+            "logged_line_number": "CAN log line 78 is malformed" in ctx.caplog.text}
+
+
+@case("CAN candump log: three malformed lines (garbage, short, bad hex)",
+      end="end of stream", samples=47, bad_frames=3)
+def _can_log_three_malformed_lines(ctx: Context) -> dict[str, Any]:
+    log = ctx.tmp / "m.log"
+    candump_log(log, 50, {2: "garbage", 32: "(0.1) can0", 62: "(0.2) can0 12Z#ZZ"})
+    samples, stats, end = replay(can_log_driver(log), ctx.tmp)
+    return {"end": end, "samples": len(samples), "bad_frames": stats.bad_frames}
+
+
+@case("CAN .csv log (python-can format, with a header): one malformed line",
+      end="end of stream", samples=19, bad_frames=1)
+def _can_csv_log_malformed_line(ctx: Context) -> dict[str, Any]:
+    src = ctx.tmp / "m.log"
+    candump_log(src, 20)
+    csv_log = ctx.tmp / "m.csv"
+    with can.LogReader(src) as reader, can.CSVWriter(csv_log) as writer:
+        for msg in reader:
+            writer.on_message_received(msg)
+    lines = csv_log.read_text().splitlines()
+    lines[33] = "0.1,not,a,frame"  # sample 10: its sync frame (lines[0] is the header)
+    csv_log.write_text("\n".join(lines) + "\n")
+    samples, stats, end = replay(can_log_driver(csv_log), ctx.tmp)
+    return {"end": end, "samples": len(samples), "bad_frames": stats.bad_frames}
+
+
+@case("CAN log: 1100 garbage lines after 2000 good samples (not a candump log): `run`",
+      exit_code=1, one_line_error=True, traceback=False, windows_stored=10)
+def _can_log_garbage_run(ctx: Context) -> dict[str, Any]:
+    log = ctx.tmp / "m.log"
+    candump_log(log, 2000)
+    log.write_text(log.read_text() + "garbage\n" * 1100)
+    cfg = with_driver(ctx.tmp, CAN_LOG_DRIVER.format(log=log, dbc=PLANT_DBC))
+    r = cli("run", str(cfg), "--no-progress")
+    with StateStore(ctx.tmp / "state.sqlite") as st:
+        stored = st.count()
+    errors = [ln for ln in r.output.splitlines() if ln.startswith("Error:")]
+    return {"exit_code": r.exit_code,
+            "one_line_error": len(errors) == 1 and "more than 1000 malformed lines" in errors[0],
+            "traceback": "Traceback" in r.output + ctx.caplog.text
+            or not isinstance(r.exception, SystemExit | None),
+            "windows_stored": stored}
+
+
+CAN_LOG_DRIVER = """
+[driver]
+type = "can"
+dbc = "{dbc}"
+log_file = "{log}"
+sync_message = "TW_Motor_Sample"
+time_source = "counter"
+counter_signal = "TW_Motor_Sample.sample_counter"
+sample_period = 0.01
+[driver.signals]
+Va = {{ message = "TW_Motor_Electrical", signal = "Va" }}
+ia = {{ message = "TW_Motor_Electrical", signal = "ia" }}
+omega = {{ message = "TW_Motor_Mechanical", signal = "omega" }}
+Tload = {{ message = "TW_Motor_Mechanical", signal = "Tload" }}
+setpoint = {{ message = "TW_Motor_Sample", signal = "setpoint" }}
+"""
+
+
+# -- 4. configuration values that must be refused --------------------------------------------
+def refused(ctx: Context, key: str, **replace: str) -> dict[str, Any]:
+    """check-config and run on the simulated motor's config with ``replace`` applied."""
+    cfg = sim_config(ctx.tmp, **replace)
+    check = cli("check-config", str(cfg))
+    run = cli("run", str(cfg), "--no-progress")
+    return {"check_config": check.exit_code, "run": run.exit_code,
+            "names_the_key": key in check.output and key in run.output,
+            "traceback": "Traceback" in check.output + run.output
+            or not isinstance(check.exception, SystemExit | None)
+            or not isinstance(run.exception, SystemExit | None)}
+
+
+REFUSED = {"check_config": 1, "run": 78, "names_the_key": True, "traceback": False}
+
+
+@case("config: [machine.parameters] Ra = nan (the alarm could never fire)", **REFUSED)
+def _nan_nameplate(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "machine.parameters.Ra", **{"Ra = 6.5 ": "Ra = nan "})
+
+
+@case("config: [machine.parameters] Ra = -6.5", **REFUSED)
+def _negative_nameplate(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "machine.parameters", **{"Ra = 6.5 ": "Ra = -6.5 "})
+
+
+@case("config: acquisition.window = 1000000000 (numpy would die allocating it)", **REFUSED)
+def _huge_window(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "acquisition.window", **{"window = 200": "window = 1000000000"})
+
+
+@case("config: acquisition.sample_period = inf", **REFUSED)
+def _infinite_sample_period(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "acquisition.sample_period",
+                   **{"sample_period = 0.01": "sample_period = inf"})
+
+
+@case("config: estimation.bounds Ra = [1.0, inf]", **REFUSED)
+def _infinite_bound(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "estimation.bounds.Ra", **{"Ra = [1.0, 30.0]": "Ra = [1.0, inf]"})
+
+
+@case("config: machine.name of 1 MB", **REFUSED)
+def _huge_machine_name(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "machine.name",
+                   **{'name = "dc-motor-sim"': f'name = "{"m" * 1_000_000}"'})
+
+
+@case("config: machine.options.sub_step = 0 (a division by zero in the model)", **REFUSED)
+def _zero_sub_step(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "machine", **{"sub_step = 1e-4": "sub_step = 0.0"})
+
+
+# -- 5. check-config refuses what run refuses; run exits 78 ------------------------------------
+def refused_at_start(ctx: Context, cfg: Path, key: str) -> dict[str, Any]:
+    check = cli("check-config", str(cfg))
+    run = cli("run", str(cfg), "--no-progress")
+    return {"check_config": check.exit_code, "run": run.exit_code,
+            "names_the_key": key in check.output and key in run.output,
+            "nothing_written": not (ctx.tmp / "state.sqlite").exists()}
+
+
+NOT_RUNNABLE = {"check_config": 1, "run": 78, "names_the_key": True, "nothing_written": True}
+
+
+@case("CAN driver: the DBC file is missing", **NOT_RUNNABLE)
+def _missing_dbc(ctx: Context) -> dict[str, Any]:
+    log = ctx.tmp / "m.log"
+    candump_log(log, 10)
+    cfg = with_driver(ctx.tmp, CAN_LOG_DRIVER.format(log=log, dbc=ctx.tmp / "nope.dbc"))
+    return refused_at_start(ctx, cfg, "driver.dbc: file")
+
+
+@case("Zenoh TLS: the CA certificate file is missing", **NOT_RUNNABLE)
+def _missing_tls_file(ctx: Context) -> dict[str, Any]:
+    from .test_zenoh_publisher import endpoint, free_port
+
+    cfg = sim_config(ctx.tmp, zenoh=True, extra='\n[zenoh.tls]\nroot_ca_certificate = '
+                     '"missing-ca.pem"\n', **{'listen = ["tcp/127.0.0.1:7447"]':
+                                             f'listen = ["{endpoint(free_port())}"]'})
+    return refused_at_start(ctx, cfg, "zenoh.tls.root_ca_certificate: file")
+
+
+@case("recording: its directory does not exist", **NOT_RUNNABLE)
+def _missing_recording_dir(ctx: Context) -> dict[str, Any]:
+    cfg = sim_config(ctx.tmp, recording=True,
+                     **{'path = "twinwatch.rrd"': 'path = "no-such-dir/m.rrd"'})
+    return refused_at_start(ctx, cfg, "recording.path: directory")
+
+
+@case("state database: its directory does not exist", **NOT_RUNNABLE)
+def _missing_state_dir(ctx: Context) -> dict[str, Any]:
+    cfg = sim_config(ctx.tmp)
+    cfg.write_text(cfg.read_text().replace(str(ctx.tmp / "state.sqlite"),
+                                           str(ctx.tmp / "gone" / "state.sqlite")))
+    return refused_at_start(ctx, cfg, "state.path: directory")
+
+
+@case("closed-loop twin, a recording that maps no 'setpoint' (estimated nothing, exit 0)",
+      **NOT_RUNNABLE)
+def _closed_loop_without_setpoint(ctx: Context) -> dict[str, Any]:
+    data = ctx.tmp / "rec.csv"
+    data.write_text("t,Va,ia,omega,Tload\n" + "".join(
+        f"{k * 0.01:.2f},12.0,0.5,300.0,0.0\n" for k in range(1000)))
+    cfg = with_driver(ctx.tmp, f"""
+[driver]
+type = "file"
+path = "{data}"
+time_column = "t"
+sample_period = 0.01
+[driver.columns]
+Va = {{ column = "Va" }}
+ia = {{ column = "ia" }}
+omega = {{ column = "omega" }}
+Tload = {{ column = "Tload" }}
+""")
+    out = refused_at_start(ctx, cfg, "needs channel 'setpoint'")
+    out["names_the_key"] = out["names_the_key"] and "open_loop" in cli(
+        "check-config", str(cfg)).output
+    return out
+
+
+@case("CAN driver: the DBC has no message of that name (found when the driver opens)",
+      check_config=1, run=78, names_the_key=True, nothing_written=False)
+def _dbc_without_the_message(ctx: Context) -> dict[str, Any]:
+    log = ctx.tmp / "m.log"
+    candump_log(log, 10)
+    cfg = with_driver(ctx.tmp, CAN_LOG_DRIVER.format(log=log, dbc=PLANT_DBC).replace(
+        'sync_message = "TW_Motor_Sample"', 'sync_message = "TW_Motor_Sampel"'))
+    return refused_at_start(ctx, cfg, "sync_message: message 'TW_Motor_Sampel' not in DBC")
+
+
+# -- 2. a window that cannot be stored is not published; the loss is reported ----------------
+class DiskFull:
+    """The state database's writes fail (as on a full disk) for the windows in ``windows``."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, windows: range) -> None:
+        self.windows = windows
+        original = StateStore._flush
+
+        def flush(store: StateStore, retry: bool = True) -> bool:
+            if store._pending and store._pending[-1][2] in self.windows:
+                return store._flush_failed(sqlite3.OperationalError(
+                    "database or disk is full"))
+            return original(store, retry)
+
+        monkeypatch.setattr(StateStore, "_flush", flush)
+
+
+def run_with_subscriber(ctx: Context, cfg_text_kw: dict[str, Any], *args: str
+                        ) -> tuple[Any, list[int], list[int]]:
+    """`run` as a Zenoh client of a router (this test) that subscribes to the health before
+    the daemon starts: the result, the windows published and the windows stored."""
+    from .test_service import Collector, zsession
+    from .test_zenoh_publisher import endpoint, free_port
+
+    port = free_port()
+    cfg = sim_config(ctx.tmp, zenoh=True, **cfg_text_kw,
+                     **{'mode = "peer"': 'mode = "client"',
+                        'listen = ["tcp/127.0.0.1:7447"]': f'connect = ["{endpoint(port)}"]',
+                        "\nconnect = []": ""})
+    with zsession("router", listen=[endpoint(port)]) as router:
+        col = Collector(router, "twinwatch/dc-motor-sim/health")
+        result = cli("run", str(cfg), *args)
+        published = sorted(h["window"] for h in col.snapshot())
+    with StateStore(ctx.tmp / "state.sqlite") as st:
+        stored = sorted(h["window"] for h in st.history(limit=None))
+    return result, published, stored
+
+
+@case("state database full for windows 2-4, writable again from window 5 (of 10)",
+      exit_code=0, published_not_stored=[], not_published=[2, 3, 4], stored=list(range(10)),
+      summary="3 windows could not be stored when estimated, so they were not published "
+              "(3 written later, served by the history query; 0 lost)",
+      systemd_status=["DEGRADED: state database not writable: 1 windows waiting in memory, "
+                      "not published", "recovered"])
+def _disk_full_then_space(ctx: Context) -> dict[str, Any]:
+    import socket
+
+    DiskFull(ctx.monkeypatch, range(2, 5))
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)  # systemd's NOTIFY_SOCKET
+    notify.bind(str(ctx.tmp / "notify"))
+    notify.settimeout(0)
+    ctx.monkeypatch.setenv("NOTIFY_SOCKET", str(ctx.tmp / "notify"))
+    try:
+        r, published, stored = run_with_subscriber(ctx, {"duration": 20.0}, "--no-progress")
+        statuses = []
+        while True:
+            try:
+                msg = notify.recv(4096).decode()
+            except BlockingIOError:
+                break
+            statuses += [ln.removeprefix("STATUS=") for ln in msg.splitlines()
+                         if ln.startswith("STATUS=")]
+    finally:
+        notify.close()
+    line = [ln for ln in r.output.splitlines() if ln.startswith("state database:")]
+    degraded = [st for st in statuses if "DEGRADED" in st]
+    after = statuses[statuses.index(degraded[0]) + 1:] if degraded else []
+    return {"exit_code": r.exit_code,
+            "published_not_stored": sorted(set(published) - set(stored)),
+            "not_published": sorted(set(range(10)) - set(published)),
+            "stored": stored,
+            "summary": line[0].removeprefix("state database: ") if line else r.output,
+            "systemd_status": [
+                "DEGRADED: " + degraded[0].split("DEGRADED: ", 1)[1] if degraded else statuses,
+                "recovered" if any(st.startswith("monitoring") and "DEGRADED" not in st
+                                   for st in after) else after]}
+
+
+@case("state database full from window 3 to the end (of 5): nothing of it published",
+      exit_code=74, published=[0, 1, 2], stored=[0, 1, 2], lost_in_summary=True,
+      health_counters={"store_waiting": 0, "windows_not_stored": 0})
+def _disk_full_to_the_end(ctx: Context) -> dict[str, Any]:
+    DiskFull(ctx.monkeypatch, range(3, 10**6))
+    r, published, stored = run_with_subscriber(ctx, {"duration": 10.0}, "--no-progress")
+    with StateStore(ctx.tmp / "state.sqlite") as st:
+        last = st.latest_health()
+    return {"exit_code": r.exit_code, "published": published, "stored": stored,
+            "lost_in_summary": "2 lost)" in r.output and "exit status 74" in r.output,
+            "health_counters": {k: last["counters"][k]
+                                for k in ("store_waiting", "windows_not_stored")}}
+
+
+DISK_FULL = r"""
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # a write past the limit fails with EFBIG
+hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1]
+signal.signal(signal.SIGUSR1, lambda *a: resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard)))
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), hard))
+from twinwatch.daemon.recorder import RerunRecorder
+RerunRecorder.reopen_after = 1.0                   # the test cannot wait 30 s
+RerunRecorder.flush_timeout = 2.0
+from twinwatch.cli import main
+main(sys.argv[2:])
+"""
+
+
+@case("no file may grow past 200 kB (a full disk, unprivileged: RLIMIT_FSIZE) until the "
+      "test frees space (SIGUSR1) once the state database has failed; Zenoh on",
+      exit_code=74, published_not_stored=[], stored_all=True, summary_names_both=True,
+      recording_reopened=True, last_recording_verifies=True)
+def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
+    import signal
+    import subprocess
+    import sys
+
+    from .test_e2e_cli import _rerun
+    from .test_service import Collector, _env, zsession
+    from .test_zenoh_publisher import endpoint, free_port
+
+    port = free_port()
+    cfg = sim_config(ctx.tmp, duration=40.0, zenoh=True, recording=True,
+                     **{'mode = "peer"': 'mode = "client"',
+                        'listen = ["tcp/127.0.0.1:7447"]': f'connect = ["{endpoint(port)}"]',
+                        "\nconnect = []": ""})
+    with zsession("router", listen=[endpoint(port)]) as router:
+        col = Collector(router, "twinwatch/dc-motor-sim/health")
+        proc = subprocess.Popen([sys.executable, "-c", DISK_FULL, "200000", "run", str(cfg),
+                                 "--no-progress", "--log-level", "info"], cwd=ctx.tmp,
+                                env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+        err: list[str] = []
+
+        def read_stderr() -> None:
+            assert proc.stderr is not None
+            for line in proc.stderr:
+                err.append(line)
+                if "not written yet" in line:  # the state database failed: free space
+                    proc.send_signal(signal.SIGUSR1)
+
+        reader = threading.Thread(target=read_stderr, name="stderr-reader", daemon=True)
+        reader.start()
+        try:
+            proc.wait(timeout=180)  # stderr is the reader's alone (communicate would share it)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            reader.join(timeout=10)
+            assert proc.stdout is not None and proc.stderr is not None
+            out = proc.stdout.read()
+            proc.stdout.close()
+            proc.stderr.close()
+        published = {h["window"] for h in col.snapshot()}
+    with StateStore(ctx.tmp / "state.sqlite") as st:
+        stored = [h["window"] for h in st.history(limit=None)]
+    verify = subprocess.run([_rerun(), "rrd", "verify", str(ctx.tmp / "twinwatch.rrd")],
+                            capture_output=True, text=True, env=_env(), timeout=120)
+    return {"exit_code": proc.returncode,
+            "published_not_stored": sorted(published - set(stored)),
+            "stored_all": stored == list(range(20)),
+            "summary_names_both": "state database: " in out and "0 lost)" in out
+            and "windows could not be recorded" in out,
+            "recording_reopened": any("reopened" in ln for ln in err),
+            "last_recording_verifies": verify.returncode == 0}
+
+
+@case("recording: the disk has 10 MiB free during windows 2-3 of 6 (below the 64 MiB kept "
+      "for the state database)", recorded=4, lost=2, problem_while_full=True,
+      problem_after=None, file_verifies=True)
+def _recording_pauses_on_a_nearly_full_disk(ctx: Context) -> dict[str, Any]:
+    import os
+    import subprocess
+
+    import numpy as np
+
+    from twinwatch.daemon.recorder import RecordingConfig, RerunRecorder
+
+    from .test_e2e_cli import _rerun
+    from .test_service import _env
+
+    real = os.statvfs
+    full = [False]
+
+    class Small:
+        f_bavail, f_frsize = 10 * 256, 4096  # 10 MiB
+
+    ctx.monkeypatch.setattr(os, "statvfs", lambda p: Small() if full[0] else real(p))
+    path = ctx.tmp / "m.rrd"
+    problems = []
+    with RerunRecorder(RecordingConfig(path=str(path)), "m1", outputs=("y",),
+                       parameters={"k": "1"}) as rec:
+        for w in range(6):
+            full[0] = w in (2, 3)
+            t = np.arange(200) * 0.01 + 2 * w
+            rec.log_window(t=t, measured={"y": np.sin(t)}, simulated={"y": np.sin(t)},
+                           parameters={"k": 1.0}, health={"window": w})
+            problems.append(rec.problem)
+    verify = subprocess.run([_rerun(), "rrd", "verify", str(path)], capture_output=True,
+                            text=True, env=_env(), timeout=120)
+    return {"recorded": rec.windows, "lost": rec.lost,
+            "problem_while_full": all(p and "paused" in p for p in problems[2:4]),
+            "problem_after": problems[-1], "file_verifies": verify.returncode == 0}
+
+
+# -- 6. a second `run` in the same directory ------------------------------------------------
+@case("a second `run` in the directory of a running one: same port, then same state "
+      "database, then same recording",
+      same_port="cannot start", same_state="state database", same_recording="recording",
+      exit_codes=[1, 1, 1], first_recording_intact=True, first_still_running=True,
+      first_exit_code=0)
+def _second_run_same_directory(ctx: Context) -> dict[str, Any]:
+    import signal
+    import subprocess
+    import sys
+
+    from .test_service import _env, db_rows, wait_for
+    from .test_zenoh_publisher import endpoint, free_port
+
+    port = free_port()
+    kw = {'listen = ["tcp/127.0.0.1:7447"]': f'listen = ["{endpoint(port)}"]',
+          "duration = 1200.0": "duration = 100000.0\nfault_period = 1200.0"}
+    text = SIM  # the first run: Zenoh, recording, state database
+    for old, new in kw.items():
+        text = text.replace(old, new)
+    (ctx.tmp / "first.toml").write_text(text)
+    first = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "first.toml",
+                              "--no-progress"], cwd=ctx.tmp, env=_env(),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    rrd = ctx.tmp / "twinwatch.rrd"
+    try:
+        wait_for(lambda: len(db_rows(ctx.tmp / "state.sqlite")) >= 3, 60, "3 stored windows")
+        sizes = [rrd.stat().st_size]
+        head = rrd.read_bytes()[:sizes[0]]  # what the first run has written so far
+        out: dict[str, Any] = {"exit_codes": []}
+        for key, edit in (("same_port", {}),
+                          ("same_state", {"[zenoh]": "[zenoh]\nenabled = false"}),
+                          ("same_recording", {"[zenoh]": "[zenoh]\nenabled = false",
+                                              'path = "state.sqlite"': 'path = "other.sqlite"'})):
+            t = text
+            for old, new in edit.items():
+                t = t.replace(old, new)
+            (ctx.tmp / "second.toml").write_text(t)
+            r = cli("run", str(ctx.tmp / "second.toml"), "--no-progress", "--duration", "4")
+            out["exit_codes"].append(r.exit_code)
+            err = [ln for ln in r.output.splitlines() if ln.startswith("Error:")]
+            words = {"same_port": "cannot start", "same_state": "state database",
+                     "same_recording": "recording"}[key]
+            out[key] = words if err and words in err[0] and (
+                key == "same_port" or f"in use by process {first.pid}" in err[0]) else r.output
+            sizes.append(rrd.stat().st_size)
+        # never truncated nor overwritten (a truncated file is rewritten from offset 0 by the
+        # second run and then grows again under the first: the size alone does not show it)
+        out["first_recording_intact"] = (sizes == sorted(sizes) and sizes[0] > 0
+                                         and rrd.read_bytes()[:len(head)] == head)
+        out["first_still_running"] = first.poll() is None
+        first.send_signal(signal.SIGTERM)
+        first.communicate(timeout=60)
+        out["first_exit_code"] = first.returncode
+        return out
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.communicate()
+
+
+# -- 7. loss accounting ----------------------------------------------------------------------
+@case("recording of 4000 samples whose every other 'ia' is NaN",
+      exit_code=0, windows_abandoned=20,
+      source_line="source: 4000 samples received, 4000 not in any window "
+                  "(4000 NaN or inf in 'ia')",
+      cause="no window was completed: 4000 of 4000 samples lost to NaN or inf in 'ia'")
+def _every_other_sample_nan(ctx: Context) -> dict[str, Any]:
+    data = ctx.tmp / "rec.csv"
+    data.write_text("t,Va,ia,omega\n" + "".join(
+        f"{k * 0.01:.2f},12.0,{'nan' if k % 2 else '0.5'},300.0\n" for k in range(4000)))
+    cfg = with_driver(ctx.tmp, f"""
+[driver]
+type = "file"
+path = "{data}"
+time_column = "t"
+sample_period = 0.01
+[driver.columns]
+Va = {{ column = "Va" }}
+ia = {{ column = "ia" }}
+omega = {{ column = "omega" }}
+""", **{'structure = "closed_loop"': 'structure = "open_loop"'})
+    r = cli("run", str(cfg), "--no-progress")
+    lines = r.output.splitlines()
+    first = lines[0] if lines else ""
+    return {"exit_code": r.exit_code,
+            "windows_abandoned": int(first.split(" windows abandoned")[0].rsplit(" ", 1)[1])
+            if "windows abandoned" in first else None,
+            "source_line": next((ln for ln in lines if ln.startswith("source:")), None),
+            "cause": next((ln.split(":", 1)[0] + ":" + ln.split(":", 2)[1]
+                           for ln in lines if ln.startswith("no window")), None)}
+
+
+# -- 10. the first run ----------------------------------------------------------------------
+@case("a second demo run resumes the first one's twin: one line says so; --fresh does not",
+      first_says_resumed=False, second_says_resumed=True, second_names_fresh=True,
+      fresh_says_resumed=False)
+def _demo_resume_and_fresh(ctx: Context) -> dict[str, Any]:
+    cfg = sim_config(ctx.tmp, duration=4.0)
+    first = cli("run", str(cfg), "--no-progress")
+    second = cli("run", str(cfg), "--no-progress")
+    fresh = cli("run", str(cfg), "--no-progress", "--fresh")
+    return {"first_says_resumed": "resumed from" in first.output,
+            "second_says_resumed": "twinwatch: resumed from" in second.output
+            and "the twin of window 1" in second.output,
+            "second_names_fresh": "twinwatch run --fresh" in second.output,
+            "fresh_says_resumed": "resumed" in fresh.output}
+
+
+# -- 8. the history query ------------------------------------------------------------------
+@case("history query: limit=inf, t_from=inf, limit=0, t_from>t_to, a misspelt key; then 30 "
+      "more bad queries",
+      replies=["error: limit='inf'", "error: t_from='inf'", "error: limit='0'",
+               "error: t_from=5 is after t_to=1", "error: unknown parameter 'tfrom'",
+               "ok: 2 windows"],
+      log_lines=1, tracebacks=0)
+def _history_bad_parameters(ctx: Context) -> dict[str, Any]:
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.runner import Daemon
+
+    from .test_service import zsession
+    from .test_zenoh_publisher import endpoint, free_port
+
+    port = free_port()
+    cfg = default_config()
+    cfg.zenoh.listen = [endpoint(port)]
+    cfg.recording.enabled = False
+    cfg.state.path = str(ctx.tmp / "state.sqlite")
+    replies = []
+    with Daemon(cfg, persist=True, record=False) as daemon:
+        for w in range(2):
+            daemon.store.save_window(health(w), None)
+        base = f"twinwatch/{cfg.machine.name}/history"
+        ctx.caplog.clear()
+        with zsession("client", connect=[endpoint(port)]) as s:
+            for sel in ("limit=inf", "t_from=inf", "limit=0", "t_from=5;t_to=1", "tfrom=3",
+                        "t_from=0;t_to=10;limit=5"):
+                for r in s.get(f"{base}?{sel}", timeout=5.0):
+                    if r.ok is not None:
+                        replies.append(f"ok: {json.loads(r.ok.payload.to_string())['count']} "
+                                       f"windows")
+                    else:
+                        replies.append("error: " + r.err.payload.to_string())
+            for _ in range(30):
+                list(s.get(f"{base}?limit=inf", timeout=5.0))
+    logged = [r for r in ctx.caplog.records if "query" in r.getMessage()
+              and r.levelno >= logging.WARNING]
+    return {"replies": [r.split(":")[0] + ": " + r.split(": ", 1)[1].split(":")[0]
+                        if r.startswith("error") else r for r in replies],
+            "log_lines": len(logged),
+            "tracebacks": sum(r.exc_info is not None for r in ctx.caplog.records)}
+
+
+# -- 9. reload, CSV quotes, file modes -------------------------------------------------------
+@case("SIGHUP reload keeps the state database open: the window index goes on under the "
+      "same run id", runs=1, windows=[0, 1, 2, 3, 4, 5], duplicate_rows=0)
+def _reload_window_index(ctx: Context) -> dict[str, Any]:
+    from twinwatch.config.loader import load_config
+    from twinwatch.daemon.runner import SINKS, Daemon
+
+    cfg = load_config(sim_config(ctx.tmp))
+    first = Daemon(cfg, persist=True, publish=False, record=False)
+    first.run()
+    kept = first.close(keep=SINKS)  # what the CLI does on SIGHUP
+    second = Daemon(cfg, persist=True, publish=False, record=False, reuse=kept)
+    second.run()
+    second.close()
+    con = sqlite3.connect(ctx.tmp / "state.sqlite")
+    rows = con.execute("SELECT run, window FROM health ORDER BY id").fetchall()
+    con.close()
+    return {"runs": len({r for r, _ in rows}), "windows": [w for _, w in rows],
+            "duplicate_rows": len(rows) - len(set(rows))}
+
+
+@case("CSV recording: one unterminated quote on line 304 of 1001",
+      samples=1000, bad_values=2, rows_after_it_read=True, names_the_line=True)
+def _csv_unterminated_quote(ctx: Context) -> dict[str, Any]:
+    lines = ["t,Va,omega"] + [f"{k * 0.01:.2f},{k},{2 * k}" for k in range(1000)]
+    lines[303] = '3.02,"302,604'  # row 302: line 304 of the file (line 1: header)
+    data = ctx.tmp / "rec.csv"
+    data.write_text("\n".join(lines) + "\n")
+    samples, stats, _ = replay({"type": "file", "path": str(data), "time_column": "t",
+                                "sample_period": 0.01,
+                                "columns": {"Va": {"column": "Va"},
+                                            "omega": {"column": "omega"}}}, ctx.tmp)
+    return {"samples": len(samples), "bad_values": stats.bad_values,
+            "rows_after_it_read": samples[-1].values["omega"] == 1998.0,
+            "names_the_line": "(first: line 304)" in ctx.caplog.text}
+
+
+@case("files `run` creates outside systemd, with umask 022: not readable by others",
+      exit_code=0, others_can_read=[], umask_restored=True)
+def _file_modes(ctx: Context) -> dict[str, Any]:
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        r = cli("run", str(sim_config(ctx.tmp, duration=4.0, recording=True)), "--no-progress")
+        after = os.umask(0o022)
+    finally:
+        os.umask(old)
+    made = [p for p in ctx.tmp.iterdir() if p.name != "m.toml"]
+    assert {"state.sqlite", "twinwatch.rrd", "twinwatch.rbl"} <= {p.name for p in made}
+    return {"exit_code": r.exit_code,
+            "others_can_read": sorted(p.name for p in made
+                                      if p.stat().st_mode & stat.S_IROTH),
+            "umask_restored": after == 0o022}
+
+
+# -- the table ------------------------------------------------------------------------------
+@pytest.mark.parametrize("fault", CASES, ids=[c.name for c in CASES])
+def test_fault(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,
+               monkeypatch: pytest.MonkeyPatch) -> None:
+    caplog.set_level(logging.INFO)
+    monkeypatch.chdir(tmp_path)
+    observed = fault.run(Context(tmp_path, caplog, monkeypatch))
+    assert observed == fault.expected, (
+        f"\ncase:     {fault.name}\nexpected: {json.dumps(fault.expected)}\n"
+        f"observed: {json.dumps(observed, default=str)}")

@@ -1,0 +1,168 @@
+"""Honest numbers on machines the twin was not built around (issue 9 items 2, 3 and 6): the twin
+configured for a plant variant is exact and its intervals cover the truth; configured wrongly it
+says so (model check) instead of publishing a confident bias; evidence is fused across windows.
+Short runs: the long figures are printed by benchmarks/bench_fidelity.py."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
+from twinwatch.twin.dcmotor import DCMotorTwin
+from twinwatch.twin.drive import DriveConfig, LoopConfig
+from twinwatch.twin.estimation import EstimationConfig, Estimator
+from twinwatch.twin.fusion import FusionConfig, ParameterFusion
+from twinwatch.twin.statistics import check_model, cross_correlation_test, ljung_box
+
+from .conftest import plant_windows
+from .test_drive import STEPS
+
+BOUNDS = {"Ra": (1.0, 30.0), "D": (1e-4, 1e-2), "Ke": (0.01, 0.1), "La": (0.1, 3.0),
+          "J": (1e-4, 1e-2)}
+#: A stiff drive updating every 1 ms with the voltage held and clamped to [0, 24] V.
+DRIVE = DriveConfig(period=0.001, speed=LoopConfig(kp=2.0, ki=2.0, output_min=0.0,
+                                                   output_max=24.0))
+
+
+def _run(twin: DCMotorTwin, noise: dict[str, float], n: int, skip: int = 80,
+         scenario: str = "resistance_degradation") -> tuple[DCMotorPlant, list]:  # type: ignore[type-arg]
+    cfg = DCMotorPlantConfig(scenario=scenario, duration=2 * (skip + n) + 10, drive=DRIVE,
+                             noise=noise, seed=5)
+    plant, wins = plant_windows(cfg, n, skip=skip)
+    est = Estimator(twin, EstimationConfig(bounds=BOUNDS))
+    return plant, [(w, est.estimate(w)) for w in wins]
+
+
+def _honest(plant: DCMotorPlant, runs: list) -> tuple[int, int]:  # type: ignore[type-arg]
+    """(windows publishing Ra 'estimated', of which honest: the truth within 2 standard
+    errors, or the window flagged by its model check and not trusted)."""
+    n = ok = 0
+    for w, e in runs:
+        if e.status["Ra"] != "estimated":
+            continue
+        n += 1
+        truth = plant.truth(float(w.t[w.n // 2])).Ra
+        flagged = not e.model_check.passed and not e.trusted
+        ok += abs(math.log(e.values["Ra"] / truth)) <= 2 * e.rel_std["Ra"] or flagged
+    return n, ok
+
+
+# -- the statistics ----------------------------------------------------------------------------
+def test_residual_tests_separate_white_noise_from_structure() -> None:
+    rng = np.random.default_rng(0)
+    white = rng.normal(size=400)
+    smooth = np.sin(np.linspace(0, 6, 400)) + 0.1 * white
+    assert ljung_box(white, 20)[1] > 0.01 and ljung_box(smooth, 20)[1] < 1e-6
+    u = np.repeat(rng.normal(size=40), 10)  # a step-like input
+    assert cross_correlation_test(white, u, 20)[1] > 0.01
+    assert cross_correlation_test(0.5 * u + white, u, 20)[1] < 1e-6
+    res = np.column_stack([white * 1e-3, smooth * 1e-3])
+    check = check_model(res, ("a", "b"), None, alpha=0.01, lags=20, floor=1e-6)
+    assert not check.passed and check.outputs["a"].passed and not check.outputs["b"].passed
+    assert "residual of b not white" in check.reasons[0] and check.widen > 1
+    # the same structure below the model-error floor is accepted model error
+    assert check_model(res, ("a", "b"), None, alpha=0.01, lags=20, floor=1.0).passed
+
+
+# -- configured for the variant: exact, and its intervals cover the truth ------------------------
+def test_twin_configured_with_the_drive_is_exact_noise_free() -> None:
+    plant, runs = _run(DCMotorTwin(drive=DRIVE), {}, 10)
+    for w, e in runs:
+        truth = plant.truth(float(w.t[w.n // 2])).Ra
+        assert e.model_check.passed
+        assert e.values["Ra"] == pytest.approx(truth, rel=0.002)  # the paper's 0.2 %
+
+
+def test_twin_configured_with_the_drive_is_honest_with_noise() -> None:
+    plant, runs = _run(DCMotorTwin(drive=DRIVE), {"ia": 1.0, "omega": 1.0}, 20)
+    flagged = sum(not e.model_check.passed for _, e in runs)
+    assert flagged <= 2  # few false alarms on a right model
+    n, ok = _honest(plant, runs)
+    assert n >= 15 and ok >= 0.9 * n
+    for w, e in runs:
+        truth = plant.truth(float(w.t[w.n // 2])).Ra
+        assert e.values["Ra"] == pytest.approx(truth, rel=0.01)
+        for name, rel in e.rel_std.items():  # the gate: never 'estimated' above max_rel_std
+            if e.status[name] == "estimated":
+                assert rel <= 0.01
+
+
+# -- configured wrongly: it says so -------------------------------------------------------------
+def test_ideal_pi_twin_on_a_drive_that_holds_its_output_says_so() -> None:
+    """The issue's finding (an ideal PI twin on a 1 kHz drive: a 0.7 % bias published with
+    0.05 % confidence): the residual of the drive's voltage is not white, the window is
+    flagged, not trusted, and its intervals widened, which holds Ra."""
+    plant, runs = _run(DCMotorTwin(kp=2.0, ki=2.0), {}, 12)
+    flagged = [e for _, e in runs if not e.model_check.passed]
+    assert len(flagged) >= 0.75 * len(runs)
+    for e in flagged:
+        assert not e.trusted and e.model_check.widen > 1
+        assert any("residual of Va" in r for r in e.model_check.reasons)
+    n, ok = _honest(plant, runs)
+    assert ok == n
+
+
+def test_unmodelled_unidirectional_stage_is_flagged_where_it_acts() -> None:
+    """A plant whose stage cannot reverse the current, the twin without it: every window in
+    which the plant's current was blocked at 0 is flagged; configured with the stage, none."""
+    drive = DriveConfig(period=0.001, speed=LoopConfig(kp=2.0, ki=1.0, output_min=-18.0,
+                                                        output_max=18.0))
+    cfg = DCMotorPlantConfig(scenario="nominal", duration=44.0, drive=drive, setpoint=STEPS,
+                             power_stage="unidirectional", La=0.05)
+    _, wins = plant_windows(cfg, 21)
+    blocked = [w for w in wins if np.any(w["ia"] == 0.0) and w.index > 0]
+    assert len(blocked) >= 1
+    est = Estimator(DCMotorTwin(drive=drive), EstimationConfig(bounds=BOUNDS), {"La": 0.05})
+    right = Estimator(DCMotorTwin(drive=drive, power_stage="unidirectional"),
+                      EstimationConfig(bounds=BOUNDS), {"La": 0.05})
+    for w in blocked:
+        e = est.estimate(w)
+        assert not e.model_check.passed and not e.trusted
+        assert right.estimate(w).model_check.passed
+
+
+# -- evidence across windows ---------------------------------------------------------------
+def test_fusion_of_linear_evidence_is_the_batch_least_squares() -> None:
+    """One linear window through the filter with a flat prior: the batch estimate and its
+    covariance; a window that does not inform a parameter leaves it alone."""
+    rng = np.random.default_rng(1)
+    jac = rng.normal(size=(300, 3))
+    truth = np.array([0.2, -0.1, 0.05])
+    y = jac @ truth + 0.1 * rng.normal(size=300)
+    f = ParameterFusion(("a", "b", "c"), np.ones(3),
+                        FusionConfig(model="random_walk", initial_std=1e3))
+    f.state.mean[:] = 0.0
+    f.update(1.0, lambda x: (jac, jac @ x - y), np.full(300, 0.01))
+    batch = np.linalg.lstsq(jac, y, rcond=None)[0]
+    np.testing.assert_allclose(f.state.mean, batch, atol=1e-6)
+    np.testing.assert_allclose(np.diag(f.state.cov), np.diag(np.linalg.inv(jac.T @ jac) * 0.01),
+                               rtol=1e-4)
+    # a window that informs only "a" leaves an uncorrelated "b" where it was
+    g = ParameterFusion(("a", "b", "c"), np.ones(3),
+                        FusionConfig(model="random_walk", initial_std=1e3))
+    g.state.mean[:] = 0.0
+    g.update(1.0, lambda x: (jac[:, :1], jac[:, :1] @ x[:1] - y), np.full(300, 0.01),
+             cols=np.array([0]))
+    assert g.state.mean[1] == 0.0 and g.state.cov[1, 1] >= 1e6
+    assert g.state.cov[0, 0] < 1e-3
+
+
+def test_fused_d_tracks_bearing_wear_with_noise() -> None:
+    """DC motor bearing wear (paper scenario 2), 1 % noise: the fused D follows the plant's
+    within 2 % after the first minute, and its interval covers it."""
+    cfg = DCMotorPlantConfig(scenario="bearing_wear", duration=400, fault_start=60.0,
+                             noise={"ia": 1.0, "omega": 1.0}, seed=4)
+    plant, wins = plant_windows(cfg, 40, skip=30)
+    est = Estimator(DCMotorTwin(), EstimationConfig(bounds=BOUNDS))
+    inside = covered = n = 0
+    for w in wins:
+        e = est.estimate(w)
+        value, rel = e.fused["D"]
+        truth = plant.truth(float(w.t[w.n // 2])).D
+        n += 1
+        inside += abs(value / truth - 1.0) <= 0.02
+        covered += abs(math.log(value / truth)) <= 2 * rel
+    assert inside >= 0.9 * n and covered >= 0.9 * n

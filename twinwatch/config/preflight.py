@@ -1,0 +1,106 @@
+"""What a valid configuration still needs from the machine it runs on, checked before anything
+is opened: the files it names exist, the directories it writes to exist, and the driver delivers
+every channel the twin needs.
+
+``twinwatch check-config`` and ``twinwatch run`` (at start and on each SIGHUP reload) call the
+same :func:`check_runnable`, so check-config refuses what run refuses, and run refuses it with
+exit status 78 (EX_CONFIG: systemd does not restart it in a loop) before touching a device or a
+file.
+
+Drivers take part without being imported here: a driver configuration may provide
+``twin_channels() -> tuple[str, ...]`` (the twin channels it delivers) and
+``required_files(base_dir) -> dict[str, Path]`` (config key -> file that must exist).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from twinwatch.config.loader import ConfigError
+from twinwatch.config.schema import TwinwatchConfig
+from twinwatch.twin.registry import create_model
+
+__all__ = ["check_runnable", "runnable_problems"]
+
+
+def _dir_problem(key: str, path: Path) -> str | None:
+    """Why the file ``path`` cannot be created (its directory), or None."""
+    parent = path.parent
+    if not parent.exists():
+        return f"{key}: directory {parent} does not exist: create it or change {key}"
+    if not parent.is_dir():
+        return f"{key}: {parent} is not a directory"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"{key}: directory {parent} is not writable by this user"
+    if path.is_dir():
+        return f"{key}: {path} is a directory: give a file name"
+    return None
+
+
+def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None = None,
+                      persist: bool = True) -> list[str]:
+    """Everything that keeps ``cfg`` from starting here, one ``key: why`` line each.
+
+    Args:
+        cfg: a validated configuration.
+        base_dir: the configuration file's directory (driver files are relative to it).
+        cwd: the working directory (the recording and the state database are relative to
+            it); default the current one.
+        persist: the state database will be opened (the CLI's run).
+
+    Returns:
+        The problems, empty if none.
+    """
+    cwd = Path.cwd() if cwd is None else cwd
+    problems: list[str] = []
+    required_files = getattr(cfg.driver, "required_files", None)
+    if required_files is not None:
+        for key, path in required_files(base_dir).items():
+            if not Path(path).is_file():
+                problems.append(f"{key}: file {path} not found")
+    if cfg.zenoh.enabled:
+        for key, file in cfg.zenoh.file_paths().items():
+            f = Path(file)
+            if not f.is_file():
+                problems.append(f"{key}: file {f} not found")
+            elif not os.access(f, os.R_OK):
+                problems.append(f"{key}: file {f} is not readable by this user")
+    if cfg.recording.enabled:
+        rec = Path(cfg.recording.path).expanduser()
+        problem = _dir_problem("recording.path", rec if rec.is_absolute() else cwd / rec)
+        if problem:
+            problems.append(problem)
+    if persist and cfg.state.enabled:
+        st = Path(cfg.state.path).expanduser()
+        problem = _dir_problem("state.path", st if st.is_absolute() else cwd / st)
+        if problem:
+            problems.append(problem)
+    channels = getattr(cfg.driver, "twin_channels", None)
+    if channels is not None:
+        delivered = set(channels())
+        model = create_model(cfg.machine.model, cfg.machine.options)
+        missing = [c for c in model.required_channels() if c not in delivered]
+        structure = getattr(model, "structure", None)
+        what = f"the {structure + ' ' if structure else ''}{cfg.machine.model} twin"
+        for ch in missing:
+            hint = f"map {ch!r} in [driver]"
+            if ch == "setpoint" and structure == "closed_loop":
+                hint += ' or set machine.options.structure = "open_loop"'
+            problems.append(f"driver: {what} needs channel {ch!r}, which "
+                            f"the {cfg.driver.type} driver does not deliver (it delivers "
+                            f"{', '.join(sorted(delivered))}): {hint}")
+    return problems
+
+
+def check_runnable(cfg: TwinwatchConfig, source: str, *, base_dir: Path,
+                   cwd: Path | None = None, persist: bool = True) -> None:
+    """Raise :class:`ConfigError` listing :func:`runnable_problems`, if any.
+
+    Raises:
+        ConfigError: ``"<source>: cannot run this configuration"`` and one line per problem.
+    """
+    problems = runnable_problems(cfg, base_dir=base_dir, cwd=cwd, persist=persist)
+    if problems:
+        raise ConfigError("\n".join([f"{source}: cannot run this configuration",
+                                     *(f"  {p}" for p in problems)]))
