@@ -207,10 +207,7 @@ class TwinwatchConfig(BaseModel):
                                  f"{self.machine.model} model has {list(model.parameter_names)}")
         self.estimation = self.estimation.resolved(model)  # estimate/tie: the model's default
         self.discovery.check_against(model)
-        for name in self.identify.weights:
-            if name not in model.output_names:
-                raise ValueError(f"identify.weights.{name}: not an output of the model "
-                                 f"{list(model.output_names)}")
+        self.identify.check_against(model)
         self.alarms.check_against(model.parameter_names,
                                   estimated=self.estimation.estimate or [])
         try:

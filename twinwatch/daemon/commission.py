@@ -193,6 +193,10 @@ def report(result: Identification) -> str:
         check = score.check
         lines.append(f"model check ({what}): " + ("passed" if check.passed else
                                                   "failed: " + "; ".join(check.reasons)))
+    if len(result.starts) > 1:
+        lines.append(f"{len(result.starts)} starts reached a training nRMSE of "
+                     + ", ".join(f"{c:.5g}" for c in result.starts)
+                     + f"; kept {result.nrmse:.5g}")
     lines.append(f"{result.evaluations} twin simulations in {result.elapsed_s:.1f} s")
     return "\n".join(lines)
 

@@ -18,6 +18,7 @@ residuals of both stretches go through the model check of the monitoring
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Mapping
@@ -30,6 +31,8 @@ from twinwatch.twin.estimation import EstimationConfig, Estimator, PSOSettings
 from twinwatch.twin.fit import LocalFit, WindowFit, pso_minimize, relative_std
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 from twinwatch.twin.statistics import ModelCheck
+
+logger = logging.getLogger(__name__)
 
 
 class IdentifyConfig(BaseModel):
@@ -45,10 +48,21 @@ class IdentifyConfig(BaseModel):
         "recording [start, end); the fit is scored there, never fitted")
     weights: dict[str, float] = Field(default_factory=dict, description="output -> weight in "
                                       "the fitness (default 1)")
+    estimate: list[str] | None = Field(
+        None, description="parameters to identify (default: [estimation] estimate); a long "
+        "recording determines more than one window (a warm-up law, the sensing's "
+        "hypotheses), which the monitoring then holds at the identified values")
+    bounds: dict[str, tuple[float, float]] = Field(
+        default_factory=dict, description="parameter -> [low, high] in SI units for the "
+        "identification, over [estimation] bounds (a cold start searches wider than a window)")
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(pop_size=30,
                                                                  max_generations=100))
     time_budget: float = Field(120.0, gt=0, allow_inf_nan=False,
-                               description="wall-time cap of the global search [s]")
+                               description="wall-time cap of the global searches [s], shared "
+                               "by the starts")
+    starts: int = Field(1, ge=1, le=100, description="independent global searches, each "
+                        "polished by least squares; the best training fit is kept (a long "
+                        "free-run problem has local optima a single swarm may settle in)")
     seed: int = 0
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
@@ -62,7 +76,37 @@ class IdentifyConfig(BaseModel):
         for name, w in self.weights.items():
             if not (w >= 0 and math.isfinite(w)):
                 raise ValueError(f"weights.{name}: must be a finite number >= 0")
+        if self.estimate is not None and len(set(self.estimate)) != len(self.estimate):
+            raise ValueError("estimate: a parameter is listed twice")
+        for name, (lo, hi) in self.bounds.items():
+            if not (0 < lo < hi and math.isfinite(hi)):
+                raise ValueError(f"bounds.{name}: need 0 < low < high, got [{lo}, {hi}]")
         return self
+
+    def check_against(self, model: TwinModel) -> None:
+        """Raise ValueError naming the key (``identify.<key>``) if an output or a parameter
+        is not the model's."""
+        for name in self.weights:
+            if name not in model.output_names:
+                raise ValueError(f"identify.weights.{name}: not an output of the model "
+                                 f"{list(model.output_names)}")
+        names = model.parameter_names
+        for key, group in (("estimate", self.estimate or []), ("bounds", list(self.bounds))):
+            for name in group:
+                if name not in names:
+                    raise ValueError(f"identify.{key}: unknown parameter {name!r}; the model "
+                                     f"has {sorted(names)}")
+
+    def estimation(self, estimation: EstimationConfig) -> EstimationConfig:
+        """The ``[estimation]`` table as the identification uses it: this table's
+        ``estimate`` and ``bounds`` over it (a tie whose parameter is identified is dropped).
+        """
+        if self.estimate is None and not self.bounds:
+            return estimation
+        estimate = list(self.estimate) if self.estimate is not None else estimation.estimate
+        tie = {d: s for d, s in (estimation.tie or {}).items() if d not in (estimate or [])}
+        return estimation.model_copy(update={"estimate": estimate, "tie": tie,
+                                             "bounds": {**estimation.bounds, **self.bounds}})
 
 
 @dataclass
@@ -102,6 +146,8 @@ class Identification:
         estimated, tied, fixed: the parameters by role.
         train, validation: the scores on both stretches.
         elapsed_s: wall time [s]; evaluations: twin simulations of one parameter vector.
+        nrmse: the training fitness (weighted normalised RMSE) at the result.
+        starts: the training fitness each start reached (``[identify] starts``), in order.
     """
 
     values: dict[str, float]
@@ -114,6 +160,8 @@ class Identification:
     elapsed_s: float
     evaluations: int
     units: dict[str, str] = field(default_factory=dict)
+    nrmse: float = math.nan
+    starts: list[float] = field(default_factory=list)
 
 
 def fit_percent(measured: FloatArray, simulated: FloatArray) -> float:
@@ -148,7 +196,8 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     Args:
         model: the twin (its structure and options as configured).
         estimation: the ``[estimation]`` table: which parameters, their bounds, ties, the
-            ``model_error`` floor and the validation settings.
+            ``model_error`` floor and the validation settings (``config.estimate`` and
+            ``config.bounds`` override the first two).
         config: the ``[identify]`` table.
         train, validation: contiguous stretches of the recording, every channel the model
             needs, finite.
@@ -171,7 +220,7 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
                 raise ValueError(f"the recording has no channel {ch!r} ({what} range)")
             if not np.all(np.isfinite(w.channels[ch])):
                 raise ValueError(f"channel {ch!r} holds NaN or inf in the {what} range")
-    est = Estimator(model, estimation, nominal)
+    est = Estimator(model, config.estimation(estimation), nominal)
     cfg = est.config
     names_est = list(cfg.estimate or [])
     fit = WindowFit(model, train, config.weights)
@@ -184,15 +233,33 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         return fit.cost(pmap.full(q, base))
 
     q0 = np.clip(pmap.ln(base), xl, xu)
-    sw = pso_minimize(cost, xl, xu, config.pso, rng=rng, time_budget=config.time_budget,
-                      seeds=q0[None, :])
-    q_best = sw.x if sw.cost <= float(cost(q0[None, :])[0]) else q0
+    cost0 = float(cost(q0[None, :])[0])
     local = LocalFit(fit, pmap, base, xl, xu, None,
                      initial=cfg.initial_state and bool(model.initial_states))
     n_est = len(names_est)
-    v, r, jac = local.refine(local.start(q_best), np.arange(n_est + local.n_init))
-    # a second polish from the first: the long free-run problem is stiffer than a window's
-    v, r, jac = local.refine(v, np.arange(n_est + local.n_init))
+    active = np.arange(n_est + local.n_init)
+    best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
+    reached: list[float] = []
+    t_global = time.perf_counter()
+    for start in range(config.starts):
+        # Each start: a swarm of its own (the configured values one of its particles), then
+        # the local polish; the best training fit of all starts is kept.
+        left = config.time_budget - (time.perf_counter() - t_global)
+        sw = pso_minimize(cost, xl, xu, config.pso, rng=rng,
+                          time_budget=max(left / (config.starts - start), 1e-3),
+                          seeds=q0[None, :])
+        q_best = sw.x if sw.cost <= cost0 else q0
+        v, r, jac = local.refine(local.start(q_best), active)
+        # a second polish from the first: the long free-run problem is stiffer than a window's
+        v, r, jac = local.refine(v, active)
+        sse = float(r @ r)
+        logger.info("identify start %d/%d: PSO %d generations, cost %.6g; polished %.6g",
+                    start + 1, config.starts, sw.generations, sw.cost, math.sqrt(sse))
+        reached.append(math.sqrt(sse))
+        if best is None or sse < best[0]:
+            best = (sse, v, r, jac)
+    assert best is not None
+    _, v, r, jac = best
     sd = relative_std(jac, r, fit.n_out, cfg.model_error)[:n_est]
     theta = pmap.full(v[None, :n_est], base)[0]
     values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
@@ -208,6 +275,8 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         validation=_score(model, est, validation, theta, config.weights, None),
         elapsed_s=time.perf_counter() - t_start,
         evaluations=fit.evaluations,
+        nrmse=math.sqrt(best[0]),
+        starts=reached,
         units={p.name: p.unit for p in model.parameters},
     )
 

@@ -16,6 +16,7 @@ from twinwatch.twin.model import TwinModel
 BUILTIN_MODELS: dict[str, tuple[str, str]] = {
     "dc_motor": ("twinwatch.twin.dcmotor", "DCMotorTwin"),
     "hydraulic_actuator": ("twinwatch.twin.hydraulic", "HydraulicActuatorTwin"),
+    "dc_motor_pwm": ("twinwatch.twin.pwm_dcmotor", "PWMDCMotorTwin"),
 }
 
 
