@@ -36,6 +36,7 @@ sample k.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
@@ -332,7 +333,9 @@ class Discovery:
         if not (z_ref > 0 and math.isfinite(z_ref)):
             return None
         u = z / z_ref
-        b_range = meta.search_range(window, is_time, z_ref)
+        if not meta.identifiable(u):
+            return None
+        b_range = meta.data_range(u) or meta.search_range(window, is_time, z_ref)
         lo, hi = meta.bounds(cand.amplitude, b_range=b_range)
         name = cand.attach.name
         base_at = np.asarray(base_vals.get(name, 0.0))
@@ -384,13 +387,16 @@ class Discovery:
         else:
             nl_best = np.zeros(0)
 
-        # 2. Every form (the full one and each without an optional parameter): project,
-        # polish all its parameters by nonlinear least squares, keep the best by BIC.
-        forms = [full]
-        for opt in meta.optional:
+        # 2. Every form (the full one and each without some of its optional parameters):
+        # project, polish all its parameters by nonlinear least squares, keep the best by BIC.
+        forms = []
+        for drop in itertools.chain.from_iterable(
+                itertools.combinations(meta.optional, k) for k in range(len(meta.optional) + 1)):
             m = full.copy()
-            m[meta.column_of(opt)] = False
-            forms.append(m)
+            for opt in drop:
+                m[meta.column_of(opt)] = False
+            if m.any():
+                forms.append(m)
         fitted: list[_Fitted] = []
         for mask in forms:
             _, coef = project(nl_best[None, :], mask)
@@ -406,15 +412,17 @@ class Discovery:
             fitted.append(_Fitted(cand, p, active, z_ref, t_ref, r, dbic, impr, sig))
         if not fitted:
             return None
-        # The simplest form unless the optional parameter itself earns its place.
-        reduced = [f for f in fitted if not all(f.active)]
-        full_fit = [f for f in fitted if all(f.active)]
-        if not reduced:
-            return full_fit[0]
-        simple = min(reduced, key=lambda f: f.dbic)
-        if full_fit and delta_bic(simple.r, full_fit[0].r, 1, n_out) <= -cfg.bic_threshold:
-            return full_fit[0]
-        return simple
+        # The simplest form unless an optional parameter itself earns its place: the best of
+        # the fewest parameters, then a larger form only if its extra parameters lower the BIC
+        # by bic_threshold against the form chosen so far.
+        fitted.sort(key=lambda f: sum(f.active))
+        size = sum(fitted[0].active)
+        best = min((f for f in fitted if sum(f.active) == size), key=lambda f: f.dbic)
+        for f in fitted:
+            extra = sum(f.active) - sum(best.active)
+            if extra > 0 and delta_bic(best.r, f.r, extra, n_out) <= -cfg.bic_threshold:
+                best = f
+        return best
 
     def _polish(self, resid, p0: FloatArray, active: tuple[bool, ...],  # type: ignore[no-untyped-def]
                 lo: FloatArray, hi: FloatArray, meta: MetaModel, amplitude: float
