@@ -48,7 +48,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from scipy.optimize import least_squares
 
 from twinwatch.twin.estimation import Estimator, PSOSettings
-from twinwatch.twin.fit import WindowFit, pso_minimize, relative_std
+from twinwatch.twin.fit import WindowFit, parameter_covariance, pso_minimize, relative_std
 from twinwatch.twin.metamodels import TABLE_1, MetaModel, get_meta_model
 from twinwatch.twin.model import AttachPoint, FloatArray, TwinModel, WindowData
 from twinwatch.twin.statistics import delta_bic, noise_level
@@ -85,6 +85,23 @@ class CandidateConfig(BaseModel):
         return v
 
 
+class RefinementConfig(BaseModel):
+    """The ``[discovery.refinement]`` table: how a kept term accumulates evidence across
+    windows (:meth:`~twinwatch.twin.terms.Term.refine`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="combine every window's evidence on a kept term; "
+                          "false: each window's polish replaces the parameters")
+    memory: float = Field(600.0, gt=0, allow_inf_nan=False,
+                          description="time constant of the forgetting of older evidence [s]: "
+                          "a window this much older weighs e times less")
+    jump_threshold: float = Field(25.0, gt=0, allow_inf_nan=False,
+                                  description="a window whose estimate lies further than this "
+                                  "normalised square per parameter from the refined one is "
+                                  "a change: older evidence is discounted at once")
+
+
 class DiscoveryConfig(BaseModel):
     """The ``[discovery]`` table: when discovery runs and what it may add."""
 
@@ -109,6 +126,7 @@ class DiscoveryConfig(BaseModel):
     retry_after: int = Field(10, ge=1, description="windows to wait after a discovery that "
                              "kept nothing")
     time_budget: float = Field(1.5, gt=0, description="wall-time cap of one discovery [s]")
+    refinement: RefinementConfig = Field(default_factory=RefinementConfig)
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(max_generations=30))
     seed: int = 0
 
@@ -524,19 +542,26 @@ class Discovery:
     def polish_terms(self, window: WindowData | WindowFit, theta: FloatArray,
                      terms: list[Term]) -> None:
         """Joint bounded least squares over every kept term's active parameters, from their
-        current values (a term's phase and frequency drift slowly between windows)."""
+        refined values, then each term's window estimate joins its evidence
+        (:meth:`Term.refine`; ``[discovery.refinement]``).
+
+        Time terms are polished in the coordinates of the window's centre (where a periodic
+        term's frequency and phase are nearly uncorrelated); the window's covariance of each
+        term is its block of the joint covariance (each output weighted by its residual
+        variance, floored by the estimator's ``model_error``, inflated for autocorrelation),
+        conditional on the physical parameters ``theta`` the window estimated.
+        """
         fit = self._fit(window)
         win = fit.window
-        slices, x0 = [], []
-        for term in terms:
-            act = np.array(term.active)
-            slices.append(act)
-            x0.append(term.params[act])
-        x = np.concatenate(x0)
+        centre = 0.5 * float(win.t[0] + win.t[-1])
+        origins = [centre if term.movable else None for term in terms]
+        local = [term.at_origin(o) for term, o in zip(terms, origins, strict=True)]
+        slices = [np.array(t.active, dtype=bool) for t in local]
+        x = np.concatenate([t.params[act] for t, act in zip(local, slices, strict=True)])
 
         def set_params(xv: FloatArray) -> list[Term]:
             out, k = [], 0
-            for term, act in zip(terms, slices, strict=True):
+            for term, act in zip(local, slices, strict=True):
                 q = term.params.copy()
                 q[act] = xv[k:k + int(act.sum())]
                 k += int(act.sum())
@@ -556,16 +581,23 @@ class Discovery:
         if not np.all(np.isfinite(sol.fun)) or float(sol.fun @ sol.fun) > float(
                 fun(x) @ fun(x)):
             return
-        k = 0
         jac = np.asarray(sol.jac)
-        sd = self._std(jac, sol.fun)
-        for term, act in zip(terms, slices, strict=True):
+        cov = parameter_covariance(jac, sol.fun, fit.n_out, self.est.config.model_error)
+        with np.errstate(invalid="ignore"):
+            sd = np.sqrt(np.where(np.diag(cov) > 0, np.diag(cov), np.inf))
+        ref = self.config.refinement
+        k = 0
+        for term, loc, act, origin in zip(terms, local, slices, origins, strict=True):
             n = int(act.sum())
-            term.params[act] = sol.x[k:k + n]
-            term.params = term.meta.canonical(term.params)
+            y = loc.params.copy()
+            y[act] = sol.x[k:k + n]
+            block = cov[k:k + n, k:k + n]
+            term.refine(y, block, origin, centre, win.index,
+                        memory=ref.memory if ref.enabled else 0.0,
+                        jump_threshold=ref.jump_threshold)
             main = term.meta.main_index(term.active)
             col = k + int(np.cumsum(act)[main]) - 1
-            term.significance = (abs(term.weight) / sd[col]
+            term.significance = (abs(float(sol.x[col])) / sd[col]
                                  if sd[col] > 0 and math.isfinite(sd[col]) else 0.0)
             k += n
 
@@ -575,6 +607,7 @@ __all__ = [
     "Discovery",
     "DiscoveryConfig",
     "DiscoveryReport",
+    "RefinementConfig",
     "Term",
     "compose",
     "delta_bic",
