@@ -43,8 +43,9 @@ def _errors(plant: DCMotorPlant, history: list[dict[str, Any]], name: str) -> np
 
 
 def _held_when_undetermined(history: list[dict[str, Any]]) -> None:
-    """Parameters the data cannot determine are held (flag and reason), never published as
-    estimates: La and J only move in windows with a transient, Kt always follows Ke."""
+    """Parameters the window cannot determine are held or fused (flag and reason), never
+    published as this window's estimates: La and J only move in windows with a transient, Kt
+    always follows Ke. A fused value carries the fused evidence's interval, within the gate."""
     held_la = sum(h["parameters"]["La"]["held"] for h in history)
     assert held_la > 0.8 * len(history)
     for h in history:
@@ -52,6 +53,7 @@ def _held_when_undetermined(history: list[dict[str, Any]]) -> None:
             assert p["held"] == (p["status"] != "estimated")
             if p["held"]:
                 assert p["reason"], name
+            if p["status"] in ("held", "tied", "fixed"):
                 assert p["rel_std_pct"] is None
             else:
                 assert p["rel_std_pct"] is not None and p["rel_std_pct"] <= 1.0

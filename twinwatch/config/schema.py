@@ -18,6 +18,7 @@ Layout::
     [acquisition]      sample period, window length, gap and queue settings
     [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
     [discovery]        meta-model candidates (kind, input, attach point) and when to search
+    [identify]         commissioning: training/validation ranges of `twinwatch identify`
     [driver]           type = a registered driver ("simulated", "can", "file", "modbus",
                        "simulated_modbus", or a plug-in's) + that driver's own keys
     [zenoh]            session mode and endpoints (loopback by default)
@@ -77,16 +78,20 @@ def _twin_table(path: str) -> Any:
 
 _ESTIMATION = "twinwatch.twin.estimation:EstimationConfig"
 _DISCOVERY = "twinwatch.twin.discovery:DiscoveryConfig"
+_IDENTIFY = "twinwatch.twin.identify:IdentifyConfig"
 
 if TYPE_CHECKING:
     from twinwatch.twin.discovery import DiscoveryConfig
     from twinwatch.twin.estimation import EstimationConfig
+    from twinwatch.twin.identify import IdentifyConfig
 
     EstimationTable = EstimationConfig
     DiscoveryTable = DiscoveryConfig
+    IdentifyTable = IdentifyConfig
 else:
     EstimationTable = _twin_table(_ESTIMATION)
     DiscoveryTable = _twin_table(_DISCOVERY)
+    IdentifyTable = _twin_table(_IDENTIFY)
 
 
 class MachineConfig(BaseModel):
@@ -158,6 +163,7 @@ class TwinwatchConfig(BaseModel):
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
     estimation: EstimationTable = Field(default_factory=lambda: _twin_class(_ESTIMATION)())
     discovery: DiscoveryTable = Field(default_factory=lambda: _twin_class(_DISCOVERY)())
+    identify: IdentifyTable = Field(default_factory=lambda: _twin_class(_IDENTIFY)())
     driver: SerializeAsAny[DriverConfig]
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
@@ -183,6 +189,10 @@ class TwinwatchConfig(BaseModel):
                                  f"{self.machine.model} model has {list(model.parameter_names)}")
         self.estimation = self.estimation.resolved(model)  # estimate/tie: the model's default
         self.discovery.check_against(model)
+        for name in self.identify.weights:
+            if name not in model.output_names:
+                raise ValueError(f"identify.weights.{name}: not an output of the model "
+                                 f"{list(model.output_names)}")
         self.alarms.check_against(model.parameter_names,
                                   estimated=self.estimation.estimate or [])
         try:

@@ -357,6 +357,7 @@ class DCMotorTwin(TwinModel):
         # The exact linear map per sample (fast path) serves the ideal drive and every linear
         # element; the others go through the event kernel.
         self._nonlinear = self.power_stage == "unidirectional" or self.coulomb_friction
+        self._plans: dict[tuple[float, int, int, int], tuple[np.ndarray, ...]] = {}
         self._fast = not self._nonlinear and (not closed or self._drive.ideal)
 
     @property
@@ -672,6 +673,45 @@ class DCMotorTwin(TwinModel):
         out[:, 0], out[:, 1], out[:, 2], out[:, 3] = i_s, f0, i_c, cur.kd * ec
         return out, np.array([va, iref])
 
+    def _event_plan(self, t0: float, count: int, n_sub: int, mode: int
+                    ) -> tuple[np.ndarray, ...]:
+        """The events of ``count`` samples from time ``t0`` on the sub-step grid: samples and,
+        by ``mode``, the drive's updates (its clock is absolute: phase from t = 0). Returns
+        (segment lengths by type, each segment's type, each event's sample or -1, its sub-step
+        within the sample, speed-loop update, current-loop update). Kept for the window: an
+        estimation simulates the same window a few hundred times."""
+        key = (t0, count, n_sub, mode)
+        cached = self._plans.get(key)
+        if cached is not None:
+            return cached
+        dr = self._drive
+        dt = self.sub_step
+        m, mc, ph = dr.ticks(dt)
+        j0 = int(round(t0 / dt))
+        end = (count - 1) * n_sub
+        samples = np.arange(count) * n_sub
+        ev = [samples]
+        tick_s = tick_c = np.zeros(0, dtype=np.int64)
+        if mode == 2:
+            tick_s = np.arange((ph - j0) % m, end + 1, m)
+            ev.append(tick_s)
+        if mode > 0 and dr.current is not None:
+            tick_c = np.arange((ph - j0) % mc, end + 1, mc)
+            ev.append(tick_c)
+        events = np.unique(np.concatenate(ev))
+        lengths = np.diff(events)
+        types, seg_type = np.unique(lengths, return_inverse=True) if lengths.size else (
+            np.array([1]), np.zeros(0, dtype=np.int64))
+        ev_sample = np.full(events.size, -1, dtype=np.int64)
+        ev_sample[np.searchsorted(events, samples)] = np.arange(count)
+        ev_sub = events - samples[np.searchsorted(samples, events, side="right") - 1]
+        plan = (types.astype(np.int64), seg_type.astype(np.int64), ev_sample,
+                ev_sub.astype(np.int64), np.isin(events, tick_s), np.isin(events, tick_c))
+        if len(self._plans) > 8:
+            self._plans.clear()
+        self._plans[key] = plan
+        return plan
+
     def _simulate_events(self, theta: FloatArray, window: WindowData, f_w: FloatArray,
                          f_i: FloatArray, k0: int, mode: int, off: FloatArray | None = None,
                          *, stop: int | None = None) -> FloatArray:
@@ -689,29 +729,8 @@ class DCMotorTwin(TwinModel):
         pos = self._layout(False)
         dr = self._drive
         m, mc, ph = dr.ticks(dt)
-        # Events on the sub-step grid, relative to sample k0: samples and (closed loop) drive
-        # updates; the drive's clock is absolute (phase from t = 0).
-        j0 = int(round(float(window.t[k0]) / dt))
-        end = (count - 1) * n_sub
-        samples = np.arange(count) * n_sub
-        ev = [samples]
-        tick_s = tick_c = np.zeros(0, dtype=np.int64)
-        if closed:
-            if mode == 2:
-                tick_s = np.arange((ph - j0) % m, end + 1, m)
-                ev.append(tick_s)
-            if dr.current is not None:
-                tick_c = np.arange((ph - j0) % mc, end + 1, mc)
-                ev.append(tick_c)
-        events = np.unique(np.concatenate(ev))
-        lengths = np.diff(events)
-        types, seg_type = np.unique(lengths, return_inverse=True) if lengths.size else (
-            np.array([1]), np.zeros(0, dtype=np.int64))
-        ev_sample = np.full(events.size, -1, dtype=np.int64)
-        ev_sample[np.searchsorted(events, samples)] = np.arange(count)
-        ev_sub = events - samples[np.searchsorted(samples, events, side="right") - 1]
-        ev_tick_s = np.isin(events, tick_s)
-        ev_tick_c = np.isin(events, tick_c)
+        plan = self._event_plan(float(window.t[k0]), count, n_sub, mode)
+        types, seg_type, ev_sample, ev_sub, ev_tick_s, ev_tick_c = plan
         explicit = self._nonlinear
         n_state = len(pos)
         if explicit:
@@ -747,8 +766,7 @@ class DCMotorTwin(TwinModel):
                         pos.get("fi", -1), pos.get("fw", -1)], dtype=np.int64)
         y = np.empty((p, count, 3))
         _drive_kernel(np.ascontiguousarray(phis), np.ascontiguousarray(gams),
-                      types.astype(np.int64), seg_type.astype(np.int64), ev_sample,
-                      ev_sub.astype(np.int64), ev_tick_s, ev_tick_c,
+                      types, seg_type, ev_sample, ev_sub, ev_tick_s, ev_tick_c,
                       np.ascontiguousarray(x0), np.ascontiguousarray(ctrl0), hold0, mode,
                       np.ascontiguousarray(sp, dtype=float), va, iref,
                       np.ascontiguousarray(tl, dtype=float),

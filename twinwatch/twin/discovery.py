@@ -45,7 +45,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-from scipy.optimize import least_squares
 
 from twinwatch.twin.estimation import Estimator, PSOSettings
 from twinwatch.twin.fit import WindowFit, parameter_covariance, pso_minimize, relative_std
@@ -458,6 +457,8 @@ class Discovery:
             q[act] = x
             return resid(q)[0]
 
+        from scipy.optimize import least_squares  # loaded on first use
+
         x0 = np.clip(p[act], lo_a + 1e-12 * (hi_a - lo_a), hi_a - 1e-12 * (hi_a - lo_a))
         try:
             sol = least_squares(fun, x0, bounds=(lo_a, hi_a), method="trf", x_scale="jac",
@@ -571,6 +572,8 @@ class Discovery:
 
         def fun(xv: FloatArray) -> FloatArray:
             return self._resid(fit, theta, compose(set_params(xv), win))[0]
+
+        from scipy.optimize import least_squares  # loaded on first use
 
         scale = np.maximum(np.abs(x), 1e-6)
         try:

@@ -18,23 +18,13 @@ all score a twin on a window the same way, so they share this module:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from pymoo.algorithms.soo.nonconvex.pso import PSO
-from pymoo.core.population import Population
-from pymoo.core.problem import Problem
-from pymoo.operators.sampling.lhs import LHS
-from pymoo.optimize import minimize
-from pymoo.termination.collection import TerminationCollection
-from pymoo.termination.ftol import SingleObjectiveSpaceTermination
-from pymoo.termination.max_gen import MaximumGenerationTermination
-from pymoo.termination.max_time import TimeBasedTermination
-from pymoo.termination.robust import RobustTermination
-from scipy.optimize import least_squares
 
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 from twinwatch.twin.statistics import ar1
@@ -288,6 +278,8 @@ class LocalFit:
                 vv[active] = x
                 return self.jacobian(vv, active, r0)
 
+            from scipy.optimize import least_squares  # loaded on first use
+
             lo, hi = self.lower[active], self.upper[active]
             x0 = np.clip(v[active], lo + 1e-12, hi - 1e-12)
             sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
@@ -409,17 +401,25 @@ def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int) -
     return np.tile(var / m, res.shape[0])
 
 
-class SwarmProblem(Problem):  # type: ignore[misc]
-    """pymoo problem whose ``_evaluate`` is one vectorised call for the whole swarm (as
-    pymoo's ``problems/single``): ``cost_fn(X (P, n)) -> (P,)``."""
+@functools.cache
+def _swarm_problem_class() -> type:
+    """pymoo's ``Problem`` subclass, built on first use (pymoo is imported then, not when a
+    configuration is validated)."""
+    from pymoo.core.problem import Problem
 
-    def __init__(self, cost_fn: Callable[[FloatArray], FloatArray], xl: FloatArray,
-                 xu: FloatArray) -> None:
-        super().__init__(n_var=xl.size, n_obj=1, xl=xl, xu=xu)
-        self._cost_fn = cost_fn
+    class SwarmProblem(Problem):  # type: ignore[misc]
+        """pymoo problem whose ``_evaluate`` is one vectorised call for the whole swarm (as
+        pymoo's ``problems/single``): ``cost_fn(X (P, n)) -> (P,)``."""
 
-    def _evaluate(self, x, out, *args, **kwargs):  # type: ignore[no-untyped-def]
-        out["F"] = self._cost_fn(x)[:, None]
+        def __init__(self, cost_fn: Callable[[FloatArray], FloatArray], xl: FloatArray,
+                     xu: FloatArray) -> None:
+            super().__init__(n_var=xl.size, n_obj=1, xl=xl, xu=xu)
+            self._cost_fn = cost_fn
+
+        def _evaluate(self, x, out, *args, **kwargs):  # type: ignore[no-untyped-def]
+            out["F"] = self._cost_fn(x)[:, None]
+
+    return SwarmProblem
 
 
 @dataclass
@@ -453,7 +453,17 @@ def pso_minimize(cost_fn: Callable[[FloatArray], FloatArray], lower: FloatArray,
     Returns:
         The best particle found.
     """
-    problem = SwarmProblem(cost_fn, lower, upper)
+    from pymoo.algorithms.soo.nonconvex.pso import PSO
+    from pymoo.core.population import Population
+    from pymoo.operators.sampling.lhs import LHS
+    from pymoo.optimize import minimize
+    from pymoo.termination.collection import TerminationCollection
+    from pymoo.termination.ftol import SingleObjectiveSpaceTermination
+    from pymoo.termination.max_gen import MaximumGenerationTermination
+    from pymoo.termination.max_time import TimeBasedTermination
+    from pymoo.termination.robust import RobustTermination
+
+    problem = _swarm_problem_class()(cost_fn, lower, upper)
     init = LHS()(problem, settings.pop_size, random_state=rng).get("X")
     if seeds is not None:
         for k, row in enumerate(np.atleast_2d(seeds)[: settings.pop_size]):
