@@ -199,3 +199,20 @@ def test_a_knee_lies_inside_the_data_and_a_sign_must_change() -> None:
     assert not coulomb.identifiable(np.linspace(0.1, 1.0, 200))       # never reverses
     start = np.concatenate([np.zeros(20), np.linspace(0.1, 1.0, 180)])  # from rest: friction
     assert coulomb.identifiable(start)                                # acts only once moving
+
+
+def test_coulomb_sign_is_the_average_over_each_sample_interval() -> None:
+    """At a reversal the plant's friction switches inside a sample interval while the twin
+    holds one value: the held value is the interval's average of sign(omega), exact for a
+    speed linear between samples."""
+    from twinwatch.twin.metamodels.coulomb import sampled_sign
+
+    t = np.arange(0.0, 1.0, 0.01)
+    omega = 3.0 * (t - 0.4237)  # crosses zero inside the interval [0.42, 0.43)
+    fine = np.linspace(0.0, 1.0, 100 * 1000, endpoint=False)
+    exact = np.sign(3.0 * (fine - 0.4237)).reshape(100, 1000).mean(axis=1)
+    mid = omega + 0.015  # the twin evaluates an additive term at mid-step
+    np.testing.assert_allclose(sampled_sign(mid)[1:-1], exact[1:-1], atol=2e-3)
+    assert sampled_sign(mid)[42] == pytest.approx(1 - 2 * 0.37, abs=2e-3)  # 37 % negative
+    m = get_meta_model("coulomb")
+    np.testing.assert_allclose(m.evaluate([-2.0, 0.5], mid)[0], -2.0 * sampled_sign(mid) + 0.5)
