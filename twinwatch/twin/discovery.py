@@ -208,6 +208,21 @@ class DiscoveryReport:
     elapsed_s: float = 0.0
     evaluations: int = 0
     tried: int = 0
+    candidates: int = 0
+    closest: str = ""
+
+    @property
+    def verdict(self) -> str:
+        """One line: what the search kept, or that no candidate describes the misfit (the
+        closest one and the criteria it failed)."""
+        if self.kept:
+            return "kept: " + "; ".join(t.equation() for t in self.kept)
+        if not self.ran:
+            return "no search"
+        what = (f"no candidate meta-model earns its place ({self.tried} of {self.candidates} "
+                "tried")
+        what += ")" if self.tried >= self.candidates else "; the time budget ran out)"
+        return what + (f"; closest: {self.closest}" if self.closest else "")
 
 
 class Discovery:
@@ -292,6 +307,8 @@ class Discovery:
                     fitted.append(f)
             best = self._select_term(fitted)
             if best is None:
+                if not new and fitted:
+                    report.closest = self._closest(fitted)
                 break
             term = best.to_term(win.index)
             new.append(term)
@@ -303,8 +320,11 @@ class Discovery:
             if not residual_too_large(r_base, n_out, cfg):
                 break  # the residual is down to the noise: nothing left to explain
         report.kept = new
+        report.candidates = len(self.candidates)
         report.elapsed_s = time.perf_counter() - t0
         report.evaluations = self.evaluations
+        if not new:
+            logger.info("window %d: %s", win.index, report.verdict)
         return new, report
 
     def _select_term(self, fitted: Sequence[_Fitted]) -> _Fitted | None:
@@ -314,11 +334,6 @@ class Discovery:
         exponential whose base fits to 1.0000)."""
         ok = [f for f in fitted if self._earns_place(f)]
         if not ok:
-            if fitted:
-                f = min(fitted, key=lambda f: f.dbic)
-                logger.debug("best candidate %s on %s does not earn its place (dBIC %.1f, "
-                             "improvement %.0f %%, significance %.1f)", f.cand.meta.kind,
-                             f.cand.attach.name, f.dbic, 100 * f.improvement, f.significance)
             return None
         best = min(ok, key=lambda f: f.dbic)
         simpler = [f for f in ok if sum(f.active) < sum(best.active)
@@ -326,6 +341,16 @@ class Discovery:
         if simpler:
             best = min(simpler, key=lambda f: (sum(f.active), f.dbic))
         return best
+
+    def _closest(self, fitted: Sequence[_Fitted]) -> str:
+        """The candidate nearest to earning its place (lowest BIC) and what it lacks."""
+        cfg = self.config
+        f = min(fitted, key=lambda f: f.dbic)
+        term = f.to_term(0)
+        return (f"{term.equation()} removes {100 * f.improvement:.0f} % of the residual "
+                f"(needs {100 * cfg.min_improvement:.0f} %), BIC change {f.dbic:+.1f} (needs "
+                f"<= {-cfg.bic_threshold:g}), {f.significance:.1f} standard errors from zero "
+                f"(needs {cfg.min_significance:g})")
 
     def _earns_place(self, f: _Fitted) -> bool:
         cfg = self.config
