@@ -23,9 +23,16 @@ and kept spurious terms):
    ``min_significance`` standard errors from zero. Then the next candidate is sought with the
    kept ones in place, up to ``max_terms``. Optional offsets are dropped unless they too earn
    their place.
-3. **Re-validation.** Every later window polishes the kept terms from their last values and
-   checks that each still earns its place (the same criterion, as a removal test); a term that
-   fails ``drop_after`` windows in a row is switched off.
+3. **Re-validation and refinement.** Every later window polishes the kept terms from their
+   refined values; each term's window estimate, with its covariance, joins the evidence of the
+   windows before it (:meth:`~twinwatch.twin.terms.Term.refine`, ``[discovery.refinement]``),
+   and the twin uses the refined values. Each term is then checked to still earn its place
+   (the same criterion, as a removal test); a term that fails ``drop_after`` windows in a row
+   is switched off.
+
+Beyond the paper's Table 1 the library has the non-smooth terms real drives need (rectifier,
+dead zone, Coulomb friction, saturation); a search that keeps nothing says so, with the closest
+candidate and the criteria it fails (:attr:`DiscoveryReport.verdict`).
 
 Meta-model inputs are *measured* signals (time, or a measured input, output or state): the terms
 do not depend on the simulated state, so they are computed once per particle and the composed
