@@ -105,6 +105,31 @@ def test_forced_discovery_on_noisy_nominal_windows_keeps_nothing() -> None:
     assert ran >= 2
 
 
+@pytest.mark.parametrize("skip", [2, 7, 12])
+def test_discovery_finds_coulomb_friction_where_the_speed_reverses(skip: int) -> None:
+    """A plant with dry friction (Tc = 0.02 N m, 1 % noise) under a stiff speed loop that
+    reverses every 5 s: among the meta-models real drives need, the Coulomb term of the speed
+    is kept, ``-Tc/J*sign(omega)`` = -17.08 rad/s^2 within 2 %."""
+    cfg = load_config(UNBALANCED_CONFIG)
+    options = {**cfg.machine.options, "kp": 3.0, "ki": 1.0}
+    twin = DCMotorTwin(**options)
+    disc_cfg = cfg.discovery.model_copy(update={"time_budget": 30.0, "candidates": [
+        CandidateConfig(attach="d(omega)/dt", input="omega",
+                        kinds=["linear", "rectifier", "dead_zone", "coulomb", "saturation"])]})
+    disc = Discovery(twin, disc_cfg, Estimator(twin, cfg.estimation))
+    plant_cfg = DCMotorPlantConfig(
+        scenario="nominal", duration=40, kp=3.0, ki=1.0, coulomb_friction=0.02,
+        noise={"ia": 1.0, "omega": 1.0}, seed=0,
+        setpoint={"levels": [-10.0, 10.0], "initial": 10.0, "dwell_min": 5, "dwell_max": 5})
+    _, (w,) = plant_windows(plant_cfg, 1, skip=skip)
+    assert w["omega"].min() < -5 and w["omega"].max() > 5  # the window holds a reversal
+    new, _ = disc.discover(w, twin.nominal_vector(), [])
+    assert [t.meta.kind for t in new] == ["coulomb"], [t.describe() for t in new]
+    tc_over_j = 0.02 / 0.001171
+    assert new[0].weight == pytest.approx(-tc_over_j, rel=0.02)
+    assert "Coulomb" in new[0].meaning() and new[0].expression().endswith("*sign(omega)")
+
+
 def test_a_term_that_stops_earning_its_place_is_dropped() -> None:
     """Re-validation: a periodic term kept on a healthy machine fails every window and is
     switched off after ``drop_after`` windows."""

@@ -191,7 +191,7 @@ class TwinAdapter:
         """The accepted twin: trusted parameters and kept terms (JSON-serialisable)."""
         return {
             "trusted": self.estimator.trusted_values(),
-            "terms": [t.as_dict() for t in self.terms],
+            "terms": [t.state_dict() for t in self.terms],
             "fusion": self.estimator.fusion_state(),
         }
 

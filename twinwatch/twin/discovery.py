@@ -23,9 +23,16 @@ and kept spurious terms):
    ``min_significance`` standard errors from zero. Then the next candidate is sought with the
    kept ones in place, up to ``max_terms``. Optional offsets are dropped unless they too earn
    their place.
-3. **Re-validation.** Every later window polishes the kept terms from their last values and
-   checks that each still earns its place (the same criterion, as a removal test); a term that
-   fails ``drop_after`` windows in a row is switched off.
+3. **Re-validation and refinement.** Every later window polishes the kept terms from their
+   refined values; each term's window estimate, with its covariance, joins the evidence of the
+   windows before it (:meth:`~twinwatch.twin.terms.Term.refine`, ``[discovery.refinement]``),
+   and the twin uses the refined values. Each term is then checked to still earn its place
+   (the same criterion, as a removal test); a term that fails ``drop_after`` windows in a row
+   is switched off.
+
+Beyond the paper's Table 1 the library has the non-smooth terms real drives need (rectifier,
+dead zone, Coulomb friction, saturation); a search that keeps nothing says so, with the closest
+candidate and the criteria it fails (:attr:`DiscoveryReport.verdict`).
 
 Meta-model inputs are *measured* signals (time, or a measured input, output or state): the terms
 do not depend on the simulated state, so they are computed once per particle and the composed
@@ -36,6 +43,7 @@ sample k.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
@@ -46,7 +54,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinwatch.twin.estimation import Estimator, PSOSettings
-from twinwatch.twin.fit import WindowFit, pso_minimize, relative_std
+from twinwatch.twin.fit import WindowFit, parameter_covariance, pso_minimize, relative_std
 from twinwatch.twin.metamodels import TABLE_1, MetaModel, get_meta_model
 from twinwatch.twin.model import AttachPoint, FloatArray, TwinModel, WindowData
 from twinwatch.twin.statistics import delta_bic, noise_level
@@ -83,6 +91,23 @@ class CandidateConfig(BaseModel):
         return v
 
 
+class RefinementConfig(BaseModel):
+    """The ``[discovery.refinement]`` table: how a kept term accumulates evidence across
+    windows (:meth:`~twinwatch.twin.terms.Term.refine`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="combine every window's evidence on a kept term; "
+                          "false: each window's polish replaces the parameters")
+    memory: float = Field(600.0, gt=0, allow_inf_nan=False,
+                          description="time constant of the forgetting of older evidence [s]: "
+                          "a window this much older weighs e times less")
+    jump_threshold: float = Field(25.0, gt=0, allow_inf_nan=False,
+                                  description="a window whose estimate lies further than this "
+                                  "normalised square per parameter from the refined one is "
+                                  "a change: older evidence is discounted at once")
+
+
 class DiscoveryConfig(BaseModel):
     """The ``[discovery]`` table: when discovery runs and what it may add."""
 
@@ -107,6 +132,7 @@ class DiscoveryConfig(BaseModel):
     retry_after: int = Field(10, ge=1, description="windows to wait after a discovery that "
                              "kept nothing")
     time_budget: float = Field(1.5, gt=0, description="wall-time cap of one discovery [s]")
+    refinement: RefinementConfig = Field(default_factory=RefinementConfig)
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(max_generations=30))
     seed: int = 0
 
@@ -189,6 +215,21 @@ class DiscoveryReport:
     elapsed_s: float = 0.0
     evaluations: int = 0
     tried: int = 0
+    candidates: int = 0
+    closest: str = ""
+
+    @property
+    def verdict(self) -> str:
+        """One line: what the search kept, or that no candidate describes the misfit (the
+        closest one and the criteria it failed)."""
+        if self.kept:
+            return "kept: " + "; ".join(t.equation() for t in self.kept)
+        if not self.ran:
+            return "no search"
+        what = (f"no candidate meta-model earns its place ({self.tried} of {self.candidates} "
+                "tried")
+        what += ")" if self.tried >= self.candidates else "; the time budget ran out)"
+        return what + (f"; closest: {self.closest}" if self.closest else "")
 
 
 class Discovery:
@@ -273,6 +314,8 @@ class Discovery:
                     fitted.append(f)
             best = self._select_term(fitted)
             if best is None:
+                if not new and fitted:
+                    report.closest = self._closest(fitted)
                 break
             term = best.to_term(win.index)
             new.append(term)
@@ -284,8 +327,11 @@ class Discovery:
             if not residual_too_large(r_base, n_out, cfg):
                 break  # the residual is down to the noise: nothing left to explain
         report.kept = new
+        report.candidates = len(self.candidates)
         report.elapsed_s = time.perf_counter() - t0
         report.evaluations = self.evaluations
+        if not new:
+            logger.info("window %d: %s", win.index, report.verdict)
         return new, report
 
     def _select_term(self, fitted: Sequence[_Fitted]) -> _Fitted | None:
@@ -295,11 +341,6 @@ class Discovery:
         exponential whose base fits to 1.0000)."""
         ok = [f for f in fitted if self._earns_place(f)]
         if not ok:
-            if fitted:
-                f = min(fitted, key=lambda f: f.dbic)
-                logger.debug("best candidate %s on %s does not earn its place (dBIC %.1f, "
-                             "improvement %.0f %%, significance %.1f)", f.cand.meta.kind,
-                             f.cand.attach.name, f.dbic, 100 * f.improvement, f.significance)
             return None
         best = min(ok, key=lambda f: f.dbic)
         simpler = [f for f in ok if sum(f.active) < sum(best.active)
@@ -307,6 +348,16 @@ class Discovery:
         if simpler:
             best = min(simpler, key=lambda f: (sum(f.active), f.dbic))
         return best
+
+    def _closest(self, fitted: Sequence[_Fitted]) -> str:
+        """The candidate nearest to earning its place (lowest BIC) and what it lacks."""
+        cfg = self.config
+        f = min(fitted, key=lambda f: f.dbic)
+        term = f.to_term(0)
+        return (f"{term.equation()} removes {100 * f.improvement:.0f} % of the residual "
+                f"(needs {100 * cfg.min_improvement:.0f} %), BIC change {f.dbic:+.1f} (needs "
+                f"<= {-cfg.bic_threshold:g}), {f.significance:.1f} standard errors from zero "
+                f"(needs {cfg.min_significance:g})")
 
     def _earns_place(self, f: _Fitted) -> bool:
         cfg = self.config
@@ -331,7 +382,9 @@ class Discovery:
         if not (z_ref > 0 and math.isfinite(z_ref)):
             return None
         u = z / z_ref
-        b_range = meta.search_range(window, is_time, z_ref)
+        if not meta.identifiable(u):
+            return None
+        b_range = meta.data_range(u) or meta.search_range(window, is_time, z_ref)
         lo, hi = meta.bounds(cand.amplitude, b_range=b_range)
         name = cand.attach.name
         base_at = np.asarray(base_vals.get(name, 0.0))
@@ -383,13 +436,16 @@ class Discovery:
         else:
             nl_best = np.zeros(0)
 
-        # 2. Every form (the full one and each without an optional parameter): project,
-        # polish all its parameters by nonlinear least squares, keep the best by BIC.
-        forms = [full]
-        for opt in meta.optional:
+        # 2. Every form (the full one and each without some of its optional parameters):
+        # project, polish all its parameters by nonlinear least squares, keep the best by BIC.
+        forms = []
+        for drop in itertools.chain.from_iterable(
+                itertools.combinations(meta.optional, k) for k in range(len(meta.optional) + 1)):
             m = full.copy()
-            m[meta.column_of(opt)] = False
-            forms.append(m)
+            for opt in drop:
+                m[meta.column_of(opt)] = False
+            if m.any():
+                forms.append(m)
         fitted: list[_Fitted] = []
         for mask in forms:
             _, coef = project(nl_best[None, :], mask)
@@ -405,15 +461,17 @@ class Discovery:
             fitted.append(_Fitted(cand, p, active, z_ref, t_ref, r, dbic, impr, sig))
         if not fitted:
             return None
-        # The simplest form unless the optional parameter itself earns its place.
-        reduced = [f for f in fitted if not all(f.active)]
-        full_fit = [f for f in fitted if all(f.active)]
-        if not reduced:
-            return full_fit[0]
-        simple = min(reduced, key=lambda f: f.dbic)
-        if full_fit and delta_bic(simple.r, full_fit[0].r, 1, n_out) <= -cfg.bic_threshold:
-            return full_fit[0]
-        return simple
+        # The simplest form unless an optional parameter itself earns its place: the best of
+        # the fewest parameters, then a larger form only if its extra parameters lower the BIC
+        # by bic_threshold against the form chosen so far.
+        fitted.sort(key=lambda f: sum(f.active))
+        size = sum(fitted[0].active)
+        best = min((f for f in fitted if sum(f.active) == size), key=lambda f: f.dbic)
+        for f in fitted:
+            extra = sum(f.active) - sum(best.active)
+            if extra > 0 and delta_bic(best.r, f.r, extra, n_out) <= -cfg.bic_threshold:
+                best = f
+        return best
 
     def _polish(self, resid, p0: FloatArray, active: tuple[bool, ...],  # type: ignore[no-untyped-def]
                 lo: FloatArray, hi: FloatArray, meta: MetaModel, amplitude: float
@@ -517,19 +575,26 @@ class Discovery:
     def polish_terms(self, window: WindowData | WindowFit, theta: FloatArray,
                      terms: list[Term]) -> None:
         """Joint bounded least squares over every kept term's active parameters, from their
-        current values (a term's phase and frequency drift slowly between windows)."""
+        refined values, then each term's window estimate joins its evidence
+        (:meth:`Term.refine`; ``[discovery.refinement]``).
+
+        Time terms are polished in the coordinates of the window's centre (where a periodic
+        term's frequency and phase are nearly uncorrelated); the window's covariance of each
+        term is its block of the joint covariance (each output weighted by its residual
+        variance, floored by the estimator's ``model_error``, inflated for autocorrelation),
+        conditional on the physical parameters ``theta`` the window estimated.
+        """
         fit = self._fit(window)
         win = fit.window
-        slices, x0 = [], []
-        for term in terms:
-            act = np.array(term.active)
-            slices.append(act)
-            x0.append(term.params[act])
-        x = np.concatenate(x0)
+        centre = 0.5 * float(win.t[0] + win.t[-1])
+        origins = [centre if term.movable else None for term in terms]
+        local = [term.at_origin(o) for term, o in zip(terms, origins, strict=True)]
+        slices = [np.array(t.active, dtype=bool) for t in local]
+        x = np.concatenate([t.params[act] for t, act in zip(local, slices, strict=True)])
 
         def set_params(xv: FloatArray) -> list[Term]:
             out, k = [], 0
-            for term, act in zip(terms, slices, strict=True):
+            for term, act in zip(local, slices, strict=True):
                 q = term.params.copy()
                 q[act] = xv[k:k + int(act.sum())]
                 k += int(act.sum())
@@ -551,16 +616,23 @@ class Discovery:
         if not np.all(np.isfinite(sol.fun)) or float(sol.fun @ sol.fun) > float(
                 fun(x) @ fun(x)):
             return
-        k = 0
         jac = np.asarray(sol.jac)
-        sd = self._std(jac, sol.fun)
-        for term, act in zip(terms, slices, strict=True):
+        cov = parameter_covariance(jac, sol.fun, fit.n_out, self.est.config.model_error)
+        with np.errstate(invalid="ignore"):
+            sd = np.sqrt(np.where(np.diag(cov) > 0, np.diag(cov), np.inf))
+        ref = self.config.refinement
+        k = 0
+        for term, loc, act, origin in zip(terms, local, slices, origins, strict=True):
             n = int(act.sum())
-            term.params[act] = sol.x[k:k + n]
-            term.params = term.meta.canonical(term.params)
+            y = loc.params.copy()
+            y[act] = sol.x[k:k + n]
+            block = cov[k:k + n, k:k + n]
+            term.refine(y, block, origin, centre, win.index,
+                        memory=ref.memory if ref.enabled else 0.0,
+                        jump_threshold=ref.jump_threshold)
             main = term.meta.main_index(term.active)
             col = k + int(np.cumsum(act)[main]) - 1
-            term.significance = (abs(term.weight) / sd[col]
+            term.significance = (abs(float(sol.x[col])) / sd[col]
                                  if sd[col] > 0 and math.isfinite(sd[col]) else 0.0)
             k += n
 
@@ -570,6 +642,7 @@ __all__ = [
     "Discovery",
     "DiscoveryConfig",
     "DiscoveryReport",
+    "RefinementConfig",
     "Term",
     "compose",
     "delta_bic",

@@ -10,6 +10,9 @@ non-finite numbers become ``null`` everywhere.
 The README's table "The health message" documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 5: each meta-model term carries the standard errors of its parameters (``params_std``) and
+  the number of windows whose evidence they combine (``evidence_windows``): a kept term is
+  refined across windows (:mod:`twinwatch.twin.terms`).
 * 4: ``status`` may be ``fused`` (not determined by this window alone but by the evidence
   of the windows so far, :mod:`twinwatch.twin.fusion`); each estimated parameter carries its
   fused value, interval and rate (``fused``); the window's model validation (``model_check``:
@@ -53,7 +56,7 @@ __all__ = [
     "summary_line",
 ]
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 
 def _finite(x: Any) -> Any:
@@ -132,8 +135,13 @@ class TermHealth(_Part):
     t_ref: float = Field(description="time origin of a time input [s]")
     params: dict[str, float] = Field(description="the term's parameters (switched-off offsets "
                                      "absent)")
+    params_std: dict[str, Num] = Field(description="1-sigma standard error of each parameter "
+                                       "(same units), from the evidence of every window the "
+                                       "term has explained; null before its first polish")
     weight: Num = Field(description="the main coefficient")
-    significance: Num = Field(description="weight / its standard error")
+    significance: Num = Field(description="weight / its standard error (this window)")
+    evidence_windows: float = Field(description="effective number of windows the parameters "
+                                    "combine (older ones forgotten, [discovery.refinement])")
     equation: str = Field(description="plain-text equation")
     meaning: str = Field(description="Table 1's working conditions where it attaches")
     since_window: int = Field(description="window it was found in")

@@ -13,6 +13,25 @@ kind                       U(z)                  working conditions (paper Table
                                                  unsteadiness
 =========================  ====================  =================================================
 
+Beyond Table 1 (the non-smooth effects of real drives; never a default candidate, a
+configuration lists them by kind):
+
+=========================  ====================  =================================================
+kind                       U(z)                  working conditions
+=========================  ====================  =================================================
+``rectifier``              a*max(0, z - b) + c   a power stage that conducts one way only
+                                                 (unidirectional chopper, diode), a one-sided
+                                                 load or stop
+``dead_zone``              a*dz(z, b)            backlash, a voltage the stage needs before
+                                                 current flows, a stiction band
+``coulomb``                a*sign(z) + c         dry (Coulomb) friction on a speed input
+``saturation``             a*tanh(z/b)           a limit: current limiting, a clamped actuator,
+                                                 magnetic saturation
+=========================  ====================  =================================================
+
+Each has at most one nonlinear parameter (the knee, the band, the scale; none for Coulomb), so
+the discovery's separable search fits it as it fits Table 1's.
+
 A new meta-model is one :class:`~twinwatch.twin.metamodels.base.MetaModel` subclass in one file
 plus one line in :data:`BUILTIN_META_MODELS`, or, from another package, an entry in the
 ``twinwatch.metamodels`` entry-point group (``kind = "package.module:Class"``). Modules are
@@ -34,7 +53,8 @@ logger = logging.getLogger(__name__)
 #: Entry-point group through which other packages add meta-models.
 ENTRY_POINT_GROUP = "twinwatch.metamodels"
 
-#: Built-in kinds: kind -> (module, class). The first six are paper Table 1, in its order.
+#: Built-in kinds: kind -> (module, class). The first six are paper Table 1, in its order; the
+#: others are the non-smooth terms real drives need (issue 9), candidates only where listed.
 BUILTIN_META_MODELS: Mapping[str, tuple[str, str]] = {
     "linear": ("twinwatch.twin.metamodels.linear", "Linear"),
     "exponential": ("twinwatch.twin.metamodels.exponential", "Exponential"),
@@ -43,6 +63,10 @@ BUILTIN_META_MODELS: Mapping[str, tuple[str, str]] = {
     "power": ("twinwatch.twin.metamodels.power", "Power"),
     "logarithmic": ("twinwatch.twin.metamodels.logarithmic", "Logarithmic"),
     "periodic": ("twinwatch.twin.metamodels.periodic", "Periodic"),
+    "rectifier": ("twinwatch.twin.metamodels.rectifier", "Rectifier"),
+    "dead_zone": ("twinwatch.twin.metamodels.dead_zone", "DeadZone"),
+    "coulomb": ("twinwatch.twin.metamodels.coulomb", "Coulomb"),
+    "saturation": ("twinwatch.twin.metamodels.saturation", "Saturation"),
 }
 
 #: The kinds of paper Table 1 (a candidate's default ``kinds``).

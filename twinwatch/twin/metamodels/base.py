@@ -176,6 +176,19 @@ class MetaModel(abc.ABC):
         the kind's fixed bounds."""
         return None
 
+    def data_range(self, u: FloatArray) -> tuple[float, float] | None:
+        """The nonlinear parameter's range the input samples ``u`` (normalised, (N,)) decide,
+        overriding :meth:`search_range`; None: no such constraint. A knee or a threshold must
+        lie inside the data with samples on both sides, else the term is a line or a constant
+        that a simpler kind states better."""
+        return None
+
+    def identifiable(self, u: FloatArray) -> bool:
+        """Whether this window's input (normalised, (N,)) can tell the kind from a simpler one
+        (a sign of a speed that never changes sign is a constant); the discovery skips the
+        candidate otherwise."""
+        return True
+
     def seeds(self, residual: FloatArray, window: WindowData, input_is_time: bool,
               z_ref: float, count: int) -> list[FloatArray]:
         """Promising nonlinear-parameter values (normalised) read off the residual (N, n_out),
@@ -209,6 +222,19 @@ class MetaModel(abc.ABC):
             (parameters, new t_ref).
         """
         return np.array(p, dtype=float, copy=True), t_ref
+
+    def move_origin(self, p: FloatArray, d: float) -> FloatArray | None:
+        """The same function of time written from an origin ``d`` later: ``q`` with
+        ``U_q(z - d) = U_p(z)`` for every z (raw parameters (len(params),), no wrapping), or
+        None if the kind cannot be rewritten so. Across windows a time term is refined in the
+        coordinates of the current window's centre (:mod:`twinwatch.twin.terms`), where its
+        parameters are least correlated."""
+        return None
+
+    def align(self, p: FloatArray, ref: FloatArray) -> FloatArray:
+        """``p`` (raw, canonical) in the equivalent form nearest to ``ref`` (a periodic term's
+        phase unwrapped to within pi of ``ref``'s), so estimates can be averaged."""
+        return np.array(p, dtype=float, copy=True)
 
     # -- rendering ------------------------------------------------------------------------
     @abc.abstractmethod

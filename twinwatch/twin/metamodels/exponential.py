@@ -48,5 +48,12 @@ class Exponential(MetaModel):
         q[..., 1] = np.abs(q[..., 1]) ** z_ref
         return q
 
+    def move_origin(self, p: FloatArray, d: float) -> FloatArray | None:
+        """``a b^z = (a b^d) b^(z - d)``."""
+        q = np.array(p, dtype=float, copy=True)
+        with np.errstate(all="ignore"):
+            q[0] = q[0] * abs(q[1]) ** d
+        return q if np.all(np.isfinite(q)) else None
+
     def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
         return f"{fmt(float(p[0]), precision)}*{fmt(float(p[1]), max(precision, 4))}^{z}"

@@ -61,6 +61,12 @@ class Linear(MetaModel):
         q[1] = q[1] - q[0] * t_ref
         return q, 0.0
 
+    def move_origin(self, p: FloatArray, d: float) -> FloatArray | None:
+        """``m z + b = m (z - d) + b + m d``."""
+        q = np.array(p, dtype=float, copy=True)
+        q[1] = q[1] + q[0] * d
+        return q
+
     def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
         if p[0] == 0:
             return fmt(float(p[1]), precision)

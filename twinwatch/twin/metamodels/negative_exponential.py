@@ -46,5 +46,12 @@ class NegativeExponential(MetaModel):
         q[..., 1] = q[..., 1] * z_ref
         return q
 
+    def move_origin(self, p: FloatArray, d: float) -> FloatArray | None:
+        """``a exp(-b z) = (a exp(-b d)) exp(-b (z - d))``."""
+        q = np.array(p, dtype=float, copy=True)
+        with np.errstate(all="ignore"):
+            q[0] = q[0] * np.exp(-q[1] * d)
+        return q if np.all(np.isfinite(q)) else None
+
     def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
         return f"{fmt(float(p[0]), precision)}*exp(-{fmt(float(p[1]), max(precision, 4))}*{z})"

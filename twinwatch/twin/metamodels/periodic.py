@@ -103,6 +103,18 @@ class Periodic(MetaModel):
         q[2] = wrap_phase(q[2] - q[1] * t_ref)
         return q, 0.0
 
+    def move_origin(self, p: FloatArray, d: float) -> FloatArray | None:
+        """``a sin(b z + c) = a sin(b (z - d) + c + b d)``."""
+        q = np.array(p, dtype=float, copy=True)
+        q[2] = q[2] + q[1] * d
+        return q
+
+    def align(self, p: FloatArray, ref: FloatArray) -> FloatArray:
+        """The phase within pi of ``ref``'s (2 pi apart is the same term)."""
+        q = np.array(p, dtype=float, copy=True)
+        q[2] = float(ref[2]) + wrap_phase(q[2] - float(ref[2]))
+        return q
+
     def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
         out = (f"{fmt(float(p[0]), precision)}*sin({fmt(float(p[1]), precision)}*{z}"
                f"{plus(float(p[2]), precision)})")

@@ -1,0 +1,81 @@
+"""Dead-zone meta-model ``a*dz(z, b)``: backlash, a voltage the power stage needs before any
+current flows, a stiction band. Not in paper Table 1 (issue 9: terms real drives need)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twinwatch.twin.metamodels.base import MetaModel, fmt
+from twinwatch.twin.model import FloatArray
+
+
+def dead_zone(z: FloatArray, b: FloatArray) -> FloatArray:
+    """``dz(z, b)``: 0 for ``|z| <= b``, ``z - b*sign(z)`` beyond (b >= 0; broadcasts)."""
+    return np.sign(z) * np.maximum(np.abs(z) - np.abs(b), 0.0)
+
+
+class DeadZone(MetaModel):
+    """``U(z) = a*dz(z, b)``: nothing while ``|z| <= b``, then a slope ``a`` from the band's edge.
+
+    Separable with the half-width ``b`` the only nonlinear parameter, searched between 0 and
+    the 95th percentile of ``|z|`` (a band holding nearly every sample is a constant; ``b = 0``
+    is a line, which the simpler linear meta-model states with one parameter fewer).
+
+    A dead zone *of an input the twin already uses* (``Va_eff = dz(Va, b)`` in ``d(ia)/dt``)
+    is the twin's own linear term minus a limit: ``dz(z, b) = z - clip(z, -b, b)``; on such an
+    input it shows as a saturation or, if the input keeps one sign, as a constant.
+    """
+
+    kind = "dead_zone"
+    equation = "a*dz(z, b)"
+    conditions = ("backlash, a voltage the power stage needs before current flows, a "
+                  "stiction band")
+    params = ("a", "b")
+    nonlinear = ("b",)
+
+    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
+        p = np.atleast_2d(np.asarray(p, dtype=float))
+        z = np.asarray(z, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return p[:, 0, None] * dead_zone(z, p[:, 1, None])
+
+    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
+        nl = np.atleast_2d(np.asarray(nl, dtype=float))
+        u = np.asarray(u, dtype=float)[None, :]
+        return dead_zone(u, nl[:, :1])[:, None, :]
+
+    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
+               ) -> tuple[FloatArray, FloatArray]:
+        """|a| up to the amplitude per unit of normalised input; ``0 <= b <= 1`` unless the
+        data say otherwise."""
+        a = float(amplitude)
+        b_lo, b_hi = b_range or (0.0, 1.0)
+        return np.array([-a, b_lo]), np.array([a, b_hi])
+
+    def data_range(self, u: FloatArray) -> tuple[float, float] | None:
+        hi = float(np.quantile(np.abs(u), 0.95))
+        return (0.0, hi) if hi > 0 else None
+
+    def identifiable(self, u: FloatArray) -> bool:
+        return bool(np.quantile(np.abs(u), 0.95) > 0)
+
+    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
+        q = np.array(p, dtype=float, copy=True)
+        q[..., 0] = q[..., 0] / z_ref
+        q[..., 1] = q[..., 1] * z_ref
+        return q
+
+    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
+        q = np.array(p, dtype=float, copy=True)
+        q[..., 0] = q[..., 0] * z_ref
+        q[..., 1] = q[..., 1] / z_ref
+        return q
+
+    def canonical(self, p: FloatArray) -> FloatArray:
+        """``b >= 0`` (the band is symmetric)."""
+        q = np.array(p, dtype=float, copy=True)
+        q[1] = abs(q[1])
+        return q
+
+    def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
+        return f"{fmt(float(p[0]), precision)}*dz({z}, {fmt(float(p[1]), precision)})"

@@ -1,0 +1,64 @@
+"""Saturation meta-model ``a*tanh(z/b)``: a limit (current limiting, a clamped actuator),
+magnetic saturation. Not in paper Table 1 (issue 9: terms real drives need)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twinwatch.twin.metamodels.base import MetaModel, fmt
+from twinwatch.twin.model import FloatArray
+
+
+class Saturation(MetaModel):
+    """``U(z) = a*tanh(z/b)`` (b > 0): slope ``a/b`` near zero, levelling off at ``+-a``.
+
+    The smooth ``tanh`` rather than a hard ``a*clip(z/b, -1, 1)``: the same one nonlinear
+    parameter (the scale ``b``), but a cost smooth in ``b`` for the swarm and the polish, and
+    it covers the soft limit of magnetic saturation as well as, for small ``b``, a hard current
+    limit. ``b`` is searched from 0.02 to 3 times the input's largest magnitude: beyond, the
+    term is a line (the linear meta-model states it with one parameter fewer).
+    """
+
+    kind = "saturation"
+    equation = "a*tanh(z/b)"
+    conditions = "a limit: current limiting, a clamped actuator, magnetic saturation"
+    params = ("a", "b")
+    nonlinear = ("b",)
+
+    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
+        p = np.atleast_2d(np.asarray(p, dtype=float))
+        z = np.asarray(z, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return p[:, 0, None] * np.tanh(z / p[:, 1, None])
+
+    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
+        nl = np.atleast_2d(np.asarray(nl, dtype=float))
+        u = np.asarray(u, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return np.tanh(u / nl[:, :1])[:, None, :]
+
+    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
+               ) -> tuple[FloatArray, FloatArray]:
+        a = float(amplitude)
+        b_lo, b_hi = b_range or (0.02, 3.0)
+        return np.array([-a, b_lo]), np.array([a, b_hi])
+
+    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
+        q = np.array(p, dtype=float, copy=True)
+        q[..., 1] = q[..., 1] * z_ref
+        return q
+
+    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
+        q = np.array(p, dtype=float, copy=True)
+        q[..., 1] = q[..., 1] / z_ref
+        return q
+
+    def canonical(self, p: FloatArray) -> FloatArray:
+        """``b > 0`` (``a tanh(z/b) = -a tanh(-z/b)``)."""
+        q = np.array(p, dtype=float, copy=True)
+        if q[1] < 0:
+            q[0], q[1] = -q[0], -q[1]
+        return q
+
+    def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
+        return f"{fmt(float(p[0]), precision)}*tanh({z}/{fmt(float(p[1]), precision)})"
