@@ -28,12 +28,22 @@ DRIVE = DriveConfig(period=0.001, speed=LoopConfig(kp=2.0, ki=2.0, output_min=0.
 
 
 def _run(twin: DCMotorTwin, noise: dict[str, float], n: int, skip: int = 80,
-         scenario: str = "resistance_degradation") -> tuple[DCMotorPlant, list]:  # type: ignore[type-arg]
+         scenario: str = "resistance_degradation", fusion: bool = True
+         ) -> tuple[DCMotorPlant, list]:  # type: ignore[type-arg]
     cfg = DCMotorPlantConfig(scenario=scenario, duration=2 * (skip + n) + 10, drive=DRIVE,
                              noise=noise, seed=5)
     plant, wins = plant_windows(cfg, n, skip=skip)
-    est = Estimator(twin, EstimationConfig(bounds=BOUNDS))
-    return plant, [(w, est.estimate(w)) for w in wins]
+    est = Estimator(twin, EstimationConfig(bounds=BOUNDS,
+                                           fusion=FusionConfig(enabled=fusion)))
+    runs = []
+    for w in wins:
+        before = est.trusted_values()
+        e = est.estimate(w)
+        for name, status in e.status.items():  # held means held at the last trusted value
+            if status == "held":
+                assert e.values[name] == pytest.approx(before[name], rel=1e-12), (w.index, name)
+        runs.append((w, e))
+    return plant, runs
 
 
 def _honest(plant: DCMotorPlant, runs: list) -> tuple[int, int]:  # type: ignore[type-arg]
@@ -103,6 +113,15 @@ def test_ideal_pi_twin_on_a_drive_that_holds_its_output_says_so() -> None:
         assert any("residual of Va" in r for r in e.model_check.reasons)
     n, ok = _honest(plant, runs)
     assert ok == n
+
+
+def test_a_parameter_the_gate_holds_is_published_at_its_trusted_value() -> None:
+    """A window whose failed model check widens Ra's interval past ``max_rel_std`` holds Ra:
+    the published value is the last trusted one (``_run`` asserts it for every held
+    parameter), not the window's estimate, and the others are re-fitted with it held."""
+    _, runs = _run(DCMotorTwin(kp=2.0, ki=2.0), {}, 4, fusion=False)
+    gated = [e for _, e in runs if "the model check failed" in e.held.get("Ra", "")]
+    assert gated and all(e.status["Ra"] == "held" for e in gated)
 
 
 def test_unmodelled_unidirectional_stage_is_flagged_where_it_acts() -> None:

@@ -222,7 +222,8 @@ def test_sigkill_mid_window_loses_nothing_and_restart_resumes_the_twin(tmp_path:
     assert first["discovery"]["ran"] is False  # resumed, not rediscovered
     for name, p in first["parameters"].items():
         if p["status"] == "held":
-            assert p["value"] == pytest.approx(saved["trusted"][name], rel=1e-9)
+            expected = pytest.approx(saved["trusted"][name], rel=1e-9)
+            assert p["value"] == expected, (name, p["reason"])
     rows2 = [h for h in db_rows(db) if h["_run"] != run1]
     assert rows2[0]["window"] == 0 and rows2[0]["terms"]
 
@@ -239,7 +240,7 @@ def test_sighup_reloads_a_valid_config_and_refuses_a_bad_one(tmp_path: Path) -> 
     try:
         wait_for(lambda: len(db_rows(db)) >= 2, 60, "two stored windows")
         # a bad new config: refused, the old one keeps running
-        _write_config(cfg, base.replace("[estimation]", "[estimation]\nestimat = ['Ra']"))
+        _write_config(cfg, base.replace("\n[estimation]\n", "\n[estimation]\nestimat = ['Ra']\n"))
         proc.send_signal(signal.SIGHUP)
         n = len(db_rows(db))
         wait_for(lambda: len(db_rows(db)) >= n + 3, 30, "windows after a refused reload")

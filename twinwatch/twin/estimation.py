@@ -445,14 +445,28 @@ class Estimator:
             rel_std = {k: v * check.widen for k, v in rel_std.items()}
         # The gate holds: nothing is published as an estimate above max_rel_std (the re-fit
         # with the others held, or a failed model check, can leave one above it).
-        for k in list(selected):
-            if not rel_std.get(k, math.inf) <= cfg.max_rel_std:
-                selected.remove(k)
-                why = ("the model check failed" if check is not None and not check.passed
-                       else "after the re-fit")
-                held[names_est[k]] = (f"not determined by this window (relative std "
-                                      f"{rel_std.get(k, math.inf):.2g} > {cfg.max_rel_std:.2g} "
-                                      f"{why}): held at last trusted value")
+        gated = [k for k in selected if not rel_std.get(k, math.inf) <= cfg.max_rel_std]
+        for k in gated:
+            selected.remove(k)
+            why = ("the model check failed" if check is not None and not check.passed
+                   else "after the re-fit")
+            held[names_est[k]] = (f"not determined by this window (relative std "
+                                  f"{rel_std.get(k, math.inf):.2g} > {cfg.max_rel_std:.2g} "
+                                  f"{why}): held at last trusted value")
+        if gated:
+            # Held means held: the others are re-fitted with these at their trusted values,
+            # so the published values and the simulation are the held twin's.
+            v_best = v_best.copy()
+            v_best[gated] = np.log(base[pmap.idx[gated]])
+            active = np.concatenate([np.array(selected, dtype=int), nuis])
+            if active.size:
+                v_best, r_final, jac_final = local.refine(v_best, active)
+            q_best = v_best[:n_est]
+            initial = local.initial(v_best)
+            wfit.initial = initial
+            theta = pmap.full(q_best[None, :], base)
+            y = wfit.simulate(theta, terms)[0]
+            res = wfit.residual(y)
 
         values = dict(zip(self.names, (float(v) for v in theta[0]), strict=True))
         tie = cfg.tie or {}
