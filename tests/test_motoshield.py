@@ -57,7 +57,9 @@ def test_motoshield_discovery_fit_first_half_validate_second():
     assert {"rectifier", "dead_zone", "coulomb", "saturation"} <= kinds
     disc = cfg.discovery.model_copy(update={"enabled": True, "trigger_windows": 1,
                                             "retry_after": 1, "time_budget": 120.0})
-    cfg = cfg.model_copy(update={"discovery": disc})
+    # no wall-clock cap on the estimation either: the run is the same on a loaded machine
+    est = cfg.estimation.model_copy(update={"time_budget": 60.0})
+    cfg = cfg.model_copy(update={"discovery": disc, "estimation": est})
     with Daemon(cfg, base_dir=cfg_path.parent, publish=False, record=False) as daemon:
         windows = []
         reports = []
@@ -87,7 +89,8 @@ def test_motoshield_discovery_fit_first_half_validate_second():
     assert len(reports) >= 6  # the search really ran on every other window of the first half
     n_candidates = sum(len(c.kinds) for c in cfg.discovery.candidates)
     for rep in reports:
-        assert rep.tried == rep.candidates == n_candidates  # every candidate was fitted
+        # every candidate was fitted (a second round, after a kept term, tries the others again)
+        assert rep.candidates == n_candidates and rep.tried >= n_candidates
     model = adapter.model
     theta = np.median([[h["parameters"][n]["value"] for n in model.parameter_names]
                        for h in first], axis=0)
