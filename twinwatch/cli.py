@@ -198,6 +198,7 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
         return
     click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
                f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
+    width = max([3, *(len(n) for n in last["parameters"])])
     for name, p in last["parameters"].items():
         fused = p.get("fused") or {}
         status = {"estimated": "estimated",
@@ -208,7 +209,7 @@ def _print_summary(cfg: Any, daemon: Any) -> None:
             status += (f"; fused {fused['value']:.6g} +- {2 * fused['rel_std_pct']:.2g} % "
                        "(2 sigma)")
         dev = p["deviation_pct"]
-        click.echo(f"  {name:<3} = {p['value']:<11.6g} {p['unit']:<10} "
+        click.echo(f"  {name:<{width}} = {p['value']:<11.6g} {p['unit']:<10} "
                    f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
                    f"{status}")
     raised = {k: a for k, a in (last.get("alarms") or {}).items()
