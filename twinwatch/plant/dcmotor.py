@@ -54,6 +54,7 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.plant._pid import pid_tick
 from twinwatch.twin.drive import DriveConfig, LoopConfig
 
 logger = logging.getLogger(__name__)
@@ -219,39 +220,20 @@ _IA, _W, _IS, _FS, _IC, _FC, _VA, _IREF, _ANGLE, _FI, _FW, _LAST = range(12)
 
 
 @njit(cache=True, nogil=True)
-def _pid_tick(loop, i_s, f_s, r, y, period):  # pragma: no cover - compiled
-    """One update of a drive loop (twinwatch.twin.drive); returns (u, I, f)."""
-    kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
-    lo, hi, aw, tt, kff, sgn = loop[4], loop[5], loop[6], loop[7], loop[8], loop[9]
-    e = sgn * (r - y)
-    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
-    u_pid = kp * e + i_s + d + kff * r
-    u = min(max(u_pid, lo), hi)
-    if aw == 1.0:
-        if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):
-            i_s += ki * period * e
-    elif aw == 2.0:
-        i_s += ki * period * e + (period / tt) * (u - u_pid)
-    else:
-        i_s += ki * period * e
-    return u, i_s, f_s + period * d
-
-
-@njit(cache=True, nogil=True)
 def _tick(state, j, sp, speed, current, has_current, m, mc, ph, dt):  # pragma: no cover
     """Run the drive's updates due at step ``j`` (once per step: ``state[_LAST]``)."""
     if state[_LAST] == j:
         return
     state[_LAST] = j
     if j >= ph and (j - ph) % m == 0:
-        u, state[_IS], state[_FS] = _pid_tick(speed, state[_IS], state[_FS], sp, state[_W],
+        u, state[_IS], state[_FS] = pid_tick(speed, state[_IS], state[_FS], sp, state[_W],
                                               m * dt)
         if has_current:
             state[_IREF] = u
         else:
             state[_VA] = u
     if has_current and j >= ph and (j - ph) % mc == 0:
-        state[_VA], state[_IC], state[_FC] = _pid_tick(current, state[_IC], state[_FC],
+        state[_VA], state[_IC], state[_FC] = pid_tick(current, state[_IC], state[_FC],
                                                        state[_IREF], state[_IA], mc * dt)
 
 

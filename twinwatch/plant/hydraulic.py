@@ -79,6 +79,7 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.plant._pid import pid_tick
 from twinwatch.twin.drive import LoopConfig
 from twinwatch.twin.hydraulic import ValveDriveConfig
 
@@ -188,23 +189,7 @@ def _pid(state, loop, r, period):  # pragma: no cover - compiled
     """One update of the valve controller (:mod:`twinwatch.twin.drive`, paper Eq. 17) on the
     reference ``r``; ``state = [x, p, I, f, A]``: sets A, advances I and f. ``loop``: the
     packed loop (limits resolved)."""
-    kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
-    lo, hi, aw, tt, kff, sgn = loop[4], loop[5], loop[6], loop[7], loop[8], loop[9]
-    e = sgn * (r - state[0])
-    i_s, f_s = state[2], state[3]
-    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
-    u_pid = kp * e + i_s + d + kff * r
-    u = min(max(u_pid, lo), hi)
-    if aw == 1.0:
-        if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):
-            i_s += ki * period * e
-    elif aw == 2.0:
-        i_s += ki * period * e + (period / tt) * (u - u_pid)
-    else:
-        i_s += ki * period * e
-    state[2] = i_s
-    state[3] = f_s + period * d
-    state[4] = u
+    state[4], state[2], state[3] = pid_tick(loop, state[2], state[3], r, state[0], period)
 
 
 @njit(cache=True, nogil=True)

@@ -77,6 +77,7 @@ from typing import Any, Literal
 import numpy as np
 from numba import njit
 
+from twinwatch.twin._pid import pid_update
 from twinwatch.twin.drive import DriveConfig, LoopConfig
 from twinwatch.twin.model import (
     AttachPoint,
@@ -114,25 +115,6 @@ _TAU_W = ParameterSpec("tau_w", "s", 0.01,
                        "a change of the speed sensor or its filtering")
 _TC = ParameterSpec("Tc", "N m", 1e-3, "Coulomb (dry) friction torque",
                     "bearing or brush wear, contamination, misalignment (rises)")
-
-
-@njit(cache=True, nogil=True)
-def _pid(loop, i_s, f_s, r, y, period):  # pragma: no cover - compiled
-    """One update of a drive loop (:mod:`twinwatch.twin.drive`); returns (u, I, f)."""
-    kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
-    lo, hi, aw, tt, kff, sgn = loop[4], loop[5], loop[6], loop[7], loop[8], loop[9]
-    e = sgn * (r - y)
-    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
-    u_pid = kp * e + i_s + d + kff * r
-    u = min(max(u_pid, lo), hi)
-    if aw == 1.0:
-        if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):
-            i_s += ki * period * e
-    elif aw == 2.0:
-        i_s += ki * period * e + (period / tt) * (u - u_pid)
-    else:
-        i_s += ki * period * e
-    return u, i_s, f_s + period * d
 
 
 @njit(cache=True, nogil=True)
@@ -183,13 +165,13 @@ def _drive_kernel(phis, gams, seg_len, seg_type, ev_sample, ev_sub, ev_tick_s, e
                     iref = iref_meas[kc]
             if mode > 0 and ok:
                 if mode == 2 and ev_tick_s[e]:
-                    out, i_s, f_s = _pid(speed, i_s, f_s, sp[kc], x[1], t_s)
+                    out, i_s, f_s = pid_update(speed, i_s, f_s, sp[kc], x[1], t_s, speed[5])
                     if has_current:
                         iref = out
                     else:
                         va = out
                 if has_current and ev_tick_c[e]:
-                    va, i_c, f_c = _pid(current, i_c, f_c, iref, x[0], t_c)
+                    va, i_c, f_c = pid_update(current, i_c, f_c, iref, x[0], t_c, current[5])
             if k >= 0:
                 if not ok:
                     y[q, k, 0] = np.nan

@@ -126,6 +126,7 @@ from pydantic import (
     model_validator,
 )
 
+from twinwatch.twin._pid import pid_update
 from twinwatch.twin.drive import DriveConfig, LoopConfig
 from twinwatch.twin.model import (
     AttachPoint,
@@ -296,26 +297,6 @@ def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
 
 
 @njit(cache=True, nogil=True)
-def _loop_tick(loop, i_s, f_s, r, y, period, hi):  # pragma: no cover - compiled
-    """One update of the valve controller (:mod:`twinwatch.twin.drive`, paper Eq. 17) with the
-    upper limit ``hi``; returns (u, I, f)."""
-    kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
-    lo, aw, tt, kff, sgn = loop[4], loop[6], loop[7], loop[8], loop[9]
-    e = sgn * (r - y)
-    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
-    u_pid = kp * e + i_s + d + kff * r
-    u = min(max(u_pid, lo), hi)
-    if aw == 1.0:
-        if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):
-            i_s += ki * period * e
-    elif aw == 2.0:
-        i_s += ki * period * e + (period / tt) * (u - u_pid)
-    else:
-        i_s += ki * period * e
-    return u, i_s, f_s + period * d
-
-
-@njit(cache=True, nogil=True)
 def _recover_integrator(loop, f_s, r, y, area, period, ticked):  # pragma: no cover
     """The integrator (before the update when ``ticked``) that makes an update on (r, y) with
     the derivative filter state ``f_s`` give ``area``; without an update on the sample, the
@@ -341,7 +322,7 @@ def _interval(x, p, i_s, f_s, area, limited, j, t_off, m, r_t, loop, period, hi,
     for s in range(n_sub):
         js = j + s
         if s > 0 and js >= t_off and (js - t_off) % m == 0:
-            u, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(js - t_off) // m], x, period, hi)
+            u, i_s, f_s = pid_update(loop, i_s, f_s, r_t[(js - t_off) // m], x, period, hi)
             if not limited:
                 area = u
         fl = l0 + (l1 - l0) * (s * inv) if linear else l0
@@ -367,7 +348,7 @@ def _ahead(x, p, i_s, f_s, area, k, count, t_off, m, r_t, loop, period, hi, n_su
     sample) over ``count`` samples; ``out[i]``: the area at sample k + 1 + i."""
     j = k * n_sub
     if j >= t_off and (j - t_off) % m == 0:
-        area, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(j - t_off) // m], x, period, hi)
+        area, i_s, f_s = pid_update(loop, i_s, f_s, r_t[(j - t_off) // m], x, period, hi)
     for i in range(count):
         kk = k + i
         x, p, i_s, f_s, area = _interval(x, p, i_s, f_s, area, False, kk * n_sub, t_off, m,
@@ -375,7 +356,7 @@ def _ahead(x, p, i_s, f_s, area, k, count, t_off, m, r_t, loop, period, hi, n_su
                                          f_in[kk + 1], 1.0 + u_p[kk + 1], f_x[kk], prm, dt)
         jn = (kk + 1) * n_sub
         if jn >= t_off and (jn - t_off) % m == 0:
-            area, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(jn - t_off) // m], x, period, hi)
+            area, i_s, f_s = pid_update(loop, i_s, f_s, r_t[(jn - t_off) // m], x, period, hi)
         out[i] = area
 
 
@@ -457,7 +438,7 @@ def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x
                             break  # the area is affine in it to rounding from here
                 area = meas
             if ok and ticked:
-                u, i_s, f_s = _loop_tick(loop, i_s, f_s, r_t[(j - t_off) // m], x, period, hi)
+                u, i_s, f_s = pid_update(loop, i_s, f_s, r_t[(j - t_off) // m], x, period, hi)
                 area = u
             if at_limit:
                 area = meas
