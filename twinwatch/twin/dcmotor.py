@@ -90,6 +90,7 @@ from twinwatch.twin.model import (
     composite_zoh,
     propagate,
     sub_steps,
+    term_array,
 )
 
 DC_MOTOR_PARAMETERS: tuple[ParameterSpec, ...] = (
@@ -532,13 +533,7 @@ class DCMotorTwin(TwinModel):
                                "twin offers d(omega)/dt and d(ia)/dt")
         out = []
         for name in ("d(omega)/dt", "d(ia)/dt"):
-            v = (terms or {}).get(name)
-            arr = np.zeros((1, n)) if v is None else np.asarray(v, dtype=float)
-            if arr.ndim == 0:
-                arr = np.full((1, n), float(arr))
-            elif arr.ndim == 1:
-                arr = arr[None, :]
-            out.append(np.ascontiguousarray(arr))
+            out.append(term_array((terms or {}).get(name), p, n, name))
         rows = max(a.shape[0] for a in out)
         return tuple(np.ascontiguousarray(np.broadcast_to(a, (rows, n))) if a.shape[0] != rows
                      else a for a in out)  # type: ignore[return-value]

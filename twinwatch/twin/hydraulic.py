@@ -137,6 +137,7 @@ from twinwatch.twin.model import (
     TwinModel,
     WindowData,
     sub_steps,
+    term_array,
 )
 
 logger = logging.getLogger(__name__)
@@ -587,21 +588,6 @@ class HydraulicActuatorTwin(TwinModel):
         """The sample period must be a whole number of sub-steps (ValueError otherwise)."""
         self.n_sub(sample_period)
 
-    @staticmethod
-    def _term(values: FloatArray | None, p: int, n: int, name: str) -> FloatArray:
-        """A term's values as a C-contiguous (1, N) or (P, N) array (zeros if absent)."""
-        if values is None:
-            return np.zeros((1, n))
-        arr = np.asarray(values, dtype=float)
-        if arr.ndim == 0:
-            arr = np.full((1, n), float(arr))
-        elif arr.ndim == 1:
-            arr = arr[None, :]
-        if arr.ndim != 2 or arr.shape[1] != n or arr.shape[0] not in (1, p):
-            raise ValueError(f"term {name!r} has shape {np.shape(values)}; expected ({n},) or "
-                             f"({p}, {n})")
-        return np.ascontiguousarray(arr)
-
     def simulate(self, theta: FloatArray, window: WindowData,
                  terms: Mapping[str, FloatArray] | None = None,
                  initial: FloatArray | None = None) -> FloatArray:
@@ -642,8 +628,8 @@ class HydraulicActuatorTwin(TwinModel):
         if unknown:
             raise KeyError(f"unknown attach point(s) {sorted(unknown)}; the hydraulic "
                            f"actuator twin offers {list(_ATTACH)}")
-        u_p = self._term(terms.get("p"), p, n, "p")
-        f_x = self._term(terms.get("d(x)/dt"), p, n, "d(x)/dt")
+        u_p = term_array(terms.get("p"), p, n, "p")
+        f_x = term_array(terms.get("d(x)/dt"), p, n, "d(x)/dt")
         a_in = np.ascontiguousarray(window["A_valve"], dtype=float)
         f_in = np.ascontiguousarray(window["F_load"], dtype=float)
         off = np.zeros((p, 1)) if initial is None else np.broadcast_to(

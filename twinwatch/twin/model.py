@@ -262,6 +262,35 @@ def sub_steps(sample_period: float, sub_step: float) -> int:
     return n
 
 
+def term_array(values: FloatArray | float | None, p: int, n: int, name: str) -> FloatArray:
+    """A meta-model term's values (paper Eq. 3) as a C-contiguous array for a compiled kernel.
+
+    Args:
+        values: None (no term: zeros), a scalar, (N,) shared by the swarm, or (P, N) one row
+            per particle, in the attach point's unit.
+        p: particles in the swarm.
+        n: samples in the window.
+        name: the attach point, for the error message.
+
+    Returns:
+        (1, N) or (P, N) float array.
+
+    Raises:
+        ValueError: any other shape (the message names the attach point and both shapes).
+    """
+    if values is None:
+        return np.zeros((1, n))
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full((1, n), float(arr))
+    elif arr.ndim == 1:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != n or arr.shape[0] not in (1, p):
+        raise ValueError(f"term {name!r} has shape {np.shape(values)}; expected ({n},) or "
+                         f"({p}, {n})")
+    return np.ascontiguousarray(arr)
+
+
 def composite_zoh(a: FloatArray, b: FloatArray, n_sub: int) -> tuple[FloatArray, FloatArray]:
     """Compose ``n_sub`` steps of the linear map ``x' = A x + B u`` with ``u`` held.
 

@@ -94,6 +94,7 @@ from twinwatch.twin.model import (
     TwinModel,
     WindowData,
     sub_steps,
+    term_array,
 )
 
 logger = logging.getLogger(__name__)
@@ -432,21 +433,6 @@ class PWMDCMotorTwin(TwinModel):
             s = s - theta["r_warm"] * tt
         return np.maximum(s, self.warmup_floor)
 
-    @staticmethod
-    def _term(values: FloatArray | None, p: int, n: int, name: str) -> FloatArray:
-        """A term's values as a C-contiguous (1, N) or (P, N) array (zeros if absent)."""
-        if values is None:
-            return np.zeros((1, n))
-        arr = np.asarray(values, dtype=float)
-        if arr.ndim == 0:
-            arr = np.full((1, n), float(arr))
-        elif arr.ndim == 1:
-            arr = arr[None, :]
-        if arr.ndim != 2 or arr.shape[1] != n or arr.shape[0] not in (1, p):
-            raise ValueError(f"term {name!r} has shape {np.shape(values)}; expected ({n},) or "
-                             f"({p}, {n})")
-        return np.ascontiguousarray(arr)
-
     def _prm(self, theta: FloatArray) -> FloatArray:
         """(P, 12) kernel parameters from full vectors (P, n_params); absent ones 0 / 1."""
         names = self.parameter_names
@@ -497,8 +483,8 @@ class PWMDCMotorTwin(TwinModel):
         if unknown:
             raise KeyError(f"unknown attach point(s) {sorted(unknown)}; the PWM DC motor twin "
                            f"offers {[a.name for a in self.attach_points]}")
-        f_w = self._term(terms.get("d(omega)/dt"), theta.shape[0], n, "d(omega)/dt")
-        u_i = self._term(terms.get("ia"), theta.shape[0], n, "ia")
+        f_w = term_array(terms.get("d(omega)/dt"), theta.shape[0], n, "d(omega)/dt")
+        u_i = term_array(terms.get("ia"), theta.shape[0], n, "ia")
         rows = max(theta.shape[0], f_w.shape[0], u_i.shape[0])
         if initial is not None and np.ndim(initial) == 2:
             rows = max(rows, np.shape(initial)[0])
