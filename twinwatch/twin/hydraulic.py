@@ -237,6 +237,27 @@ class ValveDriveConfig(BaseModel):
         return packed
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _piston_step(x, p, a, fl, gain, fx, ks, d, qp, a_max, inv_ap, fr, dt):
+    # pragma: no cover - compiled
+    """One sub-step of the piston, paper Eq. 14-16: the valve area ``a`` [m^2] clipped to
+    [0, a_max], the valve flow from the previous pressure, the piston speed (plus the additive
+    term ``fx`` [m/s]), the position by explicit Euler over ``dt`` [s], the pressure from the
+    force balance (times the multiplicative term ``gain``). Returns (x [m], p [Pa]); a negative
+    pressure (cavitation, outside the model) gives nan."""
+    if a < 0.0:
+        a = 0.0
+    elif a > a_max:
+        a = a_max
+    if p >= 0.0:
+        q_valve = a * math.sqrt(2.0 * p)
+    else:
+        q_valve = np.nan  # cavitation: outside the model
+    v = (qp - q_valve) * inv_ap + fx
+    x = x + dt * v
+    return x, gain * (fl + ks * x + d * v + fr) * inv_ap
+
+
 @njit(cache=True, nogil=True)
 def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
     # pragma: no cover - compiled
@@ -279,17 +300,7 @@ def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
                 else:
                     a = a0
                     fl = l0
-                if a < 0.0:
-                    a = 0.0
-                elif a > a_max:
-                    a = a_max
-                if p >= 0.0:
-                    q_valve = a * math.sqrt(2.0 * p)
-                else:
-                    q_valve = np.nan  # cavitation: outside the model
-                v = (qp - q_valve) * inv_ap + fx
-                x = x + dt * v
-                p = gain * (fl + ks * x + d * v + fr) * inv_ap
+                x, p = _piston_step(x, p, a, fl, gain, fx, ks, d, qp, a_max, inv_ap, fr, dt)
             if not (math.isfinite(x) and math.isfinite(p)):
                 ok = False
                 x, p = np.nan, np.nan
@@ -327,18 +338,7 @@ def _interval(x, p, i_s, f_s, area, limited, j, t_off, m, r_t, loop, period, hi,
             if not limited:
                 area = u
         fl = l0 + (l1 - l0) * (s * inv) if linear else l0
-        a = area
-        if a < 0.0:
-            a = 0.0
-        elif a > a_max:
-            a = a_max
-        if p >= 0.0:
-            q_valve = a * math.sqrt(2.0 * p)
-        else:
-            q_valve = np.nan  # cavitation: outside the model
-        v = (qp - q_valve) * inv_ap + fx
-        x = x + dt * v
-        p = gain * (fl + ks * x + d * v + fr) * inv_ap
+        x, p = _piston_step(x, p, area, fl, gain, fx, ks, d, qp, a_max, inv_ap, fr, dt)
     return x, p, i_s, f_s, area
 
 
