@@ -201,14 +201,33 @@ class MetaModel(abc.ABC):
         return 0.0 if self.positive_input else float(window.t[0])
 
     # -- units and equivalent forms -------------------------------------------------------
+    #: How each parameter scales with the input's unit: the raw parameter i is the normalised
+    #: one times ``z_ref ** z_powers[i]`` (a slope per unit of z: -1; a knee, a band or a
+    #: scale in z's unit: +1; an amplitude or offset: 0). Empty: every parameter as it is.
+    #: Kinds whose parameters do not scale as a power (exponential, logarithmic, power)
+    #: override :meth:`to_raw` and :meth:`from_raw` instead.
+    z_powers: tuple[int, ...] = ()
+
     def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
         """Normalised-coordinate parameters (input ``z/z_ref``) -> raw ones (input ``z``).
-        Shape (..., len(params)) in and out. Default: the same."""
-        return np.array(p, dtype=float, copy=True)
+        Shape (..., len(params)) in and out; by :attr:`z_powers`."""
+        q = np.array(p, dtype=float, copy=True)
+        for i, k in enumerate(self.z_powers):
+            if k > 0:
+                q[..., i] = q[..., i] * z_ref**k
+            elif k < 0:
+                q[..., i] = q[..., i] / z_ref**-k
+        return q
 
     def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
         """Inverse of :meth:`to_raw`."""
-        return np.array(p, dtype=float, copy=True)
+        q = np.array(p, dtype=float, copy=True)
+        for i, k in enumerate(self.z_powers):
+            if k > 0:
+                q[..., i] = q[..., i] / z_ref**k
+            elif k < 0:
+                q[..., i] = q[..., i] * z_ref**-k
+        return q
 
     def canonical(self, p: FloatArray) -> FloatArray:
         """One representative of equivalent parameter sets (raw, (len(params),))."""

@@ -31,6 +31,7 @@ class DeadZone(MetaModel):
     conditions = ("backlash, a voltage the power stage needs before current flows, a "
                   "stiction band")
     params = ("a", "b")
+    z_powers = (-1, 1)
     nonlinear = ("b",)
 
     def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
@@ -58,18 +59,6 @@ class DeadZone(MetaModel):
 
     def identifiable(self, u: FloatArray) -> bool:
         return bool(np.quantile(np.abs(u), 0.95) > 0)
-
-    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 0] = q[..., 0] / z_ref
-        q[..., 1] = q[..., 1] * z_ref
-        return q
-
-    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 0] = q[..., 0] * z_ref
-        q[..., 1] = q[..., 1] / z_ref
-        return q
 
     def canonical(self, p: FloatArray) -> FloatArray:
         """``b >= 0`` (the band is symmetric)."""

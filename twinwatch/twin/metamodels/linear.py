@@ -17,6 +17,7 @@ class Linear(MetaModel):
     equation = "m*z + b"
     conditions = "friction, misalignment, backlash"
     params = ("m", "b")
+    z_powers = (-1,)
     optional = ("m", "b")
 
     def main_index(self, active: tuple[bool, ...] | None = None) -> int:
@@ -45,16 +46,6 @@ class Linear(MetaModel):
                ) -> tuple[FloatArray, FloatArray]:
         a = float(amplitude)
         return np.array([-a, -a]), np.array([a, a])
-
-    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 0] = q[..., 0] / z_ref
-        return q
-
-    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 0] = q[..., 0] * z_ref
-        return q
 
     def shift_origin(self, p: FloatArray, t_ref: float) -> tuple[FloatArray, float]:
         q = np.array(p, dtype=float, copy=True)

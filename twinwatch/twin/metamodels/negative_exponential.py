@@ -16,6 +16,7 @@ class NegativeExponential(MetaModel):
     equation = "a*exp(-b*z)"
     conditions = "ageing, degradation, fatigue, crack growth"
     params = ("a", "b")
+    z_powers = (0, -1)
     nonlinear = ("b",)
     simplifies_to_constant = True
 
@@ -35,16 +36,6 @@ class NegativeExponential(MetaModel):
                ) -> tuple[FloatArray, FloatArray]:
         a = float(amplitude)
         return np.array([-a, 0.0]), np.array([a, 5.0])
-
-    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 1] = q[..., 1] / z_ref
-        return q
-
-    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 1] = q[..., 1] * z_ref
-        return q
 
     def move_origin(self, p: FloatArray, d: float) -> FloatArray | None:
         """``a exp(-b z) = (a exp(-b d)) exp(-b (z - d))``."""

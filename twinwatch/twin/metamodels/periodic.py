@@ -20,6 +20,7 @@ class Periodic(MetaModel):
     equation = "a*sin(b*z + c) + d"
     conditions = "unbalanced shaft, shaft misalignment, machine unsteadiness"
     params = ("a", "b", "c", "d")
+    z_powers = (0, -1)
     optional = ("d",)
     nonlinear = ("b",)
 
@@ -76,16 +77,6 @@ class Periodic(MetaModel):
         if not input_is_time:
             return []
         return [np.array([w * z_ref]) for w in peak_frequencies(residual, window, count)]
-
-    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 1] = q[..., 1] / z_ref
-        return q
-
-    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 1] = q[..., 1] * z_ref
-        return q
 
     def canonical(self, p: FloatArray) -> FloatArray:
         """``a >= 0``, ``b > 0`` and ``c`` in (-pi, pi]

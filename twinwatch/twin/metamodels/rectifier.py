@@ -41,6 +41,7 @@ class Rectifier(MetaModel):
     conditions = ("a power stage that conducts one way only (unidirectional chopper, diode), "
                   "a one-sided load or stop")
     params = ("a", "b", "c")
+    z_powers = (-1, 1)
     optional = ("c",)
     nonlinear = ("b",)
 
@@ -69,18 +70,6 @@ class Rectifier(MetaModel):
 
     def identifiable(self, u: FloatArray) -> bool:
         return hinge_range(u) is not None
-
-    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 0] = q[..., 0] / z_ref
-        q[..., 1] = q[..., 1] * z_ref
-        return q
-
-    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 0] = q[..., 0] * z_ref
-        q[..., 1] = q[..., 1] / z_ref
-        return q
 
     def shift_origin(self, p: FloatArray, t_ref: float) -> tuple[FloatArray, float]:
         q = self.move_origin(p, -t_ref)

@@ -23,6 +23,7 @@ class Saturation(MetaModel):
     equation = "a*tanh(z/b)"
     conditions = "a limit: current limiting, a clamped actuator, magnetic saturation"
     params = ("a", "b")
+    z_powers = (0, 1)
     nonlinear = ("b",)
 
     def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
@@ -42,16 +43,6 @@ class Saturation(MetaModel):
         a = float(amplitude)
         b_lo, b_hi = b_range or (0.02, 3.0)
         return np.array([-a, b_lo]), np.array([a, b_hi])
-
-    def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 1] = q[..., 1] * z_ref
-        return q
-
-    def from_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
-        q = np.array(p, dtype=float, copy=True)
-        q[..., 1] = q[..., 1] / z_ref
-        return q
 
     def canonical(self, p: FloatArray) -> FloatArray:
         """``b > 0`` (``a tanh(z/b) = -a tanh(-z/b)``)."""
