@@ -120,7 +120,7 @@ def test_a_parameter_the_gate_holds_is_published_at_its_trusted_value() -> None:
     the published value is the last trusted one (``_run`` asserts it for every held
     parameter), not the window's estimate, and the others are re-fitted with it held."""
     _, runs = _run(DCMotorTwin(kp=2.0, ki=2.0), {}, 4, fusion=False)
-    gated = [e for _, e in runs if "the model check failed" in e.held.get("Ra", "")]
+    gated = [e for _, e in runs if "after the model check failed" in e.held.get("Ra", "")]
     assert gated and all(e.status["Ra"] == "held" for e in gated)
 
 

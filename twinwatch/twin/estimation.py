@@ -448,8 +448,9 @@ class Estimator:
         gated = [k for k in selected if not rel_std.get(k, math.inf) <= cfg.max_rel_std]
         for k in gated:
             selected.remove(k)
-            why = ("the model check failed" if check is not None and not check.passed
-                   else "after the re-fit")
+            why = ("after the model check failed and widened it"
+                   if check is not None and not check.passed
+                   else "after the re-fit with the others held")
             held[names_est[k]] = (f"not determined by this window (relative std "
                                   f"{rel_std.get(k, math.inf):.2g} > {cfg.max_rel_std:.2g} "
                                   f"{why}): held at last trusted value")
