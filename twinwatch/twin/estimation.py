@@ -445,32 +445,23 @@ class Estimator:
             rel_std = {k: v * check.widen for k, v in rel_std.items()}
         # The gate holds: nothing is published as an estimate above max_rel_std (the re-fit
         # with the others held, or a failed model check, can leave one above it).
-        failed = check is not None and not check.passed
-        widen = check.widen if check is not None and failed else 1.0
-        why = ("after the model check failed and widened it" if failed
-               else "after the re-fit with the others held")
         gated = [k for k in selected if not rel_std.get(k, math.inf) <= cfg.max_rel_std]
-        refitted = bool(gated)
-        while gated:
-            # Held means held: the others are re-fitted with these at their trusted values
-            # (their standard errors with them, widened alike), so the published values, their
-            # intervals and the simulation are the held twin's; repeated while one more fails.
-            for k in gated:
-                selected.remove(k)
-                held[names_est[k]] = (f"not determined by this window (relative std "
-                                      f"{rel_std.get(k, math.inf):.2g} > "
-                                      f"{cfg.max_rel_std:.2g} {why}): held at last trusted "
-                                      "value")
+        for k in gated:
+            selected.remove(k)
+            why = ("after the model check failed and widened it"
+                   if check is not None and not check.passed
+                   else "after the re-fit with the others held")
+            held[names_est[k]] = (f"not determined by this window (relative std "
+                                  f"{rel_std.get(k, math.inf):.2g} > {cfg.max_rel_std:.2g} "
+                                  f"{why}): held at last trusted value")
+        if gated:
+            # Held means held: the others are re-fitted with these at their trusted values,
+            # so the published values and the simulation are the held twin's.
             v_best = v_best.copy()
             v_best[gated] = np.log(base[pmap.idx[gated]])
             active = np.concatenate([np.array(selected, dtype=int), nuis])
-            gated = []
             if active.size:
                 v_best, r_final, jac_final = local.refine(v_best, active)
-                sd = self._rel_std(jac_final, r_final)[:len(selected)] * widen
-                rel_std = dict(zip(selected, sd, strict=True))
-                gated = [k for k in selected if not rel_std[k] <= cfg.max_rel_std]
-        if refitted:
             q_best = v_best[:n_est]
             initial = local.initial(v_best)
             wfit.initial = initial
