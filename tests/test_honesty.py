@@ -122,6 +122,8 @@ def test_a_parameter_the_gate_holds_is_published_at_its_trusted_value() -> None:
     _, runs = _run(DCMotorTwin(kp=2.0, ki=2.0), {}, 4, fusion=False)
     gated = [e for _, e in runs if "after the model check failed" in e.held.get("Ra", "")]
     assert gated and all(e.status["Ra"] == "held" for e in gated)
+    for e in gated:  # the others' (marginal) intervals pass the gate
+        assert all(e.rel_std[n] <= 0.01 for n, st in e.status.items() if st == "estimated")
 
 
 def test_unmodelled_unidirectional_stage_is_flagged_where_it_acts() -> None:
