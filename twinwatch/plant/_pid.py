@@ -12,9 +12,20 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def pid_tick(loop, i_s, f_s, r, y, period):  # pragma: no cover - compiled
-    """One update of a drive loop as :mod:`twinwatch.twin.drive` describes it (the packed
-    loop: ``LoopConfig.pack``); returns (u, I, f): the held output, the integrator and the
-    derivative filter's state after the update."""
+    """One update of a drive loop as :mod:`twinwatch.twin.drive` describes it: P/PI/PID with
+    the derivative filter N, the output clamped to [loop[4], loop[5]] with the loop's
+    anti-windup (paper Eq. 17 for the valve).
+
+    Args:
+        loop: the packed loop (``LoopConfig.pack`` order, limits resolved), (10,).
+        i_s, f_s: the integrator and the derivative filter's state before the update.
+        r, y: reference and feedback (rad/s and rad/s, A and A, or m and m).
+        period: the loop's update period [s].
+
+    Returns:
+        (u, I, f): the output held until the next update (V or m^2), the integrator and the
+        filter state after the update.
+    """
     kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
     lo, hi, aw, tt, kff, sgn = loop[4], loop[5], loop[6], loop[7], loop[8], loop[9]
     e = sgn * (r - y)
