@@ -36,10 +36,10 @@ sys.path.insert(0, str(ROOT))
 from twinwatch.config.loader import load_config  # noqa: E402
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig  # noqa: E402
 from twinwatch.twin.adaptation import TwinAdapter  # noqa: E402
-from twinwatch.twin.discovery import Discovery, RefinementConfig, compose  # noqa: E402
-from twinwatch.twin.estimation import Estimator  # noqa: E402
+from twinwatch.twin.discovery.search import Discovery, RefinementConfig, compose  # noqa: E402
+from twinwatch.twin.estimation.estimator import Estimator  # noqa: E402
 from twinwatch.twin.model import WindowData  # noqa: E402
-from twinwatch.twin.registry import create_model  # noqa: E402
+from twinwatch.twin.models import create_model  # noqa: E402
 
 AMPLITUDE, FREQUENCY = 3.0, 7.0
 

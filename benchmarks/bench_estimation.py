@@ -28,9 +28,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from twinwatch.config.loader import default_config  # noqa: E402
 from twinwatch.plant.dcmotor import DCMotorPlant  # noqa: E402
-from twinwatch.twin.dcmotor import DCMotorTwin  # noqa: E402
-from twinwatch.twin.estimation import EstimationConfig, Estimator, PSOSettings  # noqa: E402
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings  # noqa: E402
 from twinwatch.twin.model import WindowData  # noqa: E402
+from twinwatch.twin.models.dcmotor import DCMotorTwin  # noqa: E402
 
 
 class OneCallPerParticle(DCMotorTwin):

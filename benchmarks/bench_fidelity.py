@@ -42,14 +42,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from twinwatch.io.drive import DriveConfig, LoopConfig  # noqa: E402
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig  # noqa: E402
 from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig  # noqa: E402
-from twinwatch.twin.dcmotor import DCMotorTwin  # noqa: E402
-from twinwatch.twin.drive import DriveConfig, LoopConfig  # noqa: E402
-from twinwatch.twin.estimation import EstimationConfig, Estimator, PSOSettings  # noqa: E402
-from twinwatch.twin.fit import WindowFit  # noqa: E402
-from twinwatch.twin.hydraulic import HydraulicActuatorTwin  # noqa: E402
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings  # noqa: E402
+from twinwatch.twin.estimation.fit import WindowFit  # noqa: E402
 from twinwatch.twin.model import WindowData  # noqa: E402
+from twinwatch.twin.models.dcmotor import DCMotorTwin  # noqa: E402
+from twinwatch.twin.models.hydraulic import HydraulicActuatorTwin  # noqa: E402
 
 BOUNDS = {"Ra": (1.0, 30.0), "D": (1e-4, 1e-2), "Ke": (0.01, 0.1), "La": (0.1, 3.0),
           "J": (1e-4, 1e-2)}

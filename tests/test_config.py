@@ -166,7 +166,7 @@ def test_sample_config_documents_every_key(driver: str):
     from twinwatch.config.samples import sample_config
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.drivers import get_driver_class
-    from twinwatch.twin.registry import create_model
+    from twinwatch.twin.models import create_model
 
     text = sample_config(driver)
     cfg = validate_config(tomllib.loads(text))

@@ -12,8 +12,8 @@ from tests.conftest import ROOT, plant_windows
 from twinwatch.config.loader import load_config
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
 from twinwatch.twin.adaptation import TwinAdapter
-from twinwatch.twin.dcmotor import DCMotorTwin
-from twinwatch.twin.discovery import (
+from twinwatch.twin.discovery.metamodels import get_meta_model
+from twinwatch.twin.discovery.search import (
     CandidateConfig,
     Discovery,
     DiscoveryConfig,
@@ -21,10 +21,10 @@ from twinwatch.twin.discovery import (
     compose,
     delta_bic,
 )
-from twinwatch.twin.estimation import Estimator
+from twinwatch.twin.estimation.estimator import Estimator
 from twinwatch.twin.health import build_health
-from twinwatch.twin.metamodels import get_meta_model
-from twinwatch.twin.registry import create_model
+from twinwatch.twin.models import create_model
+from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 UNBALANCED_CONFIG = ROOT / "config" / "dc-motor-unbalanced-sim.toml"
 
@@ -220,7 +220,7 @@ def test_the_recording_carries_the_model_document_and_residual_trace(tmp_path) -
     """Rerun: the twin's structure is logged as a text document at start and whenever it
     changes, and the residual trace every window."""
     from tests.test_rerun_recorder import rerun_cli
-    from twinwatch.daemon.recorder import RecordingConfig, RerunRecorder
+    from twinwatch.sinks.rerun import RecordingConfig, RerunRecorder
 
     twin = DCMotorTwin()
     term = _truth_term(twin).as_dict()

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.plant.dcmotor import DCMotorPlantConfig, SetpointSchedule
-from twinwatch.twin.dcmotor import DCMotorTwin
-from twinwatch.twin.drive import DriveConfig, LoopConfig
+from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 from .conftest import plant_windows
 

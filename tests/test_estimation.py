@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from twinwatch.plant.dcmotor import DCMotorPlantConfig, SetpointSchedule
-from twinwatch.twin.dcmotor import DCMotorTwin
-from twinwatch.twin.estimation import EstimationConfig, Estimator, PSOSettings
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
+from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 from .conftest import plant_windows
 

@@ -32,7 +32,7 @@ import pytest
 from click.testing import CliRunner
 
 from twinwatch.cli import main
-from twinwatch.daemon.store import StateStore
+from twinwatch.sinks.store import StateStore
 
 from .conftest import ROOT
 
@@ -647,7 +647,7 @@ signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # a write past the limit fail
 hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1]
 signal.signal(signal.SIGUSR1, lambda *a: resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard)))
 resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), hard))
-from twinwatch.daemon.recorder import RerunRecorder
+from twinwatch.sinks.rerun import RerunRecorder
 RerunRecorder.reopen_after = 1.0                   # the test cannot wait 30 s
 RerunRecorder.flush_timeout = 2.0
 from twinwatch.cli import main
@@ -724,7 +724,7 @@ def _recording_pauses_on_a_nearly_full_disk(ctx: Context) -> dict[str, Any]:
 
     import numpy as np
 
-    from twinwatch.daemon.recorder import RecordingConfig, RerunRecorder
+    from twinwatch.sinks.rerun import RecordingConfig, RerunRecorder
 
     from .test_e2e_cli import _rerun
     from .test_service import _env

@@ -24,11 +24,11 @@ from pydantic import BaseModel, ValidationError
 from tests.conftest import ROOT, plant_windows
 from twinwatch.config.loader import default_config
 from twinwatch.daemon.pipeline import ProcessedWindow
-from twinwatch.daemon.store import StateStore
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
+from twinwatch.sinks.store import StateStore
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import SCHEMA_VERSION, HealthMessage, build_health, summary_line
-from twinwatch.twin.registry import create_model
+from twinwatch.twin.models import create_model
 
 PLACEHOLDER = re.compile(r"<[^>]+>")
 

@@ -10,12 +10,12 @@ import math
 import numpy as np
 import pytest
 
+from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
-from twinwatch.twin.dcmotor import DCMotorTwin
-from twinwatch.twin.drive import DriveConfig, LoopConfig
-from twinwatch.twin.estimation import EstimationConfig, Estimator
-from twinwatch.twin.fusion import FusionConfig, ParameterFusion
-from twinwatch.twin.statistics import check_model, cross_correlation_test, ljung_box
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
+from twinwatch.twin.estimation.fusion import FusionConfig, ParameterFusion
+from twinwatch.twin.estimation.statistics import check_model, cross_correlation_test, ljung_box
+from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 from .conftest import plant_windows
 from .test_drive import STEPS

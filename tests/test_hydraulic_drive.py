@@ -23,10 +23,10 @@ from pydantic import ValidationError
 from twinwatch.config.loader import ConfigError, validate_config
 from twinwatch.drivers.simulated_modbus import SimulatedModbusDriverConfig
 from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
-from twinwatch.twin.estimation import EstimationConfig, Estimator
-from twinwatch.twin.hydraulic import HydraulicActuatorTwin, ValveDriveConfig
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
 from twinwatch.twin.model import WindowData
-from twinwatch.twin.registry import create_model
+from twinwatch.twin.models import create_model
+from twinwatch.twin.models.hydraulic import HydraulicActuatorTwin, ValveDriveConfig
 
 from .conftest import ROOT
 from .test_twin_hydraulic import ESTIMATION

@@ -13,10 +13,15 @@ import numpy as np
 import pytest
 
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
-from twinwatch.twin.dcmotor import DCMotorTwin
-from twinwatch.twin.estimation import EstimationConfig, PSOSettings
-from twinwatch.twin.identify import IdentifyConfig, fit_percent, identify, parameters_block
+from twinwatch.twin.estimation.estimator import EstimationConfig, PSOSettings
+from twinwatch.twin.estimation.identify import (
+    IdentifyConfig,
+    fit_percent,
+    identify,
+    parameters_block,
+)
 from twinwatch.twin.model import WindowData
+from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 TRUE = {"Ra": 7.2, "Ke": 0.041}
 

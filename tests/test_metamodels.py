@@ -7,7 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from twinwatch.twin.metamodels import META_MODELS, TABLE_1, get_meta_model, working_conditions
+from twinwatch.twin.discovery.metamodels import (
+    META_MODELS,
+    TABLE_1,
+    get_meta_model,
+    working_conditions,
+)
 
 WORKING_CONDITIONS = working_conditions()
 
@@ -205,7 +210,7 @@ def test_coulomb_sign_is_the_average_over_each_sample_interval() -> None:
     """At a reversal the plant's friction switches inside a sample interval while the twin
     holds one value: the held value is the interval's average of sign(omega), exact for a
     speed linear between samples."""
-    from twinwatch.twin.metamodels.coulomb import sampled_sign
+    from twinwatch.twin.discovery.metamodels.coulomb import sampled_sign
 
     t = np.arange(0.0, 1.0, 0.01)
     omega = 3.0 * (t - 0.4237)  # crosses zero inside the interval [0.42, 0.43)

@@ -97,7 +97,7 @@ def test_motoshield_discovery_fit_first_half_validate_second():
     ever = [t for h in first for t in h["terms"]]
 
     def nrmse(w, terms) -> float:  # type: ignore[no-untyped-def]
-        from twinwatch.twin.terms import Term, compose
+        from twinwatch.twin.discovery.terms import Term, compose
 
         objs = [Term.from_dict(t, model) for t in terms]
         fit = adapter.estimator.window_fit(w)

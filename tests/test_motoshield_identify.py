@@ -17,7 +17,7 @@ import pytest
 from twinwatch.config.loader import load_config
 from twinwatch.daemon.commission import commission
 from twinwatch.daemon.runner import Daemon
-from twinwatch.twin.identify import Identification
+from twinwatch.twin.estimation.identify import Identification
 
 from .conftest import ROOT, shared_path
 

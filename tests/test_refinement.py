@@ -19,10 +19,10 @@ from tests.conftest import ROOT, plant_windows
 from twinwatch.config.loader import load_config
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
 from twinwatch.twin.adaptation import TwinAdapter
-from twinwatch.twin.dcmotor import DCMotorTwin
-from twinwatch.twin.discovery import RefinementConfig
-from twinwatch.twin.metamodels import get_meta_model
-from twinwatch.twin.terms import Term
+from twinwatch.twin.discovery.metamodels import get_meta_model
+from twinwatch.twin.discovery.search import RefinementConfig
+from twinwatch.twin.discovery.terms import Term
+from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 CONFIG = ROOT / "config" / "dc-motor-unbalanced-sim.toml"
 #: Unlike the paper's 5 rad/s^2 at 10 rad/s.

@@ -22,7 +22,7 @@ import pytest
 import rerun as rr
 from pydantic import ValidationError
 
-from twinwatch.daemon.recorder import RecorderError, RecordingConfig, RerunRecorder
+from twinwatch.sinks.rerun import RecorderError, RecordingConfig, RerunRecorder
 
 ROOT = Path(__file__).resolve().parents[1]
 RERUN_CLI = Path(sys.executable).with_name("rerun")
@@ -166,7 +166,7 @@ def test_directory_without_write_permission_raises_recorder_error(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The permission check itself, also when the tests run as root (which os.access lets by)."""
-    monkeypatch.setattr("twinwatch.daemon.recorder.os.access", lambda path, mode: False)
+    monkeypatch.setattr("twinwatch.sinks.rerun.os.access", lambda path, mode: False)
     with pytest.raises(RecorderError, match="is not writable by this user"):
         recorder(tmp_path / "m1.rrd")
     assert not (tmp_path / "m1.rrd").exists()

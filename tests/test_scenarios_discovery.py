@@ -20,7 +20,7 @@ from twinwatch.drivers.simulated import SimulatedDriver
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.model import WindowData
-from twinwatch.twin.registry import create_model
+from twinwatch.twin.models import create_model
 
 CONFIG = ROOT / "config" / "dc-motor-unbalanced-sim.toml"
 

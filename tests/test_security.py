@@ -20,7 +20,7 @@ import pytest
 import zenoh
 
 from twinwatch.config.loader import load_config
-from twinwatch.daemon.publisher import HealthPublisher, PublisherError
+from twinwatch.sinks.zenoh import HealthPublisher, PublisherError
 
 from .conftest import ROOT
 from .test_zenoh_publisher import free_port

@@ -26,7 +26,7 @@ import zenoh
 from twinwatch.config.loader import default_config
 from twinwatch.daemon.alarms import AlarmConfig, AlarmRule
 from twinwatch.daemon.runner import Daemon
-from twinwatch.daemon.store import StateStore
+from twinwatch.sinks.store import StateStore
 
 from .conftest import ROOT
 from .test_zenoh_publisher import endpoint, free_port

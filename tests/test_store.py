@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from twinwatch.daemon.store import SCHEMA_VERSION, StateStore, StoreError
+from twinwatch.sinks.store import SCHEMA_VERSION, StateStore, StoreError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -170,7 +170,7 @@ def test_reader_thread_while_writer_writes(tmp_path: Path) -> None:
 _CHILD = r"""
 import sys, time
 sys.path.insert(0, sys.argv[2])
-from twinwatch.daemon.store import StateStore
+from twinwatch.sinks.store import StateStore
 st = StateStore(sys.argv[1], keep_rows=None, keep_days=None)
 start = st.count()
 pad = "x" * 20000          # a large document: the kill lands inside a write more often

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from twinwatch.plant.dcmotor import DCMotorPlantConfig, SetpointSchedule
-from twinwatch.twin.dcmotor import DCMotorTwin
 from twinwatch.twin.model import composite_zoh
+from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 from .conftest import plant_windows
 

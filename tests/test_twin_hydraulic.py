@@ -10,10 +10,10 @@ import pytest
 
 from twinwatch.drivers.base import EndOfStream
 from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
-from twinwatch.twin.estimation import EstimationConfig, Estimator, PSOSettings
-from twinwatch.twin.hydraulic import HydraulicActuatorTwin
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
 from twinwatch.twin.model import WindowData
-from twinwatch.twin.registry import create_model
+from twinwatch.twin.models import create_model
+from twinwatch.twin.models.hydraulic import HydraulicActuatorTwin
 
 # The reference 0.5 + 0.45 sin(2 pi 0.005 t) reverses at t = 50 + 100 n s and moves fastest at
 # t = 100 n s. Windows are 200 samples (2 s, paper Table 2).

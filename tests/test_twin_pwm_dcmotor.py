@@ -1,4 +1,4 @@
-"""The PWM DC motor twin (twin/pwm_dcmotor.py): the firmware's duty, the sampled current, the
+"""The PWM DC motor twin (twin/models/pwm_dcmotor.py): the firmware's duty, the sampled current, the
 window's measured initial state, the meta-model terms, bad particles, and commissioning it."""
 
 from __future__ import annotations
@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 
 from twinwatch.config.loader import ConfigError, load_config
-from twinwatch.twin.estimation import EstimationConfig, PSOSettings
-from twinwatch.twin.identify import IdentifyConfig, identify
+from twinwatch.twin.estimation.estimator import EstimationConfig, PSOSettings
+from twinwatch.twin.estimation.identify import IdentifyConfig, identify
 from twinwatch.twin.model import WindowData
-from twinwatch.twin.pwm_dcmotor import (
+from twinwatch.twin.models import create_model
+from twinwatch.twin.models.pwm_dcmotor import (
     MOTOSHIELD_CURRENT_FILTER_A,
     MOTOSHIELD_CURRENT_FILTER_B,
     PWMDCMotorTwin,
 )
-from twinwatch.twin.registry import create_model
 
 from .conftest import ROOT
 

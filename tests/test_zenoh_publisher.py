@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 from pydantic import ValidationError
 
-from twinwatch.daemon.publisher import (
+from twinwatch.sinks.zenoh import (
     HealthPublisher,
     PublisherError,
     ZenohConfig,
@@ -318,7 +318,7 @@ def test_failing_put_is_counted_and_logged_once(
     publishers: Callable[..., HealthPublisher], caplog: pytest.LogCaptureFixture
 ) -> None:
     pub = publishers(ZenohConfig(listen=[endpoint(free_port())]))
-    with caplog.at_level(logging.DEBUG, logger="twinwatch.daemon.publisher"):
+    with caplog.at_level(logging.DEBUG, logger="twinwatch.sinks.zenoh"):
         pub.publish({"bad": object()})
         pub.publish({"bad": object()})
         pub.publish({"good": 1.0})

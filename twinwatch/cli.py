@@ -422,7 +422,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
         sys.exit(EX_CONFIG)
     from twinwatch.daemon.commission import CommissionError, commission, report
     from twinwatch.drivers import DriverError
-    from twinwatch.twin.identify import parameters_block
+    from twinwatch.twin.estimation.identify import parameters_block
 
     try:
         result, data = commission(cfg, config.resolve().parent, duration=duration,
@@ -445,7 +445,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
 
 
 def _outputs(cfg: Any) -> list[str]:
-    from twinwatch.twin.registry import create_model
+    from twinwatch.twin.models import create_model
 
     return list(create_model(cfg.machine.model, cfg.machine.options).output_names)
 

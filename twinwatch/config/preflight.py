@@ -19,7 +19,7 @@ from pathlib import Path
 
 from twinwatch.config.loader import ConfigError
 from twinwatch.config.schema import TwinwatchConfig
-from twinwatch.twin.registry import create_model
+from twinwatch.twin.models import create_model
 
 __all__ = ["check_runnable", "runnable_problems"]
 

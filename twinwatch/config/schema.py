@@ -47,15 +47,15 @@ from pydantic import (
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from twinwatch.daemon.alarms import AlarmConfig
-from twinwatch.daemon.publisher import ZenohConfig
-from twinwatch.daemon.recorder import RecordingConfig
-from twinwatch.daemon.store import StateConfig
 from twinwatch.drivers import (
     DriverConfig,
     DriverInitializationError,
     get_driver_class,
     validate_driver_config,
 )
+from twinwatch.sinks.rerun import RecordingConfig
+from twinwatch.sinks.store import StateConfig
+from twinwatch.sinks.zenoh import ZenohConfig
 
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -81,14 +81,14 @@ def _twin_table(path: str) -> Any:
     return Annotated[Any, BeforeValidator(validate)]
 
 
-_ESTIMATION = "twinwatch.twin.estimation:EstimationConfig"
-_DISCOVERY = "twinwatch.twin.discovery:DiscoveryConfig"
-_IDENTIFY = "twinwatch.twin.identify:IdentifyConfig"
+_ESTIMATION = "twinwatch.twin.estimation.estimator:EstimationConfig"
+_DISCOVERY = "twinwatch.twin.discovery.search:DiscoveryConfig"
+_IDENTIFY = "twinwatch.twin.estimation.identify:IdentifyConfig"
 
 if TYPE_CHECKING:
-    from twinwatch.twin.discovery import DiscoveryConfig
-    from twinwatch.twin.estimation import EstimationConfig
-    from twinwatch.twin.identify import IdentifyConfig
+    from twinwatch.twin.discovery.search import DiscoveryConfig
+    from twinwatch.twin.estimation.estimator import EstimationConfig
+    from twinwatch.twin.estimation.identify import IdentifyConfig
 
     EstimationTable = EstimationConfig
     DiscoveryTable = DiscoveryConfig
@@ -194,7 +194,7 @@ class TwinwatchConfig(BaseModel):
 
     @model_validator(mode="after")
     def _cross_checks(self) -> TwinwatchConfig:
-        from twinwatch.twin.registry import create_model
+        from twinwatch.twin.models import create_model
 
         try:
             model = create_model(self.machine.model, self.machine.options)

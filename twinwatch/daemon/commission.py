@@ -1,6 +1,6 @@
 """``twinwatch identify``: read a whole recording through the configured driver, identify the
-baseline on its training range (:mod:`twinwatch.twin.identify`), score it on the validation
-range, record both in a Rerun file and hand back the ``[machine.parameters]`` block.
+baseline on its training range (:mod:`~twinwatch.twin.estimation.identify`), score it on the
+validation range, record both in a Rerun file and hand back the ``[machine.parameters]`` block.
 
 Any driver works: a file (CSV, .mat), a CAN log, the simulated plants, or a live bus for
 ``duration`` seconds. Samples that lack a channel the twin needs or hold NaN/inf are counted
@@ -21,9 +21,9 @@ import numpy as np
 
 from twinwatch._lazy import lazy_module
 from twinwatch.drivers import EndOfStream, create_driver
-from twinwatch.twin.identify import Identification, identify
+from twinwatch.twin.estimation.identify import Identification, identify
 from twinwatch.twin.model import WindowData
-from twinwatch.twin.registry import create_model
+from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:
     import rerun as rr

@@ -37,14 +37,14 @@ from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.model import TwinModel, WindowData
-from twinwatch.twin.registry import create_model
+from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
     from twinwatch.config.schema import TwinwatchConfig
-    from twinwatch.daemon.publisher import HealthPublisher
-    from twinwatch.daemon.recorder import RerunRecorder
-    from twinwatch.daemon.store import StateStore
     from twinwatch.daemon.systemd import Watchdog
+    from twinwatch.sinks.rerun import RerunRecorder
+    from twinwatch.sinks.store import StateStore
+    from twinwatch.sinks.zenoh import HealthPublisher
 
 logger = logging.getLogger(__name__)
 
@@ -144,12 +144,12 @@ class Daemon:
             # state database's lock, then the recording's lock (and only then its truncation),
             # so a second twinwatch in the same directory fails without harming the first.
             if publish and config.zenoh.enabled and self.publisher is None:
-                from twinwatch.daemon.publisher import HealthPublisher
+                from twinwatch.sinks.zenoh import HealthPublisher
 
                 self.publisher = HealthPublisher(config.zenoh, self.machine,
                                                  retry_connect=True)
             if persist and config.state.enabled and self.store is None:
-                from twinwatch.daemon.store import StateStore
+                from twinwatch.sinks.store import StateStore
 
                 st = config.state
                 self.store = StateStore(Path(st.path).expanduser(),
@@ -157,7 +157,7 @@ class Daemon:
                                         keep_days=st.keep_days, keep_rows=st.keep_rows,
                                         recover_corrupt=st.recover_corrupt)
             if record and config.recording.enabled and self.recorder is None:
-                from twinwatch.daemon.recorder import RerunRecorder
+                from twinwatch.sinks.rerun import RerunRecorder
 
                 rec = config.recording.model_copy()
                 path = Path(rec.path)

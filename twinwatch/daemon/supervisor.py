@@ -200,11 +200,11 @@ class Supervisor:
         Raises:
             StartError: a device, port, file or the state database cannot be opened.
         """
-        from twinwatch.daemon.publisher import PublisherError
-        from twinwatch.daemon.recorder import RecorderError
         from twinwatch.daemon.runner import Daemon
-        from twinwatch.daemon.store import StoreError
         from twinwatch.drivers.base import DriverConfigError, DriverError
+        from twinwatch.sinks.rerun import RecorderError
+        from twinwatch.sinks.store import StoreError
+        from twinwatch.sinks.zenoh import PublisherError
 
         start_errors = (DriverError, PublisherError, RecorderError, StoreError, ValueError,
                         OSError)

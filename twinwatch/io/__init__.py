@@ -3,6 +3,9 @@
 :mod:`twinwatch.io.sample` holds the sample type, the end-of-stream signal and the channel
 scaling every driver and simulated plant use; :mod:`twinwatch.io.modbus_registers` holds the
 Modbus register map and codec that the Modbus driver reads with and the simulated Modbus plant
-serves with. ``twinwatch.plant`` and ``twinwatch.drivers`` both import from here, never from
-each other's internals (the plant does not import the drivers).
+serves with; :mod:`twinwatch.io.drive` describes how a drive's controller runs (loops, periods,
+limits), which the closed-loop twins and the simulated plants both implement;
+:mod:`twinwatch.io.encoding` is the one JSON encoder. ``twinwatch.plant``, ``twinwatch.drivers``
+and the twin's machines import from here, never from each other's internals. Imports nothing of
+twinwatch but this room.
 """

@@ -1,7 +1,7 @@
 """The simulated plants' drive-loop update (compiled), shared by the DC motor and the hydraulic
 actuator.
 
-Written apart from the twin's (:mod:`twinwatch.twin._pid`) on purpose: a twin that shared the
+Written apart from the twin's (:mod:`twinwatch.twin.models._pid`) on purpose: a twin that shared the
 plant's code would reproduce the plant's mistakes, and the exactness tests could not see them.
 """
 
@@ -12,7 +12,7 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def pid_tick(loop, i_s, f_s, r, y, period):  # pragma: no cover - compiled
-    """One update of a drive loop as :mod:`twinwatch.twin.drive` describes it: P/PI/PID with
+    """One update of a drive loop as :mod:`twinwatch.io.drive` describes it: P/PI/PID with
     the derivative filter N, the output clamped to [loop[4], loop[5]] with the loop's
     anti-windup (paper Eq. 17 for the valve).
 

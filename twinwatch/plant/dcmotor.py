@@ -18,14 +18,14 @@ of hours (the soak benchmark) stay within the law's physical range. The paper's 
 One plant step (dt = 1e-4 s), in this order::
 
     if the drive updates now (every ``drive.period``; every step by default):
-        Va  = the drive's speed loop on (setpoint, omega)        (twinwatch.twin.drive)
+        Va  = the drive's speed loop on (setpoint, omega)        (twinwatch.io.drive)
               [through its current loop on (speed loop output, ia)]
     ia    += dt*(Va - Ra*ia - Ke*omega)/La                           (Eq. 11)
     ia     = max(ia, 0)                    with power_stage = "unidirectional"
     omega += dt*(Kt*ia - Tload - D*omega - Tc*sign(omega))/J [+ dt*5*sin(10*t)]  (Eq. 12 / 13)
     angle += dt*omega
 
-The drive (:class:`~twinwatch.twin.drive.DriveConfig`, ``[driver.plant.drive]``) runs as a real
+The drive (:class:`~twinwatch.io.drive.DriveConfig`, ``[driver.plant.drive]``) runs as a real
 drive does: it updates every ``period`` and holds its output in between, clamps it to its limits
 with anti-windup, and may have an inner current loop; without a ``drive`` table it is the
 paper's PI (``kp``, ``ki``) updated every step. The variants a real drive has, for testing the
@@ -53,9 +53,9 @@ import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
-from twinwatch.twin.drive import DriveConfig, LoopConfig
 
 logger = logging.getLogger(__name__)
 
@@ -150,7 +150,7 @@ class DCMotorPlantConfig(BaseModel):
     )
     drive: DriveConfig | None = Field(
         None, description="the drive as it runs (update period, limits, anti-windup, current "
-        "loop; twinwatch.twin.drive); default: the PI kp/ki above, updated every step")
+        "loop; twinwatch.io.drive); default: the PI kp/ki above, updated every step")
     coulomb_friction: float = Field(0.0, ge=0, description="Coulomb friction torque Tc [N m]")
     power_stage: Literal["bidirectional", "unidirectional"] = Field(
         "bidirectional", description="unidirectional: the armature current cannot reverse "

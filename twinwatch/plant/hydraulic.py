@@ -31,11 +31,11 @@ sqrt(1620*Ki) ~ 75 rad/s with damping ratio ~ 0.006. Run every 10 ms (0.75 rad p
 forward-Euler integral makes it unstable: measured, a limit cycle of +-3.9 mm with the valve
 slamming between 0 and A_max. At 1e-4 s it tracks within 8e-8 m. Consequence for the twin: the
 valve area changes within a sample, so an open-loop twin holding the sampled area is slightly
-biased; :class:`twinwatch.twin.hydraulic.HydraulicActuatorTwin` interpolates it linearly
+biased; :class:`twinwatch.twin.models.hydraulic.HydraulicActuatorTwin` interpolates it linearly
 between samples by default (see there for the measured effect).
 
 **The controller as a drive runs it** (``drive``, table ``[driver.plant.drive]``,
-:class:`~twinwatch.twin.hydraulic.ValveDriveConfig`; the update of :mod:`twinwatch.twin.drive`
+:class:`~twinwatch.twin.models.hydraulic.ValveDriveConfig`; the update of :mod:`twinwatch.io.drive`
 with action ``direct``): an update every ``period`` (from ``phase``), the area held in between,
 clamped to the loop's limits (default the valve's [0, A_max]; they must lie within it), with
 clamping or back-calculation anti-windup; keys left out of ``[driver.plant.drive.valve]`` take
@@ -78,10 +78,9 @@ import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from twinwatch.io.drive import LoopConfig, ValveDriveConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
-from twinwatch.twin.drive import LoopConfig
-from twinwatch.twin.hydraulic import ValveDriveConfig
 
 logger = logging.getLogger(__name__)
 
@@ -138,7 +137,7 @@ class HydraulicPlantConfig(BaseModel):
     )
     drive: ValveDriveConfig | None = Field(
         None, description="the valve controller as it runs (update period with the area held, "
-        "limits, anti-windup; twinwatch.twin.hydraulic.ValveDriveConfig); default: the PID "
+        "limits, anti-windup; twinwatch.twin.models.hydraulic.ValveDriveConfig); default: the PID "
         "kp, ki, kd, n_filter above every step, clamped to [0, A_max]")
     seed: int = 0
 
@@ -186,7 +185,7 @@ class HydraulicPlantConfig(BaseModel):
 
 @njit(cache=True, nogil=True)
 def _pid(state, loop, r, period):  # pragma: no cover - compiled
-    """One update of the valve controller (:mod:`twinwatch.twin.drive`, paper Eq. 17) on the
+    """One update of the valve controller (:mod:`twinwatch.io.drive`, paper Eq. 17) on the
     reference ``r``; ``state = [x, p, I, f, A]``: sets A, advances I and f. ``loop``: the
     packed loop (limits resolved)."""
     state[4], state[2], state[3] = pid_tick(loop, state[2], state[3], r, state[0], period)

@@ -29,17 +29,17 @@ from typing import Any
 
 import numpy as np
 
-from twinwatch.twin.discovery import (
+from twinwatch.twin.discovery.search import (
     Discovery,
     DiscoveryConfig,
     DiscoveryReport,
     residual_too_large,
 )
-from twinwatch.twin.estimation import EstimationConfig, Estimator, WindowEstimate
-from twinwatch.twin.fit import Residual, WindowFit
+from twinwatch.twin.discovery.terms import Term, compose, format_terms
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, WindowEstimate
+from twinwatch.twin.estimation.fit import Residual, WindowFit
+from twinwatch.twin.estimation.statistics import noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
-from twinwatch.twin.statistics import noise_level
-from twinwatch.twin.terms import Term, compose, format_terms
 
 logger = logging.getLogger(__name__)
 

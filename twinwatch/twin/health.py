@@ -12,10 +12,10 @@ model. Layout version :data:`SCHEMA_VERSION`:
 
 * 5: each meta-model term carries the standard errors of its parameters (``params_std``) and
   the number of windows whose evidence they combine (``evidence_windows``): a kept term is
-  refined across windows (:mod:`twinwatch.twin.terms`).
+  refined across windows (:mod:`twinwatch.twin.discovery.terms`).
 * 4: ``status`` may be ``fused`` (not determined by this window alone but by the evidence
-  of the windows so far, :mod:`twinwatch.twin.fusion`); each estimated parameter carries its
-  fused value, interval and rate (``fused``); the window's model validation (``model_check``:
+  of the windows so far, :mod:`~twinwatch.twin.estimation.fusion`); each estimated parameter
+  carries its fused value, interval and rate (``fused``); the window's model validation (``model_check``:
   residual whiteness and residual-input tests per output; a window that fails it is not trusted
   and its intervals are widened).
 * 3: each parameter's ``status`` (``estimated`` / ``held`` / ``tied`` / ``fixed``) next to the
@@ -33,12 +33,12 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from twinwatch.io.encoding import to_json
-from twinwatch.twin.estimation import ParameterStatus, WindowEstimate
+from twinwatch.twin.estimation.estimator import ParameterStatus, WindowEstimate
 from twinwatch.twin.model import TwinModel, WindowData
 
 if TYPE_CHECKING:
     from twinwatch.twin.adaptation import AdaptationResult
-    from twinwatch.twin.fit import Residual
+    from twinwatch.twin.estimation.fit import Residual
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -76,7 +76,7 @@ class _Part(BaseModel):
 
 class FusedHealth(_Part):
     """``parameters.<name>.fused``: the evidence of every window so far on an estimated
-    parameter (Kalman filter, :mod:`twinwatch.twin.fusion`)."""
+    parameter (Kalman filter, :mod:`twinwatch.twin.estimation.fusion`)."""
 
     value: Num = Field(description="fused value [SI]")
     rel_std_pct: Num = Field(description="its 1-sigma relative standard error [%]")

@@ -2,7 +2,7 @@
 
 Paper Section 3.1 (the DT step): the twin is a parameterised, modular white-box model. A machine
 plugs into twinwatch by providing one :class:`TwinModel` subclass (registered in
-:mod:`twinwatch.twin.registry`) and a configuration; the daemon never needs to change.
+:mod:`twinwatch.twin.models`) and a configuration; the daemon never needs to change.
 
 Conventions (after python-control's ``nlsys``): a model names its parameters (with SI units and
 nominal values), its input channels, its output channels and its options; :meth:`TwinModel.simulate`

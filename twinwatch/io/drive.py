@@ -5,8 +5,8 @@ period, computes a new output, and holds that output until the next update (zero
 clamped to what its power stage can deliver. A twin that updates the controller on every
 integration sub-step, or not at all, is biased against such a drive (issue 9: 0.7-2.9 % on Ra).
 :class:`LoopConfig` and :class:`DriveConfig` state the controller as the drive runs it; the twin
-(:mod:`twinwatch.twin.dcmotor`, :mod:`twinwatch.twin.hydraulic`) and the simulated plants
-(:mod:`twinwatch.plant`) each implement exactly this algorithm, in their own code.
+(:mod:`twinwatch.twin.models.dcmotor`, :mod:`twinwatch.twin.models.hydraulic`) and the
+simulated plants (:mod:`twinwatch.plant`) each implement exactly this algorithm, in their own code.
 
 **One update (tick)** of a loop, at time ``t_c = phase + j*period``, from the feedback ``y`` and the
 reference ``r`` at ``t_c``::
@@ -38,12 +38,14 @@ current loop the speed loop's integrator is recovered from the channel ``current
 from __future__ import annotations
 
 import math
-from typing import Literal
+from collections.abc import Mapping
+from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from twinwatch.twin.model import FloatArray
+FloatArray = NDArray[np.float64]
 
 #: Anti-windup codes in :func:`LoopConfig.pack`.
 ANTI_WINDUP = {"none": 0, "clamping": 1, "back_calculation": 2}
@@ -177,3 +179,72 @@ class DriveConfig(BaseModel):
 
 
 __all__ = ["ANTI_WINDUP", "PACKED", "DriveConfig", "LoopConfig"]
+
+
+#: The paper's valve PID (Eq. 17, NOTES.md): opening the valve lowers the piston, so the error
+#: is e = x - x_ref (action ``direct``); clamping anti-windup at the valve's limits.
+PAPER_VALVE_LOOP: dict[str, Any] = {"kp": 0.000346, "ki": 3.513406, "kd": 0.000119,
+                                    "n_filter": 2.076743, "anti_windup": "clamping",
+                                    "action": "direct"}
+
+
+class ValveDriveConfig(BaseModel):
+    """The valve controller as it runs (table ``drive``; :mod:`twinwatch.io.drive` semantics).
+
+    One update every ``period`` from the position ``x`` [m] (feedback) and the reference
+    ``x_ref`` [m]; the area [m^2] it computes is held until the next update (zero-order hold)
+    and clamped to the loop's limits, by default the valve's own range [0, A_max].
+
+    Attributes:
+        period: update period [s], a whole number of integration steps; None: every step (the
+            paper's plant, Eq. 17 with Ts the integration step).
+        phase: time of the first update after t = 0 [s], in [0, period).
+        valve: the PID (:class:`~twinwatch.io.drive.LoopConfig`); the keys a table leaves
+            out take the paper's values (:data:`PAPER_VALVE_LOOP`: Kp 0.000346, Ki 3.513406,
+            Kd 0.000119, N 2.076743, clamping, action ``direct``); ``output_min`` None: 0,
+            ``output_max`` None: A_max (the valve's largest area).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    period: float | None = Field(None, gt=0, allow_inf_nan=False)
+    phase: float = Field(0.0, ge=0, allow_inf_nan=False)
+    valve: LoopConfig = Field(default_factory=lambda: LoopConfig(**PAPER_VALVE_LOOP))
+
+    @field_validator("valve", mode="before")
+    @classmethod
+    def _paper_gains(cls, value: Any) -> Any:
+        """A partial table keeps the paper's values for the keys it leaves out."""
+        if isinstance(value, Mapping):
+            return {**PAPER_VALVE_LOOP, **value}
+        return value
+
+    @model_validator(mode="after")
+    def _check(self) -> ValveDriveConfig:
+        if self.period is not None and self.phase >= self.period:
+            raise ValueError(f"phase: must be in [0, period), got {self.phase} for period "
+                             f"{self.period}")
+        return self
+
+    def ticks(self, sub_step: float) -> tuple[int, int]:
+        """(period, phase) in whole integration steps.
+
+        Raises:
+            ValueError: the period or the phase is not a whole number of steps (to 1e-6
+                relative); the message names the key.
+        """
+        m, _, ph = DriveConfig(period=self.period, phase=self.phase).ticks(sub_step)
+        return m, ph
+
+    def limits(self, a_max: float) -> tuple[float, float]:
+        """The controller's output limits [m^2]: the loop's, or the valve's range [0, a_max]."""
+        v = self.valve
+        return (0.0 if v.output_min is None else v.output_min,
+                a_max if v.output_max is None else v.output_max)
+
+    def pack(self, a_max: float) -> FloatArray:
+        """The loop for a compiled kernel (:data:`twinwatch.io.drive.PACKED` order), its
+        limits resolved with :meth:`limits`."""
+        packed = self.valve.pack()
+        packed[4], packed[5] = self.limits(a_max)
+        return packed

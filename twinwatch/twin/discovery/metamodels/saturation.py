@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinwatch.twin.metamodels.base import MetaModel, fmt
+from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt
 from twinwatch.twin.model import FloatArray
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinwatch.twin.metamodels.base import MetaModel, fmt, plus
+from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt, plus
 from twinwatch.twin.model import AttachPoint, FloatArray
 
 

@@ -5,7 +5,7 @@ input, output or state) that the discovery attaches to the twin when re-estimati
 parameters cannot explain the data (DT'' = DT + sum_i U_i(z_i), paper Eq. 3). As PySINDy's
 feature libraries, each kind knows its own basis, bounds, rendering and canonical form, and the
 search hooks the discovery needs, so that the discovery never branches on a kind: a new
-meta-model is one subclass in one file, registered in :mod:`twinwatch.twin.metamodels` (or
+meta-model is one subclass in one file, registered in :mod:`twinwatch.twin.discovery.metamodels` (or
 through the ``twinwatch.metamodels`` entry-point group).
 
 Numerics (our choice, docs/architecture.md): the search runs in *normalised* coordinates
@@ -246,8 +246,8 @@ class MetaModel(abc.ABC):
         """The same function of time written from an origin ``d`` later: ``q`` with
         ``U_q(z - d) = U_p(z)`` for every z (raw parameters (len(params),), no wrapping), or
         None if the kind cannot be rewritten so. Across windows a time term is refined in the
-        coordinates of the current window's centre (:mod:`twinwatch.twin.terms`), where its
-        parameters are least correlated."""
+        coordinates of the current window's centre (:mod:`~twinwatch.twin.discovery.terms`),
+        where its parameters are least correlated."""
         return None
 
     def align(self, p: FloatArray, ref: FloatArray) -> FloatArray:

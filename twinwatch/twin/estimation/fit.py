@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from twinwatch.twin.estimation.statistics import ar1
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
-from twinwatch.twin.statistics import ar1
 
 #: Residual given to every sample of a particle whose simulation blew up.
 BAD_RESIDUAL = 1e6

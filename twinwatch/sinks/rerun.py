@@ -72,8 +72,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from twinwatch._lazy import lazy_module
 from twinwatch._lifecycle import Closeable
-from twinwatch.daemon.locks import FileLock, LockedError
 from twinwatch.io.encoding import to_json
+from twinwatch.sinks.locks import FileLock, LockedError
 
 if TYPE_CHECKING:
     import rerun as rr

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinwatch.twin.metamodels.base import MetaModel, fmt, plus
+from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt, plus
 from twinwatch.twin.model import FloatArray
 
 #: Fewest samples, as a fraction of the window, on each side of a knee: a knee with (nearly) all

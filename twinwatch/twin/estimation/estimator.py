@@ -40,7 +40,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from twinwatch.twin.fit import (
+from twinwatch.twin.estimation.fit import (
     LocalFit,
     ParameterMap,
     WindowFit,
@@ -50,9 +50,9 @@ from twinwatch.twin.fit import (
     relative_std,
     residual_variances,
 )
-from twinwatch.twin.fusion import FusionConfig, FusionState, ParameterFusion
+from twinwatch.twin.estimation.fusion import FusionConfig, FusionState, ParameterFusion
+from twinwatch.twin.estimation.statistics import ModelCheck, check_model, noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
-from twinwatch.twin.statistics import ModelCheck, check_model, noise_level
 
 logger = logging.getLogger(__name__)
 
@@ -213,7 +213,7 @@ class WindowEstimate:
             reason in :attr:`held`), ``tied`` (equals another parameter) or ``fixed``
             (nameplate, not estimated).
         fused: estimated parameter -> (fused value [SI], relative standard error) after this
-            window (:mod:`twinwatch.twin.fusion`); empty when fusion is off.
+            window (:mod:`twinwatch.twin.estimation.fusion`); empty when fusion is off.
         fusion_jump: the window's estimate was a sudden change for the fusion (it followed).
     """
 
@@ -563,7 +563,7 @@ class Estimator:
     def check(self, fit: WindowFit, y: FloatArray, explained: FloatArray | None = None,
               drift: FloatArray | None = None) -> ModelCheck:
         """Validate the twin on a window from its simulated outputs ``y`` (N, n_out)
-        (:func:`~twinwatch.twin.statistics.check_model`, the ``[estimation.validation]``
+        (:func:`~twinwatch.twin.estimation.statistics.check_model`, the ``[estimation.validation]``
         settings, the ``model_error`` floor, the model's exogenous inputs); ``explained``:
         per output, the residual RMS the estimates' uncertainty explains; ``drift``: the
         residual matrix to test instead, with what a drift of the estimated parameters within
@@ -614,7 +614,7 @@ class Estimator:
 
     def relative_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
         """Relative standard errors of ln-parameter columns of ``jac`` at residuals ``r``, as
-        the estimator computes them (:func:`twinwatch.twin.fit.relative_std` with this
+        the estimator computes them (:func:`twinwatch.twin.estimation.fit.relative_std` with this
         configuration's ``model_error`` floor)."""
         return self._rel_std(jac, r)
 

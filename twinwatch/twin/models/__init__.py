@@ -14,9 +14,9 @@ from twinwatch.twin.model import TwinModel
 
 #: name -> (module, class)
 BUILTIN_MODELS: dict[str, tuple[str, str]] = {
-    "dc_motor": ("twinwatch.twin.dcmotor", "DCMotorTwin"),
-    "hydraulic_actuator": ("twinwatch.twin.hydraulic", "HydraulicActuatorTwin"),
-    "dc_motor_pwm": ("twinwatch.twin.pwm_dcmotor", "PWMDCMotorTwin"),
+    "dc_motor": ("twinwatch.twin.models.dcmotor", "DCMotorTwin"),
+    "hydraulic_actuator": ("twinwatch.twin.models.hydraulic", "HydraulicActuatorTwin"),
+    "dc_motor_pwm": ("twinwatch.twin.models.pwm_dcmotor", "PWMDCMotorTwin"),
 }
 
 

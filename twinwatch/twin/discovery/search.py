@@ -25,7 +25,7 @@ and kept spurious terms):
    their place.
 3. **Re-validation and refinement.** Every later window polishes the kept terms from their
    refined values; each term's window estimate, with its covariance, joins the evidence of the
-   windows before it (:meth:`~twinwatch.twin.terms.Term.refine`, ``[discovery.refinement]``),
+   windows before it (:meth:`~.terms.Term.refine`, ``[discovery.refinement]``),
    and the twin uses the refined values. Each term is then checked to still earn its place
    (the same criterion, as a removal test); a term that fails ``drop_after`` windows in a row
    is switched off.
@@ -53,12 +53,17 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from twinwatch.twin.estimation import Estimator, PSOSettings
-from twinwatch.twin.fit import WindowFit, parameter_covariance, pso_minimize, relative_std
-from twinwatch.twin.metamodels import TABLE_1, MetaModel, get_meta_model
+from twinwatch.twin.discovery.metamodels import TABLE_1, MetaModel, get_meta_model
+from twinwatch.twin.discovery.terms import TIME, Term, compose, format_terms, term_input
+from twinwatch.twin.estimation.estimator import Estimator, PSOSettings
+from twinwatch.twin.estimation.fit import (
+    WindowFit,
+    parameter_covariance,
+    pso_minimize,
+    relative_std,
+)
+from twinwatch.twin.estimation.statistics import delta_bic, noise_level
 from twinwatch.twin.model import AttachPoint, FloatArray, TwinModel, WindowData
-from twinwatch.twin.statistics import delta_bic, noise_level
-from twinwatch.twin.terms import TIME, Term, compose, format_terms, term_input
 
 logger = logging.getLogger(__name__)
 
@@ -93,7 +98,7 @@ class CandidateConfig(BaseModel):
 
 class RefinementConfig(BaseModel):
     """The ``[discovery.refinement]`` table: how a kept term accumulates evidence across
-    windows (:meth:`~twinwatch.twin.terms.Term.refine`)."""
+    windows (:meth:`~twinwatch.twin.discovery.terms.Term.refine`)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -158,7 +163,7 @@ class DiscoveryConfig(BaseModel):
 def residual_too_large(r: FloatArray, n_out: int, config: DiscoveryConfig) -> bool:
     """The exit criterion on normalised residuals ``r`` (M,) with ``n_out`` interleaved
     outputs: a normalised RMSE above ``min_nrmse`` and above ``residual_ratio`` times the
-    normalised white-noise level (:func:`~twinwatch.twin.statistics.noise_level`, pooled over
+    normalised white-noise level (:func:`~twinwatch.twin.estimation.statistics.noise_level`, pooled
     the outputs). Pooling keeps a noise-free output with a small structured error (the
     closed-loop Va after a noisy initial state) from passing for a missing component."""
     if not np.all(np.isfinite(r)):

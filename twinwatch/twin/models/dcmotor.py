@@ -41,13 +41,13 @@ Meta-model terms (discovery, paper Eq. 3 and 13) attach additively to the state 
 one) and ``d(ia)/dt`` [A/s]. Each enters the sub-step recursion as an extra input held over the
 sample, so the composed twin stays one exact linear map per sample for the whole swarm.
 
-**The drive as it runs** (option ``drive``, :class:`~twinwatch.twin.drive.DriveConfig`): a real
+**The drive as it runs** (option ``drive``, :class:`~twinwatch.io.drive.DriveConfig`): a real
 drive updates its controller every ``period`` and holds the output in between, clamps it, and may
 run an inner current loop. With a ``drive`` that is not the ideal PI above (a period, limits, a
 derivative, a current loop) the closed-loop twin runs the drive's updates exactly as the drive
 does, between them the motor's sub-step map composed exactly over each stretch of constant
 voltage (one matrix product per stretch); the window starts from the measured state, the
-integrator recovered from the measured voltage (see :mod:`twinwatch.twin.drive`).
+integrator recovered from the measured voltage (see :mod:`twinwatch.io.drive`).
 
 **Elements real drives have** (options): ``power_stage = "unidirectional"`` (one switch and a
 freewheeling diode: the current cannot reverse), ``coulomb_friction`` (a parameter ``Tc`` [N m],
@@ -77,8 +77,7 @@ from typing import Any, Literal
 import numpy as np
 from numba import njit
 
-from twinwatch.twin._pid import pid_update
-from twinwatch.twin.drive import DriveConfig, LoopConfig
+from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.twin.model import (
     AttachPoint,
     EstimationDefaults,
@@ -92,6 +91,7 @@ from twinwatch.twin.model import (
     sub_steps,
     term_array,
 )
+from twinwatch.twin.models._pid import pid_update
 
 DC_MOTOR_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("Ra", "ohm", 6.5, "armature resistance",
@@ -242,7 +242,7 @@ class DCMotorTwin(TwinModel):
         load_coefficient: c_load [N m s/rad] for the viscous load (paper: 0.006).
         kp: PI proportional gain [V s/rad] (paper: 0.3), closed loop without ``drive``.
         ki: PI integral gain [V/rad] (paper: 0.1), closed loop without ``drive``.
-        drive: the drive as it runs (:class:`~twinwatch.twin.drive.DriveConfig` or its table:
+        drive: the drive as it runs (:class:`~twinwatch.io.drive.DriveConfig` or its table:
             update period, phase, speed loop with limits, anti-windup and feed-forward, current
             loop); replaces ``kp``/``ki``. Closed loop only.
         sub_step: integration sub-step [s] (paper: 1e-4); the sample period (and the drive's
@@ -612,7 +612,7 @@ class DCMotorTwin(TwinModel):
                           ticked_s: bool, ticked_c: bool, omega0: FloatArray, ia0: FloatArray
                           ) -> tuple[FloatArray, FloatArray]:
         """The drive's states [I_s, f_s, I_c, f_c] and held outputs [Va, iref] at sample ``k``,
-        recovered from the measured outputs (module :mod:`twinwatch.twin.drive`), for each
+        recovered from the measured outputs (module :mod:`twinwatch.io.drive`), for each
         particle's initial speed and current ``omega0``, ``ia0`` (P,): (P, 4) and (2,). When no
         update falls on the sample, the last one is taken to have seen the sample's error."""
         dr = self._drive

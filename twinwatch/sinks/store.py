@@ -50,8 +50,8 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from twinwatch._lifecycle import Closeable
-from twinwatch.daemon.locks import FileLock, LockedError
 from twinwatch.io.encoding import to_json
+from twinwatch.sinks.locks import FileLock, LockedError
 
 if TYPE_CHECKING:
     from twinwatch.daemon.pipeline import ProcessedWindow

@@ -11,11 +11,11 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def pid_update(loop, i_s, f_s, r, y, period, hi):  # pragma: no cover - compiled
-    """One update of a drive loop (:mod:`twinwatch.twin.drive`): P/PI/PID with the derivative
+    """One update of a drive loop (:mod:`twinwatch.io.drive`): P/PI/PID with the derivative
     filter N, the output clamped to [loop[4], hi] with the loop's anti-windup.
 
     Args:
-        loop: the packed loop (:meth:`twinwatch.twin.drive.LoopConfig.pack`): kp, ki, kd, N,
+        loop: the packed loop (:meth:`twinwatch.io.drive.LoopConfig.pack`): kp, ki, kd, N,
             output_min, output_max, anti-windup (0 none, 1 clamping, 2 back-calculation),
             tracking time, feed-forward gain, sign.
         i_s, f_s: the integrator and the derivative filter's state before the update.

@@ -1,7 +1,7 @@
 """Residual statistics shared by estimation, discovery and adaptation.
 
 Every function here works on *normalised* residuals: the output errors of one window divided by
-each output's scale (see :class:`twinwatch.twin.fit.WindowFit`), either as a matrix ``(N, n_out)``
+each output's scale (see :class:`~.fit.WindowFit`), either as a matrix ``(N, n_out)``
 (one column per output) or as the flat vector ``(N*n_out,)`` the optimisers minimise, with the
 outputs interleaved (``r.reshape(-1, n_out)`` gives the matrix back).
 
@@ -285,7 +285,7 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
         lags: lags of both tests (e.g. 20).
         floor: normalised RMS below which an output passes.
         explained: per output, the residual RMS the estimates' uncertainty explains
-            (:func:`twinwatch.twin.fit.explained_rms`); None: 0.
+            (:func:`twinwatch.twin.estimation.fit.explained_rms`); None: 0.
 
     Returns:
         The window's check.

@@ -1,6 +1,6 @@
 """A small DC motor on a PWM H-bridge, as a microcontroller drives and samples it (open loop).
 
-The linear DC motor twin (:mod:`twinwatch.twin.dcmotor`) takes an armature voltage. On a
+The linear DC motor twin (:mod:`twinwatch.twin.models.dcmotor`) takes an armature voltage. On a
 hobby or evaluation board (the AutomationShield MotoShield: an Arduino Uno, an H-bridge and a
 micro motor with an encoder of 14 edges per turn) no voltage is measured: the firmware turns a
 command ``u`` into a PWM duty cycle, reads one sample of the current at some instant inside the PWM

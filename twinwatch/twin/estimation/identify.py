@@ -13,7 +13,7 @@ counted), and scores the result on a validation stretch it was not fitted to, pe
 
 (MATLAB ``compare``'s NRMSE fit; 100 % is a perfect fit, 0 % no better than the mean). The
 residuals of both stretches go through the model check of the monitoring
-(:func:`twinwatch.twin.statistics.check_model`).
+(:func:`twinwatch.twin.estimation.statistics.check_model`).
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from twinwatch.twin.estimation import EstimationConfig, Estimator, PSOSettings
-from twinwatch.twin.fit import LocalFit, WindowFit, pso_minimize, relative_std
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
+from twinwatch.twin.estimation.fit import LocalFit, WindowFit, pso_minimize, relative_std
+from twinwatch.twin.estimation.statistics import ModelCheck
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
-from twinwatch.twin.statistics import ModelCheck
 
 logger = logging.getLogger(__name__)
 

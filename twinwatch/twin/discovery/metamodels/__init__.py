@@ -32,8 +32,8 @@ kind                       U(z)                  working conditions
 Each has at most one nonlinear parameter (the knee, the band, the scale; none for Coulomb), so
 the discovery's separable search fits it as it fits Table 1's.
 
-A new meta-model is one :class:`~twinwatch.twin.metamodels.base.MetaModel` subclass in one file
-plus one line in :data:`BUILTIN_META_MODELS`, or, from another package, an entry in the
+A new meta-model is one :class:`~twinwatch.twin.discovery.metamodels.base.MetaModel` subclass in one
+file plus one line in :data:`BUILTIN_META_MODELS`, or, from another package, an entry in the
 ``twinwatch.metamodels`` entry-point group (``kind = "package.module:Class"``). Modules are
 imported when a kind is first used.
 """
@@ -46,7 +46,7 @@ import logging
 from collections.abc import Mapping
 from importlib.metadata import entry_points
 
-from twinwatch.twin.metamodels.base import MetaModel
+from twinwatch.twin.discovery.metamodels.base import MetaModel
 
 logger = logging.getLogger(__name__)
 
@@ -56,17 +56,17 @@ ENTRY_POINT_GROUP = "twinwatch.metamodels"
 #: Built-in kinds: kind -> (module, class). The first six are paper Table 1, in its order; the
 #: others are the non-smooth terms real drives need (issue 9), candidates only where listed.
 BUILTIN_META_MODELS: Mapping[str, tuple[str, str]] = {
-    "linear": ("twinwatch.twin.metamodels.linear", "Linear"),
-    "exponential": ("twinwatch.twin.metamodels.exponential", "Exponential"),
-    "negative_exponential": ("twinwatch.twin.metamodels.negative_exponential",
+    "linear": ("twinwatch.twin.discovery.metamodels.linear", "Linear"),
+    "exponential": ("twinwatch.twin.discovery.metamodels.exponential", "Exponential"),
+    "negative_exponential": ("twinwatch.twin.discovery.metamodels.negative_exponential",
                              "NegativeExponential"),
-    "power": ("twinwatch.twin.metamodels.power", "Power"),
-    "logarithmic": ("twinwatch.twin.metamodels.logarithmic", "Logarithmic"),
-    "periodic": ("twinwatch.twin.metamodels.periodic", "Periodic"),
-    "rectifier": ("twinwatch.twin.metamodels.rectifier", "Rectifier"),
-    "dead_zone": ("twinwatch.twin.metamodels.dead_zone", "DeadZone"),
-    "coulomb": ("twinwatch.twin.metamodels.coulomb", "Coulomb"),
-    "saturation": ("twinwatch.twin.metamodels.saturation", "Saturation"),
+    "power": ("twinwatch.twin.discovery.metamodels.power", "Power"),
+    "logarithmic": ("twinwatch.twin.discovery.metamodels.logarithmic", "Logarithmic"),
+    "periodic": ("twinwatch.twin.discovery.metamodels.periodic", "Periodic"),
+    "rectifier": ("twinwatch.twin.discovery.metamodels.rectifier", "Rectifier"),
+    "dead_zone": ("twinwatch.twin.discovery.metamodels.dead_zone", "DeadZone"),
+    "coulomb": ("twinwatch.twin.discovery.metamodels.coulomb", "Coulomb"),
+    "saturation": ("twinwatch.twin.discovery.metamodels.saturation", "Saturation"),
 }
 
 #: The kinds of paper Table 1 (a candidate's default ``kinds``).

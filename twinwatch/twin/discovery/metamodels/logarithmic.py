@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from twinwatch.twin.metamodels.base import MetaModel, fmt, plus
+from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt, plus
 from twinwatch.twin.model import FloatArray
 
 

@@ -14,7 +14,7 @@ it over the step); a multiplicative one at sample k.
 of every window it has explained (:class:`Refinement`, :meth:`Term.refine`): each window's
 least-squares polish of the term is a measurement of its active parameters with the
 polish's covariance (the Jacobian of the window's residuals, each output weighted by its own
-residual variance, :func:`~twinwatch.twin.fit.parameter_covariance`), and the term keeps the
+residual variance, :func:`~twinwatch.twin.estimation.fit.parameter_covariance`), and the term keeps
 information-weighted combination, a Kalman filter whose only dynamics is the rewriting of a
 time term to the current window's origin (:meth:`MetaModel.move_origin`):
 
@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from twinwatch.twin.metamodels import MetaModel, get_meta_model
+from twinwatch.twin.discovery.metamodels import MetaModel, get_meta_model
 from twinwatch.twin.model import AttachPoint, FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)

@@ -45,7 +45,7 @@ machine, and a window where the valve leaves its limit fails the model check.
 
 **Structure: closed loop** (``structure = "closed_loop"``, option ``drive``,
 :class:`ValveDriveConfig`). The twin contains the valve controller as the drive runs it
-(:mod:`twinwatch.twin.drive`: an update every ``period`` from x and the reference, the area
+(:mod:`twinwatch.io.drive`: an update every ``period`` from x and the reference, the area
 held in between, clamped to the loop's limits, by default the valve's own [0, A_max], with
 clamping or back-calculation anti-windup; no table: the paper's PID every sub-step). It is
 driven by the measured reference ``x_ref`` (interpolated to the updates between samples by
@@ -118,16 +118,10 @@ from typing import Any, Literal
 import numpy as np
 from numba import njit
 from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
     ValidationError,
-    field_validator,
-    model_validator,
 )
 
-from twinwatch.twin._pid import pid_update
-from twinwatch.twin.drive import DriveConfig, LoopConfig
+from twinwatch.io.drive import ValveDriveConfig
 from twinwatch.twin.model import (
     AttachPoint,
     EstimationDefaults,
@@ -139,6 +133,7 @@ from twinwatch.twin.model import (
     sub_steps,
     term_array,
 )
+from twinwatch.twin.models._pid import pid_update
 
 logger = logging.getLogger(__name__)
 
@@ -167,75 +162,6 @@ LIMIT_TOLERANCE = 1e-9
 #: and the secant steps at most.
 SPLIT_SAMPLES = 20
 SPLIT_ITERATIONS = 3
-
-#: The paper's valve PID (Eq. 17, NOTES.md): opening the valve lowers the piston, so the error
-#: is e = x - x_ref (action ``direct``); clamping anti-windup at the valve's limits.
-PAPER_VALVE_LOOP: dict[str, Any] = {"kp": 0.000346, "ki": 3.513406, "kd": 0.000119,
-                                    "n_filter": 2.076743, "anti_windup": "clamping",
-                                    "action": "direct"}
-
-
-class ValveDriveConfig(BaseModel):
-    """The valve controller as it runs (table ``drive``; :mod:`twinwatch.twin.drive` semantics).
-
-    One update every ``period`` from the position ``x`` [m] (feedback) and the reference
-    ``x_ref`` [m]; the area [m^2] it computes is held until the next update (zero-order hold)
-    and clamped to the loop's limits, by default the valve's own range [0, A_max].
-
-    Attributes:
-        period: update period [s], a whole number of integration steps; None: every step (the
-            paper's plant, Eq. 17 with Ts the integration step).
-        phase: time of the first update after t = 0 [s], in [0, period).
-        valve: the PID (:class:`~twinwatch.twin.drive.LoopConfig`); the keys a table leaves
-            out take the paper's values (:data:`PAPER_VALVE_LOOP`: Kp 0.000346, Ki 3.513406,
-            Kd 0.000119, N 2.076743, clamping, action ``direct``); ``output_min`` None: 0,
-            ``output_max`` None: A_max (the valve's largest area).
-    """
-
-    model_config = ConfigDict(extra="forbid")
-
-    period: float | None = Field(None, gt=0, allow_inf_nan=False)
-    phase: float = Field(0.0, ge=0, allow_inf_nan=False)
-    valve: LoopConfig = Field(default_factory=lambda: LoopConfig(**PAPER_VALVE_LOOP))
-
-    @field_validator("valve", mode="before")
-    @classmethod
-    def _paper_gains(cls, value: Any) -> Any:
-        """A partial table keeps the paper's values for the keys it leaves out."""
-        if isinstance(value, Mapping):
-            return {**PAPER_VALVE_LOOP, **value}
-        return value
-
-    @model_validator(mode="after")
-    def _check(self) -> ValveDriveConfig:
-        if self.period is not None and self.phase >= self.period:
-            raise ValueError(f"phase: must be in [0, period), got {self.phase} for period "
-                             f"{self.period}")
-        return self
-
-    def ticks(self, sub_step: float) -> tuple[int, int]:
-        """(period, phase) in whole integration steps.
-
-        Raises:
-            ValueError: the period or the phase is not a whole number of steps (to 1e-6
-                relative); the message names the key.
-        """
-        m, _, ph = DriveConfig(period=self.period, phase=self.phase).ticks(sub_step)
-        return m, ph
-
-    def limits(self, a_max: float) -> tuple[float, float]:
-        """The controller's output limits [m^2]: the loop's, or the valve's range [0, a_max]."""
-        v = self.valve
-        return (0.0 if v.output_min is None else v.output_min,
-                a_max if v.output_max is None else v.output_max)
-
-    def pack(self, a_max: float) -> FloatArray:
-        """The loop for a compiled kernel (:data:`twinwatch.twin.drive.PACKED` order), its
-        limits resolved with :meth:`limits`."""
-        packed = self.valve.pack()
-        packed[4], packed[5] = self.limits(a_max)
-        return packed
-
 
 @njit(cache=True, nogil=True, inline="always")
 def _piston_step(x, p, a, fl, gain, fx, ks, d, qp, a_max, inv_ap, fr, dt):
