@@ -14,6 +14,7 @@ import scipy.io
 from pydantic import ValidationError
 
 import twinwatch.drivers as drivers
+import twinwatch.plugins
 from twinwatch.drivers import (
     Driver,
     DriverInitializationError,
@@ -24,6 +25,7 @@ from twinwatch.drivers import (
     get_driver_class,
 )
 from twinwatch.drivers.file import FileDriver, FileDriverConfig
+from twinwatch.plugins import Registry
 
 REPO = Path(__file__).resolve().parents[1]
 APRBS_MAT = REPO.parent / "shared" / "data" / "motoshield" / "aprbsResult.mat"
@@ -245,10 +247,8 @@ def test_mat_without_time_vector_needs_a_period(tmp_path: Path) -> None:
 
 def test_registry_knows_the_builtin_drivers() -> None:
     assert set(drivers.BUILTIN_DRIVERS) >= {"can", "file", "simulated", "modbus"}
-    assert drivers.BUILTIN_DRIVERS["simulated"] == (
-        "twinwatch.drivers.simulated",
-        "SimulatedDriver",
-    )
+    assert drivers.BUILTIN_DRIVERS["simulated"] == "twinwatch.drivers.simulated:SimulatedDriver"
+    assert drivers.DRIVERS.names()[:5] == list(drivers.BUILTIN_DRIVERS)
     assert get_driver_class("file") is FileDriver
     assert get_driver_class("can").__name__ == "CanDriver"
 
@@ -258,25 +258,34 @@ def test_unknown_and_unavailable_drivers(monkeypatch: pytest.MonkeyPatch) -> Non
         create_driver({"type": "profinet"}, base_dir=REPO)
     with pytest.raises(DriverInitializationError, match="has no 'type'"):
         create_driver({"path": "x.csv"}, base_dir=REPO)
-    table = {"broken": ("twinwatch_no_such_module", "Broken"), "file": ("math", "pi")}
-    monkeypatch.setattr(drivers, "driver_table", lambda: table)
-    with pytest.raises(DriverInitializationError, match="driver 'broken' not available: No module"):
+    registry = Registry("driver", "twinwatch.none",
+                        {"broken": "twinwatch_no_such_module:Broken", "file": "math:pi"},
+                        base=lambda: Driver)
+    monkeypatch.setattr(drivers, "DRIVERS", registry)
+    with pytest.raises(DriverInitializationError,
+                       match="driver 'broken' not available: No module named "
+                             "'twinwatch_no_such_module'. Is the package that provides "
+                             "twinwatch_no_such_module installed"):
         create_driver({"type": "broken"}, base_dir=REPO)
-    with pytest.raises(DriverInitializationError, match="math.pi is not a twinwatch Driver"):
+    with pytest.raises(DriverInitializationError, match="math.pi is not a "
+                       "twinwatch.drivers.base.Driver subclass"):
         get_driver_class("file")
 
 
-def test_entry_points_extend_but_do_not_replace(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_entry_points_extend_but_do_not_replace(monkeypatch: pytest.MonkeyPatch,
+                                                caplog: pytest.LogCaptureFixture) -> None:
     plugins = [
         EntryPoint("replay2", "twinwatch.drivers.file:FileDriver", drivers.ENTRY_POINT_GROUP),
         EntryPoint("can", "evil.module:Bus", drivers.ENTRY_POINT_GROUP),
     ]
-    monkeypatch.setattr(drivers, "entry_points", lambda group: plugins)
-    drivers.driver_table.cache_clear()
+    monkeypatch.setattr(twinwatch.plugins, "entry_points", lambda group: plugins)
+    drivers.DRIVERS.cache_clear()
     try:
-        table = drivers.driver_table()
-        assert table["replay2"] == ("twinwatch.drivers.file", "FileDriver")
-        assert table["can"] == ("twinwatch.drivers.can", "CanDriver")
+        table = drivers.DRIVERS.table()
+        assert table["replay2"] == "twinwatch.drivers.file:FileDriver"
+        assert table["can"] == "twinwatch.drivers.can:CanDriver"
         assert get_driver_class("replay2") is FileDriver
+        assert "entry point can = 'evil.module:Bus' ignored: 'can' is a built-in driver" \
+            in caplog.text
     finally:
-        drivers.driver_table.cache_clear()
+        drivers.DRIVERS.cache_clear()

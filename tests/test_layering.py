@@ -1,21 +1,69 @@
-"""The package structure: no import cycle between twinwatch's sub-packages.
+"""The rooms and their rules: which room may import which (docs/architecture.md, "Rooms").
 
-Read statically from the modules' syntax trees (nothing is imported): every ``import`` and
+Read statically from the modules' syntax trees (nothing is imported). Every ``import`` and
 ``from ... import`` anywhere in a module counts, also inside functions (a lazy import is still
-a dependency), except those under ``if TYPE_CHECKING:`` (annotations, never executed).
+a dependency) and under ``if TYPE_CHECKING:`` (an annotation that names a room above is a back
+edge too). A string naming a twinwatch module (``"twinwatch.drivers.can:CanDriver"`` in a
+registry table) counts as an import of it, and a module that imports by a computed name
+(``importlib.import_module(name)``) must be one of the few that are allowed to (the registry
+and the lazy-module helper, which only ever receive such literals or third-party names).
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from collections import defaultdict
 from pathlib import Path
 
 import twinwatch
 
 ROOT = Path(twinwatch.__file__).parent
-#: the sub-packages the issue names; every other first-level name is checked too
-CORE = ("config", "daemon", "drivers", "twin", "plant")
+
+#: "twinwatch.pkg.module" or "twinwatch.pkg.module:Class" (a registry entry), a whole string.
+_MODULE_STRING = re.compile(r"^(twinwatch(?:\.[a-z_][a-z0-9_]*)+)(?::[A-Za-z_]\w*)?$")
+
+#: Room -> the module prefixes it holds (the longest prefix places a module).
+ROOMS: dict[str, tuple[str, ...]] = {
+    "base": ("twinwatch.errors", "twinwatch.plugins", "twinwatch._lazy",
+             "twinwatch._lifecycle", "twinwatch.__init__"),
+    "io": ("twinwatch.io",),
+    "plant": ("twinwatch.plant",),
+    "twin.model": ("twinwatch.twin.model",),
+    "twin.models": ("twinwatch.twin.models",),
+    "twin.estimation": ("twinwatch.twin.estimation",),
+    "twin.discovery": ("twinwatch.twin.discovery",),
+    "twin": ("twinwatch.twin",),
+    "drivers": ("twinwatch.drivers",),
+    "sinks": ("twinwatch.sinks",),
+    "config": ("twinwatch.config",),
+    "daemon": ("twinwatch.daemon",),
+    "cli": ("twinwatch.cli", "twinwatch.__main__"),
+}
+
+#: Room -> the rooms it may import (besides itself). The floors, from the ground up: base; io;
+#: plant, the twin's contract; the machines, the estimation; the discovery; the twin's top
+#: (adaptation, health); drivers, sinks; config; daemon; cli.
+ALLOWED: dict[str, set[str]] = {
+    "base": set(),
+    "io": {"base"},
+    "plant": {"base", "io"},                     # the plant shares nothing with the twin
+    "twin.model": {"base"},
+    "twin.models": {"base", "io", "twin.model"},  # a machine knows no estimator
+    "twin.estimation": {"base", "twin.model"},    # it estimates any machine
+    "twin.discovery": {"base", "twin.model", "twin.estimation"},
+    "twin": {"base", "io", "twin.model", "twin.estimation", "twin.discovery"},
+    "drivers": {"base", "io", "plant"},
+    "sinks": {"base", "io", "twin.model", "twin"},  # the message and the window, no internals
+    "config": {"base", "io", "drivers", "sinks", "twin.model", "twin.models",
+               "twin.estimation", "twin.discovery", "twin"},
+    "daemon": {"base", "io", "config", "drivers", "sinks", "twin.model", "twin.models",
+               "twin.estimation", "twin.discovery", "twin"},
+    "cli": set(ROOMS) - {"cli"},
+}
+
+#: Modules allowed to import by a computed name.
+DYNAMIC_IMPORTERS = {"twinwatch.plugins", "twinwatch._lazy"}
 
 
 def _module_name(path: Path) -> str:
@@ -31,14 +79,11 @@ def _is_type_checking(test: ast.expr) -> bool:
 
 
 def _imports(tree: ast.AST, module: str, is_package: bool) -> list[tuple[str, int]]:
-    """(imported module, line) for every runtime import in ``tree``."""
+    """(imported module, line) for every import in ``tree`` (annotation-only ones included) and
+    every string literal that names a twinwatch module."""
     found: list[tuple[str, int]] = []
 
     def visit(node: ast.AST) -> None:
-        if isinstance(node, ast.If) and _is_type_checking(node.test):
-            for child in node.orelse:
-                visit(child)
-            return
         if isinstance(node, ast.Import):
             found.extend((alias.name, node.lineno) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -51,6 +96,10 @@ def _imports(tree: ast.AST, module: str, is_package: bool) -> list[tuple[str, in
             found.append((target, node.lineno))
             # ``from twinwatch import drivers`` imports the sub-package
             found.extend((f"{target}.{alias.name}", node.lineno) for alias in node.names)
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            m = _MODULE_STRING.match(node.value)
+            if m:
+                found.append((m.group(1), node.lineno))
         for child in ast.iter_child_nodes(node):
             visit(child)
 
@@ -58,29 +107,51 @@ def _imports(tree: ast.AST, module: str, is_package: bool) -> list[tuple[str, in
     return found
 
 
-def _package_of(module: str) -> str | None:
-    parts = module.split(".")
-    if parts[0] != "twinwatch" or len(parts) < 2:
-        return None
-    first = parts[1]
-    return first if (ROOT / first).is_dir() else None
+def room_of(module: str) -> str | None:
+    """The room holding ``module`` (a dotted name under twinwatch), or None."""
+    best: tuple[int, str] | None = None
+    for room, prefixes in ROOMS.items():
+        for prefix in prefixes:
+            if module == prefix or module.startswith(prefix + "."):
+                if best is None or len(prefix) > best[0]:
+                    best = (len(prefix), room)
+    if best is None and module == "twinwatch":
+        return "base"
+    return None if best is None else best[1]
 
 
-def package_graph() -> dict[str, dict[str, list[str]]]:
-    """package -> imported package -> ["module:line", ...] (the evidence)."""
+def _sources() -> list[tuple[str, Path]]:
+    return [(_module_name(p), p) for p in sorted(ROOT.rglob("*.py"))]
+
+
+def room_graph() -> dict[str, dict[str, list[str]]]:
+    """room -> imported room -> ["module:line", ...] (the evidence)."""
     graph: dict[str, dict[str, list[str]]] = defaultdict(lambda: defaultdict(list))
-    for path in sorted(ROOT.rglob("*.py")):
-        module = _module_name(path)
-        src_pkg = _package_of(module)
-        if src_pkg is None:
+    for module, path in _sources():
+        src = room_of(module if not module.endswith("__init__") else module)
+        if src is None:
             continue
         tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
         for target, line in _imports(tree, module, path.name == "__init__.py"):
-            dst_pkg = _package_of(target)
-            if dst_pkg is not None and dst_pkg != src_pkg:
-                if f"{module}:{line}" not in graph[src_pkg][dst_pkg]:
-                    graph[src_pkg][dst_pkg].append(f"{module}:{line}")
+            if not target.startswith("twinwatch"):
+                continue
+            dst = room_of(target)
+            if dst is not None and dst != src and f"{module}:{line}" not in graph[src][dst]:
+                graph[src][dst].append(f"{module}:{line}")
     return graph
+
+
+def _dynamic_imports(tree: ast.AST) -> list[int]:
+    """Lines that call ``import_module``/``__import__`` with a name that is not a literal."""
+    lines = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            fn = node.func
+            name = fn.attr if isinstance(fn, ast.Attribute) else getattr(fn, "id", "")
+            if name in ("import_module", "__import__") and not (
+                    node.args and isinstance(node.args[0], ast.Constant)):
+                lines.append(node.lineno)
+    return lines
 
 
 def find_cycle(graph: dict[str, dict[str, list[str]]]) -> list[str] | None:
@@ -112,21 +183,45 @@ def test_the_checker_finds_a_cycle() -> None:
     assert find_cycle({"a": {"b": ["a.x:1"]}, "b": {}}) is None
 
 
-def test_relative_and_type_checking_imports_are_read_correctly() -> None:
+def test_imports_are_read_correctly() -> None:
     tree = ast.parse("from typing import TYPE_CHECKING\n"
                      "from ..daemon import runner\n"
                      "if TYPE_CHECKING:\n    from twinwatch.plant import dcmotor\n"
-                     "def f():\n    import twinwatch.twin.model\n")
+                     "def f():\n    import twinwatch.twin.model\n"
+                     "TABLE = {'x': 'twinwatch.sinks.zenoh:ZenohSink'}\n"
+                     "NOT = 'twinwatch is a name, not a module'\n")
     found = {t for t, _ in _imports(tree, "twinwatch.config.schema", False)}
     assert "twinwatch.daemon.runner" in found
     assert "twinwatch.twin.model" in found  # a lazy import is a dependency
-    assert not any(t.startswith("twinwatch.plant") for t in found)
+    assert "twinwatch.plant.dcmotor" in found  # so is an annotation's
+    assert "twinwatch.sinks.zenoh" in found  # and a registry entry
+    assert not any("not a module" in t for t in found)
+    assert room_of("twinwatch.twin.models.dcmotor") == "twin.models"
+    assert room_of("twinwatch.twin.model") == "twin.model"
+    assert room_of("twinwatch.twin.health") == "twin"
+    assert room_of("twinwatch.errors") == "base"
+    assert _dynamic_imports(ast.parse("importlib.import_module(name)")) == [1]
+    assert _dynamic_imports(ast.parse("importlib.import_module('zenoh')")) == []
 
 
-def test_no_import_cycle_between_packages() -> None:
-    graph = package_graph()
-    for pkg in CORE:
-        assert (ROOT / pkg).is_dir(), pkg
+def test_every_module_is_in_a_room() -> None:
+    homeless = [m for m, _ in _sources() if room_of(m) is None]
+    assert not homeless, f"modules in no room (add them to ROOMS and the docs): {homeless}"
+
+
+def test_the_rooms_keep_their_rules() -> None:
+    graph = room_graph()
+    broken = []
+    for src, targets in sorted(graph.items()):
+        for dst, evidence in sorted(targets.items()):
+            if dst not in ALLOWED[src]:
+                broken.append(f"  {src} -> {dst}: {', '.join(evidence[:4])}")
+    assert not broken, "imports against the room rules:\n" + "\n".join(broken)
+
+
+def test_no_arrow_runs_back_up() -> None:
+    """No cycle between rooms, annotation-only imports included."""
+    graph = room_graph()
     cycle = find_cycle(graph)
     if cycle is not None:
         evidence = "\n".join(
@@ -135,8 +230,25 @@ def test_no_import_cycle_between_packages() -> None:
         raise AssertionError(f"import cycle {' -> '.join(cycle)}:\n{evidence}")
 
 
-def test_plant_does_not_import_the_drivers() -> None:
-    """The simulated plants and the drivers share only twinwatch.io (sample, register map)."""
-    graph = package_graph()
-    assert "drivers" not in graph.get("plant", {}), graph["plant"]["drivers"]
-    assert "io" in graph["plant"] and "io" in graph["drivers"]
+def test_no_string_import_the_checker_cannot_see() -> None:
+    hidden = []
+    for module, path in _sources():
+        if module in DYNAMIC_IMPORTERS:
+            continue
+        lines = _dynamic_imports(ast.parse(path.read_text(encoding="utf-8"), str(path)))
+        hidden.extend(f"{module}:{line}" for line in lines)
+    assert not hidden, ("imports by a computed name (use a registry, a literal or a plain "
+                        f"import): {hidden}")
+
+
+def test_the_rules_allow_no_cycle() -> None:
+    """The rules themselves are floors: no two rooms may import each other."""
+    rules = {src: {dst: ["rule"] for dst in dsts} for src, dsts in ALLOWED.items()}
+    assert find_cycle(rules) is None
+
+
+def test_the_plant_and_the_twin_share_only_io() -> None:
+    graph = room_graph()
+    plant = set(graph.get("plant", {}))
+    assert plant <= {"base", "io"}, graph["plant"]
+    assert "io" in graph["drivers"] and "io" in graph["twin.models"]

@@ -58,7 +58,7 @@ def test_the_library_is_table_1_and_the_terms_real_drives_need() -> None:
         assert len(get_meta_model(kind).nonlinear) <= 1
     assert "unbalanced shaft" in get_meta_model("periodic").meaning
     assert "leaking" in get_meta_model("exponential").meaning
-    with pytest.raises(ValueError, match="unknown meta-model 'cubic'; choose from"):
+    with pytest.raises(ValueError, match="unknown meta-model 'cubic'; known: coulomb, dead_zone"):
         get_meta_model("cubic")
 
 

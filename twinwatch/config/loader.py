@@ -19,10 +19,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from twinwatch.config.schema import TwinwatchConfig
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot be used; the message names the key and why."""
+from twinwatch.errors import ConfigError
 
 
 def _format(exc: ValidationError, source: str) -> str:

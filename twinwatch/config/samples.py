@@ -66,8 +66,7 @@ def sample_config(driver: str = "simulated") -> str:
     text = text.replace('name = "dc-motor-sim"', f'name = "{name}"', 1)
     text = text.replace('name = "hydraulic-sim"', f'name = "{name}"', 1)
     if "@PLANT_DBC@" in text:
-        from importlib import resources
-
-        dbc = resources.files("twinwatch.plant").joinpath("dcmotor.dbc")
+        # the simulated plant's DBC, shipped as package data beside the plant
+        dbc = Path(__file__).resolve().parents[1] / "plant" / "dcmotor.dbc"
         text = text.replace("@PLANT_DBC@", str(dbc))
     return text

@@ -29,9 +29,9 @@ Layout::
 
 from __future__ import annotations
 
-import importlib
 import math
 import re
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import (
@@ -46,7 +46,7 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from twinwatch.daemon.alarms import AlarmConfig
+from twinwatch.config.alarms import AlarmConfig
 from twinwatch.drivers import (
     DriverConfig,
     DriverInitializationError,
@@ -64,26 +64,35 @@ MAX_WINDOW = 100_000
 simulates a window per candidate (100,000 samples is 1000 s at 10 ms)."""
 
 
-def _twin_class(path: str) -> Any:
-    """``"module:Class"``, imported now (the twin's modules load pymoo, scipy and numba)."""
-    module, _, name = path.partition(":")
-    return getattr(importlib.import_module(module), name)
+def _estimation_config() -> type[EstimationConfig]:
+    from twinwatch.twin.estimation.estimator import EstimationConfig
+
+    return EstimationConfig
 
 
-def _twin_table(path: str) -> Any:
-    """A table whose model the twin owns (``"module:Class"``), imported when a configuration
-    is validated rather than when this module is; errors keep their location in the table."""
+def _discovery_config() -> type[DiscoveryConfig]:
+    from twinwatch.twin.discovery.search import DiscoveryConfig
+
+    return DiscoveryConfig
+
+
+def _identify_config() -> type[IdentifyConfig]:
+    from twinwatch.twin.estimation.identify import IdentifyConfig
+
+    return IdentifyConfig
+
+
+def _twin_table(model: Callable[[], type[BaseModel]]) -> Any:
+    """A table whose model the twin owns, imported when a configuration is validated rather
+    than when this module is (the twin's modules load pymoo, scipy and numba); errors keep
+    their location in the table."""
 
     def validate(value: Any) -> Any:
-        cls = _twin_class(path)
+        cls = model()
         return value if isinstance(value, cls) else cls.model_validate(value)
 
     return Annotated[Any, BeforeValidator(validate)]
 
-
-_ESTIMATION = "twinwatch.twin.estimation.estimator:EstimationConfig"
-_DISCOVERY = "twinwatch.twin.discovery.search:DiscoveryConfig"
-_IDENTIFY = "twinwatch.twin.estimation.identify:IdentifyConfig"
 
 if TYPE_CHECKING:
     from twinwatch.twin.discovery.search import DiscoveryConfig
@@ -94,9 +103,9 @@ if TYPE_CHECKING:
     DiscoveryTable = DiscoveryConfig
     IdentifyTable = IdentifyConfig
 else:
-    EstimationTable = _twin_table(_ESTIMATION)
-    DiscoveryTable = _twin_table(_DISCOVERY)
-    IdentifyTable = _twin_table(_IDENTIFY)
+    EstimationTable = _twin_table(_estimation_config)
+    DiscoveryTable = _twin_table(_discovery_config)
+    IdentifyTable = _twin_table(_identify_config)
 
 
 class MachineConfig(BaseModel):
@@ -178,9 +187,9 @@ class TwinwatchConfig(BaseModel):
 
     machine: MachineConfig
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
-    estimation: EstimationTable = Field(default_factory=lambda: _twin_class(_ESTIMATION)())
-    discovery: DiscoveryTable = Field(default_factory=lambda: _twin_class(_DISCOVERY)())
-    identify: IdentifyTable = Field(default_factory=lambda: _twin_class(_IDENTIFY)())
+    estimation: EstimationTable = Field(default_factory=lambda: _estimation_config()())
+    discovery: DiscoveryTable = Field(default_factory=lambda: _discovery_config()())
+    identify: IdentifyTable = Field(default_factory=lambda: _identify_config()())
     driver: SerializeAsAny[DriverConfig]
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)

@@ -21,6 +21,7 @@ import numpy as np
 
 from twinwatch._lazy import lazy_module
 from twinwatch.drivers import EndOfStream, create_driver
+from twinwatch.errors import CommissionError
 from twinwatch.twin.estimation.identify import Identification, identify
 from twinwatch.twin.model import WindowData
 from twinwatch.twin.models import create_model
@@ -33,10 +34,6 @@ else:
     rr = lazy_module("rerun")
 
 logger = logging.getLogger(__name__)
-
-
-class CommissionError(ValueError):
-    """The recording cannot be identified from (the message says why and what to change)."""
 
 
 @dataclass

@@ -30,12 +30,12 @@ import logging
 import threading
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 from twinwatch.daemon.alarms import AlarmEvaluator
-from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
-from twinwatch.twin.health import AlarmStatus, HealthMessage, build_health, summary_line
+from twinwatch.sinks.base import ProcessedWindow, WindowSink
+from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.health import AlarmStatus, build_health, summary_line
 from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
@@ -43,44 +43,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline", "WindowSink"]
 
 HealthCallback = Callable[[dict[str, Any]], None]
-
-
-@dataclass(frozen=True)
-class ProcessedWindow:
-    """Everything the sinks need about one processed window.
-
-    Attributes:
-        window: the acquisition window (times, channels, index).
-        result: what adaptation did (estimate, terms, residuals, discovery).
-        health: the window's health message (README "The health message"), with ``alarms``.
-        health_json: ``health`` encoded, once, by the one encoder: what every sink writes.
-        message: ``health_json`` decoded: the message as a subscriber reads it.
-        events: alarm-state changes this window caused (published on ``<machine>/alarm``).
-        twin_state: the accepted twin to persist (``TwinAdapter.state()``) when this window
-            was trusted, else None (the stored twin is kept).
-    """
-
-    window: WindowData
-    result: AdaptationResult
-    health: HealthMessage
-    health_json: str
-    message: dict[str, Any]
-    events: list[dict[str, Any]]
-    twin_state: dict[str, Any] | None
-
-
-class WindowSink(Protocol):
-    """Where processed windows go: the state store, the Zenoh publisher, the Rerun recorder.
-
-    A sink with a true ``publishes`` attribute makes the window visible to others (Zenoh): it
-    gets only the windows the pipeline's gate (the state store) has stored."""
-
-    def write(self, out: ProcessedWindow) -> Any:
-        """Take one processed window (called from the adaptation worker); the gate returns
-        False when it could not take it."""
-
-    def close(self) -> None:
-        """Release the sink; idempotent."""
 
 
 class WindowPipeline:

@@ -37,6 +37,7 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any
 
 from twinwatch.daemon.systemd import Notifier, Watchdog
+from twinwatch.errors import StartError
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
@@ -46,20 +47,6 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 __all__ = ["StartError", "Supervisor", "sink_config", "status_line", "warm_up"]
-
-
-class StartError(Exception):
-    """The daemon cannot start (a device, a port, the recording or the state database); the
-    message says what failed and what to do.
-
-    Attributes:
-        config_error: the configuration (or a file it names) is at fault, not the machine:
-            starting again will not help (``twinwatch run`` exits 78).
-    """
-
-    def __init__(self, message: str, *, config_error: bool = False) -> None:
-        super().__init__(message)
-        self.config_error = config_error
 
 
 def sink_config(config: TwinwatchConfig, name: str) -> Any:

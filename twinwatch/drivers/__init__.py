@@ -17,11 +17,8 @@ The base contract (:class:`Driver`, :class:`Sample`, the errors) is re-exported 
 
 from __future__ import annotations
 
-import functools
-import importlib
 import logging
 from collections.abc import Mapping
-from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
@@ -36,11 +33,14 @@ from twinwatch.drivers.base import (
     EndOfStream,
     Sample,
 )
+from twinwatch.errors import PluginError
+from twinwatch.plugins import Registry
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "BUILTIN_DRIVERS",
+    "DRIVERS",
     "ENTRY_POINT_GROUP",
     "Driver",
     "DriverConfig",
@@ -52,7 +52,6 @@ __all__ = [
     "EndOfStream",
     "Sample",
     "create_driver",
-    "driver_table",
     "get_driver_class",
     "validate_driver_config",
 ]
@@ -60,62 +59,36 @@ __all__ = [
 #: Entry-point group through which other packages add drivers.
 ENTRY_POINT_GROUP = "twinwatch.drivers"
 
-#: Built-in drivers: name => (module, class name).
-BUILTIN_DRIVERS: Mapping[str, tuple[str, str]] = {
-    "can": ("twinwatch.drivers.can", "CanDriver"),
-    "file": ("twinwatch.drivers.file", "FileDriver"),
-    "modbus": ("twinwatch.drivers.modbus", "ModbusDriver"),
-    "simulated": ("twinwatch.drivers.simulated", "SimulatedDriver"),
-    "simulated_modbus": ("twinwatch.drivers.simulated_modbus", "SimulatedModbusDriver"),
+#: Built-in drivers: name => "module:Class".
+BUILTIN_DRIVERS: Mapping[str, str] = {
+    "can": "twinwatch.drivers.can:CanDriver",
+    "file": "twinwatch.drivers.file:FileDriver",
+    "modbus": "twinwatch.drivers.modbus:ModbusDriver",
+    "simulated": "twinwatch.drivers.simulated:SimulatedDriver",
+    "simulated_modbus": "twinwatch.drivers.simulated_modbus:SimulatedModbusDriver",
 }
 
-
-@functools.cache
-def driver_table() -> Mapping[str, tuple[str, str]]:
-    """All known drivers: name => (module, class name).
-
-    The built-in drivers, plus those registered in the ``twinwatch.drivers`` entry-point group
-    (read once). A plug-in cannot replace a built-in driver: the clash is logged and ignored.
-    """
-    table = dict(BUILTIN_DRIVERS)
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        if ep.name in BUILTIN_DRIVERS:
-            logger.warning(
-                "entry point %s = %r ignored: %r is a built-in driver", ep.name, ep.value, ep.name
-            )
-            continue
-        module, _, attr = ep.value.partition(":")
-        table[ep.name] = (module.strip(), attr.strip())
-    return table
+#: The driver registry (:class:`twinwatch.plugins.Registry`): the built-ins and the entry points.
+DRIVERS: Registry[Driver] = Registry("driver", ENTRY_POINT_GROUP, BUILTIN_DRIVERS,
+                                     base=lambda: Driver)
 
 
 def get_driver_class(name: str) -> type[Driver]:
     """Import and return the driver class registered as ``name``.
 
     Raises:
-        DriverInitializationError: no driver has that name, or its module cannot be imported
-            (a missing optional dependency), or it does not define a :class:`Driver` subclass.
+        DriverConfigError: no driver has that name (the message lists the known ones).
+        DriverInitializationError: its module cannot be imported (a missing optional
+            dependency: the message says what to install), or it does not define a
+            :class:`Driver` subclass.
     """
-    table = driver_table()
+    if name not in DRIVERS:
+        raise DriverConfigError(f"unknown driver {name!r}; known drivers: "
+                                f"{', '.join(sorted(DRIVERS.names()))}")
     try:
-        module_name, class_name = table[name]
-    except KeyError:
-        raise DriverConfigError(
-            f"unknown driver {name!r}; known drivers: {', '.join(sorted(table))}"
-        ) from None
-    try:
-        module = importlib.import_module(module_name)
-        cls = getattr(module, class_name)
-    except (ImportError, AttributeError) as exc:
-        raise DriverInitializationError(
-            f"driver {name!r} not available: {exc} (is the package that provides "
-            f"{module_name}.{class_name} installed, with its extras?)"
-        ) from exc
-    if not (isinstance(cls, type) and issubclass(cls, Driver)):
-        raise DriverInitializationError(
-            f"driver {name!r}: {module_name}.{class_name} is not a twinwatch Driver"
-        )
-    return cls
+        return DRIVERS.load(name)
+    except PluginError as exc:
+        raise DriverInitializationError(str(exc)) from exc
 
 
 def validate_driver_config(table: Mapping[str, Any] | DriverConfig) -> DriverConfig:
@@ -137,7 +110,7 @@ def validate_driver_config(table: Mapping[str, Any] | DriverConfig) -> DriverCon
     if not isinstance(name, str):
         raise DriverInitializationError(
             f"required key is missing (the driver's name; known drivers: "
-            f"{', '.join(sorted(driver_table()))})")
+            f"{', '.join(sorted(DRIVERS.names()))})")
     cls = get_driver_class(name)
     model = getattr(cls, "config_class", None)
     if not (isinstance(model, type) and issubclass(model, DriverConfig)):

@@ -40,7 +40,14 @@ from typing import Any, ClassVar, TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from twinwatch._lifecycle import Closeable
-from twinwatch.io.sample import DriverError, EndOfStream, Sample, ScaledChannel
+from twinwatch.errors import (
+    DriverConfigError,
+    DriverError,
+    DriverInitializationError,
+    DriverOperationError,
+    EndOfStream,
+)
+from twinwatch.io.sample import Sample, ScaledChannel
 
 logger = logging.getLogger(__name__)
 
@@ -56,20 +63,6 @@ __all__ = [
     "ScaledChannel",
     "validated_config",
 ]
-
-
-class DriverInitializationError(DriverError):
-    """The driver could not be opened (device, file, DBC or mapping problem)."""
-
-
-class DriverConfigError(DriverInitializationError):
-    """The driver cannot start because of its configuration or the files it names (a DBC
-    without the configured message, a recording without the mapped column, ...): starting
-    again will not help (``twinwatch run`` exits 78, EX_CONFIG)."""
-
-
-class DriverOperationError(DriverError):
-    """The driver failed while reading and cannot go on."""
 
 
 class DriverConfig(BaseModel):

@@ -14,16 +14,9 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from twinwatch.errors import DriverError, EndOfStream
+
 __all__ = ["DriverError", "EndOfStream", "Sample", "ScaledChannel"]
-
-
-class DriverError(Exception):
-    """Base class of every error a sample source raises (see :mod:`twinwatch.drivers.base`
-    for the errors by lifecycle phase)."""
-
-
-class EndOfStream(DriverError):  # noqa: N818 - mirrors StopIteration, not an error condition
-    """A finite source has delivered its last sample."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -18,13 +18,11 @@ import logging
 import os
 from pathlib import Path
 
+from twinwatch.errors import LockedError
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["FileLock", "LockedError"]
-
-
-class LockedError(OSError):
-    """Another process holds the lock; the message names the file and, if known, the pid."""
 
 
 def _holder(fd: int) -> int | None:

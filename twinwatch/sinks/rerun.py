@@ -72,6 +72,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from twinwatch._lazy import lazy_module
 from twinwatch._lifecycle import Closeable
+from twinwatch.errors import RecorderError
 from twinwatch.io.encoding import to_json
 from twinwatch.sinks.locks import FileLock, LockedError
 
@@ -79,7 +80,7 @@ if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from twinwatch.daemon.pipeline import ProcessedWindow
+    from twinwatch.sinks.base import ProcessedWindow
 else:  # imported when a recording opens: loading a configuration does not load rerun
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")
@@ -105,10 +106,6 @@ _PARAMETER_COLORS = (
 )
 _PROBLEM_STATUSES = frozenset({"warning", "alarm", "fault", "degraded", "error", "critical"})
 _SUMMARY_MAX_CHARS = 240
-
-
-class RecorderError(Exception):
-    """The recording file cannot be created or written."""
 
 
 class RecordingConfig(BaseModel):

@@ -50,11 +50,12 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from twinwatch._lifecycle import Closeable
+from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
 from twinwatch.sinks.locks import FileLock, LockedError
 
 if TYPE_CHECKING:
-    from twinwatch.daemon.pipeline import ProcessedWindow
+    from twinwatch.sinks.base import ProcessedWindow
 
 logger = logging.getLogger(__name__)
 
@@ -113,20 +114,6 @@ class StateConfig(BaseModel):
     keep_rows: int = Field(1_000_000, ge=1, description="keep at most this many windows")
     recover_corrupt: bool = Field(False, description="move a corrupt database aside and start "
                                   "a new one instead of refusing to start")
-
-
-class StoreError(Exception):
-    """The state database cannot be used; the message says what happened and what to do.
-
-    Attributes:
-        corrupt: the file is corrupt or not a database (SQLite's SQLITE_CORRUPT/NOTADB).
-        detail: SQLite's own message, without the advice.
-    """
-
-    def __init__(self, message: str, *, corrupt: bool = False, detail: str = "") -> None:
-        super().__init__(message)
-        self.corrupt = corrupt
-        self.detail = detail or message
 
 
 def _is_corrupt(exc: BaseException) -> bool:

@@ -65,12 +65,13 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from twinwatch._lazy import lazy_module
 from twinwatch._lifecycle import Closeable
+from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
 
 if TYPE_CHECKING:
     import zenoh
 
-    from twinwatch.daemon.pipeline import ProcessedWindow
+    from twinwatch.sinks.base import ProcessedWindow
 else:  # imported when a session opens: loading a configuration does not load zenoh
     zenoh = lazy_module("zenoh")
 
@@ -95,13 +96,6 @@ _ENDPOINT_RE = re.compile(
 _CHUNK_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 # " at /root/.cargo/.../unicast.rs:338." suffixes of zenoh error messages.
 _RUST_LOCATION_RE = re.compile(r"\s+at \S+\.rs:\d+\.?")
-
-
-class PublisherError(Exception):
-    """The zenoh session or one of its declarations could not be created.
-
-    The message names the endpoint involved and what to change in the configuration.
-    """
 
 
 class ZenohTlsConfig(BaseModel):

@@ -15,9 +15,9 @@ model. Layout version :data:`SCHEMA_VERSION`:
   refined across windows (:mod:`twinwatch.twin.discovery.terms`).
 * 4: ``status`` may be ``fused`` (not determined by this window alone but by the evidence
   of the windows so far, :mod:`~twinwatch.twin.estimation.fusion`); each estimated parameter
-  carries its fused value, interval and rate (``fused``); the window's model validation (``model_check``:
-  residual whiteness and residual-input tests per output; a window that fails it is not trusted
-  and its intervals are widened).
+  carries its fused value, interval and rate (``fused``); the window's model validation
+  (``model_check``: residual whiteness and residual-input tests per output; a window that fails
+  it is not trusted and its intervals are widened).
 * 3: each parameter's ``status`` (``estimated`` / ``held`` / ``tied`` / ``fixed``) next to the
   human ``reason``; non-finite numbers are ``null`` in every copy (the state store kept a bare
   ``NaN`` token before); ``discovery.simplified`` documented.

@@ -41,11 +41,10 @@ imported when a kind is first used.
 from __future__ import annotations
 
 import functools
-import importlib
 import logging
 from collections.abc import Mapping
-from importlib.metadata import entry_points
 
+from twinwatch.plugins import Registry
 from twinwatch.twin.discovery.metamodels.base import MetaModel
 
 logger = logging.getLogger(__name__)
@@ -53,20 +52,20 @@ logger = logging.getLogger(__name__)
 #: Entry-point group through which other packages add meta-models.
 ENTRY_POINT_GROUP = "twinwatch.metamodels"
 
-#: Built-in kinds: kind -> (module, class). The first six are paper Table 1, in its order; the
+#: Built-in kinds: kind -> "module:Class". The first six are paper Table 1, in its order; the
 #: others are the non-smooth terms real drives need (issue 9), candidates only where listed.
-BUILTIN_META_MODELS: Mapping[str, tuple[str, str]] = {
-    "linear": ("twinwatch.twin.discovery.metamodels.linear", "Linear"),
-    "exponential": ("twinwatch.twin.discovery.metamodels.exponential", "Exponential"),
-    "negative_exponential": ("twinwatch.twin.discovery.metamodels.negative_exponential",
-                             "NegativeExponential"),
-    "power": ("twinwatch.twin.discovery.metamodels.power", "Power"),
-    "logarithmic": ("twinwatch.twin.discovery.metamodels.logarithmic", "Logarithmic"),
-    "periodic": ("twinwatch.twin.discovery.metamodels.periodic", "Periodic"),
-    "rectifier": ("twinwatch.twin.discovery.metamodels.rectifier", "Rectifier"),
-    "dead_zone": ("twinwatch.twin.discovery.metamodels.dead_zone", "DeadZone"),
-    "coulomb": ("twinwatch.twin.discovery.metamodels.coulomb", "Coulomb"),
-    "saturation": ("twinwatch.twin.discovery.metamodels.saturation", "Saturation"),
+BUILTIN_META_MODELS: Mapping[str, str] = {
+    "linear": "twinwatch.twin.discovery.metamodels.linear:Linear",
+    "exponential": "twinwatch.twin.discovery.metamodels.exponential:Exponential",
+    "negative_exponential":
+        "twinwatch.twin.discovery.metamodels.negative_exponential:NegativeExponential",
+    "power": "twinwatch.twin.discovery.metamodels.power:Power",
+    "logarithmic": "twinwatch.twin.discovery.metamodels.logarithmic:Logarithmic",
+    "periodic": "twinwatch.twin.discovery.metamodels.periodic:Periodic",
+    "rectifier": "twinwatch.twin.discovery.metamodels.rectifier:Rectifier",
+    "dead_zone": "twinwatch.twin.discovery.metamodels.dead_zone:DeadZone",
+    "coulomb": "twinwatch.twin.discovery.metamodels.coulomb:Coulomb",
+    "saturation": "twinwatch.twin.discovery.metamodels.saturation:Saturation",
 }
 
 #: The kinds of paper Table 1 (a candidate's default ``kinds``).
@@ -74,19 +73,9 @@ TABLE_1 = ("linear", "exponential", "negative_exponential", "power", "logarithmi
            "periodic")
 
 
-@functools.cache
-def meta_model_table() -> Mapping[str, tuple[str, str]]:
-    """Every known kind -> (module, class): the built-ins plus the entry points (read once; a
-    plug-in cannot replace a built-in kind)."""
-    table = dict(BUILTIN_META_MODELS)
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        if ep.name in BUILTIN_META_MODELS:
-            logger.warning("entry point %s = %r ignored: %r is a built-in meta-model",
-                           ep.name, ep.value, ep.name)
-            continue
-        module, _, attr = ep.value.partition(":")
-        table[ep.name] = (module.strip(), attr.strip())
-    return table
+#: The meta-model registry (:class:`twinwatch.plugins.Registry`).
+REGISTRY: Registry[MetaModel] = Registry("meta-model", ENTRY_POINT_GROUP, BUILTIN_META_MODELS,
+                                         base=lambda: MetaModel)
 
 
 @functools.cache
@@ -94,42 +83,35 @@ def get_meta_model(kind: str) -> MetaModel:
     """The meta-model of a kind (one shared instance: meta-models hold no state).
 
     Raises:
-        ValueError: an unknown kind (the message lists the known ones), or a plug-in that
-            cannot be imported or is not a :class:`MetaModel`.
+        ValueError: an unknown kind (:class:`~twinwatch.errors.PluginError`, the message lists
+            the known ones), or a plug-in that cannot be imported or is not a
+            :class:`MetaModel` of that kind.
     """
-    table = meta_model_table()
-    try:
-        module, cls_name = table[kind]
-    except KeyError:
-        raise ValueError(f"unknown meta-model {kind!r}; choose from {sorted(table)}") from None
-    try:
-        cls = getattr(importlib.import_module(module), cls_name)
-    except (ImportError, AttributeError) as exc:
-        raise ValueError(f"meta-model {kind!r} not available: {exc}") from exc
-    if not (isinstance(cls, type) and issubclass(cls, MetaModel)) or cls.kind != kind:
-        raise ValueError(f"meta-model {kind!r}: {module}.{cls_name} is not a MetaModel of "
-                         f"kind {kind!r}")
+    cls = REGISTRY.load(kind)
+    if cls.kind != kind:
+        raise ValueError(f"meta-model {kind!r}: {cls.__module__}.{cls.__name__} is a "
+                         f"MetaModel of kind {cls.kind!r}, not {kind!r}")
     return cls()
 
 
 def available_kinds() -> list[str]:
     """Every kind a configuration may name."""
-    return list(meta_model_table())
+    return list(REGISTRY.table())
 
 
 class _Library(Mapping[str, MetaModel]):
     """The library by kind, loaded on access (``META_MODELS["periodic"]``)."""
 
     def __getitem__(self, kind: str) -> MetaModel:
-        if kind not in meta_model_table():
+        if kind not in REGISTRY.table():
             raise KeyError(kind)
         return get_meta_model(kind)
 
     def __iter__(self):  # type: ignore[no-untyped-def]
-        return iter(meta_model_table())
+        return iter(REGISTRY.table())
 
     def __len__(self) -> int:
-        return len(meta_model_table())
+        return len(REGISTRY.table())
 
 
 #: Every meta-model, by kind.
@@ -138,13 +120,14 @@ META_MODELS: Mapping[str, MetaModel] = _Library()
 
 def working_conditions() -> dict[str, str]:
     """Kind -> its working conditions (paper Table 1 for the first six)."""
-    return {k: get_meta_model(k).meaning for k in meta_model_table()}
+    return {k: get_meta_model(k).meaning for k in REGISTRY.table()}
 
 
 __all__ = [
     "BUILTIN_META_MODELS",
     "ENTRY_POINT_GROUP",
     "META_MODELS",
+    "REGISTRY",
     "TABLE_1",
     "MetaModel",
     "available_kinds",
