@@ -7,10 +7,15 @@ Threads (see docs/architecture.md):
   estimates, so acquisition is never blocked by the optimiser.
 * ``twinwatch-adaptation`` (one worker thread) runs the window pipeline
   (:class:`~twinwatch.daemon.pipeline.WindowPipeline`): estimation, health message, alarms,
-  then the sinks in order: state database, Zenoh, Rerun. Stored before published: a health
-  message a subscriber has seen is always in the database, also after SIGKILL.
+  then the sinks in order: the gate (the state database), then the others (Zenoh, Rerun,
+  plug-ins). Stored before published: a health message a subscriber has seen is always in the
+  database, also after SIGKILL.
 * zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
   database (one SQLite connection per thread, WAL: readers never block the worker).
+
+The daemon opens the configured outputs through the sink registry
+(:data:`twinwatch.sinks.SINKS`, :class:`~twinwatch.sinks.base.Sink`) and knows none by name:
+their roles decide the order of writing, their counters, losses and problems are merged.
 
 Between them a bounded queue. For a live source (a bus, a real-time replay) a full queue means
 the estimation does not keep up: the window is dropped and counted as an *overrun* (published in
@@ -21,41 +26,35 @@ as fast as possible) the acquisition waits instead, so no window is ever lost.
 from __future__ import annotations
 
 import logging
-import math
 import queue
 import threading
 import time
-from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from twinwatch.daemon.alarms import AlarmEvaluator
-from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline, WindowSink
+from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
+from twinwatch.sinks import SINKS, sink_class
+from twinwatch.sinks.base import Gate, Role, Sink, SinkContext
+from twinwatch.sinks.zenoh import HISTORY_LIMIT, history_parameters
 from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.systemd import Watchdog
-    from twinwatch.sinks.rerun import RerunRecorder
-    from twinwatch.sinks.store import StateStore
-    from twinwatch.sinks.zenoh import HealthPublisher
 
 logger = logging.getLogger(__name__)
 
 _STOP = object()
 
-HISTORY_LIMIT = 1000
-"""Most windows one history query returns (page on with ``t_from``)."""
-
-SINKS = ("store", "publisher", "recorder")
-"""The daemon's sinks, in the order each window is written to them (stored before published);
-a reload may hand them from the old daemon to the new one (:meth:`Daemon.close` ``keep``)."""
+__all__ = ["HISTORY_LIMIT", "SINKS", "Daemon", "history_parameters"]
 
 
 class Daemon:
@@ -66,25 +65,32 @@ class Daemon:
         base_dir: directory relative paths in the config are resolved against (the config
             file's directory).
         driver: an already-open driver to use instead of the configured one (tests).
-        publish: open the Zenoh publisher (``config.zenoh.enabled`` must also be true).
-        record: open the Rerun recorder (``config.recording.enabled`` must also be true).
-        persist: open the state database (``config.state.enabled`` must also be true):
-            restore the last accepted twin and the alarm levels from it, save every window,
-            serve the history query. Off by default for library use and tests; the CLI turns
-            it on.
+        publish: open the outputs whose role is ``publisher`` (Zenoh, plug-ins; each only if
+            its table is enabled).
+        record: open the outputs whose role is ``recorder`` (the Rerun recording).
+        persist: open the gate (the state database, if ``[state]`` is enabled): restore the
+            last accepted twin and the alarm levels from it, save every window, serve the
+            history query. Off by default for library use and tests; the CLI turns it on.
         watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
             each window).
-        reuse: open sinks (names in :data:`SINKS`) handed over from a previous daemon by a
-            reload (see :meth:`close`), used instead of opening new ones. The caller (the
-            supervisor) hands over only sinks whose configuration is unchanged.
+        reuse: open outputs (registry name -> sink) handed over from a previous daemon by a
+            reload (see :meth:`close`). Those whose table and context are unchanged
+            (:meth:`~twinwatch.sinks.base.Sink.keeps`) are adopted instead of opening new
+            ones; the others are closed.
         resume: restore the saved twin and alarm levels from the state database (False:
             start from the nameplate values, ``twinwatch run --fresh``).
 
+    Attributes:
+        sinks: registry name -> the open output, in the order each window is written to them
+            (the gate first: stored before published).
+
     Raises:
-        twinwatch.drivers.base.DriverInitializationError, PublisherError, RecorderError,
-        StoreError, ValueError: on a start-up problem, with a message that says what to fix.
-        Every exclusive resource is taken before any file is touched (the Zenoh port, the
-        state database's lock, the recording's lock), and the device last.
+        twinwatch.drivers.base.DriverInitializationError, twinwatch.errors.SinkError (its
+        subclasses PublisherError, RecorderError, StoreError, a plug-in's), PluginError,
+        ValueError: on a start-up problem, with a message that says what to fix. Every
+        exclusive resource is taken before any file is touched (the outputs open in their
+        ``open_order``: the Zenoh port, the state database's lock, the recording's lock),
+        and the device last.
     """
 
     def __init__(
@@ -97,7 +103,7 @@ class Daemon:
         record: bool = True,
         persist: bool = False,
         watchdog: Watchdog | None = None,
-        reuse: Mapping[str, WindowSink] | None = None,
+        reuse: Mapping[str, Sink] | None = None,
         resume: bool = True,
     ) -> None:
         self.config = config
@@ -112,9 +118,7 @@ class Daemon:
         acq = config.acquisition
         self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
                                sample_period=acq.sample_period, max_gap=acq.max_gap)
-        self.publisher: HealthPublisher | None = None
-        self.recorder: RerunRecorder | None = None
-        self.store: StateStore | None = None
+        self.sinks: dict[str, Sink] = {}
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
         self.pipeline = WindowPipeline(
@@ -124,7 +128,7 @@ class Daemon:
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.failure: str | None = None
-        self._closed_sinks: dict[str, Any] = {}
+        self._closed_sinks: dict[str, Sink] = {}
         self.driver: Driver | None = None
         self._own_driver = driver is None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
@@ -134,53 +138,68 @@ class Daemon:
         self.numeric_failures = 0
         self._ticks: list[Callable[[], None]] = []
         self.abandon = config.acquisition.abandon_on_stop
+        roles: dict[Role, bool] = {"gate": persist, "publisher": publish, "recorder": record}
         try:
-            for name, sink in (reuse or {}).items():
-                if name not in SINKS:
-                    raise ValueError(f"unknown sink {name!r}; the sinks are {SINKS}")
-                setattr(self, name, sink)
-                logger.info("reload: the %s is kept open (its configuration is unchanged)", name)
-            # Every exclusive resource before any file is touched: the Zenoh port, then the
-            # state database's lock, then the recording's lock (and only then its truncation),
-            # so a second twinwatch in the same directory fails without harming the first.
-            if publish and config.zenoh.enabled and self.publisher is None:
-                from twinwatch.sinks.zenoh import HealthPublisher
-
-                self.publisher = HealthPublisher(config.zenoh, self.machine,
-                                                 retry_connect=True)
-            if persist and config.state.enabled and self.store is None:
-                from twinwatch.sinks.store import StateStore
-
-                st = config.state
-                self.store = StateStore(Path(st.path).expanduser(),
-                                        synchronous=st.synchronous,
-                                        keep_days=st.keep_days, keep_rows=st.keep_rows,
-                                        recover_corrupt=st.recover_corrupt)
-            if record and config.recording.enabled and self.recorder is None:
-                from twinwatch.sinks.rerun import RerunRecorder
-
-                rec = config.recording.model_copy()
-                path = Path(rec.path)
-                if not path.is_absolute():
-                    rec.path = str(Path.cwd() / path)
-                self.recorder = RerunRecorder(
-                    rec, self.machine, outputs=self.model.output_names,
-                    parameters={p.name: p.unit for p in self.model.parameters})
-            if self.store is not None:
-                if "store" in (reuse or {}):
+            adopted = self._open_sinks(roles, dict(reuse or {}))
+            gate = self.store
+            if gate is not None:
+                if gate.name in adopted:
                     # a reload: same run id, so the windows go on from the last one stored
-                    self.ring.first_index = self.store.next_window(self.machine)
+                    self.ring.first_index = gate.next_window(self.machine)
                 if resume:
                     self._restore()
-            if self.publisher is not None and self.store is not None:
-                self.publisher.add_query_handler("history", self._on_history_query)
             self.driver = driver or create_driver(config.driver, base_dir=self.base_dir)
         except BaseException:
             self.close()
             raise
-        self.pipeline.sinks = [s for s in (self.store, self.publisher, self.recorder)
-                               if s is not None]
+        self.pipeline.sinks = list(self.sinks.values())
         self.pipeline.gate = self.store  # a window it cannot store is not published
+
+    def _open_sinks(self, roles: Mapping[Role, bool], reuse: dict[str, Sink]) -> set[str]:
+        """Open the enabled outputs whose role is wanted (``roles``), adopting the ``reuse``d
+        ones that fit; :attr:`sinks` ends in writing order (the gate first, then the
+        registry's order).
+
+        Every exclusive resource before any file is touched: the outputs open in their
+        ``open_order`` (the Zenoh port, then the state database's lock, then the recording's
+        lock and only then its truncation), so a second twinwatch in the same directory fails
+        without harming the first.
+
+        Returns:
+            The names of the adopted outputs.
+        """
+        for name in reuse:
+            if name not in SINKS:
+                raise ValueError(f"unknown output {name!r}; the outputs are "
+                                 f"{', '.join(SINKS.names())}")
+        tables = [t for t in self.config.output_tables() if t.config.enabled]
+        classes = {t.name: sink_class(t.name) for t in tables}
+        wanted = [t for t in tables if roles[classes[t.name].role]]
+        has_gate = any(classes[t.name].role == "gate" for t in wanted)
+        context = SinkContext(
+            machine=self.machine, model=self.config.machine.model,
+            outputs=tuple(self.model.output_names),
+            parameters={p.name: p.unit for p in self.model.parameters},
+            base_dir=self.base_dir, cwd=Path.cwd(),
+            history=self.stored_history if has_gate else None)
+        adopted: set[str] = set()
+        for t in wanted:
+            sink = reuse.pop(t.name, None)
+            if sink is not None and sink.keeps(t.config, context):
+                sink.attach(context)
+                self.sinks[t.name] = sink
+                adopted.add(t.name)
+                logger.info("reload: the %s output is kept open (its configuration is "
+                            "unchanged)", t.name)
+        for name, sink in reuse.items():  # their table changed, or they are off now
+            _close(name, sink)
+        for t in sorted(wanted, key=lambda t: classes[t.name].open_order):
+            if t.name not in self.sinks:
+                self.sinks[t.name] = classes[t.name].open(t.name, t.config, context)
+        order = [t.name for t in wanted]
+        self.sinks = dict(sorted(self.sinks.items(), key=lambda kv: (
+            not isinstance(kv[1], Gate), order.index(kv[0]))))
+        return adopted
 
     # -- the window pipeline's results ------------------------------------------------------
     @property
@@ -189,14 +208,35 @@ class Daemon:
         return self.pipeline.windows_estimated
 
     @property
-    def latest(self) -> dict[str, Any] | None:
-        """The last health message."""
+    def latest_health(self) -> HealthMessage | None:
+        """The last health message (typed)."""
         return self.pipeline.latest
 
     @property
-    def history(self) -> deque[dict[str, Any]]:
-        """The last ``[acquisition] history`` health messages."""
-        return self.pipeline.history
+    def health_history(self) -> list[HealthMessage]:
+        """The last ``[acquisition] history`` health messages (typed), oldest first."""
+        return self.pipeline.recent()
+
+    @property
+    def latest(self) -> dict[str, Any] | None:
+        """The last health message, as a subscriber reads it (plain JSON types)."""
+        last = self.pipeline.latest
+        return None if last is None else last.as_dict()
+
+    @property
+    def history(self) -> list[dict[str, Any]]:
+        """The last ``[acquisition] history`` health messages, as a subscriber reads them."""
+        return [h.as_dict() for h in self.pipeline.recent()]
+
+    # -- the outputs ------------------------------------------------------------------------
+    @property
+    def store(self) -> Gate | None:
+        """The gate (the state store) while it is open, or None."""
+        return next((s for s in self.sinks.values() if isinstance(s, Gate)), None)
+
+    def _outputs(self) -> list[Sink]:
+        """Every output of this daemon, open or closed (their accounting stays readable)."""
+        return [*self.sinks.values(), *self._closed_sinks.values()]
 
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
@@ -237,25 +277,15 @@ class Daemon:
             }
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
-                limit: int | None = HISTORY_LIMIT, by: str = "plant") -> list[dict[str, Any]]:
-        """Stored health messages of this machine in a time range (see
-        :meth:`StateStore.history`); empty without a state database."""
-        if self.store is None:
+                       limit: int | None = HISTORY_LIMIT,
+                       by: Literal["plant", "wall"] = "plant") -> list[dict[str, Any]]:
+        """Stored health messages of this machine in a time range (the gate's
+        :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state database. The
+        outputs ask it through their context (the Zenoh history query)."""
+        store = self.store
+        if store is None:
             return []
-        return self.store.history(t_from, t_to, limit, by=by,  # type: ignore[arg-type]
-                                  machine=self.machine)
-
-    def _on_history_query(self, query: Any) -> dict[str, Any]:
-        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread).
-
-        Raises:
-            ValueError: a bad parameter (replied as an error naming it).
-        """
-        t_from, t_to, limit, by = history_parameters(query.parameters)
-        windows = self.stored_history(t_from, t_to, limit, by=by)
-        more = len(windows) == limit
-        return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to,
-                "count": len(windows), "more": more, "windows": windows}
+        return store.history(t_from, t_to, limit, by=by, machine=self.machine)
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
@@ -271,6 +301,8 @@ class Daemon:
         self._stop.set()
 
     def counters(self) -> dict[str, int]:
+        """The health message's counters: the daemon's, the driver's (``driver_*``), each
+        open output's (``<prefix>_<name>``) and the gate's ``windows_not_stored``."""
         c: dict[str, int] = {
             "windows_completed": self.ring.windows,
             "windows_estimated": self.windows_estimated,
@@ -281,63 +313,35 @@ class Daemon:
         }
         if self.driver is not None:
             c.update({f"driver_{k}": v for k, v in self.driver.stats.as_dict().items()})
-        if self.publisher is not None:
-            c["zenoh_published"] = int(getattr(self.publisher, "published", 0))
-            c["zenoh_errors"] = int(getattr(self.publisher, "errors", 0))
-            c["zenoh_not_connected"] = int(getattr(self.publisher, "not_connected", 0))
-        if self.store is not None:
-            c["store_errors"] = int(self.store.errors)
-            c["store_waiting"] = int(self.store.waiting)
-            c["store_lost"] = int(self.store.lost)
-            c["windows_not_stored"] = self.pipeline.not_stored
-        if self.recorder is not None:
-            c["recording_lost"] = int(self.recorder.lost)
+        for sink in self.sinks.values():
+            c.update({f"{sink.prefix}_{k}": int(v) for k, v in sink.counters().items()})
+            if isinstance(sink, Gate):
+                c["windows_not_stored"] = int(sink.not_stored)
         c["samples_received"] = self.ring.samples
         c["samples_lost"] = sum(self.ring.lost.values())
         return c
 
-    def _sink(self, name: str) -> Any:
-        """The open sink, or the one :meth:`close` closed (its counters stay readable)."""
-        obj = getattr(self, name)
-        return obj if obj is not None else self._closed_sinks.get(name)
-
     def problems(self) -> list[str]:
-        """What is degraded right now (for systemd's STATUS and the log), empty if nothing."""
-        out = []
-        store = self._sink("store")
-        if store is not None and store.failing:
-            out.append(f"state database not writable: {store.waiting} windows waiting "
-                       f"in memory, not published")
-        if store is not None and store.lost:
-            out.append(f"{store.lost} windows lost (never stored)")
-        problem = getattr(self._sink("recorder"), "problem", None)
-        if problem:
-            out.append(problem)
-        return out
+        """What is degraded right now (each output's
+        :attr:`~twinwatch.sinks.base.Sink.problem`, for systemd's STATUS and the log), empty if
+        nothing."""
+        return [p for s in self._outputs() if (p := s.problem)]
 
     def lost(self) -> dict[str, int]:
-        """Windows estimated but lost: never stored (``store``), not recorded
-        (``recording``). Nonzero values make ``twinwatch run`` exit with status 74."""
-        out = {}
-        store = self._sink("store")
-        if store is not None and store.lost:
-            out["store"] = int(store.lost)
-        recorder = self._sink("recorder")
-        not_recorded = int(getattr(recorder, "lost", 0)) if recorder is not None else 0
-        if not_recorded:
-            out["recording"] = not_recorded
-        return out
+        """Windows estimated but lost, by output (its counter prefix: ``store`` never stored,
+        ``recording`` not recorded, ...). Nonzero values make ``twinwatch run`` exit with
+        status 74."""
+        return {s.prefix: int(s.lost) for s in self._outputs() if s.lost}
 
-    @property
-    def store_stats(self) -> dict[str, int]:
-        """The state database's account: ``errors`` (failed writes), ``waiting`` (windows in
-        memory), ``lost`` (never stored), ``not_stored`` (windows not stored when estimated,
-        hence not published). Zeros without a state database."""
-        store = self._sink("store")
-        if store is None:
-            return {"errors": 0, "waiting": 0, "lost": 0, "not_stored": 0}
-        return {"errors": int(store.errors), "waiting": int(store.waiting),
-                "lost": int(store.lost), "not_stored": self.pipeline.not_stored}
+    def status(self) -> list[str]:
+        """What the open outputs serve, in the order they opened (systemd's STATUS)."""
+        opened = sorted(self.sinks.values(), key=lambda s: s.open_order)
+        return [st for s in opened if (st := s.status)]
+
+    def summary(self) -> list[str]:
+        """The outputs' lines for the run's summary (where the windows went, what was lost),
+        in writing order."""
+        return [line for s in self._outputs() for line in s.summary()]
 
     def run(self, duration: float | None = None) -> int:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
@@ -456,43 +460,41 @@ class Daemon:
                 if self.watchdog is not None:
                     self.watchdog.idle()
 
-    def process_window(self, window: WindowData) -> dict[str, Any]:
+    def process_window(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window and write it to the sinks (the pipeline's
-        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`). Returns the health
+        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`). Returns the typed health
         message."""
         return self.pipeline.process(window)
 
-    def close(self, keep: tuple[str, ...] = ()) -> dict[str, WindowSink]:
-        """Stop everything and release driver, publisher, recorder and state database (after
-        the worker has drained). Idempotent.
+    def close(self, keep: Collection[str] = ()) -> dict[str, Sink]:
+        """Stop everything and release the driver and the outputs (after the worker has
+        drained): the driver first, then the outputs in writing order reversed (the gate, the
+        state database, last). Idempotent.
 
         Args:
-            keep: sinks (names in :data:`SINKS`) to leave open for a new daemon (reload).
+            keep: outputs (registry names; :data:`SINKS` for all) to leave open for a new
+                daemon (a reload): each is detached from this daemon.
 
         Returns:
-            name -> sink for the kept sinks: pass (those still compatible) as ``reuse``.
+            name -> output for the kept ones: pass them as ``reuse`` (the new daemon adopts
+            those whose configuration is unchanged and closes the others).
         """
         self._stop.set()
         self._drain()
-        kept: dict[str, WindowSink] = {}
-        for name in ("driver", "publisher", "recorder", "store"):
-            obj = getattr(self, name, None)
-            if obj is None or (name == "driver" and not self._own_driver):
-                continue
+        if self.driver is not None and self._own_driver:
+            _close("driver", self.driver)
+        self.driver = None
+        kept: dict[str, Sink] = {}
+        for name, sink in reversed(list(self.sinks.items())):
             if name in keep:
-                if name == "publisher":
-                    obj.add_query_handler("history", _no_history)
-                kept[name] = obj
+                sink.detach()
+                kept[name] = sink
             else:
-                try:
-                    obj.close()
-                except Exception as exc:  # noqa: BLE001 - the other sinks still close
-                    logger.error("error while closing the %s: %s: %s", name,
-                                 type(exc).__name__, exc)
-                    logger.debug("closing the %s failed", name, exc_info=True)
-                self._closed_sinks[name] = obj  # for the final accounting (lost windows)
-            setattr(self, name, None)
+                _close(name, sink)
+                self._closed_sinks[name] = sink  # for the final accounting (lost windows)
+        self.sinks = {}
         self.pipeline.sinks = []
+        self.pipeline.gate = None
         return kept
 
     def __enter__(self) -> Daemon:
@@ -502,61 +504,10 @@ class Daemon:
         self.close()
 
 
-HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit")
-
-
-def history_parameters(params: Any) -> tuple[float | None, float | None, int, str]:
-    """The history query's parameters, checked: ``t_from`` and ``t_to`` finite seconds (either
-    may be absent), ``t_from <= t_to``, ``by`` ``plant`` or ``wall``, ``limit`` a whole number
-    from 1 (at most :data:`HISTORY_LIMIT` are returned).
-
-    Args:
-        params: the selector's parameters (a mapping with ``get``, zenoh's ``Parameters``).
-
-    Returns:
-        ``(t_from, t_to, limit, by)``.
-
-    Raises:
-        ValueError: naming the bad parameter.
-    """
-    unknown = [k for k, _ in _items(params) if k not in HISTORY_PARAMETERS]
-    if unknown:
-        raise ValueError(f"unknown parameter {unknown[0]!r}: use "
-                         f"{', '.join(HISTORY_PARAMETERS)}")
-
-    def num(key: str) -> float | None:
-        raw = params.get(key)
-        if raw in (None, ""):
-            return None
-        try:
-            value = float(raw)
-        except ValueError:
-            raise ValueError(f"{key}={raw!r} is not a number [s]") from None
-        if not math.isfinite(value):
-            raise ValueError(f"{key}={raw!r}: give a finite time [s], or leave it out for "
-                             f"an open end")
-        return value
-
-    by = params.get("by") or "plant"
-    if by not in ("plant", "wall"):
-        raise ValueError(f"by={by!r}: use by=plant (source time) or by=wall (epoch s)")
-    t_from, t_to = num("t_from"), num("t_to")
-    if t_from is not None and t_to is not None and t_from > t_to:
-        raise ValueError(f"t_from={t_from:g} is after t_to={t_to:g}")
-    lim = num("limit")
-    if lim is not None and (lim < 1 or not lim.is_integer()):
-        raise ValueError(f"limit={params.get('limit')!r}: give a whole number from 1 "
-                         f"(at most {HISTORY_LIMIT} are returned)")
-    limit = HISTORY_LIMIT if lim is None else min(int(lim), HISTORY_LIMIT)
-    return t_from, t_to, limit, by
-
-
-def _items(params: Any) -> list[tuple[str, str]]:
-    """(key, value) pairs of zenoh ``Parameters`` or a plain mapping."""
-    if isinstance(params, dict):
-        return list(params.items())
-    return [(str(k), str(v)) for k, v in params]
-
-
-def _no_history(query: Any) -> dict[str, Any]:
-    raise ValueError("the daemon is reloading: ask again in a moment")
+def _close(name: str, obj: Sink | Driver) -> None:
+    """Close ``obj``, logging (not raising) a failure: the others still close."""
+    try:
+        obj.close()
+    except Exception as exc:  # noqa: BLE001 - the other sinks still close
+        logger.error("error while closing the %s: %s: %s", name, type(exc).__name__, exc)
+        logger.debug("closing the %s failed", name, exc_info=True)

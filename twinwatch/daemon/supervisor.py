@@ -13,11 +13,11 @@ printing). In the main thread it
   (:class:`~twinwatch.daemon.systemd.Watchdog`).
 * on SIGHUP, re-reads the configuration *while acquisition goes on* (a tick of the daemon's
   loop). A configuration that does not validate is refused (logged, naming the key) and the
-  running one goes on. A valid one restarts the daemon in process: the sinks whose part of the
-  configuration is unchanged (:func:`sink_config`: the Zenoh session, the Rerun file, the state
-  database) are handed to the new daemon open, the others closed; the twin resumes from the
-  state database. If the new configuration cannot start (a device, a port), the previous one
-  is started again.
+  running one goes on. A valid one restarts the daemon in process: the outputs are handed to the
+  new daemon open, which keeps those whose table is unchanged (each output's
+  :meth:`~twinwatch.sinks.base.Sink.reload_key`: the Zenoh session, the Rerun file, the state
+  database) and closes the others; the twin resumes from the state database. If the new
+  configuration cannot start (a device, a port), the previous one is started again.
 * compiles the twin's numba kernels before ``READY=1`` (:func:`warm_up`), so the first window
   does not look like a stuck worker to the watchdog.
 
@@ -41,32 +41,14 @@ from twinwatch.errors import StartError
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
-    from twinwatch.daemon.pipeline import HealthCallback, WindowSink
+    from twinwatch.daemon.pipeline import HealthCallback
     from twinwatch.daemon.runner import Daemon
+    from twinwatch.sinks.base import Sink
+    from twinwatch.twin.health import HealthMessage
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["StartError", "Supervisor", "sink_config", "status_line", "warm_up"]
-
-
-def sink_config(config: TwinwatchConfig, name: str) -> Any:
-    """The part of ``config`` a sink depends on: equal parts let a reload keep the sink open.
-
-    Args:
-        config: a validated configuration.
-        name: ``"publisher"``, ``"recorder"`` or ``"store"``.
-
-    Raises:
-        ValueError: another name.
-    """
-    m = config.machine
-    if name == "publisher":
-        return (m.name, config.zenoh.model_dump())
-    if name == "recorder":
-        return (m.name, m.model, m.options, config.recording.model_dump())
-    if name == "store":
-        return config.state.model_dump()
-    raise ValueError(name)
+__all__ = ["StartError", "Supervisor", "status_line", "warm_up"]
 
 
 def warm_up(daemon: Daemon) -> None:
@@ -90,11 +72,7 @@ def warm_up(daemon: Daemon) -> None:
 def status_line(config: TwinwatchConfig, daemon: Daemon) -> str:
     """The ``STATUS=`` systemd shows: what is monitored and where the health goes."""
     parts = [f"monitoring {config.machine.name} ({config.machine.model}, "
-             f"{config.driver.type} driver)"]
-    if daemon.publisher is not None:
-        parts.append(f"health on {config.zenoh.key_prefix}/{config.machine.name}/health")
-    if daemon.store is not None:
-        parts.append(f"state {daemon.store.path}")
+             f"{config.driver.type} driver)", *daemon.status()]
     if daemon.restored is not None:
         parts.append("twin resumed")
     problems = daemon.problems()
@@ -180,21 +158,20 @@ class Supervisor:
         if self.daemon is not None:
             self.daemon.add_callback(fn)
 
-    def _open(self, cfg: TwinwatchConfig, reuse: dict[str, WindowSink] | None = None,
+    def _open(self, cfg: TwinwatchConfig, reuse: dict[str, Sink] | None = None,
               resume: bool = True) -> Daemon:
-        """A daemon on ``cfg`` (driver and sinks open), with the reload tick and callbacks.
+        """A daemon on ``cfg`` (driver and outputs open), with the reload tick and callbacks.
 
         Raises:
-            StartError: a device, port, file or the state database cannot be opened.
+            StartError: a device, port, file, an output or the state database cannot be
+                opened.
         """
         from twinwatch.daemon.runner import Daemon
-        from twinwatch.drivers.base import DriverConfigError, DriverError
-        from twinwatch.sinks.rerun import RecorderError
-        from twinwatch.sinks.store import StoreError
-        from twinwatch.sinks.zenoh import PublisherError
+        from twinwatch.errors import DriverConfigError, DriverError, PluginError, SinkError
 
-        start_errors = (DriverError, PublisherError, RecorderError, StoreError, ValueError,
-                        OSError)
+        # each output raises a SinkError subclass (PublisherError, RecorderError, StoreError,
+        # a plug-in's own) that says what failed and what to do
+        start_errors = (DriverError, SinkError, PluginError, ValueError, OSError)
         try:
             daemon = Daemon(cfg, base_dir=self.base_dir, persist=True, watchdog=self.watchdog,
                             reuse=reuse, resume=resume)
@@ -208,7 +185,7 @@ class Supervisor:
             daemon.add_callback(fn)
         return daemon
 
-    def _watch_problems(self, health: dict[str, Any]) -> None:
+    def _watch_problems(self, health: HealthMessage) -> None:
         """After each window (worker thread): systemd's STATUS follows what is degraded (the
         state database not writable, the recording stopped), and returns to normal."""
         daemon, cfg = self.daemon, self.config
@@ -281,19 +258,14 @@ class Supervisor:
             self.daemon.stop()
 
     def _restart(self, new_cfg: TwinwatchConfig) -> None:
-        """Replace the daemon by one on ``new_cfg``, handing over the sinks it can keep; if
-        it cannot start, start the previous configuration again."""
-        from twinwatch.daemon.runner import SINKS
+        """Replace the daemon by one on ``new_cfg``, handing over the outputs (it keeps those
+        whose configuration is unchanged); if it cannot start, start the previous
+        configuration again."""
+        from twinwatch.sinks import SINKS
 
         assert self.daemon is not None and self.config is not None
         old_cfg = self.config
-        kept = self.daemon.close(keep=SINKS)
-        reuse: dict[str, WindowSink] = {}
-        for name, sink in kept.items():
-            if sink_config(old_cfg, name) == sink_config(new_cfg, name):
-                reuse[name] = sink
-            else:
-                sink.close()
+        reuse = self.daemon.close(keep=SINKS)
         self.daemon = None
         try:
             self.daemon = self._open(new_cfg, reuse=reuse)

@@ -43,19 +43,16 @@ import sqlite3
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, ClassVar, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from twinwatch._lifecycle import Closeable
 from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
+from twinwatch.sinks.base import Gate, ProcessedWindow, SinkConfig, SinkContext, _frozen
 from twinwatch.sinks.locks import FileLock, LockedError
-
-if TYPE_CHECKING:
-    from twinwatch.sinks.base import ProcessedWindow
 
 logger = logging.getLogger(__name__)
 
@@ -91,7 +88,7 @@ CREATE TABLE IF NOT EXISTS twin (
 """
 
 
-class StateConfig(BaseModel):
+class StateConfig(SinkConfig):
     """``[state]``: the state database (health history and last accepted twin).
 
     Example::
@@ -103,8 +100,6 @@ class StateConfig(BaseModel):
         keep_rows = 1000000
     """
 
-    model_config = ConfigDict(extra="forbid")
-
     enabled: bool = Field(True, description="keep the history and the twin; restore at start")
     path: str = Field("state.sqlite", min_length=1,
                       description="SQLite file, relative to the working directory")
@@ -114,6 +109,11 @@ class StateConfig(BaseModel):
     keep_rows: int = Field(1_000_000, ge=1, description="keep at most this many windows")
     recover_corrupt: bool = Field(False, description="move a corrupt database aside and start "
                                   "a new one instead of refusing to start")
+
+    def output_files(self, cwd: Path) -> dict[str, Path]:
+        """The database file (its directory must exist and be writable)."""
+        path = Path(self.path).expanduser()
+        return {"path": path if path.is_absolute() else cwd / path}
 
 
 def _is_corrupt(exc: BaseException) -> bool:
@@ -128,8 +128,10 @@ def _dumps(obj: Any) -> str:
     return to_json(obj)
 
 
-class StateStore(Closeable):
-    """The health history and the last accepted twin of one machine, in SQLite.
+class StateStore(Gate):
+    """The health history and the last accepted twin of one machine, in SQLite: the
+    pipeline's gate (:class:`~twinwatch.sinks.base.Gate`, the built-in output ``store``,
+    table ``[state]``).
 
     Args:
         path: database file (created with its tables if absent; the directory must exist).
@@ -151,6 +153,10 @@ class StateStore(Closeable):
             corrupt, is locked, or was written by a newer twinwatch (schema version above
             :data:`SCHEMA_VERSION`).
     """
+
+    config_class: ClassVar[type[StateConfig]] = StateConfig
+    counter_prefix: ClassVar[str | None] = "store"
+    open_order: ClassVar[int] = 20  # its lock before the recording's (which truncates a file)
 
     def __init__(
         self,
@@ -191,6 +197,7 @@ class StateStore(Closeable):
         self.pruned = 0
         self.lost = 0
         self.recovered = 0
+        self.not_stored = 0
         self.recover_corrupt = recover_corrupt
         self._check = check
         self._lock: FileLock | None = None
@@ -380,6 +387,68 @@ class StateStore(Closeable):
             raise self._error("cannot open", exc) from exc
 
     # -- writing ------------------------------------------------------------------------------
+    # -- the sink contract ---------------------------------------------------------------------
+    @classmethod
+    def from_config(cls, config: StateConfig, context: SinkContext) -> Self:
+        """Open ``[state] path`` (relative to the working directory).
+
+        Raises:
+            StoreError: see the class docstring.
+        """
+        return cls(Path(config.path).expanduser(), synchronous=config.synchronous,
+                   keep_days=config.keep_days, keep_rows=config.keep_rows,
+                   recover_corrupt=config.recover_corrupt)
+
+    @classmethod
+    def reload_key(cls, config: StateConfig, context: SinkContext) -> Hashable:
+        """The table alone: the database holds every machine's rows."""
+        return _frozen(config.model_dump())
+
+    def counters(self) -> dict[str, int]:
+        """``errors`` (failed writes), ``waiting`` (windows in memory), ``lost`` (never
+        stored)."""
+        return {"errors": int(self.errors), "waiting": int(self.waiting), "lost": int(self.lost)}
+
+    @property
+    def problem(self) -> str | None:
+        """The database not writable (windows waiting, not published), windows lost."""
+        out = []
+        if self.failing:
+            out.append(f"state database not writable: {self.waiting} windows waiting "
+                       f"in memory, not published")
+        if self.lost:
+            out.append(f"{self.lost} windows lost (never stored)")
+        return "; ".join(out) or None
+
+    @property
+    def status(self) -> str:
+        return f"state {self.path}"
+
+    def summary(self) -> list[str]:
+        """The windows that could not be stored when they were estimated, if any."""
+        if not self.not_stored:
+            return []
+        late = self.not_stored - self.lost - self.waiting
+        return [f"state database: {self.not_stored} windows could not be stored when "
+                f"estimated, so they were not published ({max(late, 0)} written later, "
+                f"served by the history query; {self.lost} lost)"]
+
+    def write(self, out: ProcessedWindow) -> bool:
+        """The window pipeline's sink call: the window's health message (its one encoding,
+        stored byte for byte as published) and, when it was trusted, the twin, in one
+        transaction.
+
+        Returns:
+            True if the window is stored; False if it waits in memory (the pipeline then does
+            not publish it: stored before published; counted in :attr:`not_stored`).
+        """
+        h = out.health
+        ok = self._save((h.machine, h.window, h.t_start, h.t_end), out.health_json,
+                        out.twin_state)
+        self.not_stored += not ok
+        return ok
+
+    # -- writing ------------------------------------------------------------------------------
     def save_window(self, health: Mapping[str, Any], twin_state: Mapping[str, Any] | None,
                     *, wall: float | None = None) -> bool:
         """Store one window's health message and, if given, the latest accepted twin, in one
@@ -397,10 +466,17 @@ class StateStore(Closeable):
             True if committed; False if the database could not be written (the window is
             kept in memory and written with the next successful save).
         """
+        return self._save((str(health["machine"]), int(health["window"]),
+                           float(health["t_start"]), float(health["t_end"])), _dumps(health),
+                          twin_state, wall=wall)
+
+    def _save(self, key: tuple[str, int, float, float], doc: str,
+              twin_state: Mapping[str, Any] | None, *, wall: float | None = None) -> bool:
+        """:meth:`save_window` of the message ``doc`` (JSON text) indexed by ``key``
+        (machine, window, t_start, t_end)."""
         w = time.time() if wall is None else float(wall)
-        machine = str(health["machine"])
-        row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
-               float(health["t_end"]), w, _dumps(health))
+        machine, window, t_start, t_end = key
+        row = (machine, self.run_id, window, t_start, t_end, w, doc)
         with self._write_lock:
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
@@ -419,16 +495,6 @@ class StateStore(Closeable):
                 self._since_prune = 0
                 self.prune()
         return ok
-
-    def write(self, out: ProcessedWindow) -> bool:
-        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
-        :meth:`save_window` with the window's health and, when it was trusted, the twin.
-
-        Returns:
-            True if the window is stored; False if it waits in memory (the pipeline then does
-            not publish it: stored before published).
-        """
-        return self.save_window(out.message, out.twin_state)
 
     def _flush(self, retry: bool = True) -> bool:
         try:
