@@ -83,7 +83,27 @@ class WindowPipeline:
         self.latest: HealthMessage | None = None
         self.history: deque[HealthMessage] = deque(maxlen=history)
         self.windows_estimated = 0
+        self._failing: set[str] = set()
         self._lock = threading.Lock()
+
+    def _write(self, sink: Sink, out: ProcessedWindow) -> bool | None:
+        """``sink.write(out)``. An output that raises (a plug-in's bug) does not stop the
+        others: the window is counted in its ``lost`` (``twinwatch run`` exits 74), logged
+        once until it works again; for the gate it is a window not stored."""
+        try:
+            result = sink.write(out)
+        except Exception as exc:  # noqa: BLE001 - one output must not stop the others
+            sink.lost += 1
+            log = logger.debug if sink.name in self._failing else logger.error
+            self._failing.add(sink.name)
+            log("the %s output failed on window %d (%s: %s): the window is lost for it "
+                "(%d so far)", sink.name, out.health.window, type(exc).__name__, exc, sink.lost)
+            logger.debug("the %s output failed", sink.name, exc_info=True)
+            return False
+        if sink.name in self._failing:
+            self._failing.discard(sink.name)
+            logger.warning("the %s output works again", sink.name)
+        return result
 
     def recent(self) -> list[HealthMessage]:
         """A snapshot of :attr:`history` (safe while the worker appends)."""
@@ -118,22 +138,17 @@ class WindowPipeline:
             self.latest = health
             self.history.append(health)
         logger.info("%s", summary_line(health))
-        stored = True
+        stored = self.gate is None or self._write(self.gate, out) is not False
+        published = out
+        if not stored:  # served by the history query once the store has written it
+            self._held_events.extend(out.events)
+        elif self._held_events:  # the alarm events of the windows that were not published
+            published = dataclasses.replace(out, events=[*self._held_events, *out.events])
+            self._held_events.clear()
         for sink in self.sinks:
-            if sink is self.gate:
-                stored = sink.write(out) is not False
-            elif sink.publishes:
-                if not stored:  # served by the history query once the store has written it
-                    self._held_events.extend(out.events)
-                    continue
-                if self._held_events:
-                    sink.write(dataclasses.replace(out, events=[*self._held_events,
-                                                                *out.events]))
-                    self._held_events.clear()
-                else:
-                    sink.write(out)
-            else:
-                sink.write(out)
+            if sink is self.gate or (sink.publishes and not stored):
+                continue
+            self._write(sink, published if sink.publishes else out)
         for fn in self.callbacks:
             fn(health)
         return health

@@ -184,8 +184,9 @@ class Daemon:
             history=self.stored_history if has_gate else None)
         adopted: set[str] = set()
         for t in wanted:
-            sink = reuse.pop(t.name, None)
+            sink = reuse.get(t.name)
             if sink is not None and sink.keeps(t.config, context):
+                del reuse[t.name]
                 sink.attach(context)
                 self.sinks[t.name] = sink
                 adopted.add(t.name)

@@ -40,7 +40,6 @@ from typing import Any, ClassVar, TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from twinwatch._lifecycle import Closeable
-from twinwatch.plugins import commented_table
 from twinwatch.errors import (
     DriverConfigError,
     DriverError,
@@ -49,6 +48,7 @@ from twinwatch.errors import (
     EndOfStream,
 )
 from twinwatch.io.sample import Sample, ScaledChannel
+from twinwatch.plugins import commented_table
 
 logger = logging.getLogger(__name__)
 
