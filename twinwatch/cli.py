@@ -253,15 +253,7 @@ def _structure_lines(last: HealthMessage) -> list[str]:
     if not last.discovery.enabled:
         return []
     terms = last.terms
-    if terms:
-        verdict = ":"
-    elif last.discovery.too_large or (last.model_check is not None
-                                      and not last.model_check.passed):
-        verdict = (": none kept, yet the residual is too large for the physical model "
-                   "(no candidate meta-model describes what it misses)")
-    else:
-        verdict = ": the physical model explains the data"
-    lines = [f"twin structure (DT''): {len(terms)} meta-model term(s){verdict}",
+    lines = [f"twin structure (DT''): {len(terms)} meta-model term(s){_verdict(last)}",
              *(f"  {term.equation}  [{term.meaning}]" for term in terms)]
     if terms:
         fits = (("DT'", last.residual.dt_prime), ("DT''", last.residual.dt_second))
@@ -270,6 +262,17 @@ def _structure_lines(last: HealthMessage) -> list[str]:
             f"{k} " + ", ".join(f"{o} {e:.3g}" for o, e in w.items() if e is not None)
             for k, w in worst.items()))
     return lines
+
+
+def _verdict(last: HealthMessage) -> str:
+    """What the discovery concluded in the last window."""
+    if last.terms:
+        return ":"
+    if last.discovery.too_large or (last.model_check is not None
+                                    and not last.model_check.passed):
+        return (": none kept, yet the residual is too large for the physical model "
+                "(no candidate meta-model describes what it misses)")
+    return ": the physical model explains the data"
 
 
 def _check_lines(last: HealthMessage, history: list[HealthMessage]) -> list[str]:

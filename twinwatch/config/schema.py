@@ -97,8 +97,9 @@ def _twin_table(model: Callable[[], type[BaseModel]]) -> Any:
     return Annotated[Any, BeforeValidator(validate)]
 
 
-def _sink_config(name: str) -> type[SinkConfig]:
-    """The table model of the output registered as ``name`` (its module imported now)."""
+def _sink_config(name: str) -> type[Any]:
+    """The table model (a ``SinkConfig`` subclass) of the output registered as ``name`` (its
+    module imported now)."""
     return sink_class(name).config_class
 
 

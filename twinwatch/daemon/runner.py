@@ -29,7 +29,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Container, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -47,7 +47,7 @@ from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
-    from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.config.schema import OutputTable, TwinwatchConfig
     from twinwatch.daemon.systemd import Watchdog
 
 logger = logging.getLogger(__name__)
@@ -175,13 +175,30 @@ class Daemon:
         tables = [t for t in self.config.output_tables() if t.config.enabled]
         classes = {t.name: sink_class(t.name) for t in tables}
         wanted = [t for t in tables if roles[classes[t.name].role]]
-        has_gate = any(classes[t.name].role == "gate" for t in wanted)
-        context = SinkContext(
+        context = self._sink_context(has_gate=any(classes[t.name].role == "gate"
+                                                  for t in wanted))
+        adopted = self._adopt(wanted, reuse, context)
+        for t in sorted(wanted, key=lambda t: classes[t.name].open_order):
+            if t.name not in self.sinks:
+                self.sinks[t.name] = classes[t.name].open(t.name, t.config, context)
+        order = [t.name for t in wanted]
+        self.sinks = dict(sorted(self.sinks.items(), key=lambda kv: (
+            not isinstance(kv[1], Gate), order.index(kv[0]))))
+        return adopted
+
+    def _sink_context(self, *, has_gate: bool) -> SinkContext:
+        """What the outputs get from this daemon (the stored history when a gate opens)."""
+        return SinkContext(
             machine=self.machine, model=self.config.machine.model,
             outputs=tuple(self.model.output_names),
             parameters={p.name: p.unit for p in self.model.parameters},
             base_dir=self.base_dir, cwd=Path.cwd(),
             history=self.stored_history if has_gate else None)
+
+    def _adopt(self, wanted: list[OutputTable], reuse: dict[str, Sink],
+               context: SinkContext) -> set[str]:
+        """Adopt the handed-over outputs whose table and context are unchanged; close the
+        others (their table changed, or they are off now). Returns the adopted names."""
         adopted: set[str] = set()
         for t in wanted:
             sink = reuse.get(t.name)
@@ -192,14 +209,8 @@ class Daemon:
                 adopted.add(t.name)
                 logger.info("reload: the %s output is kept open (its configuration is "
                             "unchanged)", t.name)
-        for name, sink in reuse.items():  # their table changed, or they are off now
+        for name, sink in reuse.items():
             _close(name, sink)
-        for t in sorted(wanted, key=lambda t: classes[t.name].open_order):
-            if t.name not in self.sinks:
-                self.sinks[t.name] = classes[t.name].open(t.name, t.config, context)
-        order = [t.name for t in wanted]
-        self.sinks = dict(sorted(self.sinks.items(), key=lambda kv: (
-            not isinstance(kv[1], Gate), order.index(kv[0]))))
         return adopted
 
     # -- the window pipeline's results ------------------------------------------------------
@@ -467,7 +478,7 @@ class Daemon:
         message."""
         return self.pipeline.process(window)
 
-    def close(self, keep: Collection[str] = ()) -> dict[str, Sink]:
+    def close(self, keep: Container[str] = ()) -> dict[str, Sink]:
         """Stop everything and release the driver and the outputs (after the worker has
         drained): the driver first, then the outputs in writing order reversed (the gate, the
         state database, last). Idempotent.

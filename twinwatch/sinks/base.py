@@ -211,7 +211,7 @@ class Sink(Closeable, abc.ABC):
         """
 
     @classmethod
-    def open(cls, name: str, config: SinkConfig, context: SinkContext) -> Self:
+    def open(cls, name: str, config: Any, context: SinkContext) -> Self:
         """:meth:`from_config`, then remember the registry name, the context and the
         :meth:`reload_key` it was opened with (what the daemon calls)."""
         sink = cls.from_config(config, context)
@@ -221,13 +221,13 @@ class Sink(Closeable, abc.ABC):
         return sink
 
     @classmethod
-    def reload_key(cls, config: SinkConfig, context: SinkContext) -> Hashable:
+    def reload_key(cls, config: Any, context: SinkContext) -> Hashable:
         """What the open sink depends on: a reload whose key is equal keeps it open (the Zenoh
         session, the Rerun file, the state database stay), another closes and reopens it.
         Default: the machine name and the table's values."""
         return (context.machine, _frozen(config.model_dump()))
 
-    def keeps(self, config: SinkConfig, context: SinkContext) -> bool:
+    def keeps(self, config: Any, context: SinkContext) -> bool:
         """True if a daemon on ``config`` and ``context`` may adopt this open sink."""
         return self._reload_key is not None and (
             self._reload_key == type(self).reload_key(config, context))

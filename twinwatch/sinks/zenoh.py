@@ -827,9 +827,10 @@ def history_parameters(params: Any) -> tuple[float | None, float | None, int,
                              f"an open end")
         return value
 
-    by = params.get("by") or "plant"
-    if by not in ("plant", "wall"):
-        raise ValueError(f"by={by!r}: use by=plant (source time) or by=wall (epoch s)")
+    raw_by = params.get("by") or "plant"
+    if raw_by not in ("plant", "wall"):
+        raise ValueError(f"by={raw_by!r}: use by=plant (source time) or by=wall (epoch s)")
+    by: Literal["plant", "wall"] = "wall" if raw_by == "wall" else "plant"
     t_from, t_to = num("t_from"), num("t_to")
     if t_from is not None and t_to is not None and t_from > t_to:
         raise ValueError(f"t_from={t_from:g} is after t_to={t_to:g}")
