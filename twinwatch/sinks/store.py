@@ -386,7 +386,6 @@ class StateStore(Gate):
                 conn.execute("ROLLBACK")
             raise self._error("cannot open", exc) from exc
 
-    # -- writing ------------------------------------------------------------------------------
     # -- the sink contract ---------------------------------------------------------------------
     @classmethod
     def from_config(cls, config: StateConfig, context: SinkContext) -> Self:
@@ -443,14 +442,14 @@ class StateStore(Gate):
             not publish it: stored before published; counted in :attr:`not_stored`).
         """
         h = out.health
-        ok = self._save((h.machine, h.window, h.t_start, h.t_end), out.health_json,
-                        out.twin_state)
+        ok = self.save_window({"machine": h.machine, "window": h.window, "t_start": h.t_start,
+                               "t_end": h.t_end}, out.twin_state, doc=out.health_json)
         self.not_stored += not ok
         return ok
 
     # -- writing ------------------------------------------------------------------------------
     def save_window(self, health: Mapping[str, Any], twin_state: Mapping[str, Any] | None,
-                    *, wall: float | None = None) -> bool:
+                    *, wall: float | None = None, doc: str | None = None) -> bool:
         """Store one window's health message and, if given, the latest accepted twin, in one
         transaction (call from the adaptation worker after each window).
 
@@ -461,22 +460,18 @@ class StateStore(Gate):
                 discovered meta-model terms; any JSON-serialisable mapping, numpy allowed), or
                 None when this window was not trusted (the stored twin is kept).
             wall: wall-clock time [s since the epoch] of the window (default now).
+            doc: the message already encoded (the pipeline's one encoding, stored byte for
+                byte as published); ``health`` then needs only the indexed keys. None: the
+                message is ``health`` encoded here.
 
         Returns:
             True if committed; False if the database could not be written (the window is
             kept in memory and written with the next successful save).
         """
-        return self._save((str(health["machine"]), int(health["window"]),
-                           float(health["t_start"]), float(health["t_end"])), _dumps(health),
-                          twin_state, wall=wall)
-
-    def _save(self, key: tuple[str, int, float, float], doc: str,
-              twin_state: Mapping[str, Any] | None, *, wall: float | None = None) -> bool:
-        """:meth:`save_window` of the message ``doc`` (JSON text) indexed by ``key``
-        (machine, window, t_start, t_end)."""
         w = time.time() if wall is None else float(wall)
-        machine, window, t_start, t_end = key
-        row = (machine, self.run_id, window, t_start, t_end, w, doc)
+        machine = str(health["machine"])
+        row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
+               float(health["t_end"]), w, _dumps(health) if doc is None else doc)
         with self._write_lock:
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
