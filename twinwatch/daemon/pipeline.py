@@ -34,14 +34,14 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from twinwatch.daemon.alarms import AlarmEvaluator
-from twinwatch.sinks.base import ProcessedWindow, Sink, WindowSink
+from twinwatch.sinks.base import ProcessedWindow, Sink
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import AlarmStatus, HealthMessage, build_health, summary_line
 from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline", "WindowSink"]
+__all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline"]
 
 HealthCallback = Callable[[HealthMessage], None]
 """Called with each window's typed health message (worker thread)."""

@@ -40,7 +40,6 @@ from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
 from twinwatch.sinks.base import Gate, Role, Sink, SinkContext
-from twinwatch.sinks.zenoh import HISTORY_LIMIT, history_parameters
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
@@ -54,7 +53,7 @@ logger = logging.getLogger(__name__)
 
 _STOP = object()
 
-__all__ = ["HISTORY_LIMIT", "SINKS", "Daemon", "history_parameters"]
+__all__ = ["SINKS", "Daemon"]
 
 
 class Daemon:
@@ -289,7 +288,7 @@ class Daemon:
             }
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
-                       limit: int | None = HISTORY_LIMIT,
+                       limit: int | None = 1000,
                        by: Literal["plant", "wall"] = "plant") -> list[dict[str, Any]]:
         """Stored health messages of this machine in a time range (the gate's
         :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state database. The

@@ -59,7 +59,6 @@ __all__ = [
     "Sink",
     "SinkConfig",
     "SinkContext",
-    "WindowSink",
 ]
 
 Role = Literal["gate", "publisher", "recorder"]
@@ -334,10 +333,6 @@ class Gate(Sink):
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
                 machine: str | None = None) -> list[dict[str, Any]]:
         """Stored health messages in a time range, oldest first."""
-
-
-WindowSink = Sink
-"""The former name of the contract (a protocol with ``write`` and ``close``)."""
 
 
 def _frozen(value: Any) -> Hashable:
