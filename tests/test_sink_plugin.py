@@ -73,8 +73,9 @@ class JsonLinesSink(Sink):
     @classmethod
     def from_config(cls, config: JsonLinesConfig, context: SinkContext) -> Self:
         path = config.output_files(context.cwd)["path"]
-        if path.exists() and not path.is_file():
-            raise SinkError(f"outputs.jsonl.path: {path} is not a file")
+        if config.port == 9:  # what only opening finds out, e.g. a broker that is not there
+            raise SinkError("cannot connect to 127.0.0.1:9: nothing listens there; start the "
+                            "broker or set outputs.jsonl.port")
         audit = (context.cwd / config.audit_db) if config.audit_db else None
         return cls(path, audit)
 
@@ -223,6 +224,15 @@ def test_check_config_validates_the_plugin_output_table(tmp_path: Path, plugin_p
     assert "outputs.jsonl.path: directory" in res.stderr
     run = _twinwatch(plugin_path, "run", str(missing), "--no-progress", cwd=tmp_path)
     assert run.returncode == 78, run.stderr
+
+    # a start error (a SinkError) is one line, exit 1, like the built-ins'
+    absent = _config(tmp_path, OUTPUT.replace("port = 8883", "port = 9"))
+    run = _twinwatch(plugin_path, "run", str(absent), "--no-progress", cwd=tmp_path)
+    assert run.returncode == 1, run.stderr
+    assert run.stderr.strip().splitlines()[-1] == (
+        "Error: cannot start: cannot connect to 127.0.0.1:9: nothing listens there; start the "
+        "broker or set outputs.jsonl.port")
+    assert "Traceback" not in run.stderr
 
 
 def test_without_the_plugin_its_table_is_refused(tmp_path: Path):
