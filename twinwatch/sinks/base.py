@@ -164,10 +164,11 @@ class SinkConfig(BaseModel):
 class Sink(Closeable, abc.ABC):
     """Base class of every output (see the module docstring for the contract).
 
-    Subclasses set :attr:`config_class` (and :attr:`role`,
-    :attr:`counter_prefix`, :attr:`open_order` where the defaults do not fit) and implement
-    :meth:`from_config`, :meth:`write` and :meth:`close`; the reporting hooks default to
-    "nothing to report".
+    Subclasses set :attr:`config_class` (and :attr:`role`, :attr:`counter_prefix`,
+    :attr:`open_order` where the defaults do not fit) and implement :meth:`from_config`,
+    :meth:`write` and :meth:`close` (as every :class:`~twinwatch._lifecycle.Closeable`: set
+    ``self._closed = False`` once open, so an output never closed warns); the reporting hooks
+    default to "nothing to report".
 
     Attributes:
         name: the registry name it was opened as (set by :meth:`open`).
