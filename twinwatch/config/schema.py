@@ -142,39 +142,42 @@ def _outputs_table(value: Any) -> dict[str, SinkConfig]:
     in the sink registry (only that output's module is imported). Errors keep their location
     (``outputs.mqtt.port``); an unknown name is reported with the known ones; a built-in with
     a historic table is pointed to it."""
-    from pydantic import create_model
-
     if not isinstance(value, dict):
         raise ValueError("must be a table of [outputs.<name>] tables")
     errors: list[InitErrorDetails] = []
-    models: dict[str, Any] = {}
+    validated: dict[str, SinkConfig] = {}
     for name, table in value.items():
-        reason = None
-        if name in HISTORIC_TABLES:
-            reason = f"the {name!r} output is configured in [{HISTORIC_TABLES[name]}]"
-        elif name not in SINKS:
-            known = [n for n in SINKS if n not in HISTORIC_TABLES]
-            reason = (f"unknown output {name!r}; known outputs: "
-                      f"{', '.join(known) or 'none installed'} (the built-ins are "
-                      f"configured in {', '.join(f'[{t}]' for t in HISTORIC_TABLES.values())})")
-        else:
-            try:
-                models[name] = (sink_class(name).config_class, ...)
-            except PluginError as exc:
-                reason = str(exc)
-        if reason is not None:
+        try:
+            validated[name] = _output_model(name).model_validate(table)
+        except PluginError as exc:
             errors.append(InitErrorDetails(
-                type=PydanticCustomError("output_name", "{reason}", {"reason": reason}),
+                type=PydanticCustomError("output_name", "{reason}", {"reason": str(exc)}),
                 loc=(name,), input=table))
+        except ValidationError as exc:  # its own keys: located inside [outputs.<name>]
+            errors.extend(InitErrorDetails(
+                type=PydanticCustomError(e["type"], e["msg"]), loc=(name, *e["loc"]),
+                input=e["input"]) for e in exc.errors(include_url=False))
     if errors:
         raise ValidationError.from_exception_data("outputs", errors)
-    if not models:
-        return {}
-    validated = create_model("Outputs", __config__=ConfigDict(extra="forbid"),
-                             **models).model_validate(value)
-    return {name: getattr(validated, name) for name in models}
+    return validated
 
 
+def _output_model(name: str) -> type[SinkConfig]:
+    """The table model of ``[outputs.<name>]``.
+
+    Raises:
+        PluginError: a built-in configured in its historic table, an unknown name (the
+            message lists the known ones) or an output that cannot be imported.
+    """
+    if name in HISTORIC_TABLES:
+        raise PluginError(f"the {name!r} output is configured in [{HISTORIC_TABLES[name]}]")
+    if name not in SINKS:
+        known = [n for n in SINKS if n not in HISTORIC_TABLES]
+        raise PluginError(
+            f"unknown output {name!r}; known outputs: {', '.join(known) or 'none installed'} "
+            f"(the built-ins are configured in "
+            f"{', '.join(f'[{t}]' for t in HISTORIC_TABLES.values())})")
+    return sink_class(name).config_class
 
 
 class MachineConfig(BaseModel):
