@@ -293,9 +293,15 @@ def test_a_reload_keeps_the_plugin_open_unless_its_table_changed(
     second = Daemon(cfg, persist=True, record=False, reuse=kept)
     assert second.sinks["jsonl"] is sink and list(second.sinks) == ["store", "jsonl"]
     second.run()
-    kept = second.close(keep=SINKS)
     changed = cfg.model_copy(deep=True)
     changed.outputs["jsonl"].port = 1884
+    # what a reload to it may keep open, and what must wait for the running one's file
+    assert second.handover(cfg) == (["store", "jsonl"], [])
+    assert second.handover(changed) == (["store"], ["jsonl"])
+    moved = changed.model_copy(deep=True)
+    moved.outputs["jsonl"].path = "other.jsonl"
+    assert second.handover(moved) == (["store"], [])
+    kept = second.close(keep=SINKS)
     third = Daemon(changed, persist=True, record=False, reuse=kept)
     assert third.sinks["jsonl"] is not sink and sink._closed
     third.close()
@@ -330,3 +336,25 @@ def test_sample_config_shows_the_plugin_table_and_takes_plugin_drivers(tmp_path:
     assert "plant_direct driver" in check.stdout
     bad = _twinwatch(plugin_path, "sample-config", "--driver", "opcua", cwd=tmp_path)
     assert bad.returncode == 2 and "'plant_direct'" in bad.stderr
+
+
+def test_the_built_in_outputs_are_the_same_contract(tmp_path: Path):
+    from twinwatch.sinks import BUILTIN_SINKS, HISTORIC_TABLES, sink_class
+    from twinwatch.sinks.base import Gate, Sink, SinkConfig
+
+    cfg = load_config(ROOT / "config" / "dc-motor-sim.toml")
+    assert [t.name for t in cfg.output_tables()] == list(BUILTIN_SINKS) == [
+        "store", "zenoh", "rerun"]
+    roles = {}
+    for t in cfg.output_tables():
+        cls = sink_class(t.name)
+        assert issubclass(cls, Sink) and isinstance(t.config, cls.config_class)
+        assert isinstance(t.config, SinkConfig) and t.key == HISTORIC_TABLES[t.name]
+        roles[t.name] = cls.role
+    assert roles == {"store": "gate", "zenoh": "publisher", "rerun": "recorder"}
+    assert issubclass(sink_class("store"), Gate)
+    # what a reload must wait for: the port, the locked files
+    tables = {t.name: t.config for t in cfg.output_tables()}
+    assert tables["zenoh"].exclusive_resources(tmp_path) == {"tcp/127.0.0.1:7447"}
+    assert tables["store"].exclusive_resources(tmp_path) == {str(tmp_path / "state.sqlite")}
+    assert tables["rerun"].exclusive_resources(tmp_path) == {str(tmp_path / "twinwatch.rrd")}

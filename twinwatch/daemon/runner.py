@@ -30,6 +30,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Container, Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -187,12 +188,33 @@ class Daemon:
 
     def _sink_context(self, *, has_gate: bool) -> SinkContext:
         """What the outputs get from this daemon (the stored history when a gate opens)."""
-        return SinkContext(
-            machine=self.machine, model=self.config.machine.model,
-            outputs=tuple(self.model.output_names),
-            parameters={p.name: p.unit for p in self.model.parameters},
-            base_dir=self.base_dir, cwd=Path.cwd(),
-            history=self.stored_history if has_gate else None)
+        return replace(_context(self.config, self.model, self.base_dir),
+                       history=self.stored_history if has_gate else None)
+
+    def handover(self, config: TwinwatchConfig) -> tuple[list[str], list[str]]:
+        """What a reload to ``config`` may do with this daemon's open outputs.
+
+        Returns:
+            ``(keep, wait)``: the outputs a daemon on ``config`` may adopt open (their table
+            and context unchanged: :meth:`~twinwatch.sinks.base.Sink.keeps`), and those it may
+            open only once this daemon has released them (another table, but the same file or
+            port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
+        """
+        model = create_model(config.machine.model, config.machine.options)
+        context = _context(config, model, self.base_dir)
+        new = {t.name: t.config for t in config.output_tables() if t.config.enabled}
+        old = {t.name: t.config for t in self.config.output_tables()}
+        keep, wait = [], []
+        for name, sink in self.sinks.items():
+            table = new.get(name)
+            if table is None:
+                continue
+            if sink.keeps(table, context):
+                keep.append(name)
+            elif (old[name].exclusive_resources(context.cwd)
+                  & table.exclusive_resources(context.cwd)):
+                wait.append(name)
+        return keep, wait
 
     def _adopt(self, wanted: list[OutputTable], reuse: dict[str, Sink],
                context: SinkContext) -> set[str]:
@@ -513,6 +535,14 @@ class Daemon:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path) -> SinkContext:
+    """The outputs' context for a daemon on ``config`` (without the stored history)."""
+    return SinkContext(machine=config.machine.name, model=config.machine.model,
+                       outputs=tuple(model.output_names),
+                       parameters={p.name: p.unit for p in model.parameters},
+                       base_dir=base_dir, cwd=Path.cwd())
 
 
 def _close(name: str, obj: Sink | Driver) -> None:

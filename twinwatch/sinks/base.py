@@ -160,6 +160,12 @@ class SinkConfig(BaseModel):
         """Make the paths of :meth:`input_files` absolute against ``base_dir`` (the
         configuration file's directory). Default: nothing to resolve."""
 
+    def exclusive_resources(self, cwd: Path) -> set[str]:
+        """What an output on this table holds exclusively while open (the files it locks, the
+        endpoints it listens on): a reload that changes its table but not these must wait for
+        the running output to release them. Default: the :meth:`output_files`, resolved."""
+        return {str(p.resolve()) for p in self.output_files(cwd).values()}
+
 
 class Sink(Closeable, abc.ABC):
     """Base class of every output (see the module docstring for the contract).

@@ -215,6 +215,10 @@ class ZenohConfig(SinkConfig):
             keys.append("auth.password")
         return keys
 
+    def exclusive_resources(self, cwd: Path) -> set[str]:
+        """The endpoints the session listens on."""
+        return set() if self.mode == "client" else set(self.listen)
+
     def file_paths(self) -> dict[str, str]:
         """Dotted key (``zenoh.tls.*``) -> path of every file the session reads."""
         return {f"zenoh.{k}": v for k, v in self.input_files().items()}
