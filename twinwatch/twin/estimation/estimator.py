@@ -373,22 +373,27 @@ class Estimator:
         cfg = self.config
         problem = self.problem(window, terms, fit)
         evals0 = problem.fit.evaluations
+        # 1. global search (warm-started PSO), 2. polish (least squares, initial state too)
         found = global_search(problem, cfg.pso, rng=self._rng, time_budget=cfg.time_budget)
         polished = polish(problem, found.q, enabled=cfg.polish, model_error=cfg.model_error)
+        # 3. identifiability gate: admit in priority order, re-fit with the others held
         decision, point = self.gate.admit(problem, polished, self.model.excitation(window))
         twin = problem.twin_at(point.v)
+        # 4. model check: a failing window's standard errors are widened ...
         check = None
         if cfg.validation.enabled:
             check = model_check(problem, point, twin.y, self.model.exogenous, cfg.validation,
                                 cfg.model_error)
             if not check.passed:
                 decision = decision.widened(check.widen)
+        # ... and the gate holds whatever is now above max_rel_std, at its trusted value
         decision, point, held_more = self.gate.enforce(problem, decision, point, check)
         if held_more:
             twin = problem.twin_at(point.v)
         nrmse = twin.residual.nrmse
         good = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse)
         trusted = good and (check is None or check.passed)
+        # 5. fusion: a trusted window's evidence joins the filter; then what is published
         fused, jump = self._fuse(problem, polished, decision, window, trusted)
         out = publish(twin.theta, self.pmap, cfg.tie or {}, decision, fused, cfg.max_rel_std)
         if trusted:
