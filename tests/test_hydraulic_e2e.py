@@ -290,6 +290,7 @@ def _port_free(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) != 0
 
 
+@pytest.mark.slow
 def test_twinwatch_run_the_example_config_exits_0(tmp_path: Path):
     """``twinwatch run config/hydraulic-modbus-sim.toml --duration 20``, as a user runs it.
     If the example's ports (Modbus 5020, Zenoh 7448) are taken, a copy on free ports runs."""
