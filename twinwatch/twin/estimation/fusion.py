@@ -310,7 +310,7 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
             v_f = np.concatenate([np.clip(qq, problem.xl, problem.xu), polished.nuisance])
             r_f = local.residuals(v_f[None, :])[0]
             active = np.concatenate([cols, nuis])
-            return local.jacobian(v_f, active, r_f), r_f
+            return local.sensitivity(v_f, active), r_f
 
         jump = fusion.update(t_mid, linearize, polished.row_var, nuis.size, cols=cols)
     else:
