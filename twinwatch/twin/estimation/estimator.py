@@ -234,6 +234,7 @@ class EstimatorState:
 
     trusted: FloatArray
     fusion: FusionState | None = None
+    trusted_std: FloatArray | None = None
 
 
 class Estimator:
@@ -277,6 +278,9 @@ class Estimator:
         self.upper = np.array(hi)
         #: The trusted parameter vector (full), updated by good windows.
         self.trusted = self.nominal.copy()
+        #: Relative standard error of each trusted value (full; 0 for a nameplate value):
+        #: the window's that made it trusted, propagated to the windows that hold it.
+        self.trusted_std = np.zeros(len(self.names))
         self._rng = np.random.default_rng(config.seed)
         #: Evidence across windows (None when ``[estimation.fusion] enabled = false``).
         self.fusion = (ParameterFusion(tuple(config.estimate), self.trusted[self.pmap.idx],
@@ -289,12 +293,15 @@ class Estimator:
     def snapshot(self) -> EstimatorState:
         """The state carried between windows, to :meth:`rollback` to."""
         return EstimatorState(self.trusted.copy(),
-                              self.fusion.state.copy() if self.fusion else None)
+                              self.fusion.state.copy() if self.fusion else None,
+                              self.trusted_std.copy())
 
     def rollback(self, state: EstimatorState) -> None:
         """Forget what windows since :meth:`snapshot` taught (a window the adaptation finds
         biased by a missing component must not update the trusted values or the fusion)."""
         self.trusted[:] = state.trusted
+        if state.trusted_std is not None:
+            self.trusted_std[:] = state.trusted_std
         if self.fusion is not None and state.fusion is not None:
             self.fusion.state = state.fusion.copy()
 
@@ -324,8 +331,9 @@ class Estimator:
         return dict(zip(self.names, (float(v) for v in self.trusted), strict=True))
 
     def set_trusted(self, values: Mapping[str, float]) -> list[str]:
-        """Resume from saved trusted values (ties re-applied). Returns the names that are not
-        the model's (ignored)."""
+        """Resume from saved trusted values (ties re-applied; their standard errors are not
+        saved: taken as exact, as a nameplate). Returns the names that are not the model's
+        (ignored)."""
         unknown = []
         for name, value in values.items():
             if name in self.names:
@@ -378,6 +386,9 @@ class Estimator:
         polished = polish(problem, found.q, enabled=cfg.polish, model_error=cfg.model_error)
         # 3. identifiability gate: admit in priority order, re-fit with the others held
         decision, point = self.gate.admit(problem, polished, self.model.excitation(window))
+        # ... their standard errors marginal over the held values' own uncertainty
+        decision = self.gate.propagate_held(problem, decision, point,
+                                            self.trusted_std[self.pmap.idx])
         twin = problem.twin_at(point.v)
         # 4. model check: a failing window's standard errors are widened ...
         check = None
@@ -439,7 +450,10 @@ class Estimator:
             n = estimate[k]
             if decision.rel_std.get(k, math.inf) <= self.config.trust_rel_std:
                 self.trusted[self.names.index(n)] = values[n]
+                self.trusted_std[self.names.index(n)] = decision.rel_std[k]
         self.pmap.apply_ties(self.trusted)
+        for dep, src in self.pmap.ties:
+            self.trusted_std[dep] = self.trusted_std[src]
 
     def check(self, fit: WindowFit, y: FloatArray, explained: FloatArray | None = None,
               drift: FloatArray | None = None) -> ModelCheck:

@@ -256,32 +256,57 @@ class LocalFit:
         vs[np.arange(active.size), active] += h
         return ((self.residuals(vs) - r0[None, :]) / h).T
 
-    #: Step of :meth:`sensitivity` (ln-parameters; initial-state offsets in units of their
-    #: output's scale): 0.1 %, the scale of a determined parameter's uncertainty.
-    SENSITIVITY_STEP = 1e-3
+    #: Steps of :meth:`sensitivity`, smallest first (ln-parameters; initial-state offsets in
+    #: units of their output's scale).
+    SENSITIVITY_STEPS = (1e-6, 1e-5, 1e-4, 1e-3)
+    #: Forward and backward differences agree when they differ by at most this share.
+    SENSITIVITY_AGREEMENT = 0.02
 
-    def sensitivity(self, v: FloatArray, active: np.ndarray) -> FloatArray:
-        """Central-difference ``d r / d v`` over the ``active`` columns (M, n_active) with the
-        step :data:`SENSITIVITY_STEP`: the Jacobian the statistics read (standard errors,
-        the gate, the model check, the fusion's evidence); one twin call for all columns.
+    def sensitivity(self, v: FloatArray, active: np.ndarray,
+                    steps: Sequence[float] | None = None) -> FloatArray:
+        """``d r / d v`` over the ``active`` columns (M, n_active) for the statistics
+        (standard errors, the gate, the model check, the fusion's evidence), robust to the
+        residual's jumps: per column, the central difference at the smallest step whose
+        forward and backward differences agree (to :data:`SENSITIVITY_AGREEMENT`), or at the
+        largest step if none does; one twin call for all.
 
-        The residual of a drive with a clamped output is not smooth at fine scales: each
-        controller update where the unclamped output is near its limit switches the
-        clamping anti-windup's integration on or off (a jump of ``ki*T*e`` in the
-        integrator), so while the drive chatters at its limit the residual jumps every few
-        1e-6 of ln Ra. A 1e-6 forward difference that straddles one such jump reads it as a
-        slope ten times the real one, and the standard errors it gives collapse (measured
-        on a 1 ms drive entering its 24 V limit with 1 % noise: Ra's stated 0.0037 %
-        against an empirical 0.08 %). Over 0.1 % the jumps average into the slope the
-        estimate actually has at the scale of its uncertainty; on a smooth residual the
-        central difference errs by ~h^2 (1e-7 relative)."""
-        h = self.SENSITIVITY_STEP
+        The residual of a drive with a clamped output is not smooth: each controller update
+        where the unclamped output is near its limit switches the clamping anti-windup's
+        integration on or off, a jump of ``ki*T*e`` in the integrator. A difference whose
+        step straddles a jump adds ``jump/step`` to the column, in a direction of its own,
+        and the parameters look determined where they are not, two ways: a column ten times
+        its slope (a drive chattering at its limit, jumps every 2.4e-6 of ln Ra: a 1e-6
+        forward difference gave Ra 0.0037 % against an empirical 0.08 %; there no step below
+        1e-3 is free of jumps, and over 1e-3 they average into the slope the estimate has at
+        the scale of its uncertainty), and the near-cancellation of a degenerate combination
+        broken (one jump within 1e-3 of a Ke column made (J, Ke, D), which trade off along
+        (sJ, sKt, s(D + c) - c), look determined to 0.2-0.9 % where the clean Jacobian says
+        22-105 %). A jump on one side shows as forward and backward differences that
+        disagree; on a smooth residual they agree to the step's order.
+
+        Args:
+            v: the search vector.
+            active: the columns.
+            steps: the steps to try, smallest first (default :data:`SENSITIVITY_STEPS`).
+        """
         k = active.size
-        vs = np.repeat(v[None, :], 2 * k, axis=0)
-        vs[np.arange(k), active] += h
-        vs[k + np.arange(k), active] -= h
+        hs = tuple(self.SENSITIVITY_STEPS if steps is None else steps)
+        n_h = len(hs)
+        vs = np.repeat(v[None, :], 2 * n_h * k + 1, axis=0)
+        for i, h in enumerate(hs):
+            vs[(2 * i) * k + np.arange(k), active] += h
+            vs[(2 * i + 1) * k + np.arange(k), active] -= h
         r = self.residuals(vs)
-        return ((r[:k] - r[k:]) / (2.0 * h)).T
+        r0 = r[-1]
+        d = (r[:-1].reshape(n_h, 2, k, -1) - r0[None, None, None, :])
+        fwd = d[:, 0] / np.asarray(hs)[:, None, None]
+        bwd = -d[:, 1] / np.asarray(hs)[:, None, None]
+        central = 0.5 * (fwd + bwd)
+        gap = np.linalg.norm(fwd - bwd, axis=2)
+        size = np.maximum(np.linalg.norm(fwd, axis=2), np.linalg.norm(bwd, axis=2))
+        agree = gap <= self.SENSITIVITY_AGREEMENT * np.maximum(size, 1e-300)
+        choice = np.where(np.any(agree, axis=0), np.argmax(agree, axis=0), n_h - 1)
+        return central[choice, np.arange(k)].T
 
     def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True
                ) -> tuple[FloatArray, FloatArray, FloatArray]:
