@@ -10,6 +10,11 @@ non-finite numbers become ``null`` everywhere.
 The README's table "The health message" documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 6: ``status`` may be ``suspect`` (the estimate of a window that is not sound: its model check
+  failed or a sensor is frozen or saturated; or a held value the fused evidence contradicts:
+  treat it like ``held``); ``fused`` is published when the fused evidence meets the fusion's own
+  gate (``[estimation.fusion] max_rel_std``); the window's frozen or saturated sensors are named
+  (``sensors``).
 * 5: each meta-model term carries the standard errors of its parameters (``params_std``) and
   the number of windows whose evidence they combine (``evidence_windows``): a kept term is
   refined across windows (:mod:`twinwatch.twin.discovery.terms`).
@@ -51,12 +56,13 @@ __all__ = [
     "ParameterHealth",
     "ResidualFit",
     "ResidualHealth",
+    "SensorHealth",
     "TermHealth",
     "build_health",
     "summary_line",
 ]
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 
 def _finite(x: Any) -> Any:
@@ -93,14 +99,15 @@ class ParameterHealth(_Part):
     nominal: float = Field(description="nameplate value [SI] the deviation is measured from")
     deviation_pct: Num = Field(description="value vs nominal [%]")
     status: ParameterStatus = Field(
-        description="estimated (determined by this window), fused (by the windows so far), "
-        "held (neither: the last trusted value), tied (equals another parameter), fixed "
-        "(nameplate, not estimated)")
+        description="estimated (determined by this sound window), fused (by the windows so "
+        "far), suspect (a window that is not sound, or a held value the fused evidence "
+        "contradicts: treat like held), held (the last trusted value), tied (equals another "
+        "parameter), fixed (nameplate, not estimated)")
     fused: FusedHealth | None = Field(
         None, description="the fused evidence on an estimated parameter (null when fusion "
         "is off or the parameter is not estimated)")
     held: bool = Field(description="status is not 'estimated' (the v2 flag, kept for readers "
-                       "of schema 2)")
+                       "of schema 2; true for a suspect value)")
     reason: str | None = Field(description="why this window does not estimate it, for a "
                                "person (null when estimated); never parse it: use status")
     rel_std_pct: Num = Field(description="1-sigma relative standard error of an estimate [%] "
@@ -194,6 +201,20 @@ class ModelCheckHealth(_Part):
     outputs: dict[str, OutputCheckHealth]
 
 
+class SensorHealth(_Part):
+    """``sensors[]``: a measured output stuck at one value while the twin moves
+    (:mod:`twinwatch.twin.estimation.quality`): a data-quality fact about that channel."""
+
+    channel: str = Field(description="the output's channel")
+    kind: Literal["frozen", "saturated"] = Field(
+        description="frozen (stuck), or saturated (stuck at the window's extreme while the "
+        "twin goes beyond it: the sensor clips)")
+    value: Num = Field(description="the stuck reading [the channel's unit]")
+    t_start: Num = Field(description="time of its first stuck sample [s]")
+    duration_s: Num = Field(description="how long it stayed [s]")
+    samples: int = Field(description="stuck samples in the window")
+
+
 class HealthMessage(_Part):
     """One window's health: the message on ``twinwatch/<machine>/health`` (README: "The health
     message"). Build it with :func:`build_health`; serialise it with :meth:`to_json`."""
@@ -215,6 +236,9 @@ class HealthMessage(_Part):
     evaluations: int = Field(description="twin simulations of one parameter vector")
     model_check: ModelCheckHealth | None = Field(
         None, description="the window's model validation (null when disabled)")
+    sensors: list[SensorHealth] = Field(
+        default_factory=list, description="frozen or saturated sensors in this window (its "
+        "estimates are then suspect)")
     terms: list[TermHealth]
     residual: ResidualHealth
     discovery: DiscoveryStatus
@@ -309,6 +333,7 @@ def build_health(
         evaluations=est.evaluations,
         model_check=(ModelCheckHealth.model_validate(est.model_check.as_dict())
                      if est.model_check is not None else None),
+        sensors=[SensorHealth.model_validate(f.as_dict()) for f in est.sensors],
         terms=[TermHealth.model_validate(t.as_dict()) for t in adaptation.terms],
         residual=ResidualHealth(
             dt_prime=_residual(adaptation.dt_prime),
@@ -332,12 +357,13 @@ def build_health(
 
 def summary_line(health: HealthMessage) -> str:
     """One line for logs: the parameters the window could estimate (``=`` marks one held at
-    its last trusted value; tied and fixed ones are left out), the terms, the fit."""
+    its last trusted value, ``?`` a suspect one; tied and fixed ones are left out), the terms,
+    the fit."""
     parts = []
     for name, p in health.parameters.items():
         if p.status in ("tied", "fixed"):
             continue
-        mark = "=" if p.status == "held" else ""
+        mark = {"held": "=", "suspect": "?"}.get(p.status, "")
         dev = p.deviation_pct
         parts.append(f"{name}{mark}{p.value:.5g} ({dev:+.2f}%)" if dev is not None
                      and p.value is not None else f"{name}{mark}{p.value}")

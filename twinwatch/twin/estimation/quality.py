@@ -1,0 +1,123 @@
+"""Data quality: a sensor that is frozen or saturated, named by its channel.
+
+A measured output that repeats one value exactly for many samples is not measuring: a live
+sensor's reading carries noise or at least moves by its quantisation step as the machine moves.
+Where the twin's own output moves materially over the same stretch, the stretch is a sensor
+fault, not a steady machine:
+
+* **saturated** when the stuck value is the window's largest (smallest) reading and the twin
+  stays at or beyond it there, going materially beyond: the sensor clips at its range;
+* **frozen** otherwise: a stuck reading (a broken wire, a stalled field bus value, a converter
+  that stopped updating).
+
+A drive output that sits at its limit is neither: the twin clamps it too (its own output is as
+flat there). The window's estimates are then not measurements of the machine: the estimator
+publishes them ``suspect`` (:mod:`~twinwatch.twin.estimation.publish`), does not trust or fuse
+them, and the health message names each fault (``sensors``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from twinwatch.twin.estimation.fit import WindowFit
+from twinwatch.twin.model import FloatArray
+
+__all__ = ["SensorFault", "sensor_faults"]
+
+#: The twin's output must move by more than this share of the output's scale over the stuck
+#: stretch (and by more than four quantisation steps of the reading) for it to be a fault.
+MATERIAL = 0.01
+
+
+@dataclass(frozen=True)
+class SensorFault:
+    """One stuck stretch of a measured output.
+
+    Attributes:
+        channel: the output's channel.
+        kind: ``frozen`` or ``saturated``.
+        value: the stuck reading [the channel's unit].
+        t_start: time of its first sample [s].
+        duration_s: how long it stayed [s] (to the last stuck sample).
+        samples: stuck samples in the window.
+    """
+
+    channel: str
+    kind: Literal["frozen", "saturated"]
+    value: float
+    t_start: float
+    duration_s: float
+    samples: int
+
+    def describe(self, unit: str = "") -> str:
+        """For a person: ``sensor ia frozen at 1.2 A for 2.00 s from t = 180.00 s``."""
+        u = f" {unit}" if unit else ""
+        return (f"sensor {self.channel} {self.kind} at {self.value:.6g}{u} for "
+                f"{self.duration_s:.2f} s from t = {self.t_start:.2f} s")
+
+    def as_dict(self) -> dict[str, object]:
+        return {"channel": self.channel, "kind": self.kind, "value": self.value,
+                "t_start": self.t_start, "duration_s": self.duration_s,
+                "samples": self.samples}
+
+
+def _longest_run(x: FloatArray) -> tuple[int, int]:
+    """(first index, length) of the longest run of exactly equal consecutive values."""
+    if x.size == 0:
+        return 0, 0
+    change = np.flatnonzero(x[1:] != x[:-1]) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [x.size]])
+    lengths = ends - starts
+    i = int(np.argmax(lengths))
+    return int(starts[i]), int(lengths[i])
+
+
+def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int) -> list[SensorFault]:
+    """The window's frozen and saturated sensors (module docstring).
+
+    Args:
+        fit: the window's fit (measured outputs ``fit.meas`` (N, n_out), their scales).
+        y: the twin's outputs at the estimate (N, n_out).
+        min_run: a stuck stretch shorter than this many samples is not a fault (0: off).
+
+    Returns:
+        One fault per output with a stuck stretch of at least ``min_run`` samples over which
+        the twin moves by more than :data:`MATERIAL` of the output's scale and four
+        quantisation steps of the reading.
+    """
+    if min_run <= 0:
+        return []
+    t = fit.window.t
+    out: list[SensorFault] = []
+    for j, name in enumerate(fit.names):
+        meas = fit.meas[:, j]
+        k0, length = _longest_run(meas)
+        if length < min_run:
+            continue
+        stuck = slice(k0, k0 + length)
+        twin = y[stuck, j]
+        if not np.all(np.isfinite(twin)):
+            continue
+        steps = np.abs(np.diff(meas))
+        steps = steps[steps > 0]
+        quantum = float(steps.min()) if steps.size else 0.0
+        moves = float(np.ptp(twin))
+        if moves <= max(MATERIAL * float(fit.scale[j]), 4.0 * quantum):
+            continue
+        value = float(meas[k0])
+        tol = 1e-12 * max(abs(value), 1.0)
+        margin = MATERIAL * float(fit.scale[j])
+        # clipped: the stuck value is the window's extreme and the twin stays beyond it
+        top = (value >= float(meas.max()) - tol and float(twin.min()) >= value - margin
+               and float(twin.max()) > value + margin)
+        bottom = (value <= float(meas.min()) + tol and float(twin.max()) <= value + margin
+                  and float(twin.min()) < value - margin)
+        kind: Literal["frozen", "saturated"] = "saturated" if top or bottom else "frozen"
+        out.append(SensorFault(name, kind, value, float(t[k0]),
+                               float(t[k0 + length - 1] - t[k0]), length))
+    return out
