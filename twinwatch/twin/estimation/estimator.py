@@ -57,7 +57,7 @@ from twinwatch.twin.estimation.gate import GateDecision, IdentifiabilityGate
 from twinwatch.twin.estimation.polish import Polished, polish
 from twinwatch.twin.estimation.problem import WindowProblem, check_window
 from twinwatch.twin.estimation.publish import ParameterStatus, publish
-from twinwatch.twin.estimation.quality import SensorFault, sensor_faults
+from twinwatch.twin.estimation.quality import SensorFault, live_outputs, sensor_faults
 from twinwatch.twin.estimation.search import PSOSettings, global_search
 from twinwatch.twin.estimation.statistics import ModelCheck
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
@@ -133,6 +133,9 @@ class EstimationConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> EstimationConfig:
+        if self.estimate is not None and not self.estimate:
+            raise ValueError("estimate: no parameter listed: name at least one to estimate, or "
+                             "leave the key out for the model's default")
         if self.estimate is not None and len(set(self.estimate)) != len(self.estimate):
             raise ValueError("estimate: a parameter is listed twice")
         for name, (lo, hi) in self.bounds.items():
@@ -245,7 +248,7 @@ class EstimatorState:
     trusted: FloatArray
     fusion: FusionState | None = None
     trusted_std: FloatArray | None = None
-    candidates: dict[str, tuple[float, float]] | None = None
+    candidates: dict[str, tuple[float, float, float]] | None = None
 
 
 class Estimator:
@@ -293,8 +296,14 @@ class Estimator:
         #: the window's that made it trusted, propagated to the windows that hold it.
         self.trusted_std = np.zeros(len(self.names))
         #: The last estimate eligible for trust of each parameter (value [SI], relative
-        #: standard error): the next one must agree with it (:meth:`_trust`).
-        self._candidates: dict[str, tuple[float, float]] = {}
+        #: standard error, the window's middle [s]): the next one must agree with it
+        #: (:meth:`_trust`).
+        self._candidates: dict[str, tuple[float, float, float]] = {}
+        #: Per output, whether its readings were live in a window without a sensor fault
+        #: (:func:`~twinwatch.twin.estimation.quality.live_outputs`).
+        self._live: dict[str, bool] = {}
+        #: Per output, the level it was last found saturated at.
+        self._clips: dict[str, float] = {}
         self._rng = np.random.default_rng(config.seed)
         #: Evidence across windows (None when ``[estimation.fusion] enabled = false``).
         self.fusion = (ParameterFusion(tuple(config.estimate), self.trusted[self.pmap.idx],
@@ -418,8 +427,9 @@ class Estimator:
         if held_more:
             twin = problem.twin_at(point.v)
         # ... and a sensor that is frozen or saturated is named: the window is not sound
-        faults = (sensor_faults(problem.fit, twin.y, cfg.validation.sensor_run)
-                  if cfg.validation.enabled else [])
+        run = cfg.validation.sensor_run if cfg.validation.enabled else 0
+        faults = sensor_faults(problem.fit, twin.y, run, self._live, self._clips)
+        self._clips.update({f.channel: f.value for f in faults if f.kind == "saturated"})
         nrmse = twin.residual.nrmse
         good = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse)
         trusted = good and (check is None or check.passed) and not faults
@@ -429,7 +439,10 @@ class Estimator:
                       cfg.fusion.max_rel_std, suspect=self._suspect(check, faults),
                       held_std=self.trusted_std_values())
         if trusted:
-            self._trust(decision, out.values)
+            self._trust(decision, out.values, float(0.5 * (window.t[0] + window.t[-1])))
+        if run and not faults:  # an output once seen live stays known to be live
+            for name, live in live_outputs(problem.fit, run).items():
+                self._live[name] = self._live.get(name, False) or live
         return WindowEstimate(
             values=out.values,
             estimated=out.estimated,
@@ -451,6 +464,16 @@ class Estimator:
             fusion_jump=jump,
             sensors=faults,
         )
+
+    def _fused_rates(self) -> dict[str, tuple[float, float]]:
+        """Estimated parameter -> the fused relative rate of change [1/s] and its standard
+        error (none without fusion or with a random walk)."""
+        if self.fusion is None or not self.fusion.trend:
+            return {}
+        f = self.fusion
+        sd = np.sqrt(np.maximum(np.diag(f.state.cov)[f.n:], 0.0))
+        return {n: (float(f.state.mean[f.n + i]), float(sd[i]))
+                for i, n in enumerate(f.names)}
 
     def _suspect(self, check: ModelCheck | None, faults: list[SensorFault]) -> str | None:
         """Why the window's estimates are not sound, or None: its sensor faults (named), else
@@ -479,11 +502,12 @@ class Estimator:
         return fuse_window(self.fusion, problem, polished, len(decision.selected), t_mid,
                            informative)
 
-    def _trust(self, decision: GateDecision, values: Mapping[str, float]) -> None:
+    def _trust(self, decision: GateDecision, values: Mapping[str, float], t: float) -> None:
         """Make the window's estimates the trusted values where their standard error is at
         most ``trust_rel_std`` and the previous such estimate of the parameter agrees with it
-        (within :data:`CONFIRM` combined standard errors; ties re-applied). A fused value is
-        never trusted (:mod:`~twinwatch.twin.estimation.publish`).
+        (within :data:`CONFIRM` combined standard errors, after the change the fused rate
+        explains over the time between them; ties re-applied). A fused value is never trusted
+        (:mod:`~twinwatch.twin.estimation.publish`).
 
         Why two: a trusted value is what every later window holds, and one window's estimate
         can be far off with a small standard error when the twin does not describe the drive
@@ -491,8 +515,15 @@ class Estimator:
         (a speed PI integrating one tick early, noise-free: Ke -0.9 % +- 0.01 %, D -4.6 % +-
         0.06 %; the 25 windows that held them published Ra 0.027 % off with 0.007-0.012 %,
         half of them not covering). Such estimates do not repeat from window to window; a
-        drift does."""
+        drift does.
+
+        Args:
+            decision: the gate's final decision.
+            values: the published values.
+            t: the window's middle [s].
+        """
         estimate = self.pmap.estimate
+        rates = self._fused_rates()
         for k in decision.selected:
             n = estimate[k]
             sd = decision.rel_std.get(k, math.inf)
@@ -500,9 +531,13 @@ class Estimator:
                 continue
             value = values[n]
             last = self._candidates.get(n)
-            self._candidates[n] = (value, sd)
-            if last is None or not (abs(math.log(value / last[0]))
-                                    <= CONFIRM * math.hypot(sd, last[1])):
+            self._candidates[n] = (value, sd, t)
+            if last is None:
+                continue
+            rate, rate_sd = rates.get(n, (0.0, 0.0))
+            dt = t - last[2]
+            change = math.log(value / last[0]) - rate * dt
+            if abs(change) > CONFIRM * math.sqrt(sd**2 + last[1]**2 + (rate_sd * dt) ** 2):
                 continue
             self.trusted[self.names.index(n)] = value
             self.trusted_std[self.names.index(n)] = sd

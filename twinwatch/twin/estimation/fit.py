@@ -343,33 +343,47 @@ class LocalFit:
         return v, r, self.sensitivity(v, active)
 
 
+#: Eigenvalues of the equilibrated ``J^T J`` below this share of the largest are directions the
+#: data do not determine (:func:`covariance`).
+RCOND = 1e-12
+
+
 def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
     """The least-squares covariance ``A^-1 (J^T W J) A^-1`` with ``A = J^T J`` (the sandwich:
     the residual variance may differ from row to row, e.g. between outputs).
 
-    The columns are equilibrated before the (pseudo-)inverse: the hydraulic twin's ``J^T J``
-    has a condition number of ~1e15 in raw form (pressure in Pa against a piston area in m^2),
-    where an unequilibrated pseudo-inverse returns meaningless variances. A column the outputs
-    do not respond to at all gets an infinite variance.
+    The columns are equilibrated before the inverse: the hydraulic twin's ``J^T J`` has a
+    condition number of ~1e15 in raw form (pressure in Pa against a piston area in m^2), where
+    an unequilibrated inverse returns meaningless variances. A direction of the equilibrated
+    ``A`` whose eigenvalue is below :data:`RCOND` of the largest is not determined: every
+    variable that loads on it gets an infinite variance (a pseudo-inverse would drop the
+    direction and give those variables a small, finite one: two identical columns each got a
+    standard error of 2.8e-4, Ke and Kt estimated without a tie passed the gate). A column the
+    outputs do not respond to at all is such a direction.
 
     Args:
         jac: (M, n) Jacobian of the residuals.
         weights: (M,) variance of each residual row.
 
     Returns:
-        (n, n) covariance; ``inf`` on the rows and columns of unresponsive columns.
+        (n, n) covariance; ``inf`` on the rows and columns of undetermined variables.
     """
     n = jac.shape[1]
+    if not np.all(np.isfinite(jac)):
+        return np.full((n, n), np.inf)
     norms = np.linalg.norm(jac, axis=0)
     safe = np.where(norms > 0, norms, 1.0)
     js = jac / safe
     try:
-        a_inv = np.linalg.pinv(js.T @ js, rcond=1e-15, hermitian=True)
+        lam, vec = np.linalg.eigh(js.T @ js)
     except np.linalg.LinAlgError:
         return np.full((n, n), np.inf)
+    keep = lam > RCOND * max(float(lam.max()), 1e-300)
+    a_inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
     cov = a_inv @ ((js * weights[:, None]).T @ js) @ a_inv
     cov = cov / np.outer(safe, safe)
-    dead = norms == 0
+    loads = np.sum(vec[:, ~keep] ** 2, axis=1) > 1e-12
+    dead = (norms == 0) | loads
     cov[dead, :] = np.inf
     cov[:, dead] = np.inf
     return cov

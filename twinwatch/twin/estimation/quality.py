@@ -7,8 +7,9 @@ fault, not a steady machine:
 
 * **saturated** when the stuck value is the window's largest (smallest) reading and the twin
   stays at or beyond it there, going materially beyond: the sensor clips at its range;
-* **frozen** otherwise: a stuck reading (a broken wire, a stalled field bus value, a converter
-  that stopped updating).
+* **frozen** otherwise (a broken wire, a stalled field bus value, a converter that stopped
+  updating), and also where the machine is steady when the reading was live a window before
+  (it carried noise, and now repeats itself exactly).
 
 A drive output that sits at its limit is neither: the twin clamps it too (its own output is as
 flat there). The window's estimates are then not measurements of the machine: the estimator
@@ -26,7 +27,7 @@ import numpy as np
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.model import FloatArray
 
-__all__ = ["SensorFault", "sensor_faults"]
+__all__ = ["SensorFault", "live_outputs", "sensor_faults"]
 
 #: The twin's output must move by more than this share of the output's scale over the stuck
 #: stretch (and by more than four quantisation steps of the reading) for it to be a fault.
@@ -77,18 +78,50 @@ def _longest_run(x: FloatArray) -> tuple[int, int]:
     return int(starts[i]), int(lengths[i])
 
 
-def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int) -> list[SensorFault]:
+def live_outputs(fit: WindowFit, min_run: int) -> dict[str, bool]:
+    """Per output, whether its readings are live noise in this window: no value repeats for
+    even a fifth of ``min_run`` samples, and its second differences are larger than its first
+    ones (white noise: sqrt(3) times; a smooth, noise-free signal such as a drive's own output:
+    far smaller)."""
+    out = {}
+    for j, name in enumerate(fit.names):
+        meas = fit.meas[:, j]
+        d1 = np.diff(meas)
+        d2 = np.diff(d1)
+        noisy = d2.size > 0 and float(np.sqrt(np.mean(d2 * d2))) > float(
+            np.sqrt(np.mean(d1 * d1)))
+        out[name] = bool(noisy) and _longest_run(meas)[1] < max(min_run // 5, 2)
+    return out
+
+
+def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int,
+                  live: dict[str, bool] | None = None,
+                  clips: dict[str, float] | None = None) -> list[SensorFault]:
     """The window's frozen and saturated sensors (module docstring).
+
+    A stuck stretch (one reading repeated exactly for at least ``min_run`` samples) is
+
+    * saturated where its value is the window's largest (smallest) reading and the twin goes
+      beyond it by more than :data:`MATERIAL` of the output's scale on average there, or where
+      it is the level the sensor was found saturated at before (``clips``: once the twin has
+      been fitted to a clipped reading it no longer goes beyond it);
+    * frozen where the twin moves by more than :data:`MATERIAL` of the output's scale and four
+      quantisation steps of the reading over it, or where the output was ``live`` in a sound
+      window before (a reading that carried noise and now repeats itself exactly has stopped
+      updating, even where the machine is steady);
+    * else not a fault (a drive output at its limit: the twin's is as flat; a quantised reading
+      of a steady machine).
 
     Args:
         fit: the window's fit (measured outputs ``fit.meas`` (N, n_out), their scales).
         y: the twin's outputs at the estimate (N, n_out).
         min_run: a stuck stretch shorter than this many samples is not a fault (0: off).
+        live: output -> its readings were live in a sound window before (:func:`live_outputs`);
+            None: unknown.
+        clips: output -> the level it was found saturated at before.
 
     Returns:
-        One fault per output with a stuck stretch of at least ``min_run`` samples over which
-        the twin moves by more than :data:`MATERIAL` of the output's scale and four
-        quantisation steps of the reading.
+        At most one fault per output.
     """
     if min_run <= 0:
         return []
@@ -99,25 +132,27 @@ def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int) -> list[SensorFau
         k0, length = _longest_run(meas)
         if length < min_run:
             continue
-        stuck = slice(k0, k0 + length)
-        twin = y[stuck, j]
+        twin = y[k0:k0 + length, j]
         if not np.all(np.isfinite(twin)):
-            continue
-        steps = np.abs(np.diff(meas))
-        steps = steps[steps > 0]
-        quantum = float(steps.min()) if steps.size else 0.0
-        moves = float(np.ptp(twin))
-        if moves <= max(MATERIAL * float(fit.scale[j]), 4.0 * quantum):
             continue
         value = float(meas[k0])
         tol = 1e-12 * max(abs(value), 1.0)
         margin = MATERIAL * float(fit.scale[j])
-        # clipped: the stuck value is the window's extreme and the twin stays beyond it
-        top = (value >= float(meas.max()) - tol and float(twin.min()) >= value - margin
-               and float(twin.max()) > value + margin)
-        bottom = (value <= float(meas.min()) + tol and float(twin.max()) <= value + margin
-                  and float(twin.min()) < value - margin)
-        kind: Literal["frozen", "saturated"] = "saturated" if top or bottom else "frozen"
+        top = value >= float(meas.max()) - tol and float(np.mean(twin)) > value + margin
+        bottom = value <= float(meas.min()) + tol and float(np.mean(twin)) < value - margin
+        known = (clips or {}).get(name)
+        at_clip = known is not None and abs(value - known) <= tol
+        steps = np.abs(np.diff(meas))
+        steps = steps[steps > 0]
+        quantum = float(steps.min()) if steps.size else 0.0
+        moves = float(np.ptp(twin)) > max(margin, 4.0 * quantum)
+        kind: Literal["frozen", "saturated"]
+        if top or bottom or at_clip:
+            kind = "saturated"
+        elif moves or (live or {}).get(name, False):
+            kind = "frozen"
+        else:
+            continue
         out.append(SensorFault(name, kind, value, float(t[k0]),
                                float(t[k0 + length - 1] - t[k0]), length))
     return out
