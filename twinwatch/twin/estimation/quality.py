@@ -109,8 +109,9 @@ def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int,
       quantisation steps of the reading over it, or where the output was ``live`` in a sound
       window before (a reading that carried noise and now repeats itself exactly has stopped
       updating, even where the machine is steady);
-    * else not a fault (a drive output at its limit: the twin's is as flat; a quantised reading
-      of a steady machine).
+    * not a fault where the twin itself holds the same value over most of the stretch (a drive
+      output at its modelled limit, even while the drive chatters there), nor where none of
+      the above holds (a quantised reading of a steady machine).
 
     Args:
         fit: the window's fit (measured outputs ``fit.meas`` (N, n_out), their scales).
@@ -136,6 +137,8 @@ def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int,
         if not np.all(np.isfinite(twin)):
             continue
         value = float(meas[k0])
+        if np.mean(np.abs(twin - value) <= 1e-9 * max(abs(value), 1.0)) > 0.5:
+            continue  # the twin holds it too: a drive output at its modelled limit
         tol = 1e-12 * max(abs(value), 1.0)
         margin = MATERIAL * float(fit.scale[j])
         top = value >= float(meas.max()) - tol and float(np.mean(twin)) > value + margin
