@@ -963,6 +963,133 @@ def _file_modes(ctx: Context) -> dict[str, Any]:
             "umask_restored": after == 0o022}
 
 
+# -- issue 15: honesty -----------------------------------------------------------------------
+#: The drive of tests/test_honesty.py (a stiff PI every 1 ms, clamped to [0, 24] V).
+HONEST_DRIVE = {"period": 0.001, "speed": {"kp": 2.0, "ki": 2.0, "output_min": 0.0,
+                                           "output_max": 24.0}}
+HONEST_BOUNDS = {"Ra": (1.0, 30.0), "D": (1e-4, 1e-2), "Ke": (0.01, 0.1), "La": (0.1, 3.0),
+                 "J": (1e-4, 1e-2)}
+
+
+def honest_run(skip: int, n: int, *, drive: dict[str, Any] | None = None,
+               noise: dict[str, float] | None = None, estimation: dict[str, Any] | None = None,
+               twin_drive: dict[str, Any] | None = None, **plant: Any) -> tuple[Any, list[Any]]:
+    """The estimator over ``n`` windows of the simulated motor (resistance degradation) from
+    window ``skip``: (plant, [(window, estimate), ...])."""
+    from twinwatch.plant.dcmotor import DCMotorPlantConfig
+    from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
+    from twinwatch.twin.models.dcmotor import DCMotorTwin
+
+    from .conftest import plant_windows
+
+    cfg = DCMotorPlantConfig(scenario="resistance_degradation", duration=2 * (skip + n) + 10,
+                             drive=drive or HONEST_DRIVE, noise=noise or {}, seed=5, **plant)
+    plant_, wins = plant_windows(cfg, n, skip=skip)
+    est = Estimator(DCMotorTwin(drive=twin_drive or drive or HONEST_DRIVE),
+                    EstimationConfig(**{"bounds": HONEST_BOUNDS, **(estimation or {})}))
+    return plant_, [(w, est.estimate(w)) for w in wins]
+
+
+def missing_truth(plant: Any, runs: list[Any]) -> int:
+    """Windows publishing Ra ``estimated`` whose 2-sigma interval misses the plant's Ra."""
+    import math
+
+    return sum(e.status["Ra"] == "estimated"
+               and abs(math.log(e.values["Ra"] / plant.truth(float(w.t[100])).Ra))
+               > 2 * e.rel_std["Ra"] for w, e in runs)
+
+
+@case("honesty: a current sensor frozen for 20 s (the machine steady)",
+      estimated_missing_the_truth=0, every_frozen_window_names_ia=True)
+def _frozen_current(ctx: Context) -> dict[str, Any]:
+    fault = {"channel": "ia", "kind": "frozen", "start": 170.0, "duration": 20.0}
+    plant, runs = honest_run(84, 12, noise={"ia": 1.0, "omega": 1.0}, sensor_faults=[fault])
+    frozen = [e for w, e in runs if 170.0 <= w.t[0] and w.t[-1] < 190.0]
+    return {"estimated_missing_the_truth": missing_truth(plant, runs),
+            "every_frozen_window_names_ia": bool(frozen) and all(
+                any(f.channel == "ia" and f.kind == "frozen" for f in e.sensors)
+                for e in frozen)}
+
+
+@case("honesty: a speed sensor that clips at 15 rad/s while the set-point is 20",
+      estimated_missing_the_truth=0, saturated_omega_named=True)
+def _saturated_speed(ctx: Context) -> dict[str, Any]:
+    fault = {"channel": "omega", "kind": "saturated", "start": 160.0, "duration": 30.0,
+             "level": 15.0}
+    plant, runs = honest_run(80, 12, noise={"ia": 1.0, "omega": 1.0}, sensor_faults=[fault])
+    return {"estimated_missing_the_truth": missing_truth(plant, runs),
+            "saturated_omega_named": any(f.channel == "omega" and f.kind == "saturated"
+                                         for _, e in runs for f in e.sensors)}
+
+
+@case("honesty: window 82 of a drive chattering at its limit (Ra +0.055 % published +- "
+      "0.015 %)", z_below_2=True)
+def _window_82(ctx: Context) -> dict[str, Any]:
+    import math
+
+    plant, runs = honest_run(80, 3, noise={"ia": 1.0, "omega": 1.0})
+    w, e = runs[2]
+    z = math.log(e.values["Ra"] / plant.truth(float(w.t[100])).Ra) / e.rel_std["Ra"]
+    return {"z_below_2": e.status["Ra"] == "estimated" and abs(z) < 2.0}
+
+
+#: A firmware speed PI whose integrator's discretisation matters (bench_fidelity --only
+#: methods): kp 2, ki 20, every 2 ms, clamped to [0, 24] V, set-point steps every 2-6 s.
+def _method_drive(method: str) -> dict[str, Any]:
+    return {"period": 0.002, "speed": {"kp": 2.0, "ki": 20.0, "output_min": 0.0,
+                                       "output_max": 24.0, "integrator_method": method}}
+
+
+@case("honesty: a PI that integrates before its output (backward Euler), the twin configured "
+      "forward Euler, noise-free", estimated_cover_or_none=True)
+def _mis_stated_integrator(ctx: Context) -> dict[str, Any]:
+    plant, runs = honest_run(80, 30, drive=_method_drive("backward_euler"),
+                             twin_drive=_method_drive("forward_euler"),
+                             setpoint={"dwell_min": 2.0, "dwell_max": 6.0})
+    n = sum(e.status["Ra"] == "estimated" for _, e in runs)
+    return {"estimated_cover_or_none": n == 0 or missing_truth(plant, runs) <= 0.1 * n}
+
+
+@case("honesty: the same drive, the twin configured backward Euler: exact to rounding",
+      exact=True)
+def _matched_integrator(ctx: Context) -> dict[str, Any]:
+    import numpy as np
+
+    from twinwatch.plant.dcmotor import DCMotorPlantConfig
+    from twinwatch.twin.models.dcmotor import DCMotorTwin
+
+    from .conftest import plant_windows
+
+    drive = _method_drive("backward_euler")
+    _, wins = plant_windows(DCMotorPlantConfig(scenario="nominal", duration=40.0, drive=drive,
+                                               setpoint={"dwell_min": 2.0, "dwell_max": 6.0}),
+                            15)
+    twin = DCMotorTwin(drive=drive)
+    worst = 0.0
+    for w in wins:
+        if 0.0 < w["Va"][0] < 24.0:  # a window that starts inside the limits
+            meas = np.column_stack([w[o] for o in twin.output_names])
+            y = twin.simulate(twin.nominal_vector()[None], w)[0]
+            worst = max(worst, float(np.max(np.abs(y - meas) / np.abs(meas).max(axis=0))))
+    return {"exact": worst < 1e-9}
+
+
+@case("honesty: Ke and Kt both estimated without the tie Kt = Ke (a pseudo-inverse dropped "
+      "their common direction)", ke_and_kt_estimated_together=False)
+def _untied_kt(ctx: Context) -> dict[str, Any]:
+    _, runs = honest_run(80, 4, noise={"ia": 1.0, "omega": 1.0}, estimation={
+        "estimate": ["Ra", "D", "Ke", "Kt"], "tie": {},
+        "bounds": {**HONEST_BOUNDS, "Kt": (0.01, 0.1)}})
+    return {"ke_and_kt_estimated_together": any(
+        e.status["Ke"] == "estimated" and e.status["Kt"] == "estimated" for _, e in runs)}
+
+
+@case("config: estimation.estimate = [] (a zero-size array deep in the search)", **REFUSED)
+def _empty_estimate(ctx: Context) -> dict[str, Any]:
+    return refused(ctx, "estimation.estimate",
+                   **{'estimate = ["Ra", "D", "Ke", "La", "J"]': "estimate = []"})
+
+
 # -- the table ------------------------------------------------------------------------------
 @pytest.mark.parametrize("fault", CASES, ids=[c.name for c in CASES])
 def test_fault(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,

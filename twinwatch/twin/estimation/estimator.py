@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinwatch.twin.estimation.check import ValidationConfig, check_twin, model_check
 from twinwatch.twin.estimation.fit import ParameterMap, WindowFit, relative_std
@@ -131,11 +131,16 @@ class EstimationConfig(BaseModel):
         "a transient in the residual and biases the estimates")
     seed: int = 0
 
+    @field_validator("estimate")
+    @classmethod
+    def _not_empty(cls, value: list[str] | None) -> list[str] | None:
+        if value is not None and not value:
+            raise ValueError("no parameter listed: name at least one to estimate, or leave "
+                             "the key out for the model's default")
+        return value
+
     @model_validator(mode="after")
     def _check(self) -> EstimationConfig:
-        if self.estimate is not None and not self.estimate:
-            raise ValueError("estimate: no parameter listed: name at least one to estimate, or "
-                             "leave the key out for the model's default")
         if self.estimate is not None and len(set(self.estimate)) != len(self.estimate):
             raise ValueError("estimate: a parameter is listed twice")
         for name, (lo, hi) in self.bounds.items():
