@@ -18,15 +18,17 @@ small stages on it, each a module of this room that says what it implements and 
    others held at their last trusted value and the admitted ones re-fitted with them held;
 4. **model check** (:mod:`~twinwatch.twin.estimation.check`): is the residual white and
    independent of the inputs? A window that fails has its standard errors widened, and the gate
-   runs again on them (a held parameter is published at its trusted value);
+   runs again on them (a held parameter is published at its trusted value); then the sensors
+   (:mod:`~twinwatch.twin.estimation.quality`): is a measured output frozen or saturated? A
+   window that fails either is not sound: its estimates are published ``suspect``;
 5. **fusion** (:mod:`~twinwatch.twin.estimation.fusion`): the window's evidence joins a Kalman
    filter on the parameters across windows;
 
 then :mod:`~twinwatch.twin.estimation.publish` says what each parameter's published value is
-(estimated, fused, held, tied, fixed), and a window whose fit and model check are good enough
-updates the trusted values later windows hold. The PSO stops at ``max_generations`` or
-``time_budget`` seconds, whichever comes first; with the same seed and no time cap hit, results
-are bit-for-bit reproducible.
+(estimated, fused, suspect, held, tied, fixed), and a window whose fit, model check and sensors
+are good enough updates the trusted values later windows hold (once the next estimate agrees).
+The PSO stops at ``max_generations`` or ``time_budget`` seconds, whichever comes first; with the
+same seed and no time cap hit, results are bit-for-bit reproducible.
 
 Fitness (paper Eq. 2, normalised): ``RMSE_n = sqrt(mean_j mean_k ((y_sim - y_meas)/s_j)^2)``
 with ``s_j = max(rms(y_meas_j), floor_j)`` per output j, so that current [A], speed [rad/s] and
