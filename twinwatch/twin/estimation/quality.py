@@ -19,6 +19,7 @@ them, and the health message names each fault (``sensors``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -80,17 +81,24 @@ def _longest_run(x: FloatArray) -> tuple[int, int]:
 
 def live_outputs(fit: WindowFit, min_run: int) -> dict[str, bool]:
     """Per output, whether its readings are live noise in this window: no value repeats for
-    even a fifth of ``min_run`` samples, and its second differences are larger than its first
-    ones (white noise: sqrt(3) times; a smooth, noise-free signal such as a drive's own output:
-    far smaller)."""
+    even a fifth of ``min_run`` samples, its second differences are larger than its first ones
+    (white noise: sqrt(3) times; a smooth, noise-free signal such as a drive's own output: far
+    smaller), and its noise is more than three of its quantisation steps (an encoder's count
+    toggles by one step at a steady speed and may repeat for seconds)."""
     out = {}
     for j, name in enumerate(fit.names):
         meas = fit.meas[:, j]
         d1 = np.diff(meas)
         d2 = np.diff(d1)
-        noisy = d2.size > 0 and float(np.sqrt(np.mean(d2 * d2))) > float(
-            np.sqrt(np.mean(d1 * d1)))
-        out[name] = bool(noisy) and _longest_run(meas)[1] < max(min_run // 5, 2)
+        if d2.size == 0:
+            out[name] = False
+            continue
+        steps = np.abs(d1[d1 != 0])
+        quantum = float(steps.min()) if steps.size else math.inf
+        rms1 = float(np.sqrt(np.mean(d1 * d1)))
+        out[name] = (float(np.sqrt(np.mean(d2 * d2))) > rms1
+                     and rms1 / math.sqrt(2.0) > 3.0 * quantum
+                     and _longest_run(meas)[1] < max(min_run // 5, 2))
     return out
 
 
