@@ -66,9 +66,11 @@ from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
 
-#: Two estimates of a parameter agree when they are within this many combined standard errors:
-#: the second makes it trusted (:meth:`Estimator._trust`).
+#: Two estimates of a parameter agree when they are within this many combined standard errors
+#: (after the change the fused rate explains) and at most :data:`CONFIRM_WITHIN_S` apart: the
+#: second makes it trusted (:meth:`Estimator._trust`).
 CONFIRM = 2.0
+CONFIRM_WITHIN_S = 10.0
 
 __all__ = [
     "EstimationConfig",
@@ -513,7 +515,8 @@ class Estimator:
         """Make the window's estimates the trusted values where their standard error is at
         most ``trust_rel_std`` and the previous such estimate of the parameter agrees with it
         (within :data:`CONFIRM` combined standard errors, after the change the fused rate
-        explains over the time between them; ties re-applied). A fused value is never trusted
+        explains over the time between them, at most :data:`CONFIRM_WITHIN_S` before; ties
+        re-applied). A fused value is never trusted
         (:mod:`~twinwatch.twin.estimation.publish`).
 
         Why two: a trusted value is what every later window holds, and one window's estimate
@@ -541,10 +544,9 @@ class Estimator:
             self._candidates[n] = (value, sd, t)
             if last is None:
                 continue
-            rate, rate_sd = rates.get(n, (0.0, 0.0))
             dt = t - last[2]
-            change = math.log(value / last[0]) - rate * dt
-            if abs(change) > CONFIRM * math.sqrt(sd**2 + last[1]**2 + (rate_sd * dt) ** 2):
+            change = math.log(value / last[0]) - rates.get(n, (0.0, 0.0))[0] * dt
+            if dt > CONFIRM_WITHIN_S or abs(change) > CONFIRM * math.hypot(sd, last[1]):
                 continue
             self.trusted[self.names.index(n)] = value
             self.trusted_std[self.names.index(n)] = sd
