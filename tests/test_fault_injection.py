@@ -44,6 +44,7 @@ class Case:
     name: str
     expected: dict[str, Any]
     run: Callable[[Context], dict[str, Any]]
+    slow: bool = False
 
 
 @dataclass
@@ -56,12 +57,13 @@ class Context:
 CASES: list[Case] = []
 
 
-def case(name: str, **expected: Any) -> Callable[[Callable[[Context], dict[str, Any]]],
-                                                  Callable[[Context], dict[str, Any]]]:
-    """Register the decorated function as a fault case: it returns the observed facts."""
+def case(name: str, *, slow: bool = False, **expected: Any
+         ) -> Callable[[Callable[[Context], dict[str, Any]]], Callable[[Context], dict[str, Any]]]:
+    """Register the decorated function as a fault case: it returns the observed facts
+    (``slow``: in the slow lane)."""
 
     def register(fn: Callable[[Context], dict[str, Any]]) -> Callable[[Context], dict[str, Any]]:
-        CASES.append(Case(name, expected, fn))
+        CASES.append(Case(name, expected, fn, slow))
         return fn
 
     return register
@@ -1084,6 +1086,35 @@ def _untied_kt(ctx: Context) -> dict[str, Any]:
         e.status["Ke"] == "estimated" and e.status["Kt"] == "estimated" for _, e in runs)}
 
 
+@case("honesty: a hydraulic fluid degrading (+30 % in 200 s) that no window pins, 0.005 % "
+      "noise: D held at nameplate with a deviation of 0.0 %", slow=True,
+      d_status_is_evidence=True, deviation_within_3_points=True)
+def _fused_d(ctx: Context) -> dict[str, Any]:
+    import numpy as np
+
+    from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
+    from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
+    from twinwatch.twin.model import WindowData
+    from twinwatch.twin.models.hydraulic import HydraulicActuatorTwin
+
+    plant = HydraulicPlant(HydraulicPlantConfig(fault_start=0.0, duration=210.0, seed=3,
+                                                noise={"x": 0.005, "p": 0.005}))
+    est = Estimator(HydraulicActuatorTwin(), EstimationConfig(
+        estimate=["q_pump", "D"], tie={}, bounds={"D": (20.0, 500.0), "q_pump": (0.01, 0.04)},
+        model_error=1e-7, max_rel_std=0.005, trust_rel_std=0.005,
+        pso=PSOSettings(max_generations=10),
+        fusion={"max_rel_std": 0.015, "rate_noise": 3e-5, "level_noise": 1e-4}))
+    e = None
+    for k in range(100):
+        ss = [plant.next_sample() for _ in range(200)]
+        e = est.estimate(WindowData(t=np.array([s.t for s in ss]), index=k, channels={
+            c: np.array([s.values[c] for s in ss]) for c in ss[0].values}))
+    assert e is not None
+    truth = plant.truth(199.0).D
+    return {"d_status_is_evidence": e.status["D"] in ("estimated", "fused"),
+            "deviation_within_3_points": abs(e.values["D"] / truth - 1.0) <= 0.03}
+
+
 @case("config: estimation.estimate = [] (a zero-size array deep in the search)", **REFUSED)
 def _empty_estimate(ctx: Context) -> dict[str, Any]:
     return refused(ctx, "estimation.estimate",
@@ -1091,7 +1122,8 @@ def _empty_estimate(ctx: Context) -> dict[str, Any]:
 
 
 # -- the table ------------------------------------------------------------------------------
-@pytest.mark.parametrize("fault", CASES, ids=[c.name for c in CASES])
+@pytest.mark.parametrize("fault", [pytest.param(c, marks=pytest.mark.slow) if c.slow else c
+                                   for c in CASES], ids=[c.name for c in CASES])
 def test_fault(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,
                monkeypatch: pytest.MonkeyPatch) -> None:
     caplog.set_level(logging.INFO)
