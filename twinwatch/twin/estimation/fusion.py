@@ -41,6 +41,10 @@ from twinwatch.twin.model import FloatArray
 
 #: Largest change of a level (ln-parameter) in one Gauss-Newton step of :meth:`update`.
 MAX_STEP = 0.5
+#: The steps of the window's Jacobian at each iteration
+#: (:meth:`~twinwatch.twin.estimation.fit.LocalFit.sensitivity`): the smallest and the largest
+#: of the gate's, half the twin calls at each of the iterations.
+FUSION_STEPS = (1e-6, 1e-3)
 
 
 class FusionConfig(BaseModel):
@@ -338,7 +342,7 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
             v_f = np.concatenate([np.clip(qq, problem.xl, problem.xu), polished.nuisance])
             r_f = local.residuals(v_f[None, :])[0]
             active = np.concatenate([cols, nuis])
-            return local.sensitivity(v_f, active), r_f
+            return local.sensitivity(v_f, active, steps=FUSION_STEPS), r_f
 
         jump = fusion.update(t_mid, linearize, polished.row_var, nuis.size, cols=cols,
                              bounds=(problem.xl, problem.xu),
