@@ -922,8 +922,9 @@ def _reload_window_index(ctx: Context) -> dict[str, Any]:
     cfg = load_config(sim_config(ctx.tmp))
     first = Daemon(cfg, persist=True, publish=False, record=False)
     first.run()
-    kept = first.close(keep=SINKS)  # what the CLI does on SIGHUP
-    second = Daemon(cfg, persist=True, publish=False, record=False, reuse=kept)
+    kept = first.close(keep=SINKS)  # what the supervisor does on SIGHUP
+    second = Daemon(cfg, persist=True, publish=False, record=False, reuse=kept, resume=False)
+    second.continue_from(first)
     second.run()
     second.close()
     con = sqlite3.connect(ctx.tmp / "state.sqlite")
@@ -1210,7 +1211,7 @@ def state_facts(ctx: Context, r: Any) -> dict[str, Any]:
       exit_code=74, noticed="deleted at window 4", windows_in_file=[2, 3, 4, 5, 6, 7],
       twin_saved=True, counter=2,
       summary="state database: 2 windows stored by this run were lost with its deleted or "
-              "replaced file (no longer in memory to write again): exit status 74",
+              "replaced file (no longer in memory to write again)",
       next_start_resumes=True)
 def _state_db_deleted(ctx: Context) -> dict[str, Any]:
     def rm(db: Path) -> None:
@@ -1260,31 +1261,38 @@ resource.setrlimit(resource.RLIMIT_NOFILE, ({limit}, resource.getrlimit(resource
 """
 
 
-@case("issue 14: 100 SIGHUP reloads under a limit of 48 open files (RLIMIT_NOFILE)", slow=True,
-      reloads=100, too_many_open_files=0, open_files_growth=0, exit_code=0)
+@case("issue 14: 100 SIGHUP reloads under a limit of 48 open files (RLIMIT_NOFILE); open "
+      "files counted after the first and the last", slow=True,
+      reloads=100, too_many_open_files=0, open_files_growth="<= 2", exit_code=0)
 def _reloads_under_descriptor_limit(ctx: Context) -> dict[str, Any]:
     import signal
 
     cfg = endless_sim(ctx.tmp, **{"# queue = 4": "queue = 1"})
     svc = Service(cfg, ctx.tmp, prelude=NOFILE.format(limit=48))
     done = ("configuration reloaded", "reload failed")
+    before = None
     try:
         assert svc.wait_for(WINDOW_LINE, n=2), "two windows"
-        before = svc.open_files()
         for k in range(100):  # each daemon a reload starts stores a window before the next
             svc.send(signal.SIGHUP)
             if not (svc.wait_for(*done, n=k + 1, timeout=30)
                     and svc.wait_for(WINDOW_LINE, n=svc.count(WINDOW_LINE) + 1, timeout=30)):
                 break
+            if k == 0:  # once every thread that reads the database has its connection
+                before = svc.open_files()
         assert svc.wait_for(WINDOW_LINE, n=svc.count(WINDOW_LINE) + 1, timeout=30)
         after = svc.open_files() if svc.proc.poll() is None else None
         svc.send(signal.SIGTERM)
         code = svc.wait(stop_timeout())
     finally:
         svc.close()
+    # SQLite keeps the descriptors of a closed connection while another one holds locks on the
+    # file, and reuses them for the next: the count moves by one or two, it does not grow
+    growth = None if after is None or before is None else after - before
     return {"reloads": svc.count("configuration reloaded") - svc.count("cannot start"),
             "too_many_open_files": svc.count("Too many open files"),
-            "open_files_growth": None if after is None else after - before, "exit_code": code}
+            "open_files_growth": "<= 2" if growth is not None and growth <= 2 else growth,
+            "exit_code": code}
 
 
 @case("issue 14: the recording's directory removed while running (after window 2 of 8)",

@@ -23,11 +23,17 @@ if TYPE_CHECKING:
 logger = logging.getLogger("twinwatch")
 
 def _setup_logging(level: str) -> None:
+    """Log to stderr (the journal under systemd); third-party floods are rate-limited (the
+    first 5 identical messages a minute, then one line counting the others)."""
+    from twinwatch.daemon import logfilter
+
     logging.basicConfig(
         level=getattr(logging, level.upper()),
         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    for handler in logging.getLogger().handlers:
+        logfilter.install(handler)
 
 
 @click.group()
@@ -92,7 +98,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     Zenoh session, the Rerun file and the state database open when their tables are unchanged,
     and resuming the twin from the state database."""
     from twinwatch.config.loader import ConfigError
-    from twinwatch.daemon.supervisor import StartError, Supervisor
+    from twinwatch.daemon.supervisor import StartError, Stopped, Supervisor
 
     base_dir = config.resolve().parent if config else Path.cwd()
 
@@ -109,6 +115,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     click.get_current_context().call_on_close(lambda: os.umask(old_umask))
     try:
         supervisor.start()
+    except Stopped as exc:  # SIGTERM while it was starting: nothing ran, nothing to report
+        click.echo(f"twinwatch: {exc}", err=True)
+        sys.exit(0)
     except ConfigError as exc:
         click.echo(f"Error: {exc}", err=True)
         sys.exit(EX_CONFIG)
@@ -314,9 +323,13 @@ def _loss_lines(daemon: Any) -> list[str]:
                      f"estimated, so they were not published ({max(late, 0)} written later, "
                      f"served by the history query; {store['lost']} lost)")
     lost = daemon.lost()
+    if "store_history" in lost:
+        lines.append(f"state database: {lost['store_history']} windows stored by this run were "
+                     f"lost with its deleted or replaced file (no longer in memory to write "
+                     f"again)")
     if "recording" in lost:
-        lines.append(f"recording: {lost['recording']} windows could not be recorded (the "
-                     "Rerun file writer failed: see the log)")
+        lines.append(f"recording: {lost['recording']} windows could not be recorded or were "
+                     "lost with a deleted file (see the log)")
     if lost:
         lines.append("twinwatch: estimated windows were lost: exit status 74")
     return lines

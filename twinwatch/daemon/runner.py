@@ -26,12 +26,12 @@ import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from twinwatch.daemon.alarms import AlarmEvaluator
-from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline, WindowSink
+from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
@@ -57,6 +57,15 @@ SINKS = ("store", "publisher", "recorder")
 """The daemon's sinks, in the order each window is written to them (stored before published);
 a reload may hand them from the old daemon to the new one (:meth:`Daemon.close` ``keep``)."""
 
+HANDOVER = ("driver", *SINKS)
+"""What a reload may hand from the old daemon to the new one: the open driver (its
+configuration unchanged: the source goes on where it was, nothing is opened again) and the
+sinks."""
+
+STOP_AT_WINDOW_S = 5.0
+"""Longest wait [s, wall] for the window being filled when a reload stops a daemon at a window
+boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the partial window is dropped."""
+
 
 class Daemon:
     """One machine's monitor.
@@ -74,11 +83,17 @@ class Daemon:
             it on.
         watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
             each window).
-        reuse: open sinks (names in :data:`SINKS`) handed over from a previous daemon by a
-            reload (see :meth:`close`), used instead of opening new ones. The caller (the
-            supervisor) hands over only sinks whose configuration is unchanged.
+        reuse: the open driver and sinks (names in :data:`HANDOVER`) a reload hands over from
+            the running daemon (see :meth:`close`), used instead of opening new ones; this
+            daemon owns them once it took over (:meth:`continue_from`), and a failed start
+            leaves them open. The caller (the supervisor) hands over only those whose
+            configuration is unchanged.
         resume: restore the saved twin and alarm levels from the state database (False:
-            start from the nameplate values, ``twinwatch run --fresh``).
+            start from the nameplate values, ``twinwatch run --fresh``; a reload restores
+            them in :meth:`continue_from`, once the previous daemon has finished).
+        defer: sinks (names in :data:`SINKS`) not to open yet: the running daemon holds their
+            file or port (a reload that changed their settings); :meth:`open_deferred` opens
+            them once it has released them.
 
     Raises:
         twinwatch.drivers.base.DriverInitializationError, PublisherError, RecorderError,
@@ -97,8 +112,9 @@ class Daemon:
         record: bool = True,
         persist: bool = False,
         watchdog: Watchdog | None = None,
-        reuse: Mapping[str, WindowSink] | None = None,
+        reuse: Mapping[str, Any] | None = None,
         resume: bool = True,
+        defer: Collection[str] = (),
     ) -> None:
         self.config = config
         self.base_dir = base_dir or Path.cwd()
@@ -129,58 +145,93 @@ class Daemon:
         self._own_driver = driver is None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
         self._stop = threading.Event()
+        self._stop_at_window: float | None = None  # monotonic deadline, see stop(at_window)
+        self.ended: str | None = None  # why run() returned by itself: source, duration, failure
+        self._open_flags = (publish, persist, record)
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
         self._ticks: list[Callable[[], None]] = []
         self.abandon = config.acquisition.abandon_on_stop
+        reuse = dict(reuse or {})
         try:
-            for name, sink in (reuse or {}).items():
-                if name not in SINKS:
-                    raise ValueError(f"unknown sink {name!r}; the sinks are {SINKS}")
-                setattr(self, name, sink)
+            for name, obj in reuse.items():
+                if name not in HANDOVER:
+                    raise ValueError(f"cannot hand over {name!r}; only {HANDOVER}")
+                setattr(self, name, obj)
                 logger.info("reload: the %s is kept open (its configuration is unchanged)", name)
-            # Every exclusive resource before any file is touched: the Zenoh port, then the
-            # state database's lock, then the recording's lock (and only then its truncation),
-            # so a second twinwatch in the same directory fails without harming the first.
-            if publish and config.zenoh.enabled and self.publisher is None:
-                from twinwatch.sinks.zenoh import HealthPublisher
-
-                self.publisher = HealthPublisher(config.zenoh, self.machine,
-                                                 retry_connect=True)
-            if persist and config.state.enabled and self.store is None:
-                from twinwatch.sinks.store import StateStore
-
-                st = config.state
-                self.store = StateStore(Path(st.path).expanduser(),
-                                        synchronous=st.synchronous,
-                                        keep_days=st.keep_days, keep_rows=st.keep_rows,
-                                        recover_corrupt=st.recover_corrupt)
-            if record and config.recording.enabled and self.recorder is None:
-                from twinwatch.sinks.rerun import RerunRecorder
-
-                rec = config.recording.model_copy()
-                path = Path(rec.path)
-                if not path.is_absolute():
-                    rec.path = str(Path.cwd() / path)
-                self.recorder = RerunRecorder(
-                    rec, self.machine, outputs=self.model.output_names,
-                    parameters={p.name: p.unit for p in self.model.parameters})
-            if self.store is not None:
-                if "store" in (reuse or {}):
-                    # a reload: same run id, so the windows go on from the last one stored
-                    self.ring.first_index = self.store.next_window(self.machine)
-                if resume:
-                    self._restore()
-            if self.publisher is not None and self.store is not None:
-                self.publisher.add_query_handler("history", self._on_history_query)
-            self.driver = driver or create_driver(config.driver, base_dir=self.base_dir)
+            self._open_sinks(skip=defer)
+            if self.store is not None and resume:
+                self._restore()
+            self.driver = self.driver or driver or create_driver(config.driver,
+                                                                 base_dir=self.base_dir)
         except BaseException:
+            for name in reuse:  # the running daemon's: not ours to close
+                setattr(self, name, None)
             self.close()
             raise
+        self._wire()
+
+    def _open_sinks(self, skip: Collection[str] = ()) -> None:
+        """Open the configured sinks not open yet (handed over, or in ``skip``)."""
+        config = self.config
+        publish, persist, record = self._open_flags
+        # Every exclusive resource before any file is touched: the Zenoh port, then the
+        # state database's lock, then the recording's lock (and only then its truncation),
+        # so a second twinwatch in the same directory fails without harming the first.
+        if publish and config.zenoh.enabled and self.publisher is None \
+                and "publisher" not in skip:
+            from twinwatch.sinks.zenoh import HealthPublisher
+
+            self.publisher = HealthPublisher(config.zenoh, self.machine, retry_connect=True)
+        if persist and config.state.enabled and self.store is None and "store" not in skip:
+            from twinwatch.sinks.store import StateStore
+
+            st = config.state
+            self.store = StateStore(Path(st.path).expanduser(), synchronous=st.synchronous,
+                                    keep_days=st.keep_days, keep_rows=st.keep_rows,
+                                    recover_corrupt=st.recover_corrupt,
+                                    recent=config.acquisition.history)
+        if record and config.recording.enabled and self.recorder is None \
+                and "recorder" not in skip:
+            from twinwatch.sinks.rerun import RerunRecorder
+
+            rec = config.recording.model_copy()
+            path = Path(rec.path)
+            if not path.is_absolute():
+                rec.path = str(Path.cwd() / path)
+            self.recorder = RerunRecorder(
+                rec, self.machine, outputs=self.model.output_names,
+                parameters={p.name: p.unit for p in self.model.parameters})
+
+    def _wire(self) -> None:
+        """Give the open sinks to the pipeline (the store first: stored before published) and
+        serve the history query from the state database."""
         self.pipeline.sinks = [s for s in (self.store, self.publisher, self.recorder)
                                if s is not None]
         self.pipeline.gate = self.store  # a window it cannot store is not published
+        if self.publisher is not None and self.store is not None:
+            self.publisher.add_query_handler("history", self._on_history_query)
+
+    def open_deferred(self) -> None:
+        """Open the sinks the constructor's ``defer`` left closed (a reload, once the previous
+        daemon has released their file or port).
+
+        Raises:
+            PublisherError, RecorderError, StoreError: as the constructor.
+        """
+        self._open_sinks()
+        self._wire()
+
+    def continue_from(self, previous: Daemon) -> None:
+        """Take over from ``previous``, the daemon of the configuration before a reload, once
+        it has finished its queued windows and released what was not handed over
+        (:meth:`close` ``keep``): the window numbering goes on, the twin and the alarm levels
+        resume from the state database, the history query is served by this daemon."""
+        self.ring.first_index = previous.ring.first_index + previous.ring.windows
+        if self.store is not None:
+            self._restore()
+        self._wire()
 
     # -- the window pipeline's results ------------------------------------------------------
     @property
@@ -266,9 +317,20 @@ class Daemon:
         """Call ``fn(health)`` from the worker thread after each window."""
         self.pipeline.callbacks.append(fn)
 
-    def stop(self) -> None:
-        """Ask :meth:`run` to return after the current sample (thread- and signal-safe)."""
-        self._stop.set()
+    def stop(self, at_window: bool = False) -> None:
+        """Ask :meth:`run` to return after the current sample (thread- and signal-safe).
+
+        Args:
+            at_window: return once the window being filled is complete instead (a reload: a
+                source on a simulated clock, such as a file replayed as fast as possible, then
+                goes on in the next daemon exactly where this one stopped). A live source, or
+                one that does not complete the window within :data:`STOP_AT_WINDOW_S`, stops
+                at once (the partial window is dropped).
+        """
+        if at_window:
+            self._stop_at_window = time.monotonic() + STOP_AT_WINDOW_S
+        else:
+            self._stop.set()
 
     def counters(self) -> dict[str, int]:
         c: dict[str, int] = {
@@ -289,6 +351,7 @@ class Daemon:
             c["store_errors"] = int(self.store.errors)
             c["store_waiting"] = int(self.store.waiting)
             c["store_lost"] = int(self.store.lost)
+            c["store_history_lost"] = int(self.store.history_lost)
             c["windows_not_stored"] = self.pipeline.not_stored
         if self.recorder is not None:
             c["recording_lost"] = int(self.recorder.lost)
@@ -310,18 +373,27 @@ class Daemon:
                        f"in memory, not published")
         if store is not None and store.lost:
             out.append(f"{store.lost} windows lost (never stored)")
-        problem = getattr(self._sink("recorder"), "problem", None)
+        if store is not None and store.history_lost:
+            out.append(f"{store.history_lost} stored windows lost with a deleted or replaced "
+                       f"state database file")
+        recorder = self._sink("recorder")
+        problem = getattr(recorder, "problem", None)
         if problem:
             out.append(problem)
+        elif getattr(recorder, "lost", 0):
+            out.append(f"recording: {recorder.lost} windows not recorded")
         return out
 
     def lost(self) -> dict[str, int]:
-        """Windows estimated but lost: never stored (``store``), not recorded
-        (``recording``). Nonzero values make ``twinwatch run`` exit with status 74."""
+        """Windows estimated but lost: never stored (``store``), stored then lost with a
+        deleted or replaced database file (``store_history``), not recorded (``recording``).
+        Nonzero values make ``twinwatch run`` exit with status 74."""
         out = {}
         store = self._sink("store")
         if store is not None and store.lost:
             out["store"] = int(store.lost)
+        if store is not None and store.history_lost:
+            out["store_history"] = int(store.history_lost)
         recorder = self._sink("recorder")
         not_recorded = int(getattr(recorder, "lost", 0)) if recorder is not None else 0
         if not_recorded:
@@ -360,6 +432,10 @@ class Daemon:
         stalled = False
         try:
             while not self._stop.is_set():
+                if self._stop_at_window is not None and (
+                        live or self.ring.pending == 0
+                        or time.monotonic() > self._stop_at_window):
+                    break
                 if self.watchdog is not None:
                     self.watchdog.tick()
                 for fn in self._ticks:
@@ -368,12 +444,14 @@ class Daemon:
                     sample = self.driver.read(timeout=0.2)
                 except EndOfStream as exc:
                     logger.info("source finished: %s", exc)
+                    self.ended = "end of the source"
                     break
                 except DriverError as exc:
                     # the driver gave up: one clear line (the driver said what failed), then
                     # the queued windows are finished and the caller decides (the CLI exits 1)
                     self.failure = f"the {self.config.driver.type} driver failed: {exc}"
                     logger.error("%s", self.failure)
+                    self.ended = "driver failure"
                     break
                 now = time.monotonic()
                 if sample is None:
@@ -392,6 +470,7 @@ class Daemon:
                 if t_first is None:
                     t_first = sample.t
                 if duration is not None and sample.t - t_first >= duration:
+                    self.ended = "duration reached"
                     break
                 window = self.ring.append(sample.t, sample.values)
                 if window is not None:
@@ -462,19 +541,20 @@ class Daemon:
         message."""
         return self.pipeline.process(window)
 
-    def close(self, keep: tuple[str, ...] = ()) -> dict[str, WindowSink]:
+    def close(self, keep: Collection[str] = ()) -> dict[str, Any]:
         """Stop everything and release driver, publisher, recorder and state database (after
         the worker has drained). Idempotent.
 
         Args:
-            keep: sinks (names in :data:`SINKS`) to leave open for a new daemon (reload).
+            keep: the driver and sinks (names in :data:`HANDOVER`) to leave open for a new
+                daemon (reload).
 
         Returns:
-            name -> sink for the kept sinks: pass (those still compatible) as ``reuse``.
+            name -> object for the kept ones: pass (those still compatible) as ``reuse``.
         """
         self._stop.set()
         self._drain()
-        kept: dict[str, WindowSink] = {}
+        kept: dict[str, Any] = {}
         for name in ("driver", "publisher", "recorder", "store"):
             obj = getattr(self, name, None)
             if obj is None or (name == "driver" and not self._own_driver):
