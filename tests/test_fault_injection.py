@@ -1100,7 +1100,8 @@ def stored_windows(db: Path) -> tuple[list[int], int]:
 
 def sigterm_during_reload(ctx: Context, signals: int) -> dict[str, Any]:
     """A running daemon is reloaded to a source that takes 10 s to fail opening; ``signals``
-    SIGTERMs arrive (0.5 s apart) while it is being opened."""
+    SIGTERMs arrive (50 ms apart: the second while the first is being acted on) while it is
+    being opened."""
     import signal
     import time
 
@@ -1112,7 +1113,7 @@ def sigterm_during_reload(ctx: Context, signals: int) -> dict[str, Any]:
         svc.send(signal.SIGHUP)
         opening = svc.wait_for("Failed to connect to server", timeout=30)
         for k in range(signals):
-            time.sleep(0.5 * (k > 0))
+            time.sleep(0.05 * (k > 0))
             svc.send(signal.SIGTERM)
         code = svc.wait(stop_timeout())
     finally:
@@ -1134,6 +1135,26 @@ def _sigterm_during_reload(ctx: Context) -> dict[str, Any]:
       says_reload_abandoned=True)
 def _two_sigterms_during_reload(ctx: Context) -> dict[str, Any]:
     return sigterm_during_reload(ctx, signals=2)
+
+
+@case("issue 14: SIGTERM while the daemon starts (its source takes 10 s to fail opening)",
+      source_was_opening=True, stopped_within_TimeoutStopSec=True, exit_code=0,
+      says_stopped_before_start=True)
+def _sigterm_during_start(ctx: Context) -> dict[str, Any]:
+    import signal
+
+    cfg = endless_sim(ctx.tmp)
+    write_atomically(cfg, unreachable_source(cfg))
+    svc = Service(cfg, ctx.tmp)
+    try:
+        opening = svc.wait_for("Failed to connect to server", timeout=60)
+        svc.send(signal.SIGTERM)
+        code = svc.wait(stop_timeout())
+    finally:
+        svc.close()
+    return {"source_was_opening": opening, "stopped_within_TimeoutStopSec": code is not None,
+            "exit_code": code, "says_stopped_before_start": svc.count(
+                "stopped before the daemon had started") == 1}
 
 
 @case("issue 14: a reload to a source that cannot open (socketcand, nobody listening: 10 s of "

@@ -92,11 +92,13 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     were lost (not stored in the state database or not recorded).
 
     Signals: SIGTERM/SIGINT finish the windows already queued (a second one abandons them),
-    close the driver, Zenoh, the Rerun file and the state database, and exit 0. SIGHUP
-    reloads CONFIG: it is validated first; a bad one is refused (logged, naming the key) and
-    the running configuration goes on; a good one restarts the daemon in-process, keeping the
-    Zenoh session, the Rerun file and the state database open when their tables are unchanged,
-    and resuming the twin from the state database."""
+    close the driver, Zenoh, the Rerun file and the state database, and exit 0 (also while it
+    starts or reloads). SIGHUP reloads CONFIG: it is validated first; a bad one is refused
+    (logged, naming the key) and the running configuration goes on; a good one is started
+    beside the running one and takes over at a window boundary, keeping the source, the Zenoh
+    session, the Rerun file and the state database open when their tables are unchanged, going
+    on with the window numbering and resuming the twin from the state database; if it cannot
+    start, the running configuration goes on untouched."""
     from twinwatch.config.loader import ConfigError
     from twinwatch.daemon.supervisor import StartError, Stopped, Supervisor
 
