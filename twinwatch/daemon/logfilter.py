@@ -22,6 +22,7 @@ import time
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 __all__ = ["RepeatFilter", "flush", "install"]
 
@@ -124,7 +125,7 @@ class RepeatFilter(logging.Filter):
                     del self._seen[key]
 
 
-def install(handler: logging.Handler, **kwargs: float | int | str) -> RepeatFilter:
+def install(handler: logging.Handler, **kwargs: Any) -> RepeatFilter:
     """Attach a :class:`RepeatFilter` to ``handler`` (once: an existing one is returned).
 
     Args:
@@ -134,7 +135,7 @@ def install(handler: logging.Handler, **kwargs: float | int | str) -> RepeatFilt
     for f in handler.filters:
         if isinstance(f, RepeatFilter):
             return f
-    f = RepeatFilter(**kwargs)  # type: ignore[arg-type]
+    f = RepeatFilter(**kwargs)
     handler.addFilter(f)
     return f
 

@@ -63,8 +63,9 @@ configuration unchanged: the source goes on where it was, nothing is opened agai
 sinks."""
 
 STOP_AT_WINDOW_S = 5.0
-"""Longest wait [s, wall] for the window being filled when a reload stops a daemon at a window
-boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the partial window is dropped."""
+"""Longest wait [s, wall] beyond one window's length for the window being filled when a reload
+stops a daemon at a window boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the
+partial window is dropped (a source that went silent)."""
 
 
 class Daemon:
@@ -321,14 +322,16 @@ class Daemon:
         """Ask :meth:`run` to return after the current sample (thread- and signal-safe).
 
         Args:
-            at_window: return once the window being filled is complete instead (a reload: a
-                source on a simulated clock, such as a file replayed as fast as possible, then
-                goes on in the next daemon exactly where this one stopped). A live source, or
-                one that does not complete the window within :data:`STOP_AT_WINDOW_S`, stops
-                at once (the partial window is dropped).
+            at_window: return once the window being filled is complete instead (a reload: the
+                source, handed to the next daemon, goes on there exactly where this one
+                stopped; a replayed file neither loses nor repeats a row). A source that does
+                not complete the window within its length plus :data:`STOP_AT_WINDOW_S` of
+                wall time stops then (the partial window is dropped).
         """
         if at_window:
-            self._stop_at_window = time.monotonic() + STOP_AT_WINDOW_S
+            acq = self.config.acquisition
+            self._stop_at_window = (time.monotonic() + acq.window * acq.sample_period
+                                    + STOP_AT_WINDOW_S)
         else:
             self._stop.set()
 
@@ -433,8 +436,7 @@ class Daemon:
         try:
             while not self._stop.is_set():
                 if self._stop_at_window is not None and (
-                        live or self.ring.pending == 0
-                        or time.monotonic() > self._stop_at_window):
+                        self.ring.pending == 0 or time.monotonic() > self._stop_at_window):
                     break
                 if self.watchdog is not None:
                     self.watchdog.tick()
