@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -242,3 +243,23 @@ def test_the_recording_carries_the_model_document_and_residual_trace(tmp_path) -
     assert "/m1/model: 2" in out  # start, then the discovery in window 2
     assert "/m1/residual/omega: 4" in out
     assert "/m1/residual_rmse/omega/dt_second: 2" in out
+
+
+def test_a_candidate_takes_only_inputs_its_kind_can_and_tries_every_form() -> None:
+    """The separable fit's input and forms: a power or a logarithm of a channel that crosses
+    zero is refused (None), a time term is normalised by the window's length; a linear term
+    (slope and offset both optional) is tried as m*z + b, m*z and b, never as nothing."""
+    from twinwatch.twin.discovery.separable import CandidateInput, SeparableFit
+
+    _, (w,) = plant_windows(DCMotorPlantConfig(scenario="nominal", duration=10), 1, skip=2)
+    centred = dataclasses.replace(w, channels={**w.channels, "ia": w["ia"] - np.mean(w["ia"])})
+    for kind in ("power", "logarithmic"):
+        assert CandidateInput.of(get_meta_model(kind), "ia", True, 1.0, centred) is None
+        assert CandidateInput.of(get_meta_model(kind), "ia", True, 1.0, w) is not None
+    periodic = CandidateInput.of(get_meta_model("periodic"), "t", True, 5.0, w)
+    assert periodic is not None and periodic.z_ref == pytest.approx(w.t[-1] - w.t[0])
+    linear = get_meta_model("linear")
+    sep = SeparableFit(linear, "d(omega)/dt", np.ones(w.n), {}, np.zeros(2), 1e-3,
+                       lambda vals: np.zeros((1, 2)))
+    forms = {tuple(bool(b) for b in m) for m in sep.forms()}
+    assert forms == {(True, True), (True, False), (False, True)}

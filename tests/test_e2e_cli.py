@@ -90,6 +90,7 @@ def env() -> dict[str, str]:
     return e
 
 
+@pytest.mark.slow
 def test_readme_first_command_publishes_health_to_another_process(tmp_path: Path, env):
     if not _port_free(7447):
         pytest.skip("tcp/127.0.0.1:7447 is in use (another twinwatch or zenoh peer runs)")

@@ -9,6 +9,7 @@ import pytest
 
 from twinwatch.plant.dcmotor import DCMotorPlantConfig, SetpointSchedule
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
+from twinwatch.twin.estimation.gate import IdentifiabilityGate
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 from .conftest import plant_windows
@@ -106,3 +107,25 @@ def test_non_finite_window_is_refused():
     win.channels["ia"][10] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         Estimator(DCMotorTwin(), EstimationConfig()).estimate(win)
+
+
+def test_gate_admits_in_priority_order_and_holds_the_rest_after_the_first_it_cannot():
+    """The identifiability gate alone, on a synthetic Jacobian (2 outputs, 200 samples): a and
+    b are determined; c nearly duplicates a's column, so it is not separable from a, and d,
+    determined alone, is held with c (the hierarchy). A parameter the window does not excite
+    blocks the ones after it in the same way."""
+    rng = np.random.default_rng(0)
+    jac = 0.1 * rng.normal(size=(400, 4))
+    jac[:, 2] = jac[:, 0] + 1e-5 * rng.normal(size=400)  # c: nearly a (1e-4 relative)
+    r = 1e-3 * rng.normal(size=400)
+    gate = IdentifiabilityGate(["a", "b", "c", "d"], max_rel_std=0.01, model_error=1e-4, n_out=2)
+    selected, rel, reasons = gate.select(jac, r)
+    assert selected == [0, 1] and set(rel) == {0, 1}
+    assert all(0 < v <= 0.01 for v in rel.values())
+    assert reasons[2] == "not separable from a in this window: held at last trusted value"
+    assert reasons[3] == "held with c (lower priority): held at last trusted value"
+    assert gate.relative_std(jac[:, [3]], r)[0] <= 0.01  # d alone would pass
+    selected, _, reasons = gate.select(jac, r, {"b": "too little excitation"})
+    assert selected == [0]
+    assert reasons[1] == "too little excitation: held at last trusted value"
+    assert reasons[2].startswith("held with b") and reasons[3].startswith("held with b")

@@ -32,7 +32,9 @@ from .conftest import ROOT
 from .test_twin_hydraulic import ESTIMATION
 
 A_MAX = 7.1e-5  # m^2: below the 7.2e-5 the paper's motion needs, so the valve saturates
-PERIODS = (0.0005, 0.001, 0.002)
+#: The drive periods of the cases below: 1 ms in the fast lane, 0.5 and 2 ms in the slow one.
+PERIODS = [pytest.param(0.0005, marks=pytest.mark.slow), 0.001,
+           pytest.param(0.002, marks=pytest.mark.slow)]
 #: The reference 0.5 + 0.45 sin(2 pi 0.005 t) reverses at t = 50 + 100 n s.
 REVERSAL = 50.0
 

@@ -82,6 +82,7 @@ def _touches_reversal(h: dict[str, Any]) -> bool:
 # -- fluid degradation (paper Section 5.3.1) ----------------------------------------------------
 
 
+@pytest.mark.slow
 def test_fluid_degradation_over_modbus_d_within_three_percent():
     """Paper: the estimated D follows the fluid degradation within 3 %, with spikes where the
     piston reverses. Cut: the ramp D(t) = 100 + 36.5 (exp(0.003 (t - t0)) - 1) starts at
@@ -186,6 +187,7 @@ def test_internal_leak_discovery_finds_the_pressure_term_of_0p2():
 # -- the data path: reconnects, RTU, the command line -------------------------------------------
 
 
+@pytest.mark.slow
 def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
     """Real-time pacing over Modbus TCP on loopback: the Modbus server stops mid-run for 1.5 s
     and starts again on the same port. The daemon keeps running, the driver counts the outage
@@ -288,6 +290,7 @@ def _port_free(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) != 0
 
 
+@pytest.mark.slow
 def test_twinwatch_run_the_example_config_exits_0(tmp_path: Path):
     """``twinwatch run config/hydraulic-modbus-sim.toml --duration 20``, as a user runs it.
     If the example's ports (Modbus 5020, Zenoh 7448) are taken, a copy on free ports runs."""

@@ -5,6 +5,7 @@ config/dc-motor-motoshield.toml and the file driver."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from twinwatch.config.loader import load_config
 from twinwatch.daemon.runner import Daemon
@@ -41,6 +42,7 @@ def test_motoshield_pwm_twin_passes_the_model_check_and_tracks_ke_in_every_windo
             assert p["value"] > 0  # every published parameter is physical
 
 
+@pytest.mark.slow
 def test_motoshield_discovery_fit_first_half_validate_second():
     """Issue 9 item 5 on real data: discovery runs on the windows of the first half (forced:
     the linear twin's residual is always 'too large' here) with the config's candidates, the

@@ -2,7 +2,9 @@
 simulated plant -> DBC-encoded frames on a virtual CAN bus -> CAN driver -> ring buffer ->
 adaptation worker -> health messages. The assertions are the issue's acceptance numbers.
 
-Each run simulates 1200 s of plant time (600 windows) as fast as possible: about a minute.
+Each paper run simulates 1200 s of plant time (600 windows) as fast as possible: about a minute
+(the slow lane). The fast lane runs the same path on the first 60 s of a degradation that starts
+at once.
 """
 
 from __future__ import annotations
@@ -18,11 +20,16 @@ from twinwatch.drivers.simulated import SimulatedDriver
 from twinwatch.plant.dcmotor import DCMotorPlant
 
 
-def _run(scenario: str, noise: float) -> tuple[DCMotorPlant, list[dict[str, Any]]]:
+def _run(scenario: str, noise: float, *, uncapped: bool = False, **plant: float
+         ) -> tuple[DCMotorPlant, list[dict[str, Any]]]:
     cfg = default_config()
+    if uncapped:  # no wall-clock cap on the swarm: the same result on a loaded machine
+        cfg.estimation.time_budget = 60.0
     plant_cfg = cfg.driver.plant  # type: ignore[union-attr]
     plant_cfg.scenario = scenario  # type: ignore[assignment]
     plant_cfg.noise = {"ia": noise, "omega": noise} if noise else {}
+    for key, value in plant.items():  # duration, fault_start
+        setattr(plant_cfg, key, value)
     with SimulatedDriver(cfg.driver) as driver:  # type: ignore[arg-type]
         with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
             daemon.run()
@@ -31,11 +38,13 @@ def _run(scenario: str, noise: float) -> tuple[DCMotorPlant, list[dict[str, Any]
         return driver.plant, list(daemon.history)
 
 
-def _errors(plant: DCMotorPlant, history: list[dict[str, Any]], name: str) -> np.ndarray:
-    """Published estimate vs the plant's value at the window's middle [%], 160 s to 1200 s."""
+def _errors(plant: DCMotorPlant, history: list[dict[str, Any]], name: str,
+            since: float = 160.0) -> np.ndarray:
+    """Published estimate vs the plant's value at the window's middle [%], from ``since`` [s]
+    (the fault's onset) to the end."""
     out = []
     for h in history:
-        if h["t_start"] < 160.0:
+        if h["t_start"] < since:
             continue
         true = getattr(plant.truth(0.5 * (h["t_start"] + h["t_end"])), name)
         out.append((h["parameters"][name]["value"] / true - 1.0) * 100.0)
@@ -59,6 +68,22 @@ def _held_when_undetermined(history: list[dict[str, Any]]) -> None:
                 assert p["rel_std_pct"] is not None and p["rel_std_pct"] <= 1.0
         assert h["parameters"]["Kt"]["status"] == "tied"
         assert h["parameters"]["Kt"]["reason"] == "tied to Ke"
+
+
+def test_daemon_path_finds_and_follows_a_worn_ra_in_a_minute_of_plant_time():
+    """The fast lane's end-to-end case, through the same path as the paper runs: a motor whose
+    resistance is already 4.6 % below the nameplate (6.2 ohm against the twin's 6.5) and
+    degrading from 0 s, 60 s of plant time (30 windows). From the nameplate, Ra is found and
+    published within the paper's 0.2 % of the plant's in 95 % of the windows, and parameters a
+    window cannot determine are held with their reason, never published as estimates."""
+    plant, hist = _run("resistance_degradation", 0.0, uncapped=True, duration=60.0,
+                       fault_start=0.0, Ra=6.2)
+    assert len(hist) == 30
+    err = _errors(plant, hist, "Ra", since=0.0)
+    assert np.mean(np.abs(err) <= 0.2) >= 0.95, np.percentile(np.abs(err), [50, 95, 100])
+    last = hist[-1]["parameters"]["Ra"]
+    assert last["status"] == "estimated" and last["deviation_pct"] < -4.0
+    _held_when_undetermined(hist)
 
 
 @pytest.mark.slow

@@ -1,7 +1,9 @@
 """Discovery: what the model lacks, found as interpretable meta-models (paper Section 3.3).
 
 Modules: ``search`` (:class:`~twinwatch.twin.discovery.search.Discovery`, the forward
-selection over candidate meta-models and its configuration), ``terms`` (a meta-model attached
+selection over candidate meta-models and its configuration), ``separable`` (one candidate on
+one window as a separable least-squares problem: its normalised input, the projection of the
+coefficients, the forms without optional parameters), ``terms`` (a meta-model attached
 to a model equation, its refinement across windows), ``metamodels/`` (one class per kind, paper
 Table 1 and the non-smooth terms of real drives, with their registry).
 

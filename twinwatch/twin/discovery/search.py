@@ -43,7 +43,6 @@ sample k.
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 import time
@@ -54,6 +53,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinwatch.twin.discovery.metamodels import TABLE_1, MetaModel, get_meta_model
+from twinwatch.twin.discovery.separable import CandidateInput, SeparableFit
 from twinwatch.twin.discovery.terms import TIME, Term, compose, format_terms, term_input
 from twinwatch.twin.estimation.estimator import Estimator, PSOSettings
 from twinwatch.twin.estimation.fit import (
@@ -372,109 +372,73 @@ class Discovery:
     def _fit_candidate(self, cand: _Candidate, fit: WindowFit, theta: FloatArray,
                        base_vals: Mapping[str, FloatArray], r_base: FloatArray,
                        budget: float) -> _Fitted | None:
-        meta, cfg = cand.meta, self.config
-        window = fit.window
-        n_out = fit.n_out
-        additive = cand.attach.mode == "additive"
-        is_time = cand.input == TIME
-        t_ref = meta.time_origin(window) if is_time else 0.0
-        z = term_input(window, cand.input, t_ref, additive)
-        if meta.positive_input and not np.all(z > 0):
+        """Fit one candidate on a window, the physical parameters ``theta`` and the kept
+        terms ``base_vals`` held: a PSO over its nonlinear parameter with the coefficients
+        from separable least squares (:class:`~.separable.SeparableFit`), then every form of it
+        polished by bounded least squares; the simplest form whose extra parameters do not
+        earn their place (BIC) is returned, or None when the meta-model cannot take the
+        input or no form could be fitted. ``budget``: this candidate's share of the time [s].
+        """
+        inp = CandidateInput.of(cand.meta, cand.input, cand.attach.mode == "additive",
+                                cand.amplitude, fit.window)
+        if inp is None:
             return None
-        z_ref = float(np.max(np.abs(z)))
-        if is_time and not meta.positive_input:
-            z_ref = float(window.t[-1] - window.t[0]) or 1.0
-        if not (z_ref > 0 and math.isfinite(z_ref)):
-            return None
-        u = z / z_ref
-        if not meta.identifiable(u):
-            return None
-        b_range = meta.data_range(u) or meta.search_range(window, is_time, z_ref)
-        lo, hi = meta.bounds(cand.amplitude, b_range=b_range)
-        name = cand.attach.name
-        base_at = np.asarray(base_vals.get(name, 0.0))
-        eps = cand.amplitude * 1e-3  # probe size for the linearised response
+        sep = SeparableFit(cand.meta, cand.attach.name, inp.u, base_vals, r_base,
+                           cand.amplitude * 1e-3, lambda vals: self._resid(fit, theta, vals))
+        nl_best = self._search_nonlinear(sep, inp, fit, budget)
+        fitted = [f for f in (self._fit_form(sep, cand, inp, nl_best, mask, fit.n_out)
+                              for mask in sep.forms()) if f is not None]
+        return self._simplest_form(fitted, fit.n_out) if fitted else None
 
-        def resid(p: FloatArray) -> FloatArray:
-            v = meta.evaluate(np.atleast_2d(p), u)
-            vals = dict(base_vals)
-            vals[name] = base_at + v
-            return self._resid(fit, theta, vals)
-
-        def project(nl: FloatArray, mask: FloatArray) -> tuple[FloatArray, FloatArray]:
-            """Separable least squares: for each row of nonlinear parameters, the basis
-            coefficients minimising the linearised residual. Returns (cost (P,), coef
-            (P, n_cols)); the response to each basis function is one batched twin call."""
-            basis = meta.basis(nl, u)  # (P, n_cols, N)
-            n_p, n_c, n = basis.shape
-            cols = np.flatnonzero(mask)
-            probe = base_at + eps * basis[:, cols].reshape(-1, n)
-            vals = dict(base_vals)
-            vals[name] = probe
-            sens = ((self._resid(fit, theta, vals) - r_base) / eps).reshape(n_p, cols.size, -1)
-            cost = np.full(n_p, np.inf)
-            coef = np.zeros((n_p, n_c))
-            for q in range(n_p):
-                s_q = sens[q].T
-                if not np.all(np.isfinite(s_q)):
-                    continue
-                c, *_ = np.linalg.lstsq(s_q, -r_base, rcond=None)
-                coef[q, cols] = c
-                r_lin = r_base + s_q @ c
-                cost[q] = math.sqrt(float(r_lin @ r_lin))
-            return cost, coef
-
+    def _search_nonlinear(self, sep: SeparableFit, inp: CandidateInput, fit: WindowFit,
+                          budget: float) -> FloatArray:
+        """The best nonlinear parameters (normalised; empty for a kind without one): a PSO
+        over them only (periodic: the frequency), seeded by the kind from the residual
+        (periodic of time: the periodogram's peaks), up to ``max_generations``, within 60 % of
+        the candidate's ``budget`` [s], stopping once the best cost has not moved for 8
+        generations (a 1-D search whose seed is right converges in a few)."""
+        meta, cfg = sep.meta, self.config
+        if not meta.nonlinear:
+            return np.zeros(0)
+        nl_lo, nl_hi = meta.nonlinear_bounds(inp.b_range)
+        seeds = meta.seeds(sep.r_base.reshape(-1, fit.n_out), fit.window, inp.is_time,
+                           inp.z_ref, min(4, cfg.pso.pop_size))
         full = np.ones(len(meta.columns), dtype=bool)
-        if meta.nonlinear:
-            # 1. PSO over the nonlinear parameters only (periodic: the frequency), seeded by
-            # the kind from the residual (periodic of time: the periodogram's peaks). Up to
-            # max_generations, within this candidate's share of the time budget, and stop
-            # once the best cost has not moved for 8 generations (a 1-D search whose seed is
-            # right converges in a few).
-            nl_lo, nl_hi = meta.nonlinear_bounds(b_range)
-            seeds = meta.seeds(r_base.reshape(-1, n_out), window, is_time, z_ref,
-                               min(4, cfg.pso.pop_size))
-            sw = pso_minimize(lambda x: project(x, full)[0], nl_lo, nl_hi, cfg.pso,
-                              rng=self._rng, time_budget=max(budget * 0.6, 1e-3),
-                              seeds=np.array(seeds) if seeds else None, patience=8)
-            nl_best = sw.x
-        else:
-            nl_best = np.zeros(0)
+        sw = pso_minimize(lambda x: sep.project(x, full)[0], nl_lo, nl_hi, cfg.pso,
+                          rng=self._rng, time_budget=max(budget * 0.6, 1e-3),
+                          seeds=np.array(seeds) if seeds else None, patience=8)
+        return sw.x
 
-        # 2. Every form (the full one and each without some of its optional parameters):
-        # project, polish all its parameters by nonlinear least squares, keep the best by BIC.
-        forms = []
-        for drop in itertools.chain.from_iterable(
-                itertools.combinations(meta.optional, k) for k in range(len(meta.optional) + 1)):
-            m = full.copy()
-            for opt in drop:
-                m[meta.column_of(opt)] = False
-            if m.any():
-                forms.append(m)
-        fitted: list[_Fitted] = []
-        for mask in forms:
-            _, coef = project(nl_best[None, :], mask)
-            p0 = meta.from_separable(nl_best, coef[0])
-            active = meta.active_from_mask(mask)
-            p, r, sig = self._polish(resid, p0, active, lo, hi, meta, cand.amplitude)
-            if r is None:
-                continue
-            dbic = delta_bic(r_base, r, sum(active), n_out)
-            rms0 = math.sqrt(float(r_base @ r_base))
-            rms1 = math.sqrt(float(r @ r))
-            impr = 1.0 - rms1 / rms0 if rms0 > 0 else 0.0
-            fitted.append(_Fitted(cand, p, active, z_ref, t_ref, r, dbic, impr, sig))
-        if not fitted:
+    def _fit_form(self, sep: SeparableFit, cand: _Candidate, inp: CandidateInput,
+                  nl_best: FloatArray, mask: np.ndarray, n_out: int) -> _Fitted | None:
+        """One form of the candidate (its ``mask``-ed columns) at the nonlinear parameters
+        ``nl_best``: coefficients by projection, then every active parameter polished; its
+        BIC change, residual improvement and significance against the kept terms alone."""
+        meta = sep.meta
+        _, coef = sep.project(nl_best[None, :], mask)
+        p0 = meta.from_separable(nl_best, coef[0])
+        active = meta.active_from_mask(mask)
+        p, r, sig = self._polish(sep.residuals, p0, active, inp.lower, inp.upper, meta,
+                                 cand.amplitude)
+        if r is None:
             return None
-        # The simplest form unless an optional parameter itself earns its place: the best of
-        # the fewest parameters, then a larger form only if its extra parameters lower the BIC
-        # by bic_threshold against the form chosen so far.
+        r_base = sep.r_base
+        dbic = delta_bic(r_base, r, sum(active), n_out)
+        rms0 = math.sqrt(float(r_base @ r_base))
+        rms1 = math.sqrt(float(r @ r))
+        impr = 1.0 - rms1 / rms0 if rms0 > 0 else 0.0
+        return _Fitted(cand, p, active, inp.z_ref, inp.t_ref, r, dbic, impr, sig)
+
+    def _simplest_form(self, fitted: list[_Fitted], n_out: int) -> _Fitted:
+        """The simplest form unless an optional parameter itself earns its place: the best
+        of the fewest parameters, then a larger form only if its extra parameters lower the
+        BIC by ``bic_threshold`` against the form chosen so far."""
         fitted.sort(key=lambda f: sum(f.active))
         size = sum(fitted[0].active)
         best = min((f for f in fitted if sum(f.active) == size), key=lambda f: f.dbic)
         for f in fitted:
             extra = sum(f.active) - sum(best.active)
-            if extra > 0 and delta_bic(best.r, f.r, extra, n_out) <= -cfg.bic_threshold:
+            if extra > 0 and delta_bic(best.r, f.r, extra, n_out) <= -self.config.bic_threshold:
                 best = f
         return best
 

@@ -1,27 +1,32 @@
-"""Per-window parameter estimation: the DT' step (paper Section 3.2).
+"""Per-window parameter estimation: the DT' step (paper Section 3.2), as stages.
 
 Each acquisition window, the parameters that no sensor measures are re-estimated by minimising
 the RMSE between measured and simulated outputs (paper Eq. 1-2) with particle swarm optimisation
 (pymoo's PSO; paper Table 2: swarm 15, up to 1000 iterations, w 0.9, c1 = c2 = 2.0).
 
-What twinwatch adds to the paper, and why (measured on this machine; see benchmarks/):
+As pymoo separates the problem, the algorithm and the termination, :meth:`Estimator.estimate`
+builds the window's problem (:class:`~twinwatch.twin.estimation.problem.WindowProblem`) and runs
+small stages on it, each a module of this room that says what it implements and why:
 
-1. **Warm start and polish.** The swarm holds the last trusted estimate as one particle, and
-   the PSO's best is polished with a bounded least-squares solver (scipy's trust-region
-   reflective method) whose Jacobian is one batched twin call. pymoo's PSO alone stalls short
-   of the best fit (Ra scattered by +-1 % on exact-model data, more iterations do not help);
-   with the polish it reaches the best fit every time, in a few tens of milliseconds.
-2. **Identifiability per window.** At the optimum the Jacobian ``S`` of the normalised
-   residuals with respect to ln(p) gives each parameter's relative standard error,
-   ``cov(ln p) = s^2 (S^T S)^-1`` with ``s`` the residual level (floored by ``model_error``
-   so that noise-free data do not make a collinear set look determined). Parameters are
-   admitted in the configured priority order while every admitted one keeps its relative
-   standard error below ``max_rel_std``; the others are *held* at their last trusted value
-   (with the reason) and the admitted ones are re-fitted with them held. A window without a
-   transient thus estimates Ra and D with Ke held, instead of publishing noise along the
-   Ra-Ke valley.
-3. **Time budget.** The PSO stops at ``max_generations`` or ``time_budget`` seconds, whichever
-   comes first; with the same seed and no time cap hit, results are bit-for-bit reproducible.
+1. **global search** (:mod:`~twinwatch.twin.estimation.search`): the PSO, with the last trusted
+   estimate as one particle (warm start) and a time budget;
+2. **polish** (:mod:`~twinwatch.twin.estimation.polish`): bounded least squares from the
+   swarm's best, jointly with the window's initial state (pymoo's PSO alone stalls short of the
+   best fit: Ra scattered by +-1 % on exact-model data);
+3. **identifiability gate** (:mod:`~twinwatch.twin.estimation.gate`): parameters admitted in
+   priority order while each keeps its relative standard error at most ``max_rel_std``; the
+   others held at their last trusted value and the admitted ones re-fitted with them held;
+4. **model check** (:mod:`~twinwatch.twin.estimation.check`): is the residual white and
+   independent of the inputs? A window that fails has its standard errors widened, and the gate
+   runs again on them (a held parameter is published at its trusted value);
+5. **fusion** (:mod:`~twinwatch.twin.estimation.fusion`): the window's evidence joins a Kalman
+   filter on the parameters across windows;
+
+then :mod:`~twinwatch.twin.estimation.publish` says what each parameter's published value is
+(estimated, fused, held, tied, fixed), and a window whose fit and model check are good enough
+updates the trusted values later windows hold. The PSO stops at ``max_generations`` or
+``time_budget`` seconds, whichever comes first; with the same seed and no time cap hit, results
+are bit-for-bit reproducible.
 
 Fitness (paper Eq. 2, normalised): ``RMSE_n = sqrt(mean_j mean_k ((y_sim - y_meas)/s_j)^2)``
 with ``s_j = max(rms(y_meas_j), floor_j)`` per output j, so that current [A], speed [rad/s] and
@@ -35,55 +40,38 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from twinwatch.twin.estimation.fit import (
-    LocalFit,
-    ParameterMap,
-    WindowFit,
-    explained_rms,
-    parameter_covariance,
-    pso_minimize,
-    relative_std,
-    residual_variances,
+from twinwatch.twin.estimation.check import ValidationConfig, check_twin, model_check
+from twinwatch.twin.estimation.fit import ParameterMap, WindowFit, relative_std
+from twinwatch.twin.estimation.fusion import (
+    FusionConfig,
+    FusionState,
+    ParameterFusion,
+    fuse_window,
 )
-from twinwatch.twin.estimation.fusion import FusionConfig, FusionState, ParameterFusion
-from twinwatch.twin.estimation.statistics import ModelCheck, check_model, noise_level
+from twinwatch.twin.estimation.gate import GateDecision, IdentifiabilityGate
+from twinwatch.twin.estimation.polish import Polished, polish
+from twinwatch.twin.estimation.problem import WindowProblem, check_window
+from twinwatch.twin.estimation.publish import ParameterStatus, publish
+from twinwatch.twin.estimation.search import PSOSettings, global_search
+from twinwatch.twin.estimation.statistics import ModelCheck
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
 
-#: What a published parameter value is: see :attr:`WindowEstimate.status`.
-ParameterStatus = Literal["estimated", "fused", "held", "tied", "fixed"]
-
-
-class PSOSettings(BaseModel):
-    """PSO settings (paper Table 2 for the paper's method)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    pop_size: int = Field(15, ge=2, description="swarm size")
-    max_generations: int = Field(20, ge=1, description="iteration limit")
-    w: float = Field(0.9, description="inertia weight")
-    c1: float = Field(2.0, description="cognitive parameter")
-    c2: float = Field(2.0, description="social parameter")
-    adaptive: bool = Field(False, description="pymoo's adaptive w/c1/c2 (off: the paper's)")
-
-
-class ValidationConfig(BaseModel):
-    """Per-window model validation (table ``[estimation.validation]``; Ljung, System
-    Identification, ch. 16): the residual of a twin that describes the machine is white and
-    independent of the inputs."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    enabled: bool = Field(True, description="check every window's residuals")
-    alpha: float = Field(0.01, gt=0, lt=0.5, description="level of the whiteness and "
-                         "residual-input tests")
-    lags: int = Field(20, ge=1, le=1000, description="lags of both tests (samples)")
+__all__ = [
+    "EstimationConfig",
+    "Estimator",
+    "EstimatorState",
+    "PSOSettings",
+    "ParameterStatus",
+    "ValidationConfig",
+    "WindowEstimate",
+]
 
 
 class EstimationConfig(BaseModel):
@@ -293,6 +281,9 @@ class Estimator:
         #: Evidence across windows (None when ``[estimation.fusion] enabled = false``).
         self.fusion = (ParameterFusion(tuple(config.estimate), self.trusted[self.pmap.idx],
                                        config.fusion) if config.fusion.enabled else None)
+        #: Stage 3: the identifiability gate.
+        self.gate = IdentifiabilityGate(config.estimate, config.max_rel_std, config.model_error,
+                                        len(model.outputs))
 
     # -- state ----------------------------------------------------------------------------
     def snapshot(self) -> EstimatorState:
@@ -349,10 +340,22 @@ class Estimator:
         return WindowFit(self.model, window)
 
     # -- main entry -----------------------------------------------------------------------
+    def problem(self, window: WindowData, terms: Mapping[str, FloatArray] | None = None,
+                fit: WindowFit | None = None) -> WindowProblem:
+        """The window's estimation problem, from the trusted values (the stages' input).
+
+        Raises:
+            ValueError: if a channel is missing or holds non-finite values.
+        """
+        check_window(self.model, window)
+        return WindowProblem(fit or self.window_fit(window), self.pmap, self.trusted,
+                             self.lower, self.upper, terms,
+                             initial=self.config.initial_state and bool(self.model.initial_states))
+
     def estimate(self, window: WindowData,
                  terms: Mapping[str, FloatArray] | None = None,
                  fit: WindowFit | None = None) -> WindowEstimate:
-        """Estimate the parameters on one window.
+        """Estimate the parameters on one window (the module docstring's stages, in order).
 
         Args:
             window: N samples of every channel in ``model.required_channels()``, finite.
@@ -367,305 +370,90 @@ class Estimator:
             ValueError: if a channel is missing or holds non-finite values.
         """
         t_start = time.perf_counter()
-        for ch in self.model.required_channels():
-            if ch not in window.channels:
-                raise ValueError(f"window lacks channel {ch!r}")
-            if not np.all(np.isfinite(window.channels[ch])):
-                raise ValueError(f"window channel {ch!r} holds NaN or inf")
-        wfit = fit or self.window_fit(window)
-        evals0 = wfit.evaluations
         cfg = self.config
-        base = self.trusted.copy()
-        pmap = self.pmap
-        n_est = pmap.idx.size
-        xl, xu = np.log(self.lower), np.log(self.upper)
-        q0 = np.clip(pmap.ln(base), xl, xu)
-
-        def cost(q: FloatArray) -> FloatArray:
-            return wfit.cost(pmap.full(q, base), terms)
-
-        # 1. PSO, warm-started with the trusted estimate as one particle.
-        gens, capped = 0, False
-        if cfg.pso.max_generations > 0 and n_est:
-            sw = pso_minimize(cost, xl, xu, cfg.pso, rng=self._rng,
-                              time_budget=cfg.time_budget, seeds=q0[None, :])
-            q_best, pso_cost, gens, capped = sw.x, sw.cost, sw.generations, sw.time_capped
-        else:
-            q_best, pso_cost = q0, float(cost(q0[None, :])[0])
-
-        # 2. Least-squares polish of every estimated parameter (and the window's initial
-        # state), and 3. identifiability: which of them does this window determine?
-        local = LocalFit(wfit, pmap, base, xl, xu, terms,
-                         initial=cfg.initial_state and bool(self.model.initial_states))
-        nuis = local.nuisance
-        v_best, r_best, jac = local.refine(local.start(q_best),
-                                           np.arange(n_est + nuis.size), polish=cfg.polish)
-        jac_final, r_final = jac, r_best
-        # The residual variance of each row (per output), for the fusion's weights.
-        row_var = residual_variances(r_best, len(self.model.outputs), cfg.model_error,
-                                     n_est + nuis.size)
-        nuisance_fit = v_best[n_est:].copy()
-        selected, rel_std, reasons = self._select(jac, r_best, self.model.excitation(window),
-                                                  nuis.size)
-        held: dict[str, str] = {}
-        names_est = list(cfg.estimate or [])
-        for k, name in enumerate(names_est):
-            if k not in selected:
-                held[name] = reasons[k]
-        if len(selected) < n_est:
-            # Re-fit the determined ones with the others held at their trusted values.
-            v_fit = v_best.copy()
-            held_pos = [k for k in range(n_est) if k not in selected]
-            v_fit[held_pos] = np.log(base[pmap.idx[held_pos]])
-            active = np.concatenate([np.array(selected, dtype=int), nuis])
-            if active.size:
-                v_fit, r_fit, jac_s = local.refine(v_fit, active)
-                sd = self._rel_std(jac_s, r_fit)[:len(selected)]
-                rel_std = dict(zip(selected, sd, strict=True))
-                jac_final, r_final = jac_s, r_fit
-            v_best = v_fit
-        q_best = v_best[:n_est]
-        initial = local.initial(v_best)
-        wfit.initial = initial
-        theta = pmap.full(q_best[None, :], base)
-        y = wfit.simulate(theta, terms)[0]
-        res = wfit.residual(y)
-        # 4. Model validation: is the residual what a twin that describes the machine leaves?
+        problem = self.problem(window, terms, fit)
+        evals0 = problem.fit.evaluations
+        # 1. global search (warm-started PSO), 2. polish (least squares, initial state too)
+        found = global_search(problem, cfg.pso, rng=self._rng, time_budget=cfg.time_budget)
+        polished = polish(problem, found.q, enabled=cfg.polish, model_error=cfg.model_error)
+        # 3. identifiability gate: admit in priority order, re-fit with the others held
+        decision, point = self.gate.admit(problem, polished, self.model.excitation(window))
+        twin = problem.twin_at(point.v)
+        # 4. model check: a failing window's standard errors are widened ...
         check = None
         if cfg.validation.enabled:
-            # What the white noise alone does to the estimates, and so to a noise-free
-            # output's residual (the residual's own level would count model error as noise).
-            n_out = len(self.model.outputs)
-            white = noise_level(r_final.reshape(-1, n_out)) * math.sqrt(r_final.size)
-            cov = parameter_covariance(jac_final, r_final, n_out, cfg.model_error, white)
-            n_par = jac_final.shape[1] - nuis.size
-            check = self.check(wfit, y, explained_rms(jac_final, cov, n_out),
-                               drift=self._drift_residual(wfit, r_final, jac_final[:, :n_par]))
-        if check is not None and not check.passed:
-            rel_std = {k: v * check.widen for k, v in rel_std.items()}
-        # The gate holds: nothing is published as an estimate above max_rel_std (the re-fit
-        # with the others held, or a failed model check, can leave one above it).
-        gated = [k for k in selected if not rel_std.get(k, math.inf) <= cfg.max_rel_std]
-        for k in gated:
-            selected.remove(k)
-            why = ("after the model check failed and widened it"
-                   if check is not None and not check.passed
-                   else "after the re-fit with the others held")
-            held[names_est[k]] = (f"not determined by this window (relative std "
-                                  f"{rel_std.get(k, math.inf):.2g} > {cfg.max_rel_std:.2g} "
-                                  f"{why}): held at last trusted value")
-        if gated:
-            # Held means held: the others are re-fitted with these at their trusted values,
-            # so the published values and the simulation are the held twin's. Their standard
-            # errors stay those of the fit in which the held ones were free (marginal over
-            # them): the re-fit's would be conditional on a held value that may be off, and
-            # narrower (on MotoShield a re-fitted D at -3.2 % got 1.5 %, against the 1.6 % its
-            # 2-sigma interval needs to cover the commissioned value).
-            v_best = v_best.copy()
-            v_best[gated] = np.log(base[pmap.idx[gated]])
-            active = np.concatenate([np.array(selected, dtype=int), nuis])
-            if active.size:
-                v_best, r_final, jac_final = local.refine(v_best, active)
-            q_best = v_best[:n_est]
-            initial = local.initial(v_best)
-            wfit.initial = initial
-            theta = pmap.full(q_best[None, :], base)
-            y = wfit.simulate(theta, terms)[0]
-            res = wfit.residual(y)
-
-        values = dict(zip(self.names, (float(v) for v in theta[0]), strict=True))
-        tie = cfg.tie or {}
-        for n in self.names:
-            if n in tie:
-                held.setdefault(n, f"tied to {tie[n]}")
-            elif n not in names_est:
-                held.setdefault(n, "fixed (nameplate)")
-        estimated = {names_est[k]: values[names_est[k]] for k in selected}
-        nrmse = res.nrmse
+            check = model_check(problem, point, twin.y, self.model.exogenous, cfg.validation,
+                                cfg.model_error)
+            if not check.passed:
+                decision = decision.widened(check.widen)
+        # ... and the gate holds whatever is now above max_rel_std, at its trusted value
+        decision, point, held_more = self.gate.enforce(problem, decision, point, check)
+        if held_more:
+            twin = problem.twin_at(point.v)
+        nrmse = twin.residual.nrmse
         good = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse)
-        passed = check is None or check.passed
-        # 5. Evidence across windows: fuse the window (if its model check passed).
-        fused: dict[str, tuple[float, float]] = {}
-        jump = False
-        if self.fusion is not None:
-            t_mid = float(0.5 * (window.t[0] + window.t[-1]))
-            if good and passed:
-                # The window informs the parameters it determined and the first it could not
-                # (weakly: noise, not structure, may be why); the ones after it are held at
-                # their trusted values, as the window's estimate held them (with a viscous
-                # load J, Ke and D trade off exactly: jointly, no window determines D).
-                cols = np.arange(min(len(selected) + 1, n_est))
-                base_ln = np.log(base[pmap.idx])
-
-                def linearize(q: FloatArray) -> tuple[FloatArray, FloatArray]:
-                    """The window's residuals and Jacobian (columns ``cols``, then the
-                    initial state) at ln-parameters q."""
-                    qq = base_ln.copy()
-                    qq[cols] = q[cols]
-                    v_f = np.concatenate([np.clip(qq, xl, xu), nuisance_fit])
-                    r_f = local.residuals(v_f[None, :])[0]
-                    active = np.concatenate([cols, nuis])
-                    return local.jacobian(v_f, active, r_f), r_f
-
-                jump = self.fusion.update(t_mid, linearize, row_var, nuis.size, cols=cols)
-            else:
-                self.fusion.update(t_mid)
-            f_val, f_std = self.fusion.values(), self.fusion.rel_std()
-            fused = {n: (f_val[n], f_std[n]) for n in names_est}
-        out_std = {names_est[k]: float(v) for k, v in rel_std.items() if k in selected}
-        status: dict[str, ParameterStatus] = {}
-        for n in self.names:
-            if n in estimated:
-                status[n] = "estimated"
-            elif n in tie:
-                status[n] = "tied"
-            elif n not in names_est:
-                status[n] = "fixed"
-            elif n in fused and fused[n][1] <= cfg.max_rel_std:
-                status[n] = "fused"  # held[n] keeps why this window alone could not
-                values[n] = fused[n][0]
-                out_std[n] = fused[n][1]
-            else:
-                status[n] = "held"
-        for dep, src in pmap.ties:
-            values[self.names[dep]] = values[self.names[src]]
-        trusted = good and passed
+        trusted = good and (check is None or check.passed)
+        # 5. fusion: a trusted window's evidence joins the filter; then what is published
+        fused, jump = self._fuse(problem, polished, decision, window, trusted)
+        out = publish(twin.theta, self.pmap, cfg.tie or {}, decision, fused, cfg.max_rel_std)
         if trusted:
-            for k in selected:
-                n = names_est[k]
-                if rel_std.get(k, math.inf) <= cfg.trust_rel_std:
-                    self.trusted[self.names.index(n)] = values[n]
-            # A fused value is published, never trusted: the twin keeps holding the last value
-            # a window determined (a fused Ke 1.5 % off, well within its 0.9 % interval, biased
-            # D by 8 % through D = Ke*ia/omega - c when it was held at it).
-            pmap.apply_ties(self.trusted)
+            self._trust(decision, out.values)
         return WindowEstimate(
-            values=values,
-            estimated=estimated,
-            held=held,
-            rel_std=out_std,
-            rmse=res.rmse,
+            values=out.values,
+            estimated=out.estimated,
+            held=out.held,
+            rel_std=out.rel_std,
+            rmse=twin.residual.rmse,
             nrmse=nrmse,
-            simulated=y,
+            simulated=twin.y,
             elapsed_s=time.perf_counter() - t_start,
-            generations=gens,
-            time_capped=capped,
-            evaluations=wfit.evaluations - evals0,
+            generations=found.generations,
+            time_capped=found.time_capped,
+            evaluations=problem.fit.evaluations - evals0,
             trusted=trusted,
-            pso_nrmse=pso_cost,
-            status=status,
-            initial=initial,
+            pso_nrmse=found.cost,
+            status=out.status,
+            initial=twin.initial,
             model_check=check,
             fused=fused,
             fusion_jump=jump,
         )
 
+    def _fuse(self, problem: WindowProblem, polished: Polished, decision: GateDecision,
+              window: WindowData, informative: bool
+              ) -> tuple[dict[str, tuple[float, float]], bool]:
+        """Stage 5 (:func:`~twinwatch.twin.estimation.fusion.fuse_window`); nothing when
+        fusion is off."""
+        if self.fusion is None:
+            return {}, False
+        t_mid = float(0.5 * (window.t[0] + window.t[-1]))
+        return fuse_window(self.fusion, problem, polished, len(decision.selected), t_mid,
+                           informative)
+
+    def _trust(self, decision: GateDecision, values: Mapping[str, float]) -> None:
+        """Make the window's estimates the trusted values where their standard error is at
+        most ``trust_rel_std`` (ties re-applied). A fused value is never trusted
+        (:mod:`~twinwatch.twin.estimation.publish`)."""
+        estimate = self.pmap.estimate
+        for k in decision.selected:
+            n = estimate[k]
+            if decision.rel_std.get(k, math.inf) <= self.config.trust_rel_std:
+                self.trusted[self.names.index(n)] = values[n]
+        self.pmap.apply_ties(self.trusted)
+
     def check(self, fit: WindowFit, y: FloatArray, explained: FloatArray | None = None,
               drift: FloatArray | None = None) -> ModelCheck:
         """Validate the twin on a window from its simulated outputs ``y`` (N, n_out)
-        (:func:`~twinwatch.twin.estimation.statistics.check_model`, the ``[estimation.validation]``
+        (:func:`~twinwatch.twin.estimation.check.check_twin`: the ``[estimation.validation]``
         settings, the ``model_error`` floor, the model's exogenous inputs); ``explained``:
         per output, the residual RMS the estimates' uncertainty explains; ``drift``: the
         residual matrix to test instead, with what a drift of the estimated parameters within
-        the window explains removed (:meth:`_drift_residual`)."""
-        v = self.config.validation
-        win = fit.window
-        exog = [c for c in self.model.exogenous if c in win.channels]
-        inputs = np.column_stack([win[c][1:] for c in exog]) if exog else None
-        res = fit.error_matrix(y) if drift is None else drift
-        return check_model(res, fit.names, inputs, alpha=v.alpha,
-                           lags=min(v.lags, max(1, win.n // 4)),
-                           floor=self.config.model_error, explained=explained)
-
-    @staticmethod
-    def _drift_residual(fit: WindowFit, r: FloatArray, jac: FloatArray) -> FloatArray | None:
-        """The residual (N-1, n_out), normalised per output, with what a linear drift of the
-        estimated parameters within the window explains removed.
-
-        The paper's faults are slow degradations: a parameter that moves within the window
-        leaves a smooth residual although the model is right. Its effect at sample k is about
-        ``J_k (t_k - t_mid) rate`` (exact where the output follows the parameter without memory,
-        as the hydraulic pressure follows D; close where the memory is short against the
-        window); the rates come from linear least squares on the residual, and the model check
-        tests what is left.
-
-        Args:
-            fit: the window's fit.
-            r: (M,) normalised residuals at the estimate.
-            jac: (M, n) their Jacobian with respect to the estimated ln-parameters.
-
-        Returns:
-            The residual matrix, or None without estimated parameters.
-        """
-        if jac.shape[1] == 0:
-            return None
-        n_out = fit.n_out
-        t = fit.window.t[1:]
-        tau = np.repeat((t - 0.5 * (t[0] + t[-1])) / max(float(t[-1] - t[0]), 1e-12), n_out)
-        ramp = jac * tau[:, None]
-        rates, *_ = np.linalg.lstsq(ramp, r, rcond=None)
-        left = (r - ramp @ rates).reshape(-1, n_out)
-        # back to the per-output normalisation of WindowFit.error_matrix (no weights, no 1/sqrt(M))
-        return left * math.sqrt(r.size) / np.where(fit.weights != 0, fit.weights, 1.0)
-
-    # -- helpers --------------------------------------------------------------------------
-    def _rel_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
-        return relative_std(jac, r, len(self.model.outputs), self.config.model_error)
+        the window explains removed (:func:`~twinwatch.twin.estimation.check.drift_residual`)."""
+        return check_twin(fit, y, self.model.exogenous, self.config.validation,
+                          self.config.model_error, explained, drift)
 
     def relative_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
         """Relative standard errors of ln-parameter columns of ``jac`` at residuals ``r``, as
         the estimator computes them (:func:`twinwatch.twin.estimation.fit.relative_std` with this
         configuration's ``model_error`` floor)."""
-        return self._rel_std(jac, r)
-
-    def _select(
-        self, jac: FloatArray, r: FloatArray, unexcited: Mapping[str, str] | None = None,
-        n_nuisance: int = 0,
-    ) -> tuple[list[int], dict[int, float], dict[int, str]]:
-        """Admit parameters in priority order while all admitted stay determined.
-
-        ``jac``: (M, n_est + n_nuisance), the parameters' columns then the nuisance ones (the
-        window's initial state), which are always in the fit: a parameter is determined only
-        if it is determined beside them.
-        ``unexcited``: parameters the model says this window does not excite
-        (:meth:`TwinModel.excitation`), with the reason; they are held like undetermined ones.
-
-        The priority list is a hierarchy: once a parameter cannot be determined, it and every
-        parameter after it are held. Otherwise a lower-priority parameter that trades off with
-        a held one (Ke with D in a quasi-static window) would absorb the held one's drift.
-        """
-        limit = self.config.max_rel_std
-        selected: list[int] = []
-        rel: dict[int, float] = {}
-        reasons: dict[int, str] = {}
-        blocked: str | None = None
-        n_par = jac.shape[1] - n_nuisance
-        nuis = list(range(n_par, jac.shape[1]))
-        for k in range(n_par):
-            name = self.names[self.pmap.idx[k]]
-            if blocked is not None:
-                reasons[k] = (f"held with {blocked} (lower priority): held at last trusted "
-                              "value")
-                continue
-            if unexcited and name in unexcited:
-                blocked = name
-                reasons[k] = f"{unexcited[name]}: held at last trusted value"
-                continue
-            cand = [*selected, k]
-            sd = self._rel_std(jac[:, cand + nuis], r)[:len(cand)]
-            if np.all(sd <= limit):
-                selected = cand
-                rel = dict(zip(cand, sd, strict=True))
-                continue
-            blocked = name
-            alone = float(self._rel_std(jac[:, [k, *nuis]], r)[0])
-            if alone > limit:
-                reasons[k] = (f"not determined by this window (relative std {alone:.2g} > "
-                              f"{limit:.2g}): held at last trusted value")
-            else:
-                worst = max(range(len(cand) - 1), key=lambda i: sd[i] / limit, default=None)
-                other = (self.names[self.pmap.idx[cand[worst]]] if worst is not None
-                         else "others")
-                reasons[k] = (f"not separable from {other} in this window: held at last "
-                              "trusted value")
-        return selected, rel, reasons
+        return relative_std(jac, r, len(self.model.outputs), self.config.model_error)

@@ -35,6 +35,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from twinwatch.twin.estimation.polish import Polished
+from twinwatch.twin.estimation.problem import WindowProblem
 from twinwatch.twin.model import FloatArray
 
 
@@ -267,4 +269,54 @@ def _information(cov: FloatArray) -> FloatArray:
     return info
 
 
-__all__ = ["FusionConfig", "FusionState", "ParameterFusion"]
+def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polished,
+                n_selected: int, t_mid: float, informative: bool
+                ) -> tuple[dict[str, tuple[float, float]], bool]:
+    """Stage 5, the evidence across windows: fuse one window into the filter.
+
+    A window that is ``informative`` (its fit good enough to trust and its model check
+    passed) informs the parameters it determined and the first it could not (weakly: noise,
+    not structure, may be why); the ones after it are held at their trusted values, as the
+    window's estimate held them (with a viscous load J, Ke and D trade off exactly: jointly, no
+    window determines D). Its least-squares problem is re-linearised at each iterate of the
+    filter (:meth:`ParameterFusion.update`) around the polished initial state, with the
+    polish's row variances as weights. Any other window only advances the filter to its time.
+
+    Args:
+        fusion: the filter (its state is updated).
+        problem: the window's problem.
+        polished: the polish over every estimated parameter (initial state, row variances).
+        n_selected: parameters the gate admitted (the first ``n_selected`` in priority).
+        t_mid: the window's middle [s].
+        informative: fuse the window's evidence (else advance only).
+
+    Returns:
+        (estimated parameter -> (fused value [SI], relative standard error), whether the
+        window was a jump for the filter).
+    """
+    jump = False
+    if informative:
+        n_est = problem.n_est
+        cols = np.arange(min(n_selected + 1, n_est))
+        base_ln = np.log(problem.base[problem.pmap.idx])
+        nuis = problem.nuisance
+        local = problem.local
+
+        def linearize(q: FloatArray) -> tuple[FloatArray, FloatArray]:
+            """The window's residuals and Jacobian (columns ``cols``, then the initial state)
+            at ln-parameters q."""
+            qq = base_ln.copy()
+            qq[cols] = q[cols]
+            v_f = np.concatenate([np.clip(qq, problem.xl, problem.xu), polished.nuisance])
+            r_f = local.residuals(v_f[None, :])[0]
+            active = np.concatenate([cols, nuis])
+            return local.jacobian(v_f, active, r_f), r_f
+
+        jump = fusion.update(t_mid, linearize, polished.row_var, nuis.size, cols=cols)
+    else:
+        fusion.update(t_mid)
+    f_val, f_std = fusion.values(), fusion.rel_std()
+    return {n: (f_val[n], f_std[n]) for n in problem.pmap.estimate}, jump
+
+
+__all__ = ["FusionConfig", "FusionState", "ParameterFusion", "fuse_window"]
