@@ -41,6 +41,7 @@ from typing import Any
 
 from twinwatch.config.loader import default_config
 from twinwatch.daemon.runner import Daemon
+from twinwatch.twin.health import HealthMessage
 
 logger = logging.getLogger(__name__)
 
@@ -149,17 +150,17 @@ def main(argv: list[str] | None = None) -> int:
     held = [0]
     levels: dict[str, int] = {}
 
-    def _on_window(health: dict[str, Any]) -> None:
-        w = int(health["window"])
-        elapsed.append(float(health["elapsed_s"]))
-        ra = health["parameters"].get("Ra", {})
-        if ra.get("held"):
+    def _on_window(health: HealthMessage) -> None:
+        w = health.window
+        elapsed.append(health.elapsed_s)
+        ra = health.parameters.get("Ra")
+        if ra is not None and ra.held:
             held[0] += 1
-        elif plant is not None and ra.get("value") is not None:
-            true = plant.truth(0.5 * (health["t_start"] + health["t_end"])).Ra
-            ra_err.append(abs(ra["value"] - true) / true * 100.0)
-        for name, a in health.get("alarms", {}).items():
-            key = f"{name} {a['level']}"
+        elif plant is not None and ra is not None and ra.value is not None:
+            true = plant.truth(0.5 * (health.t_start + health.t_end)).Ra
+            ra_err.append(abs(ra.value - true) / true * 100.0)
+        for name, a in health.alarms.items():
+            key = f"{name} {a.level}"
             levels[key] = levels.get(key, 0) + 1
         if not first:
             first.append(w)
@@ -170,8 +171,8 @@ def main(argv: list[str] | None = None) -> int:
         if w % args.every == 0:
             r = rss_kib()
             points.append((w, r))
-            c = health["counters"]
-            print(f"window {w:6d}  t={health['t_end']:8.0f} s  RSS {r / 1024:7.1f} MiB  "
+            c = health.counters
+            print(f"window {w:6d}  t={health.t_end:8.0f} s  RSS {r / 1024:7.1f} MiB  "
                   f"overruns {c.get('overruns', 0)}  numeric failures "
                   f"{c.get('numeric_failures', 0)}  wall {time.monotonic() - t_wall0:6.0f} s",
                   flush=True)

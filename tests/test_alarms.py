@@ -10,26 +10,24 @@ import pytest
 from pydantic import ValidationError
 
 from twinwatch.daemon.alarms import AlarmConfig, AlarmEvaluator, AlarmRule
+from twinwatch.twin.health import HealthMessage, ParameterHealth
 
 
-def health(window: int, devs: dict[str, float | None], *, held: tuple[str, ...] = (),
-           meaning: str | None = None) -> dict[str, Any]:
-    """A health message of window ``window`` (2 s, 200 samples) with the given deviations."""
+def health(window: int, devs: dict[str, float | None], *,
+           held: tuple[str, ...] = ()) -> HealthMessage:
+    """The typed health message of window ``window`` (2 s, 200 samples) with the given
+    deviations (only what the evaluator reads: the window, its times, the parameters)."""
     params = {}
     for name, dev in devs.items():
         nominal = 6.5
-        params[name] = {
-            "value": None if dev is None else nominal * (1 + dev / 100),
-            "unit": "ohm", "nominal": nominal, "deviation_pct": dev,
-            "status": "held" if name in held else "estimated", "held": name in held,
-            "reason": "held at last trusted value" if name in held else None,
-            "rel_std_pct": None,
-        }
-        if meaning:
-            params[name]["meaning"] = meaning
-    return {"schema": 1, "machine": "m1", "model": "dc_motor", "window": window,
-            "t_start": 2.0 * window, "t_end": 2.0 * window + 1.99, "samples": 200,
-            "parameters": params}
+        params[name] = ParameterHealth(
+            value=None if dev is None else nominal * (1 + dev / 100), unit="ohm",
+            nominal=nominal, deviation_pct=dev,
+            status="held" if name in held else "estimated", held=name in held,
+            reason="held at last trusted value" if name in held else None, rel_std_pct=None)
+    return HealthMessage.model_construct(
+        machine="m1", model="dc_motor", window=window, t_start=2.0 * window,
+        t_end=2.0 * window + 1.99, samples=200, parameters=params)
 
 
 def run(ev: AlarmEvaluator, devs: list[float | None], *, start: int = 0,
@@ -154,8 +152,9 @@ def test_parameters_without_rule_or_absent_are_ignored() -> None:
 def test_message_tells_what_happened_and_what_to_do() -> None:
     ev = AlarmEvaluator(AlarmConfig(parameters={"Ra": AlarmRule(
         alarm=10, raise_after_s=0, raise_after_windows=1,
-        action="check the armature winding temperature and the brushes")}))
-    (e,) = ev.update(health(3, {"Ra": -14.6}, meaning="armature resistance"))
+        action="check the armature winding temperature and the brushes")}),
+        meanings={"Ra": "armature resistance"})
+    (e,) = ev.update(health(3, {"Ra": -14.6}))
     assert e["message"] == (
         "m1: ALARM: Ra (armature resistance) is 14.60 % below nominal (5.551 ohm vs nominal "
         "6.5 ohm) since plant time 6 s, beyond the alarm threshold -10 %: check the armature "

@@ -174,8 +174,10 @@ def test_sample_config_documents_every_key(driver: str):
     for name in TwinwatchConfig.model_fields:
         keys.add(name)
         # the validated table's own model: the driver's (only this sample's driver is
-        # checked), the twin's tables (validated by the twin's models)
-        keys |= _fields(type(getattr(cfg, name)))
+        # checked), the twin's tables (validated by the twin's models), each output's
+        value = getattr(cfg, name)
+        for table in (value.values() if isinstance(value, dict) else [value]):
+            keys |= _fields(type(table))
     keys |= _fields(type(create_model(cfg.machine.model, {})))  # the model's options
     assert get_driver_class(driver) is not None
     missing = sorted(k for k in keys if not re.search(rf"\b{re.escape(k)}\b", text))

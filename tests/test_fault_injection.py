@@ -723,7 +723,7 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
 
 @case("recording: the disk has 10 MiB free during windows 2-3 of 6 (below the 64 MiB kept "
       "for the state database)", recorded=4, lost=2, problem_while_full=True,
-      problem_after=None, file_verifies=True)
+      problem_after="recording: 2 windows not recorded", file_verifies=True)
 def _recording_pauses_on_a_nearly_full_disk(ctx: Context) -> dict[str, Any]:
     import os
     import subprocess

@@ -161,8 +161,8 @@ def test_non_finite_numbers_are_null_in_every_copy(processed, tmp_path: Path) ->
     msg = json.loads(text)
     assert msg["nrmse"] is None and msg["parameters"]["Ra"]["deviation_pct"] is None
     model, w, result = processed
-    out = ProcessedWindow(window=w, result=result, health=h, health_json=text, message=msg,
-                          events=[], twin_state={"trusted": {"Ra": math.nan}})
+    out = ProcessedWindow(window=w, result=result, health=h, health_json=text, events=[],
+                          twin_state={"trusted": {"Ra": math.nan}})
     with StateStore(tmp_path / "s.sqlite") as store:
         store.write(out)
         # a message handed to the store as a plain mapping goes through the same encoder

@@ -288,6 +288,7 @@ def test_a_reload_that_changes_the_state_settings_reopens_the_database_once_rele
     time goes on (not restarted at 0); the window numbering goes on."""
     from twinwatch.config.loader import load_config
     from twinwatch.daemon.supervisor import Supervisor
+    from twinwatch.twin.health import HealthMessage
 
     from .test_fault_injection import endless_sim
 
@@ -296,26 +297,28 @@ def test_a_reload_that_changes_the_state_settings_reopens_the_database_once_rele
     sup = Supervisor(lambda: load_config(cfg), base_dir=tmp_path, source=str(cfg))
     sup.start()
     first = sup.daemon
-    seen: list[dict[str, Any]] = []
+    seen: list[HealthMessage] = []
     after: list[int] = []
 
-    def on_window(health: dict[str, Any]) -> None:
+    def on_window(health: HealthMessage) -> None:
         seen.append(health)
         if len(seen) == 3:
             _write_config(cfg, cfg.read_text().replace("keep_days = 30", "keep_days = 10"))
             sup.reload()
         if sup.daemon is not first:
-            after.append(health["window"])
+            after.append(health.window)
             if len(after) == 3:
                 sup.stop()
 
     sup.add_callback(on_window)
     sup.run()
     assert sup.daemon is not first and sup.daemon is not None
-    assert sup.daemon.store is None and sup.daemon._sink("store").keep_days == 10
-    windows = [h["window"] for h in seen]
+    assert sup.daemon.store is None
+    assert [s.keep_days for s in sup.daemon._closed_sinks.values()  # type: ignore[attr-defined]
+            if s.name == "store"] == [10]
+    windows = [h.window for h in seen]
     assert windows == list(range(len(windows))) and len(windows) >= 8
-    t_start = [h["t_start"] for h in seen]
+    t_start = [h.t_start for h in seen]
     assert t_start == [2.0 * w for w in windows]  # the plant's time goes on
     rows = db_rows(tmp_path / "state.sqlite")
     assert [h["window"] for h in rows] == windows

@@ -7,18 +7,21 @@ runs, so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_s
 from __future__ import annotations
 
 import logging
+import math
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
 
 from twinwatch import __version__
-from twinwatch.config.samples import DRIVERS as SAMPLE_DRIVERS
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.runner import Daemon
+    from twinwatch.twin.health import HealthMessage, ParameterHealth
 
 logger = logging.getLogger("twinwatch")
 
@@ -145,12 +148,12 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
                    "{remaining}{postfix}]")
         t0: list[float] = []
 
-        def _progress(health: dict[str, Any]) -> None:
+        def _progress(health: HealthMessage) -> None:
             if not t0:
-                t0.append(health["t_start"])
-            bar.n = health["t_end"] - t0[0]
-            bar.set_postfix_str(f"window {health['window']}, "
-                                f"nRMSE {health['nrmse'] or float('nan'):.1e}", refresh=False)
+                t0.append(health.t_start)
+            bar.n = health.t_end - t0[0]
+            bar.set_postfix_str(f"window {health.window}, "
+                                f"nRMSE {health.nrmse or float('nan'):.1e}", refresh=False)
             bar.refresh()
 
         supervisor.add_callback(_progress)
@@ -179,9 +182,10 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         sys.exit(EX_IOERR)
 
 
-def _resumed_line(daemon: Any) -> str:
+def _resumed_line(daemon: Daemon) -> str:
     """One line saying what was resumed from the state database, and how not to."""
     r = daemon.resumed
+    assert r is not None
     what = []
     if daemon.restored is not None:
         where = (f" of window {r['window']} (t = {r['t_end']:.2f} s)"
@@ -195,88 +199,115 @@ def _resumed_line(daemon: Any) -> str:
             f"to start from the nameplate values instead: twinwatch run --fresh")
 
 
-def _print_summary(cfg: Any, daemon: Any) -> None:
-    last = daemon.latest
+def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
+    """The run's summary (README "What `twinwatch run` prints"), from the typed health
+    messages the daemon kept and its outputs' own lines."""
     c = daemon.counters()
     click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
                f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
                f"(gaps/bad samples), {c['numeric_failures']} numeric failures")
-    for line in _source_lines(cfg, daemon):
-        click.echo(line)
-    if last is None:
-        for line in _loss_lines(daemon):
-            click.echo(line)
-        return
-    click.echo(f"last window {last['window']} [{last['t_start']:.2f}-{last['t_end']:.2f} s], "
-               f"nRMSE {last['nrmse']:.2e}, estimated in {last['elapsed_s'] * 1e3:.0f} ms:")
-    width = max([3, *(len(n) for n in last["parameters"])])
-    for name, p in last["parameters"].items():
-        fused = p.get("fused") or {}
-        status = {"estimated": "estimated",
-                  "fused": f"fused over the windows (this one alone: {p['reason']})",
-                  "held": f"held: {p['reason']}"}.get(
-            p["status"], p["reason"] or p["status"])  # tied, fixed: the reason says to what
-        if fused.get("value") is not None and p["status"] in ("estimated", "held"):
-            status += (f"; fused {fused['value']:.6g} +- {2 * fused['rel_std_pct']:.2g} % "
-                       "(2 sigma)")
-        dev = p["deviation_pct"]
-        click.echo(f"  {name:<{width}} = {p['value']:<11.6g} {p['unit']:<10} "
-                   f"({'n/a' if dev is None else f'{dev:+.2f}'} % vs nominal {p['nominal']:g}) "
-                   f"{status}")
-    raised = {k: a for k, a in (last.get("alarms") or {}).items()
-              if a.get("level") not in (None, "normal")}
-    if raised:
-        click.echo("alarms: " + "; ".join(
-            f"{k} {a['level']}"
-            + (f" (raised at plant time {a['since_t']:.0f} s)" if a.get("since_t") is not None
-               else "")
-            + (f", last {a['deviation_pct']:+.2f} % vs nominal"
-               if a.get("deviation_pct") is not None else "") for k, a in raised.items()))
-    disc = last.get("discovery") or {}
-    if disc.get("enabled"):
-        terms = last.get("terms") or []
-        res = last.get("residual") or {}
-        check = last.get("model_check") or {}
-        if terms:
-            verdict = ":"
-        elif disc.get("too_large") or check.get("passed") is False:
-            verdict = (": none kept, yet the residual is too large for the physical model "
-                       "(no candidate meta-model describes what it misses)")
-        else:
-            verdict = ": the physical model explains the data"
-        click.echo(f"twin structure (DT''): {len(terms)} meta-model term(s){verdict}")
-        for term in terms:
-            click.echo(f"  {term['equation']}  [{term['meaning']}]")
-        worst = {k: (res.get(v) or {}).get("max_abs") or {} for k, v in
-                 (("DT'", "dt_prime"), ("DT''", "dt_second"))}
-        if terms:
-            click.echo("  worst error in the last window: " + "; ".join(
-                f"{k} " + ", ".join(f"{o} {e:.3g}" for o, e in w.items() if e is not None)
-                for k, w in worst.items() if w))
-    checks = [h["model_check"]["passed"] for h in daemon.history if h.get("model_check")]
-    if checks:
-        failed = len(checks) - sum(checks)
-        reasons = (last.get("model_check") or {}).get("reasons") or []
-        click.echo(f"model check: passed in {sum(checks)} of {len(checks)} windows"
-                   + (f"; failing windows are not trusted and their intervals widened (last: "
-                      f"{reasons[0]})" if failed and reasons else ""))
-    times = sorted(h["elapsed_s"] for h in daemon.history)
-    if times:
-        med = times[len(times) // 2]
-        click.echo(f"estimation time per window: median {med * 1e3:.0f} ms, max "
-                   f"{times[-1] * 1e3:.0f} ms (window length "
-                   f"{cfg.acquisition.window * cfg.acquisition.sample_period:g} s)")
-    if cfg.recording.enabled:
-        click.echo(f"recording: {Path(cfg.recording.path).resolve()} "
-                   f"(open with: rerun {cfg.recording.path})")
-    if cfg.zenoh.enabled:
-        click.echo(f"health was published on {cfg.zenoh.key_prefix}/{cfg.machine.name}/health "
-                   f"(zenoh, listening on {', '.join(cfg.zenoh.listen) or 'nothing'})")
-    for line in _loss_lines(daemon):
+    lines = _source_lines(cfg, daemon)
+    last = daemon.latest_health
+    if last is not None:
+        history = daemon.health_history
+        lines += [*_window_lines(last), *_alarm_lines(last), *_structure_lines(last),
+                  *_check_lines(last, history), *_timing_lines(cfg, history),
+                  *daemon.summary()]  # where each output wrote, what it lost
+    if daemon.lost():
+        lines.append("twinwatch: estimated windows were lost: exit status 74")
+    for line in lines:
         click.echo(line)
 
 
-def _source_lines(cfg: Any, daemon: Any) -> list[str]:
+def _window_lines(last: HealthMessage) -> list[str]:
+    """The last window and each parameter: value, deviation, status."""
+    width = max([3, *(len(n) for n in last.parameters)])
+    return [f"last window {last.window} [{last.t_start:.2f}-{last.t_end:.2f} s], "
+            f"nRMSE {last.nrmse or float('nan'):.2e}, estimated in "
+            f"{last.elapsed_s * 1e3:.0f} ms:",
+            *(f"  {name:<{width}} = {_value(p.value)} {p.unit:<10} "
+              f"({'n/a' if p.deviation_pct is None else f'{p.deviation_pct:+.2f}'} % vs nominal "
+              f"{p.nominal:g}) {_status(p)}" for name, p in last.parameters.items())]
+
+
+def _value(value: float | None) -> str:
+    return f"{value:<11.6g}" if value is not None else f"{'n/a':<11}"
+
+
+def _status(p: ParameterHealth) -> str:
+    """Why the parameter has its value (estimated, fused, held: the reason), with the fused
+    evidence of an estimated or held one."""
+    text = {"estimated": "estimated",
+            "fused": f"fused over the windows (this one alone: {p.reason})",
+            "held": f"held: {p.reason}"}.get(
+        p.status, p.reason or p.status)  # tied, fixed: the reason says to what
+    fused = p.fused
+    if fused is not None and fused.value is not None and p.status in ("estimated", "held"):
+        text += (f"; fused {fused.value:.6g} +- {2 * (fused.rel_std_pct or math.nan):.2g} % "
+                 "(2 sigma)")
+    return text
+
+
+def _alarm_lines(last: HealthMessage) -> list[str]:
+    raised = {k: a for k, a in last.alarms.items() if a.level != "normal"}
+    if not raised:
+        return []
+    return ["alarms: " + "; ".join(
+        f"{k} {a.level}"
+        + (f" (raised at plant time {a.since_t:.0f} s)" if a.since_t is not None else "")
+        + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
+           else "") for k, a in raised.items())]
+
+
+def _structure_lines(last: HealthMessage) -> list[str]:
+    """The twin's structure DT'' when discovery is on: its terms, the worst errors."""
+    if not last.discovery.enabled:
+        return []
+    terms = last.terms
+    lines = [f"twin structure (DT''): {len(terms)} meta-model term(s){_verdict(last)}",
+             *(f"  {term.equation}  [{term.meaning}]" for term in terms)]
+    if terms:
+        fits = (("DT'", last.residual.dt_prime), ("DT''", last.residual.dt_second))
+        worst = {k: fit.max_abs for k, fit in fits if fit is not None and fit.max_abs}
+        lines.append("  worst error in the last window: " + "; ".join(
+            f"{k} " + ", ".join(f"{o} {e:.3g}" for o, e in w.items() if e is not None)
+            for k, w in worst.items()))
+    return lines
+
+
+def _verdict(last: HealthMessage) -> str:
+    """What the discovery concluded in the last window."""
+    if last.terms:
+        return ":"
+    if last.discovery.too_large or (last.model_check is not None
+                                    and not last.model_check.passed):
+        return (": none kept, yet the residual is too large for the physical model "
+                "(no candidate meta-model describes what it misses)")
+    return ": the physical model explains the data"
+
+
+def _check_lines(last: HealthMessage, history: list[HealthMessage]) -> list[str]:
+    """How many windows passed the model check, and why the last failing one did not."""
+    checks = [h.model_check.passed for h in history if h.model_check is not None]
+    if not checks:
+        return []
+    passed = sum(checks)
+    reasons = last.model_check.reasons if last.model_check is not None else []
+    return [f"model check: passed in {passed} of {len(checks)} windows"
+            + (f"; failing windows are not trusted and their intervals widened (last: "
+               f"{reasons[0]})" if passed < len(checks) and reasons else "")]
+
+
+def _timing_lines(cfg: TwinwatchConfig, history: list[HealthMessage]) -> list[str]:
+    times = sorted(h.elapsed_s for h in history)
+    if not times:
+        return []
+    return [f"estimation time per window: median {times[len(times) // 2] * 1e3:.0f} ms, max "
+            f"{times[-1] * 1e3:.0f} ms (window length "
+            f"{cfg.acquisition.window * cfg.acquisition.sample_period:g} s)"]
+
+
+def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
     """What the source delivered and what was lost of it, by reason, with the cause when no
     window could be completed."""
     ring = daemon.ring
@@ -287,7 +318,7 @@ def _source_lines(cfg: Any, daemon: Any) -> list[str]:
         reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
         lines.append(f"source: {ring.samples} samples received, {lost} not in any window "
                      f"({reasons})")
-    if daemon.latest is not None or daemon.windows_estimated:
+    if daemon.latest_health is not None or daemon.windows_estimated:
         return lines
     if ring.samples == 0:
         lines.append(f"no window was completed: the {cfg.driver.type} driver delivered no "
@@ -312,28 +343,6 @@ def _source_lines(cfg: Any, daemon: Any) -> list[str]:
         lines.append(f"no window was completed: {cause}")
     else:
         lines.append("no window was estimated (see the log for why)")
-    return lines
-
-
-def _loss_lines(daemon: Any) -> list[str]:
-    """Windows estimated but not stored, not published or not recorded."""
-    lines = []
-    store = daemon.store_stats
-    if store["not_stored"]:
-        late = store["not_stored"] - store["lost"] - store["waiting"]
-        lines.append(f"state database: {store['not_stored']} windows could not be stored when "
-                     f"estimated, so they were not published ({max(late, 0)} written later, "
-                     f"served by the history query; {store['lost']} lost)")
-    lost = daemon.lost()
-    if "store_history" in lost:
-        lines.append(f"state database: {lost['store_history']} windows stored by this run were "
-                     f"lost with its deleted or replaced file (no longer in memory to write "
-                     f"again)")
-    if "recording" in lost:
-        lines.append(f"recording: {lost['recording']} windows could not be recorded or were "
-                     "lost with a deleted file (see the log)")
-    if lost:
-        lines.append("twinwatch: estimated windows were lost: exit status 74")
     return lines
 
 
@@ -465,10 +474,37 @@ def _outputs(cfg: Any) -> list[str]:
     return list(create_model(cfg.machine.model, cfg.machine.options).output_names)
 
 
+class _RegistryChoice(click.Choice[str]):
+    """A choice among a registry's names, read when a value is checked or the command's help
+    is shown (not when the command line is built: ``twinwatch --help`` imports no registry)."""
+
+    def __init__(self, names: Callable[[], list[str]]) -> None:
+        super().__init__(())
+        self._names = names
+        self._cache: tuple[str, ...] | None = None
+
+    @property  # type: ignore[override]
+    def choices(self) -> tuple[str, ...]:
+        if self._cache is None:
+            self._cache = tuple(self._names())
+        return self._cache
+
+    @choices.setter
+    def choices(self, value: Any) -> None:
+        pass
+
+
+def _driver_names() -> list[str]:
+    from twinwatch.drivers import DRIVERS
+
+    return DRIVERS.names()
+
+
 @main.command("sample-config")
-@click.option("--driver", type=click.Choice(list(SAMPLE_DRIVERS)), default="simulated",
+@click.option("--driver", type=_RegistryChoice(_driver_names), default="simulated",
               show_default=True,
-              help="Print the complete example for this driver (every key documented).")
+              help="Print the complete example for this driver (every key documented; any "
+              "registered driver, plug-ins included).")
 def sample_config(driver: str) -> None:
     """Print a commented sample configuration: every key of every table it uses, optional ones
     commented out with their default (without --driver: the built-in default, the simulated

@@ -24,15 +24,19 @@ Each room keeps its own registry next to its base class (:data:`twinwatch.driver
 from __future__ import annotations
 
 import importlib
+import json
 import logging
+import math
 import threading
+import types
+import typing
 from collections.abc import Callable, Iterator, Mapping
 from importlib.metadata import entry_points
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from twinwatch.errors import PluginError
 
-__all__ = ["Registry"]
+__all__ = ["Registry", "commented_table"]
 
 logger = logging.getLogger(__name__)
 
@@ -143,3 +147,100 @@ def _install_hint(exc: ImportError, module_name: str) -> str:
         return f"Install the package that provides {missing!r} (pip install {missing})"
     return (f"Is the package that provides {module_name} installed, with its extras? "
             f"(pip show it, or pip install it)")
+
+
+# -- a plug-in's sample table ---------------------------------------------------------------------
+def commented_table(model: Any, table: str, *, commented: bool = False,
+                    fixed: Mapping[str, Any] | None = None) -> str:
+    """The sample of a plug-in's configuration table, from its pydantic model: the table header,
+    then every key with its default and description, optional keys commented out (what
+    ``twinwatch sample-config`` prints for a plug-in that ships no sample of its own).
+
+    Args:
+        model: the table's pydantic model class (``extra = "forbid"``).
+        table: the table's dotted path (``"driver"``, ``"outputs.mqtt"``).
+        commented: comment out everything, the header and required keys too (an output that
+            stays off until its table is written).
+        fixed: key -> value written as a live line (``{"type": "plant_direct"}``).
+
+    Returns:
+        TOML text: ``[table]``, its keys (``# key = default  # description``; a required key
+        without a known value ``# key = ...  # required: ...``), then its sub-tables (fields
+        whose type is a model) the same way.
+    """
+    lead = "# " if commented else ""
+    lines = [f"{lead}[{table}]"]
+    subtables: list[tuple[str, Any]] = []
+    for name, info in model.model_fields.items():
+        key = info.alias or name
+        sub = _submodel(info.annotation)
+        if sub is not None:
+            subtables.append((key, sub))
+            continue
+        note = info.description or ""
+        if fixed is not None and key in fixed:
+            lines.append(_line(f"{lead}{key} = {_toml(fixed[key])}", note))
+        elif info.is_required():
+            literal = _literal(info.annotation)
+            if literal is not None:
+                lines.append(_line(f"{lead}{key} = {_toml(literal)}", note))
+            else:
+                lines.append(_line(f"# {key} = ...", f"required: {note}" if note
+                                   else "required"))
+        else:
+            try:
+                default = info.get_default(call_default_factory=True, validated_data={})
+            except (TypeError, KeyError):  # a factory that needs the other fields
+                default = None
+            value = _toml(default)
+            lines.append(_line(f"# {key} = {value}" if value is not None else f"# {key} =",
+                               note if value is not None else f"{note} (default: unset)"
+                               .strip()))
+    text = "\n".join(lines) + "\n"
+    for key, sub in subtables:
+        text += "\n" + commented_table(sub, f"{table}.{key}", commented=True)
+    return text
+
+
+def _line(code: str, note: str) -> str:
+    return f"{code:<30} # {note}" if note else code
+
+
+def _submodel(annotation: Any) -> Any:
+    """The model class a field holds (also ``Model | None``), or None."""
+    if isinstance(annotation, type) and hasattr(annotation, "model_fields"):
+        return annotation
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        found = [a for a in typing.get_args(annotation) if _submodel(a) is not None]
+        return found[0] if len(found) == 1 else None
+    return None
+
+
+def _literal(annotation: Any) -> Any:
+    """The value of a one-value ``Literal`` annotation, or None."""
+    if typing.get_origin(annotation) is typing.Literal and len(typing.get_args(annotation)) == 1:
+        return typing.get_args(annotation)[0]
+    return None
+
+
+def _toml(value: Any) -> str | None:
+    """``value`` as a TOML value, or None when TOML cannot write it (no null in TOML)."""
+    if value is None:
+        return None
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else None
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list | tuple):
+        items = [_toml(v) for v in value]
+        return None if None in items else "[" + ", ".join(typing.cast(list[str], items)) + "]"
+    if isinstance(value, Mapping):
+        pairs = [(k, _toml(v)) for k, v in value.items()]
+        return "{" + ", ".join(f"{k} = {v}" for k, v in pairs if v is not None) + "}"
+    if hasattr(value, "model_dump"):
+        return _toml(value.model_dump())
+    return _toml(getattr(value, "value", None)) if hasattr(value, "value") else None

@@ -1,7 +1,8 @@
 """Loading and validating configuration files (TOML, read with :mod:`tomllib`).
 
-Secrets: a private key or password file named by ``[zenoh.tls]``/``[zenoh.auth]``, and a
-configuration file that holds a secret inline (``*_private_key_base64``, ``[zenoh.auth]
+Secrets: a private key or password file an output names (``[zenoh.tls]``, ``[zenoh.auth]``,
+an ``[outputs.<name>]`` table's: :meth:`~twinwatch.sinks.base.SinkConfig.secret_input_files`),
+and a configuration file that holds a secret inline (``*_private_key_base64``, ``[zenoh.auth]
 password``), are refused when others can read them (mode ``o+r``): install them
 ``0640 root:twinwatch`` (the unit's group). Certificate and key paths are relative to the
 configuration file's directory.
@@ -80,7 +81,8 @@ def load_config(path: str | Path) -> TwinwatchConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
     cfg = validate_config(data, str(p))
-    cfg.zenoh.resolve_paths(p.resolve().parent)
+    for output in cfg.output_tables():
+        output.config.resolve_paths(p.resolve().parent)
     check_secrets(cfg, p)
     return cfg
 
@@ -95,13 +97,16 @@ def check_secrets(cfg: TwinwatchConfig, path: Path) -> None:
     Raises:
         ConfigError: naming the file, the key and the ``chmod`` that fixes it.
     """
-    inline = cfg.zenoh.inline_secrets()
+    outputs = cfg.output_tables()
+    inline = [f"{o.key}.{k}" for o in outputs for k in o.config.inline_secret_keys()]
     if inline and _readable_by_others(path):
         raise ConfigError(
             f"{path}: holds secrets ({', '.join(inline)}) and is readable by other users "
             f"(mode {stat.filemode(os.stat(path).st_mode)}): run `chmod o-rwx {path}` (install "
             f"it 0640 root:twinwatch), or move the key to a file readable only by the service")
-    for key, file in cfg.zenoh.secret_files().items():
+    secret_files = {f"{o.key}.{k}": v for o in outputs for k, v in
+                    o.config.secret_input_files().items()}
+    for key, file in secret_files.items():
         f = Path(file)
         try:
             bad = _readable_by_others(f)

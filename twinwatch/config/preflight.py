@@ -7,9 +7,12 @@ same :func:`check_runnable`, so check-config refuses what run refuses, and run r
 exit status 78 (EX_CONFIG: systemd does not restart it in a loop) before touching a device or a
 file.
 
-Drivers take part without being imported here: a driver configuration may provide
+Drivers and outputs take part without being named here: a driver configuration may provide
 ``twin_channels() -> tuple[str, ...]`` (the twin channels it delivers) and
-``required_files(base_dir) -> dict[str, Path]`` (config key -> file that must exist).
+``required_files(base_dir) -> dict[str, Path]`` (config key -> file that must exist); every
+output's table (:class:`~twinwatch.sinks.base.SinkConfig`) says which files it reads
+(``input_files``: they must exist and be readable) and which it creates (``output_files``: their
+directory must exist and be writable).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from pathlib import Path
 
 from twinwatch.config.loader import ConfigError
 from twinwatch.config.schema import TwinwatchConfig
+from twinwatch.sinks import sink_class
 from twinwatch.twin.models import create_model
 
 __all__ = ["check_runnable", "runnable_problems"]
@@ -38,6 +42,11 @@ def _dir_problem(key: str, path: Path) -> str | None:
     return None
 
 
+def _is_gate(name: str) -> bool:
+    """The output ``name`` is the pipeline's gate (the state store)."""
+    return sink_class(name).role == "gate"
+
+
 def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None = None,
                       persist: bool = True) -> list[str]:
     """Everything that keeps ``cfg`` from starting here, one ``key: why`` line each.
@@ -47,7 +56,7 @@ def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None 
         base_dir: the configuration file's directory (driver files are relative to it).
         cwd: the working directory (the recording and the state database are relative to
             it); default the current one.
-        persist: the state database will be opened (the CLI's run).
+        persist: the gate (the state database) will be opened (the CLI's run).
 
     Returns:
         The problems, empty if none.
@@ -59,23 +68,19 @@ def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None 
         for key, path in required_files(base_dir).items():
             if not Path(path).is_file():
                 problems.append(f"{key}: file {path} not found")
-    if cfg.zenoh.enabled:
-        for key, file in cfg.zenoh.file_paths().items():
+    for output in cfg.output_tables():
+        if not output.config.enabled or (not persist and _is_gate(output.name)):
+            continue
+        for key, file in output.config.input_files().items():
             f = Path(file)
             if not f.is_file():
-                problems.append(f"{key}: file {f} not found")
+                problems.append(f"{output.key}.{key}: file {f} not found")
             elif not os.access(f, os.R_OK):
-                problems.append(f"{key}: file {f} is not readable by this user")
-    if cfg.recording.enabled:
-        rec = Path(cfg.recording.path).expanduser()
-        problem = _dir_problem("recording.path", rec if rec.is_absolute() else cwd / rec)
-        if problem:
-            problems.append(problem)
-    if persist and cfg.state.enabled:
-        st = Path(cfg.state.path).expanduser()
-        problem = _dir_problem("state.path", st if st.is_absolute() else cwd / st)
-        if problem:
-            problems.append(problem)
+                problems.append(f"{output.key}.{key}: file {f} is not readable by this user")
+        for key, path in output.config.output_files(cwd).items():
+            problem = _dir_problem(f"{output.key}.{key}", path)
+            if problem:
+                problems.append(problem)
     channels = getattr(cfg.driver, "twin_channels", None)
     if channels is not None:
         delivered = set(channels())

@@ -3,9 +3,17 @@
 Each sample is a complete, valid configuration that documents every key of every table it uses
 (optional keys commented out with their default): a header, the machine's tables (``[machine]``,
 ``[estimation]``, ``[discovery]``, ``[alarms]``), ``[acquisition]``, the driver's ``[driver]``
-tables, then ``[zenoh]``, ``[recording]`` and ``[state]``. The parts live in ``samples/`` beside
-this module and are shared: the DC motor's tables serve the simulated, CAN and file samples, the
-hydraulic actuator's the Modbus ones. The ``simulated`` sample is the built-in default
+tables, then the outputs' tables (``[zenoh]``, ``[recording]``, ``[state]``, then each other
+installed output's ``[outputs.<name>]``, commented out).
+
+The drivers and the outputs are the registries' (:data:`twinwatch.drivers.DRIVERS`,
+:data:`twinwatch.sinks.SINKS`), plug-ins included: ``--driver`` takes any registered driver. A
+built-in ships its sample part in ``samples/`` beside this module (``driver_<name>.toml``; the
+built-in outputs' tables in ``common.toml``); a plug-in provides its own
+(:meth:`twinwatch.drivers.Driver.sample`, :meth:`twinwatch.sinks.base.Sink.sample`, generated
+from its configuration model unless it overrides them). The machine's tables are shared: the DC
+motor's serve the simulated, CAN and file samples, the hydraulic actuator's the Modbus ones
+(a driver's ``sample_model``). The ``simulated`` sample is the built-in default
 (``default.toml``, ``config/dc-motor-sim.toml``); tests keep them equal.
 """
 
@@ -13,27 +21,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["DRIVERS", "sample_config"]
+from twinwatch.drivers import DRIVERS, get_driver_class
+from twinwatch.errors import PluginError
+from twinwatch.sinks import HISTORIC_TABLES, SINKS, output_key, sink_class
+
+__all__ = ["driver_names", "sample_config"]
 
 _DIR = Path(__file__).with_name("samples")
-
-#: driver -> (machine part, machine name, what the sample runs)
-DRIVERS: dict[str, tuple[str, str, str]] = {
-    "simulated": ("dc_motor", "dc-motor-sim",
-                  "the simulated DC motor (paper Section 5.2) over a virtual CAN bus"),
-    "can": ("dc_motor", "dc-motor-can", "a DC motor drive on a CAN bus"),
-    "file": ("dc_motor", "dc-motor-recording", "a DC motor recording replayed from a file"),
-    "modbus": ("hydraulic_actuator", "hydraulic-modbus",
-               "a hydraulic actuator read from a Modbus device"),
-    "simulated_modbus": ("hydraulic_actuator", "hydraulic-sim",
-                         "the simulated hydraulic actuator (paper Section 5.3) over Modbus TCP"),
-}
 
 _HEADER = """\
 # twinwatch: {what}.
 #
 # `twinwatch sample-config --driver {driver}` printed this file; `twinwatch sample-config
-# --driver simulated|can|file|modbus|simulated_modbus` prints the others. Every key is
+# --driver {drivers}` prints the others. Every key is
 # optional unless marked required; commented-out keys show their default; unknown keys are
 # errors. Check a file with `twinwatch check-config FILE`; run it with `twinwatch run FILE`.
 """
@@ -42,27 +42,69 @@ _DEFAULT_HEADER = """\
 # twinwatch: the simulated DC motor (paper Section 5.2) over a virtual CAN bus.
 #
 # This is the built-in default of `twinwatch run` (no config argument) and the output of
-# `twinwatch sample-config`; `twinwatch sample-config --driver can|file|modbus|simulated_modbus`
+# `twinwatch sample-config`; `twinwatch sample-config --driver {drivers}`
 # prints a complete example for each other driver. Every key is optional unless marked
 # required; commented-out keys show their default; unknown keys are errors.
 """
+
+_DEFAULT_DRIVER = "simulated"
+
+
+def driver_names() -> list[str]:
+    """Every driver a sample can be printed for: the driver registry's names."""
+    return DRIVERS.names()
 
 
 def _part(name: str) -> str:
     return (_DIR / f"{name}.toml").read_text(encoding="utf-8").rstrip() + "\n"
 
 
-def sample_config(driver: str = "simulated") -> str:
+def _driver_part(driver: str) -> tuple[str, str, str, str]:
+    """(machine part, machine name, what the sample runs, the ``[driver]`` part)."""
+    cls = get_driver_class(driver)
+    own = _DIR / f"driver_{driver}.toml"
+    part = own.read_text(encoding="utf-8").rstrip() + "\n" if own.is_file() else cls.sample(
+        driver)
+    machine = cls.sample_machine or f"{cls.sample_model.replace('_', '-')}-{driver}"
+    what = cls.sample_title or (cls.__doc__ or driver).strip().splitlines()[0].rstrip(".")
+    return cls.sample_model, machine, what, part
+
+
+def _outputs_part() -> str:
+    """The outputs configured under ``[outputs.<name>]`` (plug-ins): each one's commented
+    sample table, or why it is not available."""
+    parts = []
+    for name in SINKS:
+        if name in HISTORIC_TABLES:
+            continue
+        try:
+            parts.append(sink_class(name).sample(output_key(name)).rstrip() + "\n")
+        except PluginError as exc:
+            parts.append(f"# [{output_key(name)}]: not available: {exc}\n")
+    return "\n".join(parts)
+
+
+def sample_config(driver: str = _DEFAULT_DRIVER) -> str:
     """The sample configuration for ``driver`` (TOML text).
 
     Raises:
-        KeyError: no sample for that driver (see :data:`DRIVERS`).
+        KeyError: no driver of that name (see :func:`driver_names`), or no sample of the
+            machine it monitors.
     """
-    machine, name, what = DRIVERS[driver]
-    header = _DEFAULT_HEADER if driver == "simulated" else _HEADER.format(what=what,
-                                                                           driver=driver)
-    text = "\n".join([header, _part(machine), _part("acquisition"), _part(f"driver_{driver}"),
-                      _part("common")])
+    if driver not in DRIVERS:
+        raise KeyError(f"unknown driver {driver!r}; known: {', '.join(driver_names())}")
+    machine, name, what, driver_part = _driver_part(driver)
+    if not (_DIR / f"{machine}.toml").is_file():
+        raise KeyError(f"no sample of the {machine!r} machine (the {driver!r} driver's "
+                       f"sample_model)")
+    others = "|".join(n for n in driver_names() if n != _DEFAULT_DRIVER)
+    header = (_DEFAULT_HEADER.format(drivers=others) if driver == _DEFAULT_DRIVER else
+              _HEADER.format(what=what, driver=driver, drivers="|".join(driver_names())))
+    parts = [header, _part(machine), _part("acquisition"), driver_part, _part("common")]
+    outputs = _outputs_part()
+    if outputs:
+        parts.append(outputs)
+    text = "\n".join(parts)
     text = text.replace('name = "dc-motor-sim"', f'name = "{name}"', 1)
     text = text.replace('name = "hydraulic-sim"', f'name = "{name}"', 1)
     if "@PLANT_DBC@" in text:

@@ -5,12 +5,15 @@ daemon at start-up with the key's path instead of being silently ignored (as in 
 Each part validates itself: the ``[driver]`` table by the driver its ``type`` names (looked up
 in the driver registry, :func:`twinwatch.drivers.validate_driver_config`, which imports only
 that driver's module: built-in or registered through the ``twinwatch.drivers`` entry points),
-the Zenoh and Rerun tables by the daemon's sinks, the estimation table by the estimator, the
+the output tables by the outputs of the sink registry (:data:`twinwatch.sinks.SINKS`: the
+built-ins' historic tables ``[state]``, ``[zenoh]``, ``[recording]``; every other output, a
+plug-in's included, under ``[outputs.<name>]``), the estimation table by the estimator, the
 plant by the plant (through its simulated driver).
 
 Importing this module loads none of the backends (zenoh, rerun, pymodbus, cantools, numba, pymoo,
-scipy): the sinks import theirs when they open, and the twin's tables (``[estimation]``,
-``[discovery]``) and model are imported when a configuration is validated, as is the driver's.
+scipy), nor the outputs' modules: the output tables are validated through the registry, the
+twin's tables (``[estimation]``, ``[discovery]``) and model when a configuration is validated,
+as is the driver's; the sinks import their backends when they open.
 
 Layout::
 
@@ -21,10 +24,11 @@ Layout::
     [identify]         commissioning: training/validation ranges of `twinwatch identify`
     [driver]           type = a registered driver ("simulated", "can", "file", "modbus",
                        "simulated_modbus", or a plug-in's) + that driver's own keys
-    [zenoh]            session mode and endpoints (loopback by default)
-    [recording]        Rerun .rrd path
+    [zenoh]            session mode and endpoints (loopback by default)     output "zenoh"
+    [recording]        Rerun .rrd path                                      output "rerun"
     [alarms]           per-parameter warning/alarm thresholds ([alarms.parameters.<name>])
-    [state]            state database: health history and the last accepted twin
+    [state]            state database: health history and the last accepted twin  "store"
+    [outputs.<name>]   any other output of the sink registry (a plug-in), its own keys
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, NamedTuple
 
 from pydantic import (
     BaseModel,
@@ -53,9 +57,8 @@ from twinwatch.drivers import (
     get_driver_class,
     validate_driver_config,
 )
-from twinwatch.sinks.rerun import RecordingConfig
-from twinwatch.sinks.store import StateConfig
-from twinwatch.sinks.zenoh import ZenohConfig
+from twinwatch.errors import PluginError
+from twinwatch.sinks import HISTORIC_TABLES, SINKS, output_key, sink_class
 
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -94,7 +97,17 @@ def _twin_table(model: Callable[[], type[BaseModel]]) -> Any:
     return Annotated[Any, BeforeValidator(validate)]
 
 
+def _sink_config(name: str) -> type[Any]:
+    """The table model (a ``SinkConfig`` subclass) of the output registered as ``name`` (its
+    module imported now)."""
+    return sink_class(name).config_class
+
+
 if TYPE_CHECKING:
+    from twinwatch.sinks.base import SinkConfig
+    from twinwatch.sinks.rerun import RecordingConfig
+    from twinwatch.sinks.store import StateConfig
+    from twinwatch.sinks.zenoh import ZenohConfig
     from twinwatch.twin.discovery.search import DiscoveryConfig
     from twinwatch.twin.estimation.estimator import EstimationConfig
     from twinwatch.twin.estimation.identify import IdentifyConfig
@@ -102,10 +115,69 @@ if TYPE_CHECKING:
     EstimationTable = EstimationConfig
     DiscoveryTable = DiscoveryConfig
     IdentifyTable = IdentifyConfig
+    ZenohTable = ZenohConfig
+    RecordingTable = RecordingConfig
+    StateTable = StateConfig
 else:
     EstimationTable = _twin_table(_estimation_config)
     DiscoveryTable = _twin_table(_discovery_config)
     IdentifyTable = _twin_table(_identify_config)
+    # the built-in outputs' historic tables, validated by the registry's classes
+    ZenohTable = _twin_table(lambda: _sink_config("zenoh"))
+    RecordingTable = _twin_table(lambda: _sink_config("rerun"))
+    StateTable = _twin_table(lambda: _sink_config("store"))
+
+
+class OutputTable(NamedTuple):
+    """One configured output: its registry name, the table's dotted path in the file and the
+    validated table."""
+
+    name: str
+    key: str
+    config: SinkConfig
+
+
+def _outputs_table(value: Any) -> dict[str, SinkConfig]:
+    """``[outputs.<name>]``: each table validated by the model of the output ``name`` names
+    in the sink registry (only that output's module is imported). Errors keep their location
+    (``outputs.mqtt.port``); an unknown name is reported with the known ones; a built-in with
+    a historic table is pointed to it."""
+    if not isinstance(value, dict):
+        raise ValueError("must be a table of [outputs.<name>] tables")
+    errors: list[InitErrorDetails] = []
+    validated: dict[str, SinkConfig] = {}
+    for name, table in value.items():
+        try:
+            validated[name] = _output_model(name).model_validate(table)
+        except PluginError as exc:
+            errors.append(InitErrorDetails(
+                type=PydanticCustomError("output_name", "{reason}", {"reason": str(exc)}),
+                loc=(name,), input=table))
+        except ValidationError as exc:  # its own keys: located inside [outputs.<name>]
+            errors.extend(InitErrorDetails(
+                type=PydanticCustomError(e["type"], e["msg"]), loc=(name, *e["loc"]),
+                input=e["input"]) for e in exc.errors(include_url=False))
+    if errors:
+        raise ValidationError.from_exception_data("outputs", errors)
+    return validated
+
+
+def _output_model(name: str) -> type[SinkConfig]:
+    """The table model of ``[outputs.<name>]``.
+
+    Raises:
+        PluginError: a built-in configured in its historic table, an unknown name (the
+            message lists the known ones) or an output that cannot be imported.
+    """
+    if name in HISTORIC_TABLES:
+        raise PluginError(f"the {name!r} output is configured in [{HISTORIC_TABLES[name]}]")
+    if name not in SINKS:
+        known = [n for n in SINKS if n not in HISTORIC_TABLES]
+        raise PluginError(
+            f"unknown output {name!r}; known outputs: {', '.join(known) or 'none installed'} "
+            f"(the built-ins are configured in "
+            f"{', '.join(f'[{t}]' for t in HISTORIC_TABLES.values())})")
+    return sink_class(name).config_class
 
 
 class MachineConfig(BaseModel):
@@ -191,15 +263,35 @@ class TwinwatchConfig(BaseModel):
     discovery: DiscoveryTable = Field(default_factory=lambda: _discovery_config()())
     identify: IdentifyTable = Field(default_factory=lambda: _identify_config()())
     driver: SerializeAsAny[DriverConfig]
-    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
-    recording: RecordingConfig = Field(default_factory=RecordingConfig)
+    zenoh: ZenohTable = Field(default_factory=lambda: _sink_config("zenoh")())
+    recording: RecordingTable = Field(default_factory=lambda: _sink_config("rerun")())
     alarms: AlarmConfig = Field(default_factory=AlarmConfig)
-    state: StateConfig = Field(default_factory=StateConfig)
+    state: StateTable = Field(default_factory=lambda: _sink_config("store")())
+    outputs: dict[str, SerializeAsAny[Any]] = Field(
+        default_factory=dict, description="[outputs.<name>]: the other outputs (plug-ins)")
 
     @field_validator("driver", mode="before")
     @classmethod
     def _driver(cls, value: Any) -> DriverConfig:
         return _driver_table(value)
+
+    @field_validator("outputs", mode="before")
+    @classmethod
+    def _outputs(cls, value: Any) -> dict[str, SinkConfig]:
+        return _outputs_table(value)
+
+    def output_tables(self) -> list[OutputTable]:
+        """Every output's table, in the sink registry's order (the order windows are written;
+        the gate, the state store, first whatever its place): the built-ins' historic tables,
+        then ``[outputs.<name>]``. Disabled tables (``enabled = false``) are included."""
+        found = []
+        for name in SINKS:
+            if name in HISTORIC_TABLES:
+                found.append(OutputTable(name, output_key(name),
+                                         getattr(self, HISTORIC_TABLES[name])))
+            elif name in self.outputs:
+                found.append(OutputTable(name, output_key(name), self.outputs[name]))
+        return found
 
     @model_validator(mode="after")
     def _cross_checks(self) -> TwinwatchConfig:

@@ -32,9 +32,12 @@ import math
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from twinwatch.config.alarms import LEVELS, AlarmConfig, AlarmRule, Level
+
+if TYPE_CHECKING:
+    from twinwatch.twin.health import HealthMessage, ParameterHealth
 
 logger = logging.getLogger(__name__)
 
@@ -76,20 +79,25 @@ class AlarmEvaluator:
     Args:
         config: the ``[alarms]`` table.
         machine: machine name for the events (default: taken from each health message).
+        meanings: parameter -> what it describes (``"armature resistance"``), named in the
+            event's message next to the symbol; default: the symbol alone.
 
     Thread-safe: :meth:`update` runs on the adaptation worker, :meth:`state` may be read from
     a Zenoh queryable thread.
     """
 
-    def __init__(self, config: AlarmConfig, machine: str | None = None) -> None:
+    def __init__(self, config: AlarmConfig, machine: str | None = None, *,
+                 meanings: Mapping[str, str] | None = None) -> None:
         self.config = config
         self.machine = machine
+        self.meanings = dict(meanings or {})
         self._lock = threading.Lock()
         self._state: dict[str, _ParamState] = {n: _ParamState() for n in config.parameters}
 
     # -- public ---------------------------------------------------------------------------
-    def update(self, health: Mapping[str, Any]) -> list[dict[str, Any]]:
-        """Feed one health message; return the alarm-state changes it caused.
+    def update(self, health: HealthMessage) -> list[dict[str, Any]]:
+        """Feed one window's typed health message (its ``parameters``' ``status`` and
+        ``deviation_pct``, the window's times); return the alarm-state changes it caused.
 
         Returns:
             One event per parameter whose level changed: ``machine``, ``parameter``, ``level``
@@ -102,17 +110,16 @@ class AlarmEvaluator:
         if not self.config.enabled:
             return []
         events: list[dict[str, Any]] = []
-        params = health.get("parameters", {})
-        t_start = float(health["t_start"])
-        t_end = float(health["t_end"])
-        n = int(health.get("samples") or 0)
+        t_start = float(health.t_start)
+        t_end = float(health.t_end)
+        n = int(health.samples or 0)
         dt = (t_end - t_start) / (n - 1) if n > 1 else 0.0
         with self._lock:
             for name, rule in self.config.parameters.items():
-                p = params.get(name)
-                if p is None or p.get("status") not in ("estimated", "fused"):
+                p = health.parameters.get(name)
+                if p is None or p.status not in ("estimated", "fused"):
                     continue
-                dev = p.get("deviation_pct")
+                dev = p.deviation_pct
                 if dev is None or not math.isfinite(dev):
                     continue
                 ev = self._step(name, rule, float(dev), p, health, t_start, t_end, dt)
@@ -168,8 +175,8 @@ class AlarmEvaluator:
                 return lvl, th  # type: ignore[return-value]
         return "normal", None
 
-    def _step(self, name: str, rule: AlarmRule, dev: float, p: Mapping[str, Any],
-              health: Mapping[str, Any], t_start: float, t_end: float, dt: float
+    def _step(self, name: str, rule: AlarmRule, dev: float, p: ParameterHealth,
+              health: HealthMessage, t_start: float, t_end: float, dt: float
               ) -> dict[str, Any] | None:
         s = self._state[name]
         s.deviation = dev
@@ -208,19 +215,19 @@ class AlarmEvaluator:
         if _RANK[new] < _RANK[previous]:  # lowered: report the threshold that was left
             high, low = rule.thresholds(previous)
             th = high if (dev >= 0 and high is not None) or low is None else low
-        s.level, s.since_t, s.since_window = new, t_end, int(health["window"])
+        s.level, s.since_t, s.since_window = new, t_end, int(health.window)
         s.up = s.down = None
         s.up_level = s.down_level = None
         return self._event(name, rule, new, previous, dev, th, p, health, t_end, run.since_t)
 
     def _event(self, name: str, rule: AlarmRule, level: Level, previous: Level, dev: float,
-               threshold: float | None, p: Mapping[str, Any], health: Mapping[str, Any],
+               threshold: float | None, p: ParameterHealth, health: HealthMessage,
                t: float, since_t: float) -> dict[str, Any]:
-        machine = self.machine or str(health.get("machine", "?"))
-        meaning = p.get("meaning")
+        machine = self.machine or health.machine
+        meaning = self.meanings.get(name)
         what = f"{name} ({meaning})" if meaning else name
-        unit = p.get("unit") or ""
-        value, nominal = p.get("value"), p.get("nominal")
+        unit = p.unit or ""
+        value, nominal = p.value, p.nominal
         side = "above" if dev >= 0 else "below"
         vals = (f" ({value:.6g} {unit} vs nominal {nominal:.6g} {unit})"
                 if isinstance(value, float | int) and isinstance(nominal, float | int) else "")
@@ -247,7 +254,7 @@ class AlarmEvaluator:
             "unit": unit,
             "nominal": nominal,
             "t": t,
-            "window": int(health["window"]),
+            "window": int(health.window),
             "since_t": since_t,
             "message": msg,
         }

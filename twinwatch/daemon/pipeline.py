@@ -5,18 +5,20 @@
     adapt (TwinAdapter: estimation, re-validation, discovery)
       -> health message (twinwatch.twin.health)
       -> alarms (AlarmEvaluator: levels, hysteresis, events)
-      -> sinks, in order: state store, Zenoh, Rerun
+      -> sinks, in order: the gate (state store), then the others (Zenoh, Rerun, plug-ins)
       -> callbacks (the CLI's progress bar)
 
-The health message is typed (:class:`~twinwatch.twin.health.HealthMessage`), built once and
-encoded once (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): every sink writes the same
-text. The sinks share one small protocol, :class:`WindowSink`: ``write(ProcessedWindow)`` and
-``close()``. Their order is the guarantee "stored before published": a health message a
-subscriber has seen is always in the state database, also after SIGKILL. The state store is the
-pipeline's :attr:`~WindowPipeline.gate`: a window it cannot store (a full disk, a read-only
-file; it waits in the store's backlog) is not given to the sinks that publish
-(``publishes = True``, the Zenoh publisher), and its alarm events wait for the next window
-that is stored; the recorder still records it.
+The health message is typed (:class:`~twinwatch.twin.health.HealthMessage`) from end to end
+(the alarms, the sinks and the callbacks read it typed), built once and encoded once
+(:meth:`~twinwatch.twin.health.HealthMessage.to_json`): every sink writes the same text. The
+sinks share one contract, :class:`~twinwatch.sinks.base.Sink` (``write(ProcessedWindow)``,
+``close()``, its role); the pipeline knows none by name. Their order is the guarantee "stored
+before published": a health message a subscriber has seen is always in the state database, also
+after SIGKILL. The sink whose role is ``gate`` (the state store) is the pipeline's
+:attr:`~WindowPipeline.gate`: a window it cannot store (a full disk, a read-only file; it waits
+in the store's backlog) is not given to the sinks that publish (role ``publisher``: Zenoh, a
+plug-in by default), and its alarm events wait for the next window that is stored; the
+recorders (Rerun) still get it.
 
 The pipeline holds no thread: :class:`~twinwatch.daemon.runner.Daemon` calls
 :meth:`WindowPipeline.process` from its ``twinwatch-adaptation`` worker, one window at a time.
@@ -25,7 +27,6 @@ The pipeline holds no thread: :class:`~twinwatch.daemon.runner.Daemon` calls
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import threading
 from collections import deque
@@ -33,16 +34,17 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from twinwatch.daemon.alarms import AlarmEvaluator
-from twinwatch.sinks.base import ProcessedWindow, WindowSink
+from twinwatch.sinks.base import ProcessedWindow, Sink
 from twinwatch.twin.adaptation import TwinAdapter
-from twinwatch.twin.health import AlarmStatus, build_health, summary_line
+from twinwatch.twin.health import AlarmStatus, HealthMessage, build_health, summary_line
 from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline", "WindowSink"]
+__all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline"]
 
-HealthCallback = Callable[[dict[str, Any]], None]
+HealthCallback = Callable[[HealthMessage], None]
+"""Called with each window's typed health message (worker thread)."""
 
 
 class WindowPipeline:
@@ -58,12 +60,11 @@ class WindowPipeline:
         history: health messages kept in memory (:attr:`history`).
 
     Attributes:
-        sinks: written in order for each window (the store first: stored before published).
+        sinks: written in order for each window (the gate first: stored before published).
         gate: the sink that must take a window before the publishing sinks get it (the state
             store), or None.
-        latest: the last health message; ``history`` the last ``history`` of them.
+        latest: the last health message (typed); ``history`` the last ``history`` of them.
         windows_estimated: windows processed.
-        not_stored: windows the gate could not take when they were processed (not published).
     """
 
     def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
@@ -75,22 +76,46 @@ class WindowPipeline:
         self.model_name = model_name
         self.nominal = dict(nominal)
         self._counters = counters
-        self.sinks: list[WindowSink] = []
-        self.gate: WindowSink | None = None
-        self.not_stored = 0
+        self.sinks: list[Sink] = []
+        self.gate: Sink | None = None
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
         self.callbacks: list[HealthCallback] = []
-        self.latest: dict[str, Any] | None = None
-        self.history: deque[dict[str, Any]] = deque(maxlen=history)
+        self.latest: HealthMessage | None = None
+        self.history: deque[HealthMessage] = deque(maxlen=history)
         self.windows_estimated = 0
+        self._failing: set[str] = set()
         self._lock = threading.Lock()
 
-    def process(self, window: WindowData) -> dict[str, Any]:
+    def _write(self, sink: Sink, out: ProcessedWindow) -> bool | None:
+        """``sink.write(out)``. An output that raises (a plug-in's bug) does not stop the
+        others: the window is counted in its ``lost`` (``twinwatch run`` exits 74), logged
+        once until it works again; for the gate it is a window not stored."""
+        try:
+            result = sink.write(out)
+        except Exception as exc:  # noqa: BLE001 - one output must not stop the others
+            sink.lost += 1
+            log = logger.debug if sink.name in self._failing else logger.error
+            self._failing.add(sink.name)
+            log("the %s output failed on window %d (%s: %s): the window is lost for it "
+                "(%d so far)", sink.name, out.health.window, type(exc).__name__, exc, sink.lost)
+            logger.debug("the %s output failed", sink.name, exc_info=True)
+            return False
+        if sink.name in self._failing:
+            self._failing.discard(sink.name)
+            logger.warning("the %s output works again", sink.name)
+        return result
+
+    def recent(self) -> list[HealthMessage]:
+        """A snapshot of :attr:`history` (safe while the worker appends)."""
+        with self._lock:
+            return list(self.history)
+
+    def process(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window (estimation, then discovery when needed), evaluate
         the alarms, write the window to every sink, call the callbacks.
 
         Returns:
-            The health message, as a subscriber reads it (plain JSON types).
+            The typed health message (its encoding is what the sinks wrote).
 
         Raises:
             Exception: whatever the adaptation raises on a bad window (the daemon counts it
@@ -102,36 +127,28 @@ class WindowPipeline:
                               model=self.adapter.model, window=window, adaptation=result,
                               nominal=self.nominal, counters=self._counters(),
                               discovery_enabled=self.adapter.enabled)
-        events = self.alarms.update(health.as_dict())
+        events = self.alarms.update(health)
         health.alarms = {name: AlarmStatus.model_validate(state)
                          for name, state in self.alarms.state().items()}
-        text = health.to_json()
-        message: dict[str, Any] = json.loads(text)
-        out = ProcessedWindow(window=window, result=result, health=health, health_json=text,
-                              message=message, events=events,
+        out = ProcessedWindow(window=window, result=result, health=health,
+                              health_json=health.to_json(), events=events,
                               twin_state=self.adapter.state() if result.estimate.trusted
                               else None)
         with self._lock:
-            self.latest = message
-            self.history.append(message)
+            self.latest = health
+            self.history.append(health)
         logger.info("%s", summary_line(health))
-        stored = True
+        stored = self.gate is None or self._write(self.gate, out) is not False
+        published = out
+        if not stored:  # served by the history query once the store has written it
+            self._held_events.extend(out.events)
+        elif self._held_events:  # the alarm events of the windows that were not published
+            published = dataclasses.replace(out, events=[*self._held_events, *out.events])
+            self._held_events.clear()
         for sink in self.sinks:
-            if sink is self.gate:
-                stored = sink.write(out) is not False
-                self.not_stored += not stored
-            elif getattr(sink, "publishes", False):
-                if not stored:  # served by the history query once the store has written it
-                    self._held_events.extend(out.events)
-                    continue
-                if self._held_events:
-                    sink.write(dataclasses.replace(out, events=[*self._held_events,
-                                                                *out.events]))
-                    self._held_events.clear()
-                else:
-                    sink.write(out)
-            else:
-                sink.write(out)
+            if sink is self.gate or (sink.publishes and not stored):
+                continue
+            self._write(sink, published if sink.publishes else out)
         for fn in self.callbacks:
-            fn(message)
-        return message
+            fn(health)
+        return health

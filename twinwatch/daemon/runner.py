@@ -7,10 +7,15 @@ Threads (see docs/architecture.md):
   estimates, so acquisition is never blocked by the optimiser.
 * ``twinwatch-adaptation`` (one worker thread) runs the window pipeline
   (:class:`~twinwatch.daemon.pipeline.WindowPipeline`): estimation, health message, alarms,
-  then the sinks in order: state database, Zenoh, Rerun. Stored before published: a health
-  message a subscriber has seen is always in the database, also after SIGKILL.
+  then the sinks in order: the gate (the state database), then the others (Zenoh, Rerun,
+  plug-ins). Stored before published: a health message a subscriber has seen is always in the
+  database, also after SIGKILL.
 * zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
   database (one SQLite connection per thread, WAL: readers never block the worker).
+
+The daemon opens the configured outputs through the sink registry
+(:data:`twinwatch.sinks.SINKS`, :class:`~twinwatch.sinks.base.Sink`) and knows none by name:
+their roles decide the order of writing, their counters, losses and problems are merged.
 
 Between them a bounded queue. For a live source (a bus, a real-time replay) a full queue means
 the estimation does not keep up: the window is dropped and counted as an *overrun* (published in
@@ -21,46 +26,35 @@ as fast as possible) the acquisition waits instead, so no window is ever lost.
 from __future__ import annotations
 
 import logging
-import math
 import queue
 import threading
 import time
-from collections import deque
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Collection, Container, Mapping
+from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
+from twinwatch.sinks import SINKS, sink_class
+from twinwatch.sinks.base import Gate, Role, Sink, SinkContext
 from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
-    from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.config.schema import OutputTable, TwinwatchConfig
     from twinwatch.daemon.systemd import Watchdog
-    from twinwatch.sinks.rerun import RerunRecorder
-    from twinwatch.sinks.store import StateStore
-    from twinwatch.sinks.zenoh import HealthPublisher
 
 logger = logging.getLogger(__name__)
 
 _STOP = object()
 
-HISTORY_LIMIT = 1000
-"""Most windows one history query returns (page on with ``t_from``)."""
-
-SINKS = ("store", "publisher", "recorder")
-"""The daemon's sinks, in the order each window is written to them (stored before published);
-a reload may hand them from the old daemon to the new one (:meth:`Daemon.close` ``keep``)."""
-
-HANDOVER = ("driver", *SINKS)
-"""What a reload may hand from the old daemon to the new one: the open driver (its
-configuration unchanged: the source goes on where it was, nothing is opened again) and the
-sinks."""
+__all__ = ["SINKS", "Daemon"]
 
 STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
@@ -76,31 +70,39 @@ class Daemon:
         base_dir: directory relative paths in the config are resolved against (the config
             file's directory).
         driver: an already-open driver to use instead of the configured one (tests).
-        publish: open the Zenoh publisher (``config.zenoh.enabled`` must also be true).
-        record: open the Rerun recorder (``config.recording.enabled`` must also be true).
-        persist: open the state database (``config.state.enabled`` must also be true):
-            restore the last accepted twin and the alarm levels from it, save every window,
-            serve the history query. Off by default for library use and tests; the CLI turns
-            it on.
+        publish: open the outputs whose role is ``publisher`` (Zenoh, plug-ins; each only if
+            its table is enabled).
+        record: open the outputs whose role is ``recorder`` (the Rerun recording).
+        persist: open the gate (the state database, if ``[state]`` is enabled): restore the
+            last accepted twin and the alarm levels from it, save every window, serve the
+            history query. Off by default for library use and tests; the CLI turns it on.
         watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
             each window).
-        reuse: the open driver and sinks (names in :data:`HANDOVER`) a reload hands over from
-            the running daemon (see :meth:`close`), used instead of opening new ones; this
-            daemon owns them once it took over (:meth:`continue_from`), and a failed start
-            leaves them open. The caller (the supervisor) hands over only those whose
-            configuration is unchanged.
+        reuse: what a reload hands over from the running daemon (:meth:`handover`): open
+            outputs (registry name -> sink) whose table and context are unchanged
+            (:meth:`~twinwatch.sinks.base.Sink.keeps`), adopted instead of opening new ones,
+            and under ``"driver"`` its open driver (the ``[driver]`` table unchanged: the
+            source goes on where it was, nothing is opened again). They stay the running
+            daemon's until :meth:`continue_from` (a failed start leaves them open and bound
+            to it); one that does not fit is left alone.
         resume: restore the saved twin and alarm levels from the state database (False:
             start from the nameplate values, ``twinwatch run --fresh``; a reload restores
             them in :meth:`continue_from`, once the previous daemon has finished).
-        defer: sinks (names in :data:`SINKS`) not to open yet: the running daemon holds their
-            file or port (a reload that changed their settings); :meth:`open_deferred` opens
-            them once it has released them.
+        defer: outputs (registry names) not to open yet: the running daemon holds their file
+            or port (a reload that changed their table, :meth:`handover`'s ``wait``);
+            :meth:`open_deferred` opens them once it has released them.
+
+    Attributes:
+        sinks: registry name -> the open output, in the order each window is written to them
+            (the gate first: stored before published).
 
     Raises:
-        twinwatch.drivers.base.DriverInitializationError, PublisherError, RecorderError,
-        StoreError, ValueError: on a start-up problem, with a message that says what to fix.
-        Every exclusive resource is taken before any file is touched (the Zenoh port, the
-        state database's lock, the recording's lock), and the device last.
+        twinwatch.drivers.base.DriverInitializationError, twinwatch.errors.SinkError (its
+        subclasses PublisherError, RecorderError, StoreError, a plug-in's), PluginError,
+        ValueError: on a start-up problem, with a message that says what to fix. Every
+        exclusive resource is taken before any file is touched (the outputs open in their
+        ``open_order``: the Zenoh port, the state database's lock, the recording's lock),
+        and the device last.
     """
 
     def __init__(
@@ -129,9 +131,7 @@ class Daemon:
         acq = config.acquisition
         self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
                                sample_period=acq.sample_period, max_gap=acq.max_gap)
-        self.publisher: HealthPublisher | None = None
-        self.recorder: RerunRecorder | None = None
-        self.store: StateStore | None = None
+        self.sinks: dict[str, Sink] = {}
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
         self.pipeline = WindowPipeline(
@@ -141,98 +141,145 @@ class Daemon:
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.failure: str | None = None
-        self._closed_sinks: dict[str, Any] = {}
+        self._closed_sinks: dict[str, Sink] = {}
         self.driver: Driver | None = None
         self._own_driver = driver is None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
         self._stop = threading.Event()
         self._stop_at_window: float | None = None  # monotonic deadline, see stop(at_window)
         self.ended: str | None = None  # why run() returned by itself: source, duration, failure
-        self._open_flags = (publish, persist, record)
+        self._adopted: set[str] = set()
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
         self._ticks: list[Callable[[], None]] = []
         self.abandon = config.acquisition.abandon_on_stop
+        self._roles: dict[Role, bool] = {"gate": persist, "publisher": publish,
+                                          "recorder": record}
         reuse = dict(reuse or {})
+        handed_driver = reuse.pop("driver", None)
+        if handed_driver is not None:
+            logger.info("reload: the %s driver is kept open (its configuration is unchanged)",
+                        config.driver.type)
         try:
-            for name, obj in reuse.items():
-                if name not in HANDOVER:
-                    raise ValueError(f"cannot hand over {name!r}; only {HANDOVER}")
-                setattr(self, name, obj)
-                logger.info("reload: the %s is kept open (its configuration is unchanged)", name)
-            self._open_sinks(skip=defer)
+            self._open_sinks(self._roles, reuse, skip=defer)
             if self.store is not None and resume:
                 self._restore()
-            self.driver = self.driver or driver or create_driver(config.driver,
-                                                                 base_dir=self.base_dir)
+            self.driver = handed_driver or driver or create_driver(config.driver,
+                                                                   base_dir=self.base_dir)
         except BaseException:
-            for name in reuse:  # the running daemon's: not ours to close
-                setattr(self, name, None)
+            for name in self._adopted:  # the running daemon's: not ours to close
+                self.sinks.pop(name, None)
             self.close()
             raise
-        self._wire()
+        self._wire(attach=False)  # an adopted output serves the running daemon until then
 
-    def _open_sinks(self, skip: Collection[str] = ()) -> None:
-        """Open the configured sinks not open yet (handed over, or in ``skip``)."""
-        config = self.config
-        publish, persist, record = self._open_flags
-        # Every exclusive resource before any file is touched: the Zenoh port, then the
-        # state database's lock, then the recording's lock (and only then its truncation),
-        # so a second twinwatch in the same directory fails without harming the first.
-        if publish and config.zenoh.enabled and self.publisher is None \
-                and "publisher" not in skip:
-            from twinwatch.sinks.zenoh import HealthPublisher
-
-            self.publisher = HealthPublisher(config.zenoh, self.machine, retry_connect=True)
-        if persist and config.state.enabled and self.store is None and "store" not in skip:
-            from twinwatch.sinks.store import StateStore
-
-            st = config.state
-            self.store = StateStore(Path(st.path).expanduser(), synchronous=st.synchronous,
-                                    keep_days=st.keep_days, keep_rows=st.keep_rows,
-                                    recover_corrupt=st.recover_corrupt,
-                                    recent=config.acquisition.history)
-        if record and config.recording.enabled and self.recorder is None \
-                and "recorder" not in skip:
-            from twinwatch.sinks.rerun import RerunRecorder
-
-            rec = config.recording.model_copy()
-            path = Path(rec.path)
-            if not path.is_absolute():
-                rec.path = str(Path.cwd() / path)
-            self.recorder = RerunRecorder(
-                rec, self.machine, outputs=self.model.output_names,
-                parameters={p.name: p.unit for p in self.model.parameters})
-
-    def _wire(self) -> None:
-        """Give the open sinks to the pipeline (the store first: stored before published) and
-        serve the history query from the state database."""
-        self.pipeline.sinks = [s for s in (self.store, self.publisher, self.recorder)
-                               if s is not None]
+    def _wire(self, attach: bool = True) -> None:
+        """Give the open outputs to the pipeline (the gate first: stored before published);
+        with ``attach``, bind the adopted ones to this daemon (they serve its history)."""
+        if attach:
+            for name in self._adopted:
+                self.sinks[name].attach(self._sink_context(has_gate=self.store is not None))
+        self.pipeline.sinks = list(self.sinks.values())
         self.pipeline.gate = self.store  # a window it cannot store is not published
-        if self.publisher is not None and self.store is not None:
-            self.publisher.add_query_handler("history", self._on_history_query)
 
     def open_deferred(self) -> None:
-        """Open the sinks the constructor's ``defer`` left closed (a reload, once the previous
-        daemon has released their file or port).
+        """Open the outputs the constructor's ``defer`` left closed (a reload, once the
+        previous daemon has released their file or port).
 
         Raises:
-            PublisherError, RecorderError, StoreError: as the constructor.
+            twinwatch.errors.SinkError: as the constructor.
         """
-        self._open_sinks()
-        self._wire()
+        self._open_sinks(self._roles, {})
+        self._wire(attach=False)
 
     def continue_from(self, previous: Daemon) -> None:
         """Take over from ``previous``, the daemon of the configuration before a reload, once
-        it has finished its queued windows and released what was not handed over
-        (:meth:`close` ``keep``): the window numbering goes on, the twin and the alarm levels
-        resume from the state database, the history query is served by this daemon."""
+        it has finished its queued windows and released what it did not hand over
+        (:meth:`close` ``keep``): the adopted outputs are bound to this daemon, the window
+        numbering goes on, the twin and the alarm levels resume from the state database."""
         self.ring.first_index = previous.ring.first_index + previous.ring.windows
         if self.store is not None:
             self._restore()
         self._wire()
+
+    def _open_sinks(self, roles: Mapping[Role, bool], reuse: dict[str, Sink],
+                    skip: Collection[str] = ()) -> set[str]:
+        """Open the enabled outputs whose role is wanted (``roles``), adopting the ``reuse``d
+        ones that fit; :attr:`sinks` ends in writing order (the gate first, then the
+        registry's order).
+
+        Every exclusive resource before any file is touched: the outputs open in their
+        ``open_order`` (the Zenoh port, then the state database's lock, then the recording's
+        lock and only then its truncation), so a second twinwatch in the same directory fails
+        without harming the first. The outputs in ``skip`` are not opened (yet).
+
+        Returns:
+            The names of the adopted outputs.
+        """
+        for name in reuse:
+            if name not in SINKS:
+                raise ValueError(f"unknown output {name!r}; the outputs are "
+                                 f"{', '.join(SINKS.names())}")
+        tables = [t for t in self.config.output_tables() if t.config.enabled]
+        classes = {t.name: sink_class(t.name) for t in tables}
+        wanted = [t for t in tables if roles[classes[t.name].role]]
+        context = self._sink_context(has_gate=any(classes[t.name].role == "gate"
+                                                  for t in wanted))
+        adopted = self._adopt(wanted, reuse)
+        for t in sorted(wanted, key=lambda t: classes[t.name].open_order):
+            if t.name not in self.sinks and t.name not in skip:
+                self.sinks[t.name] = classes[t.name].open(t.name, t.config, context)
+        order = [t.name for t in wanted]
+        self.sinks = dict(sorted(self.sinks.items(), key=lambda kv: (
+            not isinstance(kv[1], Gate), order.index(kv[0]))))
+        return adopted
+
+    def _sink_context(self, *, has_gate: bool) -> SinkContext:
+        """What the outputs get from this daemon (the stored history when a gate opens)."""
+        return replace(_context(self.config, self.model, self.base_dir),
+                       history=self.stored_history if has_gate else None)
+
+    def handover(self, config: TwinwatchConfig) -> tuple[list[str], list[str]]:
+        """What a reload to ``config`` may do with this daemon's open outputs.
+
+        Returns:
+            ``(keep, wait)``: the outputs a daemon on ``config`` may adopt open (their table
+            and context unchanged: :meth:`~twinwatch.sinks.base.Sink.keeps`), and those it may
+            open only once this daemon has released them (another table, but the same file or
+            port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
+        """
+        model = create_model(config.machine.model, config.machine.options)
+        context = _context(config, model, self.base_dir)
+        new = {t.name: t.config for t in config.output_tables() if t.config.enabled}
+        old = {t.name: t.config for t in self.config.output_tables()}
+        keep, wait = [], []
+        for name, sink in self.sinks.items():
+            table = new.get(name)
+            if table is None:
+                continue
+            if sink.keeps(table, context):
+                keep.append(name)
+            elif (old[name].exclusive_resources(context.cwd)
+                  & table.exclusive_resources(context.cwd)):
+                wait.append(name)
+        return keep, wait
+
+    def _adopt(self, wanted: list[OutputTable], reuse: dict[str, Sink]) -> set[str]:
+        """Adopt the handed-over outputs whose table and context are unchanged (bound to this
+        daemon by :meth:`_wire` once it takes over); one that does not fit is left to the
+        daemon that handed it over (it closes it). Returns the adopted names."""
+        context = _context(self.config, self.model, self.base_dir)
+        adopted: set[str] = set()
+        for t in wanted:
+            sink = reuse.get(t.name)
+            if sink is not None and sink.keeps(t.config, context):
+                self.sinks[t.name] = sink
+                self._adopted.add(t.name)
+                adopted.add(t.name)
+                logger.info("reload: the %s output is kept open (its configuration is "
+                            "unchanged)", t.name)
+        return adopted
 
     # -- the window pipeline's results ------------------------------------------------------
     @property
@@ -241,14 +288,35 @@ class Daemon:
         return self.pipeline.windows_estimated
 
     @property
-    def latest(self) -> dict[str, Any] | None:
-        """The last health message."""
+    def latest_health(self) -> HealthMessage | None:
+        """The last health message (typed)."""
         return self.pipeline.latest
 
     @property
-    def history(self) -> deque[dict[str, Any]]:
-        """The last ``[acquisition] history`` health messages."""
-        return self.pipeline.history
+    def health_history(self) -> list[HealthMessage]:
+        """The last ``[acquisition] history`` health messages (typed), oldest first."""
+        return self.pipeline.recent()
+
+    @property
+    def latest(self) -> dict[str, Any] | None:
+        """The last health message, as a subscriber reads it (plain JSON types)."""
+        last = self.pipeline.latest
+        return None if last is None else last.as_dict()
+
+    @property
+    def history(self) -> list[dict[str, Any]]:
+        """The last ``[acquisition] history`` health messages, as a subscriber reads them."""
+        return [h.as_dict() for h in self.pipeline.recent()]
+
+    # -- the outputs ------------------------------------------------------------------------
+    @property
+    def store(self) -> Gate | None:
+        """The gate (the state store) while it is open, or None."""
+        return next((s for s in self.sinks.values() if isinstance(s, Gate)), None)
+
+    def _outputs(self) -> list[Sink]:
+        """Every output of this daemon, open or closed (their accounting stays readable)."""
+        return [*self.sinks.values(), *self._closed_sinks.values()]
 
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
@@ -289,25 +357,15 @@ class Daemon:
             }
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
-                limit: int | None = HISTORY_LIMIT, by: str = "plant") -> list[dict[str, Any]]:
-        """Stored health messages of this machine in a time range (see
-        :meth:`StateStore.history`); empty without a state database."""
-        if self.store is None:
+                       limit: int | None = 1000,
+                       by: Literal["plant", "wall"] = "plant") -> list[dict[str, Any]]:
+        """Stored health messages of this machine in a time range (the gate's
+        :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state database. The
+        outputs ask it through their context (the Zenoh history query)."""
+        store = self.store
+        if store is None:
             return []
-        return self.store.history(t_from, t_to, limit, by=by,  # type: ignore[arg-type]
-                                  machine=self.machine)
-
-    def _on_history_query(self, query: Any) -> dict[str, Any]:
-        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread).
-
-        Raises:
-            ValueError: a bad parameter (replied as an error naming it).
-        """
-        t_from, t_to, limit, by = history_parameters(query.parameters)
-        windows = self.stored_history(t_from, t_to, limit, by=by)
-        more = len(windows) == limit
-        return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to,
-                "count": len(windows), "more": more, "windows": windows}
+        return store.history(t_from, t_to, limit, by=by, machine=self.machine)
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
@@ -336,6 +394,8 @@ class Daemon:
             self._stop.set()
 
     def counters(self) -> dict[str, int]:
+        """The health message's counters: the daemon's, the driver's (``driver_*``), each
+        open output's (``<prefix>_<name>``) and the gate's ``windows_not_stored``."""
         c: dict[str, int] = {
             "windows_completed": self.ring.windows,
             "windows_estimated": self.windows_estimated,
@@ -346,73 +406,35 @@ class Daemon:
         }
         if self.driver is not None:
             c.update({f"driver_{k}": v for k, v in self.driver.stats.as_dict().items()})
-        if self.publisher is not None:
-            c["zenoh_published"] = int(getattr(self.publisher, "published", 0))
-            c["zenoh_errors"] = int(getattr(self.publisher, "errors", 0))
-            c["zenoh_not_connected"] = int(getattr(self.publisher, "not_connected", 0))
-        if self.store is not None:
-            c["store_errors"] = int(self.store.errors)
-            c["store_waiting"] = int(self.store.waiting)
-            c["store_lost"] = int(self.store.lost)
-            c["store_history_lost"] = int(self.store.history_lost)
-            c["windows_not_stored"] = self.pipeline.not_stored
-        if self.recorder is not None:
-            c["recording_lost"] = int(self.recorder.lost)
+        for sink in self.sinks.values():
+            c.update({f"{sink.prefix}_{k}": int(v) for k, v in sink.counters().items()})
+            if isinstance(sink, Gate):
+                c["windows_not_stored"] = int(sink.not_stored)
         c["samples_received"] = self.ring.samples
         c["samples_lost"] = sum(self.ring.lost.values())
         return c
 
-    def _sink(self, name: str) -> Any:
-        """The open sink, or the one :meth:`close` closed (its counters stay readable)."""
-        obj = getattr(self, name)
-        return obj if obj is not None else self._closed_sinks.get(name)
-
     def problems(self) -> list[str]:
-        """What is degraded right now (for systemd's STATUS and the log), empty if nothing."""
-        out = []
-        store = self._sink("store")
-        if store is not None and store.failing:
-            out.append(f"state database not writable: {store.waiting} windows waiting "
-                       f"in memory, not published")
-        if store is not None and store.lost:
-            out.append(f"{store.lost} windows lost (never stored)")
-        if store is not None and store.history_lost:
-            out.append(f"{store.history_lost} stored windows lost with a deleted or replaced "
-                       f"state database file")
-        recorder = self._sink("recorder")
-        problem = getattr(recorder, "problem", None)
-        if problem:
-            out.append(problem)
-        elif getattr(recorder, "lost", 0):
-            out.append(f"recording: {recorder.lost} windows not recorded")
-        return out
+        """What is degraded right now (each output's
+        :attr:`~twinwatch.sinks.base.Sink.problem`, for systemd's STATUS and the log), empty if
+        nothing."""
+        return [p for s in self._outputs() if (p := s.problem)]
 
     def lost(self) -> dict[str, int]:
-        """Windows estimated but lost: never stored (``store``), stored then lost with a
-        deleted or replaced database file (``store_history``), not recorded (``recording``).
-        Nonzero values make ``twinwatch run`` exit with status 74."""
-        out = {}
-        store = self._sink("store")
-        if store is not None and store.lost:
-            out["store"] = int(store.lost)
-        if store is not None and store.history_lost:
-            out["store_history"] = int(store.history_lost)
-        recorder = self._sink("recorder")
-        not_recorded = int(getattr(recorder, "lost", 0)) if recorder is not None else 0
-        if not_recorded:
-            out["recording"] = not_recorded
-        return out
+        """Windows estimated but lost, by output (its counter prefix: ``store`` never stored,
+        ``recording`` not recorded, ...). Nonzero values make ``twinwatch run`` exit with
+        status 74."""
+        return {s.prefix: int(s.lost) for s in self._outputs() if s.lost}
 
-    @property
-    def store_stats(self) -> dict[str, int]:
-        """The state database's account: ``errors`` (failed writes), ``waiting`` (windows in
-        memory), ``lost`` (never stored), ``not_stored`` (windows not stored when estimated,
-        hence not published). Zeros without a state database."""
-        store = self._sink("store")
-        if store is None:
-            return {"errors": 0, "waiting": 0, "lost": 0, "not_stored": 0}
-        return {"errors": int(store.errors), "waiting": int(store.waiting),
-                "lost": int(store.lost), "not_stored": self.pipeline.not_stored}
+    def status(self) -> list[str]:
+        """What the open outputs serve, in the order they opened (systemd's STATUS)."""
+        opened = sorted(self.sinks.values(), key=lambda s: s.open_order)
+        return [st for s in opened if (st := s.status)]
+
+    def summary(self) -> list[str]:
+        """The outputs' lines for the run's summary (where the windows went, what was lost),
+        in writing order."""
+        return [line for s in self._outputs() for line in s.summary()]
 
     def run(self, duration: float | None = None) -> int:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
@@ -537,44 +559,41 @@ class Daemon:
                 if self.watchdog is not None:
                     self.watchdog.idle()
 
-    def process_window(self, window: WindowData) -> dict[str, Any]:
+    def process_window(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window and write it to the sinks (the pipeline's
-        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`). Returns the health
+        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`). Returns the typed health
         message."""
         return self.pipeline.process(window)
 
-    def close(self, keep: Collection[str] = ()) -> dict[str, Any]:
-        """Stop everything and release driver, publisher, recorder and state database (after
-        the worker has drained). Idempotent.
+    def close(self, keep: Container[str] = ()) -> dict[str, Sink]:
+        """Stop everything and release the driver and the outputs (after the worker has
+        drained): the driver first, then the outputs in writing order reversed (the gate, the
+        state database, last). Idempotent.
 
         Args:
-            keep: the driver and sinks (names in :data:`HANDOVER`) to leave open for a new
-                daemon (reload).
+            keep: the outputs (registry names; :data:`SINKS` for all) and ``"driver"`` to
+                leave open for a new daemon (a reload): each output is detached from this
+                daemon.
 
         Returns:
-            name -> object for the kept ones: pass (those still compatible) as ``reuse``.
+            name -> output for the kept outputs.
         """
         self._stop.set()
         self._drain()
-        kept: dict[str, Any] = {}
-        for name in ("driver", "publisher", "recorder", "store"):
-            obj = getattr(self, name, None)
-            if obj is None or (name == "driver" and not self._own_driver):
-                continue
+        if self.driver is not None and self._own_driver and "driver" not in keep:
+            _close("driver", self.driver)
+        self.driver = None
+        kept: dict[str, Sink] = {}
+        for name, sink in reversed(list(self.sinks.items())):
             if name in keep:
-                if name == "publisher":
-                    obj.add_query_handler("history", _no_history)
-                kept[name] = obj
+                sink.detach()
+                kept[name] = sink
             else:
-                try:
-                    obj.close()
-                except Exception as exc:  # noqa: BLE001 - the other sinks still close
-                    logger.error("error while closing the %s: %s: %s", name,
-                                 type(exc).__name__, exc)
-                    logger.debug("closing the %s failed", name, exc_info=True)
-                self._closed_sinks[name] = obj  # for the final accounting (lost windows)
-            setattr(self, name, None)
+                _close(name, sink)
+                self._closed_sinks[name] = sink  # for the final accounting (lost windows)
+        self.sinks = {}
         self.pipeline.sinks = []
+        self.pipeline.gate = None
         return kept
 
     def __enter__(self) -> Daemon:
@@ -584,61 +603,19 @@ class Daemon:
         self.close()
 
 
-HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit")
+def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path) -> SinkContext:
+    """The outputs' context for a daemon on ``config`` (without the stored history)."""
+    return SinkContext(machine=config.machine.name, model=config.machine.model,
+                       outputs=tuple(model.output_names),
+                       parameters={p.name: p.unit for p in model.parameters},
+                       base_dir=base_dir, cwd=Path.cwd(),
+                       recent_windows=config.acquisition.history)
 
 
-def history_parameters(params: Any) -> tuple[float | None, float | None, int, str]:
-    """The history query's parameters, checked: ``t_from`` and ``t_to`` finite seconds (either
-    may be absent), ``t_from <= t_to``, ``by`` ``plant`` or ``wall``, ``limit`` a whole number
-    from 1 (at most :data:`HISTORY_LIMIT` are returned).
-
-    Args:
-        params: the selector's parameters (a mapping with ``get``, zenoh's ``Parameters``).
-
-    Returns:
-        ``(t_from, t_to, limit, by)``.
-
-    Raises:
-        ValueError: naming the bad parameter.
-    """
-    unknown = [k for k, _ in _items(params) if k not in HISTORY_PARAMETERS]
-    if unknown:
-        raise ValueError(f"unknown parameter {unknown[0]!r}: use "
-                         f"{', '.join(HISTORY_PARAMETERS)}")
-
-    def num(key: str) -> float | None:
-        raw = params.get(key)
-        if raw in (None, ""):
-            return None
-        try:
-            value = float(raw)
-        except ValueError:
-            raise ValueError(f"{key}={raw!r} is not a number [s]") from None
-        if not math.isfinite(value):
-            raise ValueError(f"{key}={raw!r}: give a finite time [s], or leave it out for "
-                             f"an open end")
-        return value
-
-    by = params.get("by") or "plant"
-    if by not in ("plant", "wall"):
-        raise ValueError(f"by={by!r}: use by=plant (source time) or by=wall (epoch s)")
-    t_from, t_to = num("t_from"), num("t_to")
-    if t_from is not None and t_to is not None and t_from > t_to:
-        raise ValueError(f"t_from={t_from:g} is after t_to={t_to:g}")
-    lim = num("limit")
-    if lim is not None and (lim < 1 or not lim.is_integer()):
-        raise ValueError(f"limit={params.get('limit')!r}: give a whole number from 1 "
-                         f"(at most {HISTORY_LIMIT} are returned)")
-    limit = HISTORY_LIMIT if lim is None else min(int(lim), HISTORY_LIMIT)
-    return t_from, t_to, limit, by
-
-
-def _items(params: Any) -> list[tuple[str, str]]:
-    """(key, value) pairs of zenoh ``Parameters`` or a plain mapping."""
-    if isinstance(params, dict):
-        return list(params.items())
-    return [(str(k), str(v)) for k, v in params]
-
-
-def _no_history(query: Any) -> dict[str, Any]:
-    raise ValueError("the daemon is reloading: ask again in a moment")
+def _close(name: str, obj: Sink | Driver) -> None:
+    """Close ``obj``, logging (not raising) a failure: the others still close."""
+    try:
+        obj.close()
+    except Exception as exc:  # noqa: BLE001 - the other sinks still close
+        logger.error("error while closing the %s: %s: %s", name, type(exc).__name__, exc)
+        logger.debug("closing the %s failed", name, exc_info=True)

@@ -17,15 +17,17 @@ printing). In the main thread it
 * on SIGHUP, re-reads the configuration *while acquisition goes on* (a tick of the daemon's
   loop). A configuration that does not validate is refused (logged, naming the key) and the
   running one goes on. A valid one is built beside the running daemon, which keeps acquiring
-  meanwhile: the driver and the sinks whose part of the configuration is unchanged
-  (:func:`sink_config`; the driver's table) are shared with it, the others opened anew (a sink
-  that keeps its file or port, :func:`sink_resources`, is opened only once the old one has
-  released it). If the new daemon cannot start (a device, a port), the reload fails and the
-  running daemon goes on untouched: same source, same run, window numbering going on. Once it
-  has started, the running daemon stops at its next window boundary, finishes its queued
-  windows and releases what it does not hand over; the new one continues the window numbering,
-  resumes the twin and alarm levels from the state database and reads on from the same source
-  (a recording replayed goes on where it stopped).
+  meanwhile: the driver (its ``[driver]`` table unchanged) and the outputs whose table is
+  unchanged (each output's :meth:`~twinwatch.sinks.base.Sink.reload_key`: the Zenoh session, the
+  Rerun file, the state database) are shared with it, the others opened anew (an output that
+  keeps its file or port, :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`, is
+  opened only once the old one has released it: :meth:`Daemon.handover`). If the new daemon
+  cannot start (a device, a port), the reload fails and the running daemon goes on untouched:
+  same source, same run, window numbering going on. Once it has started, the running daemon
+  stops at its next window boundary, finishes its queued windows and releases what it does not
+  hand over; the new one continues the window numbering, resumes the twin and alarm levels from
+  the state database and reads on from the same source (a recording replayed goes on where it
+  stopped).
 * rate-limits third-party log floods (:mod:`twinwatch.daemon.logfilter`: it reports what was
   suppressed from the acquisition loop, after a reload attempt and at stop).
 
@@ -53,58 +55,15 @@ if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.pipeline import HealthCallback
     from twinwatch.daemon.runner import Daemon
+    from twinwatch.twin.health import HealthMessage
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["StartError", "Stopped", "Supervisor", "sink_config", "sink_resources",
-           "status_line", "warm_up"]
+__all__ = ["StartError", "Stopped", "Supervisor", "status_line", "warm_up"]
 
 
 class Stopped(StartError):
     """A stop (SIGTERM, SIGINT) was requested before the daemon had started."""
-
-
-def sink_config(config: TwinwatchConfig, name: str) -> Any:
-    """The part of ``config`` a sink depends on: equal parts let a reload keep the sink open.
-
-    Args:
-        config: a validated configuration.
-        name: ``"publisher"``, ``"recorder"`` or ``"store"``.
-
-    Raises:
-        ValueError: another name.
-    """
-    m = config.machine
-    if name == "publisher":
-        return (m.name, config.zenoh.model_dump())
-    if name == "recorder":
-        return (m.name, m.model, m.options, config.recording.model_dump())
-    if name == "store":
-        return config.state.model_dump()
-    raise ValueError(name)
-
-
-def sink_resources(config: TwinwatchConfig, name: str) -> set[str]:
-    """What a sink on ``config`` holds exclusively: the files it locks, the endpoints it listens
-    on. A reload that changes a sink's settings but not these opens the new one only once the
-    old one has released them.
-
-    Args:
-        config: a validated configuration.
-        name: ``"publisher"``, ``"recorder"`` or ``"store"``.
-
-    Raises:
-        ValueError: another name.
-    """
-    if name == "publisher":
-        return set(config.zenoh.listen) if config.zenoh.enabled else set()
-    if name == "recorder":
-        path = Path(config.recording.path).expanduser()
-        return {str(path.resolve())} if config.recording.enabled else set()
-    if name == "store":
-        path = Path(config.state.path).expanduser()
-        return {str(path.resolve())} if config.state.enabled else set()
-    raise ValueError(name)
 
 
 def warm_up(daemon: Daemon) -> None:
@@ -128,11 +87,7 @@ def warm_up(daemon: Daemon) -> None:
 def status_line(config: TwinwatchConfig, daemon: Daemon) -> str:
     """The ``STATUS=`` systemd shows: what is monitored and where the health goes."""
     parts = [f"monitoring {config.machine.name} ({config.machine.model}, "
-             f"{config.driver.type} driver)"]
-    if daemon.publisher is not None:
-        parts.append(f"health on {config.zenoh.key_prefix}/{config.machine.name}/health")
-    if daemon.store is not None:
-        parts.append(f"state {daemon.store.path}")
+             f"{config.driver.type} driver)", *daemon.status()]
     if daemon.restored is not None:
         parts.append("twin resumed")
     problems = daemon.problems()
@@ -307,7 +262,7 @@ class Supervisor:
         warm_up(daemon)
         return daemon
 
-    def _watch_problems(self, health: dict[str, Any]) -> None:
+    def _watch_problems(self, health: HealthMessage) -> None:
         """After each window (worker thread): systemd's STATUS follows what is degraded (the
         state database not writable, the recording stopped), and returns to normal."""
         daemon, cfg = self.daemon, self.config
@@ -382,9 +337,17 @@ class Supervisor:
             self.notifier.ready(status=f"reload refused ({str(exc).splitlines()[-1].strip()}); "
                                 "running the previous configuration")
             return
-        keep, defer = self._handover(new_cfg)
+        try:
+            keep, defer = self._handover(new_cfg)
+        except (ValueError, KeyError) as exc:  # the new machine's model cannot be built
+            logger.error("reload refused, the running configuration goes on: %s", exc)
+            self.notifier.ready(status=f"reload refused ({exc}); running the previous "
+                                "configuration")
+            return
         assert self.daemon is not None
-        reuse = {name: getattr(self.daemon, name) for name in keep}
+        running = self.daemon
+        reuse = {name: running.driver if name == "driver" else running.sinks[name]
+                 for name in keep}
         logger.warning("reloading %s: starting the new configuration beside the running one",
                        self.source)
         self._build = _Build(lambda: self._open(new_cfg, reuse=reuse, resume=False, defer=defer),
@@ -392,25 +355,14 @@ class Supervisor:
 
     def _handover(self, new_cfg: TwinwatchConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
         """What the running daemon hands to one on ``new_cfg`` (its driver when the ``[driver]``
-        table is unchanged, the sinks whose part is unchanged), and the sinks the new daemon
-        may open only once the old one has released them (same file or port, other settings).
-        """
-        from twinwatch.daemon.runner import SINKS
-
+        table is unchanged, the outputs whose table is unchanged), and the outputs the new
+        daemon may open only once the old one has released them (same file or port, another
+        table): :meth:`Daemon.handover`."""
         assert self.daemon is not None and self.config is not None
-        old_cfg, daemon = self.config, self.daemon
-        keep: list[str] = []
-        defer: list[str] = []
-        if daemon.driver is not None and old_cfg.driver == new_cfg.driver:
+        keep, wait = self.daemon.handover(new_cfg)
+        if self.daemon.driver is not None and self.config.driver == new_cfg.driver:
             keep.append("driver")
-        for name in SINKS:
-            if getattr(daemon, name) is None:
-                continue
-            if sink_config(old_cfg, name) == sink_config(new_cfg, name):
-                keep.append(name)
-            elif sink_resources(old_cfg, name) & sink_resources(new_cfg, name):
-                defer.append(name)
-        return tuple(keep), tuple(defer)
+        return tuple(keep), tuple(wait)
 
     def _built(self, build: _Build) -> None:
         """A reload's daemon is open (the running one stops at its next window boundary and
@@ -500,14 +452,13 @@ def _start_errors() -> Iterator[None]:
     """Turn what opening a daemon raises for a missing device, port or file into
     :class:`StartError` (each says what failed and what to do; a traceback would add
     nothing); a driver's configuration error is marked as such (``run`` exits 78)."""
-    from twinwatch.drivers.base import DriverConfigError, DriverError
-    from twinwatch.sinks.rerun import RecorderError
-    from twinwatch.sinks.store import StoreError
-    from twinwatch.sinks.zenoh import PublisherError
+    from twinwatch.errors import DriverConfigError, DriverError, PluginError, SinkError
 
+    # each output raises a SinkError subclass (PublisherError, RecorderError, StoreError, a
+    # plug-in's own) that says what failed and what to do
     try:
         yield
     except StartError:
         raise
-    except (DriverError, PublisherError, RecorderError, StoreError, ValueError, OSError) as exc:
+    except (DriverError, SinkError, PluginError, ValueError, OSError) as exc:
         raise StartError(str(exc), config_error=isinstance(exc, DriverConfigError)) from exc

@@ -48,6 +48,7 @@ from twinwatch.errors import (
     EndOfStream,
 )
 from twinwatch.io.sample import Sample, ScaledChannel
+from twinwatch.plugins import commented_table
 
 logger = logging.getLogger(__name__)
 
@@ -146,6 +147,13 @@ class Driver(Closeable, abc.ABC):
     #: The source cannot wait (a live bus, a real-time replay): when the estimation falls
     #: behind, the daemon drops windows and counts overruns instead of waiting.
     live: bool = False
+    #: ``twinwatch sample-config --driver <name>``: the machine its sample monitors (a twin
+    #: model's registry name, whose sample tables ``config/samples/<model>.toml`` are used),
+    #: the machine's name there (default ``<model>-<name>``) and what the sample runs (default:
+    #: the first line of the class docstring).
+    sample_model: ClassVar[str] = "dc_motor"
+    sample_machine: ClassVar[str | None] = None
+    sample_title: ClassVar[str | None] = None
 
     # -- what a configuration says about the source ---------------------------------------
     @classmethod
@@ -185,6 +193,14 @@ class Driver(Closeable, abc.ABC):
         driver to check what only opening can (a file's columns, a DBC's names). True only
         where opening cannot touch a device: a file, a log replay. Default: False."""
         return False
+
+    @classmethod
+    def sample(cls, name: str) -> str:
+        """The commented sample of its ``[driver]`` table for ``twinwatch sample-config
+        --driver <name>`` (a built-in ships its own, ``config/samples/driver_<name>.toml``).
+        Default: generated from :attr:`config_class` (every key, its default and description;
+        optional keys commented out)."""
+        return commented_table(cls.config_class, "driver", fixed={"type": name})
 
     def __init__(self) -> None:
         self.stats = DriverStats()

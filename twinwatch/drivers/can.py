@@ -451,6 +451,9 @@ class CanDriver(Driver):
     """
 
     config_class = CanDriverConfig
+    sample_model = "dc_motor"
+    sample_machine = "dc-motor-can"
+    sample_title = "a DC motor drive on a CAN bus"
 
     @classmethod
     def safe_to_probe(cls, config: DriverConfig) -> bool:

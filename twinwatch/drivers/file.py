@@ -175,6 +175,9 @@ class FileDriver(Driver):
     """
 
     config_class = FileDriverConfig
+    sample_model = "dc_motor"
+    sample_machine = "dc-motor-recording"
+    sample_title = "a DC motor recording replayed from a file"
 
     @classmethod
     def safe_to_probe(cls, config: DriverConfig) -> bool:

@@ -306,6 +306,9 @@ class ModbusDriver(Driver):
     """
 
     config_class = ModbusDriverConfig
+    sample_model = "hydraulic_actuator"
+    sample_machine = "hydraulic-modbus"
+    sample_title = "a hydraulic actuator read from a Modbus device"
 
     def __init__(self, config: ModbusDriverConfig) -> None:
         super().__init__()

@@ -95,6 +95,9 @@ class SimulatedDriver(Driver):
     """
 
     config_class = SimulatedDriverConfig
+    sample_model = "dc_motor"
+    sample_machine = "dc-motor-sim"
+    sample_title = "the simulated DC motor (paper Section 5.2) over a virtual CAN bus"
 
     @classmethod
     def nominal_sample_period(cls, config: DriverConfig) -> float | None:

@@ -181,6 +181,9 @@ class SimulatedModbusDriver(Driver):
     """
 
     config_class = SimulatedModbusDriverConfig
+    sample_model = "hydraulic_actuator"
+    sample_machine = "hydraulic-sim"
+    sample_title = "the simulated hydraulic actuator (paper Section 5.3) over Modbus TCP"
 
     @classmethod
     def nominal_sample_period(cls, config: DriverConfig) -> float | None:

@@ -1,20 +1,69 @@
-"""The sink contract: what every output receives for each processed window.
+"""The sink contract: what every output receives for each processed window, and what the daemon
+asks of it.
 
-:class:`ProcessedWindow` is everything a sink needs about one window (the window, what the
-adaptation did, the typed health message and its one encoding, the alarm events, the twin to
-persist); :class:`WindowSink` is what the window pipeline calls.
+Modelled on python-can's ``BusABC`` (as :class:`twinwatch.drivers.Driver` is): one abstract base,
+:class:`Sink`, that every output subclasses, the built-ins (the state store, the Zenoh
+publisher, the Rerun recorder) as well as a plug-in registered through the entry-point group
+``twinwatch.sinks``. A sink declares
+
+* its configuration: :attr:`Sink.config_class` (a :class:`SinkConfig` subclass: unknown keys
+  refused), configured under ``[outputs.<name>]`` (the built-ins keep their historic
+  top-level tables ``[state]``, ``[zenoh]``, ``[recording]``:
+  :data:`twinwatch.sinks.HISTORIC_TABLES`);
+* how it opens: :meth:`Sink.from_config` with its validated table and a :class:`SinkContext`
+  (what it needs from the daemon: machine name, the twin's outputs and parameter units,
+  directories, the stored history), raising a :class:`~twinwatch.errors.SinkError` subclass
+  with a clear message when it cannot (``twinwatch run`` exits 1);
+* its role (:attr:`Sink.role`): the ``gate`` (the state store: a window it cannot take is not
+  given to the publishers, see :class:`Gate`), a ``publisher`` (makes the window visible to
+  others: gets only the windows the gate stored) or a ``recorder`` (keeps its own copy: gets
+  every window);
+* what it does with a window: :meth:`Sink.write` (:class:`ProcessedWindow`: the window, the
+  typed health message and its one encoding, the alarm events, the twin to persist);
+* what it reports: :meth:`Sink.counters` (merged into the health message's counters as
+  ``<counter_prefix>_<name>``), :attr:`Sink.lost` (windows lost: ``twinwatch run`` exits 74),
+  :attr:`Sink.problem` (a line for systemd's ``STATUS`` while degraded), :attr:`Sink.status`
+  (what it serves, for ``STATUS``), :meth:`Sink.summary` (lines for the run's summary);
+* whether a reload may keep it open: :meth:`Sink.reload_key` (equal keys: the new daemon adopts
+  the open sink, :meth:`Sink.attach` re-binds it to the new daemon's context);
+* its commented sample (:meth:`Sink.sample`, printed by ``twinwatch sample-config``);
+* :meth:`Sink.close`: idempotent.
+
+A new output is one module (a :class:`Sink` subclass with its :class:`SinkConfig`) and one line
+in :data:`twinwatch.sinks.BUILTIN_SINKS`, or an entry point in another package.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Protocol
+import abc
+from collections.abc import Hashable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, Self
 
-from twinwatch.twin.adaptation import AdaptationResult
-from twinwatch.twin.health import HealthMessage
-from twinwatch.twin.model import WindowData
+from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["ProcessedWindow", "WindowSink"]
+from twinwatch._lifecycle import Closeable
+from twinwatch.plugins import commented_table
+
+if TYPE_CHECKING:  # annotations only: opening a sink does not load the twin's estimation
+    from twinwatch.twin.adaptation import AdaptationResult
+    from twinwatch.twin.health import HealthMessage
+    from twinwatch.twin.model import WindowData
+
+__all__ = [
+    "Gate",
+    "HistoryQuery",
+    "ProcessedWindow",
+    "Role",
+    "Sink",
+    "SinkConfig",
+    "SinkContext",
+]
+
+Role = Literal["gate", "publisher", "recorder"]
+"""What a sink is to the pipeline: the ``gate`` (stores first; a window it cannot take is not
+published), a ``publisher`` (gets only stored windows) or a ``recorder`` (gets every window)."""
 
 
 @dataclass(frozen=True)
@@ -24,9 +73,10 @@ class ProcessedWindow:
     Attributes:
         window: the acquisition window (times, channels, index).
         result: what adaptation did (estimate, terms, residuals, discovery).
-        health: the window's health message (README "The health message"), with ``alarms``.
-        health_json: ``health`` encoded, once, by the one encoder: what every sink writes.
-        message: ``health_json`` decoded: the message as a subscriber reads it.
+        health: the window's typed health message (README "The health message"), ``alarms``
+            included.
+        health_json: ``health`` encoded, once, by the one encoder
+            (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): the text every sink writes.
         events: alarm-state changes this window caused (published on ``<machine>/alarm``).
         twin_state: the accepted twin to persist (``TwinAdapter.state()``) when this window
             was trusted, else None (the stored twin is kept).
@@ -36,20 +86,266 @@ class ProcessedWindow:
     result: AdaptationResult
     health: HealthMessage
     health_json: str
-    message: dict[str, Any]
     events: list[dict[str, Any]]
     twin_state: dict[str, Any] | None
 
 
-class WindowSink(Protocol):
-    """Where processed windows go: the state store, the Zenoh publisher, the Rerun recorder.
+class HistoryQuery(Protocol):
+    """The stored health messages of the running machine in a time range, oldest first (the
+    gate's :meth:`Gate.history`, bound to the machine by the daemon)."""
 
-    A sink with a true ``publishes`` attribute makes the window visible to others (Zenoh): it
-    gets only the windows the pipeline's gate (the state store) has stored."""
+    def __call__(self, t_from: float | None, t_to: float | None, limit: int | None,
+                 by: Literal["plant", "wall"]) -> list[dict[str, Any]]: ...
 
-    def write(self, out: ProcessedWindow) -> Any:
-        """Take one processed window (called from the adaptation worker); the gate returns
-        False when it could not take it."""
 
+@dataclass(frozen=True)
+class SinkContext:
+    """What a sink needs from the daemon that opens it (not the whole configuration).
+
+    Attributes:
+        machine: the machine name (``[machine] name``: one Zenoh key chunk).
+        model: the twin model's registry name (``dc_motor``, ...).
+        outputs: the twin's outputs, in order (``("ia", "omega", "Va")``).
+        parameters: parameter name -> SI unit, in the twin's order.
+        base_dir: the configuration file's directory (files the configuration names).
+        cwd: the working directory (files the daemon creates: the state database, the
+            recording; the unit's ``StateDirectory``).
+        history: the stored windows (the gate's history for this machine), or None when no
+            gate is open; a publisher may serve it (the Zenoh history query).
+        recent_windows: the windows the daemon keeps in memory (``[acquisition] history``):
+            the gate keeps as many of those it wrote, to write them again to a database file
+            deleted or replaced under it.
+    """
+
+    machine: str
+    model: str = ""
+    outputs: tuple[str, ...] = ()
+    parameters: Mapping[str, str] = field(default_factory=dict)
+    base_dir: Path = field(default_factory=Path.cwd)
+    cwd: Path = field(default_factory=Path.cwd)
+    history: HistoryQuery | None = None
+    recent_windows: int = 1000
+
+
+class SinkConfig(BaseModel):
+    """Base of every output's table model (``[state]``, ``[zenoh]``, ``[recording]``,
+    ``[outputs.<name>]``): unknown keys are refused (an error naming the full key).
+
+    The hooks below let ``check-config``, ``run`` and the loader check what the table needs
+    from the machine without knowing the output; each key they return is relative to the
+    table (``tls.root_ca_certificate``) and reported with the table's path in front.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="false: the output is not opened")
+
+    def input_files(self) -> dict[str, str]:
+        """Files the output reads when it opens (certificates, keys): key -> path. A missing
+        or unreadable one is refused before anything is opened. Default: none."""
+        return {}
+
+    def secret_input_files(self) -> dict[str, str]:
+        """The :meth:`input_files` that hold secrets (private keys, passwords): refused when
+        other users can read them. Default: none."""
+        return {}
+
+    def inline_secret_keys(self) -> list[str]:
+        """Keys holding a secret in the configuration itself: the configuration file is then
+        refused when other users can read it. Default: none."""
+        return []
+
+    def output_files(self, cwd: Path) -> dict[str, Path]:
+        """Files the output creates: key -> absolute path (relative ones against ``cwd``, the
+        working directory); their directory must exist and be writable. Default: none."""
+        return {}
+
+    def resolve_paths(self, base_dir: Path) -> None:
+        """Make the paths of :meth:`input_files` absolute against ``base_dir`` (the
+        configuration file's directory). Default: nothing to resolve."""
+
+    def exclusive_resources(self, cwd: Path) -> set[str]:
+        """What an output on this table holds exclusively while open (the files it locks, the
+        endpoints it listens on): a reload that changes its table but not these must wait for
+        the running output to release them. Default: the :meth:`output_files`, resolved."""
+        return {str(p.resolve()) for p in self.output_files(cwd).values()}
+
+
+class Sink(Closeable, abc.ABC):
+    """Base class of every output (see the module docstring for the contract).
+
+    Subclasses set :attr:`config_class` (and :attr:`role`, :attr:`counter_prefix`,
+    :attr:`open_order` where the defaults do not fit) and implement :meth:`from_config`,
+    :meth:`write` and :meth:`close` (as every :class:`~twinwatch._lifecycle.Closeable`: set
+    ``self._closed = False`` once open, so an output never closed warns); the reporting hooks
+    default to "nothing to report".
+
+    Attributes:
+        name: the registry name it was opened as (set by :meth:`open`).
+        context: the daemon's :class:`SinkContext` (set by :meth:`open`, re-bound by
+            :meth:`attach` when a reload hands the sink to a new daemon).
+    """
+
+    #: The pydantic model of this output's table.
+    config_class: ClassVar[type[SinkConfig]]
+    #: What the sink is to the pipeline (see :data:`Role`). A plug-in publishes by default:
+    #: it gets only the windows the state store has stored.
+    role: ClassVar[Role] = "publisher"
+    #: Prefix of its health counters (``<prefix>_<counter>``); None: the registry name.
+    counter_prefix: ClassVar[str | None] = None
+    #: Lower opens first. The daemon takes every exclusive resource before it touches a file:
+    #: a network port (10) before a file lock (20, 30); plug-ins open after the built-ins.
+    open_order: ClassVar[int] = 100
+
+    name: str = ""
+    context: SinkContext | None = None
+    _reload_key: Hashable | None = None
+    #: Windows given to it that it lost for good (never stored, not recorded, ...): a nonzero
+    #: value makes ``twinwatch run`` exit 74 (a subclass counts them in this attribute).
+    lost: int = 0
+
+    # -- opening ------------------------------------------------------------------------------
+    @classmethod
+    @abc.abstractmethod
+    def from_config(cls, config: Any, context: SinkContext) -> Self:
+        """Open the output.
+
+        Args:
+            config: its validated table (a :attr:`config_class` instance).
+            context: what it needs from the daemon.
+
+        Raises:
+            twinwatch.errors.SinkError: it cannot open (a port in use, a file locked or not
+                writable, a broker absent); the message says what to change. ``twinwatch
+                run`` exits 1 with that one line.
+        """
+
+    @classmethod
+    def open(cls, name: str, config: Any, context: SinkContext) -> Self:
+        """:meth:`from_config`, then remember the registry name, the context and the
+        :meth:`reload_key` it was opened with (what the daemon calls)."""
+        sink = cls.from_config(config, context)
+        sink.name = name
+        sink.context = context
+        sink._reload_key = cls.reload_key(config, context)
+        return sink
+
+    @classmethod
+    def reload_key(cls, config: Any, context: SinkContext) -> Hashable:
+        """What the open sink depends on: a reload whose key is equal keeps it open (the Zenoh
+        session, the Rerun file, the state database stay), another closes and reopens it.
+        Default: the machine name and the table's values."""
+        return (context.machine, _frozen(config.model_dump()))
+
+    def keeps(self, config: Any, context: SinkContext) -> bool:
+        """True if a daemon on ``config`` and ``context`` may adopt this open sink."""
+        return self._reload_key is not None and (
+            self._reload_key == type(self).reload_key(config, context))
+
+    def attach(self, context: SinkContext) -> None:
+        """A new daemon adopts this open sink (a reload): use its context from now on."""
+        self.context = context
+
+    def detach(self) -> None:
+        """The daemon that opened the sink stops (a reload hands it over): until
+        :meth:`attach`, nothing of that daemon may be used (the stored history)."""
+        if self.context is not None:
+            self.context = replace(self.context, history=None)
+
+    # -- the windows --------------------------------------------------------------------------
+    @abc.abstractmethod
+    def write(self, out: ProcessedWindow) -> bool | None:
+        """Take one processed window (called from the adaptation worker, one at a time).
+
+        Returns:
+            For the gate: False when it could not take the window (it is then not given to
+            the publishers); anything for the others. Never raises for a failing output: a
+            failure is counted, logged once and reported by :attr:`problem`.
+        """
+
+    @abc.abstractmethod
     def close(self) -> None:
-        """Release the sink; idempotent."""
+        """Release the output (flush, footer, sessions). Idempotent; the counters stay
+        readable for the final accounting."""
+
+    # -- what it reports ----------------------------------------------------------------------
+    @property
+    def publishes(self) -> bool:
+        """It makes windows visible to others: it gets only the windows the gate stored."""
+        return self.role == "publisher"
+
+    @property
+    def prefix(self) -> str:
+        """The prefix of its health counters."""
+        return self.counter_prefix or self.name
+
+    def counters(self) -> dict[str, int]:
+        """Its counters (without prefix: the daemon publishes them as
+        ``<counter_prefix>_<name>``). Default: none."""
+        return {}
+
+    @property
+    def problem(self) -> str | None:
+        """What is degraded right now, one line for systemd's ``STATUS`` and the log; None
+        when it works."""
+        return None
+
+    @property
+    def status(self) -> str | None:
+        """What it serves, a part of systemd's ``STATUS`` line (``health on ...``); None."""
+        return None
+
+    def summary(self) -> list[str]:
+        """Lines for the run's summary: where the windows went, what was lost."""
+        return []
+
+    @classmethod
+    def sample(cls, table: str) -> str:
+        """The commented sample of its table for ``twinwatch sample-config`` (every key with
+        its default and description, commented out: the output stays off until configured).
+        Default: generated from :attr:`config_class`."""
+        return commented_table(cls.config_class, table, commented=True)
+
+
+class Gate(Sink):
+    """The gate role: the sink that must take a window before the publishers get it (the
+    state store), and what the daemon resumes from at start.
+
+    Subclasses implement the reads below on what they stored.
+    """
+
+    role: ClassVar[Role] = "gate"
+
+    #: Where it stores (named in messages: "resumed from <path>").
+    path: Path
+    #: Windows :meth:`write` could not take when they were processed (hence not published).
+    not_stored: int = 0
+    #: How many times a corrupt store was moved aside (nothing is resumed from it).
+    recovered: int = 0
+
+    @abc.abstractmethod
+    def write(self, out: ProcessedWindow) -> bool:
+        """Store the window; False when it waits (it is then not published)."""
+
+    @abc.abstractmethod
+    def load_twin_state(self, machine: str | None = None) -> dict[str, Any] | None:
+        """The last accepted twin of ``machine``, as saved, or None."""
+
+    @abc.abstractmethod
+    def latest_health(self, machine: str | None = None) -> dict[str, Any] | None:
+        """The last stored health message of ``machine`` (decoded), or None."""
+
+    @abc.abstractmethod
+    def history(self, t_from: float | None = None, t_to: float | None = None,
+                limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
+                machine: str | None = None) -> list[dict[str, Any]]:
+        """Stored health messages in a time range, oldest first."""
+
+
+def _frozen(value: Any) -> Hashable:
+    """``value`` (JSON-like) as a hashable, comparable key."""
+    if isinstance(value, Mapping):
+        return tuple(sorted((str(k), _frozen(v)) for k, v in value.items()))
+    if isinstance(value, list | tuple):
+        return tuple(_frozen(v) for v in value)
+    return value  # type: ignore[no-any-return]

@@ -72,24 +72,24 @@ import os
 import threading
 import time
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from twinwatch._lazy import lazy_module
-from twinwatch._lifecycle import Closeable
 from twinwatch.errors import RecorderError
 from twinwatch.io.encoding import to_json
+from twinwatch.sinks.base import ProcessedWindow, Role, Sink, SinkConfig, SinkContext, _frozen
 from twinwatch.sinks.locks import FileLock, LockedError
 
 if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from twinwatch.sinks.base import ProcessedWindow
+    from twinwatch.twin.health import HealthMessage
 else:  # imported when a recording opens: loading a configuration does not load rerun
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")
@@ -117,7 +117,7 @@ _PROBLEM_STATUSES = frozenset({"warning", "alarm", "fault", "degraded", "error",
 _SUMMARY_MAX_CHARS = 240
 
 
-class RecordingConfig(BaseModel):
+class RecordingConfig(SinkConfig):
     """The ``[recording]`` section of a machine configuration.
 
     Attributes:
@@ -130,8 +130,6 @@ class RecordingConfig(BaseModel):
 
     Unknown keys are an error (``extra="forbid"``).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     path: str = "twinwatch.rrd"
     enabled: bool = True
@@ -147,6 +145,11 @@ class RecordingConfig(BaseModel):
         if not value.strip():
             raise ValueError("must not be empty")
         return value
+
+    def output_files(self, cwd: Path) -> dict[str, Path]:
+        """The recording file (its directory must exist and be writable)."""
+        path = Path(self.path).expanduser()
+        return {"path": path if path.is_absolute() else cwd / path}
 
 
 def _entity(*parts: str) -> str:
@@ -185,8 +188,9 @@ def _check_writable(path: Path) -> FileLock:
         raise RecorderError(f"cannot record to {path}: {exc.strerror or exc}") from exc
 
 
-class RerunRecorder(Closeable):
-    """Records measured vs twin outputs, parameter estimates and health to a ``.rrd`` file.
+class RerunRecorder(Sink):
+    """Records measured vs twin outputs, parameter estimates and health to a ``.rrd`` file:
+    the built-in output ``rerun`` (table ``[recording]``, a recorder: it gets every window).
 
     :meth:`log_window` may be called from a worker thread while :meth:`close` is called from
     another; calls after :meth:`close` are ignored. With ``config.enabled`` false nothing is
@@ -209,6 +213,11 @@ class RerunRecorder(Closeable):
         RecorderError: the file cannot be created or written (missing or read-only directory,
             path is a directory), or Rerun refused to open it.
     """
+
+    config_class: ClassVar[type[RecordingConfig]] = RecordingConfig
+    role: ClassVar[Role] = "recorder"
+    counter_prefix: ClassVar[str | None] = "recording"
+    open_order: ClassVar[int] = 30  # after every lock: opening truncates the file
 
     flush_timeout: float = 10.0
     """Seconds a flush may take before the window is counted as an error [s]."""
@@ -413,9 +422,45 @@ class RerunRecorder(Closeable):
         if lock is not None:
             lock.release()
 
+    # -- the sink contract ---------------------------------------------------------------------
+    @classmethod
+    def from_config(cls, config: RecordingConfig, context: SinkContext) -> Self:
+        """Record the twin's outputs and parameters to ``[recording] path`` (relative to the
+        working directory).
+
+        Raises:
+            RecorderError: the file cannot be created, written or locked.
+        """
+        rec = config.model_copy()
+        rec.path = str(config.output_files(context.cwd)["path"])
+        return cls(rec, context.machine, outputs=context.outputs,
+                   parameters=dict(context.parameters))
+
+    @classmethod
+    def reload_key(cls, config: RecordingConfig, context: SinkContext) -> Hashable:
+        """The machine, the entities it declares (the twin's outputs and parameters) and the
+        table."""
+        return (context.machine, tuple(context.outputs), _frozen(dict(context.parameters)),
+                _frozen(config.model_dump()))
+
+    def counters(self) -> dict[str, int]:
+        """``lost``: windows not recorded."""
+        return {"lost": int(self.lost)}
+
+    def summary(self) -> list[str]:
+        """Where the recording is, and the windows it could not record."""
+        cwd = self.context.cwd if self.context is not None else Path.cwd()
+        shown = self.path.relative_to(cwd) if self.path.is_relative_to(cwd) else self.path
+        lines = [f"recording: {self.path.resolve()} (open with: rerun {shown})"]
+        if self.lost:
+            lines.append(f"recording: {self.lost} windows could not be recorded or were lost "
+                         "with a deleted file (see the log)")
+        return lines
+
     @property
     def problem(self) -> str | None:
-        """Why windows are not being recorded right now (None while recording works)."""
+        """Why windows are not being recorded right now, or how many were not (None while
+        every window was recorded)."""
         if self._broken is not None:
             return f"{self._broken}; {self.lost} windows not recorded"
         if self._no_new_file is not None:
@@ -423,7 +468,8 @@ class RerunRecorder(Closeable):
         if self._paused is not None:
             return f"{self._paused}; {self.lost} windows not recorded"
         if self._dead_since is None:
-            return None
+            # what was lost stays reported (as the state database's lost windows do)
+            return f"recording: {self.lost} windows not recorded" if self.lost else None
         return (f"recording to {self.path} stopped (the file writer died: disk full?); "
                 f"{self.lost} windows not recorded")
 
@@ -598,8 +644,9 @@ class RerunRecorder(Closeable):
         measured: Mapping[str, np.ndarray],
         simulated: Mapping[str, np.ndarray],
         parameters: Mapping[str, float],
-        health: Mapping[str, Any],
+        health: HealthMessage | Mapping[str, Any],
         terms_changed: bool = False,
+        health_json: str | None = None,
     ) -> None:
         """Record one acquisition window, then flush it to the file.
 
@@ -610,10 +657,12 @@ class RerunRecorder(Closeable):
             simulated: output name -> shape (N,) twin-simulated samples, same rules.
             parameters: parameter name -> estimate at ``t[-1]`` (unit as declared); every key
                 must be one of the declared ``parameters``.
-            health: the window's health document, JSON-serialisable (see
-                :func:`twinwatch.io.encoding.to_json`).
+            health: the window's health message (typed), or any JSON-serialisable health
+                document (see :func:`twinwatch.io.encoding.to_json`).
             terms_changed: the twin's meta-model terms changed in this window: log the model
-                document (``health["terms"]``) again. The first window always logs it.
+                document (the message's ``terms``) again. The first window always logs it.
+            health_json: ``health`` already encoded (the pipeline's one encoding), shown in
+                the health document; None: encoded here.
 
         Raises:
             ValueError: a shape, name or value that does not fit the above (nothing recorded).
@@ -624,7 +673,10 @@ class RerunRecorder(Closeable):
         counted in :attr:`lost` until the file is reopened (see the module docstring).
         """
         times, meas, sim, estimates = self._validate(t, measured, simulated, parameters)
-        health_json = json.dumps(json.loads(to_json(health)), indent=2)
+        if health_json is None:
+            health_json = (to_json(health) if isinstance(health, Mapping)
+                           else health.to_json())
+        pretty = json.dumps(json.loads(health_json), indent=2)
         if not self.config.enabled:
             return
         m = self.machine
@@ -636,7 +688,9 @@ class RerunRecorder(Closeable):
                     self.lost += 1
                 logger.debug("recorder of %s closed, dropping window at t=%.3f s", m, t_end)
                 return
-            if (not self._check_file(health.get("window")) or not self._room()
+            window = (health.get("window") if isinstance(health, Mapping)
+                      else health.window)
+            if (not self._check_file(window) or not self._room()
                     or (rec is None and not self._reopen())):
                 self.lost += 1
                 return
@@ -657,9 +711,7 @@ class RerunRecorder(Closeable):
                     columns=rr.Scalars.columns(scalars=meas[name] - sim[name]),
                 )
             rec.set_time(TIMELINE, duration=t_end)
-            residual = health.get("residual") or {}
-            for variant in ("dt_prime", "dt_second"):
-                rmse = (residual.get(variant) or {}).get("rmse") or {}
+            for variant, rmse in _residual_rmse(health).items():
                 for name, value in rmse.items():
                     if value is not None:
                         rec.log(_entity(m, "residual_rmse", name, variant), rr.Scalars(value))
@@ -668,7 +720,7 @@ class RerunRecorder(Closeable):
                     _model_document(m, t_end, health), media_type=rr.MediaType.MARKDOWN))
             for name, value in estimates.items():
                 rec.log(_entity(m, "parameters", name), rr.Scalars(value))
-            document = f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{health_json}\n```\n"
+            document = f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{pretty}\n```\n"
             rec.log(
                 _entity(m, "health"), rr.TextDocument(document, media_type=rr.MediaType.MARKDOWN)
             )
@@ -692,16 +744,18 @@ class RerunRecorder(Closeable):
                 self._rotate()
 
     def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
-        :meth:`log_window` with the window's measured and twin outputs, estimates and health."""
+        """The window pipeline's sink call: :meth:`log_window` with the window's measured and
+        twin outputs, estimates and its typed health message (and that message's one
+        encoding)."""
         est = out.result.estimate
         self.log_window(
             t=out.window.t,
             measured={o: out.window[o] for o in self.outputs},
             simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
             parameters=est.values,
-            health=out.message,
+            health=out.health,
             terms_changed=out.result.changed,
+            health_json=out.health_json,
         )
 
     def _flush(self, rec: rr.RecordingStream) -> bool:
@@ -763,22 +817,39 @@ def _bury(rec: rr.RecordingStream) -> None:
     rr.unregister_shutdown()
 
 
-def _model_document(machine: str, t: float, health: Mapping[str, Any]) -> str:
+def _residual_rmse(health: HealthMessage | Mapping[str, Any]
+                   ) -> dict[str, Mapping[str, float | None]]:
+    """``residual.<dt_prime|dt_second>.rmse``: output -> RMSE of the twin without and with its
+    terms (empty for a variant the message does not hold)."""
+    if isinstance(health, Mapping):
+        residual = health.get("residual") or {}
+        return {v: (residual.get(v) or {}).get("rmse") or {} for v in ("dt_prime", "dt_second")}
+    r = health.residual
+    return {"dt_prime": r.dt_prime.rmse,
+            "dt_second": r.dt_second.rmse if r.dt_second is not None else {}}
+
+
+def _model_document(machine: str, t: float, health: HealthMessage | Mapping[str, Any]) -> str:
     """The twin's structure as markdown: DT plus each kept meta-model term with its meaning."""
-    terms = health.get("terms") or []
+    terms = ([(term.get("equation"), term.get("meaning")) for term in health.get("terms") or []]
+             if isinstance(health, Mapping)
+             else [(term.equation, term.meaning) for term in health.terms])
     lines = [f"## {machine}: twin structure at t = {t:.3f} s", ""]
     if not terms:
         lines.append("DT'' = DT: no meta-model term (the physical model explains the data).")
     else:
         lines.append("DT'' = DT + the terms below (paper Eq. 3):")
         lines.append("")
-        for term in terms:
-            lines.append(f"* `{term.get('equation')}`  \n  {term.get('meaning')}")
+        for equation, meaning in terms:
+            lines.append(f"* `{equation}`  \n  {meaning}")
     return "\n".join(lines) + "\n"
 
 
-def _is_problem(health: Mapping[str, Any]) -> bool:
-    """True if the health document flags an alarm (``alarm`` truthy or a problem ``status``)."""
+def _is_problem(health: HealthMessage | Mapping[str, Any]) -> bool:
+    """True if the health document flags a change of the twin's structure, an alarm
+    (``alarm`` truthy) or a problem ``status``."""
+    if not isinstance(health, Mapping):
+        return health.discovery.changed
     status = health.get("status")
     if (health.get("discovery") or {}).get("changed"):
         return True
@@ -787,10 +858,18 @@ def _is_problem(health: Mapping[str, Any]) -> bool:
     )
 
 
-def _summary(t_start: float, t_end: float, health: Mapping[str, Any]) -> str:
+def _scalars(health: HealthMessage | Mapping[str, Any]) -> list[tuple[str, Any]]:
+    """The health document's top-level (key, value) pairs, as a subscriber names them."""
+    if isinstance(health, Mapping):
+        return list(health.items())
+    return [(info.alias or name, getattr(health, name))
+            for name, info in type(health).model_fields.items()]
+
+
+def _summary(t_start: float, t_end: float, health: HealthMessage | Mapping[str, Any]) -> str:
     """One line: the window's time span and the health document's top-level scalars."""
     items = []
-    for key, value in health.items():
+    for key, value in _scalars(health):
         if isinstance(value, bool | str | None):
             items.append(f"{key}={value}")
         elif isinstance(value, int | float | np.integer | np.floating):

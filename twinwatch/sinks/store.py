@@ -55,19 +55,16 @@ import sqlite3
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, ClassVar, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from twinwatch._lifecycle import Closeable
 from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
+from twinwatch.sinks.base import Gate, ProcessedWindow, SinkConfig, SinkContext, _frozen
 from twinwatch.sinks.locks import FileLock, LockedError
-
-if TYPE_CHECKING:
-    from twinwatch.sinks.base import ProcessedWindow
 
 logger = logging.getLogger(__name__)
 
@@ -103,7 +100,7 @@ CREATE TABLE IF NOT EXISTS twin (
 """
 
 
-class StateConfig(BaseModel):
+class StateConfig(SinkConfig):
     """``[state]``: the state database (health history and last accepted twin).
 
     Example::
@@ -115,8 +112,6 @@ class StateConfig(BaseModel):
         keep_rows = 1000000
     """
 
-    model_config = ConfigDict(extra="forbid")
-
     enabled: bool = Field(True, description="keep the history and the twin; restore at start")
     path: str = Field("state.sqlite", min_length=1,
                       description="SQLite file, relative to the working directory")
@@ -126,6 +121,11 @@ class StateConfig(BaseModel):
     keep_rows: int = Field(1_000_000, ge=1, description="keep at most this many windows")
     recover_corrupt: bool = Field(False, description="move a corrupt database aside and start "
                                   "a new one instead of refusing to start")
+
+    def output_files(self, cwd: Path) -> dict[str, Path]:
+        """The database file (its directory must exist and be writable)."""
+        path = Path(self.path).expanduser()
+        return {"path": path if path.is_absolute() else cwd / path}
 
 
 def _is_corrupt(exc: BaseException) -> bool:
@@ -140,8 +140,10 @@ def _dumps(obj: Any) -> str:
     return to_json(obj)
 
 
-class StateStore(Closeable):
-    """The health history and the last accepted twin of one machine, in SQLite.
+class StateStore(Gate):
+    """The health history and the last accepted twin of one machine, in SQLite: the
+    pipeline's gate (:class:`~twinwatch.sinks.base.Gate`, the built-in output ``store``,
+    table ``[state]``).
 
     Args:
         path: database file (created with its tables if absent; the directory must exist).
@@ -160,6 +162,8 @@ class StateStore(Closeable):
             that was deleted or replaced (``[acquisition] history``).
 
     Attributes:
+        lost: windows lost for good: never stored (:attr:`never_stored`) or
+            :attr:`history_lost`.
         history_lost: windows of this run that were stored, then lost with a deleted or
             replaced database file (not in memory to write again).
         file_event: what happened to the file last (None: nothing), for the status.
@@ -170,6 +174,10 @@ class StateStore(Closeable):
             corrupt, is locked, or was written by a newer twinwatch (schema version above
             :data:`SCHEMA_VERSION`).
     """
+
+    config_class: ClassVar[type[StateConfig]] = StateConfig
+    counter_prefix: ClassVar[str | None] = "store"
+    open_order: ClassVar[int] = 20  # its lock before the recording's (which truncates a file)
 
     def __init__(
         self,
@@ -218,6 +226,7 @@ class StateStore(Closeable):
         self.pruned = 0
         self.lost = 0
         self.recovered = 0
+        self.not_stored = 0
         self.recover_corrupt = recover_corrupt
         self._check = check
         self._lock: FileLock | None = None
@@ -516,6 +525,7 @@ class StateStore(Closeable):
         kept = have | {(r[0], r[2]) for r in self._recent}
         lost = 0 if why == "moved" or stored is None else len(stored - kept)
         self.history_lost += lost
+        self.lost += lost  # lost for good: `twinwatch run` exits 74
         self._file_gone = None
         event = (self.file_event or f"state database {self.path} was {why}").split(
             "; cannot be opened again")[0]
@@ -532,9 +542,86 @@ class StateStore(Closeable):
             logger.log(logging.ERROR if lost or earlier else logging.WARNING, "%s",
                        self.file_event)
 
+    # -- the sink contract ---------------------------------------------------------------------
+    @classmethod
+    def from_config(cls, config: StateConfig, context: SinkContext) -> Self:
+        """Open ``[state] path`` (relative to the working directory).
+
+        Raises:
+            StoreError: see the class docstring.
+        """
+        return cls(Path(config.path).expanduser(), synchronous=config.synchronous,
+                   keep_days=config.keep_days, keep_rows=config.keep_rows,
+                   recover_corrupt=config.recover_corrupt, recent=context.recent_windows)
+
+    @classmethod
+    def reload_key(cls, config: StateConfig, context: SinkContext) -> Hashable:
+        """The table alone: the database holds every machine's rows."""
+        return _frozen(config.model_dump())
+
+    @property
+    def never_stored(self) -> int:
+        """Windows lost without ever being stored (the backlog full, or not written by
+        :meth:`close`); :attr:`lost` also counts :attr:`history_lost`."""
+        return int(self.lost - self.history_lost)
+
+    def counters(self) -> dict[str, int]:
+        """``errors`` (failed writes), ``waiting`` (windows in memory), ``lost`` (never
+        stored), ``history_lost`` (stored, then lost with a deleted or replaced file)."""
+        return {"errors": int(self.errors), "waiting": int(self.waiting),
+                "lost": self.never_stored, "history_lost": int(self.history_lost)}
+
+    @property
+    def problem(self) -> str | None:
+        """The database not writable (windows waiting, not published), windows lost."""
+        out = []
+        if self.failing:
+            out.append(f"state database not writable: {self.waiting} windows waiting "
+                       f"in memory, not published")
+        if self.never_stored:
+            out.append(f"{self.never_stored} windows lost (never stored)")
+        if self.history_lost:
+            out.append(f"{self.history_lost} stored windows lost with a deleted or replaced "
+                       f"state database file")
+        return "; ".join(out) or None
+
+    @property
+    def status(self) -> str:
+        return f"state {self.path}"
+
+    def summary(self) -> list[str]:
+        """The windows that could not be stored when they were estimated, and those lost with
+        a deleted or replaced database file, if any."""
+        out = []
+        if self.not_stored:
+            late = self.not_stored - self.never_stored - self.waiting
+            out.append(f"state database: {self.not_stored} windows could not be stored when "
+                       f"estimated, so they were not published ({max(late, 0)} written later, "
+                       f"served by the history query; {self.never_stored} lost)")
+        if self.history_lost:
+            out.append(f"state database: {self.history_lost} windows stored by this run were "
+                       f"lost with its deleted or replaced file (no longer in memory to write "
+                       f"again)")
+        return out
+
+    def write(self, out: ProcessedWindow) -> bool:
+        """The window pipeline's sink call: the window's health message (its one encoding,
+        stored byte for byte as published) and, when it was trusted, the twin, in one
+        transaction.
+
+        Returns:
+            True if the window is stored; False if it waits in memory (the pipeline then does
+            not publish it: stored before published; counted in :attr:`not_stored`).
+        """
+        h = out.health
+        ok = self.save_window({"machine": h.machine, "window": h.window, "t_start": h.t_start,
+                               "t_end": h.t_end}, out.twin_state, doc=out.health_json)
+        self.not_stored += not ok
+        return ok
+
     # -- writing ------------------------------------------------------------------------------
     def save_window(self, health: Mapping[str, Any], twin_state: Mapping[str, Any] | None,
-                    *, wall: float | None = None) -> bool:
+                    *, wall: float | None = None, doc: str | None = None) -> bool:
         """Store one window's health message and, if given, the latest accepted twin, in one
         transaction (call from the adaptation worker after each window).
 
@@ -545,6 +632,9 @@ class StateStore(Closeable):
                 discovered meta-model terms; any JSON-serialisable mapping, numpy allowed), or
                 None when this window was not trusted (the stored twin is kept).
             wall: wall-clock time [s since the epoch] of the window (default now).
+            doc: the message already encoded (the pipeline's one encoding, stored byte for
+                byte as published); ``health`` then needs only the indexed keys. None: the
+                message is ``health`` encoded here.
 
         Returns:
             True if committed; False if the database could not be written (the window is
@@ -553,7 +643,7 @@ class StateStore(Closeable):
         w = time.time() if wall is None else float(wall)
         machine = str(health["machine"])
         row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
-               float(health["t_end"]), w, _dumps(health))
+               float(health["t_end"]), w, _dumps(health) if doc is None else doc)
         with self._write_lock:
             self._check_file(row[2])
             if len(self._pending) == self._pending.maxlen:
@@ -576,16 +666,6 @@ class StateStore(Closeable):
                 self._since_prune = 0
                 self.prune()
         return ok
-
-    def write(self, out: ProcessedWindow) -> bool:
-        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
-        :meth:`save_window` with the window's health and, when it was trusted, the twin.
-
-        Returns:
-            True if the window is stored; False if it waits in memory (the pipeline then does
-            not publish it: stored before published).
-        """
-        return self.save_window(out.message, out.twin_state)
 
     def _flush(self, retry: bool = True) -> bool:
         try:

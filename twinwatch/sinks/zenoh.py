@@ -16,8 +16,9 @@ with ``P = {key_prefix}/{machine}``:
   Topics not published yet are not answered (the get ends with no reply).
 
 * handlers added with :meth:`HealthPublisher.add_query_handler` answer their own key under the
-  same queryable (the daemon serves ``P/history?t_from=..;t_to=..;by=wall;limit=..`` from the
-  state database this way).
+  same queryable; opened as the daemon's output (:meth:`HealthPublisher.from_config`) it serves
+  ``P/history?t_from=..;t_to=..;by=wall;limit=..`` from the state database this way, asking the
+  gate through its :class:`~twinwatch.sinks.base.SinkContext` (:func:`history_parameters`).
 
 Every session is configured by :func:`to_zenoh_config`: explicit endpoints only, multicast and
 gossip scouting off, so the daemon never talks to anything it was not told to. TLS/mTLS
@@ -64,25 +65,25 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinwatch._lazy import lazy_module
-from twinwatch._lifecycle import Closeable
 from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
+from twinwatch.sinks.base import ProcessedWindow, Sink, SinkConfig, SinkContext
 
 if TYPE_CHECKING:
     import zenoh
-
-    from twinwatch.sinks.base import ProcessedWindow
 else:  # imported when a session opens: loading a configuration does not load zenoh
     zenoh = lazy_module("zenoh")
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "HISTORY_LIMIT",
     "HealthPublisher",
     "PublisherError",
     "ZenohAuthConfig",
     "ZenohConfig",
     "ZenohTlsConfig",
+    "history_parameters",
     "open_session",
     "to_json",
     "to_zenoh_config",
@@ -145,7 +146,7 @@ class ZenohAuthConfig(BaseModel):
     dictionary_file: str | None = None
 
 
-class ZenohConfig(BaseModel):
+class ZenohConfig(SinkConfig):
     """The ``[zenoh]`` section of a machine configuration.
 
     Attributes:
@@ -166,8 +167,6 @@ class ZenohConfig(BaseModel):
 
     Unknown keys are an error (``extra="forbid"``).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     mode: Literal["peer", "client", "router"] = "peer"
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -190,33 +189,47 @@ class ZenohConfig(BaseModel):
                 raise ValueError(f"zenoh refuses this access_control table: {msg}") from None
         return value
 
-    def file_paths(self) -> dict[str, str]:
-        """Dotted key -> path of every file the session reads (certificates, keys)."""
+    def input_files(self) -> dict[str, str]:
+        """Key in the table -> path of every file the session reads (certificates, keys)."""
         out: dict[str, str] = {}
         if self.tls is not None:
             for k in ZenohTlsConfig.FILES:
                 v = getattr(self.tls, k)
                 if v:
-                    out[f"zenoh.tls.{k}"] = v
+                    out[f"tls.{k}"] = v
         if self.auth is not None and self.auth.dictionary_file:
-            out["zenoh.auth.dictionary_file"] = self.auth.dictionary_file
+            out["auth.dictionary_file"] = self.auth.dictionary_file
         return out
+
+    def secret_input_files(self) -> dict[str, str]:
+        """Key in the table -> path of the files holding secrets (private keys, passwords)."""
+        secret = {f"tls.{k}" for k in ZenohTlsConfig.SECRET_FILES} | {"auth.dictionary_file"}
+        return {k: v for k, v in self.input_files().items() if k in secret}
+
+    def inline_secret_keys(self) -> list[str]:
+        """Keys in the table of secrets written in the configuration itself."""
+        keys = []
+        if self.tls is not None:
+            keys += [f"tls.{k}" for k in ZenohTlsConfig.INLINE_SECRETS if getattr(self.tls, k)]
+        if self.auth is not None and self.auth.password:
+            keys.append("auth.password")
+        return keys
+
+    def exclusive_resources(self, cwd: Path) -> set[str]:
+        """The endpoints the session listens on."""
+        return set() if self.mode == "client" else set(self.listen)
+
+    def file_paths(self) -> dict[str, str]:
+        """Dotted key (``zenoh.tls.*``) -> path of every file the session reads."""
+        return {f"zenoh.{k}": v for k, v in self.input_files().items()}
 
     def secret_files(self) -> dict[str, str]:
         """Dotted key -> path of the files holding secrets (private keys, password lists)."""
-        secret = {f"zenoh.tls.{k}" for k in ZenohTlsConfig.SECRET_FILES}
-        secret.add("zenoh.auth.dictionary_file")
-        return {k: v for k, v in self.file_paths().items() if k in secret}
+        return {f"zenoh.{k}": v for k, v in self.secret_input_files().items()}
 
     def inline_secrets(self) -> list[str]:
-        """Dotted keys of secrets written in the configuration itself."""
-        keys = []
-        if self.tls is not None:
-            keys += [f"zenoh.tls.{k}" for k in ZenohTlsConfig.INLINE_SECRETS
-                     if getattr(self.tls, k)]
-        if self.auth is not None and self.auth.password:
-            keys.append("zenoh.auth.password")
-        return keys
+        """Dotted keys (``zenoh.tls.*``) of secrets written in the configuration itself."""
+        return [f"zenoh.{k}" for k in self.inline_secret_keys()]
 
     def resolve_paths(self, base_dir: Path) -> None:
         """Make relative certificate/key paths absolute against ``base_dir`` (the config
@@ -437,8 +450,9 @@ def _client(query: zenoh.Query) -> str:
     return f"peer {zid}" if zid is not None else "a peer"
 
 
-class HealthPublisher(Closeable):
-    """Publishes one machine's health (and other JSON topics) on zenoh.
+class HealthPublisher(Sink):
+    """Publishes one machine's health (and other JSON topics) on zenoh: the built-in output
+    ``zenoh`` (table ``[zenoh]``, a publisher: it gets only the windows the state store stored).
 
     Keys, with ``P = {config.key_prefix}/{machine}``: ``P/health`` (publisher and queryable
     answering the latest document), ``P/<suffix>`` for :meth:`publish_json`, liveliness token
@@ -459,8 +473,9 @@ class HealthPublisher(Closeable):
         PublisherError: the session or a declaration could not be created.
     """
 
-    publishes = True
-    """The window pipeline gives it only the windows the state store has stored."""
+    config_class: ClassVar[type[ZenohConfig]] = ZenohConfig
+    counter_prefix: ClassVar[str | None] = "zenoh"
+    open_order: ClassVar[int] = 10  # the port first: a second daemon fails before any file
 
     def __init__(self, config: ZenohConfig, machine: str, *,
                  retry_connect: bool = False) -> None:
@@ -487,6 +502,7 @@ class HealthPublisher(Closeable):
         self._give_up = threading.Event()
         self._connector: threading.Thread | None = None
         self._query_log = RateLimitedLog(logger, QUERY_LOG_INTERVAL)
+        self._detached = False
         if not config.enabled:
             logger.info("zenoh publishing disabled for %s", machine)
             return
@@ -557,6 +573,64 @@ class HealthPublisher(Closeable):
                            self.not_connected)
             return
 
+    # -- the sink contract ---------------------------------------------------------------------
+    @classmethod
+    def from_config(cls, config: ZenohConfig, context: SinkContext) -> Self:
+        """The daemon's publisher: a router unreachable at start is retried in the background;
+        with a state store (``context.history``) the history query is served.
+
+        Raises:
+            PublisherError: the session or a declaration could not be created.
+            ValueError: the machine name is not a key chunk.
+        """
+        publisher = cls(config, context.machine, retry_connect=True)
+        publisher.attach(context)
+        return publisher
+
+    def attach(self, context: SinkContext) -> None:
+        """Serve the history of ``context`` (a new daemon after a reload adopts the session)."""
+        super().attach(context)
+        self._detached = False
+        if context.history is not None and f"{self.base_key}/history" not in self._handlers:
+            self.add_query_handler("history", self._on_history_query)
+
+    def detach(self) -> None:
+        """A reload hands the session over: history queries are answered "reloading"."""
+        super().detach()
+        self._detached = True
+
+    def _on_history_query(self, query: Any) -> dict[str, Any]:
+        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread): one
+        reply ``{"count", "more", "windows": [health, ...]}``, oldest first.
+
+        Raises:
+            ValueError: a bad parameter (replied as an error naming it), or no history to
+                serve (reloading; no state database).
+        """
+        history = self.context.history if self.context is not None else None
+        if self._detached:
+            raise ValueError("the daemon is reloading: ask again in a moment")
+        if history is None:
+            raise ValueError("this daemon keeps no history (no state database: [state])")
+        t_from, t_to, limit, by = history_parameters(query.parameters)
+        windows = history(t_from, t_to, limit, by)
+        return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to,
+                "count": len(windows), "more": len(windows) == limit, "windows": windows}
+
+    def counters(self) -> dict[str, int]:
+        """``published`` (puts), ``errors`` (failed puts), ``not_connected`` (windows before
+        the router was reached)."""
+        return {"published": int(self.published), "errors": int(self.errors),
+                "not_connected": int(self.not_connected)}
+
+    @property
+    def status(self) -> str:
+        return f"health on {self.health_key}"
+
+    def summary(self) -> list[str]:
+        listen = ", ".join(self.config.listen) or "nothing"
+        return [f"health was published on {self.health_key} (zenoh, listening on {listen})"]
+
     @property
     def connected(self) -> bool:
         """A session is open (False while the router is still being reached at start)."""
@@ -608,9 +682,9 @@ class HealthPublisher(Closeable):
         self._put(f"{self.base_key}/{key_suffix}", payload)
 
     def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's sink call (:class:`~twinwatch.daemon.pipeline.WindowSink`):
-        the window's health on ``P/health`` (its one encoding), then its alarm events on
-        ``P/alarm``."""
+        """The window pipeline's sink call: the window's health on ``P/health`` (its one
+        encoding, :attr:`~twinwatch.sinks.base.ProcessedWindow.health_json`), then its alarm
+        events on ``P/alarm``."""
         self._put(self.health_key, out.health_json)
         for event in out.events:
             self.publish_json("alarm", event)
@@ -716,3 +790,64 @@ class HealthPublisher(Closeable):
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"HealthPublisher({self.health_key!r}, {state}, published={self.published})"
+
+
+HISTORY_LIMIT = 1000
+"""Most windows one history query returns (page on with ``t_from``)."""
+
+HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit")
+
+
+def history_parameters(params: Any) -> tuple[float | None, float | None, int,
+                                              Literal["plant", "wall"]]:
+    """The history query's parameters, checked: ``t_from`` and ``t_to`` finite seconds (either
+    may be absent), ``t_from <= t_to``, ``by`` ``plant`` or ``wall``, ``limit`` a whole number
+    from 1 (at most :data:`HISTORY_LIMIT` are returned).
+
+    Args:
+        params: the selector's parameters (a mapping with ``get``, zenoh's ``Parameters``).
+
+    Returns:
+        ``(t_from, t_to, limit, by)``.
+
+    Raises:
+        ValueError: naming the bad parameter.
+    """
+    unknown = [k for k, _ in _items(params) if k not in HISTORY_PARAMETERS]
+    if unknown:
+        raise ValueError(f"unknown parameter {unknown[0]!r}: use "
+                         f"{', '.join(HISTORY_PARAMETERS)}")
+
+    def num(key: str) -> float | None:
+        raw = params.get(key)
+        if raw in (None, ""):
+            return None
+        try:
+            value = float(raw)
+        except ValueError:
+            raise ValueError(f"{key}={raw!r} is not a number [s]") from None
+        if not math.isfinite(value):
+            raise ValueError(f"{key}={raw!r}: give a finite time [s], or leave it out for "
+                             f"an open end")
+        return value
+
+    raw_by = params.get("by") or "plant"
+    if raw_by not in ("plant", "wall"):
+        raise ValueError(f"by={raw_by!r}: use by=plant (source time) or by=wall (epoch s)")
+    by: Literal["plant", "wall"] = "wall" if raw_by == "wall" else "plant"
+    t_from, t_to = num("t_from"), num("t_to")
+    if t_from is not None and t_to is not None and t_from > t_to:
+        raise ValueError(f"t_from={t_from:g} is after t_to={t_to:g}")
+    lim = num("limit")
+    if lim is not None and (lim < 1 or not lim.is_integer()):
+        raise ValueError(f"limit={params.get('limit')!r}: give a whole number from 1 "
+                         f"(at most {HISTORY_LIMIT} are returned)")
+    limit = HISTORY_LIMIT if lim is None else min(int(lim), HISTORY_LIMIT)
+    return t_from, t_to, limit, by
+
+
+def _items(params: Any) -> list[tuple[str, str]]:
+    """(key, value) pairs of zenoh ``Parameters`` or a plain mapping."""
+    if isinstance(params, dict):
+        return list(params.items())
+    return [(str(k), str(v)) for k, v in params]
