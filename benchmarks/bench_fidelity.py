@@ -44,6 +44,7 @@ with the drive, with another period, and the open loop on the sampled area; nois
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import sys
 import time
@@ -281,6 +282,7 @@ def published_d(plant: HydraulicPlant, twin: HydraulicActuatorTwin, n: int,
     from twinwatch.twin.adaptation import TwinAdapter
     from twinwatch.twin.health import build_health
 
+    logging.getLogger("twinwatch.daemon.alarms").setLevel(logging.ERROR)  # the times say it
     noise = plant.config.noise.get("p", 0.0)
     adapter = TwinAdapter(twin, EstimationConfig(**estimation), nominal=nominal)
     alarms = AlarmEvaluator(AlarmConfig.model_validate({"parameters": {"D": D_ALARM}}))

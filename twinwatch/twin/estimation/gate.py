@@ -44,11 +44,15 @@ class GateDecision:
         rel_std: position -> relative standard error (1-sigma, fraction) of the admitted
             parameters (after a gate's re-fit, also of parameters it then held).
         held: estimated parameter -> why this window does not determine it (prose).
+        gain: admitted position -> {held position: d ln(estimate) / d ln(held value)}, the
+            estimate's sensitivity to each value it was fitted with held
+            (:meth:`IdentifiabilityGate.propagate_held`; empty before).
     """
 
     selected: list[int]
     rel_std: dict[int, float]
     held: dict[str, str]
+    gain: dict[int, dict[int, float]] = dataclasses.field(default_factory=dict)
 
     def widened(self, factor: float) -> GateDecision:
         """The same decision with every standard error multiplied by ``factor``."""
@@ -188,19 +192,22 @@ class IdentifiabilityGate:
                 value (0: exact, e.g. the nameplate); read at the held positions.
 
         Returns:
-            The decision with the marginal standard errors.
+            The decision with the marginal standard errors and the gains (:attr:`GateDecision.
+            gain`), by which the trusted values are kept consistent with one another.
         """
         held = [k for k in range(problem.n_est) if k not in decision.selected]
-        held = [k for k in held if held_std[k] > 0]
         if not held or not decision.selected:
             return decision
         s_held = problem.local.sensitivity(point.v, np.array(held, dtype=int))
         gain, *_ = np.linalg.lstsq(point.jac, -s_held, rcond=None)
-        extra = (gain[:len(decision.selected)] ** 2) @ (np.asarray(held_std)[held] ** 2)
+        gain = gain[:len(decision.selected)]
+        extra = (gain ** 2) @ (np.asarray(held_std, dtype=float)[held] ** 2)
         rel = dict(decision.rel_std)
+        gains = {k: dict(decision.gain.get(k, {})) for k in decision.selected}
         for i, k in enumerate(decision.selected):
             rel[k] = math.sqrt(rel.get(k, math.inf) ** 2 + float(extra[i]))
-        return dataclasses.replace(decision, rel_std=rel)
+            gains[k].update({h: float(gain[i, j]) for j, h in enumerate(held)})
+        return dataclasses.replace(decision, rel_std=rel, gain=gains)
 
     def enforce(self, problem: WindowProblem, decision: GateDecision, point: FitPoint,
                 check: ModelCheck | None) -> tuple[GateDecision, FitPoint, bool]:
