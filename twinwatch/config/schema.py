@@ -220,7 +220,14 @@ class AcquisitionConfig(BaseModel):
 
     sample_period: float = Field(0.01, gt=0, le=3600, description="nominal sample period [s]")
     window: int = Field(200, ge=10, le=MAX_WINDOW, description="samples per estimation window")
-    max_gap: float = Field(1.5, gt=1, description="largest time-stamp step, in sample periods")
+    max_gap: float = Field(1.5, gt=1, description="largest time-stamp step within a range "
+                           "`twinwatch identify` fits, in sample periods (the daemon's windows "
+                           "match stamps to the grid: jitter_tolerance)")
+    jitter_tolerance: float = Field(
+        0.5, gt=0, le=0.5, description="half the widest band the time stamps of one window may "
+        "span around their slots on the nominal grid, in sample periods (0.5: narrower than a "
+        "period, each stamp in its own slot; the samples are placed on the grid; a stamp "
+        "beyond it is a gap or jitter beyond tolerance and abandons the window)")
     queue: int = Field(4, ge=1, le=1000, description="windows waiting for the estimator")
     history: int = Field(1000, ge=1, le=100_000, description="health messages kept in memory")
     stall_timeout: float = Field(5.0, gt=0, description="seconds without a sample before a "

@@ -130,7 +130,8 @@ class Daemon:
         self.estimator = self.adapter.estimator
         acq = config.acquisition
         self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
-                               sample_period=acq.sample_period, max_gap=acq.max_gap)
+                               sample_period=acq.sample_period,
+                               jitter_tolerance=acq.jitter_tolerance)
         self.sinks: dict[str, Sink] = {}
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
@@ -403,6 +404,7 @@ class Daemon:
             "numeric_failures": self.numeric_failures,
             "bad_samples": self.ring.bad_samples,
             "windows_abandoned": sum(self.ring.discarded.values()),
+            **{f"windows_abandoned_{cause}": n for cause, n in self.ring.causes.items()},
         }
         if self.driver is not None:
             c.update({f"driver_{k}": v for k, v in self.driver.stats.as_dict().items()})

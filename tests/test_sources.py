@@ -1,0 +1,96 @@
+"""Sources as real machines deliver them (issue 15): time stamps on jittery clocks, counters
+that repeat or reorder, sources that come and go, replays with bad lines.
+
+The end-to-end faults are rows of tests/test_fault_injection.py ("issue 15: sources"); here the
+parts: the ring buffer's grid, the counter helper, the source keeper's backoff, the CAN log
+reader's resume.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from twinwatch.daemon.ringbuffer import RingBuffer
+
+T = 0.01
+
+
+def _feed(rb: RingBuffer, stamps: np.ndarray) -> list:
+    wins = []
+    for k, t in enumerate(stamps):
+        w = rb.append(float(t), {"a": float(k)})
+        if w is not None:
+            wins.append(w)
+    return wins
+
+
+@pytest.mark.parametrize(("what", "error"), [
+    ("bus receive stamps, +-50 us", lambda rng, n: rng.uniform(-50e-6, 50e-6, n)),
+    ("symmetric jitter +-0.45 periods", lambda rng, n: rng.uniform(-0.45 * T, 0.45 * T, n)),
+    ("a poll clock: late by up to 0.95 periods", lambda rng, n: rng.uniform(0, 0.95 * T, n)),
+])
+def test_jittered_stamps_are_placed_on_the_grid(what, error):
+    rng = np.random.default_rng(1)
+    n = 2000
+    truth = 123.0 + np.arange(n) * T
+    stamps = truth + error(rng, n)
+    rb = RingBuffer(("a",), window=200, sample_period=T)
+    wins = _feed(rb, stamps)
+    assert len(wins) == 10 and sum(rb.discarded.values()) == 0, (what, rb.discarded)
+    for j, w in enumerate(wins):
+        np.testing.assert_allclose(np.diff(w.t), T, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(w["a"], np.arange(200 * j, 200 * (j + 1)))
+        assert w.stamp_jitter is not None
+        np.testing.assert_allclose(w.t + w.stamp_jitter, stamps[200 * j:200 * (j + 1)],
+                                   rtol=0, atol=1e-9)
+        # the grid is the stamps' mean offset: within the jitter of the true sample times
+        assert abs(float(np.mean(w.t - truth[200 * j:200 * (j + 1)]))) < T
+
+
+def test_exact_stamps_are_kept_as_they_are():
+    rb = RingBuffer(("a",), window=10, sample_period=T)
+    stamps = np.arange(30) * T + 7.0
+    wins = _feed(rb, stamps)
+    assert len(wins) == 3
+    for j, w in enumerate(wins):
+        np.testing.assert_array_equal(w.t, stamps[10 * j:10 * j + 10])
+        assert w.stamp_jitter is None
+
+
+def test_a_missing_sample_is_a_gap_and_jitter_beyond_the_band_is_counted_apart(caplog):
+    rb = RingBuffer(("a",), window=10, sample_period=T)
+    stamps = list(np.arange(5) * T) + list(6 * T + np.arange(20) * T)  # sample 5 missing
+    _feed(rb, np.asarray(stamps))
+    assert rb.causes["gap"] == 1 and rb.causes["jitter"] == 0
+    assert "about 1 samples missing" in caplog.text
+    rb2 = RingBuffer(("a",), window=10, sample_period=T, jitter_tolerance=0.25)
+    late = np.arange(20) * T
+    late[4] += 0.6 * T  # between two slots: neither its own nor the next
+    _feed(rb2, late)
+    assert rb2.causes["jitter"] == 1 and rb2.causes["gap"] == 0
+
+
+def test_a_clock_at_another_rate_drifts_off_the_grid_and_says_so(caplog):
+    rb = RingBuffer(("a",), window=200, sample_period=T)
+    wins = _feed(rb, np.arange(1000) * 1.01 * T)  # 1 % slow: 1 period off after 100 samples
+    assert wins == [] and rb.causes["jitter"] >= 4 and rb.causes["gap"] == 0
+    assert "step by 0.0101 s on average" in caplog.text
+
+
+@pytest.mark.parametrize(("cause", "third"), [
+    ("bad_value", (2 * T, {"a": math.nan})), ("time_back", (0.5 * T, {"a": 1.0})),
+    ("missing_channel", (2 * T, {})), ("gap", (5 * T, {"a": 1.0}))])
+def test_each_abandoned_window_is_counted_by_its_cause(cause, third):
+    rb = RingBuffer(("a",), window=3, sample_period=T)
+    rb.append(0.0, {"a": 1.0})
+    rb.append(T, {"a": 1.0})
+    rb.append(*third)
+    assert {k: v for k, v in rb.causes.items() if v} == {cause: 1}
+
+
+def test_tolerance_outside_half_a_period_is_refused():
+    with pytest.raises(ValueError, match="jitter_tolerance"):
+        RingBuffer(("a",), sample_period=T, jitter_tolerance=0.6)
