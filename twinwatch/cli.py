@@ -55,6 +55,12 @@ EX_CONFIG = 78
 EX_IOERR = 74
 """Exit status when estimated windows were lost: not stored or not recorded (sysexits.h)."""
 
+EX_TEMPFAIL = 75
+"""Exit status when the daemon ran but estimated nothing or mostly failed: more windows failed
+(numeric failures, windows abandoned for gaps, bad values, jitter, time jumps) than were
+estimated (sysexits.h's EX_TEMPFAIL: the source or its configuration must change, or the fault
+pass, before a run estimates)."""
+
 
 def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
     """Load CONFIG (or the built-in default) and check it can run here: the files it names
@@ -92,7 +98,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
 
     Exit status: 0; 1 when the daemon cannot start or its driver fails; 78 for a configuration
     that cannot run here (the systemd unit does not restart on it); 74 when estimated windows
-    were lost (not stored in the state database or not recorded).
+    were lost (not stored in the state database or not recorded); 75 when more windows failed
+    (numeric failures, abandoned for gaps, bad values, jitter or time jumps) than were
+    estimated.
 
     Signals: SIGTERM/SIGINT finish the windows already queued (a second one abandons them),
     close the driver, Zenoh, the Rerun file and the state database, and exit 0 (also while it
@@ -180,6 +188,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     if daemon.lost():
         supervisor.notifier.status("stopped: " + "; ".join(daemon.problems()))
         sys.exit(EX_IOERR)
+    if daemon.mostly_failed():
+        supervisor.notifier.status(f"stopped: {_failed_line(daemon)}")
+        sys.exit(EX_TEMPFAIL)
 
 
 def _resumed_line(daemon: Daemon) -> str:
@@ -203,9 +214,11 @@ def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
     """The run's summary (README "What `twinwatch run` prints"), from the typed health
     messages the daemon kept and its outputs' own lines."""
     c = daemon.counters()
+    causes = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in daemon.ring.causes.items()
+                       if n)
     click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
                f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
-               f"(gaps/bad samples), {c['numeric_failures']} numeric failures")
+               f"({causes or 'gaps/bad samples'}), {c['numeric_failures']} numeric failures")
     lines = _source_lines(cfg, daemon)
     last = daemon.latest_health
     if last is not None:
@@ -215,8 +228,20 @@ def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
                   *daemon.summary()]  # where each output wrote, what it lost
     if daemon.lost():
         lines.append("twinwatch: estimated windows were lost: exit status 74")
+    elif daemon.mostly_failed():
+        lines.append(f"twinwatch: {_failed_line(daemon)}: exit status 75")
     for line in lines:
         click.echo(line)
+
+
+def _failed_line(daemon: Daemon) -> str:
+    """Why the run counts as failed: windows failed against estimated, by cause."""
+    causes = {k: n for k, n in daemon.ring.causes.items() if n}
+    if daemon.numeric_failures:
+        causes["numeric failure"] = daemon.numeric_failures
+    what = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in causes.items())
+    return (f"{daemon.windows_failed()} windows failed ({what}) and "
+            f"{daemon.windows_estimated} were estimated")
 
 
 def _window_lines(last: HealthMessage) -> list[str]:
@@ -314,6 +339,18 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
     lost = sum(ring.lost.values())
     window = cfg.acquisition.window
     lines = []
+    jittered = [h.source for h in daemon.health_history if h.source.jitter_max_us]
+    if jittered:
+        rms = max(x.jitter_rms_us or 0.0 for x in jittered)
+        peak = max(x.jitter_max_us or 0.0 for x in jittered)
+        lines.append(f"source: time stamps jitter around the {cfg.acquisition.sample_period:g} s "
+                     f"grid the samples were placed on in {len(jittered)} windows: RMS up to "
+                     f"{rms:.3g} us, max {peak:.3g} us")
+    waiting, silent = daemon.source_state()
+    if waiting:
+        lines.append(f"source: waiting for {waiting}")
+    if silent:
+        lines.append("source: silent: " + ", ".join(silent))
     if lost:
         reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
         lines.append(f"source: {ring.samples} samples received, {lost} not in any window "

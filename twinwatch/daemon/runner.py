@@ -29,6 +29,7 @@ import logging
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Collection, Container, Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -60,6 +61,11 @@ STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
 stops a daemon at a window boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the
 partial window is dropped (a source that went silent)."""
+
+
+RECENT_WINDOWS = 20
+"""Windows whose outcome (estimated, failed, abandoned, overrun) the daemon keeps to tell
+systemd's STATUS whether estimation works *now* (:meth:`Daemon.estimation_problem`)."""
 
 
 class Daemon:
@@ -138,7 +144,7 @@ class Daemon:
         self.pipeline = WindowPipeline(
             adapter=self.adapter, alarms=self.alarms, machine=self.machine,
             model_name=config.machine.model, nominal=self.nominal, counters=self.counters,
-            history=acq.history)
+            history=acq.history, source=self.source_state)
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.failure: str | None = None
@@ -153,6 +159,10 @@ class Daemon:
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
+        #: the last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
+        #: "abandoned" (gap, bad value, ...), "overrun"
+        self.recent_outcomes: deque[str] = deque(maxlen=RECENT_WINDOWS)
+        self._abandoned_seen = 0
         self._ticks: list[Callable[[], None]] = []
         self.abandon = config.acquisition.abandon_on_stop
         self._roles: dict[Role, bool] = {"gate": persist, "publisher": publish,
@@ -417,10 +427,53 @@ class Daemon:
         return c
 
     def problems(self) -> list[str]:
-        """What is degraded right now (each output's
-        :attr:`~twinwatch.sinks.base.Sink.problem`, for systemd's STATUS and the log), empty if
-        nothing."""
-        return [p for s in self._outputs() if (p := s.problem)]
+        """What is degraded right now, for systemd's STATUS and the log (empty if nothing):
+        what the source waits for or lacks (:meth:`source_state`), estimation that fails
+        (:meth:`estimation_problem`), each output's :attr:`~twinwatch.sinks.base.Sink.problem`.
+        """
+        out = []
+        waiting, silent = self.source_state()
+        if waiting:
+            out.append(f"waiting for the source: {waiting}")
+        if silent:
+            out.append("silent: " + ", ".join(silent))
+        if (p := self.estimation_problem()) is not None:
+            out.append(p)
+        return out + [p for s in self._outputs() if (p := s.problem)]
+
+    def source_state(self) -> tuple[str | None, list[str]]:
+        """What the driver waits for (a device absent, a bus being reopened; None when it
+        delivers) and its silent messages (:attr:`~twinwatch.drivers.base.Driver.waiting`,
+        :attr:`~twinwatch.drivers.base.Driver.silent`)."""
+        driver = self.driver
+        if driver is None:
+            return None, []
+        return driver.waiting, list(driver.silent)
+
+    def _source_waiting(self) -> bool:
+        driver = self.driver
+        return driver is not None and driver.waiting is not None
+
+    def estimation_problem(self) -> str | None:
+        """A line when at least half of the last windows (at least 3 of at most
+        :data:`RECENT_WINDOWS`) were not estimated (numeric failures, abandoned: gaps, bad
+        values, jitter, time jumps; overruns), else None."""
+        recent = list(self.recent_outcomes)
+        bad = [o for o in recent if o != "estimated"]
+        if len(recent) < 3 or 2 * len(bad) < len(recent):
+            return None
+        kinds = ", ".join(f"{n} {k}" for k, n in sorted(
+            {k: bad.count(k) for k in set(bad)}.items()))
+        return f"{len(bad)} of the last {len(recent)} windows not estimated ({kinds})"
+
+    def windows_failed(self) -> int:
+        """Windows of this run that failed: numeric failures plus windows abandoned (gaps, bad
+        values, jitter beyond tolerance, time jumps, missing channels)."""
+        return self.numeric_failures + sum(self.ring.discarded.values())
+
+    def mostly_failed(self) -> bool:
+        """More windows failed than were estimated (``twinwatch run`` exits 75)."""
+        return self.windows_failed() > self.windows_estimated
 
     def lost(self) -> dict[str, int]:
         """Windows estimated but lost, by output (its counter prefix: ``store`` never stored,
@@ -452,6 +505,7 @@ class Daemon:
         self._worker.start()
         if self.watchdog is not None:
             self.watchdog.require_windows = self.config.acquisition.watchdog == "windows"
+            self.watchdog.source_waiting = self._source_waiting
             self.watchdog.reset()
         t_first: float | None = None
         stall_timeout = self.config.acquisition.stall_timeout
@@ -499,6 +553,11 @@ class Daemon:
                     self.ended = "duration reached"
                     break
                 window = self.ring.append(sample.t, sample.values)
+                abandoned = sum(self.ring.causes.values())
+                if abandoned > self._abandoned_seen:
+                    self.recent_outcomes.extend(["abandoned"] * min(
+                        abandoned - self._abandoned_seen, RECENT_WINDOWS))
+                    self._abandoned_seen = abandoned
                 if window is not None:
                     self._submit(window, block=not live)
         finally:
@@ -518,6 +577,7 @@ class Daemon:
             self._queue.put_nowait(window)
         except queue.Full:
             self.overruns += 1
+            self.recent_outcomes.append("overrun")
             logger.warning("estimation overrun: window %d dropped (%d so far); the "
                            "estimation does not keep up with acquisition: lower "
                            "[estimation.pso].max_generations or the time budget",
@@ -551,8 +611,10 @@ class Daemon:
                 self.watchdog.busy()
             try:
                 self.process_window(item)
+                self.recent_outcomes.append("estimated")
             except Exception as exc:  # contained to the window: the daemon goes on
                 self.numeric_failures += 1
+                self.recent_outcomes.append("failed")
                 logger.error("window %d could not be estimated (%s: %s); it is skipped and "
                              "counted in counters.numeric_failures", item.index,
                              type(exc).__name__, exc)

@@ -42,6 +42,7 @@ import faulthandler
 import logging
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import FrameType
@@ -189,6 +190,7 @@ class Supervisor:
         self._previous_handlers: dict[int, Any] = {}
         self._resume = resume
         self._problems: list[str] = []
+        self._next_status = 0.0
 
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -256,14 +258,26 @@ class Supervisor:
             daemon = Daemon(cfg, base_dir=self.base_dir, persist=True, watchdog=self.watchdog,
                             reuse=reuse, resume=resume, defer=defer)
         daemon.add_tick(self._check_reload)
+        daemon.add_tick(self._refresh_status)
         daemon.add_callback(self._watch_problems)
         for fn in self._callbacks:
             daemon.add_callback(fn)
         warm_up(daemon)
         return daemon
 
-    def _watch_problems(self, health: HealthMessage) -> None:
-        """After each window (worker thread): systemd's STATUS follows what is degraded (the
+    def _refresh_status(self) -> None:
+        """Acquisition-loop tick (main thread, at most once a second): STATUS follows what the
+        source waits for or lacks and whether windows are estimated, also while no window
+        completes (the callback below runs only after an estimated window)."""
+        now = time.monotonic()
+        if now < self._next_status:
+            return
+        self._next_status = now + 1.0
+        self._watch_problems(None)
+
+    def _watch_problems(self, health: HealthMessage | None) -> None:
+        """After each window (worker thread) and every second (main thread): systemd's STATUS
+        follows what is degraded (the source waited for or silent, windows not estimated, the
         state database not writable, the recording stopped), and returns to normal."""
         daemon, cfg = self.daemon, self.config
         if daemon is None or cfg is None:

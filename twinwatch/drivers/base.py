@@ -236,6 +236,22 @@ class Driver(Closeable, abc.ABC):
     def closed(self) -> bool:
         return self._closed
 
+    @property
+    def waiting(self) -> str | None:
+        """What the source is waiting for, for a person (``"Modbus device tcp 10.0.0.5:502
+        device 1 not answering for 12 s: connection refused"``), while it cannot deliver and
+        the driver is recovering it; None while it delivers (default). The daemon shows it in
+        systemd's STATUS and the health message, and keeps the watchdog fed meanwhile: the
+        driver is at work. Thread-safe to read."""
+        return None
+
+    @property
+    def silent(self) -> tuple[str, ...]:
+        """The parts of the source that went silent while the rest delivers (a bus message
+        and the channels it carries: ``"TW_Motor_Electrical (Va, ia) for 3.1 s"``), for the
+        health message and systemd's STATUS; empty by default. Thread-safe to read."""
+        return ()
+
     def log_once(self, key: str, msg: str, *args: object, level: int = logging.WARNING) -> None:
         """Log ``msg`` at ``level`` the first time ``key`` is seen, at DEBUG afterwards.
 

@@ -10,6 +10,11 @@ non-finite numbers become ``null`` everywhere.
 The README's table "The health message" documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 6: the window's ``source``: the jitter of its time stamps against the nominal grid the
+  samples were placed on (RMS and maximum [us]), what the source waits for (a device absent,
+  a gateway being reopened) and the bus messages that went silent; the counters of windows
+  abandoned by cause (``windows_abandoned_gap``, ``_time_back``, ``_jitter``, ``_bad_value``,
+  ``_missing_channel``).
 * 5: each meta-model term carries the standard errors of its parameters (``params_std``) and
   the number of windows whose evidence they combine (``evidence_windows``): a kept term is
   refined across windows (:mod:`twinwatch.twin.discovery.terms`).
@@ -51,12 +56,13 @@ __all__ = [
     "ParameterHealth",
     "ResidualFit",
     "ResidualHealth",
+    "SourceHealth",
     "TermHealth",
     "build_health",
     "summary_line",
 ]
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 
 def _finite(x: Any) -> Any:
@@ -194,6 +200,21 @@ class ModelCheckHealth(_Part):
     outputs: dict[str, OutputCheckHealth]
 
 
+class SourceHealth(_Part):
+    """``source``: how the window's samples came (:mod:`twinwatch.daemon.ringbuffer`) and what
+    the source lacks right now."""
+
+    jitter_rms_us: Num = Field(0.0, description="RMS of the time stamps' distance from the "
+                               "nominal grid the samples were placed on [us] (0: on the grid)")
+    jitter_max_us: Num = Field(0.0, description="largest distance of a stamp from its grid "
+                               "slot [us]")
+    waiting: str | None = Field(None, description="what the source is waiting for (a device "
+                                "absent, a gateway being reopened), null when it delivers")
+    silent: list[str] = Field(default_factory=list, description="bus messages (and the "
+                              "channels they carry) not received for longer than the "
+                              "driver's silence limit")
+
+
 class HealthMessage(_Part):
     """One window's health: the message on ``twinwatch/<machine>/health`` (README: "The health
     message"). Build it with :func:`build_health`; serialise it with :meth:`to_json`."""
@@ -219,6 +240,7 @@ class HealthMessage(_Part):
     residual: ResidualHealth
     discovery: DiscoveryStatus
     counters: dict[str, int]
+    source: SourceHealth = Field(default_factory=SourceHealth)
     alarms: dict[str, AlarmStatus] = Field(default_factory=dict)
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, populate_by_name=True,
