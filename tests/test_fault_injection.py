@@ -1595,6 +1595,37 @@ def _every_window_fails(ctx: Context) -> dict[str, Any]:
             if " windows estimated" in r.output else None}
 
 
+@case("issue 15: a duplicated and a reordered CAN counter frame after 11 wraps of an 8-bit "
+      "counter (40 s log)", exit_code=0, time_never_back=True, last_t_end=38.4,
+      windows_estimated=19, windows_abandoned_gap=1, duplicates=1, reordered=1,
+      counter_resets=0)
+def _can_counter_duplicate_and_reorder(ctx: Context) -> dict[str, Any]:
+    from .sources_support import CAN_DRIVER, candump_line, plant_frames
+    from .test_service import db_rows
+
+    dbc = ctx.tmp / "dcmotor8.dbc"  # the plant's DBC with an 8-bit rolling counter
+    dbc.write_text(PLANT_DBC.read_text().replace("sample_counter : 32|32@1+",
+                                                 "sample_counter : 32|8@1+"))
+    lines = [candump_line(*f) for f in plant_frames(40.0, counter_bits=8)]
+    a, b = 3 * 2840, 3 * 2841  # samples 2840 and 2841: 2841's frames arrive first
+    lines[a:b + 3] = lines[b:b + 3] + lines[a:a + 3]
+    dup = 3 * 2830 + 2  # sample 2830's sync frame, twice (11 wraps = 2816 samples before it)
+    lines.insert(dup + 1, lines[dup])
+    log = ctx.tmp / "m.log"
+    log.write_text("\n".join(lines) + "\n")
+    cfg = with_driver(ctx.tmp, CAN_DRIVER.format(dbc=dbc, log=log, time_source="counter"))
+    r = cli("run", str(cfg), "--no-progress")
+    rows = db_rows(ctx.tmp / "state.sqlite")
+    c = rows[-1]["counters"] if rows else {}
+    ends = [h["t_end"] for h in rows]
+    return {"exit_code": r.exit_code, "time_never_back": ends == sorted(ends),
+            "last_t_end": round(ends[-1], 2) if ends else None,
+            "windows_estimated": len(rows),
+            "windows_abandoned_gap": c.get("windows_abandoned_gap"),
+            "duplicates": c.get("driver_duplicates"), "reordered": c.get("driver_reordered"),
+            "counter_resets": c.get("driver_counter_resets", 0)}
+
+
 # -- the table ------------------------------------------------------------------------------
 @pytest.mark.parametrize("fault", [pytest.param(c, marks=pytest.mark.slow) if c.slow else c
                                    for c in CASES], ids=[c.name for c in CASES])

@@ -94,3 +94,30 @@ def test_each_abandoned_window_is_counted_by_its_cause(cause, third):
 def test_tolerance_outside_half_a_period_is_refused():
     with pytest.raises(ValueError, match="jitter_tolerance"):
         RingBuffer(("a",), sample_period=T, jitter_tolerance=0.6)
+
+
+# -- counters ---------------------------------------------------------------------------------
+def test_counter_skips_duplicates_and_late_frames_and_keeps_the_wraps():
+    from twinwatch.io.counter import SampleCounter
+
+    c = SampleCounter(256)
+    steps = [c.update(k % 256) for k in range(11 * 256 + 10)]
+    assert steps[0] == ("first", 0) and all(s == ("next", 0) for s in steps[1:])
+    count = c.count
+    assert count == 11 * 256 + 9
+    assert c.update(9) == ("duplicate", 0)  # the same frame again
+    assert c.update(11) == ("next", 1)  # 10 arrives after 11: one missing ...
+    assert c.update(10) == ("stale", 0)  # ... then late: skipped, the count goes on
+    assert c.count == count + 2
+    assert c.update(12) == ("next", 0) and c.count == count + 3
+    assert c.update(200) == ("reset", 0) and c.count == 200  # far back: a restart
+
+
+def test_counter_restart_near_its_old_value_is_a_reset_after_a_few_readings():
+    from twinwatch.io.counter import SampleCounter
+
+    c = SampleCounter(2**32)
+    for k in (5, 6, 7):
+        c.update(k)
+    assert [c.update(k)[0] for k in (2, 3, 4)] == ["stale", "stale", "reset"]
+    assert c.count == 4 and c.update(5) == ("next", 0)

@@ -18,8 +18,11 @@ Bad input is counted, logged once, and skipped (see :class:`~twinwatch.drivers.b
   count in ``stats.bad_frames``; frames *longer* than the DBC says are decoded (padding is
   common) and logged once;
 * NaN or infinite decoded values count in ``stats.bad_values`` and are delivered as they are;
-* a sample-counter jump of ``n > 1`` adds ``n - 1`` to ``stats.gaps``; a counter that goes back
-  counts in ``stats.extra["counter_resets"]``;
+* the sample counter (:class:`~twinwatch.io.counter.SampleCounter`, unwrapped): a jump of
+  ``n > 1`` adds ``n - 1`` to ``stats.gaps``; a repeated value (a duplicated frame) or one a
+  few steps back (a late frame a gateway reordered) skips that sample without losing the count
+  (``stats.extra["duplicates"]``, ``["reordered"]``); a counter that goes further back (the
+  source restarted) counts in ``stats.extra["counter_resets"]`` and its clock restarts;
 * error frames and remote (RTR) frames count in ``stats.extra["error_frames"]`` /
   ``stats.extra["remote_frames"]`` (ODrive masters poll with RTR frames: they are normal);
 * a sync message that arrives before every mapped signal has been seen once produces no sample
@@ -75,6 +78,7 @@ from twinwatch.drivers.base import (
     ScaledChannel,
     validated_config,
 )
+from twinwatch.io.counter import SampleCounter
 
 logger = logging.getLogger(__name__)
 
@@ -511,10 +515,9 @@ class CanDriver(Driver):
         # decoding state
         self._latest: dict[str, float] = {}
         self._time_value: float | None = None
-        self._counter_raw: int | None = None
-        self._counter: int | None = None  # unwrapped
         counter_bits = self._counter_bits(config)
-        self._counter_modulus: int | None = None if counter_bits is None else 1 << counter_bits
+        self._counter = SampleCounter(None if counter_bits is None else 1 << counter_bits)
+        self._skip_sync = False  # the counter said the sync's sample is a repeat or late
 
         self._source = self._open_source(config, bus)
         logger.info(
@@ -721,44 +724,41 @@ class CanDriver(Driver):
             self.log_once("counter:nonint", "CAN sample counter is not an integer: %s", value)
             return
         raw = int(value)
-        if self._counter_raw is None or self._counter is None:
-            self._counter_raw, self._counter = raw, raw
-            return
-        step = raw - self._counter_raw
-        if self._counter_modulus is not None:
-            step %= self._counter_modulus
-            backwards = step >= self._counter_modulus // 2
-        else:
-            backwards = step <= 0
-        if backwards or step == 0:
+        before = self._counter.raw
+        step, missing = self._counter.update(raw)
+        if step in ("duplicate", "stale"):
+            key = "duplicates" if step == "duplicate" else "reordered"
+            self._bump(key)
+            self._skip_sync = True
+            self.log_once(
+                f"counter:{step}",
+                "CAN sample counter %d arrived after %d (%s frame): its sample is skipped, the "
+                "count goes on; counted in stats.extra[%r]", raw, before,
+                "a repeated" if step == "duplicate" else "a late, reordered", key)
+        elif step == "reset":
             self._bump("counter_resets")
             self.log_once(
                 "counter:reset",
-                "CAN sample counter went from %d to %d (source restarted or repeated a sample)",
-                self._counter_raw,
-                raw,
-            )
-            self._counter_raw, self._counter = raw, raw
-            return
-        if step > 1:
-            self.stats.gaps += step - 1
+                "CAN sample counter went back from %d to %d (the source restarted): its clock "
+                "restarts from the new value", before, raw)
+        elif missing:
+            self.stats.gaps += missing
             self.log_once(
                 "counter:gap",
                 "CAN sample counter jumped from %d to %d: %d samples lost; counted in stats.gaps",
-                self._counter_raw,
-                raw,
-                step - 1,
-            )
-        self._counter_raw = raw
-        self._counter += step
+                before, raw, missing)
 
     def _assemble(self, frame: can.Message) -> Sample | None:
+        if self._skip_sync:  # a repeated or late counter frame: not a new sample
+            self._skip_sync = False
+            return None
         missing = [ch for ch in self.channels if ch not in self._latest]
         t: float | None
         if self._time_mode == "frame":
             t = float(frame.timestamp)
         elif self._time_mode == "counter":
-            t = None if self._counter is None else self._counter * self.sample_period
+            count = self._counter.count
+            t = None if count is None else count * self.sample_period
         else:
             t = self._time_value
         if missing or t is None:

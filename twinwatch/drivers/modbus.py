@@ -29,11 +29,13 @@ Time source (``time_source``)
     schedule counts the missed polls in ``stats.gaps``. ``"counter"``: t = counter *
     ``sample_period`` where ``counter`` is a uint16/uint32 register the device increments once
     per sample (unwrapped modulo 2**16 / 2**32), i.e. the device's own clock. Whenever a
-    counter is configured (with either time source): a counter that has not advanced since the
-    previous poll is a duplicate poll and the sample is skipped (``stats.extra["duplicates"]``);
-    a jump of ``n > 1`` adds ``n - 1`` to ``stats.gaps`` (the ring buffer downstream abandons
-    the window the gap falls in); a counter that goes back counts in
-    ``stats.extra["counter_resets"]`` and restarts the clock from the new value.
+    counter is configured (with either time source), :class:`~twinwatch.io.counter.SampleCounter`
+    unwraps it: a counter that has not advanced since the previous poll is a duplicate poll and
+    the sample is skipped (``stats.extra["duplicates"]``), one a few steps back is a stale
+    answer, skipped too (``["reordered"]``); a jump of ``n > 1`` adds ``n - 1`` to
+    ``stats.gaps`` (the ring buffer downstream abandons the window the gap falls in); a counter
+    that goes further back counts in ``stats.extra["counter_resets"]`` and restarts the clock
+    from the new value.
 
 Lock-step (``lockstep = true``)
     For a simulated device that advances one sample each time its counter block is read
@@ -100,6 +102,7 @@ from twinwatch.drivers.base import (
     Sample,
     validated_config,
 )
+from twinwatch.io.counter import SampleCounter
 from twinwatch.io.modbus_registers import (
     FUNCTION_CODES,
     MAX_READ_REGISTERS,
@@ -275,6 +278,7 @@ class _FatalConfigError(Exception):
 _EXTRA_COUNTERS = (
     "polls",
     "duplicates",
+    "reordered",
     "counter_resets",
     "timeouts",
     "connect_failures",
@@ -327,8 +331,8 @@ class ModbusDriver(Driver):
         self._counter_where = (
             None if config.counter is None else self._block_of(config.counter)
         )
-        self._counter_raw: int | None = None
-        self._counter: int | None = None  # unwrapped
+        self._counter = SampleCounter(None if config.counter is None
+                                      else config.counter.modulus)
         self._queue: queue.Queue[Sample] = queue.Queue(
             maxsize=1 if config.lockstep else _LIVE_QUEUE
         )
@@ -526,11 +530,11 @@ class ModbusDriver(Driver):
             bi, off = self._counter_where
             counter = self.config.counter
             raw = int(counter.decode(regs[bi][off : off + counter.count]))
-            if not self._on_counter(raw, counter.modulus):
+            if not self._on_counter(raw):
                 return None
             if self.config.time_source == "counter":
-                assert self._counter is not None
-                t = self._counter * self.sample_period
+                assert self._counter.count is not None
+                t = self._counter.count * self.sample_period
         values: dict[str, float] = {}
         for ch, (bi, off), m in self._where:
             value = m.decode(regs[bi][off : off + m.count]) * m.scale + m.offset
@@ -546,37 +550,37 @@ class ModbusDriver(Driver):
             values[ch] = value
         return Sample(t, values)
 
-    def _on_counter(self, raw: int, modulus: int) -> bool:
-        """Account for a counter reading; False if the poll is a duplicate."""
-        if self._counter_raw is None or self._counter is None:
-            self._counter_raw, self._counter = raw, raw
-            return True
-        step = (raw - self._counter_raw) % modulus
-        if step == 0:
+    def _on_counter(self, raw: int) -> bool:
+        """Account for a counter reading; False if the poll is not a new sample (the counter
+        has not advanced, or went back by a few steps: a stale answer)."""
+        before = self._counter.raw
+        step, missing = self._counter.update(raw)
+        if step == "duplicate":
             self.stats.extra["duplicates"] += 1
             return False
-        if step >= modulus // 2:
+        if step == "stale":
+            self.stats.extra["reordered"] += 1
+            self.log_once("counter:stale", "Modbus sample counter went back from %d to %d (a "
+                          "stale answer): the poll is skipped", before, raw)
+            return False
+        if step == "reset":
             self.stats.extra["counter_resets"] += 1
             self.log_once(
                 "counter:reset",
                 "Modbus sample counter went back from %d to %d (device restarted?)",
-                self._counter_raw,
+                before,
                 raw,
             )
-            self._counter_raw, self._counter = raw, raw
-            return True
-        if step > 1:
-            self.stats.gaps += step - 1
+        elif missing:
+            self.stats.gaps += missing
             self.log_once(
                 "counter:gap",
                 "Modbus sample counter jumped from %d to %d: %d samples missed; counted in "
                 "stats.gaps",
-                self._counter_raw,
+                before,
                 raw,
-                step - 1,
+                missing,
             )
-        self._counter_raw = raw
-        self._counter += step
         return True
 
     def _deliver(self, sample: Sample) -> None:
