@@ -246,3 +246,25 @@ if __name__ == "__main__":
     import sys
 
     _serve(json.loads(sys.argv[1]))
+
+
+def plant_asc_log(path: Path, seconds: float, *, bad: int = 0, seed: int = 0) -> int:
+    """A Vector ASC log (python-can's writer: header, absolute time stamps) of the simulated
+    DC motor, with ``bad`` of its frame lines replaced by malformed ones, spread evenly.
+
+    Returns:
+        The log's number of lines.
+    """
+    import can
+
+    with can.ASCWriter(path) as writer:
+        for stamp, frame_id, data in plant_frames(seconds, seed=seed):
+            writer.on_message_received(can.Message(timestamp=stamp, arbitration_id=frame_id,
+                                                   data=data, is_extended_id=False))
+    lines = path.read_text().splitlines()
+    frames = [i for i, ln in enumerate(lines) if " Rx " in ln]
+    for j in range(bad):
+        i = frames[(j * len(frames)) // bad + len(frames) // (2 * bad)]
+        lines[i] = lines[i].split(" Rx ")[0] + " Rx   d 8 ZZ"  # a data byte that is not hex
+    path.write_text("\n".join(lines) + "\n")
+    return len(lines)

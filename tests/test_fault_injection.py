@@ -1626,6 +1626,32 @@ def _can_counter_duplicate_and_reorder(ctx: Context) -> dict[str, Any]:
             "counter_resets": c.get("driver_counter_resets", 0)}
 
 
+@case("issue 15: an ASC log with 300 malformed lines in 18,000: each costs O(1) (lines read "
+      "per line of the log)", end="end of stream", samples=6000, bad_frames=300,
+      reads_per_line_at_most_1_01=True)
+def _asc_log_bad_lines_linear(ctx: Context) -> dict[str, Any]:
+    from twinwatch.drivers import can as can_driver
+
+    from .sources_support import plant_asc_log
+
+    log = ctx.tmp / "m.asc"
+    n_lines = plant_asc_log(log, 60.0, bad=300)
+    reads = [0]
+    original = can_driver._Lines.__next__
+
+    def counted(self: Any) -> str:
+        line = original(self)
+        reads[0] += 1
+        return line
+
+    ctx.monkeypatch.setattr(can_driver._Lines, "__next__", counted)
+    samples, stats, end = replay(can_log_driver(log), ctx.tmp)
+    print(f"\n{n_lines} lines, {stats.bad_frames} malformed: {reads[0]} lines read "
+          f"({reads[0] / n_lines:.2f} per line of the log)")
+    return {"end": end, "samples": len(samples), "bad_frames": stats.bad_frames,
+            "reads_per_line_at_most_1_01": reads[0] <= 1.01 * n_lines}
+
+
 # -- the table ------------------------------------------------------------------------------
 @pytest.mark.parametrize("fault", [pytest.param(c, marks=pytest.mark.slow) if c.slow else c
                                    for c in CASES], ids=[c.name for c in CASES])
