@@ -14,7 +14,7 @@ the windows stored before and after.
 Usage::
 
     python benchmarks/bench_sources.py replay [--runs 3]
-    python benchmarks/bench_sources.py gateway [--outage 5]
+    python benchmarks/bench_sources.py gateway [--outage 5] [--twinwatch /work/main]
 """
 
 from __future__ import annotations
@@ -81,7 +81,16 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def gateway(outage: float) -> None:
+def _prelude(checkout: str | None) -> str:
+    """Python run in the daemon's process first: import twinwatch from ``checkout`` (another
+    worktree, for a before/after figure) instead of the installed one."""
+    if not checkout:
+        return ""
+    return ("import sys\nsys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in "
+            f"repr(f).lower()]\nsys.path.insert(0, {checkout!r})")
+
+
+def gateway(outage: float, checkout: str | None = None) -> None:
     from tests.sources_support import SocketcandServer, gateway_config
     from tests.test_fault_injection import Service
     from tests.test_service import db_rows
@@ -89,7 +98,7 @@ def gateway(outage: float) -> None:
     with tempfile.TemporaryDirectory() as tmp_s, SocketcandServer() as server:
         tmp = Path(tmp_s)
         cfg = gateway_config(tmp, server.port)
-        svc = Service(cfg, tmp)
+        svc = Service(cfg, tmp, prelude=_prelude(checkout))
         db = tmp / "state.sqlite"
         try:
             if not svc.wait_for("twinwatch.daemon.pipeline: window ", n=2, timeout=120):
@@ -103,7 +112,7 @@ def gateway(outage: float) -> None:
             c1, w1 = _cpu_seconds(svc.proc.pid), time.monotonic()
             server.start()
             back = time.monotonic()
-            ok = svc.wait_for("delivers again", "reconnected", timeout=60)
+            ok = svc.wait_for("is open again", "delivers samples again", timeout=60)
             reconnect_s = time.monotonic() - back
             n = len(db_rows(db))
             resumed = svc.wait_for("twinwatch.daemon.pipeline: window ", n=before + 2,
@@ -127,11 +136,13 @@ def main() -> None:
     r.add_argument("--runs", type=int, default=3)
     g = sub.add_parser("gateway")
     g.add_argument("--outage", type=float, default=5.0)
+    g.add_argument("--twinwatch", default=None, metavar="CHECKOUT",
+                   help="run the daemon from this checkout (e.g. a worktree of main)")
     args = p.parse_args()
     if args.what == "replay":
         replay(args.runs)
     else:
-        gateway(args.outage)
+        gateway(args.outage, args.twinwatch)
 
 
 if __name__ == "__main__":

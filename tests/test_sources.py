@@ -121,3 +121,13 @@ def test_counter_restart_near_its_old_value_is_a_reset_after_a_few_readings():
         c.update(k)
     assert [c.update(k)[0] for k in (2, 3, 4)] == ["stale", "stale", "reset"]
     assert c.count == 4 and c.update(5) == ("next", 0)
+
+
+def test_one_missing_sample_on_an_exact_clock_is_a_gap_whatever_the_rounding():
+    """At tolerance 0.5 a sample exactly one period late spans a band of one period: a gap,
+    never placed on the grid (t = counter * 0.01 rounds either side of the band)."""
+    for first in (0, 37, 430, 814, 7777, 123456):
+        rb = RingBuffer(("a",), window=10, sample_period=T)
+        counts = [first + k for k in range(4)] + [first + k for k in range(5, 20)]
+        _feed(rb, np.asarray(counts) * T)
+        assert rb.causes["gap"] == 1 and rb.causes["jitter"] == 0 and rb.windows == 1

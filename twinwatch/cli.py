@@ -396,18 +396,26 @@ def check_config(config: Path) -> None:
     except ConfigError as exc:
         click.echo(str(exc), err=True)
         sys.exit(1)
-    # Drivers validate what only they can check (DBC names, files, columns) at open time;
-    # open them without starting acquisition where that cannot touch a device.
-    from twinwatch.drivers import DriverError, create_driver, get_driver_class
+    # Drivers validate what only they can check (DBC names, files, columns) at open time:
+    # open the source without starting acquisition and without sending (a live interface
+    # receive-only where it allows), and say if it cannot be opened.
+    from twinwatch.drivers import DriverConfigError, DriverError, get_driver_class
 
-    if get_driver_class(cfg.driver.type).safe_to_probe(cfg.driver):
-        try:
-            create_driver(cfg.driver, base_dir=config.resolve().parent).close()
-        except DriverError as exc:
-            click.echo(f"{config}: driver: {exc}", err=True)
-            sys.exit(1)
+    try:
+        probed = get_driver_class(cfg.driver.type).probe(cfg.driver,
+                                                          base_dir=config.resolve().parent)
+    except DriverConfigError as exc:
+        click.echo(f"{config}: driver: {exc}", err=True)
+        sys.exit(1)
+    except DriverError as exc:
+        click.echo(f"{config}: the configuration is valid; the source cannot be opened here: "
+                   f"{exc} (`run` would wait for it)"
+                   if get_driver_class(cfg.driver.type).reopens(cfg.driver)
+                   else f"{config}: driver: {exc}", err=True)
+        sys.exit(1)
     click.echo(f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
-               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})")
+               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})"
+               + (f"; source: {probed}" if probed and probed != "opened" else ""))
 
 
 def _fraction_range(value: str | None) -> tuple[float, float] | None:

@@ -228,6 +228,9 @@ class AcquisitionConfig(BaseModel):
         "span around their slots on the nominal grid, in sample periods (0.5: narrower than a "
         "period, each stamp in its own slot; the samples are placed on the grid; a stamp "
         "beyond it is a gap or jitter beyond tolerance and abandons the window)")
+    reopen_max: float = Field(30.0, ge=0.5, le=3600, description="cap of the delay [s] "
+                              "between attempts to open a live source that is absent or "
+                              "failed (a bus, a device: waited for, never an exit)")
     queue: int = Field(4, ge=1, le=1000, description="windows waiting for the estimator")
     history: int = Field(1000, ge=1, le=100_000, description="health messages kept in memory")
     stall_timeout: float = Field(5.0, gt=0, description="seconds without a sample before a "

@@ -71,6 +71,11 @@ CAUSES: tuple[Cause, ...] = ("gap", "time_back", "jitter", "bad_value", "missing
 #: The largest ``jitter_tolerance`` [periods]: a band of offsets one period wide or wider
 #: cannot tell a late sample from the next one.
 MAX_JITTER_TOLERANCE = 0.5
+#: Offsets are compared with the band less this many periods: a stamp exactly one period late
+#: (a missing sample on an exact clock) is a gap at tolerance 0.5 whatever the rounding.
+_BAND_MARGIN = 1e-6
+#: A steady drift is told from a gap only over this many samples of a window.
+_DRIFT_MIN_SAMPLES = 10
 #: Stamps within this fraction of a period of their grid are kept as they are (exact sources).
 GRID_EXACT = 1e-6
 
@@ -171,7 +176,7 @@ class RingBuffer:
         offset = (t - self._t_first) - n * period
         lo, hi = min(self._lo, offset), max(self._hi, offset)
         tol = self.jitter_tolerance
-        if hi - lo < 2.0 * tol * period:
+        if hi - lo < (2.0 * tol - _BAND_MARGIN) * period:
             return
         drift = self._drift(n, offset)
         rho = (offset - 0.5 * (self._lo + self._hi)) / period
@@ -197,7 +202,7 @@ class RingBuffer:
         """The mean step [s] of stamps that drift off the grid at a steady rate (a clock at
         another rate than the period), when the offsets so far and ``offset`` (sample ``n``)
         lie on a line within the tolerance and that line spans the band; else None."""
-        if n < 3:
+        if n < _DRIFT_MIN_SAMPLES:
             return None
         sk, sk2, so, sko = self._sums
         den = n * sk2 - sk * sk

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
-from twinwatch.drivers import create_driver
+from twinwatch.daemon.source import open_source
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
 from twinwatch.sinks.base import Gate, Role, Sink, SinkContext
@@ -97,6 +97,9 @@ class Daemon:
         defer: outputs (registry names) not to open yet: the running daemon holds their file
             or port (a reload that changed their table, :meth:`handover`'s ``wait``);
             :meth:`open_deferred` opens them once it has released them.
+        wait_for_source: a live source that cannot be opened now is waited for
+            (:mod:`twinwatch.daemon.source`: the daemon starts and says what it waits for);
+            False raises instead (a reload: the running configuration goes on).
 
     Attributes:
         sinks: registry name -> the open output, in the order each window is written to them
@@ -124,6 +127,7 @@ class Daemon:
         reuse: Mapping[str, Any] | None = None,
         resume: bool = True,
         defer: Collection[str] = (),
+        wait_for_source: bool = True,
     ) -> None:
         self.config = config
         self.base_dir = base_dir or Path.cwd()
@@ -176,8 +180,9 @@ class Daemon:
             self._open_sinks(self._roles, reuse, skip=defer)
             if self.store is not None and resume:
                 self._restore()
-            self.driver = handed_driver or driver or create_driver(config.driver,
-                                                                   base_dir=self.base_dir)
+            self.driver = handed_driver or driver or open_source(
+                config.driver, base_dir=self.base_dir, wait=wait_for_source,
+                backoff_max=config.acquisition.reopen_max)
         except BaseException:
             for name in self._adopted:  # the running daemon's: not ours to close
                 self.sinks.pop(name, None)

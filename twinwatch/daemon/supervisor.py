@@ -245,7 +245,8 @@ class Supervisor:
             self.daemon.add_callback(fn)
 
     def _open(self, cfg: TwinwatchConfig, reuse: dict[str, Any] | None = None,
-              resume: bool = True, defer: tuple[str, ...] = ()) -> Daemon:
+              resume: bool = True, defer: tuple[str, ...] = (),
+              wait_for_source: bool = True) -> Daemon:
         """A daemon on ``cfg`` (driver and sinks open, the twin's kernels compiled), with the
         reload tick and callbacks. Runs in a :class:`_Build`'s thread.
 
@@ -256,7 +257,8 @@ class Supervisor:
 
         with _start_errors():
             daemon = Daemon(cfg, base_dir=self.base_dir, persist=True, watchdog=self.watchdog,
-                            reuse=reuse, resume=resume, defer=defer)
+                            reuse=reuse, resume=resume, defer=defer,
+                            wait_for_source=wait_for_source)
         daemon.add_tick(self._check_reload)
         daemon.add_tick(self._refresh_status)
         daemon.add_callback(self._watch_problems)
@@ -364,7 +366,8 @@ class Supervisor:
                  for name in keep}
         logger.warning("reloading %s: starting the new configuration beside the running one",
                        self.source)
-        self._build = _Build(lambda: self._open(new_cfg, reuse=reuse, resume=False, defer=defer),
+        self._build = _Build(lambda: self._open(new_cfg, reuse=reuse, resume=False, defer=defer,
+                                                wait_for_source=False),
                              keep=keep, config=new_cfg, name="twinwatch-reload")
 
     def _handover(self, new_cfg: TwinwatchConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:

@@ -195,6 +195,38 @@ class Driver(Closeable, abc.ABC):
         return False
 
     @classmethod
+    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
+        """What ``check-config`` does to the configured source: open it without reading and
+        without sending, and close it. Default: a source :meth:`safe_to_probe` is opened
+        through :meth:`from_config`; others are not touched (None).
+
+        Returns:
+            What was checked, for a person, or None when nothing was opened.
+
+        Raises:
+            DriverError: the source cannot be opened (the message says why).
+        """
+        if not cls.safe_to_probe(config):
+            return None
+        cls.from_config(config, base_dir=base_dir).close()
+        return "opened"
+
+    @classmethod
+    def reopens(cls, config: DriverConfig) -> bool:
+        """Whether the configured source is *live* and may come and go (a bus, a device, a
+        gateway): the daemon then waits for it at start and opens it again when the driver
+        gives up (:class:`~twinwatch.errors.DriverOperationError`), with a capped backoff
+        (:mod:`twinwatch.daemon.source`). False (default) for a finite source (a file, a log
+        replay, a simulation): a failure to open it fails at once."""
+        return False
+
+    @classmethod
+    def describe(cls, config: DriverConfig) -> str:
+        """The configured source for a person, in log lines and STATUS (default: ``"the
+        <type> source"``)."""
+        return f"the {config.type} source"
+
+    @classmethod
     def sample(cls, name: str) -> str:
         """The commented sample of its ``[driver]`` table for ``twinwatch sample-config
         --driver <name>`` (a built-in ships its own, ``config/samples/driver_<name>.toml``).

@@ -45,16 +45,21 @@ Lock-step (``lockstep = true``)
     instead of dropping windows). Needs ``time_source = "counter"``. Otherwise ``live`` is True.
 
 Failures
-    A request that times out, a refused or dropped connection, and an exception response that
-    means "busy / failed / gateway" count in ``stats.errors`` (and in ``stats.extra``:
+    A request that times out, a refused or dropped connection, and an exception response a
+    device gives for a while (02 ILLEGAL DATA ADDRESS: a PLC being reprogrammed answers it for
+    its registers; 04 device failure, 05, 06 busy, 0A/0B gateway) count in ``stats.errors``
+    (and in ``stats.extra``:
     ``timeouts``, ``connect_failures``, ``exception_responses``). The client is then closed and
     reopened after a jittered exponential backoff (0.1 s doubling up to ``backoff_max``). An
     outage is logged at ERROR once, at DEBUG while it lasts, and at WARNING on recovery with its
     duration (``stats.extra["outages"]``, ``["reconnects"]``); pymodbus' own error messages
     from the polling thread are demoted to DEBUG meanwhile. While the device is down,
-    ``read(timeout)`` returns None after ``timeout``. An exception response ILLEGAL FUNCTION,
-    ILLEGAL DATA ADDRESS or ILLEGAL DATA VALUE means the register map does not match the device:
-    the polling stops and ``read`` raises :class:`~twinwatch.drivers.base.DriverOperationError`.
+    ``read(timeout)`` returns None after ``timeout`` and :attr:`ModbusDriver.waiting` says
+    since when and why (the daemon's STATUS). An exception response ILLEGAL FUNCTION or ILLEGAL
+    DATA VALUE means the register map does not match the device: the polling stops and
+    ``read`` raises :class:`~twinwatch.drivers.base.DriverOperationError` (the daemon opens the
+    driver again with a longer backoff, :mod:`twinwatch.daemon.source`: the unit stays up and
+    STATUS says why).
     A decoded NaN or infinite value counts in ``stats.bad_values`` and is delivered as it is;
     a response with the wrong number of registers counts in ``stats.bad_frames``.
 
@@ -134,7 +139,13 @@ __all__ = [  # the register map is re-exported from twinwatch.io.modbus_register
 ]
 
 #: exception codes that mean "the register map does not fit this device" (not transient)
-_FATAL_EXCEPTION_CODES = {1: "ILLEGAL FUNCTION", 2: "ILLEGAL DATA ADDRESS", 3: "ILLEGAL DATA VALUE"}
+_FATAL_EXCEPTION_CODES = {1: "ILLEGAL FUNCTION", 3: "ILLEGAL DATA VALUE"}
+#: exception codes a device answers for a while (a PLC being reprogrammed answers 02 for its
+#: registers, a gateway 0A/0B for a device behind it): retried with backoff, never fatal
+_TRANSIENT_EXCEPTION_CODES = {2: "ILLEGAL DATA ADDRESS", 4: "SERVER DEVICE FAILURE",
+                              5: "ACKNOWLEDGE", 6: "SERVER DEVICE BUSY",
+                              10: "GATEWAY PATH UNAVAILABLE",
+                              11: "GATEWAY TARGET DEVICE FAILED TO RESPOND"}
 _BACKOFF_INITIAL = 0.1  # [s]
 _POLL_THREAD_NAME = "twinwatch-modbus-poll"
 
@@ -314,6 +325,36 @@ class ModbusDriver(Driver):
     sample_machine = "hydraulic-modbus"
     sample_title = "a hydraulic actuator read from a Modbus device"
 
+    @classmethod
+    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
+        """``check-config``: connect to the device (TCP) or open the serial port (RTU), send
+        nothing, close.
+
+        Raises:
+            DriverInitializationError: the device does not accept a connection.
+        """
+        assert isinstance(config, ModbusDriverConfig)
+        client = cls._make_client(config)
+        try:
+            if not client.connect():
+                raise DriverInitializationError(
+                    f"Modbus device {config.describe_endpoint()} does not accept a connection")
+        finally:
+            client.close()
+        return f"Modbus device {config.describe_endpoint()} accepted a connection (nothing sent)"
+
+    @classmethod
+    def reopens(cls, config: DriverConfig) -> bool:
+        """A device may come and go: the driver reconnects itself, and a driver that gave up
+        (the register map refused) is opened again by the daemon with backoff."""
+        return True
+
+    @classmethod
+    def describe(cls, config: DriverConfig) -> str:
+        """``"Modbus device tcp 127.0.0.1:502 device 1"``."""
+        assert isinstance(config, ModbusDriverConfig)
+        return f"Modbus device {config.describe_endpoint()}"
+
     def __init__(self, config: ModbusDriverConfig) -> None:
         super().__init__()
         self.config = config
@@ -339,6 +380,7 @@ class ModbusDriver(Driver):
         self._stop = threading.Event()
         self._fatal: str | None = None
         self._down_since: float | None = None
+        self._last_error = ""
         self._rng = random.Random()
         self.client = self._make_client(config)
         self._thread = threading.Thread(
@@ -507,7 +549,12 @@ class ModbusDriver(Driver):
                         f"{self.config.describe_endpoint()} answered {_FATAL_EXCEPTION_CODES[code]}"
                         f" to a read of {what}: the register map does not match the device"
                     )
-                raise _DeviceFailure("exception_responses", f"exception {code} reading {what}")
+                name = _TRANSIENT_EXCEPTION_CODES.get(code, "")
+                hint = (" (while a PLC is reprogrammed; if it lasts, the register map does not "
+                        "match the device)" if code == 2 else "")
+                raise _DeviceFailure(
+                    "exception_responses",
+                    f"exception {code:02d}{f' {name}' if name else ''} reading {what}{hint}")
             regs = list(rr.registers)
             if len(regs) != block.count:
                 self.stats.bad_frames += 1
@@ -607,9 +654,21 @@ class ModbusDriver(Driver):
             )
             self._queue.put_nowait(sample)
 
+    @property
+    def waiting(self) -> str | None:
+        """While the device does not answer (or answers with exceptions): since when and the
+        last error; None while it delivers."""
+        since = self._down_since
+        if since is None:
+            return None
+        return (f"Modbus device {self.config.describe_endpoint()} not answering for "
+                f"{time.monotonic() - since:.0f} s ({self._last_error}); retrying with backoff "
+                f"up to {self.config.backoff_max:g} s")
+
     def _on_failure(self, exc: _DeviceFailure) -> None:
         self.stats.errors += 1
         self.stats.extra[exc.kind] += 1
+        self._last_error = str(exc)
         if self._down_since is None:
             self._down_since = time.monotonic()
             self.stats.extra["outages"] += 1
