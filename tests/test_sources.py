@@ -131,3 +131,156 @@ def test_one_missing_sample_on_an_exact_clock_is_a_gap_whatever_the_rounding():
         counts = [first + k for k in range(4)] + [first + k for k in range(5, 20)]
         _feed(rb, np.asarray(counts) * T)
         assert rb.causes["gap"] == 1 and rb.causes["jitter"] == 0 and rb.windows == 1
+
+
+# -- sources that come and go -------------------------------------------------------------------
+class _Flaky:
+    """A driver factory whose source is absent for the first ``absent`` attempts; the driver it
+    opens delivers ``samples`` samples, then gives up (its connection closed)."""
+
+    def __init__(self, absent: int, samples: int = 3) -> None:
+        self.absent = absent
+        self.samples = samples
+        self.attempts = 0
+        self.opened: list = []
+
+    def __call__(self):  # type: ignore[no-untyped-def]
+        from twinwatch.drivers.base import (
+            Driver,
+            DriverInitializationError,
+            DriverOperationError,
+            Sample,
+        )
+
+        self.attempts += 1
+        if self.attempts <= self.absent:
+            raise DriverInitializationError(f"connection refused (attempt {self.attempts})")
+        left = self.samples
+
+        class Once(Driver):
+            channels = ("a",)
+
+            @classmethod
+            def from_config(cls, config, *, base_dir=None):  # type: ignore[no-untyped-def]
+                raise NotImplementedError
+
+            def _read_internal(self, timeout):  # type: ignore[no-untyped-def]
+                nonlocal left
+                if left == 0:
+                    raise DriverOperationError("connection closed")
+                left -= 1
+                self.stats.frames += 2
+                return Sample(0.0, {"a": 1.0})
+
+        d = Once()
+        self.opened.append(d)
+        return d
+
+
+def _config():  # type: ignore[no-untyped-def]
+    from twinwatch.drivers.base import DriverConfig
+
+    return DriverConfig(type="test")
+
+
+def test_keeper_waits_for_an_absent_source_and_says_so():
+    import random
+    import time
+
+    from twinwatch.daemon.source import SourceKeeper
+
+    flaky = _Flaky(absent=3)
+    keeper = SourceKeeper(flaky, config=_config(), describe="the test source",
+                          backoff_max=0.5, rng=random.Random(0))
+    try:
+        assert keeper.waiting is not None and "the test source cannot be opened" in (
+            keeper.waiting) and "connection refused (attempt 1)" in keeper.waiting
+        t0 = time.monotonic()
+        got = []
+        while time.monotonic() - t0 < 10 and len(got) < 3:
+            s = keeper.read(timeout=0.1)
+            if s is not None:
+                got.append(s)
+        assert len(got) == 3 and flaky.attempts == 4
+        assert keeper.waiting is None
+        assert keeper.stats.extra["open_failures"] == 3 and keeper.stats.extra["reopens"] == 1
+    finally:
+        keeper.close()
+
+
+def test_keeper_reopens_a_driver_that_gives_up_and_its_counters_add_up():
+    import time
+
+    from twinwatch.daemon.source import SourceKeeper
+
+    flaky = _Flaky(absent=0, samples=2)
+    keeper = SourceKeeper(flaky, config=_config(), describe="the test source",
+                          backoff_max=0.5)
+    try:
+        got = 0
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 10 and got < 6:
+            got += keeper.read(timeout=0.1) is not None
+        assert got == 6 and len(flaky.opened) == 3
+        assert keeper.stats.frames == 12  # 2 frames per sample, over three drivers
+        assert all(d.closed for d in flaky.opened[:2])
+    finally:
+        keeper.close()
+    assert flaky.opened[-1].closed
+
+
+def test_keeper_read_waits_its_timeout_without_spinning():
+    import time
+
+    from twinwatch.daemon.source import SourceKeeper
+
+    keeper = SourceKeeper(_Flaky(absent=10**6), config=_config(), describe="absent",
+                          backoff_max=0.5)
+    try:
+        c0, t0 = time.process_time(), time.monotonic()
+        for _ in range(10):
+            assert keeper.read(timeout=0.1) is None
+        wall, cpu = time.monotonic() - t0, time.process_time() - c0
+        assert wall >= 0.95 and cpu < 0.5 * wall
+    finally:
+        keeper.close()
+
+
+def test_keeper_at_a_reload_and_a_configuration_error_fail_at_once():
+    from twinwatch.daemon.source import SourceKeeper
+    from twinwatch.drivers.base import DriverConfigError, DriverInitializationError
+
+    with pytest.raises(DriverInitializationError, match="refused"):
+        SourceKeeper(_Flaky(absent=1), config=_config(), describe="x", wait=False)
+
+    def bad_config():  # type: ignore[no-untyped-def]
+        raise DriverConfigError("dbc: message 'X' not in DBC")
+
+    with pytest.raises(DriverConfigError):
+        SourceKeeper(bad_config, config=_config(), describe="x")
+
+
+def test_backoff_is_capped_and_jittered():
+    import random
+    import time
+
+    from twinwatch.daemon import source
+
+    flaky = _Flaky(absent=10**6)
+    delays: list[float] = []
+    keeper = source.SourceKeeper(flaky, config=_config(), describe="absent", backoff_max=1.0,
+                                 rng=random.Random(1))
+    try:
+        last = None
+        t_end = time.monotonic() + 4.0
+        while time.monotonic() < t_end:
+            nxt = keeper._next_try
+            if nxt is not None and nxt != last:
+                delays.append(nxt - time.monotonic())
+                last = nxt
+            time.sleep(0.01)
+    finally:
+        keeper.close()
+    # steps of 0.5, 1, 1, ... s, each delay drawn in [50 %, 100 %] of its step
+    assert 0.2 <= delays[0] <= 0.5 and 0.5 <= max(delays) <= 1.0
+    assert 3 <= flaky.attempts <= 1 + 4.0 / 0.5
