@@ -80,8 +80,7 @@ def expected_rows(machine: str, windows: int) -> Counter[str]:
         counts[f"/{machine}/parameters/{p}"] = windows
     counts[f"/{machine}/health"] = windows
     counts[f"/{machine}/log"] = windows
-    if windows:
-        counts[f"/{machine}/model"] = 1  # the twin's structure, logged with the first window
+    counts[f"/{machine}/model"] = windows  # the twin DT'' at each window
     return counts
 
 
@@ -318,10 +317,10 @@ def test_config_is_strict() -> None:
 
 def test_rotation_writes_complete_files_and_leaks_no_stream(tmp_path: Path) -> None:
     """``rotate_windows = 3``, ``keep_files = 2``, 10 windows: files of windows 0-2, 3-5, 6-8
-    (the first deleted), then the current file with window 9. Each file verifies, holds its
-    own windows, model document and series styles; the process has no more threads after
-    three rotations than before (one recording stream is re-pointed, never replaced: the SDK
-    never frees a Python stream, rerun-io/rerun#2116)."""
+    (the first deleted), then the run's file with window 9 (``path`` links to it). Each file
+    verifies, holds its own windows, model document and series styles; the process has no more
+    threads after three rotations than before (one recording stream is re-pointed, never
+    replaced: the SDK never frees a Python stream, rerun-io/rerun#2116)."""
     path = tmp_path / "m1.rrd"
     cfg = RecordingConfig(path=str(path), rotate_windows=3, keep_files=2)
     with RerunRecorder(cfg, "m1", outputs=OUTPUTS, parameters=PARAMETERS) as rec:
@@ -330,7 +329,8 @@ def test_rotation_writes_complete_files_and_leaks_no_stream(tmp_path: Path) -> N
             rec.log_window(**window(k))
         assert rec.rotations == 3 and rec.errors == 0
         assert len(os.listdir("/proc/self/task")) <= threads
-    rotated = sorted(tmp_path.glob("m1.*.rrd"))
+    assert path.is_symlink() and path.resolve() == rec.path  # the run's file, m1-<UTC>.rrd
+    rotated = sorted(tmp_path.glob(f"{rec.path.stem}.*.rrd"))
     assert [p.name.split(".")[-2] for p in rotated] == ["0001", "0002"]
     assert (tmp_path / "m1.rbl").is_file()  # the viewer layout for rotated files
     for f, windows in ((rotated[0], 3), (rotated[1], 3), (path, 1)):

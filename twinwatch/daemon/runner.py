@@ -40,7 +40,7 @@ from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import Gate, Role, Sink, SinkContext
+from twinwatch.sinks.base import AlarmBands, Gate, Role, Sink, SinkContext
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
@@ -605,11 +605,22 @@ class Daemon:
 
 def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path) -> SinkContext:
     """The outputs' context for a daemon on ``config`` (without the stored history)."""
+    bands = {}
+    if config.alarms.enabled:
+        for name, rule in config.alarms.parameters.items():
+            (w_high, w_low), (a_high, a_low) = rule.thresholds("warning"), rule.thresholds("alarm")
+            bands[name] = AlarmBands(warning_high=w_high, warning_low=w_low, alarm_high=a_high,
+                                     alarm_low=a_low)
     return SinkContext(machine=config.machine.name, model=config.machine.model,
                        outputs=tuple(model.output_names),
                        parameters={p.name: p.unit for p in model.parameters},
                        base_dir=base_dir, cwd=Path.cwd(),
-                       recent_windows=config.acquisition.history)
+                       recent_windows=config.acquisition.history,
+                       output_units={o.name: o.unit for o in model.outputs},
+                       nominal={p.name: float(config.machine.parameters.get(p.name, p.nominal))
+                                for p in model.parameters},
+                       estimated=tuple(config.estimation.estimate or ()),
+                       alarm_bands=bands)
 
 
 def _close(name: str, obj: Sink | Driver) -> None:

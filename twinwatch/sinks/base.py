@@ -52,6 +52,7 @@ if TYPE_CHECKING:  # annotations only: opening a sink does not load the twin's e
     from twinwatch.twin.model import WindowData
 
 __all__ = [
+    "AlarmBands",
     "Gate",
     "HistoryQuery",
     "ProcessedWindow",
@@ -99,6 +100,17 @@ class HistoryQuery(Protocol):
 
 
 @dataclass(frozen=True)
+class AlarmBands:
+    """One parameter's ``[alarms]`` thresholds as signed deviations from nominal [%] (None:
+    the rule has no such threshold; a symmetric rule gives both sides)."""
+
+    warning_high: float | None = None
+    warning_low: float | None = None
+    alarm_high: float | None = None
+    alarm_low: float | None = None
+
+
+@dataclass(frozen=True)
 class SinkContext:
     """What a sink needs from the daemon that opens it (not the whole configuration).
 
@@ -115,6 +127,12 @@ class SinkContext:
         recent_windows: the windows the daemon keeps in memory (``[acquisition] history``):
             the gate keeps as many of those it wrote, to write them again to a database file
             deleted or replaced under it.
+        output_units: output -> SI unit (``{"ia": "A", "omega": "rad/s"}``).
+        nominal: parameter -> the nominal value the deviations are measured from [SI].
+        estimated: the parameters the twin estimates (``[estimation] estimate``), in
+            priority order; the others are tied or fixed.
+        alarm_bands: parameter -> its ``[alarms]`` thresholds, for an output that draws them
+            (empty when alarms are off).
     """
 
     machine: str
@@ -125,6 +143,10 @@ class SinkContext:
     cwd: Path = field(default_factory=Path.cwd)
     history: HistoryQuery | None = None
     recent_windows: int = 1000
+    output_units: Mapping[str, str] = field(default_factory=dict)
+    nominal: Mapping[str, float] = field(default_factory=dict)
+    estimated: tuple[str, ...] = ()
+    alarm_bands: Mapping[str, AlarmBands] = field(default_factory=dict)
 
 
 class SinkConfig(BaseModel):
