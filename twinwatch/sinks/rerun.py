@@ -384,6 +384,8 @@ class RerunRecorder(Sink):
             logger.info("rerun recording disabled for %s", machine)
             return
         self._recording_id = uuid.uuid4()  # every file of this recorder shares it
+        if config.serve:
+            self._probe_port()  # before any file is touched
         self._file_lock = self._claim(run)
         try:
             self._rec = self._open_stream()
@@ -641,14 +643,16 @@ class RerunRecorder(Sink):
             lock.release()
 
     # -- live viewing ----------------------------------------------------------------------------
-    def _open_live(self) -> rr.RecordingStream:
-        """A second recording stream (same recording id) whose only sink is Rerun's gRPC server
-        on ``serve_bind:serve_port``, with the blueprint; the file's stream never touches it.
+    def _probe_port(self) -> None:
+        """The live server's address is free.
 
         Raises:
-            RecorderError: the port is taken, or the server does not listen in time.
+            RecorderError: naming the address and the key to change.
         """
         bind, port = self.config.serve_bind, self.config.serve_port
+        with _LIVE_LOCK:
+            if (bind, port) in _LIVE:
+                return  # this process's server, kept from a recorder closed before
         family = socket.AF_INET6 if ":" in bind else socket.AF_INET
         with socket.socket(family, socket.SOCK_STREAM) as probe:
             probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -658,10 +662,35 @@ class RerunRecorder(Sink):
                 raise RecorderError(
                     f"cannot serve the recording live on {bind}:{port}: {exc.strerror or exc} "
                     "(another viewer or twinwatch?); set [recording] serve_port") from None
+
+    def _open_live(self) -> rr.RecordingStream:
+        """A second recording stream whose only sink is Rerun's gRPC server on
+        ``serve_bind:serve_port``, with the blueprint; the file's stream never touches it.
+
+        The server of a recorder closed before in this process (a reload) is taken over, with
+        its viewers and its history: a gRPC server does not stop while a viewer is connected
+        (Rerun SDK 0.41), so it is kept for the life of the process instead.
+
+        Raises:
+            RecorderError: the server does not listen in time.
+        """
+        bind, port = self.config.serve_bind, self.config.serve_port
+        blueprint = self.views.blueprint()
+        with _LIVE_LOCK:
+            parked = _LIVE.pop((bind, port), None)
+        if parked is not None:
+            live, self._live_url = parked
+            live.send_blueprint(blueprint, make_active=True, make_default=True)
+            self._log_static(live)
+            logger.info("recording of %s served live (the server goes on): rerun %s",
+                        self.machine, self._live_url)
+            return live
         live = rr.RecordingStream(self.config.application_id, recording_id=self._recording_id)
         sink = rr.GrpcServerSink(bind_ip=bind, port=port,
                                  server_memory_limit=self.config.server_memory_limit)
-        live.set_sinks(sink, default_blueprint=self.views.blueprint())
+        live.set_sinks(sink, default_blueprint=blueprint)
+        url = sink.uri
+        del sink  # the stream owns the server
         self._log_static(live)
         deadline = time.monotonic() + self.serve_timeout
         while True:
@@ -675,7 +704,7 @@ class RerunRecorder(Sink):
                     raise RecorderError(f"the live recording server on {bind}:{port} does not "
                                         f"listen ({exc})") from None
                 time.sleep(0.05)
-        self._live_url = sink.uri
+        self._live_url = url
         logger.info("recording of %s served live: rerun %s", self.machine, self._live_url)
         return live
 
@@ -1020,8 +1049,9 @@ class RerunRecorder(Sink):
         return True
 
     def close(self) -> None:
-        """Flush, write the footer and close the file; stop the live server. Idempotent; the
-        file is then complete."""
+        """Flush, write the footer and close the file; the live server, flushed, is kept for
+        the next recorder on its address (it ends with the process). Idempotent; the file is
+        then complete."""
         with self._lock:
             if self._closed:
                 return
@@ -1029,9 +1059,13 @@ class RerunRecorder(Sink):
             live, self._live = self._live, None
             if live is not None:
                 try:
-                    live.disconnect()
+                    live.flush(timeout_sec=self.flush_timeout)
                 except Exception as exc:  # noqa: BLE001 - the file still closes
-                    logger.warning("closing the live recording server: %s", exc)
+                    logger.warning("flushing the live recording server: %s", exc)
+                assert self._live_url is not None
+                with _LIVE_LOCK:  # a later recorder on this address goes on with it
+                    _LIVE[(self.config.serve_bind, self.config.serve_port)] = (
+                        live, self._live_url)
             rec, self._rec = self._rec, None
             if rec is None:  # never opened, or its file writer died (abandoned)
                 self._release()
@@ -1054,6 +1088,11 @@ class RerunRecorder(Sink):
             f"RerunRecorder({str(self.path)!r}, {self.machine!r}, {state}, windows={self.windows})"
         )
 
+
+_LIVE: dict[tuple[str, int], tuple[Any, str]] = {}
+"""Live servers of closed recorders, by address, with their URL: a gRPC server stays up while a
+viewer is connected, so it is kept, and taken over by the next recorder on that address."""
+_LIVE_LOCK = threading.Lock()
 
 _GRAVEYARD: list[Any] = []
 """Recording streams whose file writer died: kept referenced so that nothing frees them."""

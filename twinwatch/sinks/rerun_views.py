@@ -172,22 +172,19 @@ class RecordingViews:
         return f" [{unit}]" if unit else ""
 
     def _health_title(self, p: str) -> str:
+        """``Ra [% of 6.5 ohm]: warning +-5, alarm +-10 %``."""
         nominal = self.nominal.get(p)
         unit = self.parameters.get(p, "")
-        of = f" of nominal {nominal:.6g} {unit}".rstrip() if nominal is not None else " of nominal"
+        of = f"{nominal:.6g} {unit}".rstrip() if nominal is not None else "nominal"
+        rule = []
         bands = self.alarm_bands.get(p)
-        rule = ""
-        if bands is not None:
-            parts = [f"{name} {v:+g}" for name, v in (
-                ("warning", bands.warning_high), ("warning", bands.warning_low),
-                ("alarm", bands.alarm_high), ("alarm", bands.alarm_low)) if v is not None]
-            rule = ": " + ", ".join(parts) + " %"
-            for name, high, low in (("warning", bands.warning_high, bands.warning_low),
-                                    ("alarm", bands.alarm_high, bands.alarm_low)):
-                if high is not None and low is not None and high == -low:
-                    rule = rule.replace(f"{name} {high:+g}, {name} {low:+g}",
-                                        f"{name} +-{high:g}")
-        return f"{p} [%{of}]{rule}"
+        for name, high, low in (("warning", bands.warning_high, bands.warning_low),
+                                ("alarm", bands.alarm_high, bands.alarm_low)) if bands else ():
+            if high is not None and low is not None and high == -low:
+                rule.append(f"{name} +-{high:g}")
+            else:
+                rule += [f"{name} {v:+g}" for v in (high, low) if v is not None]
+        return f"{p} [% of {of}]" + (": " + ", ".join(rule) + " %" if rule else "")
 
     def blueprint(self) -> rrb.Blueprint:
         """The default layout: the parameters' health and the data quality over the whole run
@@ -221,7 +218,7 @@ class RecordingViews:
         if others:
             views = [rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
                                         **whole()) for p in others]
-            columns = 1 if len(others) == 1 else 2 if len(others) <= 4 else 3
+            columns = 1 if len(others) == 1 else 2
             health.append(rrb.Grid(*views, grid_columns=columns, name="other parameters"))
             shares.append(float(math.ceil(len(others) / columns)) * (1.4 if ruled else 2.0))
         quality = rrb.Horizontal(
