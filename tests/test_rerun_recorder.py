@@ -687,3 +687,38 @@ def test_a_live_port_in_use_refuses_to_start_naming_the_key(tmp_path: Path) -> N
     with pytest.raises(ValidationError, match="amount of memory"):
         RecordingConfig(server_memory_limit="lots")
     assert RecordingConfig().serve is False and RecordingConfig().serve_bind == "127.0.0.1"
+
+
+def test_the_daemons_alarm_reaches_the_recording(tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Through the daemon: the simulated motor whose nameplate says Ra = 5.8 ohm (the plant has
+    6.5: +12 %) raises the Ra alarm after 10 s; the recording holds the raise as an ERROR row
+    with its values and a marker on Ra's view, and every window in alarm is an ERROR row."""
+    from click.testing import CliRunner
+
+    from twinwatch.cli import main
+
+    text = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+    for old, new in (("duration = 1200.0", "duration = 24.0"), ("Ra = 6.5 ", "Ra = 5.8 "),
+                     ("[zenoh]", "[zenoh]\nenabled = false")):
+        assert old in text, old
+        text = text.replace(old, new)
+    (tmp_path / "m.toml").write_text(text)
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(main, ["run", "m.toml", "--no-progress"])
+    assert r.exit_code == 0, r.output
+    link = tmp_path / "twinwatch.rrd"
+    assert f"recording: {link.resolve()} (open with: rerun twinwatch.rrd, the link to it)" \
+        in r.output
+    rows_ = _log_rows(link, "dc-motor-sim")
+    raised = [(lvl, text) for lvl, text in rows_ if "ALARM: Ra is" in text]
+    assert len(raised) == 1 and raised[0][0] == "ERROR", rows_
+    assert re.search(r"ALARM: Ra is 1[12]\.\d\d % above nominal \(6\.\d+ ohm vs nominal 5\.8 "
+                     r"ohm\)", raised[0][1]), raised
+    marker = _scalars(link, "/dc-motor-sim/health/Ra/events/alarm")
+    assert len(marker) == 1 and 11.0 < marker[0][1][0] < 13.0 and 9.9 <= marker[0][0] <= 16.0
+    windows = [(lvl, text) for lvl, text in rows_ if text.startswith("window ")]
+    assert len(windows) == 12
+    in_alarm = [(lvl, text) for lvl, text in windows if "ALARM Ra" in text]
+    assert in_alarm and all(lvl == "ERROR" for lvl, _ in in_alarm)
+    assert in_alarm[-1][1].startswith("window 11 [22.00-23.99 s] ALARM Ra +1")
