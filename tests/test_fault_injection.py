@@ -661,7 +661,7 @@ main(sys.argv[2:])
 """
 
 
-@case("no file may grow past 200 kB (a full disk, unprivileged: RLIMIT_FSIZE) until the "
+@case("no file may grow past 400 kB (a full disk, unprivileged: RLIMIT_FSIZE) until the "
       "test frees space (SIGUSR1) once the state database has failed; Zenoh on",
       exit_code=74, published_not_stored=[], stored_all=True, summary_names_both=True,
       recording_reopened=True, last_recording_verifies=True)
@@ -681,7 +681,7 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
                         "\nconnect = []": ""})
     with zsession("router", listen=[endpoint(port)]) as router:
         col = Collector(router, "twinwatch/dc-motor-sim/health")
-        proc = subprocess.Popen([sys.executable, "-c", DISK_FULL, "200000", "run", str(cfg),
+        proc = subprocess.Popen([sys.executable, "-c", DISK_FULL, "400000", "run", str(cfg),
                                  "--no-progress", "--log-level", "info"], cwd=ctx.tmp,
                                 env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True)

@@ -9,9 +9,10 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
 * ``M/outputs/<output>/measured`` and ``M/outputs/<output>/twin``: the window's measured and
   twin-simulated output samples in the output's unit (:class:`rerun.Scalars`, one
   ``send_columns`` per series and window); ``M/residual/<output>``: measured - twin, every
-  sample; ``M/residual_rmse/<output>/dt_prime`` and ``.../dt_second``: per window, the RMSE of
-  the twin without (DT') and with (DT'') its meta-model terms;
-* ``M/parameters/<name>``: each parameter's published value [SI], one point per window;
+  sample; ``M/residual_rmse/dt_prime`` and ``.../dt_second``: per window, the RMSE of the twin
+  without (DT') and with (DT'') its meta-model terms, one series per output (its unit);
+* ``M/parameters``: every parameter's estimate [SI], one series per parameter (the twin's
+  order), one point per window;
 * ``M/health/<name>/...`` for each estimated parameter, in percent of its nominal value:
   ``deviation`` (series, in drawing order: the 2-sigma band's low and high ends, 0 = nominal,
   the ``[alarms]`` thresholds (or a +-5 % scale when it has no rule), two transparent headroom
@@ -196,14 +197,15 @@ class RecordingViews:
         back = rrb.TimeRangeBoundary.cursor_relative(seconds=-self.recent_s)
         now = rrb.TimeRangeBoundary.cursor_relative()
 
+        # Each view property is a chunk of its own (about 3 kB in every file and stream): the
+        # whole run is the x axis' range (the data queried are the whole run by default), the
+        # recent range the data queried (the x axis follows them).
         def whole() -> dict[str, Any]:
-            return {"time_ranges": rrb.VisibleTimeRange(TIMELINE, start=inf, end=inf),
-                    "axis_x": rrb.TimeAxis(view_range=rr.TimeRange(start=inf, end=inf)),
+            return {"axis_x": rrb.TimeAxis(view_range=rr.TimeRange(start=inf, end=inf)),
                     "plot_legend": rrb.PlotLegend(visible=False)}
 
         def recent() -> dict[str, Any]:
             return {"time_ranges": rrb.VisibleTimeRange(TIMELINE, start=back, end=now),
-                    "axis_x": rrb.TimeAxis(view_range=rr.TimeRange(start=back, end=now)),
                     "plot_legend": rrb.PlotLegend(visible=False)}
 
         def origin(*parts: str) -> str:
@@ -234,14 +236,13 @@ class RecordingViews:
         left = rrb.Vertical(
             rrb.Vertical(*health, row_shares=shares, name="health"), quality,
             row_shares=[max(sum(shares), 1.0) * 1.0, 1.3], name="health and data quality")
-        rows = [rrb.Horizontal(
-            rrb.TimeSeriesView(origin=origin("outputs", o),
-                               name=f"{o}{self._unit(o)}: measured, twin", **recent()),
-            rrb.TimeSeriesView(origin=origin("residual", o),
-                               name=f"{o} residual{self._unit(o)}",
-                               **recent()),
-            column_shares=[3, 2]) for o in self.outputs]
-        right = rrb.Vertical(*rows, name="outputs: measured vs twin")
+        pairs = [(rrb.TimeSeriesView(origin=origin("outputs", o),
+                                     name=f"{o}{self._unit(o)}: measured, twin", **recent()),
+                  rrb.TimeSeriesView(origin=origin("residual", o),
+                                     name=f"{o} residual{self._unit(o)}", **recent()))
+                 for o in self.outputs]
+        right = rrb.Grid(*(v for pair in pairs for v in pair), grid_columns=2,
+                         column_shares=[3, 2], name="outputs: measured vs twin")
         bottom = rrb.Horizontal(
             rrb.Tabs(
                 rrb.TextDocumentView(origin=origin("model"), name="model: DT'' at the cursor"),
@@ -293,11 +294,15 @@ class RecordingViews:
             ops += [lines(("outputs", o, "measured"), f"{o} measured{u}", _MEASURED, 3.5),
                     lines(("outputs", o, "twin"), f"{o} twin{u}", _TWIN, 1.5),
                     lines(("residual", o), f"{o} measured - twin{u}", _RESIDUAL, 1.0)]
-            for variant, label, color in _VARIANTS:
-                ops.append(lines(("residual_rmse", o, variant), f"{o} RMSE {label}{u}", color,
-                                 1.5))
-        for p, unit in self.parameters.items():
-            ops.append(lines(("parameters", p), f"{p} [{unit}]", _DEVIATION, 1.0))
+        n = len(self.outputs)
+        for variant, label, _ in _VARIANTS:
+            ops.append(lines(("residual_rmse", variant),
+                             [f"{o} RMSE {label}{self._unit(o)}" for o in self.outputs],
+                             list(_QUALITY_COLORS[:n]), [1.5] * n))
+        n = len(self.parameters)
+        ops.append(lines(("parameters",), [f"{p} [{u}]" for p, u in self.parameters.items()],
+                         [_QUALITY_COLORS[i % len(_QUALITY_COLORS)] for i in range(n)],
+                         [1.0] * n))
         ops += self.health_styles()
         ops.append(lines(("quality", "nrmse"), "nRMSE (the twin published)", _DEVIATION, 1.0))
         for variant, label, color in _VARIANTS:
@@ -376,12 +381,11 @@ class RecordingViews:
             ops.append(Op(entity(m, "residual", name),
                            rr.Scalars.columns(scalars=meas[name] - sim[name]), index=index))
         for variant, rmse in _residual_rmse(doc).items():
-            for name, value in rmse.items():
-                if name in self.outputs and math.isfinite(_num(value)):
-                    ops.append(Op(entity(m, "residual_rmse", name, variant),
-                                   rr.Scalars(_num(value)), t_end))
-        for name, value in estimates.items():
-            ops.append(Op(entity(m, "parameters", name), rr.Scalars(value), t_end))
+            values = [_num(rmse.get(o)) for o in self.outputs]
+            if any(math.isfinite(v) for v in values):
+                ops.append(Op(entity(m, "residual_rmse", variant), rr.Scalars(values), t_end))
+        ops.append(Op(entity(m, "parameters"), rr.Scalars(
+            [estimates.get(p, math.nan) for p in self.parameters]), t_end))
         params = _mapping(doc.get("parameters"))
         for p in self.estimated:
             ph = params.get(p)
