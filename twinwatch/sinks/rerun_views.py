@@ -381,9 +381,10 @@ class RecordingViews:
             ops.append(Op(entity(m, "residual", name),
                            rr.Scalars.columns(scalars=meas[name] - sim[name]), index=index))
         for variant, rmse in _residual_rmse(doc).items():
-            values = [_num(rmse.get(o)) for o in self.outputs]
-            if any(math.isfinite(v) for v in values):
-                ops.append(Op(entity(m, "residual_rmse", variant), rr.Scalars(values), t_end))
+            per_output = [_num(rmse.get(o)) for o in self.outputs]
+            if any(math.isfinite(v) for v in per_output):
+                ops.append(Op(entity(m, "residual_rmse", variant), rr.Scalars(per_output),
+                              t_end))
         ops.append(Op(entity(m, "parameters"), rr.Scalars(
             [estimates.get(p, math.nan) for p in self.parameters]), t_end))
         params = _mapping(doc.get("parameters"))
