@@ -655,6 +655,7 @@ signal.signal(signal.SIGUSR1, lambda *a: resource.setrlimit(resource.RLIMIT_FSIZ
 resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), hard))
 from twinwatch.sinks.rerun import RerunRecorder
 RerunRecorder.reopen_after = 1.0                   # the test cannot wait 30 s
+RerunRecorder.reopen_max = 1.0                     # nor for the doubling of a failing disk
 RerunRecorder.flush_timeout = 2.0
 from twinwatch.cli import main
 main(sys.argv[2:])

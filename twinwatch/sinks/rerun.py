@@ -320,7 +320,10 @@ class RerunRecorder(Sink):
 
     reopen_after: float = 30.0
     """Seconds before the file is reopened after the file writer died; doubles while it keeps
-    dying, up to 30 min [s]."""
+    dying, up to :attr:`reopen_max` [s]."""
+
+    reopen_max: float = 1800.0
+    """The longest wait between two attempts to reopen the file [s]."""
 
     min_free: int = 64 * 2**20
     """Bytes the disk must keep free for the recording to go on [B]."""
@@ -446,20 +449,21 @@ class RerunRecorder(Sink):
         self._point_link()
         return lock
 
-    def _point_link(self) -> None:
-        """Make :attr:`link` a symbolic link to the run's file (atomically; logged once when the
-        file system cannot)."""
-        if self.link == self.path:
+    def _point_link(self, target: Path | None = None) -> None:
+        """Make :attr:`link` a symbolic link to the run's file, or ``target`` beside it
+        (atomically; logged once when the file system cannot)."""
+        target = target or self.path
+        if self.link == target:
             return
         tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
         try:
             tmp.unlink(missing_ok=True)
-            os.symlink(self.path.name, tmp)
+            os.symlink(target.name, tmp)
             os.replace(tmp, self.link)
         except OSError as exc:
             tmp.unlink(missing_ok=True)
             if self._link_problem is None:
-                self._link_problem = f"cannot link {self.link} to {self.path.name}: {exc}"
+                self._link_problem = f"cannot link {self.link} to {target.name}: {exc}"
                 logger.warning("%s; open %s itself", self._link_problem, self.path)
             return
         if self._link_problem is not None:
@@ -853,7 +857,7 @@ class RerunRecorder(Sink):
                          "far are kept, the next ones are counted as not recorded until a new "
                          "file is opened (in %g s)", self.path, exc, self._reopen_delay)
         else:
-            self._reopen_delay = min(2 * self._reopen_delay, 1800.0)
+            self._reopen_delay = min(2 * self._reopen_delay, self.reopen_max)
             logger.debug("recording to %s failed again: %s", self.path, exc)
         if self._file_windows:
             stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
@@ -1069,6 +1073,9 @@ class RerunRecorder(Sink):
             rec, self._rec = self._rec, None
             if rec is None:  # never opened, or its file writer died (abandoned)
                 self._release()
+                kept = [p for p in self._rotated if p.exists()]
+                if not self.path.exists() and kept:  # the link names the last file kept
+                    self._point_link(max(kept, key=lambda p: p.name))
                 return
             why = self._file_lock.changed() if self._file_lock is not None else None
             if why in ("deleted", "replaced") and self._file_windows:
