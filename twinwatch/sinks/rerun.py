@@ -2,35 +2,10 @@
 
 One :class:`RerunRecorder` per monitored machine, each with its own
 :class:`rerun.RecordingStream` (never the global one, so several recorders coexist in one
-process). Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
-
-* ``M/outputs/<output>/measured`` and ``M/outputs/<output>/twin``: the window's measured and
-  twin-simulated output samples in the output's unit (:class:`rerun.Scalars`, one
-  ``send_columns`` per series and window); ``M/residual/<output>``: measured - twin, every
-  sample; ``M/residual_rmse/<output>``: per window, the RMSE of the twin without (DT') and with
-  (DT'') its meta-model terms (two series);
-* ``M/parameters/<name>``: each parameter's published value [SI], one point per window;
-* ``M/health/<name>/...`` for each estimated parameter, in percent of its nominal value:
-  ``deviation`` (series: the 2-sigma band's low and high ends, 0 = nominal, the ``[alarms]``
-  thresholds, or a +-5 % scale when it has no rule, and last the deviation itself),
-  ``estimated`` / ``fused`` / ``held`` (the deviation again, one point per window on the entity
-  of the window's status: drawn as different markers), ``events/warning``, ``events/alarm``,
-  ``events/cleared`` (the alarm changes, a large marker at the event's deviation);
-* ``M/quality/nrmse`` (with ``M/quality/model_check_failed`` marking the windows whose model
-  check failed), ``M/quality/elapsed_ms`` (adaptation time per window [ms]),
-  ``M/quality/problems`` (the counters of lost or bad data, cumulative: abandoned windows,
-  overruns, gaps, bad samples, windows not stored or not recorded, ...);
-* ``M/model``: the twin DT'' as a text document, every window: each meta-model term's equation
-  with its meaning and evidence, then every parameter's value, deviation and status;
-  ``M/health``: the window's health message (JSON); ``M/log``: one :class:`rerun.TextLog` row
-  per window with the values (INFO; WARN while a parameter is in warning, its model check fails,
-  the structure changed or data were lost; ERROR while one is in alarm) and one row per alarm
-  change (its message: raise WARN or ERROR, clear WARN); ``M/key``: what the colours mean.
-
-The default blueprint (:meth:`RerunRecorder.blueprint`) tells that story at one glance: the time
-panel follows the newest data (a finished file opens on its end); the health views and the
-data-quality strip show the whole run, the outputs and residuals the last ``[recording]
-recent_s`` seconds before the time cursor, the model and the log the state at the cursor.
+process). What it logs and the default blueprint (the entities, their styles, the layout
+that tells the machine's story at one glance) are
+:class:`~twinwatch.sinks.rerun_views.RecordingViews`; this module keeps the files, the live
+server and the faults.
 
 Per-run files: ``[recording] path`` (``twinwatch.rrd``) is a stable name, a symbolic link to
 the file of the run being written, ``<stem>-<UTC start>[-<run id>].rrd`` beside it. A run never
@@ -45,7 +20,10 @@ rerun+http://127.0.0.1:9876/proxy``. The server keeps up to ``server_memory_limi
 history (oldest dropped first; static data never), so a viewer that connects late gets it; a
 viewer that connects, stalls or goes away never blocks a window (nothing waits for it). The file
 and the server are separate streams: a file rotated, reopened or deleted never disturbs the
-viewers, and a server that fails stops only the live view (logged once, :attr:`problem`).
+viewers, and a server that fails stops only the live view (logged once, :attr:`problem`). A gRPC
+server does not stop while a viewer is connected (Rerun SDK 0.41): a closed recorder leaves its
+server to the next recorder on the same address (a reload keeps the viewers and the history),
+and it ends with the process.
 
 Durability: the recording is flushed to the file after every window, so the data of every
 completed window is on disk whatever happens next. The RRD *footer* (chunk manifest) is written
@@ -83,7 +61,7 @@ with each window.
 
 Memory and rotation: to write the footer, the Rerun SDK (0.41) keeps every chunk's manifest
 entry in memory for the life of the file (``rerun.save(..., write_footer=True)``): one entry per
-entity and flush, some 35 per window here, so a service writing one file for months would grow
+entity and flush, some 28 per window here, so a service writing one file for months would grow
 without bound. The recorder therefore rotates: after ``[recording] rotate_windows`` windows
 (default 1800, one hour of 2 s windows) it renames the run's file to
 ``<run file stem>.<UTC time>.<n>.rrd`` beside it and points the same recording stream at a new
