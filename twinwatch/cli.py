@@ -384,7 +384,8 @@ def _fraction_range(value: str | None) -> tuple[float, float] | None:
 @click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Read this many seconds of source time (a live bus); default: to its end.")
 @click.option("--record", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write the fits and residuals of both ranges to this Rerun file.")
+              help="Write the fits, the residual tests (autocorrelation, residual-input "
+              "cross-correlation) and the tables to this Rerun file.")
 @click.option("--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the [machine.parameters] block to this file.")
 @click.option("--log-level", default="warning", show_default=True,
@@ -396,11 +397,15 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
 
     Reads the whole source of CONFIG (a file, a CAN log, a simulated plant, or a live bus for
     --duration), fits the twin to the training range with the daemon's global and local search
-    (one free-run simulation over the whole range), gives every parameter its interval,
-    scores the fit on the validation range (fit % per output), and prints a
-    [machine.parameters] block with the bounds it used, ready to paste into the monitoring
-    configuration. Exit 78 for a bad configuration, 1 if the recording cannot be identified
-    from."""
+    (one free-run simulation over the whole range), says which parameters and combinations
+    the recording determines (rank and conditioning of the information matrix, correlations,
+    parameters at a bound), holds the others at their stated values ([identify.fixed] or
+    [machine.parameters]) and re-fits the rest, compares the candidate structures
+    [identify.candidates] lists (validation fit, model check, BIC), scores the fit on the
+    validation range (fit % per output), and prints a [machine.parameters] block of the
+    determined parameters (the held ones commented with the reason), ready to paste into the
+    monitoring configuration. Exit 78 for a bad configuration, 1 if the recording cannot be
+    identified from."""
     from twinwatch.config.loader import ConfigError, load_config
 
     _setup_logging(log_level)
@@ -438,15 +443,15 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
     from twinwatch.twin.estimation.identify import parameters_block
 
     try:
-        result, data = commission(cfg, config.resolve().parent, duration=duration,
-                                  record=record)
+        found = commission(cfg, config.resolve().parent, duration=duration, record=record)
     except (CommissionError, DriverError) as exc:
         click.echo(f"Error: cannot identify: {exc}", err=True)
         sys.exit(1)
+    data, result = found.data, found.result
     click.echo(f"{data.t.size} samples from {data.source}"
                + (f" ({data.dropped} left out: a channel missing or not finite)"
                   if data.dropped else ""))
-    click.echo(report(result))
+    click.echo(report(result, found.comparison))
     block = parameters_block(result, f"{config} ({data.t.size} samples)")
     click.echo("")
     click.echo(block, nl=False)
@@ -454,7 +459,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
         output.write_text(block, encoding="utf-8")
         click.echo(f"written to {output}")
     if record is not None:
-        click.echo(f"fits and residuals: {record} (open with: rerun {record})")
+        click.echo(f"fits, residual tests and tables: {record} (open with: rerun {record})")
 
 
 def _outputs(cfg: Any) -> list[str]:

@@ -1,11 +1,18 @@
 """``twinwatch identify``: read a whole recording through the configured driver, identify the
-baseline on its training range (:mod:`~twinwatch.twin.estimation.identify`), score it on the
-validation range, record both in a Rerun file and hand back the ``[machine.parameters]`` block.
+baseline on its training range (:mod:`~twinwatch.twin.estimation.identify`: the fit, what the
+recording determines, the re-fit with the rest held), for the configured structure and every
+candidate ``[identify.candidates]`` lists, pick the winner, score it on the validation range,
+record it in a Rerun file and hand back the ``[machine.parameters]`` block.
 
 Any driver works: a file (CSV, .mat), a CAN log, the simulated plants, or a live bus for
 ``duration`` seconds. Samples that lack a channel the twin needs or hold NaN/inf are counted
 and left out; a range that the source interrupted (a time step above ``max_gap`` sample
 periods) is refused with the time of the gap, since one free-run simulation cannot cross it.
+
+The Rerun file (:func:`record_fit`) is what MATLAB users know as ``compare`` and ``resid``:
+per output, measured and twin overlaid over both ranges with the fit % in the title; the
+residual's autocorrelation with its 99 % band (+-2.58/sqrt(N)) and the residual-input
+cross-correlation; the parameter table and the identifiability analysis as Markdown tables.
 """
 
 from __future__ import annotations
@@ -22,18 +29,35 @@ import numpy as np
 from twinwatch._lazy import lazy_module
 from twinwatch.drivers import EndOfStream, create_driver
 from twinwatch.errors import CommissionError
-from twinwatch.twin.estimation.identify import Identification, identify
-from twinwatch.twin.model import WindowData
+from twinwatch.twin.estimation.identify import (
+    AS_CONFIGURED,
+    Comparison,
+    Identification,
+    StretchScore,
+    compare_structures,
+    identify,
+    merge_options,
+)
+from twinwatch.twin.estimation.statistics import autocorrelation
+from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:
     import rerun as rr
+    import rerun.blueprint as rrb
 
     from twinwatch.config.schema import TwinwatchConfig
 else:
     rr = lazy_module("rerun")
+    rrb = lazy_module("rerun.blueprint")
 
 logger = logging.getLogger(__name__)
+
+#: Lags of the residual plots (MATLAB ``resid`` shows 25; 50 shows a periodic structure of
+#: up to 50 samples, the MotoShield's sampling phase repeats after 32).
+RESID_LAGS = 50
+#: The 99 % confidence band of a white residual's correlations: +-Z99/sqrt(N).
+Z99 = 2.58
 
 
 @dataclass
@@ -76,6 +100,23 @@ class Recording:
         return WindowData(t=t, channels={c: v[a:b] for c, v in self.channels.items()}, index=0)
 
 
+@dataclass
+class Commissioning:
+    """What :func:`commission` found.
+
+    Attributes:
+        result: the winning structure's identification (the configured one when no
+            candidates are listed).
+        data: the recording read.
+        comparison: every structure's identification and the ranking (None when
+            ``[identify.candidates]`` is empty).
+    """
+
+    result: Identification
+    data: Recording
+    comparison: Comparison | None = None
+
+
 def read_recording(cfg: TwinwatchConfig, base_dir: Path, duration: float | None = None
                    ) -> Recording:
     """Read every sample the configured driver delivers (to its end, or ``duration`` seconds
@@ -99,8 +140,6 @@ def read_recording(cfg: TwinwatchConfig, base_dir: Path, duration: float | None 
             except EndOfStream:
                 break
             if sample is None:
-                if duration is not None and t0 is not None:
-                    continue
                 continue
             if t0 is None:
                 t0 = sample.t
@@ -124,85 +163,418 @@ def read_recording(cfg: TwinwatchConfig, base_dir: Path, duration: float | None 
                      f"machine '{cfg.machine.name}'")
 
 
+def _structures(cfg: TwinwatchConfig) -> list[tuple[str, dict[str, Any], TwinModel]]:
+    """(name, options over [machine.options], model) of the configured structure and every
+    candidate."""
+    out = [(AS_CONFIGURED, {}, create_model(cfg.machine.model, cfg.machine.options))]
+    for k, cand in enumerate(cfg.identify.candidates):
+        try:
+            model = create_model(cfg.machine.model,
+                                 merge_options(cfg.machine.options, cand.options))
+        except ValueError as exc:
+            raise CommissionError(f"identify.candidates[{k}] ({cand.name}).options: {exc}"
+                                  ) from exc
+        out.append((cand.name, dict(cand.options), model))
+    return out
+
+
 def commission(cfg: TwinwatchConfig, base_dir: Path, *, duration: float | None = None,
-               record: Path | None = None) -> tuple[Identification, Recording]:
+               record: Path | None = None) -> Commissioning:
     """Identify the baseline of ``cfg``'s machine from its source (see the module docstring).
 
     Args:
-        cfg: the validated configuration (``[identify]`` says the ranges and weights).
+        cfg: the validated configuration (``[identify]`` says the ranges, the weights, what to
+            hold and the candidate structures).
         base_dir: directory relative paths of the configuration resolve against.
         duration: stop reading after this many seconds of source time (a live bus).
-        record: write the training and validation fits to this Rerun file.
+        record: write the fits, the residual tests and the tables to this Rerun file.
 
     Raises:
         CommissionError, twinwatch.drivers.DriverError: as :func:`read_recording`, or a range
-            that cannot be identified from.
+            that cannot be identified from, or a candidate whose options the model refuses.
     """
     data = read_recording(cfg, base_dir, duration)
     gap = cfg.acquisition.max_gap
     train = data.stretch(cfg.identify.train, gap, "training")
     validation = data.stretch(cfg.identify.validate_, gap, "validation")
-    model = create_model(cfg.machine.model, cfg.machine.options)
-    try:
-        result = identify(model, cfg.estimation, cfg.identify, train, validation,
-                          cfg.machine.parameters)
-    except ValueError as exc:
-        raise CommissionError(str(exc)) from exc
+    results: list[Identification] = []
+    first: dict[str, float] | None = None
+    for name, options, model in _structures(cfg):
+        table = cfg.identify.for_structure(model)
+        params = {k: v for k, v in cfg.machine.parameters.items()
+                  if k in model.parameter_names}
+        try:
+            result = identify(model, cfg.estimation, table, train, validation, params,
+                              start=first, structure=name, options=options)
+        except ValueError as exc:
+            raise CommissionError(f"{name}: {exc}" if cfg.identify.candidates
+                                  else str(exc)) from exc
+        if first is None and result.full is not None:
+            first = result.full.values  # a warm start for the candidates
+        results.append(result)
+    comparison = compare_structures(results) if len(results) > 1 else None
+    best = comparison.best if comparison is not None else results[0]
     if record is not None:
-        record_fit(record, cfg.machine.name, result)
-    return result, data
+        record_fit(record, cfg.machine.name, best, comparison)
+    return Commissioning(best, data, comparison)
 
 
-def record_fit(path: Path, machine: str, result: Identification) -> None:
-    """Write measured, identified-twin and residual series of both ranges to a Rerun file
-    (entities ``identify/<range>/<output>/{measured,twin,residual}``, timeline ``time``)."""
-    rec = rr.RecordingStream("twinwatch-identify", recording_id=uuid.uuid4())
-    rec.save(str(path))
-    rec.send_recording_name(f"{machine} identification")
-    for what, score in (("training", result.train), ("validation", result.validation)):
-        index = [rr.TimeColumn("time", duration=score.t)]
-        for j, name in enumerate(score.fit_pct):
-            base = f"identify/{what}/{rr.escape_entity_path_part(name)}"
-            for kind, series in (("measured", score.measured[:, j]),
-                                 ("twin", score.simulated[:, j]),
-                                 ("residual", score.measured[:, j] - score.simulated[:, j])):
-                rec.send_columns(f"{base}/{kind}", indexes=index,
-                                 columns=rr.Scalars.columns(scalars=series))
-    rec.log("identify/report", rr.TextDocument(report(result), media_type=rr.MediaType.MARKDOWN),
-            static=True)
-    rec.flush(timeout_sec=10.0)
-    rec.disconnect()
+# -- the report ------------------------------------------------------------------------------
+def _pct(x: float) -> str:
+    if not math.isfinite(x):
+        return "inf %"
+    p = 100.0 * x
+    return f"{p:.3g} %" if p < 1e3 else f"{p:.0f} %" if p < 1e5 else f"{p:.1e} %"
 
 
-def report(result: Identification) -> str:
-    """The identification as text: every parameter with its interval, fit % per output on
-    both ranges, the model check of each."""
-    lines = ["parameter    value          interval (1 sigma)"]
+def _check_text(score: StretchScore) -> str:
+    return "passed" if score.check.passed else "FAILED: " + "; ".join(score.check.reasons)
+
+
+def _comparison_lines(comparison: Comparison) -> list[str]:
+    outs = list(comparison.best.train.fit_pct)
+    head = (f"  {'structure':<28} {'n_p':>4} {'nRMSE':>8} "
+            + " ".join(f"{'val ' + o:>10}" for o in outs)
+            + f" {'check':>7} {'AIC':>11} {'BIC':>11}")
+    lines = ["structures compared (the fit with every parameter free; fit % on the "
+             "validation range, AIC/BIC on the training residual):", head]
+    for k, r in enumerate(comparison.results):
+        f = r.full
+        assert f is not None
+        mark = "*" if k == comparison.winner else " "
+        lines.append(f"{mark} {r.structure:<28.28} {f.criteria.parameters:>4} {f.nrmse:>8.5f} "
+                     + " ".join(f"{f.validation.fit_pct[o]:>10.1f}" for o in outs)
+                     + f" {'passed' if f.validation.check.passed else 'FAILED':>7}"
+                     f" {f.criteria.aic:>11.1f} {f.criteria.bic:>11.1f}")
+    best = comparison.best
+    lines.append(f"winner: {best.structure} ({comparison.rule})")
+    if best.options:
+        lines.append("  its options: " + ", ".join(f"{k} = {v!r}"
+                                                   for k, v in best.options.items()))
+    return lines
+
+
+def report(result: Identification, comparison: Comparison | None = None) -> str:
+    """The identification as text: the structures compared, the identifiability analysis,
+    every parameter (determined with its interval, or held with the reason), fit % per output
+    on both ranges for both fits, the model check of each range."""
+    lines: list[str] = []
+    if comparison is not None:
+        lines += _comparison_lines(comparison)
+        lines.append("")
+    a = result.identifiability
+    full = result.full
+    n = len(result.estimated)
+    if a is not None:
+        lines.append(f"identifiability at the fit with all {n} parameters free "
+                     f"(information matrix of the ln-parameters, {n} x {n}):")
+        lines.append(f"  rank {a.rank} of {n}, condition number {a.condition:.3g}; "
+                     f"{a.determined_rank} of {n} combinations determined within "
+                     f"{_pct(result.max_rel_std)} (1 sigma)")
+        if a.undetermined:
+            lines.append("  not determined (relative changes; 1 sigma):")
+            for comb in a.undetermined:
+                lines.append(f"    +-{_pct(comb.std):>9}  {comb.label()}")
+        if a.strong_pairs:
+            lines.append("  strongly correlated: " + ", ".join(
+                f"{x}/{y} {rho:+.3f}" for x, y, rho in a.strong_pairs))
+        for name, side in a.at_bound.items():
+            lo, hi = result.bounds[name]
+            lines.append(f"  AT A BOUND: {name} = {full.values[name] if full else 0:.4g} at "
+                         f"its {side} bound [{lo:.4g}, {hi:.4g}]")
+        lines.append("")
+    lines.append(f"parameters ({len(result.determined)} of {n} determined within "
+                 f"{_pct(result.max_rel_std)} (1 sigma); {len(result.held)} held at a stated "
+                 f"value or a bound and the rest re-fitted; {len(result.undetermined)} not "
+                 "determined):")
+    lines.append(f"  {'parameter':<10} {'value':<13} {'1 sigma':>9}  {'all free':>9}  status")
     for name in result.estimated:
-        lines.append(f"{name:<12} {result.values[name]:<14.6g} +- "
-                     f"{100 * result.rel_std[name]:.3g} %   bounds "
-                     f"[{result.bounds[name][0]:.4g}, {result.bounds[name][1]:.4g}]")
+        free_sd = _pct(full.rel_std[name]) if full else ""
+        if name in result.determined:
+            lines.append(f"  {name:<10} {result.values[name]:<13.6g} "
+                         f"{'+-' + _pct(result.rel_std[name]):>9}  {free_sd:>9}  determined")
+        elif name in result.held:
+            h = result.held[name]
+            lines.append(f"  {name:<10} {h.value:<13.6g} {'held':>9}  {free_sd:>9}  held "
+                         f"({h.source}: {h.stated}); not determined: {h.why}")
+        else:
+            lines.append(f"  {name:<10} {result.values[name]:<13.6g} "
+                         f"{'+-' + _pct(result.rel_std[name]):>9}  {free_sd:>9}  NOT "
+                         f"DETERMINED: {result.undetermined.get(name, '')}")
+    if result.undetermined:
+        lines.append("  (to determine more, state a value of one parameter of each combination in "
+                     "[identify.fixed]: a nameplate, a datasheet, another experiment)")
+    for dep, src in result.tied.items():
+        lines.append(f"  {dep:<10} {result.values[dep]:<13.6g} {'':>9}  {'':>9}  tied to "
+                     f"{src}")
     lines.append("fit % (100 (1 - |y - y_hat| / |y - mean(y)|)):")
+    label = "with the held values" if result.held else "identified"
     for name in result.train.fit_pct:
-        lines.append(f"  {name:<10} training {result.train.fit_pct[name]:6.1f}   "
-                     f"validation {result.validation.fit_pct[name]:6.1f}")
+        line = (f"  {name:<10} training {result.train.fit_pct[name]:6.1f}   validation "
+                f"{result.validation.fit_pct[name]:6.1f}   ({label})")
+        if full is not None and result.held:
+            line += (f";  all free: {full.train.fit_pct[name]:.1f} / "
+                     f"{full.validation.fit_pct[name]:.1f}")
+        lines.append(line)
     for what, score in (("training", result.train), ("validation", result.validation)):
-        check = score.check
-        lines.append(f"model check ({what}): " + ("passed" if check.passed else
-                                                  "failed: " + "; ".join(check.reasons)))
+        lines.append(f"model check ({what}): {_check_text(score)}")
     if len(result.starts) > 1:
         lines.append(f"{len(result.starts)} starts reached a training nRMSE of "
                      + ", ".join(f"{c:.5g}" for c in result.starts)
-                     + f"; kept {result.nrmse:.5g}")
-    lines.append(f"{result.evaluations} twin simulations in {result.elapsed_s:.1f} s")
+                     + f"; kept {min(result.starts):.5g}")
+    lines.append(f"{result.evaluations} twin simulations in {result.elapsed_s:.1f} s"
+                 + (f" ({result.structure})" if comparison is not None else ""))
     return "\n".join(lines)
+
+
+def report_markdown(result: Identification, comparison: Comparison | None = None) -> str:
+    """The report as Markdown tables (what the Rerun file shows)."""
+    full = result.full
+    md: list[str] = []
+    outs = list(result.train.fit_pct)
+    md.append("### Parameters")
+    md.append(f"{len(result.determined)} of {len(result.estimated)} determined within "
+              f"{_pct(result.max_rel_std)} (1 sigma, given the held ones); only those are "
+              "pasted.")
+    md.append("")
+    md.append("| parameter | value | 1 sigma | all free | status |")
+    md.append("|---|---|---|---|---|")
+    for name in result.estimated:
+        unit = result.units.get(name, "")
+        free_sd = _pct(full.rel_std[name]) if full else ""
+        if name in result.determined:
+            bound = result.at_bound.get(name)
+            md.append(f"| **{name}** [{unit}] | {result.values[name]:.5g} | "
+                      f"{_pct(result.rel_std[name])} | {free_sd} | determined"
+                      + (f", at its {bound} bound" if bound else "") + " |")
+        elif name in result.held:
+            h = result.held[name]
+            where = (f"at its {result.at_bound[name]} bound" if name in result.at_bound
+                     else f"held ({h.source})")
+            md.append(f"| {name} [{unit}] | {h.value:.5g} | - | {free_sd} | {where} |")
+        else:
+            md.append(f"| {name} [{unit}] | {result.values[name]:.5g} | "
+                      f"{_pct(result.rel_std[name])} | {free_sd} | **not determined** |")
+    md.append("")
+    md.append("| fit % | " + " | ".join(f"{o} train | {o} valid." for o in outs) + " |")
+    md.append("|---|" + "---|---|" * len(outs))
+    rows = [("re-fitted" if result.held else "identified", result.train, result.validation)]
+    if full is not None and result.held:
+        rows.append(("all free", full.train, full.validation))
+    for label, tr, va in rows:
+        md.append(f"| {label} | " + " | ".join(
+            f"{tr.fit_pct[o]:.1f} | {va.fit_pct[o]:.1f}" for o in outs) + " |")
+    md.append("")
+    for what, score in (("training", result.train), ("validation", result.validation)):
+        md.append(f"- model check ({what}): " + ("passed" if score.check.passed else
+                  "**FAILED**: " + "; ".join(score.check.reasons)))
+    a = result.identifiability
+    if a is not None:
+        n = len(a.names)
+        md.append("")
+        md.append("### What the data determine")
+        md.append(f"Information matrix ({n} x {n}): rank {a.rank}, condition "
+                  f"{a.condition:.2g}; {a.determined_rank} of {n} combinations within "
+                  f"{_pct(result.max_rel_std)}.")
+        md.append("")
+        if a.undetermined:
+            md.append("| 1 sigma | undetermined combination (relative changes) |")
+            md.append("|---|---|")
+            for comb in a.undetermined[:6]:
+                md.append(f"| {_pct(comb.std)} | {comb.label(cut=0.3)} |")
+            if len(a.undetermined) > 6:
+                md.append(f"| ... | {len(a.undetermined) - 6} more |")
+        if a.strong_pairs:
+            md.append("")
+            md.append("Strongly correlated: " + ", ".join(
+                f"{x}/{y} {rho:+.2f}" for x, y, rho in a.strong_pairs[:6]))
+    if comparison is not None:
+        md.append("")
+        md.append("### Structures (validation fit %, training BIC)")
+        md.append("| structure | " + " | ".join(outs) + " | check | BIC |")
+        md.append("|---|" + "---|" * len(outs) + "---|---|")
+        for k, r in enumerate(comparison.results):
+            f = r.full
+            assert f is not None
+            name = f"**{r.structure}** (winner)" if k == comparison.winner else r.structure
+            md.append(f"| {name} | " + " | ".join(f"{f.validation.fit_pct[o]:.1f}"
+                                                  for o in outs)
+                      + f" | {'passed' if f.validation.check.passed else 'failed'} | "
+                      f"{f.criteria.bic:.0f} |")
+    if result.held or result.undetermined:
+        md.append("")
+        md.append("### Why not pasted")
+        for name, h in result.held.items():
+            md.append(f"- **{name}** held at {h.value:.4g} ({h.source}): {h.why}")
+        for name, why in result.undetermined.items():
+            md.append(f"- **{name}** not determined: {why}")
+    return "\n".join(md) + "\n"
 
 
 def summary(result: Identification) -> dict[str, Any]:
     """The figures as plain data (for tests and scripts)."""
     return {"values": result.values, "rel_std": result.rel_std,
-            "fit_train": result.train.fit_pct, "fit_validation": result.validation.fit_pct}
+            "determined": list(result.determined),
+            "held": {k: {"value": h.value, "source": h.source, "why": h.why}
+                     for k, h in result.held.items()},
+            "undetermined": dict(result.undetermined),
+            "at_bound": dict(result.at_bound),
+            "fit_train": result.train.fit_pct, "fit_validation": result.validation.fit_pct,
+            "check_train": result.train.check.passed,
+            "check_validation": result.validation.check.passed}
 
 
-__all__ = ["CommissionError", "Recording", "commission", "read_recording", "record_fit",
-           "report", "summary"]
+# -- the Rerun file --------------------------------------------------------------------------
+_MEASURED = [150, 150, 150]
+_TWIN = [230, 120, 20]
+_TRAIN = [60, 130, 230]
+_VALID = [230, 120, 20]
+_BAND = [200, 60, 60]
+
+
+def cross_correlation(e: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
+    """Normalised cross-covariance of a residual e(t) and an input u(t - tau) for tau =
+    -lags..lags (means removed; MATLAB ``resid``), shape (2 lags + 1,); zeros when either is
+    constant."""
+    e = np.asarray(e, dtype=float) - float(np.mean(e))
+    u = np.asarray(u, dtype=float) - float(np.mean(u))
+    n = e.size
+    den = float(np.sqrt((e @ e) * (u @ u)))
+    out = np.zeros(2 * lags + 1)
+    if den == 0:
+        return out
+    for k, tau in enumerate(range(-lags, lags + 1)):
+        if abs(tau) >= n:
+            continue
+        out[k] = float(e[tau:] @ u[:n - tau]) / den if tau >= 0 else \
+            float(e[:n + tau] @ u[-tau:]) / den
+    return out
+
+
+def record_fit(path: Path, machine: str, result: Identification,
+               comparison: Comparison | None = None) -> None:
+    """Write the commissioning's view to a Rerun file (timeline ``time``, seconds):
+
+    * ``identify/fit/<output>/{measured,twin}``: both ranges, one plot per output, the fit %
+      of each range in its title (MATLAB ``compare``);
+    * ``identify/resid/<output>/autocorrelation/{training,validation}`` at lag tau plotted at
+      tau seconds, with ``band/{upper,lower}`` at +-2.58/sqrt(N) (99 %), and
+      ``identify/resid/<output>/cross_<input>/validation``: the residual-input
+      cross-correlation for tau = -L..L (MATLAB ``resid``);
+    * ``identify/residual/<output>/<range>``: the residuals;
+    * ``identify/report``: the parameter table, the identifiability analysis and the
+      structures compared, as Markdown tables.
+
+    The blueprint lays them out: fits on the left, residual tests below them, the tables on
+    the right, each plot's visible time range set to its data.
+    """
+    rec = rr.RecordingStream("twinwatch-identify", recording_id=uuid.uuid4())
+    rec.save(str(path))
+    rec.send_recording_name(f"{machine} identification")
+    outs = list(result.train.fit_pct)
+    units = result.output_units
+    tr, va = result.train, result.validation
+    ts = float(np.median(np.diff(tr.t))) if tr.t.size > 1 else 1.0
+    lags = min(RESID_LAGS, max(1, va.samples // 4))
+    fit_views = []
+    resid_rows = []
+    for j, out in enumerate(outs):
+        esc = rr.escape_entity_path_part(out)
+        unit = units.get(out, "")
+        base = f"identify/fit/{esc}"
+        t = np.concatenate([tr.t, va.t])
+        for kind, series, color, width in (
+                ("measured", np.concatenate([tr.measured[:, j], va.measured[:, j]]),
+                 _MEASURED, 1.0),
+                ("twin", np.concatenate([tr.simulated[:, j], va.simulated[:, j]]), _TWIN,
+                 1.5)):
+            rec.log(f"{base}/{kind}", rr.SeriesLines(names=f"{out} {kind} [{unit}]",
+                                                     colors=color, widths=width), static=True)
+            rec.send_columns(f"{base}/{kind}", indexes=[rr.TimeColumn("time", duration=t)],
+                             columns=rr.Scalars.columns(scalars=series))
+        title = (f"{out} [{unit}]: measured and twin; fit {tr.fit_pct[out]:.1f} % training "
+                 f"({tr.start:.0f}-{tr.end:.0f} s), {va.fit_pct[out]:.1f} % validation "
+                 f"({va.start:.0f}-{va.end:.0f} s)")
+        if not va.check.passed or not tr.check.passed:
+            title += "; model check FAILED"
+        fit_views.append(rrb.TimeSeriesView(
+            origin=f"/{base}", name=title, plot_legend=rrb.PlotLegend("LeftTop"),
+            time_ranges=[_range(float(t[0]), float(t[-1]))]))
+        # residuals
+        for what, score in (("training", tr), ("validation", va)):
+            e = score.measured[1:, j] - score.simulated[1:, j]
+            rec.log(f"identify/residual/{esc}/{what}",
+                    rr.SeriesLines(names=f"{out} residual, {what} [{unit}]"), static=True)
+            rec.send_columns(f"identify/residual/{esc}/{what}",
+                             indexes=[rr.TimeColumn("time", duration=score.t[1:])],
+                             columns=rr.Scalars.columns(scalars=e))
+        # the residual's autocorrelation, both ranges, and the 99 % band of the validation's
+        rbase = f"identify/resid/{esc}/autocorrelation"
+        lag_t = np.arange(lags + 1) * ts
+        for what, score, color in (("training", tr, _TRAIN), ("validation", va, _VALID)):
+            e = score.measured[1:, j] - score.simulated[1:, j]
+            rec.log(f"{rbase}/{what}", rr.SeriesLines(names=f"{what}", colors=color),
+                    static=True)
+            rec.send_columns(f"{rbase}/{what}", indexes=[rr.TimeColumn("time", duration=lag_t)],
+                             columns=rr.Scalars.columns(scalars=autocorrelation(e, lags)))
+        band = Z99 / math.sqrt(max(va.samples - 1, 1))
+        for side, sign in (("upper", 1.0), ("lower", -1.0)):
+            rec.log(f"{rbase}/band/{side}",
+                    rr.SeriesLines(names=f"99 % band +-{band:.3f}" if side == "upper"
+                                   else "", colors=_BAND, widths=1.0), static=True)
+            rec.send_columns(f"{rbase}/band/{side}",
+                             indexes=[rr.TimeColumn("time", duration=lag_t[[0, -1]])],
+                             columns=rr.Scalars.columns(scalars=[sign * band] * 2))
+        row = [rrb.TimeSeriesView(
+            origin=f"/{rbase}", name=f"{out}: residual autocorrelation, lag [s] "
+            f"(Ts = {ts:g} s)", plot_legend=rrb.PlotLegend("RightTop"),
+            time_ranges=[_range(0.0, float(lag_t[-1]))])]
+        # the residual-input cross-correlation on the validation range
+        for inp, u in va.inputs.items():
+            e = va.measured[1:, j] - va.simulated[1:, j]
+            xc = cross_correlation(e, u[1:], lags)
+            tau = np.arange(-lags, lags + 1) * ts
+            xbase = f"identify/resid/{esc}/cross_{rr.escape_entity_path_part(inp)}"
+            rec.log(f"{xbase}/validation", rr.SeriesLines(names=f"validation, {inp}",
+                                                          colors=_VALID), static=True)
+            rec.send_columns(f"{xbase}/validation",
+                             indexes=[rr.TimeColumn("time", duration=tau)],
+                             columns=rr.Scalars.columns(scalars=xc))
+            for side, sign in (("upper", 1.0), ("lower", -1.0)):
+                rec.log(f"{xbase}/band/{side}",
+                        rr.SeriesLines(names=f"99 % band +-{band:.3f}" if side == "upper"
+                                       else "", colors=_BAND, widths=1.0), static=True)
+                rec.send_columns(f"{xbase}/band/{side}",
+                                 indexes=[rr.TimeColumn("time", duration=tau[[0, -1]])],
+                                 columns=rr.Scalars.columns(scalars=[sign * band] * 2))
+            row.append(rrb.TimeSeriesView(
+                origin=f"/{xbase}", name=f"{out} residual x {inp}: cross-correlation, "
+                "lag [s]", plot_legend=rrb.PlotLegend("RightTop"),
+                time_ranges=[_range(float(tau[0]), float(tau[-1]))]))
+        resid_rows.append(rrb.Horizontal(*row))
+    rec.log("identify/report", rr.TextDocument(report_markdown(result, comparison),
+                                               media_type=rr.MediaType.MARKDOWN), static=True)
+    rec.log("identify/report_text", rr.TextDocument(report(result, comparison)), static=True)
+    blueprint = rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(*fit_views, *resid_rows,
+                         row_shares=[3] * len(fit_views) + [2] * len(resid_rows)),
+            rrb.Tabs(rrb.TextDocumentView(origin="/identify/report", name="identification"),
+                     rrb.TextDocumentView(origin="/identify/report_text", name="report (text)"),
+                     rrb.TimeSeriesView(origin="/identify/residual", name="residuals")),
+            column_shares=[3, 2]),
+        rrb.TimePanel(state="collapsed"),
+        collapse_panels=True)
+    rec.send_blueprint(blueprint)
+    rec.flush(timeout_sec=10.0)
+    rec.disconnect()
+
+
+def _range(start: float, end: float) -> Any:
+    return rrb.VisibleTimeRange("time", start=rrb.TimeRangeBoundary.absolute(seconds=start),
+                                end=rrb.TimeRangeBoundary.absolute(seconds=end))
+
+
+__all__ = ["CommissionError", "Commissioning", "Recording", "commission",
+           "cross_correlation", "read_recording", "record_fit", "report", "report_markdown",
+           "summary"]
