@@ -283,6 +283,8 @@ def report(result: Identification, comparison: Comparison | None = None) -> str:
             lines.append(f"  AT A BOUND: {name} = {full.values[name] if full else 0:.4g} at "
                          f"its {side} bound [{lo:.4g}, {hi:.4g}]")
         lines.append("")
+    if not result.validation.check.passed:
+        lines.append("NOTHING IS PASTED: the validation range fails the model check (below)")
     lines.append(f"parameters ({len(result.determined)} of {n} determined within "
                  f"{_pct(result.max_rel_std)} (1 sigma); {len(result.held)} held at a stated "
                  f"value or a bound and the rest re-fitted; {len(result.undetermined)} not "
@@ -292,7 +294,9 @@ def report(result: Identification, comparison: Comparison | None = None) -> str:
         free_sd = _pct(full.rel_std[name]) if full else ""
         if name in result.determined:
             lines.append(f"  {name:<10} {result.values[name]:<13.6g} "
-                         f"{'+-' + _pct(result.rel_std[name]):>9}  {free_sd:>9}  determined")
+                         f"{'+-' + _pct(result.rel_std[name]):>9}  {free_sd:>9}  determined"
+                         + ("" if name in result.pasted else
+                            " (not pasted: the model check failed)"))
         elif name in result.held:
             h = result.held[name]
             lines.append(f"  {name:<10} {h.value:<13.6g} {'held':>9}  {free_sd:>9}  held "
@@ -328,37 +332,41 @@ def report(result: Identification, comparison: Comparison | None = None) -> str:
 
 
 def report_markdown(result: Identification, comparison: Comparison | None = None) -> str:
-    """The report as Markdown tables (what the Rerun file shows)."""
+    """The report as Markdown tables (what the Rerun file shows): the parameters and fits,
+    the identifiability analysis and the structures, why each parameter not pasted is not."""
+    return "\n".join((markdown_parameters(result), markdown_analysis(result, comparison),
+                      markdown_reasons(result)))
+
+
+def markdown_parameters(result: Identification) -> str:
+    """The parameter table (value, 1 sigma given the held ones and with all free, status),
+    the fit % table and the model checks, as Markdown."""
     full = result.full
-    md: list[str] = []
     outs = list(result.train.fit_pct)
-    md.append("### Parameters")
-    md.append(f"{len(result.determined)} of {len(result.estimated)} determined within "
-              f"{_pct(result.max_rel_std)} (1 sigma, given the held ones); only those are "
-              "pasted.")
-    md.append("")
-    md.append("| parameter | value | 1 sigma | all free | status |")
-    md.append("|---|---|---|---|---|")
+    pasted = ("only those are pasted." if result.validation.check.passed else
+              "**none is pasted: the validation range fails the model check.**")
+    md = [f"**{len(result.determined)} of {len(result.estimated)} parameters determined** "
+          f"within {_pct(result.max_rel_std)} (1 sigma, given the held ones): {pasted}", "",
+          "| parameter | value | 1 sigma | all free | status |", "|---|---|---|---|---|"]
     for name in result.estimated:
         unit = result.units.get(name, "")
         free_sd = _pct(full.rel_std[name]) if full else ""
         if name in result.determined:
-            bound = result.at_bound.get(name)
-            md.append(f"| **{name}** [{unit}] | {result.values[name]:.5g} | "
-                      f"{_pct(result.rel_std[name])} | {free_sd} | determined"
-                      + (f", at its {bound} bound" if bound else "") + " |")
+            md.append(f"| **{name}** [{unit}] | **{result.values[name]:.5g}** | "
+                      f"**{_pct(result.rel_std[name])}** | {free_sd} | **determined** |")
         elif name in result.held:
             h = result.held[name]
             where = (f"at its {result.at_bound[name]} bound" if name in result.at_bound
                      else f"held ({h.source})")
-            md.append(f"| {name} [{unit}] | {h.value:.5g} | - | {free_sd} | {where} |")
+            sd = f"({_pct(h.rel_std)})" if h.rel_std > 0 else "-"
+            md.append(f"| {name} [{unit}] | {h.value:.5g} | {sd} | {free_sd} | {where} |")
         else:
             md.append(f"| {name} [{unit}] | {result.values[name]:.5g} | "
-                      f"{_pct(result.rel_std[name])} | {free_sd} | **not determined** |")
+                      f"{_pct(result.rel_std[name])} | {free_sd} | NOT determined |")
     md.append("")
     md.append("| fit % | " + " | ".join(f"{o} train | {o} valid." for o in outs) + " |")
     md.append("|---|" + "---|---|" * len(outs))
-    rows = [("re-fitted" if result.held else "identified", result.train, result.validation)]
+    rows = [("pasted" if result.held else "identified", result.train, result.validation)]
     if full is not None and result.held:
         rows.append(("all free", full.train, full.validation))
     for label, tr, va in rows:
@@ -368,53 +376,70 @@ def report_markdown(result: Identification, comparison: Comparison | None = None
     for what, score in (("training", result.train), ("validation", result.validation)):
         md.append(f"- model check ({what}): " + ("passed" if score.check.passed else
                   "**FAILED**: " + "; ".join(score.check.reasons)))
+    return "\n".join(md) + "\n"
+
+
+def markdown_analysis(result: Identification, comparison: Comparison | None = None,
+                      rows: int = 5) -> str:
+    """The identifiability analysis (rank, condition, the weakest ``rows`` combinations,
+    strong correlations, parameters at a bound) and the structures compared, as Markdown."""
+    md: list[str] = []
+    outs = list(result.train.fit_pct)
     a = result.identifiability
     if a is not None:
         n = len(a.names)
-        md.append("")
-        md.append("### What the data determine")
-        md.append(f"Information matrix ({n} x {n}): rank {a.rank}, condition "
+        md.append(f"**Information matrix** ({n} x {n}, all free): rank {a.rank}, condition "
                   f"{a.condition:.2g}; {a.determined_rank} of {n} combinations within "
                   f"{_pct(result.max_rel_std)}.")
         md.append("")
         if a.undetermined:
             md.append("| 1 sigma | undetermined combination (relative changes) |")
             md.append("|---|---|")
-            for comb in a.undetermined[:6]:
+            for comb in a.undetermined[:rows]:
                 md.append(f"| {_pct(comb.std)} | {comb.label(cut=0.3)} |")
-            if len(a.undetermined) > 6:
-                md.append(f"| ... | {len(a.undetermined) - 6} more |")
+            if len(a.undetermined) > rows:
+                md.append(f"| ... | {len(a.undetermined) - rows} more (text report) |")
+        extra = []
         if a.strong_pairs:
+            extra.append("strongly correlated: " + ", ".join(
+                f"{x}/{y} {rho:+.2f}" for x, y, rho in a.strong_pairs[:5]))
+        if a.at_bound:
+            extra.append("**at a bound**: " + ", ".join(
+                f"{k} ({v})" for k, v in a.at_bound.items()))
+        if extra:
             md.append("")
-            md.append("Strongly correlated: " + ", ".join(
-                f"{x}/{y} {rho:+.2f}" for x, y, rho in a.strong_pairs[:6]))
+            md.append("; ".join(extra) + ".")
     if comparison is not None:
         md.append("")
-        md.append("### Structures (validation fit %, training BIC)")
-        md.append("| structure | " + " | ".join(outs) + " | check | BIC |")
+        md.append("| structure (all free) | " + " | ".join(f"{o} valid." for o in outs)
+                  + " | check | BIC |")
         md.append("|---|" + "---|" * len(outs) + "---|---|")
         for k, r in enumerate(comparison.results):
             f = r.full
             assert f is not None
-            name = f"**{r.structure}** (winner)" if k == comparison.winner else r.structure
+            name = f"**{r.structure} (winner)**" if k == comparison.winner else r.structure
             md.append(f"| {name} | " + " | ".join(f"{f.validation.fit_pct[o]:.1f}"
                                                   for o in outs)
-                      + f" | {'passed' if f.validation.check.passed else 'failed'} | "
+                      + f" | {'passed' if f.validation.check.passed else '**failed**'} | "
                       f"{f.criteria.bic:.0f} |")
-    if result.held or result.undetermined:
-        md.append("")
-        md.append("### Why not pasted")
-        for name, h in result.held.items():
-            md.append(f"- **{name}** held at {h.value:.4g} ({h.source}): {h.why}")
-        for name, why in result.undetermined.items():
-            md.append(f"- **{name}** not determined: {why}")
     return "\n".join(md) + "\n"
+
+
+def markdown_reasons(result: Identification) -> str:
+    """Why each parameter that is not pasted is not, as a Markdown list."""
+    md = []
+    for name, h in result.held.items():
+        stated = f"{h.source}: {h.stated}" if h.stated else h.source
+        md.append(f"- **{name}** held at {h.value:.4g} ({stated}); not determined: {h.why}")
+    for name, why in result.undetermined.items():
+        md.append(f"- **{name}** not determined (+-{_pct(result.rel_std[name])}): {why}")
+    return "\n".join(md or ["Every estimated parameter is determined."]) + "\n"
 
 
 def summary(result: Identification) -> dict[str, Any]:
     """The figures as plain data (for tests and scripts)."""
     return {"values": result.values, "rel_std": result.rel_std,
-            "determined": list(result.determined),
+            "determined": list(result.determined), "pasted": result.pasted,
             "held": {k: {"value": h.value, "source": h.source, "why": h.why}
                      for k, h in result.held.items()},
             "undetermined": dict(result.undetermined),
@@ -429,7 +454,7 @@ _MEASURED = [150, 150, 150]
 _TWIN = [230, 120, 20]
 _TRAIN = [60, 130, 230]
 _VALID = [230, 120, 20]
-_BAND = [200, 60, 60]
+_BAND = [200, 60, 60, 90]
 
 
 def cross_correlation(e: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
@@ -451,36 +476,131 @@ def cross_correlation(e: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
     return out
 
 
+@dataclass
+class ResidualTests:
+    """MATLAB ``resid``'s figures of one output (what :func:`record_fit` draws).
+
+    Attributes:
+        lags: 0..L (L+1,) in samples; sample_period: [s].
+        band: the 99 % band of a white residual's correlations, 2.58/sqrt(N) (N the
+            validation residual's samples).
+        autocorrelation: range (training, validation) -> the residual's autocorrelation at
+            ``lags``.
+        cross_correlation: input -> the validation residual e(t) against u(t - tau) at
+            ``lags`` (the lags the model check tests).
+    """
+
+    lags: np.ndarray
+    sample_period: float
+    band: float
+    autocorrelation: dict[str, np.ndarray]
+    cross_correlation: dict[str, np.ndarray]
+
+
+def residual_tests(result: Identification, output: str) -> ResidualTests:
+    """The residual's autocorrelation on both ranges and its cross-correlation with each
+    exogenous input on the validation range, at lags 0..min(50, N/4)."""
+    tr, va = result.train, result.validation
+    j = list(tr.fit_pct).index(output)
+    lags = min(RESID_LAGS, max(1, va.samples // 4))
+    acf = {what: autocorrelation(s.measured[1:, j] - s.simulated[1:, j], lags)
+           for what, s in (("training", tr), ("validation", va))}
+    e = va.measured[1:, j] - va.simulated[1:, j]
+    xcf = {inp: cross_correlation(e, u[1:], lags)[lags:] for inp, u in va.inputs.items()}
+    return ResidualTests(lags=np.arange(lags + 1, dtype=float),
+                         sample_period=float(np.median(np.diff(tr.t))) if tr.t.size > 1
+                         else 1.0,
+                         band=Z99 / math.sqrt(max(va.samples - 1, 1)),
+                         autocorrelation=acf, cross_correlation=xcf)
+
+
+def fit_title(result: Identification, output: str) -> str:
+    """``ia [A]: measured and twin; fit 51.0 % training (0-48 s), 50.7 % validation (48-96
+    s)``, and ``; model check FAILED`` when a range fails it."""
+    tr, va = result.train, result.validation
+    title = (f"{output} [{result.output_units.get(output, '')}]: measured and twin; fit "
+             f"{tr.fit_pct[output]:.1f} % training ({tr.start:.0f}-{tr.end:.0f} s), "
+             f"{va.fit_pct[output]:.1f} % validation ({va.start:.0f}-{va.end:.0f} s)")
+    if not va.check.passed or not tr.check.passed:
+        title += "; model check FAILED"
+    return title
+
+
+def _esc(name: str) -> str:
+    return str(rr.escape_entity_path_part(name))
+
+
+def identify_blueprint(machine: str, result: Identification,
+                       comparison: Comparison | None = None) -> rrb.Blueprint:
+    """The layout of :func:`record_fit`'s file: per output, measured and twin over both
+    ranges (the fit % in the title, the x axis the whole recording whatever the time
+    cursor); below them, per output, the residual's autocorrelation and its cross-correlation
+    with each input, the 99 % band shaded; on the right the parameter and fit tables, and in
+    tabs the identifiability analysis with the structures, why each parameter not pasted is
+    not, the console report and the residuals."""
+    tr, va = result.train, result.validation
+    t0, t1 = float(min(tr.t[0], va.t[0])), float(max(tr.t[-1], va.t[-1]))
+    fit_views = []
+    resid_rows = []
+    for out in tr.fit_pct:
+        fit_views.append(rrb.TimeSeriesView(
+            origin=f"/identify/fit/{_esc(out)}", name=fit_title(result, out),
+            plot_legend=rrb.PlotLegend("LeftTop"), **_span(t0, t1)))
+        tests = residual_tests(result, out)
+        row = [rrb.BarChartView(
+            origin=f"/acf/{_esc(out)}", name=f"{out} residual: autocorrelation, lag "
+            f"[{tests.sample_period:g} s]", plot_legend=rrb.PlotLegend("RightTop"))]
+        for inp in tests.cross_correlation:
+            row.append(rrb.BarChartView(
+                origin=f"/xcorr/{_esc(out)}_{_esc(inp)}", name=f"{out} residual x {inp}: "
+                f"cross-correlation (validation), lag [{tests.sample_period:g} s]",
+                plot_legend=rrb.PlotLegend(visible=False)))
+        resid_rows.append(rrb.Horizontal(*row))
+    title = "what the data determine" + (", structures" if comparison else "")
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(*fit_views, *resid_rows,
+                         row_shares=[3] * len(fit_views) + [2] * len(resid_rows)),
+            rrb.Vertical(
+                rrb.TextDocumentView(origin="/identify/report/parameters",
+                                     name=f"{machine}: parameters and fit"),
+                rrb.Tabs(rrb.TextDocumentView(origin="/identify/report/analysis", name=title),
+                         rrb.TextDocumentView(origin="/identify/report/reasons",
+                                              name="why not pasted"),
+                         rrb.TextDocumentView(origin="/identify/report/text",
+                                              name="report (text)"),
+                         rrb.TimeSeriesView(origin="/identify/residual", name="residuals"),
+                         active_tab=0),
+                row_shares=[11, 9]),
+            column_shares=[3, 2]),
+        rrb.TimePanel(state="collapsed"),
+        collapse_panels=True)
+
+
 def record_fit(path: Path, machine: str, result: Identification,
                comparison: Comparison | None = None) -> None:
-    """Write the commissioning's view to a Rerun file (timeline ``time``, seconds):
+    """Write the commissioning's view to a Rerun file (timeline ``time``, seconds), laid out
+    by :func:`identify_blueprint`:
 
     * ``identify/fit/<output>/{measured,twin}``: both ranges, one plot per output, the fit %
       of each range in its title (MATLAB ``compare``);
-    * ``identify/resid/<output>/autocorrelation/{training,validation}`` at lag tau plotted at
-      tau seconds, with ``band/{upper,lower}`` at +-2.58/sqrt(N) (99 %), and
-      ``identify/resid/<output>/cross_<input>/validation``: the residual-input
-      cross-correlation for tau = -L..L (MATLAB ``resid``);
+    * ``acf/<output>/{training,validation}``: the residual's autocorrelation at lags
+      0..L (bar charts over the lag in samples), with ``acf/<output>/band_pm<b>``, the 99 %
+      band +-2.58/sqrt(N) of a white residual, shaded; ``xcorr/<output>_<input>/validation``:
+      the cross-correlation of the residual e(t) and the input u(t - tau), tau = 0..L (the
+      lags the model check tests) and its band (MATLAB ``resid``; :func:`residual_tests`);
     * ``identify/residual/<output>/<range>``: the residuals;
-    * ``identify/report``: the parameter table, the identifiability analysis and the
-      structures compared, as Markdown tables.
-
-    The blueprint lays them out: fits on the left, residual tests below them, the tables on
-    the right, each plot's visible time range set to its data.
+    * ``identify/report/{parameters,analysis,reasons}``: the parameter and fit tables, the
+      identifiability analysis and the structures compared, why each parameter not pasted
+      is not (Markdown tables); ``identify/report/text``: the console report.
     """
     rec = rr.RecordingStream("twinwatch-identify", recording_id=uuid.uuid4())
     rec.save(str(path))
     rec.send_recording_name(f"{machine} identification")
-    outs = list(result.train.fit_pct)
-    units = result.output_units
     tr, va = result.train, result.validation
-    ts = float(np.median(np.diff(tr.t))) if tr.t.size > 1 else 1.0
-    lags = min(RESID_LAGS, max(1, va.samples // 4))
-    fit_views = []
-    resid_rows = []
-    for j, out in enumerate(outs):
-        esc = rr.escape_entity_path_part(out)
-        unit = units.get(out, "")
+    for j, out in enumerate(tr.fit_pct):
+        esc = _esc(out)
+        unit = result.output_units.get(out, "")
         base = f"identify/fit/{esc}"
         t = np.concatenate([tr.t, va.t])
         for kind, series, color, width in (
@@ -492,15 +612,6 @@ def record_fit(path: Path, machine: str, result: Identification,
                                                      colors=color, widths=width), static=True)
             rec.send_columns(f"{base}/{kind}", indexes=[rr.TimeColumn("time", duration=t)],
                              columns=rr.Scalars.columns(scalars=series))
-        title = (f"{out} [{unit}]: measured and twin; fit {tr.fit_pct[out]:.1f} % training "
-                 f"({tr.start:.0f}-{tr.end:.0f} s), {va.fit_pct[out]:.1f} % validation "
-                 f"({va.start:.0f}-{va.end:.0f} s)")
-        if not va.check.passed or not tr.check.passed:
-            title += "; model check FAILED"
-        fit_views.append(rrb.TimeSeriesView(
-            origin=f"/{base}", name=title, plot_legend=rrb.PlotLegend("LeftTop"),
-            time_ranges=[_range(float(t[0]), float(t[-1]))]))
-        # residuals
         for what, score in (("training", tr), ("validation", va)):
             e = score.measured[1:, j] - score.simulated[1:, j]
             rec.log(f"identify/residual/{esc}/{what}",
@@ -508,73 +619,57 @@ def record_fit(path: Path, machine: str, result: Identification,
             rec.send_columns(f"identify/residual/{esc}/{what}",
                              indexes=[rr.TimeColumn("time", duration=score.t[1:])],
                              columns=rr.Scalars.columns(scalars=e))
-        # the residual's autocorrelation, both ranges, and the 99 % band of the validation's
-        rbase = f"identify/resid/{esc}/autocorrelation"
-        lag_t = np.arange(lags + 1) * ts
-        for what, score, color in (("training", tr, _TRAIN), ("validation", va, _VALID)):
-            e = score.measured[1:, j] - score.simulated[1:, j]
-            rec.log(f"{rbase}/{what}", rr.SeriesLines(names=f"{what}", colors=color),
+        tests = residual_tests(result, out)
+        k = tests.lags
+        _band(rec, f"acf/{esc}/band_{_band_name(tests.band)}", k, tests.band)
+        for (what, acf), color, shift in zip(tests.autocorrelation.items(), (_TRAIN, _VALID),
+                                             (-0.2, 0.2), strict=True):
+            rec.log(f"acf/{esc}/{what}", rr.BarChart(acf, abscissa=k + shift,
+                                                     widths=np.full(k.size, 0.4), color=color),
                     static=True)
-            rec.send_columns(f"{rbase}/{what}", indexes=[rr.TimeColumn("time", duration=lag_t)],
-                             columns=rr.Scalars.columns(scalars=autocorrelation(e, lags)))
-        band = Z99 / math.sqrt(max(va.samples - 1, 1))
-        for side, sign in (("upper", 1.0), ("lower", -1.0)):
-            rec.log(f"{rbase}/band/{side}",
-                    rr.SeriesLines(names=f"99 % band +-{band:.3f}" if side == "upper"
-                                   else "", colors=_BAND, widths=1.0), static=True)
-            rec.send_columns(f"{rbase}/band/{side}",
-                             indexes=[rr.TimeColumn("time", duration=lag_t[[0, -1]])],
-                             columns=rr.Scalars.columns(scalars=[sign * band] * 2))
-        row = [rrb.TimeSeriesView(
-            origin=f"/{rbase}", name=f"{out}: residual autocorrelation, lag [s] "
-            f"(Ts = {ts:g} s)", plot_legend=rrb.PlotLegend("RightTop"),
-            time_ranges=[_range(0.0, float(lag_t[-1]))])]
-        # the residual-input cross-correlation on the validation range
-        for inp, u in va.inputs.items():
-            e = va.measured[1:, j] - va.simulated[1:, j]
-            xc = cross_correlation(e, u[1:], lags)
-            tau = np.arange(-lags, lags + 1) * ts
-            xbase = f"identify/resid/{esc}/cross_{rr.escape_entity_path_part(inp)}"
-            rec.log(f"{xbase}/validation", rr.SeriesLines(names=f"validation, {inp}",
-                                                          colors=_VALID), static=True)
-            rec.send_columns(f"{xbase}/validation",
-                             indexes=[rr.TimeColumn("time", duration=tau)],
-                             columns=rr.Scalars.columns(scalars=xc))
-            for side, sign in (("upper", 1.0), ("lower", -1.0)):
-                rec.log(f"{xbase}/band/{side}",
-                        rr.SeriesLines(names=f"99 % band +-{band:.3f}" if side == "upper"
-                                       else "", colors=_BAND, widths=1.0), static=True)
-                rec.send_columns(f"{xbase}/band/{side}",
-                                 indexes=[rr.TimeColumn("time", duration=tau[[0, -1]])],
-                                 columns=rr.Scalars.columns(scalars=[sign * band] * 2))
-            row.append(rrb.TimeSeriesView(
-                origin=f"/{xbase}", name=f"{out} residual x {inp}: cross-correlation, "
-                "lag [s]", plot_legend=rrb.PlotLegend("RightTop"),
-                time_ranges=[_range(float(tau[0]), float(tau[-1]))]))
-        resid_rows.append(rrb.Horizontal(*row))
-    rec.log("identify/report", rr.TextDocument(report_markdown(result, comparison),
-                                               media_type=rr.MediaType.MARKDOWN), static=True)
-    rec.log("identify/report_text", rr.TextDocument(report(result, comparison)), static=True)
-    blueprint = rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(*fit_views, *resid_rows,
-                         row_shares=[3] * len(fit_views) + [2] * len(resid_rows)),
-            rrb.Tabs(rrb.TextDocumentView(origin="/identify/report", name="identification"),
-                     rrb.TextDocumentView(origin="/identify/report_text", name="report (text)"),
-                     rrb.TimeSeriesView(origin="/identify/residual", name="residuals")),
-            column_shares=[3, 2]),
-        rrb.TimePanel(state="collapsed"),
-        collapse_panels=True)
-    rec.send_blueprint(blueprint)
+        for inp, xcf in tests.cross_correlation.items():
+            xbase = f"xcorr/{esc}_{_esc(inp)}"
+            _band(rec, f"{xbase}/band_{_band_name(tests.band)}", k, tests.band)
+            rec.log(f"{xbase}/validation", rr.BarChart(xcf, abscissa=k,
+                                                       widths=np.full(k.size, 0.6),
+                                                       color=_VALID), static=True)
+    for name, text in (("parameters", markdown_parameters(result)),
+                       ("analysis", markdown_analysis(result, comparison)),
+                       ("reasons", markdown_reasons(result))):
+        rec.log(f"identify/report/{name}",
+                rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
+    rec.log("identify/report/text", rr.TextDocument(report(result, comparison)), static=True)
+    rec.send_blueprint(identify_blueprint(machine, result, comparison))
     rec.flush(timeout_sec=10.0)
     rec.disconnect()
 
 
-def _range(start: float, end: float) -> Any:
-    return rrb.VisibleTimeRange("time", start=rrb.TimeRangeBoundary.absolute(seconds=start),
-                                end=rrb.TimeRangeBoundary.absolute(seconds=end))
+def _band(rec: Any, entity: str, lags: np.ndarray, band: float) -> None:
+    """The +-band region of a correlation plot as translucent bars, one up and one down at
+    every lag."""
+    x = np.repeat(lags, 2)
+    values = np.tile([band, -band], lags.size)
+    rec.log(entity, rr.BarChart(values, abscissa=x, widths=np.full(x.size, 1.0),
+                                color=_BAND), static=True)
 
 
-__all__ = ["CommissionError", "Commissioning", "Recording", "commission",
-           "cross_correlation", "read_recording", "record_fit", "report", "report_markdown",
-           "summary"]
+def _band_name(band: float) -> str:
+    """``pm0.053``: the band's half-width in an entity name (legends show entity paths)."""
+    return f"pm{band:.3f}"
+
+
+def _span(start: float, end: float) -> dict[str, Any]:
+    """A time-series view's arguments that show [start, end] seconds of the ``time``
+    timeline whatever the time cursor: the data queried over that range, the x axis zoomed to
+    it and not linked to the other views'."""
+    lo = rrb.TimeRangeBoundary.absolute(seconds=start)
+    hi = rrb.TimeRangeBoundary.absolute(seconds=end)
+    return {"time_ranges": [rrb.VisibleTimeRange("time", start=lo, end=hi)],
+            "axis_x": rrb.TimeAxis(link=rrb.components.LinkAxis.Independent,
+                                   view_range=rrb.TimeRange(start=lo, end=hi))}
+
+
+__all__ = ["CommissionError", "Commissioning", "Recording", "ResidualTests", "commission",
+           "cross_correlation", "fit_title", "identify_blueprint", "markdown_analysis",
+           "markdown_parameters", "markdown_reasons", "read_recording", "record_fit", "report",
+           "report_markdown", "residual_tests", "summary"]

@@ -18,11 +18,16 @@ one window. :func:`identify`:
    correlation matrix's strong pairs, and the parameters the search left at a bound;
 3. **holds the undetermined ones at stated values** and re-fits the rest: while a free
    parameter's 1-sigma relative error exceeds ``[identify] max_rel_std`` (default 10 %), the
-   weakest combination's main parameter (preferring one with a stated value, then the last in
-   ``estimate``'s priority order) is held at its stated value (``[identify.fixed]``: a value
-   and the reason for it; else the configured ``[machine.parameters]`` value; else, said as
-   such, the best fit's value, which the data do not support) and the others are polished
-   again. What remains free is *determined*, each within ``max_rel_std`` given the held values;
+   weakest combination that a stated value can resolve gives up one parameter: of those with
+   a stated value (``[identify.fixed]``: a value, its own 1-sigma and where it comes from;
+   else the configured ``[machine.parameters]`` value, the nameplate), the one with the
+   largest weight (then the last in ``estimate``'s priority order) is held there and the
+   others are polished again. A stated value's 1-sigma is propagated to the re-fitted
+   parameters (``S diag(sigma^2) S^T``, S how the optimum follows the held value). What
+   remains free within ``max_rel_std`` is *determined*; a parameter whose combination nobody
+   stated a value for stays free and *not determined* (never held at an arbitrary value,
+   which would make the others look determined). A parameter the search left at a bound is
+   held there, flagged;
 4. **scores** both fits on a validation stretch it was not fitted to, per output::
 
        fit % = 100 * (1 - ||y - y_hat|| / ||y - mean(y)||)
@@ -64,10 +69,12 @@ from twinwatch.twin.estimation.fit import (
     LocalFit,
     ParameterMap,
     WindowFit,
+    explained_rms,
     parameter_covariance,
     pso_minimize,
+    residual_variances,
 )
-from twinwatch.twin.estimation.statistics import ModelCheck, OutputCheck
+from twinwatch.twin.estimation.statistics import ModelCheck, OutputCheck, noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
@@ -76,9 +83,11 @@ logger = logging.getLogger(__name__)
 AT_BOUND = 0.01
 #: Components of a combination below this fraction of its largest are left out of its label.
 LABEL_CUT = 0.2
-#: A parameter is a candidate to hold when its component in the weakest combination is at
-#: least this fraction of the largest one.
-HOLD_SHARE = 0.3
+#: A parameter with a stated value can resolve a combination when its weight is at least
+#: this fraction of the largest (a smaller one leaves the others' error amplified by 1/w).
+HOLD_SHARE = 0.1
+#: The partners named when no stated value resolves a combination: weights from this fraction.
+MAIN_SHARE = 0.3
 
 
 class FixedValue(BaseModel):
@@ -328,10 +337,10 @@ class Identifiability:
     Attributes:
         names: the parameters analysed (free in that fit), in ``estimate`` order.
         information: (n, n) information matrix of the ln-parameters (the initial state
-            profiled out).
+            profiled out; zero rows for the parameters in an exact null direction).
         eigenvalues: its eigenvalues, ascending (n,).
-        rank: numerical rank (eigenvalues above 1e-10 of the largest: the Jacobian is a
-            finite difference).
+        rank: the Jacobian's numerical rank over the parameters: n less the exact null
+            directions (:data:`NULL_TOL`).
         determined_rank: combinations the data determine to within ``max_rel_std``.
         condition: largest over smallest eigenvalue (inf when singular).
         rel_std: parameter -> relative standard error (1 sigma), the others free.
@@ -469,6 +478,13 @@ class Identification:
     starts: list[float] = field(default_factory=list)
 
     @property
+    def pasted(self) -> list[str]:
+        """The parameters :func:`parameters_block` pastes: the determined ones, none when the
+        validation range fails the model check (a twin that does not describe the machine
+        gives biased values, and the monitoring would not trust its windows either)."""
+        return list(self.determined) if self.validation.check.passed else []
+
+    @property
     def at_bound(self) -> dict[str, str]:
         """Parameters the full fit left at a bound -> ``lower``/``upper``."""
         return self.identifiability.at_bound if self.identifiability else {}
@@ -511,18 +527,37 @@ def _honest_check(check: ModelCheck, fit_pct: Mapping[str, float]) -> ModelCheck
         if oc is not None:
             outputs[o] = OutputCheck(oc.rms, oc.noise, oc.whiteness_p, oc.cross_p, False)
         reasons.append(f"{o} fitted worse than its mean (fit {fit_pct[o]:.1f} %): the twin "
-                       "does not describe it")
+                       "does not explain its variation")
     return ModelCheck(passed=False, reasons=reasons, outputs=outputs, widen=check.widen)
 
 
+def _explained(r: FloatArray, jac: FloatArray, n_out: int, floor: float) -> FloatArray:
+    """Per output, the residual RMS (normalised) that the white noise's effect on the
+    estimates explains (as the monitoring's model check: a noise-free output, such as a
+    closed loop's voltage, carries the trace of the other outputs' noise)."""
+    white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
+    cov = parameter_covariance(jac, r, n_out, floor, white)
+    return explained_rms(jac, cov, n_out)
+
+
 def _score(model: TwinModel, est: Estimator, window: WindowData, theta: FloatArray,
-           weights: Mapping[str, float], initial: FloatArray | None) -> StretchScore:
+           weights: Mapping[str, float], initial: FloatArray | None,
+           explained: FloatArray | None = None) -> StretchScore:
+    """The twin with parameters ``theta`` on a stretch; ``initial`` None: the initial-state
+    offsets are estimated on the stretch with the parameters held (MATLAB ``compare``'s
+    default: a noisy first sample must not count as model error)."""
     fit = WindowFit(model, window, weights)
+    if initial is None and est.config.initial_state and model.initial_states:
+        pmap = est.pmap
+        local = LocalFit(fit, pmap, theta, np.log(est.lower), np.log(est.upper), None,
+                         initial=True)
+        v, _, _ = local.refine(local.start(pmap.ln(theta)), local.nuisance)
+        initial = local.initial(v)
     fit.initial = initial
     y = fit.simulate(theta[None, :])[0]
     names = model.output_names
     fit_pct = {o: fit_percent(fit.meas[1:, j], y[1:, j]) for j, o in enumerate(names)}
-    check = _honest_check(est.check(fit, y), fit_pct)
+    check = _honest_check(est.check(fit, y, explained), fit_pct)
     return StretchScore(
         start=float(window.t[0]), end=float(window.t[-1]), samples=window.n,
         fit_pct=fit_pct,
@@ -534,16 +569,19 @@ def _score(model: TwinModel, est: Estimator, window: WindowData, theta: FloatArr
 
 def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
             bounds: Mapping[str, tuple[float, float]], max_rel_std: float,
-            strong: float = 0.9) -> Identifiability:
+            strong: float = 0.9, null: FloatArray | None = None) -> Identifiability:
     """Identifiability at an optimum from the covariance of the ln-parameters.
 
     Args:
         names: the free parameters (n), the covariance's order.
-        cov: (n, n) covariance of their logarithms (``inf`` rows: the outputs do not respond).
+        cov: (n, n) covariance of their logarithms (``inf`` rows: not determined at all).
         values: parameter -> value at the optimum [SI].
         bounds: parameter -> [low, high] searched [SI].
         max_rel_std: the 1-sigma (relative) a determined combination may have.
         strong: |correlation| from which a pair is listed.
+        null: (n, q) directions the outputs do not respond to at all
+            (:func:`least_squares_covariance`), each an undetermined combination of infinite
+            1-sigma.
 
     Returns:
         The analysis (:class:`Identifiability`).
@@ -558,35 +596,41 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
             at_bound[name] = "lower"
         elif abs(math.log(hi / v)) < AT_BOUND:
             at_bound[name] = "upper"
-    finite = np.all(np.isfinite(cov), axis=1) if n else np.zeros(0, dtype=bool)
+    null = np.zeros((n, 0)) if null is None else np.asarray(null)[:n]
+    finite = np.isfinite(np.diag(cov)) if n else np.zeros(0, dtype=bool)
     c = np.where(np.isfinite(cov), cov, 0.0)
     d = np.diag(c).copy()
     d[~finite] = np.inf
     sd = np.sqrt(np.maximum(d, 0.0))
-    # eigen-decomposition of the covariance: the largest variances are the information
-    # matrix's smallest eigenvalues, the same eigenvectors
-    w, v = np.linalg.eigh(c[np.ix_(finite, finite)]) if finite.any() else (
-        np.zeros(0), np.zeros((0, 0)))
+    undetermined: list[Combination] = []
+    for k in range(null.shape[1]):
+        vec = null[:, k]
+        m = float(np.max(np.abs(vec))) if vec.size else 0.0
+        if m <= 0:
+            continue
+        sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
+        undetermined.append(Combination(
+            {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)
+             if abs(x) > NULL_COMPONENT}, math.inf))
+    # the determined block: eigen-decomposition of its covariance (the largest variances are
+    # the information matrix's smallest eigenvalues, the same eigenvectors)
+    blk = c[np.ix_(finite, finite)]
+    w, vecs = np.linalg.eigh(blk) if finite.any() else (np.zeros(0), np.zeros((0, 0)))
     w = np.maximum(w, 1e-300)
     fin_names = [nm for nm, f in zip(names, finite, strict=True) if f]
-    # the information matrix over the finite block (the covariance's inverse); a parameter the
-    # outputs do not respond to has no information (a zero eigenvalue)
     info = np.zeros((n, n))
     if finite.any():
-        info[np.ix_(finite, finite)] = v @ np.diag(1.0 / w) @ v.T
-    eig = np.sort(np.concatenate([np.zeros(int((~finite).sum())), 1.0 / w]))
+        info[np.ix_(finite, finite)] = vecs @ np.diag(1.0 / w) @ vecs.T
+    # every parameter in an exact null direction has no information of its own (a zero row)
+    eig = np.sort(np.concatenate([np.zeros(n - int(finite.sum())), 1.0 / w]))
+    q = sum(1 for comb in undetermined if math.isinf(comb.std))
+    rank = n - q  # the Jacobian's numerical rank over the parameters
     top = float(eig.max()) if eig.size else 0.0
-    rank = int(np.sum(eig > 1e-10 * top)) if top > 0 else 0
     small = float(eig.min()) if eig.size else 0.0
-    condition = top / small if small > 0 else math.inf
-    undetermined: list[Combination] = []
-    # dead parameters: each its own undetermined direction
-    for nm, f in zip(names, finite, strict=True):
-        if not f:
-            undetermined.append(Combination({nm: 1.0}, math.inf))
+    condition = top / small if small > 0 and q == 0 else math.inf
     determined_rank = 0
     for k in range(w.size):
-        vec = v[:, k]
+        vec = vecs[:, k]
         m = float(np.max(np.abs(vec)))
         std = math.sqrt(w[k]) / m if m > 0 else math.inf
         if std <= max_rel_std:
@@ -613,6 +657,62 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
         rel_std={nm: float(s) for nm, s in zip(names, sd, strict=True)},
         correlation=corr, strong_pairs=pairs, undetermined=undetermined,
         at_bound=at_bound, max_rel_std=max_rel_std)
+
+
+#: Singular values of the column-scaled Jacobian below this fraction of the largest are
+#: exact null directions: a forward difference of 1e-6 in ln p carries the simulation's
+#: round-off at about 1e-6 of a column, so no finer direction is real.
+NULL_TOL = 1e-5
+#: A parameter whose component in an exact null direction exceeds this is not determined
+#: at all (infinite variance).
+NULL_COMPONENT = 1e-3
+
+
+def least_squares_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: float
+                             ) -> tuple[FloatArray, FloatArray]:
+    """The least-squares covariance of the search variables at an optimum, in the sandwich
+    form ``A^+ (J^T W J) A^+`` (``A = J^T J``; W each output's residual variance, AR(1)-
+    inflated and floored: :func:`~twinwatch.twin.estimation.fit.residual_variances`, as the
+    monitoring), on the Jacobian's numerical range: directions the outputs do not respond to
+    at all (singular values below :data:`NULL_TOL` of the largest, columns equilibrated) are
+    returned apart, and every variable with a component in them gets an infinite variance.
+    (A pseudo-inverse that keeps such a direction at the finite difference's noise level
+    spreads its enormous variance over the others.)
+
+    Args:
+        jac: (M, n) Jacobian of the normalised residuals.
+        r: (M,) residuals, ``n_out`` outputs interleaved.
+        n_out: outputs.
+        floor: smallest normalised residual level.
+
+    Returns:
+        (covariance (n, n) with ``inf`` rows/columns for the undetermined variables,
+        null directions (n, q) as unit vectors of the variables).
+    """
+    m, n = jac.shape
+    if n == 0:
+        return np.zeros((0, 0)), np.zeros((0, 0))
+    var = residual_variances(r, n_out, floor, n)
+    norms = np.linalg.norm(jac, axis=0)
+    safe = np.where(norms > 0, norms, 1.0)
+    js = jac / safe
+    u, sv, vt = np.linalg.svd(js, full_matrices=False)
+    top = float(sv.max()) if sv.size else 0.0
+    keep = sv > NULL_TOL * top if top > 0 else np.zeros(sv.size, dtype=bool)
+    ur, sr, vr = u[:, keep], sv[keep], vt[keep].T
+    meat = (ur * var[:, None]).T @ ur
+    cov = (vr @ (meat / np.outer(sr, sr)) @ vr.T) / np.outer(safe, safe)
+    # the null space over the scaled variables, completed to n dimensions
+    _, _, vfull = np.linalg.svd(js, full_matrices=True)
+    null_s = vfull[int(keep.sum()):].T
+    dead = norms == 0
+    if null_s.size:
+        dead |= np.any(np.abs(null_s) > NULL_COMPONENT, axis=1)
+    cov[dead, :] = np.inf
+    cov[:, dead] = np.inf
+    null = null_s / safe[:, None]
+    null = null / np.maximum(np.linalg.norm(null, axis=0), 1e-300)
+    return cov, null
 
 
 class _Problem:
@@ -644,23 +744,25 @@ class _Problem:
 
     def covariance(self, r: FloatArray, jac: FloatArray, k: int,
                    v: FloatArray | None = None, held: Mapping[int, float] | None = None
-                   ) -> FloatArray:
+                   ) -> tuple[FloatArray, FloatArray]:
         """Covariance of the first ``k`` search variables of ``jac``'s columns (the free
-        ln-parameters; the initial-state offsets after them marginalised) at residuals ``r``.
+        ln-parameters; the initial-state offsets after them marginalised) at residuals ``r``
+        (:func:`least_squares_covariance`), and the exact null directions over them.
 
         ``held``: position of a held ln-parameter in ``v`` -> the 1-sigma of its stated value
         (relative); each moves the free ones as the least-squares optimum follows it
         (``S = -(J^T J)^-1 J^T J_h``), which adds ``S diag(sigma^2) S^T``.
         """
-        cov = parameter_covariance(jac, r, self.fit.n_out, self.floor)
+        cov, null = least_squares_covariance(jac, r, self.fit.n_out, self.floor)
         held = {i: sd for i, sd in (held or {}).items() if sd > 0}
         if held and v is not None and jac.shape[1]:
             cols = np.array(sorted(held), dtype=int)
             jh = self.local.jacobian(v, cols, r)
             sens = -np.linalg.lstsq(jac, jh, rcond=None)[0]
             sig = np.array([held[i] for i in cols])
-            cov = cov + (sens * sig**2) @ sens.T
-        return cov[:k, :k]
+            with np.errstate(invalid="ignore"):
+                cov = cov + (sens * sig**2) @ sens.T
+        return cov[:k, :k], null[:k]
 
     def theta(self, v: FloatArray) -> FloatArray:
         return self.pmap.full(v[None, :self.n_est], self.base)[0]
@@ -755,15 +857,17 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     theta_full = prob.theta(v_full)
     values_full = dict(zip(model.parameter_names, (float(x) for x in theta_full), strict=True))
     init_full = prob.local.initial(v_full)
-    cov_full = prob.covariance(r_full, jac_full, n_est)
+    cov_full, null_full = prob.covariance(r_full, jac_full, n_est)
     bounds = {n: (float(lo), float(hi)) for n, lo, hi in
               zip(names_est, est.lower, est.upper, strict=True)}
     analysis = analyse(names_est, cov_full, values_full, bounds, config.max_rel_std,
-                       config.correlation)
-    train_full = _score(model, est, train, theta_full, config.weights, init_full)
+                       config.correlation, null_full)
+    explained = _explained(r_full, jac_full, fit.n_out, cfg.model_error)
+    train_full = _score(model, est, train, theta_full, config.weights, init_full, explained)
     full = FullFit(
         values=values_full, rel_std=dict(analysis.rel_std), train=train_full,
-        validation=_score(model, est, validation, theta_full, config.weights, None),
+        validation=_score(model, est, validation, theta_full, config.weights, None,
+                          explained),
         nrmse=math.sqrt(best[0]),
         criteria=information_criteria(train_full.measured, train_full.simulated,
                                       n_est + prob.local.n_init))
@@ -806,20 +910,20 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
 
     for name, side in analysis.at_bound.items():
         i = names_est.index(name)
-        hold(i, f"at its {side} bound {bounds[name][0 if side == 'lower' else 1]:.4g} "
-             "after the search: the data push it beyond the range searched (widen [identify] "
-             "bounds, or the structure does not describe it)", at=values_full[name])
+        hold(i, f"at its {side} bound {bounds[name][0 if side == 'lower' else 1]:.4g}: the "
+             "data push it beyond the range searched (widen [identify] bounds, or the "
+             "structure does not describe it)", at=values_full[name])
     changed = bool(held)
     while free:
         if changed:
             v, r, jac = prob.polish(v, free)
             changed = False
         k = len(free)
-        cov = prob.covariance(r, jac, k, v, held_sd())
+        cov, null = prob.covariance(r, jac, k, v, held_sd())
         sub = [names_est[i] for i in free]
         theta = prob.theta(v)
         vals = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
-        a = analyse(sub, cov, vals, bounds, config.max_rel_std, config.correlation)
+        a = analyse(sub, cov, vals, bounds, config.max_rel_std, config.correlation, null)
         newly = [n for n in a.at_bound if n not in analysis.at_bound]
         if newly:
             for name in newly:
@@ -856,19 +960,20 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     theta = prob.theta(v)
     values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
     sub = [names_est[i] for i in free]
-    final = analyse(sub, prob.covariance(r, jac, len(free), v, held_sd()), values, bounds,
-                    config.max_rel_std, config.correlation)
+    cov, null = prob.covariance(r, jac, len(free), v, held_sd())
+    final = analyse(sub, cov, values, bounds, config.max_rel_std, config.correlation, null)
     determined = [n for n in sub if final.rel_std[n] <= config.max_rel_std]
     undetermined = {n: _unresolved(n, final) for n in sub if n not in determined}
     init = prob.local.initial(v)
+    explained = _explained(r, jac, fit.n_out, cfg.model_error)
     return Identification(
         values=values,
         rel_std={n: final.rel_std[n] for n in sub},
         bounds=bounds,
         estimated=names_est,
         tied=dict(cfg.tie or {}),
-        train=_score(model, est, train, theta, config.weights, init),
-        validation=_score(model, est, validation, theta, config.weights, None),
+        train=_score(model, est, train, theta, config.weights, init, explained),
+        validation=_score(model, est, validation, theta, config.weights, None, explained),
         elapsed_s=time.perf_counter() - t_start,
         evaluations=fit.evaluations,
         determined=determined,
@@ -887,16 +992,24 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
 
 
 def _unresolved(name: str, analysis: Identifiability) -> str:
-    """Why a free parameter is not determined: the weakest combination it is part of, and
-    which of its partners a stated value would resolve it with."""
+    """Why a free parameter is not determined: the undetermined combination it weighs most
+    in, and which parameters a stated value would resolve it with."""
+    best: tuple[float, Combination] | None = None
     for comb in analysis.undetermined:
-        w = comb.weights.get(name, 0.0)
-        if abs(w) >= HOLD_SHARE * max(abs(x) for x in comb.weights.values()):
-            partners = [n for n, x in comb.weights.items() if abs(x) >= HOLD_SHARE
-                        * max(abs(y) for y in comb.weights.values())]
-            return (f"in {comb.label()} (+-{_pct(comb.std)}); state a value of "
-                    f"{' or '.join(partners)} to determine it")
-    return f"above the {_pct(analysis.max_rel_std)} allowed"
+        top = max(abs(x) for x in comb.weights.values())
+        share = abs(comb.weights.get(name, 0.0)) / top if top > 0 else 0.0
+        if share >= LABEL_CUT and (best is None or share > best[0]):
+            best = (share, comb)
+    if best is None:
+        return f"the outputs barely respond to it (above the {_pct(analysis.max_rel_std)} " \
+            "allowed)"
+    comb = best[1]
+    top = max(abs(x) for x in comb.weights.values())
+    partners = [n for n, x in comb.weights.items() if abs(x) >= MAIN_SHARE * top]
+    if name not in partners:
+        partners.append(name)
+    return (f"in {comb.label()} (+-{_pct(comb.std)}); state a value of "
+            f"{' or '.join(partners)} to determine it")
 
 
 def _pct(x: float) -> str:
@@ -989,7 +1102,12 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
         lines.append(f"# structure: {result.structure}; in [machine.options] set:")
         for key, value in (result.options or {}).items():
             lines.append(f"#   {key} = {_toml_value(value)}")
-    if result.held or result.undetermined:
+    pasted = result.pasted
+    if not result.validation.check.passed:
+        lines.append("# NOTHING TO PASTE: the twin fails the model check on the validation "
+                     "range, so its values are biased by what it misses: fix the structure "
+                     "([identify.candidates]), or accept that error ([estimation] model_error)")
+    elif result.held or result.undetermined:
         lines.append(f"# Pasted: the parameters the recording determines within "
                      f"{_pct(result.max_rel_std)} (1 sigma)"
                      + (", given the held values below." if result.held else "."))
@@ -998,9 +1116,12 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
         value = result.values[name]
         unit = result.units.get(name, "")
         note = f"{unit}, identified +- {_pct(result.rel_std[name])} (1 sigma)"
-        lines.append(f"{name} = {value:.6g}".ljust(24) + f"# {note}")
+        if name not in pasted:
+            note += ", NOT PASTED: the model check failed"
+        lines.append(("" if name in pasted else "# ") + f"{name} = {value:.6g}".ljust(24)
+                     + f"# {note}")
     for dep, src in result.tied.items():
-        if src in result.determined:
+        if src in pasted:
             lines.append(f"{dep} = {result.values[dep]:.6g}".ljust(24)
                          + f"# {result.units.get(dep, '')}, tied to {src}")
     if result.held or result.undetermined:
@@ -1014,7 +1135,7 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
             lines.append(f"# {name} = {result.values[name]:.6g}".ljust(24)
                          + f"# {unit}, not determined (+-{_pct(result.rel_std[name])}): {why}")
         for dep, src in result.tied.items():
-            if src not in result.determined:
+            if src not in pasted:
                 lines.append(f"# {dep} = {result.values[dep]:.6g}".ljust(24)
                              + f"# {result.units.get(dep, '')}, tied to {src} (not pasted)")
     lines.append("")
