@@ -232,8 +232,9 @@ def _check_text(score: StretchScore) -> str:
 
 
 def _comparison_lines(comparison: Comparison) -> list[str]:
-    outs = list(comparison.best.train.fit_pct)
-    head = (f"  {'structure':<28} {'n_p':>4} {'nRMSE':>8} "
+    outs = comparison.outputs or list(comparison.best.train.fit_pct)
+    width = max(len("structure"), *(len(r.structure) for r in comparison.results))
+    head = (f"  {'structure':<{width}} {'n_p':>4} {'nRMSE':>8} "
             + " ".join(f"{'val ' + o:>10}" for o in outs)
             + f" {'check':>7} {'AIC':>11} {'BIC':>11}")
     lines = ["structures compared (the fit with every parameter free; fit % on the "
@@ -242,10 +243,10 @@ def _comparison_lines(comparison: Comparison) -> list[str]:
         f = r.full
         assert f is not None
         mark = "*" if k == comparison.winner else " "
-        lines.append(f"{mark} {r.structure:<28.28} {f.criteria.parameters:>4} {f.nrmse:>8.5f} "
+        lines.append(f"{mark} {r.structure:<{width}} {f.criteria.parameters:>4} {f.nrmse:>8.5f} "
                      + " ".join(f"{f.validation.fit_pct[o]:>10.1f}" for o in outs)
                      + f" {'passed' if f.validation.check.passed else 'FAILED':>7}"
-                     f" {f.criteria.aic:>11.1f} {f.criteria.bic:>11.1f}")
+                     f" {comparison.criteria[k].aic:>11.1f} {comparison.criteria[k].bic:>11.1f}")
     best = comparison.best
     lines.append(f"winner: {best.structure} ({comparison.rule})")
     if best.options:
@@ -411,6 +412,7 @@ def markdown_analysis(result: Identification, comparison: Comparison | None = No
             md.append("; ".join(extra) + ".")
     if comparison is not None:
         md.append("")
+        outs = comparison.outputs or outs
         md.append("| structure (all free) | " + " | ".join(f"{o} valid." for o in outs)
                   + " | check | BIC |")
         md.append("|---|" + "---|" * len(outs) + "---|---|")
@@ -421,7 +423,7 @@ def markdown_analysis(result: Identification, comparison: Comparison | None = No
             md.append(f"| {name} | " + " | ".join(f"{f.validation.fit_pct[o]:.1f}"
                                                   for o in outs)
                       + f" | {'passed' if f.validation.check.passed else '**failed**'} | "
-                      f"{f.criteria.bic:.0f} |")
+                      f"{comparison.criteria[k].bic:.0f} |")
     return "\n".join(md) + "\n"
 
 
@@ -454,7 +456,7 @@ _MEASURED = [150, 150, 150]
 _TWIN = [230, 120, 20]
 _TRAIN = [60, 130, 230]
 _VALID = [230, 120, 20]
-_BAND = [200, 60, 60, 90]
+_BAND = [235, 70, 70, 120]
 
 
 def cross_correlation(e: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:

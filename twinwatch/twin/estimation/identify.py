@@ -1028,11 +1028,17 @@ class Comparison:
         results: every candidate's identification, in the order given.
         winner: index of the winner in ``results``.
         rule: how it was chosen, in words.
+        criteria: each result's AIC/BIC as compared (on the outputs every structure has:
+            a structure that adds an output, such as a closed loop's voltage, is scored on
+            the same data as the others).
+        outputs: those outputs.
     """
 
     results: list[Identification]
     winner: int
     rule: str
+    criteria: list[InformationCriteria] = field(default_factory=list)
+    outputs: list[str] = field(default_factory=list)
 
     @property
     def best(self) -> Identification:
@@ -1059,19 +1065,38 @@ def compare_structures(results: Sequence[Identification]) -> Comparison:
     if not results:
         raise ValueError("no structure to compare")
 
+    fulls = [r.full for r in results]
+    if any(f is None for f in fulls):
+        raise ValueError("a structure has no full fit to compare")
+    names = [list(r.train.fit_pct) for r in results]
+    common = [o for o in names[0] if all(o in n for n in names)]
+    if not common:
+        raise ValueError("the structures share no output to compare on")
+    criteria = []
+    for r, f in zip(results, fulls, strict=True):
+        assert f is not None
+        if list(r.train.fit_pct) == common:
+            criteria.append(f.criteria)
+            continue
+        cols = [list(r.train.fit_pct).index(o) for o in common]
+        criteria.append(information_criteria(f.train.measured[:, cols],
+                                             f.train.simulated[:, cols],
+                                             f.criteria.parameters))
+
     def key(k: int) -> tuple[int, int, float, int]:
-        r = results[k]
-        f = r.full
+        f = fulls[k]
         assert f is not None
         negative = 1 if f.validation.worse_than_mean else 0
         failed = 0 if f.validation.check.passed else 1
-        bic = f.criteria.bic if math.isfinite(f.criteria.bic) else math.inf
+        bic = criteria[k].bic if math.isfinite(criteria[k].bic) else math.inf
         return negative, failed, bic, k
 
     winner = min(range(len(results)), key=key)
     rule = ("no output fitted worse than its mean on the validation range, then the "
-            "validation model check passed, then the lowest BIC on the training residual")
-    return Comparison(list(results), winner, rule)
+            "validation model check passed, then the lowest BIC on the training residual"
+            + ("" if all(n == common for n in names) else
+               f" of the outputs all have ({', '.join(common)})"))
+    return Comparison(list(results), winner, rule, criteria, common)
 
 
 def parameters_block(result: Identification, source: str, *, nominal_header: str = ""
