@@ -166,7 +166,8 @@ def read_recording(cfg: TwinwatchConfig, base_dir: Path, duration: float | None 
 def _structures(cfg: TwinwatchConfig) -> list[tuple[str, dict[str, Any], TwinModel]]:
     """(name, options over [machine.options], model) of the configured structure and every
     candidate."""
-    out = [(AS_CONFIGURED, {}, create_model(cfg.machine.model, cfg.machine.options))]
+    out: list[tuple[str, dict[str, Any], TwinModel]] = [
+        (AS_CONFIGURED, {}, create_model(cfg.machine.model, cfg.machine.options))]
     for k, cand in enumerate(cfg.identify.candidates):
         try:
             model = create_model(cfg.machine.model,

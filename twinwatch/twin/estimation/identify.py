@@ -319,7 +319,7 @@ class Combination:
         """``a_adc - 0.41 Ra + 0.41 J``: the weights from the largest, those below ``cut``
         left out (relative changes: ``Ra + 0.8 Ke`` is a 1 % change of Ra with a 0.8 % one
         of Ke)."""
-        parts = []
+        parts: list[str] = []
         for name, w in sorted(self.weights.items(), key=lambda kv: -abs(kv[1])):
             if abs(w) < cut:
                 continue
@@ -936,14 +936,15 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         # the weakest combination that a stated value can resolve: hold its main parameter
         # with a stated value (the largest share, then the lowest priority); a combination
         # of parameters nobody stated stays free, and undetermined
-        choice = None
+        choice: tuple[Combination, str] | None = None
         for comb in a.undetermined:
             top = max(abs(w) for w in comb.weights.values())
             cands = [n for n, w in comb.weights.items()
                      if abs(w) >= HOLD_SHARE * top and stated(n) is not None]
             if cands:
-                choice = comb, min(cands, key=lambda n, c=comb: (
-                    0 if n in config.fixed else 1, -abs(c.weights[n]), -names_est.index(n)))
+                weights = comb.weights
+                choice = comb, min(cands, key=lambda n: (
+                    0 if n in config.fixed else 1, -abs(weights[n]), -names_est.index(n)))
                 break
         if choice is None:
             break
