@@ -292,6 +292,25 @@ enabled = false
     ra = float(text.split("Ra = ")[1].split()[0])
     assert ra == pytest.approx(TRUE["Ra"], rel=1e-3)  # noise-free: exact
     assert rrd.stat().st_size > 1000
+    # the file holds the commissioning view's entities (the blueprint: test above)
+    import rerun.chunk
+
+    entities = rerun.chunk.RrdReader(rrd).store().schema().entity_paths()
+    for out in ("ia", "omega", "Va"):
+        assert {f"/identify/fit/{out}/measured", f"/identify/fit/{out}/twin",
+                f"/acf/{out}/training", f"/acf/{out}/validation",
+                f"/xcorr/{out}_setpoint/validation"} <= set(entities)
+    assert {"/identify/report/parameters", "/identify/report/analysis"} <= set(entities)
     bad = subprocess.run([sys.executable, "-m", "twinwatch", "identify", str(cfg),
                           "--train", "0.6:0.2"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 78 and "train: need 0 <= start < end <= 1" in bad.stderr
+    # a candidate structure's option and a stated value are checked with the configuration
+    for extra, message in (
+            ('[[identify.candidates]]\nname = "fast drive"\noptions = { drive_period = 1 }',
+             "identify.candidates[0] (fast drive).options: unknown option 'drive_period'"),
+            ("[identify.fixed]\nRb = 6.5", "identify.fixed: unknown parameter 'Rb'")):
+        bad_cfg = tmp_path / "bad.toml"
+        bad_cfg.write_text(cfg.read_text().replace("[driver]", extra + "\n[driver]", 1))
+        res = subprocess.run([sys.executable, "-m", "twinwatch", "identify", str(bad_cfg)],
+                             capture_output=True, text=True, timeout=120)
+        assert res.returncode == 78 and message in res.stderr, res.stderr
