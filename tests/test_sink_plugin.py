@@ -289,8 +289,14 @@ def test_a_reload_keeps_the_plugin_open_unless_its_table_changed(
     first = Daemon(cfg, persist=True, record=False)
     first.run()
     sink = first.sinks["jsonl"]
-    kept = first.close(keep=SINKS)  # what the supervisor does on SIGHUP
-    second = Daemon(cfg, persist=True, record=False, reuse=kept)
+    # what the supervisor does on SIGHUP: the new daemon is opened beside the running one,
+    # adopting what it hands over, and takes over once the running one has released the rest
+    keep, wait = first.handover(cfg)
+    second = Daemon(cfg, persist=True, record=False, resume=False,
+                    reuse={k: first.sinks[k] for k in keep}, defer=wait)
+    first.close(keep=keep)
+    second.open_deferred()
+    second.continue_from(first)
     assert second.sinks["jsonl"] is sink and list(second.sinks) == ["store", "jsonl"]
     second.run()
     changed = cfg.model_copy(deep=True)
@@ -301,8 +307,13 @@ def test_a_reload_keeps_the_plugin_open_unless_its_table_changed(
     moved = changed.model_copy(deep=True)
     moved.outputs["jsonl"].path = "other.jsonl"
     assert second.handover(moved) == (["store"], [])
-    kept = second.close(keep=SINKS)
-    third = Daemon(changed, persist=True, record=False, reuse=kept)
+    keep, wait = second.handover(changed)
+    third = Daemon(changed, persist=True, record=False, resume=False,
+                   reuse={k: second.sinks[k] for k in keep}, defer=wait)
+    assert "jsonl" not in third.sinks  # its file is the running one's: it waits
+    second.close(keep=keep)
+    third.open_deferred()
+    third.continue_from(second)
     assert third.sinks["jsonl"] is not sink and sink._closed
     third.close()
     # numbering went on under one run id; the plug-in got each window once

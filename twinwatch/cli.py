@@ -26,11 +26,17 @@ if TYPE_CHECKING:
 logger = logging.getLogger("twinwatch")
 
 def _setup_logging(level: str) -> None:
+    """Log to stderr (the journal under systemd); third-party floods are rate-limited (the
+    first 5 identical messages a minute, then one line counting the others)."""
+    from twinwatch.daemon import logfilter
+
     logging.basicConfig(
         level=getattr(logging, level.upper()),
         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    for handler in logging.getLogger().handlers:
+        logfilter.install(handler)
 
 
 @click.group()
@@ -89,13 +95,15 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     were lost (not stored in the state database or not recorded).
 
     Signals: SIGTERM/SIGINT finish the windows already queued (a second one abandons them),
-    close the driver, Zenoh, the Rerun file and the state database, and exit 0. SIGHUP
-    reloads CONFIG: it is validated first; a bad one is refused (logged, naming the key) and
-    the running configuration goes on; a good one restarts the daemon in-process, keeping the
-    Zenoh session, the Rerun file and the state database open when their tables are unchanged,
-    and resuming the twin from the state database."""
+    close the driver, Zenoh, the Rerun file and the state database, and exit 0 (also while it
+    starts or reloads). SIGHUP reloads CONFIG: it is validated first; a bad one is refused
+    (logged, naming the key) and the running configuration goes on; a good one is started
+    beside the running one and takes over at a window boundary, keeping the source, the Zenoh
+    session, the Rerun file and the state database open when their tables are unchanged, going
+    on with the window numbering and resuming the twin from the state database; if it cannot
+    start, the running configuration goes on untouched."""
     from twinwatch.config.loader import ConfigError
-    from twinwatch.daemon.supervisor import StartError, Supervisor
+    from twinwatch.daemon.supervisor import StartError, Stopped, Supervisor
 
     base_dir = config.resolve().parent if config else Path.cwd()
 
@@ -112,6 +120,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     click.get_current_context().call_on_close(lambda: os.umask(old_umask))
     try:
         supervisor.start()
+    except Stopped as exc:  # SIGTERM while it was starting: nothing ran, nothing to report
+        click.echo(f"twinwatch: {exc}", err=True)
+        sys.exit(0)
     except ConfigError as exc:
         click.echo(f"Error: {exc}", err=True)
         sys.exit(EX_CONFIG)

@@ -112,6 +112,9 @@ class SinkContext:
             recording; the unit's ``StateDirectory``).
         history: the stored windows (the gate's history for this machine), or None when no
             gate is open; a publisher may serve it (the Zenoh history query).
+        recent_windows: the windows the daemon keeps in memory (``[acquisition] history``):
+            the gate keeps as many of those it wrote, to write them again to a database file
+            deleted or replaced under it.
     """
 
     machine: str
@@ -121,6 +124,7 @@ class SinkContext:
     base_dir: Path = field(default_factory=Path.cwd)
     cwd: Path = field(default_factory=Path.cwd)
     history: HistoryQuery | None = None
+    recent_windows: int = 1000
 
 
 class SinkConfig(BaseModel):
@@ -330,10 +334,6 @@ class Gate(Sink):
     @abc.abstractmethod
     def latest_health(self, machine: str | None = None) -> dict[str, Any] | None:
         """The last stored health message of ``machine`` (decoded), or None."""
-
-    @abc.abstractmethod
-    def next_window(self, machine: str) -> int:
-        """The window index after the last one this run stored: where a reload goes on."""
 
     @abc.abstractmethod
     def history(self, t_from: float | None = None, t_to: float | None = None,

@@ -44,6 +44,15 @@ again: with the Rerun SDK 0.41 a flush, a new file or a disconnect on it, and it
 wait forever, so its helpers are disabled and Rerun's exit hook is unregistered (the recorder
 closes its own stream).
 
+The file or its directory deleted, replaced or moved away while the daemon runs (a cleanup
+script, an operator) is noticed before the next window is recorded (the lock's descriptor against
+the path, :meth:`~twinwatch.sinks.locks.FileLock.changed`): the windows recorded in the file that
+is gone, and in the rotated files that went with its directory, are counted in
+:attr:`RerunRecorder.lost`, the directory is created again if it was removed (its last level
+only), and the same recording stream goes on in a new file at ``path`` (a file moved away is
+finalised, footer written, and loses nothing). While no new file can be started, the windows
+are counted as not recorded and it is tried again with each window.
+
 Memory and rotation: to write the footer, the Rerun SDK (0.41) keeps every chunk's manifest
 entry in memory for the life of the file (``rerun.save(..., write_footer=True)``): about
 13 kB per window here (some 20 chunks per window: one per entity and flush), 13-23 MiB per 1000
@@ -253,6 +262,10 @@ class RerunRecorder(Sink):
         self._file_lock: FileLock | None = None
         self.rotations = 0
         self._file_windows = 0
+        self._rotated: dict[Path, int] = {}  # files kept aside -> windows recorded in each
+        self._file_gone: str | None = None  # what happened to the file, until a new one
+        self._file_gone_lost = 0
+        self._no_new_file: str | None = None  # why no new file could be started yet
         if not config.enabled:
             logger.info("rerun recording disabled for %s", machine)
             return
@@ -274,12 +287,17 @@ class RerunRecorder(Sink):
         self._attach_file(rec, blueprint=blueprint)
         if not rr.is_enabled(rec):
             logger.warning("rerun logging is disabled (RERUN=off?): %s stays empty", self.path)
+        self._save_blueprint(blueprint)
+        return rec
+
+    def _save_blueprint(self, blueprint: rrb.Blueprint | None = None) -> None:
+        """Write the viewer layout to :attr:`blueprint_path` (best effort)."""
         try:
-            blueprint.save(self.config.application_id, self.blueprint_path)
+            (blueprint or self._blueprint()).save(self.config.application_id,
+                                                  self.blueprint_path)
         except (OSError, RuntimeError, ValueError) as exc:
             logger.warning("cannot write the blueprint %s (%s): rotated files open with the "
                            "viewer's default layout", self.blueprint_path, exc)
-        return rec
 
     def _attach_file(self, rec: rr.RecordingStream, *,
                      blueprint: rrb.Blueprint | None = None) -> None:
@@ -334,6 +352,7 @@ class RerunRecorder(Sink):
             self._release()
             return
         self.rotations += 1
+        self._rotated[aside] = self._file_windows
         self._file_windows = 0
         logger.info("recording rotated: %s closed, now writing %s", aside, self.path)
         keep = self.config.keep_files
@@ -343,8 +362,53 @@ class RerunRecorder(Sink):
             for old in rotated[:-keep]:
                 try:
                     old.unlink()
+                    self._rotated.pop(old, None)
                 except OSError as exc:
                     logger.warning("cannot delete old recording %s: %s", old, exc)
+
+    def _check_file(self, window: Any) -> bool:
+        """The file at :attr:`path` is still the one being written (called with the lock held,
+        before each window). Deleted, replaced or moved away: count the windows lost with it
+        (and with the rotated files that went with its directory), and go on in a new file at
+        the path, its directory created again (one level) if it was removed. Returns False
+        while no new file can be started (the window is then not recorded)."""
+        rec = self._rec
+        if rec is None:  # its file writer died: a new stream and file come with _reopen
+            return True
+        if self._file_gone is None:
+            why = self._file_lock.changed() if self._file_lock is not None else None
+            if why is None:
+                return True
+            gone = 0 if why == "moved" else self._file_windows
+            with_it = ""
+            for aside, n in list(self._rotated.items()):
+                if not aside.exists():  # its directory was removed with it
+                    gone += n
+                    with_it = " and in the rotated files beside it"
+                    del self._rotated[aside]
+            self.lost += gone
+            self._file_gone = (f"recording {self.path} was {why} while running (noticed at "
+                               f"window {window}): {gone} windows recorded in it{with_it} "
+                               f"are lost")
+            self._file_gone_lost = gone
+        try:
+            if not self.path.parent.exists():
+                self.path.parent.mkdir(mode=0o750)  # its parent must be there: one level only
+                logger.warning("recording directory %s created again", self.path.parent)
+            self._relock()
+            self._attach_file(rec)  # the old file is finalised (footer) wherever it is now
+        except (OSError, RecorderError) as exc:
+            if self._no_new_file is None:
+                self._no_new_file = f"{self._file_gone}; no new file can be started ({exc})"
+                logger.error("%s: the windows are not recorded; tried again with each window",
+                             self._no_new_file)
+            return False
+        self._save_blueprint()
+        logger.log(logging.ERROR if self._file_gone_lost else logging.WARNING,
+                   "%s; recording goes on in a new file %s", self._file_gone, self.path)
+        self._file_windows = 0
+        self._file_gone = self._no_new_file = None
+        return True
 
     def _relock(self) -> None:
         """Lock the file now at :attr:`path` (after a rename) and release the old one."""
@@ -389,19 +453,23 @@ class RerunRecorder(Sink):
         shown = self.path.relative_to(cwd) if self.path.is_relative_to(cwd) else self.path
         lines = [f"recording: {self.path.resolve()} (open with: rerun {shown})"]
         if self.lost:
-            lines.append(f"recording: {self.lost} windows could not be recorded (the Rerun "
-                         "file writer failed: see the log)")
+            lines.append(f"recording: {self.lost} windows could not be recorded or were lost "
+                         "with a deleted file (see the log)")
         return lines
 
     @property
     def problem(self) -> str | None:
-        """Why windows are not being recorded right now (None while recording works)."""
+        """Why windows are not being recorded right now, or how many were not (None while
+        every window was recorded)."""
         if self._broken is not None:
             return f"{self._broken}; {self.lost} windows not recorded"
+        if self._no_new_file is not None:
+            return f"{self._no_new_file}; {self.lost} windows not recorded"
         if self._paused is not None:
             return f"{self._paused}; {self.lost} windows not recorded"
         if self._dead_since is None:
-            return None
+            # what was lost stays reported (as the state database's lost windows do)
+            return f"recording: {self.lost} windows not recorded" if self.lost else None
         return (f"recording to {self.path} stopped (the file writer died: disk full?); "
                 f"{self.lost} windows not recorded")
 
@@ -449,6 +517,7 @@ class RerunRecorder(Sink):
                                         f"{self.path.suffix}")
             try:
                 self.path.rename(aside)
+                self._rotated[aside] = self._file_windows
                 self.rotations += 1
                 logger.error("the recording up to the failure is %s (no footer: "
                              "`rerun rrd optimize` completes it)", aside)
@@ -619,7 +688,10 @@ class RerunRecorder(Sink):
                     self.lost += 1
                 logger.debug("recorder of %s closed, dropping window at t=%.3f s", m, t_end)
                 return
-            if not self._room() or (rec is None and not self._reopen()):
+            window = (health.get("window") if isinstance(health, Mapping)
+                      else health.window)
+            if (not self._check_file(window) or not self._room()
+                    or (rec is None and not self._reopen())):
                 self.lost += 1
                 return
             rec = self._rec
@@ -710,6 +782,11 @@ class RerunRecorder(Sink):
             if rec is None:  # never opened, or its file writer died (abandoned)
                 self._release()
                 return
+            why = self._file_lock.changed() if self._file_lock is not None else None
+            if why in ("deleted", "replaced") and self._file_windows:
+                self.lost += self._file_windows
+                logger.error("recording %s was %s before it was closed: %d windows recorded in "
+                             "it are lost", self.path, why, self._file_windows)
             if self._flush(rec):
                 rec.disconnect()
             self._release()
