@@ -141,6 +141,17 @@ def test_undetermined_combination_is_named_and_held_at_its_stated_value() -> Non
     assert r3.rel_std["D"] > r2.rel_std["D"] + 0.1
 
 
+def test_a_stated_value_of_a_parameter_not_identified_is_its_value_in_the_fit() -> None:
+    w = _recording(10.0, {})
+    train, validation = _split(w)
+    est = EstimationConfig(estimate=["Ra"], tie={"Kt": "Ke"}, bounds={"Ra": (1.0, 30.0)})
+    cfg = IdentifyConfig(pso=PSOSettings(pop_size=6, max_generations=3), time_budget=2.0,
+                         fixed={"Ke": FixedValue(value=0.041, reason="nameplate")})
+    r = identify(DCMotorTwin(), est, cfg, train, validation, {"Ke": 0.038})
+    assert r.values["Ke"] == r.values["Kt"] == 0.041 and "Ke" not in r.held
+    assert r.values["Ra"] == pytest.approx(TRUE["Ra"], rel=1e-3)  # noise-free, Ke as stated
+
+
 def test_a_negative_fit_never_passes() -> None:
     """An output the twin fits worse than its mean fails the model check, with the reason,
     even where the residual tests alone pass (a noisy output's scatter looks white)."""

@@ -142,9 +142,10 @@ class IdentifyConfig(BaseModel):
         "relative standard error (1 sigma) is at most this; the others are held at their "
         "stated values and the rest re-fitted")
     fixed: dict[str, FixedValue] = Field(
-        default_factory=dict, description="parameter -> { value, reason }: the stated value "
-        "to hold a parameter at when the recording does not determine it (default: its "
-        "[machine.parameters] value)")
+        default_factory=dict, description="parameter -> { value, rel_std, reason }: the "
+        "stated value to hold an identified parameter at when the recording does not "
+        "determine it (default: its [machine.parameters] value); the value of a parameter "
+        "that is not identified")
     correlation: float = Field(0.9, gt=0, lt=1, description="|correlation| from which a "
                                "pair of parameters is reported as strongly correlated")
     candidates: list[Candidate] = Field(
@@ -809,6 +810,10 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
                 raise ValueError(f"the recording has no channel {ch!r} ({what} range)")
             if not np.all(np.isfinite(w.channels[ch])):
                 raise ValueError(f"channel {ch!r} holds NaN or inf in the {what} range")
+    # a stated value of a parameter that is not identified is its value in the fit
+    estimated = set(config.estimation(estimation).resolved(model).estimate or [])
+    nominal = {**(nominal or {}), **{k: f.value for k, f in config.fixed.items()
+                                     if k not in estimated}}
     est = Estimator(model, config.estimation(estimation), nominal)
     cfg = est.config
     fit = WindowFit(model, train, config.weights)
