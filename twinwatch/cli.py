@@ -82,13 +82,20 @@ def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
 @click.option("--fresh", is_flag=True,
               help="Start from the nameplate twin and normal alarm levels instead of resuming "
               "those saved in the state database (its history is kept).")
+@click.option("--resume", is_flag=True,
+              help="Resume the last run's twin and alarm levels also when the source's time "
+              "starts over (a simulated plant, a replayed recording), which otherwise starts "
+              "a new run from the nameplate values.")
 def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
-        fresh: bool) -> None:
+        fresh: bool, resume: bool) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
 
-    The twin and the alarm levels saved in the state database by the previous run are resumed
-    (a line says so); --fresh starts from the nameplate values.
+    Every start is a new run (its id is in every health message and the summary; a SIGHUP
+    reload goes on in the same run). On a machine (a bus, a device) the twin and the alarm
+    levels saved in the state database by the previous run are resumed (a line says so);
+    --fresh starts from the nameplate values. A source whose time starts over (a simulated
+    plant from t = 0, a replayed recording) starts from the nameplate values unless --resume.
 
     Exit status: 0; 1 when the daemon cannot start or its driver fails; 78 for a configuration
     that cannot run here (the systemd unit does not restart on it); 74 when estimated windows
@@ -105,12 +112,15 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     from twinwatch.config.loader import ConfigError
     from twinwatch.daemon.supervisor import StartError, Stopped, Supervisor
 
+    if fresh and resume:
+        raise click.UsageError("--fresh and --resume exclude each other")
     base_dir = config.resolve().parent if config else Path.cwd()
 
     def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
         return _load_runnable(config, base_dir)
 
-    supervisor = Supervisor(load, base_dir=base_dir, resume=not fresh,
+    supervisor = Supervisor(load, base_dir=base_dir,
+                            resume=False if fresh else (True if resume else None),
                             source=str(config) if config else "the built-in default")
     _setup_logging(log_level)
     # Files the daemon creates (state database, recordings, layout) are 0640 and directories
@@ -133,6 +143,8 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     assert cfg is not None and supervisor.daemon is not None
     if supervisor.daemon.resumed is not None:
         click.echo(_resumed_line(supervisor.daemon), err=True)
+    elif supervisor.daemon.new_run is not None:
+        click.echo(_new_run_line(supervisor.daemon), err=True)
 
     from twinwatch.drivers import get_driver_class
 
@@ -199,13 +211,24 @@ def _resumed_line(daemon: Daemon) -> str:
             f"to start from the nameplate values instead: twinwatch run --fresh")
 
 
+def _new_run_line(daemon: Daemon) -> str:
+    """One line saying that the stored run was not resumed, why, and how to."""
+    r = daemon.new_run
+    assert r is not None
+    return (f"twinwatch: a new run ({daemon.run_id}): {r['reason']}, so the twin starts from "
+            f"the nameplate values and the alarms from normal; {r['path']} keeps the earlier "
+            f"runs (the last: {r['run']}); to continue the last run instead: twinwatch run "
+            f"--resume")
+
+
 def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
     """The run's summary (README "What `twinwatch run` prints"), from the typed health
     messages the daemon kept and its outputs' own lines."""
     c = daemon.counters()
     click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
                f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
-               f"(gaps/bad samples), {c['numeric_failures']} numeric failures")
+               f"(gaps/bad samples), {c['numeric_failures']} numeric failures "
+               f"(run {daemon.run_id})")
     lines = _source_lines(cfg, daemon)
     last = daemon.latest_health
     if last is not None:
