@@ -6,11 +6,12 @@ runs, so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_s
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -171,7 +172,8 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         supervisor.add_callback(_progress)
     failure: str | None = None
     try:
-        supervisor.run(duration=duration)
+        with _logs_above(bar):
+            supervisor.run(duration=duration)
     except StartError as exc:
         failure = f"cannot restart after a reload: {exc}"
     except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
@@ -192,6 +194,24 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     if daemon.lost():
         supervisor.notifier.status("stopped: " + "; ".join(daemon.problems()))
         sys.exit(EX_IOERR)
+
+
+@contextlib.contextmanager
+def _logs_above(bar: Any) -> Iterator[None]:
+    """While the progress bar is shown, the console's log lines are written above it (tqdm's
+    ``logging_redirect_tqdm``: the bar is cleared, the line written, the bar drawn again), so a
+    line never continues the bar's last redraw. The rate limit stays on the console's handler."""
+    if bar is None:
+        yield
+        return
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from twinwatch.daemon import logfilter
+
+    with logging_redirect_tqdm(tqdm_class=type(bar)):
+        for handler in logging.getLogger().handlers:
+            logfilter.install(handler)  # an older tqdm does not copy the filters
+        yield
 
 
 def _resumed_line(daemon: Daemon) -> str:
