@@ -590,10 +590,10 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
     machines = snapshot.get("machines", [])
     table = Table(title=f"{title}: {len(machines)} machine{'s' if len(machines) != 1 else ''}",
                   title_justify="left", expand=True, show_lines=True)
-    for header, ratio in (("machine", 2), ("state", 2), ("last window", 3),
-                          ("parameters (vs nominal)", 5), ("alarms", 3), ("terms (DT'')", 3),
-                          ("data quality", 3)):
-        table.add_column(header, ratio=ratio, overflow="fold")
+    for header, ratio, least in (("machine", 2, 8), ("state", 2, 9), ("last window", 3, 24),
+                                 ("parameters (vs nominal)", 5, 24), ("alarms", 3, 12),
+                                 ("terms (DT'')", 3, 10), ("data quality", 3, 16)):
+        table.add_column(header, ratio=ratio, min_width=least, overflow="fold")
     if not machines:
         table.add_row("no machine on the network yet", "", "", "", "", "", "")
     for m in machines:
