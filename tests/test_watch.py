@@ -118,7 +118,7 @@ def test_the_snapshot_reads_what_the_message_carries() -> None:
     console = Console(record=True, width=160, color_system=None)
     console.print(render(fleet.snapshot(), title="fleet"))
     text = console.export_text()
-    assert "fleet: 1 machine" in text and "-11.00 %" in text and "Ra ALARM since 10 s" in text
+    assert "fleet: 1 machine" in text and "-11.00 %" in text and "Ra ALARM since t=10 s" in text
     assert "RUL 90.0 min" in text and "driver_gaps 1" in text
 
 

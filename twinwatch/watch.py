@@ -628,7 +628,7 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
             if a["level"] in ("warning", "alarm"):
                 if alarms:
                     alarms.append("\n")
-                since = f" since {a['since_t']:.0f} s" if a["since_t"] is not None else ""
+                since = f" since t={a['since_t']:.0f} s" if a["since_t"] is not None else ""
                 alarms.append(f"{name} {str(a['level']).upper()}{since}",
                               style=_LEVEL_STYLE[str(a["level"])])
         if not alarms:
