@@ -115,7 +115,7 @@ def test_the_snapshot_reads_what_the_message_carries() -> None:
                         r"driver_gaps 1 \(run r1\)", line), line
     from rich.console import Console
 
-    console = Console(record=True, width=160, color_system=None)
+    console = Console(record=True, width=200, color_system=None)
     console.print(render(fleet.snapshot(), title="fleet"))
     text = console.export_text()
     assert "fleet: 1 machine" in text and "-11.00 %" in text and "Ra ALARM since t=10 s" in text
