@@ -162,10 +162,6 @@ class Daemon:
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.new_run: dict[str, Any] | None = None
-        starts_over = False
-        if resume is None:
-            starts_over = get_driver_class(config.driver.type).time_starts_over(config.driver)
-            resume = not starts_over
         self.failure: str | None = None
         self._closed_sinks: dict[str, Sink] = {}
         self.driver: Driver | None = None
@@ -189,10 +185,13 @@ class Daemon:
                         config.driver.type)
         try:
             self._open_sinks(self._roles, reuse, skip=defer)
-            if self.store is not None and resume:
-                self._restore()
-            elif self.store is not None and starts_over:
-                self._note_new_run()
+            if self.store is not None:
+                starts_over = resume is None and get_driver_class(
+                    config.driver.type).time_starts_over(config.driver)
+                if resume or (resume is None and not starts_over):
+                    self._restore()
+                elif starts_over:
+                    self._note_new_run()
             self.driver = handed_driver or driver or create_driver(config.driver,
                                                                    base_dir=self.base_dir)
         except BaseException:
