@@ -558,7 +558,10 @@ def test_a_second_run_loses_no_existing_recording(tmp_path: Path) -> None:
         second.log_window(**window(0))
         summary = second.summary()
     assert re.fullmatch(r"m1-\d{8}T\d{6}Z-4f2a_run_7(-2)?\.rrd", second.path.name)
-    assert path.resolve() == second.path  # rerun m1.rrd opens the newest run
+    with RerunRecorder(config, "m1", outputs=OUTPUTS, parameters=PARAMETERS,
+                       run="20261122T101530Z-3f9a2c") as third:  # the daemon's run ids
+        assert third.path.name == "m1-20261122T101530Z-3f9a2c.rrd"
+    assert path.resolve() == third.path  # rerun m1.rrd opens the newest run
     assert summary[0] == f"recording: {second.path} (open with: rerun {path}, the link to it)"
     for rec, windows in ((first, 2), (second, 1)):
         assert verify(rec.path).returncode == 0
@@ -710,6 +713,10 @@ def test_the_daemons_alarm_reaches_the_recording(tmp_path: Path,
     link = tmp_path / "twinwatch.rrd"
     assert f"recording: {link.resolve()} (open with: rerun twinwatch.rrd, the link to it)" \
         in r.output
+    docs = [c.to_record_batch().column("TextDocument:text").to_pylist()
+            for c in rr.chunk.RrdReader(link).stream() if c.entity_path == "/dc-motor-sim/health"]
+    run = json.loads(docs[0][0][0].split("```json\n", 1)[1].rsplit("\n```", 1)[0])["run"]
+    assert link.resolve().name == f"twinwatch-{run}.rrd"  # the run's own file, by its id
     rows_ = _log_rows(link, "dc-motor-sim")
     raised = [(lvl, text) for lvl, text in rows_ if "ALARM: Ra is" in text]
     assert len(raised) == 1 and raised[0][0] == "ERROR", rows_

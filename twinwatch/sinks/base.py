@@ -93,10 +93,12 @@ class ProcessedWindow:
 
 class HistoryQuery(Protocol):
     """The stored health messages of the running machine in a time range, oldest first (the
-    gate's :meth:`Gate.history`, bound to the machine by the daemon)."""
+    gate's :meth:`Gate.history`, bound to the machine by the daemon); ``run`` keeps one run's
+    (a run id, or ``"current"``: the running daemon's), None every run's."""
 
     def __call__(self, t_from: float | None, t_to: float | None, limit: int | None,
-                 by: Literal["plant", "wall"]) -> list[dict[str, Any]]: ...
+                 by: Literal["plant", "wall"], run: str | None = None
+                 ) -> list[dict[str, Any]]: ...
 
 
 @dataclass(frozen=True)
@@ -133,6 +135,8 @@ class SinkContext:
             priority order; the others are tied or fixed.
         alarm_bands: parameter -> its ``[alarms]`` thresholds, for an output that draws them
             (empty when alarms are off).
+        run: the run id every health message of the daemon carries (one per start of the
+            daemon, kept across a reload; empty outside a daemon).
     """
 
     machine: str
@@ -147,6 +151,7 @@ class SinkContext:
     nominal: Mapping[str, float] = field(default_factory=dict)
     estimated: tuple[str, ...] = ()
     alarm_bands: Mapping[str, AlarmBands] = field(default_factory=dict)
+    run: str = ""
 
 
 class SinkConfig(BaseModel):
@@ -360,8 +365,9 @@ class Gate(Sink):
     @abc.abstractmethod
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
-                machine: str | None = None) -> list[dict[str, Any]]:
-        """Stored health messages in a time range, oldest first."""
+                machine: str | None = None, run: str | None = None) -> list[dict[str, Any]]:
+        """Stored health messages in a time range (of one run when ``run`` is given), oldest
+        first."""
 
 
 def _frozen(value: Any) -> Hashable:

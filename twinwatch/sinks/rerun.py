@@ -8,7 +8,8 @@ that tells the machine's story at one glance) are
 server and the faults.
 
 Per-run files: ``[recording] path`` (``twinwatch.rrd``) is a stable name, a symbolic link to
-the file of the run being written, ``<stem>-<UTC start>[-<run id>].rrd`` beside it. A run never
+the file of the run being written, ``<stem>-<run id>.rrd`` beside it (the run id starts with the
+run's UTC start: ``twinwatch-20261122T101530Z-3f9a2c.rrd``). A run never
 replaces another run's recording: each run writes its own file, and a regular file found at
 ``path`` (from an earlier version) is kept, renamed to ``<stem>-<its UTC time>.rrd``.
 ``rerun twinwatch.rrd`` opens the newest run; the summary names the run's file.
@@ -125,7 +126,7 @@ class RecordingConfig(SinkConfig):
 
     Attributes:
         path: the recording's stable name (``~`` expanded): a symbolic link to the file of
-            the run being written, ``<stem>-<UTC start>[-<run id>].rrd`` beside it.
+            the run being written, ``<stem>-<run id>.rrd`` beside it.
         enabled: when false, :class:`RerunRecorder` writes nothing and logging is a no-op.
         application_id: Rerun application id; the viewer groups recordings by it.
         rotate_windows: windows per file before it is closed and renamed (0: one file).
@@ -273,7 +274,8 @@ class RerunRecorder(Sink):
         nominal: parameter -> nominal value [SI], for the health views' titles.
         estimated: the parameters that get a health view (default: every parameter).
         alarm_bands: parameter -> its alarm thresholds [% of nominal], drawn on its view.
-        run: the run's id, part of the file's name (default: the start time alone).
+        run: the run's id (``20261122T101530Z-3f9a2c``), the file's name after ``<stem>-``
+            (default: the UTC start time; an id that does not start with one follows it).
 
     Attributes:
         link: the configured ``path``: a symbolic link to the run's file.
@@ -419,9 +421,9 @@ class RerunRecorder(Sink):
                                     f"{exc.strerror or exc}") from exc
             finally:
                 lock.release()
-        label = time.strftime(_RUN_STAMP, time.gmtime())
-        if _run_label(run):
-            label += f"-{_run_label(run)}"
+        label = _run_label(run)
+        if not re.match(r"\d{8}T\d{6}Z", label):  # a run id starts with its UTC start
+            label = time.strftime(_RUN_STAMP, time.gmtime()) + (f"-{label}" if label else "")
         self.path = _free_name(link.with_name(f"{link.stem}-{label}{link.suffix}"))
         lock = _check_writable(self.path)
         self._point_link()
@@ -726,7 +728,7 @@ class RerunRecorder(Sink):
                    parameters=dict(context.parameters), output_units=context.output_units,
                    nominal=context.nominal,
                    estimated=context.estimated or tuple(context.parameters),
-                   alarm_bands=context.alarm_bands, run=getattr(context, "run_id", None))
+                   alarm_bands=context.alarm_bands, run=context.run or None)
 
     @classmethod
     def reload_key(cls, config: RecordingConfig, context: SinkContext) -> Hashable:

@@ -564,7 +564,8 @@ def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
     model = doc.get("model")
     twin = f"the physical twin `{model}`" if model else "the physical twin"
     window = doc.get("window")
-    at = f"t = {t:.2f} s" + (f", window {window}" if window is not None else "")
+    at = (f"t = {t:.2f} s" + (f", window {window}" if window is not None else "")
+          + (f", run {doc['run']}" if doc.get("run") else ""))
     lines = []
     if not terms:
         lines.append(f"**DT'' = DT** ({at}): {twin} explains the data, no meta-model term.")
