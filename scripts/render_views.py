@@ -1,7 +1,7 @@
 """Render what an operator sees: run the examples, screenshot their recordings, write the PNGs
 the README shows (``docs/images/``).
 
-    python scripts/render_views.py                 # all three (about 5 min on 2 cores)
+    python scripts/render_views.py                 # all three (about 7 min on 2 cores)
     python scripts/render_views.py --only discovery --keep /tmp/views
 
 For each example it runs ``twinwatch run`` as a user does (``--fresh``, in a directory of its
