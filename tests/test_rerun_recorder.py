@@ -729,3 +729,23 @@ def test_the_daemons_alarm_reaches_the_recording(tmp_path: Path,
     in_alarm = [(lvl, text) for lvl, text in windows if "ALARM Ra" in text]
     assert in_alarm and all(lvl == "ERROR" for lvl, _ in in_alarm)
     assert in_alarm[-1][1].startswith("window 11 [22.00-23.99 s] ALARM Ra +1")
+
+
+def test_a_trend_and_its_rul_are_drawn_when_the_message_has_them(tmp_path: Path) -> None:
+    """A health message with prognostics (``parameters.<p>.trend``, ``.rul``): the trend and
+    its 2-sigma band in % of nominal on the parameter's view, the RUL in the log row and the
+    model panel."""
+    w = story_window(0, -4.0)
+    ra = w["health"]["parameters"]["Ra"]
+    ra["trend"] = {"level": 6.5 * 0.95, "level_std": 6.5 * 0.005}
+    ra["rul"] = {"status": "degrading",
+                 "warning": {"status": "crossed"},
+                 "alarm": {"status": "predicted", "rul_s": 1200.0, "low_s": 900.0,
+                           "high_s": 1500.0}}
+    with story_recorder(tmp_path / "m1.rrd") as rec:
+        rec.log_window(**w)
+    [(t, trend)] = _scalars(rec.path, "/m1/health/Ra/trend")
+    assert t == 1.99 and trend == pytest.approx([-6.0, -4.0, -5.0])
+    [row] = [text for _, text in _log_rows(rec.path, "m1") if text.startswith("window 0")]
+    assert "Ra 6.24 ohm -4.00 % estimated (warning crossed, RUL to alarm 1.2e+03 s " \
+        "(900-1.5e+03 s))" in row

@@ -20,7 +20,9 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
   ``estimated`` / ``fused`` / ``held`` (the deviation again, one point per window on the entity
   of the window's status: drawn as different markers), ``events/warning``, ``events/alarm``,
   ``events/cleared`` (the alarm changes, a large marker at the event's deviation);
-  ``health/<name>/trend`` is kept for a trend and its projection;
+  ``health/<name>/trend``: the parameter's trend when the message carries one
+  (``parameters.<name>.trend.level`` +- 2 ``level_std``, in %: low, high, level); its RUL
+  (``rul.warning`` / ``rul.alarm``) is in the log row and the model panel;
 * ``M/quality/nrmse`` (the published twin's), ``M/quality/nrmse_dt_prime`` and
   ``.../nrmse_dt_second`` (without and with the terms), ``M/quality/model_check_failed`` (the
   nRMSE of the windows whose model check failed), ``M/quality/elapsed_ms`` (adaptation time per
@@ -79,6 +81,8 @@ _BAND = (95, 150, 235)
 _SCALE = (105, 105, 105)
 _HIDDEN = (0, 0, 0, 0)
 _ELAPSED = (200, 200, 120)
+_TREND = (230, 120, 200)
+_TREND_BAND = (150, 80, 130)
 _WARNING = (255, 190, 0)
 _ALARM = (240, 60, 60)
 _Marker = Literal["circle", "diamond", "cross", "up", "square"]
@@ -272,7 +276,8 @@ class RecordingViews:
 
     def _key(self) -> str:
         return ("**health** in % of nominal: a marker per window by status, estimated (green "
-                "dot), fused (blue diamond), held (grey x); its 2-sigma band (blue); thresholds "
+                "dot), fused (blue diamond), held (grey x); its 2-sigma band (blue); its trend "
+                "(pink); thresholds "
                 "warning (amber), alarm (red); warning raised (amber triangle), alarm raised "
                 "(red dot), cleared (green square).  **outputs**: measured (blue, wide), twin "
                 "(orange); residual, measured - twin (violet).  **fit**: nRMSE of DT' (red), "
@@ -354,6 +359,10 @@ class RecordingViews:
                 ops.append(Op(entity(m, "health", p, "events", kind), rr.SeriesPoints(
                     names=f"{p} {label}", colors=color, markers=marker, marker_sizes=size),
                     static=True))
+            ops.append(Op(entity(m, "health", p, "trend"), rr.SeriesLines(
+                names=[f"{p} trend 2-sigma low", f"{p} trend 2-sigma high", f"{p} trend"],
+                colors=[_TREND_BAND, _TREND_BAND, _TREND], widths=[1.0, 1.0, 2.0]),
+                static=True))
         return ops
 
     def _problem_style(self) -> Op:
@@ -426,6 +435,10 @@ class RecordingViews:
         status = ph.get("status")
         if status in _STATUS_STYLE:
             ops.append(Op(entity(m, "health", p, str(status)), rr.Scalars(dev), t))
+        trend = _trend_pct(ph)
+        if trend is not None:
+            ops.append(Op(entity(m, "health", p, "trend"), rr.Scalars(
+                [float(np.clip(v, -clip, clip)) for v in trend]), t))
         return ops
 
     def _event_ops(self, ev: Mapping[str, Any], t_end: float) -> list[Op]:
@@ -552,6 +565,38 @@ def _band_pct(ph: Mapping[str, Any]) -> tuple[float, float]:
     return (low / nom - 1.0) * 100.0, (high / nom - 1.0) * 100.0
 
 
+def _trend_pct(ph: Mapping[str, Any]) -> tuple[float, float, float] | None:
+    """The parameter's trend (``trend.level`` +- 2 ``level_std``, when the message has one) in
+    % of nominal: (low, high, level); None without a trend level."""
+    trend = _mapping(ph.get("trend"))
+    nom, level, std = _num(ph.get("nominal")), _num(trend.get("level")), _num(
+        trend.get("level_std"))
+    if not math.isfinite(level) or not math.isfinite(nom) or nom == 0.0:
+        return None
+    std = std if math.isfinite(std) else 0.0
+
+    def pct(v: float) -> float:
+        return (v / nom - 1.0) * 100.0
+
+    return pct(level - 2 * std), pct(level + 2 * std), pct(level)
+
+
+def _rul_text(ph: Mapping[str, Any]) -> str:
+    """``RUL to alarm 1.2e+03 s (900-1500 s)`` from the message's ``rul`` (empty without)."""
+    rul = _mapping(ph.get("rul"))
+    parts = []
+    for level in ("warning", "alarm"):
+        c = _mapping(rul.get(level))
+        if c.get("status") == "crossed":
+            parts.append(f"{level} crossed")
+        elif c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
+            low, high = _num(c.get("low_s")), _num(c.get("high_s"))
+            span = (f" ({low:.3g}-{high:.3g} s)" if math.isfinite(low) and math.isfinite(high)
+                    else "")
+            parts.append(f"RUL to {level} {_num(c.get('rul_s')):.3g} s{span}")
+    return ", ".join(parts)
+
+
 def _fmt(x: Any, spec: str = ".6g") -> str:
     v = _num(x)
     return format(v, spec) if math.isfinite(v) else "n/a"
@@ -614,6 +659,9 @@ def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
                 status = str(p["reason"])
             elif status == "held" and p.get("reason"):
                 reasons.setdefault(str(p["reason"]), []).append(str(name))
+            rul = _rul_text(p)
+            if rul:
+                status += f"; {rul}"
             dev = _num(p.get("deviation_pct"))
             lines.append(f"| {name} | {_fmt(p.get('value'))} {p.get('unit', '')} | "
                          f"{format(dev, '+.2f') + ' %' if math.isfinite(dev) else 'n/a'} of "
@@ -651,8 +699,10 @@ def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: boo
         for name, p in params.items():
             if not isinstance(p, Mapping) or p.get("status") in ("tied", "fixed"):
                 continue
+            rul = _rul_text(p)
             shown.append(f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} "
-                         f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}")
+                         f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}"
+                         + (f" ({rul})" if rul else ""))
         if shown:
             parts.append("; ".join(shown) + " |")
     fit = []
