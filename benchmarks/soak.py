@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rotate-windows", type=int, default=None,
                     help="with --record: windows per recording file ([recording] "
                     "rotate_windows, default 1800; 0 keeps one file, whose in-memory footer "
-                    "manifest grows ~22 MiB per 1000 windows)")
+                    "manifest grows ~27 MiB per 1000 windows)")
     ap.add_argument("--state", metavar="PATH", default=None,
                     help="keep the health history and the twin in this SQLite file, as the "
                     "service does (default: no state store); the file size is printed")
