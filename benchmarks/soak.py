@@ -227,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"state store {cfg.state.path}: {size / 2**20:.1f} MiB (with -wal/-shm)")
     if args.record:
         rec = Path(cfg.recording.path)
-        files = sorted(rec.parent.glob(rec.stem + "*.rrd"))
+        files = sorted(f for f in rec.parent.glob(rec.stem + "-*.rrd")  # the run's files
+                       if not f.is_symlink())
         print(f"recording: {len(files)} file(s), "
               f"{sum(f.stat().st_size for f in files) / 2**20:.1f} MiB")
     if args.tracemalloc and snap:
