@@ -9,6 +9,7 @@ package where it can; without it the tests skip, saying so.
 from __future__ import annotations
 
 import os
+import pwd
 import shutil
 import signal
 import socket
@@ -56,6 +57,13 @@ class Broker:
             "autosave_interval 1\n"
             "max_queued_messages 100000\n"
             "max_inflight_messages 0\n")
+        if os.geteuid() == 0:  # mosquitto started as root runs as its own user: its files
+            try:
+                owner = pwd.getpwnam("mosquitto")
+            except KeyError:
+                self.conf.write_text(self.conf.read_text() + "user root\n")
+            else:
+                os.chown(directory, owner.pw_uid, owner.pw_gid)
         self.proc: subprocess.Popen[bytes] | None = None
         self.starts = 0
 
