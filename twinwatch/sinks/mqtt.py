@@ -113,13 +113,13 @@ class MqttTlsConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    ca_certs: str | None = Field(None, description="CA certificate(s) (PEM) that sign the "
-                                 "broker's certificate; left out: the system's CAs")
-    certfile: str | None = Field(None, description="our client certificate (PEM), for brokers "
-                                 "that authenticate clients by certificate")
-    keyfile: str | None = Field(None, description="its private key (PEM, a secret)")
-    verify_hostname: bool = Field(True, description="check the broker's name against its "
-                                  "certificate")
+    ca_certs: str | None = Field(None,
+                                 description="the broker's CA (PEM); unset: the system's CAs")
+    certfile: str | None = Field(None,
+                                 description="our client certificate (PEM), if asked for")
+    keyfile: str | None = Field(None, description="its private key (PEM; a secret: 0640)")
+    verify_hostname: bool = Field(True,
+                                  description="check the broker's name against its certificate")
 
     FILES: ClassVar[tuple[str, ...]] = ("ca_certs", "certfile", "keyfile")
     SECRET_FILES: ClassVar[tuple[str, ...]] = ("keyfile",)
@@ -137,12 +137,11 @@ class HomeAssistantConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    discovery: bool = Field(False, description="announce the machine as a Home Assistant "
-                            "device (false: clear an earlier announcement)")
-    prefix: str = Field("homeassistant", description="Home Assistant's discovery prefix (its "
-                        "birth message comes on <prefix>/status)")
-    device_name: str | None = Field(None, description="the device's name in Home Assistant "
-                                    "(default: the machine name)")
+    discovery: bool = Field(False, description="announce a Home Assistant device; false clears it")
+    prefix: str = Field("homeassistant",
+                        description="Home Assistant's discovery prefix (birth on <prefix>/status)")
+    device_name: str | None = Field(None,
+                                    description="its name; unset: the machine name")
 
     @field_validator("prefix")
     @classmethod
@@ -166,38 +165,34 @@ class MqttConfig(SinkConfig):
     """
 
     enabled: bool = Field(True, description="false: the output is not opened")
-    host: str = Field("127.0.0.1", min_length=1, description="the broker's host name or "
-                      "address")
+    host: str = Field("127.0.0.1", min_length=1, description="the broker's host name or address")
     port: int = Field(1883, ge=1, le=65535, description="the broker's port (8883 for TLS)")
-    client_id: str | None = Field(None, min_length=1, max_length=128, description="MQTT "
-                                  "client id (default twinwatch-<machine>); unique per broker")
-    username: str | None = Field(None, min_length=1, description="user name, if the broker "
-                                 "asks for one")
-    password_file: str | None = Field(None, description="file holding the password (first "
-                                      "line; a secret: not readable by others)")
-    password: str | None = Field(None, description="the password inline: the configuration "
-                                 "file is then a secret (prefer password_file)")
+    client_id: str | None = Field(None, min_length=1, max_length=128,
+                                  description="unique per broker; unset: twinwatch-<machine>")
+    username: str | None = Field(None, min_length=1,
+                                 description="user name, if the broker asks for one")
+    password_file: str | None = Field(None,
+                                      description="the password's file (first line; a secret)")
+    password: str | None = Field(None,
+                                 description="the password inline (the file is then a secret)")
     tls: MqttTlsConfig | None = Field(None, description="TLS to the broker")
-    topic_prefix: str = Field("twinwatch", description="first topic level(s): "
-                              "<prefix>/<machine>/health")
-    keepalive: int = Field(30, ge=5, le=65535, description="seconds between keepalive pings; "
-                           "a daemon gone silent is declared offline (last will) after 1.5x")
-    qos: Literal[1, 2] = Field(1, description="QoS of the health, values and alarm messages "
-                               "(2: exactly once between twinwatch and the broker while "
-                               "connected)")
-    inflight: int = Field(10, ge=1, le=1000, description="windows sent but not acknowledged "
-                          "by the broker, at most")
-    rate: float = Field(20.0, gt=0, description="windows a second, at most, when catching up "
-                        "after an outage or a restart")
-    reconnect_min: float = Field(0.5, gt=0, description="first delay [s] before connecting "
-                                 "again; it doubles up to reconnect_max, +-25 % jitter")
-    reconnect_max: float = Field(30.0, gt=0, description="longest delay [s] between attempts")
-    connect_timeout: float = Field(5.0, gt=0, description="a connection attempt's timeout [s]")
-    close_timeout: float = Field(5.0, ge=0, description="at stop, how long [s] to go on "
-                                 "delivering pending windows before going offline (the rest "
-                                 "stay in the state database for the next start)")
-    memory_outbox: int = Field(10_000, ge=1, description="without a state database: windows "
-                               "kept in memory while the broker is away")
+    topic_prefix: str = Field("twinwatch",
+                              description="<prefix>/<machine>/health, .../parameters/<name>/value")
+    keepalive: int = Field(30, ge=5, le=65535,
+                           description="s between pings; silent for 1.5x: offline (last will)")
+    qos: Literal[1, 2] = Field(1, description="1: at least once; 2: exactly once while connected")
+    inflight: int = Field(10, ge=1, le=1000,
+                          description="windows sent, not yet acknowledged, at most")
+    rate: float = Field(20.0, gt=0, description="windows a second, at most, when catching up")
+    reconnect_min: float = Field(0.5, gt=0,
+                                 description="s to the first retry; doubles to reconnect_max")
+    reconnect_max: float = Field(30.0, gt=0,
+                                 description="s, the longest retry delay (+-25 % jitter)")
+    connect_timeout: float = Field(5.0, gt=0, description="s, one connection attempt's timeout")
+    close_timeout: float = Field(5.0, ge=0,
+                                 description="s at stop to deliver what is pending")
+    memory_outbox: int = Field(10_000, ge=1,
+                               description="windows kept in memory without a state database")
     home_assistant: HomeAssistantConfig = Field(default_factory=HomeAssistantConfig)
 
     @field_validator("topic_prefix")
