@@ -105,6 +105,8 @@ def running_broker(directory: Path) -> Iterator[Broker]:
     try:
         yield b
     finally:
+        for sub in list(Subscriber.open):  # also after a failed assertion: no thread leaks
+            sub.close()
         b.stop()
 
 
@@ -120,6 +122,8 @@ class Subscriber:
     """A paho client collecting every message of ``topics`` (QoS 1). ``persistent``: a session
     the broker keeps while it is away (its messages are queued for it, also across a broker
     restart with persistence)."""
+
+    open: list[Subscriber] = []
 
     def __init__(self, port: int, topics: list[str], *, client_id: str | None = None,
                  persistent: bool = False) -> None:
@@ -138,6 +142,7 @@ class Subscriber:
         self.client.on_subscribe = lambda *a: self.subscribed.set()
         self.client.connect("127.0.0.1", port, keepalive=5)
         self.client.loop_start()
+        Subscriber.open.append(self)
         assert self.subscribed.wait(10), "the subscriber was not subscribed within 10 s"
 
     def _on_connect(self, client: Any, userdata: Any, flags: Any, reason: Any,
@@ -161,8 +166,10 @@ class Subscriber:
             time.sleep(0.05)
 
     def close(self) -> None:
-        self.client.disconnect()
-        self.client.loop_stop()
+        if self in Subscriber.open:
+            Subscriber.open.remove(self)
+            self.client.disconnect()
+            self.client.loop_stop()
 
 
 def retained(port: int, topic: str, timeout: float = 2.0) -> dict[str, bytes]:

@@ -341,7 +341,9 @@ def test_daemon_killed_while_broker_down_then_both_restart(tmp_path: Path, broke
             proc.kill()
             proc.communicate()
     first_run = stored(db)
-    cfg2 = sim_config(tmp_path, duration=20.0, extra=mqtt_table(broker.port))
+    # the second run waits at its end until the backlog is delivered (a loaded machine)
+    cfg2 = sim_config(tmp_path, duration=20.0,
+                      extra=mqtt_table(broker.port, "close_timeout = 30.0\n"))
     proc = twinwatch(cfg2, cwd=tmp_path)
     time.sleep(1.0)
     broker.start()
@@ -350,8 +352,13 @@ def test_daemon_killed_while_broker_down_then_both_restart(tmp_path: Path, broke
     rows = stored(db)
     docs = [d for _, d in rows]
     assert len(rows) == len(first_run) + 10
-    sub.wait(lambda: len({m.payload for m in sub.on(f"{M}/health")}) >= len(docs), 60,
-             "every window of both runs")
+    try:
+        sub.wait(lambda: len({m.payload for m in sub.on(f"{M}/health")}) >= len(docs), 60,
+                 "every window of both runs")
+    finally:
+        got = {m.payload.decode() for m in sub.on(f"{M}/health")}
+        print("missing:", [(i, r == first_run[0][0]) for i, (r, d) in enumerate(rows)
+                           if d not in got], "of", len(rows), "; first run", len(first_run))
     received = [m.payload for m in sub.on(f"{M}/health")]
     firsts, repeats = delivery(received, docs)
     print(f"crash: {len(docs)} windows stored ({len(first_run)} before the kill), "
