@@ -968,6 +968,9 @@ class StoreOutbox:
         machine: whose windows.
     """
 
+    # The queries read the health table by row id ranges (``+machine``: not through the
+    # machine's time indexes, which would visit every row of the machine, up to a million).
+
     def __init__(self, store: StateStore, output: str, machine: str) -> None:
         self.store = store
         self.output = output
@@ -1009,7 +1012,7 @@ class StoreOutbox:
         """
         rows = self.store._read("cannot read the outbox", lambda conn: conn.execute(
             "SELECT h.id, h.run, h.window, h.wall, h.doc FROM health h WHERE h.id > ? AND "
-            "h.machine = ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? AND "
+            "+h.machine = ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? AND "
             "a.machine = h.machine AND a.run = h.run AND a.window = h.window) ORDER BY h.id "
             "LIMIT ?", (int(after), self.machine, self.output, int(limit))).fetchall())
         return [OutboxRow(int(i), str(r), int(w), float(t), str(d)) for i, r, w, t, d in rows]
@@ -1021,7 +1024,7 @@ class StoreOutbox:
             StoreError: the database cannot be read.
         """
         def read(conn: sqlite3.Connection) -> int:
-            stored = conn.execute("SELECT COUNT(*) FROM health WHERE id > ? AND machine = ?",
+            stored = conn.execute("SELECT COUNT(*) FROM health WHERE id > ? AND +machine = ?",
                                   (int(position), self.machine)).fetchone()[0]
             acked = conn.execute(
                 "SELECT COUNT(*) FROM outbox_ack a WHERE a.output = ? AND a.machine = ? AND "
@@ -1038,7 +1041,7 @@ class StoreOutbox:
             StoreError: the database cannot be read.
         """
         row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
-            "SELECT id FROM health WHERE machine = ? ORDER BY id DESC LIMIT 1",
+            "SELECT id FROM health WHERE +machine = ? ORDER BY id DESC LIMIT 1",
             (self.machine,)).fetchone())
         return None if row is None else int(row[0])
 
@@ -1049,7 +1052,7 @@ class StoreOutbox:
             StoreError: the database cannot be read.
         """
         row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
-            "SELECT doc FROM health WHERE machine = ? AND id <= ? ORDER BY id DESC LIMIT 1",
+            "SELECT doc FROM health WHERE +machine = ? AND id <= ? ORDER BY id DESC LIMIT 1",
             (self.machine, int(health_id))).fetchone())
         return None if row is None else str(row[0])
 
