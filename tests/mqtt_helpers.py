@@ -9,7 +9,6 @@ package where it can; without it the tests skip, saying so.
 from __future__ import annotations
 
 import os
-import pwd
 import shutil
 import signal
 import socket
@@ -43,7 +42,8 @@ def free_port() -> int:
 class Broker:
     """A Mosquitto broker on 127.0.0.1:``port`` with its files in ``directory``."""
 
-    def __init__(self, directory: Path, port: int | None = None) -> None:
+    def __init__(self, directory: Path, port: int | None = None, *, extra: str = "",
+                 anonymous: bool = True) -> None:
         assert MOSQUITTO is not None
         self.directory = directory
         self.port = port or free_port()
@@ -51,19 +51,17 @@ class Broker:
         self.conf = directory / "mosquitto.conf"
         self.conf.write_text(
             f"listener {self.port} 127.0.0.1\n"
-            "allow_anonymous true\n"
+            f"allow_anonymous {'true' if anonymous else 'false'}\n"
+            f"{extra}"
             "persistence true\n"
             f"persistence_location {directory}/\n"
             "autosave_interval 1\n"
             "max_queued_messages 100000\n"
             "max_inflight_messages 0\n")
-        if os.geteuid() == 0:  # mosquitto started as root runs as its own user: its files
-            try:
-                owner = pwd.getpwnam("mosquitto")
-            except KeyError:
-                self.conf.write_text(self.conf.read_text() + "user root\n")
-            else:
-                os.chown(directory, owner.pw_uid, owner.pw_gid)
+        if os.geteuid() == 0:
+            # started as root, mosquitto runs as the user "mosquitto", who cannot enter the
+            # test's private directory (its persistence, password file, certificates)
+            self.conf.write_text(self.conf.read_text() + "user root\n")
         self.proc: subprocess.Popen[bytes] | None = None
         self.starts = 0
 
@@ -126,7 +124,8 @@ class Subscriber:
     open: list[Subscriber] = []
 
     def __init__(self, port: int, topics: list[str], *, client_id: str | None = None,
-                 persistent: bool = False) -> None:
+                 persistent: bool = False, username: str | None = None,
+                 password: str | None = None) -> None:
         import paho.mqtt.client as mqtt
 
         self.messages: list[Message] = []
@@ -135,6 +134,8 @@ class Subscriber:
                                   client_id=client_id or f"test-sub-{free_port()}",
                                   clean_session=not persistent)
         self.client.reconnect_delay_set(0.1, 0.5)
+        if username is not None:
+            self.client.username_pw_set(username, password)
         self.topics = topics
         self.subscribed = threading.Event()
         self.client.on_connect = self._on_connect
@@ -191,3 +192,26 @@ def twinwatch(config: Path, *args: str, cwd: Path) -> subprocess.Popen[str]:
 
 def mqtt_table(port: int, extra: str = "") -> str:
     return f"\n[outputs.mqtt]\nport = {port}\nkeepalive = 5\nreconnect_max = 1.0\n{extra}"
+
+
+def make_pki(d: Path) -> None:
+    """A CA, a certificate for the broker (127.0.0.1) and one for twinwatch, in ``d`` (openssl
+    CLI; the keys 0600)."""
+    if shutil.which("openssl") is None:
+        pytest.skip("the openssl CLI is not installed")
+
+    def openssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], cwd=d, check=True, capture_output=True, timeout=30)
+
+    d.mkdir(parents=True, exist_ok=True)
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+    openssl("req", "-x509", *ec, "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+            "-subj", "/CN=twinwatch-test-ca")
+    (d / "ext.cnf").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n"
+                               "basicConstraints=CA:FALSE\nkeyUsage=digitalSignature\n"
+                               "extendedKeyUsage=serverAuth,clientAuth\n")
+    for name, cn in (("broker", "localhost"), ("twinwatch", "twinwatch")):
+        openssl("req", *ec, "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={cn}")
+        openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
+                "-CAcreateserial", "-out", f"{name}.pem", "-days", "2", "-extfile", "ext.cnf")
+        (d / f"{name}.key").chmod(0o600)

@@ -696,8 +696,10 @@ class MqttPublisher(Sink):
                     if now - last_count > 1.0:
                         self._count()
                         last_count = now
-                    self._wake.wait(min(0.2, max(next_attempt - time.monotonic(), 0.01)))
-                    self._wake.clear()
+                    if self._wake.wait(min(0.2, max(next_attempt - time.monotonic(), 0.01))):
+                        self._wake.clear()
+                        self._count()  # a window stored: one more pending
+                        last_count = time.monotonic()
                     continue
             delay = self.config.reconnect_min
             self.client.loop(timeout=0.05)
@@ -925,6 +927,7 @@ class MqttPublisher(Sink):
             return
         del self._acked[:len(acked)]
         self._position = position
+        self._count()
 
     def _count(self) -> None:
         box = self._outbox
