@@ -32,8 +32,9 @@ most ``rate`` windows a second, for as long as the state database's retention ke
 (windows it deletes undelivered are counted as ``dropped``). Hence: exactly once when nothing
 fails; at least once across a crash (a window acknowledged but not yet recorded is sent again
 after the restart) and across a connection lost with windows in flight (paho sends them again
-with the DUP flag; with QoS 1 the broker may then deliver a window twice). A subscriber that
-must not see a window twice drops repeats of ``(machine, window, t_start)``.
+with the DUP flag; with QoS 1 the broker may then deliver a window twice). A repeat is the
+stored text again, byte for byte: a subscriber that must not count a window twice drops a
+message it has already seen.
 
 Threads: one thread, ``twinwatch-mqtt``, owns the paho client (its network loop, the
 reconnection with a capped, jittered backoff, the callbacks) and the outbox's reads and writes
