@@ -422,3 +422,67 @@ def test_tls_client_certificate_and_password(tmp_path: Path):
         for sub in list(Subscriber.open):
             sub.close()
         b.stop()
+
+
+# -- the sink on its own: a reload hands it over; without a state database ---------------------
+def _window(store: Any, w: int, machine: str = "m1") -> Any:
+    """Store one small health message as the gate does and return what write() gets."""
+    from types import SimpleNamespace
+
+    doc = json.dumps({"machine": machine, "window": w, "t_start": 2.0 * w,
+                      "t_end": 2.0 * w + 1.99, "parameters": {"Ra": {
+                          "value": 6.5 - 0.01 * w, "unit": "ohm", "deviation_pct": -0.15 * w,
+                          "status": "estimated"}}, "alarms": {}})
+    if store is not None:
+        assert store.save_window({"machine": machine, "window": w, "t_start": 2.0 * w,
+                                  "t_end": 2.0 * w + 1.99}, None, doc=doc)
+    return SimpleNamespace(health=SimpleNamespace(window=w), health_json=doc, events=[])
+
+
+@needs_mosquitto
+def test_a_reload_hands_the_output_over_and_no_gate_keeps_an_outbox_in_memory(
+        tmp_path: Path, broker: Broker):
+    from twinwatch.sinks.base import SinkContext
+    from twinwatch.sinks.mqtt import MqttConfig, MqttPublisher
+    from twinwatch.sinks.store import StateStore
+
+    topic = "twinwatch/m1/health"
+    sub = Subscriber(broker.port, [topic])
+    store = StateStore(tmp_path / "s.sqlite", prune_every=0)
+    cfg = MqttConfig(port=broker.port, keepalive=5)
+
+    def context() -> SinkContext:
+        return SinkContext(machine="m1", model="dc_motor", parameters={"Ra": "ohm"},
+                           outbox=lambda name: store.outbox(name, "m1"))
+
+    pub = MqttPublisher.open("mqtt", cfg, context())
+    try:
+        for w in range(3):
+            pub.write(_window(store, w))
+        sub.wait(lambda: len(sub.on(topic)) == 3, 20, "3 windows")
+        pub.detach()                              # a reload: the old daemon lets it go
+        held = [_window(store, w) for w in (3, 4)]   # stored meanwhile (the new daemon's)
+        pub.attach(context())                     # the new daemon adopts it
+        for out in held:
+            pub.write(out)
+        sub.wait(lambda: len(sub.on(topic)) == 5, 20, "the windows stored over the reload")
+        assert [json.loads(m.payload)["window"] for m in sub.on(topic)] == list(range(5))
+    finally:
+        pub.close()
+        store.close()
+    assert pub.counters()["delivered"] == 5 and pub.counters()["pending"] == 0
+    assert pub.lost == 0
+
+    # no state database: the outbox is in memory
+    pub = MqttPublisher.open("mqtt", cfg, SinkContext(machine="m1", parameters={"Ra": "ohm"}))
+    try:
+        for w in range(5, 8):
+            pub.write(_window(None, w))
+        sub.wait(lambda: len(sub.on(topic)) == 8, 20, "3 windows from memory")
+    finally:
+        pub.close()
+    assert pub.counters()["delivered"] == 3 and pub.lost == 0
+    kept = retained(broker.port, "twinwatch/m1/#", 1.0)
+    assert kept["twinwatch/m1/parameters/Ra/value"] == json.dumps(6.5 - 0.07).encode()
+    assert kept["twinwatch/m1/availability"] == b"offline"
+    sub.close()
