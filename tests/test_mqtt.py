@@ -233,6 +233,7 @@ def test_home_assistant_rul_is_a_duration_sensor_when_the_message_has_it():
     assert flat_values(doc)["parameters/Ra/rul"] == "null"
 
 
+@pytest.mark.slow
 @needs_mosquitto
 def test_availability_flips_on_sigterm_and_sigkill_and_discovery_follows_ha(
         tmp_path: Path, broker: Broker):
@@ -380,6 +381,7 @@ def test_daemon_killed_while_broker_down_then_both_restart(tmp_path: Path, broke
 
 
 # -- TLS, client certificate, username and password ------------------------------------------
+@pytest.mark.slow
 @needs_mosquitto
 def test_tls_client_certificate_and_password(tmp_path: Path):
     """A broker that takes only TLS with a client certificate and a user with a password;
