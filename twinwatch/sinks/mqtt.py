@@ -668,6 +668,21 @@ class MqttPublisher(Sink):
 
     # -- the thread ---------------------------------------------------------------------------
     def _run(self) -> None:
+        """The thread: :meth:`_loop`, restarted after an unexpected error (logged with its
+        traceback, counted in ``errors``): the output must not die silently."""
+        while True:
+            try:
+                self._loop()
+                return
+            except Exception:  # noqa: BLE001 - logged; the loop goes on
+                self.errors += 1
+                logger.exception("the MQTT output of %s failed; it goes on in 1 s",
+                                 self.machine)
+                if self._stop.wait(1.0):
+                    self._finish()
+                    return
+
+    def _loop(self) -> None:
         delay = self.config.reconnect_min
         next_attempt = 0.0
         last_poll = 0.0
@@ -684,7 +699,7 @@ class MqttPublisher(Sink):
                     break
                 if not self._inflight:
                     self._feed(now, all_rows=True)
-                    if not self._inflight:
+                    if not self._inflight and not self._has_pending():
                         break
             if not self._connected:
                 if now >= next_attempt:
@@ -718,6 +733,14 @@ class MqttPublisher(Sink):
                 self._count()
                 last_count = now
         self._finish()
+
+    def _has_pending(self) -> bool:
+        """A stored window beyond the ones handed to paho is not delivered yet."""
+        box = self._outbox
+        try:
+            return box is not None and bool(box.pending(self._cursor, 1))
+        except StoreError:
+            return False
 
     def _rebind_outbox(self) -> None:
         """Use the outbox of the current context (at start, and after a reload)."""
