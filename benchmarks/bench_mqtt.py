@@ -73,8 +73,9 @@ def config(directory: Path, windows: int, mqtt_port: int | None) -> Path:
     return path
 
 
-def run(windows: int, mqtt_port: int | None) -> tuple[list[float], int]:
-    """One run: the estimation times [s] of its windows, and the windows delivered."""
+def run(windows: int, mqtt_port: int | None) -> tuple[list[float], int, list[str]]:
+    """One run: the estimation times [s] of its windows, the windows delivered, the stored
+    messages."""
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         env = dict(os.environ, PYTHONPATH=str(ROOT), CI="true")
@@ -82,11 +83,53 @@ def run(windows: int, mqtt_port: int | None) -> tuple[list[float], int]:
                         str(config(d, windows, mqtt_port)), "--no-progress", "--fresh"],
                        cwd=d, env=env, check=True, capture_output=True, timeout=1800)
         con = sqlite3.connect(d / "state.sqlite")
-        docs = [json.loads(r[0]) for r in con.execute("SELECT doc FROM health ORDER BY id")]
+        texts = [r[0] for r in con.execute("SELECT doc FROM health ORDER BY id")]
         con.close()
+    docs = [json.loads(t) for t in texts]
     times = [float(h["elapsed_s"]) for h in docs[1:]]  # the first window compiles
     delivered = int(docs[-1]["counters"].get("mqtt_delivered", 0)) if docs else 0
-    return times, delivered
+    return times, delivered, texts
+
+
+def thread_cost(port: int, texts: list[str], repeat: int = 5) -> tuple[float, float]:
+    """The MQTT output's own thread, in this process, on the real messages of a run: its CPU
+    time per window [ms] (the thread's clock), and the wall time from the store's commit to
+    the broker's acknowledgement [ms], median."""
+    from types import SimpleNamespace
+
+    sys.path.insert(0, str(ROOT))
+    from twinwatch.sinks.base import SinkContext
+    from twinwatch.sinks.mqtt import MqttConfig, MqttPublisher
+    from twinwatch.sinks.store import StateStore
+
+    with tempfile.TemporaryDirectory() as tmp:
+        store = StateStore(Path(tmp) / "s.sqlite", prune_every=0)
+        ctx = SinkContext(machine="dc-motor-sim", model="dc_motor",
+                          outbox=lambda name: store.outbox(name, "dc-motor-sim"))
+        pub = MqttPublisher.open("mqtt", MqttConfig(port=port), ctx)
+        while not pub.connected:
+            time.sleep(0.05)
+        clock = time.pthread_getcpuclockid(pub._thread.ident or 0)
+        cpu0 = time.clock_gettime(clock)
+        latency = []
+        n = 0
+        for _ in range(repeat):
+            for text in texts:
+                h = json.loads(text)
+                store.save_window({"machine": h["machine"], "window": h["window"],
+                                   "t_start": h["t_start"], "t_end": h["t_end"]}, None,
+                                  doc=text)
+                t0 = time.perf_counter()
+                pub.write(SimpleNamespace(health=SimpleNamespace(window=h["window"]),  # type: ignore[arg-type]
+                                          health_json=text, events=[]))
+                n += 1
+                while pub.delivered < n:
+                    time.sleep(0.0005)
+                latency.append(time.perf_counter() - t0)
+        cpu = time.clock_gettime(clock) - cpu0
+        pub.close()
+        store.close()
+    return 1000 * cpu / n, 1000 * statistics.median(latency)
 
 
 def main() -> None:
@@ -99,14 +142,16 @@ def main() -> None:
         try:
             results: dict[str, list[float]] = {"without MQTT": [], "with MQTT": []}
             delivered = []
+            texts: list[str] = []
             for i in range(args.runs):
                 for name, p in (("without MQTT", None), ("with MQTT", port)):
-                    times, n = run(args.windows, p)
+                    times, n, texts = run(args.windows, p)
                     results[name] += times
                     if p is not None:
                         delivered.append(n)
                     print(f"run {i + 1} {name}: median {1000 * statistics.median(times):.1f} ms "
                           f"over {len(times)} windows", flush=True)
+            cpu_ms, latency_ms = thread_cost(port, texts)
         finally:
             broker.terminate()
             broker.wait(timeout=10)
@@ -120,6 +165,8 @@ def main() -> None:
     a, b = (statistics.median(results[k]) for k in ("without MQTT", "with MQTT"))
     print(f"  with/without: {b / a:.3f} (median); windows delivered per run (last window's "
           f"counter, the window itself in flight): {delivered}")
+    print(f"the MQTT output's own thread on these messages: {cpu_ms:.2f} ms of CPU per window; "
+          f"stored -> acknowledged by the broker: median {latency_ms:.1f} ms")
 
 
 if __name__ == "__main__":
