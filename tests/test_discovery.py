@@ -153,7 +153,7 @@ def test_health_fields_and_state_round_trip() -> None:
     _, (w,) = plant_windows(DCMotorPlantConfig(scenario="unbalanced_shaft", duration=30), 1,
                             skip=3)
     r = adapter.process(w)
-    fields = build_health(machine="m", model_name="dc_motor", model=twin, window=w,
+    fields = build_health(machine="m", model_name="dc_motor", run="r", model=twin, window=w,
                           adaptation=r, nominal={}, discovery_enabled=True).as_dict()
     (term,) = fields["terms"]
     assert term["kind"] == "periodic" and term["attach"] == "d(omega)/dt"

@@ -853,19 +853,35 @@ omega = {{ column = "omega" }}
 
 
 # -- 10. the first run ----------------------------------------------------------------------
-@case("a second demo run resumes the first one's twin: one line says so; --fresh does not",
-      first_says_resumed=False, second_says_resumed=True, second_names_fresh=True,
-      fresh_says_resumed=False)
+@case("a second demo run is a new run (the simulated plant starts from t = 0): one line says "
+      "so and names --resume; --resume resumes the first one's twin, --fresh does not; each "
+      "start has its own run id",
+      first_says=None, second_says_new_run=True, second_names_resume=True,
+      second_says_resumed=False, resume_says_resumed=True, resume_names_fresh=True,
+      fresh_says=None, run_ids=4)
 def _demo_resume_and_fresh(ctx: Context) -> dict[str, Any]:
     cfg = sim_config(ctx.tmp, duration=4.0)
     first = cli("run", str(cfg), "--no-progress")
     second = cli("run", str(cfg), "--no-progress")
+    resumed = cli("run", str(cfg), "--no-progress", "--resume")
     fresh = cli("run", str(cfg), "--no-progress", "--fresh")
-    return {"first_says_resumed": "resumed from" in first.output,
-            "second_says_resumed": "twinwatch: resumed from" in second.output
-            and "the twin of window 1" in second.output,
-            "second_names_fresh": "twinwatch run --fresh" in second.output,
-            "fresh_says_resumed": "resumed" in fresh.output}
+    from .test_service import db_rows
+
+    rows = db_rows(ctx.tmp / "state.sqlite")
+
+    def said(r: Any) -> str | None:
+        return next((ln for ln in r.output.splitlines()
+                     if ln.startswith("twinwatch: a new run") or "resumed" in ln), None)
+    return {"first_says": said(first),
+            "second_says_new_run": "twinwatch: a new run" in second.output
+            and "simulated source's time starts over" in second.output,
+            "second_names_resume": "twinwatch run --resume" in second.output,
+            "second_says_resumed": "resumed" in second.output,
+            "resume_says_resumed": "twinwatch: resumed from" in resumed.output
+            and "the twin of window 1" in resumed.output,
+            "resume_names_fresh": "twinwatch run --fresh" in resumed.output,
+            "fresh_says": said(fresh),
+            "run_ids": len({h["run"] for h in rows} | {h["_run"] for h in rows})}
 
 
 # -- 8. the history query ------------------------------------------------------------------
@@ -1244,7 +1260,7 @@ def _state_db_deleted(ctx: Context) -> dict[str, Any]:
     r = cli("run", str(cfg), "--no-progress", "--log-level", "info")
     out = state_facts(ctx, r)
     ctx.monkeypatch.undo()
-    again = cli("run", str(sim_config(ctx.tmp, duration=4.0)), "--no-progress")
+    again = cli("run", str(sim_config(ctx.tmp, duration=4.0)), "--no-progress", "--resume")
     out["next_start_resumes"] = "twinwatch: resumed from" in again.output
     return out
 

@@ -94,10 +94,12 @@ class ProcessedWindow:
 
 class HistoryQuery(Protocol):
     """The stored health messages of the running machine in a time range, oldest first (the
-    gate's :meth:`Gate.history`, bound to the machine by the daemon)."""
+    gate's :meth:`Gate.history`, bound to the machine by the daemon); ``run`` keeps one run's
+    (a run id, or ``"current"``: the running daemon's), None every run's."""
 
     def __call__(self, t_from: float | None, t_to: float | None, limit: int | None,
-                 by: Literal["plant", "wall"]) -> list[dict[str, Any]]: ...
+                 by: Literal["plant", "wall"], run: str | None = None
+                 ) -> list[dict[str, Any]]: ...
 
 
 @dataclass(frozen=True)
@@ -179,6 +181,8 @@ class SinkContext:
         recent_windows: the windows the daemon keeps in memory (``[acquisition] history``):
             the gate keeps as many of those it wrote, to write them again to a database file
             deleted or replaced under it.
+        run: the run id every health message of the daemon carries (one per start of the
+            daemon, kept across a reload; empty outside a daemon).
         outbox: the gate's :class:`Outbox` for an output name (``outbox("mqtt")``), or None
             when no gate is open or it keeps none: a publisher that delivers every stored
             window (store-and-forward) asks it again after a reload.
@@ -192,6 +196,7 @@ class SinkContext:
     cwd: Path = field(default_factory=Path.cwd)
     history: HistoryQuery | None = None
     recent_windows: int = 1000
+    run: str = ""
     outbox: Callable[[str], Outbox | None] | None = None
 
 
@@ -406,8 +411,9 @@ class Gate(Sink):
     @abc.abstractmethod
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
-                machine: str | None = None) -> list[dict[str, Any]]:
-        """Stored health messages in a time range, oldest first."""
+                machine: str | None = None, run: str | None = None) -> list[dict[str, Any]]:
+        """Stored health messages in a time range (of one run when ``run`` is given), oldest
+        first."""
 
     def outbox(self, output: str, machine: str) -> Outbox | None:
         """The :class:`Outbox` of ``output`` for ``machine``'s windows; None (the default):

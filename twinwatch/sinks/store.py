@@ -96,6 +96,7 @@ CREATE TABLE IF NOT EXISTS health (
 );
 CREATE INDEX IF NOT EXISTS health_plant ON health (machine, t_start);
 CREATE INDEX IF NOT EXISTS health_wall ON health (machine, wall);
+CREATE INDEX IF NOT EXISTS health_run ON health (machine, run, t_start);
 CREATE TABLE IF NOT EXISTS twin (
     machine TEXT PRIMARY KEY,
     run TEXT NOT NULL,
@@ -183,8 +184,12 @@ class StateStore(Gate):
         check: run ``PRAGMA quick_check`` at open (reads the whole file).
         recent: windows kept in memory once written, to write them again to a database file
             that was deleted or replaced (``[acquisition] history``).
+        run: the run id of the windows it stores (the daemon's, :class:`SinkContext` ``run``;
+            a health message that carries its own ``run`` is stored under it); None: a new
+            one.
 
     Attributes:
+        run_id: the run whose windows it stores (the ``run`` column; "this run" below).
         lost: windows lost for good: never stored (:attr:`never_stored`) or
             :attr:`history_lost`.
         history_lost: windows of this run that were stored, then lost with a deleted or
@@ -216,6 +221,7 @@ class StateStore(Gate):
         recover_corrupt: bool = False,
         check: bool = False,
         recent: int = 1000,
+        run: str | None = None,
     ) -> None:
         if synchronous not in ("FULL", "NORMAL"):
             raise ValueError(f"synchronous must be FULL or NORMAL, not {synchronous!r}")
@@ -226,7 +232,7 @@ class StateStore(Gate):
         self.prune_every = prune_every
         self.prune_batch = prune_batch
         self.busy_timeout = busy_timeout
-        self.run_id = f"{time.time():.6f}-{os.getpid()}"
+        self.run_id = run or f"{time.time():.6f}-{os.getpid()}"
         self._local = threading.local()
         self._conns: list[tuple[threading.Thread, sqlite3.Connection]] = []
         self._conns_lock = threading.Lock()
@@ -576,7 +582,8 @@ class StateStore(Gate):
         """
         return cls(Path(config.path).expanduser(), synchronous=config.synchronous,
                    keep_days=config.keep_days, keep_rows=config.keep_rows,
-                   recover_corrupt=config.recover_corrupt, recent=context.recent_windows)
+                   recover_corrupt=config.recover_corrupt, recent=context.recent_windows,
+                   run=context.run or None)
 
     @classmethod
     def reload_key(cls, config: StateConfig, context: SinkContext) -> Hashable:
@@ -638,8 +645,9 @@ class StateStore(Gate):
             not publish it: stored before published; counted in :attr:`not_stored`).
         """
         h = out.health
-        ok = self.save_window({"machine": h.machine, "window": h.window, "t_start": h.t_start,
-                               "t_end": h.t_end}, out.twin_state, doc=out.health_json)
+        ok = self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
+                               "t_start": h.t_start, "t_end": h.t_end}, out.twin_state,
+                              doc=out.health_json)
         self.not_stored += not ok
         return ok
 
@@ -650,8 +658,9 @@ class StateStore(Gate):
         transaction (call from the adaptation worker after each window).
 
         Args:
-            health: the health message (``machine``, ``window``, ``t_start``, ``t_end`` are
-                indexed; the whole message is stored as JSON).
+            health: the health message (``machine``, ``run``, ``window``, ``t_start``,
+                ``t_end`` are indexed; the whole message is stored as JSON; without ``run`` it
+                is stored under the store's :attr:`run_id`).
             twin_state: the twin to resume from (parameters, held flags, trusted vector,
                 discovered meta-model terms; any JSON-serialisable mapping, numpy allowed), or
                 None when this window was not trusted (the stored twin is kept).
@@ -666,9 +675,10 @@ class StateStore(Gate):
         """
         w = time.time() if wall is None else float(wall)
         machine = str(health["machine"])
-        row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
-               float(health["t_end"]), w, _dumps(health) if doc is None else doc)
         with self._write_lock:
+            self.run_id = str(health.get("run") or self.run_id)  # the run whose windows it holds
+            row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
+                   float(health["t_end"]), w, _dumps(health) if doc is None else doc)
             self._check_file(row[2])
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
@@ -833,7 +843,7 @@ class StateStore(Gate):
 
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
-                machine: str | None = None) -> list[dict[str, Any]]:
+                machine: str | None = None, run: str | None = None) -> list[dict[str, Any]]:
         """Health messages in a time range, oldest first (in the order they were saved).
 
         Args:
@@ -845,6 +855,9 @@ class StateStore(Gate):
                 (seconds since the epoch when the window was saved; plant time restarts with
                 every run of the simulated plant or of a file replay).
             machine: only this machine.
+            run: only this run's windows (a run id, as in the messages' ``run``): plant time
+                and window numbers start over with every run of a simulated plant or a
+                replay, so a range by plant time is one run's only with it.
 
         Returns:
             The stored health messages (dicts as saved).
@@ -856,6 +869,9 @@ class StateStore(Gate):
         if machine is not None:
             where.append("machine = ?")
             args.append(machine)
+        if run is not None:
+            where.append("run = ?")
+            args.append(run)
         lo = "t_end" if by == "plant" else "wall"
         hi = "t_start" if by == "plant" else "wall"
         if t_from is not None and math.isfinite(t_from):
