@@ -41,7 +41,7 @@ from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.drivers import create_driver, get_driver_class
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import AlarmBands, Gate, Role, Sink, SinkContext
+from twinwatch.sinks.base import AlarmBands, Gate, Outbox, Role, Sink, SinkContext
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
@@ -267,7 +267,8 @@ class Daemon:
     def _sink_context(self, *, has_gate: bool) -> SinkContext:
         """What the outputs get from this daemon (the stored history when a gate opens)."""
         return replace(_context(self.config, self.model, self.base_dir, self.run_id),
-                       history=self.stored_history if has_gate else None)
+                       history=self.stored_history if has_gate else None,
+                       outbox=self.outbox if has_gate else None)
 
     def handover(self, config: TwinwatchConfig) -> tuple[list[str], list[str]]:
         """What a reload to ``config`` may do with this daemon's open outputs.
@@ -408,6 +409,12 @@ class Daemon:
         if store is None:
             return []
         return store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run)
+
+    def outbox(self, output: str) -> Outbox | None:
+        """The gate's outbox of ``output`` for this machine (store-and-forward outputs ask it
+        through their context), None without a gate."""
+        store = self.store
+        return None if store is None else store.outbox(output, self.machine)
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
