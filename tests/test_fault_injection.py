@@ -657,13 +657,14 @@ signal.signal(signal.SIGUSR1, lambda *a: resource.setrlimit(resource.RLIMIT_FSIZ
 resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), hard))
 from twinwatch.sinks.rerun import RerunRecorder
 RerunRecorder.reopen_after = 1.0                   # the test cannot wait 30 s
+RerunRecorder.reopen_max = 1.0                     # nor for the doubling of a failing disk
 RerunRecorder.flush_timeout = 2.0
 from twinwatch.cli import main
 main(sys.argv[2:])
 """
 
 
-@case("no file may grow past 200 kB (a full disk, unprivileged: RLIMIT_FSIZE) until the "
+@case("no file may grow past 400 kB (a full disk, unprivileged: RLIMIT_FSIZE) until the "
       "test frees space (SIGUSR1) once the state database has failed; Zenoh on",
       exit_code=74, published_not_stored=[], stored_all=True, summary_names_both=True,
       recording_reopened=True, last_recording_verifies=True)
@@ -677,13 +678,15 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
     from .test_zenoh_publisher import endpoint, free_port
 
     port = free_port()
-    cfg = sim_config(ctx.tmp, duration=40.0, zenoh=True, recording=True,
+    # 30 windows: the recording (its layout alone is 228 kB) fails at once, the state database
+    # at about window 13; the run goes on long enough after space is freed to reopen the file
+    cfg = sim_config(ctx.tmp, duration=60.0, zenoh=True, recording=True,
                      **{'mode = "peer"': 'mode = "client"',
                         'listen = ["tcp/127.0.0.1:7447"]': f'connect = ["{endpoint(port)}"]',
                         "\nconnect = []": ""})
     with zsession("router", listen=[endpoint(port)]) as router:
         col = Collector(router, "twinwatch/dc-motor-sim/health")
-        proc = subprocess.Popen([sys.executable, "-c", DISK_FULL, "200000", "run", str(cfg),
+        proc = subprocess.Popen([sys.executable, "-c", DISK_FULL, "400000", "run", str(cfg),
                                  "--no-progress", "--log-level", "info"], cwd=ctx.tmp,
                                 env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True)
@@ -716,7 +719,7 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
                             capture_output=True, text=True, env=_env(), timeout=120)
     return {"exit_code": proc.returncode,
             "published_not_stored": sorted(published - set(stored)),
-            "stored_all": stored == list(range(20)),
+            "stored_all": stored == list(range(30)),
             "summary_names_both": "state database: " in out and "0 lost)" in out
             and "windows could not be recorded" in out,
             "recording_reopened": any("reopened" in ln for ln in err),
@@ -855,19 +858,35 @@ omega = {{ column = "omega" }}
 
 
 # -- 10. the first run ----------------------------------------------------------------------
-@case("a second demo run resumes the first one's twin: one line says so; --fresh does not",
-      first_says_resumed=False, second_says_resumed=True, second_names_fresh=True,
-      fresh_says_resumed=False)
+@case("a second demo run is a new run (the simulated plant starts from t = 0): one line says "
+      "so and names --resume; --resume resumes the first one's twin, --fresh does not; each "
+      "start has its own run id",
+      first_says=None, second_says_new_run=True, second_names_resume=True,
+      second_says_resumed=False, resume_says_resumed=True, resume_names_fresh=True,
+      fresh_says=None, run_ids=4)
 def _demo_resume_and_fresh(ctx: Context) -> dict[str, Any]:
     cfg = sim_config(ctx.tmp, duration=4.0)
     first = cli("run", str(cfg), "--no-progress")
     second = cli("run", str(cfg), "--no-progress")
+    resumed = cli("run", str(cfg), "--no-progress", "--resume")
     fresh = cli("run", str(cfg), "--no-progress", "--fresh")
-    return {"first_says_resumed": "resumed from" in first.output,
-            "second_says_resumed": "twinwatch: resumed from" in second.output
-            and "the twin of window 1" in second.output,
-            "second_names_fresh": "twinwatch run --fresh" in second.output,
-            "fresh_says_resumed": "resumed" in fresh.output}
+    from .test_service import db_rows
+
+    rows = db_rows(ctx.tmp / "state.sqlite")
+
+    def said(r: Any) -> str | None:
+        return next((ln for ln in r.output.splitlines()
+                     if ln.startswith("twinwatch: a new run") or "resumed" in ln), None)
+    return {"first_says": said(first),
+            "second_says_new_run": "twinwatch: a new run" in second.output
+            and "simulated source's time starts over" in second.output,
+            "second_names_resume": "twinwatch run --resume" in second.output,
+            "second_says_resumed": "resumed" in second.output,
+            "resume_says_resumed": "twinwatch: resumed from" in resumed.output
+            and "the twin of window 1" in resumed.output,
+            "resume_names_fresh": "twinwatch run --fresh" in resumed.output,
+            "fresh_says": said(fresh),
+            "run_ids": len({h["run"] for h in rows} | {h["_run"] for h in rows})}
 
 
 # -- 8. the history query ------------------------------------------------------------------
@@ -1258,7 +1277,7 @@ def _state_db_deleted(ctx: Context) -> dict[str, Any]:
     r = cli("run", str(cfg), "--no-progress", "--log-level", "info")
     out = state_facts(ctx, r)
     ctx.monkeypatch.undo()
-    again = cli("run", str(sim_config(ctx.tmp, duration=4.0)), "--no-progress")
+    again = cli("run", str(sim_config(ctx.tmp, duration=4.0)), "--no-progress", "--resume")
     out["next_start_resumes"] = "twinwatch: resumed from" in again.output
     return out
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import secrets
 import threading
 import time
 from collections import deque
@@ -39,9 +40,10 @@ from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
+from twinwatch.drivers import get_driver_class
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import Gate, Role, Sink, SinkContext
+from twinwatch.sinks.base import AlarmBands, Gate, Outbox, Role, Sink, SinkContext
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
@@ -55,7 +57,14 @@ logger = logging.getLogger(__name__)
 
 _STOP = object()
 
-__all__ = ["SINKS", "Daemon"]
+__all__ = ["SINKS", "Daemon", "new_run_id"]
+
+def new_run_id() -> str:
+    """A new run id: the start's UTC time and 6 random hex digits, e.g.
+    ``20261122T101530Z-3f9a2c`` (sorts by start; unique across machines and restarts within
+    the same second; letters, digits and ``-`` only, so it goes in a selector unquoted)."""
+    return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + secrets.token_hex(3)
+
 
 STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
@@ -93,7 +102,13 @@ class Daemon:
             to it); one that does not fit is left alone.
         resume: restore the saved twin and alarm levels from the state database (False:
             start from the nameplate values, ``twinwatch run --fresh``; a reload restores
-            them in :meth:`continue_from`, once the previous daemon has finished).
+            them in :meth:`continue_from`, once the previous daemon has finished). None (the
+            default): resume unless the source's time starts over when it opens (a simulated
+            plant from t = 0, a replayed recording:
+            :meth:`~twinwatch.drivers.base.Driver.time_starts_over`): such a run is a new
+            run, not the continuation of the stored one (:attr:`new_run`).
+        run_id: the run id every health message carries (a reload passes the running
+            daemon's: the same run goes on); None: a new one (:func:`new_run_id`).
         defer: outputs (registry names) not to open yet: the running daemon holds their file
             or port (a reload that changed their table, :meth:`handover`'s ``wait``);
             :meth:`open_deferred` opens them once it has released them.
@@ -104,6 +119,11 @@ class Daemon:
     Attributes:
         sinks: registry name -> the open output, in the order each window is written to them
             (the gate first: stored before published).
+        run_id: this run's id (in every health message and stored row; kept by a reload).
+        new_run: set when the state database holds this machine's earlier windows that were
+            not resumed because the source's time starts over (``resume`` not given):
+            ``reason``, ``path`` (the database), ``run`` (the id of the last stored run);
+            None otherwise.
 
     Raises:
         twinwatch.drivers.base.DriverInitializationError, twinwatch.errors.SinkError (its
@@ -125,11 +145,13 @@ class Daemon:
         persist: bool = False,
         watchdog: Watchdog | None = None,
         reuse: Mapping[str, Any] | None = None,
-        resume: bool = True,
+        resume: bool | None = None,
         defer: Collection[str] = (),
+        run_id: str | None = None,
         wait_for_source: bool = True,
     ) -> None:
         self.config = config
+        self.run_id = run_id or new_run_id()
         self.base_dir = base_dir or Path.cwd()
         self.machine = config.machine.name
         self.model: TwinModel = create_model(config.machine.model, config.machine.options)
@@ -147,10 +169,11 @@ class Daemon:
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
         self.pipeline = WindowPipeline(
             adapter=self.adapter, alarms=self.alarms, machine=self.machine,
-            model_name=config.machine.model, nominal=self.nominal, counters=self.counters,
-            history=acq.history, source=self.source_state)
+            model_name=config.machine.model, run=self.run_id, nominal=self.nominal,
+            counters=self.counters, history=acq.history, source=self.source_state)
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
+        self.new_run: dict[str, Any] | None = None
         self.failure: str | None = None
         self._closed_sinks: dict[str, Sink] = {}
         self.driver: Driver | None = None
@@ -178,8 +201,13 @@ class Daemon:
                         config.driver.type)
         try:
             self._open_sinks(self._roles, reuse, skip=defer)
-            if self.store is not None and resume:
-                self._restore()
+            if self.store is not None:
+                starts_over = resume is None and get_driver_class(
+                    config.driver.type).time_starts_over(config.driver)
+                if resume or (resume is None and not starts_over):
+                    self._restore()
+                elif starts_over:
+                    self._note_new_run()
             self.driver = handed_driver or driver or open_source(
                 config.driver, base_dir=self.base_dir, wait=wait_for_source,
                 backoff_max=config.acquisition.reopen_max)
@@ -213,7 +241,9 @@ class Daemon:
         """Take over from ``previous``, the daemon of the configuration before a reload, once
         it has finished its queued windows and released what it did not hand over
         (:meth:`close` ``keep``): the adopted outputs are bound to this daemon, the window
-        numbering goes on, the twin and the alarm levels resume from the state database."""
+        numbering goes on (and the run: :attr:`run_id`), the twin and the alarm levels resume
+        from the state database."""
+        self.run_id = self.pipeline.run = previous.run_id
         self.ring.first_index = previous.ring.first_index + previous.ring.windows
         if self.store is not None:
             self._restore()
@@ -253,8 +283,9 @@ class Daemon:
 
     def _sink_context(self, *, has_gate: bool) -> SinkContext:
         """What the outputs get from this daemon (the stored history when a gate opens)."""
-        return replace(_context(self.config, self.model, self.base_dir),
-                       history=self.stored_history if has_gate else None)
+        return replace(_context(self.config, self.model, self.base_dir, self.run_id),
+                       history=self.stored_history if has_gate else None,
+                       outbox=self.outbox if has_gate else None)
 
     def handover(self, config: TwinwatchConfig) -> tuple[list[str], list[str]]:
         """What a reload to ``config`` may do with this daemon's open outputs.
@@ -266,7 +297,7 @@ class Daemon:
             port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
         """
         model = create_model(config.machine.model, config.machine.options)
-        context = _context(config, model, self.base_dir)
+        context = _context(config, model, self.base_dir, self.run_id)
         new = {t.name: t.config for t in config.output_tables() if t.config.enabled}
         old = {t.name: t.config for t in self.config.output_tables()}
         keep, wait = [], []
@@ -285,7 +316,7 @@ class Daemon:
         """Adopt the handed-over outputs whose table and context are unchanged (bound to this
         daemon by :meth:`_wire` once it takes over); one that does not fit is left to the
         daemon that handed it over (it closes it). Returns the adopted names."""
-        context = _context(self.config, self.model, self.base_dir)
+        context = _context(self.config, self.model, self.base_dir, self.run_id)
         adopted: set[str] = set()
         for t in wanted:
             sink = reuse.get(t.name)
@@ -372,16 +403,35 @@ class Daemon:
                            if a.get("level") not in (None, "normal")},
             }
 
+    def _note_new_run(self) -> None:
+        """The source's time starts over, so the stored twin is not resumed: say so when the
+        database holds earlier windows of this machine (:attr:`new_run`)."""
+        assert self.store is not None
+        last = self.store.latest_health(self.machine)
+        if last is None or self.store.recovered:
+            return
+        self.new_run = {"reason": f"the {self.config.driver.type} source's time starts over "
+                        f"when it opens", "path": str(self.store.path), "run": last.get("run")}
+        logger.info("a new run %s of %s: %s; the twin starts from the nameplate values, the "
+                    "alarms from normal (%s keeps the earlier runs)", self.run_id, self.machine,
+                    self.new_run["reason"], self.store.path)
+
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
-                       limit: int | None = 1000,
-                       by: Literal["plant", "wall"] = "plant") -> list[dict[str, Any]]:
-        """Stored health messages of this machine in a time range (the gate's
-        :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state database. The
-        outputs ask it through their context (the Zenoh history query)."""
+                       limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
+                       run: str | None = None) -> list[dict[str, Any]]:
+        """Stored health messages of this machine in a time range, of one run with ``run``
+        (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
+        database. The outputs ask it through their context (the Zenoh history query)."""
         store = self.store
         if store is None:
             return []
-        return store.history(t_from, t_to, limit, by=by, machine=self.machine)
+        return store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run)
+
+    def outbox(self, output: str) -> Outbox | None:
+        """The gate's outbox of ``output`` for this machine (store-and-forward outputs ask it
+        through their context), None without a gate."""
+        store = self.store
+        return None if store is None else store.outbox(output, self.machine)
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
@@ -672,13 +722,25 @@ class Daemon:
         self.close()
 
 
-def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path) -> SinkContext:
+def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path,
+             run: str) -> SinkContext:
     """The outputs' context for a daemon on ``config`` (without the stored history)."""
+    bands = {}
+    if config.alarms.enabled:
+        for name, rule in config.alarms.parameters.items():
+            (w_high, w_low), (a_high, a_low) = rule.thresholds("warning"), rule.thresholds("alarm")
+            bands[name] = AlarmBands(warning_high=w_high, warning_low=w_low, alarm_high=a_high,
+                                     alarm_low=a_low)
     return SinkContext(machine=config.machine.name, model=config.machine.model,
                        outputs=tuple(model.output_names),
                        parameters={p.name: p.unit for p in model.parameters},
                        base_dir=base_dir, cwd=Path.cwd(),
-                       recent_windows=config.acquisition.history)
+                       recent_windows=config.acquisition.history,
+                       output_units={o.name: o.unit for o in model.outputs},
+                       nominal={p.name: float(config.machine.parameters.get(p.name, p.nominal))
+                                for p in model.parameters},
+                       estimated=tuple(config.estimation.estimate or ()),
+                       alarm_bands=bands, run=run)
 
 
 def _close(name: str, obj: Sink | Driver) -> None:

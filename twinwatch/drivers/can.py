@@ -569,6 +569,11 @@ class CanDriver(Driver):
         where = f" ({address[0]}:{address[1]})" if address else ""
         return f"CAN interface {config.interface!r} channel {config.channel!r}{where}"
 
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """A log replayed from its start is a new run; a live bus goes on."""
+        return getattr(config, "log_file", None) is not None
+
     def __init__(
         self,
         config: CanDriverConfig,

@@ -10,11 +10,15 @@ non-finite numbers become ``null`` everywhere.
 The README's table "The health message" documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
-* 6: the window's ``source``: the jitter of its time stamps against the nominal grid the
+* 7: the window's ``source``: the jitter of its time stamps against the nominal grid the
   samples were placed on (RMS and maximum [us]), what the source waits for (a device absent,
   a gateway being reopened) and the bus messages that went silent; the counters of windows
   abandoned by cause (``windows_abandoned_gap``, ``_time_back``, ``_jitter``, ``_bad_value``,
   ``_missing_channel``).
+* 6: every message carries its ``run`` id (one per start of the daemon, kept across a reload;
+  a new run of a simulated plant or of a replayed recording is a new run): windows of different
+  runs share window numbers and plant times, the run tells them apart (the history query
+  filters by it).
 * 5: each meta-model term carries the standard errors of its parameters (``params_std``) and
   the number of windows whose evidence they combine (``evidence_windows``): a kept term is
   refined across windows (:mod:`twinwatch.twin.discovery.terms`).
@@ -62,7 +66,7 @@ __all__ = [
     "summary_line",
 ]
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 
 def _finite(x: Any) -> Any:
@@ -222,6 +226,7 @@ class HealthMessage(_Part):
     schema_: int = Field(SCHEMA_VERSION, alias="schema", description="layout version")
     machine: str = Field(description="machine name from the config")
     model: str = Field(description="twin model (registry name)")
+    run: str = Field(description="run id: one per start of the daemon, kept across a reload")
     window: int = Field(description="window index since start")
     t_start: float = Field(description="first sample time [s, source time]")
     t_end: float = Field(description="last sample time [s, source time]")
@@ -267,6 +272,7 @@ def build_health(
     *,
     machine: str,
     model_name: str,
+    run: str,
     model: TwinModel,
     window: WindowData,
     adaptation: AdaptationResult,
@@ -280,6 +286,8 @@ def build_health(
     Args:
         machine: machine name (the Zenoh key segment).
         model_name: registry name of the twin model (``dc_motor``).
+        run: the run id (:func:`twinwatch.daemon.runner.new_run_id`: one per start of the
+            daemon, kept across a reload).
         model: the twin (for units).
         window: the estimated window (for its index and time span).
         adaptation: the window's adaptation: its estimate, meta-model terms, DT' and DT''
@@ -317,6 +325,7 @@ def build_health(
     return HealthMessage(
         machine=machine,
         model=model_name,
+        run=run,
         window=int(window.index),
         t_start=float(window.t[0]),
         t_end=float(window.t[-1]),
