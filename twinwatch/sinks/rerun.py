@@ -15,7 +15,12 @@ process). Entity paths, with ``M`` the machine name and ``plant_time`` the timel
   ``M/residual_rmse/<output>/dt_prime`` and ``.../dt_second``: per window, the RMSE of the twin
   without and with its meta-model terms (from the health message's ``residual``);
 * ``M/model``: the twin's discovered structure DT'' as plain-text equations
-  (:class:`rerun.TextDocument`), logged at the start and whenever a term is added or dropped.
+  (:class:`rerun.TextDocument`), logged at the start and whenever a term is added or dropped;
+* ``M/health/<param>/trend/...``: each estimated parameter's trend (:func:`log_trends`): its
+  level and 2-sigma band (``level``, ``band/low``, ``band/high``), and, with an alarm rule, the
+  remaining useful life to its alarm threshold (``rul/median``, ``rul/low``, ``rul/high`` [s])
+  and the projection to that threshold with its band (``projection``: line strips in the
+  plane of plant time and value, the latest per window).
 
 The file also carries a default blueprint: one time-series view per output, a grid with one
 view per parameter (their scales differ by orders of magnitude), the health document and log.
@@ -652,6 +657,8 @@ class RerunRecorder(Sink):
             rec.log(
                 _entity(m, "health"), rr.TextDocument(document, media_type=rr.MediaType.MARKDOWN)
             )
+            if not isinstance(health, Mapping):
+                log_trends(rec, m, t_end, health)
             level = rr.TextLogLevel.WARN if _is_problem(health) else rr.TextLogLevel.INFO
             rec.log(
                 _entity(m, "log"),
@@ -726,6 +733,47 @@ class RerunRecorder(Sink):
 
 _GRAVEYARD: list[Any] = []
 """Recording streams whose file writer died: kept referenced so that nothing frees them."""
+
+
+def _growth_curve(t0: float, y0: float, t1: float, y1: float, r: float | None,
+                  n: int = 32) -> np.ndarray:
+    """(n, 2) points of ``y0 + a (exp(r (t - t0)) - 1)/r`` from ``(t0, y0)`` through
+    ``(t1, y1)`` (a line for r None or 0): the trend's shape, scaled to pass the threshold at
+    a crossing time."""
+    t = np.linspace(t0, t1, n)
+    if r is None or abs(r) * (t1 - t0) < 1e-9:
+        g, g1 = t - t0, t1 - t0
+    else:
+        g, g1 = np.expm1(r * (t - t0)) / r, np.expm1(r * (t1 - t0)) / r
+    a = (y1 - y0) / g1 if g1 else 0.0
+    return np.column_stack([t, y0 + a * g])
+
+
+def log_trends(rec: rr.RecordingStream, machine: str, t_end: float,
+               health: HealthMessage) -> None:
+    """Log each parameter's trend and, with an alarm rule, its RUL and its projection to the
+    alarm threshold (entity paths ``<machine>/health/<param>/trend/...``, module docstring),
+    at the current time (``t_end`` on the plant-time timeline, set by the caller)."""
+    for name, p in health.parameters.items():
+        t = p.trend
+        if t is None or t.level is None:
+            continue
+        base = (machine, "health", name, "trend")
+        rec.log(_entity(*base, "level"), rr.Scalars(t.level))
+        if t.level_std is not None:
+            rec.log(_entity(*base, "band", "low"), rr.Scalars(t.level - 2.0 * t.level_std))
+            rec.log(_entity(*base, "band", "high"), rr.Scalars(t.level + 2.0 * t.level_std))
+        c = p.rul.alarm if p.rul is not None else None
+        if c is None or c.status != "predicted" or c.t is None or c.threshold is None:
+            continue
+        for key, value in (("median", c.rul_s), ("low", c.low_s), ("high", c.high_s)):
+            if value is not None:
+                rec.log(_entity(*base, "rul", key), rr.Scalars(value))
+        ends = [x for x in (c.t, c.t_low, c.t_high) if x is not None]
+        strips = [_growth_curve(t_end, t.level, x, c.threshold, t.growth) for x in ends]
+        strips.append(np.array([[t_end, c.threshold], [max(ends), c.threshold]]))
+        rec.log(_entity(*base, "projection"), rr.LineStrips2D(
+            strips, labels=["median", *(["band"] * (len(ends) - 1)), "alarm threshold"]))
 
 
 def _bury(rec: rr.RecordingStream) -> None:
