@@ -27,6 +27,7 @@ class PrognosticsConfig(BaseModel):
                             "nothing)")
     onset: bool = Field(True, description="the degrading models may start at an onset (flat "
                         "before it)")
+
     interval: float = Field(0.95, gt=0.5, lt=1.0, description="central probability of the "
                             "published RUL interval")
     draws: int = Field(2000, ge=100, le=100_000, description="Monte Carlo draws of the RUL")
@@ -38,6 +39,9 @@ class PrognosticsConfig(BaseModel):
                               "jump too)")
     flat_z: float = Field(2.0, gt=0, description="a drift rate within this many standard "
                           "errors of zero is flat: not degrading")
+    detection: float = Field(0.9, gt=0.5, lt=1.0, description="degrading only when the "
+                             "evidence favours a degrading model over none with at least "
+                             "this probability (BIC weights)")
     max_rel_std: float = Field(0.5, gt=0, description="evidence with a larger relative "
                                "standard error is not worth a point")
     seed: int = Field(0, description="seed of the Monte Carlo draws (the same evidence gives "

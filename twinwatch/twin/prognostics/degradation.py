@@ -26,10 +26,11 @@ the scatter exceeds the published uncertainty, and by the residuals' long-run va
 (Newey-West, :func:`~twinwatch.twin.estimation.statistics.long_run_factor`) when consecutive
 windows' errors are correlated, so the interval is never narrower than the evidence supports.
 
-**Choice.** The Bayesian information criterion with the weights known up to a common scale,
-``BIC = n_eff ln(chi^2 / n) + k ln(n_eff)``, ``n_eff`` corrected for the residuals' lag-1
-autocorrelation as the discovery's criterion is
-(:func:`~twinwatch.twin.estimation.statistics.delta_bic`).
+**Choice** (:func:`select`). With the weights known up to a common scale, ``n_eff ln(chi^2 /
+n)`` plus a penalty, ``n_eff`` corrected for the residuals' lag-1 autocorrelation as the
+discovery's criterion is (:func:`~twinwatch.twin.estimation.statistics.delta_bic`): the BIC
+(penalty ``k ln n_eff``) decides whether the parameter degrades at all, the AICc (``2k +
+2k(k+1)/(n_eff - k - 1)``) which degradation model predicts it.
 """
 
 from __future__ import annotations
@@ -70,7 +71,8 @@ class DegradationFit:
         chi2: weighted residual sum of squares (published uncertainty).
         n: evidence points; ``k`` free parameters.
         scale: the factor the covariance was multiplied by (>= 1).
-        bic: the information criterion (smaller is better).
+        bic: the Bayesian information criterion (smaller is better): degrading or not.
+        aicc: the corrected Akaike criterion: which degradation model predicts best.
         rms_norm: RMS of the normalised residuals (1: the scatter the published
             uncertainty states).
     """
@@ -87,6 +89,7 @@ class DegradationFit:
     n: int = 0
     scale: float = 1.0
     bic: float = math.inf
+    aicc: float = math.inf
     rms_norm: float = math.nan
     residuals: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
 
@@ -350,7 +353,9 @@ def _assign_bic(fits: list[DegradationFit]) -> None:
     most = max(f.k for f in fits)
     n_eff = max(n * (1.0 - rho) / (1.0 + rho), float(most + 1))
     for f in fits:
-        f.bic = n_eff * math.log(max(f.chi2 / n, 1e-300)) + f.k * math.log(n_eff)
+        fit_term = n_eff * math.log(max(f.chi2 / n, 1e-300))
+        f.bic = fit_term + f.k * math.log(n_eff)
+        f.aicc = fit_term + 2.0 * f.k + 2.0 * f.k * (f.k + 1) / max(n_eff - f.k - 1, 1.0)
 
 
 def _onset_grid(t: FloatArray, most: int) -> FloatArray:
@@ -366,7 +371,8 @@ def _onset_grid(t: FloatArray, most: int) -> FloatArray:
 
 def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | None = None,
                kinds: tuple[ModelKind, ...] = ("none", "linear", "exponential"),
-               onset: bool = True, min_points: int = 6) -> list[DegradationFit]:
+               onset: bool = True, min_points: int = 6,
+               onsets: FloatArray | None = None) -> list[DegradationFit]:
     """Fit every model of ``kinds`` (and, with ``onset``, each degrading one with an onset)
     to the evidence.
 
@@ -378,6 +384,7 @@ def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | No
         kinds: the candidate models.
         onset: also fit the degrading models with an onset.
         min_points: a model with ``k`` parameters needs ``k + min_points`` points.
+        onsets: the candidate onsets (default: the evidence times but the last fifth).
 
     Returns:
         The fits (``none`` first when asked), each with its BIC.
@@ -399,7 +406,10 @@ def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | No
         _assign_bic(out)
         return out
     tau = t - t_ref
-    onsets = _onset_grid(t, 30) if onset else np.empty(0)
+    if not onset:
+        onsets = np.empty(0)
+    elif onsets is None:
+        onsets = _onset_grid(t, 30)
     if "linear" in kinds and n >= 2 + min_points:
         chi2, c, m = _wls_grid(tau[None, :], y, w)
         out.append(_finish("linear", t, y, s, t_ref, float(c[0]), float(m[0]), 0.0, None,
@@ -429,7 +439,42 @@ def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | No
     return out
 
 
-def select(fits: list[DegradationFit]) -> DegradationFit | None:
-    """The fit with the smallest BIC (None for no fits)."""
+def select(fits: list[DegradationFit], min_weight: float = 0.01
+           ) -> tuple[DegradationFit | None, list[tuple[DegradationFit, float]]]:
+    """The chosen model and the plausible ones with their weights.
+
+    Two questions, two criteria: *is it degrading?* is a test, answered by the BIC (consistent:
+    it does not see a trend in noise; the ``none`` model against the best degrading one by
+    BIC); *how?* is a forecast, answered by the AICc among the degrading models (efficient:
+    the best predictor; the BIC's heavier penalty picks a line over an exponential whose
+    curvature noisy evidence only starts to show, and the line's crossing comes late).
+    Weights: ``exp(-delta/2)`` of each criterion (Bayesian model averaging), the degrading
+    models sharing what the BIC leaves them; below ``min_weight`` of the largest, dropped.
+
+    Returns:
+        (chosen fit or None without fits, [(fit, weight)] summing to 1).
+    """
     good = [f for f in fits if math.isfinite(f.bic)]
-    return min(good, key=lambda f: f.bic) if good else None
+    if not good:
+        return None, []
+    none = [f for f in good if f.kind == "none"]
+    degrading = [f for f in good if f.kind != "none"]
+    if not degrading:
+        return none[0], [(none[0], 1.0)]
+    best_bic = min(degrading, key=lambda f: f.bic)
+    w_none = 0.0
+    if none:
+        d = none[0].bic - best_bic.bic
+        w_none = 1.0 / (1.0 + math.exp(min(0.5 * d, 700.0)))
+    a_min = min(f.aicc for f in degrading)
+    w = np.array([math.exp(-0.5 * min(f.aicc - a_min, 1400.0)) for f in degrading])
+    w = w / w.sum() * (1.0 - w_none)
+    pairs = [(f, float(wi)) for f, wi in zip(degrading, w, strict=True)]
+    if none:
+        pairs.insert(0, (none[0], w_none))
+    top = max(wi for _, wi in pairs)
+    pairs = [(f, wi) for f, wi in pairs if wi >= min_weight * top]
+    total = sum(wi for _, wi in pairs)
+    pairs = [(f, wi / total) for f, wi in pairs]
+    chosen = none[0] if none and w_none >= 0.5 else min(degrading, key=lambda f: f.aicc)
+    return chosen, pairs

@@ -145,7 +145,8 @@ class Prognostics:
         self.settings = TrendSettings(horizon=c.horizon, min_evidence=c.min_evidence,
                                       max_points=c.max_points, onset=c.onset,
                                       step_threshold=c.step_threshold,
-                                      step_confirm=c.step_confirm, flat_z=c.flat_z)
+                                      step_confirm=c.step_confirm, flat_z=c.flat_z,
+                                      detection=c.detection)
         self.names = tuple(names)
         self.nominal = dict(nominal)
         self.thresholds = dict(thresholds or {})

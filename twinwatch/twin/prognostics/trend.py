@@ -13,12 +13,15 @@ configured horizon) and, every window:
    is dropped. When the fusion flagged the window as a sudden change (``fusion_jump``), one
    window confirms it. A step therefore restarts the trend instead of bending it.
 2. **Fit.** The degradation models (:mod:`~twinwatch.twin.prognostics.degradation`) are fitted
-   to the segment's evidence (binned to ``max_points``), the information criterion chooses one,
-   and the others keep their weight ``exp(-dBIC/2)`` (Bayesian model averaging: the remaining
-   useful life is drawn from every plausible model, so an early choice between a line and an
-   exponential widens the interval instead of hiding in it).
-3. **Degrading?** Not when the chosen model is ``none`` or its drift rate now is within
-   ``flat_z`` standard errors of zero (flat within its uncertainty).
+   to the segment's evidence (binned to ``max_points``), the information criteria choose one
+   (:func:`~twinwatch.twin.prognostics.degradation.select`), and the others keep their weight
+   (Bayesian model averaging: the remaining useful life is drawn from every plausible model,
+   so an early choice between a line and an exponential widens the interval instead of hiding
+   in it).
+3. **Degrading?** Only when the evidence favours a degrading model over ``none`` with odds of
+   at least ``detection`` (0.9: the BIC's weights) and the chosen model's drift rate now is
+   beyond ``flat_z`` standard errors of zero; otherwise "not degrading" (flat within its
+   uncertainty).
 
 The history's fitness for prediction is reported as MATLAB's Predictive Maintenance Toolbox
 scores it: **monotonicity** ``|sum sign(diff x)| / (n - 1)`` (its default ``sign`` method) on
@@ -90,6 +93,7 @@ class TrendSettings:
     flat_z: float = 2.0
     smooth: int = 5
     min_weight: float = 0.01
+    detection: float = 0.9
 
 
 def monotonicity(x: FloatArray, smooth: int = 1) -> float | None:
@@ -160,6 +164,11 @@ class ParameterTrend:
                 self.pending = []
             self.pending.append((ev, z))
             if len(self.pending) >= (1 if jump else cfg.step_confirm):
+                if not jump and self._bend():
+                    for e, _ in self.pending:  # the onset of a drift: the trend bends
+                        self._append(e)
+                    self.pending = []
+                    return
                 self._restart(f"step of {z:+.1f} standard errors"
                               + (" (the fusion saw a sudden change)" if jump else ""))
             return
@@ -167,6 +176,28 @@ class ParameterTrend:
             self.outliers += len(self.pending)
             self.pending = []
         self._append(ev)
+
+    def _bend(self) -> bool:
+        """Do the windows beyond the trend start a drift rather than a step? They do when a
+        degrading model with an onset up to the last evidence before them (a kink, not a
+        jump) explains them within ``step_threshold`` standard errors (a degradation's onset
+        on exact evidence leaves the flat trend by many of its tiny standard errors, but
+        continuously; a part replaced jumps)."""
+        if len(self.t) < self.settings.min_evidence:
+            return False
+        t = np.asarray(self.t + [e.t for e, _ in self.pending])
+        y = np.asarray(self.y + [e.value for e, _ in self.pending])
+        s = np.asarray(self.s + [e.std for e, _ in self.pending])
+        n_old = len(self.t)
+        recent = np.asarray(self.t[max(0, n_old - 20):])
+        fits = [f for f in fit_models(t, y, s, onset=True, onsets=recent, min_points=0)
+                if f.onset is not None]
+        if not fits:
+            return False
+        best = min(fits, key=lambda f: f.chi2)
+        red = max(best.chi2 / max(best.n - best.k, 1), 1.0)
+        z = (y[n_old:] - best.value(t[n_old:])) / (s[n_old:] * math.sqrt(red))
+        return bool(np.all(np.abs(z) < self.settings.step_threshold))
 
     def _append(self, ev: Evidence) -> None:
         if self.since_t is None:
@@ -225,16 +256,10 @@ class ParameterTrend:
         t, y, s = bin_evidence(np.asarray(self.t), np.asarray(self.y), np.asarray(self.s),
                                cfg.max_points)
         fits = fit_models(t, y, s, t_ref=self.t[-1], onset=cfg.onset)
-        best = select(fits)
+        best, pairs = select(fits, cfg.min_weight)
         self.fit = best
-        if best is None:
-            self.fits, self.weights = [], []
-            return
-        w = np.array([math.exp(-0.5 * min(f.bic - best.bic, 1400.0)) for f in fits])
-        w = np.where(w >= cfg.min_weight * w.max(), w, 0.0)
-        w = w / w.sum()
-        self.fits = [f for f, wi in zip(fits, w, strict=True) if wi > 0]
-        self.weights = [float(wi) for wi in w if wi > 0]
+        self.fits = [f for f, _ in pairs]
+        self.weights = [w for _, w in pairs]
 
     # -- what it says -----------------------------------------------------------------------
     @property
@@ -242,12 +267,17 @@ class ParameterTrend:
         return len(self.t)
 
     def degrading(self) -> bool:
-        """The chosen model drifts, beyond ``flat_z`` standard errors of its rate."""
+        """The evidence says so: the degrading models' share of the weight is at least
+        ``detection`` (the BIC's odds against ``none``) and the chosen model's drift rate is
+        beyond ``flat_z`` of its standard errors (not flat within its uncertainty)."""
         f = self.fit
         if f is None or f.kind == "none":
             return False
-        sd = f.std("m")
-        return abs(f.m) > self.settings.flat_z * sd
+        p_none = sum(w for g, w in zip(self.fits, self.weights, strict=True)
+                     if g.kind == "none")
+        if 1.0 - p_none < self.settings.detection:
+            return False
+        return abs(f.m) > self.settings.flat_z * f.std("m")
 
     def scores(self) -> tuple[float | None, float | None]:
         """(monotonicity, trendability) of the segment's evidence."""
