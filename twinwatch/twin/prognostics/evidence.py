@@ -69,7 +69,15 @@ def fused_share(names: Sequence[str], prior: tuple[FloatArray, FloatArray],
         return {}
     info = (y1 - y0)[:n, :n]
     info = 0.5 * (info + info.T)
-    b = (y1 @ x1 - y0 @ x0)[:n]
+    # Below rounding of the posterior's own information: the window told it nothing.
+    told = np.diag(info) > 1e-9 * np.abs(np.diag(y1)[:n])
+    idx = np.flatnonzero(told)
+    if not idx.size:
+        return {}
+    info = info[np.ix_(idx, idx)]
+    names = [names[i] for i in idx]
+    b_full = (y1 @ x1 - y0 @ x0)[:n]
+    b = b_full[idx]
     w, v = np.linalg.eigh(info)
     big = max(float(np.max(np.abs(w))), 1e-300)
     keep = w > 1e-12 * big

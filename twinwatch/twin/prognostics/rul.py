@@ -72,36 +72,31 @@ class Crossing:
 
 
 def crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
-                   threshold: float) -> FloatArray:
-    """Time [s] from the reference time until ``c + m (exp(r tau) - 1)/r`` reaches
-    ``threshold``, counted from ``tau0`` (the window's end relative to the reference) on, per
+                   threshold: float, direction: int) -> FloatArray:
+    """Time [s] from ``tau0`` until ``c + m (exp(r tau) - 1)/r`` reaches ``threshold``, per
     draw (inf: never; 0: already beyond it at ``tau0``).
 
     Args:
         c, m, r: (n,) draws of the level [SI], drift rate [SI/s] and growth rate [1/s] at the
-            reference time.
+            reference time (tau = 0).
         tau0: the window's end minus the reference time [s] (>= 0).
         threshold: [SI].
+        direction: +1 for a threshold crossed upwards (a high one), -1 downwards (a low one).
     """
     c, m, r = (np.asarray(a, dtype=float) for a in (c, m, r))
+    lin = np.abs(r) < 1e-12
+    safe_r = np.where(lin, 1.0, r)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        q = (threshold - c) / m
-        lin = np.abs(r) < 1e-12
-        arg = 1.0 + r * q
-        tau_exp = np.where(arg > 0, np.log(np.where(arg > 0, arg, 1.0)) / np.where(lin, 1.0, r),
-                           np.inf)
-        tau = np.where(lin, q, tau_exp)
-        tau = np.where(np.isfinite(tau) & (m != 0), tau, np.inf)
-        # A trend heading away from the threshold (q < 0) never reaches it ahead.
-        tau = np.where(tau < 0, np.inf, tau)
-        # Already beyond it: the level now is on the threshold's far side.
         level_now = c + m * np.where(lin, tau0, np.expm1(np.clip(r * tau0, -700, 700))
-                                     / np.where(lin, 1.0, r))
-    side = np.sign(threshold - c)
-    beyond = np.sign(threshold - level_now) != side
+                                     / safe_r)
+        q = (threshold - c) / m
+        arg = 1.0 + r * q
+        tau_exp = np.where(arg > 0, np.log(np.where(arg > 0, arg, 1.0)) / safe_r, np.inf)
+        tau = np.where(lin, q, tau_exp)
+        # Heading away from the threshold (q < 0), or no drift: never.
+        tau = np.where(np.isfinite(tau) & (m != 0) & (tau >= 0), tau, np.inf)
     out = np.maximum(tau - tau0, 0.0)
-    out = np.where(beyond, 0.0, out)
-    return out
+    return np.where((level_now - threshold) * direction >= 0, 0.0, out)
 
 
 def _quantile(x: FloatArray, q: float) -> float | None:
@@ -156,9 +151,10 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         p = f.draws(n_f, rng)
         tau0 = max(t_end - f.t_ref, 0.0)
         times = np.full(n_f, np.inf)
-        for th in (high, low):
+        for th, direction in ((high, 1), (low, -1)):
             if th is not None:
-                times = np.minimum(times, crossing_times(p["c"], p["m"], p["r"], tau0, th))
+                times = np.minimum(times, crossing_times(p["c"], p["m"], p["r"], tau0, th,
+                                                         direction))
         parts.append(times)
     times = np.concatenate(parts)
     a = 0.5 * (1.0 - interval)
