@@ -137,6 +137,17 @@ def test_a_part_replaced_restarts_the_trend_and_an_onset_bends_it() -> None:
     assert p.trend.degrading and p.trend.since_t is not None and p.trend.since_t >= 760.0
 
 
+def test_a_clock_that_goes_back_restarts_the_trend() -> None:
+    """A recording replayed again, a simulated plant restarted: the evidence of the other
+    time line is dropped, never mixed in."""
+    prog = Prognostics(("Ra",), {"Ra": RA0}, PrognosticsConfig(), {"Ra": RA_THRESHOLDS})
+    for k in range(30):
+        prog.update({"Ra": Evidence(2.0 * k + 1, RA0, 1e-3)}, t_end=2.0 * k + 2)
+    p = prog.update({"Ra": Evidence(1.0, RA0, 1e-3)}, t_end=2.0)["Ra"]
+    assert p.trend.restarted and p.trend.evidence == 1
+    assert p.trend.restart is not None and "clock went back" in p.trend.restart.reason
+
+
 def test_crossing_times_closed_form() -> None:
     c, m, r = np.array([6.5, 6.5, 6.5, 5.0]), np.array([-0.001, -0.001, 0.001, -0.001]), \
         np.array([0.0, 0.003, 0.0, 0.0])
@@ -311,8 +322,7 @@ def test_daemon_publishes_trend_and_rul_and_resumes_them(tmp_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """120 s of a motor degrading from 0 s through the daemon: Ra's trend is an exponential,
     degrading, with a finite RUL to both thresholds in plant and wall time; the summary line
-    says it; held parameters carry no evidence; a second run resumes the trends from the state
-    database."""
+    says it; a restart resumes the trends from the state database."""
     monkeypatch.chdir(tmp_path)
     daemon = _daemon_run(tmp_path, duration=120.0, fault_start=0.0)
     last = daemon.latest_health
@@ -329,11 +339,14 @@ def test_daemon_publishes_trend_and_rul_and_resumes_them(tmp_path: Path,
     assert last.parameters["Kt"].trend is None  # tied: no trend
     assert last.acquisition is not None and last.acquisition.window == 200
     assert not last.acquisition.adaptive
-    evidence = ra.trend.evidence
-    daemon2 = _daemon_run(tmp_path, duration=10.0, fault_start=0.0)
-    again = daemon2.latest_health
-    assert again is not None and again.parameters["Ra"].trend is not None
-    assert again.parameters["Ra"].trend.evidence >= evidence  # resumed, not from scratch
+    # a restart resumes the trends from the evidence the stored windows published
+    cfg = default_config()
+    cfg.state.path = str(tmp_path / "state.sqlite")  # type: ignore[attr-defined]
+    with Daemon(cfg, publish=False, record=False, persist=True) as again:
+        assert again.adapter.prognostics is not None
+        trend = again.adapter.prognostics.trends["Ra"]
+        assert trend.evidence == ra.trend.evidence and trend.since_t == ra.trend.since_t
+        assert trend.fit is not None and trend.fit.kind == "exponential" and trend.degrading()
 
 
 # -- the paper's scenarios (slow) --------------------------------------------------------------

@@ -391,7 +391,9 @@ def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | No
     """
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
-    s = np.maximum(np.asarray(s, dtype=float), 1e-300)
+    # A stated uncertainty below 1e-9 of the values is rounding, not information.
+    floor = 1e-9 * float(np.max(np.abs(y))) if y.size else 0.0
+    s = np.maximum(np.asarray(s, dtype=float), max(floor, 1e-300))
     n = t.size
     t_ref = float(t[-1]) if t_ref is None else float(t_ref)
     w = 1.0 / (s * s)

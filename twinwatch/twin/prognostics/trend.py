@@ -156,6 +156,12 @@ class ParameterTrend:
         if ev is None or not (math.isfinite(ev.value) and math.isfinite(ev.std)
                               and ev.std > 0):
             return
+        if self.t and ev.t <= self.t[-1]:
+            # The source's clock went back (a recording replayed again, a simulated plant
+            # restarted): the evidence before belongs to another time line.
+            self.pending = [(ev, 0.0)]
+            self._restart("the source's clock went back")
+            return
         z = self.innovation(ev)
         cfg = self.settings
         if abs(z) > cfg.step_threshold:
