@@ -233,6 +233,7 @@ class TwinAdapter:
                   ) -> AdaptationResult:
         """Feed the window's evidence to the trends (:mod:`twinwatch.twin.prognostics`) and
         choose the next window's length (``[acquisition.adaptive]``)."""
+        t0 = time.perf_counter()
         est = result.estimate
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
         evidence = {}
@@ -249,6 +250,8 @@ class TwinAdapter:
                 evidence, t_end=float(window.t[-1]), jump=est.fusion_jump, wall=time.time())
         if self.adaptive is not None:
             result.window_choice = self._choose_window(window, result, evidence, fit)
+        result.estimate = dataclasses.replace(
+            est, elapsed_s=est.elapsed_s + time.perf_counter() - t0)
         return result
 
     def _choose_window(self, window: WindowData, result: AdaptationResult,
