@@ -536,7 +536,8 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
     if t.model is None:
         rs = (f"; restarted at {t.restart.t:.0f} s ({t.restart.reason})" if t.restart
               else "")
-        return head + f"no trend yet ({t.evidence} evidence windows{rs})"
+        plural = "" if t.evidence == 1 else "s"
+        return head + f"no trend yet ({t.evidence} evidence window{plural}{rs})"
     model = t.model if t.onset is None else f"{t.model} from {t.onset:.0f} s"
     if t.degrading and t.rate is not None:
         pct = f", {t.rate_pct_per_h:+.3g} %/h" if t.rate_pct_per_h is not None else ""
