@@ -64,8 +64,10 @@ class AdaptiveWindowConfig(BaseModel):
     enabled: bool = Field(False, description="let the window follow the change")
     min_window: int = Field(100, ge=10, description="shortest window [samples]")
     max_window: int = Field(800, ge=10, description="longest window [samples]")
-    drift_ratio: float = Field(1.0, gt=0, description="shorten when a parameter drifts within "
-                               "a window by more than this many of its standard errors")
+    drift_ratio: float = Field(2.0, gt=0, description="shorten when a parameter drifts within "
+                               "a window by more than this many of its standard errors (the "
+                               "error of the value now, noise and the window's lag of half its "
+                               "drift, is smallest near 1.4)")
     residual_ratio: float = Field(3.0, gt=1, description="shorten when the window's residual "
                                   "exceeds this many times its white-noise level")
     quiet_ratio: float = Field(0.5, gt=0, description="a window is quiet when every drift is "
