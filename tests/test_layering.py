@@ -39,12 +39,14 @@ ROOMS: dict[str, tuple[str, ...]] = {
     "sinks": ("twinwatch.sinks",),
     "config": ("twinwatch.config",),
     "daemon": ("twinwatch.daemon",),
+    "watch": ("twinwatch.watch",),
     "cli": ("twinwatch.cli", "twinwatch.__main__"),
 }
 
 #: Room -> the rooms it may import (besides itself). The floors, from the ground up: base; io;
 #: plant, the twin's contract; the machines, the estimation; the discovery; the twin's top
-#: (adaptation, health); drivers, sinks; config; daemon; cli.
+#: (adaptation, health); drivers, sinks; config; daemon; watch (beside the daemon, reading what
+#: the daemons publish); cli.
 ALLOWED: dict[str, set[str]] = {
     "base": set(),
     "io": {"base"},
@@ -63,6 +65,8 @@ ALLOWED: dict[str, set[str]] = {
                "twin.estimation", "twin.discovery", "twin.prognostics", "twin"},
     "daemon": {"base", "io", "config", "drivers", "sinks", "twin.model", "twin.models",
                "twin.estimation", "twin.discovery", "twin.prognostics", "twin"},
+    # reads the network's health messages: never the daemon (a watcher runs anywhere)
+    "watch": {"base", "io", "twin"},
     "cli": set(ROOMS) - {"cli"},
 }
 

@@ -342,7 +342,7 @@ def test_daemon_publishes_trend_and_rul_and_resumes_them(tmp_path: Path,
     # a restart resumes the trends from the evidence the stored windows published
     cfg = default_config()
     cfg.state.path = str(tmp_path / "state.sqlite")  # type: ignore[attr-defined]
-    with Daemon(cfg, publish=False, record=False, persist=True) as again:
+    with Daemon(cfg, publish=False, record=False, persist=True, resume=True) as again:
         assert again.adapter.prognostics is not None
         trend = again.adapter.prognostics.trends["Ra"]
         assert trend.evidence == ra.trend.evidence and trend.since_t == ra.trend.since_t

@@ -206,7 +206,7 @@ def test_check_config_validates_the_plugin_output_table(tmp_path: Path, plugin_p
         tmp_path, "[outputs.mqttx]\nhost = 'broker'\n")), cwd=tmp_path)
     assert unknown.returncode == 1
     line = next(ln for ln in unknown.stderr.splitlines() if "outputs.mqttx" in ln)
-    assert "unknown output 'mqttx'; known outputs: jsonl" in line
+    assert "unknown output 'mqttx'; known outputs: mqtt, jsonl" in line
     assert "[state]" in line and "[zenoh]" in line and "[recording]" in line
 
     builtin = _twinwatch(plugin_path, "check-config", str(_config(
@@ -239,7 +239,7 @@ def test_without_the_plugin_its_table_is_refused(tmp_path: Path):
     cfg = _config(tmp_path)
     res = cli("check-config", str(cfg))
     assert res.exit_code == 1
-    assert "outputs.jsonl: unknown output 'jsonl'; known outputs: none installed" in res.output
+    assert "outputs.jsonl: unknown output 'jsonl'; known outputs: mqtt" in res.output
 
 
 # -- run by the real command line ----------------------------------------------------------------
@@ -289,8 +289,14 @@ def test_a_reload_keeps_the_plugin_open_unless_its_table_changed(
     first = Daemon(cfg, persist=True, record=False)
     first.run()
     sink = first.sinks["jsonl"]
-    kept = first.close(keep=SINKS)  # what the supervisor does on SIGHUP
-    second = Daemon(cfg, persist=True, record=False, reuse=kept)
+    # what the supervisor does on SIGHUP: the new daemon is opened beside the running one,
+    # adopting what it hands over, and takes over once the running one has released the rest
+    keep, wait = first.handover(cfg)
+    second = Daemon(cfg, persist=True, record=False, resume=False,
+                    reuse={k: first.sinks[k] for k in keep}, defer=wait)
+    first.close(keep=keep)
+    second.open_deferred()
+    second.continue_from(first)
     assert second.sinks["jsonl"] is sink and list(second.sinks) == ["store", "jsonl"]
     second.run()
     changed = cfg.model_copy(deep=True)
@@ -301,8 +307,13 @@ def test_a_reload_keeps_the_plugin_open_unless_its_table_changed(
     moved = changed.model_copy(deep=True)
     moved.outputs["jsonl"].path = "other.jsonl"
     assert second.handover(moved) == (["store"], [])
-    kept = second.close(keep=SINKS)
-    third = Daemon(changed, persist=True, record=False, reuse=kept)
+    keep, wait = second.handover(changed)
+    third = Daemon(changed, persist=True, record=False, resume=False,
+                   reuse={k: second.sinks[k] for k in keep}, defer=wait)
+    assert "jsonl" not in third.sinks  # its file is the running one's: it waits
+    second.close(keep=keep)
+    third.open_deferred()
+    third.continue_from(second)
     assert third.sinks["jsonl"] is not sink and sink._closed
     third.close()
     # numbering went on under one run id; the plug-in got each window once
@@ -343,8 +354,9 @@ def test_the_built_in_outputs_are_the_same_contract(tmp_path: Path):
     from twinwatch.sinks.base import Gate, Sink, SinkConfig
 
     cfg = load_config(ROOT / "config" / "dc-motor-sim.toml")
-    assert [t.name for t in cfg.output_tables()] == list(BUILTIN_SINKS) == [
+    assert [t.name for t in cfg.output_tables()] == list(BUILTIN_SINKS)[:3] == [
         "store", "zenoh", "rerun"]
+    assert list(BUILTIN_SINKS)[3:] == ["mqtt"]      # configured under [outputs.mqtt]
     roles = {}
     for t in cfg.output_tables():
         cls = sink_class(t.name)

@@ -152,9 +152,8 @@ class AlarmEvaluator:
                     if p is not None else None
                 if ev is not None:
                     events.append(ev)
-        for ev in events:
-            log = logger.warning if ev["level"] != "normal" else logger.info
-            log("%s", ev["message"])
+        for ev in events:  # a clear is logged like a raise: an ALARM line is never left open
+            logger.warning("%s", ev["message"])
         return events
 
     def state(self) -> dict[str, dict[str, Any]]:
@@ -328,11 +327,12 @@ class AlarmEvaluator:
                    f"{vals} since plant time {since_t:.0f} s, beyond the {level} threshold "
                    f"{th}: {action}")
         else:
-            msg = (f"{machine}: {previous} cleared to {level}: {what} is back to {dev:+.2f} % "
-                   f"of nominal{vals} (inside {th} minus {rule.hysteresis:g} points of "
-                   f"hysteresis since plant time {since_t:.0f} s)"
-                   + ("" if level == "normal" else
-                      f"; still {level}: {rule.action or _DEFAULT_ACTION[level]}"))
+            still = (_DEFAULT_ACTION["normal"] if level == "normal" else
+                     f"still {level}: {rule.action or _DEFAULT_ACTION[level]}")
+            msg = (f"{machine}: {previous.upper()} CLEARED to {level}: {what} is {abs(dev):.2f} "
+                   f"% {side} nominal{vals} since plant time {since_t:.0f} s, back within the "
+                   f"{previous} threshold {th} (with {rule.hysteresis:g} %-points hysteresis): "
+                   f"{still}")
         return {
             "machine": machine,
             "kind": "deviation",

@@ -55,6 +55,7 @@ class WindowPipeline:
         alarms: the alarm evaluator (restored from the state store by the daemon).
         machine: machine name (the Zenoh key segment).
         model_name: registry name of the twin model, for the health message.
+        run: the run id every health message carries (:attr:`run`).
         nominal: parameter -> nominal value the deviations are measured from.
         counters: returns the daemon's counters for the health message.
         history: health messages kept in memory (:attr:`history`).
@@ -65,12 +66,14 @@ class WindowPipeline:
             store), or None.
         latest: the last health message (typed); ``history`` the last ``history`` of them.
         windows_estimated: windows processed.
+        run: the run id of the messages (a reload's pipeline takes the running one's).
     """
 
     def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
-                 model_name: str, nominal: Mapping[str, float],
+                 model_name: str, run: str, nominal: Mapping[str, float],
                  counters: Callable[[], Mapping[str, int]], history: int) -> None:
         self.adapter = adapter
+        self.run = run
         self.alarms = alarms
         self.machine = machine
         self.model_name = model_name
@@ -123,7 +126,7 @@ class WindowPipeline:
         """
         result = self.adapter.process(window)
         self.windows_estimated += 1
-        health = build_health(machine=self.machine, model_name=self.model_name,
+        health = build_health(machine=self.machine, model_name=self.model_name, run=self.run,
                               model=self.adapter.model, window=window, adaptation=result,
                               nominal=self.nominal, counters=self._counters(),
                               discovery_enabled=self.adapter.enabled)

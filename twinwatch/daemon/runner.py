@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import logging
 import queue
+import secrets
 import threading
 import time
-from collections.abc import Callable, Container, Mapping
+from collections.abc import Callable, Collection, Container, Mapping
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -37,10 +38,10 @@ from typing import TYPE_CHECKING, Any, Literal
 from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
-from twinwatch.drivers import create_driver
+from twinwatch.drivers import create_driver, get_driver_class
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import Gate, Role, Sink, SinkContext
+from twinwatch.sinks.base import AlarmBands, Gate, Outbox, Role, Sink, SinkContext
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
@@ -54,7 +55,19 @@ logger = logging.getLogger(__name__)
 
 _STOP = object()
 
-__all__ = ["SINKS", "Daemon"]
+__all__ = ["SINKS", "Daemon", "new_run_id"]
+
+def new_run_id() -> str:
+    """A new run id: the start's UTC time and 6 random hex digits, e.g.
+    ``20261122T101530Z-3f9a2c`` (sorts by start; unique across machines and restarts within
+    the same second; letters, digits and ``-`` only, so it goes in a selector unquoted)."""
+    return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + secrets.token_hex(3)
+
+
+STOP_AT_WINDOW_S = 5.0
+"""Longest wait [s, wall] beyond one window's length for the window being filled when a reload
+stops a daemon at a window boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the
+partial window is dropped (a source that went silent)."""
 
 
 class Daemon:
@@ -73,16 +86,34 @@ class Daemon:
             history query. Off by default for library use and tests; the CLI turns it on.
         watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
             each window).
-        reuse: open outputs (registry name -> sink) handed over from a previous daemon by a
-            reload (see :meth:`close`). Those whose table and context are unchanged
-            (:meth:`~twinwatch.sinks.base.Sink.keeps`) are adopted instead of opening new
-            ones; the others are closed.
+        reuse: what a reload hands over from the running daemon (:meth:`handover`): open
+            outputs (registry name -> sink) whose table and context are unchanged
+            (:meth:`~twinwatch.sinks.base.Sink.keeps`), adopted instead of opening new ones,
+            and under ``"driver"`` its open driver (the ``[driver]`` table unchanged: the
+            source goes on where it was, nothing is opened again). They stay the running
+            daemon's until :meth:`continue_from` (a failed start leaves them open and bound
+            to it); one that does not fit is left alone.
         resume: restore the saved twin and alarm levels from the state database (False:
-            start from the nameplate values, ``twinwatch run --fresh``).
+            start from the nameplate values, ``twinwatch run --fresh``; a reload restores
+            them in :meth:`continue_from`, once the previous daemon has finished). None (the
+            default): resume unless the source's time starts over when it opens (a simulated
+            plant from t = 0, a replayed recording:
+            :meth:`~twinwatch.drivers.base.Driver.time_starts_over`): such a run is a new
+            run, not the continuation of the stored one (:attr:`new_run`).
+        run_id: the run id every health message carries (a reload passes the running
+            daemon's: the same run goes on); None: a new one (:func:`new_run_id`).
+        defer: outputs (registry names) not to open yet: the running daemon holds their file
+            or port (a reload that changed their table, :meth:`handover`'s ``wait``);
+            :meth:`open_deferred` opens them once it has released them.
 
     Attributes:
         sinks: registry name -> the open output, in the order each window is written to them
             (the gate first: stored before published).
+        run_id: this run's id (in every health message and stored row; kept by a reload).
+        new_run: set when the state database holds this machine's earlier windows that were
+            not resumed because the source's time starts over (``resume`` not given):
+            ``reason``, ``path`` (the database), ``run`` (the id of the last stored run);
+            None otherwise.
 
     Raises:
         twinwatch.drivers.base.DriverInitializationError, twinwatch.errors.SinkError (its
@@ -103,10 +134,13 @@ class Daemon:
         record: bool = True,
         persist: bool = False,
         watchdog: Watchdog | None = None,
-        reuse: Mapping[str, Sink] | None = None,
-        resume: bool = True,
+        reuse: Mapping[str, Any] | None = None,
+        resume: bool | None = None,
+        defer: Collection[str] = (),
+        run_id: str | None = None,
     ) -> None:
         self.config = config
+        self.run_id = run_id or new_run_id()
         self.base_dir = base_dir or Path.cwd()
         self.machine = config.machine.name
         self.model: TwinModel = create_model(config.machine.model, config.machine.options)
@@ -127,39 +161,83 @@ class Daemon:
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
         self.pipeline = WindowPipeline(
             adapter=self.adapter, alarms=self.alarms, machine=self.machine,
-            model_name=config.machine.model, nominal=self.nominal, counters=self.counters,
-            history=acq.history)
+            model_name=config.machine.model, run=self.run_id, nominal=self.nominal,
+            counters=self.counters, history=acq.history)
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
+        self.new_run: dict[str, Any] | None = None
         self.failure: str | None = None
         self._closed_sinks: dict[str, Sink] = {}
         self.driver: Driver | None = None
         self._own_driver = driver is None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
         self._stop = threading.Event()
+        self._stop_at_window: float | None = None  # monotonic deadline, see stop(at_window)
+        self.ended: str | None = None  # why run() returned by itself: source, duration, failure
+        self._adopted: set[str] = set()
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
         self._ticks: list[Callable[[], None]] = []
         self.abandon = config.acquisition.abandon_on_stop
-        roles: dict[Role, bool] = {"gate": persist, "publisher": publish, "recorder": record}
+        self._roles: dict[Role, bool] = {"gate": persist, "publisher": publish,
+                                          "recorder": record}
+        reuse = dict(reuse or {})
+        handed_driver = reuse.pop("driver", None)
+        if handed_driver is not None:
+            logger.info("reload: the %s driver is kept open (its configuration is unchanged)",
+                        config.driver.type)
         try:
-            adopted = self._open_sinks(roles, dict(reuse or {}))
-            gate = self.store
-            if gate is not None:
-                if gate.name in adopted:
-                    # a reload: same run id, so the windows go on from the last one stored
-                    self.ring.first_index = gate.next_window(self.machine)
-                if resume:
+            self._open_sinks(self._roles, reuse, skip=defer)
+            if self.store is not None:
+                starts_over = resume is None and get_driver_class(
+                    config.driver.type).time_starts_over(config.driver)
+                if resume or (resume is None and not starts_over):
                     self._restore()
-            self.driver = driver or create_driver(config.driver, base_dir=self.base_dir)
+                elif starts_over:
+                    self._note_new_run()
+            self.driver = handed_driver or driver or create_driver(config.driver,
+                                                                   base_dir=self.base_dir)
         except BaseException:
+            for name in self._adopted:  # the running daemon's: not ours to close
+                self.sinks.pop(name, None)
             self.close()
             raise
+        self._wire(attach=False)  # an adopted output serves the running daemon until then
+
+    def _wire(self, attach: bool = True) -> None:
+        """Give the open outputs to the pipeline (the gate first: stored before published);
+        with ``attach``, bind the adopted ones to this daemon (they serve its history)."""
+        if attach:
+            for name in self._adopted:
+                self.sinks[name].attach(self._sink_context(has_gate=self.store is not None))
         self.pipeline.sinks = list(self.sinks.values())
         self.pipeline.gate = self.store  # a window it cannot store is not published
 
-    def _open_sinks(self, roles: Mapping[Role, bool], reuse: dict[str, Sink]) -> set[str]:
+    def open_deferred(self) -> None:
+        """Open the outputs the constructor's ``defer`` left closed (a reload, once the
+        previous daemon has released their file or port).
+
+        Raises:
+            twinwatch.errors.SinkError: as the constructor.
+        """
+        self._open_sinks(self._roles, {})
+        self._wire(attach=False)
+
+    def continue_from(self, previous: Daemon) -> None:
+        """Take over from ``previous``, the daemon of the configuration before a reload, once
+        it has finished its queued windows and released what it did not hand over
+        (:meth:`close` ``keep``): the adopted outputs are bound to this daemon, the window
+        numbering goes on (and the run: :attr:`run_id`), the twin and the alarm levels resume
+        from the state database."""
+        self.run_id = self.pipeline.run = previous.run_id
+        self.ring.first_index = previous.ring.first_index + previous.ring.windows
+        if self.store is not None:
+            self._restore()
+        self._wire()
+
+    def _open_sinks(self, roles: Mapping[Role, bool], reuse: dict[str, Sink],
+                    skip: Collection[str] = ()) -> set[str]:
         """Open the enabled outputs whose role is wanted (``roles``), adopting the ``reuse``d
         ones that fit; :attr:`sinks` ends in writing order (the gate first, then the
         registry's order).
@@ -167,7 +245,7 @@ class Daemon:
         Every exclusive resource before any file is touched: the outputs open in their
         ``open_order`` (the Zenoh port, then the state database's lock, then the recording's
         lock and only then its truncation), so a second twinwatch in the same directory fails
-        without harming the first.
+        without harming the first. The outputs in ``skip`` are not opened (yet).
 
         Returns:
             The names of the adopted outputs.
@@ -181,9 +259,9 @@ class Daemon:
         wanted = [t for t in tables if roles[classes[t.name].role]]
         context = self._sink_context(has_gate=any(classes[t.name].role == "gate"
                                                   for t in wanted))
-        adopted = self._adopt(wanted, reuse, context)
+        adopted = self._adopt(wanted, reuse)
         for t in sorted(wanted, key=lambda t: classes[t.name].open_order):
-            if t.name not in self.sinks:
+            if t.name not in self.sinks and t.name not in skip:
                 self.sinks[t.name] = classes[t.name].open(t.name, t.config, context)
         order = [t.name for t in wanted]
         self.sinks = dict(sorted(self.sinks.items(), key=lambda kv: (
@@ -192,8 +270,9 @@ class Daemon:
 
     def _sink_context(self, *, has_gate: bool) -> SinkContext:
         """What the outputs get from this daemon (the stored history when a gate opens)."""
-        return replace(_context(self.config, self.model, self.base_dir),
-                       history=self.stored_history if has_gate else None)
+        return replace(_context(self.config, self.model, self.base_dir, self.run_id),
+                       history=self.stored_history if has_gate else None,
+                       outbox=self.outbox if has_gate else None)
 
     def handover(self, config: TwinwatchConfig) -> tuple[list[str], list[str]]:
         """What a reload to ``config`` may do with this daemon's open outputs.
@@ -205,7 +284,7 @@ class Daemon:
             port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
         """
         model = create_model(config.machine.model, config.machine.options)
-        context = _context(config, model, self.base_dir)
+        context = _context(config, model, self.base_dir, self.run_id)
         new = {t.name: t.config for t in config.output_tables() if t.config.enabled}
         old = {t.name: t.config for t in self.config.output_tables()}
         keep, wait = [], []
@@ -220,22 +299,20 @@ class Daemon:
                 wait.append(name)
         return keep, wait
 
-    def _adopt(self, wanted: list[OutputTable], reuse: dict[str, Sink],
-               context: SinkContext) -> set[str]:
-        """Adopt the handed-over outputs whose table and context are unchanged; close the
-        others (their table changed, or they are off now). Returns the adopted names."""
+    def _adopt(self, wanted: list[OutputTable], reuse: dict[str, Sink]) -> set[str]:
+        """Adopt the handed-over outputs whose table and context are unchanged (bound to this
+        daemon by :meth:`_wire` once it takes over); one that does not fit is left to the
+        daemon that handed it over (it closes it). Returns the adopted names."""
+        context = _context(self.config, self.model, self.base_dir, self.run_id)
         adopted: set[str] = set()
         for t in wanted:
             sink = reuse.get(t.name)
             if sink is not None and sink.keeps(t.config, context):
-                del reuse[t.name]
-                sink.attach(context)
                 self.sinks[t.name] = sink
+                self._adopted.add(t.name)
                 adopted.add(t.name)
                 logger.info("reload: the %s output is kept open (its configuration is "
                             "unchanged)", t.name)
-        for name, sink in reuse.items():
-            _close(name, sink)
         return adopted
 
     # -- the window pipeline's results ------------------------------------------------------
@@ -325,9 +402,11 @@ class Daemon:
             return
         t_to = float(last["t_end"])
         t_from = t_to - self.adapter.prognostics.config.horizon
+        run = last.get("run")  # the last run's windows only: another run's times are another line
         messages: list[dict[str, Any]] = []
         while True:
-            page = self.store.history(t_from, t_to, 1000, by="plant", machine=self.machine)
+            page = self.store.history(t_from, t_to, 1000, by="plant", machine=self.machine,
+                                      run=run)
             messages.extend(page)
             if len(page) < 1000:
                 break
@@ -336,16 +415,35 @@ class Daemon:
         if n:
             logger.info("resumed the parameters' trends from %d stored windows", n)
 
+    def _note_new_run(self) -> None:
+        """The source's time starts over, so the stored twin is not resumed: say so when the
+        database holds earlier windows of this machine (:attr:`new_run`)."""
+        assert self.store is not None
+        last = self.store.latest_health(self.machine)
+        if last is None or self.store.recovered:
+            return
+        self.new_run = {"reason": f"the {self.config.driver.type} source's time starts over "
+                        f"when it opens", "path": str(self.store.path), "run": last.get("run")}
+        logger.info("a new run %s of %s: %s; the twin starts from the nameplate values, the "
+                    "alarms from normal (%s keeps the earlier runs)", self.run_id, self.machine,
+                    self.new_run["reason"], self.store.path)
+
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
-                       limit: int | None = 1000,
-                       by: Literal["plant", "wall"] = "plant") -> list[dict[str, Any]]:
-        """Stored health messages of this machine in a time range (the gate's
-        :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state database. The
-        outputs ask it through their context (the Zenoh history query)."""
+                       limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
+                       run: str | None = None) -> list[dict[str, Any]]:
+        """Stored health messages of this machine in a time range, of one run with ``run``
+        (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
+        database. The outputs ask it through their context (the Zenoh history query)."""
         store = self.store
         if store is None:
             return []
-        return store.history(t_from, t_to, limit, by=by, machine=self.machine)
+        return store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run)
+
+    def outbox(self, output: str) -> Outbox | None:
+        """The gate's outbox of ``output`` for this machine (store-and-forward outputs ask it
+        through their context), None without a gate."""
+        store = self.store
+        return None if store is None else store.outbox(output, self.machine)
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
@@ -356,9 +454,22 @@ class Daemon:
         """Call ``fn(health)`` from the worker thread after each window."""
         self.pipeline.callbacks.append(fn)
 
-    def stop(self) -> None:
-        """Ask :meth:`run` to return after the current sample (thread- and signal-safe)."""
-        self._stop.set()
+    def stop(self, at_window: bool = False) -> None:
+        """Ask :meth:`run` to return after the current sample (thread- and signal-safe).
+
+        Args:
+            at_window: return once the window being filled is complete instead (a reload: the
+                source, handed to the next daemon, goes on there exactly where this one
+                stopped; a replayed file neither loses nor repeats a row). A source that does
+                not complete the window within its length plus :data:`STOP_AT_WINDOW_S` of
+                wall time stops then (the partial window is dropped).
+        """
+        if at_window:
+            acq = self.config.acquisition
+            self._stop_at_window = (time.monotonic() + acq.window * acq.sample_period
+                                    + STOP_AT_WINDOW_S)
+        else:
+            self._stop.set()
 
     def counters(self) -> dict[str, int]:
         """The health message's counters: the daemon's, the driver's (``driver_*``), each
@@ -424,6 +535,9 @@ class Daemon:
         stalled = False
         try:
             while not self._stop.is_set():
+                if self._stop_at_window is not None and (
+                        self.ring.pending == 0 or time.monotonic() > self._stop_at_window):
+                    break
                 if self.watchdog is not None:
                     self.watchdog.tick()
                 for fn in self._ticks:
@@ -432,12 +546,14 @@ class Daemon:
                     sample = self.driver.read(timeout=0.2)
                 except EndOfStream as exc:
                     logger.info("source finished: %s", exc)
+                    self.ended = "end of the source"
                     break
                 except DriverError as exc:
                     # the driver gave up: one clear line (the driver said what failed), then
                     # the queued windows are finished and the caller decides (the CLI exits 1)
                     self.failure = f"the {self.config.driver.type} driver failed: {exc}"
                     logger.error("%s", self.failure)
+                    self.ended = "driver failure"
                     break
                 now = time.monotonic()
                 if sample is None:
@@ -456,6 +572,7 @@ class Daemon:
                 if t_first is None:
                     t_first = sample.t
                 if duration is not None and sample.t - t_first >= duration:
+                    self.ended = "duration reached"
                     break
                 window = self.ring.append(sample.t, sample.values)
                 if window is not None:
@@ -537,16 +654,16 @@ class Daemon:
         state database, last). Idempotent.
 
         Args:
-            keep: outputs (registry names; :data:`SINKS` for all) to leave open for a new
-                daemon (a reload): each is detached from this daemon.
+            keep: the outputs (registry names; :data:`SINKS` for all) and ``"driver"`` to
+                leave open for a new daemon (a reload): each output is detached from this
+                daemon.
 
         Returns:
-            name -> output for the kept ones: pass them as ``reuse`` (the new daemon adopts
-            those whose configuration is unchanged and closes the others).
+            name -> output for the kept outputs.
         """
         self._stop.set()
         self._drain()
-        if self.driver is not None and self._own_driver:
+        if self.driver is not None and self._own_driver and "driver" not in keep:
             _close("driver", self.driver)
         self.driver = None
         kept: dict[str, Sink] = {}
@@ -569,12 +686,25 @@ class Daemon:
         self.close()
 
 
-def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path) -> SinkContext:
+def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path,
+             run: str) -> SinkContext:
     """The outputs' context for a daemon on ``config`` (without the stored history)."""
+    bands = {}
+    if config.alarms.enabled:
+        for name, rule in config.alarms.parameters.items():
+            (w_high, w_low), (a_high, a_low) = rule.thresholds("warning"), rule.thresholds("alarm")
+            bands[name] = AlarmBands(warning_high=w_high, warning_low=w_low, alarm_high=a_high,
+                                     alarm_low=a_low)
     return SinkContext(machine=config.machine.name, model=config.machine.model,
                        outputs=tuple(model.output_names),
                        parameters={p.name: p.unit for p in model.parameters},
-                       base_dir=base_dir, cwd=Path.cwd())
+                       base_dir=base_dir, cwd=Path.cwd(),
+                       recent_windows=config.acquisition.history,
+                       output_units={o.name: o.unit for o in model.outputs},
+                       nominal={p.name: float(config.machine.parameters.get(p.name, p.nominal))
+                                for p in model.parameters},
+                       estimated=tuple(config.estimation.estimate or ()),
+                       alarm_bands=bands, run=run)
 
 
 def _close(name: str, obj: Sink | Driver) -> None:

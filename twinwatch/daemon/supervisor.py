@@ -3,23 +3,33 @@
 :class:`Supervisor` is what ``twinwatch run`` starts (the CLI keeps only its arguments and
 printing). In the main thread it
 
-* installs the signal handlers first (a SIGTERM while the drivers and sinks start stops
-  cleanly too). The handlers only set flags; the acquisition loop acts on them (a handler that
-  logged to systemd's socket or took a lock the interrupted code holds could deadlock).
-  SIGTERM/SIGINT: finish the windows already queued, then stop (a second one abandons them).
-  SIGHUP: reload.
+* installs the signal handlers first. The handlers only set flags and ask the running daemon
+  to stop; the acquisition loop acts on them. SIGTERM/SIGINT: finish the windows already
+  queued, then stop (a second one abandons them). SIGHUP: reload.
+* opens every daemon (the driver, the sinks, the twin's compiled kernels) in a thread of its
+  own (``twinwatch-start``, ``twinwatch-reload``), never in the main thread: a driver or library
+  that takes long to open (a device that does not answer) cannot hold up a stop. A stop
+  requested while a daemon is being opened abandons it (closed once it is open) and returns at
+  once, at start and at a reload alike.
 * tells systemd where it is (``READY=1`` with a status line, ``RELOADING=1``, ``STOPPING=1``,
   ``EXTEND_TIMEOUT_USEC`` for the shutdown) and feeds the watchdog through the daemon
   (:class:`~twinwatch.daemon.systemd.Watchdog`).
 * on SIGHUP, re-reads the configuration *while acquisition goes on* (a tick of the daemon's
   loop). A configuration that does not validate is refused (logged, naming the key) and the
-  running one goes on. A valid one restarts the daemon in process: the outputs are handed to the
-  new daemon open, which keeps those whose table is unchanged (each output's
-  :meth:`~twinwatch.sinks.base.Sink.reload_key`: the Zenoh session, the Rerun file, the state
-  database) and closes the others; the twin resumes from the state database. If the new
-  configuration cannot start (a device, a port), the previous one is started again.
-* compiles the twin's numba kernels before ``READY=1`` (:func:`warm_up`), so the first window
-  does not look like a stuck worker to the watchdog.
+  running one goes on. A valid one is built beside the running daemon, which keeps acquiring
+  meanwhile: the driver (its ``[driver]`` table unchanged) and the outputs whose table is
+  unchanged (each output's :meth:`~twinwatch.sinks.base.Sink.reload_key`: the Zenoh session, the
+  Rerun file, the state database) are shared with it, the others opened anew (an output that
+  keeps its file or port, :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`, is
+  opened only once the old one has released it: :meth:`Daemon.handover`). If the new daemon
+  cannot start (a device, a port), the reload fails and the running daemon goes on untouched:
+  same source, same run, window numbering going on. Once it has started, the running daemon
+  stops at its next window boundary, finishes its queued windows and releases what it does not
+  hand over; the new one continues the window numbering, resumes the twin and alarm levels from
+  the state database and reads on from the same source (a recording replayed goes on where it
+  stopped).
+* rate-limits third-party log floods (:mod:`twinwatch.daemon.logfilter`: it reports what was
+  suppressed from the acquisition loop, after a reload attempt and at stop).
 
 The supervisor never reads files itself: ``load`` (given by the caller) returns the validated
 configuration, at start and at each reload.
@@ -27,15 +37,17 @@ configuration, at start and at each reload.
 
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import logging
 import signal
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
+from twinwatch.daemon import logfilter
 from twinwatch.daemon.systemd import Notifier, Watchdog
 from twinwatch.errors import StartError
 
@@ -43,12 +55,15 @@ if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.pipeline import HealthCallback
     from twinwatch.daemon.runner import Daemon
-    from twinwatch.sinks.base import Sink
     from twinwatch.twin.health import HealthMessage
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["StartError", "Supervisor", "status_line", "warm_up"]
+__all__ = ["StartError", "Stopped", "Supervisor", "status_line", "warm_up"]
+
+
+class Stopped(StartError):
+    """A stop (SIGTERM, SIGINT) was requested before the daemon had started."""
 
 
 def warm_up(daemon: Daemon) -> None:
@@ -81,6 +96,63 @@ def status_line(config: TwinwatchConfig, daemon: Daemon) -> str:
     return ", ".join(parts)
 
 
+class _Build:
+    """A daemon being opened in a thread of its own, so that the main thread goes on acquiring
+    (reload) and answers a stop at once. Nothing the running daemon handed over (``keep``) is
+    ever closed by it.
+
+    Args:
+        open_daemon: opens the daemon (raises on failure).
+        keep: names (:data:`~twinwatch.daemon.runner.HANDOVER`) shared with the running daemon.
+        config: the configuration being started.
+        name: the thread's name.
+    """
+
+    def __init__(self, open_daemon: Callable[[], Daemon], *, keep: tuple[str, ...],
+                 config: TwinwatchConfig, name: str) -> None:
+        self.keep = keep
+        self.config = config
+        self.daemon: Daemon | None = None
+        self.error: BaseException | None = None
+        self._open = open_daemon
+        self._abandoned = False
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            daemon = self._open()
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+            self.error = exc
+        else:
+            with self._lock:
+                abandoned = self._abandoned
+                if not abandoned:
+                    self.daemon = daemon
+            if abandoned:
+                daemon.close(keep=self.keep)
+        finally:
+            self._done.set()
+
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def wait(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` [s]; True once the daemon is open or failed."""
+        return self._done.wait(timeout)
+
+    def abandon(self) -> None:
+        """Nobody will run the daemon: close it now, or as soon as it is open (what it shares
+        with the running daemon stays open)."""
+        with self._lock:
+            self._abandoned = True
+            daemon, self.daemon = self.daemon, None
+        if daemon is not None:
+            daemon.close(keep=self.keep)
+
+
 class Supervisor:
     """Runs one machine's daemon as a service (see the module docstring).
 
@@ -91,7 +163,9 @@ class Supervisor:
         base_dir: directory relative paths in the configuration are resolved against.
         source: how to name the configuration in messages (its path).
         resume: resume the twin and alarm levels saved in the state database at start
-            (False: the nameplate values, ``twinwatch run --fresh``; a reload always resumes).
+            (False: the nameplate values, ``twinwatch run --fresh``; True: also on a source
+            whose time starts over, ``--resume``; None: unless the source's time starts over,
+            a simulated plant or a replay; a reload always resumes, in the same run).
 
     Attributes:
         config: the running configuration (after :meth:`start`).
@@ -101,7 +175,7 @@ class Supervisor:
     """
 
     def __init__(self, load: Callable[[], TwinwatchConfig], *, base_dir: Path,
-                 source: str, resume: bool = True) -> None:
+                 source: str, resume: bool | None = None) -> None:
         self.notifier = Notifier(unset_environment=True)
         self.watchdog = Watchdog(self.notifier)
         self._load = load
@@ -112,7 +186,8 @@ class Supervisor:
         self._callbacks: list[HealthCallback] = []
         self._stop_requested = threading.Event()
         self._reload_requested = threading.Event()
-        self._pending: list[TwinwatchConfig] = []  # a validated configuration to restart with
+        self._build: _Build | None = None  # a reload's daemon being opened
+        self._next: _Build | None = None  # a reload's daemon, open: takes over at the boundary
         self._previous_handlers: dict[int, Any] = {}
         self._resume = resume
         self._problems: list[str] = []
@@ -120,10 +195,13 @@ class Supervisor:
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
         """Load the configuration, install the signal handlers, open the daemon (driver and
-        sinks), compile the twin and tell systemd ``READY=1``.
+        sinks) and compile the twin in the ``twinwatch-start`` thread, and tell systemd
+        ``READY=1``.
 
         Raises:
             ValueError: the configuration is invalid (from ``load``; systemd's status says so).
+            Stopped: a stop was requested before the daemon had started (the opening is
+                abandoned: what it opens is closed when it returns).
             StartError: the daemon cannot start.
         """
         # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the
@@ -140,16 +218,24 @@ class Supervisor:
             raise
         self.config = cfg
         self._install_signal_handlers()
-        try:
-            daemon = self._open(cfg, resume=self._resume)
-        except StartError as exc:
-            self.notifier.notify(f"STATUS=cannot start: {exc}".splitlines()[0])
+        build = _Build(lambda: self._open(cfg, resume=self._resume), keep=(), config=cfg,
+                       name="twinwatch-start")
+        while not build.wait(0.2):
+            if self._stop_requested.is_set():  # the opening goes on alone and is closed after
+                build.abandon()
+                self._restore_signal_handlers()
+                logfilter.flush(force=True)
+                raise Stopped("stopped before the daemon had started")
+        if build.error is not None:
             self._restore_signal_handlers()
-            raise
-        self.daemon = daemon
+            logfilter.flush(force=True)
+            if isinstance(build.error, StartError):
+                self.notifier.notify(f"STATUS=cannot start: {build.error}".splitlines()[0])
+            raise build.error
+        assert build.daemon is not None
+        self.daemon = daemon = build.daemon
         if self._stop_requested.is_set():
             daemon.stop()
-        warm_up(daemon)
         self.notifier.ready(status=status_line(cfg, daemon))
 
     def add_callback(self, fn: HealthCallback) -> None:
@@ -158,31 +244,26 @@ class Supervisor:
         if self.daemon is not None:
             self.daemon.add_callback(fn)
 
-    def _open(self, cfg: TwinwatchConfig, reuse: dict[str, Sink] | None = None,
-              resume: bool = True) -> Daemon:
-        """A daemon on ``cfg`` (driver and outputs open), with the reload tick and callbacks.
+    def _open(self, cfg: TwinwatchConfig, reuse: dict[str, Any] | None = None,
+              resume: bool | None = None, defer: tuple[str, ...] = (),
+              run_id: str | None = None) -> Daemon:
+        """A daemon on ``cfg`` (driver and sinks open, the twin's kernels compiled), with the
+        reload tick and callbacks; ``run_id`` None starts a new run (a reload passes the
+        running one's). Runs in a :class:`_Build`'s thread.
 
         Raises:
-            StartError: a device, port, file, an output or the state database cannot be
-                opened.
+            StartError: a device, port, file or the state database cannot be opened.
         """
         from twinwatch.daemon.runner import Daemon
-        from twinwatch.errors import DriverConfigError, DriverError, PluginError, SinkError
 
-        # each output raises a SinkError subclass (PublisherError, RecorderError, StoreError,
-        # a plug-in's own) that says what failed and what to do
-        start_errors = (DriverError, SinkError, PluginError, ValueError, OSError)
-        try:
+        with _start_errors():
             daemon = Daemon(cfg, base_dir=self.base_dir, persist=True, watchdog=self.watchdog,
-                            reuse=reuse, resume=resume)
-        except start_errors as exc:
-            # Each of these says what failed and what to do; a traceback would add nothing.
-            raise StartError(str(exc),
-                             config_error=isinstance(exc, DriverConfigError)) from exc
+                            reuse=reuse, resume=resume, defer=defer, run_id=run_id)
         daemon.add_tick(self._check_reload)
         daemon.add_callback(self._watch_problems)
         for fn in self._callbacks:
             daemon.add_callback(fn)
+        warm_up(daemon)
         return daemon
 
     def _watch_problems(self, health: HealthMessage) -> None:
@@ -215,6 +296,7 @@ class Supervisor:
         if self._stop_requested.is_set():
             if daemon is not None:
                 daemon.abandon = True
+                daemon.stop()
             logger.warning("%s received again: abandoning the queued windows",
                            signal.Signals(signum).name)
             return
@@ -239,8 +321,16 @@ class Supervisor:
 
     # -- reload -------------------------------------------------------------------------------
     def _check_reload(self) -> None:
-        """Acquisition-loop tick: validate a requested reload without stopping acquisition."""
-        if not self._reload_requested.is_set() or self._stop_requested.is_set():
+        """Acquisition-loop tick (main thread): start a requested reload without stopping
+        acquisition, and act on a reload's daemon once it is open or has failed."""
+        logfilter.flush()
+        if self._stop_requested.is_set():
+            return
+        if self._build is not None:
+            if self._build.done():
+                self._built(self._build)
+            return
+        if not self._reload_requested.is_set() or self._next is not None:
             return
         self._reload_requested.clear()
         self.notifier.reloading("reloading the configuration")
@@ -251,33 +341,85 @@ class Supervisor:
             self.notifier.ready(status=f"reload refused ({str(exc).splitlines()[-1].strip()}); "
                                 "running the previous configuration")
             return
-        logger.warning("reloading %s: restarting the daemon with the new configuration",
-                       self.source)
-        self._pending.append(new_cfg)
-        if self.daemon is not None:
-            self.daemon.stop()
-
-    def _restart(self, new_cfg: TwinwatchConfig) -> None:
-        """Replace the daemon by one on ``new_cfg``, handing over the outputs (it keeps those
-        whose configuration is unchanged); if it cannot start, start the previous
-        configuration again."""
-        from twinwatch.sinks import SINKS
-
-        assert self.daemon is not None and self.config is not None
-        old_cfg = self.config
-        reuse = self.daemon.close(keep=SINKS)
-        self.daemon = None
         try:
-            self.daemon = self._open(new_cfg, reuse=reuse)
-            self.config = new_cfg
-        except StartError as exc:
-            logger.error("the new configuration cannot start (%s): going back to the "
-                         "previous one", exc)
-            for sink in reuse.values():  # what the failed start did not take over
-                sink.close()
-            self.daemon = self._open(old_cfg)
+            keep, defer = self._handover(new_cfg)
+        except (ValueError, KeyError) as exc:  # the new machine's model cannot be built
+            logger.error("reload refused, the running configuration goes on: %s", exc)
+            self.notifier.ready(status=f"reload refused ({exc}); running the previous "
+                                "configuration")
+            return
+        assert self.daemon is not None
+        running = self.daemon
+        reuse = {name: running.driver if name == "driver" else running.sinks[name]
+                 for name in keep}
+        logger.warning("reloading %s: starting the new configuration beside the running one",
+                       self.source)
+        self._build = _Build(lambda: self._open(new_cfg, reuse=reuse, resume=False, defer=defer,
+                                                run_id=running.run_id),
+                             keep=keep, config=new_cfg, name="twinwatch-reload")
+
+    def _handover(self, new_cfg: TwinwatchConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """What the running daemon hands to one on ``new_cfg`` (its driver when the ``[driver]``
+        table is unchanged, the outputs whose table is unchanged), and the outputs the new
+        daemon may open only once the old one has released them (same file or port, another
+        table): :meth:`Daemon.handover`."""
+        assert self.daemon is not None and self.config is not None
+        keep, wait = self.daemon.handover(new_cfg)
+        if self.daemon.driver is not None and self.config.driver == new_cfg.driver:
+            keep.append("driver")
+        return tuple(keep), tuple(wait)
+
+    def _built(self, build: _Build) -> None:
+        """A reload's daemon is open (the running one stops at its next window boundary and
+        hands over) or could not start (the running one goes on untouched)."""
+        self._build = None
+        if build.error is not None:
+            exc = build.error
+            if not isinstance(exc, StartError):
+                logger.debug("the new configuration failed to start", exc_info=exc)
+            logger.error("reload failed, the running configuration goes on (the same source, "
+                         "run and window numbering): %s", exc)
+            logfilter.flush(force=True)
+            self.notifier.ready(status=f"reload failed ({str(exc).splitlines()[0].strip()}); "
+                                "running the previous configuration")
+            return
+        logfilter.flush(force=True)
+        self._next = build
+        assert self.daemon is not None
+        self.daemon.stop(at_window=True)
+
+    def _take_over(self, build: _Build) -> None:
+        """The running daemon has finished its queued windows: it releases what it does not
+        hand over, and the reload's daemon takes over.
+
+        Raises:
+            StartError: a sink that had to wait for the old one's file or port cannot open.
+        """
+        old, new = self.daemon, build.daemon
+        assert old is not None and new is not None
+        old.close(keep=build.keep)
+        try:
+            with _start_errors():
+                new.open_deferred()
+        except StartError:
+            new.close()
+            raise
+        new.continue_from(old)
+        self.daemon, self.config = new, build.config
+        if self._stop_requested.is_set():  # a stop that reached the old daemon only
+            new.stop()
         logger.warning("configuration reloaded; the twin resumes from the state database")
-        self.notifier.ready(status=status_line(self.config, self.daemon))
+        self.notifier.ready(status=status_line(build.config, new))
+
+    def _abandon_reload(self) -> None:
+        """A stop came before a reload's daemon took over: close it, sharing nothing."""
+        pending = [b for b in (self._build, self._next) if b is not None]
+        self._build = self._next = None
+        for build in pending:
+            build.abandon()
+        if pending:
+            logger.warning("reload abandoned: the daemon stopped (a stop was requested, or "
+                           "the source ended) before the new configuration took over")
 
     # -- run ----------------------------------------------------------------------------------
     def run(self, duration: float | None = None) -> None:
@@ -293,12 +435,35 @@ class Supervisor:
         try:
             while True:
                 self.daemon.run(duration=duration)
-                if self._stop_requested.is_set() or not self._pending:
+                build, self._next = self._next, None
+                if build is None or self._stop_requested.is_set() or self.daemon.ended:
+                    if build is not None:
+                        self._next = build  # abandoned below
                     break
-                self._restart(self._pending.pop())
+                self._take_over(build)
         finally:
+            self._abandon_reload()
             self.notifier.stopping("stopping: finishing the queued windows")
             self.notifier.extend_timeout(self.config.acquisition.shutdown_timeout + 10)
             if self.daemon is not None:
                 self.daemon.close()
+            logfilter.flush(force=True)
             self._restore_signal_handlers()
+
+
+
+@contextlib.contextmanager
+def _start_errors() -> Iterator[None]:
+    """Turn what opening a daemon raises for a missing device, port or file into
+    :class:`StartError` (each says what failed and what to do; a traceback would add
+    nothing); a driver's configuration error is marked as such (``run`` exits 78)."""
+    from twinwatch.errors import DriverConfigError, DriverError, PluginError, SinkError
+
+    # each output raises a SinkError subclass (PublisherError, RecorderError, StoreError, a
+    # plug-in's own) that says what failed and what to do
+    try:
+        yield
+    except StartError:
+        raise
+    except (DriverError, SinkError, PluginError, ValueError, OSError) as exc:
+        raise StartError(str(exc), config_error=isinstance(exc, DriverConfigError)) from exc

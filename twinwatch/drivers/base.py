@@ -134,8 +134,8 @@ class Driver(Closeable, abc.ABC):
     Subclasses set :attr:`config_class`, :attr:`channels` (and :attr:`live` if the source
     cannot wait), implement :meth:`from_config`, :meth:`_read_internal` and, if they hold
     resources, :meth:`_close_internal`, and override the configuration queries
-    (:meth:`nominal_sample_period`, :meth:`duration`, :meth:`safe_to_probe`) where the
-    defaults do not fit.
+    (:meth:`nominal_sample_period`, :meth:`duration`, :meth:`safe_to_probe`,
+    :meth:`time_starts_over`) where the defaults do not fit.
     """
 
     #: The pydantic model of this driver's ``[driver]`` table (a :class:`DriverConfig`).
@@ -192,6 +192,16 @@ class Driver(Closeable, abc.ABC):
         """Whether ``check-config`` may open (and close, without reading) the configured
         driver to check what only opening can (a file's columns, a DBC's names). True only
         where opening cannot touch a device: a file, a log replay. Default: False."""
+        return False
+
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """Whether the configured source's time starts over each time it is opened (a
+        simulated plant from t = 0, a recording or log replayed from its start): a new
+        ``twinwatch run`` on it is then a new run of the machine, not the continuation of the
+        one in the state database, and starts from the nameplate twin and normal alarm levels
+        unless asked to resume (``twinwatch run --resume``). Default: False (a bus, a device:
+        the machine goes on, a restart resumes)."""
         return False
 
     @classmethod

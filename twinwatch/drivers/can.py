@@ -460,6 +460,11 @@ class CanDriver(Driver):
         """A log replay can be opened to check its DBC names and log file; a live bus not."""
         return getattr(config, "log_file", None) is not None
 
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """A log replayed from its start is a new run; a live bus goes on."""
+        return getattr(config, "log_file", None) is not None
+
     def __init__(
         self,
         config: CanDriverConfig,

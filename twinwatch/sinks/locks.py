@@ -9,6 +9,11 @@ holds it until it closes. The lock goes with the process: SIGKILL or a crash rel
 ``flock`` locks are independent of the POSIX record locks SQLite uses on the same file, but
 closing any descriptor of a file drops the process's POSIX locks on it: the store therefore
 releases its lock only after its SQLite connections are closed.
+
+The lock's descriptor also tells whether the path still names the file being written
+(:meth:`FileLock.changed`): a file deleted, replaced or moved away under a running daemon (a
+cleanup script, an operator) is noticed within one window by comparing the descriptor's
+``st_dev``/``st_ino`` with the path's.
 """
 
 from __future__ import annotations
@@ -80,6 +85,32 @@ class FileLock:
     @property
     def held(self) -> bool:
         return self._fd is not None
+
+    def changed(self) -> str | None:
+        """Whether :attr:`path` still names the locked file: one ``fstat`` and one ``stat``,
+        cheap enough for every window.
+
+        Returns:
+            None while it does (or once released); ``"deleted"``: nothing at the path and the
+            locked file has no name left (its content goes when it is closed);
+            ``"replaced"``: another file at the path, the locked one has no name left;
+            ``"moved"``: the locked file still exists under another name (renamed or
+            hard-linked away), the path names another file or nothing.
+        """
+        if self._fd is None:
+            return None
+        held = os.fstat(self._fd)
+        try:
+            now: os.stat_result | None = os.stat(self.path)
+        except (FileNotFoundError, NotADirectoryError):
+            now = None
+        except OSError:  # cannot tell (e.g. the directory is no longer searchable)
+            return None
+        if now is not None and (now.st_dev, now.st_ino) == (held.st_dev, held.st_ino):
+            return None
+        if held.st_nlink > 0:
+            return "moved"
+        return "deleted" if now is None else "replaced"
 
     def release(self) -> None:
         """Release the lock (close the descriptor). Idempotent."""

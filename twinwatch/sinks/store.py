@@ -17,8 +17,10 @@ the windows, never half of one:
 Threads. The adaptation worker writes (:meth:`StateStore.save_window`), a Zenoh queryable thread
 reads (:meth:`StateStore.history`). Each thread gets its own connection (``threading.local``):
 in WAL mode readers never block the writer nor see a half-written window, which one shared
-connection behind a lock would not give (a long history query would stall the worker). All
-connections are closed by :meth:`StateStore.close`.
+connection behind a lock would not give (a long history query would stall the worker). The
+connection of a thread that has ended (the worker of a daemon a reload replaced) is closed when
+the next thread connects, so reloads leak no descriptor; all are closed by
+:meth:`StateStore.close`.
 
 Faults. A database that is not SQLite or is corrupt raises :class:`StoreError` with what to do
 (or, with ``recover_corrupt=True``, is moved aside to ``<name>.corrupt-<time>`` and a new one
@@ -28,6 +30,16 @@ only in the file header; the windows waiting to be written go to the new databas
 full database at save time does not stop the daemon: the window stays in a bounded in-memory
 backlog, is written with the next successful save, and the failure is logged once at ERROR (then
 DEBUG until it recovers).
+
+The file deleted, replaced or moved away while the daemon runs (a cleanup script, an operator
+restoring a backup) is noticed before the next window is written and before any read (the
+lock's descriptor against the path, :meth:`~twinwatch.sinks.locks.FileLock.changed`): the
+file the store had open is checkpointed (a file moved away keeps every window), the database
+at the path is opened, or created, the saved twin and the windows still in memory (the last
+``recent``) that it lacks are written to it, and the windows of this run that were stored in the
+old file and are now in no database are counted in :attr:`StateStore.history_lost` (logged at
+ERROR; ``twinwatch run`` then exits 74). The old file's ``-wal`` and ``-shm`` are removed first:
+SQLite would otherwise apply the old database's log to the new file.
 
 Size: a DC-motor health message is about 2 kB of JSON, so one machine writes about 85 MB a day;
 the defaults keep 30 days or 1,000,000 windows (about 2 GB), whichever is less, pruned in batches.
@@ -51,12 +63,19 @@ from pydantic import Field
 
 from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.base import Gate, ProcessedWindow, SinkConfig, SinkContext, _frozen
+from twinwatch.sinks.base import (
+    Gate,
+    OutboxRow,
+    ProcessedWindow,
+    SinkConfig,
+    SinkContext,
+    _frozen,
+)
 from twinwatch.sinks.locks import FileLock, LockedError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError"]
+__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError", "StoreOutbox"]
 
 SCHEMA_VERSION = 1
 
@@ -77,6 +96,7 @@ CREATE TABLE IF NOT EXISTS health (
 );
 CREATE INDEX IF NOT EXISTS health_plant ON health (machine, t_start);
 CREATE INDEX IF NOT EXISTS health_wall ON health (machine, wall);
+CREATE INDEX IF NOT EXISTS health_run ON health (machine, run, t_start);
 CREATE TABLE IF NOT EXISTS twin (
     machine TEXT PRIMARY KEY,
     run TEXT NOT NULL,
@@ -84,6 +104,22 @@ CREATE TABLE IF NOT EXISTS twin (
     t_end REAL NOT NULL,
     wall REAL NOT NULL,
     state TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS outbox_position (
+    output TEXT NOT NULL,
+    machine TEXT NOT NULL,
+    health_id INTEGER NOT NULL,
+    wall REAL NOT NULL,
+    PRIMARY KEY (output, machine)
+);
+CREATE TABLE IF NOT EXISTS outbox_ack (
+    output TEXT NOT NULL,
+    machine TEXT NOT NULL,
+    run TEXT NOT NULL,
+    window INTEGER NOT NULL,
+    health_id INTEGER NOT NULL,
+    wall REAL NOT NULL,
+    PRIMARY KEY (output, machine, run, window)
 );
 """
 
@@ -146,6 +182,19 @@ class StateStore(Gate):
         backlog: windows kept in memory while the database cannot be written.
         recover_corrupt: move a corrupt database aside and start a new one instead of raising.
         check: run ``PRAGMA quick_check`` at open (reads the whole file).
+        recent: windows kept in memory once written, to write them again to a database file
+            that was deleted or replaced (``[acquisition] history``).
+        run: the run id of the windows it stores (the daemon's, :class:`SinkContext` ``run``;
+            a health message that carries its own ``run`` is stored under it); None: a new
+            one.
+
+    Attributes:
+        run_id: the run whose windows it stores (the ``run`` column; "this run" below).
+        lost: windows lost for good: never stored (:attr:`never_stored`) or
+            :attr:`history_lost`.
+        history_lost: windows of this run that were stored, then lost with a deleted or
+            replaced database file (not in memory to write again).
+        file_event: what happened to the file last (None: nothing), for the status.
 
     Raises:
         StoreError: the file is in use by another process (an exclusive ``flock`` is taken on
@@ -171,6 +220,8 @@ class StateStore(Gate):
         backlog: int = 10_000,
         recover_corrupt: bool = False,
         check: bool = False,
+        recent: int = 1000,
+        run: str | None = None,
     ) -> None:
         if synchronous not in ("FULL", "NORMAL"):
             raise ValueError(f"synchronous must be FULL or NORMAL, not {synchronous!r}")
@@ -181,13 +232,21 @@ class StateStore(Gate):
         self.prune_every = prune_every
         self.prune_batch = prune_batch
         self.busy_timeout = busy_timeout
-        self.run_id = f"{time.time():.6f}-{os.getpid()}"
+        self.run_id = run or f"{time.time():.6f}-{os.getpid()}"
         self._local = threading.local()
-        self._conns: list[sqlite3.Connection] = []
+        self._conns: list[tuple[threading.Thread, sqlite3.Connection]] = []
         self._conns_lock = threading.Lock()
         self._write_lock = threading.Lock()
         self._pending: deque[tuple[Any, ...]] = deque(maxlen=backlog)
         self._twin_pending: tuple[Any, ...] | None = None
+        self._recent: deque[tuple[Any, ...]] = deque(maxlen=max(recent, 0))
+        self._twin_saved: tuple[Any, ...] | None = None  # the twin row last committed
+        self._file_gone: str | None = None  # "deleted" / "replaced" / "moved", until reopened
+        self._old_file: tuple[set[tuple[str, int]] | None, int] = (None, 0)
+        self._sidecars: dict[str, tuple[int, int]] = {}  # our -wal / -shm: (st_dev, st_ino)
+        self.history_lost = 0
+        self.outbox_dropped: dict[tuple[str, str], int] = {}  # (output, machine) -> windows
+        self.file_event: str | None = None
         self._failing = False
         self._closed_for_good = False
         self._since_prune = 0
@@ -264,7 +323,11 @@ class StateStore(Gate):
             raise self._error("cannot open", exc) from exc
         self._local.conn = conn
         with self._conns_lock:
-            self._conns.append(conn)
+            ended = [c for t, c in self._conns if not t.is_alive()]
+            self._conns = [(t, c) for t, c in self._conns if t.is_alive()]
+            self._conns.append((threading.current_thread(), conn))
+        for c in ended:  # a worker a reload replaced: its descriptors would stay open
+            c.close()
         return conn
 
     def _error(self, what: str, exc: BaseException) -> StoreError:
@@ -332,6 +395,12 @@ class StateStore(Gate):
         Raises:
             StoreError: the read failed (the message says what to do).
         """
+        with self._write_lock:
+            self._check_file()
+            gone = self._file_gone
+        if gone is not None:
+            raise StoreError(f"state database {self.path} was {gone} and cannot be opened "
+                             f"again yet ({self.file_event})")
         try:
             return fn(self._connect())
         except sqlite3.Error as exc:
@@ -385,6 +454,123 @@ class StateStore(Gate):
             if conn.in_transaction:
                 conn.execute("ROLLBACK")
             raise self._error("cannot open", exc) from exc
+        self._sidecars = {}
+        for suffix in ("-wal", "-shm"):
+            try:
+                st = os.stat(str(self.path) + suffix)
+            except OSError:
+                continue
+            self._sidecars[suffix] = (st.st_dev, st.st_ino)
+
+    # -- the file deleted, replaced or moved away under the running daemon ---------------------
+    def _check_file(self, window: int | None = None) -> None:
+        """The database file at :attr:`path` is still the one this store has open; if it was
+        deleted, replaced or moved away, open (create) the one at the path now and write to it
+        what it should hold (see the module docstring). Called with the write lock held, before
+        each window is written and before each read.
+
+        Args:
+            window: the window about to be written (for the log), None for a read.
+        """
+        if self._closed_for_good:
+            return
+        if self._file_gone is None:
+            why = self._lock.changed() if self._lock is not None else None
+            if why is None:
+                return
+            self._leave_old_file(why, window)
+        self._adopt_file_at_path(window)
+
+    def _leave_old_file(self, why: str, window: int | None) -> None:
+        """Read what this run stored in the file the store has open (still readable through
+        its connections whatever happened to its name), checkpoint it, close it, and remove
+        its ``-wal`` and ``-shm`` from beside the path."""
+        self._file_gone = why
+        stored: set[tuple[str, int]] | None = None
+        earlier = 0
+        with self._conns_lock:
+            conns = [c for _, c in self._conns]
+        for conn in conns[:1]:
+            try:
+                stored = {(str(m), int(w)) for m, w in conn.execute(
+                    "SELECT machine, window FROM health WHERE run = ?", (self.run_id,))}
+                earlier = int(conn.execute("SELECT COUNT(*) FROM health WHERE run != ?",
+                                           (self.run_id,)).fetchone()[0])
+                conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")  # a file moved away: complete
+            except sqlite3.Error as exc:
+                logger.debug("reading the old state database %s failed: %s", self.path, exc)
+        self._old_file = (stored, earlier)
+        self._close_all()
+        self._release()
+        for suffix, ident in self._sidecars.items():
+            side = Path(str(self.path) + suffix)
+            try:
+                st = side.stat()
+                if (st.st_dev, st.st_ino) == ident:
+                    side.unlink()
+            except OSError:
+                pass
+        self._sidecars = {}
+        at = f" (noticed at window {window})" if window is not None else ""
+        self.file_event = f"state database {self.path} was {why} while running{at}"
+
+    def _adopt_file_at_path(self, window: int | None) -> None:
+        """Open (create) the database at the path, write the saved twin and the windows in
+        memory it lacks, count what is lost. On failure the store stays without a file
+        (windows wait in memory, not published) and the next window tries again."""
+        why = self._file_gone
+        try:
+            self._lock_file()
+            try:
+                self._open(self._check)
+            except StoreError as exc:
+                if not (exc.corrupt and self.recover_corrupt and self.path.exists()):
+                    raise
+                self._recover(exc)
+            conn = self._connect()
+            have = {(str(m), int(w)) for m, w in conn.execute(
+                "SELECT machine, window FROM health WHERE run = ?", (self.run_id,))}
+            rows = [r for r in self._recent if (r[0], r[2]) not in have]
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                conn.executemany("INSERT INTO health (machine, run, window, t_start, t_end, "
+                                 "wall, doc) VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
+                if self._twin_saved is not None:
+                    conn.execute("INSERT OR REPLACE INTO twin (machine, run, window, t_end, "
+                                 "wall, state) VALUES (?, ?, ?, ?, ?, ?)", self._twin_saved)
+                conn.execute("COMMIT")
+            except sqlite3.Error:
+                conn.execute("ROLLBACK")
+                raise
+        except (StoreError, sqlite3.Error, OSError) as exc:
+            self._close_all()
+            self._release()
+            if self.file_event is not None and "cannot be opened again" not in self.file_event:
+                self.file_event += f"; cannot be opened again ({exc})"
+                logger.error("%s: the database at the path cannot be opened again (%s); windows "
+                             "wait in memory, not published, and it is tried again with each "
+                             "window", self.file_event, exc)
+            return
+        stored, earlier = self._old_file
+        kept = have | {(r[0], r[2]) for r in self._recent}
+        lost = 0 if why == "moved" or stored is None else len(stored - kept)
+        self.history_lost += lost
+        self.lost += lost  # lost for good: `twinwatch run` exits 74
+        self._file_gone = None
+        event = (self.file_event or f"state database {self.path} was {why}").split(
+            "; cannot be opened again")[0]
+        twin = "the saved twin and " if self._twin_saved is not None else ""
+        if why == "moved":
+            self.file_event = (f"{event}: the windows stored until then stay in that file; a new "
+                               f"one at the path holds {twin}the {len(rows)} windows in memory")
+            logger.warning("%s", self.file_event)
+        else:
+            earlier_note = (f", and {earlier} windows of earlier runs" if earlier else "")
+            self.file_event = (f"{event}: opened again, {twin}{len(rows)} windows still in "
+                               f"memory written to it; {lost} windows of this run stored before "
+                               f"are lost with the old file{earlier_note}")
+            logger.log(logging.ERROR if lost or earlier else logging.WARNING, "%s",
+                       self.file_event)
 
     # -- the sink contract ---------------------------------------------------------------------
     @classmethod
@@ -396,17 +582,25 @@ class StateStore(Gate):
         """
         return cls(Path(config.path).expanduser(), synchronous=config.synchronous,
                    keep_days=config.keep_days, keep_rows=config.keep_rows,
-                   recover_corrupt=config.recover_corrupt)
+                   recover_corrupt=config.recover_corrupt, recent=context.recent_windows,
+                   run=context.run or None)
 
     @classmethod
     def reload_key(cls, config: StateConfig, context: SinkContext) -> Hashable:
         """The table alone: the database holds every machine's rows."""
         return _frozen(config.model_dump())
 
+    @property
+    def never_stored(self) -> int:
+        """Windows lost without ever being stored (the backlog full, or not written by
+        :meth:`close`); :attr:`lost` also counts :attr:`history_lost`."""
+        return int(self.lost - self.history_lost)
+
     def counters(self) -> dict[str, int]:
         """``errors`` (failed writes), ``waiting`` (windows in memory), ``lost`` (never
-        stored)."""
-        return {"errors": int(self.errors), "waiting": int(self.waiting), "lost": int(self.lost)}
+        stored), ``history_lost`` (stored, then lost with a deleted or replaced file)."""
+        return {"errors": int(self.errors), "waiting": int(self.waiting),
+                "lost": self.never_stored, "history_lost": int(self.history_lost)}
 
     @property
     def problem(self) -> str | None:
@@ -415,8 +609,11 @@ class StateStore(Gate):
         if self.failing:
             out.append(f"state database not writable: {self.waiting} windows waiting "
                        f"in memory, not published")
-        if self.lost:
-            out.append(f"{self.lost} windows lost (never stored)")
+        if self.never_stored:
+            out.append(f"{self.never_stored} windows lost (never stored)")
+        if self.history_lost:
+            out.append(f"{self.history_lost} stored windows lost with a deleted or replaced "
+                       f"state database file")
         return "; ".join(out) or None
 
     @property
@@ -424,13 +621,19 @@ class StateStore(Gate):
         return f"state {self.path}"
 
     def summary(self) -> list[str]:
-        """The windows that could not be stored when they were estimated, if any."""
-        if not self.not_stored:
-            return []
-        late = self.not_stored - self.lost - self.waiting
-        return [f"state database: {self.not_stored} windows could not be stored when "
-                f"estimated, so they were not published ({max(late, 0)} written later, "
-                f"served by the history query; {self.lost} lost)"]
+        """The windows that could not be stored when they were estimated, and those lost with
+        a deleted or replaced database file, if any."""
+        out = []
+        if self.not_stored:
+            late = self.not_stored - self.never_stored - self.waiting
+            out.append(f"state database: {self.not_stored} windows could not be stored when "
+                       f"estimated, so they were not published ({max(late, 0)} written later, "
+                       f"served by the history query; {self.never_stored} lost)")
+        if self.history_lost:
+            out.append(f"state database: {self.history_lost} windows stored by this run were "
+                       f"lost with its deleted or replaced file (no longer in memory to write "
+                       f"again)")
+        return out
 
     def write(self, out: ProcessedWindow) -> bool:
         """The window pipeline's sink call: the window's health message (its one encoding,
@@ -442,8 +645,9 @@ class StateStore(Gate):
             not publish it: stored before published; counted in :attr:`not_stored`).
         """
         h = out.health
-        ok = self.save_window({"machine": h.machine, "window": h.window, "t_start": h.t_start,
-                               "t_end": h.t_end}, out.twin_state, doc=out.health_json)
+        ok = self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
+                               "t_start": h.t_start, "t_end": h.t_end}, out.twin_state,
+                              doc=out.health_json)
         self.not_stored += not ok
         return ok
 
@@ -454,8 +658,9 @@ class StateStore(Gate):
         transaction (call from the adaptation worker after each window).
 
         Args:
-            health: the health message (``machine``, ``window``, ``t_start``, ``t_end`` are
-                indexed; the whole message is stored as JSON).
+            health: the health message (``machine``, ``run``, ``window``, ``t_start``,
+                ``t_end`` are indexed; the whole message is stored as JSON; without ``run`` it
+                is stored under the store's :attr:`run_id`).
             twin_state: the twin to resume from (parameters, held flags, trusted vector,
                 discovered meta-model terms; any JSON-serialisable mapping, numpy allowed), or
                 None when this window was not trusted (the stored twin is kept).
@@ -470,9 +675,11 @@ class StateStore(Gate):
         """
         w = time.time() if wall is None else float(wall)
         machine = str(health["machine"])
-        row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
-               float(health["t_end"]), w, _dumps(health) if doc is None else doc)
         with self._write_lock:
+            self.run_id = str(health.get("run") or self.run_id)  # the run whose windows it holds
+            row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
+                   float(health["t_end"]), w, _dumps(health) if doc is None else doc)
+            self._check_file(row[2])
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
                 self.lost += 1
@@ -483,7 +690,10 @@ class StateStore(Gate):
             if twin_state is not None:
                 self._twin_pending = (machine, self.run_id, row[2], row[4], w,
                                       _dumps(twin_state))
-            ok = self._flush()
+            if self._file_gone is not None:  # no database file to write to yet: wait in memory
+                ok = self._flush_failed(StoreError(f"{self.file_event}: not written yet"))
+            else:
+                ok = self._flush()
         if ok:
             self._since_prune += 1
             if self.prune_every and self._since_prune >= self.prune_every:
@@ -522,7 +732,10 @@ class StateStore(Gate):
                            self.path, len(self._pending))
             self._failing = False
         self.saved += len(self._pending)
+        self._recent.extend(self._pending)
         self._pending.clear()
+        if self._twin_pending is not None:
+            self._twin_saved = self._twin_pending
         self._twin_pending = None
         return True
 
@@ -568,13 +781,48 @@ class StateStore(Gate):
         total = 0
         while True:
             with self._write_lock:
-                cur = conn.execute(f"DELETE FROM health WHERE id IN (SELECT id FROM health "
-                                   f"WHERE {where} ORDER BY id LIMIT ?)",
-                                   (*args, self.prune_batch))
-                n = cur.rowcount
+                batch = f"SELECT id FROM health WHERE {where} ORDER BY id LIMIT ?"
+                conn.execute("BEGIN IMMEDIATE")
+                try:
+                    self._outbox_prune(conn, batch, (*args, self.prune_batch))
+                    cur = conn.execute(f"DELETE FROM health WHERE id IN ({batch})",
+                                       (*args, self.prune_batch))
+                    n = cur.rowcount
+                    conn.execute("COMMIT")
+                except BaseException:
+                    conn.execute("ROLLBACK")
+                    raise
             total += n
             if n < self.prune_batch:
                 return total
+
+    def _outbox_prune(self, conn: sqlite3.Connection, batch: str, args: tuple[Any, ...]) -> None:
+        """Before a batch of health rows is deleted (retention): count, per output's outbox,
+        the rows it had not delivered (:attr:`outbox_dropped`), move its position past the
+        batch and forget its delivery marks there (in the caller's transaction)."""
+        positions = conn.execute("SELECT output, machine, health_id FROM outbox_position"
+                                 ).fetchall()
+        if not positions:
+            return
+        top = conn.execute(f"SELECT MAX(id) FROM ({batch})", args).fetchone()[0]
+        if top is None:
+            return
+        for output, machine, position in positions:
+            lost = conn.execute(
+                f"SELECT COUNT(*) FROM health h WHERE h.id IN ({batch}) AND h.machine = ? "
+                f"AND h.id > ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? "
+                f"AND a.machine = h.machine AND a.run = h.run AND a.window = h.window)",
+                (*args, machine, position, output)).fetchone()[0]
+            if lost:
+                key = (str(output), str(machine))
+                self.outbox_dropped[key] = self.outbox_dropped.get(key, 0) + int(lost)
+                logger.warning("state database %s: retention deleted %d windows of %s that "
+                               "the output %s had not delivered", self.path, lost, machine,
+                               output)
+            if position < top:
+                conn.execute("UPDATE outbox_position SET health_id = ? WHERE output = ? AND "
+                             "machine = ?", (top, output, machine))
+        conn.execute("DELETE FROM outbox_ack WHERE health_id <= ?", (top,))
 
     # -- reading ------------------------------------------------------------------------------
     def load_twin_state(self, machine: str | None = None) -> dict[str, Any] | None:
@@ -595,7 +843,7 @@ class StateStore(Gate):
 
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
-                machine: str | None = None) -> list[dict[str, Any]]:
+                machine: str | None = None, run: str | None = None) -> list[dict[str, Any]]:
         """Health messages in a time range, oldest first (in the order they were saved).
 
         Args:
@@ -607,6 +855,9 @@ class StateStore(Gate):
                 (seconds since the epoch when the window was saved; plant time restarts with
                 every run of the simulated plant or of a file replay).
             machine: only this machine.
+            run: only this run's windows (a run id, as in the messages' ``run``): plant time
+                and window numbers start over with every run of a simulated plant or a
+                replay, so a range by plant time is one run's only with it.
 
         Returns:
             The stored health messages (dicts as saved).
@@ -618,6 +869,9 @@ class StateStore(Gate):
         if machine is not None:
             where.append("machine = ?")
             args.append(machine)
+        if run is not None:
+            where.append("run = ?")
+            args.append(run)
         lo = "t_end" if by == "plant" else "wall"
         hi = "t_start" if by == "plant" else "wall"
         if t_from is not None and math.isfinite(t_from):
@@ -648,26 +902,45 @@ class StateStore(Gate):
             sql + " ORDER BY id DESC LIMIT 1", args).fetchone())
         return None if row is None else dict(json.loads(row[0]))
 
-    def next_window(self, machine: str) -> int:
-        """The window index after the last one this run saved for ``machine`` (0 if none),
-        counting the windows still waiting in memory: where a reload goes on numbering."""
-        with self._write_lock:
-            waiting = [r[2] for r in self._pending if r[0] == machine]
-        row = self._read("cannot read the history", lambda conn: conn.execute(
-            "SELECT MAX(window) FROM health WHERE run = ? AND machine = ?",
-            (self.run_id, machine)).fetchone())
-        last = max([*waiting, -1 if row is None or row[0] is None else int(row[0])])
-        return last + 1
-
     def count(self) -> int:
         """Health rows stored."""
         return int(self._read("cannot count the history", lambda conn: conn.execute(
             "SELECT COUNT(*) FROM health").fetchone()[0]))
 
+    # -- the outbox of a store-and-forward output ------------------------------------------------
+    def outbox(self, output: str, machine: str) -> StoreOutbox:
+        """The outbox of ``output`` for ``machine``'s windows (see :class:`StoreOutbox`)."""
+        return StoreOutbox(self, output, machine)
+
+    def _write(self, what: str, fn: Any) -> None:
+        """Run ``fn(connection)`` in one write transaction of the calling thread's connection,
+        under the write lock (the worker's windows and the pruning take it too).
+
+        Raises:
+            StoreError: the database cannot be written (nothing of ``fn`` is committed).
+        """
+        with self._write_lock:
+            self._check_file()
+            if self._file_gone is not None:
+                raise StoreError(f"state database {self.path} was {self._file_gone}: not "
+                                 f"written yet ({self.file_event})")
+            conn = self._connect()
+            try:
+                conn.execute("BEGIN IMMEDIATE")
+                fn(conn)
+                conn.execute("COMMIT")
+            except sqlite3.Error as exc:
+                if conn.in_transaction:
+                    try:
+                        conn.execute("ROLLBACK")
+                    except sqlite3.Error:
+                        pass
+                raise self._error(what, exc) from exc
+
     # -- lifecycle ----------------------------------------------------------------------------
     def _close_all(self) -> None:
         with self._conns_lock:
-            conns, self._conns = self._conns, []
+            conns, self._conns = [c for _, c in self._conns], []
         for c in conns:
             try:
                 c.close()
@@ -681,8 +954,9 @@ class StateStore(Gate):
         if self._closed:
             return
         with self._write_lock:
+            self._check_file()
             if self._pending or self._twin_pending is not None:
-                if not self._flush():
+                if self._file_gone is not None or not self._flush():
                     self.lost += len(self._pending)
                     logger.error("state database %s: %d windows could not be written and are "
                                  "lost", self.path, len(self._pending))
@@ -691,3 +965,139 @@ class StateStore(Gate):
         self._release()
         self._closed_for_good = True
         self._closed = True
+
+
+class StoreOutbox:
+    """One output's outbox in the state database (:class:`~twinwatch.sinks.base.Outbox`): the
+    ``health`` table holds the windows, this records which of them the output has delivered.
+
+    Two small tables, written through the store's rules (the calling thread's own connection,
+    the store's write lock, one transaction per call): ``outbox_position`` (output, machine ->
+    a ``health`` row id at or below which every window is delivered) and ``outbox_ack``
+    (output, machine, run, window -> delivered, for the windows above the position, e.g.
+    acknowledged while an older one was still in flight). The retention's pruning counts the
+    windows it deletes undelivered (:attr:`dropped`) and moves the position past them.
+
+    Args:
+        store: the open state store.
+        output: the output's registry name (``mqtt``).
+        machine: whose windows.
+    """
+
+    # The queries read the health table by row id ranges (``+machine``: not through the
+    # machine's time indexes, which would visit every row of the machine, up to a million).
+
+    def __init__(self, store: StateStore, output: str, machine: str) -> None:
+        self.store = store
+        self.output = output
+        self.machine = machine
+
+    @property
+    def dropped(self) -> int:
+        """Windows deleted by the retention before they were delivered (since the store
+        opened)."""
+        return self.store.outbox_dropped.get((self.output, self.machine), 0)
+
+    def start(self) -> int:
+        """The delivered position; on the output's first open, the newest stored window of
+        the machine (0 if none): the history before the output existed is not sent.
+
+        Raises:
+            StoreError: the database cannot be read or written.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT health_id FROM outbox_position WHERE output = ? AND machine = ?",
+            (self.output, self.machine)).fetchone())
+        if row is not None:
+            return int(row[0])
+        position = self.latest_id() or 0
+
+        def create(conn: sqlite3.Connection) -> None:
+            conn.execute("INSERT OR IGNORE INTO outbox_position (output, machine, health_id, "
+                         "wall) VALUES (?, ?, ?, ?)",
+                         (self.output, self.machine, position, time.time()))
+
+        self.store._write("cannot create the outbox", create)
+        return self.start()
+
+    def pending(self, after: int, limit: int) -> list[OutboxRow]:
+        """Stored windows of the machine above row id ``after`` not delivered, oldest first.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        rows = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT h.id, h.run, h.window, h.wall, h.doc FROM health h WHERE h.id > ? AND "
+            "+h.machine = ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? AND "
+            "a.machine = h.machine AND a.run = h.run AND a.window = h.window) ORDER BY h.id "
+            "LIMIT ?", (int(after), self.machine, self.output, int(limit))).fetchall())
+        return [OutboxRow(int(i), str(r), int(w), float(t), str(d)) for i, r, w, t, d in rows]
+
+    def count(self, position: int) -> int:
+        """Stored windows of the machine above ``position`` not delivered.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        def read(conn: sqlite3.Connection) -> int:
+            stored = conn.execute("SELECT COUNT(*) FROM health WHERE id > ? AND +machine = ?",
+                                  (int(position), self.machine)).fetchone()[0]
+            acked = conn.execute(
+                "SELECT COUNT(*) FROM outbox_ack a WHERE a.output = ? AND a.machine = ? AND "
+                "a.health_id > ? AND EXISTS (SELECT 1 FROM health h WHERE h.id = a.health_id)",
+                (self.output, self.machine, int(position))).fetchone()[0]
+            return max(int(stored) - int(acked), 0)
+
+        return int(self.store._read("cannot count the outbox", read))
+
+    def latest_id(self) -> int | None:
+        """The newest stored window's row id of the machine, None if none.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT id FROM health WHERE +machine = ? ORDER BY id DESC LIMIT 1",
+            (self.machine,)).fetchone())
+        return None if row is None else int(row[0])
+
+    def doc_at_or_before(self, health_id: int) -> str | None:
+        """The health message of the newest window of the machine at or below ``health_id``.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT doc FROM health WHERE +machine = ? AND id <= ? ORDER BY id DESC LIMIT 1",
+            (self.machine, int(health_id))).fetchone())
+        return None if row is None else str(row[0])
+
+    def ack(self, delivered: list[OutboxRow], position: int) -> None:
+        """Record the ``delivered`` windows and the new delivered ``position`` (the marks at
+        or below it are no longer needed) in one transaction.
+
+        Raises:
+            StoreError: the database cannot be written (nothing is recorded; call again).
+        """
+        wall = time.time()
+
+        def write(conn: sqlite3.Connection) -> None:
+            conn.executemany(
+                "INSERT OR IGNORE INTO outbox_ack (output, machine, run, window, health_id, "
+                "wall) VALUES (?, ?, ?, ?, ?, ?)",
+                [(self.output, self.machine, r.run, r.window, r.id, wall) for r in delivered
+                 if r.id > position])
+            conn.execute(
+                "INSERT INTO outbox_position (output, machine, health_id, wall) VALUES "
+                "(?, ?, ?, ?) ON CONFLICT (output, machine) DO UPDATE SET health_id = "
+                "MAX(health_id, excluded.health_id), wall = excluded.wall",
+                (self.output, self.machine, int(position), wall))
+            conn.execute("DELETE FROM outbox_ack WHERE output = ? AND machine = ? AND "
+                         "health_id <= (SELECT health_id FROM outbox_position WHERE output = ? "
+                         "AND machine = ?)", (self.output, self.machine, self.output,
+                                              self.machine))
+
+        self.store._write("cannot record the delivered windows", write)
+
+    def __repr__(self) -> str:
+        return f"StoreOutbox({self.output!r}, {self.machine!r}, {self.store.path})"

@@ -10,12 +10,16 @@ non-finite numbers become ``null`` everywhere.
 The README's table "The health message" documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
-* 6: each estimated parameter carries its ``trend`` (degradation model, onset, drift rate with
+* 7: each estimated parameter carries its ``trend`` (degradation model, onset, drift rate with
   its interval, monotonicity and trendability, restarts, the window's evidence) and, with an
   alarm rule, its ``rul`` (the predicted crossing of the warning and alarm thresholds: median
   and interval, in plant time, as time from the window's end and on the wall clock;
   :mod:`twinwatch.twin.prognostics`); each window says which ``acquisition`` window it had and
   why (the adaptive window).
+* 6: every message carries its ``run`` id (one per start of the daemon, kept across a reload;
+  a new run of a simulated plant or of a replayed recording is a new run): windows of different
+  runs share window numbers and plant times, the run tells them apart (the history query
+  filters by it).
 * 5: each meta-model term carries the standard errors of its parameters (``params_std``) and
   the number of windows whose evidence they combine (``evidence_windows``): a kept term is
   refined across windows (:mod:`twinwatch.twin.discovery.terms`).
@@ -71,7 +75,7 @@ __all__ = [
     "trend_line",
 ]
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 
 def _finite(x: Any) -> Any:
@@ -331,6 +335,7 @@ class HealthMessage(_Part):
     schema_: int = Field(SCHEMA_VERSION, alias="schema", description="layout version")
     machine: str = Field(description="machine name from the config")
     model: str = Field(description="twin model (registry name)")
+    run: str = Field(description="run id: one per start of the daemon, kept across a reload")
     window: int = Field(description="window index since start")
     t_start: float = Field(description="first sample time [s, source time]")
     t_end: float = Field(description="last sample time [s, source time]")
@@ -377,6 +382,7 @@ def build_health(
     *,
     machine: str,
     model_name: str,
+    run: str,
     model: TwinModel,
     window: WindowData,
     adaptation: AdaptationResult,
@@ -390,6 +396,8 @@ def build_health(
     Args:
         machine: machine name (the Zenoh key segment).
         model_name: registry name of the twin model (``dc_motor``).
+        run: the run id (:func:`twinwatch.daemon.runner.new_run_id`: one per start of the
+            daemon, kept across a reload).
         model: the twin (for units).
         window: the estimated window (for its index and time span).
         adaptation: the window's adaptation: its estimate, meta-model terms, DT' and DT''
@@ -430,6 +438,7 @@ def build_health(
     return HealthMessage(
         machine=machine,
         model=model_name,
+        run=run,
         window=int(window.index),
         t_start=float(window.t[0]),
         t_end=float(window.t[-1]),
