@@ -105,8 +105,7 @@ def _hydraulic(noise: float) -> TwinwatchConfig:
     cfg = load_config(ROOT / "config" / "hydraulic-modbus-sim.toml")
     cfg.driver.port = 0  # type: ignore[attr-defined]
     cfg.driver.plant.noise = {"x": noise, "p": noise} if noise else {}  # type: ignore[attr-defined]
-    cfg.alarms.parameters["D"] = _rule(20.0, 50.0)
-    return cfg
+    return cfg  # its own D rule: warning +25 %, alarm +50 %
 
 
 def run(cfg: TwinwatchConfig, param: str, adaptive: bool = False

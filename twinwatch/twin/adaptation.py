@@ -271,7 +271,13 @@ class TwinAdapter:
             rate = p.trend.rate if p is not None and p.trend.rate is not None else None
             if rate is None:
                 rate = rates.get(name, 0.0) * ev.value
-            drift[name] = (float(rate), float(ev.std))
+            # The window's uncertainty as the evidence scatters about its trend when that is
+            # less than stated (noise-free, the estimator's model-error floor states 30 times
+            # the scatter, and a window lengthened on it lags a drift it cannot see).
+            trend = self.prognostics.trends.get(name) if self.prognostics else None
+            fit_ = trend.fit if trend is not None else None
+            scale = min(1.0, fit_.rms_norm) if fit_ is not None and fit_.rms_norm > 0 else 1.0
+            drift[name] = (float(rate), float(ev.std) * scale)
         # The residual against its white-noise level, both normalised and pooled over the
         # outputs as the exit criterion pools them (a noise-free output, the closed loop's
         # Va, would otherwise always look structured); not below a 0.1 % nRMSE.

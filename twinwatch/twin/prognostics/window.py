@@ -18,9 +18,11 @@ balanced, window after window:
 * always within ``[min_window, max_window]``.
 
 The rate is the parameter's trend's (:mod:`~twinwatch.twin.prognostics.trend`), or the fusion's
-when the trend has none yet. The decision applies to the next window the acquisition starts
-(a few windows may already be waiting for the estimator); each health message says which length
-its window had and why (``acquisition``).
+when the trend has none yet; the standard error is the window's stated one, or the scatter of
+the evidence about its trend when that is smaller (the estimator's model-error floor states
+about 30 times the scatter of noise-free estimates). The decision applies to the next window
+the acquisition starts (a few windows may already be waiting for the estimator); each health
+message says which length its window had and why (``acquisition``).
 """
 
 from __future__ import annotations
