@@ -52,11 +52,12 @@ class AdaptiveWindowConfig(BaseModel):
     """``[acquisition.adaptive]``: the window follows the change (paper Sections 5.2.2 and 6:
     a fixed window averages a parameter that changes quickly).
 
-    Off by default. When on, the window shortens (by ``shrink``) when a parameter's drift
-    within a window exceeds its uncertainty (``drift_ratio``) or the residual grows with the
-    window (its normalised RMSE above ``residual_ratio`` times its white-noise level), and
-    lengthens back (by ``grow``) after ``quiet_windows`` quiet windows in a row, within
-    ``[min_window, max_window]`` samples.
+    Off by default. When on, the window's length aims at a drift within it of ``drift_ratio``
+    standard errors: it shortens (by at most ``shrink``) when a parameter's drift within a
+    window exceeds that or the residual grows with the window (its normalised RMSE above
+    ``residual_ratio`` times its white-noise level), and lengthens back (by at most ``grow``)
+    after ``quiet_windows`` quiet windows in a row, within ``[min_window, max_window]``
+    samples (:class:`~twinwatch.twin.prognostics.window.WindowController`).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -64,14 +65,12 @@ class AdaptiveWindowConfig(BaseModel):
     enabled: bool = Field(False, description="let the window follow the change")
     min_window: int = Field(100, ge=10, description="shortest window [samples]")
     max_window: int = Field(800, ge=10, description="longest window [samples]")
-    drift_ratio: float = Field(2.0, gt=0, description="shorten when a parameter drifts within "
-                               "a window by more than this many of its standard errors (the "
-                               "error of the value now, noise and the window's lag of half its "
-                               "drift, is smallest near 1.4)")
+    drift_ratio: float = Field(1.4, gt=0, description="the drift within a window, in its "
+                               "standard errors, the window's length aims at (1.4 = sqrt(2): "
+                               "the error of the value now, noise and the lag of half the "
+                               "drift, is smallest there)")
     residual_ratio: float = Field(3.0, gt=1, description="shorten when the window's residual "
                                   "exceeds this many times its white-noise level")
-    quiet_ratio: float = Field(0.5, gt=0, description="a window is quiet when every drift is "
-                               "below this many standard errors (and the residual is white)")
     quiet_windows: int = Field(3, ge=1, description="quiet windows in a row before the window "
                                "lengthens")
     shrink: float = Field(0.5, gt=0, lt=1, description="factor a window shortens by")

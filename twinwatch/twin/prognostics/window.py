@@ -7,14 +7,18 @@ A window of ``N`` samples trades two errors: the estimate's noise, whose standar
 behind it by half its length), which grows as ``N``. :class:`WindowController` keeps them
 balanced, window after window:
 
-* **shorter** when a parameter's drift within the window, ``|rate| * N * Ts``, exceeds
-  ``drift_ratio`` of the window's standard error of it: the next window is
-  ``N * (drift_ratio / ratio)^(2/3)`` (drift over standard error grows as ``N^3/2``), at least
-  ``N * shrink``; or when the residual grows with the window: its normalised RMSE above
-  ``residual_ratio`` times its white-noise level (the twin's constant parameters no longer fit
-  one window), by ``shrink``;
-* **longer** by ``grow`` after ``quiet_windows`` windows in a row in which every drift is below
-  ``quiet_ratio`` of its standard error and the residual is white;
+* the length that balances them for the value *now* (the window's end): its error is the
+  noise ``s(N) = s0 (N0/N)^1/2`` and the lag of half the drift within the window, ``d(N) / 2 =
+  |rate| N Ts / 2``; ``s^2 + d^2/4`` is smallest where ``d / s = sqrt(2)`` (``drift_ratio``,
+  1.4), i.e. at ``N * (drift_ratio / ratio)^(2/3)`` from a window of ``N`` samples whose drift is
+  ``ratio`` of its standard error (the ratio grows as ``N^3/2``);
+* **shorter** at once when that length is below 0.9 of the window (by at most ``shrink``), or
+  when the residual grows with the window: its normalised RMSE above ``residual_ratio`` times
+  its white-noise level (the twin's constant parameters no longer fit one window), by
+  ``shrink``;
+* **longer** (by at most ``grow``) after ``quiet_windows`` windows in a row in which that length
+  is above 1.1 of the window (every drift is small against its standard error; none at all in
+  a stretch without degradation);
 * always within ``[min_window, max_window]``.
 
 The rate is the parameter's trend's (:mod:`~twinwatch.twin.prognostics.trend`), or the fusion's
@@ -97,9 +101,12 @@ class WindowController:
             if worst is None or ratio > worst:
                 worst, who = ratio, name
         n = used
-        if worst is not None and worst > c.drift_ratio:
+        # The length where the drift within the window is drift_ratio of its standard error
+        # (drift grows as N, the standard error falls as N^-1/2: their ratio as N^3/2).
+        target = (used * (c.drift_ratio / worst) ** (2.0 / 3.0) if worst is not None
+                  and worst > 0 else math.inf)
+        if target < 0.9 * used:
             self._quiet = 0
-            target = used * (c.drift_ratio / worst) ** (2.0 / 3.0)
             n = int(max(min(target, used * c.shrink), c.min_window))
             reason = (f"shortened: {who} drifts {worst:.1f} standard errors within a "
                       f"{span:g} s window")
@@ -108,13 +115,13 @@ class WindowController:
             n = int(max(used * c.shrink, c.min_window))
             reason = (f"shortened: the residual is {residual_ratio:.1f} times its noise level "
                       f"(the parameters change within the window)")
-        elif worst is None or worst < c.quiet_ratio:
+        elif target > 1.1 * used:
             self._quiet += 1
             if self._quiet >= c.quiet_windows and used < c.max_window:
                 self._quiet = 0
-                n = int(min(math.ceil(used * c.grow), c.max_window))
+                n = int(min(math.ceil(min(target, used * c.grow)), c.max_window))
                 reason = (f"lengthened: {c.quiet_windows} quiet windows (every drift below "
-                          f"{c.quiet_ratio:g} standard errors)")
+                          f"{c.drift_ratio:g} standard errors)")
             else:
                 reason = self.reasons.get(used, "unchanged")
         else:
