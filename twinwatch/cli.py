@@ -269,7 +269,8 @@ def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
     last = daemon.latest_health
     if last is not None:
         history = daemon.health_history
-        lines += [*_window_lines(last), *_alarm_lines(last), *_structure_lines(last),
+        lines += [*_window_lines(last), *_trend_lines(last), *_alarm_lines(last),
+                  *_structure_lines(last),
                   *_check_lines(last, history), *_timing_lines(cfg, history),
                   *daemon.summary()]  # where each output wrote, what it lost
     if daemon.lost():
@@ -301,6 +302,16 @@ def _window_lines(last: HealthMessage) -> list[str]:
               f"{p.nominal:g}) {_status(p)}" for name, p in last.parameters.items())]
 
 
+def _trend_lines(last: HealthMessage) -> list[str]:
+    """One line per parameter with a trend: where it is going, and when it crosses its alarm
+    rule's thresholds (twinwatch.twin.prognostics)."""
+    from twinwatch.twin.health import trend_line
+
+    lines = [line for name, p in last.parameters.items() if (line := trend_line(name, p))]
+    return ["trend and remaining useful life (95 % intervals):", *(f"  {x}" for x in lines)] \
+        if lines else []
+
+
 def _value(value: float | None) -> str:
     return f"{value:<11.6g}" if value is not None else f"{'n/a':<11}"
 
@@ -320,14 +331,17 @@ def _status(p: ParameterHealth) -> str:
 
 
 def _alarm_lines(last: HealthMessage) -> list[str]:
-    raised = {k: a for k, a in last.alarms.items() if a.level != "normal"}
+    raised = [f"{k} {a.level}"
+              + (f" (raised at plant time {a.since_t:.0f} s)" if a.since_t is not None else "")
+              + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
+                 else "") for k, a in last.alarms.items() if a.level != "normal"]
+    raised += [f"{k} RUL {a.rul.level}"
+               + (f" (raised at plant time {a.rul.since_t:.0f} s)" if a.rul.since_t is not None
+                  else "") for k, a in last.alarms.items()
+               if a.rul is not None and a.rul.level != "normal"]
     if not raised:
         return []
-    return ["alarms: " + "; ".join(
-        f"{k} {a.level}"
-        + (f" (raised at plant time {a.since_t:.0f} s)" if a.since_t is not None else "")
-        + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
-           else "") for k, a in raised.items())]
+    return ["alarms: " + "; ".join(raised)]
 
 
 def _structure_lines(last: HealthMessage) -> list[str]:

@@ -139,6 +139,20 @@ class RingBuffer:
         self._stretch_lost = 0  # samples lost since the last completed window
         self._stretch_windows = 0  # windows counted as abandoned for them
         self._warned: set[str] = set()
+        self._next_window: int | None = None
+
+    def request_window(self, n: int) -> None:
+        """Make the next window that starts ``n`` samples long (the adaptive window; called
+        from the worker thread: the length is read when a window starts, so a window never
+        changes length half-way).
+
+        Raises:
+            ValueError: ``n`` below 2 or above the ring's capacity.
+        """
+        if not 2 <= n <= self.capacity:
+            raise ValueError(f"a window of {n} samples does not fit the ring buffer "
+                             f"(2 .. {self.capacity})")
+        self._next_window = int(n)
 
     def _lose(self, reason: str, cause: Cause, n: int) -> None:
         """Account ``n`` lost samples to ``reason`` (see the module docstring)."""
@@ -237,6 +251,8 @@ class RingBuffer:
             self._abandon(f"NaN or inf in {', '.join(repr(c) for c in bad)}", "bad_value", t,
                           bad=1)
             return None
+        if self._count == 0 and self._next_window is not None:
+            self.window, self._next_window = self._next_window, None
         if self._count == 0:
             self._t_first = t
             self._lo = self._hi = 0.0

@@ -157,13 +157,17 @@ class Daemon:
         self.model: TwinModel = create_model(config.machine.model, config.machine.options)
         self.nominal = {p.name: config.machine.parameters.get(p.name, p.nominal)
                         for p in self.model.parameters}
-        self.adapter = TwinAdapter(self.model, config.estimation, config.discovery,
-                                   self.nominal)
-        self.estimator = self.adapter.estimator
         acq = config.acquisition
+        self.adapter = TwinAdapter(self.model, config.estimation, config.discovery,
+                                   self.nominal, prognostics=config.prognostics,
+                                   thresholds=config.alarms.rul_targets(self.nominal),
+                                   adaptive=acq.adaptive)
+        self.estimator = self.adapter.estimator
+        longest = acq.adaptive.max_window if acq.adaptive.enabled else acq.window
         self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
                                sample_period=acq.sample_period,
-                               jitter_tolerance=acq.jitter_tolerance)
+                               jitter_tolerance=acq.jitter_tolerance,
+                               capacity=4 * max(longest, acq.window))
         self.sinks: dict[str, Sink] = {}
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
@@ -391,6 +395,8 @@ class Daemon:
                             len(state.get("terms", [])))
         if last is not None and last.get("alarms"):
             self.alarms.restore(last["alarms"])
+        if state is not None and self.adapter.prognostics is not None:
+            self._replay_trends()
         if self.restored is not None or (last is not None and last.get("alarms")):
             self.resumed = {
                 "path": str(self.store.path),
@@ -402,6 +408,29 @@ class Daemon:
                            ((last or {}).get("alarms") or {}).items()
                            if a.get("level") not in (None, "normal")},
             }
+
+    def _replay_trends(self) -> None:
+        """Rebuild the parameters' trends from the evidence the stored windows published
+        (the last ``[prognostics] horizon`` seconds of plant time), so a restart resumes the
+        trends and their RUL instead of waiting ``min_evidence`` windows."""
+        assert self.store is not None and self.adapter.prognostics is not None
+        last = self.store.latest_health(self.machine)
+        if last is None or last.get("t_end") is None:
+            return
+        t_to = float(last["t_end"])
+        t_from = t_to - self.adapter.prognostics.config.horizon
+        run = last.get("run")  # the last run's windows only: another run's times are another line
+        messages: list[dict[str, Any]] = []
+        while True:
+            page = self.store.history(t_from, t_to, 1000, by="plant", machine=self.machine,
+                                      run=run)
+            messages.extend(page)
+            if len(page) < 1000:
+                break
+            t_from = float(page[-1]["t_end"]) + 1e-9
+        n = self.adapter.prognostics.replay(messages)
+        if n:
+            logger.info("resumed the parameters' trends from %d stored windows", n)
 
     def _note_new_run(self) -> None:
         """The source's time starts over, so the stored twin is not resumed: say so when the
@@ -680,9 +709,14 @@ class Daemon:
 
     def process_window(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window and write it to the sinks (the pipeline's
-        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`). Returns the typed health
+        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`); with the adaptive window,
+        the ring buffer's next window takes the length it asks for. Returns the typed health
         message."""
-        return self.pipeline.process(window)
+        health = self.pipeline.process(window)
+        acq = health.acquisition
+        if acq is not None and acq.next_window is not None:
+            self.ring.request_window(acq.next_window)
+        return health
 
     def close(self, keep: Container[str] = ()) -> dict[str, Sink]:
         """Stop everything and release the driver and the outputs (after the worker has
