@@ -124,13 +124,14 @@ def processed() -> tuple[Any, Any, Any]:
 
 def _message(processed: tuple[Any, Any, Any], **over: Any) -> HealthMessage:
     model, w, result = processed
-    return build_health(machine="m1", model_name="dc_motor", model=model, window=w,
+    return build_health(machine="m1", model_name="dc_motor", run="r1", model=model, window=w,
                         adaptation=result, nominal={}, counters={"overruns": 0}, **over)
 
 
 def test_each_parameter_has_a_typed_status(processed) -> None:  # type: ignore[no-untyped-def]
     h = _message(processed)
-    assert h.as_dict()["schema"] == SCHEMA_VERSION == 6
+    assert h.as_dict()["schema"] == SCHEMA_VERSION == 7
+    assert h.as_dict()["run"] == "r1"
     status = {n: p.status for n, p in h.parameters.items()}
     assert status["Kt"] == "tied" and status["Ra"] == "estimated"
     for p in h.parameters.values():

@@ -33,17 +33,20 @@ ROOMS: dict[str, tuple[str, ...]] = {
     "twin.models": ("twinwatch.twin.models",),
     "twin.estimation": ("twinwatch.twin.estimation",),
     "twin.discovery": ("twinwatch.twin.discovery",),
+    "twin.prognostics": ("twinwatch.twin.prognostics",),
     "twin": ("twinwatch.twin",),
     "drivers": ("twinwatch.drivers",),
     "sinks": ("twinwatch.sinks",),
     "config": ("twinwatch.config",),
     "daemon": ("twinwatch.daemon",),
+    "watch": ("twinwatch.watch",),
     "cli": ("twinwatch.cli", "twinwatch.__main__"),
 }
 
 #: Room -> the rooms it may import (besides itself). The floors, from the ground up: base; io;
 #: plant, the twin's contract; the machines, the estimation; the discovery; the twin's top
-#: (adaptation, health); drivers, sinks; config; daemon; cli.
+#: (adaptation, health); drivers, sinks; config; daemon; watch (beside the daemon, reading what
+#: the daemons publish); cli.
 ALLOWED: dict[str, set[str]] = {
     "base": set(),
     "io": {"base"},
@@ -52,13 +55,18 @@ ALLOWED: dict[str, set[str]] = {
     "twin.models": {"base", "io", "twin.model"},  # a machine knows no estimator
     "twin.estimation": {"base", "twin.model"},    # it estimates any machine
     "twin.discovery": {"base", "twin.model", "twin.estimation"},
-    "twin": {"base", "io", "twin.model", "twin.estimation", "twin.discovery"},
+    # trend and RUL: read the estimation's results, know no machine, no discovery
+    "twin.prognostics": {"base", "twin.model", "twin.estimation"},
+    "twin": {"base", "io", "twin.model", "twin.estimation", "twin.discovery",
+             "twin.prognostics"},
     "drivers": {"base", "io", "plant"},
     "sinks": {"base", "io", "twin.model", "twin"},  # the message and the window, no internals
     "config": {"base", "io", "drivers", "sinks", "twin.model", "twin.models",
-               "twin.estimation", "twin.discovery", "twin"},
+               "twin.estimation", "twin.discovery", "twin.prognostics", "twin"},
     "daemon": {"base", "io", "config", "drivers", "sinks", "twin.model", "twin.models",
-               "twin.estimation", "twin.discovery", "twin"},
+               "twin.estimation", "twin.discovery", "twin.prognostics", "twin"},
+    # reads the network's health messages: never the daemon (a watcher runs anywhere)
+    "watch": {"base", "io", "twin"},
     "cli": set(ROOMS) - {"cli"},
 }
 

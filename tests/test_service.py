@@ -128,9 +128,10 @@ def test_history_is_served_by_time_range_and_alarms_are_published(tmp_path: Path
     # every stored health message carries the alarm state
     assert everything[0]["windows"][-1]["alarms"]["Ra"]["level"] == "alarm"
 
-    # restart: the alarm is restored (not raised a second time) and the twin resumes
+    # restart, resuming (the simulated plant's time starts over: a new run unless asked): the
+    # alarm is restored (not raised a second time) and the twin resumes
     cfg2 = _service_config(tmp_path, free_port(), duration=4.0)
-    with Daemon(cfg2, persist=True, record=False, publish=False) as d2:
+    with Daemon(cfg2, persist=True, record=False, publish=False, resume=True) as d2:
         assert d2.restored is not None
         assert d2.alarms.state()["Ra"]["level"] == "alarm"
         events: list[Any] = []
@@ -210,9 +211,10 @@ def test_sigkill_mid_window_loses_nothing_and_restart_resumes_the_twin(tmp_path:
         assert saved is not None and saved["terms"], "the discovered term was saved"
         run1 = stored[0]["_run"]
 
-        # restart: the first health message shows the saved twin (term and held values)
+        # restart (--resume: the simulated plant starts over at t = 0, a new run otherwise):
+        # the first health message shows the saved twin (term and held values)
         seen.items.clear()
-        proc = _run(cfg, tmp_path, "--duration", "4")
+        proc = _run(cfg, tmp_path, "--duration", "4", "--resume")
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 0, err
         assert "resumed the twin of dc-motor-unbalanced" in err
@@ -322,4 +324,7 @@ def test_a_reload_that_changes_the_state_settings_reopens_the_database_once_rele
     assert t_start == [2.0 * w for w in windows]  # the plant's time goes on
     rows = db_rows(tmp_path / "state.sqlite")
     assert [h["window"] for h in rows] == windows
-    assert len({h["_run"] for h in rows}) == 2  # the database was opened again
+    # the database was opened again, by a new store: the same run goes on (issue 16: a run id
+    # survives a reload), in the rows and in every message
+    assert len({h["_run"] for h in rows}) == 1
+    assert {h["run"] for h in rows} == {h.run for h in seen} == {first.run_id}

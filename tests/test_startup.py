@@ -34,9 +34,10 @@ def test_the_help_loads_no_backend() -> None:
             "try:\n    main(['--help'])\nexcept SystemExit:\n    pass")
     assert _loaded_after(code) == set()
     # nor the configuration's schema, numpy or pydantic: the help needs none of them (the
-    # sample list the CLI imports once pulled the schema in, 0.55 s instead of 0.13 s)
+    # sample list the CLI imports once pulled the schema in, 0.55 s instead of 0.13 s); nor
+    # rich and the watcher (twinwatch watch imports them when it runs)
     probe = code + "\nimport sys\nprint(sorted(m for m in ('twinwatch.config.schema', " \
-        "'numpy', 'pydantic') if m in sys.modules))"
+        "'numpy', 'pydantic', 'rich', 'twinwatch.watch') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          timeout=120, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.returncode == 0 and out.stdout.strip().splitlines()[-1] == "[]", out
@@ -62,3 +63,14 @@ def test_a_lazy_module_is_imported_on_first_use() -> None:
             "zenoh.Config\n"
             "assert 'zenoh' in sys.modules")
     assert _loaded_after(code) == {"zenoh"}
+
+
+def test_watch_loads_no_daemon_no_twin_and_no_sink() -> None:
+    """``twinwatch watch`` and ``tail`` import zenoh and rich, never the daemon's stack: the
+    watcher's room reads the published JSON."""
+    code = ("import sys\nfrom twinwatch import watch\nwatch.Fleet().snapshot()\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('twinwatch.daemon', "
+            "'twinwatch.sinks', 'twinwatch.twin', 'twinwatch.config', 'numpy'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert out.returncode == 0 and out.stdout.strip().splitlines()[-1] == "[]", out

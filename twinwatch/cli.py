@@ -1,4 +1,5 @@
-"""Command line: ``twinwatch run``, ``twinwatch check-config``, ``twinwatch sample-config``.
+"""Command line: ``twinwatch run``, ``check-config``, ``sample-config``, ``identify``, and
+``watch`` / ``tail`` (the health on a Zenoh network, :mod:`twinwatch.watch`).
 
 The only module that prints. Everything else logs. Each command imports what it needs when it
 runs, so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_startup.py``).
@@ -6,11 +7,14 @@ runs, so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_s
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import math
 import os
 import sys
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -55,6 +59,12 @@ EX_CONFIG = 78
 EX_IOERR = 74
 """Exit status when estimated windows were lost: not stored or not recorded (sysexits.h)."""
 
+EX_TEMPFAIL = 75
+"""Exit status when the daemon ran but estimated nothing or mostly failed: more windows failed
+(numeric failures, windows abandoned for gaps, bad values, jitter, time jumps) than were
+estimated (sysexits.h's EX_TEMPFAIL: the source or its configuration must change, or the fault
+pass, before a run estimates)."""
+
 
 def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
     """Load CONFIG (or the built-in default) and check it can run here: the files it names
@@ -82,17 +92,26 @@ def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
 @click.option("--fresh", is_flag=True,
               help="Start from the nameplate twin and normal alarm levels instead of resuming "
               "those saved in the state database (its history is kept).")
+@click.option("--resume", is_flag=True,
+              help="Resume the last run's twin and alarm levels also when the source's time "
+              "starts over (a simulated plant, a replayed recording), which otherwise starts "
+              "a new run from the nameplate values.")
 def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
-        fresh: bool) -> None:
+        fresh: bool, resume: bool) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
 
-    The twin and the alarm levels saved in the state database by the previous run are resumed
-    (a line says so); --fresh starts from the nameplate values.
+    Every start is a new run (its id is in every health message and the summary; a SIGHUP
+    reload goes on in the same run). On a machine (a bus, a device) the twin and the alarm
+    levels saved in the state database by the previous run are resumed (a line says so);
+    --fresh starts from the nameplate values. A source whose time starts over (a simulated
+    plant from t = 0, a replayed recording) starts from the nameplate values unless --resume.
 
     Exit status: 0; 1 when the daemon cannot start or its driver fails; 78 for a configuration
     that cannot run here (the systemd unit does not restart on it); 74 when estimated windows
-    were lost (not stored in the state database or not recorded).
+    were lost (not stored in the state database or not recorded); 75 when more windows failed
+    (numeric failures, abandoned for gaps, bad values, jitter or time jumps) than were
+    estimated.
 
     Signals: SIGTERM/SIGINT finish the windows already queued (a second one abandons them),
     close the driver, Zenoh, the Rerun file and the state database, and exit 0 (also while it
@@ -105,12 +124,15 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     from twinwatch.config.loader import ConfigError
     from twinwatch.daemon.supervisor import StartError, Stopped, Supervisor
 
+    if fresh and resume:
+        raise click.UsageError("--fresh and --resume exclude each other")
     base_dir = config.resolve().parent if config else Path.cwd()
 
     def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
         return _load_runnable(config, base_dir)
 
-    supervisor = Supervisor(load, base_dir=base_dir, resume=not fresh,
+    supervisor = Supervisor(load, base_dir=base_dir,
+                            resume=False if fresh else (True if resume else None),
                             source=str(config) if config else "the built-in default")
     _setup_logging(log_level)
     # Files the daemon creates (state database, recordings, layout) are 0640 and directories
@@ -133,6 +155,8 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     assert cfg is not None and supervisor.daemon is not None
     if supervisor.daemon.resumed is not None:
         click.echo(_resumed_line(supervisor.daemon), err=True)
+    elif supervisor.daemon.new_run is not None:
+        click.echo(_new_run_line(supervisor.daemon), err=True)
 
     from twinwatch.drivers import get_driver_class
 
@@ -159,7 +183,8 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         supervisor.add_callback(_progress)
     failure: str | None = None
     try:
-        supervisor.run(duration=duration)
+        with _logs_above(bar):
+            supervisor.run(duration=duration)
     except StartError as exc:
         failure = f"cannot restart after a reload: {exc}"
     except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
@@ -180,6 +205,27 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     if daemon.lost():
         supervisor.notifier.status("stopped: " + "; ".join(daemon.problems()))
         sys.exit(EX_IOERR)
+    if daemon.mostly_failed():
+        supervisor.notifier.status(f"stopped: {_failed_line(daemon)}")
+        sys.exit(EX_TEMPFAIL)
+
+
+@contextlib.contextmanager
+def _logs_above(bar: Any) -> Iterator[None]:
+    """While the progress bar is shown, the console's log lines are written above it (tqdm's
+    ``logging_redirect_tqdm``: the bar is cleared, the line written, the bar drawn again), so a
+    line never continues the bar's last redraw. The rate limit stays on the console's handler."""
+    if bar is None:
+        yield
+        return
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from twinwatch.daemon import logfilter
+
+    with logging_redirect_tqdm(tqdm_class=type(bar)):
+        for handler in logging.getLogger().handlers:
+            logfilter.install(handler)  # an older tqdm does not copy the filters
+        yield
 
 
 def _resumed_line(daemon: Daemon) -> str:
@@ -199,24 +245,50 @@ def _resumed_line(daemon: Daemon) -> str:
             f"to start from the nameplate values instead: twinwatch run --fresh")
 
 
+def _new_run_line(daemon: Daemon) -> str:
+    """One line saying that the stored run was not resumed, why, and how to."""
+    r = daemon.new_run
+    assert r is not None
+    return (f"twinwatch: a new run ({daemon.run_id}): {r['reason']}, so the twin starts from "
+            f"the nameplate values and the alarms from normal; {r['path']} keeps the earlier "
+            f"runs (the last: {r['run']}); to continue the last run instead: twinwatch run "
+            f"--resume")
+
+
 def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
     """The run's summary (README "What `twinwatch run` prints"), from the typed health
     messages the daemon kept and its outputs' own lines."""
     c = daemon.counters()
+    causes = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in daemon.ring.causes.items()
+                       if n)
     click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
                f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
-               f"(gaps/bad samples), {c['numeric_failures']} numeric failures")
+               f"({causes or 'gaps/bad samples'}), {c['numeric_failures']} numeric failures "
+               f"(run {daemon.run_id})")
     lines = _source_lines(cfg, daemon)
     last = daemon.latest_health
     if last is not None:
         history = daemon.health_history
-        lines += [*_window_lines(last), *_alarm_lines(last), *_structure_lines(last),
+        lines += [*_window_lines(last), *_trend_lines(last), *_alarm_lines(last),
+                  *_structure_lines(last),
                   *_check_lines(last, history), *_timing_lines(cfg, history),
                   *daemon.summary()]  # where each output wrote, what it lost
     if daemon.lost():
         lines.append("twinwatch: estimated windows were lost: exit status 74")
+    elif daemon.mostly_failed():
+        lines.append(f"twinwatch: {_failed_line(daemon)}: exit status 75")
     for line in lines:
         click.echo(line)
+
+
+def _failed_line(daemon: Daemon) -> str:
+    """Why the run counts as failed: windows failed against estimated, by cause."""
+    causes = {k: n for k, n in daemon.ring.causes.items() if n}
+    if daemon.numeric_failures:
+        causes["numeric failure"] = daemon.numeric_failures
+    what = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in causes.items())
+    return (f"{daemon.windows_failed()} windows failed ({what}) and "
+            f"{daemon.windows_estimated} were estimated")
 
 
 def _window_lines(last: HealthMessage) -> list[str]:
@@ -228,6 +300,16 @@ def _window_lines(last: HealthMessage) -> list[str]:
             *(f"  {name:<{width}} = {_value(p.value)} {p.unit:<10} "
               f"({'n/a' if p.deviation_pct is None else f'{p.deviation_pct:+.2f}'} % vs nominal "
               f"{p.nominal:g}) {_status(p)}" for name, p in last.parameters.items())]
+
+
+def _trend_lines(last: HealthMessage) -> list[str]:
+    """One line per parameter with a trend: where it is going, and when it crosses its alarm
+    rule's thresholds (twinwatch.twin.prognostics)."""
+    from twinwatch.twin.health import trend_line
+
+    lines = [line for name, p in last.parameters.items() if (line := trend_line(name, p))]
+    return ["trend and remaining useful life (95 % intervals):", *(f"  {x}" for x in lines)] \
+        if lines else []
 
 
 def _value(value: float | None) -> str:
@@ -249,14 +331,17 @@ def _status(p: ParameterHealth) -> str:
 
 
 def _alarm_lines(last: HealthMessage) -> list[str]:
-    raised = {k: a for k, a in last.alarms.items() if a.level != "normal"}
+    raised = [f"{k} {a.level}"
+              + (f" (raised at plant time {a.since_t:.0f} s)" if a.since_t is not None else "")
+              + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
+                 else "") for k, a in last.alarms.items() if a.level != "normal"]
+    raised += [f"{k} RUL {a.rul.level}"
+               + (f" (raised at plant time {a.rul.since_t:.0f} s)" if a.rul.since_t is not None
+                  else "") for k, a in last.alarms.items()
+               if a.rul is not None and a.rul.level != "normal"]
     if not raised:
         return []
-    return ["alarms: " + "; ".join(
-        f"{k} {a.level}"
-        + (f" (raised at plant time {a.since_t:.0f} s)" if a.since_t is not None else "")
-        + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
-           else "") for k, a in raised.items())]
+    return ["alarms: " + "; ".join(raised)]
 
 
 def _structure_lines(last: HealthMessage) -> list[str]:
@@ -314,6 +399,18 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
     lost = sum(ring.lost.values())
     window = cfg.acquisition.window
     lines = []
+    jittered = [h.source for h in daemon.health_history if h.source.jitter_max_us]
+    if jittered:
+        rms = max(x.jitter_rms_us or 0.0 for x in jittered)
+        peak = max(x.jitter_max_us or 0.0 for x in jittered)
+        lines.append(f"source: time stamps jitter around the {cfg.acquisition.sample_period:g} s "
+                     f"grid the samples were placed on in {len(jittered)} windows: RMS up to "
+                     f"{rms:.3g} us, max {peak:.3g} us")
+    waiting, silent = daemon.source_state()
+    if waiting:
+        lines.append(f"source: waiting for {waiting}")
+    if silent:
+        lines.append("source: silent: " + ", ".join(silent))
     if lost:
         reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
         lines.append(f"source: {ring.samples} samples received, {lost} not in any window "
@@ -359,18 +456,135 @@ def check_config(config: Path) -> None:
     except ConfigError as exc:
         click.echo(str(exc), err=True)
         sys.exit(1)
-    # Drivers validate what only they can check (DBC names, files, columns) at open time;
-    # open them without starting acquisition where that cannot touch a device.
-    from twinwatch.drivers import DriverError, create_driver, get_driver_class
+    # Drivers validate what only they can check (DBC names, files, columns) at open time:
+    # open the source without starting acquisition and without sending (a live interface
+    # receive-only where it allows), and say if it cannot be opened.
+    from twinwatch.drivers import DriverConfigError, DriverError, get_driver_class
 
-    if get_driver_class(cfg.driver.type).safe_to_probe(cfg.driver):
-        try:
-            create_driver(cfg.driver, base_dir=config.resolve().parent).close()
-        except DriverError as exc:
-            click.echo(f"{config}: driver: {exc}", err=True)
-            sys.exit(1)
+    try:
+        probed = get_driver_class(cfg.driver.type).probe(cfg.driver,
+                                                          base_dir=config.resolve().parent)
+    except DriverConfigError as exc:
+        click.echo(f"{config}: driver: {exc}", err=True)
+        sys.exit(1)
+    except DriverError as exc:
+        click.echo(f"{config}: the configuration is valid; the source cannot be opened here: "
+                   f"{exc} (`run` would wait for it)"
+                   if get_driver_class(cfg.driver.type).reopens(cfg.driver)
+                   else f"{config}: driver: {exc}", err=True)
+        sys.exit(1)
     click.echo(f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
-               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})")
+               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})"
+               + (f"; source: {probed}" if probed and probed != "opened" else ""))
+
+
+_CONNECT_HELP = ("Zenoh endpoint to connect to: a daemon (a peer, tcp/127.0.0.1:7447 by "
+                 "default) or a router the daemons connect to (repeatable). No scouting: only "
+                 "these are used.")
+
+
+def _zenoh_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """--connect, --mode, --prefix: how ``watch`` and ``tail`` reach the daemons."""
+    fn = click.option("--prefix", default="twinwatch", show_default=True,
+                      help="The daemons' [zenoh] key_prefix.")(fn)
+    fn = click.option("--mode", type=click.Choice(["client", "peer"]), default="client",
+                      show_default=True, help="Zenoh mode of this session.")(fn)
+    return click.option("--connect", "connect", multiple=True, default=("tcp/127.0.0.1:7447",),
+                        show_default=True, metavar="ENDPOINT", help=_CONNECT_HELP)(fn)
+
+
+@main.command()
+@_zenoh_options
+@click.option("--once", is_flag=True,
+              help="Print one snapshot and exit (after at most --wait seconds).")
+@click.option("--json", "as_json", is_flag=True,
+              help="JSON instead of the table: with --once one document, else one line per "
+              "refresh (for scripts).")
+@click.option("--wait", type=click.FloatRange(min=0), default=2.0, show_default=True,
+              help="--once: the longest wait for the machines to report [s]; it prints as soon "
+              "as every machine found has reported its last window.")
+@click.option("--interval", type=click.FloatRange(min=0.1), default=1.0, show_default=True,
+              help="Refresh period [s].")
+@click.option("--stale", type=click.FloatRange(min=0), default=10.0, show_default=True,
+              help="A machine on the network without a window for this long (at least 3 "
+              "window lengths) is shown stale [s].")
+def watch(connect: tuple[str, ...], mode: str, prefix: str, once: bool, as_json: bool,
+          wait: float, interval: float, stale: float) -> None:
+    """Every machine on a Zenoh network at a glance: found by their daemons' liveliness tokens
+    (directly or through a router), each with its state (alive, stale, gone and since when),
+    its last window (age, index, run), each parameter's deviation from nominal, status, alarm
+    level and remaining useful life, its raised alarms, its discovered terms and its data
+    quality. Machines appear and disappear as their daemons start and stop. Ctrl-C exits.
+
+    Exit status: 0; 1 when the network cannot be reached."""
+    from twinwatch.watch import Fleet, WatchError, render, watching
+
+    fleet = Fleet(stale_after=stale)
+    try:
+        with watching(connect, mode, prefix, fleet) as watcher:  # type: ignore[arg-type]
+            if once:
+                watcher.settle(wait)
+                snap = fleet.snapshot()
+                if as_json:
+                    click.echo(json.dumps(snap, indent=2, allow_nan=False))
+                else:
+                    from rich.console import Console
+
+                    Console().print(render(snap, title=_fleet_title(connect, mode)))
+                return
+            try:
+                if as_json:
+                    while True:
+                        time.sleep(interval)
+                        click.echo(json.dumps(fleet.snapshot(), separators=(",", ":"),
+                                              allow_nan=False))
+                from rich.live import Live
+
+                title = _fleet_title(connect, mode)
+                with Live(render(fleet.snapshot(), title=title), auto_refresh=False) as live:
+                    while True:
+                        fleet.changed.wait(interval)
+                        fleet.changed.clear()
+                        live.update(render(fleet.snapshot(), title=title), refresh=True)
+            except KeyboardInterrupt:
+                return
+    except WatchError as exc:
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(1)
+
+
+def _fleet_title(connect: tuple[str, ...], mode: str) -> str:
+    return f"twinwatch fleet on {', '.join(connect)} ({mode})"
+
+
+@main.command()
+@click.argument("machine")
+@_zenoh_options
+@click.option("--json", "as_json", is_flag=True,
+              help="Each health message as one line of JSON, exactly as published.")
+@click.option("--count", type=click.IntRange(min=1), default=None,
+              help="Exit after this many health messages.")
+def tail(machine: str, connect: tuple[str, ...], mode: str, prefix: str, as_json: bool,
+         count: int | None) -> None:
+    """Follow MACHINE (its [machine] name, or * for every machine): one line per health message
+    as it arrives, the latest window first; in text, each alarm change too. The machine
+    appearing and going are said on stderr. Ctrl-C exits.
+
+    Exit status: 0; 1 when the network cannot be reached."""
+    from twinwatch.watch import Fleet, Tail, WatchError, watching
+
+    printer = Tail(click.echo, as_json=as_json, note=lambda line: click.echo(line, err=True))
+    try:
+        with watching(connect, mode, prefix, Fleet(), machine,  # type: ignore[arg-type]
+                      on_health=printer.on_health, on_alarm=printer.on_alarm,
+                      on_token=printer.on_token):
+            try:
+                printer.run(count, waiting=f"{prefix}/{machine}")
+            except KeyboardInterrupt:
+                return
+    except WatchError as exc:
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(1)
 
 
 def _fraction_range(value: str | None) -> tuple[float, float] | None:
@@ -395,7 +609,8 @@ def _fraction_range(value: str | None) -> tuple[float, float] | None:
 @click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Read this many seconds of source time (a live bus); default: to its end.")
 @click.option("--record", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write the fits and residuals of both ranges to this Rerun file.")
+              help="Write the fits, the residual tests (autocorrelation, residual-input "
+              "cross-correlation) and the tables to this Rerun file.")
 @click.option("--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the [machine.parameters] block to this file.")
 @click.option("--log-level", default="warning", show_default=True,
@@ -407,11 +622,15 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
 
     Reads the whole source of CONFIG (a file, a CAN log, a simulated plant, or a live bus for
     --duration), fits the twin to the training range with the daemon's global and local search
-    (one free-run simulation over the whole range), gives every parameter its interval,
-    scores the fit on the validation range (fit % per output), and prints a
-    [machine.parameters] block with the bounds it used, ready to paste into the monitoring
-    configuration. Exit 78 for a bad configuration, 1 if the recording cannot be identified
-    from."""
+    (one free-run simulation over the whole range), says which parameters and combinations
+    the recording determines (rank and conditioning of the information matrix, correlations,
+    parameters at a bound), holds the others at their stated values ([identify.fixed] or
+    [machine.parameters]) and re-fits the rest, compares the candidate structures
+    [identify.candidates] lists (validation fit, model check, BIC), scores the fit on the
+    validation range (fit % per output), and prints a [machine.parameters] block of the
+    determined parameters (the held ones commented with the reason), ready to paste into the
+    monitoring configuration. Exit 78 for a bad configuration, 1 if the recording cannot be
+    identified from."""
     from twinwatch.config.loader import ConfigError, load_config
 
     _setup_logging(log_level)
@@ -449,15 +668,15 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
     from twinwatch.twin.estimation.identify import parameters_block
 
     try:
-        result, data = commission(cfg, config.resolve().parent, duration=duration,
-                                  record=record)
+        found = commission(cfg, config.resolve().parent, duration=duration, record=record)
     except (CommissionError, DriverError) as exc:
         click.echo(f"Error: cannot identify: {exc}", err=True)
         sys.exit(1)
+    data, result = found.data, found.result
     click.echo(f"{data.t.size} samples from {data.source}"
                + (f" ({data.dropped} left out: a channel missing or not finite)"
                   if data.dropped else ""))
-    click.echo(report(result))
+    click.echo(report(result, found.comparison))
     block = parameters_block(result, f"{config} ({data.t.size} samples)")
     click.echo("")
     click.echo(block, nl=False)
@@ -465,7 +684,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
         output.write_text(block, encoding="utf-8")
         click.echo(f"written to {output}")
     if record is not None:
-        click.echo(f"fits and residuals: {record} (open with: rerun {record})")
+        click.echo(f"fits, residual tests and tables: {record} (open with: rerun {record})")
 
 
 def _outputs(cfg: Any) -> list[str]:

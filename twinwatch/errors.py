@@ -21,7 +21,8 @@ Phases::
     │   ├── RecorderError                 the Rerun recording
     │   └── StoreError                    the state database
     ├── LockedError              another process holds a file's lock (also an OSError)
-    └── CommissionError          ``twinwatch identify``: the recording cannot be identified from
+    ├── CommissionError          ``twinwatch identify``: the recording cannot be identified from
+    └── WatchError               ``twinwatch watch`` / ``tail``: the Zenoh network is unreachable
 
 Recoverable bad input (a bad frame, a NaN, a gap, a dropped link) is never raised: it is counted,
 logged once and survived. This module imports nothing of twinwatch: every room may import it.
@@ -45,6 +46,7 @@ __all__ = [
     "StartError",
     "StoreError",
     "TwinwatchError",
+    "WatchError",
 ]
 
 
@@ -137,3 +139,9 @@ class LockedError(TwinwatchError, OSError):
 # -- commissioning --------------------------------------------------------------------------------
 class CommissionError(TwinwatchError, ValueError):
     """The recording cannot be identified from (the message says why and what to change)."""
+
+
+# -- watching -------------------------------------------------------------------------------------
+class WatchError(TwinwatchError, ValueError):
+    """``twinwatch watch`` / ``tail`` cannot reach the Zenoh network (or an endpoint or key is
+    malformed); the message names the endpoint and what to change."""

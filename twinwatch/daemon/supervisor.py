@@ -42,6 +42,7 @@ import faulthandler
 import logging
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import FrameType
@@ -163,7 +164,9 @@ class Supervisor:
         base_dir: directory relative paths in the configuration are resolved against.
         source: how to name the configuration in messages (its path).
         resume: resume the twin and alarm levels saved in the state database at start
-            (False: the nameplate values, ``twinwatch run --fresh``; a reload always resumes).
+            (False: the nameplate values, ``twinwatch run --fresh``; True: also on a source
+            whose time starts over, ``--resume``; None: unless the source's time starts over,
+            a simulated plant or a replay; a reload always resumes, in the same run).
 
     Attributes:
         config: the running configuration (after :meth:`start`).
@@ -173,7 +176,7 @@ class Supervisor:
     """
 
     def __init__(self, load: Callable[[], TwinwatchConfig], *, base_dir: Path,
-                 source: str, resume: bool = True) -> None:
+                 source: str, resume: bool | None = None) -> None:
         self.notifier = Notifier(unset_environment=True)
         self.watchdog = Watchdog(self.notifier)
         self._load = load
@@ -189,6 +192,7 @@ class Supervisor:
         self._previous_handlers: dict[int, Any] = {}
         self._resume = resume
         self._problems: list[str] = []
+        self._next_status = 0.0
 
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -243,9 +247,11 @@ class Supervisor:
             self.daemon.add_callback(fn)
 
     def _open(self, cfg: TwinwatchConfig, reuse: dict[str, Any] | None = None,
-              resume: bool = True, defer: tuple[str, ...] = ()) -> Daemon:
+              resume: bool | None = None, defer: tuple[str, ...] = (),
+              run_id: str | None = None, wait_for_source: bool = True) -> Daemon:
         """A daemon on ``cfg`` (driver and sinks open, the twin's kernels compiled), with the
-        reload tick and callbacks. Runs in a :class:`_Build`'s thread.
+        reload tick and callbacks; ``run_id`` None starts a new run (a reload passes the
+        running one's). Runs in a :class:`_Build`'s thread.
 
         Raises:
             StartError: a device, port, file or the state database cannot be opened.
@@ -254,16 +260,29 @@ class Supervisor:
 
         with _start_errors():
             daemon = Daemon(cfg, base_dir=self.base_dir, persist=True, watchdog=self.watchdog,
-                            reuse=reuse, resume=resume, defer=defer)
+                            reuse=reuse, resume=resume, defer=defer, run_id=run_id,
+                            wait_for_source=wait_for_source)
         daemon.add_tick(self._check_reload)
+        daemon.add_tick(self._refresh_status)
         daemon.add_callback(self._watch_problems)
         for fn in self._callbacks:
             daemon.add_callback(fn)
         warm_up(daemon)
         return daemon
 
-    def _watch_problems(self, health: HealthMessage) -> None:
-        """After each window (worker thread): systemd's STATUS follows what is degraded (the
+    def _refresh_status(self) -> None:
+        """Acquisition-loop tick (main thread, at most once a second): STATUS follows what the
+        source waits for or lacks and whether windows are estimated, also while no window
+        completes (the callback below runs only after an estimated window)."""
+        now = time.monotonic()
+        if now < self._next_status:
+            return
+        self._next_status = now + 1.0
+        self._watch_problems(None)
+
+    def _watch_problems(self, health: HealthMessage | None) -> None:
+        """After each window (worker thread) and every second (main thread): systemd's STATUS
+        follows what is degraded (the source waited for or silent, windows not estimated, the
         state database not writable, the recording stopped), and returns to normal."""
         daemon, cfg = self.daemon, self.config
         if daemon is None or cfg is None:
@@ -350,7 +369,8 @@ class Supervisor:
                  for name in keep}
         logger.warning("reloading %s: starting the new configuration beside the running one",
                        self.source)
-        self._build = _Build(lambda: self._open(new_cfg, reuse=reuse, resume=False, defer=defer),
+        self._build = _Build(lambda: self._open(new_cfg, reuse=reuse, resume=False, defer=defer,
+                                                run_id=running.run_id, wait_for_source=False),
                              keep=keep, config=new_cfg, name="twinwatch-reload")
 
     def _handover(self, new_cfg: TwinwatchConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:

@@ -184,6 +184,11 @@ class FileDriver(Driver):
         """Opening reads the file's header and checks the mapped columns: no device."""
         return True
 
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """The recording is replayed from its start at every open: a new run."""
+        return True
+
     def __init__(self, config: FileDriverConfig, *, base_dir: Path | None = None) -> None:
         super().__init__()
         try:

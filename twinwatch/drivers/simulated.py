@@ -111,6 +111,11 @@ class SimulatedDriver(Driver):
         assert isinstance(config, SimulatedDriverConfig)
         return config.plant.duration
 
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """The plant starts from t = 0 at every open: a new run."""
+        return True
+
     def __init__(self, config: SimulatedDriverConfig) -> None:
         import can
         import cantools

@@ -197,6 +197,11 @@ class SimulatedModbusDriver(Driver):
         assert isinstance(config, SimulatedModbusDriverConfig)
         return config.plant.duration
 
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """The plant starts from t = 0 at every open: a new run."""
+        return True
+
     def __init__(self, config: SimulatedModbusDriverConfig) -> None:
         from twinwatch.drivers.modbus import ModbusDriver
         from twinwatch.plant.modbus_server import PlantModbusServer

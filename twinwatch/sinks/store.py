@@ -63,12 +63,19 @@ from pydantic import Field
 
 from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.base import Gate, ProcessedWindow, SinkConfig, SinkContext, _frozen
+from twinwatch.sinks.base import (
+    Gate,
+    OutboxRow,
+    ProcessedWindow,
+    SinkConfig,
+    SinkContext,
+    _frozen,
+)
 from twinwatch.sinks.locks import FileLock, LockedError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError"]
+__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError", "StoreOutbox"]
 
 SCHEMA_VERSION = 1
 
@@ -89,6 +96,7 @@ CREATE TABLE IF NOT EXISTS health (
 );
 CREATE INDEX IF NOT EXISTS health_plant ON health (machine, t_start);
 CREATE INDEX IF NOT EXISTS health_wall ON health (machine, wall);
+CREATE INDEX IF NOT EXISTS health_run ON health (machine, run, t_start);
 CREATE TABLE IF NOT EXISTS twin (
     machine TEXT PRIMARY KEY,
     run TEXT NOT NULL,
@@ -96,6 +104,22 @@ CREATE TABLE IF NOT EXISTS twin (
     t_end REAL NOT NULL,
     wall REAL NOT NULL,
     state TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS outbox_position (
+    output TEXT NOT NULL,
+    machine TEXT NOT NULL,
+    health_id INTEGER NOT NULL,
+    wall REAL NOT NULL,
+    PRIMARY KEY (output, machine)
+);
+CREATE TABLE IF NOT EXISTS outbox_ack (
+    output TEXT NOT NULL,
+    machine TEXT NOT NULL,
+    run TEXT NOT NULL,
+    window INTEGER NOT NULL,
+    health_id INTEGER NOT NULL,
+    wall REAL NOT NULL,
+    PRIMARY KEY (output, machine, run, window)
 );
 """
 
@@ -160,8 +184,12 @@ class StateStore(Gate):
         check: run ``PRAGMA quick_check`` at open (reads the whole file).
         recent: windows kept in memory once written, to write them again to a database file
             that was deleted or replaced (``[acquisition] history``).
+        run: the run id of the windows it stores (the daemon's, :class:`SinkContext` ``run``;
+            a health message that carries its own ``run`` is stored under it); None: a new
+            one.
 
     Attributes:
+        run_id: the run whose windows it stores (the ``run`` column; "this run" below).
         lost: windows lost for good: never stored (:attr:`never_stored`) or
             :attr:`history_lost`.
         history_lost: windows of this run that were stored, then lost with a deleted or
@@ -193,6 +221,7 @@ class StateStore(Gate):
         recover_corrupt: bool = False,
         check: bool = False,
         recent: int = 1000,
+        run: str | None = None,
     ) -> None:
         if synchronous not in ("FULL", "NORMAL"):
             raise ValueError(f"synchronous must be FULL or NORMAL, not {synchronous!r}")
@@ -203,7 +232,7 @@ class StateStore(Gate):
         self.prune_every = prune_every
         self.prune_batch = prune_batch
         self.busy_timeout = busy_timeout
-        self.run_id = f"{time.time():.6f}-{os.getpid()}"
+        self.run_id = run or f"{time.time():.6f}-{os.getpid()}"
         self._local = threading.local()
         self._conns: list[tuple[threading.Thread, sqlite3.Connection]] = []
         self._conns_lock = threading.Lock()
@@ -216,6 +245,7 @@ class StateStore(Gate):
         self._old_file: tuple[set[tuple[str, int]] | None, int] = (None, 0)
         self._sidecars: dict[str, tuple[int, int]] = {}  # our -wal / -shm: (st_dev, st_ino)
         self.history_lost = 0
+        self.outbox_dropped: dict[tuple[str, str], int] = {}  # (output, machine) -> windows
         self.file_event: str | None = None
         self._failing = False
         self._closed_for_good = False
@@ -552,7 +582,8 @@ class StateStore(Gate):
         """
         return cls(Path(config.path).expanduser(), synchronous=config.synchronous,
                    keep_days=config.keep_days, keep_rows=config.keep_rows,
-                   recover_corrupt=config.recover_corrupt, recent=context.recent_windows)
+                   recover_corrupt=config.recover_corrupt, recent=context.recent_windows,
+                   run=context.run or None)
 
     @classmethod
     def reload_key(cls, config: StateConfig, context: SinkContext) -> Hashable:
@@ -614,8 +645,9 @@ class StateStore(Gate):
             not publish it: stored before published; counted in :attr:`not_stored`).
         """
         h = out.health
-        ok = self.save_window({"machine": h.machine, "window": h.window, "t_start": h.t_start,
-                               "t_end": h.t_end}, out.twin_state, doc=out.health_json)
+        ok = self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
+                               "t_start": h.t_start, "t_end": h.t_end}, out.twin_state,
+                              doc=out.health_json)
         self.not_stored += not ok
         return ok
 
@@ -626,8 +658,9 @@ class StateStore(Gate):
         transaction (call from the adaptation worker after each window).
 
         Args:
-            health: the health message (``machine``, ``window``, ``t_start``, ``t_end`` are
-                indexed; the whole message is stored as JSON).
+            health: the health message (``machine``, ``run``, ``window``, ``t_start``,
+                ``t_end`` are indexed; the whole message is stored as JSON; without ``run`` it
+                is stored under the store's :attr:`run_id`).
             twin_state: the twin to resume from (parameters, held flags, trusted vector,
                 discovered meta-model terms; any JSON-serialisable mapping, numpy allowed), or
                 None when this window was not trusted (the stored twin is kept).
@@ -642,9 +675,10 @@ class StateStore(Gate):
         """
         w = time.time() if wall is None else float(wall)
         machine = str(health["machine"])
-        row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
-               float(health["t_end"]), w, _dumps(health) if doc is None else doc)
         with self._write_lock:
+            self.run_id = str(health.get("run") or self.run_id)  # the run whose windows it holds
+            row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
+                   float(health["t_end"]), w, _dumps(health) if doc is None else doc)
             self._check_file(row[2])
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
@@ -747,13 +781,48 @@ class StateStore(Gate):
         total = 0
         while True:
             with self._write_lock:
-                cur = conn.execute(f"DELETE FROM health WHERE id IN (SELECT id FROM health "
-                                   f"WHERE {where} ORDER BY id LIMIT ?)",
-                                   (*args, self.prune_batch))
-                n = cur.rowcount
+                batch = f"SELECT id FROM health WHERE {where} ORDER BY id LIMIT ?"
+                conn.execute("BEGIN IMMEDIATE")
+                try:
+                    self._outbox_prune(conn, batch, (*args, self.prune_batch))
+                    cur = conn.execute(f"DELETE FROM health WHERE id IN ({batch})",
+                                       (*args, self.prune_batch))
+                    n = cur.rowcount
+                    conn.execute("COMMIT")
+                except BaseException:
+                    conn.execute("ROLLBACK")
+                    raise
             total += n
             if n < self.prune_batch:
                 return total
+
+    def _outbox_prune(self, conn: sqlite3.Connection, batch: str, args: tuple[Any, ...]) -> None:
+        """Before a batch of health rows is deleted (retention): count, per output's outbox,
+        the rows it had not delivered (:attr:`outbox_dropped`), move its position past the
+        batch and forget its delivery marks there (in the caller's transaction)."""
+        positions = conn.execute("SELECT output, machine, health_id FROM outbox_position"
+                                 ).fetchall()
+        if not positions:
+            return
+        top = conn.execute(f"SELECT MAX(id) FROM ({batch})", args).fetchone()[0]
+        if top is None:
+            return
+        for output, machine, position in positions:
+            lost = conn.execute(
+                f"SELECT COUNT(*) FROM health h WHERE h.id IN ({batch}) AND h.machine = ? "
+                f"AND h.id > ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? "
+                f"AND a.machine = h.machine AND a.run = h.run AND a.window = h.window)",
+                (*args, machine, position, output)).fetchone()[0]
+            if lost:
+                key = (str(output), str(machine))
+                self.outbox_dropped[key] = self.outbox_dropped.get(key, 0) + int(lost)
+                logger.warning("state database %s: retention deleted %d windows of %s that "
+                               "the output %s had not delivered", self.path, lost, machine,
+                               output)
+            if position < top:
+                conn.execute("UPDATE outbox_position SET health_id = ? WHERE output = ? AND "
+                             "machine = ?", (top, output, machine))
+        conn.execute("DELETE FROM outbox_ack WHERE health_id <= ?", (top,))
 
     # -- reading ------------------------------------------------------------------------------
     def load_twin_state(self, machine: str | None = None) -> dict[str, Any] | None:
@@ -774,7 +843,7 @@ class StateStore(Gate):
 
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
-                machine: str | None = None) -> list[dict[str, Any]]:
+                machine: str | None = None, run: str | None = None) -> list[dict[str, Any]]:
         """Health messages in a time range, oldest first (in the order they were saved).
 
         Args:
@@ -786,6 +855,9 @@ class StateStore(Gate):
                 (seconds since the epoch when the window was saved; plant time restarts with
                 every run of the simulated plant or of a file replay).
             machine: only this machine.
+            run: only this run's windows (a run id, as in the messages' ``run``): plant time
+                and window numbers start over with every run of a simulated plant or a
+                replay, so a range by plant time is one run's only with it.
 
         Returns:
             The stored health messages (dicts as saved).
@@ -797,6 +869,9 @@ class StateStore(Gate):
         if machine is not None:
             where.append("machine = ?")
             args.append(machine)
+        if run is not None:
+            where.append("run = ?")
+            args.append(run)
         lo = "t_end" if by == "plant" else "wall"
         hi = "t_start" if by == "plant" else "wall"
         if t_from is not None and math.isfinite(t_from):
@@ -832,6 +907,36 @@ class StateStore(Gate):
         return int(self._read("cannot count the history", lambda conn: conn.execute(
             "SELECT COUNT(*) FROM health").fetchone()[0]))
 
+    # -- the outbox of a store-and-forward output ------------------------------------------------
+    def outbox(self, output: str, machine: str) -> StoreOutbox:
+        """The outbox of ``output`` for ``machine``'s windows (see :class:`StoreOutbox`)."""
+        return StoreOutbox(self, output, machine)
+
+    def _write(self, what: str, fn: Any) -> None:
+        """Run ``fn(connection)`` in one write transaction of the calling thread's connection,
+        under the write lock (the worker's windows and the pruning take it too).
+
+        Raises:
+            StoreError: the database cannot be written (nothing of ``fn`` is committed).
+        """
+        with self._write_lock:
+            self._check_file()
+            if self._file_gone is not None:
+                raise StoreError(f"state database {self.path} was {self._file_gone}: not "
+                                 f"written yet ({self.file_event})")
+            conn = self._connect()
+            try:
+                conn.execute("BEGIN IMMEDIATE")
+                fn(conn)
+                conn.execute("COMMIT")
+            except sqlite3.Error as exc:
+                if conn.in_transaction:
+                    try:
+                        conn.execute("ROLLBACK")
+                    except sqlite3.Error:
+                        pass
+                raise self._error(what, exc) from exc
+
     # -- lifecycle ----------------------------------------------------------------------------
     def _close_all(self) -> None:
         with self._conns_lock:
@@ -860,3 +965,139 @@ class StateStore(Gate):
         self._release()
         self._closed_for_good = True
         self._closed = True
+
+
+class StoreOutbox:
+    """One output's outbox in the state database (:class:`~twinwatch.sinks.base.Outbox`): the
+    ``health`` table holds the windows, this records which of them the output has delivered.
+
+    Two small tables, written through the store's rules (the calling thread's own connection,
+    the store's write lock, one transaction per call): ``outbox_position`` (output, machine ->
+    a ``health`` row id at or below which every window is delivered) and ``outbox_ack``
+    (output, machine, run, window -> delivered, for the windows above the position, e.g.
+    acknowledged while an older one was still in flight). The retention's pruning counts the
+    windows it deletes undelivered (:attr:`dropped`) and moves the position past them.
+
+    Args:
+        store: the open state store.
+        output: the output's registry name (``mqtt``).
+        machine: whose windows.
+    """
+
+    # The queries read the health table by row id ranges (``+machine``: not through the
+    # machine's time indexes, which would visit every row of the machine, up to a million).
+
+    def __init__(self, store: StateStore, output: str, machine: str) -> None:
+        self.store = store
+        self.output = output
+        self.machine = machine
+
+    @property
+    def dropped(self) -> int:
+        """Windows deleted by the retention before they were delivered (since the store
+        opened)."""
+        return self.store.outbox_dropped.get((self.output, self.machine), 0)
+
+    def start(self) -> int:
+        """The delivered position; on the output's first open, the newest stored window of
+        the machine (0 if none): the history before the output existed is not sent.
+
+        Raises:
+            StoreError: the database cannot be read or written.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT health_id FROM outbox_position WHERE output = ? AND machine = ?",
+            (self.output, self.machine)).fetchone())
+        if row is not None:
+            return int(row[0])
+        position = self.latest_id() or 0
+
+        def create(conn: sqlite3.Connection) -> None:
+            conn.execute("INSERT OR IGNORE INTO outbox_position (output, machine, health_id, "
+                         "wall) VALUES (?, ?, ?, ?)",
+                         (self.output, self.machine, position, time.time()))
+
+        self.store._write("cannot create the outbox", create)
+        return self.start()
+
+    def pending(self, after: int, limit: int) -> list[OutboxRow]:
+        """Stored windows of the machine above row id ``after`` not delivered, oldest first.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        rows = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT h.id, h.run, h.window, h.wall, h.doc FROM health h WHERE h.id > ? AND "
+            "+h.machine = ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? AND "
+            "a.machine = h.machine AND a.run = h.run AND a.window = h.window) ORDER BY h.id "
+            "LIMIT ?", (int(after), self.machine, self.output, int(limit))).fetchall())
+        return [OutboxRow(int(i), str(r), int(w), float(t), str(d)) for i, r, w, t, d in rows]
+
+    def count(self, position: int) -> int:
+        """Stored windows of the machine above ``position`` not delivered.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        def read(conn: sqlite3.Connection) -> int:
+            stored = conn.execute("SELECT COUNT(*) FROM health WHERE id > ? AND +machine = ?",
+                                  (int(position), self.machine)).fetchone()[0]
+            acked = conn.execute(
+                "SELECT COUNT(*) FROM outbox_ack a WHERE a.output = ? AND a.machine = ? AND "
+                "a.health_id > ? AND EXISTS (SELECT 1 FROM health h WHERE h.id = a.health_id)",
+                (self.output, self.machine, int(position))).fetchone()[0]
+            return max(int(stored) - int(acked), 0)
+
+        return int(self.store._read("cannot count the outbox", read))
+
+    def latest_id(self) -> int | None:
+        """The newest stored window's row id of the machine, None if none.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT id FROM health WHERE +machine = ? ORDER BY id DESC LIMIT 1",
+            (self.machine,)).fetchone())
+        return None if row is None else int(row[0])
+
+    def doc_at_or_before(self, health_id: int) -> str | None:
+        """The health message of the newest window of the machine at or below ``health_id``.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT doc FROM health WHERE +machine = ? AND id <= ? ORDER BY id DESC LIMIT 1",
+            (self.machine, int(health_id))).fetchone())
+        return None if row is None else str(row[0])
+
+    def ack(self, delivered: list[OutboxRow], position: int) -> None:
+        """Record the ``delivered`` windows and the new delivered ``position`` (the marks at
+        or below it are no longer needed) in one transaction.
+
+        Raises:
+            StoreError: the database cannot be written (nothing is recorded; call again).
+        """
+        wall = time.time()
+
+        def write(conn: sqlite3.Connection) -> None:
+            conn.executemany(
+                "INSERT OR IGNORE INTO outbox_ack (output, machine, run, window, health_id, "
+                "wall) VALUES (?, ?, ?, ?, ?, ?)",
+                [(self.output, self.machine, r.run, r.window, r.id, wall) for r in delivered
+                 if r.id > position])
+            conn.execute(
+                "INSERT INTO outbox_position (output, machine, health_id, wall) VALUES "
+                "(?, ?, ?, ?) ON CONFLICT (output, machine) DO UPDATE SET health_id = "
+                "MAX(health_id, excluded.health_id), wall = excluded.wall",
+                (self.output, self.machine, int(position), wall))
+            conn.execute("DELETE FROM outbox_ack WHERE output = ? AND machine = ? AND "
+                         "health_id <= (SELECT health_id FROM outbox_position WHERE output = ? "
+                         "AND machine = ?)", (self.output, self.machine, self.output,
+                                              self.machine))
+
+        self.store._write("cannot record the delivered windows", write)
+
+    def __repr__(self) -> str:
+        return f"StoreOutbox({self.output!r}, {self.machine!r}, {self.store.path})"

@@ -17,8 +17,9 @@ with ``P = {key_prefix}/{machine}``:
 
 * handlers added with :meth:`HealthPublisher.add_query_handler` answer their own key under the
   same queryable; opened as the daemon's output (:meth:`HealthPublisher.from_config`) it serves
-  ``P/history?t_from=..;t_to=..;by=wall;limit=..`` from the state database this way, asking the
-  gate through its :class:`~twinwatch.sinks.base.SinkContext` (:func:`history_parameters`).
+  ``P/history?t_from=..;t_to=..;by=wall;limit=..;run=..`` from the state database this way,
+  asking the gate through its :class:`~twinwatch.sinks.base.SinkContext`
+  (:func:`history_parameters`).
 
 Every session is configured by :func:`to_zenoh_config`: explicit endpoints only, multicast and
 gossip scouting off, so the daemon never talks to anything it was not told to. TLS/mTLS
@@ -600,8 +601,9 @@ class HealthPublisher(Sink):
         self._detached = True
 
     def _on_history_query(self, query: Any) -> dict[str, Any]:
-        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..")`` (zenoh thread): one
-        reply ``{"count", "more", "windows": [health, ...]}``, oldest first.
+        """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..;run=..")`` (zenoh
+        thread): one reply ``{"count", "more", "windows": [health, ...]}``, oldest first (one
+        run's with ``run``: a run id, or ``current``, the running daemon's).
 
         Raises:
             ValueError: a bad parameter (replied as an error naming it), or no history to
@@ -612,9 +614,13 @@ class HealthPublisher(Sink):
             raise ValueError("the daemon is reloading: ask again in a moment")
         if history is None:
             raise ValueError("this daemon keeps no history (no state database: [state])")
-        t_from, t_to, limit, by = history_parameters(query.parameters)
-        windows = history(t_from, t_to, limit, by)
-        return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to,
+        t_from, t_to, limit, by, run = history_parameters(query.parameters)
+        if run == "current":
+            run = self.context.run if self.context is not None and self.context.run else None
+            if run is None:
+                raise ValueError("run='current': this daemon has no run id")
+        windows = history(t_from, t_to, limit, by, run)
+        return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to, "run": run,
                 "count": len(windows), "more": len(windows) == limit, "windows": windows}
 
     def counters(self) -> dict[str, int]:
@@ -795,20 +801,23 @@ class HealthPublisher(Sink):
 HISTORY_LIMIT = 1000
 """Most windows one history query returns (page on with ``t_from``)."""
 
-HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit")
+HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit", "run")
+
+_RUN_RE = re.compile(r"^[A-Za-z0-9_.:-]{1,64}$")
 
 
 def history_parameters(params: Any) -> tuple[float | None, float | None, int,
-                                              Literal["plant", "wall"]]:
+                                              Literal["plant", "wall"], str | None]:
     """The history query's parameters, checked: ``t_from`` and ``t_to`` finite seconds (either
     may be absent), ``t_from <= t_to``, ``by`` ``plant`` or ``wall``, ``limit`` a whole number
-    from 1 (at most :data:`HISTORY_LIMIT` are returned).
+    from 1 (at most :data:`HISTORY_LIMIT` are returned), ``run`` a run id (the health
+    message's ``run``: letters, digits, ``_.:-``) or ``current`` (absent: every run).
 
     Args:
         params: the selector's parameters (a mapping with ``get``, zenoh's ``Parameters``).
 
     Returns:
-        ``(t_from, t_to, limit, by)``.
+        ``(t_from, t_to, limit, by, run)``.
 
     Raises:
         ValueError: naming the bad parameter.
@@ -843,7 +852,13 @@ def history_parameters(params: Any) -> tuple[float | None, float | None, int,
         raise ValueError(f"limit={params.get('limit')!r}: give a whole number from 1 "
                          f"(at most {HISTORY_LIMIT} are returned)")
     limit = HISTORY_LIMIT if lim is None else min(int(lim), HISTORY_LIMIT)
-    return t_from, t_to, limit, by
+    run = params.get("run")
+    if run in (None, ""):
+        run = None
+    elif _RUN_RE.match(str(run)) is None:
+        raise ValueError(f"run={run!r}: give a run id as the health messages carry it "
+                         f"(e.g. run=20261122T101530Z-3f9a2c), or run=current")
+    return t_from, t_to, limit, by, (None if run is None else str(run))
 
 
 def _items(params: Any) -> list[tuple[str, str]]:

@@ -1,38 +1,120 @@
-"""Commissioning: the baseline parameters of a machine, identified offline from a recording.
+"""Commissioning: the baseline parameters of a machine, identified offline from a recording,
+and what the recording can and cannot tell about them.
 
 The monitor compares every window's estimates with a baseline (``[machine.parameters]``); on a
 machine nobody has measured, that baseline must itself come from data, and from more of it than
-one window: :func:`identify` fits the twin to a long training stretch (one free-run simulation
-from the stretch's measured initial state, the output-error criterion of system identification),
-with the daemon's global + local search (PSO over the logarithms of the estimated parameters
-within their bounds, then bounded least squares with the initial state), gives every parameter
-its interval (the least-squares covariance, each output's residual variance and autocorrelation
-counted), and scores the result on a validation stretch it was not fitted to, per output::
+one window. :func:`identify`:
 
-    fit % = 100 * (1 - ||y - y_hat|| / ||y - mean(y)||)
+1. **fits** the twin to a long training stretch (one free-run simulation from the stretch's
+   measured initial state, the output-error criterion of system identification), with the
+   daemon's global + local search: PSO over the logarithms of the estimated parameters within
+   their bounds, then bounded least squares with the initial state (``[identify] starts``
+   independent swarms, the best training fit kept);
+2. **analyses identifiability** at that optimum (Ljung, *System Identification*, 2nd ed.,
+   ch. 4.6 and 9; MATLAB's ``getcov``/``getpvec``): the information matrix of the
+   ln-parameters, its numerical rank and condition number, the parameter combinations it
+   leaves undetermined (the eigenvectors of its small eigenvalues, as relative changes:
+   ``a_adc - 0.41 Ra + 0.41 J`` is a direction the data cannot tell from no change), the
+   correlation matrix's strong pairs, and the parameters the search left at a bound;
+3. **holds the undetermined ones at stated values** and re-fits the rest: while a free
+   parameter's 1-sigma relative error exceeds ``[identify] max_rel_std`` (default 10 %), the
+   weakest combination that a stated value can resolve gives up one parameter: of those with
+   a stated value (``[identify.fixed]``: a value, its own 1-sigma and where it comes from;
+   else the configured ``[machine.parameters]`` value, the nameplate), the one with the
+   largest weight (then the last in ``estimate``'s priority order) is held there and the
+   others are polished again. A stated value's 1-sigma is propagated to the re-fitted
+   parameters (``S diag(sigma^2) S^T``, S how the optimum follows the held value). What
+   remains free within ``max_rel_std`` is *determined*; a parameter whose combination nobody
+   stated a value for stays free and *not determined* (never held at an arbitrary value,
+   which would make the others look determined). A parameter the search left at a bound is
+   held there, flagged;
+4. **scores** both fits on a validation stretch it was not fitted to, per output::
 
-(MATLAB ``compare``'s NRMSE fit; 100 % is a perfect fit, 0 % no better than the mean). The
-residuals of both stretches go through the model check of the monitoring
-(:func:`twinwatch.twin.estimation.statistics.check_model`).
+       fit % = 100 * (1 - ||y - y_hat|| / ||y - mean(y)||)
+
+   (MATLAB ``compare``'s NRMSE fit; 100 % is a perfect fit, 0 % no better than the mean), with
+   the model check of the monitoring (:func:`twinwatch.twin.estimation.statistics.check_model`)
+   on both stretches. An output fitted worse than its mean (negative fit %) fails the check,
+   whatever the residual tests say;
+5. gives the **information criteria** of the full fit on the training residual (MATLAB's
+   ``aic``/``aic(...,'BIC')``), by which :func:`compare_structures` ranks the candidate model
+   structures ``[identify.candidates]`` lists (the daemon's ``commission`` identifies each).
+
+:func:`parameters_block` writes the ``[machine.parameters]`` lines to paste: only the determined
+parameters; the held ones commented out with the reason.
+
+The covariance is the least-squares one the monitoring uses
+(:func:`~twinwatch.twin.estimation.fit.parameter_covariance`: each output's residual variance,
+AR(1)-inflated, floored by ``model_error``, in the sandwich form ``A^-1 (J^T W J) A^-1`` with
+``A = J^T J``, since the fit weighs the outputs by their scale, not by their residual variance);
+the information matrix analysed is its inverse over the parameters (the initial-state offsets
+profiled out), which is ``J^T W J`` itself when the weights are the inverse variances.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
-from twinwatch.twin.estimation.fit import LocalFit, WindowFit, pso_minimize, relative_std
-from twinwatch.twin.estimation.statistics import ModelCheck
+from twinwatch.twin.estimation.fit import (
+    LocalFit,
+    ParameterMap,
+    WindowFit,
+    explained_rms,
+    parameter_covariance,
+    pso_minimize,
+    residual_variances,
+)
+from twinwatch.twin.estimation.statistics import ModelCheck, OutputCheck, noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
+
+#: A parameter within this relative distance (in ln) of a bound is "at the bound".
+AT_BOUND = 0.01
+#: Components of a combination below this fraction of its largest are left out of its label.
+LABEL_CUT = 0.2
+#: A parameter with a stated value can resolve a combination when its weight is at least
+#: this fraction of the largest (a smaller one leaves the others' error amplified by 1/w).
+HOLD_SHARE = 0.1
+#: The partners named when no stated value resolves a combination: weights from this fraction.
+MAIN_SHARE = 0.3
+
+
+class FixedValue(BaseModel):
+    """A stated value of one parameter (``[identify.fixed]``): held there when the recording
+    does not determine the parameter."""
+
+    value: float = Field(gt=0, allow_inf_nan=False, description="the value [SI]")
+    rel_std: float = Field(0.0, ge=0, allow_inf_nan=False, description="its relative "
+                           "standard error (1 sigma), propagated to the parameters re-fitted "
+                           "with it held (0: taken as exact)")
+    reason: str = Field("", description="where the value comes from (a nameplate, a "
+                        "datasheet, another experiment)")
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class Candidate(BaseModel):
+    """A candidate model structure (``[[identify.candidates]]``): model options over
+    ``[machine.options]`` (tables merged key by key: ``drive = { period = 0.002 }`` changes only
+    the period)."""
+
+    name: str = Field(min_length=1, description="how the report names it")
+    options: dict[str, Any] = Field(description="model options that differ from "
+                                    "[machine.options] (integrator method, controller period, "
+                                    "input hold, filters, power stage, ...)")
+
+    model_config = ConfigDict(extra="forbid")
 
 
 class IdentifyConfig(BaseModel):
@@ -49,23 +131,46 @@ class IdentifyConfig(BaseModel):
     weights: dict[str, float] = Field(default_factory=dict, description="output -> weight in "
                                       "the fitness (default 1)")
     estimate: list[str] | None = Field(
-        None, description="parameters to identify (default: [estimation] estimate); a long "
-        "recording determines more than one window (a warm-up law, the sensing's "
-        "hypotheses), which the monitoring then holds at the identified values")
+        None, description="parameters to identify, in priority order (default: [estimation] "
+        "estimate); a long recording determines more than one window (a warm-up law, the "
+        "sensing's hypotheses), which the monitoring then holds at the identified values")
     bounds: dict[str, tuple[float, float]] = Field(
         default_factory=dict, description="parameter -> [low, high] in SI units for the "
         "identification, over [estimation] bounds (a cold start searches wider than a window)")
+    max_rel_std: float = Field(
+        0.1, gt=0, allow_inf_nan=False, description="a parameter is determined when its "
+        "relative standard error (1 sigma) is at most this; the others are held at their "
+        "stated values and the rest re-fitted")
+    fixed: dict[str, FixedValue] = Field(
+        default_factory=dict, description="parameter -> { value, rel_std, reason }: the "
+        "stated value to hold an identified parameter at when the recording does not "
+        "determine it (default: its [machine.parameters] value); the value of a parameter "
+        "that is not identified")
+    correlation: float = Field(0.9, gt=0, lt=1, description="|correlation| from which a "
+                               "pair of parameters is reported as strongly correlated")
+    candidates: list[Candidate] = Field(
+        default_factory=list, description="other model structures to identify and compare "
+        "with the configured one by validation fit, model check and BIC")
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(pop_size=30,
                                                                  max_generations=100))
     time_budget: float = Field(120.0, gt=0, allow_inf_nan=False,
                                description="wall-time cap of the global searches [s], shared "
-                               "by the starts")
+                               "by the starts (per structure)")
     starts: int = Field(1, ge=1, le=100, description="independent global searches, each "
                         "polished by least squares; the best training fit is kept (a long "
                         "free-run problem has local optima a single swarm may settle in)")
     seed: int = 0
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    @field_validator("fixed", mode="before")
+    @classmethod
+    def _bare_values(cls, value: Any) -> Any:
+        # ``Ra = 29.6`` is short for ``Ra = { value = 29.6 }``
+        if isinstance(value, Mapping):
+            return {k: ({"value": v} if isinstance(v, (int, float)) else v)
+                    for k, v in value.items()}
+        return value
 
     @model_validator(mode="after")
     def _check(self) -> IdentifyConfig:
@@ -81,21 +186,38 @@ class IdentifyConfig(BaseModel):
         for name, (lo, hi) in self.bounds.items():
             if not (0 < lo < hi and math.isfinite(hi)):
                 raise ValueError(f"bounds.{name}: need 0 < low < high, got [{lo}, {hi}]")
+        names = [c.name for c in self.candidates]
+        for k, name in enumerate(names):
+            if name in names[:k] or name == AS_CONFIGURED:
+                raise ValueError(f"candidates[{k}].name: {name!r} is taken (each candidate "
+                                 f"needs its own name; {AS_CONFIGURED!r} is the configured "
+                                 "structure)")
         return self
 
     def check_against(self, model: TwinModel) -> None:
-        """Raise ValueError naming the key (``identify.<key>``) if an output or a parameter
-        is not the model's."""
+        """Raise ValueError naming the key (``identify.<key>``) if an output, a parameter or a
+        candidate's option is not the model's."""
         for name in self.weights:
             if name not in model.output_names:
                 raise ValueError(f"identify.weights.{name}: not an output of the model "
                                  f"{list(model.output_names)}")
         names = model.parameter_names
-        for key, group in (("estimate", self.estimate or []), ("bounds", list(self.bounds))):
+        for key, group in (("estimate", self.estimate or []), ("bounds", list(self.bounds)),
+                           ("fixed", list(self.fixed))):
             for name in group:
                 if name not in names:
                     raise ValueError(f"identify.{key}: unknown parameter {name!r}; the model "
                                      f"has {sorted(names)}")
+        for k, cand in enumerate(self.candidates):
+            if not dataclasses.is_dataclass(model):
+                break  # a plug-in model: its candidates are checked when commissioned
+            fields = {f.name: getattr(model, f.name) for f in dataclasses.fields(model)
+                      if f.init}
+            try:
+                dataclasses.replace(model, **merge_options(fields, cand.options, known=fields))
+            except (TypeError, ValueError, ArithmeticError) as exc:
+                raise ValueError(f"identify.candidates[{k}] ({cand.name}).options: {exc}"
+                                 ) from exc
 
     def estimation(self, estimation: EstimationConfig) -> EstimationConfig:
         """The ``[estimation]`` table as the identification uses it: this table's
@@ -108,6 +230,46 @@ class IdentifyConfig(BaseModel):
         return estimation.model_copy(update={"estimate": estimate, "tie": tie,
                                              "bounds": {**estimation.bounds, **self.bounds}})
 
+    def for_structure(self, model: TwinModel) -> IdentifyConfig:
+        """This table for a candidate structure whose model may lack some parameters (an
+        option that removes one): those are dropped from ``estimate``, ``bounds``, ``fixed``."""
+        names = set(model.parameter_names)
+        update: dict[str, Any] = {
+            "bounds": {k: v for k, v in self.bounds.items() if k in names},
+            "fixed": {k: v for k, v in self.fixed.items() if k in names}}
+        if self.estimate is not None:
+            update["estimate"] = [n for n in self.estimate if n in names]
+        return self.model_copy(update=update)
+
+
+#: The name of the configured structure in a comparison.
+AS_CONFIGURED = "as configured"
+
+
+def merge_options(base: Mapping[str, Any], override: Mapping[str, Any], *,
+                  known: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """``base`` with ``override`` over it, tables merged key by key (a candidate's options over
+    ``[machine.options]``).
+
+    Raises:
+        ValueError: ``known`` given and an override key is not in it (a misspelt option).
+    """
+    out = dict(base)
+    for key, value in override.items():
+        if known is not None and key not in known:
+            raise ValueError(f"unknown option {key!r}")
+        old = out.get(key)
+        if isinstance(value, Mapping) and isinstance(old, Mapping):
+            out[key] = merge_options(old, value)
+        elif isinstance(value, Mapping) and dataclasses.is_dataclass(old) \
+                and not isinstance(old, type):
+            out[key] = dataclasses.replace(old, **dict(value))
+        elif isinstance(value, Mapping) and isinstance(old, BaseModel):
+            out[key] = old.model_copy(update=dict(value))
+        else:
+            out[key] = value
+    return out
+
 
 @dataclass
 class StretchScore:
@@ -118,9 +280,11 @@ class StretchScore:
         samples: samples.
         fit_pct: output -> fit % (MATLAB ``compare``).
         rmse: output -> RMSE [output unit].
-        check: the model check of the stretch's residual.
+        check: the model check of the stretch's residual; an output whose fit % is negative
+            fails it (reason given), whatever the residual tests say.
         simulated: the twin's outputs (N, n_out); measured: the measured ones.
         t: time stamps (N,).
+        inputs: the model's exogenous inputs on the stretch, name -> (N,).
     """
 
     start: float
@@ -132,6 +296,136 @@ class StretchScore:
     t: FloatArray
     measured: FloatArray
     simulated: FloatArray
+    inputs: dict[str, FloatArray] = field(default_factory=dict)
+
+    @property
+    def worse_than_mean(self) -> list[str]:
+        """Outputs fitted worse than their mean (negative fit %)."""
+        return [o for o, f in self.fit_pct.items() if not f >= 0]
+
+
+@dataclass
+class Combination:
+    """A combination of relative parameter changes: ``sum_i w_i d(ln p_i)``.
+
+    Attributes:
+        weights: parameter -> weight w_i, the largest |w_i| 1.
+        std: 1-sigma of the combination (a relative change: 1.0 is 100 %).
+    """
+
+    weights: dict[str, float]
+    std: float
+
+    def label(self, cut: float = LABEL_CUT) -> str:
+        """``a_adc - 0.41 Ra + 0.41 J``: the weights from the largest, those below ``cut``
+        left out (relative changes: ``Ra + 0.8 Ke`` is a 1 % change of Ra with a 0.8 % one
+        of Ke)."""
+        parts: list[str] = []
+        for name, w in sorted(self.weights.items(), key=lambda kv: -abs(kv[1])):
+            if abs(w) < cut:
+                continue
+            mag = "" if abs(abs(w) - 1.0) < 5e-3 else f"{abs(w):.2g} "
+            sign = "-" if w < 0 else "+"
+            parts.append(f"{sign} {mag}{name}" if parts else
+                         f"{'-' if w < 0 else ''}{mag}{name}")
+        return " ".join(parts)
+
+
+@dataclass
+class Identifiability:
+    """What the recording determines, at a least-squares optimum (ln-parameters).
+
+    Attributes:
+        names: the parameters analysed (free in that fit), in ``estimate`` order.
+        information: (n, n) information matrix of the ln-parameters (the initial state
+            profiled out; zero rows for the parameters in an exact null direction).
+        eigenvalues: its eigenvalues, ascending (n,).
+        rank: the Jacobian's numerical rank over the parameters: n less the exact null
+            directions (:data:`NULL_TOL`).
+        determined_rank: combinations the data determine to within ``max_rel_std``.
+        condition: largest over smallest eigenvalue (inf when singular).
+        rel_std: parameter -> relative standard error (1 sigma), the others free.
+        correlation: (n, n) correlation matrix.
+        strong_pairs: (a, b, rho) with |rho| >= the configured threshold, strongest first.
+        undetermined: the combinations whose 1-sigma exceeds ``max_rel_std``, weakest first.
+        at_bound: parameter -> ``"lower"`` or ``"upper"``: left at a bound by the search.
+        max_rel_std: the threshold used.
+    """
+
+    names: list[str]
+    information: FloatArray
+    eigenvalues: FloatArray
+    rank: int
+    determined_rank: int
+    condition: float
+    rel_std: dict[str, float]
+    correlation: FloatArray
+    strong_pairs: list[tuple[str, str, float]]
+    undetermined: list[Combination]
+    at_bound: dict[str, str]
+    max_rel_std: float
+
+
+@dataclass
+class HeldParameter:
+    """A parameter the recording does not determine, held at a stated value in the re-fit.
+
+    Attributes:
+        value: the value held [SI].
+        source: ``[identify.fixed]``, ``[machine.parameters]`` or ``best fit`` (no stated
+            value: the full fit's, which the data do not support).
+        stated: what the source says about the value (the configured reason).
+        why: why the parameter is not determined (the combination it is in, its 1-sigma;
+            or the bound it sits at).
+        full_value: the value the fit with every parameter free gave.
+        rel_std: the stated value's relative 1-sigma (``[identify.fixed]``), propagated to
+            the re-fitted parameters; 0 for a value taken as exact.
+    """
+
+    value: float
+    source: str
+    stated: str
+    why: str
+    full_value: float
+    rel_std: float = 0.0
+
+
+@dataclass
+class InformationCriteria:
+    """Akaike's and the Bayesian information criterion of a fit on its training residual
+    (MATLAB ``aic``: ``N ln det(E^T E / N) + 2 n_p + N n_y (ln 2 pi + 1)``; BIC with
+    ``n_p ln N`` for ``2 n_p``), E the residual (N, n_y) in the outputs' units.
+
+    Attributes:
+        aic, bic: the criteria (lower is better; only differences between structures on the
+            same data mean anything).
+        samples: N; parameters: n_p (estimated parameters and initial-state offsets).
+    """
+
+    aic: float
+    bic: float
+    samples: int
+    parameters: int
+
+
+@dataclass
+class FullFit:
+    """The fit with every parameter of ``estimate`` free.
+
+    Attributes:
+        values: every model parameter -> value [SI].
+        rel_std: estimated parameter -> relative standard error (1 sigma, all free).
+        train, validation: its scores.
+        nrmse: training fitness.
+        criteria: AIC and BIC on the training residual.
+    """
+
+    values: dict[str, float]
+    rel_std: dict[str, float]
+    train: StretchScore
+    validation: StretchScore
+    nrmse: float
+    criteria: InformationCriteria
 
 
 @dataclass
@@ -139,14 +433,26 @@ class Identification:
     """The result of :func:`identify`.
 
     Attributes:
-        values: every model parameter -> identified value [SI] (estimated ones; the others
-            as configured).
-        rel_std: estimated parameter -> relative standard error (1 sigma).
+        values: every model parameter -> value [SI]: the determined ones as re-fitted, the
+            held ones at their held value, the others as configured.
+        rel_std: free parameter -> relative standard error (1 sigma), given the held values
+            (the determined ones within ``max_rel_std``).
         bounds: estimated parameter -> the [low, high] the search used [SI].
-        estimated, tied, fixed: the parameters by role.
-        train, validation: the scores on both stretches.
+        estimated: the parameters identify was asked for (``estimate``), in order.
+        determined: those the recording determines (each within ``max_rel_std``).
+        held: parameters held in the re-fit -> the value, its source and why.
+        undetermined: parameters left free but not determined (nobody stated a value of
+            any parameter of their weak combination) -> why; never pasted.
+        tied: tied parameter -> its source.
+        train, validation: the scores of the fit with the held values (what is pasted).
+        full: the fit with every estimated parameter free, and its scores.
+        identifiability: the analysis at the full fit.
+        max_rel_std: the threshold (``[identify] max_rel_std``).
+        structure: the candidate's name (``as configured`` for the configured options);
+            options: its model options over ``[machine.options]``.
         elapsed_s: wall time [s]; evaluations: twin simulations of one parameter vector.
-        nrmse: the training fitness (weighted normalised RMSE) at the result.
+        units: parameter -> unit; output_units: output -> unit.
+        nrmse: the training fitness of the fit with the held values.
         starts: the training fitness each start reached (``[identify] starts``), in order.
     """
 
@@ -159,9 +465,30 @@ class Identification:
     validation: StretchScore
     elapsed_s: float
     evaluations: int
+    determined: list[str] = field(default_factory=list)
+    held: dict[str, HeldParameter] = field(default_factory=dict)
+    undetermined: dict[str, str] = field(default_factory=dict)
+    full: FullFit | None = None
+    identifiability: Identifiability | None = None
+    max_rel_std: float = 0.1
+    structure: str = AS_CONFIGURED
+    options: dict[str, Any] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
+    output_units: dict[str, str] = field(default_factory=dict)
     nrmse: float = math.nan
     starts: list[float] = field(default_factory=list)
+
+    @property
+    def pasted(self) -> list[str]:
+        """The parameters :func:`parameters_block` pastes: the determined ones, none when the
+        validation range fails the model check (a twin that does not describe the machine
+        gives biased values, and the monitoring would not trust its windows either)."""
+        return list(self.determined) if self.validation.check.passed else []
+
+    @property
+    def at_bound(self) -> dict[str, str]:
+        """Parameters the full fit left at a bound -> ``lower``/``upper``."""
+        return self.identifiability.at_bound if self.identifiability else {}
 
 
 def fit_percent(measured: FloatArray, simulated: FloatArray) -> float:
@@ -173,36 +500,299 @@ def fit_percent(measured: FloatArray, simulated: FloatArray) -> float:
     return 100.0 * (1.0 - float(np.linalg.norm(measured - simulated)) / den)
 
 
+def information_criteria(measured: FloatArray, simulated: FloatArray, n_params: int
+                         ) -> InformationCriteria:
+    """AIC and BIC of a fit (:class:`InformationCriteria`) from the measured and simulated
+    outputs (N, n_y) (the first sample, the initial state, left out)."""
+    e = np.asarray(simulated[1:] - measured[1:], dtype=float)
+    n, ny = e.shape
+    with np.errstate(all="ignore"):
+        sign, logdet = np.linalg.slogdet(e.T @ e / max(n, 1))
+    if not (sign > 0 and math.isfinite(logdet)):
+        logdet = -math.inf if np.all(np.isfinite(e)) else math.inf
+    const = n * ny * (math.log(2 * math.pi) + 1.0)
+    base = n * logdet + const
+    return InformationCriteria(aic=base + 2.0 * n_params, bic=base + n_params * math.log(n),
+                               samples=n, parameters=n_params)
+
+
+def _honest_check(check: ModelCheck, fit_pct: Mapping[str, float]) -> ModelCheck:
+    """The model check with every output fitted worse than its mean failed (reason given)."""
+    bad = [o for o, f in fit_pct.items() if not f >= 0]
+    if not bad:
+        return check
+    outputs = dict(check.outputs)
+    reasons = list(check.reasons)
+    for o in bad:
+        oc = outputs.get(o)
+        if oc is not None:
+            outputs[o] = OutputCheck(oc.rms, oc.noise, oc.whiteness_p, oc.cross_p, False)
+        reasons.append(f"{o} fitted worse than its mean (fit {fit_pct[o]:.1f} %): the twin "
+                       "does not explain its variation")
+    return ModelCheck(passed=False, reasons=reasons, outputs=outputs, widen=check.widen)
+
+
+def _explained(r: FloatArray, jac: FloatArray, n_out: int, floor: float) -> FloatArray:
+    """Per output, the residual RMS (normalised) that the white noise's effect on the
+    estimates explains (as the monitoring's model check: a noise-free output, such as a
+    closed loop's voltage, carries the trace of the other outputs' noise)."""
+    white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
+    cov = parameter_covariance(jac, r, n_out, floor, white)
+    return explained_rms(jac, cov, n_out)
+
+
 def _score(model: TwinModel, est: Estimator, window: WindowData, theta: FloatArray,
-           weights: Mapping[str, float], initial: FloatArray | None) -> StretchScore:
+           weights: Mapping[str, float], initial: FloatArray | None,
+           explained: FloatArray | None = None) -> StretchScore:
+    """The twin with parameters ``theta`` on a stretch; ``initial`` None: the initial-state
+    offsets are estimated on the stretch with the parameters held (MATLAB ``compare``'s
+    default: a noisy first sample must not count as model error)."""
     fit = WindowFit(model, window, weights)
+    if initial is None and est.config.initial_state and model.initial_states:
+        pmap = est.pmap
+        local = LocalFit(fit, pmap, theta, np.log(est.lower), np.log(est.upper), None,
+                         initial=True)
+        v, _, _ = local.refine(local.start(pmap.ln(theta)), local.nuisance)
+        initial = local.initial(v)
     fit.initial = initial
     y = fit.simulate(theta[None, :])[0]
     names = model.output_names
-    check = est.check(fit, y)
+    fit_pct = {o: fit_percent(fit.meas[1:, j], y[1:, j]) for j, o in enumerate(names)}
+    check = _honest_check(est.check(fit, y, explained), fit_pct)
     return StretchScore(
         start=float(window.t[0]), end=float(window.t[-1]), samples=window.n,
-        fit_pct={o: fit_percent(fit.meas[1:, j], y[1:, j]) for j, o in enumerate(names)},
+        fit_pct=fit_pct,
         rmse={o: float(np.sqrt(np.mean((y[1:, j] - fit.meas[1:, j]) ** 2)))
               for j, o in enumerate(names)},
-        check=check, t=np.asarray(window.t), measured=fit.meas, simulated=y)
+        check=check, t=np.asarray(window.t), measured=fit.meas, simulated=y,
+        inputs={c: np.asarray(window[c]) for c in model.exogenous if c in window.channels})
+
+
+def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
+            bounds: Mapping[str, tuple[float, float]], max_rel_std: float,
+            strong: float = 0.9, null: FloatArray | None = None) -> Identifiability:
+    """Identifiability at an optimum from the covariance of the ln-parameters.
+
+    Args:
+        names: the free parameters (n), the covariance's order.
+        cov: (n, n) covariance of their logarithms (``inf`` rows: not determined at all).
+        values: parameter -> value at the optimum [SI].
+        bounds: parameter -> [low, high] searched [SI].
+        max_rel_std: the 1-sigma (relative) a determined combination may have.
+        strong: |correlation| from which a pair is listed.
+        null: (n, q) directions the outputs do not respond to at all
+            (:func:`least_squares_covariance`), each an undetermined combination of infinite
+            1-sigma.
+
+    Returns:
+        The analysis (:class:`Identifiability`).
+    """
+    n = len(names)
+    names = list(names)
+    at_bound = {}
+    for name in names:
+        lo, hi = bounds[name]
+        v = values[name]
+        if abs(math.log(v / lo)) < AT_BOUND:
+            at_bound[name] = "lower"
+        elif abs(math.log(hi / v)) < AT_BOUND:
+            at_bound[name] = "upper"
+    null = np.zeros((n, 0)) if null is None else np.asarray(null)[:n]
+    finite = np.isfinite(np.diag(cov)) if n else np.zeros(0, dtype=bool)
+    c = np.where(np.isfinite(cov), cov, 0.0)
+    d = np.diag(c).copy()
+    d[~finite] = np.inf
+    sd = np.sqrt(np.maximum(d, 0.0))
+    undetermined: list[Combination] = []
+    for k in range(null.shape[1]):
+        vec = null[:, k]
+        m = float(np.max(np.abs(vec))) if vec.size else 0.0
+        if m <= 0:
+            continue
+        sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
+        undetermined.append(Combination(
+            {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)
+             if abs(x) > NULL_COMPONENT}, math.inf))
+    # the determined block: eigen-decomposition of its covariance (the largest variances are
+    # the information matrix's smallest eigenvalues, the same eigenvectors)
+    blk = c[np.ix_(finite, finite)]
+    w, vecs = np.linalg.eigh(blk) if finite.any() else (np.zeros(0), np.zeros((0, 0)))
+    w = np.maximum(w, 1e-300)
+    fin_names = [nm for nm, f in zip(names, finite, strict=True) if f]
+    info = np.zeros((n, n))
+    if finite.any():
+        info[np.ix_(finite, finite)] = vecs @ np.diag(1.0 / w) @ vecs.T
+    # every parameter in an exact null direction has no information of its own (a zero row)
+    eig = np.sort(np.concatenate([np.zeros(n - int(finite.sum())), 1.0 / w]))
+    q = sum(1 for comb in undetermined if math.isinf(comb.std))
+    rank = n - q  # the Jacobian's numerical rank over the parameters
+    top = float(eig.max()) if eig.size else 0.0
+    small = float(eig.min()) if eig.size else 0.0
+    condition = top / small if small > 0 and q == 0 else math.inf
+    determined_rank = 0
+    for k in range(w.size):
+        vec = vecs[:, k]
+        m = float(np.max(np.abs(vec)))
+        std = math.sqrt(w[k]) / m if m > 0 else math.inf
+        if std <= max_rel_std:
+            determined_rank += 1
+            continue
+        sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
+        undetermined.append(Combination(
+            {nm: float(sign * x / m) for nm, x in zip(fin_names, vec, strict=True)}, std))
+    undetermined.sort(key=lambda comb: -comb.std)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = c / np.outer(np.where(sd > 0, sd, 1.0), np.where(sd > 0, sd, 1.0))
+    corr[~finite, :] = np.nan
+    corr[:, ~finite] = np.nan
+    pairs = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            rho = float(corr[i, j])
+            if math.isfinite(rho) and abs(rho) >= strong:
+                pairs.append((names[i], names[j], rho))
+    pairs.sort(key=lambda p: -abs(p[2]))
+    return Identifiability(
+        names=names, information=info, eigenvalues=eig, rank=rank,
+        determined_rank=determined_rank, condition=condition,
+        rel_std={nm: float(s) for nm, s in zip(names, sd, strict=True)},
+        correlation=corr, strong_pairs=pairs, undetermined=undetermined,
+        at_bound=at_bound, max_rel_std=max_rel_std)
+
+
+#: Singular values of the column-scaled Jacobian below this fraction of the largest are
+#: exact null directions: a forward difference of 1e-6 in ln p carries the simulation's
+#: round-off at about 1e-6 of a column, so no finer direction is real.
+NULL_TOL = 1e-5
+#: A parameter whose component in an exact null direction exceeds this is not determined
+#: at all (infinite variance).
+NULL_COMPONENT = 1e-3
+
+
+def least_squares_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: float
+                             ) -> tuple[FloatArray, FloatArray]:
+    """The least-squares covariance of the search variables at an optimum, in the sandwich
+    form ``A^+ (J^T W J) A^+`` (``A = J^T J``; W each output's residual variance, AR(1)-
+    inflated and floored: :func:`~twinwatch.twin.estimation.fit.residual_variances`, as the
+    monitoring), on the Jacobian's numerical range: directions the outputs do not respond to
+    at all (singular values below :data:`NULL_TOL` of the largest, columns equilibrated) are
+    returned apart, and every variable with a component in them gets an infinite variance.
+    (A pseudo-inverse that keeps such a direction at the finite difference's noise level
+    spreads its enormous variance over the others.)
+
+    Args:
+        jac: (M, n) Jacobian of the normalised residuals.
+        r: (M,) residuals, ``n_out`` outputs interleaved.
+        n_out: outputs.
+        floor: smallest normalised residual level.
+
+    Returns:
+        (covariance (n, n) with ``inf`` rows/columns for the undetermined variables,
+        null directions (n, q) as unit vectors of the variables).
+    """
+    m, n = jac.shape
+    if n == 0:
+        return np.zeros((0, 0)), np.zeros((0, 0))
+    var = residual_variances(r, n_out, floor, n)
+    norms = np.linalg.norm(jac, axis=0)
+    safe = np.where(norms > 0, norms, 1.0)
+    js = jac / safe
+    u, sv, vt = np.linalg.svd(js, full_matrices=False)
+    top = float(sv.max()) if sv.size else 0.0
+    keep = sv > NULL_TOL * top if top > 0 else np.zeros(sv.size, dtype=bool)
+    ur, sr, vr = u[:, keep], sv[keep], vt[keep].T
+    meat = (ur * var[:, None]).T @ ur
+    cov = (vr @ (meat / np.outer(sr, sr)) @ vr.T) / np.outer(safe, safe)
+    # the null space over the scaled variables, completed to n dimensions
+    _, _, vfull = np.linalg.svd(js, full_matrices=True)
+    null_s = vfull[int(keep.sum()):].T
+    dead = norms == 0
+    if null_s.size:
+        dead |= np.any(np.abs(null_s) > NULL_COMPONENT, axis=1)
+    cov[dead, :] = np.inf
+    cov[:, dead] = np.inf
+    null = null_s / safe[:, None]
+    null = null / np.maximum(np.linalg.norm(null, axis=0), 1e-300)
+    return cov, null
+
+
+class _Problem:
+    """The training problem of :func:`identify`: the fit, the parameter map and the local
+    polish over any subset of the estimated parameters."""
+
+    def __init__(self, model: TwinModel, est: Estimator, fit: WindowFit) -> None:
+        cfg = est.config
+        self.names = list(cfg.estimate or [])
+        self.n_est = len(self.names)
+        self.fit = fit
+        self.pmap: ParameterMap = est.pmap
+        self.base = est.trusted.copy()
+        self.xl, self.xu = np.log(est.lower), np.log(est.upper)
+        self.local = LocalFit(fit, self.pmap, self.base, self.xl, self.xu, None,
+                              initial=cfg.initial_state and bool(model.initial_states))
+        self.floor = cfg.model_error
+
+    def polish(self, v: FloatArray, free: Sequence[int], rounds: int = 2
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Least-squares polish of the ``free`` ln-parameters (and the initial state) from
+        ``v``; returns (v, residuals, Jacobian over ``free`` then the initial state)."""
+        active = np.concatenate([np.asarray(free, dtype=int),
+                                 np.arange(self.n_est, self.n_est + self.local.n_init)])
+        r = jac = np.zeros(0)
+        for _ in range(rounds):
+            v, r, jac = self.local.refine(v, active)
+        return v, r, jac
+
+    def covariance(self, r: FloatArray, jac: FloatArray, k: int,
+                   v: FloatArray | None = None, held: Mapping[int, float] | None = None
+                   ) -> tuple[FloatArray, FloatArray]:
+        """Covariance of the first ``k`` search variables of ``jac``'s columns (the free
+        ln-parameters; the initial-state offsets after them marginalised) at residuals ``r``
+        (:func:`least_squares_covariance`), and the exact null directions over them.
+
+        ``held``: position of a held ln-parameter in ``v`` -> the 1-sigma of its stated value
+        (relative); each moves the free ones as the least-squares optimum follows it
+        (``S = -(J^T J)^-1 J^T J_h``), which adds ``S diag(sigma^2) S^T``.
+        """
+        cov, null = least_squares_covariance(jac, r, self.fit.n_out, self.floor)
+        held = {i: sd for i, sd in (held or {}).items() if sd > 0}
+        if held and v is not None and jac.shape[1]:
+            cols = np.array(sorted(held), dtype=int)
+            jh = self.local.jacobian(v, cols, r)
+            sens = -np.linalg.lstsq(jac, jh, rcond=None)[0]
+            sig = np.array([held[i] for i in cols])
+            with np.errstate(invalid="ignore"):
+                cov = cov + (sens * sig**2) @ sens.T
+        return cov[:k, :k], null[:k]
+
+    def theta(self, v: FloatArray) -> FloatArray:
+        return self.pmap.full(v[None, :self.n_est], self.base)[0]
 
 
 def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyConfig,
              train: WindowData, validation: WindowData,
-             nominal: Mapping[str, float] | None = None) -> Identification:
-    """Identify the estimated parameters on ``train`` and score them on ``validation``.
+             nominal: Mapping[str, float] | None = None, *,
+             start: Mapping[str, float] | None = None, structure: str = AS_CONFIGURED,
+             options: Mapping[str, Any] | None = None) -> Identification:
+    """Identify the estimated parameters on ``train``, say which the recording determines,
+    re-fit with the others held at stated values, and score both fits on ``validation``
+    (see the module docstring).
 
     Args:
         model: the twin (its structure and options as configured).
         estimation: the ``[estimation]`` table: which parameters, their bounds, ties, the
             ``model_error`` floor and the validation settings (``config.estimate`` and
             ``config.bounds`` override the first two).
-        config: the ``[identify]`` table.
+        config: the ``[identify]`` table (for this structure: :meth:`IdentifyConfig.
+            for_structure`).
         train, validation: contiguous stretches of the recording, every channel the model
             needs, finite.
-        nominal: the configured values [SI] of the parameters (starting point, and the value
-            of those not estimated).
+        nominal: the configured values [SI] of the parameters (starting point, the value of
+            those not estimated, and the stated value of an undetermined one that
+            ``[identify.fixed]`` does not state).
+        start: parameter values [SI] to place as one more particle of every swarm (another
+            structure's result: a warm start).
+        structure, options: the structure's name and its options, for the report.
 
     Returns:
         The identification.
@@ -220,91 +810,365 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
                 raise ValueError(f"the recording has no channel {ch!r} ({what} range)")
             if not np.all(np.isfinite(w.channels[ch])):
                 raise ValueError(f"channel {ch!r} holds NaN or inf in the {what} range")
+    # a stated value of a parameter that is not identified is its value in the fit
+    estimated = set(config.estimation(estimation).resolved(model).estimate or [])
+    nominal = {**(nominal or {}), **{k: f.value for k, f in config.fixed.items()
+                                     if k not in estimated}}
     est = Estimator(model, config.estimation(estimation), nominal)
     cfg = est.config
-    names_est = list(cfg.estimate or [])
     fit = WindowFit(model, train, config.weights)
-    pmap = est.pmap
-    base = est.trusted.copy()
-    xl, xu = np.log(est.lower), np.log(est.upper)
+    prob = _Problem(model, est, fit)
+    names_est, n_est = prob.names, prob.n_est
     rng = np.random.default_rng(config.seed)
 
     def cost(q: FloatArray) -> FloatArray:
-        return fit.cost(pmap.full(q, base))
+        return fit.cost(prob.pmap.full(q, prob.base))
 
-    q0 = np.clip(pmap.ln(base), xl, xu)
-    cost0 = float(cost(q0[None, :])[0])
-    local = LocalFit(fit, pmap, base, xl, xu, None,
-                     initial=cfg.initial_state and bool(model.initial_states))
-    n_est = len(names_est)
-    active = np.arange(n_est + local.n_init)
+    q0 = np.clip(prob.pmap.ln(prob.base), prob.xl, prob.xu)
+    seeds = [q0]
+    if start:
+        alt = prob.base.copy()
+        for name, value in start.items():
+            if name in model.parameter_names and value > 0:
+                alt[model.parameter_names.index(name)] = value
+        seeds.append(np.clip(prob.pmap.ln(alt), prob.xl, prob.xu))
+    seed_rows = np.array(seeds)
+    seed_cost = fit.cost(prob.pmap.full(seed_rows, prob.base))
+    best_seed = seed_rows[int(np.argmin(seed_cost))]
+    cost0 = float(np.min(seed_cost))
     best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
     reached: list[float] = []
     t_global = time.perf_counter()
-    for start in range(config.starts):
+    every = list(range(n_est))
+    for k in range(config.starts):
         # Each start: a swarm of its own (the configured values one of its particles), then
         # the local polish; the best training fit of all starts is kept.
         left = config.time_budget - (time.perf_counter() - t_global)
-        sw = pso_minimize(cost, xl, xu, config.pso, rng=rng,
-                          time_budget=max(left / (config.starts - start), 1e-3),
-                          seeds=q0[None, :])
-        q_best = sw.x if sw.cost <= cost0 else q0
-        v, r, jac = local.refine(local.start(q_best), active)
-        # a second polish from the first: the long free-run problem is stiffer than a window's
-        v, r, jac = local.refine(v, active)
+        sw = pso_minimize(cost, prob.xl, prob.xu, config.pso, rng=rng,
+                          time_budget=max(left / (config.starts - k), 1e-3),
+                          seeds=seed_rows)
+        q_best = sw.x if sw.cost <= cost0 else best_seed
+        # two polishes: the long free-run problem is stiffer than a window's
+        v, r, jac = prob.polish(prob.local.start(q_best), every)
         sse = float(r @ r)
-        logger.info("identify start %d/%d: PSO %d generations, cost %.6g; polished %.6g",
-                    start + 1, config.starts, sw.generations, sw.cost, math.sqrt(sse))
+        logger.info("identify %s, start %d/%d: PSO %d generations, cost %.6g; polished "
+                    "%.6g", structure, k + 1, config.starts, sw.generations, sw.cost,
+                    math.sqrt(sse))
         reached.append(math.sqrt(sse))
         if best is None or sse < best[0]:
             best = (sse, v, r, jac)
     assert best is not None
-    _, v, r, jac = best
-    sd = relative_std(jac, r, fit.n_out, cfg.model_error)[:n_est]
-    theta = pmap.full(v[None, :n_est], base)[0]
+    _, v_full, r_full, jac_full = best
+    theta_full = prob.theta(v_full)
+    values_full = dict(zip(model.parameter_names, (float(x) for x in theta_full), strict=True))
+    init_full = prob.local.initial(v_full)
+    cov_full, null_full = prob.covariance(r_full, jac_full, n_est)
+    bounds = {n: (float(lo), float(hi)) for n, lo, hi in
+              zip(names_est, est.lower, est.upper, strict=True)}
+    analysis = analyse(names_est, cov_full, values_full, bounds, config.max_rel_std,
+                       config.correlation, null_full)
+    explained = _explained(r_full, jac_full, fit.n_out, cfg.model_error)
+    train_full = _score(model, est, train, theta_full, config.weights, init_full, explained)
+    full = FullFit(
+        values=values_full, rel_std=dict(analysis.rel_std), train=train_full,
+        validation=_score(model, est, validation, theta_full, config.weights, None,
+                          explained),
+        nrmse=math.sqrt(best[0]),
+        criteria=information_criteria(train_full.measured, train_full.simulated,
+                                      n_est + prob.local.n_init))
+
+    # -- hold what the recording does not determine, re-fit the rest -------------------------
+    held: dict[str, HeldParameter] = {}
+    v = v_full.copy()
+    r, jac = r_full, jac_full
+    free = list(every)
+    configured = dict(nominal or {})
+
+    def stated(name: str) -> tuple[float, str, str] | None:
+        if name in config.fixed:
+            f = config.fixed[name]
+            return f.value, "[identify.fixed]", f.reason
+        if name in configured:
+            return float(configured[name]), "[machine.parameters]", "the configured value"
+        return None
+
+    def hold(i: int, why: str, at: float | None = None) -> None:
+        name = names_est[i]
+        lo, hi = bounds[name]
+        sd = 0.0
+        if at is not None:
+            value, source, note = at, "bound", "where the search left it"
+        else:
+            found = stated(name)
+            assert found is not None
+            value, source, note = found
+            if source == "[identify.fixed]":
+                sd = config.fixed[name].rel_std
+        held[name] = HeldParameter(value=float(min(max(value, lo), hi)), source=source,
+                                   stated=note, why=why, full_value=values_full[name],
+                                   rel_std=sd)
+        v[i] = math.log(held[name].value)
+        free.remove(i)
+
+    def held_sd() -> dict[int, float]:
+        return {names_est.index(n): h.rel_std for n, h in held.items() if h.rel_std > 0}
+
+    for name, side in analysis.at_bound.items():
+        i = names_est.index(name)
+        hold(i, f"at its {side} bound {bounds[name][0 if side == 'lower' else 1]:.4g}: the "
+             "data push it beyond the range searched (widen [identify] bounds, or the "
+             "structure does not describe it)", at=values_full[name])
+    changed = bool(held)
+    while free:
+        if changed:
+            v, r, jac = prob.polish(v, free)
+            changed = False
+        k = len(free)
+        cov, null = prob.covariance(r, jac, k, v, held_sd())
+        sub = [names_est[i] for i in free]
+        theta = prob.theta(v)
+        vals = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
+        a = analyse(sub, cov, vals, bounds, config.max_rel_std, config.correlation, null)
+        newly = [n for n in a.at_bound if n not in analysis.at_bound]
+        if newly:
+            for name in newly:
+                hold(names_est.index(name), f"the re-fit with the held values pushed it to "
+                     f"its {a.at_bound[name]} bound", at=vals[name])
+            changed = True
+            continue
+        if all(a.rel_std[n] <= config.max_rel_std for n in sub):
+            break
+        # the weakest combination that a stated value can resolve: hold its main parameter
+        # with a stated value (the largest share, then the lowest priority); a combination
+        # of parameters nobody stated stays free, and undetermined
+        choice: tuple[Combination, str] | None = None
+        for comb in a.undetermined:
+            top = max(abs(w) for w in comb.weights.values())
+            cands = [n for n, w in comb.weights.items()
+                     if abs(w) >= HOLD_SHARE * top and stated(n) is not None]
+            if cands:
+                weights = comb.weights
+                choice = comb, min(cands, key=lambda n: (
+                    0 if n in config.fixed else 1, -abs(weights[n]), -names_est.index(n)))
+                break
+        if choice is None:
+            break
+        comb, name = choice
+        others = [n for n in comb.weights if n != name and abs(comb.weights[n]) >= LABEL_CUT]
+        if others:
+            why = f"in {comb.label()} (+-{_pct(comb.std)})"
+        else:
+            why = f"the outputs barely respond to it (+-{_pct(comb.std)} alone)"
+        hold(names_est.index(name), why)
+        changed = True
+    if changed:
+        v, r, jac = prob.polish(v, free)
+    theta = prob.theta(v)
     values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
-    init = local.initial(v)
+    sub = [names_est[i] for i in free]
+    cov, null = prob.covariance(r, jac, len(free), v, held_sd())
+    final = analyse(sub, cov, values, bounds, config.max_rel_std, config.correlation, null)
+    determined = [n for n in sub if final.rel_std[n] <= config.max_rel_std]
+    undetermined = {n: _unresolved(n, final) for n in sub if n not in determined}
+    init = prob.local.initial(v)
+    explained = _explained(r, jac, fit.n_out, cfg.model_error)
     return Identification(
         values=values,
-        rel_std={n: float(s) for n, s in zip(names_est, sd, strict=True)},
-        bounds={n: (float(lo), float(hi)) for n, lo, hi in
-                zip(names_est, est.lower, est.upper, strict=True)},
+        rel_std={n: final.rel_std[n] for n in sub},
+        bounds=bounds,
         estimated=names_est,
         tied=dict(cfg.tie or {}),
-        train=_score(model, est, train, theta, config.weights, init),
-        validation=_score(model, est, validation, theta, config.weights, None),
+        train=_score(model, est, train, theta, config.weights, init, explained),
+        validation=_score(model, est, validation, theta, config.weights, None, explained),
         elapsed_s=time.perf_counter() - t_start,
         evaluations=fit.evaluations,
-        nrmse=math.sqrt(best[0]),
+        determined=determined,
+        held=held,
+        undetermined=undetermined,
+        full=full,
+        identifiability=analysis,
+        max_rel_std=config.max_rel_std,
+        structure=structure,
+        options=dict(options or {}),
+        nrmse=float(np.linalg.norm(r)),
         starts=reached,
         units={p.name: p.unit for p in model.parameters},
+        output_units={o.name: o.unit for o in model.outputs},
     )
+
+
+def _unresolved(name: str, analysis: Identifiability) -> str:
+    """Why a free parameter is not determined: the undetermined combination it weighs most
+    in, and which parameters a stated value would resolve it with."""
+    best: tuple[float, Combination] | None = None
+    for comb in analysis.undetermined:
+        top = max(abs(x) for x in comb.weights.values())
+        share = abs(comb.weights.get(name, 0.0)) / top if top > 0 else 0.0
+        if share >= LABEL_CUT and (best is None or share > best[0]):
+            best = (share, comb)
+    if best is None:
+        return f"the outputs barely respond to it (above the {_pct(analysis.max_rel_std)} " \
+            "allowed)"
+    comb = best[1]
+    top = max(abs(x) for x in comb.weights.values())
+    partners = [n for n, x in comb.weights.items() if abs(x) >= MAIN_SHARE * top]
+    if name not in partners:
+        partners.append(name)
+    return (f"in {comb.label()} (+-{_pct(comb.std)}); state a value of "
+            f"{' or '.join(partners)} to determine it")
+
+
+def _pct(x: float) -> str:
+    """A relative error as a percentage for reports: ``8.1 %``, ``118 %``, ``4e+06 %``."""
+    if not math.isfinite(x):
+        return "inf %"
+    p = 100.0 * x
+    return f"{p:.3g} %" if p < 1e3 else f"{p:.0f} %" if p < 1e5 else f"{p:.1e} %"
+
+
+@dataclass
+class Comparison:
+    """Candidate structures ranked (:func:`compare_structures`).
+
+    Attributes:
+        results: every candidate's identification, in the order given.
+        winner: index of the winner in ``results``.
+        rule: how it was chosen, in words.
+        criteria: each result's AIC/BIC as compared (on the outputs every structure has:
+            a structure that adds an output, such as a closed loop's voltage, is scored on
+            the same data as the others).
+        outputs: those outputs.
+    """
+
+    results: list[Identification]
+    winner: int
+    rule: str
+    criteria: list[InformationCriteria] = field(default_factory=list)
+    outputs: list[str] = field(default_factory=list)
+
+    @property
+    def best(self) -> Identification:
+        return self.results[self.winner]
+
+
+def compare_structures(results: Sequence[Identification]) -> Comparison:
+    """Rank candidate structures identified on the same recording.
+
+    A structure that fits an output worse than its mean on the validation range is out; of
+    the others, those whose validation residual passes the model check come first, and among
+    them the lowest BIC on the training residual wins (the information criterion pays for
+    every parameter; ties keep the order given, the configured structure first).
+
+    Args:
+        results: one :class:`Identification` per structure (its ``full`` fit is compared).
+
+    Returns:
+        The comparison.
+
+    Raises:
+        ValueError: no results.
+    """
+    if not results:
+        raise ValueError("no structure to compare")
+
+    fulls = [r.full for r in results]
+    if any(f is None for f in fulls):
+        raise ValueError("a structure has no full fit to compare")
+    names = [list(r.train.fit_pct) for r in results]
+    common = [o for o in names[0] if all(o in n for n in names)]
+    if not common:
+        raise ValueError("the structures share no output to compare on")
+    criteria = []
+    for r, f in zip(results, fulls, strict=True):
+        assert f is not None
+        if list(r.train.fit_pct) == common:
+            criteria.append(f.criteria)
+            continue
+        cols = [list(r.train.fit_pct).index(o) for o in common]
+        criteria.append(information_criteria(f.train.measured[:, cols],
+                                             f.train.simulated[:, cols],
+                                             f.criteria.parameters))
+
+    def key(k: int) -> tuple[int, int, float, int]:
+        f = fulls[k]
+        assert f is not None
+        negative = 1 if f.validation.worse_than_mean else 0
+        failed = 0 if f.validation.check.passed else 1
+        bic = criteria[k].bic if math.isfinite(criteria[k].bic) else math.inf
+        return negative, failed, bic, k
+
+    winner = min(range(len(results)), key=key)
+    rule = ("no output fitted worse than its mean on the validation range, then the "
+            "validation model check passed, then the lowest BIC on the training residual"
+            + ("" if all(n == common for n in names) else
+               f" of the outputs all have ({', '.join(common)})"))
+    return Comparison(list(results), winner, rule, criteria, common)
 
 
 def parameters_block(result: Identification, source: str, *, nominal_header: str = ""
                      ) -> str:
-    """The ``[machine.parameters]`` block (and the bounds the search used) to paste into a
-    monitoring configuration, each value with its interval and the fit figures as comments."""
+    """The ``[machine.parameters]`` block to paste into a monitoring configuration: only the
+    determined parameters (each with its interval); the held ones commented out with the
+    reason; the bounds the search used; the structure's options when a candidate won.
+
+    Args:
+        result: the identification.
+        source: what was identified from, for the header.
+        nominal_header: one more header line.
+    """
+    fits = "; ".join(f"{o} {result.train.fit_pct[o]:.1f} training, "
+                     f"{result.validation.fit_pct[o]:.1f} validation"
+                     for o in result.train.fit_pct)
     lines = [f"# Identified by `twinwatch identify` from {source}",
              f"# training {result.train.start:g}-{result.train.end:g} s "
              f"({result.train.samples} samples), validation {result.validation.start:g}-"
              f"{result.validation.end:g} s ({result.validation.samples} samples)",
-             "# fit % (100 (1 - |y - y_hat| / |y - mean(y)|)): "
-             + "; ".join(f"{o} {result.train.fit_pct[o]:.1f} training, "
-                         f"{result.validation.fit_pct[o]:.1f} validation"
-                         for o in result.train.fit_pct)]
+             f"# fit % (100 (1 - |y - y_hat| / |y - mean(y)|)): {fits}"]
+    for what, score in (("training", result.train), ("validation", result.validation)):
+        if not score.check.passed:
+            lines.append(f"# model check ({what}) FAILED: " + "; ".join(score.check.reasons))
     if nominal_header:
         lines.append(f"# {nominal_header}")
+    if result.structure != AS_CONFIGURED:
+        lines.append(f"# structure: {result.structure}; in [machine.options] set:")
+        for key, value in (result.options or {}).items():
+            lines.append(f"#   {key} = {_toml_value(value)}")
+    pasted = result.pasted
+    if not result.validation.check.passed:
+        lines.append("# NOTHING TO PASTE: the twin fails the model check on the validation "
+                     "range, so its values are biased by what it misses: fix the structure "
+                     "([identify.candidates]), or accept that error ([estimation] model_error)")
+    elif result.held or result.undetermined:
+        lines.append(f"# Pasted: the parameters the recording determines within "
+                     f"{_pct(result.max_rel_std)} (1 sigma)"
+                     + (", given the held values below." if result.held else "."))
     lines.append("[machine.parameters]")
-    for name, value in result.values.items():
+    for name in result.determined:
+        value = result.values[name]
         unit = result.units.get(name, "")
-        if name in result.rel_std:
-            note = f"{unit}, identified +- {100 * result.rel_std[name]:.2g} % (1 sigma)"
-        elif name in result.tied:
-            note = f"{unit}, tied to {result.tied[name]}"
-        else:
-            note = f"{unit}, as configured (not identified)"
-        lines.append(f"{name} = {value:.6g}".ljust(24) + f"# {note}")
+        note = f"{unit}, identified +- {_pct(result.rel_std[name])} (1 sigma)"
+        if name not in pasted:
+            note += ", NOT PASTED: the model check failed"
+        lines.append(("" if name in pasted else "# ") + f"{name} = {value:.6g}".ljust(24)
+                     + f"# {note}")
+    for dep, src in result.tied.items():
+        if src in pasted:
+            lines.append(f"{dep} = {result.values[dep]:.6g}".ljust(24)
+                         + f"# {result.units.get(dep, '')}, tied to {src}")
+    if result.held or result.undetermined:
+        lines.append("# Not determined by this recording (not pasted):")
+        for name, h in result.held.items():
+            unit = result.units.get(name, "")
+            lines.append(f"# {name} = {h.value:.6g}".ljust(24) + f"# {unit}, held "
+                         f"({h.source}: {h.stated}); not determined: {h.why}")
+        for name, why in result.undetermined.items():
+            unit = result.units.get(name, "")
+            lines.append(f"# {name} = {result.values[name]:.6g}".ljust(24)
+                         + f"# {unit}, not determined (+-{_pct(result.rel_std[name])}): {why}")
+        for dep, src in result.tied.items():
+            if src not in pasted:
+                lines.append(f"# {dep} = {result.values[dep]:.6g}".ljust(24)
+                             + f"# {result.units.get(dep, '')}, tied to {src} (not pasted)")
     lines.append("")
     lines.append("# The search range the identification used; for the monitoring's [estimation]:")
     lines.append("# bounds = { " + ", ".join(f"{n} = [{lo:.4g}, {hi:.4g}]"
@@ -312,5 +1176,20 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["Identification", "IdentifyConfig", "StretchScore", "fit_percent", "identify",
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, Mapping):
+        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+__all__ = ["AS_CONFIGURED", "Candidate", "Combination", "Comparison", "FixedValue",
+           "FullFit", "HeldParameter", "Identifiability", "Identification", "IdentifyConfig",
+           "InformationCriteria", "StretchScore", "analyse", "compare_structures",
+           "fit_percent", "identify", "information_criteria", "merge_options",
            "parameters_block"]

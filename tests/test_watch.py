@@ -1,0 +1,307 @@
+"""``twinwatch watch`` and ``twinwatch tail`` (issue 16, item 5).
+
+Unit level: the :class:`~twinwatch.watch.Fleet` on messages made here (a fake clock: a machine
+appears, goes stale, goes, is forgotten; an older window is not taken for the latest; the RUL is
+shown when the message carries the prognostics' fields), the tail line and the rich table.
+
+End to end, as an operator runs them: a Zenoh router (a Python zenoh session in router mode
+listening on 127.0.0.1), three daemons (``twinwatch run`` in subprocesses, simulated motors in
+real time, each a Zenoh client of the router), one of them a motor whose Ra is 13 % below its
+nameplate (an alarm on Ra within its first windows); ``twinwatch watch --once --json --wait 2``
+lists all three with the alarm, the table shows them, ``twinwatch tail`` follows one, and the
+live JSON stream marks a daemon killed with SIGKILL gone (about 30 s: in the slow lane; the fast
+lane follows one daemon directly, in process). Every socket is on 127.0.0.1, every port picked
+free at run time, scouting off.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from twinwatch.watch import Fleet, FleetWatcher, health_line, render
+
+from .conftest import ROOT
+from .test_service import Collector, wait_for, zsession
+from .test_zenoh_publisher import endpoint, free_port
+
+SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+
+
+# -- the fleet, on messages made here ---------------------------------------------------------
+def _msg(machine: str, window: int, *, run: str = "r1", ra_dev: float = 0.0,
+         level: str = "normal", **extra: Any) -> dict[str, Any]:
+    """A health message as a daemon publishes it (the fields the watcher reads)."""
+    ra = 6.5 * (1 + ra_dev / 100)
+    return {"schema": 6, "machine": machine, "model": "dc_motor", "run": run, "window": window,
+            "t_start": 2.0 * window, "t_end": 2.0 * window + 1.99, "samples": 200,
+            "parameters": {
+                "Ra": {"value": ra, "unit": "ohm", "nominal": 6.5, "deviation_pct": ra_dev,
+                       "status": "estimated", "held": False, "reason": None,
+                       "rel_std_pct": 0.01, **extra},
+                "Kt": {"value": 0.038, "unit": "N m/A", "nominal": 0.038, "deviation_pct": 0.0,
+                       "status": "tied", "held": True, "reason": "tied to Ke",
+                       "rel_std_pct": None}},
+            "nrmse": 1.6e-5, "trusted": True, "elapsed_s": 0.05,
+            "model_check": {"passed": True, "reasons": [], "widen": 1.0, "outputs": {}},
+            "terms": [], "counters": {"windows_estimated": window + 1, "overruns": 0,
+                                      "windows_abandoned": 2, "driver_frames": 400,
+                                      "driver_gaps": 1},
+            "alarms": {"Ra": {"level": level, "since_t": 10.0 if level != "normal" else None,
+                              "since_window": None, "deviation_pct": ra_dev,
+                              "pending": None}}}
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_a_machine_appears_goes_stale_goes_and_is_forgotten() -> None:
+    clock = Clock()
+    fleet = Fleet(stale_after=10.0, forget_after=60.0, clock=clock)
+    fleet.token("m1", True)  # there before the watcher: since unknown
+    assert fleet.health("m1", _msg("m1", 3))
+    clock.t += 5
+    fleet.token("m2", True)  # appeared while watching
+    snap = fleet.snapshot()["machines"]
+    assert [(m["machine"], m["state"], m["state_since_s"], m["window"]) for m in snap] == [
+        ("m1", "alive", None, 3), ("m2", "alive", 0.0, None)]
+    assert snap[0]["last_window_age_s"] == 5.0
+    assert fleet.health("m1", _msg("m1", 5)) and not fleet.health("m1", _msg("m1", 4))
+    assert fleet.health("m1", _msg("m1", 0, run="r2"))  # a new run starts from window 0
+    clock.t += 11  # no window for 11 s (> 10 s and > 3 window lengths)
+    assert fleet.snapshot()["machines"][0]["state"] == "stale"
+    fleet.token("m1", False)
+    clock.t += 30
+    m1 = fleet.snapshot()["machines"][0]
+    assert (m1["state"], m1["state_since_s"], m1["run"]) == ("gone", 30.0, "r2")
+    clock.t += 31
+    assert fleet.machines() == ["m2"]  # forgotten a minute after it went
+
+
+def test_the_snapshot_reads_what_the_message_carries() -> None:
+    fleet = Fleet(clock=Clock())
+    fleet.token("m1", True)
+    rul = {"status": "degrading", "method": "monte_carlo", "draws": 200, "interval": 0.9,
+           "warning": None, "alarm": {"status": "predicted", "rul_s": 5400.0}}
+    fleet.health("m1", _msg("m1", 7, ra_dev=-11.0, level="alarm", rul=rul, trend={"x": 1}))
+    fleet.alarm("m1", {"parameter": "Ra", "previous": "warning", "level": "alarm", "t": 15.99})
+    (m,) = fleet.snapshot()["machines"]
+    json.dumps(m, allow_nan=False)
+    assert list(m["parameters"]) == ["Ra"]  # tied and fixed ones are not estimated
+    ra = m["parameters"]["Ra"]
+    assert (ra["alarm"], ra["rul_s"], ra["rul_status"]) == ("alarm", 5400.0, "predicted")
+    assert ra["deviation_pct"] == -11.0 and m["alarms"]["Ra"]["level"] == "alarm"
+    assert m["quality"]["problems"] == {"windows_abandoned": 2, "driver_gaps": 1}
+    assert m["quality"]["model_check"] is True and m["last_event"]["level"] == "alarm"
+    line = health_line(_msg("m1", 7, ra_dev=-11.0, level="alarm"), wall=0.0)
+    assert re.fullmatch(r"\d\d:\d\d:\d\d m1 #7 \[14\.00-15\.99 s\] Ra 5\.785 -11\.00 % "
+                        r"nRMSE 1\.6e-05 check ok  ALARM Ra losses windows_abandoned 2, "
+                        r"driver_gaps 1 \(run r1\)", line), line
+    from rich.console import Console
+
+    console = Console(record=True, width=200, color_system=None)
+    console.print(render(fleet.snapshot(), title="fleet"))
+    text = console.export_text()
+    assert "fleet: 1 machine" in text and "-11.00 %" in text and "Ra ALARM since t=10 s" in text
+    assert "RUL 90.0 min" in text and "driver_gaps 1" in text
+
+
+# -- end to end: a router, three daemons ------------------------------------------------------
+def _daemon_config(name: str, connect: str, *, degraded: bool = False) -> str:
+    text = SIM.replace('name = "dc-motor-sim"', f'name = "{name}"')
+    text = text.replace('mode = "peer"  ', 'mode = "client"')
+    text = text.replace('listen = ["tcp/127.0.0.1:7447"]', f'connect = ["{connect}"]')
+    text = text.replace("\nconnect = []", "")
+    text = text.replace("[recording]", "[recording]\nenabled = false")
+    text = text.replace("realtime = false", "realtime = true")
+    if degraded:  # Ra 13 % below the nameplate (the plant's is 6.5 ohm): alarm at once
+        text = text.replace("Ra = 6.5          # ohm", "Ra = 7.5          # ohm")
+        text = text.replace("raise_after_s = 10.0", "raise_after_s = 2.0")
+        text = text.replace("# raise_after_windows = 3", "raise_after_windows = 1")
+    assert f'connect = ["{connect}"]' in text and "realtime = true" in text
+    return text
+
+
+def _env() -> dict[str, str]:
+    return dict(os.environ, PYTHONPATH=str(ROOT), CI="true", COLUMNS="200")
+
+
+def _twinwatch(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "twinwatch", *args], capture_output=True,
+                          text=True, timeout=timeout, env=_env())
+
+
+class Fleet3:
+    def __init__(self, ep: str, procs: dict[str, subprocess.Popen[str]],
+                 health: Collector) -> None:
+        self.ep = ep
+        self.procs = procs
+        self.health = health
+
+
+@pytest.fixture(scope="module")
+def fleet3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet3]:
+    tmp = tmp_path_factory.mktemp("fleet")
+    ep = endpoint(free_port())
+    procs: dict[str, subprocess.Popen[str]] = {}
+    with zsession("router", listen=[ep]) as router:
+        health = Collector(router, "twinwatch/*/health")
+        try:
+            for name in ("m1", "m2", "m3"):
+                d = tmp / name
+                d.mkdir()
+                (d / "m.toml").write_text(_daemon_config(name, ep, degraded=name == "m2"))
+                procs[name] = subprocess.Popen(
+                    [sys.executable, "-m", "twinwatch", "run", "m.toml", "--no-progress"],
+                    cwd=d, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                    text=True)
+            wait_for(lambda: {h["machine"] for h in health.snapshot()} == {"m1", "m2", "m3"}
+                     and any(h["machine"] == "m2" and h["alarms"]["Ra"]["level"] == "alarm"
+                             for h in health.snapshot()), 180, "three daemons and m2's alarm")
+            yield Fleet3(ep, procs, health)
+        finally:
+            health.sub.undeclare()
+            for p in procs.values():
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            for p in procs.values():
+                try:
+                    p.communicate(timeout=30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.communicate()
+
+
+@pytest.mark.slow  # three daemons in real time: about 30 s
+def test_watch_once_json_lists_the_three_with_the_alarm(fleet3: Fleet3) -> None:
+    t0 = time.monotonic()
+    r = _twinwatch("watch", "--connect", fleet3.ep, "--once", "--json", "--wait", "2")
+    elapsed = time.monotonic() - t0
+    assert r.returncode == 0, r.stderr
+    snap = json.loads(r.stdout)
+    machines = {m["machine"]: m for m in snap["machines"]}
+    assert sorted(machines) == ["m1", "m2", "m3"]
+    for m in machines.values():
+        assert m["state"] == "alive" and m["token"] is True
+        assert m["window"] is not None and m["run"] and m["model"] == "dc_motor"
+        assert m["last_window_age_s"] is not None and m["quality"]["model_check"] is not None
+    m2 = machines["m2"]
+    assert m2["alarms"]["Ra"]["level"] == "alarm"
+    assert m2["parameters"]["Ra"]["alarm"] == "alarm"
+    assert m2["parameters"]["Ra"]["deviation_pct"] == pytest.approx(-13.33, abs=0.1)
+    assert machines["m1"]["alarms"]["Ra"]["level"] == "normal"
+    assert len({m["run"] for m in machines.values()}) == 3
+    print(f"watch --once --json listed 3 machines in {elapsed:.2f} s (process start to exit)")
+
+
+@pytest.mark.slow  # three daemons in real time: about 30 s
+def test_watch_table_shows_the_fleet(fleet3: Fleet3) -> None:
+    r = _twinwatch("watch", "--connect", fleet3.ep, "--once")
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert f"twinwatch fleet on {fleet3.ep} (client): 3 machines" in out
+    rows = {name: [ln for ln in out.splitlines() if f"│ {name} " in ln] for name in
+            ("m1", "m2", "m3")}
+    assert all(len(v) == 1 for v in rows.values()), out
+    assert "alive" in rows["m1"][0] and "-13.33 %" in rows["m2"][0] and "ALARM" in out
+
+
+@pytest.mark.slow  # three daemons in real time: about 30 s
+def test_tail_prints_one_line_per_health_message(fleet3: Fleet3) -> None:
+    r = _twinwatch("tail", "m2", "--connect", fleet3.ep, "--count", "3")
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 3, r.stdout
+    windows = []
+    for line in lines:
+        m = re.match(r"\d\d:\d\d:\d\d m2 #(\d+) \[[\d.]+-[\d.]+ s\] Ra 6\.5\d* -13\.33 % .*"
+                     r"ALARM Ra \(run \S+\)$", line)
+        assert m, line
+        windows.append(int(m.group(1)))
+    assert windows == list(range(windows[0], windows[0] + 3))  # the latest, then as they come
+    assert "m2: on the network" in r.stderr
+    r = _twinwatch("tail", "m1", "--connect", fleet3.ep, "--count", "2", "--json")
+    assert r.returncode == 0, r.stderr
+    docs = [json.loads(line) for line in r.stdout.splitlines()]
+    assert [d["machine"] for d in docs] == ["m1", "m1"] and docs[0]["run"] == docs[1]["run"]
+    assert docs[1]["window"] == docs[0]["window"] + 1 and docs[0]["schema"] >= 6
+
+
+@pytest.mark.slow  # three daemons in real time: about 30 s
+def test_live_watch_marks_a_killed_daemon_gone(fleet3: Fleet3) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "watch", "--connect",
+                             fleet3.ep, "--json", "--interval", "0.3"], env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: queue.Queue[str] = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(ln) for ln in proc.stdout or []],
+                              daemon=True)
+    reader.start()
+
+    def states() -> dict[str, str]:
+        snap = json.loads(lines.get(timeout=30))
+        return {m["machine"]: m["state"] for m in snap["machines"]}
+
+    try:
+        while states() != {"m1": "alive", "m2": "alive", "m3": "alive"}:
+            pass
+        fleet3.procs["m3"].send_signal(signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        seen = states()
+        while seen.get("m3") != "gone" and time.monotonic() < deadline:
+            seen = states()
+        assert seen == {"m1": "alive", "m2": "alive", "m3": "gone"}
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        reader.join(timeout=5)
+    assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
+
+
+def test_an_unreachable_network_is_one_line_and_exit_1() -> None:
+    r = _twinwatch("watch", "--connect", endpoint(free_port()), "--once")
+    assert r.returncode == 1
+    assert r.stderr.startswith("Error: cannot connect to tcp/127.0.0.1:") and (
+        "nothing answers there" in r.stderr) and "Traceback" not in r.stderr
+    r = _twinwatch("tail", "m1", "--connect", "tcp/localhost")
+    assert r.returncode == 1 and "is not of the form proto/host:port" in r.stderr
+
+
+def test_a_watcher_in_process_follows_a_daemon_directly() -> None:
+    """No router: the watcher connects to a daemon's own listening endpoint (a peer)."""
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.runner import Daemon
+
+    port = free_port()
+    cfg = default_config()
+    cfg.driver.plant.duration = 6.0  # type: ignore[union-attr]
+    cfg.recording.enabled = False
+    cfg.zenoh.listen = [endpoint(port)]
+    fleet = Fleet()
+    got: list[int] = []
+    with Daemon(cfg, record=False) as daemon, zsession("client", connect=[endpoint(port)]) as s:
+        with FleetWatcher(s, fleet, on_health=lambda m, d, t: got.append(d["window"])):
+            wait_for(lambda: fleet.machines() == ["dc-motor-sim"], 10, "the token")
+            daemon.run()
+            wait_for(lambda: len(got) == 3, 10, "three windows")
+    assert got == [0, 1, 2]
+    assert fleet.snapshot()["machines"][0]["window"] == 2
