@@ -122,7 +122,7 @@ def window_evidence(estimate: WindowEstimate, t: float, *,
             if rel is None or not (rel > 0) or rel > max_rel_std or not value:
                 continue
             out[name] = Evidence(t, float(value), abs(float(value)) * float(rel), "estimated")
-        elif status in ("fused", "held") and fused and name in fused:
+        elif status in ("fused", "held", "suspect") and fused and name in fused:
             value, rel = fused[name]
             if 0 < rel <= max_rel_std:
                 out[name] = Evidence(t, value, abs(value) * rel, "fused")
