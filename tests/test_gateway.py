@@ -1,0 +1,229 @@
+"""Gateway mode (``twinwatch run DIR``, :mod:`twinwatch.daemon.gateway`): many machines in one
+process, each isolated from the others' stalled sources, failing windows and bad
+configurations; the Zenoh session shared by the machines configured alike."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from twinwatch.config.loader import load_config
+from twinwatch.config.preflight import check_runnable
+from twinwatch.daemon.gateway import EstimationSlots, Gateway
+from twinwatch.daemon.pipeline import WindowPipeline
+from twinwatch.sinks.base import SharedResources, SinkContext
+from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig, to_zenoh_config
+
+from .sources_support import CAN_DRIVER, PLANT_DBC, SocketcandServer
+from .test_fault_injection import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def machine_config(directory: Path, name: str, *, port: int | None, duration: float = 1200.0,
+                   realtime: bool = True, driver: str | None = None) -> Path:
+    """The simulated motor's example configuration as machine ``name`` of a gateway: Zenoh on
+    127.0.0.1:``port`` (None: off), no recording, the plant paced by the wall clock."""
+    text = SIM.replace('name = "dc-motor-sim"', f'name = "{name}"')
+    text = text.replace("duration = 1200.0", f"duration = {duration}")
+    text = text.replace("realtime = false", f"realtime = {str(realtime).lower()}")
+    text = text.replace("[recording]", "[recording]\nenabled = false")
+    if port is None:
+        text = text.replace("[zenoh]", "[zenoh]\nenabled = false")
+    else:
+        text = text.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
+    if driver is not None:
+        start, end = text.index("[driver]"), text.index("[zenoh]")
+        text = text[:start] + driver.strip() + "\n\n" + text[end:]
+    path = directory / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def _check(cfg: Any, path: Path, work_dir: Path) -> None:
+    check_runnable(cfg, str(path), base_dir=path.parent, cwd=work_dir)
+
+
+def test_estimation_slots_bound_concurrency_and_skip_a_stuck_holder() -> None:
+    now = [0.0]
+    slots = EstimationSlots(2, stuck_after=10.0, clock=lambda: now[0])
+    a, b = slots.acquire("a"), slots.acquire("b")
+    got: list[int] = []
+    waiter = threading.Thread(target=lambda: got.append(slots.acquire("c")))
+    waiter.start()
+    waiter.join(0.8)
+    assert waiter.is_alive() and not got  # both slots held: c waits
+    now[0] = 11.0  # a and b stuck beyond 10 s: no longer counted
+    waiter.join(2.0)
+    assert got and not waiter.is_alive()
+    assert sorted(h for h, _ in slots.stuck()) == ["a", "b"]
+    for t in (a, b, got[0]):
+        slots.release(t)
+    assert slots.busy() == 0
+
+
+def test_machines_configured_alike_share_one_zenoh_session() -> None:
+    zenoh = pytest.importorskip("zenoh")
+    port = _free_port()
+    cfg = ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])
+    shared = SharedResources()
+    p1 = HealthPublisher.from_config(cfg, SinkContext(machine="m1", shared=shared))
+    p2 = HealthPublisher.from_config(cfg, SinkContext(machine="m2", shared=shared))
+    try:
+        assert p1.session is p2.session  # one session, one port: the second did not fail
+        assert shared.references(shared.keys()[0]) == 2
+        conf = to_zenoh_config(ZenohConfig(mode="client", listen=[],
+                                           connect=[f"tcp/127.0.0.1:{port}"]))
+        got: list[str] = []
+        with zenoh.open(conf) as sub_session:
+            sub = sub_session.declare_subscriber(
+                "twinwatch/*/health", lambda s: got.append(str(s.key_expr)))
+            deadline = time.monotonic() + 10
+            while set(got) != {"twinwatch/m1/health", "twinwatch/m2/health"}:
+                assert time.monotonic() < deadline, got
+                p1.publish({"window": 0})
+                p2.publish({"window": 0})
+                time.sleep(0.2)
+            sub.undeclare()
+        p1.close()
+        assert not p2.closed and shared.references(shared.keys()[0]) == 1
+        p2.publish({"window": 1})  # the session is still open for m2
+        assert p2.errors == 0
+    finally:
+        p1.close()
+        p2.close()
+    assert shared.keys() == []  # the last one closed it
+
+
+@pytest.mark.slow
+def test_one_stalled_source_and_one_raising_machine_do_not_touch_the_healthy_ones(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three healthy machines, one whose source stalls (its CAN gateway goes silent), one
+    whose every window raises, and one whose configuration is invalid, in one gateway: every
+    window of the healthy machines is estimated, none dropped as an overrun, each with its
+    queue wait recorded; the others are reported under their names."""
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    port = _free_port()
+    healthy = ["h1", "h2", "h3"]
+    for name in healthy:
+        machine_config(machines, name, port=port, duration=1200.0)
+    machine_config(machines, "raising", port=port)
+    can = SocketcandServer(seconds=600.0).start()
+    driver = CAN_DRIVER.format(dbc=PLANT_DBC, log="", time_source="counter").replace(
+        'log_file = ""', 'interface = "socketcand"\nchannel = "can0"\n'
+        f'bus_options = {{ host = "127.0.0.1", port = {can.port} }}')
+    machine_config(machines, "stalled", port=port, driver=driver)
+    (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "no_such_model"\n')
+
+    original = WindowPipeline.process
+
+    def process(self: WindowPipeline, window: Any) -> Any:
+        if self.machine == "raising":
+            raise FloatingPointError("simulated numeric failure")
+        return original(self, window)
+
+    monkeypatch.setattr(WindowPipeline, "process", process)
+    monkeypatch.chdir(tmp_path)
+    gateway = Gateway(machines, read=load_config, check=_check, duration=12.0, workers=2,
+                      quiet_after=4.0)
+    statuses: list[str] = []
+    done = threading.Event()
+
+    def watch() -> None:
+        """Silence the stalled machine's CAN node once it runs, note STATUS every 0.5 s, and
+        stop the gateway once the machines with a finite run have finished."""
+        muted = False
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            statuses.append(gateway.status_line())
+            m = gateway.machines.get(machines / "stalled.toml")
+            d = m.supervisor.daemon if m is not None else None
+            if not muted and d is not None and d.ring.windows >= 1:
+                can.mute.update(range(0x800))  # every frame: the node went silent
+                muted = True
+            finite = [gateway.machines[machines / f"{n}.toml"] for n in [*healthy, "raising"]]
+            if all(not f.thread.is_alive() for f in finite) and muted:
+                time.sleep(1.0)
+                statuses.append(gateway.status_line())
+                break
+            time.sleep(0.5)
+        done.set()
+        gateway.stop()
+
+    try:
+        gateway.start(timeout=120)
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
+        gateway.run()
+        assert done.is_set()
+    finally:
+        gateway.stop()
+        can.close()
+
+    by_name = {m.name: m for m in gateway.all_machines()}
+    assert set(by_name) == {*healthy, "raising", "stalled", "bad"}
+    for name in healthy:
+        m = by_name[name]
+        d = m.supervisor.daemon
+        assert m.lost is None and d is not None
+        assert d.ring.windows >= 5, (name, d.ring.windows)  # 12 s of 2 s windows
+        assert d.windows_estimated == d.ring.windows, name  # every window estimated
+        assert d.overruns == 0 and d.numeric_failures == 0, name
+        assert len(d.queue_waits) == d.windows_estimated  # each window's wait recorded
+        assert [h.window for h in d.health_history] == list(range(d.ring.windows))
+        assert d.latest_health is not None and d.latest_health.machine == name
+    raising = by_name["raising"].supervisor.daemon
+    assert raising is not None and raising.windows_estimated == 0
+    assert raising.numeric_failures == raising.ring.windows >= 5
+    assert any("raising: " in s and "not estimated" in s for s in statuses), statuses[-3:]
+    stalled = by_name["stalled"].supervisor.daemon
+    assert stalled is not None
+    assert any("stalled: " in s for s in statuses), statuses[-3:]
+    lost = gateway.lost()
+    assert list(lost) == ["bad (bad.toml)"] and "invalid configuration" in lost["bad (bad.toml)"]
+    # each machine's files in its own directory
+    for name in healthy:
+        assert (tmp_path / name / "state.sqlite").is_file()
+
+
+def test_run_on_a_directory_reports_each_machine_and_a_lost_one(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch
+                                                                ) -> None:
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    port = _free_port()
+    for name in ("m1", "m2"):
+        machine_config(machines, name, port=port, duration=6.0, realtime=False)
+    (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "dc_motor"\n')
+    monkeypatch.chdir(tmp_path)
+    r = cli("run", str(machines), "--no-progress")
+    assert r.exit_code == 1, r.output  # a machine was lost
+    assert "== m1 (m1.toml): stopped" in r.output
+    assert "== m2 (m2.toml): stopped" in r.output
+    assert "== bad (bad.toml): lost: invalid configuration" in r.output
+    assert "twinwatch gateway: 3 machines, 2 ran, 1 lost" in r.output
+    assert r.output.count("windows estimated, 0 overruns") == 2
+    for name in ("m1", "m2"):
+        assert (tmp_path / name / "state.sqlite").is_file()
+    (machines / "bad.toml").unlink()
+    r = cli("run", str(machines), "--no-progress")
+    assert r.exit_code == 0, r.output
+
+
+def test_run_on_an_empty_directory_is_a_configuration_error(tmp_path: Path) -> None:
+    r = cli("run", str(tmp_path))
+    assert r.exit_code == 78
+    assert "no machine configuration" in r.output
