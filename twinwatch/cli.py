@@ -272,10 +272,6 @@ def _run_gateway(directory: Path, *, duration: float | None, log_level: str,
         click.echo(f"== {m.name} ({m.path.name}): {state}")
         if daemon is not None and cfg is not None:
             _print_summary(cfg, daemon)
-            waits = sorted(daemon.queue_waits)
-            if waits:
-                click.echo(f"queue wait per window: median {waits[len(waits) // 2] * 1e3:.0f} "
-                           f"ms, max {waits[-1] * 1e3:.0f} ms")
             if daemon.lost():
                 worst = max(worst, EX_IOERR)
             elif daemon.mostly_failed() and worst != EX_IOERR:
@@ -355,6 +351,7 @@ def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
         lines += [*_window_lines(last), *_trend_lines(last), *_alarm_lines(last),
                   *_structure_lines(last),
                   *_check_lines(last, history), *_timing_lines(cfg, history),
+                  *_wait_lines(daemon),
                   *daemon.summary()]  # where each output wrote, what it lost
     if daemon.lost():
         lines.append("twinwatch: estimated windows were lost: exit status 74")
@@ -473,6 +470,16 @@ def _timing_lines(cfg: TwinwatchConfig, history: list[HealthMessage]) -> list[st
     return [f"estimation time per window: median {times[len(times) // 2] * 1e3:.0f} ms, max "
             f"{times[-1] * 1e3:.0f} ms (window length "
             f"{cfg.acquisition.window * cfg.acquisition.sample_period:g} s)"]
+
+
+def _wait_lines(daemon: Daemon) -> list[str]:
+    """How long the windows waited for the worker (queued, and in a gateway for an
+    estimation slot) before their estimation started."""
+    waits = sorted(daemon.queue_waits)
+    if not waits:
+        return []
+    return [f"queue wait per window: median {waits[len(waits) // 2] * 1e3:.0f} ms, max "
+            f"{waits[-1] * 1e3:.0f} ms"]
 
 
 def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
