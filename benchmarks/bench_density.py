@@ -69,12 +69,16 @@ def write_plants(directory: Path, n: int, seconds: float) -> None:
     from tests.sources_support import plant_csv
 
     for i in range(n):
-        path = directory / f"plant{i:03d}.csv"
+        path = plant_path(directory, i, seconds)
         if not path.exists():
             plant_csv(path, seconds + 4.0, plant={
                 "scenario": "resistance_degradation", "fault_start": 5.0,
                 "noise": {"ia": 0.5, "omega": 0.5}, "seed": i,
                 "setpoint": {"seed": i + 1}})
+
+
+def plant_path(directory: Path, i: int, seconds: float) -> Path:
+    return directory / f"plant{i:03d}-{seconds:g}s.csv"
 
 
 def machine_config(i: int, recording: Path, port: int, record: bool) -> str:
@@ -206,7 +210,7 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
         for i in range(n):
             port = PORT_BASE if mode == "gateway" else PORT_BASE + 1 + i
             (machines / f"m{i:03d}.toml").write_text(
-                machine_config(i, plants / f"plant{i:03d}.csv", port, record))
+                machine_config(i, plant_path(plants, i, seconds), port, record))
         cmd = [sys.executable, "-m", "twinwatch", "run", "--no-progress", "--duration",
                str(seconds)]
         t_start = time.monotonic()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -227,3 +228,64 @@ def test_run_on_an_empty_directory_is_a_configuration_error(tmp_path: Path) -> N
     r = cli("run", str(tmp_path))
     assert r.exit_code == 78
     assert "no machine configuration" in r.output
+
+
+@pytest.mark.slow
+def test_sighup_adds_removes_and_reloads_machines(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reload re-reads the directory: a removed file's machine stops, a new file's starts,
+    a changed file's machine reloads (the same run goes on), an unchanged one is left alone."""
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    for name in ("m1", "m2", "m3"):
+        machine_config(machines, name, port=None)
+    monkeypatch.chdir(tmp_path)
+    gateway = Gateway(machines, read=load_config, check=_check, workers=2)
+
+    def daemon(name: str) -> Any:
+        m = next((m for m in gateway.machines.values() if m.name == name), None)
+        return None if m is None else m.supervisor.daemon
+
+    def wait_for(what: Callable[[], bool], timeout: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not what():
+            assert time.monotonic() < deadline, "timed out"
+            time.sleep(0.2)
+
+    seen: dict[str, Any] = {}
+    errors: list[BaseException] = []
+
+    def drive() -> None:
+        try:
+            wait_for(lambda: all((d := daemon(n)) is not None and d.windows_estimated >= 1
+                                 for n in ("m1", "m2", "m3")))
+            seen["m2"], seen["m3"] = daemon("m2"), daemon("m3")
+            seen["m2_run"] = seen["m2"].run_id
+            (machines / "m1.toml").unlink()
+            machine_config(machines, "m4", port=None)
+            m2 = machines / "m2.toml"
+            m2.write_text(m2.read_text().replace("warning = 5.0", "warning = 6.0"))
+            gateway.reload()
+            wait_for(lambda: (d := daemon("m4")) is not None and d.windows_estimated >= 1)
+            wait_for(lambda: daemon("m2") is not seen["m2"]
+                     and daemon("m2").windows_estimated >= 1)
+        except BaseException as exc:  # noqa: BLE001 - reported by the test's thread
+            errors.append(exc)
+        finally:
+            gateway.stop()
+
+    gateway.start(timeout=120)
+    driver = threading.Thread(target=drive, daemon=True)
+    driver.start()
+    gateway.run()
+    driver.join(5)
+    assert not errors, errors
+    names = {m.name: m for m in gateway.machines.values()}
+    assert sorted(names) == ["m2", "m3", "m4"]
+    retired = [m.name for m in gateway.retired]
+    assert retired == ["m1"] and not gateway.retired[0].thread.is_alive()
+    assert daemon("m3") is seen["m3"]  # unchanged file: left alone
+    reloaded = daemon("m2")
+    assert reloaded is not seen["m2"] and reloaded.run_id == seen["m2_run"]
+    assert reloaded.config.alarms.parameters["Ra"].warning == 6.0
+    assert gateway.lost() == {}
