@@ -289,3 +289,26 @@ def test_sighup_adds_removes_and_reloads_machines(tmp_path: Path,
     assert reloaded is not seen["m2"] and reloaded.run_id == seen["m2_run"]
     assert reloaded.config.alarms.parameters["Ra"].warning == 6.0
     assert gateway.lost() == {}
+
+
+def test_estimation_slots_are_first_come_first_served() -> None:
+    slots = EstimationSlots(1)
+    first = slots.acquire("a")
+    order: list[str] = []
+
+    def take(name: str) -> None:
+        token = slots.acquire(name)
+        order.append(name)
+        time.sleep(0.05)
+        slots.release(token)
+
+    threads = []
+    for name in ("b", "c", "d"):
+        t = threading.Thread(target=take, args=(name,))
+        t.start()
+        threads.append(t)
+        time.sleep(0.1)  # b asks first, then c, then d
+    slots.release(first)
+    for t in threads:
+        t.join(5)
+    assert order == ["b", "c", "d"]

@@ -43,6 +43,7 @@ import os
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
@@ -96,25 +97,33 @@ class EstimationSlots:
         self._clock = clock
         self._cond = threading.Condition()
         self._held: dict[int, tuple[str, float]] = {}
+        self._line: deque[int] = deque()  # tokens waiting, in arrival order
         self._next = 0
 
     def _active(self, now: float) -> int:
         return sum(1 for _, t in self._held.values() if now - t < self.stuck_after)
 
     def acquire(self, holder: str) -> int:
-        """Wait for a slot (the worker's thread); returns the token :meth:`release` takes."""
+        """Wait for a slot (the worker's thread), first come first served (a machine cannot be
+        overtaken for ever by the others); returns the token :meth:`release` takes."""
         with self._cond:
-            while self._active(self._clock()) >= self.size:
-                self._cond.wait(timeout=0.5)  # a slot may turn stuck: look again
             self._next += 1
-            self._held[self._next] = (holder, self._clock())
-            return self._next
+            token = self._next
+            self._line.append(token)
+            try:
+                while self._line[0] != token or self._active(self._clock()) >= self.size:
+                    self._cond.wait(timeout=0.5)  # a slot may turn stuck: look again
+            finally:
+                self._line.remove(token)
+                self._cond.notify_all()  # the next in line may fit too
+            self._held[token] = (holder, self._clock())
+            return token
 
     def release(self, token: int) -> None:
         """Give the slot of ``token`` back."""
         with self._cond:
             self._held.pop(token, None)
-            self._cond.notify()
+            self._cond.notify_all()
 
     def busy(self) -> int:
         """Slots held now (stuck ones included)."""
