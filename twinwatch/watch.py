@@ -921,7 +921,7 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
                 quality.append("\nno losses", style="green dim")
         d = m.get("delivery") or {}
         if d.get("missed") or d.get("recovered") or d.get("error"):
-            quality.append(f"\n{_gap_words(d)}",
+            quality.append(("\n" if quality else "") + _gap_words(d),
                            style="yellow" if d.get("error") or
                            d.get("recovered", 0) < d.get("missed", 0) else "dim")
         table.add_row(Text(str(m["machine"]), style="bold"), st, last, params, alarms, terms,
