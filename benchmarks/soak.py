@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rotate-windows", type=int, default=None,
                     help="with --record: windows per recording file ([recording] "
                     "rotate_windows, default 1800; 0 keeps one file, whose in-memory footer "
-                    "manifest grows ~22 MiB per 1000 windows)")
+                    "manifest grows ~27 MiB per 1000 windows)")
     ap.add_argument("--state", metavar="PATH", default=None,
                     help="keep the health history and the twin in this SQLite file, as the "
                     "service does (default: no state store); the file size is printed")
@@ -227,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"state store {cfg.state.path}: {size / 2**20:.1f} MiB (with -wal/-shm)")
     if args.record:
         rec = Path(cfg.recording.path)
-        files = sorted(rec.parent.glob(rec.stem + "*.rrd"))
+        files = sorted(f for f in rec.parent.glob(rec.stem + "-*.rrd")  # the run's files
+                       if not f.is_symlink())
         print(f"recording: {len(files)} file(s), "
               f"{sum(f.stat().st_size for f in files) / 2**20:.1f} MiB")
     if args.tracemalloc and snap:

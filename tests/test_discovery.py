@@ -218,8 +218,8 @@ def test_term_rendering_matches_the_issue() -> None:
 
 
 def test_the_recording_carries_the_model_document_and_residual_trace(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    """Rerun: the twin's structure is logged as a text document at start and whenever it
-    changes, and the residual trace every window."""
+    """Rerun: the twin's structure is logged as a text document with every window, and the
+    residual trace every window."""
     from tests.test_rerun_recorder import rerun_cli
     from twinwatch.sinks.rerun import RecordingConfig, RerunRecorder
 
@@ -240,9 +240,9 @@ def test_the_recording_carries_the_model_document_and_residual_trace(tmp_path) -
     stats = rerun_cli("rrd", "stats", path)
     assert stats.returncode == 0, stats.stderr
     out = stats.stdout + stats.stderr
-    assert "/m1/model: 2" in out  # start, then the discovery in window 2
-    assert "/m1/residual/omega: 4" in out
-    assert "/m1/residual_rmse/omega/dt_second: 2" in out
+    assert "/m1/model: 4" in out  # DT'' at every window (the discovery in window 2)
+    assert "/m1/residual/omega: 5" in out  # every window, and its series style
+    assert "/m1/residual_rmse/dt_second: 3" in out  # windows 2 and 3, and its style
 
 
 def test_a_candidate_takes_only_inputs_its_kind_can_and_tries_every_form() -> None:

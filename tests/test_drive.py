@@ -51,6 +51,52 @@ def test_twin_with_the_drive_reproduces_the_plant_exactly(period: float,
     assert np.all(_worst_error(DCMotorTwin(drive=drive), wins) < 1e-9)  # to rounding
 
 
+METHODS = ["forward_euler", "backward_euler", "trapezoidal"]
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("period", [0.001, None])
+def test_each_integrator_method_is_exact_and_the_others_are_not(method: str,
+                                                               period: float | None) -> None:
+    """Issue 15 item 5: a drive whose PI integrates before it computes its output (backward
+    Euler) or by the trapezoidal rule, as MATLAB's Discrete PID block offers; the twin
+    configured with the plant's method reproduces it to rounding (the event kernel at 1 ms
+    with the limit active, and the ideal drive's exact sample map every sub-step), a twin
+    configured with another method is off by at least a tick of integral action."""
+    limits = {"output_min": None, "output_max": None} if period is None else {}
+    drive = _drive(period, kp=2.0, ki=2.0, integrator_method=method, **limits)
+    assert DCMotorTwin(drive=drive)._fast == (period is None)
+    cfg = DCMotorPlantConfig(scenario="nominal", duration=44.0, drive=drive, setpoint=STEPS)
+    _, wins = plant_windows(cfg, 21)
+    if period is not None:  # the limit is active part of the time
+        assert np.mean(np.concatenate([w["Va"] for w in wins]) >= 18.0 - 1e-12) > 0.05
+    assert np.all(_worst_error(DCMotorTwin(drive=drive), wins) < 1e-9)
+    for other in METHODS:
+        if other != method:
+            wrong = drive.model_copy(update={"speed": drive.speed.model_copy(
+                update={"integrator_method": other})})
+            assert np.max(_worst_error(DCMotorTwin(drive=wrong), wins)) > 1e-7, other
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_each_derivative_filter_method_is_exact_where_a_window_starts_off_a_step(
+        method: str) -> None:
+    """The derivative filter's discretisation (MATLAB's Filter method), with a trapezoidal
+    integrator: exact to 1e-5 (the filter's state taken from the speed's slope) but in the
+    windows that start on a set-point step; with the forward-Euler filter instead, off."""
+    drive = _drive(0.001, kd=0.01, n_filter=50.0, filter_method=method,
+                   integrator_method="trapezoidal")
+    cfg = DCMotorPlantConfig(scenario="nominal", duration=44.0, drive=drive, setpoint=STEPS)
+    _, wins = plant_windows(cfg, 21)
+    steps_at_start = {int(round(t / 2.0)) for t, _ in STEPS.steps or []}
+    clean = [w for w in wins if w.index not in steps_at_start]
+    assert np.all(_worst_error(DCMotorTwin(drive=drive), clean) < 1e-5)
+    if method != "forward_euler":
+        wrong = drive.model_copy(update={"speed": drive.speed.model_copy(
+            update={"filter_method": "forward_euler"})})
+        assert np.max(_worst_error(DCMotorTwin(drive=wrong), wins)) > 1e-5
+
+
 def test_the_ideal_twin_is_not_exact_on_a_drive_that_holds_its_output() -> None:
     """The issue's finding: a twin whose PI updates every sub-step cannot reproduce a 1 ms drive
     even at the true parameters."""
@@ -146,3 +192,6 @@ def test_drive_configuration_errors_name_the_key() -> None:
         DCMotorTwin(kp=0.5, drive={"period": 1e-3})
     with pytest.raises(ValidationError, match="drive.period"):
         DCMotorPlantConfig(drive={"period": 1.5e-4})
+    with pytest.raises(ValidationError, match="integrator_method"):
+        LoopConfig(integrator_method="tustin")
+    assert LoopConfig().integrator_method == "forward_euler"  # today's behaviour by default

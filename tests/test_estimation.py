@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from twinwatch.plant.dcmotor import DCMotorPlantConfig, SetpointSchedule
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
@@ -129,3 +130,28 @@ def test_gate_admits_in_priority_order_and_holds_the_rest_after_the_first_it_can
     assert selected == [0]
     assert reasons[1] == "too little excitation: held at last trusted value"
     assert reasons[2].startswith("held with b") and reasons[3].startswith("held with b")
+
+
+def test_covariance_gives_an_undetermined_direction_an_infinite_variance() -> None:
+    """Issue 15: the pseudo-inverse with rcond 1e-15 dropped a direction the data do not
+    determine and gave the variables on it small, finite standard errors (two identical
+    columns: 2.8e-4 each); now they are infinite, and a well-posed problem is unchanged."""
+    from twinwatch.twin.estimation.fit import covariance
+
+    rng = np.random.default_rng(0)
+    jac = rng.normal(size=(300, 3))
+    w = np.full(300, 0.01)
+    a_inv = np.linalg.inv(jac.T @ jac)
+    np.testing.assert_allclose(covariance(jac, w), a_inv @ (jac.T * w) @ jac @ a_inv,
+                               rtol=1e-10)
+    same = np.column_stack([jac[:, 0], jac[:, 0], jac[:, 2]])
+    near = np.column_stack([jac[:, 0], jac[:, 0] * (1 + 1e-8 * rng.normal(size=300)),
+                            jac[:, 2]])
+    for j in (same, near):
+        sd = np.sqrt(np.diag(covariance(j, w)))
+        assert np.all(np.isinf(sd[:2])) and sd[2] == pytest.approx(0.006, rel=0.05)
+
+
+def test_an_empty_estimate_list_is_refused_naming_the_key() -> None:
+    with pytest.raises(ValidationError, match="estimate\n.*no parameter listed"):
+        EstimationConfig(estimate=[])

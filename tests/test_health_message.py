@@ -130,14 +130,17 @@ def _message(processed: tuple[Any, Any, Any], **over: Any) -> HealthMessage:
 
 def test_each_parameter_has_a_typed_status(processed) -> None:  # type: ignore[no-untyped-def]
     h = _message(processed)
-    assert h.as_dict()["schema"] == SCHEMA_VERSION == 6
+    assert h.as_dict()["schema"] == SCHEMA_VERSION == 7
     assert h.as_dict()["run"] == "r1"
     status = {n: p.status for n, p in h.parameters.items()}
     assert status["Kt"] == "tied" and status["Ra"] == "estimated"
     for p in h.parameters.values():
         assert p.held == (p.status != "estimated")
         assert (p.reason is None) == (p.status == "estimated")
-        assert (p.rel_std_pct is None) == (p.status not in ("estimated", "fused"))
+        if p.status in ("estimated", "fused"):
+            assert p.rel_std_pct is not None
+        elif p.status != "suspect":  # a suspect estimate keeps its (widened) error
+            assert p.rel_std_pct is None
         # every estimated parameter carries the fused evidence and its interval
         assert (p.fused is not None) == (p.status in ("estimated", "fused", "held"))
         if p.fused is not None:

@@ -86,12 +86,42 @@ def test_twin_configured_with_the_drive_is_exact_noise_free() -> None:
         assert e.values["Ra"] == pytest.approx(truth, rel=0.002)  # the paper's 0.2 %
 
 
+#: Windows and threshold of the coverage test: with perfect 2-sigma intervals (95.4 % coverage)
+#: 100 windows fall below 85 % with probability 1.2e-5; intervals half as wide as they should
+#: be (68.3 %) reach it with probability 1.1e-4 (binomial; 19 windows at 90 % failed a correct
+#: interval 25 % of the time).
+COVERAGE_WINDOWS, COVERAGE_MIN = 100, 0.85
+
+
+def _coverage(plant: DCMotorPlant, runs: list, widen: float = 1.0  # type: ignore[type-arg]
+              ) -> tuple[int, int]:
+    """(windows publishing Ra 'estimated', of which the truth within 2 x ``widen`` standard
+    errors)."""
+    n = ok = 0
+    for w, e in runs:
+        if e.status["Ra"] == "estimated":
+            n += 1
+            truth = plant.truth(float(w.t[w.n // 2])).Ra
+            ok += abs(math.log(e.values["Ra"] / truth)) <= 2 * widen * e.rel_std["Ra"]
+    return n, ok
+
+
 def test_twin_configured_with_the_drive_is_honest_with_noise() -> None:
-    plant, runs = _run(DCMotorTwin(drive=DRIVE), {"ia": 1.0, "omega": 1.0}, 20)
+    """100 windows (fixed seeds): Ra's 2-sigma interval covers the plant's in at least 85 % of
+    the windows publishing it, and the test can fail: the same intervals halved do not. Window
+    82 is issue 15's: Ra +0.055 % published with 0.015 % (z = 3.75) by a Jacobian that
+    straddled a jump of the drive's clamping anti-windup."""
+    plant, runs = _run(DCMotorTwin(drive=DRIVE), {"ia": 1.0, "omega": 1.0}, COVERAGE_WINDOWS)
     flagged = sum(not e.model_check.passed for _, e in runs)
-    assert flagged <= 2  # few false alarms on a right model
-    n, ok = _honest(plant, runs)
-    assert n >= 15 and ok >= 0.9 * n
+    assert flagged <= 0.1 * len(runs)  # few false alarms on a right model
+    n, ok = _coverage(plant, runs)
+    assert n >= 0.8 * len(runs) and ok >= COVERAGE_MIN * n, (n, ok)
+    n, ok_half = _coverage(plant, runs, widen=0.5)
+    assert ok_half < COVERAGE_MIN * n, (n, ok_half)  # a 2x-too-narrow interval fails
+    w82, e82 = runs[2]
+    assert w82.index == 82 and e82.status["Ra"] == "estimated"
+    z82 = math.log(e82.values["Ra"] / plant.truth(float(w82.t[100])).Ra) / e82.rel_std["Ra"]
+    assert abs(z82) < 2.0 and e82.rel_std["Ra"] > 0.0005
     for w, e in runs:
         truth = plant.truth(float(w.t[w.n // 2])).Ra
         assert e.values["Ra"] == pytest.approx(truth, rel=0.01)

@@ -112,8 +112,10 @@ def test_fluid_degradation_over_modbus_d_within_three_percent():
             assert d["reason"]
             if d["status"] == "held":
                 assert d["rel_std_pct"] is None
-        if d["status"] in ("estimated", "fused"):
+        if d["status"] == "estimated":
             assert d["rel_std_pct"] is not None and d["rel_std_pct"] <= 0.5  # max_rel_std
+        if d["status"] == "fused":  # the fusion's own gate, [estimation.fusion] max_rel_std
+            assert d["rel_std_pct"] is not None and d["rel_std_pct"] <= 2.0
     err = np.asarray(errors)
     # the paper's 3 % in at least 95 % of the windows, held ones included
     assert np.sum(err <= 3.0) >= 0.95 * len(hist), np.percentile(err, [50, 95, 100])
@@ -133,7 +135,12 @@ def test_fluid_degradation_over_modbus_d_within_three_percent():
     assert all(min(abs(0.5 * (h["t_start"] + h["t_end"]) - r) for r in REVERSALS) < 4.0
                for h in held)
     assert len(held) <= 0.1 * len(hist)
-    assert all(h["parameters"]["q_pump"]["held"] is False for h in hist)
+    # q_pump is estimated wherever the model check passed; where it failed (the window just
+    # after a reversal), the window is not sound and q_pump is published fused or suspect
+    assert all(h["parameters"]["q_pump"]["status"] == "estimated" for h in hist
+               if h["model_check"]["passed"])
+    assert all(h["parameters"]["q_pump"]["status"] in ("fused", "suspect") for h in hist
+               if not h["model_check"]["passed"])
 
 
 def test_windows_without_excitation_are_held_not_published():

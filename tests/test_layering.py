@@ -33,6 +33,7 @@ ROOMS: dict[str, tuple[str, ...]] = {
     "twin.models": ("twinwatch.twin.models",),
     "twin.estimation": ("twinwatch.twin.estimation",),
     "twin.discovery": ("twinwatch.twin.discovery",),
+    "twin.prognostics": ("twinwatch.twin.prognostics",),
     "twin": ("twinwatch.twin",),
     "drivers": ("twinwatch.drivers",),
     "sinks": ("twinwatch.sinks",),
@@ -54,13 +55,16 @@ ALLOWED: dict[str, set[str]] = {
     "twin.models": {"base", "io", "twin.model"},  # a machine knows no estimator
     "twin.estimation": {"base", "twin.model"},    # it estimates any machine
     "twin.discovery": {"base", "twin.model", "twin.estimation"},
-    "twin": {"base", "io", "twin.model", "twin.estimation", "twin.discovery"},
+    # trend and RUL: read the estimation's results, know no machine, no discovery
+    "twin.prognostics": {"base", "twin.model", "twin.estimation"},
+    "twin": {"base", "io", "twin.model", "twin.estimation", "twin.discovery",
+             "twin.prognostics"},
     "drivers": {"base", "io", "plant"},
     "sinks": {"base", "io", "twin.model", "twin"},  # the message and the window, no internals
     "config": {"base", "io", "drivers", "sinks", "twin.model", "twin.models",
-               "twin.estimation", "twin.discovery", "twin"},
+               "twin.estimation", "twin.discovery", "twin.prognostics", "twin"},
     "daemon": {"base", "io", "config", "drivers", "sinks", "twin.model", "twin.models",
-               "twin.estimation", "twin.discovery", "twin"},
+               "twin.estimation", "twin.discovery", "twin.prognostics", "twin"},
     # reads the network's health messages: never the daemon (a watcher runs anywhere)
     "watch": {"base", "io", "twin"},
     "cli": set(ROOMS) - {"cli"},

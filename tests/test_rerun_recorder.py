@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -76,12 +77,10 @@ def expected_rows(machine: str, windows: int) -> Counter[str]:
         counts[f"/{machine}/outputs/{o}/measured"] = N * windows
         counts[f"/{machine}/outputs/{o}/twin"] = N * windows
         counts[f"/{machine}/residual/{o}"] = N * windows  # measured - twin, every sample
-    for p in PARAMETERS:
-        counts[f"/{machine}/parameters/{p}"] = windows
+    counts[f"/{machine}/parameters"] = windows  # one series per parameter
     counts[f"/{machine}/health"] = windows
     counts[f"/{machine}/log"] = windows
-    if windows:
-        counts[f"/{machine}/model"] = 1  # the twin's structure, logged with the first window
+    counts[f"/{machine}/model"] = windows  # the twin DT'' at each window
     return counts
 
 
@@ -318,10 +317,10 @@ def test_config_is_strict() -> None:
 
 def test_rotation_writes_complete_files_and_leaks_no_stream(tmp_path: Path) -> None:
     """``rotate_windows = 3``, ``keep_files = 2``, 10 windows: files of windows 0-2, 3-5, 6-8
-    (the first deleted), then the current file with window 9. Each file verifies, holds its
-    own windows, model document and series styles; the process has no more threads after
-    three rotations than before (one recording stream is re-pointed, never replaced: the SDK
-    never frees a Python stream, rerun-io/rerun#2116)."""
+    (the first deleted), then the run's file with window 9 (``path`` links to it). Each file
+    verifies, holds its own windows, model document and series styles; the process has no more
+    threads after three rotations than before (one recording stream is re-pointed, never
+    replaced: the SDK never frees a Python stream, rerun-io/rerun#2116)."""
     path = tmp_path / "m1.rrd"
     cfg = RecordingConfig(path=str(path), rotate_windows=3, keep_files=2)
     with RerunRecorder(cfg, "m1", outputs=OUTPUTS, parameters=PARAMETERS) as rec:
@@ -330,7 +329,8 @@ def test_rotation_writes_complete_files_and_leaks_no_stream(tmp_path: Path) -> N
             rec.log_window(**window(k))
         assert rec.rotations == 3 and rec.errors == 0
         assert len(os.listdir("/proc/self/task")) <= threads
-    rotated = sorted(tmp_path.glob("m1.*.rrd"))
+    assert path.is_symlink() and path.resolve() == rec.path  # the run's file, m1-<UTC>.rrd
+    rotated = sorted(tmp_path.glob(f"{rec.path.stem}.*.rrd"))
     assert [p.name.split(".")[-2] for p in rotated] == ["0001", "0002"]
     assert (tmp_path / "m1.rbl").is_file()  # the viewer layout for rotated files
     for f, windows in ((rotated[0], 3), (rotated[1], 3), (path, 1)):
@@ -338,3 +338,414 @@ def test_rotation_writes_complete_files_and_leaks_no_stream(tmp_path: Path) -> N
         assert rows(f) == expected_rows("m1", windows), f
         static = {c.entity_path for c in rr.chunk.RrdReader(f).stream() if c.is_static}
         assert "/m1/outputs/ia/measured" in static, (f, static)  # its series styles
+
+
+# -- what the recording shows (issue 16) -------------------------------------------------------
+def _views(container: Any) -> list[Any]:
+    """Every view of a blueprint container, depth first (layout order)."""
+    import rerun.blueprint as rrb
+
+    out: list[Any] = []
+    for part in container.contents:
+        out += _views(part) if isinstance(part, rrb.Container) else [part]
+    return out
+
+
+def _prop(view: Any, archetype: str, field: str) -> Any:
+    """A view property's value as plain Python."""
+    batch = getattr(view.properties[archetype], field)
+    return batch.as_arrow_array().to_pylist()
+
+
+def _time_range(view: Any, archetype: str = "VisibleTimeRanges") -> list[tuple[str, Any]]:
+    """A view's time range as ``[(kind, value), (kind, value)]`` for its start and end, kind
+    ``Infinite``, ``CursorRelative`` [ns] or ``Absolute`` [ns] (the timeline: plant_time)."""
+    props = view.properties[archetype]
+    arr = (props.ranges if archetype == "VisibleTimeRanges" else props.view_range
+           ).as_arrow_array()
+    if archetype == "VisibleTimeRanges":
+        assert arr.field("timeline").to_pylist() == ["plant_time"]
+        arr = arr.field("range")
+    out = []
+    for end in ("start", "end"):
+        union = arr.field(end)
+        kind = union.type.field(union.type_codes.to_pylist()[0]).name
+        out.append((kind, union.to_pylist()[0]))
+    return out
+
+
+STORY_UNITS = {"ia": "A", "omega": "rad/s", "Va": "V"}
+STORY_PARAMETERS = {"Ra": "ohm", "La": "H", "J": "kg m^2", "Ke": "V s/rad", "Kt": "N m/A",
+                    "D": "N m s/rad"}
+
+
+def story_recorder(path: Path, **config: Any) -> RerunRecorder:
+    """The default machine's recorder: Ra has the default alarm rule, Kt is tied (no view)."""
+    from twinwatch.sinks.base import AlarmBands
+
+    return RerunRecorder(
+        RecordingConfig(path=str(path), **config), "m1", outputs=tuple(STORY_UNITS),
+        parameters=STORY_PARAMETERS, output_units=STORY_UNITS,
+        nominal={"Ra": 6.5, "La": 0.673, "J": 0.001171, "Ke": 0.038, "Kt": 0.038,
+                 "D": 0.00143},
+        estimated=("Ra", "La", "J", "Ke", "D"),
+        alarm_bands={"Ra": AlarmBands(warning_high=5.0, warning_low=-5.0, alarm_high=10.0,
+                                      alarm_low=-10.0)})
+
+
+def test_the_blueprint_tells_the_story(tmp_path: Path) -> None:
+    """Health views over the whole run, one per estimated parameter (the one with an alarm
+    rule first and tallest), titled with its nominal and thresholds; measured vs twin and the
+    residual per output over the last ``recent_s`` seconds with the output's unit; the
+    data-quality strip over the whole run; model, log and key; no legend over a trace; the time
+    panel follows the newest data. The file carries that blueprint."""
+    path = tmp_path / "m1.rrd"
+    with story_recorder(path, recent_s=8.0) as rec:
+        bp = rec.views.blueprint()
+        rec.log_window(**window(0))
+    assert bp.time_panel.play_state == "following" and bp.time_panel.timeline == "plant_time"
+    views = _views(bp.root_container)
+    by_origin = {str(v.origin): v for v in views}
+    whole = [("Infinite", None), ("Infinite", None)]
+    health = [o for o in by_origin if o.startswith("/m1/health/")]
+    assert health == [f"/m1/health/{p}" for p in ("Ra", "La", "J", "Ke", "D")]  # not Kt
+    assert by_origin["/m1/health/Ra"].name == "Ra [% of 6.5 ohm]: warning +-5, alarm +-10 %"
+    assert by_origin["/m1/health/J"].name == "J [% of 0.001171 kg m^2]"
+    health_box = bp.root_container.contents[1].contents[0].contents[0]
+    assert list(health_box.row_shares) == [2.0, 2.8]  # Ra, then the other four in a 2x2 grid
+    for o in (*health, "/m1/quality", "/m1/quality/elapsed_ms", "/m1/quality/problems"):
+        v = by_origin[o]
+        # the x axis spans the whole run (the data queried are the whole run by default)
+        assert _time_range(v, "TimeAxis") == whole and "VisibleTimeRanges" not in v.properties
+    recent = [("CursorRelative", -8_000_000_000), ("CursorRelative", 0)]
+    for o, unit in STORY_UNITS.items():
+        for origin, title in ((f"/m1/outputs/{o}", f"{o} [{unit}]: measured, twin"),
+                              (f"/m1/residual/{o}", f"{o} residual [{unit}]")):
+            v = by_origin[origin]
+            assert v.name == title
+            assert _time_range(v) == recent, origin  # the data queried: the axis follows
+    for v in views:
+        if "PlotLegend" in v.properties:
+            assert _prop(v, "PlotLegend", "visible") == [False], v.origin
+    assert {"/m1/model", "/m1/health", "/m1/log", "/m1/key"} <= set(by_origin)
+    assert by_origin["/m1/quality"].contents == [
+        "/m1/quality/nrmse_dt_prime", "/m1/quality/nrmse_dt_second", "/m1/quality/nrmse",
+        "/m1/quality/model_check_failed"]
+    # the file holds the layout: the same view origins are in its blueprint
+    blueprint = rr.chunk.RrdReader(rec.path).blueprints()
+    assert len(blueprint) == 1
+    origins = set()
+    for chunk in rr.chunk.RrdReader(rec.path).stream(store=blueprint[0]):
+        batch = chunk.to_record_batch()
+        for name in batch.schema.names:
+            if name.endswith("space_origin"):
+                origins |= {o[0] for o in batch.column(name).to_pylist() if o}
+    assert set(by_origin) <= origins
+
+
+def _log_rows(path: Path, machine: str) -> list[tuple[str, str]]:
+    """(level, text) of every TextLog row of ``machine`` in the recording at ``path``."""
+    out: list[tuple[float, str, str]] = []
+    for chunk in rr.chunk.RrdReader(path).stream():
+        if chunk.entity_path != f"/{machine}/log" or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        times = batch.column("plant_time").cast("int64").to_pylist()
+        for t, text, level in zip(times, batch.column("TextLog:text").to_pylist(),
+                                  batch.column("TextLog:level").to_pylist(), strict=True):
+            out.append((t, level[0], text[0]))
+    return [(level, text) for _, level, text in sorted(out, key=lambda r: r[0])]
+
+
+def _scalars(path: Path, entity: str) -> list[tuple[float, list[float]]]:
+    """(plant time [s], values) of every row of a Scalars entity, in time order."""
+    out = []
+    for chunk in rr.chunk.RrdReader(path).stream():
+        if chunk.entity_path != entity or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        times = batch.column("plant_time").cast("int64").to_pylist()
+        out += [(t / 1e9, v) for t, v in zip(times, batch.column("Scalars:scalars").to_pylist(),
+                                              strict=True)]
+    return sorted(out)
+
+
+def story_window(k: int, dev: float, level: str = "normal",
+                 status: str = "estimated") -> dict[str, Any]:
+    """:func:`window` with a health message of the default machine: Ra ``dev`` % off."""
+    w = window(k)
+    ra = 6.5 * (1 + dev / 100)
+    params = {p: {"value": 1.0, "unit": u, "nominal": 1.0, "deviation_pct": 0.0,
+                  "status": "held", "rel_std_pct": None, "fused": None, "reason": "held"}
+              for p, u in STORY_PARAMETERS.items()}
+    params["Ra"] = {"value": ra, "unit": "ohm", "nominal": 6.5, "deviation_pct": dev,
+                    "status": status, "rel_std_pct": 0.5, "fused": None, "reason": None}
+    w["parameters"] = {"Ra": ra}
+    w["measured"] = {"ia": w["measured"]["ia"], "omega": w["measured"]["omega"]}
+    w["simulated"] = {"ia": w["simulated"]["ia"], "omega": w["simulated"]["omega"]}
+    w["health"] = {"machine": "m1", "model": "dc_motor", "window": k, "t_start": 2.0 * k,
+                   "t_end": 2.0 * k + 1.99, "parameters": params, "nrmse": 1e-3,
+                   "elapsed_s": 0.15,
+                   "model_check": {"passed": k != 1, "reasons": ["ia: not white"] * (k == 1)},
+                   "terms": [], "residual": {"dt_prime": {"rmse": {"ia": 0.01}, "nrmse": 1e-3},
+                                             "dt_second": None},
+                   "counters": {"windows_abandoned": 1 if k >= 2 else 0, "windows_completed": k},
+                   "alarms": {"Ra": {"level": level, "deviation_pct": dev}}}
+    return w
+
+
+def test_alarm_changes_and_values_are_in_the_log_and_on_the_plot(tmp_path: Path) -> None:
+    """An alarm raise is an ERROR row with its message and a red marker at its deviation; a
+    clear a WARN row and a green marker; the rows of windows in alarm are ERROR, in warning
+    WARN, with the values; a failed model check and lost data are WARN; each window's
+    deviation, its band and the thresholds are on the parameter's view."""
+    path = tmp_path / "m1.rrd"
+    raise_ev = {"parameter": "Ra", "level": "alarm", "previous": "normal",
+                "deviation_pct": -12.0, "t": 3.99, "window": 1,
+                "message": "m1: ALARM: Ra is 12.00 % below nominal (5.72 ohm vs nominal 6.5 ohm)"}
+    clear_ev = {"parameter": "Ra", "level": "warning", "previous": "alarm",
+                "deviation_pct": -8.0, "t": 7.99, "window": 3,
+                "message": "m1: alarm cleared to warning: Ra is back to -8.00 % of nominal"}
+    with story_recorder(path) as rec:
+        rec.log_window(**story_window(0, -1.0))
+        rec.log_window(**story_window(1, -12.0, "alarm"), events=[raise_ev])
+        rec.log_window(**story_window(2, -11.0, "alarm", "fused"))
+        rec.log_window(**story_window(3, -8.0, "warning", "held"), events=[clear_ev])
+    rows = _log_rows(rec.path, "m1")
+    assert ("ERROR", raise_ev["message"]) in rows and ("WARN", clear_ev["message"]) in rows
+    per_window = [(lvl, text) for lvl, text in rows if text.startswith("window ")]
+    assert [lvl for lvl, _ in per_window] == ["INFO", "ERROR", "ERROR", "WARN"]
+    assert per_window[0][1].startswith("window 0 [0.00-1.99 s] Ra 6.435 ohm -1.00 % estimated")
+    assert "ALARM Ra -12.00 %" in per_window[1][1] and "model check FAILED: ia: not white" in \
+        per_window[1][1]
+    assert "data lost: windows_abandoned +1" in per_window[2][1]
+    assert "WARNING Ra -8.00 %" in per_window[3][1]
+    assert _scalars(rec.path, "/m1/health/Ra/events/alarm") == [(3.99, [-12.0])]
+    assert _scalars(rec.path, "/m1/health/Ra/events/cleared") == [(7.99, [-8.0])]
+    assert [t for t, _ in _scalars(rec.path, "/m1/health/Ra/estimated")] == [1.99, 3.99]
+    assert [t for t, _ in _scalars(rec.path, "/m1/health/Ra/fused")] == [5.99]
+    assert [t for t, _ in _scalars(rec.path, "/m1/health/Ra/held")] == [7.99]
+    # band (value +- 2 x 0.5 %), nominal, thresholds, headroom, deviation
+    [series] = [v for t, v in _scalars(rec.path, "/m1/health/Ra/deviation") if t == 3.99]
+    band_low, band_high = ((0.88 * (1 + s * 0.01) - 1) * 100 for s in (-1, 1))
+    assert series == pytest.approx([band_low, band_high, 0.0, 5.0, -5.0, 10.0, -10.0,
+                                    16.0, -16.0, -12.0])
+    assert _scalars(rec.path, "/m1/quality/model_check_failed") == [(3.99, [1e-3])]
+    assert [v for _, v in _scalars(rec.path, "/m1/quality/problems")] == [[0.0], [0.0], [1.0],
+                                                                          [1.0]]
+
+
+def test_a_second_run_loses_no_existing_recording(tmp_path: Path) -> None:
+    """Each run writes its own file, ``<stem>-<UTC start>[-<run id>].rrd``; ``path`` is a link
+    to the newest. A file an earlier version left at ``path`` is kept under its time; a run
+    whose file another recorder is writing is refused, naming it; nothing is ever replaced."""
+    path = tmp_path / "m1.rrd"
+    path.write_bytes(b"an earlier version's recording")
+    with recorder(path) as first:
+        for k in range(2):
+            first.log_window(**window(k))
+        assert path.resolve() == first.path and first.path.parent == tmp_path
+        assert re.fullmatch(r"m1-\d{8}T\d{6}Z(-2)?\.rrd", first.path.name), first.path.name
+        with pytest.raises(RecorderError, match=r"recording .*m1\.rrd is in use by process "
+                           + str(os.getpid())):
+            recorder(path)
+    kept = [p for p in tmp_path.glob("m1-*.rrd") if p != first.path]
+    assert [p.read_bytes() for p in kept] == [b"an earlier version's recording"]
+    assert any("was kept as" in line for line in first.summary())
+    config = RecordingConfig(path=str(path))
+    with RerunRecorder(config, "m1", outputs=OUTPUTS, parameters=PARAMETERS,
+                       run="4f2a/run 7") as second:
+        second.log_window(**window(0))
+        summary = second.summary()
+    assert re.fullmatch(r"m1-\d{8}T\d{6}Z-4f2a_run_7(-2)?\.rrd", second.path.name)
+    with RerunRecorder(config, "m1", outputs=OUTPUTS, parameters=PARAMETERS,
+                       run="20261122T101530Z-3f9a2c") as third:  # the daemon's run ids
+        assert third.path.name == "m1-20261122T101530Z-3f9a2c.rrd"
+    assert path.resolve() == third.path  # rerun m1.rrd opens the newest run
+    assert summary[0] == f"recording: {second.path} (open with: rerun {path}, the link to it)"
+    for rec, windows in ((first, 2), (second, 1)):
+        assert verify(rec.path).returncode == 0
+        assert rows(rec.path) == expected_rows("m1", windows)
+    assert kept[0].read_bytes() == b"an earlier version's recording"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+    return port
+
+
+def _reader(url: str, out: Path) -> subprocess.Popen[str]:
+    """A viewer stand-in: the rerun CLI saving what the live server sends to ``out`` (its own
+    server on a free loopback port; its log in ``out`` + ``.log``)."""
+    import rerun_cli
+
+    binary = Path(rerun_cli.__file__).with_name("rerun")  # not the wrapper: a kill reaches it
+    if not binary.exists():
+        pytest.skip(f"rerun binary not found at {binary}")
+    with open(f"{out}.log", "w") as log:
+        return subprocess.Popen(
+            [str(binary), url, "--save", str(out), "--bind", "127.0.0.1", "--port",
+             str(_free_port())], env={**os.environ, "CI": "true"}, stdout=subprocess.DEVNULL,
+            stderr=log, text=True)
+
+
+def _received(out: Path, proc: subprocess.Popen[str], size: int = 20_000) -> None:
+    """Wait until the viewer stand-in has saved at least ``size`` bytes."""
+    deadline = time.monotonic() + TIMEOUT
+    while not (out.exists() and out.stat().st_size >= size):
+        assert proc.poll() is None, Path(f"{out}.log").read_text()
+        got = out.stat().st_size if out.exists() else 0
+        assert time.monotonic() < deadline, f"the viewer got {got} B in {TIMEOUT} s"
+        time.sleep(0.1)
+
+
+def _values(path: Path) -> dict[str, list[Any]]:
+    """Every non-static row per entity (time and values), order-independent."""
+    out: dict[str, list[Any]] = {}
+    for chunk in rr.chunk.RrdReader(path).stream():
+        if chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        times = batch.column("plant_time").cast("int64").to_pylist()
+        data = [n for n in batch.schema.names if ":" in n and not n.startswith("log_")]
+        rows_ = zip(times, *(batch.column(n).to_pylist() for n in data), strict=True)
+        out.setdefault(chunk.entity_path, []).extend(repr(r) for r in rows_)
+    return {k: sorted(v) for k, v in out.items()}
+
+
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # the viewer's file, being written
+def test_the_live_stream_holds_what_the_file_holds(tmp_path: Path) -> None:
+    """``serve = true``: a Rerun gRPC server on 127.0.0.1 with the same data: a viewer that
+    connects after three windows gets them all (the history), a viewer killed mid-run
+    disturbs nothing, and what a viewer saved equals the file, row for row. A recorder opened
+    later on the address goes on with the same server (a reload: the viewer stays)."""
+    import signal
+
+    port = _free_port()
+    path = tmp_path / "m1.rrd"
+    with story_recorder(path, serve=True, serve_port=port) as rec:
+        url = rec.live_url
+        assert url == f"rerun+http://127.0.0.1:{port}/proxy"
+        assert rec.status == f"live view on {url}"
+        lost = _reader(url, tmp_path / "lost.rrd")
+        for k in range(3):
+            rec.log_window(**story_window(k, -2.0 * k))
+        _received(tmp_path / "lost.rrd", lost)
+        lost.send_signal(signal.SIGKILL)  # a viewer that goes away
+        lost.wait(TIMEOUT)
+        late = _reader(url, tmp_path / "live.rrd")
+        _received(tmp_path / "live.rrd", late)  # the three windows before it connected
+        for k in range(3, 6):
+            rec.log_window(**story_window(k, -2.0 * k))
+        assert rec.errors == 0 and rec.problem is None
+    try:
+        recorded = _values(rec.path)
+        deadline = time.monotonic() + TIMEOUT
+        while True:  # the viewer saves as it receives
+            try:
+                live = _values(tmp_path / "live.rrd")
+            except (ValueError, OSError):  # a chunk being written
+                live = {}
+            if live == recorded or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
+        assert live.keys() == recorded.keys() and "/m1/health/Ra/deviation" in live
+        for entity, values in recorded.items():
+            assert live[entity] == values, entity
+        assert sum(len(v) for v in live.values()) > 6 * 20
+        # a reload: the next recorder on the address takes the server over, viewer and all
+        with story_recorder(tmp_path / "m2.rrd", serve=True, serve_port=port) as again:
+            assert again.live_url == url and rec.live_url is None
+            again.log_window(**story_window(6, -12.0))
+        deadline = time.monotonic() + TIMEOUT
+        while len(_values(tmp_path / "live.rrd").get("/m1/log", [])) < 7:
+            assert time.monotonic() < deadline, "the viewer did not get the reload's window"
+            time.sleep(0.2)
+    finally:
+        late.send_signal(signal.SIGINT)
+        try:
+            late.wait(TIMEOUT)
+        finally:
+            if late.poll() is None:
+                late.kill()
+
+
+def test_a_live_port_in_use_refuses_to_start_naming_the_key(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(RecorderError, match=rf"127\.0\.0\.1:{port}.*serve_port"):
+            story_recorder(tmp_path / "m1.rrd", serve=True, serve_port=port)
+    assert not list(tmp_path.glob("m1*.rrd")) or all(
+        p.stat().st_size == 0 for p in tmp_path.glob("m1-*.rrd"))
+    with pytest.raises(ValidationError, match="not an IP address"):
+        RecordingConfig(serve_bind="localhost")
+    with pytest.raises(ValidationError, match="amount of memory"):
+        RecordingConfig(server_memory_limit="lots")
+    assert RecordingConfig().serve is False and RecordingConfig().serve_bind == "127.0.0.1"
+
+
+def test_the_daemons_alarm_reaches_the_recording(tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Through the daemon: the simulated motor whose nameplate says Ra = 5.8 ohm (the plant has
+    6.5: +12 %) raises the Ra alarm after 10 s; the recording holds the raise as an ERROR row
+    with its values and a marker on Ra's view, and every window in alarm is an ERROR row."""
+    from click.testing import CliRunner
+
+    from twinwatch.cli import main
+
+    text = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+    for old, new in (("duration = 1200.0", "duration = 24.0"), ("Ra = 6.5 ", "Ra = 5.8 "),
+                     ("[zenoh]", "[zenoh]\nenabled = false")):
+        assert old in text, old
+        text = text.replace(old, new)
+    (tmp_path / "m.toml").write_text(text)
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(main, ["run", "m.toml", "--no-progress"])
+    assert r.exit_code == 0, r.output
+    link = tmp_path / "twinwatch.rrd"
+    assert f"recording: {link.resolve()} (open with: rerun twinwatch.rrd, the link to it)" \
+        in r.output
+    docs = [c.to_record_batch().column("TextDocument:text").to_pylist()
+            for c in rr.chunk.RrdReader(link).stream() if c.entity_path == "/dc-motor-sim/health"]
+    run = json.loads(docs[0][0][0].split("```json\n", 1)[1].rsplit("\n```", 1)[0])["run"]
+    assert link.resolve().name == f"twinwatch-{run}.rrd"  # the run's own file, by its id
+    rows_ = _log_rows(link, "dc-motor-sim")
+    raised = [(lvl, text) for lvl, text in rows_ if "ALARM: Ra is" in text]
+    assert len(raised) == 1 and raised[0][0] == "ERROR", rows_
+    assert re.search(r"ALARM: Ra is 1[12]\.\d\d % above nominal \(6\.\d+ ohm vs nominal 5\.8 "
+                     r"ohm\)", raised[0][1]), raised
+    marker = _scalars(link, "/dc-motor-sim/health/Ra/events/alarm")
+    assert len(marker) == 1 and 11.0 < marker[0][1][0] < 13.0 and 9.9 <= marker[0][0] <= 16.0
+    windows = [(lvl, text) for lvl, text in rows_ if text.startswith("window ")]
+    assert len(windows) == 12
+    in_alarm = [(lvl, text) for lvl, text in windows if "ALARM Ra" in text]
+    assert in_alarm and all(lvl == "ERROR" for lvl, _ in in_alarm)
+    assert in_alarm[-1][1].startswith("window 11 [22.00-23.99 s] ALARM Ra +1")
+
+
+def test_a_trend_and_its_rul_are_drawn_when_the_message_has_them(tmp_path: Path) -> None:
+    """A health message with prognostics (``parameters.<p>.trend``, ``.rul``): the trend and
+    its 2-sigma band in % of nominal on the parameter's view, the RUL in the log row and the
+    model panel."""
+    w = story_window(0, -4.0)
+    ra = w["health"]["parameters"]["Ra"]
+    ra["trend"] = {"level": 6.5 * 0.95, "level_std": 6.5 * 0.005}
+    ra["rul"] = {"status": "degrading",
+                 "warning": {"status": "crossed"},
+                 "alarm": {"status": "predicted", "rul_s": 1200.0, "low_s": 900.0,
+                           "high_s": 1500.0}}
+    with story_recorder(tmp_path / "m1.rrd") as rec:
+        rec.log_window(**w)
+    [(t, trend)] = _scalars(rec.path, "/m1/health/Ra/trend")
+    assert t == 1.99 and trend == pytest.approx([-6.0, -4.0, -5.0])
+    [row] = [text for _, text in _log_rows(rec.path, "m1") if text.startswith("window 0")]
+    assert "Ra 6.24 ohm -4.00 % estimated (warning crossed, RUL to alarm 1.2e+03 s " \
+        "(900-1.5e+03 s))" in row

@@ -64,6 +64,8 @@ def _held_when_undetermined(history: list[dict[str, Any]]) -> None:
                 assert p["reason"], name
             if p["status"] in ("held", "tied", "fixed"):
                 assert p["rel_std_pct"] is None
+            elif p["status"] == "fused":  # the fusion's own gate, [estimation.fusion] max_rel_std
+                assert p["rel_std_pct"] is not None and p["rel_std_pct"] <= 2.0
             else:
                 assert p["rel_std_pct"] is not None and p["rel_std_pct"] <= 1.0
         assert h["parameters"]["Kt"]["status"] == "tied"

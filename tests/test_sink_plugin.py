@@ -206,7 +206,7 @@ def test_check_config_validates_the_plugin_output_table(tmp_path: Path, plugin_p
         tmp_path, "[outputs.mqttx]\nhost = 'broker'\n")), cwd=tmp_path)
     assert unknown.returncode == 1
     line = next(ln for ln in unknown.stderr.splitlines() if "outputs.mqttx" in ln)
-    assert "unknown output 'mqttx'; known outputs: jsonl" in line
+    assert "unknown output 'mqttx'; known outputs: mqtt, jsonl" in line
     assert "[state]" in line and "[zenoh]" in line and "[recording]" in line
 
     builtin = _twinwatch(plugin_path, "check-config", str(_config(
@@ -239,7 +239,7 @@ def test_without_the_plugin_its_table_is_refused(tmp_path: Path):
     cfg = _config(tmp_path)
     res = cli("check-config", str(cfg))
     assert res.exit_code == 1
-    assert "outputs.jsonl: unknown output 'jsonl'; known outputs: none installed" in res.output
+    assert "outputs.jsonl: unknown output 'jsonl'; known outputs: mqtt" in res.output
 
 
 # -- run by the real command line ----------------------------------------------------------------
@@ -354,8 +354,9 @@ def test_the_built_in_outputs_are_the_same_contract(tmp_path: Path):
     from twinwatch.sinks.base import Gate, Sink, SinkConfig
 
     cfg = load_config(ROOT / "config" / "dc-motor-sim.toml")
-    assert [t.name for t in cfg.output_tables()] == list(BUILTIN_SINKS) == [
+    assert [t.name for t in cfg.output_tables()] == list(BUILTIN_SINKS)[:3] == [
         "store", "zenoh", "rerun"]
+    assert list(BUILTIN_SINKS)[3:] == ["mqtt"]      # configured under [outputs.mqtt]
     roles = {}
     for t in cfg.output_tables():
         cls = sink_class(t.name)

@@ -59,6 +59,12 @@ EX_CONFIG = 78
 EX_IOERR = 74
 """Exit status when estimated windows were lost: not stored or not recorded (sysexits.h)."""
 
+EX_TEMPFAIL = 75
+"""Exit status when the daemon ran but estimated nothing or mostly failed: more windows failed
+(numeric failures, windows abandoned for gaps, bad values, jitter, time jumps) than were
+estimated (sysexits.h's EX_TEMPFAIL: the source or its configuration must change, or the fault
+pass, before a run estimates)."""
+
 
 def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
     """Load CONFIG (or the built-in default) and check it can run here: the files it names
@@ -103,7 +109,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
 
     Exit status: 0; 1 when the daemon cannot start or its driver fails; 78 for a configuration
     that cannot run here (the systemd unit does not restart on it); 74 when estimated windows
-    were lost (not stored in the state database or not recorded).
+    were lost (not stored in the state database or not recorded); 75 when more windows failed
+    (numeric failures, abandoned for gaps, bad values, jitter or time jumps) than were
+    estimated.
 
     Signals: SIGTERM/SIGINT finish the windows already queued (a second one abandons them),
     close the driver, Zenoh, the Rerun file and the state database, and exit 0 (also while it
@@ -197,6 +205,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     if daemon.lost():
         supervisor.notifier.status("stopped: " + "; ".join(daemon.problems()))
         sys.exit(EX_IOERR)
+    if daemon.mostly_failed():
+        supervisor.notifier.status(f"stopped: {_failed_line(daemon)}")
+        sys.exit(EX_TEMPFAIL)
 
 
 @contextlib.contextmanager
@@ -248,21 +259,36 @@ def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
     """The run's summary (README "What `twinwatch run` prints"), from the typed health
     messages the daemon kept and its outputs' own lines."""
     c = daemon.counters()
+    causes = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in daemon.ring.causes.items()
+                       if n)
     click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
                f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
-               f"(gaps/bad samples), {c['numeric_failures']} numeric failures "
+               f"({causes or 'gaps/bad samples'}), {c['numeric_failures']} numeric failures "
                f"(run {daemon.run_id})")
     lines = _source_lines(cfg, daemon)
     last = daemon.latest_health
     if last is not None:
         history = daemon.health_history
-        lines += [*_window_lines(last), *_alarm_lines(last), *_structure_lines(last),
+        lines += [*_window_lines(last), *_trend_lines(last), *_alarm_lines(last),
+                  *_structure_lines(last),
                   *_check_lines(last, history), *_timing_lines(cfg, history),
                   *daemon.summary()]  # where each output wrote, what it lost
     if daemon.lost():
         lines.append("twinwatch: estimated windows were lost: exit status 74")
+    elif daemon.mostly_failed():
+        lines.append(f"twinwatch: {_failed_line(daemon)}: exit status 75")
     for line in lines:
         click.echo(line)
+
+
+def _failed_line(daemon: Daemon) -> str:
+    """Why the run counts as failed: windows failed against estimated, by cause."""
+    causes = {k: n for k, n in daemon.ring.causes.items() if n}
+    if daemon.numeric_failures:
+        causes["numeric failure"] = daemon.numeric_failures
+    what = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in causes.items())
+    return (f"{daemon.windows_failed()} windows failed ({what}) and "
+            f"{daemon.windows_estimated} were estimated")
 
 
 def _window_lines(last: HealthMessage) -> list[str]:
@@ -274,6 +300,16 @@ def _window_lines(last: HealthMessage) -> list[str]:
             *(f"  {name:<{width}} = {_value(p.value)} {p.unit:<10} "
               f"({'n/a' if p.deviation_pct is None else f'{p.deviation_pct:+.2f}'} % vs nominal "
               f"{p.nominal:g}) {_status(p)}" for name, p in last.parameters.items())]
+
+
+def _trend_lines(last: HealthMessage) -> list[str]:
+    """One line per parameter with a trend: where it is going, and when it crosses its alarm
+    rule's thresholds (twinwatch.twin.prognostics)."""
+    from twinwatch.twin.health import trend_line
+
+    lines = [line for name, p in last.parameters.items() if (line := trend_line(name, p))]
+    return ["trend and remaining useful life (95 % intervals):", *(f"  {x}" for x in lines)] \
+        if lines else []
 
 
 def _value(value: float | None) -> str:
@@ -295,14 +331,17 @@ def _status(p: ParameterHealth) -> str:
 
 
 def _alarm_lines(last: HealthMessage) -> list[str]:
-    raised = {k: a for k, a in last.alarms.items() if a.level != "normal"}
+    raised = [f"{k} {a.level}"
+              + (f" (raised at plant time {a.since_t:.0f} s)" if a.since_t is not None else "")
+              + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
+                 else "") for k, a in last.alarms.items() if a.level != "normal"]
+    raised += [f"{k} RUL {a.rul.level}"
+               + (f" (raised at plant time {a.rul.since_t:.0f} s)" if a.rul.since_t is not None
+                  else "") for k, a in last.alarms.items()
+               if a.rul is not None and a.rul.level != "normal"]
     if not raised:
         return []
-    return ["alarms: " + "; ".join(
-        f"{k} {a.level}"
-        + (f" (raised at plant time {a.since_t:.0f} s)" if a.since_t is not None else "")
-        + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
-           else "") for k, a in raised.items())]
+    return ["alarms: " + "; ".join(raised)]
 
 
 def _structure_lines(last: HealthMessage) -> list[str]:
@@ -360,6 +399,18 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
     lost = sum(ring.lost.values())
     window = cfg.acquisition.window
     lines = []
+    jittered = [h.source for h in daemon.health_history if h.source.jitter_max_us]
+    if jittered:
+        rms = max(x.jitter_rms_us or 0.0 for x in jittered)
+        peak = max(x.jitter_max_us or 0.0 for x in jittered)
+        lines.append(f"source: time stamps jitter around the {cfg.acquisition.sample_period:g} s "
+                     f"grid the samples were placed on in {len(jittered)} windows: RMS up to "
+                     f"{rms:.3g} us, max {peak:.3g} us")
+    waiting, silent = daemon.source_state()
+    if waiting:
+        lines.append(f"source: waiting for {waiting}")
+    if silent:
+        lines.append("source: silent: " + ", ".join(silent))
     if lost:
         reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
         lines.append(f"source: {ring.samples} samples received, {lost} not in any window "
@@ -405,18 +456,26 @@ def check_config(config: Path) -> None:
     except ConfigError as exc:
         click.echo(str(exc), err=True)
         sys.exit(1)
-    # Drivers validate what only they can check (DBC names, files, columns) at open time;
-    # open them without starting acquisition where that cannot touch a device.
-    from twinwatch.drivers import DriverError, create_driver, get_driver_class
+    # Drivers validate what only they can check (DBC names, files, columns) at open time:
+    # open the source without starting acquisition and without sending (a live interface
+    # receive-only where it allows), and say if it cannot be opened.
+    from twinwatch.drivers import DriverConfigError, DriverError, get_driver_class
 
-    if get_driver_class(cfg.driver.type).safe_to_probe(cfg.driver):
-        try:
-            create_driver(cfg.driver, base_dir=config.resolve().parent).close()
-        except DriverError as exc:
-            click.echo(f"{config}: driver: {exc}", err=True)
-            sys.exit(1)
+    try:
+        probed = get_driver_class(cfg.driver.type).probe(cfg.driver,
+                                                          base_dir=config.resolve().parent)
+    except DriverConfigError as exc:
+        click.echo(f"{config}: driver: {exc}", err=True)
+        sys.exit(1)
+    except DriverError as exc:
+        click.echo(f"{config}: the configuration is valid; the source cannot be opened here: "
+                   f"{exc} (`run` would wait for it)"
+                   if get_driver_class(cfg.driver.type).reopens(cfg.driver)
+                   else f"{config}: driver: {exc}", err=True)
+        sys.exit(1)
     click.echo(f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
-               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})")
+               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})"
+               + (f"; source: {probed}" if probed and probed != "opened" else ""))
 
 
 _CONNECT_HELP = ("Zenoh endpoint to connect to: a daemon (a peer, tcp/127.0.0.1:7447 by "

@@ -4,14 +4,25 @@
 Per parameter (``[alarms.parameters.<name>]``) a rule gives thresholds in percent of nominal,
 either symmetric on ``|deviation_pct|`` (``warning``, ``alarm``) or one-sided (``warning_high``,
 ``alarm_high`` > 0; ``warning_low``, ``alarm_low`` < 0), a hysteresis and minimum durations.
+
+It may also alarm on the **remaining useful life** (``rul_warning``, ``rul_alarm`` [s]): the
+time until the parameter's trend reaches the rule's alarm threshold (its warning threshold when
+it has no alarm one), predicted by :mod:`twinwatch.twin.prognostics`. A RUL below ``rul_alarm``
+raises an alarm, below ``rul_warning`` a warning, with the same minimum durations as the
+deviation's and a hysteresis of ``rul_hysteresis`` (a fraction: a level clears once the RUL is
+back above its threshold times ``1 + rul_hysteresis``). The RUL read is the median, or the
+interval's earliest end with ``rul_basis = "low"`` (the earliest plausible crossing).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from typing import Literal
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+if TYPE_CHECKING:
+    from twinwatch.twin.prognostics.config import Thresholds
 
 __all__ = ["LEVELS", "AlarmConfig", "AlarmRule", "Level"]
 
@@ -47,6 +58,15 @@ class AlarmRule(BaseModel):
                                      "inside before the level is lowered")
     action: str | None = Field(None, description="what the operator should do on warning/alarm "
                                "(default: a generic instruction)")
+    rul_warning: float | None = Field(None, gt=0, description="warning when the remaining "
+                                      "useful life to the alarm threshold is below this [s]")
+    rul_alarm: float | None = Field(None, gt=0, description="alarm when the remaining useful "
+                                    "life to the alarm threshold is below this [s]")
+    rul_hysteresis: float = Field(0.25, ge=0, le=10, description="a RUL level clears once the "
+                                  "RUL is back above its threshold times 1 + this")
+    rul_basis: Literal["median", "low"] = Field(
+        "median", description="the RUL the rules read: the median, or the interval's "
+        "earliest end (the earliest plausible crossing)")
 
     @model_validator(mode="after")
     def _consistent(self) -> AlarmRule:
@@ -68,6 +88,10 @@ class AlarmRule(BaseModel):
         if lo_w is not None and lo_a is not None and lo_w <= lo_a:
             raise ValueError(f"alarm_low: the alarm threshold ({lo_a} %) must be beyond the "
                              f"warning threshold ({lo_w} %)")
+        if (self.rul_warning is not None and self.rul_alarm is not None
+                and self.rul_warning <= self.rul_alarm):
+            raise ValueError(f"rul_warning: a RUL warning ({self.rul_warning} s) must come "
+                             f"before the RUL alarm ({self.rul_alarm} s): make it larger")
         smallest = min(abs(v) for v in (hi_w, hi_a, lo_w, lo_a) if v is not None)
         if self.hysteresis >= smallest:
             raise ValueError(f"hysteresis: {self.hysteresis} percentage points is not smaller "
@@ -81,6 +105,27 @@ class AlarmRule(BaseModel):
         if sym is not None:
             return float(sym), -float(sym)
         return getattr(self, f"{level}_high"), getattr(self, f"{level}_low")
+
+    @property
+    def has_rul(self) -> bool:
+        """The rule alarms on the remaining useful life."""
+        return self.rul_warning is not None or self.rul_alarm is not None
+
+    def rul_threshold(self, level: Level) -> float | None:
+        """The RUL [s] below which ``level`` (``warning`` or ``alarm``) is raised."""
+        return self.rul_warning if level == "warning" else self.rul_alarm
+
+    def thresholds_si(self, nominal: float) -> Thresholds:
+        """The rule's thresholds as values of the parameter [SI] (``nominal * (1 + pct/100)``),
+        the targets of its remaining useful life."""
+        from twinwatch.twin.prognostics.config import Thresholds
+
+        def si(pct: float | None) -> float | None:
+            return None if pct is None else nominal * (1.0 + pct / 100.0)
+
+        wh, wl = self.thresholds("warning")
+        ah, al = self.thresholds("alarm")
+        return Thresholds(si(wh), si(wl), si(ah), si(al))
 
     def beyond(self, level: Level, deviation: float, margin: float = 0.0) -> float | None:
         """The (signed) threshold of ``level`` that ``deviation`` is beyond, moved inwards by
@@ -112,6 +157,14 @@ class AlarmConfig(BaseModel):
     enabled: bool = Field(True, description="evaluate alarms and publish their changes")
     parameters: dict[str, AlarmRule] = Field(default_factory=dict,
                                              description="parameter name -> rule")
+
+    def rul_targets(self, nominal: Mapping[str, float]) -> dict[str, Thresholds]:
+        """Parameter -> its rule's thresholds [SI] for the prognostics (``nominal``: the
+        nameplate values the percentages are of); empty when alarms are off."""
+        if not self.enabled:
+            return {}
+        return {name: rule.thresholds_si(float(nominal[name]))
+                for name, rule in self.parameters.items() if name in nominal}
 
     def check_against(self, parameter_names: Iterable[str],
                       estimated: Iterable[str] | None = None) -> None:

@@ -18,9 +18,11 @@ as is the driver's; the sinks import their backends when they open.
 Layout::
 
     [machine]          name, model, nominal parameters, model options
-    [acquisition]      sample period, window length, gap and queue settings
+    [acquisition]      sample period, window length (and [acquisition.adaptive]), gap and
+                       queue settings
     [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
     [discovery]        meta-model candidates (kind, input, attach point) and when to search
+    [prognostics]      trend and remaining useful life of each estimated parameter
     [identify]         commissioning: training/validation ranges of `twinwatch identify`
     [driver]           type = a registered driver ("simulated", "can", "file", "modbus",
                        "simulated_modbus", or a plug-in's) + that driver's own keys
@@ -79,6 +81,18 @@ def _discovery_config() -> type[DiscoveryConfig]:
     return DiscoveryConfig
 
 
+def _prognostics_config() -> type[PrognosticsConfig]:
+    from twinwatch.twin.prognostics.config import PrognosticsConfig
+
+    return PrognosticsConfig
+
+
+def _adaptive_config() -> type[AdaptiveWindowConfig]:
+    from twinwatch.twin.prognostics.config import AdaptiveWindowConfig
+
+    return AdaptiveWindowConfig
+
+
 def _identify_config() -> type[IdentifyConfig]:
     from twinwatch.twin.estimation.identify import IdentifyConfig
 
@@ -111,8 +125,11 @@ if TYPE_CHECKING:
     from twinwatch.twin.discovery.search import DiscoveryConfig
     from twinwatch.twin.estimation.estimator import EstimationConfig
     from twinwatch.twin.estimation.identify import IdentifyConfig
+    from twinwatch.twin.prognostics.config import AdaptiveWindowConfig, PrognosticsConfig
 
     EstimationTable = EstimationConfig
+    PrognosticsTable = PrognosticsConfig
+    AdaptiveTable = AdaptiveWindowConfig
     DiscoveryTable = DiscoveryConfig
     IdentifyTable = IdentifyConfig
     ZenohTable = ZenohConfig
@@ -122,6 +139,8 @@ else:
     EstimationTable = _twin_table(_estimation_config)
     DiscoveryTable = _twin_table(_discovery_config)
     IdentifyTable = _twin_table(_identify_config)
+    PrognosticsTable = _twin_table(_prognostics_config)
+    AdaptiveTable = _twin_table(_adaptive_config)
     # the built-in outputs' historic tables, validated by the registry's classes
     ZenohTable = _twin_table(lambda: _sink_config("zenoh"))
     RecordingTable = _twin_table(lambda: _sink_config("rerun"))
@@ -220,7 +239,17 @@ class AcquisitionConfig(BaseModel):
 
     sample_period: float = Field(0.01, gt=0, le=3600, description="nominal sample period [s]")
     window: int = Field(200, ge=10, le=MAX_WINDOW, description="samples per estimation window")
-    max_gap: float = Field(1.5, gt=1, description="largest time-stamp step, in sample periods")
+    max_gap: float = Field(1.5, gt=1, description="largest time-stamp step within a range "
+                           "`twinwatch identify` fits, in sample periods (the daemon's windows "
+                           "match stamps to the grid: jitter_tolerance)")
+    jitter_tolerance: float = Field(
+        0.5, gt=0, le=0.5, description="half the widest band the time stamps of one window may "
+        "span around their slots on the nominal grid, in sample periods (0.5: narrower than a "
+        "period, each stamp in its own slot; the samples are placed on the grid; a stamp "
+        "beyond it is a gap or jitter beyond tolerance and abandons the window)")
+    reopen_max: float = Field(30.0, ge=0.5, le=3600, description="cap of the delay [s] "
+                              "between attempts to open a live source that is absent or "
+                              "failed (a bus, a device: waited for, never an exit)")
     queue: int = Field(4, ge=1, le=1000, description="windows waiting for the estimator")
     history: int = Field(1000, ge=1, le=100_000, description="health messages kept in memory")
     stall_timeout: float = Field(5.0, gt=0, description="seconds without a sample before a "
@@ -233,6 +262,22 @@ class AcquisitionConfig(BaseModel):
     shutdown_timeout: float = Field(10.0, gt=0, description="seconds to finish queued windows")
     abandon_on_stop: bool = Field(False, description="on stop, drop queued windows instead "
                                   "of estimating them")
+    adaptive: AdaptiveTable = Field(
+        default_factory=lambda: _adaptive_config()(),
+        description="[acquisition.adaptive]: a window that follows the change (off by "
+        "default)")
+
+    @model_validator(mode="after")
+    def _adaptive_bounds(self) -> AcquisitionConfig:
+        a = self.adaptive
+        if a.enabled:
+            if a.max_window > MAX_WINDOW:
+                raise ValueError(f"adaptive.max_window: at most {MAX_WINDOW} samples")
+            if not a.min_window <= self.window <= a.max_window:
+                raise ValueError(f"window: {self.window} samples is outside the adaptive "
+                                 f"window's bounds [adaptive.min_window, adaptive.max_window] "
+                                 f"= [{a.min_window}, {a.max_window}]")
+        return self
 
 
 def _driver_table(value: Any) -> DriverConfig:
@@ -262,6 +307,7 @@ class TwinwatchConfig(BaseModel):
     estimation: EstimationTable = Field(default_factory=lambda: _estimation_config()())
     discovery: DiscoveryTable = Field(default_factory=lambda: _discovery_config()())
     identify: IdentifyTable = Field(default_factory=lambda: _identify_config()())
+    prognostics: PrognosticsTable = Field(default_factory=lambda: _prognostics_config()())
     driver: SerializeAsAny[DriverConfig]
     zenoh: ZenohTable = Field(default_factory=lambda: _sink_config("zenoh")())
     recording: RecordingTable = Field(default_factory=lambda: _sink_config("rerun")())

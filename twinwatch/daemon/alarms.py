@@ -23,6 +23,16 @@ either symmetric on ``|deviation_pct|`` (``warning``, ``alarm``) or one-sided (`
 Parameters not estimated in a window and non-finite deviations are not evidence: they neither
 start, extend nor interrupt a run (the run's duration is measured in plant time, so held windows
 in between still count as time).
+
+**Remaining useful life.** A rule with ``rul_warning`` / ``rul_alarm`` [s] also alarms on the
+parameter's predicted time to its alarm threshold (``parameters.<name>.rul``: the median, or the
+interval's earliest end with ``rul_basis = "low"``), in a second state per parameter with the
+same minimum durations: a RUL below ``rul_alarm`` raises an alarm, below ``rul_warning`` a
+warning; a level clears once the RUL is back above its threshold times ``1 + rul_hysteresis``
+(or the trend is no longer degrading). A RUL that is ``insufficient`` (too little evidence
+since the start or a restart) is not evidence. The event says what to plan: ``Ra reaches its
+alarm threshold in 6 min (4-9 min)``. Events carry ``kind`` (``deviation`` or ``rul``); the
+health message's ``alarms.<name>.rul`` holds the RUL level.
 """
 
 from __future__ import annotations
@@ -35,6 +45,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from twinwatch.config.alarms import LEVELS, AlarmConfig, AlarmRule, Level
+from twinwatch.twin.prognostics.rul import format_crossing, format_duration
 
 if TYPE_CHECKING:
     from twinwatch.twin.health import HealthMessage, ParameterHealth
@@ -49,6 +60,12 @@ _DEFAULT_ACTION: dict[str, str] = {
     "warning": "plan an inspection of the part this parameter describes at the next stop",
     "alarm": "inspect the machine now; if the deviation is real, take it out of service "
              "before it fails",
+    "normal": "no action needed",
+}
+
+_RUL_ACTION: dict[str, str] = {
+    "warning": "plan the maintenance of the part this parameter describes before then",
+    "alarm": "schedule the intervention now: it is needed before then",
     "normal": "no action needed",
 }
 
@@ -71,6 +88,7 @@ class _ParamState:
     up_level: Level | None = None
     down: _Run | None = None      # run back inside the current level (clearing)
     down_level: Level | None = None
+    rul: float | None = None      # last RUL evidence [s] (the RUL state only)
 
 
 class AlarmEvaluator:
@@ -93,6 +111,8 @@ class AlarmEvaluator:
         self.meanings = dict(meanings or {})
         self._lock = threading.Lock()
         self._state: dict[str, _ParamState] = {n: _ParamState() for n in config.parameters}
+        self._rul: dict[str, _ParamState] = {n: _ParamState() for n, r in
+                                             config.parameters.items() if r.has_rul}
 
     # -- public ---------------------------------------------------------------------------
     def update(self, health: HealthMessage) -> list[dict[str, Any]]:
@@ -125,6 +145,13 @@ class AlarmEvaluator:
                 ev = self._step(name, rule, float(dev), p, health, t_start, t_end, dt)
                 if ev is not None:
                     events.append(ev)
+            for name, s in self._rul.items():
+                rule = self.config.parameters[name]
+                p = health.parameters.get(name)
+                ev = self._rul_step(name, rule, s, p, health, t_start, t_end, dt) \
+                    if p is not None else None
+                if ev is not None:
+                    events.append(ev)
         for ev in events:  # a clear is logged like a raise: an ALARM line is never left open
             logger.warning("%s", ev["message"])
         return events
@@ -145,6 +172,11 @@ class AlarmEvaluator:
                 out[name] = {"level": s.level, "since_t": s.since_t,
                              "since_window": s.since_window, "deviation_pct": s.deviation,
                              "pending": pending}
+                r = self._rul.get(name)
+                if r is not None:
+                    out[name]["rul"] = {"level": r.level, "since_t": r.since_t,
+                                        "since_window": r.since_window, "rul_s": r.rul,
+                                        "pending": _pending(r)}
             return out
 
     def restore(self, snapshot: Mapping[str, Mapping[str, Any]]) -> None:
@@ -163,6 +195,12 @@ class AlarmEvaluator:
                 s.since_t = snap.get("since_t")
                 s.since_window = snap.get("since_window")
                 s.deviation = snap.get("deviation_pct")
+                r, rsnap = self._rul.get(name), snap.get("rul")
+                if r is not None and isinstance(rsnap, Mapping) and rsnap.get("level") in _RANK:
+                    r.level = rsnap["level"]
+                    r.since_t = rsnap.get("since_t")
+                    r.since_window = rsnap.get("since_window")
+                    r.rul = rsnap.get("rul_s")
 
     # -- internals --------------------------------------------------------------------------
     def _target(self, rule: AlarmRule, dev: float, current: Level) -> tuple[Level, float | None]:
@@ -180,44 +218,96 @@ class AlarmEvaluator:
         s = self._state[name]
         s.deviation = dev
         target, th = self._target(rule, dev, s.level)
-        new: Level | None = None
-        if _RANK[target] > _RANK[s.level]:
-            s.down = None
-            s.down_level = None
-            if s.up is None:
-                s.up = _Run(t_start, 0)
-            s.up.windows += 1
-            # The run counts for the highest level reached; falling back from alarm to
-            # warning territory keeps the run (it is still beyond warning).
-            s.up_level = target
-            if (s.up.windows >= rule.raise_after_windows
-                    and t_end - s.up.since_t + dt >= rule.raise_after_s - 1e-9):
-                new = target
-        elif _RANK[target] < _RANK[s.level]:
-            s.up = None
-            s.up_level = None
-            if s.down is None:
-                s.down = _Run(t_start, 0)
-            s.down.windows += 1
-            s.down_level = target
-            if (s.down.windows >= rule.clear_after_windows
-                    and t_end - s.down.since_t + dt >= rule.clear_after_s - 1e-9):
-                new = target
-        else:
-            s.up = s.down = None
-            s.up_level = s.down_level = None
-        if new is None:
+        moved = _advance(s, rule, target, t_start, t_end, dt, int(health.window))
+        if moved is None:
             return None
-        run = s.up if s.up is not None else s.down
-        assert run is not None
-        previous = s.level
+        previous, new, since_t = moved
         if _RANK[new] < _RANK[previous]:  # lowered: report the threshold that was left
             high, low = rule.thresholds(previous)
             th = high if (dev >= 0 and high is not None) or low is None else low
-        s.level, s.since_t, s.since_window = new, t_end, int(health.window)
-        s.up = s.down = None
-        s.up_level = s.down_level = None
-        return self._event(name, rule, new, previous, dev, th, p, health, t_end, run.since_t)
+        return self._event(name, rule, new, previous, dev, th, p, health, t_end, since_t)
+
+    def _rul_step(self, name: str, rule: AlarmRule, s: _ParamState, p: ParameterHealth,
+                  health: HealthMessage, t_start: float, t_end: float, dt: float
+                  ) -> dict[str, Any] | None:
+        """The RUL state of one parameter (module docstring)."""
+        rul = p.rul
+        if rul is None or rul.status == "insufficient":
+            return None
+        crossing = rul.alarm or rul.warning
+        value = math.inf
+        if rul.status == "degrading" and crossing is not None:
+            v = crossing.low_s if rule.rul_basis == "low" else crossing.rul_s
+            value = math.inf if v is None else float(v)
+        s.rul = value if math.isfinite(value) else None
+        target: Level = "normal"
+        for lvl in ("alarm", "warning"):
+            th = rule.rul_threshold(lvl)  # type: ignore[arg-type]
+            if th is None:
+                continue
+            margin = 1.0 + rule.rul_hysteresis if _RANK[s.level] >= _RANK[lvl] else 1.0
+            if value <= th * margin:
+                target = lvl  # type: ignore[assignment]
+                break
+        moved = _advance(s, rule, target, t_start, t_end, dt, int(health.window))
+        if moved is None:
+            return None
+        previous, new, since_t = moved
+        return self._rul_event(name, rule, new, previous, value, p, health, t_end, since_t)
+
+    def _rul_event(self, name: str, rule: AlarmRule, level: Level, previous: Level,
+                   value: float, p: ParameterHealth, health: HealthMessage, t: float,
+                   since_t: float) -> dict[str, Any]:
+        machine = self.machine or health.machine
+        meaning = self.meanings.get(name)
+        what = f"{name} ({meaning})" if meaning else name
+        rul = p.rul
+        crossing = (rul.alarm or rul.warning) if rul is not None else None
+        which = "alarm" if rul is not None and rul.alarm is not None else "warning"
+        unit = p.unit or ""
+        th_level = rule.rul_threshold(level if level != "normal" else previous)
+        if crossing is not None and crossing.status == "crossed":
+            when = "now (the trend is beyond it)"
+        elif crossing is not None:
+            when = "in " + format_crossing(crossing.rul_s, crossing.low_s, crossing.high_s)
+        else:
+            when = "never (not degrading)"
+        th_txt = (f" ({crossing.threshold:.6g} {unit})" if crossing is not None
+                  and crossing.threshold is not None else "")
+        trend = p.trend
+        model = ""
+        if trend is not None and trend.model is not None:
+            model = (f"; {trend.model} trend"
+                     + (f" from plant time {trend.onset:.0f} s" if trend.onset is not None
+                        else ""))
+        if _RANK[level] > _RANK[previous]:
+            action = _RUL_ACTION[level]
+            msg = (f"{machine}: RUL {level.upper()}: {what} reaches its {which} threshold"
+                   f"{th_txt} {when}{model}; the {level} is raised below "
+                   f"{format_duration(th_level)}: {action}")
+        else:
+            msg = (f"{machine}: RUL {previous} cleared to {level}: {what} reaches its {which} "
+                   f"threshold{th_txt} {when}"
+                   + ("" if level == "normal" else f"; still {level}: {_RUL_ACTION[level]}"))
+        return {
+            "machine": machine,
+            "kind": "rul",
+            "parameter": name,
+            "level": level,
+            "previous": previous,
+            "rul_s": value if math.isfinite(value) else None,
+            "rul_low_s": crossing.low_s if crossing is not None else None,
+            "rul_high_s": crossing.high_s if crossing is not None else None,
+            "t_cross": crossing.t if crossing is not None else None,
+            "threshold_s": th_level,
+            "value": p.value,
+            "unit": unit,
+            "nominal": p.nominal,
+            "t": t,
+            "window": int(health.window),
+            "since_t": since_t,
+            "message": msg,
+        }
 
     def _event(self, name: str, rule: AlarmRule, level: Level, previous: Level, dev: float,
                threshold: float | None, p: ParameterHealth, health: HealthMessage,
@@ -245,6 +335,7 @@ class AlarmEvaluator:
                    f"{still}")
         return {
             "machine": machine,
+            "kind": "deviation",
             "parameter": name,
             "level": level,
             "previous": previous,
@@ -258,3 +349,53 @@ class AlarmEvaluator:
             "since_t": since_t,
             "message": msg,
         }
+
+
+def _pending(s: _ParamState) -> Level | None:
+    """The level a running evidence run would move ``s`` to."""
+    if s.up is not None:
+        return s.up_level
+    if s.down is not None:
+        return s.down_level
+    return None
+
+
+def _advance(s: _ParamState, rule: AlarmRule, target: Level, t_start: float, t_end: float,
+             dt: float, window: int) -> tuple[Level, Level, float] | None:
+    """One evidence window towards ``target``: the runs, the minimum durations. Returns
+    (previous, new level, the time the run began) when the level changes."""
+    new: Level | None = None
+    if _RANK[target] > _RANK[s.level]:
+        s.down = None
+        s.down_level = None
+        if s.up is None:
+            s.up = _Run(t_start, 0)
+        s.up.windows += 1
+        # The run counts for the highest level reached; falling back from alarm to
+        # warning territory keeps the run (it is still beyond warning).
+        s.up_level = target
+        if (s.up.windows >= rule.raise_after_windows
+                and t_end - s.up.since_t + dt >= rule.raise_after_s - 1e-9):
+            new = target
+    elif _RANK[target] < _RANK[s.level]:
+        s.up = None
+        s.up_level = None
+        if s.down is None:
+            s.down = _Run(t_start, 0)
+        s.down.windows += 1
+        s.down_level = target
+        if (s.down.windows >= rule.clear_after_windows
+                and t_end - s.down.since_t + dt >= rule.clear_after_s - 1e-9):
+            new = target
+    else:
+        s.up = s.down = None
+        s.up_level = s.down_level = None
+    if new is None:
+        return None
+    run = s.up if s.up is not None else s.down
+    assert run is not None
+    previous = s.level
+    s.level, s.since_t, s.since_window = new, t_end, window
+    s.up = s.down = None
+    s.up_level = s.down_level = None
+    return previous, new, run.since_t

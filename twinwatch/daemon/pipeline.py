@@ -33,10 +33,18 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import numpy as np
+
 from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.sinks.base import ProcessedWindow, Sink
 from twinwatch.twin.adaptation import TwinAdapter
-from twinwatch.twin.health import AlarmStatus, HealthMessage, build_health, summary_line
+from twinwatch.twin.health import (
+    AlarmStatus,
+    HealthMessage,
+    SourceHealth,
+    build_health,
+    summary_line,
+)
 from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
@@ -58,6 +66,8 @@ class WindowPipeline:
         run: the run id every health message carries (:attr:`run`).
         nominal: parameter -> nominal value the deviations are measured from.
         counters: returns the daemon's counters for the health message.
+        source: returns what the source waits for (None when it delivers) and its silent
+            messages, for the health message's ``source``.
         history: health messages kept in memory (:attr:`history`).
 
     Attributes:
@@ -71,7 +81,8 @@ class WindowPipeline:
 
     def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
                  model_name: str, run: str, nominal: Mapping[str, float],
-                 counters: Callable[[], Mapping[str, int]], history: int) -> None:
+                 counters: Callable[[], Mapping[str, int]], history: int,
+                 source: Callable[[], tuple[str | None, list[str]]] | None = None) -> None:
         self.adapter = adapter
         self.run = run
         self.alarms = alarms
@@ -79,6 +90,7 @@ class WindowPipeline:
         self.model_name = model_name
         self.nominal = dict(nominal)
         self._counters = counters
+        self._source = source
         self.sinks: list[Sink] = []
         self.gate: Sink | None = None
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
@@ -108,6 +120,19 @@ class WindowPipeline:
             logger.warning("the %s output works again", sink.name)
         return result
 
+    def _source_health(self, window: WindowData) -> SourceHealth:
+        """The window's ``source``: its stamps' jitter against the grid the ring buffer placed
+        it on [us], and what the source waits for or lacks now."""
+        waiting, silent = self._source() if self._source is not None else (None, [])
+        jitter = window.stamp_jitter
+        if jitter is None or jitter.size == 0:
+            rms = peak = 0.0
+        else:
+            rms = float(np.sqrt(np.mean(np.square(jitter)))) * 1e6
+            peak = float(np.max(np.abs(jitter))) * 1e6
+        return SourceHealth(jitter_rms_us=rms, jitter_max_us=peak, waiting=waiting,
+                            silent=list(silent))
+
     def recent(self) -> list[HealthMessage]:
         """A snapshot of :attr:`history` (safe while the worker appends)."""
         with self._lock:
@@ -130,6 +155,7 @@ class WindowPipeline:
                               model=self.adapter.model, window=window, adaptation=result,
                               nominal=self.nominal, counters=self._counters(),
                               discovery_enabled=self.adapter.enabled)
+        health.source = self._source_health(window)
         events = self.alarms.update(health)
         health.alarms = {name: AlarmStatus.model_validate(state)
                          for name, state in self.alarms.state().items()}

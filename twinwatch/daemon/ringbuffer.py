@@ -3,16 +3,51 @@
 The acquisition side appends one sample at a time; every ``window`` consecutive good samples
 become one :class:`~twinwatch.twin.model.WindowData`. Memory is allocated once.
 
-A window is only ever made of consecutive, finite samples on a regular clock: a time-stamp gap
-(more than ``max_gap`` sample periods), a jump backwards, a missing channel or a NaN/inf value
-abandons the partial window (logged once per reason) and acquisition starts a fresh window at
-the next good sample. Nothing is estimated silently on broken data.
+Time stamps as they come. A source's stamps are rarely on an exact grid: a CAN adapter stamps
+a frame when it is received (+-50 us on a busy bus), a logger rounds its time column, a
+Modbus device without a sample counter is stamped by the poll clock (a poll thread that shares
+the processor with the estimation is late by milliseconds). The twin integrates on the nominal
+grid (its sub-step composition needs the period), so the ring buffer matches the stamps to the
+window's grid: sample ``k`` of a window belongs to slot ``t_first + k * T`` (``T`` the nominal
+``sample_period``), and its *offset* ``o_k = t_k - t_first - k * T`` says how far its stamp is
+from that slot. A window's offsets must lie within a band narrower than ``2 * tol * T``
+(``tol`` = ``[acquisition] jitter_tolerance``, default and at most 0.5 periods): with 0.5 the
+band is narrower than one period, so the stamps of a window cannot be those of a grid with a
+sample missing or repeated, and each sample is the slot it is counted as. A sample that would
+widen the band beyond that is classified by its distance ``rho`` (in periods) from the band's
+centre:
+
+* ``rho >= 1 - tol``: it lies on a later slot: samples are missing, a *gap*;
+* otherwise (early, or between two slots): *jitter beyond tolerance*; also when the offsets
+  lie on a line that leaves the band (a clock at another rate than the configured period: the
+  message gives the mean step measured);
+* a stamp not after the previous one: *time stamp jumped backwards or repeated*.
+
+The band, not a distance from the mean, because a poll clock's jitter is one-sided (a poll is
+late, never early): a window whose polls are on time or up to 9 ms late at ``T`` = 10 ms is
+kept, whatever order the late ones come in. A smaller tolerance refuses stamps that are nearly
+ambiguous (0.25: a band of half a period). Jitter that is only in the stamps (a bus adapter's
+receive clock, a logger's rounding) costs nothing on the grid; a source whose stamps are its
+true sampling instants (the poll clock) is placed within the band's width of them, less than
+the age of a device's held value that such a source reads anyway. When a window completes it
+is put on its grid ``t0 + k * T`` with ``t0`` the mean offset of its stamps; the stamps'
+residuals from that grid (the measured jitter, RMS and maximum,
+:attr:`WindowData.stamp_jitter`) travel with the window and are reported in its health
+message. Stamps already on the grid (within 1e-6 periods) are kept as they are.
+
+Only real faults abandon a window: a gap, a time stamp that went back, jitter beyond the
+tolerance, a missing channel or a NaN/inf value abandons the partial window (logged once per
+reason) and acquisition starts a fresh window at the next good sample. Nothing is estimated
+silently on broken data.
 
 Loss accounting: :attr:`RingBuffer.lost` counts, by reason, the samples received that did not
 become part of a window (the bad sample itself and the good ones of the partial window it
 cut). :attr:`RingBuffer.discarded` counts, by reason, the *windows* abandoned: a stretch of
 lost samples between two completed windows costs ``ceil(lost / window)`` windows, so a source
 whose every other sample is NaN loses 20 windows over 20 windows of samples, not one per cut.
+:attr:`RingBuffer.causes` counts the same windows by cause (:data:`CAUSES`: ``gap``,
+``time_back``, ``jitter``, ``bad_value``, ``missing_channel``), the health counters
+``windows_abandoned_<cause>``.
 """
 
 from __future__ import annotations
@@ -20,12 +55,29 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Mapping, Sequence
+from typing import Literal
 
 import numpy as np
 
 from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
+
+__all__ = ["CAUSES", "GRID_EXACT", "MAX_JITTER_TOLERANCE", "Cause", "RingBuffer"]
+
+Cause = Literal["gap", "time_back", "jitter", "bad_value", "missing_channel"]
+#: Why a window is abandoned, the suffixes of the health counters ``windows_abandoned_<cause>``.
+CAUSES: tuple[Cause, ...] = ("gap", "time_back", "jitter", "bad_value", "missing_channel")
+#: The largest ``jitter_tolerance`` [periods]: a band of offsets one period wide or wider
+#: cannot tell a late sample from the next one.
+MAX_JITTER_TOLERANCE = 0.5
+#: Offsets are compared with the band less this many periods: a stamp exactly one period late
+#: (a missing sample on an exact clock) is a gap at tolerance 0.5 whatever the rounding.
+_BAND_MARGIN = 1e-6
+#: A steady drift is told from a gap only over this many samples of a window.
+_DRIFT_MIN_SAMPLES = 10
+#: Stamps within this fraction of a period of their grid are kept as they are (exact sources).
+GRID_EXACT = 1e-6
 
 
 class RingBuffer:
@@ -34,11 +86,17 @@ class RingBuffer:
     Args:
         channels: channel names stored (others in a sample are ignored).
         window: samples per window (default 200).
-        sample_period: nominal sample period [s].
+        sample_period: nominal sample period ``T`` [s]: the grid the windows are placed on.
         capacity: ring size in samples (default 4 windows).
-        max_gap: largest allowed step between time stamps, in sample periods.
+        jitter_tolerance: half the widest band a window's stamp offsets from their grid
+            slots may span, in sample periods (0 < tolerance <= 0.5; see the module
+            docstring).
         first_index: index of the first window (a reload goes on from the last window of the
             run instead of numbering from 0 again).
+
+    Raises:
+        ValueError: ``window`` < 2, ``capacity`` below one window, or a tolerance outside
+            (0, 0.5].
     """
 
     def __init__(
@@ -48,34 +106,55 @@ class RingBuffer:
         window: int = 200,
         sample_period: float = 0.01,
         capacity: int | None = None,
-        max_gap: float = 1.5,
+        jitter_tolerance: float = MAX_JITTER_TOLERANCE,
         first_index: int = 0,
     ) -> None:
         if window < 2:
             raise ValueError("window must hold at least 2 samples")
+        if not 0 < jitter_tolerance <= MAX_JITTER_TOLERANCE:
+            raise ValueError(f"jitter_tolerance must be in (0, {MAX_JITTER_TOLERANCE}] sample "
+                             f"periods, not {jitter_tolerance}")
         self.channels = tuple(channels)
         self.window = window
         self.sample_period = sample_period
         self.capacity = capacity or 4 * window
         if self.capacity < window:
             raise ValueError("capacity must be at least one window")
-        self.max_gap = max_gap
+        self.jitter_tolerance = jitter_tolerance
         self._t = np.empty(self.capacity)
         self._v = np.empty((self.capacity, len(self.channels)))
         self._head = 0  # next write position
         self._count = 0  # samples in the current (partial) window
+        self._lo = self._hi = 0.0  # band of the partial window's offsets t_k - t_first - k*T
+        self._sums = (0.0, 0.0, 0.0, 0.0)  # sum k, k^2, offset, k*offset (the drift line)
+        self._t_first = 0.0  # stamp of the partial window's first sample
         self._last_t: float | None = None
         self._windows = 0
         self.first_index = first_index
         self.discarded: Counter[str] = Counter()  #: reason -> windows abandoned
+        self.causes: Counter[str] = Counter({c: 0 for c in CAUSES})  #: cause -> windows
         self.lost: Counter[str] = Counter()  #: reason -> samples received but not in a window
         self.samples = 0  #: samples received
         self.bad_samples = 0
         self._stretch_lost = 0  # samples lost since the last completed window
         self._stretch_windows = 0  # windows counted as abandoned for them
         self._warned: set[str] = set()
+        self._next_window: int | None = None
 
-    def _lose(self, reason: str, n: int) -> None:
+    def request_window(self, n: int) -> None:
+        """Make the next window that starts ``n`` samples long (the adaptive window; called
+        from the worker thread: the length is read when a window starts, so a window never
+        changes length half-way).
+
+        Raises:
+            ValueError: ``n`` below 2 or above the ring's capacity.
+        """
+        if not 2 <= n <= self.capacity:
+            raise ValueError(f"a window of {n} samples does not fit the ring buffer "
+                             f"(2 .. {self.capacity})")
+        self._next_window = int(n)
+
+    def _lose(self, reason: str, cause: Cause, n: int) -> None:
         """Account ``n`` lost samples to ``reason`` (see the module docstring)."""
         if n <= 0:
             return
@@ -84,44 +163,106 @@ class RingBuffer:
         windows = -(-self._stretch_lost // self.window)
         if windows > self._stretch_windows:
             self.discarded[reason] += windows - self._stretch_windows
+            self.causes[cause] += windows - self._stretch_windows
             self._stretch_windows = windows
 
-    def _abandon(self, reason: str, t: float, bad: int = 0) -> None:
-        self._lose(reason, self._count + bad)
-        msg = "%s at t=%.3f s: partial window of %d samples abandoned, a fresh window starts"
+    def _abandon(self, reason: str, cause: Cause, t: float, bad: int = 0,
+                 detail: str = "") -> None:
+        self._lose(reason, cause, self._count + bad)
+        msg = "%s at t=%.6f s%s: partial window of %d samples abandoned, a fresh window starts"
         if reason not in self._warned:
             self._warned.add(reason)
             logger.warning(msg + " (logged once per reason; counted in health counters)",
-                           reason, t, self._count)
+                           reason, t, detail, self._count)
         else:
-            logger.debug(msg, reason, t, self._count)
+            logger.debug(msg, reason, t, detail, self._count)
         self._count = 0
 
-    def append(self, t: float, values: Mapping[str, float]) -> WindowData | None:
-        """Add one sample; return a completed window, else None.
+    def _check_time(self, t: float) -> None:
+        """Match ``t`` to the partial window's grid; abandon the window if it does not fit."""
+        if self._last_t is None or self._count == 0:
+            return
+        if t <= self._last_t:
+            self._abandon("time stamp jumped backwards or repeated", "time_back", t)
+            return
+        period = self.sample_period
+        n = self._count
+        offset = (t - self._t_first) - n * period
+        lo, hi = min(self._lo, offset), max(self._hi, offset)
+        tol = self.jitter_tolerance
+        if hi - lo < (2.0 * tol - _BAND_MARGIN) * period:
+            return
+        drift = self._drift(n, offset)
+        rho = (offset - 0.5 * (self._lo + self._hi)) / period
+        if drift is not None:
+            self._abandon(
+                "time stamp jitter beyond tolerance", "jitter", t,
+                detail=f" (the stamps step by {drift:.6g} s on average, not by "
+                f"acquisition.sample_period = {period:g} s: they drift off the grid; is the "
+                f"period right?)")
+        elif rho >= 1.0 - tol:
+            self._abandon("time stamp gap", "gap", t,
+                          detail=f" ({rho:.2f} periods after its slot: about "
+                          f"{max(1, round(rho))} samples missing)")
+        else:
+            self._abandon(
+                "time stamp jitter beyond tolerance", "jitter", t,
+                detail=f" ({rho:+.2f} periods from the window's slots, which span "
+                f"{(self._hi - self._lo) / period:.2f} periods; the band may not reach "
+                f"{2 * tol:g}: a clock that jitters this much; a sample counter as time "
+                f"source avoids it)")
 
-        Missing channels and non-finite values abandon the partial window (counted).
+    def _drift(self, n: int, offset: float) -> float | None:
+        """The mean step [s] of stamps that drift off the grid at a steady rate (a clock at
+        another rate than the period), when the offsets so far and ``offset`` (sample ``n``)
+        lie on a line within the tolerance and that line spans the band; else None."""
+        if n < _DRIFT_MIN_SAMPLES:
+            return None
+        sk, sk2, so, sko = self._sums
+        den = n * sk2 - sk * sk
+        slope = (n * sko - sk * so) / den
+        icpt = (so - slope * sk) / n
+        period = self.sample_period
+        tol = self.jitter_tolerance * period
+        if abs(offset - (icpt + slope * n)) > 0.5 * tol or abs(slope * n) < tol:
+            return None
+        return period + slope
+
+    def append(self, t: float, values: Mapping[str, float]) -> WindowData | None:
+        """Add one sample (time stamp ``t`` [s] on the source's clock); return a completed
+        window, else None.
+
+        A gap, a stamp that went back, jitter beyond the tolerance, a missing channel or a
+        non-finite value abandons the partial window (counted, logged once per reason).
         """
         self.samples += 1
-        if self._last_t is not None:
-            dt = t - self._last_t
-            if dt <= 0:
-                self._abandon("time stamp jumped backwards or repeated", t)
-            elif dt > self.max_gap * self.sample_period:
-                self._abandon("time stamp gap", t)
+        self._check_time(t)
         self._last_t = t
         try:
             row = [float(values[c]) for c in self.channels]
         except KeyError as exc:
             self.bad_samples += 1
-            self._abandon(f"sample without channel {exc.args[0]!r}", t, bad=1)
+            self._abandon(f"sample without channel {exc.args[0]!r}", "missing_channel", t,
+                          bad=1)
             return None
         if not all(np.isfinite(row)):
             self.bad_samples += 1
             bad = [c for c, v in zip(self.channels, row, strict=True) if not np.isfinite(v)]
-            self._abandon(f"NaN or inf in {', '.join(repr(c) for c in bad)}", t, bad=1)
-            self._last_t = t
+            self._abandon(f"NaN or inf in {', '.join(repr(c) for c in bad)}", "bad_value", t,
+                          bad=1)
             return None
+        if self._count == 0 and self._next_window is not None:
+            self.window, self._next_window = self._next_window, None
+        if self._count == 0:
+            self._t_first = t
+            self._lo = self._hi = 0.0
+            self._sums = (0.0, 0.0, 0.0, 0.0)
+        else:
+            k = self._count
+            offset = (t - self._t_first) - k * self.sample_period
+            self._lo, self._hi = min(self._lo, offset), max(self._hi, offset)
+            sk, sk2, so, sko = self._sums
+            self._sums = (sk + k, sk2 + k * k, so + offset, sko + k * offset)
         self._t[self._head] = t
         self._v[self._head] = row
         self._head = (self._head + 1) % self.capacity
@@ -131,13 +272,29 @@ class RingBuffer:
         self._count = 0
         self._stretch_lost = self._stretch_windows = 0
         idx = (self._head - self.window + np.arange(self.window)) % self.capacity
+        stamps = self._t[idx].copy()
+        t_win, jitter = self._on_grid(stamps)
         win = WindowData(
-            t=self._t[idx].copy(),
+            t=t_win,
             channels={c: self._v[idx, j].copy() for j, c in enumerate(self.channels)},
             index=self.first_index + self._windows,
+            stamp_jitter=jitter,
         )
         self._windows += 1
         return win
+
+    def _on_grid(self, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The window's times on its nominal grid ``t0 + k*T`` (``t0``: the mean offset of the
+        stamps) and the stamps' residuals from it [s]; the stamps themselves (and None) when
+        they are on the grid already."""
+        k = np.arange(stamps.shape[0], dtype=np.float64)
+        period = self.sample_period
+        rel = (stamps - stamps[0]) - k * period
+        offset = stamps[0] + float(np.mean(rel))
+        jitter = rel - float(np.mean(rel))
+        if float(np.max(np.abs(jitter))) <= GRID_EXACT * period:
+            return stamps, None
+        return offset + k * period, jitter
 
     @property
     def windows(self) -> int:

@@ -30,6 +30,7 @@ import queue
 import secrets
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Collection, Container, Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -38,10 +39,11 @@ from typing import TYPE_CHECKING, Any, Literal
 from twinwatch.daemon.alarms import AlarmEvaluator
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
-from twinwatch.drivers import create_driver, get_driver_class
+from twinwatch.daemon.source import open_source
+from twinwatch.drivers import get_driver_class
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import Gate, Role, Sink, SinkContext
+from twinwatch.sinks.base import AlarmBands, Gate, Outbox, Role, Sink, SinkContext
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
@@ -68,6 +70,11 @@ STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
 stops a daemon at a window boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the
 partial window is dropped (a source that went silent)."""
+
+
+RECENT_WINDOWS = 20
+"""Windows whose outcome (estimated, failed, abandoned, overrun) the daemon keeps to tell
+systemd's STATUS whether estimation works *now* (:meth:`Daemon.estimation_problem`)."""
 
 
 class Daemon:
@@ -105,6 +112,9 @@ class Daemon:
         defer: outputs (registry names) not to open yet: the running daemon holds their file
             or port (a reload that changed their table, :meth:`handover`'s ``wait``);
             :meth:`open_deferred` opens them once it has released them.
+        wait_for_source: a live source that cannot be opened now is waited for
+            (:mod:`twinwatch.daemon.source`: the daemon starts and says what it waits for);
+            False raises instead (a reload: the running configuration goes on).
 
     Attributes:
         sinks: registry name -> the open output, in the order each window is written to them
@@ -138,6 +148,7 @@ class Daemon:
         resume: bool | None = None,
         defer: Collection[str] = (),
         run_id: str | None = None,
+        wait_for_source: bool = True,
     ) -> None:
         self.config = config
         self.run_id = run_id or new_run_id()
@@ -146,19 +157,24 @@ class Daemon:
         self.model: TwinModel = create_model(config.machine.model, config.machine.options)
         self.nominal = {p.name: config.machine.parameters.get(p.name, p.nominal)
                         for p in self.model.parameters}
-        self.adapter = TwinAdapter(self.model, config.estimation, config.discovery,
-                                   self.nominal)
-        self.estimator = self.adapter.estimator
         acq = config.acquisition
+        self.adapter = TwinAdapter(self.model, config.estimation, config.discovery,
+                                   self.nominal, prognostics=config.prognostics,
+                                   thresholds=config.alarms.rul_targets(self.nominal),
+                                   adaptive=acq.adaptive)
+        self.estimator = self.adapter.estimator
+        longest = acq.adaptive.max_window if acq.adaptive.enabled else acq.window
         self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
-                               sample_period=acq.sample_period, max_gap=acq.max_gap)
+                               sample_period=acq.sample_period,
+                               jitter_tolerance=acq.jitter_tolerance,
+                               capacity=4 * max(longest, acq.window))
         self.sinks: dict[str, Sink] = {}
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
         self.pipeline = WindowPipeline(
             adapter=self.adapter, alarms=self.alarms, machine=self.machine,
             model_name=config.machine.model, run=self.run_id, nominal=self.nominal,
-            counters=self.counters, history=acq.history)
+            counters=self.counters, history=acq.history, source=self.source_state)
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.new_run: dict[str, Any] | None = None
@@ -174,6 +190,10 @@ class Daemon:
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
+        #: the last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
+        #: "abandoned" (gap, bad value, ...), "overrun"
+        self.recent_outcomes: deque[str] = deque(maxlen=RECENT_WINDOWS)
+        self._abandoned_seen = 0
         self._ticks: list[Callable[[], None]] = []
         self.abandon = config.acquisition.abandon_on_stop
         self._roles: dict[Role, bool] = {"gate": persist, "publisher": publish,
@@ -192,8 +212,9 @@ class Daemon:
                     self._restore()
                 elif starts_over:
                     self._note_new_run()
-            self.driver = handed_driver or driver or create_driver(config.driver,
-                                                                   base_dir=self.base_dir)
+            self.driver = handed_driver or driver or open_source(
+                config.driver, base_dir=self.base_dir, wait=wait_for_source,
+                backoff_max=config.acquisition.reopen_max)
         except BaseException:
             for name in self._adopted:  # the running daemon's: not ours to close
                 self.sinks.pop(name, None)
@@ -267,7 +288,8 @@ class Daemon:
     def _sink_context(self, *, has_gate: bool) -> SinkContext:
         """What the outputs get from this daemon (the stored history when a gate opens)."""
         return replace(_context(self.config, self.model, self.base_dir, self.run_id),
-                       history=self.stored_history if has_gate else None)
+                       history=self.stored_history if has_gate else None,
+                       outbox=self.outbox if has_gate else None)
 
     def handover(self, config: TwinwatchConfig) -> tuple[list[str], list[str]]:
         """What a reload to ``config`` may do with this daemon's open outputs.
@@ -373,6 +395,8 @@ class Daemon:
                             len(state.get("terms", [])))
         if last is not None and last.get("alarms"):
             self.alarms.restore(last["alarms"])
+        if state is not None and self.adapter.prognostics is not None:
+            self._replay_trends()
         if self.restored is not None or (last is not None and last.get("alarms")):
             self.resumed = {
                 "path": str(self.store.path),
@@ -384,6 +408,29 @@ class Daemon:
                            ((last or {}).get("alarms") or {}).items()
                            if a.get("level") not in (None, "normal")},
             }
+
+    def _replay_trends(self) -> None:
+        """Rebuild the parameters' trends from the evidence the stored windows published
+        (the last ``[prognostics] horizon`` seconds of plant time), so a restart resumes the
+        trends and their RUL instead of waiting ``min_evidence`` windows."""
+        assert self.store is not None and self.adapter.prognostics is not None
+        last = self.store.latest_health(self.machine)
+        if last is None or last.get("t_end") is None:
+            return
+        t_to = float(last["t_end"])
+        t_from = t_to - self.adapter.prognostics.config.horizon
+        run = last.get("run")  # the last run's windows only: another run's times are another line
+        messages: list[dict[str, Any]] = []
+        while True:
+            page = self.store.history(t_from, t_to, 1000, by="plant", machine=self.machine,
+                                      run=run)
+            messages.extend(page)
+            if len(page) < 1000:
+                break
+            t_from = float(page[-1]["t_end"]) + 1e-9
+        n = self.adapter.prognostics.replay(messages)
+        if n:
+            logger.info("resumed the parameters' trends from %d stored windows", n)
 
     def _note_new_run(self) -> None:
         """The source's time starts over, so the stored twin is not resumed: say so when the
@@ -408,6 +455,12 @@ class Daemon:
         if store is None:
             return []
         return store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run)
+
+    def outbox(self, output: str) -> Outbox | None:
+        """The gate's outbox of ``output`` for this machine (store-and-forward outputs ask it
+        through their context), None without a gate."""
+        store = self.store
+        return None if store is None else store.outbox(output, self.machine)
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
@@ -445,6 +498,7 @@ class Daemon:
             "numeric_failures": self.numeric_failures,
             "bad_samples": self.ring.bad_samples,
             "windows_abandoned": sum(self.ring.discarded.values()),
+            **{f"windows_abandoned_{cause}": n for cause, n in self.ring.causes.items()},
         }
         if self.driver is not None:
             c.update({f"driver_{k}": v for k, v in self.driver.stats.as_dict().items()})
@@ -457,10 +511,53 @@ class Daemon:
         return c
 
     def problems(self) -> list[str]:
-        """What is degraded right now (each output's
-        :attr:`~twinwatch.sinks.base.Sink.problem`, for systemd's STATUS and the log), empty if
-        nothing."""
-        return [p for s in self._outputs() if (p := s.problem)]
+        """What is degraded right now, for systemd's STATUS and the log (empty if nothing):
+        what the source waits for or lacks (:meth:`source_state`), estimation that fails
+        (:meth:`estimation_problem`), each output's :attr:`~twinwatch.sinks.base.Sink.problem`.
+        """
+        out = []
+        waiting, silent = self.source_state()
+        if waiting:
+            out.append(f"waiting for the source: {waiting}")
+        if silent:
+            out.append("silent: " + ", ".join(silent))
+        if (p := self.estimation_problem()) is not None:
+            out.append(p)
+        return out + [p for s in self._outputs() if (p := s.problem)]
+
+    def source_state(self) -> tuple[str | None, list[str]]:
+        """What the driver waits for (a device absent, a bus being reopened; None when it
+        delivers) and its silent messages (:attr:`~twinwatch.drivers.base.Driver.waiting`,
+        :attr:`~twinwatch.drivers.base.Driver.silent`)."""
+        driver = self.driver
+        if driver is None:
+            return None, []
+        return driver.waiting, list(driver.silent)
+
+    def _source_waiting(self) -> bool:
+        driver = self.driver
+        return driver is not None and driver.waiting is not None
+
+    def estimation_problem(self) -> str | None:
+        """A line when at least half of the last windows (at least 3 of at most
+        :data:`RECENT_WINDOWS`) were not estimated (numeric failures, abandoned: gaps, bad
+        values, jitter, time jumps; overruns), else None."""
+        recent = list(self.recent_outcomes)
+        bad = [o for o in recent if o != "estimated"]
+        if len(recent) < 3 or 2 * len(bad) < len(recent):
+            return None
+        kinds = ", ".join(f"{n} {k}" for k, n in sorted(
+            {k: bad.count(k) for k in set(bad)}.items()))
+        return f"{len(bad)} of the last {len(recent)} windows not estimated ({kinds})"
+
+    def windows_failed(self) -> int:
+        """Windows of this run that failed: numeric failures plus windows abandoned (gaps, bad
+        values, jitter beyond tolerance, time jumps, missing channels)."""
+        return self.numeric_failures + sum(self.ring.discarded.values())
+
+    def mostly_failed(self) -> bool:
+        """More windows failed than were estimated (``twinwatch run`` exits 75)."""
+        return self.windows_failed() > self.windows_estimated
 
     def lost(self) -> dict[str, int]:
         """Windows estimated but lost, by output (its counter prefix: ``store`` never stored,
@@ -492,6 +589,7 @@ class Daemon:
         self._worker.start()
         if self.watchdog is not None:
             self.watchdog.require_windows = self.config.acquisition.watchdog == "windows"
+            self.watchdog.source_waiting = self._source_waiting
             self.watchdog.reset()
         t_first: float | None = None
         stall_timeout = self.config.acquisition.stall_timeout
@@ -539,6 +637,11 @@ class Daemon:
                     self.ended = "duration reached"
                     break
                 window = self.ring.append(sample.t, sample.values)
+                abandoned = sum(self.ring.causes.values())
+                if abandoned > self._abandoned_seen:
+                    self.recent_outcomes.extend(["abandoned"] * min(
+                        abandoned - self._abandoned_seen, RECENT_WINDOWS))
+                    self._abandoned_seen = abandoned
                 if window is not None:
                     self._submit(window, block=not live)
         finally:
@@ -558,6 +661,7 @@ class Daemon:
             self._queue.put_nowait(window)
         except queue.Full:
             self.overruns += 1
+            self.recent_outcomes.append("overrun")
             logger.warning("estimation overrun: window %d dropped (%d so far); the "
                            "estimation does not keep up with acquisition: lower "
                            "[estimation.pso].max_generations or the time budget",
@@ -591,8 +695,10 @@ class Daemon:
                 self.watchdog.busy()
             try:
                 self.process_window(item)
+                self.recent_outcomes.append("estimated")
             except Exception as exc:  # contained to the window: the daemon goes on
                 self.numeric_failures += 1
+                self.recent_outcomes.append("failed")
                 logger.error("window %d could not be estimated (%s: %s); it is skipped and "
                              "counted in counters.numeric_failures", item.index,
                              type(exc).__name__, exc)
@@ -603,9 +709,14 @@ class Daemon:
 
     def process_window(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window and write it to the sinks (the pipeline's
-        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`). Returns the typed health
+        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`); with the adaptive window,
+        the ring buffer's next window takes the length it asks for. Returns the typed health
         message."""
-        return self.pipeline.process(window)
+        health = self.pipeline.process(window)
+        acq = health.acquisition
+        if acq is not None and acq.next_window is not None:
+            self.ring.request_window(acq.next_window)
+        return health
 
     def close(self, keep: Container[str] = ()) -> dict[str, Sink]:
         """Stop everything and release the driver and the outputs (after the worker has
@@ -648,11 +759,22 @@ class Daemon:
 def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path,
              run: str) -> SinkContext:
     """The outputs' context for a daemon on ``config`` (without the stored history)."""
+    bands = {}
+    if config.alarms.enabled:
+        for name, rule in config.alarms.parameters.items():
+            (w_high, w_low), (a_high, a_low) = rule.thresholds("warning"), rule.thresholds("alarm")
+            bands[name] = AlarmBands(warning_high=w_high, warning_low=w_low, alarm_high=a_high,
+                                     alarm_low=a_low)
     return SinkContext(machine=config.machine.name, model=config.machine.model,
                        outputs=tuple(model.output_names),
                        parameters={p.name: p.unit for p in model.parameters},
                        base_dir=base_dir, cwd=Path.cwd(),
-                       recent_windows=config.acquisition.history, run=run)
+                       recent_windows=config.acquisition.history,
+                       output_units={o.name: o.unit for o in model.outputs},
+                       nominal={p.name: float(config.machine.parameters.get(p.name, p.nominal))
+                                for p in model.parameters},
+                       estimated=tuple(config.estimation.estimate or ()),
+                       alarm_bands=bands, run=run)
 
 
 def _close(name: str, obj: Sink | Driver) -> None:

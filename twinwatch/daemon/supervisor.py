@@ -42,6 +42,7 @@ import faulthandler
 import logging
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import FrameType
@@ -191,6 +192,7 @@ class Supervisor:
         self._previous_handlers: dict[int, Any] = {}
         self._resume = resume
         self._problems: list[str] = []
+        self._next_status = 0.0
 
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -246,7 +248,7 @@ class Supervisor:
 
     def _open(self, cfg: TwinwatchConfig, reuse: dict[str, Any] | None = None,
               resume: bool | None = None, defer: tuple[str, ...] = (),
-              run_id: str | None = None) -> Daemon:
+              run_id: str | None = None, wait_for_source: bool = True) -> Daemon:
         """A daemon on ``cfg`` (driver and sinks open, the twin's kernels compiled), with the
         reload tick and callbacks; ``run_id`` None starts a new run (a reload passes the
         running one's). Runs in a :class:`_Build`'s thread.
@@ -258,16 +260,29 @@ class Supervisor:
 
         with _start_errors():
             daemon = Daemon(cfg, base_dir=self.base_dir, persist=True, watchdog=self.watchdog,
-                            reuse=reuse, resume=resume, defer=defer, run_id=run_id)
+                            reuse=reuse, resume=resume, defer=defer, run_id=run_id,
+                            wait_for_source=wait_for_source)
         daemon.add_tick(self._check_reload)
+        daemon.add_tick(self._refresh_status)
         daemon.add_callback(self._watch_problems)
         for fn in self._callbacks:
             daemon.add_callback(fn)
         warm_up(daemon)
         return daemon
 
-    def _watch_problems(self, health: HealthMessage) -> None:
-        """After each window (worker thread): systemd's STATUS follows what is degraded (the
+    def _refresh_status(self) -> None:
+        """Acquisition-loop tick (main thread, at most once a second): STATUS follows what the
+        source waits for or lacks and whether windows are estimated, also while no window
+        completes (the callback below runs only after an estimated window)."""
+        now = time.monotonic()
+        if now < self._next_status:
+            return
+        self._next_status = now + 1.0
+        self._watch_problems(None)
+
+    def _watch_problems(self, health: HealthMessage | None) -> None:
+        """After each window (worker thread) and every second (main thread): systemd's STATUS
+        follows what is degraded (the source waited for or silent, windows not estimated, the
         state database not writable, the recording stopped), and returns to normal."""
         daemon, cfg = self.daemon, self.config
         if daemon is None or cfg is None:
@@ -355,7 +370,7 @@ class Supervisor:
         logger.warning("reloading %s: starting the new configuration beside the running one",
                        self.source)
         self._build = _Build(lambda: self._open(new_cfg, reuse=reuse, resume=False, defer=defer,
-                                                run_id=running.run_id),
+                                                run_id=running.run_id, wait_for_source=False),
                              keep=keep, config=new_cfg, name="twinwatch-reload")
 
     def _handover(self, new_cfg: TwinwatchConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:

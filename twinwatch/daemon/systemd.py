@@ -184,7 +184,10 @@ class Watchdog:
     * with ``require_windows`` (``[acquisition] watchdog = "windows"``, the default), no window
       has finished for more than ``max_quiet`` seconds: the source went silent (the runner
       reports the stall after ``stall_timeout``; if the driver does not recover it within
-      ``WatchdogSec=``, a fresh process is the next recovery step).
+      ``WatchdogSec=``, a fresh process is the next recovery step). A source the driver
+      reports it is recovering (:attr:`source_waiting`: a device absent at start, a gateway
+      being reopened with backoff) does not count as quiet: the process is at work, STATUS
+      says what it waits for, and a restart could do no more.
 
     With ``require_windows`` off (``watchdog = "alive"``, for machines that are idle for long,
     e.g. switched off at night) a silent source does not stop the pings: the stall is reported
@@ -218,6 +221,11 @@ class Watchdog:
         self._last_window: float | None = None
         self._why_logged: str | None = None
         self.pings = 0
+        #: returns True while the driver is recovering a source it reports as absent
+        #: (:attr:`~twinwatch.drivers.base.Driver.waiting`): no window is expected then, the
+        #: pings go on (the outage is in STATUS), so a source that comes late or goes away for
+        #: a while does not restart the service into its start limit
+        self.source_waiting: Callable[[], bool] = lambda: False
 
     @property
     def enabled(self) -> bool:
@@ -248,6 +256,9 @@ class Watchdog:
         if self._last_window is None:
             self._last_window = now
         quiet = now - self._last_window
+        if self.source_waiting():  # the driver recovers the source: waiting is healthy
+            self._last_window = now
+            quiet = 0.0
         if (self.require_windows and since is None and self.max_quiet is not None
                 and quiet > self.max_quiet):
             return "quiet", (f"no window processed for {quiet:.0f} s (no samples, or every "

@@ -195,6 +195,38 @@ class Driver(Closeable, abc.ABC):
         return False
 
     @classmethod
+    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
+        """What ``check-config`` does to the configured source: open it without reading and
+        without sending, and close it. Default: a source :meth:`safe_to_probe` is opened
+        through :meth:`from_config`; others are not touched (None).
+
+        Returns:
+            What was checked, for a person, or None when nothing was opened.
+
+        Raises:
+            DriverError: the source cannot be opened (the message says why).
+        """
+        if not cls.safe_to_probe(config):
+            return None
+        cls.from_config(config, base_dir=base_dir).close()
+        return "opened"
+
+    @classmethod
+    def reopens(cls, config: DriverConfig) -> bool:
+        """Whether the configured source is *live* and may come and go (a bus, a device, a
+        gateway): the daemon then waits for it at start and opens it again when the driver
+        gives up (:class:`~twinwatch.errors.DriverOperationError`), with a capped backoff
+        (:mod:`twinwatch.daemon.source`). False (default) for a finite source (a file, a log
+        replay, a simulation): a failure to open it fails at once."""
+        return False
+
+    @classmethod
+    def describe(cls, config: DriverConfig) -> str:
+        """The configured source for a person, in log lines and STATUS (default: ``"the
+        <type> source"``)."""
+        return f"the {config.type} source"
+
+    @classmethod
     def time_starts_over(cls, config: DriverConfig) -> bool:
         """Whether the configured source's time starts over each time it is opened (a
         simulated plant from t = 0, a recording or log replayed from its start): a new
@@ -245,6 +277,22 @@ class Driver(Closeable, abc.ABC):
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def waiting(self) -> str | None:
+        """What the source is waiting for, for a person (``"Modbus device tcp 10.0.0.5:502
+        device 1 not answering for 12 s: connection refused"``), while it cannot deliver and
+        the driver is recovering it; None while it delivers (default). The daemon shows it in
+        systemd's STATUS and the health message, and keeps the watchdog fed meanwhile: the
+        driver is at work. Thread-safe to read."""
+        return None
+
+    @property
+    def silent(self) -> tuple[str, ...]:
+        """The parts of the source that went silent while the rest delivers (a bus message
+        and the channels it carries: ``"TW_Motor_Electrical (Va, ia) for 3.1 s"``), for the
+        health message and systemd's STATUS; empty by default. Thread-safe to read."""
+        return ()
 
     def log_once(self, key: str, msg: str, *args: object, level: int = logging.WARNING) -> None:
         """Log ``msg`` at ``level`` the first time ``key`` is seen, at DEBUG afterwards.

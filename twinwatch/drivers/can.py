@@ -18,8 +18,11 @@ Bad input is counted, logged once, and skipped (see :class:`~twinwatch.drivers.b
   count in ``stats.bad_frames``; frames *longer* than the DBC says are decoded (padding is
   common) and logged once;
 * NaN or infinite decoded values count in ``stats.bad_values`` and are delivered as they are;
-* a sample-counter jump of ``n > 1`` adds ``n - 1`` to ``stats.gaps``; a counter that goes back
-  counts in ``stats.extra["counter_resets"]``;
+* the sample counter (:class:`~twinwatch.io.counter.SampleCounter`, unwrapped): a jump of
+  ``n > 1`` adds ``n - 1`` to ``stats.gaps``; a repeated value (a duplicated frame) or one a
+  few steps back (a late frame a gateway reordered) skips that sample without losing the count
+  (``stats.extra["duplicates"]``, ``["reordered"]``); a counter that goes further back (the
+  source restarted) counts in ``stats.extra["counter_resets"]`` and its clock restarts;
 * error frames and remote (RTR) frames count in ``stats.extra["error_frames"]`` /
   ``stats.extra["remote_frames"]`` (ODrive masters poll with RTR frames: they are normal);
 * a sync message that arrives before every mapped signal has been seen once produces no sample
@@ -48,6 +51,7 @@ from __future__ import annotations
 import difflib
 import logging
 import math
+import socket
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -75,6 +79,7 @@ from twinwatch.drivers.base import (
     ScaledChannel,
     validated_config,
 )
+from twinwatch.io.counter import SampleCounter
 
 logger = logging.getLogger(__name__)
 
@@ -83,6 +88,9 @@ __all__ = ["CanDriver", "CanDriverConfig", "CanSignalMap"]
 _TIME_SIGNAL_PREFIX = "signal:"
 #: frames read(timeout) still processes, without waiting, once its timeout has run out
 _MAX_OVERTIME_FRAMES = 1000
+#: share of a receive's wall time spent on the processor beyond which a bus that returned no
+#: frame counts as spinning on a closed connection
+_SPIN_CPU = 0.3
 
 
 def _split_signal_ref(ref: str) -> tuple[str, str]:
@@ -130,6 +138,15 @@ class CanDriverConfig(DriverConfig):
         sample_period: nominal sample period [s] (> 0).
         signals: twin channel name -> :class:`CanSignalMap`, at least one. The order of the
             table is the order of :attr:`CanDriver.channels`.
+        reopen_after: a live bus the driver opened that delivers no frame at all for this many
+            seconds [s, wall] is given up (:class:`DriverOperationError`), so the daemon
+            closes it and opens it again with backoff (a gateway that dropped the connection,
+            an interface gone bus-off or down); None: never. Default 2 s.
+        silent_after: a mapped message not received for this many seconds of the frames' own
+            time [s] while the sync message goes on is *silent* (the node that sends it is
+            down): it is named (:attr:`CanDriver.silent`, STATUS, the health message) and its
+            channels are left out of the samples until it is back, never held. Default 1 s;
+            raise it for a message sent more slowly than that.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -147,6 +164,8 @@ class CanDriverConfig(DriverConfig):
     counter_signal: str | None = None
     sample_period: float = Field(gt=0, allow_inf_nan=False)
     signals: dict[str, CanSignalMap] = Field(min_length=1)
+    reopen_after: float | None = Field(2.0, gt=0, allow_inf_nan=False)
+    silent_after: float = Field(1.0, gt=0, allow_inf_nan=False)
 
     @field_validator("interface")
     @classmethod
@@ -277,12 +296,23 @@ class _BusSource:
         self.owned = owned
 
     def recv(self, timeout: float | None) -> can.Message | None:
+        start, cpu = time.monotonic(), time.thread_time()
         try:
-            return self.bus.recv(timeout)
-        except can.CanError as exc:
+            frame = self.bus.recv(timeout)
+        except (can.CanError, OSError) as exc:
             raise DriverOperationError(
                 f"CAN receive failed on {self.bus.channel_info}: {exc}"
             ) from exc
+        if frame is None and timeout and self.owned:
+            # A bus whose connection is closed may spin instead of waiting (python-can's
+            # socketcand bus reads an empty string from the closed socket in a loop until the
+            # timeout: a full core): a wait that burnt the processor is given up.
+            wall = time.monotonic() - start
+            if wall >= 0.04 and time.thread_time() - cpu > _SPIN_CPU * wall:
+                raise DriverOperationError(
+                    f"the CAN interface {self.bus.channel_info} returns no frame without "
+                    f"waiting (its connection is closed)")
+        return frame
 
     def close(self) -> None:
         if self.owned:
@@ -291,22 +321,26 @@ class _BusSource:
 
 class _Lines:
     """The lines of a text log, as the file object a python-can text reader iterates,
-    skipping the line numbers in ``skip`` (1-based) and counting the lines handed out."""
+    counting the lines handed out (``lineno``, 1-based)."""
 
-    def __init__(self, path: Path, skip: set[int]) -> None:
+    def __init__(self, path: Path) -> None:
         self._file = path.open(encoding="utf-8", errors="replace", newline=None)
-        self.skip = skip
         self.lineno = 0
+        self._front: list[str] = []
 
     def __iter__(self) -> _Lines:
         return self
 
+    def push_front(self, line: str) -> None:
+        """Hand out ``line`` next (not counted as a line of the file)."""
+        self._front.append(line)
+
     def __next__(self) -> str:
-        while True:
-            line = next(self._file)
-            self.lineno += 1
-            if self.lineno not in self.skip:
-                return line
+        if self._front:
+            return self._front.pop()
+        line = next(self._file)
+        self.lineno += 1
+        return line
 
     def readline(self) -> str:
         try:
@@ -330,9 +364,9 @@ class _LogSource:
 
     A malformed line of a text log (candump ``.log``, ``.asc``, ``.csv``, ``.trc``) is skipped
     and reported through ``on_bad(line, error)``: python-can's readers are generators that end
-    at the first parse error, so the reader is started again on the same lines (candump: its
-    lines are independent) or from the top with that line left out (formats with a header),
-    skipping the frames already delivered. A binary log (``.blf``, ``.mf4``) cannot be resumed
+    at the first parse error, so a new reader takes over at the next line with the old one's
+    state (:meth:`_resume`: O(1) per bad line; re-reading from the top made 300 bad lines in
+    18,000 cost a quadratic re-read). A binary log (``.blf``, ``.mf4``) cannot be resumed
     after a corrupt block: the error ends the replay with one clear line.
     """
 
@@ -346,11 +380,12 @@ class _LogSource:
         except (OSError, ValueError, ImportError) as exc:
             raise DriverConfigError(f"log_file: cannot read {str(path)!r}: {exc}") from exc
         self._lines: _Lines | None = None
-        self._skip: set[int] = set()
+        self._bad_lines = 0
         if isinstance(self._reader, TextIOMessageReader) and path.suffix.lower() != ".gz":
             self._reader.stop()
             self._text_reader: type[TextIOMessageReader] | None = type(self._reader)
-            self._reopen(skip_frames=0)
+            self._lines = _Lines(self.path)
+            self._reader = self._text_reader(file=self._lines)  # type: ignore[call-arg,arg-type]
         else:
             self._text_reader = None
         self._frames: Iterator[can.Message] = iter(self._reader)
@@ -358,16 +393,23 @@ class _LogSource:
         self._pending: can.Message | None = None
         self._origin: tuple[float, float] | None = None  # (wall clock, log time) of 1st frame
 
-    def _reopen(self, skip_frames: int) -> None:
-        """Start the text reader on the lines (again), without the lines in ``_skip``."""
-        assert self._text_reader is not None
-        if self._lines is not None:
-            self._lines.close()
-        self._lines = _Lines(self.path, self._skip)
-        self._reader = self._text_reader(file=self._lines)  # type: ignore[call-arg,arg-type]
-        self._frames = iter(self._reader)
-        for _ in range(skip_frames):
-            next(self._frames)
+    def _resume(self) -> None:
+        """Go on reading after a malformed line, at the next line, in O(1): a new reader of
+        the same class takes over the old one's state (the header it parsed: an ASC file's
+        number base and start time, a TRC file's version and columns) and reads on from the
+        current line without parsing a header again (a CSV log's header line is given to it
+        as a placeholder it skips)."""
+        assert self._lines is not None and self._text_reader is not None
+        old = self._reader
+        new = object.__new__(type(old))
+        new.__dict__.update(old.__dict__)
+        new.file = self._lines  # type: ignore[attr-defined]
+        if hasattr(new, "_extract_header"):  # ASC, TRC: the header is in the state copied
+            new._extract_header = lambda: None  # type: ignore[attr-defined]
+        if isinstance(old, can.CSVReader):  # its __iter__ skips one header line first
+            self._lines.push_front("header\n")
+        self._reader = new
+        self._frames = iter(new)
 
     def _next_frame(self) -> can.Message:
         while True:
@@ -383,8 +425,8 @@ class _LogSource:
                         f"({type(exc).__name__}: {exc}); the rest of it cannot be read"
                     ) from exc
                 bad = self._lines.lineno
-                self._skip.add(bad)
-                if len(self._skip) > _MAX_BAD_LINES:
+                self._bad_lines += 1
+                if self._bad_lines > _MAX_BAD_LINES:
                     raise DriverOperationError(
                         f"CAN log {str(self.path)!r}: more than {_MAX_BAD_LINES} malformed "
                         f"lines (the last at line {bad}): is it really a "
@@ -392,12 +434,7 @@ class _LogSource:
                     ) from exc
                 if self._on_bad is not None:
                     self._on_bad(bad, exc)
-                if self._text_reader is can.CanutilsLogReader:
-                    # candump lines are independent: go on with the next line
-                    self._reader = self._text_reader(file=self._lines)  # type: ignore[call-arg,arg-type]
-                    self._frames = iter(self._reader)
-                else:
-                    self._reopen(skip_frames=self._delivered)
+                self._resume()
                 continue
             self._delivered += 1
             return frame
@@ -422,6 +459,46 @@ class _LogSource:
         self._reader.stop()
         if self._lines is not None:
             self._lines.close()
+
+
+def _gateway_address(config: CanDriverConfig) -> tuple[str, int] | None:
+    """(host, port) of a TCP gateway interface (python-can's ``socketcand``), else None."""
+    if config.interface != "socketcand":
+        return None
+    host, port = config.bus_options.get("host"), config.bus_options.get("port")
+    if not isinstance(host, str) or not isinstance(port, int) or isinstance(port, bool):
+        return None
+    return host, port
+
+
+def _reach_gateway(config: CanDriverConfig, timeout: float = 2.0) -> None:
+    """Fail at once, with one line, when a TCP gateway does not accept a connection: python-
+    can's socketcand bus would retry for 10 s in a loop without a pause, logging each attempt
+    (213,729 lines, a full core) before it fails.
+
+    Raises:
+        DriverInitializationError: the gateway refused or did not answer.
+    """
+    address = _gateway_address(config)
+    if address is None:
+        return
+    try:
+        with socket.create_connection(address, timeout=timeout):
+            pass
+    except OSError as exc:
+        raise DriverInitializationError(
+            f"cannot reach the {config.interface} gateway at {address[0]}:{address[1]} "
+            f"(channel {config.channel!r}): {exc}") from exc
+
+
+def _receive_only(bus: can.BusABC) -> bool:
+    """Put a bus in receive-only (listen-only, passive) mode where python-can's interface
+    allows it; True if it did. twinwatch never calls ``send`` either way."""
+    try:
+        bus.state = can.BusState.PASSIVE
+    except (NotImplementedError, can.CanError, OSError, AttributeError, ValueError):
+        return False
+    return True
 
 
 # -- the driver ---------------------------------------------------------------------------
@@ -461,6 +538,38 @@ class CanDriver(Driver):
         return getattr(config, "log_file", None) is not None
 
     @classmethod
+    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
+        """``check-config``: a log replay is opened (its DBC names, the log); a live interface
+        is opened receive-only where python-can's interface allows it, never sent on, and
+        closed: the DBC is checked and the interface said to be there or not.
+
+        Raises:
+            DriverError: the DBC, the log or the interface cannot be opened.
+        """
+        assert isinstance(config, CanDriverConfig)
+        with cls(config, base_dir=base_dir, listen_only=config.log_file is None) as driver:
+            if config.log_file is not None:
+                return f"log {str(driver.config.log_file)!r} opened"
+            mode = ("receive-only" if driver.receive_only else "this interface has no "
+                    "receive-only mode; twinwatch never sends")
+            return f"{cls.describe(config)} opened ({mode}), DBC {str(driver.config.dbc)!r}"
+
+    @classmethod
+    def reopens(cls, config: DriverConfig) -> bool:
+        """A live bus (no ``log_file``) may come and go: waited for and reopened."""
+        return getattr(config, "log_file", None) is None
+
+    @classmethod
+    def describe(cls, config: DriverConfig) -> str:
+        """``"CAN interface 'socketcand' channel 'can0' (127.0.0.1:29536)"``, or the log."""
+        assert isinstance(config, CanDriverConfig)
+        if config.log_file is not None:
+            return f"CAN log {str(config.log_file)!r}"
+        address = _gateway_address(config)
+        where = f" ({address[0]}:{address[1]})" if address else ""
+        return f"CAN interface {config.interface!r} channel {config.channel!r}{where}"
+
+    @classmethod
     def time_starts_over(cls, config: DriverConfig) -> bool:
         """A log replayed from its start is a new run; a live bus goes on."""
         return getattr(config, "log_file", None) is not None
@@ -471,9 +580,13 @@ class CanDriver(Driver):
         *,
         bus: can.BusABC | None = None,
         base_dir: Path | None = None,
+        listen_only: bool = False,
     ) -> None:
         super().__init__()
         self._source: _FrameSource | None = None
+        self._listen_only = listen_only
+        #: the bus was put in receive-only mode (``listen_only`` and the interface allows it)
+        self.receive_only = False
         try:
             self._setup(config.resolved(base_dir), bus)
         except BaseException:
@@ -516,18 +629,31 @@ class CanDriver(Driver):
         # decoding state
         self._latest: dict[str, float] = {}
         self._time_value: float | None = None
-        self._counter_raw: int | None = None
-        self._counter: int | None = None  # unwrapped
         counter_bits = self._counter_bits(config)
-        self._counter_modulus: int | None = None if counter_bits is None else 1 << counter_bits
+        self._counter = SampleCounter(None if counter_bits is None else 1 << counter_bits)
+        self._skip_sync = False  # the counter said the sync's sample is a repeat or late
 
+        # silence: the last frame's wall time (a live bus that delivers nothing is given up
+        # after reopen_after) and each mapped message's last frame time (silent_after)
+        self._last_frame_wall = time.monotonic()
+        self._seen: dict[str, float] = {}
+        self._first_stamp: float | None = None
+        self._message_channels: dict[str, list[str]] = {}
+        for ch, m in config.signals.items():
+            self._message_channels.setdefault(m.message, []).append(ch)
+        self._silent: tuple[str, ...] = ()
+        self._silent_logged: set[str] = set()
         self._source = self._open_source(config, bus)
+        self._watch_silence = (isinstance(self._source, _BusSource) and self._source.owned
+                               and config.reopen_after is not None)
         logger.info(
-            "CAN driver ready: %s, DBC %s, sync on %s, channels %s",
+            "CAN driver ready: %s, DBC %s, sync on %s, channels %s%s",
             self._describe_source(),
             config.dbc,
             config.sync_message,
             ", ".join(self.channels),
+            "; replaying a log: for a live bus, set [driver] interface and channel (e.g. "
+            "socketcan, can0) instead of log_file" if config.log_file is not None else "",
         )
 
     @staticmethod
@@ -600,12 +726,15 @@ class CanDriver(Driver):
                 for frame_id, extended in self._by_id
             ],
         )
+        _reach_gateway(config)
         try:
             opened = can.Bus(interface=config.interface, channel=config.channel, **kwargs)
         except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
             raise DriverInitializationError(
                 f"cannot open CAN interface {config.interface!r} channel {config.channel!r}: {exc}"
             ) from exc
+        if self._listen_only:
+            self.receive_only = _receive_only(opened)
         return _BusSource(opened, owned=True)
 
     def _describe_source(self) -> str:
@@ -630,9 +759,15 @@ class CanDriver(Driver):
         overtime = 0
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if self._watch_silence and remaining is None:
+                remaining = 1.0  # a silent bus must not hold a read(None) beyond reopen_after
             frame = source.recv(remaining)
             if frame is None:
+                self._check_silence()
+                if deadline is None:
+                    continue
                 return None
+            self._last_frame_wall = time.monotonic()
             sample = self._on_frame(frame)
             if sample is not None:
                 return sample
@@ -640,6 +775,52 @@ class CanDriver(Driver):
                 overtime += 1
                 if overtime >= _MAX_OVERTIME_FRAMES:
                     return None
+
+    def _check_silence(self) -> None:
+        """Give up a live bus that has delivered no frame for ``reopen_after`` seconds.
+
+        Raises:
+            DriverOperationError: so that the daemon closes it and opens it again.
+        """
+        if not self._watch_silence:
+            return
+        quiet = time.monotonic() - self._last_frame_wall
+        assert self.config.reopen_after is not None
+        if quiet > self.config.reopen_after:
+            assert isinstance(self._source, _BusSource)
+            raise DriverOperationError(
+                f"no CAN frame for {quiet:.1f} s on {self._source.bus.channel_info}: the bus "
+                f"is silent, the interface down or the gateway's connection closed")
+
+    @property
+    def silent(self) -> tuple[str, ...]:
+        """The mapped messages not received for ``silent_after`` seconds of frame time (as of
+        the last sync message), with their channels and how long."""
+        return self._silent
+
+    def _update_silent(self, now: float) -> set[str]:
+        """Which mapped messages are silent at frame time ``now`` [s]; their channels."""
+        if self._first_stamp is None:
+            self._first_stamp = now
+        limit = self.config.silent_after
+        silent, gone = [], set()
+        for message, chans in self._message_channels.items():
+            age = now - self._seen.get(message, self._first_stamp)
+            if age > limit:
+                silent.append(f"{message} ({', '.join(chans)}) for {age:.1f} s")
+                gone.update(chans)
+                if message not in self._silent_logged:
+                    self._silent_logged.add(message)
+                    self._bump("silent_messages")
+                    logger.warning(
+                        "CAN message %s (channels %s) not received for %.1f s (silent_after "
+                        "%g s): its channels are left out of the samples until it is back",
+                        message, ", ".join(chans), age, limit)
+            elif message in self._silent_logged:
+                self._silent_logged.discard(message)
+                logger.warning("CAN message %s is received again", message)
+        self._silent = tuple(silent)
+        return gone
 
     def _on_bad_line(self, line: int, exc: BaseException) -> None:
         self.stats.frames += 1
@@ -663,6 +844,7 @@ class CanDriver(Driver):
         if plan is None:
             return None
         message = plan.message
+        self._seen[message.name] = float(frame.timestamp)
         data = bytes(frame.data)
         try:
             decoded = message.decode(
@@ -726,44 +908,42 @@ class CanDriver(Driver):
             self.log_once("counter:nonint", "CAN sample counter is not an integer: %s", value)
             return
         raw = int(value)
-        if self._counter_raw is None or self._counter is None:
-            self._counter_raw, self._counter = raw, raw
-            return
-        step = raw - self._counter_raw
-        if self._counter_modulus is not None:
-            step %= self._counter_modulus
-            backwards = step >= self._counter_modulus // 2
-        else:
-            backwards = step <= 0
-        if backwards or step == 0:
+        before = self._counter.raw
+        step, missing = self._counter.update(raw)
+        if step in ("duplicate", "stale"):
+            key = "duplicates" if step == "duplicate" else "reordered"
+            self._bump(key)
+            self._skip_sync = True
+            self.log_once(
+                f"counter:{step}",
+                "CAN sample counter %d arrived after %d (%s frame): its sample is skipped, the "
+                "count goes on; counted in stats.extra[%r]", raw, before,
+                "a repeated" if step == "duplicate" else "a late, reordered", key)
+        elif step == "reset":
             self._bump("counter_resets")
             self.log_once(
                 "counter:reset",
-                "CAN sample counter went from %d to %d (source restarted or repeated a sample)",
-                self._counter_raw,
-                raw,
-            )
-            self._counter_raw, self._counter = raw, raw
-            return
-        if step > 1:
-            self.stats.gaps += step - 1
+                "CAN sample counter went back from %d to %d (the source restarted): its clock "
+                "restarts from the new value", before, raw)
+        elif missing:
+            self.stats.gaps += missing
             self.log_once(
                 "counter:gap",
                 "CAN sample counter jumped from %d to %d: %d samples lost; counted in stats.gaps",
-                self._counter_raw,
-                raw,
-                step - 1,
-            )
-        self._counter_raw = raw
-        self._counter += step
+                before, raw, missing)
 
     def _assemble(self, frame: can.Message) -> Sample | None:
+        if self._skip_sync:  # a repeated or late counter frame: not a new sample
+            self._skip_sync = False
+            return None
+        gone = self._update_silent(float(frame.timestamp))
         missing = [ch for ch in self.channels if ch not in self._latest]
         t: float | None
         if self._time_mode == "frame":
             t = float(frame.timestamp)
         elif self._time_mode == "counter":
-            t = None if self._counter is None else self._counter * self.sample_period
+            count = self._counter.count
+            t = None if count is None else count * self.sample_period
         else:
             t = self._time_value
         if missing or t is None:
@@ -779,7 +959,7 @@ class CanDriver(Driver):
                 level=logging.INFO,
             )
             return None
-        return Sample(t, {ch: self._latest[ch] for ch in self.channels})
+        return Sample(t, {ch: self._latest[ch] for ch in self.channels if ch not in gone})
 
     # -- closing ----------------------------------------------------------------------------
     def _close_internal(self) -> None:

@@ -29,11 +29,13 @@ Time source (``time_source``)
     schedule counts the missed polls in ``stats.gaps``. ``"counter"``: t = counter *
     ``sample_period`` where ``counter`` is a uint16/uint32 register the device increments once
     per sample (unwrapped modulo 2**16 / 2**32), i.e. the device's own clock. Whenever a
-    counter is configured (with either time source): a counter that has not advanced since the
-    previous poll is a duplicate poll and the sample is skipped (``stats.extra["duplicates"]``);
-    a jump of ``n > 1`` adds ``n - 1`` to ``stats.gaps`` (the ring buffer downstream abandons
-    the window the gap falls in); a counter that goes back counts in
-    ``stats.extra["counter_resets"]`` and restarts the clock from the new value.
+    counter is configured (with either time source), :class:`~twinwatch.io.counter.SampleCounter`
+    unwraps it: a counter that has not advanced since the previous poll is a duplicate poll and
+    the sample is skipped (``stats.extra["duplicates"]``), one a few steps back is a stale
+    answer, skipped too (``["reordered"]``); a jump of ``n > 1`` adds ``n - 1`` to
+    ``stats.gaps`` (the ring buffer downstream abandons the window the gap falls in); a counter
+    that goes further back counts in ``stats.extra["counter_resets"]`` and restarts the clock
+    from the new value.
 
 Lock-step (``lockstep = true``)
     For a simulated device that advances one sample each time its counter block is read
@@ -43,16 +45,21 @@ Lock-step (``lockstep = true``)
     instead of dropping windows). Needs ``time_source = "counter"``. Otherwise ``live`` is True.
 
 Failures
-    A request that times out, a refused or dropped connection, and an exception response that
-    means "busy / failed / gateway" count in ``stats.errors`` (and in ``stats.extra``:
+    A request that times out, a refused or dropped connection, and an exception response a
+    device gives for a while (02 ILLEGAL DATA ADDRESS: a PLC being reprogrammed answers it for
+    its registers; 04 device failure, 05, 06 busy, 0A/0B gateway) count in ``stats.errors``
+    (and in ``stats.extra``:
     ``timeouts``, ``connect_failures``, ``exception_responses``). The client is then closed and
     reopened after a jittered exponential backoff (0.1 s doubling up to ``backoff_max``). An
     outage is logged at ERROR once, at DEBUG while it lasts, and at WARNING on recovery with its
     duration (``stats.extra["outages"]``, ``["reconnects"]``); pymodbus' own error messages
     from the polling thread are demoted to DEBUG meanwhile. While the device is down,
-    ``read(timeout)`` returns None after ``timeout``. An exception response ILLEGAL FUNCTION,
-    ILLEGAL DATA ADDRESS or ILLEGAL DATA VALUE means the register map does not match the device:
-    the polling stops and ``read`` raises :class:`~twinwatch.drivers.base.DriverOperationError`.
+    ``read(timeout)`` returns None after ``timeout`` and :attr:`ModbusDriver.waiting` says
+    since when and why (the daemon's STATUS). An exception response ILLEGAL FUNCTION or ILLEGAL
+    DATA VALUE means the register map does not match the device: the polling stops and
+    ``read`` raises :class:`~twinwatch.drivers.base.DriverOperationError` (the daemon opens the
+    driver again with a longer backoff, :mod:`twinwatch.daemon.source`: the unit stays up and
+    STATUS says why).
     A decoded NaN or infinite value counts in ``stats.bad_values`` and is delivered as it is;
     a response with the wrong number of registers counts in ``stats.bad_frames``.
 
@@ -100,6 +107,7 @@ from twinwatch.drivers.base import (
     Sample,
     validated_config,
 )
+from twinwatch.io.counter import SampleCounter
 from twinwatch.io.modbus_registers import (
     FUNCTION_CODES,
     MAX_READ_REGISTERS,
@@ -131,7 +139,13 @@ __all__ = [  # the register map is re-exported from twinwatch.io.modbus_register
 ]
 
 #: exception codes that mean "the register map does not fit this device" (not transient)
-_FATAL_EXCEPTION_CODES = {1: "ILLEGAL FUNCTION", 2: "ILLEGAL DATA ADDRESS", 3: "ILLEGAL DATA VALUE"}
+_FATAL_EXCEPTION_CODES = {1: "ILLEGAL FUNCTION", 3: "ILLEGAL DATA VALUE"}
+#: exception codes a device answers for a while (a PLC being reprogrammed answers 02 for its
+#: registers, a gateway 0A/0B for a device behind it): retried with backoff, never fatal
+_TRANSIENT_EXCEPTION_CODES = {2: "ILLEGAL DATA ADDRESS", 4: "SERVER DEVICE FAILURE",
+                              5: "ACKNOWLEDGE", 6: "SERVER DEVICE BUSY",
+                              10: "GATEWAY PATH UNAVAILABLE",
+                              11: "GATEWAY TARGET DEVICE FAILED TO RESPOND"}
 _BACKOFF_INITIAL = 0.1  # [s]
 _POLL_THREAD_NAME = "twinwatch-modbus-poll"
 
@@ -275,6 +289,7 @@ class _FatalConfigError(Exception):
 _EXTRA_COUNTERS = (
     "polls",
     "duplicates",
+    "reordered",
     "counter_resets",
     "timeouts",
     "connect_failures",
@@ -310,6 +325,36 @@ class ModbusDriver(Driver):
     sample_machine = "hydraulic-modbus"
     sample_title = "a hydraulic actuator read from a Modbus device"
 
+    @classmethod
+    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
+        """``check-config``: connect to the device (TCP) or open the serial port (RTU), send
+        nothing, close.
+
+        Raises:
+            DriverInitializationError: the device does not accept a connection.
+        """
+        assert isinstance(config, ModbusDriverConfig)
+        client = cls._make_client(config)
+        try:
+            if not client.connect():
+                raise DriverInitializationError(
+                    f"Modbus device {config.describe_endpoint()} does not accept a connection")
+        finally:
+            client.close()
+        return f"Modbus device {config.describe_endpoint()} accepted a connection (nothing sent)"
+
+    @classmethod
+    def reopens(cls, config: DriverConfig) -> bool:
+        """A device may come and go: the driver reconnects itself, and a driver that gave up
+        (the register map refused) is opened again by the daemon with backoff."""
+        return True
+
+    @classmethod
+    def describe(cls, config: DriverConfig) -> str:
+        """``"Modbus device tcp 127.0.0.1:502 device 1"``."""
+        assert isinstance(config, ModbusDriverConfig)
+        return f"Modbus device {config.describe_endpoint()}"
+
     def __init__(self, config: ModbusDriverConfig) -> None:
         super().__init__()
         self.config = config
@@ -327,14 +372,15 @@ class ModbusDriver(Driver):
         self._counter_where = (
             None if config.counter is None else self._block_of(config.counter)
         )
-        self._counter_raw: int | None = None
-        self._counter: int | None = None  # unwrapped
+        self._counter = SampleCounter(None if config.counter is None
+                                      else config.counter.modulus)
         self._queue: queue.Queue[Sample] = queue.Queue(
             maxsize=1 if config.lockstep else _LIVE_QUEUE
         )
         self._stop = threading.Event()
         self._fatal: str | None = None
         self._down_since: float | None = None
+        self._last_error = ""
         self._rng = random.Random()
         self.client = self._make_client(config)
         self._thread = threading.Thread(
@@ -503,7 +549,12 @@ class ModbusDriver(Driver):
                         f"{self.config.describe_endpoint()} answered {_FATAL_EXCEPTION_CODES[code]}"
                         f" to a read of {what}: the register map does not match the device"
                     )
-                raise _DeviceFailure("exception_responses", f"exception {code} reading {what}")
+                name = _TRANSIENT_EXCEPTION_CODES.get(code, "")
+                hint = (" (while a PLC is reprogrammed; if it lasts, the register map does not "
+                        "match the device)" if code == 2 else "")
+                raise _DeviceFailure(
+                    "exception_responses",
+                    f"exception {code:02d}{f' {name}' if name else ''} reading {what}{hint}")
             regs = list(rr.registers)
             if len(regs) != block.count:
                 self.stats.bad_frames += 1
@@ -526,11 +577,11 @@ class ModbusDriver(Driver):
             bi, off = self._counter_where
             counter = self.config.counter
             raw = int(counter.decode(regs[bi][off : off + counter.count]))
-            if not self._on_counter(raw, counter.modulus):
+            if not self._on_counter(raw):
                 return None
             if self.config.time_source == "counter":
-                assert self._counter is not None
-                t = self._counter * self.sample_period
+                assert self._counter.count is not None
+                t = self._counter.count * self.sample_period
         values: dict[str, float] = {}
         for ch, (bi, off), m in self._where:
             value = m.decode(regs[bi][off : off + m.count]) * m.scale + m.offset
@@ -546,37 +597,37 @@ class ModbusDriver(Driver):
             values[ch] = value
         return Sample(t, values)
 
-    def _on_counter(self, raw: int, modulus: int) -> bool:
-        """Account for a counter reading; False if the poll is a duplicate."""
-        if self._counter_raw is None or self._counter is None:
-            self._counter_raw, self._counter = raw, raw
-            return True
-        step = (raw - self._counter_raw) % modulus
-        if step == 0:
+    def _on_counter(self, raw: int) -> bool:
+        """Account for a counter reading; False if the poll is not a new sample (the counter
+        has not advanced, or went back by a few steps: a stale answer)."""
+        before = self._counter.raw
+        step, missing = self._counter.update(raw)
+        if step == "duplicate":
             self.stats.extra["duplicates"] += 1
             return False
-        if step >= modulus // 2:
+        if step == "stale":
+            self.stats.extra["reordered"] += 1
+            self.log_once("counter:stale", "Modbus sample counter went back from %d to %d (a "
+                          "stale answer): the poll is skipped", before, raw)
+            return False
+        if step == "reset":
             self.stats.extra["counter_resets"] += 1
             self.log_once(
                 "counter:reset",
                 "Modbus sample counter went back from %d to %d (device restarted?)",
-                self._counter_raw,
+                before,
                 raw,
             )
-            self._counter_raw, self._counter = raw, raw
-            return True
-        if step > 1:
-            self.stats.gaps += step - 1
+        elif missing:
+            self.stats.gaps += missing
             self.log_once(
                 "counter:gap",
                 "Modbus sample counter jumped from %d to %d: %d samples missed; counted in "
                 "stats.gaps",
-                self._counter_raw,
+                before,
                 raw,
-                step - 1,
+                missing,
             )
-        self._counter_raw = raw
-        self._counter += step
         return True
 
     def _deliver(self, sample: Sample) -> None:
@@ -603,9 +654,21 @@ class ModbusDriver(Driver):
             )
             self._queue.put_nowait(sample)
 
+    @property
+    def waiting(self) -> str | None:
+        """While the device does not answer (or answers with exceptions): since when and the
+        last error; None while it delivers."""
+        since = self._down_since
+        if since is None:
+            return None
+        return (f"Modbus device {self.config.describe_endpoint()} not answering for "
+                f"{time.monotonic() - since:.0f} s ({self._last_error}); retrying with backoff "
+                f"up to {self.config.backoff_max:g} s")
+
     def _on_failure(self, exc: _DeviceFailure) -> None:
         self.stats.errors += 1
         self.stats.extra[exc.kind] += 1
+        self._last_error = str(exc)
         if self._down_since is None:
             self._down_since = time.monotonic()
             self.stats.extra["outages"] += 1

@@ -5,7 +5,8 @@ scaling every driver and simulated plant use; :mod:`twinwatch.io.modbus_register
 Modbus register map and codec that the Modbus driver reads with and the simulated Modbus plant
 serves with; :mod:`twinwatch.io.drive` describes how a drive's controller runs (loops, periods,
 limits), which the closed-loop twins and the simulated plants both implement;
-:mod:`twinwatch.io.encoding` is the one JSON encoder. ``twinwatch.plant``, ``twinwatch.drivers``
-and the twin's machines import from here, never from each other's internals. Imports nothing of
-twinwatch but this room.
+:mod:`twinwatch.io.counter` unwraps a source's sample counter (the CAN and Modbus drivers share
+it); :mod:`twinwatch.io.encoding` is the one JSON encoder. ``twinwatch.plant``,
+``twinwatch.drivers`` and the twin's machines import from here, never from each other's
+internals. Imports nothing of twinwatch but this room.
 """

@@ -13,26 +13,40 @@ reference ``r`` at ``t_c``::
 
     e      = r - y               (action "reverse", e.g. speed: more error, more voltage)
            = y - r               (action "direct", e.g. a valve that lowers the piston)
-    d      = N*(kd*e - f)        (derivative through its filter state f, paper Eq. 17)
-    u_pid  = kp*e + I + d + kff*r
+    d      = N*(kd*e - f)/(1 + c_d*N*T)     (derivative through its filter state f, paper Eq. 17)
+    u_pid  = kp*e + I + c_i*ki*T*e + d + kff*r
     u      = clip(u_pid, output_min, output_max)
     I     += ki*T*e              unless anti-windup "clamping" and u_pid is beyond a limit with
                                  e pushing further into it
     I     += ki*T*e + (T/Tt)*(u - u_pid)     with anti-windup "back_calculation"
     f     += T*d
 
-``T`` is the period; ``u`` is applied from ``t_c`` until the next tick. ``I`` is the integrator in
-the output's unit (``I = ki*z`` with ``z`` the integral of the error). With a current loop, the
-speed loop's output is the current reference and the current loop's output is the armature
-voltage; the current loop ticks every ``current_period`` (default: the drive's period).
+``T`` is the period; ``u`` is applied from ``t_c`` until the next tick. ``I`` is the integrator's
+state in the output's unit (``I = ki*z`` with ``z`` the integral of the error up to the previous
+tick). With a current loop, the speed loop's output is the current reference and the current
+loop's output is the armature voltage; the current loop ticks every ``current_period``
+(default: the drive's period).
+
+**Integrator and filter methods** (``integrator_method``, ``filter_method``; MATLAB's Discrete
+PID Controller block: ``C(z) = kp + ki*Fi(z) + kd*N/(1 + N*Fd(z))``, each formula ``Fi``, ``Fd``
+one of forward Euler ``T/(z - 1)``, backward Euler ``T*z/(z - 1)`` or trapezoidal
+``(T/2)*(z + 1)/(z - 1)``; the Discrete-Time Integrator's realisations ``y(n) = x(n) +
+c*K*T*u(n)``, ``x(n+1) = x(n) + K*T*u(n)``). In the update above ``c_i`` (the integrator's)
+and ``c_d`` (the derivative filter's) are 0 for ``forward_euler`` (the output uses the state
+before this tick's error: today's default), 1 for ``backward_euler`` (it includes this tick's
+error: a firmware that integrates before it computes its output, ``u = kp*e + ki*T*sum of e``
+up to and including this tick) and 1/2 for ``trapezoidal``; the state update is the same for
+all three. With "clamping" the decision uses ``u_pid`` as computed (this tick's increment
+included) and a clamped tick adds nothing to the state.
 
 **Initial state of a window.** A twin starts every window from the measured state; the controller's
 integrator is recovered from the measured output of the window's first tick (``I = u - kp*e -
-kff*r - d``; exact when a tick falls on the sample, which ``phase`` aligns). While the output sits
-at a limit the integrator cannot be recovered from it: the twin then drives the plant with the
-measured (limited) output until the first sample whose output is inside the limits, and restarts
-from the measured state there. The derivative filter starts at rest (``f = kd*e``); with a
-current loop the speed loop's integrator is recovered from the channel ``current_reference``.
+c_i*ki*T*e - kff*r - d``; exact when a tick falls on the sample, which ``phase`` aligns).
+While the output sits at a limit the integrator cannot be recovered from it: the twin then
+drives the plant with the measured (limited) output until the first sample whose output is
+inside the limits, and restarts from the measured state there. The derivative filter starts at
+rest (``f = kd*e``); with a current loop the speed loop's integrator is recovered from the
+channel ``current_reference``.
 """
 
 from __future__ import annotations
@@ -50,9 +64,13 @@ FloatArray = NDArray[np.float64]
 #: Anti-windup codes in :func:`LoopConfig.pack`.
 ANTI_WINDUP = {"none": 0, "clamping": 1, "back_calculation": 2}
 
+#: Discretisation methods (MATLAB's Discrete PID Controller: Integrator method, Filter method)
+#: -> the share ``c`` of this tick's input in the integrator's output (module docstring).
+METHODS = {"forward_euler": 0.0, "backward_euler": 1.0, "trapezoidal": 0.5}
+
 #: Layout of :meth:`LoopConfig.pack` (the numba kernels read these positions).
 PACKED = ("kp", "ki", "kd", "n_filter", "output_min", "output_max", "anti_windup",
-          "tracking_time", "feedforward", "sign")
+          "tracking_time", "feedforward", "sign", "integrator_c", "filter_c")
 
 
 class LoopConfig(BaseModel):
@@ -70,6 +88,10 @@ class LoopConfig(BaseModel):
         feedforward: reference feed-forward gain kff [output unit per reference unit] (e.g. the
             back-EMF constant for a speed loop driving a voltage).
         action: ``reverse`` (e = r - y) or ``direct`` (e = y - r).
+        integrator_method: how the integral is discretised (MATLAB's "Integrator method"):
+            ``forward_euler`` (default: the output uses the integral up to the previous tick),
+            ``backward_euler`` (up to and including this tick) or ``trapezoidal``.
+        filter_method: the same for the derivative's filter (MATLAB's "Filter method").
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -84,6 +106,9 @@ class LoopConfig(BaseModel):
     tracking_time: float | None = Field(None, gt=0, allow_inf_nan=False)
     feedforward: float = Field(0.0, allow_inf_nan=False)
     action: Literal["reverse", "direct"] = "reverse"
+    integrator_method: Literal["forward_euler", "backward_euler", "trapezoidal"] = \
+        "forward_euler"
+    filter_method: Literal["forward_euler", "backward_euler", "trapezoidal"] = "forward_euler"
 
     @model_validator(mode="after")
     def _check(self) -> LoopConfig:
@@ -111,6 +136,7 @@ class LoopConfig(BaseModel):
             math.inf if self.output_max is None else self.output_max,
             float(ANTI_WINDUP[self.anti_windup]), tt, self.feedforward,
             1.0 if self.action == "reverse" else -1.0,
+            METHODS[self.integrator_method], METHODS[self.filter_method],
         ])
 
 
@@ -178,7 +204,7 @@ class DriveConfig(BaseModel):
         return m, mc, ph
 
 
-__all__ = ["ANTI_WINDUP", "PACKED", "DriveConfig", "LoopConfig"]
+__all__ = ["ANTI_WINDUP", "METHODS", "PACKED", "DriveConfig", "LoopConfig"]
 
 
 #: The paper's valve PID (Eq. 17, NOTES.md): opening the valve lowers the piston, so the error

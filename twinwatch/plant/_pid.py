@@ -17,7 +17,9 @@ def pid_tick(loop, i_s, f_s, r, y, period):  # pragma: no cover - compiled
     anti-windup (paper Eq. 17 for the valve).
 
     Args:
-        loop: the packed loop (``LoopConfig.pack`` order, limits resolved), (10,).
+        loop: the packed loop (``LoopConfig.pack`` order, limits resolved), (12,): the last
+            two are the integrator's and the filter's method (0 forward Euler, 1 backward
+            Euler, 1/2 trapezoidal).
         i_s, f_s: the integrator and the derivative filter's state before the update.
         r, y: reference and feedback (rad/s and rad/s, A and A, or m and m).
         period: the loop's update period [s].
@@ -28,9 +30,17 @@ def pid_tick(loop, i_s, f_s, r, y, period):  # pragma: no cover - compiled
     """
     kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
     lo, hi, aw, tt, kff, sgn = loop[4], loop[5], loop[6], loop[7], loop[8], loop[9]
+    # The integrator's and the derivative filter's discretisation (Discrete-Time Integrator
+    # realisation y(n) = x(n) + c*K*T*u(n), x(n+1) = x(n) + K*T*u(n)): c = 0 forward Euler,
+    # 1 backward Euler, 1/2 trapezoidal. The filter's output f(n) = s + c_d*T*d(n) makes
+    # d = N*(kd*e - f) implicit in d: solved for d below.
+    c_int, c_filt = loop[10], loop[11]
     e = sgn * (r - y)
-    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
-    u_pid = kp * e + i_s + d + kff * r
+    d = 0.0
+    if kd != 0.0:
+        d = nf * (kd * e - f_s) / (1.0 + c_filt * nf * period)
+    integral = i_s + c_int * ki * period * e
+    u_pid = kp * e + integral + d + kff * r
     u = min(max(u_pid, lo), hi)
     if aw == 1.0:
         if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):

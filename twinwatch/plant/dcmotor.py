@@ -116,6 +116,31 @@ class SetpointSchedule(BaseModel):
         return np.asarray(times), np.asarray(values)
 
 
+class SensorFaultConfig(BaseModel):
+    """A sensor fault of the simulated plant (``[[driver.plant.sensor_faults]]``): from
+    ``start`` for ``duration`` seconds the reported ``channel`` is ``frozen`` (it repeats its
+    reading at the onset) or ``saturated`` (clipped at ``level``, from above with ``side =
+    "high"``, from below with ``"low"``). Applied to the reported value after noise and
+    quantisation; the plant itself and its drive are untouched."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    channel: str
+    kind: Literal["frozen", "saturated"]
+    start: float = Field(ge=0, description="onset [s]")
+    duration: float = Field(gt=0, description="how long [s]")
+    level: float | None = Field(None, description="saturated: the reading clips at this value "
+                                "[the channel's unit]")
+    side: Literal["high", "low"] = Field("high", description="saturated: clips readings above "
+                                         "(high) or below (low) the level")
+
+    @model_validator(mode="after")
+    def _check(self) -> SensorFaultConfig:
+        if self.kind == "saturated" and self.level is None:
+            raise ValueError("level: a saturated sensor needs the level it clips at")
+        return self
+
+
 class DCMotorPlantConfig(BaseModel):
     """Configuration of the simulated DC motor plant (table ``[driver.plant]``)."""
 
@@ -164,6 +189,9 @@ class DCMotorPlantConfig(BaseModel):
     encoder_cpr: int | None = Field(
         None, ge=1, description="encoder counts per revolution: the reported speed is the "
         "count of the last sample period times 2*pi/(cpr*sample_period)")
+    sensor_faults: list[SensorFaultConfig] = Field(
+        default_factory=list, description="sensor faults: a reported channel frozen or "
+        "saturated for a while (for tests of the estimator's data-quality checks)")
     seed: int = 0
 
     @property
@@ -182,6 +210,10 @@ class DCMotorPlantConfig(BaseModel):
                     raise ValueError(f"{name}.{ch}: unknown channel; use one of {CHANNELS}")
                 if v < 0:
                     raise ValueError(f"{name}.{ch}: must be >= 0")
+        for i, fault in enumerate(self.sensor_faults):
+            if fault.channel not in CHANNELS:
+                raise ValueError(f"sensor_faults[{i}].channel: unknown channel "
+                                 f"{fault.channel!r}; use one of {CHANNELS}")
         try:
             self.drive_config.ticks(self.step)
         except ValueError as exc:
@@ -317,6 +349,7 @@ class DCMotorPlant:
         self._n_samples = int(round(c.duration / c.sample_period)) + 1
         self._rng = np.random.default_rng(c.seed)
         self._counts = 0  # encoder count at the last sample
+        self._frozen: dict[int, float] = {}  # a frozen sensor's reading
 
     @property
     def t(self) -> float:
@@ -368,6 +401,15 @@ class DCMotorPlant:
         for ch, q in c.quantisation.items():
             if q > 0:
                 values[ch] = round(values[ch] / q) * q
+        for fault in c.sensor_faults:
+            if not fault.start <= t < fault.start + fault.duration:
+                continue
+            ch = fault.channel
+            if fault.kind == "frozen":
+                values[ch] = self._frozen.setdefault(id(fault), values[ch])
+            elif fault.level is not None:
+                clip = min if fault.side == "high" else max
+                values[ch] = clip(values[ch], fault.level)
         _advance(st, j0, self.n_sub, c.step, sp, self._p, self._scenario, c.fault_start,
                  c.fault_period or 0.0, c.unbalance_amplitude, c.unbalance_frequency,
                  self._speed, self._current, self._has_current, self._m, self._mc, self._ph,

@@ -25,6 +25,10 @@ Pacing:
 When the plant raises :class:`~twinwatch.drivers.base.EndOfStream` the server keeps serving
 the last sample (the counter stops; :attr:`PlantModbusServer.finished` becomes True).
 
+Faults on a schedule (tests): while :attr:`PlantModbusServer.exception_code` is set, every read
+is answered with that Modbus exception (2: ILLEGAL DATA ADDRESS, what a PLC answers while its
+program is downloaded; 6: SERVER DEVICE BUSY, ...) instead of its registers; the plant goes on.
+
 All registers are read-only: a write request is answered with ILLEGAL DATA ADDRESS.
 Registers between mapped ones (in the span of a table) read as 0.
 
@@ -48,6 +52,7 @@ from collections.abc import Mapping
 from types import TracebackType
 from typing import Literal, Protocol, Self
 
+from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -178,6 +183,10 @@ class PlantModbusServer:
         self._ready = threading.Event()
         self._start_error: BaseException | None = None
         self._lock = threading.Lock()  # guards the plant and the register image
+        #: answer every read with this Modbus exception code while set (None: serve)
+        self.exception_code: int | None = None
+        #: reads answered with an exception so far
+        self.exceptions_answered = 0
 
     # -- lifecycle --------------------------------------------------------------------------
     @property
@@ -323,7 +332,7 @@ class PlantModbusServer:
         count: int,
         registers: list[int],
         set_values: list[int] | list[bool] | None,
-    ) -> None:
+    ) -> ExcCodes | None:
         """pymodbus' SimDevice action, awaited before each request is answered.
 
         Lock-step: a read of the counter's block advances the plant first. Then the request's
@@ -333,6 +342,10 @@ class PlantModbusServer:
         table = next((t for t, fc in FUNCTION_CODES.items() if fc == function_code), None)
         if table is None or set_values is not None:
             return None  # coils / writes: pymodbus refuses them (read-only)
+        code = self.exception_code
+        if code is not None:
+            self.exceptions_answered += 1
+            return ExcCodes(code)
         with self._lock:
             c = self.counter
             if (

@@ -37,6 +37,7 @@ BUILTIN_SINKS: Mapping[str, str] = {
     "store": "twinwatch.sinks.store:StateStore",
     "zenoh": "twinwatch.sinks.zenoh:HealthPublisher",
     "rerun": "twinwatch.sinks.rerun:RerunRecorder",
+    "mqtt": "twinwatch.sinks.mqtt:MqttPublisher",
 }
 
 

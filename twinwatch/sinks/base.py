@@ -36,7 +36,7 @@ in :data:`twinwatch.sinks.BUILTIN_SINKS`, or an entry point in another package.
 from __future__ import annotations
 
 import abc
-from collections.abc import Hashable, Mapping
+from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, Self
@@ -52,8 +52,11 @@ if TYPE_CHECKING:  # annotations only: opening a sink does not load the twin's e
     from twinwatch.twin.model import WindowData
 
 __all__ = [
+    "AlarmBands",
     "Gate",
     "HistoryQuery",
+    "Outbox",
+    "OutboxRow",
     "ProcessedWindow",
     "Role",
     "Sink",
@@ -101,6 +104,79 @@ class HistoryQuery(Protocol):
 
 
 @dataclass(frozen=True)
+class AlarmBands:
+    """One parameter's ``[alarms]`` thresholds as signed deviations from nominal [%] (None:
+    the rule has no such threshold; a symmetric rule gives both sides)."""
+
+    warning_high: float | None = None
+    warning_low: float | None = None
+    alarm_high: float | None = None
+    alarm_low: float | None = None
+
+
+@dataclass(frozen=True)
+class OutboxRow:
+    """One stored window as an outbox gives it to a publisher (:meth:`Outbox.pending`).
+
+    Attributes:
+        id: the gate's row id (increasing in the order the windows were stored).
+        run: the run that stored it (the gate's run id).
+        window: the window index within that run.
+        wall: when it was stored [s since the epoch].
+        doc: the health message, byte for byte as stored (its one encoding).
+    """
+
+    id: int
+    run: str
+    window: int
+    wall: float
+    doc: str
+
+
+class Outbox(Protocol):
+    """The gate's record of which stored windows one output has delivered (store-and-forward:
+    the state database is the outbox). Bound to one output name and one machine; every method
+    may be called from the output's own thread (the gate gives each thread its own
+    connection) and raises :class:`~twinwatch.errors.StoreError` when the gate cannot answer.
+
+    A window is *delivered* once :meth:`ack` recorded it. ``position`` is a row id such that
+    every stored window of the machine at or below it is delivered (or was stored before the
+    output first opened); the delivered windows above it are recorded one by one.
+    """
+
+    @property
+    def dropped(self) -> int:
+        """Windows the gate's retention deleted before they were delivered (this run)."""
+        ...
+
+    def start(self) -> int:
+        """The delivered position (created at the newest stored window when the output
+        opens for the first time: the history before it is not sent)."""
+        ...
+
+    def pending(self, after: int, limit: int) -> list[OutboxRow]:
+        """Stored windows above row id ``after`` not delivered yet, oldest first, at most
+        ``limit``."""
+        ...
+
+    def count(self, position: int) -> int:
+        """How many stored windows above ``position`` are not delivered."""
+        ...
+
+    def latest_id(self) -> int | None:
+        """The newest stored window's row id (None: nothing stored)."""
+        ...
+
+    def doc_at_or_before(self, health_id: int) -> str | None:
+        """The health message of the newest stored window at or below ``health_id``."""
+        ...
+
+    def ack(self, delivered: list[OutboxRow], position: int) -> None:
+        """Record ``delivered`` and the new ``position`` in one transaction (idempotent)."""
+        ...
+
+
+@dataclass(frozen=True)
 class SinkContext:
     """What a sink needs from the daemon that opens it (not the whole configuration).
 
@@ -117,8 +193,17 @@ class SinkContext:
         recent_windows: the windows the daemon keeps in memory (``[acquisition] history``):
             the gate keeps as many of those it wrote, to write them again to a database file
             deleted or replaced under it.
+        output_units: output -> SI unit (``{"ia": "A", "omega": "rad/s"}``).
+        nominal: parameter -> the nominal value the deviations are measured from [SI].
+        estimated: the parameters the twin estimates (``[estimation] estimate``), in
+            priority order; the others are tied or fixed.
+        alarm_bands: parameter -> its ``[alarms]`` thresholds, for an output that draws them
+            (empty when alarms are off).
         run: the run id every health message of the daemon carries (one per start of the
             daemon, kept across a reload; empty outside a daemon).
+        outbox: the gate's :class:`Outbox` for an output name (``outbox("mqtt")``), or None
+            when no gate is open or it keeps none: a publisher that delivers every stored
+            window (store-and-forward) asks it again after a reload.
     """
 
     machine: str
@@ -129,7 +214,12 @@ class SinkContext:
     cwd: Path = field(default_factory=Path.cwd)
     history: HistoryQuery | None = None
     recent_windows: int = 1000
+    output_units: Mapping[str, str] = field(default_factory=dict)
+    nominal: Mapping[str, float] = field(default_factory=dict)
+    estimated: tuple[str, ...] = ()
+    alarm_bands: Mapping[str, AlarmBands] = field(default_factory=dict)
     run: str = ""
+    outbox: Callable[[str], Outbox | None] | None = None
 
 
 class SinkConfig(BaseModel):
@@ -255,7 +345,7 @@ class Sink(Closeable, abc.ABC):
         """The daemon that opened the sink stops (a reload hands it over): until
         :meth:`attach`, nothing of that daemon may be used (the stored history)."""
         if self.context is not None:
-            self.context = replace(self.context, history=None)
+            self.context = replace(self.context, history=None, outbox=None)
 
     # -- the windows --------------------------------------------------------------------------
     @abc.abstractmethod
@@ -346,6 +436,11 @@ class Gate(Sink):
                 machine: str | None = None, run: str | None = None) -> list[dict[str, Any]]:
         """Stored health messages in a time range (of one run when ``run`` is given), oldest
         first."""
+
+    def outbox(self, output: str, machine: str) -> Outbox | None:
+        """The :class:`Outbox` of ``output`` for ``machine``'s windows; None (the default):
+        this gate keeps none."""
+        return None
 
 
 def _frozen(value: Any) -> Hashable:

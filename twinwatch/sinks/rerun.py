@@ -1,24 +1,36 @@
-"""Recording every acquisition window to a Rerun ``.rrd`` file.
+"""Recording every acquisition window to a Rerun ``.rrd`` file, and serving it live.
 
 One :class:`RerunRecorder` per monitored machine, each with its own
 :class:`rerun.RecordingStream` (never the global one, so several recorders coexist in one
-process). Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
+process). What it logs and the default blueprint (the entities, their styles, the layout
+that tells the machine's story at one glance) are
+:class:`~twinwatch.sinks.rerun_views.RecordingViews`; this module keeps the files, the live
+server and the faults.
 
-* ``M/outputs/<output>/measured`` and ``M/outputs/<output>/twin``: the window's measured and
-  twin-simulated output samples (:class:`rerun.Scalars`, one ``send_columns`` per series and
-  window), styled once by a static :class:`rerun.SeriesLines`;
-* ``M/parameters/<name>``: each parameter estimate, one point at the window's last time stamp;
-* ``M/health``: the window's health document (:class:`rerun.TextDocument`, markdown with the
-  JSON in a code block);
-* ``M/log``: one :class:`rerun.TextLog` line per window;
-* ``M/residual/<output>``: the twin's residual (measured - twin) over the window, and
-  ``M/residual_rmse/<output>/dt_prime`` and ``.../dt_second``: per window, the RMSE of the twin
-  without and with its meta-model terms (from the health message's ``residual``);
-* ``M/model``: the twin's discovered structure DT'' as plain-text equations
-  (:class:`rerun.TextDocument`), logged at the start and whenever a term is added or dropped.
+Per-run files: ``[recording] path`` (``twinwatch.rrd``) is a stable name, a symbolic link to
+the file of the run being written, ``<stem>-<run id>.rrd`` beside it (the run id starts with the
+run's UTC start: ``twinwatch-20261122T101530Z-3f9a2c.rrd``). A run never
+replaces another run's recording: each run writes its own file, and a regular file found at
+``path`` (from an earlier version) is kept, renamed to ``<stem>-<its UTC time>.rrd``.
+``rerun twinwatch.rrd`` opens the newest run; the summary names the run's file.
 
-The file also carries a default blueprint: one time-series view per output, a grid with one
-view per parameter (their scales differ by orders of magnitude), the health document and log.
+The trend's projection (:func:`projection_ops`, beside the views): each parameter with an alarm
+rule and a predicted crossing gets ``M/health/<param>/trend/projection``, line strips in the
+plane of plant time and deviation from nominal [%]: the trend from the window's end to its
+alarm threshold at the median crossing and at the two ends of its 95 % interval (the band), and
+the threshold, the latest at each window (a 2-D view; the time-series views do not draw it).
+
+Live viewing: with ``[recording] serve = true`` the recorder also serves the same entities, with
+the same blueprint, from a Rerun gRPC server (``serve_bind``, 127.0.0.1 by default, and
+``serve_port``) on a second recording stream with the same recording id: ``rerun
+rerun+http://127.0.0.1:9876/proxy``. The server keeps up to ``server_memory_limit`` of the
+history (oldest dropped first; static data never), so a viewer that connects late gets it; a
+viewer that connects, stalls or goes away never blocks a window (nothing waits for it). The file
+and the server are separate streams: a file rotated, reopened or deleted never disturbs the
+viewers, and a server that fails stops only the live view (logged once, :attr:`problem`). A gRPC
+server does not stop while a viewer is connected (Rerun SDK 0.41): a closed recorder leaves its
+server to the next recorder on the same address (a reload keeps the viewers and the history),
+and it ends with the process.
 
 Durability: the recording is flushed to the file after every window, so the data of every
 completed window is on disk whatever happens next. The RRD *footer* (chunk manifest) is written
@@ -29,13 +41,13 @@ footer: the viewer opens it and ``rerun rrd verify --check-footers false FILE`` 
 plain ``rerun rrd verify`` reports "Missing RRD footer"; ``rerun rrd optimize FILE -o OUT``
 writes a complete copy. The daemon must therefore turn SIGTERM into a normal shutdown.
 
-Faults: the file is locked (``flock``) before it is truncated, so a second twinwatch in the same
-directory fails at start instead of destroying the file of the one running. The disk must keep
-``RerunRecorder.min_free`` bytes free (64 MiB): below that the recording pauses (logged once,
-the windows counted in :attr:`RerunRecorder.lost`) and resumes when there is room again, so a
-slowly filling disk leaves its last space to the state database and never kills the Rerun
-file writer. When the writer dies anyway (the disk filled at once, "File-writer thread shut
-down prematurely" or a flush that times out), the recorder says so (an ERROR, and
+Faults: the run's file is locked (``flock``) while it is written, and a second twinwatch whose
+``path`` links to a file in use fails at start instead of writing beside the one running. The
+disk must keep ``RerunRecorder.min_free`` bytes free (64 MiB): below that the recording pauses
+(logged once, the windows counted in :attr:`RerunRecorder.lost`) and resumes when there is room
+again, so a slowly filling disk leaves its last space to the state database and never kills the
+Rerun file writer. When the writer dies anyway (the disk filled at once, "File-writer thread
+shut down prematurely" or a flush that times out), the recorder says so (an ERROR, and
 :attr:`RerunRecorder.problem` until it recovers), keeps the broken file under a rotated name
 (its windows are readable; ``rerun rrd optimize`` adds the footer), counts the windows it
 cannot record, and opens a new file at ``path`` on a *new* recording stream after
@@ -44,31 +56,37 @@ again: with the Rerun SDK 0.41 a flush, a new file or a disconnect on it, and it
 wait forever, so its helpers are disabled and Rerun's exit hook is unregistered (the recorder
 closes its own stream).
 
-The file or its directory deleted, replaced or moved away while the daemon runs (a cleanup
-script, an operator) is noticed before the next window is recorded (the lock's descriptor against
-the path, :meth:`~twinwatch.sinks.locks.FileLock.changed`): the windows recorded in the file that
-is gone, and in the rotated files that went with its directory, are counted in
-:attr:`RerunRecorder.lost`, the directory is created again if it was removed (its last level
-only), and the same recording stream goes on in a new file at ``path`` (a file moved away is
-finalised, footer written, and loses nothing). While no new file can be started, the windows
-are counted as not recorded and it is tried again with each window.
+The run's file or its directory deleted, replaced or moved away while the daemon runs (a
+cleanup script, an operator) is noticed before the next window is recorded (the lock's
+descriptor against the path, :meth:`~twinwatch.sinks.locks.FileLock.changed`): the windows
+recorded in the file that is gone, and in the rotated files that went with its directory, are
+counted in :attr:`RerunRecorder.lost`, the directory is created again if it was removed (its
+last level only), and the same recording stream goes on in a new file of the same name, the link
+at ``path`` made again (a file moved away is finalised, footer written, and loses nothing).
+While no new file can be started, the windows are counted as not recorded and it is tried again
+with each window.
 
 Memory and rotation: to write the footer, the Rerun SDK (0.41) keeps every chunk's manifest
-entry in memory for the life of the file (``rerun.save(..., write_footer=True)``): about
-13 kB per window here (some 20 chunks per window: one per entity and flush), 13-23 MiB per 1000
-windows, so a service writing one file for months would grow without bound. The recorder
-therefore rotates: after ``[recording] rotate_windows`` windows (default 1800, one hour of 2 s
-windows) it renames the file to ``<stem>.<UTC time>.<n>.rrd`` beside it and points the same
-recording stream at a new ``path`` (the renamed file is finalised: footer written, manifest
-freed); ``keep_files`` rotated files are kept (oldest deleted first). ``path`` is always the
-file being written; ``<stem>.rbl`` holds the viewer layout for the rotated files.
+entry in memory for the life of the file (``rerun.save(..., write_footer=True)``): one entry per
+entity and flush, some 28 per window here (measured: 27 MiB per 1000 windows of the default
+machine, and 76 kB of file per window), so a service writing one file for months would grow
+without bound. The recorder therefore rotates: after ``[recording] rotate_windows`` windows
+(default 1800, one hour of 2 s windows) it renames the run's file to
+``<run file stem>.<UTC time>.<n>.rrd`` beside it and points the same recording stream at a new
+file of the run's name (the renamed file is finalised: footer written, manifest freed). Of the
+older files of ``path`` (rotated ones and earlier runs'), the newest ``keep_files`` are kept when
+it rotates (oldest deleted first). ``<stem>.rbl`` holds the viewer layout for files opened
+together (``rerun twinwatch-*.rrd twinwatch.rbl``).
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
 import os
+import re
+import socket
 import threading
 import time
 import uuid
@@ -82,8 +100,17 @@ from pydantic import Field, field_validator
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import RecorderError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.base import ProcessedWindow, Role, Sink, SinkConfig, SinkContext, _frozen
+from twinwatch.sinks.base import (
+    AlarmBands,
+    ProcessedWindow,
+    Role,
+    Sink,
+    SinkConfig,
+    SinkContext,
+    _frozen,
+)
 from twinwatch.sinks.locks import FileLock, LockedError
+from twinwatch.sinks.rerun_views import TIMELINE, Op, RecordingViews, emit
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -96,37 +123,27 @@ else:  # imported when a recording opens: loading a configuration does not load 
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RecorderError", "RecordingConfig", "RerunRecorder"]
+__all__ = ["TIMELINE", "RecorderError", "RecordingConfig", "RerunRecorder"]
 
-TIMELINE = "plant_time"
-"""Name of the Rerun timeline carrying plant time [s] (a duration timeline)."""
-
-_MEASURED_COLOR = (31, 119, 180)
-_TWIN_COLOR = (255, 127, 14)
-_PARAMETER_COLORS = (
-    (44, 160, 44),
-    (214, 39, 40),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (127, 127, 127),
-    (188, 189, 34),
-    (23, 190, 207),
-)
-_PROBLEM_STATUSES = frozenset({"warning", "alarm", "fault", "degraded", "error", "critical"})
-_SUMMARY_MAX_CHARS = 240
+_RUN_STAMP = "%Y%m%dT%H%M%SZ"
 
 
 class RecordingConfig(SinkConfig):
     """The ``[recording]`` section of a machine configuration.
 
     Attributes:
-        path: the ``.rrd`` file to write (``~`` expanded); overwritten if it exists.
+        path: the recording's stable name (``~`` expanded): a symbolic link to the file of
+            the run being written, ``<stem>-<run id>.rrd`` beside it.
         enabled: when false, :class:`RerunRecorder` writes nothing and logging is a no-op.
         application_id: Rerun application id; the viewer groups recordings by it.
-
         rotate_windows: windows per file before it is closed and renamed (0: one file).
-        keep_files: rotated files kept (0: all).
+        keep_files: older files of ``path`` kept when a file is rotated (0: all).
+        recent_s: how much plant time before the cursor the outputs' views show [s].
+        serve: also serve the recording live over gRPC (Rerun's server).
+        serve_bind: the address the live server listens on (loopback by default).
+        serve_port: its TCP port.
+        server_memory_limit: the history the live server keeps for late viewers (``256MiB``,
+            ``2GB``, ``10%`` of the RAM): oldest dropped first.
 
     Unknown keys are an error (``extra="forbid"``).
     """
@@ -137,7 +154,16 @@ class RecordingConfig(SinkConfig):
     rotate_windows: int = Field(1800, ge=0, description="start a new file after this many "
                                 "windows (0: never; Rerun keeps each chunk's footer entry "
                                 "in memory until its file is closed)")
-    keep_files: int = Field(48, ge=0, description="rotated files kept beside path (0: all)")
+    keep_files: int = Field(48, ge=0, description="older files of path kept (rotated ones and "
+                            "earlier runs'; 0: all), the oldest deleted when a file rotates")
+    recent_s: float = Field(10.0, gt=0.0, le=86400.0, description="plant time before the "
+                            "cursor shown by the outputs' and residuals' views [s]")
+    serve: bool = Field(False, description="also serve the recording live (Rerun gRPC "
+                        "server): rerun rerun+http://<serve_bind>:<serve_port>/proxy")
+    serve_bind: str = Field("127.0.0.1", description="address the live server listens on")
+    serve_port: int = Field(9876, ge=1, le=65535, description="TCP port of the live server")
+    server_memory_limit: str = Field("256MiB", description="history the live server keeps "
+                                     "for viewers that connect late (oldest dropped first)")
 
     @field_validator("path", "application_id")
     @classmethod
@@ -146,25 +172,47 @@ class RecordingConfig(SinkConfig):
             raise ValueError("must not be empty")
         return value
 
+    @field_validator("serve_bind")
+    @classmethod
+    def _address(cls, value: str) -> str:
+        try:
+            ipaddress.ip_address(value)
+        except ValueError:
+            raise ValueError(f"{value!r} is not an IP address (127.0.0.1: this machine "
+                             "only)") from None
+        return value
+
+    @field_validator("server_memory_limit")
+    @classmethod
+    def _memory(cls, value: str) -> str:
+        if not re.fullmatch(r"\s*\d+(\.\d+)?\s*(B|kB|KB|KiB|MB|MiB|GB|GiB|TB|TiB|%)\s*", value):
+            raise ValueError(f"{value!r} is not an amount of memory (e.g. '256MiB', '2GB', "
+                             "'10%')")
+        return value.strip()
+
     def output_files(self, cwd: Path) -> dict[str, Path]:
-        """The recording file (its directory must exist and be writable)."""
+        """The recording's link (its directory must exist and be writable)."""
         path = Path(self.path).expanduser()
         return {"path": path if path.is_absolute() else cwd / path}
 
+    def exclusive_resources(self, cwd: Path) -> set[str]:
+        """The recording (its link and the run's file it names) and, when serving, the live
+        server's endpoint."""
+        link = self.output_files(cwd)["path"]
+        held = {str(link.absolute()), str(link.resolve())}
+        if self.serve:
+            held.add(f"tcp/{self.serve_bind}:{self.serve_port}")
+        return held
 
-def _entity(*parts: str) -> str:
-    """An entity path from raw parts, each escaped (a '/' in a name stays inside its part)."""
-    return "/".join(rr.escape_entity_path_part(p) for p in parts)
 
-
-def _check_writable(path: Path) -> FileLock:
-    """Lock ``path`` (created empty if absent, not truncated) for this recorder.
+def _check_directory(path: Path) -> None:
+    """``path``'s directory exists and is writable, and ``path`` is no directory.
 
     Raises:
-        RecorderError: ``path`` cannot be created or written, or another process holds it.
+        RecorderError: saying what to change.
     """
     parent = path.parent
-    if path.is_dir():
+    if path.is_dir() and not path.is_symlink():
         raise RecorderError(
             f"recording path {path} is a directory: set [recording].path to a file name"
         )
@@ -180,17 +228,44 @@ def _check_writable(path: Path) -> FileLock:
             f"cannot record to {path}: directory {parent} is not writable by this user; "
             "fix its permissions or set [recording].path"
         )
+
+
+_FIX = "stop it, or set another [recording].path"
+
+
+def _check_writable(path: Path) -> FileLock:
+    """Lock ``path`` (created empty if absent, not truncated) for this recorder.
+
+    Raises:
+        RecorderError: ``path`` cannot be created or written, or another process holds it.
+    """
+    _check_directory(path)
     try:
-        return FileLock(path, "recording", "stop it, or set another [recording].path")
+        return FileLock(path, "recording", _FIX)
     except LockedError as exc:
         raise RecorderError(str(exc)) from None
     except OSError as exc:
         raise RecorderError(f"cannot record to {path}: {exc.strerror or exc}") from exc
 
 
+def _free_name(path: Path) -> Path:
+    """``path``, or ``<stem>-2<suffix>``, ``-3``, ... : the first name nothing uses."""
+    candidate, n = path, 1
+    while candidate.exists() or candidate.is_symlink():
+        n += 1
+        candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
+    return candidate
+
+
+def _run_label(run: str | None) -> str:
+    """A run id as a file-name part (letters, digits, ``._-``; at most 40 characters)."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", run or "")[:40].strip("._-")
+
+
 class RerunRecorder(Sink):
-    """Records measured vs twin outputs, parameter estimates and health to a ``.rrd`` file:
-    the built-in output ``rerun`` (table ``[recording]``, a recorder: it gets every window).
+    """Records measured vs twin outputs, parameter health and data quality to a ``.rrd`` file
+    of its own per run (and serves them live when configured): the built-in output ``rerun``
+    (table ``[recording]``, a recorder: it gets every window).
 
     :meth:`log_window` may be called from a worker thread while :meth:`close` is called from
     another; calls after :meth:`close` are ignored. With ``config.enabled`` false nothing is
@@ -202,32 +277,46 @@ class RerunRecorder(Sink):
         outputs: names of the output channels compared between plant and twin, e.g.
             ``("ia", "omega")``.
         parameters: parameter name -> unit, e.g. ``{"Ra": "ohm", "J": "kg m^2"}``.
+        output_units: output -> unit, for the views' titles (default: none shown).
+        nominal: parameter -> nominal value [SI], for the health views' titles.
+        estimated: the parameters that get a health view (default: every parameter).
+        alarm_bands: parameter -> its alarm thresholds [% of nominal], drawn on its view.
+        run: the run's id (``20261122T101530Z-3f9a2c``), the file's name after ``<stem>-``
+            (default: the UTC start time; an id that does not start with one follows it).
 
     Attributes:
-        path: the resolved recording file.
+        link: the configured ``path``: a symbolic link to the run's file.
+        path: the run's file being written.
         windows: number of windows recorded.
         errors: number of windows whose flush to disk failed.
 
     Raises:
         ValueError: empty ``machine``, empty or duplicate ``outputs``.
         RecorderError: the file cannot be created or written (missing or read-only directory,
-            path is a directory), or Rerun refused to open it.
+            path is a directory), the recording at ``path`` is in use by another process, the
+            live server's port is taken, or Rerun refused to open the file.
     """
 
     config_class: ClassVar[type[RecordingConfig]] = RecordingConfig
     role: ClassVar[Role] = "recorder"
     counter_prefix: ClassVar[str | None] = "recording"
-    open_order: ClassVar[int] = 30  # after every lock: opening truncates the file
+    open_order: ClassVar[int] = 30  # after every lock
 
     flush_timeout: float = 10.0
     """Seconds a flush may take before the window is counted as an error [s]."""
 
     reopen_after: float = 30.0
     """Seconds before the file is reopened after the file writer died; doubles while it keeps
-    dying, up to 30 min [s]."""
+    dying, up to :attr:`reopen_max` [s]."""
+
+    reopen_max: float = 1800.0
+    """The longest wait between two attempts to reopen the file [s]."""
 
     min_free: int = 64 * 2**20
     """Bytes the disk must keep free for the recording to go on [B]."""
+
+    serve_timeout: float = 5.0
+    """Seconds the live server may take to listen before opening fails [s]."""
 
     def __init__(
         self,
@@ -236,6 +325,11 @@ class RerunRecorder(Sink):
         *,
         outputs: Sequence[str],
         parameters: Mapping[str, str],
+        output_units: Mapping[str, str] | None = None,
+        nominal: Mapping[str, float] | None = None,
+        estimated: Sequence[str] | None = None,
+        alarm_bands: Mapping[str, AlarmBands] | None = None,
+        run: str | None = None,
     ) -> None:
         self._closed = True  # until fully open, so __del__ and close() are safe
         if not machine:
@@ -248,7 +342,12 @@ class RerunRecorder(Sink):
         self.machine = machine
         self.outputs: tuple[str, ...] = tuple(outputs)
         self.parameters: dict[str, str] = dict(parameters)
-        self.path = Path(config.path).expanduser()
+        self.views = RecordingViews(machine, self.outputs, self.parameters,
+                                    output_units=output_units, nominal=nominal,
+                                    estimated=estimated, alarm_bands=alarm_bands,
+                                    recent_s=config.recent_s)
+        self.link = Path(config.path).expanduser()
+        self.path = self.link
         self.windows = 0
         self.errors = 0
         self.lost = 0
@@ -259,31 +358,122 @@ class RerunRecorder(Sink):
         self._reopen_delay = self.reopen_after
         self._lock = threading.Lock()
         self._rec: rr.RecordingStream | None = None
+        self._live: rr.RecordingStream | None = None
+        self._live_url: str | None = None
+        self._live_problem: str | None = None
         self._file_lock: FileLock | None = None
         self.rotations = 0
         self._file_windows = 0
         self._rotated: dict[Path, int] = {}  # files kept aside -> windows recorded in each
+        self._kept_aside: Path | None = None  # an earlier version's file found at the link
         self._file_gone: str | None = None  # what happened to the file, until a new one
         self._file_gone_lost = 0
         self._no_new_file: str | None = None  # why no new file could be started yet
+        self._link_problem: str | None = None  # why the link cannot name the run's file
         if not config.enabled:
             logger.info("rerun recording disabled for %s", machine)
             return
-        self._file_lock = _check_writable(self.path)
         self._recording_id = uuid.uuid4()  # every file of this recorder shares it
+        if config.serve:
+            self._probe_port()  # before any file is touched
+        self._file_lock = self._claim(run)
         try:
             self._rec = self._open_stream()
+            if config.serve:
+                self._live = self._open_live()
         except BaseException:
+            if self._rec is not None:
+                self._rec.disconnect()
+                self._rec = None
             self._file_lock.release()
             raise
         self._closed = False
-        logger.info("recording %s to %s", machine, self.path)
+        logger.info("recording %s to %s (%s)", machine, self.path, self.link)
+
+    # -- the run's file and the link -----------------------------------------------------------
+    def _claim(self, run: str | None) -> FileLock:
+        """Make sure no other process records at :attr:`link`, keep a regular file found there
+        (an earlier version's recording), create and lock this run's file, and point the link
+        at it.
+
+        Raises:
+            RecorderError: the directory is missing or read-only, the link names a file another
+                process writes, or the file cannot be created.
+        """
+        link = self.link
+        _check_directory(link)
+        if link.is_symlink():
+            if link.exists():  # the file of the run that wrote last: in use?
+                try:
+                    FileLock(link, "recording", _FIX).release()
+                except LockedError as exc:
+                    raise RecorderError(str(exc)) from None
+                except OSError:
+                    pass  # cannot open it: not ours to check, the link is replaced
+        elif link.exists():
+            lock = _check_writable(link)
+            try:
+                st = link.stat()
+                if st.st_size:
+                    stamp = time.strftime(_RUN_STAMP, time.gmtime(st.st_mtime))
+                    aside = _free_name(link.with_name(f"{link.stem}-{stamp}{link.suffix}"))
+                    link.rename(aside)
+                    self._kept_aside = aside
+                    logger.info("the recording found at %s (%d bytes) is kept as %s", link,
+                                st.st_size, aside.name)
+                else:
+                    link.unlink()
+            except OSError as exc:
+                raise RecorderError(f"cannot keep the recording {link} aside: "
+                                    f"{exc.strerror or exc}") from exc
+            finally:
+                lock.release()
+        label = _run_label(run)
+        if not re.match(r"\d{8}T\d{6}Z", label):  # a run id starts with its UTC start
+            label = time.strftime(_RUN_STAMP, time.gmtime()) + (f"-{label}" if label else "")
+        self.path = _free_name(link.with_name(f"{link.stem}-{label}{link.suffix}"))
+        lock = _check_writable(self.path)
+        self._point_link()
+        return lock
+
+    def _point_link(self, target: Path | None = None) -> None:
+        """Make :attr:`link` a symbolic link to the run's file, or ``target`` beside it
+        (atomically; logged once when the file system cannot)."""
+        target = target or self.path
+        if self.link == target:
+            return
+        tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
+        try:
+            tmp.unlink(missing_ok=True)
+            os.symlink(target.name, tmp)
+            os.replace(tmp, self.link)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            if self._link_problem is None:
+                self._link_problem = f"cannot link {self.link} to {target.name}: {exc}"
+                logger.warning("%s; open %s itself", self._link_problem, self.path)
+            return
+        if self._link_problem is not None:
+            logger.info("%s links to %s again", self.link, self.path.name)
+            self._link_problem = None
+
+    def _check_link(self) -> None:
+        """Point the link again if something removed or changed it (one readlink a window)."""
+        try:
+            if os.readlink(self.link) == self.path.name:
+                return
+        except OSError:
+            pass
+        if self._link_problem is None:
+            logger.warning("%s no longer named the run's recording %s: linked again",
+                           self.link, self.path.name)
+        self._point_link()
 
     def _open_stream(self) -> rr.RecordingStream:
         """The recorder's one recording stream, saving to :attr:`path` with the default
         blueprint; the blueprint is also written once to :attr:`blueprint_path`."""
         rec = rr.RecordingStream(self.config.application_id, recording_id=self._recording_id)
-        blueprint = self._blueprint()
+        blueprint = self.views.blueprint()
         self._attach_file(rec, blueprint=blueprint)
         if not rr.is_enabled(rec):
             logger.warning("rerun logging is disabled (RERUN=off?): %s stays empty", self.path)
@@ -293,8 +483,8 @@ class RerunRecorder(Sink):
     def _save_blueprint(self, blueprint: rrb.Blueprint | None = None) -> None:
         """Write the viewer layout to :attr:`blueprint_path` (best effort)."""
         try:
-            (blueprint or self._blueprint()).save(self.config.application_id,
-                                                  self.blueprint_path)
+            (blueprint or self.views.blueprint()).save(self.config.application_id,
+                                                 self.blueprint_path)
         except (OSError, RuntimeError, ValueError) as exc:
             logger.warning("cannot write the blueprint %s (%s): rotated files open with the "
                            "viewer's default layout", self.blueprint_path, exc)
@@ -308,20 +498,38 @@ class RerunRecorder(Sink):
             rec.save(self.path, default_blueprint=blueprint)
         except (OSError, RuntimeError, ValueError) as exc:
             raise RecorderError(f"rerun cannot write {self.path}: {exc}") from exc
+        self._log_static(rec)
+
+    def _log_static(self, rec: rr.RecordingStream) -> None:
+        """What every file and the live stream need once: the recording's name, the key and
+        the series' styles."""
         rec.send_recording_name(f"{self.machine} twin")
-        self._log_styles(rec)
+        emit(rec, self.views.static_ops())
 
     @property
     def blueprint_path(self) -> Path:
-        """``<stem>.rbl`` beside :attr:`path`: the viewer layout, for rotated files
-        (``rerun twinwatch.*.rrd twinwatch.rbl``)."""
-        return self.path.with_suffix(".rbl")
+        """``<stem>.rbl`` beside :attr:`link`: the viewer layout, for files opened together
+        (``rerun twinwatch-*.rrd twinwatch.rbl``)."""
+        return self.link.with_suffix(".rbl")
+
+    def _family(self) -> list[Path]:
+        """The older files of :attr:`link` (earlier runs', rotated ones), oldest first."""
+        pattern = re.compile(re.escape(self.link.stem) + r"-\d{8}T\d{6}Z([-.][A-Za-z0-9._-]*)?"
+                             + re.escape(self.link.suffix))
+        found = []
+        for p in self.link.parent.iterdir():
+            if p != self.path and pattern.fullmatch(p.name) and not p.is_symlink():
+                try:
+                    found.append((p.stat().st_mtime, p.name, p))
+                except OSError:
+                    continue
+        return [p for _, _, p in sorted(found)]
 
     def _rotate(self) -> None:
-        """Rename the current file with the UTC time, point the recording stream at a new file
-        at :attr:`path` (the renamed file's footer is written and its manifest memory freed),
-        and delete rotated files beyond ``keep_files``. Called with the lock held. A failure
-        stops the recording (logged once).
+        """Rename the run's file with the UTC time, point the recording stream at a new file of
+        the run's name (the renamed file's footer is written and its manifest memory freed),
+        and delete the older files of the link beyond ``keep_files``. Called with the lock held.
+        A failure stops the recording (logged once).
 
         The stream is kept, not replaced: the Rerun SDK (0.41) never frees a Python recording
         stream (rerun-io/rerun#2116: its batcher threads live on after ``disconnect``), so a new
@@ -334,7 +542,7 @@ class RerunRecorder(Sink):
         assert rec is not None
         if not self._flush(rec):
             return  # the writer died: the file was kept aside and a new one will be opened
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        stamp = time.strftime(_RUN_STAMP, time.gmtime())
         aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
                                     f"{self.path.suffix}")
         try:
@@ -357,12 +565,12 @@ class RerunRecorder(Sink):
         logger.info("recording rotated: %s closed, now writing %s", aside, self.path)
         keep = self.config.keep_files
         if keep:
-            rotated = sorted(self.path.parent.glob(f"{self.path.stem}.*{self.path.suffix}"))
-            rotated = [p for p in rotated if p != self.path]
-            for old in rotated[:-keep]:
+            for old in self._family()[:-keep]:
                 try:
                     old.unlink()
                     self._rotated.pop(old, None)
+                    logger.info("old recording %s deleted ([recording] keep_files = %d)",
+                                old.name, keep)
                 except OSError as exc:
                     logger.warning("cannot delete old recording %s: %s", old, exc)
 
@@ -370,14 +578,16 @@ class RerunRecorder(Sink):
         """The file at :attr:`path` is still the one being written (called with the lock held,
         before each window). Deleted, replaced or moved away: count the windows lost with it
         (and with the rotated files that went with its directory), and go on in a new file at
-        the path, its directory created again (one level) if it was removed. Returns False
-        while no new file can be started (the window is then not recorded)."""
+        the path, its directory created again (one level) if it was removed, the link made
+        again. Returns False while no new file can be started (the window is then not
+        recorded)."""
         rec = self._rec
         if rec is None:  # its file writer died: a new stream and file come with _reopen
             return True
         if self._file_gone is None:
             why = self._file_lock.changed() if self._file_lock is not None else None
             if why is None:
+                self._check_link()
                 return True
             gone = 0 if why == "moved" else self._file_windows
             with_it = ""
@@ -403,6 +613,7 @@ class RerunRecorder(Sink):
                 logger.error("%s: the windows are not recorded; tried again with each window",
                              self._no_new_file)
             return False
+        self._point_link()
         self._save_blueprint()
         logger.log(logging.ERROR if self._file_gone_lost else logging.WARNING,
                    "%s; recording goes on in a new file %s", self._file_gone, self.path)
@@ -422,56 +633,180 @@ class RerunRecorder(Sink):
         if lock is not None:
             lock.release()
 
+    # -- live viewing ----------------------------------------------------------------------------
+    def _probe_port(self) -> None:
+        """The live server's address is free.
+
+        Raises:
+            RecorderError: naming the address and the key to change.
+        """
+        bind, port = self.config.serve_bind, self.config.serve_port
+        with _LIVE_LOCK:
+            if (bind, port) in _LIVE:
+                return  # this process's server, kept from a recorder closed before
+        family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind((bind, port))
+            except OSError as exc:
+                raise RecorderError(
+                    f"cannot serve the recording live on {bind}:{port}: {exc.strerror or exc} "
+                    "(another viewer or twinwatch?); set [recording] serve_port") from None
+
+    def _open_live(self) -> rr.RecordingStream:
+        """A second recording stream whose only sink is Rerun's gRPC server on
+        ``serve_bind:serve_port``, with the blueprint; the file's stream never touches it.
+
+        The server of a recorder closed before in this process (a reload) is taken over, with
+        its viewers and its history: a gRPC server does not stop while a viewer is connected
+        (Rerun SDK 0.41), so it is kept for the life of the process instead.
+
+        Raises:
+            RecorderError: the server does not listen in time.
+        """
+        bind, port = self.config.serve_bind, self.config.serve_port
+        blueprint = self.views.blueprint()
+        with _LIVE_LOCK:
+            parked = _LIVE.pop((bind, port), None)
+        if parked is not None:
+            live, self._live_url = parked
+            live.send_blueprint(blueprint, make_active=True, make_default=True)
+            self._log_static(live)
+            logger.info("recording of %s served live (the server goes on): rerun %s",
+                        self.machine, self._live_url)
+            return live
+        live = rr.RecordingStream(self.config.application_id, recording_id=self._recording_id)
+        sink = rr.GrpcServerSink(bind_ip=bind, port=port,
+                                 server_memory_limit=self.config.server_memory_limit)
+        live.set_sinks(sink, default_blueprint=blueprint)
+        url = sink.uri
+        del sink  # the stream owns the server
+        self._log_static(live)
+        deadline = time.monotonic() + self.serve_timeout
+        while True:
+            try:
+                with socket.create_connection((bind if bind not in ("0.0.0.0", "::") else
+                                               "127.0.0.1", port), timeout=0.5):
+                    break
+            except OSError as exc:
+                if time.monotonic() > deadline:
+                    live.disconnect()
+                    raise RecorderError(f"the live recording server on {bind}:{port} does not "
+                                        f"listen ({exc})") from None
+                time.sleep(0.05)
+        self._live_url = url
+        logger.info("recording of %s served live: rerun %s", self.machine, self._live_url)
+        return live
+
+    @property
+    def live_url(self) -> str | None:
+        """Where a viewer connects (``rerun+http://127.0.0.1:9876/proxy``), None when not
+        serving."""
+        return self._live_url if self._live is not None else None
+
+    def _emit_live(self, ops: list[Op]) -> None:
+        """Send one window to the live server; a failure stops the live view only (logged
+        once). Called with the lock held."""
+        live = self._live
+        if live is None:
+            return
+        try:
+            emit(live, ops)
+        except Exception as exc:  # noqa: BLE001 - the file goes on whatever the server does
+            self._live = None
+            self._live_problem = f"live recording server stopped: {exc}"
+            logger.error("%s; the file goes on", self._live_problem)
+            _bury(live)
+
     # -- the sink contract ---------------------------------------------------------------------
     @classmethod
     def from_config(cls, config: RecordingConfig, context: SinkContext) -> Self:
-        """Record the twin's outputs and parameters to ``[recording] path`` (relative to the
-        working directory).
+        """Record the twin's outputs and health to a new file beside ``[recording] path``
+        (relative to the working directory), which links to it.
 
         Raises:
-            RecorderError: the file cannot be created, written or locked.
+            RecorderError: the file cannot be created, written or locked, or the live server
+                cannot listen.
         """
         rec = config.model_copy()
         rec.path = str(config.output_files(context.cwd)["path"])
         return cls(rec, context.machine, outputs=context.outputs,
-                   parameters=dict(context.parameters))
+                   parameters=dict(context.parameters), output_units=context.output_units,
+                   nominal=context.nominal,
+                   estimated=context.estimated or tuple(context.parameters),
+                   alarm_bands=context.alarm_bands, run=context.run or None)
 
     @classmethod
     def reload_key(cls, config: RecordingConfig, context: SinkContext) -> Hashable:
-        """The machine, the entities it declares (the twin's outputs and parameters) and the
-        table."""
+        """The machine, the entities and views it declares (the twin's outputs and their units,
+        parameters, the estimated ones) and the table; not the alarm thresholds (a reload that
+        changes them keeps the file and draws the new ones from then on)."""
         return (context.machine, tuple(context.outputs), _frozen(dict(context.parameters)),
-                _frozen(config.model_dump()))
+                _frozen(dict(context.output_units)), _frozen(dict(context.nominal)),
+                tuple(context.estimated), _frozen(config.model_dump()))
+
+    def attach(self, context: SinkContext) -> None:
+        """A reload hands the recorder over: draw its alarm thresholds from the next window."""
+        super().attach(context)
+        with self._lock:
+            ops = self.views.set_alarm_bands(context.alarm_bands)
+            if ops and self._rec is not None:
+                emit(self._rec, ops)
+            if ops:
+                self._emit_live(ops)
 
     def counters(self) -> dict[str, int]:
         """``lost``: windows not recorded."""
         return {"lost": int(self.lost)}
 
     def summary(self) -> list[str]:
-        """Where the recording is, and the windows it could not record."""
+        """Where the run's recording is, how to open it, and the windows it could not record."""
         cwd = self.context.cwd if self.context is not None else Path.cwd()
-        shown = self.path.relative_to(cwd) if self.path.is_relative_to(cwd) else self.path
-        lines = [f"recording: {self.path.resolve()} (open with: rerun {shown})"]
+
+        def shown(p: Path) -> Path:
+            return p.relative_to(cwd) if p.is_relative_to(cwd) else p
+
+        if self._link_problem is None and self.link != self.path:
+            opened = f"{shown(self.link)}, the link to it"
+        else:
+            opened = str(shown(self.path))
+        lines = [f"recording: {self.path.absolute()} (open with: rerun {opened})"]
+        if self.rotations:
+            lines.append(f"recording: this run's {self.rotations} earlier files are beside it: "
+                         f"rerun {shown(self.path.parent)}/{self.path.stem}*{self.path.suffix} "
+                         f"{shown(self.blueprint_path)}")
+        if self._kept_aside is not None:
+            lines.append(f"recording: the file found at {shown(self.link)} was kept as "
+                         f"{shown(self._kept_aside)}")
         if self.lost:
             lines.append(f"recording: {self.lost} windows could not be recorded or were lost "
                          "with a deleted file (see the log)")
         return lines
 
     @property
+    def status(self) -> str | None:
+        """The live view's address while serving."""
+        url = self.live_url
+        return f"live view on {url}" if url is not None else None
+
+    @property
     def problem(self) -> str | None:
         """Why windows are not being recorded right now, or how many were not (None while
-        every window was recorded)."""
+        every window was recorded and the live server, if any, runs)."""
         if self._broken is not None:
             return f"{self._broken}; {self.lost} windows not recorded"
         if self._no_new_file is not None:
             return f"{self._no_new_file}; {self.lost} windows not recorded"
         if self._paused is not None:
             return f"{self._paused}; {self.lost} windows not recorded"
-        if self._dead_since is None:
+        if self._dead_since is not None:
+            return (f"recording to {self.path} stopped (the file writer died: disk full?); "
+                    f"{self.lost} windows not recorded")
+        if self.lost:
             # what was lost stays reported (as the state database's lost windows do)
-            return f"recording: {self.lost} windows not recorded" if self.lost else None
-        return (f"recording to {self.path} stopped (the file writer died: disk full?); "
-                f"{self.lost} windows not recorded")
+            return f"recording: {self.lost} windows not recorded"
+        return self._live_problem
 
     def _free(self) -> int | None:
         """Free bytes on the recording's file system (None if unknown)."""
@@ -509,7 +844,7 @@ class RerunRecorder(Sink):
                          "far are kept, the next ones are counted as not recorded until a new "
                          "file is opened (in %g s)", self.path, exc, self._reopen_delay)
         else:
-            self._reopen_delay = min(2 * self._reopen_delay, 1800.0)
+            self._reopen_delay = min(2 * self._reopen_delay, self.reopen_max)
             logger.debug("recording to %s failed again: %s", self.path, exc)
         if self._file_windows:
             stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
@@ -553,55 +888,8 @@ class RerunRecorder(Sink):
         """The underlying Rerun recording stream (``None`` when disabled)."""
         return self._rec
 
-    def _blueprint(self) -> rrb.Blueprint:
-        m = self.machine
-        output_views = [
-            rrb.TimeSeriesView(origin="/" + _entity(m, "outputs", o), name=o) for o in self.outputs
-        ]
-        parameter_views = [
-            rrb.TimeSeriesView(origin="/" + _entity(m, "parameters", p), name=f"{p} [{u}]")
-            for p, u in self.parameters.items()
-        ]
-        right: list[rrb.Container | rrb.View] = []
-        if parameter_views:
-            right.append(rrb.Grid(*parameter_views, name="parameters"))
-        right.append(rrb.TimeSeriesView(origin="/" + _entity(m, "residual"), name="residual"))
-        right.append(rrb.TimeSeriesView(origin="/" + _entity(m, "residual_rmse"),
-                                        name="residual RMSE: DT' vs DT''"))
-        right.append(rrb.Tabs(
-            rrb.TextDocumentView(origin="/" + _entity(m, "model"), name="model (DT'')"),
-            rrb.TextDocumentView(origin="/" + _entity(m, "health"), name="health"),
-        ))
-        right.append(rrb.TextLogView(origin="/" + _entity(m, "log"), name="log"))
-        return rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Vertical(*output_views, name="outputs"),
-                rrb.Vertical(*right),
-            ),
-            collapse_panels=True,
-        )
-
-    def _log_styles(self, rec: rr.RecordingStream) -> None:
-        for o in self.outputs:
-            rec.log(
-                _entity(self.machine, "outputs", o, "measured"),
-                rr.SeriesLines(names=f"{o} measured", colors=_MEASURED_COLOR),
-                static=True,
-            )
-            rec.log(
-                _entity(self.machine, "outputs", o, "twin"),
-                rr.SeriesLines(names=f"{o} twin", colors=_TWIN_COLOR),
-                static=True,
-            )
-        for i, (p, unit) in enumerate(self.parameters.items()):
-            rec.log(
-                _entity(self.machine, "parameters", p),
-                rr.SeriesLines(
-                    names=f"{p} [{unit}]", colors=_PARAMETER_COLORS[i % len(_PARAMETER_COLORS)]
-                ),
-                static=True,
-            )
-
+    # -- what the viewer shows -------------------------------------------------------------------
+    # -- one window ----------------------------------------------------------------------------
     def _validate(
         self,
         t: np.ndarray,
@@ -647,8 +935,10 @@ class RerunRecorder(Sink):
         health: HealthMessage | Mapping[str, Any],
         terms_changed: bool = False,
         health_json: str | None = None,
+        events: Sequence[Mapping[str, Any]] = (),
     ) -> None:
-        """Record one acquisition window, then flush it to the file.
+        """Record one acquisition window, then flush it to the file (and send it to the live
+        server when serving).
 
         Args:
             t: shape (N,), sample times [s] on the plant clock, finite.
@@ -658,11 +948,16 @@ class RerunRecorder(Sink):
             parameters: parameter name -> estimate at ``t[-1]`` (unit as declared); every key
                 must be one of the declared ``parameters``.
             health: the window's health message (typed), or any JSON-serialisable health
-                document (see :func:`twinwatch.io.encoding.to_json`).
-            terms_changed: the twin's meta-model terms changed in this window: log the model
-                document (the message's ``terms``) again. The first window always logs it.
+                document (see :func:`twinwatch.io.encoding.to_json`); what it holds of the
+                health message's fields (README "The health message") is drawn.
+            terms_changed: the twin's meta-model terms changed in this window (its log row is
+                a warning).
             health_json: ``health`` already encoded (the pipeline's one encoding), shown in
                 the health document; None: encoded here.
+            events: the alarm changes of this window (:meth:`AlarmEvaluator.update
+                <twinwatch.daemon.alarms.AlarmEvaluator.update>`: ``parameter``, ``level``,
+                ``previous``, ``deviation_pct``, ``t``, ``message``): each a log row (ERROR for
+                an alarm, WARN for a warning or a clear) and a marker on the parameter's view.
 
         Raises:
             ValueError: a shape, name or value that does not fit the above (nothing recorded).
@@ -676,59 +971,31 @@ class RerunRecorder(Sink):
         if health_json is None:
             health_json = (to_json(health) if isinstance(health, Mapping)
                            else health.to_json())
-        pretty = json.dumps(json.loads(health_json), indent=2)
+        doc = json.loads(health_json)
+        if not isinstance(doc, dict):
+            raise TypeError("health must encode to a JSON object")
         if not self.config.enabled:
             return
         m = self.machine
         t_end = float(times[-1])
         with self._lock:
-            rec = self._rec
             if self._closed:
                 if self._broken is not None:
                     self.lost += 1
                 logger.debug("recorder of %s closed, dropping window at t=%.3f s", m, t_end)
                 return
-            window = (health.get("window") if isinstance(health, Mapping)
-                      else health.window)
+            ops = self.views.window_ops(times, meas, sim, estimates, doc, health_json,
+                                   terms_changed, list(events))
+            ops += projection_ops(m, doc, t_end)
+            self._emit_live(ops)
+            window = doc.get("window")
             if (not self._check_file(window) or not self._room()
-                    or (rec is None and not self._reopen())):
+                    or (self._rec is None and not self._reopen())):
                 self.lost += 1
                 return
             rec = self._rec
             assert rec is not None
-            index = [rr.TimeColumn(TIMELINE, duration=times)]
-            for kind, channels in (("measured", meas), ("twin", sim)):
-                for name, values in channels.items():
-                    rec.send_columns(
-                        _entity(m, "outputs", name, kind),
-                        indexes=index,
-                        columns=rr.Scalars.columns(scalars=values),
-                    )
-            for name in meas.keys() & sim.keys():
-                rec.send_columns(
-                    _entity(m, "residual", name),
-                    indexes=index,
-                    columns=rr.Scalars.columns(scalars=meas[name] - sim[name]),
-                )
-            rec.set_time(TIMELINE, duration=t_end)
-            for variant, rmse in _residual_rmse(health).items():
-                for name, value in rmse.items():
-                    if value is not None:
-                        rec.log(_entity(m, "residual_rmse", name, variant), rr.Scalars(value))
-            if terms_changed or self._file_windows == 0:
-                rec.log(_entity(m, "model"), rr.TextDocument(
-                    _model_document(m, t_end, health), media_type=rr.MediaType.MARKDOWN))
-            for name, value in estimates.items():
-                rec.log(_entity(m, "parameters", name), rr.Scalars(value))
-            document = f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{pretty}\n```\n"
-            rec.log(
-                _entity(m, "health"), rr.TextDocument(document, media_type=rr.MediaType.MARKDOWN)
-            )
-            level = rr.TextLogLevel.WARN if _is_problem(health) else rr.TextLogLevel.INFO
-            rec.log(
-                _entity(m, "log"),
-                rr.TextLog(_summary(float(times[0]), t_end, health), level=level),
-            )
+            emit(rec, ops)
             if not self._flush(rec):
                 self.lost += 1
                 return
@@ -745,8 +1012,8 @@ class RerunRecorder(Sink):
 
     def write(self, out: ProcessedWindow) -> None:
         """The window pipeline's sink call: :meth:`log_window` with the window's measured and
-        twin outputs, estimates and its typed health message (and that message's one
-        encoding)."""
+        twin outputs, estimates, its typed health message (and that message's one encoding)
+        and its alarm changes."""
         est = out.result.estimate
         self.log_window(
             t=out.window.t,
@@ -756,6 +1023,7 @@ class RerunRecorder(Sink):
             health=out.health,
             terms_changed=out.result.changed,
             health_json=out.health_json,
+            events=out.events,
         )
 
     def _flush(self, rec: rr.RecordingStream) -> bool:
@@ -773,14 +1041,29 @@ class RerunRecorder(Sink):
         return True
 
     def close(self) -> None:
-        """Flush, write the footer and close the file. Idempotent; the file is then complete."""
+        """Flush, write the footer and close the file; the live server, flushed, is kept for
+        the next recorder on its address (it ends with the process). Idempotent; the file is
+        then complete."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
+            live, self._live = self._live, None
+            if live is not None:
+                try:
+                    live.flush(timeout_sec=self.flush_timeout)
+                except Exception as exc:  # noqa: BLE001 - the file still closes
+                    logger.warning("flushing the live recording server: %s", exc)
+                assert self._live_url is not None
+                with _LIVE_LOCK:  # a later recorder on this address goes on with it
+                    _LIVE[(self.config.serve_bind, self.config.serve_port)] = (
+                        live, self._live_url)
             rec, self._rec = self._rec, None
             if rec is None:  # never opened, or its file writer died (abandoned)
                 self._release()
+                kept = [p for p in self._rotated if p.exists()]
+                if not self.path.exists() and kept:  # the link names the last file kept
+                    self._point_link(max(kept, key=lambda p: p.name))
                 return
             why = self._file_lock.changed() if self._file_lock is not None else None
             if why in ("deleted", "replaced") and self._file_windows:
@@ -801,8 +1084,62 @@ class RerunRecorder(Sink):
         )
 
 
+_LIVE: dict[tuple[str, int], tuple[Any, str]] = {}
+"""Live servers of closed recorders, by address, with their URL: a gRPC server stays up while a
+viewer is connected, so it is kept, and taken over by the next recorder on that address."""
+_LIVE_LOCK = threading.Lock()
+
 _GRAVEYARD: list[Any] = []
 """Recording streams whose file writer died: kept referenced so that nothing frees them."""
+
+
+def _growth_curve(t0: float, y0: float, t1: float, y1: float, r: float | None,
+                  n: int = 32) -> np.ndarray:
+    """(n, 2) points of ``y0 + a (exp(r (t - t0)) - 1)/r`` from ``(t0, y0)`` through
+    ``(t1, y1)`` (a line for r None or 0): the trend's shape, scaled to pass the threshold at
+    a crossing time."""
+    t = np.linspace(t0, t1, n)
+    if r is None or abs(r) * (t1 - t0) < 1e-9:
+        g, g1 = t - t0, t1 - t0
+    else:
+        g, g1 = np.expm1(r * (t - t0)) / r, np.expm1(r * (t1 - t0)) / r
+    a = (y1 - y0) / g1 if g1 else 0.0
+    return np.column_stack([t, y0 + a * g])
+
+
+def projection_ops(machine: str, doc: Mapping[str, Any], t_end: float) -> list[Op]:
+    """Each parameter's projection to its alarm threshold (module docstring): for a message
+    whose ``parameters.<name>.trend`` has a level and whose ``rul.alarm`` is predicted, one
+    :class:`rerun.LineStrips2D` on ``<machine>/health/<name>/trend/projection`` at ``t_end``,
+    in plant time [s] and % of nominal: the trend's shape (its growth rate) from its level now
+    to the threshold at the median crossing and at both ends of the interval, and the
+    threshold. Nothing for a message without prognostics."""
+    ops: list[Op] = []
+    for name, ph in (doc.get("parameters") or {}).items():
+        trend = (ph or {}).get("trend") or {}
+        crossing = ((ph or {}).get("rul") or {}).get("alarm") or {}
+        nom, level = ph.get("nominal"), trend.get("level")
+        th, t_cross = crossing.get("threshold"), crossing.get("t")
+        if (crossing.get("status") != "predicted" or not nom or level is None or th is None
+                or t_cross is None):
+            continue
+
+        def pct(v: np.ndarray | float, nom: float = float(nom)) -> np.ndarray:
+            return (np.asarray(v, dtype=float) / nom - 1.0) * 100.0
+
+        ends = [x for x in (t_cross, crossing.get("t_low"), crossing.get("t_high"))
+                if x is not None]
+        strips = []
+        for x in ends:
+            curve = _growth_curve(t_end, float(level), float(x), float(th), trend.get("growth"))
+            strips.append(np.column_stack([curve[:, 0], pct(curve[:, 1])]))
+        strips.append(np.array([[t_end, float(pct(th))], [max(ends), float(pct(th))]]))
+        labels = [f"{name} median crossing", *([f"{name} 95 % band"] * (len(ends) - 1)),
+                  f"{name} alarm threshold"]
+        ops.append(Op("/".join(rr.escape_entity_path_part(x) for x in
+                               (machine, "health", name, "trend", "projection")),
+                      rr.LineStrips2D(strips, labels=labels), t_end))
+    return ops
 
 
 def _bury(rec: rr.RecordingStream) -> None:
@@ -817,64 +1154,4 @@ def _bury(rec: rr.RecordingStream) -> None:
     rr.unregister_shutdown()
 
 
-def _residual_rmse(health: HealthMessage | Mapping[str, Any]
-                   ) -> dict[str, Mapping[str, float | None]]:
-    """``residual.<dt_prime|dt_second>.rmse``: output -> RMSE of the twin without and with its
-    terms (empty for a variant the message does not hold)."""
-    if isinstance(health, Mapping):
-        residual = health.get("residual") or {}
-        return {v: (residual.get(v) or {}).get("rmse") or {} for v in ("dt_prime", "dt_second")}
-    r = health.residual
-    return {"dt_prime": r.dt_prime.rmse,
-            "dt_second": r.dt_second.rmse if r.dt_second is not None else {}}
 
-
-def _model_document(machine: str, t: float, health: HealthMessage | Mapping[str, Any]) -> str:
-    """The twin's structure as markdown: DT plus each kept meta-model term with its meaning."""
-    terms = ([(term.get("equation"), term.get("meaning")) for term in health.get("terms") or []]
-             if isinstance(health, Mapping)
-             else [(term.equation, term.meaning) for term in health.terms])
-    lines = [f"## {machine}: twin structure at t = {t:.3f} s", ""]
-    if not terms:
-        lines.append("DT'' = DT: no meta-model term (the physical model explains the data).")
-    else:
-        lines.append("DT'' = DT + the terms below (paper Eq. 3):")
-        lines.append("")
-        for equation, meaning in terms:
-            lines.append(f"* `{equation}`  \n  {meaning}")
-    return "\n".join(lines) + "\n"
-
-
-def _is_problem(health: HealthMessage | Mapping[str, Any]) -> bool:
-    """True if the health document flags a change of the twin's structure, an alarm
-    (``alarm`` truthy) or a problem ``status``."""
-    if not isinstance(health, Mapping):
-        return health.discovery.changed
-    status = health.get("status")
-    if (health.get("discovery") or {}).get("changed"):
-        return True
-    return bool(health.get("alarm")) or (
-        isinstance(status, str) and status.lower() in _PROBLEM_STATUSES
-    )
-
-
-def _scalars(health: HealthMessage | Mapping[str, Any]) -> list[tuple[str, Any]]:
-    """The health document's top-level (key, value) pairs, as a subscriber names them."""
-    if isinstance(health, Mapping):
-        return list(health.items())
-    return [(info.alias or name, getattr(health, name))
-            for name, info in type(health).model_fields.items()]
-
-
-def _summary(t_start: float, t_end: float, health: HealthMessage | Mapping[str, Any]) -> str:
-    """One line: the window's time span and the health document's top-level scalars."""
-    items = []
-    for key, value in _scalars(health):
-        if isinstance(value, bool | str | None):
-            items.append(f"{key}={value}")
-        elif isinstance(value, int | float | np.integer | np.floating):
-            items.append(f"{key}={float(value):.4g}")
-    line = f"window {t_start:.2f}-{t_end:.2f} s: " + (", ".join(items) or "health recorded")
-    if len(line) > _SUMMARY_MAX_CHARS:
-        line = line[: _SUMMARY_MAX_CHARS - 3] + "..."
-    return line

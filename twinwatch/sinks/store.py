@@ -63,12 +63,19 @@ from pydantic import Field
 
 from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.base import Gate, ProcessedWindow, SinkConfig, SinkContext, _frozen
+from twinwatch.sinks.base import (
+    Gate,
+    OutboxRow,
+    ProcessedWindow,
+    SinkConfig,
+    SinkContext,
+    _frozen,
+)
 from twinwatch.sinks.locks import FileLock, LockedError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError"]
+__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError", "StoreOutbox"]
 
 SCHEMA_VERSION = 1
 
@@ -97,6 +104,22 @@ CREATE TABLE IF NOT EXISTS twin (
     t_end REAL NOT NULL,
     wall REAL NOT NULL,
     state TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS outbox_position (
+    output TEXT NOT NULL,
+    machine TEXT NOT NULL,
+    health_id INTEGER NOT NULL,
+    wall REAL NOT NULL,
+    PRIMARY KEY (output, machine)
+);
+CREATE TABLE IF NOT EXISTS outbox_ack (
+    output TEXT NOT NULL,
+    machine TEXT NOT NULL,
+    run TEXT NOT NULL,
+    window INTEGER NOT NULL,
+    health_id INTEGER NOT NULL,
+    wall REAL NOT NULL,
+    PRIMARY KEY (output, machine, run, window)
 );
 """
 
@@ -222,6 +245,7 @@ class StateStore(Gate):
         self._old_file: tuple[set[tuple[str, int]] | None, int] = (None, 0)
         self._sidecars: dict[str, tuple[int, int]] = {}  # our -wal / -shm: (st_dev, st_ino)
         self.history_lost = 0
+        self.outbox_dropped: dict[tuple[str, str], int] = {}  # (output, machine) -> windows
         self.file_event: str | None = None
         self._failing = False
         self._closed_for_good = False
@@ -757,13 +781,48 @@ class StateStore(Gate):
         total = 0
         while True:
             with self._write_lock:
-                cur = conn.execute(f"DELETE FROM health WHERE id IN (SELECT id FROM health "
-                                   f"WHERE {where} ORDER BY id LIMIT ?)",
-                                   (*args, self.prune_batch))
-                n = cur.rowcount
+                batch = f"SELECT id FROM health WHERE {where} ORDER BY id LIMIT ?"
+                conn.execute("BEGIN IMMEDIATE")
+                try:
+                    self._outbox_prune(conn, batch, (*args, self.prune_batch))
+                    cur = conn.execute(f"DELETE FROM health WHERE id IN ({batch})",
+                                       (*args, self.prune_batch))
+                    n = cur.rowcount
+                    conn.execute("COMMIT")
+                except BaseException:
+                    conn.execute("ROLLBACK")
+                    raise
             total += n
             if n < self.prune_batch:
                 return total
+
+    def _outbox_prune(self, conn: sqlite3.Connection, batch: str, args: tuple[Any, ...]) -> None:
+        """Before a batch of health rows is deleted (retention): count, per output's outbox,
+        the rows it had not delivered (:attr:`outbox_dropped`), move its position past the
+        batch and forget its delivery marks there (in the caller's transaction)."""
+        positions = conn.execute("SELECT output, machine, health_id FROM outbox_position"
+                                 ).fetchall()
+        if not positions:
+            return
+        top = conn.execute(f"SELECT MAX(id) FROM ({batch})", args).fetchone()[0]
+        if top is None:
+            return
+        for output, machine, position in positions:
+            lost = conn.execute(
+                f"SELECT COUNT(*) FROM health h WHERE h.id IN ({batch}) AND h.machine = ? "
+                f"AND h.id > ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? "
+                f"AND a.machine = h.machine AND a.run = h.run AND a.window = h.window)",
+                (*args, machine, position, output)).fetchone()[0]
+            if lost:
+                key = (str(output), str(machine))
+                self.outbox_dropped[key] = self.outbox_dropped.get(key, 0) + int(lost)
+                logger.warning("state database %s: retention deleted %d windows of %s that "
+                               "the output %s had not delivered", self.path, lost, machine,
+                               output)
+            if position < top:
+                conn.execute("UPDATE outbox_position SET health_id = ? WHERE output = ? AND "
+                             "machine = ?", (top, output, machine))
+        conn.execute("DELETE FROM outbox_ack WHERE health_id <= ?", (top,))
 
     # -- reading ------------------------------------------------------------------------------
     def load_twin_state(self, machine: str | None = None) -> dict[str, Any] | None:
@@ -848,6 +907,36 @@ class StateStore(Gate):
         return int(self._read("cannot count the history", lambda conn: conn.execute(
             "SELECT COUNT(*) FROM health").fetchone()[0]))
 
+    # -- the outbox of a store-and-forward output ------------------------------------------------
+    def outbox(self, output: str, machine: str) -> StoreOutbox:
+        """The outbox of ``output`` for ``machine``'s windows (see :class:`StoreOutbox`)."""
+        return StoreOutbox(self, output, machine)
+
+    def _write(self, what: str, fn: Any) -> None:
+        """Run ``fn(connection)`` in one write transaction of the calling thread's connection,
+        under the write lock (the worker's windows and the pruning take it too).
+
+        Raises:
+            StoreError: the database cannot be written (nothing of ``fn`` is committed).
+        """
+        with self._write_lock:
+            self._check_file()
+            if self._file_gone is not None:
+                raise StoreError(f"state database {self.path} was {self._file_gone}: not "
+                                 f"written yet ({self.file_event})")
+            conn = self._connect()
+            try:
+                conn.execute("BEGIN IMMEDIATE")
+                fn(conn)
+                conn.execute("COMMIT")
+            except sqlite3.Error as exc:
+                if conn.in_transaction:
+                    try:
+                        conn.execute("ROLLBACK")
+                    except sqlite3.Error:
+                        pass
+                raise self._error(what, exc) from exc
+
     # -- lifecycle ----------------------------------------------------------------------------
     def _close_all(self) -> None:
         with self._conns_lock:
@@ -876,3 +965,139 @@ class StateStore(Gate):
         self._release()
         self._closed_for_good = True
         self._closed = True
+
+
+class StoreOutbox:
+    """One output's outbox in the state database (:class:`~twinwatch.sinks.base.Outbox`): the
+    ``health`` table holds the windows, this records which of them the output has delivered.
+
+    Two small tables, written through the store's rules (the calling thread's own connection,
+    the store's write lock, one transaction per call): ``outbox_position`` (output, machine ->
+    a ``health`` row id at or below which every window is delivered) and ``outbox_ack``
+    (output, machine, run, window -> delivered, for the windows above the position, e.g.
+    acknowledged while an older one was still in flight). The retention's pruning counts the
+    windows it deletes undelivered (:attr:`dropped`) and moves the position past them.
+
+    Args:
+        store: the open state store.
+        output: the output's registry name (``mqtt``).
+        machine: whose windows.
+    """
+
+    # The queries read the health table by row id ranges (``+machine``: not through the
+    # machine's time indexes, which would visit every row of the machine, up to a million).
+
+    def __init__(self, store: StateStore, output: str, machine: str) -> None:
+        self.store = store
+        self.output = output
+        self.machine = machine
+
+    @property
+    def dropped(self) -> int:
+        """Windows deleted by the retention before they were delivered (since the store
+        opened)."""
+        return self.store.outbox_dropped.get((self.output, self.machine), 0)
+
+    def start(self) -> int:
+        """The delivered position; on the output's first open, the newest stored window of
+        the machine (0 if none): the history before the output existed is not sent.
+
+        Raises:
+            StoreError: the database cannot be read or written.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT health_id FROM outbox_position WHERE output = ? AND machine = ?",
+            (self.output, self.machine)).fetchone())
+        if row is not None:
+            return int(row[0])
+        position = self.latest_id() or 0
+
+        def create(conn: sqlite3.Connection) -> None:
+            conn.execute("INSERT OR IGNORE INTO outbox_position (output, machine, health_id, "
+                         "wall) VALUES (?, ?, ?, ?)",
+                         (self.output, self.machine, position, time.time()))
+
+        self.store._write("cannot create the outbox", create)
+        return self.start()
+
+    def pending(self, after: int, limit: int) -> list[OutboxRow]:
+        """Stored windows of the machine above row id ``after`` not delivered, oldest first.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        rows = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT h.id, h.run, h.window, h.wall, h.doc FROM health h WHERE h.id > ? AND "
+            "+h.machine = ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? AND "
+            "a.machine = h.machine AND a.run = h.run AND a.window = h.window) ORDER BY h.id "
+            "LIMIT ?", (int(after), self.machine, self.output, int(limit))).fetchall())
+        return [OutboxRow(int(i), str(r), int(w), float(t), str(d)) for i, r, w, t, d in rows]
+
+    def count(self, position: int) -> int:
+        """Stored windows of the machine above ``position`` not delivered.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        def read(conn: sqlite3.Connection) -> int:
+            stored = conn.execute("SELECT COUNT(*) FROM health WHERE id > ? AND +machine = ?",
+                                  (int(position), self.machine)).fetchone()[0]
+            acked = conn.execute(
+                "SELECT COUNT(*) FROM outbox_ack a WHERE a.output = ? AND a.machine = ? AND "
+                "a.health_id > ? AND EXISTS (SELECT 1 FROM health h WHERE h.id = a.health_id)",
+                (self.output, self.machine, int(position))).fetchone()[0]
+            return max(int(stored) - int(acked), 0)
+
+        return int(self.store._read("cannot count the outbox", read))
+
+    def latest_id(self) -> int | None:
+        """The newest stored window's row id of the machine, None if none.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT id FROM health WHERE +machine = ? ORDER BY id DESC LIMIT 1",
+            (self.machine,)).fetchone())
+        return None if row is None else int(row[0])
+
+    def doc_at_or_before(self, health_id: int) -> str | None:
+        """The health message of the newest window of the machine at or below ``health_id``.
+
+        Raises:
+            StoreError: the database cannot be read.
+        """
+        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+            "SELECT doc FROM health WHERE +machine = ? AND id <= ? ORDER BY id DESC LIMIT 1",
+            (self.machine, int(health_id))).fetchone())
+        return None if row is None else str(row[0])
+
+    def ack(self, delivered: list[OutboxRow], position: int) -> None:
+        """Record the ``delivered`` windows and the new delivered ``position`` (the marks at
+        or below it are no longer needed) in one transaction.
+
+        Raises:
+            StoreError: the database cannot be written (nothing is recorded; call again).
+        """
+        wall = time.time()
+
+        def write(conn: sqlite3.Connection) -> None:
+            conn.executemany(
+                "INSERT OR IGNORE INTO outbox_ack (output, machine, run, window, health_id, "
+                "wall) VALUES (?, ?, ?, ?, ?, ?)",
+                [(self.output, self.machine, r.run, r.window, r.id, wall) for r in delivered
+                 if r.id > position])
+            conn.execute(
+                "INSERT INTO outbox_position (output, machine, health_id, wall) VALUES "
+                "(?, ?, ?, ?) ON CONFLICT (output, machine) DO UPDATE SET health_id = "
+                "MAX(health_id, excluded.health_id), wall = excluded.wall",
+                (self.output, self.machine, int(position), wall))
+            conn.execute("DELETE FROM outbox_ack WHERE output = ? AND machine = ? AND "
+                         "health_id <= (SELECT health_id FROM outbox_position WHERE output = ? "
+                         "AND machine = ?)", (self.output, self.machine, self.output,
+                                              self.machine))
+
+        self.store._write("cannot record the delivered windows", write)
+
+    def __repr__(self) -> str:
+        return f"StoreOutbox({self.output!r}, {self.machine!r}, {self.store.path})"

@@ -15,6 +15,12 @@
    the change is reported. A discovery that keeps nothing waits ``retry_after`` windows.
 
 Without a ``[discovery]`` table (or with ``enabled = false``) only step 1 runs, exactly as before.
+
+Then, every window, the prognostics (:mod:`twinwatch.twin.prognostics`): each estimated
+parameter's evidence from the window (its estimate, or its share of the fused evidence) joins
+its trend, which gives the drift and, for a parameter with an alarm rule, the remaining useful
+life; with ``[acquisition.adaptive]`` the next window's length is chosen
+(:class:`~twinwatch.twin.prognostics.window.WindowController`).
 """
 
 from __future__ import annotations
@@ -40,6 +46,16 @@ from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, Win
 from twinwatch.twin.estimation.fit import Residual, WindowFit
 from twinwatch.twin.estimation.statistics import noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+from twinwatch.twin.prognostics import (
+    AdaptiveWindowConfig,
+    Prognosis,
+    Prognostics,
+    PrognosticsConfig,
+    Thresholds,
+    fused_share,
+    window_evidence,
+)
+from twinwatch.twin.prognostics.window import WindowChoice, WindowController
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +78,9 @@ class AdaptationResult:
         discovery: the discovery run in this window, if any.
         revalidation: the re-validation of the kept terms, if any.
         changed: terms were added or dropped in this window.
+        prognosis: estimated parameter -> its trend and remaining useful life after this
+            window (empty when ``[prognostics]`` is off).
+        window_choice: the adaptive window's decision (None when it is off).
     """
 
     estimate: WindowEstimate
@@ -75,6 +94,8 @@ class AdaptationResult:
     revalidation: DiscoveryReport | None = None
     changed: bool = False
     events: list[str] = field(default_factory=list)
+    prognosis: dict[str, Prognosis] = field(default_factory=dict)
+    window_choice: WindowChoice | None = None
 
 
 class TwinAdapter:
@@ -85,6 +106,9 @@ class TwinAdapter:
         estimation: the ``[estimation]`` table.
         discovery: the ``[discovery]`` table (None: estimation only).
         nominal: parameter -> nameplate value [SI].
+        prognostics: the ``[prognostics]`` table (None: its defaults).
+        thresholds: parameter -> its alarm rule's thresholds [SI] (the RUL's targets).
+        adaptive: the ``[acquisition.adaptive]`` table (None or disabled: a fixed window).
 
     Raises:
         ValueError: a configuration names a parameter, attach point or input the model lacks.
@@ -92,9 +116,21 @@ class TwinAdapter:
 
     def __init__(self, model: TwinModel, estimation: EstimationConfig,
                  discovery: DiscoveryConfig | None = None,
-                 nominal: Mapping[str, float] | None = None) -> None:
+                 nominal: Mapping[str, float] | None = None,
+                 prognostics: PrognosticsConfig | None = None,
+                 thresholds: Mapping[str, Thresholds] | None = None,
+                 adaptive: AdaptiveWindowConfig | None = None) -> None:
         self.model = model
         self.estimator = Estimator(model, estimation, nominal)
+        prog = prognostics or PrognosticsConfig()
+        nom = dict(zip(model.parameter_names, (float(v) for v in self.estimator.nominal),
+                       strict=True))
+        #: Trend and RUL of every estimated parameter (None when ``[prognostics]`` is off).
+        self.prognostics = (Prognostics(self.estimator.pmap.estimate, nom, prog, thresholds)
+                            if prog.enabled else None)
+        self.adaptive = adaptive if adaptive is not None and adaptive.enabled else None
+        #: The adaptive window's controller (created with the first window).
+        self.window_controller: WindowController | None = None
         self.config = discovery or DiscoveryConfig()
         self.discovery = (Discovery(model, self.config, self.estimator)
                           if self.config.enabled else None)
@@ -117,11 +153,15 @@ class TwinAdapter:
         est_ = self.estimator
         fit = est_.window_fit(window)
         snapshot = est_.snapshot()
+        t_mid = float(0.5 * (window.t[0] + window.t[-1]))
+        prior = (est_.fusion.predict(t_mid) if est_.fusion is not None
+                 and self.prognostics is not None else None)
         est = est_.estimate(window, compose(self.terms, window) if self.terms else None,
                             fit=fit)
         if self.discovery is None:
-            return AdaptationResult(est, [], fit.residual(est.simulated), None,
-                                    self._noise(fit, est.simulated), False, 0)
+            noise = self._noise(fit, est.simulated)
+            return self._prognose(window, AdaptationResult(
+                est, [], fit.residual(est.simulated), None, noise, False, 0), prior, fit)
         theta = self._theta(est)
         reval = None
         changed = False
@@ -158,6 +198,7 @@ class TwinAdapter:
                     logger.warning("window %d: unknown component discovered in %.2f s: %s",
                                    window.index, disc.elapsed_s, t.describe())
                 est = est_.estimate(window, compose(self.terms, window), fit=fit)
+                prior = None  # the fusion took this window twice: no share of its own
                 theta = self._theta(est)
                 self.discovery.polish_terms(fit, theta, self.terms)
                 est = self._resimulate(est, fit, theta)
@@ -172,7 +213,7 @@ class TwinAdapter:
             logger.info("DT'' is now:\n%s", format_terms(self.terms) or "(no terms)")
         y_dt = fit.simulate(theta[None, :])[0] if self.terms else est.simulated
         est = dataclasses.replace(est, elapsed_s=time.perf_counter() - t0)
-        return AdaptationResult(
+        return self._prognose(window, AdaptationResult(
             estimate=est,
             terms=list(self.terms),
             dt_prime=fit.residual(y_dt),
@@ -184,7 +225,70 @@ class TwinAdapter:
             revalidation=reval,
             changed=changed,
             events=events,
-        )
+        ), prior, fit)
+
+    # -- prognostics ----------------------------------------------------------------------
+    def _prognose(self, window: WindowData, result: AdaptationResult,
+                  prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit
+                  ) -> AdaptationResult:
+        """Feed the window's evidence to the trends (:mod:`twinwatch.twin.prognostics`) and
+        choose the next window's length (``[acquisition.adaptive]``)."""
+        t0 = time.perf_counter()
+        est = result.estimate
+        t_mid = float(0.5 * (window.t[0] + window.t[-1]))
+        evidence = {}
+        if self.prognostics is not None:
+            shares = None
+            fusion = self.estimator.fusion
+            if prior is not None and fusion is not None and est.trusted \
+                    and not est.fusion_jump:
+                shares = fused_share(fusion.names, prior,
+                                     (fusion.state.mean, fusion.state.cov))
+            evidence = window_evidence(est, t_mid, fused=shares,
+                                       max_rel_std=self.prognostics.config.max_rel_std)
+            result.prognosis = self.prognostics.update(
+                evidence, t_end=float(window.t[-1]), jump=est.fusion_jump, wall=time.time())
+        if self.adaptive is not None:
+            result.window_choice = self._choose_window(window, result, evidence, fit)
+        result.estimate = dataclasses.replace(
+            est, elapsed_s=est.elapsed_s + time.perf_counter() - t0)
+        return result
+
+    def _choose_window(self, window: WindowData, result: AdaptationResult,
+                       evidence: Mapping[str, Any], fit: WindowFit) -> WindowChoice:
+        assert self.adaptive is not None
+        n = int(window.n)
+        if self.window_controller is None:
+            period = float(np.median(np.diff(window.t))) if n > 1 else 1.0
+            self.window_controller = WindowController(self.adaptive, n, period)
+        est = result.estimate
+        rates = self.estimator.fusion.rates() if self.estimator.fusion is not None else {}
+        drift: dict[str, tuple[float, float]] = {}
+        for name, ev in evidence.items():
+            if ev.source != "estimated":
+                continue
+            p = result.prognosis.get(name)
+            rate = p.trend.rate if p is not None and p.trend.rate is not None else None
+            if rate is None:
+                rate = rates.get(name, 0.0) * ev.value
+            # The window's uncertainty as the evidence scatters about its trend when that is
+            # less than stated (noise-free, the estimator's model-error floor states 30 times
+            # the scatter, and a window lengthened on it lags a drift it cannot see).
+            trend = self.prognostics.trends.get(name) if self.prognostics else None
+            fit_ = trend.fit if trend is not None else None
+            scale = min(1.0, fit_.rms_norm) if fit_ is not None and fit_.rms_norm > 0 else 1.0
+            drift[name] = (float(rate), float(ev.std) * scale)
+        # The residual against its white-noise level, both normalised and pooled over the
+        # outputs as the exit criterion pools them (a noise-free output, the closed loop's
+        # Va, would otherwise always look structured); not below a 0.1 % nRMSE.
+        ratio = None
+        res = fit.error_matrix(est.simulated)
+        if np.all(np.isfinite(res)):
+            nrmse = float(np.sqrt(np.mean(res * res)))
+            noise = float(np.sqrt(np.mean(noise_level(res) ** 2)))
+            if nrmse > 1e-3 and noise > 0:
+                ratio = nrmse / noise
+        return self.window_controller.decide(n, drift, ratio)
 
     # -- persistence ----------------------------------------------------------------------
     def state(self) -> dict[str, Any]:

@@ -10,6 +10,22 @@ non-finite numbers become ``null`` everywhere.
 The README's table "The health message" documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 7: each estimated parameter carries its ``trend`` (degradation model, onset, drift rate with
+  its interval, monotonicity and trendability, restarts, the window's evidence) and, with an
+  alarm rule, its ``rul`` (the predicted crossing of the warning and alarm thresholds: median
+  and interval, in plant time, as time from the window's end and on the wall clock;
+  :mod:`twinwatch.twin.prognostics`); each window says which ``acquisition`` window it had and
+  why (the adaptive window).
+  The window's ``source``: the jitter of its time stamps against the nominal grid the
+  samples were placed on (RMS and maximum [us]), what the source waits for (a device absent,
+  a gateway being reopened) and the bus messages that went silent; the counters of windows
+  abandoned by cause (``windows_abandoned_gap``, ``_time_back``, ``_jitter``, ``_bad_value``,
+  ``_missing_channel``).
+  ``status`` may be ``suspect`` (the estimate of a window that is not sound: its model check
+  failed or a sensor is frozen or saturated; or a held value the fused evidence contradicts:
+  treat it like ``held``); ``fused`` is published when the fused evidence meets the fusion's own
+  gate (``[estimation.fusion] max_rel_std``); the window's frozen or saturated sensors are named
+  (``sensors``).
 * 6: every message carries its ``run`` id (one per start of the daemon, kept across a reload;
   a new run of a simulated plant or of a replayed recording is a new run): windows of different
   runs share window numbers and plant times, the run tells them apart (the history query
@@ -39,6 +55,9 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 from twinwatch.io.encoding import to_json
 from twinwatch.twin.estimation.estimator import ParameterStatus, WindowEstimate
 from twinwatch.twin.model import TwinModel, WindowData
+from twinwatch.twin.prognostics import Crossing, RulReport, TrendReport
+from twinwatch.twin.prognostics.rul import format_crossing
+from twinwatch.twin.prognostics.window import WindowChoice
 
 if TYPE_CHECKING:
     from twinwatch.twin.adaptation import AdaptationResult
@@ -46,7 +65,9 @@ if TYPE_CHECKING:
 
 __all__ = [
     "SCHEMA_VERSION",
+    "AcquisitionHealth",
     "AlarmStatus",
+    "CrossingHealth",
     "DiscoveryStatus",
     "FusedHealth",
     "ModelCheckHealth",
@@ -55,12 +76,18 @@ __all__ = [
     "ParameterHealth",
     "ResidualFit",
     "ResidualHealth",
+    "RulAlarmStatus",
+    "RulHealth",
+    "SensorHealth",
+    "SourceHealth",
     "TermHealth",
+    "TrendHealth",
     "build_health",
     "summary_line",
+    "trend_line",
 ]
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 
 def _finite(x: Any) -> Any:
@@ -88,6 +115,90 @@ class FusedHealth(_Part):
     high: Num = Field(description="2-sigma interval, upper end [SI]")
 
 
+class EvidenceHealth(_Part):
+    """``parameters.<name>.trend.window_evidence``: what this window told the trend."""
+
+    t: float = Field(description="the window's middle [s]")
+    value: Num = Field(description="the parameter [SI]")
+    std: Num = Field(description="its 1-sigma uncertainty [SI]")
+    source: Literal["estimated", "fused"] = Field(
+        description="estimated: this window's estimate; fused: the window's own share of the "
+        "fused evidence")
+
+
+class RestartHealth(_Part):
+    """``parameters.<name>.trend.restart``: the last step that restarted the trend."""
+
+    t: float = Field(description="the first window beyond the old trend [s]")
+    step: Num = Field(description="size of the step [SI] (the new value minus the old "
+                      "trend's prediction)")
+    reason: str
+
+
+class TrendHealth(_Part):
+    """``parameters.<name>.trend``: where an estimated parameter is going
+    (:mod:`twinwatch.twin.prognostics`)."""
+
+    model: Literal["none", "linear", "exponential"] | None = Field(
+        description="the degradation model the evidence follows (chosen by the BIC); null: "
+        "too little evidence since the start or a restart")
+    onset: Num = Field(description="the degradation's onset [s] (flat before); null: from "
+                       "since_t")
+    since_t: Num = Field(description="first evidence of the current trend [s] (after the "
+                         "last restart)")
+    evidence: int = Field(description="evidence windows the trend is fitted to")
+    level: Num = Field(description="the trend's value at the window's end [SI]")
+    level_std: Num = Field(description="its 1-sigma uncertainty [SI]")
+    rate: Num = Field(description="drift rate now [SI/s]")
+    rate_low: Num = Field(description="95 % interval of the drift rate, lower end [SI/s]")
+    rate_high: Num = Field(description="95 % interval of the drift rate, upper end [SI/s]")
+    rate_pct_per_h: Num = Field(description="drift rate in percent of nominal per hour")
+    growth: Num = Field(description="the exponential's growth rate of the drift [1/s]")
+    degrading: bool = Field(description="the drift rate is beyond its uncertainty (not flat)")
+    model_weight: Num = Field(description="the chosen model's share of the model-averaging "
+                              "weight (how sure the choice is)")
+    monotonicity: Num = Field(description="MATLAB's monotonicity of the trend's history "
+                              "(0..1)")
+    trendability: Num = Field(description="|corr(history, time)| (0..1)")
+    restarted: bool = Field(description="this window restarted the trend (a step: a repair, "
+                            "a part replaced, a sudden fault)")
+    restart: RestartHealth | None = Field(description="the last restart")
+    restarts: int = Field(description="restarts so far")
+    window_evidence: EvidenceHealth | None = Field(
+        description="this window's evidence on the parameter (null: none)")
+
+
+class CrossingHealth(_Part):
+    """``parameters.<name>.rul.warning`` / ``.alarm``: when the trend crosses the threshold."""
+
+    threshold: Num = Field(description="the threshold [SI] the trend heads to")
+    status: Literal["crossed", "predicted", "not_reached"] = Field(
+        description="crossed: the trend is beyond it; predicted: the median crossing is "
+        "finite; not_reached: most draws never reach it")
+    t: Num = Field(description="median crossing [s, plant time]")
+    t_low: Num = Field(description="interval, earliest [s, plant time]")
+    t_high: Num = Field(description="interval, latest [s, plant time] (null: some draws "
+                        "never reach it)")
+    rul_s: Num = Field(description="median time from the window's end [s]")
+    low_s: Num = Field(description="interval, earliest [s from the window's end]")
+    high_s: Num = Field(description="interval, latest [s from the window's end]")
+    wall: Num = Field(description="median crossing on the wall clock [s since the epoch]")
+    wall_low: Num = Field(description="interval, earliest [s since the epoch]")
+    wall_high: Num = Field(description="interval, latest [s since the epoch]")
+    probability: Num = Field(description="share of the draws that reach it")
+
+
+class RulHealth(_Part):
+    """``parameters.<name>.rul``: remaining useful life to the alarm rule's thresholds."""
+
+    status: Literal["insufficient", "not_degrading", "degrading"]
+    warning: CrossingHealth | None = Field(description="crossing of the warning threshold")
+    alarm: CrossingHealth | None = Field(description="crossing of the alarm threshold")
+    method: str = Field(description="how the distribution is computed (monte_carlo)")
+    draws: int
+    interval: float = Field(description="central probability of the intervals")
+
+
 class ParameterHealth(_Part):
     """``parameters.<name>``: one model parameter in this window."""
 
@@ -97,18 +208,24 @@ class ParameterHealth(_Part):
     nominal: float = Field(description="nameplate value [SI] the deviation is measured from")
     deviation_pct: Num = Field(description="value vs nominal [%]")
     status: ParameterStatus = Field(
-        description="estimated (determined by this window), fused (by the windows so far), "
-        "held (neither: the last trusted value), tied (equals another parameter), fixed "
-        "(nameplate, not estimated)")
+        description="estimated (determined by this sound window), fused (by the windows so "
+        "far), suspect (a window that is not sound, or a held value the fused evidence "
+        "contradicts: treat like held), held (the last trusted value), tied (equals another "
+        "parameter), fixed (nameplate, not estimated)")
     fused: FusedHealth | None = Field(
         None, description="the fused evidence on an estimated parameter (null when fusion "
         "is off or the parameter is not estimated)")
     held: bool = Field(description="status is not 'estimated' (the v2 flag, kept for readers "
-                       "of schema 2)")
+                       "of schema 2; true for a suspect value)")
     reason: str | None = Field(description="why this window does not estimate it, for a "
                                "person (null when estimated); never parse it: use status")
     rel_std_pct: Num = Field(description="1-sigma relative standard error of an estimate [%] "
                              "(null when not estimated)")
+    trend: TrendHealth | None = Field(
+        None, description="where it is going (null when not estimated, or prognostics off)")
+    rul: RulHealth | None = Field(
+        None, description="remaining useful life to its alarm rule's thresholds (null "
+        "without a rule)")
 
 
 class ResidualFit(_Part):
@@ -165,6 +282,17 @@ class DiscoveryStatus(_Part):
     changed: bool = Field(description="DT'' changed in this window")
 
 
+class RulAlarmStatus(_Part):
+    """``alarms.<name>.rul``: the alarm state on a parameter's remaining useful life."""
+
+    level: Literal["normal", "warning", "alarm"]
+    since_t: Num = Field(description="plant time the level was entered [s]")
+    since_window: int | None = Field(description="window the level was entered")
+    rul_s: Num = Field(description="last RUL evidence [s] (null: not degrading)")
+    pending: Literal["normal", "warning", "alarm"] | None = Field(
+        description="level a running evidence run would move to")
+
+
 class AlarmStatus(_Part):
     """``alarms.<name>``: the alarm state of a parameter with a rule."""
 
@@ -174,6 +302,9 @@ class AlarmStatus(_Part):
     deviation_pct: Num = Field(description="last evidence [%]")
     pending: Literal["normal", "warning", "alarm"] | None = Field(
         description="level a running evidence run would move to")
+    rul: RulAlarmStatus | None = Field(
+        None, description="the alarm state on the remaining useful life (rules with "
+        "rul_warning / rul_alarm)")
 
 
 class OutputCheckHealth(_Part):
@@ -198,6 +329,47 @@ class ModelCheckHealth(_Part):
     outputs: dict[str, OutputCheckHealth]
 
 
+class SensorHealth(_Part):
+    """``sensors[]``: a measured output stuck at one value while the twin moves
+    (:mod:`twinwatch.twin.estimation.quality`): a data-quality fact about that channel."""
+
+    channel: str = Field(description="the output's channel")
+    kind: Literal["frozen", "saturated"] = Field(
+        description="frozen (stuck), or saturated (stuck at the window's extreme while the "
+        "twin goes beyond it: the sensor clips)")
+    value: Num = Field(description="the stuck reading [the channel's unit]")
+    t_start: Num = Field(description="time of its first stuck sample [s]")
+    duration_s: Num = Field(description="how long it stayed [s]")
+    samples: int = Field(description="stuck samples in the window")
+
+
+class SourceHealth(_Part):
+    """``source``: how the window's samples came (:mod:`twinwatch.daemon.ringbuffer`) and what
+    the source lacks right now."""
+
+    jitter_rms_us: Num = Field(0.0, description="RMS of the time stamps' distance from the "
+                               "nominal grid the samples were placed on [us] (0: on the grid)")
+    jitter_max_us: Num = Field(0.0, description="largest distance of a stamp from its grid "
+                               "slot [us]")
+    waiting: str | None = Field(None, description="what the source is waiting for (a device "
+                                "absent, a gateway being reopened), null when it delivers")
+    silent: list[str] = Field(default_factory=list, description="bus messages (and the "
+                              "channels they carry) not received for longer than the "
+                              "driver's silence limit")
+
+
+class AcquisitionHealth(_Part):
+    """``acquisition``: the window this message is about."""
+
+    window: int = Field(description="samples in the window")
+    window_s: float = Field(description="its length [s]")
+    adaptive: bool = Field(description="the adaptive window is on")
+    reason: str | None = Field(description="why this length (adaptive window)")
+    next_window: int | None = Field(description="samples of the next window the adaptive "
+                                    "window asks for")
+    next_reason: str | None = Field(description="why that length")
+
+
 class HealthMessage(_Part):
     """One window's health: the message on ``twinwatch/<machine>/health`` (README: "The health
     message"). Build it with :func:`build_health`; serialise it with :meth:`to_json`."""
@@ -220,11 +392,17 @@ class HealthMessage(_Part):
     evaluations: int = Field(description="twin simulations of one parameter vector")
     model_check: ModelCheckHealth | None = Field(
         None, description="the window's model validation (null when disabled)")
+    sensors: list[SensorHealth] = Field(
+        default_factory=list, description="frozen or saturated sensors in this window (its "
+        "estimates are then suspect)")
     terms: list[TermHealth]
     residual: ResidualHealth
     discovery: DiscoveryStatus
     counters: dict[str, int]
+    source: SourceHealth = Field(default_factory=SourceHealth)
     alarms: dict[str, AlarmStatus] = Field(default_factory=dict)
+    acquisition: AcquisitionHealth | None = Field(None, description="the window's length "
+                                                  "and why")
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, populate_by_name=True,
                               protected_namespaces=())
@@ -287,6 +465,7 @@ def build_health(
             fused = FusedHealth(value=f_val, rel_std_pct=f_std * 100.0,
                                 low=f_val * math.exp(-2.0 * f_std),
                                 high=f_val * math.exp(2.0 * f_std))
+        progn = adaptation.prognosis.get(spec.name)
         params[spec.name] = ParameterHealth(
             value=value,
             unit=spec.unit,
@@ -297,6 +476,8 @@ def build_health(
             held=status != "estimated",
             reason=est.held.get(spec.name),
             rel_std_pct=rel * 100.0 if rel is not None else None,
+            trend=_trend(progn.trend) if progn is not None else None,
+            rul=_rul(progn.rul) if progn is not None and progn.rul is not None else None,
         )
     disc = adaptation.discovery
     reval = adaptation.revalidation
@@ -318,6 +499,7 @@ def build_health(
         evaluations=est.evaluations,
         model_check=(ModelCheckHealth.model_validate(est.model_check.as_dict())
                      if est.model_check is not None else None),
+        sensors=[SensorHealth.model_validate(f.as_dict()) for f in est.sensors],
         terms=[TermHealth.model_validate(t.as_dict()) for t in adaptation.terms],
         residual=ResidualHealth(
             dt_prime=_residual(adaptation.dt_prime),
@@ -336,17 +518,58 @@ def build_health(
             changed=adaptation.changed,
         ),
         counters=dict(counters or {}),
+        acquisition=_acquisition(window, adaptation.window_choice),
     )
+
+
+def _trend(t: TrendReport) -> TrendHealth:
+    ev = t.window_evidence
+    rs = t.restart
+    return TrendHealth(
+        model=t.model, onset=t.onset, since_t=t.since_t, evidence=t.evidence, level=t.level,
+        level_std=t.level_std, rate=t.rate, rate_low=t.rate_low, rate_high=t.rate_high,
+        rate_pct_per_h=t.rate_pct_per_h, growth=t.growth, degrading=t.degrading,
+        model_weight=t.model_weight, monotonicity=t.monotonicity,
+        trendability=t.trendability, restarted=t.restarted,
+        restart=RestartHealth(t=rs.t, step=rs.step, reason=rs.reason) if rs else None,
+        restarts=t.restarts,
+        window_evidence=(EvidenceHealth(t=ev.t, value=ev.value, std=ev.std,
+                                        source=ev.source)  # type: ignore[arg-type]
+                         if ev is not None else None))
+
+
+def _crossing(c: Crossing | None) -> CrossingHealth | None:
+    if c is None:
+        return None
+    return CrossingHealth(threshold=c.threshold, status=c.status, t=c.t, t_low=c.t_low,
+                          t_high=c.t_high, rul_s=c.rul_s, low_s=c.low_s, high_s=c.high_s,
+                          wall=c.wall, wall_low=c.wall_low, wall_high=c.wall_high,
+                          probability=c.probability)
+
+
+def _rul(r: RulReport) -> RulHealth:
+    return RulHealth(status=r.status, warning=_crossing(r.warning), alarm=_crossing(r.alarm),
+                     method=r.method, draws=r.draws, interval=r.interval)
+
+
+def _acquisition(window: WindowData, choice: WindowChoice | None) -> AcquisitionHealth:
+    n = int(window.n)
+    span = float(window.t[-1] - window.t[0]) * n / (n - 1) if n > 1 else 0.0
+    return AcquisitionHealth(window=n, window_s=span, adaptive=choice is not None,
+                             reason=choice.used_reason if choice is not None else None,
+                             next_window=choice.next if choice is not None else None,
+                             next_reason=choice.reason if choice is not None else None)
 
 
 def summary_line(health: HealthMessage) -> str:
     """One line for logs: the parameters the window could estimate (``=`` marks one held at
-    its last trusted value; tied and fixed ones are left out), the terms, the fit."""
+    its last trusted value, ``?`` a suspect one; tied and fixed ones are left out), the terms,
+    the fit."""
     parts = []
     for name, p in health.parameters.items():
         if p.status in ("tied", "fixed"):
             continue
-        mark = "=" if p.status == "held" else ""
+        mark = {"held": "=", "suspect": "?"}.get(p.status, "")
         dev = p.deviation_pct
         parts.append(f"{name}{mark}{p.value:.5g} ({dev:+.2f}%)" if dev is not None
                      and p.value is not None else f"{name}{mark}{p.value}")
@@ -355,3 +578,48 @@ def summary_line(health: HealthMessage) -> str:
     extra = f" +{n} term{'s' if n > 1 else ''}" if n else ""
     return (f"window {health.window} [{health.t_start:.2f}-{health.t_end:.2f} s] "
             + " ".join(parts) + f"{extra} nRMSE {rm} in {health.elapsed_s * 1e3:.0f} ms")
+
+
+def trend_line(name: str, p: ParameterHealth) -> str | None:
+    """One line for a person about a parameter's trend and RUL (the run's summary), e.g.
+    ``Ra  exponential from 160 s, -0.00264 ohm/s (-0.0027 .. -0.0026), -146 %/h; warning
+    crossed, alarm in 6 min (4-9 min); monotonicity 0.98, trendability 0.97``; None without a
+    trend."""
+    t = p.trend
+    if t is None:
+        return None
+    unit = p.unit
+    head = f"{name:<3} "
+    if t.model is None:
+        rs = (f"; restarted at {t.restart.t:.0f} s ({t.restart.reason})" if t.restart
+              else "")
+        plural = "" if t.evidence == 1 else "s"
+        return head + f"no trend yet ({t.evidence} evidence window{plural}{rs})"
+    model = t.model if t.onset is None else f"{t.model} from {t.onset:.0f} s"
+    if t.degrading and t.rate is not None:
+        pct = f", {t.rate_pct_per_h:+.3g} %/h" if t.rate_pct_per_h is not None else ""
+        body = (f"{model}: {t.rate:+.3g} {unit}/s ({t.rate_low:+.3g} .. {t.rate_high:+.3g})"
+                f"{pct}")
+    else:
+        body = f"not degrading ({model}, {t.evidence} windows: flat within its uncertainty)"
+    rul = p.rul
+    if rul is not None and rul.status == "degrading":
+        parts = []
+        for level, c in (("warning", rul.warning), ("alarm", rul.alarm)):
+            if c is None:
+                continue
+            if c.status == "crossed":
+                parts.append(f"{level} threshold crossed")
+            else:
+                parts.append(f"{level} ({c.threshold:.6g} {unit}) in "
+                             + format_crossing(c.rul_s, c.low_s, c.high_s))
+        if parts:
+            body += "; " + ", ".join(parts)
+    scores = []
+    if t.monotonicity is not None:
+        scores.append(f"monotonicity {t.monotonicity:.2f}")
+    if t.trendability is not None:
+        scores.append(f"trendability {t.trendability:.2f}")
+    if t.restarts and t.restart is not None:
+        scores.append(f"restarted at {t.restart.t:.0f} s (step {t.restart.step:+.4g} {unit})")
+    return head + body + ("; " + ", ".join(scores) if scores else "")

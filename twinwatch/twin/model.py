@@ -50,11 +50,15 @@ class WindowData:
         t: sample times [s], shape (N,), strictly increasing, (nearly) uniform.
         channels: channel name -> samples, each of shape (N,), in SI units.
         index: window index (0, 1, ...) since the daemon started.
+        stamp_jitter: the source's time stamps minus ``t`` [s], shape (N,), when the
+            acquisition placed the samples on the nominal grid (``t`` uniform, the stamps
+            jittered: :mod:`twinwatch.daemon.ringbuffer`); None when ``t`` are the stamps.
     """
 
     t: FloatArray
     channels: dict[str, FloatArray]
     index: int = 0
+    stamp_jitter: FloatArray | None = None
 
     @property
     def n(self) -> int:

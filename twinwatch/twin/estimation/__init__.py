@@ -12,8 +12,10 @@ the algorithm and the termination:
 * ``gate``: stage 3, the identifiability gate (priority hierarchy, hold and re-fit; nothing
   published ``estimated`` above ``max_rel_std``);
 * ``check``: stage 4, the model check (white, input-independent residuals; the widening);
+* ``quality``: frozen and saturated sensors, named by channel (a window with one is not sound);
 * ``fusion``: stage 5, a Kalman filter on the parameters across windows;
-* ``publish``: each parameter's published value and status;
+* ``publish``: each parameter's published value and status (``suspect`` for a window that is
+  not sound, ``fused`` where the fused evidence meets its own gate);
 
 and the shared core: ``fit`` (the one fitting core every variant of the twin is scored by:
 residuals, the swarm, the least-squares polish, the standard errors), ``statistics`` (residual

@@ -38,6 +38,10 @@ class ValidationConfig(BaseModel):
     alpha: float = Field(0.01, gt=0, lt=0.5, description="level of the whiteness and "
                          "residual-input tests")
     lags: int = Field(20, ge=1, le=1000, description="lags of both tests (samples)")
+    sensor_run: int = Field(
+        50, ge=0, le=100_000, description="a measured output that repeats one value exactly "
+        "for this many samples while the twin's moves is a frozen or saturated sensor: the "
+        "window is not sound, its estimates suspect (0: off)")
 
 
 def check_twin(fit: WindowFit, y: FloatArray, exogenous: Sequence[str],

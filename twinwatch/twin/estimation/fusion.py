@@ -39,6 +39,13 @@ from twinwatch.twin.estimation.polish import Polished
 from twinwatch.twin.estimation.problem import WindowProblem
 from twinwatch.twin.model import FloatArray
 
+#: Largest change of a level (ln-parameter) in one Gauss-Newton step of :meth:`update`.
+MAX_STEP = 0.5
+#: The steps of the window's Jacobian at each iteration
+#: (:meth:`~twinwatch.twin.estimation.fit.LocalFit.sensitivity`): the smallest and the largest
+#: of the gate's, half the twin calls at each of the iterations.
+FUSION_STEPS = (1e-6, 1e-3)
+
 
 class FusionConfig(BaseModel):
     """The ``[estimation.fusion]`` table: tracking parameters across windows."""
@@ -46,6 +53,11 @@ class FusionConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(True, description="fuse the windows' estimates (Kalman filter)")
+    max_rel_std: float = Field(
+        0.02, gt=0, allow_inf_nan=False,
+        description="publish the fused value of a parameter this window does not determine "
+        "(status fused) when its relative standard error is at most this: the fusion's own "
+        "gate, apart from the window's [estimation] max_rel_std")
     model: Literal["trend", "random_walk"] = Field(
         "trend", description="trend: level and rate of change (follows slow degradations "
         "without lag); random_walk: level only")
@@ -146,7 +158,9 @@ class ParameterFusion:
     def update(self, t: float,
                linearize: Callable[[FloatArray], tuple[FloatArray, FloatArray]] | None = None,
                row_var: FloatArray | None = None, n_nuisance: int = 0,
-               iterations: int = 8, cols: np.ndarray | None = None) -> bool:
+               iterations: int = 8, cols: np.ndarray | None = None,
+               bounds: tuple[FloatArray, FloatArray] | None = None,
+               start: FloatArray | None = None) -> bool:
         """Advance to time ``t`` [s] and fuse one window.
 
         The window's least-squares problem and the prediction are combined as the iterated
@@ -166,6 +180,14 @@ class ParameterFusion:
             iterations: most Gauss-Newton iterations.
             cols: the parameters (positions) the window informs; the others carry no
                 evidence from it (default: all).
+            bounds: (lower, upper) ln-parameter bounds (n,): the levels are kept within them
+                and each Gauss-Newton step moves a level by at most :data:`MAX_STEP` (a
+                window after a jump, its prior inflated, once sent D 250 times below its
+                bound and the next prediction overflowed).
+            start: ln-parameters (n,) to start the iterations from at ``cols`` (the window's
+                own least-squares optimum: the posterior's mode lies between it and the
+                prediction; from the prediction alone, after a jump, the iterations once
+                settled on a D 7 times off with a 1 % standard error); default the prediction.
 
         Returns:
             Whether the window's evidence was a jump (the prediction was inflated).
@@ -212,6 +234,11 @@ class ParameterFusion:
                 jump = True
             y_prior = _safe_inverse(cov)
             x = mean.copy()
+            if start is not None:
+                x[sel] = np.asarray(start, dtype=float)[sel]
+                if bounds is not None:
+                    x[:n] = np.clip(x[:n], bounds[0], bounds[1])
+                info, grad = evidence(x[:n])
             for it in range(iterations):
                 if it:
                     info, grad = evidence(x[:n])
@@ -220,7 +247,12 @@ class ParameterFusion:
                 dx = -_safe_inverse(hess) @ gx
                 if not np.all(np.isfinite(dx)):
                     break
+                big_step = float(np.max(np.abs(dx[:n])))
+                if big_step > MAX_STEP:
+                    dx = dx * (MAX_STEP / big_step)
                 x = x + dx
+                if bounds is not None:
+                    x[:n] = np.clip(x[:n], bounds[0], bounds[1])
                 if float(np.max(np.abs(dx[:n]))) < 1e-9:
                     break
             cov_post = _safe_inverse(y_prior + h.T @ info @ h)
@@ -310,9 +342,11 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
             v_f = np.concatenate([np.clip(qq, problem.xl, problem.xu), polished.nuisance])
             r_f = local.residuals(v_f[None, :])[0]
             active = np.concatenate([cols, nuis])
-            return local.jacobian(v_f, active, r_f), r_f
+            return local.sensitivity(v_f, active, steps=FUSION_STEPS), r_f
 
-        jump = fusion.update(t_mid, linearize, polished.row_var, nuis.size, cols=cols)
+        jump = fusion.update(t_mid, linearize, polished.row_var, nuis.size, cols=cols,
+                             bounds=(problem.xl, problem.xu),
+                             start=polished.point.v[:n_est])
     else:
         fusion.update(t_mid)
     f_val, f_std = fusion.values(), fusion.rel_std()

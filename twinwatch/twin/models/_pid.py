@@ -12,12 +12,15 @@ from numba import njit
 @njit(cache=True, nogil=True)
 def pid_update(loop, i_s, f_s, r, y, period, hi):  # pragma: no cover - compiled
     """One update of a drive loop (:mod:`twinwatch.io.drive`): P/PI/PID with the derivative
-    filter N, the output clamped to [loop[4], hi] with the loop's anti-windup.
+    filter N, the output clamped to [loop[4], hi] with the loop's anti-windup, the integrator
+    and the filter discretised by their methods (MATLAB's Discrete PID Controller).
 
     Args:
         loop: the packed loop (:meth:`twinwatch.io.drive.LoopConfig.pack`): kp, ki, kd, N,
             output_min, output_max, anti-windup (0 none, 1 clamping, 2 back-calculation),
-            tracking time, feed-forward gain, sign.
+            tracking time, feed-forward gain, sign, the integrator's and the derivative
+            filter's share of this tick's input (0 forward Euler, 1 backward Euler, 1/2
+            trapezoidal).
         i_s, f_s: the integrator and the derivative filter's state before the update.
         r, y: reference and feedback.
         period: the loop's update period [s].
@@ -29,9 +32,10 @@ def pid_update(loop, i_s, f_s, r, y, period, hi):  # pragma: no cover - compiled
     """
     kp, ki, kd, nf = loop[0], loop[1], loop[2], loop[3]
     lo, aw, tt, kff, sgn = loop[4], loop[6], loop[7], loop[8], loop[9]
+    ci, cd = loop[10], loop[11]
     e = sgn * (r - y)
-    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
-    u_pid = kp * e + i_s + d + kff * r
+    d = nf * (kd * e - f_s) / (1.0 + cd * nf * period) if kd != 0.0 else 0.0
+    u_pid = kp * e + (i_s + ci * ki * period * e) + d + kff * r
     u = min(max(u_pid, lo), hi)
     if aw == 1.0:
         if not ((u_pid > hi and ki * e > 0.0) or (u_pid < lo and ki * e < 0.0)):

@@ -357,6 +357,14 @@ class DCMotorTwin(TwinModel):
         extra = tuple(p.name for p in self.parameters[len(DC_MOTOR_PARAMETERS):])
         return EstimationDefaults(("Ra", "D", "Ke", "La", "J", *extra), {"Kt": "Ke"})
 
+    def _effective_pi(self) -> tuple[float, float]:
+        """The ideal drive's PI as the sub-step map applies it: ``Va = kp_eff*e + ki*z`` with
+        ``z`` the integral of the error up to the previous sub-step; an integrator that
+        includes this sub-step's error (backward Euler, trapezoidal: ``c_i`` of
+        :mod:`twinwatch.io.drive`) adds ``c_i*ki*dt`` to the proportional gain."""
+        sp = self._drive.speed
+        return sp.kp + sp.pack()[10] * sp.ki * self.sub_step, sp.ki
+
     def n_sub(self, sample_period: float) -> int:
         """Number of sub-steps per sample; raises ValueError if not a whole number."""
         return sub_steps(sample_period, self.sub_step)
@@ -409,7 +417,7 @@ class DCMotorTwin(TwinModel):
         b = np.zeros((p, n, 4))
         a_el = dt / la
         g = dt * kt / j
-        kp, ki = self._drive.speed.kp, self._drive.speed.ki
+        kp, ki = self._effective_pi()
         a[:, 0, 0] = 1.0 - a_el * ra
         if closed_pi:
             # i' = i + dt/La*(Kp*(sp - w) + Ki*z - Ra*i - Ke*w); z' = z + dt*(sp - w)
@@ -587,7 +595,7 @@ class DCMotorTwin(TwinModel):
         x0 = self._initial_state(window, 0, pos, off)
         if closed:
             sp, va = window["setpoint"], window["Va"]
-            kp, ki = self._drive.speed.kp, self._drive.speed.ki
+            kp, ki = self._effective_pi()
             x0[:, pos["z"]] = (va[0] - kp * (sp[0] - x0[:, 1])) / ki
             drive = sp
         elif "v" in pos:
@@ -623,28 +631,34 @@ class DCMotorTwin(TwinModel):
         e = sign * (r - omega0)
         # The derivative filter's state: the derivative term taken as kd times the error's
         # slope over the next sample (the set-point held), f = kd*e - d/N.
+        packed = sp.pack()
+        c_i, c_d = packed[10], packed[11]
         d0 = 0.0
         f0: FloatArray | float = 0.0
         if sp.kd != 0 and sp.n_filter:
             slope = -sign * (float(omega[k + 1]) - float(omega[k])) / window.sample_period \
                 if k + 1 < window.n else 0.0
             d0 = sp.kd * slope
-            f0 = sp.kd * e - d0 / sp.n_filter
+            # d = N*(kd*e - f)/(1 + c_d*N*T)  =>  f = kd*e - d*(1 + c_d*N*T)/N
+            f0 = sp.kd * e - d0 * (1.0 + c_d * sp.n_filter * t_s) / sp.n_filter
         va = float(window["Va"][k])
         out = np.zeros((omega0.size, 4))
+        # The update's output u = kp*e + I + c_i*ki*T*e + d + kff*r solved for the state I
+        # before it; without an update on the sample, the state after one that saw this error.
         if dr.current is None:
-            i_s = va - sp.kp * e - sp.feedforward * r - d0
+            i_s = va - sp.kp * e - sp.feedforward * r - d0 - c_i * sp.ki * t_s * e
             if not ticked_s:
                 i_s = i_s + sp.ki * t_s * e
             out[:, 0], out[:, 1] = i_s, f0
             return out, np.array([va, 0.0])
         iref = float(window["current_reference"][k])
-        i_s = iref - sp.kp * e - sp.feedforward * r - d0
+        i_s = iref - sp.kp * e - sp.feedforward * r - d0 - c_i * sp.ki * t_s * e
         if not ticked_s:
             i_s = i_s + sp.ki * t_s * e
         cur = dr.current
-        ec = cur.pack()[9] * (iref - ia0)
-        i_c = va - cur.kp * ec - cur.feedforward * iref
+        cur_packed = cur.pack()
+        ec = cur_packed[9] * (iref - ia0)
+        i_c = va - cur.kp * ec - cur.feedforward * iref - cur_packed[10] * cur.ki * t_c * ec
         if not ticked_c:
             i_c = i_c + cur.ki * t_c * ec
         out[:, 0], out[:, 1], out[:, 2], out[:, 3] = i_s, f0, i_c, cur.kd * ec

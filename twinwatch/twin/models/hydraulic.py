@@ -240,9 +240,10 @@ def _recover_integrator(loop, f_s, r, y, area, period, ticked):  # pragma: no co
     the derivative filter state ``f_s`` give ``area``; without an update on the sample, the
     integrator after an update taken to have seen this error."""
     kp, ki, kd, nf, kff, sgn = loop[0], loop[1], loop[2], loop[3], loop[8], loop[9]
+    ci, cd = loop[10], loop[11]
     e = sgn * (r - y)
-    d = nf * (kd * e - f_s) if kd != 0.0 else 0.0
-    i_s = area - kp * e - d - kff * r
+    d = nf * (kd * e - f_s) / (1.0 + cd * nf * period) if kd != 0.0 else 0.0
+    i_s = area - kp * e - d - kff * r - ci * ki * period * e
     if not ticked:
         i_s += ki * period * e
     return i_s

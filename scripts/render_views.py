@@ -1,0 +1,147 @@
+"""Render what an operator sees: run the examples, screenshot their recordings, write the PNGs
+the README shows (``docs/images/``).
+
+    python scripts/render_views.py                 # all three (about 7 min on 2 cores)
+    python scripts/render_views.py --only discovery --keep /tmp/views
+
+For each example it runs ``twinwatch run`` as a user does (``--fresh``, in a directory of its
+own, Zenoh off so nothing else on the machine is disturbed, the simulated Modbus device on a
+free port), opens the recording's link in the Rerun viewer (``rerun FILE --renderer vulkan
+--window-size 1600x1000 --screenshot-to``, under Xvfb with Mesa's Vulkan) without touching it:
+what the default blueprint shows is what the picture shows. The screenshot (HiDPI, 3200x2000)
+is scaled to 1600x1000 and quantised to 256 colours.
+
+* ``demo``: the default configuration (``twinwatch sample-config``), 1200 s of plant time: Ra
+  drifts from 6.5 to about 5.55 ohm, the warning at about 878 s, the alarm at about 1090 s;
+* ``discovery``: ``config/dc-motor-unbalanced-sim.toml``, 300 s: the periodic term of the
+  unbalanced shaft (paper Eq. 13) and its meaning in the model panel;
+* ``hydraulic``: ``config/hydraulic-modbus-sim.toml``, 600 s: D, the fluid, from 100 to about
+  200 N/(m/s), the warning at about 344 s, the alarm at about 458 s.
+
+Needs: ``xvfb-run`` and Mesa's Vulkan driver (Debian: xvfb, mesa-vulkan-drivers), Pillow
+(``pip install -e '.[dev]'``). Prints, per example, the run's wall time, the recording's size
+and the PNG's size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+IMAGES = ROOT / "docs" / "images"
+SIZE = (1600, 1000)
+
+
+@dataclass(frozen=True)
+class Example:
+    name: str
+    config: Path | None  # None: the built-in default (twinwatch sample-config)
+    recording: str  # its [recording] path
+    what: str
+
+
+EXAMPLES = (
+    Example("demo", None, "twinwatch.rrd", "the default: Ra degrades over 1200 s"),
+    Example("discovery", ROOT / "config" / "dc-motor-unbalanced-sim.toml",
+            "twinwatch-unbalanced.rrd", "discovery: the unbalanced shaft's periodic term"),
+    Example("hydraulic", ROOT / "config" / "hydraulic-modbus-sim.toml",
+            "twinwatch-hydraulic.rrd", "the hydraulic actuator: D, the fluid, degrades"),
+)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+    return port
+
+
+def _config(example: Example, work: Path) -> Path:
+    """The example's configuration, written to ``work``: Zenoh off, a free Modbus port."""
+    if example.config is None:
+        text = subprocess.run([sys.executable, "-m", "twinwatch", "sample-config"],
+                              check=True, capture_output=True, text=True).stdout
+    else:
+        text = example.config.read_text()
+    text = text.replace("[zenoh]", "[zenoh]\nenabled = false", 1)
+    text = text.replace("port = 5020 ", f"port = {_free_port()} ", 1)
+    path = work / f"{example.name}.toml"
+    path.write_text(text)
+    return path
+
+
+def _screenshot(recording: Path, out: Path) -> None:
+    """The Rerun viewer's first frame of ``recording`` at 1600x1000 (the pointer is off the
+    window: no tooltip)."""
+    rerun = shutil.which("rerun", path=str(Path(sys.executable).parent)) or "rerun"
+    cmd = ["xvfb-run", "-a", "-s", "-screen 0 7000x4200x24", rerun, str(recording),
+           "--renderer", "vulkan", "--window-size", f"{SIZE[0]}x{SIZE[1]}",
+           "--screenshot-to", str(out)]
+    done = subprocess.run(cmd, env={**os.environ, "CI": "true"}, capture_output=True,
+                          text=True, timeout=600)
+    if done.returncode != 0 or not out.exists():
+        raise SystemExit(f"the viewer did not write {out}:\n{done.stderr[-2000:]}")
+
+
+def _small(raw: Path, out: Path) -> None:
+    """``raw`` scaled to 1600x1000 and quantised to 256 colours (no dithering: the text stays
+    sharp)."""
+    try:
+        from PIL import Image
+    except ImportError:
+        raise SystemExit("Pillow is needed: pip install -e '.[dev]'") from None
+    with Image.open(raw) as im:
+        small = im.convert("RGB").resize(SIZE, Image.Resampling.LANCZOS)
+    small.quantize(colors=256, method=Image.Quantize.FASTOCTREE,
+                   dither=Image.Dither.NONE).save(out, optimize=True)
+
+
+def render(example: Example, work: Path) -> None:
+    work.mkdir(parents=True, exist_ok=True)
+    config = _config(example, work)
+    t0 = time.monotonic()
+    run = subprocess.run([sys.executable, "-m", "twinwatch", "run", str(config), "--fresh",
+                          "--no-progress"], cwd=work, capture_output=True, text=True)
+    took = time.monotonic() - t0
+    if run.returncode != 0:
+        raise SystemExit(f"{example.name}: twinwatch run exited {run.returncode}:\n"
+                         f"{run.stdout[-3000:]}\n{run.stderr[-3000:]}")
+    recording = work / example.recording
+    raw = work / f"{example.name}-raw.png"
+    _screenshot(recording, raw)
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    out = IMAGES / f"{example.name}.png"
+    _small(raw, out)
+    print(f"{example.name:<10} {example.what}: run {took:.0f} s, recording "
+          f"{recording.resolve().stat().st_size / 2**20:.1f} MiB, {out.relative_to(ROOT)} "
+          f"{out.stat().st_size / 1024:.0f} KiB")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--only", choices=[e.name for e in EXAMPLES], action="append",
+                        help="render only this example (repeatable)")
+    parser.add_argument("--keep", type=Path, help="run in this directory and keep it "
+                        "(default: a temporary directory, removed)")
+    args = parser.parse_args()
+    chosen = [e for e in EXAMPLES if not args.only or e.name in args.only]
+    if args.keep is not None:
+        for example in chosen:
+            render(example, args.keep / example.name)
+        return
+    with tempfile.TemporaryDirectory(prefix="twinwatch-views-") as tmp:
+        for example in chosen:
+            render(example, Path(tmp) / example.name)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,490 @@
+"""The MQTT output against a real Mosquitto broker (issue 18): every window of a simulated run
+reaches a subscriber, in order, once; the retained values and the availability (last will);
+a broker outage and a daemon killed while the broker is down lose nothing; Home Assistant's
+device discovery carries every field its documentation requires, is sent again on its birth
+message and cleared when disabled. No mock broker: ``mosquitto`` runs on 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import sqlite3
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from twinwatch.config.loader import load_config
+from twinwatch.errors import ConfigError
+from twinwatch.sinks.mqtt import MqttConfig, discovery_payload, flat_values
+
+from .mqtt_helpers import (
+    Broker,
+    Subscriber,
+    free_port,
+    make_pki,
+    mqtt_table,
+    needs_mosquitto,
+    retained,
+    running_broker,
+    twinwatch,
+)
+from .test_fault_injection import sim_config
+
+M = "twinwatch/dc-motor-sim"
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> Iterator[Broker]:
+    yield from running_broker(tmp_path / "broker")
+
+
+def stored(db: Path) -> list[tuple[str, str]]:
+    """(run, doc) of every stored window, in the order stored."""
+    con = sqlite3.connect(db, timeout=10)
+    try:
+        return [(r, d) for r, d in con.execute("SELECT run, doc FROM health ORDER BY id")]
+    finally:
+        con.close()
+
+
+def delivery(received: list[bytes], docs: list[str]) -> tuple[list[int], int]:
+    """Map the received health payloads to the stored windows: (the stored index of each
+    window in the order first received, how many were repeats)."""
+    index = {d: i for i, d in enumerate(docs)}
+    seq = [index[p.decode()] for p in received]  # a payload not stored: KeyError
+    firsts: list[int] = []
+    seen: set[int] = set()
+    for i in seq:
+        if i not in seen:
+            firsts.append(i)
+            seen.add(i)
+    return firsts, len(seq) - len(firsts)
+
+
+def wait_for(fn: Any, timeout: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        value = fn()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.1)
+
+
+def finish(proc: subprocess.Popen[str], sig: int | None = None,
+           timeout: float = 300) -> tuple[int, str, str]:
+    if sig is not None:
+        proc.send_signal(sig)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    return proc.returncode, out, err
+
+
+# -- configuration ---------------------------------------------------------------------------
+def test_config_names_the_bad_key_and_guards_secrets(tmp_path: Path):
+    with pytest.raises(ConfigError, match=r"outputs\.mqtt\.port"):
+        load_config(sim_config(tmp_path, extra="\n[outputs.mqtt]\nport = 0\n"))
+    with pytest.raises(ConfigError, match=r"outputs\.mqtt\.topic_prefix"):
+        load_config(sim_config(tmp_path, extra='\n[outputs.mqtt]\ntopic_prefix = "a/#"\n'))
+    with pytest.raises(ConfigError, match="a password needs a username"):
+        load_config(sim_config(tmp_path, extra='\n[outputs.mqtt]\npassword_file = "p"\n'))
+    # the password file under the same rule as Zenoh's secrets: refused when others read it
+    secret = tmp_path / "mqtt.password"
+    secret.write_text("s3cret\n")
+    secret.chmod(0o644)
+    table = '\n[outputs.mqtt]\nusername = "tw"\npassword_file = "mqtt.password"\n'
+    with pytest.raises(ConfigError, match=r"outputs\.mqtt\.password_file .* readable by other"):
+        load_config(sim_config(tmp_path, extra=table))
+    secret.chmod(0o640)
+    cfg = load_config(sim_config(tmp_path, extra=table))
+    mqtt = next(t.config for t in cfg.output_tables() if t.name == "mqtt")
+    assert isinstance(mqtt, MqttConfig) and mqtt.password_file == str(secret)
+    # a password inline makes the configuration a secret
+    path = sim_config(tmp_path, extra='\n[outputs.mqtt]\nusername = "tw"\npassword = "x"\n')
+    path.chmod(0o644)
+    with pytest.raises(ConfigError, match=r"outputs\.mqtt\.password"):
+        load_config(path)
+
+
+# -- every window, the retained state, Home Assistant -----------------------------------------
+#: Home Assistant's MQTT documentation (integrations/mqtt, "Device discovery payload" and the
+#: abbreviation tables): the abbreviations a payload may use, and what each part requires.
+HA_ABBREVIATIONS = {
+    "dev": "device", "o": "origin", "cmps": "components", "p": "platform",
+    "uniq_id": "unique_id", "stat_t": "state_topic", "unit_of_meas": "unit_of_measurement",
+    "stat_cla": "state_class", "dev_cla": "device_class", "val_tpl": "value_template",
+    "avty_t": "availability_topic", "ic": "icon", "name": "name", "qos": "qos",
+}
+HA_DEVICE_ABBREVIATIONS = {"ids": "identifiers", "name": "name", "mf": "manufacturer",
+                           "mdl": "model", "sw": "sw_version", "hw": "hw_version",
+                           "sn": "serial_number", "cu": "configuration_url"}
+HA_ORIGIN_ABBREVIATIONS = {"name": "name", "sw": "sw_version", "url": "support_url"}
+#: sensor device classes' units (Home Assistant's sensor documentation: duration d h min s ms)
+HA_DURATION_UNITS = {"d", "h", "min", "s", "ms"}
+
+
+def check_ha_discovery(topic: str, payload: dict[str, Any], *, machine: str) -> None:
+    """Every field Home Assistant's documentation requires of a device discovery message."""
+    assert topic == f"homeassistant/device/twinwatch_{machine}/config"
+    # the object id: [a-zA-Z0-9_-] only
+    assert all(c.isalnum() or c in "_-" for c in topic.split("/")[2])
+    assert set(payload) <= set(HA_ABBREVIATIONS), set(payload) - set(HA_ABBREVIATIONS)
+    dev, origin, cmps = payload["dev"], payload["o"], payload["cmps"]   # required
+    assert set(dev) <= set(HA_DEVICE_ABBREVIATIONS)
+    assert dev["ids"] and dev["name"]              # identifiers (or connections) and name
+    assert set(origin) <= set(HA_ORIGIN_ABBREVIATIONS) and origin["name"]
+    assert payload["avty_t"] == f"twinwatch/{machine}/availability"
+    assert cmps
+    ids = set()
+    for key, c in cmps.items():
+        assert all(ch.isalnum() or ch in "_-" for ch in key)
+        assert set(c) <= set(HA_ABBREVIATIONS) - {"dev", "o", "cmps"}, key
+        assert c["p"] in ("sensor", "binary_sensor")               # platform: required
+        assert c["uniq_id"] not in ids                             # unique_id: required
+        ids.add(c["uniq_id"])
+        assert len(set(c) - {"p"}) >= 1                            # a component option
+        assert c["stat_t"].startswith(f"twinwatch/{machine}/")     # required by both
+        if c["p"] == "binary_sensor":
+            assert c["dev_cla"] == "problem"
+        if c.get("dev_cla") == "duration":
+            assert c["unit_of_meas"] in HA_DURATION_UNITS
+        if "stat_cla" in c:
+            assert c["stat_cla"] == "measurement" and "val_tpl" in c
+
+
+@needs_mosquitto
+def test_every_window_once_in_order_with_retained_state(tmp_path: Path, broker: Broker):
+    sub = Subscriber(broker.port, [f"{M}/#", "homeassistant/#"], persistent=True,
+                     client_id="test-every-window")
+    cfg = sim_config(tmp_path, duration=20.0, extra=mqtt_table(
+        broker.port, "[outputs.mqtt.home_assistant]\ndiscovery = true\n"))
+    code, out, err = finish(twinwatch(cfg, cwd=tmp_path))
+    assert code == 0, err
+    docs = [d for _, d in stored(tmp_path / "state.sqlite")]
+    assert len(docs) == 10
+    sub.wait(lambda: len(sub.on(f"{M}/health")) >= 10, 20, "10 health messages")
+    time.sleep(0.5)
+    firsts, repeats = delivery([m.payload for m in sub.on(f"{M}/health")], docs)
+    assert firsts == list(range(10)) and repeats == 0
+    assert "10 windows delivered" in out and "pending" not in out.split("MQTT")[-1]
+    last = json.loads(docs[-1])
+    assert last["counters"]["mqtt_delivered"] >= 8
+    assert [m.payload for m in sub.on(f"{M}/availability")][-1] == b"offline"
+    sub.close()
+
+    # a tool connecting now: the newest window's values and the machine offline, retained
+    kept = retained(broker.port, f"{M}/#")
+    assert kept[f"{M}/availability"] == b"offline"
+    assert f"{M}/health" not in kept                    # the stream is not retained
+    for suffix, text in flat_values(last).items():
+        assert kept[f"{M}/{suffix}"] == text.encode(), suffix
+    ra = last["parameters"]["Ra"]
+    assert float(kept[f"{M}/parameters/Ra/value"]) == ra["value"]
+    assert kept[f"{M}/parameters/Ra/status"] == ra["status"].encode()
+    assert kept[f"{M}/parameters/Ra/alarm"] == b"normal"   # the default config's rule
+
+    # Home Assistant: one retained device discovery message, against its documentation
+    ha = retained(broker.port, "homeassistant/#")
+    (topic, payload), = ha.items()
+    doc = json.loads(payload)
+    check_ha_discovery(topic, doc, machine="dc-motor-sim")
+    cmps = doc["cmps"]
+    assert cmps["Ra_value"]["unit_of_meas"] == "ohm"
+    assert cmps["Ra_alarm"]["dev_cla"] == "problem" and "D_alarm" not in cmps
+    assert {f"{p}_{k}" for p in last["parameters"] for k in ("value", "deviation", "status")
+            } <= set(cmps)
+    for c in cmps.values():   # every state topic is one the output publishes (retained)
+        assert c["stat_t"] in kept, c["stat_t"]
+
+
+def test_home_assistant_rul_is_a_duration_sensor_when_the_message_has_it():
+    """Written against the prognostics' field names (``parameters.<p>.rul``), guarded for its
+    absence: a message without the field gets no RUL topic or sensor."""
+    doc: dict[str, Any] = {
+        "machine": "m1", "parameters": {
+            "Ra": {"value": 5.9, "unit": "ohm", "deviation_pct": -9.2, "status": "estimated",
+                   "rul": {"status": "degrading", "warning": {"rul_s": 0.0},
+                           "alarm": {"rul_s": 380.5}}},
+            "D": {"value": 0.00143, "unit": "N m s/rad", "deviation_pct": None,
+                  "status": "held"}},
+        "alarms": {"Ra": {"level": "warning"}}}
+    flat = flat_values(doc)
+    assert flat["parameters/Ra/rul"] == "380.5" and flat["parameters/Ra/rul_warning"] == "0.0"
+    assert flat["parameters/D/deviation_pct"] == "null" and "parameters/D/rul" not in flat
+    assert flat["parameters/Ra/alarm"] == "warning"
+    payload = discovery_payload("m1", "dc_motor", "twinwatch/m1", doc,
+                                {"Ra": "ohm", "D": "N m s/rad"})
+    check_ha_discovery("homeassistant/device/twinwatch_m1/config", payload, machine="m1")
+    rul = payload["cmps"]["Ra_rul"]
+    assert (rul["p"], rul["dev_cla"], rul["unit_of_meas"]) == ("sensor", "duration", "s")
+    assert "D_rul" not in payload["cmps"]
+    doc["parameters"]["Ra"]["rul"] = None   # the field present, no RUL yet: "null"
+    assert flat_values(doc)["parameters/Ra/rul"] == "null"
+
+
+@pytest.mark.slow
+@needs_mosquitto
+def test_availability_flips_on_sigterm_and_sigkill_and_discovery_follows_ha(
+        tmp_path: Path, broker: Broker):
+    live = Subscriber(broker.port, [f"{M}/availability", f"{M}/health", "homeassistant/#"])
+    ha_on = mqtt_table(broker.port, "[outputs.mqtt.home_assistant]\ndiscovery = true\n")
+    proc = twinwatch(sim_config(tmp_path, duration=1200.0, extra=ha_on), cwd=tmp_path)
+    try:
+        live.wait(lambda: len(live.on(f"{M}/health")) >= 3, 120, "3 windows")
+        assert retained(broker.port, f"{M}/availability", 1.0)[f"{M}/availability"] == b"online"
+        topic = "homeassistant/device/twinwatch_dc-motor-sim/config"
+        sent = len(live.on(topic))
+        # Home Assistant restarts: its birth message asks for the discovery again
+        live.client.publish("homeassistant/status", "online", qos=1).wait_for_publish(5)
+        live.wait(lambda: len(live.on(topic)) > sent, 10, "the discovery sent again")
+        code, out, err = finish(proc, signal.SIGTERM)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0, err
+    assert live.on(f"{M}/availability")[-1].payload == b"offline"
+    docs = [d for _, d in stored(tmp_path / "state.sqlite")]
+    time.sleep(0.5)
+    firsts, _ = delivery([m.payload for m in live.on(f"{M}/health")], docs)
+    assert firsts == list(range(len(docs)))   # stopping delivers what was stored
+
+    # again, Home Assistant discovery off: its retained config is cleared; then SIGKILL
+    off = mqtt_table(broker.port, "[outputs.mqtt.home_assistant]\ndiscovery = false\n")
+    n_avail = len(live.on(f"{M}/availability"))
+    proc = twinwatch(sim_config(tmp_path, duration=1200.0, extra=off), cwd=tmp_path)
+    try:
+        live.wait(lambda: any(m.payload == b"online" for m in
+                              live.on(f"{M}/availability")[n_avail:]), 120, "online again")
+        live.wait(lambda: len(live.on(f"{M}/health")) >= len(docs) + 2, 60, "2 more windows")
+        assert "homeassistant/device/twinwatch_dc-motor-sim/config" not in retained(
+            broker.port, "homeassistant/#", 1.0)
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate(timeout=30)
+        # the broker publishes the last will at once: the socket closed with the process
+        live.wait(lambda: live.on(f"{M}/availability")[-1].payload == b"offline", 10,
+                  "offline through the last will")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    kept = retained(broker.port, f"{M}/#", 1.0)
+    assert kept[f"{M}/availability"] == b"offline"
+    assert f"{M}/parameters/Ra/value" in kept
+    live.close()
+
+
+# -- the delivery contract: outages and crashes ----------------------------------------------
+def _count(db: Path) -> int:
+    try:
+        return len(stored(db))
+    except sqlite3.Error:
+        return 0
+
+
+@pytest.mark.slow
+@needs_mosquitto
+def test_broker_outage_of_30_s_plant_time_loses_nothing(tmp_path: Path, broker: Broker):
+    db = tmp_path / "state.sqlite"
+    sub = Subscriber(broker.port, [f"{M}/health"], persistent=True, client_id="test-outage")
+    proc = twinwatch(sim_config(tmp_path, duration=120.0, extra=mqtt_table(broker.port)),
+                     cwd=tmp_path)
+    try:
+        sub.wait(lambda: len(sub.on(f"{M}/health")) >= 10, 120, "10 windows")
+        broker.stop()
+        n0 = _count(db)
+        wait_for(lambda: _count(db) >= n0 + 15, 120, "30 s of plant time stored")
+        broker.start()
+        code, out, err = finish(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0, err
+    docs = [d for _, d in stored(db)]
+    assert len(docs) == 60
+    sub.wait(lambda: len({m.payload for m in sub.on(f"{M}/health")}) >= 60, 60,
+             "every window after the outage")
+    firsts, repeats = delivery([m.payload for m in sub.on(f"{M}/health")], docs)
+    print(f"outage: {len(docs)} windows stored, {len(sub.on(f'{M}/health'))} received, "
+          f"{repeats} repeats")
+    assert firsts == list(range(60))
+    assert repeats <= 10          # at most the inflight limit, those in flight at the stop
+    pending = [json.loads(d)["counters"]["mqtt_pending"] for d in docs]
+    print("mqtt_pending per window:", pending)
+    assert max(pending) >= 10                 # the outage was seen
+    assert min(pending[n0 + 15:]) == 0        # and caught up: the counter is back to 0
+    assert "60 windows delivered" in out and " pending" not in out.split("MQTT")[-1], out
+    sub.close()
+
+
+@pytest.mark.slow
+@needs_mosquitto
+def test_daemon_killed_while_broker_down_then_both_restart(tmp_path: Path, broker: Broker):
+    db = tmp_path / "state.sqlite"
+    sub = Subscriber(broker.port, [f"{M}/health"], persistent=True, client_id="test-crash")
+    cfg = sim_config(tmp_path, duration=1200.0, extra=mqtt_table(broker.port))
+    proc = twinwatch(cfg, cwd=tmp_path)
+    try:
+        sub.wait(lambda: len(sub.on(f"{M}/health")) >= 5, 120, "5 windows")
+        broker.stop()
+        n0 = _count(db)
+        wait_for(lambda: _count(db) >= n0 + 8, 120, "8 windows stored while the broker is down")
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    first_run = stored(db)
+    # the second run waits at its end until the backlog is delivered (a loaded machine)
+    cfg2 = sim_config(tmp_path, duration=20.0,
+                      extra=mqtt_table(broker.port, "close_timeout = 30.0\n"))
+    proc = twinwatch(cfg2, cwd=tmp_path)
+    time.sleep(1.0)
+    broker.start()
+    code, out, err = finish(proc)
+    assert code == 0, err
+    rows = stored(db)
+    docs = [d for _, d in rows]
+    assert len(rows) == len(first_run) + 10
+    try:
+        sub.wait(lambda: len({m.payload for m in sub.on(f"{M}/health")}) >= len(docs), 60,
+                 "every window of both runs")
+    finally:
+        got = {m.payload.decode() for m in sub.on(f"{M}/health")}
+        print("missing:", [(i, r == first_run[0][0]) for i, (r, d) in enumerate(rows)
+                           if d not in got], "of", len(rows), "; first run", len(first_run))
+    received = [m.payload for m in sub.on(f"{M}/health")]
+    firsts, repeats = delivery(received, docs)
+    print(f"crash: {len(docs)} windows stored ({len(first_run)} before the kill), "
+          f"{len(received)} received, {repeats} repeats")
+    assert firsts == list(range(len(docs)))
+    index = {d: i for i, d in enumerate(docs)}
+    seen: set[int] = set()
+    for p in received:          # repeats only of windows stored before the crash
+        i = index[p.decode()]
+        if i in seen:
+            assert i < len(first_run)
+        seen.add(i)
+    assert "pending" not in out.split("MQTT")[-1], out
+    sub.close()
+
+
+# -- TLS, client certificate, username and password ------------------------------------------
+@pytest.mark.slow
+@needs_mosquitto
+def test_tls_client_certificate_and_password(tmp_path: Path):
+    """A broker that takes only TLS with a client certificate and a user with a password;
+    a wrong password is refused and said so, the windows wait in the outbox."""
+    if shutil.which("mosquitto_passwd") is None:
+        pytest.skip("mosquitto_passwd is not installed (Debian: mosquitto)")
+    d = tmp_path / "broker"
+    make_pki(d)
+    subprocess.run(["mosquitto_passwd", "-b", "-c", str(d / "passwd"), "tw", "s3cret"],
+                   check=True, capture_output=True, timeout=30)
+    tls_port = free_port()
+    b = Broker(d, anonymous=False, extra=(
+        f"password_file {d / 'passwd'}\n"
+        f"listener {tls_port} 127.0.0.1\n"
+        f"cafile {d / 'ca.pem'}\ncertfile {d / 'broker.pem'}\nkeyfile {d / 'broker.key'}\n"
+        "require_certificate true\n"))
+    secret = tmp_path / "mqtt.password"
+    b.start()
+    try:
+        sub = Subscriber(b.port, [f"{M}/health"], username="tw", password="s3cret")
+        for password, delivered in (("s3cret", True), ("wrong", False)):
+            secret.write_text(password + "\n")
+            secret.chmod(0o600)
+            table = mqtt_table(tls_port, (
+                f'username = "tw"\npassword_file = "{secret}"\n[outputs.mqtt.tls]\n'
+                f'ca_certs = "{d / "ca.pem"}"\ncertfile = "{d / "twinwatch.pem"}"\n'
+                f'keyfile = "{d / "twinwatch.key"}"\n'))
+            before = len(sub.on(f"{M}/health"))
+            code, out, err = finish(twinwatch(sim_config(tmp_path, extra=table), cwd=tmp_path))
+            assert code == 0, err
+            last = json.loads(stored(tmp_path / "state.sqlite")[-1][1])["counters"]
+            if delivered:
+                sub.wait(lambda n=before + 3: len(sub.on(f"{M}/health")) >= n, 20, "3 windows")
+                assert "3 windows delivered" in out
+            else:
+                assert last["mqtt_delivered"] == 0 and last["mqtt_pending"] >= 2
+                assert "connection refused" in err and "Not authorized" in err, err
+                assert "pending (kept in the state database" in out
+    finally:
+        for sub in list(Subscriber.open):
+            sub.close()
+        b.stop()
+
+
+# -- the sink on its own: a reload hands it over; without a state database ---------------------
+def _window(store: Any, w: int, machine: str = "m1") -> Any:
+    """Store one small health message as the gate does and return what write() gets."""
+    from types import SimpleNamespace
+
+    doc = json.dumps({"machine": machine, "window": w, "t_start": 2.0 * w,
+                      "t_end": 2.0 * w + 1.99, "parameters": {"Ra": {
+                          "value": 6.5 - 0.01 * w, "unit": "ohm", "deviation_pct": -0.15 * w,
+                          "status": "estimated"}}, "alarms": {}})
+    if store is not None:
+        assert store.save_window({"machine": machine, "window": w, "t_start": 2.0 * w,
+                                  "t_end": 2.0 * w + 1.99}, None, doc=doc)
+    return SimpleNamespace(health=SimpleNamespace(window=w), health_json=doc, events=[])
+
+
+@needs_mosquitto
+def test_a_reload_hands_the_output_over_and_no_gate_keeps_an_outbox_in_memory(
+        tmp_path: Path, broker: Broker):
+    from twinwatch.sinks.base import SinkContext
+    from twinwatch.sinks.mqtt import MqttConfig, MqttPublisher
+    from twinwatch.sinks.store import StateStore
+
+    topic = "twinwatch/m1/health"
+    sub = Subscriber(broker.port, [topic])
+    store = StateStore(tmp_path / "s.sqlite", prune_every=0)
+    cfg = MqttConfig(port=broker.port, keepalive=5)
+
+    def context() -> SinkContext:
+        return SinkContext(machine="m1", model="dc_motor", parameters={"Ra": "ohm"},
+                           outbox=lambda name: store.outbox(name, "m1"))
+
+    pub = MqttPublisher.open("mqtt", cfg, context())
+    try:
+        for w in range(3):
+            pub.write(_window(store, w))
+        sub.wait(lambda: len(sub.on(topic)) == 3, 20, "3 windows")
+        pub.detach()                              # a reload: the old daemon lets it go
+        held = [_window(store, w) for w in (3, 4)]   # stored meanwhile (the new daemon's)
+        pub.attach(context())                     # the new daemon adopts it
+        for out in held:
+            pub.write(out)
+        sub.wait(lambda: len(sub.on(topic)) == 5, 20, "the windows stored over the reload")
+        assert [json.loads(m.payload)["window"] for m in sub.on(topic)] == list(range(5))
+    finally:
+        pub.close()
+        store.close()
+    assert pub.counters()["delivered"] == 5 and pub.counters()["pending"] == 0
+    assert pub.lost == 0
+
+    # no state database: the outbox is in memory
+    pub = MqttPublisher.open("mqtt", cfg, SinkContext(machine="m1", parameters={"Ra": "ohm"}))
+    try:
+        for w in range(5, 8):
+            pub.write(_window(None, w))
+        sub.wait(lambda: len(sub.on(topic)) == 8, 20, "3 windows from memory")
+    finally:
+        pub.close()
+    assert pub.counters()["delivered"] == 3 and pub.lost == 0
+    kept = retained(broker.port, "twinwatch/m1/#", 1.0)
+    assert kept["twinwatch/m1/parameters/Ra/value"] == json.dumps(6.5 - 0.07).encode()
+    assert kept["twinwatch/m1/availability"] == b"offline"
+    sub.close()

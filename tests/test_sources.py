@@ -1,0 +1,286 @@
+"""Sources as real machines deliver them (issue 15): time stamps on jittery clocks, counters
+that repeat or reorder, sources that come and go, replays with bad lines.
+
+The end-to-end faults are rows of tests/test_fault_injection.py ("issue 15: sources"); here the
+parts: the ring buffer's grid, the counter helper, the source keeper's backoff, the CAN log
+reader's resume.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from twinwatch.daemon.ringbuffer import RingBuffer
+
+T = 0.01
+
+
+def _feed(rb: RingBuffer, stamps: np.ndarray) -> list:
+    wins = []
+    for k, t in enumerate(stamps):
+        w = rb.append(float(t), {"a": float(k)})
+        if w is not None:
+            wins.append(w)
+    return wins
+
+
+@pytest.mark.parametrize(("what", "error"), [
+    ("bus receive stamps, +-50 us", lambda rng, n: rng.uniform(-50e-6, 50e-6, n)),
+    ("symmetric jitter +-0.45 periods", lambda rng, n: rng.uniform(-0.45 * T, 0.45 * T, n)),
+    ("a poll clock: late by up to 0.95 periods", lambda rng, n: rng.uniform(0, 0.95 * T, n)),
+])
+def test_jittered_stamps_are_placed_on_the_grid(what, error):
+    rng = np.random.default_rng(1)
+    n = 2000
+    truth = 123.0 + np.arange(n) * T
+    stamps = truth + error(rng, n)
+    rb = RingBuffer(("a",), window=200, sample_period=T)
+    wins = _feed(rb, stamps)
+    assert len(wins) == 10 and sum(rb.discarded.values()) == 0, (what, rb.discarded)
+    for j, w in enumerate(wins):
+        np.testing.assert_allclose(np.diff(w.t), T, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(w["a"], np.arange(200 * j, 200 * (j + 1)))
+        assert w.stamp_jitter is not None
+        np.testing.assert_allclose(w.t + w.stamp_jitter, stamps[200 * j:200 * (j + 1)],
+                                   rtol=0, atol=1e-9)
+        # the grid is the stamps' mean offset: within the jitter of the true sample times
+        assert abs(float(np.mean(w.t - truth[200 * j:200 * (j + 1)]))) < T
+
+
+def test_exact_stamps_are_kept_as_they_are():
+    rb = RingBuffer(("a",), window=10, sample_period=T)
+    stamps = np.arange(30) * T + 7.0
+    wins = _feed(rb, stamps)
+    assert len(wins) == 3
+    for j, w in enumerate(wins):
+        np.testing.assert_array_equal(w.t, stamps[10 * j:10 * j + 10])
+        assert w.stamp_jitter is None
+
+
+def test_a_missing_sample_is_a_gap_and_jitter_beyond_the_band_is_counted_apart(caplog):
+    rb = RingBuffer(("a",), window=10, sample_period=T)
+    stamps = list(np.arange(5) * T) + list(6 * T + np.arange(20) * T)  # sample 5 missing
+    _feed(rb, np.asarray(stamps))
+    assert rb.causes["gap"] == 1 and rb.causes["jitter"] == 0
+    assert "about 1 samples missing" in caplog.text
+    rb2 = RingBuffer(("a",), window=10, sample_period=T, jitter_tolerance=0.25)
+    late = np.arange(20) * T
+    late[4] += 0.6 * T  # between two slots: neither its own nor the next
+    _feed(rb2, late)
+    assert rb2.causes["jitter"] == 1 and rb2.causes["gap"] == 0
+
+
+def test_a_clock_at_another_rate_drifts_off_the_grid_and_says_so(caplog):
+    rb = RingBuffer(("a",), window=200, sample_period=T)
+    wins = _feed(rb, np.arange(1000) * 1.01 * T)  # 1 % slow: 1 period off after 100 samples
+    assert wins == [] and rb.causes["jitter"] >= 4 and rb.causes["gap"] == 0
+    assert "step by 0.0101 s on average" in caplog.text
+
+
+@pytest.mark.parametrize(("cause", "third"), [
+    ("bad_value", (2 * T, {"a": math.nan})), ("time_back", (0.5 * T, {"a": 1.0})),
+    ("missing_channel", (2 * T, {})), ("gap", (5 * T, {"a": 1.0}))])
+def test_each_abandoned_window_is_counted_by_its_cause(cause, third):
+    rb = RingBuffer(("a",), window=3, sample_period=T)
+    rb.append(0.0, {"a": 1.0})
+    rb.append(T, {"a": 1.0})
+    rb.append(*third)
+    assert {k: v for k, v in rb.causes.items() if v} == {cause: 1}
+
+
+def test_tolerance_outside_half_a_period_is_refused():
+    with pytest.raises(ValueError, match="jitter_tolerance"):
+        RingBuffer(("a",), sample_period=T, jitter_tolerance=0.6)
+
+
+# -- counters ---------------------------------------------------------------------------------
+def test_counter_skips_duplicates_and_late_frames_and_keeps_the_wraps():
+    from twinwatch.io.counter import SampleCounter
+
+    c = SampleCounter(256)
+    steps = [c.update(k % 256) for k in range(11 * 256 + 10)]
+    assert steps[0] == ("first", 0) and all(s == ("next", 0) for s in steps[1:])
+    count = c.count
+    assert count == 11 * 256 + 9
+    assert c.update(9) == ("duplicate", 0)  # the same frame again
+    assert c.update(11) == ("next", 1)  # 10 arrives after 11: one missing ...
+    assert c.update(10) == ("stale", 0)  # ... then late: skipped, the count goes on
+    assert c.count == count + 2
+    assert c.update(12) == ("next", 0) and c.count == count + 3
+    assert c.update(200) == ("reset", 0) and c.count == 200  # far back: a restart
+
+
+def test_counter_restart_near_its_old_value_is_a_reset_after_a_few_readings():
+    from twinwatch.io.counter import SampleCounter
+
+    c = SampleCounter(2**32)
+    for k in (5, 6, 7):
+        c.update(k)
+    assert [c.update(k)[0] for k in (2, 3, 4)] == ["stale", "stale", "reset"]
+    assert c.count == 4 and c.update(5) == ("next", 0)
+
+
+def test_one_missing_sample_on_an_exact_clock_is_a_gap_whatever_the_rounding():
+    """At tolerance 0.5 a sample exactly one period late spans a band of one period: a gap,
+    never placed on the grid (t = counter * 0.01 rounds either side of the band)."""
+    for first in (0, 37, 430, 814, 7777, 123456):
+        rb = RingBuffer(("a",), window=10, sample_period=T)
+        counts = [first + k for k in range(4)] + [first + k for k in range(5, 20)]
+        _feed(rb, np.asarray(counts) * T)
+        assert rb.causes["gap"] == 1 and rb.causes["jitter"] == 0 and rb.windows == 1
+
+
+# -- sources that come and go -------------------------------------------------------------------
+class _Flaky:
+    """A driver factory whose source is absent for the first ``absent`` attempts; the driver it
+    opens delivers ``samples`` samples, then gives up (its connection closed)."""
+
+    def __init__(self, absent: int, samples: int = 3) -> None:
+        self.absent = absent
+        self.samples = samples
+        self.attempts = 0
+        self.opened: list = []
+
+    def __call__(self):  # type: ignore[no-untyped-def]
+        from twinwatch.drivers.base import (
+            Driver,
+            DriverInitializationError,
+            DriverOperationError,
+            Sample,
+        )
+
+        self.attempts += 1
+        if self.attempts <= self.absent:
+            raise DriverInitializationError(f"connection refused (attempt {self.attempts})")
+        left = self.samples
+
+        class Once(Driver):
+            channels = ("a",)
+
+            @classmethod
+            def from_config(cls, config, *, base_dir=None):  # type: ignore[no-untyped-def]
+                raise NotImplementedError
+
+            def _read_internal(self, timeout):  # type: ignore[no-untyped-def]
+                nonlocal left
+                if left == 0:
+                    raise DriverOperationError("connection closed")
+                left -= 1
+                self.stats.frames += 2
+                return Sample(0.0, {"a": 1.0})
+
+        d = Once()
+        self.opened.append(d)
+        return d
+
+
+def _config():  # type: ignore[no-untyped-def]
+    from twinwatch.drivers.base import DriverConfig
+
+    return DriverConfig(type="test")
+
+
+def test_keeper_waits_for_an_absent_source_and_says_so():
+    import random
+    import time
+
+    from twinwatch.daemon.source import SourceKeeper
+
+    flaky = _Flaky(absent=3)
+    keeper = SourceKeeper(flaky, config=_config(), describe="the test source",
+                          backoff_max=0.5, rng=random.Random(0))
+    try:
+        assert keeper.waiting is not None and "the test source cannot be opened" in (
+            keeper.waiting) and "connection refused (attempt 1)" in keeper.waiting
+        t0 = time.monotonic()
+        got = []
+        while time.monotonic() - t0 < 10 and len(got) < 3:
+            s = keeper.read(timeout=0.1)
+            if s is not None:
+                got.append(s)
+        assert len(got) == 3 and flaky.attempts == 4
+        assert keeper.waiting is None
+        assert keeper.stats.extra["open_failures"] == 3 and keeper.stats.extra["reopens"] == 1
+    finally:
+        keeper.close()
+
+
+def test_keeper_reopens_a_driver_that_gives_up_and_its_counters_add_up():
+    import time
+
+    from twinwatch.daemon.source import SourceKeeper
+
+    flaky = _Flaky(absent=0, samples=2)
+    keeper = SourceKeeper(flaky, config=_config(), describe="the test source",
+                          backoff_max=0.5)
+    try:
+        got = 0
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 10 and got < 6:
+            got += keeper.read(timeout=0.1) is not None
+        assert got == 6 and len(flaky.opened) == 3
+        assert keeper.stats.frames == 12  # 2 frames per sample, over three drivers
+        assert all(d.closed for d in flaky.opened[:2])
+    finally:
+        keeper.close()
+    assert flaky.opened[-1].closed
+
+
+def test_keeper_read_waits_its_timeout_without_spinning():
+    import time
+
+    from twinwatch.daemon.source import SourceKeeper
+
+    keeper = SourceKeeper(_Flaky(absent=10**6), config=_config(), describe="absent",
+                          backoff_max=0.5)
+    try:
+        c0, t0 = time.process_time(), time.monotonic()
+        for _ in range(10):
+            assert keeper.read(timeout=0.1) is None
+        wall, cpu = time.monotonic() - t0, time.process_time() - c0
+        assert wall >= 0.95 and cpu < 0.5 * wall
+    finally:
+        keeper.close()
+
+
+def test_keeper_at_a_reload_and_a_configuration_error_fail_at_once():
+    from twinwatch.daemon.source import SourceKeeper
+    from twinwatch.drivers.base import DriverConfigError, DriverInitializationError
+
+    with pytest.raises(DriverInitializationError, match="refused"):
+        SourceKeeper(_Flaky(absent=1), config=_config(), describe="x", wait=False)
+
+    def bad_config():  # type: ignore[no-untyped-def]
+        raise DriverConfigError("dbc: message 'X' not in DBC")
+
+    with pytest.raises(DriverConfigError):
+        SourceKeeper(bad_config, config=_config(), describe="x")
+
+
+def test_backoff_is_capped_and_jittered():
+    import random
+    import time
+
+    from twinwatch.daemon import source
+
+    flaky = _Flaky(absent=10**6)
+    delays: list[float] = []
+    keeper = source.SourceKeeper(flaky, config=_config(), describe="absent", backoff_max=1.0,
+                                 rng=random.Random(1))
+    try:
+        last = None
+        t_end = time.monotonic() + 4.0
+        while time.monotonic() < t_end:
+            nxt = keeper._next_try
+            if nxt is not None and nxt != last:
+                delays.append(nxt - time.monotonic())
+                last = nxt
+            time.sleep(0.01)
+    finally:
+        keeper.close()
+    # steps of 0.5, 1, 1, ... s, each delay drawn in [50 %, 100 %] of its step
+    assert 0.2 <= delays[0] <= 0.5 and 0.5 <= max(delays) <= 1.0
+    assert 3 <= flaky.attempts <= 1 + 4.0 / 0.5

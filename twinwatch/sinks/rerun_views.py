@@ -1,0 +1,739 @@
+"""What a twinwatch recording shows: its entities, their styles, and the default blueprint.
+
+:class:`RecordingViews` turns one window (its samples, estimates, health message and alarm
+changes) into what :class:`~twinwatch.sinks.rerun.RerunRecorder` logs, and describes the layout
+an operator opens: the story of the machine's health at one glance.
+
+Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
+
+* ``M/outputs/<output>/measured`` and ``M/outputs/<output>/twin``: the window's measured and
+  twin-simulated output samples in the output's unit (:class:`rerun.Scalars`, one
+  ``send_columns`` per series and window); ``M/residual/<output>``: measured - twin, every
+  sample; ``M/residual_rmse/dt_prime`` and ``.../dt_second``: per window, the RMSE of the twin
+  without (DT') and with (DT'') its meta-model terms, one series per output (its unit);
+* ``M/parameters``: every parameter's estimate [SI], one series per parameter (the twin's
+  order), one point per window;
+* ``M/health/<name>/...`` for each estimated parameter, in percent of its nominal value:
+  ``deviation`` (series, in drawing order: the 2-sigma band's low and high ends, 0 = nominal,
+  the ``[alarms]`` thresholds (or a +-5 % scale when it has no rule), two transparent headroom
+  series that keep the thresholds off the axis' edges, and last the deviation itself),
+  ``estimated`` / ``fused`` / ``held`` (the deviation again, one point per window on the entity
+  of the window's status: drawn as different markers), ``events/warning``, ``events/alarm``,
+  ``events/cleared`` (the alarm changes, a large marker at the event's deviation);
+  ``health/<name>/trend``: the parameter's trend when the message carries one
+  (``parameters.<name>.trend.level`` +- 2 ``level_std``, in %: low, high, level); its RUL
+  (``rul.warning`` / ``rul.alarm``) is in the log row and the model panel;
+* ``M/quality/nrmse`` (the published twin's), ``M/quality/nrmse_dt_prime`` and
+  ``.../nrmse_dt_second`` (without and with the terms), ``M/quality/model_check_failed`` (the
+  nRMSE of the windows whose model check failed), ``M/quality/elapsed_ms`` (adaptation time per
+  window [ms]), ``M/quality/problems`` (the counters of lost or bad data, cumulative: abandoned
+  windows, overruns, gaps, bad samples, windows not stored or not recorded, ... one series
+  each, named after the counter);
+* ``M/model``: the twin DT'' as a markdown document, every window: each meta-model term's
+  equation with its meaning and evidence first, then every parameter's value against nominal
+  and its status; ``M/health``: the window's health message (JSON); ``M/log``: one
+  :class:`rerun.TextLog` row per window with the values (INFO; WARN while a parameter is in
+  warning, the model check fails, the structure changed or data were lost; ERROR while one is
+  in alarm) and one row per alarm change (its message; a raise WARN or ERROR, a clear WARN);
+  ``M/key``: what the colours mean (static).
+
+The default blueprint (:meth:`RecordingViews.blueprint`): the time panel follows the newest
+data (a finished file opens on its end); the parameters' health and the data-quality strip show
+the whole run, the outputs and residuals the last ``recent_s`` seconds before the time cursor,
+the model and the log the state at the cursor; no legend covers a trace (the key says what the
+colours mean), no axis zooms in on noise (deviations in % with their thresholds or a scale).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+
+import numpy as np
+
+from twinwatch._lazy import lazy_module
+from twinwatch.sinks.base import AlarmBands
+
+if TYPE_CHECKING:
+    import rerun as rr
+    import rerun.blueprint as rrb
+else:  # imported when a recording opens: loading a configuration does not load rerun
+    rr = lazy_module("rerun")
+    rrb = lazy_module("rerun.blueprint")
+
+__all__ = ["TIMELINE", "RecordingViews", "emit"]
+
+TIMELINE = "plant_time"
+"""Name of the Rerun timeline carrying plant time [s] (a duration timeline)."""
+
+# Colours for the viewer's dark theme, each meaning one thing everywhere.
+_MEASURED = (86, 164, 255)
+_TWIN = (255, 140, 30)
+_RESIDUAL = (196, 150, 255)
+_DT_PRIME = (240, 70, 70)
+_DT_SECOND = (90, 205, 100)
+_DEVIATION = (215, 215, 215)
+_NOMINAL = (140, 140, 140)
+_BAND = (95, 150, 235)
+_SCALE = (105, 105, 105)
+_HIDDEN = (0, 0, 0, 0)
+_ELAPSED = (200, 200, 120)
+_TREND = (230, 120, 200)
+_TREND_BAND = (150, 80, 130)
+_WARNING = (255, 190, 0)
+_ALARM = (240, 60, 60)
+_Marker = Literal["circle", "diamond", "cross", "up", "square"]
+_STATUS_STYLE: dict[str, tuple[tuple[int, int, int], _Marker, float]] = {
+    "estimated": ((90, 205, 100), "circle", 2.0),
+    "fused": ((86, 164, 255), "diamond", 2.5),
+    "held": ((150, 150, 150), "cross", 2.5),
+}
+_EVENT_STYLE: dict[str, tuple[tuple[int, int, int], _Marker, float]] = {
+    "warning": (_WARNING, "up", 9.0),
+    "alarm": (_ALARM, "circle", 9.0),
+    "cleared": ((90, 205, 100), "square", 8.0),
+}
+_VARIANTS = (("dt_prime", "DT'", _DT_PRIME), ("dt_second", "DT''", _DT_SECOND))
+"""The twin without (DT') and with (DT'') its meta-model terms: key, label, colour."""
+_QUALITY_COLORS = (
+    (240, 60, 60), (255, 190, 0), (196, 150, 255), (86, 164, 255), (255, 140, 30),
+    (90, 205, 100), (230, 120, 200), (160, 160, 160), (40, 200, 200), (190, 190, 60),
+)
+_SCALE_PCT = 5.0
+"""Half-height of the scale drawn for a parameter without an alarm rule [%] (its axis never
+zooms in on the noise of a held value)."""
+_HEADROOM = 1.6
+"""The axis of a parameter's view reaches at least this many times its outermost threshold (or
+scale) on each side that has one: the lines never sit on its edge."""
+_BAND_CLIP = 3.0
+"""The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
+nominal: a parameter the data do not determine (+-400 %) does not flatten its plot."""
+_PROBLEM_COUNTER = re.compile(
+    r"abandon|overrun|lost|gap|bad|error|fail|silent|stall|jitter|missing|dropped|timeout|"
+    r"not_stored|not_connected|waiting")
+"""Counters drawn in the data-quality strip: those counting lost or bad data."""
+
+
+class Op(NamedTuple):
+    """One thing to log: ``payload`` on ``entity`` at plant time ``t``, columns with their
+    ``index`` (a window's samples), or a ``static`` style."""
+
+    entity: str
+    payload: Any
+    t: float | None = None
+    index: Any = None
+    static: bool = False
+
+
+def entity(*parts: str) -> str:
+    """An entity path from raw parts, each escaped (a '/' in a name stays inside its part)."""
+    return "/".join(rr.escape_entity_path_part(p) for p in parts)
+
+
+class RecordingViews:
+    """The entities, styles and layout of one machine's recording.
+
+    Args:
+        machine: machine name, first part of every entity path.
+        outputs: the twin's outputs, e.g. ``("ia", "omega")``.
+        parameters: parameter name -> unit.
+        output_units: output -> unit, for the titles.
+        nominal: parameter -> nominal value [SI], for the health views' titles.
+        estimated: the parameters that get a health view.
+        alarm_bands: parameter -> its alarm thresholds [% of nominal].
+        recent_s: plant time before the cursor that the outputs' views show [s].
+    """
+
+    def __init__(self, machine: str, outputs: Sequence[str], parameters: Mapping[str, str], *,
+                 output_units: Mapping[str, str] | None = None,
+                 nominal: Mapping[str, float] | None = None,
+                 estimated: Sequence[str] | None = None,
+                 alarm_bands: Mapping[str, AlarmBands] | None = None,
+                 recent_s: float = 10.0) -> None:
+        self.machine = machine
+        self.outputs = tuple(outputs)
+        self.parameters = dict(parameters)
+        self.output_units = dict(output_units or {})
+        self.nominal = dict(nominal or {})
+        self.estimated = tuple(p for p in (estimated if estimated is not None else parameters)
+                               if p in self.parameters)
+        self.alarm_bands = dict(alarm_bands or {})
+        self.recent_s = float(recent_s)
+        self._problem_counters: list[str] = []
+        self._last_counters: dict[str, int] = {}
+
+    def set_alarm_bands(self, alarm_bands: Mapping[str, AlarmBands]) -> list[Op]:
+        """New thresholds (a reload): the styles to log again (empty when unchanged)."""
+        if dict(alarm_bands) == self.alarm_bands:
+            return []
+        self.alarm_bands = dict(alarm_bands)
+        return self.health_styles()
+
+    def _unit(self, output: str) -> str:
+        unit = self.output_units.get(output)
+        return f" [{unit}]" if unit else ""
+
+    def _health_title(self, p: str) -> str:
+        """``Ra [% of 6.5 ohm]: warning +-5, alarm +-10 %``."""
+        nominal = self.nominal.get(p)
+        unit = self.parameters.get(p, "")
+        of = f"{nominal:.6g} {unit}".rstrip() if nominal is not None else "nominal"
+        rule = []
+        bands = self.alarm_bands.get(p)
+        for name, high, low in (("warning", bands.warning_high, bands.warning_low),
+                                ("alarm", bands.alarm_high, bands.alarm_low)) if bands else ():
+            if high is not None and low is not None and high == -low:
+                rule.append(f"{name} +-{high:g}")
+            else:
+                rule += [f"{name} {v:+g}" for v in (high, low) if v is not None]
+        return f"{p} [% of {of}]" + (": " + ", ".join(rule) + " %" if rule else "")
+
+    def blueprint(self) -> rrb.Blueprint:
+        """The default layout: the parameters' health and the data quality over the whole run
+        (left), each output measured vs twin and its residual over the last ``recent_s``
+        seconds (right), the model DT'' and the log (bottom), a one-line key on top; the time
+        panel follows the newest data."""
+        m = self.machine
+        inf = rrb.TimeRangeBoundary.infinite()
+        back = rrb.TimeRangeBoundary.cursor_relative(seconds=-self.recent_s)
+        now = rrb.TimeRangeBoundary.cursor_relative()
+
+        # Each view property is a chunk of its own (about 3 kB in every file and stream): the
+        # whole run is the x axis' range (the data queried are the whole run by default), the
+        # recent range the data queried (the x axis follows them).
+        def whole() -> dict[str, Any]:
+            return {"axis_x": rrb.TimeAxis(view_range=rr.TimeRange(start=inf, end=inf)),
+                    "plot_legend": rrb.PlotLegend(visible=False)}
+
+        def recent() -> dict[str, Any]:
+            return {"time_ranges": rrb.VisibleTimeRange(TIMELINE, start=back, end=now),
+                    "plot_legend": rrb.PlotLegend(visible=False)}
+
+        def origin(*parts: str) -> str:
+            return "/" + entity(m, *parts)
+
+        ruled = [p for p in self.estimated if p in self.alarm_bands]
+        others = [p for p in self.estimated if p not in self.alarm_bands]
+        health: list[rrb.Container | rrb.View] = [
+            rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p), **whole())
+            for p in ruled]
+        shares = [2.0] * len(ruled)
+        if others:
+            views = [rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
+                                        **whole()) for p in others]
+            columns = 1 if len(others) == 1 else 2
+            health.append(rrb.Grid(*views, grid_columns=columns, name="other parameters"))
+            shares.append(float(math.ceil(len(others) / columns)) * (1.4 if ruled else 2.0))
+        quality = rrb.Horizontal(
+            rrb.TimeSeriesView(origin=origin("quality"), contents=[
+                origin("quality", "nrmse_dt_prime"), origin("quality", "nrmse_dt_second"),
+                origin("quality", "nrmse"), origin("quality", "model_check_failed")],
+                name="fit: nRMSE DT' DT''", **whole()),
+            rrb.TimeSeriesView(origin=origin("quality", "elapsed_ms"),
+                               name="estimation time [ms]", **whole()),
+            rrb.TimeSeriesView(origin=origin("quality", "problems"),
+                               name="lost or bad [count]", **whole()),
+            name="data quality")
+        left = rrb.Vertical(
+            rrb.Vertical(*health, row_shares=shares, name="health"), quality,
+            row_shares=[max(sum(shares), 1.0) * 1.0, 1.3], name="health and data quality")
+        pairs = [(rrb.TimeSeriesView(origin=origin("outputs", o),
+                                     name=f"{o}{self._unit(o)}: measured, twin", **recent()),
+                  rrb.TimeSeriesView(origin=origin("residual", o),
+                                     name=f"{o} residual{self._unit(o)}", **recent()))
+                 for o in self.outputs]
+        right = rrb.Grid(*(v for pair in pairs for v in pair), grid_columns=2,
+                         column_shares=[3, 2], name="outputs: measured vs twin")
+        bottom = rrb.Horizontal(
+            rrb.Tabs(
+                rrb.TextDocumentView(origin=origin("model"), name="model: DT'' at the cursor"),
+                rrb.TextDocumentView(origin=origin("health"), contents=origin("health"),
+                                     name="health message (JSON)"),
+                active_tab=0),
+            rrb.TextLogView(
+                origin=origin("log"), name="log",
+                columns=rrb.TextLogColumns(
+                    timeline_columns=[rrb.encodings.TimelineColumn(TIMELINE, visible=False),
+                                      rrb.encodings.TimelineColumn("log_time", visible=False),
+                                      rrb.encodings.TimelineColumn("log_tick", visible=False)],
+                    text_log_columns=[rrb.encodings.TextLogColumn("loglevel"),
+                                      rrb.encodings.TextLogColumn("body"),
+                                      rrb.encodings.TextLogColumn("entitypath", visible=False)])),
+            column_shares=[2, 3])
+        key = rrb.TextDocumentView(origin=origin("key"), name="key", titlebar=False)
+        return rrb.Blueprint(
+            rrb.Vertical(
+                key,
+                rrb.Horizontal(left, right, column_shares=[1.05, 1]),
+                bottom,
+                row_shares=[0.42, 5.0, 1.7]),
+            rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
+            collapse_panels=True,
+        )
+
+    def _key(self) -> str:
+        return ("**health** in % of nominal: a marker per window by status, estimated (green "
+                "dot), fused (blue diamond), held (grey x); its 2-sigma band (blue); its trend "
+                "(pink); thresholds "
+                "warning (amber), alarm (red); warning raised (amber triangle), alarm raised "
+                "(red dot), cleared (green square).  **outputs**: measured (blue, wide), twin "
+                "(orange); residual, measured - twin (violet).  **fit**: nRMSE of DT' (red), "
+                "of DT'' (green, with meta-model terms), model check failed (red x).")
+
+    def static_ops(self) -> list[Op]:
+        """What every file and the live stream need once: the key and every series' style."""
+        m = self.machine
+
+        def lines(path: tuple[str, ...], names: Any, colors: Any, widths: Any) -> Op:
+            return Op(entity(m, *path), rr.SeriesLines(names=names, colors=colors,
+                                                       widths=widths), static=True)
+
+        ops = [Op(entity(m, "key"), rr.TextDocument(self._key(),
+                                                    media_type=rr.MediaType.MARKDOWN),
+                  static=True)]
+        for o in self.outputs:
+            u = self._unit(o)
+            ops += [lines(("outputs", o, "measured"), f"{o} measured{u}", _MEASURED, 3.5),
+                    lines(("outputs", o, "twin"), f"{o} twin{u}", _TWIN, 1.5),
+                    lines(("residual", o), f"{o} measured - twin{u}", _RESIDUAL, 1.0)]
+        n = len(self.outputs)
+        for variant, label, _ in _VARIANTS:
+            ops.append(lines(("residual_rmse", variant),
+                             [f"{o} RMSE {label}{self._unit(o)}" for o in self.outputs],
+                             list(_QUALITY_COLORS[:n]), [1.5] * n))
+        n = len(self.parameters)
+        ops.append(lines(("parameters",), [f"{p} [{u}]" for p, u in self.parameters.items()],
+                         [_QUALITY_COLORS[i % len(_QUALITY_COLORS)] for i in range(n)],
+                         [1.0] * n))
+        ops += self.health_styles()
+        ops.append(lines(("quality", "nrmse"), "nRMSE (the twin published)", _DEVIATION, 1.0))
+        for variant, label, color in _VARIANTS:
+            ops.append(lines(("quality", f"nrmse_{variant}"), f"nRMSE {label}", color, 2.0))
+        ops.append(Op(entity(m, "quality", "model_check_failed"), rr.SeriesPoints(
+            names="model check failed", colors=_ALARM, markers="cross", marker_sizes=4.0),
+            static=True))
+        ops.append(lines(("quality", "elapsed_ms"), "estimation time [ms]", _ELAPSED, 1.5))
+        if self._problem_counters:
+            ops.append(self._problem_style())
+        return ops
+
+    def _limits(self, p: str) -> list[tuple[str, float, tuple[int, ...]]]:
+        """The reference lines of ``p``'s view [%]: its alarm thresholds, or a dim +-5 % scale
+        when it has no rule (name, value, colour)."""
+        bands = self.alarm_bands.get(p)
+        if bands is None:
+            return [(f"scale +{_SCALE_PCT:g} % (no alarm rule)", _SCALE_PCT, _SCALE),
+                    (f"scale -{_SCALE_PCT:g} % (no alarm rule)", -_SCALE_PCT, _SCALE)]
+        return [(f"{name} {value:+g} %", value, color) for name, value, color in (
+            ("warning", bands.warning_high, _WARNING), ("warning", bands.warning_low, _WARNING),
+            ("alarm", bands.alarm_high, _ALARM), ("alarm", bands.alarm_low, _ALARM))
+            if value is not None]
+
+    def _series(self, p: str) -> list[tuple[str, tuple[int, ...], float]]:
+        """The series of ``health/<p>/deviation``, in drawing order: name, colour, width (the
+        two headroom series are transparent: the axis keeps the thresholds off its edges)."""
+        return [("2-sigma low", _BAND, 1.0), ("2-sigma high", _BAND, 1.0),
+                ("nominal", _NOMINAL, 1.0),
+                *((name, color, 1.5) for name, _, color in self._limits(p)),
+                ("headroom high", _HIDDEN, 1.0), ("headroom low", _HIDDEN, 1.0),
+                (f"{p} deviation [%]", _DEVIATION, 1.0)]
+
+    def health_styles(self) -> list[Op]:
+        """The styles of every health view's series."""
+        m = self.machine
+        ops: list[Op] = []
+        for p in self.estimated:
+            series = self._series(p)
+            ops.append(Op(entity(m, "health", p, "deviation"), rr.SeriesLines(
+                names=[s[0] for s in series], colors=[s[1] for s in series],
+                widths=[s[2] for s in series]), static=True))
+            for status, (color, marker, size) in _STATUS_STYLE.items():
+                ops.append(Op(entity(m, "health", p, status), rr.SeriesPoints(
+                    names=f"{p} {status}", colors=color, markers=marker, marker_sizes=size),
+                    static=True))
+            for kind, (color, marker, size) in _EVENT_STYLE.items():
+                label = "cleared" if kind == "cleared" else f"{kind} raised"
+                ops.append(Op(entity(m, "health", p, "events", kind), rr.SeriesPoints(
+                    names=f"{p} {label}", colors=color, markers=marker, marker_sizes=size),
+                    static=True))
+            ops.append(Op(entity(m, "health", p, "trend"), rr.SeriesLines(
+                names=[f"{p} trend 2-sigma low", f"{p} trend 2-sigma high", f"{p} trend"],
+                colors=[_TREND_BAND, _TREND_BAND, _TREND], widths=[1.0, 1.0, 2.0]),
+                static=True))
+        return ops
+
+    def _problem_style(self) -> Op:
+        """The style of the data-lost series (one per problem counter seen so far)."""
+        names = self._problem_counters
+        return Op(entity(self.machine, "quality", "problems"), rr.SeriesLines(
+            names=names, colors=[_QUALITY_COLORS[i % len(_QUALITY_COLORS)]
+                                 for i in range(len(names))],
+            widths=[1.5] * len(names)), static=True)
+
+    def window_ops(self, times: np.ndarray, meas: Mapping[str, np.ndarray],
+                    sim: Mapping[str, np.ndarray], estimates: Mapping[str, float],
+                    doc: Mapping[str, Any], health_json: str, terms_changed: bool,
+                    events: list[Mapping[str, Any]]) -> list[Op]:
+        """Everything one window logs, in order (called with the lock held)."""
+        m = self.machine
+        t0, t_end = float(times[0]), float(times[-1])
+        ops: list[Op] = []
+        index = [rr.TimeColumn(TIMELINE, duration=times)]
+        for kind, channels in (("measured", meas), ("twin", sim)):
+            for name, values in channels.items():
+                ops.append(Op(entity(m, "outputs", name, kind),
+                               rr.Scalars.columns(scalars=values), index=index))
+        for name in meas.keys() & sim.keys():
+            ops.append(Op(entity(m, "residual", name),
+                           rr.Scalars.columns(scalars=meas[name] - sim[name]), index=index))
+        for variant, rmse in _residual_rmse(doc).items():
+            per_output = [_num(rmse.get(o)) for o in self.outputs]
+            if any(math.isfinite(v) for v in per_output):
+                ops.append(Op(entity(m, "residual_rmse", variant), rr.Scalars(per_output),
+                              t_end))
+        ops.append(Op(entity(m, "parameters"), rr.Scalars(
+            [estimates.get(p, math.nan) for p in self.parameters]), t_end))
+        params = _mapping(doc.get("parameters"))
+        for p in self.estimated:
+            ph = params.get(p)
+            if isinstance(ph, Mapping):
+                ops += self._health_ops(p, ph, t_end)
+        for ev in events:
+            ops += self._event_ops(ev, t_end)
+        ops += self._quality_ops(doc, t_end)
+        ops.append(Op(entity(m, "model"), rr.TextDocument(
+            _model_document(m, t_end, doc), media_type=rr.MediaType.MARKDOWN), t_end))
+        pretty = json.dumps(json.loads(health_json), indent=2)
+        ops.append(Op(entity(m, "health"), rr.TextDocument(
+            f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{pretty}\n```\n",
+            media_type=rr.MediaType.MARKDOWN), t_end))
+        text, level = _log_row(t0, t_end, doc, terms_changed, self._new_problems(doc))
+        ops.append(Op(entity(m, "log"), rr.TextLog(text, level=level), t_end))
+        return ops
+
+    def _health_ops(self, p: str, ph: Mapping[str, Any], t: float) -> list[Op]:
+        """The deviation of ``p`` with its band, nominal and thresholds, and its status marker
+        (the series of :meth:`_series`)."""
+        dev = _num(ph.get("deviation_pct"))
+        if not math.isfinite(dev):
+            return []
+        limits = [value for _, value, _ in self._limits(p)]
+        outer = max(abs(v) for v in limits)
+        clip = _BAND_CLIP * outer
+        low, high = _band_pct(ph)
+        band = [float(np.clip(v, -clip, clip)) if math.isfinite(v) else math.nan
+                for v in (low, high)]
+        top, bottom = max(0.0, *limits), min(0.0, *limits)
+        headroom = [_HEADROOM * top if top > 0 else 0.2 * outer,
+                    _HEADROOM * bottom if bottom < 0 else -0.2 * outer]
+        values = [*band, 0.0, *limits, *headroom, dev]
+        m = self.machine
+        ops = [Op(entity(m, "health", p, "deviation"), rr.Scalars(values), t)]
+        status = ph.get("status")
+        if status in _STATUS_STYLE:
+            ops.append(Op(entity(m, "health", p, str(status)), rr.Scalars(dev), t))
+        trend = _trend_pct(ph)
+        if trend is not None:
+            ops.append(Op(entity(m, "health", p, "trend"), rr.Scalars(
+                [float(np.clip(v, -clip, clip)) for v in trend]), t))
+        return ops
+
+    def _event_ops(self, ev: Mapping[str, Any], t_end: float) -> list[Op]:
+        """An alarm change: its message in the log, a marker on its parameter's view."""
+        m = self.machine
+        p = str(ev.get("parameter", ""))
+        level, previous = ev.get("level"), ev.get("previous")
+        t = _num(ev.get("t"))
+        t = t if math.isfinite(t) else t_end
+        raised = _RANK.get(str(level), 0) > _RANK.get(str(previous), 0)
+        kind = str(level) if raised else "cleared"
+        severity = rr.TextLogLevel.ERROR if (raised and level == "alarm") else rr.TextLogLevel.WARN
+        message = ev.get("message") or (f"{p}: {previous} -> {level} at "
+                                        f"{_num(ev.get('deviation_pct')):+.2f} % of nominal")
+        ops = [Op(entity(m, "log"), rr.TextLog(str(message), level=severity), t)]
+        dev = _num(ev.get("deviation_pct"))
+        if p in self.estimated and kind in _EVENT_STYLE and math.isfinite(dev):
+            ops.append(Op(entity(m, "health", p, "events", kind), rr.Scalars(dev), t))
+        return ops
+
+    def _quality_ops(self, doc: Mapping[str, Any], t: float) -> list[Op]:
+        """nRMSE and the model check, the adaptation time, the counters of lost data."""
+        m = self.machine
+        ops = []
+        residual = doc.get("residual")
+        if isinstance(residual, Mapping):
+            for variant in ("dt_prime", "dt_second"):
+                fit = residual.get(variant)
+                value = _num(fit.get("nrmse")) if isinstance(fit, Mapping) else math.nan
+                if math.isfinite(value):
+                    ops.append(Op(entity(m, "quality", f"nrmse_{variant}"),
+                                   rr.Scalars(value), t))
+        nrmse = _num(doc.get("nrmse"))
+        if math.isfinite(nrmse):
+            ops.append(Op(entity(m, "quality", "nrmse"), rr.Scalars(nrmse), t))
+            check = doc.get("model_check")
+            if isinstance(check, Mapping) and check.get("passed") is False:
+                ops.append(Op(entity(m, "quality", "model_check_failed"), rr.Scalars(nrmse),
+                               t))
+        elapsed = _num(doc.get("elapsed_s"))
+        if math.isfinite(elapsed):
+            ops.append(Op(entity(m, "quality", "elapsed_ms"), rr.Scalars(elapsed * 1e3), t))
+        counters = doc.get("counters")
+        if isinstance(counters, Mapping):
+            new = [k for k in counters if k not in self._problem_counters
+                   and _PROBLEM_COUNTER.search(k) and isinstance(counters[k], int | float)]
+            if new:
+                self._problem_counters += sorted(new)
+                ops.append(self._problem_style())
+            if self._problem_counters:
+                ops.append(Op(entity(m, "quality", "problems"), rr.Scalars(
+                    [_num(counters.get(k)) for k in self._problem_counters]), t))
+        return ops
+
+    def _new_problems(self, doc: Mapping[str, Any]) -> dict[str, int]:
+        """The problem counters that grew since the last window, and by how much."""
+        counters = doc.get("counters")
+        if not isinstance(counters, Mapping):
+            return {}
+        grew = {}
+        for k, v in counters.items():
+            if isinstance(v, int) and _PROBLEM_COUNTER.search(k):
+                if v > self._last_counters.get(k, 0):
+                    grew[k] = v - self._last_counters.get(k, 0)
+                self._last_counters[k] = v
+        return grew
+
+
+def emit(rec: rr.RecordingStream, ops: Sequence[Op]) -> None:
+    """Log ``ops`` to ``rec`` in order."""
+    for op in ops:
+        if op.static:
+            rec.log(op.entity, op.payload, static=True)
+        elif op.index is not None:
+            rec.send_columns(op.entity, indexes=op.index, columns=op.payload)
+        else:
+            rec.set_time(TIMELINE, duration=op.t if op.t is not None else 0.0)
+            rec.log(op.entity, op.payload)
+
+
+_RANK = {"normal": 0, "warning": 1, "alarm": 2}
+
+
+def _mapping(x: Any) -> Mapping[str, Any]:
+    """``x`` if it is a JSON object, else an empty one."""
+    return x if isinstance(x, Mapping) else {}
+
+
+def _num(x: Any) -> float:
+    """A JSON number as a float (NaN for null or anything else: a gap in a plot)."""
+    if isinstance(x, int | float) and not isinstance(x, bool):
+        return float(x)
+    return math.nan
+
+
+def _residual_rmse(doc: Mapping[str, Any]) -> dict[str, Mapping[str, float | None]]:
+    """``residual.<dt_prime|dt_second>.rmse``: output -> RMSE of the twin without and with its
+    terms (empty for a variant the message does not hold)."""
+    residual = doc.get("residual")
+    if not isinstance(residual, Mapping):
+        return {"dt_prime": {}, "dt_second": {}}
+    out: dict[str, Mapping[str, float | None]] = {}
+    for variant in ("dt_prime", "dt_second"):
+        fit = residual.get(variant)
+        rmse = fit.get("rmse") if isinstance(fit, Mapping) else None
+        out[variant] = rmse if isinstance(rmse, Mapping) else {}
+    return out
+
+
+def _band_pct(ph: Mapping[str, Any]) -> tuple[float, float]:
+    """The 2-sigma band of a parameter's published value, in % of nominal (NaN when the
+    message gives none): the fused interval for a fused or held value that has one, else the
+    value +- 2 relative standard errors."""
+    nom, value, rel = _num(ph.get("nominal")), _num(ph.get("value")), _num(ph.get("rel_std_pct"))
+    if not math.isfinite(nom) or nom == 0.0:
+        return math.nan, math.nan
+    fused = ph.get("fused")
+    if ph.get("status") != "estimated" and isinstance(fused, Mapping):
+        low, high = _num(fused.get("low")), _num(fused.get("high"))
+    elif math.isfinite(value) and math.isfinite(rel):
+        low, high = value * (1.0 - 0.02 * rel), value * (1.0 + 0.02 * rel)
+    else:
+        return math.nan, math.nan
+    return (low / nom - 1.0) * 100.0, (high / nom - 1.0) * 100.0
+
+
+def _trend_pct(ph: Mapping[str, Any]) -> tuple[float, float, float] | None:
+    """The parameter's trend (``trend.level`` +- 2 ``level_std``, when the message has one) in
+    % of nominal: (low, high, level); None without a trend level."""
+    trend = _mapping(ph.get("trend"))
+    nom, level, std = _num(ph.get("nominal")), _num(trend.get("level")), _num(
+        trend.get("level_std"))
+    if not math.isfinite(level) or not math.isfinite(nom) or nom == 0.0:
+        return None
+    std = std if math.isfinite(std) else 0.0
+
+    def pct(v: float) -> float:
+        return (v / nom - 1.0) * 100.0
+
+    return pct(level - 2 * std), pct(level + 2 * std), pct(level)
+
+
+def _rul_text(ph: Mapping[str, Any]) -> str:
+    """``RUL to alarm 1.2e+03 s (900-1500 s)`` from the message's ``rul`` (empty without)."""
+    rul = _mapping(ph.get("rul"))
+    parts = []
+    for level in ("warning", "alarm"):
+        c = _mapping(rul.get(level))
+        if c.get("status") == "crossed":
+            parts.append(f"{level} crossed")
+        elif c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
+            low, high = _num(c.get("low_s")), _num(c.get("high_s"))
+            span = (f" ({low:.3g}-{high:.3g} s)" if math.isfinite(low) and math.isfinite(high)
+                    else "")
+            parts.append(f"RUL to {level} {_num(c.get('rul_s')):.3g} s{span}")
+    return ", ".join(parts)
+
+
+def _fmt(x: Any, spec: str = ".6g") -> str:
+    v = _num(x)
+    return format(v, spec) if math.isfinite(v) else "n/a"
+
+
+def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
+    """The twin DT'' as markdown: each meta-model term (equation, meaning, evidence) first,
+    then every parameter's value against nominal and its status, then the fit."""
+    terms = [term for term in doc.get("terms") or [] if isinstance(term, Mapping)]
+    model = doc.get("model")
+    twin = f"the physical twin `{model}`" if model else "the physical twin"
+    window = doc.get("window")
+    at = (f"t = {t:.2f} s" + (f", window {window}" if window is not None else "")
+          + (f", run {doc['run']}" if doc.get("run") else ""))
+    lines = []
+    if not terms:
+        lines.append(f"**DT'' = DT** ({at}): {twin} explains the data, no meta-model term.")
+    else:
+        n = len(terms)
+        lines.append(f"**DT'' = DT + {n} meta-model term{'s' if n > 1 else ''}** ({at}): "
+                     f"{twin} plus what discovery found (paper Eq. 3).")
+        for i, term in enumerate(terms, 1):
+            lines.append("")
+            lines.append(f"**{i}.** `{term.get('equation', '?')}`  ")
+            if term.get("meaning"):
+                lines.append(f"{term['meaning']}  ")
+            params = _mapping(term.get("params"))
+            std = _mapping(term.get("params_std"))
+            values = ", ".join(
+                f"{k} = {_fmt(v, '.5g')}" + (f" +- {_fmt(std[k], '.2g')}"
+                                             if math.isfinite(_num(std.get(k))) else "")
+                for k, v in params.items())
+            evidence = []
+            if term.get("since_window") is not None:
+                evidence.append(f"found in window {term['since_window']}")
+            if math.isfinite(_num(term.get("significance"))):
+                evidence.append(f"significance {_fmt(term['significance'], '.3g')}")
+            if values:
+                evidence.append(values + " (1 sigma)")
+            if math.isfinite(_num(term.get("evidence_windows"))):
+                evidence.append(f"evidence of {_fmt(term['evidence_windows'], '.3g')} windows")
+            if evidence:
+                lines.append("; ".join(evidence))
+    disc = doc.get("discovery")
+    if isinstance(disc, Mapping) and disc.get("too_large"):
+        lines += ["", f"The residual is too large for the twin ({disc.get('consecutive')} "
+                  "windows in a row): discovery searches for what the model lacks."]
+    table = _mapping(doc.get("parameters"))
+    if table:
+        lines += ["", "| parameter | value | vs nominal | status |", "|---|---:|---:|---|"]
+        reasons: dict[str, list[str]] = {}
+        for name, p in table.items():
+            if not isinstance(p, Mapping):
+                continue
+            status = str(p.get("status", ""))
+            rel = _num(p.get("rel_std_pct"))
+            if status in ("estimated", "fused") and math.isfinite(rel):
+                status += f" +- {rel:.2g} %"
+            elif status == "tied" and p.get("reason"):
+                status = str(p["reason"])
+            elif status == "held" and p.get("reason"):
+                reasons.setdefault(str(p["reason"]), []).append(str(name))
+            rul = _rul_text(p)
+            if rul:
+                status += f"; {rul}"
+            dev = _num(p.get("deviation_pct"))
+            lines.append(f"| {name} | {_fmt(p.get('value'))} {p.get('unit', '')} | "
+                         f"{format(dev, '+.2f') + ' %' if math.isfinite(dev) else 'n/a'} of "
+                         f"{_fmt(p.get('nominal'))} | {status} |")
+        for reason, names in reasons.items():
+            lines += ["", f"{', '.join(names)} held: {reason}"]
+    rmse = doc.get("rmse")
+    if isinstance(rmse, Mapping) and rmse:
+        fit = ", ".join(f"{k} {_fmt(v, '.3g')}" for k, v in rmse.items())
+        lines += ["", f"fit: nRMSE {_fmt(doc.get('nrmse'), '.3g')}; RMSE {fit}"]
+    return "\n".join(lines) + "\n"
+
+
+def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: bool,
+             grew: Mapping[str, int]) -> tuple[str, Any]:
+    """One line with the window's values, and its level: ERROR while a parameter is in alarm,
+    WARN while one is in warning, the model check fails, the structure changed or data were
+    lost, else INFO."""
+    parts = [f"window {doc.get('window', '?')} [{t0:.2f}-{t_end:.2f} s]"]
+    worst = 0
+    alarms = doc.get("alarms")
+    raised = []
+    if isinstance(alarms, Mapping):
+        for name, a in alarms.items():
+            level = a.get("level") if isinstance(a, Mapping) else None
+            if _RANK.get(str(level), 0) > 0:
+                worst = max(worst, _RANK[str(level)])
+                dev = _fmt(a.get("deviation_pct"), "+.2f")
+                raised.append(f"{str(level).upper()} {name} {dev} %")
+    if raised:
+        parts.append(", ".join(raised) + " |")
+    params = doc.get("parameters")
+    if isinstance(params, Mapping):
+        shown = []
+        for name, p in params.items():
+            if not isinstance(p, Mapping) or p.get("status") in ("tied", "fixed"):
+                continue
+            rul = _rul_text(p)
+            shown.append(f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} "
+                         f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}"
+                         + (f" ({rul})" if rul else ""))
+        if shown:
+            parts.append("; ".join(shown) + " |")
+    fit = []
+    if "nrmse" in doc:
+        fit.append(f"nRMSE {_fmt(doc.get('nrmse'), '.3g')}")
+    check = doc.get("model_check")
+    failed = isinstance(check, Mapping) and check.get("passed") is False
+    if isinstance(check, Mapping):
+        fit.append("model check " + ("FAILED: " + "; ".join(map(str, check.get("reasons") or []))
+                                     if failed else "passed"))
+    if math.isfinite(_num(doc.get("elapsed_s"))):
+        fit.append(f"{_num(doc.get('elapsed_s')) * 1e3:.0f} ms")
+    disc = doc.get("discovery")
+    changed = terms_changed or (isinstance(disc, Mapping) and bool(disc.get("changed")))
+    if changed and isinstance(disc, Mapping):
+        kept, dropped = disc.get("kept") or [], disc.get("dropped") or []
+        fit.append("DT'' changed" + "".join(f"; added {e}" for e in kept)
+                   + "".join(f"; dropped {e}" for e in dropped))
+    elif changed:
+        fit.append("DT'' changed")
+    if grew:
+        fit.append("data lost: " + ", ".join(f"{k} +{v}" for k, v in grew.items()))
+    if fit:
+        parts.append(", ".join(fit))
+    if not raised and len(parts) == 1:  # not a health message: its top-level scalars
+        parts.append(", ".join(f"{k}={v}" for k, v in doc.items()
+                               if isinstance(v, bool | str | int | float) or v is None))
+    if worst == 2:
+        level = rr.TextLogLevel.ERROR
+    elif worst == 1 or failed or changed or grew:
+        level = rr.TextLogLevel.WARN
+    else:
+        level = rr.TextLogLevel.INFO
+    return " ".join(parts), level

@@ -1,0 +1,482 @@
+"""Degradation models fitted to one parameter's evidence, and the choice among them.
+
+A parameter's history (window times ``t`` [s], values ``y`` [SI] with their published 1-sigma
+uncertainty ``s`` [SI]) is described by one of the models of MATLAB's Predictive Maintenance
+Toolbox (``linearDegradationModel``, ``exponentialDegradationModel``), written so that they nest
+and their parameters are what a planner reads, at the reference time ``t_ref`` (the latest
+evidence, "now")::
+
+    none          y(t) = c
+    linear        y(t) = c + m * tau
+    exponential   y(t) = c + m * (exp(r * tau) - 1) / r           tau = t - t_ref
+
+``c`` is the level now [SI], ``m`` the drift rate now [SI/s], ``r`` the growth rate of the
+drift [1/s] (the paper's degradation laws, Ra(t) = 6.5 - 0.044 (exp(0.003 (t - 160)) - 1), are
+exponentials with r = 0.003 /s; as r -> 0 the exponential becomes the line). Each degrading
+model also comes with an *onset* ``t0``: flat before it, ``tau = max(t, t0) - t_ref`` (MATLAB's
+models detect the onset with a slope test, ``SlopeDetectionLevel``; here the onset is a
+parameter of the fit, so a history that was flat for 160 s and then degrades is one model, not a
+compromise between the two).
+
+**Fit.** Weighted least squares, weights ``1/s^2`` (the published uncertainty). For fixed
+``(r, t0)`` the model is linear in ``(c, m)``: a grid over ``r * span`` and ``t0`` is solved in
+closed form, then the best point is polished by :func:`scipy.optimize.least_squares`. The
+parameter covariance is ``(J^T W J)^-1`` scaled by the residuals: by the reduced chi-square when
+the scatter exceeds the published uncertainty, and by the residuals' long-run variance factor
+(Newey-West, :func:`~twinwatch.twin.estimation.statistics.long_run_factor`) when consecutive
+windows' errors are correlated, so the interval is never narrower than the evidence supports.
+
+**Choice** (:func:`select`). With the weights known up to a common scale, ``n_eff ln(chi^2 /
+n)`` plus a penalty, ``n_eff`` corrected for the residuals' lag-1 autocorrelation as the
+discovery's criterion is (:func:`~twinwatch.twin.estimation.statistics.delta_bic`): the BIC
+(penalty ``k ln n_eff``) decides whether the parameter degrades at all, the AICc (``2k +
+2k(k+1)/(n_eff - k - 1)``) which degradation model predicts it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from twinwatch.twin.model import FloatArray
+
+__all__ = ["ModelKind", "DegradationFit", "bin_evidence", "fit_models", "long_run_factor",
+           "select"]
+
+ModelKind = Literal["none", "linear", "exponential"]
+
+#: Grid of r * span (span: the evidence's time span) searched for the exponential.
+_RHO_GRID = np.concatenate([-np.geomspace(4.0, 0.05, 8), np.geomspace(0.05, 8.0, 18)])
+
+
+@dataclass
+class DegradationFit:
+    """One degradation model fitted to a parameter's evidence.
+
+    Attributes:
+        kind: ``none``, ``linear`` or ``exponential``.
+        t_ref: reference time [s] (the latest evidence): ``c`` and ``m`` are the level and
+            the drift rate there.
+        c, m, r: level [SI], drift rate [SI/s], growth rate of the drift [1/s] (0 unless
+            exponential).
+        onset: the onset time ``t0`` [s] (flat before it), None when the model degrades from
+            the first evidence on.
+        cov: covariance of the free parameters ``(c[, m][, r][, t0])`` [their units], scaled
+            (see the module docstring).
+        free: names of the free parameters, in ``cov``'s order.
+        chi2: weighted residual sum of squares (published uncertainty).
+        n: evidence points; ``k`` free parameters.
+        scale: the factor the covariance was multiplied by (>= 1).
+        bic: the Bayesian information criterion (smaller is better): degrading or not.
+        aicc: the corrected Akaike criterion: which degradation model predicts best.
+        rms_norm: RMS of the normalised residuals (1: the scatter the published
+            uncertainty states).
+    """
+
+    kind: ModelKind
+    t_ref: float
+    c: float
+    m: float = 0.0
+    r: float = 0.0
+    onset: float | None = None
+    cov: FloatArray = field(default_factory=lambda: np.zeros((1, 1)))
+    free: tuple[str, ...] = ("c",)
+    chi2: float = 0.0
+    n: int = 0
+    scale: float = 1.0
+    bic: float = math.inf
+    aicc: float = math.inf
+    rms_norm: float = math.nan
+    residuals: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
+
+    @property
+    def k(self) -> int:
+        return len(self.free)
+
+    @property
+    def label(self) -> str:
+        """The model's name, with its onset when it has one (``exponential from 160 s``)."""
+        return self.kind if self.onset is None else f"{self.kind} from {self.onset:.0f} s"
+
+    def std(self, name: str) -> float:
+        """1-sigma standard error of a free parameter (0 for one the model does not have)."""
+        if name not in self.free:
+            return 0.0
+        i = self.free.index(name)
+        return float(math.sqrt(max(self.cov[i, i], 0.0)))
+
+    def value(self, t: FloatArray | float) -> FloatArray:
+        """The model at times ``t`` [s] (any shape)."""
+        return _curve(np.asarray(t, dtype=float), self.t_ref, self.c, self.m, self.r, self.onset)
+
+    def jacobian(self, t: FloatArray) -> FloatArray:
+        """d value / d free parameters at times ``t`` (N,), shape (N, k)."""
+        return _jacobian(np.asarray(t, dtype=float), self, self.free)
+
+    def band(self, t: FloatArray) -> FloatArray:
+        """1-sigma uncertainty of the model's value at times ``t`` (N,) (delta method on the
+        parameter covariance)."""
+        jac = self.jacobian(np.atleast_1d(np.asarray(t, dtype=float)))
+        return np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", jac, self.cov, jac), 0.0))
+
+    def draws(self, n: int, rng: np.random.Generator) -> dict[str, FloatArray]:
+        """``n`` draws of ``c``, ``m``, ``r`` from the fit's Gaussian (the Monte Carlo of the
+        remaining useful life)."""
+        mean = np.array([self._get(p) for p in self.free])
+        cov = 0.5 * (self.cov + self.cov.T)
+        w, v = np.linalg.eigh(cov)
+        z = rng.standard_normal((n, len(mean))) * np.sqrt(np.maximum(w, 0.0))
+        x = mean + z @ v.T
+        out = {p: np.full(n, self._get(p)) for p in ("c", "m", "r")}
+        for i, p in enumerate(self.free):
+            if p in out:
+                out[p] = x[:, i]
+        return out
+
+    def _get(self, name: str) -> float:
+        if name == "t0":
+            return float(self.onset if self.onset is not None else self.t_ref)
+        return float(getattr(self, name))
+
+
+def _g(tau: FloatArray, r: float | FloatArray) -> FloatArray:
+    """(exp(r tau) - 1)/r, continuous at r = 0 (tau there)."""
+    r = np.asarray(r, dtype=float)
+    x = r * tau
+    small = np.abs(x) < 1e-8
+    safe = np.where(small, 1.0, r)
+    return np.where(small, tau * (1.0 + 0.5 * x), np.expm1(np.clip(x, -700.0, 700.0)) / safe)
+
+
+def _curve(t: FloatArray, t_ref: float, c: float, m: float, r: float,
+           onset: float | None) -> FloatArray:
+    tt = t if onset is None else np.maximum(t, onset)
+    return c + m * _g(tt - t_ref, r)
+
+
+def _jacobian(t: FloatArray, fit: DegradationFit, free: tuple[str, ...]) -> FloatArray:
+    tt = t if fit.onset is None else np.maximum(t, fit.onset)
+    tau = tt - fit.t_ref
+    cols = []
+    for p in free:
+        if p == "c":
+            cols.append(np.ones_like(t))
+        elif p == "m":
+            cols.append(_g(tau, fit.r))
+        elif p == "r":
+            x = fit.r * tau
+            if abs(fit.r) < 1e-12:
+                d = 0.5 * tau * tau
+            else:
+                d = (tau * np.exp(np.clip(x, -700, 700)) - _g(tau, fit.r)) / fit.r
+            cols.append(fit.m * d)
+        elif p == "t0":
+            assert fit.onset is not None
+            before = t < fit.onset
+            cols.append(np.where(before, fit.m * np.exp(fit.r * (fit.onset - fit.t_ref)), 0.0))
+    return np.column_stack(cols)
+
+
+def _wls_grid(basis: FloatArray, y: FloatArray, w: FloatArray
+              ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Closed-form weighted least squares of ``y = c + m * basis[j]`` for every row ``j`` of
+    ``basis`` (G, N): returns (chi2 (G,), c (G,), m (G,))."""
+    s0 = float(np.sum(w))
+    sy = float(w @ y)
+    syy = float(w @ (y * y))
+    s1 = basis @ w
+    s2 = (basis * basis) @ w
+    sgy = basis @ (w * y)
+    det = s0 * s2 - s1 * s1
+    ok = det > 1e-12 * np.maximum(s0 * s2, 1e-300)
+    det_s = np.where(ok, det, 1.0)
+    c = np.where(ok, (s2 * sy - s1 * sgy) / det_s, sy / s0)
+    m = np.where(ok, (s0 * sgy - s1 * sy) / det_s, 0.0)
+    chi2 = syy - c * sy - m * sgy
+    chi2 = np.where(ok, np.maximum(chi2, 0.0), np.inf)
+    return chi2, c, m
+
+
+def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref: float,
+            c: float, m: float, r: float, onset: float | None, free: tuple[str, ...]
+            ) -> DegradationFit:
+    """Polish the grid's best by least squares, then the scaled covariance and the BIC."""
+    fit = DegradationFit(kind, t_ref, c, m, r, onset, free=free)
+    names = free
+
+    def unpack(x: FloatArray) -> DegradationFit:
+        f = DegradationFit(kind, t_ref, fit.c, fit.m, fit.r, fit.onset, free=free)
+        for i, p in enumerate(names):
+            if p == "t0":
+                f.onset = float(x[i])
+            else:
+                setattr(f, p, float(x[i]))
+        return f
+
+    def resid(x: FloatArray) -> FloatArray:
+        return (unpack(x).value(t) - y) / s
+
+    def jac(x: FloatArray) -> FloatArray:
+        f = unpack(x)
+        return f.jacobian(t) / s[:, None]
+
+    x0 = np.array([fit._get(p) for p in names])
+    if kind != "none" and len(names) > 2:
+        lo = np.full(len(names), -np.inf)
+        hi = np.full(len(names), np.inf)
+        span = max(float(t[-1] - t[0]), 1e-9)
+        for i, p in enumerate(names):
+            if p == "r":
+                lo[i], hi[i] = -6.0 / span, 12.0 / span
+            elif p == "t0":
+                lo[i], hi[i] = float(t[0]), float(t[-1])
+        pad = 1e-9 * np.where(np.isfinite(hi - lo), hi - lo, 0.0)
+        x0 = np.clip(x0, lo + pad, hi - pad)
+        x0 = _levenberg_marquardt(resid, jac, x0, lo, hi)
+    fit = unpack(x0)
+    r_norm = resid(x0)
+    chi2 = float(r_norm @ r_norm)
+    n = int(t.size)
+    k = len(names)
+    j = jac(x0)
+    info = j.T @ j
+    try:
+        cov = np.linalg.pinv(info, rcond=1e-12, hermitian=True)
+    except np.linalg.LinAlgError:
+        cov = np.full((k, k), np.inf)
+    dof = max(n - k, 1)
+    red = chi2 / dof
+    lrf = long_run_factor(r_norm)
+    scale = max(red, 1.0) * lrf
+    fit.cov = cov * scale
+    fit.chi2 = chi2
+    fit.n = n
+    fit.scale = scale
+    fit.rms_norm = float(math.sqrt(chi2 / max(n, 1)))
+    fit.residuals = r_norm
+    return fit
+
+
+def long_run_factor(r: FloatArray, lags: int | None = None) -> float:
+    """Long-run over short-run variance of a residual series (>= 1): ``1 + 2 sum_k w_k
+    rho_k`` with Bartlett weights ``w_k = 1 - k/(L+1)`` (Newey-West), ``L = min(n/4, 30)``
+    by default (the estimator's :func:`~twinwatch.twin.estimation.statistics.long_run_factor`
+    for one series, vectorised). White residuals give about 1."""
+    r = np.asarray(r, dtype=float)
+    n = r.size
+    if n < 8:
+        return 1.0
+    big_l = max(1, min(lags if lags is not None else min(n // 4, 30), n - 1))
+    den = float(r @ r)
+    if den <= 0:
+        return 1.0
+    spec = np.fft.rfft(r, 2 * n)
+    acov = np.fft.irfft(spec * np.conj(spec))[1:big_l + 1] / den
+    w = 1.0 - np.arange(1, big_l + 1) / (big_l + 1.0)
+    return float(min(max(1.0 + 2.0 * float(w @ acov), 1.0), float(n)))
+
+
+def bin_evidence(t: FloatArray, y: FloatArray, s: FloatArray, most: int
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """At most ``most`` points: consecutive evidence combined by inverse-variance weighting
+    (time, value, and the combined 1-sigma ``1/sqrt(sum w)``), the bins counted back from the
+    latest point so it stays one bin's end. A slow trend loses nothing that matters; the fit
+    costs a fraction."""
+    n = t.size
+    if n <= most:
+        return t, y, s
+    b = -(-n // most)
+    w = 1.0 / (s * s)
+    edges = np.arange(n, 0, -b)[::-1]
+    starts = np.concatenate([[0], edges[:-1]])
+    sw = np.add.reduceat(w, starts)
+    tb = np.add.reduceat(w * t, starts) / sw
+    yb = np.add.reduceat(w * y, starts) / sw
+    return tb, yb, 1.0 / np.sqrt(sw)
+
+
+def _levenberg_marquardt(resid: Callable[[FloatArray], FloatArray],
+                         jac: Callable[[FloatArray], FloatArray], x0: FloatArray,
+                         lo: FloatArray, hi: FloatArray, iterations: int = 40) -> FloatArray:
+    """Bounded Levenberg-Marquardt (steps clipped to the bounds) from the grid's best point:
+    the models have at most four parameters and start close to the optimum, where a general
+    solver's overhead (scipy's ``least_squares``: 20 ms a fit) is most of the cost."""
+    x = x0.copy()
+    r = resid(x)
+    cost = float(r @ r)
+    lam = 1e-3
+    for _ in range(iterations):
+        j = jac(x)
+        a = j.T @ j
+        g = j.T @ r
+        d = np.diag(a).copy()
+        d[d <= 0] = 1.0
+        improved = False
+        for _ in range(10):
+            try:
+                step = np.linalg.solve(a + lam * np.diag(d), -g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            xn = np.clip(x + step, lo, hi)
+            rn = resid(xn)
+            cn = float(rn @ rn)
+            if math.isfinite(cn) and cn < cost:
+                improved = True
+                small = cost - cn <= 1e-10 * cost
+                x, r, cost = xn, rn, cn
+                lam = max(lam / 3.0, 1e-9)
+                break
+            lam *= 10.0
+        if not improved or small:
+            break
+    return x
+
+
+def _assign_bic(fits: list[DegradationFit]) -> None:
+    """BIC of each fit with the weights known up to a common scale, on one effective sample
+    size for all (a comparison needs the same one): ``n (1 - rho)/(1 + rho)``, ``rho`` the
+    lag-1 autocorrelation of the residuals of the fit with the smallest chi-square (the
+    richest: its residuals are the errors, not the others' misfit)."""
+    if not fits:
+        return
+    best = min(fits, key=lambda f: f.chi2)
+    r = best.residuals
+    n = best.n
+    den = float(r @ r)
+    rho = float(np.sum(r[1:] * r[:-1])) / den if n > 2 and den > 0 else 0.0
+    rho = min(max(rho, 0.0), 0.99)
+    most = max(f.k for f in fits)
+    n_eff = max(n * (1.0 - rho) / (1.0 + rho), float(most + 1))
+    for f in fits:
+        fit_term = n_eff * math.log(max(f.chi2 / n, 1e-300))
+        f.bic = fit_term + f.k * math.log(n_eff)
+        f.aicc = fit_term + 2.0 * f.k + 2.0 * f.k * (f.k + 1) / max(n_eff - f.k - 1, 1.0)
+
+
+def _onset_grid(t: FloatArray, most: int) -> FloatArray:
+    """Candidate onsets: evidence times from the first to the one ``max(5, n/5)`` from the
+    end (a degradation needs some evidence after its onset), at most ``most`` of them."""
+    n = t.size
+    last = n - max(5, n // 5)
+    if last < 2:
+        return np.empty(0)
+    idx = np.unique(np.linspace(1, last, min(most, last), dtype=int))
+    return t[idx]
+
+
+def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | None = None,
+               kinds: tuple[ModelKind, ...] = ("none", "linear", "exponential"),
+               onset: bool = True, min_points: int = 6,
+               onsets: FloatArray | None = None) -> list[DegradationFit]:
+    """Fit every model of ``kinds`` (and, with ``onset``, each degrading one with an onset)
+    to the evidence.
+
+    Args:
+        t: evidence times [s] (N,), increasing.
+        y: values [SI] (N,).
+        s: their 1-sigma uncertainty [SI] (N,), positive.
+        t_ref: reference time (default: ``t[-1]``).
+        kinds: the candidate models.
+        onset: also fit the degrading models with an onset.
+        min_points: a model with ``k`` parameters needs ``k + min_points`` points.
+        onsets: the candidate onsets (default: the evidence times but the last fifth).
+
+    Returns:
+        The fits (``none`` first when asked), each with its BIC.
+    """
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    # A stated uncertainty below 1e-9 of the values is rounding, not information.
+    floor = 1e-9 * float(np.max(np.abs(y))) if y.size else 0.0
+    s = np.maximum(np.asarray(s, dtype=float), max(floor, 1e-300))
+    n = t.size
+    t_ref = float(t[-1]) if t_ref is None else float(t_ref)
+    w = 1.0 / (s * s)
+    out: list[DegradationFit] = []
+    if n == 0:
+        return out
+    c0 = float(w @ y / np.sum(w))
+    if "none" in kinds:
+        out.append(_finish("none", t, y, s, t_ref, c0, 0.0, 0.0, None, ("c",)))
+    span = float(t[-1] - t[0])
+    if span <= 0:
+        _assign_bic(out)
+        return out
+    tau = t - t_ref
+    if not onset:
+        onsets = np.empty(0)
+    elif onsets is None:
+        onsets = _onset_grid(t, 30)
+    if "linear" in kinds and n >= 2 + min_points:
+        chi2, c, m = _wls_grid(tau[None, :], y, w)
+        out.append(_finish("linear", t, y, s, t_ref, float(c[0]), float(m[0]), 0.0, None,
+                           ("c", "m")))
+        if onsets.size and n >= 3 + min_points:
+            basis = np.maximum(t[None, :], onsets[:, None]) - t_ref
+            chi2, c, m = _wls_grid(basis, y, w)
+            i = int(np.argmin(chi2))
+            out.append(_finish("linear", t, y, s, t_ref, float(c[i]), float(m[i]), 0.0,
+                               float(onsets[i]), ("c", "m", "t0")))
+    if "exponential" in kinds and n >= 3 + min_points:
+        rs = _RHO_GRID / span
+        basis = _g(tau[None, :], rs[:, None])
+        chi2, c, m = _wls_grid(basis, y, w)
+        i = int(np.argmin(chi2))
+        out.append(_finish("exponential", t, y, s, t_ref, float(c[i]), float(m[i]),
+                           float(rs[i]), None, ("c", "m", "r")))
+        if onsets.size and n >= 4 + min_points:
+            tt = np.maximum(t[None, :], onsets[:, None]) - t_ref        # (O, N)
+            basis = _g(tt[None, :, :], rs[:, None, None]).reshape(-1, n)  # (R*O, N)
+            chi2, c, m = _wls_grid(basis, y, w)
+            i = int(np.argmin(chi2))
+            ri, oi = divmod(i, onsets.size)
+            out.append(_finish("exponential", t, y, s, t_ref, float(c[i]), float(m[i]),
+                               float(rs[ri]), float(onsets[oi]), ("c", "m", "r", "t0")))
+    _assign_bic(out)
+    return out
+
+
+def select(fits: list[DegradationFit], min_weight: float = 0.01
+           ) -> tuple[DegradationFit | None, list[tuple[DegradationFit, float]]]:
+    """The chosen model and the plausible ones with their weights.
+
+    Two questions, two criteria: *is it degrading?* is a test, answered by the BIC (consistent:
+    it does not see a trend in noise; the ``none`` model against the best degrading one by
+    BIC); *how?* is a forecast, answered by the AICc among the degrading models (efficient:
+    the best predictor; the BIC's heavier penalty picks a line over an exponential whose
+    curvature noisy evidence only starts to show, and the line's crossing comes late).
+    Weights: ``exp(-delta/2)`` of each criterion (Bayesian model averaging), the degrading
+    models sharing what the BIC leaves them; below ``min_weight`` of the largest, dropped.
+
+    Returns:
+        (chosen fit or None without fits, [(fit, weight)] summing to 1).
+    """
+    good = [f for f in fits if math.isfinite(f.bic)]
+    if not good:
+        return None, []
+    none = [f for f in good if f.kind == "none"]
+    degrading = [f for f in good if f.kind != "none"]
+    if not degrading:
+        return none[0], [(none[0], 1.0)]
+    best_bic = min(degrading, key=lambda f: f.bic)
+    w_none = 0.0
+    if none:
+        d = none[0].bic - best_bic.bic
+        w_none = 1.0 / (1.0 + math.exp(min(0.5 * d, 700.0)))
+    a_min = min(f.aicc for f in degrading)
+    w = np.array([math.exp(-0.5 * min(f.aicc - a_min, 1400.0)) for f in degrading])
+    w = w / w.sum() * (1.0 - w_none)
+    pairs = [(f, float(wi)) for f, wi in zip(degrading, w, strict=True)]
+    if none:
+        pairs.insert(0, (none[0], w_none))
+    top = max(wi for _, wi in pairs)
+    pairs = [(f, wi) for f, wi in pairs if wi >= min_weight * top]
+    total = sum(wi for _, wi in pairs)
+    pairs = [(f, wi / total) for f, wi in pairs]
+    chosen = none[0] if none and w_none >= 0.5 else min(degrading, key=lambda f: f.aicc)
+    return chosen, pairs

@@ -1,0 +1,256 @@
+"""Every estimated parameter's trend and remaining useful life, window after window.
+
+:class:`Prognostics` is what the twin's adaptation (:class:`~twinwatch.twin.adaptation.
+TwinAdapter`) calls once per window with the window's estimate: each parameter's evidence
+(:mod:`~twinwatch.twin.prognostics.evidence`) goes to its trend
+(:mod:`~twinwatch.twin.prognostics.trend`), which is refitted, and the parameters with an alarm
+rule get the predicted crossing of its warning and alarm thresholds
+(:mod:`~twinwatch.twin.prognostics.rul`). The result, :class:`Prognosis` per parameter, is
+what the health message publishes (``parameters.<name>.trend`` and ``.rul``).
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from twinwatch.twin.prognostics.config import PrognosticsConfig, Thresholds
+from twinwatch.twin.prognostics.rul import Crossing, predict_crossing
+from twinwatch.twin.prognostics.trend import (
+    Evidence,
+    ParameterTrend,
+    Restart,
+    TrendSettings,
+)
+
+__all__ = ["Prognosis", "Prognostics", "RulReport", "TrendReport"]
+
+RulStatus = Literal["insufficient", "not_degrading", "degrading"]
+
+
+@dataclass
+class TrendReport:
+    """A parameter's trend after a window (``parameters.<name>.trend``).
+
+    Attributes:
+        model: ``none``, ``linear`` or ``exponential`` (None: too little evidence).
+        onset: the onset of the degradation [s] (None: from the segment's start).
+        since_t: the first evidence of the current segment [s] (after the last restart).
+        evidence: evidence windows the trend is fitted to.
+        level, level_std: the trend's value at the window's end [SI] and its 1-sigma.
+        rate, rate_low, rate_high: drift rate at the latest evidence [SI/s] and its interval.
+        rate_pct_per_h: the rate in percent of nominal per hour.
+        growth: the exponential's growth rate [1/s] (None otherwise).
+        degrading: the trend drifts beyond its uncertainty.
+        model_weight: the chosen model's share of the model-averaging weight.
+        monotonicity, trendability: the segment's history scores (0..1).
+        restarted: this window restarted the trend (a step).
+        restart: the last restart (time [s], step [SI], reason), or None.
+        restarts: restarts so far.
+        window_evidence: this window's evidence (value [SI], 1-sigma [SI], source), or None.
+    """
+
+    model: str | None
+    onset: float | None
+    since_t: float | None
+    evidence: int
+    level: float | None = None
+    level_std: float | None = None
+    rate: float | None = None
+    rate_low: float | None = None
+    rate_high: float | None = None
+    rate_pct_per_h: float | None = None
+    growth: float | None = None
+    degrading: bool = False
+    model_weight: float | None = None
+    monotonicity: float | None = None
+    trendability: float | None = None
+    restarted: bool = False
+    restart: Restart | None = None
+    restarts: int = 0
+    window_evidence: Evidence | None = None
+
+
+@dataclass
+class RulReport:
+    """A parameter's remaining useful life (``parameters.<name>.rul``): the predicted crossing
+    of its alarm rule's warning and alarm thresholds.
+
+    Attributes:
+        status: ``insufficient`` (too little evidence since the start or a restart),
+            ``not_degrading`` (the trend is flat within its uncertainty), ``degrading``.
+        warning, alarm: the crossings (None when the rule has no such level, or not
+            degrading).
+        method: how the distribution is computed (``monte_carlo``), with ``draws`` and the
+            ``interval``'s central probability.
+    """
+
+    status: RulStatus
+    warning: Crossing | None = None
+    alarm: Crossing | None = None
+    method: str = "monte_carlo"
+    draws: int = 0
+    interval: float = 0.95
+
+
+@dataclass
+class Prognosis:
+    """One parameter's trend and, with an alarm rule, its RUL."""
+
+    trend: TrendReport
+    rul: RulReport | None = None
+
+
+@dataclass
+class _Pace:
+    """Wall seconds per plant second over the recent windows."""
+
+    points: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=30))
+
+    def add(self, t: float, wall: float | None) -> None:
+        if wall is not None and math.isfinite(wall):
+            if self.points and t <= self.points[-1][0]:
+                self.points.clear()  # the source's clock went back: start over
+            self.points.append((t, wall))
+
+    def value(self) -> float:
+        if len(self.points) < 2:
+            return 1.0
+        (t0, w0), (t1, w1) = self.points[0], self.points[-1]
+        return (w1 - w0) / (t1 - t0) if t1 > t0 and w1 >= w0 else 1.0
+
+
+class Prognostics:
+    """Trend and remaining useful life of every estimated parameter.
+
+    Args:
+        names: the estimated parameters.
+        nominal: parameter -> nameplate value [SI] (for the rate in percent per hour).
+        config: the ``[prognostics]`` table.
+        thresholds: parameter -> its alarm rule's thresholds [SI] (parameters without one get
+            a trend but no RUL).
+    """
+
+    def __init__(self, names: Sequence[str], nominal: Mapping[str, float],
+                 config: PrognosticsConfig | None = None,
+                 thresholds: Mapping[str, Thresholds] | None = None) -> None:
+        self.config = config or PrognosticsConfig()
+        c = self.config
+        self.settings = TrendSettings(horizon=c.horizon, min_evidence=c.min_evidence,
+                                      max_points=c.max_points, onset=c.onset,
+                                      step_threshold=c.step_threshold,
+                                      step_confirm=c.step_confirm, flat_z=c.flat_z,
+                                      detection=c.detection)
+        self.names = tuple(names)
+        self.nominal = dict(nominal)
+        self.thresholds = dict(thresholds or {})
+        self.trends = {n: ParameterTrend(n, self.settings) for n in self.names}
+        self._pace = _Pace()
+        #: The last window's prognosis per parameter.
+        self.latest: dict[str, Prognosis] = {}
+
+    # -- one window ---------------------------------------------------------------------------
+    def update(self, evidence: Mapping[str, Evidence], *, t_end: float, jump: bool = False,
+               wall: float | None = None) -> dict[str, Prognosis]:
+        """Feed one window's evidence and predict.
+
+        Args:
+            evidence: parameter -> this window's evidence (parameters without any: absent).
+            t_end: the window's last sample time [s] (the RUL counts from it).
+            jump: the fusion flagged the window as a sudden change.
+            wall: the wall-clock time at the window's end [s since the epoch].
+
+        Returns:
+            parameter -> its prognosis (also :attr:`latest`).
+        """
+        self._pace.add(t_end, wall)
+        out: dict[str, Prognosis] = {}
+        for name, trend in self.trends.items():
+            ev = evidence.get(name)
+            trend.add(ev, jump=jump)
+            trend.refit(t_end)
+            out[name] = self._prognosis(name, trend, ev, t_end, wall)
+        self.latest = out
+        return out
+
+    def replay(self, messages: Sequence[Mapping[str, Any]]) -> int:
+        """Rebuild the trends from stored health messages (oldest first, e.g. the state
+        database's history at a restart): the evidence each window published
+        (``parameters.<name>.trend.window_evidence``) since the start of the segment the
+        latest message names (``trend.since_t``: a restart before it is not replayed again).
+
+        Returns:
+            The evidence windows replayed.
+        """
+        n = 0
+        last = messages[-1] if messages else {}
+        for name, trend in self.trends.items():
+            latest = ((last.get("parameters") or {}).get(name) or {}).get("trend") or {}
+            since = latest.get("since_t")
+            if since is None:
+                continue
+            for msg in messages:
+                ev = (((msg.get("parameters") or {}).get(name) or {}).get("trend")
+                      or {}).get("window_evidence")
+                if not ev or ev.get("value") is None or not ev.get("std") \
+                        or float(ev["t"]) < float(since):
+                    continue
+                trend._append(Evidence(float(ev["t"]), float(ev["value"]), float(ev["std"]),
+                                       str(ev.get("source") or "estimated")))
+                n += 1
+            if trend.t:
+                trend.refit(trend.t[-1])
+        return n
+
+    # -- reports ------------------------------------------------------------------------------
+    def _prognosis(self, name: str, trend: ParameterTrend, ev: Evidence | None, t_end: float,
+                   wall: float | None) -> Prognosis:
+        f = trend.fit
+        mono, trd = trend.scores()
+        report = TrendReport(
+            model=f.kind if f is not None else None,
+            onset=f.onset if f is not None else None,
+            since_t=trend.since_t, evidence=trend.evidence,
+            monotonicity=mono, trendability=trd, restarted=trend.restarted,
+            restart=trend.restarts[-1] if trend.restarts else None,
+            restarts=len(trend.restarts), window_evidence=ev)
+        degrading = False
+        if f is not None:
+            degrading = trend.degrading()
+            sd = f.std("m")
+            z = 1.959963984540054
+            nom = self.nominal.get(name) or 0.0
+            report.level = float(f.value(t_end))
+            report.level_std = float(f.band(np.array([t_end]))[0])
+            report.rate = f.m
+            report.rate_low, report.rate_high = f.m - z * sd, f.m + z * sd
+            report.rate_pct_per_h = f.m / nom * 360000.0 if nom else None
+            report.growth = f.r if f.kind == "exponential" else None
+            report.degrading = degrading
+            report.model_weight = trend.model_weight()
+        th = self.thresholds.get(name)
+        if th is None:
+            return Prognosis(report)
+        c = self.config
+        rul = RulReport("insufficient", draws=c.draws, interval=c.interval)
+        if f is not None:
+            rul.status = "degrading" if degrading else "not_degrading"
+        if f is not None and degrading:
+            rng = np.random.default_rng([c.seed, zlib.crc32(name.encode()),
+                                         int(round(t_end * 1000.0))])
+            mixture = list(zip(trend.fits, trend.weights, strict=True))
+            for level in ("warning", "alarm"):
+                high, low = th.level(level)
+                if high is None and low is None:
+                    continue
+                cr = predict_crossing(f, level, high, low, t_end=t_end, interval=c.interval,
+                                      draws=c.draws, rng=rng, wall_end=wall,
+                                      pace=self._pace.value(), mixture=mixture)
+                setattr(rul, level, cr)
+        return Prognosis(report, rul)

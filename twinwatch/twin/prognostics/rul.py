@@ -1,0 +1,224 @@
+"""Remaining useful life: when does a parameter's trend cross a threshold, and how sure is it?
+
+The time to a threshold is a distribution, computed by **Monte Carlo** on the trend's parameter
+covariance (as ProgPy's ``MonteCarlo`` predictor samples its uncertain state, and MATLAB's
+``predictRUL`` returns a distribution): ``draws`` samples of the level, drift rate and growth
+rate ``(c, m, r)`` from the fit's Gaussian (:meth:`DegradationFit.draws`), each solved in closed
+form for its crossing of the threshold ``y*``::
+
+    c + m * (exp(r * tau) - 1) / r = y*   ->   tau = ln(1 + r q) / r,   q = (y* - c) / m
+    (linear, r = 0: tau = q)
+
+A draw that never reaches the threshold (drifting away from it, or an exponential that
+saturates short of it) has an infinite time; one already beyond it has 0. The published median
+and interval are the draws' quantiles, so an interval may be open (``high`` null: some draws
+never get there). Monte Carlo rather than the delta method because the crossing time is far from
+linear in the parameters (a drift rate near zero makes it unbounded) and because it keeps the
+probability of never crossing.
+
+Times are plant time [s] (the source's clock): ``t`` the crossing time, ``rul_s`` the time from
+the window's end; the wall-clock time of the crossing (``wall``, seconds since the epoch) is the
+wall time at the window's end plus ``rul_s`` at the pace the source's clock has kept against
+the wall clock over the recent windows (1 for a live machine; a simulated plant run as fast as
+possible reaches it sooner).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from twinwatch.twin.model import FloatArray
+from twinwatch.twin.prognostics.degradation import DegradationFit
+
+__all__ = ["Crossing", "crossing_times", "format_crossing", "format_duration", "predict_crossing"]
+
+
+@dataclass
+class Crossing:
+    """The predicted crossing of one threshold.
+
+    Attributes:
+        level: ``warning`` or ``alarm``.
+        threshold: the threshold [SI] the trend heads to (of a two-sided rule, the side its
+            level is heading to).
+        status: ``crossed`` (the trend's level is beyond it now), ``predicted`` (the median
+            crossing is finite), ``not_reached`` (most draws never reach it).
+        t, t_low, t_high: median crossing and interval [plant time, s] (None: never).
+        rul_s, low_s, high_s: the same as time from the window's end [s].
+        wall, wall_low, wall_high: the same on the wall clock [s since the epoch].
+        probability: share of the draws that reach it (at any time).
+        samples: the draws' times from the window's end [s] (inf: never), for the metrics.
+    """
+
+    level: str
+    threshold: float
+    status: Literal["crossed", "predicted", "not_reached"]
+    t: float | None = None
+    t_low: float | None = None
+    t_high: float | None = None
+    rul_s: float | None = None
+    low_s: float | None = None
+    high_s: float | None = None
+    wall: float | None = None
+    wall_low: float | None = None
+    wall_high: float | None = None
+    probability: float = 0.0
+    samples: FloatArray | None = None
+
+
+def crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
+                   threshold: float, direction: int) -> FloatArray:
+    """Time [s] from ``tau0`` until ``c + m (exp(r tau) - 1)/r`` reaches ``threshold``, per
+    draw (inf: never; 0: already beyond it at ``tau0``).
+
+    Args:
+        c, m, r: (n,) draws of the level [SI], drift rate [SI/s] and growth rate [1/s] at the
+            reference time (tau = 0).
+        tau0: the window's end minus the reference time [s] (>= 0).
+        threshold: [SI].
+        direction: +1 for a threshold crossed upwards (a high one), -1 downwards (a low one).
+    """
+    c, m, r = (np.asarray(a, dtype=float) for a in (c, m, r))
+    lin = np.abs(r) < 1e-12
+    safe_r = np.where(lin, 1.0, r)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        level_now = c + m * np.where(lin, tau0, np.expm1(np.clip(r * tau0, -700, 700))
+                                     / safe_r)
+        q = (threshold - c) / m
+        arg = 1.0 + r * q
+        tau_exp = np.where(arg > 0, np.log(np.where(arg > 0, arg, 1.0)) / safe_r, np.inf)
+        tau = np.where(lin, q, tau_exp)
+        # Heading away from the threshold (q < 0), or no drift: never.
+        tau = np.where(np.isfinite(tau) & (m != 0) & (tau >= 0), tau, np.inf)
+    out = np.maximum(tau - tau0, 0.0)
+    return np.where((level_now - threshold) * direction >= 0, 0.0, out)
+
+
+def _quantile(x: FloatArray, q: float) -> float | None:
+    """The ``q`` quantile of draws that may be infinite (never), None when infinite
+    (linear interpolation between ranks; between a finite and an infinite rank: infinite)."""
+    if not x.size:
+        return None
+    s = np.sort(x)
+    pos = q * (s.size - 1)
+    i = int(math.floor(pos))
+    j = min(i + 1, s.size - 1)
+    if not (math.isfinite(s[i]) and math.isfinite(s[j])):
+        return None
+    return float(s[i] + (pos - i) * (s[j] - s[i]))
+
+
+def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: float | None,
+                     *, t_end: float, interval: float, draws: int, rng: np.random.Generator,
+                     wall_end: float | None = None, pace: float = 1.0,
+                     mixture: Sequence[tuple[DegradationFit, float]] = ()) -> Crossing:
+    """The crossing of a level's threshold(s) by the trend ``fit``.
+
+    Args:
+        fit: the selected degradation model.
+        mixture: the plausible models with their weights (Bayesian model averaging: the
+            draws are shared among them by weight); empty: ``fit`` alone.
+        level: ``warning`` or ``alarm``.
+        high, low: the level's thresholds [SI], crossed upwards and downwards (None: absent);
+            each draw takes the first it reaches.
+        t_end: the window's end [plant time, s] (the RUL counts from it).
+        interval: central probability of the published interval (0.95: the 2.5-97.5 %
+            quantiles).
+        draws: Monte Carlo samples.
+        rng: the generator (seeded by the caller: the same evidence gives the same answer).
+        wall_end: the wall-clock time at the window's end [s since the epoch], or None.
+        pace: wall seconds per plant second over the recent windows.
+
+    Returns:
+        The crossing; ``samples`` holds the draws' times from ``t_end`` [s] (inf: never).
+    """
+    level_end = float(fit.value(t_end))
+    target = high if (fit.m >= 0 and high is not None) or low is None else low
+    assert target is not None, "a level needs a threshold"
+    if (high is not None and level_end >= high) or (low is not None and level_end <= low):
+        crossed = high if high is not None and level_end >= high else low
+        assert crossed is not None
+        return Crossing(level, crossed, "crossed", t=t_end, t_low=t_end, t_high=t_end,
+                        rul_s=0.0, low_s=0.0, high_s=0.0, wall=wall_end, wall_low=wall_end,
+                        wall_high=wall_end, probability=1.0, samples=np.zeros(draws))
+    parts = []
+    for f, n_f in _share(mixture or [(fit, 1.0)], draws):
+        p = f.draws(n_f, rng)
+        tau0 = max(t_end - f.t_ref, 0.0)
+        times = np.full(n_f, np.inf)
+        for th, direction in ((high, 1), (low, -1)):
+            if th is not None:
+                times = np.minimum(times, crossing_times(p["c"], p["m"], p["r"], tau0, th,
+                                                         direction))
+        parts.append(times)
+    times = np.concatenate(parts)
+    a = 0.5 * (1.0 - interval)
+    med = _quantile(times, 0.5)
+    lo = _quantile(times, a)
+    hi = _quantile(times, 1.0 - a)
+    prob = float(np.mean(np.isfinite(times)))
+    status: Literal["crossed", "predicted", "not_reached"] = (
+        "predicted" if med is not None else "not_reached")
+
+    def at(x: float | None) -> float | None:
+        return None if x is None else t_end + x
+
+    def wall(x: float | None) -> float | None:
+        return None if x is None or wall_end is None else wall_end + x * pace
+
+    return Crossing(level, target, status, t=at(med), t_low=at(lo), t_high=at(hi), rul_s=med,
+                    low_s=lo, high_s=hi, wall=wall(med), wall_low=wall(lo),
+                    wall_high=wall(hi), probability=prob, samples=times)
+
+
+def _share(mixture: Sequence[tuple[DegradationFit, float]], draws: int
+           ) -> list[tuple[DegradationFit, int]]:
+    """``draws`` shared among the models by weight (largest remainders)."""
+    w = np.array([max(wi, 0.0) for _, wi in mixture], dtype=float)
+    w = w / w.sum() if w.sum() > 0 else np.full(w.size, 1.0 / w.size)
+    raw = w * draws
+    n = np.floor(raw).astype(int)
+    for i in np.argsort(raw - n)[::-1][:draws - int(n.sum())]:
+        n[i] += 1
+    return [(f, int(k)) for (f, _), k in zip(mixture, n, strict=True) if k > 0]
+
+
+_UNITS = ((172800.0, 86400.0, "d"), (7200.0, 3600.0, "h"), (120.0, 60.0, "min"), (0.0, 1.0, "s"))
+
+
+def _unit(seconds: float) -> tuple[float, str]:
+    for limit, size, name in _UNITS:
+        if seconds >= limit:
+            return size, name
+    return 1.0, "s"
+
+
+def _num(x: float) -> str:
+    return f"{x:.1f}".rstrip("0").rstrip(".") if x < 10 else f"{x:.0f}"
+
+
+def format_duration(seconds: float | None) -> str:
+    """A time for a person: ``45 s``, ``6 min``, ``3.5 h``, ``12 d``; ``never`` for None or
+    inf."""
+    if seconds is None or not math.isfinite(seconds):
+        return "never"
+    size, name = _unit(abs(seconds))
+    return f"{_num(seconds / size)} {name}"
+
+
+def format_crossing(median: float | None, low: float | None, high: float | None) -> str:
+    """``6 min (4-9 min)``: a median time with its interval in the median's unit (``4 min -
+    never`` when the interval is open: some draws never get there)."""
+    if median is None or not math.isfinite(median):
+        return "never" if low is None else f"not likely (at the earliest {format_duration(low)})"
+    size, name = _unit(abs(median))
+    lo = "?" if low is None else _num(low / size)
+    hi = "never" if high is None or not math.isfinite(high) else _num(high / size)
+    if hi == "never":
+        return f"{_num(median / size)} {name} ({lo} {name} - never)"
+    return f"{_num(median / size)} {name} ({lo}-{hi} {name})"

@@ -1,0 +1,300 @@
+"""The trend of one parameter: its evidence, the degradation model it follows, its restarts.
+
+:class:`ParameterTrend` keeps one parameter's evidence since the last restart (within the
+configured horizon) and, every window:
+
+1. **Step test.** New evidence is compared with the current trend's prediction at its time: the
+   normalised innovation ``z = (y - y_hat) / sqrt(k s^2 + band^2)`` (``s`` the evidence's
+   published uncertainty, ``k`` the fit's reduced chi-square when above 1, ``band`` the
+   prediction's own uncertainty). ``|z|`` above ``step_threshold`` in ``step_confirm``
+   consecutive evidence windows on the same side is a *step* (a repair, a part replaced, a
+   sudden fault): the trend restarts from the first of them, the evidence before it is
+   dropped, and the restart is reported (time, size). One such window alone is an outlier and
+   is dropped. When the fusion flagged the window as a sudden change (``fusion_jump``), one
+   window confirms it. A step therefore restarts the trend instead of bending it.
+2. **Fit.** The degradation models (:mod:`~twinwatch.twin.prognostics.degradation`) are fitted
+   to the segment's evidence (binned to ``max_points``), the information criteria choose one
+   (:func:`~twinwatch.twin.prognostics.degradation.select`), and the others keep their weight
+   (Bayesian model averaging: the remaining useful life is drawn from every plausible model,
+   so an early choice between a line and an exponential widens the interval instead of hiding
+   in it).
+3. **Degrading?** Only when the evidence favours a degrading model over ``none`` with odds of
+   at least ``detection`` (0.9: the BIC's weights) and the chosen model's drift rate now is
+   beyond ``flat_z`` standard errors of zero; otherwise "not degrading" (flat within its
+   uncertainty).
+
+The history's fitness for prediction is reported as MATLAB's Predictive Maintenance Toolbox
+scores it: **monotonicity** ``|sum sign(diff x)| / (n - 1)`` (its default ``sign`` method) on
+the evidence smoothed by a moving mean of ``smooth`` points (its ``WindowSize`` option; noisy
+evidence is otherwise never monotonic), and **trendability**. MATLAB's trendability is the
+smallest ``|corr(x_j, x_k)|`` between the trajectories of several run-to-failure members
+(Coble and Hines); a machine has one trajectory, so here it is the ``|corr(x, t)|`` of the
+history against its lifetime variable (the single-trajectory form used e.g. by Javed et al.,
+2015): 1 for a history that follows time, 0 for one that does not.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twinwatch.twin.model import FloatArray
+from twinwatch.twin.prognostics.degradation import (
+    DegradationFit,
+    bin_evidence,
+    fit_models,
+    select,
+)
+
+__all__ = ["Evidence", "ParameterTrend", "Restart", "TrendSettings", "monotonicity",
+           "trendability"]
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """One window's evidence on a parameter.
+
+    Attributes:
+        t: the window's middle [s, plant time].
+        value: the parameter [SI].
+        std: its 1-sigma uncertainty [SI] (> 0).
+        source: ``estimated`` (this window's estimate) or ``fused`` (the window's share of the
+            fusion's evidence, :func:`~twinwatch.twin.prognostics.evidence.window_evidence`).
+    """
+
+    t: float
+    value: float
+    std: float
+    source: str = "estimated"
+
+
+@dataclass(frozen=True)
+class Restart:
+    """A step that restarted the trend: when, how large [SI], and why."""
+
+    t: float
+    step: float
+    reason: str
+
+
+@dataclass(frozen=True)
+class TrendSettings:
+    """The knobs of a trend (the ``[prognostics]`` table's, see
+    :class:`~twinwatch.twin.prognostics.config.PrognosticsConfig`)."""
+
+    horizon: float = 3600.0
+    min_evidence: int = 10
+    max_points: int = 120
+    onset: bool = True
+    step_threshold: float = 5.0
+    step_confirm: int = 2
+    flat_z: float = 2.0
+    smooth: int = 5
+    min_weight: float = 0.01
+    detection: float = 0.9
+
+
+def monotonicity(x: FloatArray, smooth: int = 1) -> float | None:
+    """MATLAB's ``monotonicity`` (``sign`` method) of one history: ``|sum sign(diff x)| /
+    (n - 1)`` after a moving mean of ``smooth`` points; None below 3 points."""
+    x = np.asarray(x, dtype=float)
+    if smooth > 1 and x.size >= smooth + 2:
+        x = np.convolve(x, np.ones(smooth) / smooth, mode="valid")
+    if x.size < 3:
+        return None
+    d = np.sign(np.diff(x))
+    return float(abs(float(np.sum(d))) / (x.size - 1))
+
+
+def trendability(t: FloatArray, x: FloatArray) -> float | None:
+    """``|corr(x, t)|`` (Pearson) of one history against time; None below 3 points or for a
+    constant history."""
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    if x.size < 3 or float(np.std(x)) <= 0 or float(np.std(t)) <= 0:
+        return None
+    return float(abs(np.corrcoef(t, x)[0, 1]))
+
+
+@dataclass
+class ParameterTrend:
+    """One parameter's trend, updated window after window.
+
+    Args:
+        name: the parameter.
+        settings: the trend's knobs.
+
+    Attributes:
+        fits: the models fitted on the last evidence, with their weights (:attr:`weights`).
+        fit: the chosen one (None: too little evidence).
+        restarts: every restart so far; :attr:`restarted` whether the last update made one.
+    """
+
+    name: str
+    settings: TrendSettings = field(default_factory=TrendSettings)
+    t: list[float] = field(default_factory=list)
+    y: list[float] = field(default_factory=list)
+    s: list[float] = field(default_factory=list)
+    src: list[str] = field(default_factory=list)
+    since_t: float | None = None
+    pending: list[tuple[Evidence, float]] = field(default_factory=list)
+    fits: list[DegradationFit] = field(default_factory=list)
+    weights: list[float] = field(default_factory=list)
+    fit: DegradationFit | None = None
+    restarts: list[Restart] = field(default_factory=list)
+    restarted: bool = False
+    outliers: int = 0
+    _dirty: bool = False
+
+    # -- intake -----------------------------------------------------------------------------
+    def add(self, ev: Evidence | None, *, jump: bool = False) -> None:
+        """Take one window's evidence (None: the window has none on this parameter) through
+        the step test; ``jump``: the fusion flagged the window as a sudden change."""
+        self.restarted = False
+        if ev is None or not (math.isfinite(ev.value) and math.isfinite(ev.std)
+                              and ev.std > 0):
+            return
+        if self.t and ev.t <= self.t[-1]:
+            # The source's clock went back (a recording replayed again, a simulated plant
+            # restarted): the evidence before belongs to another time line.
+            self.pending = [(ev, 0.0)]
+            self._restart("the source's clock went back")
+            return
+        z = self.innovation(ev)
+        cfg = self.settings
+        if abs(z) > cfg.step_threshold:
+            if self.pending and math.copysign(1.0, self.pending[-1][1]) != math.copysign(1.0, z):
+                self.outliers += len(self.pending)
+                self.pending = []
+            self.pending.append((ev, z))
+            if len(self.pending) >= (1 if jump else cfg.step_confirm):
+                if not jump and self._bend():
+                    for e, _ in self.pending:  # the onset of a drift: the trend bends
+                        self._append(e)
+                    self.pending = []
+                    return
+                self._restart(f"step of {z:+.1f} standard errors"
+                              + (" (the fusion saw a sudden change)" if jump else ""))
+            return
+        if self.pending:  # one window beyond the trend, then back on it: an outlier
+            self.outliers += len(self.pending)
+            self.pending = []
+        self._append(ev)
+
+    def _bend(self) -> bool:
+        """Do the windows beyond the trend start a drift rather than a step? They do when a
+        degrading model with an onset up to the last evidence before them (a kink, not a
+        jump) explains them within ``step_threshold`` standard errors (a degradation's onset
+        on exact evidence leaves the flat trend by many of its tiny standard errors, but
+        continuously; a part replaced jumps)."""
+        if len(self.t) < self.settings.min_evidence:
+            return False
+        t = np.asarray(self.t + [e.t for e, _ in self.pending])
+        y = np.asarray(self.y + [e.value for e, _ in self.pending])
+        s = np.asarray(self.s + [e.std for e, _ in self.pending])
+        n_old = len(self.t)
+        recent = np.asarray(self.t[max(0, n_old - 20):])
+        fits = [f for f in fit_models(t, y, s, onset=True, onsets=recent, min_points=0)
+                if f.onset is not None]
+        if not fits:
+            return False
+        best = min(fits, key=lambda f: f.chi2)
+        red = max(best.chi2 / max(best.n - best.k, 1), 1.0)
+        z = (y[n_old:] - best.value(t[n_old:])) / (s[n_old:] * math.sqrt(red))
+        return bool(np.all(np.abs(z) < self.settings.step_threshold))
+
+    def _append(self, ev: Evidence) -> None:
+        if self.since_t is None:
+            self.since_t = ev.t
+        self.t.append(ev.t)
+        self.y.append(ev.value)
+        self.s.append(ev.std)
+        self.src.append(ev.source)
+        self._dirty = True
+
+    def _restart(self, reason: str) -> None:
+        first = self.pending[0][0]
+        pred = float(self.fit.value(first.t)) if self.fit is not None else float("nan")
+        step = float(np.mean([e.value for e, _ in self.pending])) - pred
+        self.restarts.append(Restart(first.t, step, reason))
+        self.t, self.y, self.s, self.src = [], [], [], []
+        self.since_t = None
+        for ev, _ in self.pending:
+            self._append(ev)
+        self.pending = []
+        self.fit = None
+        self.fits, self.weights = [], []
+        self.restarted = True
+
+    def innovation(self, ev: Evidence) -> float:
+        """Normalised distance of ``ev`` from the current trend's prediction (0 without a
+        trend)."""
+        f = self.fit
+        if f is None:
+            return 0.0
+        band = float(f.band(np.array([ev.t]))[0])
+        red = max(f.chi2 / max(f.n - f.k, 1), 1.0)
+        sig = math.sqrt(red * ev.std * ev.std + band * band)
+        if not (sig > 0 and math.isfinite(sig)):
+            return 0.0
+        return (ev.value - float(f.value(ev.t))) / sig
+
+    # -- fit ----------------------------------------------------------------------------------
+    def refit(self, t_now: float) -> None:
+        """Fit the models to the segment's evidence within the horizon (only when it changed
+        or the horizon dropped some)."""
+        cfg = self.settings
+        if self.t and self.t[0] < t_now - cfg.horizon:
+            keep = [i for i, tt in enumerate(self.t) if tt >= t_now - cfg.horizon]
+            self.t = [self.t[i] for i in keep]
+            self.y = [self.y[i] for i in keep]
+            self.s = [self.s[i] for i in keep]
+            self.src = [self.src[i] for i in keep]
+            self._dirty = True
+        if not self._dirty:
+            return
+        self._dirty = False
+        if len(self.t) < cfg.min_evidence:
+            self.fit, self.fits, self.weights = None, [], []
+            return
+        t, y, s = bin_evidence(np.asarray(self.t), np.asarray(self.y), np.asarray(self.s),
+                               cfg.max_points)
+        fits = fit_models(t, y, s, t_ref=self.t[-1], onset=cfg.onset)
+        best, pairs = select(fits, cfg.min_weight)
+        self.fit = best
+        self.fits = [f for f, _ in pairs]
+        self.weights = [w for _, w in pairs]
+
+    # -- what it says -----------------------------------------------------------------------
+    @property
+    def evidence(self) -> int:
+        return len(self.t)
+
+    def degrading(self) -> bool:
+        """The evidence says so: the degrading models' share of the weight is at least
+        ``detection`` (the BIC's odds against ``none``) and the chosen model's drift rate is
+        beyond ``flat_z`` of its standard errors (not flat within its uncertainty)."""
+        f = self.fit
+        if f is None or f.kind == "none":
+            return False
+        p_none = sum(w for g, w in zip(self.fits, self.weights, strict=True)
+                     if g.kind == "none")
+        if 1.0 - p_none < self.settings.detection:
+            return False
+        return abs(f.m) > self.settings.flat_z * f.std("m")
+
+    def scores(self) -> tuple[float | None, float | None]:
+        """(monotonicity, trendability) of the segment's evidence."""
+        return (monotonicity(np.asarray(self.y), self.settings.smooth),
+                trendability(np.asarray(self.t), np.asarray(self.y)))
+
+    def model_weight(self) -> float | None:
+        """The chosen model's share of the model-averaging weight."""
+        if self.fit is None or not self.fits:
+            return None
+        for f, w in zip(self.fits, self.weights, strict=True):
+            if f is self.fit:
+                return w
+        return None
