@@ -21,7 +21,9 @@ router.
 from __future__ import annotations
 
 import json
+import re
 import signal
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -44,7 +46,7 @@ from .test_service import db_rows, wait_for, zsession
 from .test_watch import _daemon_config, _env
 from .test_zenoh_publisher import endpoint, free_port
 
-SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+FLEET_DOC = (ROOT / "docs" / "fleet.md").read_text()
 
 
 # -- the pieces ------------------------------------------------------------------------------
@@ -246,6 +248,61 @@ def test_a_watcher_asks_plain_publishers_for_their_latest_window(tmp_path: Path)
             wait_for(lambda: all(followed.windows(m) == [2] for m in gws), 5, "the latest")
             gws["m1"].window()
             wait_for(lambda: followed.windows("m1") == [2, 3], 5, "the next window")
+
+
+def test_the_central_store_of_docs_fleet_md_holds_every_window_once(tmp_path: Path) -> None:
+    """docs/fleet.md's central store, run as printed: it follows both gateways through the
+    router, is stopped while they publish 10 windows (more than their caches hold: 3) and
+    started again: it resumes from its database and holds every window once."""
+    (code,) = [b for b in re.findall(r"```python\n(.*?)```", FLEET_DOC, flags=re.S)
+               if "def store_fleet" in b]
+    space: dict[str, Any] = {"__name__": "fleet_doc"}
+    exec(compile(code, "docs/fleet.md", "exec"), space)
+    store_fleet = space["store_fleet"]
+    db = tmp_path / "fleet.sqlite"
+
+    def stored() -> dict[str, list[int]]:
+        out: dict[str, list[int]] = {}
+        con = sqlite3.connect(db)
+        try:
+            for m, w in con.execute("SELECT machine, window FROM health ORDER BY window"):
+                out.setdefault(m, []).append(w)
+        except sqlite3.OperationalError:  # not created yet
+            pass
+        finally:
+            con.close()
+        return out
+
+    @contextmanager
+    def store(ep: str) -> Iterator[None]:
+        stop = threading.Event()
+        thread = threading.Thread(target=store_fleet, args=([ep], str(db), stop))
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join(timeout=30)
+            assert not thread.is_alive()
+
+    ep = endpoint(free_port())
+    with router_on(ep), gateways(ep, tmp_path, cache=3) as gws:
+        with store(ep):
+            time.sleep(0.5)  # subscribed
+            for _ in range(5):
+                for g in gws.values():
+                    g.window()
+            wait_for(lambda: stored() == {"m1": list(range(5)), "m2": list(range(5))}, 10,
+                     "windows 0-4 stored")
+        for _ in range(10):  # windows 5-14: the store is away
+            for g in gws.values():
+                g.window()
+        with store(ep):
+            time.sleep(0.5)
+            for g in gws.values():
+                g.window()  # window 15
+            wait_for(lambda: stored() == {"m1": list(range(16)), "m2": list(range(16))}, 15,
+                     "windows 5-15 after the restart")
 
 
 # -- slow lane: two `twinwatch run` gateways in real time -------------------------------------

@@ -519,6 +519,24 @@ class FleetWatcher:
     def key(self, suffix: str) -> str:
         return f"{self.prefix}/{self.machine}/{suffix}"
 
+    def resume(self, machine: str, run: str | None, window: int,
+               t_end: float | None) -> None:
+        """Go on from where an earlier subscriber stopped (a central store restarted): the
+        windows of ``machine``'s ``run`` up to ``window`` count as delivered, and the ones
+        after it (plant time after ``t_end`` [s]) are asked from its history once started,
+        delivered with ``delivery="history"`` and told through ``on_gap`` (``missed`` 0: zenoh
+        did not count them). A later run of that machine (its daemon restarted meanwhile) is
+        followed from what its cache holds. Call before :meth:`start`.
+
+        Raises:
+            WatchError: ``machine`` is not a machine name.
+        """
+        if _CHUNKS_RE.match(machine) is None or "/" in machine:
+            raise WatchError(f"machine {machine!r}: give the daemon's [machine] name")
+        with self._lock:
+            self._seq[machine] = _Sequence(run, window, t_end)
+        self._gaps.put((machine, 0))
+
     def start(self) -> FleetWatcher:
         """Declare the subscribers (the tokens that exist and the caches' windows arrive at
         once), then ask the machines that gave nothing for their latest window in the

@@ -676,8 +676,11 @@ class HealthPublisher(Sink):
         return f"health on {self.health_key}"
 
     def summary(self) -> list[str]:
-        listen = ", ".join(self.config.listen) or "nothing"
-        return [f"health was published on {self.health_key} (zenoh, listening on {listen})"]
+        if self.config.mode == "client":
+            where = f"a client of {', '.join(self.config.connect)}"
+        else:
+            where = f"listening on {', '.join(self.config.listen) or 'nothing'}"
+        return [f"health was published on {self.health_key} (zenoh, {where})"]
 
     @property
     def connected(self) -> bool:
