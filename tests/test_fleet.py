@@ -31,7 +31,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import pytest
 import zenoh
@@ -90,7 +90,7 @@ class Gateway:
 
     def __init__(self, machine: str, ep: str, tmp: Path, *, cache: int) -> None:
         self.machine = machine
-        self.run = f"20261122T101530Z-{abs(hash(machine)) % 0xFFFFFF:06x}"
+        self.run = f"20261122T101530Z-{machine}"
         self.store = StateStore(tmp / f"{machine}.sqlite", synchronous="NORMAL", run=self.run)
         context = SinkContext(machine=machine, run=self.run, history=self.history)
         self.zenoh = HealthPublisher.from_config(
@@ -98,7 +98,7 @@ class Gateway:
         self.windows = 0
 
     def history(self, t_from: float | None, t_to: float | None, limit: int | None,
-                by: Any, run: str | None) -> list[dict[str, Any]]:
+                by: Literal["plant", "wall"], run: str | None = None) -> list[dict[str, Any]]:
         return self.store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run)
 
     def window(self) -> None:
@@ -152,7 +152,7 @@ def history_windows(session: zenoh.Session, selector: str) -> dict[str, list[int
     """Machine -> window numbers of one history query through ``session`` (target ALL)."""
     out: dict[str, list[int]] = {}
     for reply in session.get(selector, target=zenoh.QueryTarget.ALL, timeout=10):
-        assert reply.ok is not None, reply.err.payload.to_string()
+        assert reply.ok is not None, reply.err
         page = json.loads(reply.ok.payload.to_string())
         out[page["machine"]] = [h["window"] for h in page["windows"]]
     return out

@@ -704,7 +704,9 @@ class FleetWatcher:
                     if page is not None and isinstance(page.get("windows"), list):
                         pages.append(page)
                 else:
-                    raise WatchError(f"{key}: {reply.err.payload.to_string()}")
+                    err = reply.err
+                    raise WatchError(f"{key}: " + (err.payload.to_string() if err is not None
+                                                   else "an error without a message"))
             if not pages:
                 raise WatchError(f"{key}: no answer within {HISTORY_TIMEOUT_S:g} s (the "
                                  "daemon is not reachable, or keeps no state database)")
