@@ -470,8 +470,9 @@ class FleetWatcher:
         fleet: what to feed.
         prefix: the daemons' ``[zenoh] key_prefix``.
         machine: only this machine (``*``: every machine).
-        history: windows per machine asked from the publishers' caches at start (at most
-            their ``[zenoh] cache``; 1: the latest).
+        history: windows per machine asked from the publishers' caches at start, and again
+            when a publisher is seen anew after a router outage (at most their ``[zenoh]
+            cache``; 1: the latest; what a gap needs beyond it comes from the history).
         alarm_history: alarm events per machine asked at start (0: only new ones).
         on_health: called with the machine, a health message not delivered before (decoded,
             its text as published) and its delivery (``live`` or ``history``).
