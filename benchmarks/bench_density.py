@@ -81,13 +81,16 @@ def plant_path(directory: Path, i: int, seconds: float) -> Path:
     return directory / f"plant{i:03d}-{seconds:g}s.csv"
 
 
-def machine_config(i: int, recording: Path, port: int, record: bool) -> str:
+def machine_config(i: int, recording: Path, port: int, record: bool,
+                   acquisition_only: bool = False) -> str:
     text = SIM.read_text().replace('name = "dc-motor-sim"', f'name = "m{i:03d}"')
     start, end = text.index("[driver]"), text.index("[zenoh]")
     text = text[:start] + FILE_DRIVER.format(path=recording) + "\n" + text[end:]
     text = text.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
     if not record:
         text = text.replace("[recording]", "[recording]\nenabled = false")
+    if acquisition_only:  # a window longer than the run: samples acquired, nothing estimated
+        text = text.replace("window = 200 ", "window = 100000 ")
     return text
 
 
@@ -198,8 +201,8 @@ def monitor(procs: list[subprocess.Popen[str]], timeout: float) -> tuple[float, 
 
 
 def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
-             workers: int | None) -> Run:
-    run = Run(n=n, mode=mode, expected=n * int(seconds // 2))
+             workers: int | None, acquisition_only: bool = False) -> Run:
+    run = Run(n=n, mode=mode, expected=0 if acquisition_only else n * int(seconds // 2))
     with tempfile.TemporaryDirectory(prefix=f"density-{mode}-{n}-") as tmp:
         root = Path(tmp)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -210,7 +213,8 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
         for i in range(n):
             port = PORT_BASE if mode == "gateway" else PORT_BASE + 1 + i
             (machines / f"m{i:03d}.toml").write_text(
-                machine_config(i, plant_path(plants, i, seconds), port, record))
+                machine_config(i, plant_path(plants, i, seconds), port, record,
+                               acquisition_only))
         cmd = [sys.executable, "-m", "twinwatch", "run", "--no-progress", "--duration",
                str(seconds)]
         t_start = time.monotonic()
@@ -270,6 +274,8 @@ def main() -> None:
     ap.add_argument("--cold", action="store_true", help="an empty numba cache (compile all)")
     ap.add_argument("--recording", action="store_true", help="also record to Rerun")
     ap.add_argument("--workers", type=int, default=None, help="gateway estimation slots")
+    ap.add_argument("--acquisition-only", action="store_true",
+                    help="windows longer than the run: the cost of acquiring, storing nothing")
     ap.add_argument("--plants", type=Path, default=Path(tempfile.gettempdir()) / "density-plants")
     args = ap.parse_args()
     args.plants.mkdir(parents=True, exist_ok=True)
@@ -287,7 +293,8 @@ def main() -> None:
     for n in args.n:
         for mode in modes:
             r = run_once(n, mode, args.seconds, args.plants, cold=args.cold,
-                         record=args.recording, workers=args.workers)
+                         record=args.recording, workers=args.workers,
+                         acquisition_only=args.acquisition_only)
             print(r.row(), flush=True)
 
 
