@@ -312,3 +312,83 @@ def test_estimation_slots_are_first_come_first_served() -> None:
     for t in threads:
         t.join(5)
     assert order == ["b", "c", "d"]
+
+
+_IMPORTS_CHILD = """
+import sys
+from pathlib import Path
+from twinwatch.config.loader import load_config
+from twinwatch.daemon.runner import Daemon
+from twinwatch.daemon.supervisor import warm_up
+cfg = load_config(Path(sys.argv[1]))
+d = Daemon(cfg, base_dir=Path(sys.argv[1]).parent, publish=False, record=False)
+warm_up(d)
+d.close()
+print(" ".join(sorted(sys.modules)))
+"""
+
+
+def test_a_machine_imports_only_its_own_model_and_driver(tmp_path: Path) -> None:
+    """Memory: a DC motor on the simulated CAN plant loads neither the other twins nor the
+    Modbus stack (the registries import what is configured)."""
+    import subprocess
+    import sys
+
+    path = machine_config(tmp_path, "m1", port=None, realtime=False)
+    r = subprocess.run([sys.executable, "-c", _IMPORTS_CHILD, str(path)], capture_output=True,
+                       text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    modules = set(r.stdout.split())
+    assert "twinwatch.twin.models.dcmotor" in modules
+    for absent in ("twinwatch.twin.models.hydraulic", "twinwatch.twin.models.pwm_dcmotor",
+                   "pymodbus", "twinwatch.drivers.modbus", "paho", "rerun", "zenoh"):
+        assert absent not in modules, absent
+
+
+@pytest.mark.slow
+def test_a_machine_stuck_in_one_window_does_not_hold_the_others(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One estimation slot, and one machine whose window hangs in the estimator: after
+    ``stuck_after`` its slot stops counting, the other machines' windows are all estimated
+    (none overrun), and STATUS says which machine is stuck."""
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    for name in ("h1", "h2", "stuck"):
+        machine_config(machines, name, port=None)
+    release = threading.Event()
+    original = WindowPipeline.process
+
+    def process(self: WindowPipeline, window: Any) -> Any:
+        if self.machine == "stuck" and window.index == 1:
+            release.wait(120)  # a window that does not return (an optimiser that hangs)
+        return original(self, window)
+
+    monkeypatch.setattr(WindowPipeline, "process", process)
+    monkeypatch.chdir(tmp_path)
+    gateway = Gateway(machines, read=load_config, check=_check, duration=14.0, workers=1,
+                      stuck_after=3.0)
+    statuses: list[str] = []
+
+    def watch() -> None:
+        healthy = [machines / "h1.toml", machines / "h2.toml"]
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            statuses.append(gateway.status_line())
+            if all(not gateway.machines[p].thread.is_alive() for p in healthy):
+                break
+            time.sleep(0.5)
+        release.set()
+
+    gateway.start(timeout=120)
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        gateway.run()  # ends once every machine has run its 14 s (the stuck one once released)
+    finally:
+        release.set()
+    by_name = {m.name: m.supervisor.daemon for m in gateway.all_machines()}
+    for name in ("h1", "h2"):
+        d = by_name[name]
+        assert d is not None and d.ring.windows >= 6, name
+        assert d.windows_estimated == d.ring.windows and d.overruns == 0, name
+    assert any("stuck: stuck in one window for" in s for s in statuses), statuses[-3:]
