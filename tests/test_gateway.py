@@ -392,3 +392,58 @@ def test_a_machine_stuck_in_one_window_does_not_hold_the_others(
         assert d is not None and d.ring.windows >= 6, name
         assert d.windows_estimated == d.ring.windows and d.overruns == 0, name
     assert any("stuck: stuck in one window for" in s for s in statuses), statuses[-3:]
+
+
+@pytest.mark.slow
+def test_the_gateway_as_a_service_ready_status_hup_and_term(tmp_path: Path) -> None:
+    """``twinwatch run DIR`` as the gateway unit runs it: READY=1 once the machines run, a
+    STATUS naming a lost machine, SIGHUP starting a machine added to the directory, SIGTERM
+    stopping them all with a summary block each (exit 1: a machine was lost)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from .sources_support import NotifySocket
+
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    port = _free_port()
+    for name in ("m1", "m2"):
+        machine_config(machines, name, port=port)
+    (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "dc_motor"\n')
+    notify = NotifySocket(tmp_path / "notify")
+    env = dict(os.environ, NOTIFY_SOCKET=str(notify.path))
+    proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "--no-progress",
+                             str(machines)], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        def wait_for(what: Callable[[], bool], timeout: float = 120.0) -> None:
+            deadline = time.monotonic() + timeout
+            while not what():
+                assert proc.poll() is None, proc.communicate()
+                assert time.monotonic() < deadline, notify.drain()
+                time.sleep(0.2)
+
+        wait_for(lambda: any("READY=1" in m for m in notify.drain()))
+        ready = next(m for m in notify.messages if "READY=1" in m)
+        assert "gateway: 2 of 3 machines monitored" in ready
+        assert "bad: lost (invalid configuration" in ready
+        machine_config(machines, "m3", port=port)
+        proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: (tmp_path / "m3" / "state.sqlite").exists()
+                 and any("3 of 4 machines monitored" in s for s in notify.statuses()))
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        notify.drain()
+        notify.close()
+    assert proc.returncode == 1, err  # the bad machine was lost
+    for name in ("m1", "m2", "m3"):
+        assert f"== {name} ({name}.toml): stopped" in out
+    assert "== bad (bad.toml): lost: invalid configuration" in out
+    assert "twinwatch gateway: 4 machines, 3 ran, 1 lost" in out
+    assert any("STOPPING=1" in m for m in notify.messages)

@@ -277,8 +277,8 @@ def _run_gateway(directory: Path, *, duration: float | None, log_level: str,
             elif daemon.mostly_failed() and worst != EX_IOERR:
                 worst = EX_TEMPFAIL
     lost = gateway.lost()
-    running = len(machines) - len(lost)
-    click.echo(f"twinwatch gateway: {len(machines)} machines, {running} ran, {len(lost)} lost"
+    files = len({m.path for m in machines})
+    click.echo(f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} lost"
                + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items()) if lost else ""))
     if lost:
         current = list(gateway.machines.values())

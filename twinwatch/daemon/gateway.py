@@ -423,7 +423,8 @@ class Gateway:
                 self._add(path)
             elif m.lost is not None or not m.thread.is_alive():
                 logger.warning("machine %s: trying %s again", m.name, path.name)
-                self.retired.append(m)
+                if m.supervisor.daemon is not None:  # it ran: its summary is still given
+                    self.retired.append(m)
                 self._add(path)
             elif _digest(path) != m.digest:
                 m.digest = _digest(path)
