@@ -223,7 +223,8 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
             if workers is not None:
                 cmd += ["--workers", str(workers)]
             procs.append(subprocess.Popen([*cmd, str(machines)], cwd=root, env=env,
-                                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                          stdout=subprocess.PIPE,
+                                          stderr=(root / "stderr-0.txt").open("w"),
                                           text=True))
             dirs = [root / f"m{i:03d}" for i in range(n)]
         else:
@@ -234,7 +235,8 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
                 dirs.append(d)
                 procs.append(subprocess.Popen([*cmd, str(machines / f"m{i:03d}.toml")],
                                               cwd=d, env=env, stdout=subprocess.PIPE,
-                                              stderr=subprocess.DEVNULL, text=True))
+                                              stderr=(root / f"stderr-{i}.txt").open("w"),
+                                              text=True))
         out: list[str] = []
         import threading
 
@@ -246,6 +248,11 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
         for t in readers:
             t.join()
         run.exit_codes = [p.returncode for p in procs]
+        for i, code in enumerate(run.exit_codes):
+            if code not in (0, None):  # say why a monitor died: its last log lines
+                tail = (root / f"stderr-{i}.txt").read_text(errors="replace").splitlines()
+                print(f"  process {i} exited {code}:", *tail[-6:], sep="\n    ",
+                      file=sys.stderr)
         text = "\n".join(out)
         for m in WAIT_RE.finditer(text):
             run.wait_medians.append(float(m.group(1)))
