@@ -114,8 +114,8 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     [zenoh] session settings share one Zenoh session; at most --workers windows are
     estimated at once. A machine whose configuration is invalid, whose device cannot be
     opened or whose driver fails is reported under its name and the others go on. SIGHUP
-    re-reads the directory (new files start, removed files stop, changed files reload, lost
-    machines are tried again). The summary has one block per machine; the exit status is 1
+    re-reads the directory (new files start, removed files stop, changed files reload, machines
+    not running are started again). The summary has one block per machine; the exit status is 1
     when a machine was lost, else as below for the worst machine.
 
     Every start is a new run (its id is in every health message and the summary; a SIGHUP

@@ -31,7 +31,7 @@ Signals (the main thread): SIGTERM/SIGINT stop every machine (each finishes its 
 a second signal abandons them). SIGHUP re-reads the directory: a new file starts its machine, a
 file removed stops its machine, a changed file reloads its machine (the one-machine reload:
 validated first, built beside the running daemon, taking over at a window boundary), a machine
-that was lost is tried again; unchanged files are left alone.
+not running (lost, or its source ended) is started again; unchanged files are left alone.
 """
 
 from __future__ import annotations
@@ -407,7 +407,8 @@ class Gateway:
 
     def _rescan(self) -> None:
         """SIGHUP: start the machines of new files, stop those whose file was removed,
-        reload those whose file changed, and try the lost ones again."""
+        reload those whose file changed, and start again those not running (lost, or their
+        source ended)."""
         self.notifier.reloading("re-reading the machine directory")
         files = set(self.files())
         for path in list(self.machines):
@@ -417,11 +418,13 @@ class Gateway:
                 m.supervisor.stop()
                 self.retired.append(m)
         for path in sorted(files):
-            m = self.machines.get(path)
-            if m is None:
+            current = self.machines.get(path)
+            if current is None:
                 logger.warning("machine file %s added: starting it", path.name)
                 self._add(path)
-            elif m.lost is not None or not m.thread.is_alive():
+                continue
+            m = current
+            if m.lost is not None or not m.thread.is_alive():
                 logger.warning("machine %s: trying %s again", m.name, path.name)
                 if m.supervisor.daemon is not None:  # it ran: its summary is still given
                     self.retired.append(m)
