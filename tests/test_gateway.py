@@ -447,3 +447,19 @@ def test_the_gateway_as_a_service_ready_status_hup_and_term(tmp_path: Path) -> N
     assert "== bad (bad.toml): lost: invalid configuration" in out
     assert "twinwatch gateway: 4 machines, 3 ran, 1 lost" in out
     assert any("STOPPING=1" in m for m in notify.messages)
+
+
+def test_check_config_on_a_gateway_directory(tmp_path: Path) -> None:
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    for name in ("m1", "m2"):
+        machine_config(machines, name, port=None, realtime=False)
+    r = cli("check-config", str(machines))
+    assert r.exit_code == 0, r.output
+    assert "2 of 2 machine configurations OK" in r.output
+    (machines / "m3.toml").write_text((machines / "m2.toml").read_text())  # m2's name again
+    (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "dc_motor"\n')
+    r = cli("check-config", str(machines))
+    assert r.exit_code == 1
+    assert "machine.name 'm2' is already used by m2.toml" in r.output
+    assert "bad.toml" in r.output and "2 of 4 machine configurations OK" in r.output

@@ -534,18 +534,51 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
 
 
 @main.command("check-config")
-@click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("config", type=click.Path(path_type=Path))
 def check_config(config: Path) -> None:
     """Validate CONFIG and check it can run here (the files it names and the directories it
     writes to exist, the driver delivers every channel the twin needs: what `run` checks
-    before it starts); exit 0 if it is usable, 1 naming each bad key otherwise."""
+    before it starts); exit 0 if it is usable, 1 naming each bad key otherwise. CONFIG a
+    directory (a gateway's): every machine configuration in it (*.toml), each machine name
+    once; exit 1 if any cannot run."""
+    if not config.is_dir():
+        ok, line = _check_one(config)
+        click.echo(line, err=not ok)
+        if not ok:
+            sys.exit(1)
+        return
+    from twinwatch.daemon.gateway import MACHINE_GLOB
+
+    files = sorted(p for p in config.glob(MACHINE_GLOB) if p.is_file())
+    if not files:
+        click.echo(f"{config}: no machine configuration ({MACHINE_GLOB}) in this directory",
+                   err=True)
+        sys.exit(1)
+    names: dict[str, Path] = {}
+    failed = 0
+    for path in files:
+        ok, line = _check_one(path, names=names)
+        click.echo(line, err=not ok)
+        failed += not ok
+    click.echo(f"{config}: {len(files) - failed} of {len(files)} machine configurations OK")
+    if failed:
+        sys.exit(1)
+
+
+def _check_one(config: Path, names: dict[str, Path] | None = None) -> tuple[bool, str]:
+    """``check-config`` on one file: (usable, the line to print). ``names``: the machine
+    names seen so far in a gateway's directory (a second file naming one fails)."""
     from twinwatch.config.loader import ConfigError
 
     try:
         cfg = _load_runnable(config, config.resolve().parent)
     except ConfigError as exc:
-        click.echo(str(exc), err=True)
-        sys.exit(1)
+        return False, str(exc)
+    if names is not None:
+        other = names.setdefault(cfg.machine.name, config)
+        if other != config:
+            return False, (f"{config}: machine.name {cfg.machine.name!r} is already used by "
+                           f"{other.name}: each machine of a gateway needs a name of its own")
     # Drivers validate what only they can check (DBC names, files, columns) at open time:
     # open the source without starting acquisition and without sending (a live interface
     # receive-only where it allows), and say if it cannot be opened.
@@ -555,17 +588,16 @@ def check_config(config: Path) -> None:
         probed = get_driver_class(cfg.driver.type).probe(cfg.driver,
                                                           base_dir=config.resolve().parent)
     except DriverConfigError as exc:
-        click.echo(f"{config}: driver: {exc}", err=True)
-        sys.exit(1)
+        return False, f"{config}: driver: {exc}"
     except DriverError as exc:
-        click.echo(f"{config}: the configuration is valid; the source cannot be opened here: "
-                   f"{exc} (`run` would wait for it)"
-                   if get_driver_class(cfg.driver.type).reopens(cfg.driver)
-                   else f"{config}: driver: {exc}", err=True)
-        sys.exit(1)
-    click.echo(f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
-               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})"
-               + (f"; source: {probed}" if probed and probed != "opened" else ""))
+        return False, (f"{config}: the configuration is valid; the source cannot be opened "
+                       f"here: {exc} (`run` would wait for it)"
+                       if get_driver_class(cfg.driver.type).reopens(cfg.driver)
+                       else f"{config}: driver: {exc}")
+    return True, (f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
+                  f"{cfg.driver.type} driver, estimating "
+                  f"{', '.join(cfg.estimation.estimate or [])})"
+                  + (f"; source: {probed}" if probed and probed != "opened" else ""))
 
 
 _CONNECT_HELP = ("Zenoh endpoint to connect to: a daemon (a peer, tcp/127.0.0.1:7447 by "
