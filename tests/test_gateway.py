@@ -61,7 +61,8 @@ def test_estimation_slots_bound_concurrency_and_skip_a_stuck_holder() -> None:
     now = [0.0]
     slots = EstimationSlots(2, stuck_after=10.0, clock=lambda: now[0])
     a, b = slots.acquire("a"), slots.acquire("b")
-    got: list[int] = []
+    assert a is not None and b is not None
+    got: list[int | None] = []
     waiter = threading.Thread(target=lambda: got.append(slots.acquire("c")))
     waiter.start()
     waiter.join(0.8)
@@ -71,6 +72,7 @@ def test_estimation_slots_bound_concurrency_and_skip_a_stuck_holder() -> None:
     assert got and not waiter.is_alive()
     assert sorted(h for h, _ in slots.stuck()) == ["a", "b"]
     for t in (a, b, got[0]):
+        assert t is not None
         slots.release(t)
     assert slots.busy() == 0
 
@@ -294,10 +296,12 @@ def test_sighup_adds_removes_and_reloads_machines(tmp_path: Path,
 def test_estimation_slots_are_first_come_first_served() -> None:
     slots = EstimationSlots(1)
     first = slots.acquire("a")
+    assert first is not None
     order: list[str] = []
 
     def take(name: str) -> None:
         token = slots.acquire(name)
+        assert token is not None
         order.append(name)
         time.sleep(0.05)
         slots.release(token)
@@ -463,3 +467,38 @@ def test_check_config_on_a_gateway_directory(tmp_path: Path) -> None:
     assert r.exit_code == 1
     assert "machine.name 'm2' is already used by m2.toml" in r.output
     assert "bad.toml" in r.output and "2 of 4 machine configurations OK" in r.output
+
+
+def test_a_stop_is_bounded_when_the_worker_waits_for_a_slot(tmp_path: Path) -> None:
+    """Every estimation slot held elsewhere and the queue full: a stop returns within
+    ``shutdown_timeout``, the queued windows are counted as dropped, the worker ends and
+    nothing is written after the outputs closed."""
+    from twinwatch.daemon.runner import Daemon
+
+    path = machine_config(tmp_path, "m1", port=None, realtime=False)
+    cfg = load_config(path)
+    cfg.acquisition.shutdown_timeout = 1.0
+    slots = EstimationSlots(1)
+    held = slots.acquire("elsewhere")
+    assert held is not None
+    daemon = Daemon(cfg, base_dir=tmp_path, persist=True, work_dir=tmp_path, slots=slots,
+                    thread_prefix="twinwatch-m1")
+    runner = threading.Thread(target=daemon.run, daemon=True)
+    runner.start()
+    deadline = time.monotonic() + 60
+    while daemon.ring.windows < cfg.acquisition.queue + 1:  # queue full, the worker waiting
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    t0 = time.monotonic()
+    daemon.stop()
+    runner.join(10)
+    stopped_in = time.monotonic() - t0
+    assert not runner.is_alive() and stopped_in < 5.0  # a generous bound: not for ever
+    daemon.close()
+    deadline = time.monotonic() + 10  # the worker sees the stop within 0.5 s and ends
+    while any(t.name == "twinwatch-m1-adaptation" for t in threading.enumerate()):
+        assert time.monotonic() < deadline, "the worker did not end"
+        time.sleep(0.1)
+    assert daemon.windows_estimated == 0
+    assert daemon.dropped_at_stop >= cfg.acquisition.queue
+    slots.release(held)

@@ -476,10 +476,14 @@ def _wait_lines(daemon: Daemon) -> list[str]:
     """How long the windows waited for the worker (queued, and in a gateway for an
     estimation slot) before their estimation started."""
     waits = sorted(daemon.queue_waits)
-    if not waits:
-        return []
-    return [f"queue wait per window: median {waits[len(waits) // 2] * 1e3:.0f} ms, max "
-            f"{waits[-1] * 1e3:.0f} ms"]
+    lines = [] if not waits else [
+        f"queue wait per window: median {waits[len(waits) // 2] * 1e3:.0f} ms, max "
+        f"{waits[-1] * 1e3:.0f} ms"]
+    if daemon.dropped_at_stop:
+        lines.append(f"{daemon.dropped_at_stop} windows queued at the stop were dropped: the "
+                     f"estimation did not reach them within [acquisition] shutdown_timeout "
+                     f"({daemon.config.acquisition.shutdown_timeout:g} s)")
+    return lines
 
 
 def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:

@@ -103,15 +103,18 @@ class EstimationSlots:
     def _active(self, now: float) -> int:
         return sum(1 for _, t in self._held.values() if now - t < self.stuck_after)
 
-    def acquire(self, holder: str) -> int:
+    def acquire(self, holder: str, cancelled: Callable[[], bool] | None = None) -> int | None:
         """Wait for a slot (the worker's thread), first come first served (a machine cannot be
-        overtaken for ever by the others); returns the token :meth:`release` takes."""
+        overtaken for ever by the others); returns the token :meth:`release` takes, or None
+        once ``cancelled()`` is true (checked every 0.5 s: the machine is closing)."""
         with self._cond:
             self._next += 1
             token = self._next
             self._line.append(token)
             try:
                 while self._line[0] != token or self._active(self._clock()) >= self.size:
+                    if cancelled is not None and cancelled():
+                        return None
                     self._cond.wait(timeout=0.5)  # a slot may turn stuck: look again
             finally:
                 self._line.remove(token)

@@ -226,6 +226,9 @@ class Daemon:
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
+        #: windows queued at a stop that the worker did not reach within ``shutdown_timeout``
+        self.dropped_at_stop = 0
+        self._closing = False
         #: the last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
         #: "abandoned" (gap, bad value, ...), "overrun"
         self.recent_outcomes: deque[str] = deque(maxlen=RECENT_WINDOWS)
@@ -715,30 +718,48 @@ class Daemon:
         """Stop the worker after the windows already queued."""
         if self._worker is None:
             return
+        timeout = self.config.acquisition.shutdown_timeout
+        deadline = time.monotonic() + timeout
         while self._worker.is_alive():
             try:
                 self._queue.put(_STOP, timeout=0.2)
                 break
-            except queue.Full:
-                continue
-        self._worker.join(timeout=self.config.acquisition.shutdown_timeout)
+            except queue.Full:  # a worker that does not take windows (stuck, or waiting
+                if time.monotonic() > deadline:  # for an estimation slot) bounds the stop
+                    break
+        self._worker.join(timeout=max(0.0, deadline - time.monotonic()))
         if self._worker.is_alive():
-            logger.warning("adaptation worker did not finish within %.0f s",
+            # the outputs close next: the worker takes no further window (one it is in the
+            # middle of cannot be stopped; its outputs count it as lost if they are closed)
+            self._closing = True
+            logger.warning("%s: adaptation worker did not finish within %.0f s: the windows "
+                           "still queued are dropped", self.machine,
                            self.config.acquisition.shutdown_timeout)
         self._worker = None
 
     def _work(self) -> None:
         while True:
-            got = self._queue.get()
+            try:
+                got = self._queue.get(timeout=0.5)
+            except queue.Empty:
+                if self._closing:  # the stop gave up on this worker: nothing more comes
+                    return
+                continue
             if got is _STOP:
                 return
             item, submitted = got
             if self._stop.is_set() and self.abandon:
                 logger.info("window %d abandoned on stop", item.index)
                 continue
+            if self._closing:  # the shutdown timeout has passed: the outputs are closing
+                self.dropped_at_stop += 1
+                continue
             slots, slot = self.slots, None
             if slots is not None:
-                slot = slots.acquire(self.machine)
+                slot = slots.acquire(self.machine, cancelled=lambda: self._closing)
+                if slot is None:
+                    self.dropped_at_stop += 1
+                    continue
             self.queue_waits.append(time.monotonic() - submitted)
             if self.watchdog is not None:
                 self.watchdog.busy()
