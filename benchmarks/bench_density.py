@@ -24,7 +24,8 @@ the first start after an install (a reboot with an installed unit keeps its cach
 Usage::
 
     python benchmarks/bench_density.py --n 4 16 [--seconds 40] [--mode both|gateway|process]
-                                       [--cold] [--workers K]
+                                       [--cold] [--workers K] [--gateways K]
+                                       [--acquisition-only] [--recording]
 """
 
 from __future__ import annotations
@@ -201,8 +202,9 @@ def monitor(procs: list[subprocess.Popen[str]], timeout: float) -> tuple[float, 
 
 
 def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
-             workers: int | None, acquisition_only: bool = False) -> Run:
-    run = Run(n=n, mode=mode, expected=0 if acquisition_only else n * int(seconds // 2))
+             workers: int | None, acquisition_only: bool = False, gateways: int = 1) -> Run:
+    run = Run(n=n, mode=mode if gateways == 1 or mode != "gateway" else f"gw x{gateways}",
+              expected=0 if acquisition_only else n * int(seconds // 2))
     with tempfile.TemporaryDirectory(prefix=f"density-{mode}-{n}-") as tmp:
         root = Path(tmp)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -210,9 +212,12 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
             env["NUMBA_CACHE_DIR"] = str(root / "numba-cache")
         machines = root / "machines"
         machines.mkdir()
+        shards = [root / f"machines{k}" for k in range(gateways)]
         for i in range(n):
-            port = PORT_BASE if mode == "gateway" else PORT_BASE + 1 + i
-            (machines / f"m{i:03d}.toml").write_text(
+            port = PORT_BASE + i % gateways if mode == "gateway" else PORT_BASE + 100 + i
+            where = shards[i % gateways] if mode == "gateway" and gateways > 1 else machines
+            where.mkdir(exist_ok=True)
+            (where / f"m{i:03d}.toml").write_text(
                 machine_config(i, plant_path(plants, i, seconds), port, record,
                                acquisition_only))
         cmd = [sys.executable, "-m", "twinwatch", "run", "--no-progress", "--duration",
@@ -222,10 +227,11 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
         if mode == "gateway":
             if workers is not None:
                 cmd += ["--workers", str(workers)]
-            procs.append(subprocess.Popen([*cmd, str(machines)], cwd=root, env=env,
-                                          stdout=subprocess.PIPE,
-                                          stderr=(root / "stderr-0.txt").open("w"),
-                                          text=True))
+            for k, shard in enumerate(shards if gateways > 1 else [machines]):
+                procs.append(subprocess.Popen([*cmd, str(shard)], cwd=root, env=env,
+                                              stdout=subprocess.PIPE,
+                                              stderr=(root / f"stderr-{k}.txt").open("w"),
+                                              text=True))
             dirs = [root / f"m{i:03d}" for i in range(n)]
         else:
             dirs = []
@@ -281,6 +287,9 @@ def main() -> None:
     ap.add_argument("--cold", action="store_true", help="an empty numba cache (compile all)")
     ap.add_argument("--recording", action="store_true", help="also record to Rerun")
     ap.add_argument("--workers", type=int, default=None, help="gateway estimation slots")
+    ap.add_argument("--gateways", type=int, default=1,
+                    help="gateway mode: the machines split over this many gateway processes "
+                    "(each its own Zenoh port)")
     ap.add_argument("--acquisition-only", action="store_true",
                     help="windows longer than the run: the cost of acquiring, storing nothing")
     ap.add_argument("--plants", type=Path, default=Path(tempfile.gettempdir()) / "density-plants")
@@ -301,7 +310,7 @@ def main() -> None:
         for mode in modes:
             r = run_once(n, mode, args.seconds, args.plants, cold=args.cold,
                          record=args.recording, workers=args.workers,
-                         acquisition_only=args.acquisition_only)
+                         acquisition_only=args.acquisition_only, gateways=args.gateways)
             print(r.row(), flush=True)
 
 
