@@ -502,3 +502,45 @@ def test_a_stop_is_bounded_when_the_worker_waits_for_a_slot(tmp_path: Path) -> N
     assert daemon.windows_estimated == 0
     assert daemon.dropped_at_stop >= cfg.acquisition.queue
     slots.release(held)
+
+
+@pytest.mark.slow
+def test_a_machine_whose_source_never_answers_does_not_hold_the_others(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A CAN gateway that accepts the connection and never answers (python-can's socketcand
+    bus would wait for its greeting for ever): the gateway is READY within its start timeout,
+    the other machine estimates, STATUS names the one still opening or waiting, and a stop
+    returns."""
+    from .sources_support import MuteGateway
+
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    machine_config(machines, "healthy", port=None)
+    mute = MuteGateway()
+    driver = CAN_DRIVER.format(dbc=PLANT_DBC, log="", time_source="counter").replace(
+        'log_file = ""', 'interface = "socketcand"\nchannel = "can0"\n'
+        f'bus_options = {{ host = "127.0.0.1", port = {mute.port} }}')
+    machine_config(machines, "mute", port=None, driver=driver)
+    monkeypatch.chdir(tmp_path)
+    gateway = Gateway(machines, read=load_config, check=_check, workers=2)
+    try:
+        t0 = time.monotonic()
+        gateway.start(timeout=20)
+        assert time.monotonic() - t0 < 60
+        healthy = gateway.machines[machines / "healthy.toml"]
+        deadline = time.monotonic() + 60
+        while (d := healthy.supervisor.daemon) is None or d.windows_estimated < 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        status = gateway.status_line()
+        assert "mute: " in status and ("starting" in status or "waiting for the source"
+                                       in status), status
+        assert "healthy" not in status.split("DEGRADED:")[-1]
+        stopper = threading.Timer(0.5, gateway.stop)
+        stopper.start()
+        t1 = time.monotonic()
+        gateway.run()
+        assert time.monotonic() - t1 < 30
+    finally:
+        gateway.stop()
+        mute.close()

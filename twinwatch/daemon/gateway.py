@@ -22,7 +22,8 @@ Isolation: a machine whose configuration is invalid, whose device cannot be open
 fails or whose thread raises is *lost*: logged and reported under its name (STATUS, the summary,
 :meth:`Gateway.lost`), and the others go on. A source that stalls holds only its own machine's
 thread; a window that raises is counted in its own machine's ``numeric_failures``. The gateway
-tells systemd READY once every machine has started or been lost, keeps STATUS to the machines
+tells systemd READY once every machine has started or been lost (at most 60 s: a machine whose
+source never answers is named ``starting``), keeps STATUS to the machines
 that are degraded (``DEGRADED: m3: lost (...); m7: no window for 42 s``), and pings the
 watchdog from its own loop (a machine stuck in one window is reported, not restarted with the
 others).
@@ -237,6 +238,8 @@ class Machine:
         the daemon's own problems."""
         if self.lost is not None:
             return [f"lost ({self.lost})"]
+        if not self.started.is_set() and self.thread.is_alive():
+            return ["starting (its source or outputs are still opening)"]
         daemon = self.supervisor.daemon
         if daemon is None or not self.thread.is_alive():
             return []
@@ -326,9 +329,11 @@ class Gateway:
         self._check(cfg, path, work_dir)
 
     # -- start --------------------------------------------------------------------------------
-    def start(self, timeout: float | None = None) -> None:
+    def start(self, timeout: float | None = 60.0) -> None:
         """Install the signal handlers, start every machine of the directory (each opens in
-        its own thread) and tell systemd ``READY=1`` once each has started or been lost.
+        its own thread) and tell systemd ``READY=1`` once each has started or been lost, or
+        after ``timeout`` seconds [s] (None: no limit) with the machines still opening named
+        in STATUS: one machine whose opening hangs does not keep the others from READY.
 
         Raises:
             ConfigError: the directory holds no machine configuration.
