@@ -310,7 +310,12 @@ class TwinAdapter:
 
     # -- helpers --------------------------------------------------------------------------
     def _theta(self, est: WindowEstimate) -> FloatArray:
-        return np.array([est.values[n] for n in self.model.parameter_names])
+        """The parameters the window's twin ran with (its fit), for the meta-models: not the
+        published values, which may be a fused value the window was not fitted with (the
+        unbalanced shaft's periodic term refined beside a fused Ke drifting to -0.7 %: the
+        residual grew until the term was switched off, in window 57 of 100)."""
+        vals = est.fitted or est.values
+        return np.array([vals[n] for n in self.model.parameter_names])
 
     def _noise(self, fit: WindowFit, y: FloatArray) -> dict[str, float]:
         lvl = noise_level(y - fit.meas)

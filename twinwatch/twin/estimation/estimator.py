@@ -225,6 +225,9 @@ class WindowEstimate:
         fused: estimated parameter -> (fused value [SI], relative standard error) after this
             window (:mod:`twinwatch.twin.estimation.fusion`); empty when fusion is off.
         fusion_jump: the window's estimate was a sudden change for the fusion (it followed).
+        fitted: every model parameter -> the value the window's twin ran with [SI] (the
+            estimates and the held values it was fitted with; ``values`` may publish a fused
+            value instead): what ``simulated`` is, and what meta-models are fitted beside.
         sensors: the window's frozen or saturated sensors
             (:mod:`~twinwatch.twin.estimation.quality`); such a window is not sound.
     """
@@ -249,6 +252,7 @@ class WindowEstimate:
     fused: dict[str, tuple[float, float]] = field(default_factory=dict)
     fusion_jump: bool = False
     sensors: list[SensorFault] = field(default_factory=list)
+    fitted: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -494,6 +498,7 @@ class Estimator:
             fused=fused,
             fusion_jump=jump,
             sensors=faults,
+            fitted={n: float(v) for n, v in zip(self.names, np.ravel(twin.theta), strict=True)},
         )
 
     def _gate_and_check(self, problem: WindowProblem, polished: Polished,
