@@ -30,6 +30,20 @@ are good enough updates the trusted values later windows hold (once the next est
 The PSO stops at ``max_generations`` or ``time_budget`` seconds, whichever comes first; with the
 same seed and no time cap hit, results are bit-for-bit reproducible.
 
+**Local first** (``[estimation] strategy = "local_first"``, the default). A machine's parameters
+drift slowly: most windows are fitted by the trusted twin polished locally, and the swarm only
+finds again what the trusted values already say. So the global search is skipped and stage 2
+polishes from the trusted values, unless the swarm is due: at the first window, after a window
+whose estimate the fusion found a sudden change (its jump flag) or that the adaptation rolled
+back, and every ``swarm_every`` windows as a guard. A local fit is *rejected*, and the same window
+is estimated again from the start with the swarm (its result is then the swarm path's), when
+its nRMSE exceeds ``local_residual_ratio`` times what the window's noise explains (the
+residual's white-noise level per output, floored by ``model_error``, or the nRMSE of the last
+swarm window if larger: a large residual, a step change the local polish did not follow), or
+when it fails its model check. ``strategy = "swarm"`` runs the swarm every window (the
+behaviour before, stage for stage); the paper's method is ``strategy = "swarm"`` with Table 2's
+swarm (``[estimation.pso] max_generations = 1000``) and ``polish = false``.
+
 Fitness (paper Eq. 2, normalised): ``RMSE_n = sqrt(mean_j mean_k ((y_sim - y_meas)/s_j)^2)``
 with ``s_j = max(rms(y_meas_j), floor_j)`` per output j, so that current [A], speed [rad/s] and
 voltage [V] weigh alike.
@@ -42,7 +56,7 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -57,11 +71,11 @@ from twinwatch.twin.estimation.fusion import (
 )
 from twinwatch.twin.estimation.gate import GateDecision, IdentifiabilityGate
 from twinwatch.twin.estimation.polish import Polished, polish
-from twinwatch.twin.estimation.problem import WindowProblem, check_window
+from twinwatch.twin.estimation.problem import FitPoint, TwinAt, WindowProblem, check_window
 from twinwatch.twin.estimation.publish import ParameterStatus, publish
 from twinwatch.twin.estimation.quality import SensorFault, live_outputs, sensor_faults
-from twinwatch.twin.estimation.search import PSOSettings, global_search
-from twinwatch.twin.estimation.statistics import ModelCheck
+from twinwatch.twin.estimation.search import PSOSettings, SearchResult, global_search, warm_start
+from twinwatch.twin.estimation.statistics import ModelCheck, noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
@@ -108,6 +122,19 @@ class EstimationConfig(BaseModel):
         description="parameter -> [low, high] in SI units; default [nominal/5, nominal*5]",
     )
     pso: PSOSettings = Field(default_factory=PSOSettings)
+    strategy: Literal["local_first", "swarm"] = Field(
+        "local_first", description="local_first: polish from the trusted values and run the "
+        "swarm only at start, after a rejected local fit, after a sudden change and every "
+        "swarm_every windows; swarm: the swarm every window (the paper's method with "
+        "[estimation.pso] max_generations = 1000 and polish = false)")
+    swarm_every: int = Field(
+        30, ge=0, description="local_first: run the swarm at least every this many windows "
+        "as a guard against a local optimum (0: only at start, after a rejected fit or a "
+        "sudden change)")
+    local_residual_ratio: float = Field(
+        3.0, gt=1.0, allow_inf_nan=False, description="local_first: a local fit whose "
+        "nRMSE exceeds this many times what the window's noise explains (or the last swarm "
+        "window's nRMSE, if larger) is rejected and the window estimated with the swarm")
     polish: bool = Field(True, description="least-squares polish after the PSO")
     time_budget: float = Field(0.5, gt=0, description="PSO time cap per window [s]")
     max_rel_std: float = Field(
@@ -224,6 +251,11 @@ class WindowEstimate:
         fusion_jump: the window's estimate was a sudden change for the fusion (it followed).
         sensors: the window's frozen or saturated sensors
             (:mod:`~twinwatch.twin.estimation.quality`); such a window is not sound.
+        search: ``swarm`` (the global search ran: ``generations`` > 0) or ``local`` (polished
+            from the trusted values, ``[estimation] strategy = "local_first"``).
+        search_reason: why the swarm ran (``start``, ``guard``, ``sudden change``,
+            ``rolled back``, ``rejected: ...`` when the local fit was rejected first,
+            ``every window`` with ``strategy = "swarm"``); empty for a local window.
     """
 
     values: dict[str, float]
@@ -246,6 +278,21 @@ class WindowEstimate:
     fused: dict[str, tuple[float, float]] = field(default_factory=dict)
     fusion_jump: bool = False
     sensors: list[SensorFault] = field(default_factory=list)
+    search: Literal["swarm", "local"] = "swarm"
+    search_reason: str = ""
+
+
+@dataclass
+class _Fitted:
+    """Stages 1-4 on one window: what the rest of :meth:`Estimator.estimate` reads."""
+
+    found: SearchResult
+    polished: Polished
+    decision: GateDecision
+    point: FitPoint
+    twin: TwinAt
+    check: ModelCheck | None
+    rejected: str = ""
 
 
 @dataclass(frozen=True)
@@ -324,6 +371,11 @@ class Estimator:
         #: Stage 3: the identifiability gate.
         self.gate = IdentifiabilityGate(config.estimate, config.max_rel_std, config.model_error,
                                         len(model.outputs))
+        #: Local first: windows since the last swarm (None before the first), why the next
+        #: window must run it (empty: it need not), and the nRMSE the last swarm reached.
+        self._since_swarm: int | None = None
+        self._swarm_next = ""
+        self._swarm_nrmse = 0.0
 
     # -- state ----------------------------------------------------------------------------
     def snapshot(self) -> EstimatorState:
@@ -345,6 +397,8 @@ class Estimator:
             self._depends = {n: dict(d) for n, d in state.depends.items()}
         if self.fusion is not None and state.fusion is not None:
             self.fusion.state = state.fusion.copy()
+        # the windows since were biased (a missing component): search globally again
+        self._swarm_next = "rolled back"
 
     def fusion_state(self) -> dict[str, Any] | None:
         """The fusion's state (JSON-serialisable), for persistence."""
@@ -422,31 +476,29 @@ class Estimator:
         cfg = self.config
         problem = self.problem(window, terms, fit)
         evals0 = problem.fit.evaluations
-        # 1. global search (warm-started PSO), 2. polish (least squares, initial state too)
-        found = global_search(problem, cfg.pso, rng=self._rng, time_budget=cfg.time_budget)
-        polished = polish(problem, found.q, enabled=cfg.polish, model_error=cfg.model_error)
-        # 3. identifiability gate: admit in priority order, re-fit with the others held
-        decision, point = self.gate.admit(problem, polished, self.model.excitation(window))
-        # ... their standard errors marginal over the held values' own uncertainty
-        decision = self.gate.propagate_held(problem, decision, point,
-                                            self.trusted_std[self.pmap.idx])
-        twin = problem.twin_at(point.v)
-        # 4. model check: a failing window's standard errors are widened ...
-        check = None
-        if cfg.validation.enabled:
-            check = model_check(problem, point, twin.y, self.model.exogenous, cfg.validation,
-                                cfg.model_error)
-            if not check.passed:
-                decision = decision.widened(check.widen)
-        # ... and the gate holds whatever is now above max_rel_std, at its trusted value
-        before = set(decision.selected)
-        decision, point, held_more = self.gate.enforce(problem, decision, point, check)
-        if held_more:
-            twin = problem.twin_at(point.v)
-            # the re-fit holds them at their trusted values: their own uncertainty too
-            gated = np.array([self.trusted_std[i] if k in before else 0.0
-                              for k, i in enumerate(self.pmap.idx)])
-            decision = self.gate.propagate_held(problem, decision, point, gated)
+        initial0 = problem.fit.initial
+        why = self._swarm_due()
+        fitted = None
+        if not why:
+            # local first: the trusted values polished; rejected -> the swarm, same window
+            fitted = self._fit(problem, window, warm_start(problem), local=True)
+            if fitted.rejected:
+                why = f"rejected: {fitted.rejected}"
+                logger.debug("window %d: local fit %s; the swarm runs", window.index, why)
+                problem.fit.initial = initial0  # the swarm scores from the measured start
+                fitted = None
+        if fitted is None:
+            found = global_search(problem, cfg.pso, rng=self._rng, time_budget=cfg.time_budget)
+            fitted = self._fit(problem, window, found, local=False)
+            self._since_swarm = 0
+            r_sw = fitted.polished.point.r
+            self._swarm_nrmse = float(np.sqrt(np.sum(r_sw * r_sw)))
+        else:
+            assert self._since_swarm is not None
+            self._since_swarm += 1
+        self._swarm_next = ""
+        found, polished, decision = fitted.found, fitted.polished, fitted.decision
+        twin, check = fitted.twin, fitted.check
         # ... and a sensor that is frozen or saturated is named: the window is not sound
         run = cfg.validation.sensor_run if cfg.validation.enabled else 0
         faults = sensor_faults(problem.fit, twin.y, run, self._live, self._clips)
@@ -456,6 +508,8 @@ class Estimator:
         trusted = good and (check is None or check.passed) and not faults
         # 5. fusion: a trusted window's evidence joins the filter; then what is published
         fused, jump = self._fuse(problem, polished, decision, window, trusted)
+        if jump:
+            self._swarm_next = "sudden change"
         out = publish(twin.theta, self.pmap, cfg.tie or {}, decision, fused,
                       cfg.fusion.max_rel_std, suspect=self._suspect(check, faults),
                       held_std=self.trusted_std_values())
@@ -484,7 +538,80 @@ class Estimator:
             fused=fused,
             fusion_jump=jump,
             sensors=faults,
+            search="swarm" if why else "local",
+            search_reason=why,
         )
+
+    def _swarm_due(self) -> str:
+        """Why this window runs the global search (empty: polish locally from the trusted
+        values): ``strategy = "swarm"``, the first window, a sudden change or a roll-back
+        before it, or ``swarm_every`` windows since the last swarm."""
+        cfg = self.config
+        if cfg.strategy == "swarm":
+            return "every window"
+        if self._since_swarm is None:
+            return "start"
+        if self._swarm_next:
+            return self._swarm_next
+        if cfg.swarm_every and self._since_swarm + 1 >= cfg.swarm_every:
+            return "guard"
+        return ""
+
+    def _fit(self, problem: WindowProblem, window: WindowData, found: SearchResult, *,
+             local: bool) -> _Fitted:
+        """Stages 2-4 from the search's best: polish, identifiability gate (with the held
+        values' uncertainty), model check (a failing window's standard errors widened) and
+        the gate again. ``local``: a local-first window, which stops as soon as it is
+        rejected (:attr:`_Fitted.rejected` says why; the caller runs the swarm)."""
+        cfg = self.config
+        polished = polish(problem, found.q, enabled=cfg.polish, model_error=cfg.model_error)
+        if local:
+            rejected = self._residual_too_large(problem, polished.point.r)
+            if rejected:
+                return _Fitted(found, polished, GateDecision([], {}, {}), polished.point,
+                               problem.twin_at(polished.point.v), None, rejected)
+        # 3. identifiability gate: admit in priority order, re-fit with the others held
+        decision, point = self.gate.admit(problem, polished, self.model.excitation(window))
+        # ... their standard errors marginal over the held values' own uncertainty
+        decision = self.gate.propagate_held(problem, decision, point,
+                                            self.trusted_std[self.pmap.idx])
+        twin = problem.twin_at(point.v)
+        # 4. model check: a failing window's standard errors are widened ...
+        check = None
+        if cfg.validation.enabled:
+            check = model_check(problem, point, twin.y, self.model.exogenous, cfg.validation,
+                                cfg.model_error)
+            if not check.passed:
+                if local:
+                    first = check.reasons[0] if check.reasons else "failed"
+                    return _Fitted(found, polished, decision, point, twin, check,
+                                   f"the model check failed ({first})")
+                decision = decision.widened(check.widen)
+        # ... and the gate holds whatever is now above max_rel_std, at its trusted value
+        before = set(decision.selected)
+        decision, point, held_more = self.gate.enforce(problem, decision, point, check)
+        if held_more:
+            twin = problem.twin_at(point.v)
+            # the re-fit holds them at their trusted values: their own uncertainty too
+            gated = np.array([self.trusted_std[i] if k in before else 0.0
+                              for k, i in enumerate(self.pmap.idx)])
+            decision = self.gate.propagate_held(problem, decision, point, gated)
+        return _Fitted(found, polished, decision, point, twin, check)
+
+    def _residual_too_large(self, problem: WindowProblem, r: FloatArray) -> str:
+        """Why a local fit's normalised residuals ``r`` (M,) are beyond what the window's
+        noise explains (empty: they are not): nRMSE above ``local_residual_ratio`` times the
+        larger of the white-noise nRMSE (per output from first differences,
+        :func:`~twinwatch.twin.estimation.statistics.noise_level`, floored by
+        ``model_error``) and the last swarm window's nRMSE."""
+        n_out = problem.n_out
+        nrmse = float(np.sqrt(np.sum(r * r)))
+        white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
+        explained = float(np.sqrt(np.mean(np.maximum(white, self.config.model_error) ** 2)))
+        limit = self.config.local_residual_ratio * max(explained, self._swarm_nrmse)
+        if np.isfinite(nrmse) and nrmse <= limit:
+            return ""
+        return f"nRMSE {nrmse:.3g} > {limit:.3g}"
 
     def _keep_consistent(self) -> None:
         """Move each trusted value by what its estimate's sensitivity to the values it was
