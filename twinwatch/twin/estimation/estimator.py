@@ -85,6 +85,9 @@ logger = logging.getLogger(__name__)
 #: second makes it trusted (:meth:`Estimator._trust`).
 CONFIRM = 2.0
 CONFIRM_WITHIN_S = 10.0
+#: A local-first window's fusion stops iterating once no level moves by more than this share
+#: of its posterior standard error (:meth:`ParameterFusion.update`'s ``step_tol``).
+LOCAL_FUSION_STEP_TOL = 0.01
 
 __all__ = [
     "EstimationConfig",
@@ -376,6 +379,11 @@ class Estimator:
         self._since_swarm: int | None = None
         self._swarm_next = ""
         self._swarm_nrmse = 0.0
+        #: The last window's polished optimum over every estimated parameter (ln, n_est): the
+        #: local polish starts there (the trusted values where it moved along a direction
+        #: no window determines: from the trusted values, a quasi-static window's polish
+        #: spends 20 iterations walking La and J along their valley to where it was).
+        self._last_optimum: FloatArray | None = None
 
     # -- state ----------------------------------------------------------------------------
     def snapshot(self) -> EstimatorState:
@@ -481,7 +489,8 @@ class Estimator:
         fitted = None
         if not why:
             # local first: the trusted values polished; rejected -> the swarm, same window
-            fitted = self._fit(problem, window, warm_start(problem), local=True)
+            fitted = self._fit(problem, window, warm_start(problem, self._last_optimum),
+                               local=True)
             if fitted.rejected:
                 why = f"rejected: {fitted.rejected}"
                 logger.debug("window %d: local fit %s; the swarm runs", window.index, why)
@@ -498,6 +507,7 @@ class Estimator:
             self._since_swarm += 1
         self._swarm_next = ""
         found, polished, decision = fitted.found, fitted.polished, fitted.decision
+        self._last_optimum = polished.point.v[:problem.n_est].copy()
         twin, check = fitted.twin, fitted.check
         # ... and a sensor that is frozen or saturated is named: the window is not sound
         run = cfg.validation.sensor_run if cfg.validation.enabled else 0
@@ -507,7 +517,8 @@ class Estimator:
         good = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse)
         trusted = good and (check is None or check.passed) and not faults
         # 5. fusion: a trusted window's evidence joins the filter; then what is published
-        fused, jump = self._fuse(problem, polished, decision, window, trusted)
+        fused, jump = self._fuse(problem, polished, decision, window, trusted,
+                                 step_tol=0.0 if why else LOCAL_FUSION_STEP_TOL)
         if jump:
             self._swarm_next = "sudden change"
         out = publish(twin.theta, self.pmap, cfg.tie or {}, decision, fused,
@@ -660,7 +671,7 @@ class Estimator:
         return dict(zip(self.names, (float(v) for v in self.trusted_std), strict=True))
 
     def _fuse(self, problem: WindowProblem, polished: Polished, decision: GateDecision,
-              window: WindowData, informative: bool
+              window: WindowData, informative: bool, step_tol: float = 0.0
               ) -> tuple[dict[str, tuple[float, float]], bool]:
         """Stage 5 (:func:`~twinwatch.twin.estimation.fusion.fuse_window`); nothing when
         fusion is off."""
@@ -668,7 +679,7 @@ class Estimator:
             return {}, False
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
         return fuse_window(self.fusion, problem, polished, len(decision.selected), t_mid,
-                           informative)
+                           informative, step_tol=step_tol)
 
     def _trust(self, decision: GateDecision, values: Mapping[str, float], t: float) -> None:
         """Make the window's estimates the trusted values where their standard error is at

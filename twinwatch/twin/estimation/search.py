@@ -73,9 +73,9 @@ def global_search(problem: WindowProblem, settings: PSOSettings, *, rng: np.rand
     return warm_start(problem)
 
 
-def warm_start(problem: WindowProblem) -> SearchResult:
-    """No global search: the trusted values (clipped to the bounds) and their cost (one twin
-    call), the local-first strategy's start when the trusted twin still fits
+def warm_start(problem: WindowProblem, q: FloatArray | None = None) -> SearchResult:
+    """No global search: ``q`` (n_est,) or the trusted values, clipped to the bounds, and its
+    cost (one twin call): the local-first strategy's start when the trusted twin still fits
     (:class:`~twinwatch.twin.estimation.estimator.Estimator`)."""
-    q0 = problem.start()
+    q0 = problem.start() if q is None else np.clip(q, problem.xl, problem.xu)
     return SearchResult(q0, float(problem.cost(q0[None, :])[0]))
