@@ -13,6 +13,7 @@ from pydantic import ValidationError
 
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
+from twinwatch.twin.estimation.fusion import FusionConfig, ParameterFusion
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 from .conftest import plant_windows
@@ -125,3 +126,36 @@ def test_strategy_keys_are_checked() -> None:
     _, wins = _windows(3)
     est = Estimator(DCMotorTwin(), EstimationConfig(swarm_every=0, time_budget=60.0))
     assert [est.estimate(w).search for w in wins] == ["swarm", "local", "local"]
+
+
+def test_fusion_step_tolerance_stops_within_a_share_of_the_standard_error() -> None:
+    """A nonlinear window (residuals exp(x) - y): with ``step_tol`` 0.01 the filter stops after
+    fewer linearisations, within 0.01 posterior standard errors of where it converges."""
+    rng = np.random.default_rng(2)
+    t = np.linspace(0.0, 1.0, 200)
+    truth = np.array([0.3, -0.2])
+
+    def model(x: np.ndarray) -> np.ndarray:
+        return np.exp(x[0]) * np.exp(-np.exp(x[1]) * t)
+
+    y = model(truth) + 0.01 * rng.normal(size=t.size)
+
+    def run(step_tol: float) -> tuple[ParameterFusion, int]:
+        calls = [0]
+
+        def linearize(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            calls[0] += 1
+            m = model(x)
+            jac = np.column_stack([m, -np.exp(x[1]) * t * m])
+            return jac, m - y
+
+        f = ParameterFusion(("a", "b"), np.ones(2), FusionConfig(model="random_walk"))
+        f.update(1.0, linearize, np.full(t.size, 1e-4), iterations=30, step_tol=step_tol)
+        return f, calls[0]
+
+    full, n_full = run(0.0)
+    quick, n_quick = run(0.01)
+    sd = np.sqrt(np.diag(full.state.cov))
+    assert n_quick < n_full
+    assert np.all(np.abs(quick.state.mean - full.state.mean) <= 0.01 * sd)
+    np.testing.assert_allclose(np.diag(quick.state.cov), np.diag(full.state.cov), rtol=0.05)
