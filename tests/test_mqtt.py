@@ -297,7 +297,11 @@ def _count(db: Path) -> int:
 def test_broker_outage_of_30_s_plant_time_loses_nothing(tmp_path: Path, broker: Broker):
     db = tmp_path / "state.sqlite"
     sub = Subscriber(broker.port, [f"{M}/health"], persistent=True, client_id="test-outage")
-    proc = twinwatch(sim_config(tmp_path, duration=120.0, extra=mqtt_table(broker.port)),
+    # The simulated plant runs as fast as the estimation (10-20 windows a second here), not
+    # every 2 s: the catch-up rate must beat that for the backlog to drain before the run ends
+    # (at the default 20 windows/s it drained by 0.5-5 windows per window, depending on load).
+    proc = twinwatch(sim_config(tmp_path, duration=120.0,
+                                extra=mqtt_table(broker.port, "rate = 1000.0\n")),
                      cwd=tmp_path)
     try:
         sub.wait(lambda: len(sub.on(f"{M}/health")) >= 10, 120, "10 windows")

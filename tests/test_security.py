@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+import zenoh.ext
 
 from twinwatch.config.loader import load_config
 from twinwatch.sinks.zenoh import HealthPublisher, PublisherError
@@ -104,9 +105,22 @@ def test_health_over_mutual_tls_from_the_example_config(pki: Path, tmp_path: Pat
             replies = [json.loads(r.ok.payload.to_string())
                        for r in router.get("twinwatch/dc-motor-sim-tls/health", timeout=5)
                        if r.ok is not None]
+            for window in (1, 2):
+                pub.publish({"machine": cfg.machine.name, "window": window})
+            # a late joiner's history comes from the publisher's cache (under .../@adv/...)
+            cached: list[int] = []
+            late = zenoh.ext.declare_advanced_subscriber(
+                router, "twinwatch/*/health",
+                lambda s: cached.append(json.loads(s.payload.to_string())["window"]),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=2))
+            deadline = time.monotonic() + 10
+            while len(cached) < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            late.undeclare()
         sub.undeclare()
     assert got and got[0] == {"machine": "dc-motor-sim-tls", "window": 0}
     assert replies and replies[0]["window"] == 0  # queries pass the access control too
+    assert cached == [1, 2]  # and so does the publisher's cache
 
 
 def test_mtls_router_refuses_a_client_without_certificate(pki: Path, tmp_path: Path) -> None:

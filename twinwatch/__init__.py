@@ -5,3 +5,7 @@ Self-Aware Industrial Machines", Sensors 2024, 24(1):4.
 """
 
 __version__ = "0.1.0"
+
+from twinwatch import _kernels
+
+_kernels.configure()

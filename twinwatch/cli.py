@@ -564,11 +564,16 @@ def _fleet_title(connect: tuple[str, ...], mode: str) -> str:
               help="Each health message as one line of JSON, exactly as published.")
 @click.option("--count", type=click.IntRange(min=1), default=None,
               help="Exit after this many health messages.")
+@click.option("--history", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Start with each machine's last N windows (from its daemon's cache, at most "
+              "its [zenoh] cache).")
 def tail(machine: str, connect: tuple[str, ...], mode: str, prefix: str, as_json: bool,
-         count: int | None) -> None:
+         count: int | None, history: int) -> None:
     """Follow MACHINE (its [machine] name, or * for every machine): one line per health message
-    as it arrives, the latest window first; in text, each alarm change too. The machine
-    appearing and going are said on stderr. Ctrl-C exits.
+    as it arrives, the last window (or --history N) first; in text, each alarm change too. The
+    machine appearing and going are said on stderr, and so are windows missed on the way (a
+    router outage): those are then asked from the machine's history and printed once got.
+    Ctrl-C exits.
 
     Exit status: 0; 1 when the network cannot be reached."""
     from twinwatch.watch import Fleet, Tail, WatchError, watching
@@ -576,8 +581,9 @@ def tail(machine: str, connect: tuple[str, ...], mode: str, prefix: str, as_json
     printer = Tail(click.echo, as_json=as_json, note=lambda line: click.echo(line, err=True))
     try:
         with watching(connect, mode, prefix, Fleet(), machine,  # type: ignore[arg-type]
-                      on_health=printer.on_health, on_alarm=printer.on_alarm,
-                      on_token=printer.on_token):
+                      history=history, alarm_history=0, on_health=printer.on_health,
+                      on_alarm=printer.on_alarm, on_token=printer.on_token,
+                      on_gap=printer.on_gap):
             try:
                 printer.run(count, waiting=f"{prefix}/{machine}")
             except KeyboardInterrupt:

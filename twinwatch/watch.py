@@ -11,8 +11,14 @@ scouting off: :func:`open_session`), connected to a daemon directly (it is a pee
 * finds the machines by liveliness (a subscriber on ``<prefix>/*/alive`` with the tokens that
   exist already): a machine appears when its daemon starts and is marked gone when its token
   goes (a stop, a crash, a lost link: the router drops a dead session's tokens);
-* asks every machine for its latest window once (``get(<prefix>/*/health)``), then follows
-  ``<prefix>/*/health`` and ``<prefix>/*/alarm``.
+* follows ``<prefix>/*/health`` and ``<prefix>/*/alarm`` with ``zenoh.ext`` advanced
+  subscribers: each machine's last windows come at once from its publisher's cache (also for a
+  daemon that starts later), a loss on the way (a router restarting) is recovered from that
+  cache, and what the cache no longer holds is reported by the sample-miss listener and asked
+  from the machine's history (its state database, ``<prefix>/<machine>/history``): no window is
+  lost for the watcher, and none is delivered twice (:class:`FleetWatcher`);
+* asks a machine that gave nothing from a cache (plain publishers) for its latest window
+  (``get(<prefix>/<machine>/health)``).
 
 :class:`Fleet` holds what the network showed (thread-safe: Zenoh's threads update it), and
 :meth:`Fleet.snapshot` is the one summary every view reads: the JSON of ``watch --once
@@ -30,6 +36,7 @@ from __future__ import annotations
 
 import json
 import math
+import queue
 import re
 import threading
 import time
@@ -45,13 +52,17 @@ from twinwatch.errors import WatchError
 if TYPE_CHECKING:
     import zenoh
     from rich.console import RenderableType
+    from zenoh import ext as zenoh_ext
 else:  # imported when a session opens
     zenoh = lazy_module("zenoh")
+    zenoh_ext = lazy_module("zenoh.ext")
 
 __all__ = [
     "DEFAULT_CONNECT",
+    "Delivery",
     "Fleet",
     "FleetWatcher",
+    "Gap",
     "MachineState",
     "Mode",
     "WatchError",
@@ -180,6 +191,9 @@ class _Machine:
     health: dict[str, Any] | None = None
     received: float | None = None  # wall time the last health arrived
     events: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=5))
+    missed: int = 0  # windows zenoh reported missed
+    recovered: int = 0  # windows then got from the history
+    gap_error: str | None = None  # why the last gap could not be asked from the history
 
 
 class Fleet:
@@ -246,6 +260,15 @@ class Fleet:
             self._get(machine).events.append(dict(event))
         self.changed.set()
 
+    def gap(self, gap: Gap) -> None:
+        """Windows of a machine zenoh reported missed, and what its history returned."""
+        with self._lock:
+            m = self._get(gap.machine)
+            m.missed += gap.missed
+            m.recovered += len(gap.recovered)
+            m.gap_error = gap.error
+        self.changed.set()
+
     def machines(self) -> list[str]:
         """The machines listed now, sorted."""
         return [m["machine"] for m in self.snapshot()["machines"]]
@@ -260,13 +283,17 @@ class Fleet:
               "alarms": {name: {"level", "since_t", "deviation_pct"}},
               "terms": [{"equation", "meaning"}],
               "quality": {"nrmse", "model_check", "trusted", "elapsed_ms", "problems"},
+              "delivery": {"missed", "recovered", "error"},
               "last_event": {...} | null}, ...]}
 
         ``state_since_s``: since the watcher saw the token appear or go (null: it was there
         before the watcher started). Parameters that are ``tied`` or ``fixed`` are left out
         (not estimated); ``alarm`` is
         the parameter's alarm level when it has a rule; ``rul_s`` the median remaining useful
-        life to the alarm threshold [s] when the message carries a prediction.
+        life to the alarm threshold [s] when the message carries a prediction. ``delivery``:
+        the windows zenoh reported this watcher missed (a router outage, a lost link: beyond
+        what the publisher's cache gave back), how many of them the daemon's history query
+        then returned, and why the last such query failed (null: it did not).
         """
         now = self._clock()
         with self._lock:
@@ -309,6 +336,7 @@ class Fleet:
             "terms": [{"equation": t.get("equation"), "meaning": t.get("meaning")}
                       for t in _list(h.get("terms")) if isinstance(t, dict)],
             "quality": _quality(h) if m.health is not None else None,
+            "delivery": {"missed": m.missed, "recovered": m.recovered, "error": m.gap_error},
             "last_event": m.events[-1] if m.events else None,
         }
 
@@ -357,65 +385,201 @@ def _quality(h: Mapping[str, Any]) -> dict[str, Any]:
 
 
 # -- the watcher -------------------------------------------------------------------------------
+Delivery = Literal["live", "history"]
+"""How a health message reached the watcher: ``live`` (published, or from a daemon's cache:
+the latest at start, a late joiner's history, a loss zenoh recovered) or ``history`` (asked from
+the daemon's state database after zenoh reported windows missed)."""
+
+LATEST_AFTER_S = 0.3
+"""A machine whose token is there but whose publisher's cache gave no window this long after
+the watcher started is asked for its latest window (a daemon with plain publishers: [zenoh]
+cache = 0, or an older twinwatch) [s]."""
+
+HISTORY_TIMEOUT_S = 10.0
+"""How long one history query may take to answer [s]."""
+
+HISTORY_ATTEMPTS = 3
+"""Tries of the history query for a gap (1 s, then 2 s apart) before it is given up."""
+
+
+@dataclass
+class Gap:
+    """Windows of one machine zenoh reported missed, and what the history query got back.
+
+    Attributes:
+        machine: the machine.
+        missed: windows zenoh's sample-miss detection counted (not received live, not
+            recovered from the publisher's cache).
+        recovered: the windows the history query returned that this watcher had not seen,
+            oldest first (their window numbers).
+        error: why the history could not be asked (after every attempt), or None.
+    """
+
+    machine: str
+    missed: int
+    recovered: list[int] = field(default_factory=list)
+    error: str | None = None
+
+
+@dataclass
+class _Sequence:
+    """The windows of one run of one machine delivered so far: every window from the first
+    delivered to ``contiguous``, and the ones above it in ``above`` (window -> t_end)."""
+
+    run: Any
+    contiguous: int
+    t_end: float | None  # plant time [s] at the end of window ``contiguous``
+    above: dict[int, float | None] = field(default_factory=dict)
+
+    def add(self, window: int, t_end: float | None) -> bool:
+        """Record ``window``; False when it was delivered already."""
+        if window <= self.contiguous or window in self.above:
+            return False
+        self.above[window] = t_end
+        while self.contiguous + 1 in self.above:
+            self.contiguous += 1
+            self.t_end = self.above.pop(self.contiguous)
+        return True
+
+    def settle(self) -> None:
+        """After a gap was filled from the history: what it did not return was never published
+        (an overrun, a failed window), so the sequence goes on from the highest delivered."""
+        if self.above:
+            self.contiguous = max(self.above)
+            self.t_end = self.above[self.contiguous]
+            self.above.clear()
+
+
 class FleetWatcher:
-    """Feeds a :class:`Fleet` from a Zenoh session: liveliness, health, alarm events, and one
-    query for every machine's latest window.
+    """Feeds a :class:`Fleet` from a Zenoh session: liveliness, health, alarm events.
+
+    Health and alarm events are followed with ``zenoh.ext`` advanced subscribers: at start (and
+    when a daemon appears later) each machine's last ``history`` windows come from its
+    publisher's cache (``[zenoh] cache``), a loss on the way (a router restarting, a dropped
+    link) is recovered from that cache, and what the cache no longer holds is reported by the
+    sample-miss listener: those windows are then asked from the machine's state database
+    (``<prefix>/<machine>/history?run=<run>;t_from=<the last window before the gap>``, target
+    ALL so a storage declared complete on the prefix does not capture it), delivered with
+    ``delivery="history"``, counted in the fleet (``missed``, ``recovered``) and reported
+    through ``on_gap``. A machine whose token is there but whose cache gave nothing within
+    :data:`LATEST_AFTER_S` (plain publishers: ``cache = 0``, an older daemon) is asked for its
+    latest window (``get(<prefix>/*/health)``). Each window is delivered once.
 
     Args:
         session: an open session (:func:`open_session`); the caller closes it.
         fleet: what to feed.
         prefix: the daemons' ``[zenoh] key_prefix``.
         machine: only this machine (``*``: every machine).
-        on_health, on_alarm, on_token: also called (on Zenoh's threads) with the machine and
-            a health message that is its new latest (decoded, and its text as published), an
-            alarm event, a token's presence.
+        history: windows per machine asked from the publishers' caches at start, and again
+            when a publisher is seen anew after a router outage (at most their ``[zenoh]
+            cache``; 1: the latest; what a gap needs beyond it comes from the history).
+        alarm_history: alarm events per machine asked at start (0: only new ones).
+        on_health: called with the machine, a health message not delivered before (decoded,
+            its text as published) and its delivery (``live`` or ``history``).
+        on_alarm, on_token: called with the machine and an alarm event, a token's presence.
+        on_gap: called with a :class:`Gap` once the history was asked for it.
+
+    Callbacks run on Zenoh's threads or the watcher's (never two at once for health).
 
     Raises:
-        WatchError: the prefix or the machine name is malformed.
+        WatchError: the prefix or the machine name is malformed, or ``history`` < 1.
 
     Use as a context manager (the subscribers are undeclared on exit).
     """
 
     def __init__(self, session: zenoh.Session, fleet: Fleet, *, prefix: str = "twinwatch",
-                 machine: str = "*",
-                 on_health: Callable[[str, dict[str, Any], str], None] | None = None,
+                 machine: str = "*", history: int = 1, alarm_history: int = 5,
+                 on_health: Callable[[str, dict[str, Any], str, Delivery], None] | None = None,
                  on_alarm: Callable[[str, dict[str, Any]], None] | None = None,
-                 on_token: Callable[[str, bool], None] | None = None) -> None:
+                 on_token: Callable[[str, bool], None] | None = None,
+                 on_gap: Callable[[Gap], None] | None = None) -> None:
         self.session = session
         self.fleet = fleet
         self.prefix = check_prefix(prefix)
         if machine != "*" and (_CHUNKS_RE.match(machine) is None or "/" in machine):
             raise WatchError(f"machine {machine!r}: give the daemon's [machine] name (letters, "
                              "digits, '_', '-', '.') or * for every machine")
+        if history < 1 or alarm_history < 0:
+            raise WatchError(f"history {history}: ask at least the latest window (1)")
         self.machine = machine
+        self.history = history
+        self.alarm_history = alarm_history
         self._subs: list[Any] = []
-        self._query: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
         self.queried = threading.Event()
         self.on_health = on_health
         self.on_alarm = on_alarm
         self.on_token = on_token
+        self.on_gap = on_gap
+        self._lock = threading.RLock()  # one health delivery at a time, in order
+        self._seq: dict[str, _Sequence] = {}
+        self._sources: dict[tuple[str, int], str] = {}  # publisher (zid, eid) -> machine
+        self._gaps: queue.Queue[tuple[str | None, int] | None] = queue.Queue()
+        self._closing = threading.Event()
 
     def key(self, suffix: str) -> str:
         return f"{self.prefix}/{self.machine}/{suffix}"
 
+    def resume(self, machine: str, run: str | None, window: int,
+               t_end: float | None) -> None:
+        """Go on from where an earlier subscriber stopped (a central store restarted): the
+        windows of ``machine``'s ``run`` up to ``window`` count as delivered, and the ones
+        after it (plant time after ``t_end`` [s]) are asked from its history once started,
+        delivered with ``delivery="history"`` and told through ``on_gap`` (``missed`` 0: zenoh
+        did not count them). A later run of that machine (its daemon restarted meanwhile) is
+        followed from what its cache holds. Call before :meth:`start`.
+
+        Raises:
+            WatchError: ``machine`` is not a machine name.
+        """
+        if _CHUNKS_RE.match(machine) is None or "/" in machine:
+            raise WatchError(f"machine {machine!r}: give the daemon's [machine] name")
+        with self._lock:
+            self._seq[machine] = _Sequence(run, window, t_end)
+        self._gaps.put((machine, 0))
+
     def start(self) -> FleetWatcher:
-        """Declare the subscribers (the tokens that exist arrive at once) and ask for the
-        latest windows in the background (:attr:`queried` is set once answered)."""
+        """Declare the subscribers (the tokens that exist and the caches' windows arrive at
+        once), then ask the machines that gave nothing for their latest window in the
+        background (:attr:`queried` is set once done)."""
         live = self.session.liveliness()
         self._subs.append(live.declare_subscriber(self.key("alive"), self._on_token,
                                                   history=True))
-        self._subs.append(self.session.declare_subscriber(self.key("health"), self._on_health))
-        self._subs.append(self.session.declare_subscriber(self.key("alarm"), self._on_alarm))
-        self._query = threading.Thread(target=self._ask_latest, name="twinwatch-watch-query",
-                                       daemon=True)
-        self._query.start()
+        recovery = zenoh_ext.RecoveryConfig(periodic_queries=None, heartbeat=True)
+        health = zenoh_ext.declare_advanced_subscriber(
+            self.session, self.key("health"), self._on_health, recovery=recovery,
+            history=zenoh_ext.HistoryConfig(detect_late_publishers=True,
+                                            max_samples=self.history))
+        self._subs.append(health)
+        self._subs.append(health.sample_miss_listener(self._on_miss))
+        alarm_history = (zenoh_ext.HistoryConfig(detect_late_publishers=True,
+                                                 max_samples=self.alarm_history)
+                         if self.alarm_history else None)
+        self._subs.append(zenoh_ext.declare_advanced_subscriber(
+            self.session, self.key("alarm"), self._on_alarm, recovery=recovery,
+            history=alarm_history))
+        for target, name in ((self._ask_latest, "twinwatch-watch-query"),
+                             (self._fill_gaps, "twinwatch-watch-history")):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
         return self
 
+    # -- arriving ------------------------------------------------------------------------------
     def _ask_latest(self) -> None:
         try:
+            if self._closing.wait(LATEST_AFTER_S):
+                return
+            if all(m["window"] is not None for m in self.fleet.snapshot()["machines"]
+                   if m["token"]):
+                return
             for reply in self.session.get(self.key("health"), timeout=5.0):
-                if reply.ok is not None:
-                    self._health(str(reply.ok.key_expr), reply.ok.payload)
+                if reply.ok is None:
+                    continue
+                machine = _machine_of(str(reply.ok.key_expr), self.prefix, "health")
+                with self._lock:  # only a machine nothing came from: never out of order
+                    if machine is not None and machine not in self._seq:
+                        self._health(str(reply.ok.key_expr), reply.ok.payload, "live")
         except zenoh.ZError:  # the session closed under the query
             pass
         finally:
@@ -432,15 +596,36 @@ class FleetWatcher:
             self.on_token(machine, present)
 
     def _on_health(self, sample: zenoh.Sample) -> None:
-        self._health(str(sample.key_expr), sample.payload)
+        machine = self._health(str(sample.key_expr), sample.payload, "live")
+        info = sample.source_info
+        if machine is not None and info is not None:
+            source = info.source_id
+            with self._lock:
+                self._sources[(str(source.zid), int(source.eid))] = machine
 
-    def _health(self, key: str, payload: Any) -> None:
+    def _health(self, key: str, payload: Any, delivery: Delivery) -> str | None:
+        """Deliver one health message unless it was delivered before; its machine."""
         machine = _machine_of(key, self.prefix, "health")
         doc = _decode(payload)
         if machine is None or doc is None:
-            return
-        if self.fleet.health(machine, doc) and self.on_health is not None:
-            self.on_health(machine, doc, payload.to_string())
+            return None
+        self._deliver(machine, doc, payload.to_string(), delivery)
+        return machine
+
+    def _deliver(self, machine: str, doc: dict[str, Any], text: str,
+                 delivery: Delivery) -> bool:
+        window, t_end = doc.get("window"), _num(doc.get("t_end"))
+        with self._lock:
+            if isinstance(window, int) and not isinstance(window, bool):
+                seq = self._seq.get(machine)
+                if seq is None or seq.run != doc.get("run"):
+                    self._seq[machine] = _Sequence(doc.get("run"), window, t_end)
+                elif not seq.add(window, t_end):
+                    return False
+            self.fleet.health(machine, doc)
+            if self.on_health is not None:
+                self.on_health(machine, doc, text, delivery)
+        return True
 
     def _on_alarm(self, sample: zenoh.Sample) -> None:
         machine = _machine_of(str(sample.key_expr), self.prefix, "alarm")
@@ -451,27 +636,126 @@ class FleetWatcher:
         if self.on_alarm is not None:
             self.on_alarm(machine, doc)
 
+    # -- gaps ----------------------------------------------------------------------------------
+    def _on_miss(self, miss: Any) -> None:
+        """Zenoh's sample-miss listener (its thread): ``miss.nb`` windows of the publisher
+        ``miss.source`` were neither received nor recovered from its cache."""
+        source = miss.source
+        with self._lock:
+            machine = self._sources.get((str(source.zid), int(source.eid)))
+        self._gaps.put((machine, int(miss.nb)))
+
+    def _fill_gaps(self) -> None:
+        while True:
+            item = self._gaps.get()
+            if item is None or self._closing.is_set():
+                return
+            machine, missed = item
+            with self._lock:
+                machines = [machine] if machine is not None else sorted(self._seq)
+            for m in machines:  # a publisher not heard yet: every machine is asked
+                gap = self._fill(m, missed if machine is not None else 0)
+                if gap is not None:
+                    self.fleet.gap(gap)
+                    if self.on_gap is not None:
+                        self.on_gap(gap)
+
+    def _fill(self, machine: str, missed: int) -> Gap | None:
+        """Ask ``machine``'s history for the windows after the last one delivered without a
+        gap; deliver those not delivered. None when nothing was missed or returned."""
+        gap = Gap(machine, missed)
+        with self._lock:
+            seq = self._seq.get(machine)
+            if seq is None:
+                return gap if missed else None
+            run, t_from = seq.run, seq.t_end
+        params = [f"run={run}"] if isinstance(run, str) and run else []
+        if t_from is not None:
+            params.append(f"t_from={t_from!r}")
+        for attempt in range(HISTORY_ATTEMPTS):
+            if attempt and self._closing.wait(float(attempt)):
+                return None
+            try:
+                self._page(machine, params, gap)
+            except (WatchError, zenoh.ZError) as exc:
+                gap.error = str(exc)
+                continue
+            gap.error = None
+            break
+        with self._lock:
+            seq = self._seq.get(machine)
+            if seq is not None and seq.run == run and gap.error is None:
+                seq.settle()
+        return gap if (gap.missed or gap.recovered or gap.error) else None
+
+    def _page(self, machine: str, params: list[str], gap: Gap) -> None:
+        """Deliver the history after ``params``' ``t_from``, page by page.
+
+        Raises:
+            WatchError: the daemon refused the query or did not answer.
+        """
+        key = f"{self.prefix}/{machine}/history"
+        while True:
+            selector = f"{key}?{';'.join(params)}" if params else key
+            pages = []
+            for reply in self.session.get(selector, target=zenoh.QueryTarget.ALL,
+                                          timeout=HISTORY_TIMEOUT_S):
+                if reply.ok is not None:
+                    page = _decode(reply.ok.payload)
+                    if page is not None and isinstance(page.get("windows"), list):
+                        pages.append(page)
+                else:
+                    err = reply.err
+                    raise WatchError(f"{key}: " + (err.payload.to_string() if err is not None
+                                                   else "an error without a message"))
+            if not pages:
+                raise WatchError(f"{key}: no answer within {HISTORY_TIMEOUT_S:g} s (the "
+                                 "daemon is not reachable, or keeps no state database)")
+            last_t = None
+            for page in pages:
+                for doc in page["windows"]:
+                    if not isinstance(doc, dict):
+                        continue
+                    text = json.dumps(doc, separators=(",", ":"))  # as published
+                    if self._deliver(machine, doc, text, "history"):
+                        gap.recovered.append(doc.get("window"))  # type: ignore[arg-type]
+                    t_end = _num(doc.get("t_end"))
+                    if t_end is not None:
+                        last_t = t_end if last_t is None else max(last_t, t_end)
+            if not any(p.get("more") for p in pages) or last_t is None:
+                return
+            params = [p for p in params if not p.startswith("t_from=")]
+            params.append(f"t_from={last_t!r}")
+
+    # -- waiting and closing -------------------------------------------------------------------
     def settle(self, timeout: float) -> None:
-        """Wait until every machine with a token has reported a window and the latest-window
-        query is answered, or ``timeout`` [s] has passed (what ``watch --once`` prints)."""
+        """Wait until every machine with a token has reported a window and the machines that
+        gave nothing were asked for their latest, or ``timeout`` [s] has passed (what ``watch
+        --once`` prints)."""
         deadline = time.monotonic() + timeout
         time.sleep(min(0.2, timeout))  # the tokens that exist arrive within milliseconds
         while time.monotonic() < deadline:
             snap = self.fleet.snapshot()["machines"]
-            if self.queried.is_set() and all(m["window"] is not None for m in snap
-                                              if m["token"]):
+            tokens = [m for m in snap if m["token"]]
+            if all(m["window"] is not None for m in tokens) and (
+                    tokens or self.queried.is_set()):
                 return
             self.fleet.changed.wait(max(min(0.05, deadline - time.monotonic()), 0.0))
             self.fleet.changed.clear()
 
     def close(self) -> None:
-        """Undeclare the subscribers (idempotent)."""
+        """Undeclare the subscribers and stop the watcher's threads (idempotent)."""
+        self._closing.set()
+        self._gaps.put(None)
         subs, self._subs = self._subs, []
-        for sub in subs:
+        for sub in reversed(subs):
             try:
                 sub.undeclare()
             except zenoh.ZError:
                 pass
+        threads, self._threads = self._threads, []
+        for thread in threads:
+            thread.join(timeout=HISTORY_TIMEOUT_S + 1)
 
     def __enter__(self) -> FleetWatcher:
         return self.start()
@@ -482,9 +766,9 @@ class FleetWatcher:
 
 @contextmanager
 def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
-             machine: str = "*", **callbacks: Any) -> Iterator[FleetWatcher]:
-    """A session on ``connect`` and a started :class:`FleetWatcher` on it (``callbacks``: its
-    ``on_*``), closed on exit.
+             machine: str = "*", **options: Any) -> Iterator[FleetWatcher]:
+    """A session on ``connect`` and a started :class:`FleetWatcher` on it (``options``: its
+    ``history``, ``alarm_history`` and ``on_*``), closed on exit.
 
     Raises:
         WatchError: see :func:`open_session` and :class:`FleetWatcher`.
@@ -493,7 +777,7 @@ def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
     session = open_session(connect, mode)
     try:
         with FleetWatcher(session, fleet, prefix=prefix, machine=machine,
-                          **callbacks) as watcher:
+                          **options) as watcher:
             yield watcher
     finally:
         session.close()
@@ -656,17 +940,49 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
                                style="yellow")
             else:
                 quality.append("\nno losses", style="green dim")
+        d = m.get("delivery") or {}
+        if d.get("missed") or d.get("recovered") or d.get("error"):
+            quality.append(("\n" if quality else "") + _gap_words(d),
+                           style="yellow" if d.get("error") or
+                           d.get("recovered", 0) < d.get("missed", 0) else "dim")
         table.add_row(Text(str(m["machine"]), style="bold"), st, last, params, alarms, terms,
                       quality)
     return table
 
 
-class Tail:
-    """``twinwatch tail``: one line per health message as it arrives (the latest window first,
-    when the daemon answers the first query), and, in text, each alarm event; the machine
-    appearing and going are noted aside.
+def _gap_words(d: Mapping[str, Any]) -> str:
+    """What the watcher missed and got back: ``missed 10, 10 from the history``."""
+    text = f"missed {d.get('missed', 0)}, {d.get('recovered', 0)} from the history"
+    return text + (f" (history failed: {d['error']})" if d.get("error") else "")
 
-    Give its :meth:`on_health`, :meth:`on_alarm` and :meth:`on_token` to the
+
+def gap_line(gap: Gap) -> str:
+    """One line on a gap for ``tail`` (stderr): ``m1: 10 windows missed (a router outage or a
+    lost link), 10 got from its history (windows 8-17)``."""
+    text = f"{gap.machine}: "
+    if gap.missed:
+        text += (f"{gap.missed} window{'s' if gap.missed != 1 else ''} missed (a router "
+                 "outage or a lost link), ")
+    n = len(gap.recovered)
+    text += f"{n} got from its history"
+    if gap.recovered:
+        ws = sorted(w for w in gap.recovered if isinstance(w, int))
+        span = f"window {ws[0]}" if len(ws) == 1 else f"windows {ws[0]}-{ws[-1]}"
+        text += f" ({span})" if ws else ""
+    if gap.error:
+        text += f"; the history query failed: {gap.error}"
+    return text
+
+
+class Tail:
+    """``twinwatch tail``: one line per health message as it arrives (the machine's last
+    windows first: the latest, or ``--history N``), and, in text, each alarm event; the machine
+    appearing and going, and the windows missed and got back from its history, are noted
+    aside. Each window is printed once; a window got from the history after a gap comes when
+    it is got (after the live ones that revealed the gap), marked ``[from the history]`` in
+    text.
+
+    Give its :meth:`on_health`, :meth:`on_alarm`, :meth:`on_token` and :meth:`on_gap` to the
     :class:`FleetWatcher` (:func:`watching`), then :meth:`run`.
 
     Args:
@@ -690,8 +1006,17 @@ class Tail:
             self._lines.append((is_health, line))
             self._cond.notify()
 
-    def on_health(self, machine: str, doc: dict[str, Any], text: str) -> None:
-        self._put(True, text if self.as_json else health_line(doc))
+    def on_health(self, machine: str, doc: dict[str, Any], text: str,
+                  delivery: Delivery = "live") -> None:
+        if self.as_json:
+            self._put(True, text)
+        else:
+            mark = "  [from the history]" if delivery == "history" else ""
+            self._put(True, health_line(doc) + mark)
+
+    def on_gap(self, gap: Gap) -> None:
+        if self.note is not None:
+            self.note(gap_line(gap))
 
     def on_alarm(self, machine: str, event: dict[str, Any]) -> None:
         if not self.as_json:

@@ -7,6 +7,14 @@ with ``P = {key_prefix}/{machine}``:
   (encoding ``application/json``), see :meth:`HealthPublisher.publish`;
 * publishers on ``P/<suffix>`` created on first use by :meth:`HealthPublisher.publish_json`
   (``P/alarm``, ...);
+* every publisher is a ``zenoh.ext`` *advanced* publisher (:func:`declare_publisher`) with a
+  cache of its last ``[zenoh] cache`` samples (30 windows: a minute), sequence numbers and a
+  heartbeat for sample-miss detection, and publisher detection: an ``AdvancedSubscriber`` that
+  joins late gets each machine's recent windows from the cache (through a router too), one that
+  lost samples (a router outage, a dropped link) gets them again from the cache or is told how
+  many it missed (its sample-miss listener) and asks ``P/history`` for them (``twinwatch
+  watch``/``tail`` do). Its cache and heartbeat live under ``P/health/@adv/...``, which the
+  queryable below and ``P/**`` never match (``@`` chunks are verbatim in zenoh);
 * a liveliness token ``P/alive``, present while the publisher is open: a remote process sees the
   machine appear and disappear with ``session.liveliness().declare_subscriber(...)`` or polls it
   with ``session.liveliness().get(...)``;
@@ -72,8 +80,10 @@ from twinwatch.sinks.base import ProcessedWindow, Sink, SinkConfig, SinkContext
 
 if TYPE_CHECKING:
     import zenoh
+    from zenoh import ext as zenoh_ext
 else:  # imported when a session opens: loading a configuration does not load zenoh
     zenoh = lazy_module("zenoh")
+    zenoh_ext = lazy_module("zenoh.ext")
 
 logger = logging.getLogger(__name__)
 
@@ -84,6 +94,7 @@ __all__ = [
     "ZenohAuthConfig",
     "ZenohConfig",
     "ZenohTlsConfig",
+    "declare_publisher",
     "history_parameters",
     "open_session",
     "to_json",
@@ -161,6 +172,13 @@ class ZenohConfig(SinkConfig):
             ``twinwatch/<machine>/health``. ``/``-separated chunks, no wildcards.
         enabled: when false, :class:`HealthPublisher` opens no session and publishing is a no-op.
         retry_max: longest delay [s] between attempts to reach an unreachable router at start.
+        cache: samples each publisher keeps for late joiners and for subscribers recovering
+            what they missed (zenoh.ext ``AdvancedPublisher`` cache): the last ``cache``
+            windows on ``P/health``, alarm events on ``P/alarm``; 0: plain publishers (no
+            cache, no miss detection: a subscriber catches up with the history query only).
+        heartbeat: period [s] of the sporadic heartbeat that lets a subscriber notice a lost
+            *last* sample (sent only when something was published since the last one); 0: a
+            loss is noticed at the next sample only.
         tls: ``[zenoh.tls]`` (:class:`ZenohTlsConfig`), needed by ``tls/`` endpoints.
         auth: ``[zenoh.auth]`` (:class:`ZenohAuthConfig`).
         access_control: zenoh's ``access_control`` table verbatim (``enabled``,
@@ -175,6 +193,8 @@ class ZenohConfig(SinkConfig):
     key_prefix: str = "twinwatch"
     enabled: bool = True
     retry_max: float = Field(30.0, gt=0)
+    cache: int = Field(30, ge=0, le=100_000)
+    heartbeat: float = Field(1.0, ge=0)
     tls: ZenohTlsConfig | None = None
     auth: ZenohAuthConfig | None = None
     access_control: dict[str, Any] | None = None
@@ -370,6 +390,30 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
     return session
 
 
+def declare_publisher(session: zenoh.Session, key: str, cfg: ZenohConfig
+                      ) -> zenoh.Publisher | zenoh_ext.AdvancedPublisher:
+    """Declare the publisher of one topic (``P/health``, ``P/alarm``) on ``session``: with
+    ``cfg.cache`` > 0 a ``zenoh.ext`` advanced publisher (a cache of the last ``cache`` samples
+    for late joiners and recovery, sequence numbers and a sporadic heartbeat every
+    ``cfg.heartbeat`` s for sample-miss detection, publisher detection so a subscriber that
+    is there first asks a publisher that comes later for its cache); else a plain publisher.
+    JSON encoding either way. The one place a topic's publisher is made (a session shared by
+    several machines declares each machine's here too).
+
+    Raises:
+        zenoh.ZError: the declaration failed (the session closed).
+    """
+    encoding = zenoh.Encoding.APPLICATION_JSON
+    if cfg.cache == 0:
+        return session.declare_publisher(key, encoding=encoding)
+    heartbeat = cfg.heartbeat if cfg.heartbeat > 0 else None
+    return zenoh_ext.declare_advanced_publisher(
+        session, key, encoding=encoding, cache=zenoh_ext.CacheConfig(cfg.cache),
+        sample_miss_detection=zenoh_ext.MissDetectionConfig(heartbeat=None,
+                                                            sporadic_heartbeat=heartbeat),
+        publisher_detection=True)
+
+
 def _explain_open_failure(cfg: ZenohConfig, message: str) -> str:
     message = _RUST_LOCATION_RE.sub("", message).strip()
     lowered = message.lower()
@@ -496,7 +540,7 @@ class HealthPublisher(Sink):
         self._failing = False
         self._latest: dict[str, str] = {}
         self._handlers: dict[str, Callable[[zenoh.Query], Any]] = {}
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[str, zenoh.Publisher | zenoh_ext.AdvancedPublisher] = {}
         self._session: zenoh.Session | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._queryable: zenoh.Queryable[None] | None = None
@@ -527,9 +571,7 @@ class HealthPublisher(Sink):
     def _attach(self, session: zenoh.Session) -> None:
         """Declare the health publisher, queryable and token on ``session`` and use it."""
         try:
-            publisher = session.declare_publisher(
-                self.health_key, encoding=zenoh.Encoding.APPLICATION_JSON
-            )
+            publisher = declare_publisher(session, self.health_key, self.config)
             queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
             token = session.liveliness().declare_token(self.alive_key)
         except zenoh.ZError as exc:
@@ -634,8 +676,11 @@ class HealthPublisher(Sink):
         return f"health on {self.health_key}"
 
     def summary(self) -> list[str]:
-        listen = ", ".join(self.config.listen) or "nothing"
-        return [f"health was published on {self.health_key} (zenoh, listening on {listen})"]
+        if self.config.mode == "client":
+            where = f"a client of {', '.join(self.config.connect)}"
+        else:
+            where = f"listening on {', '.join(self.config.listen) or 'nothing'}"
+        return [f"health was published on {self.health_key} (zenoh, {where})"]
 
     @property
     def connected(self) -> bool:
@@ -708,9 +753,7 @@ class HealthPublisher(Sink):
                 text = payload if isinstance(payload, str) else to_json(payload)
                 publisher = self._publishers.get(key)
                 if publisher is None:
-                    publisher = self._session.declare_publisher(
-                        key, encoding=zenoh.Encoding.APPLICATION_JSON
-                    )
+                    publisher = declare_publisher(self._session, key, self.config)
                     self._publishers[key] = publisher
                 publisher.put(text)
             except (zenoh.ZError, TypeError, ValueError) as exc:

@@ -309,6 +309,7 @@ class EstimatorState:
     trusted_std: FloatArray | None = None
     candidates: dict[str, tuple[float, float, float]] | None = None
     depends: dict[str, dict[str, tuple[float, float]]] | None = None
+    provisional: frozenset[str] | None = None
 
 
 class Estimator:
@@ -359,6 +360,8 @@ class Estimator:
         #: standard error, the window's middle [s]): the next one must agree with it
         #: (:meth:`_trust`).
         self._candidates: dict[str, tuple[float, float, float]] = {}
+        #: Parameters whose trusted value is one unconfirmed estimate (:meth:`_trust`).
+        self._provisional: set[str] = set()
         #: Per output, whether its readings were live in a window without a sensor fault
         #: (:func:`~twinwatch.twin.estimation.quality.live_outputs`).
         self._live: dict[str, bool] = {}
@@ -391,7 +394,8 @@ class Estimator:
         return EstimatorState(self.trusted.copy(),
                               self.fusion.state.copy() if self.fusion else None,
                               self.trusted_std.copy(), dict(self._candidates),
-                              {n: dict(d) for n, d in self._depends.items()})
+                              {n: dict(d) for n, d in self._depends.items()},
+                              frozenset(self._provisional))
 
     def rollback(self, state: EstimatorState) -> None:
         """Forget what windows since :meth:`snapshot` taught (a window the adaptation finds
@@ -403,6 +407,8 @@ class Estimator:
             self._candidates = dict(state.candidates)
         if state.depends is not None:
             self._depends = {n: dict(d) for n, d in state.depends.items()}
+        if state.provisional is not None:
+            self._provisional = set(state.provisional)
         if self.fusion is not None and state.fusion is not None:
             self.fusion.state = state.fusion.copy()
         # the windows since were biased (a missing component): search globally again
@@ -710,16 +716,30 @@ class Estimator:
             if not sd <= self.config.trust_rel_std:
                 continue
             value = values[n]
+            i = self.names.index(n)
             last = self._candidates.get(n)
             self._candidates[n] = (value, sd, t)
-            if last is None:
+            agrees = False
+            if last is not None:
+                dt = t - last[2]
+                change = math.log(value / last[0]) - rates.get(n, (0.0, 0.0))[0] * dt
+                agrees = (dt <= CONFIRM_WITHIN_S
+                          and abs(change) <= CONFIRM * math.hypot(sd, last[1]))
+            if not agrees:
+                # Never confirmed (its nameplate, or a provisional value): the latest sound
+                # estimate is better evidence than the nameplate, held until one agrees with
+                # it. Holding the nameplate instead hid a machine 25 % off it for good: the
+                # windows that do not pin C held it at its nameplate, so the re-fit of R_in
+                # failed its model check, no estimate was ever trusted, and R_in was
+                # published held at its nameplate, deviation 0.0 % (tests/test_model_plugin).
+                if self.trusted_std[i] == 0.0 or n in self._provisional:
+                    self.trusted[i] = value
+                    self.trusted_std[i] = sd
+                    self._provisional.add(n)
                 continue
-            dt = t - last[2]
-            change = math.log(value / last[0]) - rates.get(n, (0.0, 0.0))[0] * dt
-            if dt > CONFIRM_WITHIN_S or abs(change) > CONFIRM * math.hypot(sd, last[1]):
-                continue
-            self.trusted[self.names.index(n)] = value
-            self.trusted_std[self.names.index(n)] = sd
+            self._provisional.discard(n)
+            self.trusted[i] = value
+            self.trusted_std[i] = sd
             self._depends[n] = {estimate[h]: (g, float(self.trusted[self.names.index(
                 estimate[h])])) for h, g in decision.gain.get(k, {}).items()}
         self._keep_consistent()
