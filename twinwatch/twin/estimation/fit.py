@@ -289,9 +289,9 @@ class LocalFit:
             active: the columns.
             steps: the steps to try, smallest first (default :data:`SENSITIVITY_STEPS`).
         """
-        return self._sensitivity(v, active, steps)[0]
+        return self.sensitivity_and_residuals(v, active, steps)[0]
 
-    def _sensitivity(self, v: FloatArray, active: np.ndarray,
+    def sensitivity_and_residuals(self, v: FloatArray, active: np.ndarray,
                      steps: Sequence[float] | None = None) -> tuple[FloatArray, FloatArray]:
         """:meth:`sensitivity`, and the residuals (M,) at ``v`` (the batch's last row)."""
         k = active.size
@@ -348,7 +348,7 @@ class LocalFit:
             sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
                                 xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
             v[active] = sol.x
-        jac_s, r = self._sensitivity(v, active)
+        jac_s, r = self.sensitivity_and_residuals(v, active)
         return v, r, jac_s
 
 

@@ -349,9 +349,9 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
             qq = base_ln.copy()
             qq[cols] = q[cols]
             v_f = np.concatenate([np.clip(qq, problem.xl, problem.xu), polished.nuisance])
-            r_f = local.residuals(v_f[None, :])[0]
             active = np.concatenate([cols, nuis])
-            return local.sensitivity(v_f, active, steps=FUSION_STEPS), r_f
+            # the residuals at v_f are the sensitivity batch's last row
+            return local.sensitivity_and_residuals(v_f, active, steps=FUSION_STEPS)
 
         jump = fusion.update(t_mid, linearize, polished.row_var, nuis.size, cols=cols,
                              bounds=(problem.xl, problem.xu),
