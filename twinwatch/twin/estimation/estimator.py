@@ -382,11 +382,6 @@ class Estimator:
         self._since_swarm: int | None = None
         self._swarm_next = ""
         self._swarm_nrmse = 0.0
-        #: The last window's polished optimum over every estimated parameter (ln, n_est): the
-        #: local polish starts there (the trusted values where it moved along a direction
-        #: no window determines: from the trusted values, a quasi-static window's polish
-        #: spends 20 iterations walking La and J along their valley to where it was).
-        self._last_optimum: FloatArray | None = None
 
     # -- state ----------------------------------------------------------------------------
     def snapshot(self) -> EstimatorState:
@@ -495,8 +490,7 @@ class Estimator:
         fitted = None
         if not why:
             # local first: the trusted values polished; rejected -> the swarm, same window
-            fitted = self._fit(problem, window, warm_start(problem, self._last_optimum),
-                               local=True)
+            fitted = self._fit(problem, window, warm_start(problem), local=True)
             if fitted.rejected:
                 why = f"rejected: {fitted.rejected}"
                 logger.debug("window %d: local fit %s; the swarm runs", window.index, why)
@@ -513,7 +507,6 @@ class Estimator:
             self._since_swarm += 1
         self._swarm_next = ""
         found, polished, decision = fitted.found, fitted.polished, fitted.decision
-        self._last_optimum = polished.point.v[:problem.n_est].copy()
         twin, check = fitted.twin, fitted.check
         # ... and a sensor that is frozen or saturated is named: the window is not sound
         run = cfg.validation.sensor_run if cfg.validation.enabled else 0

@@ -73,9 +73,12 @@ def global_search(problem: WindowProblem, settings: PSOSettings, *, rng: np.rand
     return warm_start(problem)
 
 
-def warm_start(problem: WindowProblem, q: FloatArray | None = None) -> SearchResult:
-    """No global search: ``q`` (n_est,) or the trusted values, clipped to the bounds, and its
-    cost (one twin call): the local-first strategy's start when the trusted twin still fits
-    (:class:`~twinwatch.twin.estimation.estimator.Estimator`)."""
-    q0 = problem.start() if q is None else np.clip(q, problem.xl, problem.xu)
+def warm_start(problem: WindowProblem) -> SearchResult:
+    """No global search: the trusted values (clipped to the bounds) and their cost (one twin
+    call), the local-first strategy's start when the trusted twin still fits
+    (:class:`~twinwatch.twin.estimation.estimator.Estimator`). Not the last window's optimum:
+    on a drive whose output clamps, the residual is not smooth, and from there the polish
+    stopped in another basin (Ra 0.31 % off in a window where the swarm path is 0.003 %
+    off, benchmarks/bench_fidelity.py's twin 2 ms on a 0.5 ms drive)."""
+    q0 = problem.start()
     return SearchResult(q0, float(problem.cost(q0[None, :])[0]))
