@@ -63,7 +63,9 @@ def test_unbalanced_shaft_is_discovered_through_the_daemon_in_a_few_windows() ->
 
 @pytest.mark.slow
 def test_unbalanced_shaft_is_discovered_and_kept() -> None:
-    history = _unbalanced(200.0)
+    # uncapped: with the wall-clock budgets a loaded machine (load 4.7 on 2 cores) cut the
+    # first search short, which kept a constant, switched it off and searched 5 times
+    history = _unbalanced(200.0, uncapped=True)
     found = [h for h in history if h["discovery"]["ran"]]
     assert len(found) == 1, "one discovery, then the term is kept and re-validated"
     k0 = found[0]["window"]
