@@ -24,6 +24,8 @@ from twinwatch.daemon.systemd import Notifier, Watchdog
 
 ROOT = Path(__file__).resolve().parents[1]
 UNIT = ROOT / "systemd" / "twinwatch@.service"
+GATEWAY_UNIT = ROOT / "systemd" / "twinwatch-gateway.service"
+UNITS = pytest.mark.parametrize("unit_file", [UNIT, GATEWAY_UNIT], ids=["instance", "gateway"])
 INSTALLED_EXEC = "/opt/twinwatch/bin/twinwatch"
 MAX_EXPOSURE = 2.0  # measured 1.5; what is left is the network, AF_CAN and numba's W+X pages
 
@@ -31,7 +33,7 @@ needs_analyze = pytest.mark.skipif(shutil.which("systemd-analyze") is None,
                                    reason="systemd-analyze is not installed")
 
 
-def _unit_with_exec(tmp_path: Path) -> Path:
+def _unit_with_exec(tmp_path: Path, unit_file: Path = UNIT) -> Path:
     """Copy the unit to tmp_path with ExecStart pointing at an executable that exists here
     (the venv's console script if installed, else a stub): verify resolves the binary."""
     real = Path(sys.executable).with_name("twinwatch")
@@ -41,15 +43,16 @@ def _unit_with_exec(tmp_path: Path) -> Path:
         exe = tmp_path / "twinwatch"
         exe.write_text("#!/bin/sh\nexit 0\n")
         exe.chmod(0o755)
-    text = UNIT.read_text()
+    text = unit_file.read_text()
     assert f"ExecStart={INSTALLED_EXEC} run " in text
-    (tmp_path / UNIT.name).write_text(text.replace(INSTALLED_EXEC, str(exe)))
-    return tmp_path / "twinwatch@m1.service"
+    (tmp_path / unit_file.name).write_text(text.replace(INSTALLED_EXEC, str(exe)))
+    return tmp_path / ("twinwatch@m1.service" if unit_file == UNIT else unit_file.name)
 
 
 @needs_analyze
-def test_unit_verifies_cleanly(tmp_path: Path) -> None:
-    unit = _unit_with_exec(tmp_path)
+@UNITS
+def test_unit_verifies_cleanly(tmp_path: Path, unit_file: Path) -> None:
+    unit = _unit_with_exec(tmp_path, unit_file)
     r = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True,
                        text=True, timeout=60, cwd=tmp_path)
     assert r.stderr == "", r.stderr
@@ -57,8 +60,9 @@ def test_unit_verifies_cleanly(tmp_path: Path) -> None:
 
 
 @needs_analyze
-def test_unit_security_exposure(tmp_path: Path) -> None:
-    unit = _unit_with_exec(tmp_path)
+@UNITS
+def test_unit_security_exposure(tmp_path: Path, unit_file: Path) -> None:
+    unit = _unit_with_exec(tmp_path, unit_file)
     r = subprocess.run(["systemd-analyze", "security", "--offline=true", "--no-pager",
                         str(unit)], capture_output=True, text=True, timeout=60, cwd=tmp_path)
     m = re.search(r"Overall exposure level for \S+: ([0-9.]+) (\w+)", r.stdout)
@@ -87,13 +91,39 @@ def test_unit_settings() -> None:
     assert "MemoryDenyWriteExecute" not in keys  # numba needs W->X pages: see the next test
 
 
-def test_exec_start_flags_exist() -> None:
+def test_gateway_unit_settings() -> None:
+    """The gateway unit runs a directory of machines, with the instance unit's hardening."""
+    def settings(path: Path) -> dict[str, list[str]]:
+        keys: dict[str, list[str]] = {}
+        for line in path.read_text().splitlines():
+            if "=" in line and not line.startswith(("#", "[")):
+                k, v = line.split("=", 1)
+                keys.setdefault(k, []).append(v)
+        return keys
+
+    gw, inst = settings(GATEWAY_UNIT), settings(UNIT)
+    one = {k: v[-1] for k, v in gw.items()}
+    assert one["ExecStart"].endswith(" /etc/twinwatch/machines.d")
+    assert one["AssertDirectoryNotEmpty"] == "/etc/twinwatch/machines.d"
+    assert one["WorkingDirectory"] == "%S/twinwatch/gateway"
+    assert any(v == "NUMBA_CACHE_DIR=%C/twinwatch/gateway/numba" for v in gw["Environment"])
+    assert one["Type"] == "notify" and one["RestartPreventExitStatus"] == "78"
+    hardening = ("NoNewPrivileges", "CapabilityBoundingSet", "ProtectSystem", "ProtectHome",
+                 "PrivateDevices", "RestrictAddressFamilies", "SystemCallFilter", "User",
+                 "UMask", "RestrictNamespaces", "PrivateTmp", "ProtectKernelTunables")
+    for k in hardening:
+        assert gw[k] == inst[k], k
+    assert "MemoryDenyWriteExecute" not in gw
+
+
+@UNITS
+def test_exec_start_flags_exist(unit_file: Path) -> None:
     """The flags ExecStart passes are accepted by ``twinwatch run``."""
     from click.testing import CliRunner
 
     from twinwatch.cli import main
 
-    exec_start = next(line for line in UNIT.read_text().splitlines()
+    exec_start = next(line for line in unit_file.read_text().splitlines()
                       if line.startswith("ExecStart="))
     flags = [a for a in exec_start.split()[2:] if a.startswith("--")]
     help_text = CliRunner().invoke(main, ["run", "--help"]).output

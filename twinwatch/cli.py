@@ -29,14 +29,16 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger("twinwatch")
 
-def _setup_logging(level: str) -> None:
+def _setup_logging(level: str, threads: bool = False) -> None:
     """Log to stderr (the journal under systemd); third-party floods are rate-limited (the
-    first 5 identical messages a minute, then one line counting the others)."""
+    first 5 identical messages a minute, then one line counting the others). ``threads``
+    (gateway mode) adds the thread's name: ``twinwatch-<machine file>`` says which machine."""
     from twinwatch.daemon import logfilter
 
     logging.basicConfig(
         level=getattr(logging, level.upper()),
-        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
+        format="%(asctime)s %(levelname)-7s " + ("[%(threadName)s] " if threads else "")
+        + "%(name)s: %(message)s",
         stream=sys.stderr,
     )
     for handler in logging.getLogger().handlers:
@@ -66,7 +68,8 @@ estimated (sysexits.h's EX_TEMPFAIL: the source or its configuration must change
 pass, before a run estimates)."""
 
 
-def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
+def _load_runnable(config: Path | None, base_dir: Path,
+                   cwd: Path | None = None) -> TwinwatchConfig:
     """Load CONFIG (or the built-in default) and check it can run here: the files it names
     and the directories it writes to exist, the driver delivers every channel the twin needs
     (:mod:`twinwatch.config.preflight`, the check ``check-config`` makes too).
@@ -78,12 +81,13 @@ def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
     from twinwatch.config.preflight import check_runnable
 
     cfg = load_config(config) if config else default_config()
-    check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir)
+    check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir,
+                   cwd=cwd)
     return cfg
 
 
 @main.command()
-@click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("config", required=False, type=click.Path(path_type=Path))
 @click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Stop after this many seconds of source time (plant or recording time).")
 @click.option("--log-level", default="warning", show_default=True,
@@ -96,10 +100,23 @@ def _load_runnable(config: Path | None, base_dir: Path) -> TwinwatchConfig:
               help="Resume the last run's twin and alarm levels also when the source's time "
               "starts over (a simulated plant, a replayed recording), which otherwise starts "
               "a new run from the nameplate values.")
+@click.option("--workers", type=click.IntRange(min=0), default=None,
+              help="Gateway mode (CONFIG a directory): windows estimated at once across the "
+              "machines (default: the cores; 0: no limit).")
 def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
-        fresh: bool, resume: bool) -> None:
+        fresh: bool, resume: bool, workers: int | None) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
+
+    Gateway mode: CONFIG a directory runs every machine configuration in it (*.toml, one
+    machine each) in this one process: each machine has its own source, queue, worker,
+    outputs and watchdog, its files in ./<machine name>/; machines configured with the same
+    [zenoh] session settings share one Zenoh session; at most --workers windows are
+    estimated at once. A machine whose configuration is invalid, whose device cannot be
+    opened or whose driver fails is reported under its name and the others go on. SIGHUP
+    re-reads the directory (new files start, removed files stop, changed files reload, machines
+    not running are started again). The summary has one block per machine; the exit status is 1
+    when a machine was lost, else as below for the worst machine.
 
     Every start is a new run (its id is in every health message and the summary; a SIGHUP
     reload goes on in the same run). On a machine (a bus, a device) the twin and the alarm
@@ -126,6 +143,10 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
 
     if fresh and resume:
         raise click.UsageError("--fresh and --resume exclude each other")
+    if config is not None and config.is_dir():
+        _run_gateway(config, duration=duration, log_level=log_level,
+                     resume=False if fresh else (True if resume else None), workers=workers)
+        return
     base_dir = config.resolve().parent if config else Path.cwd()
 
     def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
@@ -210,6 +231,64 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         sys.exit(EX_TEMPFAIL)
 
 
+def _run_gateway(directory: Path, *, duration: float | None, log_level: str,
+                 resume: bool | None, workers: int | None) -> None:
+    """``twinwatch run DIR``: every machine of DIR in this process
+    (:class:`~twinwatch.daemon.gateway.Gateway`), then one summary block per machine and the
+    exit status (1 when a machine was lost, else the worst machine's 74 or 75; 78 when no
+    machine's configuration could run)."""
+    from twinwatch.config.loader import load_config
+    from twinwatch.config.preflight import check_runnable
+    from twinwatch.daemon.gateway import Gateway
+
+    def check(cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
+        check_runnable(cfg, str(path), base_dir=path.resolve().parent, cwd=work_dir)
+
+    gateway = Gateway(directory, read=load_config, check=check, resume=resume,
+                      duration=duration, workers=workers)
+    _setup_logging(log_level, threads=True)
+    old_umask = os.umask(0o027)
+    os.umask(old_umask | 0o027)
+    click.get_current_context().call_on_close(lambda: os.umask(old_umask))
+    from twinwatch.errors import ConfigError
+
+    try:
+        gateway.start()
+    except ConfigError as exc:
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(EX_CONFIG)
+    try:
+        gateway.run()
+    except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
+        logger.debug("gateway failed", exc_info=True)
+        click.echo(f"Error: internal error: {type(exc).__name__}: {exc}", err=True)
+        sys.exit(1)
+    machines = gateway.all_machines()
+    worst = 0
+    for m in machines:
+        daemon = m.supervisor.daemon
+        cfg = m.supervisor.config
+        state = f"lost: {m.lost}" if m.lost is not None else "stopped"
+        click.echo(f"== {m.name} ({m.path.name}): {state}")
+        if daemon is not None and cfg is not None:
+            _print_summary(cfg, daemon)
+            if daemon.lost():
+                worst = max(worst, EX_IOERR)
+            elif daemon.mostly_failed() and worst != EX_IOERR:
+                worst = EX_TEMPFAIL
+    lost = gateway.lost()
+    files = len({m.path for m in machines})
+    click.echo(f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} lost"
+               + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items()) if lost else ""))
+    if lost:
+        current = list(gateway.machines.values())
+        every_config = all(m.lost is not None and m.config_error for m in current)
+        gateway.notifier.status(f"stopped: {len(lost)} machine(s) lost")
+        sys.exit(EX_CONFIG if every_config else 1)
+    if worst:
+        sys.exit(worst)
+
+
 @contextlib.contextmanager
 def _logs_above(bar: Any) -> Iterator[None]:
     """While the progress bar is shown, the console's log lines are written above it (tqdm's
@@ -272,6 +351,7 @@ def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
         lines += [*_window_lines(last), *_trend_lines(last), *_alarm_lines(last),
                   *_structure_lines(last),
                   *_check_lines(last, history), *_timing_lines(cfg, history),
+                  *_wait_lines(daemon),
                   *daemon.summary()]  # where each output wrote, what it lost
     if daemon.lost():
         lines.append("twinwatch: estimated windows were lost: exit status 74")
@@ -392,6 +472,20 @@ def _timing_lines(cfg: TwinwatchConfig, history: list[HealthMessage]) -> list[st
             f"{cfg.acquisition.window * cfg.acquisition.sample_period:g} s)"]
 
 
+def _wait_lines(daemon: Daemon) -> list[str]:
+    """How long the windows waited for the worker (queued, and in a gateway for an
+    estimation slot) before their estimation started."""
+    waits = sorted(daemon.queue_waits)
+    lines = [] if not waits else [
+        f"queue wait per window: median {waits[len(waits) // 2] * 1e3:.0f} ms, max "
+        f"{waits[-1] * 1e3:.0f} ms"]
+    if daemon.dropped_at_stop:
+        lines.append(f"{daemon.dropped_at_stop} windows queued at the stop were dropped: the "
+                     f"estimation did not reach them within [acquisition] shutdown_timeout "
+                     f"({daemon.config.acquisition.shutdown_timeout:g} s)")
+    return lines
+
+
 def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
     """What the source delivered and what was lost of it, by reason, with the cause when no
     window could be completed."""
@@ -444,18 +538,51 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
 
 
 @main.command("check-config")
-@click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("config", type=click.Path(path_type=Path))
 def check_config(config: Path) -> None:
     """Validate CONFIG and check it can run here (the files it names and the directories it
     writes to exist, the driver delivers every channel the twin needs: what `run` checks
-    before it starts); exit 0 if it is usable, 1 naming each bad key otherwise."""
+    before it starts); exit 0 if it is usable, 1 naming each bad key otherwise. CONFIG a
+    directory (a gateway's): every machine configuration in it (*.toml), each machine name
+    once; exit 1 if any cannot run."""
+    if not config.is_dir():
+        ok, line = _check_one(config)
+        click.echo(line, err=not ok)
+        if not ok:
+            sys.exit(1)
+        return
+    from twinwatch.daemon.gateway import MACHINE_GLOB
+
+    files = sorted(p for p in config.glob(MACHINE_GLOB) if p.is_file())
+    if not files:
+        click.echo(f"{config}: no machine configuration ({MACHINE_GLOB}) in this directory",
+                   err=True)
+        sys.exit(1)
+    names: dict[str, Path] = {}
+    failed = 0
+    for path in files:
+        ok, line = _check_one(path, names=names)
+        click.echo(line, err=not ok)
+        failed += not ok
+    click.echo(f"{config}: {len(files) - failed} of {len(files)} machine configurations OK")
+    if failed:
+        sys.exit(1)
+
+
+def _check_one(config: Path, names: dict[str, Path] | None = None) -> tuple[bool, str]:
+    """``check-config`` on one file: (usable, the line to print). ``names``: the machine
+    names seen so far in a gateway's directory (a second file naming one fails)."""
     from twinwatch.config.loader import ConfigError
 
     try:
         cfg = _load_runnable(config, config.resolve().parent)
     except ConfigError as exc:
-        click.echo(str(exc), err=True)
-        sys.exit(1)
+        return False, str(exc)
+    if names is not None:
+        other = names.setdefault(cfg.machine.name, config)
+        if other != config:
+            return False, (f"{config}: machine.name {cfg.machine.name!r} is already used by "
+                           f"{other.name}: each machine of a gateway needs a name of its own")
     # Drivers validate what only they can check (DBC names, files, columns) at open time:
     # open the source without starting acquisition and without sending (a live interface
     # receive-only where it allows), and say if it cannot be opened.
@@ -465,17 +592,16 @@ def check_config(config: Path) -> None:
         probed = get_driver_class(cfg.driver.type).probe(cfg.driver,
                                                           base_dir=config.resolve().parent)
     except DriverConfigError as exc:
-        click.echo(f"{config}: driver: {exc}", err=True)
-        sys.exit(1)
+        return False, f"{config}: driver: {exc}"
     except DriverError as exc:
-        click.echo(f"{config}: the configuration is valid; the source cannot be opened here: "
-                   f"{exc} (`run` would wait for it)"
-                   if get_driver_class(cfg.driver.type).reopens(cfg.driver)
-                   else f"{config}: driver: {exc}", err=True)
-        sys.exit(1)
-    click.echo(f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
-               f"{cfg.driver.type} driver, estimating {', '.join(cfg.estimation.estimate or [])})"
-               + (f"; source: {probed}" if probed and probed != "opened" else ""))
+        return False, (f"{config}: the configuration is valid; the source cannot be opened "
+                       f"here: {exc} (`run` would wait for it)"
+                       if get_driver_class(cfg.driver.type).reopens(cfg.driver)
+                       else f"{config}: driver: {exc}")
+    return True, (f"{config}: OK ({cfg.machine.model} '{cfg.machine.name}', "
+                  f"{cfg.driver.type} driver, estimating "
+                  f"{', '.join(cfg.estimation.estimate or [])})"
+                  + (f"; source: {probed}" if probed and probed != "opened" else ""))
 
 
 _CONNECT_HELP = ("Zenoh endpoint to connect to: a daemon (a peer, tcp/127.0.0.1:7447 by "

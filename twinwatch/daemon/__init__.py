@@ -1,5 +1,5 @@
-"""The service: lifecycle (supervisor, runner, systemd, log filter), acquisition (ring buffer,
-source keeper), window pipeline, alarms.
+"""The service: lifecycle (supervisor, gateway, runner, systemd, log filter), acquisition (ring
+buffer, source keeper), window pipeline, alarms.
 
 The daemon composes the other rooms: it is handed a validated configuration
 (:mod:`twinwatch.config`), opens a driver (:mod:`twinwatch.drivers`) and the sinks

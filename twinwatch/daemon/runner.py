@@ -43,7 +43,15 @@ from twinwatch.daemon.source import open_source
 from twinwatch.drivers import get_driver_class
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import AlarmBands, Gate, Outbox, Role, Sink, SinkContext
+from twinwatch.sinks.base import (
+    AlarmBands,
+    Gate,
+    Outbox,
+    Role,
+    SharedResources,
+    Sink,
+    SinkContext,
+)
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
@@ -51,6 +59,7 @@ from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
     from twinwatch.config.schema import OutputTable, TwinwatchConfig
+    from twinwatch.daemon.gateway import EstimationSlots
     from twinwatch.daemon.systemd import Watchdog
 
 logger = logging.getLogger(__name__)
@@ -70,6 +79,11 @@ STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
 stops a daemon at a window boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the
 partial window is dropped (a source that went silent)."""
+
+
+QUEUE_WAITS = 10000
+"""Windows whose queue wait (submission to the start of processing) the daemon keeps
+(:attr:`Daemon.queue_waits`)."""
 
 
 RECENT_WINDOWS = 20
@@ -115,6 +129,17 @@ class Daemon:
         wait_for_source: a live source that cannot be opened now is waited for
             (:mod:`twinwatch.daemon.source`: the daemon starts and says what it waits for);
             False raises instead (a reload: the running configuration goes on).
+        work_dir: the directory the files the outputs create are relative to (the state
+            database, the recording); default the working directory. A gateway gives each
+            machine its own (``<working directory>/<machine>``).
+        slots: the estimation slots the worker takes a window's processing under (a gateway:
+            one pool sized to the cores, shared by every machine; the time waited for one is
+            part of the window's queue wait); None: no limit (one daemon per process).
+        shared: what the daemons of one process share (a gateway's
+            :class:`~twinwatch.sinks.base.SharedResources`: the Zenoh session), given to the
+            outputs in their context; None: each output opens its own.
+        thread_prefix: the worker thread is ``<prefix>-adaptation`` (a gateway names each
+            machine's).
 
     Attributes:
         sinks: registry name -> the open output, in the order each window is written to them
@@ -149,8 +174,19 @@ class Daemon:
         defer: Collection[str] = (),
         run_id: str | None = None,
         wait_for_source: bool = True,
+        work_dir: Path | None = None,
+        slots: EstimationSlots | None = None,
+        shared: SharedResources | None = None,
+        thread_prefix: str = "twinwatch",
     ) -> None:
         self.config = config
+        self.work_dir = work_dir or Path.cwd()
+        self.slots = slots
+        self.shared = shared
+        self._thread_prefix = thread_prefix
+        #: seconds each window waited between its submission and the start of its processing
+        #: (the queue, and in a gateway the estimation slot), the last QUEUE_WAITS windows
+        self.queue_waits: deque[float] = deque(maxlen=QUEUE_WAITS)
         self.run_id = run_id or new_run_id()
         self.base_dir = base_dir or Path.cwd()
         self.machine = config.machine.name
@@ -190,6 +226,9 @@ class Daemon:
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
+        #: windows queued at a stop that the worker did not reach within ``shutdown_timeout``
+        self.dropped_at_stop = 0
+        self._closing = False
         #: the last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
         #: "abandoned" (gap, bad value, ...), "overrun"
         self.recent_outcomes: deque[str] = deque(maxlen=RECENT_WINDOWS)
@@ -287,7 +326,7 @@ class Daemon:
 
     def _sink_context(self, *, has_gate: bool) -> SinkContext:
         """What the outputs get from this daemon (the stored history when a gate opens)."""
-        return replace(_context(self.config, self.model, self.base_dir, self.run_id),
+        return replace(self._context(self.config, self.model),
                        history=self.stored_history if has_gate else None,
                        outbox=self.outbox if has_gate else None)
 
@@ -301,7 +340,7 @@ class Daemon:
             port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
         """
         model = create_model(config.machine.model, config.machine.options)
-        context = _context(config, model, self.base_dir, self.run_id)
+        context = self._context(config, model)
         new = {t.name: t.config for t in config.output_tables() if t.config.enabled}
         old = {t.name: t.config for t in self.config.output_tables()}
         keep, wait = [], []
@@ -320,7 +359,7 @@ class Daemon:
         """Adopt the handed-over outputs whose table and context are unchanged (bound to this
         daemon by :meth:`_wire` once it takes over); one that does not fit is left to the
         daemon that handed it over (it closes it). Returns the adopted names."""
-        context = _context(self.config, self.model, self.base_dir, self.run_id)
+        context = self._context(self.config, self.model)
         adopted: set[str] = set()
         for t in wanted:
             sink = reuse.get(t.name)
@@ -331,6 +370,12 @@ class Daemon:
                 logger.info("reload: the %s output is kept open (its configuration is "
                             "unchanged)", t.name)
         return adopted
+
+    def _context(self, config: TwinwatchConfig, model: TwinModel) -> SinkContext:
+        """The outputs' context for a daemon of this one's run, directories and shared
+        connections on ``config`` (without the stored history)."""
+        return _context(config, model, self.base_dir, self.run_id, cwd=self.work_dir,
+                        shared=self.shared)
 
     # -- the window pipeline's results ------------------------------------------------------
     @property
@@ -584,7 +629,8 @@ class Daemon:
         """
         assert self.driver is not None
         live = self.driver.live
-        self._worker = threading.Thread(target=self._work, name="twinwatch-adaptation",
+        self._worker = threading.Thread(target=self._work,
+                                        name=f"{self._thread_prefix}-adaptation",
                                         daemon=True)
         self._worker.start()
         if self.watchdog is not None:
@@ -649,16 +695,17 @@ class Daemon:
         return self.windows_estimated
 
     def _submit(self, window: WindowData, *, block: bool) -> None:
+        item = (window, time.monotonic())
         if block:
             while not self._stop.is_set():
                 try:
-                    self._queue.put(window, timeout=0.2)
+                    self._queue.put(item, timeout=0.2)
                     return
                 except queue.Full:
                     continue
             return
         try:
-            self._queue.put_nowait(window)
+            self._queue.put_nowait(item)
         except queue.Full:
             self.overruns += 1
             self.recent_outcomes.append("overrun")
@@ -671,26 +718,49 @@ class Daemon:
         """Stop the worker after the windows already queued."""
         if self._worker is None:
             return
+        timeout = self.config.acquisition.shutdown_timeout
+        deadline = time.monotonic() + timeout
         while self._worker.is_alive():
             try:
                 self._queue.put(_STOP, timeout=0.2)
                 break
-            except queue.Full:
-                continue
-        self._worker.join(timeout=self.config.acquisition.shutdown_timeout)
+            except queue.Full:  # a worker that does not take windows (stuck, or waiting
+                if time.monotonic() > deadline:  # for an estimation slot) bounds the stop
+                    break
+        self._worker.join(timeout=max(0.0, deadline - time.monotonic()))
         if self._worker.is_alive():
-            logger.warning("adaptation worker did not finish within %.0f s",
+            # the outputs close next: the worker takes no further window (one it is in the
+            # middle of cannot be stopped; its outputs count it as lost if they are closed)
+            self._closing = True
+            logger.warning("%s: adaptation worker did not finish within %.0f s: the windows "
+                           "still queued are dropped", self.machine,
                            self.config.acquisition.shutdown_timeout)
         self._worker = None
 
     def _work(self) -> None:
         while True:
-            item = self._queue.get()
-            if item is _STOP:
+            try:
+                got = self._queue.get(timeout=0.5)
+            except queue.Empty:
+                if self._closing:  # the stop gave up on this worker: nothing more comes
+                    return
+                continue
+            if got is _STOP:
                 return
+            item, submitted = got
             if self._stop.is_set() and self.abandon:
                 logger.info("window %d abandoned on stop", item.index)
                 continue
+            if self._closing:  # the shutdown timeout has passed: the outputs are closing
+                self.dropped_at_stop += 1
+                continue
+            slots, slot = self.slots, None
+            if slots is not None:
+                slot = slots.acquire(self.machine, cancelled=lambda: self._closing)
+                if slot is None:
+                    self.dropped_at_stop += 1
+                    continue
+            self.queue_waits.append(time.monotonic() - submitted)
             if self.watchdog is not None:
                 self.watchdog.busy()
             try:
@@ -699,11 +769,13 @@ class Daemon:
             except Exception as exc:  # contained to the window: the daemon goes on
                 self.numeric_failures += 1
                 self.recent_outcomes.append("failed")
-                logger.error("window %d could not be estimated (%s: %s); it is skipped and "
-                             "counted in counters.numeric_failures", item.index,
-                             type(exc).__name__, exc)
+                logger.error("%s: window %d could not be estimated (%s: %s); it is skipped "
+                             "and counted in counters.numeric_failures", self.machine,
+                             item.index, type(exc).__name__, exc)
                 logger.debug("window %d failed", item.index, exc_info=True)
             finally:
+                if slots is not None and slot is not None:
+                    slots.release(slot)
                 if self.watchdog is not None:
                     self.watchdog.idle()
 
@@ -757,7 +829,8 @@ class Daemon:
 
 
 def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path,
-             run: str) -> SinkContext:
+             run: str, *, cwd: Path | None = None,
+             shared: SharedResources | None = None) -> SinkContext:
     """The outputs' context for a daemon on ``config`` (without the stored history)."""
     bands = {}
     if config.alarms.enabled:
@@ -768,7 +841,7 @@ def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path,
     return SinkContext(machine=config.machine.name, model=config.machine.model,
                        outputs=tuple(model.output_names),
                        parameters={p.name: p.unit for p in model.parameters},
-                       base_dir=base_dir, cwd=Path.cwd(),
+                       base_dir=base_dir, cwd=cwd or Path.cwd(), shared=shared,
                        recent_windows=config.acquisition.history,
                        output_units={o.name: o.unit for o in model.outputs},
                        nominal={p.name: float(config.machine.parameters.get(p.name, p.nominal))

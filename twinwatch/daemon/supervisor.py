@@ -54,8 +54,10 @@ from twinwatch.errors import StartError
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.gateway import EstimationSlots
     from twinwatch.daemon.pipeline import HealthCallback
     from twinwatch.daemon.runner import Daemon
+    from twinwatch.sinks.base import SharedResources
     from twinwatch.twin.health import HealthMessage
 
 logger = logging.getLogger(__name__)
@@ -167,6 +169,16 @@ class Supervisor:
             (False: the nameplate values, ``twinwatch run --fresh``; True: also on a source
             whose time starts over, ``--resume``; None: unless the source's time starts over,
             a simulated plant or a replay; a reload always resumes, in the same run).
+        notifier: where systemd's notifications go (default: the process's own, from
+            ``NOTIFY_SOCKET``); a gateway gives each machine a silent one (the gateway tells
+            systemd about them all).
+        watchdog: the watchdog its daemons tick and mark busy/idle (default: one on the
+            notifier); a gateway gives each machine one that pings nothing and reads it to
+            find a stuck machine.
+        work_dir, slots, shared: handed to every :class:`~twinwatch.daemon.runner.Daemon`
+            (a gateway's per-machine directory, its estimation slots, its shared Zenoh
+            session).
+        thread_prefix: prefixes the names of the opening threads (``twinwatch-start``).
 
     Attributes:
         config: the running configuration (after :meth:`start`).
@@ -176,9 +188,16 @@ class Supervisor:
     """
 
     def __init__(self, load: Callable[[], TwinwatchConfig], *, base_dir: Path,
-                 source: str, resume: bool | None = None) -> None:
-        self.notifier = Notifier(unset_environment=True)
-        self.watchdog = Watchdog(self.notifier)
+                 source: str, resume: bool | None = None, notifier: Notifier | None = None,
+                 watchdog: Watchdog | None = None, work_dir: Path | None = None,
+                 slots: EstimationSlots | None = None, shared: SharedResources | None = None,
+                 thread_prefix: str = "twinwatch") -> None:
+        self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
+        self.watchdog = watchdog if watchdog is not None else Watchdog(self.notifier)
+        self.work_dir = work_dir
+        self.slots = slots
+        self.shared = shared
+        self._prefix = thread_prefix
         self._load = load
         self.base_dir = base_dir
         self.source = source
@@ -221,7 +240,7 @@ class Supervisor:
         self.config = cfg
         self._install_signal_handlers()
         build = _Build(lambda: self._open(cfg, resume=self._resume), keep=(), config=cfg,
-                       name="twinwatch-start")
+                       name=f"{self._prefix}-start")
         while not build.wait(0.2):
             if self._stop_requested.is_set():  # the opening goes on alone and is closed after
                 build.abandon()
@@ -261,7 +280,9 @@ class Supervisor:
         with _start_errors():
             daemon = Daemon(cfg, base_dir=self.base_dir, persist=True, watchdog=self.watchdog,
                             reuse=reuse, resume=resume, defer=defer, run_id=run_id,
-                            wait_for_source=wait_for_source)
+                            wait_for_source=wait_for_source, work_dir=self.work_dir,
+                            slots=self.slots, shared=self.shared,
+                            thread_prefix=self._prefix)
         daemon.add_tick(self._check_reload)
         daemon.add_tick(self._refresh_status)
         daemon.add_callback(self._watch_problems)
@@ -371,7 +392,7 @@ class Supervisor:
                        self.source)
         self._build = _Build(lambda: self._open(new_cfg, reuse=reuse, resume=False, defer=defer,
                                                 run_id=running.run_id, wait_for_source=False),
-                             keep=keep, config=new_cfg, name="twinwatch-reload")
+                             keep=keep, config=new_cfg, name=f"{self._prefix}-reload")
 
     def _handover(self, new_cfg: TwinwatchConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
         """What the running daemon hands to one on ``new_cfg`` (its driver when the ``[driver]``

@@ -268,6 +268,18 @@ class Watchdog:
                              'watchdog = "alive"')
         return None
 
+    def busy_seconds(self) -> float | None:
+        """Seconds the worker has been in the window it is processing, None when idle."""
+        since = self._busy_since
+        return None if since is None else self._clock() - since
+
+    def quiet_seconds(self) -> float:
+        """Seconds since a window last finished (or since :meth:`reset`, the first call)."""
+        now = self._clock()
+        if self._last_window is None:
+            self._last_window = now
+        return now - self._last_window
+
     def healthy(self) -> bool:
         """False while the worker is stuck in one window or, with ``require_windows``, no
         window has finished for more than ``max_quiet`` seconds."""

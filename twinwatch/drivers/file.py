@@ -213,6 +213,9 @@ class FileDriver(Driver):
     def _setup(self, config: FileDriverConfig) -> None:
         self.config = config
         self.channels = tuple(config.columns)
+        # a real-time replay cannot wait for the estimator (architecture: a live source): a
+        # full queue drops the window as an overrun instead of falling behind the clock
+        self.live = config.realtime
         path = config.path
         if not path.is_file():
             raise DriverConfigError(f"path: file {str(path)!r} not found")

@@ -36,6 +36,7 @@ in :data:`twinwatch.sinks.BUILTIN_SINKS`, or an entry point in another package.
 from __future__ import annotations
 
 import abc
+import threading
 from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -58,6 +59,7 @@ __all__ = [
     "Outbox",
     "OutboxRow",
     "ProcessedWindow",
+    "SharedResources",
     "Role",
     "Sink",
     "SinkConfig",
@@ -204,6 +206,9 @@ class SinkContext:
         outbox: the gate's :class:`Outbox` for an output name (``outbox("mqtt")``), or None
             when no gate is open or it keeps none: a publisher that delivers every stored
             window (store-and-forward) asks it again after a reload.
+        shared: what the daemons of one process share (a gateway: one Zenoh session for every
+            machine whose ``[zenoh]`` session settings are the same), or None (one daemon per
+            process: every output opens its own).
     """
 
     machine: str
@@ -220,6 +225,60 @@ class SinkContext:
     alarm_bands: Mapping[str, AlarmBands] = field(default_factory=dict)
     run: str = ""
     outbox: Callable[[str], Outbox | None] | None = None
+    shared: SharedResources | None = None
+
+
+class SharedResources:
+    """Connections the daemons of one process share (``twinwatch run DIR``, the gateway): one
+    object per key, opened by the first output that asks for it and closed when the last one
+    releases it (reference-counted). An output keys it by the settings that make it (a Zenoh
+    session: mode, endpoints, TLS, authentication), so machines configured alike share one and
+    machines configured apart do not.
+
+    Thread-safe: daemons open and close their outputs from their own threads. Opening holds
+    the lock (a second machine asking for the same session waits for the first to open it,
+    instead of opening a second one on the same port).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._items: dict[str, list[Any]] = {}  # key -> [object, references, close]
+
+    def acquire(self, key: str, open_: Callable[[], Any], close: Callable[[Any], None]) -> Any:
+        """The object for ``key``: the open one (one more reference), or ``open_()``'s.
+
+        Raises:
+            Whatever ``open_`` raises (nothing is kept then).
+        """
+        with self._lock:
+            item = self._items.get(key)
+            if item is None:
+                item = self._items[key] = [open_(), 0, close]
+            item[1] += 1
+            return item[0]
+
+    def release(self, key: str) -> None:
+        """Drop one reference to ``key``'s object; the last closes it (``close(obj)``)."""
+        with self._lock:
+            item = self._items.get(key)
+            if item is None:
+                return
+            item[1] -= 1
+            if item[1] > 0:
+                return
+            del self._items[key]
+        item[2](item[0])
+
+    def references(self, key: str) -> int:
+        """How many outputs hold ``key``'s object (0: none open)."""
+        with self._lock:
+            item = self._items.get(key)
+            return 0 if item is None else int(item[1])
+
+    def keys(self) -> list[str]:
+        """The keys of the open objects."""
+        with self._lock:
+            return list(self._items)
 
 
 class SinkConfig(BaseModel):

@@ -580,7 +580,7 @@ class StateStore(Gate):
         Raises:
             StoreError: see the class docstring.
         """
-        return cls(Path(config.path).expanduser(), synchronous=config.synchronous,
+        return cls(config.output_files(context.cwd)["path"], synchronous=config.synchronous,
                    keep_days=config.keep_days, keep_rows=config.keep_rows,
                    recover_corrupt=config.recover_corrupt, recent=context.recent_windows,
                    run=context.run or None)

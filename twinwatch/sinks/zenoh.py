@@ -76,7 +76,13 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.base import ProcessedWindow, Sink, SinkConfig, SinkContext
+from twinwatch.sinks.base import (
+    ProcessedWindow,
+    SharedResources,
+    Sink,
+    SinkConfig,
+    SinkContext,
+)
 
 if TYPE_CHECKING:
     import zenoh
@@ -97,6 +103,7 @@ __all__ = [
     "declare_publisher",
     "history_parameters",
     "open_session",
+    "session_key",
     "to_json",
     "to_zenoh_config",
 ]
@@ -390,6 +397,20 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
     return session
 
 
+SESSION_FIELDS_NOT_SHARED = frozenset({"key_prefix", "enabled", "retry_max", "cache",
+                                       "heartbeat"})
+"""``[zenoh]`` keys that do not make the session (each machine's publisher has its own), so
+machines that differ only in them share one session in a gateway."""
+
+
+def session_key(cfg: ZenohConfig) -> str:
+    """What makes a session (mode, endpoints, TLS, authentication, access control), as one
+    string: in a gateway, machines whose ``[zenoh]`` gives the same key share one session
+    (:class:`~twinwatch.sinks.base.SharedResources`)."""
+    data = cfg.model_dump(mode="json", exclude=set(SESSION_FIELDS_NOT_SHARED))
+    return "zenoh:" + json.dumps(data, sort_keys=True, default=str)
+
+
 def declare_publisher(session: zenoh.Session, key: str, cfg: ZenohConfig
                       ) -> zenoh.Publisher | zenoh_ext.AdvancedPublisher:
     """Declare the publisher of one topic (``P/health``, ``P/alarm``) on ``session``: with
@@ -523,7 +544,7 @@ class HealthPublisher(Sink):
     open_order: ClassVar[int] = 10  # the port first: a second daemon fails before any file
 
     def __init__(self, config: ZenohConfig, machine: str, *,
-                 retry_connect: bool = False) -> None:
+                 retry_connect: bool = False, shared: SharedResources | None = None) -> None:
         self._closed = True  # until fully open, so __del__ and close() are safe
         if "/" in machine:
             raise ValueError(f"machine {machine!r} must be a single key chunk (no '/')")
@@ -548,11 +569,13 @@ class HealthPublisher(Sink):
         self._connector: threading.Thread | None = None
         self._query_log = RateLimitedLog(logger, QUERY_LOG_INTERVAL)
         self._detached = False
+        self._shared = shared
+        self._shared_key: str | None = None
         if not config.enabled:
             logger.info("zenoh publishing disabled for %s", machine)
             return
         try:
-            session = open_session(config)
+            session = self._open_session()
         except PublisherError as exc:
             unreachable = "nothing answers there" in str(exc)
             if not (retry_connect and unreachable):
@@ -568,6 +591,31 @@ class HealthPublisher(Sink):
         self._attach(session)
         self._closed = False
 
+    def _open_session(self) -> zenoh.Session:
+        """This publisher's session: its own (:func:`open_session`), or in a gateway the one
+        every machine with the same session settings shares (:attr:`SinkContext.shared`,
+        keyed by :func:`session_key`).
+
+        Raises:
+            PublisherError: as :func:`open_session`.
+        """
+        if self._shared is None:
+            return open_session(self.config)
+        key = session_key(self.config)
+        session = self._shared.acquire(key, lambda: open_session(self.config),
+                                       lambda s: s.close())
+        self._shared_key = key
+        return session
+
+    def _close_session(self, session: zenoh.Session) -> None:
+        """Close this publisher's own session, or release its share of a shared one (the
+        last machine to release it closes it)."""
+        key, self._shared_key = self._shared_key, None
+        if self._shared is not None and key is not None:
+            self._shared.release(key)
+        else:
+            session.close()
+
     def _attach(self, session: zenoh.Session) -> None:
         """Declare the health publisher, queryable and token on ``session`` and use it."""
         try:
@@ -575,7 +623,7 @@ class HealthPublisher(Sink):
             queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
             token = session.liveliness().declare_token(self.alive_key)
         except zenoh.ZError as exc:
-            session.close()
+            self._close_session(session)
             raise PublisherError(
                 f"cannot declare zenoh entities under {self.base_key}: {exc}"
             ) from exc
@@ -598,13 +646,13 @@ class HealthPublisher(Sink):
         delay = 0.5
         while not self._give_up.wait(delay * random.uniform(0.8, 1.2)):
             try:
-                session = open_session(self.config)
+                session = self._open_session()
             except PublisherError as exc:
                 logger.debug("zenoh still unreachable: %s", exc)
                 delay = min(2 * delay, self.config.retry_max)
                 continue
             if self._give_up.is_set():
-                session.close()
+                self._close_session(session)
                 return
             try:
                 self._attach(session)
@@ -626,7 +674,7 @@ class HealthPublisher(Sink):
             PublisherError: the session or a declaration could not be created.
             ValueError: the machine name is not a key chunk.
         """
-        publisher = cls(config, context.machine, retry_connect=True)
+        publisher = cls(config, context.machine, retry_connect=True, shared=context.shared)
         publisher.attach(context)
         return publisher
 
@@ -823,7 +871,7 @@ class HealthPublisher(Sink):
             steps.append(("queryable", queryable.undeclare))
         steps += [("publisher", p.undeclare) for p in publishers]
         if session is not None:
-            steps.append(("session", session.close))
+            steps.append(("session", lambda: self._close_session(session)))
         for what, step in steps:
             try:
                 step()

@@ -1,0 +1,321 @@
+"""How many machines this box monitors in real time (issue 19): one process per machine against
+gateway mode (``twinwatch run DIR``).
+
+N machines (the simulated DC motor, each its own recording: seed, noise 0.5 %) are monitored
+for ``--seconds`` of plant time, all started at the same moment. The plants run *before* the
+monitor, in a separate process (``_plants``): each machine's samples are written to a CSV that
+the monitor's file driver replays in real time (``realtime = true``: each row when its time
+stamp is due on the wall clock; a live source, so a window the estimator cannot take is dropped
+and counted as an overrun). The plants' cost is therefore none of the figures: they are the
+monitor's own, acquisition (the file driver's parsing and pacing, as a bus driver's decoding
+would be) included. Each machine stores every window in its state database and publishes it
+on Zenoh (one port per process; in gateway mode one shared session); no Rerun recording
+(``--recording`` adds it).
+
+Printed per run (N, mode): windows estimated of those expected, overruns, the estimation time
+per window over every machine (p50, p95, max: the health message's ``elapsed_s``, the first,
+compiling window included), the windows' queue wait (median of the machines' medians, the
+largest; from the run summaries), CPU share of the whole box's cores (100 % = one core) and
+per machine, resident memory per machine (the processes' peak VmRSS, summed, divided by N).
+``--cold`` points ``NUMBA_CACHE_DIR`` at an empty directory: every kernel is compiled, as on
+the first start after an install (a reboot with an installed unit keeps its cache in
+``/var/cache/twinwatch``). Each run is bounded by ``--seconds`` + 150 s of wall time.
+
+Usage::
+
+    python benchmarks/bench_density.py --n 4 16 [--seconds 40] [--mode both|gateway|process]
+                                       [--cold] [--workers K] [--gateways K]
+                                       [--acquisition-only] [--recording]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sqlite3
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SIM = ROOT / "config" / "dc-motor-sim.toml"
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+PORT_BASE = 27400
+
+FILE_DRIVER = """[driver]
+type = "file"
+path = "{path}"
+time_column = "t"
+sample_period = 0.01
+realtime = true
+[driver.columns]
+Va = {{ column = "Va" }}
+ia = {{ column = "ia" }}
+omega = {{ column = "omega" }}
+Tload = {{ column = "Tload" }}
+setpoint = {{ column = "setpoint" }}
+"""
+
+
+def write_plants(directory: Path, n: int, seconds: float) -> None:
+    """(Runs in its own process.) One recording per machine: the simulated DC motor, the
+    resistance degrading, set-point levels and noise seeded by the machine's number."""
+    sys.path.insert(0, str(ROOT))
+    from tests.sources_support import plant_csv
+
+    for i in range(n):
+        path = plant_path(directory, i, seconds)
+        if not path.exists():
+            plant_csv(path, seconds + 4.0, plant={
+                "scenario": "resistance_degradation", "fault_start": 5.0,
+                "noise": {"ia": 0.5, "omega": 0.5}, "seed": i,
+                "setpoint": {"seed": i + 1}})
+
+
+def plant_path(directory: Path, i: int, seconds: float) -> Path:
+    return directory / f"plant{i:03d}-{seconds:g}s.csv"
+
+
+def machine_config(i: int, recording: Path, port: int, record: bool,
+                   acquisition_only: bool = False) -> str:
+    text = SIM.read_text().replace('name = "dc-motor-sim"', f'name = "m{i:03d}"')
+    start, end = text.index("[driver]"), text.index("[zenoh]")
+    text = text[:start] + FILE_DRIVER.format(path=recording) + "\n" + text[end:]
+    text = text.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
+    if not record:
+        text = text.replace("[recording]", "[recording]\nenabled = false")
+    if acquisition_only:  # a window longer than the run: samples acquired, nothing estimated
+        text = text.replace("window = 200 ", "window = 100000 ")
+    return text
+
+
+def _cpu_ticks(pid: int) -> int | None:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return int(fields[11]) + int(fields[12])  # utime + stime
+
+
+def _rss_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+@dataclass
+class Run:
+    n: int
+    mode: str
+    expected: int = 0
+    estimated: int = 0
+    overruns: int = 0
+    failures: int = 0
+    elapsed: list[float] = field(default_factory=list)
+    first: list[float] = field(default_factory=list)
+    wait_medians: list[float] = field(default_factory=list)
+    wait_max: float = 0.0
+    cpu_s: float = 0.0
+    wall_s: float = 0.0
+    peak_rss_mb: float = 0.0
+    exit_codes: list[int] = field(default_factory=list)
+    start_s: float = 0.0
+
+    def row(self) -> str:
+        e = sorted(self.elapsed)
+
+        def pct(q: float) -> float:
+            return e[min(len(e) - 1, int(q * len(e)))] * 1e3 if e else float("nan")
+
+        cpu = 100.0 * self.cpu_s / self.wall_s if self.wall_s else float("nan")
+        wait_med = statistics.median(self.wait_medians) if self.wait_medians else float("nan")
+        return (f"{self.n:>4} {self.mode:<8} {self.estimated:>5}/{self.expected:<5} "
+                f"{self.overruns:>8} {pct(0.5):>7.0f} {pct(0.95):>7.0f} "
+                f"{(e[-1] * 1e3 if e else float('nan')):>8.0f} "
+                f"{(max(self.first) * 1e3 if self.first else float('nan')):>8.0f} "
+                f"{wait_med:>8.0f} {self.wait_max:>8.0f} {cpu:>7.0f} {cpu / self.n:>8.1f} "
+                f"{self.peak_rss_mb / self.n:>9.0f} {self.peak_rss_mb:>8.0f} "
+                f"{self.start_s:>7.1f} {','.join(map(str, sorted(set(self.exit_codes))))}")
+
+
+HEADER = (f"{'N':>4} {'mode':<8} {'windows':>11} {'overruns':>8} {'p50ms':>7} {'p95ms':>7} "
+          f"{'max ms':>8} {'1st ms':>8} {'wait50':>8} {'waitmax':>8} {'CPU%':>7} "
+          f"{'CPU%/m':>8} {'RSS/m MB':>9} {'RSS MB':>8} {'start s':>7} exit")
+
+
+def read_results(run: Run, dirs: list[Path]) -> None:
+    for d in dirs:
+        db = d / "state.sqlite"
+        if not db.exists():
+            continue
+        con = sqlite3.connect(db)
+        try:
+            docs = [json.loads(r[0]) for r in con.execute("SELECT doc FROM health ORDER BY id")]
+        finally:
+            con.close()
+        if not docs:
+            continue
+        run.estimated += len(docs)
+        run.elapsed += [float(doc["elapsed_s"]) for doc in docs]
+        run.first.append(float(docs[0]["elapsed_s"]))
+        counters = docs[-1].get("counters", {})
+        run.overruns += int(counters.get("overruns", 0))
+        run.failures += int(counters.get("numeric_failures", 0))
+
+
+WAIT_RE = re.compile(r"queue wait per window: median (\d+) ms, max (\d+) ms")
+
+
+def monitor(procs: list[subprocess.Popen[str]], timeout: float) -> tuple[float, float, float]:
+    """Sample CPU and RSS of ``procs`` until they exit: (CPU seconds, wall seconds, the sum
+    of the processes' peak RSS [MB])."""
+    t0 = time.monotonic()
+    last_ticks = {p.pid: 0 for p in procs}
+    peak = {p.pid: 0.0 for p in procs}
+    deadline = t0 + timeout
+    while any(p.poll() is None for p in procs):
+        if time.monotonic() > deadline:
+            for p in procs:
+                if p.poll() is None:
+                    p.terminate()
+            print(f"  (timeout after {timeout:.0f} s: stopped)", file=sys.stderr)
+            deadline = float("inf")
+        for p in procs:
+            t = _cpu_ticks(p.pid)
+            if t is not None:
+                last_ticks[p.pid] = t
+            r = _rss_mb(p.pid)
+            if r is not None:
+                peak[p.pid] = max(peak[p.pid], r)
+        time.sleep(0.5)
+    return sum(last_ticks.values()) / CLK_TCK, time.monotonic() - t0, sum(peak.values())
+
+
+def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
+             workers: int | None, acquisition_only: bool = False, gateways: int = 1) -> Run:
+    run = Run(n=n, mode=mode if gateways == 1 or mode != "gateway" else f"gw x{gateways}",
+              expected=0 if acquisition_only else n * int(seconds // 2))
+    with tempfile.TemporaryDirectory(prefix=f"density-{mode}-{n}-") as tmp:
+        root = Path(tmp)
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        if cold:
+            env["NUMBA_CACHE_DIR"] = str(root / "numba-cache")
+        machines = root / "machines"
+        machines.mkdir()
+        shards = [root / f"machines{k}" for k in range(gateways)]
+        for i in range(n):
+            port = PORT_BASE + i % gateways if mode == "gateway" else PORT_BASE + 100 + i
+            where = shards[i % gateways] if mode == "gateway" and gateways > 1 else machines
+            where.mkdir(exist_ok=True)
+            (where / f"m{i:03d}.toml").write_text(
+                machine_config(i, plant_path(plants, i, seconds), port, record,
+                               acquisition_only))
+        cmd = [sys.executable, "-m", "twinwatch", "run", "--no-progress", "--duration",
+               str(seconds)]
+        t_start = time.monotonic()
+        procs: list[subprocess.Popen[str]] = []
+        if mode == "gateway":
+            if workers is not None:
+                cmd += ["--workers", str(workers)]
+            for k, shard in enumerate(shards if gateways > 1 else [machines]):
+                procs.append(subprocess.Popen([*cmd, str(shard)], cwd=root, env=env,
+                                              stdout=subprocess.PIPE,
+                                              stderr=(root / f"stderr-{k}.txt").open("w"),
+                                              text=True))
+            dirs = [root / f"m{i:03d}" for i in range(n)]
+        else:
+            dirs = []
+            for i in range(n):
+                d = root / f"m{i:03d}"
+                d.mkdir()
+                dirs.append(d)
+                procs.append(subprocess.Popen([*cmd, str(machines / f"m{i:03d}.toml")],
+                                              cwd=d, env=env, stdout=subprocess.PIPE,
+                                              stderr=(root / f"stderr-{i}.txt").open("w"),
+                                              text=True))
+        out: list[str] = []
+        import threading
+
+        readers = [threading.Thread(target=lambda p=p: out.append(p.stdout.read()))
+                   for p in procs]
+        for t in readers:
+            t.start()
+        run.cpu_s, run.wall_s, run.peak_rss_mb = monitor(procs, seconds + 150)
+        for t in readers:
+            t.join()
+        run.exit_codes = [p.returncode for p in procs]
+        for i, code in enumerate(run.exit_codes):
+            if code not in (0, None):  # say why a monitor died: its last log lines
+                tail = (root / f"stderr-{i}.txt").read_text(errors="replace").splitlines()
+                print(f"  process {i} exited {code}:", *tail[-6:], sep="\n    ",
+                      file=sys.stderr)
+        text = "\n".join(out)
+        for m in WAIT_RE.finditer(text):
+            run.wait_medians.append(float(m.group(1)))
+            run.wait_max = max(run.wait_max, float(m.group(2)))
+        # start: wall time until the first window was stored (from the databases' wall)
+        firsts = []
+        for d in dirs:
+            db = d / "state.sqlite"
+            if db.exists():
+                con = sqlite3.connect(db)
+                row = con.execute("SELECT MIN(wall) FROM health").fetchone()
+                con.close()
+                if row and row[0]:
+                    firsts.append(row[0])
+        if firsts:
+            run.start_s = max(firsts) - (time.time() - (time.monotonic() - t_start)) - 2.0
+        read_results(run, dirs)
+    return run
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--n", type=int, nargs="+", default=[4, 16])
+    ap.add_argument("--seconds", type=float, default=40.0, help="plant time per machine [s]")
+    ap.add_argument("--mode", choices=["both", "gateway", "process"], default="both")
+    ap.add_argument("--cold", action="store_true", help="an empty numba cache (compile all)")
+    ap.add_argument("--recording", action="store_true", help="also record to Rerun")
+    ap.add_argument("--workers", type=int, default=None, help="gateway estimation slots")
+    ap.add_argument("--gateways", type=int, default=1,
+                    help="gateway mode: the machines split over this many gateway processes "
+                    "(each its own Zenoh port)")
+    ap.add_argument("--acquisition-only", action="store_true",
+                    help="windows longer than the run: the cost of acquiring, storing nothing")
+    ap.add_argument("--plants", type=Path, default=Path(tempfile.gettempdir()) / "density-plants")
+    args = ap.parse_args()
+    args.plants.mkdir(parents=True, exist_ok=True)
+    t = time.monotonic()
+    subprocess.run([sys.executable, __file__, "_plants", str(args.plants), str(max(args.n)),
+                    str(args.seconds)], check=True)
+    print(f"plants: {max(args.n)} recordings of {args.seconds + 4:g} s written by a separate "
+          f"process in {time.monotonic() - t:.1f} s ({args.plants})")
+    cores = len(os.sched_getaffinity(0))
+    print(f"box: {cores} cores; {'cold (empty numba cache)' if args.cold else 'warm cache'}; "
+          f"CPU% of one core (box = {100 * cores} %); start s: from launch to the last "
+          "machine's first window, less its 2 s of acquisition")
+    print(HEADER)
+    modes = ["process", "gateway"] if args.mode == "both" else [args.mode]
+    for n in args.n:
+        for mode in modes:
+            r = run_once(n, mode, args.seconds, args.plants, cold=args.cold,
+                         record=args.recording, workers=args.workers,
+                         acquisition_only=args.acquisition_only, gateways=args.gateways)
+            print(r.row(), flush=True)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 5 and sys.argv[1] == "_plants":
+        write_plants(Path(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]))
+    else:
+        main()

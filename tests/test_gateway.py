@@ -1,0 +1,546 @@
+"""Gateway mode (``twinwatch run DIR``, :mod:`twinwatch.daemon.gateway`): many machines in one
+process, each isolated from the others' stalled sources, failing windows and bad
+configurations; the Zenoh session shared by the machines configured alike."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from twinwatch.config.loader import load_config
+from twinwatch.config.preflight import check_runnable
+from twinwatch.daemon.gateway import EstimationSlots, Gateway
+from twinwatch.daemon.pipeline import WindowPipeline
+from twinwatch.sinks.base import SharedResources, SinkContext
+from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig, to_zenoh_config
+
+from .sources_support import CAN_DRIVER, PLANT_DBC, SocketcandServer
+from .test_fault_injection import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def machine_config(directory: Path, name: str, *, port: int | None, duration: float = 1200.0,
+                   realtime: bool = True, driver: str | None = None) -> Path:
+    """The simulated motor's example configuration as machine ``name`` of a gateway: Zenoh on
+    127.0.0.1:``port`` (None: off), no recording, the plant paced by the wall clock."""
+    text = SIM.replace('name = "dc-motor-sim"', f'name = "{name}"')
+    text = text.replace("duration = 1200.0", f"duration = {duration}")
+    text = text.replace("realtime = false", f"realtime = {str(realtime).lower()}")
+    text = text.replace("[recording]", "[recording]\nenabled = false")
+    if port is None:
+        text = text.replace("[zenoh]", "[zenoh]\nenabled = false")
+    else:
+        text = text.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
+    if driver is not None:
+        start, end = text.index("[driver]"), text.index("[zenoh]")
+        text = text[:start] + driver.strip() + "\n\n" + text[end:]
+    path = directory / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def _check(cfg: Any, path: Path, work_dir: Path) -> None:
+    check_runnable(cfg, str(path), base_dir=path.parent, cwd=work_dir)
+
+
+def test_estimation_slots_bound_concurrency_and_skip_a_stuck_holder() -> None:
+    now = [0.0]
+    slots = EstimationSlots(2, stuck_after=10.0, clock=lambda: now[0])
+    a, b = slots.acquire("a"), slots.acquire("b")
+    assert a is not None and b is not None
+    got: list[int | None] = []
+    waiter = threading.Thread(target=lambda: got.append(slots.acquire("c")))
+    waiter.start()
+    waiter.join(0.8)
+    assert waiter.is_alive() and not got  # both slots held: c waits
+    now[0] = 11.0  # a and b stuck beyond 10 s: no longer counted
+    waiter.join(2.0)
+    assert got and not waiter.is_alive()
+    assert sorted(h for h, _ in slots.stuck()) == ["a", "b"]
+    for t in (a, b, got[0]):
+        assert t is not None
+        slots.release(t)
+    assert slots.busy() == 0
+
+
+def test_machines_configured_alike_share_one_zenoh_session() -> None:
+    zenoh = pytest.importorskip("zenoh")
+    port = _free_port()
+    cfg = ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])
+    shared = SharedResources()
+    p1 = HealthPublisher.from_config(cfg, SinkContext(machine="m1", shared=shared))
+    p2 = HealthPublisher.from_config(cfg, SinkContext(machine="m2", shared=shared))
+    try:
+        assert p1.session is p2.session  # one session, one port: the second did not fail
+        assert shared.references(shared.keys()[0]) == 2
+        conf = to_zenoh_config(ZenohConfig(mode="client", listen=[],
+                                           connect=[f"tcp/127.0.0.1:{port}"]))
+        got: list[str] = []
+        with zenoh.open(conf) as sub_session:
+            sub = sub_session.declare_subscriber(
+                "twinwatch/*/health", lambda s: got.append(str(s.key_expr)))
+            deadline = time.monotonic() + 10
+            while set(got) != {"twinwatch/m1/health", "twinwatch/m2/health"}:
+                assert time.monotonic() < deadline, got
+                p1.publish({"window": 0})
+                p2.publish({"window": 0})
+                time.sleep(0.2)
+            sub.undeclare()
+        p1.close()
+        assert not p2.closed and shared.references(shared.keys()[0]) == 1
+        p2.publish({"window": 1})  # the session is still open for m2
+        assert p2.errors == 0
+    finally:
+        p1.close()
+        p2.close()
+    assert shared.keys() == []  # the last one closed it
+
+
+@pytest.mark.slow
+def test_one_stalled_source_and_one_raising_machine_do_not_touch_the_healthy_ones(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three healthy machines, one whose source stalls (its CAN gateway goes silent), one
+    whose every window raises, and one whose configuration is invalid, in one gateway: every
+    window of the healthy machines is estimated, none dropped as an overrun, each with its
+    queue wait recorded; the others are reported under their names."""
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    port = _free_port()
+    healthy = ["h1", "h2", "h3"]
+    for name in healthy:
+        machine_config(machines, name, port=port, duration=1200.0)
+    machine_config(machines, "raising", port=port)
+    can = SocketcandServer(seconds=600.0).start()
+    driver = CAN_DRIVER.format(dbc=PLANT_DBC, log="", time_source="counter").replace(
+        'log_file = ""', 'interface = "socketcand"\nchannel = "can0"\n'
+        f'bus_options = {{ host = "127.0.0.1", port = {can.port} }}')
+    machine_config(machines, "stalled", port=port, driver=driver)
+    (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "no_such_model"\n')
+
+    original = WindowPipeline.process
+
+    def process(self: WindowPipeline, window: Any) -> Any:
+        if self.machine == "raising":
+            raise FloatingPointError("simulated numeric failure")
+        return original(self, window)
+
+    monkeypatch.setattr(WindowPipeline, "process", process)
+    monkeypatch.chdir(tmp_path)
+    gateway = Gateway(machines, read=load_config, check=_check, duration=12.0, workers=2,
+                      quiet_after=4.0)
+    statuses: list[str] = []
+    done = threading.Event()
+
+    def watch() -> None:
+        """Silence the stalled machine's CAN node once it runs, note STATUS every 0.5 s, and
+        stop the gateway once the machines with a finite run have finished."""
+        muted = False
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            statuses.append(gateway.status_line())
+            m = gateway.machines.get(machines / "stalled.toml")
+            d = m.supervisor.daemon if m is not None else None
+            if not muted and d is not None and d.ring.windows >= 1:
+                can.mute.update(range(0x800))  # every frame: the node went silent
+                muted = True
+            finite = [gateway.machines[machines / f"{n}.toml"] for n in [*healthy, "raising"]]
+            if all(not f.thread.is_alive() for f in finite) and muted:
+                time.sleep(1.0)
+                statuses.append(gateway.status_line())
+                break
+            time.sleep(0.5)
+        done.set()
+        gateway.stop()
+
+    try:
+        gateway.start(timeout=120)
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
+        gateway.run()
+        assert done.is_set()
+    finally:
+        gateway.stop()
+        can.close()
+
+    by_name = {m.name: m for m in gateway.all_machines()}
+    assert set(by_name) == {*healthy, "raising", "stalled", "bad"}
+    for name in healthy:
+        m = by_name[name]
+        d = m.supervisor.daemon
+        assert m.lost is None and d is not None
+        assert d.ring.windows >= 5, (name, d.ring.windows)  # 12 s of 2 s windows
+        assert d.windows_estimated == d.ring.windows, name  # every window estimated
+        assert d.overruns == 0 and d.numeric_failures == 0, name
+        assert len(d.queue_waits) == d.windows_estimated  # each window's wait recorded
+        assert [h.window for h in d.health_history] == list(range(d.ring.windows))
+        assert d.latest_health is not None and d.latest_health.machine == name
+    raising = by_name["raising"].supervisor.daemon
+    assert raising is not None and raising.windows_estimated == 0
+    assert raising.numeric_failures == raising.ring.windows >= 5
+    assert any("raising: " in s and "not estimated" in s for s in statuses), statuses[-3:]
+    stalled = by_name["stalled"].supervisor.daemon
+    assert stalled is not None
+    assert any("stalled: " in s for s in statuses), statuses[-3:]
+    lost = gateway.lost()
+    assert list(lost) == ["bad (bad.toml)"] and "invalid configuration" in lost["bad (bad.toml)"]
+    # each machine's files in its own directory
+    for name in healthy:
+        assert (tmp_path / name / "state.sqlite").is_file()
+
+
+def test_run_on_a_directory_reports_each_machine_and_a_lost_one(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch
+                                                                ) -> None:
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    port = _free_port()
+    for name in ("m1", "m2"):
+        machine_config(machines, name, port=port, duration=6.0, realtime=False)
+    (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "dc_motor"\n')
+    monkeypatch.chdir(tmp_path)
+    r = cli("run", str(machines), "--no-progress")
+    assert r.exit_code == 1, r.output  # a machine was lost
+    assert "== m1 (m1.toml): stopped" in r.output
+    assert "== m2 (m2.toml): stopped" in r.output
+    assert "== bad (bad.toml): lost: invalid configuration" in r.output
+    assert "twinwatch gateway: 3 machines, 2 ran, 1 lost" in r.output
+    assert r.output.count("windows estimated, 0 overruns") == 2
+    for name in ("m1", "m2"):
+        assert (tmp_path / name / "state.sqlite").is_file()
+    (machines / "bad.toml").unlink()
+    r = cli("run", str(machines), "--no-progress")
+    assert r.exit_code == 0, r.output
+
+
+def test_run_on_an_empty_directory_is_a_configuration_error(tmp_path: Path) -> None:
+    r = cli("run", str(tmp_path))
+    assert r.exit_code == 78
+    assert "no machine configuration" in r.output
+
+
+@pytest.mark.slow
+def test_sighup_adds_removes_and_reloads_machines(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reload re-reads the directory: a removed file's machine stops, a new file's starts,
+    a changed file's machine reloads (the same run goes on), an unchanged one is left alone."""
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    for name in ("m1", "m2", "m3"):
+        machine_config(machines, name, port=None)
+    monkeypatch.chdir(tmp_path)
+    gateway = Gateway(machines, read=load_config, check=_check, workers=2)
+
+    def daemon(name: str) -> Any:
+        m = next((m for m in gateway.machines.values() if m.name == name), None)
+        return None if m is None else m.supervisor.daemon
+
+    def wait_for(what: Callable[[], bool], timeout: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not what():
+            assert time.monotonic() < deadline, "timed out"
+            time.sleep(0.2)
+
+    seen: dict[str, Any] = {}
+    errors: list[BaseException] = []
+
+    def drive() -> None:
+        try:
+            wait_for(lambda: all((d := daemon(n)) is not None and d.windows_estimated >= 1
+                                 for n in ("m1", "m2", "m3")))
+            seen["m2"], seen["m3"] = daemon("m2"), daemon("m3")
+            seen["m2_run"] = seen["m2"].run_id
+            (machines / "m1.toml").unlink()
+            machine_config(machines, "m4", port=None)
+            m2 = machines / "m2.toml"
+            m2.write_text(m2.read_text().replace("warning = 5.0", "warning = 6.0"))
+            gateway.reload()
+            wait_for(lambda: (d := daemon("m4")) is not None and d.windows_estimated >= 1)
+            wait_for(lambda: daemon("m2") is not seen["m2"]
+                     and daemon("m2").windows_estimated >= 1)
+        except BaseException as exc:  # noqa: BLE001 - reported by the test's thread
+            errors.append(exc)
+        finally:
+            gateway.stop()
+
+    gateway.start(timeout=120)
+    driver = threading.Thread(target=drive, daemon=True)
+    driver.start()
+    gateway.run()
+    driver.join(5)
+    assert not errors, errors
+    names = {m.name: m for m in gateway.machines.values()}
+    assert sorted(names) == ["m2", "m3", "m4"]
+    retired = [m.name for m in gateway.retired]
+    assert retired == ["m1"] and not gateway.retired[0].thread.is_alive()
+    assert daemon("m3") is seen["m3"]  # unchanged file: left alone
+    reloaded = daemon("m2")
+    assert reloaded is not seen["m2"] and reloaded.run_id == seen["m2_run"]
+    assert reloaded.config.alarms.parameters["Ra"].warning == 6.0
+    assert gateway.lost() == {}
+
+
+def test_estimation_slots_are_first_come_first_served() -> None:
+    slots = EstimationSlots(1)
+    first = slots.acquire("a")
+    assert first is not None
+    order: list[str] = []
+
+    def take(name: str) -> None:
+        token = slots.acquire(name)
+        assert token is not None
+        order.append(name)
+        time.sleep(0.05)
+        slots.release(token)
+
+    threads = []
+    for name in ("b", "c", "d"):
+        t = threading.Thread(target=take, args=(name,))
+        t.start()
+        threads.append(t)
+        time.sleep(0.1)  # b asks first, then c, then d
+    slots.release(first)
+    for t in threads:
+        t.join(5)
+    assert order == ["b", "c", "d"]
+
+
+_IMPORTS_CHILD = """
+import sys
+from pathlib import Path
+from twinwatch.config.loader import load_config
+from twinwatch.daemon.runner import Daemon
+from twinwatch.daemon.supervisor import warm_up
+cfg = load_config(Path(sys.argv[1]))
+d = Daemon(cfg, base_dir=Path(sys.argv[1]).parent, publish=False, record=False)
+warm_up(d)
+d.close()
+print(" ".join(sorted(sys.modules)))
+"""
+
+
+def test_a_machine_imports_only_its_own_model_and_driver(tmp_path: Path) -> None:
+    """Memory: a DC motor on the simulated CAN plant loads neither the other twins nor the
+    Modbus stack (the registries import what is configured)."""
+    import subprocess
+    import sys
+
+    path = machine_config(tmp_path, "m1", port=None, realtime=False)
+    r = subprocess.run([sys.executable, "-c", _IMPORTS_CHILD, str(path)], capture_output=True,
+                       text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    modules = set(r.stdout.split())
+    assert "twinwatch.twin.models.dcmotor" in modules
+    for absent in ("twinwatch.twin.models.hydraulic", "twinwatch.twin.models.pwm_dcmotor",
+                   "pymodbus", "twinwatch.drivers.modbus", "paho", "rerun", "zenoh"):
+        assert absent not in modules, absent
+
+
+@pytest.mark.slow
+def test_a_machine_stuck_in_one_window_does_not_hold_the_others(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One estimation slot, and one machine whose window hangs in the estimator: after
+    ``stuck_after`` its slot stops counting, the other machines' windows are all estimated
+    (none overrun), and STATUS says which machine is stuck."""
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    for name in ("h1", "h2", "stuck"):
+        machine_config(machines, name, port=None)
+    release = threading.Event()
+    original = WindowPipeline.process
+
+    def process(self: WindowPipeline, window: Any) -> Any:
+        if self.machine == "stuck" and window.index == 1:
+            release.wait(120)  # a window that does not return (an optimiser that hangs)
+        return original(self, window)
+
+    monkeypatch.setattr(WindowPipeline, "process", process)
+    monkeypatch.chdir(tmp_path)
+    gateway = Gateway(machines, read=load_config, check=_check, duration=14.0, workers=1,
+                      stuck_after=3.0)
+    statuses: list[str] = []
+
+    def watch() -> None:
+        healthy = [machines / "h1.toml", machines / "h2.toml"]
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            statuses.append(gateway.status_line())
+            if all(not gateway.machines[p].thread.is_alive() for p in healthy):
+                break
+            time.sleep(0.5)
+        release.set()
+
+    gateway.start(timeout=120)
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        gateway.run()  # ends once every machine has run its 14 s (the stuck one once released)
+    finally:
+        release.set()
+    by_name = {m.name: m.supervisor.daemon for m in gateway.all_machines()}
+    for name in ("h1", "h2"):
+        d = by_name[name]
+        assert d is not None and d.ring.windows >= 6, name
+        assert d.windows_estimated == d.ring.windows and d.overruns == 0, name
+    assert any("stuck: stuck in one window for" in s for s in statuses), statuses[-3:]
+
+
+@pytest.mark.slow
+def test_the_gateway_as_a_service_ready_status_hup_and_term(tmp_path: Path) -> None:
+    """``twinwatch run DIR`` as the gateway unit runs it: READY=1 once the machines run, a
+    STATUS naming a lost machine, SIGHUP starting a machine added to the directory, SIGTERM
+    stopping them all with a summary block each (exit 1: a machine was lost)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from .sources_support import NotifySocket
+
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    port = _free_port()
+    for name in ("m1", "m2"):
+        machine_config(machines, name, port=port)
+    (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "dc_motor"\n')
+    notify = NotifySocket(tmp_path / "notify")
+    env = dict(os.environ, NOTIFY_SOCKET=str(notify.path))
+    proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "--no-progress",
+                             str(machines)], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        def wait_for(what: Callable[[], bool], timeout: float = 120.0) -> None:
+            deadline = time.monotonic() + timeout
+            while not what():
+                assert proc.poll() is None, proc.communicate()
+                assert time.monotonic() < deadline, notify.drain()
+                time.sleep(0.2)
+
+        wait_for(lambda: any("READY=1" in m for m in notify.drain()))
+        ready = next(m for m in notify.messages if "READY=1" in m)
+        assert "gateway: 2 of 3 machines monitored" in ready
+        assert "bad: lost (invalid configuration" in ready
+        machine_config(machines, "m3", port=port)
+        proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: (tmp_path / "m3" / "state.sqlite").exists()
+                 and any("3 of 4 machines monitored" in s for s in notify.statuses()))
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        notify.drain()
+        notify.close()
+    assert proc.returncode == 1, err  # the bad machine was lost
+    for name in ("m1", "m2", "m3"):
+        assert f"== {name} ({name}.toml): stopped" in out
+    assert "== bad (bad.toml): lost: invalid configuration" in out
+    assert "twinwatch gateway: 4 machines, 3 ran, 1 lost" in out
+    assert any("STOPPING=1" in m for m in notify.messages)
+
+
+def test_check_config_on_a_gateway_directory(tmp_path: Path) -> None:
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    for name in ("m1", "m2"):
+        machine_config(machines, name, port=None, realtime=False)
+    r = cli("check-config", str(machines))
+    assert r.exit_code == 0, r.output
+    assert "2 of 2 machine configurations OK" in r.output
+    (machines / "m3.toml").write_text((machines / "m2.toml").read_text())  # m2's name again
+    (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "dc_motor"\n')
+    r = cli("check-config", str(machines))
+    assert r.exit_code == 1
+    assert "machine.name 'm2' is already used by m2.toml" in r.output
+    assert "bad.toml" in r.output and "2 of 4 machine configurations OK" in r.output
+
+
+def test_a_stop_is_bounded_when_the_worker_waits_for_a_slot(tmp_path: Path) -> None:
+    """Every estimation slot held elsewhere and the queue full: a stop returns within
+    ``shutdown_timeout``, the queued windows are counted as dropped, the worker ends and
+    nothing is written after the outputs closed."""
+    from twinwatch.daemon.runner import Daemon
+
+    path = machine_config(tmp_path, "m1", port=None, realtime=False)
+    cfg = load_config(path)
+    cfg.acquisition.shutdown_timeout = 1.0
+    slots = EstimationSlots(1)
+    held = slots.acquire("elsewhere")
+    assert held is not None
+    daemon = Daemon(cfg, base_dir=tmp_path, persist=True, work_dir=tmp_path, slots=slots,
+                    thread_prefix="twinwatch-m1")
+    runner = threading.Thread(target=daemon.run, daemon=True)
+    runner.start()
+    deadline = time.monotonic() + 60
+    while daemon.ring.windows < cfg.acquisition.queue + 1:  # queue full, the worker waiting
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    t0 = time.monotonic()
+    daemon.stop()
+    runner.join(10)
+    stopped_in = time.monotonic() - t0
+    assert not runner.is_alive() and stopped_in < 5.0  # a generous bound: not for ever
+    daemon.close()
+    deadline = time.monotonic() + 10  # the worker sees the stop within 0.5 s and ends
+    while any(t.name == "twinwatch-m1-adaptation" for t in threading.enumerate()):
+        assert time.monotonic() < deadline, "the worker did not end"
+        time.sleep(0.1)
+    assert daemon.windows_estimated == 0
+    assert daemon.dropped_at_stop >= cfg.acquisition.queue
+    slots.release(held)
+
+
+@pytest.mark.slow
+def test_a_machine_whose_source_never_answers_does_not_hold_the_others(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A CAN gateway that accepts the connection and never answers (python-can's socketcand
+    bus would wait for its greeting for ever): the gateway is READY within its start timeout,
+    the other machine estimates, STATUS names the one still opening or waiting, and a stop
+    returns."""
+    from .sources_support import MuteGateway
+
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    machine_config(machines, "healthy", port=None)
+    mute = MuteGateway()
+    driver = CAN_DRIVER.format(dbc=PLANT_DBC, log="", time_source="counter").replace(
+        'log_file = ""', 'interface = "socketcand"\nchannel = "can0"\n'
+        f'bus_options = {{ host = "127.0.0.1", port = {mute.port} }}')
+    machine_config(machines, "mute", port=None, driver=driver)
+    monkeypatch.chdir(tmp_path)
+    gateway = Gateway(machines, read=load_config, check=_check, workers=2)
+    try:
+        t0 = time.monotonic()
+        gateway.start(timeout=20)
+        assert time.monotonic() - t0 < 60
+        healthy = gateway.machines[machines / "healthy.toml"]
+        deadline = time.monotonic() + 60
+        while (d := healthy.supervisor.daemon) is None or d.windows_estimated < 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        status = gateway.status_line()
+        assert "mute: " in status and ("starting" in status or "waiting for the source"
+                                       in status), status
+        assert "healthy" not in status.split("DEGRADED:")[-1]
+        stopper = threading.Timer(0.5, gateway.stop)
+        stopper.start()
+        t1 = time.monotonic()
+        gateway.run()
+        assert time.monotonic() - t1 < 30
+    finally:
+        gateway.stop()
+        mute.close()
