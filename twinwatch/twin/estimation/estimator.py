@@ -30,6 +30,20 @@ are good enough updates the trusted values later windows hold (once the next est
 The PSO stops at ``max_generations`` or ``time_budget`` seconds, whichever comes first; with the
 same seed and no time cap hit, results are bit-for-bit reproducible.
 
+**Local first** (``[estimation] strategy = "local_first"``, the default). A machine's parameters
+drift slowly: most windows are fitted by the trusted twin polished locally, and the swarm only
+finds again what the trusted values already say. So the global search is skipped and stage 2
+polishes from the trusted values, unless the swarm is due: at the first window, after a window
+whose estimate the fusion found a sudden change (its jump flag) or that the adaptation rolled
+back, and every ``swarm_every`` windows as a guard. A local fit is *rejected*, and the same window
+is estimated again from the start with the swarm (its result is then the swarm path's), when
+its nRMSE exceeds ``local_residual_ratio`` times what the window's noise explains (the
+residual's white-noise level per output, floored by ``model_error``, or the nRMSE of the last
+swarm window if larger: a large residual, a step change the local polish did not follow), or
+when it fails its model check. ``strategy = "swarm"`` runs the swarm every window (the
+behaviour before, stage for stage); the paper's method is ``strategy = "swarm"`` with Table 2's
+swarm (``[estimation.pso] max_generations = 1000``) and ``polish = false``.
+
 Fitness (paper Eq. 2, normalised): ``RMSE_n = sqrt(mean_j mean_k ((y_sim - y_meas)/s_j)^2)``
 with ``s_j = max(rms(y_meas_j), floor_j)`` per output j, so that current [A], speed [rad/s] and
 voltage [V] weigh alike.
@@ -42,7 +56,7 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -57,11 +71,11 @@ from twinwatch.twin.estimation.fusion import (
 )
 from twinwatch.twin.estimation.gate import GateDecision, IdentifiabilityGate
 from twinwatch.twin.estimation.polish import Polished, polish
-from twinwatch.twin.estimation.problem import WindowProblem, check_window
+from twinwatch.twin.estimation.problem import FitPoint, TwinAt, WindowProblem, check_window
 from twinwatch.twin.estimation.publish import ParameterStatus, publish
 from twinwatch.twin.estimation.quality import SensorFault, live_outputs, sensor_faults
-from twinwatch.twin.estimation.search import PSOSettings, global_search
-from twinwatch.twin.estimation.statistics import ModelCheck
+from twinwatch.twin.estimation.search import PSOSettings, SearchResult, global_search, warm_start
+from twinwatch.twin.estimation.statistics import ModelCheck, noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
@@ -71,6 +85,9 @@ logger = logging.getLogger(__name__)
 #: second makes it trusted (:meth:`Estimator._trust`).
 CONFIRM = 2.0
 CONFIRM_WITHIN_S = 10.0
+#: A local-first window's fusion stops iterating once no level moves by more than this share
+#: of its posterior standard error (:meth:`ParameterFusion.update`'s ``step_tol``).
+LOCAL_FUSION_STEP_TOL = 0.01
 #: A window re-tried with the unconfirmed estimates (:meth:`Estimator._unconfirmed`) keeps
 #: the retry when its nRMSE is below this share of the first fit's.
 RETRY_GAIN = 0.5
@@ -111,6 +128,19 @@ class EstimationConfig(BaseModel):
         description="parameter -> [low, high] in SI units; default [nominal/5, nominal*5]",
     )
     pso: PSOSettings = Field(default_factory=PSOSettings)
+    strategy: Literal["local_first", "swarm"] = Field(
+        "local_first", description="local_first: polish from the trusted values and run the "
+        "swarm only at start, after a rejected local fit, after a sudden change and every "
+        "swarm_every windows; swarm: the swarm every window (the paper's method with "
+        "[estimation.pso] max_generations = 1000 and polish = false)")
+    swarm_every: int = Field(
+        30, ge=0, description="local_first: run the swarm at least every this many windows "
+        "as a guard against a local optimum (0: only at start, after a rejected fit or a "
+        "sudden change)")
+    local_residual_ratio: float = Field(
+        3.0, gt=1.0, allow_inf_nan=False, description="local_first: a local fit whose "
+        "nRMSE exceeds this many times what the window's noise explains (or the last swarm "
+        "window's nRMSE, if larger) is rejected and the window estimated with the swarm")
     polish: bool = Field(True, description="least-squares polish after the PSO")
     time_budget: float = Field(0.5, gt=0, description="PSO time cap per window [s]")
     max_rel_std: float = Field(
@@ -230,6 +260,11 @@ class WindowEstimate:
             value instead): what ``simulated`` is, and what meta-models are fitted beside.
         sensors: the window's frozen or saturated sensors
             (:mod:`~twinwatch.twin.estimation.quality`); such a window is not sound.
+        search: ``swarm`` (the global search ran: ``generations`` > 0) or ``local`` (polished
+            from the trusted values, ``[estimation] strategy = "local_first"``).
+        search_reason: why the swarm ran (``start``, ``guard``, ``sudden change``,
+            ``rolled back``, ``rejected: ...`` when the local fit was rejected first,
+            ``every window`` with ``strategy = "swarm"``); empty for a local window.
     """
 
     values: dict[str, float]
@@ -253,6 +288,23 @@ class WindowEstimate:
     fusion_jump: bool = False
     sensors: list[SensorFault] = field(default_factory=list)
     fitted: dict[str, float] = field(default_factory=dict)
+    search: Literal["swarm", "local"] = "swarm"
+    search_reason: str = ""
+
+
+@dataclass
+class _Fitted:
+    """Stages 1-4 on one window: what the rest of :meth:`Estimator.estimate` reads (the
+    problem: the window's, or the retry's holding never-confirmed estimates)."""
+
+    problem: WindowProblem
+    found: SearchResult
+    polished: Polished
+    decision: GateDecision
+    point: FitPoint
+    twin: TwinAt
+    check: ModelCheck | None
+    rejected: str = ""
 
 
 @dataclass(frozen=True)
@@ -334,6 +386,11 @@ class Estimator:
         #: Stage 3: the identifiability gate.
         self.gate = IdentifiabilityGate(config.estimate, config.max_rel_std, config.model_error,
                                         len(model.outputs))
+        #: Local first: windows since the last swarm (None before the first), why the next
+        #: window must run it (empty: it need not), and the nRMSE the last swarm reached.
+        self._since_swarm: int | None = None
+        self._swarm_next = ""
+        self._swarm_nrmse = 0.0
 
     # -- state ----------------------------------------------------------------------------
     def snapshot(self) -> EstimatorState:
@@ -358,6 +415,8 @@ class Estimator:
             self._provisional = set(state.provisional)
         if self.fusion is not None and state.fusion is not None:
             self.fusion.state = state.fusion.copy()
+        # the windows since were biased (a missing component): search globally again
+        self._swarm_next = "rolled back"
 
     def fusion_state(self) -> dict[str, Any] | None:
         """The fusion's state (JSON-serialisable), for persistence."""
@@ -435,32 +494,30 @@ class Estimator:
         cfg = self.config
         problem = self.problem(window, terms, fit)
         evals0 = problem.fit.evaluations
-        # 1. global search (warm-started PSO), 2. polish (least squares, initial state too)
-        found = global_search(problem, cfg.pso, rng=self._rng, time_budget=cfg.time_budget)
-        polished = polish(problem, found.q, enabled=cfg.polish, model_error=cfg.model_error)
-        # 3. identifiability gate, 4. model check (see _gate_and_check) ...
-        decision, point, twin, check = self._gate_and_check(problem, polished, window)
-        if check is not None and not check.passed:
-            # ... and, when it fails holding a never-confirmed parameter at its nameplate, once
-            # more holding the latest sound estimates instead (_unconfirmed)
-            retry = self._unconfirmed()
-            if retry is not None:
-                saved = self.trusted.copy(), self.trusted_std.copy()
-                self.trusted[:], self.trusted_std[:] = retry
-                other = self.problem(window, terms, problem.fit)
-                second = self._gate_and_check(other, polished, window)
-                # accepted only where the data contradict the nameplate plainly: the check
-                # passes and the fit explains the window at least twice as well (with 1 %
-                # noise a check fails now and then by chance; accepting any pass there held
-                # one window's estimates for good: FE plant, TR twin, Ra covered in 75 %)
-                if (second[3] is not None and second[3].passed
-                        and second[2].residual.nrmse < RETRY_GAIN * twin.residual.nrmse):
-                    problem = other
-                    decision, point, twin, check = second
-                    self._provisional.update(
-                        n for i, n in enumerate(self.names) if self.trusted[i] != saved[0][i])
-                else:
-                    self.trusted[:], self.trusted_std[:] = saved
+        initial0 = problem.fit.initial
+        why = self._swarm_due()
+        fitted = None
+        if not why:
+            # local first: the trusted values polished; rejected -> the swarm, same window
+            fitted = self._fit(problem, window, warm_start(problem), terms, local=True)
+            if fitted.rejected:
+                why = f"rejected: {fitted.rejected}"
+                logger.debug("window %d: local fit %s; the swarm runs", window.index, why)
+                problem.fit.initial = initial0  # the swarm scores from the measured start
+                fitted = None
+        if fitted is None:
+            found = global_search(problem, cfg.pso, rng=self._rng, time_budget=cfg.time_budget)
+            fitted = self._fit(problem, window, found, terms, local=False)
+            self._since_swarm = 0
+            r_sw = fitted.polished.point.r
+            self._swarm_nrmse = float(np.sqrt(np.sum(r_sw * r_sw)))
+        else:
+            assert self._since_swarm is not None
+            self._since_swarm += 1
+        self._swarm_next = ""
+        problem, found, polished = fitted.problem, fitted.found, fitted.polished
+        decision = fitted.decision
+        twin, check = fitted.twin, fitted.check
         # ... and a sensor that is frozen or saturated is named: the window is not sound
         run = cfg.validation.sensor_run if cfg.validation.enabled else 0
         faults = sensor_faults(problem.fit, twin.y, run, self._live, self._clips)
@@ -469,7 +526,10 @@ class Estimator:
         good = bool(np.isfinite(nrmse) and nrmse <= cfg.trust_rmse)
         trusted = good and (check is None or check.passed) and not faults
         # 5. fusion: a trusted window's evidence joins the filter; then what is published
-        fused, jump = self._fuse(problem, polished, decision, window, trusted)
+        fused, jump = self._fuse(problem, polished, decision, window, trusted,
+                                 step_tol=0.0 if why else LOCAL_FUSION_STEP_TOL)
+        if jump:
+            self._swarm_next = "sudden change"
         out = publish(twin.theta, self.pmap, cfg.tie or {}, decision, fused,
                       cfg.fusion.max_rel_std, suspect=self._suspect(check, faults),
                       held_std=self.trusted_std_values())
@@ -499,7 +559,83 @@ class Estimator:
             fusion_jump=jump,
             sensors=faults,
             fitted={n: float(v) for n, v in zip(self.names, np.ravel(twin.theta), strict=True)},
+            search="swarm" if why else "local",
+            search_reason=why,
         )
+
+    def _swarm_due(self) -> str:
+        """Why this window runs the global search (empty: polish locally from the trusted
+        values): ``strategy = "swarm"``, the first window, a sudden change or a roll-back
+        before it, or ``swarm_every`` windows since the last swarm."""
+        cfg = self.config
+        if cfg.strategy == "swarm":
+            return "every window"
+        if self._since_swarm is None:
+            return "start"
+        if self._swarm_next:
+            return self._swarm_next
+        if cfg.swarm_every and self._since_swarm + 1 >= cfg.swarm_every:
+            return "guard"
+        return ""
+
+    def _fit(self, problem: WindowProblem, window: WindowData, found: SearchResult,
+             terms: Mapping[str, FloatArray] | None, *, local: bool) -> _Fitted:
+        """Stages 2-4 from the search's best: polish, then :meth:`_gate_and_check`; a window
+        whose model check fails holding a never-confirmed parameter at its nameplate is
+        tried once more holding the latest sound estimates instead (:meth:`_unconfirmed`).
+        ``local``: a local-first window, which stops as soon as it is rejected
+        (:attr:`_Fitted.rejected` says why; the caller runs the swarm path, retry included)."""
+        cfg = self.config
+        polished = polish(problem, found.q, enabled=cfg.polish, model_error=cfg.model_error)
+        if local:
+            rejected = self._residual_too_large(problem, polished.point.r)
+            if rejected:
+                return _Fitted(problem, found, polished, GateDecision([], {}, {}),
+                               polished.point, problem.twin_at(polished.point.v), None,
+                               rejected)
+        # 3. identifiability gate, 4. model check (see _gate_and_check) ...
+        decision, point, twin, check = self._gate_and_check(problem, polished, window)
+        if check is not None and not check.passed:
+            if local:
+                first = check.reasons[0] if check.reasons else "failed"
+                return _Fitted(problem, found, polished, decision, point, twin, check,
+                               f"the model check failed ({first})")
+            # ... and, when it fails holding a never-confirmed parameter at its nameplate, once
+            # more holding the latest sound estimates instead (_unconfirmed)
+            retry = self._unconfirmed()
+            if retry is not None:
+                saved = self.trusted.copy(), self.trusted_std.copy()
+                self.trusted[:], self.trusted_std[:] = retry
+                other = self.problem(window, terms, problem.fit)
+                second = self._gate_and_check(other, polished, window)
+                # accepted only where the data contradict the nameplate plainly: the check
+                # passes and the fit explains the window at least twice as well (with 1 %
+                # noise a check fails now and then by chance; accepting any pass there held
+                # one window's estimates for good: FE plant, TR twin, Ra covered in 75 %)
+                if (second[3] is not None and second[3].passed
+                        and second[2].residual.nrmse < RETRY_GAIN * twin.residual.nrmse):
+                    problem = other
+                    decision, point, twin, check = second
+                    self._provisional.update(
+                        n for i, n in enumerate(self.names) if self.trusted[i] != saved[0][i])
+                else:
+                    self.trusted[:], self.trusted_std[:] = saved
+        return _Fitted(problem, found, polished, decision, point, twin, check)
+
+    def _residual_too_large(self, problem: WindowProblem, r: FloatArray) -> str:
+        """Why a local fit's normalised residuals ``r`` (M,) are beyond what the window's
+        noise explains (empty: they are not): nRMSE above ``local_residual_ratio`` times the
+        larger of the white-noise nRMSE (per output from first differences,
+        :func:`~twinwatch.twin.estimation.statistics.noise_level`, floored by
+        ``model_error``) and the last swarm window's nRMSE."""
+        n_out = problem.n_out
+        nrmse = float(np.sqrt(np.sum(r * r)))
+        white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
+        explained = float(np.sqrt(np.mean(np.maximum(white, self.config.model_error) ** 2)))
+        limit = self.config.local_residual_ratio * max(explained, self._swarm_nrmse)
+        if np.isfinite(nrmse) and nrmse <= limit:
+            return ""
+        return f"nRMSE {nrmse:.3g} > {limit:.3g}"
 
     def _gate_and_check(self, problem: WindowProblem, polished: Polished,
                         window: WindowData) -> tuple[GateDecision, Any, Any, ModelCheck | None]:
@@ -563,6 +699,7 @@ class Estimator:
             std[dep] = std[src]
         return base, std
 
+
     def _keep_consistent(self) -> None:
         """Move each trusted value by what its estimate's sensitivity to the values it was
         fitted with held says, where those have been trusted anew since: ``ln p += g (ln q' -
@@ -610,7 +747,7 @@ class Estimator:
         return dict(zip(self.names, (float(v) for v in self.trusted_std), strict=True))
 
     def _fuse(self, problem: WindowProblem, polished: Polished, decision: GateDecision,
-              window: WindowData, informative: bool
+              window: WindowData, informative: bool, step_tol: float = 0.0
               ) -> tuple[dict[str, tuple[float, float]], bool]:
         """Stage 5 (:func:`~twinwatch.twin.estimation.fusion.fuse_window`); nothing when
         fusion is off."""
@@ -618,7 +755,7 @@ class Estimator:
             return {}, False
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
         return fuse_window(self.fusion, problem, polished, len(decision.selected), t_mid,
-                           informative)
+                           informative, step_tol=step_tol)
 
     def _trust(self, decision: GateDecision, values: Mapping[str, float], t: float) -> None:
         """Make the window's estimates the trusted values where their standard error is at

@@ -289,6 +289,11 @@ class LocalFit:
             active: the columns.
             steps: the steps to try, smallest first (default :data:`SENSITIVITY_STEPS`).
         """
+        return self.sensitivity_and_residuals(v, active, steps)[0]
+
+    def sensitivity_and_residuals(self, v: FloatArray, active: np.ndarray,
+                     steps: Sequence[float] | None = None) -> tuple[FloatArray, FloatArray]:
+        """:meth:`sensitivity`, and the residuals (M,) at ``v`` (the batch's last row)."""
         k = active.size
         hs = tuple(self.SENSITIVITY_STEPS if steps is None else steps)
         n_h = len(hs)
@@ -306,7 +311,7 @@ class LocalFit:
         size = np.maximum(np.linalg.norm(fwd, axis=2), np.linalg.norm(bwd, axis=2))
         agree = gap <= self.SENSITIVITY_AGREEMENT * np.maximum(size, 1e-300)
         choice = np.where(np.any(agree, axis=0), np.argmax(agree, axis=0), n_h - 1)
-        return central[choice, np.arange(k)].T
+        return central[choice, np.arange(k)].T, r0
 
     def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True
                ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -317,20 +322,24 @@ class LocalFit:
         v = np.array(v, dtype=float, copy=True)
         if polish and active.size:
             last: dict[str, FloatArray] = {}
+            k = active.size
+            rows = np.repeat(v[None, :], k + 1, axis=0)
 
             def fun(x: FloatArray) -> FloatArray:
-                vv = v.copy()
-                vv[active] = x
-                r = self.residuals(vv[None, :])[0]
-                last["x"], last["r"] = x.copy(), r
-                return r
+                # The point and its forward differences (:meth:`jacobian`'s rows) in one twin
+                # call: least_squares asks for the Jacobian where it just evaluated fun when it
+                # accepts the step (each row is simulated on its own: the same numbers as two
+                # calls).
+                rows[:, active] = x
+                rows[1 + np.arange(k), active] += 1e-6
+                r_all = self.residuals(rows)
+                last["x"], last["r"], last["d"] = x.copy(), r_all[0], r_all[1:]
+                return r_all[0]
 
             def jac(x: FloatArray) -> FloatArray:
-                # least_squares asks for the Jacobian where it just evaluated fun: reuse it.
-                r0 = last["r"] if "x" in last and np.array_equal(last["x"], x) else fun(x)
-                vv = v.copy()
-                vv[active] = x
-                return self.jacobian(vv, active, r0)
+                if not ("x" in last and np.array_equal(last["x"], x)):
+                    fun(x)
+                return ((last["d"] - last["r"][None, :]) / 1e-6).T
 
             from scipy.optimize import least_squares  # loaded on first use
 
@@ -339,8 +348,8 @@ class LocalFit:
             sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
                                 xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
             v[active] = sol.x
-        r = self.residuals(v[None, :])[0]
-        return v, r, self.sensitivity(v, active)
+        jac_s, r = self.sensitivity_and_residuals(v, active)
+        return v, r, jac_s
 
 
 #: Eigenvalues of the equilibrated ``J^T J`` below this share of the largest are directions the

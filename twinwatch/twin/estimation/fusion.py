@@ -160,7 +160,7 @@ class ParameterFusion:
                row_var: FloatArray | None = None, n_nuisance: int = 0,
                iterations: int = 8, cols: np.ndarray | None = None,
                bounds: tuple[FloatArray, FloatArray] | None = None,
-               start: FloatArray | None = None) -> bool:
+               start: FloatArray | None = None, step_tol: float = 0.0) -> bool:
         """Advance to time ``t`` [s] and fuse one window.
 
         The window's least-squares problem and the prediction are combined as the iterated
@@ -188,6 +188,10 @@ class ParameterFusion:
                 own least-squares optimum: the posterior's mode lies between it and the
                 prediction; from the prediction alone, after a jump, the iterations once
                 settled on a D 7 times off with a 1 % standard error); default the prediction.
+            step_tol: also stop once no level moves by more than this share of its posterior
+                standard error (0: only at 1e-9; the local-first path's 0.01: the window's
+                numerical Jacobian, its step chosen afresh at each iterate, leaves steps of
+                1e-5 that never reach 1e-9, and the iterations ran to their limit).
 
         Returns:
             Whether the window's evidence was a jump (the prediction was inflated).
@@ -244,7 +248,8 @@ class ParameterFusion:
                     info, grad = evidence(x[:n])
                 hess = y_prior + h.T @ info @ h
                 gx = y_prior @ (x - mean) + h.T @ grad
-                dx = -_safe_inverse(hess) @ gx
+                hess_inv = _safe_inverse(hess)
+                dx = -hess_inv @ gx
                 if not np.all(np.isfinite(dx)):
                     break
                 big_step = float(np.max(np.abs(dx[:n])))
@@ -254,6 +259,9 @@ class ParameterFusion:
                 if bounds is not None:
                     x[:n] = np.clip(x[:n], bounds[0], bounds[1])
                 if float(np.max(np.abs(dx[:n]))) < 1e-9:
+                    break
+                if step_tol > 0 and np.all(np.abs(dx[:n]) <= step_tol * np.sqrt(
+                        np.maximum(np.diag(hess_inv)[:n], 0.0))):
                     break
             cov_post = _safe_inverse(y_prior + h.T @ info @ h)
             mean = x
@@ -302,7 +310,7 @@ def _information(cov: FloatArray) -> FloatArray:
 
 
 def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polished,
-                n_selected: int, t_mid: float, informative: bool
+                n_selected: int, t_mid: float, informative: bool, step_tol: float = 0.0
                 ) -> tuple[dict[str, tuple[float, float]], bool]:
     """Stage 5, the evidence across windows: fuse one window into the filter.
 
@@ -321,6 +329,7 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
         n_selected: parameters the gate admitted (the first ``n_selected`` in priority).
         t_mid: the window's middle [s].
         informative: fuse the window's evidence (else advance only).
+        step_tol: :meth:`ParameterFusion.update`'s ``step_tol``.
 
     Returns:
         (estimated parameter -> (fused value [SI], relative standard error), whether the
@@ -340,13 +349,13 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
             qq = base_ln.copy()
             qq[cols] = q[cols]
             v_f = np.concatenate([np.clip(qq, problem.xl, problem.xu), polished.nuisance])
-            r_f = local.residuals(v_f[None, :])[0]
             active = np.concatenate([cols, nuis])
-            return local.sensitivity(v_f, active, steps=FUSION_STEPS), r_f
+            # the residuals at v_f are the sensitivity batch's last row
+            return local.sensitivity_and_residuals(v_f, active, steps=FUSION_STEPS)
 
         jump = fusion.update(t_mid, linearize, polished.row_var, nuis.size, cols=cols,
                              bounds=(problem.xl, problem.xu),
-                             start=polished.point.v[:n_est])
+                             start=polished.point.v[:n_est], step_tol=step_tol)
     else:
         fusion.update(t_mid)
     f_val, f_std = fusion.values(), fusion.rel_std()

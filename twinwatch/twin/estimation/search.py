@@ -70,4 +70,15 @@ def global_search(problem: WindowProblem, settings: PSOSettings, *, rng: np.rand
         sw = pso_minimize(problem.cost, problem.xl, problem.xu, settings, rng=rng,
                           time_budget=time_budget, seeds=q0[None, :])
         return SearchResult(sw.x, sw.cost, sw.generations, sw.time_capped)
+    return warm_start(problem)
+
+
+def warm_start(problem: WindowProblem) -> SearchResult:
+    """No global search: the trusted values (clipped to the bounds) and their cost (one twin
+    call), the local-first strategy's start when the trusted twin still fits
+    (:class:`~twinwatch.twin.estimation.estimator.Estimator`). Not the last window's optimum:
+    on a drive whose output clamps, the residual is not smooth, and from there the polish
+    stopped in another basin (Ra 0.31 % off in a window where the swarm path is 0.003 %
+    off, benchmarks/bench_fidelity.py's twin 2 ms on a 0.5 ms drive)."""
+    q0 = problem.start()
     return SearchResult(q0, float(problem.cost(q0[None, :])[0]))
