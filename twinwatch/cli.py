@@ -86,6 +86,20 @@ def _load_runnable(config: Path | None, base_dir: Path,
     return cfg
 
 
+
+def _ignore_late_stops() -> None:
+    """The run has ended (the supervisor put the previous signal handlers back): a SIGTERM or
+    SIGINT arriving while the summary is written, a second one from systemd or an impatient
+    operator, must not kill the process with the default action (exit -15 after a clean
+    stop: measured under load in the "two SIGTERMs while a reload opens" case)."""
+    import signal
+
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        try:
+            signal.signal(signum, lambda *_: None)
+        except ValueError:  # not the main thread (click's test runner in a thread)
+            return
+
 @main.command()
 @click.argument("config", required=False, type=click.Path(path_type=Path))
 @click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None,
@@ -164,6 +178,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     try:
         supervisor.start()
     except Stopped as exc:  # SIGTERM while it was starting: nothing ran, nothing to report
+        _ignore_late_stops()
         click.echo(f"twinwatch: {exc}", err=True)
         sys.exit(0)
     except ConfigError as exc:
@@ -213,6 +228,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         failure = (f"internal error: {type(exc).__name__}: {exc} (run with --log-level debug "
                    f"for the traceback, and please report it)")
     finally:
+        _ignore_late_stops()
         if bar is not None:
             bar.close()
     assert supervisor.config is not None and supervisor.daemon is not None
