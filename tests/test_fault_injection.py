@@ -1905,6 +1905,9 @@ def _can_gateway_dropped(ctx: Context) -> dict[str, Any]:
         server.start()
         back = svc.wait_for("is open again", timeout=60)
         resumed = svc.wait_for(WINDOW_LINE, n=svc.count(WINDOW_LINE) + 2, timeout=60)
+        deadline = time.monotonic() + 30  # the log line comes before the row is committed
+        while len(db_rows(db)) < before + 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
         after = len(db_rows(db))
         svc.send(signal.SIGTERM)
         code = svc.wait(stop_timeout())
