@@ -1,8 +1,4 @@
-"""Runs last in the suite (the name): after its in-process gateways an in-process MQTT
-publisher of a later test (tests/test_mqtt.py, the reload hand-over) never delivered; the
-cause is not found yet.
-
-Gateway mode (``twinwatch run DIR``, :mod:`twinwatch.daemon.gateway`): many machines in one
+"""Gateway mode (``twinwatch run DIR``, :mod:`twinwatch.daemon.gateway`): many machines in one
 process, each isolated from the others' stalled sources, failing windows and bad
 configurations; the Zenoh session shared by the machines configured alike."""
 
