@@ -323,6 +323,10 @@ class Supervisor:
             self._previous_handlers[signum] = signal.signal(signum, handler)
 
     def _restore_signal_handlers(self) -> None:
+        if self._stop_requested.is_set() and threading.current_thread() is threading.main_thread():
+            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
+            # handler, not the default action (exit -15 after a clean stop)
+            return
         for signum, handler in self._previous_handlers.items():
             signal.signal(signum, handler)
         self._previous_handlers.clear()
