@@ -1,6 +1,6 @@
 """The health message: one typed layout, documented field by field, one encoder (issue 11).
 
-* the README's table "The health message" names every field of
+* the health message reference (docs/health-message.md, the site's reference page) names every field of
   :class:`~twinwatch.twin.health.HealthMessage` and no field it does not have;
 * a parameter's ``status`` is typed (no prose to parse), and the built message carries it;
 * non-finite numbers are ``null`` in every copy: Zenoh, the state database, the recording.
@@ -33,7 +33,7 @@ from twinwatch.twin.models import create_model
 PLACEHOLDER = re.compile(r"<[^>]+>")
 
 
-# -- the README table against the model -------------------------------------------------------
+# -- the reference table against the model----------------------------------------------------
 def _unwrap(tp: Any) -> Any:
     """The type inside Optional/Annotated."""
     while True:
@@ -85,10 +85,11 @@ def _expand(spec: str) -> list[str]:
 
 
 def readme_paths() -> set[str]:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = text.split("## The health message", 1)[1].split("\n## ", 1)[0]
+    """The fields docs/health-message.md's table documents (the README links to it)."""
+    text = (ROOT / "docs" / "health-message.md").read_text(encoding="utf-8")
+    section = text.split("# The health message", 1)[1].split("\n## ", 1)[0]
     rows = [ln for ln in section.splitlines() if ln.startswith("| `")]
-    assert rows, "no field table under '## The health message'"
+    assert rows, "no field table under '# The health message' in docs/health-message.md"
     out: set[str] = set()
     for row in rows:
         first = row.split("|")[1]
@@ -97,12 +98,12 @@ def readme_paths() -> set[str]:
     return out
 
 
-def test_the_readme_documents_every_field_of_the_message_and_no_other() -> None:
+def test_the_reference_documents_every_field_of_the_message_and_no_other() -> None:
     model = model_paths(HealthMessage)
     documented = readme_paths()
     assert "parameters.<>.status" in model and "residual.dt_second.rmse.<>" in model
-    assert model - documented == set(), "fields missing from the README's table"
-    assert documented - model == set(), "README documents fields the message does not have"
+    assert model - documented == set(), "fields missing from docs/health-message.md's table"
+    assert documented - model == set(), "docs/health-message.md documents fields the message does not have"
 
 
 def test_the_table_reader_expands_groups() -> None:
