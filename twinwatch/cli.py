@@ -387,10 +387,46 @@ def _failed_line(daemon: Daemon) -> str:
             f"{daemon.windows_estimated} were estimated")
 
 
+EPOCH_PLANT_TIME = 1e9
+"""A plant time from this many seconds on is a wall clock, seconds since the epoch (a CAN log's
+or a bus adapter's frame stamps, ``time_source = "frame"``; 1e9 s is 2001-09-09): the summary
+shows it as a UTC clock time rather than a ten-digit number of seconds. A plant's own clock
+(a simulated plant, a recording's time column, a sample counter) starts near 0 and stays far
+below it (1e9 s is 31.7 years)."""
+
+
+def _utc(t: float, fmt: str) -> str:
+    from datetime import UTC, datetime
+
+    stamp = datetime.fromtimestamp(t, UTC)
+    return stamp.strftime(fmt) + (f".{int(stamp.microsecond / 1e4):02d}" if "%S" in fmt else "")
+
+
+def plant_span(t_start: float, t_end: float) -> str:
+    """A window's plant time for a person: ``1198.00-1199.99 s``, or, for a source stamped by
+    a wall clock (see :data:`EPOCH_PLANT_TIME`), ``2026-11-21 10:00:58.00-10:01:00.00 UTC``
+    (the end's date when it differs)."""
+    if abs(t_start) < EPOCH_PLANT_TIME:
+        return f"{t_start:.2f}-{t_end:.2f} s"
+    same_day = _utc(t_start, "%Y-%m-%d") == _utc(t_end, "%Y-%m-%d")
+    end = _utc(t_end, "%H:%M:%S" if same_day else "%Y-%m-%d %H:%M:%S")
+    return f"{_utc(t_start, '%Y-%m-%d %H:%M:%S')}-{end} UTC"
+
+
+def plant_moment(t: float) -> str:
+    """A moment in plant time for a person: ``plant time 1090 s``, or ``2026-11-21 10:00:58 UTC``
+    for a source stamped by a wall clock (see :data:`EPOCH_PLANT_TIME`)."""
+    if abs(t) < EPOCH_PLANT_TIME:
+        return f"plant time {t:.0f} s"
+    from datetime import UTC, datetime
+
+    return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
 def _window_lines(last: HealthMessage) -> list[str]:
     """The last window and each parameter: value, deviation, status."""
     width = max([3, *(len(n) for n in last.parameters)])
-    return [f"last window {last.window} [{last.t_start:.2f}-{last.t_end:.2f} s], "
+    return [f"last window {last.window} [{plant_span(last.t_start, last.t_end)}], "
             f"nRMSE {last.nrmse or float('nan'):.2e}, estimated in "
             f"{last.elapsed_s * 1e3:.0f} ms:",
             *(f"  {name:<{width}} = {_value(p.value)} {p.unit:<10} "
@@ -428,11 +464,11 @@ def _status(p: ParameterHealth) -> str:
 
 def _alarm_lines(last: HealthMessage) -> list[str]:
     raised = [f"{k} {a.level}"
-              + (f" (raised at plant time {a.since_t:.0f} s)" if a.since_t is not None else "")
+              + (f" (raised at {plant_moment(a.since_t)})" if a.since_t is not None else "")
               + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
                  else "") for k, a in last.alarms.items() if a.level != "normal"]
     raised += [f"{k} RUL {a.rul.level}"
-               + (f" (raised at plant time {a.rul.since_t:.0f} s)" if a.rul.since_t is not None
+               + (f" (raised at {plant_moment(a.rul.since_t)})" if a.rul.since_t is not None
                   else "") for k, a in last.alarms.items()
                if a.rul is not None and a.rul.level != "normal"]
     if not raised:

@@ -125,7 +125,8 @@ class CanDriverConfig(DriverConfig):
         dbc: path of the CAN database (DBC, or any format cantools loads); a relative path is
             resolved against the configuration file's directory (``base_dir``).
         log_file: replay this log (any suffix :func:`can.LogReader` knows) instead of a live
-            bus; relative to ``base_dir`` like ``dbc``. The end of the log raises
+            bus; relative to ``base_dir`` like ``dbc`` (either may be ``twinwatch:<path>``, a
+            file shipped in the package: :data:`PACKAGE_PREFIX`). The end of the log raises
             :class:`~twinwatch.drivers.base.EndOfStream`.
         realtime: for ``log_file`` only: pace the replay by the log's time stamps (as
             :class:`can.MessageSync` does); False replays as fast as the caller reads.
@@ -225,7 +226,21 @@ class CanDriverConfig(DriverConfig):
         return self.model_copy(update=update)
 
 
+PACKAGE_PREFIX = "twinwatch:"
+"""A ``dbc`` or ``log_file`` written ``twinwatch:plant/odrive-axis0.log.gz`` is a file shipped
+inside the installed twinwatch package (``twinwatch/plant/...``): found wherever the
+configuration file is copied (a gateway's directory, /etc/twinwatch), unlike a path relative
+to the file."""
+
+
 def _resolve(path: Path, base_dir: Path) -> Path:
+    """``path`` as the driver opens it: a file of the package (:data:`PACKAGE_PREFIX`), or
+    ``~`` expanded and a relative path joined to ``base_dir`` (the config file's directory)."""
+    text = str(path)
+    if text.startswith(PACKAGE_PREFIX):
+        import twinwatch
+
+        return Path(twinwatch.__file__).resolve().parent / text[len(PACKAGE_PREFIX):]
     path = path.expanduser()
     return path if path.is_absolute() else Path(base_dir) / path
 
