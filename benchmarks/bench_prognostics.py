@@ -24,7 +24,7 @@ see below); nominal runs (is "not degrading" said in every window?); a part repl
 the fixed one on the resistance degradation (the estimate's error against time, per 100 s).
 
 The hydraulic damping force is 7 Pa of 50 kPa: with 0.5 % noise on x and p no window
-determines D and the Cramer-Rao bound over the whole run is 16.3 % (README, "Fusion"), so no
+determines D and the Cramer-Rao bound over the whole run is 16.3 % (docs/drives.md, "Fusion"), so no
 prediction can be made there. The window's share of the fused evidence on D has a relative
 standard error of about 0.6 % at 0.001 % noise, 1.3 % at 0.002 %, 3 % at 0.005 % and 12 % at
 0.02 %; predicting the crossing within 10 % from halfway needs about 1 % or better (measured: at

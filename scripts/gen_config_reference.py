@@ -211,6 +211,7 @@ def _table(rows: list[Row]) -> str:
 
 def sections() -> list[tuple[str, str, list[Row]]]:
     """``(title, intro, rows)`` per section of the page, in the file's order."""
+    from twinwatch.config.alarms import AlarmConfig
     from twinwatch.config.schema import AcquisitionConfig, MachineConfig
     from twinwatch.drivers import BUILTIN_DRIVERS
     from twinwatch.sinks import BUILTIN_SINKS, HISTORIC_TABLES
@@ -219,7 +220,6 @@ def sections() -> list[tuple[str, str, list[Row]]]:
     from twinwatch.twin.estimation.identify import IdentifyConfig
     from twinwatch.twin.models import BUILTIN_MODELS
     from twinwatch.twin.prognostics.config import PrognosticsConfig
-    from twinwatch.config.alarms import AlarmConfig
 
     out: list[tuple[str, str, list[Row]]] = [
         ("[machine]", "What is monitored.", list(model_rows(MachineConfig, "machine."))),

@@ -1,6 +1,6 @@
 """The health message: one typed layout, documented field by field, one encoder (issue 11).
 
-* the health message reference (docs/health-message.md, the site's reference page) names every field of
+* the reference table of docs/health-message.md names every field of
   :class:`~twinwatch.twin.health.HealthMessage` and no field it does not have;
 * a parameter's ``status`` is typed (no prose to parse), and the built message carries it;
 * non-finite numbers are ``null`` in every copy: Zenoh, the state database, the recording.
@@ -103,7 +103,8 @@ def test_the_reference_documents_every_field_of_the_message_and_no_other() -> No
     documented = readme_paths()
     assert "parameters.<>.status" in model and "residual.dt_second.rmse.<>" in model
     assert model - documented == set(), "fields missing from docs/health-message.md's table"
-    assert documented - model == set(), "docs/health-message.md documents fields the message does not have"
+    assert documented - model == set(), (
+        "docs/health-message.md documents fields the message does not have")
 
 
 def test_the_table_reader_expands_groups() -> None:

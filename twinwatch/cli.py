@@ -351,8 +351,8 @@ def _new_run_line(daemon: Daemon) -> str:
 
 
 def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
-    """The run's summary (README "What `twinwatch run` prints"), from the typed health
-    messages the daemon kept and its outputs' own lines."""
+    """The run's summary (docs/getting-started.md, "What `twinwatch run` prints"), from the
+    typed health messages the daemon kept and its outputs' own lines."""
     c = daemon.counters()
     causes = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in daemon.ring.causes.items()
                        if n)

@@ -7,7 +7,7 @@ and adaptation) and serialised by one encoder (:meth:`HealthMessage.to_json`,
 :func:`twinwatch.io.encoding.to_json`) for Zenoh, the state store and the Rerun recording:
 non-finite numbers become ``null`` everywhere.
 
-The README's table "The health message" documents every field; a test holds it against this
+The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
 * 7: each estimated parameter carries its ``trend`` (degradation model, onset, drift rate with
@@ -371,8 +371,9 @@ class AcquisitionHealth(_Part):
 
 
 class HealthMessage(_Part):
-    """One window's health: the message on ``twinwatch/<machine>/health`` (README: "The health
-    message"). Build it with :func:`build_health`; serialise it with :meth:`to_json`."""
+    """One window's health: the message on ``twinwatch/<machine>/health`` (its reference:
+    docs/health-message.md). Build it with :func:`build_health`; serialise it with
+    :meth:`to_json`."""
 
     schema_: int = Field(SCHEMA_VERSION, alias="schema", description="layout version")
     machine: str = Field(description="machine name from the config")
