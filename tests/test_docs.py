@@ -4,7 +4,8 @@
 * the README is at most 300 lines and starts with the two commands a fresh machine runs;
 * no page carries a leftover template placeholder (``@@NAME@@``);
 * the configuration reference (docs/configuration.md) is the one the models generate today and
-  names every key of every table the models define;
+  names every key of every table the models define; the command reference (docs/cli.md) is
+  the one the click commands print today;
 * every shipped example configuration is in the examples table, each with its own recording.
 """
 
@@ -25,6 +26,7 @@ from pydantic import BaseModel
 from tests.conftest import ROOT
 
 sys.path.insert(0, str(ROOT / "scripts"))
+import gen_cli_reference  # noqa: E402
 import gen_config_reference as ref  # noqa: E402
 
 PAGES = sorted((ROOT / "docs").glob("*.md"))
@@ -80,6 +82,14 @@ def test_the_configuration_reference_is_up_to_date() -> None:
     page = (ROOT / "docs" / "configuration.md").read_text(encoding="utf-8")
     assert page == ref.render(), (
         "docs/configuration.md is stale: run python scripts/gen_config_reference.py")
+
+
+def test_the_command_reference_is_up_to_date() -> None:
+    page = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
+    assert page == gen_cli_reference.render(), (
+        "docs/cli.md is stale: run python scripts/gen_cli_reference.py")
+    for command in ("run", "check-config", "sample-config", "identify", "watch", "tail"):
+        assert f"## twinwatch {command}\n" in page
 
 
 def _keys(model: type[BaseModel], prefix: str) -> set[str]:
