@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 if TYPE_CHECKING:
     from twinwatch.twin.prognostics.config import Thresholds
@@ -40,30 +40,38 @@ class AlarmRule(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    warning: float | None = Field(None, gt=0, description="warning when |deviation| >= this [%]")
-    alarm: float | None = Field(None, gt=0, description="alarm when |deviation| >= this [%]")
-    warning_high: float | None = Field(None, gt=0, description="warning when deviation >= this")
-    alarm_high: float | None = Field(None, gt=0, description="alarm when deviation >= this [%]")
-    warning_low: float | None = Field(None, lt=0, description="warning when deviation <= this")
-    alarm_low: float | None = Field(None, lt=0, description="alarm when deviation <= this [%]")
-    hysteresis: float = Field(1.0, ge=0, description="percentage points inside a threshold "
-                              "before its level may clear")
-    raise_after_s: float = Field(10.0, ge=0, description="plant seconds beyond a threshold "
-                                 "before the level is raised")
-    raise_after_windows: int = Field(3, ge=1, description="consecutive evidence windows beyond "
-                                     "a threshold before the level is raised")
-    clear_after_s: float = Field(30.0, ge=0, description="plant seconds back inside before the "
-                                 "level is lowered")
-    clear_after_windows: int = Field(3, ge=1, description="consecutive evidence windows back "
-                                     "inside before the level is lowered")
+    warning: StrictFloat | None = Field(
+        None, gt=0, description="warning when |deviation| >= this [%]")
+    alarm: StrictFloat | None = Field(None, gt=0, description="alarm when |deviation| >= this [%]")
+    warning_high: StrictFloat | None = Field(
+        None, gt=0, description="warning when deviation >= this")
+    alarm_high: StrictFloat | None = Field(
+        None, gt=0, description="alarm when deviation >= this [%]")
+    warning_low: StrictFloat | None = Field(
+        None, lt=0, description="warning when deviation <= this")
+    alarm_low: StrictFloat | None = Field(
+        None, lt=0, description="alarm when deviation <= this [%]")
+    hysteresis: StrictFloat = Field(1.0, ge=0, description="percentage points inside a threshold "
+                                    "before its level may clear")
+    raise_after_s: StrictFloat = Field(10.0, ge=0, description="plant seconds beyond a threshold "
+                                       "before the level is raised")
+    raise_after_windows: StrictInt = Field(
+        3, ge=1, description="consecutive evidence windows beyond "
+        "a threshold before the level is raised")
+    clear_after_s: StrictFloat = Field(
+        30.0, ge=0, description="plant seconds back inside before the "
+        "level is lowered")
+    clear_after_windows: StrictInt = Field(3, ge=1, description="consecutive evidence windows back "
+                                           "inside before the level is lowered")
     action: str | None = Field(None, description="what the operator should do on warning/alarm "
                                "(default: a generic instruction)")
-    rul_warning: float | None = Field(None, gt=0, description="warning when the remaining "
-                                      "useful life to the alarm threshold is below this [s]")
-    rul_alarm: float | None = Field(None, gt=0, description="alarm when the remaining useful "
-                                    "life to the alarm threshold is below this [s]")
-    rul_hysteresis: float = Field(0.25, ge=0, le=10, description="a RUL level clears once the "
-                                  "RUL is back above its threshold times 1 + this")
+    rul_warning: StrictFloat | None = Field(None, gt=0, description="warning when the remaining "
+                                            "useful life to the alarm threshold is below this [s]")
+    rul_alarm: StrictFloat | None = Field(None, gt=0, description="alarm when the remaining useful "
+                                          "life to the alarm threshold is below this [s]")
+    rul_hysteresis: StrictFloat = Field(
+        0.25, ge=0, le=10, description="a RUL level clears once the "
+        "RUL is back above its threshold times 1 + this")
     rul_basis: Literal["median", "low"] = Field(
         "median", description="the RUL the rules read: the median, or the interval's "
         "earliest end (the earliest plausible crossing)")

@@ -23,8 +23,9 @@ from twinwatch.config.schema import TwinwatchConfig
 from twinwatch.errors import ConfigError
 
 
-def _format(exc: ValidationError, source: str) -> str:
-    lines = [f"{source}: invalid configuration"]
+def _errors(exc: ValidationError) -> list[tuple[str, str]]:
+    """Each error of a validation as (dotted key, message)."""
+    found = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"] if not str(p).startswith("function-"))
         msg = err["msg"]
@@ -32,14 +33,21 @@ def _format(exc: ValidationError, source: str) -> str:
             msg = "unknown key (misspelt, or not valid in this table)"
         elif err["type"] == "missing":
             msg = "required key is missing"
-        lines.append(f"  {loc or '(top level)'}: {msg}")
-    return "\n".join(lines)
+        elif err["type"] in ("float_type", "int_type") and isinstance(err.get("input"), bool):
+            msg = f"{msg}, not {str(err['input']).lower()}: a boolean is not a number"
+        found.append((loc or "(top level)", msg))
+    return found
 
 
-def _non_finite(data: Any, path: str = "") -> list[str]:
+def _format(errors: list[tuple[str, str]], source: str) -> str:
+    return "\n".join([f"{source}: invalid configuration",
+                      *(f"  {key}: {msg}" for key, msg in errors)])
+
+
+def _non_finite(data: Any, path: str = "") -> list[tuple[str, str]]:
     """Keys holding ``nan`` or ``inf`` (TOML has both): no key of a configuration takes them."""
     if isinstance(data, float):
-        return [] if math.isfinite(data) else [f"  {path}: must be a finite number, not {data}"]
+        return [] if math.isfinite(data) else [(path, f"must be a finite number, not {data}")]
     if isinstance(data, dict):
         return [e for k, v in data.items() for e in _non_finite(v, f"{path}.{k}" if path else k)]
     if isinstance(data, list):
@@ -54,15 +62,22 @@ def validate_config(data: dict[str, Any], source: str = "<config>") -> Twinwatch
         ConfigError: naming each bad key and why (``nan`` and ``inf`` are refused anywhere).
     """
     bad = _non_finite(data)
-    if bad:
-        raise ConfigError("\n".join([f"{source}: invalid configuration", *bad]))
     try:
-        return TwinwatchConfig.model_validate(data)
+        cfg = TwinwatchConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format(exc, source)) from None
+        # every error at once: the non-finite keys, then the others (a non-finite key named
+        # once, even when its table's model refuses it too)
+        named = {key for key, _ in bad}
+        raise ConfigError(_format(bad + [e for e in _errors(exc) if e[0] not in named],
+                                  source)) from None
     except (ArithmeticError, TypeError) as exc:  # a validator computing with a huge value
+        if bad:
+            raise ConfigError(_format(bad, source)) from None
         raise ConfigError(f"{source}: invalid configuration: a value is out of range "
                           f"({type(exc).__name__}: {exc})") from None
+    if bad:
+        raise ConfigError(_format(bad, source))
+    return cfg
 
 
 def load_config(path: str | Path) -> TwinwatchConfig:

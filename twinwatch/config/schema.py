@@ -46,6 +46,8 @@ from pydantic import (
     ConfigDict,
     Field,
     SerializeAsAny,
+    StrictFloat,
+    StrictInt,
     ValidationError,
     field_validator,
     model_validator,
@@ -208,7 +210,7 @@ class MachineConfig(BaseModel):
                       description="machine name: the Zenoh key segment (letters, digits, _ -; "
                       "at most 64)")
     model: str = Field("dc_motor", description="twin model (registry name)")
-    parameters: dict[str, float] = Field(
+    parameters: dict[str, StrictFloat] = Field(
         default_factory=dict, description="nominal (nameplate) values [SI] overriding the "
         "model's defaults; deviations are reported against them")
     options: dict[str, Any] = Field(default_factory=dict,
@@ -237,29 +239,32 @@ class AcquisitionConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    sample_period: float = Field(0.01, gt=0, le=3600, description="nominal sample period [s]")
-    window: int = Field(200, ge=10, le=MAX_WINDOW, description="samples per estimation window")
-    max_gap: float = Field(1.5, gt=1, description="largest time-stamp step within a range "
-                           "`twinwatch identify` fits, in sample periods (the daemon's windows "
-                           "match stamps to the grid: jitter_tolerance)")
-    jitter_tolerance: float = Field(
+    sample_period: StrictFloat = Field(0.01, gt=0, le=3600, description="nominal sample period [s]")
+    window: StrictInt = Field(
+        200, ge=10, le=MAX_WINDOW, description="samples per estimation window")
+    max_gap: StrictFloat = Field(
+        1.5, gt=1, description="largest time-stamp step within a range "
+        "`twinwatch identify` fits, in sample periods (the daemon's windows "
+        "match stamps to the grid: jitter_tolerance)")
+    jitter_tolerance: StrictFloat = Field(
         0.5, gt=0, le=0.5, description="half the widest band the time stamps of one window may "
         "span around their slots on the nominal grid, in sample periods (0.5: narrower than a "
         "period, each stamp in its own slot; the samples are placed on the grid; a stamp "
         "beyond it is a gap or jitter beyond tolerance and abandons the window)")
-    reopen_max: float = Field(30.0, ge=0.5, le=3600, description="cap of the delay [s] "
-                              "between attempts to open a live source that is absent or "
-                              "failed (a bus, a device: waited for, never an exit)")
-    queue: int = Field(4, ge=1, le=1000, description="windows waiting for the estimator")
-    history: int = Field(1000, ge=1, le=100_000, description="health messages kept in memory")
-    stall_timeout: float = Field(5.0, gt=0, description="seconds without a sample before a "
-                                 "stall is reported")
+    reopen_max: StrictFloat = Field(30.0, ge=0.5, le=3600, description="cap of the delay [s] "
+                                    "between attempts to open a live source that is absent or "
+                                    "failed (a bus, a device: waited for, never an exit)")
+    queue: StrictInt = Field(4, ge=1, le=1000, description="windows waiting for the estimator")
+    history: StrictInt = Field(1000, ge=1, le=100_000, description="health messages kept in memory")
+    stall_timeout: StrictFloat = Field(5.0, gt=0, description="seconds without a sample before a "
+                                       "stall is reported")
     watchdog: Literal["windows", "alive"] = Field(
         "windows", description="when systemd's watchdog is pinged: 'windows' while windows are "
         "processed (a source silent for WatchdogSec= restarts the service), 'alive' while the "
         "daemon is alive (for machines idle for long: a silent source is reported, not "
         "restarted)")
-    shutdown_timeout: float = Field(10.0, gt=0, description="seconds to finish queued windows")
+    shutdown_timeout: StrictFloat = Field(
+        10.0, gt=0, description="seconds to finish queued windows")
     abandon_on_stop: bool = Field(False, description="on stop, drop queued windows instead "
                                   "of estimating them")
     adaptive: AdaptiveTable = Field(

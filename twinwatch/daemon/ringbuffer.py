@@ -21,7 +21,15 @@ centre:
 * otherwise (early, or between two slots): *jitter beyond tolerance*; also when the offsets
   lie on a line that leaves the band (a clock at another rate than the configured period: the
   message gives the mean step measured);
-* a stamp not after the previous one: *time stamp jumped backwards or repeated*.
+* a stamp before the previous one: *time stamp jumped backwards* (a capture that restarts
+  its clock: the partial window at the seam is abandoned, the next window starts at the
+  sample that went back);
+* the previous stamp again with other values: *time stamp repeated with other values* (the
+  partial window and that sample are abandoned: which of the two is the plant's is unknown).
+
+An exact duplicate (the previous stamp again with the same values: a data logger's retry, a
+frame sent twice) is dropped and counted (:attr:`RingBuffer.duplicates`, and in
+:attr:`RingBuffer.lost` under its own reason); the window goes on.
 
 The band, not a distance from the mean, because a poll clock's jitter is one-sided (a poll is
 late, never early): a window whose polls are on time or up to 9 ms late at ``T`` = 10 ms is
@@ -78,6 +86,8 @@ _BAND_MARGIN = 1e-6
 _DRIFT_MIN_SAMPLES = 10
 #: Stamps within this fraction of a period of their grid are kept as they are (exact sources).
 GRID_EXACT = 1e-6
+#: The reason an exact duplicate sample is counted under in :attr:`RingBuffer.lost`.
+_DUPLICATE = "exact duplicates dropped (same time stamp, same values: a logger's retry)"
 
 
 class RingBuffer:
@@ -129,6 +139,8 @@ class RingBuffer:
         self._sums = (0.0, 0.0, 0.0, 0.0)  # sum k, k^2, offset, k*offset (the drift line)
         self._t_first = 0.0  # stamp of the partial window's first sample
         self._last_t: float | None = None
+        self._last_row: list[float] | None = None  # values of the last sample in a window
+        self.duplicates = 0  #: exact duplicates dropped (same stamp, same values)
         self._windows = 0
         self.first_index = first_index
         self.discarded: Counter[str] = Counter()  #: reason -> windows abandoned
@@ -182,8 +194,13 @@ class RingBuffer:
         """Match ``t`` to the partial window's grid; abandon the window if it does not fit."""
         if self._last_t is None or self._count == 0:
             return
-        if t <= self._last_t:
-            self._abandon("time stamp jumped backwards or repeated", "time_back", t)
+        if t < self._last_t:
+            self._abandon("time stamp jumped backwards", "time_back", t,
+                          detail=f" ({self._last_t - t:.6g} s back: a capture that restarts its "
+                          f"clock, or a clock set back)")
+            return
+        if t == self._last_t:  # the previous sample again, after one that was not kept
+            self._abandon("time stamp repeated with other values", "time_back", t)
             return
         period = self.sample_period
         n = self._count
@@ -212,6 +229,30 @@ class RingBuffer:
                 f"{2 * tol:g}: a clock that jitters this much; a sample counter as time "
                 f"source avoids it)")
 
+    def _repeated(self, t: float, values: Mapping[str, float]) -> bool:
+        """A sample stamped as the previous one: an exact duplicate is dropped and counted
+        (True); other values abandon the partial window and this sample too (True: neither
+        is known to be the plant's); after a sample that was not kept (a NaN, a missing
+        channel) it is taken as a new sample (False)."""
+        if self._last_row is None:
+            return False
+        try:
+            row = [float(values[c]) for c in self.channels]
+        except KeyError:
+            row = None
+        if row == self._last_row:
+            self.duplicates += 1
+            self.lost[_DUPLICATE] += 1
+            if _DUPLICATE not in self._warned:
+                self._warned.add(_DUPLICATE)
+                logger.warning("%s at t=%.6f s (logged once; counted)", _DUPLICATE, t)
+            return True
+        self._abandon("time stamp repeated with other values", "time_back", t, bad=1,
+                      detail=" (which of the two samples is the plant's is unknown: both "
+                      "dropped)")
+        self._last_row = None
+        return True
+
     def _drift(self, n: int, offset: float) -> float | None:
         """The mean step [s] of stamps that drift off the grid at a steady rate (a clock at
         another rate than the period), when the offsets so far and ``offset`` (sample ``n``)
@@ -236,8 +277,11 @@ class RingBuffer:
         non-finite value abandons the partial window (counted, logged once per reason).
         """
         self.samples += 1
+        if t == self._last_t and self._repeated(t, values):
+            return None
         self._check_time(t)
         self._last_t = t
+        self._last_row = None
         try:
             row = [float(values[c]) for c in self.channels]
         except KeyError as exc:
@@ -265,6 +309,7 @@ class RingBuffer:
             self._sums = (sk + k, sk2 + k * k, so + offset, sko + k * offset)
         self._t[self._head] = t
         self._v[self._head] = row
+        self._last_row = row
         self._head = (self._head + 1) % self.capacity
         self._count += 1
         if self._count < self.window:

@@ -456,23 +456,28 @@ class Daemon:
 
     def _replay_trends(self) -> None:
         """Rebuild the parameters' trends from the evidence the stored windows published
-        (the last ``[prognostics] horizon`` seconds of plant time), so a restart resumes the
-        trends and their RUL instead of waiting ``min_evidence`` windows."""
+        (the last ``[prognostics] horizon`` seconds of plant time, on the time line that ends
+        with the last window: across earlier restarts, :meth:`StateStore.timeline`), so a
+        restart resumes the trends and their RUL instead of waiting ``min_evidence`` windows."""
         assert self.store is not None and self.adapter.prognostics is not None
         last = self.store.latest_health(self.machine)
         if last is None or last.get("t_end") is None:
             return
         t_to = float(last["t_end"])
         t_from = t_to - self.adapter.prognostics.config.horizon
-        run = last.get("run")  # the last run's windows only: another run's times are another line
         messages: list[dict[str, Any]] = []
-        while True:
-            page = self.store.history(t_from, t_to, 1000, by="plant", machine=self.machine,
-                                      run=run)
-            messages.extend(page)
-            if len(page) < 1000:
-                break
-            t_from = float(page[-1]["t_end"]) + 1e-9
+        timeline = getattr(self.store, "timeline", None)
+        if timeline is not None:  # the state store: the time line across restarts
+            messages = timeline(self.machine, t_from)
+        else:  # a gate without it: the last run's windows only
+            run = last.get("run")
+            while True:
+                page = self.store.history(t_from, t_to, 1000, by="plant",
+                                          machine=self.machine, run=run)
+                messages.extend(page)
+                if len(page) < 1000:
+                    break
+                t_from = float(page[-1]["t_end"]) + 1e-9
         n = self.adapter.prognostics.replay(messages)
         if n:
             logger.info("resumed the parameters' trends from %d stored windows", n)

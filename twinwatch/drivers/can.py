@@ -66,7 +66,7 @@ from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 from cantools.database.errors import DecodeError
 from cantools.database.errors import Error as CantoolsError
-from pydantic import ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt, field_validator, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -154,8 +154,8 @@ class CanDriverConfig(DriverConfig):
 
     type: Literal["can"]
     interface: str | None = None
-    channel: str | int | None = None
-    bitrate: int | None = Field(default=None, gt=0)
+    channel: str | StrictInt | None = None
+    bitrate: StrictInt | None = Field(default=None, gt=0)
     bus_options: dict[str, str | int | float | bool] = Field(default_factory=dict)
     dbc: Path
     log_file: Path | None = None
@@ -163,10 +163,10 @@ class CanDriverConfig(DriverConfig):
     sync_message: str = Field(min_length=1)
     time_source: str = "frame"
     counter_signal: str | None = None
-    sample_period: float = Field(gt=0, allow_inf_nan=False)
+    sample_period: StrictFloat = Field(gt=0, allow_inf_nan=False)
     signals: dict[str, CanSignalMap] = Field(min_length=1)
-    reopen_after: float | None = Field(2.0, gt=0, allow_inf_nan=False)
-    silent_after: float = Field(1.0, gt=0, allow_inf_nan=False)
+    reopen_after: StrictFloat | None = Field(2.0, gt=0, allow_inf_nan=False)
+    silent_after: StrictFloat = Field(1.0, gt=0, allow_inf_nan=False)
 
     @field_validator("interface")
     @classmethod

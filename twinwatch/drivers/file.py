@@ -7,7 +7,11 @@ raises :class:`~twinwatch.drivers.base.EndOfStream`.
 
 Time stamps: ``t = k * sample_period`` where ``k`` is the row's index in the file (0-based,
 counted before ``start`` is applied, so a cut recording keeps its own clock), or, with
-``time_column``, ``t = value * time_scale`` read from that column.
+``time_column``, ``t = value * time_scale`` read from that column. Rows are delivered as the
+logger wrote them: an exact duplicate (a logger's retry) is dropped and counted by the ring
+buffer, a stamp repeated with other values abandons only the window it falls in, and a
+capture that restarts its clock (two files concatenated) costs at most the window at the seam
+(a real-time replay is paced from the seam on).
 
 Formats:
 
@@ -50,7 +54,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 import scipy.io
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -109,14 +113,14 @@ class FileDriverConfig(DriverConfig):
     type: Literal["file"]
     path: Path
     format: Literal["csv", "mat", "auto"] = "auto"
-    sample_period: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    sample_period: StrictFloat | None = Field(default=None, gt=0, allow_inf_nan=False)
     time_column: str | None = Field(default=None, min_length=1)
-    time_scale: float = Field(default=1.0, gt=0, allow_inf_nan=False)
+    time_scale: StrictFloat = Field(default=1.0, gt=0, allow_inf_nan=False)
     delimiter: str | None = Field(default=None, min_length=1, max_length=1)
     columns: dict[str, FileColumnMap] = Field(min_length=1)
     realtime: bool = False
-    start: int | None = Field(default=None, ge=0)
-    stop: int | None = Field(default=None, ge=0)
+    start: StrictInt | None = Field(default=None, ge=0)
+    stop: StrictInt | None = Field(default=None, ge=0)
 
     @model_validator(mode="after")
     def _check(self) -> FileDriverConfig:
@@ -259,6 +263,7 @@ class FileDriver(Driver):
         )
         self._next = 0
         self._origin: tuple[float, float] | None = None  # (wall clock, file time) of 1st row
+        self._last_paced = -math.inf  # file time of the last row paced
         logger.info(
             "file driver ready: %s (%s), rows %d..%d of %d, sample period %g s, channels %s",
             path,
@@ -429,8 +434,11 @@ class FileDriver(Driver):
     def _wait_until(self, t: float, timeout: float | None) -> bool:
         """Sleep until file time ``t`` is due; False if ``timeout`` [s] ran out first."""
         now = time.monotonic()
-        if self._origin is None:
+        if self._origin is None or t < self._last_paced:
+            # the first row, or a capture that restarts its clock (two recordings one after
+            # the other): paced from here, not bursting until its time catches up
             self._origin = (now, t)
+        self._last_paced = t
         wait = self._origin[0] + (t - self._origin[1]) - now
         if wait <= 0:
             return True

@@ -94,7 +94,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse
@@ -188,18 +188,18 @@ class ModbusDriverConfig(DriverConfig):
     type: Literal["modbus"]
     transport: Literal["tcp", "rtu"] = "tcp"
     host: str = Field(default="127.0.0.1", min_length=1)
-    port: int = Field(default=502, ge=1, le=65535)
+    port: StrictInt = Field(default=502, ge=1, le=65535)
     serial_port: str | None = Field(default=None, min_length=1)
-    baudrate: int = Field(default=19200, gt=0)
+    baudrate: StrictInt = Field(default=19200, gt=0)
     parity: Literal["N", "E", "O"] = "N"
     stopbits: Literal[1, 2] = 1
     bytesize: Literal[7, 8] = 8
-    device_id: int = Field(default=1, ge=0, le=247)
-    timeout: float = Field(default=1.0, gt=0, allow_inf_nan=False)
-    retries: int = Field(default=0, ge=0, le=10)
-    backoff_max: float = Field(default=5.0, ge=_BACKOFF_INITIAL, allow_inf_nan=False)
-    sample_period: float = Field(gt=0, allow_inf_nan=False)
-    poll_period: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    device_id: StrictInt = Field(default=1, ge=0, le=247)
+    timeout: StrictFloat = Field(default=1.0, gt=0, allow_inf_nan=False)
+    retries: StrictInt = Field(default=0, ge=0, le=10)
+    backoff_max: StrictFloat = Field(default=5.0, ge=_BACKOFF_INITIAL, allow_inf_nan=False)
+    sample_period: StrictFloat = Field(gt=0, allow_inf_nan=False)
+    poll_period: StrictFloat | None = Field(default=None, gt=0, allow_inf_nan=False)
     time_source: Literal["clock", "counter"] = "clock"
     counter: ModbusCounterMap | None = None
     lockstep: bool = False

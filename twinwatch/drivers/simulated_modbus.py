@@ -49,7 +49,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -113,10 +113,10 @@ class SimulatedModbusDriverConfig(DriverConfig):
     plant: HydraulicPlantConfig = Field(default_factory=HydraulicPlantConfig)
     host: Literal["127.0.0.1"] = Field(
         LOOPBACK, description="loopback only: the simulated device is never exposed")
-    port: int = Field(5020, ge=0, le=65535, description="TCP port on 127.0.0.1 (0: any free)")
+    port: StrictInt = Field(5020, ge=0, le=65535, description="TCP port on 127.0.0.1 (0: any free)")
     pacing: Literal["lockstep", "realtime"] = "lockstep"
-    timeout: float = Field(0.5, gt=0, allow_inf_nan=False)
-    backoff_max: float = Field(1.0, ge=0.1, allow_inf_nan=False)
+    timeout: StrictFloat = Field(0.5, gt=0, allow_inf_nan=False)
+    backoff_max: StrictFloat = Field(1.0, ge=0.1, allow_inf_nan=False)
     registers: dict[str, ModbusChannelMap] = Field(
         default_factory=lambda: dict(DEFAULT_REGISTERS), min_length=1)
     counter: ModbusCounterMap = Field(default_factory=lambda: DEFAULT_COUNTER)

@@ -57,7 +57,7 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, field_validator, model_validator
 
 FloatArray = NDArray[np.float64]
 
@@ -96,15 +96,15 @@ class LoopConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kp: float = Field(0.0, allow_inf_nan=False)
-    ki: float = Field(0.0, allow_inf_nan=False)
-    kd: float = Field(0.0, allow_inf_nan=False)
-    n_filter: float | None = Field(None, gt=0, allow_inf_nan=False)
-    output_min: float | None = Field(None, allow_inf_nan=False)
-    output_max: float | None = Field(None, allow_inf_nan=False)
+    kp: StrictFloat = Field(0.0, allow_inf_nan=False)
+    ki: StrictFloat = Field(0.0, allow_inf_nan=False)
+    kd: StrictFloat = Field(0.0, allow_inf_nan=False)
+    n_filter: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)
+    output_min: StrictFloat | None = Field(None, allow_inf_nan=False)
+    output_max: StrictFloat | None = Field(None, allow_inf_nan=False)
     anti_windup: Literal["clamping", "back_calculation", "none"] = "clamping"
-    tracking_time: float | None = Field(None, gt=0, allow_inf_nan=False)
-    feedforward: float = Field(0.0, allow_inf_nan=False)
+    tracking_time: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)
+    feedforward: StrictFloat = Field(0.0, allow_inf_nan=False)
     action: Literal["reverse", "direct"] = "reverse"
     integrator_method: Literal["forward_euler", "backward_euler", "trapezoidal"] = \
         "forward_euler"
@@ -159,11 +159,11 @@ class DriveConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    period: float | None = Field(None, gt=0, allow_inf_nan=False)
-    phase: float = Field(0.0, ge=0, allow_inf_nan=False)
+    period: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)
+    phase: StrictFloat = Field(0.0, ge=0, allow_inf_nan=False)
     speed: LoopConfig = Field(default_factory=lambda: LoopConfig(kp=0.3, ki=0.1))
     current: LoopConfig | None = None
-    current_period: float | None = Field(None, gt=0, allow_inf_nan=False)
+    current_period: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _check(self) -> DriveConfig:
@@ -233,8 +233,8 @@ class ValveDriveConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    period: float | None = Field(None, gt=0, allow_inf_nan=False)
-    phase: float = Field(0.0, ge=0, allow_inf_nan=False)
+    period: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)
+    phase: StrictFloat = Field(0.0, ge=0, allow_inf_nan=False)
     valve: LoopConfig = Field(default_factory=lambda: LoopConfig(**PAPER_VALVE_LOOP))
 
     @field_validator("valve", mode="before")

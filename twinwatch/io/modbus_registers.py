@@ -19,7 +19,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
 
 from twinwatch.io.sample import ScaledChannel
 
@@ -88,7 +88,7 @@ class ModbusRegister(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    address: int = Field(ge=0, le=65535)
+    address: StrictInt = Field(ge=0, le=65535)
     table: RegisterTable = "holding"
     type: RegisterType = "float32"
     word_order: WordOrder = "big"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat
 
 from twinwatch.errors import DriverError, EndOfStream
 
@@ -44,6 +44,6 @@ class ScaledChannel(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    scale: float = Field(default=1.0, allow_inf_nan=False)
-    offset: float = Field(default=0.0, allow_inf_nan=False)
+    scale: StrictFloat = Field(default=1.0, allow_inf_nan=False)
+    offset: StrictFloat = Field(default=0.0, allow_inf_nan=False)
     unit: str | None = None

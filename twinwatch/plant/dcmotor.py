@@ -51,7 +51,7 @@ from typing import Literal
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.io.sample import EndOfStream, Sample
@@ -79,12 +79,12 @@ class SetpointSchedule(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    steps: list[tuple[float, float]] | None = None
-    initial: float = Field(10.0, description="set-point from t = 0 [rad/s]")
-    levels: list[float] = Field(default_factory=lambda: [5.0, 10.0, 15.0, 20.0])
-    dwell_min: float = Field(20.0, gt=0)
-    dwell_max: float = Field(60.0, gt=0)
-    seed: int = 1
+    steps: list[tuple[StrictFloat, StrictFloat]] | None = None
+    initial: StrictFloat = Field(10.0, description="set-point from t = 0 [rad/s]")
+    levels: list[StrictFloat] = Field(default_factory=lambda: [5.0, 10.0, 15.0, 20.0])
+    dwell_min: StrictFloat = Field(20.0, gt=0)
+    dwell_max: StrictFloat = Field(60.0, gt=0)
+    seed: StrictInt = 1
 
     @model_validator(mode="after")
     def _check(self) -> SetpointSchedule:
@@ -127,10 +127,11 @@ class SensorFaultConfig(BaseModel):
 
     channel: str
     kind: Literal["frozen", "saturated"]
-    start: float = Field(ge=0, description="onset [s]")
-    duration: float = Field(gt=0, description="how long [s]")
-    level: float | None = Field(None, description="saturated: the reading clips at this value "
-                                "[the channel's unit]")
+    start: StrictFloat = Field(ge=0, description="onset [s]")
+    duration: StrictFloat = Field(gt=0, description="how long [s]")
+    level: StrictFloat | None = Field(
+        None, description="saturated: the reading clips at this value "
+        "[the channel's unit]")
     side: Literal["high", "low"] = Field("high", description="saturated: clips readings above "
                                          "(high) or below (low) the level")
 
@@ -147,52 +148,52 @@ class DCMotorPlantConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     scenario: Scenario = "resistance_degradation"
-    duration: float = Field(1200.0, gt=0, description="simulated time [s]")
-    sample_period: float = Field(0.01, gt=0, description="acquisition period [s]")
-    step: float = Field(1e-4, gt=0, description="integration step [s]")
-    Ra: float = Field(6.5, gt=0)
-    La: float = Field(0.673, gt=0)
-    J: float = Field(0.001171, gt=0)
-    Ke: float = Field(0.038, gt=0)
-    Kt: float = Field(0.038, gt=0)
-    D: float = Field(0.00143, ge=0)
-    load_coefficient: float = Field(0.006, ge=0, description="Tload = c*omega [N m s/rad]")
-    kp: float = 0.3
-    ki: float = 0.1
-    fault_start: float = Field(160.0, ge=0, description="scenario onset [s]")
-    fault_period: float | None = Field(
+    duration: StrictFloat = Field(1200.0, gt=0, description="simulated time [s]")
+    sample_period: StrictFloat = Field(0.01, gt=0, description="acquisition period [s]")
+    step: StrictFloat = Field(1e-4, gt=0, description="integration step [s]")
+    Ra: StrictFloat = Field(6.5, gt=0)
+    La: StrictFloat = Field(0.673, gt=0)
+    J: StrictFloat = Field(0.001171, gt=0)
+    Ke: StrictFloat = Field(0.038, gt=0)
+    Kt: StrictFloat = Field(0.038, gt=0)
+    D: StrictFloat = Field(0.00143, ge=0)
+    load_coefficient: StrictFloat = Field(0.006, ge=0, description="Tload = c*omega [N m s/rad]")
+    kp: StrictFloat = 0.3
+    ki: StrictFloat = 0.1
+    fault_start: StrictFloat = Field(160.0, ge=0, description="scenario onset [s]")
+    fault_period: StrictFloat | None = Field(
         None, gt=0, description="restart the degradation every this many seconds after its "
         "onset (a maintenance replaces the part); None: it runs on to the end")
-    unbalance_amplitude: float = Field(5.0, description="Eq. 13 amplitude [rad/s^2]")
-    unbalance_frequency: float = Field(10.0, description="Eq. 13 frequency [rad/s]")
+    unbalance_amplitude: StrictFloat = Field(5.0, description="Eq. 13 amplitude [rad/s^2]")
+    unbalance_frequency: StrictFloat = Field(10.0, description="Eq. 13 frequency [rad/s]")
     setpoint: SetpointSchedule = Field(default_factory=SetpointSchedule)
-    noise: dict[str, float] = Field(
+    noise: dict[str, StrictFloat] = Field(
         default_factory=dict,
         description="channel -> Gaussian noise standard deviation, percent of reading",
     )
-    quantisation: dict[str, float] = Field(
+    quantisation: dict[str, StrictFloat] = Field(
         default_factory=dict, description="channel -> quantisation step in the channel's unit"
     )
     drive: DriveConfig | None = Field(
         None, description="the drive as it runs (update period, limits, anti-windup, current "
         "loop; twinwatch.io.drive); default: the PI kp/ki above, updated every step")
-    coulomb_friction: float = Field(0.0, ge=0, description="Coulomb friction torque Tc [N m]")
+    coulomb_friction: StrictFloat = Field(0.0, ge=0, description="Coulomb friction torque Tc [N m]")
     power_stage: Literal["bidirectional", "unidirectional"] = Field(
         "bidirectional", description="unidirectional: the armature current cannot reverse "
         "(one switch and a freewheeling diode)")
-    current_filter: float | None = Field(
+    current_filter: StrictFloat | None = Field(
         None, gt=0, description="time constant [s] of a first-order low-pass filter on the "
         "reported current")
-    speed_filter: float | None = Field(
+    speed_filter: StrictFloat | None = Field(
         None, gt=0, description="time constant [s] of a first-order low-pass filter on the "
         "reported speed")
-    encoder_cpr: int | None = Field(
+    encoder_cpr: StrictInt | None = Field(
         None, ge=1, description="encoder counts per revolution: the reported speed is the "
         "count of the last sample period times 2*pi/(cpr*sample_period)")
     sensor_faults: list[SensorFaultConfig] = Field(
         default_factory=list, description="sensor faults: a reported channel frozen or "
         "saturated for a while (for tests of the estimator's data-quality checks)")
-    seed: int = 0
+    seed: StrictInt = 0
 
     @property
     def drive_config(self) -> DriveConfig:

@@ -76,7 +76,7 @@ from typing import Literal
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.io.drive import LoopConfig, ValveDriveConfig
 from twinwatch.io.sample import EndOfStream, Sample
@@ -110,28 +110,28 @@ class HydraulicPlantConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     scenario: Scenario = "fluid_degradation"
-    duration: float = Field(600.0, gt=0, description="simulated time [s]")
-    sample_period: float = Field(0.01, gt=0, description="acquisition period [s]")
-    step: float = Field(1e-4, gt=0, description="integration step (and the PID's period "
-                        "without a drive table) [s]")
-    k_spring: float = Field(200.0, ge=0, description="spring constant [N/m]")
-    D: float = Field(100.0, ge=0, description="damping coefficient [N/(m/s)]")
-    q_pump: float = Field(0.02, gt=0, description="pump flow [m^3/s]")
-    A_max: float = Field(1e-4, gt=0, description="largest valve cross-section [m^2]")
-    A_piston: float = Field(0.196349375, gt=0, description="piston area [m^2]")
-    F_resist: float = Field(0.0, description="internal resistance force [N]")
-    mass: float = Field(1000.0, gt=0, description="load mass [kg]; F_load = mass*9.81")
-    kp: float = Field(_PAPER_GAINS[0], description="PID proportional gain [m^2/m]")
-    ki: float = Field(_PAPER_GAINS[1], description="PID integral gain [m^2/(m s)]")
-    kd: float = Field(_PAPER_GAINS[2], description="PID derivative gain [m^2 s/m]")
-    n_filter: float = Field(_PAPER_GAINS[3], gt=0,
-                            description="PID derivative filter N [1/s]")
-    ref_offset: float = Field(0.5, description="position reference offset [m]")
-    ref_amplitude: float = Field(0.45, description="position reference amplitude [m]")
-    ref_frequency: float = Field(0.005, ge=0, description="position reference frequency [Hz]")
-    fault_start: float = Field(160.0, ge=0, description="scenario onset [s]")
-    leak_coefficient: float = Field(0.2, gt=-1, description="C of Eq. 18 (internal_leak)")
-    noise: dict[str, float] = Field(
+    duration: StrictFloat = Field(600.0, gt=0, description="simulated time [s]")
+    sample_period: StrictFloat = Field(0.01, gt=0, description="acquisition period [s]")
+    step: StrictFloat = Field(1e-4, gt=0, description="integration step (and the PID's period "
+                              "without a drive table) [s]")
+    k_spring: StrictFloat = Field(200.0, ge=0, description="spring constant [N/m]")
+    D: StrictFloat = Field(100.0, ge=0, description="damping coefficient [N/(m/s)]")
+    q_pump: StrictFloat = Field(0.02, gt=0, description="pump flow [m^3/s]")
+    A_max: StrictFloat = Field(1e-4, gt=0, description="largest valve cross-section [m^2]")
+    A_piston: StrictFloat = Field(0.196349375, gt=0, description="piston area [m^2]")
+    F_resist: StrictFloat = Field(0.0, description="internal resistance force [N]")
+    mass: StrictFloat = Field(1000.0, gt=0, description="load mass [kg]; F_load = mass*9.81")
+    kp: StrictFloat = Field(_PAPER_GAINS[0], description="PID proportional gain [m^2/m]")
+    ki: StrictFloat = Field(_PAPER_GAINS[1], description="PID integral gain [m^2/(m s)]")
+    kd: StrictFloat = Field(_PAPER_GAINS[2], description="PID derivative gain [m^2 s/m]")
+    n_filter: StrictFloat = Field(_PAPER_GAINS[3], gt=0,
+                                  description="PID derivative filter N [1/s]")
+    ref_offset: StrictFloat = Field(0.5, description="position reference offset [m]")
+    ref_amplitude: StrictFloat = Field(0.45, description="position reference amplitude [m]")
+    ref_frequency: StrictFloat = Field(0.005, ge=0, description="position reference frequency [Hz]")
+    fault_start: StrictFloat = Field(160.0, ge=0, description="scenario onset [s]")
+    leak_coefficient: StrictFloat = Field(0.2, gt=-1, description="C of Eq. 18 (internal_leak)")
+    noise: dict[str, StrictFloat] = Field(
         default_factory=dict,
         description="channel -> Gaussian noise standard deviation, percent of reading",
     )
@@ -139,7 +139,7 @@ class HydraulicPlantConfig(BaseModel):
         None, description="the valve controller as it runs (update period with the area held, "
         "limits, anti-windup; twinwatch.twin.models.hydraulic.ValveDriveConfig); default: the PID "
         "kp, ki, kd, n_filter above every step, clamped to [0, A_max]")
-    seed: int = 0
+    seed: StrictInt = 0
 
     @property
     def drive_config(self) -> ValveDriveConfig:

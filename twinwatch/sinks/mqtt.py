@@ -63,7 +63,15 @@ from collections import deque
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    field_validator,
+    model_validator,
+)
 
 from twinwatch import __version__
 from twinwatch._lazy import lazy_module
@@ -167,7 +175,7 @@ class MqttConfig(SinkConfig):
 
     enabled: bool = Field(True, description="false: the output is not opened")
     host: str = Field("127.0.0.1", min_length=1, description="the broker's host name or address")
-    port: int = Field(1883, ge=1, le=65535, description="the broker's port (8883 for TLS)")
+    port: StrictInt = Field(1883, ge=1, le=65535, description="the broker's port (8883 for TLS)")
     client_id: str | None = Field(None, min_length=1, max_length=128,
                                   description="unique per broker; unset: twinwatch-<machine>")
     username: str | None = Field(None, min_length=1,
@@ -179,21 +187,23 @@ class MqttConfig(SinkConfig):
     tls: MqttTlsConfig | None = Field(None, description="TLS to the broker")
     topic_prefix: str = Field("twinwatch",
                               description="<prefix>/<machine>/health, .../parameters/<name>/value")
-    keepalive: int = Field(30, ge=5, le=65535,
-                           description="s between pings; silent for 1.5x: offline (last will)")
+    keepalive: StrictInt = Field(
+        30, ge=5, le=65535,
+        description="s between pings; silent for 1.5x: offline (last will)")
     qos: Literal[1, 2] = Field(1, description="1: at least once; 2: exactly once while connected")
-    inflight: int = Field(10, ge=1, le=1000,
-                          description="windows sent, not yet acknowledged, at most")
-    rate: float = Field(20.0, gt=0, description="windows a second, at most, when catching up")
-    reconnect_min: float = Field(0.5, gt=0,
-                                 description="s to the first retry; doubles to reconnect_max")
-    reconnect_max: float = Field(30.0, gt=0,
-                                 description="s, the longest retry delay (+-25 % jitter)")
-    connect_timeout: float = Field(5.0, gt=0, description="s, one connection attempt's timeout")
-    close_timeout: float = Field(5.0, ge=0,
-                                 description="s at stop to deliver what is pending")
-    memory_outbox: int = Field(10_000, ge=1,
-                               description="windows kept in memory without a state database")
+    inflight: StrictInt = Field(10, ge=1, le=1000,
+                                description="windows sent, not yet acknowledged, at most")
+    rate: StrictFloat = Field(20.0, gt=0, description="windows a second, at most, when catching up")
+    reconnect_min: StrictFloat = Field(0.5, gt=0,
+                                       description="s to the first retry; doubles to reconnect_max")
+    reconnect_max: StrictFloat = Field(30.0, gt=0,
+                                       description="s, the longest retry delay (+-25 % jitter)")
+    connect_timeout: StrictFloat = Field(
+        5.0, gt=0, description="s, one connection attempt's timeout")
+    close_timeout: StrictFloat = Field(5.0, ge=0,
+                                       description="s at stop to deliver what is pending")
+    memory_outbox: StrictInt = Field(10_000, ge=1,
+                                     description="windows kept in memory without a state database")
     home_assistant: HomeAssistantConfig = Field(default_factory=HomeAssistantConfig)
 
     @field_validator("topic_prefix")

@@ -95,7 +95,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, StrictFloat, StrictInt, field_validator
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import RecorderError
@@ -151,17 +151,18 @@ class RecordingConfig(SinkConfig):
     path: str = "twinwatch.rrd"
     enabled: bool = True
     application_id: str = "twinwatch"
-    rotate_windows: int = Field(1800, ge=0, description="start a new file after this many "
-                                "windows (0: never; Rerun keeps each chunk's footer entry "
-                                "in memory until its file is closed)")
-    keep_files: int = Field(48, ge=0, description="older files of path kept (rotated ones and "
-                            "earlier runs'; 0: all), the oldest deleted when a file rotates")
-    recent_s: float = Field(10.0, gt=0.0, le=86400.0, description="plant time before the "
-                            "cursor shown by the outputs' and residuals' views [s]")
+    rotate_windows: StrictInt = Field(1800, ge=0, description="start a new file after this many "
+                                      "windows (0: never; Rerun keeps each chunk's footer entry "
+                                      "in memory until its file is closed)")
+    keep_files: StrictInt = Field(
+        48, ge=0, description="older files of path kept (rotated ones and "
+        "earlier runs'; 0: all), the oldest deleted when a file rotates")
+    recent_s: StrictFloat = Field(10.0, gt=0.0, le=86400.0, description="plant time before the "
+                                  "cursor shown by the outputs' and residuals' views [s]")
     serve: bool = Field(False, description="also serve the recording live (Rerun gRPC "
                         "server): rerun rerun+http://<serve_bind>:<serve_port>/proxy")
     serve_bind: str = Field("127.0.0.1", description="address the live server listens on")
-    serve_port: int = Field(9876, ge=1, le=65535, description="TCP port of the live server")
+    serve_port: StrictInt = Field(9876, ge=1, le=65535, description="TCP port of the live server")
     server_memory_limit: str = Field("256MiB", description="history the live server keeps "
                                      "for viewers that connect late (oldest dropped first)")
 

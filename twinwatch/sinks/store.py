@@ -59,7 +59,7 @@ from collections.abc import Hashable, Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal, Self
 
-from pydantic import Field
+from pydantic import Field, StrictFloat, StrictInt
 
 from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
@@ -141,8 +141,8 @@ class StateConfig(SinkConfig):
                       description="SQLite file, relative to the working directory")
     synchronous: Literal["FULL", "NORMAL"] = Field(
         "FULL", description="FULL fsyncs every window (power-loss safe), NORMAL does not")
-    keep_days: float = Field(30.0, gt=0, description="delete history older than this [days]")
-    keep_rows: int = Field(1_000_000, ge=1, description="keep at most this many windows")
+    keep_days: StrictFloat = Field(30.0, gt=0, description="delete history older than this [days]")
+    keep_rows: StrictInt = Field(1_000_000, ge=1, description="keep at most this many windows")
     recover_corrupt: bool = Field(False, description="move a corrupt database aside and start "
                                   "a new one instead of refusing to start")
 
@@ -890,6 +890,36 @@ class StateStore(Gate):
         rows = self._read("cannot read the history",
                           lambda conn: conn.execute(sql, args).fetchall())
         return [json.loads(r[0]) for r in rows]
+
+    def timeline(self, machine: str, t_from: float | None = None) -> list[dict[str, Any]]:
+        """The machine's health messages on the time line that ends with its last stored
+        window, oldest first: read back from the last one in the order they were saved, across
+        runs, while each window ends before the one saved after it starts (a run that resumed
+        the twin on a source whose clock goes on, after a restart or a reload, continues the
+        line; where the clock went back, a replay or a simulated plant started over, another
+        line begins and the reading stops) and ends at or after ``t_from`` [s, plant time].
+
+        What a restart resumes the trends from (:meth:`twinwatch.twin.prognostics.
+        Prognostics.replay`): one run's windows alone are not enough when the daemon was
+        restarted more than once (the run before the last may have lasted a few windows).
+        """
+        lower = float(t_from) if t_from is not None and math.isfinite(t_from) else -math.inf
+
+        def read(conn: sqlite3.Connection) -> list[str]:
+            docs: list[str] = []
+            after: float | None = None  # t_start of the window saved after this one
+            cur = conn.execute("SELECT doc, t_start, t_end FROM health WHERE machine = ? "
+                               "ORDER BY id DESC", (machine,))
+            for doc, t_start, t_end in cur:
+                if (after is not None and not t_end < after) or t_end < lower:
+                    break
+                docs.append(doc)
+                after = t_start
+            cur.close()
+            return docs
+
+        docs = self._read("cannot read the history", read)
+        return [json.loads(d) for d in reversed(docs)]
 
     def latest_health(self, machine: str | None = None) -> dict[str, Any] | None:
         """The last health message saved (e.g. to restore the alarm state at start)."""

@@ -71,7 +71,15 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    field_validator,
+    model_validator,
+)
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
@@ -199,9 +207,9 @@ class ZenohConfig(SinkConfig):
     connect: list[str] = Field(default_factory=list)
     key_prefix: str = "twinwatch"
     enabled: bool = True
-    retry_max: float = Field(30.0, gt=0)
-    cache: int = Field(30, ge=0, le=100_000)
-    heartbeat: float = Field(1.0, ge=0)
+    retry_max: StrictFloat = Field(30.0, gt=0)
+    cache: StrictInt = Field(30, ge=0, le=100_000)
+    heartbeat: StrictFloat = Field(1.0, ge=0)
     tls: ZenohTlsConfig | None = None
     auth: ZenohAuthConfig | None = None
     access_control: dict[str, Any] | None = None

@@ -50,7 +50,15 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    field_validator,
+    model_validator,
+)
 
 from twinwatch.twin.discovery.metamodels import TABLE_1, MetaModel, get_meta_model
 from twinwatch.twin.discovery.separable import CandidateInput, SeparableFit
@@ -84,7 +92,7 @@ class CandidateConfig(BaseModel):
     attach: str
     input: str = TIME
     kinds: list[str] = Field(default_factory=lambda: list(TABLE_1))
-    amplitude: float | None = Field(None, gt=0)
+    amplitude: StrictFloat | None = Field(None, gt=0)
 
     @field_validator("kinds")
     @classmethod
@@ -104,13 +112,15 @@ class RefinementConfig(BaseModel):
 
     enabled: bool = Field(True, description="combine every window's evidence on a kept term; "
                           "false: each window's polish replaces the parameters")
-    memory: float = Field(600.0, gt=0, allow_inf_nan=False,
-                          description="time constant of the forgetting of older evidence [s]: "
-                          "a window this much older weighs e times less")
-    jump_threshold: float = Field(25.0, gt=0, allow_inf_nan=False,
-                                  description="a window whose estimate lies further than this "
-                                  "normalised square per parameter from the refined one is "
-                                  "a change: older evidence is discounted at once")
+    memory: StrictFloat = Field(
+        600.0, gt=0, allow_inf_nan=False,
+        description="time constant of the forgetting of older evidence [s]: "
+        "a window this much older weighs e times less")
+    jump_threshold: StrictFloat = Field(
+        25.0, gt=0, allow_inf_nan=False,
+        description="a window whose estimate lies further than this "
+        "normalised square per parameter from the refined one is "
+        "a change: older evidence is discounted at once")
 
 
 class DiscoveryConfig(BaseModel):
@@ -120,26 +130,29 @@ class DiscoveryConfig(BaseModel):
 
     enabled: bool = Field(False, description="run the DT'' step")
     candidates: list[CandidateConfig] = Field(default_factory=list)
-    trigger_windows: int = Field(3, ge=1, description="consecutive windows whose residual is "
-                                 "too large before discovery runs (K)")
-    residual_ratio: float = Field(3.0, gt=1, description="a residual is too large when its "
-                                  "normalised RMSE exceeds this many times the normalised noise "
-                                  "level estimated from the residual")
-    min_nrmse: float = Field(2e-3, ge=0, description="... and its normalised RMSE exceeds this")
-    bic_threshold: float = Field(10.0, ge=0, description="BIC decrease a term must bring")
-    min_improvement: float = Field(0.2, ge=0, lt=1, description="fraction of the residual RMSE "
-                                   "a term must remove")
-    min_significance: float = Field(5.0, ge=0, description="main coefficient over its "
-                                    "standard error")
-    max_terms: int = Field(3, ge=1)
-    drop_after: int = Field(3, ge=1, description="windows in a row a kept term may fail "
-                            "re-validation before it is switched off")
-    retry_after: int = Field(10, ge=1, description="windows to wait after a discovery that "
-                             "kept nothing")
-    time_budget: float = Field(1.5, gt=0, description="wall-time cap of one discovery [s]")
+    trigger_windows: StrictInt = Field(3, ge=1, description="consecutive windows whose residual is "
+                                       "too large before discovery runs (K)")
+    residual_ratio: StrictFloat = Field(
+        3.0, gt=1, description="a residual is too large when its "
+        "normalised RMSE exceeds this many times the normalised noise "
+        "level estimated from the residual")
+    min_nrmse: StrictFloat = Field(
+        2e-3, ge=0, description="... and its normalised RMSE exceeds this")
+    bic_threshold: StrictFloat = Field(10.0, ge=0, description="BIC decrease a term must bring")
+    min_improvement: StrictFloat = Field(
+        0.2, ge=0, lt=1, description="fraction of the residual RMSE "
+        "a term must remove")
+    min_significance: StrictFloat = Field(5.0, ge=0, description="main coefficient over its "
+                                          "standard error")
+    max_terms: StrictInt = Field(3, ge=1)
+    drop_after: StrictInt = Field(3, ge=1, description="windows in a row a kept term may fail "
+                                  "re-validation before it is switched off")
+    retry_after: StrictInt = Field(10, ge=1, description="windows to wait after a discovery that "
+                                   "kept nothing")
+    time_budget: StrictFloat = Field(1.5, gt=0, description="wall-time cap of one discovery [s]")
     refinement: RefinementConfig = Field(default_factory=RefinementConfig)
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(max_generations=30))
-    seed: int = 0
+    seed: StrictInt = 0
 
     @model_validator(mode="after")
     def _check(self) -> DiscoveryConfig:

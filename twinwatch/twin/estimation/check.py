@@ -19,7 +19,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
 
 from twinwatch.twin.estimation.fit import WindowFit, explained_rms, parameter_covariance
 from twinwatch.twin.estimation.problem import FitPoint, WindowProblem
@@ -35,10 +35,10 @@ class ValidationConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(True, description="check every window's residuals")
-    alpha: float = Field(0.01, gt=0, lt=0.5, description="level of the whiteness and "
-                         "residual-input tests")
-    lags: int = Field(20, ge=1, le=1000, description="lags of both tests (samples)")
-    sensor_run: int = Field(
+    alpha: StrictFloat = Field(0.01, gt=0, lt=0.5, description="level of the whiteness and "
+                               "residual-input tests")
+    lags: StrictInt = Field(20, ge=1, le=1000, description="lags of both tests (samples)")
+    sensor_run: StrictInt = Field(
         50, ge=0, le=100_000, description="a measured output that repeats one value exactly "
         "for this many samples while the twin's moves is a frozen or saturated sensor: the "
         "window is not sound, its estimates suspect (0: off)")

@@ -59,7 +59,15 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    field_validator,
+    model_validator,
+)
 
 from twinwatch.twin.estimation.check import ValidationConfig, check_twin, model_check
 from twinwatch.twin.estimation.fit import ParameterMap, WindowFit, relative_std
@@ -123,7 +131,7 @@ class EstimationConfig(BaseModel):
         description="parameter -> parameter it equals (Kt = Ke in SI units); default: the "
         "model's",
     )
-    bounds: dict[str, tuple[float, float]] = Field(
+    bounds: dict[str, tuple[StrictFloat, StrictFloat]] = Field(
         default_factory=dict,
         description="parameter -> [low, high] in SI units; default [nominal/5, nominal*5]",
     )
@@ -133,30 +141,30 @@ class EstimationConfig(BaseModel):
         "swarm only at start, after a rejected local fit, after a sudden change and every "
         "swarm_every windows; swarm: the swarm every window (the paper's method with "
         "[estimation.pso] max_generations = 1000 and polish = false)")
-    swarm_every: int = Field(
+    swarm_every: StrictInt = Field(
         30, ge=0, description="local_first: run the swarm at least every this many windows "
         "as a guard against a local optimum (0: only at start, after a rejected fit or a "
         "sudden change)")
-    local_residual_ratio: float = Field(
+    local_residual_ratio: StrictFloat = Field(
         3.0, gt=1.0, allow_inf_nan=False, description="local_first: a local fit whose "
         "nRMSE exceeds this many times what the window's noise explains (or the last swarm "
         "window's nRMSE, if larger) is rejected and the window estimated with the swarm")
     polish: bool = Field(True, description="least-squares polish after the PSO")
-    time_budget: float = Field(0.5, gt=0, description="PSO time cap per window [s]")
-    max_rel_std: float = Field(
+    time_budget: StrictFloat = Field(0.5, gt=0, description="PSO time cap per window [s]")
+    max_rel_std: StrictFloat = Field(
         0.01, gt=0, description="largest relative standard error of a published estimate"
     )
-    model_error: float = Field(
+    model_error: StrictFloat = Field(
         1e-4, ge=0, description="floor of the normalised residual level used for the "
         "standard errors (model and discretisation error of noise-free data)"
     )
-    trust_rel_std: float = Field(
+    trust_rel_std: StrictFloat = Field(
         0.01, gt=0, description="an estimate becomes the trusted value (held by later windows "
         "that cannot determine it) only if its relative standard error is below this; set it "
         "tighter than max_rel_std when a held value's error would propagate (D = Ke*ia/omega "
         "- c amplifies a Ke error about 5 times)"
     )
-    trust_rmse: float = Field(
+    trust_rmse: StrictFloat = Field(
         0.05, gt=0, description="a window whose normalised RMSE exceeds this does not "
         "update the trusted parameters"
     )
@@ -166,7 +174,7 @@ class EstimationConfig(BaseModel):
         True, description="estimate each window's initial state (offsets to the first "
         "sample's measured outputs) with the parameters: a noisy first sample otherwise leaves "
         "a transient in the residual and biases the estimates")
-    seed: int = 0
+    seed: StrictInt = 0
 
     @field_validator("estimate")
     @classmethod

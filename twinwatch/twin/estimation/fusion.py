@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat
 
 from twinwatch.twin.estimation.polish import Polished
 from twinwatch.twin.estimation.problem import WindowProblem
@@ -53,7 +53,7 @@ class FusionConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(True, description="fuse the windows' estimates (Kalman filter)")
-    max_rel_std: float = Field(
+    max_rel_std: StrictFloat = Field(
         0.02, gt=0, allow_inf_nan=False,
         description="publish the fused value of a parameter this window does not determine "
         "(status fused) when its relative standard error is at most this: the fusion's own "
@@ -61,21 +61,21 @@ class FusionConfig(BaseModel):
     model: Literal["trend", "random_walk"] = Field(
         "trend", description="trend: level and rate of change (follows slow degradations "
         "without lag); random_walk: level only")
-    level_noise: float = Field(
+    level_noise: StrictFloat = Field(
         2e-4, ge=0, allow_inf_nan=False,
         description="random-walk intensity of a parameter's logarithm [1/sqrt(s)]: how fast "
         "it may wander unexplained")
-    rate_noise: float = Field(
+    rate_noise: StrictFloat = Field(
         1e-4, ge=0, allow_inf_nan=False,
         description="trend model: random-walk intensity of the rate of change [1/s^1.5]: how "
         "fast a degradation may speed up")
-    initial_std: float = Field(
+    initial_std: StrictFloat = Field(
         0.5, gt=0, allow_inf_nan=False,
         description="relative standard deviation of the starting value (the nameplate)")
-    initial_rate_std: float = Field(
+    initial_rate_std: StrictFloat = Field(
         1e-3, gt=0, allow_inf_nan=False,
         description="trend model: standard deviation of the starting rate [1/s]")
-    jump_threshold: float = Field(
+    jump_threshold: StrictFloat = Field(
         25.0, gt=0, allow_inf_nan=False,
         description="an innovation whose normalised square per parameter exceeds this is a "
         "sudden change: the prediction is inflated so the filter follows it")

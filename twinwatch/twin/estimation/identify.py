@@ -62,7 +62,15 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    field_validator,
+    model_validator,
+)
 
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
 from twinwatch.twin.estimation.fit import (
@@ -94,10 +102,10 @@ class FixedValue(BaseModel):
     """A stated value of one parameter (``[identify.fixed]``): held there when the recording
     does not determine the parameter."""
 
-    value: float = Field(gt=0, allow_inf_nan=False, description="the value [SI]")
-    rel_std: float = Field(0.0, ge=0, allow_inf_nan=False, description="its relative "
-                           "standard error (1 sigma), propagated to the parameters re-fitted "
-                           "with it held (0: taken as exact)")
+    value: StrictFloat = Field(gt=0, allow_inf_nan=False, description="the value [SI]")
+    rel_std: StrictFloat = Field(0.0, ge=0, allow_inf_nan=False, description="its relative "
+                                 "standard error (1 sigma), propagated to the parameters re-fitted "
+                                 "with it held (0: taken as exact)")
     reason: str = Field("", description="where the value comes from (a nameplate, a "
                         "datasheet, another experiment)")
 
@@ -123,21 +131,22 @@ class IdentifyConfig(BaseModel):
     Ranges are fractions of the recording's samples: ``[0.0, 0.5]`` is its first half.
     """
 
-    train: tuple[float, float] = Field((0.0, 0.5), description="training range, fractions "
-                                       "of the recording [start, end)")
-    validate_: tuple[float, float] = Field(
+    train: tuple[StrictFloat, StrictFloat] = Field(
+        (0.0, 0.5), description="training range, fractions "
+        "of the recording [start, end)")
+    validate_: tuple[StrictFloat, StrictFloat] = Field(
         (0.5, 1.0), alias="validate", description="validation range, fractions of the "
         "recording [start, end); the fit is scored there, never fitted")
-    weights: dict[str, float] = Field(default_factory=dict, description="output -> weight in "
-                                      "the fitness (default 1)")
+    weights: dict[str, StrictFloat] = Field(default_factory=dict, description="output -> weight in "
+                                            "the fitness (default 1)")
     estimate: list[str] | None = Field(
         None, description="parameters to identify, in priority order (default: [estimation] "
         "estimate); a long recording determines more than one window (a warm-up law, the "
         "sensing's hypotheses), which the monitoring then holds at the identified values")
-    bounds: dict[str, tuple[float, float]] = Field(
+    bounds: dict[str, tuple[StrictFloat, StrictFloat]] = Field(
         default_factory=dict, description="parameter -> [low, high] in SI units for the "
         "identification, over [estimation] bounds (a cold start searches wider than a window)")
-    max_rel_std: float = Field(
+    max_rel_std: StrictFloat = Field(
         0.1, gt=0, allow_inf_nan=False, description="a parameter is determined when its "
         "relative standard error (1 sigma) is at most this; the others are held at their "
         "stated values and the rest re-fitted")
@@ -146,20 +155,20 @@ class IdentifyConfig(BaseModel):
         "stated value to hold an identified parameter at when the recording does not "
         "determine it (default: its [machine.parameters] value); the value of a parameter "
         "that is not identified")
-    correlation: float = Field(0.9, gt=0, lt=1, description="|correlation| from which a "
-                               "pair of parameters is reported as strongly correlated")
+    correlation: StrictFloat = Field(0.9, gt=0, lt=1, description="|correlation| from which a "
+                                     "pair of parameters is reported as strongly correlated")
     candidates: list[Candidate] = Field(
         default_factory=list, description="other model structures to identify and compare "
         "with the configured one by validation fit, model check and BIC")
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(pop_size=30,
                                                                  max_generations=100))
-    time_budget: float = Field(120.0, gt=0, allow_inf_nan=False,
-                               description="wall-time cap of the global searches [s], shared "
-                               "by the starts (per structure)")
-    starts: int = Field(1, ge=1, le=100, description="independent global searches, each "
-                        "polished by least squares; the best training fit is kept (a long "
-                        "free-run problem has local optima a single swarm may settle in)")
-    seed: int = 0
+    time_budget: StrictFloat = Field(120.0, gt=0, allow_inf_nan=False,
+                                     description="wall-time cap of the global searches [s], shared "
+                                     "by the starts (per structure)")
+    starts: StrictInt = Field(1, ge=1, le=100, description="independent global searches, each "
+                              "polished by least squares; the best training fit is kept (a long "
+                              "free-run problem has local optima a single swarm may settle in)")
+    seed: StrictInt = 0
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
 
 from twinwatch.twin.estimation.fit import pso_minimize
 from twinwatch.twin.estimation.problem import WindowProblem
@@ -24,11 +24,11 @@ class PSOSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    pop_size: int = Field(15, ge=2, description="swarm size")
-    max_generations: int = Field(20, ge=1, description="iteration limit")
-    w: float = Field(0.9, description="inertia weight")
-    c1: float = Field(2.0, description="cognitive parameter")
-    c2: float = Field(2.0, description="social parameter")
+    pop_size: StrictInt = Field(15, ge=2, description="swarm size")
+    max_generations: StrictInt = Field(20, ge=1, description="iteration limit")
+    w: StrictFloat = Field(0.9, description="inertia weight")
+    c1: StrictFloat = Field(2.0, description="cognitive parameter")
+    c2: StrictFloat = Field(2.0, description="social parameter")
     adaptive: bool = Field(False, description="pymoo's adaptive w/c1/c2 (off: the paper's)")
 
 

@@ -10,6 +10,9 @@ controller runs) and this room; never the estimation, the discovery or anything 
 
 from __future__ import annotations
 
+import dataclasses
+import types
+import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -51,8 +54,39 @@ def create_model(name: str, options: dict[str, Any] | None = None) -> TwinModel:
             message names the option).
     """
     cls = get_model_class(name)
+    bad = _booleans_for_numbers(cls, options or {})
+    if bad:
+        raise ValueError(f"bad option for model {name!r}: " + "; ".join(
+            f"{key} = {value!r}: a boolean is not a number" for key, value in bad))
     try:
         return cls(**(options or {}))
     except TypeError as exc:
         raise ValueError(f"bad option for model {name!r}: {exc}") from exc
 
+
+
+def _number_types(annotation: Any) -> set[type]:
+    """The plain types an option's annotation admits (unions and ``Annotated`` unwrapped)."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _number_types(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        return {t for a in typing.get_args(annotation) for t in _number_types(a)}
+    return {annotation} if isinstance(annotation, type) else set()
+
+
+def _booleans_for_numbers(cls: type, options: Mapping[str, Any]) -> list[tuple[str, Any]]:
+    """Options given ``true``/``false`` where the model's dataclass field takes a number (``int``
+    or ``float``, not ``bool``): Python would take them as 1 and 0 (issue 26 item 3)."""
+    if not dataclasses.is_dataclass(cls):
+        return []
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception:  # noqa: BLE001 - an unresolvable annotation: nothing to check against
+        return []
+    bad = []
+    for key, value in options.items():
+        admitted = _number_types(hints.get(key))
+        if isinstance(value, bool) and bool not in admitted and admitted & {int, float}:
+            bad.append((key, value))
+    return bad

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 __all__ = ["AdaptiveWindowConfig", "PrognosticsConfig", "Thresholds"]
 
@@ -18,34 +18,35 @@ class PrognosticsConfig(BaseModel):
 
     enabled: bool = Field(True, description="fit a trend to every estimated parameter and "
                           "predict when it crosses its alarm rule's thresholds")
-    horizon: float = Field(3600.0, gt=0, description="s of evidence a trend is fitted to (the "
-                           "latest; a restart begins a new one)")
-    min_evidence: int = Field(10, ge=4, le=10_000, description="evidence windows since the "
-                              "start or a restart before a trend is fitted")
-    max_points: int = Field(120, ge=20, le=10_000, description="evidence is binned to at "
-                            "most this many points for the fit (cost; a slow trend loses "
-                            "nothing)")
+    horizon: StrictFloat = Field(
+        3600.0, gt=0, description="s of evidence a trend is fitted to (the "
+        "latest; a restart begins a new one)")
+    min_evidence: StrictInt = Field(10, ge=4, le=10_000, description="evidence windows since the "
+                                    "start or a restart before a trend is fitted")
+    max_points: StrictInt = Field(120, ge=20, le=10_000, description="evidence is binned to at "
+                                  "most this many points for the fit (cost; a slow trend loses "
+                                  "nothing)")
     onset: bool = Field(True, description="the degrading models may start at an onset (flat "
                         "before it)")
 
-    interval: float = Field(0.95, gt=0.5, lt=1.0, description="central probability of the "
-                            "published RUL interval")
-    draws: int = Field(2000, ge=100, le=100_000, description="Monte Carlo draws of the RUL")
-    step_threshold: float = Field(5.0, gt=1.0, description="a window this many standard "
-                                  "errors off the trend may be a step (a repair, a part "
-                                  "replaced)")
-    step_confirm: int = Field(2, ge=1, le=20, description="consecutive such windows on one "
-                              "side before the trend restarts (one, when the fusion saw the "
-                              "jump too)")
-    flat_z: float = Field(2.0, gt=0, description="a drift rate within this many standard "
-                          "errors of zero is flat: not degrading")
-    detection: float = Field(0.9, gt=0.5, lt=1.0, description="degrading only when the "
-                             "evidence favours a degrading model over none with at least "
-                             "this probability (BIC weights)")
-    max_rel_std: float = Field(0.5, gt=0, description="evidence with a larger relative "
-                               "standard error is not worth a point")
-    seed: int = Field(0, description="seed of the Monte Carlo draws (the same evidence gives "
-                      "the same RUL)")
+    interval: StrictFloat = Field(0.95, gt=0.5, lt=1.0, description="central probability of the "
+                                  "published RUL interval")
+    draws: StrictInt = Field(2000, ge=100, le=100_000, description="Monte Carlo draws of the RUL")
+    step_threshold: StrictFloat = Field(5.0, gt=1.0, description="a window this many standard "
+                                        "errors off the trend may be a step (a repair, a part "
+                                        "replaced)")
+    step_confirm: StrictInt = Field(2, ge=1, le=20, description="consecutive such windows on one "
+                                    "side before the trend restarts (one, when the fusion saw the "
+                                    "jump too)")
+    flat_z: StrictFloat = Field(2.0, gt=0, description="a drift rate within this many standard "
+                                "errors of zero is flat: not degrading")
+    detection: StrictFloat = Field(0.9, gt=0.5, lt=1.0, description="degrading only when the "
+                                   "evidence favours a degrading model over none with at least "
+                                   "this probability (BIC weights)")
+    max_rel_std: StrictFloat = Field(0.5, gt=0, description="evidence with a larger relative "
+                                     "standard error is not worth a point")
+    seed: StrictInt = Field(0, description="seed of the Monte Carlo draws (the same evidence gives "
+                            "the same RUL)")
 
 
 class AdaptiveWindowConfig(BaseModel):
@@ -63,18 +64,19 @@ class AdaptiveWindowConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     enabled: bool = Field(False, description="let the window follow the change")
-    min_window: int = Field(100, ge=10, description="shortest window [samples]")
-    max_window: int = Field(800, ge=10, description="longest window [samples]")
-    drift_ratio: float = Field(1.4, gt=0, description="the drift within a window, in its "
-                               "standard errors, the window's length aims at (1.4 = sqrt(2): "
-                               "the error of the value now, noise and the lag of half the "
-                               "drift, is smallest there)")
-    residual_ratio: float = Field(3.0, gt=1, description="shorten when the window's residual "
-                                  "exceeds this many times its white-noise level")
-    quiet_windows: int = Field(3, ge=1, description="quiet windows in a row before the window "
-                               "lengthens")
-    shrink: float = Field(0.5, gt=0, lt=1, description="factor a window shortens by")
-    grow: float = Field(1.5, gt=1, description="factor a window lengthens by")
+    min_window: StrictInt = Field(100, ge=10, description="shortest window [samples]")
+    max_window: StrictInt = Field(800, ge=10, description="longest window [samples]")
+    drift_ratio: StrictFloat = Field(1.4, gt=0, description="the drift within a window, in its "
+                                     "standard errors, the window's length aims at (1.4 = sqrt(2): "
+                                     "the error of the value now, noise and the lag of half the "
+                                     "drift, is smallest there)")
+    residual_ratio: StrictFloat = Field(3.0, gt=1, description="shorten when the window's residual "
+                                        "exceeds this many times its white-noise level")
+    quiet_windows: StrictInt = Field(
+        3, ge=1, description="quiet windows in a row before the window "
+        "lengthens")
+    shrink: StrictFloat = Field(0.5, gt=0, lt=1, description="factor a window shortens by")
+    grow: StrictFloat = Field(1.5, gt=1, description="factor a window lengthens by")
 
     @model_validator(mode="after")
     def _bounds(self) -> AdaptiveWindowConfig:

@@ -180,10 +180,12 @@ class Prognostics:
         return out
 
     def replay(self, messages: Sequence[Mapping[str, Any]]) -> int:
-        """Rebuild the trends from stored health messages (oldest first, e.g. the state
-        database's history at a restart): the evidence each window published
-        (``parameters.<name>.trend.window_evidence``) since the start of the segment the
-        latest message names (``trend.since_t``: a restart before it is not replayed again).
+        """Rebuild the trends from stored health messages (oldest first, on one time line:
+        the state database's :meth:`~twinwatch.sinks.store.StateStore.timeline` at a restart):
+        the evidence each window published (``parameters.<name>.trend.window_evidence``)
+        since the start of the segment the latest message names (``trend.since_t``: a restart
+        before it is not replayed again), and the restarts it reports (``restarts``,
+        ``restart``), so a restart of the daemon changes neither the trend nor the RUL.
 
         Returns:
             The evidence windows replayed.
@@ -193,13 +195,20 @@ class Prognostics:
         for name, trend in self.trends.items():
             latest = ((last.get("parameters") or {}).get(name) or {}).get("trend") or {}
             since = latest.get("since_t")
+            restart = latest.get("restart")
+            if restart and restart.get("t") is not None and not trend.restarts:
+                # the count and the last one: what the health message reports of them
+                trend.restarts = [Restart(float(restart["t"]), _number(restart.get("step")),
+                                          str(restart.get("reason") or ""))
+                                  ] * max(int(latest.get("restarts") or 1), 1)
             if since is None:
                 continue
             for msg in messages:
                 ev = (((msg.get("parameters") or {}).get(name) or {}).get("trend")
                       or {}).get("window_evidence")
                 if not ev or ev.get("value") is None or not ev.get("std") \
-                        or float(ev["t"]) < float(since):
+                        or float(ev["t"]) < float(since) \
+                        or (trend.t and float(ev["t"]) <= trend.t[-1]):
                     continue
                 trend._append(Evidence(float(ev["t"]), float(ev["value"]), float(ev["std"]),
                                        str(ev.get("source") or "estimated")))
@@ -254,3 +263,8 @@ class Prognostics:
                                       pace=self._pace.value(), mixture=mixture)
                 setattr(rul, level, cr)
         return Prognosis(report, rul)
+
+
+def _number(value: Any) -> float:
+    """A stored number (``null`` for a non-finite one: NaN)."""
+    return math.nan if value is None else float(value)

@@ -1,0 +1,192 @@
+"""Prognostics across restarts of the daemon (issue 26 item 5).
+
+A machine degrading (the simulated DC motor's resistance law, recorded to a CSV whose clock
+goes on) is monitored by ``twinwatch run`` without a stop, and again by ``twinwatch run`` stopped
+and started twice (the file's rows cut where the daemon stopped: the source's clock goes on,
+``--resume``), the second restart five windows after the first, as the issue's case. After each
+restart the trend (its evidence, whether it degrades), the RUL and the RUL alarm level must be
+those of the uninterrupted run. Before: the trends were rebuilt from the last run's windows only,
+so the second restart resumed 5 evidence windows where the uninterrupted run had 98, said "not
+degrading" with no RUL for the next windows.
+"""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from .sources_support import FILE_DRIVER, plant_csv
+from .test_fault_injection import cli, with_driver
+from .test_service import db_rows
+
+SECONDS = 260.0
+RESTARTS = (200.0, 210.0)  # plant seconds at which the daemon is stopped and started again
+PLANT = {"scenario": "resistance_degradation", "fault_start": 0.0,
+         "noise": {"ia": 0.5, "omega": 0.5}}
+# the example's Ra rule with thresholds this short run reaches: RUL warning and alarm levels
+RULE = {"warning = 5.0 ": "warning = 1.5 ", "alarm = 10.0 ": "alarm = 2.5 ",
+        "rul_alarm = 180.0 ": "rul_alarm = 290.0 "}
+
+
+def _driver(path: Path, start: int | None = None, stop: int | None = None) -> str:
+    rows = "".join(f"{k} = {v}\n" for k, v in (("start", start), ("stop", stop)) if v is not None)
+    return FILE_DRIVER.format(path=path).replace("sample_period = 0.01\n",
+                                                 "sample_period = 0.01\n" + rows)
+
+
+def _run(d: Path, driver: str, *args: str) -> Any:
+    r = cli("run", str(with_driver(d, driver, **RULE)), "--no-progress", *args)
+    assert r.exit_code == 0, r.output
+    return r
+
+
+def _by_window(d: Path) -> dict[int, dict[str, Any]]:
+    out = {}
+    for h in db_rows(d / "state.sqlite"):
+        ra = h["parameters"]["Ra"]
+        trend, rul = ra["trend"] or {}, ra["rul"] or {}
+        out[round(h["t_end"])] = {
+            "evidence": trend.get("evidence"), "degrading": trend.get("degrading"),
+            "model": trend.get("model"), "rul_status": rul.get("status"),
+            "rul_s": (rul.get("alarm") or {}).get("rul_s"),
+            "rul_level": ((h["alarms"].get("Ra") or {}).get("rul") or {}).get("level"),
+            "level": (h["alarms"].get("Ra") or {}).get("level"), "run": h["run"]}
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
+    tmp = tmp_path_factory.mktemp("resume")
+    data = plant_csv(tmp / "plant.csv", SECONDS, plant=PLANT)
+    whole, parts = tmp / "uninterrupted", tmp / "restarted"
+    whole.mkdir()
+    parts.mkdir()
+    _run(whole, _driver(data))
+    cuts = [0, *(int(round(t / 0.01)) for t in RESTARTS), None]
+    for i, (start, stop) in enumerate(zip(cuts, cuts[1:], strict=False)):
+        r = _run(parts, _driver(data, start or None, stop), *(("--resume",) if i else ()))
+        if i:
+            assert "resumed from" in r.output, r.output
+    return _by_window(whole), _by_window(parts)
+
+
+@pytest.mark.slow
+def test_restarts_change_neither_the_trend_nor_the_rul_nor_its_alarm(runs) -> None:
+    whole, restarted = runs
+    assert len({w["run"] for w in restarted.values()}) == 3  # stopped and started twice
+    after = [t for t in sorted(restarted) if t > RESTARTS[0]]
+    assert len(after) == (SECONDS - RESTARTS[0]) / 2
+    # the uninterrupted run degrades, predicts and raises the RUL levels in these windows
+    assert all(whole[t]["degrading"] and whole[t]["rul_s"] for t in after)
+    assert {whole[t]["rul_level"] for t in after} >= {"warning", "alarm"}
+    for t in after:
+        a, b = whole[t], restarted[t]
+        assert b["evidence"] == a["evidence"], (t, a, b)
+        assert (b["degrading"], b["model"], b["rul_status"], b["rul_level"], b["level"]) == (
+            a["degrading"], a["model"], a["rul_status"], a["rul_level"], a["level"]), (t, a, b)
+        assert math.isclose(b["rul_s"], a["rul_s"], rel_tol=0.02), (t, a, b)
+
+
+def test_the_time_line_spans_resumed_runs_and_stops_where_the_clock_went_back(tmp_path):
+    """The state store's :meth:`timeline`: the windows of the line that ends with the last one,
+    across runs, not those of a run whose clock started over (a replay from its start)."""
+    from twinwatch.sinks.store import StateStore
+
+    db = tmp_path / "state.sqlite"
+    store = StateStore(db)
+    try:
+        store.history()  # creates the tables
+        con = sqlite3.connect(db)
+        rows = [("old", t) for t in range(0, 20, 2)]  # a replay: 0 .. 18 s
+        rows += [("a", t) for t in range(0, 10, 2)]  # a new run from 0 (its clock went back)
+        rows += [("b", t) for t in range(10, 14, 2)]  # resumed: the clock goes on
+        rows += [("c", t) for t in range(14, 24, 2)]  # resumed again
+        for run, t in rows:
+            doc = f'{{"run": "{run}", "t_start": {t}, "t_end": {t + 1.99}}}'
+            con.execute("INSERT INTO health (machine, run, window, t_start, t_end, wall, doc) "
+                        "VALUES ('m', ?, 0, ?, ?, 0, ?)", (run, t, t + 1.99, doc))
+        con.execute("INSERT INTO health (machine, run, window, t_start, t_end, wall, doc) "
+                    "VALUES ('other', 'x', 0, 30, 31.99, 0, '{}')")
+        con.commit()
+        con.close()
+        line = store.timeline("m")
+        assert [(m["run"], m["t_start"]) for m in line] == rows[10:]
+        assert [m["t_start"] for m in store.timeline("m", t_from=11.0)] == [10, 12, 14, 16, 18,
+                                                                           20, 22]
+    finally:
+        store.close()
+
+
+@pytest.mark.slow
+def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path) -> None:
+    """As the unit runs it: ``twinwatch run`` in a subprocess, stopped by SIGTERM once it has
+    stored about 95 windows (190 s), started again (``--resume``, the source going on from the
+    row after the last stored window), stopped again 5 windows later, started again to the
+    end: every window after the first stop is the uninterrupted run's."""
+    import signal
+
+    from .test_service import _run as popen
+    from .test_service import wait_for
+
+    whole, _ = runs
+    data = plant_csv(tmp_path / "plant.csv", SECONDS, plant=PLANT)
+    db = tmp_path / "state.sqlite"
+    start: int | None = None
+    stops = []
+    for i, stop_after in enumerate((95, 5, None)):
+        cfg = with_driver(tmp_path, _driver(data, start), **RULE)
+        before = len(db_rows(db))
+        proc = popen(cfg, tmp_path, *(("--resume",) if i else ()))
+        try:
+            if stop_after is not None:
+                wait_for(lambda n=before + stop_after: len(db_rows(db)) >= n, 120,
+                         f"{stop_after} windows stored")
+                proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert proc.returncode == 0, err
+        if i:
+            assert "resumed the parameters' trends from" in err, err
+        last = db_rows(db)[-1]
+        stops.append(last["t_end"])
+        start = int(round(last["t_end"] / 0.01)) + 1  # the source goes on after it
+    restarted = _by_window(tmp_path)
+    assert len({w["run"] for w in restarted.values()}) == 3
+    after = [t for t in sorted(restarted) if t > stops[0]]
+    assert after and after[-1] == round(SECONDS)
+    print(f"\nstopped at {stops[0]:.2f} s and {stops[1]:.2f} s; {len(after)} windows after")
+    for t in after:
+        a, b = whole[t], restarted[t]
+        assert b["evidence"] == a["evidence"], (t, a, b)
+        assert (b["degrading"], b["model"], b["rul_status"], b["rul_level"], b["level"]) == (
+            a["degrading"], a["model"], a["rul_status"], a["rul_level"], a["level"]), (t, a, b)
+        assert math.isclose(b["rul_s"], a["rul_s"], rel_tol=0.02), (t, a, b)
+
+
+def test_replay_carries_the_evidence_since_the_segment_and_its_restarts_over() -> None:
+    """:meth:`Prognostics.replay` on stored messages: the evidence since the latest message's
+    segment start (``since_t``), and its restarts (count and the last one), as reported."""
+    from twinwatch.twin.prognostics import Prognostics
+
+    def msg(t: float, value: float, since: float) -> dict[str, Any]:
+        return {"t_end": t, "parameters": {"Ra": {"trend": {
+            "since_t": since, "restarts": 2,
+            "restart": {"t": since, "step": 0.25, "reason": "step of +9.0 standard errors"},
+            "window_evidence": {"t": t, "value": value, "std": 0.001, "source": "estimated"}}}}}
+
+    before = [msg(2.0 * k, 6.0, 0.0) for k in range(10)]  # another segment: not replayed
+    segment = [msg(20.0 + 2.0 * k, 6.25 - 1e-4 * k, 20.0) for k in range(15)]
+    prog = Prognostics(["Ra"], {"Ra": 6.5})
+    assert prog.replay(before + segment) == 15
+    trend = prog.trends["Ra"]
+    assert trend.evidence == 15 and trend.since_t == 20.0 and trend.fit is not None
+    assert len(trend.restarts) == 2 and trend.restarts[-1].step == 0.25
+    out = prog.update({}, t_end=50.0)["Ra"].trend
+    assert (out.evidence, out.restarts, out.restart.t) == (15, 2, 20.0)
