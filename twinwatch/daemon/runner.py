@@ -59,7 +59,7 @@ from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
     from twinwatch.config.schema import OutputTable, TwinwatchConfig
-    from twinwatch.daemon.gateway import EstimationSlots
+    from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.systemd import Watchdog
 
 logger = logging.getLogger(__name__)
