@@ -117,11 +117,17 @@ def _ignore_late_stops() -> None:
               help="Resume the last run's twin and alarm levels also when the source's time "
               "starts over (a simulated plant, a replayed recording), which otherwise starts "
               "a new run from the nameplate values.")
-@click.option("--workers", type=click.IntRange(min=0), default=None,
-              help="Gateway mode (CONFIG a directory): windows estimated at once across the "
-              "machines (default: the cores; 0: no limit).")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Gateway mode (CONFIG a directory): worker processes the machines are "
+              "spread over (default: one per core; 1: every machine in this process).")
+@click.option("--assignment", type=click.Path(path_type=Path), default=None, hidden=True,
+              help="A worker process: the file naming the machine files it runs.")
+@click.option("--slots", type=click.IntRange(min=0), default=None, hidden=True,
+              help="Windows estimated at once in this process (default: the cores; 0: no "
+              "limit).")
 def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
-        fresh: bool, resume: bool, workers: int | None) -> None:
+        fresh: bool, resume: bool, workers: int | None, assignment: Path | None,
+        slots: int | None) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
 
@@ -168,22 +174,48 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         def check(cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
             check_runnable(cfg, str(path), base_dir=path.resolve().parent, cwd=work_dir)
 
+        from twinwatch.daemon.slots import default_workers
+
+        n = workers if workers is not None else default_workers()
+        if assignment is None and n > 1 and len(_machine_files(config)) > 1:
+            from twinwatch.daemon.workers import ProcessHost, place
+
+            groups = sum(1 for ps in place(_machine_files(config), [], n) if ps)
+            host = ProcessHost(config, workers=max(1, min(n, groups)), resume=resume_mode,
+                               duration=duration, log_level=log_level, slots=slots)
+            if host.n > 1:
+                _setup_logging(log_level, threads=True)
+                _umask_0027()
+                _run_host(host, duration=duration, no_progress=True)
+                return
+            host.close()
         host = Host(config, read=load_config, check=check, resume=resume_mode,
-                    duration=duration, workers=workers, stuck_after=30.0, quiet_after=30.0)
+                    duration=duration, workers=slots, stuck_after=30.0, quiet_after=30.0,
+                    assignment=assignment)
     else:
         base_dir = config.resolve().parent if config else Path.cwd()
 
         def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
             return _load_runnable(config, base_dir)
 
-        host = Host(config, load=load, resume=resume_mode, duration=duration, workers=workers)
+        host = Host(config, load=load, resume=resume_mode, duration=duration, workers=slots)
     _setup_logging(log_level, threads=fleet)
-    # Files the daemon creates (state database, recordings, layout) are 0640 and directories
-    # 0750, as under the unit's UMask=0027, also when run by hand; a stricter umask is kept.
+    _umask_0027()
+    _run_host(host, duration=duration, no_progress=no_progress)
+
+
+def _machine_files(directory: Path) -> list[Path]:
+    from twinwatch.daemon.host import MACHINE_GLOB
+
+    return sorted(p for p in directory.glob(MACHINE_GLOB) if p.is_file())
+
+
+def _umask_0027() -> None:
+    """Files the daemon creates (state database, recordings, layout) are 0640 and directories
+    0750, as under the unit's UMask=0027, also when run by hand; a stricter umask is kept."""
     old_umask = os.umask(0o027)
     os.umask(old_umask | 0o027)
     click.get_current_context().call_on_close(lambda: os.umask(old_umask))
-    _run_host(host, duration=duration, no_progress=no_progress)
 
 
 def _run_host(host: Any, *, duration: float | None, no_progress: bool) -> None:
@@ -237,6 +269,15 @@ def _run_host(host: Any, *, duration: float | None, no_progress: bool) -> None:
         if bar is not None:
             bar.close()
     code = host.exit_status()
+    if hasattr(host, "summary"):  # worker processes: their summaries and the total
+        blocks, total = host.summary()
+        for line in blocks:
+            click.echo(line)
+        click.echo(total)
+        if code:
+            host.notifier.status(f"stopped: exit status {code}")
+            sys.exit(code)
+        return
     if not host.fleet:
         m = host.only
         daemon = m.supervisor.daemon

@@ -297,6 +297,8 @@ class Host:
             30 s outside systemd's watchdog.
         quiet_after: seconds without a finished window before a machine counts as quiet;
             None: as ``stuck_after``.
+        assignment: a worker process's (:mod:`twinwatch.daemon.workers`): a file naming the
+            directory's machine files it runs, one a line (re-read at each SIGHUP).
         start_timeout: seconds :meth:`start` waits for the machines to open before READY
             (None: a fleet of one waits for its machine, a fleet 60 s: a machine whose
             source never answers is named ``starting`` in STATUS).
@@ -316,8 +318,9 @@ class Host:
                  duration: float | None = None, workers: int | None = None,
                  stuck_after: float | None = None, quiet_after: float | None = None,
                  start_timeout: float | None = None,
-                 notifier: Notifier | None = None) -> None:
+                 notifier: Notifier | None = None, assignment: Path | None = None) -> None:
         self.target = target
+        self.assignment = assignment
         self.fleet = target is not None and target.is_dir()
         if not self.fleet and load is None:
             raise ValueError("a fleet of one needs its loader")
@@ -363,7 +366,14 @@ class Host:
         if not self.fleet:
             return [self.target] if self.target is not None else []
         assert self.directory is not None
-        return sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
+        files = sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
+        if self.assignment is not None:  # a worker process: the files its host gave it
+            try:
+                names = set(self.assignment.read_text(encoding="utf-8").split("\n"))
+            except OSError:
+                names = set()
+            files = [p for p in files if p.name in names]
+        return files
 
     def claim(self, name: str, machine: Machine) -> None:
         """Reserve ``[machine] name`` for ``machine``.
