@@ -77,10 +77,14 @@ def _load_runnable(config: Path | None, base_dir: Path,
     Raises:
         ConfigError: naming each bad key, missing file or directory, unmapped channel.
     """
-    from twinwatch.config.loader import default_config, load_config
+    from twinwatch.config.loader import ConfigError, default_config, load_config
     from twinwatch.config.preflight import check_runnable
 
-    cfg = load_config(config) if config else default_config()
+    try:
+        cfg = load_config(config) if config else default_config()
+    except UnicodeDecodeError as exc:  # a file in another encoding, or not text at all
+        raise ConfigError(f"{config}: not UTF-8 text (byte {exc.start}: {exc.reason}): a "
+                          "configuration is a TOML file in UTF-8") from None
     check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir,
                    cwd=cwd)
     return cfg
@@ -615,6 +619,10 @@ def check_config(config: Path) -> None:
         ok, line = _check_one(path, names=names)
         click.echo(line, err=not ok)
         failed += not ok
+    from twinwatch.daemon.host import skipped
+
+    for entry, why in skipped(config).items():
+        click.echo(f"{config / entry}: skipped: {why}")
     click.echo(f"{config}: {len(files) - failed} of {len(files)} machine configurations OK")
     if failed:
         sys.exit(1)

@@ -42,6 +42,7 @@ from __future__ import annotations
 import faulthandler
 import hashlib
 import logging
+import os
 import signal
 import threading
 import time
@@ -172,8 +173,12 @@ class Machine:
             self.name = cfg.machine.name
             return cfg
         assert self.path is not None
-        cfg = self.host.read(self.path)
-        name = cfg.machine.name
+        try:
+            cfg = self.host.read(self.path)
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{self.path}: not UTF-8 text (byte {exc.start}: {exc.reason}): "
+                              "a configuration is a TOML file in UTF-8") from None
+        name = self.name = cfg.machine.name
         self.host.claim(name, self)
         work_dir = self.host.work_root / name
         work_dir.mkdir(mode=0o750, exist_ok=True)
@@ -349,6 +354,8 @@ class Host:
         self.machines: dict[Path | None, Machine] = {}
         self.retired: list[Machine] = []
         self._names: dict[str, Machine] = {}
+        self._owners: dict[str, Path] = {}  # machine name -> the first file naming it
+        self._skipped: dict[str, str] = {}
         self._names_lock = threading.Lock()
         self._status_lock = threading.Lock()
         self._stop = threading.Event()
@@ -367,6 +374,7 @@ class Host:
             return [self.target] if self.target is not None else []
         assert self.directory is not None
         files = sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
+        self._skipped = skipped(self.directory)
         if self.assignment is not None:  # a worker process: the files its host gave it
             try:
                 names = set(self.assignment.read_text(encoding="utf-8").split("\n"))
@@ -375,19 +383,51 @@ class Host:
             files = [p for p in files if p.name in names]
         return files
 
+    def _scan(self) -> list[Path]:
+        """The machine files, the first file naming each machine (read with ``tomllib``, so
+        two files naming one machine resolve by file name, not by which opens first), and the
+        directory's other entries named as skipped (logged once per start and reload)."""
+        files = self.files()
+        owners: dict[str, Path] = {}
+        for p in files:
+            name = _machine_name(p)
+            if name is not None:
+                owners.setdefault(name, p)
+        self._owners = owners
+        for entry, why in self._skipped.items():
+            logger.warning("%s: skipped: %s", entry, why)
+        return files
+
     def claim(self, name: str, machine: Machine) -> None:
         """Reserve ``[machine] name`` for ``machine``.
 
         Raises:
             ConfigError: another file of the fleet monitors a machine of that name.
         """
-        with self._names_lock:
-            other = self._names.get(name)
-            if other is not None and other is not machine and other.thread.is_alive():
+        first = self._owners.get(name)
+        if first is not None and machine.path is not None and first != machine.path:
+            # two files name one machine: the first by file name runs, whatever starts first
+            raise ConfigError(f"{machine.path}: machine.name {name!r} is already monitored "
+                              f"by {first.name} in this gateway (the first file by name "
+                              "runs): each machine needs a name of its own")
+        deadline = time.monotonic() + 60.0
+        while True:
+            with self._names_lock:
+                other = self._names.get(name)
+                if (other is None or other is machine or not other.thread.is_alive()):
+                    self._names[name] = machine
+                    return
+                current = other.path in self.machines and self.machines[other.path] is other
+            if current:
                 raise ConfigError(f"{machine.path}: machine.name {name!r} is already monitored "
                                   f"by {other.file} in this gateway: each machine needs "
                                   f"a name of its own")
-            self._names[name] = machine
+            # a file renamed: its old file's machine is stopping (it holds the state
+            # database's lock until it has finished its queued windows): wait for it
+            if time.monotonic() > deadline:
+                raise ConfigError(f"{machine.path}: machine.name {name!r}: the machine of "
+                                  f"{other.file} (removed) did not stop within 60 s")
+            other.thread.join(0.2)
 
     def check(self, cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
         if self._check is not None:
@@ -409,7 +449,7 @@ class Host:
             faulthandler.enable()
         except (AttributeError, ValueError, OSError):
             logger.debug("faulthandler not enabled: stderr has no file descriptor")
-        files = self.files()
+        files = self._scan() if self.fleet else self.files()
         if self.fleet and not files:
             raise ConfigError(f"{self.directory}: no machine configuration ({MACHINE_GLOB}) "
                               "in this directory")
@@ -528,7 +568,7 @@ class Host:
                 m.supervisor.reload()
             return
         self.notifier.reloading("re-reading the machine directory")
-        files = set(self.files())
+        files = set(self._scan())
         for path in list(self.machines):
             if path not in files:
                 m = self.machines.pop(path)
@@ -617,7 +657,7 @@ class Host:
             self._previous_handlers[signum] = signal.signal(signum, handler)
 
     def _restore_signal_handlers(self) -> None:
-        if self._stop_signals and threading.current_thread() is threading.main_thread():
+        if threading.current_thread() is not threading.main_thread() or self._stop_signals:
             # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
             # handler, not the default action (exit -15 after a clean stop)
             return
@@ -644,6 +684,37 @@ class Host:
                 m.supervisor.reload()
             return
         self._reload.set()
+
+
+def _machine_name(path: Path) -> str | None:
+    """``[machine] name`` of a configuration file, or None (unreadable: its machine is lost
+    with the loader's error)."""
+    import tomllib
+
+    try:
+        name = tomllib.loads(path.read_text(encoding="utf-8")).get("machine", {}).get("name")
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, AttributeError):
+        return None
+    return name if isinstance(name, str) else None
+
+
+def skipped(directory: Path) -> dict[str, str]:
+    """The entries of a machine directory that are not run, each with why: a link to nothing,
+    a ``*.toml`` that is not a file, any other name (an editor's backup, a ``.disabled`` file):
+    every entry is run, lost or named here."""
+    out: dict[str, str] = {}
+    try:
+        entries = sorted(directory.iterdir())
+    except OSError:
+        return out
+    for p in entries:
+        if p.is_symlink() and not p.exists():
+            out[p.name] = f"a link to {os.readlink(p)!s}, which does not exist"
+        elif p.match(MACHINE_GLOB) and not p.is_file():
+            out[p.name] = "not a regular file"
+        elif not p.match(MACHINE_GLOB):
+            out[p.name] = f"not a machine configuration (only {MACHINE_GLOB} files are run)"
+    return out
 
 
 def _digest(path: Path) -> str:

@@ -70,17 +70,28 @@ _STATUS = re.compile(r"^gateway: (\d+) of (\d+) machines monitored \([^)]*\)(?:;
 _TOTAL = re.compile(r"^twinwatch gateway: (\d+) machines, (\d+) ran, (\d+) lost(?:: (.*))?$")
 
 
+_GROUPS: dict[Path, str] = {}
+"""The last group read for each file (a file renamed away keeps its group for placement)."""
+
+
 def session_group(path: Path) -> str:
     """What ties a machine file to others: its ``[zenoh]`` table when Zenoh is on (machines
-    configured alike share one session and its port, so one process); else the file itself."""
+    configured alike share one session and its port, so one process), else its machine's name
+    (two files naming one machine, a file renamed: one process decides which runs); the file
+    itself when it cannot be read."""
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        return f"file:{path.name}"
+        return _GROUPS.get(path, f"file:{path.name}")
     zenoh = data.get("zenoh", {})
+    machine = data.get("machine", {})
+    name = machine.get("name") if isinstance(machine, dict) else None
     if not isinstance(zenoh, dict) or zenoh.get("enabled", True) is False:
-        return f"file:{path.name}"
-    return "zenoh:" + json.dumps(zenoh, sort_keys=True, default=str)
+        group = f"name:{name}" if isinstance(name, str) else f"file:{path.name}"
+    else:
+        group = "zenoh:" + json.dumps(zenoh, sort_keys=True, default=str)
+    _GROUPS[path] = group
+    return group
 
 
 def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> list[list[Path]]:
@@ -93,12 +104,12 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
         n: workers (>= 1).
     """
     present = set(files)
+    where: dict[str, int] = {}
+    for k in range(min(n, len(current))):
+        for p in current[k]:  # removed files too: a renamed file follows its machine
+            where.setdefault(session_group(p), k)
     out = [[p for p in (current[k] if k < len(current) else []) if p in present]
            for k in range(n)]
-    where: dict[str, int] = {}
-    for k, ps in enumerate(out):
-        for p in ps:
-            where.setdefault(session_group(p), k)
     placed = {p for ps in out for p in ps}
     groups: dict[str, list[Path]] = {}
     for p in sorted(files):
