@@ -193,6 +193,8 @@ class Machine:
             sup.start()
         except Stopped as exc:
             self.error = exc
+            if self.host.fleet:  # a fleet of one: the command line says it
+                logger.warning("machine %s (%s): %s", self.name, self.file, exc)
             self.started.set()
             return
         except ValueError as exc:  # ConfigError, a validation error naming the key
