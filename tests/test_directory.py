@@ -114,3 +114,42 @@ def test_a_renamed_file_is_a_remove_then_an_add_in_one_reload(tmp_path: Path,
     finally:
         gateway.stop()
         runner.join(60)
+
+
+def test_a_failure_repeated_every_window_is_logged_once_then_counted(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+        ) -> None:
+    """Issue 26: a machine whose every window raises logged one ERROR a window. Now: once,
+    again when the failure changes (with how often the previous one repeated), and when
+    windows are estimated again."""
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.pipeline import WindowPipeline
+    from twinwatch.daemon.runner import Daemon
+
+    original = WindowPipeline.process
+    calls = [0]
+
+    def process(self: WindowPipeline, window: object) -> object:
+        calls[0] += 1
+        if calls[0] <= 4:
+            raise FloatingPointError("the twin diverged")
+        if calls[0] <= 6:
+            raise ValueError("a NaN in the window")
+        return original(self, window)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(WindowPipeline, "process", process)
+    monkeypatch.chdir(tmp_path)
+    cfg = default_config()
+    cfg.driver.plant.duration = 18.0  # type: ignore[attr-defined]
+    caplog.set_level(logging.WARNING)
+    with Daemon(cfg, publish=False, record=False) as daemon:
+        daemon.run()
+    assert daemon.numeric_failures == 6
+    failed = [r.getMessage() for r in caplog.records if "could not be estimated" in r.getMessage()]
+    assert len(failed) == 2, failed  # the two different failures, once each
+    assert "FloatingPointError: the twin diverged" in failed[0]
+    assert "ValueError: a NaN in the window" in failed[1]
+    text = caplog.text
+    assert "the failure above repeated in 3 more windows (FloatingPointError" in text
+    assert "repeated in 1 more windows (ValueError" in text
+    assert "window 6 estimated again after 2 failed windows" in text
