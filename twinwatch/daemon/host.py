@@ -280,7 +280,60 @@ class Machine:
         return out
 
 
-class Host:
+class ServiceSignals:
+    """The signals of a service host (:class:`Host`, and with worker processes
+    :class:`~twinwatch.daemon.workers.ProcessHost`): SIGTERM/SIGINT call ``stop()`` (a second
+    one ``_abandon()``), SIGHUP ``reload()``. Once a stop was requested the handlers stay
+    installed to the end of the process (a second SIGTERM still on its way must find them, not
+    the default action); installed and restored from the main thread only."""
+
+    fleet: bool
+    _stop_signals: int
+    _previous_handlers: dict[int, Any]
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+    def reload(self) -> None:
+        raise NotImplementedError
+
+    def _abandon(self) -> None:
+        raise NotImplementedError
+
+    def _install_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum, handler in ((signal.SIGINT, self._on_stop_signal),
+                                (signal.SIGTERM, self._on_stop_signal),
+                                (signal.SIGHUP, self._on_hup)):
+            self._previous_handlers[signum] = signal.signal(signum, handler)
+
+    def _restore_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread() or self._stop_signals:
+            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
+            # handler, not the default action (exit -15 after a clean stop)
+            return
+        for signum, handler in self._previous_handlers.items():
+            signal.signal(signum, handler)
+        self._previous_handlers.clear()
+
+    def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
+        self._stop_signals += 1
+        if self._stop_signals > 1:
+            logger.warning("%s received again: abandoning the queued windows",
+                           signal.Signals(signum).name)
+            self._abandon()
+            return
+        logger.warning("%s received: %s", signal.Signals(signum).name,
+                       "every machine finishes its queued windows and stops" if self.fleet
+                       else "finishing the queued windows and stopping")
+        self.stop()
+
+    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
+        self.reload()
+
+
+class Host(ServiceSignals):
     """The service: one machine's configuration file, or a directory of them (see the module
     docstring).
 
@@ -559,7 +612,11 @@ class Host:
 
     def reload(self) -> None:
         """Ask for a reload, as SIGHUP does (thread- and signal-safe)."""
-        self._on_hup(signal.SIGHUP, None)
+        if not self.fleet:  # its acquisition loop acts on it at its next tick, not in 0.2 s
+            for m in list(self.machines.values()):
+                m.supervisor.reload()
+            return
+        self._reload.set()
 
     def _rescan(self) -> None:
         """SIGHUP. A fleet of one: reload its machine. A fleet: start the machines of new
@@ -649,43 +706,10 @@ class Host:
                 worst = EX_TEMPFAIL
         return worst
 
-    # -- signals ------------------------------------------------------------------------------
-    def _install_signal_handlers(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return
-        for signum, handler in ((signal.SIGINT, self._on_stop_signal),
-                                (signal.SIGTERM, self._on_stop_signal),
-                                (signal.SIGHUP, self._on_hup)):
-            self._previous_handlers[signum] = signal.signal(signum, handler)
-
-    def _restore_signal_handlers(self) -> None:
-        if threading.current_thread() is not threading.main_thread() or self._stop_signals:
-            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
-            # handler, not the default action (exit -15 after a clean stop)
-            return
-        for signum, handler in self._previous_handlers.items():
-            signal.signal(signum, handler)
-        self._previous_handlers.clear()
-
-    def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
-        self._stop_signals += 1
-        if self._stop_signals > 1:
-            logger.warning("%s received again: abandoning the queued windows",
-                           signal.Signals(signum).name)
-            for m in self.all_machines():
-                m.supervisor.abandon()
-            return
-        logger.warning("%s received: %s", signal.Signals(signum).name,
-                       "every machine finishes its queued windows and stops" if self.fleet
-                       else "finishing the queued windows and stopping")
-        self.stop()
-
-    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
-        if not self.fleet:  # its acquisition loop acts on it at its next tick, not in 0.2 s
-            for m in list(self.machines.values()):
-                m.supervisor.reload()
-            return
-        self._reload.set()
+    def _abandon(self) -> None:
+        """A second stop signal: every machine abandons its queued windows."""
+        for m in self.all_machines():
+            m.supervisor.abandon()
 
 
 def _machine_name(path: Path) -> str | None:

@@ -49,11 +49,10 @@ import time
 import tomllib
 from collections.abc import Sequence
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from twinwatch.daemon import logfilter
-from twinwatch.daemon.host import EX_CONFIG, EX_IOERR, EX_TEMPFAIL, MACHINE_GLOB
+from twinwatch.daemon.host import EX_CONFIG, EX_IOERR, EX_TEMPFAIL, MACHINE_GLOB, ServiceSignals
 from twinwatch.daemon.systemd import Notifier
 from twinwatch.errors import ConfigError
 
@@ -241,7 +240,7 @@ class Worker:
             self.socket_path.unlink()
 
 
-class ProcessHost:
+class ProcessHost(ServiceSignals):
     """The service host of a directory, its machines in ``workers`` processes (see the module
     docstring). Owns the signals, systemd, the reload, the stop, the summary and the exit
     status, as :class:`~twinwatch.daemon.host.Host` does in one process.
@@ -512,33 +511,8 @@ class ProcessHost:
                 return code
         return 0
 
-    # -- signals ------------------------------------------------------------------------------
-    def _install_signal_handlers(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return
-        for signum, handler in ((signal.SIGINT, self._on_stop_signal),
-                                (signal.SIGTERM, self._on_stop_signal),
-                                (signal.SIGHUP, self._on_hup)):
-            self._previous_handlers[signum] = signal.signal(signum, handler)
-
-    def _restore_signal_handlers(self) -> None:
-        if self._stop_signals and threading.current_thread() is threading.main_thread():
-            return  # a second SIGTERM still on its way must find our handler
-        for signum, handler in self._previous_handlers.items():
-            signal.signal(signum, handler)
-        self._previous_handlers.clear()
-
-    def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
-        self._stop_signals += 1
-        if self._stop_signals > 1:
-            logger.warning("%s received again: the workers abandon their queued windows",
-                           signal.Signals(signum).name)
-            for w in self.workers:
-                w.send(signal.SIGTERM)
-            return
-        logger.warning("%s received: every machine finishes its queued windows and stops",
-                       signal.Signals(signum).name)
-        self._stop.set()
-
-    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
-        self._reload.set()
+    def _abandon(self) -> None:
+        """A second stop signal: each worker gets its second SIGTERM (it abandons its queued
+        windows)."""
+        for w in self.workers:
+            w.send(signal.SIGTERM)
