@@ -1,5 +1,6 @@
-"""How many machines this box monitors in real time (issue 19): one process per machine against
-gateway mode (``twinwatch run DIR``).
+"""How many machines this box monitors in real time (issues 19, 22): one process per machine
+against the service host on a directory (``twinwatch run DIR``: its worker processes, one per
+core by default, ``--workers``). Runs on a plain install (no test helpers, no pytest).
 
 N machines (the simulated DC motor, each its own recording: seed, noise 0.5 %) are monitored
 for ``--seconds`` of plant time, all started at the same moment. The plants run *before* the
@@ -16,7 +17,8 @@ Printed per run (N, mode): windows estimated of those expected, overruns, the es
 per window over every machine (p50, p95, max: the health message's ``elapsed_s``, the first,
 compiling window included), the windows' queue wait (median of the machines' medians, the
 largest; from the run summaries), CPU share of the whole box's cores (100 % = one core) and
-per machine, resident memory per machine (the processes' peak VmRSS, summed, divided by N).
+per machine, resident memory per machine (the processes' peak VmRSS, summed, divided by N; a
+host's worker processes are summed with it, their CPU too).
 ``--cold`` points ``NUMBA_CACHE_DIR`` at an empty directory: every kernel is compiled, as on
 the first start after an install (a reboot with an installed unit keeps its cache in
 ``/var/cache/twinwatch``). Each run is bounded by ``--seconds`` + 150 s of wall time.
@@ -66,9 +68,6 @@ setpoint = {{ column = "setpoint" }}
 def write_plants(directory: Path, n: int, seconds: float) -> None:
     """(Runs in its own process.) One recording per machine: the simulated DC motor, the
     resistance degrading, set-point levels and noise seeded by the machine's number."""
-    sys.path.insert(0, str(ROOT))
-    from tests.sources_support import plant_csv
-
     for i in range(n):
         path = plant_path(directory, i, seconds)
         if not path.exists():
@@ -76,6 +75,20 @@ def write_plants(directory: Path, n: int, seconds: float) -> None:
                 "scenario": "resistance_degradation", "fault_start": 5.0,
                 "noise": {"ia": 0.5, "omega": 0.5}, "seed": i,
                 "setpoint": {"seed": i + 1}})
+
+
+def plant_csv(path: Path, seconds: float, plant: dict) -> None:  # type: ignore[type-arg]
+    """A CSV recording of the simulated DC motor (``t`` and the plant's channels): written
+    here, not by the test suite's helper, so the benchmark runs on a plain install."""
+    from twinwatch.plant.dcmotor import CHANNELS, DCMotorPlant, DCMotorPlantConfig
+
+    cfg = DCMotorPlantConfig(**{"scenario": "nominal", "duration": seconds, **plant})
+    p = DCMotorPlant(cfg)
+    rows = ["t," + ",".join(CHANNELS)]
+    for _ in range(int(round(seconds / cfg.sample_period))):
+        smp = p.next_sample()
+        rows.append(f"{smp.t:.7f}," + ",".join(repr(smp.values[c]) for c in CHANNELS))
+    path.write_text("\n".join(rows) + "\n")
 
 
 def plant_path(directory: Path, i: int, seconds: float) -> Path:
@@ -101,6 +114,30 @@ def _cpu_ticks(pid: int) -> int | None:
     except OSError:
         return None
     return int(fields[11]) + int(fields[12])  # utime + stime
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (a host's worker processes)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        try:
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def _reaped_ticks(pid: int) -> int:
+    """CPU ticks of ``pid``'s children it has waited for (a worker that died and was
+    restarted)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0
+    return int(fields[13]) + int(fields[14])  # cutime + cstime
 
 
 def _rss_mb(pid: int) -> float | None:
@@ -190,13 +227,14 @@ def monitor(procs: list[subprocess.Popen[str]], timeout: float) -> tuple[float, 
                     p.terminate()
             print(f"  (timeout after {timeout:.0f} s: stopped)", file=sys.stderr)
             deadline = float("inf")
-        for p in procs:
-            t = _cpu_ticks(p.pid)
-            if t is not None:
-                last_ticks[p.pid] = t
-            r = _rss_mb(p.pid)
-            if r is not None:
-                peak[p.pid] = max(peak[p.pid], r)
+        for p in procs:  # the process and its workers, summed
+            tree = _tree(p.pid)
+            ticks = [t for q in tree if (t := _cpu_ticks(q)) is not None]
+            if ticks:
+                last_ticks[p.pid] = max(last_ticks[p.pid], sum(ticks) + _reaped_ticks(p.pid))
+            rss = [r for q in tree if (r := _rss_mb(q)) is not None]
+            if rss:
+                peak[p.pid] = max(peak[p.pid], sum(rss))
         time.sleep(0.5)
     return sum(last_ticks.values()) / CLK_TCK, time.monotonic() - t0, sum(peak.values())
 
@@ -214,7 +252,10 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
         machines.mkdir()
         shards = [root / f"machines{k}" for k in range(gateways)]
         for i in range(n):
-            port = PORT_BASE + i % gateways if mode == "gateway" else PORT_BASE + 100 + i
+            # a host's machines share one Zenoh session per process: one port per worker
+            # process (machines with one [zenoh] table go to one worker)
+            ports = max(gateways, workers if workers is not None else len(os.sched_getaffinity(0)))
+            port = PORT_BASE + i % ports if mode == "gateway" else PORT_BASE + 100 + i
             where = shards[i % gateways] if mode == "gateway" and gateways > 1 else machines
             where.mkdir(exist_ok=True)
             (where / f"m{i:03d}.toml").write_text(
@@ -286,7 +327,9 @@ def main() -> None:
     ap.add_argument("--mode", choices=["both", "gateway", "process"], default="both")
     ap.add_argument("--cold", action="store_true", help="an empty numba cache (compile all)")
     ap.add_argument("--recording", action="store_true", help="also record to Rerun")
-    ap.add_argument("--workers", type=int, default=None, help="gateway estimation slots")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="gateway mode: the host's worker processes (default: one per core; "
+                    "1: every machine in the host process)")
     ap.add_argument("--gateways", type=int, default=1,
                     help="gateway mode: the machines split over this many gateway processes "
                     "(each its own Zenoh port)")

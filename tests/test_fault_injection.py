@@ -1166,15 +1166,25 @@ class Service:
         prelude: Python run in the child before the CLI (e.g. a resource limit).
     """
 
+    #: run CONFIG as a fleet (a directory holding a link to it: the host's directory path,
+    #: ``twinwatch-gateway.service``) instead of one file (``twinwatch@.service``)
+    fleet = False
+
     def __init__(self, cfg: Path, cwd: Path, prelude: str = "") -> None:
         import subprocess
         import sys
 
         from .test_service import _env
 
+        target = cfg
+        if self.fleet:
+            target = cwd / "machines.d"
+            target.mkdir(exist_ok=True)
+            (target / cfg.name).symlink_to(cfg)
         code = f"import sys\n{prelude}\nfrom twinwatch.cli import main\nmain(sys.argv[1:])\n"
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", code, "run", str(cfg), "--no-progress", "--log-level", "info"],
+            [sys.executable, "-c", code, "run", str(target), "--no-progress", "--log-level",
+             "info"],
             cwd=cwd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
         self.stdout = ""
@@ -2081,4 +2091,26 @@ def test_fault(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,
     observed = fault.run(Context(tmp_path, caplog, monkeypatch))
     assert observed == fault.expected, (
         f"\ncase:     {fault.name}\nexpected: {json.dumps(fault.expected)}\n"
+        f"observed: {json.dumps(observed, default=str)}")
+
+
+#: The lifecycle cases (issue 22: through the one code path, for one machine and for a fleet).
+LIFECYCLE = [c for c in CASES if c.name.startswith("issue 14: ") and any(
+    k in c.name for k in ("SIGTERM while a reload", "two SIGTERMs", "SIGTERM while the daemon "
+                          "starts", "a reload to a source that cannot open"))]
+
+
+@pytest.mark.parametrize("fault", [pytest.param(c, marks=pytest.mark.slow) if c.slow else c
+                                   for c in LIFECYCLE], ids=[c.name for c in LIFECYCLE])
+def test_lifecycle_as_a_fleet(fault: Case, tmp_path: Path, caplog: pytest.LogCaptureFixture,
+                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """The lifecycle cases of one machine, run as the gateway unit runs a directory: the same
+    host, the same outcome (a fleet of one is a fleet)."""
+    assert len(LIFECYCLE) == 4
+    caplog.set_level(logging.INFO)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(Service, "fleet", True)
+    observed = fault.run(Context(tmp_path, caplog, monkeypatch))
+    assert observed == fault.expected, (
+        f"\ncase:     {fault.name} (as a fleet)\nexpected: {json.dumps(fault.expected)}\n"
         f"observed: {json.dumps(observed, default=str)}")

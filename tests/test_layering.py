@@ -260,3 +260,38 @@ def test_the_plant_and_the_twin_share_only_io() -> None:
     plant = set(graph.get("plant", {}))
     assert plant <= {"base", "io"}, graph["plant"]
     assert "io" in graph["drivers"] and "io" in graph["twin.models"]
+
+
+def module_graph(package: str) -> dict[str, dict[str, list[str]]]:
+    """module -> imported module -> ["line", ...], for the modules of ``package`` (a dotted
+    name) importing each other; annotation-only and lazy imports included."""
+    graph: dict[str, dict[str, list[str]]] = defaultdict(lambda: defaultdict(list))
+    for module, path in _sources():
+        if not module.startswith(package + "."):
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        for target, line in _imports(tree, module, path.name == "__init__.py"):
+            if target.startswith(package + ".") and target != module:
+                # ``from twinwatch.daemon.x import Name``: the module, not the name
+                parts = target.split(".")
+                while len(parts) > 2 and not (ROOT.parent.joinpath(*parts).with_suffix(".py")
+                                              .exists()
+                                              or ROOT.parent.joinpath(*parts).is_dir()):
+                    parts.pop()
+                dst = ".".join(parts)
+                if dst != module:
+                    graph[module][dst].append(str(line))
+    return graph
+
+
+def test_no_cycle_between_the_daemon_modules() -> None:
+    """The service host sits on top of the daemon room: host -> supervisor -> runner -> slots,
+    never back (``gateway -> supervisor -> runner -> gateway`` was a cycle: the estimation
+    slots lived in the gateway)."""
+    graph = module_graph("twinwatch.daemon")
+    assert "twinwatch.daemon.runner" in graph["twinwatch.daemon.supervisor"]  # it reads imports
+    cycle = find_cycle(graph)
+    if cycle is not None:
+        evidence = "\n".join(f"  {a} -> {b}: lines {', '.join(graph[a][b][:3])}"
+                             for a, b in zip(cycle, cycle[1:], strict=False))
+        raise AssertionError(f"import cycle in daemon/: {' -> '.join(cycle)}:\n{evidence}")

@@ -77,10 +77,14 @@ def _load_runnable(config: Path | None, base_dir: Path,
     Raises:
         ConfigError: naming each bad key, missing file or directory, unmapped channel.
     """
-    from twinwatch.config.loader import default_config, load_config
+    from twinwatch.config.loader import ConfigError, default_config, load_config
     from twinwatch.config.preflight import check_runnable
 
-    cfg = load_config(config) if config else default_config()
+    try:
+        cfg = load_config(config) if config else default_config()
+    except UnicodeDecodeError as exc:  # a file in another encoding, or not text at all
+        raise ConfigError(f"{config}: not UTF-8 text (byte {exc.start}: {exc.reason}): a "
+                          "configuration is a TOML file in UTF-8") from None
     check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir,
                    cwd=cwd)
     return cfg
@@ -88,17 +92,20 @@ def _load_runnable(config: Path | None, base_dir: Path,
 
 
 def _ignore_late_stops() -> None:
-    """The run has ended (the supervisor put the previous signal handlers back): a SIGTERM or
-    SIGINT arriving while the summary is written, a second one from systemd or an impatient
-    operator, must not kill the process with the default action (exit -15 after a clean
-    stop: measured under load in the "two SIGTERMs while a reload opens" case)."""
+    """The run has ended: a SIGTERM or SIGINT arriving while the summary is written or the
+    interpreter shuts down, a second one from systemd or an impatient operator, must not kill
+    the process with the default action (exit -15 after a clean stop: measured under load in
+    the "two SIGTERMs while a reload opens" case). Ignored at the OS level (``SIG_IGN``): at
+    its finalization Python puts ``SIG_DFL`` back in place of every handler written in Python,
+    so a Python handler does not cover the last milliseconds of the process."""
     import signal
 
     for signum in (signal.SIGTERM, signal.SIGINT):
         try:
-            signal.signal(signum, lambda *_: None)
+            signal.signal(signum, signal.SIG_IGN)
         except ValueError:  # not the main thread (click's test runner in a thread)
             return
+
 
 @main.command()
 @click.argument("config", required=False, type=click.Path(path_type=Path))
@@ -114,11 +121,17 @@ def _ignore_late_stops() -> None:
               help="Resume the last run's twin and alarm levels also when the source's time "
               "starts over (a simulated plant, a replayed recording), which otherwise starts "
               "a new run from the nameplate values.")
-@click.option("--workers", type=click.IntRange(min=0), default=None,
-              help="Gateway mode (CONFIG a directory): windows estimated at once across the "
-              "machines (default: the cores; 0: no limit).")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Gateway mode (CONFIG a directory): worker processes the machines are "
+              "spread over (default: one per core; 1: every machine in this process).")
+@click.option("--assignment", type=click.Path(path_type=Path), default=None, hidden=True,
+              help="A worker process: the file naming the machine files it runs.")
+@click.option("--slots", type=click.IntRange(min=0), default=None, hidden=True,
+              help="Windows estimated at once in this process (default: the cores; 0: no "
+              "limit).")
 def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
-        fresh: bool, resume: bool, workers: int | None) -> None:
+        fresh: bool, resume: bool, workers: int | None, assignment: Path | None,
+        slots: int | None) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
 
@@ -152,157 +165,183 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     session, the Rerun file and the state database open when their tables are unchanged, going
     on with the window numbering and resuming the twin from the state database; if it cannot
     start, the running configuration goes on untouched."""
-    from twinwatch.config.loader import ConfigError
-    from twinwatch.daemon.supervisor import StartError, Stopped, Supervisor
+    from twinwatch.daemon.host import Host
 
     if fresh and resume:
         raise click.UsageError("--fresh and --resume exclude each other")
-    if config is not None and config.is_dir():
-        _run_gateway(config, duration=duration, log_level=log_level,
-                     resume=False if fresh else (True if resume else None), workers=workers)
-        return
-    base_dir = config.resolve().parent if config else Path.cwd()
+    resume_mode = False if fresh else (True if resume else None)
+    fleet = config is not None and config.is_dir()
+    if fleet:
+        from twinwatch.config.loader import load_config
+        from twinwatch.config.preflight import check_runnable
 
-    def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
-        return _load_runnable(config, base_dir)
+        def check(cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
+            check_runnable(cfg, str(path), base_dir=path.resolve().parent, cwd=work_dir)
 
-    supervisor = Supervisor(load, base_dir=base_dir,
-                            resume=False if fresh else (True if resume else None),
-                            source=str(config) if config else "the built-in default")
-    _setup_logging(log_level)
-    # Files the daemon creates (state database, recordings, layout) are 0640 and directories
-    # 0750, as under the unit's UMask=0027, also when run by hand; a stricter umask is kept.
+        from twinwatch.daemon.slots import default_workers
+
+        n = workers if workers is not None else default_workers()
+        if assignment is None and n > 1 and len(_machine_files(config)) > 1:
+            from twinwatch.daemon.workers import ProcessHost, place
+
+            groups = sum(1 for ps in place(_machine_files(config), [], n) if ps)
+            host = ProcessHost(config, workers=max(1, min(n, groups)), resume=resume_mode,
+                               duration=duration, log_level=log_level, slots=slots)
+            if host.n > 1:
+                _setup_logging(log_level, threads=True)
+                _umask_0027()
+                _run_host(host, duration=duration, no_progress=True)
+                return
+            host.close()
+        host = Host(config, read=load_config, check=check, resume=resume_mode,
+                    duration=duration, workers=slots, stuck_after=30.0, quiet_after=30.0,
+                    assignment=assignment)
+    else:
+        base_dir = config.resolve().parent if config else Path.cwd()
+
+        def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
+            return _load_runnable(config, base_dir)
+
+        host = Host(config, load=load, resume=resume_mode, duration=duration, workers=slots)
+    _setup_logging(log_level, threads=fleet)
+    _umask_0027()
+    _run_host(host, duration=duration, no_progress=no_progress)
+
+
+def _machine_files(directory: Path) -> list[Path]:
+    from twinwatch.daemon.host import MACHINE_GLOB
+
+    return sorted(p for p in directory.glob(MACHINE_GLOB) if p.is_file())
+
+
+def _umask_0027() -> None:
+    """Files the daemon creates (state database, recordings, layout) are 0640 and directories
+    0750, as under the unit's UMask=0027, also when run by hand; a stricter umask is kept."""
     old_umask = os.umask(0o027)
     os.umask(old_umask | 0o027)
     click.get_current_context().call_on_close(lambda: os.umask(old_umask))
+
+
+def _run_host(host: Any, *, duration: float | None, no_progress: bool) -> None:
+    """Start the host, run it, print the summary (one block per machine in a fleet), exit
+    with :meth:`~twinwatch.daemon.host.Host.exit_status`."""
+    from twinwatch.daemon.supervisor import Stopped
+    from twinwatch.errors import ConfigError, StartError
+
     try:
-        supervisor.start()
-    except Stopped as exc:  # SIGTERM while it was starting: nothing ran, nothing to report
-        _ignore_late_stops()
-        click.echo(f"twinwatch: {exc}", err=True)
-        sys.exit(0)
-    except ConfigError as exc:
+        host.start()
+    except ConfigError as exc:  # a directory without machines
         click.echo(f"Error: {exc}", err=True)
         sys.exit(EX_CONFIG)
-    except StartError as exc:
-        click.echo(f"Error: cannot start: {exc}", err=True)
-        sys.exit(EX_CONFIG if exc.config_error else 1)
-    cfg = supervisor.config
-    assert cfg is not None and supervisor.daemon is not None
-    if supervisor.daemon.resumed is not None:
-        click.echo(_resumed_line(supervisor.daemon), err=True)
-    elif supervisor.daemon.new_run is not None:
-        click.echo(_new_run_line(supervisor.daemon), err=True)
+    bar: Any = None
+    if not host.fleet:
+        m = host.only
+        if isinstance(m.error, Stopped):  # SIGTERM while it was starting: nothing ran
+            host.run()
+            _ignore_late_stops()
+            click.echo(f"twinwatch: {m.error}", err=True)
+            sys.exit(0)
+        if m.error is not None:
+            host.run()
+            _ignore_late_stops()
+            if isinstance(m.error, StartError):
+                click.echo(f"Error: cannot start: {m.error}", err=True)
+                sys.exit(EX_CONFIG if m.error.config_error else 1)
+            if isinstance(m.error, ValueError):
+                click.echo(f"Error: {m.error}", err=True)
+                sys.exit(EX_CONFIG)
+            click.echo(f"Error: {m.failure}", err=True)
+            sys.exit(1)
+        daemon = m.supervisor.daemon
+        cfg = m.supervisor.config
+        if daemon is not None and cfg is not None:
+            if daemon.resumed is not None:
+                click.echo(_resumed_line(daemon), err=True)
+            elif daemon.new_run is not None:
+                click.echo(_new_run_line(daemon), err=True)
+            if not no_progress:
+                bar = _progress_bar(m.supervisor, cfg, duration)
+    try:
+        with _logs_above(bar):
+            host.run()
+    except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
+        logger.debug("run failed", exc_info=True)
+        click.echo(f"Error: internal error: {type(exc).__name__}: {exc}", err=True)
+        sys.exit(1)
+    finally:
+        _ignore_late_stops()
+        if bar is not None:
+            bar.close()
+    code = host.exit_status()
+    if hasattr(host, "summary"):  # worker processes: their summaries and the total
+        blocks, total = host.summary()
+        for line in blocks:
+            click.echo(line)
+        click.echo(total)
+        if code:
+            host.notifier.status(f"stopped: exit status {code}")
+            sys.exit(code)
+        return
+    if not host.fleet:
+        m = host.only
+        daemon = m.supervisor.daemon
+        if m.supervisor.config is None or daemon is None:  # stopped while it opened
+            click.echo(f"twinwatch: {m.error or m.failure or 'stopped before it had started'}",
+                       err=True)
+            sys.exit(code)
+        _print_summary(m.supervisor.config, daemon)
+        if m.failure is not None:
+            host.notifier.status(f"stopped: {m.failure}")
+            click.echo(f"Error: {m.failure}", err=True)
+        elif code == EX_IOERR:
+            host.notifier.status("stopped: " + "; ".join(daemon.problems()))
+        elif code == EX_TEMPFAIL:
+            host.notifier.status(f"stopped: {_failed_line(daemon)}")
+        if code:
+            sys.exit(code)
+        return
+    machines = host.all_machines()
+    for m in machines:
+        daemon = m.supervisor.daemon
+        cfg = m.supervisor.config
+        state = f"lost: {m.lost}" if m.lost is not None else "stopped"
+        click.echo(f"== {m.name} ({m.file}): {state}")
+        if daemon is not None and cfg is not None:
+            _print_summary(cfg, daemon)
+    lost = host.lost()
+    files = len({m.path for m in machines})
+    click.echo(f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} lost"
+               + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items()) if lost else ""))
+    if lost:
+        host.notifier.status(f"stopped: {len(lost)} machine(s) lost")
+    if code:
+        sys.exit(code)
+
+
+def _progress_bar(supervisor: Any, cfg: TwinwatchConfig, duration: float | None) -> Any:
+    """A fleet of one at a terminal: the source time acquired, the window and its nRMSE."""
+    from tqdm import tqdm
 
     from twinwatch.drivers import get_driver_class
 
     total = duration if duration is not None else (
         get_driver_class(cfg.driver.type).duration(cfg.driver))
-    bar: Any = None
-    if not no_progress:
-        from tqdm import tqdm
+    bar = tqdm(total=round(total, 2) if total else None, unit="s", unit_scale=False,
+               desc=f"{cfg.machine.name}", dynamic_ncols=True, file=sys.stderr,
+               bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s plant time [{elapsed}<"
+               "{remaining}{postfix}]")
+    t0: list[float] = []
 
-        bar = tqdm(total=round(total, 2) if total else None, unit="s", unit_scale=False,
-                   desc=f"{cfg.machine.name}", dynamic_ncols=True, file=sys.stderr,
-                   bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s plant time [{elapsed}<"
-                   "{remaining}{postfix}]")
-        t0: list[float] = []
+    def _progress(health: HealthMessage) -> None:
+        if not t0:
+            t0.append(health.t_start)
+        bar.n = health.t_end - t0[0]
+        bar.set_postfix_str(f"window {health.window}, "
+                            f"nRMSE {health.nrmse or float('nan'):.1e}", refresh=False)
+        bar.refresh()
 
-        def _progress(health: HealthMessage) -> None:
-            if not t0:
-                t0.append(health.t_start)
-            bar.n = health.t_end - t0[0]
-            bar.set_postfix_str(f"window {health.window}, "
-                                f"nRMSE {health.nrmse or float('nan'):.1e}", refresh=False)
-            bar.refresh()
-
-        supervisor.add_callback(_progress)
-    failure: str | None = None
-    try:
-        with _logs_above(bar):
-            supervisor.run(duration=duration)
-    except StartError as exc:
-        failure = f"cannot restart after a reload: {exc}"
-    except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
-        logger.debug("run failed", exc_info=True)
-        failure = (f"internal error: {type(exc).__name__}: {exc} (run with --log-level debug "
-                   f"for the traceback, and please report it)")
-    finally:
-        _ignore_late_stops()
-        if bar is not None:
-            bar.close()
-    assert supervisor.config is not None and supervisor.daemon is not None
-    daemon = supervisor.daemon
-    _print_summary(supervisor.config, daemon)
-    failure = failure or daemon.failure
-    if failure is not None:
-        supervisor.notifier.status(f"stopped: {failure}")
-        click.echo(f"Error: {failure}", err=True)
-        sys.exit(1)
-    if daemon.lost():
-        supervisor.notifier.status("stopped: " + "; ".join(daemon.problems()))
-        sys.exit(EX_IOERR)
-    if daemon.mostly_failed():
-        supervisor.notifier.status(f"stopped: {_failed_line(daemon)}")
-        sys.exit(EX_TEMPFAIL)
-
-
-def _run_gateway(directory: Path, *, duration: float | None, log_level: str,
-                 resume: bool | None, workers: int | None) -> None:
-    """``twinwatch run DIR``: every machine of DIR in this process
-    (:class:`~twinwatch.daemon.gateway.Gateway`), then one summary block per machine and the
-    exit status (1 when a machine was lost, else the worst machine's 74 or 75; 78 when no
-    machine's configuration could run)."""
-    from twinwatch.config.loader import load_config
-    from twinwatch.config.preflight import check_runnable
-    from twinwatch.daemon.gateway import Gateway
-
-    def check(cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
-        check_runnable(cfg, str(path), base_dir=path.resolve().parent, cwd=work_dir)
-
-    gateway = Gateway(directory, read=load_config, check=check, resume=resume,
-                      duration=duration, workers=workers)
-    _setup_logging(log_level, threads=True)
-    old_umask = os.umask(0o027)
-    os.umask(old_umask | 0o027)
-    click.get_current_context().call_on_close(lambda: os.umask(old_umask))
-    from twinwatch.errors import ConfigError
-
-    try:
-        gateway.start()
-    except ConfigError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(EX_CONFIG)
-    try:
-        gateway.run()
-    except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
-        logger.debug("gateway failed", exc_info=True)
-        click.echo(f"Error: internal error: {type(exc).__name__}: {exc}", err=True)
-        sys.exit(1)
-    machines = gateway.all_machines()
-    worst = 0
-    for m in machines:
-        daemon = m.supervisor.daemon
-        cfg = m.supervisor.config
-        state = f"lost: {m.lost}" if m.lost is not None else "stopped"
-        click.echo(f"== {m.name} ({m.path.name}): {state}")
-        if daemon is not None and cfg is not None:
-            _print_summary(cfg, daemon)
-            if daemon.lost():
-                worst = max(worst, EX_IOERR)
-            elif daemon.mostly_failed() and worst != EX_IOERR:
-                worst = EX_TEMPFAIL
-    lost = gateway.lost()
-    files = len({m.path for m in machines})
-    click.echo(f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} lost"
-               + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items()) if lost else ""))
-    if lost:
-        current = list(gateway.machines.values())
-        every_config = all(m.lost is not None and m.config_error for m in current)
-        gateway.notifier.status(f"stopped: {len(lost)} machine(s) lost")
-        sys.exit(EX_CONFIG if every_config else 1)
-    if worst:
-        sys.exit(worst)
+    supervisor.add_callback(_progress)
+    return bar
 
 
 @contextlib.contextmanager
@@ -603,7 +642,7 @@ def check_config(config: Path) -> None:
         if not ok:
             sys.exit(1)
         return
-    from twinwatch.daemon.gateway import MACHINE_GLOB
+    from twinwatch.daemon.host import MACHINE_GLOB
 
     files = sorted(p for p in config.glob(MACHINE_GLOB) if p.is_file())
     if not files:
@@ -616,6 +655,10 @@ def check_config(config: Path) -> None:
         ok, line = _check_one(path, names=names)
         click.echo(line, err=not ok)
         failed += not ok
+    from twinwatch.daemon.host import skipped
+
+    for entry, why in skipped(config).items():
+        click.echo(f"{config / entry}: skipped: {why}")
     click.echo(f"{config}: {len(files) - failed} of {len(files)} machine configurations OK")
     if failed:
         sys.exit(1)

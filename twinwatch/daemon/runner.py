@@ -59,7 +59,7 @@ from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
     from twinwatch.config.schema import OutputTable, TwinwatchConfig
-    from twinwatch.daemon.gateway import EstimationSlots
+    from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.systemd import Watchdog
 
 logger = logging.getLogger(__name__)
@@ -771,18 +771,41 @@ class Daemon:
             try:
                 self.process_window(item)
                 self.recent_outcomes.append("estimated")
+                self._window_failed(None, item.index)
             except Exception as exc:  # contained to the window: the daemon goes on
                 self.numeric_failures += 1
                 self.recent_outcomes.append("failed")
-                logger.error("%s: window %d could not be estimated (%s: %s); it is skipped "
-                             "and counted in counters.numeric_failures", self.machine,
-                             item.index, type(exc).__name__, exc)
+                self._window_failed(exc, item.index)
                 logger.debug("window %d failed", item.index, exc_info=True)
             finally:
                 if slots is not None and slot is not None:
                     slots.release(slot)
                 if self.watchdog is not None:
                     self.watchdog.idle()
+
+    def _window_failed(self, exc: Exception | None, index: int) -> None:
+        """A window's failure is logged once, then counted: the same failure again (its type
+        and message) only adds to the count; a different one, or the first window estimated
+        again, is logged with how many times the previous one repeated (a machine whose
+        every window raises logged one ERROR a window, about 1,800 an hour)."""
+        key = None if exc is None else f"{type(exc).__name__}: {exc}"
+        last, repeats = getattr(self, "_failure", (None, 0))
+        if key is not None and key == last:
+            self._failure = (last, repeats + 1)
+            return
+        if last is not None and repeats:
+            logger.warning("%s: the failure above repeated in %d more windows (%s)",
+                           self.machine, repeats, last)
+        if key is None:
+            if last is not None:
+                logger.warning("%s: window %d estimated again after %d failed windows",
+                               self.machine, index, repeats + 1)
+            self._failure = (None, 0)
+            return
+        logger.error("%s: window %d could not be estimated (%s); it is skipped and counted in "
+                     "counters.numeric_failures (the same failure again is counted, not "
+                     "logged)", self.machine, index, key)
+        self._failure = (key, 0)
 
     def process_window(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window and write it to the sinks (the pipeline's

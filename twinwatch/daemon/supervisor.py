@@ -1,19 +1,19 @@
-"""The service around one daemon: signals, systemd, reload with fallback, sink handover.
+"""One machine's lifecycle: start, reload with fallback, sink handover, stop.
 
-:class:`Supervisor` is what ``twinwatch run`` starts (the CLI keeps only its arguments and
-printing). In the main thread it
+:class:`Supervisor` runs one machine for the service host (:class:`~twinwatch.daemon.host.Host`,
+which owns the signals, systemd, the summary and the exit status: ``twinwatch run``). It never
+touches signal handlers; the host calls :meth:`Supervisor.stop` and :meth:`Supervisor.reload`.
+In the machine's thread it
 
-* installs the signal handlers first. The handlers only set flags and ask the running daemon
-  to stop; the acquisition loop acts on them. SIGTERM/SIGINT: finish the windows already
-  queued, then stop (a second one abandons them). SIGHUP: reload.
 * opens every daemon (the driver, the sinks, the twin's compiled kernels) in a thread of its
   own (``twinwatch-start``, ``twinwatch-reload``), never in the main thread: a driver or library
   that takes long to open (a device that does not answer) cannot hold up a stop. A stop
   requested while a daemon is being opened abandons it (closed once it is open) and returns at
   once, at start and at a reload alike.
-* tells systemd where it is (``READY=1`` with a status line, ``RELOADING=1``, ``STOPPING=1``,
-  ``EXTEND_TIMEOUT_USEC`` for the shutdown) and feeds the watchdog through the daemon
-  (:class:`~twinwatch.daemon.systemd.Watchdog`).
+* tells its notifier where it is (``READY=1`` with a status line, ``RELOADING=1``,
+  ``STOPPING=1``, ``EXTEND_TIMEOUT_USEC`` for the shutdown: the host decides what of it reaches
+  systemd) and marks the watchdog through the daemon
+  (:class:`~twinwatch.daemon.systemd.Watchdog`: the host reads it).
 * on SIGHUP, re-reads the configuration *while acquisition goes on* (a tick of the daemon's
   loop). A configuration that does not validate is refused (logged, naming the key) and the
   running one goes on. A valid one is built beside the running daemon, which keeps acquiring
@@ -38,14 +38,11 @@ configuration, at start and at each reload.
 from __future__ import annotations
 
 import contextlib
-import faulthandler
 import logging
-import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from types import FrameType
 from typing import TYPE_CHECKING, Any
 
 from twinwatch.daemon import logfilter
@@ -54,7 +51,7 @@ from twinwatch.errors import StartError
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
-    from twinwatch.daemon.gateway import EstimationSlots
+    from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.pipeline import HealthCallback
     from twinwatch.daemon.runner import Daemon
     from twinwatch.sinks.base import SharedResources
@@ -208,14 +205,13 @@ class Supervisor:
         self._reload_requested = threading.Event()
         self._build: _Build | None = None  # a reload's daemon being opened
         self._next: _Build | None = None  # a reload's daemon, open: takes over at the boundary
-        self._previous_handlers: dict[int, Any] = {}
         self._resume = resume
         self._problems: list[str] = []
         self._next_status = 0.0
 
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
-        """Load the configuration, install the signal handlers, open the daemon (driver and
+        """Load the configuration, open the daemon (driver and
         sinks) and compile the twin in the ``twinwatch-start`` thread, and tell systemd
         ``READY=1``.
 
@@ -225,30 +221,20 @@ class Supervisor:
                 abandoned: what it opens is closed when it returns).
             StartError: the daemon cannot start.
         """
-        # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the
-        # journal) first, so a stuck worker or a hung driver read shows where it was. (An
-        # stderr without a file descriptor, e.g. click's test runner, has nowhere to write it.)
-        try:
-            faulthandler.enable()
-        except (AttributeError, ValueError, OSError):
-            logger.debug("faulthandler not enabled: stderr has no file descriptor")
         try:
             cfg = self._load()
         except ValueError as exc:
             self.notifier.notify(f"STATUS=invalid configuration: {exc}".splitlines()[0])
             raise
         self.config = cfg
-        self._install_signal_handlers()
         build = _Build(lambda: self._open(cfg, resume=self._resume), keep=(), config=cfg,
                        name=f"{self._prefix}-start")
         while not build.wait(0.2):
             if self._stop_requested.is_set():  # the opening goes on alone and is closed after
                 build.abandon()
-                self._restore_signal_handlers()
                 logfilter.flush(force=True)
                 raise Stopped("stopped before the daemon had started")
         if build.error is not None:
-            self._restore_signal_handlers()
             logfilter.flush(force=True)
             if isinstance(build.error, StartError):
                 self.notifier.notify(f"STATUS=cannot start: {build.error}".splitlines()[0])
@@ -313,47 +299,22 @@ class Supervisor:
             self._problems = now
             self.notifier.status(status_line(cfg, daemon))
 
-    # -- signals ------------------------------------------------------------------------------
-    def _install_signal_handlers(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return
-        for signum, handler in ((signal.SIGINT, self._on_stop_signal),
-                                (signal.SIGTERM, self._on_stop_signal),
-                                (signal.SIGHUP, self._on_hup)):
-            self._previous_handlers[signum] = signal.signal(signum, handler)
-
-    def _restore_signal_handlers(self) -> None:
-        if self._stop_requested.is_set() and threading.current_thread() is threading.main_thread():
-            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
-            # handler, not the default action (exit -15 after a clean stop)
-            return
-        for signum, handler in self._previous_handlers.items():
-            signal.signal(signum, handler)
-        self._previous_handlers.clear()
-
-    def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
-        daemon = self.daemon
-        if self._stop_requested.is_set():
-            if daemon is not None:
-                daemon.abandon = True
-                daemon.stop()
-            logger.warning("%s received again: abandoning the queued windows",
-                           signal.Signals(signum).name)
-            return
-        logger.warning("%s received: finishing the queued windows and stopping",
-                       signal.Signals(signum).name)
-        self._stop_requested.set()
-        if daemon is not None:
-            daemon.stop()
-
-    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
-        self._reload_requested.set()
-
+    # -- requests (from the host) ----------------------------------------------------------
     def stop(self) -> None:
-        """Ask :meth:`run` to finish the queued windows and return (thread- and signal-safe)."""
+        """Ask :meth:`run` to finish the queued windows and return (thread- and signal-safe);
+        a stop while the daemon is being opened abandons the opening (:meth:`start` raises
+        :class:`Stopped`)."""
         self._stop_requested.set()
         if self.daemon is not None:
             self.daemon.stop()
+
+    def abandon(self) -> None:
+        """A second stop: the queued windows are abandoned (thread- and signal-safe)."""
+        self._stop_requested.set()
+        daemon = self.daemon
+        if daemon is not None:
+            daemon.abandon = True
+            daemon.stop()
 
     def reload(self) -> None:
         """Ask for a reload, as SIGHUP does (thread- and signal-safe)."""
@@ -488,7 +449,6 @@ class Supervisor:
             if self.daemon is not None:
                 self.daemon.close()
             logfilter.flush(force=True)
-            self._restore_signal_handlers()
 
 
 

@@ -1,0 +1,750 @@
+"""The service host: what ``twinwatch run`` is to systemd and to the person at the terminal.
+
+One code path for one machine (``twinwatch run m1.toml``, ``twinwatch@.service``) and for a
+directory of machines (``twinwatch run DIR``, ``twinwatch-gateway.service``): one machine is a
+fleet of one. :class:`Host` owns, in the main thread,
+
+* the **signals**. SIGTERM/SIGINT: every machine finishes its queued windows and stops (also
+  while it opens or reloads: the opening is abandoned); a second one abandons the queued
+  windows. Once a stop was requested the handlers stay installed to the end of the process: a
+  second SIGTERM still on its way (systemd, an operator) while the summary is written must not
+  end a cleanly stopped service with -15. SIGHUP: a reload (below).
+* **systemd**: ``READY=1``, ``STATUS=``, ``RELOADING=1``, ``STOPPING=1``,
+  ``EXTEND_TIMEOUT_USEC`` and ``WATCHDOG=1``. Each machine tells the host (its
+  :class:`MachineNotifier`) where it is; for a fleet of one the machine's own lines are the
+  service's (``monitoring m1 (dc_motor, simulated driver), ...``), for a fleet the host keeps
+  one line (``gateway: 3 of 4 machines monitored (DIR); DEGRADED: m3: lost (...)``). The
+  watchdog is pinged from the host's loop while at least one machine is healthy (its
+  acquisition loop ticks its :class:`~twinwatch.daemon.systemd.Watchdog` and the worker is not
+  stuck, nor silent under ``watchdog = "windows"``) or still opening: a stuck machine among
+  healthy ones is reported in STATUS, not restarted with them; a fleet of one stuck, or every
+  machine stuck, stops the pings and systemd restarts the service.
+* the **reload** (SIGHUP): a machine's file changed (always, for a fleet of one) reloads that
+  machine (validated first, built beside the running daemon, taking over at a window boundary:
+  :class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
+  removed stops its machine, a machine not running (lost, or its source ended) starts again.
+* the **stop**, the **summary** (:meth:`Host.all_machines`, :meth:`Host.lost`) and the
+  **exit status** (:meth:`Host.exit_status`).
+
+Each machine runs in a thread of its own (``twinwatch-<file>`` in a fleet): its supervisor's
+acquisition loop, with the daemon's worker thread beside it. What the machines of a process
+share: one Zenoh session per distinct ``[zenoh]`` session setting
+(:class:`~twinwatch.sinks.base.SharedResources`) and the estimation slots
+(:class:`~twinwatch.daemon.slots.EstimationSlots`).
+
+Isolation: a machine whose configuration is invalid, whose device cannot be opened, whose driver
+fails or whose thread raises is *lost*: logged and reported under its name (STATUS, the summary,
+:meth:`Host.lost`), and the others go on.
+"""
+
+from __future__ import annotations
+
+import faulthandler
+import hashlib
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING, Any
+
+from twinwatch.daemon import logfilter
+from twinwatch.daemon.slots import EstimationSlots, default_workers
+from twinwatch.daemon.supervisor import Stopped, Supervisor, status_line
+from twinwatch.daemon.systemd import Notifier, Watchdog
+from twinwatch.errors import ConfigError, StartError
+from twinwatch.sinks.base import SharedResources
+
+if TYPE_CHECKING:
+    from twinwatch.config.schema import TwinwatchConfig
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["EX_CONFIG", "EX_IOERR", "EX_TEMPFAIL", "MACHINE_GLOB", "Host", "Machine",
+           "MachineNotifier"]
+
+MACHINE_GLOB = "*.toml"
+"""The machine configurations of a directory (one machine per file)."""
+
+EX_CONFIG = 78
+"""Exit status: no machine's configuration can run here (sysexits.h); the units do not restart
+on it."""
+
+EX_IOERR = 74
+"""Exit status: estimated windows were lost, not stored or not recorded (sysexits.h)."""
+
+EX_TEMPFAIL = 75
+"""Exit status: a machine ran but more of its windows failed than were estimated."""
+
+
+class MachineNotifier(Notifier):
+    """What a machine tells systemd goes to its host instead (:meth:`Host._from_machine`);
+    ``WATCHDOG=1`` from its acquisition loop is only noted (:attr:`last_ping`): the host pings
+    systemd while a machine is healthy.
+
+    Args:
+        host: the host.
+        machine: the machine this notifier belongs to.
+    """
+
+    def __init__(self, host: Host, machine: Machine) -> None:
+        super().__init__(env={})
+        self._host = host
+        self._machine = machine
+        self.last_ping: float | None = None
+
+    @property
+    def enabled(self) -> bool:
+        return self._host.notifier.watchdog_interval is not None
+
+    @property
+    def watchdog_interval(self) -> float | None:
+        return self._host.notifier.watchdog_interval
+
+    def notify(self, *assignments: str) -> bool:
+        if assignments == ("WATCHDOG=1",):
+            self.last_ping = time.monotonic()
+            return True
+        self._host._from_machine(self._machine, assignments)
+        return True
+
+
+class Machine:
+    """One machine of a host: its configuration, its supervisor and thread, and how it ended.
+
+    Args:
+        host: the host.
+        path: the configuration file (None: the built-in default configuration).
+        load: a fleet of one's loader (the host's ``load``); None: the host reads ``path``
+            and checks it in the machine's directory (``<work root>/<machine name>``).
+
+    Attributes:
+        path: the configuration file, or None.
+        name: ``[machine] name`` once the configuration loaded (the file's stem before).
+        supervisor: its supervisor (its ``daemon`` holds the counters and history).
+        watchdog: its own watchdog (the host reads it: a worker stuck in one window, a
+            machine whose windows stopped, an acquisition loop that no longer ticks).
+        lost: why the machine stopped or never started (one line), or None.
+        failure: the same in full (every line), or None.
+        error: what its start raised (a configuration error, a start error, :class:`Stopped`).
+        config_error: ``lost`` is an invalid configuration.
+        digest: the file's SHA-256 when it was (re)loaded (a reload leaves it alone if equal).
+    """
+
+    def __init__(self, host: Host, path: Path | None,
+                 load: Callable[[], TwinwatchConfig] | None = None) -> None:
+        self.host = host
+        self.path = path
+        stem = path.stem if path is not None else "default"
+        self.file = path.name if path is not None else "the built-in default"
+        self.name = stem
+        self.lost: str | None = None
+        self.failure: str | None = None
+        self.error: BaseException | None = None
+        self.config_error = False
+        self.digest = _digest(path) if path is not None else ""
+        self.started = threading.Event()  # running, or lost/stopped before it ran
+        self.notifier = MachineNotifier(host, self)
+        self.watchdog = Watchdog(self.notifier, max_busy=host.stuck_after,
+                                 max_quiet=host.quiet_after)
+        self._own_load = load
+        prefix = f"twinwatch-{stem}" if host.fleet else "twinwatch"
+        base_dir = path.resolve().parent if path is not None else host.base_dir
+        self.supervisor = Supervisor(
+            self._load, base_dir=base_dir, source=str(path) if path else "the built-in default",
+            resume=host.resume, notifier=self.notifier, watchdog=self.watchdog,
+            slots=host.slots, shared=host.shared, thread_prefix=prefix)
+        self.thread = threading.Thread(target=self._run, name=prefix if host.fleet
+                                       else "twinwatch-machine", daemon=True)
+
+    # -- the machine's thread -----------------------------------------------------------------
+    def _load(self) -> TwinwatchConfig:
+        """The supervisor's loader. In a fleet: this file, checked to run in this machine's
+        directory (``<work root>/<machine name>``), its name unique in the fleet.
+
+        Raises:
+            ConfigError: naming the file and key.
+        """
+        if self._own_load is not None:
+            cfg = self._own_load()
+            self.name = cfg.machine.name
+            return cfg
+        assert self.path is not None
+        try:
+            cfg = self.host.read(self.path)
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{self.path}: not UTF-8 text (byte {exc.start}: {exc.reason}): "
+                              "a configuration is a TOML file in UTF-8") from None
+        name = self.name = cfg.machine.name
+        self.host.claim(name, self)
+        work_dir = self.host.work_root / name
+        work_dir.mkdir(mode=0o750, exist_ok=True)
+        self.supervisor.work_dir = work_dir
+        self.host.check(cfg, self.path, work_dir)
+        self.name = name
+        return cfg
+
+    def _run(self) -> None:
+        sup = self.supervisor
+        try:
+            sup.start()
+        except Stopped as exc:
+            self.error = exc
+            if self.host.fleet:  # a fleet of one: the command line says it
+                logger.warning("machine %s (%s): %s", self.name, self.file, exc)
+            self.started.set()
+            return
+        except ValueError as exc:  # ConfigError, a validation error naming the key
+            self.error = exc
+            self._lose(f"invalid configuration: {exc}", config_error=True)
+            return
+        except StartError as exc:
+            self.error = exc
+            self._lose(f"cannot start: {exc}", config_error=exc.config_error)
+            return
+        except Exception as exc:  # noqa: BLE001 - contained to this machine
+            self.error = exc
+            logger.debug("%s failed to start", self.name, exc_info=True)
+            self._lose(f"internal error at start: {type(exc).__name__}: {exc}")
+            return
+        self.started.set()
+        try:
+            sup.run(duration=self.host.duration)
+        except StartError as exc:
+            self._lose(f"cannot restart after a reload: {exc}")
+        except Exception as exc:  # noqa: BLE001 - contained to this machine
+            logger.debug("%s failed", self.name, exc_info=True)
+            self._lose(f"internal error: {type(exc).__name__}: {exc} (run with --log-level "
+                       "debug for the traceback, and please report it)")
+        daemon = sup.daemon
+        if self.lost is None and daemon is not None and daemon.failure is not None:
+            self._lose(daemon.failure)
+
+    def _lose(self, why: str, *, config_error: bool = False) -> None:
+        lines = [ln.strip() for ln in why.splitlines() if ln.strip()]
+        # a ConfigError lists one problem a line: the log keeps them all, STATUS one line
+        self.lost = "; ".join(lines) if len(lines) <= 3 else "; ".join(lines[:3]) + "; ..."
+        self.failure = why
+        if self.host.fleet:
+            logger.error("machine %s (%s) lost: %s", self.name, self.file, why)
+        self.config_error = config_error
+        self.started.set()
+        self.host._changed()
+
+    # -- state --------------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self.thread.is_alive() and self.started.is_set() and self.lost is None
+
+    @property
+    def opening(self) -> bool:
+        """Its thread is opening the daemon (driver, outputs, kernels)."""
+        return self.thread.is_alive() and not self.started.is_set()
+
+    def healthy(self) -> bool:
+        """For the host's watchdog: opening, or running with an acquisition loop that ticked
+        its watchdog within the last ``WatchdogSec=`` (it ticks only while the worker is not
+        stuck and, under ``watchdog = "windows"``, windows finish)."""
+        if self.opening:
+            return True
+        if not self.running:
+            return False
+        interval = self.host.notifier.watchdog_interval
+        last = self.notifier.last_ping
+        if interval is None:
+            return True
+        if last is None:  # its loop has not ticked yet: the daemon just started
+            return True
+        return time.monotonic() - last < 2.0 * interval
+
+    def problems(self) -> list[str]:
+        """What is degraded for this machine now (for STATUS): lost, stuck, no windows, and
+        the daemon's own problems."""
+        if self.lost is not None:
+            return [f"lost ({self.lost})"]
+        if self.opening:
+            return ["starting (its source or outputs are still opening)"]
+        daemon = self.supervisor.daemon
+        if daemon is None or not self.thread.is_alive():
+            return []
+        out = list(daemon.problems())
+        busy = self.watchdog.busy_seconds()
+        if busy is not None and busy > self.host.stuck_after:
+            out.append(f"stuck in one window for {busy:.0f} s")
+        quiet = self.watchdog.quiet_seconds()
+        if busy is None and quiet > self.host.quiet_after and not out:
+            out.append(f"no window for {quiet:.0f} s")
+        return out
+
+
+class ServiceSignals:
+    """The signals of a service host (:class:`Host`, and with worker processes
+    :class:`~twinwatch.daemon.workers.ProcessHost`): SIGTERM/SIGINT call ``stop()`` (a second
+    one ``_abandon()``), SIGHUP ``reload()``. Once a stop was requested the handlers stay
+    installed to the end of the process (a second SIGTERM still on its way must find them, not
+    the default action); installed and restored from the main thread only."""
+
+    fleet: bool
+    _stop_signals: int
+    _previous_handlers: dict[int, Any]
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+    def reload(self) -> None:
+        raise NotImplementedError
+
+    def _abandon(self) -> None:
+        raise NotImplementedError
+
+    def _install_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum, handler in ((signal.SIGINT, self._on_stop_signal),
+                                (signal.SIGTERM, self._on_stop_signal),
+                                (signal.SIGHUP, self._on_hup)):
+            self._previous_handlers[signum] = signal.signal(signum, handler)
+
+    def _restore_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread() or self._stop_signals:
+            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
+            # handler, not the default action (exit -15 after a clean stop)
+            return
+        for signum, handler in self._previous_handlers.items():
+            signal.signal(signum, handler)
+        self._previous_handlers.clear()
+
+    def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
+        self._stop_signals += 1
+        if self._stop_signals > 1:
+            logger.warning("%s received again: abandoning the queued windows",
+                           signal.Signals(signum).name)
+            self._abandon()
+            return
+        logger.warning("%s received: %s", signal.Signals(signum).name,
+                       "every machine finishes its queued windows and stops" if self.fleet
+                       else "finishing the queued windows and stopping")
+        self.stop()
+
+    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
+        self.reload()
+
+
+class Host(ServiceSignals):
+    """The service: one machine's configuration file, or a directory of them (see the module
+    docstring).
+
+    Args:
+        target: a machine configuration file (a fleet of one), a directory of them
+            (``*.toml``, one machine each), or None (the built-in default configuration).
+        read: reads and validates one configuration file of a directory (raises
+            :class:`ConfigError` naming the file and key).
+        check: checks a directory's configuration can run with its files in its machine's
+            directory (``check(cfg, path, work_dir)``; raises :class:`ConfigError`).
+        load: a fleet of one's loader (the file read and checked to run here; called at start
+            and at each SIGHUP); required when ``target`` is not a directory.
+        work_root: in a fleet each machine's state database and recording go to
+            ``<work_root>/<machine name>/`` (created); a fleet of one works in the current
+            directory.
+        resume: as :class:`~twinwatch.daemon.supervisor.Supervisor`'s.
+        duration: each machine stops after this many seconds of source time (None: runs on).
+        workers: estimation slots (:class:`EstimationSlots`); None: the cores; 0: no limit.
+        stuck_after: seconds one window may take before its machine counts as stuck (and its
+            estimation slot stops counting); None: ``WatchdogSec=`` (twice the ping interval),
+            30 s outside systemd's watchdog.
+        quiet_after: seconds without a finished window before a machine counts as quiet;
+            None: as ``stuck_after``.
+        assignment: a worker process's (:mod:`twinwatch.daemon.workers`): a file naming the
+            directory's machine files it runs, one a line (re-read at each SIGHUP).
+        start_timeout: seconds :meth:`start` waits for the machines to open before READY
+            (None: a fleet of one waits for its machine, a fleet 60 s: a machine whose
+            source never answers is named ``starting`` in STATUS).
+
+    Attributes:
+        fleet: ``target`` is a directory.
+        machines: configuration file -> its machine, in file order (the current ones).
+        retired: machines a reload removed or replaced (their summary is still given).
+        notifier: the process's systemd notifier.
+    """
+
+    def __init__(self, target: Path | None, *,
+                 read: Callable[[Path], TwinwatchConfig] | None = None,
+                 check: Callable[[TwinwatchConfig, Path, Path], None] | None = None,
+                 load: Callable[[], TwinwatchConfig] | None = None,
+                 work_root: Path | None = None, resume: bool | None = None,
+                 duration: float | None = None, workers: int | None = None,
+                 stuck_after: float | None = None, quiet_after: float | None = None,
+                 start_timeout: float | None = None,
+                 notifier: Notifier | None = None, assignment: Path | None = None) -> None:
+        self.target = target
+        self.assignment = assignment
+        self.fleet = target is not None and target.is_dir()
+        if not self.fleet and load is None:
+            raise ValueError("a fleet of one needs its loader")
+        if self.fleet and read is None:
+            raise ValueError("a directory needs a reader")
+        self.directory = target if self.fleet else None
+        self.read = read  # type: ignore[assignment]
+        self._check = check
+        self._load = load
+        self.base_dir = (target.resolve().parent if target is not None and not self.fleet
+                         else Path.cwd())
+        self.work_root = (work_root or Path.cwd()).resolve()
+        self.resume = resume
+        self.duration = duration
+        self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
+        interval = self.notifier.watchdog_interval
+        if stuck_after is None:
+            stuck_after = 2.0 * interval if interval is not None else 30.0
+        self.stuck_after = stuck_after
+        self.quiet_after = quiet_after if quiet_after is not None else stuck_after
+        self.start_timeout = start_timeout if start_timeout is not None else (
+            60.0 if self.fleet else None)
+        n = default_workers() if workers is None else workers
+        self.slots = EstimationSlots(n, stuck_after=stuck_after) if n > 0 and self.fleet else None
+        self.shared = SharedResources()
+        self.machines: dict[Path | None, Machine] = {}
+        self.retired: list[Machine] = []
+        self._names: dict[str, Machine] = {}
+        self._owners: dict[str, Path] = {}  # machine name -> the first file naming it
+        self._skipped: dict[str, str] = {}
+        self._names_lock = threading.Lock()
+        self._status_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._stop_signals = 0
+        self._reload = threading.Event()
+        self._previous_handlers: dict[int, Any] = {}
+        self._status = ""
+        self._next_status = 0.0
+        self._last_ping = 0.0
+        self._ready = False
+
+    # -- configuration ------------------------------------------------------------------------
+    def files(self) -> list[Path]:
+        """The machine configurations: the directory's files sorted by name, or the one file."""
+        if not self.fleet:
+            return [self.target] if self.target is not None else []
+        assert self.directory is not None
+        files = sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
+        self._skipped = skipped(self.directory)
+        if self.assignment is not None:  # a worker process: the files its host gave it
+            try:
+                names = set(self.assignment.read_text(encoding="utf-8").split("\n"))
+            except OSError:
+                names = set()
+            files = [p for p in files if p.name in names]
+        return files
+
+    def _scan(self) -> list[Path]:
+        """The machine files, the first file naming each machine (read with ``tomllib``, so
+        two files naming one machine resolve by file name, not by which opens first), and the
+        directory's other entries named as skipped (logged once per start and reload)."""
+        files = self.files()
+        owners: dict[str, Path] = {}
+        for p in files:
+            name = _machine_name(p)
+            if name is not None:
+                owners.setdefault(name, p)
+        self._owners = owners
+        for entry, why in self._skipped.items():
+            logger.warning("%s: skipped: %s", entry, why)
+        return files
+
+    def claim(self, name: str, machine: Machine) -> None:
+        """Reserve ``[machine] name`` for ``machine``.
+
+        Raises:
+            ConfigError: another file of the fleet monitors a machine of that name.
+        """
+        first = self._owners.get(name)
+        if first is not None and machine.path is not None and first != machine.path:
+            # two files name one machine: the first by file name runs, whatever starts first
+            raise ConfigError(f"{machine.path}: machine.name {name!r} is already monitored "
+                              f"by {first.name} in this gateway (the first file by name "
+                              "runs): each machine needs a name of its own")
+        deadline = time.monotonic() + 60.0
+        while True:
+            with self._names_lock:
+                other = self._names.get(name)
+                if (other is None or other is machine or not other.thread.is_alive()):
+                    self._names[name] = machine
+                    return
+                current = other.path in self.machines and self.machines[other.path] is other
+            if current:
+                raise ConfigError(f"{machine.path}: machine.name {name!r} is already monitored "
+                                  f"by {other.file} in this gateway: each machine needs "
+                                  f"a name of its own")
+            # a file renamed: its old file's machine is stopping (it holds the state
+            # database's lock until it has finished its queued windows): wait for it
+            if time.monotonic() > deadline:
+                raise ConfigError(f"{machine.path}: machine.name {name!r}: the machine of "
+                                  f"{other.file} (removed) did not stop within 60 s")
+            other.thread.join(0.2)
+
+    def check(self, cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
+        if self._check is not None:
+            self._check(cfg, path, work_dir)
+
+    # -- start --------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Install the signal handlers, start every machine (each opens in its own thread) and
+        tell systemd ``READY=1`` once each has started or been lost (a fleet: or after
+        ``start_timeout``, the machines still opening named in STATUS).
+
+        Raises:
+            ConfigError: the directory holds no machine configuration.
+        """
+        # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the
+        # journal) first, so a stuck worker or a hung driver read shows where it was. (An
+        # stderr without a file descriptor, e.g. click's test runner, has nowhere to write it.)
+        try:
+            faulthandler.enable()
+        except (AttributeError, ValueError, OSError):
+            logger.debug("faulthandler not enabled: stderr has no file descriptor")
+        files = self._scan() if self.fleet else self.files()
+        if self.fleet and not files:
+            raise ConfigError(f"{self.directory}: no machine configuration ({MACHINE_GLOB}) "
+                              "in this directory")
+        self._install_signal_handlers()
+        if self.fleet:
+            for path in files:
+                self._add(path)
+        else:
+            self._add(self.target)
+        deadline = None if self.start_timeout is None else time.monotonic() + self.start_timeout
+        for m in list(self.machines.values()):
+            while not m.started.wait(0.2):
+                if self._stop.is_set():  # the opening is abandoned at once (within 0.2 s)
+                    m.started.wait(5.0)
+                    break
+                if deadline is not None and time.monotonic() > deadline:
+                    break
+        if self.fleet:
+            self._ready = True
+            self.notifier.ready(status=self.status_line())
+        # a fleet of one: its machine said READY (or why it cannot start) itself
+
+    def _add(self, path: Path | None) -> Machine:
+        m = Machine(self, path, load=None if self.fleet else self._load)
+        self.machines[path] = m
+        m.thread.start()
+        return m
+
+    @property
+    def only(self) -> Machine:
+        """A fleet of one's machine."""
+        assert not self.fleet and len(self.machines) == 1
+        return next(iter(self.machines.values()))
+
+    # -- what the machines say ----------------------------------------------------------------
+    def _from_machine(self, machine: Machine, assignments: tuple[str, ...]) -> None:
+        """A machine's notification (its supervisor's READY, STATUS, RELOADING, STOPPING): a
+        fleet of one's go to systemd as they are; a fleet's change the host's STATUS line."""
+        if not self.fleet:
+            self.notifier.notify(*assignments)
+            return
+        if self._ready and any(a.startswith("STATUS=") for a in assignments):
+            self._changed()
+
+    def _changed(self) -> None:
+        """Something a fleet's STATUS shows changed: send it now if it did."""
+        if not self.fleet or not self._ready:
+            return
+        with self._status_lock:
+            line = self.status_line()
+            if line != self._status:
+                self._status = line
+                self.notifier.status(line)
+
+    # -- run ----------------------------------------------------------------------------------
+    def run(self) -> None:
+        """Supervise the machines until every one has ended (their sources finished, or
+        ``duration``) or a stop signal; act on SIGHUP; keep STATUS and the watchdog. Stops
+        every machine (each finishes its queued windows) before returning."""
+        try:
+            while not self._stop.is_set():
+                if self._reload.is_set():
+                    self._reload.clear()
+                    self._rescan()
+                if not any(m.thread.is_alive() for m in self.machines.values()):
+                    break
+                self._tick()
+                self._stop.wait(0.2)
+        finally:
+            self._stop_all()
+            self._restore_signal_handlers()
+            logfilter.flush(force=True)
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        interval = self.notifier.watchdog_interval
+        if (interval is not None and now - self._last_ping >= interval
+                and any(m.healthy() for m in self.machines.values())):
+            self._last_ping = now
+            self.notifier.watchdog()
+        if now >= self._next_status:
+            self._next_status = now + 1.0
+            self._changed()
+
+    def _stop_all(self) -> None:
+        machines = [*self.machines.values(), *self.retired]
+        self.notifier.stopping("stopping: the machines finish their queued windows"
+                               if self.fleet else "stopping: finishing the queued windows")
+        longest = max((m.supervisor.config.acquisition.shutdown_timeout
+                       for m in machines if m.supervisor.config is not None), default=10.0)
+        self.notifier.extend_timeout(longest + 10)
+        for m in machines:
+            m.supervisor.stop()
+        deadline = time.monotonic() + longest + 5
+        for m in machines:
+            m.thread.join(timeout=max(0.1, deadline - time.monotonic()))
+            if m.thread.is_alive():
+                logger.error("machine %s did not stop within %.0f s", m.name, longest + 5)
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to stop every machine and return (thread- and signal-safe)."""
+        self._stop.set()
+        for m in self.all_machines():  # at once: a machine opening abandons its opening
+            m.supervisor.stop()
+
+    def reload(self) -> None:
+        """Ask for a reload, as SIGHUP does (thread- and signal-safe)."""
+        if not self.fleet:  # its acquisition loop acts on it at its next tick, not in 0.2 s
+            for m in list(self.machines.values()):
+                m.supervisor.reload()
+            return
+        self._reload.set()
+
+    def _rescan(self) -> None:
+        """SIGHUP. A fleet of one: reload its machine. A fleet: start the machines of new
+        files, stop those whose file was removed, reload those whose file changed, and start
+        again those not running (lost, or their source ended)."""
+        if not self.fleet:
+            for m in list(self.machines.values()):
+                m.supervisor.reload()
+            return
+        self.notifier.reloading("re-reading the machine directory")
+        files = set(self._scan())
+        for path in list(self.machines):
+            if path not in files:
+                m = self.machines.pop(path)
+                logger.warning("machine %s: %s was removed: stopping it", m.name, m.file)
+                m.supervisor.stop()
+                self.retired.append(m)
+        for path in sorted(p for p in files if p is not None):
+            current = self.machines.get(path)
+            if current is None:
+                logger.warning("machine file %s added: starting it", path.name)
+                self._add(path)
+                continue
+            m = current
+            if m.lost is not None or not m.thread.is_alive():
+                logger.warning("machine %s: trying %s again", m.name, path.name)
+                if m.supervisor.daemon is not None:  # it ran: its summary is still given
+                    self.retired.append(m)
+                self._add(path)
+            elif _digest(path) != m.digest:
+                m.digest = _digest(path)
+                logger.warning("machine %s: %s changed: reloading it", m.name, path.name)
+                m.supervisor.reload()
+        self.notifier.ready(status=self.status_line())
+
+    # -- what to report -----------------------------------------------------------------------
+    def all_machines(self) -> list[Machine]:
+        """The current machines and those a reload retired, in file order."""
+        return [*self.retired, *self.machines.values()]
+
+    def lost(self) -> dict[str, str]:
+        """Machine (file) -> why, for every machine lost (never started, or stopped on a
+        failure); a machine tried again by a reload counts by its latest attempt."""
+        current = {m.path for m in self.machines.values()}
+        return {f"{m.name} ({m.file})": m.lost for m in self.all_machines()
+                if m.lost is not None and (m.path not in current or m is self.machines[m.path])}
+
+    def problems(self) -> dict[str, list[str]]:
+        """Machine -> what is degraded now, for the machines that are."""
+        return {m.name: p for m in self.machines.values() if (p := m.problems())}
+
+    def status_line(self) -> str:
+        """systemd's ``STATUS=``: a fleet of one's machine's line; a fleet's: how many
+        machines run, and the degraded ones by name."""
+        if not self.fleet:
+            m = self.only
+            cfg, daemon = m.supervisor.config, m.supervisor.daemon
+            if cfg is None or daemon is None:
+                return m.lost or "starting"
+            return status_line(cfg, daemon)
+        ms = list(self.machines.values())
+        running = sum(1 for m in ms if m.running)
+        line = f"gateway: {running} of {len(ms)} machines monitored ({self.directory})"
+        problems = self.problems()
+        if problems:
+            line += "; DEGRADED: " + "; ".join(f"{name}: {', '.join(p)}"
+                                               for name, p in problems.items())
+        return line
+
+    def exit_status(self) -> int:
+        """The process's exit status once :meth:`run` returned: 78 when no machine's
+        configuration could run, 1 when a machine was lost (it could not start, its driver
+        failed, it raised), else the worst machine's 74 (estimated windows lost) or 75 (more
+        windows failed than estimated), else 0 (also after a stop during the start)."""
+        if self.lost():
+            current = list(self.machines.values())
+            every_config = all(m.lost is not None and m.config_error for m in current)
+            return EX_CONFIG if every_config else 1
+        worst = 0
+        for m in self.all_machines():
+            daemon = m.supervisor.daemon
+            if daemon is None:
+                continue
+            if daemon.lost():
+                worst = EX_IOERR
+            elif daemon.mostly_failed() and worst != EX_IOERR:
+                worst = EX_TEMPFAIL
+        return worst
+
+    def _abandon(self) -> None:
+        """A second stop signal: every machine abandons its queued windows."""
+        for m in self.all_machines():
+            m.supervisor.abandon()
+
+
+def _machine_name(path: Path) -> str | None:
+    """``[machine] name`` of a configuration file, or None (unreadable: its machine is lost
+    with the loader's error)."""
+    import tomllib
+
+    try:
+        name = tomllib.loads(path.read_text(encoding="utf-8")).get("machine", {}).get("name")
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, AttributeError):
+        return None
+    return name if isinstance(name, str) else None
+
+
+def skipped(directory: Path) -> dict[str, str]:
+    """The entries of a machine directory that are not run, each with why: a link to nothing,
+    a ``*.toml`` that is not a file, any other name (an editor's backup, a ``.disabled`` file):
+    every entry is run, lost or named here."""
+    out: dict[str, str] = {}
+    try:
+        entries = sorted(directory.iterdir())
+    except OSError:
+        return out
+    for p in entries:
+        if p.is_symlink() and not p.exists():
+            out[p.name] = f"a link to {os.readlink(p)!s}, which does not exist"
+        elif p.match(MACHINE_GLOB) and not p.is_file():
+            out[p.name] = "not a regular file"
+        elif not p.match(MACHINE_GLOB):
+            out[p.name] = f"not a machine configuration (only {MACHINE_GLOB} files are run)"
+    return out
+
+
+def _digest(path: Path) -> str:
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        return ""

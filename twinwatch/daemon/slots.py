@@ -1,0 +1,94 @@
+"""Estimation slots: at most as many windows processed at once in one process as it has cores.
+
+A process that runs many machines (:class:`~twinwatch.daemon.host.Host`, or one of its worker
+processes) gives every machine's window worker the same :class:`EstimationSlots`: a worker
+processes a window only while it holds a slot, so a window's estimation is not stretched by
+dozens of others competing for the GIL (the rest wait in their machine's queue, the wait
+recorded in :attr:`~twinwatch.daemon.runner.Daemon.queue_waits`). A slot held longer than
+``stuck_after`` (a window stuck in the optimiser) no longer counts, so one stuck machine cannot
+starve the others.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+
+__all__ = ["EstimationSlots", "default_workers"]
+
+
+def default_workers() -> int:
+    """Estimation slots by default: the cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+class EstimationSlots:
+    """At most ``size`` windows processed at once across the machines of a gateway.
+
+    A worker calls :meth:`acquire` before a window and :meth:`release` after it. A slot held
+    for more than ``stuck_after`` seconds stops counting (its window is stuck: a machine's
+    optimiser that does not return), so the other machines go on with one more slot; it is
+    listed by :meth:`stuck`.
+
+    Args:
+        size: slots (>= 1), normally the cores (:func:`default_workers`).
+        stuck_after: seconds after which a held slot no longer counts [s].
+        clock: monotonic clock (tests inject one).
+    """
+
+    def __init__(self, size: int, *, stuck_after: float = 30.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if size < 1:
+            raise ValueError(f"estimation slots must be at least 1, not {size}")
+        self.size = size
+        self.stuck_after = stuck_after
+        self._clock = clock
+        self._cond = threading.Condition()
+        self._held: dict[int, tuple[str, float]] = {}
+        self._line: deque[int] = deque()  # tokens waiting, in arrival order
+        self._next = 0
+
+    def _active(self, now: float) -> int:
+        return sum(1 for _, t in self._held.values() if now - t < self.stuck_after)
+
+    def acquire(self, holder: str, cancelled: Callable[[], bool] | None = None) -> int | None:
+        """Wait for a slot (the worker's thread), first come first served (a machine cannot be
+        overtaken for ever by the others); returns the token :meth:`release` takes, or None
+        once ``cancelled()`` is true (checked every 0.5 s: the machine is closing)."""
+        with self._cond:
+            self._next += 1
+            token = self._next
+            self._line.append(token)
+            try:
+                while self._line[0] != token or self._active(self._clock()) >= self.size:
+                    if cancelled is not None and cancelled():
+                        return None
+                    self._cond.wait(timeout=0.5)  # a slot may turn stuck: look again
+            finally:
+                self._line.remove(token)
+                self._cond.notify_all()  # the next in line may fit too
+            self._held[token] = (holder, self._clock())
+            return token
+
+    def release(self, token: int) -> None:
+        """Give the slot of ``token`` back."""
+        with self._cond:
+            self._held.pop(token, None)
+            self._cond.notify_all()
+
+    def busy(self) -> int:
+        """Slots held now (stuck ones included)."""
+        with self._cond:
+            return len(self._held)
+
+    def stuck(self) -> list[tuple[str, float]]:
+        """``(holder, seconds)`` of the slots held longer than ``stuck_after``."""
+        now = self._clock()
+        with self._cond:
+            return [(h, now - t) for h, t in self._held.values() if now - t >= self.stuck_after]

@@ -1,0 +1,518 @@
+"""Every core: the host spreads a directory's machines over worker processes.
+
+One Python process estimates on one core (the GIL serialises the Python stages of every
+machine's window), and a native abort in it takes every machine of it down. With ``twinwatch
+run DIR --workers N`` (default: one per core) the service host (:class:`ProcessHost`) starts
+``N`` worker processes, each one ``twinwatch run DIR --assignment FILE``: the same
+:class:`~twinwatch.daemon.host.Host` on the machines its assignment file names, in threads, as
+in one process. What crosses between the host and a worker:
+
+* **down**: the assignment file (the machine files it runs; rewritten atomically, then
+  SIGHUP), SIGHUP (re-read it and the machines' files), SIGTERM (stop; a second one abandons
+  the queued windows);
+* **up**: systemd's notification protocol on a datagram socket of the host's per worker
+  (``NOTIFY_SOCKET``: ``READY=1``, ``STATUS=`` with the worker's line of machines monitored
+  and degraded, ``WATCHDOG=1`` while one of its machines is healthy, ``STOPPING=1``), the
+  worker's summary on its stdout (read once it ended), its log lines on the host's stderr (the
+  journal), and its exit status.
+
+The host tells systemd READY once every worker did, keeps one STATUS line (the workers' machines
+summed, the degraded ones by name), pings the watchdog while a worker is healthy, and at the end
+prints the workers' summaries with one total line and exits with the worst status.
+
+A worker that dies (SIGKILL, SIGABRT, out of memory: a signal ended it) is started again at
+once with ``--resume``: its machines resume their twins from their state databases; the other
+workers are untouched. One that dies 5 times within 120 s is given up (its machines are lost).
+A worker that ended by itself (its machines' sources finished) is started again only by a
+SIGHUP that finds its machines not running.
+
+Placement: machines whose ``[zenoh]`` tables are the same share one session and its listening
+port, so they go to the same worker (a second process could not listen on the port); the other
+machines (Zenoh off, or a session of their own) are spread to balance the workers. A machine
+keeps its worker across reloads; a new file goes to the worker with fewest machines.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import tomllib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from twinwatch.daemon import logfilter
+from twinwatch.daemon.host import EX_CONFIG, EX_IOERR, EX_TEMPFAIL, MACHINE_GLOB, ServiceSignals
+from twinwatch.daemon.systemd import Notifier
+from twinwatch.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ProcessHost", "Worker", "place"]
+
+RESTART_LIMIT = 5
+"""Restarts of one worker within :data:`RESTART_WINDOW` seconds before it is given up."""
+
+RESTART_WINDOW = 120.0
+
+_STATUS = re.compile(r"^gateway: (\d+) of (\d+) machines monitored \([^)]*\)(?:; DEGRADED: (.*))?$")
+_TOTAL = re.compile(r"^twinwatch gateway: (\d+) machines, (\d+) ran, (\d+) lost(?:: (.*))?$")
+
+
+_GROUPS: dict[Path, str] = {}
+"""The last group read for each file (a file renamed away keeps its group for placement)."""
+
+
+def session_group(path: Path) -> str:
+    """What ties a machine file to others: its ``[zenoh]`` table when Zenoh is on (machines
+    configured alike share one session and its port, so one process), else its machine's name
+    (two files naming one machine, a file renamed: one process decides which runs); the file
+    itself when it cannot be read."""
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return _GROUPS.get(path, f"file:{path.name}")
+    zenoh = data.get("zenoh", {})
+    machine = data.get("machine", {})
+    name = machine.get("name") if isinstance(machine, dict) else None
+    if not isinstance(zenoh, dict) or zenoh.get("enabled", True) is False:
+        group = f"name:{name}" if isinstance(name, str) else f"file:{path.name}"
+    else:
+        group = "zenoh:" + json.dumps(zenoh, sort_keys=True, default=str)
+    _GROUPS[path] = group
+    return group
+
+
+def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> list[list[Path]]:
+    """The machine files of each of ``n`` workers: a file stays where it is (``current``),
+    a file of a session group goes where its group is, the others to the worker with fewest.
+
+    Args:
+        files: the directory's machine files.
+        current: each worker's files so far (may be shorter than ``n``).
+        n: workers (>= 1).
+    """
+    present = set(files)
+    where: dict[str, int] = {}
+    for k in range(min(n, len(current))):
+        for p in current[k]:  # removed files too: a renamed file follows its machine
+            where.setdefault(session_group(p), k)
+    out = [[p for p in (current[k] if k < len(current) else []) if p in present]
+           for k in range(n)]
+    placed = {p for ps in out for p in ps}
+    groups: dict[str, list[Path]] = {}
+    for p in sorted(files):
+        if p not in placed:
+            groups.setdefault(session_group(p), []).append(p)
+    # the largest groups first, each to the worker with fewest machines (or to its session's)
+    for g, ps in sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[1][0])):
+        k = where.get(g)
+        if k is None:
+            k = min(range(n), key=lambda i: (len(out[i]), i))
+            where[g] = k
+        out[k].extend(ps)
+    return [sorted(ps) for ps in out]
+
+
+class Worker:
+    """One worker process of a :class:`ProcessHost`: its assignment, its notification socket,
+    its process (started again when it dies) and what it said.
+
+    Args:
+        index: its number (0..).
+        host: the host.
+    """
+
+    def __init__(self, index: int, host: ProcessHost) -> None:
+        self.index = index
+        self.host = host
+        self.files: list[Path] = []
+        self.assignment = host.run_dir / f"worker-{index}.list"
+        self.socket_path = host.run_dir / f"worker-{index}.notify"
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+        self.sock.bind(str(self.socket_path))
+        self.sock.setblocking(False)
+        self.proc: subprocess.Popen[str] | None = None
+        self.outputs: list[str] = []  # each incarnation's stdout (the summary)
+        self.codes: list[int] = []
+        self.ready = False
+        self.status = ""
+        self.last_ping: float | None = None
+        self.restarts: list[float] = []
+        self.given_up: str | None = None
+        self.started_at = 0.0
+        self.ended = False
+        self._reader: threading.Thread | None = None
+
+    def write_assignment(self) -> None:
+        tmp = self.assignment.with_suffix(".tmp")
+        tmp.write_text("".join(f"{p.name}\n" for p in self.files), encoding="utf-8")
+        tmp.replace(self.assignment)
+
+    def start(self, *, resume: bool | None) -> None:
+        """Start (again) the worker process on its assignment."""
+        self.write_assignment()
+        h = self.host
+        cmd = [sys.executable, "-m", "twinwatch", "run", str(h.directory), "--no-progress",
+               "--log-level", h.log_level, "--assignment", str(self.assignment),
+               "--slots", str(h.slots_per_worker)]
+        if h.duration is not None:
+            cmd += ["--duration", repr(h.duration)]
+        if resume is True:
+            cmd.append("--resume")
+        elif resume is False:
+            cmd.append("--fresh")
+        env = dict(os.environ, NOTIFY_SOCKET=str(self.socket_path))
+        env.pop("WATCHDOG_PID", None)
+        interval = h.notifier.watchdog_interval
+        if interval is not None:
+            env["WATCHDOG_USEC"] = str(int(2 * interval * 1e6))
+        else:
+            env.pop("WATCHDOG_USEC", None)
+        self.ready = False
+        self.ended = False
+        self.last_ping = None
+        self.started_at = time.monotonic()
+        self.proc = subprocess.Popen(cmd, cwd=h.work_root, env=env, stdin=subprocess.DEVNULL,
+                                     stdout=subprocess.PIPE, text=True,
+                                     start_new_session=True)  # a terminal's ^C goes to the host
+        proc = self.proc
+        self._reader = threading.Thread(target=self._read, args=(proc,), daemon=True,
+                                        name=f"twinwatch-worker-{self.index}-stdout")
+        self._reader.start()
+        logger.info("worker %d (pid %d) started on %d machines", self.index, proc.pid,
+                    len(self.files))
+
+    def _read(self, proc: subprocess.Popen[str]) -> None:
+        assert proc.stdout is not None
+        out = proc.stdout.read()
+        self.outputs.append(out)
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def send(self, signum: int) -> None:
+        if self.alive():
+            assert self.proc is not None
+            with contextlib.suppress(ProcessLookupError):
+                self.proc.send_signal(signum)
+
+    def drain(self) -> None:
+        """Read what the worker told its notification socket."""
+        while True:
+            try:
+                msg = self.sock.recv(65536).decode("utf-8", "replace")
+            except (BlockingIOError, OSError):
+                return
+            for line in msg.splitlines():
+                if line == "READY=1":
+                    self.ready = True
+                elif line == "WATCHDOG=1":
+                    self.last_ping = time.monotonic()
+                elif line.startswith("STATUS=") and _STATUS.match(line[7:]):
+                    self.status = line.removeprefix("STATUS=")  # its machines (not "stopping")
+
+    def healthy(self, interval: float | None) -> bool:
+        if not self.alive():
+            return False
+        if interval is None or not self.ready:
+            return True
+        last = self.last_ping if self.last_ping is not None else self.started_at
+        return time.monotonic() - last < 2.0 * interval + 5.0
+
+    def join_output(self, timeout: float) -> None:
+        if self._reader is not None:
+            self._reader.join(timeout)
+
+    def close(self) -> None:
+        self.sock.close()
+        with contextlib.suppress(OSError):
+            self.socket_path.unlink()
+
+
+class ProcessHost(ServiceSignals):
+    """The service host of a directory, its machines in ``workers`` processes (see the module
+    docstring). Owns the signals, systemd, the reload, the stop, the summary and the exit
+    status, as :class:`~twinwatch.daemon.host.Host` does in one process.
+
+    Args:
+        directory: the machine configurations (``*.toml``).
+        workers: worker processes (>= 2).
+        work_root: each machine's files go to ``<work_root>/<machine name>/``.
+        resume: as :class:`~twinwatch.daemon.host.Host`'s (a restarted worker resumes).
+        duration: each machine stops after this many seconds of source time.
+        log_level: the workers' log level.
+        slots: estimation slots per worker (default: the cores shared out, at least 1).
+    """
+
+    fleet = True
+
+    def __init__(self, directory: Path, *, workers: int, work_root: Path | None = None,
+                 resume: bool | None = None, duration: float | None = None,
+                 log_level: str = "warning", slots: int | None = None,
+                 notifier: Notifier | None = None) -> None:
+        from twinwatch.daemon.slots import default_workers
+
+        self.directory = directory
+        self.n = workers
+        self.work_root = (work_root or Path.cwd()).resolve()
+        self.resume = resume
+        self.duration = duration
+        self.log_level = log_level
+        self.slots_per_worker = slots if slots is not None else max(
+            1, default_workers() // workers)
+        self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
+        self.run_dir = Path(tempfile.mkdtemp(prefix="twinwatch-host-"))
+        self.workers: list[Worker] = []
+        self._stop = threading.Event()
+        self._reload = threading.Event()
+        self._stop_signals = 0
+        self._previous_handlers: dict[int, Any] = {}
+        self._status = ""
+        self._last_ping = 0.0
+        self._next_status = 0.0
+
+    def files(self) -> list[Path]:
+        return sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
+
+    # -- start --------------------------------------------------------------------------------
+    def start(self, timeout: float | None = 120.0) -> None:
+        """Install the signal handlers, start the workers and tell systemd READY once each
+        said READY (or after ``timeout`` [s]).
+
+        Raises:
+            ConfigError: the directory holds no machine configuration.
+        """
+        files = self.files()
+        if not files:
+            raise ConfigError(f"{self.directory}: no machine configuration ({MACHINE_GLOB}) "
+                              "in this directory")
+        self._install_signal_handlers()
+        placed = place(files, [], self.n)
+        for k, ps in enumerate(placed):
+            w = Worker(k, self)
+            w.files = ps
+            self.workers.append(w)
+            if ps:
+                w.start(resume=self.resume)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._stop.is_set():
+            for w in self.workers:
+                w.drain()
+            if all(w.ready or not w.alive() for w in self.workers if w.files):
+                break
+            if deadline is not None and time.monotonic() > deadline:
+                break
+            self._stop.wait(0.1)
+        self.notifier.ready(status=self.status_line())
+
+    # -- run ----------------------------------------------------------------------------------
+    def run(self) -> None:
+        """Supervise the workers until every one has ended or a stop signal; restart a worker
+        that dies; act on SIGHUP; keep STATUS and the watchdog. Stops every worker before
+        returning."""
+        try:
+            while not self._stop.is_set():
+                if self._reload.is_set():
+                    self._reload.clear()
+                    self._rescan()
+                for w in self.workers:
+                    w.drain()
+                    self._check(w)
+                if not any(w.alive() for w in self.workers):
+                    break
+                self._tick()
+                self._stop.wait(0.1)
+        finally:
+            self._stop_all()
+            self._restore_signal_handlers()
+            logfilter.flush(force=True)
+
+    def _check(self, w: Worker) -> None:
+        """A worker that a signal ended is started again (its machines resume); one that
+        ended by itself is left (its machines' sources finished)."""
+        if (w.proc is None or w.alive() or w.given_up is not None or self._stop.is_set()
+                or w.ended):
+            return
+        w.ended = True
+        code = w.proc.returncode
+        w.codes.append(code)
+        if code >= 0:
+            (logger.info if code == 0 else logger.warning)(
+                "worker %d (pid %d) ended (exit status %d): its machines stopped", w.index,
+                w.proc.pid, code)
+            return
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        now = time.monotonic()
+        w.restarts = [t for t in w.restarts if now - t < RESTART_WINDOW] + [now]
+        if len(w.restarts) > RESTART_LIMIT:
+            w.given_up = (f"worker {w.index} ended by {name} {len(w.restarts)} times within "
+                          f"{RESTART_WINDOW:.0f} s: given up")
+            logger.error("%s; its machines are lost: %s", w.given_up,
+                         ", ".join(p.name for p in w.files))
+            return
+        logger.error("worker %d (pid %d) ended by %s: starting it again; its %d machines resume "
+                     "from their state databases, the other workers go on", w.index,
+                     w.proc.pid, name, len(w.files))
+        w.join_output(1.0)
+        w.start(resume=True)
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        interval = self.notifier.watchdog_interval
+        if (interval is not None and now - self._last_ping >= interval
+                and any(w.healthy(interval) for w in self.workers)):
+            self._last_ping = now
+            self.notifier.watchdog()
+        if now >= self._next_status:
+            self._next_status = now + 1.0
+            line = self.status_line()
+            if line != self._status:
+                self._status = line
+                self.notifier.status(line)
+
+    def _rescan(self) -> None:
+        """SIGHUP: place the directory's files again (a file keeps its worker, a new one goes
+        to the fewest), write each worker's assignment, and SIGHUP the workers (each starts,
+        stops and reloads its machines); a worker that ended and has machines is started."""
+        self.notifier.reloading("re-reading the machine directory")
+        placed = place(self.files(), [w.files for w in self.workers], self.n)
+        for w, ps in zip(self.workers, placed, strict=True):
+            w.files = ps
+            w.write_assignment()
+            if w.alive():
+                w.send(signal.SIGHUP)
+            elif ps and w.given_up is None:
+                w.join_output(1.0)
+                w.start(resume=self.resume)
+        self.notifier.ready(status=self.status_line())
+
+    def _stop_all(self) -> None:
+        self.notifier.stopping("stopping: the machines finish their queued windows")
+        self.notifier.extend_timeout(30.0)
+        for w in self.workers:
+            w.send(signal.SIGTERM)
+        deadline = time.monotonic() + 25.0
+        for w in self.workers:
+            if w.proc is None:
+                continue
+            try:
+                w.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                logger.error("worker %d did not stop within 25 s: killed", w.index)
+                w.proc.kill()
+                w.proc.wait()
+            w.join_output(5.0)
+            if not w.ended:
+                w.ended = True
+                w.codes.append(w.proc.returncode)
+        for w in self.workers:
+            w.close()
+        with contextlib.suppress(OSError):
+            for p in self.run_dir.iterdir():
+                p.unlink()
+            self.run_dir.rmdir()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        """Remove the run directory (a host that was never started)."""
+        with contextlib.suppress(OSError):
+            self.run_dir.rmdir()
+
+    def reload(self) -> None:
+        self._reload.set()
+
+    # -- what to report -----------------------------------------------------------------------
+    def status_line(self) -> str:
+        """The workers' machines summed, the degraded ones by name."""
+        running = total = 0
+        degraded: list[str] = []
+        for w in self.workers:
+            if not w.files:
+                continue
+            m = _STATUS.match(w.status)
+            if m is None:
+                total += len(w.files)
+                if w.given_up is not None:
+                    degraded.append(w.given_up)
+                elif not w.alive():
+                    degraded.append(f"worker {w.index}: not running")
+                else:
+                    degraded.append(f"worker {w.index}: starting")
+                continue
+            running += int(m.group(1)) if w.alive() else 0
+            total += int(m.group(2))
+            if m.group(3):
+                degraded.append(m.group(3))
+        line = (f"gateway: {running} of {total} machines monitored ({self.directory}; "
+                f"{sum(w.alive() for w in self.workers)} worker processes)")
+        if degraded:
+            line += "; DEGRADED: " + "; ".join(degraded)
+        return line
+
+    def summary(self) -> tuple[list[str], str]:
+        """Each machine's summary block, in file order (a machine summarised by two of its
+        worker's incarnations, e.g. lost and tried again by a reload, by the last; a killed
+        incarnation prints none), and the total line."""
+        chunks: dict[str, list[str]] = {}
+        for w in self.workers:
+            for out in w.outputs:
+                current: list[str] | None = None
+                for line in out.splitlines():
+                    if _TOTAL.match(line):
+                        current = None
+                        continue
+                    if line.startswith("== "):
+                        current = chunks[line.split("(", 1)[-1]] = [line]
+                    elif current is not None:
+                        current.append(line)
+        given_up = {p.name: w.given_up for w in self.workers if w.given_up is not None
+                    for p in w.files}
+        for name, why in given_up.items():
+            chunks.setdefault(f"{name}): ", [f"== {Path(name).stem} ({name}): lost: {why}"])
+        blocks = [line for key in sorted(chunks) for line in chunks[key]]
+        lost = [c[0].removeprefix("== ").replace("): lost: ", "): ", 1)
+                for key, c in sorted(chunks.items()) if "): lost: " in c[0]]
+        files = len(chunks)
+        total = (f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} lost"
+                 + (": " + "; ".join(lost) if lost else "")
+                 + f" ({len(self.workers)} worker processes, "
+                 f"{sum(1 for w in self.workers for c in w.codes if c < 0)} restarted)")
+        return blocks, total
+
+    def exit_status(self) -> int:
+        """The worst of the workers' (their last incarnations'): 78 when every worker's every
+        machine had an invalid configuration, 1 when a machine was lost (or a worker given
+        up), else 74 before 75 before 0."""
+        finals = [w.codes[-1] for w in self.workers if w.codes]
+        if any(w.given_up is not None for w in self.workers):
+            return 1
+        if finals and all(c == EX_CONFIG for c in finals):
+            return EX_CONFIG
+        if any(c in (1, EX_CONFIG) or c < 0 for c in finals):
+            return 1
+        for code in (EX_IOERR, EX_TEMPFAIL):
+            if code in finals:
+                return code
+        return 0
+
+    def _abandon(self) -> None:
+        """A second stop signal: each worker gets its second SIGTERM (it abandons its queued
+        windows)."""
+        for w in self.workers:
+            w.send(signal.SIGTERM)
