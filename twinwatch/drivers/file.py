@@ -110,7 +110,7 @@ class FileDriverConfig(DriverConfig):
             table is the order of :attr:`FileDriver.channels`.
         realtime: False replays as fast as the caller reads; True delivers each row when its
             time stamp is due on the wall clock (relative to the first row delivered), never
-            early and at most :data:`PACE_SLACK` late.
+            early and at most 0.1 s late (:data:`PACE_SLACK`: one wake-up per 0.1 s).
         start: index of the first row to replay (0-based, like a Python slice; default 0).
         stop: index one past the last row to replay (default: the end of the file).
     """
