@@ -151,6 +151,37 @@ def test_csv_realtime_is_paced_by_the_sample_period(csv_file: Path) -> None:
     assert elapsed >= 0.079  # paced by the sample period: 5 rows span 0.08 s
 
 
+def test_csv_realtime_wakes_once_per_pace_slack_never_early(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real-time replay of 10 ms rows sleeps about once per PACE_SLACK, not once a row (a
+    sleep a row cost 74 us of CPU a row), and delivers no row before it is due."""
+    import twinwatch.drivers.file as file_mod
+
+    data = tmp_path / "fast.csv"
+    data.write_text("t,u\n" + "".join(f"{k * 0.01!r},{k}.0\n" for k in range(31)))
+    sleeps: list[float] = []
+    real_sleep = time.sleep
+
+    def counted(s: float) -> None:
+        sleeps.append(s)
+        real_sleep(s)
+
+    monkeypatch.setattr(file_mod.time, "sleep", counted)
+    config = FileDriverConfig.model_validate({
+        "type": "file", "path": str(data), "time_column": "t", "realtime": True,
+        "columns": {"Va": {"column": "u"}}})
+    early = []
+    with FileDriver(config) as driver:
+        start = time.monotonic()
+        with pytest.raises(EndOfStream):
+            while True:
+                s = driver.read(None)
+                if s is not None and time.monotonic() - start < s.t - 1e-3:
+                    early.append(s.t)
+    assert not early
+    assert 1 <= len(sleeps) <= 0.3 / file_mod.PACE_SLACK + 2, sleeps  # 30 before
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [

@@ -14,7 +14,7 @@ from __future__ import annotations
 import abc
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numba import njit
@@ -59,6 +59,9 @@ class WindowData:
     channels: dict[str, FloatArray]
     index: int = 0
     stamp_jitter: FloatArray | None = None
+    #: (the ``t`` it was computed from, the median sample period): :attr:`sample_period` is
+    #: read on every twin call, a few hundred times a window (a median each time: 15 us).
+    _period: tuple[Any, float] | None = field(default=None, repr=False, compare=False)
 
     @property
     def n(self) -> int:
@@ -66,8 +69,14 @@ class WindowData:
 
     @property
     def sample_period(self) -> float:
-        """Median sample period [s]."""
-        return float(np.median(np.diff(self.t))) if self.n > 1 else 0.0
+        """Median sample period [s] (computed once for the window's ``t``; a new ``t``
+        array assigned to the window is measured again)."""
+        cached = self._period
+        if cached is not None and cached[0] is self.t:
+            return cached[1]
+        value = float(np.median(np.diff(self.t))) if self.n > 1 else 0.0
+        self._period = (self.t, value)
+        return value
 
     def __getitem__(self, name: str) -> FloatArray:
         return self.channels[name]
@@ -317,8 +326,24 @@ def composite_zoh(a: FloatArray, b: FloatArray, n_sub: int) -> tuple[FloatArray,
     aug[:, :n, :n] = a
     aug[:, :n, n:] = b
     aug[:, n:, n:] = np.eye(m)
-    powered = np.linalg.matrix_power(aug, n_sub)
+    powered = _matrix_power(aug, n_sub)
     return powered[:, :n, :n], powered[:, :n, n:]
+
+
+def _matrix_power(a: FloatArray, n: int) -> FloatArray:
+    """``np.linalg.matrix_power(a, n)`` for ``n >= 1``, the same products in the same order
+    (the same numbers) through the ``np.matmul`` ufunc, without the wrapper's checks and
+    dispatch (a third of :func:`composite_zoh`'s time on a window's twin call)."""
+    if n <= 3:
+        return np.linalg.matrix_power(a, n)
+    mm = np.matmul
+    z = result = None
+    while n > 0:
+        z = a if z is None else mm(z, z)
+        n, bit = divmod(n, 2)
+        if bit:
+            result = z if result is None else mm(result, z)
+    return result
 
 
 @njit(cache=True, nogil=True)

@@ -294,24 +294,39 @@ class LocalFit:
     def sensitivity_and_residuals(self, v: FloatArray, active: np.ndarray,
                      steps: Sequence[float] | None = None) -> tuple[FloatArray, FloatArray]:
         """:meth:`sensitivity`, and the residuals (M,) at ``v`` (the batch's last row)."""
+        # Step by step, smallest first, only for the columns not settled yet (on a smooth
+        # residual the first step settles every column: 2k + 1 rows, not 2 n_h k + 1). Each
+        # row is simulated on its own, so the numbers are those of one batch of every step.
         k = active.size
         hs = tuple(self.SENSITIVITY_STEPS if steps is None else steps)
         n_h = len(hs)
-        vs = np.repeat(v[None, :], 2 * n_h * k + 1, axis=0)
+        out: FloatArray | None = None
+        r0: FloatArray | None = None
+        todo = np.arange(k)
         for i, h in enumerate(hs):
-            vs[(2 * i) * k + np.arange(k), active] += h
-            vs[(2 * i + 1) * k + np.arange(k), active] -= h
-        r = self.residuals(vs)
-        r0 = r[-1]
-        d = (r[:-1].reshape(n_h, 2, k, -1) - r0[None, None, None, :])
-        fwd = d[:, 0] / np.asarray(hs)[:, None, None]
-        bwd = -d[:, 1] / np.asarray(hs)[:, None, None]
-        central = 0.5 * (fwd + bwd)
-        gap = np.linalg.norm(fwd - bwd, axis=2)
-        size = np.maximum(np.linalg.norm(fwd, axis=2), np.linalg.norm(bwd, axis=2))
-        agree = gap <= self.SENSITIVITY_AGREEMENT * np.maximum(size, 1e-300)
-        choice = np.where(np.any(agree, axis=0), np.argmax(agree, axis=0), n_h - 1)
-        return central[choice, np.arange(k)].T, r0
+            m = todo.size
+            cols = active[todo]
+            vs = np.repeat(v[None, :], 2 * m + (1 if r0 is None else 0), axis=0)
+            vs[np.arange(m), cols] += h
+            vs[m + np.arange(m), cols] -= h
+            r = self.residuals(vs)
+            if r0 is None:
+                r0 = r[-1]
+                out = np.empty((k, r0.size))  # returned transposed (the layout BLAS sees)
+            assert out is not None
+            fwd = (r[:m] - r0[None, :]) / h
+            bwd = -(r[m:2 * m] - r0[None, :]) / h
+            central = 0.5 * (fwd + bwd)
+            gap = np.linalg.norm(fwd - bwd, axis=1)
+            size = np.maximum(np.linalg.norm(fwd, axis=1), np.linalg.norm(bwd, axis=1))
+            agree = gap <= self.SENSITIVITY_AGREEMENT * np.maximum(size, 1e-300)
+            done = agree if i < n_h - 1 else np.ones(m, dtype=bool)
+            out[todo[done]] = central[done]
+            todo = todo[~done]
+            if not todo.size:
+                break
+        assert out is not None and r0 is not None
+        return out.T, r0
 
     def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True
                ) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -108,6 +108,9 @@ DC_MOTOR_PARAMETERS: tuple[ParameterSpec, ...] = (
 )
 
 
+#: Window length -> the (1, N) zeros that stand for no meta-model term (read-only, shared).
+_ZEROS: dict[int, FloatArray] = {}
+
 _TAU_I = ParameterSpec("tau_i", "s", 0.05,
                        "time constant of the current measurement's low-pass filter",
                        "a change of the current sensor or its filtering")
@@ -539,6 +542,13 @@ class DCMotorTwin(TwinModel):
             if unknown:
                 raise KeyError(f"unknown attach point(s) {sorted(unknown)}; the DC motor "
                                "twin offers d(omega)/dt and d(ia)/dt")
+        if not terms:  # no meta-model: the same zeros every call (read-only)
+            zero = _ZEROS.get(n)
+            if zero is None:
+                zero = np.zeros((1, n))
+                zero.flags.writeable = False
+                _ZEROS[n] = zero
+            return zero, zero
         out = []
         for name in ("d(omega)/dt", "d(ia)/dt"):
             out.append(term_array((terms or {}).get(name), p, n, name))
@@ -611,10 +621,12 @@ class DCMotorTwin(TwinModel):
         u[:, :, 3] = f_i
         x = propagate(phi, gamma, x0, u)
         i_out, w_out = self._outputs(x, pos, ts, float(window["omega"][0]))
+        y = np.empty(i_out.shape + (3 if closed else 2,))
+        y[:, :, 0] = i_out
+        y[:, :, 1] = w_out
         if closed:
-            va_sim = kp * (drive[None, :] - x[:, :, 1]) + ki * x[:, :, pos["z"]]
-            return np.stack([i_out, w_out, va_sim], axis=2)
-        return np.stack([i_out, w_out], axis=2)
+            y[:, :, 2] = kp * (drive[None, :] - x[:, :, 1]) + ki * x[:, :, pos["z"]]
+        return y
 
     def _controller_state(self, window: WindowData, k: int, t_s: float, t_c: float,
                           ticked_s: bool, ticked_c: bool, omega0: FloatArray, ia0: FloatArray

@@ -143,8 +143,21 @@ class DegradationFit:
         return float(getattr(self, name))
 
 
+#: The clip ufunc itself (``np.clip``'s wrapper costs more than the clip on a trend's points).
+_CLIP = getattr(getattr(np, "_core", None), "umath", np).clip
+
+
 def _g(tau: FloatArray, r: float | FloatArray) -> FloatArray:
     """(exp(r tau) - 1)/r, continuous at r = 0 (tau there)."""
+    if isinstance(r, float) and isinstance(tau, np.ndarray):
+        # a fit's scalar growth rate (the trend's fits call this a hundred times a window):
+        # the same numbers as below, without the masks when no sample, or every one, is small
+        x = r * tau
+        small = np.abs(x) < 1e-8
+        if not small.any():
+            return np.expm1(_CLIP(x, -700.0, 700.0)) / r
+        if small.all():
+            return tau * (1.0 + 0.5 * x)
     r = np.asarray(r, dtype=float)
     x = r * tau
     small = np.abs(x) < 1e-8

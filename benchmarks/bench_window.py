@@ -1,0 +1,220 @@
+"""A window's CPU in the daemon's own code path, stage by stage, and the acquisition's per window.
+
+    python benchmarks/bench_window.py [--windows 60] [--realtime-windows 2]
+
+The default configuration (the simulated DC motor, resistance degradation; default
+``[estimation]``, ``[prognostics]`` and alarm rules), built the way the daemon builds it: the
+twin, its :class:`~twinwatch.twin.adaptation.TwinAdapter` and the ring buffer. The plant's
+samples are made beforehand (the plant's own cost is not the monitor's). Per window, CPU time
+(``time.process_time``, medians and p95 over ``--windows`` windows from ``--from`` seconds
+of plant time on, as in ``bench_estimation.py``; the windows before are processed, not
+reported):
+
+* ``window``: from the ring buffer's completed window to the health message encoded
+  (:meth:`TwinAdapter.process`: estimation, fusion, discovery when due, prognostics; then
+  :func:`~twinwatch.twin.health.build_health` and its JSON), split into the estimation
+  (:meth:`Estimator.estimate`, fusion included), the prognostics and the rest. The outputs'
+  own writes (SQLite, Zenoh, MQTT) are not included: they belong to the sinks, measured by
+  ``bench_density.py`` in a running host.
+* ``acquisition``: the ring buffer's ``append`` for a window's 200 samples; the file driver
+  reading them from a CSV as fast as it can (``realtime = false``) and replaying
+  ``--realtime-windows`` windows in real time (``realtime = true``: its waiting included); the
+  CAN driver replaying a Vector ASC log of the same plant (needs the test helpers; skipped
+  without them). The Modbus driver needs a server on a port: ``bench_density.py`` measures it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from twinwatch.config.loader import default_config  # noqa: E402
+from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
+from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
+from twinwatch.plant.dcmotor import DCMotorPlant  # noqa: E402
+from twinwatch.twin.adaptation import TwinAdapter  # noqa: E402
+from twinwatch.twin.health import build_health  # noqa: E402
+from twinwatch.twin.models import create_model  # noqa: E402
+
+
+class _Clock:
+    """CPU time spent inside a wrapped method, per window."""
+
+    def __init__(self) -> None:
+        self.spent = 0.0
+
+    def wrap(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            c = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.spent += time.process_time() - c
+        return timed
+
+
+def _stats(x: list[float]) -> str:
+    a = np.asarray(x) * 1e3
+    return f"median {np.median(a):7.2f} ms   p95 {np.percentile(a, 95):7.2f} ms"
+
+
+def window_cost(n_windows: int, t_from: float) -> tuple[list, Any]:
+    """Per window from ``t_from`` [s] on, CPU [s]: (whole, estimation, prognostics, ring
+    buffer); and the samples. The windows before are processed (the trends' evidence, the
+    fusion's history), not reported."""
+    cfg = default_config()
+    model = create_model(cfg.machine.model, cfg.machine.options)
+    nominal = {p.name: cfg.machine.parameters.get(p.name, p.nominal) for p in model.parameters}
+    acq = cfg.acquisition
+    adapter = TwinAdapter(model, cfg.estimation, cfg.discovery, nominal,
+                          prognostics=cfg.prognostics,
+                          thresholds=cfg.alarms.rul_targets(nominal), adaptive=acq.adaptive)
+    ring = RingBuffer(model.required_channels(), window=acq.window,
+                      sample_period=acq.sample_period, jitter_tolerance=acq.jitter_tolerance,
+                      capacity=4 * acq.window)
+    plant = DCMotorPlant(cfg.driver.plant)  # type: ignore[union-attr]
+    before = int(round(t_from / acq.sample_period))
+    samples = [plant.next_sample() for _ in range(before + (n_windows + 1) * acq.window)]
+    est, prog = _Clock(), _Clock()
+    adapter.estimator.estimate = est.wrap(adapter.estimator.estimate)  # type: ignore[method-assign]
+    if adapter.prognostics is not None:
+        adapter.prognostics.update = prog.wrap(  # type: ignore[method-assign]
+            adapter.prognostics.update)
+    rows = []
+    ring_cpu = 0.0
+    for s in samples:
+        c = time.process_time()
+        win = ring.append(s.t, s.values)
+        ring_cpu += time.process_time() - c
+        if win is None:
+            continue
+        est.spent = prog.spent = 0.0
+        c = time.process_time()
+        result = adapter.process(win)
+        health = build_health(machine="bench", model_name=cfg.machine.model, run="bench",
+                              model=model, window=win, adaptation=result, nominal=nominal,
+                              counters={}, discovery_enabled=adapter.enabled)
+        health.to_json()
+        if win.t[0] >= t_from and win.index > 0:
+            rows.append((time.process_time() - c, est.spent, prog.spent, ring_cpu))
+        ring_cpu = 0.0
+    return rows, samples[-n_windows * acq.window:]
+
+
+def _write_csv(path: Path, samples: list) -> None:
+    chans = list(samples[0].values)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", *chans])
+        for s in samples:
+            w.writerow([repr(s.t), *(repr(s.values[c]) for c in chans)])
+
+
+def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None) -> tuple[float, int]:
+    """CPU [s] and samples read by the file driver (``realtime`` as configured)."""
+    table = {"type": "file", "path": str(path), "time_column": "t", "realtime": realtime,
+             "columns": {c: {"column": c} for c in chans}}
+    if limit is not None:
+        table["stop"] = limit
+    n = 0
+    with create_driver(table, base_dir=None) as drv:
+        c = time.process_time()
+        try:
+            while True:
+                if drv.read(None) is not None:
+                    n += 1
+        except EndOfStream:
+            pass
+        return time.process_time() - c, n
+
+
+def can_cost(seconds: float) -> tuple[float, int] | None:
+    """CPU [s] and samples of the CAN driver replaying an ASC log of the plant (None without
+    the test helpers)."""
+    try:
+        from tests.sources_support import PLANT_DBC, plant_asc_log
+    except Exception:  # noqa: BLE001 - optional: needs the test extras
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "plant.asc"
+        plant_asc_log(log, seconds)
+        table = {"type": "can", "dbc": str(PLANT_DBC), "log_file": str(log),
+                 "sync_message": "TW_Motor_Sample", "time_source": "counter",
+                 "counter_signal": "TW_Motor_Sample.sample_counter", "sample_period": 0.01,
+                 "signals": {ch: {"message": m, "signal": ch} for m, chs in (
+                     ("TW_Motor_Electrical", ("Va", "ia")),
+                     ("TW_Motor_Mechanical", ("omega", "Tload")),
+                     ("TW_Motor_Sample", ("setpoint",))) for ch in chs}}
+        n = 0
+        with create_driver(table, base_dir=None) as drv:
+            c = time.process_time()
+            try:
+                while True:
+                    if drv.read(0) is not None:
+                        n += 1
+            except EndOfStream:
+                pass
+            return time.process_time() - c, n
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--windows", type=int, default=60, help="timed windows (after the first)")
+    ap.add_argument("--from", dest="t_from", type=float, default=400.0,
+                    help="report the windows from this plant time [s] on (the resistance "
+                    "degrades from 160 s; the windows before are processed, not reported)")
+    ap.add_argument("--realtime-windows", type=int, default=2,
+                    help="windows the file driver replays in real time (2 s each)")
+    args = ap.parse_args()
+    logging.disable(logging.WARNING)
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"python {platform.python_version()}, load {os.getloadavg()[0]:.2f}")
+    rows, samples = window_cost(args.windows, args.t_from)
+    a = np.array(rows)
+    per = 200
+    print(f"\nwindow of {per} samples (2 s), CPU over {len(rows)} windows from "
+          f"{args.t_from:g} s:")
+    print(f"  whole window (ring buffer's window -> health message): {_stats(list(a[:, 0]))}")
+    print(f"    estimation (fusion included):                       {_stats(list(a[:, 1]))}")
+    print(f"    prognostics:                                        {_stats(list(a[:, 2]))}")
+    print(f"    the rest (discovery check, health, JSON):            "
+          f"{_stats(list(a[:, 0] - a[:, 1] - a[:, 2]))}")
+    print("\nacquisition, CPU per window of 200 samples:")
+    print(f"  ring buffer append:                                   {_stats(list(a[:, 3]))}")
+    chans = list(samples[0].values)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "plant.csv"
+        _write_csv(path, samples)
+        cpu, n = file_cost(path, chans, False, None)
+        print(f"  file driver, as fast as read ({n} samples):          "
+              f"{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a sample)")
+        if args.realtime_windows > 0:
+            cpu, n = file_cost(path, chans, True, args.realtime_windows * per)
+            print(f"  file driver, real time ({n} samples):                "
+                  f"{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a sample)")
+    can = can_cost(min(60.0, len(samples) * 0.01))
+    if can is None:
+        print("  CAN driver (ASC log replay): skipped (needs the test extras)")
+    else:
+        cpu, n = can
+        print(f"  CAN driver, ASC log replay ({n} samples):            "
+              f"{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a sample)")
+    print("  Modbus driver: needs a server on a port (bench_density.py measures it in a host)")
+
+
+if __name__ == "__main__":
+    main()
