@@ -69,7 +69,7 @@ pass, before a run estimates)."""
 
 
 def _load_runnable(config: Path | None, base_dir: Path,
-                   cwd: Path | None = None) -> TwinwatchConfig:
+                   cwd: Path | None = None, *, force: bool | None = None) -> TwinwatchConfig:
     """Load CONFIG (or the built-in default) and check it can run here: the files it names
     and the directories it writes to exist, the driver delivers every channel the twin needs
     (:mod:`twinwatch.config.preflight`, the check ``check-config`` makes too).
@@ -77,12 +77,21 @@ def _load_runnable(config: Path | None, base_dir: Path,
     Raises:
         ConfigError: naming each bad key, missing file or directory, unmapped channel.
     """
-    from twinwatch.config.loader import default_config, load_config
+    from twinwatch.config.loader import ConfigError, default_config, load_config
     from twinwatch.config.preflight import check_runnable
 
     cfg = load_config(config) if config else default_config()
     check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir,
                    cwd=cwd)
+    if force is not None and cfg.machine.purpose == "commissioning":
+        what = (f"{config}: [machine] purpose = \"commissioning\": this file is for "
+                "`twinwatch identify`; its nominal values are generic, not this machine's, "
+                "so its deviations, trends and alarms would mean nothing")
+        if not force:
+            raise ConfigError(what + "; monitor with a monitoring configuration, or pass "
+                              "--force to run it anyway")
+        logging.getLogger("twinwatch.cli").warning(
+            "%s (--force: running it; what it publishes is not this machine's health)", what)
     return cfg
 
 
@@ -117,8 +126,11 @@ def _ignore_late_stops() -> None:
 @click.option("--workers", type=click.IntRange(min=0), default=None,
               help="Gateway mode (CONFIG a directory): windows estimated at once across the "
               "machines (default: the cores; 0: no limit).")
+@click.option("--force", is_flag=True,
+              help="Run a commissioning configuration ([machine] purpose = \"commissioning\") "
+              "anyway, with a warning: by default it is refused.")
 def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
-        fresh: bool, resume: bool, workers: int | None) -> None:
+        fresh: bool, resume: bool, workers: int | None, force: bool) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
 
@@ -164,7 +176,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     base_dir = config.resolve().parent if config else Path.cwd()
 
     def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
-        return _load_runnable(config, base_dir)
+        return _load_runnable(config, base_dir, force=force)
 
     supervisor = Supervisor(load, base_dir=base_dir,
                             resume=False if fresh else (True if resume else None),

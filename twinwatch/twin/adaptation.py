@@ -207,8 +207,9 @@ class TwinAdapter:
                 changed = True
                 for t in disc.kept:
                     events.append(f"discovered: {t.describe()}")
-                    logger.warning("window %d: unknown component discovered in %.2f s: %s",
-                                   window.index, disc.elapsed_s, t.describe())
+                    logger.warning("window %d: unknown component discovered in %.2f s "
+                                   "(%d twin evaluations): %s", window.index, disc.elapsed_s,
+                                   disc.evaluations, t.describe())
                 est = est_.estimate(window, compose(self.terms, window), fit=fit)
                 prior = None  # the fusion took this window twice: no share of its own
                 theta = self._theta(est)
@@ -221,6 +222,8 @@ class TwinAdapter:
                 logger.info("window %d: discovery ran (%.2f s, %d candidates) and no "
                             "meta-model earned its place; next try in %d windows",
                             window.index, disc.elapsed_s, disc.tried, self._cooldown)
+        if too_large:
+            est = self._suspect(est, disc)
         if changed:
             logger.info("DT'' is now:\n%s", format_terms(self.terms) or "(no terms)")
         y_dt = fit.simulate(theta[None, :])[0] if self.terms else est.simulated
@@ -328,6 +331,23 @@ class TwinAdapter:
         residual grew until the term was switched off, in window 57 of 100)."""
         vals = est.fitted or est.values
         return np.array([vals[n] for n in self.model.parameter_names])
+
+    @staticmethod
+    def _suspect(est: WindowEstimate, disc: DiscoveryReport | None) -> WindowEstimate:
+        """The window's residual says the model lacks a component (issue 23, attribution):
+        what it estimated is published ``suspect`` with the reason, so it moves no alarm (the
+        alarms read ``estimated`` and ``fused`` values only); the trends and the fusion already
+        took nothing from it (the window is not trusted, rolled back)."""
+        why = ("suspect: the residual is too large for the model (a component is missing; "
+               + ("discovery found none that earns its place yet)" if disc is not None
+                  else "discovery pending)"))
+        status = dict(est.status)
+        held = dict(est.held)
+        for n, st in est.status.items():
+            if st == "estimated":
+                status[n] = "suspect"
+                held[n] = why
+        return dataclasses.replace(est, status=status, held=held)
 
     def _free(self, est: WindowEstimate) -> list[str]:
         """The physical parameters a kept term is polished jointly with: those this window

@@ -155,7 +155,13 @@ class DiscoveryConfig(BaseModel):
                                   "re-validation before it is switched off")
     retry_after: StrictInt = Field(10, ge=1, description="windows to wait after a discovery that "
                                    "kept nothing")
-    time_budget: StrictFloat = Field(1.5, gt=0, description="wall-time cap of one discovery [s]")
+    max_evaluations: StrictInt = Field(
+        50_000, ge=1, description="twin evaluations one discovery may spend (its budget: the "
+        "same windows and seed give the same terms on an idle box and on a loaded one)")
+    time_budget: StrictFloat = Field(
+        30.0, gt=0, description="wall-time safety net of one discovery [s]: a search it cuts "
+        "is logged and counted (Discovery.time_cuts), and what it keeps then depends on the "
+        "box's load; the budget is max_evaluations")
     refinement: RefinementConfig = Field(default_factory=RefinementConfig)
     pso: PSOSettings = Field(default_factory=lambda: PSOSettings(max_generations=30))
     seed: StrictInt = 0
@@ -241,6 +247,7 @@ class DiscoveryReport:
     tried: int = 0
     candidates: int = 0
     closest: str = ""
+    cut: str = ""  # "", "evaluations" (max_evaluations) or "time" (the time_budget safety net)
 
     @property
     def verdict(self) -> str:
@@ -252,7 +259,9 @@ class DiscoveryReport:
             return "no search"
         what = (f"no candidate meta-model earns its place ({self.tried} of {self.candidates} "
                 "tried")
-        what += ")" if self.tried >= self.candidates else "; the time budget ran out)"
+        what += ")" if self.tried >= self.candidates else (
+            "; the evaluation budget ran out)" if self.cut == "evaluations"
+            else "; the time safety net cut it)")
         return what + (f"; closest: {self.closest}" if self.closest else "")
 
 
@@ -282,6 +291,8 @@ class Discovery:
                 self.candidates.append(_Candidate(get_meta_model(kind), ap, c.input, amp))
         self._rng = np.random.default_rng(config.seed)
         self.evaluations = 0
+        #: discoveries the wall-time safety net (``time_budget``) cut short
+        self.time_cuts = 0
 
     def _fit(self, window: WindowData | WindowFit) -> WindowFit:
         return window if isinstance(window, WindowFit) else self.est.window_fit(window)
@@ -325,14 +336,24 @@ class Discovery:
         pool = list(self.candidates)
         for _ in range(cfg.max_terms - len(kept)):
             fitted: list[_Fitted] = []
-            for i, cand in enumerate(pool):
+            for cand in pool:
+                if self.evaluations >= cfg.max_evaluations:
+                    report.cut = "evaluations"
+                    logger.warning("discovery spent its budget (%d twin evaluations) after %d "
+                                   "candidates", cfg.max_evaluations, report.tried)
+                    break
                 left = deadline - time.perf_counter()
                 if left <= 0:
-                    logger.warning("discovery reached its time budget (%.2f s) after %d "
-                                   "candidates", cfg.time_budget, report.tried)
+                    report.cut = "time"
+                    self.time_cuts += 1
+                    logger.warning("discovery cut by its wall-time safety net (%.2f s) after "
+                                   "%d candidates (%d so far): the terms now depend on the "
+                                   "box's load; raise [discovery] time_budget",
+                                   cfg.time_budget, report.tried, self.time_cuts)
                     break
-                f = self._fit_candidate(cand, fit, theta, base_vals, r_base,
-                                        left / (len(pool) - i))
+                # the candidate's own swarm stops on generations and stalls (evaluations);
+                # the time left is only its safety net
+                f = self._fit_candidate(cand, fit, theta, base_vals, r_base, left)
                 report.tried += 1
                 if f is not None:
                     fitted.append(f)
@@ -396,7 +417,8 @@ class Discovery:
         from separable least squares (:class:`~.separable.SeparableFit`), then every form of it
         polished by bounded least squares; the simplest form whose extra parameters do not
         earn their place (BIC) is returned, or None when the meta-model cannot take the
-        input or no form could be fitted. ``budget``: this candidate's share of the time [s].
+        input or no form could be fitted. ``budget``: the wall time left to the discovery's
+        safety net [s] (the search itself is bounded by generations, not time).
         """
         inp = CandidateInput.of(cand.meta, cand.input, cand.attach.mode == "additive",
                                 cand.amplitude, fit.window)
@@ -413,8 +435,8 @@ class Discovery:
                           budget: float) -> FloatArray:
         """The best nonlinear parameters (normalised; empty for a kind without one): a PSO
         over them only (periodic: the frequency), seeded by the kind from the residual
-        (periodic of time: the periodogram's peaks), up to ``max_generations``, within 60 % of
-        the candidate's ``budget`` [s], stopping once the best cost has not moved for 8
+        (periodic of time: the periodogram's peaks), up to ``max_generations``, within
+        the safety net ``budget`` [s], stopping once the best cost has not moved for 8
         generations (a 1-D search whose seed is right converges in a few)."""
         meta, cfg = sep.meta, self.config
         if not meta.nonlinear:
@@ -424,7 +446,7 @@ class Discovery:
                            inp.z_ref, min(4, cfg.pso.pop_size))
         full = np.ones(len(meta.columns), dtype=bool)
         sw = pso_minimize(lambda x: sep.project(x, full)[0], nl_lo, nl_hi, cfg.pso,
-                          rng=self._rng, time_budget=max(budget * 0.6, 1e-3),
+                          rng=self._rng, time_budget=max(budget, 1e-3),
                           seeds=np.array(seeds) if seeds else None, patience=8)
         return sw.x
 
