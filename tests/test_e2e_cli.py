@@ -160,3 +160,35 @@ def test_recording_is_valid_after_a_signal(tmp_path: Path, env, sig):
     verify = subprocess.run([_rerun(), "rrd", "verify", str(rrd)], capture_output=True,
                             text=True, env=env, timeout=120)
     assert verify.returncode == 0, verify.stderr
+
+
+def test_a_commissioning_configuration_is_refused_by_run_and_warns_with_force(
+        tmp_path: Path, env):
+    """Issue 23 item 6: `[machine] purpose = "commissioning"` (the MotoShield's raw and
+    board-2 files, for `twinwatch identify`, against generic nominal values) is refused by
+    `run`, naming the key, with exit 78 and nothing stored; with --force it runs and says what
+    it is before the first window is published."""
+    text = (Path(__file__).resolve().parents[1] / "config" / "dc-motor-sim.toml").read_text()
+    text = text.replace("[zenoh]", "[zenoh]\nenabled = false")
+    text = text.replace('name = "dc-motor-sim"',
+                        'name = "dc-motor-sim"\npurpose = "commissioning"', 1)
+    assert 'purpose = "commissioning"' in text
+    cfg = tmp_path / "commissioning.toml"
+    cfg.write_text(text)
+    refused = subprocess.run(_twinwatch("run", str(cfg), "--no-progress"), cwd=tmp_path,
+                             env=env, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 78, refused.stderr
+    assert 'purpose = "commissioning"' in refused.stderr and "--force" in refused.stderr
+    assert not (tmp_path / "state.sqlite").exists()
+    forced = subprocess.run(_twinwatch("run", str(cfg), "--no-progress", "--force",
+                                       "--duration", "4"), cwd=tmp_path, env=env,
+                            capture_output=True, text=True, timeout=120)
+    assert forced.returncode == 0, forced.stderr
+    # said at load, before the daemon opens (so before anything is published)
+    assert "is not this machine's health" in forced.stderr
+    assert "2 windows estimated" in forced.stdout + forced.stderr
+    assert _stored(tmp_path / "state.sqlite") == 2
+    for shipped in ("dc-motor-motoshield-raw.toml", "dc-motor-motoshield-board2.toml"):
+        from twinwatch.config.loader import load_config
+        path = Path(__file__).resolve().parents[1] / "config" / shipped
+        assert load_config(path).machine.purpose == "commissioning"

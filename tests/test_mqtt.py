@@ -449,10 +449,6 @@ def _window(store: Any, w: int, machine: str = "m1") -> Any:
     return SimpleNamespace(health=SimpleNamespace(window=w), health_json=doc, events=[])
 
 
-@pytest.mark.xfail(strict=False, reason="open defect found 2026-11-22: an MqttPublisher "
-                   "opened in-process and written to at once delivers none of its first 3 "
-                   "windows within 20 s in about 2 of 3 runs (the daemon's path, tested end "
-                   "to end above, delivers every window); see the closing note")
 @needs_mosquitto
 def test_a_reload_hands_the_output_over_and_no_gate_keeps_an_outbox_in_memory(
         tmp_path: Path, broker: Broker):

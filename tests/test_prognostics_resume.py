@@ -173,7 +173,7 @@ def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path
 def test_replay_carries_the_evidence_since_the_segment_and_its_restarts_over() -> None:
     """:meth:`Prognostics.replay` on stored messages: the evidence since the latest message's
     segment start (``since_t``), and its restarts (count and the last one), as reported."""
-    from twinwatch.twin.prognostics import Prognostics
+    from twinwatch.twin.prognostics import Prognostics, PrognosticsConfig
 
     def msg(t: float, value: float, since: float) -> dict[str, Any]:
         return {"t_end": t, "parameters": {"Ra": {"trend": {
@@ -183,7 +183,8 @@ def test_replay_carries_the_evidence_since_the_segment_and_its_restarts_over() -
 
     before = [msg(2.0 * k, 6.0, 0.0) for k in range(10)]  # another segment: not replayed
     segment = [msg(20.0 + 2.0 * k, 6.25 - 1e-4 * k, 20.0) for k in range(15)]
-    prog = Prognostics(["Ra"], {"Ra": 6.5})
+    # the replay's mechanics, not the span rule: 15 windows span 28 s < min_span
+    prog = Prognostics(["Ra"], {"Ra": 6.5}, PrognosticsConfig(min_span=0.0))
     assert prog.replay(before + segment) == 15
     trend = prog.trends["Ra"]
     assert trend.evidence == 15 and trend.since_t == 20.0 and trend.fit is not None

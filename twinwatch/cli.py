@@ -69,7 +69,7 @@ pass, before a run estimates)."""
 
 
 def _load_runnable(config: Path | None, base_dir: Path,
-                   cwd: Path | None = None) -> TwinwatchConfig:
+                   cwd: Path | None = None, *, force: bool | None = None) -> TwinwatchConfig:
     """Load CONFIG (or the built-in default) and check it can run here: the files it names
     and the directories it writes to exist, the driver delivers every channel the twin needs
     (:mod:`twinwatch.config.preflight`, the check ``check-config`` makes too).
@@ -87,6 +87,15 @@ def _load_runnable(config: Path | None, base_dir: Path,
                           "configuration is a TOML file in UTF-8") from None
     check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir,
                    cwd=cwd)
+    if force is not None and cfg.machine.purpose == "commissioning":
+        what = (f"{config}: [machine] purpose = \"commissioning\": this file is for "
+                "`twinwatch identify`; its nominal values are generic, not this machine's, "
+                "so its deviations, trends and alarms would mean nothing")
+        if not force:
+            raise ConfigError(what + "; monitor with a monitoring configuration, or pass "
+                              "--force to run it anyway")
+        logging.getLogger("twinwatch.cli").warning(
+            "%s (--force: running it; what it publishes is not this machine's health)", what)
     return cfg
 
 
@@ -129,9 +138,12 @@ def _ignore_late_stops() -> None:
 @click.option("--slots", type=click.IntRange(min=0), default=None, hidden=True,
               help="Windows estimated at once in this process (default: the cores; 0: no "
               "limit).")
+@click.option("--force", is_flag=True,
+              help="Run a commissioning configuration ([machine] purpose = \"commissioning\") "
+              "anyway, with a warning: by default it is refused.")
 def run(config: Path | None, duration: float | None, log_level: str, no_progress: bool,
         fresh: bool, resume: bool, workers: int | None, assignment: Path | None,
-        slots: int | None) -> None:
+        slots: int | None, force: bool) -> None:
     """Run the monitor on CONFIG (default: the built-in simulated DC motor, resistance
     degradation, as fast as possible, recording to ./twinwatch.rrd).
 
@@ -200,7 +212,7 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         base_dir = config.resolve().parent if config else Path.cwd()
 
         def load() -> TwinwatchConfig:  # at start and at each SIGHUP: refused there too
-            return _load_runnable(config, base_dir)
+            return _load_runnable(config, base_dir, force=force)
 
         host = Host(config, load=load, resume=resume_mode, duration=duration, workers=slots)
     _setup_logging(log_level, threads=fleet)

@@ -215,6 +215,10 @@ class MachineConfig(BaseModel):
         "model's defaults; deviations are reported against them")
     options: dict[str, Any] = Field(default_factory=dict,
                                     description="model options (structure, load, gains, ...)")
+    purpose: Literal["monitoring", "commissioning"] = Field(
+        "monitoring", description="commissioning: the file is for `twinwatch identify` (its "
+        "nominal values are generic, not this machine's); `twinwatch run` refuses it without "
+        "--force and then warns before it publishes anything")
 
     @field_validator("name")
     @classmethod

@@ -23,6 +23,11 @@ class PrognosticsConfig(BaseModel):
         "latest; a restart begins a new one)")
     min_evidence: StrictInt = Field(10, ge=4, le=10_000, description="evidence windows since the "
                                     "start or a restart before a trend is fitted")
+    min_span: StrictFloat = Field(
+        60.0, ge=0, allow_inf_nan=False, description="s of plant time the evidence since the "
+        "start or a restart must span before a trend (its rate, degrading or not, and the RUL) "
+        "is fitted: a minute of noisy windows extrapolated to an hour is not a trend (a 60 s "
+        "replay of a real drive read D -4.03e+03 %/h)")
     max_points: StrictInt = Field(120, ge=20, le=10_000, description="evidence is binned to at "
                                   "most this many points for the fit (cost; a slow trend loses "
                                   "nothing)")

@@ -143,6 +143,7 @@ class Prognostics:
         self.config = config or PrognosticsConfig()
         c = self.config
         self.settings = TrendSettings(horizon=c.horizon, min_evidence=c.min_evidence,
+                                      min_span=c.min_span,
                                       max_points=c.max_points, onset=c.onset,
                                       step_threshold=c.step_threshold,
                                       step_confirm=c.step_confirm, flat_z=c.flat_z,

@@ -86,6 +86,7 @@ class TrendSettings:
 
     horizon: float = 3600.0
     min_evidence: int = 10
+    min_span: float = 0.0
     max_points: int = 120
     onset: bool = True
     step_threshold: float = 5.0
@@ -256,7 +257,7 @@ class ParameterTrend:
         if not self._dirty:
             return
         self._dirty = False
-        if len(self.t) < cfg.min_evidence:
+        if len(self.t) < cfg.min_evidence or self.t[-1] - self.t[0] < cfg.min_span:
             self.fit, self.fits, self.weights = None, [], []
             return
         t, y, s = bin_evidence(np.asarray(self.t), np.asarray(self.y), np.asarray(self.s),
