@@ -595,7 +595,10 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
         rs = (f"; restarted at {t.restart.t:.0f} s ({t.restart.reason})" if t.restart
               else "")
         plural = "" if t.evidence == 1 else "s"
-        return head + f"no trend yet ({t.evidence} evidence window{plural}{rs})"
+        span = (f" over {t.window_evidence.t - t.since_t:.0f} s"
+                if t.evidence > 1 and t.window_evidence is not None and t.since_t is not None
+                else "")
+        return head + f"no trend yet ({t.evidence} evidence window{plural}{span}{rs})"
     model = t.model if t.onset is None else f"{t.model} from {t.onset:.0f} s"
     if t.degrading and t.rate is not None:
         pct = f", {t.rate_pct_per_h:+.3g} %/h" if t.rate_pct_per_h is not None else ""
