@@ -50,3 +50,21 @@ def _no_leaked_threads():
         t.join(timeout=2.0)
     leaked = [t for t in leaked if t.is_alive()]
     assert not leaked, f"threads leaked: {[t.name for t in leaked]}"
+
+
+@pytest.fixture(autouse=True)
+def _signal_dispositions_restored():
+    """Give every test the signal dispositions it started with. `twinwatch run` invoked
+    in-process (click's CliRunner) ends by ignoring SIGTERM and SIGINT at the OS level
+    (``cli._ignore_late_stops``: a late stop must not kill a process that stopped cleanly);
+    an ignored disposition is inherited by every child process, so without this the
+    subprocesses of later tests ignored the SIGINT/SIGTERM they were sent and timed out
+    (three recorder tests after the host merge)."""
+    import signal
+
+    nums = [signal.SIGTERM, signal.SIGINT, signal.SIGHUP]
+    saved = {n: signal.getsignal(n) for n in nums}
+    yield
+    for n, h in saved.items():
+        if signal.getsignal(n) is not h and h is not None:
+            signal.signal(n, h)
