@@ -98,8 +98,10 @@ class Gateway:
         self.windows = 0
 
     def history(self, t_from: float | None, t_to: float | None, limit: int | None,
-                by: Literal["plant", "wall"], run: str | None = None) -> list[dict[str, Any]]:
-        return self.store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run)
+                by: Literal["plant", "wall"], run: str | None = None,
+                after: float | None = None) -> list[dict[str, Any]]:
+        return self.store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run,
+                                  after=after)
 
     def window(self) -> None:
         w = self.windows

@@ -225,3 +225,36 @@ def test_json_of_numpy_and_bad_synchronous(tmp_path: Path) -> None:
         h["extra"] = {"v": np.float64(1.5), "a": np.arange(3)}
         st.save_window(h, None)
         assert json.dumps(st.history()[0]["extra"]) == '{"v": 1.5, "a": [0, 1, 2]}'
+
+
+def test_history_pages_advance_with_the_after_cursor(tmp_path: Path) -> None:
+    """Issue 26 item 6: paging as the docs said, ``t_from`` = the last ``t_end``, returned
+    each page's last window again (``t_from`` is inclusive: a window overlapping it), and with
+    ``limit = 1`` never advanced. ``after`` (only windows ending strictly after it) advances:
+    every window once, also one at a time, by plant and by wall time; the Zenoh history query
+    takes it and answers the next cursor (``next_after``)."""
+    from twinwatch.sinks.zenoh import history_parameters
+
+    with StateStore(tmp_path / "s.sqlite") as st:
+        for w in range(7):
+            st.save_window(health(w), None, wall=1_000_000.0 + 10 * w)
+        # the old way: stuck on window 0
+        first = st.history(limit=1, machine="m1")
+        again = st.history(t_from=first[-1]["t_end"], limit=1, machine="m1")
+        assert [h["window"] for h in again] == [h["window"] for h in first] == [0]
+        for by, key in (("plant", "t_end"), ("wall", None)):
+            seen: list[int] = []
+            cursor = None
+            walls = {w: 1_000_000.0 + 10 * w for w in range(7)}
+            while True:
+                page = st.history(limit=1 if by == "plant" else 3, machine="m1", by=by,
+                                  after=cursor)
+                if not page:
+                    break
+                seen += [h["window"] for h in page]
+                cursor = page[-1][key] if key else walls[page[-1]["window"]]
+            assert seen == list(range(7)), (by, seen)
+    assert history_parameters({"after": "12.5", "limit": "1"}) == (
+        None, None, 1, "plant", None, 12.5)
+    with pytest.raises(ValueError, match="after"):
+        history_parameters({"after": "inf"})

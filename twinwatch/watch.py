@@ -724,8 +724,10 @@ class FleetWatcher:
                         last_t = t_end if last_t is None else max(last_t, t_end)
             if not any(p.get("more") for p in pages) or last_t is None:
                 return
-            params = [p for p in params if not p.startswith("t_from=")]
-            params.append(f"t_from={last_t!r}")
+            # the next page: windows ending after the last one (t_from is inclusive and
+            # returned that window again)
+            params = [p for p in params if not p.startswith("after=")]
+            params.append(f"after={last_t!r}")
 
     # -- waiting and closing -------------------------------------------------------------------
     def settle(self, timeout: float) -> None:

@@ -497,14 +497,16 @@ class Daemon:
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
-                       run: str | None = None) -> list[dict[str, Any]]:
+                       run: str | None = None, after: float | None = None
+                       ) -> list[dict[str, Any]]:
         """Stored health messages of this machine in a time range, of one run with ``run``
         (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
         database. The outputs ask it through their context (the Zenoh history query)."""
         store = self.store
         if store is None:
             return []
-        return store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run)
+        return store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run,
+                             after=after)
 
     def outbox(self, output: str) -> Outbox | None:
         """The gate's outbox of ``output`` for this machine (store-and-forward outputs ask it

@@ -98,11 +98,12 @@ class ProcessedWindow:
 class HistoryQuery(Protocol):
     """The stored health messages of the running machine in a time range, oldest first (the
     gate's :meth:`Gate.history`, bound to the machine by the daemon); ``run`` keeps one run's
-    (a run id, or ``"current"``: the running daemon's), None every run's."""
+    (a run id, or ``"current"``: the running daemon's), None every run's; ``after`` the
+    paging cursor (windows ending strictly after it)."""
 
     def __call__(self, t_from: float | None, t_to: float | None, limit: int | None,
-                 by: Literal["plant", "wall"], run: str | None = None
-                 ) -> list[dict[str, Any]]: ...
+                 by: Literal["plant", "wall"], run: str | None = None,
+                 after: float | None = None) -> list[dict[str, Any]]: ...
 
 
 @dataclass(frozen=True)
@@ -492,9 +493,10 @@ class Gate(Sink):
     @abc.abstractmethod
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
-                machine: str | None = None, run: str | None = None) -> list[dict[str, Any]]:
+                machine: str | None = None, run: str | None = None,
+                after: float | None = None) -> list[dict[str, Any]]:
         """Stored health messages in a time range (of one run when ``run`` is given), oldest
-        first."""
+        first; ``after``: only those ending strictly after it (the paging cursor)."""
 
     def outbox(self, output: str, machine: str) -> Outbox | None:
         """The :class:`Outbox` of ``output`` for ``machine``'s windows; None (the default):

@@ -843,14 +843,16 @@ class StateStore(Gate):
 
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
-                machine: str | None = None, run: str | None = None) -> list[dict[str, Any]]:
+                machine: str | None = None, run: str | None = None,
+                after: float | None = None) -> list[dict[str, Any]]:
         """Health messages in a time range, oldest first (in the order they were saved).
 
         Args:
             t_from, t_to: range [s]; None leaves that end open. By plant time a window is
                 returned if it overlaps the range (``t_end >= t_from`` and
                 ``t_start <= t_to``); by wall time if it was saved inside it.
-            limit: at most this many (page on with ``t_from`` = last ``t_end``), None for all.
+            limit: at most this many (page on with ``after`` = the last one's ``t_end``),
+                None for all.
             by: ``"plant"`` (the source's time, as in the health message) or ``"wall"``
                 (seconds since the epoch when the window was saved; plant time restarts with
                 every run of the simulated plant or of a file replay).
@@ -858,6 +860,11 @@ class StateStore(Gate):
             run: only this run's windows (a run id, as in the messages' ``run``): plant time
                 and window numbers start over with every run of a simulated plant or a
                 replay, so a range by plant time is one run's only with it.
+            after: only windows ending strictly after this time [s] (by plant time:
+                ``t_end > after``; by wall time: saved after it), the cursor to page with:
+                ``t_from`` is inclusive (a window overlapping it is returned), so paging with
+                ``t_from`` = the last ``t_end`` returned that window again, and with
+                ``limit = 1`` never advanced.
 
         Returns:
             The stored health messages (dicts as saved).
@@ -880,6 +887,9 @@ class StateStore(Gate):
         if t_to is not None and math.isfinite(t_to):
             where.append(f"{hi} <= ?")
             args.append(float(t_to))
+        if after is not None and math.isfinite(after):
+            where.append(f"{lo} > ?")
+            args.append(float(after))
         sql = "SELECT doc FROM health"
         if where:
             sql += " WHERE " + " AND ".join(where)

@@ -712,14 +712,21 @@ class HealthPublisher(Sink):
             raise ValueError("the daemon is reloading: ask again in a moment")
         if history is None:
             raise ValueError("this daemon keeps no history (no state database: [state])")
-        t_from, t_to, limit, by, run = history_parameters(query.parameters)
+        t_from, t_to, limit, by, run, after = history_parameters(query.parameters)
         if run == "current":
             run = self.context.run if self.context is not None and self.context.run else None
             if run is None:
                 raise ValueError("run='current': this daemon has no run id")
-        windows = history(t_from, t_to, limit, by, run)
+        # ``after`` only when asked: a HistoryQuery written before it existed still serves
+        windows = (history(t_from, t_to, limit, by, run) if after is None
+                   else history(t_from, t_to, limit, by, run, after))
+        more = len(windows) == limit
+        # the cursor of the next page: by plant time the last window's end (by wall time the
+        # caller pages on the wall stamps it keeps; the messages carry plant time only)
+        nxt = windows[-1].get("t_end") if more and by == "plant" and windows else None
         return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to, "run": run,
-                "count": len(windows), "more": len(windows) == limit, "windows": windows}
+                "after": after, "count": len(windows), "more": more, "next_after": nxt,
+                "windows": windows}
 
     def counters(self) -> dict[str, int]:
         """``published`` (puts), ``errors`` (failed puts), ``not_connected`` (windows before
@@ -898,25 +905,29 @@ class HealthPublisher(Sink):
 
 
 HISTORY_LIMIT = 1000
-"""Most windows one history query returns (page on with ``t_from``)."""
+"""Most windows one history query returns (page on with ``after`` = the reply's
+``next_after``)."""
 
-HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit", "run")
+HISTORY_PARAMETERS = ("t_from", "t_to", "by", "limit", "run", "after")
 
 _RUN_RE = re.compile(r"^[A-Za-z0-9_.:-]{1,64}$")
 
 
 def history_parameters(params: Any) -> tuple[float | None, float | None, int,
-                                              Literal["plant", "wall"], str | None]:
+                                              Literal["plant", "wall"], str | None,
+                                              float | None]:
     """The history query's parameters, checked: ``t_from`` and ``t_to`` finite seconds (either
     may be absent), ``t_from <= t_to``, ``by`` ``plant`` or ``wall``, ``limit`` a whole number
     from 1 (at most :data:`HISTORY_LIMIT` are returned), ``run`` a run id (the health
-    message's ``run``: letters, digits, ``_.:-``) or ``current`` (absent: every run).
+    message's ``run``: letters, digits, ``_.:-``) or ``current`` (absent: every run),
+    ``after`` finite seconds (only windows ending strictly after it: the paging cursor, the
+    previous reply's ``next_after``; ``t_from`` is inclusive and would repeat the last window).
 
     Args:
         params: the selector's parameters (a mapping with ``get``, zenoh's ``Parameters``).
 
     Returns:
-        ``(t_from, t_to, limit, by, run)``.
+        ``(t_from, t_to, limit, by, run, after)``.
 
     Raises:
         ValueError: naming the bad parameter.
@@ -957,7 +968,7 @@ def history_parameters(params: Any) -> tuple[float | None, float | None, int,
     elif _RUN_RE.match(str(run)) is None:
         raise ValueError(f"run={run!r}: give a run id as the health messages carry it "
                          f"(e.g. run=20261122T101530Z-3f9a2c), or run=current")
-    return t_from, t_to, limit, by, (None if run is None else str(run))
+    return t_from, t_to, limit, by, (None if run is None else str(run)), num("after")
 
 
 def _items(params: Any) -> list[tuple[str, str]]:
