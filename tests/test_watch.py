@@ -309,3 +309,54 @@ def test_a_watcher_in_process_follows_a_daemon_directly() -> None:
             wait_for(lambda: len(got) == 3, 10, "three windows")
     assert got == [0, 1, 2]
     assert fleet.snapshot()["machines"][0]["window"] == 2
+
+
+def test_the_table_into_a_file_keeps_every_column_unfolded() -> None:
+    """Issue 24: `watch --once > file` squeezed the table to rich's 80 columns for a
+    non-terminal (the columns' least widths add up to about 110: every header and cell folded).
+    Into a file or a pipe the console is :data:`FILE_WIDTH` wide: every header on one line."""
+    import io
+
+    from twinwatch.watch import FILE_WIDTH, console
+
+    fleet = Fleet(clock=Clock())
+    fleet.token("m1", True)
+    fleet.health("m1", _msg("m1", 7, ra_dev=-11.0, level="alarm"))
+    buf = io.StringIO()
+    out = console(buf)
+    assert out.width == FILE_WIDTH
+    out.print(render(fleet.snapshot(), title="fleet"))
+    text = buf.getvalue()
+    header = next(ln for ln in text.splitlines() if "machine" in ln and "state" in ln)
+    for h in ("machine", "state", "last window", "parameters (vs nominal)", "alarms",
+              "terms (DT'')", "data quality"):
+        assert h in header, (h, header)
+    from rich.console import Console
+
+    narrow = io.StringIO()
+    Console(file=narrow).print(render(fleet.snapshot(), title="fleet"))  # what it was
+    assert not any("parameters (vs nominal)" in ln for ln in narrow.getvalue().splitlines())
+
+
+@pytest.mark.slow  # three daemons in real time (the module's fleet)
+def test_watch_into_a_file_writes_every_refresh_and_flushes_on_sigterm(
+        fleet3: Fleet3, tmp_path: Any) -> None:
+    """Issue 26 item 6: `watch` into a file wrote nothing while it ran (a Live display) and
+    nothing at all when stopped by SIGTERM. Not on a terminal it prints each refresh, full
+    width, and flushes; SIGTERM ends it with what it wrote kept."""
+    out = tmp_path / "watch.txt"
+    with out.open("w") as f:
+        proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "watch", "--connect",
+                                 fleet3.ep, "--interval", "0.5"], stdout=f,
+                                stderr=subprocess.PIPE, text=True, env=_env())
+        try:
+            wait_for(lambda: out.read_text().count("machines") >= 2, 60,
+                     "two refreshes written while it runs")
+            assert proc.poll() is None
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    text = out.read_text()
+    assert "m1" in text and "m2" in text and "m3" in text
+    assert any("parameters (vs nominal)" in ln for ln in text.splitlines())

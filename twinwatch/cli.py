@@ -750,7 +750,7 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, once: bool, as_json:
     quality. Machines appear and disappear as their daemons start and stop. Ctrl-C exits.
 
     Exit status: 0; 1 when the network cannot be reached."""
-    from twinwatch.watch import Fleet, WatchError, render, watching
+    from twinwatch.watch import Fleet, WatchError, console, render, watching
 
     fleet = Fleet(stale_after=stale)
     try:
@@ -761,16 +761,33 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, once: bool, as_json:
                 if as_json:
                     click.echo(json.dumps(snap, indent=2, allow_nan=False))
                 else:
-                    from rich.console import Console
-
-                    Console().print(render(snap, title=_fleet_title(connect, mode)))
+                    console().print(render(snap, title=_fleet_title(connect, mode)))
                 return
+            if not sys.stdout.isatty():
+                # into a file or a pipe: every refresh written and flushed (a Live display
+                # wrote nothing until it ended, and nothing at all when stopped by SIGTERM)
+                import signal
+
+                def _stop(*_: Any) -> None:
+                    raise KeyboardInterrupt
+
+                with contextlib.suppress(ValueError):  # not the main thread (tests)
+                    signal.signal(signal.SIGTERM, _stop)
             try:
                 if as_json:
                     while True:
                         time.sleep(interval)
                         click.echo(json.dumps(fleet.snapshot(), separators=(",", ":"),
                                               allow_nan=False))
+                        sys.stdout.flush()
+                if not sys.stdout.isatty():
+                    out = console()
+                    title = _fleet_title(connect, mode)
+                    while True:
+                        fleet.changed.wait(interval)
+                        fleet.changed.clear()
+                        out.print(render(fleet.snapshot(), title=title))
+                        sys.stdout.flush()
                 from rich.live import Live
 
                 title = _fleet_title(connect, mode)

@@ -865,6 +865,24 @@ _STATE_STYLE = {"alive": "green", "stale": "yellow", "gone": "red", "unknown": "
 _STATE_MARK = {"alive": "●", "stale": "◐", "gone": "✕", "unknown": "?"}
 
 
+FILE_WIDTH = 180
+"""Columns of the table written to a file or a pipe (on a terminal: the terminal's width).
+The columns' least widths add up to about 110: at rich's default 80 for a non-terminal every
+column was folded (issue 24)."""
+
+
+def console(file: Any = None) -> Any:
+    """A rich console for ``file`` (standard output by default): the terminal's width on a
+    terminal, :data:`FILE_WIDTH` columns into a file or a pipe."""
+    import sys as _sys
+
+    from rich.console import Console
+
+    stream = file if file is not None else _sys.stdout
+    tty = bool(getattr(stream, "isatty", lambda: False)())
+    return Console(file=stream) if tty else Console(file=stream, width=FILE_WIDTH)
+
+
 def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> RenderableType:
     """The rich table of :meth:`Fleet.snapshot`: one row per machine with its state (alive /
     stale / gone, for how long), its last window (age, index, plant time, run), each parameter's
