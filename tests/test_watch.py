@@ -360,3 +360,41 @@ def test_watch_into_a_file_writes_every_refresh_and_flushes_on_sigterm(
     text = out.read_text()
     assert "m1" in text and "m2" in text and "m3" in text
     assert any("parameters (vs nominal)" in ln for ln in text.splitlines())
+
+
+@pytest.mark.slow  # two daemons in real time behind two routers
+def test_watch_once_json_over_two_endpoints_lists_every_machine(tmp_path: Any) -> None:
+    """Issue 24: `--connect A --connect B` in client mode showed only the machines behind A
+    (a client session talks to one endpoint). Two routers on two ports, one daemon behind
+    each: `watch --once --json` over both lists both."""
+    eps = [endpoint(free_port()), endpoint(free_port())]
+    procs: list[subprocess.Popen[str]] = []
+    with zsession("router", listen=[eps[0]]) as ra, zsession("router", listen=[eps[1]]) as rb:
+        cols = [Collector(ra, "twinwatch/*/health"), Collector(rb, "twinwatch/*/health")]
+        try:
+            for name, ep in (("ma", eps[0]), ("mb", eps[1])):
+                d = tmp_path / name
+                d.mkdir()
+                (d / "m.toml").write_text(_daemon_config(name, ep))
+                procs.append(subprocess.Popen(
+                    [sys.executable, "-m", "twinwatch", "run", "m.toml", "--no-progress"],
+                    cwd=d, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                    text=True))
+            wait_for(lambda: all(c.snapshot() for c in cols), 120, "a window behind each")
+            r = _twinwatch("watch", "--connect", eps[0], "--connect", eps[1], "--once",
+                           "--json", "--wait", "3")
+            assert r.returncode == 0, r.stderr
+            names = sorted(m["machine"] for m in json.loads(r.stdout)["machines"])
+            assert names == ["ma", "mb"], names
+        finally:
+            for c in cols:
+                c.sub.undeclare()
+            for p in procs:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            for p in procs:
+                try:
+                    p.communicate(timeout=30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.communicate()

@@ -34,6 +34,7 @@ under a second).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import queue
@@ -776,13 +777,33 @@ def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
         WatchError: see :func:`open_session` and :class:`FleetWatcher`.
     """
     check_prefix(prefix)
-    session = open_session(connect, mode)
-    try:
-        with FleetWatcher(session, fleet, prefix=prefix, machine=machine,
-                          **options) as watcher:
-            yield watcher
-    finally:
-        session.close()
+    # A client session talks to one of its endpoints only (the first that answers): with
+    # `--connect A --connect B` the machines behind B never showed although the header
+    # listed both (issue 24). In client mode each endpoint gets a session of its own, all
+    # feeding the one fleet; a peer session connects to every endpoint itself.
+    groups = ([[e] for e in connect] if mode == "client" and len(connect) > 1
+              else [list(connect)])
+    with contextlib.ExitStack() as stack:
+        watchers: list[FleetWatcher] = []
+        for group in groups:
+            session = open_session(group, mode)
+            stack.callback(session.close)
+            watchers.append(stack.enter_context(
+                FleetWatcher(session, fleet, prefix=prefix, machine=machine, **options)))
+        yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)  # type: ignore[misc]
+
+
+class _Watchers:
+    """Several :class:`FleetWatcher` (one per endpoint in client mode) as one."""
+
+    def __init__(self, watchers: Sequence[FleetWatcher]) -> None:
+        self.watchers = list(watchers)
+
+    def settle(self, timeout: float) -> None:
+        """:meth:`FleetWatcher.settle` on each, within one ``timeout`` [s] in all."""
+        deadline = time.monotonic() + timeout
+        for w in self.watchers:
+            w.settle(max(0.0, deadline - time.monotonic()))
 
 
 # -- formatting --------------------------------------------------------------------------------
