@@ -398,3 +398,34 @@ def test_watch_once_json_over_two_endpoints_lists_every_machine(tmp_path: Any) -
                 except subprocess.TimeoutExpired:
                     p.kill()
                     p.communicate()
+
+
+def test_rul_and_deviation_alarms_apart_and_losses_only() -> None:
+    """Issue 24: "alarms: none" stood beside "last: Ra normal -> warning" (a RUL warning), and
+    the loss column listed the driver's activity (``driver_polls``, ``driver_duplicates``).
+    Now the RUL's level is its own line ("Ra RUL WARNING"), the last event says its kind, and
+    only losses are listed."""
+    import io
+
+    msg = _msg("m1", 7, ra_dev=-3.0)
+    msg["alarms"]["Ra"]["rul"] = {"level": "warning", "since_t": 488.0, "since_window": 5,
+                                  "rul_s": 500.0, "pending": None}
+    msg["counters"].update({"driver_polls": 10265, "driver_duplicates": 9})
+    fleet = Fleet(clock=Clock())
+    fleet.token("m1", True)
+    fleet.health("m1", msg)
+    fleet.alarm("m1", {"parameter": "Ra", "kind": "rul", "previous": "normal",
+                       "level": "warning", "t": 488.0})
+    (m,) = fleet.snapshot()["machines"]
+    assert m["alarms"]["Ra"]["level"] == "normal"
+    assert m["alarms"]["Ra"]["rul"]["level"] == "warning"
+    assert m["quality"]["problems"] == {"windows_abandoned": 2, "driver_gaps": 1}
+    from rich.console import Console
+
+    buf = io.StringIO()
+    Console(file=buf, width=400).print(render(fleet.snapshot(), title="fleet"))  # unfolded
+    text = buf.getvalue()
+    assert "Ra RUL WARNING since t=488 s" in text
+    assert "last: Ra RUL normal -> warning at 488 s" in text
+    assert "alarms: none" not in text and "driver_polls" not in text
+    assert "driver_duplicates" not in text and "driver_gaps 1" in text

@@ -90,12 +90,16 @@ _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-
                           r":[0-9]{1,5}$")
 _CHUNKS_RE = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
 
-#: Counters that report a loss or a fault (nonzero: shown under data quality), besides every
-#: ``driver_*`` counter other than the frames and samples delivered.
+#: Counters that report a loss or a fault (nonzero: shown under data quality, "losses"). Not
+#: the driver's activity (``driver_polls``, ``driver_duplicates``: a poll that found the
+#: sample already read, nothing lost; ``driver_reconnects``, ``driver_remote_frames``, the
+#: frames and samples delivered), which the column listed before (issue 24).
 PROBLEM_COUNTERS = ("windows_abandoned", "overruns", "numeric_failures", "samples_lost",
                     "bad_samples", "windows_not_stored", "store_waiting", "store_lost",
-                    "store_history_lost", "store_errors", "recording_lost", "zenoh_errors")
-_DRIVER_TOTALS = ("driver_frames", "driver_samples")
+                    "store_history_lost", "store_errors", "recording_lost", "zenoh_errors",
+                    "driver_bad_frames", "driver_bad_values", "driver_gaps", "driver_errors",
+                    "driver_dropped", "driver_error_frames", "driver_incomplete_syncs",
+                    "driver_outages", "mqtt_lost")
 
 SETTLE_S = 0.5
 """Tokens that arrive this soon after a watcher starts [s] existed before it."""
@@ -332,7 +336,11 @@ class Fleet:
             "t_end": h.get("t_end"),
             "parameters": _parameters(h),
             "alarms": {k: {"level": a.get("level"), "since_t": a.get("since_t"),
-                           "deviation_pct": a.get("deviation_pct")}
+                           "deviation_pct": a.get("deviation_pct"),
+                           "rul": ({"level": _dict(a.get("rul")).get("level"),
+                                    "since_t": _dict(a.get("rul")).get("since_t"),
+                                    "rul_s": _dict(a.get("rul")).get("rul_s")}
+                                   if isinstance(a.get("rul"), dict) else None)}
                        for k, a in _dict(h.get("alarms")).items() if isinstance(a, dict)},
             "terms": [{"equation": t.get("equation"), "meaning": t.get("meaning")}
                       for t in _list(h.get("terms")) if isinstance(t, dict)],
@@ -372,9 +380,7 @@ def _parameters(h: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
 def _quality(h: Mapping[str, Any]) -> dict[str, Any]:
     counters = _dict(h.get("counters"))
     problems = {k: v for k, v in counters.items()
-                if (k in PROBLEM_COUNTERS or (k.startswith("driver_")
-                                              and k not in _DRIVER_TOTALS))
-                and isinstance(v, int) and v}
+                if k in PROBLEM_COUNTERS and isinstance(v, int) and v}
     check = h.get("model_check")
     elapsed = _num(h.get("elapsed_s"))
     return {"nrmse": _num(h.get("nrmse")),
@@ -950,17 +956,21 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
                 params.append(f" {rul}", style="cyan")
         alarms = Text()
         for name, a in m["alarms"].items():
-            if a["level"] in ("warning", "alarm"):
-                if alarms:
-                    alarms.append("\n")
-                since = f" since t={a['since_t']:.0f} s" if a["since_t"] is not None else ""
-                alarms.append(f"{name} {str(a['level']).upper()}{since}",
-                              style=_LEVEL_STYLE[str(a["level"])])
+            # the deviation's alarm and the RUL's alarm, each said as what it is
+            for kind, lv in (("", a), ("RUL ", a.get("rul") or {})):
+                if lv.get("level") in ("warning", "alarm"):
+                    if alarms:
+                        alarms.append("\n")
+                    since = (f" since t={lv['since_t']:.0f} s"
+                             if lv.get("since_t") is not None else "")
+                    alarms.append(f"{name} {kind}{str(lv['level']).upper()}{since}",
+                                  style=_LEVEL_STYLE[str(lv["level"])])
         if not alarms:
             alarms.append("none" if m["alarms"] else "no rules", style="green dim")
         event = m.get("last_event")
         if event and event.get("parameter"):
-            alarms.append(f"\nlast: {event.get('parameter')} {event.get('previous')} -> "
+            kind = "RUL " if event.get("kind") == "rul" else ""
+            alarms.append(f"\nlast: {event.get('parameter')} {kind}{event.get('previous')} -> "
                           f"{event.get('level')} at {_num(event.get('t'), 0.0):.0f} s",
                           style="dim")
         terms = Text("\n".join(str(t["equation"]) for t in m["terms"]) or "none",
