@@ -125,6 +125,8 @@ HA_ABBREVIATIONS = {
     "uniq_id": "unique_id", "stat_t": "state_topic", "unit_of_meas": "unit_of_measurement",
     "stat_cla": "state_class", "dev_cla": "device_class", "val_tpl": "value_template",
     "avty_t": "availability_topic", "ic": "icon", "name": "name", "qos": "qos",
+    # a sensor's option, given by its full name (the abbreviation tables need none)
+    "suggested_display_precision": "suggested_display_precision",
 }
 HA_DEVICE_ABBREVIATIONS = {"ids": "identifiers", "name": "name", "mf": "manufacturer",
                            "mdl": "model", "sw": "sw_version", "hw": "hw_version",
@@ -194,7 +196,9 @@ def test_every_window_once_in_order_with_retained_state(tmp_path: Path, broker: 
     for suffix, text in flat_values(last).items():
         assert kept[f"{M}/{suffix}"] == text.encode(), suffix
     ra = last["parameters"]["Ra"]
-    assert float(kept[f"{M}/parameters/Ra/value"]) == ra["value"]
+    # rounded to two significant digits of its standard error (issue 24)
+    assert float(kept[f"{M}/parameters/Ra/value"]) == pytest.approx(
+        ra["value"], abs=ra["value"] * ra["rel_std_pct"] / 100.0)
     assert kept[f"{M}/parameters/Ra/status"] == ra["status"].encode()
     assert kept[f"{M}/parameters/Ra/alarm"] == b"normal"   # the default config's rule
 
@@ -235,6 +239,39 @@ def test_home_assistant_rul_is_a_duration_sensor_when_the_message_has_it():
     assert "D_rul" not in payload["cmps"]
     doc["parameters"]["Ra"]["rul"] = None   # the field present, no RUL yet: "null"
     assert flat_values(doc)["parameters/Ra/rul"] == "null"
+
+
+def test_the_first_discovery_is_complete_with_entities_only_for_what_is_filled():
+    """Issue 24: the first discovery (before any health message) had 18 components and the
+    next 25; RUL entities were announced for parameters without an alarm rule (unknown for
+    ever); values came unrounded (4.440892098500626e-14). The configuration's rules give the
+    alarm and RUL entities from the first message, only for parameters with a rule; numbers
+    carry a display precision and are rounded to what their interval supports."""
+    params = {"Ra": "ohm", "La": "H", "J": "kg m^2", "Ke": "V s/rad", "Kt": "N m/A",
+              "D": "N m s/rad"}
+    nominal = {"Ra": 6.5, "La": 0.673, "J": 0.001171, "Ke": 0.038, "Kt": 0.038, "D": 0.00143}
+    first = discovery_payload("m1", "dc_motor", "twinwatch/m1", None, params,
+                              rules={"Ra"}, nominal=nominal)
+    rul = {"status": "degrading", "warning": None, "alarm": {"rul_s": 380.5}}
+    doc: dict[str, Any] = {"machine": "m1", "parameters": {
+        n: {"value": nominal[n], "unit": u, "nominal": nominal[n], "deviation_pct": 0.0,
+            "status": "estimated", "rel_std_pct": 0.01, "rul": rul if n != "Kt" else None}
+        for n, u in params.items()}, "alarms": {"Ra": {"level": "normal"}}}
+    later = discovery_payload("m1", "dc_motor", "twinwatch/m1", doc, params,
+                              rules={"Ra"}, nominal=nominal)
+    check_ha_discovery("homeassistant/device/twinwatch_m1/config", first, machine="m1")
+    assert first["cmps"] == later["cmps"]          # complete from the first message
+    assert len(first["cmps"]) == 3 * 6 + 2         # value, deviation, status; Ra alarm, RUL
+    assert "Ra_rul" in first["cmps"] and "Ra_alarm" in first["cmps"]
+    assert not [k for k in first["cmps"] if k.endswith("_rul") and k != "Ra_rul"]
+    assert first["cmps"]["Ra_value"]["suggested_display_precision"] == 3   # 6.500 ohm
+    assert first["cmps"]["J_value"]["suggested_display_precision"] == 6    # 0.001171
+    assert first["cmps"]["Ra_deviation"]["suggested_display_precision"] == 2
+    doc["parameters"]["Ra"].update(value=6.5 * (1 + 4.440892098500626e-16),
+                                   deviation_pct=4.440892098500626e-14)
+    flat = flat_values(doc)
+    assert flat["parameters/Ra/deviation_pct"] == "0.0"
+    assert flat["parameters/Ra/value"] == "6.5"
 
 
 @pytest.mark.slow

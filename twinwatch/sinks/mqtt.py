@@ -60,6 +60,7 @@ import ssl
 import threading
 import time
 from collections import deque
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
@@ -269,6 +270,34 @@ def _number(value: Any) -> str:
     return "null"
 
 
+def _std(value: Any, rel_std_pct: Any) -> float | None:
+    """The standard error of ``value`` from its relative one [%], or None."""
+    if (isinstance(value, int | float) and isinstance(rel_std_pct, int | float)
+            and not isinstance(rel_std_pct, bool) and math.isfinite(value)
+            and math.isfinite(rel_std_pct) and rel_std_pct > 0):
+        return abs(value) * rel_std_pct / 100.0
+    return None
+
+
+def _rounded(value: Any, std: float | None, *, floor: float | None = None,
+             digits: int = 6) -> Any:
+    """``value`` rounded to what its interval supports: two significant digits of its
+    standard error ``std`` (Ra 6.16593 +- 0.0006: 6.16593), never finer than ``floor``;
+    without one, ``digits`` significant digits. A deviation of 4.440892098500626e-14 %
+    (a float's rounding) is published as 0.0."""
+    if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+        return value
+    step = std if std is not None and std > 0 else None
+    if floor is not None:
+        step = max(step, floor) if step is not None else floor
+    if step is not None:
+        decimals = max(0, 1 - math.floor(math.log10(step)))
+        return round(float(value), min(decimals, 15))
+    if value == 0:
+        return 0.0
+    return float(f"{value:.{digits}g}")
+
+
 def _rul_s(param: dict[str, Any], level: str) -> Any:
     rul = param.get("rul")
     crossing = rul.get(level) if isinstance(rul, dict) else None
@@ -288,8 +317,12 @@ def flat_values(doc: dict[str, Any]) -> dict[str, str]:
     alarms = doc.get("alarms") or {}
     for name, p in (doc.get("parameters") or {}).items():
         base = f"parameters/{name}"
-        out[f"{base}/value"] = _number(p.get("value"))
-        out[f"{base}/deviation_pct"] = _number(p.get("deviation_pct"))
+        value, dev, rel = p.get("value"), p.get("deviation_pct"), p.get("rel_std_pct")
+        out[f"{base}/value"] = _number(_rounded(value, _std(value, rel)))
+        nom = p.get("nominal")
+        dev_std = (_std(value, rel) / abs(nom) * 100.0
+                   if isinstance(nom, int | float) and nom and _std(value, rel) else None)
+        out[f"{base}/deviation_pct"] = _number(_rounded(dev, dev_std, floor=1e-4))
         out[f"{base}/status"] = str(p.get("status") or "")
         if "rul" in p:
             out[f"{base}/rul"] = _number(_rul_s(p, "alarm"))
@@ -337,7 +370,9 @@ def ha_device_id(machine: str) -> str:
 
 def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] | None,
                       parameters: dict[str, str], *, qos: int = 1,
-                      device_name: str | None = None) -> dict[str, Any]:
+                      device_name: str | None = None,
+                      rules: Collection[str] | None = None,
+                      nominal: Mapping[str, float] | None = None) -> dict[str, Any]:
     """Home Assistant's device-based discovery payload for one machine (abbreviated keys, as
     Home Assistant's MQTT documentation lists them).
 
@@ -351,6 +386,11 @@ def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] |
         parameters: parameter name -> SI unit (the twin's, in order).
         qos: the QoS Home Assistant subscribes with.
         device_name: the device's name (default: the machine name).
+        rules: the parameters with an ``[alarms]`` rule (the configuration's): their alarm
+            and RUL entities are announced in the first message, before any health message
+            (before, the first discovery had 18 components and the next, once a message
+            came, 25), and only theirs (a RUL without a rule stayed ``unknown`` for ever).
+        nominal: parameter -> nominal value, for each value entity's display precision.
 
     Returns:
         The payload: ``dev`` (ids, name, mf, mdl, sw), ``o`` (name, sw, url), ``avty_t``,
@@ -364,7 +404,7 @@ def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] |
     doc_params = (doc or {}).get("parameters") or {}
     for name, p in doc_params.items():
         params.setdefault(name, str(p.get("unit") or ""))
-    alarms = _levels(doc)
+    alarms = set(_levels(doc)) | set(rules or ())
     number = "{{ value_json }}"  # JSON null -> None -> Home Assistant's "unknown"
     cmps: dict[str, dict[str, Any]] = {}
 
@@ -377,17 +417,23 @@ def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] |
         value: dict[str, Any] = {"stat_cla": "measurement", "val_tpl": number}
         if unit:
             value["unit_of_meas"] = unit
+        nom = (nominal or {}).get(name)
+        if nom is not None and math.isfinite(nom) and nom != 0:
+            # four significant digits of the nameplate value: Ra 6.500 ohm, J 0.001171
+            value["suggested_display_precision"] = max(0, 3 - math.floor(math.log10(abs(nom))))
         add(f"{name}_value", "sensor", name, f"{t}/value", **value)
         add(f"{name}_deviation", "sensor", f"{name} deviation", f"{t}/deviation_pct",
-            unit_of_meas="%", stat_cla="measurement", val_tpl=number, ic="mdi:delta")
+            unit_of_meas="%", stat_cla="measurement", val_tpl=number, ic="mdi:delta",
+            suggested_display_precision=2)
         add(f"{name}_status", "sensor", f"{name} status", f"{t}/status",
             ic="mdi:information-outline")
         if name in alarms:
             add(f"{name}_alarm", "binary_sensor", f"{name} alarm", f"{t}/alarm",
                 dev_cla="problem", val_tpl="{{ 'OFF' if value == 'normal' else 'ON' }}")
-        if "rul" in (doc_params.get(name) or {}):
+        if name in alarms and (rules is not None or "rul" in (doc_params.get(name) or {})):
             add(f"{name}_rul", "sensor", f"{name} remaining useful life", f"{t}/rul",
-                dev_cla="duration", unit_of_meas="s", stat_cla="measurement", val_tpl=number)
+                dev_cla="duration", unit_of_meas="s", stat_cla="measurement", val_tpl=number,
+                suggested_display_precision=0)
     return {
         "dev": {"ids": [dev_id], "name": device_name or machine, "mf": "twinwatch",
                 "mdl": f"{model} digital twin" if model else "digital twin", "sw": __version__},
@@ -876,9 +922,13 @@ class MqttPublisher(Sink):
         ha = self.config.home_assistant
         if not ha.discovery or not self._connected:
             return
+        ctx = self.context
         payload = json.dumps(discovery_payload(
             self.machine, self.model, self.base, self._latest_doc, self.parameters,
-            qos=self.config.qos, device_name=ha.device_name), separators=(",", ":"))
+            qos=self.config.qos, device_name=ha.device_name,
+            rules=set(ctx.alarm_bands) if ctx is not None else None,
+            nominal=dict(ctx.nominal) if ctx is not None and ctx.nominal else None),
+            separators=(",", ":"))
         if payload == self._discovery_sent and not force:
             return
         self.client.publish(self.discovery_topic, payload, qos=1, retain=True)
