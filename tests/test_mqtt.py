@@ -34,6 +34,7 @@ from .mqtt_helpers import (
     running_broker,
     twinwatch,
 )
+from .conftest import ROOT
 from .test_fault_injection import sim_config
 
 M = "twinwatch/dc-motor-sim"
@@ -533,3 +534,27 @@ def test_a_reload_hands_the_output_over_and_no_gate_keeps_an_outbox_in_memory(
     assert kept["twinwatch/m1/parameters/Ra/value"] == json.dumps(6.5 - 0.07).encode()
     assert kept["twinwatch/m1/availability"] == b"offline"
     sub.close()
+
+
+@pytest.mark.parametrize("table, key", [
+    ('topic_prefix = "$SYS/twinwatch"', "topic_prefix"),
+    ('topic_prefix = "a/+/b"', "topic_prefix"),
+    ('client_id = "m1\\u0000x"', "client_id"),
+    ('client_id = "m1\\nx"', "client_id"),
+    ('home_assistant = { prefix = "$ha" }', "home_assistant.prefix"),
+])
+def test_check_config_refuses_topics_and_client_ids_mqtt_does_not_allow(
+        tmp_path: Path, table: str, key: str) -> None:
+    """Issue 26 item 1: a `$SYS/...` prefix passed `check-config` and 10 windows were counted
+    delivered that no subscriber could receive; a NUL in the client id passed, then nothing was
+    delivered and nothing said why. MQTT's rules are checked at load, naming the key."""
+    from click.testing import CliRunner
+
+    from twinwatch.cli import main
+
+    text = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(text + f"\n[outputs.mqtt]\n{table}\n")
+    r = CliRunner().invoke(main, ["check-config", str(cfg)])
+    assert r.exit_code != 0, r.output
+    assert f"outputs.mqtt.{key}" in r.output, r.output

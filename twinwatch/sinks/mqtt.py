@@ -109,9 +109,20 @@ _HA_ID_RE = re.compile(r"[^A-Za-z0-9_-]")
 
 
 def _check_topic(value: str, what: str) -> str:
+    """A topic (prefix) by MQTT's rules (MQTT 3.1.1 Section 4.7): non-empty levels, no
+    wildcards, no NUL, at most 65535 bytes of UTF-8, and not a ``$`` topic (``$SYS/...`` is the
+    broker's own: a subscriber's ``#`` never receives it, and a broker may refuse publishing
+    there: 10 windows were counted delivered that no subscriber could receive)."""
     if not value or any(_LEVEL_RE.match(level) is None for level in value.split("/")):
         raise ValueError(f"{what} {value!r} must be non-empty topic levels separated by '/', "
-                         f"without the wildcards '+' and '#' (and no leading or trailing '/')")
+                         f"without the wildcards '+' and '#', NUL (and no leading or trailing "
+                         f"'/')")
+    if value.startswith("$"):
+        raise ValueError(f"{what} {value!r} starts with '$': such topics are the broker's "
+                         f"own ($SYS), not for applications (MQTT 3.1.1 Section 4.7.2)")
+    if len(value.encode("utf-8")) > 60_000:  # the machine and the suffixes need room
+        raise ValueError(f"{what} is {len(value.encode('utf-8'))} bytes: an MQTT topic is "
+                         f"at most 65535 bytes with its machine and suffix")
     return value
 
 
@@ -211,6 +222,15 @@ class MqttConfig(SinkConfig):
     @classmethod
     def _prefix(cls, value: str) -> str:
         return _check_topic(value, "topic_prefix")
+
+    @field_validator("client_id")
+    @classmethod
+    def _client_id(cls, value: str | None) -> str | None:
+        # MQTT 3.1.1 Section 3.1.3.1: a UTF-8 string; a NUL or a control character passed
+        # check-config, then nothing was delivered and nothing said why
+        if value is not None and any(ord(c) < 0x20 or ord(c) == 0x7F for c in value):
+            raise ValueError("client_id must not contain NUL or control characters")
+        return value
 
     @model_validator(mode="after")
     def _check(self) -> Self:
