@@ -558,3 +558,58 @@ def test_check_config_refuses_topics_and_client_ids_mqtt_does_not_allow(
     r = CliRunner().invoke(main, ["check-config", str(cfg)])
     assert r.exit_code != 0, r.output
     assert f"outputs.mqtt.{key}" in r.output, r.output
+
+
+@needs_mosquitto
+def test_a_broker_that_stops_acknowledging_is_degraded_and_logged_once(
+        tmp_path: Path, broker: Broker, caplog: pytest.LogCaptureFixture):
+    """Issue 26 item 1: a broker that accepts and never acknowledges (here Mosquitto stopped
+    with SIGSTOP after the connection) left 36 windows pending for 70 s with STATUS never
+    DEGRADED and not one log line. Past `ack_timeout` the output's problem says so (what
+    STATUS shows as DEGRADED), logged once; once the broker answers again it clears and the
+    windows are delivered."""
+    import logging
+    import os
+
+    from twinwatch.sinks.base import SinkContext
+    from twinwatch.sinks.mqtt import MqttPublisher
+    from twinwatch.sinks.store import StateStore
+
+    topic = "twinwatch/m1/health"
+    sub = Subscriber(broker.port, [topic])
+    store = StateStore(tmp_path / "s.sqlite", prune_every=0)
+    cfg = MqttConfig(port=broker.port, keepalive=30, ack_timeout=1.0)
+    ctx = SinkContext(machine="m1", model="dc_motor", parameters={"Ra": "ohm"},
+                      outbox=lambda name: store.outbox(name, "m1"))
+    pub = MqttPublisher.open("mqtt", cfg, ctx)
+    assert broker.proc is not None
+    try:
+        pub.write(_window(store, 0))
+        sub.wait(lambda: len(sub.on(topic)) == 1, 20, "the first window")
+        assert pub.problem is None
+        caplog.set_level(logging.WARNING, logger="twinwatch.sinks.mqtt")
+        os.kill(broker.proc.pid, signal.SIGSTOP)
+        try:
+            for w in (1, 2):
+                pub.write(_window(store, w))
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline and not (pub.problem or "").count(
+                    "has not acknowledged"):
+                time.sleep(0.2)
+            assert "has not acknowledged" in (pub.problem or ""), pub.problem
+            for _ in range(5):  # STATUS reads it every second: still one log line
+                assert pub.problem
+                time.sleep(0.1)
+            lines = [r for r in caplog.records if "has not acknowledged" in r.getMessage()]
+            assert len(lines) == 1
+        finally:
+            os.kill(broker.proc.pid, signal.SIGCONT)
+        sub.wait(lambda: len(sub.on(topic)) >= 3, 30, "the windows after the broker answers")
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and pub.problem:
+            time.sleep(0.2)
+        assert pub.problem is None
+    finally:
+        pub.close()
+        store.close()
+        sub.close()

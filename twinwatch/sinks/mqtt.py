@@ -210,6 +210,9 @@ class MqttConfig(SinkConfig):
                                        description="s to the first retry; doubles to reconnect_max")
     reconnect_max: StrictFloat = Field(30.0, gt=0,
                                        description="s, the longest retry delay (+-25 % jitter)")
+    ack_timeout: StrictFloat = Field(
+        30.0, gt=0, allow_inf_nan=False,
+        description="s a window may wait for the broker's acknowledgement before DEGRADED")
     connect_timeout: StrictFloat = Field(
         5.0, gt=0, description="s, one connection attempt's timeout")
     close_timeout: StrictFloat = Field(5.0, ge=0,
@@ -519,11 +522,12 @@ class MemoryOutbox:
 class _Window:
     """A window handed to paho: its row and the message ids not acknowledged yet."""
 
-    __slots__ = ("mids", "row")
+    __slots__ = ("mids", "row", "sent")
 
     def __init__(self, row: OutboxRow) -> None:
         self.row = row
         self.mids: set[int] = set()
+        self.sent = time.monotonic()
 
 
 class MqttPublisher(Sink):
@@ -570,6 +574,7 @@ class MqttPublisher(Sink):
         self._rebind = threading.Event()
         self._connected = False
         self._down_since: float | None = time.monotonic()
+        self._unacked_logged = False
         self._last_error: str | None = None
         self._failing_store = False
         self._inflight: dict[int, _Window] = {}  # health row id -> window
@@ -718,9 +723,33 @@ class MqttPublisher(Sink):
                 out.append(f"MQTT broker {self.config.host}:{self.config.port} unreachable for "
                            f"{since:.0f} s{why}: {self.pending} windows pending, sent when it "
                            f"is back")
+        unacked = self._unacknowledged()
+        if unacked is not None:
+            out.append(unacked)
         if self.dropped:
             out.append(f"MQTT: {self.dropped} windows dropped undelivered")
         return "; ".join(out) or None
+
+    def _unacknowledged(self) -> str | None:
+        """Connected, but the oldest window handed to the broker waits for its
+        acknowledgement longer than ``ack_timeout``: a broker that accepts and never
+        acknowledges (issue 26: 36 windows pending for 70 s, STATUS never said DEGRADED, not
+        one log line). Logged once per episode."""
+        if not self._connected or self._closed:
+            self._unacked_logged = False
+            return None
+        sent = [w.sent for w in list(self._inflight.values())]
+        age_s = time.monotonic() - min(sent) if sent else 0.0
+        if age_s <= self.config.ack_timeout:
+            self._unacked_logged = False
+            return None
+        line = (f"MQTT broker {self.config.host}:{self.config.port} has not acknowledged "
+                f"{len(sent)} windows for {age_s:.0f} s (ack_timeout "
+                f"{self.config.ack_timeout:g} s): {self.pending} windows pending")
+        if not self._unacked_logged:
+            self._unacked_logged = True
+            logger.warning("%s; they are kept and sent again on the next connection", line)
+        return line
 
     @property
     def status(self) -> str:
