@@ -23,6 +23,7 @@ from twinwatch.config.loader import load_config
 from twinwatch.errors import ConfigError
 from twinwatch.sinks.mqtt import MqttConfig, discovery_payload, flat_values
 
+from .conftest import ROOT
 from .mqtt_helpers import (
     Broker,
     Subscriber,
@@ -34,7 +35,6 @@ from .mqtt_helpers import (
     running_broker,
     twinwatch,
 )
-from .conftest import ROOT
 from .test_fault_injection import sim_config
 
 M = "twinwatch/dc-motor-sim"

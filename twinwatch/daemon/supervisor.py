@@ -51,9 +51,9 @@ from twinwatch.errors import StartError
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
-    from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.pipeline import HealthCallback
     from twinwatch.daemon.runner import Daemon
+    from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.sinks.base import SharedResources
     from twinwatch.twin.health import HealthMessage
 

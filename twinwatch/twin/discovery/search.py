@@ -598,8 +598,9 @@ class Discovery:
         squares (their logarithms, ties applied), from ``theta``: the term's window evidence
         and its covariance are then *marginal* over them. Parameters the window did not
         determine (a valley such as the DC motor's La and J) stay held: freeing them lets the
-        valley absorb part of a periodic term. Conditional on the window's estimates (``joint = false``, the behaviour before),
-        a parameter the window cannot tell apart from the term absorbs the term's error and
+        valley absorb part of a periodic term. Conditional on the window's estimates
+        (``joint = false``, the behaviour before), a parameter the window cannot tell apart
+        from the term absorbs the term's error and
         the term's refined value then keeps it there: in the leak example the pressure gain
         kept at 0.199939 (its discovery's) and D published +36 to +50 % for 19 windows, both
         self-consistent, the refined covariance 1e-8 and wrong. The physical values of the
