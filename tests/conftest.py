@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import threading
 from pathlib import Path
 
@@ -52,19 +53,26 @@ def _no_leaked_threads():
     assert not leaked, f"threads leaked: {[t.name for t in leaked]}"
 
 
+_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+_SESSION_DISPOSITIONS = {n: signal.getsignal(n) for n in _SIGNALS}
+
+
+def _restore_dispositions() -> None:
+    for n, h in _SESSION_DISPOSITIONS.items():
+        if h is not None and signal.getsignal(n) is not h:
+            signal.signal(n, h)
+
+
 @pytest.fixture(autouse=True)
 def _signal_dispositions_restored():
-    """Give every test the signal dispositions it started with. `twinwatch run` invoked
-    in-process (click's CliRunner) ends by ignoring SIGTERM and SIGINT at the OS level
-    (``cli._ignore_late_stops``: a late stop must not kill a process that stopped cleanly);
-    an ignored disposition is inherited by every child process, so without this the
-    subprocesses of later tests ignored the SIGINT/SIGTERM they were sent and timed out
-    (three recorder tests after the host merge)."""
-    import signal
-
-    nums = [signal.SIGTERM, signal.SIGINT, signal.SIGHUP]
-    saved = {n: signal.getsignal(n) for n in nums}
+    """Give every test the signal dispositions the session started with, before and after
+    it. `twinwatch run` invoked in-process (click's CliRunner) ends by ignoring SIGTERM and
+    SIGINT at the OS level (``cli._ignore_late_stops``: a late stop must not kill a process
+    that stopped cleanly); an ignored disposition is inherited by every child process, so
+    without this the subprocesses of later tests ignored the SIGINT/SIGTERM they were sent
+    and timed out. Restored *before* each test too: a module-scoped fixture that runs the
+    CLI in-process (test_prognostics_resume, test_mqtt_docs) runs outside any test's own
+    restore, and the recorder and watch tests after it failed in CI that way."""
+    _restore_dispositions()
     yield
-    for n, h in saved.items():
-        if signal.getsignal(n) is not h and h is not None:
-            signal.signal(n, h)
+    _restore_dispositions()

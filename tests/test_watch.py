@@ -358,7 +358,8 @@ def test_watch_into_a_file_writes_every_refresh_and_flushes_on_sigterm(
             _, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
     text = out.read_text()
-    assert "m1" in text and "m2" in text and "m3" in text
+    running = [n for n, p in fleet3.procs.items() if p.poll() is None]  # m3 may be killed
+    assert {"m1", "m2"} <= set(running) and all(n in text for n in running), (running, text)
     assert any("parameters (vs nominal)" in ln for ln in text.splitlines())
 
 
