@@ -96,7 +96,7 @@ def test_discovery_finds_the_unbalanced_shaft(skip: int) -> None:
 def test_forced_discovery_on_noisy_nominal_windows_keeps_nothing() -> None:
     """No false discovery even when the search is forced on every window: 1 % noise is
     white, and no meta-model earns its place against it (BIC, improvement, significance)."""
-    cfg, twin, disc_cfg = _setup(trigger_windows=1, residual_ratio=1.0000001, min_nrmse=0.0,
+    cfg, twin, disc_cfg = _setup(trigger_windows=1, false_alarm=0.9999, min_nrmse=0.0,
                                  retry_after=1)
     adapter = TwinAdapter(twin, cfg.estimation, disc_cfg)
     _, wins = plant_windows(DCMotorPlantConfig(scenario="nominal", duration=40,

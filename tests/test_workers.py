@@ -129,7 +129,8 @@ def test_a_killed_worker_is_restarted_and_its_machines_resume_the_others_untouch
             killed_at = time.time()
             os.kill(victim, signum)
 
-            def resumed() -> bool:
+            def resumed(dead: set[str] = dead, before: dict = before,  # type: ignore[type-arg]
+                        killed_at: float = killed_at) -> bool:
                 return all(any(w > killed_at for _, _, w in _rows(dbs[m])[len(before[m]):])
                            for m in dead)
 

@@ -6,13 +6,15 @@
    (:class:`~twinwatch.twin.estimation.Estimator`);
 2. the kept terms are polished and re-validated (:meth:`Discovery.revalidate`); a term that no
    longer earns its place is switched off;
-3. the residual is compared with the exit criterion: too large means a normalised RMSE above
-   ``residual_ratio`` times the normalised white-noise level estimated from the residual itself
-   (first differences), and above ``min_nrmse``. A window whose residual is too large does not
-   update the trusted parameters (its estimates are biased by the missing component);
-4. after ``trigger_windows`` such windows in a row, discovery searches the candidates
-   (:meth:`Discovery.discover`); new terms join DT'', the window is re-estimated with them, and
-   the change is reported. A discovery that keeps nothing waits ``retry_after`` windows.
+3. the residual's structure is tested (:mod:`twinwatch.twin.discovery.trigger`): measurement
+   noise is white, a missing component is not. A window whose residual is structured (its
+   Ljung-Box whiteness test below ``window_alpha``, the structure above ``min_nrmse``) does not
+   update the trusted parameters and publishes its estimates ``suspect`` (they are biased by the
+   missing component);
+4. when the tests of the last ``trigger_windows`` windows, combined, are below ``false_alarm``,
+   discovery searches the candidates (:meth:`Discovery.discover`); new terms join DT'', the
+   window is re-estimated with them, and the change is reported. A discovery that keeps nothing
+   waits ``retry_after`` windows.
 
 Without a ``[discovery]`` table (or with ``enabled = false``) only step 1 runs, exactly as before.
 
@@ -39,9 +41,10 @@ from twinwatch.twin.discovery.search import (
     Discovery,
     DiscoveryConfig,
     DiscoveryReport,
-    residual_too_large,
+    window_structure,
 )
 from twinwatch.twin.discovery.terms import Term, compose, format_terms
+from twinwatch.twin.discovery.trigger import StructureEvidence, WindowStructure
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, WindowEstimate
 from twinwatch.twin.estimation.fit import Residual, WindowFit
 from twinwatch.twin.estimation.statistics import noise_level
@@ -73,14 +76,18 @@ class AdaptationResult:
         dt_prime: residual of the twin without terms, at the same parameters.
         dt_second: residual with the terms (None without terms).
         noise: output -> estimated white-noise level of the final residual.
-        too_large: the final residual is above the exit criterion.
-        consecutive: windows in a row with a too-large residual.
+        too_large: the final residual is structured: the model lacks something (the trigger's
+            window test, :mod:`twinwatch.twin.discovery.trigger`).
+        consecutive: windows in a row with a structured residual.
         discovery: the discovery run in this window, if any.
         revalidation: the re-validation of the kept terms, if any.
         changed: terms were added or dropped in this window.
         prognosis: estimated parameter -> its trend and remaining useful life after this
             window (empty when ``[prognostics]`` is off).
         window_choice: the adaptive window's decision (None when it is off).
+        structure: the final residual's structure test (None without discovery).
+        evidence_p: the combined p-value of the last ``trigger_windows`` windows' tests,
+            before a discovery this window ran on them (None without discovery).
     """
 
     estimate: WindowEstimate
@@ -96,6 +103,8 @@ class AdaptationResult:
     events: list[str] = field(default_factory=list)
     prognosis: dict[str, Prognosis] = field(default_factory=dict)
     window_choice: WindowChoice | None = None
+    structure: WindowStructure | None = None
+    evidence_p: float | None = None
 
 
 class TwinAdapter:
@@ -137,6 +146,8 @@ class TwinAdapter:
         self.terms: list[Term] = []
         self.consecutive = 0
         self._cooldown = 0
+        #: The last windows' structure tests, combined (the trigger).
+        self.evidence = StructureEvidence(self.config.trigger_windows, self.config.false_alarm)
 
     @property
     def enabled(self) -> bool:
@@ -190,8 +201,10 @@ class TwinAdapter:
                 logger.warning("window %d: meta-model term simplified to %s", window.index,
                                t.describe())
             est = self._resimulate(est, fit, theta)
-        too_large = self._too_large(fit, est)
+        structure = self._structure(fit, est)
+        too_large = structure.structured
         self.consecutive = self.consecutive + 1 if too_large else 0
+        evidence_p = self.evidence.add(structure)
         if too_large and est.trusted:
             # The window misses a component: its estimates are biased, do not trust them.
             est_.rollback(snapshot)
@@ -199,8 +212,12 @@ class TwinAdapter:
         disc = None
         if self._cooldown > 0:
             self._cooldown -= 1
-        elif (self.consecutive >= self.config.trigger_windows
-              and len(self.terms) < self.config.max_terms):
+        elif self.evidence.triggered and len(self.terms) < self.config.max_terms:
+            logger.info("window %d: the residual is structured (%s; the last %d windows "
+                        "together p = %.1e < false_alarm %.0e): discovery runs", window.index,
+                        structure.describe(), self.config.trigger_windows, evidence_p,
+                        self.config.false_alarm)
+            self.evidence.clear()
             disc = self.discovery.discover(fit, theta, self.terms)[1]
             if disc.kept:
                 self.terms.extend(disc.kept)
@@ -215,7 +232,8 @@ class TwinAdapter:
                 theta = self._theta(est)
                 self.discovery.polish_terms(fit, theta, self.terms, self._free(est))
                 est = self._resimulate(est, fit, theta)
-                too_large = self._too_large(fit, est)
+                structure = self._structure(fit, est)
+                too_large = structure.structured
                 self.consecutive = 0
             else:
                 self._cooldown = self.config.retry_after
@@ -240,6 +258,8 @@ class TwinAdapter:
             revalidation=reval,
             changed=changed,
             events=events,
+            structure=structure,
+            evidence_p=evidence_p,
         ), prior, fit)
 
     # -- prognostics ----------------------------------------------------------------------
@@ -374,13 +394,13 @@ class TwinAdapter:
         lvl = noise_level(y - fit.meas)
         return dict(zip(fit.names, (float(v) for v in lvl), strict=True))
 
-    def _too_large(self, fit: WindowFit, est: WindowEstimate) -> bool:
-        """The exit criterion (:func:`~twinwatch.twin.discovery.residual_too_large`) on the
-        final twin's residual."""
+    def _structure(self, fit: WindowFit, est: WindowEstimate) -> WindowStructure:
+        """The structure test (:mod:`twinwatch.twin.discovery.trigger`) of the final twin's
+        residual; a non-finite fit is structured."""
         if not math.isfinite(est.nrmse):
-            return True
+            return WindowStructure({}, 0.0, True)
         r = fit.error_matrix(est.simulated).reshape(-1)
-        return residual_too_large(r / math.sqrt(r.size), fit.n_out, self.config)
+        return window_structure(r / math.sqrt(r.size), fit.n_out, self.config, fit.names)
 
     def _resimulate(self, est: WindowEstimate, fit: WindowFit, theta: FloatArray
                     ) -> WindowEstimate:

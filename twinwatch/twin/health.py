@@ -87,7 +87,7 @@ __all__ = [
     "trend_line",
 ]
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 
 
 def _finite(x: Any) -> Any:
@@ -272,8 +272,13 @@ class DiscoveryStatus(_Part):
     """``discovery``: the unknown-component search (DT'') in this window."""
 
     enabled: bool
-    too_large: bool = Field(description="the residual is above the exit criterion")
+    too_large: bool = Field(description="the residual is structured: the model lacks "
+                            "something (whiteness test below window_alpha)")
     consecutive: int = Field(description="such windows in a row")
+    p_value: Num = Field(None, description="probability of the residual's structure "
+                                "in white noise (Ljung-Box, the most structured output)")
+    evidence_p: Num = Field(None, description="the last trigger_windows windows' "
+                                   "tests combined (Fisher): discovery runs below false_alarm")
     ran: bool = Field(description="a search ran in this window")
     elapsed_s: float = Field(description="search and re-validation time [s]")
     kept: list[str] = Field(description="equations added in this window")
@@ -511,6 +516,9 @@ def build_health(
             enabled=discovery_enabled,
             too_large=adaptation.too_large,
             consecutive=adaptation.consecutive,
+            p_value=(adaptation.structure.p_value if adaptation.structure is not None
+                     else None),
+            evidence_p=adaptation.evidence_p,
             ran=bool(disc and disc.ran),
             elapsed_s=(disc.elapsed_s if disc else 0.0) + (reval.elapsed_s if reval else 0.0),
             kept=[t.equation() for t in disc.kept] if disc else [],

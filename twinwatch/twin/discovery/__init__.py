@@ -1,7 +1,8 @@
 """Discovery: what the model lacks, found as interpretable meta-models (paper Section 3.3).
 
 Modules: ``search`` (:class:`~twinwatch.twin.discovery.search.Discovery`, the forward
-selection over candidate meta-models and its configuration), ``separable`` (one candidate on
+selection over candidate meta-models and its configuration), ``trigger`` (when to search: the
+residual's whiteness test, combined over windows), ``separable`` (one candidate on
 one window as a separable least-squares problem: its normalised input, the projection of the
 coefficients, the forms without optional parameters), ``terms`` (a meta-model attached
 to a model equation, its refinement across windows), ``metamodels/`` (one class per kind, paper

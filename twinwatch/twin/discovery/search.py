@@ -63,6 +63,7 @@ from pydantic import (
 from twinwatch.twin.discovery.metamodels import TABLE_1, MetaModel, get_meta_model
 from twinwatch.twin.discovery.separable import CandidateInput, SeparableFit
 from twinwatch.twin.discovery.terms import TIME, Term, compose, format_terms, term_input
+from twinwatch.twin.discovery.trigger import WindowStructure, residual_structure
 from twinwatch.twin.estimation.estimator import Estimator, PSOSettings
 from twinwatch.twin.estimation.fit import (
     ParameterMap,
@@ -136,14 +137,27 @@ class DiscoveryConfig(BaseModel):
 
     enabled: bool = Field(False, description="run the DT'' step")
     candidates: list[CandidateConfig] = Field(default_factory=list)
-    trigger_windows: StrictInt = Field(3, ge=1, description="consecutive windows whose residual is "
-                                       "too large before discovery runs (K)")
-    residual_ratio: StrictFloat = Field(
-        3.0, gt=1, description="a residual is too large when its "
-        "normalised RMSE exceeds this many times the normalised noise "
-        "level estimated from the residual")
+    trigger_windows: StrictInt = Field(3, ge=1, description="windows whose residual structure "
+                                       "tests are combined before discovery runs (K; Fisher's "
+                                       "method)")
+    false_alarm: StrictFloat = Field(
+        1e-6, gt=0, lt=1, description="level of the combined test: discovery runs when the "
+        "last trigger_windows windows' residuals are together less likely than this in white "
+        "noise (at most one needless search in 1/false_alarm windows); also the floor of one "
+        "window's p-value when trigger_windows > 1, so no single window decides")
+    window_alpha: StrictFloat = Field(
+        1e-3, gt=0, lt=1, description="a window whose residual is this unlikely in white noise "
+        "is structured: the model lacks something, its estimates are published suspect")
+    whiteness_lags: StrictInt = Field(
+        10, ge=1, le=100, description="autocorrelation lags of the Ljung-Box whiteness test")
+    residual_ratio: StrictFloat | None = Field(
+        None, gt=1, description="no longer used (the trigger was the normalised RMSE over this "
+        "many times the noise level, per window: it missed a moderate fault on a running "
+        "machine); the trigger is the whiteness test (false_alarm, window_alpha). Accepted "
+        "with a warning")
     min_nrmse: StrictFloat = Field(
-        2e-3, ge=0, description="... and its normalised RMSE exceeds this")
+        2e-3, ge=0, description="the smallest structured residual that matters: its RMS "
+        "beyond the white noise, normalised by the output's scale")
     bic_threshold: StrictFloat = Field(10.0, ge=0, description="BIC decrease a term must bring")
     min_improvement: StrictFloat = Field(
         0.2, ge=0, lt=1, description="fraction of the residual RMSE "
@@ -170,6 +184,11 @@ class DiscoveryConfig(BaseModel):
     def _check(self) -> DiscoveryConfig:
         if self.enabled and not self.candidates:
             raise ValueError("candidates: discovery is enabled but no candidate is listed")
+        if self.residual_ratio is not None:
+            logging.getLogger("twinwatch.config").warning(
+                "discovery.residual_ratio is no longer used: discovery runs on a whiteness "
+                "test of the residual (discovery.false_alarm, discovery.window_alpha); remove "
+                "the key")
         return self
 
     def check_against(self, model: TwinModel) -> None:
@@ -185,20 +204,25 @@ class DiscoveryConfig(BaseModel):
                                  f"'t' nor a channel of the model {sorted(channels)}")
 
 
-def residual_too_large(r: FloatArray, n_out: int, config: DiscoveryConfig) -> bool:
-    """The exit criterion on normalised residuals ``r`` (M,) with ``n_out`` interleaved
-    outputs: a normalised RMSE above ``min_nrmse`` and above ``residual_ratio`` times the
-    normalised white-noise level (:func:`~twinwatch.twin.estimation.statistics.noise_level`, pooled
-    the outputs). Pooling keeps a noise-free output with a small structured error (the
-    closed-loop Va after a noisy initial state) from passing for a missing component."""
-    if not np.all(np.isfinite(r)):
-        return True
+def residual_too_large(r: FloatArray, n_out: int, config: DiscoveryConfig,
+                       names: Sequence[str] | None = None) -> bool:
+    """Whether the residual says the model lacks something: its structure test
+    (:func:`~twinwatch.twin.discovery.trigger.residual_structure`) on normalised residuals
+    ``r`` (M,) with ``n_out`` interleaved outputs, scaled by ``1/sqrt(M)`` as the fit's
+    residual vector is."""
+    return window_structure(r, n_out, config, names).structured
+
+
+def window_structure(r: FloatArray, n_out: int, config: DiscoveryConfig,
+                     names: Sequence[str] | None = None) -> WindowStructure:
+    """:func:`~twinwatch.twin.discovery.trigger.residual_structure` of normalised residuals
+    ``r`` (M,) with ``n_out`` interleaved outputs, scaled by ``1/sqrt(M)``."""
+    r = np.asarray(r, dtype=float)
     res = r.reshape(-1, n_out) * math.sqrt(r.size)
-    nrmse = float(np.sqrt(np.mean(res * res)))
-    if nrmse <= config.min_nrmse:
-        return False
-    noise = float(np.sqrt(np.mean(noise_level(res) ** 2)))
-    return nrmse > config.residual_ratio * noise
+    return residual_structure(res, list(names) if names is not None else
+                              [f"y{j}" for j in range(n_out)],
+                              lags=config.whiteness_lags, min_nrmse=config.min_nrmse,
+                              window_alpha=config.window_alpha)
 
 
 @dataclass
@@ -683,4 +707,5 @@ __all__ = [
     "noise_level",
     "residual_too_large",
     "term_input",
+    "window_structure",
 ]
