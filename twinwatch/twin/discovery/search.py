@@ -185,7 +185,7 @@ class DiscoveryConfig(BaseModel):
         if self.enabled and not self.candidates:
             raise ValueError("candidates: discovery is enabled but no candidate is listed")
         if self.residual_ratio is not None:
-            logging.getLogger("twinwatch.config").warning(
+            logger.warning(
                 "discovery.residual_ratio is no longer used: discovery runs on a whiteness "
                 "test of the residual (discovery.false_alarm, discovery.window_alpha); remove "
                 "the key")
