@@ -128,6 +128,7 @@ DRIVER = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # about 7 s on the shared 2-core box: out of the fast lane
 def test_a_plugin_driver_is_validated_from_toml_and_probed(tmp_path: Path, plugin_path: Path):
     ok = _twinwatch(plugin_path, "check-config", str(_config(tmp_path, driver=DRIVER)),
                     cwd=tmp_path)

@@ -162,6 +162,7 @@ def test_recording_is_valid_after_a_signal(tmp_path: Path, env, sig):
     assert verify.returncode == 0, verify.stderr
 
 
+@pytest.mark.slow  # about 11 s on the shared 2-core box: out of the fast lane
 def test_a_commissioning_configuration_is_refused_by_run_and_warns_with_force(
         tmp_path: Path, env):
     """Issue 23 item 6: `[machine] purpose = "commissioning"` (the MotoShield's raw and

@@ -106,6 +106,7 @@ def _coverage(plant: DCMotorPlant, runs: list, widen: float = 1.0  # type: ignor
     return n, ok
 
 
+@pytest.mark.slow  # about 6 s on the shared 2-core box: out of the fast lane
 def test_twin_configured_with_the_drive_is_honest_with_noise() -> None:
     """100 windows (fixed seeds): Ra's 2-sigma interval covers the plant's in at least 85 % of
     the windows publishing it, and the test can fail: the same intervals halved do not. Window

@@ -62,6 +62,7 @@ def test_fit_percent_is_matlab_compare() -> None:
     assert fit_percent(y, y + 0.1 * (y - y.mean())) == pytest.approx(90.0)
 
 
+@pytest.mark.slow  # about 15 s on the shared 2-core box: out of the fast lane
 def test_identified_baseline_covers_the_truth_and_fits_the_held_out_half() -> None:
     """A motor unlike the nameplate (Ra +11 %, Ke +8 %), 1 % noise: the training half gives Ra
     and Ke whose intervals cover the plant's values, and the twin fits the validation half."""
@@ -87,6 +88,7 @@ def test_identified_baseline_covers_the_truth_and_fits_the_held_out_half() -> No
     assert set(tomllib.loads(block)["machine"]["parameters"]) == {"Ra", "Ke", "Kt"}
 
 
+@pytest.mark.slow  # about 15 s on the shared 2-core box: out of the fast lane
 def test_undetermined_combination_is_named_and_held_at_its_stated_value() -> None:
     """Kt untied: with a viscous load Tload = c*omega, (J, Kt, D) -> (sJ, sKt, s(D + c) - c)
     leaves every output unchanged (docs/architecture.md, known ill-posedness), a direction
@@ -250,6 +252,7 @@ def test_ranges_are_checked() -> None:
         IdentifyConfig(weights={"ia": -1.0})
 
 
+@pytest.mark.slow  # about 10 s on the shared 2-core box: out of the fast lane
 def test_identify_command_on_a_csv_recording(tmp_path: Path) -> None:
     """The command as a user runs it, on a CSV file replayed by the file driver: the report,
     the block with the bounds, the Rerun file of both fits; a gap in a range is refused."""

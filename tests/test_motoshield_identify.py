@@ -62,6 +62,7 @@ def commissioned() -> tuple[Any, Identification]:
     return cfg, found.result
 
 
+@pytest.mark.slow  # about 22 s on the shared 2-core box: out of the fast lane
 def test_identify_pastes_only_what_the_recording_determines(commissioned):
     """The filtered current does not determine the current pulse, the sensing's hypotheses,
     the dry friction or the warm-up: with every parameter free only Ke is within 10 %, and
@@ -214,6 +215,7 @@ def test_candidate_structures_are_compared_on_board_1():
     assert "winner: as configured" in text
 
 
+@pytest.mark.slow  # about 17 s on the shared 2-core box: out of the fast lane
 def test_second_board_as_first_pointed_at_is_reported_honestly():
     """The example config pointed at the second recording as the issue did (board 1's
     firmware filter on this board's raw current; the speed scaled to rad/s): the current is

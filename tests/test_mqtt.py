@@ -166,6 +166,7 @@ def check_ha_discovery(topic: str, payload: dict[str, Any], *, machine: str) -> 
             assert c["stat_cla"] == "measurement" and "val_tpl" in c
 
 
+@pytest.mark.slow  # about 9 s on the shared 2-core box: out of the fast lane
 @needs_mosquitto
 def test_every_window_once_in_order_with_retained_state(tmp_path: Path, broker: Broker):
     sub = Subscriber(broker.port, [f"{M}/#", "homeassistant/#"], persistent=True,

@@ -184,6 +184,7 @@ def _run(cfg: Path, cwd: Path, *args: str) -> subprocess.Popen[str]:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow  # about 7 s on the shared 2-core box: out of the fast lane
 def test_sigkill_mid_window_loses_nothing_and_restart_resumes_the_twin(tmp_path: Path) -> None:
     port = free_port()
     cfg = tmp_path / "m.toml"

@@ -192,6 +192,7 @@ def _stored(db: Path) -> dict[int, str]:
 
 
 # -- configured from TOML, checked by its own model ----------------------------------------------
+@pytest.mark.slow  # about 10 s on the shared 2-core box: out of the fast lane
 def test_check_config_validates_the_plugin_output_table(tmp_path: Path, plugin_path: Path):
     ok = _twinwatch(plugin_path, "check-config", str(_config(tmp_path)), cwd=tmp_path)
     assert ok.returncode == 0, ok.stderr
