@@ -44,7 +44,7 @@ def _msg(machine: str, window: int, *, run: str = "r1", ra_dev: float = 0.0,
          level: str = "normal", **extra: Any) -> dict[str, Any]:
     """A health message as a daemon publishes it (the fields the watcher reads)."""
     ra = 6.5 * (1 + ra_dev / 100)
-    return {"schema": 7, "machine": machine, "model": "dc_motor", "run": run, "window": window,
+    return {"schema": 8, "machine": machine, "model": "dc_motor", "run": run, "window": window,
             "t_start": 2.0 * window, "t_end": 2.0 * window + 1.99, "samples": 200,
             "parameters": {
                 "Ra": {"value": ra, "unit": "ohm", "nominal": 6.5, "deviation_pct": ra_dev,
