@@ -416,7 +416,7 @@ def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
     if last is not None:
         history = daemon.health_history
         lines += [*_window_lines(last), *_trend_lines(last), *_alarm_lines(last),
-                  *_structure_lines(last),
+                  *_diagnosis_lines(last), *_structure_lines(last),
                   *_check_lines(last, history), *_timing_lines(cfg, history),
                   *_wait_lines(daemon),
                   *daemon.summary()]  # where each output wrote, what it lost
@@ -493,6 +493,15 @@ def _trend_lines(last: HealthMessage) -> list[str]:
     lines = [line for name, p in last.parameters.items() if (line := trend_line(name, p))]
     return ["trend and remaining useful life (95 % intervals):", *(f"  {x}" for x in lines)] \
         if lines else []
+
+
+def _diagnosis_lines(last: HealthMessage) -> list[str]:
+    """The diagnosis: the most probable fault, its probability and the action
+    (twinwatch.twin.diagnosis); ``twinwatch explain`` gives the evidence."""
+    from twinwatch.twin.health import diagnosis_line
+
+    line = diagnosis_line(last.diagnosis)
+    return [line] if line else []
 
 
 def _value(value: float | None) -> str:
