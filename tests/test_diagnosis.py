@@ -151,12 +151,49 @@ def _hydraulic(scenario: str, **plant: Any) -> list[HealthMessage]:
     return _run(cfg)
 
 
-def test_the_leak_example_names_the_seal_not_the_fluid() -> None:
+@pytest.fixture(scope="module")
+def leak_history() -> list[HealthMessage]:
+    return _hydraulic("internal_leak", fault_start=20.0, duration=80.0)
+
+
+def test_the_leak_example_names_the_seal_not_the_fluid(
+        leak_history: list[HealthMessage]) -> None:
     """The leak example (config/hydraulic-modbus-leak-sim.toml) with the leak from 20 s: once
     discovery keeps the pressure term, the seal ranks first, the fluid far below."""
-    history = _hydraulic("internal_leak", fault_start=20.0, duration=80.0)
+    history = leak_history
     d = _final(history)
     assert d.top == "internal_leak" and d.faults[0].probability >= 0.8, d
     fluid = next(f for f in d.faults if f.id == "fluid_degradation")
     assert fluid.probability < 0.1
     assert any("p *= 1 +" in s for s in d.faults[0].evidence_for)
+
+
+def test_explain_prints_the_chain_from_a_state_database(
+        leak_history: list[HealthMessage], tmp_path: Path) -> None:
+    """`twinwatch explain` on the leak example's state database: the fit, the parameters with
+    their intervals, the term, the ranked faults with their evidence and the action."""
+    from click.testing import CliRunner
+
+    from twinwatch.cli import main
+    from twinwatch.sinks.store import StateStore
+
+    db = tmp_path / "state.sqlite"
+    store = StateStore(db)
+    try:
+        for h in leak_history:
+            assert store.save_window(h.as_dict(), None, doc=h.to_json())
+    finally:
+        store.close()
+    result = CliRunner().invoke(main, ["explain", "hydraulic-leak", "--db", str(db),
+                                       "--windows", "3"])
+    assert result.exit_code == 0, result.output
+    out = result.output
+    last = leak_history[-1]
+    assert f"window {last.window} [" in out and "RMSE x " in out
+    assert re.search(r"D +100\.\d+ N/\(m/s\) \+/- [\d.e-]+ \(\+/- [\d.e-]+ %\)", out), out
+    assert "p *= 1 + (0.20)" in out
+    assert re.search(r"1\. internal_leak \(piston seal \(internal leakage\)\): 0\.[89]", out), out
+    assert "action: run an internal-leakage (bypass) test" in out
+    assert "2. fluid_degradation" in out
+    missing = CliRunner().invoke(main, ["explain", "other", "--db", str(db)])
+    assert missing.exit_code == 1 and "holds no window of the machine 'other'" in missing.output

@@ -852,6 +852,39 @@ def tail(machine: str, connect: tuple[str, ...], mode: str, prefix: str, as_json
         sys.exit(1)
 
 
+@main.command()
+@click.argument("machine")
+@click.option("--db", "db", type=click.Path(dir_okay=False, path_type=Path),
+              default=Path("state.sqlite"), show_default=True,
+              help="The state database the daemon stores the machine's windows in ([state] "
+              "path).")
+@click.option("--windows", type=click.IntRange(min=1, max=1000), default=5, show_default=True,
+              help="The last windows whose fit is shown.")
+def explain(machine: str, db: Path, windows: int) -> None:
+    """Explain MACHINE's state: the chain from its last windows to the decision. From the
+    state database (read-only, also while the daemon writes it): the fit of the last windows
+    (RMSE, nRMSE, model check, DT' against DT''), the parameters with their 2-sigma intervals
+    and status, the meta-model terms with their parameters' standard errors, the trend and
+    remaining useful life, and the ranked faults of the diagnosis with the evidence for and
+    against each, the action and its source (docs/diagnosis.md).
+
+    Exit status: 0; 1 when the database cannot be read or holds no window of MACHINE."""
+    import sqlite3
+
+    from twinwatch.twin.diagnosis.explain import explain_lines, read_windows
+
+    try:
+        docs = read_windows(db, machine, windows)
+    except (OSError, sqlite3.Error) as exc:
+        click.echo(f"Error: cannot read {db}: {exc}", err=True)
+        sys.exit(1)
+    if not docs:
+        click.echo(f"Error: {db} holds no window of the machine {machine!r}", err=True)
+        sys.exit(1)
+    for line in explain_lines(docs):
+        click.echo(line)
+
+
 def _fraction_range(value: str | None) -> tuple[float, float] | None:
     if value is None:
         return None

@@ -56,6 +56,9 @@ UNKNOWN_TERM_LINK = 0.9
 UNKNOWN_CHECK_LINK = 0.5
 #: Strengths are kept in [S_MIN, 1 - S_MIN]: no single reading is certain.
 S_MIN = 1e-4
+#: An evidence variable is said for or against a fault when it moves the fault's odds by more
+#: than this (log likelihood ratio against no fault; 0.3: a factor 1.35).
+LLR_SAID = 0.3
 #: Windows of shaft speed kept to compare a term's frequency with the speed of the windows it
 #: explained.
 SPEED_HISTORY = 1000
@@ -346,12 +349,12 @@ class Diagnoser:
                 link = v.links[f.id]
                 pe = 1.0 - (1.0 - leak[j]) * (1.0 - link)
                 llr = math.log((s[j] * pe + (1 - s[j]) * (1 - pe)) / lik0[j])
-                if llr > 0.2 and v.present:
+                if llr > LLR_SAID and v.present:
                     text = v.present
                     if v.key.startswith("term:") and "shaft speed" in v.what.get(f.id, ""):
                         text += ": " + v.what[f.id].split(" (", 1)[-1].rstrip(")")
                     pro.append((llr, text))
-                elif llr < -0.2:
+                elif llr < -LLR_SAID:
                     con.append((-llr, f"{v.absent or v.present} (expects "
                                       f"{v.what.get(f.id, 'it')})"))
             faults.append(FaultHealth(

@@ -51,8 +51,9 @@ class _Strict(BaseModel):
 class DeviationSign(_Strict):
     """A parameter beyond ``min_pct`` % of its nameplate in ``direction``."""
 
-    parameter: str
-    direction: Literal["up", "down"]
+    parameter: str = Field(description="the twin's parameter (Ra, D, q_pump, ...)")
+    direction: Literal["up", "down"] = Field(description="above (up) or below (down) its "
+                                             "nameplate")
     min_pct: StrictFloat = Field(gt=0, description="size of the deviation the fault makes [%]")
     link: float = Link
 
@@ -60,9 +61,10 @@ class DeviationSign(_Strict):
 class TrendSign(_Strict):
     """A parameter's trend degrading in ``direction``."""
 
-    parameter: str
-    direction: Literal["up", "down"]
-    link: float = Field(0.5, gt=0, le=1)
+    parameter: str = Field(description="the twin's parameter")
+    direction: Literal["up", "down"] = Field(description="the trend's direction")
+    link: float = Field(0.5, gt=0, le=1, description="probability the fault shows this "
+                        "evidence (a wear trends; a sudden fault steps)")
 
 
 class TermSign(_Strict):
@@ -70,7 +72,8 @@ class TermSign(_Strict):
 
     kinds: list[str] = Field(min_length=1, description="meta-model kinds, '*' for any")
     attach: list[str] = Field(min_length=1, description="attach points, '*' for any")
-    mode: Literal["additive", "multiplicative"] | None = None
+    mode: Literal["additive", "multiplicative"] | None = Field(
+        None, description="the term's mode (none: either)")
     harmonic: StrictFloat | None = Field(None, gt=0, description="a periodic term's angular "
                                          "frequency over the shaft speed (1: once per turn)")
     tolerance: StrictFloat = Field(0.15, gt=0, le=1, description="relative tolerance of the "
@@ -81,17 +84,18 @@ class TermSign(_Strict):
 class SensorSign(_Strict):
     """A frozen or saturated sensor."""
 
-    kind: Literal["frozen", "saturated"]
-    channel: str = "*"
+    kind: Literal["frozen", "saturated"] = Field(description="the stuck sensor's kind")
+    channel: str = Field("*", description="its channel ('*': any)")
     link: float = Link
 
 
 class FaultMode(_Strict):
     """One fault mode of a machine model."""
 
-    id: str = Field(pattern=r"^[a-z0-9_]+$", max_length=48)
+    id: str = Field(pattern=r"^[a-z0-9_]+$", max_length=48, description="the fault mode's id "
+                    "(lower case, digits, _): published as diagnosis.top")
     component: str = Field(min_length=1, description="the part it concerns")
-    description: str = ""
+    description: str = Field("", description="what fails, for a person")
     deviations: list[DeviationSign] = Field(default_factory=list)
     trends: list[TrendSign] = Field(default_factory=list)
     terms: list[TermSign] = Field(default_factory=list)
@@ -99,7 +103,7 @@ class FaultMode(_Strict):
                                       "check")
     sensors: list[SensorSign] = Field(default_factory=list)
     action: str = Field(min_length=1, description="the maintenance action")
-    urgency: Literal["low", "medium", "high"] = "medium"
+    urgency: Literal["low", "medium", "high"] = Field("medium", description="how soon to act")
     prior: float = Field(0.01, gt=0, lt=0.5, description="probability the fault is present at "
                          "any window")
     source: str = Field(min_length=1, description="the reference the signature comes from")
@@ -119,7 +123,7 @@ class FaultMode(_Strict):
 class FaultLibrary(_Strict):
     """A model's fault library (one TOML file)."""
 
-    model: str
+    model: str = Field(description="the twin model it is for (registry name)")
     speed_channel: str = Field("", description="the shaft speed channel [rad/s] a periodic "
                                "term's frequency is compared with ('' : none)")
     faults: list[FaultMode]
