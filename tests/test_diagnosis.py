@@ -197,3 +197,14 @@ def test_explain_prints_the_chain_from_a_state_database(
     assert "2. fluid_degradation" in out
     missing = CliRunner().invoke(main, ["explain", "other", "--db", str(db)])
     assert missing.exit_code == 1 and "holds no window of the machine 'other'" in missing.output
+
+
+def test_two_faults_at_once_take_the_first_two_places() -> None:
+    """Bearing wear (D +12 %) with an unbalance 3 sin(7 t) at 7 rad/s, 80 s: both ranked
+    first and second (the term's offset takes part of the D rise: a constant torque at a
+    constant speed is D's)."""
+    d = _final(_motor("dc-motor-unbalanced-sim.toml", scenario="unbalanced_shaft", D=0.0016,
+                      unbalance_amplitude=3.0, unbalance_frequency=7.0, duration=80.0,
+                      setpoint=SetpointSchedule(steps=[(0.0, 7.0)])))
+    assert {f.id for f in d.faults[:2]} == {"bearing_wear", "unbalance"}, d
+    assert min(f.probability for f in d.faults[:2]) >= 0.5

@@ -210,7 +210,7 @@ class Diagnoser:
             for f in self.faults:
                 for sg in f.terms:
                     m, words = _term_match(sg, term, seen)
-                    if m >= 0.05 and m * sg.link > var.links.get(f.id, 0.0):
+                    if m >= 0.2 and m * sg.link > var.links.get(f.id, 0.0):
                         var.links[f.id] = m * sg.link
                         var.what[f.id] = words
                     best = max(best, m if sg.link >= 0.5 else 0.0)
@@ -296,9 +296,19 @@ class Diagnoser:
 
     @staticmethod
     def _term_var(i: int, term: TermHealth) -> _Var:
+        # the main coefficient against its standard error: over the windows the term has
+        # explained (params_std) or, before its first polish, this window's significance
         sig = term.significance
-        s = _clip(_phi((sig if sig is not None else 5.0) - 3.0))
-        sig_txt = f"significance {sig:.1f}" if sig is not None else "kept"
+        z_all = None
+        if term.weight is not None:
+            for k, v in term.params.items():
+                std = term.params_std.get(k)
+                if v == term.weight and std:
+                    z_all = abs(v) / std
+        z = max(x for x in (sig, z_all, 0.0) if x is not None)
+        s = _clip(_phi((z if (sig is not None or z_all is not None) else 5.0) - 3.0))
+        sig_txt = (f"{z:.1f} standard errors from 0"
+                   if sig is not None or z_all is not None else "kept")
         return _Var(f"term:{i}", "term", s,
                     f"term {term.equation} ({sig_txt}, since window {term.since_window})",
                     f"term {term.equation} is not significant ({sig_txt})")
