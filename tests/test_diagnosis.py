@@ -166,6 +166,25 @@ def test_the_leak_example_names_the_seal_not_the_fluid(
     fluid = next(f for f in d.faults if f.id == "fluid_degradation")
     assert fluid.probability < 0.1
     assert any("p *= 1 +" in s for s in d.faults[0].evidence_for)
+    assert d.alarms == ["internal_leak"]  # [diagnosis] alarm 0.8 for 3 windows
+
+
+def test_a_fault_alarm_has_hysteresis(leak_history: list[HealthMessage]) -> None:
+    """Raised after 3 windows at >= 0.8, kept while above 0.5, cleared after 3 below 0.5."""
+    from twinwatch.daemon.alarms import FaultAlarms
+
+    alarms = FaultAlarms(0.8, 0.5, 3, 3, "m1")
+    template = leak_history[-1]
+    got = []
+    for i, p in enumerate([0.9, 0.95, 0.9, 0.6, 0.55, 0.9, 0.4, 0.45, 0.6, 0.4, 0.3, 0.2]):
+        h = template.model_copy(deep=True)
+        h.window = i
+        h.diagnosis.faults[0].probability = p  # type: ignore[union-attr]
+        for e in alarms.update(h):
+            got.append((i, e["level"], e["fault"]))
+            assert e["kind"] == "diagnosis" and "internal_leak (probability" in e["message"]
+        assert h.diagnosis.alarms == (["internal_leak"] if 2 <= i < 11 else [])  # type: ignore[union-attr]
+    assert got == [(2, "alarm", "internal_leak"), (11, "normal", "internal_leak")]
 
 
 def test_explain_prints_the_chain_from_a_state_database(

@@ -5,7 +5,7 @@
     adapt (TwinAdapter: estimation, re-validation, discovery)
       -> health message (twinwatch.twin.health)
       -> diagnosis (Diagnoser: the fault library's modes ranked, twinwatch.twin.diagnosis)
-      -> alarms (AlarmEvaluator: levels, hysteresis, events)
+      -> alarms (AlarmEvaluator: levels, hysteresis, events; FaultAlarms on the diagnosis)
       -> sinks, in order: the gate (state store), then the others (Zenoh, Rerun, plug-ins)
       -> callbacks (the CLI's progress bar)
 
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from twinwatch.daemon.alarms import AlarmEvaluator
+from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.sinks.base import ProcessedWindow, Sink
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.diagnosis import Diagnoser, shaft_speed
@@ -97,6 +97,7 @@ class WindowPipeline:
         self._counters = counters
         self._source = source
         self.diagnoser = diagnoser
+        self.fault_alarms: FaultAlarms | None = None
         self.sinks: list[Sink] = []
         self.gate: Sink | None = None
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
@@ -166,6 +167,8 @@ class WindowPipeline:
             health.diagnosis = self.diagnoser.update(
                 health, shaft_speed(window, self.diagnoser.library.speed_channel))
         events = self.alarms.update(health)
+        if self.fault_alarms is not None:
+            events += self.fault_alarms.update(health)
         health.alarms = {name: AlarmStatus.model_validate(state)
                          for name, state in self.alarms.state().items()}
         out = ProcessedWindow(window=window, result=result, health=health,

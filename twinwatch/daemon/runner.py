@@ -36,7 +36,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from twinwatch.daemon.alarms import AlarmEvaluator
+from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
@@ -227,6 +227,10 @@ class Daemon:
             model_name=config.machine.model, run=self.run_id, nominal=self.nominal,
             counters=self.counters, history=acq.history, source=self.source_state,
             diagnoser=make_diagnoser(config))
+        dc = config.diagnosis
+        if self.pipeline.diagnoser is not None and dc.alarm is not None:
+            self.pipeline.fault_alarms = FaultAlarms(dc.alarm, dc.clear, dc.raise_after_windows,
+                                                     dc.clear_after_windows, self.machine)
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.new_run: dict[str, Any] | None = None

@@ -412,6 +412,8 @@ class DiagnosisHealth(_Part):
     library: str = Field(description="the fault library (model, shipped or configured)")
     evidence: int = Field(description="evidence variables that told something (strength "
                           "away from 0.5)")
+    alarms: list[str] = Field(default_factory=list, description="the faults whose probability "
+                              "alarm is raised ([diagnosis] alarm, with hysteresis)")
 
 
 class HealthMessage(_Part):

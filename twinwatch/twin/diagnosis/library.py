@@ -175,6 +175,22 @@ class DiagnosisConfig(_Strict):
     unknown_prior: float = Field(0.005, gt=0, lt=0.5, description="prior of a fault the "
                                  "library does not know (a term no fault mode explains)")
     listed: int = Field(5, ge=1, le=50, description="most fault modes listed in the message")
+    alarm: float | None = Field(0.8, gt=0, le=1, description="a fault whose probability "
+                                "reaches this raises an alarm event (twinwatch/<name>/alarm, "
+                                "kind 'diagnosis'); none: no fault alarm")
+    clear: float = Field(0.5, gt=0, lt=1, description="... cleared once its probability is "
+                         "back below this (hysteresis)")
+    raise_after_windows: int = Field(3, ge=1, le=1000, description="windows in a row at or "
+                                     "above alarm before it is raised")
+    clear_after_windows: int = Field(3, ge=1, le=1000, description="windows in a row below "
+                                     "clear before it is cleared")
+
+    @model_validator(mode="after")
+    def _hysteresis(self) -> DiagnosisConfig:
+        if self.alarm is not None and self.clear >= self.alarm:
+            raise ValueError(f"clear ({self.clear:g}) must be below alarm ({self.alarm:g}): "
+                             f"the hysteresis")
+        return self
 
     @field_validator("library")
     @classmethod
