@@ -227,3 +227,24 @@ def test_two_faults_at_once_take_the_first_two_places() -> None:
                       setpoint=SetpointSchedule(steps=[(0.0, 7.0)])))
     assert {f.id for f in d.faults[:2]} == {"bearing_wear", "unbalance"}, d
     assert min(f.probability for f in d.faults[:2]) >= 0.5
+
+
+def test_a_term_the_library_does_not_explain_is_an_unknown_fault_naming_it() -> None:
+    """The plant has no dead zone to switch on; the same path with a library that knows no
+    periodic fault (only the winding, `replace = true`): the unbalance's term is reported as
+    an unknown fault, named."""
+    from twinwatch.twin.diagnosis import DiagnosisConfig, shipped_library
+
+    cfg = load_config(ROOT / "config" / "dc-motor-unbalanced-sim.toml")
+    cfg.estimation.time_budget = 60.0
+    lib = shipped_library("dc_motor")
+    assert lib is not None
+    cfg.diagnosis = DiagnosisConfig(replace=True, faults=[
+        f for f in lib.faults if f.id in ("winding_short", "bearing_wear")])
+    pc = cfg.driver.plant  # type: ignore[union-attr]
+    pc.unbalance_amplitude, pc.unbalance_frequency, pc.duration = 3.0, 7.0, 40.0
+    pc.setpoint = SetpointSchedule(steps=[(0.0, 7.0)])
+    d = _final(_run(cfg))
+    assert d.status == "unknown" and d.unknown >= 0.8, d
+    assert len(d.unknown_terms) == 1 and "sin(7.0" in d.unknown_terms[0]
+    assert d.library == "dc_motor (configured)"

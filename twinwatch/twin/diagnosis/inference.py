@@ -53,7 +53,7 @@ LEAK = {"deviation": 0.002, "trend": 0.05, "term": 0.001, "model_check": 0.05,
         "sensor": 0.001}
 #: The unknown fault's link to a term no library fault explains, and to a failed model check.
 UNKNOWN_TERM_LINK = 0.9
-UNKNOWN_CHECK_LINK = 0.5
+UNKNOWN_CHECK_LINK = 0.3
 #: Strengths are kept in [S_MIN, 1 - S_MIN]: no single reading is certain.
 S_MIN = 1e-4
 #: An evidence variable is said for or against a fault when it moves the fault's odds by more
@@ -126,7 +126,7 @@ class Diagnoser:
         source: where the library comes from, as it reads in the message.
     """
 
-    def __init__(self, library: FaultLibrary, *, unknown_prior: float = 0.005,
+    def __init__(self, library: FaultLibrary, *, unknown_prior: float = 0.01,
                  listed: int = 5, source: str = "shipped") -> None:
         self.library = library
         self.unknown_prior = unknown_prior

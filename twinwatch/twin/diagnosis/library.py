@@ -172,7 +172,7 @@ class DiagnosisConfig(_Strict):
                           "shipped library")
     faults: list[FaultMode] = Field(default_factory=list, description="[[diagnosis.faults]]: "
                                     "fault modes extending or replacing the library's")
-    unknown_prior: float = Field(0.005, gt=0, lt=0.5, description="prior of a fault the "
+    unknown_prior: float = Field(0.01, gt=0, lt=0.5, description="prior of a fault the "
                                  "library does not know (a term no fault mode explains)")
     listed: int = Field(5, ge=1, le=50, description="most fault modes listed in the message")
     alarm: float | None = Field(0.8, gt=0, le=1, description="a fault whose probability "
@@ -209,9 +209,10 @@ class DiagnosisConfig(_Strict):
     def resolve(self, model: str) -> FaultLibrary:
         """The library in force for a twin model: shipped, then the file's, then the inline
         faults (a later fault with the same id replaces the earlier)."""
-        base = None if self.replace else shipped_library(model)
+        shipped = shipped_library(model)
+        base = None if self.replace else shipped
         faults = {f.id: f for f in (base.faults if base else [])}
-        speed = base.speed_channel if base else ""
+        speed = shipped.speed_channel if shipped else ""  # the model's, whatever the faults
         if self.library is not None:
             extra = load_library(self.library)
             speed = extra.speed_channel or speed
