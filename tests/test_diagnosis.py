@@ -248,3 +248,32 @@ def test_a_term_the_library_does_not_explain_is_an_unknown_fault_naming_it() -> 
     assert d.status == "unknown" and d.unknown >= 0.8, d
     assert len(d.unknown_terms) == 1 and "sin(7.0" in d.unknown_terms[0]
     assert d.library == "dc_motor (configured)"
+
+
+def test_explain_live_over_zenoh_from_a_running_daemon(tmp_path: Path) -> None:
+    """No database: `twinwatch explain MACHINE --connect` asks the daemon for its latest
+    health and its history (a daemon in process, its own listening endpoint)."""
+    from click.testing import CliRunner
+
+    from twinwatch.cli import main
+
+    from .test_zenoh_publisher import endpoint, free_port
+
+    port = free_port()
+    cfg = default_config()
+    cfg.driver.plant.duration = 10.0  # type: ignore[union-attr]
+    cfg.recording.enabled = False
+    cfg.state.path = str(tmp_path / "state.sqlite")
+    cfg.zenoh.listen = [endpoint(port)]
+    with Daemon(cfg, record=False, persist=True) as daemon:  # the history needs the store
+        daemon.run()
+        result = CliRunner().invoke(main, ["explain", "dc-motor-sim", "--connect",
+                                           endpoint(port), "--windows", "3"])
+    assert result.exit_code == 0, result.output
+    out = result.output
+    assert "the last 3 windows" in out
+    assert all(f"window {i} [" in out for i in (2, 3, 4)), out
+    assert "5. the diagnosis (dc_motor (shipped)" in out and "diagnosis: no fault" in out
+    down = CliRunner().invoke(main, ["explain", "dc-motor-sim", "--connect",
+                                     endpoint(free_port())])
+    assert down.exit_code == 1 and "nothing answers there" in down.output
