@@ -3,6 +3,7 @@ configuration file.
 
 Every key of every table: the pydantic models of the file (:class:`TwinwatchConfig` and the
 tables the twin owns: ``[estimation]``, ``[discovery]``, ``[identify]``, ``[prognostics]``,
+``[diagnosis]``,
 ``[acquisition.adaptive]``), of each built-in driver's ``[driver]`` table, of each built-in
 output's table (``[state]``, ``[zenoh]``, ``[recording]``, ``[outputs.mqtt]``) and of
 ``[alarms]``; and the options of each built-in twin model (``[machine.options]``, the model's
@@ -215,6 +216,7 @@ def sections() -> list[tuple[str, str, list[Row]]]:
     from twinwatch.config.schema import AcquisitionConfig, MachineConfig
     from twinwatch.drivers import BUILTIN_DRIVERS
     from twinwatch.sinks import BUILTIN_SINKS, HISTORIC_TABLES
+    from twinwatch.twin.diagnosis.library import DiagnosisConfig
     from twinwatch.twin.discovery.search import DiscoveryConfig
     from twinwatch.twin.estimation.estimator import EstimationConfig
     from twinwatch.twin.estimation.identify import IdentifyConfig
@@ -237,6 +239,8 @@ def sections() -> list[tuple[str, str, list[Row]]]:
          list(model_rows(DiscoveryConfig, "discovery."))),
         ("[prognostics]", "Trend and remaining useful life of each estimated parameter.",
          list(model_rows(PrognosticsConfig, "prognostics."))),
+        ("[diagnosis]", "The fault library the ranked diagnosis reads (docs/diagnosis.md).",
+         list(model_rows(DiagnosisConfig, "diagnosis."))),
         ("[identify]", "Commissioning: `twinwatch identify`.",
          list(model_rows(IdentifyConfig, "identify."))),
         ("[alarms]", "Per-parameter alarm rules.", list(model_rows(AlarmConfig, "alarms."))),

@@ -258,12 +258,15 @@ def test_the_first_discovery_is_complete_with_entities_only_for_what_is_filled()
     doc: dict[str, Any] = {"machine": "m1", "parameters": {
         n: {"value": nominal[n], "unit": u, "nominal": nominal[n], "deviation_pct": 0.0,
             "status": "estimated", "rel_std_pct": 0.01, "rul": rul if n != "Kt" else None}
-        for n, u in params.items()}, "alarms": {"Ra": {"level": "normal"}}}
+        for n, u in params.items()}, "alarms": {"Ra": {"level": "normal"}},
+        "diagnosis": {"status": "fault", "probability": 0.934, "faults": [
+            {"id": "winding_short", "action": "measure the armature resistance"}]}}
     later = discovery_payload("m1", "dc_motor", "twinwatch/m1", doc, params,
                               rules={"Ra"}, nominal=nominal)
     check_ha_discovery("homeassistant/device/twinwatch_m1/config", first, machine="m1")
     assert first["cmps"] == later["cmps"]          # complete from the first message
-    assert len(first["cmps"]) == 3 * 6 + 2         # value, deviation, status; Ra alarm, RUL
+    # value, deviation, status; Ra alarm, RUL; the diagnosis' fault, probability, action
+    assert len(first["cmps"]) == 3 * 6 + 2 + 3
     assert "Ra_rul" in first["cmps"] and "Ra_alarm" in first["cmps"]
     assert not [k for k in first["cmps"] if k.endswith("_rul") and k != "Ra_rul"]
     assert first["cmps"]["Ra_value"]["suggested_display_precision"] == 3   # 6.500 ohm
@@ -272,6 +275,9 @@ def test_the_first_discovery_is_complete_with_entities_only_for_what_is_filled()
     doc["parameters"]["Ra"].update(value=6.5 * (1 + 4.440892098500626e-16),
                                    deviation_pct=4.440892098500626e-14)
     flat = flat_values(doc)
+    assert (flat["diagnosis/fault"], flat["diagnosis/probability"],
+            flat["diagnosis/action"]) == ("winding_short", "93.4",
+                                          "measure the armature resistance")
     assert flat["parameters/Ra/deviation_pct"] == "0.0"
     assert flat["parameters/Ra/value"] == "6.5"
 

@@ -44,7 +44,7 @@ def _msg(machine: str, window: int, *, run: str = "r1", ra_dev: float = 0.0,
          level: str = "normal", **extra: Any) -> dict[str, Any]:
     """A health message as a daemon publishes it (the fields the watcher reads)."""
     ra = 6.5 * (1 + ra_dev / 100)
-    return {"schema": 7, "machine": machine, "model": "dc_motor", "run": run, "window": window,
+    return {"schema": 8, "machine": machine, "model": "dc_motor", "run": run, "window": window,
             "t_start": 2.0 * window, "t_end": 2.0 * window + 1.99, "samples": 200,
             "parameters": {
                 "Ra": {"value": ra, "unit": "ohm", "nominal": 6.5, "deviation_pct": ra_dev,
@@ -120,6 +120,24 @@ def test_the_snapshot_reads_what_the_message_carries() -> None:
     text = console.export_text()
     assert "fleet: 1 machine" in text and "-11.00 %" in text and "Ra ALARM since t=10 s" in text
     assert "RUL 90.0 min" in text and "driver_gaps 1" in text
+    assert m["diagnosis"] is None and "n/a" in text  # a message without a diagnosis
+
+
+def test_the_diagnosis_column_shows_the_most_probable_fault() -> None:
+    fleet = Fleet(clock=Clock())
+    fleet.token("m1", True)
+    diag = {"status": "fault", "top": "winding_short", "probability": 0.934, "faults": [
+        {"id": "winding_short", "probability": 0.934, "action": "measure Ra"}]}
+    fleet.health("m1", _msg("m1", 7, ra_dev=-4.6) | {"diagnosis": diag})
+    (m,) = fleet.snapshot()["machines"]
+    assert m["diagnosis"] == {"fault": "winding_short", "probability": 0.934,
+                              "action": "measure Ra"}
+    from rich.console import Console
+
+    console = Console(record=True, width=200, color_system=None)
+    console.print(render(fleet.snapshot(), title="fleet"))
+    text = console.export_text()
+    assert "winding short" in text and "0.93" in text
 
 
 # -- end to end: a router, three daemons ------------------------------------------------------
@@ -329,7 +347,7 @@ def test_the_table_into_a_file_keeps_every_column_unfolded() -> None:
     text = buf.getvalue()
     header = next(ln for ln in text.splitlines() if "machine" in ln and "state" in ln)
     for h in ("machine", "state", "last window", "parameters (vs nominal)", "alarms",
-              "terms (DT'')", "data quality"):
+              "terms (DT'')", "diagnosis", "data quality"):
         assert h in header, (h, header)
     from rich.console import Console
 

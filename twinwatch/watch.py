@@ -287,6 +287,7 @@ class Fleet:
                                     "alarm", "rul_s", "rul_status"}},
               "alarms": {name: {"level", "since_t", "deviation_pct"}},
               "terms": [{"equation", "meaning"}],
+              "diagnosis": {"fault", "probability", "action"} | null,
               "quality": {"nrmse", "model_check", "trusted", "elapsed_ms", "problems"},
               "delivery": {"missed", "recovered", "error"},
               "last_event": {...} | null}, ...]}
@@ -344,6 +345,7 @@ class Fleet:
                        for k, a in _dict(h.get("alarms")).items() if isinstance(a, dict)},
             "terms": [{"equation": t.get("equation"), "meaning": t.get("meaning")}
                       for t in _list(h.get("terms")) if isinstance(t, dict)],
+            "diagnosis": _diagnosis(h.get("diagnosis")),
             "quality": _quality(h) if m.health is not None else None,
             "delivery": {"missed": m.missed, "recovered": m.recovered, "error": m.gap_error},
             "last_event": m.events[-1] if m.events else None,
@@ -886,6 +888,18 @@ def health_line(doc: Mapping[str, Any], *, wall: float | None = None) -> str:
     return " ".join(parts)
 
 
+def _diagnosis(d: Any) -> dict[str, Any] | None:
+    """The message's diagnosis in short: the most probable fault (``no_fault``, ``unknown``),
+    its probability and action; null without one (a daemon before schema 8, or it is off)."""
+    if not isinstance(d, dict):
+        return None
+    faults = _list(d.get("faults"))
+    top = faults[0] if d.get("status") == "fault" and faults and isinstance(faults[0], dict) \
+        else {}
+    return {"fault": top.get("id") or d.get("status"), "probability": d.get("probability"),
+            "action": top.get("action")}
+
+
 _LEVEL_STYLE = {"alarm": "bold red", "warning": "yellow", "normal": "green"}
 _SHORT = {"estimated": "est", "fused": "fused", "held": "held"}
 _STATE_STYLE = {"alive": "green", "stale": "yellow", "gone": "red", "unknown": "dim"}
@@ -914,7 +928,8 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
     """The rich table of :meth:`Fleet.snapshot`: one row per machine with its state (alive /
     stale / gone, for how long), its last window (age, index, plant time, run), each parameter's
     value, deviation from nominal, status, alarm level and RUL, the raised alarms and the last
-    event, the discovered terms, and the data quality (fit, model check, losses)."""
+    event, the discovered terms, the most probable fault and its probability, and the data
+    quality (fit, model check, losses)."""
     from rich.table import Table
     from rich.text import Text
 
@@ -923,10 +938,11 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
                   title_justify="left", expand=True, show_lines=True)
     for header, ratio, least in (("machine", 2, 8), ("state", 2, 9), ("last window", 3, 24),
                                  ("parameters (vs nominal)", 5, 24), ("alarms", 3, 12),
-                                 ("terms (DT'')", 3, 10), ("data quality", 3, 16)):
+                                 ("terms (DT'')", 3, 10), ("diagnosis", 2, 10),
+                                 ("data quality", 3, 16)):
         table.add_column(header, ratio=ratio, min_width=least, overflow="fold")
     if not machines:
-        table.add_row("no machine on the network yet", "", "", "", "", "", "")
+        table.add_row("no machine on the network yet", "", "", "", "", "", "", "")
     for m in machines:
         state = str(m["state"])
         st = Text(f"{_STATE_MARK.get(state, '?')} {state}", style=_STATE_STYLE.get(state, ""))
@@ -975,6 +991,11 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
                           style="dim")
         terms = Text("\n".join(str(t["equation"]) for t in m["terms"]) or "none",
                      style="" if m["terms"] else "dim")
+        dg = m.get("diagnosis")
+        diag = Text("n/a" if dg is None else str(dg["fault"]).replace("_", " "),
+                    style="dim" if dg is None or dg["fault"] == "no_fault" else "bold yellow")
+        if dg is not None and isinstance(dg.get("probability"), int | float):
+            diag.append(f" {dg['probability']:.2f}")
         quality = Text()
         q = m["quality"]
         if q is not None:
@@ -997,7 +1018,7 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
                            style="yellow" if d.get("error") or
                            d.get("recovered", 0) < d.get("missed", 0) else "dim")
         table.add_row(Text(str(m["machine"]), style="bold"), st, last, params, alarms, terms,
-                      quality)
+                      diag, quality)
     return table
 
 

@@ -23,6 +23,7 @@ Layout::
     [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
     [discovery]        meta-model candidates (kind, input, attach point) and when to search
     [prognostics]      trend and remaining useful life of each estimated parameter
+    [diagnosis]        the fault library the ranked diagnosis reads (shipped per model)
     [identify]         commissioning: training/validation ranges of `twinwatch identify`
     [driver]           type = a registered driver ("simulated", "can", "file", "modbus",
                        "simulated_modbus", or a plug-in's) + that driver's own keys
@@ -95,6 +96,12 @@ def _adaptive_config() -> type[AdaptiveWindowConfig]:
     return AdaptiveWindowConfig
 
 
+def _diagnosis_config() -> type[DiagnosisConfig]:
+    from twinwatch.twin.diagnosis.library import DiagnosisConfig
+
+    return DiagnosisConfig
+
+
 def _identify_config() -> type[IdentifyConfig]:
     from twinwatch.twin.estimation.identify import IdentifyConfig
 
@@ -124,6 +131,7 @@ if TYPE_CHECKING:
     from twinwatch.sinks.rerun import RecordingConfig
     from twinwatch.sinks.store import StateConfig
     from twinwatch.sinks.zenoh import ZenohConfig
+    from twinwatch.twin.diagnosis.library import DiagnosisConfig
     from twinwatch.twin.discovery.search import DiscoveryConfig
     from twinwatch.twin.estimation.estimator import EstimationConfig
     from twinwatch.twin.estimation.identify import IdentifyConfig
@@ -133,6 +141,7 @@ if TYPE_CHECKING:
     PrognosticsTable = PrognosticsConfig
     AdaptiveTable = AdaptiveWindowConfig
     DiscoveryTable = DiscoveryConfig
+    DiagnosisTable = DiagnosisConfig
     IdentifyTable = IdentifyConfig
     ZenohTable = ZenohConfig
     RecordingTable = RecordingConfig
@@ -140,6 +149,7 @@ if TYPE_CHECKING:
 else:
     EstimationTable = _twin_table(_estimation_config)
     DiscoveryTable = _twin_table(_discovery_config)
+    DiagnosisTable = _twin_table(_diagnosis_config)
     IdentifyTable = _twin_table(_identify_config)
     PrognosticsTable = _twin_table(_prognostics_config)
     AdaptiveTable = _twin_table(_adaptive_config)
@@ -317,6 +327,7 @@ class TwinwatchConfig(BaseModel):
     discovery: DiscoveryTable = Field(default_factory=lambda: _discovery_config()())
     identify: IdentifyTable = Field(default_factory=lambda: _identify_config()())
     prognostics: PrognosticsTable = Field(default_factory=lambda: _prognostics_config()())
+    diagnosis: DiagnosisTable = Field(default_factory=lambda: _diagnosis_config()())
     driver: SerializeAsAny[DriverConfig]
     zenoh: ZenohTable = Field(default_factory=lambda: _sink_config("zenoh")())
     recording: RecordingTable = Field(default_factory=lambda: _sink_config("rerun")())
@@ -364,6 +375,8 @@ class TwinwatchConfig(BaseModel):
         self.estimation = self.estimation.resolved(model)  # estimate/tie: the model's default
         self.discovery.check_against(model)
         self.identify.check_against(model)
+        self.diagnosis.check_against(self.machine.model, model.parameter_names,
+                                     [a.name for a in model.attach_points])
         self.alarms.check_against(model.parameter_names,
                                   estimated=self.estimation.estimate or [])
         try:

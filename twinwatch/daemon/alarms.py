@@ -33,6 +33,12 @@ warning; a level clears once the RUL is back above its threshold times ``1 + rul
 since the start or a restart) is not evidence. The event says what to plan: ``Ra reaches its
 alarm threshold in 6 min (4-9 min)``. Events carry ``kind`` (``deviation`` or ``rul``); the
 health message's ``alarms.<name>.rul`` holds the RUL level.
+
+**Faults.** :class:`FaultAlarms` raises an alarm on a fault mode of the diagnosis
+(``diagnosis.faults[]``) whose probability has been at least ``[diagnosis] alarm`` (0.8) for
+``raise_after_windows`` windows in a row, and clears it once below ``clear`` (0.5: the
+hysteresis) for ``clear_after_windows``; its events have ``kind`` ``diagnosis``, the fault's
+``fault`` id and the action; ``diagnosis.alarms`` lists the raised ones.
 """
 
 from __future__ import annotations
@@ -52,7 +58,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LEVELS", "AlarmConfig", "AlarmEvaluator", "AlarmRule", "Level"]
+__all__ = ["LEVELS", "AlarmConfig", "AlarmEvaluator", "AlarmRule", "FaultAlarms", "Level"]
 
 _RANK = {lvl: i for i, lvl in enumerate(LEVELS)}
 
@@ -399,3 +405,60 @@ def _advance(s: _ParamState, rule: AlarmRule, target: Level, t_start: float, t_e
     s.up = s.down = None
     s.up_level = s.down_level = None
     return previous, new, run.since_t
+
+
+class FaultAlarms:
+    """Alarms on the diagnosis' fault probabilities, with hysteresis (the module's "Faults").
+
+    Args:
+        alarm: probability that raises an alarm (None: off); clear: the one that clears it.
+        raise_after, clear_after: windows in a row before raising / clearing.
+        machine: the machine name for the events.
+    """
+
+    def __init__(self, alarm: float | None, clear: float, raise_after: int, clear_after: int,
+                 machine: str | None = None) -> None:
+        self.alarm, self.clear = alarm, clear
+        self.raise_after, self.clear_after = raise_after, clear_after
+        self.machine = machine
+        self.raised: dict[str, float] = {}   # fault -> plant time it was raised
+        self._above: dict[str, int] = {}
+        self._below: dict[str, int] = {}
+
+    def update(self, health: HealthMessage) -> list[dict[str, Any]]:
+        """Advance on one window's diagnosis; its events (and ``diagnosis.alarms`` set)."""
+        d = health.diagnosis
+        if d is None or self.alarm is None:
+            return []
+        probs = {f.id: f for f in d.faults}
+        events = []
+        for fid in set(probs) | set(self.raised) | set(self._above):
+            f = probs.get(fid)
+            p = f.probability if f is not None else 0.0
+            if fid not in self.raised:
+                self._above[fid] = self._above.get(fid, 0) + 1 if p >= self.alarm else 0
+                if self._above[fid] >= self.raise_after and f is not None:
+                    self.raised[fid] = health.t_end
+                    self._above.pop(fid)
+                    events.append(self._event(health, fid, "alarm", "normal", p,
+                                              f"{f.component}: {f.action}"))
+            else:
+                self._below[fid] = self._below.get(fid, 0) + 1 if p < self.clear else 0
+                if self._below[fid] >= self.clear_after:
+                    self.raised.pop(fid)
+                    self._below.pop(fid)
+                    events.append(self._event(health, fid, "normal", "alarm", p,
+                                              "cleared: the evidence no longer supports it"))
+            if not self._above.get(fid, 1):
+                self._above.pop(fid, None)
+        d.alarms = sorted(self.raised)
+        return events
+
+    def _event(self, health: HealthMessage, fid: str, level: str, previous: str, p: float,
+               what: str) -> dict[str, Any]:
+        machine = self.machine or health.machine
+        word = "FAULT" if level == "alarm" else "FAULT CLEARED"
+        return {"machine": machine, "kind": "diagnosis", "fault": fid, "level": level,
+                "previous": previous, "probability": p, "t": health.t_end,
+                "window": int(health.window),
+                "message": f"{machine}: {word}: {fid} (probability {p:.2f}): {what}"}

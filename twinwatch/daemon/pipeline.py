@@ -4,7 +4,8 @@
 
     adapt (TwinAdapter: estimation, re-validation, discovery)
       -> health message (twinwatch.twin.health)
-      -> alarms (AlarmEvaluator: levels, hysteresis, events)
+      -> diagnosis (Diagnoser: the fault library's modes ranked, twinwatch.twin.diagnosis)
+      -> alarms (AlarmEvaluator: levels, hysteresis, events; FaultAlarms on the diagnosis)
       -> sinks, in order: the gate (state store), then the others (Zenoh, Rerun, plug-ins)
       -> callbacks (the CLI's progress bar)
 
@@ -35,9 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from twinwatch.daemon.alarms import AlarmEvaluator
+from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.sinks.base import ProcessedWindow, Sink
 from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.diagnosis import Diagnoser, shaft_speed
 from twinwatch.twin.health import (
     AlarmStatus,
     HealthMessage,
@@ -69,6 +71,8 @@ class WindowPipeline:
         source: returns what the source waits for (None when it delivers) and its silent
             messages, for the health message's ``source``.
         history: health messages kept in memory (:attr:`history`).
+        diagnoser: ranks the machine's fault modes each window (the message's ``diagnosis``);
+            None: no diagnosis.
 
     Attributes:
         sinks: written in order for each window (the gate first: stored before published).
@@ -82,7 +86,8 @@ class WindowPipeline:
     def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
                  model_name: str, run: str, nominal: Mapping[str, float],
                  counters: Callable[[], Mapping[str, int]], history: int,
-                 source: Callable[[], tuple[str | None, list[str]]] | None = None) -> None:
+                 source: Callable[[], tuple[str | None, list[str]]] | None = None,
+                 diagnoser: Diagnoser | None = None) -> None:
         self.adapter = adapter
         self.run = run
         self.alarms = alarms
@@ -91,6 +96,8 @@ class WindowPipeline:
         self.nominal = dict(nominal)
         self._counters = counters
         self._source = source
+        self.diagnoser = diagnoser
+        self.fault_alarms: FaultAlarms | None = None
         self.sinks: list[Sink] = []
         self.gate: Sink | None = None
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
@@ -156,7 +163,12 @@ class WindowPipeline:
                               nominal=self.nominal, counters=self._counters(),
                               discovery_enabled=self.adapter.enabled)
         health.source = self._source_health(window)
+        if self.diagnoser is not None:
+            health.diagnosis = self.diagnoser.update(
+                health, shaft_speed(window, self.diagnoser.library.speed_channel))
         events = self.alarms.update(health)
+        if self.fault_alarms is not None:
+            events += self.fault_alarms.update(health)
         health.alarms = {name: AlarmStatus.model_validate(state)
                          for name, state in self.alarms.state().items()}
         out = ProcessedWindow(window=window, result=result, health=health,

@@ -36,7 +36,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from twinwatch.daemon.alarms import AlarmEvaluator
+from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
@@ -53,6 +53,7 @@ from twinwatch.sinks.base import (
     SinkContext,
 )
 from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.diagnosis import Diagnoser
 from twinwatch.twin.health import HealthMessage
 from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.models import create_model
@@ -89,6 +90,20 @@ QUEUE_WAITS = 10000
 RECENT_WINDOWS = 20
 """Windows whose outcome (estimated, failed, abandoned, overrun) the daemon keeps to tell
 systemd's STATUS whether estimation works *now* (:meth:`Daemon.estimation_problem`)."""
+
+
+def make_diagnoser(config: TwinwatchConfig) -> Diagnoser | None:
+    """The machine's diagnosis (``[diagnosis]``): its fault library (shipped for the model,
+    extended by the configuration) in a :class:`~twinwatch.twin.diagnosis.Diagnoser`; None when
+    off or when the model has no fault mode."""
+    d = config.diagnosis
+    if not d.enabled:
+        return None
+    library = d.resolve(config.machine.model)
+    if not library.faults:
+        return None
+    source = "configured" if (d.replace or d.library or d.faults) else "shipped"
+    return Diagnoser(library, unknown_prior=d.unknown_prior, listed=d.listed, source=source)
 
 
 class Daemon:
@@ -210,7 +225,12 @@ class Daemon:
         self.pipeline = WindowPipeline(
             adapter=self.adapter, alarms=self.alarms, machine=self.machine,
             model_name=config.machine.model, run=self.run_id, nominal=self.nominal,
-            counters=self.counters, history=acq.history, source=self.source_state)
+            counters=self.counters, history=acq.history, source=self.source_state,
+            diagnoser=make_diagnoser(config))
+        dc = config.diagnosis
+        if self.pipeline.diagnoser is not None and dc.alarm is not None:
+            self.pipeline.fault_alarms = FaultAlarms(dc.alarm, dc.clear, dc.raise_after_windows,
+                                                     dc.clear_after_windows, self.machine)
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.new_run: dict[str, Any] | None = None

@@ -352,7 +352,34 @@ def flat_values(doc: dict[str, Any]) -> dict[str, str]:
             out[f"{base}/rul_warning"] = _number(_rul_s(p, "warning"))
         if name in alarms and isinstance(alarms[name], dict):
             out[f"{base}/alarm"] = str(alarms[name].get("level") or "normal")
+    diag = doc.get("diagnosis")
+    if isinstance(diag, dict):
+        out.update(diagnosis_values(diag))
     return out
+
+
+_NO_ACTION = {"no_fault": "none",
+              "unknown": "inspect: the twin found a term no fault mode of the library explains "
+                         "(twinwatch explain)"}
+
+
+def diagnosis_values(diag: dict[str, Any]) -> dict[str, str]:
+    """The diagnosis' flat topics: ``diagnosis/fault`` (the most probable fault's id, or
+    ``no_fault`` / ``unknown``), ``diagnosis/probability`` (its probability [%], one decimal),
+    ``diagnosis/action`` (the fault's maintenance action, or what to do without one; never
+    empty: an empty retained payload deletes the topic; at most 255 characters, Home
+    Assistant's limit of a state)."""
+    status = str(diag.get("status") or "no_fault")
+    faults = diag.get("faults") or []
+    top = faults[0] if status == "fault" and faults else None
+    prob = diag.get("probability")
+    return {
+        "diagnosis/fault": str(top.get("id")) if top else status,
+        "diagnosis/probability": _number(round(100.0 * prob, 1)
+                                         if isinstance(prob, int | float) else None),
+        "diagnosis/action": (str(top.get("action") or "") if top else _NO_ACTION.get(
+            status, "none"))[:255],
+    }
 
 
 def _levels(doc: dict[str, Any] | None) -> dict[str, str]:
@@ -420,7 +447,9 @@ def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] |
         ``qos`` and ``cmps``: per parameter a ``sensor`` for its value (unit,
         ``state_class: measurement``), its deviation [%] and its status; a ``binary_sensor``
         ``device_class: problem`` per alarm rule (on while the level is not ``normal``); a
-        ``sensor`` ``device_class: duration`` [s] for the RUL where the message has one.
+        ``sensor`` ``device_class: duration`` [s] for the RUL where the message has one; the
+        diagnosis' most probable fault, its probability [%] and the maintenance action
+        (unless the message has no ``diagnosis``: ``[diagnosis] enabled = false``).
     """
     dev_id = ha_device_id(machine)
     params = dict(parameters)
@@ -457,6 +486,14 @@ def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] |
             add(f"{name}_rul", "sensor", f"{name} remaining useful life", f"{t}/rul",
                 dev_cla="duration", unit_of_meas="s", stat_cla="measurement", val_tpl=number,
                 suggested_display_precision=0)
+    if doc is None or doc.get("diagnosis") is not None:  # [diagnosis] is on by default
+        add("diagnosis_fault", "sensor", "most probable fault", "diagnosis/fault",
+            ic="mdi:stethoscope")
+        add("diagnosis_probability", "sensor", "most probable fault probability",
+            "diagnosis/probability", unit_of_meas="%", stat_cla="measurement",
+            val_tpl=number, suggested_display_precision=1)
+        add("diagnosis_action", "sensor", "maintenance action", "diagnosis/action",
+            ic="mdi:wrench")
     return {
         "dev": {"ids": [dev_id], "name": device_name or machine, "mf": "twinwatch",
                 "mdl": f"{model} digital twin" if model else "digital twin", "sw": __version__},

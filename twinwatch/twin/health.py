@@ -10,6 +10,12 @@ non-finite numbers become ``null`` everywhere.
 The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 9: ``discovery.p_value`` and ``discovery.evidence_p``: the residual's whiteness test and its
+  combination over windows (discovery's trigger, :mod:`twinwatch.twin.discovery.trigger`).
+* 8: the window's ``diagnosis``: the fault modes of the machine's fault library ranked by their
+  probability, each with its part, action, urgency, source and the evidence for and against it
+  as sentences; the probabilities of no fault and of a fault the library does not know
+  (:mod:`twinwatch.twin.diagnosis`).
 * 7: each estimated parameter carries its ``trend`` (degradation model, onset, drift rate with
   its interval, monotonicity and trendability, restarts, the window's evidence) and, with an
   alarm rule, its ``rul`` (the predicted crossing of the warning and alarm thresholds: median
@@ -68,7 +74,9 @@ __all__ = [
     "AcquisitionHealth",
     "AlarmStatus",
     "CrossingHealth",
+    "DiagnosisHealth",
     "DiscoveryStatus",
+    "FaultHealth",
     "FusedHealth",
     "ModelCheckHealth",
     "OutputCheckHealth",
@@ -83,11 +91,12 @@ __all__ = [
     "TermHealth",
     "TrendHealth",
     "build_health",
+    "diagnosis_line",
     "summary_line",
     "trend_line",
 ]
 
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 
 
 def _finite(x: Any) -> Any:
@@ -375,6 +384,45 @@ class AcquisitionHealth(_Part):
     next_reason: str | None = Field(description="why that length")
 
 
+class FaultHealth(_Part):
+    """``diagnosis.faults[]``: one fault mode of the library, ranked
+    (:mod:`twinwatch.twin.diagnosis`)."""
+
+    id: str = Field(description="the fault mode's id in the library")
+    component: str = Field(description="the part it concerns")
+    probability: float = Field(description="posterior probability the fault is present (0..1)")
+    action: str = Field(description="the maintenance action")
+    urgency: Literal["low", "medium", "high"]
+    source: str = Field(description="the reference its signature comes from")
+    evidence_for: list[str] = Field(description="the evidence that supports it, strongest "
+                                    "first, as sentences with the numbers")
+    evidence_against: list[str] = Field(description="the evidence against it (what it would "
+                                        "show and the window does not)")
+
+
+class DiagnosisHealth(_Part):
+    """``diagnosis``: from the evidence to the failing part (:mod:`twinwatch.twin.diagnosis`:
+    a noisy-OR network over the machine's fault library)."""
+
+    status: Literal["no_fault", "fault", "unknown"] = Field(
+        description="the most probable outcome: no fault, a fault of the library (top), or a "
+        "fault the library does not know")
+    top: str | None = Field(description="the most probable fault's id (status fault), else "
+                            "null")
+    probability: float = Field(description="the outcome's probability (0..1)")
+    no_fault: float = Field(description="probability that no fault is present")
+    unknown: float = Field(description="probability of a fault the library does not know")
+    unknown_terms: list[str] = Field(description="discovered terms no fault mode explains")
+    faults: list[FaultHealth] = Field(description="the most probable fault modes, ranked")
+    shaft_speed: Num = Field(description="the window's mean absolute shaft speed [rad/s] a "
+                             "periodic term's frequency is compared with (null: none)")
+    library: str = Field(description="the fault library (model, shipped or configured)")
+    evidence: int = Field(description="evidence variables that told something (strength "
+                          "away from 0.5)")
+    alarms: list[str] = Field(default_factory=list, description="the faults whose probability "
+                              "alarm is raised ([diagnosis] alarm, with hysteresis)")
+
+
 class HealthMessage(_Part):
     """One window's health: the message on ``twinwatch/<machine>/health`` (its reference:
     docs/health-message.md). Build it with :func:`build_health`; serialise it with
@@ -409,6 +457,8 @@ class HealthMessage(_Part):
     alarms: dict[str, AlarmStatus] = Field(default_factory=dict)
     acquisition: AcquisitionHealth | None = Field(None, description="the window's length "
                                                   "and why")
+    diagnosis: DiagnosisHealth | None = Field(None, description="the ranked fault modes "
+                                              "(null: [diagnosis] off or no library)")
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, populate_by_name=True,
                               protected_namespaces=())
@@ -586,7 +636,32 @@ def summary_line(health: HealthMessage) -> str:
     n = len(health.terms)
     extra = f" +{n} term{'s' if n > 1 else ''}" if n else ""
     return (f"window {health.window} [{health.t_start:.2f}-{health.t_end:.2f} s] "
-            + " ".join(parts) + f"{extra} nRMSE {rm} in {health.elapsed_s * 1e3:.0f} ms")
+            + " ".join(parts) + f"{extra} nRMSE {rm} in {health.elapsed_s * 1e3:.0f} ms"
+            + _diagnosis_tag(health.diagnosis))
+
+
+def _diagnosis_tag(d: DiagnosisHealth | None) -> str:
+    if d is None or d.status == "no_fault":
+        return ""
+    if d.status == "unknown":
+        return f"; unknown fault {d.probability:.2f}"
+    return f"; {d.top} {d.probability:.2f}"
+
+
+def diagnosis_line(d: DiagnosisHealth | None) -> str | None:
+    """One line for a person about the diagnosis (the run's summary), e.g. ``diagnosis:
+    internal_leak (piston seal (internal leakage)) 0.97, urgency high: run an internal-leakage
+    ...``; None without a diagnosis."""
+    if d is None:
+        return None
+    if d.status == "no_fault":
+        return f"diagnosis: no fault ({d.no_fault:.2f})"
+    if d.status == "unknown":
+        terms = "; ".join(d.unknown_terms) or "no term yet"
+        return (f"diagnosis: a fault the library does not know ({d.unknown:.2f}): {terms}")
+    f = d.faults[0]
+    return (f"diagnosis: {f.id} ({f.component}) {f.probability:.2f}, urgency {f.urgency}: "
+            f"{f.action}")
 
 
 def trend_line(name: str, p: ParameterHealth) -> str | None:

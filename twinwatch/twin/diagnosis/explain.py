@@ -1,0 +1,134 @@
+"""``twinwatch explain``: the chain from the last windows' data to the decision, for a person.
+
+From the stored health messages of a machine (the state database): the fit of the last
+windows (RMSE, nRMSE, model check, DT' against DT''), the parameters with their intervals and
+status, the meta-model terms with their parameters' standard errors, the trend and remaining
+useful life, and the ranked faults with the evidence for and against each.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+from twinwatch.twin.health import HealthMessage, diagnosis_line, trend_line
+
+__all__ = ["explain_lines", "read_windows"]
+
+
+def read_windows(db: Path, machine: str, count: int) -> list[dict[str, Any]]:
+    """The machine's last ``count`` stored health messages, oldest first, read-only (the
+    daemon may be writing the file: SQLite's read-only mode takes no lock it holds).
+
+    Raises:
+        FileNotFoundError: no such file. sqlite3.Error: not a twinwatch state database.
+    """
+    if not db.is_file():
+        raise FileNotFoundError(f"{db}: no such state database")
+    conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5.0)
+    try:
+        rows = conn.execute("SELECT doc FROM health WHERE machine = ? ORDER BY id DESC "
+                            "LIMIT ?", (machine, int(count))).fetchall()
+    finally:
+        conn.close()
+    return [json.loads(r[0]) for r in reversed(rows)]
+
+
+def _num(x: float | None, fmt: str = ".4g") -> str:
+    return "n/a" if x is None else format(x, fmt)
+
+
+def explain_lines(docs: list[dict[str, Any]]) -> list[str]:
+    """The explanation of the last of ``docs`` (stored health messages, oldest first), with
+    the fit of each of them. Messages of a schema before 8 carry no diagnosis: said so."""
+    if not docs:
+        return ["no stored window for this machine"]
+    last_doc = docs[-1]
+    lines: list[str] = []
+    m = last_doc.get("machine")
+    lines.append(f"{m} ({last_doc.get('model')}), run {last_doc.get('run')}, schema "
+                 f"{last_doc.get('schema')}: the last {len(docs)} windows")
+    lines.append("")
+    lines.append("1. the fit (the twin against the measurements, per window):")
+    for d in docs:
+        check = d.get("model_check")
+        verdict = ("" if check is None else
+                   ", model check passed" if check.get("passed") else
+                   f", model check FAILED ({'; '.join(check.get('reasons') or [])})")
+        rmse = ", ".join(f"{k} {_num(v, '.3g')}" for k, v in (d.get("rmse") or {}).items())
+        terms = len(d.get("terms") or [])
+        trusted = "trusted" if d.get("trusted") else "not trusted"
+        lines.append(f"   window {d.get('window')} [{d.get('t_start', 0):.1f}-"
+                     f"{d.get('t_end', 0):.1f} s]: RMSE {rmse}; nRMSE "
+                     f"{_num(d.get('nrmse'), '.2e')}, {trusted}{verdict}"
+                     + (f", {terms} term{'s' if terms > 1 else ''}" if terms else ""))
+    res = last_doc.get("residual") or {}
+    if res.get("dt_second"):
+        before = _num(res["dt_prime"].get("nrmse"), ".2e")
+        after = _num(res["dt_second"].get("nrmse"), ".2e")
+        lines.append(f"   DT' (physical twin alone) nRMSE {before} -> DT'' (with its terms) "
+                     f"{after}")
+    for s in last_doc.get("sensors") or []:
+        lines.append(f"   sensor {s.get('channel')} {s.get('kind')} at {_num(s.get('value'))} "
+                     f"for {_num(s.get('duration_s'), '.1f')} s: the window's estimates are "
+                     f"suspect")
+    try:
+        last = HealthMessage.model_validate(last_doc)
+    except ValueError:
+        last = None
+    lines.append("")
+    lines.append("2. the parameters (the last window; 2-sigma intervals):")
+    for name, p in (last_doc.get("parameters") or {}).items():
+        status = p.get("status")
+        if status in ("tied", "fixed"):
+            lines.append(f"   {name:<8} {p.get('reason') or status}")
+            continue
+        value, rel = p.get("value"), p.get("rel_std_pct")
+        band = (f" +/- {_num(2 * rel * abs(value) / 100.0, '.3g')} (+/- {2 * rel:.2g} %)"
+                if value is not None and rel is not None else "")
+        dev = p.get("deviation_pct")
+        lines.append(f"   {name:<8} {_num(value, '.6g')} {p.get('unit')}{band}, "
+                     f"{_num(dev, '+.2f')} % vs nameplate {p.get('nominal'):g}, {status}"
+                     + (f" ({p['reason']})" if p.get("reason") else ""))
+    lines.append("")
+    terms = last_doc.get("terms") or []
+    lines.append("3. the meta-model terms (what the physical twin lacks):"
+                 if terms else "3. no meta-model term: the physical twin explains the data")
+    for t in terms:
+        params = ", ".join(
+            f"{k} = {v:.4g}" + (f" +/- {2 * s:.2g}" if (s := (t.get('params_std') or {})
+                                                         .get(k)) is not None else "")
+            for k, v in (t.get("params") or {}).items())
+        lines.append(f"   {t.get('equation')}  (since window {t.get('since_window')}, "
+                     f"significance {_num(t.get('significance'), '.1f')}; {params})")
+        lines.append(f"     {t.get('meaning')}")
+    lines.append("")
+    trends = ([line for name, p in last.parameters.items() if (line := trend_line(name, p))]
+              if last is not None else [])
+    lines.append("4. trend and remaining useful life (95 % intervals):" if trends
+                 else "4. no trend (prognostics off, or too little evidence)")
+    lines += [f"   {x}" for x in trends]
+    lines.append("")
+    diag = last.diagnosis if last is not None else None
+    if diag is None:
+        lines.append("5. no diagnosis in the stored messages (schema before 8, or "
+                     "[diagnosis] enabled = false)")
+        return lines
+    lines.append(f"5. the diagnosis ({diag.library}; {diag.evidence} evidence variables; "
+                 f"no fault {diag.no_fault:.3f}, unknown fault {diag.unknown:.3f}"
+                 + (f"; shaft speed {diag.shaft_speed:.3g} rad/s" if diag.shaft_speed else "")
+                 + "):")
+    for i, f in enumerate(diag.faults, 1):
+        lines.append(f"   {i}. {f.id} ({f.component}): {f.probability:.3f}, urgency {f.urgency}")
+        if i == 1 or f.probability >= 0.05:
+            lines += [f"      + {s}" for s in f.evidence_for]
+            lines += [f"      - {s}" for s in f.evidence_against]
+            lines.append(f"      action: {f.action}")
+            lines.append(f"      source: {f.source}")
+    for eq in diag.unknown_terms:
+        lines.append(f"   no fault mode explains: {eq}")
+    lines.append("")
+    lines.append(diagnosis_line(diag) or "")
+    return lines

@@ -1,0 +1,426 @@
+"""From the evidence to the failing part: a noisy-OR network over the fault library.
+
+The paper leaves its last step, the maintenance decision, to the specialist (Section 6: "it
+requires the specialist to decide"). This module takes the evidence each health message
+publishes, with its uncertainty, and ranks the fault modes of the machine's library
+(:mod:`twinwatch.twin.diagnosis.library`) by their posterior probability.
+
+The model (a two-layer Bayesian network, noisy-OR; Pearl, *Probabilistic Reasoning in
+Intelligent Systems*, 1988, Section 4.3.2; Henrion, "Practical issues in constructing a Bayes'
+belief network", 1987, for the leak):
+
+* faults ``f`` (the library's, plus ``unknown``: a fault the library does not know) are present
+  independently with their ``prior``;
+* an evidence variable ``e`` is present with ``P(e | F) = 1 - (1 - leak_e) prod_{f in F}
+  (1 - link_{f,e})``: each present fault shows it with its link, ``leak_e`` with no fault at all;
+* each variable is observed softly (Pearl's virtual evidence): a strength ``s`` in (0, 1) is the
+  probability the evidence is really there given what the health message says, e.g. for "Ra is
+  at least 1 % below nameplate" ``s = Phi((-dev - 1 %) / sd)`` with ``sd`` the published
+  standard error: a deviation inside its interval is weak evidence, a tight one far beyond the
+  size is strong, one tightly within the size is evidence against;
+* the posterior is computed exactly over every hypothesis of at most two faults (no fault, each
+  fault alone, each pair: 1 + n + n(n-1)/2 hypotheses; with priors of 1 % the mass of three or
+  more faults is below 1e-4), and each fault's probability is the mass of the hypotheses that
+  contain it.
+
+A window whose parameter is ``suspect`` (its model check failed, a sensor is frozen or
+saturated) or ``held`` gives no new deviation evidence: the last sound evidence (``estimated``
+or ``fused``) on that parameter stands. A term the library's faults do not explain is the
+``unknown`` fault's evidence (link 0.9).
+
+Cost: a few hundred microseconds per window with numpy (benchmarks/bench_diagnosis.py).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+
+from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode
+from twinwatch.twin.health import DiagnosisHealth, FaultHealth, HealthMessage, TermHealth
+from twinwatch.twin.model import WindowData
+
+__all__ = ["LEAK", "Diagnoser", "shaft_speed"]
+
+#: Probability of each kind of evidence with no fault in the library (model error, an
+#: operating point the twin does not cover): a deviation beyond its size, a degrading trend,
+#: a kept term, a failed model check, a stuck sensor.
+LEAK = {"deviation": 0.002, "trend": 0.05, "term": 0.001, "model_check": 0.05,
+        "sensor": 0.001}
+#: The unknown fault's link to a term no library fault explains, and to a failed model check.
+UNKNOWN_TERM_LINK = 0.9
+UNKNOWN_CHECK_LINK = 0.3
+#: Strengths are kept in [S_MIN, 1 - S_MIN]: no single reading is certain.
+S_MIN = 1e-4
+#: An evidence variable is said for or against a fault when it moves the fault's odds by more
+#: than this (log likelihood ratio against no fault; 0.3: a factor 1.35).
+LLR_SAID = 0.3
+#: Windows of shaft speed kept to compare a term's frequency with the speed of the windows it
+#: explained.
+SPEED_HISTORY = 1000
+#: Floor of a deviation's standard error [% of nameplate] (the twin's own model error).
+SD_FLOOR_PCT = 0.05
+
+
+def _phi(z: float) -> float:
+    return 0.5 * math.erfc(-z / math.sqrt(2.0))
+
+
+def _clip(s: float) -> float:
+    return min(max(s, S_MIN), 1.0 - S_MIN)
+
+
+def shaft_speed(window: WindowData, channel: str) -> tuple[float, float] | None:
+    """The window's mean absolute shaft speed and its standard deviation [rad/s] from
+    ``channel`` (None without the channel or with the shaft at rest)."""
+    if not channel or channel not in window.channels:
+        return None
+    w = np.abs(np.asarray(window.channels[channel], dtype=float))
+    w = w[np.isfinite(w)]
+    if w.size == 0:
+        return None
+    mean = float(w.mean())
+    if mean < 1e-6:
+        return None
+    return mean, float(w.std())
+
+
+@dataclass
+class _Dev:
+    """The last sound evidence on a parameter: deviation and its standard error [%]."""
+
+    dev: float
+    sd: float
+    value: float
+    nominal: float
+    unit: str
+    window: int
+    status: str
+
+
+@dataclass
+class _Var:
+    """One evidence variable: its strength, leak, each fault's link and the words."""
+
+    key: str
+    kind: str
+    s: float
+    present: str            # sentence when the evidence is there
+    absent: str             # sentence when it is not
+    links: dict[str, float] = field(default_factory=dict)
+    what: dict[str, str] = field(default_factory=dict)  # fault -> what the fault expects
+
+
+class Diagnoser:
+    """Ranks a library's fault modes from each window's health message (stateful: it keeps the
+    last sound evidence on each parameter).
+
+    Args:
+        library: the machine's fault library (:meth:`DiagnosisConfig.resolve`).
+        unknown_prior: prior of a fault the library does not know.
+        listed: most fault modes listed in the result.
+        source: where the library comes from, as it reads in the message.
+    """
+
+    def __init__(self, library: FaultLibrary, *, unknown_prior: float = 0.01,
+                 listed: int = 5, source: str = "shipped") -> None:
+        self.library = library
+        self.unknown_prior = unknown_prior
+        self.listed = listed
+        self.source = source
+        self.faults: list[FaultMode] = list(library.faults)
+        self._last: dict[str, _Dev] = {}
+        self._speeds: deque[tuple[int, float]] = deque(maxlen=SPEED_HISTORY)
+        ids = [f.id for f in self.faults] + ["unknown"]
+        self._ids = ids
+        n = len(ids)
+        hyps: list[tuple[int, ...]] = [()] + [(i,) for i in range(n)] + list(
+            combinations(range(n), 2))
+        self._hyp = np.zeros((len(hyps), n))
+        for h, members in enumerate(hyps):
+            self._hyp[h, list(members)] = 1.0
+        priors = np.array([f.prior for f in self.faults] + [unknown_prior])
+        self._log_prior = (self._hyp @ np.log(priors)
+                           + (1.0 - self._hyp) @ np.log1p(-priors))
+
+    # -- evidence -----------------------------------------------------------------------------
+    def _deviation(self, health: HealthMessage, name: str) -> _Dev | None:
+        p = health.parameters.get(name)
+        if p is None:
+            return self._last.get(name)
+        sound = p.status in ("estimated", "fused")
+        if sound and p.value is not None and p.nominal and p.rel_std_pct is not None:
+            dev = (p.value / p.nominal - 1.0) * 100.0
+            sd = max(abs(p.rel_std_pct) * abs(p.value / p.nominal), SD_FLOOR_PCT)
+            self._last[name] = _Dev(dev, sd, p.value, p.nominal, p.unit, health.window,
+                                    p.status)
+        return self._last.get(name)
+
+    def _variables(self, health: HealthMessage, speed: tuple[float, float] | None
+                   ) -> tuple[list[_Var], list[TermHealth]]:
+        out: dict[str, _Var] = {}
+        for f in self.faults:
+            for d in f.deviations:
+                key = f"dev:{d.parameter}:{d.direction}:{d.min_pct:g}"
+                if key not in out:
+                    out[key] = self._dev_var(health, key, d.parameter, d.direction, d.min_pct)
+                out[key].links[f.id] = d.link
+                side = "above" if d.direction == "up" else "below"
+                out[key].what[f.id] = (f"{d.parameter} {side} nameplate by at least "
+                                       f"{d.min_pct:g} %")
+            for t in f.trends:
+                key = f"trend:{t.parameter}:{t.direction}"
+                if key not in out:
+                    out[key] = self._trend_var(health, key, t.parameter, t.direction)
+                out[key].links[f.id] = t.link
+                out[key].what[f.id] = f"{t.parameter} drifting {t.direction}"
+            if f.model_check:
+                key = "model_check"
+                if key not in out:
+                    out[key] = self._check_var(health)
+                out[key].links[f.id] = f.model_check
+                out[key].what[f.id] = "the model check failing"
+            for sg in f.sensors:
+                key = f"sensor:{sg.kind}:{sg.channel}"
+                if key not in out:
+                    hit = [s for s in health.sensors
+                           if s.kind == sg.kind and sg.channel in ("*", s.channel)]
+                    names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
+                                      f"{s.duration_s:.1f} s" for s in hit
+                                      if s.value is not None and s.duration_s is not None)
+                    chan = "a sensor" if sg.channel == "*" else f"the {sg.channel} sensor"
+                    out[key] = _Var(key, "sensor", _clip(1.0 if hit else 0.0),
+                                    f"{names or chan + ' ' + sg.kind} in this window",
+                                    f"no {sg.kind} sensor in this window")
+                out[key].links[f.id] = sg.link
+                out[key].what[f.id] = f"{chan} {sg.kind}"
+        if "model_check" not in out:
+            out["model_check"] = self._check_var(health)
+        out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
+        # terms: one variable per discovered term, each fault's link scaled by its match
+        unexplained: list[TermHealth] = []
+        for i, term in enumerate(health.terms):
+            var = self._term_var(i, term)
+            best = 0.0
+            seen = self._term_speed(term) or speed
+            for f in self.faults:
+                for sg in f.terms:
+                    m, words = _term_match(sg, term, seen)
+                    if m >= 0.2 and m * sg.link > var.links.get(f.id, 0.0):
+                        var.links[f.id] = m * sg.link
+                        var.what[f.id] = words
+                    best = max(best, m if sg.link >= 0.5 else 0.0)
+            var.links["unknown"] = max(UNKNOWN_TERM_LINK * (1.0 - best), 1e-3)
+            var.what["unknown"] = "a term no fault of the library explains"
+            if best < 0.5:
+                unexplained.append(term)
+            out[var.key] = var
+        # faults expecting a term that is not there: evidence against them
+        for f in self.faults:
+            for j, sg in enumerate(f.terms):
+                if sg.link < 0.5 or any(out[f"term:{i}"].links.get(f.id, 0.0) >= 0.5 * sg.link
+                                        for i in range(len(health.terms))):
+                    continue
+                key = f"noterm:{f.id}:{j}"
+                kinds = "/".join(sg.kinds).replace("*", "any")
+                where = "/".join(sg.attach)
+                harm = (f" at {sg.harmonic:g} x the shaft speed" if sg.harmonic else "")
+                near = [_term_match(sg, t, self._term_speed(t) or speed)[1]
+                        for t in health.terms
+                        if t.kind in sg.kinds and t.attach in sg.attach and sg.harmonic]
+                found = (f" (found: {near[0].split('(')[-1].rstrip(')')})" if near else "")
+                out[key] = _Var(key, "term", S_MIN, "",
+                                f"no {kinds} term on {where}{harm}{found}")
+                out[key].links[f.id] = sg.link
+                out[key].what[f.id] = f"a {kinds} term on {where}{harm}"
+        return list(out.values()), unexplained
+
+    def _term_speed(self, term: TermHealth) -> tuple[float, float] | None:
+        """The median shaft speed of the windows a term's parameters combine (from the window
+        it was found in, the last ``evidence_windows`` of them) and its spread across them (1.48
+        MAD): a term's frequency is the evidence of those windows."""
+        n = max(int(round(term.evidence_windows)), 1)
+        seen = [w for i, w in self._speeds if i >= term.since_window][-n:]
+        if not seen:
+            return None
+        arr = np.asarray(seen)
+        med = float(np.median(arr))  # robust to a start-up or a stop among them
+        return med, 1.4826 * float(np.median(np.abs(arr - med)))
+
+    def _dev_var(self, health: HealthMessage, key: str, name: str, direction: str,
+                 size: float) -> _Var:
+        ev = self._deviation(health, name)
+        if ev is None:
+            return _Var(key, "deviation", 0.5, "", f"{name} not estimated yet (no evidence)")
+        signed = ev.dev if direction == "up" else -ev.dev
+        s = _clip(_phi((signed - size) / ev.sd))
+        when = ("" if ev.window == health.window
+                else f", last sound window {ev.window}")
+        text = (f"{name} = {ev.value:.5g} {ev.unit} is {ev.dev:+.2f} % from its nameplate "
+                f"{ev.nominal:.5g} {ev.unit} (+/- {2 * ev.sd:.2f} %, 2 sigma, {ev.status}{when})")
+        word = "beyond" if signed > size else "within"
+        return _Var(key, "deviation", s, f"{text}: {word} the {size:g} % {direction}",
+                    f"{text}: {word} the {size:g} % {direction}")
+
+    @staticmethod
+    def _trend_var(health: HealthMessage, key: str, name: str, direction: str) -> _Var:
+        p = health.parameters.get(name)
+        t = p.trend if p is not None else None
+        if t is None or t.model is None or t.rate is None:
+            return _Var(key, "trend", 0.5, "", f"{name}: no trend yet")
+        up = t.rate > 0
+        if t.degrading:
+            s = 0.95 if up == (direction == "up") else 0.05
+        else:
+            s = 0.2
+        rate = (f"{t.rate_pct_per_h:+.3g} %/h" if t.rate_pct_per_h is not None
+                else f"{t.rate:+.3g} {p.unit}/s")  # type: ignore[union-attr]
+        text = (f"{name} trend ({t.model}, {t.evidence} windows) "
+                + (f"degrading at {rate}" if t.degrading else f"flat within its uncertainty "
+                   f"({rate})"))
+        return _Var(key, "trend", _clip(s), text, text)
+
+    @staticmethod
+    def _check_var(health: HealthMessage) -> _Var:
+        mc = health.model_check
+        if mc is None:
+            return _Var("model_check", "model_check", 0.5, "", "model check disabled")
+        why = "; ".join(mc.reasons) if mc.reasons else ""
+        return _Var("model_check", "model_check", _clip(0.0 if mc.passed else 1.0),
+                    f"the model check failed ({why})" if why else "the model check failed",
+                    "the model check passed (the residual is white)")
+
+    @staticmethod
+    def _term_var(i: int, term: TermHealth) -> _Var:
+        # the main coefficient against its standard error: over the windows the term has
+        # explained (params_std) or, before its first polish, this window's significance
+        sig = term.significance
+        z_all = None
+        if term.weight is not None:
+            for k, v in term.params.items():
+                std = term.params_std.get(k)
+                if v == term.weight and std:
+                    z_all = abs(v) / std
+        z = max(x for x in (sig, z_all, 0.0) if x is not None)
+        s = _clip(_phi((z if (sig is not None or z_all is not None) else 5.0) - 3.0))
+        sig_txt = (f"{z:.1f} standard errors from 0"
+                   if sig is not None or z_all is not None else "kept")
+        return _Var(f"term:{i}", "term", s,
+                    f"term {term.equation} ({sig_txt}, since window {term.since_window})",
+                    f"term {term.equation} is not significant ({sig_txt})")
+
+    # -- inference ----------------------------------------------------------------------------
+    def update(self, health: HealthMessage, speed: tuple[float, float] | None = None
+               ) -> DiagnosisHealth:
+        """The ranked fault modes after this window.
+
+        Args:
+            health: the window's health message (parameters, terms, model check, sensors).
+            speed: the window's mean absolute shaft speed and its spread [rad/s]
+                (:func:`shaft_speed`), for a periodic term's harmonic.
+        """
+        if speed is not None:
+            self._speeds.append((health.window, speed[0]))
+        variables, unexplained = self._variables(health, speed)
+        ids = self._ids
+        idx = {fid: i for i, fid in enumerate(ids)}
+        n_e = len(variables)
+        log_q = np.zeros((len(ids), n_e))       # log(1 - link)
+        s = np.empty(n_e)
+        leak = np.empty(n_e)
+        for j, v in enumerate(variables):
+            s[j] = v.s
+            leak[j] = LEAK[v.kind]
+            for fid, link in v.links.items():
+                log_q[idx[fid], j] = math.log1p(-min(link, 1.0 - 1e-9))
+        # P(e | H) for every hypothesis, then the soft observation's likelihood
+        p_e = 1.0 - np.exp(self._hyp @ log_q + np.log1p(-leak)[None, :])
+        lik = s[None, :] * p_e + (1.0 - s[None, :]) * (1.0 - p_e)
+        log_post = self._log_prior + np.log(lik).sum(axis=1)
+        log_post -= log_post.max()
+        post = np.exp(log_post)
+        post /= post.sum()
+        marg = self._hyp.T @ post               # P(fault present)
+        p_none = float(post[0])
+        # per fault, each variable's log likelihood ratio alone against no fault
+        lik0 = lik[0]
+        faults: list[FaultHealth] = []
+        order = np.argsort(-marg[:-1])
+        for i in order[: self.listed]:
+            f = self.faults[int(i)]
+            pro, con = [], []
+            for j, v in enumerate(variables):
+                if f.id not in v.links:
+                    continue
+                link = v.links[f.id]
+                pe = 1.0 - (1.0 - leak[j]) * (1.0 - link)
+                llr = math.log((s[j] * pe + (1 - s[j]) * (1 - pe)) / lik0[j])
+                if llr > LLR_SAID and v.present:
+                    text = v.present
+                    if v.key.startswith("term:") and "shaft speed" in v.what.get(f.id, ""):
+                        text += ": " + v.what[f.id].split(" (", 1)[-1].rstrip(")")
+                    pro.append((llr, text))
+                elif llr < -LLR_SAID:
+                    con.append((-llr, f"{v.absent or v.present} (expects "
+                                      f"{v.what.get(f.id, 'it')})"))
+            faults.append(FaultHealth(
+                id=f.id, component=f.component, probability=float(marg[i]),
+                action=f.action, urgency=f.urgency, source=f.source,
+                evidence_for=[t for _, t in sorted(pro, reverse=True)],
+                evidence_against=[t for _, t in sorted(con, reverse=True)]))
+        p_unknown = float(marg[-1])
+        top = faults[0] if faults else None
+        best = max(p_none, p_unknown, top.probability if top else 0.0)
+        if top is not None and best == top.probability:
+            status = "fault"
+        elif best == p_unknown and p_unknown > p_none:
+            status = "unknown"
+        else:
+            status = "no_fault"
+        return DiagnosisHealth(
+            status=status,  # type: ignore[arg-type]
+            top=top.id if status == "fault" and top is not None else None,
+            probability=best,
+            no_fault=p_none,
+            unknown=p_unknown,
+            unknown_terms=[t.equation for t in unexplained],
+            faults=faults,
+            shaft_speed=speed[0] if speed else None,
+            library=f"{self.library.model} ({self.source})",
+            evidence=sum(1 for v in variables if abs(v.s - 0.5) > 0.1),
+        )
+
+
+def _term_match(sg: object, term: TermHealth, speed: tuple[float, float] | None
+                ) -> tuple[float, str]:
+    """How well a discovered term fits a signature's term (0..1) and what it expects."""
+    from twinwatch.twin.diagnosis.library import TermSign
+
+    assert isinstance(sg, TermSign)
+    kinds = "/".join(sg.kinds).replace("*", "any")
+    where = "/".join(sg.attach)
+    if "*" not in sg.kinds and term.kind not in sg.kinds:
+        return 0.0, f"a {kinds} term on {where}"
+    if "*" not in sg.attach and term.attach not in sg.attach:
+        return 0.0, f"a {kinds} term on {where}"
+    if sg.mode is not None and term.mode != sg.mode:
+        return 0.0, f"a {sg.mode} {kinds} term on {where}"
+    if sg.harmonic is None:
+        return 1.0, f"a {kinds} term on {where}"
+    want = f"a {kinds} term on {where} at {sg.harmonic:g} x the shaft speed"
+    b = term.params.get("b")
+    if term.kind != "periodic" or b is None or term.input != "t":
+        return 0.0, want
+    if speed is None:
+        return 0.5, want + " (shaft speed unknown)"
+    target = sg.harmonic * speed[0]
+    b_std = term.params_std.get("b") or 0.0
+    sigma = math.hypot(b_std, sg.tolerance * target, sg.harmonic * speed[1])
+    z = abs(abs(b) - target) / sigma if sigma > 0 else math.inf
+    m = 1.0 if z <= 1.0 else math.exp(-0.5 * (z - 1.0) ** 2)
+    return m, (f"{want} ({abs(b):.3g} rad/s against {sg.harmonic:g} x {speed[0]:.3g} = "
+               f"{target:.3g} rad/s +/- {100 * sg.tolerance:.0f} %)")

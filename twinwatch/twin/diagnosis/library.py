@@ -1,0 +1,242 @@
+"""Fault libraries: each machine model's fault modes as data (TOML), validated with pydantic.
+
+A fault mode names the part it concerns, its signature over the evidence the health message
+publishes, the maintenance action, its urgency and its source (the paper's Table 1 and
+Sections 5.2-5.3, standard references). One library is shipped per twin model
+(``twinwatch/twin/diagnosis/library/<model>.toml``); a machine's ``[diagnosis]`` table extends or
+overrides it (``library = "path.toml"``, inline ``[[diagnosis.faults]]``: a fault with a
+shipped id replaces it). Format and meaning: docs/diagnosis.md.
+
+Signature items (each with ``link``, the noisy-OR probability that the fault shows it):
+
+* ``deviations``: a parameter beyond ``min_pct`` percent of its nameplate, ``up`` or ``down``;
+* ``trends``: a parameter's trend degrading ``up`` or ``down`` (``parameters.<name>.trend``);
+* ``terms``: a discovered meta-model term of one of ``kinds`` (``*``: any) at one of ``attach``
+  (``mode`` optional); ``harmonic``: a periodic term whose angular frequency ``b`` [rad/s] is
+  ``harmonic`` times the shaft speed (the library's ``speed_channel``) within ``tolerance``;
+* ``model_check``: the window's model validation failed;
+* ``sensors``: a frozen or saturated sensor (``channel``: one, or ``*``).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from functools import cache
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, field_validator, model_validator
+
+__all__ = [
+    "DeviationSign",
+    "DiagnosisConfig",
+    "FaultLibrary",
+    "FaultMode",
+    "SensorSign",
+    "TermSign",
+    "TrendSign",
+    "load_library",
+    "shipped_library",
+]
+
+Link = Field(0.9, gt=0, le=1, description="probability the fault shows this evidence "
+             "(noisy-OR link)")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class DeviationSign(_Strict):
+    """A parameter beyond ``min_pct`` % of its nameplate in ``direction``."""
+
+    parameter: str = Field(description="the twin's parameter (Ra, D, q_pump, ...)")
+    direction: Literal["up", "down"] = Field(description="above (up) or below (down) its "
+                                             "nameplate")
+    min_pct: StrictFloat = Field(gt=0, description="size of the deviation the fault makes [%]")
+    link: float = Link
+
+
+class TrendSign(_Strict):
+    """A parameter's trend degrading in ``direction``."""
+
+    parameter: str = Field(description="the twin's parameter")
+    direction: Literal["up", "down"] = Field(description="the trend's direction")
+    link: float = Field(0.5, gt=0, le=1, description="probability the fault shows this "
+                        "evidence (a wear trends; a sudden fault steps)")
+
+
+class TermSign(_Strict):
+    """A discovered meta-model term."""
+
+    kinds: list[str] = Field(min_length=1, description="meta-model kinds, '*' for any")
+    attach: list[str] = Field(min_length=1, description="attach points, '*' for any")
+    mode: Literal["additive", "multiplicative"] | None = Field(
+        None, description="the term's mode (none: either)")
+    harmonic: StrictFloat | None = Field(None, gt=0, description="a periodic term's angular "
+                                         "frequency over the shaft speed (1: once per turn)")
+    tolerance: StrictFloat = Field(0.15, gt=0, le=1, description="relative tolerance of the "
+                                   "harmonic")
+    link: float = Link
+
+
+class SensorSign(_Strict):
+    """A frozen or saturated sensor."""
+
+    kind: Literal["frozen", "saturated"] = Field(description="the stuck sensor's kind")
+    channel: str = Field("*", description="its channel ('*': any)")
+    link: float = Link
+
+
+class FaultMode(_Strict):
+    """One fault mode of a machine model."""
+
+    id: str = Field(pattern=r"^[a-z0-9_]+$", max_length=48, description="the fault mode's id "
+                    "(lower case, digits, _): published as diagnosis.top")
+    component: str = Field(min_length=1, description="the part it concerns")
+    description: str = Field("", description="what fails, for a person")
+    deviations: list[DeviationSign] = Field(default_factory=list)
+    trends: list[TrendSign] = Field(default_factory=list)
+    terms: list[TermSign] = Field(default_factory=list)
+    model_check: float | None = Field(None, gt=0, le=1, description="link to a failed model "
+                                      "check")
+    sensors: list[SensorSign] = Field(default_factory=list)
+    action: str = Field(min_length=1, description="the maintenance action")
+    urgency: Literal["low", "medium", "high"] = Field("medium", description="how soon to act")
+    prior: float = Field(0.01, gt=0, lt=0.5, description="probability the fault is present at "
+                         "any window")
+    source: str = Field(min_length=1, description="the reference the signature comes from")
+
+    @model_validator(mode="after")
+    def _has_signature(self) -> FaultMode:
+        if not (self.deviations or self.trends or self.terms or self.sensors
+                or self.model_check):
+            raise ValueError(f"fault {self.id!r}: its signature is empty (give deviations, "
+                             f"trends, terms, sensors or model_check)")
+        return self
+
+    def parameters(self) -> set[str]:
+        return {s.parameter for s in (*self.deviations, *self.trends)}
+
+
+class FaultLibrary(_Strict):
+    """A model's fault library (one TOML file)."""
+
+    model: str = Field(description="the twin model it is for (registry name)")
+    speed_channel: str = Field("", description="the shaft speed channel [rad/s] a periodic "
+                               "term's frequency is compared with ('' : none)")
+    faults: list[FaultMode]
+
+    @field_validator("faults")
+    @classmethod
+    def _unique(cls, v: list[FaultMode]) -> list[FaultMode]:
+        seen: set[str] = set()
+        for f in v:
+            if f.id in seen:
+                raise ValueError(f"fault id {f.id!r} appears twice")
+            seen.add(f.id)
+        return v
+
+
+def load_library(path: str | Path) -> FaultLibrary:
+    """Read and validate a fault library TOML file.
+
+    Raises:
+        OSError: the file cannot be read. ValueError (pydantic ValidationError): a bad key,
+        named with its location; tomllib.TOMLDecodeError: not TOML.
+    """
+    with open(path, "rb") as fh:
+        return FaultLibrary.model_validate(tomllib.load(fh))
+
+
+@cache
+def shipped_library(model: str) -> FaultLibrary | None:
+    """The library shipped for a twin model (``dc_motor``, ``dc_motor_pwm``,
+    ``hydraulic_actuator``), or None."""
+    ref = resources.files("twinwatch.twin.diagnosis").joinpath("library", f"{model}.toml")
+    if not ref.is_file():
+        return None
+    return FaultLibrary.model_validate(tomllib.loads(ref.read_text(encoding="utf-8")))
+
+
+class DiagnosisConfig(_Strict):
+    """``[diagnosis]``: which fault library the diagnosis reads (docs/diagnosis.md)."""
+
+    enabled: bool = Field(True, description="rank the fault modes every window (the health "
+                          "message's diagnosis)")
+    library: str | None = Field(None, description="a fault library TOML file (relative to the "
+                                "working directory) extending the shipped one; a fault with a "
+                                "shipped id replaces it")
+    replace: bool = Field(False, description="use only the configured faults, not the "
+                          "shipped library")
+    faults: list[FaultMode] = Field(default_factory=list, description="[[diagnosis.faults]]: "
+                                    "fault modes extending or replacing the library's")
+    unknown_prior: float = Field(0.01, gt=0, lt=0.5, description="prior of a fault the "
+                                 "library does not know (a term no fault mode explains)")
+    listed: int = Field(5, ge=1, le=50, description="most fault modes listed in the message")
+    alarm: float | None = Field(0.8, gt=0, le=1, description="a fault whose probability "
+                                "reaches this raises an alarm event (twinwatch/<name>/alarm, "
+                                "kind 'diagnosis'); none: no fault alarm")
+    clear: float = Field(0.5, gt=0, lt=1, description="... cleared once its probability is "
+                         "back below this (hysteresis)")
+    raise_after_windows: int = Field(3, ge=1, le=1000, description="windows in a row at or "
+                                     "above alarm before it is raised")
+    clear_after_windows: int = Field(3, ge=1, le=1000, description="windows in a row below "
+                                     "clear before it is cleared")
+
+    @model_validator(mode="after")
+    def _hysteresis(self) -> DiagnosisConfig:
+        if self.alarm is not None and self.clear >= self.alarm:
+            raise ValueError(f"clear ({self.clear:g}) must be below alarm ({self.alarm:g}): "
+                             f"the hysteresis")
+        return self
+
+    @field_validator("library")
+    @classmethod
+    def _readable(cls, v: str | None) -> str | None:
+        if v is not None:
+            try:
+                load_library(v)
+            except OSError as exc:
+                raise ValueError(f"cannot read the fault library {v!r}: {exc.strerror}") from None
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"the fault library {v!r} is not TOML: {exc}") from None
+            except ValueError as exc:
+                raise ValueError(f"the fault library {v!r}: {exc}") from None
+        return v
+
+    def resolve(self, model: str) -> FaultLibrary:
+        """The library in force for a twin model: shipped, then the file's, then the inline
+        faults (a later fault with the same id replaces the earlier)."""
+        shipped = shipped_library(model)
+        base = None if self.replace else shipped
+        faults = {f.id: f for f in (base.faults if base else [])}
+        speed = shipped.speed_channel if shipped else ""  # the model's, whatever the faults
+        if self.library is not None:
+            extra = load_library(self.library)
+            speed = extra.speed_channel or speed
+            faults.update({f.id: f for f in extra.faults})
+        faults.update({f.id: f for f in self.faults})
+        return FaultLibrary(model=model, speed_channel=speed, faults=list(faults.values()))
+
+    def check_against(self, model: str, parameter_names: tuple[str, ...] | list[str],
+                      attach_names: list[str]) -> None:
+        """Every parameter and attach point a fault names exists in the twin.
+
+        Raises:
+            ValueError: naming the fault and the key.
+        """
+        if not self.enabled:
+            return
+        lib = self.resolve(model)
+        for f in lib.faults:
+            for name in sorted(f.parameters()):
+                if name not in parameter_names:
+                    raise ValueError(f"diagnosis: fault {f.id!r} names the parameter {name!r}; "
+                                     f"the {model} model has {list(parameter_names)}")
+            for t in f.terms:
+                for a in t.attach:
+                    if a != "*" and a not in attach_names:
+                        raise ValueError(f"diagnosis: fault {f.id!r} names the attach point "
+                                         f"{a!r}; the {model} model has {attach_names}")
