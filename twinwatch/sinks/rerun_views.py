@@ -253,7 +253,7 @@ class RecordingViews:
                 origin("quality", "frame")],
                 name="fit: nRMSE [ppm] DT' DT''", **whole()),
             rrb.TimeSeriesView(origin=origin("quality", "elapsed_ms"),
-                               name="estimation time [ms]", **whole()),
+                               name="estimation [ms]", **whole()),
             rrb.TimeSeriesView(origin=origin("quality", "problems"),
                                name="lost or bad [count]", **whole()),
             column_shares=[1.6, 1.0, 1.0], name="data quality")
@@ -282,7 +282,7 @@ class RecordingViews:
                     text_log_columns=[rrb.encodings.TextLogColumn("loglevel"),
                                       rrb.encodings.TextLogColumn("body"),
                                       rrb.encodings.TextLogColumn("entitypath", visible=False)])),
-            column_shares=[0.85, 1.15])
+            column_shares=[0.75, 1.25])
         key = rrb.TextDocumentView(origin=origin("key"), name="key", titlebar=False)
         return rrb.Blueprint(
             rrb.Vertical(
@@ -667,11 +667,11 @@ def _residual_rmse(doc: Mapping[str, Any]) -> dict[str, Mapping[str, float | Non
 
 
 def _frame(values: np.ndarray) -> list[float] | None:
-    """Two transparent values that give an output's axis two labelled ticks. The viewer labels
-    ticks at powers of ten only, and only when at most about 2.5 of them span the axis: a
-    pressure of 50 396-50 404 Pa gets one label (50 400). The frame is the window's range,
+    """Two transparent values that give an axis two labelled ticks. The viewer labels ticks at
+    powers of ten only, and only when at most about four of them span the axis (seen at
+    1600x1000): a pressure of 50 380-50 425 Pa gets one label (50 400). The frame is the range,
     widened on its nearer side to the next multiple of that power of ten when fewer than two
-    lie inside (50 390-50 404 Pa: 50 390 and 50 400). None without finite values."""
+    lie inside (50 380-50 500 Pa: 50 400 and 50 500). None without finite values."""
     finite = values[np.isfinite(values)]
     if finite.size == 0:
         return None
@@ -679,7 +679,7 @@ def _frame(values: np.ndarray) -> list[float] | None:
     width = high - low
     if width <= 0.0:
         width = abs(high) * 1e-3 or 1.0
-    step = 10.0 ** math.ceil(math.log10(width / 2.5))
+    step = 10.0 ** math.ceil(math.log10(width / 4.0))
     first, last = math.ceil(low / step), math.floor(high / step)
     if last - first >= 1:
         return [low, high]
@@ -871,43 +871,42 @@ def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: boo
              grew: Mapping[str, int]) -> tuple[str, Any]:
     """One line with the window's values, and its level: ERROR while a parameter is in alarm,
     WARN while one is in warning, the model check fails, the structure changed or data were
-    lost, else INFO."""
+    lost, else INFO. Most important first (a row is not wrapped: its end may be cut): the
+    window and its plant time, the deviation and RUL alarms apart, the parameters with an
+    alarm rule, the fit, then the other parameters."""
     parts = [f"window {doc.get('window', '?')} [{clock(t0)}-{clock(t_end)}]"]
     worst = 0
-    alarms = doc.get("alarms")
+    alarms = _mapping(doc.get("alarms"))
     raised = []
-    if isinstance(alarms, Mapping):
-        for name, a in alarms.items():
-            level = a.get("level") if isinstance(a, Mapping) else None
-            if _RANK.get(str(level), 0) > 0:
-                worst = max(worst, _RANK[str(level)])
-                dev = _fmt(a.get("deviation_pct"), "+.2f")
-                raised.append(f"{str(level).upper()} {name} {dev} %")
-            for name, a in alarms.items():
-                rul = _mapping(a.get("rul")) if isinstance(a, Mapping) else {}
-                level = str(rul.get("level"))
-                if _RANK.get(level, 0) > 0:
-                    worst = max(worst, _RANK[level])
-                    raised.append(f"RUL {level.upper()} {name}")
+    for name, a in alarms.items():
+        level = str(_mapping(a).get("level"))
+        if _RANK.get(level, 0) > 0:
+            worst = max(worst, _RANK[level])
+            dev = _fmt(_mapping(a).get("deviation_pct"), "+.2f")
+            raised.append(f"{level.upper()} {name} {dev} %")
+    for name, a in alarms.items():
+        level = str(_mapping(_mapping(a).get("rul")).get("level"))
+        if _RANK.get(level, 0) > 0:
+            worst = max(worst, _RANK[level])
+            raised.append(f"RUL {level.upper()} {name}")
     if raised:
         parts.append(", ".join(raised) + " |")
-    params = doc.get("parameters")
-    if isinstance(params, Mapping):
-        shown, held = [], []
-        for name, p in params.items():
-            if not isinstance(p, Mapping) or p.get("status") in ("tied", "fixed"):
-                continue
-            if p.get("status") == "held":  # the last trusted value again: named, not repeated
-                held.append(str(name))
-                continue
-            rul = _rul_short(p)
-            shown.append(f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} "
-                         f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}"
-                         + (f" ({rul})" if rul else ""))
-        if held:
-            shown.append("held " + ", ".join(held))
-        if shown:
-            parts.append("; ".join(shown) + " |")
+    ruled, others, held = [], [], []
+    for name, p in _mapping(doc.get("parameters")).items():
+        if not isinstance(p, Mapping) or p.get("status") in ("tied", "fixed"):
+            continue
+        if p.get("status") == "held":  # the last trusted value again: named, not repeated
+            held.append(str(name))
+            continue
+        rul = _rul_short(p)
+        (ruled if name in alarms else others).append(
+            f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} "
+            f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}"
+            + (f" ({rul})" if rul else ""))
+    if held:
+        others.append("held " + ", ".join(held))
+    if ruled:
+        parts.append("; ".join(ruled) + " |")
     fit = []
     if "nrmse" in doc:
         fit.append(f"nRMSE {_fmt(doc.get('nrmse'), '.3g')}")
@@ -928,7 +927,9 @@ def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: boo
     if grew:
         fit.append("data lost: " + ", ".join(f"{k} +{v}" for k, v in grew.items()))
     if fit:
-        parts.append(", ".join(fit))
+        parts.append(", ".join(fit) + (" |" if others else ""))
+    if others:
+        parts.append("; ".join(others))
     if not raised and len(parts) == 1:  # not a health message: its top-level scalars
         parts.append(", ".join(f"{k}={v}" for k, v in doc.items()
                                if isinstance(v, bool | str | int | float) or v is None))
