@@ -239,10 +239,10 @@ class RecordingViews:
 
         ruled = [p for p in self.estimated if p in self.alarm_bands]
         others = [p for p in self.estimated if p not in self.alarm_bands]
-        health: list[rrb.Container | rrb.View] = [panel(p, 0.3) for p in ruled]
+        health: list[rrb.Container | rrb.View] = [panel(p, 0.45) for p in ruled]
         shares = [2.0] * len(ruled)
         if others:
-            views = [panel(p, 0.32) for p in others]
+            views = [panel(p, 0.5) for p in others]
             columns = 1 if len(others) == 1 else 2
             health.append(rrb.Grid(*views, grid_columns=columns, name="other parameters"))
             shares.append(float(math.ceil(len(others) / columns)) * (1.4 if ruled else 2.0))
@@ -557,8 +557,7 @@ class RecordingViews:
         limits = [value for _, value, _ in self._limits(p)]
         clip = _BAND_CLIP * max(abs(v) for v in limits)
         if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
-            lines.append(f"2-sigma band {low:+.3g}..{high:+.3g} %: beyond the view, drawn "
-                         f"to +-{clip:g} %")
+            lines.append(f"2-sigma band {low:+.3g}..{high:+.3g} %, drawn to +-{clip:g} %")
         return "  \n".join(lines) + "\n"
 
     def _quality_ops(self, doc: Mapping[str, Any], t: float) -> list[Op]:
