@@ -8,24 +8,33 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
 
 * ``M/outputs/<output>/measured`` and ``M/outputs/<output>/twin``: the window's measured and
   twin-simulated output samples in the output's unit (:class:`rerun.Scalars`, one
-  ``send_columns`` per series and window); ``M/residual/<output>``: measured - twin, every
-  sample; ``M/residual_rmse/dt_prime`` and ``.../dt_second``: per window, the RMSE of the twin
+  ``send_columns`` per series and window); ``M/outputs/<output>/frame``: two transparent
+  values per window that give the axis two labelled ticks (:func:`_frame`);
+  ``M/residual/<output>``: measured - twin, every sample; ``M/residual_rmse/dt_prime`` and
+  ``.../dt_second``: per window, the RMSE of the twin
   without (DT') and with (DT'') its meta-model terms, one series per output (its unit);
 * ``M/parameters``: every parameter's estimate [SI], one series per parameter (the twin's
   order), one point per window;
 * ``M/health/<name>/...`` for each estimated parameter, in percent of its nominal value:
   ``deviation`` (series, in drawing order: the 2-sigma band's low and high ends, 0 = nominal,
-  the ``[alarms]`` thresholds (or a +-5 % scale when it has no rule), two transparent headroom
+  the ``[alarms]`` thresholds (or a +-10 % scale when it has no rule), two transparent headroom
   series that keep the thresholds off the axis' edges, and last the deviation itself),
-  ``estimated`` / ``fused`` / ``held`` (the deviation again, one point per window on the entity
-  of the window's status: drawn as different markers), ``events/warning``, ``events/alarm``,
-  ``events/cleared`` (the alarm changes, a large marker at the event's deviation);
-  ``health/<name>/trend``: the parameter's trend when the message carries one
-  (``parameters.<name>.trend.level`` +- 2 ``level_std``, in %: low, high, level); its RUL
-  (``rul.warning`` / ``rul.alarm``) is in the log row and the model panel;
+  ``frame`` (two transparent values: two labelled ticks over the run), ``estimated`` /
+  ``fused`` / ``held`` (the deviation again, one point per window on the entity of the
+  window's status: drawn as different markers), ``events/warning``, ``events/alarm``,
+  ``events/cleared`` (the deviation rule's changes, a large marker at the event's deviation),
+  ``events/rul_warning``, ``events/rul_alarm`` (the RUL rule's raises, a down-triangle at the
+  parameter's deviation then); ``health/<name>/trend``: the parameter's trend when the message
+  carries one (``parameters.<name>.trend.level`` +- 2 ``level_std``, in %: low, high, level);
+  ``health/<name>/summary``: what the panel says in words under its plot, every window
+  (markdown): the deviation, status and trend, the RUL to each threshold of the rule (median,
+  95 % interval, and the plant time of the crossing), the moments the deviation alarm and the
+  RUL alarm were raised or cleared (apart), a 2-sigma band beyond the view; the RUL's median is
+  also in the log row;
 * ``M/quality/nrmse`` (the published twin's), ``M/quality/nrmse_dt_prime`` and
   ``.../nrmse_dt_second`` (without and with the terms), ``M/quality/model_check_failed`` (the
-  nRMSE of the windows whose model check failed), ``M/quality/elapsed_ms`` (adaptation time per
+  nRMSE of the windows whose model check failed), all in ppm, ``M/quality/frame`` (its axis'
+  frame), ``M/quality/elapsed_ms`` (adaptation time per
   window [ms]), ``M/quality/problems`` (the counters of lost or bad data, cumulative: abandoned
   windows, overruns, gaps, bad samples, windows not stored or not recorded, ... one series
   each, named after the counter);
@@ -42,6 +51,14 @@ data (a finished file opens on its end); the parameters' health and the data-qua
 the whole run, the outputs and residuals the last ``recent_s`` seconds before the time cursor,
 the model and the log the state at the cursor; no legend covers a trace (the key says what the
 colours mean), no axis zooms in on noise (deviations in % with their thresholds or a scale).
+Plant time is written as minutes:seconds (``14:38``) in the summaries, the log and the model;
+the axes' ticks are the viewer's (``+10m``).
+
+Not drawn: the trend's projection to the threshold as a curve in the time-series views. Rerun
+(0.41) draws every row ever logged at a time of the range, so each window's projection into the
+future would stay and interleave with the next (a ``Clear`` only breaks a line); the
+projection is logged as a 2-D line strip (:func:`twinwatch.sinks.rerun.projection_ops`) and its
+result, the crossing's median and interval, is written on the panel.
 """
 
 from __future__ import annotations
@@ -110,6 +127,9 @@ _SCALE_PCT = 10.0
 """Half-height of the scale drawn for a parameter without an alarm rule [%] (its axis never
 zooms in on the noise of a held value)."""
 _HEADROOM = 1.6
+_SCALE_HEADROOM = 1.15
+"""The same for the +-10 % scale of a parameter without a rule: its small panel then labels
+the ticks -10, 0, 10 (at 1.6 it labelled only 0)."""
 """The axis of a parameter's view reaches at least this many times its outermost threshold (or
 scale) on each side that has one: the lines never sit on its edge."""
 _BAND_CLIP = 3.0
@@ -259,7 +279,7 @@ class RecordingViews:
             column_shares=[1.6, 1.0, 1.0], name="data quality")
         left = rrb.Vertical(
             rrb.Vertical(*health, row_shares=shares, name="health"), quality,
-            row_shares=[max(sum(shares), 1.0) * 1.0, 1.3], name="health and data quality")
+            row_shares=[max(sum(shares), 1.0) * 1.0, 1.0], name="health and data quality")
         pairs = [(rrb.TimeSeriesView(origin=origin("outputs", o),
                                      name=f"{o}{self._unit(o)}: measured, twin", **recent()),
                   rrb.TimeSeriesView(origin=origin("residual", o),
@@ -289,7 +309,7 @@ class RecordingViews:
                 key,
                 rrb.Horizontal(left, right, column_shares=[1.05, 1]),
                 bottom,
-                row_shares=[0.42, 5.0, 1.7]),
+                row_shares=[0.42, 5.0, 1.95]),
             rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
             collapse_panels=True,
         )
@@ -466,8 +486,9 @@ class RecordingViews:
         band = [float(np.clip(v, -clip, clip)) if math.isfinite(v) else math.nan
                 for v in (low, high)]
         top, bottom = max(0.0, *limits), min(0.0, *limits)
-        headroom = [_HEADROOM * top if top > 0 else 0.2 * outer,
-                    _HEADROOM * bottom if bottom < 0 else -0.2 * outer]
+        room = _HEADROOM if p in self.alarm_bands else _SCALE_HEADROOM
+        headroom = [room * top if top > 0 else 0.2 * outer,
+                    room * bottom if bottom < 0 else -0.2 * outer]
         values = [*band, 0.0, *limits, *headroom, dev]
         m = self.machine
         ops = [Op(entity(m, "health", p, "deviation"), rr.Scalars(values), t)]
@@ -801,14 +822,13 @@ def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
     model = doc.get("model")
     twin = f"the physical twin `{model}`" if model else "the physical twin"
     window = doc.get("window")
-    at = (f"plant time {clock(t)}" + (f", window {window}" if window is not None else "")
-          + (f", run {doc['run']}" if doc.get("run") else ""))
+    at = f"at {clock(t)}" + (f" (window {window})" if window is not None else "")
     lines = []
     if not terms:
-        lines.append(f"**DT'' = DT** ({at}): {twin} explains the data, no meta-model term.")
+        lines.append(f"**DT'' = DT** {at}: {twin} explains the data, no meta-model term.")
     else:
         n = len(terms)
-        lines.append(f"**DT'' = DT + {n} meta-model term{'s' if n > 1 else ''}** ({at}): "
+        lines.append(f"**DT'' = DT + {n} meta-model term{'s' if n > 1 else ''}** {at}: "
                      f"{twin} plus what discovery found (paper Eq. 3).")
         for i, term in enumerate(terms, 1):
             lines.append("")
