@@ -132,9 +132,11 @@ _SCALE_HEADROOM = 1.15
 the ticks -10, 0, 10 (at 1.6 it labelled only 0)."""
 """The axis of a parameter's view reaches at least this many times its outermost threshold (or
 scale) on each side that has one: the lines never sit on its edge."""
-_BAND_CLIP = 3.0
+_BAND_CLIP = 1.5
 """The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
-nominal: a parameter the data do not determine (+-400 %) does not flatten its plot."""
+nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
+panel's summary says so (``2-sigma band -420..+420 %, drawn to +-15 %``). At 3 a +-30 % band
+took a small panel's axis to -100..100 (its labelled ticks a hundred apart)."""
 _PPM = 1e6
 """The fit panel shows the nRMSE in parts per million (ppm) of the output's scale: 1.6e-4 and
 3e-7 have readable ticks (160 and 0.3), the bare fraction's ticks read ``0``."""
@@ -309,7 +311,7 @@ class RecordingViews:
                 key,
                 rrb.Horizontal(left, right, column_shares=[1.05, 1]),
                 bottom,
-                row_shares=[0.42, 5.0, 1.95]),
+                row_shares=[0.42, 5.0, 2.1]),
             rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
             collapse_panels=True,
         )
@@ -820,12 +822,12 @@ def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
     then every parameter's value against nominal and its status, then the fit."""
     terms = [term for term in doc.get("terms") or [] if isinstance(term, Mapping)]
     model = doc.get("model")
-    twin = f"the physical twin `{model}`" if model else "the physical twin"
+    twin = f"`{model}`" if model else "the physical twin"
     window = doc.get("window")
-    at = f"at {clock(t)}" + (f" (window {window})" if window is not None else "")
+    at = f"at {clock(t)}" + (f", window {window}" if window is not None else "")
     lines = []
     if not terms:
-        lines.append(f"**DT'' = DT** {at}: {twin} explains the data, no meta-model term.")
+        lines.append(f"**DT'' = DT** {at}: {twin} alone explains the data.")
     else:
         n = len(terms)
         lines.append(f"**DT'' = DT + {n} meta-model term{'s' if n > 1 else ''}** {at}: "
