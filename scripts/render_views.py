@@ -1,8 +1,9 @@
 """Render what an operator sees: run the examples, screenshot their recordings, write the PNGs
-the README shows (``docs/images/``).
+(to ``build/views/``; with ``--update`` over the tracked ``docs/images/`` the docs show).
 
-    python scripts/render_views.py                 # all three (about 7 min on 2 cores)
-    python scripts/render_views.py --only discovery --keep /tmp/views
+    python scripts/render_views.py                 # all three, into build/views/ (a few min)
+    python scripts/render_views.py --update        # the same, written over docs/images/*.png
+    python scripts/render_views.py --only discovery --keep /tmp/views --out /tmp/views
 
 For each example it runs ``twinwatch run`` as a user does (``--fresh``, in a directory of its
 own, Zenoh off so nothing else on the machine is disturbed, the simulated Modbus device on a
@@ -11,12 +12,14 @@ free port), opens the recording's link in the Rerun viewer (``rerun FILE --rende
 what the default blueprint shows is what the picture shows. The screenshot (HiDPI, 3200x2000)
 is scaled to 1600x1000 and quantised to 256 colours.
 
-* ``demo``: the default configuration (``twinwatch sample-config``), 1200 s of plant time: Ra
-  drifts from 6.5 to about 5.55 ohm, the warning at about 878 s, the alarm at about 1090 s;
+* ``demo``: the default configuration (``twinwatch sample-config``), stopped at 1000 s of
+  plant time (``--duration``): Ra drifts from 6.5 ohm, its RUL warning and alarm raised, the
+  deviation warning at about 14:38 (878 s), the deviation alarm predicted at about 18:10
+  (1090 s) with its interval: the picture shows the RUL before the alarm;
 * ``discovery``: ``config/dc-motor-unbalanced-sim.toml``, 300 s: the periodic term of the
   unbalanced shaft (paper Eq. 13) and its meaning in the model panel;
-* ``hydraulic``: ``config/hydraulic-modbus-sim.toml``, 600 s: D, the fluid, from 100 to about
-  200 N/(m/s), the warning at about 344 s, the alarm at about 458 s.
+* ``hydraulic``: ``config/hydraulic-modbus-sim.toml`` stopped at 420 s: D, the fluid, rising
+  from 100 N/(m/s), the warning at about 5:44 (344 s), the alarm predicted for about 7:30.
 
 Needs: ``xvfb-run`` and Mesa's Vulkan driver (Debian: xvfb, mesa-vulkan-drivers), Pillow
 (``pip install -e '.[dev]'``). Prints, per example, the run's wall time, the recording's size
@@ -38,6 +41,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT / "docs" / "images"
+BUILD = ROOT / "build" / "views"
 SIZE = (1600, 1000)
 
 
@@ -47,14 +51,16 @@ class Example:
     config: Path | None  # None: the built-in default (twinwatch sample-config)
     recording: str  # its [recording] path
     what: str
+    duration: float | None = None  # plant time to run [s] (None: the configuration's)
 
 
 EXAMPLES = (
-    Example("demo", None, "twinwatch.rrd", "the default: Ra degrades over 1200 s"),
+    Example("demo", None, "twinwatch.rrd", "the default: Ra degrades, 1000 s", 1000.0),
     Example("discovery", ROOT / "config" / "dc-motor-unbalanced-sim.toml",
             "twinwatch-unbalanced.rrd", "discovery: the unbalanced shaft's periodic term"),
     Example("hydraulic", ROOT / "config" / "hydraulic-modbus-sim.toml",
-            "twinwatch-hydraulic.rrd", "the hydraulic actuator: D, the fluid, degrades"),
+            "twinwatch-hydraulic.rrd", "the hydraulic actuator: D, the fluid, degrades",
+            420.0),
 )
 
 
@@ -105,12 +111,14 @@ def _small(raw: Path, out: Path) -> None:
                    dither=Image.Dither.NONE).save(out, optimize=True)
 
 
-def render(example: Example, work: Path) -> None:
+def render(example: Example, work: Path, images: Path) -> None:
     work.mkdir(parents=True, exist_ok=True)
     config = _config(example, work)
     t0 = time.monotonic()
+    duration = ["--duration", f"{example.duration:g}"] if example.duration else []
     run = subprocess.run([sys.executable, "-m", "twinwatch", "run", str(config), "--fresh",
-                          "--no-progress"], cwd=work, capture_output=True, text=True)
+                          "--no-progress", *duration], cwd=work, capture_output=True,
+                         text=True)
     took = time.monotonic() - t0
     if run.returncode != 0:
         raise SystemExit(f"{example.name}: twinwatch run exited {run.returncode}:\n"
@@ -118,11 +126,11 @@ def render(example: Example, work: Path) -> None:
     recording = work / example.recording
     raw = work / f"{example.name}-raw.png"
     _screenshot(recording, raw)
-    IMAGES.mkdir(parents=True, exist_ok=True)
-    out = IMAGES / f"{example.name}.png"
+    images.mkdir(parents=True, exist_ok=True)
+    out = images / f"{example.name}.png"
     _small(raw, out)
     print(f"{example.name:<10} {example.what}: run {took:.0f} s, recording "
-          f"{recording.resolve().stat().st_size / 2**20:.1f} MiB, {out.relative_to(ROOT)} "
+          f"{recording.resolve().stat().st_size / 2**20:.1f} MiB, {out} "
           f"{out.stat().st_size / 1024:.0f} KiB")
 
 
@@ -132,15 +140,21 @@ def main() -> None:
                         help="render only this example (repeatable)")
     parser.add_argument("--keep", type=Path, help="run in this directory and keep it "
                         "(default: a temporary directory, removed)")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--out", type=Path, default=BUILD,
+                       help="write the PNGs here (default: build/views/, not tracked)")
+    where.add_argument("--update", action="store_true",
+                       help="write the PNGs over the tracked docs/images/*.png")
     args = parser.parse_args()
+    images = IMAGES if args.update else args.out
     chosen = [e for e in EXAMPLES if not args.only or e.name in args.only]
     if args.keep is not None:
         for example in chosen:
-            render(example, args.keep / example.name)
+            render(example, args.keep / example.name, images)
         return
     with tempfile.TemporaryDirectory(prefix="twinwatch-views-") as tmp:
         for example in chosen:
-            render(example, Path(tmp) / example.name)
+            render(example, Path(tmp) / example.name, images)
 
 
 if __name__ == "__main__":

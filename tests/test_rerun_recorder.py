@@ -77,6 +77,7 @@ def expected_rows(machine: str, windows: int) -> Counter[str]:
         counts[f"/{machine}/outputs/{o}/measured"] = N * windows
         counts[f"/{machine}/outputs/{o}/twin"] = N * windows
         counts[f"/{machine}/residual/{o}"] = N * windows  # measured - twin, every sample
+        counts[f"/{machine}/outputs/{o}/frame"] = windows  # two labelled ticks on its axis
     counts[f"/{machine}/parameters"] = windows  # one series per parameter
     counts[f"/{machine}/health"] = windows
     counts[f"/{machine}/log"] = windows
@@ -407,8 +408,12 @@ def test_the_blueprint_tells_the_story(tmp_path: Path) -> None:
     views = _views(bp.root_container)
     by_origin = {str(v.origin): v for v in views}
     whole = [("Infinite", None), ("Infinite", None)]
-    health = [o for o in by_origin if o.startswith("/m1/health/")]
+    health = [o for o in by_origin if o.startswith("/m1/health/")
+              and not o.endswith("/summary")]
     assert health == [f"/m1/health/{p}" for p in ("Ra", "La", "J", "Ke", "D")]  # not Kt
+    # each panel writes its summary (RUL, alarm moments) under its plot
+    for p in ("Ra", "La", "J", "Ke", "D"):
+        assert by_origin[f"/m1/health/{p}/summary"].class_identifier == "TextDocument"
     assert by_origin["/m1/health/Ra"].name == "Ra [% of 6.5 ohm]: warning +-5, alarm +-10 %"
     assert by_origin["/m1/health/J"].name == "J [% of 0.001171 kg m^2]"
     health_box = bp.root_container.contents[1].contents[0].contents[0]
@@ -430,7 +435,7 @@ def test_the_blueprint_tells_the_story(tmp_path: Path) -> None:
     assert {"/m1/model", "/m1/health", "/m1/log", "/m1/key"} <= set(by_origin)
     assert by_origin["/m1/quality"].contents == [
         "/m1/quality/nrmse_dt_prime", "/m1/quality/nrmse_dt_second", "/m1/quality/nrmse",
-        "/m1/quality/model_check_failed"]
+        "/m1/quality/model_check_failed", "/m1/quality/frame"]
     # the file holds the layout: the same view origins are in its blueprint
     blueprint = rr.chunk.RrdReader(rec.path).blueprints()
     assert len(blueprint) == 1
@@ -515,7 +520,7 @@ def test_alarm_changes_and_values_are_in_the_log_and_on_the_plot(tmp_path: Path)
     assert ("ERROR", raise_ev["message"]) in rows and ("WARN", clear_ev["message"]) in rows
     per_window = [(lvl, text) for lvl, text in rows if text.startswith("window ")]
     assert [lvl for lvl, _ in per_window] == ["INFO", "ERROR", "ERROR", "WARN"]
-    assert per_window[0][1].startswith("window 0 [0.00-1.99 s] Ra 6.435 ohm -1.00 % estimated")
+    assert per_window[0][1].startswith("window 0 [0:00-0:02] Ra 6.435 ohm -1.00 % estimated")
     assert "ALARM Ra -12.00 %" in per_window[1][1] and "model check FAILED: ia: not white" in \
         per_window[1][1]
     assert "data lost: windows_abandoned +1" in per_window[2][1]
@@ -530,7 +535,7 @@ def test_alarm_changes_and_values_are_in_the_log_and_on_the_plot(tmp_path: Path)
     band_low, band_high = ((0.88 * (1 + s * 0.01) - 1) * 100 for s in (-1, 1))
     assert series == pytest.approx([band_low, band_high, 0.0, 5.0, -5.0, 10.0, -10.0,
                                     16.0, -16.0, -12.0])
-    assert _scalars(rec.path, "/m1/quality/model_check_failed") == [(3.99, [1e-3])]
+    assert _scalars(rec.path, "/m1/quality/model_check_failed") == [(3.99, [1e3])]  # ppm
     assert [v for _, v in _scalars(rec.path, "/m1/quality/problems")] == [[0.0], [0.0], [1.0],
                                                                           [1.0]]
 
@@ -728,13 +733,13 @@ def test_the_daemons_alarm_reaches_the_recording(tmp_path: Path,
     assert len(windows) == 12
     in_alarm = [(lvl, text) for lvl, text in windows if "ALARM Ra" in text]
     assert in_alarm and all(lvl == "ERROR" for lvl, _ in in_alarm)
-    assert in_alarm[-1][1].startswith("window 11 [22.00-23.99 s] ALARM Ra +1")
+    assert in_alarm[-1][1].startswith("window 11 [0:22-0:24] ALARM Ra +1")
 
 
 def test_a_trend_and_its_rul_are_drawn_when_the_message_has_them(tmp_path: Path) -> None:
     """A health message with prognostics (``parameters.<p>.trend``, ``.rul``): the trend and
-    its 2-sigma band in % of nominal on the parameter's view, the RUL in the log row and the
-    model panel."""
+    its 2-sigma band in % of nominal on the parameter's view, the RUL's median in the log row
+    (its interval on the parameter's panel)."""
     w = story_window(0, -4.0)
     ra = w["health"]["parameters"]["Ra"]
     ra["trend"] = {"level": 6.5 * 0.95, "level_std": 6.5 * 0.005}
@@ -747,5 +752,74 @@ def test_a_trend_and_its_rul_are_drawn_when_the_message_has_them(tmp_path: Path)
     [(t, trend)] = _scalars(rec.path, "/m1/health/Ra/trend")
     assert t == 1.99 and trend == pytest.approx([-6.0, -4.0, -5.0])
     [row] = [text for _, text in _log_rows(rec.path, "m1") if text.startswith("window 0")]
-    assert "Ra 6.24 ohm -4.00 % estimated (warning crossed, RUL to alarm 1.2e+03 s " \
-        "(900-1.5e+03 s))" in row
+    assert "Ra 6.24 ohm -4.00 % estimated (warning crossed, RUL alarm 20m 00s)" in row
+
+
+def _documents(path: Path, entity: str) -> list[tuple[float, str]]:
+    """(plant time [s], text) of every TextDocument row of ``entity``, in time order."""
+    out = []
+    for chunk in rr.chunk.RrdReader(path).stream():
+        if chunk.entity_path != entity or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        times = batch.column("plant_time").cast("int64").to_pylist()
+        out += [(t / 1e9, d[0]) for t, d in zip(
+            times, batch.column("TextDocument:text").to_pylist(), strict=True)]
+    return sorted(out)
+
+
+def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
+        tmp_path: Path) -> None:
+    """Under each parameter's plot, its summary: the RUL to each threshold of its rule with its
+    95 % interval and the plant time of the crossing (minutes:seconds), the moments its
+    deviation alarm and its RUL alarm were raised (apart; a RUL raise also a marker of its own
+    on the plot), a 2-sigma band that leaves the view said so; the nRMSE in ppm; an output whose
+    window spans less than one labelled tick gets a transparent frame that reaches the next."""
+    rul_ev = {"kind": "rul", "parameter": "Ra", "level": "warning", "previous": "normal",
+              "t": 721.99, "window": 0, "message": "m1: RUL WARNING: Ra reaches ..."}
+    dev_ev = {"kind": "deviation", "parameter": "Ra", "level": "warning",
+              "previous": "normal", "deviation_pct": -5.2, "t": 877.99, "window": 1,
+              "message": "m1: WARNING: Ra is 5.20 % below nominal"}
+    windows = []
+    for k, (dev, t_end) in enumerate(((-4.0, 721.99), (-5.2, 877.99))):
+        w = story_window(k, dev)
+        w["t"] = w["t"] - w["t"][0] + t_end - 1.99
+        w["measured"]["ia"] = 50396.0 + 8.0 * np.linspace(0, 1, N)  # one tick: 50 400
+        w["simulated"]["ia"] = w["measured"]["ia"] - 0.01
+        ra = w["health"]["parameters"]["Ra"]
+        ra["trend"] = {"model": "exponential", "degrading": True, "rate_pct_per_h": -165.0,
+                       "level": 6.5 * (1 + dev / 100), "level_std": 0.001}
+        ra["rul"] = {"status": "degrading",
+                     "warning": ({"status": "crossed"} if k else
+                                 {"status": "predicted", "rul_s": 156.0, "low_s": 120.0,
+                                  "high_s": 200.0, "t": 878.0, "t_low": 842.0,
+                                  "t_high": 922.0}),
+                     "alarm": {"status": "predicted", "rul_s": 212.0, "low_s": 170.0,
+                               "high_s": None, "t": 1090.0, "t_low": 1048.0,
+                               "t_high": None}}
+        la = w["health"]["parameters"]["La"]
+        la.update(status="fused", nominal=1.0, value=1.0, deviation_pct=0.0,
+                  fused={"low": -3.2, "high": 5.2})  # +-420 %
+        windows.append((w, [rul_ev] if k == 0 else [dev_ev]))
+    with story_recorder(tmp_path / "m1.rrd") as rec:
+        for w, events in windows:
+            rec.log_window(**w, events=events)
+    docs = _documents(rec.path, "/m1/health/Ra/summary")
+    assert [t for t, _ in docs] == [721.99, 877.99]
+    first, last = docs[0][1], docs[1][1]
+    assert "**Ra -4.00 %** estimated +- 0.5 %; trend exponential -165 %/h" in first
+    assert ("**RUL to warning 2m 36s (2m 00s-3m 20s), at 14:38 (14:02-15:22), RUL to alarm "
+            "3m 32s (2m 50s-never), at 18:10 (17:28-never)**") in first
+    assert "RUL warning raised at 12:02" in first and "deviation" not in first
+    assert "**warning crossed, RUL to alarm 3m 32s" in last
+    assert "deviation warning raised at 14:38; RUL warning raised at 12:02" in last
+    [(_, la_doc)] = [d for d in _documents(rec.path, "/m1/health/La/summary") if d[0] > 800]
+    assert "2-sigma band -420..+420 %, drawn to +-15 %" in la_doc
+    # the RUL raise on the plot, at Ra's deviation then, apart from the deviation's raise
+    assert _scalars(rec.path, "/m1/health/Ra/events/rul_warning") == [(721.99, [-4.0])]
+    assert _scalars(rec.path, "/m1/health/Ra/events/warning") == [(877.99, [-5.2])]
+    assert [v for _, v in _scalars(rec.path, "/m1/quality/nrmse")] == [[1e3], [1e3]]
+    frames = _scalars(rec.path, "/m1/outputs/ia/frame")
+    assert [v for _, v in frames] == [[50390.0, 50404.0]] * 2
+    omega = _scalars(rec.path, "/m1/outputs/omega/frame")  # 100 cos t: two ticks already
+    assert all(v[0] >= -100.0 and v[1] <= 100.0 for _, v in omega)

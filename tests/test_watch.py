@@ -448,3 +448,35 @@ def test_rul_and_deviation_alarms_apart_and_losses_only() -> None:
     assert "last: Ra RUL normal -> warning at 488 s" in text
     assert "alarms: none" not in text and "driver_polls" not in text
     assert "driver_duplicates" not in text and "driver_gaps 1" in text
+
+
+def test_machines_on_their_own_ports_are_watched_with_a_connect_each() -> None:
+    """Issue 24: the hydraulic example is a peer on its own port (7448) beside the default one
+    (7447), and never appeared in a plain `watch` (7447). As docs/operating.md says: one
+    `--connect` per port lists both; a watch of one port lists only the machine there (no
+    scouting: a peer does not tell of the other). Two peers, each a machine on its own port
+    (its token and its latest window, as a daemon declares them)."""
+    eps = [endpoint(free_port()), endpoint(free_port())]
+    sessions, held = [], []
+    try:
+        for name, ep in (("dc-motor-sim", eps[0]), ("hydraulic-sim", eps[1])):
+            s = zsession("peer", listen=[ep])
+            sessions.append(s)
+            doc = json.dumps(_msg(name, 4))
+            held.append(s.liveliness().declare_token(f"twinwatch/{name}/alive"))
+            held.append(s.declare_queryable(
+                f"twinwatch/{name}/health",
+                lambda q, doc=doc, name=name: q.reply(f"twinwatch/{name}/health", doc)))
+        both = _twinwatch("watch", "--connect", eps[0], "--connect", eps[1], "--once",
+                          "--json", "--wait", "3")
+        assert both.returncode == 0, both.stderr
+        found = {m["machine"]: m["window"] for m in json.loads(both.stdout)["machines"]}
+        assert found == {"dc-motor-sim": 4, "hydraulic-sim": 4}, found
+        one = _twinwatch("watch", "--connect", eps[0], "--once", "--json", "--wait", "3")
+        assert one.returncode == 0, one.stderr
+        assert [m["machine"] for m in json.loads(one.stdout)["machines"]] == ["dc-motor-sim"]
+    finally:
+        for h in held:
+            h.undeclare()
+        for s in sessions:
+            s.close()

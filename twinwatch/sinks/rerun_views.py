@@ -8,24 +8,33 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
 
 * ``M/outputs/<output>/measured`` and ``M/outputs/<output>/twin``: the window's measured and
   twin-simulated output samples in the output's unit (:class:`rerun.Scalars`, one
-  ``send_columns`` per series and window); ``M/residual/<output>``: measured - twin, every
-  sample; ``M/residual_rmse/dt_prime`` and ``.../dt_second``: per window, the RMSE of the twin
+  ``send_columns`` per series and window); ``M/outputs/<output>/frame``: two transparent
+  values per window that give the axis two labelled ticks (:func:`_frame`);
+  ``M/residual/<output>``: measured - twin, every sample; ``M/residual_rmse/dt_prime`` and
+  ``.../dt_second``: per window, the RMSE of the twin
   without (DT') and with (DT'') its meta-model terms, one series per output (its unit);
 * ``M/parameters``: every parameter's estimate [SI], one series per parameter (the twin's
   order), one point per window;
 * ``M/health/<name>/...`` for each estimated parameter, in percent of its nominal value:
   ``deviation`` (series, in drawing order: the 2-sigma band's low and high ends, 0 = nominal,
-  the ``[alarms]`` thresholds (or a +-5 % scale when it has no rule), two transparent headroom
+  the ``[alarms]`` thresholds (or a +-10 % scale when it has no rule), two transparent headroom
   series that keep the thresholds off the axis' edges, and last the deviation itself),
-  ``estimated`` / ``fused`` / ``held`` (the deviation again, one point per window on the entity
-  of the window's status: drawn as different markers), ``events/warning``, ``events/alarm``,
-  ``events/cleared`` (the alarm changes, a large marker at the event's deviation);
-  ``health/<name>/trend``: the parameter's trend when the message carries one
-  (``parameters.<name>.trend.level`` +- 2 ``level_std``, in %: low, high, level); its RUL
-  (``rul.warning`` / ``rul.alarm``) is in the log row and the model panel;
+  ``frame`` (two transparent values: two labelled ticks over the run), ``estimated`` /
+  ``fused`` / ``held`` (the deviation again, one point per window on the entity of the
+  window's status: drawn as different markers), ``events/warning``, ``events/alarm``,
+  ``events/cleared`` (the deviation rule's changes, a large marker at the event's deviation),
+  ``events/rul_warning``, ``events/rul_alarm`` (the RUL rule's raises, a down-triangle at the
+  parameter's deviation then); ``health/<name>/trend``: the parameter's trend when the message
+  carries one (``parameters.<name>.trend.level`` +- 2 ``level_std``, in %: low, high, level);
+  ``health/<name>/summary``: what the panel says in words under its plot, every window
+  (markdown): the deviation, status and trend, the RUL to each threshold of the rule (median,
+  95 % interval, and the plant time of the crossing), the moments the deviation alarm and the
+  RUL alarm were raised or cleared (apart), a 2-sigma band beyond the view; the RUL's median is
+  also in the log row;
 * ``M/quality/nrmse`` (the published twin's), ``M/quality/nrmse_dt_prime`` and
   ``.../nrmse_dt_second`` (without and with the terms), ``M/quality/model_check_failed`` (the
-  nRMSE of the windows whose model check failed), ``M/quality/elapsed_ms`` (adaptation time per
+  nRMSE of the windows whose model check failed), all in ppm, ``M/quality/frame`` (its axis'
+  frame), ``M/quality/elapsed_ms`` (adaptation time per
   window [ms]), ``M/quality/problems`` (the counters of lost or bad data, cumulative: abandoned
   windows, overruns, gaps, bad samples, windows not stored or not recorded, ... one series
   each, named after the counter);
@@ -42,6 +51,14 @@ data (a finished file opens on its end); the parameters' health and the data-qua
 the whole run, the outputs and residuals the last ``recent_s`` seconds before the time cursor,
 the model and the log the state at the cursor; no legend covers a trace (the key says what the
 colours mean), no axis zooms in on noise (deviations in % with their thresholds or a scale).
+Plant time is written as minutes:seconds (``14:38``) in the summaries, the log and the model;
+the axes' ticks are the viewer's (``+10m``).
+
+Not drawn: the trend's projection to the threshold as a curve in the time-series views. Rerun
+(0.41) draws every row ever logged at a time of the range, so each window's projection into the
+future would stay and interleave with the next (a ``Clear`` only breaks a line); the
+projection is logged as a 2-D line strip (:func:`twinwatch.sinks.rerun.projection_ops`) and its
+result, the crossing's median and interval, is written on the panel.
 """
 
 from __future__ import annotations
@@ -95,22 +112,34 @@ _EVENT_STYLE: dict[str, tuple[tuple[int, int, int], _Marker, float]] = {
     "warning": (_WARNING, "up", 9.0),
     "alarm": (_ALARM, "circle", 9.0),
     "cleared": ((90, 205, 100), "square", 8.0),
+    "rul_warning": (_WARNING, "down", 9.0),
+    "rul_alarm": (_ALARM, "down", 11.0),
 }
+"""Alarm changes on a parameter's view: the deviation rule's raises (``warning``, ``alarm``)
+and clears, the RUL rule's raises (``rul_warning``, ``rul_alarm``), apart."""
 _VARIANTS = (("dt_prime", "DT'", _DT_PRIME), ("dt_second", "DT''", _DT_SECOND))
 """The twin without (DT') and with (DT'') its meta-model terms: key, label, colour."""
 _QUALITY_COLORS = (
     (240, 60, 60), (255, 190, 0), (196, 150, 255), (86, 164, 255), (255, 140, 30),
     (90, 205, 100), (230, 120, 200), (160, 160, 160), (40, 200, 200), (190, 190, 60),
 )
-_SCALE_PCT = 5.0
+_SCALE_PCT = 10.0
 """Half-height of the scale drawn for a parameter without an alarm rule [%] (its axis never
 zooms in on the noise of a held value)."""
 _HEADROOM = 1.6
+_SCALE_HEADROOM = 1.15
+"""The same for the +-10 % scale of a parameter without a rule: its small panel then labels
+the ticks -10, 0, 10 (at 1.6 it labelled only 0)."""
 """The axis of a parameter's view reaches at least this many times its outermost threshold (or
 scale) on each side that has one: the lines never sit on its edge."""
-_BAND_CLIP = 3.0
+_BAND_CLIP = 1.5
 """The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
-nominal: a parameter the data do not determine (+-400 %) does not flatten its plot."""
+nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
+panel's summary says so (``2-sigma band -420..+420 %, drawn to +-15 %``). At 3 a +-30 % band
+took a small panel's axis to -100..100 (its labelled ticks a hundred apart)."""
+_PPM = 1e6
+"""The fit panel shows the nRMSE in parts per million (ppm) of the output's scale: 1.6e-4 and
+3e-7 have readable ticks (160 and 0.3), the bare fraction's ticks read ``0``."""
 _PROBLEM_COUNTER = re.compile(
     r"abandon|overrun|lost|gap|bad|error|fail|silent|stall|jitter|missing|dropped|timeout|"
     r"not_stored|not_connected|waiting")
@@ -164,6 +193,11 @@ class RecordingViews:
         self.recent_s = float(recent_s)
         self._problem_counters: list[str] = []
         self._last_counters: dict[str, int] = {}
+        self._ranges: dict[str, tuple[float, float]] = {}
+        """view -> the range of its values over the run so far, for its axis frame."""
+        self._moments: dict[str, dict[tuple[str, str], tuple[str, float]]] = {}
+        """parameter -> (rule kind, level) -> (raised or cleared, plant time [s]): the alarm
+        changes seen, for the parameter's summary."""
 
     def set_alarm_bands(self, alarm_bands: Mapping[str, AlarmBands]) -> list[Op]:
         """New thresholds (a reload): the styles to log again (empty when unchanged)."""
@@ -215,31 +249,39 @@ class RecordingViews:
         def origin(*parts: str) -> str:
             return "/" + entity(m, *parts)
 
+        def panel(p: str, text_share: float) -> rrb.Vertical:
+            """A parameter's panel: its summary written above its plot (the RUL, the moments
+            its alarms were raised, a band beyond the view)."""
+            return rrb.Vertical(
+                rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
+                                   contents=["$origin/**", "- $origin/summary"], **whole()),
+                rrb.TextDocumentView(origin=origin("health", p, "summary"),
+                                     name=f"{p}: RUL and alarms", titlebar=False),
+                row_shares=[1.0, text_share], name=p)
+
         ruled = [p for p in self.estimated if p in self.alarm_bands]
         others = [p for p in self.estimated if p not in self.alarm_bands]
-        health: list[rrb.Container | rrb.View] = [
-            rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p), **whole())
-            for p in ruled]
+        health: list[rrb.Container | rrb.View] = [panel(p, 0.45) for p in ruled]
         shares = [2.0] * len(ruled)
         if others:
-            views = [rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
-                                        **whole()) for p in others]
+            views = [panel(p, 0.5) for p in others]
             columns = 1 if len(others) == 1 else 2
             health.append(rrb.Grid(*views, grid_columns=columns, name="other parameters"))
             shares.append(float(math.ceil(len(others) / columns)) * (1.4 if ruled else 2.0))
         quality = rrb.Horizontal(
             rrb.TimeSeriesView(origin=origin("quality"), contents=[
                 origin("quality", "nrmse_dt_prime"), origin("quality", "nrmse_dt_second"),
-                origin("quality", "nrmse"), origin("quality", "model_check_failed")],
-                name="fit: nRMSE DT' DT''", **whole()),
+                origin("quality", "nrmse"), origin("quality", "model_check_failed"),
+                origin("quality", "frame")],
+                name="fit: nRMSE [ppm] DT' DT''", **whole()),
             rrb.TimeSeriesView(origin=origin("quality", "elapsed_ms"),
-                               name="estimation time [ms]", **whole()),
+                               name="estimation [ms]", **whole()),
             rrb.TimeSeriesView(origin=origin("quality", "problems"),
                                name="lost or bad [count]", **whole()),
-            name="data quality")
+            column_shares=[1.6, 1.0, 1.0], name="data quality")
         left = rrb.Vertical(
             rrb.Vertical(*health, row_shares=shares, name="health"), quality,
-            row_shares=[max(sum(shares), 1.0) * 1.0, 1.3], name="health and data quality")
+            row_shares=[max(sum(shares), 1.0) * 1.0, 1.0], name="health and data quality")
         pairs = [(rrb.TimeSeriesView(origin=origin("outputs", o),
                                      name=f"{o}{self._unit(o)}: measured, twin", **recent()),
                   rrb.TimeSeriesView(origin=origin("residual", o),
@@ -262,26 +304,25 @@ class RecordingViews:
                     text_log_columns=[rrb.encodings.TextLogColumn("loglevel"),
                                       rrb.encodings.TextLogColumn("body"),
                                       rrb.encodings.TextLogColumn("entitypath", visible=False)])),
-            column_shares=[2, 3])
+            column_shares=[0.75, 1.25])
         key = rrb.TextDocumentView(origin=origin("key"), name="key", titlebar=False)
         return rrb.Blueprint(
             rrb.Vertical(
                 key,
                 rrb.Horizontal(left, right, column_shares=[1.05, 1]),
                 bottom,
-                row_shares=[0.42, 5.0, 1.7]),
+                row_shares=[0.42, 5.0, 2.1]),
             rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
             collapse_panels=True,
         )
 
     def _key(self) -> str:
-        return ("**health** in % of nominal: a marker per window by status, estimated (green "
-                "dot), fused (blue diamond), held (grey x); its 2-sigma band (blue); its trend "
-                "(pink); thresholds "
-                "warning (amber), alarm (red); warning raised (amber triangle), alarm raised "
-                "(red dot), cleared (green square).  **outputs**: measured (blue, wide), twin "
-                "(orange); residual, measured - twin (violet).  **fit**: nRMSE of DT' (red), "
-                "of DT'' (green, with meta-model terms), model check failed (red x).")
+        return ("**health** [% of nominal] per window: estimated (green dot), fused (blue "
+                "diamond), held (grey x); 2-sigma band (blue), trend (pink), warning (amber) and "
+                "alarm (red) thresholds; raised: warning (amber triangle), alarm (red dot), RUL "
+                "warning / alarm (down-triangles); cleared (green square). **outputs**: measured "
+                "(blue), twin (orange), residual (violet). **fit**: nRMSE [ppm] DT' (red), DT'' "
+                "(green), model check failed (red x). Plant time in minutes:seconds.")
 
     def static_ops(self) -> list[Op]:
         """What every file and the live stream need once: the key and every series' style."""
@@ -296,7 +337,9 @@ class RecordingViews:
                   static=True)]
         for o in self.outputs:
             u = self._unit(o)
-            ops += [lines(("outputs", o, "measured"), f"{o} measured{u}", _MEASURED, 3.5),
+            ops += [lines(("outputs", o, "frame"), [f"{o} axis frame low", f"{o} axis frame high"],
+                          [_HIDDEN, _HIDDEN], [1.0, 1.0]),
+                    lines(("outputs", o, "measured"), f"{o} measured{u}", _MEASURED, 3.5),
                     lines(("outputs", o, "twin"), f"{o} twin{u}", _TWIN, 1.5),
                     lines(("residual", o), f"{o} measured - twin{u}", _RESIDUAL, 1.0)]
         n = len(self.outputs)
@@ -309,13 +352,16 @@ class RecordingViews:
                          [_QUALITY_COLORS[i % len(_QUALITY_COLORS)] for i in range(n)],
                          [1.0] * n))
         ops += self.health_styles()
-        ops.append(lines(("quality", "nrmse"), "nRMSE (the twin published)", _DEVIATION, 1.0))
+        ops.append(lines(("quality", "nrmse"), "nRMSE [ppm] (the twin published)", _DEVIATION,
+                         1.0))
         for variant, label, color in _VARIANTS:
-            ops.append(lines(("quality", f"nrmse_{variant}"), f"nRMSE {label}", color, 2.0))
+            ops.append(lines(("quality", f"nrmse_{variant}"), f"nRMSE {label} [ppm]", color, 2.0))
         ops.append(Op(entity(m, "quality", "model_check_failed"), rr.SeriesPoints(
-            names="model check failed", colors=_ALARM, markers="cross", marker_sizes=4.0),
+            names="model check failed [ppm]", colors=_ALARM, markers="cross", marker_sizes=4.0),
             static=True))
         ops.append(lines(("quality", "elapsed_ms"), "estimation time [ms]", _ELAPSED, 1.5))
+        ops.append(lines(("quality", "frame"), ["axis frame low", "axis frame high"],
+                         [_HIDDEN, _HIDDEN], [1.0, 1.0]))
         if self._problem_counters:
             ops.append(self._problem_style())
         return ops
@@ -355,10 +401,14 @@ class RecordingViews:
                     names=f"{p} {status}", colors=color, markers=marker, marker_sizes=size),
                     static=True))
             for kind, (color, marker, size) in _EVENT_STYLE.items():
-                label = "cleared" if kind == "cleared" else f"{kind} raised"
+                label = ("cleared" if kind == "cleared"
+                         else f"{kind.replace('_', ' ').replace('rul', 'RUL')} raised")
                 ops.append(Op(entity(m, "health", p, "events", kind), rr.SeriesPoints(
                     names=f"{p} {label}", colors=color, markers=marker, marker_sizes=size),
                     static=True))
+            ops.append(Op(entity(m, "health", p, "frame"), rr.SeriesLines(
+                names=["axis frame low", "axis frame high"], colors=[_HIDDEN, _HIDDEN],
+                widths=[1.0, 1.0]), static=True))
             ops.append(Op(entity(m, "health", p, "trend"), rr.SeriesLines(
                 names=[f"{p} trend 2-sigma low", f"{p} trend 2-sigma high", f"{p} trend"],
                 colors=[_TREND_BAND, _TREND_BAND, _TREND], widths=[1.0, 1.0, 2.0]),
@@ -386,6 +436,10 @@ class RecordingViews:
             for name, values in channels.items():
                 ops.append(Op(entity(m, "outputs", name, kind),
                                rr.Scalars.columns(scalars=values), index=index))
+        for name, values in meas.items():
+            frame = _frame(np.concatenate([values, sim[name]]) if name in sim else values)
+            if frame is not None:
+                ops.append(Op(entity(m, "outputs", name, "frame"), rr.Scalars(frame), t_end))
         for name in meas.keys() & sim.keys():
             ops.append(Op(entity(m, "residual", name),
                            rr.Scalars.columns(scalars=meas[name] - sim[name]), index=index))
@@ -402,7 +456,14 @@ class RecordingViews:
             if isinstance(ph, Mapping):
                 ops += self._health_ops(p, ph, t_end)
         for ev in events:
-            ops += self._event_ops(ev, t_end)
+            ops += self._event_ops(ev, t_end, params)
+        alarms = _mapping(doc.get("alarms"))
+        for p in self.estimated:
+            ph = params.get(p)
+            if isinstance(ph, Mapping):
+                ops.append(Op(entity(m, "health", p, "summary"), rr.TextDocument(
+                    self._summary(p, ph, _mapping(alarms.get(p))),
+                    media_type=rr.MediaType.MARKDOWN), t_end))
         ops += self._quality_ops(doc, t_end)
         ops.append(Op(entity(m, "model"), rr.TextDocument(
             _model_document(m, t_end, doc), media_type=rr.MediaType.MARKDOWN), t_end))
@@ -427,11 +488,15 @@ class RecordingViews:
         band = [float(np.clip(v, -clip, clip)) if math.isfinite(v) else math.nan
                 for v in (low, high)]
         top, bottom = max(0.0, *limits), min(0.0, *limits)
-        headroom = [_HEADROOM * top if top > 0 else 0.2 * outer,
-                    _HEADROOM * bottom if bottom < 0 else -0.2 * outer]
+        room = _HEADROOM if p in self.alarm_bands else _SCALE_HEADROOM
+        headroom = [room * top if top > 0 else 0.2 * outer,
+                    room * bottom if bottom < 0 else -0.2 * outer]
         values = [*band, 0.0, *limits, *headroom, dev]
         m = self.machine
         ops = [Op(entity(m, "health", p, "deviation"), rr.Scalars(values), t)]
+        frame = self._run_frame(f"health/{p}", values)
+        if frame is not None:
+            ops.append(Op(entity(m, "health", p, "frame"), rr.Scalars(frame), t))
         status = ph.get("status")
         if status in _STATUS_STYLE:
             ops.append(Op(entity(m, "health", p, str(status)), rr.Scalars(dev), t))
@@ -441,11 +506,15 @@ class RecordingViews:
                 [float(np.clip(v, -clip, clip)) for v in trend]), t))
         return ops
 
-    def _event_ops(self, ev: Mapping[str, Any], t_end: float) -> list[Op]:
-        """An alarm change: its message in the log, a marker on its parameter's view."""
+    def _event_ops(self, ev: Mapping[str, Any], t_end: float,
+                   params: Mapping[str, Any]) -> list[Op]:
+        """An alarm change: its message in the log, a marker on its parameter's view (a
+        deviation rule's at the event's deviation, a RUL rule's at the parameter's deviation in
+        this window), its moment kept for the parameter's summary."""
         m = self.machine
         p = str(ev.get("parameter", ""))
         level, previous = ev.get("level"), ev.get("previous")
+        rule = "rul" if ev.get("kind") == "rul" else "deviation"
         t = _num(ev.get("t"))
         t = t if math.isfinite(t) else t_end
         raised = _RANK.get(str(level), 0) > _RANK.get(str(previous), 0)
@@ -454,10 +523,65 @@ class RecordingViews:
         message = ev.get("message") or (f"{p}: {previous} -> {level} at "
                                         f"{_num(ev.get('deviation_pct')):+.2f} % of nominal")
         ops = [Op(entity(m, "log"), rr.TextLog(str(message), level=severity), t)]
-        dev = _num(ev.get("deviation_pct"))
+        self._moments.setdefault(p, {})[(rule, str(level if raised else previous))] = (
+            "raised" if raised else "cleared", t)
+        if rule == "rul":
+            dev = _num(_mapping(params.get(p)).get("deviation_pct"))
+            kind = f"rul_{kind}" if raised else ""
+        else:
+            dev = _num(ev.get("deviation_pct"))
         if p in self.estimated and kind in _EVENT_STYLE and math.isfinite(dev):
             ops.append(Op(entity(m, "health", p, "events", kind), rr.Scalars(dev), t))
         return ops
+
+    def _summary(self, p: str, ph: Mapping[str, Any], alarm: Mapping[str, Any]) -> str:
+        """What ``p``'s panel says in words (markdown, two to four short lines): its deviation
+        and status, its trend, the RUL to each threshold of its rule (median and 95 %
+        interval, and the plant time of the crossing), the moments its deviation and RUL alarms
+        were raised or cleared, and its 2-sigma band when that leaves the view."""
+        dev = _num(ph.get("deviation_pct"))
+        status = str(ph.get("status", ""))
+        rel = _num(ph.get("rel_std_pct"))
+        head = f"**{p} {_fmt(dev, '+.2f')} %** {status}"
+        if status in ("estimated", "fused") and math.isfinite(rel):
+            head += f" +- {rel:.2g} %"
+        trend = _mapping(ph.get("trend"))
+        if trend.get("model") is None:
+            head += "; no trend yet" if trend else ""
+        elif trend.get("degrading") is False:
+            head += "; not degrading"
+        else:
+            rate = _num(trend.get("rate_pct_per_h"))
+            head += f"; trend {trend.get('model')} {_fmt(rate, '+.3g')} %/h"
+        lines = [head]
+        rul = _mapping(ph.get("rul"))
+        if p in self.alarm_bands:
+            text = _rul_text(ph, at=True)
+            if text:
+                lines.append(f"**{text}**")
+            elif rul.get("status") in ("insufficient", "not_degrading"):
+                lines.append("RUL: " + str(rul["status"]).replace("_", " "))
+        moments = dict(self._moments.get(p, {}))
+        for rule, state in (("deviation", alarm), ("rul", _mapping(alarm.get("rul")))):
+            level, since = str(state.get("level", "normal")), _num(state.get("since_t"))
+            if _RANK.get(level, 0) > 0 and (rule, level) not in moments and \
+                    math.isfinite(since):
+                moments[(rule, level)] = ("raised", since)  # raised before this recording
+        said = []
+        for rule, name in (("deviation", "deviation"), ("rul", "RUL")):
+            seen = sorted(((t, what, level) for (r, level), (what, t) in moments.items()
+                           if r == rule))
+            if seen:
+                said.append(f"{name} " + ", ".join(
+                    f"{level} {what} at {clock(t)}" for t, what, level in seen))
+        if said:
+            lines.append("; ".join(said))
+        low, high = _band_pct(ph)
+        limits = [value for _, value, _ in self._limits(p)]
+        clip = _BAND_CLIP * max(abs(v) for v in limits)
+        if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
+            lines.append(f"2-sigma band {low:+.3g}..{high:+.3g} %, drawn to +-{clip:g} %")
+        return "  \n".join(lines) + "\n"
 
     def _quality_ops(self, doc: Mapping[str, Any], t: float) -> list[Op]:
         """nRMSE and the model check, the adaptation time, the counters of lost data."""
@@ -470,14 +594,19 @@ class RecordingViews:
                 value = _num(fit.get("nrmse")) if isinstance(fit, Mapping) else math.nan
                 if math.isfinite(value):
                     ops.append(Op(entity(m, "quality", f"nrmse_{variant}"),
-                                   rr.Scalars(value), t))
+                                   rr.Scalars(value * _PPM), t))
         nrmse = _num(doc.get("nrmse"))
+        fit = [_num(_mapping(_mapping(residual).get(v)).get("nrmse")) for v in
+               ("dt_prime", "dt_second")] + [nrmse]
+        frame = self._run_frame("quality", [v * _PPM for v in fit])
+        if frame is not None:
+            ops.append(Op(entity(m, "quality", "frame"), rr.Scalars(frame), t))
         if math.isfinite(nrmse):
-            ops.append(Op(entity(m, "quality", "nrmse"), rr.Scalars(nrmse), t))
+            ops.append(Op(entity(m, "quality", "nrmse"), rr.Scalars(nrmse * _PPM), t))
             check = doc.get("model_check")
             if isinstance(check, Mapping) and check.get("passed") is False:
-                ops.append(Op(entity(m, "quality", "model_check_failed"), rr.Scalars(nrmse),
-                               t))
+                ops.append(Op(entity(m, "quality", "model_check_failed"),
+                              rr.Scalars(nrmse * _PPM), t))
         elapsed = _num(doc.get("elapsed_s"))
         if math.isfinite(elapsed):
             ops.append(Op(entity(m, "quality", "elapsed_ms"), rr.Scalars(elapsed * 1e3), t))
@@ -492,6 +621,17 @@ class RecordingViews:
                 ops.append(Op(entity(m, "quality", "problems"), rr.Scalars(
                     [_num(counters.get(k)) for k in self._problem_counters]), t))
         return ops
+
+    def _run_frame(self, view: str, values: Sequence[float]) -> list[float] | None:
+        """The axis frame (:func:`_frame`) of a view that shows the whole run: over every
+        finite value it has shown so far."""
+        finite = [v for v in values if math.isfinite(v)]
+        if not finite:
+            return None
+        low, high = self._ranges.get(view, (min(finite), max(finite)))
+        low, high = min(low, *finite), max(high, *finite)
+        self._ranges[view] = (low, high)
+        return _frame(np.array([low, high]))
 
     def _new_problems(self, doc: Mapping[str, Any]) -> dict[str, int]:
         """The problem counters that grew since the last window, and by how much."""
@@ -548,6 +688,29 @@ def _residual_rmse(doc: Mapping[str, Any]) -> dict[str, Mapping[str, float | Non
     return out
 
 
+def _frame(values: np.ndarray) -> list[float] | None:
+    """Two transparent values that give an axis two labelled ticks. The viewer labels ticks at
+    powers of ten only, and only when at most about four of them span the axis (seen at
+    1600x1000): a pressure of 50 380-50 425 Pa gets one label (50 400). The frame is the range,
+    widened on its nearer side to the next multiple of that power of ten when fewer than two
+    lie inside (50 380-50 500 Pa: 50 400 and 50 500). None without finite values."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return None
+    low, high = float(finite.min()), float(finite.max())
+    width = high - low
+    if width <= 0.0:
+        width = abs(high) * 1e-3 or 1.0
+    step = 10.0 ** math.ceil(math.log10(width / 4.0))
+    first, last = math.ceil(low / step), math.floor(high / step)
+    if last - first >= 1:
+        return [low, high]
+    lo, hi = math.floor(low / step) * step, math.ceil(high / step) * step
+    if last == first:  # one labelled tick inside: reach the next one on the nearer side
+        return [lo, high] if (low - lo) <= (hi - high) else [low, hi]
+    return [lo, hi]
+
+
 def _band_pct(ph: Mapping[str, Any]) -> tuple[float, float]:
     """The 2-sigma band of a parameter's published value, in % of nominal (NaN when the
     message gives none): the fused interval for a fused or held value that has one, else the
@@ -581,8 +744,10 @@ def _trend_pct(ph: Mapping[str, Any]) -> tuple[float, float, float] | None:
     return pct(level - 2 * std), pct(level + 2 * std), pct(level)
 
 
-def _rul_text(ph: Mapping[str, Any]) -> str:
-    """``RUL to alarm 1.2e+03 s (900-1500 s)`` from the message's ``rul`` (empty without)."""
+def _rul_text(ph: Mapping[str, Any], at: bool = False) -> str:
+    """``RUL to alarm 3m 40s (2m 50s-5m 10s)`` from the message's ``rul`` (empty without);
+    with ``at``, the crossing's plant time too (``, at 18:10 (17:30-19:50)``). An open end
+    (some draws never reach it) is ``never``."""
     rul = _mapping(ph.get("rul"))
     parts = []
     for level in ("warning", "alarm"):
@@ -591,10 +756,60 @@ def _rul_text(ph: Mapping[str, Any]) -> str:
             parts.append(f"{level} crossed")
         elif c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
             low, high = _num(c.get("low_s")), _num(c.get("high_s"))
-            span = (f" ({low:.3g}-{high:.3g} s)" if math.isfinite(low) and math.isfinite(high)
-                    else "")
-            parts.append(f"RUL to {level} {_num(c.get('rul_s')):.3g} s{span}")
+            text = (f"RUL to {level} {span(_num(c.get('rul_s')))} ({span(low)}-"
+                    f"{span(high) if math.isfinite(high) else 'never'})")
+            t, t_low, t_high = _num(c.get("t")), _num(c.get("t_low")), _num(c.get("t_high"))
+            if at and math.isfinite(t):
+                text += (f", at {clock(t)} ({clock(t_low)}-"
+                         f"{clock(t_high) if math.isfinite(t_high) else 'never'})")
+            parts.append(text)
     return ", ".join(parts)
+
+
+def _rul_short(ph: Mapping[str, Any]) -> str:
+    """``RUL alarm 3m 32s`` (the median to the nearest threshold not crossed yet; the
+    interval is on the parameter's panel), ``alarm crossed``, or empty."""
+    rul = _mapping(ph.get("rul"))
+    crossed = ""
+    for level in ("warning", "alarm"):
+        c = _mapping(rul.get(level))
+        if c.get("status") == "crossed":
+            crossed = f"{level} crossed"
+    for level in ("warning", "alarm"):
+        c = _mapping(rul.get(level))
+        if c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
+            return (f"{crossed}, " if crossed else "") + \
+                f"RUL {level} {span(_num(c.get('rul_s')))}"
+    return crossed
+
+
+def clock(t: float) -> str:
+    """Plant time for a person: ``14:38`` (minutes:seconds), ``1:02:05`` past an hour,
+    ``-0:05`` before zero; ``n/a`` when not finite. Rounded to the second."""
+    if not math.isfinite(t):
+        return "n/a"
+    sign, s = ("-" if t < 0 else ""), int(round(abs(t)))
+    h, rest = divmod(s, 3600)
+    m, sec = divmod(rest, 60)
+    return f"{sign}{h}:{m:02d}:{sec:02d}" if h else f"{sign}{m}:{sec:02d}"
+
+
+def span(seconds: float) -> str:
+    """A duration for a person: ``45 s``, ``3m 40s``, ``2h 05m``, ``3.2 d``; ``n/a`` when not
+    finite."""
+    if not math.isfinite(seconds):
+        return "n/a"
+    s = abs(seconds)
+    sign = "-" if seconds < 0 else ""
+    if s < 60:
+        return f"{sign}{s:.0f} s"
+    if s < 3600:
+        m, sec = divmod(int(round(s)), 60)
+        return f"{sign}{m}m {sec:02d}s"
+    if s < 86400 * 2:
+        h, m = divmod(int(round(s / 60)), 60)
+        return f"{sign}{h}h {m:02d}m"
+    return f"{sign}{s / 86400:.1f} d"
 
 
 def _fmt(x: Any, spec: str = ".6g") -> str:
@@ -607,16 +822,15 @@ def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
     then every parameter's value against nominal and its status, then the fit."""
     terms = [term for term in doc.get("terms") or [] if isinstance(term, Mapping)]
     model = doc.get("model")
-    twin = f"the physical twin `{model}`" if model else "the physical twin"
+    twin = f"`{model}`" if model else "the physical twin"
     window = doc.get("window")
-    at = (f"t = {t:.2f} s" + (f", window {window}" if window is not None else "")
-          + (f", run {doc['run']}" if doc.get("run") else ""))
+    at = f"at {clock(t)}" + (f", window {window}" if window is not None else "")
     lines = []
     if not terms:
-        lines.append(f"**DT'' = DT** ({at}): {twin} explains the data, no meta-model term.")
+        lines.append(f"**DT'' = DT** {at}: {twin} alone explains the data.")
     else:
         n = len(terms)
-        lines.append(f"**DT'' = DT + {n} meta-model term{'s' if n > 1 else ''}** ({at}): "
+        lines.append(f"**DT'' = DT + {n} meta-model term{'s' if n > 1 else ''}** {at}: "
                      f"{twin} plus what discovery found (paper Eq. 3).")
         for i, term in enumerate(terms, 1):
             lines.append("")
@@ -646,7 +860,8 @@ def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
                   "windows in a row): discovery searches for what the model lacks."]
     table = _mapping(doc.get("parameters"))
     if table:
-        lines += ["", "| parameter | value | vs nominal | status |", "|---|---:|---:|---|"]
+        lines += ["", "| parameter | value | nominal | vs nominal | status |",
+                  "|---|---:|---:|---:|---|"]
         reasons: dict[str, list[str]] = {}
         for name, p in table.items():
             if not isinstance(p, Mapping):
@@ -659,13 +874,11 @@ def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
                 status = str(p["reason"])
             elif status == "held" and p.get("reason"):
                 reasons.setdefault(str(p["reason"]), []).append(str(name))
-            rul = _rul_text(p)
-            if rul:
-                status += f"; {rul}"
             dev = _num(p.get("deviation_pct"))
             lines.append(f"| {name} | {_fmt(p.get('value'))} {p.get('unit', '')} | "
-                         f"{format(dev, '+.2f') + ' %' if math.isfinite(dev) else 'n/a'} of "
-                         f"{_fmt(p.get('nominal'))} | {status} |")
+                         f"{_fmt(p.get('nominal'))} | "
+                         f"{format(dev, '+.2f') + ' %' if math.isfinite(dev) else 'n/a'} | "
+                         f"{status} |")
         for reason, names in reasons.items():
             lines += ["", f"{', '.join(names)} held: {reason}"]
     rmse = doc.get("rmse")
@@ -679,40 +892,49 @@ def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: boo
              grew: Mapping[str, int]) -> tuple[str, Any]:
     """One line with the window's values, and its level: ERROR while a parameter is in alarm,
     WARN while one is in warning, the model check fails, the structure changed or data were
-    lost, else INFO."""
-    parts = [f"window {doc.get('window', '?')} [{t0:.2f}-{t_end:.2f} s]"]
+    lost, else INFO. Most important first (a row is not wrapped: its end may be cut): the
+    window and its plant time, the deviation and RUL alarms apart, the parameters with an
+    alarm rule, the fit, then the other parameters."""
+    parts = [f"window {doc.get('window', '?')} [{clock(t0)}-{clock(t_end)}]"]
     worst = 0
-    alarms = doc.get("alarms")
+    alarms = _mapping(doc.get("alarms"))
     raised = []
-    if isinstance(alarms, Mapping):
-        for name, a in alarms.items():
-            level = a.get("level") if isinstance(a, Mapping) else None
-            if _RANK.get(str(level), 0) > 0:
-                worst = max(worst, _RANK[str(level)])
-                dev = _fmt(a.get("deviation_pct"), "+.2f")
-                raised.append(f"{str(level).upper()} {name} {dev} %")
+    for name, a in alarms.items():
+        level = str(_mapping(a).get("level"))
+        if _RANK.get(level, 0) > 0:
+            worst = max(worst, _RANK[level])
+            dev = _fmt(_mapping(a).get("deviation_pct"), "+.2f")
+            raised.append(f"{level.upper()} {name} {dev} %")
+    for name, a in alarms.items():
+        level = str(_mapping(_mapping(a).get("rul")).get("level"))
+        if _RANK.get(level, 0) > 0:
+            worst = max(worst, _RANK[level])
+            raised.append(f"RUL {level.upper()} {name}")
     if raised:
         parts.append(", ".join(raised) + " |")
-    params = doc.get("parameters")
-    if isinstance(params, Mapping):
-        shown = []
-        for name, p in params.items():
-            if not isinstance(p, Mapping) or p.get("status") in ("tied", "fixed"):
-                continue
-            rul = _rul_text(p)
-            shown.append(f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} "
-                         f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}"
-                         + (f" ({rul})" if rul else ""))
-        if shown:
-            parts.append("; ".join(shown) + " |")
+    ruled, others, held = [], [], []
+    for name, p in _mapping(doc.get("parameters")).items():
+        if not isinstance(p, Mapping) or p.get("status") in ("tied", "fixed"):
+            continue
+        if p.get("status") == "held":  # the last trusted value again: named, not repeated
+            held.append(str(name))
+            continue
+        rul = _rul_short(p)
+        (ruled if name in alarms else others).append(
+            f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} "
+            f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}"
+            + (f" ({rul})" if rul else ""))
+    if held:
+        others.append("held " + ", ".join(held))
+    if ruled:
+        parts.append("; ".join(ruled) + " |")
     fit = []
     if "nrmse" in doc:
         fit.append(f"nRMSE {_fmt(doc.get('nrmse'), '.3g')}")
     check = doc.get("model_check")
     failed = isinstance(check, Mapping) and check.get("passed") is False
-    if isinstance(check, Mapping):
-        fit.append("model check " + ("FAILED: " + "; ".join(map(str, check.get("reasons") or []))
-                                     if failed else "passed"))
+    if failed:  # a check that passed is the rule: said only in the model panel
+        fit.append("model check FAILED: " + "; ".join(map(str, check.get("reasons") or [])))
     if math.isfinite(_num(doc.get("elapsed_s"))):
         fit.append(f"{_num(doc.get('elapsed_s')) * 1e3:.0f} ms")
     disc = doc.get("discovery")
@@ -726,7 +948,9 @@ def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: boo
     if grew:
         fit.append("data lost: " + ", ".join(f"{k} +{v}" for k, v in grew.items()))
     if fit:
-        parts.append(", ".join(fit))
+        parts.append(", ".join(fit) + (" |" if others else ""))
+    if others:
+        parts.append("; ".join(others))
     if not raised and len(parts) == 1:  # not a health message: its top-level scalars
         parts.append(", ".join(f"{k}={v}" for k, v in doc.items()
                                if isinstance(v, bool | str | int | float) or v is None))
