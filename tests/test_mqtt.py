@@ -482,6 +482,46 @@ def test_tls_client_certificate_and_password(tmp_path: Path):
         b.stop()
 
 
+@pytest.mark.slow
+@needs_mosquitto
+def test_sighup_reads_a_fixed_password_file_again(tmp_path: Path):
+    """Issue 26: a wrong password in the password file, fixed while the daemon runs, then
+    SIGHUP: the output opens again with the new password and delivers the windows that waited
+    (before, the reload kept the output, its table unchanged: only a restart read the file)."""
+    if shutil.which("mosquitto_passwd") is None:
+        pytest.skip("mosquitto_passwd is not installed (Debian: mosquitto)")
+    d = tmp_path / "broker"
+    d.mkdir()
+    subprocess.run(["mosquitto_passwd", "-b", "-c", str(d / "passwd"), "tw", "s3cret"],
+                   check=True, capture_output=True, timeout=30)
+    b = Broker(d, anonymous=False, extra=f"password_file {d / 'passwd'}\n")
+    secret = tmp_path / "mqtt.password"
+    secret.write_text("wrong\n")
+    secret.chmod(0o600)
+    b.start()
+    proc = None
+    try:
+        sub = Subscriber(b.port, [f"{M}/health"], username="tw", password="s3cret")
+        table = mqtt_table(b.port, f'username = "tw"\npassword_file = "{secret}"\n')
+        proc = twinwatch(sim_config(tmp_path, duration=600.0, extra=table), cwd=tmp_path)
+        db = tmp_path / "state.sqlite"
+        wait_for(lambda: _count(db) >= 3, 120, "3 windows stored")
+        time.sleep(1.0)
+        assert sub.on(f"{M}/health") == []  # refused: Not authorized
+        secret.write_text("s3cret\n")
+        proc.send_signal(signal.SIGHUP)
+        sub.wait(lambda: len(sub.on(f"{M}/health")) >= 3, 60, "windows after the SIGHUP")
+        code, out, err = finish(proc, signal.SIGTERM)
+        assert code == 0, err
+        assert "Not authorized" in err and "configuration reloaded" in err, err
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        for s in list(Subscriber.open):
+            s.close()
+        b.stop()
+
+
 # -- the sink on its own: a reload hands it over; without a state database ---------------------
 def _window(store: Any, w: int, machine: str = "m1") -> Any:
     """Store one small health message as the gate does and return what write() gets."""

@@ -50,6 +50,7 @@ outbox is in memory (the last ``memory_outbox`` windows): a restart loses what w
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import logging
@@ -60,7 +61,7 @@ import ssl
 import threading
 import time
 from collections import deque
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Hashable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
@@ -641,6 +642,20 @@ class MqttPublisher(Sink):
     def from_config(cls, config: MqttConfig, context: SinkContext) -> Self:
         """Open the output; the broker is connected to in the background."""
         return cls(config, context)
+
+    @classmethod
+    def reload_key(cls, config: MqttConfig, context: SinkContext) -> Hashable:
+        """The table's values and what its files hold now (the password file, the TLS
+        certificates and key): a SIGHUP after a password or a certificate was renewed opens
+        the output again with them; the same table and files keep it connected. (Before,
+        only the table counted: a fixed password file was read again only by a restart.)"""
+        files = []
+        for key, path in sorted(config.input_files().items()):
+            try:
+                files.append((key, hashlib.sha256(Path(path).read_bytes()).hexdigest()))
+            except OSError as exc:  # the reload's own open names it
+                files.append((key, f"unreadable: {exc.strerror or exc}"))
+        return (super().reload_key(config, context), tuple(files))
 
     def _read_password(self) -> str | None:
         cfg = self.config
