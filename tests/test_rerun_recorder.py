@@ -823,3 +823,24 @@ def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
     assert [v for _, v in frames] == [[50390.0, 50404.0]] * 2
     omega = _scalars(rec.path, "/m1/outputs/omega/frame")  # 100 cos t: two ticks already
     assert all(v[0] >= -100.0 and v[1] <= 100.0 for _, v in omega)
+
+
+def test_render_views_leaves_the_tracked_pictures_alone_unless_asked() -> None:
+    """Issue 24: scripts/render_views.py wrote over docs/images/*.png on every run; now into
+    build/views/ (or --out), over docs/images/ only with --update."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("render_views",
+                                                  ROOT / "scripts" / "render_views.py")
+    assert spec is not None and spec.loader is not None
+    script = importlib.util.module_from_spec(spec)
+    sys.modules["render_views"] = script  # its dataclasses look their module up
+    try:
+        spec.loader.exec_module(script)
+    finally:
+        del sys.modules["render_views"]
+    assert script.images_dir([]) == ROOT / "build" / "views"
+    assert script.images_dir(["--out", "/tmp/x"]) == Path("/tmp/x")
+    assert script.images_dir(["--update"]) == ROOT / "docs" / "images"
+    with pytest.raises(SystemExit):
+        script.images_dir(["--update", "--out", "/tmp/x"])
