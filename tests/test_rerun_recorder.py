@@ -814,7 +814,7 @@ def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
     assert "**warning crossed, RUL to alarm 3m 32s" in last
     assert "deviation warning raised at 14:38; RUL warning raised at 12:02" in last
     [(_, la_doc)] = [d for d in _documents(rec.path, "/m1/health/La/summary") if d[0] > 800]
-    assert "2-sigma band -420..+420 %, drawn to +-15 %" in la_doc
+    assert "2-sigma band -420..+420 %, drawn to +-11.5 %" in la_doc
     # the RUL raise on the plot, at Ra's deviation then, apart from the deviation's raise
     assert _scalars(rec.path, "/m1/health/Ra/events/rul_warning") == [(721.99, [-4.0])]
     assert _scalars(rec.path, "/m1/health/Ra/events/warning") == [(877.99, [-5.2])]

@@ -378,6 +378,13 @@ class RecordingViews:
             ("alarm", bands.alarm_high, _ALARM), ("alarm", bands.alarm_low, _ALARM))
             if value is not None]
 
+    def _band_clip(self, p: str) -> float:
+        """How far from nominal ``p``'s 2-sigma band is drawn at most [%]: ``_BAND_CLIP`` times
+        its outer threshold, or within the headroom of its scale when it has no rule (a small
+        panel then keeps its ticks -10, 0, 10: at +-15 % it labelled only 0)."""
+        outer = max(abs(value) for _, value, _ in self._limits(p))
+        return (_BAND_CLIP if p in self.alarm_bands else _SCALE_HEADROOM) * outer
+
     def _series(self, p: str) -> list[tuple[str, tuple[int, ...], float]]:
         """The series of ``health/<p>/deviation``, in drawing order: name, colour, width (the
         two headroom series are transparent: the axis keeps the thresholds off its edges)."""
@@ -483,7 +490,7 @@ class RecordingViews:
             return []
         limits = [value for _, value, _ in self._limits(p)]
         outer = max(abs(v) for v in limits)
-        clip = _BAND_CLIP * outer
+        clip = self._band_clip(p)
         low, high = _band_pct(ph)
         band = [float(np.clip(v, -clip, clip)) if math.isfinite(v) else math.nan
                 for v in (low, high)]
@@ -577,8 +584,7 @@ class RecordingViews:
         if said:
             lines.append("; ".join(said))
         low, high = _band_pct(ph)
-        limits = [value for _, value, _ in self._limits(p)]
-        clip = _BAND_CLIP * max(abs(v) for v in limits)
+        clip = self._band_clip(p)
         if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
             lines.append(f"2-sigma band {low:+.3g}..{high:+.3g} %, drawn to +-{clip:g} %")
         return "  \n".join(lines) + "\n"
