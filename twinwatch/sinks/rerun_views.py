@@ -135,8 +135,9 @@ scale) on each side that has one: the lines never sit on its edge."""
 _BAND_CLIP = 1.5
 """The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
 nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
-panel's summary says so (``2-sigma band -420..+420 %, drawn to +-15 %``). At 3 a +-30 % band
-took a small panel's axis to -100..100 (its labelled ticks a hundred apart)."""
+panel's summary says so (``2-sigma band -420..+420 %, drawn to +-15 %``; within
+``_SCALE_HEADROOM`` for a parameter without a rule). At 3 a +-30 % band took a small panel's
+axis to -100..100 (its labelled ticks a hundred apart)."""
 _PPM = 1e6
 """The fit panel shows the nRMSE in parts per million (ppm) of the output's scale: 1.6e-4 and
 3e-7 have readable ticks (160 and 0.3), the bare fraction's ticks read ``0``."""
