@@ -775,18 +775,15 @@ def _rul_text(ph: Mapping[str, Any], at: bool = False) -> str:
 
 def _rul_short(ph: Mapping[str, Any]) -> str:
     """``RUL alarm 3m 32s`` (the median to the nearest threshold not crossed yet; the
-    interval is on the parameter's panel), ``alarm crossed``, or empty."""
+    interval is on the parameter's panel), else ``alarm crossed``, or empty."""
     rul = _mapping(ph.get("rul"))
     crossed = ""
     for level in ("warning", "alarm"):
         c = _mapping(rul.get(level))
         if c.get("status") == "crossed":
             crossed = f"{level} crossed"
-    for level in ("warning", "alarm"):
-        c = _mapping(rul.get(level))
-        if c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
-            return (f"{crossed}, " if crossed else "") + \
-                f"RUL {level} {span(_num(c.get('rul_s')))}"
+        elif c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
+            return f"RUL {level} {span(_num(c.get('rul_s')))}"
     return crossed
 
 
@@ -927,10 +924,11 @@ def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: boo
             held.append(str(name))
             continue
         rul = _rul_short(p)
+        said = _RANK.get(str(_mapping(alarms.get(name)).get("level")), 0) > 0
+        dev = "" if said else f"{_fmt(p.get('deviation_pct'), '+.2f')} % "  # in the alarm's
         (ruled if name in alarms else others).append(
-            f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} "
-            f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}"
-            + (f" ({rul})" if rul else ""))
+            f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} {dev}"
+            f"{p.get('status', '')}" + (f" ({rul})" if rul else ""))
     if held:
         others.append("held " + ", ".join(held))
     if ruled:
