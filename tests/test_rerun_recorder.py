@@ -524,6 +524,8 @@ def test_alarm_changes_and_values_are_in_the_log_and_on_the_plot(tmp_path: Path)
     assert "ALARM Ra -12.00 %" in per_window[1][1] and "model check FAILED: ia: not white" in \
         per_window[1][1]
     assert "| Ra 5.72 ohm estimated |" in per_window[1][1]  # its deviation said once, first
+    # the whole-run axis frame is logged when it changes: -16..16 % from the first window on
+    assert _scalars(rec.path, "/m1/health/Ra/frame") == [(1.99, [-16.0, 16.0])]
     assert "data lost: windows_abandoned +1" in per_window[2][1]
     assert "WARNING Ra -8.00 %" in per_window[3][1]
     assert _scalars(rec.path, "/m1/health/Ra/events/alarm") == [(3.99, [-12.0])]

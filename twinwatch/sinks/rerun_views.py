@@ -196,6 +196,9 @@ class RecordingViews:
         self._last_counters: dict[str, int] = {}
         self._ranges: dict[str, tuple[float, float]] = {}
         """view -> the range of its values over the run so far, for its axis frame."""
+        self._frames: dict[str, list[float]] = {}
+        """view -> the axis frame last logged (logged again only when it changes, and in
+        every new file: :meth:`static_ops` forgets them)."""
         self._moments: dict[str, dict[tuple[str, str], tuple[str, float]]] = {}
         """parameter -> (rule kind, level) -> (raised or cleared, plant time [s]): the alarm
         changes seen, for the parameter's summary."""
@@ -326,8 +329,10 @@ class RecordingViews:
                 "(green), model check failed (red x). Plant time in minutes:seconds.")
 
     def static_ops(self) -> list[Op]:
-        """What every file and the live stream need once: the key and every series' style."""
+        """What every file and the live stream need once: the key and every series' style
+        (and the whole-run views' axis frames are logged again with the next window)."""
         m = self.machine
+        self._frames.clear()
 
         def lines(path: tuple[str, ...], names: Any, colors: Any, widths: Any) -> Op:
             return Op(entity(m, *path), rr.SeriesLines(names=names, colors=colors,
@@ -631,14 +636,18 @@ class RecordingViews:
 
     def _run_frame(self, view: str, values: Sequence[float]) -> list[float] | None:
         """The axis frame (:func:`_frame`) of a view that shows the whole run: over every
-        finite value it has shown so far."""
+        finite value it has shown so far; None when it is the one last logged."""
         finite = [v for v in values if math.isfinite(v)]
         if not finite:
             return None
         low, high = self._ranges.get(view, (min(finite), max(finite)))
         low, high = min(low, *finite), max(high, *finite)
         self._ranges[view] = (low, high)
-        return _frame(np.array([low, high]))
+        frame = _frame(np.array([low, high]))
+        if frame is None or frame == self._frames.get(view):
+            return None  # unchanged: one chunk less per view and window in the file
+        self._frames[view] = frame
+        return frame
 
     def _new_problems(self, doc: Mapping[str, Any]) -> dict[str, int]:
         """The problem counters that grew since the last window, and by how much."""
