@@ -5,6 +5,7 @@ Every call of the ``rerun`` CLI runs with ``CI=true`` so it writes no analytics 
 
 from __future__ import annotations
 
+import calendar
 import json
 import os
 import re
@@ -847,3 +848,23 @@ def test_render_views_leaves_the_tracked_pictures_alone_unless_asked() -> None:
     assert script.images_dir(["--update"]) == ROOT / "docs" / "images"
     with pytest.raises(SystemExit):
         script.images_dir(["--update", "--out", "/tmp/x"])
+
+
+def test_a_source_on_the_wall_clock_gets_a_timestamp_timeline(tmp_path: Path) -> None:
+    """Issue 24: a source whose time stamps are the wall clock (seconds since the epoch, e.g.
+    a recorded log) showed plant time as +490 000 h; its timeline is now a timestamp and the
+    text gives the UTC time of day."""
+    t0 = float(calendar.timegm((2026, 11, 22, 14, 38, 5)))  # UTC
+    w = story_window(0, -1.0)
+    w["t"] = t0 + DT * np.arange(N)
+    w["health"].update(t_start=t0, t_end=t0 + 1.99)
+    with story_recorder(tmp_path / "m1.rrd") as rec:
+        rec.log_window(**w)
+    kinds = set()
+    for chunk in rr.chunk.RrdReader(rec.path).stream():
+        if not chunk.is_static and "plant_time" in chunk.to_record_batch().schema.names:
+            kinds.add(str(chunk.to_record_batch().schema.field("plant_time").type))
+    assert kinds == {"timestamp[ns]"}, kinds
+    [(_, row)] = [(lvl, text) for lvl, text in _log_rows(rec.path, "m1")
+                  if text.startswith("window 0")]
+    assert row.startswith("window 0 [14:38:05Z-14:38:07Z] Ra 6.435 ohm"), row

@@ -66,6 +66,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import time
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
@@ -84,7 +85,14 @@ else:  # imported when a recording opens: loading a configuration does not load 
 __all__ = ["TIMELINE", "RecordingViews", "emit"]
 
 TIMELINE = "plant_time"
-"""Name of the Rerun timeline carrying plant time [s] (a duration timeline)."""
+"""Name of the Rerun timeline carrying plant time [s]: a duration timeline, or a timestamp
+timeline when the source's clock is the wall clock (times past ``WALL_CLOCK_AFTER``)."""
+
+WALL_CLOCK_AFTER = 1e9
+"""Plant times from this many seconds on (2001-09-09) are the source's wall clock, seconds
+since the epoch (a recorded log with its time stamps, a drive's clock): the timeline is then a
+timestamp (the viewer shows the date and time of day, not ``+490000h``) and the text says the
+UTC time of day (``14:38:05Z``)."""
 
 # Colours for the viewer's dark theme, each meaning one thing everywhere.
 _MEASURED = (86, 164, 255)
@@ -444,7 +452,8 @@ class RecordingViews:
         m = self.machine
         t0, t_end = float(times[0]), float(times[-1])
         ops: list[Op] = []
-        index = [rr.TimeColumn(TIMELINE, duration=times)]
+        index = [rr.TimeColumn(TIMELINE, timestamp=times) if t0 >= WALL_CLOCK_AFTER
+                 else rr.TimeColumn(TIMELINE, duration=times)]
         for kind, channels in (("measured", meas), ("twin", sim)):
             for name, values in channels.items():
                 ops.append(Op(entity(m, "outputs", name, kind),
@@ -671,7 +680,11 @@ def emit(rec: rr.RecordingStream, ops: Sequence[Op]) -> None:
         elif op.index is not None:
             rec.send_columns(op.entity, indexes=op.index, columns=op.payload)
         else:
-            rec.set_time(TIMELINE, duration=op.t if op.t is not None else 0.0)
+            t = op.t if op.t is not None else 0.0
+            if t >= WALL_CLOCK_AFTER:
+                rec.set_time(TIMELINE, timestamp=t)
+            else:
+                rec.set_time(TIMELINE, duration=t)
             rec.log(op.entity, op.payload)
 
 
@@ -798,9 +811,12 @@ def _rul_short(ph: Mapping[str, Any]) -> str:
 
 def clock(t: float) -> str:
     """Plant time for a person: ``14:38`` (minutes:seconds), ``1:02:05`` past an hour,
-    ``-0:05`` before zero; ``n/a`` when not finite. Rounded to the second."""
+    ``-0:05`` before zero, the UTC time of day ``14:38:05Z`` for a wall clock (from
+    ``WALL_CLOCK_AFTER``); ``n/a`` when not finite. Rounded to the second."""
     if not math.isfinite(t):
         return "n/a"
+    if t >= WALL_CLOCK_AFTER:
+        return time.strftime("%H:%M:%SZ", time.gmtime(round(t)))
     sign, s = ("-" if t < 0 else ""), int(round(abs(t)))
     h, rest = divmod(s, 3600)
     m, sec = divmod(rest, 60)
