@@ -334,7 +334,8 @@ class RecordingViews:
                 "alarm (red) thresholds; raised: warning (amber triangle), alarm (red dot), RUL "
                 "warning / alarm (down-triangles); cleared (green square). **outputs**: measured "
                 "(blue), twin (orange), residual (violet). **fit**: nRMSE [ppm] DT' (red), DT'' "
-                "(green), model check failed (red x). Plant time in minutes:seconds.")
+                "(green), model check failed (red x). Plant time in minutes:seconds (a wall clock: "
+                "UTC time of day).")
 
     def static_ops(self) -> list[Op]:
         """What every file and the live stream need once: the key and every series' style
