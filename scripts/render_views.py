@@ -134,7 +134,14 @@ def render(example: Example, work: Path, images: Path) -> None:
           f"{out.stat().st_size / 1024:.0f} KiB")
 
 
-def main() -> None:
+def images_dir(argv: list[str] | None = None) -> Path:
+    """Where the PNGs go for these arguments: ``build/views/`` (or ``--out``), the tracked
+    ``docs/images/`` only with ``--update``."""
+    args = _parser().parse_args(argv)
+    return IMAGES if args.update else Path(args.out)
+
+
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--only", choices=[e.name for e in EXAMPLES], action="append",
                         help="render only this example (repeatable)")
@@ -145,7 +152,11 @@ def main() -> None:
                        help="write the PNGs here (default: build/views/, not tracked)")
     where.add_argument("--update", action="store_true",
                        help="write the PNGs over the tracked docs/images/*.png")
-    args = parser.parse_args()
+    return parser
+
+
+def main() -> None:
+    args = _parser().parse_args()
     images = IMAGES if args.update else args.out
     chosen = [e for e in EXAMPLES if not args.only or e.name in args.only]
     if args.keep is not None:

@@ -5,6 +5,7 @@ Every call of the ``rerun`` CLI runs with ``CI=true`` so it writes no analytics 
 
 from __future__ import annotations
 
+import calendar
 import json
 import os
 import re
@@ -523,6 +524,9 @@ def test_alarm_changes_and_values_are_in_the_log_and_on_the_plot(tmp_path: Path)
     assert per_window[0][1].startswith("window 0 [0:00-0:02] Ra 6.435 ohm -1.00 % estimated")
     assert "ALARM Ra -12.00 %" in per_window[1][1] and "model check FAILED: ia: not white" in \
         per_window[1][1]
+    assert "| Ra 5.72 ohm estimated |" in per_window[1][1]  # its deviation said once, first
+    # the whole-run axis frame is logged when it changes: -16..16 % from the first window on
+    assert _scalars(rec.path, "/m1/health/Ra/frame") == [(1.99, [-16.0, 16.0])]
     assert "data lost: windows_abandoned +1" in per_window[2][1]
     assert "WARNING Ra -8.00 %" in per_window[3][1]
     assert _scalars(rec.path, "/m1/health/Ra/events/alarm") == [(3.99, [-12.0])]
@@ -752,7 +756,7 @@ def test_a_trend_and_its_rul_are_drawn_when_the_message_has_them(tmp_path: Path)
     [(t, trend)] = _scalars(rec.path, "/m1/health/Ra/trend")
     assert t == 1.99 and trend == pytest.approx([-6.0, -4.0, -5.0])
     [row] = [text for _, text in _log_rows(rec.path, "m1") if text.startswith("window 0")]
-    assert "Ra 6.24 ohm -4.00 % estimated (warning crossed, RUL alarm 20m 00s)" in row
+    assert "Ra 6.24 ohm -4.00 % estimated (RUL alarm 20m 00s)" in row
 
 
 def _documents(path: Path, entity: str) -> list[tuple[float, str]]:
@@ -814,7 +818,7 @@ def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
     assert "**warning crossed, RUL to alarm 3m 32s" in last
     assert "deviation warning raised at 14:38; RUL warning raised at 12:02" in last
     [(_, la_doc)] = [d for d in _documents(rec.path, "/m1/health/La/summary") if d[0] > 800]
-    assert "2-sigma band -420..+420 %, drawn to +-15 %" in la_doc
+    assert "2-sigma band -420..+420 %, drawn to +-11.5 %" in la_doc
     # the RUL raise on the plot, at Ra's deviation then, apart from the deviation's raise
     assert _scalars(rec.path, "/m1/health/Ra/events/rul_warning") == [(721.99, [-4.0])]
     assert _scalars(rec.path, "/m1/health/Ra/events/warning") == [(877.99, [-5.2])]
@@ -823,3 +827,44 @@ def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
     assert [v for _, v in frames] == [[50390.0, 50404.0]] * 2
     omega = _scalars(rec.path, "/m1/outputs/omega/frame")  # 100 cos t: two ticks already
     assert all(v[0] >= -100.0 and v[1] <= 100.0 for _, v in omega)
+
+
+def test_render_views_leaves_the_tracked_pictures_alone_unless_asked() -> None:
+    """Issue 24: scripts/render_views.py wrote over docs/images/*.png on every run; now into
+    build/views/ (or --out), over docs/images/ only with --update."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("render_views",
+                                                  ROOT / "scripts" / "render_views.py")
+    assert spec is not None and spec.loader is not None
+    script = importlib.util.module_from_spec(spec)
+    sys.modules["render_views"] = script  # its dataclasses look their module up
+    try:
+        spec.loader.exec_module(script)
+    finally:
+        del sys.modules["render_views"]
+    assert script.images_dir([]) == ROOT / "build" / "views"
+    assert script.images_dir(["--out", "/tmp/x"]) == Path("/tmp/x")
+    assert script.images_dir(["--update"]) == ROOT / "docs" / "images"
+    with pytest.raises(SystemExit):
+        script.images_dir(["--update", "--out", "/tmp/x"])
+
+
+def test_a_source_on_the_wall_clock_gets_a_timestamp_timeline(tmp_path: Path) -> None:
+    """Issue 24: a source whose time stamps are the wall clock (seconds since the epoch, e.g.
+    a recorded log) showed plant time as +490 000 h; its timeline is now a timestamp and the
+    text gives the UTC time of day."""
+    t0 = float(calendar.timegm((2026, 11, 22, 14, 38, 5)))  # UTC
+    w = story_window(0, -1.0)
+    w["t"] = t0 + DT * np.arange(N)
+    w["health"].update(t_start=t0, t_end=t0 + 1.99)
+    with story_recorder(tmp_path / "m1.rrd") as rec:
+        rec.log_window(**w)
+    kinds = set()
+    for chunk in rr.chunk.RrdReader(rec.path).stream():
+        if not chunk.is_static and "plant_time" in chunk.to_record_batch().schema.names:
+            kinds.add(str(chunk.to_record_batch().schema.field("plant_time").type))
+    assert kinds == {"timestamp[ns]"}, kinds
+    [(_, row)] = [(lvl, text) for lvl, text in _log_rows(rec.path, "m1")
+                  if text.startswith("window 0")]
+    assert row.startswith("window 0 [14:38:05Z-14:38:07Z] Ra 6.435 ohm"), row

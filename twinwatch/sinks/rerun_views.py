@@ -66,6 +66,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import time
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
@@ -84,7 +85,14 @@ else:  # imported when a recording opens: loading a configuration does not load 
 __all__ = ["TIMELINE", "RecordingViews", "emit"]
 
 TIMELINE = "plant_time"
-"""Name of the Rerun timeline carrying plant time [s] (a duration timeline)."""
+"""Name of the Rerun timeline carrying plant time [s]: a duration timeline, or a timestamp
+timeline when the source's clock is the wall clock (times past ``WALL_CLOCK_AFTER``)."""
+
+WALL_CLOCK_AFTER = 1e9
+"""Plant times from this many seconds on (2001-09-09) are the source's wall clock, seconds
+since the epoch (a recorded log with its time stamps, a drive's clock): the timeline is then a
+timestamp (the viewer shows the date and time of day, not ``+490000h``) and the text says the
+UTC time of day (``14:38:05Z``)."""
 
 # Colours for the viewer's dark theme, each meaning one thing everywhere.
 _MEASURED = (86, 164, 255)
@@ -135,8 +143,9 @@ scale) on each side that has one: the lines never sit on its edge."""
 _BAND_CLIP = 1.5
 """The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
 nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
-panel's summary says so (``2-sigma band -420..+420 %, drawn to +-15 %``). At 3 a +-30 % band
-took a small panel's axis to -100..100 (its labelled ticks a hundred apart)."""
+panel's summary says so (``2-sigma band -420..+420 %, drawn to +-15 %``; within
+``_SCALE_HEADROOM`` for a parameter without a rule). At 3 a +-30 % band took a small panel's
+axis to -100..100 (its labelled ticks a hundred apart)."""
 _PPM = 1e6
 """The fit panel shows the nRMSE in parts per million (ppm) of the output's scale: 1.6e-4 and
 3e-7 have readable ticks (160 and 0.3), the bare fraction's ticks read ``0``."""
@@ -195,6 +204,9 @@ class RecordingViews:
         self._last_counters: dict[str, int] = {}
         self._ranges: dict[str, tuple[float, float]] = {}
         """view -> the range of its values over the run so far, for its axis frame."""
+        self._frames: dict[str, list[float]] = {}
+        """view -> the axis frame last logged (logged again only when it changes, and in
+        every new file: :meth:`static_ops` forgets them)."""
         self._moments: dict[str, dict[tuple[str, str], tuple[str, float]]] = {}
         """parameter -> (rule kind, level) -> (raised or cleared, plant time [s]): the alarm
         changes seen, for the parameter's summary."""
@@ -322,11 +334,14 @@ class RecordingViews:
                 "alarm (red) thresholds; raised: warning (amber triangle), alarm (red dot), RUL "
                 "warning / alarm (down-triangles); cleared (green square). **outputs**: measured "
                 "(blue), twin (orange), residual (violet). **fit**: nRMSE [ppm] DT' (red), DT'' "
-                "(green), model check failed (red x). Plant time in minutes:seconds.")
+                "(green), model check failed (red x). Plant time in minutes:seconds (a wall clock: "
+                "UTC time of day).")
 
     def static_ops(self) -> list[Op]:
-        """What every file and the live stream need once: the key and every series' style."""
+        """What every file and the live stream need once: the key and every series' style
+        (and the whole-run views' axis frames are logged again with the next window)."""
         m = self.machine
+        self._frames.clear()
 
         def lines(path: tuple[str, ...], names: Any, colors: Any, widths: Any) -> Op:
             return Op(entity(m, *path), rr.SeriesLines(names=names, colors=colors,
@@ -377,6 +392,13 @@ class RecordingViews:
             ("warning", bands.warning_high, _WARNING), ("warning", bands.warning_low, _WARNING),
             ("alarm", bands.alarm_high, _ALARM), ("alarm", bands.alarm_low, _ALARM))
             if value is not None]
+
+    def _band_clip(self, p: str) -> float:
+        """How far from nominal ``p``'s 2-sigma band is drawn at most [%]: ``_BAND_CLIP`` times
+        its outer threshold, or within the headroom of its scale when it has no rule (a small
+        panel then keeps its ticks -10, 0, 10: at +-15 % it labelled only 0)."""
+        outer = max(abs(value) for _, value, _ in self._limits(p))
+        return (_BAND_CLIP if p in self.alarm_bands else _SCALE_HEADROOM) * outer
 
     def _series(self, p: str) -> list[tuple[str, tuple[int, ...], float]]:
         """The series of ``health/<p>/deviation``, in drawing order: name, colour, width (the
@@ -431,7 +453,8 @@ class RecordingViews:
         m = self.machine
         t0, t_end = float(times[0]), float(times[-1])
         ops: list[Op] = []
-        index = [rr.TimeColumn(TIMELINE, duration=times)]
+        index = [rr.TimeColumn(TIMELINE, timestamp=times) if t0 >= WALL_CLOCK_AFTER
+                 else rr.TimeColumn(TIMELINE, duration=times)]
         for kind, channels in (("measured", meas), ("twin", sim)):
             for name, values in channels.items():
                 ops.append(Op(entity(m, "outputs", name, kind),
@@ -483,7 +506,7 @@ class RecordingViews:
             return []
         limits = [value for _, value, _ in self._limits(p)]
         outer = max(abs(v) for v in limits)
-        clip = _BAND_CLIP * outer
+        clip = self._band_clip(p)
         low, high = _band_pct(ph)
         band = [float(np.clip(v, -clip, clip)) if math.isfinite(v) else math.nan
                 for v in (low, high)]
@@ -577,8 +600,7 @@ class RecordingViews:
         if said:
             lines.append("; ".join(said))
         low, high = _band_pct(ph)
-        limits = [value for _, value, _ in self._limits(p)]
-        clip = _BAND_CLIP * max(abs(v) for v in limits)
+        clip = self._band_clip(p)
         if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
             lines.append(f"2-sigma band {low:+.3g}..{high:+.3g} %, drawn to +-{clip:g} %")
         return "  \n".join(lines) + "\n"
@@ -624,14 +646,18 @@ class RecordingViews:
 
     def _run_frame(self, view: str, values: Sequence[float]) -> list[float] | None:
         """The axis frame (:func:`_frame`) of a view that shows the whole run: over every
-        finite value it has shown so far."""
+        finite value it has shown so far; None when it is the one last logged."""
         finite = [v for v in values if math.isfinite(v)]
         if not finite:
             return None
         low, high = self._ranges.get(view, (min(finite), max(finite)))
         low, high = min(low, *finite), max(high, *finite)
         self._ranges[view] = (low, high)
-        return _frame(np.array([low, high]))
+        frame = _frame(np.array([low, high]))
+        if frame is None or frame == self._frames.get(view):
+            return None  # unchanged: one chunk less per view and window in the file
+        self._frames[view] = frame
+        return frame
 
     def _new_problems(self, doc: Mapping[str, Any]) -> dict[str, int]:
         """The problem counters that grew since the last window, and by how much."""
@@ -655,7 +681,11 @@ def emit(rec: rr.RecordingStream, ops: Sequence[Op]) -> None:
         elif op.index is not None:
             rec.send_columns(op.entity, indexes=op.index, columns=op.payload)
         else:
-            rec.set_time(TIMELINE, duration=op.t if op.t is not None else 0.0)
+            t = op.t if op.t is not None else 0.0
+            if t >= WALL_CLOCK_AFTER:
+                rec.set_time(TIMELINE, timestamp=t)
+            else:
+                rec.set_time(TIMELINE, duration=t)
             rec.log(op.entity, op.payload)
 
 
@@ -768,26 +798,26 @@ def _rul_text(ph: Mapping[str, Any], at: bool = False) -> str:
 
 def _rul_short(ph: Mapping[str, Any]) -> str:
     """``RUL alarm 3m 32s`` (the median to the nearest threshold not crossed yet; the
-    interval is on the parameter's panel), ``alarm crossed``, or empty."""
+    interval is on the parameter's panel), else ``alarm crossed``, or empty."""
     rul = _mapping(ph.get("rul"))
     crossed = ""
     for level in ("warning", "alarm"):
         c = _mapping(rul.get(level))
         if c.get("status") == "crossed":
             crossed = f"{level} crossed"
-    for level in ("warning", "alarm"):
-        c = _mapping(rul.get(level))
-        if c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
-            return (f"{crossed}, " if crossed else "") + \
-                f"RUL {level} {span(_num(c.get('rul_s')))}"
+        elif c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
+            return f"RUL {level} {span(_num(c.get('rul_s')))}"
     return crossed
 
 
 def clock(t: float) -> str:
     """Plant time for a person: ``14:38`` (minutes:seconds), ``1:02:05`` past an hour,
-    ``-0:05`` before zero; ``n/a`` when not finite. Rounded to the second."""
+    ``-0:05`` before zero, the UTC time of day ``14:38:05Z`` for a wall clock (from
+    ``WALL_CLOCK_AFTER``); ``n/a`` when not finite. Rounded to the second."""
     if not math.isfinite(t):
         return "n/a"
+    if t >= WALL_CLOCK_AFTER:
+        return time.strftime("%H:%M:%SZ", time.gmtime(round(t)))
     sign, s = ("-" if t < 0 else ""), int(round(abs(t)))
     h, rest = divmod(s, 3600)
     m, sec = divmod(rest, 60)
@@ -920,10 +950,11 @@ def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: boo
             held.append(str(name))
             continue
         rul = _rul_short(p)
+        said = _RANK.get(str(_mapping(alarms.get(name)).get("level")), 0) > 0
+        dev = "" if said else f"{_fmt(p.get('deviation_pct'), '+.2f')} % "  # in the alarm's
         (ruled if name in alarms else others).append(
-            f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} "
-            f"{_fmt(p.get('deviation_pct'), '+.2f')} % {p.get('status', '')}"
-            + (f" ({rul})" if rul else ""))
+            f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} {dev}"
+            f"{p.get('status', '')}" + (f" ({rul})" if rul else ""))
     if held:
         others.append("held " + ", ".join(held))
     if ruled:
