@@ -118,6 +118,8 @@ def score(history: list[HealthMessage], expected: str | None, onset: float,
     if expected is None:
         out["max_fault_p"] = round(max(f.probability for h in history
                                        for f in h.diagnosis.faults), 3)  # type: ignore[union-attr]
+        out["max_unknown_p"] = round(max(h.diagnosis.unknown for h in history  # type: ignore[union-attr]
+                                         ), 3)
         return out
     named = None
     for h in reversed(history):

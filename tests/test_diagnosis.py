@@ -277,3 +277,39 @@ def test_explain_live_over_zenoh_from_a_running_daemon(tmp_path: Path) -> None:
     down = CliRunner().invoke(main, ["explain", "dc-motor-sim", "--connect",
                                      endpoint(free_port())])
     assert down.exit_code == 1 and "nothing answers there" in down.output
+
+
+# -- the paper's runs (slow lane) -------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize("noise", [0.0, 1.0, 2.0])
+def test_nominal_runs_of_1200_s_give_no_fault_above_0_2(noise: float) -> None:
+    history = _motor(scenario="nominal", duration=1200.0,
+                     noise={"ia": noise, "omega": noise} if noise else {})
+    worst = max(f.probability for h in history for f in h.diagnosis.faults)  # type: ignore[union-attr]
+    assert worst < 0.2
+    assert max(h.diagnosis.unknown for h in history) < 0.2  # type: ignore[union-attr]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("scenario", "fault", "size_pct"), [
+    ("resistance_degradation", "winding_short", 1.0), ("bearing_wear", "bearing_wear", 3.0)])
+def test_the_papers_degradations_are_named_within_60_s_of_being_detectable(
+        scenario: str, fault: str, size_pct: float) -> None:
+    """The paper's laws from 160 s (Ra falls, D rises): the fault is first with probability
+    >= 0.8 within 60 s of plant time after the plant's parameter crosses the library's size
+    (1 % for Ra, 3 % for D: where the evidence becomes detectable) and stays first."""
+    from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
+
+    history = _motor(scenario=scenario, duration=1200.0)
+    plant = DCMotorPlant(DCMotorPlantConfig(scenario=scenario, duration=1200.0))  # type: ignore[arg-type]
+    name = "Ra" if fault == "winding_short" else "D"
+    nominal = getattr(plant.truth(0.0), name)
+    t_detectable = next(h.t_end for h in history if abs(getattr(plant.truth(h.t_end), name)
+                                                        / nominal - 1) * 100 >= size_pct)
+    named = None
+    for h in reversed(history):
+        d = h.diagnosis
+        if d is None or d.top != fault or d.faults[0].probability < 0.8:
+            break
+        named = h.t_end
+    assert named is not None and named - t_detectable <= 60.0, (named, t_detectable)
