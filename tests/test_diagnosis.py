@@ -169,6 +169,20 @@ def test_the_leak_example_names_the_seal_not_the_fluid(
     assert d.alarms == ["internal_leak"]  # [diagnosis] alarm 0.8 for 3 windows
 
 
+def test_the_recordings_model_document_opens_with_the_diagnosis(
+        leak_history: list[HealthMessage]) -> None:
+    """The Rerun recording's active text panel (the model document) starts with the fault,
+    its action and evidence: readable without touching the viewer."""
+    from twinwatch.sinks.rerun_views import _model_document
+
+    text = _model_document("hydraulic-leak", 80.0, leak_history[-1].as_dict())
+    head = text.split("**DT''", 1)[0]
+    assert head.startswith("**Diagnosis: internal_leak** (piston seal (internal leakage)), "
+                           "probability 0.") and "replace the piston seals" in head
+    assert "+ term p *= 1 + (0.20)" in head and "next: fluid_degradation" not in head.split(
+        "\n")[0]
+
+
 def test_a_fault_alarm_has_hysteresis(leak_history: list[HealthMessage]) -> None:
     """Raised after 3 windows at >= 0.8, kept while above 0.5, cleared after 3 below 0.5."""
     from twinwatch.daemon.alarms import FaultAlarms
