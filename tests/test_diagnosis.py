@@ -169,6 +169,35 @@ def test_the_leak_example_names_the_seal_not_the_fluid(
     assert d.alarms == ["internal_leak"]  # [diagnosis] alarm 0.8 for 3 windows
 
 
+def test_a_suspect_window_is_no_deviation_evidence(leak_history: list[HealthMessage]) -> None:
+    """D +50 % in a window whose estimate is suspect (its model check failed) moves nothing:
+    the last sound evidence stands; the same value estimated makes the fluid the top fault."""
+    from twinwatch.twin.diagnosis import Diagnoser
+
+    lib = shipped_library("hydraulic_actuator")
+    assert lib is not None
+    sound = leak_history[5]  # before the leak: no term
+    assert not sound.terms
+
+    def window(i: int, status: str) -> HealthMessage:
+        h = sound.model_copy(deep=True)
+        h.window = i
+        h.parameters["D"].value = 150.0
+        h.parameters["D"].status = status  # type: ignore[assignment]
+        return h
+
+    diag = Diagnoser(lib)
+    before = diag.update(sound)
+    suspect = diag.update(window(6, "suspect"))
+    fluid = {d.faults[0].id: d.faults[0].probability for d in (before, suspect)}
+    assert before.status == suspect.status == "no_fault" and "fluid_degradation" not in fluid
+    text = " ".join(next(f for f in suspect.faults if f.id == "fluid_degradation")
+                    .evidence_against)
+    assert "last sound window 5" in text, text
+    estimated = diag.update(window(7, "estimated"))
+    assert estimated.top == "fluid_degradation" and estimated.probability >= 0.8
+
+
 def test_the_recordings_model_document_opens_with_the_diagnosis(
         leak_history: list[HealthMessage]) -> None:
     """The Rerun recording's active text panel (the model document) starts with the fault,
