@@ -233,6 +233,17 @@ def test_a_fault_alarm_has_hysteresis(leak_history: list[HealthMessage]) -> None
     assert got == [(2, "alarm", "internal_leak"), (11, "normal", "internal_leak")]
 
 
+def test_a_degrading_fluid_is_the_fluid_not_the_seal() -> None:
+    """The hydraulic fluid degradation (D rises from 10 s): the fluid ranks first >= 0.8 and
+    the seal, with no pressure term, far below."""
+    d = _final(_hydraulic("fluid_degradation", fault_start=10.0, duration=70.0))
+    assert d.top == "fluid_degradation" and d.faults[0].probability >= 0.8, d
+    seal = next(f for f in d.faults if f.id == "internal_leak")
+    assert seal.probability < 0.05
+    assert any(s.startswith("D = ") and "beyond the 5 % up" in s
+               for s in d.faults[0].evidence_for), d.faults[0].evidence_for
+
+
 def test_explain_prints_the_chain_from_a_state_database(
         leak_history: list[HealthMessage], tmp_path: Path) -> None:
     """`twinwatch explain` on the leak example's state database: the fit, the parameters with
