@@ -187,20 +187,19 @@ class Diagnoser:
                     out[key] = self._check_var(health)
                 out[key].links[f.id] = f.model_check
                 out[key].what[f.id] = "the model check failing"
-            for sg in f.sensors:
-                key = f"sensor:{sg.kind}:{sg.channel}"
+            for ss in f.sensors:
+                key = f"sensor:{ss.kind}:{ss.channel}"
                 if key not in out:
                     hit = [s for s in health.sensors
-                           if s.kind == sg.kind and sg.channel in ("*", s.channel)]
+                           if s.kind == ss.kind and ss.channel in ("*", s.channel)]
                     names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
                                       f"{s.duration_s:.1f} s" for s in hit
                                       if s.value is not None and s.duration_s is not None)
-                    chan = "a sensor" if sg.channel == "*" else f"the {sg.channel} sensor"
                     out[key] = _Var(key, "sensor", _clip(1.0 if hit else 0.0),
-                                    f"{names or chan + ' ' + sg.kind} in this window",
-                                    f"no {sg.kind} sensor in this window")
-                out[key].links[f.id] = sg.link
-                out[key].what[f.id] = f"{chan} {sg.kind}"
+                                    f"{names or _chan(ss.channel) + ' ' + ss.kind} in this "
+                                    f"window", f"no {ss.kind} sensor in this window")
+                out[key].links[f.id] = ss.link
+                out[key].what[f.id] = f"{_chan(ss.channel)} {ss.kind}"
         if "model_check" not in out:
             out["model_check"] = self._check_var(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
@@ -402,6 +401,10 @@ class Diagnoser:
             library=f"{self.library.model} ({self.source})",
             evidence=sum(1 for v in variables if abs(v.s - 0.5) > 0.1),
         )
+
+
+def _chan(channel: str) -> str:
+    return "a sensor" if channel == "*" else f"the {channel} sensor"
 
 
 def _term_match(sg: object, term: TermHealth, speed: tuple[float, float] | None
