@@ -120,11 +120,13 @@ def test_a_rising_viscous_friction_is_the_bearings() -> None:
 
 
 def test_an_unbalance_at_the_shaft_speed_is_named_and_checked_against_it() -> None:
-    """3 sin(7 t) rad/s^2 on a shaft held at 7 rad/s: the periodic term is found and matched
-    to 1 x the shaft speed (not 2 x: misalignment)."""
+    """3 sin(7 t) rad/s^2 on a shaft held at 7 rad/s, 80 s: the periodic term is found and
+    matched to 1 x the shaft speed (not 2 x: misalignment) once the shaft has run at a steady
+    speed (it starts from rest and the PI takes about 50 s to get there: before, the harmonic
+    is undecided, and no fault alarm is raised)."""
     d = _final(_motor("dc-motor-unbalanced-sim.toml", scenario="unbalanced_shaft",
                       unbalance_amplitude=3.0,
-                      unbalance_frequency=7.0, duration=60.0,
+                      unbalance_frequency=7.0, duration=80.0,
                       setpoint=SetpointSchedule(steps=[(0.0, 7.0)])))
     assert d.top == "unbalance" and d.faults[0].probability >= 0.8, d
     text = " ".join(d.faults[0].evidence_for)
@@ -133,6 +135,7 @@ def test_an_unbalance_at_the_shaft_speed_is_named_and_checked_against_it() -> No
     assert abs(float(m[1]) - 7.0) < 0.1 and 5.5 < float(m[2]) < 7.5, text
     mis = next(f for f in d.faults if f.id == "misalignment")
     assert mis.probability < 0.1
+    assert d.alarms == ["unbalance"]
 
 
 def test_a_nominal_run_finds_no_fault() -> None:
@@ -169,6 +172,49 @@ def test_the_leak_example_names_the_seal_not_the_fluid(
     assert d.alarms == ["internal_leak"]  # [diagnosis] alarm 0.8 for 3 windows
 
 
+def test_a_suspect_window_is_no_deviation_evidence(leak_history: list[HealthMessage]) -> None:
+    """D +50 % in a window whose estimate is suspect (its model check failed) moves nothing:
+    the last sound evidence stands; the same value estimated makes the fluid the top fault."""
+    from twinwatch.twin.diagnosis import Diagnoser
+
+    lib = shipped_library("hydraulic_actuator")
+    assert lib is not None
+    sound = leak_history[5]  # before the leak: no term
+    assert not sound.terms
+
+    def window(i: int, status: str) -> HealthMessage:
+        h = sound.model_copy(deep=True)
+        h.window = i
+        h.parameters["D"].value = 150.0
+        h.parameters["D"].status = status  # type: ignore[assignment]
+        return h
+
+    diag = Diagnoser(lib)
+    before = diag.update(sound)
+    suspect = diag.update(window(6, "suspect"))
+    fluid = {d.faults[0].id: d.faults[0].probability for d in (before, suspect)}
+    assert before.status == suspect.status == "no_fault" and "fluid_degradation" not in fluid
+    text = " ".join(next(f for f in suspect.faults if f.id == "fluid_degradation")
+                    .evidence_against)
+    assert "last sound window 5" in text, text
+    estimated = diag.update(window(7, "estimated"))
+    assert estimated.top == "fluid_degradation" and estimated.probability >= 0.8
+
+
+def test_the_recordings_model_document_opens_with_the_diagnosis(
+        leak_history: list[HealthMessage]) -> None:
+    """The Rerun recording's active text panel (the model document) starts with the fault,
+    its action and evidence: readable without touching the viewer."""
+    from twinwatch.sinks.rerun_views import _model_document
+
+    text = _model_document("hydraulic-leak", 80.0, leak_history[-1].as_dict())
+    head = text.split("**DT''", 1)[0]
+    assert head.startswith("**Diagnosis: internal_leak** (piston seal (internal leakage)), "
+                           "probability 0.") and "replace the piston seals" in head
+    assert "+ term p *= 1 + (0.20)" in head and "next: fluid_degradation" not in head.split(
+        "\n")[0]
+
+
 def test_a_fault_alarm_has_hysteresis(leak_history: list[HealthMessage]) -> None:
     """Raised after 3 windows at >= 0.8, kept while above 0.5, cleared after 3 below 0.5."""
     from twinwatch.daemon.alarms import FaultAlarms
@@ -185,6 +231,17 @@ def test_a_fault_alarm_has_hysteresis(leak_history: list[HealthMessage]) -> None
             assert e["kind"] == "diagnosis" and "internal_leak (probability" in e["message"]
         assert h.diagnosis.alarms == (["internal_leak"] if 2 <= i < 11 else [])  # type: ignore[union-attr]
     assert got == [(2, "alarm", "internal_leak"), (11, "normal", "internal_leak")]
+
+
+def test_a_degrading_fluid_is_the_fluid_not_the_seal() -> None:
+    """The hydraulic fluid degradation (D rises from 10 s): the fluid ranks first >= 0.8 and
+    the seal, with no pressure term, far below."""
+    d = _final(_hydraulic("fluid_degradation", fault_start=10.0, duration=70.0))
+    assert d.top == "fluid_degradation" and d.faults[0].probability >= 0.8, d
+    seal = next(f for f in d.faults if f.id == "internal_leak")
+    assert seal.probability < 0.05
+    assert any(s.startswith("D = ") and "beyond the 5 % up" in s
+               for s in d.faults[0].evidence_for), d.faults[0].evidence_for
 
 
 def test_explain_prints_the_chain_from_a_state_database(
@@ -277,3 +334,39 @@ def test_explain_live_over_zenoh_from_a_running_daemon(tmp_path: Path) -> None:
     down = CliRunner().invoke(main, ["explain", "dc-motor-sim", "--connect",
                                      endpoint(free_port())])
     assert down.exit_code == 1 and "nothing answers there" in down.output
+
+
+# -- the paper's runs (slow lane) -------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize("noise", [0.0, 1.0, 2.0])
+def test_nominal_runs_of_1200_s_give_no_fault_above_0_2(noise: float) -> None:
+    history = _motor(scenario="nominal", duration=1200.0,
+                     noise={"ia": noise, "omega": noise} if noise else {})
+    worst = max(f.probability for h in history for f in h.diagnosis.faults)  # type: ignore[union-attr]
+    assert worst < 0.2
+    assert max(h.diagnosis.unknown for h in history) < 0.2  # type: ignore[union-attr]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("scenario", "fault", "size_pct"), [
+    ("resistance_degradation", "winding_short", 1.0), ("bearing_wear", "bearing_wear", 3.0)])
+def test_the_papers_degradations_are_named_within_60_s_of_being_detectable(
+        scenario: str, fault: str, size_pct: float) -> None:
+    """The paper's laws from 160 s (Ra falls, D rises): the fault is first with probability
+    >= 0.8 within 60 s of plant time after the plant's parameter crosses the library's size
+    (1 % for Ra, 3 % for D: where the evidence becomes detectable) and stays first."""
+    from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
+
+    history = _motor(scenario=scenario, duration=1200.0)
+    plant = DCMotorPlant(DCMotorPlantConfig(scenario=scenario, duration=1200.0))  # type: ignore[arg-type]
+    name = "Ra" if fault == "winding_short" else "D"
+    nominal = getattr(plant.truth(0.0), name)
+    t_detectable = next(h.t_end for h in history if abs(getattr(plant.truth(h.t_end), name)
+                                                        / nominal - 1) * 100 >= size_pct)
+    named = None
+    for h in reversed(history):
+        d = h.diagnosis
+        if d is None or d.top != fault or d.faults[0].probability < 0.8:
+            break
+        named = h.t_end
+    assert named is not None and named - t_detectable <= 60.0, (named, t_detectable)

@@ -452,6 +452,8 @@ class FaultAlarms:
             if not self._above.get(fid, 1):
                 self._above.pop(fid, None)
         d.alarms = sorted(self.raised)
+        for e in events:
+            logger.warning("%s", e["message"])
         return events
 
     def _event(self, health: HealthMessage, fid: str, level: str, previous: str, p: float,

@@ -98,6 +98,7 @@ class WindowPipeline:
         self._source = source
         self.diagnoser = diagnoser
         self.fault_alarms: FaultAlarms | None = None
+        self._diagnosis_failed = False
         self.sinks: list[Sink] = []
         self.gate: Sink | None = None
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
@@ -164,8 +165,13 @@ class WindowPipeline:
                               discovery_enabled=self.adapter.enabled)
         health.source = self._source_health(window)
         if self.diagnoser is not None:
-            health.diagnosis = self.diagnoser.update(
-                health, shaft_speed(window, self.diagnoser.library.speed_channel))
+            try:
+                health.diagnosis = self.diagnoser.update(
+                    health, shaft_speed(window, self.diagnoser.library.speed_channel))
+            except Exception:  # noqa: BLE001 - the window is published without a diagnosis
+                log = logger.debug if self._diagnosis_failed else logger.exception
+                self._diagnosis_failed = True
+                log("the diagnosis failed on window %d: published without one", window.index)
         events = self.alarms.update(health)
         if self.fault_alarms is not None:
             events += self.fault_alarms.update(health)

@@ -847,15 +847,43 @@ def _fmt(x: Any, spec: str = ".6g") -> str:
     return format(v, spec) if math.isfinite(v) else "n/a"
 
 
+def _diagnosis_lines(d: Any) -> list[str]:
+    """The diagnosis as markdown lines (none without one): the outcome, the first fault's
+    action and its evidence for and against, the next faults with their probabilities."""
+    if not isinstance(d, Mapping):
+        return []
+    faults = [f for f in d.get("faults") or [] if isinstance(f, Mapping)]
+    status = d.get("status")
+    if status == "fault" and faults:
+        f = faults[0]
+        lines = [f"**Diagnosis: {f.get('id')}** ({f.get('component')}), probability "
+                 f"{_fmt(f.get('probability'), '.2f')}, urgency {f.get('urgency')}: "
+                 f"{f.get('action')}  "]
+        lines += [f"+ {x}  " for x in f.get("evidence_for") or []]
+        lines += [f"- {x}  " for x in f.get("evidence_against") or []]
+    elif status == "unknown":
+        lines = [f"**Diagnosis: a fault the library does not know** (probability "
+                 f"{_fmt(d.get('unknown'), '.2f')}): " + "; ".join(
+                     f"`{t}`" for t in d.get("unknown_terms") or [])]
+    else:
+        lines = [f"**Diagnosis: no fault** (probability {_fmt(d.get('no_fault'), '.2f')})"]
+    others = [f"{f.get('id')} {_fmt(f.get('probability'), '.2f')}"
+              for f in faults[1 if status == "fault" else 0:4]]
+    if others:
+        lines.append("next: " + ", ".join(others))
+    return [*lines, ""]
+
+
 def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
-    """The twin DT'' as markdown: each meta-model term (equation, meaning, evidence) first,
-    then every parameter's value against nominal and its status, then the fit."""
+    """The twin DT'' as markdown: the diagnosis first (the most probable fault, its action and
+    evidence), each meta-model term (equation, meaning, evidence), then every parameter's
+    value against nominal and its status, then the fit."""
     terms = [term for term in doc.get("terms") or [] if isinstance(term, Mapping)]
     model = doc.get("model")
     twin = f"`{model}`" if model else "the physical twin"
     window = doc.get("window")
     at = f"at {clock(t)}" + (f", window {window}" if window is not None else "")
-    lines = []
+    lines = _diagnosis_lines(doc.get("diagnosis"))
     if not terms:
         lines.append(f"**DT'' = DT** {at}: {twin} alone explains the data.")
     else:

@@ -58,22 +58,22 @@ def explain_lines(docs: list[dict[str, Any]]) -> list[str]:
                    ", model check passed" if check.get("passed") else
                    f", model check FAILED ({'; '.join(check.get('reasons') or [])})")
         rmse = ", ".join(f"{k} {_num(v, '.3g')}" for k, v in (d.get("rmse") or {}).items())
-        terms = len(d.get("terms") or [])
+        n_terms = len(d.get("terms") or [])
         trusted = "trusted" if d.get("trusted") else "not trusted"
         lines.append(f"   window {d.get('window')} [{d.get('t_start', 0):.1f}-"
                      f"{d.get('t_end', 0):.1f} s]: RMSE {rmse}; nRMSE "
                      f"{_num(d.get('nrmse'), '.2e')}, {trusted}{verdict}"
-                     + (f", {terms} term{'s' if terms > 1 else ''}" if terms else ""))
+                     + (f", {n_terms} term{'s' if n_terms > 1 else ''}" if n_terms else ""))
     res = last_doc.get("residual") or {}
     if res.get("dt_second"):
         before = _num(res["dt_prime"].get("nrmse"), ".2e")
         after = _num(res["dt_second"].get("nrmse"), ".2e")
         lines.append(f"   DT' (physical twin alone) nRMSE {before} -> DT'' (with its terms) "
                      f"{after}")
-    for s in last_doc.get("sensors") or []:
-        lines.append(f"   sensor {s.get('channel')} {s.get('kind')} at {_num(s.get('value'))} "
-                     f"for {_num(s.get('duration_s'), '.1f')} s: the window's estimates are "
-                     f"suspect")
+    for sensor in last_doc.get("sensors") or []:
+        lines.append(f"   sensor {sensor.get('channel')} {sensor.get('kind')} at "
+                     f"{_num(sensor.get('value'))} for {_num(sensor.get('duration_s'), '.1f')} "
+                     f"s: the window's estimates are suspect")
     try:
         last = HealthMessage.model_validate(last_doc)
     except ValueError:

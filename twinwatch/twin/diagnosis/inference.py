@@ -59,6 +59,9 @@ S_MIN = 1e-4
 #: An evidence variable is said for or against a fault when it moves the fault's odds by more
 #: than this (log likelihood ratio against no fault; 0.3: a factor 1.35).
 LLR_SAID = 0.3
+#: A periodic term's harmonic is decided against the shaft speed of at least this many windows
+#: (10 s at 2 s windows) over which the speed stayed within the signature's tolerance.
+HARMONIC_WINDOWS = 5
 #: Windows of shaft speed kept to compare a term's frequency with the speed of the windows it
 #: explained.
 SPEED_HISTORY = 1000
@@ -134,7 +137,7 @@ class Diagnoser:
         self.source = source
         self.faults: list[FaultMode] = list(library.faults)
         self._last: dict[str, _Dev] = {}
-        self._speeds: deque[tuple[int, float]] = deque(maxlen=SPEED_HISTORY)
+        self._speeds: deque[tuple[int, float, float]] = deque(maxlen=SPEED_HISTORY)
         ids = [f.id for f in self.faults] + ["unknown"]
         self._ids = ids
         n = len(ids)
@@ -184,29 +187,29 @@ class Diagnoser:
                     out[key] = self._check_var(health)
                 out[key].links[f.id] = f.model_check
                 out[key].what[f.id] = "the model check failing"
-            for sg in f.sensors:
-                key = f"sensor:{sg.kind}:{sg.channel}"
+            for ss in f.sensors:
+                key = f"sensor:{ss.kind}:{ss.channel}"
                 if key not in out:
                     hit = [s for s in health.sensors
-                           if s.kind == sg.kind and sg.channel in ("*", s.channel)]
+                           if s.kind == ss.kind and ss.channel in ("*", s.channel)]
                     names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
                                       f"{s.duration_s:.1f} s" for s in hit
                                       if s.value is not None and s.duration_s is not None)
-                    chan = "a sensor" if sg.channel == "*" else f"the {sg.channel} sensor"
                     out[key] = _Var(key, "sensor", _clip(1.0 if hit else 0.0),
-                                    f"{names or chan + ' ' + sg.kind} in this window",
-                                    f"no {sg.kind} sensor in this window")
-                out[key].links[f.id] = sg.link
-                out[key].what[f.id] = f"{chan} {sg.kind}"
+                                    f"{names or _chan(ss.channel) + ' ' + ss.kind} in this "
+                                    f"window", f"no {ss.kind} sensor in this window")
+                out[key].links[f.id] = ss.link
+                out[key].what[f.id] = f"{_chan(ss.channel)} {ss.kind}"
         if "model_check" not in out:
             out["model_check"] = self._check_var(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
         # terms: one variable per discovered term, each fault's link scaled by its match
         unexplained: list[TermHealth] = []
+        seen_speed = [self._term_speed(t) or speed for t in health.terms]
         for i, term in enumerate(health.terms):
             var = self._term_var(i, term)
             best = 0.0
-            seen = self._term_speed(term) or speed
+            seen = seen_speed[i]
             for f in self.faults:
                 for sg in f.terms:
                     m, words = _term_match(sg, term, seen)
@@ -229,8 +232,8 @@ class Diagnoser:
                 kinds = "/".join(sg.kinds).replace("*", "any")
                 where = "/".join(sg.attach)
                 harm = (f" at {sg.harmonic:g} x the shaft speed" if sg.harmonic else "")
-                near = [_term_match(sg, t, self._term_speed(t) or speed)[1]
-                        for t in health.terms
+                near = [_term_match(sg, t, seen_speed[i])[1]
+                        for i, t in enumerate(health.terms)
                         if t.kind in sg.kinds and t.attach in sg.attach and sg.harmonic]
                 found = (f" (found: {near[0].split('(')[-1].rstrip(')')})" if near else "")
                 out[key] = _Var(key, "term", S_MIN, "",
@@ -241,15 +244,20 @@ class Diagnoser:
 
     def _term_speed(self, term: TermHealth) -> tuple[float, float] | None:
         """The median shaft speed of the windows a term's parameters combine (from the window
-        it was found in, the last ``evidence_windows`` of them) and its spread across them (1.48
-        MAD): a term's frequency is the evidence of those windows."""
+        it was found in, the last ``evidence_windows`` of them) and its uncertainty: the spread
+        across them (1.48 MAD) and the median spread within each (a shaft speeding up or
+        slowing down inside the windows: a term's frequency cannot be placed against it). A
+        term's frequency is the evidence of those windows."""
         n = max(int(round(term.evidence_windows)), 1)
-        seen = [w for i, w in self._speeds if i >= term.since_window][-n:]
+        seen = [(w, s) for i, w, s in self._speeds if i >= term.since_window][-n:]
         if not seen:
             return None
         arr = np.asarray(seen)
-        med = float(np.median(arr))  # robust to a start-up or a stop among them
-        return med, 1.4826 * float(np.median(np.abs(arr - med)))
+        if len(seen) < HARMONIC_WINDOWS:  # too few to say the speed is steady
+            return float(np.median(arr[:, 0])), math.inf
+        med = float(np.median(arr[:, 0]))  # robust to a start-up or a stop among them
+        across = 1.4826 * float(np.median(np.abs(arr[:, 0] - med)))
+        return med, math.hypot(across, float(np.median(arr[:, 1])))
 
     def _dev_var(self, health: HealthMessage, key: str, name: str, direction: str,
                  size: float) -> _Var:
@@ -324,7 +332,7 @@ class Diagnoser:
                 (:func:`shaft_speed`), for a periodic term's harmonic.
         """
         if speed is not None:
-            self._speeds.append((health.window, speed[0]))
+            self._speeds.append((health.window, speed[0], speed[1]))
         variables, unexplained = self._variables(health, speed)
         ids = self._ids
         idx = {fid: i for i, fid in enumerate(ids)}
@@ -395,6 +403,10 @@ class Diagnoser:
         )
 
 
+def _chan(channel: str) -> str:
+    return "a sensor" if channel == "*" else f"the {channel} sensor"
+
+
 def _term_match(sg: object, term: TermHealth, speed: tuple[float, float] | None
                 ) -> tuple[float, str]:
     """How well a discovered term fits a signature's term (0..1) and what it expects."""
@@ -417,6 +429,13 @@ def _term_match(sg: object, term: TermHealth, speed: tuple[float, float] | None
         return 0.0, want
     if speed is None:
         return 0.5, want + " (shaft speed unknown)"
+    if not math.isfinite(speed[1]):
+        return 0.5, (f"{want} (undecided: fewer than {HARMONIC_WINDOWS} windows of shaft "
+                     f"speed since the term was found)")
+    if speed[1] > sg.tolerance * speed[0]:  # no steady speed to place the frequency against
+        return 0.5, (f"{want} (undecided: the shaft speed varied by "
+                     f"{100 * speed[1] / speed[0]:.0f} % around {speed[0]:.3g} rad/s over the "
+                     f"windows the term explained)")
     target = sg.harmonic * speed[0]
     b_std = term.params_std.get("b") or 0.0
     sigma = math.hypot(b_std, sg.tolerance * target, sg.harmonic * speed[1])

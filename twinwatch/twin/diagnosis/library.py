@@ -117,7 +117,8 @@ class FaultMode(_Strict):
         return self
 
     def parameters(self) -> set[str]:
-        return {s.parameter for s in (*self.deviations, *self.trends)}
+        """The parameters its signature names."""
+        return {d.parameter for d in self.deviations} | {t.parameter for t in self.trends}
 
 
 class FaultLibrary(_Strict):
