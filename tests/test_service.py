@@ -320,7 +320,9 @@ def test_a_reload_that_changes_the_state_settings_reopens_the_database_once_rele
     assert [s.keep_days for s in sup.daemon._closed_sinks.values()  # type: ignore[attr-defined]
             if s.name == "store"] == [10]
     windows = [h.window for h in seen]
-    assert windows == list(range(len(windows))) and len(windows) >= 8
+    # 3 before the reload, 3 after it, and those the old daemon finished while the new one
+    # opened (none to a few, as the box's load has it: 7 in one CI run, 8+ here)
+    assert windows == list(range(len(windows))) and len(windows) >= 6
     t_start = [h.t_start for h in seen]
     assert t_start == [2.0 * w for w in windows]  # the plant's time goes on
     rows = db_rows(tmp_path / "state.sqlite")
