@@ -153,15 +153,17 @@ def test_a_flat_trend_keeps_its_fit_between_refits_and_a_drift_refits_every_wind
     rng = np.random.default_rng(2)
     t = np.arange(1.0, 400.0, 2.0)
     flat = RA0 * (1 + 0.003 * rng.standard_normal(t.size))
-    trend = counting(TrendSettings(min_span=60.0))
-    for tt, v in zip(t, flat, strict=True):
-        trend.add(Evidence(tt, v, 0.003 * RA0))
-        trend.refit(tt)
-    kept = calls[-100:].count(False)
-    assert 30 <= kept <= 50, kept  # about every other window
-    assert trend.fit is not None and not trend.degrading()
-    rate, sd = trend.fit.rate_at(trend.t[-1])
-    assert abs(rate) <= 3 * sd
+    for horizon in (3600.0, 100.0):  # and once the horizon drops evidence every window
+        calls.clear()
+        trend = counting(TrendSettings(min_span=60.0, horizon=horizon))
+        for tt, v in zip(t, flat, strict=True):
+            trend.add(Evidence(tt, v, 0.003 * RA0))
+            trend.refit(tt)
+        kept = calls[-100:].count(False)
+        assert 30 <= kept <= 50, (horizon, kept)  # about every other window
+        assert trend.fit is not None and not trend.degrading()
+        rate, sd = trend.fit.rate_at(trend.t[-1])
+        assert abs(rate) <= 3 * sd
 
     detected = {}
     for every in (1, 2):

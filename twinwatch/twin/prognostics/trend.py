@@ -166,6 +166,8 @@ class ParameterTrend:
     _all: list[DegradationFit] = field(default_factory=list)
     #: largest |innovation| of the evidence taken since the last fit (inf: search the grid).
     _z: float = math.inf
+    #: evidence of the segment the horizon dropped (the refit schedule counts it)
+    _dropped: int = 0
 
     # -- intake -----------------------------------------------------------------------------
     def add(self, ev: Evidence | None, *, jump: bool = False) -> None:
@@ -242,6 +244,7 @@ class ParameterTrend:
         step = float(np.mean([e.value for e, _ in self.pending])) - pred
         self.restarts.append(Restart(first.t, step, reason))
         self.t, self.y, self.s, self.src = [], [], [], []
+        self._dropped = 0
         self.since_t = None
         for ev, _ in self.pending:
             self._append(ev)
@@ -278,21 +281,22 @@ class ParameterTrend:
         cfg = self.settings
         if self.t and self.t[0] < t_now - cfg.horizon:
             keep = [i for i, tt in enumerate(self.t) if tt >= t_now - cfg.horizon]
+            self._dropped += len(self.t) - len(keep)
             self.t = [self.t[i] for i in keep]
             self.y = [self.y[i] for i in keep]
             self.s = [self.s[i] for i in keep]
             self.src = [self.src[i] for i in keep]
             self._dirty = True
-            self._z = math.inf
         if not self._dirty:
             return
         if len(self.t) < cfg.min_evidence or self.t[-1] - self.t[0] < cfg.min_span:
             self._dirty = False
             self.fit, self.fits, self.weights, self._all = None, [], [], []
             return
-        # The schedule counts evidence, not windows: a daemon started again (its trends
-        # replayed from the stored evidence, ``full``) refits where the uninterrupted one did.
-        n = len(self.t)
+        # The schedule counts the segment's evidence (the horizon's dropped included), not
+        # windows: a daemon started again (its trends replayed from the stored evidence,
+        # ``full``) refits where the uninterrupted one did.
+        n = len(self.t) + self._dropped
         warm = not full and len(self._all) == (5 if cfg.onset else 3) \
             and self._z <= cfg.regrid_z
         if warm and self._z <= cfg.skip_z and n % cfg.refit_every and not self.degrading():
