@@ -6,7 +6,7 @@ The default configuration (the simulated DC motor, resistance degradation; defau
 ``[estimation]``, ``[prognostics]`` and alarm rules), built the way the daemon builds it: the
 twin, its :class:`~twinwatch.twin.adaptation.TwinAdapter` and the ring buffer. The plant's
 samples are made beforehand (the plant's own cost is not the monitor's). Per window, CPU time
-(``time.process_time``, medians and p95 over ``--windows`` windows from ``--from`` seconds
+(``time.process_time``, medians, means and p95 over ``--windows`` windows from ``--from`` seconds
 of plant time on, as in ``bench_estimation.py``; the windows before are processed, not
 reported):
 
@@ -69,7 +69,8 @@ class _Clock:
 
 def _stats(x: list[float]) -> str:
     a = np.asarray(x) * 1e3
-    return f"median {np.median(a):7.2f} ms   p95 {np.percentile(a, 95):7.2f} ms"
+    return (f"median {np.median(a):7.2f} ms   mean {np.mean(a):7.2f} ms   "
+            f"p95 {np.percentile(a, 95):7.2f} ms")
 
 
 def window_cost(n_windows: int, t_from: float) -> tuple[list, Any]:

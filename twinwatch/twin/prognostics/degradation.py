@@ -45,7 +45,7 @@ import numpy as np
 from twinwatch.twin.model import FloatArray
 
 __all__ = ["ModelKind", "DegradationFit", "bin_evidence", "fit_models", "long_run_factor",
-           "select"]
+           "refit_models", "select"]
 
 ModelKind = Literal["none", "linear", "exponential"]
 
@@ -122,6 +122,21 @@ class DegradationFit:
         parameter covariance)."""
         jac = self.jacobian(np.atleast_1d(np.asarray(t, dtype=float)))
         return np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", jac, self.cov, jac), 0.0))
+
+    def rate_at(self, t: float) -> tuple[float, float]:
+        """The drift rate at time ``t`` [s] and its 1-sigma [SI/s] (delta method): ``m`` and
+        its standard error at ``t_ref`` (a fit refitted on the latest evidence), ``m exp(r
+        (t - t_ref))`` after the onset for a fit some windows old."""
+        if t == self.t_ref or self.kind == "none":
+            return self.m, self.std("m")
+        if self.onset is not None and t <= self.onset:
+            return 0.0, 0.0
+        tau = t - self.t_ref
+        e = math.exp(min(self.r * tau, 700.0))
+        grad = {"m": e, "r": self.m * tau * e}
+        g = np.array([grad.get(p, 0.0) for p in self.free])
+        var = float(g @ self.cov @ g)
+        return self.m * e, math.sqrt(max(var, 0.0))
 
     def draws(self, n: int, rng: np.random.Generator) -> dict[str, FloatArray]:
         """``n`` draws of ``c``, ``m``, ``r`` from the fit's Gaussian (the Monte Carlo of the
@@ -450,6 +465,45 @@ def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | No
             ri, oi = divmod(i, onsets.size)
             out.append(_finish("exponential", t, y, s, t_ref, float(c[i]), float(m[i]),
                                float(rs[ri]), float(onsets[oi]), ("c", "m", "r", "t0")))
+    _assign_bic(out)
+    return out
+
+
+def refit_models(previous: list[DegradationFit], t: FloatArray, y: FloatArray, s: FloatArray,
+                 *, t_ref: float | None = None) -> list[DegradationFit]:
+    """The models of ``previous`` (a :func:`fit_models` answer on fewer evidence points)
+    fitted again to the evidence, warm-started: each model's growth rate and onset from its
+    previous fit, the level and drift rate solved in closed form at the new reference time,
+    then the same polish, covariance and criteria as :func:`fit_models` (no grid search: the
+    previous optimum is the start; the trend searches the grid again every few windows and
+    whenever the evidence leaves its prediction).
+
+    Args:
+        previous: the fits to start from (their ``kind``, ``r``, ``onset``, ``free``).
+        t, y, s: the evidence as for :func:`fit_models` [s], [SI], [SI] (N,).
+        t_ref: reference time (default: ``t[-1]``).
+
+    Returns:
+        The fits in ``previous``'s order, each with its BIC.
+    """
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    floor = 1e-9 * float(np.max(np.abs(y))) if y.size else 0.0
+    s = np.maximum(np.asarray(s, dtype=float), max(floor, 1e-300))
+    t_ref = float(t[-1]) if t_ref is None else float(t_ref)
+    w = 1.0 / (s * s)
+    out: list[DegradationFit] = []
+    for g in previous:
+        if g.kind == "none":
+            out.append(_finish("none", t, y, s, t_ref, float(w @ y / np.sum(w)), 0.0, 0.0,
+                               None, g.free))
+            continue
+        onset = None if g.onset is None else min(max(g.onset, float(t[0])), float(t[-1]))
+        tt = t if onset is None else np.maximum(t, onset)
+        basis = _g(tt - t_ref, float(g.r)) if g.kind == "exponential" else tt - t_ref
+        _, c, m = _wls_grid(basis[None, :], y, w)
+        out.append(_finish(g.kind, t, y, s, t_ref, float(c[0]), float(m[0]), float(g.r),
+                           onset, g.free))
     _assign_bic(out)
     return out
 

@@ -215,7 +215,7 @@ class Prognostics:
                                        str(ev.get("source") or "estimated")))
                 n += 1
             if trend.t:
-                trend.refit(trend.t[-1])
+                trend.refit(trend.t[-1], full=True)
         return n
 
     # -- reports ------------------------------------------------------------------------------
@@ -233,14 +233,16 @@ class Prognostics:
         degrading = False
         if f is not None:
             degrading = trend.degrading()
-            sd = f.std("m")
+            # at the latest evidence: the fit's reference time, unless the fit is kept from
+            # an earlier window (ParameterTrend.refit)
+            rate, sd = f.rate_at(trend.t[-1])
             z = 1.959963984540054
             nom = self.nominal.get(name) or 0.0
             report.level = float(f.value(t_end))
             report.level_std = float(f.band(np.array([t_end]))[0])
-            report.rate = f.m
-            report.rate_low, report.rate_high = f.m - z * sd, f.m + z * sd
-            report.rate_pct_per_h = f.m / nom * 360000.0 if nom else None
+            report.rate = rate
+            report.rate_low, report.rate_high = rate - z * sd, rate + z * sd
+            report.rate_pct_per_h = rate / nom * 360000.0 if nom else None
             report.growth = f.r if f.kind == "exponential" else None
             report.degrading = degrading
             report.model_weight = trend.model_weight()

@@ -45,6 +45,7 @@ from twinwatch.twin.prognostics.degradation import (
     DegradationFit,
     bin_evidence,
     fit_models,
+    refit_models,
     select,
 )
 
@@ -95,6 +96,19 @@ class TrendSettings:
     smooth: int = 5
     min_weight: float = 0.01
     detection: float = 0.9
+    #: A trend that is not degrading, whose new evidence lies within ``skip_z`` of its
+    #: prediction, is refitted at every ``refit_every``-th evidence only (the fit before
+    #: predicts the window as well; its level, band and rate are evaluated at the window's
+    #: time).
+    refit_every: int = 2
+    skip_z: float = 1.0
+    #: Between full fits (the grid search, then the polish) the models are refitted from
+    #: their last optimum (:func:`~twinwatch.twin.prognostics.degradation.refit_models`);
+    #: the grid is searched again at every ``regrid_every``-th evidence, after a restart, a
+    #: bend or an outlier, and whenever new evidence lies beyond ``regrid_z`` of the
+    #: prediction.
+    regrid_every: int = 10
+    regrid_z: float = 3.0
 
 
 def monotonicity(x: FloatArray, smooth: int = 1) -> float | None:
@@ -148,6 +162,12 @@ class ParameterTrend:
     restarted: bool = False
     outliers: int = 0
     _dirty: bool = False
+    #: every model of the last fit (``fits`` keeps the plausible ones): the warm start.
+    _all: list[DegradationFit] = field(default_factory=list)
+    #: largest |innovation| of the evidence taken since the last fit (inf: search the grid).
+    _z: float = math.inf
+    #: evidence of the segment the horizon dropped (the refit schedule counts it)
+    _dropped: int = 0
 
     # -- intake -----------------------------------------------------------------------------
     def add(self, ev: Evidence | None, *, jump: bool = False) -> None:
@@ -175,6 +195,7 @@ class ParameterTrend:
                     for e, _ in self.pending:  # the onset of a drift: the trend bends
                         self._append(e)
                     self.pending = []
+                    self._z = math.inf
                     return
                 self._restart(f"step of {z:+.1f} standard errors"
                               + (" (the fusion saw a sudden change)" if jump else ""))
@@ -182,7 +203,9 @@ class ParameterTrend:
         if self.pending:  # one window beyond the trend, then back on it: an outlier
             self.outliers += len(self.pending)
             self.pending = []
+            z = math.inf
         self._append(ev)
+        self._z = max(self._z, abs(z)) if self.fit is not None else math.inf
 
     def _bend(self) -> bool:
         """Do the windows beyond the trend start a drift rather than a step? They do when a
@@ -221,12 +244,14 @@ class ParameterTrend:
         step = float(np.mean([e.value for e, _ in self.pending])) - pred
         self.restarts.append(Restart(first.t, step, reason))
         self.t, self.y, self.s, self.src = [], [], [], []
+        self._dropped = 0
         self.since_t = None
         for ev, _ in self.pending:
             self._append(ev)
         self.pending = []
         self.fit = None
-        self.fits, self.weights = [], []
+        self.fits, self.weights, self._all = [], [], []
+        self._z = math.inf
         self.restarted = True
 
     def innovation(self, ev: Evidence) -> float:
@@ -243,12 +268,20 @@ class ParameterTrend:
         return (ev.value - float(f.value(ev.t))) / sig
 
     # -- fit ----------------------------------------------------------------------------------
-    def refit(self, t_now: float) -> None:
+    def refit(self, t_now: float, *, full: bool = False) -> None:
         """Fit the models to the segment's evidence within the horizon (only when it changed
-        or the horizon dropped some)."""
+        or the horizon dropped some).
+
+        What changed decides how (``full``: the grid search and the polish, always): a trend
+        that is not degrading and whose new evidence it predicts (within ``skip_z``) keeps its
+        fit for up to ``refit_every`` windows; otherwise the models are polished again from
+        their last optimum, and the grid searched again every ``regrid_every`` refits or when
+        the evidence left the prediction (``regrid_z``), a restart, a bend or an outlier.
+        """
         cfg = self.settings
         if self.t and self.t[0] < t_now - cfg.horizon:
             keep = [i for i, tt in enumerate(self.t) if tt >= t_now - cfg.horizon]
+            self._dropped += len(self.t) - len(keep)
             self.t = [self.t[i] for i in keep]
             self.y = [self.y[i] for i in keep]
             self.s = [self.s[i] for i in keep]
@@ -256,13 +289,28 @@ class ParameterTrend:
             self._dirty = True
         if not self._dirty:
             return
-        self._dirty = False
         if len(self.t) < cfg.min_evidence or self.t[-1] - self.t[0] < cfg.min_span:
-            self.fit, self.fits, self.weights = None, [], []
+            self._dirty = False
+            self.fit, self.fits, self.weights, self._all = None, [], [], []
             return
+        # The schedule counts the segment's evidence (the horizon's dropped included), not
+        # windows: a daemon started again (its trends replayed from the stored evidence,
+        # ``full``) refits where the uninterrupted one did.
+        n = len(self.t) + self._dropped
+        warm = not full and len(self._all) == (5 if cfg.onset else 3) \
+            and self._z <= cfg.regrid_z
+        if warm and self._z <= cfg.skip_z and n % cfg.refit_every and not self.degrading():
+            return  # flat, and the fit before predicts this evidence: kept (still dirty)
+        self._dirty = False
         t, y, s = bin_evidence(np.asarray(self.t), np.asarray(self.y), np.asarray(self.s),
                                cfg.max_points)
-        fits = fit_models(t, y, s, t_ref=self.t[-1], onset=cfg.onset)
+        if warm and n % cfg.regrid_every and self.degrading() \
+                and t.size >= max(g.n for g in self._all):
+            fits = refit_models(self._all, t, y, s, t_ref=self.t[-1])
+        else:
+            fits = fit_models(t, y, s, t_ref=self.t[-1], onset=cfg.onset)
+        self._z = 0.0
+        self._all = fits
         best, pairs = select(fits, cfg.min_weight)
         self.fit = best
         self.fits = [f for f, _ in pairs]
@@ -285,6 +333,10 @@ class ParameterTrend:
         if 1.0 - p_none < self.settings.detection:
             return False
         return abs(f.m) > self.settings.flat_z * f.std("m")
+
+    def _p_none(self) -> float:
+        """The ``none`` model's share of the weight (the odds of no degradation)."""
+        return sum(w for g, w in zip(self.fits, self.weights, strict=True) if g.kind == "none")
 
     def scores(self) -> tuple[float | None, float | None]:
         """(monotonicity, trendability) of the segment's evidence."""
