@@ -155,3 +155,30 @@ def test_covariance_gives_an_undetermined_direction_an_infinite_variance() -> No
 def test_an_empty_estimate_list_is_refused_naming_the_key() -> None:
     with pytest.raises(ValidationError, match="estimate\n.*no parameter listed"):
         EstimationConfig(estimate=[])
+
+
+def test_sensitivity_columns_reused_at_the_same_point_are_the_same_numbers():
+    """LocalFit keeps each sensitivity column it computed at a point: asked again there (the
+    gate's re-fit computes every column, propagate_held then reads the held ones), it costs
+    no twin evaluation and returns the numbers a fresh computation gives, bit for bit."""
+    w = _step_window()
+    est = Estimator(DCMotorTwin(), EstimationConfig())
+    first = est.problem(w)
+    v = first.local.start(first.start())
+    every = np.arange(v.size)
+    jac_all, r_all = first.local.sensitivity_and_residuals(v, every)
+    evals = first.fit.evaluations
+    held = np.array([2, 3, 4])
+    jac_held, r_held = first.local.sensitivity_and_residuals(v, held)
+    assert first.fit.evaluations == evals  # from what it kept
+    fresh = est.problem(w)
+    jac_fresh, r_fresh = fresh.local.sensitivity_and_residuals(v, held)
+    assert fresh.fit.evaluations > 0
+    np.testing.assert_array_equal(jac_held, jac_fresh)
+    np.testing.assert_array_equal(jac_held, jac_all[:, held])
+    np.testing.assert_array_equal(r_held, r_fresh)
+    # another point: computed again
+    v2 = v.copy()
+    v2[0] += 1e-3
+    first.local.sensitivity_and_residuals(v2, held)
+    assert first.fit.evaluations > evals

@@ -223,6 +223,10 @@ class LocalFit:
         self.lower = np.concatenate([lower, np.full(self.n_init, -b)])
         self.upper = np.concatenate([upper, np.full(self.n_init, b)])
         self.terms = terms
+        #: :meth:`sensitivity_and_residuals`'s columns at the last few points (the gate, its
+        #: propagation of the held values and the fusion's first linearisation ask for
+        #: columns at the same point: each is simulated once).
+        self._sens: dict[bytes, dict[str, Any]] = {}
 
     @property
     def nuisance(self) -> np.ndarray:
@@ -291,19 +295,51 @@ class LocalFit:
         """
         return self.sensitivity_and_residuals(v, active, steps)[0]
 
+    #: Points whose sensitivity columns are kept (:meth:`sensitivity_and_residuals`).
+    SENSITIVITY_CACHE = 4
+
+    def _point_key(self, v: FloatArray) -> bytes:
+        """The residuals depend on ``v`` and, without fitted offsets, on the window's
+        :attr:`WindowFit.initial` (set by :meth:`WindowProblem.twin_at`)."""
+        key = np.ascontiguousarray(v, dtype=float).tobytes()
+        if not self.n_init and self.fit.initial is not None:
+            key += b"|" + np.ascontiguousarray(self.fit.initial, dtype=float).tobytes()
+        return key
+
     def sensitivity_and_residuals(self, v: FloatArray, active: np.ndarray,
                      steps: Sequence[float] | None = None) -> tuple[FloatArray, FloatArray]:
-        """:meth:`sensitivity`, and the residuals (M,) at ``v`` (the batch's last row)."""
+        """:meth:`sensitivity`, and the residuals (M,) at ``v`` (the batch's last row).
+
+        A column already computed at the same ``v`` is reused (the same numbers: every row is
+        simulated on its own) when it was computed with the same steps, or settled at the
+        first step and ``steps`` starts with it."""
         # Step by step, smallest first, only for the columns not settled yet (on a smooth
         # residual the first step settles every column: 2k + 1 rows, not 2 n_h k + 1). Each
         # row is simulated on its own, so the numbers are those of one batch of every step.
+        active = np.asarray(active, dtype=int)
         k = active.size
         hs = tuple(self.SENSITIVITY_STEPS if steps is None else steps)
         n_h = len(hs)
-        out: FloatArray | None = None
-        r0: FloatArray | None = None
-        todo = np.arange(k)
+        key = self._point_key(v)
+        entry = self._sens.get(key)
+        r0: FloatArray | None = None if entry is None else entry["r0"]
+        out: FloatArray | None = None if r0 is None else np.empty((k, r0.size))
+        missing = []
+        for j, c in enumerate(active):
+            hit = None if entry is None else entry["cols"].get(int(c))
+            if hit is not None and (hit[0] == hs or (hit[1] == 0 and hit[0][0] == hs[0])):
+                assert out is not None
+                out[j] = hit[2]
+            else:
+                missing.append(j)
+        todo = np.array(missing, dtype=int)
+        settled: list[tuple[int, int, FloatArray]] = []
+        if not todo.size and r0 is None:
+            r0 = self.residuals(v[None, :])[0]
+            out = np.empty((k, r0.size))
         for i, h in enumerate(hs):
+            if not todo.size:
+                break
             m = todo.size
             cols = active[todo]
             vs = np.repeat(v[None, :], 2 * m + (1 if r0 is None else 0), axis=0)
@@ -322,18 +358,25 @@ class LocalFit:
             agree = gap <= self.SENSITIVITY_AGREEMENT * np.maximum(size, 1e-300)
             done = agree if i < n_h - 1 else np.ones(m, dtype=bool)
             out[todo[done]] = central[done]
+            settled.extend((int(active[j]), i, central[d]) for d, j in
+                           zip(np.flatnonzero(done), todo[done], strict=True))
             todo = todo[~done]
-            if not todo.size:
-                break
         assert out is not None and r0 is not None
+        if entry is None:
+            if len(self._sens) >= self.SENSITIVITY_CACHE:
+                self._sens.pop(next(iter(self._sens)))
+            entry = self._sens[key] = {"r0": r0, "cols": {}}
+        for c, i, col in settled:
+            entry["cols"][c] = (hs, i, col.copy())
         return out.T, r0
 
-    def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True
-               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True,
+               stats: np.ndarray | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Polish the ``active`` entries of ``v`` (bounded least squares, trust-region
         reflective, forward-difference Jacobian from one batched twin call), then return
-        (v, residuals (M,), Jacobian (M, len(active)) for the statistics, by
-        :meth:`sensitivity`) at the result."""
+        (v, residuals (M,), Jacobian (M, len(stats)) for the statistics, by
+        :meth:`sensitivity`) at the result; ``stats``: the Jacobian's columns (default
+        ``active``)."""
         v = np.array(v, dtype=float, copy=True)
         if polish and active.size:
             last: dict[str, FloatArray] = {}
@@ -363,7 +406,7 @@ class LocalFit:
             sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
                                 xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
             v[active] = sol.x
-        jac_s, r = self.sensitivity_and_residuals(v, active)
+        jac_s, r = self.sensitivity_and_residuals(v, active if stats is None else stats)
         return v, r, jac_s
 
 

@@ -168,6 +168,25 @@ class IdentifiabilityGate:
                 rel_std = dict(zip(selected, sd, strict=True))
         return GateDecision(selected, rel_std, held), point
 
+    def confirm(self, problem: WindowProblem, polished: Polished, selected: list[int],
+                unexcited: Mapping[str, str] | None = None
+                ) -> tuple[GateDecision, FitPoint] | None:
+        """The gate on a polish that moved only ``selected`` (the last window's admitted
+        set), the others at their trusted values, with a Jacobian of every column
+        (:func:`~twinwatch.twin.estimation.polish.polish_admitted`): when :meth:`select`
+        admits the same set there, the decision and the point are those :meth:`admit` gives
+        after its re-fit holding the others (the same standard errors: the admitted and
+        initial-state columns at the re-fit's optimum); None when it admits another set
+        (the caller polishes every parameter and runs :meth:`admit`)."""
+        point = polished.point
+        sel, rel_std, reasons = self.select(point.jac, point.r, unexcited,
+                                            problem.nuisance.size)
+        if sel != list(selected):
+            return None
+        held = {name: reasons[k] for k, name in enumerate(self.names) if k not in sel}
+        cols = np.concatenate([np.array(sel, dtype=int), problem.nuisance])
+        return GateDecision(sel, rel_std, held), FitPoint(point.v, point.r, point.jac[:, cols])
+
     def propagate_held(self, problem: WindowProblem, decision: GateDecision, point: FitPoint,
                        held_std: FloatArray) -> GateDecision:
         """Add the held parameters' own uncertainty to the admitted ones' standard errors.
@@ -249,5 +268,8 @@ class IdentifiabilityGate:
         active = np.concatenate([np.array(selected, dtype=int), problem.nuisance])
         if not active.size:
             return FitPoint(v, point.r, point.jac), False
-        v, r, jac = problem.local.refine(v, active)
-        return FitPoint(v, r, jac), True
+        # every column's sensitivity in the one call: propagate_held reads the held ones at
+        # this point next (LocalFit keeps them: one twin call fewer)
+        every = np.arange(problem.n_est + problem.nuisance.size)
+        v, r, jac = problem.local.refine(v, active, stats=every)
+        return FitPoint(v, r, jac[:, active]), True
