@@ -248,6 +248,8 @@ class StateStore(Gate):
         self.outbox_dropped: dict[tuple[str, str], int] = {}  # (output, machine) -> windows
         self.file_event: str | None = None
         self._failing = False
+        self._failing_since: float | None = None
+        self.locked = False
         self._closed_for_good = False
         self._since_prune = 0
         self.saved = 0
@@ -606,7 +608,12 @@ class StateStore(Gate):
     def problem(self) -> str | None:
         """The database not writable (windows waiting, not published), windows lost."""
         out = []
-        if self.failing:
+        if self.failing and self.locked:
+            since = (time.monotonic() - self._failing_since
+                     if self._failing_since is not None else 0.0)
+            out.append(f"state database locked by another process for {since:.0f} s: "
+                       f"{self.waiting} windows waiting in memory, published once stored")
+        elif self.failing:
             out.append(f"state database not writable: {self.waiting} windows waiting "
                        f"in memory, not published")
         if self.never_stored:
@@ -651,9 +658,31 @@ class StateStore(Gate):
         self.not_stored += not ok
         return ok
 
+    def hold(self, out: ProcessedWindow) -> None:
+        """Keep the window in memory without trying to write it (the database is
+        :attr:`locked`: a try would wait the busy timeout); written by :meth:`retry` or the
+        next successful write. Not counted in :attr:`not_stored` (the pipeline counts it if
+        it is not published)."""
+        h = out.health
+        self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
+                          "t_start": h.t_start, "t_end": h.t_end}, out.twin_state,
+                         doc=out.health_json, flush=False)
+
+    def retry(self) -> bool:
+        """One attempt to write the windows waiting in memory (waits up to the busy timeout
+        for another process's lock). True when nothing waits any more."""
+        with self._write_lock:
+            self._check_file()
+            if not self._pending and self._twin_pending is None:
+                return True
+            if self._file_gone is not None:
+                return self._flush_failed(StoreError(f"{self.file_event}: not written yet"))
+            return self._flush()
+
     # -- writing ------------------------------------------------------------------------------
     def save_window(self, health: Mapping[str, Any], twin_state: Mapping[str, Any] | None,
-                    *, wall: float | None = None, doc: str | None = None) -> bool:
+                    *, wall: float | None = None, doc: str | None = None,
+                    flush: bool = True) -> bool:
         """Store one window's health message and, if given, the latest accepted twin, in one
         transaction (call from the adaptation worker after each window).
 
@@ -668,6 +697,9 @@ class StateStore(Gate):
             doc: the message already encoded (the pipeline's one encoding, stored byte for
                 byte as published); ``health`` then needs only the indexed keys. None: the
                 message is ``health`` encoded here.
+            flush: False: only keep the window in memory, written with the next successful
+                save or :meth:`retry` (the database is :attr:`locked`: trying now would wait
+                the busy timeout again).
 
         Returns:
             True if committed; False if the database could not be written (the window is
@@ -690,6 +722,8 @@ class StateStore(Gate):
             if twin_state is not None:
                 self._twin_pending = (machine, self.run_id, row[2], row[4], w,
                                       _dumps(twin_state))
+            if not flush:
+                return False
             if self._file_gone is not None:  # no database file to write to yet: wait in memory
                 ok = self._flush_failed(StoreError(f"{self.file_event}: not written yet"))
             else:
@@ -728,9 +762,12 @@ class StateStore(Gate):
                 return self._flush(retry=False)
             return self._flush_failed(exc)
         if self._failing:
-            logger.warning("state database %s writable again: %d delayed windows written",
-                           self.path, len(self._pending))
+            logger.warning("state database %s writable again%s: %d delayed windows written",
+                           self.path, f" after {time.monotonic() - self._failing_since:.0f} s"
+                           if self._failing_since is not None else "", len(self._pending))
             self._failing = False
+        self.locked = False
+        self._failing_since = None
         self.saved += len(self._pending)
         self._recent.extend(self._pending)
         self._pending.clear()
@@ -741,6 +778,11 @@ class StateStore(Gate):
 
     def _flush_failed(self, exc: BaseException) -> bool:
         self.errors += 1
+        msg = str(exc)
+        self.locked = isinstance(exc, sqlite3.OperationalError) and (
+            "locked" in msg or "busy" in msg)
+        if self._failing_since is None:
+            self._failing_since = time.monotonic()
         err = exc if isinstance(exc, StoreError) else self._error(
             f"window {self._pending[-1][2]} not written yet ({len(self._pending)} waiting in "
             f"memory)", exc)
