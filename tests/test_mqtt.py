@@ -616,3 +616,101 @@ def test_a_broker_that_stops_acknowledging_is_degraded_and_logged_once(
         pub.close()
         store.close()
         sub.close()
+
+
+@pytest.mark.slow
+@needs_mosquitto
+def test_state_database_deleted_while_running_every_window_delivered(tmp_path: Path,
+                                                                    broker: Broker):
+    """Issue 26 item 1: the state database deleted while the daemon runs (a clean-up job,
+    `rm state.sqlite*`). Before: delivery stopped silently (mqtt_pending = 0, 19 windows
+    stored in 40 s, none delivered) and after a restart 20 windows of that run were never
+    delivered. Now the outbox goes on in the file the store opens again (noticed within a
+    window), and after a broker outage to the end of the run and a restart every window of
+    the run is delivered (none is lost: the daemon keeps them in memory)."""
+    db = tmp_path / "state.sqlite"
+    topic = f"{M}/health"
+    sub = Subscriber(broker.port, [topic], persistent=True, client_id="test-deleted")
+    # an earlier run: the file the daemon opens again after the deletion numbers its rows
+    # from 1, far below the delivered position (the issue's database held earlier runs)
+    before = sim_config(tmp_path, duration=20.0, extra=mqtt_table(broker.port))
+    assert finish(twinwatch(before, cwd=tmp_path))[0] == 0
+    earlier = {json.loads(d)["run"] for _, d in stored(db)}
+    cfg = sim_config(tmp_path, duration=40.0, extra=mqtt_table(broker.port),
+                     **{"realtime = false": "realtime = true"})  # 20 windows, one every 2 s
+
+    def windows() -> set[int]:
+        return {h["window"] for m in sub.on(topic)
+                if (h := json.loads(m.payload))["run"] not in earlier}
+
+    proc = twinwatch(cfg, cwd=tmp_path)
+    try:
+        sub.wait(lambda: len(windows()) >= 4, 60, "4 windows delivered")
+        for f in tmp_path.glob("state.sqlite*"):
+            f.unlink()
+        n = len(windows())
+        sub.wait(lambda: len(windows()) >= n + 4, 30,
+                 "4 more windows delivered after the state database was deleted")
+        broker.stop()                  # to the end of the run: the rest waits in the outbox
+        code, out, err = finish(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0, out + err
+    assert "was deleted while running" in err
+    run = json.loads(stored(db)[-1][1])["run"]
+    assert sorted(json.loads(d)["window"] for r, d in stored(db) if r == run) == list(range(20))
+    broker.start()
+    again = sim_config(tmp_path, duration=4.0,
+                       extra=mqtt_table(broker.port, "close_timeout = 30.0\n"))
+    code2, out2, err2 = finish(twinwatch(again, cwd=tmp_path))
+    assert code2 == 0, out2 + err2
+    sub.wait(lambda: windows() >= set(range(20)), 30, "every window of the first run")
+    first = [json.loads(m.payload) for m in sub.on(topic)]
+    assert {h["window"] for h in first if h["run"] == run} == set(range(20))
+    print(f"deleted database: 20 windows of the run delivered ({len(first)} messages)")
+    sub.close()
+
+
+@pytest.mark.slow
+@needs_mosquitto
+def test_sighup_reads_a_fixed_password_file_again(tmp_path: Path):
+    """Issue 26 item 1: the password file fixed while the daemon runs, then SIGHUP (as the
+    docs say: `systemctl reload`). Before, the output kept the old password until a restart;
+    now the reload opens it again with the file's new password, and the windows stored
+    meanwhile are delivered."""
+    if shutil.which("mosquitto_passwd") is None:
+        pytest.skip("mosquitto_passwd is not installed (Debian: mosquitto)")
+    d = tmp_path / "broker"
+    d.mkdir()
+    subprocess.run(["mosquitto_passwd", "-b", "-c", str(d / "passwd"), "tw", "s3cret"],
+                   check=True, capture_output=True, timeout=30)
+    b = Broker(d, anonymous=False, extra=f"password_file {d / 'passwd'}\n")
+    secret = tmp_path / "mqtt.password"
+    secret.write_text("wrong\n")
+    secret.chmod(0o600)
+    db = tmp_path / "state.sqlite"
+    table = mqtt_table(b.port, f'username = "tw"\npassword_file = "{secret}"\n')
+    cfg = sim_config(tmp_path, duration=1200.0, extra=table,
+                     **{"realtime = false": "realtime = true"})
+    b.start()
+    proc = None
+    try:
+        sub = Subscriber(b.port, [f"{M}/health"], username="tw", password="s3cret")
+        proc = twinwatch(cfg, cwd=tmp_path)
+        wait_for(lambda: _count(db) >= 3, 60, "3 windows stored (refused by the broker)")
+        assert sub.on(f"{M}/health") == []
+        secret.write_text("s3cret\n")
+        proc.send_signal(signal.SIGHUP)
+        sub.wait(lambda: len(sub.on(f"{M}/health")) >= 3, 30,
+                 "3 windows delivered after the password file was fixed and SIGHUP")
+        code, out, err = finish(proc, signal.SIGTERM)
+        assert code == 0, err
+        assert "Not authorized" in err
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        for s in list(Subscriber.open):
+            s.close()
+        b.stop()
