@@ -136,6 +136,7 @@ class WindowPipeline:
         self._queue: queue.Queue[Any] | None = None
         self._thread: threading.Thread | None = None
         self._stop_by: float | None = None  # monotonic: give up on the lock after it
+        self._blocked = False  # the worker waits for room in the outputs' queue
 
     # -- the outputs' thread -------------------------------------------------------------------
     def start(self, name: str = "twinwatch-outputs") -> None:
@@ -175,17 +176,21 @@ class WindowPipeline:
         return (q.qsize() if q is not None else 0) + len(self._held)
 
     def backpressure(self) -> str | None:
-        """Why the estimation worker waits on the outputs now (a window being written for
-        more than a second), or None: what an overrun's message names."""
+        """Why the estimation worker waits on the outputs now (their queue is full, or, without
+        the outputs' thread, one writes a window for more than a second), or None: what an
+        overrun's message names instead of the estimation's cost."""
         writing = self._writing
-        if writing is not None and time.monotonic() - writing[1] > 1.0:
-            name, since = writing
-            gate = self.gate
-            locked = gate is not None and gate.name == name and gate.locked
-            why = " (its database is locked by another process)" if locked else ""
-            return (f"the {name} output has been writing one window for "
-                    f"{time.monotonic() - since:.0f} s{why}")
-        return None
+        if not self._blocked and (writing is None or self._thread is not None
+                                  or time.monotonic() - writing[1] <= 1.0):
+            return None
+        if writing is None:
+            return f"the outputs are {OUTPUT_QUEUE} windows behind"
+        name, since = writing
+        gate = self.gate
+        locked = gate is not None and gate.name == name and gate.locked
+        why = " (its database is locked by another process)" if locked else ""
+        return (f"the {name} output has been writing one window for "
+                f"{time.monotonic() - since:.0f} s{why}")
 
     def counters(self) -> dict[str, int]:
         """``store_delayed`` (windows that waited in memory for the state database's lock,
@@ -409,7 +414,14 @@ class WindowPipeline:
         if q is None:
             self._deliver(out)
         else:  # the outputs' thread; full only when an output is slower than the estimation
-            q.put(out)
+            try:
+                q.put_nowait(out)
+            except queue.Full:
+                self._blocked = True
+                try:
+                    q.put(out)
+                finally:
+                    self._blocked = False
         for fn in self.callbacks:
             fn(health)
         return health
