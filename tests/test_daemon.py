@@ -133,3 +133,45 @@ def test_nan_sample_is_never_estimated():
     assert all(np.isfinite(h["nrmse"]) for h in daemon.history)
     # [0, 2) s, then [2, 3) s abandoned at the NaN, then [3.01, 5.01) and [5.01, 7.01) s
     assert [h["t_start"] for h in daemon.history] == pytest.approx([0.0, 3.01, 5.01])
+
+
+def test_an_overrun_caused_by_a_slow_output_names_it(caplog, monkeypatch):
+    """Issue 26 item 4: an overrun names its real cause. An output that holds every window
+    (here until acquisition has ended) fills the outputs' queue; the estimation then waits
+    and the live source's windows overflow: the message names that output, not
+    ``max_generations`` (which it advised before, whatever the cause)."""
+    from twinwatch.daemon import pipeline
+    from twinwatch.sinks.base import Sink, SinkConfig
+
+    monkeypatch.setattr(pipeline, "OUTPUT_QUEUE", 1)
+    cfg = default_config()
+    cfg.acquisition.queue = 1
+    driver = _PlantDriver(duration=20.0)
+
+    class Slow(Sink):
+        config_class = SinkConfig
+        role = "publisher"
+
+        @classmethod
+        def from_config(cls, config, context):  # type: ignore[no-untyped-def]
+            return cls()
+
+        def write(self, out):  # type: ignore[no-untyped-def]
+            driver.finished.wait(timeout=30)
+
+        def close(self) -> None:
+            self._closed = True
+
+    slow = Slow()
+    slow.name = "slowpoke"
+    with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
+        daemon.pipeline.sinks = [slow]
+        daemon.run()
+    driver.close()
+    overruns = [r.message for r in caplog.records if "estimation overrun" in r.message]
+    assert daemon.overruns > 0 and overruns
+    # the plant runs faster than real time: the first overruns are the estimation's own;
+    # once the output holds the worker, they name it
+    named = [m for m in overruns if "slowpoke output" in m]
+    assert named and not any("max_generations" in m for m in named), overruns
+    assert "max_generations" not in overruns[-1], overruns

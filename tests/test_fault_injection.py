@@ -27,6 +27,7 @@ import logging
 import math
 import sqlite3
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -649,6 +650,75 @@ def _disk_full_to_the_end(ctx: Context) -> dict[str, Any]:
             "lost_in_summary": "2 lost)" in r.output and "exit status 74" in r.output,
             "health_counters": {k: last["counters"][k]
                                 for k in ("store_waiting", "windows_not_stored")}}
+
+
+HOLD_LOCK = r"""
+import sqlite3, sys, time
+db, seconds = sys.argv[1], float(sys.argv[2])
+con = sqlite3.connect(db, timeout=30, isolation_level=None)
+con.execute("BEGIN IMMEDIATE")                      # a backup tool's write lock
+print("locked", flush=True)
+time.sleep(seconds)
+con.execute("ROLLBACK")
+print("released", flush=True)
+"""
+
+
+@case("issue 26 item 4: another process holds the state database's write lock for 30 s "
+      "(a backup tool) under a live source: no window lost, none dropped as an overrun",
+      slow=True, exit_code=0, overruns=0, all_stored=True, stored_in_order=True,
+      summary_names_the_lock=True, advice_max_generations=False,
+      counted={"store_delayed": True})
+def _state_database_locked_30_s(ctx: Context) -> dict[str, Any]:
+    import subprocess
+    import sys
+
+    from .test_service import _env
+
+    # 26 windows of 2 s in real time; the lock from about window 3 to window 18
+    cfg = sim_config(ctx.tmp, duration=52.0,
+                     **{"realtime = false": "realtime = true"})
+    db = ctx.tmp / "state.sqlite"
+    proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(cfg),
+                             "--no-progress"], cwd=ctx.tmp, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    locker = None
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                with sqlite3.connect(db, timeout=0.1) as con:
+                    if con.execute("SELECT COUNT(*) FROM health").fetchone()[0] >= 2:
+                        break
+            except sqlite3.Error:
+                pass
+            time.sleep(0.2)
+        locker = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(db), "30"],
+                                  stdout=subprocess.PIPE, text=True)
+        out, err = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if locker is not None:
+            locker.wait(timeout=60)
+            assert locker.stdout is not None
+            locker.stdout.close()
+    with StateStore(db) as st:
+        stored = [h["window"] for h in st.history(limit=None)]
+        last = st.latest_health()
+    summary = out.splitlines()[0] if out else ""
+    estimated = int(summary.split()[1]) if summary.startswith("twinwatch: ") else -1
+    overruns = int(summary.split(", ")[1].split()[0]) if estimated >= 0 else -1
+    print(f"windows estimated {estimated}, overruns {overruns}, stored {len(stored)}; "
+          f"{out}\n{err[-3000:]}")
+    return {"exit_code": proc.returncode, "overruns": overruns,
+            "all_stored": estimated + overruns == 26 and len(stored) == 26,
+            "stored_in_order": stored == sorted(stored),
+            "summary_names_the_lock": "locked by another process" in out,
+            "advice_max_generations": "max_generations" in err,
+            "counted": {"store_delayed": bool(last) and
+                        last["counters"].get("store_delayed", 0) > 0}}
 
 
 DISK_FULL = r"""

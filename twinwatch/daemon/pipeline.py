@@ -21,15 +21,28 @@ in the store's backlog) is not given to the sinks that publish (role ``publisher
 plug-in by default), and its alarm events wait for the next window that is stored; the
 recorders (Rerun) still get it.
 
-The pipeline holds no thread: :class:`~twinwatch.daemon.runner.Daemon` calls
-:meth:`WindowPipeline.process` from its ``twinwatch-adaptation`` worker, one window at a time.
+:class:`~twinwatch.daemon.runner.Daemon` calls :meth:`WindowPipeline.process` from its
+``twinwatch-adaptation`` worker, one window at a time. Once :meth:`WindowPipeline.start` has
+started the outputs' thread (``twinwatch-outputs``; the daemon does when it runs a live source:
+a bus, a real-time replay), the worker
+only estimates and hands each processed window to that thread through a bounded queue
+(:data:`OUTPUT_QUEUE`): the outputs write there, in the same order, so an output that waits (a
+state database whose write lock another process holds: each write waits SQLite's busy timeout,
+5 s) never holds up the estimation (issue 26: a backup tool's 30 s lock cost 5 windows, dropped
+as estimation overruns). While the gate's database is locked the windows wait in memory
+(:attr:`WindowPipeline.delayed`, at most :data:`HELD_MAX`): each is stored as soon as the lock
+is released and only then given to the publishers, oldest first (stored before published). A
+pipeline without that thread (a library daemon that calls :meth:`WindowPipeline.process`
+itself) writes the outputs from the caller's thread.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import queue
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -55,6 +68,19 @@ __all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline"]
 
 HealthCallback = Callable[[HealthMessage], None]
 """Called with each window's typed health message (worker thread)."""
+
+OUTPUT_QUEUE = 64
+"""Processed windows waiting for the outputs' thread. Full only when an output is slower than
+the estimation (the gate's lock does not fill it: those windows wait in :data:`HELD_MAX`); the
+estimation worker then waits, and an overrun names that output (:meth:`WindowPipeline.
+backpressure`)."""
+
+HELD_MAX = 1000
+"""Windows kept in memory while the state database is locked by another process (about 33
+minutes of 2 s windows): stored and published once the lock is released. Beyond it a window
+waits in the store's own backlog and is not published (as on a full disk)."""
+
+_STOP = object()
 
 
 class WindowPipeline:
@@ -108,6 +134,223 @@ class WindowPipeline:
         self.windows_estimated = 0
         self._failing: set[str] = set()
         self._lock = threading.Lock()
+        #: windows that waited in memory for the gate's lock (another process's), in all
+        self.delayed = 0
+        #: the longest such wait [s]
+        self.locked_longest = 0.0
+        self._held: list[ProcessedWindow] = []
+        self._locked_since: float | None = None
+        self._writing: tuple[str, float] | None = None  # (output, since) while one writes
+        self._queue: queue.Queue[Any] | None = None
+        self._thread: threading.Thread | None = None
+        self._stop_by: float | None = None  # monotonic: give up on the lock after it
+        self._blocked = False  # the worker waits for room in the outputs' queue
+
+    # -- the outputs' thread -------------------------------------------------------------------
+    def start(self, name: str = "twinwatch-outputs") -> None:
+        """Write the outputs from a thread of their own from now on (see the module
+        docstring). Idempotent."""
+        if self._thread is not None:
+            return
+        self._queue = queue.Queue(maxsize=OUTPUT_QUEUE)
+        self._stop_by = None
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float) -> None:
+        """Write the windows queued for the outputs, then stop their thread: windows waiting
+        for a locked state database are waited for ``timeout`` seconds [wall], then left
+        in the store's backlog (its close writes them once more, or counts them lost) and
+        counted as not published."""
+        thread, q = self._thread, self._queue
+        if thread is None or q is None:
+            return
+        self._stop_by = time.monotonic() + timeout
+        try:  # blocks at most while the thread writes the queued windows
+            q.put(_STOP, timeout=timeout + 30.0)
+        except queue.Full:
+            pass
+        thread.join(timeout=timeout + 30.0)
+        if thread.is_alive():
+            logger.warning("%s: the outputs did not finish writing within %.0f s",
+                           self.machine, timeout + 30.0)
+        self._thread = None
+        self._queue = None
+
+    @property
+    def queued(self) -> int:
+        """Windows waiting for the outputs' thread, and held for a locked state database."""
+        q = self._queue
+        return (q.qsize() if q is not None else 0) + len(self._held)
+
+    def backpressure(self) -> str | None:
+        """Why the estimation worker waits on the outputs now (their queue is full, or, without
+        the outputs' thread, one writes a window for more than a second), or None: what an
+        overrun's message names instead of the estimation's cost."""
+        writing = self._writing
+        if not self._blocked and (writing is None or self._thread is not None
+                                  or time.monotonic() - writing[1] <= 1.0):
+            return None
+        if writing is None:
+            return f"the outputs are {OUTPUT_QUEUE} windows behind"
+        name, since = writing
+        gate = self.gate
+        locked = gate is not None and gate.name == name and gate.locked
+        why = " (its database is locked by another process)" if locked else ""
+        return (f"the {name} output has been writing one window for "
+                f"{time.monotonic() - since:.0f} s{why}")
+
+    def counters(self) -> dict[str, int]:
+        """``store_delayed`` (windows that waited in memory for the state database's lock,
+        in all) and ``outputs_queued`` (windows waiting for the outputs now)."""
+        return {"store_delayed": int(self.delayed), "outputs_queued": int(self.queued)}
+
+    def summary(self) -> list[str]:
+        """The windows that waited for a locked state database, if any."""
+        if not self.delayed:
+            return []
+        held = len(self._held)
+        return [f"state database: locked by another process for up to "
+                f"{self.locked_longest:.0f} s; {self.delayed} windows waited in memory meanwhile "
+                f"and were stored and published once it was released"
+                + (f" ({held} still waiting at the end: not published)" if held else "")]
+
+    def _run(self) -> None:
+        q = self._queue
+        assert q is not None
+        stopping = False
+        while not stopping or self._held:
+            if self._held:  # the gate's database is locked: take what comes, try again
+                stopping = self._drain_into_held(q) or stopping
+                self._retry_held(give_up=stopping and self._past_stop())
+                continue
+            got = q.get()
+            if got is _STOP:
+                stopping = True
+                continue
+            self._deliver(got)
+
+    def _past_stop(self) -> bool:
+        return self._stop_by is not None and time.monotonic() >= self._stop_by
+
+    def _drain_into_held(self, q: queue.Queue[Any]) -> bool:
+        """Every queued window into the gate's memory (none written now). True if the stop
+        marker was among them."""
+        stop = False
+        while True:
+            try:
+                got = q.get_nowait()
+            except queue.Empty:
+                return stop
+            if got is _STOP:
+                stop = True
+            else:
+                self._hold(got)
+
+    def _hold(self, out: ProcessedWindow) -> None:
+        """A window behind the locked database: kept in memory (the gate's backlog) to be
+        stored and published once the lock goes; the recorders get it now."""
+        gate = self.gate
+        assert gate is not None
+        if len(self._held) >= HELD_MAX:  # too long: stored later, not published
+            gate.hold(out)
+            gate.not_stored += 1
+            self._held_events.extend(out.events)
+            self._write_others(out, stored=False)
+            return
+        gate.hold(out)
+        self._held.append(out)
+        self.delayed += 1
+        self._write_others(out, stored=None)
+
+    def _retry_held(self, give_up: bool) -> None:
+        """One more attempt to store the held windows (it waits up to the busy timeout);
+        stored: published, oldest first. Not stored and the lock gone (another failure: a
+        full disk), or ``give_up``: they are left to the gate's backlog, not published."""
+        gate = self.gate
+        if gate is None:
+            self._held.clear()
+            return
+        started = time.monotonic()
+        self._writing = (gate.name, started)
+        try:
+            stored = gate.retry()
+        except Exception as exc:  # noqa: BLE001 - as _write: one output must not stop the rest
+            logger.error("the %s output failed (%s: %s)", gate.name, type(exc).__name__, exc)
+            stored = False
+        finally:
+            self._writing = None
+        if self._locked_since is not None:
+            self.locked_longest = max(self.locked_longest,
+                                      time.monotonic() - self._locked_since)
+        held, stored_now = list(self._held), stored
+        if not stored and time.monotonic() - started < 0.2:
+            time.sleep(0.2)  # a lock error at once (not after the busy timeout): no spinning
+        if stored_now:
+            self._held.clear()
+            self._locked_since = None
+            gate.not_stored -= 1  # the first held window, counted when its write failed
+            logger.warning("state database of %s released: %d windows that waited in memory "
+                           "are stored and published now", self.machine, len(held))
+            for out in held:
+                self._write_others(out, stored=True, recorders=False)
+        elif give_up or not gate.locked:
+            self._held.clear()
+            self._locked_since = None
+            gate.not_stored += len(held) - 1
+            for out in held:
+                self._held_events.extend(out.events)
+            why = "the daemon stops" if give_up else "it cannot be written"
+            logger.error("state database of %s: %d windows that waited for its lock are not "
+                         "published (%s); they wait in its backlog", self.machine, len(held),
+                         why)
+
+    # -- the windows ---------------------------------------------------------------------------
+    def _deliver(self, out: ProcessedWindow) -> None:
+        """Write one processed window to every output: the gate first, then the others (the
+        publishers only if it was stored)."""
+        gate = self.gate
+        stored = True
+        if gate is not None:
+            self._writing = (gate.name, time.monotonic())
+            try:
+                stored = self._write(gate, out) is not False
+            finally:
+                self._writing = None
+            if not stored and self._thread is not None and gate.locked:
+                # another process holds the database's lock: keep the window (and the ones
+                # after it) in memory until it is stored, then publish them
+                self._locked_since = time.monotonic()
+                self._held.append(out)
+                self.delayed += 1
+                self._write_others(out, stored=None)
+                return
+        self._write_others(out, stored=stored)
+
+    def _write_others(self, out: ProcessedWindow, *, stored: bool | None,
+                      recorders: bool = True) -> None:
+        """The outputs after the gate: the recorders (with ``recorders``), and the publishers
+        when ``stored`` (False: its alarm events wait for the next stored window; None: held
+        for the gate's lock, published later)."""
+        published = out
+        if stored is False:  # served by the history query once the store has written it
+            self._held_events.extend(out.events)
+        elif stored and self._held_events:  # the events of the windows not published
+            published = dataclasses.replace(out, events=[*self._held_events, *out.events])
+            self._held_events.clear()
+        for sink in self.sinks:
+            if sink is self.gate:
+                continue
+            if sink.publishes:
+                if not stored:
+                    continue
+            elif not recorders:
+                continue
+            self._writing = (sink.name, time.monotonic())
+            try:
+                self._write(sink, published if sink.publishes else out)
+            finally:
+                self._writing = None
 
     def _write(self, sink: Sink, out: ProcessedWindow) -> bool | None:
         """``sink.write(out)``. An output that raises (a plug-in's bug) does not stop the
@@ -185,17 +428,18 @@ class WindowPipeline:
             self.latest = health
             self.history.append(health)
         logger.info("%s", summary_line(health))
-        stored = self.gate is None or self._write(self.gate, out) is not False
-        published = out
-        if not stored:  # served by the history query once the store has written it
-            self._held_events.extend(out.events)
-        elif self._held_events:  # the alarm events of the windows that were not published
-            published = dataclasses.replace(out, events=[*self._held_events, *out.events])
-            self._held_events.clear()
-        for sink in self.sinks:
-            if sink is self.gate or (sink.publishes and not stored):
-                continue
-            self._write(sink, published if sink.publishes else out)
+        q = self._queue
+        if q is None:
+            self._deliver(out)
+        else:  # the outputs' thread; full only when an output is slower than the estimation
+            try:
+                q.put_nowait(out)
+            except queue.Full:
+                self._blocked = True
+                try:
+                    q.put(out)
+                finally:
+                    self._blocked = False
         for fn in self.callbacks:
             fn(health)
         return health

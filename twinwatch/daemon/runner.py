@@ -578,6 +578,7 @@ class Daemon:
             c.update({f"{sink.prefix}_{k}": int(v) for k, v in sink.counters().items()})
             if isinstance(sink, Gate):
                 c["windows_not_stored"] = int(sink.not_stored)
+        c.update(self.pipeline.counters())
         c["samples_received"] = self.ring.samples
         c["samples_lost"] = sum(self.ring.lost.values())
         return c
@@ -645,7 +646,8 @@ class Daemon:
     def summary(self) -> list[str]:
         """The outputs' lines for the run's summary (where the windows went, what was lost),
         in writing order."""
-        return [line for s in self._outputs() for line in s.summary()]
+        return [*self.pipeline.summary(),
+                *(line for s in self._outputs() for line in s.summary())]
 
     def run(self, duration: float | None = None) -> int:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
@@ -660,6 +662,12 @@ class Daemon:
                                         name=f"{self._thread_prefix}-adaptation",
                                         daemon=True)
         self._worker.start()
+        if live:  # the outputs write from their own thread: a state database locked by
+            # another process (each write waits the busy timeout) does not hold up the
+            # estimation, so no window of a live source is dropped for it. A source on a
+            # simulated clock waits for the worker anyway (no window is lost): its outputs
+            # are written by the worker, each health message counting what they did before.
+            self.pipeline.start(name=f"{self._thread_prefix}-outputs")
         if self.watchdog is not None:
             self.watchdog.require_windows = self.config.acquisition.watchdog == "windows"
             self.watchdog.source_waiting = self._source_waiting
@@ -736,12 +744,26 @@ class Daemon:
         except queue.Full:
             self.overruns += 1
             self.recent_outcomes.append("overrun")
+            waiting = self.pipeline.backpressure()
+            if waiting is not None:  # the real cause: an output holds up the worker
+                logger.warning("estimation overrun: window %d dropped (%d so far); the "
+                               "estimation waits for the outputs: %s", window.index,
+                               self.overruns, waiting)
+                return
             logger.warning("estimation overrun: window %d dropped (%d so far); the "
                            "estimation does not keep up with acquisition: lower "
                            "[estimation.pso].max_generations or the time budget",
                            window.index, self.overruns)
 
     def _drain(self) -> None:
+        """Stop the worker after the windows already queued, then the outputs' thread after
+        the windows it was given."""
+        try:
+            self._drain_worker()
+        finally:
+            self.pipeline.stop(self.config.acquisition.shutdown_timeout)
+
+    def _drain_worker(self) -> None:
         """Stop the worker after the windows already queued."""
         if self._worker is None:
             return

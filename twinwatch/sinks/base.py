@@ -478,9 +478,24 @@ class Gate(Sink):
     #: How many times a corrupt store was moved aside (nothing is resumed from it).
     recovered: int = 0
 
+    #: The last write failed because another process holds the database's write lock (a
+    #: backup tool): the pipeline's outputs' thread then keeps the windows in memory and
+    #: publishes them once :meth:`retry` has stored them, instead of not publishing them.
+    locked: bool = False
+
     @abc.abstractmethod
     def write(self, out: ProcessedWindow) -> bool:
         """Store the window; False when it waits (it is then not published)."""
+
+    def hold(self, out: ProcessedWindow) -> None:
+        """Keep the window to be stored with the next successful write, without trying now
+        (the database is :attr:`locked`). Default: :meth:`write` (it waits there)."""
+        self.write(out)
+
+    def retry(self) -> bool:
+        """Try once more to store the windows waiting (after :attr:`locked`); True when they
+        are all stored. Default: False (nothing to retry)."""
+        return False
 
     @abc.abstractmethod
     def load_twin_state(self, machine: str | None = None) -> dict[str, Any] | None:

@@ -243,11 +243,18 @@ class StateStore(Gate):
         self._twin_saved: tuple[Any, ...] | None = None  # the twin row last committed
         self._file_gone: str | None = None  # "deleted" / "replaced" / "moved", until reopened
         self._old_file: tuple[set[tuple[str, int]] | None, int] = (None, 0)
+        # (output, machine) -> (run, window) delivered, read from the file left behind
+        self._old_delivered: dict[tuple[str, str], set[tuple[str, int]]] = {}
+        #: the database file the store writes: +1 each time it opens another one at the path
+        #: (deleted, replaced or moved away); an outbox of an earlier file is stale
+        self.generation = 0
         self._sidecars: dict[str, tuple[int, int]] = {}  # our -wal / -shm: (st_dev, st_ino)
         self.history_lost = 0
         self.outbox_dropped: dict[tuple[str, str], int] = {}  # (output, machine) -> windows
         self.file_event: str | None = None
         self._failing = False
+        self._failing_since: float | None = None
+        self.locked = False
         self._closed_for_good = False
         self._since_prune = 0
         self.saved = 0
@@ -496,6 +503,16 @@ class StateStore(Gate):
                     "SELECT machine, window FROM health WHERE run = ?", (self.run_id,))}
                 earlier = int(conn.execute("SELECT COUNT(*) FROM health WHERE run != ?",
                                            (self.run_id,)).fetchone()[0])
+                delivered: dict[tuple[str, str], set[tuple[str, int]]] = {}
+                for output, machine, position in conn.execute(
+                        "SELECT output, machine, health_id FROM outbox_position").fetchall():
+                    delivered[(str(output), str(machine))] = {(str(r), int(w)) for r, w in
+                                                              conn.execute(
+                        "SELECT h.run, h.window FROM health h WHERE +h.machine = ? AND "
+                        "h.run = ? AND (h.id <= ? OR EXISTS (SELECT 1 FROM outbox_ack a WHERE "
+                        "a.output = ? AND a.machine = h.machine AND a.run = h.run AND "
+                        "a.window = h.window))", (machine, self.run_id, position, output))}
+                self._old_delivered = delivered
                 conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")  # a file moved away: complete
             except sqlite3.Error as exc:
                 logger.debug("reading the old state database %s failed: %s", self.path, exc)
@@ -532,12 +549,14 @@ class StateStore(Gate):
                 "SELECT machine, window FROM health WHERE run = ?", (self.run_id,))}
             rows = [r for r in self._recent if (r[0], r[2]) not in have]
             conn.execute("BEGIN IMMEDIATE")
+            top = int(conn.execute("SELECT COALESCE(MAX(id), 0) FROM health").fetchone()[0])
             try:
                 conn.executemany("INSERT INTO health (machine, run, window, t_start, t_end, "
                                  "wall, doc) VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
                 if self._twin_saved is not None:
                     conn.execute("INSERT OR REPLACE INTO twin (machine, run, window, t_end, "
                                  "wall, state) VALUES (?, ?, ?, ?, ?, ?)", self._twin_saved)
+                self._carry_outboxes(conn, top)
                 conn.execute("COMMIT")
             except sqlite3.Error:
                 conn.execute("ROLLBACK")
@@ -551,6 +570,8 @@ class StateStore(Gate):
                              "wait in memory, not published, and it is tried again with each "
                              "window", self.file_event, exc)
             return
+        self.generation += 1
+        self._old_delivered = {}
         stored, earlier = self._old_file
         kept = have | {(r[0], r[2]) for r in self._recent}
         lost = 0 if why == "moved" or stored is None else len(stored - kept)
@@ -571,6 +592,24 @@ class StateStore(Gate):
                                f"are lost with the old file{earlier_note}")
             logger.log(logging.ERROR if lost or earlier else logging.WARNING, "%s",
                        self.file_event)
+
+    def _carry_outboxes(self, conn: sqlite3.Connection, top: int) -> None:
+        """The outboxes of the file left behind, in the file at the path (in the caller's
+        transaction): an output without a position there gets one at ``top`` (the rows the
+        file held before this run's windows were written again to it: history, not sent, as
+        at an output's first open), and this run's windows it had delivered are marked
+        delivered; the others are pending, so they are delivered from the new file, also
+        after a restart (issue 26: delivery stopped silently, and 20 windows of the run were
+        never delivered after a restart)."""
+        wall = time.time()
+        for (output, machine), done in self._old_delivered.items():
+            conn.execute("INSERT OR IGNORE INTO outbox_position (output, machine, health_id, "
+                         "wall) VALUES (?, ?, ?, ?)", (output, machine, top, wall))
+            marks = [(output, machine, r, w, i, wall) for i, r, w in conn.execute(
+                "SELECT id, run, window FROM health WHERE +machine = ? AND run = ?",
+                (machine, self.run_id)) if (str(r), int(w)) in done]
+            conn.executemany("INSERT OR IGNORE INTO outbox_ack (output, machine, run, window, "
+                             "health_id, wall) VALUES (?, ?, ?, ?, ?, ?)", marks)
 
     # -- the sink contract ---------------------------------------------------------------------
     @classmethod
@@ -606,7 +645,12 @@ class StateStore(Gate):
     def problem(self) -> str | None:
         """The database not writable (windows waiting, not published), windows lost."""
         out = []
-        if self.failing:
+        if self.failing and self.locked:
+            since = (time.monotonic() - self._failing_since
+                     if self._failing_since is not None else 0.0)
+            out.append(f"state database locked by another process for {since:.0f} s: "
+                       f"{self.waiting} windows waiting in memory, published once stored")
+        elif self.failing:
             out.append(f"state database not writable: {self.waiting} windows waiting "
                        f"in memory, not published")
         if self.never_stored:
@@ -651,9 +695,31 @@ class StateStore(Gate):
         self.not_stored += not ok
         return ok
 
+    def hold(self, out: ProcessedWindow) -> None:
+        """Keep the window in memory without trying to write it (the database is
+        :attr:`locked`: a try would wait the busy timeout); written by :meth:`retry` or the
+        next successful write. Not counted in :attr:`not_stored` (the pipeline counts it if
+        it is not published)."""
+        h = out.health
+        self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
+                          "t_start": h.t_start, "t_end": h.t_end}, out.twin_state,
+                         doc=out.health_json, flush=False)
+
+    def retry(self) -> bool:
+        """One attempt to write the windows waiting in memory (waits up to the busy timeout
+        for another process's lock). True when nothing waits any more."""
+        with self._write_lock:
+            self._check_file()
+            if not self._pending and self._twin_pending is None:
+                return True
+            if self._file_gone is not None:
+                return self._flush_failed(StoreError(f"{self.file_event}: not written yet"))
+            return self._flush()
+
     # -- writing ------------------------------------------------------------------------------
     def save_window(self, health: Mapping[str, Any], twin_state: Mapping[str, Any] | None,
-                    *, wall: float | None = None, doc: str | None = None) -> bool:
+                    *, wall: float | None = None, doc: str | None = None,
+                    flush: bool = True) -> bool:
         """Store one window's health message and, if given, the latest accepted twin, in one
         transaction (call from the adaptation worker after each window).
 
@@ -668,6 +734,9 @@ class StateStore(Gate):
             doc: the message already encoded (the pipeline's one encoding, stored byte for
                 byte as published); ``health`` then needs only the indexed keys. None: the
                 message is ``health`` encoded here.
+            flush: False: only keep the window in memory, written with the next successful
+                save or :meth:`retry` (the database is :attr:`locked`: trying now would wait
+                the busy timeout again).
 
         Returns:
             True if committed; False if the database could not be written (the window is
@@ -690,6 +759,8 @@ class StateStore(Gate):
             if twin_state is not None:
                 self._twin_pending = (machine, self.run_id, row[2], row[4], w,
                                       _dumps(twin_state))
+            if not flush:
+                return False
             if self._file_gone is not None:  # no database file to write to yet: wait in memory
                 ok = self._flush_failed(StoreError(f"{self.file_event}: not written yet"))
             else:
@@ -728,9 +799,12 @@ class StateStore(Gate):
                 return self._flush(retry=False)
             return self._flush_failed(exc)
         if self._failing:
-            logger.warning("state database %s writable again: %d delayed windows written",
-                           self.path, len(self._pending))
+            logger.warning("state database %s writable again%s: %d delayed windows written",
+                           self.path, f" after {time.monotonic() - self._failing_since:.0f} s"
+                           if self._failing_since is not None else "", len(self._pending))
             self._failing = False
+        self.locked = False
+        self._failing_since = None
         self.saved += len(self._pending)
         self._recent.extend(self._pending)
         self._pending.clear()
@@ -741,6 +815,11 @@ class StateStore(Gate):
 
     def _flush_failed(self, exc: BaseException) -> bool:
         self.errors += 1
+        msg = str(exc)
+        self.locked = isinstance(exc, sqlite3.OperationalError) and (
+            "locked" in msg or "busy" in msg)
+        if self._failing_since is None:
+            self._failing_since = time.monotonic()
         err = exc if isinstance(exc, StoreError) else self._error(
             f"window {self._pending[-1][2]} not written yet ({len(self._pending)} waiting in "
             f"memory)", exc)
@@ -1031,6 +1110,22 @@ class StoreOutbox:
         self.store = store
         self.output = output
         self.machine = machine
+        self.generation = store.generation
+
+    @property
+    def changed(self) -> bool:
+        """The store has opened another database file since this outbox was made (deleted,
+        replaced or moved away): its row ids and position are stale; ask the gate for a new
+        outbox."""
+        return self.store.generation != self.generation
+
+    def _same_file(self, conn: sqlite3.Connection) -> sqlite3.Connection:
+        """``conn`` if the store still writes the file of this outbox (checked under the
+        store's lock, after it looked at the path); else raises (nothing read or written)."""
+        if self.changed:
+            raise sqlite3.OperationalError("the state database file changed: its outbox is "
+                                           "read again")
+        return conn
 
     @property
     def dropped(self) -> int:
@@ -1045,7 +1140,7 @@ class StoreOutbox:
         Raises:
             StoreError: the database cannot be read or written.
         """
-        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
             "SELECT health_id FROM outbox_position WHERE output = ? AND machine = ?",
             (self.output, self.machine)).fetchone())
         if row is not None:
@@ -1053,9 +1148,9 @@ class StoreOutbox:
         position = self.latest_id() or 0
 
         def create(conn: sqlite3.Connection) -> None:
-            conn.execute("INSERT OR IGNORE INTO outbox_position (output, machine, health_id, "
-                         "wall) VALUES (?, ?, ?, ?)",
-                         (self.output, self.machine, position, time.time()))
+            self._same_file(conn).execute(
+                "INSERT OR IGNORE INTO outbox_position (output, machine, health_id, wall) "
+                "VALUES (?, ?, ?, ?)", (self.output, self.machine, position, time.time()))
 
         self.store._write("cannot create the outbox", create)
         return self.start()
@@ -1066,7 +1161,8 @@ class StoreOutbox:
         Raises:
             StoreError: the database cannot be read.
         """
-        rows = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+        rows = self.store._read("cannot read the outbox", lambda conn: self._same_file(
+            conn).execute(
             "SELECT h.id, h.run, h.window, h.wall, h.doc FROM health h WHERE h.id > ? AND "
             "+h.machine = ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? AND "
             "a.machine = h.machine AND a.run = h.run AND a.window = h.window) ORDER BY h.id "
@@ -1080,8 +1176,9 @@ class StoreOutbox:
             StoreError: the database cannot be read.
         """
         def read(conn: sqlite3.Connection) -> int:
-            stored = conn.execute("SELECT COUNT(*) FROM health WHERE id > ? AND +machine = ?",
-                                  (int(position), self.machine)).fetchone()[0]
+            stored = self._same_file(conn).execute(
+                "SELECT COUNT(*) FROM health WHERE id > ? AND +machine = ?",
+                (int(position), self.machine)).fetchone()[0]
             acked = conn.execute(
                 "SELECT COUNT(*) FROM outbox_ack a WHERE a.output = ? AND a.machine = ? AND "
                 "a.health_id > ? AND EXISTS (SELECT 1 FROM health h WHERE h.id = a.health_id)",
@@ -1096,7 +1193,7 @@ class StoreOutbox:
         Raises:
             StoreError: the database cannot be read.
         """
-        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
             "SELECT id FROM health WHERE +machine = ? ORDER BY id DESC LIMIT 1",
             (self.machine,)).fetchone())
         return None if row is None else int(row[0])
@@ -1107,7 +1204,7 @@ class StoreOutbox:
         Raises:
             StoreError: the database cannot be read.
         """
-        row = self.store._read("cannot read the outbox", lambda conn: conn.execute(
+        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
             "SELECT doc FROM health WHERE +machine = ? AND id <= ? ORDER BY id DESC LIMIT 1",
             (self.machine, int(health_id))).fetchone())
         return None if row is None else str(row[0])
@@ -1122,7 +1219,7 @@ class StoreOutbox:
         wall = time.time()
 
         def write(conn: sqlite3.Connection) -> None:
-            conn.executemany(
+            self._same_file(conn).executemany(
                 "INSERT OR IGNORE INTO outbox_ack (output, machine, run, window, health_id, "
                 "wall) VALUES (?, ?, ?, ?, ?, ?)",
                 [(self.output, self.machine, r.run, r.window, r.id, wall) for r in delivered
