@@ -869,6 +869,7 @@ class MqttPublisher(Sink):
         last_poll = 0.0
         last_count = 0.0
         deadline: float | None = None
+        tried_at_close = False
         while True:
             now = time.monotonic()
             if self._rebind.is_set():
@@ -876,8 +877,19 @@ class MqttPublisher(Sink):
             if self._stop.is_set():  # closing: deliver what is pending, for a while
                 if deadline is None:
                     deadline = now + self.config.close_timeout
-                if not self._connected or now >= deadline:
+                if now >= deadline:
                     break
+                if not self._connected:
+                    # one attempt at once while windows wait (the backoff may be sleeping
+                    # through a broker that is back: a run that ended a second after the
+                    # broker restarted left its backlog for the next start)
+                    if tried_at_close or not (self._inflight or self._has_pending()):
+                        break
+                    tried_at_close = True
+                    self._connect()
+                    if not self._connected:
+                        break
+                    continue
                 if not self._inflight:
                     self._feed(now, all_rows=True)
                     if not self._inflight and not self._has_pending():
