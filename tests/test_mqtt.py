@@ -377,9 +377,9 @@ def test_broker_outage_of_30_s_plant_time_loses_nothing(tmp_path: Path, broker: 
     print("mqtt_pending per window:", pending)
     assert max(pending) >= 10                 # the outage was seen
     # and caught up: the counter is back to its level before the outage (the plant runs
-    # faster than real time, so a window is built before its predecessor's PUBACK: 1-3
+    # faster than real time, so a window is built before its predecessor's PUBACK: 0-3
     # under load, 0 on an idle box); the summary below says nothing is left pending
-    assert max(pending[-10:]) <= max(1, max(pending[:n0])), pending
+    assert max(pending[-10:]) <= max(3, max(pending[:n0])), pending
     assert "60 windows delivered" in out and " pending" not in out.split("MQTT")[-1], out
     sub.close()
 
