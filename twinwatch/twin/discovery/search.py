@@ -216,7 +216,11 @@ def residual_too_large(r: FloatArray, n_out: int, config: DiscoveryConfig,
 def window_structure(r: FloatArray, n_out: int, config: DiscoveryConfig,
                      names: Sequence[str] | None = None) -> WindowStructure:
     """:func:`~twinwatch.twin.discovery.trigger.residual_structure` of normalised residuals
-    ``r`` (M,) with ``n_out`` interleaved outputs, scaled by ``1/sqrt(M)``."""
+    ``r`` (M,) with ``n_out`` interleaved outputs, scaled by ``1/sqrt(M)``; ``names`` (n_out,)
+    default to ``y0, y1, ...``.
+
+    Raises:
+        ValueError: ``M`` is not a multiple of ``n_out``, or ``names`` has another length."""
     r = np.asarray(r, dtype=float)
     res = r.reshape(-1, n_out) * math.sqrt(r.size)
     return residual_structure(res, list(names) if names is not None else

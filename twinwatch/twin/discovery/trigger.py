@@ -111,8 +111,8 @@ class WindowStructure:
         if o is None:
             return "no output"
         s = self.outputs[o]
-        return (f"{o} residual {s.ratio:.1f} x its noise level, Ljung-Box Q = {s.q:.0f} "
-                f"(p = {s.p_value:.1e})")
+        p = f"p = {s.p_value:.1e}" if s.p_value >= 1e-16 else "p < 1e-16"
+        return f"{o} residual {s.ratio:.1f} x its noise level, Ljung-Box Q = {s.q:.0f} ({p})"
 
 
 def _p_chi2(x: float, dof: int) -> float:
