@@ -293,8 +293,8 @@ def published_d(plant: HydraulicPlant, twin: HydraulicActuatorTwin, n: int,
     i_d = list(twin.parameter_names).index("D")
     for w in windows(plant, n, skip=0):
         result = adapter.process(w)
-        health = build_health(machine="bench", model_name="hydraulic", model=twin, window=w,
-                              adaptation=result, nominal=nominal)
+        health = build_health(machine="bench", model_name="hydraulic", run="bench", model=twin,
+                              window=w, adaptation=result, nominal=nominal)
         for ev in alarms.update(health):
             raised.setdefault(ev["level"], float(ev["t"]))
         p = health.parameters["D"]
