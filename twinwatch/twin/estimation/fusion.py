@@ -45,6 +45,15 @@ MAX_STEP = 0.5
 #: (:meth:`~twinwatch.twin.estimation.fit.LocalFit.sensitivity`): the smallest and the largest
 #: of the gate's, half the twin calls at each of the iterations.
 FUSION_STEPS = (1e-6, 1e-3)
+#: The first parameter a window could not determine is fused only when at least this share of
+#: its information in the window is its own (1 - R^2 against the parameters the gate admitted
+#: and the initial state: its conditional over its marginal variance). Along a valley the
+#: window's evidence on it is a combination with an admitted one, and the filter, fed that
+#: every window, walks along the valley: DC motor bearing wear, 1 % noise, Ke beside an
+#: admitted D has 1e-7 of its information its own (conditional std 0.08 %, marginal 245 %)
+#: and the fused D drifted 3-7 % off; the hydraulic D beside q_pump has 0.73, and it is known
+#: only from the windows' evidence (benchmarks/bench_fidelity.py --only fusion).
+OWN_INFORMATION = 0.01
 
 
 class FusionConfig(BaseModel):
@@ -286,6 +295,27 @@ class ParameterFusion:
         return {n: float(self.state.mean[self.n + i]) for i, n in enumerate(self.names)}
 
 
+def _own_information(problem: WindowProblem, polished: Polished, cols: np.ndarray,
+                     base_ln: FloatArray) -> bool:
+    """Whether the window's last column of ``cols`` (the first parameter it could not
+    determine) carries at least :data:`OWN_INFORMATION` of its information on its own, apart
+    from the other columns and the initial state (the nuisance), at the polished point. The
+    sensitivity is the one :meth:`ParameterFusion.update` starts from (cached: no twin call
+    more when the column is kept)."""
+    nuis = problem.nuisance
+    qq = base_ln.copy()
+    qq[cols] = polished.point.v[:problem.n_est][cols]
+    v_f = np.concatenate([np.clip(qq, problem.xl, problem.xu), polished.nuisance])
+    jac, _ = problem.local.sensitivity_and_residuals(v_f, np.concatenate([cols, nuis]),
+                                                     steps=FUSION_STEPS)
+    w = 1.0 / np.maximum(polished.row_var, 1e-300)
+    big = jac.T @ (jac * w[:, None])
+    e = cols.size - 1
+    own = float(big[e, e]) * float(_safe_inverse(big)[e, e])
+    # 1 - R^2 = 1 / (I_ee (I^-1)_ee); a column with no information at all has none of its own
+    return own > 0 and math.isfinite(own) and 1.0 / own >= OWN_INFORMATION
+
+
 def _safe_inverse(a: FloatArray) -> FloatArray:
     """Inverse of a symmetric positive semi-definite matrix through its eigenvalues
     (near-zero ones treated as zero; never raises)."""
@@ -338,10 +368,12 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
     jump = False
     if informative:
         n_est = problem.n_est
-        cols = np.arange(min(n_selected + 1, n_est))
         base_ln = np.log(problem.base[problem.pmap.idx])
         nuis = problem.nuisance
         local = problem.local
+        cols = np.arange(min(n_selected + 1, n_est))
+        if n_selected < n_est and not _own_information(problem, polished, cols, base_ln):
+            cols = cols[:-1]
 
         def linearize(q: FloatArray) -> tuple[FloatArray, FloatArray]:
             """The window's residuals and Jacobian (columns ``cols``, then the initial state)
