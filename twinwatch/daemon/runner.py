@@ -38,9 +38,9 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
+from twinwatch.daemon.resume import continue_numbering, note_new_run, restore, resumes
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
-from twinwatch.drivers import get_driver_class
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
 from twinwatch.sinks import SINKS, sink_class
 from twinwatch.sinks.base import (
@@ -265,12 +265,12 @@ class Daemon:
         try:
             self._open_sinks(self._roles, reuse, skip=defer)
             if self.store is not None:
-                starts_over = resume is None and get_driver_class(
-                    config.driver.type).time_starts_over(config.driver)
-                if resume or (resume is None and not starts_over):
+                decision = resumes(config, resume)
+                if decision:
                     self._restore()
-                elif starts_over:
-                    self._note_new_run()
+                elif decision is None:
+                    self.new_run = note_new_run(self.store, self.machine,
+                                                config.driver.type, self.run_id)
             self.driver = handed_driver or driver or open_source(
                 config.driver, base_dir=self.base_dir, wait=wait_for_source,
                 backoff_max=config.acquisition.reopen_max)
@@ -307,7 +307,7 @@ class Daemon:
         numbering goes on (and the run: :attr:`run_id`), the twin and the alarm levels resume
         from the state database."""
         self.run_id = self.pipeline.run = previous.run_id
-        self.ring.first_index = previous.ring.first_index + previous.ring.windows
+        continue_numbering(self.ring, previous.ring)
         if self.store is not None:
             self._restore()
         self._wire()
@@ -436,84 +436,10 @@ class Daemon:
 
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
-        """Resume from the state database: the last accepted twin (trusted parameters and
-        meta-model terms) and the alarm levels of the last window. Both are read before
-        either is used: a corrupt database (moved aside by ``recover_corrupt``) resumes
-        nothing."""
+        """Resume from the state database (:func:`~twinwatch.daemon.resume.restore`)."""
         assert self.store is not None
-        state = self.store.load_twin_state(self.machine)
-        last = self.store.latest_health(self.machine)
-        if self.store.recovered:
-            state = last = None
-        if state is not None:
-            try:
-                self.adapter.restore(state)
-            except (KeyError, TypeError, ValueError) as exc:
-                logger.error("the saved twin of %s in %s cannot be used with this "
-                             "configuration (%s): starting from the nominal values", self.machine,
-                             self.store.path, exc)
-            else:
-                self.restored = state
-                logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
-                            self.machine, self.store.path,
-                            ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
-                            len(state.get("terms", [])))
-        if last is not None and last.get("alarms"):
-            self.alarms.restore(last["alarms"])
-        if state is not None and self.adapter.prognostics is not None:
-            self._replay_trends()
-        if self.restored is not None or (last is not None and last.get("alarms")):
-            self.resumed = {
-                "path": str(self.store.path),
-                "window": None if last is None else last.get("window"),
-                "t_end": None if last is None else last.get("t_end"),
-                "trusted": dict((self.restored or {}).get("trusted") or {}),
-                "terms": len((self.restored or {}).get("terms") or []),
-                "alarms": {k: a.get("level") for k, a in
-                           ((last or {}).get("alarms") or {}).items()
-                           if a.get("level") not in (None, "normal")},
-            }
-
-    def _replay_trends(self) -> None:
-        """Rebuild the parameters' trends from the evidence the stored windows published
-        (the last ``[prognostics] horizon`` seconds of plant time, on the time line that ends
-        with the last window: across earlier restarts, :meth:`StateStore.timeline`), so a
-        restart resumes the trends and their RUL instead of waiting ``min_evidence`` windows."""
-        assert self.store is not None and self.adapter.prognostics is not None
-        last = self.store.latest_health(self.machine)
-        if last is None or last.get("t_end") is None:
-            return
-        t_to = float(last["t_end"])
-        t_from = t_to - self.adapter.prognostics.config.horizon
-        messages: list[dict[str, Any]] = []
-        timeline = getattr(self.store, "timeline", None)
-        if timeline is not None:  # the state store: the time line across restarts
-            messages = timeline(self.machine, t_from)
-        else:  # a gate without it: the last run's windows only
-            run = last.get("run")
-            while True:
-                page = self.store.history(t_from, t_to, 1000, by="plant",
-                                          machine=self.machine, run=run)
-                messages.extend(page)
-                if len(page) < 1000:
-                    break
-                t_from = float(page[-1]["t_end"]) + 1e-9
-        n = self.adapter.prognostics.replay(messages)
-        if n:
-            logger.info("resumed the parameters' trends from %d stored windows", n)
-
-    def _note_new_run(self) -> None:
-        """The source's time starts over, so the stored twin is not resumed: say so when the
-        database holds earlier windows of this machine (:attr:`new_run`)."""
-        assert self.store is not None
-        last = self.store.latest_health(self.machine)
-        if last is None or self.store.recovered:
-            return
-        self.new_run = {"reason": f"the {self.config.driver.type} source's time starts over "
-                        f"when it opens", "path": str(self.store.path), "run": last.get("run")}
-        logger.info("a new run %s of %s: %s; the twin starts from the nameplate values, the "
-                    "alarms from normal (%s keeps the earlier runs)", self.run_id, self.machine,
-                    self.new_run["reason"], self.store.path)
+        self.restored, self.resumed = restore(self.store, self.machine, self.adapter,
+                                              self.alarms)
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
