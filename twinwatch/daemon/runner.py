@@ -32,26 +32,18 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Collection, Container, Mapping
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
+from twinwatch.daemon.outputs import Outputs, close_logged
 from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
 from twinwatch.daemon.resume import continue_numbering, note_new_run, restore, resumes
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
-from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import (
-    AlarmBands,
-    Gate,
-    Outbox,
-    Role,
-    SharedResources,
-    Sink,
-    SinkContext,
-)
+from twinwatch.sinks import SINKS
+from twinwatch.sinks.base import Gate, Outbox, SharedResources, Sink
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.diagnosis import Diagnoser
 from twinwatch.twin.health import HealthMessage
@@ -59,7 +51,7 @@ from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
-    from twinwatch.config.schema import OutputTable, TwinwatchConfig
+    from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.systemd import Watchdog
 
@@ -219,7 +211,6 @@ class Daemon:
                                sample_period=acq.sample_period,
                                jitter_tolerance=acq.jitter_tolerance,
                                capacity=4 * max(longest, acq.window))
-        self.sinks: dict[str, Sink] = {}
         self.watchdog = watchdog
         self.alarms = AlarmEvaluator(config.alarms, self.machine)
         self.pipeline = WindowPipeline(
@@ -235,14 +226,12 @@ class Daemon:
         self.resumed: dict[str, Any] | None = None
         self.new_run: dict[str, Any] | None = None
         self.failure: str | None = None
-        self._closed_sinks: dict[str, Sink] = {}
         self.driver: Driver | None = None
         self._own_driver = driver is None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
         self._stop = threading.Event()
         self._stop_at_window: float | None = None  # monotonic deadline, see stop(at_window)
         self.ended: str | None = None  # why run() returned by itself: source, duration, failure
-        self._adopted: set[str] = set()
         self._worker: threading.Thread | None = None
         self.overruns = 0
         self.numeric_failures = 0
@@ -255,15 +244,18 @@ class Daemon:
         self._abandoned_seen = 0
         self._ticks: list[Callable[[], None]] = []
         self.abandon = config.acquisition.abandon_on_stop
-        self._roles: dict[Role, bool] = {"gate": persist, "publisher": publish,
-                                          "recorder": record}
+        self.outputs = Outputs(config, self.model, machine=self.machine, pipeline=self.pipeline,
+                               roles={"gate": persist, "publisher": publish,
+                                      "recorder": record},
+                               run=lambda: self.run_id, base_dir=self.base_dir,
+                               work_dir=self.work_dir, shared=shared)
         reuse = dict(reuse or {})
         handed_driver = reuse.pop("driver", None)
         if handed_driver is not None:
             logger.info("reload: the %s driver is kept open (its configuration is unchanged)",
                         config.driver.type)
         try:
-            self._open_sinks(self._roles, reuse, skip=defer)
+            self.outputs.open(reuse, skip=defer)
             if self.store is not None:
                 decision = resumes(config, resume)
                 if decision:
@@ -275,20 +267,10 @@ class Daemon:
                 config.driver, base_dir=self.base_dir, wait=wait_for_source,
                 backoff_max=config.acquisition.reopen_max)
         except BaseException:
-            for name in self._adopted:  # the running daemon's: not ours to close
-                self.sinks.pop(name, None)
+            self.outputs.forget_adopted()  # the running daemon's: not ours to close
             self.close()
             raise
-        self._wire(attach=False)  # an adopted output serves the running daemon until then
-
-    def _wire(self, attach: bool = True) -> None:
-        """Give the open outputs to the pipeline (the gate first: stored before published);
-        with ``attach``, bind the adopted ones to this daemon (they serve its history)."""
-        if attach:
-            for name in self._adopted:
-                self.sinks[name].attach(self._sink_context(has_gate=self.store is not None))
-        self.pipeline.sinks = list(self.sinks.values())
-        self.pipeline.gate = self.store  # a window it cannot store is not published
+        self.outputs.wire(attach=False)  # an adopted output serves the running daemon until then
 
     def open_deferred(self) -> None:
         """Open the outputs the constructor's ``defer`` left closed (a reload, once the
@@ -297,8 +279,8 @@ class Daemon:
         Raises:
             twinwatch.errors.SinkError: as the constructor.
         """
-        self._open_sinks(self._roles, {})
-        self._wire(attach=False)
+        self.outputs.open({})
+        self.outputs.wire(attach=False)
 
     def continue_from(self, previous: Daemon) -> None:
         """Take over from ``previous``, the daemon of the configuration before a reload, once
@@ -310,45 +292,7 @@ class Daemon:
         continue_numbering(self.ring, previous.ring)
         if self.store is not None:
             self._restore()
-        self._wire()
-
-    def _open_sinks(self, roles: Mapping[Role, bool], reuse: dict[str, Sink],
-                    skip: Collection[str] = ()) -> set[str]:
-        """Open the enabled outputs whose role is wanted (``roles``), adopting the ``reuse``d
-        ones that fit; :attr:`sinks` ends in writing order (the gate first, then the
-        registry's order).
-
-        Every exclusive resource before any file is touched: the outputs open in their
-        ``open_order`` (the Zenoh port, then the state database's lock, then the recording's
-        lock and only then its truncation), so a second twinwatch in the same directory fails
-        without harming the first. The outputs in ``skip`` are not opened (yet).
-
-        Returns:
-            The names of the adopted outputs.
-        """
-        for name in reuse:
-            if name not in SINKS:
-                raise ValueError(f"unknown output {name!r}; the outputs are "
-                                 f"{', '.join(SINKS.names())}")
-        tables = [t for t in self.config.output_tables() if t.config.enabled]
-        classes = {t.name: sink_class(t.name) for t in tables}
-        wanted = [t for t in tables if roles[classes[t.name].role]]
-        context = self._sink_context(has_gate=any(classes[t.name].role == "gate"
-                                                  for t in wanted))
-        adopted = self._adopt(wanted, reuse)
-        for t in sorted(wanted, key=lambda t: classes[t.name].open_order):
-            if t.name not in self.sinks and t.name not in skip:
-                self.sinks[t.name] = classes[t.name].open(t.name, t.config, context)
-        order = [t.name for t in wanted]
-        self.sinks = dict(sorted(self.sinks.items(), key=lambda kv: (
-            not isinstance(kv[1], Gate), order.index(kv[0]))))
-        return adopted
-
-    def _sink_context(self, *, has_gate: bool) -> SinkContext:
-        """What the outputs get from this daemon (the stored history when a gate opens)."""
-        return replace(self._context(self.config, self.model),
-                       history=self.stored_history if has_gate else None,
-                       outbox=self.outbox if has_gate else None)
+        self.outputs.wire()
 
     def handover(self, config: TwinwatchConfig) -> tuple[list[str], list[str]]:
         """What a reload to ``config`` may do with this daemon's open outputs.
@@ -359,43 +303,8 @@ class Daemon:
             open only once this daemon has released them (another table, but the same file or
             port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
         """
-        model = create_model(config.machine.model, config.machine.options)
-        context = self._context(config, model)
-        new = {t.name: t.config for t in config.output_tables() if t.config.enabled}
-        old = {t.name: t.config for t in self.config.output_tables()}
-        keep, wait = [], []
-        for name, sink in self.sinks.items():
-            table = new.get(name)
-            if table is None:
-                continue
-            if sink.keeps(table, context):
-                keep.append(name)
-            elif (old[name].exclusive_resources(context.cwd)
-                  & table.exclusive_resources(context.cwd)):
-                wait.append(name)
-        return keep, wait
-
-    def _adopt(self, wanted: list[OutputTable], reuse: dict[str, Sink]) -> set[str]:
-        """Adopt the handed-over outputs whose table and context are unchanged (bound to this
-        daemon by :meth:`_wire` once it takes over); one that does not fit is left to the
-        daemon that handed it over (it closes it). Returns the adopted names."""
-        context = self._context(self.config, self.model)
-        adopted: set[str] = set()
-        for t in wanted:
-            sink = reuse.get(t.name)
-            if sink is not None and sink.keeps(t.config, context):
-                self.sinks[t.name] = sink
-                self._adopted.add(t.name)
-                adopted.add(t.name)
-                logger.info("reload: the %s output is kept open (its configuration is "
-                            "unchanged)", t.name)
-        return adopted
-
-    def _context(self, config: TwinwatchConfig, model: TwinModel) -> SinkContext:
-        """The outputs' context for a daemon of this one's run, directories and shared
-        connections on ``config`` (without the stored history)."""
-        return _context(config, model, self.base_dir, self.run_id, cwd=self.work_dir,
-                        shared=self.shared)
+        return self.outputs.handover(config, create_model(config.machine.model,
+                                                          config.machine.options))
 
     # -- the window pipeline's results ------------------------------------------------------
     @property
@@ -426,13 +335,15 @@ class Daemon:
 
     # -- the outputs ------------------------------------------------------------------------
     @property
+    def sinks(self) -> dict[str, Sink]:
+        """Registry name -> the open output, in the order each window is written to them (the
+        gate first: stored before published)."""
+        return self.outputs.sinks
+
+    @property
     def store(self) -> Gate | None:
         """The gate (the state store) while it is open, or None."""
-        return next((s for s in self.sinks.values() if isinstance(s, Gate)), None)
-
-    def _outputs(self) -> list[Sink]:
-        """Every output of this daemon, open or closed (their accounting stays readable)."""
-        return [*self.sinks.values(), *self._closed_sinks.values()]
+        return self.outputs.store
 
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
@@ -448,17 +359,12 @@ class Daemon:
         """Stored health messages of this machine in a time range, of one run with ``run``
         (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
         database. The outputs ask it through their context (the Zenoh history query)."""
-        store = self.store
-        if store is None:
-            return []
-        return store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run,
-                             after=after)
+        return self.outputs.stored_history(t_from, t_to, limit, by=by, run=run, after=after)
 
     def outbox(self, output: str) -> Outbox | None:
         """The gate's outbox of ``output`` for this machine (store-and-forward outputs ask it
         through their context), None without a gate."""
-        store = self.store
-        return None if store is None else store.outbox(output, self.machine)
+        return self.outputs.outbox(output)
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
@@ -500,10 +406,7 @@ class Daemon:
         }
         if self.driver is not None:
             c.update({f"driver_{k}": v for k, v in self.driver.stats.as_dict().items()})
-        for sink in self.sinks.values():
-            c.update({f"{sink.prefix}_{k}": int(v) for k, v in sink.counters().items()})
-            if isinstance(sink, Gate):
-                c["windows_not_stored"] = int(sink.not_stored)
+        c.update(self.outputs.counters())
         c.update(self.pipeline.counters())
         c["samples_received"] = self.ring.samples
         c["samples_lost"] = sum(self.ring.lost.values())
@@ -522,7 +425,7 @@ class Daemon:
             out.append("silent: " + ", ".join(silent))
         if (p := self.estimation_problem()) is not None:
             out.append(p)
-        return out + [p for s in self._outputs() if (p := s.problem)]
+        return out + self.outputs.problems()
 
     def source_state(self) -> tuple[str | None, list[str]]:
         """What the driver waits for (a device absent, a bus being reopened; None when it
@@ -562,18 +465,16 @@ class Daemon:
         """Windows estimated but lost, by output (its counter prefix: ``store`` never stored,
         ``recording`` not recorded, ...). Nonzero values make ``twinwatch run`` exit with
         status 74."""
-        return {s.prefix: int(s.lost) for s in self._outputs() if s.lost}
+        return self.outputs.lost()
 
     def status(self) -> list[str]:
         """What the open outputs serve, in the order they opened (systemd's STATUS)."""
-        opened = sorted(self.sinks.values(), key=lambda s: s.open_order)
-        return [st for s in opened if (st := s.status)]
+        return self.outputs.status()
 
     def summary(self) -> list[str]:
         """The outputs' lines for the run's summary (where the windows went, what was lost),
         in writing order."""
-        return [*self.pipeline.summary(),
-                *(line for s in self._outputs() for line in s.summary())]
+        return [*self.pipeline.summary(), *self.outputs.summary()]
 
     def run(self, duration: float | None = None) -> int:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
@@ -593,7 +494,7 @@ class Daemon:
             # estimation, so no window of a live source is dropped for it. A source on a
             # simulated clock waits for the worker anyway (no window is lost): its outputs
             # are written by the worker, each health message counting what they did before.
-            self.pipeline.start(name=f"{self._thread_prefix}-outputs")
+            self.outputs.start(self._thread_prefix)
         if self.watchdog is not None:
             self.watchdog.require_windows = self.config.acquisition.watchdog == "windows"
             self.watchdog.source_waiting = self._source_waiting
@@ -687,7 +588,7 @@ class Daemon:
         try:
             self._drain_worker()
         finally:
-            self.pipeline.stop(self.config.acquisition.shutdown_timeout)
+            self.outputs.stop(self.config.acquisition.shutdown_timeout)
 
     def _drain_worker(self) -> None:
         """Stop the worker after the windows already queued."""
@@ -804,54 +705,12 @@ class Daemon:
         self._stop.set()
         self._drain()
         if self.driver is not None and self._own_driver and "driver" not in keep:
-            _close("driver", self.driver)
+            close_logged("driver", self.driver)
         self.driver = None
-        kept: dict[str, Sink] = {}
-        for name, sink in reversed(list(self.sinks.items())):
-            if name in keep:
-                sink.detach()
-                kept[name] = sink
-            else:
-                _close(name, sink)
-                self._closed_sinks[name] = sink  # for the final accounting (lost windows)
-        self.sinks = {}
-        self.pipeline.sinks = []
-        self.pipeline.gate = None
-        return kept
+        return self.outputs.close(keep)
 
     def __enter__(self) -> Daemon:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path,
-             run: str, *, cwd: Path | None = None,
-             shared: SharedResources | None = None) -> SinkContext:
-    """The outputs' context for a daemon on ``config`` (without the stored history)."""
-    bands = {}
-    if config.alarms.enabled:
-        for name, rule in config.alarms.parameters.items():
-            (w_high, w_low), (a_high, a_low) = rule.thresholds("warning"), rule.thresholds("alarm")
-            bands[name] = AlarmBands(warning_high=w_high, warning_low=w_low, alarm_high=a_high,
-                                     alarm_low=a_low)
-    return SinkContext(machine=config.machine.name, model=config.machine.model,
-                       outputs=tuple(model.output_names),
-                       parameters={p.name: p.unit for p in model.parameters},
-                       base_dir=base_dir, cwd=cwd or Path.cwd(), shared=shared,
-                       recent_windows=config.acquisition.history,
-                       output_units={o.name: o.unit for o in model.outputs},
-                       nominal={p.name: float(config.machine.parameters.get(p.name, p.nominal))
-                                for p in model.parameters},
-                       estimated=tuple(config.estimation.estimate or ()),
-                       alarm_bands=bands, run=run)
-
-
-def _close(name: str, obj: Sink | Driver) -> None:
-    """Close ``obj``, logging (not raising) a failure: the others still close."""
-    try:
-        obj.close()
-    except Exception as exc:  # noqa: BLE001 - the other sinks still close
-        logger.error("error while closing the %s: %s: %s", name, type(exc).__name__, exc)
-        logger.debug("closing the %s failed", name, exc_info=True)
