@@ -1,101 +1,78 @@
-"""The daemon: driver -> ring buffer -> adaptation worker -> window pipeline -> sinks.
+"""The daemon: one machine's monitor, composed of its parts.
 
-Threads (see docs/architecture.md):
+:class:`Daemon` puts together, for one machine (see docs/architecture.md, "Threads")::
 
-* the caller's thread (the supervisor's, i.e. the CLI's main thread) runs :meth:`Daemon.run`:
-  it reads the driver, fills the ring buffer and hands each full window to the worker. It never
+    acquisition (acquisition.py, the caller's thread)
+      driver.read() -> RingBuffer -> window
+        -> bounded queue -> window worker (window_worker.py, ``<prefix>-adaptation`` thread)
+             WindowPipeline.process (pipeline.py): estimation, discovery, prognostics,
+             health message, diagnosis, alarms
+               -> outputs (outputs.py; a live source: the ``<prefix>-outputs`` thread)
+                    the gate (the state database) first, then Zenoh, Rerun, MQTT, plug-ins
+    resume (resume.py): the twin, alarm levels and trends from the state database at start and
+    after a reload, the run id and the window numbering of a reload
+
+* the caller's thread (the supervisor's: the machine's thread) runs :meth:`Daemon.run`: it
+  reads the driver, fills the ring buffer and hands each full window to the worker. It never
   estimates, so acquisition is never blocked by the optimiser.
-* ``twinwatch-adaptation`` (one worker thread) runs the window pipeline
-  (:class:`~twinwatch.daemon.pipeline.WindowPipeline`): estimation, health message, alarms,
-  then the sinks in order: the gate (the state database), then the others (Zenoh, Rerun,
-  plug-ins). Stored before published: a health message a subscriber has seen is always in the
-  database, also after SIGKILL.
+* the worker runs the window pipeline, then the sinks in order: the gate (the state database),
+  then the others (Zenoh, Rerun, plug-ins). Stored before published: a health message a
+  subscriber has seen is always in the database, also after SIGKILL.
 * zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
   database (one SQLite connection per thread, WAL: readers never block the worker).
 
-The daemon opens the configured outputs through the sink registry
-(:data:`twinwatch.sinks.SINKS`, :class:`~twinwatch.sinks.base.Sink`) and knows none by name:
-their roles decide the order of writing, their counters, losses and problems are merged.
-
-Between them a bounded queue. For a live source (a bus, a real-time replay) a full queue means
-the estimation does not keep up: the window is dropped and counted as an *overrun* (published in
-every health message). For a source on a simulated clock (the simulated plant or a file replayed
-as fast as possible) the acquisition waits instead, so no window is ever lost.
+The daemon's public attributes and methods are what the supervisor, the host, the command line
+and the tests use; each part keeps its own state, the daemon forwards to it.
 """
 
 from __future__ import annotations
 
 import logging
-import queue
 import secrets
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Collection, Container, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
-from twinwatch.daemon.outputs import Outputs, close_logged
-from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
+from twinwatch.daemon.acquisition import STOP_AT_WINDOW_S, Acquisition
+from twinwatch.daemon.outputs import Outputs
 from twinwatch.daemon.resume import continue_numbering, note_new_run, restore, resumes
-from twinwatch.daemon.ringbuffer import RingBuffer
-from twinwatch.daemon.source import open_source
-from twinwatch.drivers.base import Driver, DriverError, EndOfStream
+from twinwatch.daemon.window_worker import (
+    QUEUE_WAITS,
+    RECENT_WINDOWS,
+    WindowWorker,
+    make_diagnoser,
+    make_pipeline,
+)
 from twinwatch.sinks import SINKS
-from twinwatch.sinks.base import Gate, Outbox, SharedResources, Sink
-from twinwatch.twin.adaptation import TwinAdapter
-from twinwatch.twin.diagnosis import Diagnoser
-from twinwatch.twin.health import HealthMessage
-from twinwatch.twin.model import TwinModel, WindowData
 from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
     from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.alarms import AlarmEvaluator
+    from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
+    from twinwatch.daemon.ringbuffer import RingBuffer
     from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.systemd import Watchdog
+    from twinwatch.drivers.base import Driver
+    from twinwatch.sinks.base import Gate, Outbox, SharedResources, Sink
+    from twinwatch.twin.adaptation import TwinAdapter
+    from twinwatch.twin.estimation.estimator import Estimator
+    from twinwatch.twin.health import HealthMessage
+    from twinwatch.twin.model import TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
 
-_STOP = object()
+__all__ = ["QUEUE_WAITS", "RECENT_WINDOWS", "SINKS", "STOP_AT_WINDOW_S", "Daemon",
+           "make_diagnoser", "new_run_id"]
 
-__all__ = ["SINKS", "Daemon", "new_run_id"]
 
 def new_run_id() -> str:
     """A new run id: the start's UTC time and 6 random hex digits, e.g.
     ``20261122T101530Z-3f9a2c`` (sorts by start; unique across machines and restarts within
     the same second; letters, digits and ``-`` only, so it goes in a selector unquoted)."""
     return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + secrets.token_hex(3)
-
-
-STOP_AT_WINDOW_S = 5.0
-"""Longest wait [s, wall] beyond one window's length for the window being filled when a reload
-stops a daemon at a window boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the
-partial window is dropped (a source that went silent)."""
-
-
-QUEUE_WAITS = 10000
-"""Windows whose queue wait (submission to the start of processing) the daemon keeps
-(:attr:`Daemon.queue_waits`)."""
-
-
-RECENT_WINDOWS = 20
-"""Windows whose outcome (estimated, failed, abandoned, overrun) the daemon keeps to tell
-systemd's STATUS whether estimation works *now* (:meth:`Daemon.estimation_problem`)."""
-
-
-def make_diagnoser(config: TwinwatchConfig) -> Diagnoser | None:
-    """The machine's diagnosis (``[diagnosis]``): its fault library (shipped for the model,
-    extended by the configuration) in a :class:`~twinwatch.twin.diagnosis.Diagnoser`; None when
-    off or when the model has no fault mode."""
-    d = config.diagnosis
-    if not d.enabled:
-        return None
-    library = d.resolve(config.machine.model)
-    if not library.faults:
-        return None
-    source = "configured" if (d.replace or d.library or d.faults) else "shipped"
-    return Diagnoser(library, unknown_prior=d.unknown_prior, listed=d.listed, source=source)
 
 
 class Daemon:
@@ -145,10 +122,18 @@ class Daemon:
         shared: what the daemons of one process share (a gateway's
             :class:`~twinwatch.sinks.base.SharedResources`: the Zenoh session), given to the
             outputs in their context; None: each output opens its own.
-        thread_prefix: the worker thread is ``<prefix>-adaptation`` (a gateway names each
-            machine's).
+        thread_prefix: the worker thread is ``<prefix>-adaptation``, the outputs' thread
+            ``<prefix>-outputs`` (a gateway names each machine's).
 
     Attributes:
+        acquisition: the driver and ring buffer and the loop between them
+            (:class:`~twinwatch.daemon.acquisition.Acquisition`).
+        worker: the window worker (:class:`~twinwatch.daemon.window_worker.WindowWorker`).
+        pipeline: what a window goes through (:class:`~twinwatch.daemon.pipeline.
+            WindowPipeline`: the twin's adapter, the alarms, the diagnosis).
+        outputs: the sinks (:class:`~twinwatch.daemon.outputs.Outputs`).
+        restored, resumed: what was resumed from the state database
+            (:func:`twinwatch.daemon.resume.restore`), or None.
         sinks: registry name -> the open output, in the order each window is written to them
             (the gate first: stored before published).
         run_id: this run's id (in every health message and stored row; kept by a reload).
@@ -191,64 +176,30 @@ class Daemon:
         self.slots = slots
         self.shared = shared
         self._thread_prefix = thread_prefix
-        #: seconds each window waited between its submission and the start of its processing
-        #: (the queue, and in a gateway the estimation slot), the last QUEUE_WAITS windows
-        self.queue_waits: deque[float] = deque(maxlen=QUEUE_WAITS)
-        self.run_id = run_id or new_run_id()
         self.base_dir = base_dir or Path.cwd()
         self.machine = config.machine.name
         self.model: TwinModel = create_model(config.machine.model, config.machine.options)
         self.nominal = {p.name: config.machine.parameters.get(p.name, p.nominal)
                         for p in self.model.parameters}
-        acq = config.acquisition
-        self.adapter = TwinAdapter(self.model, config.estimation, config.discovery,
-                                   self.nominal, prognostics=config.prognostics,
-                                   thresholds=config.alarms.rul_targets(self.nominal),
-                                   adaptive=acq.adaptive)
-        self.estimator = self.adapter.estimator
-        longest = acq.adaptive.max_window if acq.adaptive.enabled else acq.window
-        self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
-                               sample_period=acq.sample_period,
-                               jitter_tolerance=acq.jitter_tolerance,
-                               capacity=4 * max(longest, acq.window))
         self.watchdog = watchdog
-        self.alarms = AlarmEvaluator(config.alarms, self.machine)
-        self.pipeline = WindowPipeline(
-            adapter=self.adapter, alarms=self.alarms, machine=self.machine,
-            model_name=config.machine.model, run=self.run_id, nominal=self.nominal,
-            counters=self.counters, history=acq.history, source=self.source_state,
-            diagnoser=make_diagnoser(config))
-        dc = config.diagnosis
-        if self.pipeline.diagnoser is not None and dc.alarm is not None:
-            self.pipeline.fault_alarms = FaultAlarms(dc.alarm, dc.clear, dc.raise_after_windows,
-                                                     dc.clear_after_windows, self.machine)
-        self.restored: dict[str, Any] | None = None
-        self.resumed: dict[str, Any] | None = None
-        self.new_run: dict[str, Any] | None = None
-        self.failure: str | None = None
-        self.driver: Driver | None = None
-        self._own_driver = driver is None
-        self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
-        self._stop = threading.Event()
-        self._stop_at_window: float | None = None  # monotonic deadline, see stop(at_window)
-        self.ended: str | None = None  # why run() returned by itself: source, duration, failure
-        self._worker: threading.Thread | None = None
-        self.overruns = 0
-        self.numeric_failures = 0
-        #: windows queued at a stop that the worker did not reach within ``shutdown_timeout``
-        self.dropped_at_stop = 0
-        self._closing = False
-        #: the last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
-        #: "abandoned" (gap, bad value, ...), "overrun"
-        self.recent_outcomes: deque[str] = deque(maxlen=RECENT_WINDOWS)
-        self._abandoned_seen = 0
-        self._ticks: list[Callable[[], None]] = []
-        self.abandon = config.acquisition.abandon_on_stop
+        self.pipeline: WindowPipeline = make_pipeline(
+            config, self.model, self.nominal, run=run_id or new_run_id(),
+            counters=self.counters, source=self.source_state)
+        self.acquisition = Acquisition(config, self.model, own_driver=driver is None,
+                                       watchdog=watchdog)
+        self.worker = WindowWorker(
+            machine=self.machine, process=lambda window: self.process_window(window),
+            backpressure=self.pipeline.backpressure, stopping=self.acquisition.stopping,
+            queue_size=config.acquisition.queue, slots=slots, watchdog=watchdog,
+            abandon=config.acquisition.abandon_on_stop)
         self.outputs = Outputs(config, self.model, machine=self.machine, pipeline=self.pipeline,
                                roles={"gate": persist, "publisher": publish,
                                       "recorder": record},
                                run=lambda: self.run_id, base_dir=self.base_dir,
                                work_dir=self.work_dir, shared=shared)
+        self.restored: dict[str, Any] | None = None
+        self.resumed: dict[str, Any] | None = None
+        self.new_run: dict[str, Any] | None = None
         reuse = dict(reuse or {})
         handed_driver = reuse.pop("driver", None)
         if handed_driver is not None:
@@ -263,14 +214,92 @@ class Daemon:
                 elif decision is None:
                     self.new_run = note_new_run(self.store, self.machine,
                                                 config.driver.type, self.run_id)
-            self.driver = handed_driver or driver or open_source(
-                config.driver, base_dir=self.base_dir, wait=wait_for_source,
-                backoff_max=config.acquisition.reopen_max)
+            self.acquisition.open(handed_driver or driver, base_dir=self.base_dir,
+                                  wait=wait_for_source)
         except BaseException:
             self.outputs.forget_adopted()  # the running daemon's: not ours to close
             self.close()
             raise
         self.outputs.wire(attach=False)  # an adopted output serves the running daemon until then
+
+    # -- the parts' state, as the callers read it -------------------------------------------
+    @property
+    def run_id(self) -> str:
+        """This run's id (in every health message and stored row; kept by a reload)."""
+        return self.pipeline.run
+
+    @property
+    def adapter(self) -> TwinAdapter:
+        """The twin's estimation, discovery and prognostics."""
+        return self.pipeline.adapter
+
+    @property
+    def estimator(self) -> Estimator:
+        """The twin's parameter estimator."""
+        return self.pipeline.adapter.estimator
+
+    @property
+    def alarms(self) -> AlarmEvaluator:
+        """The alarm evaluator (restored from the state database)."""
+        return self.pipeline.alarms
+
+    @property
+    def ring(self) -> RingBuffer:
+        """The acquisition's ring buffer."""
+        return self.acquisition.ring
+
+    @property
+    def driver(self) -> Driver | None:
+        """The open driver (None before it opens and after :meth:`close`)."""
+        return self.acquisition.driver
+
+    @property
+    def ended(self) -> str | None:
+        """Why :meth:`run` returned by itself: the end of the source, the duration reached,
+        a driver failure; None otherwise."""
+        return self.acquisition.ended
+
+    @property
+    def failure(self) -> str | None:
+        """The driver's failure line (the CLI exits 1), or None."""
+        return self.acquisition.failure
+
+    @property
+    def queue_waits(self) -> deque[float]:
+        """Seconds each window waited between its submission and the start of its processing
+        (the queue, and in a gateway the estimation slot), the last QUEUE_WAITS windows."""
+        return self.worker.queue_waits
+
+    @property
+    def overruns(self) -> int:
+        """Windows of a live source dropped because the estimation did not keep up."""
+        return self.worker.overruns
+
+    @property
+    def numeric_failures(self) -> int:
+        """Windows whose processing raised."""
+        return self.worker.numeric_failures
+
+    @property
+    def dropped_at_stop(self) -> int:
+        """Windows queued at a stop that the worker did not reach within
+        ``shutdown_timeout``."""
+        return self.worker.dropped_at_stop
+
+    @property
+    def recent_outcomes(self) -> deque[str]:
+        """The last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
+        "abandoned" (gap, bad value, ...), "overrun"."""
+        return self.worker.recent_outcomes
+
+    @property
+    def abandon(self) -> bool:
+        """Drop the queued windows once a stop was asked (a second SIGTERM sets it)."""
+        return self.worker.abandon
+
+    @abandon.setter
+    def abandon(self, value: bool) -> None:
+        self.worker.abandon = value
 
     def open_deferred(self) -> None:
         """Open the outputs the constructor's ``defer`` left closed (a reload, once the
@@ -288,7 +317,7 @@ class Daemon:
         (:meth:`close` ``keep``): the adopted outputs are bound to this daemon, the window
         numbering goes on (and the run: :attr:`run_id`), the twin and the alarm levels resume
         from the state database."""
-        self.run_id = self.pipeline.run = previous.run_id
+        self.pipeline.run = previous.run_id
         continue_numbering(self.ring, previous.ring)
         if self.store is not None:
             self._restore()
@@ -369,7 +398,7 @@ class Daemon:
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
         """Call ``fn()`` from the acquisition loop every iteration (at least every 0.2 s)."""
-        self._ticks.append(fn)
+        self.acquisition.ticks.append(fn)
 
     def add_callback(self, fn: HealthCallback) -> None:
         """Call ``fn(health)`` from the worker thread after each window."""
@@ -385,12 +414,7 @@ class Daemon:
                 not complete the window within its length plus :data:`STOP_AT_WINDOW_S` of
                 wall time stops then (the partial window is dropped).
         """
-        if at_window:
-            acq = self.config.acquisition
-            self._stop_at_window = (time.monotonic() + acq.window * acq.sample_period
-                                    + STOP_AT_WINDOW_S)
-        else:
-            self._stop.set()
+        self.acquisition.stop(at_window)
 
     def counters(self) -> dict[str, int]:
         """The health message's counters: the daemon's, the driver's (``driver_*``), each
@@ -398,8 +422,8 @@ class Daemon:
         c: dict[str, int] = {
             "windows_completed": self.ring.windows,
             "windows_estimated": self.windows_estimated,
-            "overruns": self.overruns,
-            "numeric_failures": self.numeric_failures,
+            "overruns": self.worker.overruns,
+            "numeric_failures": self.worker.numeric_failures,
             "bad_samples": self.ring.bad_samples,
             "windows_abandoned": sum(self.ring.discarded.values()),
             **{f"windows_abandoned_{cause}": n for cause, n in self.ring.causes.items()},
@@ -431,26 +455,13 @@ class Daemon:
         """What the driver waits for (a device absent, a bus being reopened; None when it
         delivers) and its silent messages (:attr:`~twinwatch.drivers.base.Driver.waiting`,
         :attr:`~twinwatch.drivers.base.Driver.silent`)."""
-        driver = self.driver
-        if driver is None:
-            return None, []
-        return driver.waiting, list(driver.silent)
-
-    def _source_waiting(self) -> bool:
-        driver = self.driver
-        return driver is not None and driver.waiting is not None
+        return self.acquisition.source_state()
 
     def estimation_problem(self) -> str | None:
         """A line when at least half of the last windows (at least 3 of at most
         :data:`RECENT_WINDOWS`) were not estimated (numeric failures, abandoned: gaps, bad
         values, jitter, time jumps; overruns), else None."""
-        recent = list(self.recent_outcomes)
-        bad = [o for o in recent if o != "estimated"]
-        if len(recent) < 3 or 2 * len(bad) < len(recent):
-            return None
-        kinds = ", ".join(f"{n} {k}" for k, n in sorted(
-            {k: bad.count(k) for k in set(bad)}.items()))
-        return f"{len(bad)} of the last {len(recent)} windows not estimated ({kinds})"
+        return self.worker.estimation_problem()
 
     def windows_failed(self) -> int:
         """Windows of this run that failed: numeric failures plus windows abandoned (gaps, bad
@@ -484,199 +495,27 @@ class Daemon:
             The number of windows estimated.
         """
         assert self.driver is not None
-        live = self.driver.live
-        self._worker = threading.Thread(target=self._work,
-                                        name=f"{self._thread_prefix}-adaptation",
-                                        daemon=True)
-        self._worker.start()
-        if live:  # the outputs write from their own thread: a state database locked by
-            # another process (each write waits the busy timeout) does not hold up the
-            # estimation, so no window of a live source is dropped for it. A source on a
-            # simulated clock waits for the worker anyway (no window is lost): its outputs
-            # are written by the worker, each health message counting what they did before.
+        self.worker.start(f"{self._thread_prefix}-adaptation")
+        if self.driver.live:  # the outputs write from their own thread (a locked state
+            # database does not hold up the estimation); on a simulated clock the worker
+            # writes them
             self.outputs.start(self._thread_prefix)
-        if self.watchdog is not None:
-            self.watchdog.require_windows = self.config.acquisition.watchdog == "windows"
-            self.watchdog.source_waiting = self._source_waiting
-            self.watchdog.reset()
-        t_first: float | None = None
-        stall_timeout = self.config.acquisition.stall_timeout
-        last_sample = time.monotonic()
-        stalled = False
         try:
-            while not self._stop.is_set():
-                if self._stop_at_window is not None and (
-                        self.ring.pending == 0 or time.monotonic() > self._stop_at_window):
-                    break
-                if self.watchdog is not None:
-                    self.watchdog.tick()
-                for fn in self._ticks:
-                    fn()
-                try:
-                    sample = self.driver.read(timeout=0.2)
-                except EndOfStream as exc:
-                    logger.info("source finished: %s", exc)
-                    self.ended = "end of the source"
-                    break
-                except DriverError as exc:
-                    # the driver gave up: one clear line (the driver said what failed), then
-                    # the queued windows are finished and the caller decides (the CLI exits 1)
-                    self.failure = f"the {self.config.driver.type} driver failed: {exc}"
-                    logger.error("%s", self.failure)
-                    self.ended = "driver failure"
-                    break
-                now = time.monotonic()
-                if sample is None:
-                    if not stalled and now - last_sample > stall_timeout:
-                        stalled = True
-                        logger.error(
-                            "no sample from the %s driver for %.1f s: check the device, "
-                            "cable and bus configuration; waiting for data",
-                            self.config.driver.type, now - last_sample)
-                    continue
-                if stalled:
-                    logger.warning("driver delivers samples again after a stall of %.1f s",
-                                   now - last_sample)
-                    stalled = False
-                last_sample = now
-                if t_first is None:
-                    t_first = sample.t
-                if duration is not None and sample.t - t_first >= duration:
-                    self.ended = "duration reached"
-                    break
-                window = self.ring.append(sample.t, sample.values)
-                abandoned = sum(self.ring.causes.values())
-                if abandoned > self._abandoned_seen:
-                    self.recent_outcomes.extend(["abandoned"] * min(
-                        abandoned - self._abandoned_seen, RECENT_WINDOWS))
-                    self._abandoned_seen = abandoned
-                if window is not None:
-                    self._submit(window, block=not live)
+            self.acquisition.run(
+                duration, lambda window, block: self.worker.submit(window, block=block),
+                self.worker.abandoned)
         finally:
             self._drain()
         return self.windows_estimated
 
-    def _submit(self, window: WindowData, *, block: bool) -> None:
-        item = (window, time.monotonic())
-        if block:
-            while not self._stop.is_set():
-                try:
-                    self._queue.put(item, timeout=0.2)
-                    return
-                except queue.Full:
-                    continue
-            return
-        try:
-            self._queue.put_nowait(item)
-        except queue.Full:
-            self.overruns += 1
-            self.recent_outcomes.append("overrun")
-            waiting = self.pipeline.backpressure()
-            if waiting is not None:  # the real cause: an output holds up the worker
-                logger.warning("estimation overrun: window %d dropped (%d so far); the "
-                               "estimation waits for the outputs: %s", window.index,
-                               self.overruns, waiting)
-                return
-            logger.warning("estimation overrun: window %d dropped (%d so far); the "
-                           "estimation does not keep up with acquisition: lower "
-                           "[estimation.pso].max_generations or the time budget",
-                           window.index, self.overruns)
-
     def _drain(self) -> None:
         """Stop the worker after the windows already queued, then the outputs' thread after
         the windows it was given."""
-        try:
-            self._drain_worker()
-        finally:
-            self.outputs.stop(self.config.acquisition.shutdown_timeout)
-
-    def _drain_worker(self) -> None:
-        """Stop the worker after the windows already queued."""
-        if self._worker is None:
-            return
         timeout = self.config.acquisition.shutdown_timeout
-        deadline = time.monotonic() + timeout
-        while self._worker.is_alive():
-            try:
-                self._queue.put(_STOP, timeout=0.2)
-                break
-            except queue.Full:  # a worker that does not take windows (stuck, or waiting
-                if time.monotonic() > deadline:  # for an estimation slot) bounds the stop
-                    break
-        self._worker.join(timeout=max(0.0, deadline - time.monotonic()))
-        if self._worker.is_alive():
-            # the outputs close next: the worker takes no further window (one it is in the
-            # middle of cannot be stopped; its outputs count it as lost if they are closed)
-            self._closing = True
-            logger.warning("%s: adaptation worker did not finish within %.0f s: the windows "
-                           "still queued are dropped", self.machine,
-                           self.config.acquisition.shutdown_timeout)
-        self._worker = None
-
-    def _work(self) -> None:
-        while True:
-            try:
-                got = self._queue.get(timeout=0.5)
-            except queue.Empty:
-                if self._closing:  # the stop gave up on this worker: nothing more comes
-                    return
-                continue
-            if got is _STOP:
-                return
-            item, submitted = got
-            if self._stop.is_set() and self.abandon:
-                logger.info("window %d abandoned on stop", item.index)
-                continue
-            if self._closing:  # the shutdown timeout has passed: the outputs are closing
-                self.dropped_at_stop += 1
-                continue
-            slots, slot = self.slots, None
-            if slots is not None:
-                slot = slots.acquire(self.machine, cancelled=lambda: self._closing)
-                if slot is None:
-                    self.dropped_at_stop += 1
-                    continue
-            self.queue_waits.append(time.monotonic() - submitted)
-            if self.watchdog is not None:
-                self.watchdog.busy()
-            try:
-                self.process_window(item)
-                self.recent_outcomes.append("estimated")
-                self._window_failed(None, item.index)
-            except Exception as exc:  # contained to the window: the daemon goes on
-                self.numeric_failures += 1
-                self.recent_outcomes.append("failed")
-                self._window_failed(exc, item.index)
-                logger.debug("window %d failed", item.index, exc_info=True)
-            finally:
-                if slots is not None and slot is not None:
-                    slots.release(slot)
-                if self.watchdog is not None:
-                    self.watchdog.idle()
-
-    def _window_failed(self, exc: Exception | None, index: int) -> None:
-        """A window's failure is logged once, then counted: the same failure again (its type
-        and message) only adds to the count; a different one, or the first window estimated
-        again, is logged with how many times the previous one repeated (a machine whose
-        every window raises logged one ERROR a window, about 1,800 an hour)."""
-        key = None if exc is None else f"{type(exc).__name__}: {exc}"
-        last, repeats = getattr(self, "_failure", (None, 0))
-        if key is not None and key == last:
-            self._failure = (last, repeats + 1)
-            return
-        if last is not None and repeats:
-            logger.warning("%s: the failure above repeated in %d more windows (%s)",
-                           self.machine, repeats, last)
-        if key is None:
-            if last is not None:
-                logger.warning("%s: window %d estimated again after %d failed windows",
-                               self.machine, index, repeats + 1)
-            self._failure = (None, 0)
-            return
-        logger.error("%s: window %d could not be estimated (%s); it is skipped and counted in "
-                     "counters.numeric_failures (the same failure again is counted, not "
-                     "logged)", self.machine, index, key)
-        self._failure = (key, 0)
+        try:
+            self.worker.drain(timeout)
+        finally:
+            self.outputs.stop(timeout)
 
     def process_window(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window and write it to the sinks (the pipeline's
@@ -702,11 +541,9 @@ class Daemon:
         Returns:
             name -> output for the kept outputs.
         """
-        self._stop.set()
+        self.acquisition.stopping.set()
         self._drain()
-        if self.driver is not None and self._own_driver and "driver" not in keep:
-            close_logged("driver", self.driver)
-        self.driver = None
+        self.acquisition.close(keep_driver="driver" in keep)
         return self.outputs.close(keep)
 
     def __enter__(self) -> Daemon:
