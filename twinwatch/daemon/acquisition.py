@@ -20,7 +20,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from twinwatch.daemon.outputs import close_logged
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
@@ -47,12 +46,12 @@ class Acquisition:
     Args:
         config: validated configuration (``[driver]``, ``[acquisition]``).
         model: the twin model (the channels the ring buffer keeps).
-        own_driver: close the driver at :meth:`close` (False: a driver given by the caller).
+        own_driver: the driver is ours to close (:meth:`release`; False: given by the caller).
         watchdog: the systemd watchdog gate, ticked every iteration.
 
     Attributes:
         ring: the ring buffer.
-        driver: the open driver (None before :meth:`open` and after :meth:`close`).
+        driver: the open driver (None before :meth:`open` and after :meth:`release`).
         stopping: set by :meth:`stop` (the window worker reads it too).
         ended: why :meth:`run` returned by itself (``end of the source``, ``duration
             reached``, ``driver failure``), else None.
@@ -172,8 +171,10 @@ class Acquisition:
         driver = self.driver
         return driver is not None and driver.waiting is not None
 
-    def close(self, keep_driver: bool = False) -> None:
-        """Release the driver (closed if it is ours and not kept for a reload's daemon)."""
-        if self.driver is not None and self._own_driver and not keep_driver:
-            close_logged("driver", self.driver)
-        self.driver = None
+    def release(self, keep_driver: bool = False) -> Driver | None:
+        """Let go of the driver. Returns it when the caller is to close it (ours, and not kept
+        for a reload's daemon), else None."""
+        driver, self.driver = self.driver, None
+        if driver is not None and self._own_driver and not keep_driver:
+            return driver
+        return None

@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from twinwatch.daemon.acquisition import STOP_AT_WINDOW_S, Acquisition
-from twinwatch.daemon.outputs import Outputs
+from twinwatch.daemon.outputs import Outputs, close_logged
 from twinwatch.daemon.resume import continue_numbering, note_new_run, restore, resumes
 from twinwatch.daemon.window_worker import (
     QUEUE_WAITS,
@@ -543,7 +543,9 @@ class Daemon:
         """
         self.acquisition.stopping.set()
         self._drain()
-        self.acquisition.close(keep_driver="driver" in keep)
+        driver = self.acquisition.release(keep_driver="driver" in keep)
+        if driver is not None:
+            close_logged("driver", driver)
         return self.outputs.close(keep)
 
     def __enter__(self) -> Daemon:
