@@ -295,3 +295,41 @@ def test_no_cycle_between_the_daemon_modules() -> None:
         evidence = "\n".join(f"  {a} -> {b}: lines {', '.join(graph[a][b][:3])}"
                              for a, b in zip(cycle, cycle[1:], strict=False))
         raise AssertionError(f"import cycle in daemon/: {' -> '.join(cycle)}:\n{evidence}")
+
+
+DAEMON_PARTS = ("acquisition", "window_worker", "outputs", "resume")
+
+
+def test_the_daemon_is_a_composition_of_parts_that_import_none_of_each_other() -> None:
+    """``Daemon`` (runner.py) puts its parts together: acquisition, the window worker, the
+    outputs, resume. Each part stands on the modules below it (the ring buffer, the source, the
+    pipeline, the alarms, the slots, systemd), never on another part, the runner or the service
+    above it: a part can be read, tested and replaced alone."""
+    graph = module_graph("twinwatch.daemon")
+    parts = {f"twinwatch.daemon.{p}" for p in DAEMON_PARTS}
+    above = parts | {f"twinwatch.daemon.{m}" for m in
+                     ("runner", "supervisor", "host", "gateway", "workers")}
+    assert parts <= set(graph["twinwatch.daemon.runner"]), graph["twinwatch.daemon.runner"]
+    tangled = [f"{src} -> {dst}: lines {', '.join(graph[src][dst][:3])}"
+               for src in sorted(parts) for dst in sorted(graph.get(src, {}))
+               if dst in above]
+    assert not tangled, "a part of the daemon imports another or one above it:\n" + "\n".join(
+        tangled)
+
+
+def test_the_daemon_modules_import_alone_in_any_order() -> None:
+    """Every module of ``daemon/`` imports first in a fresh interpreter (a cycle of
+    module-level imports fails there with a partly initialised module, whatever the checker
+    above reads)."""
+    import subprocess
+    import sys
+
+    modules = sorted(m for m, _ in _sources() if m.startswith("twinwatch.daemon."))
+    code = ("import importlib, sys\n"
+            "for name in sys.argv[1:]:\n"
+            "    for m in [m for m in sys.modules if m.startswith('twinwatch')]:\n"
+            "        del sys.modules[m]\n"
+            "    importlib.import_module(name)\n")
+    done = subprocess.run([sys.executable, "-c", code, *modules], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -317,7 +317,7 @@ def test_a_reload_that_changes_the_state_settings_reopens_the_database_once_rele
     sup.run()
     assert sup.daemon is not first and sup.daemon is not None
     assert sup.daemon.store is None
-    assert [s.keep_days for s in sup.daemon._closed_sinks.values()  # type: ignore[attr-defined]
+    assert [s.keep_days for s in sup.daemon.outputs.closed.values()
             if s.name == "store"] == [10]
     windows = [h.window for h in seen]
     # 3 before the reload, 3 after it, and those the old daemon finished while the new one

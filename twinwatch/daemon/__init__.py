@@ -1,5 +1,7 @@
-"""The service: lifecycle (supervisor, gateway, runner, systemd, log filter), acquisition (ring
-buffer, source keeper), window pipeline, alarms.
+"""The service: the host and its worker processes (host, workers, gateway), one machine's
+lifecycle (supervisor, systemd, log filter), the daemon (runner) and its parts: acquisition (ring
+buffer, source keeper), the window worker (estimation slots, window pipeline, alarms), the
+outputs, resume.
 
 The daemon composes the other rooms: it is handed a validated configuration
 (:mod:`twinwatch.config`), opens a driver (:mod:`twinwatch.drivers`) and the sinks

@@ -1,109 +1,78 @@
-"""The daemon: driver -> ring buffer -> adaptation worker -> window pipeline -> sinks.
+"""The daemon: one machine's monitor, composed of its parts.
 
-Threads (see docs/architecture.md):
+:class:`Daemon` puts together, for one machine (see docs/architecture.md, "Threads")::
 
-* the caller's thread (the supervisor's, i.e. the CLI's main thread) runs :meth:`Daemon.run`:
-  it reads the driver, fills the ring buffer and hands each full window to the worker. It never
+    acquisition (acquisition.py, the caller's thread)
+      driver.read() -> RingBuffer -> window
+        -> bounded queue -> window worker (window_worker.py, ``<prefix>-adaptation`` thread)
+             WindowPipeline.process (pipeline.py): estimation, discovery, prognostics,
+             health message, diagnosis, alarms
+               -> outputs (outputs.py; a live source: the ``<prefix>-outputs`` thread)
+                    the gate (the state database) first, then Zenoh, Rerun, MQTT, plug-ins
+    resume (resume.py): the twin, alarm levels and trends from the state database at start and
+    after a reload, the run id and the window numbering of a reload
+
+* the caller's thread (the supervisor's: the machine's thread) runs :meth:`Daemon.run`: it
+  reads the driver, fills the ring buffer and hands each full window to the worker. It never
   estimates, so acquisition is never blocked by the optimiser.
-* ``twinwatch-adaptation`` (one worker thread) runs the window pipeline
-  (:class:`~twinwatch.daemon.pipeline.WindowPipeline`): estimation, health message, alarms,
-  then the sinks in order: the gate (the state database), then the others (Zenoh, Rerun,
-  plug-ins). Stored before published: a health message a subscriber has seen is always in the
-  database, also after SIGKILL.
+* the worker runs the window pipeline, then the sinks in order: the gate (the state database),
+  then the others (Zenoh, Rerun, plug-ins). Stored before published: a health message a
+  subscriber has seen is always in the database, also after SIGKILL.
 * zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
   database (one SQLite connection per thread, WAL: readers never block the worker).
 
-The daemon opens the configured outputs through the sink registry
-(:data:`twinwatch.sinks.SINKS`, :class:`~twinwatch.sinks.base.Sink`) and knows none by name:
-their roles decide the order of writing, their counters, losses and problems are merged.
-
-Between them a bounded queue. For a live source (a bus, a real-time replay) a full queue means
-the estimation does not keep up: the window is dropped and counted as an *overrun* (published in
-every health message). For a source on a simulated clock (the simulated plant or a file replayed
-as fast as possible) the acquisition waits instead, so no window is ever lost.
+The daemon's public attributes and methods are what the supervisor, the host, the command line
+and the tests use; each part keeps its own state, the daemon forwards to it.
 """
 
 from __future__ import annotations
 
 import logging
-import queue
 import secrets
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Collection, Container, Mapping
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
-from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
-from twinwatch.daemon.ringbuffer import RingBuffer
-from twinwatch.daemon.source import open_source
-from twinwatch.drivers import get_driver_class
-from twinwatch.drivers.base import Driver, DriverError, EndOfStream
-from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import (
-    AlarmBands,
-    Gate,
-    Outbox,
-    Role,
-    SharedResources,
-    Sink,
-    SinkContext,
+from twinwatch.daemon.acquisition import STOP_AT_WINDOW_S, Acquisition
+from twinwatch.daemon.outputs import Outputs, close_logged
+from twinwatch.daemon.resume import continue_numbering, note_new_run, restore, resumes
+from twinwatch.daemon.window_worker import (
+    QUEUE_WAITS,
+    RECENT_WINDOWS,
+    WindowWorker,
+    make_diagnoser,
+    make_pipeline,
 )
-from twinwatch.twin.adaptation import TwinAdapter
-from twinwatch.twin.diagnosis import Diagnoser
-from twinwatch.twin.health import HealthMessage
-from twinwatch.twin.model import TwinModel, WindowData
+from twinwatch.sinks import SINKS
 from twinwatch.twin.models import create_model
 
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
-    from twinwatch.config.schema import OutputTable, TwinwatchConfig
+    from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.alarms import AlarmEvaluator
+    from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
+    from twinwatch.daemon.ringbuffer import RingBuffer
     from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.systemd import Watchdog
+    from twinwatch.drivers.base import Driver
+    from twinwatch.sinks.base import Gate, Outbox, SharedResources, Sink
+    from twinwatch.twin.adaptation import TwinAdapter
+    from twinwatch.twin.estimation.estimator import Estimator
+    from twinwatch.twin.health import HealthMessage
+    from twinwatch.twin.model import TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
 
-_STOP = object()
+__all__ = ["QUEUE_WAITS", "RECENT_WINDOWS", "SINKS", "STOP_AT_WINDOW_S", "Daemon",
+           "make_diagnoser", "new_run_id"]
 
-__all__ = ["SINKS", "Daemon", "new_run_id"]
 
 def new_run_id() -> str:
     """A new run id: the start's UTC time and 6 random hex digits, e.g.
     ``20261122T101530Z-3f9a2c`` (sorts by start; unique across machines and restarts within
     the same second; letters, digits and ``-`` only, so it goes in a selector unquoted)."""
     return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + secrets.token_hex(3)
-
-
-STOP_AT_WINDOW_S = 5.0
-"""Longest wait [s, wall] beyond one window's length for the window being filled when a reload
-stops a daemon at a window boundary (:meth:`Daemon.stop` ``at_window``); then it stops and the
-partial window is dropped (a source that went silent)."""
-
-
-QUEUE_WAITS = 10000
-"""Windows whose queue wait (submission to the start of processing) the daemon keeps
-(:attr:`Daemon.queue_waits`)."""
-
-
-RECENT_WINDOWS = 20
-"""Windows whose outcome (estimated, failed, abandoned, overrun) the daemon keeps to tell
-systemd's STATUS whether estimation works *now* (:meth:`Daemon.estimation_problem`)."""
-
-
-def make_diagnoser(config: TwinwatchConfig) -> Diagnoser | None:
-    """The machine's diagnosis (``[diagnosis]``): its fault library (shipped for the model,
-    extended by the configuration) in a :class:`~twinwatch.twin.diagnosis.Diagnoser`; None when
-    off or when the model has no fault mode."""
-    d = config.diagnosis
-    if not d.enabled:
-        return None
-    library = d.resolve(config.machine.model)
-    if not library.faults:
-        return None
-    source = "configured" if (d.replace or d.library or d.faults) else "shipped"
-    return Diagnoser(library, unknown_prior=d.unknown_prior, listed=d.listed, source=source)
 
 
 class Daemon:
@@ -153,10 +122,18 @@ class Daemon:
         shared: what the daemons of one process share (a gateway's
             :class:`~twinwatch.sinks.base.SharedResources`: the Zenoh session), given to the
             outputs in their context; None: each output opens its own.
-        thread_prefix: the worker thread is ``<prefix>-adaptation`` (a gateway names each
-            machine's).
+        thread_prefix: the worker thread is ``<prefix>-adaptation``, the outputs' thread
+            ``<prefix>-outputs`` (a gateway names each machine's).
 
     Attributes:
+        acquisition: the driver and ring buffer and the loop between them
+            (:class:`~twinwatch.daemon.acquisition.Acquisition`).
+        worker: the window worker (:class:`~twinwatch.daemon.window_worker.WindowWorker`).
+        pipeline: what a window goes through (:class:`~twinwatch.daemon.pipeline.
+            WindowPipeline`: the twin's adapter, the alarms, the diagnosis).
+        outputs: the sinks (:class:`~twinwatch.daemon.outputs.Outputs`).
+        restored, resumed: what was resumed from the state database
+            (:func:`twinwatch.daemon.resume.restore`), or None.
         sinks: registry name -> the open output, in the order each window is written to them
             (the gate first: stored before published).
         run_id: this run's id (in every health message and stored row; kept by a reload).
@@ -199,96 +176,130 @@ class Daemon:
         self.slots = slots
         self.shared = shared
         self._thread_prefix = thread_prefix
-        #: seconds each window waited between its submission and the start of its processing
-        #: (the queue, and in a gateway the estimation slot), the last QUEUE_WAITS windows
-        self.queue_waits: deque[float] = deque(maxlen=QUEUE_WAITS)
-        self.run_id = run_id or new_run_id()
         self.base_dir = base_dir or Path.cwd()
         self.machine = config.machine.name
         self.model: TwinModel = create_model(config.machine.model, config.machine.options)
         self.nominal = {p.name: config.machine.parameters.get(p.name, p.nominal)
                         for p in self.model.parameters}
-        acq = config.acquisition
-        self.adapter = TwinAdapter(self.model, config.estimation, config.discovery,
-                                   self.nominal, prognostics=config.prognostics,
-                                   thresholds=config.alarms.rul_targets(self.nominal),
-                                   adaptive=acq.adaptive)
-        self.estimator = self.adapter.estimator
-        longest = acq.adaptive.max_window if acq.adaptive.enabled else acq.window
-        self.ring = RingBuffer(self.model.required_channels(), window=acq.window,
-                               sample_period=acq.sample_period,
-                               jitter_tolerance=acq.jitter_tolerance,
-                               capacity=4 * max(longest, acq.window))
-        self.sinks: dict[str, Sink] = {}
         self.watchdog = watchdog
-        self.alarms = AlarmEvaluator(config.alarms, self.machine)
-        self.pipeline = WindowPipeline(
-            adapter=self.adapter, alarms=self.alarms, machine=self.machine,
-            model_name=config.machine.model, run=self.run_id, nominal=self.nominal,
-            counters=self.counters, history=acq.history, source=self.source_state,
-            diagnoser=make_diagnoser(config))
-        dc = config.diagnosis
-        if self.pipeline.diagnoser is not None and dc.alarm is not None:
-            self.pipeline.fault_alarms = FaultAlarms(dc.alarm, dc.clear, dc.raise_after_windows,
-                                                     dc.clear_after_windows, self.machine)
+        self.pipeline: WindowPipeline = make_pipeline(
+            config, self.model, self.nominal, run=run_id or new_run_id(),
+            counters=self.counters, source=self.source_state)
+        self.acquisition = Acquisition(config, self.model, own_driver=driver is None,
+                                       watchdog=watchdog)
+        self.worker = WindowWorker(
+            machine=self.machine, process=lambda window: self.process_window(window),
+            backpressure=self.pipeline.backpressure, stopping=self.acquisition.stopping,
+            queue_size=config.acquisition.queue, slots=slots, watchdog=watchdog,
+            abandon=config.acquisition.abandon_on_stop)
+        self.outputs = Outputs(config, self.model, machine=self.machine, pipeline=self.pipeline,
+                               roles={"gate": persist, "publisher": publish,
+                                      "recorder": record},
+                               run=lambda: self.run_id, base_dir=self.base_dir,
+                               work_dir=self.work_dir, shared=shared)
         self.restored: dict[str, Any] | None = None
         self.resumed: dict[str, Any] | None = None
         self.new_run: dict[str, Any] | None = None
-        self.failure: str | None = None
-        self._closed_sinks: dict[str, Sink] = {}
-        self.driver: Driver | None = None
-        self._own_driver = driver is None
-        self._queue: queue.Queue[Any] = queue.Queue(maxsize=acq.queue)
-        self._stop = threading.Event()
-        self._stop_at_window: float | None = None  # monotonic deadline, see stop(at_window)
-        self.ended: str | None = None  # why run() returned by itself: source, duration, failure
-        self._adopted: set[str] = set()
-        self._worker: threading.Thread | None = None
-        self.overruns = 0
-        self.numeric_failures = 0
-        #: windows queued at a stop that the worker did not reach within ``shutdown_timeout``
-        self.dropped_at_stop = 0
-        self._closing = False
-        #: the last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
-        #: "abandoned" (gap, bad value, ...), "overrun"
-        self.recent_outcomes: deque[str] = deque(maxlen=RECENT_WINDOWS)
-        self._abandoned_seen = 0
-        self._ticks: list[Callable[[], None]] = []
-        self.abandon = config.acquisition.abandon_on_stop
-        self._roles: dict[Role, bool] = {"gate": persist, "publisher": publish,
-                                          "recorder": record}
         reuse = dict(reuse or {})
         handed_driver = reuse.pop("driver", None)
         if handed_driver is not None:
             logger.info("reload: the %s driver is kept open (its configuration is unchanged)",
                         config.driver.type)
         try:
-            self._open_sinks(self._roles, reuse, skip=defer)
+            self.outputs.open(reuse, skip=defer)
             if self.store is not None:
-                starts_over = resume is None and get_driver_class(
-                    config.driver.type).time_starts_over(config.driver)
-                if resume or (resume is None and not starts_over):
+                decision = resumes(config, resume)
+                if decision:
                     self._restore()
-                elif starts_over:
-                    self._note_new_run()
-            self.driver = handed_driver or driver or open_source(
-                config.driver, base_dir=self.base_dir, wait=wait_for_source,
-                backoff_max=config.acquisition.reopen_max)
+                elif decision is None:
+                    self.new_run = note_new_run(self.store, self.machine,
+                                                config.driver.type, self.run_id)
+            self.acquisition.open(handed_driver or driver, base_dir=self.base_dir,
+                                  wait=wait_for_source)
         except BaseException:
-            for name in self._adopted:  # the running daemon's: not ours to close
-                self.sinks.pop(name, None)
+            self.outputs.forget_adopted()  # the running daemon's: not ours to close
             self.close()
             raise
-        self._wire(attach=False)  # an adopted output serves the running daemon until then
+        self.outputs.wire(attach=False)  # an adopted output serves the running daemon until then
 
-    def _wire(self, attach: bool = True) -> None:
-        """Give the open outputs to the pipeline (the gate first: stored before published);
-        with ``attach``, bind the adopted ones to this daemon (they serve its history)."""
-        if attach:
-            for name in self._adopted:
-                self.sinks[name].attach(self._sink_context(has_gate=self.store is not None))
-        self.pipeline.sinks = list(self.sinks.values())
-        self.pipeline.gate = self.store  # a window it cannot store is not published
+    # -- the parts' state, as the callers read it -------------------------------------------
+    @property
+    def run_id(self) -> str:
+        """This run's id (in every health message and stored row; kept by a reload)."""
+        return self.pipeline.run
+
+    @property
+    def adapter(self) -> TwinAdapter:
+        """The twin's estimation, discovery and prognostics."""
+        return self.pipeline.adapter
+
+    @property
+    def estimator(self) -> Estimator:
+        """The twin's parameter estimator."""
+        return self.pipeline.adapter.estimator
+
+    @property
+    def alarms(self) -> AlarmEvaluator:
+        """The alarm evaluator (restored from the state database)."""
+        return self.pipeline.alarms
+
+    @property
+    def ring(self) -> RingBuffer:
+        """The acquisition's ring buffer."""
+        return self.acquisition.ring
+
+    @property
+    def driver(self) -> Driver | None:
+        """The open driver (None before it opens and after :meth:`close`)."""
+        return self.acquisition.driver
+
+    @property
+    def ended(self) -> str | None:
+        """Why :meth:`run` returned by itself: the end of the source, the duration reached,
+        a driver failure; None otherwise."""
+        return self.acquisition.ended
+
+    @property
+    def failure(self) -> str | None:
+        """The driver's failure line (the CLI exits 1), or None."""
+        return self.acquisition.failure
+
+    @property
+    def queue_waits(self) -> deque[float]:
+        """Seconds each window waited between its submission and the start of its processing
+        (the queue, and in a gateway the estimation slot), the last QUEUE_WAITS windows."""
+        return self.worker.queue_waits
+
+    @property
+    def overruns(self) -> int:
+        """Windows of a live source dropped because the estimation did not keep up."""
+        return self.worker.overruns
+
+    @property
+    def numeric_failures(self) -> int:
+        """Windows whose processing raised."""
+        return self.worker.numeric_failures
+
+    @property
+    def dropped_at_stop(self) -> int:
+        """Windows queued at a stop that the worker did not reach within
+        ``shutdown_timeout``."""
+        return self.worker.dropped_at_stop
+
+    @property
+    def recent_outcomes(self) -> deque[str]:
+        """The last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
+        "abandoned" (gap, bad value, ...), "overrun"."""
+        return self.worker.recent_outcomes
+
+    @property
+    def abandon(self) -> bool:
+        """Drop the queued windows once a stop was asked (a second SIGTERM sets it)."""
+        return self.worker.abandon
+
+    @abandon.setter
+    def abandon(self, value: bool) -> None:
+        self.worker.abandon = value
 
     def open_deferred(self) -> None:
         """Open the outputs the constructor's ``defer`` left closed (a reload, once the
@@ -297,8 +308,8 @@ class Daemon:
         Raises:
             twinwatch.errors.SinkError: as the constructor.
         """
-        self._open_sinks(self._roles, {})
-        self._wire(attach=False)
+        self.outputs.open({})
+        self.outputs.wire(attach=False)
 
     def continue_from(self, previous: Daemon) -> None:
         """Take over from ``previous``, the daemon of the configuration before a reload, once
@@ -306,49 +317,11 @@ class Daemon:
         (:meth:`close` ``keep``): the adopted outputs are bound to this daemon, the window
         numbering goes on (and the run: :attr:`run_id`), the twin and the alarm levels resume
         from the state database."""
-        self.run_id = self.pipeline.run = previous.run_id
-        self.ring.first_index = previous.ring.first_index + previous.ring.windows
+        self.pipeline.run = previous.run_id
+        continue_numbering(self.ring, previous.ring)
         if self.store is not None:
             self._restore()
-        self._wire()
-
-    def _open_sinks(self, roles: Mapping[Role, bool], reuse: dict[str, Sink],
-                    skip: Collection[str] = ()) -> set[str]:
-        """Open the enabled outputs whose role is wanted (``roles``), adopting the ``reuse``d
-        ones that fit; :attr:`sinks` ends in writing order (the gate first, then the
-        registry's order).
-
-        Every exclusive resource before any file is touched: the outputs open in their
-        ``open_order`` (the Zenoh port, then the state database's lock, then the recording's
-        lock and only then its truncation), so a second twinwatch in the same directory fails
-        without harming the first. The outputs in ``skip`` are not opened (yet).
-
-        Returns:
-            The names of the adopted outputs.
-        """
-        for name in reuse:
-            if name not in SINKS:
-                raise ValueError(f"unknown output {name!r}; the outputs are "
-                                 f"{', '.join(SINKS.names())}")
-        tables = [t for t in self.config.output_tables() if t.config.enabled]
-        classes = {t.name: sink_class(t.name) for t in tables}
-        wanted = [t for t in tables if roles[classes[t.name].role]]
-        context = self._sink_context(has_gate=any(classes[t.name].role == "gate"
-                                                  for t in wanted))
-        adopted = self._adopt(wanted, reuse)
-        for t in sorted(wanted, key=lambda t: classes[t.name].open_order):
-            if t.name not in self.sinks and t.name not in skip:
-                self.sinks[t.name] = classes[t.name].open(t.name, t.config, context)
-        order = [t.name for t in wanted]
-        self.sinks = dict(sorted(self.sinks.items(), key=lambda kv: (
-            not isinstance(kv[1], Gate), order.index(kv[0]))))
-        return adopted
-
-    def _sink_context(self, *, has_gate: bool) -> SinkContext:
-        """What the outputs get from this daemon (the stored history when a gate opens)."""
-        return replace(self._context(self.config, self.model),
-                       history=self.stored_history if has_gate else None,
-                       outbox=self.outbox if has_gate else None)
+        self.outputs.wire()
 
     def handover(self, config: TwinwatchConfig) -> tuple[list[str], list[str]]:
         """What a reload to ``config`` may do with this daemon's open outputs.
@@ -359,43 +332,8 @@ class Daemon:
             open only once this daemon has released them (another table, but the same file or
             port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
         """
-        model = create_model(config.machine.model, config.machine.options)
-        context = self._context(config, model)
-        new = {t.name: t.config for t in config.output_tables() if t.config.enabled}
-        old = {t.name: t.config for t in self.config.output_tables()}
-        keep, wait = [], []
-        for name, sink in self.sinks.items():
-            table = new.get(name)
-            if table is None:
-                continue
-            if sink.keeps(table, context):
-                keep.append(name)
-            elif (old[name].exclusive_resources(context.cwd)
-                  & table.exclusive_resources(context.cwd)):
-                wait.append(name)
-        return keep, wait
-
-    def _adopt(self, wanted: list[OutputTable], reuse: dict[str, Sink]) -> set[str]:
-        """Adopt the handed-over outputs whose table and context are unchanged (bound to this
-        daemon by :meth:`_wire` once it takes over); one that does not fit is left to the
-        daemon that handed it over (it closes it). Returns the adopted names."""
-        context = self._context(self.config, self.model)
-        adopted: set[str] = set()
-        for t in wanted:
-            sink = reuse.get(t.name)
-            if sink is not None and sink.keeps(t.config, context):
-                self.sinks[t.name] = sink
-                self._adopted.add(t.name)
-                adopted.add(t.name)
-                logger.info("reload: the %s output is kept open (its configuration is "
-                            "unchanged)", t.name)
-        return adopted
-
-    def _context(self, config: TwinwatchConfig, model: TwinModel) -> SinkContext:
-        """The outputs' context for a daemon of this one's run, directories and shared
-        connections on ``config`` (without the stored history)."""
-        return _context(config, model, self.base_dir, self.run_id, cwd=self.work_dir,
-                        shared=self.shared)
+        return self.outputs.handover(config, create_model(config.machine.model,
+                                                          config.machine.options))
 
     # -- the window pipeline's results ------------------------------------------------------
     @property
@@ -426,94 +364,22 @@ class Daemon:
 
     # -- the outputs ------------------------------------------------------------------------
     @property
+    def sinks(self) -> dict[str, Sink]:
+        """Registry name -> the open output, in the order each window is written to them (the
+        gate first: stored before published)."""
+        return self.outputs.sinks
+
+    @property
     def store(self) -> Gate | None:
         """The gate (the state store) while it is open, or None."""
-        return next((s for s in self.sinks.values() if isinstance(s, Gate)), None)
-
-    def _outputs(self) -> list[Sink]:
-        """Every output of this daemon, open or closed (their accounting stays readable)."""
-        return [*self.sinks.values(), *self._closed_sinks.values()]
+        return self.outputs.store
 
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
-        """Resume from the state database: the last accepted twin (trusted parameters and
-        meta-model terms) and the alarm levels of the last window. Both are read before
-        either is used: a corrupt database (moved aside by ``recover_corrupt``) resumes
-        nothing."""
+        """Resume from the state database (:func:`~twinwatch.daemon.resume.restore`)."""
         assert self.store is not None
-        state = self.store.load_twin_state(self.machine)
-        last = self.store.latest_health(self.machine)
-        if self.store.recovered:
-            state = last = None
-        if state is not None:
-            try:
-                self.adapter.restore(state)
-            except (KeyError, TypeError, ValueError) as exc:
-                logger.error("the saved twin of %s in %s cannot be used with this "
-                             "configuration (%s): starting from the nominal values", self.machine,
-                             self.store.path, exc)
-            else:
-                self.restored = state
-                logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
-                            self.machine, self.store.path,
-                            ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
-                            len(state.get("terms", [])))
-        if last is not None and last.get("alarms"):
-            self.alarms.restore(last["alarms"])
-        if state is not None and self.adapter.prognostics is not None:
-            self._replay_trends()
-        if self.restored is not None or (last is not None and last.get("alarms")):
-            self.resumed = {
-                "path": str(self.store.path),
-                "window": None if last is None else last.get("window"),
-                "t_end": None if last is None else last.get("t_end"),
-                "trusted": dict((self.restored or {}).get("trusted") or {}),
-                "terms": len((self.restored or {}).get("terms") or []),
-                "alarms": {k: a.get("level") for k, a in
-                           ((last or {}).get("alarms") or {}).items()
-                           if a.get("level") not in (None, "normal")},
-            }
-
-    def _replay_trends(self) -> None:
-        """Rebuild the parameters' trends from the evidence the stored windows published
-        (the last ``[prognostics] horizon`` seconds of plant time, on the time line that ends
-        with the last window: across earlier restarts, :meth:`StateStore.timeline`), so a
-        restart resumes the trends and their RUL instead of waiting ``min_evidence`` windows."""
-        assert self.store is not None and self.adapter.prognostics is not None
-        last = self.store.latest_health(self.machine)
-        if last is None or last.get("t_end") is None:
-            return
-        t_to = float(last["t_end"])
-        t_from = t_to - self.adapter.prognostics.config.horizon
-        messages: list[dict[str, Any]] = []
-        timeline = getattr(self.store, "timeline", None)
-        if timeline is not None:  # the state store: the time line across restarts
-            messages = timeline(self.machine, t_from)
-        else:  # a gate without it: the last run's windows only
-            run = last.get("run")
-            while True:
-                page = self.store.history(t_from, t_to, 1000, by="plant",
-                                          machine=self.machine, run=run)
-                messages.extend(page)
-                if len(page) < 1000:
-                    break
-                t_from = float(page[-1]["t_end"]) + 1e-9
-        n = self.adapter.prognostics.replay(messages)
-        if n:
-            logger.info("resumed the parameters' trends from %d stored windows", n)
-
-    def _note_new_run(self) -> None:
-        """The source's time starts over, so the stored twin is not resumed: say so when the
-        database holds earlier windows of this machine (:attr:`new_run`)."""
-        assert self.store is not None
-        last = self.store.latest_health(self.machine)
-        if last is None or self.store.recovered:
-            return
-        self.new_run = {"reason": f"the {self.config.driver.type} source's time starts over "
-                        f"when it opens", "path": str(self.store.path), "run": last.get("run")}
-        logger.info("a new run %s of %s: %s; the twin starts from the nameplate values, the "
-                    "alarms from normal (%s keeps the earlier runs)", self.run_id, self.machine,
-                    self.new_run["reason"], self.store.path)
+        self.restored, self.resumed = restore(self.store, self.machine, self.adapter,
+                                              self.alarms)
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
@@ -522,22 +388,17 @@ class Daemon:
         """Stored health messages of this machine in a time range, of one run with ``run``
         (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
         database. The outputs ask it through their context (the Zenoh history query)."""
-        store = self.store
-        if store is None:
-            return []
-        return store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run,
-                             after=after)
+        return self.outputs.stored_history(t_from, t_to, limit, by=by, run=run, after=after)
 
     def outbox(self, output: str) -> Outbox | None:
         """The gate's outbox of ``output`` for this machine (store-and-forward outputs ask it
         through their context), None without a gate."""
-        store = self.store
-        return None if store is None else store.outbox(output, self.machine)
+        return self.outputs.outbox(output)
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
         """Call ``fn()`` from the acquisition loop every iteration (at least every 0.2 s)."""
-        self._ticks.append(fn)
+        self.acquisition.ticks.append(fn)
 
     def add_callback(self, fn: HealthCallback) -> None:
         """Call ``fn(health)`` from the worker thread after each window."""
@@ -553,12 +414,7 @@ class Daemon:
                 not complete the window within its length plus :data:`STOP_AT_WINDOW_S` of
                 wall time stops then (the partial window is dropped).
         """
-        if at_window:
-            acq = self.config.acquisition
-            self._stop_at_window = (time.monotonic() + acq.window * acq.sample_period
-                                    + STOP_AT_WINDOW_S)
-        else:
-            self._stop.set()
+        self.acquisition.stop(at_window)
 
     def counters(self) -> dict[str, int]:
         """The health message's counters: the daemon's, the driver's (``driver_*``), each
@@ -566,18 +422,15 @@ class Daemon:
         c: dict[str, int] = {
             "windows_completed": self.ring.windows,
             "windows_estimated": self.windows_estimated,
-            "overruns": self.overruns,
-            "numeric_failures": self.numeric_failures,
+            "overruns": self.worker.overruns,
+            "numeric_failures": self.worker.numeric_failures,
             "bad_samples": self.ring.bad_samples,
             "windows_abandoned": sum(self.ring.discarded.values()),
             **{f"windows_abandoned_{cause}": n for cause, n in self.ring.causes.items()},
         }
         if self.driver is not None:
             c.update({f"driver_{k}": v for k, v in self.driver.stats.as_dict().items()})
-        for sink in self.sinks.values():
-            c.update({f"{sink.prefix}_{k}": int(v) for k, v in sink.counters().items()})
-            if isinstance(sink, Gate):
-                c["windows_not_stored"] = int(sink.not_stored)
+        c.update(self.outputs.counters())
         c.update(self.pipeline.counters())
         c["samples_received"] = self.ring.samples
         c["samples_lost"] = sum(self.ring.lost.values())
@@ -596,32 +449,19 @@ class Daemon:
             out.append("silent: " + ", ".join(silent))
         if (p := self.estimation_problem()) is not None:
             out.append(p)
-        return out + [p for s in self._outputs() if (p := s.problem)]
+        return out + self.outputs.problems()
 
     def source_state(self) -> tuple[str | None, list[str]]:
         """What the driver waits for (a device absent, a bus being reopened; None when it
         delivers) and its silent messages (:attr:`~twinwatch.drivers.base.Driver.waiting`,
         :attr:`~twinwatch.drivers.base.Driver.silent`)."""
-        driver = self.driver
-        if driver is None:
-            return None, []
-        return driver.waiting, list(driver.silent)
-
-    def _source_waiting(self) -> bool:
-        driver = self.driver
-        return driver is not None and driver.waiting is not None
+        return self.acquisition.source_state()
 
     def estimation_problem(self) -> str | None:
         """A line when at least half of the last windows (at least 3 of at most
         :data:`RECENT_WINDOWS`) were not estimated (numeric failures, abandoned: gaps, bad
         values, jitter, time jumps; overruns), else None."""
-        recent = list(self.recent_outcomes)
-        bad = [o for o in recent if o != "estimated"]
-        if len(recent) < 3 or 2 * len(bad) < len(recent):
-            return None
-        kinds = ", ".join(f"{n} {k}" for k, n in sorted(
-            {k: bad.count(k) for k in set(bad)}.items()))
-        return f"{len(bad)} of the last {len(recent)} windows not estimated ({kinds})"
+        return self.worker.estimation_problem()
 
     def windows_failed(self) -> int:
         """Windows of this run that failed: numeric failures plus windows abandoned (gaps, bad
@@ -636,18 +476,16 @@ class Daemon:
         """Windows estimated but lost, by output (its counter prefix: ``store`` never stored,
         ``recording`` not recorded, ...). Nonzero values make ``twinwatch run`` exit with
         status 74."""
-        return {s.prefix: int(s.lost) for s in self._outputs() if s.lost}
+        return self.outputs.lost()
 
     def status(self) -> list[str]:
         """What the open outputs serve, in the order they opened (systemd's STATUS)."""
-        opened = sorted(self.sinks.values(), key=lambda s: s.open_order)
-        return [st for s in opened if (st := s.status)]
+        return self.outputs.status()
 
     def summary(self) -> list[str]:
         """The outputs' lines for the run's summary (where the windows went, what was lost),
         in writing order."""
-        return [*self.pipeline.summary(),
-                *(line for s in self._outputs() for line in s.summary())]
+        return [*self.pipeline.summary(), *self.outputs.summary()]
 
     def run(self, duration: float | None = None) -> int:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
@@ -657,199 +495,27 @@ class Daemon:
             The number of windows estimated.
         """
         assert self.driver is not None
-        live = self.driver.live
-        self._worker = threading.Thread(target=self._work,
-                                        name=f"{self._thread_prefix}-adaptation",
-                                        daemon=True)
-        self._worker.start()
-        if live:  # the outputs write from their own thread: a state database locked by
-            # another process (each write waits the busy timeout) does not hold up the
-            # estimation, so no window of a live source is dropped for it. A source on a
-            # simulated clock waits for the worker anyway (no window is lost): its outputs
-            # are written by the worker, each health message counting what they did before.
-            self.pipeline.start(name=f"{self._thread_prefix}-outputs")
-        if self.watchdog is not None:
-            self.watchdog.require_windows = self.config.acquisition.watchdog == "windows"
-            self.watchdog.source_waiting = self._source_waiting
-            self.watchdog.reset()
-        t_first: float | None = None
-        stall_timeout = self.config.acquisition.stall_timeout
-        last_sample = time.monotonic()
-        stalled = False
+        self.worker.start(f"{self._thread_prefix}-adaptation")
+        if self.driver.live:  # the outputs write from their own thread (a locked state
+            # database does not hold up the estimation); on a simulated clock the worker
+            # writes them
+            self.outputs.start(self._thread_prefix)
         try:
-            while not self._stop.is_set():
-                if self._stop_at_window is not None and (
-                        self.ring.pending == 0 or time.monotonic() > self._stop_at_window):
-                    break
-                if self.watchdog is not None:
-                    self.watchdog.tick()
-                for fn in self._ticks:
-                    fn()
-                try:
-                    sample = self.driver.read(timeout=0.2)
-                except EndOfStream as exc:
-                    logger.info("source finished: %s", exc)
-                    self.ended = "end of the source"
-                    break
-                except DriverError as exc:
-                    # the driver gave up: one clear line (the driver said what failed), then
-                    # the queued windows are finished and the caller decides (the CLI exits 1)
-                    self.failure = f"the {self.config.driver.type} driver failed: {exc}"
-                    logger.error("%s", self.failure)
-                    self.ended = "driver failure"
-                    break
-                now = time.monotonic()
-                if sample is None:
-                    if not stalled and now - last_sample > stall_timeout:
-                        stalled = True
-                        logger.error(
-                            "no sample from the %s driver for %.1f s: check the device, "
-                            "cable and bus configuration; waiting for data",
-                            self.config.driver.type, now - last_sample)
-                    continue
-                if stalled:
-                    logger.warning("driver delivers samples again after a stall of %.1f s",
-                                   now - last_sample)
-                    stalled = False
-                last_sample = now
-                if t_first is None:
-                    t_first = sample.t
-                if duration is not None and sample.t - t_first >= duration:
-                    self.ended = "duration reached"
-                    break
-                window = self.ring.append(sample.t, sample.values)
-                abandoned = sum(self.ring.causes.values())
-                if abandoned > self._abandoned_seen:
-                    self.recent_outcomes.extend(["abandoned"] * min(
-                        abandoned - self._abandoned_seen, RECENT_WINDOWS))
-                    self._abandoned_seen = abandoned
-                if window is not None:
-                    self._submit(window, block=not live)
+            self.acquisition.run(
+                duration, lambda window, block: self.worker.submit(window, block=block),
+                self.worker.abandoned)
         finally:
             self._drain()
         return self.windows_estimated
 
-    def _submit(self, window: WindowData, *, block: bool) -> None:
-        item = (window, time.monotonic())
-        if block:
-            while not self._stop.is_set():
-                try:
-                    self._queue.put(item, timeout=0.2)
-                    return
-                except queue.Full:
-                    continue
-            return
-        try:
-            self._queue.put_nowait(item)
-        except queue.Full:
-            self.overruns += 1
-            self.recent_outcomes.append("overrun")
-            waiting = self.pipeline.backpressure()
-            if waiting is not None:  # the real cause: an output holds up the worker
-                logger.warning("estimation overrun: window %d dropped (%d so far); the "
-                               "estimation waits for the outputs: %s", window.index,
-                               self.overruns, waiting)
-                return
-            logger.warning("estimation overrun: window %d dropped (%d so far); the "
-                           "estimation does not keep up with acquisition: lower "
-                           "[estimation.pso].max_generations or the time budget",
-                           window.index, self.overruns)
-
     def _drain(self) -> None:
         """Stop the worker after the windows already queued, then the outputs' thread after
         the windows it was given."""
-        try:
-            self._drain_worker()
-        finally:
-            self.pipeline.stop(self.config.acquisition.shutdown_timeout)
-
-    def _drain_worker(self) -> None:
-        """Stop the worker after the windows already queued."""
-        if self._worker is None:
-            return
         timeout = self.config.acquisition.shutdown_timeout
-        deadline = time.monotonic() + timeout
-        while self._worker.is_alive():
-            try:
-                self._queue.put(_STOP, timeout=0.2)
-                break
-            except queue.Full:  # a worker that does not take windows (stuck, or waiting
-                if time.monotonic() > deadline:  # for an estimation slot) bounds the stop
-                    break
-        self._worker.join(timeout=max(0.0, deadline - time.monotonic()))
-        if self._worker.is_alive():
-            # the outputs close next: the worker takes no further window (one it is in the
-            # middle of cannot be stopped; its outputs count it as lost if they are closed)
-            self._closing = True
-            logger.warning("%s: adaptation worker did not finish within %.0f s: the windows "
-                           "still queued are dropped", self.machine,
-                           self.config.acquisition.shutdown_timeout)
-        self._worker = None
-
-    def _work(self) -> None:
-        while True:
-            try:
-                got = self._queue.get(timeout=0.5)
-            except queue.Empty:
-                if self._closing:  # the stop gave up on this worker: nothing more comes
-                    return
-                continue
-            if got is _STOP:
-                return
-            item, submitted = got
-            if self._stop.is_set() and self.abandon:
-                logger.info("window %d abandoned on stop", item.index)
-                continue
-            if self._closing:  # the shutdown timeout has passed: the outputs are closing
-                self.dropped_at_stop += 1
-                continue
-            slots, slot = self.slots, None
-            if slots is not None:
-                slot = slots.acquire(self.machine, cancelled=lambda: self._closing)
-                if slot is None:
-                    self.dropped_at_stop += 1
-                    continue
-            self.queue_waits.append(time.monotonic() - submitted)
-            if self.watchdog is not None:
-                self.watchdog.busy()
-            try:
-                self.process_window(item)
-                self.recent_outcomes.append("estimated")
-                self._window_failed(None, item.index)
-            except Exception as exc:  # contained to the window: the daemon goes on
-                self.numeric_failures += 1
-                self.recent_outcomes.append("failed")
-                self._window_failed(exc, item.index)
-                logger.debug("window %d failed", item.index, exc_info=True)
-            finally:
-                if slots is not None and slot is not None:
-                    slots.release(slot)
-                if self.watchdog is not None:
-                    self.watchdog.idle()
-
-    def _window_failed(self, exc: Exception | None, index: int) -> None:
-        """A window's failure is logged once, then counted: the same failure again (its type
-        and message) only adds to the count; a different one, or the first window estimated
-        again, is logged with how many times the previous one repeated (a machine whose
-        every window raises logged one ERROR a window, about 1,800 an hour)."""
-        key = None if exc is None else f"{type(exc).__name__}: {exc}"
-        last, repeats = getattr(self, "_failure", (None, 0))
-        if key is not None and key == last:
-            self._failure = (last, repeats + 1)
-            return
-        if last is not None and repeats:
-            logger.warning("%s: the failure above repeated in %d more windows (%s)",
-                           self.machine, repeats, last)
-        if key is None:
-            if last is not None:
-                logger.warning("%s: window %d estimated again after %d failed windows",
-                               self.machine, index, repeats + 1)
-            self._failure = (None, 0)
-            return
-        logger.error("%s: window %d could not be estimated (%s); it is skipped and counted in "
-                     "counters.numeric_failures (the same failure again is counted, not "
-                     "logged)", self.machine, index, key)
-        self._failure = (key, 0)
+        try:
+            self.worker.drain(timeout)
+        finally:
+            self.outputs.stop(timeout)
 
     def process_window(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window and write it to the sinks (the pipeline's
@@ -875,57 +541,15 @@ class Daemon:
         Returns:
             name -> output for the kept outputs.
         """
-        self._stop.set()
+        self.acquisition.stopping.set()
         self._drain()
-        if self.driver is not None and self._own_driver and "driver" not in keep:
-            _close("driver", self.driver)
-        self.driver = None
-        kept: dict[str, Sink] = {}
-        for name, sink in reversed(list(self.sinks.items())):
-            if name in keep:
-                sink.detach()
-                kept[name] = sink
-            else:
-                _close(name, sink)
-                self._closed_sinks[name] = sink  # for the final accounting (lost windows)
-        self.sinks = {}
-        self.pipeline.sinks = []
-        self.pipeline.gate = None
-        return kept
+        driver = self.acquisition.release(keep_driver="driver" in keep)
+        if driver is not None:
+            close_logged("driver", driver)
+        return self.outputs.close(keep)
 
     def __enter__(self) -> Daemon:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _context(config: TwinwatchConfig, model: TwinModel, base_dir: Path,
-             run: str, *, cwd: Path | None = None,
-             shared: SharedResources | None = None) -> SinkContext:
-    """The outputs' context for a daemon on ``config`` (without the stored history)."""
-    bands = {}
-    if config.alarms.enabled:
-        for name, rule in config.alarms.parameters.items():
-            (w_high, w_low), (a_high, a_low) = rule.thresholds("warning"), rule.thresholds("alarm")
-            bands[name] = AlarmBands(warning_high=w_high, warning_low=w_low, alarm_high=a_high,
-                                     alarm_low=a_low)
-    return SinkContext(machine=config.machine.name, model=config.machine.model,
-                       outputs=tuple(model.output_names),
-                       parameters={p.name: p.unit for p in model.parameters},
-                       base_dir=base_dir, cwd=cwd or Path.cwd(), shared=shared,
-                       recent_windows=config.acquisition.history,
-                       output_units={o.name: o.unit for o in model.outputs},
-                       nominal={p.name: float(config.machine.parameters.get(p.name, p.nominal))
-                                for p in model.parameters},
-                       estimated=tuple(config.estimation.estimate or ()),
-                       alarm_bands=bands, run=run)
-
-
-def _close(name: str, obj: Sink | Driver) -> None:
-    """Close ``obj``, logging (not raising) a failure: the others still close."""
-    try:
-        obj.close()
-    except Exception as exc:  # noqa: BLE001 - the other sinks still close
-        logger.error("error while closing the %s: %s: %s", name, type(exc).__name__, exc)
-        logger.debug("closing the %s failed", name, exc_info=True)

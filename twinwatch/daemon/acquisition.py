@@ -1,0 +1,180 @@
+"""Acquisition: the driver -> ring buffer loop of one machine.
+
+:class:`Acquisition` runs in the caller's thread (the machine's thread:
+:meth:`twinwatch.daemon.runner.Daemon.run`): it reads the driver (``read(timeout=0.2)``), fills
+the :class:`~twinwatch.daemon.ringbuffer.RingBuffer` and hands each full window on (to the
+window worker's queue, :class:`~twinwatch.daemon.window_worker.WindowWorker`). It never
+estimates, so acquisition is never blocked by the optimiser. Each iteration it ticks the
+machine's watchdog and the ticks it was given (the supervisor's reload and STATUS), reports a
+stall after ``[acquisition] stall_timeout``, and stops when the source ends, the duration is
+reached, the driver fails, or :meth:`Acquisition.stop` is called (at once, or at the next window
+boundary: a reload hands the source over without losing or repeating a sample).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from twinwatch.daemon.ringbuffer import RingBuffer
+from twinwatch.daemon.source import open_source
+from twinwatch.drivers.base import Driver, DriverError, EndOfStream
+
+if TYPE_CHECKING:
+    from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.systemd import Watchdog
+    from twinwatch.twin.model import TwinModel, WindowData
+
+# the daemon's log lines keep the logger name they had before it was split (journal filters)
+logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
+
+__all__ = ["STOP_AT_WINDOW_S", "Acquisition"]
+
+STOP_AT_WINDOW_S = 5.0
+"""Longest wait [s, wall] beyond one window's length for the window being filled when a reload
+stops a daemon at a window boundary (:meth:`Acquisition.stop` ``at_window``); then it stops and
+the partial window is dropped (a source that went silent)."""
+
+
+class Acquisition:
+    """The driver and the ring buffer of one machine, and the loop between them.
+
+    Args:
+        config: validated configuration (``[driver]``, ``[acquisition]``).
+        model: the twin model (the channels the ring buffer keeps).
+        own_driver: the driver is ours to close (:meth:`release`; False: given by the caller).
+        watchdog: the systemd watchdog gate, ticked every iteration.
+
+    Attributes:
+        ring: the ring buffer.
+        driver: the open driver (None before :meth:`open` and after :meth:`release`).
+        stopping: set by :meth:`stop` (the window worker reads it too).
+        ended: why :meth:`run` returned by itself (``end of the source``, ``duration
+            reached``, ``driver failure``), else None.
+        failure: the driver's failure line, or None.
+    """
+
+    def __init__(self, config: TwinwatchConfig, model: TwinModel, *, own_driver: bool,
+                 watchdog: Watchdog | None = None) -> None:
+        self.config = config
+        acq = config.acquisition
+        longest = acq.adaptive.max_window if acq.adaptive.enabled else acq.window
+        self.ring = RingBuffer(model.required_channels(), window=acq.window,
+                               sample_period=acq.sample_period,
+                               jitter_tolerance=acq.jitter_tolerance,
+                               capacity=4 * max(longest, acq.window))
+        self.driver: Driver | None = None
+        self._own_driver = own_driver
+        self.watchdog = watchdog
+        self.stopping = threading.Event()
+        self._stop_at_window: float | None = None  # monotonic deadline, see stop(at_window)
+        self.ended: str | None = None
+        self.failure: str | None = None
+        self.ticks: list[Callable[[], None]] = []
+        self._abandoned_seen = 0
+
+    def open(self, driver: Driver | None, *, base_dir: Path, wait: bool) -> None:
+        """Take ``driver`` (handed over by a reload, or given by the caller) or open the
+        configured source (:func:`~twinwatch.daemon.source.open_source`; ``wait``: a live source
+        that cannot be opened now is waited for)."""
+        self.driver = driver or open_source(self.config.driver, base_dir=base_dir, wait=wait,
+                                            backoff_max=self.config.acquisition.reopen_max)
+
+    def run(self, duration: float | None, submit: Callable[[WindowData, bool], None],
+            abandoned: Callable[[int], None]) -> None:
+        """Read the driver and fill the ring buffer until the source ends, ``duration`` seconds
+        of source time have been acquired, or :meth:`stop`; each full window goes to
+        ``submit(window, block)`` (``block``: the source is on a simulated clock, wait for the
+        worker), each window the ring buffer abandoned to ``abandoned(n)``."""
+        assert self.driver is not None
+        live = self.driver.live
+        if self.watchdog is not None:
+            self.watchdog.require_windows = self.config.acquisition.watchdog == "windows"
+            self.watchdog.source_waiting = self.source_waiting
+            self.watchdog.reset()
+        t_first: float | None = None
+        stall_timeout = self.config.acquisition.stall_timeout
+        last_sample = time.monotonic()
+        stalled = False
+        while not self.stopping.is_set():
+            if self._stop_at_window is not None and (
+                    self.ring.pending == 0 or time.monotonic() > self._stop_at_window):
+                break
+            if self.watchdog is not None:
+                self.watchdog.tick()
+            for fn in self.ticks:
+                fn()
+            try:
+                sample = self.driver.read(timeout=0.2)
+            except EndOfStream as exc:
+                logger.info("source finished: %s", exc)
+                self.ended = "end of the source"
+                break
+            except DriverError as exc:
+                # the driver gave up: one clear line (the driver said what failed), then
+                # the queued windows are finished and the caller decides (the CLI exits 1)
+                self.failure = f"the {self.config.driver.type} driver failed: {exc}"
+                logger.error("%s", self.failure)
+                self.ended = "driver failure"
+                break
+            now = time.monotonic()
+            if sample is None:
+                if not stalled and now - last_sample > stall_timeout:
+                    stalled = True
+                    logger.error(
+                        "no sample from the %s driver for %.1f s: check the device, "
+                        "cable and bus configuration; waiting for data",
+                        self.config.driver.type, now - last_sample)
+                continue
+            if stalled:
+                logger.warning("driver delivers samples again after a stall of %.1f s",
+                               now - last_sample)
+                stalled = False
+            last_sample = now
+            if t_first is None:
+                t_first = sample.t
+            if duration is not None and sample.t - t_first >= duration:
+                self.ended = "duration reached"
+                break
+            window = self.ring.append(sample.t, sample.values)
+            n_abandoned = sum(self.ring.causes.values())
+            if n_abandoned > self._abandoned_seen:
+                abandoned(n_abandoned - self._abandoned_seen)
+                self._abandoned_seen = n_abandoned
+            if window is not None:
+                submit(window, not live)
+
+    def stop(self, at_window: bool = False) -> None:
+        """Ask :meth:`run` to return after the current sample (thread- and signal-safe), or
+        with ``at_window`` once the window being filled is complete (at most its length plus
+        :data:`STOP_AT_WINDOW_S` of wall time)."""
+        if at_window:
+            acq = self.config.acquisition
+            self._stop_at_window = (time.monotonic() + acq.window * acq.sample_period
+                                    + STOP_AT_WINDOW_S)
+        else:
+            self.stopping.set()
+
+    def source_state(self) -> tuple[str | None, list[str]]:
+        """What the driver waits for (None when it delivers) and its silent messages."""
+        driver = self.driver
+        if driver is None:
+            return None, []
+        return driver.waiting, list(driver.silent)
+
+    def source_waiting(self) -> bool:
+        """The driver waits for its source (a device absent, a bus being reopened)."""
+        driver = self.driver
+        return driver is not None and driver.waiting is not None
+
+    def release(self, keep_driver: bool = False) -> Driver | None:
+        """Let go of the driver. Returns it when the caller is to close it (ours, and not kept
+        for a reload's daemon), else None."""
+        driver, self.driver = self.driver, None
+        if driver is not None and self._own_driver and not keep_driver:
+            return driver
+        return None

@@ -1,0 +1,147 @@
+"""Resume: what a daemon takes over from the state database and from the daemon before it.
+
+A :class:`~twinwatch.daemon.runner.Daemon` with a gate (the state store, ``[state]``) resumes at
+start the last accepted twin (trusted parameters and meta-model terms), the alarm levels of the
+last window and the parameters' trends (:func:`restore`), unless the source's time starts over
+when it opens (a simulated plant from t = 0, a recording replayed from its start): that is a new
+run, said once (:func:`note_new_run`). A reload's daemon resumes the same way once the previous
+daemon has finished (:meth:`~twinwatch.daemon.runner.Daemon.continue_from`), and goes on with its
+run id and its window numbering (:func:`continue_numbering`).
+
+Nothing here holds state: the functions read the gate and hand the twin, the alarms and the
+prognostics what it held; the daemon keeps what they return (``restored``, ``resumed``,
+``new_run``).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.alarms import AlarmEvaluator
+    from twinwatch.daemon.ringbuffer import RingBuffer
+    from twinwatch.sinks.base import Gate
+    from twinwatch.twin.adaptation import TwinAdapter
+    from twinwatch.twin.prognostics import Prognostics
+
+# the daemon's log lines keep the logger name they had before it was split (journal filters)
+logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
+
+__all__ = ["continue_numbering", "note_new_run", "replay_trends", "restore", "resumes"]
+
+
+def resumes(config: TwinwatchConfig, resume: bool | None) -> bool | None:
+    """Whether a daemon on ``config`` resumes from its state database: True (resume), False
+    (``resume=False``: start from the nameplate values, ``twinwatch run --fresh``), None (not
+    given and the source's time starts over when it opens,
+    :meth:`~twinwatch.drivers.base.Driver.time_starts_over`: a new run, :func:`note_new_run`).
+    """
+    from twinwatch.drivers import get_driver_class
+
+    if resume is not None:
+        return resume
+    if get_driver_class(config.driver.type).time_starts_over(config.driver):
+        return None
+    return True
+
+
+def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvaluator
+            ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """Resume from the state database: the last accepted twin (trusted parameters and
+    meta-model terms) and the alarm levels of the last window. Both are read before either is
+    used: a corrupt database (moved aside by ``recover_corrupt``) resumes nothing.
+
+    Returns:
+        ``(restored, resumed)``: the twin state given to the adapter (None when none was
+        stored or it does not fit the configuration), and what was resumed for the start's
+        line (``path``, ``window``, ``t_end``, ``trusted``, ``terms``, ``alarms`` raised; None
+        when nothing was).
+    """
+    state = store.load_twin_state(machine)
+    last = store.latest_health(machine)
+    if store.recovered:
+        state = last = None
+    restored: dict[str, Any] | None = None
+    if state is not None:
+        try:
+            adapter.restore(state)
+        except (KeyError, TypeError, ValueError) as exc:
+            logger.error("the saved twin of %s in %s cannot be used with this "
+                         "configuration (%s): starting from the nominal values", machine,
+                         store.path, exc)
+        else:
+            restored = state
+            logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
+                        machine, store.path,
+                        ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
+                        len(state.get("terms", [])))
+    if last is not None and last.get("alarms"):
+        alarms.restore(last["alarms"])
+    if state is not None and adapter.prognostics is not None:
+        replay_trends(store, machine, adapter.prognostics)
+    if restored is None and not (last is not None and last.get("alarms")):
+        return restored, None
+    return restored, {
+        "path": str(store.path),
+        "window": None if last is None else last.get("window"),
+        "t_end": None if last is None else last.get("t_end"),
+        "trusted": dict((restored or {}).get("trusted") or {}),
+        "terms": len((restored or {}).get("terms") or []),
+        "alarms": {k: a.get("level") for k, a in
+                   ((last or {}).get("alarms") or {}).items()
+                   if a.get("level") not in (None, "normal")},
+    }
+
+
+def replay_trends(store: Gate, machine: str, prognostics: Prognostics) -> None:
+    """Rebuild the parameters' trends from the evidence the stored windows published (the last
+    ``[prognostics] horizon`` seconds of plant time, on the time line that ends with the last
+    window: across earlier restarts, :meth:`StateStore.timeline`), so a restart resumes the
+    trends and their RUL instead of waiting ``min_evidence`` windows."""
+    last = store.latest_health(machine)
+    if last is None or last.get("t_end") is None:
+        return
+    t_to = float(last["t_end"])
+    t_from = t_to - prognostics.config.horizon
+    messages: list[dict[str, Any]] = []
+    timeline = getattr(store, "timeline", None)
+    if timeline is not None:  # the state store: the time line across restarts
+        messages = timeline(machine, t_from)
+    else:  # a gate without it: the last run's windows only
+        run = last.get("run")
+        while True:
+            page = store.history(t_from, t_to, 1000, by="plant", machine=machine, run=run)
+            messages.extend(page)
+            if len(page) < 1000:
+                break
+            t_from = float(page[-1]["t_end"]) + 1e-9
+    n = prognostics.replay(messages)
+    if n:
+        logger.info("resumed the parameters' trends from %d stored windows", n)
+
+
+def note_new_run(store: Gate, machine: str, driver_type: str, run_id: str
+                 ) -> dict[str, Any] | None:
+    """The source's time starts over, so the stored twin is not resumed: say so when the
+    database holds earlier windows of this machine.
+
+    Returns:
+        ``reason``, ``path`` (the database), ``run`` (the id of the last stored run); None when
+        the database holds none of this machine's windows (or was recovered).
+    """
+    last = store.latest_health(machine)
+    if last is None or store.recovered:
+        return None
+    new_run = {"reason": f"the {driver_type} source's time starts over when it opens",
+               "path": str(store.path), "run": last.get("run")}
+    logger.info("a new run %s of %s: %s; the twin starts from the nameplate values, the "
+                "alarms from normal (%s keeps the earlier runs)", run_id, machine,
+                new_run["reason"], store.path)
+    return new_run
+
+
+def continue_numbering(ring: RingBuffer, previous: RingBuffer) -> None:
+    """A reload's ring buffer numbers its windows on from the previous daemon's last one."""
+    ring.first_index = previous.first_index + previous.windows
