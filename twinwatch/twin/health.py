@@ -710,3 +710,120 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
     if t.restarts and t.restart is not None:
         scores.append(f"restarted at {t.restart.t:.0f} s (step {t.restart.step:+.4g} {unit})")
     return head + body + ("; " + ", ".join(scores) if scores else "")
+
+
+# -- the readers' view ---------------------------------------------------------------------------
+# Every reader of a published message (watch and tail, the recording, MQTT and Home Assistant,
+# explain, the run's summary) reads it through one typed view derived from the model above, never
+# by indexing the decoded JSON with strings: a new field is one line on the model, and the readers
+# that show it. The view is lenient where the model is strict, because a reader meets messages
+# the model would refuse: a daemon of an older schema (no ``run`` before 6, no ``trend`` before 7,
+# no ``diagnosis`` before 8, no ``discovery.p_value`` before 9; the state database keeps them),
+# a newer one (fields and statuses this version does not know: kept, not read), a partial
+# message in a test.
+# So in a view every field may be None (absent or null; a field the model defaults keeps its
+# default), unknown fields are kept (not read), a status is any string, and numbers stay as they
+# were sent (an int stays an int: what a reader prints is what the daemon wrote).
+
+_VIEW_CONFIG = ConfigDict(extra="allow", frozen=True, populate_by_name=True,
+                          protected_namespaces=())
+_views: dict[type[BaseModel], type[BaseModel]] = {}
+
+
+def _lenient(tp: Any) -> Any:
+    """The view's annotation for the model's ``tp``."""
+    import functools
+    import operator
+    import types
+    import typing
+
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return view_of(tp)
+    if tp is float or tp is int:
+        return int | float
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin is Annotated:
+        return Annotated[(_lenient(args[0]), *tp.__metadata__)]
+    if origin is Literal:
+        return str
+    if origin in (typing.Union, types.UnionType):
+        return functools.reduce(operator.or_, [_lenient(a) for a in args])
+    if origin is dict:
+        return dict[_lenient(args[0]), _lenient(args[1])]  # type: ignore[misc]
+    if origin is list:
+        return list[_lenient(args[0])]  # type: ignore[misc]
+    return tp
+
+
+def view_of(model: type[BaseModel]) -> type[BaseModel]:
+    """The readers' view of a part of the message (:class:`HealthView` for
+    :class:`HealthMessage`, ``ParameterView`` for :class:`ParameterHealth`, ...): the same
+    fields, each optional, unknown fields kept, statuses as strings."""
+    if model in _views:
+        return _views[model]
+    from pydantic import create_model
+
+    fields: dict[str, Any] = {}
+    for name, f in model.model_fields.items():
+        ann = _lenient(f.annotation) | None
+        factory = f.default_factory
+        if factory is not None:
+            if isinstance(factory, type) and issubclass(factory, BaseModel):
+                factory = view_of(factory)
+            fields[name] = (ann, Field(default_factory=factory, alias=f.alias))
+        else:
+            fields[name] = (ann, Field(None if f.is_required() else f.default, alias=f.alias))
+    base = model.__name__.removesuffix("Health").removesuffix("Message") or "Health"
+    view = create_model(f"{base}View", __config__=_VIEW_CONFIG, __doc__=(
+        f"The readers' view of :class:`{model.__name__}` (:func:`view_of`)."), **fields)
+    _views[model] = view
+    return view
+
+
+if TYPE_CHECKING:
+    # A static checker reads a view as its model (the same attribute names: a misspelt field
+    # is caught); at run time each attribute may also be None (an older daemon).
+    HealthView = HealthMessage
+    ParameterView = ParameterHealth
+    TrendView = TrendHealth
+    RulView = RulHealth
+    CrossingView = CrossingHealth
+    AlarmView = AlarmStatus
+    RulAlarmView = RulAlarmStatus
+    DiagnosisView = DiagnosisHealth
+    FaultView = FaultHealth
+    TermView = TermHealth
+    SensorView = SensorHealth
+else:
+    HealthView = view_of(HealthMessage)
+    ParameterView = view_of(ParameterHealth)
+    TrendView = view_of(TrendHealth)
+    RulView = view_of(RulHealth)
+    CrossingView = view_of(CrossingHealth)
+    AlarmView = view_of(AlarmStatus)
+    RulAlarmView = view_of(RulAlarmStatus)
+    DiagnosisView = view_of(DiagnosisHealth)
+    FaultView = view_of(FaultHealth)
+    TermView = view_of(TermHealth)
+    SensorView = view_of(SensorHealth)
+
+
+def read_health(doc: str | bytes | Mapping[str, Any] | HealthMessage) -> HealthView:
+    """The readers' typed view of one health message, parsed once.
+
+    Args:
+        doc: the message as published (JSON text or bytes), decoded (a mapping), or the
+            daemon's own :class:`HealthMessage`.
+
+    Returns:
+        The :data:`HealthView`: attribute access, every field optional (see :func:`view_of`).
+
+    Raises:
+        ValueError: not JSON, or a part of the wrong shape (``pydantic.ValidationError``).
+    """
+    if isinstance(doc, HealthMessage):
+        doc = doc.as_dict()
+    if isinstance(doc, str | bytes):
+        return HealthView.model_validate_json(doc)
+    return HealthView.model_validate(doc)
