@@ -90,8 +90,12 @@ __all__ = [
     "SourceHealth",
     "TermHealth",
     "TrendHealth",
+    "HealthView",
     "build_health",
     "diagnosis_line",
+    "read_health",
+    "sent",
+    "view_of",
     "summary_line",
     "trend_line",
 ]
@@ -721,9 +725,10 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
 # no ``diagnosis`` before 8, no ``discovery.p_value`` before 9; the state database keeps them),
 # a newer one (fields and statuses this version does not know: kept, not read), a partial
 # message in a test.
-# So in a view every field may be None (absent or null; a field the model defaults keeps its
-# default), unknown fields are kept (not read), a status is any string, and numbers stay as they
-# were sent (an int stays an int: what a reader prints is what the daemon wrote).
+# So in a view every field is None when the message does not carry it (absent or null: also a
+# field the model defaults, e.g. ``schema``), a part of the wrong shape reads as absent, unknown
+# fields are kept (not read), a status is any string, and numbers stay as they were sent (an int
+# stays an int: what a reader prints is what the daemon wrote).
 
 _VIEW_CONFIG = ConfigDict(extra="allow", frozen=True, populate_by_name=True,
                           protected_namespaces=())
@@ -759,7 +764,7 @@ def _lenient(tp: Any) -> Any:
 def view_of(model: type[BaseModel]) -> type[BaseModel]:
     """The readers' view of a part of the message (:class:`HealthView` for
     :class:`HealthMessage`, ``ParameterView`` for :class:`ParameterHealth`, ...): the same
-    fields, each optional, unknown fields kept, statuses as strings."""
+    fields, each None when not sent, unknown fields kept, statuses as strings."""
     if model in _views:
         return _views[model]
     from pydantic import create_model
@@ -767,13 +772,9 @@ def view_of(model: type[BaseModel]) -> type[BaseModel]:
     fields: dict[str, Any] = {}
     for name, f in model.model_fields.items():
         ann = _lenient(f.annotation) | None
-        factory = f.default_factory
-        if factory is not None:
-            if isinstance(factory, type) and issubclass(factory, BaseModel):
-                factory = view_of(factory)
-            fields[name] = (ann, Field(default_factory=factory, alias=f.alias))
-        else:
-            fields[name] = (ann, Field(None if f.is_required() else f.default, alias=f.alias))
+        if f.metadata:  # a Num's validator (non-finite -> None)
+            ann = Annotated[(ann, *f.metadata)]
+        fields[name] = (ann, Field(None, alias=f.alias))
     base = model.__name__.removesuffix("Health").removesuffix("Message") or "Health"
     view = create_model(f"{base}View", __config__=_VIEW_CONFIG, __doc__=(
         f"The readers' view of :class:`{model.__name__}` (:func:`view_of`)."), **fields)
@@ -809,8 +810,24 @@ else:
     SensorView = view_of(SensorHealth)
 
 
+def sent(part: BaseModel, field: str) -> bool:
+    """Whether the message carried ``field`` in ``part`` (null or not), e.g. whether a
+    parameter has a ``rul`` entry at all (schema 7 on) as opposed to one that is null.
+
+    Raises:
+        AttributeError: ``field`` is not a field of ``part``'s model (a misspelt name).
+    """
+    if field not in type(part).model_fields:
+        raise AttributeError(f"{type(part).__name__} has no field {field!r}")
+    return field in part.model_fields_set
+
+
 def read_health(doc: str | bytes | Mapping[str, Any] | HealthMessage) -> HealthView:
     """The readers' typed view of one health message, parsed once.
+
+    A part of the wrong shape (a number where an object belongs, an entry of a list or a map
+    that is not one) reads as absent, as if the message did not carry it: what a reader
+    shows of the rest is unchanged.
 
     Args:
         doc: the message as published (JSON text or bytes), decoded (a mapping), or the
@@ -820,10 +837,72 @@ def read_health(doc: str | bytes | Mapping[str, Any] | HealthMessage) -> HealthV
         The :data:`HealthView`: attribute access, every field optional (see :func:`view_of`).
 
     Raises:
-        ValueError: not JSON, or a part of the wrong shape (``pydantic.ValidationError``).
+        ValueError: not JSON, or not a JSON object.
     """
+    from pydantic import ValidationError
+
     if isinstance(doc, HealthMessage):
         doc = doc.as_dict()
-    if isinstance(doc, str | bytes):
-        return HealthView.model_validate_json(doc)
-    return HealthView.model_validate(doc)
+    try:
+        if isinstance(doc, str | bytes):
+            return HealthView.model_validate_json(doc)
+        return HealthView.model_validate(doc)
+    except ValidationError as exc:
+        if isinstance(doc, str | bytes):
+            import json
+
+            data = json.loads(doc)  # ValueError when not JSON
+        else:
+            import copy
+
+            data = copy.deepcopy(doc)
+        if not isinstance(data, dict):
+            raise ValueError("a health message is a JSON object") from exc
+        errors = exc.errors()
+    for _ in range(1000):
+        if not _prune(data, errors):
+            break
+        try:
+            return HealthView.model_validate(data)
+        except ValidationError as exc:
+            errors = exc.errors()
+    raise ValueError("not a health message")
+
+
+_DROPPED = object()
+
+
+def _prune(data: dict[str, Any], errors: list[Any]) -> bool:
+    """Remove from ``data`` the parts ``errors`` (a ValidationError's) point at: a key of an
+    object, an entry of a list. False when there is nothing to remove."""
+    paths: set[tuple[Any, ...]] = set()
+    for e in errors:
+        node: Any = data
+        path: list[Any] = []
+        for key in e["loc"]:
+            if isinstance(node, dict) and key in node:
+                node = node[key]
+            elif isinstance(node, list) and isinstance(key, int) and 0 <= key < len(node):
+                node = node[key]
+            else:
+                break
+            path.append(key)
+        if path:
+            paths.add(tuple(path))
+    if not paths:
+        return False
+    lists: list[list[Any]] = []
+    for path in paths:
+        if any(path[:i] in paths for i in range(1, len(path))):
+            continue  # its container goes
+        parent: Any = data
+        for key in path[:-1]:
+            parent = parent[key]
+        if isinstance(parent, list):
+            parent[path[-1]] = _DROPPED  # indices stay until every error is placed
+            lists.append(parent)
+        else:
+            del parent[path[-1]]
+    for entries in lists:
+        entries[:] = [x for x in entries if x is not _DROPPED]
+    return True
