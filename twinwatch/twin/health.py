@@ -5,7 +5,9 @@ over time is the machine's health").
 built in one place (:func:`build_health`, from the public results of the window's estimation
 and adaptation) and serialised by one encoder (:meth:`HealthMessage.to_json`,
 :func:`twinwatch.io.encoding.to_json`) for Zenoh, the state store and the Rerun recording:
-non-finite numbers become ``null`` everywhere.
+non-finite numbers become ``null`` everywhere. Every reader of a published message (watch and
+tail, the recording, MQTT and Home Assistant, explain) reads it through one typed view derived
+from the model, :func:`read_health` (:data:`HealthView`), never by the decoded JSON's keys.
 
 The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
@@ -58,16 +60,13 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from twinwatch.io.encoding import to_json
-from twinwatch.twin.estimation.estimator import ParameterStatus, WindowEstimate
-from twinwatch.twin.model import TwinModel, WindowData
-from twinwatch.twin.prognostics import Crossing, RulReport, TrendReport
-from twinwatch.twin.prognostics.rul import format_crossing
-from twinwatch.twin.prognostics.window import WindowChoice
-
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the builder's inputs: a reader of the message (the watcher) loads none
     from twinwatch.twin.adaptation import AdaptationResult
+    from twinwatch.twin.estimation.estimator import WindowEstimate
     from twinwatch.twin.estimation.fit import Residual
+    from twinwatch.twin.model import TwinModel, WindowData
+    from twinwatch.twin.prognostics import Crossing, RulReport, TrendReport
+    from twinwatch.twin.prognostics.window import WindowChoice
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -101,6 +100,12 @@ __all__ = [
 ]
 
 SCHEMA_VERSION = 9
+
+ParameterStatus = Literal["estimated", "fused", "suspect", "held", "tied", "fixed"]
+"""The estimation's :data:`~twinwatch.twin.estimation.publish.ParameterStatus`, restated so
+that this module (the message and its readers' view) imports no estimation: a reader such as
+``twinwatch watch`` loads pydantic and this module only (tests/test_health_readers.py holds the
+two equal)."""
 
 
 def _finite(x: Any) -> Any:
@@ -473,6 +478,8 @@ class HealthMessage(_Part):
 
     def to_json(self) -> str:
         """The message as compact, strict JSON (the one encoder, :mod:`twinwatch.io.encoding`)."""
+        from twinwatch.io.encoding import to_json
+
         return to_json(self.as_dict())
 
 
@@ -673,6 +680,8 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
     ``Ra  exponential from 160 s, -0.00264 ohm/s (-0.0027 .. -0.0026), -146 %/h; warning
     crossed, alarm in 6 min (4-9 min); monotonicity 0.98, trendability 0.97``; None without a
     trend."""
+    from twinwatch.twin.prognostics.rul import format_crossing
+
     t = p.trend
     if t is None:
         return None
@@ -744,8 +753,10 @@ def _lenient(tp: Any) -> Any:
 
     if isinstance(tp, type) and issubclass(tp, BaseModel):
         return view_of(tp)
-    if tp is float or tp is int:
-        return int | float
+    if tp is float or tp is int:  # as sent: an int stays an int, a bool or a text is no number
+        from pydantic import StrictFloat, StrictInt
+
+        return StrictInt | StrictFloat
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
     if origin is Annotated:
