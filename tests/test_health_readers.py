@@ -30,6 +30,7 @@ READERS = [
     "twin/diagnosis/explain.py",
     "daemon/alarms.py",
     "cli.py",
+    "sinks/zenoh.py",
 ]
 """The reader modules (paths under twinwatch/), every one converted."""
 
@@ -44,6 +45,7 @@ OTHER_DOCUMENTS = {
     ("sinks/rerun_views.py", "RecordingViews._event_ops"): "an alarm event",
     ("cli.py", "_resumed_line"): "the daemon's resume summary (Daemon.resumed)",
     ("cli.py", "_new_run_line"): "the daemon's new-run summary (Daemon.new_run)",
+    ("sinks/zenoh.py", "history_parameters"): "the history query's parameters",
 }
 """(file, function) -> the document it reads instead of the health message."""
 
