@@ -54,11 +54,26 @@ model. Layout version :data:`SCHEMA_VERSION`:
 
 from __future__ import annotations
 
+import copy
+import functools
+import json
 import math
+import operator
+import types
+import typing
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    ValidationError,
+    create_model,
+)
 
 if TYPE_CHECKING:  # the builder's inputs: a reader of the message (the watcher) loads none
     from twinwatch.twin.adaptation import AdaptationResult
@@ -726,14 +741,14 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
 
 
 # -- the readers' view ---------------------------------------------------------------------------
-# Every reader of a published message (watch and tail, the recording, MQTT and Home Assistant,
-# explain, the run's summary) reads it through one typed view derived from the model above, never
-# by indexing the decoded JSON with strings: a new field is one line on the model, and the readers
-# that show it. The view is lenient where the model is strict, because a reader meets messages
-# the model would refuse: a daemon of an older schema (no ``run`` before 6, no ``trend`` before 7,
-# no ``diagnosis`` before 8, no ``discovery.p_value`` before 9; the state database keeps them),
-# a newer one (fields and statuses this version does not know: kept, not read), a partial
-# message in a test.
+# Every reader of a published or stored message (watch and tail, the recording, MQTT and Home
+# Assistant, explain, the alarms' restore, the history's paging) reads it through one typed view
+# derived from the model above, never by indexing the decoded JSON with strings: a new field is
+# one line on the model, and the readers that show it. The view is lenient where the model is
+# strict, because a reader meets messages the model would refuse: a daemon of an older schema
+# (no ``run`` before 6, no ``trend`` before 7, no ``diagnosis`` before 8, no
+# ``discovery.p_value`` before 9; the state database keeps them), a newer one (fields and
+# statuses this version does not know: kept, not read), a partial message in a test.
 # So in a view every field is None when the message does not carry it (absent or null: also a
 # field the model defaults, e.g. ``schema``), a part of the wrong shape reads as absent, unknown
 # fields are kept (not read), a status is any string, and numbers stay as they were sent (an int
@@ -746,16 +761,9 @@ _views: dict[type[BaseModel], type[BaseModel]] = {}
 
 def _lenient(tp: Any) -> Any:
     """The view's annotation for the model's ``tp``."""
-    import functools
-    import operator
-    import types
-    import typing
-
     if isinstance(tp, type) and issubclass(tp, BaseModel):
         return view_of(tp)
     if tp is float or tp is int:  # as sent: an int stays an int, a bool or a text is no number
-        from pydantic import StrictFloat, StrictInt
-
         return StrictInt | StrictFloat
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
@@ -778,8 +786,6 @@ def view_of(model: type[BaseModel]) -> type[BaseModel]:
     fields, each None when not sent, unknown fields kept, statuses as strings."""
     if model in _views:
         return _views[model]
-    from pydantic import create_model
-
     fields: dict[str, Any] = {}
     for name, f in model.model_fields.items():
         ann = _lenient(f.annotation) | None
@@ -850,8 +856,6 @@ def read_health(doc: str | bytes | Mapping[str, Any] | HealthMessage) -> HealthV
     Raises:
         ValueError: not JSON, or not a JSON object.
     """
-    from pydantic import ValidationError
-
     if isinstance(doc, HealthMessage):
         doc = doc.as_dict()
     try:
@@ -860,12 +864,8 @@ def read_health(doc: str | bytes | Mapping[str, Any] | HealthMessage) -> HealthV
         return HealthView.model_validate(doc)
     except ValidationError as exc:
         if isinstance(doc, str | bytes):
-            import json
-
             data = json.loads(doc)  # ValueError when not JSON
         else:
-            import copy
-
             data = copy.deepcopy(doc)
         if not isinstance(data, dict):
             raise ValueError("a health message is a JSON object") from exc
