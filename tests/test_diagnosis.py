@@ -206,8 +206,9 @@ def test_the_recordings_model_document_opens_with_the_diagnosis(
     """The Rerun recording's active text panel (the model document) starts with the fault,
     its action and evidence: readable without touching the viewer."""
     from twinwatch.sinks.rerun_views import _model_document
+    from twinwatch.twin.health import read_health
 
-    text = _model_document("hydraulic-leak", 80.0, leak_history[-1].as_dict())
+    text = _model_document("hydraulic-leak", 80.0, read_health(leak_history[-1]))
     head = text.split("**DT''", 1)[0]
     assert head.startswith("**Diagnosis: internal_leak** (piston seal (internal leakage)), "
                            "probability 0.") and "replace the piston seals" in head

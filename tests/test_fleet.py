@@ -39,6 +39,7 @@ import zenoh
 from twinwatch.sinks.base import SinkContext
 from twinwatch.sinks.store import StateStore
 from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig
+from twinwatch.twin.health import HealthView, read_health
 from twinwatch.watch import Fleet, FleetWatcher, Gap, _Sequence, gap_line, render
 
 from .conftest import ROOT
@@ -136,10 +137,10 @@ class Followed:
         self.got: dict[str, list[tuple[int, str]]] = {}
         self.gaps: list[Gap] = []
 
-    def on_health(self, machine: str, doc: dict[str, Any], text: str, delivery: str) -> None:
-        assert json.loads(text) == doc
+    def on_health(self, machine: str, doc: HealthView, text: str, delivery: str) -> None:
+        assert read_health(text) == doc  # the typed view of the text as published
         with self.lock:
-            self.got.setdefault(machine, []).append((doc["window"], delivery))
+            self.got.setdefault(machine, []).append((doc.window, delivery))
 
     def on_gap(self, gap: Gap) -> None:
         with self.lock:

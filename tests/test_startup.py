@@ -67,10 +67,18 @@ def test_a_lazy_module_is_imported_on_first_use() -> None:
 
 def test_watch_loads_no_daemon_no_twin_and_no_sink() -> None:
     """``twinwatch watch`` and ``tail`` import zenoh and rich, never the daemon's stack: the
-    watcher's room reads the published JSON."""
+    watcher's room reads the published JSON, through the message's typed view (its model
+    module, pydantic only: no estimation, no numpy)."""
     code = ("import sys\nfrom twinwatch import watch\nwatch.Fleet().snapshot()\n"
             "print(sorted(m for m in sys.modules if m.startswith(('twinwatch.daemon', "
             "'twinwatch.sinks', 'twinwatch.twin', 'twinwatch.config', 'numpy'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.returncode == 0 and out.stdout.strip().splitlines()[-1] == "[]", out
+    code = code.replace("watch.Fleet().snapshot()", "fleet = watch.Fleet()\n"
+                        "fleet.health('m1', {'machine': 'm1', 'window': 0})\n"
+                        "watch.health_line({'machine': 'm1', 'window': 0}); fleet.snapshot()")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert out.returncode == 0, out
+    assert out.stdout.strip().splitlines()[-1] == "['twinwatch.twin', 'twinwatch.twin.health']"

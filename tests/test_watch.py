@@ -327,7 +327,7 @@ def test_a_watcher_in_process_follows_a_daemon_directly() -> None:
     fleet = Fleet()
     got: list[int] = []
     with Daemon(cfg, record=False) as daemon, zsession("client", connect=[endpoint(port)]) as s:
-        with FleetWatcher(s, fleet, on_health=lambda m, d, t, how: got.append(d["window"])):
+        with FleetWatcher(s, fleet, on_health=lambda m, d, t, how: got.append(d.window)):
             wait_for(lambda: fleet.machines() == ["dc-motor-sim"], 10, "the token")
             daemon.run()
             wait_for(lambda: len(got) == 3, 10, "three windows")

@@ -25,7 +25,7 @@ from twinwatch import __version__
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.runner import Daemon
-    from twinwatch.twin.health import HealthMessage, ParameterHealth
+    from twinwatch.twin.health import HealthMessage, HealthView, ParameterHealth
 
 logger = logging.getLogger("twinwatch")
 
@@ -895,47 +895,50 @@ def explain(machine: str, db: Path | None, windows: int, connect: tuple[str, ...
 
 
 def _live_windows(machine: str, count: int, connect: tuple[str, ...], mode: str,
-                  prefix: str) -> list[dict[str, Any]]:
-    """The machine's last ``count`` health messages from its daemon: the latest (the health
-    queryable), then the current run's history from ``count`` windows before it.
+                  prefix: str) -> list[HealthView]:
+    """The machine's last ``count`` health messages from its daemon (their typed view,
+    :func:`~twinwatch.twin.health.read_health`): the latest (the health queryable), then the
+    current run's history from ``count`` windows before it.
 
     Raises:
         RuntimeError: the network cannot be reached, the daemon does not answer or refuses.
     """
 
+    from twinwatch.twin.health import read_health
     from twinwatch.watch import HISTORY_TIMEOUT_S, WatchError, open_session
 
-    def ask(session: Any, selector: str) -> list[dict[str, Any]]:
+    def ask(session: Any, selector: str) -> list[str]:
         out = []
         for reply in session.get(selector, timeout=HISTORY_TIMEOUT_S):
             if reply.ok is None:
                 err = reply.err
                 raise RuntimeError(f"{selector}: " + (err.payload.to_string() if err
                                                       else "an error without a message"))
-            out.append(json.loads(reply.ok.payload.to_string()))
+            out.append(reply.ok.payload.to_string())
         return out
 
     base = f"{prefix}/{machine}"
     try:
         with open_session(connect, mode) as session:  # type: ignore[arg-type]
-            latest = ask(session, f"{base}/health")
+            latest = [read_health(x) for x in ask(session, f"{base}/health")]
             if not latest:
                 return []
-            last = max(latest, key=lambda d: d.get("t_end", 0.0))
-            span = float(last["t_end"]) - float(last["t_start"])
-            t_from = float(last["t_start"]) - (count - 1) * span - 0.5 * span
+            last = max(latest, key=lambda d: d.t_end or 0.0)
+            span = float(last.t_end) - float(last.t_start)
+            t_from = float(last.t_start) - (count - 1) * span - 0.5 * span
             try:
-                pages = ask(session, f"{base}/history?run={last['run']};t_from={t_from!r};"
-                                     f"limit={count}") if count > 1 else []
+                pages = [json.loads(x) for x in
+                         ask(session, f"{base}/history?run={last.run};t_from={t_from!r};"
+                                      f"limit={count}")] if count > 1 else []
             except RuntimeError as exc:  # no state database: the latest window only
                 click.echo(f"twinwatch: no history of {machine} ({exc}): the latest window "
                            f"only", err=True)
                 pages = []
     except WatchError as exc:
         raise RuntimeError(str(exc)) from exc
-    docs = [d for p in pages for d in p.get("windows", []) if isinstance(d, dict)]
-    docs = [d for d in docs if d.get("window") != last.get("window")][-(count - 1):] \
-        if count > 1 else []
+    # a history page: {"windows": [health message, ...], ...}
+    docs = [read_health(d) for p in pages for d in p.get("windows", []) if isinstance(d, dict)]
+    docs = [d for d in docs if d.window != last.window][-(count - 1):] if count > 1 else []
     return [*docs, last]
 
 

@@ -54,6 +54,8 @@ if TYPE_CHECKING:
     import zenoh
     from rich.console import RenderableType
     from zenoh import ext as zenoh_ext
+
+    from twinwatch.twin.health import DiagnosisView, HealthView
 else:  # imported when a session opens
     zenoh = lazy_module("zenoh")
     zenoh_ext = lazy_module("zenoh.ext")
@@ -179,12 +181,32 @@ def _machine_of(key: str, prefix: str, suffix: str) -> str | None:
 
 
 def _decode(payload: Any) -> dict[str, Any] | None:
-    """A JSON object from a Zenoh payload, or None (a non-object or bad JSON is ignored)."""
+    """A JSON object from a Zenoh payload (an alarm event, a history page), or None (a
+    non-object or bad JSON is ignored)."""
     try:
         doc = json.loads(payload.to_string())
     except (ValueError, UnicodeDecodeError):
         return None
     return doc if isinstance(doc, dict) else None
+
+
+def _health_view(doc: HealthView | Mapping[str, Any]) -> HealthView:
+    """A health message as its typed view (:func:`~twinwatch.twin.health.read_health`)."""
+    from twinwatch.twin.health import HealthView, read_health
+
+    return doc if isinstance(doc, HealthView) else read_health(doc)
+
+
+def _decode_health(payload: Any) -> tuple[HealthView, str] | None:
+    """A health message from a Zenoh payload: its typed view and its text, or None (bad JSON
+    or not an object is ignored)."""
+    from twinwatch.twin.health import read_health
+
+    try:
+        text = payload.to_string()
+        return read_health(text), text
+    except (ValueError, UnicodeDecodeError):
+        return None
 
 
 # -- the fleet ---------------------------------------------------------------------------------
@@ -193,7 +215,7 @@ class _Machine:
     name: str
     token: bool | None = None  # None: never seen a token
     since: float | None = None  # wall time of the last token change seen (None: before us)
-    health: dict[str, Any] | None = None
+    health: HealthView | None = None
     received: float | None = None  # wall time the last health arrived
     events: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=5))
     missed: int = 0  # windows zenoh reported missed
@@ -241,21 +263,23 @@ class Fleet:
                 m.token, m.since = present, None if before else now
         self.changed.set()
 
-    def health(self, machine: str, doc: Mapping[str, Any]) -> bool:
-        """A health message of ``machine`` (the latest, or one published). An older window of
-        the same run than the one held (a late reply to the first query) is ignored.
+    def health(self, machine: str, doc: HealthView | Mapping[str, Any]) -> bool:
+        """A health message of ``machine`` (the latest, or one published: its typed view, or
+        decoded). An older window of the same run than the one held (a late reply to the first
+        query) is ignored.
 
         Returns:
             True if it is now the machine's latest.
         """
+        doc = _health_view(doc)
         with self._lock:
             m = self._get(machine)
             old = m.health
-            if old is not None and old.get("run") == doc.get("run") and isinstance(
-                    doc.get("window"), int) and isinstance(old.get("window"), int) and (
-                    doc["window"] <= old["window"]):
+            if old is not None and old.run == doc.run and isinstance(
+                    doc.window, int) and isinstance(old.window, int) and (
+                    doc.window <= old.window):
                 return False
-            m.health, m.received = dict(doc), self._clock()
+            m.health, m.received = doc, self._clock()
         self.changed.set()
         return True
 
@@ -312,9 +336,9 @@ class Fleet:
         return {"t": now, "machines": machines}
 
     def _view(self, m: _Machine, now: float) -> dict[str, Any]:
-        h = m.health or {}
+        h = m.health
         age = None if m.received is None else max(now - m.received, 0.0)
-        window_s = _num(h.get("t_end"), 0.0) - _num(h.get("t_start"), 0.0)
+        window_s = (_num(h.t_end, 0.0) - _num(h.t_start, 0.0)) if h is not None else 0.0
         state: MachineState
         if m.token is False:
             state = "gone"
@@ -330,64 +354,61 @@ class Fleet:
             "token": m.token,
             "state_since_s": None if m.since is None else max(now - m.since, 0.0),
             "last_window_age_s": age,
-            "model": h.get("model"),
-            "run": h.get("run"),
-            "window": h.get("window"),
-            "t_start": h.get("t_start"),
-            "t_end": h.get("t_end"),
-            "parameters": _parameters(h),
-            "alarms": {k: {"level": a.get("level"), "since_t": a.get("since_t"),
-                           "deviation_pct": a.get("deviation_pct"),
-                           "rul": ({"level": _dict(a.get("rul")).get("level"),
-                                    "since_t": _dict(a.get("rul")).get("since_t"),
-                                    "rul_s": _dict(a.get("rul")).get("rul_s")}
-                                   if isinstance(a.get("rul"), dict) else None)}
-                       for k, a in _dict(h.get("alarms")).items() if isinstance(a, dict)},
-            "terms": [{"equation": t.get("equation"), "meaning": t.get("meaning")}
-                      for t in _list(h.get("terms")) if isinstance(t, dict)],
-            "diagnosis": _diagnosis(h.get("diagnosis")),
-            "quality": _quality(h) if m.health is not None else None,
+            "model": h.model if h is not None else None,
+            "run": h.run if h is not None else None,
+            "window": h.window if h is not None else None,
+            "t_start": h.t_start if h is not None else None,
+            "t_end": h.t_end if h is not None else None,
+            "parameters": _parameters(h) if h is not None else {},
+            "alarms": {k: {"level": a.level, "since_t": a.since_t,
+                           "deviation_pct": a.deviation_pct,
+                           "rul": ({"level": a.rul.level, "since_t": a.rul.since_t,
+                                    "rul_s": a.rul.rul_s} if a.rul is not None else None)}
+                       for k, a in ((h.alarms if h is not None else None) or {}).items()},
+            "terms": [{"equation": t.equation, "meaning": t.meaning}
+                      for t in (h.terms if h is not None else None) or []],
+            "diagnosis": _diagnosis(h.diagnosis if h is not None else None),
+            "quality": _quality(h) if h is not None else None,
             "delivery": {"missed": m.missed, "recovered": m.recovered, "error": m.gap_error},
             "last_event": m.events[-1] if m.events else None,
         }
-
-
-def _dict(x: Any) -> dict[str, Any]:
-    return x if isinstance(x, dict) else {}
-
-
-def _list(x: Any) -> list[Any]:
-    return x if isinstance(x, list) else []
 
 
 def _num(x: Any, default: float | None = None) -> Any:
     return x if isinstance(x, int | float) and not isinstance(x, bool) else default
 
 
-def _parameters(h: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
-    alarms = _dict(h.get("alarms"))
+def _parameters(h: HealthView) -> dict[str, dict[str, Any]]:
+    alarms = h.alarms or {}
     out: dict[str, dict[str, Any]] = {}
-    for name, p in _dict(h.get("parameters")).items():
-        if not isinstance(p, dict) or p.get("status") in ("tied", "fixed"):
+    for name, p in (h.parameters or {}).items():
+        if p.status in ("tied", "fixed"):
             continue
-        rul = _dict(_dict(p.get("rul")).get("alarm"))
-        out[name] = {"value": _num(p.get("value")), "unit": p.get("unit"),
-                     "nominal": _num(p.get("nominal")),
-                     "deviation_pct": _num(p.get("deviation_pct")), "status": p.get("status"),
-                     "alarm": _dict(alarms.get(name)).get("level"),
-                     "rul_s": _num(rul.get("rul_s")), "rul_status": rul.get("status")}
+        crossing = p.rul.alarm if p.rul is not None else None
+        alarm = alarms.get(name)
+        out[name] = {"value": _num(p.value), "unit": p.unit,
+                     "nominal": _num(p.nominal),
+                     "deviation_pct": _num(p.deviation_pct), "status": p.status,
+                     "alarm": alarm.level if alarm is not None else None,
+                     "rul_s": _num(crossing.rul_s if crossing is not None else None),
+                     "rul_status": crossing.status if crossing is not None else None}
     return out
 
 
-def _quality(h: Mapping[str, Any]) -> dict[str, Any]:
-    counters = _dict(h.get("counters"))
-    problems = {k: v for k, v in counters.items()
-                if k in PROBLEM_COUNTERS and isinstance(v, int) and v}
-    check = h.get("model_check")
-    elapsed = _num(h.get("elapsed_s"))
-    return {"nrmse": _num(h.get("nrmse")),
-            "model_check": check.get("passed") if isinstance(check, dict) else None,
-            "trusted": h.get("trusted"),
+def _problems(h: HealthView) -> dict[str, int]:
+    """The counters of losses that are not zero."""
+    return {k: v for k, v in (h.counters or {}).items()
+            if k in PROBLEM_COUNTERS and isinstance(v, int) and v}
+
+
+def _quality(h: HealthView) -> dict[str, Any]:
+    counters = h.counters or {}
+    problems = _problems(h)
+    check = h.model_check
+    elapsed = _num(h.elapsed_s)
+    return {"nrmse": _num(h.nrmse),
+            "model_check": check.passed if check is not None else None,
+            "trusted": h.trusted,
             "elapsed_ms": None if elapsed is None else round(elapsed * 1e3, 1),
             "windows_estimated": counters.get("windows_estimated"),
             "problems": problems}
@@ -483,8 +504,9 @@ class FleetWatcher:
             when a publisher is seen anew after a router outage (at most their ``[zenoh]
             cache``; 1: the latest; what a gap needs beyond it comes from the history).
         alarm_history: alarm events per machine asked at start (0: only new ones).
-        on_health: called with the machine, a health message not delivered before (decoded,
-            its text as published) and its delivery (``live`` or ``history``).
+        on_health: called with the machine, a health message not delivered before (its typed
+            view, :func:`~twinwatch.twin.health.read_health`), its text as published and its
+            delivery (``live`` or ``history``).
         on_alarm, on_token: called with the machine and an alarm event, a token's presence.
         on_gap: called with a :class:`Gap` once the history was asked for it.
 
@@ -498,10 +520,14 @@ class FleetWatcher:
 
     def __init__(self, session: zenoh.Session, fleet: Fleet, *, prefix: str = "twinwatch",
                  machine: str = "*", history: int = 1, alarm_history: int = 5,
-                 on_health: Callable[[str, dict[str, Any], str, Delivery], None] | None = None,
+                 on_health: Callable[[str, HealthView, str, Delivery], None] | None = None,
                  on_alarm: Callable[[str, dict[str, Any]], None] | None = None,
                  on_token: Callable[[str, bool], None] | None = None,
                  on_gap: Callable[[Gap], None] | None = None) -> None:
+        # the health message's typed view (pydantic): loaded here, before any subscriber (a
+        # first import in a callback can let a live window overtake the cached ones)
+        import twinwatch.twin.health  # noqa: F401
+
         self.session = session
         self.fleet = fleet
         self.prefix = check_prefix(prefix)
@@ -615,20 +641,20 @@ class FleetWatcher:
     def _health(self, key: str, payload: Any, delivery: Delivery) -> str | None:
         """Deliver one health message unless it was delivered before; its machine."""
         machine = _machine_of(key, self.prefix, "health")
-        doc = _decode(payload)
-        if machine is None or doc is None:
+        got = _decode_health(payload)
+        if machine is None or got is None:
             return None
-        self._deliver(machine, doc, payload.to_string(), delivery)
+        self._deliver(machine, *got, delivery)
         return machine
 
-    def _deliver(self, machine: str, doc: dict[str, Any], text: str,
+    def _deliver(self, machine: str, doc: HealthView, text: str,
                  delivery: Delivery) -> bool:
-        window, t_end = doc.get("window"), _num(doc.get("t_end"))
+        window, t_end = doc.window, _num(doc.t_end)
         with self._lock:
             if isinstance(window, int) and not isinstance(window, bool):
                 seq = self._seq.get(machine)
-                if seq is None or seq.run != doc.get("run"):
-                    self._seq[machine] = _Sequence(doc.get("run"), window, t_end)
+                if seq is None or seq.run != doc.run:
+                    self._seq[machine] = _Sequence(doc.run, window, t_end)
                 elif not seq.add(window, t_end):
                     return False
             self.fleet.health(machine, doc)
@@ -721,14 +747,15 @@ class FleetWatcher:
                 raise WatchError(f"{key}: no answer within {HISTORY_TIMEOUT_S:g} s (the "
                                  "daemon is not reachable, or keeps no state database)")
             last_t = None
-            for page in pages:
-                for doc in page["windows"]:
-                    if not isinstance(doc, dict):
+            for page in pages:  # {"windows": [health message, ...], "more": bool}
+                for raw in page["windows"]:
+                    if not isinstance(raw, dict):
                         continue
-                    text = json.dumps(doc, separators=(",", ":"))  # as published
+                    text = json.dumps(raw, separators=(",", ":"))  # as published
+                    doc = _health_view(raw)
                     if self._deliver(machine, doc, text, "history"):
-                        gap.recovered.append(doc.get("window"))  # type: ignore[arg-type]
-                    t_end = _num(doc.get("t_end"))
+                        gap.recovered.append(doc.window)  # type: ignore[arg-type]
+                    t_end = _num(doc.t_end)
                     if t_end is not None:
                         last_t = t_end if last_t is None else max(last_t, t_end)
             if not any(p.get("more") for p in pages) or last_t is None:
@@ -847,57 +874,64 @@ def _rul(p: Mapping[str, Any]) -> str | None:
     return None
 
 
-def health_line(doc: Mapping[str, Any], *, wall: float | None = None) -> str:
+def health_line(doc: HealthView | Mapping[str, Any], *, wall: float | None = None) -> str:
     """One line for ``twinwatch tail``: when it arrived, machine, window and its plant time,
     each parameter the window concerns (value, deviation from nominal, ``=`` held, ``~``
-    fused), the fit, the model check and the raised alarms.
+    fused), the fit, the model check and the raised alarms. ``doc``: the health message's
+    typed view (:func:`~twinwatch.twin.health.read_health`), or decoded.
 
     Example::
 
         10:15:31 dc-motor-sim #540 [1080.00-1081.99 s] Ra 5.82987 -10.31 % D 0.00143 +0.02 %
         ... nRMSE 1.6e-05 check ok  ALARM Ra (run 20261122T101530Z-3f9a2c)
     """
+    doc = _health_view(doc)
     stamp = time.strftime("%H:%M:%S", time.localtime(time.time() if wall is None else wall))
-    parts = [stamp, str(doc.get("machine", "?")), f"#{doc.get('window', '?')}"]
-    t0, t1 = _num(doc.get("t_start")), _num(doc.get("t_end"))
+    parts = [stamp, str("?" if doc.machine is None else doc.machine),
+             f"#{'?' if doc.window is None else doc.window}"]
+    t0, t1 = _num(doc.t_start), _num(doc.t_end)
     if t0 is not None and t1 is not None:
         parts.append(f"[{t0:.2f}-{t1:.2f} s]")
     marks = {"held": "=", "fused": "~"}
-    for name, p in _parameters(doc).items():
-        parts.append(f"{name}{marks.get(str(p['status']), ' ')}{_value(p['value'])} "
-                     f"{_dev(p['deviation_pct'])}")
-    q = _quality(doc)
-    parts.append(f"nRMSE {q['nrmse']:.1e}" if q["nrmse"] is not None else "nRMSE n/a")
-    if q["model_check"] is not None:
-        parts.append("check ok" if q["model_check"] else "check FAILED")
-    if q["trusted"] is False:
+    for name, p in (doc.parameters or {}).items():
+        if p.status in ("tied", "fixed"):
+            continue
+        parts.append(f"{name}{marks.get(str(p.status), ' ')}{_value(_num(p.value))} "
+                     f"{_dev(_num(p.deviation_pct))}")
+    nrmse, check = _num(doc.nrmse), doc.model_check
+    passed = check.passed if check is not None else None
+    parts.append(f"nRMSE {nrmse:.1e}" if nrmse is not None else "nRMSE n/a")
+    if passed is not None:
+        parts.append("check ok" if passed else "check FAILED")
+    if doc.trusted is False:
         parts.append("untrusted")
-    raised = [(k, a.get("level")) for k, a in _dict(doc.get("alarms")).items()
-              if isinstance(a, dict) and a.get("level") in ("warning", "alarm")]
+    raised = [(k, a.level) for k, a in (doc.alarms or {}).items()
+              if a.level in ("warning", "alarm")]
     for lvl in ("alarm", "warning"):
         names = [k for k, v in raised if v == lvl]
         if names:
             parts.append(f" {lvl.upper()} {', '.join(names)}")
-    n = len(_list(doc.get("terms")))
+    n = len(doc.terms or [])
     if n:
         parts.append(f"+{n} term{'s' if n > 1 else ''}")
-    if q["problems"]:
-        parts.append("losses " + ", ".join(f"{k} {v}" for k, v in q["problems"].items()))
-    if doc.get("run"):
-        parts.append(f"(run {doc['run']})")
+    problems = _problems(doc)
+    if problems:
+        parts.append("losses " + ", ".join(f"{k} {v}" for k, v in problems.items()))
+    if doc.run:
+        parts.append(f"(run {doc.run})")
     return " ".join(parts)
 
 
-def _diagnosis(d: Any) -> dict[str, Any] | None:
+def _diagnosis(d: DiagnosisView | None) -> dict[str, Any] | None:
     """The message's diagnosis in short: the most probable fault (``no_fault``, ``unknown``),
     its probability and action; null without one (a daemon before schema 8, or it is off)."""
-    if not isinstance(d, dict):
+    if d is None:
         return None
-    faults = _list(d.get("faults"))
-    top = faults[0] if d.get("status") == "fault" and faults and isinstance(faults[0], dict) \
-        else {}
-    return {"fault": top.get("id") or d.get("status"), "probability": d.get("probability"),
-            "action": top.get("action")}
+    faults = d.faults or []
+    top = faults[0] if d.status == "fault" and faults else None
+    return {"fault": (top.id if top is not None else None) or d.status,
+            "probability": d.probability,
+            "action": top.action if top is not None else None}
 
 
 _LEVEL_STYLE = {"alarm": "bold red", "warning": "yellow", "normal": "green"}
@@ -1078,7 +1112,7 @@ class Tail:
             self._lines.append((is_health, line))
             self._cond.notify()
 
-    def on_health(self, machine: str, doc: dict[str, Any], text: str,
+    def on_health(self, machine: str, doc: HealthView, text: str,
                   delivery: Delivery = "live") -> None:
         if self.as_json:
             self._put(True, text)

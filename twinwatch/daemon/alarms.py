@@ -185,28 +185,36 @@ class AlarmEvaluator:
                                         "pending": _pending(r)}
             return out
 
-    def restore(self, snapshot: Mapping[str, Mapping[str, Any]]) -> None:
-        """Re-seed levels from a :meth:`state` snapshot (e.g. from the state store at start),
-        so a restart neither re-raises nor silently clears an active alarm. Unknown
-        parameters and bad levels are ignored with a warning."""
+    def restore(self, snapshot: Mapping[str, Any]) -> None:
+        """Re-seed levels from a :meth:`state` snapshot (e.g. the ``alarms`` of the state
+        store's last health message at start, read through its typed view
+        :class:`~twinwatch.twin.health.AlarmView`), so a restart neither re-raises nor silently
+        clears an active alarm. Unknown parameters, bad levels and entries of another shape
+        are ignored with a warning."""
+        from twinwatch.twin.health import AlarmView
+
         with self._lock:
-            for name, snap in snapshot.items():
+            for name, raw in snapshot.items():
+                try:
+                    snap = raw if isinstance(raw, AlarmView) else AlarmView.model_validate(raw)
+                except ValueError:
+                    snap = None
                 s = self._state.get(name)
-                level = snap.get("level")
-                if s is None or level not in _RANK:
+                level = snap.level if snap is not None else None
+                if s is None or snap is None or level not in _RANK:
                     logger.warning("alarm state for %r (%r) not restored: no such rule or "
                                    "level", name, level)
                     continue
-                s.level = level
-                s.since_t = snap.get("since_t")
-                s.since_window = snap.get("since_window")
-                s.deviation = snap.get("deviation_pct")
-                r, rsnap = self._rul.get(name), snap.get("rul")
-                if r is not None and isinstance(rsnap, Mapping) and rsnap.get("level") in _RANK:
-                    r.level = rsnap["level"]
-                    r.since_t = rsnap.get("since_t")
-                    r.since_window = rsnap.get("since_window")
-                    r.rul = rsnap.get("rul_s")
+                s.level = level  # type: ignore[assignment]
+                s.since_t = snap.since_t
+                s.since_window = snap.since_window
+                s.deviation = snap.deviation_pct
+                r, rsnap = self._rul.get(name), snap.rul
+                if r is not None and rsnap is not None and rsnap.level in _RANK:
+                    r.level = rsnap.level  # type: ignore[assignment]
+                    r.since_t = rsnap.since_t
+                    r.since_window = rsnap.since_window
+                    r.rul = rsnap.rul_s
 
     # -- internals --------------------------------------------------------------------------
     def _target(self, rule: AlarmRule, dev: float, current: Level) -> tuple[Level, float | None]:

@@ -89,6 +89,8 @@ from twinwatch.sinks.base import (
 
 if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
+
+    from twinwatch.twin.health import DiagnosisView, HealthView, ParameterView
 else:  # imported when the output opens: loading a configuration does not load paho
     mqtt = lazy_module("paho.mqtt.client")
 
@@ -329,40 +331,51 @@ def _rounded(value: Any, std: float | None, *, floor: float | None = None,
     return float(f"{value:.{digits}g}")
 
 
-def _rul_s(param: dict[str, Any], level: str) -> Any:
-    rul = param.get("rul")
-    crossing = rul.get(level) if isinstance(rul, dict) else None
-    return crossing.get("rul_s") if isinstance(crossing, dict) else None
+def _rul_s(param: ParameterView, level: str) -> Any:
+    rul = param.rul
+    crossing = (rul.alarm if level == "alarm" else rul.warning) if rul is not None else None
+    return crossing.rul_s if crossing is not None else None
 
 
-def flat_values(doc: dict[str, Any]) -> dict[str, str]:
-    """The retained flat topics of one health message: suffix (``parameters/Ra/value``) ->
-    plain-text payload.
+def _view(doc: HealthView | Mapping[str, Any]) -> HealthView:
+    """``doc`` as the health message's typed view (parsed once)."""
+    from twinwatch.twin.health import HealthView, read_health
+
+    return doc if isinstance(doc, HealthView) else read_health(doc)
+
+
+def flat_values(doc: HealthView | Mapping[str, Any]) -> dict[str, str]:
+    """The retained flat topics of one health message (its typed view,
+    :func:`~twinwatch.twin.health.read_health`, or the decoded message): suffix
+    (``parameters/Ra/value``) -> plain-text payload.
 
     Per parameter: ``value``, ``deviation_pct`` (numbers; ``null`` when there is none),
     ``status``; ``rul`` and ``rul_warning`` (median seconds to the alarm / warning threshold,
     ``parameters.<name>.rul.<level>.rul_s``) when the message has a ``rul`` field (the
     prognostics); ``alarm`` (the level) when the parameter has an alarm rule (``alarms``).
     """
+    from twinwatch.twin.health import sent
+
+    doc = _view(doc)
     out: dict[str, str] = {}
-    alarms = doc.get("alarms") or {}
-    for name, p in (doc.get("parameters") or {}).items():
+    alarms = doc.alarms or {}
+    for name, p in (doc.parameters or {}).items():
         base = f"parameters/{name}"
-        value, dev, rel = p.get("value"), p.get("deviation_pct"), p.get("rel_std_pct")
+        value, dev, rel = p.value, p.deviation_pct, p.rel_std_pct
         out[f"{base}/value"] = _number(_rounded(value, _std(value, rel)))
-        nom = p.get("nominal")
+        nom = p.nominal
         dev_std = (_std(value, rel) / abs(nom) * 100.0
                    if isinstance(nom, int | float) and nom and _std(value, rel) else None)
         out[f"{base}/deviation_pct"] = _number(_rounded(dev, dev_std, floor=1e-4))
-        out[f"{base}/status"] = str(p.get("status") or "")
-        if "rul" in p:
+        out[f"{base}/status"] = str(p.status or "")
+        if sent(p, "rul"):
             out[f"{base}/rul"] = _number(_rul_s(p, "alarm"))
             out[f"{base}/rul_warning"] = _number(_rul_s(p, "warning"))
-        if name in alarms and isinstance(alarms[name], dict):
-            out[f"{base}/alarm"] = str(alarms[name].get("level") or "normal")
-    diag = doc.get("diagnosis")
-    if isinstance(diag, dict):
-        out.update(diagnosis_values(diag))
+        alarm = alarms.get(name)
+        if alarm is not None:
+            out[f"{base}/alarm"] = str(alarm.level or "normal")
+    if doc.diagnosis is not None:
+        out.update(diagnosis_values(doc.diagnosis))
     return out
 
 
@@ -371,48 +384,54 @@ _NO_ACTION = {"no_fault": "none",
                          "(twinwatch explain)"}
 
 
-def diagnosis_values(diag: dict[str, Any]) -> dict[str, str]:
+def diagnosis_values(diag: DiagnosisView) -> dict[str, str]:
     """The diagnosis' flat topics: ``diagnosis/fault`` (the most probable fault's id, or
     ``no_fault`` / ``unknown``), ``diagnosis/probability`` (its probability [%], one decimal),
     ``diagnosis/action`` (the fault's maintenance action, or what to do without one; never
     empty: an empty retained payload deletes the topic; at most 255 characters, Home
     Assistant's limit of a state)."""
-    status = str(diag.get("status") or "no_fault")
-    faults = diag.get("faults") or []
+    status = str(diag.status or "no_fault")
+    faults = diag.faults or []
     top = faults[0] if status == "fault" and faults else None
-    prob = diag.get("probability")
+    prob = diag.probability
     return {
-        "diagnosis/fault": str(top.get("id")) if top else status,
+        "diagnosis/fault": str(top.id) if top else status,
         "diagnosis/probability": _number(round(100.0 * prob, 1)
                                          if isinstance(prob, int | float) else None),
-        "diagnosis/action": (str(top.get("action") or "") if top else _NO_ACTION.get(
+        "diagnosis/action": (str(top.action or "") if top else _NO_ACTION.get(
             status, "none"))[:255],
     }
 
 
-def _levels(doc: dict[str, Any] | None) -> dict[str, str]:
-    alarms = (doc or {}).get("alarms") or {}
-    return {k: str(v.get("level") or "normal") for k, v in alarms.items() if isinstance(v, dict)}
+def _levels(doc: HealthView | None) -> dict[str, str]:
+    alarms = (doc.alarms if doc is not None else None) or {}
+    return {k: str(v.level or "normal") for k, v in alarms.items() if v is not None}
 
 
-def reconstructed_events(doc: dict[str, Any], previous: dict[str, str]) -> list[dict[str, Any]]:
-    """Alarm-level changes between the previous stored message's levels and ``doc``'s, as
-    events (the evaluator's keys it can give, ``"reconstructed": true``)."""
-    events = []
-    params = doc.get("parameters") or {}
+def reconstructed_events(doc: HealthView | None, previous: dict[str, str]
+                         ) -> list[dict[str, Any]]:
+    """Alarm-level changes between the previous stored message's levels and ``doc``'s (its
+    typed view; None: an unreadable message, no change), as events (the evaluator's keys it
+    can give, ``"reconstructed": true``)."""
+    events: list[dict[str, Any]] = []
+    if doc is None:
+        return events
+    params = doc.parameters or {}
     for name, level in _levels(doc).items():
         before = previous.get(name, "normal")
         if level == before:
             continue
-        a = doc["alarms"][name]
-        p = params.get(name) or {}
-        dev = a.get("deviation_pct")
+        a = (doc.alarms or {})[name]
+        p = params.get(name)
+        dev = a.deviation_pct
         events.append({
-            "machine": doc.get("machine"), "parameter": name, "level": level,
-            "previous": before, "deviation_pct": dev, "value": p.get("value"),
-            "unit": p.get("unit"), "nominal": p.get("nominal"), "t": doc.get("t_end"),
-            "window": doc.get("window"), "since_t": a.get("since_t"),
-            "message": (f"{doc.get('machine')}: {name} {before} -> {level}"
+            "machine": doc.machine, "parameter": name, "level": level,
+            "previous": before, "deviation_pct": dev,
+            "value": p.value if p is not None else None,
+            "unit": p.unit if p is not None else None,
+            "nominal": p.nominal if p is not None else None, "t": doc.t_end,
+            "window": doc.window, "since_t": a.since_t,
+            "message": (f"{doc.machine}: {name} {before} -> {level}"
                         + (f" ({dev:+.2f} % of nominal)" if isinstance(dev, int | float)
                            and math.isfinite(dev) else "")
                         + " (reconstructed from the stored health messages)"),
@@ -426,7 +445,8 @@ def ha_device_id(machine: str) -> str:
     return _HA_ID_RE.sub("_", f"twinwatch_{machine}")
 
 
-def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] | None,
+def discovery_payload(machine: str, model: str, base: str,
+                      doc: HealthView | Mapping[str, Any] | None,
                       parameters: dict[str, str], *, qos: int = 1,
                       device_name: str | None = None,
                       rules: Collection[str] | None = None,
@@ -438,7 +458,8 @@ def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] |
         machine: the machine name.
         model: the twin model (the device's model).
         base: the machine's topic base ``<prefix>/<machine>``.
-        doc: the newest health message (decoded), or None: which parameters have an alarm
+        doc: the newest health message (its typed view, or decoded), or None: which
+            parameters have an alarm
             rule (``alarms``) and a ``rul`` field; without it, every parameter of
             ``parameters`` gets its value, deviation and status only.
         parameters: parameter name -> SI unit (the twin's, in order).
@@ -459,12 +480,15 @@ def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] |
         diagnosis' most probable fault, its probability [%] and the maintenance action
         (unless the message has no ``diagnosis``: ``[diagnosis] enabled = false``).
     """
+    from twinwatch.twin.health import sent
+
+    view = _view(doc) if doc is not None else None
     dev_id = ha_device_id(machine)
     params = dict(parameters)
-    doc_params = (doc or {}).get("parameters") or {}
+    doc_params = (view.parameters if view is not None else None) or {}
     for name, p in doc_params.items():
-        params.setdefault(name, str(p.get("unit") or ""))
-    alarms = set(_levels(doc)) | set(rules or ())
+        params.setdefault(name, str(p.unit or ""))
+    alarms = set(_levels(view)) | set(rules or ())
     number = "{{ value_json }}"  # JSON null -> None -> Home Assistant's "unknown"
     cmps: dict[str, dict[str, Any]] = {}
 
@@ -490,11 +514,12 @@ def discovery_payload(machine: str, model: str, base: str, doc: dict[str, Any] |
         if name in alarms:
             add(f"{name}_alarm", "binary_sensor", f"{name} alarm", f"{t}/alarm",
                 dev_cla="problem", val_tpl="{{ 'OFF' if value == 'normal' else 'ON' }}")
-        if name in alarms and (rules is not None or "rul" in (doc_params.get(name) or {})):
+        if name in alarms and (rules is not None or (
+                name in doc_params and sent(doc_params[name], "rul"))):
             add(f"{name}_rul", "sensor", f"{name} remaining useful life", f"{t}/rul",
                 dev_cla="duration", unit_of_meas="s", stat_cla="measurement", val_tpl=number,
                 suggested_display_precision=0)
-    if doc is None or doc.get("diagnosis") is not None:  # [diagnosis] is on by default
+    if view is None or view.diagnosis is not None:  # [diagnosis] is on by default
         add("diagnosis_fault", "sensor", "most probable fault", "diagnosis/fault",
             ic="mdi:stethoscope")
         add("diagnosis_probability", "sensor", "most probable fault probability",
@@ -631,7 +656,7 @@ class MqttPublisher(Sink):
         self._acked: list[OutboxRow] = []        # delivered, not yet recorded
         self._position = 0
         self._cursor = 0
-        self._latest_doc: dict[str, Any] | None = None
+        self._latest_doc: HealthView | None = None
         self._previous_levels: dict[str, str] | None = None
         self._discovery_sent: str | None = None
         self._discovery_due: float | None = None
@@ -961,7 +986,7 @@ class MqttPublisher(Sink):
         self._cursor = max(position, max(self._inflight, default=position))
         if latest is not None and self._latest_doc is None:
             try:
-                self._latest_doc = json.loads(latest)
+                self._latest_doc = _view(latest)
             except ValueError:
                 pass
         self._count()
@@ -1112,7 +1137,7 @@ class MqttPublisher(Sink):
             latest = box.latest_id() if rows else None
             if rows and self._previous_levels is None:
                 before = box.doc_at_or_before(rows[0].id - 1)
-                self._previous_levels = _levels(json.loads(before)) if before else {}
+                self._previous_levels = _levels(_view(before)) if before else {}
         except (StoreError, ValueError) as exc:
             self._store_failed(exc)
             return
@@ -1133,10 +1158,11 @@ class MqttPublisher(Sink):
     def _send(self, row: OutboxRow, newest: bool) -> bool:
         """Publish one window's messages; False if paho refused (the connection is gone)."""
         qos = self.config.qos
+        doc: HealthView | None
         try:
-            doc = json.loads(row.doc)
+            doc = _view(row.doc)
         except ValueError:
-            doc = {}
+            doc = None
         window = _Window(row)
         messages: list[tuple[str, str | bytes, bool]] = [(self.health_topic, row.doc, False)]
         with self._events_lock:
@@ -1145,7 +1171,8 @@ class MqttPublisher(Sink):
             events = reconstructed_events(doc, self._previous_levels or {})
         messages += [(f"{self.base}/alarm", json.dumps(e), False) for e in events]
         if newest:
-            messages += [(f"{self.base}/{k}", v, True) for k, v in flat_values(doc).items()]
+            messages += [(f"{self.base}/{k}", v, True)
+                         for k, v in (flat_values(doc) if doc is not None else {}).items()]
         for topic, payload, retain in messages:
             info = self.client.publish(topic, payload, qos=qos, retain=retain)
             if info.rc != mqtt.MQTT_ERR_SUCCESS and info.rc != mqtt.MQTT_ERR_NO_CONN:
@@ -1155,7 +1182,7 @@ class MqttPublisher(Sink):
             self._mids[info.mid] = row.id
         self._inflight[row.id] = window
         self._previous_levels = _levels(doc)
-        if newest and doc:
+        if newest and doc is not None and doc.model_fields_set:
             had = self._latest_doc
             self._latest_doc = doc
             if self.config.home_assistant.discovery and (
@@ -1247,9 +1274,10 @@ class MqttPublisher(Sink):
         return f"MqttPublisher({self.health_topic!r}, {state}, delivered={self.delivered})"
 
 
-def _components(doc: dict[str, Any]) -> tuple[frozenset[str], frozenset[str]]:
+def _components(doc: HealthView) -> tuple[frozenset[str], frozenset[str]]:
     """What the discovery depends on in a message: parameters with an alarm rule, with a
     ``rul`` field."""
-    params = doc.get("parameters") or {}
-    return (frozenset(_levels(doc)), frozenset(k for k, p in params.items() if "rul" in p))
+    from twinwatch.twin.health import sent
 
+    params = doc.parameters or {}
+    return (frozenset(_levels(doc)), frozenset(k for k, p in params.items() if sent(p, "rul")))

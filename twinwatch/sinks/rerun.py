@@ -85,7 +85,6 @@ together (``rerun twinwatch-*.rrd twinwatch.rbl``).
 from __future__ import annotations
 
 import ipaddress
-import json
 import logging
 import os
 import re
@@ -119,7 +118,7 @@ if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from twinwatch.twin.health import HealthMessage
+    from twinwatch.twin.health import HealthMessage, HealthView
 else:  # imported when a recording opens: loading a configuration does not load rerun
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")
@@ -971,13 +970,16 @@ class RerunRecorder(Sink):
         logged once, counted in :attr:`errors`, never raised; the windows that follow are
         counted in :attr:`lost` until the file is reopened (see the module docstring).
         """
+        from twinwatch.twin.health import read_health
+
         times, meas, sim, estimates = self._validate(t, measured, simulated, parameters)
         if health_json is None:
             health_json = (to_json(health) if isinstance(health, Mapping)
                            else health.to_json())
-        doc = json.loads(health_json)
-        if not isinstance(doc, dict):
-            raise TypeError("health must encode to a JSON object")
+        try:
+            doc = read_health(health_json)  # the one typed reading of the message
+        except ValueError as exc:
+            raise TypeError(f"health must encode to a JSON object: {exc}") from exc
         if not self.config.enabled:
             return
         m = self.machine
@@ -992,7 +994,7 @@ class RerunRecorder(Sink):
                                    terms_changed, list(events))
             ops += projection_ops(m, doc, t_end)
             self._emit_live(ops)
-            window = doc.get("window")
+            window = doc.window
             if (not self._check_file(window) or not self._room()
                     or (self._rec is None and not self._reopen())):
                 self.lost += 1
@@ -1111,31 +1113,34 @@ def _growth_curve(t0: float, y0: float, t1: float, y1: float, r: float | None,
     return np.column_stack([t, y0 + a * g])
 
 
-def projection_ops(machine: str, doc: Mapping[str, Any], t_end: float) -> list[Op]:
+def projection_ops(machine: str, doc: HealthView, t_end: float) -> list[Op]:
     """Each parameter's projection to its alarm threshold (module docstring): for a message
-    whose ``parameters.<name>.trend`` has a level and whose ``rul.alarm`` is predicted, one
+    (its typed view, :func:`~twinwatch.twin.health.read_health`) whose
+    ``parameters.<name>.trend`` has a level and whose ``rul.alarm`` is predicted, one
     :class:`rerun.LineStrips2D` on ``<machine>/health/<name>/trend/projection`` at ``t_end``,
     in plant time [s] and % of nominal: the trend's shape (its growth rate) from its level now
     to the threshold at the median crossing and at both ends of the interval, and the
     threshold. Nothing for a message without prognostics."""
     ops: list[Op] = []
-    for name, ph in (doc.get("parameters") or {}).items():
-        trend = (ph or {}).get("trend") or {}
-        crossing = ((ph or {}).get("rul") or {}).get("alarm") or {}
-        nom, level = ph.get("nominal"), trend.get("level")
-        th, t_cross = crossing.get("threshold"), crossing.get("t")
-        if (crossing.get("status") != "predicted" or not nom or level is None or th is None
+    for name, ph in (doc.parameters or {}).items():
+        trend = ph.trend
+        crossing = ph.rul.alarm if ph.rul is not None else None
+        if trend is None or crossing is None:
+            continue
+        nom, level = ph.nominal, trend.level
+        th, t_cross = crossing.threshold, crossing.t
+        if (crossing.status != "predicted" or not nom or level is None or th is None
                 or t_cross is None):
             continue
 
         def pct(v: np.ndarray | float, nom: float = float(nom)) -> np.ndarray:
             return (np.asarray(v, dtype=float) / nom - 1.0) * 100.0
 
-        ends = [x for x in (t_cross, crossing.get("t_low"), crossing.get("t_high"))
+        ends = [x for x in (t_cross, crossing.t_low, crossing.t_high)
                 if x is not None]
         strips = []
         for x in ends:
-            curve = _growth_curve(t_end, float(level), float(x), float(th), trend.get("growth"))
+            curve = _growth_curve(t_end, float(level), float(x), float(th), trend.growth)
             strips.append(np.column_stack([curve[:, 0], pct(curve[:, 1])]))
         strips.append(np.array([[t_end, float(pct(th))], [max(ends), float(pct(th))]]))
         labels = [f"{name} median crossing", *([f"{name} 95 % band"] * (len(ends) - 1)),

@@ -78,6 +78,14 @@ from twinwatch.sinks.base import AlarmBands
 if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
+
+    from twinwatch.twin.health import (
+        AlarmView,
+        DiagnosisView,
+        HealthView,
+        ParameterView,
+        RulView,
+    )
 else:  # imported when a recording opens: loading a configuration does not load rerun
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")
@@ -447,9 +455,11 @@ class RecordingViews:
 
     def window_ops(self, times: np.ndarray, meas: Mapping[str, np.ndarray],
                     sim: Mapping[str, np.ndarray], estimates: Mapping[str, float],
-                    doc: Mapping[str, Any], health_json: str, terms_changed: bool,
+                    doc: HealthView, health_json: str, terms_changed: bool,
                     events: list[Mapping[str, Any]]) -> list[Op]:
-        """Everything one window logs, in order (called with the lock held)."""
+        """Everything one window logs, in order (called with the lock held). ``doc`` is the
+        health message's typed view (:func:`~twinwatch.twin.health.read_health` of
+        ``health_json``)."""
         m = self.machine
         t0, t_end = float(times[0]), float(times[-1])
         ops: list[Op] = []
@@ -473,19 +483,19 @@ class RecordingViews:
                               t_end))
         ops.append(Op(entity(m, "parameters"), rr.Scalars(
             [estimates.get(p, math.nan) for p in self.parameters]), t_end))
-        params = _mapping(doc.get("parameters"))
+        params = doc.parameters or {}
         for p in self.estimated:
             ph = params.get(p)
-            if isinstance(ph, Mapping):
+            if ph is not None:
                 ops += self._health_ops(p, ph, t_end)
         for ev in events:
             ops += self._event_ops(ev, t_end, params)
-        alarms = _mapping(doc.get("alarms"))
+        alarms = doc.alarms or {}
         for p in self.estimated:
             ph = params.get(p)
-            if isinstance(ph, Mapping):
+            if ph is not None:
                 ops.append(Op(entity(m, "health", p, "summary"), rr.TextDocument(
-                    self._summary(p, ph, _mapping(alarms.get(p))),
+                    self._summary(p, ph, alarms.get(p)),
                     media_type=rr.MediaType.MARKDOWN), t_end))
         ops += self._quality_ops(doc, t_end)
         ops.append(Op(entity(m, "model"), rr.TextDocument(
@@ -494,14 +504,15 @@ class RecordingViews:
         ops.append(Op(entity(m, "health"), rr.TextDocument(
             f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{pretty}\n```\n",
             media_type=rr.MediaType.MARKDOWN), t_end))
-        text, level = _log_row(t0, t_end, doc, terms_changed, self._new_problems(doc))
+        text, level = _log_row(t0, t_end, doc, terms_changed, self._new_problems(doc),
+                               health_json)
         ops.append(Op(entity(m, "log"), rr.TextLog(text, level=level), t_end))
         return ops
 
-    def _health_ops(self, p: str, ph: Mapping[str, Any], t: float) -> list[Op]:
+    def _health_ops(self, p: str, ph: ParameterView, t: float) -> list[Op]:
         """The deviation of ``p`` with its band, nominal and thresholds, and its status marker
         (the series of :meth:`_series`)."""
-        dev = _num(ph.get("deviation_pct"))
+        dev = _num(ph.deviation_pct)
         if not math.isfinite(dev):
             return []
         limits = [value for _, value, _ in self._limits(p)]
@@ -520,7 +531,7 @@ class RecordingViews:
         frame = self._run_frame(f"health/{p}", values)
         if frame is not None:
             ops.append(Op(entity(m, "health", p, "frame"), rr.Scalars(frame), t))
-        status = ph.get("status")
+        status = ph.status
         if status in _STATUS_STYLE:
             ops.append(Op(entity(m, "health", p, str(status)), rr.Scalars(dev), t))
         trend = _trend_pct(ph)
@@ -530,7 +541,7 @@ class RecordingViews:
         return ops
 
     def _event_ops(self, ev: Mapping[str, Any], t_end: float,
-                   params: Mapping[str, Any]) -> list[Op]:
+                   params: Mapping[str, ParameterView]) -> list[Op]:
         """An alarm change: its message in the log, a marker on its parameter's view (a
         deviation rule's at the event's deviation, a RUL rule's at the parameter's deviation in
         this window), its moment kept for the parameter's summary."""
@@ -549,7 +560,8 @@ class RecordingViews:
         self._moments.setdefault(p, {})[(rule, str(level if raised else previous))] = (
             "raised" if raised else "cleared", t)
         if rule == "rul":
-            dev = _num(_mapping(params.get(p)).get("deviation_pct"))
+            ph = params.get(p)
+            dev = _num(ph.deviation_pct if ph is not None else None)
             kind = f"rul_{kind}" if raised else ""
         else:
             dev = _num(ev.get("deviation_pct"))
@@ -557,36 +569,37 @@ class RecordingViews:
             ops.append(Op(entity(m, "health", p, "events", kind), rr.Scalars(dev), t))
         return ops
 
-    def _summary(self, p: str, ph: Mapping[str, Any], alarm: Mapping[str, Any]) -> str:
+    def _summary(self, p: str, ph: ParameterView, alarm: AlarmView | None) -> str:
         """What ``p``'s panel says in words (markdown, two to four short lines): its deviation
         and status, its trend, the RUL to each threshold of its rule (median and 95 %
         interval, and the plant time of the crossing), the moments its deviation and RUL alarms
         were raised or cleared, and its 2-sigma band when that leaves the view."""
-        dev = _num(ph.get("deviation_pct"))
-        status = str(ph.get("status", ""))
-        rel = _num(ph.get("rel_std_pct"))
+        dev = _num(ph.deviation_pct)
+        status = _str(ph.status)
+        rel = _num(ph.rel_std_pct)
         head = f"**{p} {_fmt(dev, '+.2f')} %** {status}"
         if status in ("estimated", "fused") and math.isfinite(rel):
             head += f" +- {rel:.2g} %"
-        trend = _mapping(ph.get("trend"))
-        if trend.get("model") is None:
-            head += "; no trend yet" if trend else ""
-        elif trend.get("degrading") is False:
+        trend = ph.trend
+        if trend is None or trend.model is None:
+            head += "; no trend yet" if trend is not None and trend.model_fields_set else ""
+        elif trend.degrading is False:
             head += "; not degrading"
         else:
-            rate = _num(trend.get("rate_pct_per_h"))
-            head += f"; trend {trend.get('model')} {_fmt(rate, '+.3g')} %/h"
+            rate = _num(trend.rate_pct_per_h)
+            head += f"; trend {trend.model} {_fmt(rate, '+.3g')} %/h"
         lines = [head]
-        rul = _mapping(ph.get("rul"))
+        rul = ph.rul
         if p in self.alarm_bands:
             text = _rul_text(ph, at=True)
             if text:
                 lines.append(f"**{text}**")
-            elif rul.get("status") in ("insufficient", "not_degrading"):
-                lines.append("RUL: " + str(rul["status"]).replace("_", " "))
+            elif rul is not None and rul.status in ("insufficient", "not_degrading"):
+                lines.append("RUL: " + str(rul.status).replace("_", " "))
         moments = dict(self._moments.get(p, {}))
-        for rule, state in (("deviation", alarm), ("rul", _mapping(alarm.get("rul")))):
-            level, since = str(state.get("level", "normal")), _num(state.get("since_t"))
+        for rule, state in (("deviation", alarm), ("rul", alarm.rul if alarm else None)):
+            level = _str(state.level, "normal") if state is not None else "normal"
+            since = _num(state.since_t if state is not None else None)
             if _RANK.get(level, 0) > 0 and (rule, level) not in moments and \
                     math.isfinite(since):
                 moments[(rule, level)] = ("raised", since)  # raised before this recording
@@ -605,35 +618,34 @@ class RecordingViews:
             lines.append(f"2-sigma band {low:+.3g}..{high:+.3g} %, drawn to +-{clip:g} %")
         return "  \n".join(lines) + "\n"
 
-    def _quality_ops(self, doc: Mapping[str, Any], t: float) -> list[Op]:
+    def _quality_ops(self, doc: HealthView, t: float) -> list[Op]:
         """nRMSE and the model check, the adaptation time, the counters of lost data."""
         m = self.machine
         ops = []
-        residual = doc.get("residual")
-        if isinstance(residual, Mapping):
-            for variant in ("dt_prime", "dt_second"):
-                fit = residual.get(variant)
-                value = _num(fit.get("nrmse")) if isinstance(fit, Mapping) else math.nan
-                if math.isfinite(value):
-                    ops.append(Op(entity(m, "quality", f"nrmse_{variant}"),
-                                   rr.Scalars(value * _PPM), t))
-        nrmse = _num(doc.get("nrmse"))
-        fit = [_num(_mapping(_mapping(residual).get(v)).get("nrmse")) for v in
-               ("dt_prime", "dt_second")] + [nrmse]
+        residual = doc.residual
+        fits = ((residual.dt_prime, residual.dt_second) if residual is not None
+                else (None, None))
+        for variant, fit in zip(("dt_prime", "dt_second"), fits, strict=True):
+            value = _num(fit.nrmse) if fit is not None else math.nan
+            if math.isfinite(value):
+                ops.append(Op(entity(m, "quality", f"nrmse_{variant}"),
+                               rr.Scalars(value * _PPM), t))
+        nrmse = _num(doc.nrmse)
+        fit = [_num(f.nrmse if f is not None else None) for f in fits] + [nrmse]
         frame = self._run_frame("quality", [v * _PPM for v in fit])
         if frame is not None:
             ops.append(Op(entity(m, "quality", "frame"), rr.Scalars(frame), t))
         if math.isfinite(nrmse):
             ops.append(Op(entity(m, "quality", "nrmse"), rr.Scalars(nrmse * _PPM), t))
-            check = doc.get("model_check")
-            if isinstance(check, Mapping) and check.get("passed") is False:
+            check = doc.model_check
+            if check is not None and check.passed is False:
                 ops.append(Op(entity(m, "quality", "model_check_failed"),
                               rr.Scalars(nrmse * _PPM), t))
-        elapsed = _num(doc.get("elapsed_s"))
+        elapsed = _num(doc.elapsed_s)
         if math.isfinite(elapsed):
             ops.append(Op(entity(m, "quality", "elapsed_ms"), rr.Scalars(elapsed * 1e3), t))
-        counters = doc.get("counters")
-        if isinstance(counters, Mapping):
+        counters = doc.counters
+        if counters is not None:
             new = [k for k in counters if k not in self._problem_counters
                    and _PROBLEM_COUNTER.search(k) and isinstance(counters[k], int | float)]
             if new:
@@ -659,10 +671,10 @@ class RecordingViews:
         self._frames[view] = frame
         return frame
 
-    def _new_problems(self, doc: Mapping[str, Any]) -> dict[str, int]:
+    def _new_problems(self, doc: HealthView) -> dict[str, int]:
         """The problem counters that grew since the last window, and by how much."""
-        counters = doc.get("counters")
-        if not isinstance(counters, Mapping):
+        counters = doc.counters
+        if counters is None:
             return {}
         grew = {}
         for k, v in counters.items():
@@ -692,9 +704,9 @@ def emit(rec: rr.RecordingStream, ops: Sequence[Op]) -> None:
 _RANK = {"normal": 0, "warning": 1, "alarm": 2}
 
 
-def _mapping(x: Any) -> Mapping[str, Any]:
-    """``x`` if it is a JSON object, else an empty one."""
-    return x if isinstance(x, Mapping) else {}
+def _str(x: Any, default: str = "") -> str:
+    """A text field of the message as text (``default`` when the message lacks it)."""
+    return default if x is None else str(x)
 
 
 def _num(x: Any) -> float:
@@ -704,18 +716,14 @@ def _num(x: Any) -> float:
     return math.nan
 
 
-def _residual_rmse(doc: Mapping[str, Any]) -> dict[str, Mapping[str, float | None]]:
+def _residual_rmse(doc: HealthView) -> dict[str, Mapping[str, float | None]]:
     """``residual.<dt_prime|dt_second>.rmse``: output -> RMSE of the twin without and with its
     terms (empty for a variant the message does not hold)."""
-    residual = doc.get("residual")
-    if not isinstance(residual, Mapping):
+    residual = doc.residual
+    if residual is None:
         return {"dt_prime": {}, "dt_second": {}}
-    out: dict[str, Mapping[str, float | None]] = {}
-    for variant in ("dt_prime", "dt_second"):
-        fit = residual.get(variant)
-        rmse = fit.get("rmse") if isinstance(fit, Mapping) else None
-        out[variant] = rmse if isinstance(rmse, Mapping) else {}
-    return out
+    return {"dt_prime": (residual.dt_prime.rmse if residual.dt_prime else None) or {},
+            "dt_second": (residual.dt_second.rmse if residual.dt_second else None) or {}}
 
 
 def _frame(values: np.ndarray) -> list[float] | None:
@@ -741,16 +749,16 @@ def _frame(values: np.ndarray) -> list[float] | None:
     return [lo, hi]
 
 
-def _band_pct(ph: Mapping[str, Any]) -> tuple[float, float]:
+def _band_pct(ph: ParameterView) -> tuple[float, float]:
     """The 2-sigma band of a parameter's published value, in % of nominal (NaN when the
     message gives none): the fused interval for a fused or held value that has one, else the
     value +- 2 relative standard errors."""
-    nom, value, rel = _num(ph.get("nominal")), _num(ph.get("value")), _num(ph.get("rel_std_pct"))
+    nom, value, rel = _num(ph.nominal), _num(ph.value), _num(ph.rel_std_pct)
     if not math.isfinite(nom) or nom == 0.0:
         return math.nan, math.nan
-    fused = ph.get("fused")
-    if ph.get("status") != "estimated" and isinstance(fused, Mapping):
-        low, high = _num(fused.get("low")), _num(fused.get("high"))
+    fused = ph.fused
+    if ph.status != "estimated" and fused is not None:
+        low, high = _num(fused.low), _num(fused.high)
     elif math.isfinite(value) and math.isfinite(rel):
         low, high = value * (1.0 - 0.02 * rel), value * (1.0 + 0.02 * rel)
     else:
@@ -758,12 +766,13 @@ def _band_pct(ph: Mapping[str, Any]) -> tuple[float, float]:
     return (low / nom - 1.0) * 100.0, (high / nom - 1.0) * 100.0
 
 
-def _trend_pct(ph: Mapping[str, Any]) -> tuple[float, float, float] | None:
+def _trend_pct(ph: ParameterView) -> tuple[float, float, float] | None:
     """The parameter's trend (``trend.level`` +- 2 ``level_std``, when the message has one) in
     % of nominal: (low, high, level); None without a trend level."""
-    trend = _mapping(ph.get("trend"))
-    nom, level, std = _num(ph.get("nominal")), _num(trend.get("level")), _num(
-        trend.get("level_std"))
+    trend = ph.trend
+    nom = _num(ph.nominal)
+    level = _num(trend.level if trend is not None else None)
+    std = _num(trend.level_std if trend is not None else None)
     if not math.isfinite(level) or not math.isfinite(nom) or nom == 0.0:
         return None
     std = std if math.isfinite(std) else 0.0
@@ -774,21 +783,27 @@ def _trend_pct(ph: Mapping[str, Any]) -> tuple[float, float, float] | None:
     return pct(level - 2 * std), pct(level + 2 * std), pct(level)
 
 
-def _rul_text(ph: Mapping[str, Any], at: bool = False) -> str:
+def _crossings(rul: RulView | None) -> list[tuple[str, Any]]:
+    """(level, crossing) of the warning and the alarm threshold, those the RUL has."""
+    if rul is None:
+        return []
+    return [(level, c) for level, c in (("warning", rul.warning), ("alarm", rul.alarm))
+            if c is not None]
+
+
+def _rul_text(ph: ParameterView, at: bool = False) -> str:
     """``RUL to alarm 3m 40s (2m 50s-5m 10s)`` from the message's ``rul`` (empty without);
     with ``at``, the crossing's plant time too (``, at 18:10 (17:30-19:50)``). An open end
     (some draws never reach it) is ``never``."""
-    rul = _mapping(ph.get("rul"))
     parts = []
-    for level in ("warning", "alarm"):
-        c = _mapping(rul.get(level))
-        if c.get("status") == "crossed":
+    for level, c in _crossings(ph.rul):
+        if c.status == "crossed":
             parts.append(f"{level} crossed")
-        elif c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
-            low, high = _num(c.get("low_s")), _num(c.get("high_s"))
-            text = (f"RUL to {level} {span(_num(c.get('rul_s')))} ({span(low)}-"
+        elif c.status == "predicted" and math.isfinite(_num(c.rul_s)):
+            low, high = _num(c.low_s), _num(c.high_s)
+            text = (f"RUL to {level} {span(_num(c.rul_s))} ({span(low)}-"
                     f"{span(high) if math.isfinite(high) else 'never'})")
-            t, t_low, t_high = _num(c.get("t")), _num(c.get("t_low")), _num(c.get("t_high"))
+            t, t_low, t_high = _num(c.t), _num(c.t_low), _num(c.t_high)
             if at and math.isfinite(t):
                 text += (f", at {clock(t)} ({clock(t_low)}-"
                          f"{clock(t_high) if math.isfinite(t_high) else 'never'})")
@@ -796,17 +811,15 @@ def _rul_text(ph: Mapping[str, Any], at: bool = False) -> str:
     return ", ".join(parts)
 
 
-def _rul_short(ph: Mapping[str, Any]) -> str:
+def _rul_short(ph: ParameterView) -> str:
     """``RUL alarm 3m 32s`` (the median to the nearest threshold not crossed yet; the
     interval is on the parameter's panel), else ``alarm crossed``, or empty."""
-    rul = _mapping(ph.get("rul"))
     crossed = ""
-    for level in ("warning", "alarm"):
-        c = _mapping(rul.get(level))
-        if c.get("status") == "crossed":
+    for level, c in _crossings(ph.rul):
+        if c.status == "crossed":
             crossed = f"{level} crossed"
-        elif c.get("status") == "predicted" and math.isfinite(_num(c.get("rul_s"))):
-            return f"RUL {level} {span(_num(c.get('rul_s')))}"
+        elif c.status == "predicted" and math.isfinite(_num(c.rul_s)):
+            return f"RUL {level} {span(_num(c.rul_s))}"
     return crossed
 
 
@@ -847,43 +860,43 @@ def _fmt(x: Any, spec: str = ".6g") -> str:
     return format(v, spec) if math.isfinite(v) else "n/a"
 
 
-def _diagnosis_lines(d: Any) -> list[str]:
+def _diagnosis_lines(d: DiagnosisView | None) -> list[str]:
     """The diagnosis as markdown lines (none without one): the outcome, the first fault's
     action and its evidence for and against, the next faults with their probabilities."""
-    if not isinstance(d, Mapping):
+    if d is None:
         return []
-    faults = [f for f in d.get("faults") or [] if isinstance(f, Mapping)]
-    status = d.get("status")
+    faults = d.faults or []
+    status = d.status
     if status == "fault" and faults:
         f = faults[0]
-        lines = [f"**Diagnosis: {f.get('id')}** ({f.get('component')}), probability "
-                 f"{_fmt(f.get('probability'), '.2f')}, urgency {f.get('urgency')}: "
-                 f"{f.get('action')}  "]
-        lines += [f"+ {x}  " for x in f.get("evidence_for") or []]
-        lines += [f"- {x}  " for x in f.get("evidence_against") or []]
+        lines = [f"**Diagnosis: {f.id}** ({f.component}), probability "
+                 f"{_fmt(f.probability, '.2f')}, urgency {f.urgency}: "
+                 f"{f.action}  "]
+        lines += [f"+ {x}  " for x in f.evidence_for or []]
+        lines += [f"- {x}  " for x in f.evidence_against or []]
     elif status == "unknown":
         lines = [f"**Diagnosis: a fault the library does not know** (probability "
-                 f"{_fmt(d.get('unknown'), '.2f')}): " + "; ".join(
-                     f"`{t}`" for t in d.get("unknown_terms") or [])]
+                 f"{_fmt(d.unknown, '.2f')}): " + "; ".join(
+                     f"`{t}`" for t in d.unknown_terms or [])]
     else:
-        lines = [f"**Diagnosis: no fault** (probability {_fmt(d.get('no_fault'), '.2f')})"]
-    others = [f"{f.get('id')} {_fmt(f.get('probability'), '.2f')}"
+        lines = [f"**Diagnosis: no fault** (probability {_fmt(d.no_fault, '.2f')})"]
+    others = [f"{f.id} {_fmt(f.probability, '.2f')}"
               for f in faults[1 if status == "fault" else 0:4]]
     if others:
         lines.append("next: " + ", ".join(others))
     return [*lines, ""]
 
 
-def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
+def _model_document(machine: str, t: float, doc: HealthView) -> str:
     """The twin DT'' as markdown: the diagnosis first (the most probable fault, its action and
     evidence), each meta-model term (equation, meaning, evidence), then every parameter's
     value against nominal and its status, then the fit."""
-    terms = [term for term in doc.get("terms") or [] if isinstance(term, Mapping)]
-    model = doc.get("model")
+    terms = doc.terms or []
+    model = doc.model
     twin = f"`{model}`" if model else "the physical twin"
-    window = doc.get("window")
+    window = doc.window
     at = f"at {clock(t)}" + (f", window {window}" if window is not None else "")
-    lines = _diagnosis_lines(doc.get("diagnosis"))
+    lines = _diagnosis_lines(doc.diagnosis)
     if not terms:
         lines.append(f"**DT'' = DT** {at}: {twin} alone explains the data.")
     else:
@@ -892,114 +905,116 @@ def _model_document(machine: str, t: float, doc: Mapping[str, Any]) -> str:
                      f"{twin} plus what discovery found (paper Eq. 3).")
         for i, term in enumerate(terms, 1):
             lines.append("")
-            lines.append(f"**{i}.** `{term.get('equation', '?')}`  ")
-            if term.get("meaning"):
-                lines.append(f"{term['meaning']}  ")
-            params = _mapping(term.get("params"))
-            std = _mapping(term.get("params_std"))
+            lines.append(f"**{i}.** `{_str(term.equation, '?')}`  ")
+            if term.meaning:
+                lines.append(f"{term.meaning}  ")
+            params = term.params or {}
+            std = term.params_std or {}
             values = ", ".join(
                 f"{k} = {_fmt(v, '.5g')}" + (f" +- {_fmt(std[k], '.2g')}"
                                              if math.isfinite(_num(std.get(k))) else "")
                 for k, v in params.items())
             evidence = []
-            if term.get("since_window") is not None:
-                evidence.append(f"found in window {term['since_window']}")
-            if math.isfinite(_num(term.get("significance"))):
-                evidence.append(f"significance {_fmt(term['significance'], '.3g')}")
+            if term.since_window is not None:
+                evidence.append(f"found in window {term.since_window}")
+            if math.isfinite(_num(term.significance)):
+                evidence.append(f"significance {_fmt(term.significance, '.3g')}")
             if values:
                 evidence.append(values + " (1 sigma)")
-            if math.isfinite(_num(term.get("evidence_windows"))):
-                evidence.append(f"evidence of {_fmt(term['evidence_windows'], '.3g')} windows")
+            if math.isfinite(_num(term.evidence_windows)):
+                evidence.append(f"evidence of {_fmt(term.evidence_windows, '.3g')} windows")
             if evidence:
                 lines.append("; ".join(evidence))
-    disc = doc.get("discovery")
-    if isinstance(disc, Mapping) and disc.get("too_large"):
-        lines += ["", f"The residual is too large for the twin ({disc.get('consecutive')} "
+    disc = doc.discovery
+    if disc is not None and disc.too_large:
+        lines += ["", f"The residual is too large for the twin ({disc.consecutive} "
                   "windows in a row): discovery searches for what the model lacks."]
-    table = _mapping(doc.get("parameters"))
+    table = doc.parameters or {}
     if table:
         lines += ["", "| parameter | value | nominal | vs nominal | status |",
                   "|---|---:|---:|---:|---|"]
         reasons: dict[str, list[str]] = {}
         for name, p in table.items():
-            if not isinstance(p, Mapping):
-                continue
-            status = str(p.get("status", ""))
-            rel = _num(p.get("rel_std_pct"))
+            status = _str(p.status)
+            rel = _num(p.rel_std_pct)
             if status in ("estimated", "fused") and math.isfinite(rel):
                 status += f" +- {rel:.2g} %"
-            elif status == "tied" and p.get("reason"):
-                status = str(p["reason"])
-            elif status == "held" and p.get("reason"):
-                reasons.setdefault(str(p["reason"]), []).append(str(name))
-            dev = _num(p.get("deviation_pct"))
-            lines.append(f"| {name} | {_fmt(p.get('value'))} {p.get('unit', '')} | "
-                         f"{_fmt(p.get('nominal'))} | "
+            elif status == "tied" and p.reason:
+                status = str(p.reason)
+            elif status == "held" and p.reason:
+                reasons.setdefault(str(p.reason), []).append(str(name))
+            dev = _num(p.deviation_pct)
+            lines.append(f"| {name} | {_fmt(p.value)} {_str(p.unit)} | "
+                         f"{_fmt(p.nominal)} | "
                          f"{format(dev, '+.2f') + ' %' if math.isfinite(dev) else 'n/a'} | "
                          f"{status} |")
         for reason, names in reasons.items():
             lines += ["", f"{', '.join(names)} held: {reason}"]
-    rmse = doc.get("rmse")
-    if isinstance(rmse, Mapping) and rmse:
+    rmse = doc.rmse
+    if rmse:
         fit = ", ".join(f"{k} {_fmt(v, '.3g')}" for k, v in rmse.items())
-        lines += ["", f"fit: nRMSE {_fmt(doc.get('nrmse'), '.3g')}; RMSE {fit}"]
+        lines += ["", f"fit: nRMSE {_fmt(doc.nrmse, '.3g')}; RMSE {fit}"]
     return "\n".join(lines) + "\n"
 
 
-def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: bool,
-             grew: Mapping[str, int]) -> tuple[str, Any]:
+def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
+             grew: Mapping[str, int], health_json: str = "{}") -> tuple[str, Any]:
     """One line with the window's values, and its level: ERROR while a parameter is in alarm,
     WARN while one is in warning, the model check fails, the structure changed or data were
     lost, else INFO. Most important first (a row is not wrapped: its end may be cut): the
     window and its plant time, the deviation and RUL alarms apart, the parameters with an
-    alarm rule, the fit, then the other parameters."""
-    parts = [f"window {doc.get('window', '?')} [{clock(t0)}-{clock(t_end)}]"]
+    alarm rule, the fit, then the other parameters. A document that is no health message
+    (``health_json``, as logged) shows its top-level scalars."""
+    from twinwatch.twin.health import sent
+
+    parts = [f"window {_str(doc.window, '?')} [{clock(t0)}-{clock(t_end)}]"]
     worst = 0
-    alarms = _mapping(doc.get("alarms"))
+    alarms = doc.alarms or {}
     raised = []
     for name, a in alarms.items():
-        level = str(_mapping(a).get("level"))
+        level = str(a.level)
         if _RANK.get(level, 0) > 0:
             worst = max(worst, _RANK[level])
-            dev = _fmt(_mapping(a).get("deviation_pct"), "+.2f")
+            dev = _fmt(a.deviation_pct, "+.2f")
             raised.append(f"{level.upper()} {name} {dev} %")
     for name, a in alarms.items():
-        level = str(_mapping(_mapping(a).get("rul")).get("level"))
+        level = str(a.rul.level if a.rul is not None else None)
         if _RANK.get(level, 0) > 0:
             worst = max(worst, _RANK[level])
             raised.append(f"RUL {level.upper()} {name}")
     if raised:
         parts.append(", ".join(raised) + " |")
     ruled, others, held = [], [], []
-    for name, p in _mapping(doc.get("parameters")).items():
-        if not isinstance(p, Mapping) or p.get("status") in ("tied", "fixed"):
+    for name, p in (doc.parameters or {}).items():
+        if p.status in ("tied", "fixed"):
             continue
-        if p.get("status") == "held":  # the last trusted value again: named, not repeated
+        if p.status == "held":  # the last trusted value again: named, not repeated
             held.append(str(name))
             continue
         rul = _rul_short(p)
-        said = _RANK.get(str(_mapping(alarms.get(name)).get("level")), 0) > 0
-        dev = "" if said else f"{_fmt(p.get('deviation_pct'), '+.2f')} % "  # in the alarm's
+        alarm = alarms.get(name)
+        said = _RANK.get(str(alarm.level if alarm is not None else None), 0) > 0
+        dev = "" if said else f"{_fmt(p.deviation_pct, '+.2f')} % "  # in the alarm's
         (ruled if name in alarms else others).append(
-            f"{name} {_fmt(p.get('value'), '.6g')} {p.get('unit', '')} {dev}"
-            f"{p.get('status', '')}" + (f" ({rul})" if rul else ""))
+            f"{name} {_fmt(p.value, '.6g')} {_str(p.unit)} {dev}"
+            f"{_str(p.status)}" + (f" ({rul})" if rul else ""))
     if held:
         others.append("held " + ", ".join(held))
     if ruled:
         parts.append("; ".join(ruled) + " |")
     fit = []
-    if "nrmse" in doc:
-        fit.append(f"nRMSE {_fmt(doc.get('nrmse'), '.3g')}")
-    check = doc.get("model_check")
-    failed = isinstance(check, Mapping) and check.get("passed") is False
+    if sent(doc, "nrmse"):
+        fit.append(f"nRMSE {_fmt(doc.nrmse, '.3g')}")
+    check = doc.model_check
+    failed = check is not None and check.passed is False
     if failed:  # a check that passed is the rule: said only in the model panel
-        fit.append("model check FAILED: " + "; ".join(map(str, check.get("reasons") or [])))
-    if math.isfinite(_num(doc.get("elapsed_s"))):
-        fit.append(f"{_num(doc.get('elapsed_s')) * 1e3:.0f} ms")
-    disc = doc.get("discovery")
-    changed = terms_changed or (isinstance(disc, Mapping) and bool(disc.get("changed")))
-    if changed and isinstance(disc, Mapping):
-        kept, dropped = disc.get("kept") or [], disc.get("dropped") or []
+        fit.append("model check FAILED: " + "; ".join(map(str, check.reasons or [])))
+    if math.isfinite(_num(doc.elapsed_s)):
+        fit.append(f"{_num(doc.elapsed_s) * 1e3:.0f} ms")
+    disc = doc.discovery
+    changed = terms_changed or (disc is not None and bool(disc.changed))
+    if changed and disc is not None:
+        kept, dropped = disc.kept or [], disc.dropped or []
         fit.append("DT'' changed" + "".join(f"; added {e}" for e in kept)
                    + "".join(f"; dropped {e}" for e in dropped))
     elif changed:
@@ -1011,7 +1026,7 @@ def _log_row(t0: float, t_end: float, doc: Mapping[str, Any], terms_changed: boo
     if others:
         parts.append("; ".join(others))
     if not raised and len(parts) == 1:  # not a health message: its top-level scalars
-        parts.append(", ".join(f"{k}={v}" for k, v in doc.items()
+        parts.append(", ".join(f"{k}={v}" for k, v in json.loads(health_json).items()
                                if isinstance(v, bool | str | int | float) or v is None))
     if worst == 2:
         level = rr.TextLogLevel.ERROR

@@ -723,7 +723,11 @@ class HealthPublisher(Sink):
         more = len(windows) == limit
         # the cursor of the next page: by plant time the last window's end (by wall time the
         # caller pages on the wall stamps it keeps; the messages carry plant time only)
-        nxt = windows[-1].get("t_end") if more and by == "plant" and windows else None
+        nxt = None
+        if more and by == "plant" and windows:
+            from twinwatch.twin.health import read_health
+
+            nxt = read_health(windows[-1]).t_end
         return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to, "run": run,
                 "after": after, "count": len(windows), "more": more, "next_after": nxt,
                 "windows": windows}

@@ -5,7 +5,9 @@ over time is the machine's health").
 built in one place (:func:`build_health`, from the public results of the window's estimation
 and adaptation) and serialised by one encoder (:meth:`HealthMessage.to_json`,
 :func:`twinwatch.io.encoding.to_json`) for Zenoh, the state store and the Rerun recording:
-non-finite numbers become ``null`` everywhere.
+non-finite numbers become ``null`` everywhere. Every reader of a published message (watch and
+tail, the recording, MQTT and Home Assistant, explain) reads it through one typed view derived
+from the model, :func:`read_health` (:data:`HealthView`), never by the decoded JSON's keys.
 
 The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
@@ -52,22 +54,34 @@ model. Layout version :data:`SCHEMA_VERSION`:
 
 from __future__ import annotations
 
+import copy
+import functools
+import json
 import math
+import operator
+import types
+import typing
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    ValidationError,
+    create_model,
+)
 
-from twinwatch.io.encoding import to_json
-from twinwatch.twin.estimation.estimator import ParameterStatus, WindowEstimate
-from twinwatch.twin.model import TwinModel, WindowData
-from twinwatch.twin.prognostics import Crossing, RulReport, TrendReport
-from twinwatch.twin.prognostics.rul import format_crossing
-from twinwatch.twin.prognostics.window import WindowChoice
-
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the builder's inputs: a reader of the message (the watcher) loads none
     from twinwatch.twin.adaptation import AdaptationResult
+    from twinwatch.twin.estimation.estimator import WindowEstimate
     from twinwatch.twin.estimation.fit import Residual
+    from twinwatch.twin.model import TwinModel, WindowData
+    from twinwatch.twin.prognostics import Crossing, RulReport, TrendReport
+    from twinwatch.twin.prognostics.window import WindowChoice
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -90,13 +104,23 @@ __all__ = [
     "SourceHealth",
     "TermHealth",
     "TrendHealth",
+    "HealthView",
     "build_health",
     "diagnosis_line",
+    "read_health",
+    "sent",
+    "view_of",
     "summary_line",
     "trend_line",
 ]
 
 SCHEMA_VERSION = 9
+
+ParameterStatus = Literal["estimated", "fused", "suspect", "held", "tied", "fixed"]
+"""The estimation's :data:`~twinwatch.twin.estimation.publish.ParameterStatus`, restated so
+that this module (the message and its readers' view) imports no estimation: a reader such as
+``twinwatch watch`` loads pydantic and this module only (tests/test_health_readers.py holds the
+two equal)."""
 
 
 def _finite(x: Any) -> Any:
@@ -469,6 +493,8 @@ class HealthMessage(_Part):
 
     def to_json(self) -> str:
         """The message as compact, strict JSON (the one encoder, :mod:`twinwatch.io.encoding`)."""
+        from twinwatch.io.encoding import to_json
+
         return to_json(self.as_dict())
 
 
@@ -669,6 +695,8 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
     ``Ra  exponential from 160 s, -0.00264 ohm/s (-0.0027 .. -0.0026), -146 %/h; warning
     crossed, alarm in 6 min (4-9 min); monotonicity 0.98, trendability 0.97``; None without a
     trend."""
+    from twinwatch.twin.prognostics.rul import format_crossing
+
     t = p.trend
     if t is None:
         return None
@@ -710,3 +738,182 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
     if t.restarts and t.restart is not None:
         scores.append(f"restarted at {t.restart.t:.0f} s (step {t.restart.step:+.4g} {unit})")
     return head + body + ("; " + ", ".join(scores) if scores else "")
+
+
+# -- the readers' view ---------------------------------------------------------------------------
+# Every reader of a published or stored message (watch and tail, the recording, MQTT and Home
+# Assistant, explain, the alarms' restore, the history's paging) reads it through one typed view
+# derived from the model above, never by indexing the decoded JSON with strings: a new field is
+# one line on the model, and the readers that show it. The view is lenient where the model is
+# strict, because a reader meets messages the model would refuse: a daemon of an older schema
+# (no ``run`` before 6, no ``trend`` before 7, no ``diagnosis`` before 8, no
+# ``discovery.p_value`` before 9; the state database keeps them), a newer one (fields and
+# statuses this version does not know: kept, not read), a partial message in a test.
+# So in a view every field is None when the message does not carry it (absent or null: also a
+# field the model defaults, e.g. ``schema``), a part of the wrong shape reads as absent, unknown
+# fields are kept (not read), a status is any string, and numbers stay as they were sent (an int
+# stays an int: what a reader prints is what the daemon wrote).
+
+_VIEW_CONFIG = ConfigDict(extra="allow", frozen=True, populate_by_name=True,
+                          protected_namespaces=())
+_views: dict[type[BaseModel], type[BaseModel]] = {}
+
+
+def _lenient(tp: Any) -> Any:
+    """The view's annotation for the model's ``tp``."""
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return view_of(tp)
+    if tp is float or tp is int:  # as sent: an int stays an int, a bool or a text is no number
+        return StrictInt | StrictFloat
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin is Annotated:
+        return Annotated[(_lenient(args[0]), *tp.__metadata__)]
+    if origin is Literal:
+        return str
+    if origin in (typing.Union, types.UnionType):
+        return functools.reduce(operator.or_, [_lenient(a) for a in args])
+    if origin is dict:
+        return dict[_lenient(args[0]), _lenient(args[1])]  # type: ignore[misc]
+    if origin is list:
+        return list[_lenient(args[0])]  # type: ignore[misc]
+    return tp
+
+
+def view_of(model: type[BaseModel]) -> type[BaseModel]:
+    """The readers' view of a part of the message (:class:`HealthView` for
+    :class:`HealthMessage`, ``ParameterView`` for :class:`ParameterHealth`, ...): the same
+    fields, each None when not sent, unknown fields kept, statuses as strings."""
+    if model in _views:
+        return _views[model]
+    fields: dict[str, Any] = {}
+    for name, f in model.model_fields.items():
+        ann = _lenient(f.annotation) | None
+        if f.metadata:  # a Num's validator (non-finite -> None)
+            ann = Annotated[(ann, *f.metadata)]
+        fields[name] = (ann, Field(None, alias=f.alias))
+    base = model.__name__.removesuffix("Health").removesuffix("Message") or "Health"
+    view = create_model(f"{base}View", __config__=_VIEW_CONFIG, __doc__=(
+        f"The readers' view of :class:`{model.__name__}` (:func:`view_of`)."), **fields)
+    _views[model] = view
+    return view
+
+
+if TYPE_CHECKING:
+    # A static checker reads a view as its model (the same attribute names: a misspelt field
+    # is caught); at run time each attribute may also be None (an older daemon).
+    HealthView = HealthMessage
+    ParameterView = ParameterHealth
+    TrendView = TrendHealth
+    RulView = RulHealth
+    CrossingView = CrossingHealth
+    AlarmView = AlarmStatus
+    RulAlarmView = RulAlarmStatus
+    DiagnosisView = DiagnosisHealth
+    FaultView = FaultHealth
+    TermView = TermHealth
+    SensorView = SensorHealth
+else:
+    HealthView = view_of(HealthMessage)
+    ParameterView = view_of(ParameterHealth)
+    TrendView = view_of(TrendHealth)
+    RulView = view_of(RulHealth)
+    CrossingView = view_of(CrossingHealth)
+    AlarmView = view_of(AlarmStatus)
+    RulAlarmView = view_of(RulAlarmStatus)
+    DiagnosisView = view_of(DiagnosisHealth)
+    FaultView = view_of(FaultHealth)
+    TermView = view_of(TermHealth)
+    SensorView = view_of(SensorHealth)
+
+
+def sent(part: BaseModel, field: str) -> bool:
+    """Whether the message carried ``field`` in ``part`` (null or not), e.g. whether a
+    parameter has a ``rul`` entry at all (schema 7 on) as opposed to one that is null.
+
+    Raises:
+        AttributeError: ``field`` is not a field of ``part``'s model (a misspelt name).
+    """
+    if field not in type(part).model_fields:
+        raise AttributeError(f"{type(part).__name__} has no field {field!r}")
+    return field in part.model_fields_set
+
+
+def read_health(doc: str | bytes | Mapping[str, Any] | HealthMessage) -> HealthView:
+    """The readers' typed view of one health message, parsed once.
+
+    A part of the wrong shape (a number where an object belongs, an entry of a list or a map
+    that is not one) reads as absent, as if the message did not carry it: what a reader
+    shows of the rest is unchanged.
+
+    Args:
+        doc: the message as published (JSON text or bytes), decoded (a mapping), or the
+            daemon's own :class:`HealthMessage`.
+
+    Returns:
+        The :data:`HealthView`: attribute access, every field optional (see :func:`view_of`).
+
+    Raises:
+        ValueError: not JSON, or not a JSON object.
+    """
+    if isinstance(doc, HealthMessage):
+        doc = doc.as_dict()
+    try:
+        if isinstance(doc, str | bytes):
+            return HealthView.model_validate_json(doc)
+        return HealthView.model_validate(doc)
+    except ValidationError as exc:
+        if isinstance(doc, str | bytes):
+            data = json.loads(doc)  # ValueError when not JSON
+        else:
+            data = copy.deepcopy(doc)
+        if not isinstance(data, dict):
+            raise ValueError("a health message is a JSON object") from exc
+        errors = exc.errors()
+    for _ in range(1000):
+        if not _prune(data, errors):
+            break
+        try:
+            return HealthView.model_validate(data)
+        except ValidationError as exc:
+            errors = exc.errors()
+    raise ValueError("not a health message")
+
+
+_DROPPED = object()
+
+
+def _prune(data: dict[str, Any], errors: list[Any]) -> bool:
+    """Remove from ``data`` the parts ``errors`` (a ValidationError's) point at: a key of an
+    object, an entry of a list. False when there is nothing to remove."""
+    paths: set[tuple[Any, ...]] = set()
+    for e in errors:
+        node: Any = data
+        path: list[Any] = []
+        for key in e["loc"]:
+            if isinstance(node, dict) and key in node:
+                node = node[key]
+            elif isinstance(node, list) and isinstance(key, int) and 0 <= key < len(node):
+                node = node[key]
+            else:
+                break
+            path.append(key)
+        if path:
+            paths.add(tuple(path))
+    if not paths:
+        return False
+    lists: list[list[Any]] = []
+    for path in paths:
+        if any(path[:i] in paths for i in range(1, len(path))):
+            continue  # its container goes
+        parent: Any = data
+        for key in path[:-1]:
+            parent = parent[key]
+        if isinstance(parent, list):
+            parent[path[-1]] = _DROPPED  # indices stay until every error is placed
+            lists.append(parent)
+        else:
+            del parent[path[-1]]
+    for entries in lists:
+        entries[:] = [x for x in entries if x is not _DROPPED]
+    return True

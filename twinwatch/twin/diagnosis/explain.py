@@ -8,22 +8,28 @@ useful life, and the ranked faults with the evidence for and against each.
 
 from __future__ import annotations
 
-import json
 import sqlite3
 from pathlib import Path
-from typing import Any
 
-from twinwatch.twin.health import HealthMessage, diagnosis_line, trend_line
+from twinwatch.twin.health import (
+    HealthMessage,
+    HealthView,
+    diagnosis_line,
+    read_health,
+    trend_line,
+)
 
 __all__ = ["explain_lines", "read_windows"]
 
 
-def read_windows(db: Path, machine: str, count: int) -> list[dict[str, Any]]:
-    """The machine's last ``count`` stored health messages, oldest first, read-only (the
+def read_windows(db: Path, machine: str, count: int) -> list[HealthView]:
+    """The machine's last ``count`` stored health messages (their typed view,
+    :func:`~twinwatch.twin.health.read_health`: any schema), oldest first, read-only (the
     daemon may be writing the file: SQLite's read-only mode takes no lock it holds).
 
     Raises:
         FileNotFoundError: no such file. sqlite3.Error: not a twinwatch state database.
+        ValueError: a stored message that is not JSON or not a health message's shape.
     """
     if not db.is_file():
         raise FileNotFoundError(f"{db}: no such state database")
@@ -33,77 +39,79 @@ def read_windows(db: Path, machine: str, count: int) -> list[dict[str, Any]]:
                             "LIMIT ?", (machine, int(count))).fetchall()
     finally:
         conn.close()
-    return [json.loads(r[0]) for r in reversed(rows)]
+    return [read_health(r[0]) for r in reversed(rows)]
 
 
 def _num(x: float | None, fmt: str = ".4g") -> str:
     return "n/a" if x is None else format(x, fmt)
 
 
-def explain_lines(docs: list[dict[str, Any]]) -> list[str]:
-    """The explanation of the last of ``docs`` (stored health messages, oldest first), with
-    the fit of each of them. Messages of a schema before 8 carry no diagnosis: said so."""
+def explain_lines(docs: list[HealthView]) -> list[str]:
+    """The explanation of the last of ``docs`` (stored health messages, oldest first, as
+    :func:`~twinwatch.twin.health.read_health` reads them), with the fit of each of them.
+    Messages of a schema before 8 carry no diagnosis: said so."""
     if not docs:
         return ["no stored window for this machine"]
     last_doc = docs[-1]
     lines: list[str] = []
-    m = last_doc.get("machine")
-    lines.append(f"{m} ({last_doc.get('model')}), run {last_doc.get('run')}, schema "
-                 f"{last_doc.get('schema')}: the last {len(docs)} windows")
+    m = last_doc.machine
+    lines.append(f"{m} ({last_doc.model}), run {last_doc.run}, schema "
+                 f"{last_doc.schema_}: the last {len(docs)} windows")
     lines.append("")
     lines.append("1. the fit (the twin against the measurements, per window):")
     for d in docs:
-        check = d.get("model_check")
+        check = d.model_check
         verdict = ("" if check is None else
-                   ", model check passed" if check.get("passed") else
-                   f", model check FAILED ({'; '.join(check.get('reasons') or [])})")
-        rmse = ", ".join(f"{k} {_num(v, '.3g')}" for k, v in (d.get("rmse") or {}).items())
-        n_terms = len(d.get("terms") or [])
-        trusted = "trusted" if d.get("trusted") else "not trusted"
-        lines.append(f"   window {d.get('window')} [{d.get('t_start', 0):.1f}-"
-                     f"{d.get('t_end', 0):.1f} s]: RMSE {rmse}; nRMSE "
-                     f"{_num(d.get('nrmse'), '.2e')}, {trusted}{verdict}"
+                   ", model check passed" if check.passed else
+                   f", model check FAILED ({'; '.join(check.reasons or [])})")
+        rmse = ", ".join(f"{k} {_num(v, '.3g')}" for k, v in (d.rmse or {}).items())
+        n_terms = len(d.terms or [])
+        trusted = "trusted" if d.trusted else "not trusted"
+        lines.append(f"   window {d.window} [{d.t_start or 0:.1f}-"
+                     f"{d.t_end or 0:.1f} s]: RMSE {rmse}; nRMSE "
+                     f"{_num(d.nrmse, '.2e')}, {trusted}{verdict}"
                      + (f", {n_terms} term{'s' if n_terms > 1 else ''}" if n_terms else ""))
-    res = last_doc.get("residual") or {}
-    if res.get("dt_second"):
-        before = _num(res["dt_prime"].get("nrmse"), ".2e")
-        after = _num(res["dt_second"].get("nrmse"), ".2e")
+    res = last_doc.residual
+    if res is not None and res.dt_second:
+        before = _num(res.dt_prime.nrmse if res.dt_prime else None, ".2e")
+        after = _num(res.dt_second.nrmse, ".2e")
         lines.append(f"   DT' (physical twin alone) nRMSE {before} -> DT'' (with its terms) "
                      f"{after}")
-    for sensor in last_doc.get("sensors") or []:
-        lines.append(f"   sensor {sensor.get('channel')} {sensor.get('kind')} at "
-                     f"{_num(sensor.get('value'))} for {_num(sensor.get('duration_s'), '.1f')} "
+    for sensor in last_doc.sensors or []:
+        lines.append(f"   sensor {sensor.channel} {sensor.kind} at "
+                     f"{_num(sensor.value)} for {_num(sensor.duration_s, '.1f')} "
                      f"s: the window's estimates are suspect")
-    try:
-        last = HealthMessage.model_validate(last_doc)
+    try:  # trend and diagnosis: only from a message the model itself accepts
+        last = HealthMessage.model_validate(last_doc.model_dump(by_alias=True,
+                                                                exclude_unset=True))
     except ValueError:
         last = None
     lines.append("")
     lines.append("2. the parameters (the last window; 2-sigma intervals):")
-    for name, p in (last_doc.get("parameters") or {}).items():
-        status = p.get("status")
+    for name, p in (last_doc.parameters or {}).items():
+        status = p.status
         if status in ("tied", "fixed"):
-            lines.append(f"   {name:<8} {p.get('reason') or status}")
+            lines.append(f"   {name:<8} {p.reason or status}")
             continue
-        value, rel = p.get("value"), p.get("rel_std_pct")
+        value, rel = p.value, p.rel_std_pct
         band = (f" +/- {_num(2 * rel * abs(value) / 100.0, '.3g')} (+/- {2 * rel:.2g} %)"
                 if value is not None and rel is not None else "")
-        dev = p.get("deviation_pct")
-        lines.append(f"   {name:<8} {_num(value, '.6g')} {p.get('unit')}{band}, "
-                     f"{_num(dev, '+.2f')} % vs nameplate {p.get('nominal'):g}, {status}"
-                     + (f" ({p['reason']})" if p.get("reason") else ""))
+        dev = p.deviation_pct
+        lines.append(f"   {name:<8} {_num(value, '.6g')} {p.unit}{band}, "
+                     f"{_num(dev, '+.2f')} % vs nameplate {p.nominal:g}, {status}"
+                     + (f" ({p.reason})" if p.reason else ""))
     lines.append("")
-    terms = last_doc.get("terms") or []
+    terms = last_doc.terms or []
     lines.append("3. the meta-model terms (what the physical twin lacks):"
                  if terms else "3. no meta-model term: the physical twin explains the data")
     for t in terms:
         params = ", ".join(
-            f"{k} = {v:.4g}" + (f" +/- {2 * s:.2g}" if (s := (t.get('params_std') or {})
+            f"{k} = {v:.4g}" + (f" +/- {2 * s:.2g}" if (s := (t.params_std or {})
                                                          .get(k)) is not None else "")
-            for k, v in (t.get("params") or {}).items())
-        lines.append(f"   {t.get('equation')}  (since window {t.get('since_window')}, "
-                     f"significance {_num(t.get('significance'), '.1f')}; {params})")
-        lines.append(f"     {t.get('meaning')}")
+            for k, v in (t.params or {}).items())
+        lines.append(f"   {t.equation}  (since window {t.since_window}, "
+                     f"significance {_num(t.significance, '.1f')}; {params})")
+        lines.append(f"     {t.meaning}")
     lines.append("")
     trends = ([line for name, p in last.parameters.items() if (line := trend_line(name, p))]
               if last is not None else [])
