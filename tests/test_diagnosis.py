@@ -138,6 +138,28 @@ def test_an_unbalance_at_the_shaft_speed_is_named_and_checked_against_it() -> No
     assert d.alarms == ["unbalance"]
 
 
+def test_an_unbalance_that_follows_the_shaft_is_checked_window_by_window() -> None:
+    """The plant's unbalance as a real one (unbalance_follows_shaft: 3 sin(shaft angle), at
+    1 x the shaft speed, the shaft held at 7 rad/s from rest, 80 s): the periodic term is
+    re-found while the shaft speeds up, its frequency follows it, and once its ratio to the
+    window's shaft speed has stayed 1 for 5 windows in a row the unbalance is named."""
+    history = _motor("dc-motor-unbalanced-sim.toml", scenario="unbalanced_shaft",
+                     unbalance_amplitude=3.0, unbalance_follows_shaft=True, duration=80.0,
+                     setpoint=SetpointSchedule(steps=[(0.0, 7.0)]))
+    d = _final(history)
+    assert d.top == "unbalance" and d.faults[0].probability >= 0.8, d
+    text = " ".join(d.faults[0].evidence_for)
+    m = re.search(r"([\d.]+) rad/s against 1 x ([\d.]+) = .*?; ([\d.]+)-([\d.]+) x the shaft "
+                  r"speed over the last 5 windows", text)
+    assert m, text
+    assert abs(float(m[1]) / float(m[2]) - 1) < 0.02 and 6.5 < float(m[2]) < 7.2, text
+    assert 0.97 < float(m[3]) <= float(m[4]) < 1.03, text
+    assert next((f.probability for f in d.faults if f.id == "misalignment"), 0.0) < 0.1
+    # while the shaft speeds up the term is found at lower frequencies, following it
+    early = [t for h in history if h.t_end < 30 for t in h.terms]
+    assert any(t.params["b"] < 6.0 for t in early), [t.equation for t in early]
+
+
 def test_a_nominal_run_finds_no_fault() -> None:
     history = _motor(scenario="nominal", duration=60.0, noise={"ia": 1.0, "omega": 1.0})
     worst = max(f.probability for h in history for f in h.diagnosis.faults)  # type: ignore[union-attr]
@@ -469,3 +491,25 @@ def test_the_dead_zone_example_is_unknown_within_20_s_and_stays_so(noise: float)
     d = _final(history)
     a, b = _clip_term(d.unknown_terms[0])
     assert a == pytest.approx(-1 / 0.673, rel=0.03) and b == pytest.approx(DEAD_ZONE, rel=0.02)
+
+
+@pytest.mark.slow
+def test_an_unbalance_that_follows_the_shaft_is_named_again_after_a_speed_change() -> None:
+    """The unbalance following the shaft (3 sin(shaft angle)) with the set-point moved from
+    10 to 15 rad/s at 60 s (120 s): before and after the change the unbalance is named at
+    >= 0.8 with the term at the shaft's speed of the time (not 2 x: misalignment below 0.1);
+    the paper's fixed-frequency Eq. 13 stays the plant's default."""
+    from twinwatch.plant.dcmotor import DCMotorPlantConfig
+
+    assert DCMotorPlantConfig().unbalance_follows_shaft is False
+    history = _motor("dc-motor-unbalanced-sim.toml", scenario="unbalanced_shaft",
+                     unbalance_amplitude=3.0, unbalance_follows_shaft=True, duration=120.0,
+                     setpoint=SetpointSchedule(steps=[(0.0, 10.0), (60.0, 15.0)]))
+    for lo, hi, speed in ((40.0, 60.0, 10.0), (100.0, 120.0, 15.0)):
+        named = [h for h in history if lo < h.t_end <= hi and h.diagnosis.top == "unbalance"  # type: ignore[union-attr]
+                 and h.diagnosis.faults[0].probability >= 0.8]  # type: ignore[union-attr]
+        assert named, [(h.t_end, h.diagnosis.status) for h in history if lo < h.t_end <= hi]  # type: ignore[union-attr]
+        b = [t.params["b"] for t in named[-1].terms if t.kind == "periodic"]
+        assert b and abs(abs(b[0]) / speed - 1) < 0.1, (b, speed)
+    assert max(f.probability for h in history for f in h.diagnosis.faults  # type: ignore[union-attr]
+               if f.id == "misalignment") < 0.1

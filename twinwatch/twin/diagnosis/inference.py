@@ -34,7 +34,6 @@ Cost: a few hundred microseconds per window with numpy (benchmarks/bench_diagnos
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
 from itertools import combinations
 
@@ -64,12 +63,14 @@ S_MIN = 1e-4
 #: An evidence variable is said for or against a fault when it moves the fault's odds by more
 #: than this (log likelihood ratio against no fault; 0.3: a factor 1.35).
 LLR_SAID = 0.3
-#: A periodic term's harmonic is decided against the shaft speed of at least this many windows
-#: (10 s at 2 s windows) over which the speed stayed within the signature's tolerance.
+#: A periodic term's harmonic is decided on its frequency against the shaft speed in at least
+#: this many windows in a row (10 s at 2 s windows), each within the signature's tolerance.
 HARMONIC_WINDOWS = 5
-#: Windows of shaft speed kept to compare a term's frequency with the speed of the windows it
-#: explained.
-SPEED_HISTORY = 1000
+#: A periodic term's frequency over the shaft speed may change by this much (relative) from
+#: one window to the next and still be the same term's track: a term re-found at each new
+#: speed (an unbalance following the shaft) keeps its track; a fixed-frequency term against a
+#: shaft speeding up moves along it and matches no harmonic until the speed settles.
+RATIO_STEP = 0.15
 #: Floor of a deviation's standard error [% of nameplate] (the twin's own model error).
 SD_FLOOR_PCT = 0.05
 
@@ -111,6 +112,17 @@ class _Dev:
 
 
 @dataclass
+class _Ratio:
+    """A periodic term's frequency against the shaft speed in one window [rad/s]."""
+
+    window: int
+    b: float          # |b|, the term's angular frequency
+    b_std: float      # its standard error
+    speed: float      # the window's mean absolute shaft speed
+    spread: float     # the speed's spread within the window
+
+
+@dataclass
 class _Var:
     """One evidence variable: its strength, leak, each fault's link and the words."""
 
@@ -143,7 +155,7 @@ class Diagnoser:
         self.source = source
         self.faults: list[FaultMode] = list(library.faults)
         self._last: dict[str, _Dev] = {}
-        self._speeds: deque[tuple[int, float, float]] = deque(maxlen=SPEED_HISTORY)
+        self._tracks: list[tuple[str, list[_Ratio]]] = []  # (attach, ratios in a row)
         ids = [f.id for f in self.faults] + ["unknown"]
         self._ids = ids
         n = len(ids)
@@ -211,7 +223,7 @@ class Diagnoser:
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
         # terms: one variable per discovered term, each fault's link scaled by its match
         unexplained: list[TermHealth] = []
-        seen_speed = [self._term_speed(t) or speed for t in health.terms]
+        seen_speed = self._track(health, speed)
         for i, term in enumerate(health.terms):
             var = self._term_var(i, term)
             best = 0.0
@@ -268,22 +280,39 @@ class Diagnoser:
                     v.present += (f" (a term no fault explains acts in the same equation, "
                                   f"{term.attach}: leak {leak:.2f})")
 
-    def _term_speed(self, term: TermHealth) -> tuple[float, float] | None:
-        """The median shaft speed of the windows a term's parameters combine (from the window
-        it was found in, the last ``evidence_windows`` of them) and its uncertainty: the spread
-        across them (1.48 MAD) and the median spread within each (a shaft speeding up or
-        slowing down inside the windows: a term's frequency cannot be placed against it). A
-        term's frequency is the evidence of those windows."""
-        n = max(int(round(term.evidence_windows)), 1)
-        seen = [(w, s) for i, w, s in self._speeds if i >= term.since_window][-n:]
-        if not seen:
-            return None
-        arr = np.asarray(seen)
-        if len(seen) < HARMONIC_WINDOWS:  # too few to say the speed is steady
-            return float(np.median(arr[:, 0])), math.inf
-        med = float(np.median(arr[:, 0]))  # robust to a start-up or a stop among them
-        across = 1.4826 * float(np.median(np.abs(arr[:, 0] - med)))
-        return med, math.hypot(across, float(np.median(arr[:, 1])))
+    def _track(self, health: HealthMessage, speed: tuple[float, float] | None
+               ) -> list[list[_Ratio] | None]:
+        """Per term of the message, its frequency against the shaft speed window by window
+        (the last :data:`HARMONIC_WINDOWS` windows in a row; None: not a periodic term of
+        time, or no shaft speed). A term continues the track of the last window's periodic
+        term on the same attach point whose ratio is within :data:`RATIO_STEP` of its own,
+        across re-discoveries: an unbalance that follows the shaft is re-found at each new
+        speed, its ratio staying 1."""
+        out: list[list[_Ratio] | None] = []
+        kept: list[tuple[str, list[_Ratio]]] = []
+        for term in health.terms:
+            b = term.params.get("b")
+            if (term.kind != "periodic" or b is None or term.input != "t" or speed is None
+                    or speed[0] <= 0):
+                out.append(None)
+                continue
+            r = _Ratio(health.window, abs(b), term.params_std.get("b") or 0.0, speed[0],
+                       speed[1])
+            ratio = r.b / r.speed
+            best: list[_Ratio] | None = None
+            for attach, tr in self._tracks:
+                last = tr[-1]
+                step = abs(ratio - last.b / last.speed)
+                if (attach == term.attach and last.window == health.window - 1
+                        and step <= RATIO_STEP * last.b / last.speed
+                        and all(tr is not k for _, k in kept)
+                        and (best is None or step < abs(ratio - best[-1].b / best[-1].speed))):
+                    best = tr
+            track = ((best or []) + [r])[-HARMONIC_WINDOWS:]
+            kept.append((term.attach, track))
+            out.append(track)
+        self._tracks = kept
+        return out
 
     def _dev_var(self, health: HealthMessage, key: str, name: str, direction: str,
                  size: float) -> _Var:
@@ -357,8 +386,6 @@ class Diagnoser:
             speed: the window's mean absolute shaft speed and its spread [rad/s]
                 (:func:`shaft_speed`), for a periodic term's harmonic.
         """
-        if speed is not None:
-            self._speeds.append((health.window, speed[0], speed[1]))
         variables, unexplained = self._variables(health, speed)
         ids = self._ids
         idx = {fid: i for i, fid in enumerate(ids)}
@@ -433,9 +460,10 @@ def _chan(channel: str) -> str:
     return "a sensor" if channel == "*" else f"the {channel} sensor"
 
 
-def _term_match(sg: object, term: TermHealth, speed: tuple[float, float] | None
+def _term_match(sg: object, term: TermHealth, track: list[_Ratio] | None
                 ) -> tuple[float, str]:
-    """How well a discovered term fits a signature's term (0..1) and what it expects."""
+    """How well a discovered term fits a signature's term (0..1) and what it expects; a
+    harmonic is judged on the term's ``track`` (:meth:`Diagnoser._track`)."""
     from twinwatch.twin.diagnosis.library import TermSign
 
     assert isinstance(sg, TermSign)
@@ -453,19 +481,23 @@ def _term_match(sg: object, term: TermHealth, speed: tuple[float, float] | None
     b = term.params.get("b")
     if term.kind != "periodic" or b is None or term.input != "t":
         return 0.0, want
-    if speed is None:
+    if track is None:
         return 0.5, want + " (shaft speed unknown)"
-    if not math.isfinite(speed[1]):
-        return 0.5, (f"{want} (undecided: fewer than {HARMONIC_WINDOWS} windows of shaft "
-                     f"speed since the term was found)")
-    if speed[1] > sg.tolerance * speed[0]:  # no steady speed to place the frequency against
-        return 0.5, (f"{want} (undecided: the shaft speed varied by "
-                     f"{100 * speed[1] / speed[0]:.0f} % around {speed[0]:.3g} rad/s over the "
-                     f"windows the term explained)")
-    target = sg.harmonic * speed[0]
-    b_std = term.params_std.get("b") or 0.0
-    sigma = math.hypot(b_std, sg.tolerance * target, sg.harmonic * speed[1])
-    z = abs(abs(b) - target) / sigma if sigma > 0 else math.inf
+    if len(track) < HARMONIC_WINDOWS:
+        return 0.5, (f"{want} (undecided: its frequency against the shaft speed in "
+                     f"{len(track)} window(s) in a row, fewer than {HARMONIC_WINDOWS})")
+    h, tol = sg.harmonic, sg.tolerance
+    z = 0.0
+    for r in track:  # every window of the track: a term that follows the shaft, or not
+        sigma = math.hypot(r.b_std, tol * h * r.speed, h * r.spread)
+        z = max(z, abs(r.b - h * r.speed) / sigma if sigma > 0 else math.inf)
     m = 1.0 if z <= 1.0 else math.exp(-0.5 * (z - 1.0) ** 2)
-    return m, (f"{want} ({abs(b):.3g} rad/s against {sg.harmonic:g} x {speed[0]:.3g} = "
-               f"{target:.3g} rad/s +/- {100 * sg.tolerance:.0f} %)")
+    now = track[-1]
+    ratios = [r.b / r.speed for r in track]
+    speeds = [r.speed for r in track]
+    span = (f"{min(speeds):.3g} rad/s" if max(speeds) - min(speeds) < 0.005 * max(speeds)
+            else f"{min(speeds):.3g}-{max(speeds):.3g} rad/s")
+    return m, (f"{want} ({now.b:.3g} rad/s against {h:g} x {now.speed:.3g} = "
+               f"{h * now.speed:.3g} rad/s +/- {100 * tol:.0f} %; {min(ratios):.3f}-"
+               f"{max(ratios):.3f} x the shaft speed over the last {len(track)} windows, the "
+               f"shaft at {span})")
