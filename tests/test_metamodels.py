@@ -28,6 +28,7 @@ CASES = {
     "dead_zone": ([1.5, 0.7], np.linspace(-2, 3, 51)),
     "coulomb": ([-2.5, 0.4], np.linspace(-2, 3, 51)),
     "saturation": ([3.0, 0.6], np.linspace(-2, 3, 51)),
+    "input_dead_zone": ([-1.486, 0.7], np.linspace(-2, 3, 51)),
 }
 EXPECTED = {
     "linear": lambda p, z: p[0] * z + p[1],
@@ -41,6 +42,8 @@ EXPECTED = {
                                        np.where(z < -p[1], p[0] * (z + p[1]), 0.0)),
     "coulomb": lambda p, z: np.where(z > 0, p[0], np.where(z < 0, -p[0], 0.0)) + p[1],
     "saturation": lambda p, z: p[0] * np.tanh(z / p[1]),
+    "input_dead_zone": lambda p, z: p[0] * np.where(z > p[1], p[1], np.where(z < -p[1], -p[1],
+                                                                             z)),
 }
 #: Paper Table 1, in its order; the rest of the library is what real drives need (issue 9).
 PAPER_TABLE_1 = ("linear", "exponential", "negative_exponential", "power", "logarithmic",
@@ -54,6 +57,7 @@ def test_the_library_is_table_1_and_the_terms_real_drives_need() -> None:
     assert "backlash" in get_meta_model("dead_zone").meaning
     assert "Coulomb" in get_meta_model("coulomb").meaning
     assert "current limiting" in get_meta_model("saturation").meaning
+    assert "no voltage while |Va| <= b" in get_meta_model("input_dead_zone").meaning
     for kind in set(EXPECTED) - set(TABLE_1):  # separable: at most one nonlinear parameter
         assert len(get_meta_model(kind).nonlinear) <= 1
     assert "unbalanced shaft" in get_meta_model("periodic").meaning
@@ -139,6 +143,7 @@ def test_rendering_is_a_readable_equation() -> None:
 @pytest.mark.parametrize(("kind", "p", "flipped"), [
     ("saturation", [3.0, 0.6], [-3.0, -0.6]),   # a tanh(z/b) = -a tanh(-z/b)
     ("dead_zone", [1.5, 0.7], [1.5, -0.7]),     # the band is symmetric
+    ("input_dead_zone", [-1.5, 0.7], [-1.5, -0.7]),
 ])
 def test_new_kinds_equivalent_forms_are_canonical(kind: str, p: list[float],
                                                   flipped: list[float]) -> None:
@@ -187,6 +192,8 @@ def test_rendering_of_the_terms_real_drives_need() -> None:
         "-12.50*sign(omega)"
     assert get_meta_model("saturation").render(np.array([3.0, 0.5]), "ia") == \
         "3.00*tanh(ia/0.50)"
+    assert get_meta_model("input_dead_zone").render(np.array([-1.486, 2.0]), "Va") == \
+        "-1.49*clip(Va, 2.00)"
 
 
 def test_a_knee_lies_inside_the_data_and_a_sign_must_change() -> None:
@@ -204,6 +211,11 @@ def test_a_knee_lies_inside_the_data_and_a_sign_must_change() -> None:
     assert not coulomb.identifiable(np.linspace(0.1, 1.0, 200))       # never reverses
     start = np.concatenate([np.zeros(20), np.linspace(0.1, 1.0, 180)])  # from rest: friction
     assert coulomb.identifiable(start)                                # acts only once moving
+    # the dead zone of an input: its band between the input's smallest and largest
+    # magnitudes; an input that stays far from zero (every sample beyond any band) is b*sign
+    clip = get_meta_model("input_dead_zone")
+    assert clip.identifiable(u) and clip.data_range(u)[0] < 0.05  # type: ignore[index]
+    assert not clip.identifiable(np.linspace(0.8, 1.0, 200))
 
 
 def test_coulomb_sign_is_the_average_over_each_sample_interval() -> None:

@@ -8,7 +8,19 @@ steps among 0-20 rad/s, load torque Tload = 0.006*omega, and the paper's fault s
 * ``nominal``: Table 3 parameters throughout.
 * ``resistance_degradation``: Ra(t) = 6.5 - 0.044*(exp(0.003*(t-160)) - 1) for t >= 160 s.
 * ``bearing_wear``: D(t) = 0.00143 + 0.00003806*(exp(0.003*(t-160)) - 1) for t >= 160 s.
-* ``unbalanced_shaft``: omega gets + dt*5*sin(10*t) every step (Eq. 13).
+* ``unbalanced_shaft``: omega gets + dt*5*sin(10*t) every step (Eq. 13: the paper fixes the
+  frequency at 10 rad/s whatever the shaft's speed). With ``unbalance_follows_shaft`` the
+  forcing follows the shaft instead: + dt*5*sin(angle), the angle the shaft has turned (a real
+  unbalance: a mass off the axis, gravity's torque on it once per turn, at 1x the shaft speed;
+  ISO 21940-11 for unbalance at 1x); ``unbalance_frequency`` is then unused.
+* ``dead_zone`` (not in the paper: a change its twin has no term for): from ``fault_start`` the
+  drive's power stage has a dead zone of ``dead_zone_threshold`` b [V] (default 2 V): the
+  armature receives ``dz(Va) = 0`` while ``|Va| <= b`` and ``Va - b*sign(Va)`` beyond, the
+  standard dead-zone nonlinearity of an actuator (G. Tao and P. V. Kokotovic, *Adaptive
+  Control of Systems with Actuator and Sensor Nonlinearities*, Wiley 1996; "Adaptive control
+  of plants with unknown dead-zones", IEEE Trans. Automatic Control 39(1), 1994). The reported
+  Va stays the drive's command (what a drive reports); the motor receives less: a gate drive
+  that needs a minimum duty, a converter's blanking time, a worn power stage.
 
 With ``fault_period`` the degradation restarts every ``fault_period`` seconds after its onset
 (the part is replaced at each maintenance: Ra or D back to nominal, then the same law), so runs
@@ -20,9 +32,11 @@ One plant step (dt = 1e-4 s), in this order::
     if the drive updates now (every ``drive.period``; every step by default):
         Va  = the drive's speed loop on (setpoint, omega)        (twinwatch.io.drive)
               [through its current loop on (speed loop output, ia)]
-    ia    += dt*(Va - Ra*ia - Ke*omega)/La                           (Eq. 11)
+    Va_m   = dz(Va) with scenario dead_zone from fault_start, else Va
+    ia    += dt*(Va_m - Ra*ia - Ke*omega)/La                         (Eq. 11)
     ia     = max(ia, 0)                    with power_stage = "unidirectional"
     omega += dt*(Kt*ia - Tload - D*omega - Tc*sign(omega))/J [+ dt*5*sin(10*t)]  (Eq. 12 / 13)
+                                                    [or + dt*5*sin(angle): follows the shaft]
     angle += dt*omega
 
 The drive (:class:`~twinwatch.io.drive.DriveConfig`, ``[driver.plant.drive]``) runs as a real
@@ -51,7 +65,15 @@ from typing import Literal
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    model_validator,
+)
 
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.io.sample import EndOfStream, Sample
@@ -59,9 +81,10 @@ from twinwatch.plant._pid import pid_tick
 
 logger = logging.getLogger(__name__)
 
-Scenario = Literal["nominal", "resistance_degradation", "bearing_wear", "unbalanced_shaft"]
+Scenario = Literal["nominal", "resistance_degradation", "bearing_wear", "unbalanced_shaft",
+                   "dead_zone"]
 _SCENARIO_CODE = {"nominal": 0, "resistance_degradation": 1, "bearing_wear": 2,
-                  "unbalanced_shaft": 3}
+                  "unbalanced_shaft": 3, "dead_zone": 4}
 
 #: Measured channels, in the order the plant reports them.
 CHANNELS: tuple[str, ...] = ("Va", "ia", "omega", "Tload", "setpoint")
@@ -166,6 +189,13 @@ class DCMotorPlantConfig(BaseModel):
         "onset (a maintenance replaces the part); None: it runs on to the end")
     unbalance_amplitude: StrictFloat = Field(5.0, description="Eq. 13 amplitude [rad/s^2]")
     unbalance_frequency: StrictFloat = Field(10.0, description="Eq. 13 frequency [rad/s]")
+    unbalance_follows_shaft: StrictBool = Field(
+        False, description="scenario unbalanced_shaft: the forcing follows the shaft, "
+        "unbalance_amplitude*sin(shaft angle), at 1x the shaft speed (a real unbalance); "
+        "false: the paper's Eq. 13 at the fixed unbalance_frequency")
+    dead_zone_threshold: StrictFloat = Field(
+        2.0, gt=0, description="scenario dead_zone: the drive applies no voltage while |Va| is "
+        "below this, and |Va| less this beyond [V] (Tao and Kokotovic 1996)")
     setpoint: SetpointSchedule = Field(default_factory=SetpointSchedule)
     noise: dict[str, StrictFloat] = Field(
         default_factory=dict,
@@ -272,7 +302,7 @@ def _tick(state, j, sp, speed, current, has_current, m, mc, ph, dt):  # pragma: 
 
 @njit(cache=True, nogil=True)
 def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # pragma: no cover
-             unb_w, speed, current, has_current, m, mc, ph, stage, tc, tau_i, tau_w):
+             unb_w, speed, current, has_current, m, mc, ph, stage, tc, tau_i, tau_w, dz_b):
     """Advance the plant ``state`` (see the ``_IA``... indices) by ``n_sub`` steps from step
     index ``k0``, the drive updating when due.
 
@@ -293,7 +323,10 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # p
         elif scenario == 2 and t >= t_fault:
             d = d0 + D_RISE * (math.exp(RATE * age) - 1.0)
         ia, w = state[_IA], state[_W]
-        ia = ia + dt * (state[_VA] - ra * ia - ke * w) / la
+        va = state[_VA]
+        if scenario == 4 and t >= t_fault:  # the drive's dead zone: dz(Va, b)
+            va = va - dz_b if va > dz_b else (va + dz_b if va < -dz_b else 0.0)
+        ia = ia + dt * (va - ra * ia - ke * w) / la
         if stage == 1 and ia < 0.0:
             ia = 0.0
         fric = 0.0
@@ -301,7 +334,10 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # p
             fric = tc if w > 0.0 else (-tc if w < 0.0 else 0.0)
         w_new = w + dt * (kt * ia - c * w - d * w - fric) / j
         if scenario == 3:
-            w_new += dt * unb_a * math.sin(unb_w * (t + dt))
+            if math.isnan(unb_w):  # follows the shaft: once per turn of its angle
+                w_new += dt * unb_a * math.sin(state[_ANGLE] + dt * w)
+            else:
+                w_new += dt * unb_a * math.sin(unb_w * (t + dt))
         state[_IA], state[_W] = ia, w_new
         state[_ANGLE] += dt * w_new
         if tau_i > 0.0:
@@ -412,9 +448,10 @@ class DCMotorPlant:
                 clip = min if fault.side == "high" else max
                 values[ch] = clip(values[ch], fault.level)
         _advance(st, j0, self.n_sub, c.step, sp, self._p, self._scenario, c.fault_start,
-                 c.fault_period or 0.0, c.unbalance_amplitude, c.unbalance_frequency,
+                 c.fault_period or 0.0, c.unbalance_amplitude,
+                 math.nan if c.unbalance_follows_shaft else c.unbalance_frequency,
                  self._speed, self._current, self._has_current, self._m, self._mc, self._ph,
                  1 if c.power_stage == "unidirectional" else 0, c.coulomb_friction,
-                 c.current_filter or 0.0, c.speed_filter or 0.0)
+                 c.current_filter or 0.0, c.speed_filter or 0.0, c.dead_zone_threshold)
         self._k += 1
         return Sample(t=t, values=values)

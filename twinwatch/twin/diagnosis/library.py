@@ -127,6 +127,10 @@ class FaultLibrary(_Strict):
     model: str = Field(description="the twin model it is for (registry name)")
     speed_channel: str = Field("", description="the shaft speed channel [rad/s] a periodic "
                                "term's frequency is compared with ('' : none)")
+    equations: dict[str, list[str]] = Field(
+        default_factory=dict, description="attach point -> the parameters of the equation it "
+        "adds to: while a term there is one no fault explains, their deviations and trends "
+        "may be its model error (the estimates absorb part of what the twin lacks)")
     faults: list[FaultMode]
 
     @field_validator("faults")
@@ -214,12 +218,15 @@ class DiagnosisConfig(_Strict):
         base = None if self.replace else shipped
         faults = {f.id: f for f in (base.faults if base else [])}
         speed = shipped.speed_channel if shipped else ""  # the model's, whatever the faults
+        equations = dict(shipped.equations) if shipped else {}
         if self.library is not None:
             extra = load_library(self.library)
             speed = extra.speed_channel or speed
+            equations.update(extra.equations)
             faults.update({f.id: f for f in extra.faults})
         faults.update({f.id: f for f in self.faults})
-        return FaultLibrary(model=model, speed_channel=speed, faults=list(faults.values()))
+        return FaultLibrary(model=model, speed_channel=speed, equations=equations,
+                            faults=list(faults.values()))
 
     def check_against(self, model: str, parameter_names: tuple[str, ...] | list[str],
                       attach_names: list[str]) -> None:
@@ -241,3 +248,11 @@ class DiagnosisConfig(_Strict):
                     if a != "*" and a not in attach_names:
                         raise ValueError(f"diagnosis: fault {f.id!r} names the attach point "
                                          f"{a!r}; the {model} model has {attach_names}")
+        for a, names in lib.equations.items():
+            if a not in attach_names:
+                raise ValueError(f"diagnosis: equations names the attach point {a!r}; the "
+                                 f"{model} model has {attach_names}")
+            for name in names:
+                if name not in parameter_names:
+                    raise ValueError(f"diagnosis: equations.{a} names the parameter {name!r}; "
+                                     f"the {model} model has {list(parameter_names)}")

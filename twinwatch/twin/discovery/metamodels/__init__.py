@@ -27,6 +27,9 @@ kind                       U(z)                  working conditions
 ``coulomb``                a*sign(z) + c         dry (Coulomb) friction on a speed input
 ``saturation``             a*tanh(z/b)           a limit: current limiting, a clamped actuator,
                                                  magnetic saturation
+``input_dead_zone``        a*clip(z, b)          a dead zone of an input the twin already uses:
+                                                 on d(ia)/dt of Va with a = -1/La, the drive
+                                                 applies no voltage while |Va| <= b
 =========================  ====================  =================================================
 
 Each has at most one nonlinear parameter (the knee, the band, the scale; none for Coulomb), so
@@ -66,6 +69,7 @@ BUILTIN_META_MODELS: Mapping[str, str] = {
     "dead_zone": "twinwatch.twin.discovery.metamodels.dead_zone:DeadZone",
     "coulomb": "twinwatch.twin.discovery.metamodels.coulomb:Coulomb",
     "saturation": "twinwatch.twin.discovery.metamodels.saturation:Saturation",
+    "input_dead_zone": "twinwatch.twin.discovery.metamodels.input_dead_zone:InputDeadZone",
 }
 
 #: The kinds of paper Table 1 (a candidate's default ``kinds``).

@@ -1,0 +1,91 @@
+"""Input dead-zone meta-model ``a*clip(z, b)``: a dead zone of an input the twin already uses
+(a drive's power stage that applies nothing while ``|Va| <= b``). Not in paper Table 1 (issue
+25: the change a fault library does not know)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt
+from twinwatch.twin.model import FloatArray
+
+#: The band ``b`` is searched between these quantiles of the input's magnitude: samples on
+#: both sides of it (below the lower one, every sample is beyond the band and ``clip(z, b)``
+#: is ``b*sign(z)``, which a Coulomb term or a constant states; above the upper one it is a
+#: line).
+BAND_QUANTILES = (0.02, 0.95)
+#: A window whose input magnitude spans less (lower quantile above this fraction of the upper
+#: one) cannot tell the knee from a line or a constant.
+MIN_SPAN = 0.7
+
+
+def clip(z: FloatArray, b: FloatArray) -> FloatArray:
+    """``clip(z, b)``: ``z`` limited to ``[-|b|, |b|]`` (broadcasts)."""
+    b = np.abs(b)
+    return np.clip(z, -b, b)
+
+
+class InputDeadZone(MetaModel):
+    """``U(z) = a*clip(z, b)``: the part of an input within ``+-b``, scaled.
+
+    The dead zone of an actuator (Tao and Kokotovic, *Adaptive Control of Systems with
+    Actuator and Sensor Nonlinearities*, Wiley 1996) passes ``dz(v, b) = v - clip(v, b)`` of
+    the commanded ``v``. Where the twin already drives an equation with ``v`` (the DC motor's
+    ``d(ia)/dt = (Va - Ra*ia - Ke*omega)/La``), the component it lacks is
+    ``-clip(Va, b)/La``: this kind with ``a = -1/La`` and ``b`` the dead zone [V], an exact
+    and interpretable term ("the drive applies no voltage while |Va| <= b"), where the
+    ``dead_zone`` kind would have to cancel the twin's own ``Va/La`` and the smooth
+    ``saturation`` only approximates the knee (measured: ``-2.94*tanh(Va/1.65)`` for a 2 V
+    dead zone, the residual still structured). With ``a > 0`` it is a hard limit of the
+    input's effect.
+
+    Separable: ``b`` the only nonlinear parameter, searched between the 2nd and the 95th
+    percentile of ``|z|`` (:data:`BAND_QUANTILES`: with samples on both sides of the knee). A
+    window whose input magnitude hardly varies cannot tell it from ``b*sign(z)`` or a line
+    (:meth:`identifiable`).
+    """
+
+    kind = "input_dead_zone"
+    equation = "a*clip(z, b)"
+    conditions = ("a dead zone of an input the twin already uses: its part within +-b does "
+                  "not act (on d(ia)/dt of Va with a = -1/La: the drive applies no voltage "
+                  "while |Va| <= b, a worn or miscalibrated power stage)")
+    params = ("a", "b")
+    z_powers = (-1, 1)
+    nonlinear = ("b",)
+
+    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
+        p = np.atleast_2d(np.asarray(p, dtype=float))
+        z = np.asarray(z, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return p[:, 0, None] * clip(z, p[:, 1, None])
+
+    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
+        nl = np.atleast_2d(np.asarray(nl, dtype=float))
+        u = np.asarray(u, dtype=float)[None, :]
+        return clip(u, nl[:, :1])[:, None, :]
+
+    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
+               ) -> tuple[FloatArray, FloatArray]:
+        """|a| up to the amplitude per unit of normalised input; ``0 <= b <= 1`` unless the
+        data say otherwise."""
+        a = float(amplitude)
+        b_lo, b_hi = b_range or (0.0, 1.0)
+        return np.array([-a, b_lo]), np.array([a, b_hi])
+
+    def data_range(self, u: FloatArray) -> tuple[float, float] | None:
+        lo, hi = (float(q) for q in np.quantile(np.abs(u), BAND_QUANTILES))
+        return (lo, hi) if hi > lo else None
+
+    def identifiable(self, u: FloatArray) -> bool:
+        lo, hi = (float(q) for q in np.quantile(np.abs(u), BAND_QUANTILES))
+        return hi > 0 and lo < MIN_SPAN * hi
+
+    def canonical(self, p: FloatArray) -> FloatArray:
+        """``b >= 0`` (the band is symmetric)."""
+        q = np.array(p, dtype=float, copy=True)
+        q[1] = abs(q[1])
+        return q
+
+    def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
+        return f"{fmt(float(p[0]), precision)}*clip({z}, {fmt(float(p[1]), precision)})"
