@@ -760,9 +760,9 @@ class Estimator:
         each fitted holding the other (d ln D / d ln Ke ~ 5, d ln Ke / d ln D ~ 0.2), shifted
         each other every window and walked (the trusted D -3 -> -46 %, Ke -0.7 -> -11.6 % in 28
         windows of a mis-stated drive, Ra published 6 % off). A trusted value is an estimate
-        conditional on the others' trusted values then; two that trade off (D = Ke*ia/omega - c: d ln D / d ln Ke ~ 5) and were trusted at
-        different times are otherwise inconsistent, and a window holding both biases what it
-        estimates (measured: D trusted at +2.6 % beside Ke -0.4 %, made trusted later; Ra
+        conditional on the others' trusted values then; two that trade off (D = Ke*ia/omega -
+        c: d ln D / d ln Ke ~ 5) and were trusted at different times are otherwise
+        inconsistent, and a window holding both biases what it estimates (measured: D trusted at +2.6 % beside Ke -0.4 %, made trusted later; Ra
         -0.86 % +- 0.15 %)."""
         for n, deps in self._depends.items():
             i = self.names.index(n)
