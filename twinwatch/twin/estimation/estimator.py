@@ -756,14 +756,16 @@ class Estimator:
     def _keep_consistent(self) -> None:
         """Move each trusted value by what its estimate's sensitivity to the values it was
         fitted with held says, where those have been trusted anew since from their own
-        estimates: ``ln p += g (ln q' - ln q)``. A shift made here is not passed on: D and Ke,
-        each fitted holding the other (d ln D / d ln Ke ~ 5, d ln Ke / d ln D ~ 0.2), shifted
-        each other every window and walked (the trusted D -3 -> -46 %, Ke -0.7 -> -11.6 % in 28
-        windows of a mis-stated drive, Ra published 6 % off). A trusted value is an estimate
-        conditional on the others' trusted values then; two that trade off (D = Ke*ia/omega -
-        c: d ln D / d ln Ke ~ 5) and were trusted at different times are otherwise
-        inconsistent, and a window holding both biases what it estimates (measured: D trusted at +2.6 % beside Ke -0.4 %, made trusted later; Ra
-        -0.86 % +- 0.15 %)."""
+        estimates: ``ln p += g (ln q' - ln q)``. A trusted value is an estimate conditional on
+        the others' trusted values then; two that trade off (D = Ke*ia/omega - c: d ln D /
+        d ln Ke ~ 5) and were trusted at different times are otherwise inconsistent, and a
+        window holding both biases what it estimates (measured: D trusted at +2.6 % beside Ke
+        -0.4 %, made trusted later; Ra -0.86 % +- 0.15 %).
+
+        A shift made here is not passed on: D and Ke, each fitted holding the other (d ln D /
+        d ln Ke ~ 5, d ln Ke / d ln D ~ 0.2), shifted each other every window and walked (the
+        trusted D -3 -> -46 %, Ke -0.7 -> -11.6 % in 28 windows of a mis-stated drive, Ra
+        published 6 % off)."""
         for n, deps in self._depends.items():
             i = self.names.index(n)
             shift = 0.0
