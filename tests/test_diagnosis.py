@@ -514,3 +514,31 @@ def test_an_unbalance_that_follows_the_shaft_is_named_again_after_a_speed_change
         assert b and abs(abs(b[0]) / speed - 1) < 0.1, (b, speed)
     assert max(f.probability for h in history for f in h.diagnosis.faults  # type: ignore[union-attr]
                if f.id == "misalignment") < 0.1
+
+
+@pytest.mark.slow  # 400 s of the default plant: about 15 s
+def test_a_degradation_inside_the_faults_size_is_named_developing_with_its_rul() -> None:
+    """The default run at 400 s: Ra -0.7 % (inside the winding fault's 1 % size, so the
+    diagnosis is still "no fault") while its trend reaches the warning in minutes. The summary
+    and ``explain`` say both: the parameter, its warning time and the fault its trend is
+    evidence for; and the plant's own crossing of the warning falls in the stated interval."""
+    from twinwatch.plant.dcmotor import DCMotorPlant
+    from twinwatch.twin.health import developing_line
+
+    cfg = default_config()
+    cfg.estimation.time_budget = 60.0
+    pc = cfg.driver.plant  # type: ignore[union-attr]
+    pc.duration = 400.0
+    last = _run(cfg)[-1]
+    d = _final([last])
+    assert d.status == "no_fault", d
+    line = developing_line(d, last.parameters)
+    assert line is not None and line.startswith("developing: Ra -0."), line
+    assert "if it goes on: winding_short" in line, line
+    w = last.parameters["Ra"].rul.warning  # type: ignore[union-attr]
+    assert w is not None and w.t_low is not None and w.t_high is not None
+    plant = DCMotorPlant(pc)
+    t = 400.0
+    while plant.truth(t).Ra > w.threshold and t < 5000.0:
+        t += 1.0
+    assert w.t_low - 2.0 <= t <= w.t_high + 2.0, (t, w)

@@ -498,10 +498,11 @@ def _trend_lines(last: HealthMessage) -> list[str]:
 def _diagnosis_lines(last: HealthMessage) -> list[str]:
     """The diagnosis: the most probable fault, its probability and the action
     (twinwatch.twin.diagnosis); ``twinwatch explain`` gives the evidence."""
-    from twinwatch.twin.health import diagnosis_line
+    from twinwatch.twin.health import developing_line, diagnosis_line
 
     line = diagnosis_line(last.diagnosis)
-    return [line] if line else []
+    developing = developing_line(last.diagnosis, last.parameters)
+    return [x for x in (line, developing and f"  {developing}") if x]
 
 
 def _value(value: float | None) -> str:

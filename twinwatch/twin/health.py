@@ -106,6 +106,7 @@ __all__ = [
     "TrendHealth",
     "HealthView",
     "build_health",
+    "developing_line",
     "diagnosis_line",
     "read_health",
     "sent",
@@ -688,6 +689,38 @@ def diagnosis_line(d: DiagnosisHealth | None) -> str | None:
     f = d.faults[0]
     return (f"diagnosis: {f.id} ({f.component}) {f.probability:.2f}, urgency {f.urgency}: "
             f"{f.action}")
+
+
+def developing_line(d: DiagnosisHealth | None,
+                    parameters: Mapping[str, ParameterHealth]) -> str | None:
+    """When the diagnosis finds no fault yet but a parameter's trend heads to its warning,
+    one line naming it, when it gets there and the faults whose evidence is that trend, e.g.
+    ``developing: Ra -0.71 % vs nominal, degrading -15 %/h, its warning in 7.8 min
+    (7.5-8.2 min); if it goes on: winding_short (armature winding)``. A deviation inside a
+    fault's signature size does not make the fault probable (the library's definition), so
+    the diagnosis stays "no fault" while the RUL counts down: this line says both. None when
+    the diagnosis names a fault or nothing is heading to a warning."""
+    from twinwatch.twin.prognostics.rul import format_crossing
+
+    if d is None or d.status != "no_fault":
+        return None
+    out = []
+    for name, p in parameters.items():
+        rul, t = p.rul, p.trend
+        if rul is None or rul.status != "degrading" or t is None or not t.degrading:
+            continue
+        w = rul.warning
+        if w is None or w.status != "predicted":
+            continue
+        causes = [f"{f.id} ({f.component})" for f in d.faults
+                  if any(s.startswith(f"{name} trend") for s in f.evidence_for)]
+        dev = f" {p.deviation_pct:+.2f} % vs nominal," if p.deviation_pct is not None else ""
+        rate = (f" degrading {t.rate_pct_per_h:+.3g} %/h," if t.rate_pct_per_h is not None
+                else " degrading,")
+        out.append(f"{name}{dev}{rate} its warning in "
+                   f"{format_crossing(w.rul_s, w.low_s, w.high_s)}"
+                   + (f"; if it goes on: {', '.join(causes[:2])}" if causes else ""))
+    return "developing: " + "; ".join(out) if out else None
 
 
 def trend_line(name: str, p: ParameterHealth) -> str | None:

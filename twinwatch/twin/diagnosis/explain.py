@@ -14,6 +14,7 @@ from pathlib import Path
 from twinwatch.twin.health import (
     HealthMessage,
     HealthView,
+    developing_line,
     diagnosis_line,
     read_health,
     trend_line,
@@ -139,4 +140,7 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
         lines.append(f"   no fault mode explains: {eq}")
     lines.append("")
     lines.append(diagnosis_line(diag) or "")
+    developing = developing_line(diag, last.parameters)
+    if developing:
+        lines.append(developing)
     return lines
