@@ -619,7 +619,8 @@ class Estimator:
         (:attr:`_Fitted.rejected` says why; the caller runs the swarm path, retry included)."""
         cfg = self.config
         admitted = None
-        if POLISH_ADMITTED and local and cfg.polish and self._admitted is not None:
+        if (POLISH_ADMITTED and local and cfg.polish and self._admitted is not None
+                and not self._stale_held(self._admitted)):
             # only what the last window's gate admitted moves (the others at their trusted
             # values, as the gate would hold them); the gate confirms the set on the
             # Jacobian of every column, else the polish of every parameter below
@@ -666,6 +667,28 @@ class Estimator:
                 else:
                     self.trusted[:], self.trusted_std[:] = saved
         return _Fitted(problem, found, polished, decision, point, twin, check)
+
+    def _stale_held(self, admitted: list[int]) -> bool:
+        """Whether a parameter the admitted-only polish would hold at its trusted value has
+        a fused value that contradicts it (beyond 2 fused standard errors, the fused value
+        itself determined: within the fusion's ``max_rel_std``). Such a window polishes every
+        parameter: held at a stale value the others absorb its error (hydraulic D never
+        admitted at 0.005 % noise, its trusted value 40 % behind the fluid's degradation
+        while the fused D followed within 2 %: 17 % of the windows published suspect)."""
+        f = self.fusion
+        if f is None:
+            return False
+        mean, cov = f.state.mean, f.state.cov
+        limit = self.config.fusion.max_rel_std
+        for k in range(len(self.pmap.idx)):
+            if k in admitted:
+                continue
+            sd = math.sqrt(max(float(cov[k, k]), 0.0))
+            trusted = float(self.trusted[self.pmap.idx[k]])
+            if (sd <= limit and trusted > 0
+                    and abs(math.log(trusted) - float(mean[k])) > 2.0 * sd):
+                return True
+        return False
 
     def _residual_too_large(self, problem: WindowProblem, r: FloatArray) -> str:
         """Why a local fit's normalised residuals ``r`` (M,) are beyond what the window's
