@@ -860,9 +860,10 @@ def _fmt(x: Any, spec: str = ".6g") -> str:
     return format(v, spec) if math.isfinite(v) else "n/a"
 
 
-def _diagnosis_lines(d: DiagnosisView | None) -> list[str]:
+def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[str]:
     """The diagnosis as markdown lines (none without one): the outcome, the first fault's
-    action and its evidence for and against, the next faults with their probabilities."""
+    action and its evidence for and against, the next faults with their probabilities; with
+    no fault yet, what is developing (:func:`~twinwatch.twin.health.developing_line`)."""
     if d is None:
         return []
     faults = d.faults or []
@@ -880,6 +881,12 @@ def _diagnosis_lines(d: DiagnosisView | None) -> list[str]:
                      f"`{t}`" for t in d.unknown_terms or [])]
     else:
         lines = [f"**Diagnosis: no fault** (probability {_fmt(d.no_fault, '.2f')})"]
+        from twinwatch.twin.health import developing_line
+
+        developing = developing_line(d, parameters or {})  # type: ignore[arg-type]
+        if developing:
+            lines[0] += "  "
+            lines.append(f"*{developing}*")
     others = [f"{f.id} {_fmt(f.probability, '.2f')}"
               for f in faults[1 if status == "fault" else 0:4]]
     if others:
@@ -896,7 +903,7 @@ def _model_document(machine: str, t: float, doc: HealthView) -> str:
     twin = f"`{model}`" if model else "the physical twin"
     window = doc.window
     at = f"at {clock(t)}" + (f", window {window}" if window is not None else "")
-    lines = _diagnosis_lines(doc.diagnosis)
+    lines = _diagnosis_lines(doc.diagnosis, doc.parameters)
     if not terms:
         lines.append(f"**DT'' = DT** {at}: {twin} alone explains the data.")
     else:
