@@ -1,7 +1,7 @@
 """Render what an operator sees: run the examples, screenshot their recordings, write the PNGs
 (to ``build/views/``; with ``--update`` over the tracked ``docs/images/`` the docs show).
 
-    python scripts/render_views.py                 # all three, into build/views/ (a few min)
+    python scripts/render_views.py                 # all four, into build/views/ (a few min)
     python scripts/render_views.py --update        # the same, written over docs/images/*.png
     python scripts/render_views.py --only discovery --keep /tmp/views --out /tmp/views
 
@@ -19,7 +19,9 @@ is scaled to 1600x1000 and quantised to 256 colours.
 * ``discovery``: ``config/dc-motor-unbalanced-sim.toml``, 300 s: the periodic term of the
   unbalanced shaft (paper Eq. 13) and its meaning in the model panel;
 * ``hydraulic``: ``config/hydraulic-modbus-sim.toml`` stopped at 420 s: D, the fluid, rising
-  from 100 N/(m/s), the warning at about 5:44 (344 s), the alarm predicted for about 7:30.
+  from 100 N/(m/s), the warning at about 5:44 (344 s), the alarm predicted for about 7:30;
+* ``leak``: ``config/hydraulic-modbus-leak-sim.toml``, 300 s: the internal leak discovered as
+  a meta-model term, the diagnosis naming the piston seal (not the fluid) in the model panel.
 
 Needs: ``xvfb-run`` and Mesa's Vulkan driver (Debian: xvfb, mesa-vulkan-drivers), Pillow
 (``pip install -e '.[dev]'``). Prints, per example, the run's wall time, the recording's size
@@ -61,6 +63,9 @@ EXAMPLES = (
     Example("hydraulic", ROOT / "config" / "hydraulic-modbus-sim.toml",
             "twinwatch-hydraulic.rrd", "the hydraulic actuator: D, the fluid, degrades",
             420.0),
+    Example("leak", ROOT / "config" / "hydraulic-modbus-leak-sim.toml",
+            "twinwatch-hydraulic-leak.rrd", "the internal leak: discovered, the seal named, D "
+            "not reported as the fluid"),
 )
 
 
