@@ -671,17 +671,18 @@ class Estimator:
     def _stale_held(self, admitted: list[int]) -> bool:
         """Whether a parameter the admitted-only polish would hold at its trusted value has
         a fused value that contradicts it (beyond 2 fused standard errors, the fused value
-        itself determined: within the fusion's ``max_rel_std``). Such a window polishes every
-        parameter: held at a stale value the others absorb its error (hydraulic D never
-        admitted at 0.005 % noise, its trusted value 40 % behind the fluid's degradation
-        while the fused D followed within 2 %: 17 % of the windows published suspect)."""
+        itself determined: within the fusion's ``max_rel_std``), of the parameters never
+        trusted from an estimate of their own. Such a window polishes every parameter: held
+        at a stale value, the others absorb its error (hydraulic D never admitted at 0.005 %
+        noise, its trusted value 40 % behind the fluid's degradation while the fused D
+        followed within 2 %: 17 % of the windows published suspect)."""
         f = self.fusion
         if f is None:
             return False
         mean, cov = f.state.mean, f.state.cov
         limit = self.config.fusion.max_rel_std
         for k in range(len(self.pmap.idx)):
-            if k in admitted:
+            if k in admitted or self.pmap.estimate[k] in self._anew:
                 continue
             sd = math.sqrt(max(float(cov[k, k]), 0.0))
             trusted = float(self.trusted[self.pmap.idx[k]])
