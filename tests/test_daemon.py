@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -63,13 +64,17 @@ class _PlantDriver(Driver):
     def from_config(cls, config, *, base_dir=None):  # type: ignore[no-untyped-def]
         raise NotImplementedError("built by the test, not from a configuration")
 
-    def __init__(self, duration: float, nan_at: float | None = None) -> None:
+    def __init__(self, duration: float, nan_at: float | None = None,
+                 pace: float = 0.0) -> None:
         super().__init__()
         self.plant = DCMotorPlant(DCMotorPlantConfig(scenario="nominal", duration=duration))
         self.nan_at = nan_at
+        self.pace = pace  # wall seconds per sample (0: as fast as the plant runs)
         self.finished = threading.Event()
 
     def _read_internal(self, timeout):
+        if self.pace:
+            time.sleep(self.pace)
         try:
             s = self.plant.next_sample()
         except EndOfStream:
@@ -146,7 +151,10 @@ def test_an_overrun_caused_by_a_slow_output_names_it(caplog, monkeypatch):
     monkeypatch.setattr(pipeline, "OUTPUT_QUEUE", 1)
     cfg = default_config()
     cfg.acquisition.queue = 1
-    driver = _PlantDriver(duration=20.0)
+    # a window every 0.2-0.4 s of wall time: the source still delivers once the output holds
+    # the worker (unpaced, a 3 ms estimation let the whole source end during the first
+    # window, every overrun the estimation's own)
+    driver = _PlantDriver(duration=20.0, pace=0.001)
 
     class Slow(Sink):
         config_class = SinkConfig

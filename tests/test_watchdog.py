@@ -64,6 +64,11 @@ class _SilentDriver(Driver):
                 self.pings_late = self.watchdog.pings
             return None
         self.sent += 1
+        if self.silence is not None:
+            # after the silence, about real time / 4: acquisition still runs (and pings) when
+            # the worker finishes the next windows (unpaced, the source ended first and a 3 ms
+            # estimation finished them after the last ping)
+            time.sleep(0.0025)
         return self.plant.next_sample()  # EndOfStream at the plant's duration
 
 
