@@ -298,6 +298,33 @@ def test_explain_prints_the_chain_from_a_state_database(
     assert missing.exit_code == 1 and "holds no window of the machine 'other'" in missing.output
 
 
+def test_explain_reads_a_newer_daemons_message(leak_history: list[HealthMessage],
+                                               tmp_path: Path) -> None:
+    """A message with fields this version does not know (a newer daemon's) still gives the
+    trend and the diagnosis sections (they were skipped: the strict model refused it)."""
+    import json
+
+    from click.testing import CliRunner
+
+    from twinwatch.cli import main
+    from twinwatch.sinks.store import StateStore
+
+    db = tmp_path / "state.sqlite"
+    store = StateStore(db)
+    try:
+        for h in leak_history[-3:]:
+            d = h.as_dict()
+            d["added_later"] = {"x": 1}
+            d["parameters"]["D"]["added_later"] = 2.0
+            assert store.save_window(d, None, doc=json.dumps(d))
+    finally:
+        store.close()
+    out = CliRunner().invoke(main, ["explain", "hydraulic-leak", "--db", str(db)]).output
+    assert "4. trend and remaining useful life" in out or "4. no trend" in out, out
+    assert re.search(r"1\. internal_leak \(piston seal", out), out
+    assert "no diagnosis in the stored messages" not in out
+
+
 def test_two_faults_at_once_take_the_first_two_places() -> None:
     """Bearing wear (D +12 %) with an unbalance 3 sin(7 t) at 7 rad/s, 80 s: both ranked
     first and second (the term's offset takes part of the D rise: a constant torque at a

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import sqlite3
 from pathlib import Path
+from typing import Any
 
 from twinwatch.twin.health import (
     HealthMessage,
@@ -82,11 +83,13 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
         lines.append(f"   sensor {sensor.channel} {sensor.kind} at "
                      f"{_num(sensor.value)} for {_num(sensor.duration_s, '.1f')} "
                      f"s: the window's estimates are suspect")
-    try:  # trend and diagnosis: only from a message the model itself accepts
-        last = HealthMessage.model_validate(last_doc.model_dump(by_alias=True,
-                                                                exclude_unset=True))
+    try:  # trend and diagnosis: from the message as the model reads it ...
+        last: Any = HealthMessage.model_validate(last_doc.model_dump(by_alias=True,
+                                                                     exclude_unset=True))
     except ValueError:
-        last = None
+        # ... or, from a newer daemon (a field this version does not know), its typed view:
+        # the same attribute names, unknown fields ignored
+        last = last_doc
     lines.append("")
     lines.append("2. the parameters (the last window; 2-sigma intervals):")
     for name, p in (last_doc.parameters or {}).items():
@@ -114,13 +117,13 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
                      f"significance {_num(t.significance, '.1f')}; {params})")
         lines.append(f"     {t.meaning}")
     lines.append("")
-    trends = ([line for name, p in last.parameters.items() if (line := trend_line(name, p))]
-              if last is not None else [])
+    trends = [line for name, p in (last.parameters or {}).items()
+              if (line := trend_line(name, p))]
     lines.append("4. trend and remaining useful life (95 % intervals):" if trends
                  else "4. no trend (prognostics off, or too little evidence)")
     lines += [f"   {x}" for x in trends]
     lines.append("")
-    diag = last.diagnosis if last is not None else None
+    diag = last.diagnosis
     if diag is None:
         lines.append("5. no diagnosis in the stored messages (schema before 8, or "
                      "[diagnosis] enabled = false)")
@@ -140,7 +143,7 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
         lines.append(f"   no fault mode explains: {eq}")
     lines.append("")
     lines.append(diagnosis_line(diag) or "")
-    developing = developing_line(diag, last.parameters)
+    developing = developing_line(diag, last.parameters or {})
     if developing:
         lines.append(developing)
     return lines
