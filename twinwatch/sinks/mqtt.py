@@ -95,6 +95,9 @@ else:  # imported when the output opens: loading a configuration does not load p
     mqtt = lazy_module("paho.mqtt.client")
 
 logger = logging.getLogger(__name__)
+#: At stop, with windows still to deliver and no connection: the spacing of the connection
+#: attempts until ``close_timeout`` [s].
+CLOSE_RETRY_S = 1.0
 
 __all__ = [
     "HomeAssistantConfig",
@@ -226,7 +229,9 @@ class MqttConfig(SinkConfig):
     connect_timeout: StrictFloat = Field(
         5.0, gt=0, description="s, one connection attempt's timeout")
     close_timeout: StrictFloat = Field(5.0, ge=0,
-                                       description="s at stop to deliver what is pending")
+                                       description="s at stop to deliver what is pending "
+                                       "(reconnecting every second meanwhile if the broker "
+                                       "is away)")
     memory_outbox: StrictInt = Field(10_000, ge=1,
                                      description="windows kept in memory without a state database")
     home_assistant: HomeAssistantConfig = Field(default_factory=HomeAssistantConfig)
@@ -894,7 +899,7 @@ class MqttPublisher(Sink):
         last_poll = 0.0
         last_count = 0.0
         deadline: float | None = None
-        tried_at_close = False
+        close_attempt = 0.0
         while True:
             now = time.monotonic()
             if self._rebind.is_set():
@@ -905,15 +910,18 @@ class MqttPublisher(Sink):
                 if now >= deadline:
                     break
                 if not self._connected:
-                    # one attempt at once while windows wait (the backoff may be sleeping
-                    # through a broker that is back: a run that ended a second after the
-                    # broker restarted left its backlog for the next start)
-                    if tried_at_close or not (self._inflight or self._has_pending()):
+                    # while windows wait: an attempt at once and then every
+                    # CLOSE_RETRY_S until the deadline (the backoff may be sleeping through a
+                    # broker that is back; a single attempt gave up on a broker started a
+                    # second after a short run's end, its backlog left for the next start)
+                    if not (self._inflight or self._has_pending()):
                         break
-                    tried_at_close = True
-                    self._connect()
+                    if now >= close_attempt:
+                        self._connect()
+                        close_attempt = time.monotonic() + CLOSE_RETRY_S
                     if not self._connected:
-                        break
+                        self._flush_acks()
+                        time.sleep(max(0.0, min(0.2, deadline - time.monotonic())))
                     continue
                 if not self._inflight:
                     self._feed(now, all_rows=True)
