@@ -86,18 +86,9 @@ def test_restarts_change_neither_the_trend_nor_the_rul_nor_its_alarm(runs) -> No
     for t in after:
         a, b = whole[t], restarted[t]
         assert b["evidence"] == a["evidence"], (t, a, b)
-        assert (b["degrading"], b["model"], b["rul_status"]) == (
-            a["degrading"], a["model"], a["rul_status"]), (t, a, b)
+        assert (b["degrading"], b["model"], b["rul_status"], b["rul_level"], b["level"]) == (
+            a["degrading"], a["model"], a["rul_status"], a["rul_level"], a["level"]), (t, a, b)
         assert math.isclose(b["rul_s"], a["rul_s"], rel_tol=0.02), (t, a, b)
-        # an alarm level is the same, or the uninterrupted run takes that level one window
-        # earlier or later: a RUL within 2 % of the other's may cross a rule's horizon a window
-        # apart. In the raise_after_s (10 s) after a restart the level may also lag: the
-        # levels are restored, a raise's evidence run in progress is not (the uninterrupted
-        # run's RUL alarm at 240 s was raised at 244 s after a stop at 236 s)
-        lag = 12 if any(0 < t - s <= 12 for s in stops) else 2
-        for key in ("rul_level", "level"):
-            near = {whole[u][key] for u in range(t - lag, t + 4, 2) if u in whole}
-            assert b[key] in near, (t, key, a, b)
 
 
 def test_the_time_line_spans_resumed_runs_and_stops_where_the_clock_went_back(tmp_path):
