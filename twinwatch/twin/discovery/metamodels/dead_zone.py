@@ -34,16 +34,22 @@ class DeadZone(MetaModel):
     z_powers = (-1, 1)
     nonlinear = ("b",)
 
+    @staticmethod
+    def shape(z: FloatArray, b: FloatArray) -> FloatArray:
+        """The band's nonlinearity of ``z`` at half-width ``b`` (broadcasts): :func:`dead_zone`
+        (a subclass with another band function shares the rest)."""
+        return dead_zone(z, b)
+
     def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
         p = np.atleast_2d(np.asarray(p, dtype=float))
         z = np.asarray(z, dtype=float)[None, :]
         with np.errstate(all="ignore"):
-            return p[:, 0, None] * dead_zone(z, p[:, 1, None])
+            return p[:, 0, None] * self.shape(z, p[:, 1, None])
 
     def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
         nl = np.atleast_2d(np.asarray(nl, dtype=float))
         u = np.asarray(u, dtype=float)[None, :]
-        return dead_zone(u, nl[:, :1])[:, None, :]
+        return self.shape(u, nl[:, :1])[:, None, :]
 
     def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
                ) -> tuple[FloatArray, FloatArray]:

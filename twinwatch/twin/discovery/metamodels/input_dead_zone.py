@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt
+from twinwatch.twin.discovery.metamodels.base import fmt
+from twinwatch.twin.discovery.metamodels.dead_zone import DeadZone
 from twinwatch.twin.model import FloatArray
 
 #: The band ``b`` is searched between these quantiles of the input's magnitude: samples on
@@ -25,7 +26,7 @@ def clip(z: FloatArray, b: FloatArray) -> FloatArray:
     return np.clip(z, -b, b)
 
 
-class InputDeadZone(MetaModel):
+class InputDeadZone(DeadZone):
     """``U(z) = a*clip(z, b)``: the part of an input within ``+-b``, scaled.
 
     The dead zone of an actuator (Tao and Kokotovic, *Adaptive Control of Systems with
@@ -50,28 +51,13 @@ class InputDeadZone(MetaModel):
     conditions = ("a dead zone of an input the twin already uses: its part within +-b does "
                   "not act (on d(ia)/dt of Va with a = -1/La: the drive applies no voltage "
                   "while |Va| <= b, a worn or miscalibrated power stage)")
-    params = ("a", "b")
-    z_powers = (-1, 1)
-    nonlinear = ("b",)
+    # params, z_powers, nonlinear, evaluate, basis, bounds and canonical: DeadZone's, with
+    # clip as the band's function
 
-    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
-        p = np.atleast_2d(np.asarray(p, dtype=float))
-        z = np.asarray(z, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return p[:, 0, None] * clip(z, p[:, 1, None])
-
-    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
-        nl = np.atleast_2d(np.asarray(nl, dtype=float))
-        u = np.asarray(u, dtype=float)[None, :]
-        return clip(u, nl[:, :1])[:, None, :]
-
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        """|a| up to the amplitude per unit of normalised input; ``0 <= b <= 1`` unless the
-        data say otherwise."""
-        a = float(amplitude)
-        b_lo, b_hi = b_range or (0.0, 1.0)
-        return np.array([-a, b_lo]), np.array([a, b_hi])
+    @staticmethod
+    def shape(z: FloatArray, b: FloatArray) -> FloatArray:
+        """:func:`clip`."""
+        return clip(z, b)
 
     def data_range(self, u: FloatArray) -> tuple[float, float] | None:
         lo, hi = (float(q) for q in np.quantile(np.abs(u), BAND_QUANTILES))
@@ -80,12 +66,6 @@ class InputDeadZone(MetaModel):
     def identifiable(self, u: FloatArray) -> bool:
         lo, hi = (float(q) for q in np.quantile(np.abs(u), BAND_QUANTILES))
         return hi > 0 and lo < MIN_SPAN * hi
-
-    def canonical(self, p: FloatArray) -> FloatArray:
-        """``b >= 0`` (the band is symmetric)."""
-        q = np.array(p, dtype=float, copy=True)
-        q[1] = abs(q[1])
-        return q
 
     def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
         return f"{fmt(float(p[0]), precision)}*clip({z}, {fmt(float(p[1]), precision)})"
