@@ -17,7 +17,7 @@ PKG = Path(twinwatch.__file__).resolve().parent
 
 def test_the_cache_directory_changes_with_a_callee_source(tmp_path: Path) -> None:
     copy = tmp_path / "twinwatch"
-    for sub in ("twin", "twin/models", "plant"):
+    for sub in _kernels._KERNEL_DIRS:
         (copy / sub).mkdir(parents=True, exist_ok=True)
         for f in (PKG / sub).glob("*.py"):
             shutil.copy(f, copy / sub / f.name)

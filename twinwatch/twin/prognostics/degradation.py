@@ -20,7 +20,8 @@ compromise between the two).
 
 **Fit.** Weighted least squares, weights ``1/s^2`` (the published uncertainty). For fixed
 ``(r, t0)`` the model is linear in ``(c, m)``: a grid over ``r * span`` and ``t0`` is solved in
-closed form, then the best point is polished by :func:`scipy.optimize.least_squares`. The
+closed form, then the best point is polished by a bounded Levenberg-Marquardt (compiled:
+:mod:`~twinwatch.twin.prognostics._lm`). The
 parameter covariance is ``(J^T W J)^-1`` scaled by the residuals: by the reduced chi-square when
 the scatter exceeds the published uncertainty, and by the residuals' long-run variance factor
 (Newey-West, :func:`~twinwatch.twin.estimation.statistics.long_run_factor`) when consecutive
@@ -36,13 +37,13 @@ discovery's criterion is (:func:`~twinwatch.twin.estimation.statistics.delta_bic
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from twinwatch.twin.model import FloatArray
+from twinwatch.twin.prognostics._lm import levenberg_marquardt, wls_grid
 
 __all__ = ["ModelKind", "DegradationFit", "bin_evidence", "fit_models", "long_run_factor",
            "refit_models", "select"]
@@ -75,6 +76,8 @@ class DegradationFit:
         aicc: the corrected Akaike criterion: which degradation model predicts best.
         rms_norm: RMS of the normalised residuals (1: the scatter the published
             uncertainty states).
+        chi2_floor: the chi-square of residuals at the values' rounding (``1e-9`` of the
+            largest): the criteria read ``max(chi2, chi2_floor)``.
     """
 
     kind: ModelKind
@@ -91,6 +94,7 @@ class DegradationFit:
     bic: float = math.inf
     aicc: float = math.inf
     rms_norm: float = math.nan
+    chi2_floor: float = 0.0
     residuals: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     @property
@@ -158,6 +162,16 @@ class DegradationFit:
         return float(getattr(self, name))
 
 
+#: Relative rounding of the evidence's values: a stated uncertainty or a residual below it
+#: is not information.
+_ROUNDING = 1e-9
+
+_ZERO = np.zeros(1)
+_NONE = np.zeros(0)
+
+#: The compiled polish's codes of the free parameters (:mod:`._lm`).
+_CODE = {"c": 0, "m": 1, "r": 2, "t0": 3}
+
 #: The clip ufunc itself (``np.clip``'s wrapper costs more than the clip on a trend's points).
 _CLIP = getattr(getattr(np, "_core", None), "umath", np).clip
 
@@ -209,26 +223,6 @@ def _jacobian(t: FloatArray, fit: DegradationFit, free: tuple[str, ...]) -> Floa
     return np.column_stack(cols)
 
 
-def _wls_grid(basis: FloatArray, y: FloatArray, w: FloatArray
-              ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Closed-form weighted least squares of ``y = c + m * basis[j]`` for every row ``j`` of
-    ``basis`` (G, N): returns (chi2 (G,), c (G,), m (G,))."""
-    s0 = float(np.sum(w))
-    sy = float(w @ y)
-    syy = float(w @ (y * y))
-    s1 = basis @ w
-    s2 = (basis * basis) @ w
-    sgy = basis @ (w * y)
-    det = s0 * s2 - s1 * s1
-    ok = det > 1e-12 * np.maximum(s0 * s2, 1e-300)
-    det_s = np.where(ok, det, 1.0)
-    c = np.where(ok, (s2 * sy - s1 * sgy) / det_s, sy / s0)
-    m = np.where(ok, (s0 * sgy - s1 * sy) / det_s, 0.0)
-    chi2 = syy - c * sy - m * sgy
-    chi2 = np.where(ok, np.maximum(chi2, 0.0), np.inf)
-    return chi2, c, m
-
-
 def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref: float,
             c: float, m: float, r: float, onset: float | None, free: tuple[str, ...]
             ) -> DegradationFit:
@@ -264,7 +258,11 @@ def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref:
                 lo[i], hi[i] = float(t[0]), float(t[-1])
         pad = 1e-9 * np.where(np.isfinite(hi - lo), hi - lo, 0.0)
         x0 = np.clip(x0, lo + pad, hi - pad)
-        x0 = _levenberg_marquardt(resid, jac, x0, lo, hi)
+        codes = np.array([_CODE[p] for p in names], dtype=np.int64)
+        base = np.array([fit.c, fit.m, fit.r,
+                         fit.onset if fit.onset is not None else 0.0])
+        x0 = levenberg_marquardt(t, y, s, t_ref, base, fit.onset is not None, codes, x0,
+                                 lo, hi)
     fit = unpack(x0)
     r_norm = resid(x0)
     chi2 = float(r_norm @ r_norm)
@@ -282,6 +280,9 @@ def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref:
     scale = max(red, 1.0) * lrf
     fit.cov = cov * scale
     fit.chi2 = chi2
+    # residuals below the values' rounding (the floor of ``s`` in fit_models) are not
+    # information: a criterion comparing fits of exact evidence compares their rounding
+    fit.chi2_floor = float(np.sum((_ROUNDING * float(np.max(np.abs(y))) / s) ** 2))
     fit.n = n
     fit.scale = scale
     fit.rms_norm = float(math.sqrt(chi2 / max(n, 1)))
@@ -327,44 +328,6 @@ def bin_evidence(t: FloatArray, y: FloatArray, s: FloatArray, most: int
     return tb, yb, 1.0 / np.sqrt(sw)
 
 
-def _levenberg_marquardt(resid: Callable[[FloatArray], FloatArray],
-                         jac: Callable[[FloatArray], FloatArray], x0: FloatArray,
-                         lo: FloatArray, hi: FloatArray, iterations: int = 40) -> FloatArray:
-    """Bounded Levenberg-Marquardt (steps clipped to the bounds) from the grid's best point:
-    the models have at most four parameters and start close to the optimum, where a general
-    solver's overhead (scipy's ``least_squares``: 20 ms a fit) is most of the cost."""
-    x = x0.copy()
-    r = resid(x)
-    cost = float(r @ r)
-    lam = 1e-3
-    for _ in range(iterations):
-        j = jac(x)
-        a = j.T @ j
-        g = j.T @ r
-        d = np.diag(a).copy()
-        d[d <= 0] = 1.0
-        improved = False
-        for _ in range(10):
-            try:
-                step = np.linalg.solve(a + lam * np.diag(d), -g)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            xn = np.clip(x + step, lo, hi)
-            rn = resid(xn)
-            cn = float(rn @ rn)
-            if math.isfinite(cn) and cn < cost:
-                improved = True
-                small = cost - cn <= 1e-10 * cost
-                x, r, cost = xn, rn, cn
-                lam = max(lam / 3.0, 1e-9)
-                break
-            lam *= 10.0
-        if not improved or small:
-            break
-    return x
-
-
 def _assign_bic(fits: list[DegradationFit]) -> None:
     """BIC of each fit with the weights known up to a common scale, on one effective sample
     size for all (a comparison needs the same one): ``n (1 - rho)/(1 + rho)``, ``rho`` the
@@ -381,7 +344,7 @@ def _assign_bic(fits: list[DegradationFit]) -> None:
     most = max(f.k for f in fits)
     n_eff = max(n * (1.0 - rho) / (1.0 + rho), float(most + 1))
     for f in fits:
-        fit_term = n_eff * math.log(max(f.chi2 / n, 1e-300))
+        fit_term = n_eff * math.log(max(max(f.chi2, f.chi2_floor) / n, 1e-300))
         f.bic = fit_term + f.k * math.log(n_eff)
         f.aicc = fit_term + 2.0 * f.k + 2.0 * f.k * (f.k + 1) / max(n_eff - f.k - 1, 1.0)
 
@@ -420,7 +383,7 @@ def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | No
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
     # A stated uncertainty below 1e-9 of the values is rounding, not information.
-    floor = 1e-9 * float(np.max(np.abs(y))) if y.size else 0.0
+    floor = _ROUNDING * float(np.max(np.abs(y))) if y.size else 0.0
     s = np.maximum(np.asarray(s, dtype=float), max(floor, 1e-300))
     n = t.size
     t_ref = float(t[-1]) if t_ref is None else float(t_ref)
@@ -435,32 +398,27 @@ def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | No
     if span <= 0:
         _assign_bic(out)
         return out
-    tau = t - t_ref
     if not onset:
         onsets = np.empty(0)
     elif onsets is None:
         onsets = _onset_grid(t, 30)
     if "linear" in kinds and n >= 2 + min_points:
-        chi2, c, m = _wls_grid(tau[None, :], y, w)
+        chi2, c, m = wls_grid(t, y, w, t_ref, _ZERO, _NONE, False)
         out.append(_finish("linear", t, y, s, t_ref, float(c[0]), float(m[0]), 0.0, None,
                            ("c", "m")))
         if onsets.size and n >= 3 + min_points:
-            basis = np.maximum(t[None, :], onsets[:, None]) - t_ref
-            chi2, c, m = _wls_grid(basis, y, w)
+            chi2, c, m = wls_grid(t, y, w, t_ref, _ZERO, onsets, True)
             i = int(np.argmin(chi2))
             out.append(_finish("linear", t, y, s, t_ref, float(c[i]), float(m[i]), 0.0,
                                float(onsets[i]), ("c", "m", "t0")))
     if "exponential" in kinds and n >= 3 + min_points:
         rs = _RHO_GRID / span
-        basis = _g(tau[None, :], rs[:, None])
-        chi2, c, m = _wls_grid(basis, y, w)
+        chi2, c, m = wls_grid(t, y, w, t_ref, rs, _NONE, False)
         i = int(np.argmin(chi2))
         out.append(_finish("exponential", t, y, s, t_ref, float(c[i]), float(m[i]),
                            float(rs[i]), None, ("c", "m", "r")))
         if onsets.size and n >= 4 + min_points:
-            tt = np.maximum(t[None, :], onsets[:, None]) - t_ref        # (O, N)
-            basis = _g(tt[None, :, :], rs[:, None, None]).reshape(-1, n)  # (R*O, N)
-            chi2, c, m = _wls_grid(basis, y, w)
+            chi2, c, m = wls_grid(t, y, w, t_ref, rs, onsets, True)  # (R*O,)
             i = int(np.argmin(chi2))
             ri, oi = divmod(i, onsets.size)
             out.append(_finish("exponential", t, y, s, t_ref, float(c[i]), float(m[i]),
@@ -488,7 +446,7 @@ def refit_models(previous: list[DegradationFit], t: FloatArray, y: FloatArray, s
     """
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
-    floor = 1e-9 * float(np.max(np.abs(y))) if y.size else 0.0
+    floor = _ROUNDING * float(np.max(np.abs(y))) if y.size else 0.0
     s = np.maximum(np.asarray(s, dtype=float), max(floor, 1e-300))
     t_ref = float(t[-1]) if t_ref is None else float(t_ref)
     w = 1.0 / (s * s)
@@ -499,9 +457,9 @@ def refit_models(previous: list[DegradationFit], t: FloatArray, y: FloatArray, s
                                None, g.free))
             continue
         onset = None if g.onset is None else min(max(g.onset, float(t[0])), float(t[-1]))
-        tt = t if onset is None else np.maximum(t, onset)
-        basis = _g(tt - t_ref, float(g.r)) if g.kind == "exponential" else tt - t_ref
-        _, c, m = _wls_grid(basis[None, :], y, w)
+        r = float(g.r) if g.kind == "exponential" else 0.0
+        _, c, m = wls_grid(t, y, w, t_ref, np.array([r]), np.array([onset or 0.0]),
+                           onset is not None)
         out.append(_finish(g.kind, t, y, s, t_ref, float(c[0]), float(m[0]), float(g.r),
                            onset, g.free))
     _assign_bic(out)

@@ -96,7 +96,7 @@ class TrendSettings:
     smooth: int = 5
     min_weight: float = 0.01
     detection: float = 0.9
-    #: A trend that is not degrading, whose new evidence lies within ``skip_z`` of its
+    #: A flat trend (its chosen model ``none``), whose new evidence lies within ``skip_z`` of its
     #: prediction, is refitted at every ``refit_every``-th evidence only (the fit before
     #: predicts the window as well; its level, band and rate are evaluated at the window's
     #: time).
@@ -273,7 +273,8 @@ class ParameterTrend:
         or the horizon dropped some).
 
         What changed decides how (``full``: the grid search and the polish, always): a trend
-        that is not degrading and whose new evidence it predicts (within ``skip_z``) keeps its
+        that is flat (``none`` chosen) and whose new evidence it predicts (within ``skip_z``)
+        keeps its
         fit for up to ``refit_every`` windows; otherwise the models are polished again from
         their last optimum, and the grid searched again every ``regrid_every`` refits or when
         the evidence left the prediction (``regrid_z``), a restart, a bend or an outlier.
@@ -299,8 +300,12 @@ class ParameterTrend:
         n = len(self.t) + self._dropped
         warm = not full and len(self._all) == (5 if cfg.onset else 3) \
             and self._z <= cfg.regrid_z
-        if warm and self._z <= cfg.skip_z and n % cfg.refit_every and not self.degrading():
-            return  # flat, and the fit before predicts this evidence: kept (still dirty)
+        if warm and self._z <= cfg.skip_z and n % cfg.refit_every and self.fit is not None \
+                and self.fit.kind == "none":
+            # flat (no degradation chosen: one chosen but not yet past the detection odds
+            # may cross them with this evidence), and the fit before predicts this evidence:
+            # kept (still dirty)
+            return
         self._dirty = False
         t, y, s = bin_evidence(np.asarray(self.t), np.asarray(self.y), np.asarray(self.s),
                                cfg.max_points)
