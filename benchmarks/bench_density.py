@@ -18,7 +18,10 @@ per window over every machine (p50, p95, max: the health message's ``elapsed_s``
 compiling window included), the windows' queue wait (median of the machines' medians, the
 largest; from the run summaries), CPU share of the whole box's cores (100 % = one core) and
 per machine, resident memory per machine (the processes' peak VmRSS, summed, divided by N; a
-host's worker processes are summed with it, their CPU too).
+host's worker processes are summed with it, their CPU too), and ``late60``: the worst window
+after the first minute of plant time, how much later than the machine's promptest window it
+was stored (ms; the file replays in real time, so a window's end is due at a fixed offset from
+its plant time: this is the queueing a window suffered beyond the machine's best case).
 ``--cold`` points ``NUMBA_CACHE_DIR`` at an empty directory: every kernel is compiled, as on
 the first start after an install (a reboot with an installed unit keeps its cache in
 ``/var/cache/twinwatch``). Each run is bounded by ``--seconds`` + 150 s of wall time.
@@ -34,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import sqlite3
@@ -42,6 +46,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -89,6 +94,14 @@ def plant_csv(path: Path, seconds: float, plant: dict) -> None:  # type: ignore[
         smp = p.next_sample()
         rows.append(f"{smp.t:.7f}," + ",".join(repr(smp.values[c]) for c in CHANNELS))
     path.write_text("\n".join(rows) + "\n")
+
+
+def windows_expected(name: str, seconds: float, mode: str) -> int:
+    """Windows of 200 samples at 10 ms in ``seconds`` of plant time; in a gateway the first
+    one is lengthened by the machine's phase (``[acquisition] stagger``)."""
+    samples = int(round(seconds / 0.01))
+    phase = zlib.crc32(name.encode()) % 200 if mode == "gateway" else 0
+    return (samples - phase) // 200
 
 
 def plant_path(directory: Path, i: int, seconds: float) -> Path:
@@ -167,6 +180,8 @@ class Run:
     peak_rss_mb: float = 0.0
     exit_codes: list[int] = field(default_factory=list)
     start_s: float = 0.0
+    #: the latest window stored after the first minute, against the machine's promptest (ms)
+    late_ms: float = float("nan")
 
     def row(self) -> str:
         e = sorted(self.elapsed)
@@ -182,12 +197,13 @@ class Run:
                 f"{(max(self.first) * 1e3 if self.first else float('nan')):>8.0f} "
                 f"{wait_med:>8.0f} {self.wait_max:>8.0f} {cpu:>7.0f} {cpu / self.n:>8.1f} "
                 f"{self.peak_rss_mb / self.n:>9.0f} {self.peak_rss_mb:>8.0f} "
-                f"{self.start_s:>7.1f} {','.join(map(str, sorted(set(self.exit_codes))))}")
+                f"{self.start_s:>7.1f} {self.late_ms:>8.0f} "
+                f"{','.join(map(str, sorted(set(self.exit_codes))))}")
 
 
 HEADER = (f"{'N':>4} {'mode':<8} {'windows':>11} {'overruns':>8} {'p50ms':>7} {'p95ms':>7} "
           f"{'max ms':>8} {'1st ms':>8} {'wait50':>8} {'waitmax':>8} {'CPU%':>7} "
-          f"{'CPU%/m':>8} {'RSS/m MB':>9} {'RSS MB':>8} {'start s':>7} exit")
+          f"{'CPU%/m':>8} {'RSS/m MB':>9} {'RSS MB':>8} {'start s':>7} {'late60':>8} exit")
 
 
 def read_results(run: Run, dirs: list[Path]) -> None:
@@ -198,11 +214,23 @@ def read_results(run: Run, dirs: list[Path]) -> None:
         con = sqlite3.connect(db)
         try:
             docs = [json.loads(r[0]) for r in con.execute("SELECT doc FROM health ORDER BY id")]
+            stamps = con.execute("SELECT t_end, wall FROM health ORDER BY id").fetchall()
         finally:
             con.close()
         if not docs:
             continue
         run.estimated += len(docs)
+        if stamps:
+            # a file replayed in real time: a window's end is due at a fixed wall-clock offset
+            # from its plant time; how much later than the machine's promptest window each
+            # one was stored, from the first minute of plant time on
+            offsets = [wall - t_end for t_end, wall in stamps]
+            best = min(offsets)
+            late = [o - best for (t_end, _), o in zip(stamps, offsets, strict=True)
+                    if t_end - stamps[0][0] >= 60.0]
+            if late:
+                worst = 1e3 * max(late)
+                run.late_ms = worst if math.isnan(run.late_ms) else max(run.late_ms, worst)
         run.elapsed += [float(doc["elapsed_s"]) for doc in docs]
         run.first.append(float(docs[0]["elapsed_s"]))
         counters = docs[-1].get("counters", {})
@@ -242,7 +270,8 @@ def monitor(procs: list[subprocess.Popen[str]], timeout: float) -> tuple[float, 
 def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
              workers: int | None, acquisition_only: bool = False, gateways: int = 1) -> Run:
     run = Run(n=n, mode=mode if gateways == 1 or mode != "gateway" else f"gw x{gateways}",
-              expected=0 if acquisition_only else n * int(seconds // 2))
+              expected=0 if acquisition_only else sum(
+                  windows_expected(f"m{i:03d}", seconds, mode) for i in range(n)))
     with tempfile.TemporaryDirectory(prefix=f"density-{mode}-{n}-") as tmp:
         root = Path(tmp)
         env = dict(os.environ, PYTHONUNBUFFERED="1")

@@ -73,10 +73,11 @@ def _stats(x: list[float]) -> str:
             f"p95 {np.percentile(a, 95):7.2f} ms")
 
 
-def window_cost(n_windows: int, t_from: float) -> tuple[list, Any]:
+def window_cost(n_windows: int, t_from: float, noise: float = 0.0) -> tuple[list, Any]:
     """Per window from ``t_from`` [s] on, CPU [s]: (whole, estimation, prognostics, ring
     buffer); and the samples. The windows before are processed (the trends' evidence, the
-    fusion's history), not reported."""
+    fusion's history), not reported. ``noise``: the plant's measurement noise on ia and omega
+    [% of their scale] (the density benchmark's plants have 0.5)."""
     cfg = default_config()
     model = create_model(cfg.machine.model, cfg.machine.options)
     nominal = {p.name: cfg.machine.parameters.get(p.name, p.nominal) for p in model.parameters}
@@ -87,7 +88,10 @@ def window_cost(n_windows: int, t_from: float) -> tuple[list, Any]:
     ring = RingBuffer(model.required_channels(), window=acq.window,
                       sample_period=acq.sample_period, jitter_tolerance=acq.jitter_tolerance,
                       capacity=4 * acq.window)
-    plant = DCMotorPlant(cfg.driver.plant)  # type: ignore[union-attr]
+    plant_cfg = cfg.driver.plant  # type: ignore[union-attr]
+    if noise:
+        plant_cfg = plant_cfg.model_copy(update={"noise": {"ia": noise, "omega": noise}})
+    plant = DCMotorPlant(plant_cfg)
     before = int(round(t_from / acq.sample_period))
     samples = [plant.next_sample() for _ in range(before + (n_windows + 1) * acq.window)]
     est, prog = _Clock(), _Clock()
@@ -178,13 +182,16 @@ def main() -> None:
     ap.add_argument("--from", dest="t_from", type=float, default=400.0,
                     help="report the windows from this plant time [s] on (the resistance "
                     "degrades from 160 s; the windows before are processed, not reported)")
+    ap.add_argument("--noise", type=float, default=0.0,
+                    help="plant measurement noise on ia and omega [%% of reading] (the density "
+                    "benchmark's plants: 0.5)")
     ap.add_argument("--realtime-windows", type=int, default=2,
                     help="windows the file driver replays in real time (2 s each)")
     args = ap.parse_args()
     logging.disable(logging.WARNING)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"python {platform.python_version()}, load {os.getloadavg()[0]:.2f}")
-    rows, samples = window_cost(args.windows, args.t_from)
+    rows, samples = window_cost(args.windows, args.t_from, args.noise)
     a = np.array(rows)
     per = 200
     print(f"\nwindow of {per} samples (2 s), CPU over {len(rows)} windows from "

@@ -281,6 +281,11 @@ class AcquisitionConfig(BaseModel):
         10.0, gt=0, description="seconds to finish queued windows")
     abandon_on_stop: bool = Field(False, description="on stop, drop queued windows instead "
                                   "of estimating them")
+    stagger: bool = Field(True, description="in a fleet (a directory of machines), lengthen "
+                          "each machine's first window by a phase from its name (0 to one "
+                          "window), so machines started together do not complete their "
+                          "windows at the same moment and wait for each other; nothing is "
+                          "lost (one longer window)")
     adaptive: AdaptiveTable = Field(
         default_factory=lambda: _adaptive_config()(),
         description="[acquisition.adaptive]: a window that follows the change (off by "

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -69,6 +70,8 @@ class Acquisition:
                                capacity=4 * max(longest, acq.window))
         self.driver: Driver | None = None
         self._own_driver = own_driver
+        self.phase = 0
+        self._phase_pending = False
         self.watchdog = watchdog
         self.stopping = threading.Event()
         self._stop_at_window: float | None = None  # monotonic deadline, see stop(at_window)
@@ -83,6 +86,19 @@ class Acquisition:
         that cannot be opened now is waited for)."""
         self.driver = driver or open_source(self.config.driver, base_dir=base_dir, wait=wait,
                                             backoff_max=self.config.acquisition.reopen_max)
+
+    def stagger(self, name: str) -> int:
+        """Lengthen the first window by a phase of 0 to ``window - 1`` samples from ``name``
+        (CRC-32: the same machine keeps its phase across restarts), so the windows of machines
+        started together complete spread over a window's length instead of at one moment
+        (measured with 200 machines: issue 22, ``benchmarks/bench_density.py``). Returns the
+        phase [samples]; nothing is dropped (the first window is longer)."""
+        window = self.config.acquisition.window
+        self.phase = zlib.crc32(name.encode()) % window
+        if self.phase:
+            self.ring.request_window(window + self.phase)
+            self._phase_pending = True
+        return self.phase
 
     def run(self, duration: float | None, submit: Callable[[WindowData, bool], None],
             abandoned: Callable[[int], None]) -> None:
@@ -141,6 +157,11 @@ class Acquisition:
                 self.ended = "duration reached"
                 break
             window = self.ring.append(sample.t, sample.values)
+            if self._phase_pending and not self.ring.window_requested:
+                # the first window has started at its staggered length: the next ones are
+                # of the configured length again
+                self._phase_pending = False
+                self.ring.request_window(self.config.acquisition.window)
             n_abandoned = sum(self.ring.causes.values())
             if n_abandoned > self._abandoned_seen:
                 abandoned(n_abandoned - self._abandoned_seen)

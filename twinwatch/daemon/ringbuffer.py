@@ -166,6 +166,11 @@ class RingBuffer:
                              f"(2 .. {self.capacity})")
         self._next_window = int(n)
 
+    @property
+    def window_requested(self) -> bool:
+        """A :meth:`request_window` not yet taken by a window start."""
+        return self._next_window is not None
+
     def _lose(self, reason: str, cause: Cause, n: int) -> None:
         """Account ``n`` lost samples to ``reason`` (see the module docstring)."""
         if n <= 0:

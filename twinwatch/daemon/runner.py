@@ -118,7 +118,8 @@ class Daemon:
             machine its own (``<working directory>/<machine>``).
         slots: the estimation slots the worker takes a window's processing under (a gateway:
             one pool sized to the cores, shared by every machine; the time waited for one is
-            part of the window's queue wait); None: no limit (one daemon per process).
+            part of the window's queue wait; its first window staggered,
+            ``[acquisition] stagger``); None: no limit (one daemon per process).
         shared: what the daemons of one process share (a gateway's
             :class:`~twinwatch.sinks.base.SharedResources`: the Zenoh session), given to the
             outputs in their context; None: each output opens its own.
@@ -187,6 +188,8 @@ class Daemon:
             counters=self.counters, source=self.source_state)
         self.acquisition = Acquisition(config, self.model, own_driver=driver is None,
                                        watchdog=watchdog)
+        if slots is not None and config.acquisition.stagger:
+            self.acquisition.stagger(self.machine)
         self.worker = WindowWorker(
             machine=self.machine, process=lambda window: self.process_window(window),
             backpressure=self.pipeline.backpressure, stopping=self.acquisition.stopping,

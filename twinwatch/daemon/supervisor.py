@@ -68,7 +68,8 @@ class Stopped(StartError):
 
 def warm_up(daemon: Daemon) -> None:
     """Compile the twin's numba kernels (cached on disk after the first run) with one
-    simulation of a window of zeros. Best effort: the first window compiles them otherwise."""
+    simulation of a window of zeros, and the prognostics' with one trend fit. Best effort: the
+    first window compiles them otherwise."""
     try:
         import numpy as np
 
@@ -80,6 +81,11 @@ def warm_up(daemon: Daemon) -> None:
         chans = {c: np.zeros(n) for c in daemon.model.required_channels()}
         theta = np.array([[daemon.nominal[p] for p in daemon.model.parameter_names]])
         daemon.model.simulate(theta, WindowData(t=t, channels=chans, index=-1))
+        if daemon.config.prognostics.enabled:  # the trends' polish and grid
+            from twinwatch.twin.prognostics.degradation import fit_models
+
+            k = np.arange(20.0)
+            fit_models(k, 1.0 + 1e-3 * k * k, np.full(k.size, 1e-3))
     except Exception:  # noqa: BLE001 - best effort: the first window compiles otherwise
         logger.debug("numba warm-up skipped", exc_info=True)
 
