@@ -53,6 +53,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SIM = ROOT / "config" / "dc-motor-sim.toml"
 CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+sys.path.insert(0, str(ROOT))
+from twinwatch.daemon.slots import default_processes  # noqa: E402
+
 PORT_BASE = 27400
 
 FILE_DRIVER = """[driver]
@@ -283,7 +287,7 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
         for i in range(n):
             # a host's machines share one Zenoh session per process: one port per worker
             # process (machines with one [zenoh] table go to one worker)
-            ports = max(gateways, workers if workers is not None else len(os.sched_getaffinity(0)))
+            ports = max(gateways, workers if workers is not None else default_processes(n))
             port = PORT_BASE + i % ports if mode == "gateway" else PORT_BASE + 100 + i
             where = shards[i % gateways] if mode == "gateway" and gateways > 1 else machines
             where.mkdir(exist_ok=True)

@@ -132,7 +132,8 @@ def _ignore_late_stops() -> None:
               "a new run from the nameplate values.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Gateway mode (CONFIG a directory): worker processes the machines are "
-              "spread over (default: one per core; 1: every machine in this process).")
+              "spread over (default: one per core, and one per 50 machines when that is "
+              "more; 1: every machine in this process).")
 @click.option("--assignment", type=click.Path(path_type=Path), default=None, hidden=True,
               help="A worker process: the file naming the machine files it runs.")
 @click.option("--slots", type=click.IntRange(min=0), default=None, hidden=True,
@@ -190,9 +191,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
         def check(cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
             check_runnable(cfg, str(path), base_dir=path.resolve().parent, cwd=work_dir)
 
-        from twinwatch.daemon.slots import default_workers
+        from twinwatch.daemon.slots import default_processes
 
-        n = workers if workers is not None else default_workers()
+        n = workers if workers is not None else default_processes(len(_machine_files(config)))
         if assignment is None and n > 1 and len(_machine_files(config)) > 1:
             from twinwatch.daemon.workers import ProcessHost, place
 
