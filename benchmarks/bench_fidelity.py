@@ -182,7 +182,7 @@ def run_hydraulic(name: str, twin: HydraulicActuatorTwin, period: float,
 
 
 HEADER = (f"{'win':>4} {'est':>4} {'susp':>4} {'flag':>4}  {'median':>7} {'p95':>7} "
-          f"{'max':>7}  {'within':>6}  {'covers':>6}  {'ms':>5}")
+          f"{'max':>7}  {'within':>6}  {'covers':>6}  {'2sd':>6}  {'ms':>5}")
 
 
 def score(name: str, est: Estimator, wins: list[WindowData], truth_at: Any, param: str,
@@ -190,8 +190,9 @@ def score(name: str, est: Estimator, wins: list[WindowData], truth_at: Any, para
     """Run the estimator over the windows and print one row: the published value's error
     against ``truth_at(t_mid)`` (median, p95, max, %), the share within ``target``, windows
     publishing ``estimated`` and ``suspect``, flagged by the model check, and ``covers``: of
-    the windows publishing ``estimated``, the share whose 2-sigma interval covers the truth."""
-    err, covers, flagged, n_est, n_susp, times = [], 0, 0, 0, 0, []
+    the windows publishing ``estimated``, the share whose 2-sigma interval covers the truth,
+    and ``2sd``: their intervals' median half-width (2 sigma, % of the value)."""
+    err, covers, flagged, n_est, n_susp, times, half = [], 0, 0, 0, 0, [], []
     for w in wins:
         t0 = time.perf_counter()
         e = est.estimate(w)
@@ -203,16 +204,18 @@ def score(name: str, est: Estimator, wins: list[WindowData], truth_at: Any, para
         if e.status[param] == "estimated":
             n_est += 1
             covers += abs(math.log(e.values[param] / truth)) <= 2 * e.rel_std[param]
+            half.append(2 * e.rel_std[param])
     a = np.abs(err)
     n = len(wins)
     row = {"windows": n, "estimated": n_est, "suspect": n_susp, "flagged": flagged,
            "median": float(np.median(a)) * 100, "p95": float(np.percentile(a, 95)) * 100,
            "max": float(a.max()) * 100, "within": float(np.mean(a <= target)) * 100,
            "covers": 100.0 * covers / n_est if n_est else math.nan,
+           "half_width": float(np.median(half)) * 100 if half else math.nan,
            "ms": float(np.median(times)) * 1e3}
     print(f"{name:<46} {n:>4} {n_est:>4} {n_susp:>4} {flagged:>4}  {row['median']:7.3f} "
           f"{row['p95']:7.3f} {row['max']:7.3f}  {row['within']:6.1f}  {row['covers']:6.1f}  "
-          f"{row['ms']:5.0f}{suffix}", flush=True)
+          f"{row['half_width']:6.3f}  {row['ms']:5.0f}{suffix}", flush=True)
     return row
 
 

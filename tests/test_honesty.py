@@ -127,8 +127,8 @@ def test_twin_configured_with_the_drive_is_honest_with_noise() -> None:
         truth = plant.truth(float(w.t[w.n // 2])).Ra
         assert e.values["Ra"] == pytest.approx(truth, rel=0.01)
         for name, rel in e.rel_std.items():  # the gate: never 'estimated' above max_rel_std
-            if e.status[name] == "estimated":
-                assert rel <= 0.01
+            if e.status[name] == "estimated":  # (the window's own: the floor is the twin's)
+                assert math.sqrt(rel**2 - e.floor.get(name, 0.0) ** 2) <= 0.01 * (1 + 1e-9)
 
 
 # -- configured wrongly: it says so -------------------------------------------------------------
@@ -154,7 +154,8 @@ def test_a_parameter_the_gate_holds_is_published_at_its_trusted_value() -> None:
     gated = [e for _, e in runs if "after the model check failed" in e.held.get("Ra", "")]
     assert gated and all(e.status["Ra"] == "held" for e in gated)
     for e in gated:  # the others' (marginal) intervals pass the gate
-        assert all(e.rel_std[n] <= 0.01 for n, st in e.status.items() if st == "estimated")
+        assert all(math.sqrt(e.rel_std[n] ** 2 - e.floor.get(n, 0.0) ** 2) <= 0.01 * (1 + 1e-9)
+                   for n, st in e.status.items() if st == "estimated")
 
 
 def test_unmodelled_unidirectional_stage_is_flagged_where_it_acts() -> None:
@@ -265,3 +266,41 @@ def test_a_mis_stated_drive_never_publishes_a_misfit_as_estimated() -> None:
             truth = plant.truth(float(w.t[w.n // 2])).Ra
             worst = max(worst, abs(e.values["Ra"] / truth - 1.0))
     assert worst < 0.05, worst
+
+
+def _methods_run(plant_method: str, twin_method: str, n: int
+                 ) -> tuple[DCMotorPlant, list]:  # type: ignore[type-arg]
+    """benchmarks/bench_fidelity.py --only methods, noise-free, the first ``n`` windows."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_fidelity as bf
+
+    cfg = DCMotorPlantConfig(scenario="resistance_degradation", duration=160 + 2 * n + 10,
+                             drive=bf.method_drive(plant_method), seed=5,
+                             setpoint=bf.METHOD_SETPOINT)  # type: ignore[arg-type]
+    plant = DCMotorPlant(cfg)
+    est = Estimator(DCMotorTwin(drive=bf.method_drive(twin_method)),
+                    EstimationConfig(bounds=bf.BOUNDS))
+    return plant, [(w, est.estimate(w)) for w in bf.windows(plant, n, skip=80)]
+
+
+def test_a_mis_stated_drive_publishes_its_structural_error_in_the_interval() -> None:
+    """Issue 23 item 5, the interval's floor (twinwatch/twin/estimation/floor.py): the FE
+    plant fitted by the TR twin, noise-free. Window 34's check passed while five free
+    parameters absorbed the tick of integral action (Ke -1.72 % +- 0.009 %); every later window
+    held it and published Ra 0.052 % off with 0.012 %: covered in 20 of the 37 estimated of
+    these 60 windows before the floor (24 % over 150). The scatter of the windows' Ke now
+    widens Ra's interval (through its gain on the held Ke) to cover; the matching twin's stays
+    as narrow as its noise-free fit (median 2 sigma 0.025 %)."""
+    plant, runs = _methods_run("forward_euler", "trapezoidal", 60)
+    n, ok = _coverage(plant, runs)
+    late = [e for w, e in runs if w.index >= 80 + 40 and e.status["Ra"] == "estimated"]
+    assert late and all(e.floor["Ra"] > 0.0002 for e in late)  # the Ke scatter seen
+    assert n >= 25 and ok >= 0.9 * n, (n, ok)
+    plant, runs = _methods_run("forward_euler", "forward_euler", 60)
+    n, ok = _coverage(plant, runs)
+    half = [2 * e.rel_std["Ra"] for _, e in runs if e.status["Ra"] == "estimated"]
+    assert n >= 55 and ok >= 0.9 * n, (n, ok)
+    assert float(np.median(half)) < 0.0003, np.median(half)

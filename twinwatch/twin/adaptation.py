@@ -332,6 +332,7 @@ class TwinAdapter:
             "trusted": self.estimator.trusted_values(),
             "terms": [t.state_dict() for t in self.terms],
             "fusion": self.estimator.fusion_state(),
+            "floor": self.estimator.floor_state(),
         }
 
     def restore(self, state: Mapping[str, Any]) -> None:
@@ -341,6 +342,10 @@ class TwinAdapter:
         if not self.estimator.set_fusion_state(state.get("fusion")) and state.get("fusion"):
             logger.warning("saved fusion state does not fit the estimated parameters: the "
                            "fusion starts again from the trusted values")
+        if not self.estimator.set_floor_state(state.get("floor")) and state.get("floor"):
+            logger.warning("the saved structural term of the intervals (the floor) cannot be "
+                           "read: it is measured again from this run's windows, the published "
+                           "intervals narrower until it is")
         self.terms = [Term.from_dict(d, self.model) for d in state.get("terms", [])]
 
     # -- helpers --------------------------------------------------------------------------

@@ -54,6 +54,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -71,6 +72,7 @@ from pydantic import (
 
 from twinwatch.twin.estimation.check import ValidationConfig, check_twin, model_check
 from twinwatch.twin.estimation.fit import ParameterMap, WindowFit, relative_std
+from twinwatch.twin.estimation.floor import FloorState, StructuralFloor
 from twinwatch.twin.estimation.fusion import (
     FusionConfig,
     FusionState,
@@ -288,6 +290,9 @@ class WindowEstimate:
         search_reason: why the swarm ran (``start``, ``guard``, ``sudden change``,
             ``rolled back``, ``rejected: ...`` when the local fit was rejected first,
             ``every window`` with ``strategy = "swarm"``); empty for a local window.
+        floor: parameter the window determined -> the structural term added to its published
+            relative standard error (1 sigma, fraction; :mod:`~twinwatch.twin.estimation.floor`):
+            ``rel_std = sqrt(sigma^2 + floor^2)``, ``sigma`` the window's own.
     """
 
     values: dict[str, float]
@@ -313,6 +318,7 @@ class WindowEstimate:
     fitted: dict[str, float] = field(default_factory=dict)
     search: Literal["swarm", "local"] = "swarm"
     search_reason: str = ""
+    floor: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -343,6 +349,7 @@ class EstimatorState:
     depends: dict[str, dict[str, tuple[float, float, int]]] | None = None
     provisional: frozenset[str] | None = None
     anew: dict[str, tuple[float, int]] | None = None
+    floor: FloorState | None = None
 
 
 class Estimator:
@@ -416,11 +423,17 @@ class Estimator:
         #: Local first: windows since the last swarm (None before the first), why the next
         #: window must run it (empty: it need not), and the nRMSE the last swarm reached.
         self._since_swarm: int | None = None
+        #: windows the first guard swarm comes early (:meth:`stagger_guard`; 0: none)
+        self.guard_phase = 0
         self._swarm_next = ""
         self._swarm_nrmse = 0.0
         #: The last window's admitted set (the gate's, before the model check): a local-first
         #: window polishes only these, and the gate confirms the set (:meth:`_fit`).
         self._admitted: list[int] | None = None
+        #: The interval's floor: the between-window structural variance of each estimated
+        #: parameter (:mod:`~twinwatch.twin.estimation.floor`), added to the published
+        #: standard errors only.
+        self.floor = StructuralFloor(len(config.estimate))
 
     # -- state ----------------------------------------------------------------------------
     def snapshot(self) -> EstimatorState:
@@ -429,7 +442,8 @@ class Estimator:
                               self.fusion.state.copy() if self.fusion else None,
                               self.trusted_std.copy(), dict(self._candidates),
                               {n: dict(d) for n, d in self._depends.items()},
-                              frozenset(self._provisional), dict(self._anew))
+                              frozenset(self._provisional), dict(self._anew),
+                              self.floor.state.copy())
 
     def rollback(self, state: EstimatorState) -> None:
         """Forget what windows since :meth:`snapshot` taught (a window the adaptation finds
@@ -445,6 +459,8 @@ class Estimator:
             self._provisional = set(state.provisional)
         if state.anew is not None:
             self._anew = dict(state.anew)
+        if state.floor is not None:
+            self.floor.state = state.floor.copy()
         if self.fusion is not None and state.fusion is not None:
             self.fusion.state = state.fusion.copy()
         # the windows since were biased (a missing component): search globally again
@@ -470,6 +486,22 @@ class Estimator:
                 return True
         self.fusion.reset(self.trusted[self.pmap.idx])
         return False
+
+    def floor_state(self) -> dict[str, Any]:
+        """The interval floor's state (JSON-serialisable), for persistence: a restart goes on
+        with the scatter seen so far (its published intervals those of an uninterrupted run)."""
+        return self.floor.state.as_dict(self.pmap.estimate)
+
+    def set_floor_state(self, state: Mapping[str, Any] | None) -> bool:
+        """Resume the interval's floor from :meth:`floor_state`; False (a fresh start: no
+        pairs yet) when there is none or it cannot be read."""
+        if not state:
+            return False
+        try:
+            self.floor.state = FloorState.from_dict(state, self.pmap.estimate)
+        except (TypeError, ValueError):
+            return False
+        return True
 
     def trusted_values(self) -> dict[str, float]:
         """Every parameter's trusted value [SI]."""
@@ -525,6 +557,7 @@ class Estimator:
         t_start = time.perf_counter()
         cfg = self.config
         problem = self.problem(window, terms, fit)
+        rates = self._fused_rates()  # before this window joins the fusion (the floor's drift)
         evals0 = problem.fit.evaluations
         initial0 = problem.fit.initial
         why = self._swarm_due()
@@ -540,7 +573,8 @@ class Estimator:
         if fitted is None:
             found = global_search(problem, cfg.pso, rng=self._rng, time_budget=cfg.time_budget)
             fitted = self._fit(problem, window, found, terms, local=False)
-            self._since_swarm = 0
+            # the first guard comes `guard_phase` windows early (:meth:`stagger_guard`)
+            self._since_swarm = self.guard_phase if self._since_swarm is None else 0
             r_sw = fitted.polished.point.r
             self._swarm_nrmse = float(np.sqrt(np.sum(r_sw * r_sw)))
         else:
@@ -565,8 +599,10 @@ class Estimator:
         out = publish(twin.theta, self.pmap, cfg.tie or {}, decision, fused,
                       cfg.fusion.max_rel_std, suspect=self._suspect(check, faults, nrmse),
                       held_std=self.trusted_std_values())
+        t_mid = float(0.5 * (window.t[0] + window.t[-1]))
         if trusted:
-            self._trust(decision, out.values, float(0.5 * (window.t[0] + window.t[-1])))
+            self._trust(decision, out.values, t_mid)
+        floors = self._floor(decision, twin.theta, t_mid, trusted, rates, out)
         if run and not faults:  # an output once seen live stays known to be live
             for name, live in live_outputs(problem.fit, run).items():
                 self._live[name] = self._live.get(name, False) or live
@@ -593,7 +629,47 @@ class Estimator:
             fitted={n: float(v) for n, v in zip(self.names, np.ravel(twin.theta), strict=True)},
             search="swarm" if why else "local",
             search_reason=why,
+            floor=floors,
         )
+
+    def _floor(self, decision: GateDecision, theta: FloatArray, t_mid: float, sound: bool,
+               rates: Mapping[str, tuple[float, float]], out: Any) -> dict[str, float]:
+        """The interval's floor (:mod:`~twinwatch.twin.estimation.floor`): a sound window's
+        estimates join the between-window scatter, then each parameter the window determined
+        has its published relative standard error ``sigma`` made ``sqrt(sigma^2 + floor^2)``
+        (``out``, the :class:`~twinwatch.twin.estimation.publish.Published`, in place; a fused
+        value keeps the fusion's). The status stays the window's: the gate's ``max_rel_std``
+        is on what the window determines (``sigma``), the floor on what the twin is.
+
+        Returns:
+            Parameter -> its floor (relative, 1 sigma), for the parameters the window
+            determined.
+        """
+        estimate = self.pmap.estimate
+        if sound:
+            ln = np.log(np.ravel(theta)[self.pmap.idx])
+            self.floor.observe(decision.selected, ln, decision.rel_std, t_mid,
+                               {k: rates[n][0] for k, n in enumerate(estimate) if n in rates})
+        floors = {}
+        for k, f in self.floor.floors(decision.selected, decision.gain).items():
+            n = estimate[k]
+            floors[n] = f
+            if f <= 0.0 or out.status.get(n) not in ("estimated", "suspect") \
+                    or n not in out.rel_std:
+                continue
+            out.rel_std[n] = math.hypot(out.rel_std[n], f)
+        return floors
+
+    def stagger_guard(self, name: str) -> int:
+        """Bring the first guard swarm forward by a phase of 0 to ``swarm_every - 1`` windows
+        from ``name`` (CRC-32, as the acquisition's stagger), so machines started together run
+        their guards spread over ``swarm_every`` windows instead of in the same one (measured
+        with 200 machines on 2 cores, ``benchmarks/bench_density.py``: every 30th window about
+        200 swarms of ~56 ms of CPU came due within 2 s, and the windows queued behind them
+        were 0.8-2.2 s late). Returns the phase [windows]; 0 when the guard is off."""
+        every = self.config.swarm_every
+        self.guard_phase = zlib.crc32(name.encode()) % every if every else 0
+        return self.guard_phase
 
     def _swarm_due(self) -> str:
         """Why this window runs the global search (empty: polish locally from the trusted
