@@ -97,8 +97,10 @@ def _screenshot(recording: Path, out: Path) -> None:
     cmd = ["xvfb-run", "-a", "-s", "-screen 0 7000x4200x24", rerun, str(recording),
            "--renderer", "vulkan", "--window-size", f"{SIZE[0]}x{SIZE[1]}",
            "--screenshot-to", str(out)]
-    done = subprocess.run(cmd, env={**os.environ, "CI": "true"}, capture_output=True,
-                          text=True, timeout=600)
+    # RUST_LOG=error: the viewer's start-up notices (Docker, the software rasteriser) were
+    # in some pictures as toasts over the top right views
+    done = subprocess.run(cmd, env={**os.environ, "CI": "true", "RUST_LOG": "error"},
+                          capture_output=True, text=True, timeout=600)
     if done.returncode != 0 or not out.exists():
         raise SystemExit(f"the viewer did not write {out}:\n{done.stderr[-2000:]}")
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import calendar
 import json
+import math
 import os
 import re
 import select
@@ -410,8 +411,13 @@ def test_the_blueprint_tells_the_story(tmp_path: Path) -> None:
     by_origin = {str(v.origin): v for v in views}
     whole = [("Infinite", None), ("Infinite", None)]
     health = [o for o in by_origin if o.startswith("/m1/health/")
-              and not o.endswith("/summary")]
+              and not o.endswith(("/summary", "/projection"))]
     assert health == [f"/m1/health/{p}" for p in ("Ra", "La", "J", "Ke", "D")]  # not Kt
+    # beside the panel of a parameter with an alarm rule (only), its projection: a 2-D view
+    projections = [o for o in by_origin if o.endswith("/projection")]
+    assert projections == ["/m1/health/Ra/projection"]
+    assert by_origin["/m1/health/Ra/projection"].class_identifier == "2D"
+    assert "- $origin/projection/**" in by_origin["/m1/health/Ra"].contents
     # each panel writes its summary (RUL, alarm moments) under its plot
     for p in ("Ra", "La", "J", "Ke", "D"):
         assert by_origin[f"/m1/health/{p}/summary"].class_identifier == "TextDocument"
@@ -465,15 +471,7 @@ def _log_rows(path: Path, machine: str) -> list[tuple[str, str]]:
 
 def _scalars(path: Path, entity: str) -> list[tuple[float, list[float]]]:
     """(plant time [s], values) of every row of a Scalars entity, in time order."""
-    out = []
-    for chunk in rr.chunk.RrdReader(path).stream():
-        if chunk.entity_path != entity or chunk.is_static:
-            continue
-        batch = chunk.to_record_batch()
-        times = batch.column("plant_time").cast("int64").to_pylist()
-        out += [(t / 1e9, v) for t, v in zip(times, batch.column("Scalars:scalars").to_pylist(),
-                                              strict=True)]
-    return sorted(out)
+    return sorted((t, row["Scalars:scalars"]) for t, row in _rows(path, entity))
 
 
 def story_window(k: int, dev: float, level: str = "normal",
@@ -757,6 +755,156 @@ def test_a_trend_and_its_rul_are_drawn_when_the_message_has_them(tmp_path: Path)
     assert t == 1.99 and trend == pytest.approx([-6.0, -4.0, -5.0])
     [row] = [text for _, text in _log_rows(rec.path, "m1") if text.startswith("window 0")]
     assert "Ra 6.24 ohm -4.00 % estimated (RUL alarm 20m 00s)" in row
+
+
+def _rows(path: Path, entity: str) -> list[tuple[float, Any]]:
+    """(plant time [s], record batch row as a dict) of every row of ``entity``, in time
+    order (a Clear: its ``Clear:is_recursive``)."""
+    out = []
+    for chunk in rr.chunk.RrdReader(path).stream():
+        if chunk.entity_path != entity or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        times = batch.column("plant_time").cast("int64").to_pylist()
+        columns = {n: batch.column(n).to_pylist() for n in batch.schema.names
+                   if ":" in n and not n.startswith("rerun.")}
+        out += [(t / 1e9, {n: v[i] for n, v in columns.items()})
+                for i, t in enumerate(times)]
+    return sorted(out, key=lambda r: r[0])
+
+
+def test_the_projection_to_the_alarm_is_drawn_latest_only(tmp_path: Path) -> None:
+    """A parameter with an alarm rule whose message predicts the alarm's crossing: its trend
+    from the level now to the threshold (median and both ends of the interval), the threshold
+    and the moment now drawn in a 2-D view, each window's on the same entities (latest at the
+    cursor: one projection on screen, never every window's stacked); the crossing's plant time
+    and interval written on it; cleared when a window predicts none; never on a time-series
+    view (which would keep every window's)."""
+    from twinwatch.sinks.rerun_views import _BOX
+
+    windows = []
+    for k, (dev, t_cross, t_high) in enumerate(((-4.0, 1090.0, 1200.0),
+                                                 (-6.0, 1060.0, None), (-7.5, None, None))):
+        w = story_window(k, dev)
+        ra = w["health"]["parameters"]["Ra"]
+        ra["trend"] = {"model": "exponential", "degrading": True, "growth": 1e-3,
+                       "level": 6.5 * (1 + dev / 100), "level_std": 0.001}
+        ra["rul"] = {"status": "degrading", "warning": {"status": "crossed"},
+                     "alarm": ({"status": "predicted", "threshold": 6.5 * 0.9, "t": t_cross,
+                                "t_low": t_cross - 40.0, "t_high": t_high}
+                               if t_cross else {"status": "crossed", "threshold": 5.85})}
+        windows.append(w)
+    with story_recorder(tmp_path / "m1.rrd") as rec:
+        for w in windows:
+            rec.log_window(**w)
+    lines = _rows(rec.path, "/m1/health/Ra/projection/lines")
+    labels = _rows(rec.path, "/m1/health/Ra/projection/labels")
+    assert [t for t, _ in lines] == [t for t, _ in labels] == [1.99, 3.99]  # one per window
+    # what the first draws: the thresholds in range, now, the recent deviations, the band's
+    # two ends and the median, all inside the view's bounds
+    first, second = (row["LineStrips2D:strips"] for _, row in lines)
+    assert len(first) == 6  # warning, alarm, now, the band's two ends, the median
+    assert len(second) == 6  # alarm, now, the deviations so far, the band's one end, median
+    for strip in (*first, *second):
+        xy = np.array(strip)
+        assert (xy[:, 0] >= 0).all() and (xy[:, 0] <= _BOX[0]).all()
+        assert (xy[:, 1] >= 0).all() and (xy[:, 1] <= _BOX[1]).all()
+    median, alarm = np.array(first[-1]), np.array(first[1])
+    assert median[-1, 1] == pytest.approx(alarm[0, 1])  # the median reaches the threshold
+    assert median[0, 1] < alarm[0, 1]  # from the level now (-4 %, higher: y is down)
+    assert np.array(second[2]).shape == (2, 2)  # the two windows' deviations
+    text = labels[0][1]["Points2D:labels"]
+    assert {"alarm -10 %", "warning -5 %", "now 0:02", "18:10 (17:30-20:00)"} <= set(text)
+    # the second's interval has an open end
+    assert "17:40 (17:00-never)" in labels[1][1]["Points2D:labels"]
+    # the third predicts none: the view is cleared (its children with it)
+    [(t, clear)] = _rows(rec.path, "/m1/health/Ra/projection")
+    assert t == 5.99 and clear["Clear:is_recursive"] == [True]
+    # a parameter without an alarm rule has none
+    assert not _rows(rec.path, "/m1/health/La/projection/lines")
+
+
+def _rendered_lines(markdown: str, chars: int) -> float:
+    """How many text lines ``markdown`` takes in a Rerun text panel ``chars`` characters wide
+    (seen at 1600x1000: a text line 15 px, a table row 23 px, a paragraph's gap 8 px; text
+    wraps at the panel's width, a table row does not)."""
+    lines = 0.0
+    for line in markdown.splitlines():
+        text = re.sub(r"\*\*|`", "", line).strip()
+        if not text:
+            lines += 0.5
+        elif text.startswith("|---"):
+            continue
+        elif text.startswith("|"):
+            lines += 1.5
+            assert len(text) <= chars, f"a table row wider than its panel: {text}"
+        else:
+            lines += math.ceil(len(text) / chars)
+    return lines
+
+
+def test_the_model_and_the_parameters_table_fit_at_1600x1000(tmp_path: Path) -> None:
+    """The bottom row holds the model (the diagnosis, DT'' and its terms, the fit) and, beside
+    it, the parameters' table (value and status, the fixed ones in a line, why the held ones
+    are held) and the log: each text is whole in its panel at 1600x1000 for the default
+    machine's message at the end of the demo (its six parameters, three held, one tied, and
+    the diagnosis with its evidence). Measured against the blueprint's shares with the text
+    sizes seen in the pictures (6.3 px a character, a text line 15 px; a panel's title and
+    margins 45 px; the viewer's menu and the collapsed time panel 65 px)."""
+    import rerun.blueprint as rrb
+
+    from twinwatch.sinks.rerun_views import _model_document, _parameter_table
+    from twinwatch.twin.health import read_health
+
+    w = story_window(499, -7.71)
+    params = w["health"]["parameters"]
+    params["Ra"].update(value=5.99874, rel_std_pct=0.011)
+    for name, unit, value in (("La", "H", 0.673), ("J", "kg m^2", 0.001171),
+                              ("Ke", "V s/rad", 0.038)):
+        params[name].update(value=value, nominal=value, unit=unit, status="held",
+                            reason="held with Ke (lower priority): held at last trusted "
+                            "value" if name != "Ke" else "not separable from D in this "
+                            "window: held at last trusted value")
+    params["Kt"].update(value=0.038, nominal=0.038, status="tied", reason="tied to Ke")
+    params["D"].update(value=0.00143017, nominal=0.00143, deviation_pct=0.01,
+                       status="estimated", rel_std_pct=0.067, reason=None)
+    w["health"]["rmse"] = {"ia": 0.000366, "omega": 0.00148, "Va": 0.000456}
+    w["health"]["diagnosis"] = {
+        "status": "fault", "top": "winding_short", "probability": 0.96, "no_fault": 0.04,
+        "unknown": 0.0, "faults": [
+            {"id": "winding_short", "component": "armature winding", "probability": 0.96,
+             "urgency": "high", "source": "", "action": "measure the armature resistance "
+             "and the insulation resistance (megger, IEEE 43) at the next stop; rewind or "
+             "replace the armature if turns are shorted", "evidence_against": [],
+             "evidence_for": ["Ra = 5.9987 ohm is -7.71 % from its nameplate 6.5 ohm (+/- "
+                              "0.10 %, 2 sigma, estimated): beyond the 1 % down",
+                              "Ra trend (exponential, 500 windows) degrading at -90.6 %/h"]},
+            *({"id": f, "component": "", "probability": 0.0, "urgency": "low", "source": "",
+               "action": "", "evidence_for": [], "evidence_against": []}
+              for f in ("load_inertia_change", "magnet_weakening", "unbalance"))]}
+    doc = read_health(json.dumps(w["health"]))
+    model, table = _model_document("m1", 999.99, doc), _parameter_table(doc)
+    assert "| parameter |" not in model and table.startswith("| parameter | value | status |")
+    assert "| Kt | 0.038 N m/A | tied to Ke |" in table
+    assert "La, J held: held with Ke (lower priority)" in table and "trusted" not in table
+
+    with story_recorder(tmp_path / "m1.rrd") as rec:
+        bp = rec.views.blueprint()
+    root = bp.root_container
+    bottom = root.contents[2]
+    assert isinstance(bottom, rrb.Horizontal)
+    tabs, beside, log = bottom.contents
+    assert str(tabs.contents[0].origin) == "/m1/model"
+    assert str(beside.origin) == "/m1/parameter_table" and str(log.origin) == "/m1/log"
+    row_shares = list(root.row_shares)
+    height = (1000 - 65) * row_shares[2] / sum(row_shares) - 45
+    shares = list(bottom.column_shares)
+    for text, share in ((model, shares[0]), (table, shares[1])):
+        chars = int((1600 * share / sum(shares) - 20) / 6.3)
+        assert _rendered_lines(text, chars) * 15 <= height, (text, chars, height)
+    # the model and the table in one panel, as before, did not fit
+    together = model + "\n" + table
+    assert _rendered_lines(together, int((1600 * 0.75 / 2.0 - 20) / 6.3)) * 15 > height
 
 
 def _documents(path: Path, entity: str) -> list[tuple[float, str]]:

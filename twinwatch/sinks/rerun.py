@@ -14,12 +14,6 @@ replaces another run's recording: each run writes its own file, and a regular fi
 ``path`` (from an earlier version) is kept, renamed to ``<stem>-<its UTC time>.rrd``.
 ``rerun twinwatch.rrd`` opens the newest run; the summary names the run's file.
 
-The trend's projection (:func:`projection_ops`, beside the views): each parameter with an alarm
-rule and a predicted crossing gets ``M/health/<param>/trend/projection``, line strips in the
-plane of plant time and deviation from nominal [%]: the trend from the window's end to its
-alarm threshold at the median crossing and at the two ends of its 95 % interval (the band), and
-the threshold, the latest at each window (a 2-D view; the time-series views do not draw it).
-
 Live viewing: with ``[recording] serve = true`` the recorder also serves the same entities, with
 the same blueprint, from a Rerun gRPC server (``serve_bind``, 127.0.0.1 by default, and
 ``serve_port``) on a second recording stream with the same recording id: ``rerun
@@ -118,7 +112,7 @@ if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from twinwatch.twin.health import HealthMessage, HealthView
+    from twinwatch.twin.health import HealthMessage
 else:  # imported when a recording opens: loading a configuration does not load rerun
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")
@@ -992,7 +986,6 @@ class RerunRecorder(Sink):
                 return
             ops = self.views.window_ops(times, meas, sim, estimates, doc, health_json,
                                    terms_changed, list(events))
-            ops += projection_ops(m, doc, t_end)
             self._emit_live(ops)
             window = doc.window
             if (not self._check_file(window) or not self._room()
@@ -1097,58 +1090,6 @@ _LIVE_LOCK = threading.Lock()
 
 _GRAVEYARD: list[Any] = []
 """Recording streams whose file writer died: kept referenced so that nothing frees them."""
-
-
-def _growth_curve(t0: float, y0: float, t1: float, y1: float, r: float | None,
-                  n: int = 32) -> np.ndarray:
-    """(n, 2) points of ``y0 + a (exp(r (t - t0)) - 1)/r`` from ``(t0, y0)`` through
-    ``(t1, y1)`` (a line for r None or 0): the trend's shape, scaled to pass the threshold at
-    a crossing time."""
-    t = np.linspace(t0, t1, n)
-    if r is None or abs(r) * (t1 - t0) < 1e-9:
-        g, g1 = t - t0, t1 - t0
-    else:
-        g, g1 = np.expm1(r * (t - t0)) / r, np.expm1(r * (t1 - t0)) / r
-    a = (y1 - y0) / g1 if g1 else 0.0
-    return np.column_stack([t, y0 + a * g])
-
-
-def projection_ops(machine: str, doc: HealthView, t_end: float) -> list[Op]:
-    """Each parameter's projection to its alarm threshold (module docstring): for a message
-    (its typed view, :func:`~twinwatch.twin.health.read_health`) whose
-    ``parameters.<name>.trend`` has a level and whose ``rul.alarm`` is predicted, one
-    :class:`rerun.LineStrips2D` on ``<machine>/health/<name>/trend/projection`` at ``t_end``,
-    in plant time [s] and % of nominal: the trend's shape (its growth rate) from its level now
-    to the threshold at the median crossing and at both ends of the interval, and the
-    threshold. Nothing for a message without prognostics."""
-    ops: list[Op] = []
-    for name, ph in (doc.parameters or {}).items():
-        trend = ph.trend
-        crossing = ph.rul.alarm if ph.rul is not None else None
-        if trend is None or crossing is None:
-            continue
-        nom, level = ph.nominal, trend.level
-        th, t_cross = crossing.threshold, crossing.t
-        if (crossing.status != "predicted" or not nom or level is None or th is None
-                or t_cross is None):
-            continue
-
-        def pct(v: np.ndarray | float, nom: float = float(nom)) -> np.ndarray:
-            return (np.asarray(v, dtype=float) / nom - 1.0) * 100.0
-
-        ends = [x for x in (t_cross, crossing.t_low, crossing.t_high)
-                if x is not None]
-        strips = []
-        for x in ends:
-            curve = _growth_curve(t_end, float(level), float(x), float(th), trend.growth)
-            strips.append(np.column_stack([curve[:, 0], pct(curve[:, 1])]))
-        strips.append(np.array([[t_end, float(pct(th))], [max(ends), float(pct(th))]]))
-        labels = [f"{name} median crossing", *([f"{name} 95 % band"] * (len(ends) - 1)),
-                  f"{name} alarm threshold"]
-        ops.append(Op("/".join(rr.escape_entity_path_part(x) for x in
-                               (machine, "health", name, "trend", "projection")),
-                      rr.LineStrips2D(strips, labels=labels), t_end))
-    return ops
 
 
 def _bury(rec: rr.RecordingStream) -> None:

@@ -26,6 +26,13 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
   ``events/rul_warning``, ``events/rul_alarm`` (the RUL rule's raises, a down-triangle at the
   parameter's deviation then); ``health/<name>/trend``: the parameter's trend when the message
   carries one (``parameters.<name>.trend.level`` +- 2 ``level_std``, in %: low, high, level);
+  ``health/<name>/projection/lines`` and ``.../labels``, for a parameter with an alarm rule
+  while its message predicts the alarm's crossing (cleared, ``health/<name>/projection``,
+  when it stops): a drawing of the trend's projection in a 2-D view's units (``_BOX``, y down;
+  plant time across, % of nominal up): the thresholds in range, the moment now, the
+  deviations of the recent windows, the trend from its level now to the alarm threshold at the
+  median crossing (pink) and at both ends of its 95 % interval (dim), and as labels the
+  thresholds, now, the level and the crossing's plant time with its interval;
   ``health/<name>/summary``: what the panel says in words under its plot, every window
   (markdown): the deviation, status and trend, the RUL to each threshold of the rule (median,
   95 % interval, and the plant time of the crossing), the moments the deviation alarm and the
@@ -38,9 +45,10 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
   window [ms]), ``M/quality/problems`` (the counters of lost or bad data, cumulative: abandoned
   windows, overruns, gaps, bad samples, windows not stored or not recorded, ... one series
   each, named after the counter);
-* ``M/model``: the twin DT'' as a markdown document, every window: each meta-model term's
-  equation with its meaning and evidence first, then every parameter's value against nominal
-  and its status; ``M/health``: the window's health message (JSON); ``M/log``: one
+* ``M/model``: the twin DT'' as a markdown document, every window: the diagnosis, each
+  meta-model term's equation with its meaning and evidence, the fit; ``M/parameter_table``:
+  beside it, every parameter's value and status (a table; the fixed ones in a line under it,
+  why the held ones are held); ``M/health``: the window's health message (JSON); ``M/log``: one
   :class:`rerun.TextLog` row per window with the values (INFO; WARN while a parameter is in
   warning, the model check fails, the structure changed or data were lost; ERROR while one is
   in alarm) and one row per alarm change (its message; a raise WARN or ERROR, a clear WARN);
@@ -49,16 +57,20 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
 The default blueprint (:meth:`RecordingViews.blueprint`): the time panel follows the newest
 data (a finished file opens on its end); the parameters' health and the data-quality strip show
 the whole run, the outputs and residuals the last ``recent_s`` seconds before the time cursor,
-the model and the log the state at the cursor; no legend covers a trace (the key says what the
-colours mean), no axis zooms in on noise (deviations in % with their thresholds or a scale).
+the model, the parameters' table, the log and the projections the state at the cursor; no
+legend covers a trace (the key says what the colours mean), no axis zooms in on noise
+(deviations in % with their thresholds or a scale).
 Plant time is written as minutes:seconds (``14:38``) in the summaries, the log and the model;
 the axes' ticks are the viewer's (``+10m``).
 
-Not drawn: the trend's projection to the threshold as a curve in the time-series views. Rerun
-(0.41) draws every row ever logged at a time of the range, so each window's projection into the
-future would stay and interleave with the next (a ``Clear`` only breaks a line); the
-projection is logged as a 2-D line strip (:func:`twinwatch.sinks.rerun.projection_ops`) and its
-result, the crossing's median and interval, is written on the panel.
+The trend's projection to the alarm threshold is drawn beside the panel of each parameter
+with an alarm rule, in a 2-D view (``health/<name>/projection``), not in its time-series view:
+Rerun (0.41) draws every row ever logged at a time of a time-series view's range, so each
+window's projection into the future would stay beside the next (a ``Clear`` only breaks a
+line), and points logged at future plant times move the time cursor, which follows the newest
+data, past the last window (the outputs' views, the last ``recent_s`` before it, go empty). A
+2-D view shows what is latest at the cursor: the window's own projection, any window's when
+the cursor is moved back.
 """
 
 from __future__ import annotations
@@ -67,6 +79,7 @@ import json
 import math
 import re
 import time
+from collections import deque
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
@@ -218,6 +231,11 @@ class RecordingViews:
         self._moments: dict[str, dict[tuple[str, str], tuple[str, float]]] = {}
         """parameter -> (rule kind, level) -> (raised or cleared, plant time [s]): the alarm
         changes seen, for the parameter's summary."""
+        self._history: dict[str, deque[tuple[float, float]]] = {}
+        """parameter with an alarm rule -> its recent deviations (plant time [s], % of
+        nominal), drawn before its projection."""
+        self._projected: set[str] = set()
+        """parameters whose projection view shows something (cleared when it has none)."""
 
     def set_alarm_bands(self, alarm_bands: Mapping[str, AlarmBands]) -> list[Op]:
         """New thresholds (a reload): the styles to log again (empty when unchanged)."""
@@ -248,8 +266,9 @@ class RecordingViews:
     def blueprint(self) -> rrb.Blueprint:
         """The default layout: the parameters' health and the data quality over the whole run
         (left), each output measured vs twin and its residual over the last ``recent_s``
-        seconds (right), the model DT'' and the log (bottom), a one-line key on top; the time
-        panel follows the newest data."""
+        seconds (right), the model DT'', the parameters' table and the log (bottom, side by
+        side: each whole at 1600x1000), a one-line key on top; the time panel follows the
+        newest data."""
         m = self.machine
         inf = rrb.TimeRangeBoundary.infinite()
         back = rrb.TimeRangeBoundary.cursor_relative(seconds=-self.recent_s)
@@ -269,19 +288,28 @@ class RecordingViews:
         def origin(*parts: str) -> str:
             return "/" + entity(m, *parts)
 
-        def panel(p: str, text_share: float) -> rrb.Vertical:
-            """A parameter's panel: its summary written above its plot (the RUL, the moments
-            its alarms were raised, a band beyond the view)."""
-            return rrb.Vertical(
+        def panel(p: str, text_share: float) -> rrb.Container:
+            """A parameter's panel: its summary written under its plot (the RUL, the moments
+            its alarms were raised, a band beyond the view); beside them, for a parameter
+            with an alarm rule, its projection to the alarm threshold at the cursor."""
+            plot = rrb.Vertical(
                 rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
-                                   contents=["$origin/**", "- $origin/summary"], **whole()),
+                                   contents=["$origin/**", "- $origin/summary",
+                                             "- $origin/projection/**"], **whole()),
                 rrb.TextDocumentView(origin=origin("health", p, "summary"),
                                      name=f"{p}: RUL and alarms", titlebar=False),
                 row_shares=[1.0, text_share], name=p)
+            if p not in self.alarm_bands:
+                return plot
+            return rrb.Horizontal(plot, rrb.Spatial2DView(
+                origin=origin("health", p, "projection"), name=f"{p}: trend to alarm [%]",
+                background=(18, 18, 18), visual_bounds=rrb.VisualBounds2D(
+                    x_range=[0.0, _BOX[0]], y_range=[0.0, _BOX[1]])),
+                column_shares=[2.0, 1.0], name=p)
 
         ruled = [p for p in self.estimated if p in self.alarm_bands]
         others = [p for p in self.estimated if p not in self.alarm_bands]
-        health: list[rrb.Container | rrb.View] = [panel(p, 0.45) for p in ruled]
+        health: list[rrb.Container | rrb.View] = [panel(p, 0.5) for p in ruled]
         shares = [2.0] * len(ruled)
         if others:
             views = [panel(p, 0.5) for p in others]
@@ -301,7 +329,10 @@ class RecordingViews:
             column_shares=[1.6, 1.0, 1.0], name="data quality")
         left = rrb.Vertical(
             rrb.Vertical(*health, row_shares=shares, name="health"), quality,
-            row_shares=[max(sum(shares), 1.0) * 1.0, 1.0], name="health and data quality")
+            # the quality strip a sixth of the column at least: with five small panels
+            # (the discovery example) its ticks were cut at 1600x1000
+            row_shares=[max(sum(shares), 1.0), max(1.0, 0.21 * sum(shares))],
+            name="health and data quality")
         pairs = [(rrb.TimeSeriesView(origin=origin("outputs", o),
                                      name=f"{o}{self._unit(o)}: measured, twin", **recent()),
                   rrb.TimeSeriesView(origin=origin("residual", o),
@@ -315,6 +346,8 @@ class RecordingViews:
                 rrb.TextDocumentView(origin=origin("health"), contents=origin("health"),
                                      name="health message (JSON)"),
                 active_tab=0),
+            rrb.TextDocumentView(origin=origin("parameter_table"),
+                                 name="parameters at the cursor"),
             rrb.TextLogView(
                 origin=origin("log"), name="log",
                 columns=rrb.TextLogColumns(
@@ -324,14 +357,14 @@ class RecordingViews:
                     text_log_columns=[rrb.encodings.TextLogColumn("loglevel"),
                                       rrb.encodings.TextLogColumn("body"),
                                       rrb.encodings.TextLogColumn("entitypath", visible=False)])),
-            column_shares=[0.75, 1.25])
+            column_shares=[0.9, 0.6, 1.0])
         key = rrb.TextDocumentView(origin=origin("key"), name="key", titlebar=False)
         return rrb.Blueprint(
             rrb.Vertical(
                 key,
                 rrb.Horizontal(left, right, column_shares=[1.05, 1]),
                 bottom,
-                row_shares=[0.42, 5.0, 2.1]),
+                row_shares=[0.42, 5.0, 2.3]),
             rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
             collapse_panels=True,
         )
@@ -488,6 +521,8 @@ class RecordingViews:
             ph = params.get(p)
             if ph is not None:
                 ops += self._health_ops(p, ph, t_end)
+                if p in self.alarm_bands:
+                    ops += self._projection_ops(p, ph, t_end)
         for ev in events:
             ops += self._event_ops(ev, t_end, params)
         alarms = doc.alarms or {}
@@ -500,6 +535,10 @@ class RecordingViews:
         ops += self._quality_ops(doc, t_end)
         ops.append(Op(entity(m, "model"), rr.TextDocument(
             _model_document(m, t_end, doc), media_type=rr.MediaType.MARKDOWN), t_end))
+        table = _parameter_table(doc)
+        if table:
+            ops.append(Op(entity(m, "parameter_table"), rr.TextDocument(
+                table, media_type=rr.MediaType.MARKDOWN), t_end))
         pretty = json.dumps(json.loads(health_json), indent=2)
         ops.append(Op(entity(m, "health"), rr.TextDocument(
             f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{pretty}\n```\n",
@@ -539,6 +578,37 @@ class RecordingViews:
             ops.append(Op(entity(m, "health", p, "trend"), rr.Scalars(
                 [float(np.clip(v, -clip, clip)) for v in trend]), t))
         return ops
+
+    def _projection_ops(self, p: str, ph: ParameterView, t: float) -> list[Op]:
+        """``p``'s projection view (``health/<p>/projection``, a 2-D view: latest at the
+        cursor, so only the window's own projection is on screen): the recent deviations, the
+        trend from its level now to the alarm threshold at the median crossing and at both
+        ends of the 95 % interval, the thresholds, the moment now and the crossing, written.
+        Cleared while the message predicts no crossing (none yet, crossed, not degrading)."""
+        m = self.machine
+        path = entity(m, "health", p, "projection")
+        dev = _num(ph.deviation_pct)
+        if math.isfinite(dev):
+            history = self._history.setdefault(p, deque(maxlen=_HISTORY))
+            if history and history[-1][0] >= t:  # a file reopened, a restart: time went back
+                history.clear()
+            history.append((t, dev))
+        drawing = _projection(p, ph, t, list(self._history.get(p, ())),
+                              self._limits(p))
+        if drawing is None:
+            if p not in self._projected:
+                return []
+            self._projected.discard(p)
+            return [Op(path, rr.Clear(recursive=True), t)]
+        self._projected.add(p)
+        strips, points = drawing
+        return [Op(f"{path}/lines", rr.LineStrips2D(
+                    [s.xy for s in strips], colors=[s.color for s in strips],
+                    radii=[rr.Radius.ui_points(s.width) for s in strips]), t),
+                Op(f"{path}/labels", rr.Points2D(
+                    [q.xy for q in points], colors=[q.color for q in points],
+                    radii=[rr.Radius.ui_points(q.size) for q in points],
+                    labels=[q.label for q in points], show_labels=True), t)]
 
     def _event_ops(self, ev: Mapping[str, Any], t_end: float,
                    params: Mapping[str, ParameterView]) -> list[Op]:
@@ -766,6 +836,138 @@ def _band_pct(ph: ParameterView) -> tuple[float, float]:
     return (low / nom - 1.0) * 100.0, (high / nom - 1.0) * 100.0
 
 
+_HISTORY = 1000
+"""Deviations kept per parameter for its projection view (the last 1000 windows at most)."""
+_BOX = (240.0, 100.0)
+"""The projection view's drawing [view units]: width, height (about the view's shape at
+1600x1000, y down); the view's bounds (:meth:`RecordingViews.blueprint`)."""
+_MARGIN = (2.0, 2.0, 15.0, 15.0)
+"""Room kept in the drawing for the labels: left, right, top, bottom [view units]."""
+_CHAR_W, _LABEL_PAD = 6.5, 5.0
+"""A label's character width and its box's padding in the drawing's units (the viewer's text
+is about 12 px high, the drawing about 270 px wide at 1600x1000, seen): labels are kept inside
+the view."""
+_UNDER, _OVER = 0.0, 17.0
+"""Where a label's anchor goes to write it under a line, or over it (the viewer writes a
+label in a box under its point)."""
+
+
+class _Strip(NamedTuple):
+    xy: np.ndarray
+    color: tuple[int, ...]
+    width: float  # [ui points]
+
+
+class _Label(NamedTuple):
+    xy: tuple[float, float]
+    label: str
+    color: tuple[int, ...]
+    size: float  # the point's radius [ui points]
+
+
+def _projection(p: str, ph: ParameterView, t: float, history: Sequence[tuple[float, float]],
+                limits: Sequence[tuple[str, float, tuple[int, ...]]],
+                ) -> tuple[list[_Strip], list[_Label]] | None:
+    """What ``p``'s projection view draws at plant time ``t`` (:meth:`RecordingViews.
+    _projection_ops`), in the view's units (``_BOX``): None without a trend level and a
+    predicted alarm crossing. The time axis runs from as far before now as the interval's end
+    is after it (the recent deviations) to the interval's end (twice the median's distance when
+    some draws never cross); the value axis spans what is drawn and the alarm threshold."""
+    trend, rul = ph.trend, ph.rul
+    crossing = rul.alarm if rul is not None else None
+    nom = _num(ph.nominal)
+    level = _num(trend.level if trend is not None else None)
+    if (crossing is None or crossing.status != "predicted" or not math.isfinite(level)
+            or not math.isfinite(nom) or nom == 0.0):
+        return None
+    th, t_cross = _num(crossing.threshold), _num(crossing.t)
+    t_low, t_high = _num(crossing.t_low), _num(crossing.t_high)
+    if not (math.isfinite(th) and math.isfinite(t_cross) and t_cross > t):
+        return None
+
+    def pct(v: Any) -> Any:
+        return (np.asarray(v, dtype=float) / nom - 1.0) * 100.0
+
+    end = t_high if math.isfinite(t_high) and t_high > t_cross else t + 2.0 * (t_cross - t)
+    start = t - (end - t)
+    growth = _num(trend.growth) if trend is not None else math.nan
+    rate = None if not math.isfinite(growth) else growth
+    curves = []
+    for x in (t_low, t_high, t_cross):  # the band's ends, then the median
+        if math.isfinite(x) and x > t:
+            curve = _growth_curve(t, level, x, th, rate)
+            curves.append(np.column_stack([curve[:, 0], pct(curve[:, 1])]))
+    past = np.array([(ti, v) for ti, v in history if start <= ti <= t], dtype=float)
+    past = past.reshape(-1, 2)
+    th_pct = float(pct(th))
+    values = [th_pct, *past[:, 1], *(c[:, 1] for c in curves)]
+    finite = np.concatenate([np.atleast_1d(np.asarray(v, dtype=float)) for v in values])
+    finite = finite[np.isfinite(finite)]
+    low, high = float(finite.min()), float(finite.max())
+    pad = 0.08 * (high - low or abs(high) or 1.0)
+    low, high = low - pad, high + pad
+    others = [(name, v, c) for name, v, c in limits
+              if low <= v <= high and not math.isclose(v, th_pct, abs_tol=1e-9)]
+    w, h = _BOX
+    left, right, top, bottom = _MARGIN
+
+    def xy(ts: Any, vs: Any) -> np.ndarray:
+        x = left + (np.asarray(ts, dtype=float) - start) / (end - start) * (w - left - right)
+        y = top + (high - np.asarray(vs, dtype=float)) / (high - low) * (h - top - bottom)
+        return np.column_stack([np.atleast_1d(x), np.atleast_1d(y)])
+
+    strips = [_Strip(xy([start, end], [v, v]), c, 1.0) for _, v, c in others]
+    strips.append(_Strip(xy([start, end], [th_pct, th_pct]), _ALARM, 1.5))
+    strips.append(_Strip(xy([t, t], [low, high]), _NOMINAL, 0.75))
+    if len(past) > 1:
+        strips.append(_Strip(xy(past[:, 0], past[:, 1]), _DEVIATION, 1.0))
+    for i, c in enumerate(curves):
+        median = i == len(curves) - 1
+        strips.append(_Strip(xy(c[:, 0], c[:, 1]), _TREND if median else _TREND_BAND,
+                             2.0 if median else 1.0))
+    level_pct = float(pct(level))
+    below = th_pct < level_pct  # the threshold under the trend: its labels under it
+    y_th = float(xy([t], [th_pct])[0, 1])
+    y_low, y_high = (float(xy([t], [v])[0, 1]) for v in (low, high))
+    outer = y_th + _UNDER if below else y_th - _OVER
+    inner = y_high - _OVER if below else y_low + _UNDER
+    band = (f" ({clock(t_low) if math.isfinite(t_low) else 'n/a'}-"
+            f"{clock(t_high) if math.isfinite(t_high) else 'never'})")
+
+    def at(x: float, y: float, text: str) -> tuple[float, float]:
+        """A label's anchor (the viewer centres the text under it) kept inside the view."""
+        half = _CHAR_W * len(text) / 2.0 + _LABEL_PAD
+        return float(min(max(x, half), w - half)), y
+
+    def x_of(ts: float) -> float:
+        return float(xy([ts], [0.0])[0, 0])
+
+    texts = [(f"alarm {th_pct:+.3g} %", x_of(start), outer, _ALARM, 0.5),
+             *((f"{name.split()[0]} {v:+.3g} %", x_of(start),
+                float(xy([t], [v])[0, 1]) + (_UNDER if v < level_pct else -_OVER), c, 0.5)
+               for name, v, c in others),
+             (f"now {clock(t)}", x_of(t), inner, _NOMINAL, 0.5),
+             (f"{clock(t_cross)}{band}", x_of(t_cross), outer, _ALARM, 0.5)]
+    labels = [_Label(tuple(xy([t], [level_pct])[0]), f"{level_pct:+.3g} %", _TREND, 2.5),
+              _Label(tuple(xy([t_cross], [th_pct])[0]), "", _ALARM, 3.0)]
+    labels += [_Label(at(x, y, text), text, c, size) for text, x, y, c, size in texts]
+    return strips, [_Label((float(q.xy[0]), float(q.xy[1])), q.label, q.color, q.size)
+                    for q in labels]
+
+
+def _growth_curve(t0: float, y0: float, t1: float, y1: float, r: float | None,
+                  n: int = 32) -> np.ndarray:
+    """(n, 2) points of ``y0 + a (exp(r (t - t0)) - 1)/r`` from ``(t0, y0)`` through
+    ``(t1, y1)`` (a line for r None or 0): the trend's shape, scaled to pass the threshold at
+    a crossing time."""
+    t = np.linspace(t0, t1, n)
+    if r is None or abs(r) * (t1 - t0) < 1e-9:
+        g, g1 = t - t0, t1 - t0
+    else:
+        g, g1 = np.expm1(r * (t - t0)) / r, np.expm1(r * (t1 - t0)) / r
+    a = (y1 - y0) / g1 if g1 else 0.0
+    return np.column_stack([t, y0 + a * g])
+
 def _trend_pct(ph: ParameterView) -> tuple[float, float, float] | None:
     """The parameter's trend (``trend.level`` +- 2 ``level_std``, when the message has one) in
     % of nominal: (low, high, level); None without a trend level."""
@@ -894,10 +1096,49 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
     return [*lines, ""]
 
 
+def _parameter_table(doc: HealthView) -> str:
+    """Every parameter at the window as markdown (the model panel's neighbour): a table of the
+    parameters not fixed (value and status; each estimated one's deviation from nominal is on
+    its panel), the fixed ones in a line under it, then why the held ones are held. Empty
+    without parameters."""
+    table = doc.parameters or {}
+    if not table:
+        return ""
+    lines = ["| parameter | value | status |", "|---|---:|---|"]
+    reasons: dict[str, list[str]] = {}
+    fixed = []
+    for name, p in table.items():
+        status = _str(p.status)
+        value = f"{_fmt(p.value)} {_str(p.unit)}".rstrip()
+        if status == "fixed":
+            fixed.append(f"{name} {value}")
+            continue
+        rel = _num(p.rel_std_pct)
+        if status in ("estimated", "fused") and math.isfinite(rel):
+            status += f" +- {rel:.2g} %"
+        elif status == "tied" and p.reason:
+            status = str(p.reason)
+        elif status == "held" and p.reason:
+            reasons.setdefault(str(p.reason).removesuffix(_HELD), []).append(str(name))
+        lines.append(f"| {name} | {value} | {status} |")
+    notes = []
+    if fixed:
+        notes.append("fixed: " + ", ".join(fixed))
+    notes += [f"{', '.join(names)} held: {reason}" for reason, names in reasons.items()]
+    if notes:
+        lines += ["", "  \n".join(notes)]
+    return "\n".join(lines) + "\n"
+
+
+_HELD = ": held at last trusted value"
+"""The end of every reason a parameter is held (:mod:`twinwatch.twin.estimation.gate`): the
+table says "held" already."""
+
+
 def _model_document(machine: str, t: float, doc: HealthView) -> str:
     """The twin DT'' as markdown: the diagnosis first (the most probable fault, its action and
-    evidence), each meta-model term (equation, meaning, evidence), then every parameter's
-    value against nominal and its status, then the fit."""
+    evidence), each meta-model term (equation, meaning, evidence), then the fit (every
+    parameter's value is beside it: :func:`_parameter_table`)."""
     terms = doc.terms or []
     model = doc.model
     twin = f"`{model}`" if model else "the physical twin"
@@ -908,8 +1149,8 @@ def _model_document(machine: str, t: float, doc: HealthView) -> str:
         lines.append(f"**DT'' = DT** {at}: {twin} alone explains the data.")
     else:
         n = len(terms)
-        lines.append(f"**DT'' = DT + {n} meta-model term{'s' if n > 1 else ''}** {at}: "
-                     f"{twin} plus what discovery found (paper Eq. 3).")
+        lines.append(f"**DT'' = {twin} + {n} meta-model term{'s' if n > 1 else ''}** {at} "
+                     "(paper Eq. 3):")
         for i, term in enumerate(terms, 1):
             lines.append("")
             lines.append(f"**{i}.** `{_str(term.equation, '?')}`  ")
@@ -936,27 +1177,6 @@ def _model_document(machine: str, t: float, doc: HealthView) -> str:
     if disc is not None and disc.too_large:
         lines += ["", f"The residual is too large for the twin ({disc.consecutive} "
                   "windows in a row): discovery searches for what the model lacks."]
-    table = doc.parameters or {}
-    if table:
-        lines += ["", "| parameter | value | nominal | vs nominal | status |",
-                  "|---|---:|---:|---:|---|"]
-        reasons: dict[str, list[str]] = {}
-        for name, p in table.items():
-            status = _str(p.status)
-            rel = _num(p.rel_std_pct)
-            if status in ("estimated", "fused") and math.isfinite(rel):
-                status += f" +- {rel:.2g} %"
-            elif status == "tied" and p.reason:
-                status = str(p.reason)
-            elif status == "held" and p.reason:
-                reasons.setdefault(str(p.reason), []).append(str(name))
-            dev = _num(p.deviation_pct)
-            lines.append(f"| {name} | {_fmt(p.value)} {_str(p.unit)} | "
-                         f"{_fmt(p.nominal)} | "
-                         f"{format(dev, '+.2f') + ' %' if math.isfinite(dev) else 'n/a'} | "
-                         f"{status} |")
-        for reason, names in reasons.items():
-            lines += ["", f"{', '.join(names)} held: {reason}"]
     rmse = doc.rmse
     if rmse:
         fit = ", ".join(f"{k} {_fmt(v, '.3g')}" for k, v in rmse.items())
