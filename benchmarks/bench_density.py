@@ -17,8 +17,10 @@ Printed per run (N, mode): windows estimated of those expected, overruns, the es
 per window over every machine (p50, p95, max: the health message's ``elapsed_s``, the first,
 compiling window included), the windows' queue wait (median of the machines' medians, the
 largest; from the run summaries), CPU share of the whole box's cores (100 % = one core) and
-per machine, resident memory per machine (the processes' peak VmRSS, summed, divided by N; a
-host's worker processes are summed with it, their CPU too), and ``late60``: the worst window
+per machine, resident memory per machine (the peak of the processes' VmRSS summed, divided by
+N; a host's worker processes are summed with it, their CPU too; RSS counts the libraries every
+process maps, about 130 MB each, once per process; PSS divides each shared page among the
+processes that map it: the memory the box gives the fleet), and ``late60``: the worst window
 after the first minute of plant time, how much later than the machine's promptest window it
 was stored (ms; the file replays in real time, so a window's end is due at a fixed offset from
 its plant time: this is the queueing a window suffered beyond the machine's best case).
@@ -157,14 +159,25 @@ def _reaped_ticks(pid: int) -> int:
     return int(fields[13]) + int(fields[14])  # cutime + cstime
 
 
-def _rss_mb(pid: int) -> float | None:
+def _proc_mb(pid: int, file: str, key: str) -> float | None:
+    """The ``key:`` line of ``/proc/<pid>/<file>`` [kB] in MB; None once the process is gone."""
     try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+        for line in Path(f"/proc/{pid}/{file}").read_text().splitlines():
+            if line.startswith(key):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         return None
     return None
+
+
+def _rss_mb(pid: int) -> float | None:
+    return _proc_mb(pid, "status", "VmRSS:")
+
+
+def _pss_mb(pid: int) -> float | None:
+    """Proportional resident memory: each shared page (the libraries every worker maps)
+    divided among the processes that map it, so a sum over processes counts it once."""
+    return _proc_mb(pid, "smaps_rollup", "Pss:")
 
 
 @dataclass
@@ -182,10 +195,15 @@ class Run:
     cpu_s: float = 0.0
     wall_s: float = 0.0
     peak_rss_mb: float = 0.0
+    peak_pss_mb: float = 0.0
     exit_codes: list[int] = field(default_factory=list)
     start_s: float = 0.0
     #: the latest window stored after the first minute, against the machine's promptest (ms)
     late_ms: float = float("nan")
+    #: which window was the latest, and its estimation time
+    late_where: str = ""
+    #: the worst lateness [ms] of the windows ending in each 30 s of plant time (0: 0-30 s)
+    late_by_30s: dict[int, float] = field(default_factory=dict)
 
     def row(self) -> str:
         e = sorted(self.elapsed)
@@ -200,14 +218,16 @@ class Run:
                 f"{(e[-1] * 1e3 if e else float('nan')):>8.0f} "
                 f"{(max(self.first) * 1e3 if self.first else float('nan')):>8.0f} "
                 f"{wait_med:>8.0f} {self.wait_max:>8.0f} {cpu:>7.0f} {cpu / self.n:>8.1f} "
-                f"{self.peak_rss_mb / self.n:>9.0f} {self.peak_rss_mb:>8.0f} "
+                f"{self.peak_rss_mb / self.n:>9.1f} {self.peak_pss_mb / self.n:>9.1f} "
+                f"{self.peak_rss_mb:>8.0f} "
                 f"{self.start_s:>7.1f} {self.late_ms:>8.0f} "
                 f"{','.join(map(str, sorted(set(self.exit_codes))))}")
 
 
 HEADER = (f"{'N':>4} {'mode':<8} {'windows':>11} {'overruns':>8} {'p50ms':>7} {'p95ms':>7} "
           f"{'max ms':>8} {'1st ms':>8} {'wait50':>8} {'waitmax':>8} {'CPU%':>7} "
-          f"{'CPU%/m':>8} {'RSS/m MB':>9} {'RSS MB':>8} {'start s':>7} {'late60':>8} exit")
+          f"{'CPU%/m':>8} {'RSS/m MB':>9} {'PSS/m MB':>9} {'RSS MB':>8} {'start s':>7} "
+          f"{'late60':>8} exit")
 
 
 def read_results(run: Run, dirs: list[Path]) -> None:
@@ -230,11 +250,20 @@ def read_results(run: Run, dirs: list[Path]) -> None:
             # one was stored, from the first minute of plant time on
             offsets = [wall - t_end for t_end, wall in stamps]
             best = min(offsets)
-            late = [o - best for (t_end, _), o in zip(stamps, offsets, strict=True)
-                    if t_end - stamps[0][0] >= 60.0]
+            for (t_end, _), o in zip(stamps, offsets, strict=True):
+                b = int((t_end - stamps[0][0]) // 30)
+                run.late_by_30s[b] = max(run.late_by_30s.get(b, 0.0), 1e3 * (o - best))
+            late = [(o - best, k) for k, ((t_end, _), o) in enumerate(
+                zip(stamps, offsets, strict=True)) if t_end - stamps[0][0] >= 60.0]
             if late:
-                worst = 1e3 * max(late)
-                run.late_ms = worst if math.isnan(run.late_ms) else max(run.late_ms, worst)
+                lag, k = max(late)
+                worst = 1e3 * lag
+                if math.isnan(run.late_ms) or worst > run.late_ms:
+                    run.late_ms = worst
+                    run.late_where = (f"{d.name} window {k} (t_end {stamps[k][0]:.0f} s): "
+                                      f"{worst:.0f} ms late, its estimation "
+                                      f"{1e3 * float(docs[k]['elapsed_s']):.0f} ms, the one "
+                                      f"before {1e3 * float(docs[k - 1]['elapsed_s']):.0f} ms")
         run.elapsed += [float(doc["elapsed_s"]) for doc in docs]
         run.first.append(float(docs[0]["elapsed_s"]))
         counters = docs[-1].get("counters", {})
@@ -245,12 +274,14 @@ def read_results(run: Run, dirs: list[Path]) -> None:
 WAIT_RE = re.compile(r"queue wait per window: median (\d+) ms, max (\d+) ms")
 
 
-def monitor(procs: list[subprocess.Popen[str]], timeout: float) -> tuple[float, float, float]:
-    """Sample CPU and RSS of ``procs`` until they exit: (CPU seconds, wall seconds, the sum
-    of the processes' peak RSS [MB])."""
+def monitor(procs: list[subprocess.Popen[str]], timeout: float
+            ) -> tuple[float, float, float, float]:
+    """Sample CPU and memory of ``procs`` until they exit: (CPU seconds, wall seconds, the
+    peak of the processes' summed RSS and of their summed PSS [MB])."""
     t0 = time.monotonic()
     last_ticks = {p.pid: 0 for p in procs}
     peak = {p.pid: 0.0 for p in procs}
+    peak_pss = {p.pid: 0.0 for p in procs}
     deadline = t0 + timeout
     while any(p.poll() is None for p in procs):
         if time.monotonic() > deadline:
@@ -267,8 +298,12 @@ def monitor(procs: list[subprocess.Popen[str]], timeout: float) -> tuple[float, 
             rss = [r for q in tree if (r := _rss_mb(q)) is not None]
             if rss:
                 peak[p.pid] = max(peak[p.pid], sum(rss))
+            pss = [r for q in tree if (r := _pss_mb(q)) is not None]
+            if pss:
+                peak_pss[p.pid] = max(peak_pss[p.pid], sum(pss))
         time.sleep(0.5)
-    return sum(last_ticks.values()) / CLK_TCK, time.monotonic() - t0, sum(peak.values())
+    return (sum(last_ticks.values()) / CLK_TCK, time.monotonic() - t0, sum(peak.values()),
+            sum(peak_pss.values()))
 
 
 def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
@@ -324,7 +359,7 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
                    for p in procs]
         for t in readers:
             t.start()
-        run.cpu_s, run.wall_s, run.peak_rss_mb = monitor(procs, seconds + 150)
+        run.cpu_s, run.wall_s, run.peak_rss_mb, run.peak_pss_mb = monitor(procs, seconds + 150)
         for t in readers:
             t.join()
         run.exit_codes = [p.returncode for p in procs]
@@ -388,6 +423,12 @@ def main() -> None:
                          record=args.recording, workers=args.workers,
                          acquisition_only=args.acquisition_only, gateways=args.gateways)
             print(r.row(), flush=True)
+            if r.late_where:
+                print(f"       late60: {r.late_where}", flush=True)
+            if r.late_by_30s:
+                print("       worst lateness by plant time [ms]: " + ", ".join(
+                    f"{30 * b}-{30 * b + 30} s {v:.0f}" for b, v in sorted(r.late_by_30s.items())),
+                    flush=True)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from twinwatch import __version__
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
+    from twinwatch.daemon.pipeline import WindowDigest
     from twinwatch.daemon.runner import Daemon
     from twinwatch.twin.health import HealthMessage, HealthView, ParameterHealth
 
@@ -415,10 +416,10 @@ def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
     lines = _source_lines(cfg, daemon)
     last = daemon.latest_health
     if last is not None:
-        history = daemon.health_history
+        digests = daemon.window_digests
         lines += [*_window_lines(last), *_trend_lines(last), *_alarm_lines(last),
                   *_diagnosis_lines(last), *_structure_lines(last),
-                  *_check_lines(last, history), *_timing_lines(cfg, history),
+                  *_check_lines(last, digests), *_timing_lines(cfg, digests),
                   *_wait_lines(daemon),
                   *daemon.summary()]  # where each output wrote, what it lost
     if daemon.lost():
@@ -565,9 +566,9 @@ def _verdict(last: HealthMessage) -> str:
     return ": the physical model explains the data"
 
 
-def _check_lines(last: HealthMessage, history: list[HealthMessage]) -> list[str]:
+def _check_lines(last: HealthMessage, digests: list[WindowDigest]) -> list[str]:
     """How many windows passed the model check, and why the last failing one did not."""
-    checks = [h.model_check.passed for h in history if h.model_check is not None]
+    checks = [d.model_check_passed for d in digests if d.model_check_passed is not None]
     if not checks:
         return []
     passed = sum(checks)
@@ -577,8 +578,8 @@ def _check_lines(last: HealthMessage, history: list[HealthMessage]) -> list[str]
                f"{reasons[0]})" if passed < len(checks) and reasons else "")]
 
 
-def _timing_lines(cfg: TwinwatchConfig, history: list[HealthMessage]) -> list[str]:
-    times = sorted(h.elapsed_s for h in history)
+def _timing_lines(cfg: TwinwatchConfig, digests: list[WindowDigest]) -> list[str]:
+    times = sorted(d.elapsed_s for d in digests)
     if not times:
         return []
     return [f"estimation time per window: median {times[len(times) // 2] * 1e3:.0f} ms, max "
@@ -607,7 +608,7 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
     lost = sum(ring.lost.values())
     window = cfg.acquisition.window
     lines = []
-    jittered = [h.source for h in daemon.health_history if h.source.jitter_max_us]
+    jittered = [d for d in daemon.window_digests if d.jitter_max_us]
     if jittered:
         rms = max(x.jitter_rms_us or 0.0 for x in jittered)
         peak = max(x.jitter_max_us or 0.0 for x in jittered)

@@ -269,7 +269,9 @@ class AcquisitionConfig(BaseModel):
                                     "between attempts to open a live source that is absent or "
                                     "failed (a bus, a device: waited for, never an exit)")
     queue: StrictInt = Field(4, ge=1, le=1000, description="windows waiting for the estimator")
-    history: StrictInt = Field(1000, ge=1, le=100_000, description="health messages kept in memory")
+    history: StrictInt = Field(1000, ge=1, le=100_000, description="health messages a daemon "
+                               "keeps for its readers (with a state store only the last 80 in "
+                               "memory, the rest read back from it)")
     stall_timeout: StrictFloat = Field(5.0, gt=0, description="seconds without a sample before a "
                                        "stall is reported")
     watchdog: Literal["windows", "alive"] = Field(

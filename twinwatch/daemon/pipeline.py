@@ -45,7 +45,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -64,7 +64,7 @@ from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HealthCallback", "ProcessedWindow", "WindowPipeline"]
+__all__ = ["HealthCallback", "ProcessedWindow", "WindowDigest", "WindowPipeline"]
 
 HealthCallback = Callable[[HealthMessage], None]
 """Called with each window's typed health message (worker thread)."""
@@ -79,6 +79,25 @@ HELD_MAX = 1000
 """Windows kept in memory while the state database is locked by another process (about 33
 minutes of 2 s windows): stored and published once the lock is released. Beyond it a window
 waits in the store's own backlog and is not published (as on a full disk)."""
+
+MEMORY_TAIL = OUTPUT_QUEUE + 16
+"""With a state store that reads back (:meth:`~twinwatch.sinks.store.StateStore.last_docs`),
+the health messages kept in memory: the store holds the rest of ``[acquisition] history``
+(:meth:`WindowPipeline.recent` reads it from there; more than the outputs' queue holds, so
+a window leaves memory after it was stored). Measured in a 50-machine worker: the
+history in memory grew 9 KB a window per machine (9 MB at its 1000)."""
+
+
+class WindowDigest(NamedTuple):
+    """What the run's summary reads of each window (about 100 bytes where the message is 9
+    KB): the model check's verdict (None: disabled), the adaptation time [s] and the source's
+    time-stamp jitter (RMS and largest, [us]; None: none)."""
+
+    model_check_passed: bool | None
+    elapsed_s: float
+    jitter_rms_us: float | None
+    jitter_max_us: float | None
+
 
 _STOP = object()
 
@@ -131,8 +150,13 @@ class WindowPipeline:
         self.callbacks: list[HealthCallback] = []
         self.latest: HealthMessage | None = None
         #: the last ``history`` health messages as their JSON (9 KB each where the typed
-        #: message holds about 40: measured with tracemalloc); :meth:`recent` types them
+        #: message holds about 40: measured with tracemalloc); :meth:`recent` types them. With
+        #: a gate that reads back, only the last :data:`MEMORY_TAIL` (the rest is stored)
         self.history: deque[str] = deque(maxlen=history)
+        self.history_size = history
+        #: the last ``history`` windows' :class:`WindowDigest` (the run's summary)
+        self.digests: deque[WindowDigest] = deque(maxlen=history)
+        self._reader: Callable[[str, str, int], list[str]] | None = None
         self.windows_estimated = 0
         self._failing: set[str] = set()
         self._lock = threading.Lock()
@@ -386,11 +410,40 @@ class WindowPipeline:
         return SourceHealth(jitter_rms_us=rms, jitter_max_us=peak, waiting=waiting,
                             silent=list(silent))
 
+    def _stored_docs(self) -> Callable[[str, str, int], list[str]] | None:
+        """The gate's reader of stored messages (machine, run, limit -> JSON, oldest first),
+        None when the gate keeps none; the last gate's when the outputs are closed (the
+        history is read after the run: a closed store reads its file)."""
+        reader = getattr(self.gate, "last_docs", None)
+        if reader is not None:
+            self._reader = reader
+        return self._reader
+
     def recent(self) -> list[HealthMessage]:
-        """A snapshot of :attr:`history`, typed (safe while the worker appends)."""
+        """The last ``history`` health messages, typed, oldest first (safe while the worker
+        appends): those in memory, and before them, with a state store, the stored ones of
+        this run (a message both in memory and stored counts once)."""
         with self._lock:
             kept = list(self.history)
-        return [HealthMessage.model_validate_json(doc) for doc in kept]
+        typed = [HealthMessage.model_validate_json(doc) for doc in kept]
+        reader = self._stored_docs()
+        if reader is None or len(typed) >= self.history_size:
+            return typed
+        try:
+            stored = reader(self.machine, self.run, self.history_size)
+        except Exception:  # noqa: BLE001 - what memory holds is still the recent history
+            logger.warning("the stored history could not be read: the last %d windows only",
+                           len(typed), exc_info=True)
+            return typed
+        held = {(h.window, h.t_end) for h in typed}
+        older = [h for h in (HealthMessage.model_validate_json(doc) for doc in stored)
+                 if (h.window, h.t_end) not in held]
+        return [*older, *typed][-self.history_size:]
+
+    def digest(self) -> list[WindowDigest]:
+        """A snapshot of :attr:`digests` (the last ``history`` windows)."""
+        with self._lock:
+            return list(self.digests)
 
     def process(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window (estimation, then discovery when needed), evaluate
@@ -427,9 +480,15 @@ class WindowPipeline:
                               health_json=health.to_json(), events=events,
                               twin_state=self.adapter.state() if result.estimate.trusted
                               else None)
+        check = health.model_check
+        digest = WindowDigest(None if check is None else check.passed, health.elapsed_s,
+                              health.source.jitter_rms_us, health.source.jitter_max_us)
         with self._lock:
             self.latest = health
             self.history.append(out.health_json)
+            self.digests.append(digest)
+            if len(self.history) > MEMORY_TAIL and self._stored_docs() is not None:
+                self.history.popleft()
         logger.info("%s", summary_line(health))
         q = self._queue
         if q is None:

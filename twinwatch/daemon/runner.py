@@ -51,7 +51,7 @@ from twinwatch.twin.models import create_model
 if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never reads files
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.alarms import AlarmEvaluator
-    from twinwatch.daemon.pipeline import HealthCallback, WindowPipeline
+    from twinwatch.daemon.pipeline import HealthCallback, WindowDigest, WindowPipeline
     from twinwatch.daemon.ringbuffer import RingBuffer
     from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.systemd import Watchdog
@@ -190,6 +190,7 @@ class Daemon:
                                        watchdog=watchdog)
         if slots is not None and config.acquisition.stagger:
             self.acquisition.stagger(self.machine)
+            self.pipeline.adapter.estimator.stagger_guard(self.machine)
         self.worker = WindowWorker(
             machine=self.machine, process=lambda window: self.process_window(window),
             backpressure=self.pipeline.backpressure, stopping=self.acquisition.stopping,
@@ -353,6 +354,12 @@ class Daemon:
     def health_history(self) -> list[HealthMessage]:
         """The last ``[acquisition] history`` health messages (typed), oldest first."""
         return self.pipeline.recent()
+
+    @property
+    def window_digests(self) -> list[WindowDigest]:
+        """What the run's summary reads of the last ``[acquisition] history`` windows
+        (:class:`~twinwatch.daemon.pipeline.WindowDigest`), oldest first."""
+        return self.pipeline.digest()
 
     @property
     def latest(self) -> dict[str, Any] | None:
