@@ -728,8 +728,9 @@ hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1]
 signal.signal(signal.SIGUSR1, lambda *a: resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard)))
 resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), hard))
 from twinwatch.sinks.rerun import RerunRecorder
-RerunRecorder.reopen_after = 1.0                   # the test cannot wait 30 s
-RerunRecorder.reopen_max = 1.0                     # nor for the doubling of a failing disk
+RerunRecorder.reopen_after = 0.2                   # the test cannot wait 30 s (the state
+RerunRecorder.reopen_max = 0.2                     # database may fail at window 9 of 40: the
+                                                   # rest takes 0.7 s) nor for the doubling
 RerunRecorder.flush_timeout = 2.0
 from twinwatch.cli import main
 main(sys.argv[2:])
