@@ -366,8 +366,15 @@ def test_broker_outage_of_30_s_plant_time_loses_nothing(tmp_path: Path, broker: 
     assert code == 0, err
     docs = [d for _, d in stored(db)]
     assert len(docs) == 60
-    sub.wait(lambda: len({m.payload for m in sub.on(f"{M}/health")}) >= 60, 60,
-             "every window after the outage")
+    try:
+        sub.wait(lambda: len({m.payload for m in sub.on(f"{M}/health")}) >= 60, 60,
+                 "every window after the outage")
+    except AssertionError as e:  # once in CI (stop 29), not here in 8 runs under load: say more
+        got = sorted({json.loads(m.payload)["window"] for m in sub.on(f"{M}/health")})
+        logs = "".join(p.read_text(errors="replace")[-2000:]
+                       for p in sorted(broker.directory.glob("mosquitto.*.log")))
+        raise AssertionError(f"{e}; received windows {got}; summary:\n{out}\n"
+                             f"broker logs (tails):\n{logs}") from None
     firsts, repeats = delivery([m.payload for m in sub.on(f"{M}/health")], docs)
     print(f"outage: {len(docs)} windows stored, {len(sub.on(f'{M}/health'))} received, "
           f"{repeats} repeats")
