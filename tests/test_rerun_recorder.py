@@ -516,17 +516,19 @@ def test_alarm_changes_and_values_are_in_the_log_and_on_the_plot(tmp_path: Path)
         rec.log_window(**story_window(2, -11.0, "alarm", "fused"))
         rec.log_window(**story_window(3, -8.0, "warning", "held"), events=[clear_ev])
     rows = _log_rows(rec.path, "m1")
-    assert ("ERROR", raise_ev["message"]) in rows and ("WARN", clear_ev["message"]) in rows
+    # each row short enough for the log panel at 1600x1000 (a Rerun log row is not wrapped)
+    assert max(len(text) for _, text in rows) <= 80, rows
+    assert ("ERROR", "0:04 ALARM raised: Ra -12.00 % of nominal") in rows
+    assert ("WARN", "0:08 Ra alarm cleared to warning (-8.00 %)") in rows
     per_window = [(lvl, text) for lvl, text in rows if text.startswith("window ")]
     assert [lvl for lvl, _ in per_window] == ["INFO", "ERROR", "ERROR", "WARN"]
-    assert per_window[0][1].startswith("window 0 [0:00-0:02] Ra 6.435 ohm -1.00 % estimated")
-    assert "ALARM Ra -12.00 %" in per_window[1][1] and "model check FAILED: ia: not white" in \
-        per_window[1][1]
-    assert "| Ra 5.72 ohm estimated |" in per_window[1][1]  # its deviation said once, first
+    assert per_window[0][1] == "window 0 0:02 Ra -1.00 % (6.435 ohm)"
+    assert per_window[1][1] == "window 1 0:04 Ra -12.00 % (5.72 ohm) ALARM | model check " \
+        "FAILED: ia: not white"
     # the whole-run axis frame is logged when it changes: -16..16 % from the first window on
     assert _scalars(rec.path, "/m1/health/Ra/frame") == [(1.99, [-16.0, 16.0])]
-    assert "data lost: windows_abandoned +1" in per_window[2][1]
-    assert "WARNING Ra -8.00 %" in per_window[3][1]
+    assert per_window[2][1].endswith("fused, ALARM | lost: windows_abandoned +1")
+    assert per_window[3][1] == "window 3 0:08 Ra -8.00 % held, WARNING"  # held: no value
     assert _scalars(rec.path, "/m1/health/Ra/events/alarm") == [(3.99, [-12.0])]
     assert _scalars(rec.path, "/m1/health/Ra/events/cleared") == [(7.99, [-8.0])]
     assert [t for t, _ in _scalars(rec.path, "/m1/health/Ra/estimated")] == [1.99, 3.99]
@@ -725,17 +727,17 @@ def test_the_daemons_alarm_reaches_the_recording(tmp_path: Path,
     run = json.loads(docs[0][0][0].split("```json\n", 1)[1].rsplit("\n```", 1)[0])["run"]
     assert link.resolve().name == f"twinwatch-{run}.rrd"  # the run's own file, by its id
     rows_ = _log_rows(link, "dc-motor-sim")
-    raised = [(lvl, text) for lvl, text in rows_ if "ALARM: Ra is" in text]
+    raised = [(lvl, text) for lvl, text in rows_ if "ALARM raised: Ra" in text]
     assert len(raised) == 1 and raised[0][0] == "ERROR", rows_
-    assert re.search(r"ALARM: Ra is 1[12]\.\d\d % above nominal \(6\.\d+ ohm vs nominal 5\.8 "
-                     r"ohm\)", raised[0][1]), raised
+    assert re.fullmatch(r"0:\d\d ALARM raised: Ra \+1[12]\.\d\d % of nominal", raised[0][1]), raised
     marker = _scalars(link, "/dc-motor-sim/health/Ra/events/alarm")
     assert len(marker) == 1 and 11.0 < marker[0][1][0] < 13.0 and 9.9 <= marker[0][0] <= 16.0
     windows = [(lvl, text) for lvl, text in rows_ if text.startswith("window ")]
     assert len(windows) == 12
-    in_alarm = [(lvl, text) for lvl, text in windows if "ALARM Ra" in text]
+    in_alarm = [(lvl, text) for lvl, text in windows if text.endswith(" ALARM")]
     assert in_alarm and all(lvl == "ERROR" for lvl, _ in in_alarm)
-    assert in_alarm[-1][1].startswith("window 11 [0:22-0:24] ALARM Ra +1")
+    assert re.fullmatch(r"window 11 0:24 Ra \+1\d\.\d\d % \(6\.\d+ ohm\) ALARM",
+                        in_alarm[-1][1]), in_alarm
 
 
 def test_a_trend_and_its_rul_are_drawn_when_the_message_has_them(tmp_path: Path) -> None:
@@ -754,7 +756,7 @@ def test_a_trend_and_its_rul_are_drawn_when_the_message_has_them(tmp_path: Path)
     [(t, trend)] = _scalars(rec.path, "/m1/health/Ra/trend")
     assert t == 1.99 and trend == pytest.approx([-6.0, -4.0, -5.0])
     [row] = [text for _, text in _log_rows(rec.path, "m1") if text.startswith("window 0")]
-    assert "Ra 6.24 ohm -4.00 % estimated (RUL alarm 20m 00s)" in row
+    assert row == "window 0 0:02 Ra -4.00 % (6.24 ohm) RUL alarm 20m 00s"
 
 
 def _rows(path: Path, entity: str) -> list[tuple[float, Any]]:
@@ -1015,4 +1017,27 @@ def test_a_source_on_the_wall_clock_gets_a_timestamp_timeline(tmp_path: Path) ->
     assert kinds == {"timestamp[ns]"}, kinds
     [(_, row)] = [(lvl, text) for lvl, text in _log_rows(rec.path, "m1")
                   if text.startswith("window 0")]
-    assert row.startswith("window 0 [14:38:05Z-14:38:07Z] Ra 6.435 ohm"), row
+    assert row == "window 0 14:38:07Z Ra -1.00 % (6.435 ohm)", row
+
+
+def test_an_alarm_change_is_one_short_row_of_its_own_kind() -> None:
+    """Each kind of event gets a row that fits the log panel (the full message is in the
+    health message): a fault the diagnosis raised or cleared names the fault, not a
+    parameter's deviation (it once read 'alarm cleared to normal (n/a %)')."""
+    from twinwatch.sinks.rerun_views import _event_row
+
+    fault = {"machine": "m1", "kind": "diagnosis", "fault": "unbalance", "level": "normal",
+             "previous": "alarm", "probability": 0.12, "t": 286.0, "window": 142,
+             "message": "m1: FAULT CLEARED: unbalance (probability 0.12): cleared: ..."}
+    assert _event_row(fault, 286.0, "deviation", False, {}) == \
+        "4:46 fault cleared: unbalance (probability 0.12)"
+    assert _event_row(dict(fault, level="alarm", previous="normal", probability=0.9), 286.0,
+                      "deviation", True, {}) == "4:46 FAULT raised: unbalance (probability 0.90)"
+    other = {"machine": "m1", "kind": "sensor", "level": "warning", "previous": "normal",
+             "message": "m1: sensor ia stuck"}
+    assert _event_row(other, 61.0, "deviation", True, {}) == "1:01 sensor ia stuck"
+    rul = {"machine": "m1", "kind": "rul", "parameter": "Ra", "level": "warning",
+           "previous": "normal", "t": 488.0}
+    assert _event_row(rul, 488.0, "rul", True, {}) == "8:08 RUL WARNING raised: Ra"
+    assert _event_row(dict(rul, level="normal", previous="warning"), 500.0, "rul", False,
+                      {}) == "8:20 Ra RUL warning cleared to normal"

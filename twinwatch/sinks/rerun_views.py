@@ -49,9 +49,11 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
   meta-model term's equation with its meaning and evidence, the fit; ``M/parameter_table``:
   beside it, every parameter's value and status (a table; the fixed ones in a line under it,
   why the held ones are held); ``M/health``: the window's health message (JSON); ``M/log``: one
-  :class:`rerun.TextLog` row per window with the values (INFO; WARN while a parameter is in
+  short :class:`rerun.TextLog` row per window (at most about 80 characters: a row is not
+  wrapped) with the ruled parameters' deviations and levels (INFO; WARN while a parameter is in
   warning, the model check fails, the structure changed or data were lost; ERROR while one is
-  in alarm) and one row per alarm change (its message; a raise WARN or ERROR, a clear WARN);
+  in alarm) and one row per alarm change (``15:08 ALARM raised: Ra -10.02 % of nominal``; a
+  raise WARN or ERROR, a clear WARN; the event's full message is in the health message);
   ``M/key``: what the colours mean (static).
 
 The default blueprint (:meth:`RecordingViews.blueprint`): the time panel follows the newest
@@ -624,11 +626,11 @@ class RecordingViews:
         raised = _RANK.get(str(level), 0) > _RANK.get(str(previous), 0)
         kind = str(level) if raised else "cleared"
         severity = rr.TextLogLevel.ERROR if (raised and level == "alarm") else rr.TextLogLevel.WARN
-        message = ev.get("message") or (f"{p}: {previous} -> {level} at "
-                                        f"{_num(ev.get('deviation_pct')):+.2f} % of nominal")
-        ops = [Op(entity(m, "log"), rr.TextLog(str(message), level=severity), t)]
-        self._moments.setdefault(p, {})[(rule, str(level if raised else previous))] = (
-            "raised" if raised else "cleared", t)
+        ops = [Op(entity(m, "log"), rr.TextLog(_event_row(ev, t, rule, raised, params),
+                                               level=severity), t)]
+        if p:  # a diagnosis names no parameter
+            self._moments.setdefault(p, {})[(rule, str(level if raised else previous))] = (
+                "raised" if raised else "cleared", t)
         if rule == "rul":
             ph = params.get(p)
             dev = _num(ph.deviation_pct if ph is not None else None)
@@ -1184,75 +1186,97 @@ def _model_document(machine: str, t: float, doc: HealthView) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _event_row(ev: Mapping[str, Any], t: float, rule: str, raised: bool,
+               params: Mapping[str, ParameterView]) -> str:
+    """An alarm change as one short log row (the event's full ``message`` is in the health
+    message): ``15:08 ALARM raised: Ra -10.02 % of nominal``, ``16:20 Ra alarm cleared to
+    warning (-8.00 %)``, ``8:08 RUL WARNING raised: Ra, alarm in 7m 12s``, ``4:46 fault cleared:
+    unbalance (probability 0.12)``."""
+    p, level, previous = str(ev.get("parameter", "")), ev.get("level"), ev.get("previous")
+    when = clock(t)
+    if ev.get("kind") == "diagnosis":
+        word = "FAULT raised" if raised else "fault cleared"
+        odds = _fmt(ev.get("probability"), ".2f")
+        return f"{when} {word}: {ev.get('fault')} (probability {odds})"
+    if not p:  # an event of another kind: its own message, without the machine's name
+        return f"{when} " + str(ev.get("message", "")).removeprefix(f"{ev.get('machine')}: ")
+    if rule == "rul":
+        if not raised:
+            return f"{when} {p} RUL {previous} cleared to {level}"
+        ph = params.get(p)
+        rul = _rul_short(ph) if ph is not None else ""
+        rul = rul.replace("RUL ", "", 1).replace(" ", " in ", 1) if rul.startswith("RUL") else rul
+        return f"{when} RUL {str(level).upper()} raised: {p}" + (f", {rul}" if rul else "")
+    dev = _num(ev.get("deviation_pct"))
+    if raised:
+        return f"{when} {str(level).upper()} raised: {p} {_fmt(dev, '+.2f')} % of nominal"
+    return f"{when} {p} {previous} cleared to {level} ({_fmt(dev, '+.2f')} %)"
+
+
 def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
              grew: Mapping[str, int], health_json: str = "{}") -> tuple[str, Any]:
-    """One line with the window's values, and its level: ERROR while a parameter is in alarm,
-    WARN while one is in warning, the model check fails, the structure changed or data were
-    lost, else INFO. Most important first (a row is not wrapped: its end may be cut): the
-    window and its plant time, the deviation and RUL alarms apart, the parameters with an
-    alarm rule, the fit, then the other parameters. A document that is no health message
-    (``health_json``, as logged) shows its top-level scalars."""
-    from twinwatch.twin.health import sent
-
-    parts = [f"window {_str(doc.window, '?')} [{clock(t0)}-{clock(t_end)}]"]
+    """One short line for the window (a Rerun log row is not wrapped: about 85 characters fit
+    the log panel at 1600x1000), and its level: ERROR while a parameter is in alarm, WARN while
+    one is in warning, the model check fails, the structure changed or data were lost, else
+    INFO. The window and the plant time of its end; each parameter with an alarm rule: its
+    deviation [% of nominal], value, status when not ``estimated``, its deviation and RUL
+    levels when raised (else the RUL's median); then what went wrong (model check, DT''
+    changed, data lost). The other parameters and the fit are in the table and panels at the
+    cursor, the whole message in its tab. ``t0`` is the window's start (unused: the row gives
+    its end). A document that is no health message (``health_json``, as logged) shows its
+    top-level scalars."""
+    del t0
+    parts = [f"window {_str(doc.window, '?')} {clock(t_end)}"]
     worst = 0
     alarms = doc.alarms or {}
-    raised = []
+    params = doc.parameters or {}
+    ruled = []
     for name, a in alarms.items():
+        words = []
+        ph = params.get(name)
+        if ph is not None and ph.status in ("tied", "fixed"):
+            continue
+        if ph is not None and ph.status not in (None, "estimated"):
+            words.append(str(ph.status))
         level = str(a.level)
         if _RANK.get(level, 0) > 0:
             worst = max(worst, _RANK[level])
-            dev = _fmt(a.deviation_pct, "+.2f")
-            raised.append(f"{level.upper()} {name} {dev} %")
-    for name, a in alarms.items():
-        level = str(a.rul.level if a.rul is not None else None)
-        if _RANK.get(level, 0) > 0:
-            worst = max(worst, _RANK[level])
-            raised.append(f"RUL {level.upper()} {name}")
-    if raised:
-        parts.append(", ".join(raised) + " |")
-    ruled, others, held = [], [], []
-    for name, p in (doc.parameters or {}).items():
-        if p.status in ("tied", "fixed"):
-            continue
-        if p.status == "held":  # the last trusted value again: named, not repeated
-            held.append(str(name))
-            continue
-        rul = _rul_short(p)
-        alarm = alarms.get(name)
-        said = _RANK.get(str(alarm.level if alarm is not None else None), 0) > 0
-        dev = "" if said else f"{_fmt(p.deviation_pct, '+.2f')} % "  # in the alarm's
-        (ruled if name in alarms else others).append(
-            f"{name} {_fmt(p.value, '.6g')} {_str(p.unit)} {dev}"
-            f"{_str(p.status)}" + (f" ({rul})" if rul else ""))
-    if held:
-        others.append("held " + ", ".join(held))
+            words.append(level.upper())
+        rul_level = str(a.rul.level if a.rul is not None else None)
+        if _RANK.get(rul_level, 0) > 0:
+            worst = max(worst, _RANK[rul_level])
+            words.append(f"RUL {rul_level.upper()}")
+        elif ph is not None and (rul := _rul_short(ph)):
+            words.append(rul)
+        dev = a.deviation_pct if ph is None else ph.deviation_pct
+        head = f"{name} {_fmt(dev, '+.2f')} %"
+        if ph is not None and ph.status != "held":  # a held value is the last trusted one
+            head += f" ({_fmt(ph.value, '.5g')} {_str(ph.unit)})"
+        ruled.append(" ".join([head, ", ".join(words)]).strip())
     if ruled:
-        parts.append("; ".join(ruled) + " |")
-    fit = []
-    if sent(doc, "nrmse"):
-        fit.append(f"nRMSE {_fmt(doc.nrmse, '.3g')}")
+        parts.append("; ".join(ruled))
+    elif params:  # no alarm rule: the estimated deviations
+        parts.append(", ".join(f"{name} {_fmt(ph.deviation_pct, '+.2f')} %"
+                               for name, ph in params.items()
+                               if ph.status in ("estimated", "fused")))
+    wrong = []
     check = doc.model_check
     failed = check is not None and check.passed is False
     if failed:  # a check that passed is the rule: said only in the model panel
-        fit.append("model check FAILED: " + "; ".join(map(str, check.reasons or [])))
-    if math.isfinite(_num(doc.elapsed_s)):
-        fit.append(f"{_num(doc.elapsed_s) * 1e3:.0f} ms")
+        wrong.append("model check FAILED: " + "; ".join(map(str, check.reasons or [])))
     disc = doc.discovery
     changed = terms_changed or (disc is not None and bool(disc.changed))
     if changed and disc is not None:
         kept, dropped = disc.kept or [], disc.dropped or []
-        fit.append("DT'' changed" + "".join(f"; added {e}" for e in kept)
-                   + "".join(f"; dropped {e}" for e in dropped))
+        wrong.append("DT'' changed" + "".join(f"; added {e}" for e in kept)
+                     + "".join(f"; dropped {e}" for e in dropped))
     elif changed:
-        fit.append("DT'' changed")
+        wrong.append("DT'' changed")
     if grew:
-        fit.append("data lost: " + ", ".join(f"{k} +{v}" for k, v in grew.items()))
-    if fit:
-        parts.append(", ".join(fit) + (" |" if others else ""))
-    if others:
-        parts.append("; ".join(others))
-    if not raised and len(parts) == 1:  # not a health message: its top-level scalars
+        wrong.append("lost: " + ", ".join(f"{k} +{v}" for k, v in grew.items()))
+    if wrong:
+        parts.append("| " + ", ".join(wrong))
+    if not alarms and not params and len(parts) == 1:  # not a health message: its scalars
         parts.append(", ".join(f"{k}={v}" for k, v in json.loads(health_json).items()
                                if isinstance(v, bool | str | int | float) or v is None))
     if worst == 2:
