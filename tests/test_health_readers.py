@@ -43,6 +43,7 @@ OTHER_DOCUMENTS = {
     ("watch.py", "_gap_words"): "the snapshot's delivery entry",
     ("watch.py", "Tail.on_alarm"): "an alarm event (<prefix>/<machine>/alarm)",
     ("sinks/rerun_views.py", "RecordingViews._event_ops"): "an alarm event",
+    ("sinks/rerun_views.py", "_event_row"): "an alarm event (its short log row)",
     ("cli.py", "_resumed_line"): "the daemon's resume summary (Daemon.resumed)",
     ("cli.py", "_new_run_line"): "the daemon's new-run summary (Daemon.new_run)",
     ("sinks/zenoh.py", "history_parameters"): "the history query's parameters",
