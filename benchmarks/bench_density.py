@@ -204,6 +204,18 @@ class Run:
     late_where: str = ""
     #: the worst lateness [ms] of the windows ending in each 30 s of plant time (0: 0-30 s)
     late_by_30s: dict[int, float] = field(default_factory=dict)
+    #: the box's busy CPU over the run, every process (ours too), and the hypervisor's steal [s]
+    box_s: float = 0.0
+    steal_s: float = 0.0
+
+    def others(self) -> str:
+        """The rest of the box's load during the run: a lateness figure depends on it (the two
+        cores are shared)."""
+        if not self.wall_s:
+            return ""
+        return (f"box busy {100 * self.box_s / self.wall_s:.0f} % over the run, of which "
+                f"other processes {100 * max(self.box_s - self.cpu_s, 0.0) / self.wall_s:.0f} %,"
+                f" steal {100 * self.steal_s / self.wall_s:.0f} %")
 
     def row(self) -> str:
         e = sorted(self.elapsed)
@@ -275,13 +287,17 @@ WAIT_RE = re.compile(r"queue wait per window: median (\d+) ms, max (\d+) ms")
 
 
 def monitor(procs: list[subprocess.Popen[str]], timeout: float
-            ) -> tuple[float, float, float, float]:
+            ) -> tuple[float, float, float, float, float, float]:
     """Sample CPU and memory of ``procs`` until they exit: (CPU seconds, wall seconds, the
-    peak of the processes' summed RSS and of their summed PSS [MB])."""
+    peak of the processes' summed RSS and of their summed PSS [MB], the box's busy CPU
+    seconds over the same span (every process, ours included), of which steal)."""
     t0 = time.monotonic()
+    box0 = _box_ticks()
     last_ticks = {p.pid: 0 for p in procs}
     peak = {p.pid: 0.0 for p in procs}
     peak_pss = {p.pid: 0.0 for p in procs}
+    trees: dict[int, list[int]] = {}
+    next_slow = t0
     deadline = t0 + timeout
     while any(p.poll() is None for p in procs):
         if time.monotonic() > deadline:
@@ -290,20 +306,38 @@ def monitor(procs: list[subprocess.Popen[str]], timeout: float
                     p.terminate()
             print(f"  (timeout after {timeout:.0f} s: stopped)", file=sys.stderr)
             deadline = float("inf")
+        # the measurement's own cost kept off the box it measures: a PSS read walks the
+        # process's page tables (5.6 ms of CPU for a 300 MB worker; every 0.5 s for five
+        # processes it was 6 % of a core), so PSS and the process tree every 5 s, the cheap
+        # figures (CPU ticks, VmRSS) every 0.5 s
+        slow = time.monotonic() >= next_slow
+        if slow:
+            next_slow = time.monotonic() + 5.0
         for p in procs:  # the process and its workers, summed
-            tree = _tree(p.pid)
+            if slow or p.pid not in trees:
+                trees[p.pid] = _tree(p.pid)
+            tree = trees[p.pid]
             ticks = [t for q in tree if (t := _cpu_ticks(q)) is not None]
             if ticks:
                 last_ticks[p.pid] = max(last_ticks[p.pid], sum(ticks) + _reaped_ticks(p.pid))
             rss = [r for q in tree if (r := _rss_mb(q)) is not None]
             if rss:
                 peak[p.pid] = max(peak[p.pid], sum(rss))
-            pss = [r for q in tree if (r := _pss_mb(q)) is not None]
+            pss = [r for q in tree if (r := _pss_mb(q)) is not None] if slow else []
             if pss:
                 peak_pss[p.pid] = max(peak_pss[p.pid], sum(pss))
         time.sleep(0.5)
+    box1 = _box_ticks()
     return (sum(last_ticks.values()) / CLK_TCK, time.monotonic() - t0, sum(peak.values()),
-            sum(peak_pss.values()))
+            sum(peak_pss.values()), (box1[0] - box0[0]) / CLK_TCK, (box1[1] - box0[1]) / CLK_TCK)
+
+
+def _box_ticks() -> tuple[int, int]:
+    """(busy, steal) clock ticks of the whole box since boot (``/proc/stat``: user, nice,
+    system, irq, softirq, steal; steal alone: what the hypervisor gave other guests)."""
+    with open("/proc/stat") as f:
+        v = [int(x) for x in f.readline().split()[1:]]
+    return v[0] + v[1] + v[2] + v[5] + v[6] + v[7], v[7]
 
 
 def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
@@ -359,7 +393,8 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
                    for p in procs]
         for t in readers:
             t.start()
-        run.cpu_s, run.wall_s, run.peak_rss_mb, run.peak_pss_mb = monitor(procs, seconds + 150)
+        (run.cpu_s, run.wall_s, run.peak_rss_mb, run.peak_pss_mb, run.box_s,
+         run.steal_s) = monitor(procs, seconds + 150)
         for t in readers:
             t.join()
         run.exit_codes = [p.returncode for p in procs]
@@ -423,6 +458,7 @@ def main() -> None:
                          record=args.recording, workers=args.workers,
                          acquisition_only=args.acquisition_only, gateways=args.gateways)
             print(r.row(), flush=True)
+            print(f"       {r.others()}", flush=True)
             if r.late_where:
                 print(f"       late60: {r.late_where}", flush=True)
             if r.late_by_30s:
