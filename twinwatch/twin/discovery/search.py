@@ -569,14 +569,17 @@ class Discovery:
             impr = 1.0 - math.sqrt(float(r_all @ r_all)) / rms0 if rms0 > 0 else 0.0
             ok = dbic <= -self.config.bic_threshold and impr >= self.config.min_improvement
             term.failures = 0 if ok else term.failures + 1
+            # by identity: a term's fields hold arrays (``==`` between two terms raised
+            # ValueError when the one dropped was not the first)
+            at = next(i for i, t in enumerate(terms) if t is term)
             if term.failures >= self.config.drop_after:
-                terms.remove(term)
+                del terms[at]
                 report.dropped.append(term)
                 r_all = self._resid(fit, theta, compose(terms, win))[0]
                 continue
             simple = self._simplify(fit, theta, terms, term, r_all)
             if simple is not None:
-                terms[terms.index(term)] = simple
+                terms[at] = simple
                 report.dropped.append(term)
                 report.kept.append(simple)
                 r_all = self._resid(fit, theta, compose(terms, win))[0]
