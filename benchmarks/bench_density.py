@@ -204,6 +204,9 @@ class Run:
     late_where: str = ""
     #: the worst lateness [ms] of the windows ending in each 30 s of plant time (0: 0-30 s)
     late_by_30s: dict[int, float] = field(default_factory=dict)
+    #: the latest windows after the first minute: (ms late, machine, window, stored at [s
+    #: after launch], its estimation [ms]), latest first
+    latest: list[tuple[float, str, int, float, float]] = field(default_factory=list)
     #: the box's busy CPU over the run, every process (ours too), and the hypervisor's steal [s]
     box_s: float = 0.0
     steal_s: float = 0.0
@@ -242,7 +245,9 @@ HEADER = (f"{'N':>4} {'mode':<8} {'windows':>11} {'overruns':>8} {'p50ms':>7} {'
           f"{'late60':>8} exit")
 
 
-def read_results(run: Run, dirs: list[Path]) -> None:
+def read_results(run: Run, dirs: list[Path], launched: float = 0.0) -> None:
+    """Fill ``run`` from the machines' state databases (``launched``: the run's start [s
+    since the epoch], for the wall-clock moments of the latest windows)."""
     for d in dirs:
         db = d / "state.sqlite"
         if not db.exists():
@@ -267,6 +272,9 @@ def read_results(run: Run, dirs: list[Path]) -> None:
                 run.late_by_30s[b] = max(run.late_by_30s.get(b, 0.0), 1e3 * (o - best))
             late = [(o - best, k) for k, ((t_end, _), o) in enumerate(
                 zip(stamps, offsets, strict=True)) if t_end - stamps[0][0] >= 60.0]
+            run.latest += [(1e3 * lag, d.name, k, stamps[k][1] - launched,
+                            1e3 * float(docs[k]["elapsed_s"])) for lag, k in late]
+            run.latest = sorted(run.latest, reverse=True)[:8]
             if late:
                 lag, k = max(late)
                 worst = 1e3 * lag
@@ -419,7 +427,7 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
                     firsts.append(row[0])
         if firsts:
             run.start_s = max(firsts) - (time.time() - (time.monotonic() - t_start)) - 2.0
-        read_results(run, dirs)
+        read_results(run, dirs, launched=time.time() - (time.monotonic() - t_start))
     return run
 
 
@@ -461,6 +469,11 @@ def main() -> None:
             print(f"       {r.others()}", flush=True)
             if r.late_where:
                 print(f"       late60: {r.late_where}", flush=True)
+            if r.latest:
+                print("       latest after the first minute (ms late, machine/window, stored "
+                      "at s after launch, estimation ms): " + "; ".join(
+                          f"{ms:.0f} {m}/{k} at {at:.1f} s {est:.0f}"
+                          for ms, m, k, at, est in r.latest), flush=True)
             if r.late_by_30s:
                 print("       worst lateness by plant time [ms]: " + ", ".join(
                     f"{30 * b}-{30 * b + 30} s {v:.0f}" for b, v in sorted(r.late_by_30s.items())),
