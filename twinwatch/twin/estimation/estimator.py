@@ -40,13 +40,9 @@ is estimated again from the start with the swarm (its result is then the swarm p
 its nRMSE exceeds ``local_residual_ratio`` times what the window's noise explains (the
 residual's white-noise level per output, floored by ``model_error``, or the nRMSE of the last
 swarm window if larger: a large residual, a step change the local polish did not follow), or
-when it fails its model check. After a swarm run for a failed check has failed it too, a
-residual at the noise level that is not white is the window's, not a local optimum: until the
-next swarm, such a window takes the swarm path's stages from the trusted values instead of the
-swarm's best (not trusted either way: its check failed). ``strategy = "swarm"`` runs the swarm
-every window (the behaviour before, stage for stage); the paper's method is
-``strategy = "swarm"`` with Table 2's swarm (``[estimation.pso] max_generations = 1000``) and
-``polish = false``.
+when it fails its model check. ``strategy = "swarm"`` runs the swarm every window (the
+behaviour before, stage for stage); the paper's method is ``strategy = "swarm"`` with Table 2's
+swarm (``[estimation.pso] max_generations = 1000``) and ``polish = false``.
 
 Fitness (paper Eq. 2, normalised): ``RMSE_n = sqrt(mean_j mean_k ((y_sim - y_meas)/s_j)^2)``
 with ``s_j = max(rms(y_meas_j), floor_j)`` per output j, so that current [A], speed [rad/s] and
@@ -254,9 +250,6 @@ class EstimationConfig(BaseModel):
                     )
 
 
-#: How a local fit rejected for its failed model check is named (``search_reason``).
-CHECK_REJECTED = "rejected: the model check failed"
-
 @dataclass
 class WindowEstimate:
     """The result of one window's estimation.
@@ -434,11 +427,6 @@ class Estimator:
         self.guard_phase = 0
         self._swarm_next = ""
         self._swarm_nrmse = 0.0
-        #: Whether the last swarm run because a local fit failed its model check passed the
-        #: check (None: none since the last swarm of another kind). False: the failures are
-        #: the windows' (a residual at the noise level that is not white), not a local
-        #: optimum, and a local fit that fails its check stands until the next swarm.
-        self._check_cured: bool | None = None
         #: The last window's admitted set (the gate's, before the model check): a local-first
         #: window polishes only these, and the gate confirms the set (:meth:`_fit`).
         self._admitted: list[int] | None = None
@@ -577,15 +565,7 @@ class Estimator:
         if not why:
             # local first: the trusted values polished; rejected -> the swarm, same window
             fitted = self._fit(problem, window, warm_start(problem), terms, local=True)
-            if fitted.rejected and fitted.check is not None and self._check_cured is False:
-                # rejected for its model check after a swarm run for a failed check failed
-                # it too: at the noise level (the residual test passed) a global search finds
-                # the same fit (density benchmark's plants, 0.5 % noise: 14 of 14 such swarms
-                # failed again, 45 ms of CPU each, 8 % of the windows): the swarm path's
-                # stages, polish of every parameter included, from the trusted values instead
-                problem.fit.initial = initial0
-                fitted = self._fit(problem, window, warm_start(problem), terms, local=False)
-            elif fitted.rejected:
+            if fitted.rejected:
                 why = f"rejected: {fitted.rejected}"
                 logger.debug("window %d: local fit %s; the swarm runs", window.index, why)
                 problem.fit.initial = initial0  # the swarm scores from the measured start
@@ -593,8 +573,6 @@ class Estimator:
         if fitted is None:
             found = global_search(problem, cfg.pso, rng=self._rng, time_budget=cfg.time_budget)
             fitted = self._fit(problem, window, found, terms, local=False)
-            self._check_cured = (fitted.check is None or bool(fitted.check.passed)
-                                 if why.startswith(CHECK_REJECTED) else None)
             # the first guard comes `guard_phase` windows early (:meth:`stagger_guard`)
             self._since_swarm = self.guard_phase if self._since_swarm is None else 0
             r_sw = fitted.polished.point.r
@@ -743,7 +721,7 @@ class Estimator:
             if local:
                 first = check.reasons[0] if check.reasons else "failed"
                 return _Fitted(problem, found, polished, decision, point, twin, check,
-                               f"{CHECK_REJECTED[len('rejected: '):]} ({first})")
+                               f"the model check failed ({first})")
             # ... and, when it fails holding a never-confirmed parameter at its nameplate, once
             # more holding the latest sound estimates instead (_unconfirmed)
             retry = self._unconfirmed()
