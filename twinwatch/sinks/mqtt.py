@@ -1006,8 +1006,12 @@ class MqttPublisher(Sink):
         except (OSError, ssl.SSLError, ValueError) as exc:
             self._unreachable(str(exc) or type(exc).__name__)
             return
+        # the CONNACK is waited for while closing too: the closing loop's attempts are how a
+        # backlog reaches a broker that is back after the run's end (leaving at once, each
+        # attempt's socket was closed by the next before its CONNACK was read: a broker back
+        # 25 s after an outage, during the stop, saw a connection a second and got nothing)
         end = time.monotonic() + self.config.connect_timeout
-        while not self._connected and time.monotonic() < end and not self._stop.is_set():
+        while not self._connected and time.monotonic() < end:
             if self.client.loop(timeout=0.05) != mqtt.MQTT_ERR_SUCCESS:
                 break
 
