@@ -911,15 +911,7 @@ def test_the_model_and_the_parameters_table_fit_at_1600x1000(tmp_path: Path) -> 
 
 def _documents(path: Path, entity: str) -> list[tuple[float, str]]:
     """(plant time [s], text) of every TextDocument row of ``entity``, in time order."""
-    out = []
-    for chunk in rr.chunk.RrdReader(path).stream():
-        if chunk.entity_path != entity or chunk.is_static:
-            continue
-        batch = chunk.to_record_batch()
-        times = batch.column("plant_time").cast("int64").to_pylist()
-        out += [(t / 1e9, d[0]) for t, d in zip(
-            times, batch.column("TextDocument:text").to_pylist(), strict=True)]
-    return sorted(out)
+    return sorted((t, row["TextDocument:text"][0]) for t, row in _rows(path, entity))
 
 
 def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
