@@ -18,10 +18,14 @@ is scaled to 1600x1000 and quantised to 256 colours.
   (1090 s) with its interval: the picture shows the RUL before the alarm;
 * ``discovery``: ``config/dc-motor-unbalanced-sim.toml``, 300 s: the periodic term of the
   unbalanced shaft (paper Eq. 13) and its meaning in the model panel;
-* ``hydraulic``: ``config/hydraulic-modbus-sim.toml`` stopped at 420 s: D, the fluid, rising
-  from 100 N/(m/s), the warning at about 5:44 (344 s), the alarm predicted for about 7:30;
+* ``hydraulic``: ``config/hydraulic-modbus-sim.toml`` stopped at 435 s: D, the fluid, rising
+  from 100 N/(m/s), the warning at about 5:44 (344 s), the alarm predicted for about 7:28;
 * ``leak``: ``config/hydraulic-modbus-leak-sim.toml``, 300 s: the internal leak discovered as
   a meta-model term, the diagnosis naming the piston seal (not the fluid) in the model panel.
+
+The hydraulic run stops a little after a whole minute (435 s, not 420): the viewer labels the
+time axis at whole minutes and clips a label on the plot's right edge (``+7m`` was cut in half;
+the 300 s runs end at 299.99 s, before their ``+5m``).
 
 Needs: ``xvfb-run`` and Mesa's Vulkan driver (Debian: xvfb, mesa-vulkan-drivers), Pillow
 (``pip install -e '.[dev]'``). Prints, per example, the run's wall time, the recording's size
@@ -62,7 +66,7 @@ EXAMPLES = (
             "twinwatch-unbalanced.rrd", "discovery: the unbalanced shaft's periodic term"),
     Example("hydraulic", ROOT / "config" / "hydraulic-modbus-sim.toml",
             "twinwatch-hydraulic.rrd", "the hydraulic actuator: D, the fluid, degrades",
-            420.0),
+            435.0),
     Example("leak", ROOT / "config" / "hydraulic-modbus-leak-sim.toml",
             "twinwatch-hydraulic-leak.rrd", "the internal leak: discovered, the seal named, D "
             "not reported as the fluid"),

@@ -966,9 +966,11 @@ def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
     assert _scalars(rec.path, "/m1/health/Ra/events/warning") == [(877.99, [-5.2])]
     assert [v for _, v in _scalars(rec.path, "/m1/quality/nrmse")] == [[1e3], [1e3]]
     frames = _scalars(rec.path, "/m1/outputs/ia/frame")
-    assert [v for _, v in frames] == [[50390.0, 50404.0]] * 2
+    # 50 390 reached, with room below it for its label (12 % of the axis)
+    [(low, high)] = {tuple(v) for _, v in frames}
+    assert high == 50404.0 and 0.12 <= (50390.0 - low) / (high - low) < 0.15
     omega = _scalars(rec.path, "/m1/outputs/omega/frame")  # 100 cos t: two ticks already
-    assert all(v[0] >= -100.0 and v[1] <= 100.0 for _, v in omega)
+    assert all(v[0] >= -130.0 and v[1] <= 130.0 for _, v in omega)  # room for +-100 only
 
 
 def test_render_views_leaves_the_tracked_pictures_alone_unless_asked() -> None:
@@ -1033,3 +1035,26 @@ def test_an_alarm_change_is_one_short_row_of_its_own_kind() -> None:
     assert _event_row(rul, 488.0, "rul", True, {}) == "8:08 RUL WARNING raised: Ra"
     assert _event_row(dict(rul, level="normal", previous="warning"), 500.0, "rul", False,
                       {}) == "8:20 Ra RUL warning cleared to normal"
+
+
+R = 0.12 / (1 - 2 * 0.12)  # 12 % of the widened axis on each side
+
+
+@pytest.mark.parametrize(("values", "frame"), [
+    ((-11.5, 11.5), (-10.0 - R * 23.0, 10.0 + R * 23.0)),  # an output's +-10
+    ((0.0, 100.5), (-R * 100.5, 100.0 + R * 100.5)),  # the fit strip: 0 and 100
+    ((-16.0, 16.0), (-16.0, 16.0)),  # +-10 far enough from the edges already
+    ((0.0, 1.0), (-R, 1.0 + R)),  # the lost panel's counts while none was lost
+])
+def test_an_axis_frame_leaves_room_for_its_outermost_labels(
+        values: tuple[float, float], frame: tuple[float, float]) -> None:
+    """Issue 24: the viewer centres a tick's label on it and clips what leaves the plot: the
+    fit strip's 100 was cut in half at 1600x1000. The frame reaches a labelled tick at both
+    ends and leaves 12 % of the axis beyond it (not on a parameter's small panel, whose +-10
+    labels the viewer drops when they are closer than about 22 px)."""
+    from twinwatch.sinks.rerun_views import _frame
+
+    assert _frame(np.array(values)) == pytest.approx(list(frame))
+    low, high = _frame(np.array([0.0, 0.0]))  # one value: a frame around it, not a line
+    assert low < 0.0 < high
+    assert _frame(np.array([-11.5, 11.5]), room=False) == [-11.5, 11.5]

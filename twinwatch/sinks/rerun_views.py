@@ -163,6 +163,9 @@ _SCALE_HEADROOM = 1.15
 the ticks -10, 0, 10 (at 1.6 it labelled only 0)."""
 """The axis of a parameter's view reaches at least this many times its outermost threshold (or
 scale) on each side that has one: the lines never sit on its edge."""
+_TICK_ROOM = 0.12
+"""The least room between an axis' outermost labelled tick and its edge, as a share of the
+axis (:func:`_tick_room`): half a label's height on a small panel at 1600x1000."""
 _BAND_CLIP = 1.5
 """The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
 nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
@@ -418,8 +421,9 @@ class RecordingViews:
             names="model check failed [ppm]", colors=_ALARM, markers="cross", marker_sizes=4.0),
             static=True))
         ops.append(lines(("quality", "elapsed_ms"), "estimation time [ms]", _ELAPSED, 1.5))
-        ops.append(lines(("quality", "frame"), ["axis frame low", "axis frame high"],
-                         [_HIDDEN, _HIDDEN], [1.0, 1.0]))
+        for path in (("quality", "frame"), ("quality", "problems", "frame")):
+            ops.append(lines(path, ["axis frame low", "axis frame high"], [_HIDDEN, _HIDDEN],
+                             [1.0, 1.0]))
         if self._problem_counters:
             ops.append(self._problem_style())
         return ops
@@ -569,7 +573,8 @@ class RecordingViews:
         values = [*band, 0.0, *limits, *headroom, dev]
         m = self.machine
         ops = [Op(entity(m, "health", p, "deviation"), rr.Scalars(values), t)]
-        frame = self._run_frame(f"health/{p}", values)
+        # no room beyond the +-10 ticks: a small panel (50 px) then labels 0 alone
+        frame = self._run_frame(f"health/{p}", values, room=False)
         if frame is not None:
             ops.append(Op(entity(m, "health", p, "frame"), rr.Scalars(frame), t))
         status = ph.status
@@ -724,11 +729,16 @@ class RecordingViews:
                 self._problem_counters += sorted(new)
                 ops.append(self._problem_style())
             if self._problem_counters:
-                ops.append(Op(entity(m, "quality", "problems"), rr.Scalars(
-                    [_num(counters.get(k)) for k in self._problem_counters]), t))
+                counts = [_num(counters.get(k)) for k in self._problem_counters]
+                ops.append(Op(entity(m, "quality", "problems"), rr.Scalars(counts), t))
+            frame = self._run_frame("problems", [0.0, 1.0, *(
+                _num(counters.get(k)) for k in self._problem_counters)])
+            if frame is not None:
+                ops.append(Op(entity(m, "quality", "problems", "frame"), rr.Scalars(frame), t))
         return ops
 
-    def _run_frame(self, view: str, values: Sequence[float]) -> list[float] | None:
+    def _run_frame(self, view: str, values: Sequence[float], room: bool = True
+                   ) -> list[float] | None:
         """The axis frame (:func:`_frame`) of a view that shows the whole run: over every
         finite value it has shown so far; None when it is the one last logged."""
         finite = [v for v in values if math.isfinite(v)]
@@ -737,7 +747,7 @@ class RecordingViews:
         low, high = self._ranges.get(view, (min(finite), max(finite)))
         low, high = min(low, *finite), max(high, *finite)
         self._ranges[view] = (low, high)
-        frame = _frame(np.array([low, high]))
+        frame = _frame(np.array([low, high]), room)
         if frame is None or frame == self._frames.get(view):
             return None  # unchanged: one chunk less per view and window in the file
         self._frames[view] = frame
@@ -798,12 +808,13 @@ def _residual_rmse(doc: HealthView) -> dict[str, Mapping[str, float | None]]:
             "dt_second": (residual.dt_second.rmse if residual.dt_second else None) or {}}
 
 
-def _frame(values: np.ndarray) -> list[float] | None:
+def _frame(values: np.ndarray, room: bool = True) -> list[float] | None:
     """Two transparent values that give an axis two labelled ticks. The viewer labels ticks at
     powers of ten only, and only when at most about four of them span the axis (seen at
     1600x1000): a pressure of 50 380-50 425 Pa gets one label (50 400). The frame is the range,
     widened on its nearer side to the next multiple of that power of ten when fewer than two
-    lie inside (50 380-50 500 Pa: 50 400 and 50 500). None without finite values."""
+    lie inside (50 380-50 500 Pa: 50 400 and 50 500); with ``room``, then widened so its
+    outermost labels are not cut (:func:`_tick_room`). None without finite values."""
     finite = values[np.isfinite(values)]
     if finite.size == 0:
         return None
@@ -813,12 +824,30 @@ def _frame(values: np.ndarray) -> list[float] | None:
         width = abs(high) * 1e-3 or 1.0
     step = 10.0 ** math.ceil(math.log10(width / 4.0))
     first, last = math.ceil(low / step), math.floor(high / step)
-    if last - first >= 1:
-        return [low, high]
     lo, hi = math.floor(low / step) * step, math.ceil(high / step) * step
-    if last == first:  # one labelled tick inside: reach the next one on the nearer side
-        return [lo, high] if (low - lo) <= (hi - high) else [low, hi]
-    return [lo, hi]
+    if last - first >= 1:
+        frame = (low, high)
+    elif last == first:  # one labelled tick inside: reach the next one on the nearer side
+        frame = (lo, high) if (low - lo) <= (hi - high) else (low, hi)
+    else:
+        frame = (lo, hi)
+    return _tick_room(*frame) if room else list(frame)
+
+
+def _tick_room(low: float, high: float) -> list[float]:
+    """``[low, high]`` widened on a side whose outermost labelled tick lies within
+    ``_TICK_ROOM`` of the axis' height from its edge: the viewer centres a label on its tick
+    and clips what leaves the plot (the fit strip's ``100``, the outputs' outer labels were
+    cut in half at 1600x1000). Not for a parameter's small panel: at 50 px the viewer then
+    drops its +-10 labels (it labels ticks at least about 22 px apart)."""
+    width = high - low
+    if width <= 0.0:
+        width = abs(high) * 1e-3 or 1.0
+        low, high = low - width / 2.0, high + width / 2.0
+    step = 10.0 ** math.ceil(math.log10(width / 4.0))
+    room = _TICK_ROOM / (1.0 - 2.0 * _TICK_ROOM) * width  # of the widened axis
+    top, bottom = math.floor(high / step) * step, math.ceil(low / step) * step
+    return [min(low, bottom - room), max(high, top + room)]
 
 
 def _band_pct(ph: ParameterView) -> tuple[float, float]:
