@@ -80,6 +80,7 @@ def expected_rows(machine: str, windows: int) -> Counter[str]:
         counts[f"/{machine}/outputs/{o}/twin"] = N * windows
         counts[f"/{machine}/residual/{o}"] = N * windows  # measured - twin, every sample
         counts[f"/{machine}/outputs/{o}/frame"] = windows  # two labelled ticks on its axis
+        counts[f"/{machine}/residual/{o}/frame"] = windows  # the same for the residual
     counts[f"/{machine}/parameters"] = windows  # one series per parameter
     counts[f"/{machine}/health"] = windows
     counts[f"/{machine}/log"] = windows

@@ -9,8 +9,10 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
 * ``M/outputs/<output>/measured`` and ``M/outputs/<output>/twin``: the window's measured and
   twin-simulated output samples in the output's unit (:class:`rerun.Scalars`, one
   ``send_columns`` per series and window); ``M/outputs/<output>/frame``: two transparent
-  values per window that give the axis two labelled ticks (:func:`_frame`);
-  ``M/residual/<output>``: measured - twin, every sample; ``M/residual_rmse/dt_prime`` and
+  values per window that give the axis two labelled ticks, with room for their labels
+  (:func:`_frame`, :meth:`RecordingViews._output_frame`);
+  ``M/residual/<output>``: measured - twin, every sample (``.../frame``: the same for its
+  axis); ``M/residual_rmse/dt_prime`` and
   ``.../dt_second``: per window, the RMSE of the twin
   without (DT') and with (DT'') its meta-model terms, one series per output (its unit);
 * ``M/parameters``: every parameter's estimate [SI], one series per parameter (the twin's
@@ -77,6 +79,7 @@ the cursor is moved back.
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import re
@@ -229,6 +232,8 @@ class RecordingViews:
         self._problem_counters: list[str] = []
         self._last_counters: dict[str, int] = {}
         self._ranges: dict[str, tuple[float, float]] = {}
+        #: output -> (window end [s], frame low, frame high) of the windows its view shows
+        self._recent: dict[str, collections.deque[tuple[float, float, float]]] = {}
         """view -> the range of its values over the run so far, for its axis frame."""
         self._frames: dict[str, list[float]] = {}
         """view -> the axis frame last logged (logged again only when it changes, and in
@@ -402,7 +407,10 @@ class RecordingViews:
                           [_HIDDEN, _HIDDEN], [1.0, 1.0]),
                     lines(("outputs", o, "measured"), f"{o} measured{u}", _MEASURED, 3.5),
                     lines(("outputs", o, "twin"), f"{o} twin{u}", _TWIN, 1.5),
-                    lines(("residual", o), f"{o} measured - twin{u}", _RESIDUAL, 1.0)]
+                    lines(("residual", o), f"{o} measured - twin{u}", _RESIDUAL, 1.0),
+                    lines(("residual", o, "frame"), [f"{o} residual axis frame low",
+                                                     f"{o} residual axis frame high"],
+                          [_HIDDEN, _HIDDEN], [1.0, 1.0])]
         n = len(self.outputs)
         for variant, label, _ in _VARIANTS:
             ops.append(lines(("residual_rmse", variant),
@@ -509,12 +517,17 @@ class RecordingViews:
                 ops.append(Op(entity(m, "outputs", name, kind),
                                rr.Scalars.columns(scalars=values), index=index))
         for name, values in meas.items():
-            frame = _frame(np.concatenate([values, sim[name]]) if name in sim else values)
+            frame = self._output_frame(name, t_end, np.concatenate([values, sim[name]])
+                                       if name in sim else values)
             if frame is not None:
                 ops.append(Op(entity(m, "outputs", name, "frame"), rr.Scalars(frame), t_end))
         for name in meas.keys() & sim.keys():
+            residual = meas[name] - sim[name]
             ops.append(Op(entity(m, "residual", name),
-                           rr.Scalars.columns(scalars=meas[name] - sim[name]), index=index))
+                           rr.Scalars.columns(scalars=residual), index=index))
+            frame = self._output_frame(f"residual/{name}", t_end, residual, two_ticks=False)
+            if frame is not None:
+                ops.append(Op(entity(m, "residual", name, "frame"), rr.Scalars(frame), t_end))
         for variant, rmse in _residual_rmse(doc).items():
             per_output = [_num(rmse.get(o)) for o in self.outputs]
             if any(math.isfinite(v) for v in per_output):
@@ -573,8 +586,9 @@ class RecordingViews:
         values = [*band, 0.0, *limits, *headroom, dev]
         m = self.machine
         ops = [Op(entity(m, "health", p, "deviation"), rr.Scalars(values), t)]
-        # no room beyond the +-10 ticks: a small panel (50 px) then labels 0 alone
-        frame = self._run_frame(f"health/{p}", values, room=False)
+        # a parameter without a rule has a small panel: no room beyond its +-10 ticks (at
+        # 50 px the viewer then labels 0 alone)
+        frame = self._run_frame(f"health/{p}", values, room=p in self.alarm_bands)
         if frame is not None:
             ops.append(Op(entity(m, "health", p, "frame"), rr.Scalars(frame), t))
         status = ph.status
@@ -737,6 +751,27 @@ class RecordingViews:
                 ops.append(Op(entity(m, "quality", "problems", "frame"), rr.Scalars(frame), t))
         return ops
 
+    def _output_frame(self, output: str, t_end: float, values: np.ndarray,
+                      two_ticks: bool = True) -> list[float] | None:
+        """The axis frame (:func:`_frame`; without ``two_ticks`` the window's range: a
+        residual keeps its scale) of an output's window, its labels' room
+        (:func:`_tick_room`) at the scale of the windows its view shows (those ending in the
+        last ``recent_s``): the viewer labels the view's range, and room at the window's own
+        scale left the view's outer labels cut (``0.9`` over a 0.78-0.9 m stroke)."""
+        finite = values[np.isfinite(values)]
+        if not finite.size:
+            return None
+        frame = (_frame(finite, room=False) if two_ticks
+                 else [float(finite.min()), float(finite.max())])
+        if frame is None:
+            return None
+        recent = self._recent.setdefault(output, collections.deque())
+        recent.append((t_end, frame[0], frame[1]))
+        while recent[0][0] < t_end - self.recent_s or recent[0][0] > t_end:
+            recent.popleft()  # out of the view, or from before the source's clock went back
+        width = max(hi for _, _, hi in recent) - min(lo for _, lo, _ in recent)
+        return _tick_room(frame[0], frame[1], scale=width)
+
     def _run_frame(self, view: str, values: Sequence[float], room: bool = True
                    ) -> list[float] | None:
         """The axis frame (:func:`_frame`) of a view that shows the whole run: over every
@@ -834,19 +869,27 @@ def _frame(values: np.ndarray, room: bool = True) -> list[float] | None:
     return _tick_room(*frame) if room else list(frame)
 
 
-def _tick_room(low: float, high: float) -> list[float]:
+def _tick_room(low: float, high: float, scale: float | None = None) -> list[float]:
     """``[low, high]`` widened on a side whose outermost labelled tick lies within
     ``_TICK_ROOM`` of the axis' height from its edge: the viewer centres a label on its tick
     and clips what leaves the plot (the fit strip's ``100``, the outputs' outer labels were
     cut in half at 1600x1000). Not for a parameter's small panel: at 50 px the viewer then
-    drops its +-10 labels (it labels ticks at least about 22 px apart)."""
+    drops its +-10 labels (it labels ticks at least about 22 px apart). ``scale``: the width
+    of the range the view shows when it is wider than ``[low, high]`` (its ticks and room are
+    the view's)."""
     width = high - low
     if width <= 0.0:
         width = abs(high) * 1e-3 or 1.0
         low, high = low - width / 2.0, high + width / 2.0
+    width = max(width, scale or 0.0)
     step = 10.0 ** math.ceil(math.log10(width / 4.0))
     room = _TICK_ROOM / (1.0 - 2.0 * _TICK_ROOM) * width  # of the widened axis
-    top, bottom = math.floor(high / step) * step, math.ceil(low / step) * step
+    # the outermost ticks inside or just outside (the viewer's own margin, 5 % of the
+    # axis, shows a tick just beyond the data: a stroke ending at 0.8999 m labelled 0.9 on
+    # the edge)
+    near = 0.06 * width
+    top = math.floor((high + near) / step) * step
+    bottom = math.ceil((low - near) / step) * step
     return [min(low, bottom - room), max(high, top + room)]
 
 
