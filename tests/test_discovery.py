@@ -151,6 +151,26 @@ def test_a_term_that_stops_earning_its_place_is_dropped() -> None:
     assert second.events and second.events[0].startswith("dropped: d(omega)/dt +=")
 
 
+def test_a_term_dropped_behind_a_kept_one_is_dropped_alone() -> None:
+    """Re-validation drops a term by identity: with the unbalanced shaft's true term kept
+    first and a spurious one behind it, the spurious one is switched off and the true one
+    stays (``list.remove`` compared the terms' arrays with ``==``: ValueError, and the
+    window's processing failed, as in the dead-zone example)."""
+    cfg, twin, disc_cfg = _setup(drop_after=1)
+    adapter = TwinAdapter(twin, cfg.estimation, disc_cfg)
+    truth = _truth_term(twin)
+    spurious = Term(get_meta_model("periodic"), twin.attach_point("d(omega)/dt"), "t",
+                    np.array([0.05, 3.0, 0.0, 0.0]), (True, True, True, False))
+    adapter.terms = [truth, spurious]
+    _, (w,) = plant_windows(DCMotorPlantConfig(scenario="unbalanced_shaft", duration=30), 1,
+                            skip=3)
+    r = adapter.process(w)
+    assert r.changed and len(r.terms) == 1
+    (kept,) = r.terms
+    assert kept is truth and kept.params[1] == pytest.approx(10.0, rel=1e-3)
+    assert any(e.startswith("dropped: d(omega)/dt +=") for e in r.events)
+
+
 def test_health_fields_and_state_round_trip() -> None:
     cfg, twin, disc_cfg = _setup()
     adapter = TwinAdapter(twin, cfg.estimation, disc_cfg)
