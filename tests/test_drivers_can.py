@@ -411,7 +411,7 @@ def test_read_times_out_with_none(channel: str) -> None:
     with CanDriver(CanDriverConfig.model_validate(plant_config(channel))) as driver:
         start = time.monotonic()
         assert driver.read(0.05) is None
-        assert 0.04 <= time.monotonic() - start < 1.0
+        assert 0.04 <= time.monotonic() - start < 5.0  # a generous deadline: never blocks
         assert driver.stats.samples == 0
 
 

@@ -161,14 +161,17 @@ _SCALE_PCT = 10.0
 """Half-height of the scale drawn for a parameter without an alarm rule [%] (its axis never
 zooms in on the noise of a held value)."""
 _HEADROOM = 1.6
+"""The axis of a parameter's view reaches at least this many times its outermost threshold (or
+scale) on each side that has one: the lines never sit on its edge."""
 _SCALE_HEADROOM = 1.15
 """The same for the +-10 % scale of a parameter without a rule: its small panel then labels
 the ticks -10, 0, 10 (at 1.6 it labelled only 0)."""
-"""The axis of a parameter's view reaches at least this many times its outermost threshold (or
-scale) on each side that has one: the lines never sit on its edge."""
 _TICK_ROOM = 0.12
 """The least room between an axis' outermost labelled tick and its edge, as a share of the
 axis (:func:`_tick_room`): half a label's height on a small panel at 1600x1000."""
+_VIEWER_MARGIN = 0.06
+"""How far beyond the data, as a share of the axis, the viewer may still draw a labelled tick
+(its own margin is 5 %: a stroke ending at 0.8999 m was labelled 0.9 on the plot's edge)."""
 _BAND_CLIP = 1.5
 """The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
 nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
@@ -232,9 +235,9 @@ class RecordingViews:
         self._problem_counters: list[str] = []
         self._last_counters: dict[str, int] = {}
         self._ranges: dict[str, tuple[float, float]] = {}
-        #: output -> (window end [s], frame low, frame high) of the windows its view shows
-        self._recent: dict[str, collections.deque[tuple[float, float, float]]] = {}
         """view -> the range of its values over the run so far, for its axis frame."""
+        self._recent: dict[str, collections.deque[tuple[float, float, float]]] = {}
+        """output -> (window end [s], frame low, frame high) of the windows its view shows."""
         self._frames: dict[str, list[float]] = {}
         """view -> the axis frame last logged (logged again only when it changes, and in
         every new file: :meth:`static_ops` forgets them)."""
@@ -884,10 +887,7 @@ def _tick_room(low: float, high: float, scale: float | None = None) -> list[floa
     width = max(width, scale or 0.0)
     step = 10.0 ** math.ceil(math.log10(width / 4.0))
     room = _TICK_ROOM / (1.0 - 2.0 * _TICK_ROOM) * width  # of the widened axis
-    # the outermost ticks inside or just outside (the viewer's own margin, 5 % of the
-    # axis, shows a tick just beyond the data: a stroke ending at 0.8999 m labelled 0.9 on
-    # the edge)
-    near = 0.06 * width
+    near = _VIEWER_MARGIN * width  # the outermost ticks inside, or just outside it
     top = math.floor((high + near) / step) * step
     bottom = math.ceil((low - near) / step) * step
     return [min(low, bottom - room), max(high, top + room)]
