@@ -426,6 +426,23 @@ def test_the_blueprint_tells_the_story(tmp_path: Path) -> None:
     assert by_origin["/m1/health/J"].name == "J [% of 0.001171 kg m^2]"
     health_box = bp.root_container.contents[1].contents[0].contents[0]
     assert list(health_box.row_shares) == [2.0, 2.8]  # Ra, then the other four in a 2x2 grid
+    # Ra's summary under its plot; the grid's rows are short: each summary beside its plot
+    # (under it, the plot was about 50 px at 1600x1000 and its -10 label was cut)
+    import rerun.blueprint as rrb
+
+    ra_panel, grid = health_box.contents
+    assert isinstance(ra_panel.contents[0], rrb.Vertical)
+    for part in grid.contents:
+        assert isinstance(part, rrb.Horizontal), part.name
+        assert [str(v.origin).rsplit("/", 1)[-1] for v in part.contents] == [part.name, "summary"]
+    # without a parameter under a rule the panels have the column: summaries under the plots
+    from twinwatch.sinks.rerun_views import RecordingViews
+
+    views_free = RecordingViews("m1", outputs=tuple(STORY_UNITS), parameters=STORY_PARAMETERS,
+                              output_units=STORY_UNITS, nominal=rec.views.nominal,
+                              estimated=("Ra", "La", "J", "Ke", "D"), alarm_bands={})
+    free = views_free.blueprint().root_container.contents[1].contents[0].contents[0]
+    assert all(isinstance(part, rrb.Vertical) for part in free.contents[0].contents)
     for o in (*health, "/m1/quality", "/m1/quality/elapsed_ms", "/m1/quality/problems"):
         v = by_origin[o]
         # the x axis spans the whole run (the data queried are the whole run by default)
@@ -961,7 +978,7 @@ def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
     assert "**warning crossed, RUL to alarm 3m 32s" in last
     assert "deviation warning raised at 14:38; RUL warning raised at 12:02" in last
     [(_, la_doc)] = [d for d in _documents(rec.path, "/m1/health/La/summary") if d[0] > 800]
-    assert "2-sigma band -420..+420 %, drawn to +-11.5 %" in la_doc
+    assert "2-sigma band from -420 to +420 %, drawn to +-11.5 %" in la_doc
     # the RUL raise on the plot, at Ra's deviation then, apart from the deviation's raise
     assert _scalars(rec.path, "/m1/health/Ra/events/rul_warning") == [(721.99, [-4.0])]
     assert _scalars(rec.path, "/m1/health/Ra/events/warning") == [(877.99, [-5.2])]
@@ -1051,8 +1068,8 @@ def test_an_axis_frame_leaves_room_for_its_outermost_labels(
         values: tuple[float, float], frame: tuple[float, float]) -> None:
     """Issue 24: the viewer centres a tick's label on it and clips what leaves the plot: the
     fit strip's 100 was cut in half at 1600x1000. The frame reaches a labelled tick at both
-    ends and leaves 12 % of the axis beyond it (not on a parameter's small panel, whose +-10
-    labels the viewer drops when they are closer than about 22 px)."""
+    ends and leaves 12 % of the axis beyond it (a parameter's small panel too, whose +-10
+    labels the layout gives about 100 px: the summary beside the plot, test above)."""
     from twinwatch.sinks.rerun_views import _frame
 
     assert _frame(np.array(values)) == pytest.approx(list(frame))

@@ -175,7 +175,7 @@ _VIEWER_MARGIN = 0.06
 _BAND_CLIP = 1.5
 """The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
 nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
-panel's summary says so (``2-sigma band -420..+420 %, drawn to +-15 %``; within
+panel's summary says so (``2-sigma band from -420 to +420 %, drawn to +-15 %``; within
 ``_SCALE_HEADROOM`` for a parameter without a rule). At 3 a +-30 % band took a small panel's
 axis to -100..100 (its labelled ticks a hundred apart)."""
 _PPM = 1e6
@@ -301,17 +301,21 @@ class RecordingViews:
         def origin(*parts: str) -> str:
             return "/" + entity(m, *parts)
 
-        def panel(p: str, text_share: float) -> rrb.Container:
+        def panel(p: str, beside: bool = False) -> rrb.Container:
             """A parameter's panel: its summary written under its plot (the RUL, the moments
             its alarms were raised, a band beyond the view); beside them, for a parameter
-            with an alarm rule, its projection to the alarm threshold at the cursor."""
-            plot = rrb.Vertical(
-                rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
-                                   contents=["$origin/**", "- $origin/summary",
-                                             "- $origin/projection/**"], **whole()),
-                rrb.TextDocumentView(origin=origin("health", p, "summary"),
-                                     name=f"{p}: RUL and alarms", titlebar=False),
-                row_shares=[1.0, text_share], name=p)
+            with an alarm rule, its projection to the alarm threshold at the cursor. With
+            ``beside`` (a parameter without a rule whose grid shares the column with ruled
+            ones), the summary beside the plot, which keeps the row's height: under it, the
+            plot was about 50 px at 1600x1000, too short for its +-10 labels."""
+            series = rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
+                                        contents=["$origin/**", "- $origin/summary",
+                                                  "- $origin/projection/**"], **whole())
+            summary = rrb.TextDocumentView(origin=origin("health", p, "summary"),
+                                           name=f"{p}: RUL and alarms", titlebar=False)
+            if beside:  # the plot wide enough for a title "D [% of 0.00143 N m s/rad]"
+                return rrb.Horizontal(series, summary, column_shares=[2.6, 1.0], name=p)
+            plot = rrb.Vertical(series, summary, row_shares=[1.0, 0.5], name=p)
             if p not in self.alarm_bands:
                 return plot
             return rrb.Horizontal(plot, rrb.Spatial2DView(
@@ -322,10 +326,13 @@ class RecordingViews:
 
         ruled = [p for p in self.estimated if p in self.alarm_bands]
         others = [p for p in self.estimated if p not in self.alarm_bands]
-        health: list[rrb.Container | rrb.View] = [panel(p, 0.5) for p in ruled]
+        health: list[rrb.Container | rrb.View] = [panel(p) for p in ruled]
         shares = [2.0] * len(ruled)
         if others:
-            views = [panel(p, 0.5) for p in others]
+            # beside the ruled panels, the grid's rows are short (1.4 to their 2.0): each
+            # summary beside its plot; alone in the column (discovery, the leak), under it
+            # (beside, the discovery's 300 s axis lost its minute labels: too narrow)
+            views = [panel(p, beside=bool(ruled)) for p in others]
             columns = 1 if len(others) == 1 else 2
             health.append(rrb.Grid(*views, grid_columns=columns, name="other parameters"))
             shares.append(float(math.ceil(len(others) / columns)) * (1.4 if ruled else 2.0))
@@ -589,9 +596,7 @@ class RecordingViews:
         values = [*band, 0.0, *limits, *headroom, dev]
         m = self.machine
         ops = [Op(entity(m, "health", p, "deviation"), rr.Scalars(values), t)]
-        # a parameter without a rule has a small panel: no room beyond its +-10 ticks (at
-        # 50 px the viewer then labels 0 alone)
-        frame = self._run_frame(f"health/{p}", values, room=p in self.alarm_bands)
+        frame = self._run_frame(f"health/{p}", values)
         if frame is not None:
             ops.append(Op(entity(m, "health", p, "frame"), rr.Scalars(frame), t))
         status = ph.status
@@ -709,7 +714,10 @@ class RecordingViews:
         low, high = _band_pct(ph)
         clip = self._band_clip(p)
         if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
-            lines.append(f"2-sigma band {low:+.3g}..{high:+.3g} %, drawn to +-{clip:g} %")
+            # words between the numbers, and no exponent below 10^5 %: a narrow summary
+            # wraps at the spaces (``-95.5..+2.1e+03`` was broken after its ``-`` and ``e+``)
+            lines.append(f"2-sigma band from {_pct_text(low)} to {_pct_text(high)} %, "
+                         f"drawn to +-{clip:g} %")
         return "  \n".join(lines) + "\n"
 
     def _quality_ops(self, doc: HealthView, t: float) -> list[Op]:
@@ -876,8 +884,9 @@ def _tick_room(low: float, high: float, scale: float | None = None) -> list[floa
     """``[low, high]`` widened on a side whose outermost labelled tick lies within
     ``_TICK_ROOM`` of the axis' height from its edge: the viewer centres a label on its tick
     and clips what leaves the plot (the fit strip's ``100``, the outputs' outer labels were
-    cut in half at 1600x1000). Not for a parameter's small panel: at 50 px the viewer then
-    drops its +-10 labels (it labels ticks at least about 22 px apart). ``scale``: the width
+    cut in half at 1600x1000). The viewer labels ticks at least about 22 px apart: a
+    parameter's +-10 panel needs about 70 px of plot for the widened axis (the layout gives it
+    about 100: its summary beside the plot, :meth:`RecordingViews.blueprint`). ``scale``: the width
     of the range the view shows when it is wider than ``[low, high]`` (its ticks and room are
     the view's)."""
     width = high - low
@@ -891,6 +900,14 @@ def _tick_room(low: float, high: float, scale: float | None = None) -> list[floa
     top = math.floor((high + near) / step) * step
     bottom = math.ceil((low - near) / step) * step
     return [min(low, bottom - room), max(high, top + room)]
+
+
+def _pct_text(value: float) -> str:
+    """A signed percentage for a summary: three significant digits, or whole from 100 %
+    up to 10^5 % (``+2104``, not ``+2.1e+03``), an exponent only beyond."""
+    if math.isfinite(value) and 100.0 <= abs(value) < 1e5:
+        return f"{value:+.0f}"
+    return f"{value:+.3g}"
 
 
 def _band_pct(ph: ParameterView) -> tuple[float, float]:
