@@ -1058,6 +1058,21 @@ def test_an_alarm_change_is_one_short_row_of_its_own_kind() -> None:
 R = 0.12 / (1 - 2 * 0.12)  # 12 % of the widened axis on each side
 
 
+@pytest.mark.parametrize(("high", "frame"), [
+    (30.0, (0.0, 100.0 / 0.88)),  # 0, 10, 20, 30 too dense in the strip: 0 and 100
+    (220.0, (0.0, 200.0 / 0.88)),  # 0, 100, 200 labelled; room above 200
+    (322.0, (0.0, 1000.0 / 0.88)),  # the default's first window: 0 and 1000, not 0 alone
+    (1200.0, (0.0, 1200.0)),  # 0 and 1000, the top label 17 % below the edge
+])
+def test_the_estimation_panel_keeps_two_labels(high: float, frame: tuple[float, float]) -> None:
+    """Issue 24: the estimation strip is about 55 px at 1600x1000; when the first window took
+    322 ms the viewer labelled its axis 0 alone (ticks a hundred apart closer than it labels).
+    Its frame reaches the next power of ten instead, with room for that label."""
+    from twinwatch.sinks.rerun_views import _sparse_frame
+
+    assert _sparse_frame(high) == pytest.approx(list(frame))
+
+
 @pytest.mark.parametrize(("values", "frame"), [
     ((-11.5, 11.5), (-10.0 - R * 23.0, 10.0 + R * 23.0)),  # an output's +-10
     ((0.0, 100.5), (-R * 100.5, 100.0 + R * 100.5)),  # the fit strip: 0 and 100

@@ -439,7 +439,8 @@ class RecordingViews:
             names="model check failed [ppm]", colors=_ALARM, markers="cross", marker_sizes=4.0),
             static=True))
         ops.append(lines(("quality", "elapsed_ms"), "estimation time [ms]", _ELAPSED, 1.5))
-        for path in (("quality", "frame"), ("quality", "problems", "frame")):
+        for path in (("quality", "frame"), ("quality", "problems", "frame"),
+                     ("quality", "elapsed_ms", "frame")):
             ops.append(lines(path, ["axis frame low", "axis frame high"], [_HIDDEN, _HIDDEN],
                              [1.0, 1.0]))
         if self._problem_counters:
@@ -746,6 +747,11 @@ class RecordingViews:
         elapsed = _num(doc.elapsed_s)
         if math.isfinite(elapsed):
             ops.append(Op(entity(m, "quality", "elapsed_ms"), rr.Scalars(elapsed * 1e3), t))
+            low, high = self._ranges.get("elapsed", (0.0, 0.0))
+            if elapsed * 1e3 > high:
+                self._ranges["elapsed"] = (low, elapsed * 1e3)
+                ops.append(Op(entity(m, "quality", "elapsed_ms", "frame"),
+                              rr.Scalars(_sparse_frame(elapsed * 1e3)), t))
         counters = doc.counters
         if counters is not None:
             new = [k for k in counters if k not in self._problem_counters
@@ -878,6 +884,19 @@ def _frame(values: np.ndarray, room: bool = True) -> list[float] | None:
     else:
         frame = (lo, hi)
     return _tick_room(*frame) if room else list(frame)
+
+
+def _sparse_frame(high: float) -> list[float]:
+    """The axis frame of a small panel of positive values up to ``high`` (the estimation time
+    [ms]): from 0 to ``high`` when at most 2.3 steps of its power of ten span it (0, 100, 200
+    for 220 ms), else to the next power of ten (0, 1000 for 322 ms: with 0, 100, 200, 300 in
+    the strip's 55 px the viewer labelled 0 alone, its labels at least about 19 px apart),
+    and ``_TICK_ROOM`` above for the top label (0 sits on the viewer's own margin)."""
+    if not math.isfinite(high) or high <= 0.0:
+        return [0.0, 1.0]
+    step = 10.0 ** math.floor(math.log10(high))
+    label = math.floor(high / step) * step if high <= 2.3 * step else 10.0 * step
+    return [0.0, max(high, label / (1.0 - _TICK_ROOM))]
 
 
 def _tick_room(low: float, high: float, scale: float | None = None) -> list[float]:
