@@ -43,8 +43,8 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
 * ``M/quality/nrmse`` (the published twin's), ``M/quality/nrmse_dt_prime`` and
   ``.../nrmse_dt_second`` (without and with the terms), ``M/quality/model_check_failed`` (the
   nRMSE of the windows whose model check failed), all in ppm, ``M/quality/frame`` (its axis'
-  frame), ``M/quality/elapsed_ms`` (adaptation time per
-  window [ms]), ``M/quality/problems`` (the counters of lost or bad data, cumulative: abandoned
+  frame), ``M/quality/elapsed_ms`` (adaptation time per window [ms]; ``.../frame`` its
+  axis' frame, :func:`_sparse_frame`), ``M/quality/problems`` (the counters of lost or bad data, cumulative: abandoned
   windows, overruns, gaps, bad samples, windows not stored or not recorded, ... one series
   each, named after the counter);
 * ``M/model``: the twin DT'' as a markdown document, every window: the diagnosis, each
