@@ -173,11 +173,16 @@ class Subscriber:
             self.client.loop_stop()
 
 
-def retained(port: int, topic: str, timeout: float = 2.0) -> dict[str, bytes]:
+def retained(port: int, topic: str, timeout: float = 2.0, *,
+             expect: tuple[str, ...] = ()) -> dict[str, bytes]:
     """The retained messages under ``topic`` (a new clean subscriber: what a tool that
-    connects now gets)."""
+    connects now gets), collected for ``timeout`` s; with ``expect``, only until each of those
+    topics has had its retained message (a topic keeps one: it is final)."""
     sub = Subscriber(port, [topic])
-    time.sleep(timeout)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not (
+            expect and all(any(m.retain for m in sub.on(t)) for t in expect)):
+        time.sleep(0.02)
     sub.close()
     return {m.topic: m.payload for m in sub.messages if m.retain}
 

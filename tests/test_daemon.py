@@ -151,10 +151,10 @@ def test_an_overrun_caused_by_a_slow_output_names_it(caplog, monkeypatch):
     monkeypatch.setattr(pipeline, "OUTPUT_QUEUE", 1)
     cfg = default_config()
     cfg.acquisition.queue = 1
-    # a window every 0.2-0.4 s of wall time: the source still delivers once the output holds
+    # a window every 0.1-0.2 s of wall time: the source still delivers once the output holds
     # the worker (unpaced, a 3 ms estimation let the whole source end during the first
     # window, every overrun the estimation's own)
-    driver = _PlantDriver(duration=20.0, pace=0.001)
+    driver = _PlantDriver(duration=20.0, pace=0.0005)
 
     class Slow(Sink):
         config_class = SinkConfig

@@ -178,7 +178,9 @@ def _hydraulic(scenario: str, **plant: Any) -> list[HealthMessage]:
 
 @pytest.fixture(scope="module")
 def leak_history() -> list[HealthMessage]:
-    return _hydraulic("internal_leak", fault_start=20.0, duration=80.0)
+    """The leak from 20 s, 40 s: the term is kept from window 11 (24 s), the alarm raised at
+    window 13 (28 s); the last 7 windows are the fault's steady state."""
+    return _hydraulic("internal_leak", fault_start=20.0, duration=40.0)
 
 
 def test_the_leak_example_names_the_seal_not_the_fluid(
@@ -230,7 +232,7 @@ def test_the_recordings_model_document_opens_with_the_diagnosis(
     from twinwatch.sinks.rerun_views import _model_document
     from twinwatch.twin.health import read_health
 
-    text = _model_document("hydraulic-leak", 80.0, read_health(leak_history[-1]))
+    text = _model_document("hydraulic-leak", 40.0, read_health(leak_history[-1]))
     head = text.split("**DT''", 1)[0]
     assert head.startswith("**Diagnosis: internal_leak** (piston seal (internal leakage)), "
                            "probability 0.") and "replace the piston seals" in head

@@ -477,7 +477,7 @@ def test_a_stop_is_bounded_when_the_worker_waits_for_a_slot(tmp_path: Path) -> N
 
     path = machine_config(tmp_path, "m1", port=None, realtime=False)
     cfg = load_config(path)
-    cfg.acquisition.shutdown_timeout = 1.0
+    cfg.acquisition.shutdown_timeout = 0.3  # the stop waits it out: the worker never gets a slot
     slots = EstimationSlots(1)
     held = slots.acquire("elsewhere")
     assert held is not None

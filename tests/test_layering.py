@@ -12,6 +12,7 @@ and the lazy-module helper, which only ever receive such literals or third-party
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from collections import defaultdict
 from pathlib import Path
@@ -128,6 +129,12 @@ def room_of(module: str) -> str | None:
     return None if best is None else best[1]
 
 
+@functools.cache
+def _tree(path: Path) -> ast.AST:
+    """The module's syntax tree, parsed once for all the tests here (they only read it)."""
+    return ast.parse(path.read_text(encoding="utf-8"), str(path))
+
+
 def _sources() -> list[tuple[str, Path]]:
     return [(_module_name(p), p) for p in sorted(ROOT.rglob("*.py"))]
 
@@ -139,7 +146,7 @@ def room_graph() -> dict[str, dict[str, list[str]]]:
         src = room_of(module if not module.endswith("__init__") else module)
         if src is None:
             continue
-        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        tree = _tree(path)
         for target, line in _imports(tree, module, path.name == "__init__.py"):
             if not target.startswith("twinwatch"):
                 continue
@@ -243,7 +250,7 @@ def test_no_string_import_the_checker_cannot_see() -> None:
     for module, path in _sources():
         if module in DYNAMIC_IMPORTERS:
             continue
-        lines = _dynamic_imports(ast.parse(path.read_text(encoding="utf-8"), str(path)))
+        lines = _dynamic_imports(_tree(path))
         hidden.extend(f"{module}:{line}" for line in lines)
     assert not hidden, ("imports by a computed name (use a registry, a literal or a plain "
                         f"import): {hidden}")
@@ -269,7 +276,7 @@ def module_graph(package: str) -> dict[str, dict[str, list[str]]]:
     for module, path in _sources():
         if not module.startswith(package + "."):
             continue
-        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        tree = _tree(path)
         for target, line in _imports(tree, module, path.name == "__init__.py"):
             if target.startswith(package + ".") and target != module:
                 # ``from twinwatch.daemon.x import Name``: the module, not the name

@@ -617,7 +617,8 @@ def test_a_reload_hands_the_output_over_and_no_gate_keeps_an_outbox_in_memory(
     finally:
         pub.close()
     assert pub.counters()["delivered"] == 3 and pub.lost == 0
-    kept = retained(broker.port, "twinwatch/m1/#", 1.0)
+    kept = retained(broker.port, "twinwatch/m1/#", 5.0, expect=(
+        "twinwatch/m1/parameters/Ra/value", "twinwatch/m1/availability"))
     assert kept["twinwatch/m1/parameters/Ra/value"] == json.dumps(6.5 - 0.07).encode()
     assert kept["twinwatch/m1/availability"] == b"offline"
     sub.close()

@@ -32,9 +32,10 @@ def blocks(lang: str) -> list[str]:
 @pytest.fixture(scope="module")
 def health(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """A health message as the daemon stored (and the MQTT output publishes) it: with the
-    output configured (its counters), its broker absent (the windows wait in the outbox)."""
+    output configured (its counters), its broker absent (the windows wait in the outbox; no
+    ``close_timeout`` spent at the stop retrying a broker that never comes)."""
     tmp = tmp_path_factory.mktemp("docs")
-    cfg = sim_config(tmp, extra=f"\n[outputs.mqtt]\nport = {free_port()}\n")
+    cfg = sim_config(tmp, extra=f"\n[outputs.mqtt]\nport = {free_port()}\nclose_timeout = 0.0\n")
     result = cli("run", str(cfg), "--no-progress")
     assert result.exit_code == 0, result.output
     con = sqlite3.connect(tmp / "state.sqlite")

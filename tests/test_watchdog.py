@@ -2,15 +2,16 @@
 is pinged only while windows are processed (issue #5, items 1 and 4).
 
 The daemon runs with a real ``Watchdog`` on a datagram socket standing in for systemd
-(``WatchdogSec=1``: a ping every 0.5 s, pings stop after 1 s without a finished window). The
-source delivers three windows, falls silent for 3 s once the worker has finished them, then
-delivers three more. The source itself samples the watchdog's ping count during the silence.
+(``WatchdogSec=0.5``: a ping every 0.25 s, pings stop after 0.5 s without a finished window).
+The source delivers three windows, falls silent for 1.8 s once the worker has finished them,
+then delivers three more. The source itself samples the watchdog's ping count during the silence.
 """
 
 from __future__ import annotations
 
 import logging
 import socket
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,8 +24,11 @@ from twinwatch.daemon.systemd import Notifier, Watchdog
 from twinwatch.drivers.base import Driver, Sample
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
-SILENCE = 3.0  # s of wall time without a sample
-WATCHDOG_SEC = 1.0
+SILENCE = 1.8  # s of wall time without a sample
+WATCHDOG_SEC = 0.5
+#: age of the silence [s] at which the pings are first sampled: 0.5 s after the last ping a
+#: quiet watchdog may send (``max_quiet`` = WatchdogSec), 2.4 ping intervals before the last read
+MID = 2 * WATCHDOG_SEC
 
 
 class _SilentDriver(Driver):
@@ -45,7 +49,7 @@ class _SilentDriver(Driver):
         self.daemon: Daemon | None = None
         self.sent = 0
         self.silence: tuple[float, float] | None = None
-        self.pings_mid: int | None = None   # pings sent when the silence is 1.6 s old
+        self.pings_mid: int | None = None   # pings sent when the silence is MID s old
         self.pings_late: int | None = None  # ... and in its last read
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
@@ -58,7 +62,7 @@ class _SilentDriver(Driver):
         if self.silence is not None and time.monotonic() < self.silence[1]:
             time.sleep(min(timeout or 0.2, 0.05))
             age = time.monotonic() - self.silence[0]
-            if age >= 1.6 and self.pings_mid is None:
+            if age >= MID and self.pings_mid is None:
                 self.pings_mid = self.watchdog.pings
             if age >= SILENCE - 0.2:
                 self.pings_late = self.watchdog.pings
@@ -74,11 +78,26 @@ class _SilentDriver(Driver):
 
 @pytest.fixture()
 def notify_socket(tmp_path: Path) -> Iterator[str]:
+    """The socket, read as systemd reads it: unread, its queue (``net.unix.max_dgram_qlen``,
+    10 datagrams) fills and the daemon's ``sendto`` blocks for ever."""
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     path = str(tmp_path / "notify")
     sock.bind(path)
-    sock.setblocking(False)
+    sock.settimeout(0.05)
+    stop = threading.Event()
+
+    def drain() -> None:
+        while not stop.is_set():
+            try:
+                sock.recv(4096)
+            except TimeoutError:
+                pass
+
+    reader = threading.Thread(target=drain, name="test-systemd-notify")
+    reader.start()
     yield path
+    stop.set()
+    reader.join()
     sock.close()
 
 
@@ -108,7 +127,7 @@ def test_pings_stop_while_the_source_is_silent_and_resume_with_windows(
     assert sum("no sample from the simulated driver" in m for m in msgs) == 1
     assert any("check the device" in m for m in msgs)
     assert sum("delivers samples again after a stall" in m for m in msgs) == 1
-    # the watchdog: no ping from 1.6 s into the silence to its end, one error saying why
+    # the watchdog: no ping from MID s into the silence to its end, one error saying why
     assert driver.pings_mid is not None and driver.pings_late is not None
     assert driver.pings_late == driver.pings_mid
     stopped = [m for m in msgs if "no window processed for" in m]
@@ -125,5 +144,5 @@ def test_alive_policy_keeps_pinging_through_a_silent_source(
     msgs = [r.getMessage() for r in caplog.records]
     assert sum("no sample from the simulated driver" in m for m in msgs) == 1
     assert driver.pings_mid is not None and driver.pings_late is not None
-    assert driver.pings_late > driver.pings_mid  # 0.5 s interval, 1.2 s between the two reads
+    assert driver.pings_late > driver.pings_mid  # 0.25 s interval, 0.6 s between the two reads
     assert not any("no window processed for" in m for m in msgs)
