@@ -8,6 +8,7 @@ is tested against a real AF_UNIX datagram socket standing in for systemd.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -285,4 +286,53 @@ def test_watchdog_pings_only_while_windows_finish(
             sock.recv(4096)
         except TimeoutError:
             break
+    n.close()
+
+
+def test_a_full_notification_queue_drops_pings_and_never_blocks(
+        systemd_socket: tuple[socket.socket, str], caplog: pytest.LogCaptureFixture) -> None:
+    """Nobody reads the socket (a Unix datagram socket queues 10 by default): a blocking
+    sendto hung a daemon's acquisition thread for good once the queue was full. The pings
+    and STATUS lines beyond it are dropped and counted, the warning logged once; a state
+    change waits up to ``STATE_WAIT`` for room, then is dropped too; once read again, they
+    pass."""
+    import threading
+
+    from twinwatch.daemon import systemd
+
+    caplog.set_level("INFO", logger="twinwatch.daemon.systemd")
+    sock, path = systemd_socket
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    results: list[bool] = []
+    # not closed on a failure: close() would wait for the lock of a blocked sender
+    n = Notifier(env={"NOTIFY_SOCKET": path})
+    def flood() -> None:
+        results.extend(n.watchdog() for _ in range(200))
+        results.append(n.status("still here"))
+    t = threading.Thread(target=flood, daemon=True)
+    t.start()
+    t.join(30.0)
+    assert not t.is_alive(), "a notification blocked on the full queue"
+    sent = sum(results)
+    assert 1 <= sent < 200 and n.dropped == len(results) - sent
+    warnings = [r for r in caplog.records if "queue" in r.getMessage()]
+    assert len(warnings) == 1 and warnings[0].levelname == "WARNING"
+    received = 0
+    sock.settimeout(0.1)
+    with contextlib.suppress(TimeoutError):
+        while True:
+            sock.recv(4096)
+            received += 1
+    assert received == sent  # what was not dropped arrived
+    assert n.status("read again") and sock.recv(4096) == b"STATUS=read again"
+    assert any("reads its notifications again (" in r.getMessage()
+               for r in caplog.records)
+    # a state change waits for room (STATE_WAIT), then is dropped too: never blocks
+    while n.watchdog():
+        pass
+    systemd.STATE_WAIT, saved = 0.2, systemd.STATE_WAIT
+    try:
+        assert not n.stopping()
+    finally:
+        systemd.STATE_WAIT = saved
     n.close()

@@ -28,6 +28,12 @@ from collections.abc import Callable, Mapping
 
 logger = logging.getLogger(__name__)
 
+STATE_WAIT = 2.0
+"""Seconds a state change (``READY``, ``RELOADING``, ``STOPPING``) waits for room in a full
+notification queue before it is dropped; a watchdog ping or STATUS line does not wait."""
+
+_STATE_CHANGES = frozenset({"READY", "RELOADING", "STOPPING"})
+
 __all__ = ["Notifier", "Watchdog"]
 
 
@@ -49,8 +55,15 @@ class Notifier:
         enabled: a notification socket was given (we run under ``Type=notify``).
         watchdog_usec: ``WatchdogSec=`` in microseconds, or None when the watchdog is off or
             meant for another process (``WATCHDOG_PID`` differs from our pid).
+        dropped: notifications dropped because the manager's queue was full.
 
-    Thread-safe: each notification is one ``sendto`` under a lock.
+    Thread-safe: each notification is one ``sendto`` under a lock. It never blocks the
+    caller on a full queue (a Unix datagram socket queues 10 datagrams by default,
+    ``net.unix.max_dgram_qlen``, and a blocking ``sendto`` waits until the reader takes one: a
+    notify socket nobody read hung a daemon's acquisition thread for good). A state change
+    (``READY``, ``RELOADING``, ``STOPPING``) is tried for up to :data:`STATE_WAIT` seconds; a
+    watchdog ping or a STATUS line that finds the queue full is dropped, counted in
+    ``dropped`` and logged once per episode (the next one says the same or newer).
     """
 
     def __init__(self, *, env: Mapping[str, str] | None = None,
@@ -60,6 +73,8 @@ class Notifier:
         self._sock: socket.socket | None = None
         self._lock = threading.Lock()
         self._failed = False
+        self.dropped = 0
+        self._full = False  # the queue was found full: logged, until a notification passes
         raw = e.get("NOTIFY_SOCKET", "")
         if raw.startswith("@"):
             self._address = "\0" + raw[1:]  # Linux abstract namespace
@@ -102,12 +117,34 @@ class Notifier:
         if self._address is None:
             return False
         payload = "\n".join(assignments).encode("utf-8", "replace")
+        state = any(a.split("=", 1)[0] in _STATE_CHANGES for a in assignments)
         with self._lock:
             try:
                 if self._sock is None:
                     self._sock = socket.socket(socket.AF_UNIX,
                                                socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-                self._sock.sendto(payload, self._address)
+                deadline = time.monotonic() + (STATE_WAIT if state else 0.0)
+                while True:
+                    try:
+                        self._sock.sendto(payload, socket.MSG_DONTWAIT, self._address)
+                        break
+                    except BlockingIOError:  # the manager's queue is full
+                        if time.monotonic() < deadline:
+                            time.sleep(0.01)
+                            continue
+                        self.dropped += 1
+                        if not self._full:  # once per episode
+                            self._full = True
+                            logger.warning(
+                                "systemd's notification queue at %r is full: %s dropped (the "
+                                "service manager does not read it; counted, not waited for)",
+                                self._address.replace("\0", "@"),
+                                assignments[0].split("=", 1)[0])
+                        return False
+                if self._full:
+                    self._full = False
+                    logger.info("systemd reads its notifications again (%d dropped so far)",
+                                self.dropped)
             except OSError as exc:
                 if not self._failed:
                     logger.warning("cannot notify systemd at %r (%s): readiness and watchdog "
