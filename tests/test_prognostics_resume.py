@@ -143,8 +143,14 @@ def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path
         proc = popen(cfg, tmp_path, *(("--resume",) if i else ()))
         try:
             if stop_after is not None:
-                wait_for(lambda n=before + stop_after: len(db_rows(db)) >= n, 120,
-                         f"{stop_after} windows stored")
+                try:
+                    wait_for(lambda n=before + stop_after: len(db_rows(db)) >= n, 120,
+                             f"{stop_after} windows stored")
+                except pytest.fail.Exception as exc:  # say what the daemon was doing
+                    proc.kill()
+                    _, err = proc.communicate(timeout=30)
+                    pytest.fail(f"run {i}: {exc}; {len(db_rows(db)) - before} stored; its "
+                                f"stderr ends:\n{err[-6000:]}")
                 proc.send_signal(signal.SIGTERM)
             _, err = proc.communicate(timeout=120)
         finally:
