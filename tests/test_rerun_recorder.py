@@ -1091,3 +1091,26 @@ def test_an_axis_frame_leaves_room_for_its_outermost_labels(
     low, high = _frame(np.array([0.0, 0.0]))  # one value: a frame around it, not a line
     assert low < 0.0 < high
     assert _frame(np.array([-11.5, 11.5]), room=False) == [-11.5, 11.5]
+
+
+def test_the_estimation_frame_is_in_every_file() -> None:
+    """The estimation panel's frame follows the run's slowest window, is logged only when it
+    changes, and again after a new file's static part (a rotated file without it labelled 0
+    alone again)."""
+    from twinwatch.sinks.rerun_views import RecordingViews
+    from twinwatch.twin.health import HealthView
+
+    views = RecordingViews("m1", outputs=("ia",), parameters={"Ra": "ohm"})
+    path = "/m1/quality/elapsed_ms/frame"
+
+    def frames(elapsed_s: float) -> int:
+        ops = views._quality_ops(HealthView.model_validate({"elapsed_s": elapsed_s}), 1.0)
+        return sum(1 for op in ops if "/" + op.entity.lstrip("/") == path)
+
+    views.static_ops()
+    assert frames(0.322) == 1  # the first window: 0 .. 1000 with room
+    assert views._frames["quality/elapsed_ms"] == pytest.approx([0.0, 1000.0 / 0.88])
+    assert frames(0.030) == 0  # the same frame: not logged again
+    views.static_ops()  # a new file
+    assert frames(0.030) == 1  # the run's frame again, not the window's
+    assert views._frames["quality/elapsed_ms"] == pytest.approx([0.0, 1000.0 / 0.88])

@@ -44,9 +44,9 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
   ``.../nrmse_dt_second`` (without and with the terms), ``M/quality/model_check_failed`` (the
   nRMSE of the windows whose model check failed), all in ppm, ``M/quality/frame`` (its axis'
   frame), ``M/quality/elapsed_ms`` (adaptation time per window [ms]; ``.../frame`` its
-  axis' frame, :func:`_sparse_frame`), ``M/quality/problems`` (the counters of lost or bad data, cumulative: abandoned
-  windows, overruns, gaps, bad samples, windows not stored or not recorded, ... one series
-  each, named after the counter);
+  axis' frame, :func:`_sparse_frame`), ``M/quality/problems`` (the counters of lost or bad
+  data, cumulative: abandoned windows, overruns, gaps, bad samples, windows not stored or not
+  recorded, ... one series each, named after the counter);
 * ``M/model``: the twin DT'' as a markdown document, every window: the diagnosis, each
   meta-model term's equation with its meaning and evidence, the fit; ``M/parameter_table``:
   beside it, every parameter's value and status (a table; the fixed ones in a line under it,
@@ -747,11 +747,15 @@ class RecordingViews:
         elapsed = _num(doc.elapsed_s)
         if math.isfinite(elapsed):
             ops.append(Op(entity(m, "quality", "elapsed_ms"), rr.Scalars(elapsed * 1e3), t))
-            low, high = self._ranges.get("elapsed", (0.0, 0.0))
-            if elapsed * 1e3 > high:
-                self._ranges["elapsed"] = (low, elapsed * 1e3)
-                ops.append(Op(entity(m, "quality", "elapsed_ms", "frame"),
-                              rr.Scalars(_sparse_frame(elapsed * 1e3)), t))
+            # its axis frame over the run (logged when it changes, and in every new file)
+            view = "quality/elapsed_ms"
+            high = max(self._ranges.get(view, (0.0, 0.0))[1], elapsed * 1e3)
+            self._ranges[view] = (0.0, high)
+            frame = _sparse_frame(high)
+            if frame != self._frames.get(view):
+                self._frames[view] = frame
+                ops.append(Op(entity(m, "quality", "elapsed_ms", "frame"), rr.Scalars(frame),
+                              t))
         counters = doc.counters
         if counters is not None:
             new = [k for k in counters if k not in self._problem_counters
@@ -887,11 +891,12 @@ def _frame(values: np.ndarray, room: bool = True) -> list[float] | None:
 
 
 def _sparse_frame(high: float) -> list[float]:
-    """The axis frame of a small panel of positive values up to ``high`` (the estimation time
-    [ms]): from 0 to ``high`` when at most 2.3 steps of its power of ten span it (0, 100, 200
-    for 220 ms), else to the next power of ten (0, 1000 for 322 ms: with 0, 100, 200, 300 in
-    the strip's 55 px the viewer labelled 0 alone, its labels at least about 19 px apart),
-    and ``_TICK_ROOM`` above for the top label (0 sits on the viewer's own margin)."""
+    """The axis frame ``[0, top]`` (the unit of ``high``) of a small panel of positive values
+    up to ``high`` (the estimation time [ms]); ``[0, 1]`` when ``high`` is not positive. From 0
+    to ``high`` when at most 2.3 steps of its power of ten span it (0, 100, 200 for 220 ms),
+    else to the next power of ten (0, 1000 for 322 ms: with 0, 100, 200, 300 in the strip's
+    55 px the viewer labelled 0 alone, its labels at least about 19 px apart), and
+    ``_TICK_ROOM`` above for the top label (0 sits on the viewer's own margin)."""
     if not math.isfinite(high) or high <= 0.0:
         return [0.0, 1.0]
     step = 10.0 ** math.floor(math.log10(high))
@@ -905,9 +910,9 @@ def _tick_room(low: float, high: float, scale: float | None = None) -> list[floa
     and clips what leaves the plot (the fit strip's ``100``, the outputs' outer labels were
     cut in half at 1600x1000). The viewer labels ticks at least about 22 px apart: a
     parameter's +-10 panel needs about 70 px of plot for the widened axis (the layout gives it
-    about 100: its summary beside the plot, :meth:`RecordingViews.blueprint`). ``scale``: the width
-    of the range the view shows when it is wider than ``[low, high]`` (its ticks and room are
-    the view's)."""
+    about 100: its summary beside the plot, :meth:`RecordingViews.blueprint`). ``scale``: the
+    width of the range the view shows when it is wider than ``[low, high]`` (its ticks and
+    room are the view's)."""
     width = high - low
     if width <= 0.0:
         width = abs(high) * 1e-3 or 1.0
