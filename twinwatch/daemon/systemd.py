@@ -136,15 +136,16 @@ class Notifier:
                         if not self._full:  # once per episode
                             self._full = True
                             logger.warning(
-                                "systemd's notification queue at %r is full: %s dropped (the "
-                                "service manager does not read it; counted, not waited for)",
-                                self._address.replace("\0", "@"),
+                                "the service manager does not read its notifications at %r "
+                                "(its queue is full): %s and later ones are dropped and "
+                                "counted, monitoring goes on; if its watchdog is on it may "
+                                "restart the service", self._address.replace("\0", "@"),
                                 assignments[0].split("=", 1)[0])
                         return False
                 if self._full:
                     self._full = False
-                    logger.info("systemd reads its notifications again (%d dropped so far)",
-                                self.dropped)
+                    logger.info("the service manager reads its notifications again (%d "
+                                "dropped so far)", self.dropped)
             except OSError as exc:
                 if not self._failed:
                     logger.warning("cannot notify systemd at %r (%s): readiness and watchdog "
