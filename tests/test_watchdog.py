@@ -79,7 +79,7 @@ class _SilentDriver(Driver):
 @pytest.fixture()
 def notify_socket(tmp_path: Path) -> Iterator[str]:
     """The socket, read as systemd reads it: unread, its queue (``net.unix.max_dgram_qlen``,
-    10 datagrams) fills and the daemon's ``sendto`` blocks for ever."""
+    10 datagrams here) would fill at these pings and the daemon drop the later ones."""
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     path = str(tmp_path / "notify")
     sock.bind(path)
