@@ -67,14 +67,23 @@ def db_rows(path: Path, run: str | None = None) -> list[dict[str, Any]]:
     """Health rows of the state database (read-only, while the daemon may be writing)."""
     if not path.exists():
         return []
-    con = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5)
-    try:
-        sql = "SELECT run, doc FROM health ORDER BY id"
-        rows = [(r, json.loads(d)) for r, d in con.execute(sql)]
-    except sqlite3.OperationalError:  # tables not created yet
-        return []
-    finally:
-        con.close()
+    for attempt in range(50):
+        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5)
+        try:
+            sql = "SELECT run, doc FROM health ORDER BY id"
+            rows = [(r, json.loads(d)) for r, d in con.execute(sql)]
+            break
+        except sqlite3.OperationalError as exc:
+            if "no such table" in str(exc):  # tables not created yet
+                return []
+            # busy or not openable while a daemon opens or recovers the database: read again
+            # (read as no rows, a resume test took 95 stored windows for 0 and stopped its
+            # next run before it stored any)
+            if attempt == 49:
+                raise
+            time.sleep(0.1)
+        finally:
+            con.close()
     return [d | {"_run": r} for r, d in rows if run is None or r == run]
 
 
