@@ -157,6 +157,20 @@ def test_each_parameter_has_a_typed_status(processed) -> None:  # type: ignore[n
         HealthMessage.model_validate({**h.as_dict(), "colour": "red"})  # no undocumented field
 
 
+def test_the_compiled_serialiser_writes_the_one_encoders_document(processed) -> None:  # type: ignore[no-untyped-def]
+    """HealthMessage.to_json (pydantic's serialiser, issue 22) is the document the project's
+    one encoder makes of the message's fields: the same keys, values and nulls, compact."""
+    from twinwatch.io.encoding import to_json
+
+    h = _message(processed)
+    h.nrmse = math.nan
+    h.parameters["Ra"].deviation_pct = math.inf
+    text = h.to_json()
+    assert json.loads(text) == json.loads(to_json(h.as_dict()))
+    assert "\n" not in text and len(text) <= len(to_json(h.as_dict())) + 64  # compact
+    assert list(json.loads(text)) == list(h.as_dict())  # the fields in the same order
+
+
 def test_non_finite_numbers_are_null_in_every_copy(processed, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     h = _message(processed)
     h.nrmse = math.nan

@@ -136,7 +136,8 @@ Num = Annotated[float | None, BeforeValidator(_finite)]
 
 
 class _Part(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True,
+                              ser_json_inf_nan="null")
 
 
 class FusedHealth(_Part):
@@ -486,17 +487,18 @@ class HealthMessage(_Part):
                                               "(null: [diagnosis] off or no library)")
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, populate_by_name=True,
-                              protected_namespaces=())
+                              protected_namespaces=(), ser_json_inf_nan="null")
 
     def as_dict(self) -> dict[str, Any]:
         """The message as plain JSON types, exactly as subscribers read it."""
         return self.model_dump(by_alias=True)
 
     def to_json(self) -> str:
-        """The message as compact, strict JSON (the one encoder, :mod:`twinwatch.io.encoding`)."""
-        from twinwatch.io.encoding import to_json
-
-        return to_json(self.as_dict())
+        """The message as compact, strict JSON: what :func:`twinwatch.io.encoding.to_json`
+        makes of :meth:`as_dict` (NaN and infinities ``null``, no spaces), written by
+        pydantic's compiled serialiser (every field is typed: 0.02 ms against 0.24 ms for a
+        9.6 kB message, once per window; issue 22; the same document, tested)."""
+        return self.model_dump_json(by_alias=True)
 
 
 def _nums(values: Mapping[str, float]) -> dict[str, float | None]:
