@@ -4,8 +4,10 @@
 :meth:`twinwatch.daemon.runner.Daemon.run`): it reads the driver (``read(timeout=0.2)``), fills
 the :class:`~twinwatch.daemon.ringbuffer.RingBuffer` and hands each full window on (to the
 window worker's queue, :class:`~twinwatch.daemon.window_worker.WindowWorker`). It never
-estimates, so acquisition is never blocked by the optimiser. Each iteration it ticks the
-machine's watchdog and the ticks it was given (the supervisor's reload and STATUS), reports a
+estimates, so acquisition is never blocked by the optimiser. It ticks the machine's watchdog
+and the ticks it was given (the supervisor's reload and STATUS) every :data:`TICK_S` for a live
+source, every sample for one on a simulated clock, and whenever the driver had nothing within
+its 0.2 s read (so at least that often), reports a
 stall after ``[acquisition] stall_timeout``, and stops when the source ends, the duration is
 reached, the driver fails, or :meth:`Acquisition.stop` is called (at once, or at the next window
 boundary: a reload hands the source over without losing or repeating a sample).
@@ -33,7 +35,13 @@ if TYPE_CHECKING:
 # the daemon's log lines keep the logger name they had before it was split (journal filters)
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
-__all__ = ["STOP_AT_WINDOW_S", "Acquisition"]
+__all__ = ["STOP_AT_WINDOW_S", "TICK_S", "Acquisition"]
+
+TICK_S = 0.05
+"""Seconds [wall] between the acquisition loop's ticks (the watchdog, the supervisor's reload
+and STATUS checks) while a live source's samples arrive: once per sample they cost about 0.3 ms
+of CPU per 2 s window (a 100 Hz source; issue 22), for checks that act on a scale of seconds.
+A source on a simulated clock ticks every sample (its 2 s windows may pass in milliseconds)."""
 
 STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
@@ -48,7 +56,8 @@ class Acquisition:
         config: validated configuration (``[driver]``, ``[acquisition]``).
         model: the twin model (the channels the ring buffer keeps).
         own_driver: the driver is ours to close (:meth:`release`; False: given by the caller).
-        watchdog: the systemd watchdog gate, ticked every iteration.
+        watchdog: the systemd watchdog gate, ticked every :data:`TICK_S` while samples arrive
+            and after each read that had none.
 
     Attributes:
         ring: the ring buffer.
@@ -116,14 +125,20 @@ class Acquisition:
         stall_timeout = self.config.acquisition.stall_timeout
         last_sample = time.monotonic()
         stalled = False
+        next_tick = 0.0
+        # a source on a simulated clock (replayed as fast as possible) ticks every sample: its
+        # samples come faster than the wall clock, and a reload acts before it ends
+        tick_s = TICK_S if live else 0.0
         while not self.stopping.is_set():
             if self._stop_at_window is not None and (
                     self.ring.pending == 0 or time.monotonic() > self._stop_at_window):
                 break
-            if self.watchdog is not None:
-                self.watchdog.tick()
-            for fn in self.ticks:
-                fn()
+            if last_sample >= next_tick:  # the last sample's arrival, or the idle read's end
+                next_tick = last_sample + tick_s
+                if self.watchdog is not None:
+                    self.watchdog.tick()
+                for fn in self.ticks:
+                    fn()
             try:
                 sample = self.driver.read(timeout=0.2)
             except EndOfStream as exc:
@@ -139,6 +154,7 @@ class Acquisition:
                 break
             now = time.monotonic()
             if sample is None:
+                next_tick = 0.0  # nothing came within the read's timeout: tick now
                 if not stalled and now - last_sample > stall_timeout:
                     stalled = True
                     logger.error(

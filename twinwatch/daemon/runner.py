@@ -407,7 +407,9 @@ class Daemon:
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
-        """Call ``fn()`` from the acquisition loop every iteration (at least every 0.2 s)."""
+        """Call ``fn()`` from the acquisition loop: every
+        :data:`~twinwatch.daemon.acquisition.TICK_S` while samples arrive and after each read
+        that had none (so at least every 0.2 s)."""
         self.acquisition.ticks.append(fn)
 
     def add_callback(self, fn: HealthCallback) -> None:
