@@ -135,3 +135,24 @@ def test_the_compiled_grid_gives_the_numpy_grid(seed: int) -> None:
         assert int(np.argmin(got[0])) == int(np.argmin(want[0]))
         for a, b in zip(got, want, strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9 * float(np.max(np.abs(b))))
+
+
+def test_the_small_symmetric_pseudo_inverse_is_numpys() -> None:
+    """pinv_sym (issue 22) is numpy's hermitian pinv to rounding: regular and singular
+    matrices of the sizes the trends and the fusion invert, and the rcond cut."""
+    from twinwatch.twin.prognostics.degradation import pinv_sym
+
+    rng = np.random.default_rng(0)
+    for k in (1, 2, 3, 4, 6):
+        for singular in (False, True):
+            a = rng.standard_normal((10, k))
+            a = a.T @ a
+            if singular and k > 1:
+                a[:, -1] = a[:, 0]
+                a[-1, :] = a[0, :]
+            ref = np.linalg.pinv(a, hermitian=True)
+            np.testing.assert_allclose(pinv_sym(a), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    a = np.diag([1.0, 1e-13])  # below rcond 1e-12 of the largest: dropped, as numpy does
+    np.testing.assert_array_equal(pinv_sym(a, rcond=1e-12), np.diag([1.0, 0.0]))
+    np.testing.assert_array_equal(np.linalg.pinv(a, rcond=1e-12, hermitian=True),
+                                  np.diag([1.0, 0.0]))

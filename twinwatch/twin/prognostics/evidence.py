@@ -37,6 +37,7 @@ import numpy as np
 
 from twinwatch.twin.estimation.estimator import WindowEstimate
 from twinwatch.twin.model import FloatArray
+from twinwatch.twin.prognostics.degradation import pinv_sym
 from twinwatch.twin.prognostics.trend import Evidence
 
 __all__ = ["fused_share", "window_evidence"]
@@ -63,8 +64,8 @@ def fused_share(names: Sequence[str], prior: tuple[FloatArray, FloatArray],
     if x0.shape != x1.shape or p0.shape != p1.shape or x0.size < n:
         return {}
     try:
-        y0 = np.linalg.pinv(p0, hermitian=True)
-        y1 = np.linalg.pinv(p1, hermitian=True)
+        y0 = pinv_sym(p0)
+        y1 = pinv_sym(p1)
     except np.linalg.LinAlgError:
         return {}
     info = (y1 - y0)[:n, :n]
