@@ -269,21 +269,23 @@ def test_backoff_is_capped_and_jittered():
     flaky = _Flaky(absent=10**6)
     delays: list[float] = []
     # seeded: the retries fall at 0.28, 1.21, 2.09, 2.72 s; uncapped, the third delay (drawn at
-    # 1.21 s) would be 1.76 s: 2.5 s of watching sees the cap hold
-    watch = 2.5
+    # 1.21 s) would be 1.76 s: watching until it is drawn sees the cap hold (it once watched a
+    # fixed 2.5 s, which added the fourth delay, drawn at 2.09 s under the same cap)
     keeper = source.SourceKeeper(flaky, config=_config(), describe="absent", backoff_max=1.0,
                                  rng=random.Random(1))
     try:
         last = None
-        t_end = time.monotonic() + watch
-        while time.monotonic() < t_end:
+        t0 = time.monotonic()
+        while len(delays) < 3 and time.monotonic() < t0 + 10.0:
             nxt = keeper._next_try
             if nxt is not None and nxt != last:
                 delays.append(nxt - time.monotonic())
                 last = nxt
             time.sleep(0.01)
+        watch = time.monotonic() - t0
     finally:
         keeper.close()
     # steps of 0.5, 1, 1, ... s, each delay drawn in [50 %, 100 %] of its step
+    assert len(delays) == 3, delays
     assert 0.2 <= delays[0] <= 0.5 and 0.5 <= max(delays) <= 1.0
     assert 3 <= flaky.attempts <= 1 + watch / 0.5
