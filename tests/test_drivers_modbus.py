@@ -11,6 +11,7 @@ import inspect
 import logging
 import math
 import socket
+import statistics
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -324,13 +325,16 @@ def test_device_absent_from_the_start_read_returns_none_in_time(
     from twinwatch.plant.modbus_server import free_tcp_port
     regs = {"x": ModbusChannelMap(address=2, table="input")}
     # the device's timeout (2 s) far beyond the read's (0.1 s): a read that waited on the
-    # connection would take seconds; a generous 1 s deadline survives a loaded CI box
+    # connection would take seconds. No read reaches the device's timeout, and the typical read
+    # takes its own 0.1 s (the median: one read a loaded box delays does not fail the test)
     cfg = driver_config(free_tcp_port(), regs, lockstep=False, timeout=2.0)
+    took = []
     with ModbusDriver(cfg) as drv:
-        for _ in range(3):
+        for _ in range(5):
             t0 = time.monotonic()
             assert drv.read(0.1) is None
-            assert time.monotonic() - t0 < 1.0
+            took.append(time.monotonic() - t0)
+    assert max(took) < 2.0 and statistics.median(took) < 0.5, took
     assert drv.stats.errors >= 1 and drv.stats.extra["connect_failures"] >= 1
     assert len([r for r in caplog.records if r.name == "twinwatch.drivers.modbus"
                 and r.levelno == logging.ERROR]) == 1
@@ -342,9 +346,11 @@ def test_silent_device_times_out_without_blocking_the_reader() -> None:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as mute:
         mute.bind(("127.0.0.1", 0))
         mute.listen(8)
-        # the device's timeout 2 s: a read that waited on the poll would take that long (a
-        # generous 1 s deadline for the 0.05 s read survives a loaded box and tells them apart)
+        # the device's timeout 2 s: a read that waited on the poll would take the rest of it;
+        # no read reaches it, and the typical read takes its own 0.05 s (the median: one read
+        # a loaded box delays does not fail the test, a reader blocked on the poll does)
         cfg = driver_config(mute.getsockname()[1], regs, lockstep=False, timeout=2.0)
+        took = []
         with ModbusDriver(cfg) as drv:
             # read until the second request has timed out (about 4 s), not a fixed 4.5 s: the
             # close then comes in the backoff after it, not 0.5 s into a third request whose
@@ -353,7 +359,8 @@ def test_silent_device_times_out_without_blocking_the_reader() -> None:
             while drv.stats.extra["timeouts"] < 2 and time.monotonic() < t_end:
                 t0 = time.monotonic()
                 assert drv.read(0.05) is None
-                assert time.monotonic() - t0 < 1.0
+                took.append(time.monotonic() - t0)
+    assert max(took) < 2.0 and statistics.median(took) < 0.5, (max(took), len(took))
     assert drv.stats.extra["timeouts"] >= 2 and drv.stats.extra["outages"] == 1
     assert drv.stats.errors == drv.stats.extra["timeouts"] + drv.stats.extra["connect_failures"]
 
