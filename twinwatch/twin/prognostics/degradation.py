@@ -53,7 +53,16 @@ def pinv_sym(a: FloatArray, rcond: float = 1e-15) -> FloatArray:
     """Pseudo-inverse of a small symmetric matrix ``a`` (k, k): ``numpy.linalg.pinv(a, rcond,
     hermitian=True)`` (the eigenvalues at most ``rcond`` times the largest dropped) without its
     general wrapper, 9 against 22 us for 3 x 3 (called about 25 times a window by the trends'
-    fits and the fusion's evidence; issue 22).
+    fits and the fusion's evidence; issue 22). Negative eigenvalues are inverted as numpy does:
+    not the fusion's ``_safe_inverse``, which treats the matrix as a covariance (drops them,
+    zeroes non-finite entries and never raises).
+
+    Args:
+        a: symmetric matrix (k, k); only its lower triangle is read (``eigh``).
+        rcond: relative cut-off of the eigenvalues' magnitudes.
+
+    Returns:
+        The pseudo-inverse (k, k).
 
     Raises:
         numpy.linalg.LinAlgError: the eigen-decomposition did not converge.
