@@ -32,7 +32,7 @@ Usage::
 
     python benchmarks/bench_density.py --n 4 16 [--seconds 40] [--mode both|gateway|process]
                                        [--cold] [--workers K] [--gateways K]
-                                       [--acquisition-only] [--recording]
+                                       [--acquisition-only] [--recording] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ import json
 import math
 import os
 import re
+import shutil
 import sqlite3
 import statistics
 import subprocess
@@ -349,7 +350,8 @@ def _box_ticks() -> tuple[int, int]:
 
 
 def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
-             workers: int | None, acquisition_only: bool = False, gateways: int = 1) -> Run:
+             workers: int | None, acquisition_only: bool = False, gateways: int = 1,
+             keep: Path | None = None) -> Run:
     run = Run(n=n, mode=mode if gateways == 1 or mode != "gateway" else f"gw x{gateways}",
               expected=0 if acquisition_only else sum(
                   windows_expected(f"m{i:03d}", seconds, mode) for i in range(n)))
@@ -428,6 +430,15 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
         if firsts:
             run.start_s = max(firsts) - (time.time() - (time.monotonic() - t_start)) - 2.0
         read_results(run, dirs, launched=time.time() - (time.monotonic() - t_start))
+        if keep is not None:  # the databases and the processes' logs, for a closer look
+            dest = keep / f"{n}-{run.mode.replace(' ', '')}"
+            dest.mkdir(parents=True, exist_ok=True)
+            for f in root.glob("stderr-*.txt"):
+                shutil.copy2(f, dest / f.name)
+            for d in dirs:
+                if (d / "state.sqlite").exists():
+                    shutil.copy2(d / "state.sqlite", dest / f"{d.name}.sqlite")
+            print(f"       kept in {dest}", flush=True)
     return run
 
 
@@ -446,6 +457,8 @@ def main() -> None:
                     "(each its own Zenoh port)")
     ap.add_argument("--acquisition-only", action="store_true",
                     help="windows longer than the run: the cost of acquiring, storing nothing")
+    ap.add_argument("--keep", type=Path, default=None,
+                    help="copy each machine's state database and the processes' logs here")
     ap.add_argument("--plants", type=Path, default=Path(tempfile.gettempdir()) / "density-plants")
     args = ap.parse_args()
     args.plants.mkdir(parents=True, exist_ok=True)
@@ -464,7 +477,8 @@ def main() -> None:
         for mode in modes:
             r = run_once(n, mode, args.seconds, args.plants, cold=args.cold,
                          record=args.recording, workers=args.workers,
-                         acquisition_only=args.acquisition_only, gateways=args.gateways)
+                         acquisition_only=args.acquisition_only, gateways=args.gateways,
+                         keep=args.keep)
             print(r.row(), flush=True)
             print(f"       {r.others()}", flush=True)
             if r.late_where:
