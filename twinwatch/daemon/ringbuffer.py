@@ -61,6 +61,7 @@ whose every other sample is NaN loses 20 windows over 20 windows of samples, not
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Literal
@@ -294,7 +295,7 @@ class RingBuffer:
             self._abandon(f"sample without channel {exc.args[0]!r}", "missing_channel", t,
                           bad=1)
             return None
-        if not all(np.isfinite(row)):
+        if not all(map(math.isfinite, row)):  # a tenth of np.isfinite's CPU on five floats
             self.bad_samples += 1
             bad = [c for c, v in zip(self.channels, row, strict=True) if not np.isfinite(v)]
             self._abandon(f"NaN or inf in {', '.join(repr(c) for c in bad)}", "bad_value", t,
