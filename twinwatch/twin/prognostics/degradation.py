@@ -122,6 +122,9 @@ class DegradationFit:
     rms_norm: float = math.nan
     chi2_floor: float = 0.0
     residuals: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
+    #: (cov, eigenvalues, eigenvectors) of :meth:`draws`, for the ``cov`` it was computed on
+    _eigh: tuple[FloatArray, FloatArray, FloatArray] | None = field(
+        default=None, init=False, repr=False, compare=False)
 
     @property
     def k(self) -> int:
@@ -172,8 +175,10 @@ class DegradationFit:
         """``n`` draws of ``c``, ``m``, ``r`` from the fit's Gaussian (the Monte Carlo of the
         remaining useful life)."""
         mean = np.array([self._get(p) for p in self.free])
-        cov = 0.5 * (self.cov + self.cov.T)
-        w, v = np.linalg.eigh(cov)
+        if self._eigh is None or self._eigh[0] is not self.cov:
+            # once per covariance: a window draws from each fit for each alarm level
+            self._eigh = (self.cov, *np.linalg.eigh(0.5 * (self.cov + self.cov.T)))
+        _, w, v = self._eigh
         z = rng.standard_normal((n, len(mean))) * np.sqrt(np.maximum(w, 0.0))
         x = mean + z @ v.T
         out = {p: np.full(n, self._get(p)) for p in ("c", "m", "r")}

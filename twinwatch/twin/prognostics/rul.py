@@ -99,12 +99,12 @@ def crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
     return np.where((level_now - threshold) * direction >= 0, 0.0, out)
 
 
-def _quantile(x: FloatArray, q: float) -> float | None:
-    """The ``q`` quantile of draws that may be infinite (never), None when infinite
-    (linear interpolation between ranks; between a finite and an infinite rank: infinite)."""
-    if not x.size:
+def _quantile(s: FloatArray, q: float) -> float | None:
+    """The ``q`` quantile of sorted draws ``s`` that may be infinite (never), None when
+    infinite (linear interpolation between ranks; between a finite and an infinite rank:
+    infinite)."""
+    if not s.size:
         return None
-    s = np.sort(x)
     pos = q * (s.size - 1)
     i = int(math.floor(pos))
     j = min(i + 1, s.size - 1)
@@ -158,9 +158,10 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         parts.append(times)
     times = np.concatenate(parts)
     a = 0.5 * (1.0 - interval)
-    med = _quantile(times, 0.5)
-    lo = _quantile(times, a)
-    hi = _quantile(times, 1.0 - a)
+    ranked = np.sort(times)  # once for the three quantiles
+    med = _quantile(ranked, 0.5)
+    lo = _quantile(ranked, a)
+    hi = _quantile(ranked, 1.0 - a)
     prob = float(np.mean(np.isfinite(times)))
     status: Literal["crossed", "predicted", "not_reached"] = (
         "predicted" if med is not None else "not_reached")
