@@ -321,9 +321,9 @@ def test_estimation_slots_are_first_come_first_served() -> None:
 def test_a_released_slot_wakes_the_first_in_line_only(monkeypatch: pytest.MonkeyPatch) -> None:
     """Twenty machines queued on one slot: each release wakes the next in line, not every
     waiter (a wake-all cost a backlogged 50-machine worker about 100 thread switches a
-    window). Counted: the waits of the waiting threads, at most a few per machine (one until
-    its turn, one more if a 0.5 s look-again falls inside the run), where a wake-all makes
-    about n^2/2 = 200."""
+    window). Counted: every event wait in the test (each thread's start waits on one too),
+    at most three per machine (its start, its turn, a 0.5 s look-again), where a wake-all
+    makes about n^2/2 = 200 more."""
     import twinwatch.daemon.slots as slots_module
 
     waits = [0]
