@@ -755,12 +755,12 @@ def _digest(path: Path) -> str:
 
 
 def _freeze_started() -> None:
-    """Keep what the started process holds for good out of the garbage collector's full
-    passes (:func:`gc.freeze`; garbage frozen with them waits for the unfreeze): the
-    libraries' modules and functions (numba's alone about 17000 of a machine process's
-    156000 tracked objects) and the machines as they started. A full pass walked them all: 150 ms of CPU in a 50-machine
-    worker, a stall of 150-580 ms of every machine's window in it (measured at 200 machines
-    in four workers: 4-5 such passes per worker in 180 s). A reload and the end of
-    :meth:`Host.run` unfreeze them, so a replaced or stopped machine's cycles are collected
+    """Keep what the started process holds out of the garbage collector's full passes
+    (:func:`gc.freeze`; garbage frozen with it waits for the unfreeze): the libraries'
+    modules and functions (numba's alone about 17000 of a machine process's 156000 tracked
+    objects) and the machines as they started. A full pass walked them all: 150 ms of CPU in
+    a 50-machine worker and a stall of 150-580 ms of every machine's window in it (measured at
+    200 machines in four workers: 4-5 such passes per worker in 180 s). A reload and the end
+    of :meth:`Host.run` unfreeze them, so a replaced or stopped machine's cycles are collected
     as before (a command line run in a test's process leaks nothing)."""
     gc.freeze()
