@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from twinwatch.config.loader import load_config
-from twinwatch.daemon.gateway import Gateway
+from twinwatch.daemon.host import Host
 
 from .test_fault_injection import cli
 from .test_gateway import _check, machine_config
@@ -84,8 +84,9 @@ def test_a_renamed_file_is_a_remove_then_an_add_in_one_reload(tmp_path: Path,
     machines.mkdir()
     machine_config(machines, "m1", port=None, duration=60.0)
     monkeypatch.chdir(tmp_path)
-    gateway = Gateway(machines, read=load_config, check=_check, workers=1)
-    gateway.start(timeout=120)
+    gateway = Host(machines, read=load_config, check=_check, workers=1, stuck_after=30.0,
+                   quiet_after=30.0, start_timeout=120)
+    gateway.start()
     try:
         first = gateway.machines[machines / "m1.toml"]
 

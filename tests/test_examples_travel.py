@@ -16,7 +16,8 @@ import pytest
 from click.testing import CliRunner
 
 from tests.conftest import ROOT, SHARED
-from twinwatch.cli import _alarm_lines, _window_lines, main, plant_moment, plant_span
+from twinwatch.cli import main
+from twinwatch.daemon.summary import alarm_lines, plant_moment, plant_span, window_lines
 from twinwatch.drivers.can import CanDriverConfig
 
 EXAMPLE = ROOT / "config" / "dc-motor-odrive.toml"
@@ -66,8 +67,8 @@ def test_the_summary_shows_a_readable_window_and_alarm_time() -> None:
                            elapsed_s=0.05, parameters={},
                            alarms={"Ra": SimpleNamespace(level="warning", since_t=1763800040.0,
                                                          deviation_pct=-6.0, rul=None)})
-    line = _window_lines(last)[0]  # type: ignore[arg-type]
+    line = window_lines(last)[0]  # type: ignore[arg-type]
     assert line.startswith("last window 29 [2025-11-22 08:27:38.00-08:27:39.99 UTC]"), line
     assert "1763800058" not in line
-    alarms = _alarm_lines(last)[0]  # type: ignore[arg-type]
+    alarms = alarm_lines(last)[0]  # type: ignore[arg-type]
     assert "raised at 2025-11-22 08:27:20 UTC" in alarms, alarms

@@ -1,4 +1,4 @@
-"""Gateway mode (``twinwatch run DIR``, :mod:`twinwatch.daemon.gateway`): many machines in one
+"""Gateway mode (``twinwatch run DIR``, :class:`twinwatch.daemon.host.Host`): many machines in one
 process, each isolated from the others' stalled sources, failing windows and bad
 configurations; the Zenoh session shared by the machines configured alike."""
 
@@ -15,8 +15,9 @@ import pytest
 
 from twinwatch.config.loader import load_config
 from twinwatch.config.preflight import check_runnable
-from twinwatch.daemon.gateway import EstimationSlots, Gateway
+from twinwatch.daemon.host import Host
 from twinwatch.daemon.pipeline import WindowPipeline
+from twinwatch.daemon.slots import EstimationSlots
 from twinwatch.sinks.base import SharedResources, SinkContext
 from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig, to_zenoh_config
 
@@ -140,8 +141,8 @@ def test_one_stalled_source_and_one_raising_machine_do_not_touch_the_healthy_one
 
     monkeypatch.setattr(WindowPipeline, "process", process)
     monkeypatch.chdir(tmp_path)
-    gateway = Gateway(machines, read=load_config, check=_check, duration=12.0, workers=2,
-                      quiet_after=4.0)
+    gateway = Host(machines, read=load_config, check=_check, duration=12.0, workers=2,
+                   stuck_after=30.0, quiet_after=4.0, start_timeout=120)
     statuses: list[str] = []
     done = threading.Event()
 
@@ -167,7 +168,7 @@ def test_one_stalled_source_and_one_raising_machine_do_not_touch_the_healthy_one
         gateway.stop()
 
     try:
-        gateway.start(timeout=120)
+        gateway.start()
         watcher = threading.Thread(target=watch, daemon=True)
         watcher.start()
         gateway.run()
@@ -242,7 +243,8 @@ def test_sighup_adds_removes_and_reloads_machines(tmp_path: Path,
     for name in ("m1", "m2", "m3"):
         machine_config(machines, name, port=None)
     monkeypatch.chdir(tmp_path)
-    gateway = Gateway(machines, read=load_config, check=_check, workers=2)
+    gateway = Host(machines, read=load_config, check=_check, workers=2, stuck_after=30.0,
+                   quiet_after=30.0, start_timeout=120)
 
     def daemon(name: str) -> Any:
         m = next((m for m in gateway.machines.values() if m.name == name), None)
@@ -276,7 +278,7 @@ def test_sighup_adds_removes_and_reloads_machines(tmp_path: Path,
         finally:
             gateway.stop()
 
-    gateway.start(timeout=120)
+    gateway.start()
     driver = threading.Thread(target=drive, daemon=True)
     driver.start()
     gateway.run()
@@ -409,8 +411,8 @@ def test_a_machine_stuck_in_one_window_does_not_hold_the_others(
 
     monkeypatch.setattr(WindowPipeline, "process", process)
     monkeypatch.chdir(tmp_path)
-    gateway = Gateway(machines, read=load_config, check=_check, duration=14.0, workers=1,
-                      stuck_after=3.0)
+    gateway = Host(machines, read=load_config, check=_check, duration=14.0, workers=1,
+                   stuck_after=3.0, quiet_after=30.0, start_timeout=120)
     statuses: list[str] = []
 
     def watch() -> None:
@@ -423,7 +425,7 @@ def test_a_machine_stuck_in_one_window_does_not_hold_the_others(
             time.sleep(0.5)
         release.set()
 
-    gateway.start(timeout=120)
+    gateway.start()
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
     try:
@@ -562,10 +564,11 @@ def test_a_machine_whose_source_never_answers_does_not_hold_the_others(
         f'bus_options = {{ host = "127.0.0.1", port = {mute.port} }}')
     machine_config(machines, "mute", port=None, driver=driver)
     monkeypatch.chdir(tmp_path)
-    gateway = Gateway(machines, read=load_config, check=_check, workers=2)
+    gateway = Host(machines, read=load_config, check=_check, workers=2, stuck_after=30.0,
+                   quiet_after=30.0, start_timeout=20)
     try:
         t0 = time.monotonic()
-        gateway.start(timeout=20)
+        gateway.start()
         assert time.monotonic() - t0 < 60
         healthy = gateway.machines[machines / "healthy.toml"]
         deadline = time.monotonic() + 60

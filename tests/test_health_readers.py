@@ -30,6 +30,7 @@ READERS = [
     "twin/diagnosis/explain.py",
     "daemon/alarms.py",
     "cli.py",
+    "daemon/summary.py",
     "sinks/zenoh.py",
 ]
 """The reader modules (paths under twinwatch/), every one converted."""
@@ -44,8 +45,8 @@ OTHER_DOCUMENTS = {
     ("watch.py", "Tail.on_alarm"): "an alarm event (<prefix>/<machine>/alarm)",
     ("sinks/rerun_views.py", "RecordingViews._event_ops"): "an alarm event",
     ("sinks/rerun_views.py", "_event_row"): "an alarm event (its short log row)",
-    ("cli.py", "_resumed_line"): "the daemon's resume summary (Daemon.resumed)",
-    ("cli.py", "_new_run_line"): "the daemon's new-run summary (Daemon.new_run)",
+    ("daemon/summary.py", "resumed_line"): "the daemon's resume summary (Daemon.resumed)",
+    ("daemon/summary.py", "new_run_line"): "the daemon's new-run summary (Daemon.new_run)",
     ("sinks/zenoh.py", "history_parameters"): "the history query's parameters",
 }
 """(file, function) -> the document it reads instead of the health message."""

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import math
 import os
 import sys
 import time
@@ -24,9 +23,8 @@ from twinwatch import __version__
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
-    from twinwatch.daemon.pipeline import WindowDigest
-    from twinwatch.daemon.runner import Daemon
-    from twinwatch.twin.health import HealthMessage, HealthView, ParameterHealth
+    from twinwatch.daemon.service import Progress, ServiceHost
+    from twinwatch.twin.health import HealthMessage, HealthView
 
 logger = logging.getLogger("twinwatch")
 
@@ -59,14 +57,6 @@ def main() -> None:
 EX_CONFIG = 78
 """Exit status for an invalid configuration (sysexits.h); the unit does not restart on it."""
 
-EX_IOERR = 74
-"""Exit status when estimated windows were lost: not stored or not recorded (sysexits.h)."""
-
-EX_TEMPFAIL = 75
-"""Exit status when the daemon ran but estimated nothing or mostly failed: more windows failed
-(numeric failures, windows abandoned for gaps, bad values, jitter, time jumps) than were
-estimated (sysexits.h's EX_TEMPFAIL: the source or its configuration must change, or the fault
-pass, before a run estimates)."""
 
 
 def _load_runnable(config: Path | None, base_dir: Path,
@@ -184,32 +174,23 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     if fresh and resume:
         raise click.UsageError("--fresh and --resume exclude each other")
     resume_mode = False if fresh else (True if resume else None)
-    fleet = config is not None and config.is_dir()
-    if fleet:
+    host: ServiceHost
+    if config is not None and config.is_dir():
         from twinwatch.config.loader import load_config
         from twinwatch.config.preflight import check_runnable
+        from twinwatch.daemon.workers import ProcessHost, worker_processes
 
         def check(cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
             check_runnable(cfg, str(path), base_dir=path.resolve().parent, cwd=work_dir)
 
-        from twinwatch.daemon.slots import default_processes
-
-        n = workers if workers is not None else default_processes(len(_machine_files(config)))
-        if assignment is None and n > 1 and len(_machine_files(config)) > 1:
-            from twinwatch.daemon.workers import ProcessHost, place
-
-            groups = sum(1 for ps in place(_machine_files(config), [], n) if ps)
-            host = ProcessHost(config, workers=max(1, min(n, groups)), resume=resume_mode,
-                               duration=duration, log_level=log_level, slots=slots)
-            if host.n > 1:
-                _setup_logging(log_level, threads=True)
-                _umask_0027()
-                _run_host(host, duration=duration, no_progress=True)
-                return
-            host.close()
-        host = Host(config, read=load_config, check=check, resume=resume_mode,
-                    duration=duration, workers=slots, stuck_after=30.0, quiet_after=30.0,
-                    assignment=assignment)
+        n = 1 if assignment is not None else worker_processes(config, workers)
+        if n > 1:
+            host = ProcessHost(config, workers=n, resume=resume_mode, duration=duration,
+                               log_level=log_level, slots=slots)
+        else:
+            host = Host(config, read=load_config, check=check, resume=resume_mode,
+                        duration=duration, workers=slots, stuck_after=30.0, quiet_after=30.0,
+                        assignment=assignment)
     else:
         base_dir = config.resolve().parent if config else Path.cwd()
 
@@ -217,15 +198,9 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
             return _load_runnable(config, base_dir, force=force)
 
         host = Host(config, load=load, resume=resume_mode, duration=duration, workers=slots)
-    _setup_logging(log_level, threads=fleet)
+    _setup_logging(log_level, threads=host.fleet)
     _umask_0027()
-    _run_host(host, duration=duration, no_progress=no_progress)
-
-
-def _machine_files(directory: Path) -> list[Path]:
-    from twinwatch.daemon.host import MACHINE_GLOB
-
-    return sorted(p for p in directory.glob(MACHINE_GLOB) if p.is_file())
+    _run_host(host, no_progress=no_progress, as_json=assignment is not None)
 
 
 def _umask_0027() -> None:
@@ -236,45 +211,20 @@ def _umask_0027() -> None:
     click.get_current_context().call_on_close(lambda: os.umask(old_umask))
 
 
-def _run_host(host: Any, *, duration: float | None, no_progress: bool) -> None:
-    """Start the host, run it, print the summary (one block per machine in a fleet), exit
-    with :meth:`~twinwatch.daemon.host.Host.exit_status`."""
-    from twinwatch.daemon.supervisor import Stopped
-    from twinwatch.errors import ConfigError, StartError
+def _run_host(host: ServiceHost, *, no_progress: bool, as_json: bool) -> None:
+    """Start the host, run it, print its summary (``as_json``: a worker process's, one JSON
+    document for its host) and exit with its exit status."""
+    from twinwatch.errors import ConfigError
 
     try:
         host.start()
     except ConfigError as exc:  # a directory without machines
         click.echo(f"Error: {exc}", err=True)
         sys.exit(EX_CONFIG)
-    bar: Any = None
-    if not host.fleet:
-        m = host.only
-        if isinstance(m.error, Stopped):  # SIGTERM while it was starting: nothing ran
-            host.run()
-            _ignore_late_stops()
-            click.echo(f"twinwatch: {m.error}", err=True)
-            sys.exit(0)
-        if m.error is not None:
-            host.run()
-            _ignore_late_stops()
-            if isinstance(m.error, StartError):
-                click.echo(f"Error: cannot start: {m.error}", err=True)
-                sys.exit(EX_CONFIG if m.error.config_error else 1)
-            if isinstance(m.error, ValueError):
-                click.echo(f"Error: {m.error}", err=True)
-                sys.exit(EX_CONFIG)
-            click.echo(f"Error: {m.failure}", err=True)
-            sys.exit(1)
-        daemon = m.supervisor.daemon
-        cfg = m.supervisor.config
-        if daemon is not None and cfg is not None:
-            if daemon.resumed is not None:
-                click.echo(_resumed_line(daemon), err=True)
-            elif daemon.new_run is not None:
-                click.echo(_new_run_line(daemon), err=True)
-            if not no_progress:
-                bar = _progress_bar(m.supervisor, cfg, duration)
+    for line in host.notices():
+        click.echo(line, err=True)
+    progress = None if no_progress else host.progress()
+    bar = _progress_bar(progress) if progress is not None else None
     try:
         with _logs_above(bar):
             host.run()
@@ -286,62 +236,25 @@ def _run_host(host: Any, *, duration: float | None, no_progress: bool) -> None:
         _ignore_late_stops()
         if bar is not None:
             bar.close()
-    code = host.exit_status()
-    if hasattr(host, "summary"):  # worker processes: their summaries and the total
-        blocks, total = host.summary()
-        for line in blocks:
+    summary = host.summary()
+    if as_json:
+        click.echo(summary.model_dump_json())
+    else:
+        for line in summary.lines():
             click.echo(line)
-        click.echo(total)
-        if code:
-            host.notifier.status(f"stopped: exit status {code}")
-            sys.exit(code)
-        return
-    if not host.fleet:
-        m = host.only
-        daemon = m.supervisor.daemon
-        if m.supervisor.config is None or daemon is None:  # stopped while it opened
-            click.echo(f"twinwatch: {m.error or m.failure or 'stopped before it had started'}",
-                       err=True)
-            sys.exit(code)
-        _print_summary(m.supervisor.config, daemon)
-        if m.failure is not None:
-            host.notifier.status(f"stopped: {m.failure}")
-            click.echo(f"Error: {m.failure}", err=True)
-        elif code == EX_IOERR:
-            host.notifier.status("stopped: " + "; ".join(daemon.problems()))
-        elif code == EX_TEMPFAIL:
-            host.notifier.status(f"stopped: {_failed_line(daemon)}")
-        if code:
-            sys.exit(code)
-        return
-    machines = host.all_machines()
-    for m in machines:
-        daemon = m.supervisor.daemon
-        cfg = m.supervisor.config
-        state = f"lost: {m.lost}" if m.lost is not None else "stopped"
-        click.echo(f"== {m.name} ({m.file}): {state}")
-        if daemon is not None and cfg is not None:
-            _print_summary(cfg, daemon)
-    lost = host.lost()
-    files = len({m.path for m in machines})
-    click.echo(f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} lost"
-               + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items()) if lost else ""))
-    if lost:
-        host.notifier.status(f"stopped: {len(lost)} machine(s) lost")
-    if code:
-        sys.exit(code)
+        for line in summary.errors:
+            click.echo(line, err=True)
+    if summary.exit_status:
+        sys.exit(summary.exit_status)
 
 
-def _progress_bar(supervisor: Any, cfg: TwinwatchConfig, duration: float | None) -> Any:
+def _progress_bar(progress: Progress) -> Any:
     """A fleet of one at a terminal: the source time acquired, the window and its nRMSE."""
     from tqdm import tqdm
 
-    from twinwatch.drivers import get_driver_class
-
-    total = duration if duration is not None else (
-        get_driver_class(cfg.driver.type).duration(cfg.driver))
+    total = progress.total
     bar = tqdm(total=round(total, 2) if total else None, unit="s", unit_scale=False,
-               desc=f"{cfg.machine.name}", dynamic_ncols=True, file=sys.stderr,
+               desc=progress.name, dynamic_ncols=True, file=sys.stderr,
                bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s plant time [{elapsed}<"
                "{remaining}{postfix}]")
     t0: list[float] = []
@@ -354,7 +267,7 @@ def _progress_bar(supervisor: Any, cfg: TwinwatchConfig, duration: float | None)
                             f"nRMSE {health.nrmse or float('nan'):.1e}", refresh=False)
         bar.refresh()
 
-    supervisor.add_callback(_progress)
+    progress.add_callback(_progress)
     return bar
 
 
@@ -374,282 +287,6 @@ def _logs_above(bar: Any) -> Iterator[None]:
         for handler in logging.getLogger().handlers:
             logfilter.install(handler)  # an older tqdm does not copy the filters
         yield
-
-
-def _resumed_line(daemon: Daemon) -> str:
-    """One line saying what was resumed from the state database, and how not to."""
-    r = daemon.resumed
-    assert r is not None
-    what = []
-    if daemon.restored is not None:
-        where = (f" of window {r['window']} (t = {r['t_end']:.2f} s)"
-                 if r.get("window") is not None and r.get("t_end") is not None else "")
-        values = ", ".join(f"{k} = {v:.6g}" for k, v in r["trusted"].items())
-        what.append(f"the twin{where} ({values}"
-                    + (f"; {r['terms']} meta-model term(s)" if r["terms"] else "") + ")")
-    if r["alarms"]:
-        what.append("alarm levels " + ", ".join(f"{k} {v}" for k, v in r["alarms"].items()))
-    return (f"twinwatch: resumed from {r['path']}: {' and '.join(what) or 'the last state'}; "
-            f"to start from the nameplate values instead: twinwatch run --fresh")
-
-
-def _new_run_line(daemon: Daemon) -> str:
-    """One line saying that the stored run was not resumed, why, and how to."""
-    r = daemon.new_run
-    assert r is not None
-    return (f"twinwatch: a new run ({daemon.run_id}): {r['reason']}, so the twin starts from "
-            f"the nameplate values and the alarms from normal; {r['path']} keeps the earlier "
-            f"runs (the last: {r['run']}); to continue the last run instead: twinwatch run "
-            f"--resume")
-
-
-def _print_summary(cfg: TwinwatchConfig, daemon: Daemon) -> None:
-    """The run's summary (docs/getting-started.md, "What `twinwatch run` prints"), from the
-    typed health messages the daemon kept and its outputs' own lines."""
-    c = daemon.counters()
-    causes = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in daemon.ring.causes.items()
-                       if n)
-    click.echo(f"twinwatch: {c['windows_estimated']} windows estimated, "
-               f"{c['overruns']} overruns, {c['windows_abandoned']} windows abandoned "
-               f"({causes or 'gaps/bad samples'}), {c['numeric_failures']} numeric failures "
-               f"(run {daemon.run_id})")
-    lines = _source_lines(cfg, daemon)
-    last = daemon.latest_health
-    if last is not None:
-        digests = daemon.window_digests
-        lines += [*_window_lines(last), *_trend_lines(last), *_alarm_lines(last),
-                  *_diagnosis_lines(last), *_structure_lines(last),
-                  *_check_lines(last, digests), *_timing_lines(cfg, digests),
-                  *_wait_lines(daemon),
-                  *daemon.summary()]  # where each output wrote, what it lost
-    if daemon.lost():
-        lines.append("twinwatch: estimated windows were lost: exit status 74")
-    elif daemon.mostly_failed():
-        lines.append(f"twinwatch: {_failed_line(daemon)}: exit status 75")
-    for line in lines:
-        click.echo(line)
-
-
-def _failed_line(daemon: Daemon) -> str:
-    """Why the run counts as failed: windows failed against estimated, by cause."""
-    causes = {k: n for k, n in daemon.ring.causes.items() if n}
-    if daemon.numeric_failures:
-        causes["numeric failure"] = daemon.numeric_failures
-    what = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in causes.items())
-    return (f"{daemon.windows_failed()} windows failed ({what}) and "
-            f"{daemon.windows_estimated} were estimated")
-
-
-EPOCH_PLANT_TIME = 1e9
-"""A plant time from this many seconds on is a wall clock, seconds since the epoch (a CAN log's
-or a bus adapter's frame stamps, ``time_source = "frame"``; 1e9 s is 2001-09-09): the summary
-shows it as a UTC clock time rather than a ten-digit number of seconds. A plant's own clock
-(a simulated plant, a recording's time column, a sample counter) starts near 0 and stays far
-below it (1e9 s is 31.7 years)."""
-
-
-def _utc(t: float, fmt: str) -> str:
-    from datetime import UTC, datetime
-
-    stamp = datetime.fromtimestamp(t, UTC)
-    return stamp.strftime(fmt) + (f".{int(stamp.microsecond / 1e4):02d}" if "%S" in fmt else "")
-
-
-def plant_span(t_start: float, t_end: float) -> str:
-    """A window's plant time for a person: ``1198.00-1199.99 s``, or, for a source stamped by
-    a wall clock (see :data:`EPOCH_PLANT_TIME`), ``2026-11-21 10:00:58.00-10:01:00.00 UTC``
-    (the end's date when it differs)."""
-    if abs(t_start) < EPOCH_PLANT_TIME:
-        return f"{t_start:.2f}-{t_end:.2f} s"
-    same_day = _utc(t_start, "%Y-%m-%d") == _utc(t_end, "%Y-%m-%d")
-    end = _utc(t_end, "%H:%M:%S" if same_day else "%Y-%m-%d %H:%M:%S")
-    return f"{_utc(t_start, '%Y-%m-%d %H:%M:%S')}-{end} UTC"
-
-
-def plant_moment(t: float) -> str:
-    """A moment in plant time for a person: ``plant time 1090 s``, or ``2026-11-21 10:00:58 UTC``
-    for a source stamped by a wall clock (see :data:`EPOCH_PLANT_TIME`)."""
-    if abs(t) < EPOCH_PLANT_TIME:
-        return f"plant time {t:.0f} s"
-    from datetime import UTC, datetime
-
-    return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
-
-
-def _window_lines(last: HealthMessage) -> list[str]:
-    """The last window and each parameter: value, deviation, status."""
-    width = max([3, *(len(n) for n in last.parameters)])
-    return [f"last window {last.window} [{plant_span(last.t_start, last.t_end)}], "
-            f"nRMSE {last.nrmse or float('nan'):.2e}, estimated in "
-            f"{last.elapsed_s * 1e3:.0f} ms:",
-            *(f"  {name:<{width}} = {_value(p.value)} {p.unit:<10} "
-              f"({'n/a' if p.deviation_pct is None else f'{p.deviation_pct:+.2f}'} % vs nominal "
-              f"{p.nominal:g}) {_status(p)}" for name, p in last.parameters.items())]
-
-
-def _trend_lines(last: HealthMessage) -> list[str]:
-    """One line per parameter with a trend: where it is going, and when it crosses its alarm
-    rule's thresholds (twinwatch.twin.prognostics)."""
-    from twinwatch.twin.health import trend_line
-
-    lines = [line for name, p in last.parameters.items() if (line := trend_line(name, p))]
-    return ["trend and remaining useful life (95 % intervals):", *(f"  {x}" for x in lines)] \
-        if lines else []
-
-
-def _diagnosis_lines(last: HealthMessage) -> list[str]:
-    """The diagnosis: the most probable fault, its probability and the action
-    (twinwatch.twin.diagnosis); ``twinwatch explain`` gives the evidence."""
-    from twinwatch.twin.health import developing_line, diagnosis_line
-
-    line = diagnosis_line(last.diagnosis)
-    developing = developing_line(last.diagnosis, last.parameters)
-    return [x for x in (line, developing and f"  {developing}") if x]
-
-
-def _value(value: float | None) -> str:
-    return f"{value:<11.6g}" if value is not None else f"{'n/a':<11}"
-
-
-def _status(p: ParameterHealth) -> str:
-    """Why the parameter has its value (estimated, fused, held: the reason), with the fused
-    evidence of an estimated or held one."""
-    text = {"estimated": "estimated",
-            "fused": f"fused over the windows (this one alone: {p.reason})",
-            "held": f"held: {p.reason}"}.get(
-        p.status, p.reason or p.status)  # tied, fixed: the reason says to what
-    fused = p.fused
-    if fused is not None and fused.value is not None and p.status in ("estimated", "held"):
-        text += (f"; fused {fused.value:.6g} +- {2 * (fused.rel_std_pct or math.nan):.2g} % "
-                 "(2 sigma)")
-    return text
-
-
-def _alarm_lines(last: HealthMessage) -> list[str]:
-    raised = [f"{k} {a.level}"
-              + (f" (raised at {plant_moment(a.since_t)})" if a.since_t is not None else "")
-              + (f", last {a.deviation_pct:+.2f} % vs nominal" if a.deviation_pct is not None
-                 else "") for k, a in last.alarms.items() if a.level != "normal"]
-    raised += [f"{k} RUL {a.rul.level}"
-               + (f" (raised at {plant_moment(a.rul.since_t)})" if a.rul.since_t is not None
-                  else "") for k, a in last.alarms.items()
-               if a.rul is not None and a.rul.level != "normal"]
-    if not raised:
-        return []
-    return ["alarms: " + "; ".join(raised)]
-
-
-def _structure_lines(last: HealthMessage) -> list[str]:
-    """The twin's structure DT'' when discovery is on: its terms, the worst errors."""
-    if not last.discovery.enabled:
-        return []
-    terms = last.terms
-    lines = [f"twin structure (DT''): {len(terms)} meta-model term(s){_verdict(last)}",
-             *(f"  {term.equation}  [{term.meaning}]" for term in terms)]
-    if terms:
-        fits = (("DT'", last.residual.dt_prime), ("DT''", last.residual.dt_second))
-        worst = {k: fit.max_abs for k, fit in fits if fit is not None and fit.max_abs}
-        lines.append("  worst error in the last window: " + "; ".join(
-            f"{k} " + ", ".join(f"{o} {e:.3g}" for o, e in w.items() if e is not None)
-            for k, w in worst.items()))
-    return lines
-
-
-def _verdict(last: HealthMessage) -> str:
-    """What the discovery concluded in the last window."""
-    if last.terms:
-        return ":"
-    if last.discovery.too_large or (last.model_check is not None
-                                    and not last.model_check.passed):
-        return (": none kept, yet the residual is too large for the physical model "
-                "(no candidate meta-model describes what it misses)")
-    return ": the physical model explains the data"
-
-
-def _check_lines(last: HealthMessage, digests: list[WindowDigest]) -> list[str]:
-    """How many windows passed the model check, and why the last failing one did not."""
-    checks = [d.model_check_passed for d in digests if d.model_check_passed is not None]
-    if not checks:
-        return []
-    passed = sum(checks)
-    reasons = last.model_check.reasons if last.model_check is not None else []
-    return [f"model check: passed in {passed} of {len(checks)} windows"
-            + (f"; failing windows are not trusted and their intervals widened (last: "
-               f"{reasons[0]})" if passed < len(checks) and reasons else "")]
-
-
-def _timing_lines(cfg: TwinwatchConfig, digests: list[WindowDigest]) -> list[str]:
-    times = sorted(d.elapsed_s for d in digests)
-    if not times:
-        return []
-    return [f"estimation time per window: median {times[len(times) // 2] * 1e3:.0f} ms, max "
-            f"{times[-1] * 1e3:.0f} ms (window length "
-            f"{cfg.acquisition.window * cfg.acquisition.sample_period:g} s)"]
-
-
-def _wait_lines(daemon: Daemon) -> list[str]:
-    """How long the windows waited for the worker (queued, and in a gateway for an
-    estimation slot) before their estimation started."""
-    waits = sorted(daemon.queue_waits)
-    lines = [] if not waits else [
-        f"queue wait per window: median {waits[len(waits) // 2] * 1e3:.0f} ms, max "
-        f"{waits[-1] * 1e3:.0f} ms"]
-    if daemon.dropped_at_stop:
-        lines.append(f"{daemon.dropped_at_stop} windows queued at the stop were dropped: the "
-                     f"estimation did not reach them within [acquisition] shutdown_timeout "
-                     f"({daemon.config.acquisition.shutdown_timeout:g} s)")
-    return lines
-
-
-def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
-    """What the source delivered and what was lost of it, by reason, with the cause when no
-    window could be completed."""
-    ring = daemon.ring
-    lost = sum(ring.lost.values())
-    window = cfg.acquisition.window
-    lines = []
-    jittered = [d for d in daemon.window_digests if d.jitter_max_us]
-    if jittered:
-        rms = max(x.jitter_rms_us or 0.0 for x in jittered)
-        peak = max(x.jitter_max_us or 0.0 for x in jittered)
-        lines.append(f"source: time stamps jitter around the {cfg.acquisition.sample_period:g} s "
-                     f"grid the samples were placed on in {len(jittered)} windows: RMS up to "
-                     f"{rms:.3g} us, max {peak:.3g} us")
-    waiting, silent = daemon.source_state()
-    if waiting:
-        lines.append(f"source: waiting for {waiting}")
-    if silent:
-        lines.append("source: silent: " + ", ".join(silent))
-    if lost:
-        reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
-        lines.append(f"source: {ring.samples} samples received, {lost} not in any window "
-                     f"({reasons})")
-    if daemon.latest_health is not None or daemon.windows_estimated:
-        return lines
-    if ring.samples == 0:
-        lines.append(f"no window was completed: the {cfg.driver.type} driver delivered no "
-                     "sample (see the log for why)")
-    elif not lost:
-        lines.append(f"no window was completed: the source delivered {ring.samples} samples, "
-                     f"fewer than one window ({window})")
-    elif ring.windows == 0:
-        reason, n = ring.lost.most_common(1)[0]
-        cause = f"{n} of {ring.samples} samples lost to {reason}"
-        if reason.startswith("sample without channel"):
-            ch = reason.split("channel ", 1)[1]
-            cause = f"every sample lacks channel {ch}" if n == ring.samples else cause
-            cause += f": map {ch} in [driver]"
-            if ch == "'setpoint'" and getattr(daemon.model, "structure", None) == "closed_loop":
-                cause += ' or use machine.options.structure = "open_loop"'
-        elif reason.startswith("NaN or inf"):
-            cause += ": check the mapping (scale, units) and the sensor"
-        elif "time stamp" in reason:
-            cause += (f": the time stamps do not step by acquisition.sample_period "
-                      f"({cfg.acquisition.sample_period:g} s)")
-        lines.append(f"no window was completed: {cause}")
-    else:
-        lines.append("no window was estimated (see the log for why)")
-    return lines
 
 
 @main.command("check-config")

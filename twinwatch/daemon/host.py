@@ -23,8 +23,13 @@ fleet of one. :class:`Host` owns, in the main thread,
   machine (validated first, built beside the running daemon, taking over at a window boundary:
   :class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
   removed stops its machine, a machine not running (lost, or its source ended) starts again.
-* the **stop**, the **summary** (:meth:`Host.all_machines`, :meth:`Host.lost`) and the
-  **exit status** (:meth:`Host.exit_status`).
+* the **stop**, the **summary** (:meth:`Host.summary`: a
+  :class:`~twinwatch.daemon.service.RunSummary`, each machine's lines made by
+  :mod:`twinwatch.daemon.summary`) and the **exit status** (:meth:`Host.exit_status`): the
+  :class:`~twinwatch.daemon.service.ServiceHost` contract, which
+  :class:`~twinwatch.daemon.workers.ProcessHost` keeps too. A worker process's host (``assignment``)
+  reports its machines to its own host as a :class:`~twinwatch.daemon.service.FleetStatus`
+  beside its STATUS line.
 
 Each machine runs in a thread of its own (``twinwatch-<file>`` in a fleet): its supervisor's
 acquisition loop, with the daemon's worker thread beside it. What the machines of a process
@@ -44,16 +49,26 @@ import gc
 import hashlib
 import logging
 import os
-import signal
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import FrameType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from twinwatch.daemon import logfilter
+from twinwatch.daemon.service import (
+    EX_CONFIG,
+    EX_IOERR,
+    EX_TEMPFAIL,
+    FLEET_REPORT,
+    FleetStatus,
+    MachineSummary,
+    Progress,
+    RunSummary,
+    ServiceHost,
+)
 from twinwatch.daemon.slots import EstimationSlots, default_workers
+from twinwatch.daemon.summary import failed_line, machine_lines, new_run_line, resumed_line
 from twinwatch.daemon.supervisor import Stopped, Supervisor, status_line
 from twinwatch.daemon.systemd import Notifier, Watchdog
 from twinwatch.errors import ConfigError, StartError
@@ -64,22 +79,10 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["EX_CONFIG", "EX_IOERR", "EX_TEMPFAIL", "MACHINE_GLOB", "Host", "Machine",
-           "MachineNotifier"]
+__all__ = ["MACHINE_GLOB", "Host", "Machine", "MachineNotifier"]
 
 MACHINE_GLOB = "*.toml"
 """The machine configurations of a directory (one machine per file)."""
-
-EX_CONFIG = 78
-"""Exit status: no machine's configuration can run here (sysexits.h); the units do not restart
-on it."""
-
-EX_IOERR = 74
-"""Exit status: estimated windows were lost, not stored or not recorded (sysexits.h)."""
-
-EX_TEMPFAIL = 75
-"""Exit status: a machine ran but more of its windows failed than were estimated."""
-
 
 class MachineNotifier(Notifier):
     """What a machine tells systemd goes to its host instead (:meth:`Host._from_machine`);
@@ -281,60 +284,7 @@ class Machine:
         return out
 
 
-class ServiceSignals:
-    """The signals of a service host (:class:`Host`, and with worker processes
-    :class:`~twinwatch.daemon.workers.ProcessHost`): SIGTERM/SIGINT call ``stop()`` (a second
-    one ``_abandon()``), SIGHUP ``reload()``. Once a stop was requested the handlers stay
-    installed to the end of the process (a second SIGTERM still on its way must find them, not
-    the default action); installed and restored from the main thread only."""
-
-    fleet: bool
-    _stop_signals: int
-    _previous_handlers: dict[int, Any]
-
-    def stop(self) -> None:
-        raise NotImplementedError
-
-    def reload(self) -> None:
-        raise NotImplementedError
-
-    def _abandon(self) -> None:
-        raise NotImplementedError
-
-    def _install_signal_handlers(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return
-        for signum, handler in ((signal.SIGINT, self._on_stop_signal),
-                                (signal.SIGTERM, self._on_stop_signal),
-                                (signal.SIGHUP, self._on_hup)):
-            self._previous_handlers[signum] = signal.signal(signum, handler)
-
-    def _restore_signal_handlers(self) -> None:
-        if threading.current_thread() is not threading.main_thread() or self._stop_signals:
-            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
-            # handler, not the default action (exit -15 after a clean stop)
-            return
-        for signum, handler in self._previous_handlers.items():
-            signal.signal(signum, handler)
-        self._previous_handlers.clear()
-
-    def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
-        self._stop_signals += 1
-        if self._stop_signals > 1:
-            logger.warning("%s received again: abandoning the queued windows",
-                           signal.Signals(signum).name)
-            self._abandon()
-            return
-        logger.warning("%s received: %s", signal.Signals(signum).name,
-                       "every machine finishes its queued windows and stops" if self.fleet
-                       else "finishing the queued windows and stopping")
-        self.stop()
-
-    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
-        self.reload()
-
-
-class Host(ServiceSignals):
+class Host(ServiceHost):
     """The service: one machine's configuration file, or a directory of them (see the module
     docstring).
 
@@ -380,6 +330,7 @@ class Host(ServiceSignals):
                  stuck_after: float | None = None, quiet_after: float | None = None,
                  start_timeout: float | None = None,
                  notifier: Notifier | None = None, assignment: Path | None = None) -> None:
+        super().__init__()
         self.target = target
         self.assignment = assignment
         self.fleet = target is not None and target.is_dir()
@@ -388,7 +339,7 @@ class Host(ServiceSignals):
         if self.fleet and read is None:
             raise ValueError("a directory needs a reader")
         self.directory = target if self.fleet else None
-        self.read = read  # type: ignore[assignment]
+        self._read = read
         self._check = check
         self._load = load
         self.base_dir = (target.resolve().parent if target is not None and not self.fleet
@@ -414,16 +365,21 @@ class Host(ServiceSignals):
         self._skipped: dict[str, str] = {}
         self._names_lock = threading.Lock()
         self._status_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._stop_signals = 0
-        self._reload = threading.Event()
-        self._previous_handlers: dict[int, Any] = {}
         self._status = ""
         self._next_status = 0.0
         self._last_ping = 0.0
         self._ready = False
 
     # -- configuration ------------------------------------------------------------------------
+    def read(self, path: Path) -> TwinwatchConfig:
+        """A fleet's machine file, read and validated by the host's ``read``.
+
+        Raises:
+            ConfigError: naming the file and key.
+        """
+        assert self._read is not None  # a fleet has its reader (checked at construction)
+        return self._read(path)
+
     def files(self) -> list[Path]:
         """The machine configurations: the directory's files sorted by name, or the one file."""
         if not self.fleet:
@@ -526,7 +482,7 @@ class Host(ServiceSignals):
         _freeze_started()
         if self.fleet:
             self._ready = True
-            self.notifier.ready(status=self.status_line())
+            self._send_status(ready=True)
         # a fleet of one: its machine said READY (or why it cannot start) itself
 
     def _add(self, path: Path | None) -> Machine:
@@ -559,7 +515,16 @@ class Host(ServiceSignals):
             line = self.status_line()
             if line != self._status:
                 self._status = line
-                self.notifier.status(line)
+                self._send_status()
+
+    def _send_status(self, *, ready: bool = False) -> None:
+        """A fleet's STATUS (with READY=1 after a start or a reload); a worker process's host
+        adds its :class:`FleetStatus` in the :data:`FLEET_REPORT` assignment, for its host."""
+        status = self.fleet_status()
+        assignments = [f"STATUS={self._status_text(status)}"]
+        if self.assignment is not None:
+            assignments.append(f"{FLEET_REPORT}={status.model_dump_json()}")
+        self.notifier.notify(*(["READY=1"] if ready else []), *assignments)
 
     # -- run ----------------------------------------------------------------------------------
     def run(self) -> None:
@@ -580,6 +545,27 @@ class Host(ServiceSignals):
             gc.unfreeze()  # the stopped machines' cycles are the collector's again
             self._restore_signal_handlers()
             logfilter.flush(force=True)
+        why = self._stopped_why()
+        if why is not None:
+            self.notifier.status(f"stopped: {why}")
+
+    def _stopped_why(self) -> str | None:
+        """Why the run failed, for the last STATUS; None when it did not."""
+        if self.fleet:
+            lost = self.lost()
+            return f"{len(lost)} machine(s) lost" if lost else None
+        m = self.only
+        daemon = m.supervisor.daemon
+        if m.error is not None or m.supervisor.config is None or daemon is None:
+            return None  # it did not start: its error says why
+        if m.failure is not None:
+            return m.failure
+        code = self.exit_status()
+        if code == EX_IOERR:
+            return "; ".join(daemon.problems())
+        if code == EX_TEMPFAIL:
+            return failed_line(daemon)
+        return None
 
     def _tick(self) -> None:
         now = time.monotonic()
@@ -609,7 +595,7 @@ class Host(ServiceSignals):
 
     def stop(self) -> None:
         """Ask :meth:`run` to stop every machine and return (thread- and signal-safe)."""
-        self._stop.set()
+        super().stop()
         for m in self.all_machines():  # at once: a machine opening abandons its opening
             m.supervisor.stop()
 
@@ -620,7 +606,7 @@ class Host(ServiceSignals):
             for m in list(self.machines.values()):
                 m.supervisor.reload()
             return
-        self._reload.set()
+        super().reload()
 
     def _rescan(self) -> None:
         """SIGHUP. A fleet of one: reload its machine. A fleet: start the machines of new
@@ -654,7 +640,7 @@ class Host(ServiceSignals):
                 m.digest = _digest(path)
                 logger.warning("machine %s: %s changed: reloading it", m.name, path.name)
                 m.supervisor.reload()
-        self.notifier.ready(status=self.status_line())
+        self._send_status(ready=True)
 
     # -- what to report -----------------------------------------------------------------------
     def all_machines(self) -> list[Machine]:
@@ -681,14 +667,18 @@ class Host(ServiceSignals):
             if cfg is None or daemon is None:
                 return m.lost or "starting"
             return status_line(cfg, daemon)
+        return self._status_text(self.fleet_status())
+
+    def _status_text(self, status: FleetStatus) -> str:
+        return status.line(str(self.directory))
+
+    def fleet_status(self) -> FleetStatus:
+        """A fleet's machines monitored and the degraded ones by name (its STATUS line's
+        content, and what a worker process reports to its host)."""
         ms = list(self.machines.values())
-        running = sum(1 for m in ms if m.running)
-        line = f"gateway: {running} of {len(ms)} machines monitored ({self.directory})"
-        problems = self.problems()
-        if problems:
-            line += "; DEGRADED: " + "; ".join(f"{name}: {', '.join(p)}"
-                                               for name, p in problems.items())
-        return line
+        return FleetStatus(monitored=sum(1 for m in ms if m.running), machines=len(ms),
+                           degraded=[f"{name}: {', '.join(p)}"
+                                     for name, p in self.problems().items()])
 
     def exit_status(self) -> int:
         """The process's exit status once :meth:`run` returned: 78 when no machine's
@@ -710,10 +700,79 @@ class Host(ServiceSignals):
                 worst = EX_TEMPFAIL
         return worst
 
-    def _abandon(self) -> None:
+    def abandon(self) -> None:
         """A second stop signal: every machine abandons its queued windows."""
         for m in self.all_machines():
             m.supervisor.abandon()
+
+    def notices(self) -> list[str]:
+        """A fleet of one that started: what it resumed from its state database, or why it
+        starts a new run (a fleet: nothing, each machine logs it)."""
+        if self.fleet:
+            return []
+        daemon = self.only.supervisor.daemon
+        if self.only.error is not None or daemon is None:
+            return []
+        if daemon.resumed is not None:
+            return [resumed_line(daemon)]
+        if daemon.new_run is not None:
+            return [new_run_line(daemon)]
+        return []
+
+    def progress(self) -> Progress | None:
+        """A fleet of one's machine once it runs: its name, the source time the run covers
+        (``duration``, else the driver's own) and its callbacks."""
+        if self.fleet:
+            return None
+        sup = self.only.supervisor
+        cfg = sup.config
+        if self.only.error is not None or sup.daemon is None or cfg is None:
+            return None
+        from twinwatch.drivers import get_driver_class
+
+        total = self.duration if self.duration is not None else (
+            get_driver_class(cfg.driver.type).duration(cfg.driver))
+        return Progress(name=cfg.machine.name, total=total, add_callback=sup.add_callback)
+
+    def summary(self) -> RunSummary:
+        """The run's summary: a fleet of one's block (or why it did not run, for stderr); a
+        fleet's block per machine, each attempt a reload made, in file order, and the total
+        line."""
+        code = self.exit_status()
+        if not self.fleet:
+            m = self.only
+            block = (self._machine_summary(m) if m.error is None  # it started
+                     else MachineSummary(name=m.name, file=m.file, lost=m.lost))
+            return RunSummary(machines=[block], errors=self._errors(m), exit_status=code)
+        machines = self.all_machines()
+        lost = self.lost()
+        files = len({m.path for m in machines})
+        total = (f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} "
+                 "lost" + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items())
+                           if lost else ""))
+        return RunSummary(machines=[self._machine_summary(m) for m in machines], total=total,
+                          exit_status=code)
+
+    @staticmethod
+    def _machine_summary(m: Machine) -> MachineSummary:
+        cfg, daemon = m.supervisor.config, m.supervisor.daemon
+        lines = machine_lines(cfg, daemon) if cfg is not None and daemon is not None else []
+        return MachineSummary(name=m.name, file=m.file, lost=m.lost, lines=lines)
+
+    @staticmethod
+    def _errors(m: Machine) -> list[str]:
+        """A fleet of one's lines for stderr: why it did not start, or stopped."""
+        if isinstance(m.error, Stopped):  # a stop while it was starting: nothing ran
+            return [f"twinwatch: {m.error}"]
+        if isinstance(m.error, StartError):
+            return [f"Error: cannot start: {m.error}"]
+        if isinstance(m.error, ValueError):  # ConfigError, a validation error naming the key
+            return [f"Error: {m.error}"]
+        if m.error is not None:
+            return [f"Error: {m.failure}"]
+        if m.supervisor.config is None or m.supervisor.daemon is None:  # stopped as it opened
+            return [f"twinwatch: {m.failure or 'stopped before it had started'}"]
+        return [f"Error: {m.failure}"] if m.failure is not None else []
 
 
 def _machine_name(path: Path) -> str | None:

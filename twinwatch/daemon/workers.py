@@ -10,11 +10,13 @@ in one process. What crosses between the host and a worker:
 * **down**: the assignment file (the machine files it runs; rewritten atomically, then
   SIGHUP), SIGHUP (re-read it and the machines' files), SIGTERM (stop; a second one abandons
   the queued windows);
-* **up**: systemd's notification protocol on a datagram socket of the host's per worker
-  (``NOTIFY_SOCKET``: ``READY=1``, ``STATUS=`` with the worker's line of machines monitored
-  and degraded, ``WATCHDOG=1`` while one of its machines is healthy, ``STOPPING=1``), the
-  worker's summary on its stdout (read once it ended), its log lines on the host's stderr (the
-  journal), and its exit status.
+* **up**, in typed messages (:mod:`twinwatch.daemon.service`), never in prose: systemd's
+  notification protocol on a datagram socket of the host's per worker (``NOTIFY_SOCKET``:
+  ``READY=1``, its machines monitored and degraded as a
+  :class:`~twinwatch.daemon.service.FleetStatus` in ``TWINWATCH_FLEET=`` (JSON) beside its human
+  ``STATUS=``, ``WATCHDOG=1`` while one of its machines is healthy, ``STOPPING=1``), the
+  worker's :class:`~twinwatch.daemon.service.RunSummary` as one JSON document on its stdout
+  (read once it ended), its log lines on the host's stderr (the journal), and its exit status.
 
 The host tells systemd READY once every worker did, keeps one STATUS line (the workers' machines
 summed, the degraded ones by name), pings the watchdog while a worker is healthy, and at the end
@@ -38,7 +40,6 @@ import contextlib
 import json
 import logging
 import os
-import re
 import signal
 import socket
 import subprocess
@@ -49,24 +50,33 @@ import time
 import tomllib
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+
+from pydantic import ValidationError
 
 from twinwatch.daemon import logfilter
-from twinwatch.daemon.host import EX_CONFIG, EX_IOERR, EX_TEMPFAIL, MACHINE_GLOB, ServiceSignals
+from twinwatch.daemon.host import MACHINE_GLOB
+from twinwatch.daemon.service import (
+    EX_CONFIG,
+    EX_IOERR,
+    EX_TEMPFAIL,
+    FLEET_REPORT,
+    FleetStatus,
+    MachineSummary,
+    RunSummary,
+    ServiceHost,
+)
 from twinwatch.daemon.systemd import Notifier
 from twinwatch.errors import ConfigError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ProcessHost", "Worker", "place"]
+__all__ = ["ProcessHost", "Worker", "place", "worker_processes"]
 
 RESTART_LIMIT = 5
 """Restarts of one worker within :data:`RESTART_WINDOW` seconds before it is given up."""
 
 RESTART_WINDOW = 120.0
 
-_STATUS = re.compile(r"^gateway: (\d+) of (\d+) machines monitored \([^)]*\)(?:; DEGRADED: (.*))?$")
-_TOTAL = re.compile(r"^twinwatch gateway: (\d+) machines, (\d+) ran, (\d+) lost(?:: (.*))?$")
 
 
 _GROUPS: dict[Path, str] = {}
@@ -116,12 +126,31 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
             groups.setdefault(session_group(p), []).append(p)
     # the largest groups first, each to the worker with fewest machines (or to its session's)
     for g, ps in sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[1][0])):
-        k = where.get(g)
-        if k is None:
-            k = min(range(n), key=lambda i: (len(out[i]), i))
-            where[g] = k
-        out[k].extend(ps)
+        worker = where.get(g)
+        if worker is None:
+            worker = min(range(n), key=lambda i: (len(out[i]), i))
+            where[g] = worker
+        out[worker].extend(ps)
     return [sorted(ps) for ps in out]
+
+
+def worker_processes(directory: Path, workers: int | None) -> int:
+    """The worker processes a directory's machines run in: ``workers`` (default
+    :func:`~twinwatch.daemon.slots.default_processes`), at most one per session group
+    (:func:`session_group`: a group cannot be split); 1 (every machine in the host process)
+    for a directory of fewer than two machines.
+
+    Args:
+        directory: the machine configurations (``*.toml``).
+        workers: ``--workers`` (>= 1), or None.
+    """
+    from twinwatch.daemon.slots import default_processes
+
+    files = sorted(p for p in directory.glob(MACHINE_GLOB) if p.is_file())
+    n = workers if workers is not None else default_processes(len(files))
+    if n <= 1 or len(files) <= 1:
+        return 1
+    return max(1, min(n, sum(1 for ps in place(files, [], n) if ps)))
 
 
 class Worker:
@@ -143,10 +172,10 @@ class Worker:
         self.sock.bind(str(self.socket_path))
         self.sock.setblocking(False)
         self.proc: subprocess.Popen[str] | None = None
-        self.outputs: list[str] = []  # each incarnation's stdout (the summary)
+        self.summaries: list[RunSummary] = []  # each incarnation's that ended by itself
         self.codes: list[int] = []
         self.ready = False
-        self.status = ""
+        self.report: FleetStatus | None = None  # its machines, as it last reported them
         self.last_ping: float | None = None
         self.restarts: list[float] = []
         self.given_up: str | None = None
@@ -194,9 +223,17 @@ class Worker:
                     len(self.files))
 
     def _read(self, proc: subprocess.Popen[str]) -> None:
+        """Read the worker's stdout to its end: its summary, one JSON document (a killed
+        worker writes none)."""
         assert proc.stdout is not None
         out = proc.stdout.read()
-        self.outputs.append(out)
+        if not out.strip():
+            return
+        try:
+            self.summaries.append(RunSummary.model_validate_json(out))
+        except ValidationError as exc:
+            logger.error("worker %d (pid %d): its summary could not be read: %s", self.index,
+                         proc.pid, exc)
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -215,12 +252,17 @@ class Worker:
             except (BlockingIOError, OSError):
                 return
             for line in msg.splitlines():
+                key, _, value = line.partition("=")
                 if line == "READY=1":
                     self.ready = True
                 elif line == "WATCHDOG=1":
                     self.last_ping = time.monotonic()
-                elif line.startswith("STATUS=") and _STATUS.match(line[7:]):
-                    self.status = line.removeprefix("STATUS=")  # its machines (not "stopping")
+                elif key == FLEET_REPORT:
+                    try:
+                        self.report = FleetStatus.model_validate_json(value)
+                    except ValidationError as exc:
+                        logger.error("worker %d: its status could not be read: %s",
+                                     self.index, exc)
 
     def healthy(self, interval: float | None) -> bool:
         if not self.alive():
@@ -240,7 +282,7 @@ class Worker:
             self.socket_path.unlink()
 
 
-class ProcessHost(ServiceSignals):
+class ProcessHost(ServiceHost):
     """The service host of a directory, its machines in ``workers`` processes (see the module
     docstring). Owns the signals, systemd, the reload, the stop, the summary and the exit
     status, as :class:`~twinwatch.daemon.host.Host` does in one process.
@@ -263,6 +305,7 @@ class ProcessHost(ServiceSignals):
                  notifier: Notifier | None = None) -> None:
         from twinwatch.daemon.slots import default_workers
 
+        super().__init__()
         self.directory = directory
         self.n = workers
         self.work_root = (work_root or Path.cwd()).resolve()
@@ -274,10 +317,6 @@ class ProcessHost(ServiceSignals):
         self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
         self.run_dir = Path(tempfile.mkdtemp(prefix="twinwatch-host-"))
         self.workers: list[Worker] = []
-        self._stop = threading.Event()
-        self._reload = threading.Event()
-        self._stop_signals = 0
-        self._previous_handlers: dict[int, Any] = {}
         self._status = ""
         self._last_ping = 0.0
         self._next_status = 0.0
@@ -337,6 +376,9 @@ class ProcessHost(ServiceSignals):
             self._stop_all()
             self._restore_signal_handlers()
             logfilter.flush(force=True)
+        code = self.exit_status()
+        if code:
+            self.notifier.status(f"stopped: exit status {code}")
 
     def _check(self, w: Worker) -> None:
         """A worker that a signal ended is started again (its machines resume); one that
@@ -346,6 +388,7 @@ class ProcessHost(ServiceSignals):
             return
         w.ended = True
         code = w.proc.returncode
+        assert code is not None  # it is not alive
         w.codes.append(code)
         if code >= 0:
             (logger.info if code == 0 else logger.warning)(
@@ -426,27 +469,21 @@ class ProcessHost(ServiceSignals):
                 p.unlink()
             self.run_dir.rmdir()
 
-    def stop(self) -> None:
-        self._stop.set()
-
     def close(self) -> None:
         """Remove the run directory (a host that was never started)."""
         with contextlib.suppress(OSError):
             self.run_dir.rmdir()
 
-    def reload(self) -> None:
-        self._reload.set()
-
     # -- what to report -----------------------------------------------------------------------
-    def status_line(self) -> str:
-        """The workers' machines summed, the degraded ones by name."""
+    def fleet_status(self) -> FleetStatus:
+        """The workers' machines summed from their reports, the degraded ones by name; a
+        worker that has not reported is named (given up, not running, starting)."""
         running = total = 0
         degraded: list[str] = []
         for w in self.workers:
             if not w.files:
                 continue
-            m = _STATUS.match(w.status)
-            if m is None:
+            if w.report is None:
                 total += len(w.files)
                 if w.given_up is not None:
                     degraded.append(w.given_up)
@@ -455,45 +492,38 @@ class ProcessHost(ServiceSignals):
                 else:
                     degraded.append(f"worker {w.index}: starting")
                 continue
-            running += int(m.group(1)) if w.alive() else 0
-            total += int(m.group(2))
-            if m.group(3):
-                degraded.append(m.group(3))
-        line = (f"gateway: {running} of {total} machines monitored ({self.directory}; "
-                f"{sum(w.alive() for w in self.workers)} worker processes)")
-        if degraded:
-            line += "; DEGRADED: " + "; ".join(degraded)
-        return line
+            running += w.report.monitored if w.alive() else 0
+            total += w.report.machines
+            degraded += w.report.degraded
+        return FleetStatus(monitored=running, machines=total, degraded=degraded)
 
-    def summary(self) -> tuple[list[str], str]:
-        """Each machine's summary block, in file order (a machine summarised by two of its
-        worker's incarnations, e.g. lost and tried again by a reload, by the last; a killed
-        incarnation prints none), and the total line."""
-        chunks: dict[str, list[str]] = {}
+    def status_line(self) -> str:
+        """The workers' machines summed, the degraded ones by name."""
+        return self.fleet_status().line(
+            f"{self.directory}; {sum(w.alive() for w in self.workers)} worker processes")
+
+    def summary(self) -> RunSummary:
+        """Each machine's block, in file order (a machine summarised by two of its worker's
+        incarnations, or twice by one, e.g. lost and tried again by a reload: by the last; a
+        killed incarnation gives none; a given-up worker's machines are lost), and the total
+        line."""
+        by_file: dict[str, MachineSummary] = {}
         for w in self.workers:
-            for out in w.outputs:
-                current: list[str] | None = None
-                for line in out.splitlines():
-                    if _TOTAL.match(line):
-                        current = None
-                        continue
-                    if line.startswith("== "):
-                        current = chunks[line.split("(", 1)[-1]] = [line]
-                    elif current is not None:
-                        current.append(line)
-        given_up = {p.name: w.given_up for w in self.workers if w.given_up is not None
-                    for p in w.files}
-        for name, why in given_up.items():
-            chunks.setdefault(f"{name}): ", [f"== {Path(name).stem} ({name}): lost: {why}"])
-        blocks = [line for key in sorted(chunks) for line in chunks[key]]
-        lost = [c[0].removeprefix("== ").replace("): lost: ", "): ", 1)
-                for key, c in sorted(chunks.items()) if "): lost: " in c[0]]
-        files = len(chunks)
-        total = (f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} lost"
-                 + (": " + "; ".join(lost) if lost else "")
-                 + f" ({len(self.workers)} worker processes, "
-                 f"{sum(1 for w in self.workers for c in w.codes if c < 0)} restarted)")
-        return blocks, total
+            for report in w.summaries:
+                for m in report.machines:
+                    by_file[m.file] = m
+        for w in self.workers:
+            if w.given_up is not None:
+                for p in w.files:
+                    by_file.setdefault(p.name, MachineSummary(name=p.stem, file=p.name,
+                                                              lost=w.given_up))
+        machines = [by_file[f] for f in sorted(by_file)]
+        lost = [f"{m.name} ({m.file}): {m.lost}" for m in machines if m.lost is not None]
+        restarted = sum(1 for w in self.workers for c in w.codes if c < 0)
+        total = (f"twinwatch gateway: {len(machines)} machines, {len(machines) - len(lost)} "
+                 f"ran, {len(lost)} lost" + (": " + "; ".join(lost) if lost else "")
+                 + f" ({len(self.workers)} worker processes, {restarted} restarted)")
+        return RunSummary(machines=machines, total=total, exit_status=self.exit_status())
 
     def exit_status(self) -> int:
         """The worst of the workers' (their last incarnations'): 78 when every worker's every
@@ -511,7 +541,7 @@ class ProcessHost(ServiceSignals):
                 return code
         return 0
 
-    def _abandon(self) -> None:
+    def abandon(self) -> None:
         """A second stop signal: each worker gets its second SIGTERM (it abandons its queued
         windows)."""
         for w in self.workers:

@@ -1,0 +1,236 @@
+"""The service contract: what ``twinwatch run`` is, whichever way its machines run.
+
+A :class:`ServiceHost` owns, in the main thread, the loop (:meth:`~ServiceHost.run`), its tick,
+the signals, the stop, the reload, systemd's ``STATUS`` and the end of the run: the exit status
+and a structured summary (:class:`RunSummary`). Two hosts implement it:
+
+* :class:`~twinwatch.daemon.host.Host`: the machines in threads of this process (a file, a
+  directory with ``--workers 1``, and each worker process of the other);
+* :class:`~twinwatch.daemon.workers.ProcessHost`: a directory's machines in worker processes,
+  each one a :class:`~twinwatch.daemon.host.Host` on the machine files it is assigned.
+
+The command line holds one ``ServiceHost`` and only prints what it returns. A worker reports to
+its host in typed messages, never in prose: its machines' state as a :class:`FleetStatus` in the
+``TWINWATCH_FLEET=`` assignment of its notifications (beside the human ``STATUS=`` line), and its
+summary as one :class:`RunSummary` in JSON on its stdout.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import FrameType
+from typing import TYPE_CHECKING, Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+if TYPE_CHECKING:
+    from twinwatch.daemon.systemd import Notifier
+    from twinwatch.twin.health import HealthMessage
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["EX_CONFIG", "EX_IOERR", "EX_TEMPFAIL", "FLEET_REPORT", "FleetStatus",
+           "MachineSummary", "Progress", "RunSummary", "ServiceHost"]
+
+EX_CONFIG = 78
+"""Exit status: no machine's configuration can run here (sysexits.h); the units do not restart
+on it."""
+
+EX_IOERR = 74
+"""Exit status: estimated windows were lost, not stored or not recorded (sysexits.h)."""
+
+EX_TEMPFAIL = 75
+"""Exit status: a machine ran but more of its windows failed than were estimated."""
+
+FLEET_REPORT = "TWINWATCH_FLEET"
+"""The notification assignment a worker process's host sends its :class:`FleetStatus` in (JSON,
+beside ``STATUS=``; systemd ignores assignments it does not know)."""
+
+
+class _Report(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class FleetStatus(_Report):
+    """What a fleet's ``STATUS=`` line says, as data: the machines monitored and the degraded
+    ones (a worker sends it to its host, which adds them up)."""
+
+    monitored: int = Field(description="machines running (started, not lost)")
+    machines: int = Field(description="machines of the fleet (current files)")
+    degraded: list[str] = Field(description="each degraded machine, ``name: problem, ...``")
+
+    def line(self, where: str) -> str:
+        """The ``STATUS=`` text, e.g. ``gateway: 2 of 3 machines monitored (DIR); DEGRADED: bad:
+        lost (...)``; ``where`` goes in the brackets (the directory, and the worker processes)."""
+        text = f"gateway: {self.monitored} of {self.machines} machines monitored ({where})"
+        return text + ("; DEGRADED: " + "; ".join(self.degraded) if self.degraded else "")
+
+
+class MachineSummary(_Report):
+    """One machine's block of the run's summary."""
+
+    name: str = Field(description="``[machine] name`` (the file's stem before it loaded)")
+    file: str = Field(description="its configuration file's name")
+    lost: str | None = Field(None, description="why it stopped or never started (one line)")
+    lines: list[str] = Field(default_factory=list,
+                             description="its summary (:func:`~twinwatch.daemon.summary."
+                             "machine_lines`); empty when no daemon ran")
+
+    def header(self) -> str:
+        """``== m1 (m1.toml): stopped``, or ``...: lost: why``."""
+        return f"== {self.name} ({self.file}): " + (
+            f"lost: {self.lost}" if self.lost is not None else "stopped")
+
+
+class RunSummary(_Report):
+    """The end of a run, as the host knows it: what to print and the exit status.
+
+    A fleet of one has one machine and no ``total``: its block is printed without a header.
+    A fleet prints each machine's header and block, in file order, then ``total``.
+    """
+
+    machines: list[MachineSummary] = Field(description="every machine that ran or was lost "
+                                           "(a machine tried again by a reload: each attempt)")
+    total: str | None = Field(None, description="a fleet's last line (``twinwatch gateway: 3 "
+                              "machines, 2 ran, 1 lost...``); None for a fleet of one")
+    errors: list[str] = Field(default_factory=list,
+                              description="lines for stderr (why a fleet of one stopped)")
+    exit_status: int = Field(description="the process's exit status (0, 1, 74, 75, 78)")
+
+    def lines(self) -> list[str]:
+        """The lines for stdout."""
+        if self.total is None:
+            return [line for m in self.machines for line in m.lines]
+        return [*(line for m in self.machines for line in (m.header(), *m.lines)), self.total]
+
+
+@dataclass(frozen=True)
+class Progress:
+    """A fleet of one's progress, for a bar at the terminal.
+
+    Attributes:
+        name: the machine's name.
+        total: the source time the run covers [s] (None: open-ended).
+        add_callback: registers a function called with each window's typed message (in the
+            machine's worker thread).
+    """
+
+    name: str
+    total: float | None
+    add_callback: Callable[[Callable[[HealthMessage], None]], None]
+
+
+class ServiceHost(ABC):
+    """The service: the loop, the signals, systemd, the stop, the summary and the exit status
+    (see the module docstring).
+
+    Use: :meth:`start` (raises :class:`~twinwatch.errors.ConfigError` when there is nothing to
+    run), :meth:`notices` and :meth:`progress` for the terminal, :meth:`run` until every machine
+    ended or a stop, then :meth:`summary`.
+
+    Signals, installed by :meth:`start` in the main thread: SIGTERM/SIGINT call :meth:`stop` (a
+    second one :meth:`abandon`), SIGHUP :meth:`reload`. Once a stop was requested the handlers
+    stay installed to the end of the process (a second SIGTERM still on its way must find them,
+    not the default action).
+
+    Attributes:
+        fleet: a directory of machines (one block per machine in the summary).
+        notifier: the process's systemd notifier.
+    """
+
+    fleet: bool
+    notifier: Notifier
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+        self._reload = threading.Event()
+        self._stop_signals = 0
+        self._previous_handlers: dict[int, Any] = {}
+
+    # -- the contract -------------------------------------------------------------------------
+    @abstractmethod
+    def start(self) -> None:
+        """Install the signal handlers, start the machines and tell systemd ``READY=1``.
+
+        Raises:
+            ConfigError: there is no machine to run (a directory without configurations).
+        """
+
+    @abstractmethod
+    def run(self) -> None:
+        """Supervise until every machine has ended or a stop; act on SIGHUP; keep ``STATUS``
+        and the watchdog. Stops every machine before returning, and tells systemd how the run
+        ended (``STATUS=stopped: ...``) when it failed."""
+
+    @abstractmethod
+    def status_line(self) -> str:
+        """systemd's ``STATUS=`` now."""
+
+    @abstractmethod
+    def exit_status(self) -> int:
+        """The process's exit status once :meth:`run` returned: 78 when no machine's
+        configuration could run, 1 when a machine was lost, else the worst machine's 74
+        (estimated windows lost) or 75 (more windows failed than estimated), else 0."""
+
+    @abstractmethod
+    def summary(self) -> RunSummary:
+        """The run's summary once :meth:`run` returned."""
+
+    @abstractmethod
+    def abandon(self) -> None:
+        """A second stop: every machine abandons its queued windows."""
+
+    def notices(self) -> list[str]:
+        """Lines for the terminal once started (a fleet of one: what it resumed, or why it
+        starts a new run)."""
+        return []
+
+    def progress(self) -> Progress | None:
+        """A fleet of one's running machine, for a progress bar; None otherwise."""
+        return None
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to stop every machine and return (thread- and signal-safe)."""
+        self._stop.set()
+
+    def reload(self) -> None:
+        """Ask for a reload, as SIGHUP does (thread- and signal-safe)."""
+        self._reload.set()
+
+    # -- signals ------------------------------------------------------------------------------
+    def _install_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum, handler in ((signal.SIGINT, self._on_stop_signal),
+                                (signal.SIGTERM, self._on_stop_signal),
+                                (signal.SIGHUP, self._on_hup)):
+            self._previous_handlers[signum] = signal.signal(signum, handler)
+
+    def _restore_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread() or self._stop_signals:
+            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
+            # handler, not the default action (exit -15 after a clean stop)
+            return
+        for signum, handler in self._previous_handlers.items():
+            signal.signal(signum, handler)
+        self._previous_handlers.clear()
+
+    def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
+        self._stop_signals += 1
+        if self._stop_signals > 1:
+            logger.warning("%s received again: abandoning the queued windows",
+                           signal.Signals(signum).name)
+            self.abandon()
+            return
+        logger.warning("%s received: %s", signal.Signals(signum).name,
+                       "every machine finishes its queued windows and stops" if self.fleet
+                       else "finishing the queued windows and stopping")
+        self.stop()
+
+    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
+        self.reload()
