@@ -207,8 +207,7 @@ def test_a_suspect_window_is_no_deviation_evidence(leak_history: list[HealthMess
     assert not sound.terms
 
     def window(i: int, status: str) -> HealthMessage:
-        h = sound.model_copy(deep=True)
-        h.window = i
+        h = sound.model_copy(deep=True, update={"window": i})
         h.parameters["D"].value = 150.0
         h.parameters["D"].status = status  # type: ignore[assignment]
         return h
@@ -248,13 +247,15 @@ def test_a_fault_alarm_has_hysteresis(leak_history: list[HealthMessage]) -> None
     template = leak_history[-1]
     got = []
     for i, p in enumerate([0.9, 0.95, 0.9, 0.6, 0.55, 0.9, 0.4, 0.45, 0.6, 0.4, 0.3, 0.2]):
-        h = template.model_copy(deep=True)
-        h.window = i
-        h.diagnosis.faults[0].probability = p  # type: ignore[union-attr]
-        for e in alarms.update(h):
+        h = template.model_copy(deep=True, update={"window": i})
+        assert h.diagnosis is not None
+        h.diagnosis.faults[0].probability = p
+        diagnosis, events = alarms.update(h.diagnosis, h)
+        for e in events:
             got.append((i, e["level"], e["fault"]))
             assert e["kind"] == "diagnosis" and "internal_leak (probability" in e["message"]
-        assert h.diagnosis.alarms == (["internal_leak"] if 2 <= i < 11 else [])  # type: ignore[union-attr]
+        assert diagnosis is not None and diagnosis is not h.diagnosis  # a new one
+        assert diagnosis.alarms == (["internal_leak"] if 2 <= i < 11 else [])
     assert got == [(2, "alarm", "internal_leak"), (11, "normal", "internal_leak")]
 
 
@@ -415,11 +416,9 @@ def test_a_drive_dead_zone_is_an_unknown_fault_naming_the_discovered_term() -> N
     from twinwatch.twin.diagnosis import Diagnoser
 
     def with_ra(h: HealthMessage, terms: bool) -> HealthMessage:
-        h = h.model_copy(deep=True)
+        h = h.model_copy(deep=True, update={} if terms else {"terms": []})
         ra = h.parameters["Ra"]
         ra.value, ra.status, ra.rel_std_pct = 6.5 * 1.02, "estimated", 0.05  # type: ignore[assignment]
-        if not terms:
-            h.terms = []
         return h
 
     for terms in (True, False):

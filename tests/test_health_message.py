@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import ast
 import itertools
 import json
 import math
@@ -163,7 +164,7 @@ def test_the_compiled_serialiser_writes_the_one_encoders_document(processed) -> 
     from twinwatch.io.encoding import to_json
 
     h = _message(processed)
-    h.nrmse = math.nan
+    h = h.model_validate(h.model_dump() | {"nrmse": math.nan})  # validated: NaN -> None
     h.parameters["Ra"].deviation_pct = math.inf
     text = h.to_json()
     assert json.loads(text) == json.loads(to_json(h.as_dict()))
@@ -173,7 +174,7 @@ def test_the_compiled_serialiser_writes_the_one_encoders_document(processed) -> 
 
 def test_non_finite_numbers_are_null_in_every_copy(processed, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     h = _message(processed)
-    h.nrmse = math.nan
+    h = h.model_validate(h.model_dump() | {"nrmse": math.nan})  # validated: NaN -> None
     h.parameters["Ra"].deviation_pct = math.inf
     assert h.nrmse is None and h.parameters["Ra"].deviation_pct is None
     text = h.to_json()
@@ -194,3 +195,88 @@ def test_non_finite_numbers_are_null_in_every_copy(processed, tmp_path: Path) ->
     assert rows[0] == text  # stored byte for byte as published
     assert '"nrmse":null' in rows[1] and "NaN" not in rows[1]
     assert json.loads(twin) == {"trusted": {"Ra": None}}
+
+
+def test_a_built_message_is_frozen(processed) -> None:  # type: ignore[no-untyped-def]
+    """Built once, never edited (issue 36): assigning a field of a built message raises; a
+    variant is a new message (``model_copy(update=...)``) and leaves the first unchanged."""
+    h = _message(processed)
+    with pytest.raises(ValidationError, match="frozen"):
+        h.alarms = {}
+    with pytest.raises(ValidationError, match="frozen"):
+        h.diagnosis = None
+    window = h.window
+    other = h.model_copy(update={"window": window + 7})
+    assert (other.window, h.window) == (window + 7, window)
+
+
+def test_the_windows_message_is_the_reading_with_what_was_derived(processed) -> None:  # type: ignore[no-untyped-def]
+    """complete_health: the same message build_health makes with the diagnosis and the alarms
+    passed in, a new one; the estimation's message it was made from stays as it was."""
+    from twinwatch.twin.health import AlarmStatus, complete_health
+
+    reading = _message(processed)
+    before = reading.to_json()
+    alarms = {"Ra": AlarmStatus(level="warning", since_t=10.0, since_window=5,
+                                deviation_pct=-5.2, pending=None, rul=None)}
+    done = complete_health(reading, diagnosis=None, alarms=alarms)
+    assert done is not reading and reading.to_json() == before and reading.alarms == {}
+    assert done.to_json() == _message(processed, alarms=alarms).to_json()
+    assert done.alarms["Ra"].level == "warning"
+
+
+#: The fields of the message and of its diagnosis: what the pipeline derives after the
+#: estimation and once wrote into the built message (source, diagnosis, alarms, ...).
+_MESSAGE_FIELDS = set(HealthMessage.model_fields) | {"schema"}
+
+
+def message_writes(source: str) -> list[tuple[int, str]]:
+    """(line, target) of every assignment in ``source`` to ``<name>.<field>`` (or deeper,
+    ``<name>.diagnosis.alarms``) where ``<field>`` is a field of the message and ``<name>`` is
+    not ``self``: writing into a built message (or a part of it)."""
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(ast.parse(source)):
+        targets: list[ast.expr] = []
+        if isinstance(node, ast.Assign):
+            targets = list(node.targets)
+        elif isinstance(node, ast.AugAssign | ast.AnnAssign):
+            targets = [node.target]
+        flat: list[ast.expr] = []
+        for t in targets:
+            flat += list(t.elts) if isinstance(t, ast.Tuple | ast.List) else [t]
+        for t in flat:
+            chain: list[str] = []
+            node_: ast.expr = t
+            while isinstance(node_, ast.Attribute | ast.Subscript):
+                if isinstance(node_, ast.Attribute):
+                    chain.append(node_.attr)
+                node_ = node_.value
+            root = node_.id if isinstance(node_, ast.Name) else None
+            if root is None or root == "self" or not chain:
+                continue
+            if chain[-1] in _MESSAGE_FIELDS or (len(chain) > 1 and chain[-2] == "diagnosis"):
+                found.append((t.lineno, ast.unparse(t)))
+    return found
+
+
+def test_the_scan_finds_a_write_into_a_message() -> None:
+    """Not vacuous: the writes the pipeline made before issue 36 are found."""
+    before = ("def process(self, window):\n"
+              "    health = build_health()\n"
+              "    health.source = self._source_health(window)\n"
+              "    health.diagnosis = self.diagnoser.update(health)\n"
+              "    health.alarms = {}\n"
+              "    d = health.diagnosis\n"
+              "    health.diagnosis.alarms = []\n"
+              "    self.latest = health\n"
+              "    p.value, p.status = 1.0, 'held'\n")
+    assert message_writes(before) == [(3, "health.source"), (4, "health.diagnosis"),
+                                      (5, "health.alarms"), (7, "health.diagnosis.alarms")]
+
+
+@pytest.mark.parametrize("module", ["daemon/pipeline.py", "daemon/alarms.py",
+                                    "daemon/window_worker.py", "daemon/runner.py",
+                                    "daemon/outputs.py"])
+def test_the_daemon_writes_into_no_built_message(module: str) -> None:
+    found = message_writes((ROOT / "twinwatch" / module).read_text())
+    assert found == [], f"twinwatch/{module} writes into a built health message: {found}"

@@ -54,7 +54,7 @@ from twinwatch.config.alarms import LEVELS, AlarmConfig, AlarmRule, Level
 from twinwatch.twin.prognostics.rul import format_crossing, format_duration
 
 if TYPE_CHECKING:
-    from twinwatch.twin.health import HealthMessage, ParameterHealth
+    from twinwatch.twin.health import DiagnosisHealth, HealthMessage, ParameterHealth
 
 logger = logging.getLogger(__name__)
 
@@ -433,11 +433,20 @@ class FaultAlarms:
         self._above: dict[str, int] = {}
         self._below: dict[str, int] = {}
 
-    def update(self, health: HealthMessage) -> list[dict[str, Any]]:
-        """Advance on one window's diagnosis; its events (and ``diagnosis.alarms`` set)."""
-        d = health.diagnosis
+    def update(self, d: DiagnosisHealth | None, health: HealthMessage
+               ) -> tuple[DiagnosisHealth | None, list[dict[str, Any]]]:
+        """Advance on one window's diagnosis.
+
+        Args:
+            d: the window's diagnosis (None: none this window).
+            health: the window's message (its machine, window and end time for the events).
+
+        Returns:
+            The diagnosis with ``alarms``, the faults raised now (a new object: ``d`` is left
+            as it was; ``d`` itself when the alarms are off), and the events.
+        """
         if d is None or self.alarm is None:
-            return []
+            return d, []
         probs = {f.id: f for f in d.faults}
         events = []
         for fid in set(probs) | set(self.raised) | set(self._above):
@@ -459,10 +468,9 @@ class FaultAlarms:
                                               "cleared: the evidence no longer supports it"))
             if not self._above.get(fid, 1):
                 self._above.pop(fid, None)
-        d.alarms = sorted(self.raised)
         for e in events:
             logger.warning("%s", e["message"])
-        return events
+        return d.model_copy(update={"alarms": sorted(self.raised)}), events
 
     def _event(self, health: HealthMessage, fid: str, level: str, previous: str, p: float,
                what: str) -> dict[str, Any]:

@@ -10,7 +10,11 @@
       -> callbacks (the CLI's progress bar)
 
 The health message is typed (:class:`~twinwatch.twin.health.HealthMessage`) from end to end
-(the alarms, the sinks and the callbacks read it typed), built once and encoded once
+(the alarms, the sinks and the callbacks read it typed) and frozen. The diagnosis and the alarms
+are derived from the window's estimation, so :meth:`WindowPipeline.process` builds the
+estimation's message first (what they read), then the window's message once from everything it
+carries (the estimation, the source, the diagnosis, the alarm states): nothing is written into
+a message after it is built. It is encoded once
 (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): every sink writes the same text. The
 sinks share one contract, :class:`~twinwatch.sinks.base.Sink` (``write(ProcessedWindow)``,
 ``close()``, its role); the pipeline knows none by name. Their order is the guarantee "stored
@@ -55,9 +59,11 @@ from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.diagnosis import Diagnoser, shaft_speed
 from twinwatch.twin.health import (
     AlarmStatus,
+    DiagnosisHealth,
     HealthMessage,
     SourceHealth,
     build_health,
+    complete_health,
     summary_line,
 )
 from twinwatch.twin.model import WindowData
@@ -397,6 +403,21 @@ class WindowPipeline:
             logger.warning("the %s output works again", sink.name)
         return result
 
+    def _diagnose(self, reading: HealthMessage, window: WindowData) -> DiagnosisHealth | None:
+        """The window's diagnosis from the estimation's message and the window's shaft speed;
+        None without a diagnoser, or when it failed (logged once, then at debug level: the
+        window is published without one)."""
+        if self.diagnoser is None:
+            return None
+        try:
+            return self.diagnoser.update(
+                reading, shaft_speed(window, self.diagnoser.library.speed_channel))
+        except Exception:  # noqa: BLE001 - the window is published without a diagnosis
+            log = logger.debug if self._diagnosis_failed else logger.exception
+            self._diagnosis_failed = True
+            log("the diagnosis failed on window %d: published without one", window.index)
+            return None
+
     def _source_health(self, window: WindowData) -> SourceHealth:
         """The window's ``source``: its stamps' jitter against the grid the ring buffer placed
         it on [us], and what the source waits for or lacks now."""
@@ -458,24 +479,21 @@ class WindowPipeline:
         """
         result = self.adapter.process(window)
         self.windows_estimated += 1
-        health = build_health(machine=self.machine, model_name=self.model_name, run=self.run,
-                              model=self.adapter.model, window=window, adaptation=result,
-                              nominal=self.nominal, counters=self._counters(),
-                              discovery_enabled=self.adapter.enabled)
-        health.source = self._source_health(window)
-        if self.diagnoser is not None:
-            try:
-                health.diagnosis = self.diagnoser.update(
-                    health, shaft_speed(window, self.diagnoser.library.speed_channel))
-            except Exception:  # noqa: BLE001 - the window is published without a diagnosis
-                log = logger.debug if self._diagnosis_failed else logger.exception
-                self._diagnosis_failed = True
-                log("the diagnosis failed on window %d: published without one", window.index)
-        events = self.alarms.update(health)
+        # the estimation's message: what the diagnosis and the alarms read
+        reading = build_health(machine=self.machine, model_name=self.model_name, run=self.run,
+                               model=self.adapter.model, window=window, adaptation=result,
+                               nominal=self.nominal, counters=self._counters(),
+                               discovery_enabled=self.adapter.enabled,
+                               source=self._source_health(window))
+        diagnosis = self._diagnose(reading, window)
+        events = self.alarms.update(reading)
         if self.fault_alarms is not None:
-            events += self.fault_alarms.update(health)
-        health.alarms = {name: AlarmStatus.model_validate(state)
-                         for name, state in self.alarms.state().items()}
+            diagnosis, fault_events = self.fault_alarms.update(diagnosis, reading)
+            events += fault_events
+        # the window's message, built once from everything it carries
+        health = complete_health(reading, diagnosis=diagnosis, alarms={
+            name: AlarmStatus.model_validate(state)
+            for name, state in self.alarms.state().items()})
         out = ProcessedWindow(window=window, result=result, health=health,
                               health_json=health.to_json(), events=events,
                               twin_state=self.adapter.state() if result.estimate.trusted
