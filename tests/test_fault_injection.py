@@ -594,7 +594,7 @@ def run_with_subscriber(ctx: Context, cfg_text_kw: dict[str, Any], *args: str
         result = cli("run", str(cfg), *args)
         published = sorted(h["window"] for h in col.snapshot())
     with StateStore(ctx.tmp / "state.sqlite") as st:
-        stored = sorted(h["window"] for h in st.history(limit=None))
+        stored = sorted(h.window for h in st.history(limit=None))
     return result, published, stored
 
 
@@ -648,7 +648,7 @@ def _disk_full_to_the_end(ctx: Context) -> dict[str, Any]:
         last = st.latest_health()
     return {"exit_code": r.exit_code, "published": published, "stored": stored,
             "lost_in_summary": "2 lost)" in r.output and "exit status 74" in r.output,
-            "health_counters": {k: last["counters"][k]
+            "health_counters": {k: (last.counters or {})[k] if last is not None else None
                                 for k in ("store_waiting", "windows_not_stored")}}
 
 
@@ -705,7 +705,7 @@ def _state_database_locked_30_s(ctx: Context) -> dict[str, Any]:
             assert locker.stdout is not None
             locker.stdout.close()
     with StateStore(db) as st:
-        stored = [h["window"] for h in st.history(limit=None)]
+        stored = [h.window for h in st.history(limit=None)]
         last = st.latest_health()
     summary = out.splitlines()[0] if out else ""
     estimated = int(summary.split()[1]) if summary.startswith("twinwatch: ") else -1
@@ -788,7 +788,7 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
             proc.stderr.close()
         published = {h["window"] for h in col.snapshot()}
     with StateStore(ctx.tmp / "state.sqlite") as st:
-        stored = [h["window"] for h in st.history(limit=None)]
+        stored = [h.window for h in st.history(limit=None)]
     verify = subprocess.run([_rerun(), "rrd", "verify", str(ctx.tmp / "twinwatch.rrd")],
                             capture_output=True, text=True, env=_env(), timeout=120)
     return {"exit_code": proc.returncode,
@@ -1496,7 +1496,7 @@ def state_facts(ctx: Context, r: Any) -> dict[str, Any]:
     return {"exit_code": r.exit_code,
             "noticed": f"{noticed.group(1)} at window {noticed.group(2)}" if noticed else None,
             "windows_in_file": windows, "twin_saved": twin is not None,
-            "counter": None if last is None else last["counters"].get("store_history_lost"),
+            "counter": None if last is None else (last.counters or {}).get("store_history_lost"),
             "summary": line[0] if line else None}
 
 

@@ -100,7 +100,7 @@ class Gateway:
 
     def history(self, t_from: float | None, t_to: float | None, limit: int | None,
                 by: Literal["plant", "wall"], run: str | None = None,
-                after: float | None = None) -> list[dict[str, Any]]:
+                after: float | None = None) -> list[HealthView]:
         return self.store.history(t_from, t_to, limit, by=by, machine=self.machine, run=run,
                                   after=after)
 

@@ -32,8 +32,13 @@ READERS = [
     "cli.py",
     "daemon/summary.py",
     "sinks/zenoh.py",
+    "daemon/resume.py",
+    "twin/prognostics/engine.py",
 ]
-"""The reader modules (paths under twinwatch/), every one converted."""
+"""The reader modules (paths under twinwatch/), every one converted: also the restart's, the
+alarm levels and the twin resumed (``daemon/resume.py``) and the trends replayed
+(``twin/prognostics/engine.py``) from the stored messages (:class:`~twinwatch.sinks.base.Gate`'s
+``latest_health``, ``history`` and ``timeline`` return typed views)."""
 
 OTHER_DOCUMENTS = {
     ("watch.py", "Fleet.machines"): "the watcher's own snapshot (watch --once --json)",
@@ -48,6 +53,7 @@ OTHER_DOCUMENTS = {
     ("daemon/summary.py", "resumed_line"): "the daemon's resume summary (Daemon.resumed)",
     ("daemon/summary.py", "new_run_line"): "the daemon's new-run summary (Daemon.new_run)",
     ("sinks/zenoh.py", "history_parameters"): "the history query's parameters",
+    ("daemon/resume.py", "_twin_summary"): "the saved twin (TwinAdapter.state())",
 }
 """(file, function) -> the document it reads instead of the health message."""
 

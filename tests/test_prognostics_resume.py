@@ -19,6 +19,8 @@ from typing import Any
 
 import pytest
 
+from twinwatch.twin.health import HealthView, read_health
+
 from .sources_support import FILE_DRIVER, plant_csv
 from .test_fault_injection import cli, with_driver
 from .test_service import db_rows
@@ -102,6 +104,7 @@ def test_restarts_change_neither_the_trend_nor_the_rul_nor_its_alarm(runs) -> No
 def test_the_time_line_spans_resumed_runs_and_stops_where_the_clock_went_back(tmp_path):
     """The state store's :meth:`timeline`: the windows of the line that ends with the last one,
     across runs, not those of a run whose clock started over (a replay from its start)."""
+    from twinwatch.sinks.base import Gate
     from twinwatch.sinks.store import StateStore
 
     db = tmp_path / "state.sqlite"
@@ -122,9 +125,12 @@ def test_the_time_line_spans_resumed_runs_and_stops_where_the_clock_went_back(tm
         con.commit()
         con.close()
         line = store.timeline("m")
-        assert [(m["run"], m["t_start"]) for m in line] == rows[10:]
-        assert [m["t_start"] for m in store.timeline("m", t_from=11.0)] == [10, 12, 14, 16, 18,
-                                                                           20, 22]
+        assert [(m.run, m.t_start) for m in line] == rows[10:]
+        assert [m.t_start for m in store.timeline("m", t_from=11.0)] == [10, 12, 14, 16, 18,
+                                                                         20, 22]
+        # a gate that cannot follow the line across runs: the last run's windows (Gate's own)
+        assert [(m.run, m.t_start) for m in Gate.timeline(store, "m")] == rows[-5:]
+        assert [m.t_start for m in Gate.timeline(store, "m", t_from=17.0)] == [16, 18, 20, 22]
     finally:
         store.close()
 
@@ -208,11 +214,12 @@ def test_replay_carries_the_evidence_since_the_segment_and_its_restarts_over() -
     segment start (``since_t``), and its restarts (count and the last one), as reported."""
     from twinwatch.twin.prognostics import Prognostics, PrognosticsConfig
 
-    def msg(t: float, value: float, since: float) -> dict[str, Any]:
-        return {"t_end": t, "parameters": {"Ra": {"trend": {
+    def msg(t: float, value: float, since: float) -> HealthView:
+        return read_health({"t_end": t, "parameters": {"Ra": {"trend": {
             "since_t": since, "restarts": 2,
             "restart": {"t": since, "step": 0.25, "reason": "step of +9.0 standard errors"},
-            "window_evidence": {"t": t, "value": value, "std": 0.001, "source": "estimated"}}}}}
+            "window_evidence": {"t": t, "value": value, "std": 0.001,
+                                "source": "estimated"}}}}})
 
     before = [msg(2.0 * k, 6.0, 0.0) for k in range(10)]  # another segment: not replayed
     segment = [msg(20.0 + 2.0 * k, 6.25 - 1e-4 * k, 20.0) for k in range(15)]

@@ -137,6 +137,6 @@ def test_history_filters_by_run(tmp_path: Path) -> None:
         (second.run_id, 0), (second.run_id, 1)]
     assert "run='no/such*run!'" in bad[0]["error"]
     with StateStore(tmp_path / "state.sqlite") as st:
-        assert [h["window"] for h in st.history(machine=MACHINE, run=second.run_id)] == [0, 1, 2]
+        assert [h.window for h in st.history(machine=MACHINE, run=second.run_id)] == [0, 1, 2]
         assert st.history(run="20000101T000000Z-000000") == []
         assert len(st.history(t_from=0.0, t_to=1.0, machine=MACHINE)) == 2  # one per run

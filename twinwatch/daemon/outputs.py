@@ -18,7 +18,7 @@ import logging
 from collections.abc import Callable, Collection, Container, Mapping
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Literal
 
 from twinwatch.sinks import SINKS, sink_class
 from twinwatch.sinks.base import (
@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from twinwatch.config.schema import OutputTable, TwinwatchConfig
     from twinwatch.daemon.pipeline import WindowPipeline
     from twinwatch.drivers.base import Driver
+    from twinwatch.twin.health import HealthView
     from twinwatch.twin.model import TwinModel
 
 # the daemon's log lines keep the logger name they had before it was split (journal filters)
@@ -195,7 +196,7 @@ class Outputs:
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
                        run: str | None = None, after: float | None = None
-                       ) -> list[dict[str, Any]]:
+                       ) -> list[HealthView]:
         """Stored health messages of this machine (:meth:`twinwatch.daemon.runner.Daemon.
         stored_history`); empty without a state database."""
         store = self.store

@@ -16,6 +16,7 @@ prognostics what it held; the daemon keeps what they return (``restored``, ``res
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -73,50 +74,45 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
                          store.path, exc)
         else:
             restored = state
+            trusted, terms = _twin_summary(state)
             logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
                         machine, store.path,
-                        ", ".join(f"{k}={v:.6g}" for k, v in state["trusted"].items()),
-                        len(state.get("terms", [])))
-    if last is not None and last.get("alarms"):
-        alarms.restore(last["alarms"])
+                        ", ".join(f"{k}={v:.6g}" for k, v in trusted.items()), terms)
+    raised = last.alarms if last is not None and last.alarms else None
+    if raised is not None:
+        alarms.restore(raised)
     if state is not None and adapter.prognostics is not None:
         replay_trends(store, machine, adapter.prognostics)
-    if restored is None and not (last is not None and last.get("alarms")):
+    if restored is None and raised is None:
         return restored, None
+    trusted, terms = _twin_summary(restored or {})
     return restored, {
         "path": str(store.path),
-        "window": None if last is None else last.get("window"),
-        "t_end": None if last is None else last.get("t_end"),
-        "trusted": dict((restored or {}).get("trusted") or {}),
-        "terms": len((restored or {}).get("terms") or []),
-        "alarms": {k: a.get("level") for k, a in
-                   ((last or {}).get("alarms") or {}).items()
-                   if a.get("level") not in (None, "normal")},
+        "window": None if last is None else last.window,
+        "t_end": None if last is None else last.t_end,
+        "trusted": trusted,
+        "terms": terms,
+        "alarms": {k: a.level for k, a in (raised or {}).items()
+                   if a is not None and a.level not in (None, "normal")},
     }
+
+
+def _twin_summary(state: Mapping[str, Any]) -> tuple[dict[str, float], int]:
+    """A saved twin (:meth:`~twinwatch.twin.adaptation.TwinAdapter.state`, not a health
+    message): its trusted parameters and its number of meta-model terms."""
+    return dict(state.get("trusted") or {}), len(state.get("terms") or [])
 
 
 def replay_trends(store: Gate, machine: str, prognostics: Prognostics) -> None:
     """Rebuild the parameters' trends from the evidence the stored windows published (the last
     ``[prognostics] horizon`` seconds of plant time, on the time line that ends with the last
-    window: across earlier restarts, :meth:`StateStore.timeline`), so a restart resumes the
-    trends and their RUL instead of waiting ``min_evidence`` windows."""
+    window: across earlier restarts, :meth:`~twinwatch.sinks.base.Gate.timeline`), read
+    through their typed views, so a restart resumes the trends and their RUL instead of
+    waiting ``min_evidence`` windows."""
     last = store.latest_health(machine)
-    if last is None or last.get("t_end") is None:
+    if last is None or last.t_end is None:
         return
-    t_to = float(last["t_end"])
-    t_from = t_to - prognostics.config.horizon
-    messages: list[dict[str, Any]] = []
-    timeline = getattr(store, "timeline", None)
-    if timeline is not None:  # the state store: the time line across restarts
-        messages = timeline(machine, t_from)
-    else:  # a gate without it: the last run's windows only
-        run = last.get("run")
-        while True:
-            page = store.history(t_from, t_to, 1000, by="plant", machine=machine, run=run)
-            messages.extend(page)
-            if len(page) < 1000:
-                break
-            t_from = float(page[-1]["t_end"]) + 1e-9
+    messages = store.timeline(machine, float(last.t_end) - prognostics.config.horizon)
     n = prognostics.replay(messages)
     if n:
         logger.info("resumed the parameters' trends from %d stored windows", n)
@@ -134,12 +130,11 @@ def note_new_run(store: Gate, machine: str, driver_type: str, run_id: str
     last = store.latest_health(machine)
     if last is None or store.recovered:
         return None
-    new_run = {"reason": f"the {driver_type} source's time starts over when it opens",
-               "path": str(store.path), "run": last.get("run")}
+    reason = f"the {driver_type} source's time starts over when it opens"
     logger.info("a new run %s of %s: %s; the twin starts from the nameplate values, the "
-                "alarms from normal (%s keeps the earlier runs)", run_id, machine,
-                new_run["reason"], store.path)
-    return new_run
+                "alarms from normal (%s keeps the earlier runs)", run_id, machine, reason,
+                store.path)
+    return {"reason": reason, "path": str(store.path), "run": last.run}
 
 
 def continue_numbering(ring: RingBuffer, previous: RingBuffer) -> None:

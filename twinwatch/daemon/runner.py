@@ -59,7 +59,7 @@ if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never 
     from twinwatch.sinks.base import Gate, Outbox, SharedResources, Sink
     from twinwatch.twin.adaptation import TwinAdapter
     from twinwatch.twin.estimation.estimator import Estimator
-    from twinwatch.twin.health import HealthMessage
+    from twinwatch.twin.health import HealthMessage, HealthView
     from twinwatch.twin.model import TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
@@ -394,7 +394,7 @@ class Daemon:
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
                        run: str | None = None, after: float | None = None
-                       ) -> list[dict[str, Any]]:
+                       ) -> list[HealthView]:
         """Stored health messages of this machine in a time range, of one run with ``run``
         (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
         database. The outputs ask it through their context (the Zenoh history query)."""

@@ -49,7 +49,7 @@ from twinwatch.plugins import commented_table
 
 if TYPE_CHECKING:  # annotations only: opening a sink does not load the twin's estimation
     from twinwatch.twin.adaptation import AdaptationResult
-    from twinwatch.twin.health import HealthMessage
+    from twinwatch.twin.health import HealthMessage, HealthView
     from twinwatch.twin.model import WindowData
 
 __all__ = [
@@ -103,7 +103,7 @@ class HistoryQuery(Protocol):
 
     def __call__(self, t_from: float | None, t_to: float | None, limit: int | None,
                  by: Literal["plant", "wall"], run: str | None = None,
-                 after: float | None = None) -> list[dict[str, Any]]: ...
+                 after: float | None = None) -> list[HealthView]: ...
 
 
 @dataclass(frozen=True)
@@ -502,16 +502,38 @@ class Gate(Sink):
         """The last accepted twin of ``machine``, as saved, or None."""
 
     @abc.abstractmethod
-    def latest_health(self, machine: str | None = None) -> dict[str, Any] | None:
-        """The last stored health message of ``machine`` (decoded), or None."""
+    def latest_health(self, machine: str | None = None) -> HealthView | None:
+        """The last stored health message of ``machine``, read through its typed view
+        (:func:`~twinwatch.twin.health.read_health`: a field an older daemon did not store is
+        None), or None."""
 
     @abc.abstractmethod
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
                 machine: str | None = None, run: str | None = None,
-                after: float | None = None) -> list[dict[str, Any]]:
+                after: float | None = None) -> list[HealthView]:
         """Stored health messages in a time range (of one run when ``run`` is given), oldest
-        first; ``after``: only those ending strictly after it (the paging cursor)."""
+        first, each through its typed view; ``after``: only those ending strictly after it
+        (the paging cursor)."""
+
+    def timeline(self, machine: str, t_from: float | None = None) -> list[HealthView]:
+        """``machine``'s stored messages on the time line that ends with its last one, from
+        ``t_from`` [s, plant time] on, oldest first: what a restart resumes the trends from.
+        Default: the last stored run's windows (paged through :meth:`history`); a gate that
+        can follow the line across restarts overrides it
+        (:meth:`twinwatch.sinks.store.StateStore.timeline`)."""
+        last = self.latest_health(machine)
+        if last is None or last.t_end is None:
+            return []
+        out: list[HealthView] = []
+        after: float | None = None
+        while True:
+            page = self.history(t_from, float(last.t_end), 1000, by="plant", machine=machine,
+                                run=last.run, after=after)
+            out += page
+            if len(page) < 1000 or page[-1].t_end is None:
+                return out
+            after = float(page[-1].t_end)
 
     def outbox(self, output: str, machine: str) -> Outbox | None:
         """The :class:`Outbox` of ``output`` for ``machine``'s windows; None (the default):

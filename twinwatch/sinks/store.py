@@ -73,6 +73,7 @@ from twinwatch.sinks.base import (
     _frozen,
 )
 from twinwatch.sinks.locks import FileLock, LockedError
+from twinwatch.twin.health import HealthView, read_health
 
 logger = logging.getLogger(__name__)
 
@@ -934,7 +935,7 @@ class StateStore(Gate):
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
                 machine: str | None = None, run: str | None = None,
-                after: float | None = None) -> list[dict[str, Any]]:
+                after: float | None = None) -> list[HealthView]:
         """Health messages in a time range, oldest first (in the order they were saved).
 
         Args:
@@ -957,7 +958,8 @@ class StateStore(Gate):
                 ``limit = 1`` never advanced.
 
         Returns:
-            The stored health messages (dicts as saved).
+            The stored health messages, each through its typed view
+            (:func:`~twinwatch.twin.health.read_health`).
         """
         if by not in ("plant", "wall"):
             raise ValueError(f"by must be 'plant' or 'wall', not {by!r}")
@@ -989,9 +991,9 @@ class StateStore(Gate):
             args.append(int(limit))
         rows = self._read("cannot read the history",
                           lambda conn: conn.execute(sql, args).fetchall())
-        return [json.loads(r[0]) for r in rows]
+        return [read_health(r[0]) for r in rows]
 
-    def timeline(self, machine: str, t_from: float | None = None) -> list[dict[str, Any]]:
+    def timeline(self, machine: str, t_from: float | None = None) -> list[HealthView]:
         """The machine's health messages on the time line that ends with its last stored
         window, oldest first: read back from the last one in the order they were saved, across
         runs, while each window ends before the one saved after it starts (a run that resumed
@@ -1019,10 +1021,11 @@ class StateStore(Gate):
             return docs
 
         docs = self._read("cannot read the history", read)
-        return [json.loads(d) for d in reversed(docs)]
+        return [read_health(d) for d in reversed(docs)]
 
-    def latest_health(self, machine: str | None = None) -> dict[str, Any] | None:
-        """The last health message saved (e.g. to restore the alarm state at start)."""
+    def latest_health(self, machine: str | None = None) -> HealthView | None:
+        """The last health message saved, through its typed view (e.g. to restore the alarm
+        state at start)."""
         sql = "SELECT doc FROM health"
         args: tuple[Any, ...] = ()
         if machine is not None:
@@ -1030,7 +1033,7 @@ class StateStore(Gate):
             args = (machine,)
         row = self._read("cannot read the history", lambda conn: conn.execute(
             sql + " ORDER BY id DESC LIMIT 1", args).fetchone())
-        return None if row is None else dict(json.loads(row[0]))
+        return None if row is None else read_health(row[0])
 
     def last_docs(self, machine: str, run: str, limit: int) -> list[str]:
         """The last ``limit`` health messages of ``machine``'s run ``run``, as saved (JSON

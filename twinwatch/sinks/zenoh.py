@@ -723,14 +723,11 @@ class HealthPublisher(Sink):
         more = len(windows) == limit
         # the cursor of the next page: by plant time the last window's end (by wall time the
         # caller pages on the wall stamps it keeps; the messages carry plant time only)
-        nxt = None
-        if more and by == "plant" and windows:
-            from twinwatch.twin.health import read_health
-
-            nxt = read_health(windows[-1]).t_end
+        nxt = windows[-1].t_end if more and by == "plant" and windows else None
         return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to, "run": run,
                 "after": after, "count": len(windows), "more": more, "next_after": nxt,
-                "windows": windows}
+                # each stored message as it was stored (the fields it carries, no others)
+                "windows": [w.model_dump(by_alias=True, exclude_unset=True) for w in windows]}
 
     def counters(self) -> dict[str, int]:
         """``published`` (puts), ``errors`` (failed puts), ``not_connected`` (windows before

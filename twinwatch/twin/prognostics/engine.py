@@ -16,7 +16,7 @@ import zlib
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal, Protocol
 
 import numpy as np
 
@@ -29,7 +29,63 @@ from twinwatch.twin.prognostics.trend import (
     TrendSettings,
 )
 
-__all__ = ["Prognosis", "Prognostics", "RulReport", "TrendReport"]
+__all__ = ["Prognosis", "Prognostics", "RulReport", "StoredHealth", "TrendReport"]
+
+
+# What :meth:`Prognostics.replay` reads of a stored health message, by attribute: the message's
+# typed view (:func:`twinwatch.twin.health.read_health`, a field an older daemon did not store
+# is None) has these attributes; this room cannot import the message's module (it sits above),
+# so it states them here, read-only. A field renamed in the message fails the type check of
+# the call (daemon/resume.py), not silently the replay at a restart.
+class StoredEvidence(Protocol):
+    """``parameters.<name>.trend.window_evidence``: the window's evidence."""
+
+    @property
+    def t(self) -> float | None: ...
+    @property
+    def value(self) -> float | None: ...
+    @property
+    def std(self) -> float | None: ...
+    @property
+    def source(self) -> str | None: ...
+
+
+class StoredRestart(Protocol):
+    """``parameters.<name>.trend.restart``: the trend's last restart."""
+
+    @property
+    def t(self) -> float | None: ...
+    @property
+    def step(self) -> float | None: ...
+    @property
+    def reason(self) -> str | None: ...
+
+
+class StoredTrend(Protocol):
+    """``parameters.<name>.trend``."""
+
+    @property
+    def since_t(self) -> float | None: ...
+    @property
+    def restart(self) -> StoredRestart | None: ...
+    @property
+    def restarts(self) -> int | None: ...
+    @property
+    def window_evidence(self) -> StoredEvidence | None: ...
+
+
+class StoredParameter(Protocol):
+    """``parameters.<name>``."""
+
+    @property
+    def trend(self) -> StoredTrend | None: ...
+
+
+class StoredHealth(Protocol):
+    """A stored health message, as :meth:`Prognostics.replay` reads it."""
+
+    @property
+    def parameters(self) -> Mapping[str, StoredParameter] | None: ...
 
 RulStatus = Literal["insufficient", "not_degrading", "degrading"]
 
@@ -180,39 +236,40 @@ class Prognostics:
         self.latest = out
         return out
 
-    def replay(self, messages: Sequence[Mapping[str, Any]]) -> int:
+    def replay(self, messages: Sequence[StoredHealth]) -> int:
         """Rebuild the trends from stored health messages (oldest first, on one time line:
-        the state database's :meth:`~twinwatch.sinks.store.StateStore.timeline` at a restart):
-        the evidence each window published (``parameters.<name>.trend.window_evidence``)
-        since the start of the segment the latest message names (``trend.since_t``: a restart
-        before it is not replayed again), and the restarts it reports (``restarts``,
-        ``restart``), so a restart of the daemon changes neither the trend nor the RUL.
+        the state database's :meth:`~twinwatch.sinks.store.StateStore.timeline` at a restart,
+        each through its typed view): the evidence each window published
+        (``parameters.<name>.trend.window_evidence``) since the start of the segment the
+        latest message names (``trend.since_t``: a restart before it is not replayed again),
+        and the restarts it reports (``restarts``, ``restart``), so a restart of the daemon
+        changes neither the trend nor the RUL.
 
         Returns:
             The evidence windows replayed.
         """
         n = 0
-        last = messages[-1] if messages else {}
         for name, trend in self.trends.items():
-            latest = ((last.get("parameters") or {}).get(name) or {}).get("trend") or {}
-            since = latest.get("since_t")
-            restart = latest.get("restart")
-            if restart and restart.get("t") is not None and not trend.restarts:
+            latest = _trend_of(messages[-1], name) if messages else None
+            if latest is None:
+                continue
+            restart = latest.restart
+            if restart is not None and restart.t is not None and not trend.restarts:
                 # the count and the last one: what the health message reports of them
-                trend.restarts = [Restart(float(restart["t"]), _number(restart.get("step")),
-                                          str(restart.get("reason") or ""))
-                                  ] * max(int(latest.get("restarts") or 1), 1)
+                trend.restarts = [Restart(float(restart.t), _number(restart.step),
+                                          restart.reason or "")
+                                  ] * max(latest.restarts or 1, 1)
+            since = latest.since_t
             if since is None:
                 continue
             for msg in messages:
-                ev = (((msg.get("parameters") or {}).get(name) or {}).get("trend")
-                      or {}).get("window_evidence")
-                if not ev or ev.get("value") is None or not ev.get("std") \
-                        or float(ev["t"]) < float(since) \
-                        or (trend.t and float(ev["t"]) <= trend.t[-1]):
+                t = _trend_of(msg, name)
+                ev = t.window_evidence if t is not None else None
+                if ev is None or ev.t is None or ev.value is None or not ev.std \
+                        or ev.t < since or (trend.t and ev.t <= trend.t[-1]):
                     continue
-                trend._append(Evidence(float(ev["t"]), float(ev["value"]), float(ev["std"]),
-                                       str(ev.get("source") or "estimated")))
+                trend._append(Evidence(float(ev.t), float(ev.value), float(ev.std),
+                                       ev.source or "estimated"))
                 n += 1
             if trend.t:
                 trend.refit(trend.t[-1], full=True)
@@ -268,6 +325,12 @@ class Prognostics:
         return Prognosis(report, rul)
 
 
-def _number(value: Any) -> float:
+def _number(value: float | None) -> float:
     """A stored number (``null`` for a non-finite one: NaN)."""
     return math.nan if value is None else float(value)
+
+
+def _trend_of(message: StoredHealth, name: str) -> StoredTrend | None:
+    """``parameters.<name>.trend`` of a stored message, None where it has none."""
+    parameter = (message.parameters or {}).get(name)
+    return parameter.trend if parameter is not None else None
