@@ -54,7 +54,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
-from twinwatch.sinks.base import ProcessedWindow, Sink
+from twinwatch.sinks.base import Gate, ProcessedWindow, Sink
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.diagnosis import Diagnoser, shaft_speed
 from twinwatch.twin.health import (
@@ -151,7 +151,7 @@ class WindowPipeline:
         self.fault_alarms: FaultAlarms | None = None
         self._diagnosis_failed = False
         self.sinks: list[Sink] = []
-        self.gate: Sink | None = None
+        self.gate: Gate | None = None
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
         self.callbacks: list[HealthCallback] = []
         self.latest: HealthMessage | None = None
