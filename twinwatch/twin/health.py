@@ -12,6 +12,10 @@ from the model, :func:`read_health` (:data:`HealthView`), never by the decoded J
 The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 10: the ``diagnosis`` says ``check_function`` (NAMUR NE 107) when the twin has not
+  described the machine for a while (``check_function_since``, ``check_failed``), names the
+  deviations no fault explains (``unexplained``) and why plausible faults were ruled out
+  (``ruled_out``); the shipped libraries know sensor and supply faults.
 * 9: ``discovery.p_value`` and ``discovery.evidence_p``: the residual's whiteness test and its
   combination over windows (discovery's trigger, :mod:`twinwatch.twin.discovery.trigger`).
 * 8: the window's ``diagnosis``: the fault modes of the machine's fault library ranked by their
@@ -115,7 +119,7 @@ __all__ = [
     "trend_line",
 ]
 
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 
 ParameterStatus = Literal["estimated", "fused", "suspect", "held", "tied", "fixed"]
 """The estimation's :data:`~twinwatch.twin.estimation.publish.ParameterStatus`, restated so
@@ -430,9 +434,11 @@ class DiagnosisHealth(_Part):
     """``diagnosis``: from the evidence to the failing part (:mod:`twinwatch.twin.diagnosis`:
     a noisy-OR network over the machine's fault library)."""
 
-    status: Literal["no_fault", "fault", "unknown"] = Field(
-        description="the most probable outcome: no fault, a fault of the library (top), or a "
-        "fault the library does not know")
+    status: Literal["no_fault", "fault", "unknown", "check_function"] = Field(
+        description="the most probable outcome: no fault, a fault of the library (top), a "
+        "fault the library does not know, or check_function: the twin has not described the "
+        "machine for [diagnosis] check_function_after_s (its model check failing), so its "
+        "estimates are held and no outcome is claimed (NAMUR NE 107 'check function')")
     top: str | None = Field(description="the most probable fault's id (status fault), else "
                             "null")
     probability: float = Field(description="the outcome's probability (0..1)")
@@ -447,6 +453,17 @@ class DiagnosisHealth(_Part):
                           "away from 0.5)")
     alarms: list[str] = Field(default_factory=list, description="the faults whose probability "
                               "alarm is raised ([diagnosis] alarm, with hysteresis)")
+    check_function_since: Num = Field(None, description="plant time [s] of the first failed "
+                                      "model check of the run that put the diagnosis in "
+                                      "check_function (null: the twin fits)")
+    check_failed: str | None = Field(None, description="the model check's record over the "
+                                     "last check_function_after_s, for a person (null: every "
+                                     "window passed)")
+    unexplained: list[str] = Field(default_factory=list, description="deviations and trends "
+                                   "no fault mode of the library explains, as sentences (the "
+                                   "unknown fault's evidence)")
+    ruled_out: list[str] = Field(default_factory=list, description="fault modes with evidence "
+                                 "for them that the diagnosis ruled out, and why")
 
 
 class HealthMessage(_Part):
