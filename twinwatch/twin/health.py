@@ -110,6 +110,7 @@ __all__ = [
     "TrendHealth",
     "HealthView",
     "build_health",
+    "check_function_line",
     "developing_line",
     "diagnosis_line",
     "read_health",
@@ -691,7 +692,22 @@ def _diagnosis_tag(d: DiagnosisHealth | None) -> str:
         return ""
     if d.status == "unknown":
         return f"; unknown fault {d.probability:.2f}"
+    if d.status == "check_function":
+        return "; CHECK FUNCTION: the twin does not fit"
     return f"; {d.top} {d.probability:.2f}"
+
+
+def check_function_line(d: DiagnosisHealth, label: str = "check function") -> str:
+    """The check-function state for a person (NAMUR NE 107), e.g. ``check function: the twin
+    does not describe this machine since plant time 60 s (the model check failed in 30 of the
+    last 30 windows (60 s)): its estimates are held and no fault is named; check the sensors
+    and the model``."""
+    since = (f" since plant time {d.check_function_since:.0f} s"
+             if d.check_function_since is not None else "")
+    why = f" ({d.check_failed})" if d.check_failed else ""
+    return (f"{label}: the twin does not describe this machine{since}{why}: its "
+            f"estimates are held and no fault is named; check the sensors (wiring, scaling, "
+            f"offsets) and the model's configuration")
 
 
 def diagnosis_line(d: DiagnosisHealth | None) -> str | None:
@@ -702,9 +718,11 @@ def diagnosis_line(d: DiagnosisHealth | None) -> str | None:
         return None
     if d.status == "no_fault":
         return f"diagnosis: no fault ({d.no_fault:.2f})"
+    if d.status == "check_function":
+        return f"diagnosis: {check_function_line(d)}"
     if d.status == "unknown":
-        terms = "; ".join(d.unknown_terms) or "no term yet"
-        return (f"diagnosis: a fault the library does not know ({d.unknown:.2f}): {terms}")
+        what = "; ".join(d.unknown_terms + d.unexplained) or "no term yet"
+        return (f"diagnosis: a fault the library does not know ({d.unknown:.2f}): {what}")
     f = d.faults[0]
     return (f"diagnosis: {f.id} ({f.component}) {f.probability:.2f}, urgency {f.urgency}: "
             f"{f.action}")

@@ -239,48 +239,63 @@ class Diagnoser:
 
     def _variables(self, health: HealthMessage, speed: tuple[float, float] | None
                    ) -> tuple[list[_Var], list[TermHealth]]:
+        """The window's evidence variables (trends, model check, stuck sensors, discovered
+        terms and the terms faults expect but the window lacks; deviations are
+        :meth:`_dev_factors`') and the terms no fault explains."""
         out: dict[str, _Var] = {}
         self._dev_leak = {}
         for f in self.faults:
-            for t in f.trends:
-                key = f"trend:{t.parameter}:{t.direction}"
-                if key not in out:
-                    out[key] = self._trend_var(health, key, t.parameter, t.direction)
-                out[key].links[f.id] = t.link
-                out[key].what[f.id] = f"{t.parameter} drifting {t.direction}"
-            if f.model_check:
-                key = "model_check"
-                if key not in out:
-                    out[key] = self._check_var(health)
-                out[key].links[f.id] = f.model_check
-                out[key].what[f.id] = "the model check failing"
-            for ss in f.sensors:
-                key = f"sensor:{ss.kind}:{ss.channel}"
-                if key not in out:
-                    hit = [s for s in health.sensors
-                           if s.kind == ss.kind and ss.channel in ("*", s.channel)]
-                    names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
-                                      f"{s.duration_s:.1f} s" for s in hit
-                                      if s.value is not None and s.duration_s is not None)
-                    out[key] = _Var(key, "sensor", _clip(1.0 if hit else 0.0),
-                                    f"{names or _chan(ss.channel) + ' ' + ss.kind} in this "
-                                    f"window", f"no {ss.kind} sensor in this window")
-                out[key].links[f.id] = ss.link
-                out[key].what[f.id] = f"{_chan(ss.channel)} {ss.kind}"
+            self._signature_vars(health, f, out)
         self._unexplained_vars(health, out)
         if "model_check" not in out:
             out["model_check"] = self._check_var(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
-        # terms: one variable per discovered term, each fault's link scaled by its match
-        unexplained: list[TermHealth] = []
         seen_speed = self._track(health, speed)
+        unexplained = self._term_vars(health, seen_speed, out)
+        self._missing_term_vars(health, seen_speed, out)
+        return list(out.values()), unexplained
+
+    def _signature_vars(self, health: HealthMessage, f: FaultMode, out: dict[str, _Var]
+                        ) -> None:
+        """A fault's trend, model-check and stuck-sensor variables (shared by key)."""
+        for t in f.trends:
+            key = f"trend:{t.parameter}:{t.direction}"
+            if key not in out:
+                out[key] = self._trend_var(health, key, t.parameter, t.direction)
+            out[key].links[f.id] = t.link
+            out[key].what[f.id] = f"{t.parameter} drifting {t.direction}"
+        if f.model_check:
+            key = "model_check"
+            if key not in out:
+                out[key] = self._check_var(health)
+            out[key].links[f.id] = f.model_check
+            out[key].what[f.id] = "the model check failing"
+        for ss in f.sensors:
+            key = f"sensor:{ss.kind}:{ss.channel}"
+            if key not in out:
+                hit = [s for s in health.sensors
+                       if s.kind == ss.kind and ss.channel in ("*", s.channel)]
+                names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
+                                  f"{s.duration_s:.1f} s" for s in hit
+                                  if s.value is not None and s.duration_s is not None)
+                out[key] = _Var(key, "sensor", _clip(1.0 if hit else 0.0),
+                                f"{names or _chan(ss.channel) + ' ' + ss.kind} in this "
+                                f"window", f"no {ss.kind} sensor in this window")
+            out[key].links[f.id] = ss.link
+            out[key].what[f.id] = f"{_chan(ss.channel)} {ss.kind}"
+
+    def _term_vars(self, health: HealthMessage, seen_speed: list[list[_Ratio] | None],
+                   out: dict[str, _Var]) -> list[TermHealth]:
+        """One variable per discovered term, each fault's link scaled by its match; returns
+        the terms no fault explains (the unknown fault's, and model error in their
+        equation: :meth:`_model_error`)."""
+        unexplained: list[TermHealth] = []
         for i, term in enumerate(health.terms):
             var = self._term_var(i, term)
             best = 0.0
-            seen = seen_speed[i]
             for f in self.faults:
                 for sg in f.terms:
-                    m, words = _term_match(sg, term, seen)
+                    m, words = _term_match(sg, term, seen_speed[i])
                     if m >= 0.2 and m * sg.link > var.links.get(f.id, 0.0):
                         var.links[f.id] = m * sg.link
                         var.what[f.id] = words
@@ -291,7 +306,13 @@ class Diagnoser:
                 unexplained.append(term)
                 self._model_error(out, term, var.s * (1.0 - best))
             out[var.key] = var
-        # faults expecting a term that is not there: evidence against them
+        return unexplained
+
+    def _missing_term_vars(self, health: HealthMessage,
+                           seen_speed: list[list[_Ratio] | None], out: dict[str, _Var]) -> None:
+        """Faults expecting a term the window lacks: evidence against them, naming the term
+        of that kind found elsewhere (an unbalance's periodic term at another frequency than
+        the shaft's: "found: 10 rad/s against 1 x 18.5 = 18.5 rad/s")."""
         for f in self.faults:
             for j, sg in enumerate(f.terms):
                 if sg.link < 0.5 or any(out[f"term:{i}"].links.get(f.id, 0.0) >= 0.5 * sg.link
@@ -309,7 +330,6 @@ class Diagnoser:
                                 f"no {kinds} term on {where}{harm}{found}")
                 out[key].links[f.id] = sg.link
                 out[key].what[f.id] = f"a {kinds} term on {where}{harm}"
-        return list(out.values()), unexplained
 
     def _unexplained_vars(self, health: HealthMessage, out: dict[str, _Var]) -> None:
         """A degrading trend in a direction no fault expects is the unknown fault's evidence
@@ -542,7 +562,8 @@ class Diagnoser:
                     evidence_for=[t for _, t, _ in pro], evidence_against=con))
         ruled_out = [self._why_not(i, float(marg[i]), said[i], order[0], said[order[0]])
                      for rank, i in enumerate(order)
-                     if rank > 0 and said[i][0] and marg[i] < 0.2]
+                     if rank > 0 and marg[i] < 0.2
+                     and (said[i][0] or any("(found: " in c for c in said[i][1]))]
         p_unknown = float(marg[-1])
         top = faults[0] if faults else None
         best = max(p_none, p_unknown, top.probability if top else 0.0)
@@ -658,7 +679,8 @@ class Diagnoser:
             if shared:
                 return (f"{head}: {t.id} ({t.component}) explains {' and '.join(shared)} "
                         f"as one fault, and more of what this window shows")
-        return f"{head}: its evidence ({pro[0][1]}) is better explained otherwise"
+        return (f"{head}: its evidence ({pro[0][1]}) is better explained otherwise" if pro
+                else head)
 
     @staticmethod
     def _unexplained_lines(variables: list[_Var]) -> list[str]:
