@@ -76,7 +76,7 @@ FALSE_ALARM = 0.2
 # The plants' fault timing in every faulted case: onset at 60 s, drifts full size by 120 s.
 ONSET = 60.0
 RAMP = 60.0
-DURATION = 240.0     # s of plant time per faulted case (120 windows of 2 s)
+DURATION = 200.0     # s of plant time per faulted case (100 windows of 2 s, 40 at full size)
 NOMINAL_DURATION = 600.0
 
 
@@ -97,6 +97,8 @@ class Case:
             (a repaired fault's own id), though not acceptable at the end.
         note: what the case is, for the table's reader.
         build: makes the case's configuration (in the worker).
+        spec: the keywords ``build`` passes to the machine's builder (the plant's faults,
+            noise, duration; stored with the recording).
     """
 
     name: str
@@ -108,6 +110,7 @@ class Case:
     build: Callable[[], TwinwatchConfig] = field(compare=False, repr=False)
     tolerate: frozenset[str] = frozenset()
     note: str = ""
+    spec: dict[str, Any] = field(default_factory=dict, compare=False)
 
 
 # -- configurations ----------------------------------------------------------------------------
@@ -163,6 +166,116 @@ def _hyd(noise: float = 0.0, duration: float = DURATION, seed: int = 0,
     return cfg
 
 
+#: Set while replaying: the PWM cases' builders then skip writing their recording.
+_REPLAYING = False
+#: Parameters a PWM case's fault may move (the dc_motor_pwm twin's own; Ke moves Kt with it).
+PWM_FAULT_PARAMETERS = ("Ra", "tau_e", "Ke", "J", "D", "Tc")
+PWM_SEGMENT = 100   # samples (2 s at 20 ms) simulated with one parameter set
+
+
+def _aprbs(n: int, rng: Any) -> Any:
+    """The MotoShield recording's kind of input: an amplitude-modulated pseudo-random binary
+    command [V], held 0.2-2 s, 0 or within [2.9, 4.7] (tests/test_twin_pwm_dcmotor.py)."""
+    import numpy as np
+
+    u = np.empty(n)
+    k = 0
+    while k < n:
+        hold = int(rng.integers(10, 100))
+        u[k:k + hold] = 0.0 if rng.random() < 0.1 else rng.uniform(2.9, 4.7)
+        k += hold
+    u[:5] = 0.0
+    return u
+
+
+def _pwm_recording(path: Path, cfg: TwinwatchConfig, duration: float, seed: int,
+                   noise: float, parameter_faults: list[dict[str, Any]],
+                   sensor_faults: list[dict[str, Any]], supply: dict[str, Any] | None) -> None:
+    """Write the PWM drive's recording (CSV: t, u, y = omega, ifltr = ia): there is no
+    simulated plant behind the ``dc_motor_pwm`` twin (its example replays the MotoShield
+    board's recording), so the plant here is the twin itself at the example's identified
+    parameters, driven by an APRBS command like the board's, simulated in segments of
+    ``PWM_SEGMENT`` samples, each with the faults' parameters at its middle, each continuing
+    from the last two samples of the one before (the speed and the current filter's state).
+    A supply sag lowers the bridge's supply (``supply_voltage``) the plant sees. Noise [% of
+    reading] on ia and omega, then the sensor faults (:class:`SensorFaultConfig`)."""
+    import numpy as np
+
+    from twinwatch.plant.dcmotor import SensorFaultConfig
+    from twinwatch.plant.faults import ParameterFaultConfig, SupplyFaultConfig
+    from twinwatch.twin.model import WindowData
+    from twinwatch.twin.models import create_model
+
+    ts = float(cfg.acquisition.sample_period)
+    n = int(round(duration / ts))
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * ts
+    u = _aprbs(n, rng)
+    options = dict(cfg.machine.options)
+    nominal = dict(cfg.machine.parameters)
+    pfs = [ParameterFaultConfig.model_validate(f) for f in parameter_faults]
+    sag = SupplyFaultConfig.model_validate(supply) if supply else None
+    for f in pfs:
+        if f.parameter not in PWM_FAULT_PARAMETERS:
+            raise ValueError(f"parameter_faults: {f.parameter!r} is not one of "
+                             f"{PWM_FAULT_PARAMETERS}")
+    models: dict[float, Any] = {}
+    ia, om = np.zeros(n), np.zeros(n)
+    lead = 2  # the filter's order: its state, and the average speed's two samples
+    for a in range(0, n, PWM_SEGMENT):
+        b = min(a + PWM_SEGMENT, n)
+        mid = t[(a + b - 1) // 2]
+        theta = dict(nominal)
+        for f in pfs:
+            theta[f.parameter] += f.delta(nominal[f.parameter], mid)
+            if f.parameter == "Ke":
+                theta["Kt"] += f.delta(nominal["Kt"], mid)
+        vs = round(options.get("supply_voltage", 5.0) * (sag.factor(mid) if sag else 1.0), 9)
+        if vs not in models:
+            models[vs] = create_model(cfg.machine.model, {**options, "supply_voltage": vs})
+        model = models[vs]
+        a0 = max(a - lead, 0)
+        win = WindowData(t=t[a0:b], channels={"u": u[a0:b], "ia": ia[a0:b].copy(),
+                                              "omega": om[a0:b].copy()})
+        y = model.simulate(model.nominal_vector(theta)[None], win)[0]
+        ia[a:b], om[a:b] = y[a - a0:, 0], y[a - a0:, 1]
+    values = {"ia": ia, "omega": om}
+    if noise:
+        for ch in values:
+            values[ch] = values[ch] + rng.normal(0.0, noise / 100.0 * np.abs(values[ch]))
+    faults = [SensorFaultConfig.model_validate(f) for f in sensor_faults]
+    frozen: dict[int, float] = {}
+    for k in range(n):
+        for f in faults:
+            values[f.channel][k] = f.apply(float(values[f.channel][k]), float(t[k]), frozen)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, np.column_stack([t, u, values["omega"], values["ia"]]), delimiter=",",
+               header="t,u,y,ifltr", comments="", fmt="%.10g")
+
+
+def _pwm(noise: float = 1.0, duration: float = DURATION, seed: int = 0,
+         parameter_faults: list[dict[str, Any]] | None = None,
+         sensor_faults: list[dict[str, Any]] | None = None,
+         supply_fault: dict[str, Any] | None = None, tag: str = "pwm") -> TwinwatchConfig:
+    """The PWM drive as deployed: config/dc-motor-motoshield.toml (the dc_motor_pwm twin at
+    the MotoShield board's identified parameters, 4 s windows), its file driver pointed at a
+    recording :func:`_pwm_recording` writes (under the system's temporary directory)."""
+    cfg = load_config(ROOT / "config" / "dc-motor-motoshield.toml")
+    cfg.estimation.time_budget = 60.0
+    path = Path(tempfile.gettempdir()) / "twinwatch-bench-pwm" / f"{tag}-{os.getpid()}.csv"
+    if not _REPLAYING:
+        _pwm_recording(path, cfg, duration, seed, noise, parameter_faults or [],
+                       sensor_faults or [], supply_fault)
+    drv = cfg.driver.model_dump()
+    drv.update(path=path, format="csv", time_column="t",
+               columns={"u": {"column": "u", "unit": "V"},
+                        "omega": {"column": "y", "unit": "rad/s"},
+                        "ia": {"column": "ifltr", "unit": "A"}})
+    cfg.driver = type(cfg.driver).model_validate(drv)
+    cfg.machine.name = "bench-pwm"
+    return cfg
+
+
 def _pf(parameter: str, *, change: float | None = None, absolute: float | None = None,
         ramp: float = RAMP, start: float = ONSET, **kw: Any) -> dict[str, Any]:
     out: dict[str, Any] = {"parameter": parameter, "start": start, "ramp": ramp, **kw}
@@ -203,6 +316,23 @@ _DC_LIBRARY: dict[str, list[tuple[str, dict[str, Any]]]] = {
                      ("ia-sat1.5A", {"sensor_faults": [_sf("ia", "saturated", level=1.5)]})],
 }
 
+#: PWM drive (dc_motor_pwm) library faults with a parameter signature, as above.
+_PWM_LIBRARY: dict[str, list[tuple[str, dict[str, Any]]]] = {
+    "winding_short": [("Ra-4%", {"parameter_faults": [_pf("Ra", change=-4.0)]}),
+                      ("Ra-12%", {"parameter_faults": [_pf("Ra", change=-12.0)]})],
+    "brushes_connections": [("Ra+4%", {"parameter_faults": [_pf("Ra", change=4.0)]}),
+                            ("Ra+12%", {"parameter_faults": [_pf("Ra", change=12.0)]})],
+    "bearing_wear": [("D+8%", {"parameter_faults": [_pf("D", change=8.0)]}),
+                     ("D+25%", {"parameter_faults": [_pf("D", change=25.0)]})],
+    "magnet_weakening": [("Ke-3%", {"parameter_faults": [_pf("Ke", change=-3.0)]}),
+                         ("Ke-10%", {"parameter_faults": [_pf("Ke", change=-10.0)]})],
+    "load_inertia_change": [("J+15%", {"parameter_faults": [_pf("J", change=15.0, ramp=0.0)]}),
+                            ("J+50%", {"parameter_faults": [_pf("J", change=50.0, ramp=0.0)]})],
+    "dry_friction": [("Tc+50%", {"parameter_faults": [_pf("Tc", change=50.0, ramp=0.0)]}),
+                     ("Tc+150%", {"parameter_faults": [_pf("Tc", change=150.0, ramp=0.0)]})],
+}
+_PWM_OFFSET = {"ia": 0.002, "omega": 10.0}           # A, rad/s: a few % of a reading
+
 #: Hydraulic actuator library faults, as above.
 _HYD_LIBRARY: dict[str, list[tuple[str, dict[str, Any]]]] = {
     "internal_leak": [("C0.05", {"parameter_faults": [_pf("leak", absolute=0.05, ramp=0.0)]}),
@@ -231,7 +361,7 @@ def cases() -> list[Case]:
             onset: float = ONSET, tolerate: Iterable[str] = (), note: str = "",
             **kw: Any) -> None:
         out.append(Case(name, machine, category, onset, frozenset(accept), tuple(truth),
-                        lambda: builder(**kw), frozenset(tolerate), note))
+                        lambda: builder(**kw), frozenset(tolerate), note, kw))
 
     sensor_ok = ("unknown", "check_function")
     # DC motor -----------------------------------------------------------------------------
@@ -262,14 +392,49 @@ def cases() -> list[Case]:
         note="the shipped reversing drive, its 2 V dead zone from 60 s")
     add("dc/off/coulomb_rising", "dc", "off_library", [*sensor_ok, "dry_friction"],
         ["dry_friction"], _dc,
-        note="Tc 0 -> 0.008 N m over 180 s: the library's dry_friction is this physics",
-        parameter_faults=[_pf("Tc", absolute=0.008, ramp=180.0)])
+        note="Tc 0 -> 0.008 N m over 140 s: the library's dry_friction is this physics",
+        parameter_faults=[_pf("Tc", absolute=0.008, ramp=140.0)])
     add("dc/off/load_intermittent", "dc", "off_library", sensor_ok, ["unknown"], _dc,
         note="c_load +40 % on 10 s of every 20 s (a steady load rise would be D's: "
         "bearing_wear)",
         parameter_faults=[_pf("load", change=40.0, ramp=0.0, period=20.0, duty=0.5)])
     for noise in (0.0, 1.0, 2.0):
         add(f"dc/nominal/n{noise:g}", "dc", "nominal", ["no_fault"], ["no_fault"], _dc,
+            onset=0.0, noise=noise, duration=NOMINAL_DURATION)
+    # PWM drive (dc_motor_pwm) -------------------------------------------------------------
+    for fid, sizes in _PWM_LIBRARY.items():
+        for size, plant in sizes:
+            for noise in (0.0, 1.0):
+                add(f"pwm/{fid}/{size}/n{noise:g}", "pwm", "library", [fid], [fid], _pwm,
+                    noise=noise, **plant)
+    for ch, mode in (("ia", "current_sensor"), ("omega", "speed_sensor")):
+        # the PWM library's current_sensing (a multiplicative term on ia) is a gain's physics
+        also = ["current_sensing"] if ch == "ia" else []
+        for g in (0.9, 1.1):
+            add(f"pwm/{mode}/gain{g:g}", "pwm", "sensor_supply", [mode, *also, *sensor_ok],
+                [mode],
+                _pwm, note=f"{ch} reads {g:g}x, drifting over {RAMP:g} s",
+                sensor_faults=[_sf(ch, "gain", ramp=RAMP, gain=g)])
+        add(f"pwm/{mode}/offset", "pwm", "sensor_supply", [mode, *sensor_ok], [mode], _pwm,
+            note=f"{ch} reads +{_PWM_OFFSET[ch]:g} (step)",
+            sensor_faults=[_sf(ch, "offset", offset=_PWM_OFFSET[ch])])
+    add("pwm/supply_sag/0.9", "pwm", "sensor_supply", ["supply_sag", *sensor_ok],
+        ["supply_sag"], _pwm, note="the bridge's supply 5 -> 4.5 V over 60 s",
+        supply_fault={"ratio": 0.9, "start": ONSET, "ramp": RAMP})
+    add("pwm/two/Ra+12%+D+25%", "pwm", "library", ["brushes_connections", "bearing_wear"],
+        ["brushes_connections", "bearing_wear"], _pwm, note="two faults at once",
+        parameter_faults=[_pf("Ra", change=12.0), _pf("D", change=25.0)])
+    add("pwm/repaired/D+25%", "pwm", "library", ["no_fault"], ["no_fault"], _pwm,
+        tolerate=["bearing_wear"], note="D +25 % step at 60 s, repaired at 140 s",
+        parameter_faults=[_pf("D", change=25.0, ramp=0.0, end=140.0)])
+    add("pwm/off/tau_e+50%", "pwm", "off_library", sensor_ok, ["unknown"], _pwm,
+        note="the electrical time constant +50 % (a winding's inductance: no library mode)",
+        parameter_faults=[_pf("tau_e", change=50.0)])
+    add("pwm/off/coulomb_rising", "pwm", "off_library", [*sensor_ok, "dry_friction"],
+        ["dry_friction"], _pwm, note="Tc x3 over 140 s: the library's dry_friction (Tc up) is "
+        "this physics", parameter_faults=[_pf("Tc", change=200.0, ramp=140.0)])
+    for noise in (0.0, 1.0, 2.0):
+        add(f"pwm/nominal/n{noise:g}", "pwm", "nominal", ["no_fault"], ["no_fault"], _pwm,
             onset=0.0, noise=noise, duration=NOMINAL_DURATION)
     # hydraulic actuator -------------------------------------------------------------------
     for fid, sizes in _HYD_LIBRARY.items():
@@ -292,12 +457,12 @@ def cases() -> list[Case]:
         tolerate=["pump_wear"], note="q_pump -10 % step at 60 s, repaired at 140 s",
         parameter_faults=[_pf("q_pump", change=-10.0, ramp=0.0, end=140.0)])
     add("hyd/off/friction_rising", "hyd", "off_library", [*sensor_ok, "mechanical_wear"],
-        ["unknown"], _hyd, note="F_resist 0 -> 2000 N over 180 s (a rod seal binding; "
-        "mechanical_wear expects a term on d(x)/dt, which discovery does not search here)",
-        parameter_faults=[_pf("F_resist", absolute=2000.0, ramp=180.0)])
+        ["unknown"], _hyd, note="Coulomb friction on the rod 0 -> 1000 N over 140 s "
+        "(mechanical_wear names a friction term on d(x)/dt: acceptable too)",
+        parameter_faults=[_pf("friction", absolute=1000.0, ramp=140.0)])
     add("hyd/off/load_intermittent", "hyd", "off_library", sensor_ok, ["unknown"], _hyd,
-        note="load mass +10 % on 10 s of every 20 s",
-        parameter_faults=[_pf("mass", change=10.0, ramp=0.0, period=20.0, duty=0.5)])
+        note="an unmeasured force of 1000 N on the rod, 10 s of every 20 s",
+        parameter_faults=[_pf("F_resist", absolute=1000.0, ramp=0.0, period=20.0, duty=0.5)])
     for noise in (0.0, 1.0, 2.0):
         add(f"hyd/nominal/n{noise:g}", "hyd", "nominal", ["no_fault"], ["no_fault"], _hyd,
             onset=0.0, noise=noise, duration=NOMINAL_DURATION)
@@ -349,7 +514,7 @@ def _record_one(args: tuple[str, str]) -> dict[str, Any]:
     meta = {"name": case.name, "machine": case.machine, "model": cfg.machine.model,
             "category": case.category, "onset": case.onset, "accept": sorted(case.accept),
             "truth": list(case.truth), "tolerate": sorted(case.tolerate), "note": case.note,
-            "plant": cfg.driver.plant.model_dump(mode="json", exclude_defaults=True),  # type: ignore[union-attr]
+            "spec": case.spec,
             "windows": len(lines), "wall_s": round(wall, 2), "cpu_s": round(cpu, 2)}
     (d / "case.json").write_text(json.dumps(meta, indent=1))
     return meta
@@ -529,6 +694,8 @@ def print_table(results: list[dict[str, Any]], summary: dict[str, Any],
 def replay(rec_dir: Path, only: str | None) -> tuple[list[dict[str, Any]], dict[str, Any],
                                                      dict[str, Any] | None]:
     """Replay every recorded case of ``rec_dir`` (those ``only`` selects), in table order."""
+    global _REPLAYING
+    _REPLAYING = True  # the PWM cases' recordings are not needed again
     by_name = {c.name: c for c in cases()}
     order = {c.name: i for i, c in enumerate(cases())}
     dirs = [p for p in rec_dir.iterdir() if (p / "case.json").exists()]
