@@ -48,7 +48,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import multiprocessing
 import os
 import resource
@@ -140,10 +139,10 @@ def _dc(noise: float = 1.0, duration: float = DURATION, seed: int = 0,
                             amplitude=50.0)]
         base: dict[str, Any] = {"scenario": "nominal"}
     else:
-        base = cfg.driver.plant.model_dump(exclude_unset=True)  # type: ignore[union-attr]
+        base = cfg.driver.plant.model_dump(exclude_unset=True)  # type: ignore[attr-defined]
     base.update(duration=duration, seed=seed, noise=_noise(("ia", "omega"), noise))
     base.update(plant)
-    cfg.driver.plant = DCMotorPlantConfig.model_validate(base)  # type: ignore[union-attr]
+    cfg.driver.plant = DCMotorPlantConfig.model_validate(base)  # type: ignore[attr-defined]
     cfg.machine.name = "bench-dc"
     return cfg
 
@@ -157,11 +156,11 @@ def _hyd(noise: float = 0.0, duration: float = DURATION, seed: int = 0,
 
     cfg = load_config(ROOT / "config" / "hydraulic-modbus-leak-sim.toml")
     cfg.estimation.time_budget = 60.0
-    cfg.driver.port = 0  # type: ignore[union-attr]
+    cfg.driver.port = 0  # type: ignore[attr-defined]
     base: dict[str, Any] = {"scenario": "nominal", "duration": duration, "seed": seed,
                             "noise": _noise(("x", "p"), noise)}
     base.update(plant)
-    cfg.driver.plant = HydraulicPlantConfig.model_validate(base)  # type: ignore[union-attr]
+    cfg.driver.plant = HydraulicPlantConfig.model_validate(base)  # type: ignore[attr-defined]
     cfg.machine.name = "bench-hyd"
     return cfg
 
@@ -209,7 +208,7 @@ def _pwm_recording(path: Path, cfg: TwinwatchConfig, duration: float, seed: int,
     ts = float(cfg.acquisition.sample_period)
     n = int(round(duration / ts))
     rng = np.random.default_rng(seed)
-    t = np.arange(n) * ts
+    t = np.arange(n, dtype=np.float64) * ts
     u = _aprbs(n, rng)
     options = dict(cfg.machine.options)
     nominal = dict(cfg.machine.parameters)
@@ -243,11 +242,11 @@ def _pwm_recording(path: Path, cfg: TwinwatchConfig, duration: float, seed: int,
     if noise:
         for ch in values:
             values[ch] = values[ch] + rng.normal(0.0, noise / 100.0 * np.abs(values[ch]))
-    faults = [SensorFaultConfig.model_validate(f) for f in sensor_faults]
+    sensors = [SensorFaultConfig.model_validate(f) for f in sensor_faults]
     frozen: dict[int, float] = {}
     for k in range(n):
-        for f in faults:
-            values[f.channel][k] = f.apply(float(values[f.channel][k]), float(t[k]), frozen)
+        for sf in sensors:
+            values[sf.channel][k] = sf.apply(float(values[sf.channel][k]), float(t[k]), frozen)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savetxt(path, np.column_stack([t, u, values["omega"], values["ia"]]), delimiter=",",
                header="t,u,y,ifltr", comments="", fmt="%.10g")
@@ -606,8 +605,10 @@ def judge(meta: dict[str, Any], diagnoses: list[tuple[float, Any]],
             "check_function_since": cf_since}
 
 
-def replay_case(case_dir: Path, by_name: dict[str, Case]) -> dict[str, Any]:
-    """Re-run a fresh diagnoser over one recorded case and judge it."""
+def replay_case(case_dir: Path, by_name: dict[str, Case],
+                costs: list[float] | None = None) -> dict[str, Any]:
+    """Re-run a fresh diagnoser over one recorded case and judge it; ``costs`` collects the
+    CPU time [s] of each ``Diagnoser.update``."""
     from twinwatch.daemon.window_worker import make_diagnoser
     from twinwatch.twin.health import HealthMessage
 
@@ -625,7 +626,10 @@ def replay_case(case_dir: Path, by_name: dict[str, Case]) -> dict[str, Any]:
         raw.pop("diagnosis", None)  # replayed, not read
         health = HealthMessage.model_validate(raw)
         sp = speeds.get(str(health.window))
+        t0 = time.thread_time()
         d = diag.update(health, None if sp is None else (sp[0], sp[1]))
+        if costs is not None:
+            costs.append(time.thread_time() - t0)
         out.append((float(health.t_end), d))
     ids = [f.id for f in diag.library.faults]
     result = judge(meta, out, ids)
@@ -685,6 +689,9 @@ def print_table(results: list[dict[str, Any]], summary: dict[str, Any],
     print(f"median time onset -> alarm:               {_fmt(s['alarm_median_s'], 0)} s "
           f"({s['alarms']} cases alarmed)")
     print(f"Brier score (last window):                {_fmt(s['brier'], 4)}")
+    if "diagnosis_cpu_us_median" in s:
+        print(f"diagnosis CPU per window (replayed):      median "
+              f"{s['diagnosis_cpu_us_median']} us, 99th percentile {s['diagnosis_cpu_us_p99']} us")
     if timing:
         print(f"record phase: {timing.get('cases')} cases, {timing.get('wall_s')} s wall, "
               f"{timing.get('cpu_s')} s CPU ({timing.get('workers')} workers, "
@@ -703,10 +710,16 @@ def replay(rec_dir: Path, only: str | None) -> tuple[list[dict[str, Any]], dict[
     chosen = set(c.name for c in select(list(by_name.values()), only))
     dirs = sorted((p for p in dirs if metas[p] in chosen), key=lambda p: order.get(metas[p], 1e9))
     logging.disable(logging.WARNING)
-    results = [replay_case(p, by_name) for p in dirs]
+    costs: list[float] = []
+    results = [replay_case(p, by_name, costs) for p in dirs]
     rec = rec_dir / "record.json"
     timing = json.loads(rec.read_text())["runs"][-1] if rec.exists() else None
-    return results, summarise(results), timing
+    summary: dict[str, Any] = summarise(results)
+    if costs:  # the inference's CPU per window (issue 25's figure), replayed alone
+        costs.sort()
+        summary["diagnosis_cpu_us_median"] = round(1e6 * statistics.median(costs), 1)
+        summary["diagnosis_cpu_us_p99"] = round(1e6 * costs[int(0.99 * (len(costs) - 1))], 1)
+    return results, summary, timing
 
 
 def main() -> None:
@@ -736,13 +749,13 @@ def main() -> None:
             rec_dir = Path(tmp)
             record(chosen, rec_dir, args.workers)
         t0 = time.perf_counter()
-        results, summary, timing = replay(rec_dir, args.only)
+        results, summary, timing_ = replay(rec_dir, args.only)
         summary["replay_wall_s"] = round(time.perf_counter() - t0, 1)
-        print_table(results, summary, timing)
+        print_table(results, summary, timing_)
         print(f"replay: {summary['replay_wall_s']} s wall")
         if args.json:
             args.json.write_text(json.dumps({"results": results, "summary": summary,
-                                             "record": timing}, indent=1, default=str))
+                                             "record": timing_}, indent=1, default=str))
 
 
 if __name__ == "__main__":

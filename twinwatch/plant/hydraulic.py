@@ -248,9 +248,9 @@ def _advance(state, j0, n_sub, dt, prm, scenario, t_fault, c_leak, loop, m,
     """Advance ``state = [x, p, I, f, A]`` by ``n_sub`` plant steps from step index ``j0``.
 
     ``prm = [k_spring, D0, q_pump, A_max, A_piston, F_resist, F_load, ref_offset,
-    ref_amplitude, ref_frequency, C_injected, F_c]``; ``loop``: the packed valve controller, updated at the steps
-    j >= ``ph`` with (j - ph) % ``m`` == 0. On entry ``state[4]`` is the area applied over step
-    j0; on exit it is the area applied from step j0 + n_sub on.
+    ref_amplitude, ref_frequency, C_injected, F_c]``; ``loop``: the packed valve controller,
+    updated at the steps j >= ``ph`` with (j - ph) % ``m`` == 0. On entry ``state[4]`` is the
+    area applied over step j0; on exit it is the area applied from step j0 + n_sub on.
     """
     ks, d0, qp, ap, fr, fl = prm[0], prm[1], prm[2], prm[4], prm[5], prm[6]
     r0, r1, rf = prm[7], prm[8], prm[9]
