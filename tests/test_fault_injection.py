@@ -717,8 +717,8 @@ def _state_database_locked_30_s(ctx: Context) -> dict[str, Any]:
             "stored_in_order": stored == sorted(stored),
             "summary_names_the_lock": "locked by another process" in out,
             "advice_max_generations": "max_generations" in err,
-            "counted": {"store_delayed": bool(last) and
-                        last["counters"].get("store_delayed", 0) > 0}}
+            "counted": {"store_delayed": last is not None and
+                        (last.counters or {}).get("store_delayed", 0) > 0}}
 
 
 DISK_FULL = r"""
