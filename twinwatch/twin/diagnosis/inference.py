@@ -703,9 +703,9 @@ class Diagnoser:
         """The twin-no-longer-fits state (NAMUR NE 107 *check function*): entered when at
         least :attr:`check_share` of the windows of the last :attr:`check_after_s` of plant
         time failed their model check; left after :attr:`check_clear` windows in a row that
-        passed (the failures before them forgotten: entering again takes a new stretch). Returns the plant time it started (None: not in it), the record of the
-        horizon for a person (None: no failed check in it) and the share of its windows that
-        failed."""
+        passed (the failures before them forgotten: entering again takes a new stretch).
+        Returns the plant time it started (None: not in it), the record of the horizon for a
+        person (None: no failed check in it) and the share of its windows that failed."""
         mc = health.model_check
         if mc is None:
             return self._cf_since, None, 0.0
