@@ -395,8 +395,12 @@ class Diagnoser:
             lik = likelihood(ev.dev, sd, comps.p_up, comps.size_up, comps.p_down,
                              comps.size_down, leak)
             when = "" if ev.window == health.window else f", last sound window {ev.window}"
+            # which uncertainty: this window's estimate (rel_std_pct), not the fused evidence's
+            # narrower one; floored at the twin's model error, widened with the evidence's age
+            whose = ("the model-error floor" if sd <= SD_FLOOR_PCT * 1.0001 else
+                     "grown with its age" if age else "this window's estimate")
             text = (f"{name} = {ev.value:.5g} {ev.unit} is {ev.dev:+.2f} % from its nameplate "
-                    f"{ev.nominal:.5g} {ev.unit} (+/- {2 * sd:.2f} %, 2 sigma, "
+                    f"{ev.nominal:.5g} {ev.unit} (+/- {2 * sd:.2f} %, 2 sigma: {whose}; "
                     f"{ev.status}{when})")
             out.append(_DevFactor(name, ev, text, np.log(np.maximum(lik, 1e-300)), comps,
                                   sd, note))
