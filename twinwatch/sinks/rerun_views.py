@@ -136,7 +136,7 @@ _TREND = (230, 120, 200)
 _TREND_BAND = (150, 80, 130)
 _WARNING = (255, 190, 0)
 _ALARM = (240, 60, 60)
-_Marker = Literal["circle", "diamond", "cross", "up", "square"]
+_Marker = Literal["circle", "diamond", "cross", "up", "down", "square"]
 _STATUS_STYLE: dict[str, tuple[tuple[int, int, int], _Marker, float]] = {
     "estimated": ((90, 205, 100), "circle", 2.0),
     "fused": ((86, 164, 255), "diamond", 2.5),
@@ -634,10 +634,10 @@ class RecordingViews:
         strips, points = drawing
         return [Op(f"{path}/lines", rr.LineStrips2D(
                     [s.xy for s in strips], colors=[s.color for s in strips],
-                    radii=[rr.Radius.ui_points(s.width) for s in strips]), t),
+                    radii=rr.Radius.ui_points([s.width for s in strips])), t),
                 Op(f"{path}/labels", rr.Points2D(
                     [q.xy for q in points], colors=[q.color for q in points],
-                    radii=[rr.Radius.ui_points(q.size) for q in points],
+                    radii=rr.Radius.ui_points([q.size for q in points]),
                     labels=[q.label for q in points], show_labels=True), t)]
 
     def _event_ops(self, ev: Mapping[str, Any], t_end: float,
@@ -734,8 +734,8 @@ class RecordingViews:
                 ops.append(Op(entity(m, "quality", f"nrmse_{variant}"),
                                rr.Scalars(value * _PPM), t))
         nrmse = _num(doc.nrmse)
-        fit = [_num(f.nrmse if f is not None else None) for f in fits] + [nrmse]
-        frame = self._run_frame("quality", [v * _PPM for v in fit])
+        values = [_num(f.nrmse if f is not None else None) for f in fits] + [nrmse]
+        frame = self._run_frame("quality", [v * _PPM for v in values])
         if frame is not None:
             ops.append(Op(entity(m, "quality", "frame"), rr.Scalars(frame), t))
         if math.isfinite(nrmse):
@@ -1327,7 +1327,7 @@ def _event_row(ev: Mapping[str, Any], t: float, rule: str, raised: bool,
 
 
 def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
-             grew: Mapping[str, int], health_json: str = "{}") -> tuple[str, Any]:
+             grew: Mapping[str, int], health_json: str = "{}") -> tuple[str, rr.TextLogLevel]:
     """One short line for the window (a Rerun log row is not wrapped: about 85 characters fit
     the log panel at 1600x1000), and its level: ERROR while a parameter is in alarm, WARN while
     one is in warning, the model check fails, the structure changed or data were lost, else
@@ -1340,9 +1340,36 @@ def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
     top-level scalars."""
     del t0
     parts = [f"window {_str(doc.window, '?')} {clock(t_end)}"]
-    worst = 0
     alarms = doc.alarms or {}
     params = doc.parameters or {}
+    ruled, worst = _ruled_parts(alarms, params)
+    if ruled:
+        parts.append("; ".join(ruled))
+    elif params:  # no alarm rule: the estimated deviations
+        parts.append(", ".join(f"{name} {_fmt(ph.deviation_pct, '+.2f')} %"
+                               for name, ph in params.items()
+                               if ph.status in ("estimated", "fused")))
+    wrong, failed, changed = _wrong_parts(doc, terms_changed, grew)
+    if wrong:
+        parts.append("| " + ", ".join(wrong))
+    if not alarms and not params and len(parts) == 1:  # not a health message: its scalars
+        parts.append(", ".join(f"{k}={v}" for k, v in json.loads(health_json).items()
+                               if isinstance(v, bool | str | int | float) or v is None))
+    if worst == 2:
+        level = rr.TextLogLevel.ERROR
+    elif worst == 1 or failed or changed or grew:
+        level = rr.TextLogLevel.WARN
+    else:
+        level = rr.TextLogLevel.INFO
+    return " ".join(parts), level
+
+
+def _ruled_parts(alarms: Mapping[str, AlarmView],
+                 params: Mapping[str, ParameterView]) -> tuple[list[str], int]:
+    """The log row's part for each parameter with an alarm rule (tied and fixed ones left
+    out): ``Ra -5.14 % (6.16593 ohm) WARNING, RUL ALARM``; and the worst level raised (0
+    none, 1 warning, 2 alarm, :data:`_RANK`)."""
+    worst = 0
     ruled = []
     for name, a in alarms.items():
         words = []
@@ -1366,16 +1393,18 @@ def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
         if ph is not None and ph.status != "held":  # a held value is the last trusted one
             head += f" ({_fmt(ph.value, '.5g')} {_str(ph.unit)})"
         ruled.append(" ".join([head, ", ".join(words)]).strip())
-    if ruled:
-        parts.append("; ".join(ruled))
-    elif params:  # no alarm rule: the estimated deviations
-        parts.append(", ".join(f"{name} {_fmt(ph.deviation_pct, '+.2f')} %"
-                               for name, ph in params.items()
-                               if ph.status in ("estimated", "fused")))
+    return ruled, worst
+
+
+def _wrong_parts(doc: HealthView, terms_changed: bool,
+                 grew: Mapping[str, int]) -> tuple[list[str], bool, bool]:
+    """What went wrong in the window, for the log row: a failed model check with its
+    reasons, DT'' changed (the terms added and dropped), the counters of lost data that grew;
+    and whether the check failed and whether the structure changed."""
     wrong = []
     check = doc.model_check
     failed = check is not None and check.passed is False
-    if failed:  # a check that passed is the rule: said only in the model panel
+    if check is not None and failed:  # a check that passed is the rule: in the model panel
         wrong.append("model check FAILED: " + "; ".join(map(str, check.reasons or [])))
     disc = doc.discovery
     changed = terms_changed or (disc is not None and bool(disc.changed))
@@ -1387,15 +1416,4 @@ def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
         wrong.append("DT'' changed")
     if grew:
         wrong.append("lost: " + ", ".join(f"{k} +{v}" for k, v in grew.items()))
-    if wrong:
-        parts.append("| " + ", ".join(wrong))
-    if not alarms and not params and len(parts) == 1:  # not a health message: its scalars
-        parts.append(", ".join(f"{k}={v}" for k, v in json.loads(health_json).items()
-                               if isinstance(v, bool | str | int | float) or v is None))
-    if worst == 2:
-        level = rr.TextLogLevel.ERROR
-    elif worst == 1 or failed or changed or grew:
-        level = rr.TextLogLevel.WARN
-    else:
-        level = rr.TextLogLevel.INFO
-    return " ".join(parts), level
+    return wrong, failed, changed

@@ -337,12 +337,16 @@ def _matrix_power(a: FloatArray, n: int) -> FloatArray:
     if n <= 3:
         return np.linalg.matrix_power(a, n)
     mm = np.matmul
-    z = result = None
-    while n > 0:
-        z = a if z is None else mm(z, z)
+    z = a
+    result: FloatArray | None = None
+    while True:
         n, bit = divmod(n, 2)
         if bit:
             result = z if result is None else mm(result, z)
+        if n == 0:
+            break
+        z = mm(z, z)
+    assert result is not None  # n > 3 has a set bit
     return result
 
 

@@ -775,7 +775,8 @@ class _Problem:
         return cov[:k, :k], null[:k]
 
     def theta(self, v: FloatArray) -> FloatArray:
-        return self.pmap.full(v[None, :self.n_est], self.base)[0]
+        out: FloatArray = self.pmap.full(v[None, :self.n_est], self.base)[0]
+        return out
 
 
 def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyConfig,
