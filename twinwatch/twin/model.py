@@ -21,6 +21,10 @@ from numba import njit
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
+#: Index and count arrays (the compiled kernels' event plans, state positions).
+IntArray = NDArray[np.int64]
+#: Masks (the compiled kernels' event flags).
+BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True, slots=True)
@@ -351,7 +355,8 @@ def _matrix_power(a: FloatArray, n: int) -> FloatArray:
 
 
 @njit(cache=True, nogil=True)
-def _propagate_kernel(phi, gamma, u, x):  # pragma: no cover - compiled
+def _propagate_kernel(phi: FloatArray, gamma: FloatArray, u: FloatArray,
+                      x: FloatArray) -> None:  # pragma: no cover - compiled
     p, nk, n = x.shape
     m = u.shape[2]
     shared = u.shape[0] == 1

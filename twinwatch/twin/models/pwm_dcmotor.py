@@ -137,7 +137,7 @@ _WARM = (
 
 
 @njit(cache=True, nogil=True)
-def _affine_step(a, b, h):  # pragma: no cover - compiled
+def _affine_step(a: float, b: float, h: float) -> tuple[float, float]:  # pragma: no cover
     """exp(-b h) and (1 - exp(-b h))/b of domega/dt = a - b*omega over a step h."""
     if b * h > 1e-9:
         e = math.exp(-b * h)
@@ -146,8 +146,11 @@ def _affine_step(a, b, h):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _simulate_kernel(prm, duty, phase, t, w0, f_w, u_i, fb, fa, y_init, n_sub, ts, vs, tpwm,
-                     t_edge, sampled, mean_speed, warm_mode, t_warm, s_min, y):
+def _simulate_kernel(prm: FloatArray, duty: FloatArray, phase: FloatArray, t: FloatArray,
+                     w0: FloatArray, f_w: FloatArray, u_i: FloatArray, fb: FloatArray,
+                     fa: FloatArray, y_init: FloatArray, n_sub: int, ts: float, vs: float,
+                     tpwm: float, t_edge: float, sampled: bool, mean_speed: bool,
+                     warm_mode: int, t_warm: float, s_min: float, y: FloatArray) -> None:
     # pragma: no cover - compiled
     """Simulate every particle; fills ``y`` (P, N, 2) with ia (filtered sample) and omega.
 
