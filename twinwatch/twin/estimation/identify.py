@@ -788,6 +788,11 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     re-fit with the others held at stated values, and score both fits on ``validation``
     (see the module docstring).
 
+    The steps: the stretches checked (:func:`_check_stretches`), the multi-start search
+    (:func:`_search`), the full fit scored and analysed (:func:`_full_fit`), what the
+    recording does not determine held and the rest re-fitted (:func:`_hold_and_refit`), the
+    result scored.
+
     Args:
         model: the twin (its structure and options as configured).
         estimation: the ``[estimation]`` table: which parameters, their bounds, ties, the
@@ -811,6 +816,66 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         ValueError: a stretch lacks a channel, holds non-finite values or is too short.
     """
     t_start = time.perf_counter()
+    _check_stretches(model, train, validation)
+    # a stated value of a parameter that is not identified is its value in the fit
+    estimated = set(config.estimation(estimation).resolved(model).estimate or [])
+    nominal = {**(nominal or {}), **{k: f.value for k, f in config.fixed.items()
+                                     if k not in estimated}}
+    est = Estimator(model, config.estimation(estimation), nominal)
+    cfg = est.config
+    fit = WindowFit(model, train, config.weights)
+    prob = _Problem(model, est, fit)
+    names_est = prob.names
+    best, reached = _search(prob, fit, config, model.parameter_names, start, structure)
+    bounds = {n: (float(lo), float(hi)) for n, lo, hi in
+              zip(names_est, est.lower, est.upper, strict=True)}
+    full, analysis = _full_fit(model, est, prob, fit, config, (train, validation), best,
+                               bounds)
+    holds = _Holds(names_est, bounds, config, dict(nominal), full.values, best[1].copy(),
+                   list(range(prob.n_est)))
+    r, jac = _hold_and_refit(prob, holds, analysis, best[2], best[3], model.parameter_names)
+    v, free = holds.v, holds.free
+    theta = prob.theta(v)
+    values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
+    sub = [names_est[i] for i in free]
+    cov, null = prob.covariance(r, jac, len(free), v, holds.rel_sd())
+    final = analyse(sub, cov, values, bounds, config.max_rel_std, config.correlation, null)
+    determined = [n for n in sub if final.rel_std[n] <= config.max_rel_std]
+    undetermined = {n: _unresolved(n, final) for n in sub if n not in determined}
+    init = prob.local.initial(v)
+    explained = _explained(r, jac, fit.n_out, cfg.model_error)
+    return Identification(
+        values=values,
+        rel_std={n: final.rel_std[n] for n in sub},
+        bounds=bounds,
+        estimated=names_est,
+        tied=dict(cfg.tie or {}),
+        train=_score(model, est, train, theta, config.weights, init, explained),
+        validation=_score(model, est, validation, theta, config.weights, None, explained),
+        elapsed_s=time.perf_counter() - t_start,
+        evaluations=fit.evaluations,
+        determined=determined,
+        held=holds.held,
+        undetermined=undetermined,
+        full=full,
+        identifiability=analysis,
+        max_rel_std=config.max_rel_std,
+        structure=structure,
+        options=dict(options or {}),
+        nrmse=float(np.linalg.norm(r)),
+        starts=reached,
+        units={p.name: p.unit for p in model.parameters},
+        output_units={o.name: o.unit for o in model.outputs},
+    )
+
+
+def _check_stretches(model: TwinModel, train: WindowData, validation: WindowData) -> None:
+    """:func:`identify`'s first step: both stretches long enough (10 samples at least), with
+    every channel the model needs, finite.
+
+    Raises:
+        ValueError: which stretch, and what it lacks.
+    """
     for w, what in ((train, "training"), (validation, "validation")):
         if w.n < 10:
             raise ValueError(f"the {what} range holds {w.n} samples: too few to identify "
@@ -820,15 +885,23 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
                 raise ValueError(f"the recording has no channel {ch!r} ({what} range)")
             if not np.all(np.isfinite(w.channels[ch])):
                 raise ValueError(f"channel {ch!r} holds NaN or inf in the {what} range")
-    # a stated value of a parameter that is not identified is its value in the fit
-    estimated = set(config.estimation(estimation).resolved(model).estimate or [])
-    nominal = {**(nominal or {}), **{k: f.value for k, f in config.fixed.items()
-                                     if k not in estimated}}
-    est = Estimator(model, config.estimation(estimation), nominal)
-    cfg = est.config
-    fit = WindowFit(model, train, config.weights)
-    prob = _Problem(model, est, fit)
-    names_est, n_est = prob.names, prob.n_est
+
+
+#: The best training fit of :func:`_search`: (sum of squared residuals, search vector (n_est +
+#: n_init,), residuals (M,), Jacobian (M, n_est + n_init)).
+_Best = tuple[float, FloatArray, FloatArray, FloatArray]
+
+
+def _search(prob: _Problem, fit: WindowFit, config: IdentifyConfig,
+            parameter_names: Sequence[str], start: Mapping[str, float] | None,
+            structure: str) -> tuple[_Best, list[float]]:
+    """:func:`identify`'s search over every estimated parameter: ``config.starts`` swarms of
+    their own (the configured values, and ``start`` when given, particles of each), each
+    followed by the local polish; the time budget shared out over the starts left.
+
+    Returns:
+        The best polished fit of all starts, and each start's polished nRMSE.
+    """
     rng = np.random.default_rng(config.seed)
 
     def cost(q: FloatArray) -> FloatArray:
@@ -839,17 +912,17 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     if start:
         alt = prob.base.copy()
         for name, value in start.items():
-            if name in model.parameter_names and value > 0:
-                alt[model.parameter_names.index(name)] = value
+            if name in parameter_names and value > 0:
+                alt[list(parameter_names).index(name)] = value
         seeds.append(np.clip(prob.pmap.ln(alt), prob.xl, prob.xu))
     seed_rows = np.array(seeds)
     seed_cost = fit.cost(prob.pmap.full(seed_rows, prob.base))
     best_seed = seed_rows[int(np.argmin(seed_cost))]
     cost0 = float(np.min(seed_cost))
-    best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
+    best: _Best | None = None
     reached: list[float] = []
     t_global = time.perf_counter()
-    every = list(range(n_est))
+    every = list(range(prob.n_est))
     for k in range(config.starts):
         # Each start: a swarm of its own (the configured values one of its particles), then
         # the local polish; the best training fit of all starts is kept.
@@ -867,144 +940,173 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         reached.append(math.sqrt(sse))
         if best is None or sse < best[0]:
             best = (sse, v, r, jac)
-    assert best is not None
-    _, v_full, r_full, jac_full = best
+    assert best is not None  # IdentifyConfig.starts >= 1
+    return best, reached
+
+
+def _full_fit(model: TwinModel, est: Estimator, prob: _Problem, fit: WindowFit,
+              config: IdentifyConfig, stretches: tuple[WindowData, WindowData], best: _Best,
+              bounds: Mapping[str, tuple[float, float]]) -> tuple[FullFit, Identifiability]:
+    """:func:`identify`'s fit of every estimated parameter (``best``, from :func:`_search`)
+    scored on both ``stretches`` (training, validation), and what the recording determines
+    of it (:func:`analyse`)."""
+    train, validation = stretches
+    sse, v_full, r_full, jac_full = best
+    n_est = prob.n_est
     theta_full = prob.theta(v_full)
     values_full = dict(zip(model.parameter_names, (float(x) for x in theta_full), strict=True))
     init_full = prob.local.initial(v_full)
     cov_full, null_full = prob.covariance(r_full, jac_full, n_est)
-    bounds = {n: (float(lo), float(hi)) for n, lo, hi in
-              zip(names_est, est.lower, est.upper, strict=True)}
-    analysis = analyse(names_est, cov_full, values_full, bounds, config.max_rel_std,
+    analysis = analyse(prob.names, cov_full, values_full, bounds, config.max_rel_std,
                        config.correlation, null_full)
-    explained = _explained(r_full, jac_full, fit.n_out, cfg.model_error)
+    explained = _explained(r_full, jac_full, fit.n_out, est.config.model_error)
     train_full = _score(model, est, train, theta_full, config.weights, init_full, explained)
     full = FullFit(
         values=values_full, rel_std=dict(analysis.rel_std), train=train_full,
         validation=_score(model, est, validation, theta_full, config.weights, None,
                           explained),
-        nrmse=math.sqrt(best[0]),
+        nrmse=math.sqrt(sse),
         criteria=information_criteria(train_full.measured, train_full.simulated,
                                       n_est + prob.local.n_init))
+    return full, analysis
 
-    # -- hold what the recording does not determine, re-fit the rest -------------------------
-    held: dict[str, HeldParameter] = {}
-    v = v_full.copy()
-    r, jac = r_full, jac_full
-    free = list(every)
-    configured = dict(nominal or {})
 
-    def stated(name: str) -> tuple[float, str, str] | None:
-        if name in config.fixed:
-            f = config.fixed[name]
+@dataclass
+class _Holds:
+    """The estimated parameters :func:`identify` holds, and the search vector they are held
+    in (:func:`_hold_and_refit`).
+
+    Attributes:
+        names: the estimated parameters, in the search vector's order.
+        bounds: each one's search range [SI].
+        config: the ``[identify]`` table (its ``fixed`` values, stated first).
+        configured: the configured values [SI] (stated when ``[identify.fixed]`` does not).
+        full_values: the full fit's values [SI] (reported beside a held one).
+        v: the search vector (ln-parameters, then the initial state); a held parameter's
+            entry is its held value's logarithm.
+        free: the positions in ``names`` not held, in order.
+        held: the held parameters, in the order they were held.
+    """
+
+    names: list[str]
+    bounds: Mapping[str, tuple[float, float]]
+    config: IdentifyConfig
+    configured: dict[str, float]
+    full_values: Mapping[str, float]
+    v: FloatArray
+    free: list[int]
+    held: dict[str, HeldParameter] = field(default_factory=dict)
+
+    def stated(self, name: str) -> tuple[float, str, str] | None:
+        """The value a person stated for ``name`` [SI], where, and why; None when nobody
+        did."""
+        if name in self.config.fixed:
+            f = self.config.fixed[name]
             return f.value, "[identify.fixed]", f.reason
-        if name in configured:
-            return float(configured[name]), "[machine.parameters]", "the configured value"
+        if name in self.configured:
+            return float(self.configured[name]), "[machine.parameters]", "the configured value"
         return None
 
-    def hold(i: int, why: str, at: float | None = None) -> None:
-        name = names_est[i]
-        lo, hi = bounds[name]
+    def hold(self, i: int, why: str, at: float | None = None) -> None:
+        """Hold the ``i``-th estimated parameter at ``at`` (where the search left it, at a
+        bound), else at its stated value (clipped to its bounds)."""
+        name = self.names[i]
+        lo, hi = self.bounds[name]
         sd = 0.0
         if at is not None:
             value, source, note = at, "bound", "where the search left it"
         else:
-            found = stated(name)
-            assert found is not None
+            found = self.stated(name)
+            assert found is not None  # only a parameter with a stated value is held there
             value, source, note = found
             if source == "[identify.fixed]":
-                sd = config.fixed[name].rel_std
-        held[name] = HeldParameter(value=float(min(max(value, lo), hi)), source=source,
-                                   stated=note, why=why, full_value=values_full[name],
-                                   rel_std=sd)
-        v[i] = math.log(held[name].value)
-        free.remove(i)
+                sd = self.config.fixed[name].rel_std
+        self.held[name] = HeldParameter(value=float(min(max(value, lo), hi)), source=source,
+                                        stated=note, why=why, full_value=self.full_values[name],
+                                        rel_std=sd)
+        self.v[i] = math.log(self.held[name].value)
+        self.free.remove(i)
 
-    def held_sd() -> dict[int, float]:
-        return {names_est.index(n): h.rel_std for n, h in held.items() if h.rel_std > 0}
+    def rel_sd(self) -> dict[int, float]:
+        """Position -> relative standard error of each held value that states one."""
+        return {self.names.index(n): h.rel_std for n, h in self.held.items() if h.rel_std > 0}
 
+
+def _hold_and_refit(prob: _Problem, holds: _Holds, analysis: Identifiability, r: FloatArray,
+                    jac: FloatArray, parameter_names: Sequence[str]
+                    ) -> tuple[FloatArray, FloatArray]:
+    """:func:`identify`'s hold-and-re-fit: the parameters the full fit left at a bound held
+    there; then, until every free one is determined or none can be held, the weakest
+    combination's main parameter with a stated value held at it (:func:`_weakest_stated`) and
+    the rest re-fitted (a re-fit that pushes one to a bound holds it there too).
+
+    Args:
+        prob: the training problem.
+        holds: the full fit's search vector, nothing held; updated in place.
+        analysis: the full fit's identifiability.
+        r, jac: the full fit's residuals and Jacobian.
+        parameter_names: the model's parameters, in its order.
+
+    Returns:
+        The last re-fit's residuals and Jacobian (the full fit's when nothing was held).
+    """
+    config, names_est, bounds = holds.config, holds.names, holds.bounds
     for name, side in analysis.at_bound.items():
         i = names_est.index(name)
-        hold(i, f"at its {side} bound {bounds[name][0 if side == 'lower' else 1]:.4g}: the "
-             "data push it beyond the range searched (widen [identify] bounds, or the "
-             "structure does not describe it)", at=values_full[name])
-    changed = bool(held)
-    while free:
+        holds.hold(i, f"at its {side} bound {bounds[name][0 if side == 'lower' else 1]:.4g}: "
+                   "the data push it beyond the range searched (widen [identify] bounds, or "
+                   "the structure does not describe it)", at=holds.full_values[name])
+    changed = bool(holds.held)
+    while holds.free:
         if changed:
-            v, r, jac = prob.polish(v, free)
+            holds.v, r, jac = prob.polish(holds.v, holds.free)
             changed = False
-        k = len(free)
-        cov, null = prob.covariance(r, jac, k, v, held_sd())
-        sub = [names_est[i] for i in free]
-        theta = prob.theta(v)
-        vals = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
+        cov, null = prob.covariance(r, jac, len(holds.free), holds.v, holds.rel_sd())
+        sub = [names_est[i] for i in holds.free]
+        theta = prob.theta(holds.v)
+        vals = dict(zip(parameter_names, (float(x) for x in theta), strict=True))
         a = analyse(sub, cov, vals, bounds, config.max_rel_std, config.correlation, null)
         newly = [n for n in a.at_bound if n not in analysis.at_bound]
         if newly:
             for name in newly:
-                hold(names_est.index(name), f"the re-fit with the held values pushed it to "
-                     f"its {a.at_bound[name]} bound", at=vals[name])
+                holds.hold(names_est.index(name), f"the re-fit with the held values pushed "
+                           f"it to its {a.at_bound[name]} bound", at=vals[name])
             changed = True
             continue
         if all(a.rel_std[n] <= config.max_rel_std for n in sub):
             break
-        # the weakest combination that a stated value can resolve: hold its main parameter
-        # with a stated value (the largest share, then the lowest priority); a combination
-        # of parameters nobody stated stays free, and undetermined
-        choice: tuple[Combination, str] | None = None
-        for comb in a.undetermined:
-            top = max(abs(w) for w in comb.weights.values())
-            cands = [n for n, w in comb.weights.items()
-                     if abs(w) >= HOLD_SHARE * top and stated(n) is not None]
-            if cands:
-                weights = comb.weights
-                choice = comb, min(cands, key=lambda n: (
-                    0 if n in config.fixed else 1, -abs(weights[n]), -names_est.index(n)))
-                break
+        choice = _weakest_stated(a, holds)
         if choice is None:
             break
-        comb, name = choice
-        others = [n for n in comb.weights if n != name and abs(comb.weights[n]) >= LABEL_CUT]
-        if others:
-            why = f"in {comb.label()} (+-{_pct(comb.std)})"
-        else:
-            why = f"the outputs barely respond to it (+-{_pct(comb.std)} alone)"
-        hold(names_est.index(name), why)
+        name, why = choice
+        holds.hold(names_est.index(name), why)
         changed = True
     if changed:
-        v, r, jac = prob.polish(v, free)
-    theta = prob.theta(v)
-    values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
-    sub = [names_est[i] for i in free]
-    cov, null = prob.covariance(r, jac, len(free), v, held_sd())
-    final = analyse(sub, cov, values, bounds, config.max_rel_std, config.correlation, null)
-    determined = [n for n in sub if final.rel_std[n] <= config.max_rel_std]
-    undetermined = {n: _unresolved(n, final) for n in sub if n not in determined}
-    init = prob.local.initial(v)
-    explained = _explained(r, jac, fit.n_out, cfg.model_error)
-    return Identification(
-        values=values,
-        rel_std={n: final.rel_std[n] for n in sub},
-        bounds=bounds,
-        estimated=names_est,
-        tied=dict(cfg.tie or {}),
-        train=_score(model, est, train, theta, config.weights, init, explained),
-        validation=_score(model, est, validation, theta, config.weights, None, explained),
-        elapsed_s=time.perf_counter() - t_start,
-        evaluations=fit.evaluations,
-        determined=determined,
-        held=held,
-        undetermined=undetermined,
-        full=full,
-        identifiability=analysis,
-        max_rel_std=config.max_rel_std,
-        structure=structure,
-        options=dict(options or {}),
-        nrmse=float(np.linalg.norm(r)),
-        starts=reached,
-        units={p.name: p.unit for p in model.parameters},
-        output_units={o.name: o.unit for o in model.outputs},
-    )
+        holds.v, r, jac = prob.polish(holds.v, holds.free)
+    return r, jac
+
+
+def _weakest_stated(a: Identifiability, holds: _Holds) -> tuple[str, str] | None:
+    """The parameter to hold next and why: the weakest combination that a stated value can
+    resolve, its main parameter with a stated value (the largest share, then
+    ``[identify.fixed]`` before the configured values, then the lowest priority); None when
+    every undetermined combination is of parameters nobody stated (they stay free, and
+    undetermined)."""
+    names_est = holds.names
+    for comb in a.undetermined:
+        top = max(abs(w) for w in comb.weights.values())
+        cands = [n for n, w in comb.weights.items()
+                 if abs(w) >= HOLD_SHARE * top and holds.stated(n) is not None]
+        if not cands:
+            continue
+        weights = comb.weights
+        name = min(cands, key=lambda n: (
+            0 if n in holds.config.fixed else 1, -abs(weights[n]), -names_est.index(n)))
+        others = [n for n in comb.weights if n != name and abs(comb.weights[n]) >= LABEL_CUT]
+        if others:
+            return name, f"in {comb.label()} (+-{_pct(comb.std)})"
+        return name, f"the outputs barely respond to it (+-{_pct(comb.std)} alone)"
+    return None
 
 
 def _unresolved(name: str, analysis: Identifiability) -> str:
