@@ -25,6 +25,7 @@ from twinwatch.twin.estimation.identify import (
     IdentifyConfig,
     _Holds,
     _weakest_stated,
+    analyse,
     compare_structures,
     fit_percent,
     identify,
@@ -405,3 +406,34 @@ def test_identify_refuses_a_stretch_it_cannot_fit() -> None:
     bad.channels["omega"][3] = np.nan
     with pytest.raises(ValueError, match="channel 'omega' holds NaN or inf in the training"):
         identify(DCMotorTwin(), est, IdentifyConfig(), bad, validation)
+
+
+def test_analysis_names_the_null_direction_the_weak_combination_and_the_strong_pair() -> None:
+    """The identifiability of a covariance built to be read (no fit): Ra determined to 1 %
+    (and at its upper bound), J and D correlated 0.999 (J - D determined, J + D to 200 %), Ke
+    in an exact null direction (infinite variance)."""
+    inf = math.inf
+    cov = np.array([[1e-4, 0.0, 0.0, 0.0],
+                    [0.0, 1.0, 0.999, 0.0],
+                    [0.0, 0.999, 1.0, 0.0],
+                    [0.0, 0.0, 0.0, inf]])
+    cov[3, :] = cov[:, 3] = inf
+    null = np.array([[0.0], [0.0], [0.0], [-1.0]])
+    values = {"Ra": 7.0, "J": 1e-3, "D": 1e-3, "Ke": 0.04}
+    bounds = {"Ra": (1.0, 7.0), "J": (1e-4, 1e-2), "D": (1e-4, 1e-2), "Ke": (0.01, 0.1)}
+    a = analyse(["Ra", "J", "D", "Ke"], cov, values, bounds, 0.05, null=null)
+    assert a.at_bound == {"Ra": "upper"}
+    assert a.rank == 3 and a.determined_rank == 2 and math.isinf(a.condition)
+    assert a.rel_std["Ra"] == pytest.approx(0.01) and math.isinf(a.rel_std["Ke"])
+    # the null direction first (its sign: the largest component +1), then the weak one
+    assert [c.weights for c in a.undetermined][0] == {"Ke": 1.0}
+    assert math.isinf(a.undetermined[0].std) and len(a.undetermined) == 2
+    weak = a.undetermined[1]
+    assert weak.weights == pytest.approx({"Ra": 0.0, "J": 1.0, "D": 1.0}, abs=1e-9)
+    assert weak.std == pytest.approx(math.sqrt(1.999 * 2))
+    assert a.strong_pairs == [("J", "D", pytest.approx(0.999))]
+    assert np.all(np.isnan(a.correlation[3])) and np.all(a.information[3] == 0.0)
+    assert list(a.eigenvalues) == pytest.approx([0.0, 1 / 1.999, 1 / 0.001, 1e4])
+    # at threshold 0 every pair with a correlation is listed (Ke's are nan: not determined)
+    assert len(analyse(["Ra", "J", "D", "Ke"], cov, values, bounds, 0.05, strong=0.0,
+                       null=null).strong_pairs) == 3

@@ -83,7 +83,7 @@ from twinwatch.twin.estimation.fit import (
     residual_variances,
 )
 from twinwatch.twin.estimation.statistics import ModelCheck, OutputCheck, noise_level
-from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+from twinwatch.twin.model import BoolArray, FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
 
@@ -598,6 +598,46 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
     """
     n = len(names)
     names = list(names)
+    null = np.zeros((n, 0)) if null is None else np.asarray(null)[:n]
+    finite = np.isfinite(np.diag(cov)) if n else np.zeros(0, dtype=bool)
+    c = np.where(np.isfinite(cov), cov, 0.0)
+    d = np.diag(c).copy()
+    d[~finite] = np.inf
+    sd = np.sqrt(np.maximum(d, 0.0))
+    undetermined = _null_combinations(names, null)
+    # the determined block: eigen-decomposition of its covariance (the largest variances are
+    # the information matrix's smallest eigenvalues, the same eigenvectors)
+    blk = c[np.ix_(finite, finite)]
+    w, vecs = np.linalg.eigh(blk) if finite.any() else (np.zeros(0), np.zeros((0, 0)))
+    w = np.maximum(w, 1e-300)
+    info = np.zeros((n, n))
+    if finite.any():
+        info[np.ix_(finite, finite)] = vecs @ np.diag(1.0 / w) @ vecs.T
+    # every parameter in an exact null direction has no information of its own (a zero row)
+    eig = np.sort(np.concatenate([np.zeros(n - int(finite.sum())), 1.0 / w]))
+    q = sum(1 for comb in undetermined if math.isinf(comb.std))
+    top = float(eig.max()) if eig.size else 0.0
+    small = float(eig.min()) if eig.size else 0.0
+    fin_names = [nm for nm, f in zip(names, finite, strict=True) if f]
+    weak = _weak_combinations(fin_names, w, vecs, max_rel_std)
+    undetermined += weak
+    undetermined.sort(key=lambda comb: -comb.std)
+    corr = _correlation(c, sd, finite)
+    return Identifiability(
+        names=names, information=info, eigenvalues=eig,
+        rank=n - q,  # the Jacobian's numerical rank over the parameters
+        determined_rank=w.size - len(weak),
+        condition=top / small if small > 0 and q == 0 else math.inf,
+        rel_std={nm: float(s) for nm, s in zip(names, sd, strict=True)},
+        correlation=corr, strong_pairs=_strong_pairs(names, corr, strong),
+        undetermined=undetermined, at_bound=_at_bound(names, values, bounds),
+        max_rel_std=max_rel_std)
+
+
+def _at_bound(names: Sequence[str], values: Mapping[str, float],
+              bounds: Mapping[str, tuple[float, float]]) -> dict[str, str]:
+    """The parameters the search left at a bound (within :data:`AT_BOUND` in ln): name ->
+    ``"lower"`` or ``"upper"``."""
     at_bound = {}
     for name in names:
         lo, hi = bounds[name]
@@ -606,54 +646,57 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
             at_bound[name] = "lower"
         elif abs(math.log(hi / v)) < AT_BOUND:
             at_bound[name] = "upper"
-    null = np.zeros((n, 0)) if null is None else np.asarray(null)[:n]
-    finite = np.isfinite(np.diag(cov)) if n else np.zeros(0, dtype=bool)
-    c = np.where(np.isfinite(cov), cov, 0.0)
-    d = np.diag(c).copy()
-    d[~finite] = np.inf
-    sd = np.sqrt(np.maximum(d, 0.0))
-    undetermined: list[Combination] = []
+    return at_bound
+
+
+def _null_combinations(names: Sequence[str], null: FloatArray) -> list[Combination]:
+    """Each exact null direction (a column of ``null`` (n, q)) as a combination of infinite
+    1-sigma: its largest component +1, components below :data:`NULL_COMPONENT` left out."""
+    out: list[Combination] = []
     for k in range(null.shape[1]):
         vec = null[:, k]
         m = float(np.max(np.abs(vec))) if vec.size else 0.0
         if m <= 0:
             continue
         sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
-        undetermined.append(Combination(
+        out.append(Combination(
             {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)
              if abs(x) > NULL_COMPONENT}, math.inf))
-    # the determined block: eigen-decomposition of its covariance (the largest variances are
-    # the information matrix's smallest eigenvalues, the same eigenvectors)
-    blk = c[np.ix_(finite, finite)]
-    w, vecs = np.linalg.eigh(blk) if finite.any() else (np.zeros(0), np.zeros((0, 0)))
-    w = np.maximum(w, 1e-300)
-    fin_names = [nm for nm, f in zip(names, finite, strict=True) if f]
-    info = np.zeros((n, n))
-    if finite.any():
-        info[np.ix_(finite, finite)] = vecs @ np.diag(1.0 / w) @ vecs.T
-    # every parameter in an exact null direction has no information of its own (a zero row)
-    eig = np.sort(np.concatenate([np.zeros(n - int(finite.sum())), 1.0 / w]))
-    q = sum(1 for comb in undetermined if math.isinf(comb.std))
-    rank = n - q  # the Jacobian's numerical rank over the parameters
-    top = float(eig.max()) if eig.size else 0.0
-    small = float(eig.min()) if eig.size else 0.0
-    condition = top / small if small > 0 and q == 0 else math.inf
-    determined_rank = 0
+    return out
+
+
+def _weak_combinations(names: Sequence[str], w: FloatArray, vecs: FloatArray,
+                       max_rel_std: float) -> list[Combination]:
+    """The eigen-directions of the determined block's covariance (variances ``w`` (k,),
+    vectors ``vecs`` (k, k) over ``names``) whose 1-sigma, the largest component +1, exceeds
+    ``max_rel_std``, in eigenvalue order; the others are determined."""
+    out: list[Combination] = []
     for k in range(w.size):
         vec = vecs[:, k]
         m = float(np.max(np.abs(vec)))
         std = math.sqrt(w[k]) / m if m > 0 else math.inf
         if std <= max_rel_std:
-            determined_rank += 1
             continue
         sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
-        undetermined.append(Combination(
-            {nm: float(sign * x / m) for nm, x in zip(fin_names, vec, strict=True)}, std))
-    undetermined.sort(key=lambda comb: -comb.std)
+        out.append(Combination(
+            {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)}, std))
+    return out
+
+
+def _correlation(c: FloatArray, sd: FloatArray, finite: BoolArray) -> FloatArray:
+    """The correlation matrix of the covariance ``c`` (n, n) with standard deviations ``sd``
+    (n,); ``nan`` rows and columns for the parameters not ``finite`` (not determined)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        corr = c / np.outer(np.where(sd > 0, sd, 1.0), np.where(sd > 0, sd, 1.0))
+        corr: FloatArray = c / np.outer(np.where(sd > 0, sd, 1.0), np.where(sd > 0, sd, 1.0))
     corr[~finite, :] = np.nan
     corr[:, ~finite] = np.nan
+    return corr
+
+
+def _strong_pairs(names: Sequence[str], corr: FloatArray,
+                  strong: float) -> list[tuple[str, str, float]]:
+    """The pairs whose |correlation| is ``strong`` or more, strongest first."""
+    n = len(names)
     pairs = []
     for i in range(n):
         for j in range(i + 1, n):
@@ -661,12 +704,7 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
             if math.isfinite(rho) and abs(rho) >= strong:
                 pairs.append((names[i], names[j], rho))
     pairs.sort(key=lambda p: -abs(p[2]))
-    return Identifiability(
-        names=names, information=info, eigenvalues=eig, rank=rank,
-        determined_rank=determined_rank, condition=condition,
-        rel_std={nm: float(s) for nm, s in zip(names, sd, strict=True)},
-        correlation=corr, strong_pairs=pairs, undetermined=undetermined,
-        at_bound=at_bound, max_rel_std=max_rel_std)
+    return pairs
 
 
 #: Singular values of the column-scaled Jacobian below this fraction of the largest are
