@@ -86,6 +86,7 @@ import re
 import time
 from collections import deque
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import numpy as np
@@ -987,25 +988,21 @@ def _projection(p: str, ph: ParameterView, t: float, history: Sequence[tuple[flo
     _projection_ops`), in the view's units (``_BOX``): None without a trend level and a
     predicted alarm crossing. The time axis runs from as far before now as the interval's end
     is after it (the recent deviations) to the interval's end (twice the median's distance when
-    some draws never cross); the value axis spans what is drawn and the alarm threshold."""
-    trend, rul = ph.trend, ph.rul
-    crossing = rul.alarm if rul is not None else None
-    nom = _num(ph.nominal)
-    level = _num(trend.level if trend is not None else None)
-    if (crossing is None or crossing.status != "predicted" or not math.isfinite(level)
-            or not math.isfinite(nom) or nom == 0.0):
+    some draws never cross); the value axis spans what is drawn and the alarm threshold.
+    The steps: what the message predicts (:func:`_predicted_crossing`), the curves, the frame
+    (:class:`_Frame`), the strips (:func:`_projection_strips`) and the labels
+    (:func:`_projection_labels`)."""
+    predicted = _predicted_crossing(ph, t)
+    if predicted is None:
         return None
-    th, t_cross = _num(crossing.threshold), _num(crossing.t)
-    t_low, t_high = _num(crossing.t_low), _num(crossing.t_high)
-    if not (math.isfinite(th) and math.isfinite(t_cross) and t_cross > t):
-        return None
+    nom, level, th, t_cross, t_low, t_high = predicted
 
     def pct(v: Any) -> Any:
         return (np.asarray(v, dtype=float) / nom - 1.0) * 100.0
 
     end = t_high if math.isfinite(t_high) and t_high > t_cross else t + 2.0 * (t_cross - t)
     start = t - (end - t)
-    growth = _num(trend.growth) if trend is not None else math.nan
+    growth = _num(ph.trend.growth) if ph.trend is not None else math.nan
     rate = None if not math.isfinite(growth) else growth
     curves = []
     for x in (t_low, t_high, t_cross):  # the band's ends, then the median
@@ -1020,30 +1017,94 @@ def _projection(p: str, ph: ParameterView, t: float, history: Sequence[tuple[flo
     finite = finite[np.isfinite(finite)]
     low, high = float(finite.min()), float(finite.max())
     pad = 0.08 * (high - low or abs(high) or 1.0)
-    low, high = low - pad, high + pad
+    frame = _Frame(start, end, low - pad, high + pad)
     others = [(name, v, c) for name, v, c in limits
-              if low <= v <= high and not math.isclose(v, th_pct, abs_tol=1e-9)]
-    w, h = _BOX
-    left, right, top, bottom = _MARGIN
+              if frame.low <= v <= frame.high and not math.isclose(v, th_pct, abs_tol=1e-9)]
+    strips = _projection_strips(frame, t, th_pct, others, past, curves)
+    labels = _projection_labels(frame, t, float(pct(level)), th_pct, (t_cross, t_low, t_high),
+                                others)
+    return strips, labels
 
-    def xy(ts: Any, vs: Any) -> np.ndarray:
-        x = left + (np.asarray(ts, dtype=float) - start) / (end - start) * (w - left - right)
-        y = top + (high - np.asarray(vs, dtype=float)) / (high - low) * (h - top - bottom)
+
+def _predicted_crossing(ph: ParameterView, t: float
+                        ) -> tuple[float, float, float, float, float, float] | None:
+    """What :func:`_projection` draws from: (nominal, trend level, alarm threshold [SI],
+    crossing's plant time, its interval's ends [s], nan where open); None unless the message
+    predicts the alarm's crossing after ``t`` from a trend level, on a nonzero nominal."""
+    trend, rul = ph.trend, ph.rul
+    crossing = rul.alarm if rul is not None else None
+    nom = _num(ph.nominal)
+    level = _num(trend.level if trend is not None else None)
+    if (crossing is None or crossing.status != "predicted" or not math.isfinite(level)
+            or not math.isfinite(nom) or nom == 0.0):
+        return None
+    th, t_cross = _num(crossing.threshold), _num(crossing.t)
+    if not (math.isfinite(th) and math.isfinite(t_cross) and t_cross > t):
+        return None
+    return nom, level, th, t_cross, _num(crossing.t_low), _num(crossing.t_high)
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """The projection's axes: plant time ``start`` to ``end`` [s] across, the deviation
+    ``low`` to ``high`` [% of nominal] up, mapped into the drawing (:data:`_BOX`, inside
+    :data:`_MARGIN`; y down)."""
+
+    start: float
+    end: float
+    low: float
+    high: float
+
+    def xy(self, ts: Any, vs: Any) -> np.ndarray:
+        """Points (k, 2) in the drawing of times ``ts`` [s] and deviations ``vs`` [%]."""
+        w, h = _BOX
+        left, right, top, bottom = _MARGIN
+        x = (left + (np.asarray(ts, dtype=float) - self.start) / (self.end - self.start)
+             * (w - left - right))
+        y = top + (self.high - np.asarray(vs, dtype=float)) / (self.high - self.low) * (
+            h - top - bottom)
         return np.column_stack([np.atleast_1d(x), np.atleast_1d(y)])
 
-    strips = [_Strip(xy([start, end], [v, v]), c, 1.0) for _, v, c in others]
-    strips.append(_Strip(xy([start, end], [th_pct, th_pct]), _ALARM, 1.5))
-    strips.append(_Strip(xy([t, t], [low, high]), _NOMINAL, 0.75))
+    def x(self, ts: float) -> float:
+        """The drawing's x of plant time ``ts`` [s]."""
+        return float(self.xy([ts], [0.0])[0, 0])
+
+    def y(self, t: float, v: float) -> float:
+        """The drawing's y of the deviation ``v`` [%] (at plant time ``t``)."""
+        return float(self.xy([t], [v])[0, 1])
+
+
+def _projection_strips(frame: _Frame, t: float, th_pct: float,
+                       others: Sequence[tuple[str, float, tuple[int, ...]]],
+                       past: np.ndarray, curves: Sequence[np.ndarray]) -> list[_Strip]:
+    """The projection's lines: the other thresholds in range, the alarm threshold, now, the
+    recent deviations ``past`` (k, 2), the trend's ``curves`` (the band's ends, the median
+    last)."""
+    start, end = frame.start, frame.end
+    strips = [_Strip(frame.xy([start, end], [v, v]), c, 1.0) for _, v, c in others]
+    strips.append(_Strip(frame.xy([start, end], [th_pct, th_pct]), _ALARM, 1.5))
+    strips.append(_Strip(frame.xy([t, t], [frame.low, frame.high]), _NOMINAL, 0.75))
     if len(past) > 1:
-        strips.append(_Strip(xy(past[:, 0], past[:, 1]), _DEVIATION, 1.0))
+        strips.append(_Strip(frame.xy(past[:, 0], past[:, 1]), _DEVIATION, 1.0))
     for i, c in enumerate(curves):
         median = i == len(curves) - 1
-        strips.append(_Strip(xy(c[:, 0], c[:, 1]), _TREND if median else _TREND_BAND,
+        strips.append(_Strip(frame.xy(c[:, 0], c[:, 1]), _TREND if median else _TREND_BAND,
                              2.0 if median else 1.0))
-    level_pct = float(pct(level))
+    return strips
+
+
+def _projection_labels(frame: _Frame, t: float, level_pct: float, th_pct: float,
+                       times: tuple[float, float, float],
+                       others: Sequence[tuple[str, float, tuple[int, ...]]]) -> list[_Label]:
+    """The projection's points and texts: the level now, the crossing, each threshold's
+    value, now and the crossing's plant time with its interval (``times``: the crossing, the
+    interval's ends, nan where open), written under or over their lines and kept inside the
+    view."""
+    w = _BOX[0]
+    t_cross, t_low, t_high = times
     below = th_pct < level_pct  # the threshold under the trend: its labels under it
-    y_th = float(xy([t], [th_pct])[0, 1])
-    y_low, y_high = (float(xy([t], [v])[0, 1]) for v in (low, high))
+    y_th = frame.y(t, th_pct)
+    y_low, y_high = frame.y(t, frame.low), frame.y(t, frame.high)
     outer = y_th + _UNDER if below else y_th - _OVER
     inner = y_high - _OVER if below else y_low + _UNDER
     band = (f" ({clock(t_low) if math.isfinite(t_low) else 'n/a'}-"
@@ -1054,20 +1115,17 @@ def _projection(p: str, ph: ParameterView, t: float, history: Sequence[tuple[flo
         half = _CHAR_W * len(text) / 2.0 + _LABEL_PAD
         return float(min(max(x, half), w - half)), y
 
-    def x_of(ts: float) -> float:
-        return float(xy([ts], [0.0])[0, 0])
-
-    texts = [(f"alarm {th_pct:+.3g} %", x_of(start), outer, _ALARM, 0.5),
-             *((f"{name.split()[0]} {v:+.3g} %", x_of(start),
-                float(xy([t], [v])[0, 1]) + (_UNDER if v < level_pct else -_OVER), c, 0.5)
+    texts = [(f"alarm {th_pct:+.3g} %", frame.x(frame.start), outer, _ALARM, 0.5),
+             *((f"{name.split()[0]} {v:+.3g} %", frame.x(frame.start),
+                frame.y(t, v) + (_UNDER if v < level_pct else -_OVER), c, 0.5)
                for name, v, c in others),
-             (f"now {clock(t)}", x_of(t), inner, _NOMINAL, 0.5),
-             (f"{clock(t_cross)}{band}", x_of(t_cross), outer, _ALARM, 0.5)]
-    labels = [_Label(tuple(xy([t], [level_pct])[0]), f"{level_pct:+.3g} %", _TREND, 2.5),
-              _Label(tuple(xy([t_cross], [th_pct])[0]), "", _ALARM, 3.0)]
+             (f"now {clock(t)}", frame.x(t), inner, _NOMINAL, 0.5),
+             (f"{clock(t_cross)}{band}", frame.x(t_cross), outer, _ALARM, 0.5)]
+    labels = [_Label(tuple(frame.xy([t], [level_pct])[0]), f"{level_pct:+.3g} %", _TREND, 2.5),
+              _Label(tuple(frame.xy([t_cross], [th_pct])[0]), "", _ALARM, 3.0)]
     labels += [_Label(at(x, y, text), text, c, size) for text, x, y, c, size in texts]
-    return strips, [_Label((float(q.xy[0]), float(q.xy[1])), q.label, q.color, q.size)
-                    for q in labels]
+    return [_Label((float(q.xy[0]), float(q.xy[1])), q.label, q.color, q.size)
+            for q in labels]
 
 
 def _growth_curve(t0: float, y0: float, t1: float, y1: float, r: float | None,
