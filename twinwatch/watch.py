@@ -45,7 +45,7 @@ from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
@@ -755,7 +755,7 @@ class FleetWatcher:
                     text = json.dumps(raw, separators=(",", ":"))  # as published
                     doc = _health_view(raw)
                     if self._deliver(machine, doc, text, "history"):
-                        gap.recovered.append(doc.window)  # type: ignore[arg-type]
+                        gap.recovered.append(doc.window)
                     t_end = _num(doc.t_end)
                     if t_end is not None:
                         last_t = t_end if last_t is None else max(last_t, t_end)
@@ -805,7 +805,7 @@ class FleetWatcher:
 
 @contextmanager
 def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
-             machine: str = "*", **options: Any) -> Iterator[FleetWatcher]:
+             machine: str = "*", **options: Any) -> Iterator[Settling]:
     """A session on ``connect`` and a started :class:`FleetWatcher` on it (``options``: its
     ``history``, ``alarm_history`` and ``on_*``), closed on exit.
 
@@ -826,7 +826,15 @@ def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
             stack.callback(session.close)
             watchers.append(stack.enter_context(
                 FleetWatcher(session, fleet, prefix=prefix, machine=machine, **options)))
-        yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)  # type: ignore[misc]
+        yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)
+
+
+class Settling(Protocol):
+    """What :func:`watching` yields: one :class:`FleetWatcher`, or several as one."""
+
+    def settle(self, timeout: float) -> None:
+        """Wait until every machine with a token has reported a window, or ``timeout`` [s]
+        has passed (:meth:`FleetWatcher.settle`)."""
 
 
 class _Watchers:

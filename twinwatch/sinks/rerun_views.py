@@ -1265,7 +1265,7 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
         lines = [f"**Diagnosis: no fault** (probability {_fmt(d.no_fault, '.2f')})"]
         from twinwatch.twin.health import developing_line
 
-        developing = developing_line(d, parameters or {})  # type: ignore[arg-type]
+        developing = developing_line(d, parameters or {})
         if developing:
             lines[0] += "  "
             lines.append(f"*{developing}*")

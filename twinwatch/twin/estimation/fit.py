@@ -550,7 +550,7 @@ def _swarm_problem_class() -> type:
     configuration is validated)."""
     from pymoo.core.problem import Problem
 
-    class SwarmProblem(Problem):  # type: ignore[misc]
+    class SwarmProblem(Problem):  # type: ignore[misc]  # pymoo is untyped: Problem is Any
         """pymoo problem whose ``_evaluate`` is one vectorised call for the whole swarm (as
         pymoo's ``problems/single``): ``cost_fn(X (P, n)) -> (P,)``."""
 
@@ -559,7 +559,8 @@ def _swarm_problem_class() -> type:
             super().__init__(n_var=xl.size, n_obj=1, xl=xl, xu=xu)
             self._cost_fn = cost_fn
 
-        def _evaluate(self, x, out, *args, **kwargs):  # type: ignore[no-untyped-def]
+        def _evaluate(self, x: FloatArray, out: dict[str, Any], *args: Any,
+                      **kwargs: Any) -> None:
             out["F"] = self._cost_fn(x)[:, None]
 
     return SwarmProblem

@@ -560,8 +560,9 @@ class DCMotorTwin(TwinModel):
         for name in ("d(omega)/dt", "d(ia)/dt"):
             out.append(term_array((terms or {}).get(name), p, n, name))
         rows = max(a.shape[0] for a in out)
-        return tuple(np.ascontiguousarray(np.broadcast_to(a, (rows, n))) if a.shape[0] != rows
-                     else a for a in out)  # type: ignore[return-value]
+        f_w, f_i = (np.ascontiguousarray(np.broadcast_to(a, (rows, n))) if a.shape[0] != rows
+                    else a for a in out)
+        return f_w, f_i
 
     def _initial_state(self, window: WindowData, k: int, pos: Mapping[str, int],
                        off: FloatArray) -> FloatArray:
