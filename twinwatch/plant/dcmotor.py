@@ -33,11 +33,23 @@ One plant step (dt = 1e-4 s), in this order::
         Va  = the drive's speed loop on (setpoint, omega)        (twinwatch.io.drive)
               [through its current loop on (speed loop output, ia)]
     Va_m   = dz(Va) with scenario dead_zone from fault_start, else Va
+    Va_m  *= s(t)                          a supply fault: the motor receives s times Va
     ia    += dt*(Va_m - Ra*ia - Ke*omega)/La                         (Eq. 11)
     ia     = max(ia, 0)                    with power_stage = "unidirectional"
     omega += dt*(Kt*ia - Tload - D*omega - Tc*sign(omega))/J [+ dt*5*sin(10*t)]  (Eq. 12 / 13)
                                                     [or + dt*5*sin(angle): follows the shaft]
+             [+ dt*(a1*sin(angle) + a2*sin(2*angle)): injected unbalance and misalignment]
     angle += dt*omega
+
+**Injected faults** (for the diagnosis's fault-matrix benchmark, benchmarks/bench_diagnosis.py;
+the time profile of each, step, drift, repair or intermittent: :mod:`twinwatch.plant.faults`):
+``[[driver.plant.parameter_faults]]`` moves Ra, La, J, Ke (with Kt: the field), D, Tc, the load
+coefficient or the amplitudes a1 (``unbalance``, 1x the shaft speed: ISO 21940-11) and a2
+(``misalignment``, 2x: Bloch and Budris, *Pump User's Handbook*), evaluated every acquisition
+sample and held over its integration steps; ``[driver.plant.supply_fault]`` scales the voltage
+the motor receives, s(t), while the reported Va stays the drive's command; ``sensor_faults``
+of kind ``gain`` and ``offset`` change a reported channel only. The numba kernel reads the
+parameters from the array it is handed each sample: no recompilation, the same speed.
 
 The drive (:class:`~twinwatch.io.drive.DriveConfig`, ``[driver.plant.drive]``) runs as a real
 drive does: it updates every ``period`` and holds its output in between, clamps it to its limits
@@ -78,6 +90,7 @@ from pydantic import (
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
+from twinwatch.plant.faults import ParameterFaultConfig, SupplyFaultConfig
 
 logger = logging.getLogger(__name__)
 
@@ -141,28 +154,89 @@ class SetpointSchedule(BaseModel):
 
 class SensorFaultConfig(BaseModel):
     """A sensor fault of the simulated plant (``[[driver.plant.sensor_faults]]``): from
-    ``start`` for ``duration`` seconds the reported ``channel`` is ``frozen`` (it repeats its
-    reading at the onset) or ``saturated`` (clipped at ``level``, from above with ``side =
-    "high"``, from below with ``"low"``). Applied to the reported value after noise and
-    quantisation; the plant itself and its drive are untouched."""
+    ``start`` for ``duration`` seconds (to the end of the run without one) the reported
+    ``channel`` is
+
+    * ``frozen``: it repeats its reading at the onset;
+    * ``saturated``: clipped at ``level``, from above with ``side = "high"``, from below with
+      ``"low"``;
+    * ``gain``: ``reported = g * value`` (a wrong scale: a shunt or a tachometer constant off);
+    * ``offset``: ``reported = value + o`` [the channel's unit] (a zero error).
+
+    A gain or offset may grow linearly from nothing to full over ``ramp`` seconds after
+    ``start`` (a drift: ``g(t) = 1 + f (gain - 1)``, ``o(t) = f offset``, ``f = min(1, (t -
+    start)/ramp)``). Applied to the reported value after noise and quantisation; the plant
+    itself and its drive (which reads its own feedback) are untouched."""
 
     model_config = ConfigDict(extra="forbid")
 
     channel: str
-    kind: Literal["frozen", "saturated"]
+    kind: Literal["frozen", "saturated", "gain", "offset"]
     start: StrictFloat = Field(ge=0, description="onset [s]")
-    duration: StrictFloat = Field(gt=0, description="how long [s]")
+    duration: StrictFloat | None = Field(None, gt=0, description="how long [s] (None: to the "
+                                         "end of the run)")
     level: StrictFloat | None = Field(
         None, description="saturated: the reading clips at this value "
         "[the channel's unit]")
     side: Literal["high", "low"] = Field("high", description="saturated: clips readings above "
                                          "(high) or below (low) the level")
+    gain: StrictFloat | None = Field(None, description="gain: reported = gain * value at full "
+                                     "size (e.g. 1.1: reads 10 % high)")
+    offset: StrictFloat | None = Field(None, description="offset: reported = value + offset at "
+                                       "full size [the channel's unit]")
+    ramp: StrictFloat = Field(0.0, ge=0, description="gain, offset: seconds from start to full "
+                              "size, growing linearly (a drift; 0: a step)")
 
     @model_validator(mode="after")
     def _check(self) -> SensorFaultConfig:
         if self.kind == "saturated" and self.level is None:
             raise ValueError("level: a saturated sensor needs the level it clips at")
+        if self.kind == "gain" and self.gain is None:
+            raise ValueError("gain: a gain fault needs its gain (reported = gain * value)")
+        if self.kind == "offset" and self.offset is None:
+            raise ValueError("offset: an offset fault needs its offset (reported = value + "
+                             "offset)")
+        for key in ("gain", "offset", "level"):
+            wanted = {"gain": "gain", "offset": "offset", "level": "saturated"}[key]
+            if getattr(self, key) is not None and self.kind != wanted:
+                raise ValueError(f"{key}: only for kind {wanted!r} (this fault is "
+                                 f"{self.kind!r})")
+        if self.ramp > 0 and self.kind not in ("gain", "offset"):
+            raise ValueError(f"ramp: only a gain or an offset drifts (this fault is "
+                             f"{self.kind!r})")
         return self
+
+    def active(self, t: float) -> bool:
+        """Whether the fault acts at plant time ``t`` [s]."""
+        return self.start <= t and (self.duration is None or t < self.start + self.duration)
+
+    def apply(self, value: float, t: float, frozen: dict[int, float]) -> float:
+        """The reported value at plant time ``t`` [s] given the sensor's ``value`` (after noise
+        and quantisation); ``frozen`` keeps a frozen sensor's reading (by fault)."""
+        if not self.active(t):
+            return value
+        if self.kind == "frozen":
+            return frozen.setdefault(id(self), value)
+        if self.kind == "saturated":
+            assert self.level is not None
+            return min(value, self.level) if self.side == "high" else max(value, self.level)
+        f = 1.0 if self.ramp <= 0 else min(1.0, (t - self.start) / self.ramp)
+        if self.kind == "gain":
+            assert self.gain is not None
+            return (1.0 + f * (self.gain - 1.0)) * value
+        assert self.offset is not None
+        return value + f * self.offset
+
+
+#: Parameters a ``[[driver.plant.parameter_faults]]`` entry of the DC motor may move, with
+#: their unit: ``Ke`` moves Ke and Kt together (the field: in SI units Kt = Ke), ``load`` the
+#: load coefficient c_load, ``Tc`` the Coulomb friction torque (nominal ``coulomb_friction``,
+#: usually 0: give ``absolute``), ``unbalance`` and ``misalignment`` the amplitude of a
+#: periodic forcing on d(omega)/dt following the shaft's angle at 1x and 2x its speed
+#: (nominal 0: give ``absolute``).
+DC_FAULT_PARAMETERS: dict[str, str] = {
+    "Ra": "ohm", "La": "H", "J": "kg m^2", "Ke": "V s/rad (and Kt, N m/A)", "D": "N m s/rad",
+    "Tc": "N m", "load": "N m s/rad", "unbalance": "rad/s^2", "misalignment": "rad/s^2"}
 
 
 class DCMotorPlantConfig(BaseModel):
@@ -221,14 +295,31 @@ class DCMotorPlantConfig(BaseModel):
         None, ge=1, description="encoder counts per revolution: the reported speed is the "
         "count of the last sample period times 2*pi/(cpr*sample_period)")
     sensor_faults: list[SensorFaultConfig] = Field(
-        default_factory=list, description="sensor faults: a reported channel frozen or "
-        "saturated for a while (for tests of the estimator's data-quality checks)")
+        default_factory=list, description="sensor faults: a reported channel frozen, "
+        "saturated, off by a gain or an offset (possibly drifting) for a while (for tests of "
+        "the estimator's data-quality checks and of the diagnosis)")
+    parameter_faults: list[ParameterFaultConfig] = Field(
+        default_factory=list, description="changes of the plant's physical parameters over "
+        "time (step, drift, repair, intermittent; twinwatch.plant.faults): parameter one of Ra, "
+        "La, J, Ke (Ke and Kt together: the field), D, Tc (Coulomb friction [N m]), load "
+        "(c_load), unbalance and misalignment (a forcing on d(omega)/dt at 1x and 2x the shaft's "
+        "angle [rad/s^2]); Tc, unbalance and misalignment need absolute (their nominal is 0)")
+    supply_fault: SupplyFaultConfig | None = Field(
+        None, description="the motor receives ratio times the drive's voltage (a sagging "
+        "supply) while the reported Va stays the drive's command")
     seed: StrictInt = 0
 
     @property
     def drive_config(self) -> DriveConfig:
         """The drive: ``drive``, or the paper's PI (``kp``, ``ki``) updated every step."""
         return self.drive or DriveConfig(speed=LoopConfig(kp=self.kp, ki=self.ki))
+
+    def fault_nominals(self) -> dict[str, float]:
+        """The nominal value of each parameter a parameter fault may move (its unit:
+        :data:`DC_FAULT_PARAMETERS`)."""
+        return {"Ra": self.Ra, "La": self.La, "J": self.J, "Ke": self.Ke, "D": self.D,
+                "Tc": self.coulomb_friction, "load": self.load_coefficient,
+                "unbalance": 0.0, "misalignment": 0.0}
 
     @model_validator(mode="after")
     def _check(self) -> DCMotorPlantConfig:
@@ -245,6 +336,15 @@ class DCMotorPlantConfig(BaseModel):
             if fault.channel not in CHANNELS:
                 raise ValueError(f"sensor_faults[{i}].channel: unknown channel "
                                  f"{fault.channel!r}; use one of {CHANNELS}")
+        nominal = self.fault_nominals()
+        for i, pf in enumerate(self.parameter_faults):
+            if pf.parameter not in DC_FAULT_PARAMETERS:
+                raise ValueError(f"parameter_faults[{i}].parameter: unknown parameter "
+                                 f"{pf.parameter!r}; use one of {tuple(DC_FAULT_PARAMETERS)}")
+            if pf.change is not None and nominal[pf.parameter] == 0.0:
+                raise ValueError(f"parameter_faults[{i}].change: {pf.parameter} is 0 at "
+                                 f"nominal, a percentage of it is nothing; give absolute "
+                                 f"[{DC_FAULT_PARAMETERS[pf.parameter]}]")
         try:
             self.drive_config.ticks(self.step)
         except ValueError as exc:
@@ -306,9 +406,12 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # p
     """Advance the plant ``state`` (see the ``_IA``... indices) by ``n_sub`` steps from step
     index ``k0``, the drive updating when due.
 
-    ``p = [Ra0, La, J, Ke, Kt, D0, c_load]``; ``state`` is updated in place.
+    ``p = [Ra0, La, J, Ke, Kt, D0, c_load, supply, a1, a2]`` (``supply``: the share of the
+    stage's voltage the motor receives; ``a1``, ``a2``: forcings on d(omega)/dt [rad/s^2] at 1x
+    and 2x the shaft's angle); ``state`` is updated in place.
     """
     ra0, la, j, ke, kt, d0, c = p[0], p[1], p[2], p[3], p[4], p[5], p[6]
+    supply, a1, a2 = p[7], p[8], p[9]
     for s in range(n_sub):
         k = k0 + s
         _tick(state, k, sp, speed, current, has_current, m, mc, ph, dt)
@@ -326,6 +429,7 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # p
         va = state[_VA]
         if scenario == 4 and t >= t_fault:  # the drive's dead zone: dz(Va, b)
             va = va - dz_b if va > dz_b else (va + dz_b if va < -dz_b else 0.0)
+        va *= supply
         ia = ia + dt * (va - ra * ia - ke * w) / la
         if stage == 1 and ia < 0.0:
             ia = 0.0
@@ -338,6 +442,9 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # p
                 w_new += dt * unb_a * math.sin(state[_ANGLE] + dt * w)
             else:
                 w_new += dt * unb_a * math.sin(unb_w * (t + dt))
+        if a1 != 0.0 or a2 != 0.0:  # injected unbalance (1x) and misalignment (2x)
+            angle = state[_ANGLE] + dt * w
+            w_new += dt * (a1 * math.sin(angle) + a2 * math.sin(2.0 * angle))
         state[_IA], state[_W] = ia, w_new
         state[_ANGLE] += dt * w_new
         if tau_i > 0.0:
@@ -348,10 +455,34 @@ def _advance(state, k0, n_sub, dt, sp, p, scenario, t_fault, period, unb_a,  # p
 
 @dataclass
 class PlantTruth:
-    """The plant's true parameters at a time (for tests and benchmarks)."""
+    """The plant's true parameters at a time (for tests and benchmarks).
+
+    Attributes:
+        Ra: armature resistance [ohm].
+        D: viscous friction [N m s/rad].
+        La: armature inductance [H].
+        J: inertia [kg m^2].
+        Ke: back-EMF constant [V s/rad].
+        Kt: torque constant [N m/A].
+        Tc: Coulomb friction torque [N m].
+        load: load coefficient c_load [N m s/rad] (Tload = load*omega).
+        unbalance: forcing at 1x the shaft's angle [rad/s^2] (the injected one; the scenario
+            ``unbalanced_shaft``'s is ``unbalance_amplitude``).
+        misalignment: forcing at 2x the shaft's angle [rad/s^2].
+        supply: the share of the drive's voltage the motor receives (1: all of it).
+    """
 
     Ra: float
     D: float
+    La: float = math.nan
+    J: float = math.nan
+    Ke: float = math.nan
+    Kt: float = math.nan
+    Tc: float = 0.0
+    load: float = math.nan
+    unbalance: float = 0.0
+    misalignment: float = 0.0
+    supply: float = 1.0
 
 
 class DCMotorPlant:
@@ -371,7 +502,10 @@ class DCMotorPlant:
         c = self.config
         self.sample_period = c.sample_period
         self.n_sub = int(round(c.sample_period / c.step))
-        self._p = np.array([c.Ra, c.La, c.J, c.Ke, c.Kt, c.D, c.load_coefficient])
+        self._p = np.array([c.Ra, c.La, c.J, c.Ke, c.Kt, c.D, c.load_coefficient, 1.0, 0.0,
+                            0.0])
+        self._nominal = c.fault_nominals()
+        self._tc = c.coulomb_friction
         self._scenario = _SCENARIO_CODE[c.scenario]
         self._sp_times, self._sp_values = c.setpoint.build(c.duration)
         drive = c.drive_config
@@ -397,16 +531,43 @@ class DCMotorPlant:
         idx = int(np.searchsorted(self._sp_times, t + 1e-9, side="right")) - 1
         return float(self._sp_values[max(idx, 0)])
 
+    def _faulted(self, t: float) -> dict[str, float]:
+        """Every parameter a parameter fault may move, at plant time ``t`` [s] (the nominal
+        plus the faults' changes; the scenarios' laws not included)."""
+        values = dict(self._nominal)
+        for pf in self.config.parameter_faults:
+            values[pf.parameter] += pf.delta(self._nominal[pf.parameter], t)
+        return values
+
     def truth(self, t: float) -> PlantTruth:
-        """True Ra [ohm] and D [N m s/rad] at plant time ``t`` [s]."""
+        """The plant's true parameters at plant time ``t`` [s]: the scenario's law (Ra, D) and
+        the parameter and supply faults (:class:`PlantTruth`)."""
         c = self.config
         age = t - c.fault_start
         if c.fault_period is not None and age > 0:
             age %= c.fault_period
-        x = _ramp(age)
-        ra = c.Ra - RA_DROP * x if c.scenario == "resistance_degradation" else c.Ra
-        d = c.D + D_RISE * x if c.scenario == "bearing_wear" else c.D
-        return PlantTruth(Ra=ra, D=d)
+        x = _ramp(age) if t >= c.fault_start else 0.0
+        v = self._faulted(t)
+        ra = v["Ra"] - RA_DROP * x if c.scenario == "resistance_degradation" else v["Ra"]
+        d = v["D"] + D_RISE * x if c.scenario == "bearing_wear" else v["D"]
+        ke_scale = v["Ke"] / c.Ke
+        return PlantTruth(Ra=ra, D=d, La=v["La"], J=v["J"], Ke=v["Ke"], Kt=c.Kt * ke_scale,
+                          Tc=v["Tc"], load=v["load"], unbalance=v["unbalance"],
+                          misalignment=v["misalignment"],
+                          supply=c.supply_fault.factor(t) if c.supply_fault else 1.0)
+
+    def _apply_faults(self, t: float) -> None:
+        """Set the compiled plant's parameters for the sample period from ``t`` [s]."""
+        c = self.config
+        if c.parameter_faults:
+            v = self._faulted(t)
+            p = self._p
+            p[0], p[1], p[2], p[3] = v["Ra"], v["La"], v["J"], v["Ke"]
+            p[4] = c.Kt * v["Ke"] / c.Ke
+            p[5], p[6], p[8], p[9] = v["D"], v["load"], v["unbalance"], v["misalignment"]
+            self._tc = v["Tc"]
+        if c.supply_fault is not None:
+            self._p[7] = c.supply_fault.factor(t)
 
     def next_sample(self) -> Sample:
         """Report the sample at the current time, then advance the plant one sample period."""
@@ -421,10 +582,11 @@ class DCMotorPlant:
         _tick(st, j0, sp, self._speed, self._current, self._has_current, self._m, self._mc,
               self._ph, c.step)
         w = float(st[_W])
+        self._apply_faults(t)
         values = {"Va": float(st[_VA]),
                   "ia": float(st[_FI] if c.current_filter else st[_IA]),
                   "omega": float(st[_FW] if c.speed_filter else w),
-                  "Tload": c.load_coefficient * w, "setpoint": sp}
+                  "Tload": float(self._p[6]) * w, "setpoint": sp}
         if c.encoder_cpr:
             counts = math.floor(float(st[_ANGLE]) * c.encoder_cpr / (2 * math.pi))
             values["omega"] = ((counts - self._counts) * 2 * math.pi
@@ -439,19 +601,12 @@ class DCMotorPlant:
             if q > 0:
                 values[ch] = round(values[ch] / q) * q
         for fault in c.sensor_faults:
-            if not fault.start <= t < fault.start + fault.duration:
-                continue
-            ch = fault.channel
-            if fault.kind == "frozen":
-                values[ch] = self._frozen.setdefault(id(fault), values[ch])
-            elif fault.level is not None:
-                clip = min if fault.side == "high" else max
-                values[ch] = clip(values[ch], fault.level)
+            values[fault.channel] = fault.apply(values[fault.channel], t, self._frozen)
         _advance(st, j0, self.n_sub, c.step, sp, self._p, self._scenario, c.fault_start,
                  c.fault_period or 0.0, c.unbalance_amplitude,
                  math.nan if c.unbalance_follows_shaft else c.unbalance_frequency,
                  self._speed, self._current, self._has_current, self._m, self._mc, self._ph,
-                 1 if c.power_stage == "unidirectional" else 0, c.coulomb_friction,
+                 1 if c.power_stage == "unidirectional" else 0, self._tc,
                  c.current_filter or 0.0, c.speed_filter or 0.0, c.dead_zone_threshold)
         self._k += 1
         return Sample(t=t, values=values)

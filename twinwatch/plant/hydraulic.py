@@ -8,11 +8,25 @@ plant step j -> j+1 of dt = 1e-4 s::
     q_valve   = A_valve * sqrt(2 * p_j)                         (Eq. 6-7, density left out)
     v_{j+1}   = (q_pump - q_valve) / A_piston                   (Eq. 8, uses p_j)
     x_{j+1}   = x_j + dt * v_{j+1}                              (Eq. 14-15)
-    p_{j+1}   = (1 + C) * (F_load + k_spring*x_{j+1} + D*v_{j+1} + F_resist) / A_piston
-                                                                (Eq. 16; Eq. 18 with C != 0)
+    p_{j+1}   = (1 + C) * (F_load + k_spring*x_{j+1} + D*v_{j+1} + F_resist
+                           + F_c*sign(v_{j+1})) / A_piston    (Eq. 16; Eq. 18 with C != 0)
 
 ``v_{j+1}`` is the velocity over the step (the paper's ``v_{k-1}`` of Eq. 14); the same value
-enters the damping force of Eq. 16. ``C`` is 0 except in the internal-leak scenario.
+enters the damping force of Eq. 16. ``C`` is 0 except in the internal-leak scenario (or an
+injected ``leak``). ``F_c`` is an injected Coulomb (dry) friction force on the rod, 0 unless a
+``friction`` parameter fault sets it (the standard Coulomb model: a force of constant size
+opposing the motion; B. Armstrong-Helouvry, P. Dupont, C. Canudas de Wit, "A survey of models,
+analysis tools and compensation methods for the control of machines with friction", Automatica
+30(7), 1994).
+
+**Injected faults** (for the diagnosis's fault-matrix benchmark, benchmarks/bench_diagnosis.py;
+their time profile: :mod:`twinwatch.plant.faults`): ``[[driver.plant.parameter_faults]]``
+moves D, q_pump (the pump's delivery: a worn pump), k_spring, mass (the load: the reported
+F_load follows it, as a load cell's would), F_resist [N] (an unmeasured force on the rod), the
+leak coefficient C (``leak``, Eq. 18) or the Coulomb friction F_c (``friction`` [N]), evaluated
+every acquisition sample and held over its integration steps; ``sensor_faults`` make a reported
+channel frozen, saturated, off by a gain or an offset (the DC motor's
+:class:`~twinwatch.plant.dcmotor.SensorFaultConfig`).
 
 **Valve controller (Eq. 17).** A discrete PID with a filtered derivative, forward-Euler form
 ``A = e*(Kp + Ki*Ts/(z-1) + Kd*N/(1 + N*Ts/(z-1)))``::
@@ -81,6 +95,8 @@ from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model
 from twinwatch.io.drive import LoopConfig, ValveDriveConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
+from twinwatch.plant.dcmotor import SensorFaultConfig
+from twinwatch.plant.faults import ParameterFaultConfig
 
 logger = logging.getLogger(__name__)
 
@@ -99,6 +115,14 @@ CHANNELS: tuple[str, ...] = ("x", "p", "A_valve", "F_load", "x_ref")
 #: Units of :data:`CHANNELS`.
 CHANNEL_UNITS: dict[str, str] = {"x": "m", "p": "Pa", "A_valve": "m^2", "F_load": "N",
                                  "x_ref": "m"}
+
+#: Parameters a ``[[driver.plant.parameter_faults]]`` entry of the hydraulic actuator may move,
+#: with their unit: ``leak`` is C of Eq. 18 (nominal 0, or ``leak_coefficient`` from the
+#: internal-leak scenario's onset: an injected leak adds to it), ``friction`` a Coulomb force
+#: opposing the rod's motion (nominal 0); both and F_resist (nominal 0) need ``absolute``.
+HYD_FAULT_PARAMETERS: dict[str, str] = {
+    "D": "N/(m/s)", "q_pump": "m^3/s", "k_spring": "N/m", "mass": "kg", "F_resist": "N",
+    "leak": "1", "friction": "N"}
 
 
 class HydraulicPlantConfig(BaseModel):
@@ -139,6 +163,14 @@ class HydraulicPlantConfig(BaseModel):
         None, description="the valve controller as it runs (update period with the area held, "
         "limits, anti-windup; twinwatch.twin.models.hydraulic.ValveDriveConfig); default: the PID "
         "kp, ki, kd, n_filter above every step, clamped to [0, A_max]")
+    sensor_faults: list[SensorFaultConfig] = Field(
+        default_factory=list, description="sensor faults: a reported channel frozen, "
+        "saturated, off by a gain or an offset (possibly drifting) for a while")
+    parameter_faults: list[ParameterFaultConfig] = Field(
+        default_factory=list, description="changes of the plant's physical parameters over "
+        "time (step, drift, repair, intermittent; twinwatch.plant.faults): parameter one of D, "
+        "q_pump (the pump's delivery), k_spring, mass, F_resist [N], leak (C of Eq. 18), "
+        "friction (a Coulomb force on the rod [N]); F_resist, leak and friction need absolute")
     seed: StrictInt = 0
 
     @property
@@ -159,6 +191,19 @@ class HydraulicPlantConfig(BaseModel):
                 raise ValueError(f"noise.{ch}: unknown channel; use one of {CHANNELS}")
             if v < 0:
                 raise ValueError(f"noise.{ch}: must be >= 0")
+        for i, fault in enumerate(self.sensor_faults):
+            if fault.channel not in CHANNELS:
+                raise ValueError(f"sensor_faults[{i}].channel: unknown channel "
+                                 f"{fault.channel!r}; use one of {CHANNELS}")
+        nominal = self.fault_nominals()
+        for i, pf in enumerate(self.parameter_faults):
+            if pf.parameter not in HYD_FAULT_PARAMETERS:
+                raise ValueError(f"parameter_faults[{i}].parameter: unknown parameter "
+                                 f"{pf.parameter!r}; use one of {tuple(HYD_FAULT_PARAMETERS)}")
+            if pf.change is not None and nominal[pf.parameter] == 0.0:
+                raise ValueError(f"parameter_faults[{i}].change: {pf.parameter} is 0 at "
+                                 f"nominal, a percentage of it is nothing; give absolute "
+                                 f"[{HYD_FAULT_PARAMETERS[pf.parameter]}]")
         if self.drive is not None:
             if (self.kp, self.ki, self.kd, self.n_filter) != _PAPER_GAINS:
                 raise ValueError("kp, ki, kd, n_filter: with a [drive] table set the gains "
@@ -182,6 +227,12 @@ class HydraulicPlantConfig(BaseModel):
         """Load force [N]: the mass's weight."""
         return self.mass * GRAVITY
 
+    def fault_nominals(self) -> dict[str, float]:
+        """The nominal value of each parameter a parameter fault may move (its unit:
+        :data:`HYD_FAULT_PARAMETERS`; ``leak`` is the injected part of C, nominal 0)."""
+        return {"D": self.D, "q_pump": self.q_pump, "k_spring": self.k_spring,
+                "mass": self.mass, "F_resist": self.F_resist, "leak": 0.0, "friction": 0.0}
+
 
 @njit(cache=True, nogil=True)
 def _pid(state, loop, r, period):  # pragma: no cover - compiled
@@ -197,26 +248,30 @@ def _advance(state, j0, n_sub, dt, prm, scenario, t_fault, c_leak, loop, m,
     """Advance ``state = [x, p, I, f, A]`` by ``n_sub`` plant steps from step index ``j0``.
 
     ``prm = [k_spring, D0, q_pump, A_max, A_piston, F_resist, F_load, ref_offset,
-    ref_amplitude, ref_frequency]``; ``loop``: the packed valve controller, updated at the steps
-    j >= ``ph`` with (j - ph) % ``m`` == 0. On entry ``state[4]`` is the area applied over step
-    j0; on exit it is the area applied from step j0 + n_sub on.
+    ref_amplitude, ref_frequency, C_injected, F_c]``; ``loop``: the packed valve controller,
+    updated at the steps j >= ``ph`` with (j - ph) % ``m`` == 0. On entry ``state[4]`` is the
+    area applied over step j0; on exit it is the area applied from step j0 + n_sub on.
     """
     ks, d0, qp, ap, fr, fl = prm[0], prm[1], prm[2], prm[4], prm[5], prm[6]
     r0, r1, rf = prm[7], prm[8], prm[9]
+    c_inj, f_c = prm[10], prm[11]
     period = m * dt
     x, p = state[0], state[1]
     for s in range(n_sub):
         t = (j0 + s) * dt
         d = d0
-        c = 0.0
+        c = c_inj
         if t >= t_fault:
             if scenario == 1:
                 d = d0 + DEGRADATION_GAIN * (math.exp(DEGRADATION_RATE * (t - t_fault)) - 1.0)
             elif scenario == 2:
-                c = c_leak
+                c += c_leak
         v = (qp - state[4] * math.sqrt(2.0 * p)) / ap
         x = x + dt * v
-        p = (1.0 + c) * (fl + ks * x + d * v + fr) / ap
+        fric = 0.0
+        if f_c != 0.0:
+            fric = f_c if v > 0.0 else (-f_c if v < 0.0 else 0.0)
+        p = (1.0 + c) * (fl + ks * x + d * v + fr + fric) / ap
         state[0], state[1] = x, p
         j = j0 + s + 1
         if j >= ph and (j - ph) % m == 0:
@@ -232,10 +287,20 @@ class HydraulicTruth:
     Attributes:
         D: damping coefficient [N/(m/s)].
         C: leak coefficient of Eq. 18 (0 without a leak).
+        q_pump: pump delivery [m^3/s].
+        k_spring: spring constant [N/m].
+        mass: load mass [kg].
+        F_resist: resistance force [N].
+        friction: Coulomb friction force on the rod [N].
     """
 
     D: float
     C: float
+    q_pump: float = math.nan
+    k_spring: float = math.nan
+    mass: float = math.nan
+    F_resist: float = 0.0
+    friction: float = 0.0
 
 
 class HydraulicPlant:
@@ -256,7 +321,10 @@ class HydraulicPlant:
         self.sample_period = c.sample_period
         self.n_sub = int(round(c.sample_period / c.step))
         self._prm = np.array([c.k_spring, c.D, c.q_pump, c.A_max, c.A_piston, c.F_resist,
-                              c.F_load, c.ref_offset, c.ref_amplitude, c.ref_frequency])
+                              c.F_load, c.ref_offset, c.ref_amplitude, c.ref_frequency, 0.0,
+                              0.0])
+        self._nominal = c.fault_nominals()
+        self._frozen: dict[int, float] = {}  # a frozen sensor's reading
         drive = c.drive_config
         self._loop = drive.pack(c.A_max)
         self._m, self._ph = drive.ticks(c.step)
@@ -267,11 +335,13 @@ class HydraulicPlant:
         # Start in steady tracking: on the reference, moving with it, the integrator holding
         # the area that gives that velocity (bumpless start).
         truth = self.truth(0.0)
+        self._apply_faults(0.0)
         x0 = self.reference(0.0)
         v0 = 2.0 * math.pi * c.ref_frequency * c.ref_amplitude
-        p0 = (1.0 + truth.C) * (c.F_load + c.k_spring * x0 + truth.D * v0 + c.F_resist) \
-            / c.A_piston
-        i0 = (c.q_pump - v0 * c.A_piston) / math.sqrt(2.0 * p0)
+        fric = math.copysign(truth.friction, v0) if v0 != 0.0 else 0.0
+        p0 = (1.0 + truth.C) * (truth.mass * GRAVITY + truth.k_spring * x0 + truth.D * v0
+                                + truth.F_resist + fric) / c.A_piston
+        i0 = (truth.q_pump - v0 * c.A_piston) / math.sqrt(2.0 * p0)
         lo, hi = drive.limits(c.A_max)
         self._state = np.array([x0, p0, i0, 0.0, min(max(i0, lo), hi)])
         if self._ph == 0:  # the first update at t = 0, on the reference: e = 0
@@ -287,14 +357,36 @@ class HydraulicPlant:
         c = self.config
         return c.ref_offset + c.ref_amplitude * math.sin(2.0 * math.pi * c.ref_frequency * t)
 
+    def _faulted(self, t: float) -> dict[str, float]:
+        """Every parameter a parameter fault may move, at plant time ``t`` [s] (nominal plus
+        the faults' changes; the scenarios' laws not included)."""
+        values = dict(self._nominal)
+        for pf in self.config.parameter_faults:
+            values[pf.parameter] += pf.delta(self._nominal[pf.parameter], t)
+        return values
+
     def truth(self, t: float) -> HydraulicTruth:
-        """True D [N/(m/s)] and leak coefficient C at plant time ``t`` [s]."""
+        """The plant's true parameters at plant time ``t`` [s]: the scenario's law (D, C) and
+        the parameter faults (:class:`HydraulicTruth`)."""
         c = self.config
         on = t >= c.fault_start
         ramp = math.exp(DEGRADATION_RATE * (t - c.fault_start)) - 1.0 if on else 0.0
-        d = c.D + DEGRADATION_GAIN * ramp if c.scenario == "fluid_degradation" else c.D
+        v = self._faulted(t)
+        d = v["D"] + DEGRADATION_GAIN * ramp if c.scenario == "fluid_degradation" else v["D"]
         leak = c.leak_coefficient if (c.scenario == "internal_leak" and on) else 0.0
-        return HydraulicTruth(D=d, C=leak)
+        return HydraulicTruth(D=d, C=leak + v["leak"], q_pump=v["q_pump"],
+                              k_spring=v["k_spring"], mass=v["mass"], F_resist=v["F_resist"],
+                              friction=v["friction"])
+
+    def _apply_faults(self, t: float) -> None:
+        """Set the compiled plant's parameters for the sample period from ``t`` [s]."""
+        if not self.config.parameter_faults:
+            return
+        v = self._faulted(t)
+        prm = self._prm
+        prm[0], prm[1], prm[2], prm[5] = v["k_spring"], v["D"], v["q_pump"], v["F_resist"]
+        prm[6] = v["mass"] * GRAVITY
+        prm[10], prm[11] = v["leak"], v["friction"]
 
     def next_sample(self) -> Sample:
         """Report the sample at the current time, then advance the plant one sample period.
@@ -311,10 +403,14 @@ class HydraulicPlant:
         c = self.config
         t = self.t
         x, p, _, _, a = (float(v) for v in self._state)
-        values = {"x": x, "p": p, "A_valve": a, "F_load": c.F_load, "x_ref": self.reference(t)}
+        self._apply_faults(t)
+        values = {"x": x, "p": p, "A_valve": a, "F_load": float(self._prm[6]),
+                  "x_ref": self.reference(t)}
         for ch, pct in c.noise.items():
             if pct > 0:
                 values[ch] += float(self._rng.normal(0.0, pct / 100.0 * abs(values[ch])))
+        for fault in c.sensor_faults:
+            values[fault.channel] = fault.apply(values[fault.channel], t, self._frozen)
         _advance(self._state, self._k * self.n_sub, self.n_sub, c.step, self._prm,
                  self._scenario, c.fault_start, c.leak_coefficient, self._loop, self._m,
                  self._ph)

@@ -1,0 +1,108 @@
+"""Faults the simulated plants inject (``[[driver.plant.parameter_faults]]``, the sensor faults'
+drift and ``[driver.plant.supply_fault]``): the shared time profile and its configuration.
+
+A fault acts with a *size* ``f(t)`` in [0, 1] (0: absent, 1: full size)::
+
+    f(t) = 0                                   t < start, or t >= end (repaired at end)
+    f(t) = min(1, (t - start) / ramp)          a drift that grows linearly over ramp [s]
+                                               (ramp = 0: a step at start)
+    f(t) *= 1 if ((t - start) mod period) < duty * period else 0
+                                               intermittent (period set): on for the first
+                                               duty of each period after start
+
+A parameter fault moves its parameter from the nominal value ``p0`` to ``p0 * (1 + f *
+change / 100)`` (``change`` in percent at full size) or ``p0 + f * absolute`` (``absolute`` in
+the parameter's unit: for a parameter whose nominal is 0, e.g. the DC motor's Coulomb friction
+Tc). Several faults on one parameter add their changes. The plants evaluate the profile once
+per acquisition sample (every ``sample_period``: 10 ms by default) and hold it over the sample's
+integration steps: a ramp is a staircase of 10 ms steps, which the 2 s windows cannot tell from
+a line.
+
+These are test injections, not laws from a reference: they are what a maintenance engineer
+calls a step (a part replaced or broken), a drift (wear) and an intermittent fault (a load that
+comes and goes); the sizes are the configuration's.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, model_validator
+
+__all__ = ["FaultProfile", "ParameterFaultConfig", "SupplyFaultConfig"]
+
+
+class FaultProfile(BaseModel):
+    """When a fault acts and how it grows (see the module docstring for ``f(t)``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    start: StrictFloat = Field(0.0, ge=0, description="onset [s of plant time]")
+    ramp: StrictFloat = Field(0.0, ge=0, description="seconds from onset to full size: a "
+                              "linear drift (0: a step at start)")
+    end: StrictFloat | None = Field(None, gt=0, description="the fault is repaired at this "
+                                    "time [s]: back to nominal (None: to the end of the run)")
+    period: StrictFloat | None = Field(None, gt=0, description="intermittent: the fault is on "
+                                       "for the first duty*period of every period [s] after "
+                                       "start (None: continuously)")
+    duty: StrictFloat = Field(0.5, gt=0, le=1, description="intermittent: the share of each "
+                              "period the fault is on (0..1]")
+
+    @model_validator(mode="after")
+    def _check_profile(self) -> FaultProfile:
+        if self.end is not None and self.end <= self.start:
+            raise ValueError(f"end: {self.end:g} s must be after start ({self.start:g} s)")
+        return self
+
+    def size(self, t: float) -> float:
+        """The fault's size f(t) in [0, 1] at plant time ``t`` [s]."""
+        if t < self.start or (self.end is not None and t >= self.end):
+            return 0.0
+        age = t - self.start
+        f = 1.0 if self.ramp <= 0.0 else min(1.0, age / self.ramp)
+        if self.period is not None and (age % self.period) >= self.duty * self.period:
+            return 0.0
+        return f
+
+
+class ParameterFaultConfig(FaultProfile):
+    """A change of one physical parameter of the simulated plant
+    (``[[driver.plant.parameter_faults]]``): the parameter moves by ``change`` percent of its
+    nominal (or by ``absolute`` in its unit) at full size, with the profile's onset, ramp, end
+    and intermittence. Exactly one of ``change`` and ``absolute``. Which parameters a plant
+    accepts: its configuration's documentation."""
+
+    parameter: str = Field(description="the plant parameter the fault moves")
+    change: StrictFloat | None = Field(None, gt=-100, description="relative change at full "
+                                       "size [% of the nominal value]")
+    absolute: StrictFloat | None = Field(None, description="absolute change at full size "
+                                         "[the parameter's unit]; for a parameter whose nominal "
+                                         "is 0")
+
+    @model_validator(mode="after")
+    def _check_change(self) -> ParameterFaultConfig:
+        if (self.change is None) == (self.absolute is None):
+            raise ValueError("change, absolute: give exactly one (change in percent of the "
+                             "nominal value, absolute in the parameter's unit)")
+        return self
+
+    def delta(self, nominal: float, t: float) -> float:
+        """The change of the parameter at plant time ``t`` [s] from its ``nominal`` value [the
+        parameter's unit]."""
+        f = self.size(t)
+        if f == 0.0:
+            return 0.0
+        if self.absolute is not None:
+            return f * self.absolute
+        return f * nominal * (self.change or 0.0) / 100.0
+
+
+class SupplyFaultConfig(FaultProfile):
+    """A supply that delivers less than the drive commands (``[driver.plant.supply_fault]``):
+    the load receives ``1 + f(t) * (ratio - 1)`` times the commanded quantity while the reported
+    command is unchanged (a sagging DC bus behind an open-loop voltage drive, a worn stage)."""
+
+    ratio: StrictFloat = Field(gt=0, description="delivered over commanded at full size "
+                               "(e.g. 0.9: 10 % sag)")
+
+    def factor(self, t: float) -> float:
+        """Delivered over commanded at plant time ``t`` [s]."""
+        return 1.0 + self.size(t) * (self.ratio - 1.0)
