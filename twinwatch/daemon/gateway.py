@@ -41,7 +41,7 @@ class Gateway(Host):
                          resume=resume, duration=duration, workers=workers,
                          stuck_after=stuck_after, quiet_after=quiet_after)
 
-    def start(self, timeout: float | None = 60.0) -> None:  # type: ignore[override]
+    def start(self, timeout: float | None = 60.0) -> None:
         """:meth:`Host.start`, READY after at most ``timeout`` seconds [s] (None: no limit)."""
         self.start_timeout = timeout
         super().start()
