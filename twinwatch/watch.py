@@ -923,15 +923,22 @@ def health_line(doc: HealthView | Mapping[str, Any], *, wall: float | None = Non
 
 
 def _diagnosis(d: DiagnosisView | None) -> dict[str, Any] | None:
-    """The message's diagnosis in short: the most probable fault (``no_fault``, ``unknown``),
-    its probability and action; null without one (a daemon before schema 8, or it is off)."""
+    """The message's diagnosis in short: the most probable fault (``no_fault``, ``unknown``,
+    ``check_function``: the twin does not fit), its probability and action; null without one
+    (a daemon before schema 8, or it is off)."""
     if d is None:
         return None
     faults = d.faults or []
     top = faults[0] if d.status == "fault" and faults else None
+    action = top.action if top is not None else None
+    if d.status == "check_function":
+        since = d.check_function_since
+        action = ("the twin does not describe this machine"
+                  + (f" since {since:.0f} s" if isinstance(since, int | float) else "")
+                  + ": check the sensors and the model")
     return {"fault": (top.id if top is not None else None) or d.status,
             "probability": d.probability,
-            "action": top.action if top is not None else None}
+            "action": action}
 
 
 _LEVEL_STYLE = {"alarm": "bold red", "warning": "yellow", "normal": "green"}

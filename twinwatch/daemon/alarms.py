@@ -38,7 +38,9 @@ health message's ``alarms.<name>.rul`` holds the RUL level.
 (``diagnosis.faults[]``) whose probability has been at least ``[diagnosis] alarm`` (0.8) for
 ``raise_after_windows`` windows in a row, and clears it once below ``clear`` (0.5: the
 hysteresis) for ``clear_after_windows``; its events have ``kind`` ``diagnosis``, the fault's
-``fault`` id and the action; ``diagnosis.alarms`` lists the raised ones.
+``fault`` id and the action; ``diagnosis.alarms`` lists the raised ones. The diagnosis' check
+function (the twin has not described the machine for ``check_function_after_s``: NAMUR NE 107)
+is raised and cleared the same way as the fault ``check_function``.
 """
 
 from __future__ import annotations
@@ -415,6 +417,11 @@ def _advance(s: _ParamState, rule: AlarmRule, target: Level, t_start: float, t_e
     return previous, new, run.since_t
 
 
+#: The fault id of the diagnosis' check-function state in the alarms (``diagnosis.alarms``,
+#: an event's ``fault``): the twin does not describe the machine (NAMUR NE 107).
+CHECK_FUNCTION = "check_function"
+
+
 class FaultAlarms:
     """Alarms on the diagnosis' fault probabilities, with hysteresis (the module's "Faults").
 
@@ -438,18 +445,25 @@ class FaultAlarms:
         d = health.diagnosis
         if d is None or self.alarm is None:
             return []
-        probs = {f.id: f for f in d.faults}
+        probs: dict[str, tuple[float, str]] = {
+            f.id: (f.probability, f"{f.component}: {f.action}") for f in d.faults}
+        if d.status == "check_function":  # NAMUR NE 107: the twin does not fit this machine
+            since = d.check_function_since
+            probs[CHECK_FUNCTION] = (1.0, (
+                f"the twin does not describe this machine since plant time "
+                f"{since if since is not None else health.t_start:.0f} s "
+                f"({d.check_failed or 'its model check failing'}): its estimates are held and "
+                f"no fault is named; check the sensors, their wiring and scaling, and the "
+                f"model's configuration"))
         events = []
         for fid in set(probs) | set(self.raised) | set(self._above):
-            f = probs.get(fid)
-            p = f.probability if f is not None else 0.0
+            p, what = probs.get(fid, (0.0, ""))
             if fid not in self.raised:
                 self._above[fid] = self._above.get(fid, 0) + 1 if p >= self.alarm else 0
-                if self._above[fid] >= self.raise_after and f is not None:
+                if self._above[fid] >= self.raise_after and fid in probs:
                     self.raised[fid] = health.t_end
                     self._above.pop(fid)
-                    events.append(self._event(health, fid, "alarm", "normal", p,
-                                              f"{f.component}: {f.action}"))
+                    events.append(self._event(health, fid, "alarm", "normal", p, what))
             else:
                 self._below[fid] = self._below.get(fid, 0) + 1 if p < self.clear else 0
                 if self._below[fid] >= self.clear_after:
@@ -468,6 +482,14 @@ class FaultAlarms:
                what: str) -> dict[str, Any]:
         machine = self.machine or health.machine
         word = "FAULT" if level == "alarm" else "FAULT CLEARED"
+        if fid == CHECK_FUNCTION:
+            word = "CHECK FUNCTION" if level == "alarm" else "CHECK FUNCTION CLEARED"
+            if level != "alarm":
+                what = ("the twin describes the machine again (its model check passes): its "
+                        "estimates are trusted again")
+            return {"machine": machine, "kind": "diagnosis", "fault": fid, "level": level,
+                    "previous": previous, "probability": p, "t": health.t_end,
+                    "window": int(health.window), "message": f"{machine}: {word}: {what}"}
         return {"machine": machine, "kind": "diagnosis", "fault": fid, "level": level,
                 "previous": previous, "probability": p, "t": health.t_end,
                 "window": int(health.window),

@@ -451,7 +451,8 @@ class Daemon:
     def problems(self) -> list[str]:
         """What is degraded right now, for systemd's STATUS and the log (empty if nothing):
         what the source waits for or lacks (:meth:`source_state`), estimation that fails
-        (:meth:`estimation_problem`), each output's :attr:`~twinwatch.sinks.base.Sink.problem`.
+        (:meth:`estimation_problem`), the diagnosis' check function (the twin does not
+        describe the machine), each output's :attr:`~twinwatch.sinks.base.Sink.problem`.
         """
         out = []
         waiting, silent = self.source_state()
@@ -461,6 +462,12 @@ class Daemon:
             out.append("silent: " + ", ".join(silent))
         if (p := self.estimation_problem()) is not None:
             out.append(p)
+        last = self.pipeline.latest
+        if last is not None and last.diagnosis is not None \
+                and last.diagnosis.status == "check_function":
+            from twinwatch.twin.health import check_function_line
+
+            out.append(check_function_line(last.diagnosis, label="CHECK FUNCTION"))
         return out + self.outputs.problems()
 
     def source_state(self) -> tuple[str | None, list[str]]:

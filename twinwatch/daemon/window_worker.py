@@ -64,7 +64,10 @@ def make_diagnoser(config: TwinwatchConfig) -> Diagnoser | None:
     if not library.faults:
         return None
     source = "configured" if (d.replace or d.library or d.faults) else "shipped"
-    return Diagnoser(library, unknown_prior=d.unknown_prior, listed=d.listed, source=source)
+    return Diagnoser(library, unknown_prior=d.unknown_prior, listed=d.listed, source=source,
+                     check_function_after_s=d.check_function_after_s,
+                     check_function_share=d.check_function_share,
+                     check_function_clear=d.check_function_clear_windows)
 
 
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,

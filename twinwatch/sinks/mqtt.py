@@ -385,13 +385,17 @@ def flat_values(doc: HealthView | Mapping[str, Any]) -> dict[str, str]:
 
 
 _NO_ACTION = {"no_fault": "none",
-              "unknown": "inspect: the twin found a term no fault mode of the library explains "
-                         "(twinwatch explain)"}
+              "unknown": "inspect: the twin found a change no fault mode of the library "
+                         "explains (twinwatch explain)",
+              "check_function": "check the sensors (wiring, scaling, offsets) and the model: "
+                                "the twin does not describe this machine, its estimates are "
+                                "held (twinwatch explain)"}
 
 
 def diagnosis_values(diag: DiagnosisView) -> dict[str, str]:
     """The diagnosis' flat topics: ``diagnosis/fault`` (the most probable fault's id, or
-    ``no_fault`` / ``unknown``), ``diagnosis/probability`` (its probability [%], one decimal),
+    ``no_fault`` / ``unknown`` / ``check_function``), ``diagnosis/probability`` (its
+    probability [%], one decimal),
     ``diagnosis/action`` (the fault's maintenance action, or what to do without one; never
     empty: an empty retained payload deletes the topic; at most 255 characters, Home
     Assistant's limit of a state)."""

@@ -1192,10 +1192,17 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
                  f"{f.action}  "]
         lines += [f"+ {x}  " for x in f.evidence_for or []]
         lines += [f"- {x}  " for x in f.evidence_against or []]
+    elif status == "check_function":
+        since = d.check_function_since
+        lines = ["**CHECK FUNCTION: the twin does not describe this machine**"
+                 + (f" since {_fmt(since, '.0f')} s" if since is not None else "")
+                 + f" ({d.check_failed or 'its model check failing'}): its "
+                 "estimates are held and no fault is named; check the sensors and the model  "]
     elif status == "unknown":
         lines = [f"**Diagnosis: a fault the library does not know** (probability "
                  f"{_fmt(d.unknown, '.2f')}): " + "; ".join(
-                     f"`{t}`" for t in d.unknown_terms or [])]
+                     [f"`{t}`" for t in d.unknown_terms or []]
+                     + list(d.unexplained or []))]
     else:
         lines = [f"**Diagnosis: no fault** (probability {_fmt(d.no_fault, '.2f')})"]
         from twinwatch.twin.health import developing_line
@@ -1207,7 +1214,8 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
     others = [f"{f.id} {_fmt(f.probability, '.2f')}"
               for f in faults[1 if status == "fault" else 0:4]]
     if others:
-        lines.append("next: " + ", ".join(others))
+        lines.append("next: " + ", ".join(others) + "  ")
+    lines += [f"*{x}*  " for x in (d.ruled_out or [])[:3]]
     return [*lines, ""]
 
 

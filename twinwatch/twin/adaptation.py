@@ -14,7 +14,8 @@
 4. when the tests of the last ``trigger_windows`` windows, combined, are below ``false_alarm``,
    discovery searches the candidates (:meth:`Discovery.discover`); new terms join DT'', the
    window is re-estimated with them, and the change is reported. A discovery that keeps nothing
-   waits ``retry_after`` windows.
+   waits ``retry_after`` windows, unless a term is switched off meanwhile (the twin changed:
+   the next structured windows are searched again).
 
 Without a ``[discovery]`` table (or with ``enabled = false``) only step 1 runs, exactly as before.
 
@@ -191,6 +192,11 @@ class TwinAdapter:
                 est_.rollback(snapshot)
                 est = est_.estimate(window, compose(self.terms, window), fit=fit)
                 theta = self._theta(est)
+            if reval.dropped:
+                # DT'' lost a term: a wait left by an earlier search that found nothing no
+                # longer holds (a shaft-following unbalance's term of time, dropped when the
+                # speed changes, is searched for again at the new speed: issue 34)
+                self._cooldown = 0
             for t in reval.dropped:
                 changed = True
                 events.append(f"dropped: {t.describe()}")

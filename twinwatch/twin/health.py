@@ -12,6 +12,10 @@ from the model, :func:`read_health` (:data:`HealthView`), never by the decoded J
 The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 10: the ``diagnosis`` says ``check_function`` (NAMUR NE 107) when the twin has not
+  described the machine for a while (``check_function_since``, ``check_failed``), names the
+  deviations no fault explains (``unexplained``) and why plausible faults were ruled out
+  (``ruled_out``); the shipped libraries know sensor and supply faults.
 * 9: ``discovery.p_value`` and ``discovery.evidence_p``: the residual's whiteness test and its
   combination over windows (discovery's trigger, :mod:`twinwatch.twin.discovery.trigger`).
 * 8: the window's ``diagnosis``: the fault modes of the machine's fault library ranked by their
@@ -106,6 +110,7 @@ __all__ = [
     "TrendHealth",
     "HealthView",
     "build_health",
+    "check_function_line",
     "developing_line",
     "diagnosis_line",
     "read_health",
@@ -115,7 +120,7 @@ __all__ = [
     "trend_line",
 ]
 
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 
 ParameterStatus = Literal["estimated", "fused", "suspect", "held", "tied", "fixed"]
 """The estimation's :data:`~twinwatch.twin.estimation.publish.ParameterStatus`, restated so
@@ -430,9 +435,11 @@ class DiagnosisHealth(_Part):
     """``diagnosis``: from the evidence to the failing part (:mod:`twinwatch.twin.diagnosis`:
     a noisy-OR network over the machine's fault library)."""
 
-    status: Literal["no_fault", "fault", "unknown"] = Field(
-        description="the most probable outcome: no fault, a fault of the library (top), or a "
-        "fault the library does not know")
+    status: Literal["no_fault", "fault", "unknown", "check_function"] = Field(
+        description="the most probable outcome: no fault, a fault of the library (top), a "
+        "fault the library does not know, or check_function: the twin has not described the "
+        "machine for [diagnosis] check_function_after_s (its model check failing), so its "
+        "estimates are held and no outcome is claimed (NAMUR NE 107 'check function')")
     top: str | None = Field(description="the most probable fault's id (status fault), else "
                             "null")
     probability: float = Field(description="the outcome's probability (0..1)")
@@ -447,6 +454,17 @@ class DiagnosisHealth(_Part):
                           "away from 0.5)")
     alarms: list[str] = Field(default_factory=list, description="the faults whose probability "
                               "alarm is raised ([diagnosis] alarm, with hysteresis)")
+    check_function_since: Num = Field(None, description="plant time [s] of the first failed "
+                                      "model check of the run that put the diagnosis in "
+                                      "check_function (null: the twin fits)")
+    check_failed: str | None = Field(None, description="the model check's record over the "
+                                     "last check_function_after_s, for a person (null: every "
+                                     "window passed)")
+    unexplained: list[str] = Field(default_factory=list, description="deviations and trends "
+                                   "no fault mode of the library explains, as sentences (the "
+                                   "unknown fault's evidence)")
+    ruled_out: list[str] = Field(default_factory=list, description="fault modes with evidence "
+                                 "for them that the diagnosis ruled out, and why")
 
 
 class HealthMessage(_Part):
@@ -674,7 +692,22 @@ def _diagnosis_tag(d: DiagnosisHealth | None) -> str:
         return ""
     if d.status == "unknown":
         return f"; unknown fault {d.probability:.2f}"
+    if d.status == "check_function":
+        return "; CHECK FUNCTION: the twin does not fit"
     return f"; {d.top} {d.probability:.2f}"
+
+
+def check_function_line(d: DiagnosisHealth, label: str = "check function") -> str:
+    """The check-function state for a person (NAMUR NE 107), e.g. ``check function: the twin
+    does not describe this machine since plant time 60 s (the model check failed in 30 of the
+    last 30 windows (60 s)): its estimates are held and no fault is named; check the sensors
+    and the model``."""
+    since = (f" since plant time {d.check_function_since:.0f} s"
+             if d.check_function_since is not None else "")
+    why = f" ({d.check_failed})" if d.check_failed else ""
+    return (f"{label}: the twin does not describe this machine{since}{why}: its "
+            f"estimates are held and no fault is named; check the sensors (wiring, scaling, "
+            f"offsets) and the model's configuration")
 
 
 def diagnosis_line(d: DiagnosisHealth | None) -> str | None:
@@ -685,9 +718,11 @@ def diagnosis_line(d: DiagnosisHealth | None) -> str | None:
         return None
     if d.status == "no_fault":
         return f"diagnosis: no fault ({d.no_fault:.2f})"
+    if d.status == "check_function":
+        return f"diagnosis: {check_function_line(d)}"
     if d.status == "unknown":
-        terms = "; ".join(d.unknown_terms) or "no term yet"
-        return (f"diagnosis: a fault the library does not know ({d.unknown:.2f}): {terms}")
+        what = "; ".join(d.unknown_terms + d.unexplained) or "no term yet"
+        return (f"diagnosis: a fault the library does not know ({d.unknown:.2f}): {what}")
     f = d.faults[0]
     return (f"diagnosis: {f.id} ({f.component}) {f.probability:.2f}, urgency {f.urgency}: "
             f"{f.action}")

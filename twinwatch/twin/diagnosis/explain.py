@@ -15,6 +15,7 @@ from typing import Any
 from twinwatch.twin.health import (
     HealthMessage,
     HealthView,
+    check_function_line,
     developing_line,
     diagnosis_line,
     read_health,
@@ -55,12 +56,22 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
     if not docs:
         return ["no stored window for this machine"]
     last_doc = docs[-1]
-    lines: list[str] = []
-    m = last_doc.machine
-    lines.append(f"{m} ({last_doc.model}), run {last_doc.run}, schema "
-                 f"{last_doc.schema_}: the last {len(docs)} windows")
-    lines.append("")
-    lines.append("1. the fit (the twin against the measurements, per window):")
+    try:  # trend and diagnosis: from the message as the model reads it ...
+        last: Any = HealthMessage.model_validate(last_doc.model_dump(by_alias=True,
+                                                                     exclude_unset=True))
+    except ValueError:
+        # ... or, from a newer daemon (a field this version does not know), its typed view:
+        # the same attribute names, unknown fields ignored
+        last = last_doc
+    return [f"{last_doc.machine} ({last_doc.model}), run {last_doc.run}, schema "
+            f"{last_doc.schema_}: the last {len(docs)} windows", "",
+            *_fit_lines(docs), "", *_parameter_lines(last_doc), "", *_term_lines(last_doc), "",
+            *_trend_lines(last), "", *_diagnosis_lines(last)]
+
+
+def _fit_lines(docs: list[HealthView]) -> list[str]:
+    """1. the fit of each window, DT' against DT'', the stuck sensors."""
+    lines = ["1. the fit (the twin against the measurements, per window):"]
     for d in docs:
         check = d.model_check
         verdict = ("" if check is None else
@@ -73,6 +84,7 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
                      f"{d.t_end or 0:.1f} s]: RMSE {rmse}; nRMSE "
                      f"{_num(d.nrmse, '.2e')}, {trusted}{verdict}"
                      + (f", {n_terms} term{'s' if n_terms > 1 else ''}" if n_terms else ""))
+    last_doc = docs[-1]
     res = last_doc.residual
     if res is not None and res.dt_second:
         before = _num(res.dt_prime.nrmse if res.dt_prime else None, ".2e")
@@ -83,15 +95,14 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
         lines.append(f"   sensor {sensor.channel} {sensor.kind} at "
                      f"{_num(sensor.value)} for {_num(sensor.duration_s, '.1f')} "
                      f"s: the window's estimates are suspect")
-    try:  # trend and diagnosis: from the message as the model reads it ...
-        last: Any = HealthMessage.model_validate(last_doc.model_dump(by_alias=True,
-                                                                     exclude_unset=True))
-    except ValueError:
-        # ... or, from a newer daemon (a field this version does not know), its typed view:
-        # the same attribute names, unknown fields ignored
-        last = last_doc
-    lines.append("")
-    lines.append("2. the parameters (the last window; 2-sigma intervals):")
+    return lines
+
+
+def _parameter_lines(last_doc: HealthView) -> list[str]:
+    """2. the parameters of the last window: this window's estimate with its 2-sigma
+    interval (the one the diagnosis reads) and, when fused, the evidence of every window."""
+    lines = ["2. the parameters (the last window; 2-sigma intervals of this window's estimate, "
+             "and of the fused evidence):"]
     for name, p in (last_doc.parameters or {}).items():
         status = p.status
         if status in ("tied", "fixed"):
@@ -100,14 +111,22 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
         value, rel = p.value, p.rel_std_pct
         band = (f" +/- {_num(2 * rel * abs(value) / 100.0, '.3g')} (+/- {2 * rel:.2g} %)"
                 if value is not None and rel is not None else "")
+        fused = p.fused
+        fz = (f"; fused {_num(fused.value, '.6g')} +/- {2 * fused.rel_std_pct:.2g} %"
+              if fused is not None and fused.value is not None
+              and fused.rel_std_pct is not None else "")
         dev = p.deviation_pct
         lines.append(f"   {name:<8} {_num(value, '.6g')} {p.unit}{band}, "
                      f"{_num(dev, '+.2f')} % vs nameplate {p.nominal:g}, {status}"
-                     + (f" ({p.reason})" if p.reason else ""))
-    lines.append("")
+                     + (f" ({p.reason})" if p.reason else "") + fz)
+    return lines
+
+
+def _term_lines(last_doc: HealthView) -> list[str]:
+    """3. the meta-model terms with their parameters' intervals and meaning."""
     terms = last_doc.terms or []
-    lines.append("3. the meta-model terms (what the physical twin lacks):"
-                 if terms else "3. no meta-model term: the physical twin explains the data")
+    lines = ["3. the meta-model terms (what the physical twin lacks):"
+             if terms else "3. no meta-model term: the physical twin explains the data"]
     for t in terms:
         params = ", ".join(
             f"{k} = {v:.4g}" + (f" +/- {2 * s:.2g}" if (s := (t.params_std or {})
@@ -116,22 +135,32 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
         lines.append(f"   {t.equation}  (since window {t.since_window}, "
                      f"significance {_num(t.significance, '.1f')}; {params})")
         lines.append(f"     {t.meaning}")
-    lines.append("")
+    return lines
+
+
+def _trend_lines(last: Any) -> list[str]:
+    """4. each parameter's trend and remaining useful life."""
     trends = [line for name, p in (last.parameters or {}).items()
               if (line := trend_line(name, p))]
-    lines.append("4. trend and remaining useful life (95 % intervals):" if trends
-                 else "4. no trend (prognostics off, or too little evidence)")
-    lines += [f"   {x}" for x in trends]
-    lines.append("")
+    return [("4. trend and remaining useful life (95 % intervals):" if trends
+             else "4. no trend (prognostics off, or too little evidence)"),
+            *[f"   {x}" for x in trends]]
+
+
+def _diagnosis_lines(last: Any) -> list[str]:
+    """5. the diagnosis: the check function, the ranked faults with the evidence for and
+    against each, what no fault explains, why plausible faults were ruled out, the decision."""
     diag = last.diagnosis
     if diag is None:
-        lines.append("5. no diagnosis in the stored messages (schema before 8, or "
-                     "[diagnosis] enabled = false)")
-        return lines
-    lines.append(f"5. the diagnosis ({diag.library}; {diag.evidence} evidence variables; "
-                 f"no fault {diag.no_fault:.3f}, unknown fault {diag.unknown:.3f}"
-                 + (f"; shaft speed {diag.shaft_speed:.3g} rad/s" if diag.shaft_speed else "")
-                 + "):")
+        return ["5. no diagnosis in the stored messages (schema before 8, or "
+                "[diagnosis] enabled = false)"]
+    lines = [f"5. the diagnosis ({diag.library}; {diag.evidence} evidence variables; "
+             f"no fault {diag.no_fault:.3f}, unknown fault {diag.unknown:.3f}"
+             + (f"; shaft speed {diag.shaft_speed:.3g} rad/s" if diag.shaft_speed else "")
+             + "):"]
+    if diag.status == "check_function":
+        lines.append(f"   {check_function_line(diag, label='CHECK FUNCTION')}; the ranking "
+                     f"below rests on the last windows the twin described")
     for i, f in enumerate(diag.faults, 1):
         lines.append(f"   {i}. {f.id} ({f.component}): {f.probability:.3f}, urgency {f.urgency}")
         if i == 1 or f.probability >= 0.05:
@@ -141,6 +170,10 @@ def explain_lines(docs: list[HealthView]) -> list[str]:
             lines.append(f"      source: {f.source}")
     for eq in diag.unknown_terms:
         lines.append(f"   no fault mode explains: {eq}")
+    for text in diag.unexplained or []:
+        lines.append(f"   no fault mode explains: {text}")
+    for text in diag.ruled_out or []:
+        lines.append(f"   {text}")
     lines.append("")
     lines.append(diagnosis_line(diag) or "")
     developing = developing_line(diag, last.parameters or {})

@@ -34,11 +34,14 @@ Cost: a few hundred microseconds per window with numpy (benchmarks/bench_diagnos
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from itertools import combinations
+from typing import Literal
 
 import numpy as np
 
+from twinwatch.twin.diagnosis.deviation import HI_PCT, likelihood
 from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode
 from twinwatch.twin.health import DiagnosisHealth, FaultHealth, HealthMessage, TermHealth
 from twinwatch.twin.model import WindowData
@@ -73,6 +76,19 @@ HARMONIC_WINDOWS = 5
 RATIO_STEP = 0.15
 #: Floor of a deviation's standard error [% of nameplate] (the twin's own model error).
 SD_FLOOR_PCT = 0.05
+#: The unknown fault's link to a parameter's deviation (or trend) in a direction no fault of
+#: the library expects: a change the library does not know (a drifting current sensor's D
+#: -52 % when the library had no fault that lowers D). A deviation some fault expects is left
+#: to the library's faults and the leak.
+UNKNOWN_DEV_LINK = 0.2
+#: Size [% of nameplate] beyond which a deviation no fault expects counts as the unknown
+#: fault's evidence.
+UNEXPLAINED_PCT = 3.0
+#: Growth of a held parameter's last sound evidence's standard error with its age [% of
+#: nameplate per square root of a window]: a random walk, so that evidence from before a fault
+#: (La held at its nameplate since window 20) does not speak against it forever (1.5 % after
+#: 100 windows, 3 % after 400).
+STALE_SD_PCT = 0.15
 
 
 def _phi(z: float) -> float:
@@ -134,6 +150,32 @@ class _Var:
     links: dict[str, float] = field(default_factory=dict)
     what: dict[str, str] = field(default_factory=dict)  # fault -> what the fault expects
     leak: float | None = None  # None: LEAK[kind]
+    unexplained: bool = False  # a deviation or trend no library fault expects
+
+
+@dataclass
+class _Comps:
+    """The faults that move one parameter, per hypothesis (:mod:`.deviation`'s model)."""
+
+    p_up: np.ndarray          # (n_hyp,) probability the hypothesis moves it up
+    size_up: np.ndarray       # (n_hyp,) the smallest size of those faults [%]
+    p_down: np.ndarray
+    size_down: np.ndarray
+    sizes: dict[tuple[int, str], float]  # (fault index, direction) -> its size [%]
+    unexplained: tuple[str, ...]         # directions no library fault moves it in
+
+
+@dataclass
+class _DevFactor:
+    """One parameter's deviation evidence: its log-likelihood under every hypothesis."""
+
+    name: str
+    ev: _Dev
+    text: str                 # the numbers, for a person
+    log_lik: np.ndarray       # (n_hyp,)
+    comps: _Comps
+    sd: float                 # the standard error used [%] (grown with the evidence's age)
+    leak_note: str = ""
 
 
 class Diagnoser:
@@ -145,14 +187,26 @@ class Diagnoser:
         unknown_prior: prior of a fault the library does not know.
         listed: most fault modes listed in the result.
         source: where the library comes from, as it reads in the message.
+        check_function_after_s: plant time [s] over which failed model checks put the
+            diagnosis in ``check_function``: the twin does not describe the machine.
+        check_function_share: share of that time's windows whose check failed.
+        check_function_clear: windows in a row whose check passed that end it.
     """
 
     def __init__(self, library: FaultLibrary, *, unknown_prior: float = 0.01,
-                 listed: int = 5, source: str = "shipped") -> None:
+                 listed: int = 5, source: str = "shipped",
+                 check_function_after_s: float = 60.0, check_function_share: float = 0.8,
+                 check_function_clear: int = 3) -> None:
         self.library = library
         self.unknown_prior = unknown_prior
         self.listed = listed
         self.source = source
+        self.check_after_s = check_function_after_s
+        self.check_share = check_function_share
+        self.check_clear = check_function_clear
+        self._checks: deque[tuple[float, float, bool]] = deque()  # (t_start, t_end, passed)
+        self._passed_run = 0
+        self._cf_since: float | None = None
         self.faults: list[FaultMode] = list(library.faults)
         self._last: dict[str, _Dev] = {}
         self._tracks: list[tuple[str, list[_Ratio]]] = []  # (attach, ratios in a row)
@@ -167,6 +221,8 @@ class Diagnoser:
         priors = np.array([f.prior for f in self.faults] + [unknown_prior])
         self._log_prior = (self._hyp @ np.log(priors)
                            + (1.0 - self._hyp) @ np.log1p(-priors))
+        self._comps: dict[str, _Comps] = {}
+        self._dev_leak: dict[str, tuple[float, str]] = {}  # this window's raised leaks
 
     # -- evidence -----------------------------------------------------------------------------
     def _deviation(self, health: HealthMessage, name: str) -> _Dev | None:
@@ -183,54 +239,63 @@ class Diagnoser:
 
     def _variables(self, health: HealthMessage, speed: tuple[float, float] | None
                    ) -> tuple[list[_Var], list[TermHealth]]:
+        """The window's evidence variables (trends, model check, stuck sensors, discovered
+        terms and the terms faults expect but the window lacks; deviations are
+        :meth:`_dev_factors`') and the terms no fault explains."""
         out: dict[str, _Var] = {}
+        self._dev_leak = {}
         for f in self.faults:
-            for d in f.deviations:
-                key = f"dev:{d.parameter}:{d.direction}:{d.min_pct:g}"
-                if key not in out:
-                    out[key] = self._dev_var(health, key, d.parameter, d.direction, d.min_pct)
-                out[key].links[f.id] = d.link
-                side = "above" if d.direction == "up" else "below"
-                out[key].what[f.id] = (f"{d.parameter} {side} nameplate by at least "
-                                       f"{d.min_pct:g} %")
-            for t in f.trends:
-                key = f"trend:{t.parameter}:{t.direction}"
-                if key not in out:
-                    out[key] = self._trend_var(health, key, t.parameter, t.direction)
-                out[key].links[f.id] = t.link
-                out[key].what[f.id] = f"{t.parameter} drifting {t.direction}"
-            if f.model_check:
-                key = "model_check"
-                if key not in out:
-                    out[key] = self._check_var(health)
-                out[key].links[f.id] = f.model_check
-                out[key].what[f.id] = "the model check failing"
-            for ss in f.sensors:
-                key = f"sensor:{ss.kind}:{ss.channel}"
-                if key not in out:
-                    hit = [s for s in health.sensors
-                           if s.kind == ss.kind and ss.channel in ("*", s.channel)]
-                    names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
-                                      f"{s.duration_s:.1f} s" for s in hit
-                                      if s.value is not None and s.duration_s is not None)
-                    out[key] = _Var(key, "sensor", _clip(1.0 if hit else 0.0),
-                                    f"{names or _chan(ss.channel) + ' ' + ss.kind} in this "
-                                    f"window", f"no {ss.kind} sensor in this window")
-                out[key].links[f.id] = ss.link
-                out[key].what[f.id] = f"{_chan(ss.channel)} {ss.kind}"
+            self._signature_vars(health, f, out)
+        self._unexplained_vars(health, out)
         if "model_check" not in out:
             out["model_check"] = self._check_var(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
-        # terms: one variable per discovered term, each fault's link scaled by its match
-        unexplained: list[TermHealth] = []
         seen_speed = self._track(health, speed)
+        unexplained = self._term_vars(health, seen_speed, out)
+        self._missing_term_vars(health, seen_speed, out)
+        return list(out.values()), unexplained
+
+    def _signature_vars(self, health: HealthMessage, f: FaultMode, out: dict[str, _Var]
+                        ) -> None:
+        """A fault's trend, model-check and stuck-sensor variables (shared by key)."""
+        for t in f.trends:
+            key = f"trend:{t.parameter}:{t.direction}"
+            if key not in out:
+                out[key] = self._trend_var(health, key, t.parameter, t.direction)
+            out[key].links[f.id] = t.link
+            out[key].what[f.id] = f"{t.parameter} drifting {t.direction}"
+        if f.model_check:
+            key = "model_check"
+            if key not in out:
+                out[key] = self._check_var(health)
+            out[key].links[f.id] = f.model_check
+            out[key].what[f.id] = "the model check failing"
+        for ss in f.sensors:
+            key = f"sensor:{ss.kind}:{ss.channel}"
+            if key not in out:
+                hit = [s for s in health.sensors
+                       if s.kind == ss.kind and ss.channel in ("*", s.channel)]
+                names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
+                                  f"{s.duration_s:.1f} s" for s in hit
+                                  if s.value is not None and s.duration_s is not None)
+                out[key] = _Var(key, "sensor", _clip(1.0 if hit else 0.0),
+                                f"{names or _chan(ss.channel) + ' ' + ss.kind} in this "
+                                f"window", f"no {ss.kind} sensor in this window")
+            out[key].links[f.id] = ss.link
+            out[key].what[f.id] = f"{_chan(ss.channel)} {ss.kind}"
+
+    def _term_vars(self, health: HealthMessage, seen_speed: list[list[_Ratio] | None],
+                   out: dict[str, _Var]) -> list[TermHealth]:
+        """One variable per discovered term, each fault's link scaled by its match; returns
+        the terms no fault explains (the unknown fault's, and model error in their
+        equation: :meth:`_model_error`)."""
+        unexplained: list[TermHealth] = []
         for i, term in enumerate(health.terms):
             var = self._term_var(i, term)
             best = 0.0
-            seen = seen_speed[i]
             for f in self.faults:
                 for sg in f.terms:
-                    m, words = _term_match(sg, term, seen)
+                    m, words = _term_match(sg, term, seen_speed[i])
                     if m >= 0.2 and m * sg.link > var.links.get(f.id, 0.0):
                         var.links[f.id] = m * sg.link
                         var.what[f.id] = words
@@ -241,7 +306,13 @@ class Diagnoser:
                 unexplained.append(term)
                 self._model_error(out, term, var.s * (1.0 - best))
             out[var.key] = var
-        # faults expecting a term that is not there: evidence against them
+        return unexplained
+
+    def _missing_term_vars(self, health: HealthMessage,
+                           seen_speed: list[list[_Ratio] | None], out: dict[str, _Var]) -> None:
+        """Faults expecting a term the window lacks: evidence against them, naming the term
+        of that kind found elsewhere (an unbalance's periodic term at another frequency than
+        the shaft's: "found: 10 rad/s against 1 x 18.5 = 18.5 rad/s")."""
         for f in self.faults:
             for j, sg in enumerate(f.terms):
                 if sg.link < 0.5 or any(out[f"term:{i}"].links.get(f.id, 0.0) >= 0.5 * sg.link
@@ -259,7 +330,105 @@ class Diagnoser:
                                 f"no {kinds} term on {where}{harm}{found}")
                 out[key].links[f.id] = sg.link
                 out[key].what[f.id] = f"a {kinds} term on {where}{harm}"
-        return list(out.values()), unexplained
+
+    def _unexplained_vars(self, health: HealthMessage, out: dict[str, _Var]) -> None:
+        """A degrading trend in a direction no fault expects is the unknown fault's evidence
+        (link :data:`UNKNOWN_DEV_LINK`); deviations are :meth:`_dev_factors`'."""
+        for name, p in health.parameters.items():
+            if p.status in ("tied", "fixed") or not p.nominal or p.trend is None \
+                    or not p.trend.degrading:
+                continue
+            for direction in ("up", "down"):
+                key = f"trend:{name}:{direction}"
+                if key not in out:
+                    var = self._trend_var(health, key, name, direction)
+                    var.links["unknown"] = UNKNOWN_DEV_LINK
+                    var.what["unknown"] = (f"{name} drifting {direction}, which no fault of "
+                                           f"the library does")
+                    var.unexplained = True
+                    out[key] = var
+
+    # -- graded deviations (twinwatch.twin.diagnosis.deviation) -----------------------------
+    def _components(self, name: str) -> _Comps:
+        """Per hypothesis, the probability its faults move ``name`` up and down and their
+        smallest sizes, and the directions no fault moves it in (cached)."""
+        c = self._comps.get(name)
+        if c is not None:
+            return c
+        n_h = self._hyp.shape[0]
+        items: list[tuple[int, str, float, float]] = [
+            (i, d.direction, d.min_pct, d.link) for i, f in enumerate(self.faults)
+            for d in f.deviations if d.parameter == name]
+        covered = {direction for _, direction, _, _ in items}
+        missing = tuple(d for d in ("up", "down") if d not in covered)
+        arrays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for direction in ("up", "down"):
+            log_q = np.zeros(n_h)
+            size = np.full(n_h, HI_PCT / 2)
+            for i, d, a, link in items:
+                if d != direction:
+                    continue
+                on = self._hyp[:, i] > 0
+                log_q += self._hyp[:, i] * math.log1p(-min(link, 1.0 - 1e-9))
+                size = np.where(on, np.minimum(size, a), size)
+            arrays[direction] = (1.0 - np.exp(log_q), size)
+        c = _Comps(arrays["up"][0], arrays["up"][1], arrays["down"][0], arrays["down"][1],
+                   {(i, d): a for i, d, a, _ in items}, missing)
+        self._comps[name] = c
+        return c
+
+    def _dev_factors(self, health: HealthMessage) -> list[_DevFactor]:
+        """One factor per parameter with sound evidence (the last, with its standard error
+        grown by :data:`STALE_SD_PCT` per square root of its age in windows)."""
+        names = dict.fromkeys([d.parameter for f in self.faults for d in f.deviations]
+                              + [n for n, p in health.parameters.items()
+                                 if p.status not in ("tied", "fixed") and p.nominal])
+        out = []
+        for name in names:
+            ev = self._deviation(health, name)
+            if ev is None:
+                continue
+            age = max(health.window - ev.window, 0)
+            sd = math.hypot(ev.sd, STALE_SD_PCT * math.sqrt(age))
+            comps = self._components(name)
+            leak, note = self._dev_leak.get(name, (LEAK["deviation"], ""))
+            lik = likelihood(ev.dev, sd, comps.p_up, comps.size_up, comps.p_down,
+                             comps.size_down, leak)
+            when = "" if ev.window == health.window else f", last sound window {ev.window}"
+            # which uncertainty: this window's estimate (rel_std_pct), not the fused evidence's
+            # narrower one; floored at the twin's model error, widened with the evidence's age
+            whose = ("the model-error floor" if sd <= SD_FLOOR_PCT * 1.0001 else
+                     "grown with its age" if age else "this window's estimate")
+            text = (f"{name} = {ev.value:.5g} {ev.unit} is {ev.dev:+.2f} % from its nameplate "
+                    f"{ev.nominal:.5g} {ev.unit} (+/- {2 * sd:.2f} %, 2 sigma: {whose}; "
+                    f"{ev.status}{when})")
+            out.append(_DevFactor(name, ev, text, np.log(np.maximum(lik, 1e-300)), comps,
+                                  sd, note))
+        return out
+
+    @staticmethod
+    def _unexplained_dev_var(devs: list[_DevFactor]) -> _Var | None:
+        """One variable for the unknown fault: some parameter moved beyond
+        :data:`UNEXPLAINED_PCT` in a direction no fault of the library moves it (the
+        strongest such deviation's strength). One, not one per parameter: a fault the library
+        does not know moves some parameter, and every other one staying put is no evidence
+        against it."""
+        best: tuple[float, str] | None = None
+        for d in devs:
+            for direction in d.comps.unexplained:
+                signed = d.ev.dev if direction == "up" else -d.ev.dev
+                s = _phi((signed - UNEXPLAINED_PCT) / d.sd)
+                if best is None or s > best[0]:
+                    best = (s, f"{d.text}: no fault of the library moves {d.name} "
+                               f"{direction}")
+        if best is None:
+            return None
+        var = _Var("dev:unexplained", "deviation", _clip(best[0]), best[1],
+                   "no parameter moved where no fault of the library moves it",
+                   links={"unknown": UNKNOWN_DEV_LINK},
+                   what={"unknown": "a parameter moving where no fault of the library "
+                                    "moves it"}, unexplained=True)
+        return var
 
     def _model_error(self, out: dict[str, _Var], term: TermHealth, weight: float) -> None:
         """A term no fault explains is model error in its equation: the deviations and trends
@@ -268,9 +437,14 @@ class Diagnoser:
         library explains it). Noisy-OR's explaining away: Ra pushed up by a drive's dead zone is
         no longer near-proof of worn brushes."""
         names = self.library.equations.get(term.attach, [])
+        for name in names:
+            leak = LEAK["deviation"] + (LEAK_UNEXPLAINED - LEAK["deviation"]) * weight
+            if leak > self._dev_leak.get(name, (LEAK["deviation"], ""))[0]:
+                self._dev_leak[name] = (leak, f" (a term no fault explains acts in the same "
+                                              f"equation, {term.attach}: leak {leak:.2f})")
         for v in out.values():
             kind, _, rest = v.key.partition(":")
-            if kind not in ("dev", "trend") or rest.split(":", 1)[0] not in names:
+            if kind != "trend" or rest.split(":", 1)[0] not in names:
                 continue
             base = v.leak if v.leak is not None else LEAK[v.kind]
             leak = LEAK[v.kind] + (LEAK_UNEXPLAINED - LEAK[v.kind]) * weight
@@ -313,21 +487,6 @@ class Diagnoser:
             out.append(track)
         self._tracks = kept
         return out
-
-    def _dev_var(self, health: HealthMessage, key: str, name: str, direction: str,
-                 size: float) -> _Var:
-        ev = self._deviation(health, name)
-        if ev is None:
-            return _Var(key, "deviation", 0.5, "", f"{name} not estimated yet (no evidence)")
-        signed = ev.dev if direction == "up" else -ev.dev
-        s = _clip(_phi((signed - size) / ev.sd))
-        when = ("" if ev.window == health.window
-                else f", last sound window {ev.window}")
-        text = (f"{name} = {ev.value:.5g} {ev.unit} is {ev.dev:+.2f} % from its nameplate "
-                f"{ev.nominal:.5g} {ev.unit} (+/- {2 * ev.sd:.2f} %, 2 sigma, {ev.status}{when})")
-        word = "beyond" if signed > size else "within"
-        return _Var(key, "deviation", s, f"{text}: {word} the {size:g} % {direction}",
-                    f"{text}: {word} the {size:g} % {direction}")
 
     @staticmethod
     def _trend_var(health: HealthMessage, key: str, name: str, direction: str) -> _Var:
@@ -387,10 +546,70 @@ class Diagnoser:
                 (:func:`shaft_speed`), for a periodic term's harmonic.
         """
         variables, unexplained = self._variables(health, speed)
-        ids = self._ids
-        idx = {fid: i for i, fid in enumerate(ids)}
+        devs = self._dev_factors(health)
+        extra = self._unexplained_dev_var(devs)
+        if extra is not None:
+            variables.append(extra)
+        marg, post, lik0, s, leak = self._posterior(variables, devs)
+        p_none = float(post[0])
+        faults: list[FaultHealth] = []
+        said: dict[int, tuple[list[tuple[float, str, str]], list[str]]] = {}
+        order = [int(i) for i in np.argsort(-marg[:-1])]
+        for rank, i in enumerate(order):
+            said[i] = self._said(i, variables, devs, lik0, s, leak)
+            pro, con = said[i]
+            if rank < self.listed:
+                f = self.faults[i]
+                faults.append(FaultHealth(
+                    id=f.id, component=f.component, probability=float(marg[i]),
+                    action=f.action, urgency=f.urgency, source=f.source,
+                    evidence_for=[t for _, t, _ in pro], evidence_against=con))
+        ruled_out = [self._why_not(i, float(marg[i]), said[i], order[0], said[order[0]])
+                     for rank, i in enumerate(order)
+                     if rank > 0 and marg[i] < 0.2
+                     and (said[i][0] or any("(found: " in c for c in said[i][1]))]
+        p_unknown = float(marg[-1])
+        top = faults[0] if faults else None
+        best = max(p_none, p_unknown, top.probability if top else 0.0)
+        status: Literal["no_fault", "fault", "unknown", "check_function"]
+        if top is not None and best == top.probability:
+            status = "fault"
+        elif best == p_unknown and p_unknown > p_none:
+            status = "unknown"
+        else:
+            status = "no_fault"
+        since, record, share = self._check_function(health)
+        if since is not None and not (status == "fault" and order
+                                      and self._explains_check(said[order[0]][0])):
+            status = "check_function"
+            best = share  # the share of the horizon's windows the twin did not describe
+        return DiagnosisHealth(
+            status=status,
+            top=top.id if status == "fault" and top is not None else None,
+            probability=best,
+            no_fault=p_none,
+            unknown=p_unknown,
+            unknown_terms=[t.equation for t in unexplained],
+            faults=faults,
+            shaft_speed=speed[0] if speed else None,
+            library=f"{self.library.model} ({self.source})",
+            evidence=(sum(1 for v in variables if abs(v.s - 0.5) > 0.1)
+                      + sum(1 for d in devs if np.ptp(d.log_lik) > 0.2)),
+            check_function_since=since,
+            check_failed=record,
+            unexplained=self._unexplained_lines(variables),
+            ruled_out=ruled_out,
+        )
+
+    def _posterior(self, variables: list[_Var], devs: list[_DevFactor]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Exact posterior over the hypotheses of at most two faults (the module's model):
+        each fault's marginal (n_faults + 1, unknown last), the hypotheses' posterior
+        (n_hyp), the no-fault hypothesis' likelihood of each variable, the strengths and the
+        leaks (n_vars)."""
+        idx = {fid: i for i, fid in enumerate(self._ids)}
         n_e = len(variables)
-        log_q = np.zeros((len(ids), n_e))       # log(1 - link)
+        log_q = np.zeros((len(self._ids), n_e))       # log(1 - link)
         s = np.empty(n_e)
         leak = np.empty(n_e)
         for j, v in enumerate(variables):
@@ -402,58 +621,117 @@ class Diagnoser:
         p_e = 1.0 - np.exp(self._hyp @ log_q + np.log1p(-leak)[None, :])
         lik = s[None, :] * p_e + (1.0 - s[None, :]) * (1.0 - p_e)
         log_post = self._log_prior + np.log(lik).sum(axis=1)
+        for d in devs:
+            log_post = log_post + d.log_lik
         log_post -= log_post.max()
         post = np.exp(log_post)
         post /= post.sum()
-        marg = self._hyp.T @ post               # P(fault present)
-        p_none = float(post[0])
-        # per fault, each variable's log likelihood ratio alone against no fault
-        lik0 = lik[0]
-        faults: list[FaultHealth] = []
-        order = np.argsort(-marg[:-1])
-        for i in order[: self.listed]:
-            f = self.faults[int(i)]
-            pro, con = [], []
-            for j, v in enumerate(variables):
-                if f.id not in v.links:
-                    continue
-                link = v.links[f.id]
-                pe = 1.0 - (1.0 - leak[j]) * (1.0 - link)
-                llr = math.log((s[j] * pe + (1 - s[j]) * (1 - pe)) / lik0[j])
-                if llr > LLR_SAID and v.present:
-                    text = v.present
-                    if v.key.startswith("term:") and "shaft speed" in v.what.get(f.id, ""):
-                        text += ": " + v.what[f.id].split(" (", 1)[-1].rstrip(")")
-                    pro.append((llr, text))
-                elif llr < -LLR_SAID:
-                    con.append((-llr, f"{v.absent or v.present} (expects "
-                                      f"{v.what.get(f.id, 'it')})"))
-            faults.append(FaultHealth(
-                id=f.id, component=f.component, probability=float(marg[i]),
-                action=f.action, urgency=f.urgency, source=f.source,
-                evidence_for=[t for _, t in sorted(pro, reverse=True)],
-                evidence_against=[t for _, t in sorted(con, reverse=True)]))
-        p_unknown = float(marg[-1])
-        top = faults[0] if faults else None
-        best = max(p_none, p_unknown, top.probability if top else 0.0)
-        if top is not None and best == top.probability:
-            status = "fault"
-        elif best == p_unknown and p_unknown > p_none:
-            status = "unknown"
-        else:
-            status = "no_fault"
-        return DiagnosisHealth(
-            status=status,  # type: ignore[arg-type]
-            top=top.id if status == "fault" and top is not None else None,
-            probability=best,
-            no_fault=p_none,
-            unknown=p_unknown,
-            unknown_terms=[t.equation for t in unexplained],
-            faults=faults,
-            shaft_speed=speed[0] if speed else None,
-            library=f"{self.library.model} ({self.source})",
-            evidence=sum(1 for v in variables if abs(v.s - 0.5) > 0.1),
-        )
+        return self._hyp.T @ post, post, lik[0], s, leak
+
+    def _said(self, i: int, variables: list[_Var], devs: list[_DevFactor], lik0: np.ndarray,
+              s: np.ndarray, leak: np.ndarray
+              ) -> tuple[list[tuple[float, str, str]], list[str]]:
+        """The evidence for fault ``i`` (log likelihood ratio, sentence, what it is about) and
+        against it, strongest first: each piece's log likelihood ratio alone, the fault
+        against no fault, beyond :data:`LLR_SAID`."""
+        fid = self._ids[i]
+        pro: list[tuple[float, str, str]] = []
+        con: list[tuple[float, str]] = []
+        for d in devs:
+            llr = float(d.log_lik[1 + i] - d.log_lik[0])
+            up, down = d.comps.sizes.get((i, "up")), d.comps.sizes.get((i, "down"))
+            if up is None and down is None:
+                continue
+            direction, size = (("up", up) if up is not None and (down is None or d.ev.dev > 0)
+                               else ("down", down))
+            side = "above" if direction == "up" else "below"
+            signed = d.ev.dev if direction == "up" else -d.ev.dev
+            word = "beyond" if signed > (size or 0.0) else "within"
+            said = f"{d.text}: {word} the {size:g} % {direction}"
+            if llr > LLR_SAID:
+                pro.append((llr, said + d.leak_note, d.name))
+            elif llr < -LLR_SAID:
+                con.append((-llr, f"{said} (expects {d.name} {side} nameplate by at least "
+                                  f"{size:g} %)"))
+        for j, v in enumerate(variables):
+            if fid not in v.links:
+                continue
+            pe = 1.0 - (1.0 - leak[j]) * (1.0 - v.links[fid])
+            llr = math.log((s[j] * pe + (1 - s[j]) * (1 - pe)) / lik0[j])
+            if llr > LLR_SAID and v.present:
+                text = v.present
+                if v.key.startswith("term:") and "shaft speed" in v.what.get(fid, ""):
+                    text += ": " + v.what[fid].split(" (", 1)[-1].rstrip(")")
+                pro.append((llr, text, v.key.split(":")[1] if v.kind == "trend" else v.key))
+            elif llr < -LLR_SAID:
+                con.append((-llr, f"{v.absent or v.present} (expects "
+                                  f"{v.what.get(fid, 'it')})"))
+        return (sorted(pro, key=lambda x: -x[0]), [t for _, t in sorted(con, reverse=True)])
+
+    def _why_not(self, i: int, p: float, said: tuple[list[tuple[float, str, str]], list[str]],
+                 top: int, top_said: tuple[list[tuple[float, str, str]], list[str]]) -> str:
+        """Why a fault with evidence for it was ruled out, for a person: the mode that explains
+        its evidence with one fault (explaining away), then the strongest thing it expects and
+        the window does not show."""
+        f = self.faults[i]
+        pro, con = said
+        why = []
+        if top != i:
+            t = self.faults[top]
+            shared = dict.fromkeys(w for _, _, w in pro if w in {w2 for _, _, w2 in top_said[0]})
+            if shared:
+                why.append(f"{t.id} ({t.component}) explains {' and '.join(shared)} as one "
+                           f"fault")
+        if con:
+            why.append(con[0])
+        if not why and pro:
+            why.append(f"its evidence ({pro[0][1]}) is better explained otherwise")
+        return f"{f.id} ({f.component}) ruled out at {p:.2f}" + (
+            ": " + "; ".join(why) if why else "")
+
+    @staticmethod
+    def _unexplained_lines(variables: list[_Var]) -> list[str]:
+        """The deviations and trends no fault of the library expects that are there (the
+        unknown fault's evidence), for a person."""
+        return [v.present for v in variables if v.unexplained and v.s > 0.5 and v.present]
+
+    @staticmethod
+    def _explains_check(pro: list[tuple[float, str, str]]) -> bool:
+        """The top fault's evidence for it includes a discovered term, the failed model check
+        or a stuck sensor: the failed checks are its evidence (what the twin lacks, a sensor
+        it cannot follow), not a twin that no longer fits."""
+        return any(k.startswith(("term:", "model_check", "sensor:")) for _, _, k in pro)
+
+    def _check_function(self, health: HealthMessage
+                        ) -> tuple[float | None, str | None, float]:
+        """The twin-no-longer-fits state (NAMUR NE 107 *check function*): entered when at
+        least :attr:`check_share` of the windows of the last :attr:`check_after_s` of plant
+        time failed their model check; left after :attr:`check_clear` windows in a row that
+        passed (the failures before them forgotten: entering again takes a new stretch).
+        Returns the plant time it started (None: not in it), the record of the horizon for a
+        person (None: no failed check in it) and the share of its windows that failed."""
+        mc = health.model_check
+        if mc is None:
+            return self._cf_since, None, 0.0
+        self._checks.append((health.t_start, health.t_end, mc.passed))
+        while self._checks and self._checks[0][0] < health.t_end - self.check_after_s - 1e-6:
+            self._checks.popleft()  # keep the windows within the horizon
+        self._passed_run = self._passed_run + 1 if mc.passed else 0
+        failed = [c for c in self._checks if not c[2]]
+        covered = health.t_end - self._checks[0][0]
+        share = len(failed) / len(self._checks)
+        if self._cf_since is None:
+            if covered >= 0.95 * self.check_after_s and share >= self.check_share:
+                self._cf_since = failed[0][0]
+        elif self._passed_run >= self.check_clear:
+            # the twin fits again: a new check function needs a new stretch of failures
+            self._cf_since = None
+            self._checks = deque(list(self._checks)[-self.check_clear:])
+        if not failed:
+            return self._cf_since, None, 0.0
+        record = (f"the model check failed in {len(failed)} of the last {len(self._checks)} "
+                  f"windows ({covered:.0f} s)")
+        return self._cf_since, record, share
 
 
 def _chan(channel: str) -> str:

@@ -189,6 +189,14 @@ class DiagnosisConfig(_Strict):
                                      "above alarm before it is raised")
     clear_after_windows: int = Field(3, ge=1, le=1000, description="windows in a row below "
                                      "clear before it is cleared")
+    check_function_after_s: float = Field(
+        60.0, gt=0, le=86400, description="plant time [s] over which failed model checks "
+        "put the diagnosis in check_function (NAMUR NE 107): the twin does not describe the "
+        "machine, its estimates are held and no outcome is claimed")
+    check_function_share: float = Field(0.8, gt=0, le=1, description="... the share of that "
+                                        "time's windows whose model check failed")
+    check_function_clear_windows: int = Field(3, ge=1, le=1000, description="windows in a row "
+                                              "whose model check passed that end it")
 
     @model_validator(mode="after")
     def _hysteresis(self) -> DiagnosisConfig:
