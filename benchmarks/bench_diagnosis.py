@@ -344,8 +344,12 @@ _HYD_LIBRARY: dict[str, list[tuple[str, dict[str, Any]]]] = {
                      ("p-sat", {"sensor_faults": [_sf("p", "saturated", level=50400.0)]})],
 }
 
-#: Sensor and supply modes the lead adds to the libraries (issue 34): channel -> mode id.
-_DC_SENSOR_MODE = {"ia": "current_sensor", "omega": "speed_sensor", "Va": "voltage_sensor"}
+#: The DC libraries' sensor and supply modes (issue 34): channel -> the mode of a reading too
+#: high (a gain above 1, a positive offset) and too low. A voltage reading too high is the
+#: same equation as a supply delivering less than the drive reports (``supply_sag``).
+_DC_SENSOR_MODE = {"ia": ("current_sensor_high", "current_sensor_low"),
+                   "omega": ("speed_sensor_high", "speed_sensor_low"),
+                   "Va": ("supply_sag", "voltage_sensor_low")}
 _DC_OFFSET = {"ia": 0.1, "omega": 0.3, "Va": 0.5}   # A, rad/s, V: about 3-5 % of a reading
 _HYD_SENSOR_MODE = {"x": "position_sensor", "p": "pressure_sensor"}
 _HYD_OFFSET = {"x": 0.02, "p": 1000.0}              # m, Pa: about 2-4 % of a reading
@@ -369,12 +373,13 @@ def cases() -> list[Case]:
             for noise in (0.0, 1.0):
                 add(f"dc/{fid}/{size}/n{noise:g}", "dc", "library", [fid], [fid], _dc,
                     noise=noise, **plant)
-    for ch, mode in _DC_SENSOR_MODE.items():
+    for ch, (high, low) in _DC_SENSOR_MODE.items():
         for g in (0.9, 1.1):
-            add(f"dc/{mode}/gain{g:g}", "dc", "sensor_supply", [mode, *sensor_ok], [mode], _dc,
-                note=f"{ch} reads {g:g}x, drifting over {RAMP:g} s",
+            mode = high if g > 1 else low
+            add(f"dc/{ch}_sensor/gain{g:g}", "dc", "sensor_supply", [mode, *sensor_ok], [mode],
+                _dc, note=f"{ch} reads {g:g}x, drifting over {RAMP:g} s",
                 sensor_faults=[_sf(ch, "gain", ramp=RAMP, gain=g)])
-        add(f"dc/{mode}/offset", "dc", "sensor_supply", [mode, *sensor_ok], [mode], _dc,
+        add(f"dc/{ch}_sensor/offset", "dc", "sensor_supply", [high, *sensor_ok], [high], _dc,
             note=f"{ch} reads +{_DC_OFFSET[ch]:g} (step)",
             sensor_faults=[_sf(ch, "offset", offset=_DC_OFFSET[ch])])
     add("dc/supply_sag/0.9", "dc", "sensor_supply", ["supply_sag", *sensor_ok], ["supply_sag"],
@@ -406,16 +411,18 @@ def cases() -> list[Case]:
             for noise in (0.0, 1.0):
                 add(f"pwm/{fid}/{size}/n{noise:g}", "pwm", "library", [fid], [fid], _pwm,
                     noise=noise, **plant)
-    for ch, mode in (("ia", "current_sensor"), ("omega", "speed_sensor")):
+    for ch in ("ia", "omega"):
+        high, low = _DC_SENSOR_MODE[ch]
         # the PWM library's current_sensing (a multiplicative term on ia) is a gain's physics
         also = ["current_sensing"] if ch == "ia" else []
         for g in (0.9, 1.1):
-            add(f"pwm/{mode}/gain{g:g}", "pwm", "sensor_supply", [mode, *also, *sensor_ok],
-                [mode],
+            mode = high if g > 1 else low
+            add(f"pwm/{ch}_sensor/gain{g:g}", "pwm", "sensor_supply",
+                [mode, *also, *sensor_ok], [mode],
                 _pwm, note=f"{ch} reads {g:g}x, drifting over {RAMP:g} s",
                 sensor_faults=[_sf(ch, "gain", ramp=RAMP, gain=g)])
-        add(f"pwm/{mode}/offset", "pwm", "sensor_supply", [mode, *sensor_ok], [mode], _pwm,
-            note=f"{ch} reads +{_PWM_OFFSET[ch]:g} (step)",
+        add(f"pwm/{ch}_sensor/offset", "pwm", "sensor_supply", [high, *also, *sensor_ok],
+            [high], _pwm, note=f"{ch} reads +{_PWM_OFFSET[ch]:g} (step)",
             sensor_faults=[_sf(ch, "offset", offset=_PWM_OFFSET[ch])])
     add("pwm/supply_sag/0.9", "pwm", "sensor_supply", ["supply_sag", *sensor_ok],
         ["supply_sag"], _pwm, note="the bridge's supply 5 -> 4.5 V over 60 s",
@@ -613,6 +620,7 @@ def replay_case(case_dir: Path, by_name: dict[str, Case],
     from twinwatch.twin.health import HealthMessage
 
     meta = json.loads((case_dir / "case.json").read_text())
+    meta["name"] = case_dir.name.replace("__", "/")
     case = by_name.get(meta["name"])
     if case is None:
         raise SystemExit(f"{case_dir}: case {meta['name']!r} is not in the case table")
@@ -632,6 +640,10 @@ def replay_case(case_dir: Path, by_name: dict[str, Case],
             costs.append(time.thread_time() - t0)
         out.append((float(health.t_end), d))
     ids = [f.id for f in diag.library.faults]
+    # judged against the case table as it is now (a recording outlives a change of answers)
+    meta = {**meta, "category": case.category, "onset": case.onset,
+            "accept": sorted(case.accept), "truth": list(case.truth),
+            "tolerate": sorted(case.tolerate)}
     result = judge(meta, out, ids)
     result["record_wall_s"], result["record_cpu_s"] = meta["wall_s"], meta["cpu_s"]
     return result
@@ -706,7 +718,8 @@ def replay(rec_dir: Path, only: str | None) -> tuple[list[dict[str, Any]], dict[
     by_name = {c.name: c for c in cases()}
     order = {c.name: i for i, c in enumerate(cases())}
     dirs = [p for p in rec_dir.iterdir() if (p / "case.json").exists()]
-    metas = {p: json.loads((p / "case.json").read_text())["name"] for p in dirs}
+    # a case is its directory's name (a recording's case.json may name it as it was called)
+    metas = {p: p.name.replace("__", "/") for p in dirs}
     chosen = set(c.name for c in select(list(by_name.values()), only))
     dirs = sorted((p for p in dirs if metas[p] in chosen), key=lambda p: order.get(metas[p], 1e9))
     logging.disable(logging.WARNING)

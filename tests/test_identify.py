@@ -19,8 +19,13 @@ from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig, SetpointSc
 from twinwatch.twin.estimation.estimator import EstimationConfig, PSOSettings
 from twinwatch.twin.estimation.identify import (
     AS_CONFIGURED,
+    Combination,
     FixedValue,
+    Identifiability,
     IdentifyConfig,
+    _Holds,
+    _weakest_stated,
+    analyse,
     compare_structures,
     fit_percent,
     identify,
@@ -328,3 +333,107 @@ enabled = false
         res = subprocess.run([sys.executable, "-m", "twinwatch", "identify", str(bad_cfg)],
                              capture_output=True, text=True, timeout=120)
         assert res.returncode == 78 and message in res.stderr, res.stderr
+
+
+def _analysis(undetermined: list[Combination]) -> Identifiability:
+    """An identifiability with only what the hold choice reads: its undetermined
+    combinations."""
+    n = 3
+    return Identifiability(names=["Ra", "J", "D"], information=np.eye(n), eigenvalues=np.ones(n),
+                           rank=n, determined_rank=n - len(undetermined), condition=1.0,
+                           rel_std={}, correlation=np.eye(n), strong_pairs=[],
+                           undetermined=undetermined, at_bound={}, max_rel_std=0.1)
+
+
+def _holds(fixed: dict[str, FixedValue], configured: dict[str, float]) -> _Holds:
+    names = ["Ra", "J", "D"]
+    return _Holds(names, {"Ra": (1.0, 30.0), "J": (1e-4, 1e-2), "D": (1e-4, 1e-2)},
+                  IdentifyConfig(fixed=fixed), configured,
+                  {"Ra": 7.0, "J": 0.002, "D": 0.0015}, np.zeros(4), [0, 1, 2])
+
+
+def test_hold_choice_takes_the_weakest_combinations_stated_main_parameter() -> None:
+    """The next parameter held (identify's re-fit, without a swarm): the weakest combination
+    that a stated value resolves, its largest share with one; a value of [identify.fixed]
+    before a configured one; why it is held, in words; None when nobody stated one."""
+    comb = Combination(weights={"D": 1.0, "J": 0.6, "Ra": 0.05}, std=2.0)
+    # nothing stated: the combination stays free
+    assert _weakest_stated(_analysis([comb]), _holds({}, {})) is None
+    # configured values of D and J: D, the larger share
+    name, why = _weakest_stated(_analysis([comb]), _holds({}, {"D": 0.0014, "J": 0.001}))
+    assert name == "D" and why == "in D + 0.6 J (+-200 %)"
+    # J stated in [identify.fixed]: J first, whatever its share
+    fixed = {"J": FixedValue(value=0.001171, reason="datasheet")}
+    assert _weakest_stated(_analysis([comb]), _holds(fixed, {"D": 0.0014}))[0] == "J"
+    # a parameter alone in its combination: the outputs barely respond to it
+    alone = Combination(weights={"Ra": 1.0, "J": 0.01}, std=0.5)
+    assert _weakest_stated(_analysis([alone]), _holds({}, {"Ra": 6.5})) == (
+        "Ra", "the outputs barely respond to it (+-50 % alone)")
+    # a combination of parameters nobody stated is passed over for the next
+    assert _weakest_stated(_analysis([alone, comb]), _holds({}, {"J": 0.001}))[0] == "J"
+
+
+def test_a_held_parameter_is_clipped_to_its_bounds_and_leaves_the_search() -> None:
+    """Holding: at a bound where the search left it (exact), else at the stated value clipped
+    to the bounds, its logarithm in the search vector, its position no longer free; a value
+    of [identify.fixed] keeps its stated uncertainty."""
+    h = _holds({"J": FixedValue(value=0.05, rel_std=0.02, reason="datasheet")}, {"D": 0.0014})
+    h.hold(0, "at its upper bound", at=30.0)
+    h.hold(1, "in D + J")
+    h.hold(2, "in D + J")
+    assert h.free == [] and list(h.held) == ["Ra", "J", "D"]
+    assert h.held["Ra"].source == "bound" and h.held["Ra"].value == 30.0
+    assert h.held["J"].value == 1e-2 and h.held["J"].source == "[identify.fixed]"  # clipped
+    assert h.held["J"].stated == "datasheet" and h.held["J"].full_value == 0.002
+    assert h.held["D"].source == "[machine.parameters]" and h.held["D"].rel_std == 0.0
+    assert h.v[:3] == pytest.approx(np.log([30.0, 1e-2, 0.0014]))
+    assert h.rel_sd() == {1: 0.02}
+
+
+def test_identify_refuses_a_stretch_it_cannot_fit() -> None:
+    """Too short, a channel missing, a NaN: refused before any search, naming the range."""
+    w = _recording(1.0, {})
+    train, validation = _split(w)
+    est = EstimationConfig(estimate=["Ra"])
+    short = WindowData(t=w.t[:5], channels={c: v[:5] for c, v in w.channels.items()})
+    with pytest.raises(ValueError, match="the validation range holds 5 samples"):
+        identify(DCMotorTwin(), est, IdentifyConfig(), train, short)
+    missing = WindowData(t=train.t, channels={c: v for c, v in train.channels.items()
+                                              if c != "ia"})
+    with pytest.raises(ValueError, match="no channel 'ia' \\(training range\\)"):
+        identify(DCMotorTwin(), est, IdentifyConfig(), missing, validation)
+    bad = WindowData(t=train.t, channels={**train.channels, "omega": train["omega"].copy()})
+    bad.channels["omega"][3] = np.nan
+    with pytest.raises(ValueError, match="channel 'omega' holds NaN or inf in the training"):
+        identify(DCMotorTwin(), est, IdentifyConfig(), bad, validation)
+
+
+def test_analysis_names_the_null_direction_the_weak_combination_and_the_strong_pair() -> None:
+    """The identifiability of a covariance built to be read (no fit): Ra determined to 1 %
+    (and at its upper bound), J and D correlated 0.999 (J - D determined, J + D to 200 %), Ke
+    in an exact null direction (infinite variance)."""
+    inf = math.inf
+    cov = np.array([[1e-4, 0.0, 0.0, 0.0],
+                    [0.0, 1.0, 0.999, 0.0],
+                    [0.0, 0.999, 1.0, 0.0],
+                    [0.0, 0.0, 0.0, inf]])
+    cov[3, :] = cov[:, 3] = inf
+    null = np.array([[0.0], [0.0], [0.0], [-1.0]])
+    values = {"Ra": 7.0, "J": 1e-3, "D": 1e-3, "Ke": 0.04}
+    bounds = {"Ra": (1.0, 7.0), "J": (1e-4, 1e-2), "D": (1e-4, 1e-2), "Ke": (0.01, 0.1)}
+    a = analyse(["Ra", "J", "D", "Ke"], cov, values, bounds, 0.05, null=null)
+    assert a.at_bound == {"Ra": "upper"}
+    assert a.rank == 3 and a.determined_rank == 2 and math.isinf(a.condition)
+    assert a.rel_std["Ra"] == pytest.approx(0.01) and math.isinf(a.rel_std["Ke"])
+    # the null direction first (its sign: the largest component +1), then the weak one
+    assert [c.weights for c in a.undetermined][0] == {"Ke": 1.0}
+    assert math.isinf(a.undetermined[0].std) and len(a.undetermined) == 2
+    weak = a.undetermined[1]
+    assert weak.weights == pytest.approx({"Ra": 0.0, "J": 1.0, "D": 1.0}, abs=1e-9)
+    assert weak.std == pytest.approx(math.sqrt(1.999 * 2))
+    assert a.strong_pairs == [("J", "D", pytest.approx(0.999))]
+    assert np.all(np.isnan(a.correlation[3])) and np.all(a.information[3] == 0.0)
+    assert list(a.eigenvalues) == pytest.approx([0.0, 1 / 1.999, 1 / 0.001, 1e4])
+    # at threshold 0 every pair with a correlation is listed (Ke's are nan: not determined)
+    assert len(analyse(["Ra", "J", "D", "Ke"], cov, values, bounds, 0.05, strong=0.0,
+                       null=null).strong_pairs) == 3

@@ -140,6 +140,55 @@ def test_the_diagnosis_column_shows_the_most_probable_fault() -> None:
     assert "winding short" in text and "0.93" in text
 
 
+
+def test_each_cell_of_the_table_and_the_tail_line_say_what_the_message_does() -> None:
+    """The table's cells (render's named parts) and ``tail``'s line on what the other tests'
+    machine does not carry: a machine gone, one without a window, a held parameter past its
+    crossing, a fused one, a failed model check, an untrusted fit, no losses, terms."""
+    from twinwatch.watch import (
+        _alarms_cell,
+        _last_cell,
+        _parameters_cell,
+        _quality_cell,
+        _state_cell,
+    )
+
+    clock = Clock()
+    fleet = Fleet(clock=clock)
+    crossed = {"status": "degrading", "alarm": {"status": "crossed", "rul_s": None}}
+    msg = _msg("m1", 3, ra_dev=5.5, level="warning", rul=crossed)
+    msg["parameters"]["Ra"]["status"] = "held"
+    msg["model_check"]["passed"] = False
+    msg["trusted"] = False
+    msg["counters"] = {"windows_estimated": 4}
+    msg["terms"] = [{"equation": "a", "meaning": "x"}, {"equation": "b", "meaning": "y"}]
+    fleet.token("m1", True)
+    fleet.health("m1", msg)
+    fleet.token("m2", True)
+    clock.t += 30
+    fleet.token("m1", False)
+    clock.t += 12
+    m1, m2 = fleet.snapshot()["machines"]
+    assert _state_cell(m1).plain == "✕ gone\n12 s ago"
+    assert _state_cell(m2).plain == "● alive"  # there before the watcher: since unknown
+    assert _last_cell(m2).plain == "no window yet"
+    assert _last_cell(m1).plain == "42 s ago\n#3 [6-8 s]\nrun r1"
+    params = _parameters_cell(m1)
+    assert params.plain == "Ra    +5.50 % held RUL: crossed"
+    assert [str(span.style) for span in params.spans] == ["yellow", "dim", "cyan"]
+    assert _alarms_cell(m1).plain == "Ra WARNING since t=10 s"
+    assert _alarms_cell(m2).plain == "no rules"
+    assert _quality_cell(m1).plain == ("nRMSE 1.6e-05, check FAILED, untrusted\n50 ms/window"
+                                       "\nno losses")
+    assert _quality_cell(m2).plain == ""
+    line = health_line(msg, wall=0.0)
+    assert line.endswith(" m1 #3 [6.00-7.99 s] Ra=6.8575 +5.50 % nRMSE 1.6e-05 check FAILED "
+                         "untrusted  WARNING Ra +2 terms (run r1)"), line
+    msg["parameters"]["Ra"]["status"] = "fused"
+    msg["model_check"] = None
+    assert " Ra~6.8575 +5.50 % nRMSE 1.6e-05 untrusted " in health_line(msg, wall=0.0)
+
+
 # -- end to end: a router, three daemons ------------------------------------------------------
 def _daemon_config(name: str, connect: str, *, degraded: bool = False) -> str:
     text = SIM.replace('name = "dc-motor-sim"', f'name = "{name}"')

@@ -45,7 +45,7 @@ from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
@@ -53,6 +53,7 @@ from twinwatch.errors import WatchError
 if TYPE_CHECKING:
     import zenoh
     from rich.console import RenderableType
+    from rich.text import Text
     from zenoh import ext as zenoh_ext
 
     from twinwatch.twin.health import DiagnosisView, HealthView
@@ -754,7 +755,7 @@ class FleetWatcher:
                     text = json.dumps(raw, separators=(",", ":"))  # as published
                     doc = _health_view(raw)
                     if self._deliver(machine, doc, text, "history"):
-                        gap.recovered.append(doc.window)  # type: ignore[arg-type]
+                        gap.recovered.append(doc.window)
                     t_end = _num(doc.t_end)
                     if t_end is not None:
                         last_t = t_end if last_t is None else max(last_t, t_end)
@@ -804,7 +805,7 @@ class FleetWatcher:
 
 @contextmanager
 def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
-             machine: str = "*", **options: Any) -> Iterator[FleetWatcher]:
+             machine: str = "*", **options: Any) -> Iterator[Settling]:
     """A session on ``connect`` and a started :class:`FleetWatcher` on it (``options``: its
     ``history``, ``alarm_history`` and ``on_*``), closed on exit.
 
@@ -825,7 +826,15 @@ def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
             stack.callback(session.close)
             watchers.append(stack.enter_context(
                 FleetWatcher(session, fleet, prefix=prefix, machine=machine, **options)))
-        yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)  # type: ignore[misc]
+        yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)
+
+
+class Settling(Protocol):
+    """What :func:`watching` yields: one :class:`FleetWatcher`, or several as one."""
+
+    def settle(self, timeout: float) -> None:
+        """Wait until every machine with a token has reported a window, or ``timeout`` [s]
+        has passed (:meth:`FleetWatcher.settle`)."""
 
 
 class _Watchers:
@@ -892,25 +901,7 @@ def health_line(doc: HealthView | Mapping[str, Any], *, wall: float | None = Non
     t0, t1 = _num(doc.t_start), _num(doc.t_end)
     if t0 is not None and t1 is not None:
         parts.append(f"[{t0:.2f}-{t1:.2f} s]")
-    marks = {"held": "=", "fused": "~"}
-    for name, p in (doc.parameters or {}).items():
-        if p.status in ("tied", "fixed"):
-            continue
-        parts.append(f"{name}{marks.get(str(p.status), ' ')}{_value(_num(p.value))} "
-                     f"{_dev(_num(p.deviation_pct))}")
-    nrmse, check = _num(doc.nrmse), doc.model_check
-    passed = check.passed if check is not None else None
-    parts.append(f"nRMSE {nrmse:.1e}" if nrmse is not None else "nRMSE n/a")
-    if passed is not None:
-        parts.append("check ok" if passed else "check FAILED")
-    if doc.trusted is False:
-        parts.append("untrusted")
-    raised = [(k, a.level) for k, a in (doc.alarms or {}).items()
-              if a.level in ("warning", "alarm")]
-    for lvl in ("alarm", "warning"):
-        names = [k for k, v in raised if v == lvl]
-        if names:
-            parts.append(f" {lvl.upper()} {', '.join(names)}")
+    parts += _parameter_words(doc) + _fit_words(doc) + _alarm_words(doc)
     n = len(doc.terms or [])
     if n:
         parts.append(f"+{n} term{'s' if n > 1 else ''}")
@@ -920,6 +911,40 @@ def health_line(doc: HealthView | Mapping[str, Any], *, wall: float | None = Non
     if doc.run:
         parts.append(f"(run {doc.run})")
     return " ".join(parts)
+
+
+def _parameter_words(doc: HealthView) -> list[str]:
+    """:func:`health_line`'s parameters: ``Ra 5.82987 -10.31 %`` each (``Ra=`` held, ``Ra~``
+    fused), the tied and fixed ones left out."""
+    marks = {"held": "=", "fused": "~"}
+    return [f"{name}{marks.get(str(p.status), ' ')}{_value(_num(p.value))} "
+            f"{_dev(_num(p.deviation_pct))}"
+            for name, p in (doc.parameters or {}).items() if p.status not in ("tied", "fixed")]
+
+
+def _fit_words(doc: HealthView) -> list[str]:
+    """:func:`health_line`'s fit: ``nRMSE 1.6e-05``, ``check ok`` / ``check FAILED`` (none
+    without a model check), ``untrusted``."""
+    nrmse, check = _num(doc.nrmse), doc.model_check
+    passed = check.passed if check is not None else None
+    words = [f"nRMSE {nrmse:.1e}" if nrmse is not None else "nRMSE n/a"]
+    if passed is not None:
+        words.append("check ok" if passed else "check FAILED")
+    if doc.trusted is False:
+        words.append("untrusted")
+    return words
+
+
+def _alarm_words(doc: HealthView) -> list[str]:
+    """:func:`health_line`'s raised alarms, alarms first: `` ALARM Ra``, `` WARNING D, J``."""
+    raised = [(k, a.level) for k, a in (doc.alarms or {}).items()
+              if a.level in ("warning", "alarm")]
+    words = []
+    for lvl in ("alarm", "warning"):
+        names = [k for k, v in raised if v == lvl]
+        if names:
+            words.append(f" {lvl.upper()} {', '.join(names)}")
+    return words
 
 
 def _diagnosis(d: DiagnosisView | None) -> dict[str, Any] | None:
@@ -970,7 +995,8 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
     stale / gone, for how long), its last window (age, index, plant time, run), each parameter's
     value, deviation from nominal, status, alarm level and RUL, the raised alarms and the last
     event, the discovered terms, the most probable fault and its probability, and the data
-    quality (fit, model check, losses)."""
+    quality (fit, model check, losses). Each cell is its own function (``_<column>_cell``),
+    given the machine's entry of the snapshot."""
     from rich.table import Table
     from rich.text import Text
 
@@ -985,82 +1011,127 @@ def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> Re
     if not machines:
         table.add_row("no machine on the network yet", "", "", "", "", "", "", "")
     for m in machines:
-        state = str(m["state"])
-        st = Text(f"{_STATE_MARK.get(state, '?')} {state}", style=_STATE_STYLE.get(state, ""))
-        since = m["state_since_s"]
-        if since is not None:
-            st.append("\n" + (f"for {age(since)}" if m["token"] else f"{age(since)} ago"),
-                      style="dim")
-        if m["window"] is None:
-            last = Text("no window yet", style="dim")
-        else:
-            last = Text(f"{age(m['last_window_age_s'])} ago\n#{m['window']}")
-            if m["t_start"] is not None and m["t_end"] is not None:
-                last.append(f" [{m['t_start']:.0f}-{m['t_end']:.0f} s]")
-            if m["run"]:
-                last.append(f"\nrun {m['run']}", style="dim")
-        params = Text()
-        for name, p in m["parameters"].items():
-            if params:
-                params.append("\n")
-            level = p.get("alarm")
-            params.append(f"{name:<3} {_dev(p['deviation_pct']):>9} ",
-                          style=_LEVEL_STYLE.get(str(level), ""))
-            status = str(p["status"])
-            params.append(_SHORT.get(status, status), style="dim" if status == "held" else "")
-            rul = _rul(p)
-            if rul:
-                params.append(f" {rul}", style="cyan")
-        alarms = Text()
-        for name, a in m["alarms"].items():
-            # the deviation's alarm and the RUL's alarm, each said as what it is
-            for kind, lv in (("", a), ("RUL ", a.get("rul") or {})):
-                if lv.get("level") in ("warning", "alarm"):
-                    if alarms:
-                        alarms.append("\n")
-                    since = (f" since t={lv['since_t']:.0f} s"
-                             if lv.get("since_t") is not None else "")
-                    alarms.append(f"{name} {kind}{str(lv['level']).upper()}{since}",
-                                  style=_LEVEL_STYLE[str(lv["level"])])
-        if not alarms:
-            alarms.append("none" if m["alarms"] else "no rules", style="green dim")
-        event = m.get("last_event")
-        if event and event.get("parameter"):
-            kind = "RUL " if event.get("kind") == "rul" else ""
-            alarms.append(f"\nlast: {event.get('parameter')} {kind}{event.get('previous')} -> "
-                          f"{event.get('level')} at {_num(event.get('t'), 0.0):.0f} s",
-                          style="dim")
         terms = Text("\n".join(str(t["equation"]) for t in m["terms"]) or "none",
                      style="" if m["terms"] else "dim")
-        dg = m.get("diagnosis")
-        diag = Text("n/a" if dg is None else str(dg["fault"]).replace("_", " "),
-                    style="dim" if dg is None or dg["fault"] == "no_fault" else "bold yellow")
-        if dg is not None and isinstance(dg.get("probability"), int | float):
-            diag.append(f" {dg['probability']:.2f}")
-        quality = Text()
-        q = m["quality"]
-        if q is not None:
-            quality.append(f"nRMSE {q['nrmse']:.1e}" if q["nrmse"] is not None else "nRMSE n/a")
-            if q["model_check"] is not None:
-                quality.append(", check ok" if q["model_check"] else ", check FAILED",
-                               style="" if q["model_check"] else "yellow")
-            if q["trusted"] is False:
-                quality.append(", untrusted", style="yellow")
-            if q["elapsed_ms"] is not None:
-                quality.append(f"\n{q['elapsed_ms']:.0f} ms/window", style="dim")
-            if q["problems"]:
-                quality.append("\n" + ", ".join(f"{k} {v}" for k, v in q["problems"].items()),
-                               style="yellow")
-            else:
-                quality.append("\nno losses", style="green dim")
-        d = m.get("delivery") or {}
-        if d.get("missed") or d.get("recovered") or d.get("error"):
-            quality.append(("\n" if quality else "") + _gap_words(d),
-                           style="yellow" if d.get("error") or
-                           d.get("recovered", 0) < d.get("missed", 0) else "dim")
-        table.add_row(Text(str(m["machine"]), style="bold"), st, last, params, alarms, terms,
-                      diag, quality)
+        table.add_row(Text(str(m["machine"]), style="bold"), _state_cell(m), _last_cell(m),
+                      _parameters_cell(m), _alarms_cell(m), terms, _diagnosis_cell(m),
+                      _quality_cell(m))
     return table
+
+
+def _state_cell(m: Mapping[str, Any]) -> Text:
+    """``● alive`` / ``◐ stale`` / ``✕ gone``, and since when (for how long it has been so
+    while the token is there, how long ago it went)."""
+    from rich.text import Text
+
+    state = str(m["state"])
+    st = Text(f"{_STATE_MARK.get(state, '?')} {state}", style=_STATE_STYLE.get(state, ""))
+    since = m["state_since_s"]
+    if since is not None:
+        st.append("\n" + (f"for {age(since)}" if m["token"] else f"{age(since)} ago"),
+                  style="dim")
+    return st
+
+
+def _last_cell(m: Mapping[str, Any]) -> Text:
+    """The last window: how long ago, its index, its plant time and its run."""
+    from rich.text import Text
+
+    if m["window"] is None:
+        return Text("no window yet", style="dim")
+    last = Text(f"{age(m['last_window_age_s'])} ago\n#{m['window']}")
+    if m["t_start"] is not None and m["t_end"] is not None:
+        last.append(f" [{m['t_start']:.0f}-{m['t_end']:.0f} s]")
+    if m["run"]:
+        last.append(f"\nrun {m['run']}", style="dim")
+    return last
+
+
+def _parameters_cell(m: Mapping[str, Any]) -> Text:
+    """One line per parameter: its deviation from nominal (in its alarm level's style), its
+    status, its RUL."""
+    from rich.text import Text
+
+    params = Text()
+    for name, p in m["parameters"].items():
+        if params:
+            params.append("\n")
+        level = p.get("alarm")
+        params.append(f"{name:<3} {_dev(p['deviation_pct']):>9} ",
+                      style=_LEVEL_STYLE.get(str(level), ""))
+        status = str(p["status"])
+        params.append(_SHORT.get(status, status), style="dim" if status == "held" else "")
+        rul = _rul(p)
+        if rul:
+            params.append(f" {rul}", style="cyan")
+    return params
+
+
+def _alarms_cell(m: Mapping[str, Any]) -> Text:
+    """The raised alarms (the deviation's and the RUL's, each said as what it is, since when)
+    or ``none`` / ``no rules``, then the last alarm event."""
+    from rich.text import Text
+
+    alarms = Text()
+    for name, a in m["alarms"].items():
+        for kind, lv in (("", a), ("RUL ", a.get("rul") or {})):
+            if lv.get("level") in ("warning", "alarm"):
+                if alarms:
+                    alarms.append("\n")
+                since = (f" since t={lv['since_t']:.0f} s"
+                         if lv.get("since_t") is not None else "")
+                alarms.append(f"{name} {kind}{str(lv['level']).upper()}{since}",
+                              style=_LEVEL_STYLE[str(lv["level"])])
+    if not alarms:
+        alarms.append("none" if m["alarms"] else "no rules", style="green dim")
+    event = m.get("last_event")
+    if event and event.get("parameter"):
+        kind = "RUL " if event.get("kind") == "rul" else ""
+        alarms.append(f"\nlast: {event.get('parameter')} {kind}{event.get('previous')} -> "
+                      f"{event.get('level')} at {_num(event.get('t'), 0.0):.0f} s",
+                      style="dim")
+    return alarms
+
+
+def _diagnosis_cell(m: Mapping[str, Any]) -> Text:
+    """The most probable fault and its probability (``n/a`` without a diagnosis)."""
+    from rich.text import Text
+
+    dg = m.get("diagnosis")
+    diag = Text("n/a" if dg is None else str(dg["fault"]).replace("_", " "),
+                style="dim" if dg is None or dg["fault"] == "no_fault" else "bold yellow")
+    if dg is not None and isinstance(dg.get("probability"), int | float):
+        diag.append(f" {dg['probability']:.2f}")
+    return diag
+
+
+def _quality_cell(m: Mapping[str, Any]) -> Text:
+    """The fit, the model check, trust, the time per window, the losses; the windows the
+    watcher missed and got back from the history."""
+    from rich.text import Text
+
+    quality = Text()
+    q = m["quality"]
+    if q is not None:
+        quality.append(f"nRMSE {q['nrmse']:.1e}" if q["nrmse"] is not None else "nRMSE n/a")
+        if q["model_check"] is not None:
+            quality.append(", check ok" if q["model_check"] else ", check FAILED",
+                           style="" if q["model_check"] else "yellow")
+        if q["trusted"] is False:
+            quality.append(", untrusted", style="yellow")
+        if q["elapsed_ms"] is not None:
+            quality.append(f"\n{q['elapsed_ms']:.0f} ms/window", style="dim")
+        if q["problems"]:
+            quality.append("\n" + ", ".join(f"{k} {v}" for k, v in q["problems"].items()),
+                           style="yellow")
+        else:
+            quality.append("\nno losses", style="green dim")
+    d = m.get("delivery") or {}
+    if d.get("missed") or d.get("recovered") or d.get("error"):
+        quality.append(("\n" if quality else "") + _gap_words(d),
+                       style="yellow" if d.get("error") or
+                       d.get("recovered", 0) < d.get("missed", 0) else "dim")
+    return quality
 
 
 def _gap_words(d: Mapping[str, Any]) -> str:

@@ -90,7 +90,7 @@ class SourceKeeper(Driver):
         super().__init__()
         self._open_driver = open_driver
         self.config = config
-        self.describe = describe
+        self.source_name = describe
         twin_channels = getattr(config, "twin_channels", None)
         self.channels = tuple(twin_channels()) if callable(twin_channels) else ()
         period = getattr(config, "sample_period", None)
@@ -119,13 +119,26 @@ class SourceKeeper(Driver):
             self._start_opener()
 
     # -- what the daemon reads ------------------------------------------------------------
-    @property  # type: ignore[override]
+    @property
     def live(self) -> bool:
         """The open driver's (a lock-step Modbus device is not live); True while waiting."""
         inner = self._inner
         return True if inner is None else inner.live
 
-    def _get_stats(self) -> DriverStats:
+    @live.setter
+    def live(self, value: bool) -> None:
+        """Refused: the keeper's liveness is its open driver's (``Driver.live`` is a class
+        attribute a driver sets; the setter only keeps the override an attribute's).
+
+        Raises:
+            AttributeError: always.
+        """
+        raise AttributeError("SourceKeeper.live is its open driver's; it cannot be set")
+
+    @property
+    def stats(self) -> DriverStats:
+        """The counters of the drivers opened so far, the open one's and the keeper's own
+        (``open_failures``, ``reopens``)."""
         total = dict(self._base)
         inner = self._inner
         if inner is not None:
@@ -136,10 +149,9 @@ class SourceKeeper(Driver):
         names = {f.name for f in fields(DriverStats)} - {"extra"}
         return DriverStats(**{k: total.pop(k, 0) for k in names}, extra=total)
 
-    def _set_stats(self, value: DriverStats) -> None:
-        """The base class's counters are the keeper's own (``Driver.__init__``)."""
-
-    stats = property(_get_stats, _set_stats)  # type: ignore[assignment]
+    @stats.setter
+    def stats(self, value: DriverStats) -> None:
+        """Ignored: the base class's counters (``Driver.__init__``) are the keeper's own."""
 
     @property
     def waiting(self) -> str | None:
@@ -152,7 +164,7 @@ class SourceKeeper(Driver):
             return None
         left = "" if self._next_try is None else (
             f"; next attempt in {max(0.0, self._next_try - time.monotonic()):.0f} s")
-        return (f"{self.describe} cannot be opened for {time.monotonic() - since:.0f} s "
+        return (f"{self.source_name} cannot be opened for {time.monotonic() - since:.0f} s "
                 f"({self._error}); {self._attempts} attempts{left}")
 
     @property
@@ -185,7 +197,7 @@ class SourceKeeper(Driver):
         if inner is not None:
             down = time.monotonic() - (self._since or time.monotonic())
             logger.warning("%s is open again after %.1f s (%d attempts); acquisition goes on",
-                           self.describe, down, self._attempts)
+                           self.source_name, down, self._attempts)
             self._since = None
             self._attempts = 0
             self._next_try = None
@@ -199,7 +211,7 @@ class SourceKeeper(Driver):
         try:
             inner.close()
         except Exception as close_exc:  # noqa: BLE001 - the source is being replaced
-            logger.debug("closing the failed %s: %s", self.describe, close_exc)
+            logger.debug("closing the failed %s: %s", self.source_name, close_exc)
         self._missing(exc, first=True)
         self._start_opener()
 
@@ -225,10 +237,10 @@ class SourceKeeper(Driver):
             self._since = time.monotonic()
             logger.error("%s is not available (%s): the daemon waits for it and opens it "
                          "again with a backoff up to %.0f s (STATUS and the health message "
-                         "say so; further attempts at DEBUG)", self.describe, self._error,
+                         "say so; further attempts at DEBUG)", self.source_name, self._error,
                          self.backoff_max)
         else:
-            logger.debug("%s still not available: %s", self.describe, self._error)
+            logger.debug("%s still not available: %s", self.source_name, self._error)
 
     def _start_opener(self) -> None:
         if self._stopping.is_set():
@@ -254,7 +266,7 @@ class SourceKeeper(Driver):
             except (DriverError, OSError) as exc:
                 self._missing(exc, first=False)
             except Exception as exc:  # noqa: BLE001 - a driver's bug must not end the retries
-                logger.debug("opening %s raised", self.describe, exc_info=True)
+                logger.debug("opening %s raised", self.source_name, exc_info=True)
                 self._missing(exc, first=False)
             else:
                 with self._lock:

@@ -214,7 +214,8 @@ class Watchdog:
     only while windows are being processed.
 
     The acquisition loop calls :meth:`tick` every 50 ms while a live source's samples arrive
-    (every sample for one on a simulated clock) and after each read that had none (``Driver.read`` returns within 0.2 s, with or without a sample), so a hung
+    (every sample for one on a simulated clock) and after each read that had none
+    (``Driver.read`` returns within 0.2 s, with or without a sample), so a hung
     driver read or a dead main loop stops the pings.
     The worker calls :meth:`busy` before and :meth:`idle` after each window. The pings stop, and
     systemd restarts the service (``Restart=on-failure`` covers the watchdog), when

@@ -400,7 +400,8 @@ class _LogSource:
             self._reader.stop()
             self._text_reader: type[TextIOMessageReader] | None = type(self._reader)
             self._lines = _Lines(self.path)
-            self._reader = self._text_reader(file=self._lines)  # type: ignore[call-arg,arg-type]
+            # _Lines reads as a text file does (python-can's readers ask a TextIO)
+            self._reader = self._text_reader(file=self._lines)  # type: ignore[arg-type]
         else:
             self._text_reader = None
         self._frames: Iterator[can.Message] = iter(self._reader)
@@ -420,7 +421,7 @@ class _LogSource:
         new.__dict__.update(old.__dict__)
         new.file = self._lines  # type: ignore[attr-defined]
         if hasattr(new, "_extract_header"):  # ASC, TRC: the header is in the state copied
-            new._extract_header = lambda: None  # type: ignore[attr-defined]
+            new._extract_header = lambda: None
         if isinstance(old, can.CSVReader):  # its __iter__ skips one header line first
             self._lines.push_front("header\n")
         self._reader = new

@@ -80,10 +80,15 @@ def odrive_frames(dbc: Path | str, *, plant: DCMotorPlantConfig = PLANT,
         dbc: ODrive's CANSimple DBC (``odrive-cansimple-0.6.10.dbc``).
         plant: the drive and motor.
         seed: the receive jitter's random seed.
+
+    Raises:
+        ValueError: ``dbc`` is not a CAN database (cantools also loads diagnostics databases).
     """
     import cantools
 
     db = cantools.database.load_file(str(dbc))
+    if not isinstance(db, cantools.database.can.Database):
+        raise ValueError(f"{dbc} is not a CAN database (cantools loaded a {type(db).__name__})")
     enc = db.get_message_by_name("Axis0_Get_Encoder_Estimates")
     iq = db.get_message_by_name("Axis0_Get_Iq")
     bus = db.get_message_by_name("Axis0_Get_Bus_Voltage_Current")

@@ -342,8 +342,13 @@ def _rul_s(param: ParameterView, level: str) -> Any:
     return crossing.rul_s if crossing is not None else None
 
 
-def _view(doc: HealthView | Mapping[str, Any]) -> HealthView:
-    """``doc`` as the health message's typed view (parsed once)."""
+def _view(doc: HealthView | Mapping[str, Any] | str | bytes) -> HealthView:
+    """``doc`` (a typed view, the decoded message or its JSON text) as the health message's
+    typed view (parsed once).
+
+    Raises:
+        ValueError: text that is not a health message (:func:`~twinwatch.twin.health.read_health`).
+    """
     from twinwatch.twin.health import HealthView, read_health
 
     return doc if isinstance(doc, HealthView) else read_health(doc)
@@ -367,10 +372,11 @@ def flat_values(doc: HealthView | Mapping[str, Any]) -> dict[str, str]:
     for name, p in (doc.parameters or {}).items():
         base = f"parameters/{name}"
         value, dev, rel = p.value, p.deviation_pct, p.rel_std_pct
-        out[f"{base}/value"] = _number(_rounded(value, _std(value, rel)))
+        std = _std(value, rel)
+        out[f"{base}/value"] = _number(_rounded(value, std))
         nom = p.nominal
-        dev_std = (_std(value, rel) / abs(nom) * 100.0
-                   if isinstance(nom, int | float) and nom and _std(value, rel) else None)
+        dev_std = (std / abs(nom) * 100.0
+                   if isinstance(nom, int | float) and nom and std else None)
         out[f"{base}/deviation_pct"] = _number(_rounded(dev, dev_std, floor=1e-4))
         out[f"{base}/status"] = str(p.status or "")
         if sent(p, "rul"):
@@ -761,7 +767,9 @@ class MqttPublisher(Sink):
             # daemon stored meanwhile were taken for old history and never sent (issue 26;
             # the reload hand-over test lost its first 3 windows in 4 of 8 runs).
             try:
-                context.outbox(self.name or "mqtt").start()
+                box = context.outbox(self.name or "mqtt")
+                if box is not None:
+                    box.start()
             except StoreError:
                 pass  # the thread binds again and reports it (_store_failed)
         self._rebind.set()

@@ -1098,7 +1098,7 @@ def _bury(rec: rr.RecordingStream) -> None:
     SDK's exit hook wait forever for the dead writer: disable the instance's helpers, keep it
     referenced for the life of the process, and unregister the exit hook (each recorder
     disconnects its own stream in :meth:`RerunRecorder.close`)."""
-    rec._flush = lambda *args, **kwargs: None  # type: ignore[method-assign]
+    rec._flush = lambda *args, **kwargs: None
     rec._disconnect_orphaned_recordings = lambda *args, **kwargs: None
     _GRAVEYARD.append((rec, getattr(rec, "inner", None)))
     rr.unregister_shutdown()

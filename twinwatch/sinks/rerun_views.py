@@ -86,6 +86,7 @@ import re
 import time
 from collections import deque
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import numpy as np
@@ -136,7 +137,7 @@ _TREND = (230, 120, 200)
 _TREND_BAND = (150, 80, 130)
 _WARNING = (255, 190, 0)
 _ALARM = (240, 60, 60)
-_Marker = Literal["circle", "diamond", "cross", "up", "square"]
+_Marker = Literal["circle", "diamond", "cross", "up", "down", "square"]
 _STATUS_STYLE: dict[str, tuple[tuple[int, int, int], _Marker, float]] = {
     "estimated": ((90, 205, 100), "circle", 2.0),
     "fused": ((86, 164, 255), "diamond", 2.5),
@@ -634,10 +635,10 @@ class RecordingViews:
         strips, points = drawing
         return [Op(f"{path}/lines", rr.LineStrips2D(
                     [s.xy for s in strips], colors=[s.color for s in strips],
-                    radii=[rr.Radius.ui_points(s.width) for s in strips]), t),
+                    radii=rr.Radius.ui_points([s.width for s in strips])), t),
                 Op(f"{path}/labels", rr.Points2D(
                     [q.xy for q in points], colors=[q.color for q in points],
-                    radii=[rr.Radius.ui_points(q.size) for q in points],
+                    radii=rr.Radius.ui_points([q.size for q in points]),
                     labels=[q.label for q in points], show_labels=True), t)]
 
     def _event_ops(self, ev: Mapping[str, Any], t_end: float,
@@ -734,8 +735,8 @@ class RecordingViews:
                 ops.append(Op(entity(m, "quality", f"nrmse_{variant}"),
                                rr.Scalars(value * _PPM), t))
         nrmse = _num(doc.nrmse)
-        fit = [_num(f.nrmse if f is not None else None) for f in fits] + [nrmse]
-        frame = self._run_frame("quality", [v * _PPM for v in fit])
+        values = [_num(f.nrmse if f is not None else None) for f in fits] + [nrmse]
+        frame = self._run_frame("quality", [v * _PPM for v in values])
         if frame is not None:
             ops.append(Op(entity(m, "quality", "frame"), rr.Scalars(frame), t))
         if math.isfinite(nrmse):
@@ -987,25 +988,21 @@ def _projection(p: str, ph: ParameterView, t: float, history: Sequence[tuple[flo
     _projection_ops`), in the view's units (``_BOX``): None without a trend level and a
     predicted alarm crossing. The time axis runs from as far before now as the interval's end
     is after it (the recent deviations) to the interval's end (twice the median's distance when
-    some draws never cross); the value axis spans what is drawn and the alarm threshold."""
-    trend, rul = ph.trend, ph.rul
-    crossing = rul.alarm if rul is not None else None
-    nom = _num(ph.nominal)
-    level = _num(trend.level if trend is not None else None)
-    if (crossing is None or crossing.status != "predicted" or not math.isfinite(level)
-            or not math.isfinite(nom) or nom == 0.0):
+    some draws never cross); the value axis spans what is drawn and the alarm threshold.
+    The steps: what the message predicts (:func:`_predicted_crossing`), the curves, the frame
+    (:class:`_Frame`), the strips (:func:`_projection_strips`) and the labels
+    (:func:`_projection_labels`)."""
+    predicted = _predicted_crossing(ph, t)
+    if predicted is None:
         return None
-    th, t_cross = _num(crossing.threshold), _num(crossing.t)
-    t_low, t_high = _num(crossing.t_low), _num(crossing.t_high)
-    if not (math.isfinite(th) and math.isfinite(t_cross) and t_cross > t):
-        return None
+    nom, level, th, t_cross, t_low, t_high = predicted
 
     def pct(v: Any) -> Any:
         return (np.asarray(v, dtype=float) / nom - 1.0) * 100.0
 
     end = t_high if math.isfinite(t_high) and t_high > t_cross else t + 2.0 * (t_cross - t)
     start = t - (end - t)
-    growth = _num(trend.growth) if trend is not None else math.nan
+    growth = _num(ph.trend.growth) if ph.trend is not None else math.nan
     rate = None if not math.isfinite(growth) else growth
     curves = []
     for x in (t_low, t_high, t_cross):  # the band's ends, then the median
@@ -1020,30 +1017,94 @@ def _projection(p: str, ph: ParameterView, t: float, history: Sequence[tuple[flo
     finite = finite[np.isfinite(finite)]
     low, high = float(finite.min()), float(finite.max())
     pad = 0.08 * (high - low or abs(high) or 1.0)
-    low, high = low - pad, high + pad
+    frame = _Frame(start, end, low - pad, high + pad)
     others = [(name, v, c) for name, v, c in limits
-              if low <= v <= high and not math.isclose(v, th_pct, abs_tol=1e-9)]
-    w, h = _BOX
-    left, right, top, bottom = _MARGIN
+              if frame.low <= v <= frame.high and not math.isclose(v, th_pct, abs_tol=1e-9)]
+    strips = _projection_strips(frame, t, th_pct, others, past, curves)
+    labels = _projection_labels(frame, t, float(pct(level)), th_pct, (t_cross, t_low, t_high),
+                                others)
+    return strips, labels
 
-    def xy(ts: Any, vs: Any) -> np.ndarray:
-        x = left + (np.asarray(ts, dtype=float) - start) / (end - start) * (w - left - right)
-        y = top + (high - np.asarray(vs, dtype=float)) / (high - low) * (h - top - bottom)
+
+def _predicted_crossing(ph: ParameterView, t: float
+                        ) -> tuple[float, float, float, float, float, float] | None:
+    """What :func:`_projection` draws from: (nominal, trend level, alarm threshold [SI],
+    crossing's plant time, its interval's ends [s], nan where open); None unless the message
+    predicts the alarm's crossing after ``t`` from a trend level, on a nonzero nominal."""
+    trend, rul = ph.trend, ph.rul
+    crossing = rul.alarm if rul is not None else None
+    nom = _num(ph.nominal)
+    level = _num(trend.level if trend is not None else None)
+    if (crossing is None or crossing.status != "predicted" or not math.isfinite(level)
+            or not math.isfinite(nom) or nom == 0.0):
+        return None
+    th, t_cross = _num(crossing.threshold), _num(crossing.t)
+    if not (math.isfinite(th) and math.isfinite(t_cross) and t_cross > t):
+        return None
+    return nom, level, th, t_cross, _num(crossing.t_low), _num(crossing.t_high)
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """The projection's axes: plant time ``start`` to ``end`` [s] across, the deviation
+    ``low`` to ``high`` [% of nominal] up, mapped into the drawing (:data:`_BOX`, inside
+    :data:`_MARGIN`; y down)."""
+
+    start: float
+    end: float
+    low: float
+    high: float
+
+    def xy(self, ts: Any, vs: Any) -> np.ndarray:
+        """Points (k, 2) in the drawing of times ``ts`` [s] and deviations ``vs`` [%]."""
+        w, h = _BOX
+        left, right, top, bottom = _MARGIN
+        x = (left + (np.asarray(ts, dtype=float) - self.start) / (self.end - self.start)
+             * (w - left - right))
+        y = top + (self.high - np.asarray(vs, dtype=float)) / (self.high - self.low) * (
+            h - top - bottom)
         return np.column_stack([np.atleast_1d(x), np.atleast_1d(y)])
 
-    strips = [_Strip(xy([start, end], [v, v]), c, 1.0) for _, v, c in others]
-    strips.append(_Strip(xy([start, end], [th_pct, th_pct]), _ALARM, 1.5))
-    strips.append(_Strip(xy([t, t], [low, high]), _NOMINAL, 0.75))
+    def x(self, ts: float) -> float:
+        """The drawing's x of plant time ``ts`` [s]."""
+        return float(self.xy([ts], [0.0])[0, 0])
+
+    def y(self, t: float, v: float) -> float:
+        """The drawing's y of the deviation ``v`` [%] (at plant time ``t``)."""
+        return float(self.xy([t], [v])[0, 1])
+
+
+def _projection_strips(frame: _Frame, t: float, th_pct: float,
+                       others: Sequence[tuple[str, float, tuple[int, ...]]],
+                       past: np.ndarray, curves: Sequence[np.ndarray]) -> list[_Strip]:
+    """The projection's lines: the other thresholds in range, the alarm threshold, now, the
+    recent deviations ``past`` (k, 2), the trend's ``curves`` (the band's ends, the median
+    last)."""
+    start, end = frame.start, frame.end
+    strips = [_Strip(frame.xy([start, end], [v, v]), c, 1.0) for _, v, c in others]
+    strips.append(_Strip(frame.xy([start, end], [th_pct, th_pct]), _ALARM, 1.5))
+    strips.append(_Strip(frame.xy([t, t], [frame.low, frame.high]), _NOMINAL, 0.75))
     if len(past) > 1:
-        strips.append(_Strip(xy(past[:, 0], past[:, 1]), _DEVIATION, 1.0))
+        strips.append(_Strip(frame.xy(past[:, 0], past[:, 1]), _DEVIATION, 1.0))
     for i, c in enumerate(curves):
         median = i == len(curves) - 1
-        strips.append(_Strip(xy(c[:, 0], c[:, 1]), _TREND if median else _TREND_BAND,
+        strips.append(_Strip(frame.xy(c[:, 0], c[:, 1]), _TREND if median else _TREND_BAND,
                              2.0 if median else 1.0))
-    level_pct = float(pct(level))
+    return strips
+
+
+def _projection_labels(frame: _Frame, t: float, level_pct: float, th_pct: float,
+                       times: tuple[float, float, float],
+                       others: Sequence[tuple[str, float, tuple[int, ...]]]) -> list[_Label]:
+    """The projection's points and texts: the level now, the crossing, each threshold's
+    value, now and the crossing's plant time with its interval (``times``: the crossing, the
+    interval's ends, nan where open), written under or over their lines and kept inside the
+    view."""
+    w = _BOX[0]
+    t_cross, t_low, t_high = times
     below = th_pct < level_pct  # the threshold under the trend: its labels under it
-    y_th = float(xy([t], [th_pct])[0, 1])
-    y_low, y_high = (float(xy([t], [v])[0, 1]) for v in (low, high))
+    y_th = frame.y(t, th_pct)
+    y_low, y_high = frame.y(t, frame.low), frame.y(t, frame.high)
     outer = y_th + _UNDER if below else y_th - _OVER
     inner = y_high - _OVER if below else y_low + _UNDER
     band = (f" ({clock(t_low) if math.isfinite(t_low) else 'n/a'}-"
@@ -1054,20 +1115,17 @@ def _projection(p: str, ph: ParameterView, t: float, history: Sequence[tuple[flo
         half = _CHAR_W * len(text) / 2.0 + _LABEL_PAD
         return float(min(max(x, half), w - half)), y
 
-    def x_of(ts: float) -> float:
-        return float(xy([ts], [0.0])[0, 0])
-
-    texts = [(f"alarm {th_pct:+.3g} %", x_of(start), outer, _ALARM, 0.5),
-             *((f"{name.split()[0]} {v:+.3g} %", x_of(start),
-                float(xy([t], [v])[0, 1]) + (_UNDER if v < level_pct else -_OVER), c, 0.5)
+    texts = [(f"alarm {th_pct:+.3g} %", frame.x(frame.start), outer, _ALARM, 0.5),
+             *((f"{name.split()[0]} {v:+.3g} %", frame.x(frame.start),
+                frame.y(t, v) + (_UNDER if v < level_pct else -_OVER), c, 0.5)
                for name, v, c in others),
-             (f"now {clock(t)}", x_of(t), inner, _NOMINAL, 0.5),
-             (f"{clock(t_cross)}{band}", x_of(t_cross), outer, _ALARM, 0.5)]
-    labels = [_Label(tuple(xy([t], [level_pct])[0]), f"{level_pct:+.3g} %", _TREND, 2.5),
-              _Label(tuple(xy([t_cross], [th_pct])[0]), "", _ALARM, 3.0)]
+             (f"now {clock(t)}", frame.x(t), inner, _NOMINAL, 0.5),
+             (f"{clock(t_cross)}{band}", frame.x(t_cross), outer, _ALARM, 0.5)]
+    labels = [_Label(tuple(frame.xy([t], [level_pct])[0]), f"{level_pct:+.3g} %", _TREND, 2.5),
+              _Label(tuple(frame.xy([t_cross], [th_pct])[0]), "", _ALARM, 3.0)]
     labels += [_Label(at(x, y, text), text, c, size) for text, x, y, c, size in texts]
-    return strips, [_Label((float(q.xy[0]), float(q.xy[1])), q.label, q.color, q.size)
-                    for q in labels]
+    return [_Label((float(q.xy[0]), float(q.xy[1])), q.label, q.color, q.size)
+            for q in labels]
 
 
 def _growth_curve(t0: float, y0: float, t1: float, y1: float, r: float | None,
@@ -1207,7 +1265,7 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
         lines = [f"**Diagnosis: no fault** (probability {_fmt(d.no_fault, '.2f')})"]
         from twinwatch.twin.health import developing_line
 
-        developing = developing_line(d, parameters or {})  # type: ignore[arg-type]
+        developing = developing_line(d, parameters or {})
         if developing:
             lines[0] += "  "
             lines.append(f"*{developing}*")
@@ -1335,7 +1393,7 @@ def _event_row(ev: Mapping[str, Any], t: float, rule: str, raised: bool,
 
 
 def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
-             grew: Mapping[str, int], health_json: str = "{}") -> tuple[str, Any]:
+             grew: Mapping[str, int], health_json: str = "{}") -> tuple[str, rr.TextLogLevel]:
     """One short line for the window (a Rerun log row is not wrapped: about 85 characters fit
     the log panel at 1600x1000), and its level: ERROR while a parameter is in alarm, WARN while
     one is in warning, the model check fails, the structure changed or data were lost, else
@@ -1348,9 +1406,36 @@ def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
     top-level scalars."""
     del t0
     parts = [f"window {_str(doc.window, '?')} {clock(t_end)}"]
-    worst = 0
     alarms = doc.alarms or {}
     params = doc.parameters or {}
+    ruled, worst = _ruled_parts(alarms, params)
+    if ruled:
+        parts.append("; ".join(ruled))
+    elif params:  # no alarm rule: the estimated deviations
+        parts.append(", ".join(f"{name} {_fmt(ph.deviation_pct, '+.2f')} %"
+                               for name, ph in params.items()
+                               if ph.status in ("estimated", "fused")))
+    wrong, failed, changed = _wrong_parts(doc, terms_changed, grew)
+    if wrong:
+        parts.append("| " + ", ".join(wrong))
+    if not alarms and not params and len(parts) == 1:  # not a health message: its scalars
+        parts.append(", ".join(f"{k}={v}" for k, v in json.loads(health_json).items()
+                               if isinstance(v, bool | str | int | float) or v is None))
+    if worst == 2:
+        level = rr.TextLogLevel.ERROR
+    elif worst == 1 or failed or changed or grew:
+        level = rr.TextLogLevel.WARN
+    else:
+        level = rr.TextLogLevel.INFO
+    return " ".join(parts), level
+
+
+def _ruled_parts(alarms: Mapping[str, AlarmView],
+                 params: Mapping[str, ParameterView]) -> tuple[list[str], int]:
+    """The log row's part for each parameter with an alarm rule (tied and fixed ones left
+    out): ``Ra -5.14 % (6.16593 ohm) WARNING, RUL ALARM``; and the worst level raised (0
+    none, 1 warning, 2 alarm, :data:`_RANK`)."""
+    worst = 0
     ruled = []
     for name, a in alarms.items():
         words = []
@@ -1374,16 +1459,18 @@ def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
         if ph is not None and ph.status != "held":  # a held value is the last trusted one
             head += f" ({_fmt(ph.value, '.5g')} {_str(ph.unit)})"
         ruled.append(" ".join([head, ", ".join(words)]).strip())
-    if ruled:
-        parts.append("; ".join(ruled))
-    elif params:  # no alarm rule: the estimated deviations
-        parts.append(", ".join(f"{name} {_fmt(ph.deviation_pct, '+.2f')} %"
-                               for name, ph in params.items()
-                               if ph.status in ("estimated", "fused")))
+    return ruled, worst
+
+
+def _wrong_parts(doc: HealthView, terms_changed: bool,
+                 grew: Mapping[str, int]) -> tuple[list[str], bool, bool]:
+    """What went wrong in the window, for the log row: a failed model check with its
+    reasons, DT'' changed (the terms added and dropped), the counters of lost data that grew;
+    and whether the check failed and whether the structure changed."""
     wrong = []
     check = doc.model_check
     failed = check is not None and check.passed is False
-    if failed:  # a check that passed is the rule: said only in the model panel
+    if check is not None and failed:  # a check that passed is the rule: in the model panel
         wrong.append("model check FAILED: " + "; ".join(map(str, check.reasons or [])))
     disc = doc.discovery
     changed = terms_changed or (disc is not None and bool(disc.changed))
@@ -1395,15 +1482,4 @@ def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
         wrong.append("DT'' changed")
     if grew:
         wrong.append("lost: " + ", ".join(f"{k} +{v}" for k, v in grew.items()))
-    if wrong:
-        parts.append("| " + ", ".join(wrong))
-    if not alarms and not params and len(parts) == 1:  # not a health message: its scalars
-        parts.append(", ".join(f"{k}={v}" for k, v in json.loads(health_json).items()
-                               if isinstance(v, bool | str | int | float) or v is None))
-    if worst == 2:
-        level = rr.TextLogLevel.ERROR
-    elif worst == 1 or failed or changed or grew:
-        level = rr.TextLogLevel.WARN
-    else:
-        level = rr.TextLogLevel.INFO
-    return " ".join(parts), level
+    return wrong, failed, changed

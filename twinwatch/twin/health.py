@@ -676,7 +676,7 @@ def _trend(t: TrendReport) -> TrendHealth:
         restart=RestartHealth(t=rs.t, step=rs.step, reason=rs.reason) if rs else None,
         restarts=t.restarts,
         window_evidence=(EvidenceHealth(t=ev.t, value=ev.value, std=ev.std,
-                                        source=ev.source)  # type: ignore[arg-type]
+                                        source=ev.source)
                          if ev is not None else None))
 
 
@@ -880,9 +880,10 @@ def _lenient(tp: Any) -> Any:
     if origin in (typing.Union, types.UnionType):
         return functools.reduce(operator.or_, [_lenient(a) for a in args])
     if origin is dict:
+        # a type built at run time (the lenient view's): no static type to check
         return dict[_lenient(args[0]), _lenient(args[1])]  # type: ignore[misc]
     if origin is list:
-        return list[_lenient(args[0])]  # type: ignore[misc]
+        return list[_lenient(args[0])]  # type: ignore[misc]  # built at run time, as above
     return tp
 
 
@@ -1009,17 +1010,17 @@ def _prune(data: dict[str, Any], errors: list[Any]) -> bool:
     if not paths:
         return False
     lists: list[list[Any]] = []
-    for path in paths:
-        if any(path[:i] in paths for i in range(1, len(path))):
+    for loc in paths:
+        if any(loc[:i] in paths for i in range(1, len(loc))):
             continue  # its container goes
         parent: Any = data
-        for key in path[:-1]:
+        for key in loc[:-1]:
             parent = parent[key]
         if isinstance(parent, list):
-            parent[path[-1]] = _DROPPED  # indices stay until every error is placed
+            parent[loc[-1]] = _DROPPED  # indices stay until every error is placed
             lists.append(parent)
         else:
-            del parent[path[-1]]
+            del parent[loc[-1]]
     for entries in lists:
         entries[:] = [x for x in entries if x is not _DROPPED]
     return True

@@ -21,6 +21,10 @@ from numba import njit
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
+#: Index and count arrays (the compiled kernels' event plans, state positions).
+IntArray = NDArray[np.int64]
+#: Masks (the compiled kernels' event flags).
+BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True, slots=True)
@@ -337,17 +341,22 @@ def _matrix_power(a: FloatArray, n: int) -> FloatArray:
     if n <= 3:
         return np.linalg.matrix_power(a, n)
     mm = np.matmul
-    z = result = None
-    while n > 0:
-        z = a if z is None else mm(z, z)
+    z = a
+    result: FloatArray | None = None
+    while True:
         n, bit = divmod(n, 2)
         if bit:
             result = z if result is None else mm(result, z)
+        if n == 0:
+            break
+        z = mm(z, z)
+    assert result is not None  # n > 3 has a set bit
     return result
 
 
 @njit(cache=True, nogil=True)
-def _propagate_kernel(phi, gamma, u, x):  # pragma: no cover - compiled
+def _propagate_kernel(phi: FloatArray, gamma: FloatArray, u: FloatArray,
+                      x: FloatArray) -> None:  # pragma: no cover - compiled
     p, nk, n = x.shape
     m = u.shape[2]
     shared = u.shape[0] == 1

@@ -83,5 +83,6 @@ def likelihood(x: float, sd: float, p_up: np.ndarray, size_up: np.ndarray, p_dow
     w_up = p_up - 0.5 * both
     w_down = p_down - 0.5 * both
     none = (1.0 - p_up) * (1.0 - p_down)
-    return (none * base + w_up * moved_density(x, sd, size_up, True)
-            + w_down * moved_density(x, sd, size_down, False))
+    out: np.ndarray = (none * base + w_up * moved_density(x, sd, size_up, True)
+                       + w_down * moved_density(x, sd, size_down, False))
+    return out

@@ -395,8 +395,12 @@ class Diagnoser:
             lik = likelihood(ev.dev, sd, comps.p_up, comps.size_up, comps.p_down,
                              comps.size_down, leak)
             when = "" if ev.window == health.window else f", last sound window {ev.window}"
+            # which uncertainty: this window's estimate (rel_std_pct), not the fused evidence's
+            # narrower one; floored at the twin's model error, widened with the evidence's age
+            whose = ("the model-error floor" if sd <= SD_FLOOR_PCT * 1.0001 else
+                     "grown with its age" if age else "this window's estimate")
             text = (f"{name} = {ev.value:.5g} {ev.unit} is {ev.dev:+.2f} % from its nameplate "
-                    f"{ev.nominal:.5g} {ev.unit} (+/- {2 * sd:.2f} %, 2 sigma, "
+                    f"{ev.nominal:.5g} {ev.unit} (+/- {2 * sd:.2f} %, 2 sigma: {whose}; "
                     f"{ev.status}{when})")
             out.append(_DevFactor(name, ev, text, np.log(np.maximum(lik, 1e-300)), comps,
                                   sd, note))
@@ -575,8 +579,8 @@ class Diagnoser:
         else:
             status = "no_fault"
         since, record, share = self._check_function(health)
-        if since is not None and not (status == "fault" and top is not None
-                                      and self._explains_check(top.id)):
+        if since is not None and not (status == "fault" and order
+                                      and self._explains_check(said[order[0]][0])):
             status = "check_function"
             best = share  # the share of the horizon's windows the twin did not describe
         return DiagnosisHealth(
@@ -666,21 +670,24 @@ class Diagnoser:
 
     def _why_not(self, i: int, p: float, said: tuple[list[tuple[float, str, str]], list[str]],
                  top: int, top_said: tuple[list[tuple[float, str, str]], list[str]]) -> str:
-        """Why a fault with evidence for it was ruled out, for a person: what it expects and
-        the window does not show, or the mode that explains its evidence and more."""
+        """Why a fault with evidence for it was ruled out, for a person: the mode that explains
+        its evidence with one fault (explaining away), then the strongest thing it expects and
+        the window does not show."""
         f = self.faults[i]
-        head = f"{f.id} ({f.component}) ruled out at {p:.2f}"
         pro, con = said
-        if con:
-            return f"{head}: {con[0]}"
+        why = []
         if top != i:
             t = self.faults[top]
             shared = dict.fromkeys(w for _, _, w in pro if w in {w2 for _, _, w2 in top_said[0]})
             if shared:
-                return (f"{head}: {t.id} ({t.component}) explains {' and '.join(shared)} "
-                        f"as one fault, and more of what this window shows")
-        return (f"{head}: its evidence ({pro[0][1]}) is better explained otherwise" if pro
-                else head)
+                why.append(f"{t.id} ({t.component}) explains {' and '.join(shared)} as one "
+                           f"fault")
+        if con:
+            why.append(con[0])
+        if not why and pro:
+            why.append(f"its evidence ({pro[0][1]}) is better explained otherwise")
+        return f"{f.id} ({f.component}) ruled out at {p:.2f}" + (
+            ": " + "; ".join(why) if why else "")
 
     @staticmethod
     def _unexplained_lines(variables: list[_Var]) -> list[str]:
@@ -688,27 +695,27 @@ class Diagnoser:
         unknown fault's evidence), for a person."""
         return [v.present for v in variables if v.unexplained and v.s > 0.5 and v.present]
 
-    def _explains_check(self, fid: str) -> bool:
-        """A fault whose signature names a discovered term, the model check or a stuck sensor:
-        when it is the diagnosis, the failed checks are its evidence (what the twin lacks, or a
-        sensor it cannot follow), not a twin that no longer fits."""
-        f = next((f for f in self.faults if f.id == fid), None)
-        return f is not None and bool(f.terms or f.model_check or f.sensors)
+    @staticmethod
+    def _explains_check(pro: list[tuple[float, str, str]]) -> bool:
+        """The top fault's evidence for it includes a discovered term, the failed model check
+        or a stuck sensor: the failed checks are its evidence (what the twin lacks, a sensor
+        it cannot follow), not a twin that no longer fits."""
+        return any(k.startswith(("term:", "model_check", "sensor:")) for _, _, k in pro)
 
     def _check_function(self, health: HealthMessage
                         ) -> tuple[float | None, str | None, float]:
         """The twin-no-longer-fits state (NAMUR NE 107 *check function*): entered when at
         least :attr:`check_share` of the windows of the last :attr:`check_after_s` of plant
         time failed their model check; left after :attr:`check_clear` windows in a row that
-        passed. Returns the plant time it started (None: not in it), the record of the
-        horizon for a person (None: no failed check in it) and the share of its windows that
-        failed."""
+        passed (the failures before them forgotten: entering again takes a new stretch).
+        Returns the plant time it started (None: not in it), the record of the horizon for a
+        person (None: no failed check in it) and the share of its windows that failed."""
         mc = health.model_check
         if mc is None:
             return self._cf_since, None, 0.0
         self._checks.append((health.t_start, health.t_end, mc.passed))
-        while self._checks and self._checks[0][1] <= health.t_end - self.check_after_s:
-            self._checks.popleft()
+        while self._checks and self._checks[0][0] < health.t_end - self.check_after_s - 1e-6:
+            self._checks.popleft()  # keep the windows within the horizon
         self._passed_run = self._passed_run + 1 if mc.passed else 0
         failed = [c for c in self._checks if not c[2]]
         covered = health.t_end - self._checks[0][0]
@@ -717,7 +724,9 @@ class Diagnoser:
             if covered >= 0.95 * self.check_after_s and share >= self.check_share:
                 self._cf_since = failed[0][0]
         elif self._passed_run >= self.check_clear:
+            # the twin fits again: a new check function needs a new stretch of failures
             self._cf_since = None
+            self._checks = deque(list(self._checks)[-self.check_clear:])
         if not failed:
             return self._cf_since, None, 0.0
         record = (f"the model check failed in {len(failed)} of the last {len(self._checks)} "

@@ -46,7 +46,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -511,7 +511,8 @@ class Discovery:
                 best = f
         return best
 
-    def _polish(self, resid, p0: FloatArray, active: tuple[bool, ...],  # type: ignore[no-untyped-def]
+    def _polish(self, resid: Callable[[FloatArray], FloatArray], p0: FloatArray,
+                active: tuple[bool, ...],
                 lo: FloatArray, hi: FloatArray, meta: MetaModel, amplitude: float
                 ) -> tuple[FloatArray, FloatArray | None, float]:
         """Bounded least squares over the active parameters (the rest 0); returns
@@ -525,7 +526,8 @@ class Discovery:
         def fun(x: FloatArray) -> FloatArray:
             q = p.copy()
             q[act] = x
-            return resid(q)[0]
+            out: FloatArray = resid(q)[0]
+            return out
 
         from scipy.optimize import least_squares  # loaded on first use
 
@@ -665,7 +667,8 @@ class Discovery:
 
         def fun(xv: FloatArray) -> FloatArray:
             th = pmap.full(xv[None, n_terms:], theta)[0] if joint else theta
-            return self._resid(fit, th, compose(set_params(xv[:n_terms]), win))[0]
+            out: FloatArray = self._resid(fit, th, compose(set_params(xv[:n_terms]), win))[0]
+            return out
 
         from scipy.optimize import least_squares  # loaded on first use
 

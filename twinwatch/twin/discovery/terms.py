@@ -134,7 +134,8 @@ class Term:
 
     def values(self, window: WindowData) -> FloatArray:
         """U(z) at each sample of the window, shape (N,)."""
-        return self.meta.evaluate(self.params[None, :], self.z(window))[0]
+        out: FloatArray = self.meta.evaluate(self.params[None, :], self.z(window))[0]
+        return out
 
     def input_text(self, precision: int = 2) -> str:
         if self.input != TIME:
@@ -180,7 +181,8 @@ class Term:
         q = self.meta.move_origin(self._full(x), d)
         if q is None:
             raise ValueError(f"a {self.meta.kind} term cannot move its origin")
-        return np.asarray(q)[self._act()]
+        out: FloatArray = np.asarray(q)[self._act()]
+        return out
 
     def _move_jacobian(self, x: FloatArray, d: float) -> FloatArray:
         """d(moved)/dx by central differences (exact for the affine rewritings)."""

@@ -104,7 +104,8 @@ def drift_residual(fit: WindowFit, r: FloatArray, jac: FloatArray) -> FloatArray
     rates, *_ = np.linalg.lstsq(ramp, r, rcond=None)
     left = (r - ramp @ rates).reshape(-1, n_out)
     # back to the per-output normalisation of WindowFit.error_matrix (no weights, no 1/sqrt(M))
-    return left * math.sqrt(r.size) / np.where(fit.weights != 0, fit.weights, 1.0)
+    out: FloatArray = left * math.sqrt(r.size) / np.where(fit.weights != 0, fit.weights, 1.0)
+    return out
 
 
 def model_check(problem: WindowProblem, point: FitPoint, y: FloatArray,

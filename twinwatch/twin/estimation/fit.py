@@ -132,18 +132,21 @@ class WindowFit:
         r = r.reshape(r.shape[0], -1) / self._den
         bad = ~np.all(np.isfinite(r), axis=1)
         r[bad] = BAD_RESIDUAL
-        return r if y.ndim == 3 else r[0]
+        out: FloatArray = r if y.ndim == 3 else r[0]
+        return out
 
     def cost(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None
              ) -> FloatArray:
         """The fitness (normalised RMSE) of each row of ``theta``, shape (P,)."""
         r = self.residuals(theta, terms)
-        return np.sqrt(np.sum(r * r, axis=1))
+        out: FloatArray = np.sqrt(np.sum(r * r, axis=1))
+        return out
 
     def error_matrix(self, y: FloatArray) -> FloatArray:
         """Normalised errors of one trajectory ``y`` (N, n_out) as a matrix (N-1, n_out), each
         column the output's error over its scale (weights left out)."""
-        return (y[1:] - self.meas[1:]) / self.scale
+        out: FloatArray = (y[1:] - self.meas[1:]) / self.scale
+        return out
 
     def residual(self, y: FloatArray) -> Residual:
         """RMSE, worst error (per output, in its unit) and nRMSE of one trajectory (N, n_out)."""
@@ -191,7 +194,8 @@ class ParameterMap:
 
     def ln(self, theta: FloatArray) -> FloatArray:
         """The search variables of a full vector (n_params,) -> (n_est,)."""
-        return np.log(np.asarray(theta, dtype=float)[self.idx])
+        out: FloatArray = np.log(np.asarray(theta, dtype=float)[self.idx])
+        return out
 
 
 class LocalFit:
@@ -243,7 +247,8 @@ class LocalFit:
         when not fitted)."""
         if not self.n_init:
             return None
-        return np.asarray(v)[..., self.n_est:] * self.fit.initial_scale
+        out: FloatArray = np.asarray(v)[..., self.n_est:] * self.fit.initial_scale
+        return out
 
     def residuals(self, v: FloatArray) -> FloatArray:
         """Normalised residuals (P, M) for search-vector rows ``v`` (P, n_est + n_init)."""
@@ -393,7 +398,8 @@ class LocalFit:
                 rows[1 + np.arange(k), active] += 1e-6
                 r_all = self.residuals(rows)
                 last["x"], last["r"], last["d"] = x.copy(), r_all[0], r_all[1:]
-                return r_all[0]
+                r0: FloatArray = r_all[0]
+                return r0
 
             def jac(x: FloatArray) -> FloatArray:
                 if not ("x" in last and np.array_equal(last["x"], x)):
@@ -448,7 +454,7 @@ def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
         return np.full((n, n), np.inf)
     keep = lam > RCOND * max(float(lam.max()), 1e-300)
     a_inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
-    cov = a_inv @ ((js * weights[:, None]).T @ js) @ a_inv
+    cov: FloatArray = a_inv @ ((js * weights[:, None]).T @ js) @ a_inv
     cov = cov / np.outer(safe, safe)
     loads = np.sum(vec[:, ~keep] ** 2, axis=1) > 1e-12
     dead = (norms == 0) | loads
@@ -487,7 +493,8 @@ def explained_rms(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
     j = jac[:, finite] * math.sqrt(m)
     c = cov[np.ix_(finite, finite)]
     var = np.einsum("ij,jk,ik->i", j, c, j).reshape(-1, n_out)
-    return np.sqrt(np.maximum(np.mean(var, axis=0), 0.0))
+    out: FloatArray = np.sqrt(np.maximum(np.mean(var, axis=0), 0.0))
+    return out
 
 
 def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
@@ -543,7 +550,7 @@ def _swarm_problem_class() -> type:
     configuration is validated)."""
     from pymoo.core.problem import Problem
 
-    class SwarmProblem(Problem):  # type: ignore[misc]
+    class SwarmProblem(Problem):  # type: ignore[misc]  # pymoo is untyped: Problem is Any
         """pymoo problem whose ``_evaluate`` is one vectorised call for the whole swarm (as
         pymoo's ``problems/single``): ``cost_fn(X (P, n)) -> (P,)``."""
 
@@ -552,7 +559,8 @@ def _swarm_problem_class() -> type:
             super().__init__(n_var=xl.size, n_obj=1, xl=xl, xu=xu)
             self._cost_fn = cost_fn
 
-        def _evaluate(self, x, out, *args, **kwargs):  # type: ignore[no-untyped-def]
+        def _evaluate(self, x: FloatArray, out: dict[str, Any], *args: Any,
+                      **kwargs: Any) -> None:
             out["F"] = self._cost_fn(x)[:, None]
 
     return SwarmProblem

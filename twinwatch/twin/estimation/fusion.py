@@ -336,7 +336,8 @@ def _safe_inverse(a: FloatArray) -> FloatArray:
     w, v = np.linalg.eigh(0.5 * (a + a.T))
     big = max(float(np.max(np.abs(w))), 1e-300)
     inv = np.where(w > 1e-12 * big, 1.0 / np.where(w > 0, w, 1.0), 0.0)
-    return (v * inv) @ v.T
+    out: FloatArray = (v * inv) @ v.T
+    return out
 
 
 def _information(cov: FloatArray) -> FloatArray:

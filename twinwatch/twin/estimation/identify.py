@@ -83,7 +83,7 @@ from twinwatch.twin.estimation.fit import (
     residual_variances,
 )
 from twinwatch.twin.estimation.statistics import ModelCheck, OutputCheck, noise_level
-from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+from twinwatch.twin.model import BoolArray, FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
 
@@ -598,6 +598,46 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
     """
     n = len(names)
     names = list(names)
+    null = np.zeros((n, 0)) if null is None else np.asarray(null)[:n]
+    finite = np.isfinite(np.diag(cov)) if n else np.zeros(0, dtype=bool)
+    c = np.where(np.isfinite(cov), cov, 0.0)
+    d = np.diag(c).copy()
+    d[~finite] = np.inf
+    sd = np.sqrt(np.maximum(d, 0.0))
+    undetermined = _null_combinations(names, null)
+    # the determined block: eigen-decomposition of its covariance (the largest variances are
+    # the information matrix's smallest eigenvalues, the same eigenvectors)
+    blk = c[np.ix_(finite, finite)]
+    w, vecs = np.linalg.eigh(blk) if finite.any() else (np.zeros(0), np.zeros((0, 0)))
+    w = np.maximum(w, 1e-300)
+    info = np.zeros((n, n))
+    if finite.any():
+        info[np.ix_(finite, finite)] = vecs @ np.diag(1.0 / w) @ vecs.T
+    # every parameter in an exact null direction has no information of its own (a zero row)
+    eig = np.sort(np.concatenate([np.zeros(n - int(finite.sum())), 1.0 / w]))
+    q = sum(1 for comb in undetermined if math.isinf(comb.std))
+    top = float(eig.max()) if eig.size else 0.0
+    small = float(eig.min()) if eig.size else 0.0
+    fin_names = [nm for nm, f in zip(names, finite, strict=True) if f]
+    weak = _weak_combinations(fin_names, w, vecs, max_rel_std)
+    undetermined += weak
+    undetermined.sort(key=lambda comb: -comb.std)
+    corr = _correlation(c, sd, finite)
+    return Identifiability(
+        names=names, information=info, eigenvalues=eig,
+        rank=n - q,  # the Jacobian's numerical rank over the parameters
+        determined_rank=w.size - len(weak),
+        condition=top / small if small > 0 and q == 0 else math.inf,
+        rel_std={nm: float(s) for nm, s in zip(names, sd, strict=True)},
+        correlation=corr, strong_pairs=_strong_pairs(names, corr, strong),
+        undetermined=undetermined, at_bound=_at_bound(names, values, bounds),
+        max_rel_std=max_rel_std)
+
+
+def _at_bound(names: Sequence[str], values: Mapping[str, float],
+              bounds: Mapping[str, tuple[float, float]]) -> dict[str, str]:
+    """The parameters the search left at a bound (within :data:`AT_BOUND` in ln): name ->
+    ``"lower"`` or ``"upper"``."""
     at_bound = {}
     for name in names:
         lo, hi = bounds[name]
@@ -606,54 +646,57 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
             at_bound[name] = "lower"
         elif abs(math.log(hi / v)) < AT_BOUND:
             at_bound[name] = "upper"
-    null = np.zeros((n, 0)) if null is None else np.asarray(null)[:n]
-    finite = np.isfinite(np.diag(cov)) if n else np.zeros(0, dtype=bool)
-    c = np.where(np.isfinite(cov), cov, 0.0)
-    d = np.diag(c).copy()
-    d[~finite] = np.inf
-    sd = np.sqrt(np.maximum(d, 0.0))
-    undetermined: list[Combination] = []
+    return at_bound
+
+
+def _null_combinations(names: Sequence[str], null: FloatArray) -> list[Combination]:
+    """Each exact null direction (a column of ``null`` (n, q)) as a combination of infinite
+    1-sigma: its largest component +1, components below :data:`NULL_COMPONENT` left out."""
+    out: list[Combination] = []
     for k in range(null.shape[1]):
         vec = null[:, k]
         m = float(np.max(np.abs(vec))) if vec.size else 0.0
         if m <= 0:
             continue
         sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
-        undetermined.append(Combination(
+        out.append(Combination(
             {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)
              if abs(x) > NULL_COMPONENT}, math.inf))
-    # the determined block: eigen-decomposition of its covariance (the largest variances are
-    # the information matrix's smallest eigenvalues, the same eigenvectors)
-    blk = c[np.ix_(finite, finite)]
-    w, vecs = np.linalg.eigh(blk) if finite.any() else (np.zeros(0), np.zeros((0, 0)))
-    w = np.maximum(w, 1e-300)
-    fin_names = [nm for nm, f in zip(names, finite, strict=True) if f]
-    info = np.zeros((n, n))
-    if finite.any():
-        info[np.ix_(finite, finite)] = vecs @ np.diag(1.0 / w) @ vecs.T
-    # every parameter in an exact null direction has no information of its own (a zero row)
-    eig = np.sort(np.concatenate([np.zeros(n - int(finite.sum())), 1.0 / w]))
-    q = sum(1 for comb in undetermined if math.isinf(comb.std))
-    rank = n - q  # the Jacobian's numerical rank over the parameters
-    top = float(eig.max()) if eig.size else 0.0
-    small = float(eig.min()) if eig.size else 0.0
-    condition = top / small if small > 0 and q == 0 else math.inf
-    determined_rank = 0
+    return out
+
+
+def _weak_combinations(names: Sequence[str], w: FloatArray, vecs: FloatArray,
+                       max_rel_std: float) -> list[Combination]:
+    """The eigen-directions of the determined block's covariance (variances ``w`` (k,),
+    vectors ``vecs`` (k, k) over ``names``) whose 1-sigma, the largest component +1, exceeds
+    ``max_rel_std``, in eigenvalue order; the others are determined."""
+    out: list[Combination] = []
     for k in range(w.size):
         vec = vecs[:, k]
         m = float(np.max(np.abs(vec)))
         std = math.sqrt(w[k]) / m if m > 0 else math.inf
         if std <= max_rel_std:
-            determined_rank += 1
             continue
         sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
-        undetermined.append(Combination(
-            {nm: float(sign * x / m) for nm, x in zip(fin_names, vec, strict=True)}, std))
-    undetermined.sort(key=lambda comb: -comb.std)
+        out.append(Combination(
+            {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)}, std))
+    return out
+
+
+def _correlation(c: FloatArray, sd: FloatArray, finite: BoolArray) -> FloatArray:
+    """The correlation matrix of the covariance ``c`` (n, n) with standard deviations ``sd``
+    (n,); ``nan`` rows and columns for the parameters not ``finite`` (not determined)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        corr = c / np.outer(np.where(sd > 0, sd, 1.0), np.where(sd > 0, sd, 1.0))
+        corr: FloatArray = c / np.outer(np.where(sd > 0, sd, 1.0), np.where(sd > 0, sd, 1.0))
     corr[~finite, :] = np.nan
     corr[:, ~finite] = np.nan
+    return corr
+
+
+def _strong_pairs(names: Sequence[str], corr: FloatArray,
+                  strong: float) -> list[tuple[str, str, float]]:
+    """The pairs whose |correlation| is ``strong`` or more, strongest first."""
+    n = len(names)
     pairs = []
     for i in range(n):
         for j in range(i + 1, n):
@@ -661,12 +704,7 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
             if math.isfinite(rho) and abs(rho) >= strong:
                 pairs.append((names[i], names[j], rho))
     pairs.sort(key=lambda p: -abs(p[2]))
-    return Identifiability(
-        names=names, information=info, eigenvalues=eig, rank=rank,
-        determined_rank=determined_rank, condition=condition,
-        rel_std={nm: float(s) for nm, s in zip(names, sd, strict=True)},
-        correlation=corr, strong_pairs=pairs, undetermined=undetermined,
-        at_bound=at_bound, max_rel_std=max_rel_std)
+    return pairs
 
 
 #: Singular values of the column-scaled Jacobian below this fraction of the largest are
@@ -775,7 +813,8 @@ class _Problem:
         return cov[:k, :k], null[:k]
 
     def theta(self, v: FloatArray) -> FloatArray:
-        return self.pmap.full(v[None, :self.n_est], self.base)[0]
+        out: FloatArray = self.pmap.full(v[None, :self.n_est], self.base)[0]
+        return out
 
 
 def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyConfig,
@@ -786,6 +825,11 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     """Identify the estimated parameters on ``train``, say which the recording determines,
     re-fit with the others held at stated values, and score both fits on ``validation``
     (see the module docstring).
+
+    The steps: the stretches checked (:func:`_check_stretches`), the multi-start search
+    (:func:`_search`), the full fit scored and analysed (:func:`_full_fit`), what the
+    recording does not determine held and the rest re-fitted (:func:`_hold_and_refit`), the
+    result scored.
 
     Args:
         model: the twin (its structure and options as configured).
@@ -810,6 +854,66 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         ValueError: a stretch lacks a channel, holds non-finite values or is too short.
     """
     t_start = time.perf_counter()
+    _check_stretches(model, train, validation)
+    # a stated value of a parameter that is not identified is its value in the fit
+    estimated = set(config.estimation(estimation).resolved(model).estimate or [])
+    nominal = {**(nominal or {}), **{k: f.value for k, f in config.fixed.items()
+                                     if k not in estimated}}
+    est = Estimator(model, config.estimation(estimation), nominal)
+    cfg = est.config
+    fit = WindowFit(model, train, config.weights)
+    prob = _Problem(model, est, fit)
+    names_est = prob.names
+    best, reached = _search(prob, fit, config, model.parameter_names, start, structure)
+    bounds = {n: (float(lo), float(hi)) for n, lo, hi in
+              zip(names_est, est.lower, est.upper, strict=True)}
+    full, analysis = _full_fit(model, est, prob, fit, config, (train, validation), best,
+                               bounds)
+    holds = _Holds(names_est, bounds, config, dict(nominal), full.values, best[1].copy(),
+                   list(range(prob.n_est)))
+    r, jac = _hold_and_refit(prob, holds, analysis, best[2], best[3], model.parameter_names)
+    v, free = holds.v, holds.free
+    theta = prob.theta(v)
+    values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
+    sub = [names_est[i] for i in free]
+    cov, null = prob.covariance(r, jac, len(free), v, holds.rel_sd())
+    final = analyse(sub, cov, values, bounds, config.max_rel_std, config.correlation, null)
+    determined = [n for n in sub if final.rel_std[n] <= config.max_rel_std]
+    undetermined = {n: _unresolved(n, final) for n in sub if n not in determined}
+    init = prob.local.initial(v)
+    explained = _explained(r, jac, fit.n_out, cfg.model_error)
+    return Identification(
+        values=values,
+        rel_std={n: final.rel_std[n] for n in sub},
+        bounds=bounds,
+        estimated=names_est,
+        tied=dict(cfg.tie or {}),
+        train=_score(model, est, train, theta, config.weights, init, explained),
+        validation=_score(model, est, validation, theta, config.weights, None, explained),
+        elapsed_s=time.perf_counter() - t_start,
+        evaluations=fit.evaluations,
+        determined=determined,
+        held=holds.held,
+        undetermined=undetermined,
+        full=full,
+        identifiability=analysis,
+        max_rel_std=config.max_rel_std,
+        structure=structure,
+        options=dict(options or {}),
+        nrmse=float(np.linalg.norm(r)),
+        starts=reached,
+        units={p.name: p.unit for p in model.parameters},
+        output_units={o.name: o.unit for o in model.outputs},
+    )
+
+
+def _check_stretches(model: TwinModel, train: WindowData, validation: WindowData) -> None:
+    """:func:`identify`'s first step: both stretches long enough (10 samples at least), with
+    every channel the model needs, finite.
+
+    Raises:
+        ValueError: which stretch, and what it lacks.
+    """
     for w, what in ((train, "training"), (validation, "validation")):
         if w.n < 10:
             raise ValueError(f"the {what} range holds {w.n} samples: too few to identify "
@@ -819,15 +923,23 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
                 raise ValueError(f"the recording has no channel {ch!r} ({what} range)")
             if not np.all(np.isfinite(w.channels[ch])):
                 raise ValueError(f"channel {ch!r} holds NaN or inf in the {what} range")
-    # a stated value of a parameter that is not identified is its value in the fit
-    estimated = set(config.estimation(estimation).resolved(model).estimate or [])
-    nominal = {**(nominal or {}), **{k: f.value for k, f in config.fixed.items()
-                                     if k not in estimated}}
-    est = Estimator(model, config.estimation(estimation), nominal)
-    cfg = est.config
-    fit = WindowFit(model, train, config.weights)
-    prob = _Problem(model, est, fit)
-    names_est, n_est = prob.names, prob.n_est
+
+
+#: The best training fit of :func:`_search`: (sum of squared residuals, search vector (n_est +
+#: n_init,), residuals (M,), Jacobian (M, n_est + n_init)).
+_Best = tuple[float, FloatArray, FloatArray, FloatArray]
+
+
+def _search(prob: _Problem, fit: WindowFit, config: IdentifyConfig,
+            parameter_names: Sequence[str], start: Mapping[str, float] | None,
+            structure: str) -> tuple[_Best, list[float]]:
+    """:func:`identify`'s search over every estimated parameter: ``config.starts`` swarms of
+    their own (the configured values, and ``start`` when given, particles of each), each
+    followed by the local polish; the time budget shared out over the starts left.
+
+    Returns:
+        The best polished fit of all starts, and each start's polished nRMSE.
+    """
     rng = np.random.default_rng(config.seed)
 
     def cost(q: FloatArray) -> FloatArray:
@@ -838,17 +950,17 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     if start:
         alt = prob.base.copy()
         for name, value in start.items():
-            if name in model.parameter_names and value > 0:
-                alt[model.parameter_names.index(name)] = value
+            if name in parameter_names and value > 0:
+                alt[list(parameter_names).index(name)] = value
         seeds.append(np.clip(prob.pmap.ln(alt), prob.xl, prob.xu))
     seed_rows = np.array(seeds)
     seed_cost = fit.cost(prob.pmap.full(seed_rows, prob.base))
     best_seed = seed_rows[int(np.argmin(seed_cost))]
     cost0 = float(np.min(seed_cost))
-    best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
+    best: _Best | None = None
     reached: list[float] = []
     t_global = time.perf_counter()
-    every = list(range(n_est))
+    every = list(range(prob.n_est))
     for k in range(config.starts):
         # Each start: a swarm of its own (the configured values one of its particles), then
         # the local polish; the best training fit of all starts is kept.
@@ -866,144 +978,173 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         reached.append(math.sqrt(sse))
         if best is None or sse < best[0]:
             best = (sse, v, r, jac)
-    assert best is not None
-    _, v_full, r_full, jac_full = best
+    assert best is not None  # IdentifyConfig.starts >= 1
+    return best, reached
+
+
+def _full_fit(model: TwinModel, est: Estimator, prob: _Problem, fit: WindowFit,
+              config: IdentifyConfig, stretches: tuple[WindowData, WindowData], best: _Best,
+              bounds: Mapping[str, tuple[float, float]]) -> tuple[FullFit, Identifiability]:
+    """:func:`identify`'s fit of every estimated parameter (``best``, from :func:`_search`)
+    scored on both ``stretches`` (training, validation), and what the recording determines
+    of it (:func:`analyse`)."""
+    train, validation = stretches
+    sse, v_full, r_full, jac_full = best
+    n_est = prob.n_est
     theta_full = prob.theta(v_full)
     values_full = dict(zip(model.parameter_names, (float(x) for x in theta_full), strict=True))
     init_full = prob.local.initial(v_full)
     cov_full, null_full = prob.covariance(r_full, jac_full, n_est)
-    bounds = {n: (float(lo), float(hi)) for n, lo, hi in
-              zip(names_est, est.lower, est.upper, strict=True)}
-    analysis = analyse(names_est, cov_full, values_full, bounds, config.max_rel_std,
+    analysis = analyse(prob.names, cov_full, values_full, bounds, config.max_rel_std,
                        config.correlation, null_full)
-    explained = _explained(r_full, jac_full, fit.n_out, cfg.model_error)
+    explained = _explained(r_full, jac_full, fit.n_out, est.config.model_error)
     train_full = _score(model, est, train, theta_full, config.weights, init_full, explained)
     full = FullFit(
         values=values_full, rel_std=dict(analysis.rel_std), train=train_full,
         validation=_score(model, est, validation, theta_full, config.weights, None,
                           explained),
-        nrmse=math.sqrt(best[0]),
+        nrmse=math.sqrt(sse),
         criteria=information_criteria(train_full.measured, train_full.simulated,
                                       n_est + prob.local.n_init))
+    return full, analysis
 
-    # -- hold what the recording does not determine, re-fit the rest -------------------------
-    held: dict[str, HeldParameter] = {}
-    v = v_full.copy()
-    r, jac = r_full, jac_full
-    free = list(every)
-    configured = dict(nominal or {})
 
-    def stated(name: str) -> tuple[float, str, str] | None:
-        if name in config.fixed:
-            f = config.fixed[name]
+@dataclass
+class _Holds:
+    """The estimated parameters :func:`identify` holds, and the search vector they are held
+    in (:func:`_hold_and_refit`).
+
+    Attributes:
+        names: the estimated parameters, in the search vector's order.
+        bounds: each one's search range [SI].
+        config: the ``[identify]`` table (its ``fixed`` values, stated first).
+        configured: the configured values [SI] (stated when ``[identify.fixed]`` does not).
+        full_values: the full fit's values [SI] (reported beside a held one).
+        v: the search vector (ln-parameters, then the initial state); a held parameter's
+            entry is its held value's logarithm.
+        free: the positions in ``names`` not held, in order.
+        held: the held parameters, in the order they were held.
+    """
+
+    names: list[str]
+    bounds: Mapping[str, tuple[float, float]]
+    config: IdentifyConfig
+    configured: dict[str, float]
+    full_values: Mapping[str, float]
+    v: FloatArray
+    free: list[int]
+    held: dict[str, HeldParameter] = field(default_factory=dict)
+
+    def stated(self, name: str) -> tuple[float, str, str] | None:
+        """The value a person stated for ``name`` [SI], where, and why; None when nobody
+        did."""
+        if name in self.config.fixed:
+            f = self.config.fixed[name]
             return f.value, "[identify.fixed]", f.reason
-        if name in configured:
-            return float(configured[name]), "[machine.parameters]", "the configured value"
+        if name in self.configured:
+            return float(self.configured[name]), "[machine.parameters]", "the configured value"
         return None
 
-    def hold(i: int, why: str, at: float | None = None) -> None:
-        name = names_est[i]
-        lo, hi = bounds[name]
+    def hold(self, i: int, why: str, at: float | None = None) -> None:
+        """Hold the ``i``-th estimated parameter at ``at`` (where the search left it, at a
+        bound), else at its stated value (clipped to its bounds)."""
+        name = self.names[i]
+        lo, hi = self.bounds[name]
         sd = 0.0
         if at is not None:
             value, source, note = at, "bound", "where the search left it"
         else:
-            found = stated(name)
-            assert found is not None
+            found = self.stated(name)
+            assert found is not None  # only a parameter with a stated value is held there
             value, source, note = found
             if source == "[identify.fixed]":
-                sd = config.fixed[name].rel_std
-        held[name] = HeldParameter(value=float(min(max(value, lo), hi)), source=source,
-                                   stated=note, why=why, full_value=values_full[name],
-                                   rel_std=sd)
-        v[i] = math.log(held[name].value)
-        free.remove(i)
+                sd = self.config.fixed[name].rel_std
+        self.held[name] = HeldParameter(value=float(min(max(value, lo), hi)), source=source,
+                                        stated=note, why=why, full_value=self.full_values[name],
+                                        rel_std=sd)
+        self.v[i] = math.log(self.held[name].value)
+        self.free.remove(i)
 
-    def held_sd() -> dict[int, float]:
-        return {names_est.index(n): h.rel_std for n, h in held.items() if h.rel_std > 0}
+    def rel_sd(self) -> dict[int, float]:
+        """Position -> relative standard error of each held value that states one."""
+        return {self.names.index(n): h.rel_std for n, h in self.held.items() if h.rel_std > 0}
 
+
+def _hold_and_refit(prob: _Problem, holds: _Holds, analysis: Identifiability, r: FloatArray,
+                    jac: FloatArray, parameter_names: Sequence[str]
+                    ) -> tuple[FloatArray, FloatArray]:
+    """:func:`identify`'s hold-and-re-fit: the parameters the full fit left at a bound held
+    there; then, until every free one is determined or none can be held, the weakest
+    combination's main parameter with a stated value held at it (:func:`_weakest_stated`) and
+    the rest re-fitted (a re-fit that pushes one to a bound holds it there too).
+
+    Args:
+        prob: the training problem.
+        holds: the full fit's search vector, nothing held; updated in place.
+        analysis: the full fit's identifiability.
+        r, jac: the full fit's residuals and Jacobian.
+        parameter_names: the model's parameters, in its order.
+
+    Returns:
+        The last re-fit's residuals and Jacobian (the full fit's when nothing was held).
+    """
+    config, names_est, bounds = holds.config, holds.names, holds.bounds
     for name, side in analysis.at_bound.items():
         i = names_est.index(name)
-        hold(i, f"at its {side} bound {bounds[name][0 if side == 'lower' else 1]:.4g}: the "
-             "data push it beyond the range searched (widen [identify] bounds, or the "
-             "structure does not describe it)", at=values_full[name])
-    changed = bool(held)
-    while free:
+        holds.hold(i, f"at its {side} bound {bounds[name][0 if side == 'lower' else 1]:.4g}: "
+                   "the data push it beyond the range searched (widen [identify] bounds, or "
+                   "the structure does not describe it)", at=holds.full_values[name])
+    changed = bool(holds.held)
+    while holds.free:
         if changed:
-            v, r, jac = prob.polish(v, free)
+            holds.v, r, jac = prob.polish(holds.v, holds.free)
             changed = False
-        k = len(free)
-        cov, null = prob.covariance(r, jac, k, v, held_sd())
-        sub = [names_est[i] for i in free]
-        theta = prob.theta(v)
-        vals = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
+        cov, null = prob.covariance(r, jac, len(holds.free), holds.v, holds.rel_sd())
+        sub = [names_est[i] for i in holds.free]
+        theta = prob.theta(holds.v)
+        vals = dict(zip(parameter_names, (float(x) for x in theta), strict=True))
         a = analyse(sub, cov, vals, bounds, config.max_rel_std, config.correlation, null)
         newly = [n for n in a.at_bound if n not in analysis.at_bound]
         if newly:
             for name in newly:
-                hold(names_est.index(name), f"the re-fit with the held values pushed it to "
-                     f"its {a.at_bound[name]} bound", at=vals[name])
+                holds.hold(names_est.index(name), f"the re-fit with the held values pushed "
+                           f"it to its {a.at_bound[name]} bound", at=vals[name])
             changed = True
             continue
         if all(a.rel_std[n] <= config.max_rel_std for n in sub):
             break
-        # the weakest combination that a stated value can resolve: hold its main parameter
-        # with a stated value (the largest share, then the lowest priority); a combination
-        # of parameters nobody stated stays free, and undetermined
-        choice: tuple[Combination, str] | None = None
-        for comb in a.undetermined:
-            top = max(abs(w) for w in comb.weights.values())
-            cands = [n for n, w in comb.weights.items()
-                     if abs(w) >= HOLD_SHARE * top and stated(n) is not None]
-            if cands:
-                weights = comb.weights
-                choice = comb, min(cands, key=lambda n: (
-                    0 if n in config.fixed else 1, -abs(weights[n]), -names_est.index(n)))
-                break
+        choice = _weakest_stated(a, holds)
         if choice is None:
             break
-        comb, name = choice
-        others = [n for n in comb.weights if n != name and abs(comb.weights[n]) >= LABEL_CUT]
-        if others:
-            why = f"in {comb.label()} (+-{_pct(comb.std)})"
-        else:
-            why = f"the outputs barely respond to it (+-{_pct(comb.std)} alone)"
-        hold(names_est.index(name), why)
+        name, why = choice
+        holds.hold(names_est.index(name), why)
         changed = True
     if changed:
-        v, r, jac = prob.polish(v, free)
-    theta = prob.theta(v)
-    values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
-    sub = [names_est[i] for i in free]
-    cov, null = prob.covariance(r, jac, len(free), v, held_sd())
-    final = analyse(sub, cov, values, bounds, config.max_rel_std, config.correlation, null)
-    determined = [n for n in sub if final.rel_std[n] <= config.max_rel_std]
-    undetermined = {n: _unresolved(n, final) for n in sub if n not in determined}
-    init = prob.local.initial(v)
-    explained = _explained(r, jac, fit.n_out, cfg.model_error)
-    return Identification(
-        values=values,
-        rel_std={n: final.rel_std[n] for n in sub},
-        bounds=bounds,
-        estimated=names_est,
-        tied=dict(cfg.tie or {}),
-        train=_score(model, est, train, theta, config.weights, init, explained),
-        validation=_score(model, est, validation, theta, config.weights, None, explained),
-        elapsed_s=time.perf_counter() - t_start,
-        evaluations=fit.evaluations,
-        determined=determined,
-        held=held,
-        undetermined=undetermined,
-        full=full,
-        identifiability=analysis,
-        max_rel_std=config.max_rel_std,
-        structure=structure,
-        options=dict(options or {}),
-        nrmse=float(np.linalg.norm(r)),
-        starts=reached,
-        units={p.name: p.unit for p in model.parameters},
-        output_units={o.name: o.unit for o in model.outputs},
-    )
+        holds.v, r, jac = prob.polish(holds.v, holds.free)
+    return r, jac
+
+
+def _weakest_stated(a: Identifiability, holds: _Holds) -> tuple[str, str] | None:
+    """The parameter to hold next and why: the weakest combination that a stated value can
+    resolve, its main parameter with a stated value (the largest share, then
+    ``[identify.fixed]`` before the configured values, then the lowest priority); None when
+    every undetermined combination is of parameters nobody stated (they stay free, and
+    undetermined)."""
+    names_est = holds.names
+    for comb in a.undetermined:
+        top = max(abs(w) for w in comb.weights.values())
+        cands = [n for n, w in comb.weights.items()
+                 if abs(w) >= HOLD_SHARE * top and holds.stated(n) is not None]
+        if not cands:
+            continue
+        weights = comb.weights
+        name = min(cands, key=lambda n: (
+            0 if n in holds.config.fixed else 1, -abs(weights[n]), -names_est.index(n)))
+        others = [n for n in comb.weights if n != name and abs(comb.weights[n]) >= LABEL_CUT]
+        if others:
+            return name, f"in {comb.label()} (+-{_pct(comb.std)})"
+        return name, f"the outputs barely respond to it (+-{_pct(comb.std)} alone)"
+    return None
 
 
 def _unresolved(name: str, analysis: Identifiability) -> str:

@@ -123,7 +123,8 @@ class WindowProblem:
 
     def trusted_ln(self, positions: list[int] | np.ndarray) -> FloatArray:
         """The trusted ln-values of the estimated parameters at ``positions``."""
-        return np.log(self.base[self.pmap.idx[positions]])
+        out: FloatArray = np.log(self.base[self.pmap.idx[positions]])
+        return out
 
     def twin_at(self, v: FloatArray) -> TwinAt:
         """Simulate the twin at search vector ``v``; the window's fit keeps its initial-state

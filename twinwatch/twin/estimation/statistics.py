@@ -48,7 +48,8 @@ def noise_level(residual: FloatArray) -> FloatArray:
         Shape (n_out,), in the residual's unit.
     """
     d = np.diff(np.asarray(residual, dtype=float), axis=0)
-    return np.sqrt(np.mean(d * d, axis=0) / 2.0)
+    out: FloatArray = np.sqrt(np.mean(d * d, axis=0) / 2.0)
+    return out
 
 
 def ar1(r: FloatArray, n_out: int) -> float:

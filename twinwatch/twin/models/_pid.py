@@ -8,9 +8,12 @@ from __future__ import annotations
 
 from numba import njit
 
+from twinwatch.twin.model import FloatArray
+
 
 @njit(cache=True, nogil=True)
-def pid_update(loop, i_s, f_s, r, y, period, hi):  # pragma: no cover - compiled
+def pid_update(loop: FloatArray, i_s: float, f_s: float, r: float, y: float, period: float,
+               hi: float) -> tuple[float, float, float]:  # pragma: no cover - compiled
     """One update of a drive loop (:mod:`twinwatch.io.drive`): P/PI/PID with the derivative
     filter N, the output clamped to [loop[4], hi] with the loop's anti-windup, the integrator
     and the filter discretised by their methods (MATLAB's Discrete PID Controller).

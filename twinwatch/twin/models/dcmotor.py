@@ -80,8 +80,10 @@ from numba import njit
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.twin.model import (
     AttachPoint,
+    BoolArray,
     EstimationDefaults,
     FloatArray,
+    IntArray,
     OutputSpec,
     ParameterSpec,
     TwinModel,
@@ -122,10 +124,15 @@ _TC = ParameterSpec("Tc", "N m", 1e-3, "Coulomb (dry) friction torque",
 
 
 @njit(cache=True, nogil=True)
-def _drive_kernel(phis, gams, seg_len, seg_type, ev_sample, ev_sub, ev_tick_s, ev_tick_c,
-                  x0, ctrl0, hold0, mode, sp, va_meas, iref_meas, tl, f_w, f_i, speed, current,
-                  has_current, t_s, t_c, explicit, prm, dt, stage, n_sub, lin_hold, idx,
-                  ts, y):  # pragma: no cover - compiled
+def _drive_kernel(phis: FloatArray, gams: FloatArray, seg_len: IntArray, seg_type: IntArray,
+                  ev_sample: IntArray, ev_sub: IntArray, ev_tick_s: BoolArray,
+                  ev_tick_c: BoolArray, x0: FloatArray, ctrl0: FloatArray, hold0: FloatArray,
+                  mode: int, sp: FloatArray, va_meas: FloatArray, iref_meas: FloatArray,
+                  tl: FloatArray, f_w: FloatArray, f_i: FloatArray, speed: FloatArray,
+                  current: FloatArray, has_current: bool, t_s: float, t_c: float,
+                  explicit: bool, prm: FloatArray, dt: float, stage: int, n_sub: int,
+                  lin_hold: bool, idx: IntArray, ts: float,
+                  y: FloatArray) -> None:  # pragma: no cover - compiled
     """Simulate a swarm through the window's events (samples and drive updates).
 
     Between events the inputs are constant: the motor advances by the composed sub-step map of
@@ -553,8 +560,9 @@ class DCMotorTwin(TwinModel):
         for name in ("d(omega)/dt", "d(ia)/dt"):
             out.append(term_array((terms or {}).get(name), p, n, name))
         rows = max(a.shape[0] for a in out)
-        return tuple(np.ascontiguousarray(np.broadcast_to(a, (rows, n))) if a.shape[0] != rows
-                     else a for a in out)  # type: ignore[return-value]
+        f_w, f_i = (np.ascontiguousarray(np.broadcast_to(a, (rows, n))) if a.shape[0] != rows
+                    else a for a in out)
+        return f_w, f_i
 
     def _initial_state(self, window: WindowData, k: int, pos: Mapping[str, int],
                        off: FloatArray) -> FloatArray:

@@ -126,6 +126,7 @@ from twinwatch.twin.model import (
     AttachPoint,
     EstimationDefaults,
     FloatArray,
+    IntArray,
     OutputSpec,
     ParameterSpec,
     TwinModel,
@@ -164,7 +165,9 @@ SPLIT_SAMPLES = 20
 SPLIT_ITERATIONS = 3
 
 @njit(cache=True, nogil=True, inline="always")
-def _piston_step(x, p, a, fl, gain, fx, ks, d, qp, a_max, inv_ap, fr, dt):
+def _piston_step(x: float, p: float, a: float, fl: float, gain: float, fx: float, ks: float,
+                 d: float, qp: float, a_max: float, inv_ap: float, fr: float,
+                 dt: float) -> tuple[float, float]:
     # pragma: no cover - compiled
     """One sub-step of the piston, paper Eq. 14-16: the valve area ``a`` [m^2] clipped to
     [0, a_max], the valve flow from the previous pressure, the piston speed (plus the additive
@@ -185,7 +188,9 @@ def _piston_step(x, p, a, fl, gain, fx, ks, d, qp, a_max, inv_ap, fr, dt):
 
 
 @njit(cache=True, nogil=True)
-def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
+def _simulate_kernel(theta: FloatArray, a_in: FloatArray, f_in: FloatArray, x0: FloatArray,
+                     p0: FloatArray, n_sub: int, dt: float, linear: bool, u_p: FloatArray,
+                     f_x: FloatArray, y: FloatArray) -> None:
     # pragma: no cover - compiled
     """Sub-step Eq. 14-16 for every particle; fills ``y`` (P, N, 2) with x and p.
 
@@ -235,7 +240,8 @@ def _simulate_kernel(theta, a_in, f_in, x0, p0, n_sub, dt, linear, u_p, f_x, y):
 
 
 @njit(cache=True, nogil=True)
-def _recover_integrator(loop, f_s, r, y, area, period, ticked):  # pragma: no cover
+def _recover_integrator(loop: FloatArray, f_s: float, r: float, y: float, area: float,
+                        period: float, ticked: bool) -> float:  # pragma: no cover
     """The integrator (before the update when ``ticked``) that makes an update on (r, y) with
     the derivative filter state ``f_s`` give ``area``; without an update on the sample, the
     integrator after an update taken to have seen this error."""
@@ -243,15 +249,18 @@ def _recover_integrator(loop, f_s, r, y, area, period, ticked):  # pragma: no co
     ci, cd = loop[10], loop[11]
     e = sgn * (r - y)
     d = nf * (kd * e - f_s) / (1.0 + cd * nf * period) if kd != 0.0 else 0.0
-    i_s = area - kp * e - d - kff * r - ci * ki * period * e
+    i_s: float = area - kp * e - d - kff * r - ci * ki * period * e
     if not ticked:
         i_s += ki * period * e
     return i_s
 
 
 @njit(cache=True, nogil=True)
-def _interval(x, p, i_s, f_s, area, limited, j, t_off, m, r_t, loop, period, hi, n_sub,
-              linear, l0, l1, gain, fx, prm, dt):  # pragma: no cover - compiled
+def _interval(x: float, p: float, i_s: float, f_s: float, area: float, limited: bool, j: int,
+              t_off: int, m: int, r_t: FloatArray, loop: FloatArray, period: float, hi: float,
+              n_sub: int, linear: bool, l0: float, l1: float, gain: float, fx: float,
+              prm: FloatArray, dt: float
+              ) -> tuple[float, float, float, float, float]:  # pragma: no cover - compiled
     """Sub-steps of one sample from the sub-step ``j`` (the update on the sample itself is
     the caller's): the controller updates when due (its output applied unless ``limited``),
     the piston Eq. 14-16. ``prm`` = (k_spring, D, q_pump, A_max, 1/A_piston, F_resist).
@@ -270,8 +279,10 @@ def _interval(x, p, i_s, f_s, area, limited, j, t_off, m, r_t, loop, period, hi,
 
 
 @njit(cache=True, nogil=True)
-def _ahead(x, p, i_s, f_s, area, k, count, t_off, m, r_t, loop, period, hi, n_sub, linear,
-           f_in, u_p, f_x, prm, dt, out):  # pragma: no cover - compiled
+def _ahead(x: float, p: float, i_s: float, f_s: float, area: float, k: int, count: int,
+           t_off: int, m: int, r_t: FloatArray, loop: FloatArray, period: float, hi: float,
+           n_sub: int, linear: bool, f_in: FloatArray, u_p: FloatArray, f_x: FloatArray,
+           prm: FloatArray, dt: float, out: FloatArray) -> None:  # pragma: no cover - compiled
     """The closed loop from sample ``k`` (controller recovered, before the update on the
     sample) over ``count`` samples; ``out[i]``: the area at sample k + 1 + i."""
     j = k * n_sub
@@ -289,9 +300,12 @@ def _ahead(x, p, i_s, f_s, area, k, count, t_off, m, r_t, loop, period, hi, n_su
 
 
 @njit(cache=True, nogil=True)
-def _closed_kernel(theta, a_in, x_in, p_in, f_in, r_s, r_t, t_off, m, stretch, x0, n_sub, dt,
-                   linear, loop, hi_is_amax, tol, n_ahead, u_p, f_x,
-                   y):  # pragma: no cover - compiled
+def _closed_kernel(theta: FloatArray, a_in: FloatArray, x_in: FloatArray, p_in: FloatArray,
+                   f_in: FloatArray, r_s: FloatArray, r_t: FloatArray, t_off: int, m: int,
+                   stretch: IntArray, x0: FloatArray, n_sub: int, dt: float, linear: bool,
+                   loop: FloatArray, hi_is_amax: bool, tol: float, n_ahead: int,
+                   u_p: FloatArray, f_x: FloatArray,
+                   y: FloatArray) -> None:  # pragma: no cover - compiled
     """The closed loop (valve controller inside the twin) for every particle; fills ``y``
     (P, N, 3) with x, p and the valve area.
 

@@ -137,7 +137,7 @@ _WARM = (
 
 
 @njit(cache=True, nogil=True)
-def _affine_step(a, b, h):  # pragma: no cover - compiled
+def _affine_step(a: float, b: float, h: float) -> tuple[float, float]:  # pragma: no cover
     """exp(-b h) and (1 - exp(-b h))/b of domega/dt = a - b*omega over a step h."""
     if b * h > 1e-9:
         e = math.exp(-b * h)
@@ -146,8 +146,11 @@ def _affine_step(a, b, h):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _simulate_kernel(prm, duty, phase, t, w0, f_w, u_i, fb, fa, y_init, n_sub, ts, vs, tpwm,
-                     t_edge, sampled, mean_speed, warm_mode, t_warm, s_min, y):
+def _simulate_kernel(prm: FloatArray, duty: FloatArray, phase: FloatArray, t: FloatArray,
+                     w0: FloatArray, f_w: FloatArray, u_i: FloatArray, fb: FloatArray,
+                     fa: FloatArray, y_init: FloatArray, n_sub: int, ts: float, vs: float,
+                     tpwm: float, t_edge: float, sampled: bool, mean_speed: bool,
+                     warm_mode: int, t_warm: float, s_min: float, y: FloatArray) -> None:
     # pragma: no cover - compiled
     """Simulate every particle; fills ``y`` (P, N, 2) with ia (filtered sample) and omega.
 
@@ -331,6 +334,33 @@ class PWMDCMotorTwin(TwinModel):
     _fa: FloatArray = field(init=False, repr=False, default_factory=lambda: np.ones(1))
 
     def __post_init__(self) -> None:
+        """Check the options (:meth:`_check_options`, :meth:`_check_acquisition`), normalise
+        the current filter (:meth:`_set_current_filter`) and lay out the parameters, inputs,
+        outputs and attach points the options give.
+
+        Raises:
+            ValueError: an option out of its range, naming it.
+        """
+        self._check_options()
+        self._check_acquisition()
+        self._set_current_filter()
+        extra = [_A_ADC] if self.adc_edge_window > 0 else []
+        extra += {"none": [], "exp": list(_WARM[:2]), "exp_linear": list(_WARM)}[self.warmup]
+        self.parameters = (*PWM_DC_MOTOR_PARAMETERS, *extra)
+        self.inputs = ("u",)
+        self.outputs = (OutputSpec("ia", "A", self.current_scale),
+                        OutputSpec("omega", "rad/s", self.speed_scale))
+        self.exogenous = ("u",)
+        self.initial_states = ("omega",)
+        self.attach_points = (
+            AttachPoint("d(omega)/dt", "additive", "rad/s^2", "shaft speed",
+                        scale=self.omega_dot_scale),
+            AttachPoint("ia", "multiplicative", "1", "current measurement"),
+        )
+
+    def _check_options(self) -> None:
+        """The named options among their choices, the scales and rates positive numbers,
+        ``pwm_counts`` an integer >= 2 (ValueError otherwise)."""
         for key, value, allowed in (
                 ("duty", self.duty, ("motoshield", "square", "linear")),
                 ("speed_measurement", self.speed_measurement, ("average", "instant")),
@@ -344,6 +374,11 @@ class PWMDCMotorTwin(TwinModel):
                 raise ValueError(f"{key} must be a number > 0, not {v!r}")
         if not (isinstance(self.pwm_counts, int) and self.pwm_counts >= 2):
             raise ValueError(f"pwm_counts must be an integer >= 2, not {self.pwm_counts!r}")
+
+    def _check_acquisition(self) -> None:
+        """The current's sampling (``adc_edge_window`` >= 0 [s] and only with a sampled
+        current, ``adc_phase`` in [0, 1), a finite ``adc_phase_step``), ``warmup_floor`` in
+        (0, 1], both filter coefficient lists or neither (ValueError otherwise)."""
         if not (self.adc_edge_window >= 0 and math.isfinite(self.adc_edge_window)):
             raise ValueError("adc_edge_window must be >= 0 [s]")
         if self.adc_edge_window > 0 and self.adc_phase is None:
@@ -358,34 +393,27 @@ class PWMDCMotorTwin(TwinModel):
             raise ValueError("warmup_floor must be in (0, 1]")
         if (self.current_filter_b is None) != (self.current_filter_a is None):
             raise ValueError("current_filter_b and current_filter_a go together")
-        if self.current_filter_b is not None and self.current_filter_a is not None:
-            b = np.asarray(self.current_filter_b, dtype=float)
-            a = np.asarray(self.current_filter_a, dtype=float)
-            if b.ndim != 1 or a.ndim != 1 or a.size < 1 or b.size < 1 or \
-                    not np.all(np.isfinite(a)) or not np.all(np.isfinite(b)) or a[0] == 0:
-                raise ValueError("current_filter_b, current_filter_a: finite coefficient "
-                                 "lists with a[0] != 0")
-            if np.any(np.abs(np.roots(a)) >= 1.0) if a.size > 1 else False:
-                raise ValueError("current_filter_a: the filter is unstable (a pole on or "
-                                 "outside the unit circle)")
-            m = max(a.size, b.size)
-            self._fb = np.zeros(m)
-            self._fa = np.zeros(m)
-            self._fb[:b.size] = b / a[0]
-            self._fa[:a.size] = a / a[0]
-        extra = [_A_ADC] if self.adc_edge_window > 0 else []
-        extra += {"none": [], "exp": list(_WARM[:2]), "exp_linear": list(_WARM)}[self.warmup]
-        self.parameters = (*PWM_DC_MOTOR_PARAMETERS, *extra)
-        self.inputs = ("u",)
-        self.outputs = (OutputSpec("ia", "A", self.current_scale),
-                        OutputSpec("omega", "rad/s", self.speed_scale))
-        self.exogenous = ("u",)
-        self.initial_states = ("omega",)
-        self.attach_points = (
-            AttachPoint("d(omega)/dt", "additive", "rad/s^2", "shaft speed",
-                        scale=self.omega_dot_scale),
-            AttachPoint("ia", "multiplicative", "1", "current measurement"),
-        )
+
+    def _set_current_filter(self) -> None:
+        """The current filter's coefficients, checked (finite, ``a[0] != 0``, stable) and
+        normalised to ``a[0] = 1``, both padded to one length (``_fb``, ``_fa``); none: the
+        identity (ValueError when they do not make a stable filter)."""
+        if self.current_filter_b is None or self.current_filter_a is None:
+            return
+        b = np.asarray(self.current_filter_b, dtype=float)
+        a = np.asarray(self.current_filter_a, dtype=float)
+        if b.ndim != 1 or a.ndim != 1 or a.size < 1 or b.size < 1 or \
+                not np.all(np.isfinite(a)) or not np.all(np.isfinite(b)) or a[0] == 0:
+            raise ValueError("current_filter_b, current_filter_a: finite coefficient "
+                             "lists with a[0] != 0")
+        if np.any(np.abs(np.roots(a)) >= 1.0) if a.size > 1 else False:
+            raise ValueError("current_filter_a: the filter is unstable (a pole on or "
+                             "outside the unit circle)")
+        m = max(a.size, b.size)
+        self._fb = np.zeros(m)
+        self._fa = np.zeros(m)
+        self._fb[:b.size] = b / a[0]
+        self._fa[:a.size] = a / a[0]
 
     @property
     def estimation_defaults(self) -> EstimationDefaults:

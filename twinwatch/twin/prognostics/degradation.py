@@ -72,7 +72,8 @@ def pinv_sym(a: FloatArray, rcond: float = 1e-15) -> FloatArray:
     keep = aw > rcond * (aw.max() if aw.size else 0.0)
     inv = np.zeros_like(w)
     inv[keep] = 1.0 / w[keep]
-    return (v * inv) @ v.T
+    out: FloatArray = (v * inv) @ v.T
+    return out
 
 ModelKind = Literal["none", "linear", "exponential"]
 
@@ -154,7 +155,9 @@ class DegradationFit:
         """1-sigma uncertainty of the model's value at times ``t`` (N,) (delta method on the
         parameter covariance)."""
         jac = self.jacobian(np.atleast_1d(np.asarray(t, dtype=float)))
-        return np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", jac, self.cov, jac), 0.0))
+        out: FloatArray = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", jac, self.cov, jac),
+                                             0.0))
+        return out
 
     def rate_at(self, t: float) -> tuple[float, float]:
         """The drift rate at time ``t`` [s] and its 1-sigma [SI/s] (delta method): ``m`` and
@@ -215,7 +218,8 @@ def _g(tau: FloatArray, r: float | FloatArray) -> FloatArray:
         x = r * tau
         small = np.abs(x) < 1e-8
         if not small.any():
-            return np.expm1(_CLIP(x, -700.0, 700.0)) / r
+            out: FloatArray = np.expm1(_CLIP(x, -700.0, 700.0)) / r
+            return out
         if small.all():
             return tau * (1.0 + 0.5 * x)
     r = np.asarray(r, dtype=float)
@@ -388,7 +392,8 @@ def _onset_grid(t: FloatArray, most: int) -> FloatArray:
     if last < 2:
         return np.empty(0)
     idx = np.unique(np.linspace(1, last, min(most, last), dtype=int))
-    return t[idx]
+    out: FloatArray = t[idx]
+    return out
 
 
 def fit_models(t: FloatArray, y: FloatArray, s: FloatArray, *, t_ref: float | None = None,

@@ -76,7 +76,7 @@ def fused_share(names: Sequence[str], prior: tuple[FloatArray, FloatArray],
     if not idx.size:
         return {}
     info = info[np.ix_(idx, idx)]
-    names = [names[i] for i in idx]
+    names = [names[int(i)] for i in idx]
     b_full = (y1 @ x1 - y0 @ x0)[:n]
     b = b_full[idx]
     w, v = np.linalg.eigh(info)

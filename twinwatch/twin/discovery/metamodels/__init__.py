@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 
 from twinwatch.plugins import Registry
 from twinwatch.twin.discovery.metamodels.base import MetaModel
@@ -111,7 +111,7 @@ class _Library(Mapping[str, MetaModel]):
             raise KeyError(kind)
         return get_meta_model(kind)
 
-    def __iter__(self):  # type: ignore[no-untyped-def]
+    def __iter__(self) -> Iterator[str]:
         return iter(REGISTRY.table())
 
     def __len__(self) -> int:

@@ -72,7 +72,8 @@ class Coulomb(MetaModel):
     def identifiable(self, u: FloatArray) -> bool:
         s = np.sign(np.asarray(u, dtype=float))
         counts = [int(np.sum(s == v)) for v in (-1.0, 0.0, 1.0)]
-        return s.size - max(counts) >= max(3, MINORITY_FRACTION * s.size)
+        n = int(s.size)
+        return n - max(counts) >= max(3, MINORITY_FRACTION * n)
 
     def render(self, p: FloatArray, z: str, precision: int = 2) -> str:
         out = f"{fmt(float(p[0]), precision)}*sign({z})"

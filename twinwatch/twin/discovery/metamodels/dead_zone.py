@@ -11,7 +11,8 @@ from twinwatch.twin.model import FloatArray
 
 def dead_zone(z: FloatArray, b: FloatArray) -> FloatArray:
     """``dz(z, b)``: 0 for ``|z| <= b``, ``z - b*sign(z)`` beyond (b >= 0; broadcasts)."""
-    return np.sign(z) * np.maximum(np.abs(z) - np.abs(b), 0.0)
+    out: FloatArray = np.sign(z) * np.maximum(np.abs(z) - np.abs(b), 0.0)
+    return out
 
 
 class DeadZone(MetaModel):
