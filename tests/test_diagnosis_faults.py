@@ -103,7 +103,8 @@ def test_failed_checks_accumulate_into_check_function_and_it_ends(
         msg = _failing(base, w, passed)
         diag = d.update(msg, None)
         statuses.append(diag.status)
-        events += alarms.update(msg.model_copy(update={"diagnosis": diag}))
+        _, raised = alarms.update(diag, msg)
+        events += raised
         if w == 45:
             assert diag.status == "check_function" and diag.top is None
             assert diag.check_function_since == pytest.approx(20.0)
