@@ -1260,7 +1260,7 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
         lines = [f"**Diagnosis: a fault the library does not know** (probability "
                  f"{_fmt(d.unknown, '.2f')}): " + "; ".join(
                      [f"`{t}`" for t in d.unknown_terms or []]
-                     + list(d.unexplained or []))]
+                     + list(d.unexplained or [])) + "  "]
     else:
         lines = [f"**Diagnosis: no fault** (probability {_fmt(d.no_fault, '.2f')})"]
         from twinwatch.twin.health import developing_line
@@ -1273,7 +1273,8 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
               for f in faults[1 if status == "fault" else 0:4]]
     if others:
         lines.append("next: " + ", ".join(others) + "  ")
-    lines += [f"*{x}*  " for x in (d.ruled_out or [])[:3]]
+    # why the plausible faults were ruled out, short: what they expect is in explain
+    lines += [f"*{x.split(' (expects ')[0]}*  " for x in (d.ruled_out or [])[:2]]
     return [*lines, ""]
 
 
