@@ -680,7 +680,7 @@ class RecordingViews:
         rel = _num(ph.rel_std_pct)
         head = f"**{p} {_fmt(dev, '+.2f')} %** {status}"
         if status in ("estimated", "fused") and math.isfinite(rel):
-            head += f" +- {rel:.2g} %"
+            head += f" +- {2 * rel:.2g} % (2 sigma)"  # as the summary and the diagnosis say
         trend = ph.trend
         if trend is None or trend.model is None:
             head += "; no trend yet" if trend is not None and trend.model_fields_set else ""
@@ -1286,7 +1286,7 @@ def _parameter_table(doc: HealthView) -> str:
     table = doc.parameters or {}
     if not table:
         return ""
-    lines = ["| parameter | value | status |", "|---|---:|---|"]
+    lines = ["| parameter | value | status (+- 2 sigma) |", "|---|---:|---|"]
     reasons: dict[str, list[str]] = {}
     fixed = []
     for name, p in table.items():
@@ -1297,7 +1297,7 @@ def _parameter_table(doc: HealthView) -> str:
             continue
         rel = _num(p.rel_std_pct)
         if status in ("estimated", "fused") and math.isfinite(rel):
-            status += f" +- {rel:.2g} %"
+            status += f" +- {2 * rel:.2g} %"  # 2 sigma, as the header says
         elif status == "tied" and p.reason:
             status = str(p.reason)
         elif status == "held" and p.reason:
