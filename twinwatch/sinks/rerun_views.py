@@ -1273,8 +1273,8 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
               for f in faults[1 if status == "fault" else 0:4]]
     if others:
         lines.append("next: " + ", ".join(others) + "  ")
-    # why the plausible faults were ruled out, short: what they expect is in explain
-    lines += [f"*{x.split(' (expects ')[0]}*  " for x in (d.ruled_out or [])[:2]]
+    if status != "fault":  # no part named: why the plausible ones were ruled out, short
+        lines += [f"*{x.split(' (expects ')[0]}*  " for x in (d.ruled_out or [])[:2]]
     return [*lines, ""]
 
 
