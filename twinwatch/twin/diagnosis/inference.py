@@ -579,8 +579,11 @@ class Diagnoser:
         else:
             status = "no_fault"
         since, record, share = self._check_function(health)
-        if since is not None and not (status == "fault" and order
-                                      and self._explains_check(said[order[0]][0])):
+        # a named fault or a discovered term no fault explains (the unknown fault) is the
+        # failed checks' explanation: the twin lacks that, it is not a twin that stopped fitting
+        explained = ((status == "fault" and order and self._explains_check(said[order[0]][0]))
+                     or (status == "unknown" and bool(unexplained)))
+        if since is not None and not explained:
             status = "check_function"
             best = share  # the share of the horizon's windows the twin did not describe
         return DiagnosisHealth(
