@@ -904,7 +904,7 @@ def test_the_model_and_the_parameters_table_fit_at_1600x1000(tmp_path: Path) -> 
               for f in ("load_inertia_change", "magnet_weakening", "unbalance"))]}
     doc = read_health(json.dumps(w["health"]))
     model, table = _model_document("m1", 999.99, doc), _parameter_table(doc)
-    assert "| parameter |" not in model and table.startswith("| parameter | value | status |")
+    assert "| parameter |" not in model and table.startswith("| parameter | value | status (+- 2 sigma) |")
     assert "| Kt | 0.038 N m/A | tied to Ke |" in table
     assert "La, J held: held with Ke (lower priority)" in table and "trusted" not in table
 
@@ -971,7 +971,7 @@ def test_each_panel_writes_its_rul_and_the_moments_its_alarms_were_raised(
     docs = _documents(rec.path, "/m1/health/Ra/summary")
     assert [t for t, _ in docs] == [721.99, 877.99]
     first, last = docs[0][1], docs[1][1]
-    assert "**Ra -4.00 %** estimated +- 0.5 %; trend exponential -165 %/h" in first
+    assert "**Ra -4.00 %** estimated +- 1 % (2 sigma); trend exponential -165 %/h" in first
     assert ("**RUL to warning 2m 36s (2m 00s-3m 20s), at 14:38 (14:02-15:22), RUL to alarm "
             "3m 32s (2m 50s-never), at 18:10 (17:28-never)**") in first
     assert "RUL warning raised at 12:02" in first and "deviation" not in first

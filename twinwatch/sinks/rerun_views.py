@@ -680,7 +680,7 @@ class RecordingViews:
         rel = _num(ph.rel_std_pct)
         head = f"**{p} {_fmt(dev, '+.2f')} %** {status}"
         if status in ("estimated", "fused") and math.isfinite(rel):
-            head += f" +- {rel:.2g} %"
+            head += f" +- {2 * rel:.2g} % (2 sigma)"  # as the summary and the diagnosis say
         trend = ph.trend
         if trend is None or trend.model is None:
             head += "; no trend yet" if trend is not None and trend.model_fields_set else ""
@@ -1260,7 +1260,7 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
         lines = [f"**Diagnosis: a fault the library does not know** (probability "
                  f"{_fmt(d.unknown, '.2f')}): " + "; ".join(
                      [f"`{t}`" for t in d.unknown_terms or []]
-                     + list(d.unexplained or []))]
+                     + list(d.unexplained or [])) + "  "]
     else:
         lines = [f"**Diagnosis: no fault** (probability {_fmt(d.no_fault, '.2f')})"]
         from twinwatch.twin.health import developing_line
@@ -1273,7 +1273,8 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
               for f in faults[1 if status == "fault" else 0:4]]
     if others:
         lines.append("next: " + ", ".join(others) + "  ")
-    lines += [f"*{x}*  " for x in (d.ruled_out or [])[:3]]
+    if status != "fault":  # no part named: why the plausible ones were ruled out, short
+        lines += [f"*{x.split(' (expects ')[0]}*  " for x in (d.ruled_out or [])[:2]]
     return [*lines, ""]
 
 
@@ -1285,7 +1286,7 @@ def _parameter_table(doc: HealthView) -> str:
     table = doc.parameters or {}
     if not table:
         return ""
-    lines = ["| parameter | value | status |", "|---|---:|---|"]
+    lines = ["| parameter | value | status (+- 2 sigma) |", "|---|---:|---|"]
     reasons: dict[str, list[str]] = {}
     fixed = []
     for name, p in table.items():
@@ -1296,7 +1297,7 @@ def _parameter_table(doc: HealthView) -> str:
             continue
         rel = _num(p.rel_std_pct)
         if status in ("estimated", "fused") and math.isfinite(rel):
-            status += f" +- {rel:.2g} %"
+            status += f" +- {2 * rel:.2g} %"  # 2 sigma, as the header says
         elif status == "tied" and p.reason:
             status = str(p.reason)
         elif status == "held" and p.reason:

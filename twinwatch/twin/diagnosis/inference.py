@@ -579,8 +579,11 @@ class Diagnoser:
         else:
             status = "no_fault"
         since, record, share = self._check_function(health)
-        if since is not None and not (status == "fault" and order
-                                      and self._explains_check(said[order[0]][0])):
+        # a named fault or a discovered term no fault explains (the unknown fault) is the
+        # failed checks' explanation: the twin lacks that, it is not a twin that stopped fitting
+        explained = ((status == "fault" and order and self._explains_check(said[order[0]][0]))
+                     or (status == "unknown" and bool(unexplained)))
+        if since is not None and not explained:
             status = "check_function"
             best = share  # the share of the horizon's windows the twin did not describe
         return DiagnosisHealth(
@@ -670,20 +673,18 @@ class Diagnoser:
 
     def _why_not(self, i: int, p: float, said: tuple[list[tuple[float, str, str]], list[str]],
                  top: int, top_said: tuple[list[tuple[float, str, str]], list[str]]) -> str:
-        """Why a fault with evidence for it was ruled out, for a person: the mode that explains
-        its evidence with one fault (explaining away), then the strongest thing it expects and
-        the window does not show."""
+        """Why a fault with evidence for it was ruled out, for a person: the strongest thing it
+        expects and the window does not show, then the mode that explains its evidence with
+        one fault (explaining away)."""
         f = self.faults[i]
         pro, con = said
-        why = []
+        why = [con[0]] if con else []
         if top != i:
             t = self.faults[top]
             shared = dict.fromkeys(w for _, _, w in pro if w in {w2 for _, _, w2 in top_said[0]})
             if shared:
                 why.append(f"{t.id} ({t.component}) explains {' and '.join(shared)} as one "
                            f"fault")
-        if con:
-            why.append(con[0])
         if not why and pro:
             why.append(f"its evidence ({pro[0][1]}) is better explained otherwise")
         return f"{f.id} ({f.component}) ruled out at {p:.2f}" + (
