@@ -24,21 +24,6 @@ ROOT = Path(__file__).resolve().parents[1]
 #: An error line of mypy's output: ``path:line: error: message  [code]``.
 _ERROR = re.compile(r"^(?P<path>[^:\s]+\.py):\d+(?::\d+)?: error: ")
 
-#: Files whose errors another branch fixes (``contract``: the sink contract, the pipeline, the
-#: service host and the command line). On this branch their errors remain; the exclusion goes
-#: when that branch is merged. Every other file of the package must be clean.
-OTHER_BRANCH = frozenset({
-    "twinwatch/cli.py",
-    "twinwatch/daemon/pipeline.py",
-    "twinwatch/daemon/host.py",
-    "twinwatch/daemon/workers.py",
-})
-
-#: Left out of ``--strict`` on the twin: the diagnosis is being rewritten (its strict typing
-#: comes with the rewrite). Nothing in the rest of the twin imports it.
-STRICT_EXCLUDED = "twinwatch/twin/diagnosis/"
-
-
 def _mypy(cache: str, *args: str) -> list[str]:
     """Run ``python -m mypy *args`` from the repository root, its incremental cache in
     ``.mypy_cache/<cache>`` (one per set of options: the project's settings and ``--strict``
@@ -72,21 +57,14 @@ def test_error_lines_are_recognised() -> None:
     assert not _ERROR.match("Found 44 errors in 11 files (checked 115 source files)")
 
 
-def test_other_branch_files_exist() -> None:
-    """The exclusion names real files (a renamed one would silently stop being excluded while
-    its successor is checked; a typo would exclude nothing)."""
-    assert all((ROOT / p).is_file() for p in OTHER_BRANCH)
-
-
 def test_package_type_checks_under_project_settings() -> None:
-    """``mypy twinwatch`` under ``[tool.mypy]``: no error outside the other branch's files."""
+    """``mypy twinwatch`` under ``[tool.mypy]``: no error."""
     errors = _mypy("tests-project", "twinwatch")
-    ours = [e for e in errors if _path(e) not in OTHER_BRANCH]
-    assert not ours, f"mypy twinwatch: {len(ours)} errors:\n" + "\n".join(ours)
+    assert not errors, f"mypy twinwatch: {len(errors)} errors:\n" + "\n".join(errors)
 
 
 def test_twin_type_checks_strict() -> None:
-    """``mypy --strict twinwatch/twin`` (the diagnosis left out): no error."""
-    errors = _mypy("tests-strict", "--strict", "twinwatch/twin", "--exclude", STRICT_EXCLUDED)
+    """``mypy --strict twinwatch/twin``, the diagnosis included: no error."""
+    errors = _mypy("tests-strict", "--strict", "twinwatch/twin")
     assert not errors, (f"mypy --strict twinwatch/twin: {len(errors)} errors:\n"
                         + "\n".join(errors))
