@@ -785,8 +785,12 @@ def developing_line(d: DiagnosisHealth | None,
         w = rul.warning
         if w is None or w.status != "predicted":
             continue
+        # the faults this trend is evidence for that nothing else in the window speaks against
+        # (a current sensor reading high expects D up too: D flat rules it out)
         causes = [f"{f.id} ({f.component})" for f in d.faults
-                  if any(s.startswith(f"{name} trend") for s in f.evidence_for)]
+                  if any(s.startswith(f"{name} trend") for s in f.evidence_for)
+                  and all(s.startswith((f"{name} = ", f"{name} trend"))
+                          for s in f.evidence_against)]
         dev = f" {p.deviation_pct:+.2f} % vs nominal," if p.deviation_pct is not None else ""
         rate = (f" degrading {t.rate_pct_per_h:+.3g} %/h," if t.rate_pct_per_h is not None
                 else " degrading,")
