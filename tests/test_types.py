@@ -57,12 +57,14 @@ def test_error_lines_are_recognised() -> None:
     assert not _ERROR.match("Found 44 errors in 11 files (checked 115 source files)")
 
 
+@pytest.mark.slow  # 20-45 s on a cold cache: the whole suite (CI) holds it, not the fast lane
 def test_package_type_checks_under_project_settings() -> None:
     """``mypy twinwatch`` under ``[tool.mypy]``: no error."""
     errors = _mypy("tests-project", "twinwatch")
     assert not errors, f"mypy twinwatch: {len(errors)} errors:\n" + "\n".join(errors)
 
 
+@pytest.mark.slow
 def test_twin_type_checks_strict() -> None:
     """``mypy --strict twinwatch/twin``, the diagnosis included: no error."""
     errors = _mypy("tests-strict", "--strict", "twinwatch/twin")
