@@ -29,6 +29,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, field_validator, model_validator
 
 __all__ = [
+    "CheckSign",
     "DeviationSign",
     "DiagnosisConfig",
     "FaultLibrary",
@@ -56,6 +57,17 @@ class DeviationSign(_Strict):
                                              "nameplate")
     min_pct: StrictFloat = Field(gt=0, description="size of the deviation the fault makes [%]")
     link: float = Link
+    when_held: list[str] = Field(default_factory=list, description="expected only in windows "
+                                 "that hold these parameters (a fault seen through a held "
+                                 "parameter: a weaker magnet reads as D up while Ke is held)")
+    when_estimated: list[str] = Field(default_factory=list, description="expected only in "
+                                      "windows that estimate these parameters (a supply sag "
+                                      "moves D through Kt = Ke only while Ke is estimated)")
+
+    def applies(self, estimated: frozenset[str]) -> bool:
+        """Whether the expectation holds in a window estimating ``estimated``."""
+        return (not any(p in estimated for p in self.when_held)
+                and all(p in estimated for p in self.when_estimated))
 
 
 class TrendSign(_Strict):
@@ -65,6 +77,13 @@ class TrendSign(_Strict):
     direction: Literal["up", "down"] = Field(description="the trend's direction")
     link: float = Field(0.5, gt=0, le=1, description="probability the fault shows this "
                         "evidence (a wear trends; a sudden fault steps)")
+    when_held: list[str] = Field(default_factory=list, description="as a deviation's")
+    when_estimated: list[str] = Field(default_factory=list, description="as a deviation's")
+
+    def applies(self, estimated: frozenset[str]) -> bool:
+        """Whether the expectation holds in a window estimating ``estimated``."""
+        return (not any(p in estimated for p in self.when_held)
+                and all(p in estimated for p in self.when_estimated))
 
 
 class TermSign(_Strict):
@@ -89,6 +108,17 @@ class SensorSign(_Strict):
     link: float = Link
 
 
+class CheckSign(_Strict):
+    """One output's model check failing persistently (a share of the recent windows): a
+    reading the twin cannot reproduce while the others fit (a voltage reading's gain)."""
+
+    output: str = Field(description="the twin's output (Va, omega, p, ...)")
+    link: float = Link
+    may_pass: bool = Field(False, description="the fault may as well leave the check passing "
+                           "(an unbalance whose term fits): a failing check is its evidence, "
+                           "a passing one is none against it")
+
+
 class FaultMode(_Strict):
     """One fault mode of a machine model."""
 
@@ -102,6 +132,8 @@ class FaultMode(_Strict):
     model_check: float | None = Field(None, gt=0, le=1, description="link to a failed model "
                                       "check")
     sensors: list[SensorSign] = Field(default_factory=list)
+    checks: list[CheckSign] = Field(default_factory=list, description="outputs whose model "
+                                    "check the fault makes fail persistently")
     action: str = Field(min_length=1, description="the maintenance action")
     urgency: Literal["low", "medium", "high"] = Field("medium", description="how soon to act")
     prior: float = Field(0.01, gt=0, lt=0.5, description="probability the fault is present at "
@@ -111,7 +143,7 @@ class FaultMode(_Strict):
     @model_validator(mode="after")
     def _has_signature(self) -> FaultMode:
         if not (self.deviations or self.trends or self.terms or self.sensors
-                or self.model_check):
+                or self.model_check or self.checks):
             raise ValueError(f"fault {self.id!r}: its signature is empty (give deviations, "
                              f"trends, terms, sensors or model_check)")
         return self
