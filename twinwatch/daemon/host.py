@@ -577,6 +577,10 @@ class Host(ServiceHost):
         if now >= self._next_status:
             self._next_status = now + 1.0
             self._changed()
+            if self.assignment is not None and self._ready:
+                # a worker process's heartbeat: its host calls a worker that sends nothing
+                # for a window plus a margin stalled (a stopped or frozen process is alive)
+                self.notifier.notify(f"{FLEET_REPORT}={self.fleet_status().model_dump_json()}")
 
     def _stop_all(self) -> None:
         machines = [*self.machines.values(), *self.retired]
@@ -676,9 +680,14 @@ class Host(ServiceHost):
         """A fleet's machines monitored and the degraded ones by name (its STATUS line's
         content, and what a worker process reports to its host)."""
         ms = list(self.machines.values())
+        acq = [m.supervisor.config.acquisition for m in ms if m.supervisor.config is not None]
         return FleetStatus(monitored=sum(1 for m in ms if m.running), machines=len(ms),
                            degraded=[f"{name}: {', '.join(p)}"
-                                     for name, p in self.problems().items()])
+                                     for name, p in self.problems().items()],
+                           window_s=max((a.window * a.sample_period for a in acq),
+                                        default=None),
+                           stalled_restart=min((a.stalled_restart for a in acq),
+                                               default=None))
 
     def exit_status(self) -> int:
         """The process's exit status once :meth:`run` returned: 78 when no machine's

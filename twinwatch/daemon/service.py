@@ -63,6 +63,11 @@ class FleetStatus(_Report):
     monitored: int = Field(description="machines running (started, not lost)")
     machines: int = Field(description="machines of the fleet (current files)")
     degraded: list[str] = Field(description="each degraded machine, ``name: problem, ...``")
+    window_s: float | None = Field(None, description="a worker's longest window [s] (window x "
+                                   "sample period of its machines): its host calls it stalled "
+                                   "when it sent nothing for this plus STALL_MARGIN")
+    stalled_restart: float | None = Field(None, description="a worker's machines' smallest "
+                                          "``[acquisition] stalled_restart`` [s] (0: never)")
 
     def line(self, where: str) -> str:
         """The ``STATUS=`` text, e.g. ``gateway: 2 of 3 machines monitored (DIR); DEGRADED: bad:
