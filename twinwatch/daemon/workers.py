@@ -61,7 +61,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from twinwatch.daemon import logfilter
-from twinwatch.daemon.host import MACHINE_GLOB
+from twinwatch.daemon.host import MACHINE_GLOB, RELOAD_REPORT, reload_line
 from twinwatch.daemon.service import (
     EX_CONFIG,
     EX_IOERR,
@@ -201,6 +201,7 @@ class Worker:
         self.stalled_since: float | None = None
         self.stalls = 0  # times it was found stalled
         self.killed_stalled = False
+        self.reloaded: list[str] | None = None  # what its last SIGHUP did (RELOAD_REPORT)
         self.ended = False
         self._reader: threading.Thread | None = None
 
@@ -280,6 +281,12 @@ class Worker:
                     self.ready = True
                 elif line == "WATCHDOG=1":
                     self.last_ping = time.monotonic()
+                elif key == RELOAD_REPORT:
+                    try:
+                        self.reloaded = [str(x) for x in json.loads(value)]
+                    except (ValueError, TypeError):
+                        self.reloaded = [f"worker {self.index}: its reload report could not "
+                                         "be read"]
                 elif key == FLEET_REPORT:
                     try:
                         self.report = FleetStatus.model_validate_json(value)
@@ -354,6 +361,9 @@ class ProcessHost(ServiceHost):
         self._status = ""
         self._last_ping = 0.0
         self._next_status = 0.0
+        # a SIGHUP's one line, once every worker signalled said what it did: (deadline, the
+        # workers signalled, what the host itself did)
+        self._reload_pending: tuple[float, list[Worker], list[str]] | None = None
 
     def files(self) -> list[Path]:
         return sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
@@ -403,6 +413,7 @@ class ProcessHost(ServiceHost):
                     w.drain()
                     self._check(w)
                     self._watch(w)
+                self._reload_done()
                 if not any(w.alive() for w in self.workers):
                     break
                 self._tick()
@@ -504,15 +515,37 @@ class ProcessHost(ServiceHost):
         stops and reloads its machines); a worker that ended and has machines is started."""
         self.notifier.reloading("re-reading the machine directory")
         placed = place(self.files(), [w.files for w in self.workers], self.n)
+        signalled: list[Worker] = []
+        done: list[str] = []
         for w, ps in zip(self.workers, placed, strict=True):
             w.files = ps
             w.write_assignment()
             if w.alive():
+                w.reloaded = None
                 w.send(signal.SIGHUP)
+                signalled.append(w)
             elif ps and w.given_up is None:
+                done.append(f"worker {w.index} started again ({len(ps)} machines)")
                 w.join_output(1.0)
                 w.start(resume=self.resume)
+        self._reload_pending = (time.monotonic() + 10.0, signalled, done)
         self.notifier.ready(status=self.status_line())
+
+    def _reload_done(self) -> None:
+        """Log a SIGHUP's one line once every worker signalled said what it did (or after
+        10 s, naming those that did not)."""
+        if self._reload_pending is None:
+            return
+        deadline, signalled, done = self._reload_pending
+        waiting = [w for w in signalled if w.reloaded is None and w.alive()
+                   and w.stalled_since is None]
+        if waiting and time.monotonic() < deadline:
+            return
+        self._reload_pending = None
+        items = [*done, *(x for w in signalled for x in (w.reloaded or []))]
+        items += [f"worker {w.index} did not say what it reloaded" for w in waiting]
+        logger.warning("%s", reload_line(items, sum(len(w.files) for w in self.workers),
+                                         str(self.directory)))
 
     def _stop_all(self) -> None:
         self.notifier.stopping("stopping: the machines finish their queued windows")
