@@ -390,7 +390,9 @@ class TwinwatchConfig(BaseModel):
         self.discovery.check_against(model)
         self.identify.check_against(model)
         self.diagnosis.check_against(self.machine.model, model.parameter_names,
-                                     [a.name for a in model.attach_points])
+                                     [a.name for a in model.attach_points],
+                                     channels=model.required_channels(),
+                                     outputs=model.output_names)
         self.alarms.check_against(model.parameter_names,
                                   estimated=self.estimation.estimate or [])
         try:
