@@ -460,6 +460,7 @@ def test_the_gateway_as_a_service_ready_status_hup_and_term(tmp_path: Path,
     for name in ("m1", "m2"):
         machine_config(machines, name, port=port)
     (machines / "bad.toml").write_text('[machine]\nname = "bad"\nmodel = "dc_motor"\n')
+    (machines / "gone.toml").symlink_to(tmp_path / "nowhere.toml")  # named once, not per worker
     notify = NotifySocket(tmp_path / "notify")
     env = dict(os.environ, NOTIFY_SOCKET=str(notify.path))
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "--no-progress",
@@ -498,6 +499,7 @@ def test_the_gateway_as_a_service_ready_status_hup_and_term(tmp_path: Path,
     # one line for the SIGHUP, whichever worker process started the new machine
     sighup = [ln for ln in err.splitlines() if "SIGHUP: " in ln]
     assert len(sighup) == 1 and "m3 started (m3.toml added)" in sighup[0], err[-3000:]
+    assert err.count("gone.toml: skipped: a link to") == 1, err[-3000:]
 
 
 def test_check_config_on_a_gateway_directory(tmp_path: Path) -> None:

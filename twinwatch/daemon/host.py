@@ -394,6 +394,7 @@ class Host(ServiceHost):
         self._names: dict[str, Machine] = {}
         self._owners: dict[str, Path] = {}  # machine name -> the first file naming it
         self._skipped: dict[str, str] = {}
+        self._warned: set[tuple[str, str]] = set()  # the skipped entries named so far
         self._names_lock = threading.Lock()
         self._status_lock = threading.Lock()
         self._status = ""
@@ -437,8 +438,8 @@ class Host(ServiceHost):
             if name is not None:
                 owners.setdefault(name, p)
         self._owners = owners
-        for entry, why in self._skipped.items():
-            logger.warning("%s: skipped: %s", entry, why)
+        if self.assignment is None:  # a worker process's host names them, once for all
+            warn_skipped(self._skipped, self._warned)
         return files
 
     def claim(self, name: str, machine: Machine) -> None:
@@ -854,6 +855,15 @@ def skipped(directory: Path) -> dict[str, str]:
         elif not p.match(MACHINE_GLOB):
             out[p.name] = f"not a machine configuration (only {MACHINE_GLOB} files are run)"
     return out
+
+
+def warn_skipped(entries: dict[str, str], warned: set[tuple[str, str]]) -> None:
+    """Log each skipped entry of a machine directory (:func:`skipped`) once: when it is first
+    seen or its reason changed, not at every reload nor by every worker process."""
+    for entry, why in entries.items():
+        if (entry, why) not in warned:
+            warned.add((entry, why))
+            logger.warning("%s: skipped: %s", entry, why)
 
 
 def _digest(path: Path) -> str:

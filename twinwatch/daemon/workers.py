@@ -61,7 +61,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from twinwatch.daemon import logfilter
-from twinwatch.daemon.host import MACHINE_GLOB, RELOAD_REPORT, reload_line
+from twinwatch.daemon.host import MACHINE_GLOB, RELOAD_REPORT, reload_line, skipped, warn_skipped
 from twinwatch.daemon.service import (
     EX_CONFIG,
     EX_IOERR,
@@ -364,8 +364,12 @@ class ProcessHost(ServiceHost):
         # a SIGHUP's one line, once every worker signalled said what it did: (deadline, the
         # workers signalled, what the host itself did)
         self._reload_pending: tuple[float, list[Worker], list[str]] | None = None
+        self._warned: set[tuple[str, str]] = set()
 
     def files(self) -> list[Path]:
+        """The machine files; the directory's other entries are named once (the workers do
+        not: they would each say it)."""
+        warn_skipped(skipped(self.directory), self._warned)
         return sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
 
     # -- start --------------------------------------------------------------------------------
