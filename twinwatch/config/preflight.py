@@ -66,14 +66,18 @@ def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None 
     required_files = getattr(cfg.driver, "required_files", None)
     if required_files is not None:
         for key, path in required_files(base_dir).items():
-            if not Path(path).is_file():
+            if Path(path).is_dir():
+                problems.append(f"{key}: {path} is a directory: give the file in it")
+            elif not Path(path).is_file():
                 problems.append(f"{key}: file {path} not found")
     for output in cfg.output_tables():
         if not output.config.enabled or (not persist and _is_gate(output.name)):
             continue
         for key, file in output.config.input_files().items():
             f = Path(file)
-            if not f.is_file():
+            if f.is_dir():
+                problems.append(f"{output.key}.{key}: {f} is a directory: give the file in it")
+            elif not f.is_file():
                 problems.append(f"{output.key}.{key}: file {f} not found")
             elif not os.access(f, os.R_OK):
                 problems.append(f"{output.key}.{key}: file {f} is not readable by this user")

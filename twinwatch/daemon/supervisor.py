@@ -474,8 +474,10 @@ def _start_errors() -> Iterator[None]:
         yield
     except StartError:
         raise
+    except DriverConfigError as exc:  # named by the configuration's key: driver.path
+        raise StartError(exc.keyed(), config_error=True) from exc
     except (DriverError, SinkError, PluginError, ValueError, OSError) as exc:
-        raise StartError(str(exc), config_error=isinstance(exc, DriverConfigError)) from exc
+        raise StartError(str(exc), config_error=False) from exc
 
 
 def one_line(text: str) -> str:
