@@ -500,6 +500,7 @@ def test_the_gateway_as_a_service_ready_status_hup_and_term(tmp_path: Path,
     sighup = [ln for ln in err.splitlines() if "SIGHUP: " in ln]
     assert len(sighup) == 1 and "m3 started (m3.toml added)" in sighup[0], err[-3000:]
     assert err.count("gone.toml: skipped: a link to") == 1, err[-3000:]
+    assert err.count("SIGTERM received") == 1, err[-3000:]  # not once more per worker
 
 
 def test_check_config_on_a_gateway_directory(tmp_path: Path) -> None:

@@ -364,6 +364,8 @@ class Host(ServiceHost):
         super().__init__()
         self.target = target
         self.assignment = assignment
+        if assignment is not None:  # a worker process: its host says the signals once
+            self.signal_log_level = logging.DEBUG
         self.fleet = target is not None and target.is_dir()
         if not self.fleet and load is None:
             raise ValueError("a fleet of one needs its loader")

@@ -150,6 +150,9 @@ class ServiceHost(ABC):
 
     fleet: bool
     notifier: Notifier
+    #: the level the stop signals are logged at: a gateway's worker process logs them at
+    #: debug only (its host, which forwarded them, says it once for the gateway)
+    signal_log_level: int = logging.WARNING
 
     def __init__(self) -> None:
         self._stop = threading.Event()
@@ -228,11 +231,11 @@ class ServiceHost(ABC):
     def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
         self._stop_signals += 1
         if self._stop_signals > 1:
-            logger.warning("%s received again: abandoning the queued windows",
-                           signal.Signals(signum).name)
+            logger.log(self.signal_log_level, "%s received again: abandoning the queued "
+                       "windows", signal.Signals(signum).name)
             self.abandon()
             return
-        logger.warning("%s received: %s", signal.Signals(signum).name,
+        logger.log(self.signal_log_level, "%s received: %s", signal.Signals(signum).name,
                        "every machine finishes its queued windows and stops" if self.fleet
                        else "finishing the queued windows and stopping")
         self.stop()
