@@ -348,7 +348,7 @@ def _check_one(config: Path, names: dict[str, Path] | None = None) -> tuple[bool
         probed = get_driver_class(cfg.driver.type).probe(cfg.driver,
                                                           base_dir=config.resolve().parent)
     except DriverConfigError as exc:
-        return False, f"{config}: driver: {exc}"
+        return False, f"{config}: {exc.keyed()}"
     except DriverError as exc:
         return False, (f"{config}: the configuration is valid; the source cannot be opened "
                        f"here: {exc} (`run` would wait for it)"
