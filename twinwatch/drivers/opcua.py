@@ -149,6 +149,32 @@ def unit_matches(declared: str, display_name: str | None, unit_id: int | None) -
     return bool(code) and unit_id is not None and unit_id == unece_unit_id(code)
 
 
+class _DemoteFromClientThread(logging.Filter):
+    """asyncua's records from the driver's thread at DEBUG: the revised subscription values,
+    each failed reconnect; the driver reports what matters itself (an outage once, at ERROR;
+    the recovery at WARNING; a refusal in one line)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno > logging.DEBUG and threading.current_thread().name.startswith(
+                _THREAD_NAME) and record.levelno < logging.CRITICAL:
+            if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
+                return False
+            record.levelno = logging.DEBUG
+            record.levelname = "DEBUG"
+        return True
+
+
+#: the asyncua loggers the client's records come from (a logger's filter sees only its own)
+_ASYNCUA_LOGGERS = ("asyncua", "asyncua.client.client", "asyncua.client.ua_client",
+                    "asyncua.client.ua_client.UaClient", "asyncua.client.ua_client.UASocketProtocol",
+                    "asyncua.common.subscription", "asyncua.common.node", "asyncua.crypto.uacrypto",
+                    "asyncua.crypto.security_policies", "asyncua.client.ua_file_transfer")
+for _name in _ASYNCUA_LOGGERS:
+    _log = logging.getLogger(_name)
+    if not any(isinstance(f, _DemoteFromClientThread) for f in _log.filters):
+        _log.addFilter(_DemoteFromClientThread())
+
+
 # -- configuration ----------------------------------------------------------------------------
 
 
@@ -319,6 +345,8 @@ class OpcUaDriver(Driver):
 
     config_class = OpcUaDriverConfig
     live = True
+    sample_machine = "dc-motor-opcua"
+    sample_title = "a DC motor drive's OPC UA server, through one subscription"
 
     @classmethod
     def reopens(cls, config: DriverConfig) -> bool:
@@ -329,6 +357,21 @@ class OpcUaDriver(Driver):
     def describe(cls, config: DriverConfig) -> str:
         assert isinstance(config, OpcUaDriverConfig)
         return f"the OPC UA server {config.endpoint}"
+
+    @classmethod
+    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
+        """``check-config``: connect (with the configured security and user), find every
+        channel's node, check its unit, subscribe, and close (nothing is written).
+
+        Raises:
+            DriverConfigError: a node, a browse path, a unit, the user or the certificate
+                (the message names the key).
+            DriverInitializationError: the server cannot be reached.
+        """
+        assert isinstance(config, OpcUaDriverConfig)
+        cls(config, base_dir=base_dir).close()
+        return (f"OPC UA server {config.endpoint}: {len(config.channels)} node(s) found, units "
+                "checked, subscription accepted (nothing written)")
 
     def __init__(self, config: OpcUaDriverConfig, *, base_dir: Path | None = None,
                  time_origin: float = 0.0,
