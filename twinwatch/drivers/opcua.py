@@ -167,7 +167,8 @@ class _DemoteFromClientThread(logging.Filter):
 #: the asyncua loggers the client's records come from (a logger's filter sees only its own)
 _ASYNCUA_LOGGERS = ("asyncua", "asyncua.client.client", "asyncua.client.ua_client",
                     "asyncua.client.ua_client.UaClient", "asyncua.client.ua_client.UASocketProtocol",
-                    "asyncua.common.subscription", "asyncua.common.node", "asyncua.crypto.uacrypto",
+                    "asyncua.common.subscription", "asyncua.client.ua_session",
+                    "asyncua.client.ua_session.UaSession", "asyncua.common.node", "asyncua.crypto.uacrypto",
                     "asyncua.crypto.security_policies", "asyncua.client.ua_file_transfer")
 for _name in _ASYNCUA_LOGGERS:
     _log = logging.getLogger(_name)
@@ -305,8 +306,11 @@ class OpcUaDriverConfig(DriverConfig):
 
 # -- the driver -------------------------------------------------------------------------------
 
-_EXTRA_COUNTERS = ("duplicates", "overflows", "server_stamps", "outages", "reconnects",
-                   "dropped", "notifications")
+_EXTRA_COUNTERS = ("duplicates", "overflows", "server_stamps", "time_jumps", "outages",
+                   "reconnects", "dropped", "notifications")
+#: a source time further than this from the last sample's is a jump of its clock [s], not a
+#: gap (ahead) or a repeated value (back)
+_TIME_JUMP = 3600.0
 
 
 class _Slot:
@@ -398,6 +402,7 @@ class OpcUaDriver(Driver):
         # slot bookkeeping (the loop thread only)
         self._pending: dict[int, _Slot] = {}
         self._last_k: int | None = None
+        self._jump_slots = int(_TIME_JUMP / self.sample_period)
         self._password = self._read_password()
         self._thread = threading.Thread(target=self._thread_main, name=_THREAD_NAME, daemon=True)
         self._thread.start()
@@ -780,8 +785,10 @@ class OpcUaDriver(Driver):
         t = (stamp - _EPOCH).total_seconds() - self.time_origin
         k = round(t / self.sample_period)
         if self._last_k is not None and k <= self._last_k:
-            self.stats.extra["duplicates"] += 1
-            return
+            if self._last_k - k <= self._jump_slots:
+                self.stats.extra["duplicates"] += 1
+                return
+            self._time_jump(f"went back {(self._last_k - k) * self.sample_period:.3f} s")
         slot = self._pending.get(k)
         if slot is None:
             slot = self._pending[k] = _Slot(len(self.channels))
@@ -825,6 +832,8 @@ class OpcUaDriver(Driver):
         slot = self._pending.pop(k)
         for j in [j for j in self._pending if j < k]:
             del self._pending[j]
+        if self._last_k is not None and k - self._last_k - 1 > self._jump_slots:
+            self._time_jump(f"jumped {(k - self._last_k) * self.sample_period:.3f} s ahead")
         if self._last_k is not None and k - self._last_k > 1:
             missed = k - self._last_k - 1
             self.stats.gaps += missed
@@ -837,6 +846,17 @@ class OpcUaDriver(Driver):
             return
         self._deliver(Sample(slot.t_sum / slot.n, dict(zip(self.channels, slot.values,
                                                               strict=True))))
+
+    def _time_jump(self, what: str) -> None:
+        """The source clock jumped (set, a device restarted, a stale value from another clock):
+        counted in ``stats.extra["time_jumps"]``, not as missing samples; the samples go on
+        from the new time (the ring buffer abandons the window across it)."""
+        self.stats.extra["time_jumps"] += 1
+        self.log_once("time_jump", "OPC UA source timestamps of %s %s: counted in "
+                      "stats.extra.time_jumps, not as missing samples", self.config.endpoint,
+                      what)
+        self._last_k = None
+        self._pending.clear()
 
     def _deliver(self, sample: Sample) -> None:
         try:
