@@ -118,6 +118,7 @@ _LIVE_QUEUE = 4096  # samples kept for a caller that does not read (older ones d
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 #: OPC UA StatusCode bits: InfoType DataValue (0x400) with the Overflow bit (0x80)
 _OVERFLOW_BITS = 0x480
+_WAITING_FOR_INITIAL_DATA = 0x80320000  # BadWaitingForInitialData
 
 #: UNECE Recommendation 20 common codes (the ``UnitId`` of an ``EUInformation`` is the code's
 #: letters packed into an Int32, OPC UA Part 8 5.6.3) of the units the twins use.
@@ -768,6 +769,8 @@ class OpcUaDriver(Driver):
             return
         ch = self.channels[i]
         dv = item.Value
+        if dv.StatusCode is not None and dv.StatusCode.value == _WAITING_FOR_INITIAL_DATA:
+            return  # the server has no value yet: no sample, nothing missing
         stamp = dv.SourceTimestamp
         if stamp is None:
             stamp = dv.ServerTimestamp

@@ -185,6 +185,8 @@ class SimulatedOpcUaDriver(Driver):
                     self.server.endpoint, config.pacing)
 
     def _may_advance(self) -> bool:
+        if self.opcua is None:  # not subscribed yet: every sample must reach the subscription
+            return False
         lost = self.stats.gaps if self.opcua is not None else 0
         return self.server.samples_served - self._taken - lost < self._high_water
 

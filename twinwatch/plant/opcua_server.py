@@ -246,6 +246,10 @@ class PlantOpcUaServer:
                                    ua.QualifiedName("EngineeringUnits", 0),
                                    ua.Variant(eu, ua.VariantType.ExtensionObject))
             self._nodes[ch] = var.nodeid
+            # no sample yet: the value says so (a subscriber skips it)
+            await server.write_attribute_value(var.nodeid, ua.DataValue(
+                ua.Variant(0.0, ua.VariantType.Double),
+                StatusCode=ua.StatusCode(ua.StatusCodes.BadWaitingForInitialData)))
         if self.last_sample is not None:  # a restart serves the last sample again first
             await self._write(self.last_sample)
         await server.start()
