@@ -241,7 +241,7 @@ class OpcUaDriverConfig(DriverConfig):
     queue_size: StrictInt | None = Field(None, ge=1, le=100000,
                                          description="per monitored item (default: 4 "
                                          "publishing intervals of samples, >= 10)")
-    timeout: StrictFloat = Field(2.0, gt=0, allow_inf_nan=False)
+    timeout: StrictFloat = Field(5.0, gt=0, allow_inf_nan=False)
     backoff_max: StrictFloat = Field(5.0, ge=_BACKOFF_INITIAL, allow_inf_nan=False)
     security_policy: Literal["None", "Basic256Sha256"] = "None"
     security_mode: Literal["Sign", "SignAndEncrypt"] | None = Field(
@@ -340,6 +340,8 @@ class OpcUaDriver(Driver):
         sample_period: ``config.sample_period`` [s].
         live: True (a server does not wait for its clients).
         revised: the server's revised (publishing interval [s], {channel: queue size}).
+        cpu_seconds: CPU time [s] the client's thread has used since it subscribed (asyncua's
+            decoding and the joining; updated after each batch of notifications).
 
     Raises:
         DriverConfigError: a node does not exist or a browse path matches nothing, a unit
@@ -390,6 +392,8 @@ class OpcUaDriver(Driver):
         self.stats.extra.update({name: 0 for name in _EXTRA_COUNTERS})
         self.stats.extra.update({f"status_{ch}": 0 for ch in self.channels})
         self.revised: tuple[float, dict[str, int]] | None = None
+        self.cpu_seconds = 0.0
+        self._cpu_base: float | None = None
         self._queue: queue.Queue[Sample] = queue.Queue(maxsize=_LIVE_QUEUE)
         self._stop = threading.Event()
         self._opened = threading.Event()
@@ -528,6 +532,8 @@ class OpcUaDriver(Driver):
                 await self._sleep(delay)
                 continue
             backoff = _BACKOFF_INITIAL
+            if self._cpu_base is None:
+                self._cpu_base = time.thread_time()
             if first:
                 first = False
                 self._opened.set()
@@ -548,7 +554,7 @@ class OpcUaDriver(Driver):
         from asyncua import Client
 
         client = Client(self.config.endpoint, timeout=self.config.timeout,
-                        watchdog_intervall=max(0.5, min(2.0, self.config.timeout)))
+                        watchdog_intervall=max(0.5, min(2.0, self.config.timeout / 2)))
         client.name = "twinwatch"
         client.description = "twinwatch (monitoring only)"
         if self.config.username:
@@ -740,6 +746,7 @@ class OpcUaDriver(Driver):
                             break
                         if isinstance(ev, DataChangeEvent):
                             self._on_value(ev.data.monitored_item)
+                    self.cpu_seconds = time.thread_time() - (self._cpu_base or 0.0)
                     continue
                 get.cancel()
                 if self._stop.is_set():

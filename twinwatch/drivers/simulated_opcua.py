@@ -31,6 +31,8 @@ listens on the loopback interface only.
 from __future__ import annotations
 
 import logging
+import math
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -56,6 +58,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["LOOPBACK", "UNITS", "SimulatedOpcUaDriver", "SimulatedOpcUaDriverConfig"]
 
 LOOPBACK: Literal["127.0.0.1"] = "127.0.0.1"
+_END_WAIT = 10.0  # [s] without a sample after the plant's end: its last samples were lost
 #: The served channels and their units (the variables' EngineeringUnits).
 UNITS: Mapping[str, str] = {"Va": "V", "ia": "A", "omega": "rad/s", "Tload": "N m",
                             "setpoint": "rad/s"}
@@ -86,7 +89,7 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
     publishing_interval: StrictFloat = Field(0.05, gt=0, allow_inf_nan=False)
     queue_size: StrictInt = Field(400, ge=4, le=100000,
                                   description="per monitored item; lock-step bursts: a quarter")
-    timeout: StrictFloat = Field(2.0, gt=0, allow_inf_nan=False)
+    timeout: StrictFloat = Field(5.0, gt=0, allow_inf_nan=False)
     backoff_max: StrictFloat = Field(1.0, ge=0.1, allow_inf_nan=False)
 
     def twin_channels(self) -> tuple[str, ...]:
@@ -160,6 +163,8 @@ class SimulatedOpcUaDriver(Driver):
         self.sample_period = config.plant.sample_period
         self.live = config.pacing == "realtime"
         self._taken = 0
+        self._last_t = -math.inf
+        self._last_arrival = time.monotonic()
         # in flight or unread at most: two 200-sample windows plus a burst
         self._high_water = 400 + config.queue_size // 4
         self.server = PlantOpcUaServer(
@@ -222,13 +227,20 @@ class SimulatedOpcUaDriver(Driver):
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(1.0 if timeout is None else timeout)
-        if sample is None and self.server.finished:
-            # the last samples may still be on their way through the subscription
-            sample = self._take(max(1.0, 4 * self.config.publishing_interval))
-            if sample is None:
+        if sample is not None:
+            self._last_t = sample.t
+            self._last_arrival = time.monotonic()
+            return sample
+        if self.server.finished:
+            # the last samples may still be on their way through the subscription (or a
+            # reconnect): the stream ends with the plant's last sample, or after 10 s without
+            # any (it was lost: counted in stats.gaps)
+            last = self.server.last_sample
+            done = last is not None and self._last_t >= last.t - 0.5 * self.sample_period
+            if done or time.monotonic() - self._last_arrival > _END_WAIT:
                 raise EndOfStream(
                     f"simulated plant reached its duration ({self.config.plant.duration} s)")
-        return sample
+        return None
 
     def _close_internal(self) -> None:
         if self.opcua is not None:
