@@ -166,11 +166,12 @@ class _DemoteFromClientThread(logging.Filter):
 
 
 #: the asyncua loggers the client's records come from (a logger's filter sees only its own)
-_ASYNCUA_LOGGERS = ("asyncua", "asyncua.client.client", "asyncua.client.ua_client",
-                    "asyncua.client.ua_client.UaClient", "asyncua.client.ua_client.UASocketProtocol",
-                    "asyncua.common.subscription", "asyncua.client.ua_session",
-                    "asyncua.client.ua_session.UaSession", "asyncua.common.node", "asyncua.crypto.uacrypto",
-                    "asyncua.crypto.security_policies", "asyncua.client.ua_file_transfer")
+_ASYNCUA_LOGGERS = (
+    "asyncua", "asyncua.client.client", "asyncua.client.ua_client",
+    "asyncua.client.ua_client.UaClient", "asyncua.client.ua_client.UASocketProtocol",
+    "asyncua.common.subscription", "asyncua.client.ua_session",
+    "asyncua.client.ua_session.UaSession", "asyncua.common.node", "asyncua.crypto.uacrypto",
+    "asyncua.crypto.security_policies", "asyncua.client.ua_file_transfer")
 for _name in _ASYNCUA_LOGGERS:
     _log = logging.getLogger(_name)
     if not any(isinstance(f, _DemoteFromClientThread) for f in _log.filters):
@@ -817,7 +818,7 @@ class OpcUaDriver(Driver):
             slot.bad = True
         else:
             variant = dv.Value
-            raw = None if variant is None else variant.Value
+            raw: Any = None if variant is None else variant.Value
             try:
                 value = float(raw) * self.config.channels[ch].scale \
                     + self.config.channels[ch].offset

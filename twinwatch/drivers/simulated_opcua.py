@@ -3,10 +3,10 @@
 The plant (:mod:`twinwatch.plant.dcmotor`, paper Section 5.2) is served by a
 :class:`~twinwatch.plant.opcua_server.PlantOpcUaServer` on ``127.0.0.1:<port>`` (one object
 ``Motor`` with the variables ``Va`` [V], ``ia`` [A], ``omega`` [rad/s], ``Tload`` [N m] and
-``setpoint`` [rad/s], each with its EngineeringUnits); an :class:`~twinwatch.drivers.opcua.OpcUaDriver`
-subscribes to them exactly as it would to a drive's or a PLC's server, so every sample travels
-the real OPC UA path (monitored-item queues, publish responses, binary encoding, source
-timestamps, the units' check, reconnects).
+``setpoint`` [rad/s], each with its EngineeringUnits); an
+:class:`~twinwatch.drivers.opcua.OpcUaDriver` subscribes to them exactly as it would to a
+drive's or a PLC's server, so every sample travels the real OPC UA path (monitored-item
+queues, publish responses, binary encoding, source timestamps, the units' check, reconnects).
 
 Pacing (``pacing``):
 

@@ -13,7 +13,8 @@ are event-driven, not sampled).
 
 Pacing:
 
-* ``"realtime"``: a timer writes each sample when the wall clock reaches its plant time. The
+* ``"realtime"``: a timer writes each sample when the wall clock reaches its plant time (the
+  clock starts once ``may_advance()`` first says so: the simulated driver has subscribed). The
   plant's clock keeps running while the server is stopped: after :meth:`start` again the
   plant catches up and a client sees the samples of the outage missing (a gap).
 * ``"lockstep"``: the plant advances in bursts of ``burst`` samples, one burst per
@@ -38,7 +39,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime, timedelta
-from typing import Any, Literal, Protocol, Self
+from typing import Any, Literal, Protocol, Self, cast
 
 from twinwatch.io.sample import EndOfStream, Sample
 
@@ -70,6 +71,13 @@ class PlantSource(Protocol):
     def channels(self) -> tuple[str, ...]: ...
 
     def next_sample(self) -> Sample: ...
+
+
+def _node_id(identifier: str, ns: int) -> Any:
+    """A string NodeId (asyncua's typed constructor)."""
+    from asyncua import ua
+
+    return ua.NodeId(ua.String(identifier), ua.Int16(ns))
 
 
 def _unit_id(code: str) -> int:
@@ -236,25 +244,25 @@ class PlantOpcUaServer:
         server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
         self.ns = await server.register_namespace(NAMESPACE)
         obj = await server.nodes.objects.add_object(
-            ua.NodeId(self.object_name, self.ns), ua.QualifiedName(self.object_name, self.ns))
+            _node_id(self.object_name, self.ns), ua.QualifiedName(self.object_name, self.ns))
         self._nodes = {}
         for ch, unit in self.units.items():
-            var = await obj.add_variable(ua.NodeId(f"{self.object_name}.{ch}", self.ns),
+            var = await obj.add_variable(_node_id(f"{self.object_name}.{ch}", self.ns),
                                          ua.QualifiedName(ch, self.ns),
                                          ua.Variant(0.0, ua.VariantType.Double))
             code, name = UNECE.get(unit, ("", unit))
             eu = ua.EUInformation(NamespaceUri=_UNECE_URI, UnitId=_unit_id(code) if code else -1,
                                   DisplayName=ua.LocalizedText(name),
                                   Description=ua.LocalizedText(name))
-            await var.add_property(ua.NodeId(f"{self.object_name}.{ch}.EngineeringUnits",
-                                             self.ns),
+            await var.add_property(_node_id(f"{self.object_name}.{ch}.EngineeringUnits",
+                                            self.ns),
                                    ua.QualifiedName("EngineeringUnits", 0),
                                    ua.Variant(eu, ua.VariantType.ExtensionObject))
             self._nodes[ch] = var.nodeid
             # no sample yet: the value says so (a subscriber skips it)
             await server.write_attribute_value(var.nodeid, ua.DataValue(
                 ua.Variant(0.0, ua.VariantType.Double),
-                StatusCode=ua.StatusCode(ua.StatusCodes.BadWaitingForInitialData)))
+                StatusCode=ua.StatusCode(ua.UInt32(ua.StatusCodes.BadWaitingForInitialData))))
         if self.last_sample is not None:  # a restart serves the last sample again first
             await self._write(self.last_sample)
         await server.start()
@@ -280,6 +288,9 @@ class PlantOpcUaServer:
         return True
 
     async def _realtime(self) -> None:
+        while self._t0_mono is None and not self.may_advance():  # the plant's clock starts
+            if await self._wait_stop(0.01):                        # with its first subscriber
+                return
         if self._t0_mono is None:
             self._t0_mono = time.monotonic()
             self.base = time.time()
@@ -319,8 +330,8 @@ class PlantOpcUaServer:
     async def _write(self, sample: Sample) -> None:
         from asyncua import ua
 
-        source = _EPOCH + timedelta(seconds=self.base + sample.t)
-        now = datetime.now(UTC)
+        source = cast("ua.DateTime", _EPOCH + timedelta(seconds=self.base + sample.t))
+        now = cast("ua.DateTime", datetime.now(UTC))
         server = self._server
         for ch, nodeid in self._nodes.items():
             dv = ua.DataValue(ua.Variant(float(sample.values[ch]), ua.VariantType.Double),
