@@ -19,6 +19,7 @@ each in its own thread: their CPU is each thread's own (``time.thread_time``), n
 Usage::
 
     python benchmarks/bench_opcua_input.py [--seconds 30] [--pacing realtime|lockstep]
+        [--restart S]
 """
 
 from __future__ import annotations
@@ -39,6 +40,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=30.0, help="plant seconds served")
     ap.add_argument("--pacing", choices=["realtime", "lockstep"], default="realtime")
+    ap.add_argument("--restart", type=float, default=0.0, metavar="S",
+                    help="stop the plant's server for S wall seconds at half the run, then "
+                    "start it again: the gap the driver counts")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
 
@@ -49,6 +53,17 @@ def main() -> None:
     cfg = SimulatedOpcUaDriverConfig(type="simulated_opcua", port=0, pacing=args.pacing,
                                      plant=DCMotorPlantConfig(duration=args.seconds))
     driver = SimulatedOpcUaDriver(cfg)
+    if args.restart > 0:
+        import threading
+
+        def restart() -> None:
+            while driver.plant.t < args.seconds / 2 and not driver.closed:
+                time.sleep(0.01)
+            driver.server.stop()
+            time.sleep(args.restart)
+            driver.server.start()
+
+        threading.Thread(target=restart, daemon=True).start()
     n = 0
     reader_cpu0 = time.thread_time()
     wall1 = time.perf_counter()
@@ -62,6 +77,7 @@ def main() -> None:
     reader_cpu = time.thread_time() - reader_cpu0
     assert driver.opcua is not None
     client_cpu = driver.opcua.cpu_seconds + reader_cpu
+    waited = driver.opcua.stats.extra["outages"]
     serving_cpu = driver.server.serving_cpu_seconds
     stats = driver.stats.as_dict()
     served = driver.server.samples_served
@@ -83,6 +99,11 @@ def main() -> None:
           f"{args.seconds:g} s of plant time in {wall:.1f} s of wall time")
     print(f"  samples served {served}, delivered {n} ({windows:.1f} windows of {WINDOW}); "
           f"gaps {stats['gaps']}, overflows {stats['overflows']}, dropped {stats['dropped']}")
+    if args.restart > 0:
+        print(f"  server stopped {args.restart:g} s at plant time {args.seconds / 2:g} s: "
+              f"{waited} outage, {stats['reconnects']} reconnect, {stats['gaps']} samples "
+              f"counted missing ({stats['gaps'] * 0.01:.2f} s), served {served} = delivered "
+              f"{n} + missing {stats['gaps']}: {served == n + stats['gaps']}")
     print(f"  client (driver thread + reads): {client_cpu:.3f} s CPU = "
           f"{client_cpu * ms:.1f} ms per window, {100 * client_cpu / (n * 0.01):.2f} % of a "
           f"core at 100 Hz")

@@ -45,7 +45,10 @@ class _TestServer:
     :meth:`write` puts values with a given source timestamp and status code."""
 
     def __init__(self, units: dict[str, str], port: int | None = None,
-                 users: dict[str, str] | None = None) -> None:
+                 users: dict[str, str] | None = None, pki: dict[str, Path] | None = None,
+                 trusted: Path | None = None) -> None:
+        self.pki = pki  # server certificate and key: Basic256Sha256 SignAndEncrypt only
+        self.trusted = trusted  # a directory of trusted client certificates (None: any)
         self.units = units
         self.port = port or _free_port()
         self.users = users
@@ -94,7 +97,26 @@ class _TestServer:
         self.server = Server(user_manager=Users())
         await self.server.init()
         self.server.set_endpoint(self.endpoint)
-        self.server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        if self.pki is None:
+            self.server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        else:
+            await self.server.load_certificate(str(self.pki["server.der"]))
+            await self.server.load_private_key(str(self.pki["server.pem"]))
+            self.server.set_security_policy(
+                [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+            if self.trusted is not None:
+                from asyncua.crypto.truststore import TrustStore
+                from asyncua.crypto.validator import (
+                    CertificateValidator,
+                    CertificateValidatorOptions,
+                )
+
+                store = TrustStore([self.trusted], [])
+                await store.load()
+                self.server.set_certificate_validator(
+                    CertificateValidator(CertificateValidatorOptions.TRUSTED_VALIDATION
+                                         | CertificateValidatorOptions.PEER_CLIENT,
+                                         trust_store=store).validate)
         ns = await self.server.register_namespace("urn:test")
         obj = await self.server.nodes.objects.add_object(ua.NodeId("Dev", ns),
                                                          ua.QualifiedName("Dev", ns))
@@ -183,10 +205,12 @@ def test_samples_are_joined_by_source_timestamp_every_one_delivered():
         assert d.stats.gaps == 998, d.stats.as_dict()
 
 
-def test_a_bad_status_is_a_missing_sample_counted_per_channel_and_a_gap():
+def test_a_bad_status_is_a_missing_sample_counted_per_channel_and_an_overflow_counted():
     with _server() as srv, OpcUaDriver(_config(srv), time_origin=BASE) as d:
         for k in range(1, 11):
             status = {"ia": 0x80000000} if k in (4, 5) else None  # Bad on ia for two samples
+            if k == 7:  # Good with the Overflow info bits: the server discarded older values
+                status = {"Va": 0x480}
             srv.write(k, {"Va": 1.0 * k, "ia": 2.0 * k}, base=BASE, status=status)
         got = _read_all(d, 9)
         slots = [round(s.t / PERIOD) for s in got]
@@ -194,6 +218,7 @@ def test_a_bad_status_is_a_missing_sample_counted_per_channel_and_a_gap():
         assert all(math.isfinite(v) for s in got for v in s.values.values())
         assert d.stats.extra["status_ia"] == 2 and d.stats.extra["status_Va"] == 0
         assert d.stats.gaps == 2
+        assert d.stats.extra["overflows"] == 1 and got[slots.index(7)].values["Va"] == 7.0
 
 
 def test_a_server_without_source_timestamps_gives_server_timestamps_said_once(caplog):
@@ -247,6 +272,44 @@ def test_start_refuses_a_user_the_server_rejects(tmp_path: Path):
                          time_origin=BASE) as d:
             srv.write(1, {"Va": 1.0, "ia": 1.0}, base=BASE)
             assert _read_all(d, 1)
+
+
+def _pki(tmp: Path) -> dict[str, Path]:
+    """A self-signed server and client certificate (DER) and their keys (PEM)."""
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    for who, use in (("server", ExtendedKeyUsageOID.SERVER_AUTH),
+                     ("client", ExtendedKeyUsageOID.CLIENT_AUTH)):
+        asyncio.run(setup_self_signed_certificate(
+            tmp / f"{who}.pem", tmp / f"{who}.der", f"urn:twinwatch:test-{who}",
+            socket.gethostname(), [use], {"commonName": f"twinwatch test {who}"}))
+    return {p.name: p for p in tmp.iterdir()}
+
+
+def test_basic256sha256_sign_and_encrypt_and_an_untrusted_certificate(tmp_path: Path):
+    pki = _pki(tmp_path)
+    secure = {"security_policy": "Basic256Sha256", "security_mode": "SignAndEncrypt",
+              "certificate": str(pki["client.der"]), "private_key": str(pki["client.pem"]),
+              "server_certificate": str(pki["server.der"])}
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    (trusted / "client.der").write_bytes(pki["client.der"].read_bytes())
+    with _server(pki=pki, trusted=trusted) as srv:
+        with OpcUaDriver(_config(srv, **secure), time_origin=BASE) as d:
+            srv.write(1, {"Va": 3.0, "ia": 4.0}, base=BASE)
+            got = _read_all(d, 2)
+            assert got[-1].values == {"Va": 3.0, "ia": 4.0}
+        with pytest.raises(DriverInitializationError):  # the server offers no None endpoint
+            OpcUaDriver(_config(srv))
+    other = tmp_path / "others"  # trusts another certificate only (asyncua: not empty)
+    other.mkdir()
+    (other / "server.der").write_bytes(pki["server.der"].read_bytes())
+    with _server(pki=pki, trusted=other) as srv:
+        with pytest.raises(DriverConfigError) as exc:
+            OpcUaDriver(_config(srv, **secure))
+    assert str(exc.value).startswith("driver.certificate: the OPC UA server")
+    assert "refused the client certificate" in str(exc.value)
 
 
 def test_an_unreachable_server_is_an_initialization_error_the_daemon_waits_for():

@@ -555,7 +555,7 @@ class OpcUaDriver(Driver):
         from asyncua import Client
 
         client = Client(self.config.endpoint, timeout=self.config.timeout,
-                        watchdog_intervall=max(0.5, min(2.0, self.config.timeout / 2)))
+                        watchdog_intervall=self.config.timeout)  # its probe's timeout too
         client.name = "twinwatch"
         client.description = "twinwatch (monitoring only)"
         if self.config.username:
@@ -579,6 +579,8 @@ class OpcUaDriver(Driver):
                 if not Path(path).is_file():
                     raise DriverConfigError(f"driver.{key}: file {path} not found")
             try:
+                client.application_uri = await _application_uri(cfg.certificate,
+                                                                client.application_uri)
                 await client.set_security(SecurityPolicyBasic256Sha256, str(cfg.certificate),
                                           str(cfg.private_key),
                                           server_certificate=str(cfg.server_certificate),
@@ -918,6 +920,21 @@ class OpcUaDriver(Driver):
             if thread.is_alive():  # pragma: no cover
                 logger.warning("OPC UA client thread did not stop in time")
         logger.debug("OPC UA driver closed (%s)", self.stats.as_dict())
+
+
+async def _application_uri(certificate: Path, default: str) -> str:
+    """The application URI in the client certificate's subjectAltName (the one the session
+    must announce, OPC UA Part 4 6.1.3), or ``default`` when it has none."""
+    from asyncua.crypto import uacrypto
+    from cryptography import x509
+
+    cert = await uacrypto.load_certificate(str(certificate))
+    try:
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except x509.ExtensionNotFound:
+        return default
+    uris = san.get_values_for_type(x509.UniformResourceIdentifier)
+    return uris[0] if uris else default
 
 
 def _describe(exc: BaseException) -> str:

@@ -59,6 +59,7 @@ __all__ = ["LOOPBACK", "UNITS", "SimulatedOpcUaDriver", "SimulatedOpcUaDriverCon
 
 LOOPBACK: Literal["127.0.0.1"] = "127.0.0.1"
 _END_WAIT = 10.0  # [s] without a sample after the plant's end: its last samples were lost
+_END_WAIT_RECONNECTING = 60.0  # [s] the same while the driver reconnects
 #: The served channels and their units (the variables' EngineeringUnits).
 UNITS: Mapping[str, str] = {"Va": "V", "ia": "A", "omega": "rad/s", "Tload": "N m",
                             "setpoint": "rad/s"}
@@ -237,7 +238,17 @@ class SimulatedOpcUaDriver(Driver):
             # any (it was lost: counted in stats.gaps)
             last = self.server.last_sample
             done = last is not None and self._last_t >= last.t - 0.5 * self.sample_period
-            if done or time.monotonic() - self._last_arrival > _END_WAIT:
+            quiet = time.monotonic() - self._last_arrival
+            if not done and (quiet > _END_WAIT_RECONNECTING
+                             or (quiet > _END_WAIT and self.waiting is None)):
+                assert last is not None
+                missing = round((last.t - max(self._last_t, -self.sample_period))
+                                / self.sample_period)
+                self.stats.gaps += missing
+                logger.warning("the simulated plant's last %d samples did not arrive; counted in "
+                               "stats.gaps", missing)
+                done = True
+            if done:
                 raise EndOfStream(
                     f"simulated plant reached its duration ({self.config.plant.duration} s)")
         return None

@@ -107,7 +107,7 @@ class PlantOpcUaServer:
         base: POSIX time of plant time 0 (the source timestamps' base).
         cpu_seconds: CPU time [s] the server's thread has used in all its starts, the
             address space's set-up included (asyncua loads the standard nodes: ~1.5 s).
-        serving_cpu_seconds: CPU time [s] the thread has used serving since its last start
+        serving_cpu_seconds: CPU time [s] the thread has used serving, all starts together
             (plant steps and writes, the subscriptions' publishing): updated after each write.
     """
 
@@ -136,6 +136,7 @@ class PlantOpcUaServer:
         self.cpu_seconds = 0.0
         self.serving_cpu_seconds = 0.0
         self._cpu_ready = 0.0
+        self._serving_before = 0.0
         self._finished = False
         self._t0_mono: float | None = None
         self._thread: threading.Thread | None = None
@@ -268,7 +269,7 @@ class PlantOpcUaServer:
         await server.start()
         try:
             self._cpu_ready = time.thread_time()
-            self.serving_cpu_seconds = 0.0
+            self._serving_before = self.serving_cpu_seconds
             self._ready.set()
             if self.pacing == "realtime":
                 await self._realtime()
@@ -325,7 +326,8 @@ class PlantOpcUaServer:
         self.samples_served += 1
         self.last_sample = sample
         await self._write(sample)
-        self.serving_cpu_seconds = time.thread_time() - self._cpu_ready
+        self.serving_cpu_seconds = (self._serving_before + time.thread_time()
+                                    - self._cpu_ready)
 
     async def _write(self, sample: Sample) -> None:
         from asyncua import ua
