@@ -394,9 +394,13 @@ def test_server_gone_mid_run_is_a_counted_gap_and_a_reconnect():
         d = OpcUaDriver(_config(srv), time_origin=BASE)
     try:
         with _server(port=port) as srv:
+            deadline = time.monotonic() + 15
+            while d.stats.extra["reconnects"] < 1 and time.monotonic() < deadline:
+                time.sleep(0.1)  # subscribed again: what is written now is seen
             for k in range(1, 21):
                 srv.write(k, {"Va": 1.0, "ia": 1.0}, base=BASE)
-            assert [round(s.t / PERIOD) for s in _read_all(d, 20)][-1] == 20
+            # sample 0 (the first server's initial value), then 1-20
+            assert [round(s.t / PERIOD) for s in _read_all(d, 21)] == list(range(21))
         # the server is gone: the driver waits and says so
         deadline = time.monotonic() + 10
         while d.waiting is None and time.monotonic() < deadline:
