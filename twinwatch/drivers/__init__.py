@@ -64,8 +64,10 @@ BUILTIN_DRIVERS: Mapping[str, str] = {
     "can": "twinwatch.drivers.can:CanDriver",
     "file": "twinwatch.drivers.file:FileDriver",
     "modbus": "twinwatch.drivers.modbus:ModbusDriver",
+    "opcua": "twinwatch.drivers.opcua:OpcUaDriver",
     "simulated": "twinwatch.drivers.simulated:SimulatedDriver",
     "simulated_modbus": "twinwatch.drivers.simulated_modbus:SimulatedModbusDriver",
+    "simulated_opcua": "twinwatch.drivers.simulated_opcua:SimulatedOpcUaDriver",
 }
 
 #: The driver registry (:class:`twinwatch.plugins.Registry`): the built-ins and the entry points.

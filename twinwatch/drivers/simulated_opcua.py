@@ -1,0 +1,259 @@
+"""The simulated DC motor, served by an OPC UA server on loopback and read back by subscription.
+
+The plant (:mod:`twinwatch.plant.dcmotor`, paper Section 5.2) is served by a
+:class:`~twinwatch.plant.opcua_server.PlantOpcUaServer` on ``127.0.0.1:<port>`` (one object
+``Motor`` with the variables ``Va`` [V], ``ia`` [A], ``omega`` [rad/s], ``Tload`` [N m] and
+``setpoint`` [rad/s], each with its EngineeringUnits); an
+:class:`~twinwatch.drivers.opcua.OpcUaDriver` subscribes to them exactly as it would to a
+drive's or a PLC's server, so every sample travels the real OPC UA path (monitored-item
+queues, publish responses, binary encoding, source timestamps, the units' check, reconnects).
+
+Pacing (``pacing``):
+
+* ``"lockstep"`` (default): the server writes the plant's samples in bursts of a quarter of the
+  monitored items' queue, one burst per publishing interval, while the driver has fewer than
+  two windows' worth of samples in flight or unread (in-process flow control: a subscription
+  cannot make a server wait, so this is where the pacing lives). Nothing is lost and a run is
+  as fast as the estimation (or the OPC UA stack) allows; the driver is not ``live``.
+* ``"realtime"``: one sample every ``plant.sample_period`` of wall time; the driver is
+  ``live``. Stopping the server (:attr:`SimulatedOpcUaDriver.server`) makes the driver count
+  the outage and reconnect with its capped backoff; the plant's clock runs on meanwhile, so
+  the samples of the outage are a counted gap and the ring buffer abandons the windows they
+  fall in.
+
+Sample time: the source timestamps are the plant's time on a wall-clock base (the server's
+start); the driver subtracts that base, so ``t`` is plant time as over CAN.
+
+Monitoring only: the driver subscribes and reads; the server's variables are read-only and it
+listens on the loopback interface only.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt
+
+from twinwatch.drivers.base import (
+    Driver,
+    DriverConfig,
+    DriverInitializationError,
+    EndOfStream,
+    Sample,
+    validated_config,
+)
+from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
+
+if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no asyncua
+    from twinwatch.drivers.opcua import OpcUaDriver, OpcUaDriverConfig
+    from twinwatch.plant.opcua_server import PlantOpcUaServer
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["LOOPBACK", "UNITS", "SimulatedOpcUaDriver", "SimulatedOpcUaDriverConfig"]
+
+LOOPBACK: Literal["127.0.0.1"] = "127.0.0.1"
+_END_WAIT = 10.0  # [s] without a sample after the plant's end: its last samples were lost
+_END_WAIT_RECONNECTING = 60.0  # [s] the same while the driver reconnects
+#: The served channels and their units (the variables' EngineeringUnits).
+UNITS: Mapping[str, str] = {"Va": "V", "ia": "A", "omega": "rad/s", "Tload": "N m",
+                            "setpoint": "rad/s"}
+
+
+class SimulatedOpcUaDriverConfig(DriverConfig):
+    """The ``[driver]`` table with ``type = "simulated_opcua"``.
+
+    Attributes:
+        plant: the DC motor plant's scenario, duration, noise, ... (``[driver.plant]``).
+        port: TCP port of the simulated server on 127.0.0.1 (0: any free port).
+        pacing: ``"lockstep"`` (as fast as the consumer, nothing lost) or ``"realtime"``.
+        publishing_interval: the subscription's publishing interval [s].
+        queue_size: each monitored item's queue (lock-step bursts are a quarter of it).
+        timeout, backoff_max: the driver's request timeout and reconnect cap [s].
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["simulated_opcua"]
+    machine: Literal["dc_motor"] = "dc_motor"
+    plant: DCMotorPlantConfig = Field(default_factory=DCMotorPlantConfig)
+    host: Literal["127.0.0.1"] = Field(
+        LOOPBACK, description="loopback only: the simulated server is never exposed")
+    port: StrictInt = Field(4841, ge=0, le=65535,
+                            description="TCP port on 127.0.0.1 (0: any free)")
+    pacing: Literal["lockstep", "realtime"] = "lockstep"
+    publishing_interval: StrictFloat = Field(0.05, gt=0, allow_inf_nan=False)
+    queue_size: StrictInt = Field(400, ge=4, le=100000,
+                                  description="per monitored item; lock-step bursts: a quarter")
+    timeout: StrictFloat = Field(5.0, gt=0, allow_inf_nan=False)
+    backoff_max: StrictFloat = Field(1.0, ge=0.1, allow_inf_nan=False)
+
+    def twin_channels(self) -> tuple[str, ...]:
+        """The plant channels served."""
+        return tuple(UNITS)
+
+    @property
+    def sample_period(self) -> float:
+        """The plant's sample period [s]."""
+        return self.plant.sample_period
+
+    def opcua_config(self, server: PlantOpcUaServer) -> OpcUaDriverConfig:
+        """The :class:`OpcUaDriverConfig` that subscribes to the simulated server."""
+        from twinwatch.drivers.opcua import OpcUaChannelMap, OpcUaDriverConfig
+
+        return OpcUaDriverConfig(
+            type="opcua", endpoint=server.endpoint, sample_period=self.plant.sample_period,
+            publishing_interval=max(self.publishing_interval, self.plant.sample_period),
+            queue_size=self.queue_size, timeout=self.timeout, backoff_max=self.backoff_max,
+            channels={ch: OpcUaChannelMap(node=server.node_id(ch), unit=unit)
+                      for ch, unit in UNITS.items()})
+
+
+class SimulatedOpcUaDriver(Driver):
+    """DC motor plant -> :class:`PlantOpcUaServer` (loopback) -> :class:`OpcUaDriver`.
+
+    Attributes:
+        plant: the simulated plant (:meth:`~DCMotorPlant.truth` gives the true parameters).
+        server: the OPC UA server serving it (tests stop and restart it).
+        opcua: the driver subscribing to it; its counters are this driver's :attr:`stats`.
+
+    Raises:
+        DriverInitializationError: the server cannot listen (the port is taken: the message
+            names it) or the driver cannot subscribe.
+        EndOfStream: from :meth:`read` once the plant has reached its duration and every
+            sample served has been delivered.
+    """
+
+    config_class = SimulatedOpcUaDriverConfig
+    sample_model = "dc_motor"
+    sample_machine = "dc-motor-opcua-sim"
+    sample_title = "the simulated DC motor (paper Section 5.2) over OPC UA"
+
+    @classmethod
+    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
+        assert isinstance(config, SimulatedOpcUaDriverConfig)
+        return config.plant.sample_period
+
+    @classmethod
+    def duration(cls, config: DriverConfig) -> float | None:
+        assert isinstance(config, SimulatedOpcUaDriverConfig)
+        return config.plant.duration
+
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """The plant starts from t = 0 at every open: a new run."""
+        return True
+
+    @classmethod
+    def describe(cls, config: DriverConfig) -> str:
+        assert isinstance(config, SimulatedOpcUaDriverConfig)
+        return f"the simulated DC motor over OPC UA on {LOOPBACK}:{config.port}"
+
+    def __init__(self, config: SimulatedOpcUaDriverConfig) -> None:
+        from twinwatch.drivers.opcua import OpcUaDriver
+        from twinwatch.plant.opcua_server import PlantOpcUaServer
+
+        super().__init__()
+        self.config = config
+        self.plant = DCMotorPlant(config.plant)
+        self.sample_period = config.plant.sample_period
+        self.live = config.pacing == "realtime"
+        self._taken = 0
+        self._last_t = -math.inf
+        self._last_arrival = time.monotonic()
+        # in flight or unread at most: two 200-sample windows plus a burst
+        self._high_water = 400 + config.queue_size // 4
+        self.server = PlantOpcUaServer(
+            self.plant, UNITS, object_name="Motor", pacing=config.pacing, host=LOOPBACK,
+            port=config.port, publishing_interval=config.publishing_interval,
+            burst=max(1, config.queue_size // 4), may_advance=self._may_advance)
+        self.opcua: OpcUaDriver | None = None
+        try:
+            self.server.start()
+            self.opcua = OpcUaDriver(config.opcua_config(self.server),
+                                     time_origin=self.server.base, on_take=self._on_take)
+        except Exception as exc:
+            self.close()
+            if isinstance(exc, DriverInitializationError):
+                raise
+            raise DriverInitializationError(
+                f"driver.port: the simulated OPC UA server could not start: {exc}; choose "
+                "another port (0: any free one)") from exc
+        self.channels = self.opcua.channels
+        self.stats = self.opcua.stats  # one set of counters: the OPC UA driver's
+        logger.info("simulated DC motor, scenario %s, %.0f s, served over OPC UA on %s "
+                    "(%s pacing)", config.plant.scenario, config.plant.duration,
+                    self.server.endpoint, config.pacing)
+
+    def _may_advance(self) -> bool:
+        if self.opcua is None:  # not subscribed yet: every sample must reach the subscription
+            return False
+        lost = self.stats.gaps if self.opcua is not None else 0
+        return self.server.samples_served - self._taken - lost < self._high_water
+
+    def _on_take(self, n: int) -> None:
+        self._taken += n
+
+    @property
+    def port(self) -> int:
+        """The TCP port the simulated server listens on."""
+        return self.server.port
+
+    @property
+    def waiting(self) -> str | None:
+        return None if self.opcua is None else self.opcua.waiting
+
+    @classmethod
+    def from_config(cls, config: SimulatedOpcUaDriverConfig | Mapping[str, Any], *,
+                    base_dir: Path | None = None) -> SimulatedOpcUaDriver:
+        """Build the driver from a validated config or a raw ``[driver]`` table.
+
+        Raises:
+            DriverInitializationError: the table does not validate, or see the class.
+        """
+        config = validated_config(SimulatedOpcUaDriverConfig, config, "simulated OPC UA")
+        return cls(config)
+
+    def _take(self, timeout: float) -> Sample | None:
+        assert self.opcua is not None
+        sample = self.opcua.read(timeout=timeout)
+        if sample is not None:
+            self.stats.samples -= 1  # counted again by Driver.read of this driver
+        return sample
+
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        sample = self._take(1.0 if timeout is None else timeout)
+        if sample is not None:
+            self._last_t = sample.t
+            self._last_arrival = time.monotonic()
+            return sample
+        if self.server.finished:
+            # the last samples may still be on their way through the subscription (or a
+            # reconnect): the stream ends with the plant's last sample, or after 10 s without
+            # any (it was lost: counted in stats.gaps)
+            last = self.server.last_sample
+            done = last is not None and self._last_t >= last.t - 0.5 * self.sample_period
+            quiet = time.monotonic() - self._last_arrival
+            if not done and (quiet > _END_WAIT_RECONNECTING
+                             or (quiet > _END_WAIT and self.waiting is None)):
+                assert last is not None
+                missing = round((last.t - max(self._last_t, -self.sample_period))
+                                / self.sample_period)
+                self.stats.gaps += missing
+                logger.warning("the simulated plant's last %d samples did not arrive; counted in "
+                               "stats.gaps", missing)
+                done = True
+            if done:
+                raise EndOfStream(
+                    f"simulated plant reached its duration ({self.config.plant.duration} s)")
+        return None
+
+    def _close_internal(self) -> None:
+        if self.opcua is not None:
+            self.opcua.close()
+        self.server.stop()

@@ -1,0 +1,341 @@
+"""Serve a simulated plant's samples as OPC UA variables (asyncua server, 127.0.0.1).
+
+:class:`PlantOpcUaServer` runs an asyncua :class:`~asyncua.Server` in a background thread
+(``twinwatch-opcua-server``) with its own asyncio loop. The address space holds one object,
+``<ns>:<object_name>`` under Objects, with one Double variable per served channel
+(NodeId ``ns=<ns>;s=<object_name>.<channel>``, browse name ``<ns>:<channel>``, namespace
+:data:`NAMESPACE`), each with its ``EngineeringUnits`` property (an ``EUInformation`` with the
+UNECE code of the unit, OPC UA Part 8). Every plant sample is written to every variable as a
+``DataValue`` whose SourceTimestamp is the sample's time on a wall-clock base (the server's
+start, POSIX, plus plant time) and whose ServerTimestamp is the wall clock: a subscriber's
+monitored items queue each sample; asyncua's server reports every write (its monitored items
+are event-driven, not sampled).
+
+Pacing:
+
+* ``"realtime"``: a timer writes each sample when the wall clock reaches its plant time (the
+  clock starts once ``may_advance()`` first says so: the simulated driver has subscribed). The
+  plant's clock keeps running while the server is stopped: after :meth:`start` again the
+  plant catches up and a client sees the samples of the outage missing (a gap).
+* ``"lockstep"``: the plant advances in bursts of ``burst`` samples, one burst per
+  ``publishing_interval``, while ``may_advance()`` says the consumer keeps up (in-process flow
+  control: the simulated driver reports how many samples it has not yet read). The samples still
+  travel through a real subscription (queues, publish responses, decoding); only their rate
+  follows the consumer. Source timestamps then run ahead of the wall clock. A subscription
+  cannot make a server wait for its client; this is the nearest a server can come to lock
+  step: every sample is written once, with its own source timestamp, and a burst never exceeds
+  what a monitored item's queue holds between two publish responses.
+
+All variables are read-only (AccessLevel CurrentRead); the server offers security None only
+and listens on the loopback interface.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from datetime import UTC, datetime, timedelta
+from typing import Any, Literal, Protocol, Self, cast
+
+from twinwatch.io.sample import EndOfStream, Sample
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["NAMESPACE", "PlantOpcUaServer", "PlantSource", "UNECE"]
+
+#: The namespace URI of the simulated plants' variables.
+NAMESPACE = "urn:twinwatch:simulated-plant"
+#: unit -> (UNECE common code, display name) for the EngineeringUnits of the served variables
+UNECE: Mapping[str, tuple[str, str]] = {
+    "V": ("VLT", "V"), "A": ("AMP", "A"), "rad/s": ("2A", "rad/s"), "N m": ("NU", "N m"),
+    "m": ("MTR", "m"), "Pa": ("PAL", "Pa"), "N": ("NEW", "N"), "m^2": ("MTK", "m^2"),
+}
+_UNECE_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
+_THREAD_NAME = "twinwatch-opcua-server"
+_START_TIMEOUT = 20.0  # [s]: asyncua's server loads the standard address space at start
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+Pacing = Literal["realtime", "lockstep"]
+
+
+class PlantSource(Protocol):
+    """What the server needs from a plant (e.g. :class:`~twinwatch.plant.dcmotor.DCMotorPlant`)."""
+
+    @property
+    def sample_period(self) -> float: ...
+
+    @property
+    def channels(self) -> tuple[str, ...]: ...
+
+    def next_sample(self) -> Sample: ...
+
+
+def _node_id(identifier: str, ns: int) -> Any:
+    """A string NodeId (asyncua's typed constructor)."""
+    from asyncua import ua
+
+    return ua.NodeId(ua.String(identifier), ua.Int16(ns))
+
+
+def _unit_id(code: str) -> int:
+    value = 0
+    for ch in code:
+        value = (value << 8) | ord(ch)
+    return value
+
+
+class PlantOpcUaServer:
+    """An OPC UA server serving a plant's samples on 127.0.0.1.
+
+    Args:
+        plant: the sample source.
+        units: served channel -> unit (a key of :data:`UNECE`, or any text: then only the
+            display name is set); channels not listed are not served.
+        object_name: the object holding the variables (``"Motor"``).
+        pacing: ``"realtime"`` or ``"lockstep"`` (module docstring).
+        port: TCP port; 0 picks a free one (read :attr:`port` after :meth:`start`; a restart
+            reuses it).
+        publishing_interval: lock-step: seconds between bursts.
+        burst: lock-step: samples per burst (at most a monitored item's queue).
+        may_advance: lock-step: returns False while the consumer is behind.
+
+    Attributes:
+        samples_served: samples written so far. finished: the plant reached its end.
+        base: POSIX time of plant time 0 (the source timestamps' base).
+        cpu_seconds: CPU time [s] the server's thread has used in all its starts, the
+            address space's set-up included (asyncua loads the standard nodes: ~1.5 s).
+        serving_cpu_seconds: CPU time [s] the thread has used serving, all starts together
+            (plant steps and writes, the subscriptions' publishing): updated after each write.
+    """
+
+    def __init__(self, plant: PlantSource, units: Mapping[str, str], *,
+                 object_name: str = "Motor", pacing: Pacing = "realtime",
+                 host: Literal["127.0.0.1"] = "127.0.0.1", port: int = 0,
+                 publishing_interval: float = 0.05, burst: int = 10,
+                 may_advance: Callable[[], bool] | None = None) -> None:
+        unknown = [ch for ch in units if ch not in plant.channels]
+        if unknown or not units:
+            raise ValueError(f"units: {', '.join(unknown) or 'nothing'} not plant channels "
+                             f"({', '.join(plant.channels)})")
+        self.plant = plant
+        self.units = dict(units)
+        self.object_name = object_name
+        self.pacing: Pacing = pacing
+        self.host = host
+        self.port = port
+        self.publishing_interval = publishing_interval
+        self.burst = max(1, burst)
+        self.may_advance = may_advance or (lambda: True)
+        self.sample_period = float(plant.sample_period)
+        self.samples_served = 0
+        self.last_sample: Sample | None = None
+        self.base = time.time()
+        self.cpu_seconds = 0.0
+        self.serving_cpu_seconds = 0.0
+        self._cpu_ready = 0.0
+        self._serving_before = 0.0
+        self._finished = False
+        self._t0_mono: float | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_event: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._start_error: BaseException | None = None
+        self._nodes: dict[str, Any] = {}
+        self._server: Any = None
+        self.ns = 2
+
+    @property
+    def endpoint(self) -> str:
+        return f"opc.tcp://{self.host}:{self.port}"
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+    def node_id(self, channel: str) -> str:
+        """The NodeId string of a served channel's variable."""
+        return f"ns={self.ns};s={self.object_name}.{channel}"
+
+    def start(self) -> Self:
+        """Start serving (returns once the server listens).
+
+        Raises:
+            RuntimeError: already running, or it could not listen (port in use: the message
+                names it).
+        """
+        if self.running:
+            raise RuntimeError("PlantOpcUaServer is already running")
+        if self.port == 0:
+            import socket
+
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                s.bind((self.host, 0))
+                self.port = int(s.getsockname()[1])
+        self._ready.clear()
+        self._start_error = None
+        self._thread = threading.Thread(target=self._thread_main, name=_THREAD_NAME, daemon=True)
+        self._thread.start()
+        if not self._ready.wait(_START_TIMEOUT):
+            self.stop()
+            raise RuntimeError(f"OPC UA server did not start within {_START_TIMEOUT} s")
+        if self._start_error is not None:
+            err = self._start_error
+            self.stop()
+            raise RuntimeError(f"OPC UA server could not listen on {self.endpoint}: "
+                               f"{err}") from err
+        logger.info("plant OPC UA server on %s (%s pacing)", self.endpoint, self.pacing)
+        return self
+
+    def stop(self) -> None:
+        """Stop serving and join the thread. Idempotent; :meth:`start` may be called again."""
+        thread, loop, stop_event = self._thread, self._loop, self._stop_event
+        if thread is None:
+            return
+        if loop is not None and stop_event is not None and thread.is_alive():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(stop_event.set)
+        thread.join(_START_TIMEOUT)
+        self._thread = None
+        logger.debug("plant OPC UA server on %s stopped", self.endpoint)
+
+    close = stop
+
+    def __enter__(self) -> Self:
+        if not self.running:
+            self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- the server thread ------------------------------------------------------------------
+    def _thread_main(self) -> None:
+        cpu0 = time.thread_time()
+        try:
+            with asyncio.Runner() as runner:
+                runner.run(self._serve())
+        except BaseException as exc:  # noqa: BLE001 - reported to start() or logged
+            if not self._ready.is_set():
+                self._start_error = exc
+            else:
+                logger.error("plant OPC UA server failed: %s", exc)
+        finally:
+            self.cpu_seconds += time.thread_time() - cpu0
+            self._loop = None
+            self._ready.set()
+
+    async def _serve(self) -> None:
+        from asyncua import Server, ua
+
+        self._loop = asyncio.get_running_loop()
+        self._stop_event = asyncio.Event()
+        server = Server()
+        self._server = server
+        await server.init()
+        server.set_endpoint(f"{self.endpoint}/twinwatch/")
+        server.set_server_name("twinwatch simulated plant")
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        self.ns = await server.register_namespace(NAMESPACE)
+        obj = await server.nodes.objects.add_object(
+            _node_id(self.object_name, self.ns), ua.QualifiedName(self.object_name, self.ns))
+        self._nodes = {}
+        for ch, unit in self.units.items():
+            var = await obj.add_variable(_node_id(f"{self.object_name}.{ch}", self.ns),
+                                         ua.QualifiedName(ch, self.ns),
+                                         ua.Variant(0.0, ua.VariantType.Double))
+            code, name = UNECE.get(unit, ("", unit))
+            eu = ua.EUInformation(NamespaceUri=_UNECE_URI, UnitId=_unit_id(code) if code else -1,
+                                  DisplayName=ua.LocalizedText(name),
+                                  Description=ua.LocalizedText(name))
+            await var.add_property(_node_id(f"{self.object_name}.{ch}.EngineeringUnits",
+                                            self.ns),
+                                   ua.QualifiedName("EngineeringUnits", 0),
+                                   ua.Variant(eu, ua.VariantType.ExtensionObject))
+            self._nodes[ch] = var.nodeid
+            # no sample yet: the value says so (a subscriber skips it)
+            await server.write_attribute_value(var.nodeid, ua.DataValue(
+                ua.Variant(0.0, ua.VariantType.Double),
+                StatusCode=ua.StatusCode(ua.UInt32(ua.StatusCodes.BadWaitingForInitialData))))
+        if self.last_sample is not None:  # a restart serves the last sample again first
+            await self._write(self.last_sample)
+        await server.start()
+        try:
+            self._cpu_ready = time.thread_time()
+            self._serving_before = self.serving_cpu_seconds
+            self._ready.set()
+            if self.pacing == "realtime":
+                await self._realtime()
+            else:
+                await self._lockstep()
+        finally:
+            with contextlib.suppress(Exception):
+                await server.stop()
+        self._server = None
+
+    async def _wait_stop(self, delay: float) -> bool:
+        assert self._stop_event is not None
+        try:
+            await asyncio.wait_for(self._stop_event.wait(), max(0.0, delay))
+        except TimeoutError:
+            return False
+        return True
+
+    async def _realtime(self) -> None:
+        while self._t0_mono is None and not self.may_advance():  # the plant's clock starts
+            if await self._wait_stop(0.01):                        # with its first subscriber
+                return
+        if self._t0_mono is None:
+            self._t0_mono = time.monotonic()
+            self.base = time.time()
+        while not self._finished:
+            due = int((time.monotonic() - self._t0_mono) / self.sample_period + 1e-9) + 1
+            while self.samples_served < due and not self._finished:
+                await self._advance_one()
+            nxt = self._t0_mono + self.samples_served * self.sample_period
+            if await self._wait_stop(nxt - time.monotonic()):
+                return
+        await self._wait_stop(1e9)
+
+    async def _lockstep(self) -> None:
+        while not self._finished:
+            if self.may_advance():
+                for _ in range(self.burst):
+                    await self._advance_one()
+            if await self._wait_stop(self.publishing_interval):
+                return
+        await self._wait_stop(1e9)
+
+    async def _advance_one(self) -> None:
+        if self._finished:
+            return
+        try:
+            sample = self.plant.next_sample()
+        except EndOfStream:
+            self._finished = True
+            logger.info("plant finished after %d samples; serving the last one",
+                        self.samples_served)
+            return
+        self.samples_served += 1
+        self.last_sample = sample
+        await self._write(sample)
+        self.serving_cpu_seconds = (self._serving_before + time.thread_time()
+                                    - self._cpu_ready)
+
+    async def _write(self, sample: Sample) -> None:
+        from asyncua import ua
+
+        source = cast("ua.DateTime", _EPOCH + timedelta(seconds=self.base + sample.t))
+        now = cast("ua.DateTime", datetime.now(UTC))
+        server = self._server
+        for ch, nodeid in self._nodes.items():
+            dv = ua.DataValue(ua.Variant(float(sample.values[ch]), ua.VariantType.Double),
+                              SourceTimestamp=source, ServerTimestamp=now)
+            await server.write_attribute_value(nodeid, dv)
