@@ -78,13 +78,13 @@ from twinwatch.errors import PublisherError
 from twinwatch.sinks.base import ProcessedWindow, Sink, SinkConfig, SinkContext
 
 if TYPE_CHECKING:
-    import asyncua
-    from asyncua import ua
-
     from twinwatch.twin.health import DiagnosisHealth, HealthMessage
-else:  # imported when the output opens: loading a configuration does not load asyncua
-    asyncua = lazy_module("asyncua")
-    ua = lazy_module("asyncua.ua")
+
+# Imported when the output opens: loading a configuration does not load asyncua. Typed Any:
+# asyncua annotates its protocol types as NewTypes (ua.Int16, ua.String, ...), which every
+# literal would have to be wrapped in to satisfy mypy.
+asyncua: Any = lazy_module("asyncua")
+ua: Any = lazy_module("asyncua.ua")
 
 logger = logging.getLogger(__name__)
 
@@ -128,7 +128,7 @@ class OpcUaConfig(SinkConfig):
     namespace: str = Field("urn:twinwatch:health", min_length=1,
                            description="the namespace URI of the machines' nodes")
     security: list[SECURITY] = Field(
-        default_factory=lambda: ["None"], min_length=1,
+        default_factory=lambda: list[SECURITY](["None"]), min_length=1,
         description="endpoints offered: None, Basic256Sha256_Sign, "
         "Basic256Sha256_SignAndEncrypt (the last two need certificate and private_key)")
     certificate: str | None = Field(None, description="the server's certificate (DER or PEM)")
@@ -442,7 +442,7 @@ class OpcUaServer:
         m.stale_after = stale_after  # type: ignore[attr-defined]
         dt = ua.ObjectIds
         b.variable(m, obj, "DeviceHealth", ua.Variant(0, ua.VariantType.Int32), self.health_type)
-        for path, vt, dtype, init in (
+        for path, vtype, dtype, first in (
                 ("DeviceHealthReason", ua.VariantType.String, dt.String, "no window yet"),
                 ("Model", ua.VariantType.String, dt.String, ctx.model),
                 ("Run", ua.VariantType.String, dt.String, ctx.run),
@@ -452,7 +452,7 @@ class OpcUaServer:
                 ("Trusted", ua.VariantType.Boolean, dt.Boolean, False),
                 ("NRMSE", ua.VariantType.Double, dt.Double, math.nan),
                 ("Terms", ua.VariantType.String, dt.String, [])):
-            b.variable(m, obj, path, ua.Variant(init, vt), ua.NodeId(dtype))
+            b.variable(m, obj, path, ua.Variant(first, vtype), ua.NodeId(dtype))
         params = b.object(m, "Parameters", obj)
         for p, unit in ctx.parameters.items():
             po = b.object(m, f"Parameters.{p}", params, browse=p)
