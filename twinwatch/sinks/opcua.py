@@ -294,6 +294,8 @@ class _Machine:
         self.health: tuple[int, str] = (DEVICE_HEALTH["NORMAL"], "no window yet")
         self.events: list[Any] = []                     # event generators (machine, Server)
         self.last: dict[str, tuple[Any, int | None]] = {}  # path -> what was written last
+        self.nodes: list[Any] = []                      # every node made for it
+        self.active: dict[str, dict[str, Any]] = {}     # condition -> its raising event
 
 
 class OpcUaServer:
@@ -509,6 +511,7 @@ class OpcUaServer:
         results = await self.isession.add_nodes(b.items)
         for r in results:
             r.StatusCode.check()
+        m.nodes += [item.RequestedNewNodeId for item in b.items]
         # the machine's object emits events; the Server object relays them (one subscription
         # on the Server object sees every machine's alarms)
         await self.isession.add_references(b.references)
@@ -527,6 +530,11 @@ class OpcUaServer:
         m = self.machines.pop(machine, None)
         if m is None:
             return
+        now = datetime.now(UTC)
+        for what, e in list(m.active.items()):  # ConditionRefresh no longer replays them
+            await self._alarm(m, {**e, "level": "normal", "message": (
+                f"{machine}: {what}: no longer monitored (the machine was stopped or "
+                f"removed)")}, now, when=now)
         if self.config.history:
             nodes = [self.server.get_node(nid) for path, (nid, _) in m.vars.items()
                      if path.endswith(".Value") and path.startswith("Parameters.")]
@@ -534,7 +542,16 @@ class OpcUaServer:
                 await self.server.dehistorize_node_data_change(nodes)
             except Exception:  # noqa: BLE001
                 logger.debug("dehistorizing %s failed", machine, exc_info=True)
-        await self.server.delete_nodes([self.server.get_node(m.obj)], recursive=True)
+        # every node of the machine, without asyncua's search of the whole address space for
+        # references to each (DeleteTargetReferences: 2 s of CPU a machine, the loop blocked):
+        # only the TwinWatch folder and the Server object refer to the machine from outside
+        items = [ua.DeleteNodesItem(NodeId=nid, DeleteTargetReferences=False)
+                 for nid in m.nodes]
+        for r in await self.isession.delete_nodes(ua.DeleteNodesParameters(NodesToDelete=items)):
+            r.check()
+        for holder in (self.root.nodeid, ua.NodeId(ua.ObjectIds.Server)):
+            data = self.aspace[holder]
+            data.references[:] = [r for r in data.references if r.NodeId != m.obj]
 
     async def _publish(self, machine: str, h: HealthMessage, events: list[dict[str, Any]]
                        ) -> None:
@@ -584,15 +601,22 @@ class OpcUaServer:
                        ua.NodeId(ua.ObjectIds.Int64), browse=path.split(".", 1)[1])
         for r in await self.isession.add_nodes(b.items):
             r.StatusCode.check()
+        m.nodes += [item.RequestedNewNodeId for item in b.items]
 
-    async def _alarm(self, m: _Machine, e: dict[str, Any], now: datetime) -> None:
+    async def _alarm(self, m: _Machine, e: dict[str, Any], now: datetime,
+                     when: datetime | None = None) -> None:
         level = str(e.get("level", "normal"))
         kind = str(e.get("kind", "deviation"))
         what = (str(e.get("fault")) if kind == "diagnosis"
                 else f"{e.get('parameter')} {kind}")
         active = level != "normal"
         t = e.get("t")
-        when = _source_time(m, None, float(t), now) if isinstance(t, int | float) else now
+        if when is None:
+            when = _source_time(m, None, float(t), now) if isinstance(t, int | float) else now
+        if active:
+            m.active[what] = e
+        else:
+            m.active.pop(what, None)
         source = (ua.NodeId(f"{m.name}.Parameters.{e.get('parameter')}", self.ns)
                   if kind != "diagnosis" else ua.NodeId(f"{m.name}.Diagnosis", self.ns))
         if source not in self.aspace:
