@@ -57,6 +57,28 @@ def test_placement_keeps_a_zenoh_session_in_one_worker_and_machines_where_they_a
     assert all(p.name != "a.toml" for ps in third for p in ps)
 
 
+def test_placement_keeps_an_opcua_endpoint_in_one_worker_joined_with_zenoh(
+        tmp_path: Path) -> None:
+    """Issue 35: machines naming one [outputs.opcua] endpoint share one server (one port, one
+    process); a machine sharing a Zenoh session with one of them joins their group."""
+    for name in ("a", "b", "c", "d"):
+        machine_config(tmp_path, name, port=None)
+    for name in ("o1", "o2", "o3"):
+        path = machine_config(tmp_path, name, port=None)
+        path.write_text(path.read_text() + '\n[outputs.opcua]\nendpoint = '
+                        '"opc.tcp://127.0.0.1:4999"\n')
+    path = machine_config(tmp_path, "z1", port=7999)   # Zenoh with o4, OPC UA with o1-o3
+    machine_config(tmp_path, "o4", port=7999)
+    (tmp_path / "o4.toml").write_text((tmp_path / "o4.toml").read_text()
+                                      + '\n[outputs.opcua]\nendpoint = '
+                                      '"opc.tcp://127.0.0.1:4999"\n')
+    off = machine_config(tmp_path, "off", port=None)
+    off.write_text(off.read_text() + '\n[outputs.opcua]\nenabled = false\n')
+    placed = [{p.stem for p in ps} for ps in place(sorted(tmp_path.glob("*.toml")), [], 2)]
+    assert any({"o1", "o2", "o3", "o4", "z1"} <= ps for ps in placed), placed
+    assert sorted(len(ps) for ps in placed) == [5, 5]
+
+
 def _workers(host_pid: int) -> dict[int, set[str]]:
     """The host's worker processes: pid -> the machine files its assignment names."""
     out: dict[int, set[str]] = {}

@@ -36,8 +36,9 @@ stalled (default 30; 0: never) it is killed and started again with ``--resume``,
 watchdog would restart a frozen service; one that sends again first is back.
 
 Placement: machines whose ``[zenoh]`` tables are the same share one session and its listening
-port, so they go to the same worker (a second process could not listen on the port); the other
-machines (Zenoh off, or a session of their own) are spread to balance the workers. A machine
+port, and machines naming one ``[outputs.opcua]`` endpoint share one OPC UA server, so they go
+to the same worker (a second process could not listen on the port); the other machines (Zenoh
+off, or a session of their own) are spread to balance the workers. A machine
 keeps its worker across reloads; a new file goes to the worker with fewest machines.
 """
 
@@ -96,28 +97,65 @@ DEFAULT_STALLED_RESTART = 30.0
 
 
 
-_GROUPS: dict[Path, str] = {}
-"""The last group read for each file (a file renamed away keeps its group for placement)."""
+_GROUPS: dict[Path, tuple[str, ...]] = {}
+"""The last keys read for each file (a file renamed away keeps its group for placement)."""
+
+#: ``[outputs.opcua] endpoint``'s default (:class:`twinwatch.sinks.opcua.OpcUaConfig`).
+OPCUA_ENDPOINT = "opc.tcp://127.0.0.1:4840"
 
 
-def session_group(path: Path) -> str:
-    """What ties a machine file to others: its ``[zenoh]`` table when Zenoh is on (machines
-    configured alike share one session and its port, so one process), else its machine's name
-    (two files naming one machine, a file renamed: one process decides which runs); the file
-    itself when it cannot be read."""
+def session_keys(path: Path) -> tuple[str, ...]:
+    """What ties a machine file to others, each key a resource one process must hold for
+    every machine that names it: its ``[zenoh]`` table when Zenoh is on (machines configured
+    alike share one session and its port), its ``[outputs.opcua]`` endpoint when that output
+    is on (machines naming one endpoint share one server); else its machine's name (two files
+    naming one machine, a file renamed: one process decides which runs); the file itself when
+    it cannot be read."""
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        return _GROUPS.get(path, f"file:{path.name}")
+        return _GROUPS.get(path, (f"file:{path.name}",))
     zenoh = data.get("zenoh", {})
     machine = data.get("machine", {})
     name = machine.get("name") if isinstance(machine, dict) else None
-    if not isinstance(zenoh, dict) or zenoh.get("enabled", True) is False:
-        group = f"name:{name}" if isinstance(name, str) else f"file:{path.name}"
-    else:
-        group = "zenoh:" + json.dumps(zenoh, sort_keys=True, default=str)
-    _GROUPS[path] = group
-    return group
+    keys: list[str] = []
+    if isinstance(zenoh, dict) and zenoh.get("enabled", True) is not False:
+        keys.append("zenoh:" + json.dumps(zenoh, sort_keys=True, default=str))
+    outputs = data.get("outputs", {})
+    opcua = outputs.get("opcua") if isinstance(outputs, dict) else None
+    if isinstance(opcua, dict) and opcua.get("enabled", True) is not False:
+        keys.append(f"opcua:{opcua.get('endpoint', OPCUA_ENDPOINT)}")
+    if not keys:
+        keys.append(f"name:{name}" if isinstance(name, str) else f"file:{path.name}")
+    _GROUPS[path] = tuple(keys)
+    return _GROUPS[path]
+
+
+def session_group(path: Path) -> str:
+    """The first of :func:`session_keys` (a file's own group, before files sharing another
+    key are joined to it by :func:`session_groups`)."""
+    return session_keys(path)[0]
+
+
+def session_groups(paths: Sequence[Path]) -> dict[Path, str]:
+    """Each file's group: files that share any of :func:`session_keys` (a Zenoh table, an
+    OPC UA endpoint) form one group, transitively; a group cannot be split over processes."""
+    parent: dict[str, str] = {}
+
+    def find(k: str) -> str:
+        parent.setdefault(k, k)
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for p in paths:
+        keys = session_keys(p)
+        for k in keys[1:]:
+            a, b = find(keys[0]), find(k)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    return {p: find(session_keys(p)[0]) for p in paths}
 
 
 def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> list[list[Path]]:
@@ -130,17 +168,18 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
         n: workers (>= 1).
     """
     present = set(files)
+    group = session_groups(sorted(set(files) | {p for ps in current for p in ps}))
     where: dict[str, int] = {}
     for k in range(min(n, len(current))):
         for p in current[k]:  # removed files too: a renamed file follows its machine
-            where.setdefault(session_group(p), k)
+            where.setdefault(group[p], k)
     out = [[p for p in (current[k] if k < len(current) else []) if p in present]
            for k in range(n)]
     placed = {p for ps in out for p in ps}
     groups: dict[str, list[Path]] = {}
     for p in sorted(files):
         if p not in placed:
-            groups.setdefault(session_group(p), []).append(p)
+            groups.setdefault(group[p], []).append(p)
     # the largest groups first, each to the worker with fewest machines (or to its session's)
     for g, ps in sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[1][0])):
         worker = where.get(g)
@@ -154,7 +193,7 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
 def worker_processes(directory: Path, workers: int | None) -> int:
     """The worker processes a directory's machines run in: ``workers`` (default
     :func:`~twinwatch.daemon.slots.default_processes`), at most one per session group
-    (:func:`session_group`: a group cannot be split); 1 (every machine in the host process)
+    (:func:`session_groups`: a group cannot be split); 1 (every machine in the host process)
     for a directory of fewer than two machines.
 
     Args:
