@@ -26,6 +26,8 @@ id = "shaft_custom"
 component = "shaft"
 terms = [{ kinds = ["periodic"], attach = ["d(omega)/dt"], harmonic = 1.0 }]
 sensors = [{ kind = "frozen", channel = "ia" }]
+checks = [{ output = "Va", link = 0.5 }]
+deviations = [{ parameter = "D", direction = "up", min_pct = 3.0, when_held = ["Ke"] }]
 action = "look"
 source = "test"
 """
@@ -40,6 +42,11 @@ BAD = [
      "measure; did you mean 'ia'?"),
     ('model = "dc_motor"', 'model = "hydraulic_actuator"',
      "the library is for the 'hydraulic_actuator' model; this machine's model is 'dc_motor'"),
+    ('output = "Va"', 'output = "Vaa"',
+     "fault 'shaft_custom' names the output 'Vaa' in checks, which is not a channel of the "
+     "dc_motor twin; did you mean 'Va'?"),
+    ('when_held = ["Ke"]', 'when_held = ["Kee"]',
+     "fault 'shaft_custom' names the parameter 'Kee' in when_held/when_estimated"),
     ('kind = "frozen"', 'kind = "stuck"',
      "faults.0.sensors.0.kind: Input should be 'frozen' or 'saturated'"),
 ]
@@ -52,7 +59,7 @@ def _machine(tmp_path: Path, library: Path) -> Path:
 
 
 @pytest.mark.parametrize(("good", "bad", "why"), BAD, ids=["kind", "speed", "sensor", "model",
-                                                           "key"])
+                                                           "check", "when", "key"])
 def test_a_bad_library_is_refused_in_one_line_naming_the_key(
         tmp_path: Path, good: str, bad: str, why: str) -> None:
     library = tmp_path / "faults.toml"

@@ -353,6 +353,20 @@ class DiagnosisConfig(_Strict):
                         raise ValueError(f"{key}: fault {f.id!r} names the meta-model kind "
                                          f"{k!r}, which the registry does not know; "
                                          f"{_closest(k, kinds)}")
+            for cs in f.checks:
+                # a channel the twin reads (an output in one structure may be an input in
+                # another: Va in closed loop and open loop; a check that is not compared in
+                # this configuration never fails, it is not a mistake)
+                if channels and cs.output not in channels:
+                    raise ValueError(f"{key}: fault {f.id!r} names the output {cs.output!r} "
+                                     f"in checks, which is not a channel of the {model} "
+                                     f"twin; {_closest(cs.output, channels)}")
+            for sign in (*f.deviations, *f.trends):
+                for name in (*sign.when_held, *sign.when_estimated):
+                    if name not in parameter_names:
+                        raise ValueError(f"{key}: fault {f.id!r} names the parameter {name!r} "
+                                         f"in when_held/when_estimated; the {model} model has "
+                                         f"{list(parameter_names)}")
             for ss in f.sensors:
                 if ss.channel != "*" and outputs and ss.channel not in outputs:
                     raise ValueError(f"{key}: fault {f.id!r} names the sensor channel "
