@@ -143,3 +143,6 @@ def test_a_reload_refuses_a_bad_library_in_one_log_line(
     msg = record.getMessage()
     assert "\n" not in msg and "https://" not in msg, msg
     assert "diagnosis.library" in msg and "meta-model kind 'periodc'" in msg, msg
+    # and the SIGHUP said what changed, in one line (issue 37: a file it reads, not its own)
+    hup = [r.getMessage() for r in caplog.records if r.getMessage().startswith("SIGHUP")]
+    assert hup == ["SIGHUP: changed: diagnosis.library (faults.toml); reloading m1.toml"], hup

@@ -161,6 +161,7 @@ class Machine:
         self.watchdog = Watchdog(self.notifier, max_busy=host.stuck_after,
                                  max_quiet=host.quiet_after)
         self._own_load = load
+        self._loaded = False  # loaded once: a load is a reload
         prefix = f"twinwatch-{stem}" if host.fleet else "twinwatch"
         base_dir = path.resolve().parent if path is not None else host.base_dir
         self.supervisor = Supervisor(
@@ -179,6 +180,12 @@ class Machine:
             ConfigError: naming the file and key.
         """
         if self._own_load is not None:
+            if self._loaded:  # a reload (SIGHUP): one line says what changed, or nothing
+                changed = self.changed()
+                logger.warning("SIGHUP: %s; reloading %s", (
+                    "changed: " + ", ".join(changed) if changed else
+                    "nothing changed in the configuration nor the files it reads"), self.file)
+            self._loaded = True
             cfg = self._own_load()
             self.name = cfg.machine.name
             self._watch(cfg)
@@ -652,10 +659,6 @@ class Host(ServiceHost):
         again those not running (lost, or their source ended)."""
         if not self.fleet:
             for m in list(self.machines.values()):
-                changed = m.changed()
-                logger.warning("SIGHUP: %s; reloading %s", (
-                    "changed: " + ", ".join(changed) if changed else
-                    "nothing changed in the configuration nor the files it reads"), m.file)
                 m.supervisor.reload()
             return
         self.notifier.reloading("re-reading the machine directory")
