@@ -361,8 +361,10 @@ class DiagnosisConfig(_Strict):
                     raise ValueError(f"{key}: fault {f.id!r} names the output {cs.output!r} "
                                      f"in checks, which is not a channel of the {model} "
                                      f"twin; {_closest(cs.output, channels)}")
-            for sign in (*f.deviations, *f.trends):
-                for name in (*sign.when_held, *sign.when_estimated):
+            conditions = [(*d.when_held, *d.when_estimated) for d in f.deviations] + [
+                (*t.when_held, *t.when_estimated) for t in f.trends]
+            for held_or_estimated in conditions:
+                for name in held_or_estimated:
                     if name not in parameter_names:
                         raise ValueError(f"{key}: fault {f.id!r} names the parameter {name!r} "
                                          f"in when_held/when_estimated; the {model} model has "
