@@ -674,6 +674,12 @@ class OpcUaServer:
     async def _stop(self) -> None:
         self._watch.cancel()
         await self.server.stop()
+        # the sessions of clients still connected (their timeout loops, their subscriptions'
+        # publishing loops): cancelled, not left pending when the loop closes
+        rest = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for t in rest:
+            t.cancel()
+        await asyncio.gather(*rest, return_exceptions=True)
 
     def _stop_loop(self) -> None:
         self._loop.call_soon_threadsafe(self._loop.stop)
