@@ -257,6 +257,11 @@ def test_rul_diagnosis_and_device_health_follow_the_message(
         c.pump(4.0, until=lambda: c.read("m1.DeviceHealth").Value.Value == 2)
         assert c.read("m1.DeviceHealth").Value.Value == DEVICE_HEALTH["CHECK_FUNCTION"]
         assert "no window" in c.read("m1.DeviceHealthReason").Value.Value
+        # the next window sets it from the message again
+        sinks["m1"].write(out(h.model_copy(update={"diagnosis": medium}), processed))
+        sinks["m1"].server.flush()
+        assert c.read("m1.DeviceHealth").Value.Value == DEVICE_HEALTH["MAINTENANCE_REQUIRED"]
+        assert "no window" not in c.read("m1.DeviceHealthReason").Value.Value
     finally:
         c.close()
 

@@ -284,9 +284,10 @@ class _ReadOnly:
 class _Machine:
     """One machine's nodes: its object, the variables by path, the run's clock anchor."""
 
-    def __init__(self, name: str, obj: Any) -> None:
+    def __init__(self, name: str, obj: Any, stale_after: float) -> None:
         self.name = name
         self.obj = obj
+        self.stale_after = stale_after                  # s without a window: CHECK_FUNCTION
         self.vars: dict[str, tuple[Any, Any]] = {}     # path -> (NodeId, VariantType)
         self.anchor: tuple[str, float] | None = None    # (run, wall - plant) for plant time
         self.last_window = time.monotonic()
@@ -460,8 +461,7 @@ class OpcUaServer:
         ns = self.ns
         b = _Builder(ns, name)
         obj = b.object(None, name, self.root.nodeid, folder_parent=True)
-        m = _Machine(name, obj)
-        m.stale_after = stale_after  # type: ignore[attr-defined]
+        m = _Machine(name, obj, stale_after)
         dt = ua.ObjectIds
         b.variable(m, obj, "DeviceHealth", ua.Variant(0, ua.VariantType.Int32), self.health_type)
         for path, vtype, dtype, first in (
@@ -643,7 +643,7 @@ class OpcUaServer:
             await asyncio.sleep(1.0)
             now = time.monotonic()
             for m in list(self.machines.values()):
-                limit = getattr(m, "stale_after", 30.0)
+                limit = m.stale_after
                 if m.stale or now - m.last_window < limit:
                     continue
                 m.stale = True
@@ -652,6 +652,9 @@ class OpcUaServer:
                 stamp = datetime.now(UTC)
                 reason = (f"check function: no window for {limit:g} s (the source is lost "
                           f"or the estimation stopped); last: {m.health[1]}")
+                # remembered as written: the next window writes its own health again
+                m.last["DeviceHealth"] = (DEVICE_HEALTH["CHECK_FUNCTION"], None)
+                m.last["DeviceHealthReason"] = (reason, None)
                 for node, var in ((nid, ua.Variant(DEVICE_HEALTH["CHECK_FUNCTION"],
                                                    ua.VariantType.Int32)),
                                   (rid, ua.Variant(reason, ua.VariantType.String))):
