@@ -357,6 +357,16 @@ def test_bad_tables_refused_naming_the_key_and_a_taken_port(tmp_path: Path,
         cfg = OpcUaConfig(endpoint=f"opc.tcp://127.0.0.1:{port}")
         with pytest.raises(PublisherError, match=rf"port {port} on 127.0.0.1 is already taken"):
             OpcUaPublisher.open("opcua", cfg, context("m1", None, processed[0]))
+        # `twinwatch run`: one line naming it, no traceback (asyncua's own is filtered)
+        from tests.test_fault_injection import cli
+
+        path = sim_config(tmp_path, extra=f'\n[outputs.opcua]\nendpoint = '
+                                          f'"opc.tcp://127.0.0.1:{port}"\n')
+        r = cli("run", "--no-progress", str(path))
+        assert r.exit_code == 1, r.output
+        assert (f"outputs.opcua.endpoint opc.tcp://127.0.0.1:{port}: port {port} on "
+                f"127.0.0.1 is already taken" in r.output)
+        assert "Traceback" not in r.output
 
 
 def test_history_of_the_parameters_when_asked(processed: Any) -> None:

@@ -87,6 +87,21 @@ asyncua: Any = lazy_module("asyncua")
 ua: Any = lazy_module("asyncua.ua")
 
 
+class _QuietStart(logging.Filter):
+    """asyncua's start logs a traceback when the port is taken (twinwatch says it in one line:
+    :class:`OpcUaServer`) and two warnings about identity tokens on an endpoint without
+    security (the default here: anonymous clients only, nothing to verify)."""
+
+    DROPPED = ("%s error starting server", "No signing policy available",
+               "No encrypting policy available")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(self.DROPPED)
+
+
+_QUIET = _QuietStart()
+
+
 def _import() -> None:
     """Bind the real modules once a server opens: every ``ua.X`` through the lazy module
     costs an import-system lookup (a sixth of a window's writing, measured)."""
@@ -95,6 +110,9 @@ def _import() -> None:
     from asyncua import ua as real_ua
 
     asyncua, ua = real, real_ua
+    quiet = logging.getLogger("asyncua.server.server")
+    if _QUIET not in quiet.filters:
+        quiet.addFilter(_QUIET)
 
 logger = logging.getLogger(__name__)
 
