@@ -257,6 +257,11 @@ def test_rul_diagnosis_and_device_health_follow_the_message(
         c.pump(4.0, until=lambda: c.read("m1.DeviceHealth").Value.Value == 2)
         assert c.read("m1.DeviceHealth").Value.Value == DEVICE_HEALTH["CHECK_FUNCTION"]
         assert "no window" in c.read("m1.DeviceHealthReason").Value.Value
+        # the next window sets it from the message again
+        sinks["m1"].write(out(h.model_copy(update={"diagnosis": medium}), processed))
+        sinks["m1"].server.flush()
+        assert c.read("m1.DeviceHealth").Value.Value == DEVICE_HEALTH["MAINTENANCE_REQUIRED"]
+        assert "no window" not in c.read("m1.DeviceHealthReason").Value.Value
     finally:
         c.close()
 
@@ -323,6 +328,28 @@ def test_bad_tables_refused_naming_the_key_and_a_taken_port(tmp_path: Path,
                                                '["Basic256Sha256_Sign"]\n'))
     with pytest.raises(ConfigError, match=r"outputs\.opcua\.security"):
         load_config(sim_config(tmp_path, extra='\n[outputs.opcua]\nsecurity = ["Basic128"]\n'))
+    # the files: missing (check-config's preflight), a key others can read (at load), a file
+    # that is no certificate (at open), each naming its key
+    from twinwatch.config.preflight import check_runnable
+
+    key = tmp_path / "k.pem"
+    key.write_text("not a key")
+    key.chmod(0o600)
+    table = ('\n[outputs.opcua]\nsecurity = ["Basic256Sha256_Sign"]\ncertificate = '
+             '"missing.der"\nprivate_key = "k.pem"\n')
+    path = sim_config(tmp_path, extra=table)
+    with pytest.raises(ConfigError, match=r"outputs\.opcua\.certificate: file .* not found"):
+        check_runnable(load_config(path), str(path), base_dir=tmp_path, cwd=tmp_path)
+    key.chmod(0o644)
+    with pytest.raises(ConfigError, match=r"outputs\.opcua\.private_key = .* readable by other"):
+        load_config(path)
+    (tmp_path / "bad.der").write_text("not a certificate")
+    cfg = OpcUaConfig(endpoint=f"opc.tcp://127.0.0.1:{free_port()}",
+                      security=["Basic256Sha256_Sign"], certificate=str(tmp_path / "bad.der"),
+                      private_key=str(key))
+    with pytest.raises(PublisherError, match=r"outputs\.opcua\.certificate = .*cannot be "
+                                             r"loaded"):
+        OpcUaPublisher.open("opcua", cfg, context("m1", None, processed[0]))
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
@@ -330,6 +357,16 @@ def test_bad_tables_refused_naming_the_key_and_a_taken_port(tmp_path: Path,
         cfg = OpcUaConfig(endpoint=f"opc.tcp://127.0.0.1:{port}")
         with pytest.raises(PublisherError, match=rf"port {port} on 127.0.0.1 is already taken"):
             OpcUaPublisher.open("opcua", cfg, context("m1", None, processed[0]))
+        # `twinwatch run`: one line naming it, no traceback (asyncua's own is filtered)
+        from tests.test_fault_injection import cli
+
+        path = sim_config(tmp_path, extra=f'\n[outputs.opcua]\nendpoint = '
+                                          f'"opc.tcp://127.0.0.1:{port}"\n')
+        r = cli("run", "--no-progress", str(path))
+        assert r.exit_code == 1, r.output
+        assert (f"outputs.opcua.endpoint opc.tcp://127.0.0.1:{port}: port {port} on "
+                f"127.0.0.1 is already taken" in r.output)
+        assert "Traceback" not in r.output
 
 
 def test_history_of_the_parameters_when_asked(processed: Any) -> None:
@@ -498,3 +535,63 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
             client.communicate()
         proc.terminate()
         proc.communicate(timeout=120)
+
+
+def _certificate(directory: Path, name: str, uri: str, server: bool) -> tuple[Path, Path]:
+    """A self-signed application certificate (DER) and its key (PEM, 0600) by asyncua's own
+    generator."""
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    key, cert = directory / f"{name}.pem", directory / f"{name}.der"
+    use = [ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH]
+    asyncio.run(setup_self_signed_certificate(key, cert, uri, "localhost", use,
+                                              {"commonName": name}))
+    key.chmod(0o600)
+    return cert, key
+
+
+def test_signed_and_encrypted_endpoint_with_a_trusted_client_only(tmp_path: Path,
+                                                                  processed: Any) -> None:
+    """Basic256Sha256 SignAndEncrypt with the server's certificate and key from files: a client
+    with a trusted certificate reads; one without security, or with a certificate the table
+    does not trust, is refused."""
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+
+    server_cert, server_key = _certificate(tmp_path, "server", "urn:freeopcua:python:server",
+                                           True)
+    good_cert, good_key = _certificate(tmp_path, "scada", "urn:test:scada", False)
+    bad_cert, bad_key = _certificate(tmp_path, "stranger", "urn:test:stranger", False)
+    port = free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+    cfg = OpcUaConfig(endpoint=url, security=["Basic256Sha256_SignAndEncrypt"],
+                      certificate=str(server_cert), private_key=str(server_key),
+                      trusted_clients=[str(good_cert)])
+    sink = OpcUaPublisher.open("opcua", cfg, context("m1", None, processed[0]))
+    loop = asyncio.new_event_loop()
+    try:
+        sink.write(out(message(processed, "m1"), processed))
+        sink.server.flush()
+
+        async def read(cert: Path | None, key: Path | None) -> float:
+            client = asyncua.Client(url, timeout=10)
+            client.application_uri = "urn:test:scada" if cert == good_cert else \
+                "urn:test:stranger"
+            if cert is not None:
+                await client.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key),
+                                          server_certificate=str(server_cert),
+                                          mode=ua.MessageSecurityMode.SignAndEncrypt)
+            async with client:
+                ns = await client.get_namespace_index(NS)
+                return float(await client.get_node(
+                    ua.NodeId("m1.Parameters.Ra.Value", ns)).read_value())
+
+        ra = message(processed, "m1").parameters["Ra"].value
+        assert loop.run_until_complete(read(good_cert, good_key)) == pytest.approx(ra)
+        with pytest.raises(ua.UaError, match="No matching endpoints"):
+            loop.run_until_complete(read(None, None))   # no None endpoint offered
+        with pytest.raises(ua.uaerrors.BadCertificateUntrusted):
+            loop.run_until_complete(read(bad_cert, bad_key))   # not in trusted_clients
+    finally:
+        loop.close()
+        sink.close()

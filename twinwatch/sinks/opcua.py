@@ -87,6 +87,21 @@ asyncua: Any = lazy_module("asyncua")
 ua: Any = lazy_module("asyncua.ua")
 
 
+class _QuietStart(logging.Filter):
+    """asyncua's start logs a traceback when the port is taken (twinwatch says it in one line:
+    :class:`OpcUaServer`) and two warnings about identity tokens on an endpoint without
+    security (the default here: anonymous clients only, nothing to verify)."""
+
+    DROPPED = ("%s error starting server", "No signing policy available",
+               "No encrypting policy available")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(self.DROPPED)
+
+
+_QUIET = _QuietStart()
+
+
 def _import() -> None:
     """Bind the real modules once a server opens: every ``ua.X`` through the lazy module
     costs an import-system lookup (a sixth of a window's writing, measured)."""
@@ -95,6 +110,9 @@ def _import() -> None:
     from asyncua import ua as real_ua
 
     asyncua, ua = real, real_ua
+    quiet = logging.getLogger("asyncua.server.server")
+    if _QUIET not in quiet.filters:
+        quiet.addFilter(_QUIET)
 
 logger = logging.getLogger(__name__)
 
@@ -284,9 +302,10 @@ class _ReadOnly:
 class _Machine:
     """One machine's nodes: its object, the variables by path, the run's clock anchor."""
 
-    def __init__(self, name: str, obj: Any) -> None:
+    def __init__(self, name: str, obj: Any, stale_after: float) -> None:
         self.name = name
         self.obj = obj
+        self.stale_after = stale_after                  # s without a window: CHECK_FUNCTION
         self.vars: dict[str, tuple[Any, Any]] = {}     # path -> (NodeId, VariantType)
         self.anchor: tuple[str, float] | None = None    # (run, wall - plant) for plant time
         self.last_window = time.monotonic()
@@ -460,8 +479,7 @@ class OpcUaServer:
         ns = self.ns
         b = _Builder(ns, name)
         obj = b.object(None, name, self.root.nodeid, folder_parent=True)
-        m = _Machine(name, obj)
-        m.stale_after = stale_after  # type: ignore[attr-defined]
+        m = _Machine(name, obj, stale_after)
         dt = ua.ObjectIds
         b.variable(m, obj, "DeviceHealth", ua.Variant(0, ua.VariantType.Int32), self.health_type)
         for path, vtype, dtype, first in (
@@ -643,7 +661,7 @@ class OpcUaServer:
             await asyncio.sleep(1.0)
             now = time.monotonic()
             for m in list(self.machines.values()):
-                limit = getattr(m, "stale_after", 30.0)
+                limit = m.stale_after
                 if m.stale or now - m.last_window < limit:
                     continue
                 m.stale = True
@@ -652,6 +670,9 @@ class OpcUaServer:
                 stamp = datetime.now(UTC)
                 reason = (f"check function: no window for {limit:g} s (the source is lost "
                           f"or the estimation stopped); last: {m.health[1]}")
+                # remembered as written: the next window writes its own health again
+                m.last["DeviceHealth"] = (DEVICE_HEALTH["CHECK_FUNCTION"], None)
+                m.last["DeviceHealthReason"] = (reason, None)
                 for node, var in ((nid, ua.Variant(DEVICE_HEALTH["CHECK_FUNCTION"],
                                                    ua.VariantType.Int32)),
                                   (rid, ua.Variant(reason, ua.VariantType.String))):
@@ -674,6 +695,12 @@ class OpcUaServer:
     async def _stop(self) -> None:
         self._watch.cancel()
         await self.server.stop()
+        # the sessions of clients still connected (their timeout loops, their subscriptions'
+        # publishing loops): cancelled, not left pending when the loop closes
+        rest = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for t in rest:
+            t.cancel()
+        await asyncio.gather(*rest, return_exceptions=True)
 
     def _stop_loop(self) -> None:
         self._loop.call_soon_threadsafe(self._loop.stop)
