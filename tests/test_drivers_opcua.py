@@ -221,6 +221,20 @@ def test_a_bad_status_is_a_missing_sample_counted_per_channel_and_an_overflow_co
         assert d.stats.extra["overflows"] == 1 and got[slots.index(7)].values["Va"] == 7.0
 
 
+def test_a_channel_that_stops_is_named_silent_and_its_samples_counted_missing():
+    with _server() as srv, OpcUaDriver(_config(srv), time_origin=BASE) as d:
+        for k in range(1, 6):
+            srv.write(k, {"Va": 1.0, "ia": 1.0}, base=BASE)
+        assert len(_read_all(d, 6)) == 6 and d.silent == ()
+        for k in range(6, 40):  # ia's variable stops updating; Va goes on
+            srv.write(k, {"Va": 1.0}, base=BASE)
+            time.sleep(0.05)
+        assert [s.split(" for ")[0] for s in d.silent] == ["ia"]
+        srv.write(40, {"Va": 1.0, "ia": 1.0}, base=BASE)
+        got = _read_all(d, 1)
+        assert [round(s.t / PERIOD) for s in got] == [40] and d.stats.gaps == 34
+
+
 def test_a_server_without_source_timestamps_gives_server_timestamps_said_once(caplog):
     with _server() as srv, OpcUaDriver(_config(srv)) as d:
         for k in range(5):  # a changing value: without source time stamps, only a change

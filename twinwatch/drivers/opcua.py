@@ -40,7 +40,10 @@ Sample times, and how channels are joined into samples
     complete: the slots skipped since the last sample (a channel's value missing, a dropped
     notification, a reconnect) are counted in ``stats.gaps`` and the ring buffer abandons the
     window they fall in. A value for a slot already delivered (the current value a server sends
-    when a subscription is recreated) is skipped (``stats.extra["duplicates"]``).
+    when a subscription is recreated) is skipped (``stats.extra["duplicates"]``). A source time
+    more than an hour away from the last sample's (a clock set, a device restarted) counts in
+    ``stats.extra["time_jumps"]``, not as missing samples. A channel whose values stop while
+    the others' go on is named in :attr:`OpcUaDriver.silent` (its slots are counted missing).
 
 Status codes
     A value whose StatusCode is not Good (Uncertain or Bad: a sensor fault, a device not
@@ -408,6 +411,7 @@ class OpcUaDriver(Driver):
         # slot bookkeeping (the loop thread only)
         self._pending: dict[int, _Slot] = {}
         self._last_k: int | None = None
+        self._arrival = [0.0] * len(self.channels)  # monotonic time of each channel's last value
         self._jump_slots = int(_TIME_JUMP / self.sample_period)
         self._password = self._read_password()
         self._thread = threading.Thread(target=self._thread_main, name=_THREAD_NAME, daemon=True)
@@ -479,6 +483,21 @@ class OpcUaDriver(Driver):
         return (f"OPC UA server {self.config.endpoint} away for "
                 f"{time.monotonic() - since:.0f} s ({self._last_error}); reconnecting with "
                 f"backoff up to {self.config.backoff_max:g} s")
+
+    @property
+    def silent(self) -> tuple[str, ...]:
+        """The channels whose values stopped (for a second, or four publishing intervals) while
+        the others' arrive, with how long: ``("ia for 3.1 s",)``."""
+        if self._down_since is not None or not any(self._arrival):
+            return ()
+        now = time.monotonic()
+        quiet = max(1.0, 4 * self.config.publishing_interval)
+        newest = max(self._arrival)
+        if now - newest > quiet:  # nothing arrives at all: not a silent channel
+            return ()
+        return tuple(f"{ch} for {now - t:.1f} s" for ch, t in zip(self.channels, self._arrival,
+                                                                  strict=True)
+                     if now - t > quiet)
 
     # -- the client thread ------------------------------------------------------------------
     def _thread_main(self) -> None:
@@ -778,6 +797,7 @@ class OpcUaDriver(Driver):
         if not 0 <= i < len(self.channels):
             return
         ch = self.channels[i]
+        self._arrival[i] = time.monotonic()
         dv = item.Value
         if dv.StatusCode is not None and dv.StatusCode.value == _WAITING_FOR_INITIAL_DATA:
             return  # the server has no value yet: no sample, nothing missing
