@@ -396,6 +396,32 @@ def test_check_config_refuses_a_missing_certificate_file(tmp_path: Path):
     assert "driver.server_certificate" in r.output
 
 
+def test_a_private_key_others_can_read_is_refused(tmp_path: Path):
+    from twinwatch.config.loader import ConfigError, check_secrets, load_config
+
+    src = Path(__file__).parents[1] / "config" / "dc-motor-opcua-sim.toml"
+    head, _, rest = src.read_text().partition("[driver]")
+    rest = rest[rest.index("\n[zenoh]"):]
+    (tmp_path / "pki").mkdir()
+    for name in ("client.der", "client.pem", "server.der"):
+        (tmp_path / "pki" / name).write_text("x")
+    (tmp_path / "pki" / "client.pem").chmod(0o644)
+    driver = "\n".join([
+        "[driver]", 'type = "opcua"', 'endpoint = "opc.tcp://127.0.0.1:4841"',
+        "sample_period = 0.01", 'security_policy = "Basic256Sha256"', 'security_mode = "Sign"',
+        'certificate = "pki/client.der"', 'private_key = "pki/client.pem"',
+        'server_certificate = "pki/server.der"', "[driver.channels]",
+        *(f'{ch} = {{ node = "ns=2;s=Motor.{ch}" }}' for ch in
+          ("Va", "ia", "omega", "Tload", "setpoint")), ""])
+    path = tmp_path / "m.toml"
+    path.write_text(head + driver + rest)
+    with pytest.raises(ConfigError) as exc:
+        check_secrets(load_config(path), path)
+    assert "driver.private_key" in str(exc.value) and "chmod o-rwx" in str(exc.value)
+    (tmp_path / "pki" / "client.pem").chmod(0o600)
+    check_secrets(load_config(path), path)
+
+
 def test_unit_matches_display_names_and_unece_codes():
     assert unit_matches("N m", "N·m", None) and unit_matches("rad/s", "rad/s", None)
     assert unit_matches("V", None, 5655636)  # "VLT"

@@ -304,6 +304,16 @@ class OpcUaDriverConfig(DriverConfig):
         return {k: v for k in ("certificate", "private_key", "server_certificate",
                                "password_file") if (v := getattr(self, k)) is not None}
 
+    def secret_input_files(self, base_dir: Path) -> dict[str, Path]:
+        """The private key and the password file (``check-config`` and ``run`` refuse them
+        when other users can read them, as the outputs' secrets)."""
+        files = self.resolved(base_dir)._files()
+        return {k: v for k, v in files.items() if k in ("private_key", "password_file")}
+
+    def inline_secret_keys(self) -> list[str]:
+        """``password`` written in the configuration itself (the file is then a secret)."""
+        return ["password"] if self.password is not None else []
+
     def required_files(self, base_dir: Path) -> dict[str, Path]:
         """Config key -> file that must exist to start (certificates, key, password file)."""
         return {f"driver.{k}": v for k, v in self.resolved(base_dir)._files().items()}
