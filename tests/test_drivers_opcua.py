@@ -541,3 +541,20 @@ def test_simulated_motor_over_opcua_ra_within_0p2_percent_and_a_server_restart_c
     print(f"Ra error after 160 s over {len(err)} windows: median {np.median(np.abs(err)):.4f} %,"
           f" max {np.max(np.abs(err)):.4f} %")
     assert np.all(np.abs(err) <= 0.2), np.percentile(np.abs(err), [50, 95, 100])
+
+
+def test_monitoring_only_the_driver_never_writes_a_node_nor_calls_a_method():
+    """No call in the driver's source writes an attribute or calls a method (asyncua's
+    write_value, write_attribute(s), set_value, call_method, Node.call...)."""
+    import ast
+
+    import twinwatch.drivers.opcua as mod
+
+    tree = ast.parse(Path(mod.__file__).read_text(encoding="utf-8"))
+    called = {node.func.attr for node in ast.walk(tree)
+              if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)}
+    forbidden = {n for n in called if n.startswith(("write", "set_value", "set_attribute",
+                                                    "set_data_value", "call", "add_", "delete"))
+                 and n != "call_soon_threadsafe"}  # asyncio's, waking the driver's loop
+    assert forbidden == set(), forbidden
+    assert {"create_subscription", "create_monitored_items", "read_node_class"} <= called
