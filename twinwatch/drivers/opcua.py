@@ -22,11 +22,11 @@ The subscription
     10 ms per notification), each monitored item's queue ``queue_size`` values (default: four
     publishing intervals' worth, at least 10) with DiscardOldest, and its data-change filter
     reports a new *source timestamp* even when the value repeats (trigger
-    StatusValueTimestamp: a constant set-point is still one value per sample). The server may
-    revise these; the revised values are logged, with a warning when the queue would not hold
-    one publishing interval. A value a server reports with the Overflow info bit (its queue
-    discarded older values) counts in ``stats.extra["overflows"]``; the discarded samples show
-    up as a gap.
+    StatusValueTimestamp: a constant set-point is still one value per sample). A server may
+    revise the publishing interval (logged; a warning when the queue would not hold one
+    interval of samples); asyncua's client does not report a revised queue size: a queue the
+    server shortened shows as values with the Overflow info bit (its queue discarded older
+    values), counted in ``stats.extra["overflows"]``, the discarded samples as a gap.
 
 Sample times, and how channels are joined into samples
     Each value's time is its SourceTimestamp (the device's clock); a server that sends none
@@ -353,7 +353,8 @@ class OpcUaDriver(Driver):
         channels: twin channel names, in the order of ``config.channels``.
         sample_period: ``config.sample_period`` [s].
         live: True (a server does not wait for its clients).
-        revised: the server's revised (publishing interval [s], {channel: queue size}).
+        revised: the server's revised publishing interval [s] and the queue size requested
+            per channel.
         cpu_seconds: CPU time [s] the client's thread has used since it subscribed (asyncua's
             decoding and the joining; updated after each batch of notifications).
 
@@ -744,11 +745,18 @@ class OpcUaDriver(Driver):
                 raise DriverConfigError(
                     f"driver.channels.{ch}: the server refused to monitor "
                     f"{cfg.channels[ch].describe()} ({r.name}): map a readable variable")
+        # asyncua keeps the server's revised publishing interval as the subscription's
         revised_pub = float(sub.parameters.RequestedPublishingInterval) / 1000.0
-        with contextlib.suppress(AttributeError):
-            revised_pub = float(sub.data.RevisedPublishingInterval) / 1000.0  # type: ignore[attr-defined]
-        queues = {ch: qsize for ch in self.channels}
-        self.revised = (revised_pub, queues)
+        if abs(revised_pub - cfg.publishing_interval) > 1e-9:
+            self.log_once("revised", "OPC UA server %s revised the publishing interval from "
+                          "%.4g s to %.4g s", cfg.endpoint, cfg.publishing_interval, revised_pub,
+                          level=logging.INFO)
+        if revised_pub / cfg.sample_period > qsize:
+            self.log_once("queue", "OPC UA publishing interval %.4g s holds %d samples, more "
+                          "than the monitored items' queue (%d): values will be discarded "
+                          "(counted as overflows and gaps); raise driver.queue_size",
+                          revised_pub, round(revised_pub / cfg.sample_period), qsize)
+        self.revised = (revised_pub, {ch: qsize for ch in self.channels})
         return sub
 
     async def _consume(self, sub: Any, lost: asyncio.Event) -> str | None:
