@@ -558,3 +558,16 @@ def test_monitoring_only_the_driver_never_writes_a_node_nor_calls_a_method():
                  and n != "call_soon_threadsafe"}  # asyncio's, waking the driver's loop
     assert forbidden == set(), forbidden
     assert {"create_subscription", "create_monitored_items", "read_node_class"} <= called
+
+
+def test_the_simulated_server_on_a_taken_port_refuses_in_one_line():
+    from twinwatch.drivers.simulated_opcua import SimulatedOpcUaDriver
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        with pytest.raises(DriverInitializationError) as exc:
+            SimulatedOpcUaDriver.from_config({"type": "simulated_opcua", "port": port})
+    msg = str(exc.value)
+    assert msg.startswith("driver.port:") and f"127.0.0.1:{port}" in msg and "\n" not in msg

@@ -74,11 +74,13 @@ class PlantSource(Protocol):
 
 
 class _DemoteFromServerThread(logging.Filter):
-    """asyncua's server warnings from the plant's server thread at DEBUG: a loopback server
-    with security None warns at every start that it offers no signing (on purpose here)."""
+    """asyncua's server records from the plant's server thread at DEBUG: a loopback server
+    with security None warns at every start that it offers no signing (on purpose here), and a
+    port already taken is logged with its traceback: :meth:`PlantOpcUaServer.start` says it in
+    one line instead."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if (logging.DEBUG < record.levelno < logging.ERROR
+        if (logging.DEBUG < record.levelno < logging.CRITICAL
                 and threading.current_thread().name.startswith(_THREAD_NAME)):
             if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
                 return False
