@@ -33,6 +33,11 @@ Usage::
     python benchmarks/bench_density.py --n 4 16 [--seconds 40] [--mode both|gateway|process]
                                        [--cold] [--workers K] [--gateways K]
                                        [--acquisition-only] [--recording] [--keep DIR]
+                                       [--opcua]
+
+``--opcua`` adds ``[outputs.opcua]`` to every machine: in gateway mode one OPC UA server per
+Zenoh port (so per worker process: the machines of one endpoint share it), one per machine
+otherwise.
 """
 
 from __future__ import annotations
@@ -61,6 +66,7 @@ sys.path.insert(0, str(ROOT))
 from twinwatch.daemon.slots import default_processes  # noqa: E402
 
 PORT_BASE = 27400
+OPCUA_OFFSET = 1000  # --opcua: the OPC UA endpoint of a machine is its Zenoh port + this
 
 FILE_DRIVER = """[driver]
 type = "file"
@@ -116,7 +122,7 @@ def plant_path(directory: Path, i: int, seconds: float) -> Path:
 
 
 def machine_config(i: int, recording: Path, port: int, record: bool,
-                   acquisition_only: bool = False) -> str:
+                   acquisition_only: bool = False, opcua: int | None = None) -> str:
     text = SIM.read_text().replace('name = "dc-motor-sim"', f'name = "m{i:03d}"')
     start, end = text.index("[driver]"), text.index("[zenoh]")
     text = text[:start] + FILE_DRIVER.format(path=recording) + "\n" + text[end:]
@@ -125,6 +131,8 @@ def machine_config(i: int, recording: Path, port: int, record: bool,
         text = text.replace("[recording]", "[recording]\nenabled = false")
     if acquisition_only:  # a window longer than the run: samples acquired, nothing estimated
         text = text.replace("window = 200 ", "window = 100000 ")
+    if opcua is not None:  # the OPC UA output on 127.0.0.1:<opcua> (issue 35)
+        text += f'\n[outputs.opcua]\nendpoint = "opc.tcp://127.0.0.1:{opcua}"\n'
     return text
 
 
@@ -351,7 +359,7 @@ def _box_ticks() -> tuple[int, int]:
 
 def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
              workers: int | None, acquisition_only: bool = False, gateways: int = 1,
-             keep: Path | None = None) -> Run:
+             keep: Path | None = None, opcua: bool = False) -> Run:
     run = Run(n=n, mode=mode if gateways == 1 or mode != "gateway" else f"gw x{gateways}",
               expected=0 if acquisition_only else sum(
                   windows_expected(f"m{i:03d}", seconds, mode) for i in range(n)))
@@ -370,9 +378,11 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
             port = PORT_BASE + i % ports if mode == "gateway" else PORT_BASE + 100 + i
             where = shards[i % gateways] if mode == "gateway" and gateways > 1 else machines
             where.mkdir(exist_ok=True)
+            # the OPC UA output: one server per Zenoh group (per worker process), its
+            # machines sharing it (one process per machine: a server each)
             (where / f"m{i:03d}.toml").write_text(
                 machine_config(i, plant_path(plants, i, seconds), port, record,
-                               acquisition_only))
+                               acquisition_only, opcua=port + OPCUA_OFFSET if opcua else None))
         cmd = [sys.executable, "-m", "twinwatch", "run", "--no-progress", "--duration",
                str(seconds)]
         t_start = time.monotonic()
@@ -457,6 +467,9 @@ def main() -> None:
                     "(each its own Zenoh port)")
     ap.add_argument("--acquisition-only", action="store_true",
                     help="windows longer than the run: the cost of acquiring, storing nothing")
+    ap.add_argument("--opcua", action="store_true",
+                    help="also serve the health over OPC UA ([outputs.opcua]: one server per "
+                    "worker process, its machines sharing it)")
     ap.add_argument("--keep", type=Path, default=None,
                     help="copy each machine's state database and the processes' logs here")
     ap.add_argument("--plants", type=Path, default=Path(tempfile.gettempdir()) / "density-plants")
@@ -478,7 +491,7 @@ def main() -> None:
             r = run_once(n, mode, args.seconds, args.plants, cold=args.cold,
                          record=args.recording, workers=args.workers,
                          acquisition_only=args.acquisition_only, gateways=args.gateways,
-                         keep=args.keep)
+                         keep=args.keep, opcua=args.opcua)
             print(r.row(), flush=True)
             print(f"       {r.others()}", flush=True)
             if r.late_where:

@@ -45,6 +45,14 @@ def test_example_config_passes_check_config(path: Path, tmp_path: Path):
         path = tmp_path / path.name
         path.write_text(text)
     result = CliRunner().invoke(main, ["check-config", str(path)])
+    if 'purpose = "commissioning"' in text:
+        # issue 37: check-config said OK and run then refused it (78): they agree now, and
+        # both say what it is for (twinwatch identify) and how to run it anyway (--force)
+        assert result.exit_code == 1, result.output
+        assert f"valid for `twinwatch identify {path}`" in result.output, result.output
+        run = CliRunner().invoke(main, ["run", "--no-progress", str(path)])
+        assert run.exit_code == 78 and "for `twinwatch identify`" in run.output, run.output
+        result = CliRunner().invoke(main, ["check-config", "--force", str(path)])
     assert result.exit_code == 0, result.output
     assert "OK" in result.output
 

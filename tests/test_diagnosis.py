@@ -142,12 +142,17 @@ def test_an_unbalance_that_follows_the_shaft_is_checked_window_by_window() -> No
     """The plant's unbalance as a real one (unbalance_follows_shaft: 3 sin(shaft angle), at
     1 x the shaft speed, the shaft held at 7 rad/s from rest, 80 s): the periodic term is
     re-found while the shaft speeds up, its frequency follows it, and once its ratio to the
-    window's shaft speed has stayed 1 for 5 windows in a row the unbalance is named."""
+    window's shaft speed has stayed 1 for 5 windows in a row the unbalance is named. Each
+    window fits the term at one frequency while the shaft's speed, and the unbalance's, varies
+    within it, so every output's model check keeps failing with the term in place: the
+    unknown fault explains that too and keeps a share (issue 34: 0.78, not the 0.8 of an
+    unbalance whose term fits)."""
     history = _motor("dc-motor-unbalanced-sim.toml", scenario="unbalanced_shaft",
                      unbalance_amplitude=3.0, unbalance_follows_shaft=True, duration=80.0,
                      setpoint=SetpointSchedule(steps=[(0.0, 7.0)]))
     d = _final(history)
-    assert d.top == "unbalance" and d.faults[0].probability >= 0.8, d
+    assert d.top == "unbalance" and d.faults[0].probability >= 0.7, d
+    assert any("model check failed in" in e for e in d.faults[0].evidence_for), d
     text = " ".join(d.faults[0].evidence_for)
     m = re.search(r"([\d.]+) rad/s against 1 x ([\d.]+) = .*?; ([\d.]+)-([\d.]+) x the shaft "
                   r"speed over the last 5 windows", text)

@@ -186,3 +186,67 @@ def test_a_twin_that_does_not_fit_is_check_function_and_a_step_under_it_is_named
              and h.diagnosis.top == "winding_short" and h.diagnosis.probability >= 0.8]
     assert named and named[0] <= 110.0 + 60.0, named[:3]
     assert history[-1].diagnosis.top == "winding_short"  # type: ignore[union-attr]
+
+
+def test_a_voltage_reading_low_is_the_reading_not_the_winding() -> None:
+    """The default motor, healthy, its voltage reading drifting to 0.9x over 20 s from 20 s:
+    the estimates move as a shorted winding moves them (Ra -10 %, every other parameter held
+    or flat; measured in the fault matrix: winding_short 0.94, its alarm raised, before issue
+    34's second round), but the reading, compared as an output, leaves Va's residual coloured
+    window after window while a winding passes every check: the winding never reaches 0.8 and
+    the voltage reading is named at the end."""
+    history, _ = _run(90.0, sensor_faults=[{"channel": "Va", "kind": "gain", "gain": 0.9,
+                                            "start": 20.0, "ramp": 20.0}])
+    worst = max((f.probability, h.window) for h in history
+                for f in h.diagnosis.faults  # type: ignore[union-attr]
+                if f.id == "winding_short")
+    assert worst[0] < 0.8, worst
+    last = history[-1].diagnosis
+    assert last is not None and last.faults[0].id == "voltage_sensor_low", last
+    assert any("Va's model check failed in" in e for e in last.faults[0].evidence_for), last
+
+
+@pytest.mark.slow
+def test_a_sagging_supply_is_never_named_as_the_brushes_with_confidence() -> None:
+    """A supply delivering 0.9 of the commanded voltage from 20 s (ramp 20 s), 120 s: Ra
+    appears 11 % up exactly as worn brushes make it, every check passing: the motor's data
+    cannot tell the two apart, so neither is named at 0.8 (before: brushes 0.94, its alarm
+    raised) and both are listed."""
+    history, _ = _run(120.0, supply_fault={"ratio": 0.9, "start": 20.0, "ramp": 20.0})
+    worst = max(f.probability for h in history
+                for f in h.diagnosis.faults  # type: ignore[union-attr]
+                if f.id == "brushes_connections")
+    assert worst < 0.8, worst
+    last = history[-1].diagnosis
+    assert last is not None
+    ids = [f.id for f in last.faults[:2]]
+    assert set(ids) == {"brushes_connections", "supply_sag"}, last.faults
+
+
+def test_a_signature_seen_through_a_held_parameter_applies_only_while_it_is_held() -> None:
+    """A weaker magnet moves D (through Kt, tied to the held Ke) only while Ke is held; once a
+    window estimates Ke it moves Ke and leaves D (the twin's Eq. 12 with Kt = Ke)."""
+    lib = shipped_library("dc_motor")
+    assert lib is not None
+    d = Diagnoser(lib)
+    i = 1 + [f.id for f in d.faults].index("magnet_weakening")   # the hypothesis {magnet}
+    held = d._components("D", frozenset({"Ra", "D"}))
+    free = d._components("D", frozenset({"Ra", "D", "Ke", "La", "J"}))
+    assert held.p_up[i] == pytest.approx(0.9) and free.p_up[i] == 0.0
+
+
+def test_a_check_a_fault_may_leave_passing_is_no_evidence_against_it(
+        nominal_messages: list[HealthMessage]) -> None:
+    """The unbalance may leave the outputs' checks failing (its term at one frequency a window
+    against a shaft whose speed varies) or passing (a term that fits): twenty passing windows
+    are no evidence against it, while they are against a speed reading's error (Va's check
+    fails with it in 39 to 40 of 40 windows)."""
+    base = nominal_messages[-1]
+    d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
+    for w in range(20):
+        out = d.update(_failing(base, w, True), None)
+    against = {f.id: " ".join(f.evidence_against) for f in out.faults}
+    listed = {f.id for f in out.faults}
+    assert "model check failed in 0 of the last 10" not in against.get("unbalance", "")
+    assert ("speed_sensor_high" not in listed
+            or "Va's model check failed in 0 of the last 10" in against["speed_sensor_high"])

@@ -559,6 +559,28 @@ def test_sighup_reads_a_fixed_password_file_again(tmp_path: Path):
         b.stop()
 
 
+@needs_mosquitto
+def test_a_refused_connection_is_one_line_not_paho_s_on_every_retry(tmp_path: Path) -> None:
+    """Issue 37: a broker refusing the connection (Not authorized) got, on every retry
+    (about one a second), paho's ERROR 'Client is not connected' besides our line: the wait
+    for the CONNACK went on polling the socket the refusal had closed. Now the refusal is said
+    once (at warning; a retry refused for the same reason logs at debug only) and paho says
+    nothing."""
+    d = tmp_path / "broker"
+    b = Broker(d, anonymous=False)
+    b.start()
+    try:
+        proc = twinwatch(sim_config(tmp_path, duration=20.0, extra=mqtt_table(b.port)),
+                         cwd=tmp_path)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        b.stop()
+    assert proc.returncode == 0, err
+    assert "windows estimated" in out and "10 windows" in out.replace("pending", ""), out
+    assert err.count("unreachable (connection refused: Not authorized)") == 1, err
+    assert "paho" not in err, err
+
+
 # -- the sink on its own: a reload hands it over; without a state database ---------------------
 def _window(store: Any, w: int, machine: str = "m1") -> Any:
     """Store one small health message as the gate does and return what write() gets."""

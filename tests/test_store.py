@@ -260,3 +260,36 @@ def test_history_pages_advance_with_the_after_cursor(tmp_path: Path) -> None:
         None, None, 1, "plant", None, 12.5)
     with pytest.raises(ValueError, match="after"):
         history_parameters({"after": "inf"})
+
+
+def test_the_history_reply_carries_the_cursor_by_wall_time_too(tmp_path: Path) -> None:
+    """Issue 37: the docs' history example asks ``by=wall`` (the last hour), but the reply
+    carried ``next_after`` by plant time only: a client paging by wall time had no cursor (the
+    messages carry no wall stamp), so ``more`` said there was more and nothing said where it
+    began. The reply's ``next_after`` is now the cursor of the ``by`` asked: every window once,
+    one at a time, by plant and by wall time, paging only with what the replies say."""
+    from types import SimpleNamespace
+
+    from twinwatch.sinks.zenoh import HealthPublisher
+
+    with StateStore(tmp_path / "s.sqlite") as st:
+        for w in range(7):
+            st.save_window(health(w), None, wall=1_000_000.0 + 10 * w)
+
+        def history(t_from, t_to, limit, by, run=None, after=None):  # the daemon's binding
+            return st.history(t_from, t_to, limit, by=by, machine="m1", run=run, after=after)
+
+        daemon = SimpleNamespace(context=SimpleNamespace(history=history, run="r1"),
+                                 _detached=False, machine="m1")
+        for by in ("plant", "wall"):
+            seen: list[int] = []
+            params: dict[str, str] = {"by": by, "limit": "1", "t_from": "0"}
+            for _ in range(20):
+                reply = HealthPublisher._on_history_query(daemon, SimpleNamespace(
+                    parameters=params))
+                seen += [h["window"] for h in reply["windows"]]
+                if not reply["more"]:
+                    break
+                assert reply["next_after"] is not None, (by, reply)
+                params = {**params, "after": repr(reply["next_after"])}
+            assert seen == list(range(7)), (by, seen)

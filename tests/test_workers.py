@@ -57,6 +57,28 @@ def test_placement_keeps_a_zenoh_session_in_one_worker_and_machines_where_they_a
     assert all(p.name != "a.toml" for ps in third for p in ps)
 
 
+def test_placement_keeps_an_opcua_endpoint_in_one_worker_joined_with_zenoh(
+        tmp_path: Path) -> None:
+    """Issue 35: machines naming one [outputs.opcua] endpoint share one server (one port, one
+    process); a machine sharing a Zenoh session with one of them joins their group."""
+    for name in ("a", "b", "c", "d"):
+        machine_config(tmp_path, name, port=None)
+    for name in ("o1", "o2", "o3"):
+        path = machine_config(tmp_path, name, port=None)
+        path.write_text(path.read_text() + '\n[outputs.opcua]\nendpoint = '
+                        '"opc.tcp://127.0.0.1:4999"\n')
+    path = machine_config(tmp_path, "z1", port=7999)   # Zenoh with o4, OPC UA with o1-o3
+    machine_config(tmp_path, "o4", port=7999)
+    (tmp_path / "o4.toml").write_text((tmp_path / "o4.toml").read_text()
+                                      + '\n[outputs.opcua]\nendpoint = '
+                                      '"opc.tcp://127.0.0.1:4999"\n')
+    off = machine_config(tmp_path, "off", port=None)
+    off.write_text(off.read_text() + '\n[outputs.opcua]\nenabled = false\n')
+    placed = [{p.stem for p in ps} for ps in place(sorted(tmp_path.glob("*.toml")), [], 2)]
+    assert any({"o1", "o2", "o3", "o4", "z1"} <= ps for ps in placed), placed
+    assert sorted(len(ps) for ps in placed) == [5, 5]
+
+
 def _workers(host_pid: int) -> dict[int, set[str]]:
     """The host's worker processes: pid -> the machine files its assignment names."""
     out: dict[int, set[str]] = {}
@@ -166,3 +188,71 @@ def test_a_killed_worker_is_restarted_and_its_machines_resume_the_others_untouch
     log = (tmp_path / "stderr.txt").read_text()
     assert "ended by SIGKILL: starting it again" in log
     assert "ended by SIGABRT: starting it again" in log
+
+
+@pytest.mark.slow
+def test_a_stopped_worker_is_reported_stalled_and_restarted(tmp_path: Path) -> None:
+    """Issue 37: a SIGSTOPped worker process is alive, so the host said "4 of 4 machines
+    monitored" while its machines stored nothing, kept the watchdog pinged, and exited 0. Now
+    a worker that sent nothing for a window (2 s) plus 5 s is stalled in STATUS at once (its
+    machines not counted, named), killed and started again after ``[acquisition]
+    stalled_restart`` (here 4 s) with its machines resuming, and the summary and the exit
+    status (74) say it stalled."""
+    from .sources_support import NotifySocket
+
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    for name in ("a", "b", "c", "d"):
+        path = machine_config(machines, name, port=None)
+        text = path.read_text().replace('estimate = ["Ra", "D", "Ke", "La", "J"]',
+                                        'estimate = ["Ra", "D"]')
+        path.write_text(text.replace("[acquisition]", "[acquisition]\nstalled_restart = 4.0"))
+    dbs = {m: tmp_path / m / "state.sqlite" for m in ("a", "b", "c", "d")}
+    notify = NotifySocket(tmp_path / "notify")
+    err = (tmp_path / "stderr.txt").open("w")
+    proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "--no-progress",
+                             "--log-level", "info", "--workers", "2", str(machines)],
+                            cwd=tmp_path, env=dict(_env(), NOTIFY_SOCKET=str(notify.path)),
+                            stdout=subprocess.PIPE, stderr=err, text=True)
+
+    def wait_until(what, timeout: float, why: str) -> float:  # type: ignore[no-untyped-def]
+        t0 = time.monotonic()
+        while not what():
+            assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()[-3000:]
+            assert time.monotonic() - t0 < timeout, (why, notify.statuses()[-3:])
+            time.sleep(0.2)
+        return time.monotonic() - t0
+
+    try:
+        wait_until(lambda: all(len(_rows(db)) >= 2 for db in dbs.values()), 120,
+                   "every machine stores two windows")
+        workers = _workers(proc.pid)
+        victim = min(workers)
+        frozen = sorted(f.removesuffix(".toml") for f in workers[victim])
+        os.kill(victim, signal.SIGSTOP)
+        stopped_at = time.time()
+        took = wait_until(lambda: any("stalled" in s for s in notify.statuses()), 20,
+                          "STATUS says the worker stalled")
+        assert took < 2.0 + 5.0 + 3.0
+        line = next(s for s in notify.statuses() if "stalled" in s)
+        assert f"gateway: {4 - len(frozen)} of 4 machines monitored" in line, line
+        assert all(m in line for m in frozen), line
+        # killed and started again after stalled_restart: its machines store windows again
+        wait_until(lambda: all(any(w > stopped_at for _, _, w in _rows(dbs[m]))
+                               for m in frozen), 60, "the stalled worker's machines resume")
+        wait_until(lambda: "4 of 4 machines monitored" in (notify.statuses() or [""])[-1], 30,
+                   "STATUS back to every machine")
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        err.close()
+        notify.close()
+    log = (tmp_path / "stderr.txt").read_text()
+    assert proc.returncode == 74, log[-3000:]
+    assert "twinwatch gateway: 4 machines, 4 ran, 0 lost" in out, out
+    assert "stalled: worker" in out and "1 restarted" in out, out
+    assert log.count("stalled (stopped or frozen)") == 1, log[-3000:]
+    assert "was killed after it stalled 4 s: starting it again" in log, log[-3000:]

@@ -91,7 +91,18 @@ class DriverInitializationError(DriverError):
 class DriverConfigError(DriverInitializationError):
     """The driver cannot start because of its configuration or the files it names (a DBC
     without the configured message, a recording without the mapped column, ...): starting
-    again will not help (``twinwatch run`` exits 78, EX_CONFIG)."""
+    again will not help (``twinwatch run`` exits 78, EX_CONFIG). A driver names the key of
+    its table first (``path: ...``, ``columns.ia.column: ...``); :meth:`keyed` says it as
+    the configuration's key (``driver.path: ...``)."""
+
+    def keyed(self) -> str:
+        """The message with its key as the configuration names it: ``driver.path: CSV ...
+        has no data rows`` (a message naming no key: ``driver: ...``)."""
+        text = str(self)
+        head, sep, _ = text.partition(": ")
+        if sep and head and " " not in head and not head.startswith("driver"):
+            return f"driver.{text}"
+        return text if text.startswith("driver") else f"driver: {text}"
 
 
 class DriverOperationError(DriverError):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import stat
 import tomllib
 from pathlib import Path
@@ -22,13 +23,18 @@ from pydantic import ValidationError
 from twinwatch.config.schema import TwinwatchConfig
 from twinwatch.errors import ConfigError
 
+_KEY_FIRST = re.compile(r"^([A-Za-z_][\w.\[\]-]*(?: \([^)]*\))?): (.+)$", re.DOTALL)
+"""A whole configuration's check naming its key first (``diagnosis.library (f.toml): ...``)."""
+
 
 def _errors(exc: ValidationError) -> list[tuple[str, str]]:
     """Each error of a validation as (dotted key, message)."""
     found = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"] if not str(p).startswith("function-"))
-        msg = err["msg"]
+        msg = str(err["msg"]).removeprefix("Value error, ")  # pydantic's, says nothing
+        if not loc and (m := _KEY_FIRST.match(msg)):  # a cross-check names its key first
+            loc, msg = m.group(1), m.group(2)
         if err["type"] == "extra_forbidden":
             msg = "unknown key (misspelt, or not valid in this table)"
         elif err["type"] == "missing":

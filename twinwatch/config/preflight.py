@@ -25,7 +25,7 @@ from twinwatch.config.schema import TwinwatchConfig
 from twinwatch.sinks import sink_class
 from twinwatch.twin.models import create_model
 
-__all__ = ["check_runnable", "runnable_problems"]
+__all__ = ["check_runnable", "referenced_files", "runnable_problems"]
 
 
 def _dir_problem(key: str, path: Path) -> str | None:
@@ -66,14 +66,18 @@ def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None 
     required_files = getattr(cfg.driver, "required_files", None)
     if required_files is not None:
         for key, path in required_files(base_dir).items():
-            if not Path(path).is_file():
+            if Path(path).is_dir():
+                problems.append(f"{key}: {path} is a directory: give the file in it")
+            elif not Path(path).is_file():
                 problems.append(f"{key}: file {path} not found")
     for output in cfg.output_tables():
         if not output.config.enabled or (not persist and _is_gate(output.name)):
             continue
         for key, file in output.config.input_files().items():
             f = Path(file)
-            if not f.is_file():
+            if f.is_dir():
+                problems.append(f"{output.key}.{key}: {f} is a directory: give the file in it")
+            elif not f.is_file():
                 problems.append(f"{output.key}.{key}: file {f} not found")
             elif not os.access(f, os.R_OK):
                 problems.append(f"{output.key}.{key}: file {f} is not readable by this user")
@@ -96,6 +100,30 @@ def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None 
                             f"the {cfg.driver.type} driver does not deliver (it delivers "
                             f"{', '.join(sorted(delivered))}): {hint}")
     return problems
+
+
+def referenced_files(cfg: TwinwatchConfig, *, base_dir: Path,
+                     cwd: Path | None = None) -> dict[str, Path]:
+    """Every file the configuration reads besides itself, config key -> path: the driver's
+    (``required_files``: a DBC, a CAN log, a recording; relative to ``base_dir``), the enabled
+    outputs' (``input_files``: certificates, keys, password files) and the fault library
+    (``diagnosis.library``, relative to ``cwd``, default the current directory). A reload
+    compares their contents to know whether a machine changed (:mod:`twinwatch.daemon.host`).
+    """
+    cwd = Path.cwd() if cwd is None else cwd
+    files: dict[str, Path] = {}
+    required_files = getattr(cfg.driver, "required_files", None)
+    if required_files is not None:
+        files.update({key: Path(path) for key, path in required_files(base_dir).items()})
+    for output in cfg.output_tables():
+        if output.config.enabled:
+            files.update({f"{output.key}.{key}": Path(file)
+                          for key, file in output.config.input_files().items()})
+    library = cfg.diagnosis.library if cfg.diagnosis.enabled else None
+    if library is not None:
+        path = Path(library).expanduser()
+        files["diagnosis.library"] = path if path.is_absolute() else cwd / path
+    return files
 
 
 def check_runnable(cfg: TwinwatchConfig, source: str, *, base_dir: Path,

@@ -281,6 +281,13 @@ class AcquisitionConfig(BaseModel):
         "restarted)")
     shutdown_timeout: StrictFloat = Field(
         10.0, gt=0, description="seconds to finish queued windows")
+    stalled_restart: StrictFloat = Field(
+        30.0, ge=0, le=86400, description="a gateway's worker process (`run DIR --workers N`) "
+        "that sent its host nothing for one window plus 5 s (stopped, frozen) is reported "
+        "stalled at once (STATUS, summary, exit status 74); after this many seconds [s] "
+        "stalled it is killed and started again, its machines resuming from their state "
+        "databases, as systemd's watchdog would (the smallest of the worker's machines' "
+        "applies; 0: never, it stays reported stalled)")
     abandon_on_stop: bool = Field(False, description="on stop, drop queued windows instead "
                                   "of estimating them")
     stagger: bool = Field(True, description="in a fleet (a directory of machines), lengthen "
@@ -383,7 +390,9 @@ class TwinwatchConfig(BaseModel):
         self.discovery.check_against(model)
         self.identify.check_against(model)
         self.diagnosis.check_against(self.machine.model, model.parameter_names,
-                                     [a.name for a in model.attach_points])
+                                     [a.name for a in model.attach_points],
+                                     channels=model.required_channels(),
+                                     outputs=model.output_names)
         self.alarms.check_against(model.parameter_names,
                                   estimated=self.estimation.estimate or [])
         try:

@@ -47,6 +47,7 @@ from __future__ import annotations
 import faulthandler
 import gc
 import hashlib
+import json
 import logging
 import os
 import threading
@@ -135,7 +136,11 @@ class Machine:
         failure: the same in full (every line), or None.
         error: what its start raised (a configuration error, a start error, :class:`Stopped`).
         config_error: ``lost`` is an invalid configuration.
-        digest: the file's SHA-256 when it was (re)loaded (a reload leaves it alone if equal).
+        watched: what a reload compares: the configuration file and every file it reads
+            (:func:`~twinwatch.config.preflight.referenced_files`: fault library, DBC, CAN
+            log, recording, certificates), label (``m1.toml``, ``diagnosis.library``) -> path.
+        digests: their contents' SHA-256 when the machine (re)loaded them (a reload leaves the
+            machine alone when every one is equal).
     """
 
     def __init__(self, host: Host, path: Path | None,
@@ -149,12 +154,14 @@ class Machine:
         self.failure: str | None = None
         self.error: BaseException | None = None
         self.config_error = False
-        self.digest = _digest(path) if path is not None else ""
+        self.watched: dict[str, Path] = {path.name: path} if path is not None else {}
+        self.digests: dict[str, str] = {k: _digest(p) for k, p in self.watched.items()}
         self.started = threading.Event()  # running, or lost/stopped before it ran
         self.notifier = MachineNotifier(host, self)
         self.watchdog = Watchdog(self.notifier, max_busy=host.stuck_after,
                                  max_quiet=host.quiet_after)
         self._own_load = load
+        self._loaded = False  # loaded once: a load is a reload
         prefix = f"twinwatch-{stem}" if host.fleet else "twinwatch"
         base_dir = path.resolve().parent if path is not None else host.base_dir
         self.supervisor = Supervisor(
@@ -173,8 +180,15 @@ class Machine:
             ConfigError: naming the file and key.
         """
         if self._own_load is not None:
+            if self._loaded:  # a reload (SIGHUP): one line says what changed, or nothing
+                changed = self.changed()
+                logger.warning("SIGHUP: %s; reloading %s", (
+                    "changed: " + ", ".join(changed) if changed else
+                    "nothing changed in the configuration nor the files it reads"), self.file)
+            self._loaded = True
             cfg = self._own_load()
             self.name = cfg.machine.name
+            self._watch(cfg)
             return cfg
         assert self.path is not None
         try:
@@ -189,7 +203,31 @@ class Machine:
         self.supervisor.work_dir = work_dir
         self.host.check(cfg, self.path, work_dir)
         self.name = name
+        self._watch(cfg)
         return cfg
+
+    def _watch(self, cfg: TwinwatchConfig) -> None:
+        """Keep the digests of the configuration file and the files ``cfg`` reads, as they are
+        when it loads (what the next SIGHUP compares)."""
+        from twinwatch.config.preflight import referenced_files
+
+        base_dir = self.path.resolve().parent if self.path is not None else self.host.base_dir
+        watched = {self.path.name: self.path} if self.path is not None else {}
+        watched.update(referenced_files(cfg, base_dir=base_dir))
+        self.digests = {k: _digest(p) for k, p in watched.items()}
+        self.watched = watched
+
+    def changed(self) -> list[str]:
+        """What changed since the machine loaded: ``m1.toml``, ``diagnosis.library
+        (faults.toml)``...; each one's new digest is kept (a reload that is refused is not
+        tried again until the file changes again)."""
+        out: list[str] = []
+        for key, path in list(self.watched.items()):
+            digest = _digest(path)
+            if digest != self.digests.get(key):
+                self.digests[key] = digest
+                out.append(key if key == path.name else f"{key} ({path.name})")
+        return out
 
     def _run(self) -> None:
         sup = self.supervisor
@@ -333,6 +371,8 @@ class Host(ServiceHost):
         super().__init__()
         self.target = target
         self.assignment = assignment
+        if assignment is not None:  # a worker process: its host says the signals once
+            self.signal_log_level = logging.DEBUG
         self.fleet = target is not None and target.is_dir()
         if not self.fleet and load is None:
             raise ValueError("a fleet of one needs its loader")
@@ -363,6 +403,7 @@ class Host(ServiceHost):
         self._names: dict[str, Machine] = {}
         self._owners: dict[str, Path] = {}  # machine name -> the first file naming it
         self._skipped: dict[str, str] = {}
+        self._warned: set[tuple[str, str]] = set()  # the skipped entries named so far
         self._names_lock = threading.Lock()
         self._status_lock = threading.Lock()
         self._status = ""
@@ -406,8 +447,8 @@ class Host(ServiceHost):
             if name is not None:
                 owners.setdefault(name, p)
         self._owners = owners
-        for entry, why in self._skipped.items():
-            logger.warning("%s: skipped: %s", entry, why)
+        if self.assignment is None:  # a worker process's host names them, once for all
+            warn_skipped(self._skipped, self._warned)
         return files
 
     def claim(self, name: str, machine: Machine) -> None:
@@ -577,6 +618,10 @@ class Host(ServiceHost):
         if now >= self._next_status:
             self._next_status = now + 1.0
             self._changed()
+            if self.assignment is not None and self._ready:
+                # a worker process's heartbeat: its host calls a worker that sends nothing
+                # for a window plus a margin stalled (a stopped or frozen process is alive)
+                self.notifier.notify(f"{FLEET_REPORT}={self.fleet_status().model_dump_json()}")
 
     def _stop_all(self) -> None:
         machines = [*self.machines.values(), *self.retired]
@@ -618,28 +663,34 @@ class Host(ServiceHost):
             return
         self.notifier.reloading("re-reading the machine directory")
         files = set(self._scan())
+        done: list[str] = []
         for path in list(self.machines):
             if path not in files:
                 m = self.machines.pop(path)
-                logger.warning("machine %s: %s was removed: stopping it", m.name, m.file)
+                done.append(f"{m.name} stopped ({m.file} removed)")
                 m.supervisor.stop()
                 self.retired.append(m)
         for path in sorted(p for p in files if p is not None):
             current = self.machines.get(path)
             if current is None:
-                logger.warning("machine file %s added: starting it", path.name)
+                done.append(f"{path.stem} started ({path.name} added)")
                 self._add(path)
                 continue
             m = current
             if m.lost is not None or not m.thread.is_alive():
-                logger.warning("machine %s: trying %s again", m.name, path.name)
+                done.append(f"{m.name} tried again ({path.name}: it was not running)")
                 if m.supervisor.daemon is not None:  # it ran: its summary is still given
                     self.retired.append(m)
                 self._add(path)
-            elif _digest(path) != m.digest:
-                m.digest = _digest(path)
-                logger.warning("machine %s: %s changed: reloading it", m.name, path.name)
+            elif changed := m.changed():
+                done.append(f"{m.name} reloaded ({', '.join(changed)} changed)")
                 m.supervisor.reload()
+        # one line per SIGHUP, also when nothing changed (a worker's host merges its workers')
+        line = reload_line(done, len(self.machines), str(self.directory))
+        if self.assignment is not None:
+            self.notifier.notify(f"{RELOAD_REPORT}={json.dumps(done)}")
+        else:
+            logger.warning("%s", line)
         self._send_status(ready=True)
 
     # -- what to report -----------------------------------------------------------------------
@@ -676,9 +727,14 @@ class Host(ServiceHost):
         """A fleet's machines monitored and the degraded ones by name (its STATUS line's
         content, and what a worker process reports to its host)."""
         ms = list(self.machines.values())
+        acq = [m.supervisor.config.acquisition for m in ms if m.supervisor.config is not None]
         return FleetStatus(monitored=sum(1 for m in ms if m.running), machines=len(ms),
                            degraded=[f"{name}: {', '.join(p)}"
-                                     for name, p in self.problems().items()])
+                                     for name, p in self.problems().items()],
+                           window_s=max((a.window * a.sample_period for a in acq),
+                                        default=None),
+                           stalled_restart=min((a.stalled_restart for a in acq),
+                                               default=None))
 
     def exit_status(self) -> int:
         """The process's exit status once :meth:`run` returned: 78 when no machine's
@@ -806,11 +862,41 @@ def skipped(directory: Path) -> dict[str, str]:
     return out
 
 
+def warn_skipped(entries: dict[str, str], warned: set[tuple[str, str]]) -> None:
+    """Log each skipped entry of a machine directory (:func:`skipped`) once: when it is first
+    seen or its reason changed, not at every reload nor by every worker process."""
+    for entry, why in entries.items():
+        if (entry, why) not in warned:
+            warned.add((entry, why))
+            logger.warning("%s: skipped: %s", entry, why)
+
+
 def _digest(path: Path) -> str:
+    """The file's SHA-256 ("" when it cannot be read: a file that appears or goes away is a
+    change too)."""
     try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()
+        h = hashlib.sha256()
+        with path.open("rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        return h.hexdigest()
     except OSError:
         return ""
+
+
+RELOAD_REPORT = "TWINWATCH_RELOAD"
+"""The notification assignment a worker process's host sends what its SIGHUP did in (a JSON
+list of :func:`reload_line`'s items): its host logs one line for every worker."""
+
+
+def reload_line(done: list[str], machines: int, directory: str) -> str:
+    """The one line a gateway logs per SIGHUP: what it did (``m1 reloaded
+    (diagnosis.library (faults.toml) changed)``, ``m3 started (m3.toml added)``...), or that
+    nothing changed."""
+    if done:
+        return f"SIGHUP: {directory}: " + "; ".join(done)
+    return (f"SIGHUP: {directory}: nothing changed ({machines} machines: their files and the "
+            f"files they read are as loaded)")
 
 
 def _freeze_started() -> None:

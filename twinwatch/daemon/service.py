@@ -63,6 +63,11 @@ class FleetStatus(_Report):
     monitored: int = Field(description="machines running (started, not lost)")
     machines: int = Field(description="machines of the fleet (current files)")
     degraded: list[str] = Field(description="each degraded machine, ``name: problem, ...``")
+    window_s: float | None = Field(None, description="a worker's longest window [s] (window x "
+                                   "sample period of its machines): its host calls it stalled "
+                                   "when it sent nothing for this plus STALL_MARGIN")
+    stalled_restart: float | None = Field(None, description="a worker's machines' smallest "
+                                          "``[acquisition] stalled_restart`` [s] (0: never)")
 
     def line(self, where: str) -> str:
         """The ``STATUS=`` text, e.g. ``gateway: 2 of 3 machines monitored (DIR); DEGRADED: bad:
@@ -145,6 +150,9 @@ class ServiceHost(ABC):
 
     fleet: bool
     notifier: Notifier
+    #: the level the stop signals are logged at: a gateway's worker process logs them at
+    #: debug only (its host, which forwarded them, says it once for the gateway)
+    signal_log_level: int = logging.WARNING
 
     def __init__(self) -> None:
         self._stop = threading.Event()
@@ -223,11 +231,11 @@ class ServiceHost(ABC):
     def _on_stop_signal(self, signum: int, frame: FrameType | None) -> None:
         self._stop_signals += 1
         if self._stop_signals > 1:
-            logger.warning("%s received again: abandoning the queued windows",
-                           signal.Signals(signum).name)
+            logger.log(self.signal_log_level, "%s received again: abandoning the queued "
+                       "windows", signal.Signals(signum).name)
             self.abandon()
             return
-        logger.warning("%s received: %s", signal.Signals(signum).name,
+        logger.log(self.signal_log_level, "%s received: %s", signal.Signals(signum).name,
                        "every machine finishes its queued windows and stops" if self.fleet
                        else "finishing the queued windows and stopping")
         self.stop()

@@ -344,14 +344,17 @@ class Supervisor:
         try:
             new_cfg = self._load()
         except ValueError as exc:
-            logger.error("reload refused, the running configuration goes on: %s", exc)
+            # one line, whatever the error's (a ConfigError lists one key a line)
+            logger.error("reload refused, the running configuration goes on: %s",
+                         one_line(str(exc)))
             self.notifier.ready(status=f"reload refused ({str(exc).splitlines()[-1].strip()}); "
                                 "running the previous configuration")
             return
         try:
             keep, defer = self._handover(new_cfg)
         except (ValueError, KeyError) as exc:  # the new machine's model cannot be built
-            logger.error("reload refused, the running configuration goes on: %s", exc)
+            logger.error("reload refused, the running configuration goes on: %s",
+                         one_line(str(exc)))
             self.notifier.ready(status=f"reload refused ({exc}); running the previous "
                                 "configuration")
             return
@@ -471,5 +474,16 @@ def _start_errors() -> Iterator[None]:
         yield
     except StartError:
         raise
+    except DriverConfigError as exc:  # named by the configuration's key: driver.path
+        raise StartError(exc.keyed(), config_error=True) from exc
     except (DriverError, SinkError, PluginError, ValueError, OSError) as exc:
-        raise StartError(str(exc), config_error=isinstance(exc, DriverConfigError)) from exc
+        raise StartError(str(exc), config_error=False) from exc
+
+
+def one_line(text: str) -> str:
+    """A multi-line error in one log line: ``m.toml: invalid configuration: key: why; key:
+    why``."""
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    if len(lines) <= 1:
+        return lines[0] if lines else text
+    return f"{lines[0]}: " + "; ".join(lines[1:])

@@ -81,7 +81,7 @@ def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[st
     adapter = TwinAdapter(model, config.estimation, config.discovery, nominal,
                           prognostics=config.prognostics,
                           thresholds=config.alarms.rul_targets(nominal),
-                          adaptive=acq.adaptive)
+                          adaptive=acq.adaptive, label=config.machine.name)
     machine = config.machine.name
     pipeline = WindowPipeline(
         adapter=adapter, alarms=AlarmEvaluator(config.alarms, machine), machine=machine,

@@ -28,9 +28,17 @@ workers are untouched. One that dies 5 times within 120 s is given up (its machi
 A worker that ended by itself (its machines' sources finished) is started again only by a
 SIGHUP that finds its machines not running.
 
+A worker that is alive but sends nothing (SIGSTOP, a freeze holding its main loop) for one
+window (its machines' longest) plus :data:`STALL_MARGIN` is **stalled**: its machines are
+counted as not monitored and named in STATUS, it no longer keeps the watchdog pinged, and the
+run's summary and exit status (74) say so. After ``[acquisition] stalled_restart`` seconds
+stalled (default 30; 0: never) it is killed and started again with ``--resume``, as systemd's
+watchdog would restart a frozen service; one that sends again first is back.
+
 Placement: machines whose ``[zenoh]`` tables are the same share one session and its listening
-port, so they go to the same worker (a second process could not listen on the port); the other
-machines (Zenoh off, or a session of their own) are spread to balance the workers. A machine
+port, and machines naming one ``[outputs.opcua]`` endpoint share one OPC UA server, so they go
+to the same worker (a second process could not listen on the port); the other machines (Zenoh
+off, or a session of their own) are spread to balance the workers. A machine
 keeps its worker across reloads; a new file goes to the worker with fewest machines.
 """
 
@@ -54,7 +62,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from twinwatch.daemon import logfilter
-from twinwatch.daemon.host import MACHINE_GLOB
+from twinwatch.daemon.host import MACHINE_GLOB, RELOAD_REPORT, reload_line, skipped, warn_skipped
 from twinwatch.daemon.service import (
     EX_CONFIG,
     EX_IOERR,
@@ -77,30 +85,77 @@ RESTART_LIMIT = 5
 
 RESTART_WINDOW = 120.0
 
+STALL_MARGIN = 5.0
+"""Seconds beyond one window (its machines' longest) a worker may send its host nothing before
+it is stalled: a worker sends its :class:`FleetStatus` every second from its main loop."""
+
+DEFAULT_WINDOW = 2.0
+"""The window [s] assumed for a worker that has not reported its own (the default 200 x 10 ms)."""
+
+DEFAULT_STALLED_RESTART = 30.0
+"""``[acquisition] stalled_restart``'s default [s], for a worker that has not reported its own."""
 
 
-_GROUPS: dict[Path, str] = {}
-"""The last group read for each file (a file renamed away keeps its group for placement)."""
+
+_GROUPS: dict[Path, tuple[str, ...]] = {}
+"""The last keys read for each file (a file renamed away keeps its group for placement)."""
+
+#: ``[outputs.opcua] endpoint``'s default (:class:`twinwatch.sinks.opcua.OpcUaConfig`).
+OPCUA_ENDPOINT = "opc.tcp://127.0.0.1:4840"
 
 
-def session_group(path: Path) -> str:
-    """What ties a machine file to others: its ``[zenoh]`` table when Zenoh is on (machines
-    configured alike share one session and its port, so one process), else its machine's name
-    (two files naming one machine, a file renamed: one process decides which runs); the file
-    itself when it cannot be read."""
+def session_keys(path: Path) -> tuple[str, ...]:
+    """What ties a machine file to others, each key a resource one process must hold for
+    every machine that names it: its ``[zenoh]`` table when Zenoh is on (machines configured
+    alike share one session and its port), its ``[outputs.opcua]`` endpoint when that output
+    is on (machines naming one endpoint share one server); else its machine's name (two files
+    naming one machine, a file renamed: one process decides which runs); the file itself when
+    it cannot be read."""
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        return _GROUPS.get(path, f"file:{path.name}")
+        return _GROUPS.get(path, (f"file:{path.name}",))
     zenoh = data.get("zenoh", {})
     machine = data.get("machine", {})
     name = machine.get("name") if isinstance(machine, dict) else None
-    if not isinstance(zenoh, dict) or zenoh.get("enabled", True) is False:
-        group = f"name:{name}" if isinstance(name, str) else f"file:{path.name}"
-    else:
-        group = "zenoh:" + json.dumps(zenoh, sort_keys=True, default=str)
-    _GROUPS[path] = group
-    return group
+    keys: list[str] = []
+    if isinstance(zenoh, dict) and zenoh.get("enabled", True) is not False:
+        keys.append("zenoh:" + json.dumps(zenoh, sort_keys=True, default=str))
+    outputs = data.get("outputs", {})
+    opcua = outputs.get("opcua") if isinstance(outputs, dict) else None
+    if isinstance(opcua, dict) and opcua.get("enabled", True) is not False:
+        keys.append(f"opcua:{opcua.get('endpoint', OPCUA_ENDPOINT)}")
+    if not keys:
+        keys.append(f"name:{name}" if isinstance(name, str) else f"file:{path.name}")
+    _GROUPS[path] = tuple(keys)
+    return _GROUPS[path]
+
+
+def session_group(path: Path) -> str:
+    """The first of :func:`session_keys` (a file's own group, before files sharing another
+    key are joined to it by :func:`session_groups`)."""
+    return session_keys(path)[0]
+
+
+def session_groups(paths: Sequence[Path]) -> dict[Path, str]:
+    """Each file's group: files that share any of :func:`session_keys` (a Zenoh table, an
+    OPC UA endpoint) form one group, transitively; a group cannot be split over processes."""
+    parent: dict[str, str] = {}
+
+    def find(k: str) -> str:
+        parent.setdefault(k, k)
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for p in paths:
+        keys = session_keys(p)
+        for k in keys[1:]:
+            a, b = find(keys[0]), find(k)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    return {p: find(session_keys(p)[0]) for p in paths}
 
 
 def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> list[list[Path]]:
@@ -113,17 +168,18 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
         n: workers (>= 1).
     """
     present = set(files)
+    group = session_groups(sorted(set(files) | {p for ps in current for p in ps}))
     where: dict[str, int] = {}
     for k in range(min(n, len(current))):
         for p in current[k]:  # removed files too: a renamed file follows its machine
-            where.setdefault(session_group(p), k)
+            where.setdefault(group[p], k)
     out = [[p for p in (current[k] if k < len(current) else []) if p in present]
            for k in range(n)]
     placed = {p for ps in out for p in ps}
     groups: dict[str, list[Path]] = {}
     for p in sorted(files):
         if p not in placed:
-            groups.setdefault(session_group(p), []).append(p)
+            groups.setdefault(group[p], []).append(p)
     # the largest groups first, each to the worker with fewest machines (or to its session's)
     for g, ps in sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[1][0])):
         worker = where.get(g)
@@ -137,7 +193,7 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
 def worker_processes(directory: Path, workers: int | None) -> int:
     """The worker processes a directory's machines run in: ``workers`` (default
     :func:`~twinwatch.daemon.slots.default_processes`), at most one per session group
-    (:func:`session_group`: a group cannot be split); 1 (every machine in the host process)
+    (:func:`session_groups`: a group cannot be split); 1 (every machine in the host process)
     for a directory of fewer than two machines.
 
     Args:
@@ -180,6 +236,11 @@ class Worker:
         self.restarts: list[float] = []
         self.given_up: str | None = None
         self.started_at = 0.0
+        self.last_heard = 0.0  # monotonic time of its last notification
+        self.stalled_since: float | None = None
+        self.stalls = 0  # times it was found stalled
+        self.killed_stalled = False
+        self.reloaded: list[str] | None = None  # what its last SIGHUP did (RELOAD_REPORT)
         self.ended = False
         self._reader: threading.Thread | None = None
 
@@ -211,7 +272,8 @@ class Worker:
         self.ready = False
         self.ended = False
         self.last_ping = None
-        self.started_at = time.monotonic()
+        self.started_at = self.last_heard = time.monotonic()
+        self.stalled_since = None
         self.proc = subprocess.Popen(cmd, cwd=h.work_root, env=env, stdin=subprocess.DEVNULL,
                                      stdout=subprocess.PIPE, text=True,
                                      start_new_session=True)  # a terminal's ^C goes to the host
@@ -251,12 +313,19 @@ class Worker:
                 msg = self.sock.recv(65536).decode("utf-8", "replace")
             except (BlockingIOError, OSError):
                 return
+            self.last_heard = time.monotonic()
             for line in msg.splitlines():
                 key, _, value = line.partition("=")
                 if line == "READY=1":
                     self.ready = True
                 elif line == "WATCHDOG=1":
                     self.last_ping = time.monotonic()
+                elif key == RELOAD_REPORT:
+                    try:
+                        self.reloaded = [str(x) for x in json.loads(value)]
+                    except (ValueError, TypeError):
+                        self.reloaded = [f"worker {self.index}: its reload report could not "
+                                         "be read"]
                 elif key == FLEET_REPORT:
                     try:
                         self.report = FleetStatus.model_validate_json(value)
@@ -265,12 +334,23 @@ class Worker:
                                      self.index, exc)
 
     def healthy(self, interval: float | None) -> bool:
-        if not self.alive():
+        if not self.alive() or self.stalled_since is not None:
             return False
         if interval is None or not self.ready:
             return True
         last = self.last_ping if self.last_ping is not None else self.started_at
         return time.monotonic() - last < 2.0 * interval + 5.0
+
+    def stall_limit(self) -> float:
+        """Seconds without a notification before it is stalled: its longest window plus
+        :data:`STALL_MARGIN`."""
+        window = self.report.window_s if self.report is not None else None
+        return (window if window is not None else DEFAULT_WINDOW) + STALL_MARGIN
+
+    def stalled_restart(self) -> float:
+        """Seconds stalled before it is killed and started again (0: never)."""
+        after = self.report.stalled_restart if self.report is not None else None
+        return DEFAULT_STALLED_RESTART if after is None else after
 
     def join_output(self, timeout: float) -> None:
         if self._reader is not None:
@@ -320,8 +400,15 @@ class ProcessHost(ServiceHost):
         self._status = ""
         self._last_ping = 0.0
         self._next_status = 0.0
+        # a SIGHUP's one line, once every worker signalled said what it did: (deadline, the
+        # workers signalled, what the host itself did)
+        self._reload_pending: tuple[float, list[Worker], list[str]] | None = None
+        self._warned: set[tuple[str, str]] = set()
 
     def files(self) -> list[Path]:
+        """The machine files; the directory's other entries are named once (the workers do
+        not: they would each say it)."""
+        warn_skipped(skipped(self.directory), self._warned)
         return sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
 
     # -- start --------------------------------------------------------------------------------
@@ -368,6 +455,8 @@ class ProcessHost(ServiceHost):
                 for w in self.workers:
                     w.drain()
                     self._check(w)
+                    self._watch(w)
+                self._reload_done()
                 if not any(w.alive() for w in self.workers):
                     break
                 self._tick()
@@ -407,11 +496,47 @@ class ProcessHost(ServiceHost):
             logger.error("%s; its machines are lost: %s", w.given_up,
                          ", ".join(p.name for p in w.files))
             return
-        logger.error("worker %d (pid %d) ended by %s: starting it again; its %d machines resume "
+        how = (f"was killed after it stalled {w.stalled_restart():g} s" if w.killed_stalled
+               else f"ended by {name}")
+        w.killed_stalled = False
+        logger.error("worker %d (pid %d) %s: starting it again; its %d machines resume "
                      "from their state databases, the other workers go on", w.index,
-                     w.proc.pid, name, len(w.files))
+                     w.proc.pid, how, len(w.files))
         w.join_output(1.0)
         w.start(resume=True)
+
+    def _watch(self, w: Worker) -> None:
+        """A worker alive that sent nothing for a window plus a margin is stalled (a stopped
+        or frozen process is alive): reported at once; killed and started again after its
+        ``stalled_restart`` (the restart :meth:`_check` does for a killed worker)."""
+        if not w.alive() or not w.ready or self._stop.is_set():
+            w.stalled_since = None
+            return
+        assert w.proc is not None
+        now = time.monotonic()
+        silent = now - w.last_heard
+        if silent <= w.stall_limit():
+            if w.stalled_since is not None:
+                logger.warning("worker %d (pid %d) sends again after %.0f s stalled: its "
+                               "machines are monitored again", w.index, w.proc.pid,
+                               now - w.stalled_since)
+                w.stalled_since = None
+            return
+        restart = w.stalled_restart()
+        if w.stalled_since is None:
+            w.stalled_since = now
+            w.stalls += 1
+            logger.error("worker %d (pid %d) sent nothing for %.0f s (one window and %g s): "
+                         "stalled (stopped or frozen); its %d machines are not monitored: %s; "
+                         "%s", w.index, w.proc.pid, silent, STALL_MARGIN, len(w.files),
+                         ", ".join(p.stem for p in w.files),
+                         f"it is restarted if still stalled in {restart:g} s" if restart > 0
+                         else "stalled_restart = 0: it is not restarted")
+            self._next_status = 0.0  # STATUS says it now
+        elif restart > 0 and now - w.stalled_since >= restart and not w.killed_stalled:
+            w.killed_stalled = True
+            with contextlib.suppress(ProcessLookupError):
+                w.proc.kill()  # SIGKILL ends a stopped process too
 
     def _tick(self) -> None:
         now = time.monotonic()
@@ -433,21 +558,45 @@ class ProcessHost(ServiceHost):
         stops and reloads its machines); a worker that ended and has machines is started."""
         self.notifier.reloading("re-reading the machine directory")
         placed = place(self.files(), [w.files for w in self.workers], self.n)
+        signalled: list[Worker] = []
+        done: list[str] = []
         for w, ps in zip(self.workers, placed, strict=True):
             w.files = ps
             w.write_assignment()
             if w.alive():
+                w.reloaded = None
                 w.send(signal.SIGHUP)
+                signalled.append(w)
             elif ps and w.given_up is None:
+                done.append(f"worker {w.index} started again ({len(ps)} machines)")
                 w.join_output(1.0)
                 w.start(resume=self.resume)
+        self._reload_pending = (time.monotonic() + 10.0, signalled, done)
         self.notifier.ready(status=self.status_line())
+
+    def _reload_done(self) -> None:
+        """Log a SIGHUP's one line once every worker signalled said what it did (or after
+        10 s, naming those that did not)."""
+        if self._reload_pending is None:
+            return
+        deadline, signalled, done = self._reload_pending
+        waiting = [w for w in signalled if w.reloaded is None and w.alive()
+                   and w.stalled_since is None]
+        if waiting and time.monotonic() < deadline:
+            return
+        self._reload_pending = None
+        items = [*done, *(x for w in signalled for x in (w.reloaded or []))]
+        items += [f"worker {w.index} did not say what it reloaded" for w in waiting]
+        logger.warning("%s", reload_line(items, sum(len(w.files) for w in self.workers),
+                                         str(self.directory)))
 
     def _stop_all(self) -> None:
         self.notifier.stopping("stopping: the machines finish their queued windows")
         self.notifier.extend_timeout(30.0)
         for w in self.workers:
             w.send(signal.SIGTERM)
+            if w.stalled_since is not None:
+                w.send(signal.SIGCONT)  # a stopped worker can then stop as asked
         deadline = time.monotonic() + 25.0
         for w in self.workers:
             if w.proc is None:
@@ -482,6 +631,13 @@ class ProcessHost(ServiceHost):
         degraded: list[str] = []
         for w in self.workers:
             if not w.files:
+                continue
+            if w.stalled_since is not None:
+                total += len(w.files)
+                degraded.append(f"worker {w.index}: stalled for "
+                                f"{time.monotonic() - w.stalled_since + w.stall_limit():.0f} s "
+                                f"(sent nothing; not monitored: "
+                                f"{', '.join(p.stem for p in w.files)})")
                 continue
             if w.report is None:
                 total += len(w.files)
@@ -520,15 +676,20 @@ class ProcessHost(ServiceHost):
         machines = [by_file[f] for f in sorted(by_file)]
         lost = [f"{m.name} ({m.file}): {m.lost}" for m in machines if m.lost is not None]
         restarted = sum(1 for w in self.workers for c in w.codes if c < 0)
+        stalls = [f"worker {w.index} {w.stalls} time{'s' if w.stalls > 1 else ''} "
+                  f"({', '.join(p.stem for p in w.files)})" for w in self.workers if w.stalls]
         total = (f"twinwatch gateway: {len(machines)} machines, {len(machines) - len(lost)} "
                  f"ran, {len(lost)} lost" + (": " + "; ".join(lost) if lost else "")
-                 + f" ({len(self.workers)} worker processes, {restarted} restarted)")
+                 + f" ({len(self.workers)} worker processes, {restarted} restarted"
+                 + (f"; stalled: {'; '.join(stalls)}: their machines' windows meanwhile were "
+                    f"not estimated" if stalls else "") + ")")
         return RunSummary(machines=machines, total=total, exit_status=self.exit_status())
 
     def exit_status(self) -> int:
         """The worst of the workers' (their last incarnations'): 78 when every worker's every
         machine had an invalid configuration, 1 when a machine was lost (or a worker given
-        up), else 74 before 75 before 0."""
+        up), else 74 (also when a worker stalled: its machines' windows meanwhile were not
+        estimated) before 75 before 0."""
         finals = [w.codes[-1] for w in self.workers if w.codes]
         if any(w.given_up is not None for w in self.workers):
             return 1
@@ -536,6 +697,8 @@ class ProcessHost(ServiceHost):
             return EX_CONFIG
         if any(c in (1, EX_CONFIG) or c < 0 for c in finals):
             return 1
+        if any(w.stalls for w in self.workers):
+            return EX_IOERR
         for code in (EX_IOERR, EX_TEMPFAIL):
             if code in finals:
                 return code

@@ -47,6 +47,7 @@ import difflib
 import logging
 import math
 import time
+import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
@@ -232,6 +233,9 @@ class FileDriver(Driver):
         # full queue drops the window as an overrun instead of falling behind the clock
         self.live = config.realtime
         path = config.path
+        if path.is_dir():
+            raise DriverConfigError(f"path: {str(path)!r} is a directory: give the recording "
+                                    f"file in it")
         if not path.is_file():
             raise DriverConfigError(f"path: file {str(path)!r} not found")
         fmt = config.format
@@ -319,8 +323,11 @@ class FileDriver(Driver):
             if any(header.count(c) != 1 for c in columns):
                 return None  # the cell-by-cell reading names what is wrong
             used = sorted({header.index(c) for c in columns})
-            data = np.loadtxt(path, delimiter=delimiter, skiprows=skip, usecols=used,
-                              ndmin=2, comments=None, encoding="utf-8-sig", dtype=np.float64)
+            with warnings.catch_warnings():  # a header alone: said below, naming the key
+                warnings.simplefilter("ignore", UserWarning)
+                data = np.loadtxt(path, delimiter=delimiter, skiprows=skip, usecols=used,
+                                  ndmin=2, comments=None, encoding="utf-8-sig",
+                                  dtype=np.float64)
         except (OSError, UnicodeDecodeError, ValueError):
             return None
         if data.shape[0] == 0:
@@ -363,7 +370,9 @@ class FileDriver(Driver):
             raise DriverConfigError(f"path: CSV {str(path)!r} is empty (no header row)")
         header = [h.strip() for h in header]
         index: dict[str, int] = {}
+        key_of: dict[str, str] = {}
         for key, column in self._keys():
+            key_of.setdefault(column, key)
             if header.count(column) > 1:
                 raise DriverConfigError(
                     f"{key}: column {column!r} appears {header.count(column)} times in "
@@ -381,6 +390,7 @@ class FileDriver(Driver):
         for column, j in index.items():
             out = np.full(len(rows), np.nan)
             not_numbers = 0
+            example = ""
             for k, row in enumerate(rows):
                 cell = row[j].strip() if j < len(row) else ""
                 if not cell:
@@ -389,6 +399,13 @@ class FileDriver(Driver):
                     out[k] = float(cell)
                 except ValueError:
                     not_numbers += 1
+                    example = example or cell
+            if not_numbers and not np.isfinite(out).any():
+                # a column of text (a state, a label): every window would be abandoned
+                raise DriverConfigError(
+                    f"{key_of[column]}: column {column!r} of {path.name} holds text, not "
+                    f"numbers ({not_numbers} cells, e.g. {example[:20]!r}): map a column of "
+                    f"numbers")
             if not_numbers:
                 logger.warning(
                     "CSV %s column %r: %d cells are not numbers; read as NaN",

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import abc
 import threading
-from collections.abc import Callable, Hashable, Mapping
+from collections.abc import Callable, Hashable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, Self
@@ -55,6 +55,7 @@ if TYPE_CHECKING:  # annotations only: opening a sink does not load the twin's e
 __all__ = [
     "AlarmBands",
     "Gate",
+    "HistoryPage",
     "HistoryQuery",
     "Outbox",
     "OutboxRow",
@@ -93,6 +94,18 @@ class ProcessedWindow:
     health_json: str
     events: list[dict[str, Any]]
     twin_state: dict[str, Any] | None
+
+
+class HistoryPage(list["HealthView"]):
+    """One page of stored health messages (a list, oldest first) and the cursor of the next
+    page: ``next_after``, the ``after`` to ask next in the time the page was asked by (by
+    plant time the last window's ``t_end``; by wall time the stamp the gate saved it with,
+    which the message does not carry), None when the page is empty."""
+
+    def __init__(self, windows: Iterable[HealthView] = (), *,
+                 next_after: float | None = None) -> None:
+        super().__init__(windows)
+        self.next_after = next_after
 
 
 class HistoryQuery(Protocol):

@@ -665,6 +665,7 @@ class MqttPublisher(Sink):
         self._takeover_total = 0
         self._hold_until = 0.0       # no connection attempt before (a client-id conflict)
         self._last_error: str | None = None
+        self._refused = False  # the last attempt's CONNACK refused the connection
         self._failing_store = False
         self._inflight: dict[int, _Window] = {}  # health row id -> window
         self._mids: dict[int, int] = {}          # message id -> health row id
@@ -1012,7 +1013,10 @@ class MqttPublisher(Sink):
         self._count()
 
     def _connect(self) -> None:
-        """One connection attempt: TCP (and TLS), CONNECT, then wait for the CONNACK."""
+        """One connection attempt: TCP (and TLS), CONNECT, then wait for the CONNACK (not
+        past a refusal: its socket is closed, and polling it made paho log an error on every
+        retry)."""
+        self._refused = False
         try:
             self.client.reconnect()
         except (OSError, ssl.SSLError, ValueError) as exc:
@@ -1023,7 +1027,7 @@ class MqttPublisher(Sink):
         # attempt's socket was closed by the next before its CONNACK was read: a broker back
         # 25 s after an outage, during the stop, saw a connection a second and got nothing)
         end = time.monotonic() + self.config.connect_timeout
-        while not self._connected and time.monotonic() < end:
+        while not self._connected and not self._refused and time.monotonic() < end:
             if self.client.loop(timeout=0.05) != mqtt.MQTT_ERR_SUCCESS:
                 break
 
@@ -1039,6 +1043,7 @@ class MqttPublisher(Sink):
                     properties: Any) -> None:
         if reason.is_failure:
             self._unreachable(f"connection refused: {reason}")
+            self._refused = True
             client.disconnect()
             return
         self._connected = True

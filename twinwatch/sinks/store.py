@@ -66,6 +66,7 @@ from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
 from twinwatch.sinks.base import (
     Gate,
+    HistoryPage,
     OutboxRow,
     ProcessedWindow,
     SinkConfig,
@@ -959,7 +960,9 @@ class StateStore(Gate):
 
         Returns:
             The stored health messages, each through its typed view
-            (:func:`~twinwatch.twin.health.read_health`).
+            (:func:`~twinwatch.twin.health.read_health`), as a :class:`HistoryPage` whose
+            ``next_after`` is the cursor of the next page (by wall time the last one's
+            stored wall stamp, which the message does not carry).
         """
         if by not in ("plant", "wall"):
             raise ValueError(f"by must be 'plant' or 'wall', not {by!r}")
@@ -982,7 +985,7 @@ class StateStore(Gate):
         if after is not None and math.isfinite(after):
             where.append(f"{lo} > ?")
             args.append(float(after))
-        sql = "SELECT doc FROM health"
+        sql = f"SELECT doc, {lo} FROM health"
         if where:
             sql += " WHERE " + " AND ".join(where)
         sql += " ORDER BY id"
@@ -991,7 +994,10 @@ class StateStore(Gate):
             args.append(int(limit))
         rows = self._read("cannot read the history",
                           lambda conn: conn.execute(sql, args).fetchall())
-        return [read_health(r[0]) for r in rows]
+        # the cursor of the next page in the time asked: by wall time the stamp the store
+        # keeps (the messages carry plant time only, a caller could not page on them)
+        return HistoryPage((read_health(r[0]) for r in rows),
+                           next_after=float(rows[-1][1]) if rows else None)
 
     def timeline(self, machine: str, t_from: float | None = None) -> list[HealthView]:
         """The machine's health messages on the time line that ends with its last stored

@@ -721,9 +721,12 @@ class HealthPublisher(Sink):
         windows = (history(t_from, t_to, limit, by, run) if after is None
                    else history(t_from, t_to, limit, by, run, after))
         more = len(windows) == limit
-        # the cursor of the next page: by plant time the last window's end (by wall time the
-        # caller pages on the wall stamps it keeps; the messages carry plant time only)
-        nxt = windows[-1].t_end if more and by == "plant" and windows else None
+        # the cursor of the next page in the time asked: the gate's (by wall time the stamp it
+        # saved the window with: the messages carry plant time only), else by plant time the
+        # last window's end
+        nxt = getattr(windows, "next_after", None) if more and windows else None
+        if nxt is None and more and windows and by == "plant":
+            nxt = windows[-1].t_end
         return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to, "run": run,
                 "after": after, "count": len(windows), "more": more, "next_after": nxt,
                 # each stored message as it was stored (the fields it carries, no others)

@@ -63,6 +63,13 @@ from twinwatch.twin.prognostics.window import WindowChoice, WindowController
 
 logger = logging.getLogger(__name__)
 
+
+class _Labelled(logging.LoggerAdapter[logging.Logger]):
+    """A logger whose lines start with ``label: `` (the machine's name)."""
+
+    def process(self, msg: object, kwargs: Any) -> tuple[object, Any]:
+        return f"{(self.extra or {}).get('label')}: {msg}", kwargs
+
 __all__ = ["AdaptationResult", "Residual", "TwinAdapter"]
 
 
@@ -129,8 +136,12 @@ class TwinAdapter:
                  nominal: Mapping[str, float] | None = None,
                  prognostics: PrognosticsConfig | None = None,
                  thresholds: Mapping[str, Thresholds] | None = None,
-                 adaptive: AdaptiveWindowConfig | None = None) -> None:
+                 adaptive: AdaptiveWindowConfig | None = None, label: str = "") -> None:
         self.model = model
+        #: The log, each line led by ``label`` (the machine's name: a gateway's log says which
+        #: machine found a component).
+        self._log: logging.Logger | logging.LoggerAdapter[logging.Logger] = (
+            _Labelled(logger, {"label": label}) if label else logger)
         self.estimator = Estimator(model, estimation, nominal)
         prog = prognostics or PrognosticsConfig()
         nom = dict(zip(model.parameter_names, (float(v) for v in self.estimator.nominal),
@@ -187,8 +198,8 @@ class TwinAdapter:
                 # first windows after a discovery: the leak's pressure gain from 0.19962 to
                 # 0.2000002, D +232 % in that window): estimate it again with the refined
                 # terms, forgetting what the first estimate taught the fusion.
-                logger.debug("window %d: the kept terms moved in their polish: estimated "
-                             "again with them", window.index)
+                self._log.debug("window %d: the kept terms moved in their polish: estimated "
+                                  "again with them", window.index)
                 est_.rollback(snapshot)
                 est = est_.estimate(window, compose(self.terms, window), fit=fit)
                 theta = self._theta(est)
@@ -200,12 +211,12 @@ class TwinAdapter:
             for t in reval.dropped:
                 changed = True
                 events.append(f"dropped: {t.describe()}")
-                logger.warning("window %d: meta-model term switched off (no longer earns its "
-                               "place): %s", window.index, t.describe())
+                self._log.warning("window %d: meta-model term switched off (no longer earns its "
+                                    "place): %s", window.index, t.describe())
             for t in reval.kept:
                 events.append(f"simplified to: {t.describe()}")
-                logger.warning("window %d: meta-model term simplified to %s", window.index,
-                               t.describe())
+                self._log.warning("window %d: meta-model term simplified to %s", window.index,
+                                    t.describe())
             est = self._resimulate(est, fit, theta)
         structure = self._structure(fit, est)
         too_large = structure.structured
@@ -219,10 +230,10 @@ class TwinAdapter:
         if self._cooldown > 0:
             self._cooldown -= 1
         elif self.evidence.triggered and len(self.terms) < self.config.max_terms:
-            logger.info("window %d: the residual is structured (%s; the last %d windows "
-                        "together p = %.1e < false_alarm %.0e): discovery runs", window.index,
-                        structure.describe(), self.config.trigger_windows, evidence_p,
-                        self.config.false_alarm)
+            self._log.info("window %d: the residual is structured (%s; the last %d windows "
+                             "together p = %.1e < false_alarm %.0e): discovery runs", window.index,
+                             structure.describe(), self.config.trigger_windows, evidence_p,
+                             self.config.false_alarm)
             self.evidence.clear()
             disc = self.discovery.discover(fit, theta, self.terms)[1]
             if disc.kept:
@@ -230,9 +241,9 @@ class TwinAdapter:
                 changed = True
                 for t in disc.kept:
                     events.append(f"discovered: {t.describe()}")
-                    logger.warning("window %d: unknown component discovered in %.2f s "
-                                   "(%d twin evaluations): %s", window.index, disc.elapsed_s,
-                                   disc.evaluations, t.describe())
+                    self._log.warning("window %d: unknown component discovered in %.2f s "
+                                        "(%d twin evaluations): %s", window.index, disc.elapsed_s,
+                                        disc.evaluations, t.describe())
                 est = est_.estimate(window, compose(self.terms, window), fit=fit)
                 prior = None  # the fusion took this window twice: no share of its own
                 theta = self._theta(est)
@@ -243,13 +254,13 @@ class TwinAdapter:
                 self.consecutive = 0
             else:
                 self._cooldown = self.config.retry_after
-                logger.info("window %d: discovery ran (%.2f s, %d candidates) and no "
-                            "meta-model earned its place; next try in %d windows",
-                            window.index, disc.elapsed_s, disc.tried, self._cooldown)
+                self._log.info("window %d: discovery ran (%.2f s, %d candidates) and no "
+                                 "meta-model earned its place; next try in %d windows",
+                                 window.index, disc.elapsed_s, disc.tried, self._cooldown)
         if too_large:
             est = self._suspect(est, disc)
         if changed:
-            logger.info("DT'' is now:\n%s", format_terms(self.terms) or "(no terms)")
+            self._log.info("DT'' is now:\n%s", format_terms(self.terms) or "(no terms)")
         y_dt = fit.simulate(theta[None, :])[0] if self.terms else est.simulated
         est = dataclasses.replace(est, elapsed_s=time.perf_counter() - t0)
         return self._prognose(window, AdaptationResult(
@@ -344,14 +355,14 @@ class TwinAdapter:
     def restore(self, state: Mapping[str, Any]) -> None:
         """Resume from :meth:`state` (unknown parameters are ignored with a warning)."""
         for name in self.estimator.set_trusted(state.get("trusted", {})):
-            logger.warning("saved state names unknown parameter %r: ignored", name)
+            self._log.warning("saved state names unknown parameter %r: ignored", name)
         if not self.estimator.set_fusion_state(state.get("fusion")) and state.get("fusion"):
-            logger.warning("saved fusion state does not fit the estimated parameters: the "
-                           "fusion starts again from the trusted values")
+            self._log.warning("saved fusion state does not fit the estimated parameters: the "
+                                "fusion starts again from the trusted values")
         if not self.estimator.set_floor_state(state.get("floor")) and state.get("floor"):
-            logger.warning("the saved structural term of the intervals (the floor) cannot be "
-                           "read: it is measured again from this run's windows, the published "
-                           "intervals narrower until it is")
+            self._log.warning("the saved structural term of the intervals (the floor) cannot be "
+                                "read: it is measured again from this run's windows, the published "
+                                "intervals narrower until it is")
         self.terms = [Term.from_dict(d, self.model) for d in state.get("terms", [])]
 
     # -- helpers --------------------------------------------------------------------------

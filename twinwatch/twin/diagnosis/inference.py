@@ -40,6 +40,7 @@ from itertools import combinations
 from typing import Literal
 
 import numpy as np
+from scipy.special import betainc
 
 from twinwatch.twin.diagnosis.deviation import HI_PCT, likelihood
 from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode
@@ -61,6 +62,17 @@ LEAK_UNEXPLAINED = 0.3
 #: The unknown fault's link to a term no library fault explains, and to a failed model check.
 UNKNOWN_TERM_LINK = 0.9
 UNKNOWN_CHECK_LINK = 0.3
+#: The unknown fault's link to an output failing its model check persistently (in most of
+#: the last :data:`CHECK_RATE_WINDOWS` windows): the twin, with every term it has found,
+#: still cannot reproduce that output, so something it lacks is acting (a fault whose
+#: ``checks`` names the output explains it instead).
+UNKNOWN_CHECK_RATE_LINK = 0.3
+#: A discovered term a library fault explains, while some output still fails its check
+#: persistently with the term in the twin, is explained only in part (the twin lacks more
+#: than the term, or the term stands in for something else: a pressure reading's gain and a
+#: leak give the same term on p): the fault's match is discounted by this share of the
+#: failure's strength, and the rest left to the unknown fault.
+TERM_MISFIT_DISCOUNT = 0.5
 #: Strengths are kept in [S_MIN, 1 - S_MIN]: no single reading is certain.
 S_MIN = 1e-4
 #: An evidence variable is said for or against a fault when it moves the fault's odds by more
@@ -89,6 +101,15 @@ UNEXPLAINED_PCT = 3.0
 #: (La held at its nameplate since window 20) does not speak against it forever (1.5 % after
 #: 100 windows, 3 % after 400).
 STALE_SD_PCT = 0.15
+#: Evidence on a parameter older than this many windows (2 min at 2 s windows) says nothing
+#: about it now: a parameter the windows have not estimated since (Ke held since the start
+#: on a motor at a steady set-point) neither supports nor rules out the faults that move it.
+STALE_MAX_WINDOWS = 60
+#: Windows over which an output's model-check failures are counted (a fault's ``checks``).
+CHECK_RATE_WINDOWS = 10
+#: An output whose check fails in more than this share of those windows fails persistently
+#: (a healthy machine at 1 % noise: Va failed 4 to 10 % of its windows).
+CHECK_RATE = 0.3
 
 
 def _phi(z: float) -> float:
@@ -125,6 +146,8 @@ class _Dev:
     unit: str
     window: int
     status: str
+    estimated: frozenset[str] = frozenset()   # the parameters its window estimated
+    t_end: float = 0.0                        # its window's end [s]
 
 
 @dataclass
@@ -150,6 +173,9 @@ class _Var:
     links: dict[str, float] = field(default_factory=dict)
     what: dict[str, str] = field(default_factory=dict)  # fault -> what the fault expects
     leak: float | None = None  # None: LEAK[kind]
+    # faults whose link explains the evidence when present, its absence no evidence against
+    # them (a check an unbalance may leave failing or passing)
+    may: set[str] = field(default_factory=set)
     unexplained: bool = False  # a deviation or trend no library fault expects
 
 
@@ -209,6 +235,9 @@ class Diagnoser:
         self._cf_since: float | None = None
         self.faults: list[FaultMode] = list(library.faults)
         self._last: dict[str, _Dev] = {}
+        # the last change point the trends dated [s] (kept when a trend's model drops it)
+        self._onset: float | None = None
+        self._onset_window = -1
         self._tracks: list[tuple[str, list[_Ratio]]] = []  # (attach, ratios in a row)
         ids = [f.id for f in self.faults] + ["unknown"]
         self._ids = ids
@@ -221,7 +250,9 @@ class Diagnoser:
         priors = np.array([f.prior for f in self.faults] + [unknown_prior])
         self._log_prior = (self._hyp @ np.log(priors)
                            + (1.0 - self._hyp) @ np.log1p(-priors))
-        self._comps: dict[str, _Comps] = {}
+        self._comps: dict[tuple[str, frozenset[str]], _Comps] = {}
+        # per window: (window, output -> its check passed), for the faults' ``checks``
+        self._outputs: deque[tuple[int, dict[str, bool]]] = deque(maxlen=CHECK_RATE_WINDOWS)
         self._dev_leak: dict[str, tuple[float, str]] = {}  # this window's raised leaks
 
     # -- evidence -----------------------------------------------------------------------------
@@ -229,13 +260,24 @@ class Diagnoser:
         p = health.parameters.get(name)
         if p is None:
             return self._last.get(name)
-        sound = p.status in ("estimated", "fused")
-        if sound and p.value is not None and p.nominal and p.rel_std_pct is not None:
+        # only a window that estimated it is new evidence: a fused value in a window that
+        # did not (held, or its check failed) is the fusion's prediction from the estimates
+        # already read, not a new observation
+        if (p.status == "estimated" and p.value is not None and p.nominal
+                and p.rel_std_pct is not None):
             dev = (p.value / p.nominal - 1.0) * 100.0
             sd = max(abs(p.rel_std_pct) * abs(p.value / p.nominal), SD_FLOOR_PCT)
             self._last[name] = _Dev(dev, sd, p.value, p.nominal, p.unit, health.window,
-                                    p.status)
-        return self._last.get(name)
+                                    p.status, _estimated(health), float(health.t_end))
+        ev = self._last.get(name)
+        if ev is None or health.window - ev.window > STALE_MAX_WINDOWS:
+            return None
+        if self._onset_window != health.window:   # once per window: the last onset stands
+            self._onset_window = health.window
+            self._onset = _change_onset(health) or self._onset
+        if self._onset is not None and ev.t_end < self._onset:
+            return None  # from before the change the trends date: says nothing about it
+        return ev
 
     def _variables(self, health: HealthMessage, speed: tuple[float, float] | None
                    ) -> tuple[list[_Var], list[TermHealth]]:
@@ -244,12 +286,24 @@ class Diagnoser:
         :meth:`_dev_factors`') and the terms no fault explains."""
         out: dict[str, _Var] = {}
         self._dev_leak = {}
+        if health.model_check is not None:
+            self._outputs.append((health.window, {k: o.passed for k, o in
+                                                  health.model_check.outputs.items()}))
         for f in self.faults:
             self._signature_vars(health, f, out)
         self._unexplained_vars(health, out)
         if "model_check" not in out:
             out["model_check"] = self._check_var(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
+        if health.model_check is not None:
+            for name in health.model_check.outputs:
+                key = f"check:{name}"
+                if key not in out:
+                    out[key] = self._check_rate_var(name)
+                out[key].links["unknown"] = UNKNOWN_CHECK_RATE_LINK
+                out[key].may.add("unknown")  # a fault its term captures passes the check
+                out[key].what["unknown"] = (f"{name}'s model check failing in most windows "
+                                            f"(the twin cannot reproduce it)")
         seen_speed = self._track(health, speed)
         unexplained = self._term_vars(health, seen_speed, out)
         self._missing_term_vars(health, seen_speed, out)
@@ -258,7 +312,10 @@ class Diagnoser:
     def _signature_vars(self, health: HealthMessage, f: FaultMode, out: dict[str, _Var]
                         ) -> None:
         """A fault's trend, model-check and stuck-sensor variables (shared by key)."""
+        estimated = _estimated(health)
         for t in f.trends:
+            if not t.applies(estimated):
+                continue
             key = f"trend:{t.parameter}:{t.direction}"
             if key not in out:
                 out[key] = self._trend_var(health, key, t.parameter, t.direction)
@@ -270,6 +327,14 @@ class Diagnoser:
                 out[key] = self._check_var(health)
             out[key].links[f.id] = f.model_check
             out[key].what[f.id] = "the model check failing"
+        for cs in f.checks:
+            key = f"check:{cs.output}"
+            if key not in out:
+                out[key] = self._check_rate_var(cs.output)
+            out[key].links[f.id] = cs.link
+            if cs.may_pass:
+                out[key].may.add(f.id)
+            out[key].what[f.id] = f"{cs.output}'s model check failing in most windows"
         for ss in f.sensors:
             key = f"sensor:{ss.kind}:{ss.channel}"
             if key not in out:
@@ -300,6 +365,7 @@ class Diagnoser:
                         var.links[f.id] = m * sg.link
                         var.what[f.id] = words
                     best = max(best, m if sg.link >= 0.5 else 0.0)
+            best *= 1.0 - TERM_MISFIT_DISCOUNT * self._misfit_since(term.since_window)
             var.links["unknown"] = max(UNKNOWN_TERM_LINK * (1.0 - best), 1e-3)
             var.what["unknown"] = "a term no fault of the library explains"
             if best < 0.5:
@@ -349,16 +415,20 @@ class Diagnoser:
                     out[key] = var
 
     # -- graded deviations (twinwatch.twin.diagnosis.deviation) -----------------------------
-    def _components(self, name: str) -> _Comps:
+    def _components(self, name: str, estimated: frozenset[str] = frozenset()) -> _Comps:
         """Per hypothesis, the probability its faults move ``name`` up and down and their
-        smallest sizes, and the directions no fault moves it in (cached)."""
-        c = self._comps.get(name)
+        smallest sizes, and the directions no fault moves it in, in a window that estimated
+        ``estimated`` (a signature's ``when_held``/``when_estimated``; cached)."""
+        signs = [(i, d) for i, f in enumerate(self.faults) for d in f.deviations
+                 if d.parameter == name]
+        cond = frozenset(p for _, d in signs for p in (*d.when_held, *d.when_estimated))
+        key = (name, estimated & cond)
+        c = self._comps.get(key)
         if c is not None:
             return c
         n_h = self._hyp.shape[0]
         items: list[tuple[int, str, float, float]] = [
-            (i, d.direction, d.min_pct, d.link) for i, f in enumerate(self.faults)
-            for d in f.deviations if d.parameter == name]
+            (i, d.direction, d.min_pct, d.link) for i, d in signs if d.applies(estimated)]
         covered = {direction for _, direction, _, _ in items}
         missing = tuple(d for d in ("up", "down") if d not in covered)
         arrays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -374,7 +444,7 @@ class Diagnoser:
             arrays[direction] = (1.0 - np.exp(log_q), size)
         c = _Comps(arrays["up"][0], arrays["up"][1], arrays["down"][0], arrays["down"][1],
                    {(i, d): a for i, d, a, _ in items}, missing)
-        self._comps[name] = c
+        self._comps[key] = c
         return c
 
     def _dev_factors(self, health: HealthMessage) -> list[_DevFactor]:
@@ -390,7 +460,7 @@ class Diagnoser:
                 continue
             age = max(health.window - ev.window, 0)
             sd = math.hypot(ev.sd, STALE_SD_PCT * math.sqrt(age))
-            comps = self._components(name)
+            comps = self._components(name, ev.estimated)
             leak, note = self._dev_leak.get(name, (LEAK["deviation"], ""))
             lik = likelihood(ev.dev, sd, comps.p_up, comps.size_up, comps.p_down,
                              comps.size_down, leak)
@@ -488,12 +558,14 @@ class Diagnoser:
         self._tracks = kept
         return out
 
-    @staticmethod
-    def _trend_var(health: HealthMessage, key: str, name: str, direction: str) -> _Var:
+    def _trend_var(self, health: HealthMessage, key: str, name: str, direction: str) -> _Var:
         p = health.parameters.get(name)
         t = p.trend if p is not None else None
         if t is None or t.model is None or t.rate is None:
             return _Var(key, "trend", 0.5, "", f"{name}: no trend yet")
+        if self._deviation(health, name) is None:
+            # not estimated since the change (or for long): its trend is the held value's
+            return _Var(key, "trend", 0.5, "", f"{name}: not estimated since the change")
         up = t.rate > 0
         if t.degrading:
             s = 0.95 if up == (direction == "up") else 0.05
@@ -505,6 +577,29 @@ class Diagnoser:
                 + (f"degrading at {rate}" if t.degrading else f"flat within its uncertainty "
                    f"({rate})"))
         return _Var(key, "trend", _clip(s), text, text)
+
+    def _misfit_since(self, window: int | None) -> float:
+        """Probability that the twin fails its model check (any output) in more than
+        :data:`CHECK_RATE` of its windows since ``window`` (a term's first; at most the last
+        :data:`CHECK_RATE_WINDOWS`), from their record (a Beta posterior, uniform prior)."""
+        seen = [all(o.values()) for w, o in self._outputs if window is None or w >= window]
+        if not seen:
+            return 0.0
+        n, k = len(seen), sum(1 for ok in seen if not ok)
+        return float(betainc(n - k + 1, k + 1, 1.0 - CHECK_RATE))
+
+    def _check_rate_var(self, output: str) -> _Var:
+        """An output failing its model check persistently: the share of the last
+        :data:`CHECK_RATE_WINDOWS` windows that failed on it, its strength the probability
+        that the output's failure rate exceeds :data:`CHECK_RATE` (a Beta posterior from a
+        uniform prior)."""
+        seen = [o[output] for _, o in self._outputs if output in o]
+        n, k = len(seen), sum(1 for ok in seen if not ok)
+        if n == 0:
+            return _Var(f"check:{output}", "model_check", 0.5, "", f"no model check of {output}")
+        s = float(betainc(n - k + 1, k + 1, 1.0 - CHECK_RATE))  # P(rate > CHECK_RATE)
+        text = f"{output}'s model check failed in {k} of the last {n} windows"
+        return _Var(f"check:{output}", "model_check", _clip(s), text, text)
 
     @staticmethod
     def _check_var(health: HealthMessage) -> _Var:
@@ -613,6 +708,7 @@ class Diagnoser:
         idx = {fid: i for i, fid in enumerate(self._ids)}
         n_e = len(variables)
         log_q = np.zeros((len(self._ids), n_e))       # log(1 - link)
+        log_q_strict = np.zeros((len(self._ids), n_e))  # without the links of ``may``
         s = np.empty(n_e)
         leak = np.empty(n_e)
         for j, v in enumerate(variables):
@@ -620,9 +716,13 @@ class Diagnoser:
             leak[j] = v.leak if v.leak is not None else LEAK[v.kind]
             for fid, link in v.links.items():
                 log_q[idx[fid], j] = math.log1p(-min(link, 1.0 - 1e-9))
-        # P(e | H) for every hypothesis, then the soft observation's likelihood
+                if fid not in v.may:
+                    log_q_strict[idx[fid], j] = log_q[idx[fid], j]
+        # P(e | H) for every hypothesis, then the soft observation's likelihood (its absence
+        # read without the links that only permit it)
         p_e = 1.0 - np.exp(self._hyp @ log_q + np.log1p(-leak)[None, :])
-        lik = s[None, :] * p_e + (1.0 - s[None, :]) * (1.0 - p_e)
+        p_e_strict = 1.0 - np.exp(self._hyp @ log_q_strict + np.log1p(-leak)[None, :])
+        lik = s[None, :] * p_e + (1.0 - s[None, :]) * (1.0 - p_e_strict)
         log_post = self._log_prior + np.log(lik).sum(axis=1)
         for d in devs:
             log_post = log_post + d.log_lik
@@ -660,7 +760,8 @@ class Diagnoser:
             if fid not in v.links:
                 continue
             pe = 1.0 - (1.0 - leak[j]) * (1.0 - v.links[fid])
-            llr = math.log((s[j] * pe + (1 - s[j]) * (1 - pe)) / lik0[j])
+            absent = 1.0 - (leak[j] if fid in v.may else pe)
+            llr = math.log((s[j] * pe + (1 - s[j]) * absent) / lik0[j])
             if llr > LLR_SAID and v.present:
                 text = v.present
                 if v.key.startswith("term:") and "shaft speed" in v.what.get(fid, ""):
@@ -701,7 +802,8 @@ class Diagnoser:
         """The top fault's evidence for it includes a discovered term, the failed model check
         or a stuck sensor: the failed checks are its evidence (what the twin lacks, a sensor
         it cannot follow), not a twin that no longer fits."""
-        return any(k.startswith(("term:", "model_check", "sensor:")) for _, _, k in pro)
+        return any(k.startswith(("term:", "model_check", "check:", "sensor:"))
+                   for _, _, k in pro)
 
     def _check_function(self, health: HealthMessage
                         ) -> tuple[float | None, str | None, float]:
@@ -733,6 +835,19 @@ class Diagnoser:
         record = (f"the model check failed in {len(failed)} of the last {len(self._checks)} "
                   f"windows ({covered:.0f} s)")
         return self._cf_since, record, share
+
+
+def _change_onset(health: HealthMessage) -> float | None:
+    """The earliest onset [s] (change point) among the window's trends, or None: a trend
+    that has stopped rising (a step, a drift that ended) keeps the onset it found."""
+    onsets = [p.trend.onset for p in health.parameters.values()
+              if p.trend is not None and p.trend.onset is not None]
+    return min(onsets) if onsets else None
+
+
+def _estimated(health: HealthMessage) -> frozenset[str]:
+    """The parameters the window estimated."""
+    return frozenset(n for n, p in health.parameters.items() if p.status == "estimated")
 
 
 def _chan(channel: str) -> str:

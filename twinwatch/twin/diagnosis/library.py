@@ -20,15 +20,26 @@ Signature items (each with ``link``, the noisy-OR probability that the fault sho
 
 from __future__ import annotations
 
+import difflib
 import tomllib
+from collections.abc import Sequence
 from functools import cache
 from importlib import resources
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 __all__ = [
+    "CheckSign",
     "DeviationSign",
     "DiagnosisConfig",
     "FaultLibrary",
@@ -56,6 +67,17 @@ class DeviationSign(_Strict):
                                              "nameplate")
     min_pct: StrictFloat = Field(gt=0, description="size of the deviation the fault makes [%]")
     link: float = Link
+    when_held: list[str] = Field(default_factory=list, description="expected only in windows "
+                                 "that hold these parameters (a fault seen through a held "
+                                 "parameter: a weaker magnet reads as D up while Ke is held)")
+    when_estimated: list[str] = Field(default_factory=list, description="expected only in "
+                                      "windows that estimate these parameters (a supply sag "
+                                      "moves D through Kt = Ke only while Ke is estimated)")
+
+    def applies(self, estimated: frozenset[str]) -> bool:
+        """Whether the expectation holds in a window estimating ``estimated``."""
+        return (not any(p in estimated for p in self.when_held)
+                and all(p in estimated for p in self.when_estimated))
 
 
 class TrendSign(_Strict):
@@ -65,6 +87,13 @@ class TrendSign(_Strict):
     direction: Literal["up", "down"] = Field(description="the trend's direction")
     link: float = Field(0.5, gt=0, le=1, description="probability the fault shows this "
                         "evidence (a wear trends; a sudden fault steps)")
+    when_held: list[str] = Field(default_factory=list, description="as a deviation's")
+    when_estimated: list[str] = Field(default_factory=list, description="as a deviation's")
+
+    def applies(self, estimated: frozenset[str]) -> bool:
+        """Whether the expectation holds in a window estimating ``estimated``."""
+        return (not any(p in estimated for p in self.when_held)
+                and all(p in estimated for p in self.when_estimated))
 
 
 class TermSign(_Strict):
@@ -89,6 +118,17 @@ class SensorSign(_Strict):
     link: float = Link
 
 
+class CheckSign(_Strict):
+    """One output's model check failing persistently (a share of the recent windows): a
+    reading the twin cannot reproduce while the others fit (a voltage reading's gain)."""
+
+    output: str = Field(description="the twin's output (Va, omega, p, ...)")
+    link: float = Link
+    may_pass: bool = Field(False, description="the fault may as well leave the check passing "
+                           "(an unbalance whose term fits): a failing check is its evidence, "
+                           "a passing one is none against it")
+
+
 class FaultMode(_Strict):
     """One fault mode of a machine model."""
 
@@ -102,6 +142,8 @@ class FaultMode(_Strict):
     model_check: float | None = Field(None, gt=0, le=1, description="link to a failed model "
                                       "check")
     sensors: list[SensorSign] = Field(default_factory=list)
+    checks: list[CheckSign] = Field(default_factory=list, description="outputs whose model "
+                                    "check the fault makes fail persistently")
     action: str = Field(min_length=1, description="the maintenance action")
     urgency: Literal["low", "medium", "high"] = Field("medium", description="how soon to act")
     prior: float = Field(0.01, gt=0, lt=0.5, description="probability the fault is present at "
@@ -111,7 +153,7 @@ class FaultMode(_Strict):
     @model_validator(mode="after")
     def _has_signature(self) -> FaultMode:
         if not (self.deviations or self.trends or self.terms or self.sensors
-                or self.model_check):
+                or self.model_check or self.checks):
             raise ValueError(f"fault {self.id!r}: its signature is empty (give deviations, "
                              f"trends, terms, sensors or model_check)")
         return self
@@ -148,11 +190,37 @@ def load_library(path: str | Path) -> FaultLibrary:
     """Read and validate a fault library TOML file.
 
     Raises:
-        OSError: the file cannot be read. ValueError (pydantic ValidationError): a bad key,
-        named with its location; tomllib.TOMLDecodeError: not TOML.
+        OSError: the file cannot be read (IsADirectoryError: a directory). ValueError: a bad
+        key, in one line naming each bad key with its location (``faults.0.deviations.0.
+        direction: Input should be 'up' or 'down'``), no pydantic link;
+        tomllib.TOMLDecodeError: not TOML.
     """
     with open(path, "rb") as fh:
-        return FaultLibrary.model_validate(tomllib.load(fh))
+        data = tomllib.load(fh)
+    try:
+        return FaultLibrary.model_validate(data)
+    except ValidationError as exc:
+        raise ValueError(one_line(exc)) from None
+
+
+def one_line(exc: ValidationError) -> str:
+    """A validation error in one line: ``key: message; key: message`` (each key dotted, a
+    fault named by its id where it has one), without pydantic's links."""
+    parts = []
+    for err in exc.errors(include_url=False):
+        loc = ".".join(str(p) for p in err["loc"])
+        msg = str(err["msg"]).removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key (misspelt, or not valid here)"
+        elif err["type"] == "missing":
+            msg = "required key is missing"
+        parts.append(f"{loc}: {msg}" if loc else msg)
+    return "; ".join(parts)
+
+
+def _closest(name: str, known: Sequence[str]) -> str:
+    close = difflib.get_close_matches(name, list(known), n=1)
+    return (f"did you mean {close[0]!r}? " if close else "") + f"known: {', '.join(known)}"
 
 
 @cache
@@ -237,25 +305,75 @@ class DiagnosisConfig(_Strict):
                             faults=list(faults.values()))
 
     def check_against(self, model: str, parameter_names: tuple[str, ...] | list[str],
-                      attach_names: list[str]) -> None:
-        """Every parameter and attach point a fault names exists in the twin.
+                      attach_names: list[str], channels: Sequence[str] = (),
+                      outputs: Sequence[str] = ()) -> None:
+        """Every name the faults and the library use exists: the parameters and attach points
+        in the twin, the terms' kinds in the meta-model registry
+        (:func:`~twinwatch.twin.discovery.metamodels.available_kinds`), the speed channel
+        among the twin's ``channels``, a sensor's channel among its measured ``outputs`` (empty:
+        not checked), and the library file is the machine's ``model``'s. A name that does not
+        exist makes a fault that can never match, silently: refused instead.
 
         Raises:
-            ValueError: naming the fault and the key.
+            ValueError: one line naming the key (``diagnosis.library``, ``diagnosis.faults``),
+                the fault and the name, with the known names.
         """
         if not self.enabled:
             return
+        from twinwatch.twin.discovery.metamodels import available_kinds
+
+        where = "diagnosis"
+        if self.library is not None:
+            extra = load_library(self.library)
+            where = f"diagnosis.library ({self.library})"
+            if extra.model != model:
+                raise ValueError(f"{where}: the library is for the {extra.model!r} model; this "
+                                 f"machine's model is {model!r}: set its model = {model!r} or "
+                                 f"give the {model} library")
+            if extra.speed_channel and channels and extra.speed_channel not in channels:
+                raise ValueError(f"{where}: speed_channel {extra.speed_channel!r} is not a "
+                                 f"channel of the {model} twin; "
+                                 f"{_closest(extra.speed_channel, channels)}")
         lib = self.resolve(model)
+        inline = {f.id for f in self.faults}
+        kinds = available_kinds()
         for f in lib.faults:
+            key = "diagnosis.faults" if f.id in inline else where
             for name in sorted(f.parameters()):
                 if name not in parameter_names:
-                    raise ValueError(f"diagnosis: fault {f.id!r} names the parameter {name!r}; "
+                    raise ValueError(f"{key}: fault {f.id!r} names the parameter {name!r}; "
                                      f"the {model} model has {list(parameter_names)}")
             for t in f.terms:
                 for a in t.attach:
                     if a != "*" and a not in attach_names:
-                        raise ValueError(f"diagnosis: fault {f.id!r} names the attach point "
+                        raise ValueError(f"{key}: fault {f.id!r} names the attach point "
                                          f"{a!r}; the {model} model has {attach_names}")
+                for k in t.kinds:
+                    if k != "*" and k not in kinds:
+                        raise ValueError(f"{key}: fault {f.id!r} names the meta-model kind "
+                                         f"{k!r}, which the registry does not know; "
+                                         f"{_closest(k, kinds)}")
+            for cs in f.checks:
+                # a channel the twin reads (an output in one structure may be an input in
+                # another: Va in closed loop and open loop; a check that is not compared in
+                # this configuration never fails, it is not a mistake)
+                if channels and cs.output not in channels:
+                    raise ValueError(f"{key}: fault {f.id!r} names the output {cs.output!r} "
+                                     f"in checks, which is not a channel of the {model} "
+                                     f"twin; {_closest(cs.output, channels)}")
+            conditions = [(*d.when_held, *d.when_estimated) for d in f.deviations] + [
+                (*t.when_held, *t.when_estimated) for t in f.trends]
+            for held_or_estimated in conditions:
+                for name in held_or_estimated:
+                    if name not in parameter_names:
+                        raise ValueError(f"{key}: fault {f.id!r} names the parameter {name!r} "
+                                         f"in when_held/when_estimated; the {model} model has "
+                                         f"{list(parameter_names)}")
+            for ss in f.sensors:
+                if ss.channel != "*" and outputs and ss.channel not in outputs:
+                    raise ValueError(f"{key}: fault {f.id!r} names the sensor channel "
+                                     f"{ss.channel!r}, which the {model} twin does not "
+                                     f"measure; {_closest(ss.channel, outputs)}")
         for a, names in lib.equations.items():
             if a not in attach_names:
                 raise ValueError(f"diagnosis: equations names the attach point {a!r}; the "
