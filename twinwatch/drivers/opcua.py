@@ -1,6 +1,6 @@
 """OPC UA driver: one subscription on a server's variables into twin samples; never writes.
 
-A background thread (``twinwatch-opcua``) runs asyncua's client in an asyncio loop of its own
+A background thread (``twinwatch-opcua-in``) runs asyncua's client in an asyncio loop of its own
 and hands complete samples to :meth:`~twinwatch.drivers.base.Driver.read` through a queue, as
 the Modbus driver's polling thread does.
 
@@ -115,7 +115,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["OpcUaChannelMap", "OpcUaDriver", "OpcUaDriverConfig", "UNECE_CODES", "unit_matches"]
 
-_THREAD_NAME = "twinwatch-opcua"
+_THREAD_NAME = "twinwatch-opcua-in"  # the output's server thread is "twinwatch-opcua"
 _BACKOFF_INITIAL = 0.1  # [s]
 _LIVE_QUEUE = 4096  # samples kept for a caller that does not read (older ones dropped)
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
