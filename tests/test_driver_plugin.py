@@ -160,11 +160,12 @@ def test_a_plugin_driver_is_validated_from_toml_and_probed(tmp_path: Path, plugi
 def test_an_unknown_driver_names_the_known_ones_including_plugins(tmp_path: Path,
                                                                   plugin_path: Path):
     res = _twinwatch(plugin_path, "check-config",
-                     str(_config(tmp_path, driver='[driver]\ntype = "opcua"\n')), cwd=tmp_path)
+                     str(_config(tmp_path, driver='[driver]\ntype = "profinet"\n')), cwd=tmp_path)
     assert res.returncode == 1
     line = next(ln for ln in res.stderr.splitlines() if "driver.type" in ln)
-    assert "unknown driver 'opcua'" in line
-    for name in ("can", "file", "modbus", "simulated", "simulated_modbus", "plant_direct"):
+    assert "unknown driver 'profinet'" in line
+    for name in ("can", "file", "modbus", "opcua", "simulated", "simulated_modbus",
+                 "simulated_opcua", "plant_direct"):
         assert re.search(rf"\b{name}\b", line), (name, line)
 
 

@@ -221,6 +221,20 @@ def test_a_bad_status_is_a_missing_sample_counted_per_channel_and_an_overflow_co
         assert d.stats.extra["overflows"] == 1 and got[slots.index(7)].values["Va"] == 7.0
 
 
+def test_a_channel_that_stops_is_named_silent_and_its_samples_counted_missing():
+    with _server() as srv, OpcUaDriver(_config(srv), time_origin=BASE) as d:
+        for k in range(1, 6):
+            srv.write(k, {"Va": 1.0, "ia": 1.0}, base=BASE)
+        assert len(_read_all(d, 6)) == 6 and d.silent == ()
+        for k in range(6, 40):  # ia's variable stops updating; Va goes on
+            srv.write(k, {"Va": 1.0}, base=BASE)
+            time.sleep(0.05)
+        assert [s.split(" for ")[0] for s in d.silent] == ["ia"]
+        srv.write(40, {"Va": 1.0, "ia": 1.0}, base=BASE)
+        got = _read_all(d, 1)
+        assert [round(s.t / PERIOD) for s in got] == [40] and d.stats.gaps == 34
+
+
 def test_a_server_without_source_timestamps_gives_server_timestamps_said_once(caplog):
     with _server() as srv, OpcUaDriver(_config(srv)) as d:
         for k in range(5):  # a changing value: without source time stamps, only a change
@@ -382,6 +396,32 @@ def test_check_config_refuses_a_missing_certificate_file(tmp_path: Path):
     assert "driver.server_certificate" in r.output
 
 
+def test_a_private_key_others_can_read_is_refused(tmp_path: Path):
+    from twinwatch.config.loader import ConfigError, check_secrets, load_config
+
+    src = Path(__file__).parents[1] / "config" / "dc-motor-opcua-sim.toml"
+    head, _, rest = src.read_text().partition("[driver]")
+    rest = rest[rest.index("\n[zenoh]"):]
+    (tmp_path / "pki").mkdir()
+    for name in ("client.der", "client.pem", "server.der"):
+        (tmp_path / "pki" / name).write_text("x")
+    (tmp_path / "pki" / "client.pem").chmod(0o644)
+    driver = "\n".join([
+        "[driver]", 'type = "opcua"', 'endpoint = "opc.tcp://127.0.0.1:4841"',
+        "sample_period = 0.01", 'security_policy = "Basic256Sha256"', 'security_mode = "Sign"',
+        'certificate = "pki/client.der"', 'private_key = "pki/client.pem"',
+        'server_certificate = "pki/server.der"', "[driver.channels]",
+        *(f'{ch} = {{ node = "ns=2;s=Motor.{ch}" }}' for ch in
+          ("Va", "ia", "omega", "Tload", "setpoint")), ""])
+    path = tmp_path / "m.toml"
+    path.write_text(head + driver + rest)
+    with pytest.raises(ConfigError) as exc:
+        check_secrets(load_config(path), path)
+    assert "driver.private_key" in str(exc.value) and "chmod o-rwx" in str(exc.value)
+    (tmp_path / "pki" / "client.pem").chmod(0o600)
+    check_secrets(load_config(path), path)
+
+
 def test_unit_matches_display_names_and_unece_codes():
     assert unit_matches("N m", "N·m", None) and unit_matches("rad/s", "rad/s", None)
     assert unit_matches("V", None, 5655636)  # "VLT"
@@ -501,3 +541,58 @@ def test_simulated_motor_over_opcua_ra_within_0p2_percent_and_a_server_restart_c
     print(f"Ra error after 160 s over {len(err)} windows: median {np.median(np.abs(err)):.4f} %,"
           f" max {np.max(np.abs(err)):.4f} %")
     assert np.all(np.abs(err) <= 0.2), np.percentile(np.abs(err), [50, 95, 100])
+
+
+def test_monitoring_only_the_driver_never_writes_a_node_nor_calls_a_method():
+    """No call in the driver's source writes an attribute or calls a method (asyncua's
+    write_value, write_attribute(s), set_value, call_method, Node.call...)."""
+    import ast
+
+    import twinwatch.drivers.opcua as mod
+
+    tree = ast.parse(Path(mod.__file__).read_text(encoding="utf-8"))
+    called = {node.func.attr for node in ast.walk(tree)
+              if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)}
+    forbidden = {n for n in called if n.startswith(("write", "set_value", "set_attribute",
+                                                    "set_data_value", "call", "add_", "delete"))
+                 and n != "call_soon_threadsafe"}  # asyncio's, waking the driver's loop
+    assert forbidden == set(), forbidden
+    assert {"create_subscription", "create_monitored_items", "read_node_class"} <= called
+
+
+def test_the_simulated_server_on_a_taken_port_refuses_in_one_line():
+    from twinwatch.drivers.simulated_opcua import SimulatedOpcUaDriver
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        with pytest.raises(DriverInitializationError) as exc:
+            SimulatedOpcUaDriver.from_config({"type": "simulated_opcua", "port": port})
+    msg = str(exc.value)
+    assert msg.startswith("driver.port:") and f"127.0.0.1:{port}" in msg and "\n" not in msg
+
+
+def test_the_hydraulic_actuator_over_opcua_through_the_daemon():
+    """config/hydraulic-opcua-sim.toml for 20 s: every sample through the subscription (the
+    Actuator's five Double variables, units checked), every window estimated, D as the
+    plant's within the paper's 3 % where it is estimated."""
+    from twinwatch.config.loader import load_config
+    from twinwatch.daemon.runner import Daemon
+
+    cfg = load_config(Path(__file__).parents[1] / "config" / "hydraulic-opcua-sim.toml")
+    cfg.driver.port = 0  # type: ignore[attr-defined]
+    cfg.driver.plant.duration = 20.0  # type: ignore[attr-defined]
+    cfg.discovery.enabled = False
+    with create_driver(cfg.driver, base_dir=Path(".")) as driver:
+        assert driver.channels == ("x", "p", "A_valve", "F_load", "x_ref")
+        with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
+            daemon.run()
+        assert driver.stats.gaps == 0 and driver.stats.samples == 2001
+        hist = list(daemon.history)
+        assert len(hist) == 10 and daemon.overruns == 0
+        estimated = [h for h in hist if h["parameters"]["D"]["status"] == "estimated"]
+        assert estimated
+        for h in estimated:
+            true = driver.plant.truth(0.5 * (h["t_start"] + h["t_end"])).D
+            assert abs(h["parameters"]["D"]["value"] / true - 1) <= 0.03

@@ -120,6 +120,10 @@ def check_secrets(cfg: TwinwatchConfig, path: Path) -> None:
     """
     outputs = cfg.output_tables()
     inline = [f"{o.key}.{k}" for o in outputs for k in o.config.inline_secret_keys()]
+    # a driver's secrets (the OPC UA driver's key and password), where its table names them
+    driver_inline = getattr(cfg.driver, "inline_secret_keys", None)
+    if driver_inline is not None:
+        inline += [f"driver.{k}" for k in driver_inline()]
     if inline and _readable_by_others(path):
         raise ConfigError(
             f"{path}: holds secrets ({', '.join(inline)}) and is readable by other users "
@@ -127,6 +131,10 @@ def check_secrets(cfg: TwinwatchConfig, path: Path) -> None:
             f"it 0640 root:twinwatch), or move the key to a file readable only by the service")
     secret_files = {f"{o.key}.{k}": v for o in outputs for k, v in
                     o.config.secret_input_files().items()}
+    driver_files = getattr(cfg.driver, "secret_input_files", None)
+    if driver_files is not None:
+        secret_files.update({f"driver.{k}": str(v) for k, v in
+                             driver_files(path.resolve().parent).items()})
     for key, file in secret_files.items():
         f = Path(file)
         try:

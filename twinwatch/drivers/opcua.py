@@ -1,6 +1,6 @@
 """OPC UA driver: one subscription on a server's variables into twin samples; never writes.
 
-A background thread (``twinwatch-opcua``) runs asyncua's client in an asyncio loop of its own
+A background thread (``twinwatch-opcua-in``) runs asyncua's client in an asyncio loop of its own
 and hands complete samples to :meth:`~twinwatch.drivers.base.Driver.read` through a queue, as
 the Modbus driver's polling thread does.
 
@@ -22,11 +22,11 @@ The subscription
     10 ms per notification), each monitored item's queue ``queue_size`` values (default: four
     publishing intervals' worth, at least 10) with DiscardOldest, and its data-change filter
     reports a new *source timestamp* even when the value repeats (trigger
-    StatusValueTimestamp: a constant set-point is still one value per sample). The server may
-    revise these; the revised values are logged, with a warning when the queue would not hold
-    one publishing interval. A value a server reports with the Overflow info bit (its queue
-    discarded older values) counts in ``stats.extra["overflows"]``; the discarded samples show
-    up as a gap.
+    StatusValueTimestamp: a constant set-point is still one value per sample). A server may
+    revise the publishing interval (logged; a warning when the queue would not hold one
+    interval of samples); asyncua's client does not report a revised queue size: a queue the
+    server shortened shows as values with the Overflow info bit (its queue discarded older
+    values), counted in ``stats.extra["overflows"]``, the discarded samples as a gap.
 
 Sample times, and how channels are joined into samples
     Each value's time is its SourceTimestamp (the device's clock); a server that sends none
@@ -40,7 +40,10 @@ Sample times, and how channels are joined into samples
     complete: the slots skipped since the last sample (a channel's value missing, a dropped
     notification, a reconnect) are counted in ``stats.gaps`` and the ring buffer abandons the
     window they fall in. A value for a slot already delivered (the current value a server sends
-    when a subscription is recreated) is skipped (``stats.extra["duplicates"]``).
+    when a subscription is recreated) is skipped (``stats.extra["duplicates"]``). A source time
+    more than an hour away from the last sample's (a clock set, a device restarted) counts in
+    ``stats.extra["time_jumps"]``, not as missing samples. A channel whose values stop while
+    the others' go on is named in :attr:`OpcUaDriver.silent` (its slots are counted missing).
 
 Status codes
     A value whose StatusCode is not Good (Uncertain or Bad: a sensor fault, a device not
@@ -112,7 +115,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["OpcUaChannelMap", "OpcUaDriver", "OpcUaDriverConfig", "UNECE_CODES", "unit_matches"]
 
-_THREAD_NAME = "twinwatch-opcua"
+_THREAD_NAME = "twinwatch-opcua-in"  # the output's server thread is "twinwatch-opcua"
 _BACKOFF_INITIAL = 0.1  # [s]
 _LIVE_QUEUE = 4096  # samples kept for a caller that does not read (older ones dropped)
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
@@ -301,6 +304,16 @@ class OpcUaDriverConfig(DriverConfig):
         return {k: v for k in ("certificate", "private_key", "server_certificate",
                                "password_file") if (v := getattr(self, k)) is not None}
 
+    def secret_input_files(self, base_dir: Path) -> dict[str, Path]:
+        """The private key and the password file (``check-config`` and ``run`` refuse them
+        when other users can read them, as the outputs' secrets)."""
+        files = self.resolved(base_dir)._files()
+        return {k: v for k, v in files.items() if k in ("private_key", "password_file")}
+
+    def inline_secret_keys(self) -> list[str]:
+        """``password`` written in the configuration itself (the file is then a secret)."""
+        return ["password"] if self.password is not None else []
+
     def required_files(self, base_dir: Path) -> dict[str, Path]:
         """Config key -> file that must exist to start (certificates, key, password file)."""
         return {f"driver.{k}": v for k, v in self.resolved(base_dir)._files().items()}
@@ -340,7 +353,8 @@ class OpcUaDriver(Driver):
         channels: twin channel names, in the order of ``config.channels``.
         sample_period: ``config.sample_period`` [s].
         live: True (a server does not wait for its clients).
-        revised: the server's revised (publishing interval [s], {channel: queue size}).
+        revised: the server's revised publishing interval [s] and the queue size requested
+            per channel.
         cpu_seconds: CPU time [s] the client's thread has used since it subscribed (asyncua's
             decoding and the joining; updated after each batch of notifications).
 
@@ -408,6 +422,7 @@ class OpcUaDriver(Driver):
         # slot bookkeeping (the loop thread only)
         self._pending: dict[int, _Slot] = {}
         self._last_k: int | None = None
+        self._arrival = [0.0] * len(self.channels)  # monotonic time of each channel's last value
         self._jump_slots = int(_TIME_JUMP / self.sample_period)
         self._password = self._read_password()
         self._thread = threading.Thread(target=self._thread_main, name=_THREAD_NAME, daemon=True)
@@ -479,6 +494,21 @@ class OpcUaDriver(Driver):
         return (f"OPC UA server {self.config.endpoint} away for "
                 f"{time.monotonic() - since:.0f} s ({self._last_error}); reconnecting with "
                 f"backoff up to {self.config.backoff_max:g} s")
+
+    @property
+    def silent(self) -> tuple[str, ...]:
+        """The channels whose values stopped (for a second, or four publishing intervals) while
+        the others' arrive, with how long: ``("ia for 3.1 s",)``."""
+        if self._down_since is not None or not any(self._arrival):
+            return ()
+        now = time.monotonic()
+        quiet = max(1.0, 4 * self.config.publishing_interval)
+        newest = max(self._arrival)
+        if now - newest > quiet:  # nothing arrives at all: not a silent channel
+            return ()
+        return tuple(f"{ch} for {now - t:.1f} s" for ch, t in zip(self.channels, self._arrival,
+                                                                  strict=True)
+                     if now - t > quiet)
 
     # -- the client thread ------------------------------------------------------------------
     def _thread_main(self) -> None:
@@ -715,11 +745,18 @@ class OpcUaDriver(Driver):
                 raise DriverConfigError(
                     f"driver.channels.{ch}: the server refused to monitor "
                     f"{cfg.channels[ch].describe()} ({r.name}): map a readable variable")
+        # asyncua keeps the server's revised publishing interval as the subscription's
         revised_pub = float(sub.parameters.RequestedPublishingInterval) / 1000.0
-        with contextlib.suppress(AttributeError):
-            revised_pub = float(sub.data.RevisedPublishingInterval) / 1000.0  # type: ignore[attr-defined]
-        queues = {ch: qsize for ch in self.channels}
-        self.revised = (revised_pub, queues)
+        if abs(revised_pub - cfg.publishing_interval) > 1e-9:
+            self.log_once("revised", "OPC UA server %s revised the publishing interval from "
+                          "%.4g s to %.4g s", cfg.endpoint, cfg.publishing_interval, revised_pub,
+                          level=logging.INFO)
+        if revised_pub / cfg.sample_period > qsize:
+            self.log_once("queue", "OPC UA publishing interval %.4g s holds %d samples, more "
+                          "than the monitored items' queue (%d): values will be discarded "
+                          "(counted as overflows and gaps); raise driver.queue_size",
+                          revised_pub, round(revised_pub / cfg.sample_period), qsize)
+        self.revised = (revised_pub, {ch: qsize for ch in self.channels})
         return sub
 
     async def _consume(self, sub: Any, lost: asyncio.Event) -> str | None:
@@ -778,6 +815,7 @@ class OpcUaDriver(Driver):
         if not 0 <= i < len(self.channels):
             return
         ch = self.channels[i]
+        self._arrival[i] = time.monotonic()
         dv = item.Value
         if dv.StatusCode is not None and dv.StatusCode.value == _WAITING_FOR_INITIAL_DATA:
             return  # the server has no value yet: no sample, nothing missing

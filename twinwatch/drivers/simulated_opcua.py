@@ -1,4 +1,5 @@
-"""The simulated DC motor, served by an OPC UA server on loopback and read back by subscription.
+"""The simulated DC motor (or hydraulic actuator), served by an OPC UA server on loopback and
+read back through a subscription.
 
 The plant (:mod:`twinwatch.plant.dcmotor`, paper Section 5.2) is served by a
 :class:`~twinwatch.plant.opcua_server.PlantOpcUaServer` on ``127.0.0.1:<port>`` (one object
@@ -6,7 +7,11 @@ The plant (:mod:`twinwatch.plant.dcmotor`, paper Section 5.2) is served by a
 ``setpoint`` [rad/s], each with its EngineeringUnits); an
 :class:`~twinwatch.drivers.opcua.OpcUaDriver` subscribes to them exactly as it would to a
 drive's or a PLC's server, so every sample travels the real OPC UA path (monitored-item
-queues, publish responses, binary encoding, source timestamps, the units' check, reconnects).
+queues, publish responses, binary encoding, source timestamps, the units' check,
+reconnects). With ``machine = "hydraulic_actuator"`` the hydraulic plant (paper Section 5.3)
+is served instead, object ``Actuator`` with ``x`` [m], ``p`` [Pa], ``A_valve`` [m^2],
+``F_load`` [N] and ``x_ref`` [m] (as Double: no register encoding to choose, unlike over
+Modbus).
 
 Pacing (``pacing``):
 
@@ -37,7 +42,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -48,6 +53,8 @@ from twinwatch.drivers.base import (
     validated_config,
 )
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
+from twinwatch.plant.hydraulic import CHANNEL_UNITS as HYDRAULIC_UNITS
+from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
 
 if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no asyncua
     from twinwatch.drivers.opcua import OpcUaDriver, OpcUaDriverConfig
@@ -55,7 +62,7 @@ if TYPE_CHECKING:  # imported when the driver opens: validating a config loads n
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LOOPBACK", "UNITS", "SimulatedOpcUaDriver", "SimulatedOpcUaDriverConfig"]
+__all__ = ["LOOPBACK", "SERVED", "UNITS", "SimulatedOpcUaDriver", "SimulatedOpcUaDriverConfig"]
 
 LOOPBACK: Literal["127.0.0.1"] = "127.0.0.1"
 _END_WAIT = 10.0  # [s] without a sample after the plant's end: its last samples were lost
@@ -63,13 +70,22 @@ _END_WAIT_RECONNECTING = 60.0  # [s] the same while the driver reconnects
 #: The served channels and their units (the variables' EngineeringUnits).
 UNITS: Mapping[str, str] = {"Va": "V", "ia": "A", "omega": "rad/s", "Tload": "N m",
                             "setpoint": "rad/s"}
+#: machine -> (the object holding its variables, channel -> unit)
+SERVED: Mapping[str, tuple[str, Mapping[str, str]]] = {
+    "dc_motor": ("Motor", UNITS),
+    "hydraulic_actuator": ("Actuator", HYDRAULIC_UNITS),
+}
 
 
 class SimulatedOpcUaDriverConfig(DriverConfig):
     """The ``[driver]`` table with ``type = "simulated_opcua"``.
 
     Attributes:
-        plant: the DC motor plant's scenario, duration, noise, ... (``[driver.plant]``).
+        machine: ``"dc_motor"`` (object ``Motor``) or ``"hydraulic_actuator"`` (object
+            ``Actuator``: ``x`` [m], ``p`` [Pa], ``A_valve`` [m^2], ``F_load`` [N], ``x_ref``
+            [m]).
+        plant: the plant's scenario, duration, noise, ... (``[driver.plant]``: the DC
+            motor's or the hydraulic actuator's keys, by ``machine``).
         port: TCP port of the simulated server on 127.0.0.1 (0: any free port).
         pacing: ``"lockstep"`` (as fast as the consumer, nothing lost) or ``"realtime"``.
         publishing_interval: the subscription's publishing interval [s].
@@ -80,8 +96,11 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
     model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated_opcua"]
-    machine: Literal["dc_motor"] = "dc_motor"
-    plant: DCMotorPlantConfig = Field(default_factory=DCMotorPlantConfig)
+    machine: Literal["dc_motor", "hydraulic_actuator"] = "dc_motor"
+    plant: DCMotorPlantConfig | HydraulicPlantConfig = Field(
+        default_factory=DCMotorPlantConfig, union_mode="left_to_right",
+        description="the plant of machine: the DC motor's keys below; the hydraulic "
+        "actuator's are those of [driver] type = \"simulated_modbus\"")
     host: Literal["127.0.0.1"] = Field(
         LOOPBACK, description="loopback only: the simulated server is never exposed")
     port: StrictInt = Field(4841, ge=0, le=65535,
@@ -93,9 +112,20 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
     timeout: StrictFloat = Field(5.0, gt=0, allow_inf_nan=False)
     backoff_max: StrictFloat = Field(1.0, ge=0.1, allow_inf_nan=False)
 
+    @model_validator(mode="after")
+    def _plant_of_the_machine(self) -> SimulatedOpcUaDriverConfig:
+        if self.machine == "hydraulic_actuator" and isinstance(self.plant, DCMotorPlantConfig):
+            # keys both plants have (duration, seed, ...): the hydraulic actuator's
+            self.plant = HydraulicPlantConfig.model_validate(
+                self.plant.model_dump(exclude_unset=True))
+        elif self.machine == "dc_motor" and isinstance(self.plant, HydraulicPlantConfig):
+            raise ValueError("plant: the hydraulic actuator's keys; set machine = "
+                             "'hydraulic_actuator' or give the DC motor's")
+        return self
+
     def twin_channels(self) -> tuple[str, ...]:
         """The plant channels served."""
-        return tuple(UNITS)
+        return tuple(SERVED[self.machine][1])
 
     @property
     def sample_period(self) -> float:
@@ -111,11 +141,11 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
             publishing_interval=max(self.publishing_interval, self.plant.sample_period),
             queue_size=self.queue_size, timeout=self.timeout, backoff_max=self.backoff_max,
             channels={ch: OpcUaChannelMap(node=server.node_id(ch), unit=unit)
-                      for ch, unit in UNITS.items()})
+                      for ch, unit in SERVED[self.machine][1].items()})
 
 
 class SimulatedOpcUaDriver(Driver):
-    """DC motor plant -> :class:`PlantOpcUaServer` (loopback) -> :class:`OpcUaDriver`.
+    """Plant -> :class:`PlantOpcUaServer` (loopback) -> :class:`OpcUaDriver`.
 
     Attributes:
         plant: the simulated plant (:meth:`~DCMotorPlant.truth` gives the true parameters).
@@ -137,7 +167,7 @@ class SimulatedOpcUaDriver(Driver):
     @classmethod
     def nominal_sample_period(cls, config: DriverConfig) -> float | None:
         assert isinstance(config, SimulatedOpcUaDriverConfig)
-        return config.plant.sample_period
+        return float(config.plant.sample_period)
 
     @classmethod
     def duration(cls, config: DriverConfig) -> float | None:
@@ -152,7 +182,7 @@ class SimulatedOpcUaDriver(Driver):
     @classmethod
     def describe(cls, config: DriverConfig) -> str:
         assert isinstance(config, SimulatedOpcUaDriverConfig)
-        return f"the simulated DC motor over OPC UA on {LOOPBACK}:{config.port}"
+        return f"the simulated {config.machine} over OPC UA on {LOOPBACK}:{config.port}"
 
     def __init__(self, config: SimulatedOpcUaDriverConfig) -> None:
         from twinwatch.drivers.opcua import OpcUaDriver
@@ -160,7 +190,10 @@ class SimulatedOpcUaDriver(Driver):
 
         super().__init__()
         self.config = config
-        self.plant = DCMotorPlant(config.plant)
+        self.plant: DCMotorPlant | HydraulicPlant = (
+            DCMotorPlant(config.plant) if isinstance(config.plant, DCMotorPlantConfig)
+            else HydraulicPlant(config.plant))
+        object_name, units = SERVED[config.machine]
         self.sample_period = config.plant.sample_period
         self.live = config.pacing == "realtime"
         self._taken = 0
@@ -169,7 +202,7 @@ class SimulatedOpcUaDriver(Driver):
         # in flight or unread at most: two 200-sample windows plus a burst
         self._high_water = 400 + config.queue_size // 4
         self.server = PlantOpcUaServer(
-            self.plant, UNITS, object_name="Motor", pacing=config.pacing, host=LOOPBACK,
+            self.plant, units, object_name=object_name, pacing=config.pacing, host=LOOPBACK,
             port=config.port, publishing_interval=config.publishing_interval,
             burst=max(1, config.queue_size // 4), may_advance=self._may_advance)
         self.opcua: OpcUaDriver | None = None
@@ -186,8 +219,8 @@ class SimulatedOpcUaDriver(Driver):
                 "another port (0: any free one)") from exc
         self.channels = self.opcua.channels
         self.stats = self.opcua.stats  # one set of counters: the OPC UA driver's
-        logger.info("simulated DC motor, scenario %s, %.0f s, served over OPC UA on %s "
-                    "(%s pacing)", config.plant.scenario, config.plant.duration,
+        logger.info("simulated %s, scenario %s, %.0f s, served over OPC UA on %s "
+                    "(%s pacing)", config.machine, config.plant.scenario, config.plant.duration,
                     self.server.endpoint, config.pacing)
 
     def _may_advance(self) -> bool:

@@ -73,6 +73,28 @@ class PlantSource(Protocol):
     def next_sample(self) -> Sample: ...
 
 
+class _DemoteFromServerThread(logging.Filter):
+    """asyncua's server records from the plant's server thread at DEBUG: a loopback server
+    with security None warns at every start that it offers no signing (on purpose here), and a
+    port already taken is logged with its traceback: :meth:`PlantOpcUaServer.start` says it in
+    one line instead."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if (logging.DEBUG < record.levelno < logging.CRITICAL
+                and threading.current_thread().name.startswith(_THREAD_NAME)):
+            if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
+                return False
+            record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+        return True
+
+
+for _name in ("asyncua.server.server", "asyncua.server.internal_server",
+              "asyncua.server.binary_server_asyncio", "asyncua.server.address_space"):
+    _log = logging.getLogger(_name)
+    if not any(isinstance(f, _DemoteFromServerThread) for f in _log.filters):
+        _log.addFilter(_DemoteFromServerThread())
+
+
 def _node_id(identifier: str, ns: int) -> Any:
     """A string NodeId (asyncua's typed constructor)."""
     from asyncua import ua
