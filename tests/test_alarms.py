@@ -81,7 +81,8 @@ def test_minimum_duration_before_raising_and_clearing() -> None:
     # 4 windows = 8 s beyond the alarm threshold, then back: nothing raised
     assert run(ev, [12, 12, 12, 12, 0]) == []
     assert ev.state()["Ra"] == {"level": "normal", "since_t": None, "since_window": None,
-                                "deviation_pct": 0, "pending": None}
+                                "deviation_pct": 0, "pending": None,
+                                "pending_since_t": None, "pending_windows": None}
     # 5 windows = 10 s: raised at the 5th
     events = run(ev, [12] * 5, start=5)
     assert [(e["window"], e["level"]) for e in events] == [(9, "alarm")]
@@ -171,6 +172,31 @@ def test_state_snapshot_and_restore() -> None:
     assert again.state()["Ra"]["level"] == "warning"
     # the restored warning is not raised again
     assert run(again, [6, 6], start=3) == []
+
+
+def test_a_restart_mid_evidence_run_keeps_the_run() -> None:
+    """Issue 37: a restart while the evidence for a raise was running started the run again
+    from nothing, lagging the alarm by up to raise_after_s. The snapshot carries the run (when
+    it began, its windows); restored, the alarm is raised when it would have been without the
+    restart (window 4, 10 s after the run began at 0 s), not 10 s after the restart."""
+    def first_raise(restart_at: int | None) -> int:
+        ev = quick(raise_after_s=10.0, raise_after_windows=1)
+        for w in range(12):
+            if w == restart_at:
+                snap = json.loads(json.dumps(ev.state()))
+                ev = quick(raise_after_s=10.0, raise_after_windows=1)
+                ev.restore(snap)
+            events = run(ev, [12], start=w)
+            if events:
+                return int(events[0]["window"])
+        return -1
+
+    assert first_raise(None) == 4
+    assert first_raise(3) == 4
+    snap = quick(raise_after_s=10.0, raise_after_windows=1)
+    run(snap, [12, 12])
+    assert snap.state()["Ra"]["pending_since_t"] == 0.0
+    assert snap.state()["Ra"]["pending_windows"] == 2
 
 
 @pytest.mark.parametrize(("rule", "key"), [

@@ -179,12 +179,12 @@ class AlarmEvaluator:
                     pending = s.down_level
                 out[name] = {"level": s.level, "since_t": s.since_t,
                              "since_window": s.since_window, "deviation_pct": s.deviation,
-                             "pending": pending}
+                             "pending": pending, **_run_state(s)}
                 r = self._rul.get(name)
                 if r is not None:
                     out[name]["rul"] = {"level": r.level, "since_t": r.since_t,
                                         "since_window": r.since_window, "rul_s": r.rul,
-                                        "pending": _pending(r)}
+                                        "pending": _pending(r), **_run_state(r)}
             return out
 
     def restore(self, snapshot: Mapping[str, Any]) -> None:
@@ -211,12 +211,15 @@ class AlarmEvaluator:
                 s.since_t = snap.since_t
                 s.since_window = snap.since_window
                 s.deviation = snap.deviation_pct
+                _restore_run(s, snap.pending, snap.pending_since_t, snap.pending_windows)
                 r, rsnap = self._rul.get(name), snap.rul
                 if r is not None and rsnap is not None and rsnap.level in _RANK:
                     r.level = rsnap.level  # type: ignore[assignment]
                     r.since_t = rsnap.since_t
                     r.since_window = rsnap.since_window
                     r.rul = rsnap.rul_s
+                    _restore_run(r, rsnap.pending, rsnap.pending_since_t,
+                                 rsnap.pending_windows)
 
     # -- internals --------------------------------------------------------------------------
     def _target(self, rule: AlarmRule, dev: float, current: Level) -> tuple[Level, float | None]:
@@ -365,6 +368,26 @@ class AlarmEvaluator:
             "since_t": since_t,
             "message": msg,
         }
+
+
+def _run_state(s: _ParamState) -> dict[str, Any]:
+    """The running evidence run of ``s`` for the snapshot: when it began, its windows."""
+    run = s.up if s.up is not None else s.down
+    return {"pending_since_t": run.since_t if run else None,
+            "pending_windows": run.windows if run else None}
+
+
+def _restore_run(s: _ParamState, pending: str | None, since_t: float | None,
+                 windows: int | None) -> None:
+    """Re-seed the evidence run a snapshot recorded (issue 37: a restart mid-degradation
+    lagged the raise by ``raise_after_s``, its run started again from nothing)."""
+    if pending not in _RANK or since_t is None or not windows or pending == s.level:
+        return
+    run = _Run(float(since_t), int(windows))
+    if _RANK[pending] > _RANK[s.level]:  # type: ignore[index]
+        s.up, s.up_level = run, pending  # type: ignore[assignment]
+    else:
+        s.down, s.down_level = run, pending  # type: ignore[assignment]
 
 
 def _pending(s: _ParamState) -> Level | None:

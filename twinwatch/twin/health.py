@@ -336,6 +336,9 @@ class RulAlarmStatus(_Part):
     rul_s: Num = Field(description="last RUL evidence [s] (null: not degrading)")
     pending: Literal["normal", "warning", "alarm"] | None = Field(
         description="level a running evidence run would move to")
+    pending_since_t: Num = Field(None, description="plant time that evidence run began [s] "
+                                 "(restored at a restart: the raise is not delayed)")
+    pending_windows: int | None = Field(None, description="its windows so far")
 
 
 class AlarmStatus(_Part):
@@ -347,6 +350,9 @@ class AlarmStatus(_Part):
     deviation_pct: Num = Field(description="last evidence [%]")
     pending: Literal["normal", "warning", "alarm"] | None = Field(
         description="level a running evidence run would move to")
+    pending_since_t: Num = Field(None, description="plant time that evidence run began [s] "
+                                 "(restored at a restart: the raise is not delayed)")
+    pending_windows: int | None = Field(None, description="its windows so far")
     rul: RulAlarmStatus | None = Field(
         None, description="the alarm state on the remaining useful life (rules with "
         "rul_warning / rul_alarm)")
