@@ -207,7 +207,7 @@ def test_check_config_validates_the_plugin_output_table(tmp_path: Path, plugin_p
         tmp_path, "[outputs.mqttx]\nhost = 'broker'\n")), cwd=tmp_path)
     assert unknown.returncode == 1
     line = next(ln for ln in unknown.stderr.splitlines() if "outputs.mqttx" in ln)
-    assert "unknown output 'mqttx'; known outputs: mqtt, jsonl" in line
+    assert "unknown output 'mqttx'; known outputs: mqtt, opcua, jsonl" in line
     assert "[state]" in line and "[zenoh]" in line and "[recording]" in line
 
     builtin = _twinwatch(plugin_path, "check-config", str(_config(
@@ -346,7 +346,7 @@ def test_sample_config_shows_the_plugin_table_and_takes_plugin_drivers(tmp_path:
     check = _twinwatch(plugin_path, "check-config", str(tmp_path / "direct.toml"), cwd=tmp_path)
     assert check.returncode == 0, check.stderr
     assert "plant_direct driver" in check.stdout
-    bad = _twinwatch(plugin_path, "sample-config", "--driver", "opcua", cwd=tmp_path)
+    bad = _twinwatch(plugin_path, "sample-config", "--driver", "profinet", cwd=tmp_path)
     assert bad.returncode == 2 and "'plant_direct'" in bad.stderr
 
 
