@@ -118,6 +118,10 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["DEVICE_HEALTH", "OpcUaConfig", "OpcUaPublisher", "OpcUaServer", "device_health"]
 
+#: The counters are written at most this often [s of plant time] (every window's other values
+#: are written as they change).
+COUNTERS_EVERY_S = 10.0
+
 #: OPC UA Part 100 (Devices) DeviceHealthEnumeration: NAMUR NE 107's states, by value.
 DEVICE_HEALTH: Mapping[str, int] = {"NORMAL": 0, "FAILURE": 1, "CHECK_FUNCTION": 2,
                                     "OFF_SPEC": 3, "MAINTENANCE_REQUIRED": 4}
@@ -315,6 +319,7 @@ class _Machine:
         self.last: dict[str, tuple[Any, int | None]] = {}  # path -> what was written last
         self.nodes: list[Any] = []                      # every node made for it
         self.active: dict[str, dict[str, Any]] = {}     # condition -> its raising event
+        self.counters_t: float | None = None            # plant time the counters were written
 
 
 class OpcUaServer:
@@ -582,6 +587,15 @@ class OpcUaServer:
         ts = _source_time(m, h.run, h.t_end, now)
         m.health = device_health(h)
         values = flat_values(h, m.health)
+        # the counters (some 40 a machine, most changing every window) at most every
+        # COUNTERS_EVERY_S of plant time: half the writes of a window, and a SCADA trends them
+        # at that pace anyway (measured: a 50-machine gateway's output cost 9 % of a core)
+        counters_due = (m.counters_t is None or h.t_end < m.counters_t
+                        or h.t_end - m.counters_t >= COUNTERS_EVERY_S)
+        if counters_due:
+            m.counters_t = h.t_end
+        else:
+            values = {k: v for k, v in values.items() if not k.startswith("Counters.")}
         write = self.aspace.write_attribute_value
         value_attr = ua.AttributeIds.Value
         good = ua.StatusCode()
