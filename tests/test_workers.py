@@ -5,6 +5,7 @@ on untouched.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sqlite3
@@ -223,6 +224,7 @@ def test_a_stopped_worker_is_reported_stalled_and_restarted(tmp_path: Path) -> N
             time.sleep(0.2)
         return time.monotonic() - t0
 
+    victim = None
     try:
         wait_until(lambda: all(len(_rows(db)) >= 2 for db in dbs.values()), 120,
                    "every machine stores two windows")
@@ -248,6 +250,9 @@ def test_a_stopped_worker_is_reported_stalled_and_restarted(tmp_path: Path) -> N
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+        if victim is not None:  # a failure above leaves it stopped, orphaned: never left over
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(victim, signal.SIGKILL)
         err.close()
         notify.close()
     log = (tmp_path / "stderr.txt").read_text()
