@@ -586,7 +586,7 @@ class Diagnoser:
         if not seen:
             return 0.0
         n, k = len(seen), sum(1 for ok in seen if not ok)
-        return float(betainc(n - k + 1, k + 1, 1.0 - CHECK_RATE))
+        return _rate_above(k, n)
 
     def _check_rate_var(self, output: str) -> _Var:
         """An output failing its model check persistently: the share of the last
@@ -597,7 +597,7 @@ class Diagnoser:
         n, k = len(seen), sum(1 for ok in seen if not ok)
         if n == 0:
             return _Var(f"check:{output}", "model_check", 0.5, "", f"no model check of {output}")
-        s = float(betainc(n - k + 1, k + 1, 1.0 - CHECK_RATE))  # P(rate > CHECK_RATE)
+        s = _rate_above(k, n)
         text = f"{output}'s model check failed in {k} of the last {n} windows"
         return _Var(f"check:{output}", "model_check", _clip(s), text, text)
 
@@ -835,6 +835,12 @@ class Diagnoser:
         record = (f"the model check failed in {len(failed)} of the last {len(self._checks)} "
                   f"windows ({covered:.0f} s)")
         return self._cf_since, record, share
+
+
+def _rate_above(k: int, n: int) -> float:
+    """Probability that a check's failure rate exceeds :data:`CHECK_RATE` after ``k``
+    failures in ``n`` windows (the Beta(k + 1, n - k + 1) posterior of a uniform prior)."""
+    return float(betainc(n - k + 1, k + 1, 1.0 - CHECK_RATE))
 
 
 def _change_onset(health: HealthMessage) -> float | None:
