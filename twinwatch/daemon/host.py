@@ -678,13 +678,13 @@ class Host(ServiceHost):
         self.notifier.reloading("re-reading the machine directory")
         files = set(self._scan())
         done: list[str] = []
-        for old, path in self._renamed(files).items():
+        for old, new in self._renamed(files).items():
             # a machine is its name, not its file: it goes on (its twin, trends, alarms, run
             # and window numbering), as an operator renaming a file expects
             m = self.machines.pop(old)
-            m.rename(path)
-            self.machines[path] = m
-            done.append(f"{m.name} goes on ({old.name} renamed {path.name})")
+            m.rename(new)
+            self.machines[new] = m
+            done.append(f"{m.name} goes on ({old.name} renamed {new.name})")
         for path in list(self.machines):
             if path not in files:
                 m = self.machines.pop(path)
