@@ -5,8 +5,8 @@ compares the cheap ones (the fast lane's test count) with what the docs say.
 
     python scripts/docs_figures.py fast-lane          # the fast lane's test count (collect only)
     python scripts/docs_figures.py fast-lane --time   # ... and its wall time (runs it: minutes)
-    python scripts/docs_figures.py main-job           # README's `twinwatch run`: wall time, windows,
-                                                      # estimation time per window (about 1-2 min)
+    python scripts/docs_figures.py main-job           # README's `twinwatch run`: wall time,
+                                                      # windows, estimation time (1-2 min)
     python scripts/docs_figures.py motoshield         # docs/motoshield.md's identify and run times
 
 Every figure is printed with the date, the commit and the machine's load (1-minute load average

@@ -40,9 +40,10 @@ OPTION = re.compile(r"(?<![\w-])(--[a-z][a-z0-9-]*)(?:=|[ \t]+)([^\s`|;,)\]]+)")
 
 def _quoted(text: str, known: set[str]) -> list[tuple[str, str]]:
     """``(--option, value)`` given to ``twinwatch``: in each command line of a code span or
-    block (``twinwatch run DIR --workers 2``), and in an inline span of ``twinwatch``'s options
-    alone (``known``; a table row's ``--workers 0``); not in another program's line (``bench_density.py --mode
-    gateway``) nor in prose quoted in a block (the CLI reference's help text)."""
+    block (``twinwatch run DIR --workers 2``), and in an inline span of ``twinwatch``'s
+    options alone (``known``; a table row's ``--workers 0``); not in another program's line
+    (``bench_density.py --mode gateway``) nor in prose quoted in a block (the CLI reference's
+    help text)."""
     commands = []
     for span in re.findall(r"```.*?```|`[^`\n]+`", text, re.DOTALL):
         body = span.strip("`")
