@@ -289,6 +289,14 @@ def test_a_restart_mid_degradation_says_at_the_default_level_the_trend_resumed(
                      r"RUL (\d+\.?\d*) min to its alarm threshold\)", text)
     assert m is not None, text
     assert 4.5 < float(m.group(1)) < 6.2, text
+    # a reload's daemon goes on in the same run (b): its windows are "this run"
+    store = _store_with_a_degrading_trend(tmp_path / "reload.sqlite")
+    try:
+        prog = Prognostics(["Ra"], {"Ra": 6.5})
+        assert replay_trends(store, "m", prog, run="b").startswith(
+            "resumed from 40 windows of this run and 1 earlier (Ra degrading")
+    finally:
+        store.close()
 
 
 def test_a_restart_that_does_not_resume_the_trend_says_why(

@@ -50,11 +50,13 @@ def resumes(config: TwinwatchConfig, resume: bool | None) -> bool | None:
     return True
 
 
-def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvaluator
-            ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvaluator,
+            run: str | None = None) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """Resume from the state database: the last accepted twin (trusted parameters and
     meta-model terms) and the alarm levels of the last window. Both are read before either is
-    used: a corrupt database (moved aside by ``recover_corrupt``) resumes nothing.
+    used: a corrupt database (moved aside by ``recover_corrupt``) resumes nothing. The trends
+    are replayed (:func:`replay_trends`) and one line says so (:func:`say_trend`); ``run``: the
+    daemon's run id (a reload goes on in the same run).
 
     Returns:
         ``(restored, resumed)``: the twin state given to the adapter (None when none was
@@ -90,7 +92,8 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
             say_trend(machine, last, "not resumed: no twin was saved (no window of the "
                                      "previous run was trusted)")
         else:
-            say_trend(machine, last, replay_trends(store, machine, adapter.prognostics))
+            say_trend(machine, last, replay_trends(store, machine, adapter.prognostics,
+                                                   run=run))
     if restored is None and raised is None:
         return restored, None
     trusted, terms = _twin_summary(restored or {})
@@ -111,12 +114,17 @@ def _twin_summary(state: Mapping[str, Any]) -> tuple[dict[str, float], int]:
     return dict(state.get("trusted") or {}), len(state.get("terms") or [])
 
 
-def replay_trends(store: Gate, machine: str, prognostics: Prognostics) -> str:
+def replay_trends(store: Gate, machine: str, prognostics: Prognostics,
+                  run: str | None = None) -> str:
     """Rebuild the parameters' trends from the evidence the stored windows published (the last
     ``[prognostics] horizon`` seconds of plant time, on the time line that ends with the last
     window: across earlier restarts, :meth:`~twinwatch.sinks.base.Gate.timeline`), read
     through their typed views, so a restart resumes the trends and their RUL instead of
     waiting ``min_evidence`` windows.
+
+    Args:
+        run: the resuming daemon's run id: windows of that run are "this run" (a reload's),
+            the others "previous" (a restart's).
 
     Returns:
         What was resumed, for :func:`say_trend`: ``resumed from 57 windows of the previous
@@ -135,8 +143,11 @@ def replay_trends(store: Gate, machine: str, prognostics: Prognostics) -> str:
     trends = prognostics.trends.values()
     windows = max(t.evidence for t in trends)
     first = min(t.t[0] for t in trends if t.t)
-    runs = len({m.run for m in messages if m.t_end is not None and m.t_end >= first})
-    where = "of the previous run" if runs <= 1 else f"of the previous {runs} runs"
+    runs = {m.run for m in messages if m.t_end is not None and m.t_end >= first}
+    earlier = len(runs - {run})
+    where = ("of this run" if not earlier else
+             f"of this run and {earlier} earlier" if run in runs else
+             "of the previous run" if earlier == 1 else f"of the previous {earlier} runs")
     parts = []
     for name, p in prognostics.predict(float(last.t_end)).items():
         if not p.trend.degrading:
