@@ -37,7 +37,13 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from twinwatch.daemon.acquisition import STOP_AT_WINDOW_S, Acquisition
 from twinwatch.daemon.outputs import Outputs, close_logged
-from twinwatch.daemon.resume import continue_numbering, note_new_run, restore, resumes
+from twinwatch.daemon.resume import (
+    continue_numbering,
+    note_fresh,
+    note_new_run,
+    restore,
+    resumes,
+)
 from twinwatch.daemon.window_worker import (
     QUEUE_WAITS,
     RECENT_WINDOWS,
@@ -215,6 +221,8 @@ class Daemon:
                 decision = resumes(config, resume)
                 if decision:
                     self._restore()
+                elif decision is False:
+                    note_fresh(self.store, self.machine)
                 elif decision is None:
                     self.new_run = note_new_run(self.store, self.machine,
                                                 config.driver.type, self.run_id)
@@ -389,7 +397,7 @@ class Daemon:
         """Resume from the state database (:func:`~twinwatch.daemon.resume.restore`)."""
         assert self.store is not None
         self.restored, self.resumed = restore(self.store, self.machine, self.adapter,
-                                              self.alarms)
+                                              self.alarms, run=self.run_id)
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
