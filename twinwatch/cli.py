@@ -675,9 +675,10 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
     except ValueError as exc:  # a bad --train/--validate range
         click.echo(f"Error: {exc}", err=True)
         sys.exit(EX_CONFIG)
-    from twinwatch.daemon.commission import CommissionError, commission, report
+    from twinwatch.commissioning.commission import CommissionError, commission
+    from twinwatch.commissioning.identify import parameters_block
+    from twinwatch.commissioning.report import report
     from twinwatch.drivers import DriverError
-    from twinwatch.twin.estimation.identify import parameters_block
 
     try:
         found = commission(cfg, config.resolve().parent, duration=duration, record=record)
