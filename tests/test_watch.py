@@ -145,7 +145,7 @@ def test_each_cell_of_the_table_and_the_tail_line_say_what_the_message_does() ->
     """The table's cells (render's named parts) and ``tail``'s line on what the other tests'
     machine does not carry: a machine gone, one without a window, a held parameter past its
     crossing, a fused one, a failed model check, an untrusted fit, no losses, terms."""
-    from twinwatch.watch import (
+    from twinwatch.watch.render import (
         _alarms_cell,
         _last_cell,
         _parameters_cell,
