@@ -11,7 +11,7 @@ import json
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
@@ -22,6 +22,7 @@ from twinwatch.watch.fleet import Delivery, Fleet, Gap
 from twinwatch.watch.session import (
     CHUNKS_RE,
     Mode,
+    check_endpoints,
     check_prefix,
     decode_health,
     decode_json,
@@ -408,27 +409,51 @@ class FleetWatcher:
 
 @contextmanager
 def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
-             machine: str = "*", **options: Any) -> Iterator[Settling]:
+             machine: str = "*", *, optional: Collection[str] = (),
+             on_skip: Callable[[str, str], None] | None = None,
+             **options: Any) -> Iterator[Settling]:
     """A session on ``connect`` and a started :class:`FleetWatcher` on it (``options``: its
     ``history``, ``alarm_history`` and ``on_*``), closed on exit.
 
+    Args:
+        optional: endpoints (of ``connect``) that may have nothing answering there (a
+            configured machine whose daemon is not running, client mode): each such one is
+            skipped and, once another answered, ``on_skip`` called with it and why; the others
+            must answer.
+
     Raises:
-        WatchError: see :func:`open_session` and :class:`FleetWatcher`.
+        WatchError: see :func:`open_session` and :class:`FleetWatcher`; every endpoint was
+            skipped.
     """
     check_prefix(prefix)
+    check_endpoints(connect)  # a malformed endpoint is refused, optional or not
+    skippable = set(optional)
     # A client session talks to one of its endpoints only (the first that answers): with
     # `--connect A --connect B` the machines behind B never showed although the header
     # listed both (issue 24). In client mode each endpoint gets a session of its own, all
     # feeding the one fleet; a peer session connects to every endpoint itself.
-    groups = ([[e] for e in connect] if mode == "client" and len(connect) > 1
+    groups = ([[e] for e in connect] if mode == "client" and (len(connect) > 1 or skippable)
               else [list(connect)])
     with contextlib.ExitStack() as stack:
         watchers: list[FleetWatcher] = []
+        skipped: list[tuple[str, str]] = []
         for group in groups:
-            session = open_session(group, mode)
+            try:
+                session = open_session(group, mode)
+            except WatchError as exc:
+                if not set(group) <= skippable:
+                    raise
+                skipped.append((group[0], str(exc)))
+                continue
             stack.callback(session.close)
             watchers.append(stack.enter_context(
                 FleetWatcher(session, fleet, prefix=prefix, machine=machine, **options)))
+        if not watchers:
+            raise WatchError(f"nothing answers at {', '.join(connect)}: start a daemon "
+                             "(twinwatch run) or a zenoh router there")
+        for endpoint, why in skipped:
+            if on_skip is not None:
+                on_skip(endpoint, why)
         yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)
 
 
