@@ -455,11 +455,13 @@ class Daemon:
         describe the machine), each output's :attr:`~twinwatch.sinks.base.Sink.problem`.
         """
         out = []
-        waiting, silent = self.source_state()
+        waiting, silent, faults = self.source_state()
         if waiting:
             out.append(f"waiting for the source: {waiting}")
         if silent:
             out.append("silent: " + ", ".join(silent))
+        if faults:
+            out.append("device fault: " + ", ".join(faults))
         if (p := self.estimation_problem()) is not None:
             out.append(p)
         last = self.pipeline.latest
@@ -470,10 +472,12 @@ class Daemon:
             out.append(check_function_line(last.diagnosis, label="CHECK FUNCTION"))
         return out + self.outputs.problems()
 
-    def source_state(self) -> tuple[str | None, list[str]]:
+    def source_state(self) -> tuple[str | None, list[str], list[str]]:
         """What the driver waits for (a device absent, a bus being reopened; None when it
-        delivers) and its silent messages (:attr:`~twinwatch.drivers.base.Driver.waiting`,
-        :attr:`~twinwatch.drivers.base.Driver.silent`)."""
+        delivers), its silent messages and what the device reports wrong with itself
+        (:attr:`~twinwatch.drivers.base.Driver.waiting`,
+        :attr:`~twinwatch.drivers.base.Driver.silent`,
+        :attr:`~twinwatch.drivers.base.Driver.device_faults`)."""
         return self.acquisition.source_state()
 
     def estimation_problem(self) -> str | None:
