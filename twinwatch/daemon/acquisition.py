@@ -198,7 +198,8 @@ class Acquisition:
 
     def source_state(self) -> tuple[str | None, list[str], list[str]]:
         """What the driver waits for (None when it delivers), its silent messages and what
-        the device reports wrong with itself (:attr:`~twinwatch.drivers.base.Driver.device_faults`)."""
+        the device reports wrong with itself
+        (:attr:`~twinwatch.drivers.base.Driver.device_faults`)."""
         driver = self.driver
         if driver is None:
             return None, [], []

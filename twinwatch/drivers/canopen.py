@@ -654,7 +654,7 @@ class CanopenDriver(Driver):
                                and config.reopen_after is not None)
         logger.info("CANopen driver ready: node %d, %s, EDS %s, %s; %s; heartbeat %s",
                     node, self.describe(config), config.eds,
-                    "sample on SYNC 0x%X" % plan.sync_id if self._sync_id is not None
+                    f"sample on SYNC 0x{plan.sync_id:X}" if self._sync_id is not None
                     else f"sample on {config.sample_on}",
                     "; ".join(f"{ch} <- {w}" for ch, w in plan.channels.items()),
                     f"{plan.heartbeat_s:g} s" if plan.heartbeat_s else "not watched")

@@ -93,12 +93,21 @@ class CiA402Drive:
         self.node.tpdo.read(from_od=True)
         self.node.rpdo.read(from_od=True)
         od = self.node.object_dictionary
-        self.heartbeat_period = int(od[0x1017].default) / 1000.0
-        self._rated_ma = float(od[0x6075].default)
-        self._sync_overflow = int(od[0x1019].default)
-        self._every = {m.cob_id: (m.trans_type or 1) for m in self.node.tpdo.map.values()
-                       if m.enabled}
-        self._tpdos = [m for m in self.node.tpdo.map.values() if m.enabled and m.map]
+
+        def default(index: int) -> float:
+            var = od.get_variable(index)
+            if var is None or not isinstance(var.default, int | float):
+                raise ValueError(f"the drive's EDS gives no value of 0x{index:04X}")
+            return float(var.default)
+
+        self.node_id = node_id
+        self.heartbeat_period = default(0x1017) / 1000.0
+        self._rated_ma = default(0x6075)
+        self._sync_overflow = int(default(0x1019))
+        maps = self.node.tpdo.map
+        assert maps is not None
+        self._every = {m.cob_id: (m.trans_type or 1) for m in maps.values() if m.enabled}
+        self._tpdos = [m for m in maps.values() if m.enabled and m.map]
         self._rpdo = self.node.rpdo[1]
         self._status = _OPERATION_ENABLED
         self.heartbeat = True
@@ -145,7 +154,7 @@ class CiA402Drive:
             pdo.transmit()
         if self.heartbeat and t + 1e-9 >= self._next_heartbeat:
             net.now += 40e-6
-            net.send_message(0x700 + self.node.id, bytes([0x05]))
+            net.send_message(0x700 + self.node_id, bytes([0x05]))
             self._next_heartbeat = t + self.heartbeat_period
         self._k += 1
         return sample
