@@ -400,3 +400,34 @@ def test_simulated_drive_ra_within_0p2_percent_after_160_s():
 def test_the_shipped_eds_is_in_the_package_data():
     text = (ROOT / "pyproject.toml").read_text()
     assert '"plant/*.eds"' in text and drive_eds_path().is_file()
+
+
+def test_a_dcf_s_values_win_over_the_eds_defaults(tmp_path):
+    """A DCF (the EDS with ParameterValue, as a commissioning tool writes it) that remaps
+    TPDO1's second object from the velocity to the DC link voltage: the driver follows the
+    DCF, and a channel on the velocity is refused (the drive no longer sends it)."""
+    text = drive_eds_path().read_text()
+    section = "[1A00sub2]\n"
+    assert section in text
+    dcf = tmp_path / "drive.dcf"
+    dcf.write_text(text.replace(section, section + "ParameterValue=0x60790020\n"))
+    base = _config("x", eds=str(dcf))
+    with pytest.raises(DriverConfigError) as exc:
+        load_plan(CanopenDriverConfig.model_validate(base).resolved(tmp_path))
+    assert exc.value.keyed().startswith("driver.channels.omega.object:")
+    channels = dict(CHANNELS)
+    channels["omega"] = {"object": "DC link circuit voltage", "factor": "mV"}
+    plan = load_plan(CanopenDriverConfig.model_validate({**base, "channels": channels})
+                     .resolved(tmp_path))
+    assert plan.channels["omega"] == "TPDO1 0x6079 DC link circuit voltage"
+
+
+def test_bit_fields_and_floats_decode_as_the_mapping_says():
+    from twinwatch.drivers.canopen import _decode, _Entry
+
+    # a signed 12-bit field at bit 4 (INTEGER16 mapped with 12 bits), -5 in it
+    data = ((-5 & 0xFFF) << 4 | 0x3).to_bytes(2, "little")
+    assert _decode(_Entry(0x2000, 0, "x", 4, 12, 0x3), data) == -5.0
+    assert _decode(_Entry(0x2000, 0, "x", 0, 4, 0x5), data) == 3.0  # UNSIGNED8, 4 bits
+    real = b"\x00\x00" + struct.pack("<f", 1.5)
+    assert _decode(_Entry(0x2001, 0, "y", 16, 32, 0x8), real) == 1.5  # REAL32 at byte 2

@@ -274,13 +274,12 @@ class _Pdo:
     cob_id: int
     trans_type: int
     entries: list[_Entry]
+    #: the mapping's length [bits], dummy entries included: a shorter frame is truncated
+    bits: int
     #: (twin channel, entry, factor, offset) decoded from each frame
     channels: list[tuple[str, _Entry, float, float]] = field(default_factory=list)
     statusword: _Entry | None = None
 
-    @property
-    def bits(self) -> int:
-        return sum(e.bits for e in self.entries)
 
     @property
     def every_sync(self) -> bool:
@@ -383,7 +382,7 @@ def _read_pdos(od: Any, node_id: int, eds: Path) -> dict[str, _Pdo]:
                         f"file does not define")
                 entries.append(_Entry(index, sub, var.name, offset, bits, int(var.data_type)))
                 offset += bits
-            pdos[name] = _Pdo(name, cob_id, trans, entries)
+            pdos[name] = _Pdo(name, cob_id, trans, entries, offset)
     return pdos
 
 
