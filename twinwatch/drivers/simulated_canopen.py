@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import ConfigDict, Field, StrictInt
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt
 
 from twinwatch.drivers.base import (
     Driver,
@@ -68,6 +68,8 @@ class SimulatedCanopenDriverConfig(DriverConfig):
         node_id: the simulated drive's node id.
         channel: the in-process virtual CAN channel ("auto": a unique name).
         realtime: pace the plant by the wall clock instead of running as fast as possible.
+        fault_at, fault_code, fault_reset_at, heartbeat_stop_at: the drive's own faults, at
+            plant times [s] (for tests and demonstrations; None: never).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -81,6 +83,17 @@ class SimulatedCanopenDriverConfig(DriverConfig):
         "real bus")
     channel: str = "auto"
     realtime: bool = False
+    fault_at: StrictFloat | None = Field(
+        None, ge=0, allow_inf_nan=False, description="plant time [s] the drive faults: an "
+        "EMCY with fault_code and the statusword's fault bit (None: never)")
+    fault_code: StrictInt = Field(0x2310, ge=0x1000, le=0xFFFF, description="the EMCY's "
+                                  "error code (0x2310: continuous over-current)")
+    fault_reset_at: StrictFloat | None = Field(
+        None, ge=0, allow_inf_nan=False, description="plant time [s] the fault is reset (an "
+        "EMCY error reset, the statusword operational again)")
+    heartbeat_stop_at: StrictFloat | None = Field(
+        None, ge=0, allow_inf_nan=False, description="plant time [s] the drive stops sending "
+        "its heartbeat (a stuck firmware)")
 
     def twin_channels(self) -> tuple[str, ...]:
         """The channels the drive's TPDOs and the master's RPDO carry."""
@@ -157,6 +170,7 @@ class SimulatedCanopenDriver(Driver):
         self.channels = self.canopen.channels
         self.stats = self.canopen.stats  # one set of counters: the CANopen driver's
         self._t0_wall: float | None = None
+        self._done: set[str] = set()
         logger.info("simulated %s plant as CiA 402 node %d, scenario %s, %.0f s, on virtual CAN "
                     "channel %r", config.machine, config.node_id, config.plant.scenario,
                     config.plant.duration, channel)
@@ -190,7 +204,17 @@ class SimulatedCanopenDriver(Driver):
             delay = self._t0_wall + t - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-        self.drive.step()  # raises EndOfStream at the end
+        t = self.drive.step().t  # raises EndOfStream at the end
+        c = self.config
+        if c.fault_at is not None and t >= c.fault_at and "fault" not in self._done:
+            self._done.add("fault")
+            self.drive.inject_fault(c.fault_code)
+        if (c.fault_reset_at is not None and t >= c.fault_reset_at
+                and "reset" not in self._done):
+            self._done.add("reset")
+            self.drive.reset_fault()
+        if c.heartbeat_stop_at is not None and t >= c.heartbeat_stop_at:
+            self.drive.heartbeat = False
 
     def _take(self, timeout: float) -> Sample | None:
         assert self.canopen is not None
