@@ -62,7 +62,8 @@ class Cell:
 
     def cycle(self, *, omega: float = 10.0, ia: float = 1.0, va: float = 12.0,
               setpoint: float = 10.0, status: int = 0x0237, node: int = NODE,
-              tpdo2: bytes | None = None, sync: bool = True, heartbeat: bool = True) -> float:
+              tpdo2: bytes | None = None, sync: bool = True, heartbeat: bool = True,
+              send_tpdo2: bool = True) -> float:
         """One SYNC period: SYNC (counter), RPDO1, TPDO1, TPDO2, heartbeat every 10th."""
         t = self.k * 0.01
         if sync:
@@ -71,7 +72,8 @@ class Cell:
         self.send(0x180 + node, struct.pack("<Hl", status, round(omega / MRPM)), t + 2e-5)
         if tpdo2 is None:
             tpdo2 = struct.pack("<hl", round(ia / 0.004), round(va * 1000))
-        self.send(0x280 + node, tpdo2, t + 3e-5)
+        if send_tpdo2:
+            self.send(0x280 + node, tpdo2, t + 3e-5)
         if heartbeat and self.k % 10 == 0:
             self.send(0x700 + node, b"\x05", t + 4e-5)
         self.k += 1
@@ -224,6 +226,24 @@ def test_emcy_statusword_fault_and_a_missing_heartbeat_are_said_and_counted(cell
     extra = driver.stats.extra
     assert extra["emcy_faults"] == 1 and extra["statusword_faults"] == 1
     assert extra["heartbeat_lost"] == 1
+
+
+def test_a_tpdo_that_stops_is_named_silent_and_its_cycles_counted(cell):
+    driver = CanopenDriver.from_config(_config(cell.channel), base_dir=Path("."))
+    try:
+        for _ in range(5):
+            cell.cycle()
+        _read(driver, 5)
+        for _ in range(150):  # 1.5 s of SYNC and TPDO1 without TPDO2 (Va, ia)
+            cell.cycle(send_tpdo2=False)
+        assert driver.read(timeout=0.5) is None
+        assert any(s.startswith("TPDO2 (Va, ia) for 1.") for s in driver.silent), driver.silent
+        assert driver.stats.extra["incomplete_syncs"] >= 149
+        cell.cycle()
+        cell.cycle()
+        assert driver.read(timeout=0.5) is not None and driver.silent == ()
+    finally:
+        driver.close()
 
 
 def test_sample_on_a_tpdo_without_sync(cell):

@@ -625,6 +625,10 @@ class CanopenDriver(Driver):
         #: the TPDOs a SYNC's sample waits for (sent on every SYNC, carrying a channel)
         self._every_sync = frozenset(p.cob_id for p in plan.pdos.values()
                                      if p.channels and p.every_sync)
+        #: every PDO carrying channels, watched for silence (PDO name -> its channels)
+        self._watched = {p.name: [ch for ch, *_ in p.channels] for p in plan.pdos.values()
+                         if p.channels}
+        #: the PDOs whose channels hold their latest value: left out of the samples when silent
         self._held = {p.name: [ch for ch, *_ in p.channels] for p in plan.pdos.values()
                       if p.channels and (self._sync_id is None or not p.every_sync)
                       and p.cob_id != self._sample_pdo}
@@ -749,7 +753,7 @@ class CanopenDriver(Driver):
             silent.append(f"node {self.config.node_id} heartbeat for {heartbeat_age:.1f} s "
                           f"(producer time {self.plan.heartbeat_s:g} s)")
         assert self._first_stamp is not None
-        for name, chans in self._held.items():
+        for name, chans in self._watched.items():
             age = now - self._seen.get(name, self._first_stamp)
             if age > self.config.silent_after:
                 silent.append(f"{name} ({', '.join(chans)}) for {age:.1f} s")
@@ -757,7 +761,7 @@ class CanopenDriver(Driver):
                     self._silent_logged.add(name)
                     self._bump("silent_pdos")
                     logger.warning("CANopen %s (channels %s) not received for %.1f s: its "
-                                   "channels are left out of the samples until it is back",
+                                   "channels are missing from the samples until it is back",
                                    name, ", ".join(chans), age)
             elif name in self._silent_logged:
                 self._silent_logged.discard(name)
@@ -839,6 +843,7 @@ class CanopenDriver(Driver):
             self.log_once("incomplete", "CANopen SYNC cycle at %.3f s ended without %s: no "
                           "sample for it; counted in stats.extra['incomplete_syncs']",
                           self._cycle_t, ", ".join(names))
+            self._update_silent(now, self._heartbeat_age())  # no sample: say what is missing
         self._skip_cycle = False
         if data and self._counter.modulus is not None:
             step, missing = self._counter.update(data[0] - 1)
@@ -933,7 +938,7 @@ class CanopenDriver(Driver):
         assert self._now is not None
         self._update_silent(self._now, self._heartbeat_age())
         gone = {ch for name, chans in self._held.items() if name in self._silent_logged
-                for ch in chans}
+                for ch in chans}  # a PDO every SYNC waits for gives no sample while silent
         missing = [ch for ch in self.channels if ch not in self._latest]
         if missing:
             self._bump("incomplete_syncs")
