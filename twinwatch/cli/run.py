@@ -74,13 +74,13 @@ def run(config: Path | None, duration: float | None, log_level: str, no_progress
     degradation, as fast as possible, recording to ./twinwatch.rrd).
 
     Gateway mode: CONFIG a directory runs every machine configuration in it (*.toml, one
-    machine each) in this one process: each machine has its own source, queue, worker,
-    outputs and watchdog, its files in ./<machine name>/; machines configured with the same
-    [zenoh] session settings share one Zenoh session; at most --workers windows are
-    estimated at once. A machine whose configuration is invalid, whose device cannot be
-    opened or whose driver fails is reported under its name and the others go on. SIGHUP
-    re-reads the directory (new files start, removed files stop, changed files reload, machines
-    not running are started again). The summary has one block per machine; the exit status is 1
+    machine each) spread over --workers processes: each machine has its own source, queue,
+    worker, outputs and watchdog, its files in ./<machine name>/; machines configured with the
+    same [zenoh] session settings share one Zenoh session and so one process. A machine whose
+    configuration is invalid, whose device cannot be opened or whose driver fails is reported
+    under its name and the others go on. SIGHUP re-reads the directory (new files start,
+    removed files stop, changed files reload, machines not running are started again). The
+    summary has one block per machine; the exit status is 1
     when a machine was lost, else as below for the worst machine.
 
     Every start is a new run (its id is in every health message and the summary; a SIGHUP
