@@ -580,14 +580,14 @@ def test_watch_finds_the_configured_machines_on_their_own_ports(tmp_path: Any) -
 
 def test_the_configured_endpoints_are_read_from_the_zenoh_tables(tmp_path: Any) -> None:
     """What `watch --config` connects to: the shipped examples' ports (7447, the hydraulic
-    ones' 7448 and 7449, the OPC UA ones' 7450 and 7451, the TLS example's router), a client's
+    ones' 7448 and 7449, the OPC UA ones' 7450 and 7451, the CANopen one's 7453, the TLS example's router), a client's
     router, none for a machine whose Zenoh output is off; a bad table is one line."""
     import click
 
     from twinwatch.cli.watch import config_endpoints, watch_endpoint
 
     found, prefixes = config_endpoints(ROOT / "config")
-    assert set(found) == {f"tcp/127.0.0.1:{p}" for p in range(7447, 7452)} | {
+    assert set(found) == {f"tcp/127.0.0.1:{p}" for p in (*range(7447, 7452), 7453)} | {
         "tls/localhost:7447"}, found
     assert found["tcp/127.0.0.1:7448"] == ["hydraulic-modbus-sim.toml"]
     assert prefixes == {"twinwatch"}

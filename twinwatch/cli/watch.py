@@ -189,10 +189,10 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
     What it connects to: only the endpoints given, no scouting. By default
     tcp/127.0.0.1:7447, where a daemon listens unless its [zenoh] listen says otherwise (most
     DC motor examples); a machine publishing on another port (the hydraulic examples on 7448
-    and 7449, the OPC UA ones on 7450 and 7451, a gateway whose machines' [zenoh] table says
-    another) is not shown unless its endpoint is given with --connect or its configuration
-    with --config (a file or a gateway's directory: twinwatch watch --config config/ watches
-    every shipped example that runs).
+    and 7449, the OPC UA ones on 7450 and 7451, the CANopen one on 7453, a gateway whose
+    machines' [zenoh] table says another) is not shown unless its endpoint is given with
+    --connect or its configuration with --config (a file or a gateway's directory: twinwatch
+    watch --config config/ watches every shipped example that runs).
 
     Exit status: 0; 1 when the network cannot be reached; 2 for a bad option (--config
     unreadable)."""
