@@ -25,7 +25,9 @@ PACKAGE = ROOT / "twinwatch"
 READERS = [
     "watch.py",
     "sinks/rerun_views.py",
-    "sinks/rerun.py",
+    "sinks/rerun/recorder.py",
+    "sinks/rerun/files.py",
+    "sinks/rerun/live.py",
     "sinks/mqtt.py",
     "sinks/opcua.py",
     "twin/diagnosis/explain.py",
