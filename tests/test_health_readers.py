@@ -29,7 +29,9 @@ READERS = [
     "sinks/rerun/files.py",
     "sinks/rerun/live.py",
     "sinks/mqtt.py",
-    "sinks/opcua.py",
+    "sinks/opcua/model.py",
+    "sinks/opcua/server.py",
+    "sinks/opcua/publisher.py",
     "twin/diagnosis/explain.py",
     "daemon/alarms.py",
     "cli.py",
@@ -61,7 +63,7 @@ OTHER_DOCUMENTS = {
     ("daemon/summary.py", "resumed_line"): "the daemon's resume summary (Daemon.resumed)",
     ("daemon/summary.py", "new_run_line"): "the daemon's new-run summary (Daemon.new_run)",
     ("sinks/zenoh.py", "history_parameters"): "the history query's parameters",
-    ("sinks/opcua.py", "OpcUaServer._alarm"): "an alarm event (out.events)",
+    ("sinks/opcua/server.py", "OpcUaServer._alarm"): "an alarm event (out.events)",
     ("daemon/resume.py", "_twin_summary"): "the saved twin (TwinAdapter.state())",
 }
 """(file, function) -> the document it reads instead of the health message."""
