@@ -116,8 +116,9 @@ class WindowPipeline:
         run: the run id every health message carries (:attr:`run`).
         nominal: parameter -> nominal value the deviations are measured from.
         counters: returns the daemon's counters for the health message.
-        source: returns what the source waits for (None when it delivers) and its silent
-            messages, for the health message's ``source``.
+        source: returns, for a window, what the source waited for (None when it delivered),
+            its silent messages and the device's own faults when the window's last sample was
+            read, for the health message's ``source``.
         history: health messages kept in memory (:attr:`history`).
         diagnoser: ranks the machine's fault modes each window (the message's ``diagnosis``);
             None: no diagnosis.
@@ -135,7 +136,8 @@ class WindowPipeline:
     def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
                  model_name: str, run: str, nominal: Mapping[str, float],
                  counters: Callable[[], Mapping[str, int]], history: int,
-                 source: Callable[[], tuple[str | None, list[str]]] | None = None,
+                 source: Callable[[WindowData], tuple[str | None, list[str], list[str]]]
+                 | None = None,
                  diagnoser: Diagnoser | None = None) -> None:
         self.adapter = adapter
         self.run = run
@@ -375,8 +377,9 @@ class WindowPipeline:
 
     def _source_health(self, window: WindowData) -> SourceHealth:
         """The window's ``source``: its stamps' jitter against the grid the ring buffer placed
-        it on [us], and what the source waits for or lacks now."""
-        waiting, silent = self._source() if self._source is not None else (None, [])
+        it on [us], and what the source waited for or lacked when its last sample was read."""
+        waiting, silent, faults = (self._source(window) if self._source is not None
+                                   else (None, [], []))
         jitter = window.stamp_jitter
         if jitter is None or jitter.size == 0:
             rms = peak = 0.0
@@ -384,7 +387,7 @@ class WindowPipeline:
             rms = float(np.sqrt(np.mean(np.square(jitter)))) * 1e6
             peak = float(np.max(np.abs(jitter))) * 1e6
         return SourceHealth(jitter_rms_us=rms, jitter_max_us=peak, waiting=waiting,
-                            silent=list(silent))
+                            silent=list(silent), device_faults=list(faults))
 
     def _stored_docs(self) -> Callable[[str, str, int], list[str]] | None:
         """The gate's reader of stored messages (machine, run, limit -> JSON, oldest first),
