@@ -128,3 +128,31 @@ def test_without_a_gate_every_window_counts_as_stored(windows: list[ProcessedWin
     keeper = GateKeeper("m1", _write, log)
     assert keeper.store(windows[0], can_hold=True) is True
     assert keeper.retry(give_up=False) is None
+
+
+def test_a_window_beyond_the_held_limit_publishes_its_alarm_events_once_later(
+        windows: list[ProcessedWindow], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A window the keeper cannot hold (HELD_MAX held already: stored later, not published)
+    hands its alarm events to the next stored window, once (they were queued twice: by the
+    pipeline's hold and again by its fan-out)."""
+    from twinwatch.daemon.pipeline import WindowPipeline
+
+    published: list[list[Any]] = []
+
+    class Publisher:  # what the fan-out uses of a publishing output
+        name = "pub"
+        publishes = True
+
+        def write(self, out: ProcessedWindow) -> None:
+            published.append(list(out.events))
+
+    pipe = WindowPipeline(adapter=None, alarms=None, machine="m1",  # type: ignore[arg-type]
+                          model_name="dc_motor", run="r1", nominal={}, counters=dict,
+                          history=10)
+    pipe.sinks = [Publisher()]  # type: ignore[list-item]
+    monkeypatch.setattr(pipe.keeper, "hold", lambda out: False)  # the limit reached
+    monkeypatch.setattr(pipe.keeper, "store", lambda out, can_hold: True)
+    pipe._hold(windows[0])
+    assert published == []
+    pipe._deliver(windows[1])
+    assert published == [[{"window": 0}, {"window": 1}]]

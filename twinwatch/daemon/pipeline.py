@@ -291,8 +291,7 @@ class WindowPipeline:
         once the lock goes (beyond :data:`HELD_MAX`: not published); the recorders get it
         now."""
         stored = self.keeper.hold(out)
-        if stored is False:
-            self._held_events.extend(out.events)
+        # not held (False): the fan-out keeps its alarm events for the next stored window
         self._write_others(out, stored=stored)
 
     def _retry_held(self, give_up: bool) -> None:
