@@ -160,7 +160,10 @@ class FileDriverConfig(DriverConfig):
     def _check(self) -> FileDriverConfig:
         if self.sample_period is None and self.time_column is None:
             raise ValueError("sample_period is required unless time_column is given")
-        if "idle_timeout" in self.model_fields_set and not self.follow:
+        # a table as dumped (every field, the default too) still validates: only a changed
+        # idle_timeout is refused without follow
+        default = type(self).model_fields["idle_timeout"].default
+        if not self.follow and self.idle_timeout != default:
             raise ValueError("idle_timeout applies to a followed file only: set follow = true "
                              "or remove idle_timeout")
         if self.follow and self.sample_period is None:
