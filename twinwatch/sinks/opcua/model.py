@@ -23,7 +23,7 @@ _ua.rebinds(globals())
 
 if TYPE_CHECKING:
     from twinwatch.sinks.base import SinkContext
-    from twinwatch.twin.health import DiagnosisHealth, HealthMessage
+    from twinwatch.twin.health import AlarmStatus, DiagnosisHealth, HealthMessage, ParameterHealth
 
 __all__ = ["COUNTERS_EVERY_S", "DEVICE_HEALTH", "SEVERITY", "device_health", "flat_values"]
 
@@ -294,53 +294,64 @@ def flat_values(h: HealthMessage, health: tuple[int, str]) -> dict[str, tuple[An
         "Trusted": (h.trusted, None), "NRMSE": (_num(h.nrmse), None),
         "Terms": ([t.equation for t in h.terms], None)}
     for name, p in h.parameters.items():
-        base = f"Parameters.{name}."
-        value = _num(p.value)
-        rel = _num(p.rel_std_pct) / 100.0
-        half = 2.0 * abs(value) * rel
-        a = h.alarms.get(name)
-        rul = p.rul
-        t = p.trend
-        out[base + "Value"] = (value, _PARAM_STATUS.get(p.status))
-        out[base + "Low"] = (value - half, None)
-        out[base + "High"] = (value + half, None)
-        out[base + "Status"] = (p.status, None)
-        out[base + "Nominal"] = (_num(p.nominal), None)
-        out[base + "Deviation_pct"] = (_num(p.deviation_pct), None)
-        out[base + "RelStd_pct"] = (_num(p.rel_std_pct), None)
-        out[base + "AlarmLevel"] = (a.level if a is not None else "", None)
-        out[base + "RulAlarmLevel"] = (a.rul.level if a is not None and a.rul is not None
-                                       else "", None)
-        out[base + "Trend.Model"] = ((t.model or "") if t is not None else "", None)
-        out[base + "Trend.Rate"] = (_num(t.rate) if t else math.nan, None)
-        out[base + "Trend.RateLow"] = (_num(t.rate_low) if t else math.nan, None)
-        out[base + "Trend.RateHigh"] = (_num(t.rate_high) if t else math.nan, None)
-        out[base + "Trend.RatePctPerHour"] = (_num(t.rate_pct_per_h) if t else math.nan, None)
-        out[base + "Trend.Degrading"] = (bool(t.degrading) if t else False, None)
-        out[base + "RUL.Status"] = (rul.status if rul is not None else "", None)
-        for level, c in (("Alarm", rul.alarm if rul else None),
-                         ("Warning", rul.warning if rul else None)):
-            out[base + f"RUL.{level}_s"] = (_num(c.rul_s) if c else math.nan, None)
-            out[base + f"RUL.{level}Low_s"] = (_num(c.low_s) if c else math.nan, None)
-            out[base + f"RUL.{level}High_s"] = (_num(c.high_s) if c else math.nan, None)
-    d = h.diagnosis
-    if d is not None:
-        top = d.faults[0] if d.status == "fault" and d.faults else None
-        out.update({
-            "Diagnosis.Status": (d.status, None),
-            "Diagnosis.TopFault": (top.id if top else "", None),
-            "Diagnosis.Part": (top.component if top else "", None),
-            "Diagnosis.Probability": (float(d.probability), None),
-            "Diagnosis.Action": (top.action if top else "", None),
-            "Diagnosis.Urgency": (top.urgency if top else "", None),
-            "Diagnosis.NoFault": (float(d.no_fault), None),
-            "Diagnosis.Unknown": (float(d.unknown), None),
-            "Diagnosis.Alarms": (list(d.alarms), None),
-            "Diagnosis.Faults.Ids": ([f.id for f in d.faults], None),
-            "Diagnosis.Faults.Parts": ([f.component for f in d.faults], None),
-            "Diagnosis.Faults.Probabilities": ([float(f.probability) for f in d.faults], None),
-            "Diagnosis.Faults.Actions": ([f.action for f in d.faults], None),
-            "Diagnosis.Faults.Urgencies": ([f.urgency for f in d.faults], None)})
+        _parameter_values(out, f"Parameters.{name}.", p, h.alarms.get(name))
+    if h.diagnosis is not None:
+        out.update(_diagnosis_values(h.diagnosis))
     for name, v in h.counters.items():
         out[f"Counters.{name}"] = (int(v), None)
     return out
+
+
+def _parameter_values(out: dict[str, tuple[Any, int | None]], base: str, p: ParameterHealth,
+                      a: AlarmStatus | None) -> None:
+    """One parameter's values (its value, 2-sigma interval, status, alarm levels, trend and
+    RUL) into ``out`` under ``base`` (``Parameters.Ra.``)."""
+    value = _num(p.value)
+    half = 2.0 * abs(value) * (_num(p.rel_std_pct) / 100.0)
+    out[base + "Value"] = (value, _PARAM_STATUS.get(p.status))
+    out[base + "Low"] = (value - half, None)
+    out[base + "High"] = (value + half, None)
+    out[base + "Status"] = (p.status, None)
+    out[base + "Nominal"] = (_num(p.nominal), None)
+    out[base + "Deviation_pct"] = (_num(p.deviation_pct), None)
+    out[base + "RelStd_pct"] = (_num(p.rel_std_pct), None)
+    out[base + "AlarmLevel"] = (a.level if a is not None else "", None)
+    out[base + "RulAlarmLevel"] = (a.rul.level if a is not None and a.rul is not None
+                                   else "", None)
+    t = p.trend
+    if t is None:
+        trend: tuple[Any, ...] = ("", math.nan, math.nan, math.nan, math.nan, False)
+    else:
+        trend = (t.model or "", _num(t.rate), _num(t.rate_low), _num(t.rate_high),
+                 _num(t.rate_pct_per_h), bool(t.degrading))
+    for key, v in zip(("Model", "Rate", "RateLow", "RateHigh", "RatePctPerHour", "Degrading"),
+                      trend, strict=True):
+        out[base + "Trend." + key] = (v, None)
+    rul = p.rul
+    out[base + "RUL.Status"] = (rul.status if rul is not None else "", None)
+    for level, c in (("Alarm", rul.alarm if rul else None),
+                     ("Warning", rul.warning if rul else None)):
+        out[base + f"RUL.{level}_s"] = (_num(c.rul_s) if c else math.nan, None)
+        out[base + f"RUL.{level}Low_s"] = (_num(c.low_s) if c else math.nan, None)
+        out[base + f"RUL.{level}High_s"] = (_num(c.high_s) if c else math.nan, None)
+
+
+def _diagnosis_values(d: DiagnosisHealth) -> dict[str, tuple[Any, int | None]]:
+    """The diagnosis' values: its status, the top fault's part, probability, action and
+    urgency, and the ranked list."""
+    top = d.faults[0] if d.status == "fault" and d.faults else None
+    return {
+        "Diagnosis.Status": (d.status, None),
+        "Diagnosis.TopFault": (top.id if top else "", None),
+        "Diagnosis.Part": (top.component if top else "", None),
+        "Diagnosis.Probability": (float(d.probability), None),
+        "Diagnosis.Action": (top.action if top else "", None),
+        "Diagnosis.Urgency": (top.urgency if top else "", None),
+        "Diagnosis.NoFault": (float(d.no_fault), None),
+        "Diagnosis.Unknown": (float(d.unknown), None),
+        "Diagnosis.Alarms": (list(d.alarms), None),
+        "Diagnosis.Faults.Ids": ([f.id for f in d.faults], None),
+        "Diagnosis.Faults.Parts": ([f.component for f in d.faults], None),
+        "Diagnosis.Faults.Probabilities": ([float(f.probability) for f in d.faults], None),
+        "Diagnosis.Faults.Actions": ([f.action for f in d.faults], None),
+        "Diagnosis.Faults.Urgencies": ([f.urgency for f in d.faults], None)}
