@@ -402,15 +402,43 @@ def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
             factor needs an object the file lacks (``channels.<ch>.factor: ...``), or
             ``sample_on`` names no enabled TPDO.
     """
+    eds = config.eds
+    od = _import_od(eds, config.node_id)
+    all_pdos = _read_pdos(od, config.node_id, eds)
+    used: dict[int, _Pdo] = {}
+    described = _map_channels(config, od, all_pdos, used)
+    for pdo in all_pdos.values():  # the statusword's fault bit, wherever it is mapped
+        for entry in pdo.entries:
+            if entry.index == 0x6041 and entry.subindex == 0 and pdo.name.startswith("T"):
+                pdo.statusword = entry
+                used[pdo.cob_id] = pdo
+    if config.sample_on != "sync":
+        target = all_pdos.get(config.sample_on.upper())
+        if target is None or not target.name.startswith("T"):
+            raise DriverConfigError(
+                f"sample_on: {config.sample_on!r} is not an enabled TPDO of {str(eds)!r}; "
+                f"its TPDOs: {', '.join(n for n in all_pdos if n.startswith('T')) or 'none'}")
+        used[target.cob_id] = target
+    sync_id, counter, heartbeat = _supervision(od, config.heartbeat_time)
+    return CanopenPlan(pdos=used, all_pdos=all_pdos, sync_id=sync_id, sync_counter=counter,
+                       heartbeat_s=heartbeat, channels=described)
+
+
+def _import_od(eds: Path, node_id: int) -> Any:
+    """The EDS/DCF's object dictionary (canopen's ``import_od``).
+
+    Raises:
+        DriverConfigError: ``eds: ...``: the file is missing, not an .eds/.dcf, does not parse
+            or defines no object.
+    """
     import canopen
 
-    eds = config.eds
     if not eds.is_file():
         raise DriverConfigError(f"eds: file {str(eds)!r} not found")
     if eds.suffix.lower() not in (".eds", ".dcf"):
         raise DriverConfigError(f"eds: {str(eds)!r} is not an .eds or .dcf file")
     try:
-        od = canopen.import_od(str(eds), config.node_id)
+        od = canopen.import_od(str(eds), node_id)
     except Exception as exc:  # noqa: BLE001 - a parse of a user's file: configparser, int(), KeyError...
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise DriverConfigError(
@@ -418,12 +446,26 @@ def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
         ) from None
     if len(od) == 0:
         raise DriverConfigError(f"eds: {str(eds)!r} defines no object: is it an EDS/DCF?")
-    all_pdos = _read_pdos(od, config.node_id, eds)
+    return od
+
+
+def _map_channels(config: CanopenDriverConfig, od: Any, all_pdos: dict[str, _Pdo],
+                  used: dict[int, _Pdo]) -> dict[str, str]:
+    """Each channel to the PDO entry that carries its object (a TPDO, the drive's own, before
+    an RPDO, the master's), with its factor; the PDOs used go into ``used`` (by COB-ID).
+
+    Returns:
+        channel -> what carries it (``TPDO1 0x606C Velocity actual value``).
+
+    Raises:
+        DriverConfigError: ``channels.<ch>.object`` / ``.factor``: an object not in the file,
+            mapped to no PDO or not a number, a factor the file gives nothing for.
+    """
+    eds = config.eds
     by_object: dict[tuple[int, int], list[tuple[_Pdo, _Entry]]] = {}
     for pdo in all_pdos.values():
         for entry in pdo.entries:
             by_object.setdefault((entry.index, entry.subindex), []).append((pdo, entry))
-    used: dict[int, _Pdo] = {}
     described: dict[str, str] = {}
     for ch, spec in config.channels.items():
         var = _lookup(od, spec.object)
@@ -440,7 +482,6 @@ def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
                 f"channels.{ch}.object: {spec.object!r} (0x{var.index:04X}sub{sub} "
                 f"{var.name}) is mapped to no TPDO or RPDO of {str(eds)!r}: the drive does not "
                 f"send it; mapped: {', '.join(mapped) or 'nothing'}")
-        # a TPDO (the drive's own) before an RPDO (the master's)
         pdo, entry = sorted(found, key=lambda pe: (pe[0].name[0] != "T", pe[0].name))[0]
         if entry.data_type not in _INTEGER_TYPES and entry.data_type not in _FLOAT_TYPES:
             raise DriverConfigError(
@@ -450,31 +491,24 @@ def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
         pdo.channels.append((ch, entry, factor, spec.offset))
         used[pdo.cob_id] = pdo
         described[ch] = f"{pdo.name} 0x{entry.index:04X} {entry.name}"
-    for pdo in all_pdos.values():  # the statusword's fault bit, wherever it is mapped
-        for entry in pdo.entries:
-            if entry.index == 0x6041 and entry.subindex == 0 and pdo.name.startswith("T"):
-                pdo.statusword = entry
-                used[pdo.cob_id] = pdo
-    if config.sample_on != "sync":
-        target = all_pdos.get(config.sample_on.upper())
-        if target is None or not target.name.startswith("T"):
-            raise DriverConfigError(
-                f"sample_on: {config.sample_on!r} is not an enabled TPDO of {str(eds)!r}; "
-                f"its TPDOs: {', '.join(n for n in all_pdos if n.startswith('T')) or 'none'}")
-        used[target.cob_id] = target
+    return described
+
+
+def _supervision(od: Any, heartbeat_time: float | None) -> tuple[int, int, float]:
+    """The SYNC's COB-ID (0x1005, default 0x80), its counter overflow (0x1019, 0: none) and
+    the heartbeat producer time [s] (the configured one, else 0x1017; 0: none)."""
     sync_id, counter = 0x80, 0
     if 0x1005 in od:
         sync_id = int(_od_value(od[0x1005]) or 0x80) & 0x7FF
     if 0x1019 in od:
         counter = int(_od_value(od[0x1019]) or 0)
-    if config.heartbeat_time is not None:
-        heartbeat = config.heartbeat_time
+    if heartbeat_time is not None:
+        heartbeat = heartbeat_time
     elif 0x1017 in od:
         heartbeat = float(_od_value(od[0x1017]) or 0) / 1000.0
     else:
         heartbeat = 0.0
-    return CanopenPlan(pdos=used, all_pdos=all_pdos, sync_id=sync_id, sync_counter=counter,
-                       heartbeat_s=heartbeat, channels=described)
+    return sync_id, counter, heartbeat
 
 
 def _factor(od: Any, ch: str, factor: float | str, eds: Path) -> float:
