@@ -15,8 +15,9 @@ default both the machine name), the daemon is the edge node ``E`` and the machin
   name, alias, datatype, the newest stored window's value and its unit as the property
   ``engUnit``;
 * ``spBv1.0/G/DDATA/E/D``: one per stored window, every metric by alias only (with the time the
-  window was stored); a window sent from the outbox's backlog (not the newest stored one: a
-  broker outage, a restart) has ``is_historical`` true on each metric;
+  window was stored); a window replayed from the outbox (stored before this connection's
+  births: a broker outage, a restart, the primary host away) has ``is_historical`` true on
+  each metric (the DBIRTH carries the newest window's values as the current ones);
 * ``spBv1.0/G/DDEATH/E/D`` then ``spBv1.0/G/NDEATH/E`` on a clean stop (and when a reload
   removes the machine); ``NDEATH`` with the connection's ``bdSeq`` is also the MQTT will, which
   the broker publishes when the daemon dies;
@@ -433,6 +434,7 @@ class SparkplugPublisher(MqttPublisher):
         self._host_online: bool | None = None if config.primary_host_id else True
         self._host_ts = -1
         self._leaving = False   # a disconnection of our own (the primary host went offline)
+        self._live_since = 0.0  # windows stored before it are replays (historical)
         super().__init__(config, context)  # type: ignore[arg-type]  # shares its transport
 
     def _topics(self, context: SinkContext) -> None:
@@ -495,6 +497,7 @@ class SparkplugPublisher(MqttPublisher):
         super()._on_disconnect(client, userdata, flags, reason, properties)
 
     def _announce(self, client: mqtt.Client) -> None:
+        self._live_since = time.time()
         client.subscribe(self.session.ncmd_topic, qos=1)
         if self.state_topic is not None:
             client.subscribe(self.state_topic, qos=1)
@@ -565,6 +568,7 @@ class SparkplugPublisher(MqttPublisher):
         if online and not self._host_online:
             logger.info("primary host %s online: publishing", self.config.primary_host_id)
             self._host_online = True
+            self._live_since = time.time()
             self._births(client)
             self._wake.set()
         elif not online and self._host_online:
@@ -584,8 +588,9 @@ class SparkplugPublisher(MqttPublisher):
         super()._feed(now, all_rows)
 
     def _send(self, row: OutboxRow, newest: bool) -> bool:
-        """One window's DDATA (historical unless it is the newest stored window); a metric the
-        birth did not announce (a counter, a RUL appearing) makes a new birth first."""
+        """One window's DDATA (historical when it was stored before this connection's births:
+        a replay from the outbox); a metric the birth did not announce (a counter, a RUL
+        appearing) makes a new birth first."""
         try:
             doc = _view(row.doc)
         except ValueError:
@@ -609,7 +614,7 @@ class SparkplugPublisher(MqttPublisher):
             self._device_birth(self.client)
         now = _now_ms()
         payload = self.session.ddata(metric_values(doc), now, int(row.wall * 1000),
-                                     historical=not newest)
+                                     historical=row.wall < self._live_since)
         info = self.client.publish(self.session.ddata_topic, payload, qos=self.config.qos)
         if info.rc != mqtt.MQTT_ERR_SUCCESS:
             self.errors += 1
