@@ -27,6 +27,7 @@ READERS = [
     "sinks/rerun_views.py",
     "sinks/rerun.py",
     "sinks/mqtt.py",
+    "sinks/sparkplug.py",
     "sinks/opcua.py",
     "twin/diagnosis/explain.py",
     "daemon/alarms.py",
