@@ -758,8 +758,8 @@ class MqttPublisher(Sink):
                                keyfile=tls.keyfile, cert_reqs=ssl.CERT_REQUIRED,
                                tls_version=ssl.PROTOCOL_TLS_CLIENT)
             except (OSError, ssl.SSLError, ValueError) as exc:
-                raise PublisherError(f"outputs.{self.table}.tls: cannot set up TLS: {exc}; check the "
-                                     f"certificate and key files") from exc
+                raise PublisherError(f"outputs.{self.table}.tls: cannot set up TLS: {exc}; "
+                                     f"check the certificate and key files") from exc
             client.tls_insecure_set(not tls.verify_hostname)
         client.will_set(self.availability_topic, "offline", qos=1, retain=True)
         client.on_connect = self._on_connect
