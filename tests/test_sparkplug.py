@@ -88,42 +88,46 @@ class HostDecoder:
         ``bdSeq``; every later message of the node up to the next NBIRTH has the next ``seq``
         (mod 256), none missing; a DBIRTH comes before any DDATA of the device after each
         NBIRTH; a DDATA names no metric, carries only aliases its DBIRTH announced; an NDEATH
-        carries the ``bdSeq`` of the NBIRTH before it. Returns counts by kind."""
-        seq: int | None = None
-        bd_seq: int | None = None
-        born: set[int] | None = None
+        carries the ``bdSeq`` of the NBIRTH before it. Per edge node (the aliases' names are
+        the same metric list for every machine here). Returns counts by kind."""
+        seqs: dict[str, int | None] = {}
+        bd_seqs: dict[str, int] = {}
+        borns: dict[str, set[int] | None] = {}
         counts: dict[str, int] = {}
         for d in self.messages():
             counts[d.kind] = counts.get(d.kind, 0) + 1
             if d.kind in ("STATE", "NCMD"):
                 continue
             p = d.payload
+            node = d.topic.split("/")[3]
             if d.kind == "NBIRTH":
                 assert p.seq == 0, f"NBIRTH seq {p.seq}"
                 (bd,) = [m.long_value for m in p.metrics if m.name == "bdSeq"]
-                bd_seq, seq, born = bd, 0, None
+                bd_seqs[node], seqs[node], borns[node] = bd, 0, None
                 assert any(m.name == "Node Control/Rebirth" for m in p.metrics)
                 continue
             if d.kind == "NDEATH":
                 (bd,) = [m.long_value for m in p.metrics if m.name == "bdSeq"]
-                assert bd == bd_seq, f"NDEATH bdSeq {bd}, NBIRTH's {bd_seq}"
+                assert bd == bd_seqs.get(node), f"NDEATH bdSeq {bd}, NBIRTH's {bd_seqs}"
                 assert not p.HasField("seq")
-                seq = None
+                seqs[node] = None
                 continue
+            seq = seqs.get(node)
             assert seq is not None, f"{d.kind} before any NBIRTH"
             assert p.seq == (seq + 1) % 256, f"{d.kind} seq {p.seq} after {seq}"
-            seq = p.seq
+            seqs[node] = p.seq
             if d.kind == "DBIRTH":
-                born = {m.alias for m in p.metrics}
+                born = borns[node] = {m.alias for m in p.metrics}
                 for m in p.metrics:
                     assert m.name and m.alias and m.datatype
                     self.aliases[m.alias] = m.name
                 assert len(born) == len(p.metrics), "aliases not unique"
             elif d.kind == "DDATA":
+                born = borns.get(node)
                 assert born is not None, "DDATA before its DBIRTH"
                 assert all(not m.name and m.alias in born for m in p.metrics)
             elif d.kind == "DDEATH":
-                born = None
+                borns[node] = None
         return counts
 
     def windows(self) -> list[tuple[str, int, bool]]:
@@ -408,6 +412,7 @@ def test_the_primary_host_state_is_waited_for(tmp_path: Path, broker: Broker) ->
 
 
 @needs_mosquitto
+@pytest.mark.slow
 def test_kill_9_gives_the_will_and_the_restart_replays_the_rest(tmp_path: Path,
                                                                broker: Broker) -> None:
     host = HostDecoder.start(broker.port)
@@ -456,3 +461,54 @@ def test_a_broker_refusing_the_client_is_one_line(tmp_path: Path, caplog: Any) -
     lines = [r.getMessage() for r in caplog.records if "outputs.sparkplug" in r.getMessage()]
     assert len(lines) == 1 and "refused" in lines[0] and "NDEATH" in lines[0], lines
 
+
+
+@needs_mosquitto
+@pytest.mark.slow
+def test_a_reload_adding_and_removing_a_machine_gives_dbirth_and_ddeath(
+        tmp_path: Path, broker: Broker) -> None:
+    """``twinwatch run DIR`` (one process): SIGHUP after m2.toml is removed and m3.toml added:
+    m2's DDEATH and NDEATH, m3's NBIRTH and DBIRTH; m1 untouched (no new birth)."""
+    import subprocess
+    import sys
+
+    from .test_gateway import machine_config
+
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    for name in ("m1", "m2"):
+        path = machine_config(machines, name, port=None)
+        path.write_text(path.read_text() + table(broker.port))
+    host = HostDecoder.start(broker.port)
+    proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "--no-progress",
+                             "--workers", "1", str(machines)], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def ddata(node: str) -> int:
+        return sum(d.kind == "DDATA" and d.topic.split("/")[3] == node
+                   for d in host.messages())
+
+    try:
+        host.wait(lambda ms: ddata("m1") >= 1 and ddata("m2") >= 1, 120, "m1's and m2's data")
+        (machines / "m2.toml").unlink()
+        path = machine_config(machines, "m3", port=None)
+        path.write_text(path.read_text() + table(broker.port))
+        proc.send_signal(signal.SIGHUP)
+        host.wait(lambda ms: ddata("m3") >= 1, 120, "m3's data after the SIGHUP")
+        host.wait(lambda ms: any(d.topic == "spBv1.0/plant1/NDEATH/m2" for d in ms), 30,
+                  "m2's NDEATH")
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    host.check_session()
+    topics = [d.topic for d in host.messages()]
+    m2 = [t.split("/")[2] for t in topics if t.split("/")[3] == "m2"]
+    assert m2[:2] == ["NBIRTH", "DBIRTH"] and m2[-2:] == ["DDEATH", "NDEATH"], m2
+    m3 = [t.split("/")[2] for t in topics if t.split("/")[3] == "m3"]
+    assert m3[:2] == ["NBIRTH", "DBIRTH"] and m3[-2:] == ["DDEATH", "NDEATH"], m3
+    m1 = [t.split("/")[2] for t in topics if t.split("/")[3] == "m1"]
+    assert m1.count("NBIRTH") == 1, m1      # the reload kept m1's output open
+    host.close()
