@@ -559,7 +559,9 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
         if proc.poll() is None:
             proc.kill()
     host.wait(lambda ms: ms[-1].kind == "NDEATH", 30, "the will (NDEATH) after the kill")
-    second = sim_config(tmp_path, duration=300.0, extra=table(broker.port))
+    # the backlog and 150 new windows: a faster pace and time at the stop to catch up
+    second = sim_config(tmp_path, duration=300.0, extra=table(
+        broker.port, "rate = 100.0\nclose_timeout = 60.0\n"))
     proc = twinwatch(second, "--fresh", cwd=tmp_path)
     try:
         host.wait(lambda ms: [d.kind for d in ms].count("NBIRTH") >= 3, 120, "the restart")
