@@ -607,3 +607,33 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
     print(f"300-window run: {len(windows)} windows stored, {len(got)} DDATA received, "
           f"{repeats} repeats, {len(late)} replayed after the restart, counts {counts}")
     host.close()
+
+
+@needs_mosquitto
+def test_a_broker_whose_acl_drops_the_births_and_the_will_is_one_line(tmp_path: Path,
+                                                                      caplog: Any) -> None:
+    """Mosquitto 2.0 accepts a connection whose will its ACL forbids and acknowledges the
+    publishes it drops (MQTT 3.1.1 has no refusal for either): the NBIRTH not heard back is
+    one error line naming outputs.sparkplug and the topics to allow, and a problem (STATUS)."""
+    d = tmp_path / "broker"
+    d.mkdir()
+    (d / "acl").write_text("topic readwrite other/#\n")
+    b = Broker(d, extra=f"acl_file {d / 'acl'}\n")
+    b.start()
+    try:
+        with caplog.at_level("ERROR", logger="twinwatch.sinks.sparkplug"):
+            pub, store = _open(tmp_path, b.port)
+            try:
+                pub.write(_window(store, 0))
+                deadline = time.monotonic() + 15
+                while pub.problem is None and time.monotonic() < deadline:
+                    time.sleep(0.2)
+                problem = pub.problem
+            finally:
+                pub.close()
+                store.close()
+    finally:
+        b.stop()
+    lines = [r.getMessage() for r in caplog.records if "outputs.sparkplug" in r.getMessage()]
+    assert len(lines) == 1 and "spBv1.0/g/#" in lines[0] and "will" in lines[0], lines
+    assert problem is not None and "NBIRTH" in problem

@@ -435,6 +435,8 @@ class SparkplugPublisher(MqttPublisher):
         self._host_ts = -1
         self._leaving = False   # a disconnection of our own (the primary host went offline)
         self._live_since = 0.0  # windows stored before it are replays (historical)
+        self._birth_at: float | None = None  # our NBIRTH not yet heard back since (monotonic)
+        self._unheard: str | None = None     # the line when it never came back
         super().__init__(config, context)  # type: ignore[arg-type]  # shares its transport
 
     def _topics(self, context: SinkContext) -> None:
@@ -499,6 +501,7 @@ class SparkplugPublisher(MqttPublisher):
     def _announce(self, client: mqtt.Client) -> None:
         self._live_since = time.time()
         client.subscribe(self.session.ncmd_topic, qos=1)
+        client.subscribe(self.session.nbirth_topic, qos=0)  # our own NBIRTH back: see _check
         if self.state_topic is not None:
             client.subscribe(self.state_topic, qos=1)
         if self._host_online:
@@ -509,6 +512,8 @@ class SparkplugPublisher(MqttPublisher):
         and values, not a birth of nulls and a rebirth a window later)."""
         client.publish(self.session.nbirth_topic, self.session.nbirth(_now_ms()),
                        qos=self.config.qos)
+        if self._birth_at is None and self._unheard is None:
+            self._birth_at = time.monotonic()
         self._born = True
         self._device_born = False
         self.births += 1
@@ -529,7 +534,14 @@ class SparkplugPublisher(MqttPublisher):
         self.device_births += 1
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: Any) -> None:
-        """NCMD (Node Control/Rebirth) and the primary host's STATE."""
+        """NCMD (Node Control/Rebirth), the primary host's STATE, our own NBIRTH back."""
+        if msg.topic == self.session.nbirth_topic:
+            if self._unheard is not None:
+                logger.warning("outputs.sparkplug: the broker delivers the NBIRTH on %s now",
+                               msg.topic)
+            self._birth_at = None
+            self._unheard = None
+            return
         if msg.topic == self.session.ncmd_topic:
             try:
                 cmd = payload_class().FromString(msg.payload)
@@ -581,7 +593,30 @@ class SparkplugPublisher(MqttPublisher):
         else:
             self._host_online = online
 
+    def _check_heard(self) -> None:
+        """A broker may accept the connection and acknowledge every publish while its ACL
+        drops them (Mosquitto 2.0 does, MQTT 3.1.1 has no refusal for a publish nor for a
+        will): our NBIRTH, subscribed to, not heard back within 5 s is said once, naming the
+        key (the will is then dropped too, most likely)."""
+        if self._birth_at is None or self._unheard is not None:
+            return
+        if time.monotonic() - self._birth_at < 5.0:
+            return
+        self._unheard = (
+            f"outputs.sparkplug: the MQTT broker {self.config.host}:{self.config.port} took "
+            f"the NBIRTH on {self.session.nbirth_topic} but did not deliver it back to this "
+            f"client (subscribed) in 5 s: its ACL most likely forbids client "
+            f"{self.client_id!r} to publish (or to read) spBv1.0/{self.session.group_id}/#, "
+            f"and then drops its will (the NDEATH) too; allow both")
+        logger.error("%s", self._unheard)
+
+    @property
+    def problem(self) -> str | None:
+        parts = [p for p in (super().problem, self._unheard) if p]
+        return "; ".join(parts) or None
+
     def _feed(self, now: float, all_rows: bool) -> None:
+        self._check_heard()
         if not self._born:  # no data before the births (nor while the host is away)
             self._file_changed()
             return
