@@ -637,3 +637,22 @@ def test_a_broker_whose_acl_drops_the_births_and_the_will_is_one_line(tmp_path: 
     lines = [r.getMessage() for r in caplog.records if "outputs.sparkplug" in r.getMessage()]
     assert len(lines) == 1 and "spBv1.0/g/#" in lines[0] and "will" in lines[0], lines
     assert problem is not None and "NBIRTH" in problem
+
+
+@needs_mosquitto
+def test_qos_0_as_sparkplug_says_still_counts_every_window(tmp_path: Path,
+                                                          broker: Broker) -> None:
+    host = HostDecoder.start(broker.port)
+    pub, store = _open(tmp_path, broker.port, qos=0)
+    try:
+        for w in range(5):
+            pub.write(_window(store, w))
+        host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 5, 20, "5 DDATA")
+    finally:
+        pub.close()
+        store.close()
+    host.wait(lambda ms: any(d.kind == "NDEATH" for d in ms), 10, "the NDEATH")
+    host.check_session()
+    assert [w for _, w, _ in host.windows()] == list(range(5))
+    assert pub.counters()["delivered"] == 5 and pub.counters()["pending"] == 0
+    host.close()
