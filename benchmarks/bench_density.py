@@ -31,7 +31,7 @@ the first start after an install (a reboot with an installed unit keeps its cach
 Usage::
 
     python benchmarks/bench_density.py --n 4 16 [--seconds 40] [--mode both|gateway|process]
-                                       [--cold] [--workers K] [--gateways K]
+                                       [--cold] [--workers K] [--slots K] [--gateways K]
                                        [--acquisition-only] [--recording] [--keep DIR]
                                        [--opcua]
 
@@ -359,7 +359,7 @@ def _box_ticks() -> tuple[int, int]:
 
 def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, record: bool,
              workers: int | None, acquisition_only: bool = False, gateways: int = 1,
-             keep: Path | None = None, opcua: bool = False) -> Run:
+             keep: Path | None = None, opcua: bool = False, slots: int | None = None) -> Run:
     run = Run(n=n, mode=mode if gateways == 1 or mode != "gateway" else f"gw x{gateways}",
               expected=0 if acquisition_only else sum(
                   windows_expected(f"m{i:03d}", seconds, mode) for i in range(n)))
@@ -390,6 +390,8 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
         if mode == "gateway":
             if workers is not None:
                 cmd += ["--workers", str(workers)]
+            if slots is not None:
+                cmd += ["--slots", str(slots)]
             for k, shard in enumerate(shards if gateways > 1 else [machines]):
                 procs.append(subprocess.Popen([*cmd, str(shard)], cwd=root, env=env,
                                               stdout=subprocess.PIPE,
@@ -462,6 +464,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=None,
                     help="gateway mode: the host's worker processes (default: one per core; "
                     "1: every machine in the host process)")
+    ap.add_argument("--slots", type=int, default=None,
+                    help="gateway mode: windows each process estimates at once (default: its "
+                    "cores; 0: no limit, the 'no slots' row of docs/gateway.md)")
     ap.add_argument("--gateways", type=int, default=1,
                     help="gateway mode: the machines split over this many gateway processes "
                     "(each its own Zenoh port)")
@@ -491,7 +496,7 @@ def main() -> None:
             r = run_once(n, mode, args.seconds, args.plants, cold=args.cold,
                          record=args.recording, workers=args.workers,
                          acquisition_only=args.acquisition_only, gateways=args.gateways,
-                         keep=args.keep, opcua=args.opcua)
+                         keep=args.keep, opcua=args.opcua, slots=args.slots)
             print(r.row(), flush=True)
             print(f"       {r.others()}", flush=True)
             if r.late_where:

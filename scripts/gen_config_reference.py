@@ -213,13 +213,13 @@ def _table(rows: list[Row]) -> str:
 def sections() -> list[tuple[str, str, list[Row]]]:
     """``(title, intro, rows)`` per section of the page, in the file's order."""
     from twinwatch.config.alarms import AlarmConfig
+    from twinwatch.config.identify import IdentifyConfig
     from twinwatch.config.schema import AcquisitionConfig, MachineConfig
     from twinwatch.drivers import BUILTIN_DRIVERS
     from twinwatch.sinks import BUILTIN_SINKS, HISTORIC_TABLES
     from twinwatch.twin.diagnosis.library import DiagnosisConfig
     from twinwatch.twin.discovery.search import DiscoveryConfig
     from twinwatch.twin.estimation.estimator import EstimationConfig
-    from twinwatch.twin.estimation.identify import IdentifyConfig
     from twinwatch.twin.models import BUILTIN_MODELS
     from twinwatch.twin.prognostics.config import PrognosticsConfig
 

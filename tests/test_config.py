@@ -128,7 +128,7 @@ def test_console_script_is_installed():
 
 # -- sample-config: one complete example per driver, every key documented -------------------
 SAMPLE_DRIVERS = ["simulated", "can", "file", "modbus", "simulated_modbus", "opcua",
-                  "simulated_opcua"]
+                  "simulated_opcua", "canopen", "simulated_canopen"]
 
 
 @pytest.mark.parametrize("driver", SAMPLE_DRIVERS)
@@ -142,7 +142,7 @@ def test_sample_config_of_each_driver_passes_check_config(driver: str, tmp_path:
             "t,Va,ia,omega,setpoint\n" + "".join(f"{k * 0.01:.2f},12,0.5,300,10\n"
                                                   for k in range(400)))
     check = CliRunner().invoke(main, ["check-config", str(cfg)])
-    if driver in ("can", "modbus", "opcua") and check.exit_code == 1:
+    if driver in ("can", "modbus", "opcua", "canopen") and check.exit_code == 1:
         # a live source is opened (never sent on): here its interface or device is absent,
         # which check-config says (issue 15), after validating everything else
         assert "the configuration is valid; the source cannot be opened here" in check.output

@@ -73,48 +73,99 @@ def test_every_entry_of_the_directory_is_run_lost_or_named_as_skipped(
     assert "m3.toml.bak: skipped" in text
 
 
+def _windows(m: object) -> int:
+    d = m.supervisor.daemon  # type: ignore[attr-defined]
+    return 0 if d is None else d.windows_estimated
+
+
 @pytest.mark.slow
-def test_a_renamed_file_is_a_remove_then_an_add_in_one_reload(tmp_path: Path,
-                                                              monkeypatch: pytest.MonkeyPatch
-                                                              ) -> None:
-    """``m1.toml`` -> ``line1-m1.toml`` then SIGHUP: the machine stops under its old file and
-    starts under its new one in that reload (it used to be "already monitored" until the next
-    SIGHUP: the old one still held the name while it finished its queued windows)."""
+def test_a_renamed_file_keeps_its_machine_running(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    """``m1.toml`` -> ``line1-m1.toml`` then SIGHUP: a machine is its name, not its file, so it
+    goes on under its new file: the same twin, run and window numbering (issue 37: it restarted
+    from the nameplate values and the summary counted it twice). An edit made with the rename
+    reloads it (the same run goes on). Before: stopped under the old file, started under the
+    new one (a new run of a simulated plant, from the nameplate values)."""
     machines = tmp_path / "machines"
     machines.mkdir()
     machine_config(machines, "m1", port=None, duration=60.0)
     monkeypatch.chdir(tmp_path)
+    caplog.set_level(logging.WARNING)
     gateway = Host(machines, read=load_config, check=_check, workers=1, stuck_after=30.0,
                    quiet_after=30.0, start_timeout=120)
     gateway.start()
+    runner = __import__("threading").Thread(target=gateway.run, daemon=True)
     try:
         first = gateway.machines[machines / "m1.toml"]
-
-        def windows(m: object) -> int:
-            d = m.supervisor.daemon  # type: ignore[attr-defined]
-            return 0 if d is None else d.windows_estimated
-
         deadline = time.monotonic() + 60
-        while windows(first) < 1:
+        while _windows(first) < 1:
             assert time.monotonic() < deadline
             time.sleep(0.2)
+        daemon, run = first.supervisor.daemon, first.supervisor.daemon.run_id
         (machines / "m1.toml").rename(machines / "line1-m1.toml")
         gateway.reload()
-        runner = __import__("threading").Thread(target=gateway.run, daemon=True)
         runner.start()
-        deadline = time.monotonic() + 60
-        while True:
-            new = gateway.machines.get(machines / "line1-m1.toml")
-            if new is not None and (new.lost is not None or windows(new) >= 1):
-                break
-            assert time.monotonic() < deadline, "the renamed machine never ran"
-            time.sleep(0.2)
-        assert new.lost is None, new.lost
-        assert not first.thread.is_alive()
+        deadline = time.monotonic() + 30
+        while "renamed line1-m1.toml" not in caplog.text:
+            assert time.monotonic() < deadline, caplog.text
+            time.sleep(0.1)
         assert list(gateway.machines) == [machines / "line1-m1.toml"]
+        assert gateway.machines[machines / "line1-m1.toml"] is first
+        assert first.thread.is_alive() and first.supervisor.daemon is daemon
+        assert "m1 goes on (m1.toml renamed line1-m1.toml)" in caplog.text
+        n = _windows(first)
+        # an edit with the next rename: a reload of the same machine, the same run
+        path = machines / "line1-m1.toml"
+        path.write_text(path.read_text() + "\n# moved to press 3\n")
+        path.rename(machines / "press-m1.toml")
+        gateway.reload()
+        deadline = time.monotonic() + 60
+        while first.supervisor.daemon is daemon or _windows(first) < 1:
+            assert time.monotonic() < deadline, caplog.text
+            assert first.lost is None, first.lost
+            time.sleep(0.2)
+        assert "m1 goes on (line1-m1.toml renamed press-m1.toml)" in caplog.text
+        assert "m1 reloaded (press-m1.toml changed)" in caplog.text
+        assert first.supervisor.daemon.run_id == run
+        assert first.supervisor.daemon.ring.first_index >= n
     finally:
         gateway.stop()
         runner.join(60)
+    summary = gateway.summary()
+    assert summary.total is not None and summary.total.startswith(
+        "twinwatch gateway: 1 machines, 1 ran, 0 lost"), summary.total
+    assert [(m.name, m.file) for m in summary.machines] == [("m1", "press-m1.toml")]
+
+
+def test_a_lost_machine_renamed_and_fixed_counts_once(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """A machine lost under ``m1.toml`` (its recording missing), its file renamed and fixed,
+    SIGHUP: it runs under the new file and the summary counts one machine that ran, exit 0
+    (before: "2 machines, 1 ran, 1 lost", exit 1: a machine was its file)."""
+    from .sources_support import FILE_DRIVER, plant_csv
+
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    data = plant_csv(tmp_path / "plant.csv", 6.0)
+    missing = FILE_DRIVER.format(path=tmp_path / "missing.csv")
+    path = machine_config(machines, "m1", port=None, driver=missing)
+    monkeypatch.chdir(tmp_path)
+    gateway = Host(machines, read=load_config, check=_check, workers=1, start_timeout=60)
+    gateway.start()
+    try:
+        assert gateway.machines[path].lost is not None
+        path.write_text(path.read_text().replace(str(tmp_path / "missing.csv"), str(data)))
+        path.rename(machines / "line1-m1.toml")
+        gateway.reload()
+        gateway.run()  # the reload starts it under its new file; it replays to the end
+    finally:
+        gateway.stop()
+    summary = gateway.summary()
+    assert [(m.name, m.file, m.lost is None) for m in summary.machines] == [
+        ("m1", "m1.toml", False), ("m1", "line1-m1.toml", True)]
+    assert summary.total == "twinwatch gateway: 1 machines, 1 ran, 0 lost", summary.total
+    assert gateway.exit_status() == 0
 
 
 def test_a_failure_repeated_every_window_is_logged_once_then_counted(
@@ -154,3 +205,30 @@ def test_a_failure_repeated_every_window_is_logged_once_then_counted(
     assert "the failure above repeated in 3 more windows (FloatingPointError" in text
     assert "repeated in 1 more windows (ValueError" in text
     assert "window 6 estimated again after 2 failed windows" in text
+
+
+def test_a_gateway_of_worker_processes_counts_a_renamed_machine_once(tmp_path: Path) -> None:
+    """The worker processes' summaries name a renamed machine under its old file (an
+    incarnation that ended before the rename) and its new one: one machine, by its current
+    file; a removed file's machine still counts (before: "4 machines, 4 ran" for 3)."""
+    from twinwatch.daemon.service import MachineSummary, RunSummary
+    from twinwatch.daemon.workers import ProcessHost, Worker
+
+    host = ProcessHost(tmp_path, workers=1)
+    try:
+        w = Worker(0, host)
+        host.workers.append(w)
+        w.files = [tmp_path / "line1-m1.toml", tmp_path / "m2.toml"]
+        w.summaries = [
+            RunSummary(machines=[MachineSummary(name="m1", file="m1.toml"),
+                                 MachineSummary(name="m2", file="m2.toml"),
+                                 MachineSummary(name="m3", file="m3.toml")], exit_status=0),
+            RunSummary(machines=[MachineSummary(name="m1", file="line1-m1.toml"),
+                                 MachineSummary(name="m2", file="m2.toml")], exit_status=0)]
+        w.codes = [0, 0]
+        total = host.summary().total
+        assert total is not None and total.startswith(
+            "twinwatch gateway: 3 machines, 3 ran, 0 lost"), total
+    finally:
+        w.close()
+        host.close()

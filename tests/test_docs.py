@@ -41,6 +41,29 @@ def test_the_site_builds_in_strict_mode(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stdout + r.stderr
     assert (tmp_path / "site" / "configuration" / "index.html").exists()
     assert (tmp_path / "site" / "health-message" / "index.html").exists()
+    # issue 37: on the site the first command was cut behind a scroll bar and the
+    # configuration reference broke keys mid-word ("machine.option|s.structure"): shell
+    # commands wrap, a key breaks after its dots only (seen in headless Chromium, 1280 px)
+    css = (tmp_path / "site" / "stylesheets" / "extra.css").read_text(encoding="utf-8")
+    assert re.search(r"code\.language-sh[^{]*\{[^}]*white-space: pre-wrap", css, re.S)
+    assert re.search(r"td:first-child code[^{]*\{[^}]*word-break: normal", css, re.S)
+    start = (tmp_path / "site" / "getting-started" / "index.html").read_text(encoding="utf-8")
+    assert "stylesheets/extra.css" in start
+    assert '<code class="language-sh">python3 -m venv .venv &amp;&amp;' in start
+    page = (tmp_path / "site" / "configuration" / "index.html").read_text(encoding="utf-8")
+    assert "<td><code>machine.<wbr>options.<wbr>structure</code></td>" in page
+    assert "<td><code>0.006</code></td>" in page  # a number is no key: never broken
+
+
+def test_a_key_in_a_table_may_break_after_its_dots_only() -> None:
+    import mkdocs_hooks
+
+    assert mkdocs_hooks.wrap_keys(
+        "<td><code>driver.columns.&lt;name&gt;.scale</code></td><td><code>0.5</code></td>"
+        "<td><code>tcp/127.0.0.1:7447</code></td><td><code>float</code></td>") == (
+        "<td><code>driver.<wbr>columns.<wbr>&lt;name&gt;.<wbr>scale</code></td>"
+        "<td><code>0.5</code></td><td><code>tcp/127.0.0.1:7447</code></td>"
+        "<td><code>float</code></td>")
 
 
 def test_every_page_is_in_the_nav() -> None:

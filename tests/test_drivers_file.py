@@ -320,3 +320,133 @@ def test_entry_points_extend_but_do_not_replace(monkeypatch: pytest.MonkeyPatch,
             in caplog.text
     finally:
         drivers.DRIVERS.cache_clear()
+
+
+# -- a CSV still being written ---------------------------------------------------------------
+
+def _append(path: Path, text: str) -> None:
+    with path.open("a") as f:
+        f.write(text)
+
+
+def test_follow_reads_the_rows_appended_as_they_are_written(tmp_path: Path) -> None:
+    """``follow = true`` (issue 37: a CSV still being written was replayed only as far as it
+    was at open, silently): the rows there at open, then each complete line appended, a line
+    being written once it ends, the file's clock going on; no row for ``idle_timeout`` ends
+    the replay as the end of a file does."""
+    path = tmp_path / "logger.csv"
+    path.write_text("time_ms,u,y,i\n0,3.0,10.5,0.12\n20,3.5,11.5,0.13\n")
+    driver = FileDriver.from_config(csv_config(str(path), follow=True, idle_timeout=0.6))
+    try:
+        assert [s.values["Va"] for s in (driver.read(0), driver.read(0))] == [3.0, 3.5]
+        assert driver.read(0) is None  # nothing new yet: not the end
+        _append(path, "40,4.0,12.5,0.14\n60,4.5,13")  # the second line is being written
+        got = driver.read(0.5)
+        assert got is not None and (got.t, got.values["Va"]) == (pytest.approx(0.04), 4.0)
+        assert driver.read(0.2) is None  # the partial line is not a row yet
+        _append(path, ".5,0.15\n")
+        got = driver.read(0.5)
+        assert got is not None and got.values["omega"] == pytest.approx(13.5 * 2 * math.pi / 60)
+        assert got.t == pytest.approx(0.06)  # t = k * sample_period, k the file's row
+        assert driver.n_rows == 4
+        start = time.monotonic()
+        with pytest.raises(EndOfStream, match=r"no new row for 0.6 s \(driver.idle_timeout\) "
+                                              r"after 4 rows"):
+            while True:
+                assert driver.read(0.1) is None
+        assert 0.5 < time.monotonic() - start < 2.0
+    finally:
+        driver.close()
+
+
+def test_follow_ends_at_stop_and_when_the_file_is_replaced(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "logger.csv"
+    path.write_text("time_ms,u,y,i\n0,3.0,10.5,0.12\n")
+    driver = FileDriver.from_config(csv_config(str(path), follow=True, stop=3))
+    try:
+        assert driver.read(0) is not None and driver.read(0) is None
+        _append(path, "20,3.5,11.5,0.13\n40,4.0,12.5,0.14\n60,4.5,13.5,0.15\n")
+        assert [driver.read(0.5).values["Va"] for _ in range(2)] == [3.5, 4.0]  # type: ignore[union-attr]
+        with pytest.raises(EndOfStream, match=r"driver.stop = 3"):
+            driver.read(0)
+    finally:
+        driver.close()
+    driver = FileDriver.from_config(csv_config(str(path), follow=True))
+    try:
+        assert len([driver.read(0) for _ in range(4)]) == 4
+        path.write_text("time_ms,u,y,i\n0,1.0,1.0,0.1\n")  # truncated: a logger started over
+        with pytest.raises(EndOfStream, match="truncated or replaced after 4 rows"):
+            driver.read(0)
+    finally:
+        driver.close()
+    assert caplog.text.count("was truncated or replaced while followed") == 1
+
+
+def test_a_file_that_grew_after_it_was_opened_says_so_once_at_its_end(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Without ``follow``: the rows there at open are replayed; at the end, one warning says
+    the file grew and how to read what was written since (before: nothing)."""
+    path = tmp_path / "logger.csv"
+    path.write_text("time_ms,u,y,i\n0,3.0,10.5,0.12\n")
+    driver = FileDriver.from_config(csv_config(str(path)))
+    try:
+        _append(path, "20,3.5,11.5,0.13\n")
+        assert len(replay(driver)) == 1
+        with pytest.raises(EndOfStream):
+            driver.read(0)
+    finally:
+        driver.close()
+    said = [r.getMessage() for r in caplog.records if "grew" in r.getMessage()]
+    assert said == ["logger.csv grew by 17 bytes after it was opened (still being written?): "
+                    "the rows written since are not replayed; set driver.follow = true to "
+                    "read them as they come"], said
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"idle_timeout": 5.0}, "idle_timeout applies to a followed file only"),
+    ({"follow": True, "sample_period": None, "time_column": "time_ms"},
+     "sample_period is required with follow = true"),
+])
+def test_follow_keys_refused_where_they_do_not_apply(change: dict[str, Any], message: str
+                                                     ) -> None:
+    with pytest.raises(ValidationError, match=message):
+        FileDriverConfig.model_validate(csv_config("x.csv", **change))
+
+
+def test_follow_refuses_a_mat_file(tmp_path: Path) -> None:
+    path = tmp_path / "run.mat"
+    scipy.io.savemat(path, {"u": np.ones(5), "y": np.ones(5), "i": np.ones(5)})
+    with pytest.raises(DriverInitializationError, match="follow: run.mat is a MAT file"):
+        FileDriver.from_config(csv_config(str(path), follow=True))
+
+
+def test_twinwatch_run_follows_a_recording_as_it_is_written(tmp_path: Path) -> None:
+    """``twinwatch run`` on a CSV a logger is writing (``follow = true``): the windows
+    written after the start are estimated too, the run ends ``idle_timeout`` after the last
+    row. Before: 2 of the 6 windows, the run ended at the rows there at start, silently."""
+    import threading
+
+    from .sources_support import FILE_DRIVER, plant_csv
+    from .test_fault_injection import cli, with_driver
+
+    lines = plant_csv(tmp_path / "plant.csv", 12.0).read_text().splitlines(keepends=True)
+    live = tmp_path / "live.csv"
+    live.write_text("".join(lines[:1 + 450]))  # the header and 4.5 s of rows
+    driver = FILE_DRIVER.format(path=live).replace(
+        "sample_period = 0.01\n", "sample_period = 0.01\nfollow = true\nidle_timeout = 2.0\n")
+    cfg = with_driver(tmp_path, driver)
+
+    def write() -> None:
+        for k in range(1 + 450, len(lines), 150):  # 1.5 s of rows a tenth of a second
+            time.sleep(0.1)
+            _append(live, "".join(lines[k:k + 150]))
+
+    writer = threading.Thread(target=write)
+    writer.start()
+    try:
+        r = cli("run", str(cfg), "--no-progress")
+    finally:
+        writer.join()
+    assert r.exit_code == 0, r.output
+    assert "twinwatch: 6 windows estimated" in r.output, r.output

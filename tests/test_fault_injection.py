@@ -1633,20 +1633,20 @@ def _recording_directory_removed(ctx: Context) -> dict[str, Any]:
             "status_names_it": bool(statuses) and "3 windows not recorded" in statuses[-1]}
 
 
-@case("issue 14: SIGHUP (an alarm threshold changed) while a CSV recording of 12 windows is "
+@case("issue 14: SIGHUP (an alarm threshold changed) while a CSV recording of 20 windows is "
       "replayed as fast as possible",
-      exit_code=0, says_reloaded=True, runs=1, windows=list(range(12)),
-      t_start=[2.0 * k for k in range(12)])
+      exit_code=0, says_reloaded=True, runs=1, windows=list(range(20)),
+      t_start=[2.0 * k for k in range(20)])
 def _reloaded_file_source(ctx: Context) -> dict[str, Any]:
     import os
     import signal
 
     from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
-    plant = DCMotorPlant(DCMotorPlantConfig(scenario="nominal", duration=24.0))
+    plant = DCMotorPlant(DCMotorPlantConfig(scenario="nominal", duration=40.0))
     chans = ("Va", "ia", "omega", "Tload", "setpoint")
     lines = ["t," + ",".join(chans)]
-    for _ in range(2400):
+    for _ in range(4000):
         s = plant.next_sample()
         lines.append(f"{s.t:.2f}," + ",".join(repr(s.values[c]) for c in chans))
     data = ctx.tmp / "rec.csv"
@@ -1684,8 +1684,8 @@ sample_period = 0.01
         elif deadline and health["window"] > 3 and not reloaded():
             # the replay is faster than a loaded box's reload (the new daemon is built beside
             # the running one and takes over between windows: CI, 2026-11-24, the source ended
-            # first): each window after the SIGHUP waits 1 s while it is not taken (not a
-            # wait for it: the takeover needs the windows to flow)
+            # first, twice): each window after the SIGHUP waits 1 s while it is not taken
+            # (not a wait for it: the takeover needs the windows to flow), 16 s in all
             time.sleep(1.0)
         return ok
 

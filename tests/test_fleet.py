@@ -40,7 +40,8 @@ from twinwatch.sinks.base import SinkContext
 from twinwatch.sinks.store import StateStore
 from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig
 from twinwatch.twin.health import HealthView, read_health
-from twinwatch.watch import Fleet, FleetWatcher, Gap, _Sequence, gap_line, render
+from twinwatch.watch import Fleet, FleetWatcher, Gap, gap_line, render
+from twinwatch.watch.subscription import _Sequence
 
 from .conftest import ROOT
 from .test_service import db_rows, wait_for, zsession

@@ -106,7 +106,7 @@ def test_the_summary_is_merged_from_the_workers_typed_summaries(
 def test_the_command_line_holds_one_host_and_only_prints() -> None:
     """``run`` and ``_run_host`` dispatch on no attribute (no ``hasattr``, no ``host.fleet``
     branch in what is printed) and ``host`` is bound to one annotated type."""
-    tree = ast.parse((ROOT / "twinwatch" / "cli.py").read_text())
+    tree = ast.parse((ROOT / "twinwatch" / "cli" / "run.py").read_text())
     calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)
              and isinstance(n.func, ast.Name) and n.func.id in ("hasattr", "getattr")
              and n.args and isinstance(n.args[0], ast.Name) and n.args[0].id == "host"]

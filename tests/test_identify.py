@@ -13,16 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from twinwatch.daemon.commission import identify_blueprint, report, residual_tests
-from twinwatch.io.drive import DriveConfig
-from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig, SetpointSchedule
-from twinwatch.twin.estimation.estimator import EstimationConfig, PSOSettings
-from twinwatch.twin.estimation.identify import (
-    AS_CONFIGURED,
+from twinwatch.commissioning.identify import (
     Combination,
-    FixedValue,
     Identifiability,
-    IdentifyConfig,
     _Holds,
     _weakest_stated,
     analyse,
@@ -32,6 +25,12 @@ from twinwatch.twin.estimation.identify import (
     information_criteria,
     parameters_block,
 )
+from twinwatch.commissioning.record import identify_blueprint, residual_tests
+from twinwatch.commissioning.report import report
+from twinwatch.config.identify import AS_CONFIGURED, FixedValue, IdentifyConfig
+from twinwatch.io.drive import DriveConfig
+from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig, SetpointSchedule
+from twinwatch.twin.estimation.estimator import EstimationConfig, PSOSettings
 from twinwatch.twin.estimation.statistics import ModelCheck, OutputCheck
 from twinwatch.twin.model import WindowData
 from twinwatch.twin.models.dcmotor import DCMotorTwin
@@ -162,7 +161,7 @@ def test_a_stated_value_of_a_parameter_not_identified_is_its_value_in_the_fit() 
 def test_a_negative_fit_never_passes() -> None:
     """An output the twin fits worse than its mean fails the model check, with the reason,
     even where the residual tests alone pass (a noisy output's scatter looks white)."""
-    from twinwatch.twin.estimation.identify import _honest_check
+    from twinwatch.commissioning.identify import _honest_check
 
     ok = OutputCheck(rms=0.01, noise=0.01, whiteness_p=0.5, cross_p=0.5, passed=True)
     check = ModelCheck(passed=True, outputs={"ia": ok, "omega": ok})

@@ -40,14 +40,16 @@ ROOMS: dict[str, tuple[str, ...]] = {
     "sinks": ("twinwatch.sinks",),
     "config": ("twinwatch.config",),
     "daemon": ("twinwatch.daemon",),
+    "commissioning": ("twinwatch.commissioning",),
     "watch": ("twinwatch.watch",),
     "cli": ("twinwatch.cli", "twinwatch.__main__"),
 }
 
 #: Room -> the rooms it may import (besides itself). The floors, from the ground up: base; io;
 #: plant, the twin's contract; the machines, the estimation; the discovery; the twin's top
-#: (adaptation, health); drivers, sinks; config; daemon; watch (beside the daemon, reading what
-#: the daemons publish); cli.
+#: (adaptation, health); drivers, sinks; config; daemon; commissioning (beside the daemon: a
+#: baseline identified offline from a recording); watch (beside the daemon, reading what the
+#: daemons publish); cli.
 ALLOWED: dict[str, set[str]] = {
     "base": set(),
     "io": {"base"},
@@ -66,6 +68,10 @@ ALLOWED: dict[str, set[str]] = {
                "twin.estimation", "twin.discovery", "twin.prognostics", "twin"},
     "daemon": {"base", "io", "config", "drivers", "sinks", "twin.model", "twin.models",
                "twin.estimation", "twin.discovery", "twin.prognostics", "twin"},
+    # reads a recording through a driver and identifies the baseline: never the daemon or an
+    # output (it runs once, offline), nothing of the twin's top (the message, the diagnosis)
+    "commissioning": {"base", "io", "config", "drivers", "twin.model", "twin.models",
+                      "twin.estimation"},
     # reads the network's health messages: never the daemon (a watcher runs anywhere)
     "watch": {"base", "io", "twin"},
     "cli": set(ROOMS) - {"cli"},
@@ -215,6 +221,8 @@ def test_imports_are_read_correctly() -> None:
     assert room_of("twinwatch.twin.model") == "twin.model"
     assert room_of("twinwatch.twin.health") == "twin"
     assert room_of("twinwatch.errors") == "base"
+    assert room_of("twinwatch.commissioning.identify") == "commissioning"
+    assert room_of("twinwatch.config.identify") == "config"
     assert _dynamic_imports(ast.parse("importlib.import_module(name)")) == [1]
     assert _dynamic_imports(ast.parse("importlib.import_module('zenoh')")) == []
 

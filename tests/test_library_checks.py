@@ -96,7 +96,7 @@ def test_a_reload_refuses_a_bad_library_in_one_log_line(
 ) -> None:
     """A fleet of one: the library edited badly and SIGHUP: one log line naming the key, no
     pydantic link; the running configuration goes on."""
-    from twinwatch.cli import _load_runnable
+    from twinwatch.cli.app import load_runnable as _load_runnable
     from twinwatch.daemon.host import Host
 
     library = tmp_path / "faults.toml"

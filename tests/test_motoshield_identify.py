@@ -16,15 +16,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from twinwatch.commissioning.commission import commission
+from twinwatch.commissioning.identify import Identification, parameters_block
+from twinwatch.commissioning.report import report
+from twinwatch.config.identify import AS_CONFIGURED, merge_options
 from twinwatch.config.loader import load_config
-from twinwatch.daemon.commission import commission, report
 from twinwatch.daemon.runner import Daemon
-from twinwatch.twin.estimation.identify import (
-    AS_CONFIGURED,
-    Identification,
-    merge_options,
-    parameters_block,
-)
 
 from .conftest import ROOT, shared_path
 

@@ -181,7 +181,7 @@ def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path
                 proc.wait()
         assert proc.returncode == 0, err
         if i:
-            assert "resumed the parameters' trends from" in err, err
+            assert ": trend resumed from " in err and "Ra degrading" in err, err
         last = db_rows(db)[-1]
         stops.append(last["t_end"])
         start = int(round(last["t_end"] / 0.01)) + 1  # the source goes on after it
@@ -231,3 +231,93 @@ def test_replay_carries_the_evidence_since_the_segment_and_its_restarts_over() -
     assert len(trend.restarts) == 2 and trend.restarts[-1].step == 0.25
     out = prog.update({}, t_end=50.0)["Ra"].trend
     assert (out.evidence, out.restarts, out.restart.t) == (15, 2, 20.0)
+
+
+def _store_with_a_degrading_trend(db: Path, runs: tuple[str, ...] = ("a", "b")) -> Any:
+    """A state database holding 40 windows of machine ``m`` whose Ra drifts up 0.5 mOhm a
+    second (its trend degrading), the first half stored by run ``runs[0]``, the rest by the
+    last run."""
+    import json
+
+    from twinwatch.sinks.store import StateStore
+
+    store = StateStore(db)
+    store.history()  # creates the tables
+    con = sqlite3.connect(db)
+    for k in range(40):
+        t = 2.0 * k + 1.99
+        doc = {"run": runs[0] if k < 20 else runs[-1], "t_start": 2.0 * k, "t_end": t,
+               "parameters": {"Ra": {"trend": {
+                   "since_t": 1.99, "evidence": k + 1, "degrading": k >= 10,
+                   "window_evidence": {"t": t, "value": 6.5 + 5e-4 * t, "std": 1e-3,
+                                       "source": "estimated"}}}}}
+        con.execute("INSERT INTO health (machine, run, window, t_start, t_end, wall, doc) "
+                    "VALUES ('m', ?, ?, ?, ?, 0, ?)", (doc["run"], k, 2.0 * k, t,
+                                                       json.dumps(doc)))
+    con.commit()
+    con.close()
+    return store
+
+
+def test_a_restart_mid_degradation_says_at_the_default_level_the_trend_resumed(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 37: a restart mid-degradation said whether the trend was resumed only at info
+    ("resumed the parameters' trends from 80 stored windows", no machine, no RUL). Now one
+    warning naming the machine, the windows and runs it came from and the RUL it predicts."""
+    import logging
+    import re
+
+    from twinwatch.daemon.resume import replay_trends, say_trend
+    from twinwatch.twin.prognostics import Prognostics, PrognosticsConfig
+    from twinwatch.twin.prognostics.config import Thresholds
+
+    store = _store_with_a_degrading_trend(tmp_path / "state.sqlite")
+    try:
+        prog = Prognostics(["Ra"], {"Ra": 6.5}, PrognosticsConfig(),
+                           {"Ra": Thresholds(warning_high=6.6, alarm_high=6.7)})
+        caplog.set_level(logging.WARNING)
+        last = store.latest_health("m")
+        assert last is not None
+        say_trend("m", last, replay_trends(store, "m", prog))
+    finally:
+        store.close()
+    lines = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(lines) == 1, caplog.text
+    text = lines[0].getMessage()
+    # Ra reaches 6.7 (alarm) at t = 400 s; the last window ends at 79.99 s: about 320 s
+    m = re.fullmatch(r"m: trend resumed from 40 windows of the previous 2 runs \(Ra degrading: "
+                     r"RUL (\d+\.?\d*) min to its alarm threshold\)", text)
+    assert m is not None, text
+    assert 4.5 < float(m.group(1)) < 6.2, text
+    # a reload's daemon goes on in the same run (b): its windows are "this run"
+    store = _store_with_a_degrading_trend(tmp_path / "reload.sqlite")
+    try:
+        prog = Prognostics(["Ra"], {"Ra": 6.5})
+        assert replay_trends(store, "m", prog, run="b").startswith(
+            "resumed from 40 windows of this run and 1 earlier (Ra degrading")
+    finally:
+        store.close()
+
+
+def test_a_restart_that_does_not_resume_the_trend_says_why(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """--fresh, a new run of a source whose time starts over: one warning each (the last
+    stored window was degrading), naming the machine and why the trend starts over."""
+    import logging
+
+    from twinwatch.daemon.resume import note_fresh, note_new_run
+
+    store = _store_with_a_degrading_trend(tmp_path / "state.sqlite", runs=("a",))
+    try:
+        caplog.set_level(logging.WARNING)
+        note_fresh(store, "m")
+        note_new_run(store, "m", "file", "run-2")
+        note_fresh(store, "other")  # no earlier window of this machine: nothing to say
+    finally:
+        store.close()
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert said == [
+        f"m: trend not resumed: twinwatch run --fresh starts from the nameplate values "
+        f"({tmp_path / 'state.sqlite'} keeps the earlier runs)",
+        "m: trend not resumed: a new run (the file source's time starts over when it opens; "
+        "twinwatch run --resume continues the last run)"], said

@@ -8,9 +8,10 @@ import math
 import numpy as np
 import pytest
 
+from twinwatch.commissioning.identify import identify
+from twinwatch.config.identify import IdentifyConfig
 from twinwatch.config.loader import ConfigError, load_config
 from twinwatch.twin.estimation.estimator import EstimationConfig, PSOSettings
-from twinwatch.twin.estimation.identify import IdentifyConfig, identify
 from twinwatch.twin.model import WindowData
 from twinwatch.twin.models import create_model
 from twinwatch.twin.models.pwm_dcmotor import (

@@ -145,7 +145,7 @@ def test_each_cell_of_the_table_and_the_tail_line_say_what_the_message_does() ->
     """The table's cells (render's named parts) and ``tail``'s line on what the other tests'
     machine does not carry: a machine gone, one without a window, a held parameter past its
     crossing, a fused one, a failed model check, an untrusted fit, no losses, terms."""
-    from twinwatch.watch import (
+    from twinwatch.watch.render import (
         _alarms_cell,
         _last_cell,
         _parameters_cell,
@@ -535,3 +535,70 @@ def test_machines_on_their_own_ports_are_watched_with_a_connect_each() -> None:
             h.undeclare()
         for s in sessions:
             s.close()
+
+
+def test_watch_finds_the_configured_machines_on_their_own_ports(tmp_path: Any) -> None:
+    """Issue 37: `watch` missed a machine publishing on another port unless given `--connect`
+    for it. `--config` with a gateway's directory watches every machine configured there, on
+    the endpoint its [zenoh] table listens on (0.0.0.0 read as loopback), with their key
+    prefix; one whose daemon does not run is skipped with a note, the others are listed."""
+    eps = [endpoint(free_port()), endpoint(free_port())]
+    down = free_port()
+    gateway = tmp_path / "gateway"
+    gateway.mkdir()
+    for name, ep in (("m1", eps[0]), ("m2", eps[1].replace("127.0.0.1", "0.0.0.0")),
+                     ("m3", endpoint(down))):
+        (gateway / f"{name}.toml").write_text(
+            f'[machine]\nname = "{name}"\n\n[zenoh]\nlisten = ["{ep}"]\nkey_prefix = "plant/a"\n')
+    (gateway / "m4.toml").write_text('[machine]\nname = "m4"\n\n[zenoh]\nenabled = false\n')
+    sessions, held = [], []
+    try:
+        for name, ep in (("m1", eps[0]), ("m2", eps[1])):
+            s = zsession("peer", listen=[ep])
+            sessions.append(s)
+            doc = json.dumps(_msg(name, 4))
+            held.append(s.liveliness().declare_token(f"plant/a/{name}/alive"))
+            held.append(s.declare_queryable(
+                f"plant/a/{name}/health",
+                lambda q, doc=doc, name=name: q.reply(f"plant/a/{name}/health", doc)))
+        r = _twinwatch("watch", "--config", str(gateway), "--once", "--json", "--wait", "3")
+        assert r.returncode == 0, r.stderr
+        found = {m["machine"]: m["window"] for m in json.loads(r.stdout)["machines"]}
+        assert found == {"m1": 4, "m2": 4}, found
+        assert f"nothing answers at {endpoint(down)} (m3.toml): not watched" in r.stderr
+        assert "Traceback" not in r.stderr
+        one = _twinwatch("watch", "--config", str(gateway / "m2.toml"), "--once", "--json",
+                         "--wait", "3")
+        assert one.returncode == 0, one.stderr
+        assert [m["machine"] for m in json.loads(one.stdout)["machines"]] == ["m2"]
+    finally:
+        for h in held:
+            h.undeclare()
+        for s in sessions:
+            s.close()
+
+
+def test_the_configured_endpoints_are_read_from_the_zenoh_tables(tmp_path: Any) -> None:
+    """What `watch --config` connects to: the shipped examples' ports (7447, the hydraulic
+    ones' 7448 and 7449, the OPC UA ones' 7450 and 7451, the CANopen one's 7453, the TLS example's router), a client's
+    router, none for a machine whose Zenoh output is off; a bad table is one line."""
+    import click
+
+    from twinwatch.cli.watch import config_endpoints, watch_endpoint
+
+    found, prefixes = config_endpoints(ROOT / "config")
+    assert set(found) == {f"tcp/127.0.0.1:{p}" for p in (*range(7447, 7452), 7453)} | {
+        "tls/localhost:7447"}, found
+    assert found["tcp/127.0.0.1:7448"] == ["hydraulic-modbus-sim.toml"]
+    assert prefixes == {"twinwatch"}
+    client = tmp_path / "client.toml"
+    client.write_text('[zenoh]\nmode = "client"\nlisten = []\nconnect = ["tcp/10.0.0.2:7447"]\n')
+    assert config_endpoints(client) == ({"tcp/10.0.0.2:7447": ["client.toml"]}, {"twinwatch"})
+    assert watch_endpoint("tcp/[::]:7447") == "tcp/[::1]:7447"
+    assert watch_endpoint("tcp/0.0.0.0:7448#iface=eth0") == "tcp/127.0.0.1:7448"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[zenoh]\nlistn = ["tcp/127.0.0.1:7447"]\n')
+    with pytest.raises(click.BadParameter, match=r"bad.toml: zenoh.listn: "):
+        config_endpoints(bad)
+    r = _twinwatch("watch", "--config", str(bad), "--once")
+    assert r.returncode == 2 and "zenoh.listn" in r.stderr and "Traceback" not in r.stderr

@@ -103,7 +103,7 @@ def _diagnosis_config() -> type[DiagnosisConfig]:
 
 
 def _identify_config() -> type[IdentifyConfig]:
-    from twinwatch.twin.estimation.identify import IdentifyConfig
+    from twinwatch.config.identify import IdentifyConfig
 
     return IdentifyConfig
 
@@ -127,6 +127,7 @@ def _sink_config(name: str) -> type[Any]:
 
 
 if TYPE_CHECKING:
+    from twinwatch.config.identify import IdentifyConfig
     from twinwatch.sinks.base import SinkConfig
     from twinwatch.sinks.rerun import RecordingConfig
     from twinwatch.sinks.store import StateConfig
@@ -134,7 +135,6 @@ if TYPE_CHECKING:
     from twinwatch.twin.diagnosis.library import DiagnosisConfig
     from twinwatch.twin.discovery.search import DiscoveryConfig
     from twinwatch.twin.estimation.estimator import EstimationConfig
-    from twinwatch.twin.estimation.identify import IdentifyConfig
     from twinwatch.twin.prognostics.config import AdaptiveWindowConfig, PrognosticsConfig
 
     EstimationTable = EstimationConfig

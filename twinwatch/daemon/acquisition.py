@@ -196,12 +196,14 @@ class Acquisition:
         else:
             self.stopping.set()
 
-    def source_state(self) -> tuple[str | None, list[str]]:
-        """What the driver waits for (None when it delivers) and its silent messages."""
+    def source_state(self) -> tuple[str | None, list[str], list[str]]:
+        """What the driver waits for (None when it delivers), its silent messages and what
+        the device reports wrong with itself
+        (:attr:`~twinwatch.drivers.base.Driver.device_faults`)."""
         driver = self.driver
         if driver is None:
-            return None, []
-        return driver.waiting, list(driver.silent)
+            return None, [], []
+        return driver.waiting, list(driver.silent), list(driver.device_faults)
 
     def source_waiting(self) -> bool:
         """The driver waits for its source (a device absent, a bus being reopened)."""

@@ -229,6 +229,20 @@ class Machine:
                 out.append(key if key == path.name else f"{key} ({path.name})")
         return out
 
+    def rename(self, path: Path) -> None:
+        """Its configuration file was renamed to ``path`` (the same ``[machine] name``): the
+        machine goes on, its file is ``path`` from now on. What the next :meth:`changed`
+        compares is the old file's content as it loaded (an edit made with the rename is a
+        change: the caller reloads)."""
+        old = self.path
+        assert old is not None
+        self.path = path
+        self.file = path.name
+        self.supervisor.source = str(path)
+        self.digests[path.name] = self.digests.pop(old.name, "")
+        self.watched = {(path.name if k == old.name else k): (path if k == old.name else p)
+                        for k, p in self.watched.items()}
+
     def _run(self) -> None:
         sup = self.supervisor
         try:
@@ -664,6 +678,13 @@ class Host(ServiceHost):
         self.notifier.reloading("re-reading the machine directory")
         files = set(self._scan())
         done: list[str] = []
+        for old, new in self._renamed(files).items():
+            # a machine is its name, not its file: it goes on (its twin, trends, alarms, run
+            # and window numbering), as an operator renaming a file expects
+            m = self.machines.pop(old)
+            m.rename(new)
+            self.machines[new] = m
+            done.append(f"{m.name} goes on ({old.name} renamed {new.name})")
         for path in list(self.machines):
             if path not in files:
                 m = self.machines.pop(path)
@@ -693,17 +714,45 @@ class Host(ServiceHost):
             logger.warning("%s", line)
         self._send_status(ready=True)
 
+    def _renamed(self, files: set[Path]) -> dict[Path, Path]:
+        """Old file -> new file, for each running machine whose file is gone while a new file
+        (the first file naming it, :meth:`_scan`) names the same machine: a file renamed (or
+        moved within the directory). A machine that is not running (lost, ended) is started
+        again under its new file instead."""
+        out: dict[Path, Path] = {}
+        for path, m in self.machines.items():
+            if path is None or path in files or not m.running or m.supervisor.config is None:
+                continue
+            new = self._owners.get(m.supervisor.config.machine.name)
+            if new is not None and new in files and new not in self.machines \
+                    and new not in out.values():
+                out[path] = new
+        return out
+
     # -- what to report -----------------------------------------------------------------------
     def all_machines(self) -> list[Machine]:
         """The current machines and those a reload retired, in file order."""
         return [*self.retired, *self.machines.values()]
 
+    def counted(self) -> list[Machine]:
+        """The fleet's machines, each once, by its latest attempt: the current ones (a file
+        each) and, of those a reload retired, the last of each machine whose name and file
+        no current one has (a file removed). A machine is its ``[machine] name``, not its
+        file: a file renamed, or tried again by a reload, is one machine."""
+        current = list(self.machines.values())
+        names = {m.name for m in current}
+        paths = {m.path for m in current}
+        gone: dict[str, Machine] = {}
+        for m in self.retired:
+            if m.name not in names and m.path not in paths:
+                gone.pop(m.name, None)
+                gone[m.name] = m
+        return [*gone.values(), *current]
+
     def lost(self) -> dict[str, str]:
         """Machine (file) -> why, for every machine lost (never started, or stopped on a
-        failure); a machine tried again by a reload counts by its latest attempt."""
-        current = {m.path for m in self.machines.values()}
-        return {f"{m.name} ({m.file})": m.lost for m in self.all_machines()
-                if m.lost is not None and (m.path not in current or m is self.machines[m.path])}
+        failure), by its latest attempt (:meth:`counted`)."""
+        return {f"{m.name} ({m.file})": m.lost for m in self.counted() if m.lost is not None}
 
     def problems(self) -> dict[str, list[str]]:
         """Machine -> what is degraded now, for the machines that are."""
@@ -802,8 +851,8 @@ class Host(ServiceHost):
             return RunSummary(machines=[block], errors=self._errors(m), exit_status=code)
         machines = self.all_machines()
         lost = self.lost()
-        files = len({m.path for m in machines})
-        total = (f"twinwatch gateway: {files} machines, {files - len(lost)} ran, {len(lost)} "
+        n = len(self.counted())  # a machine renamed or tried again counts once
+        total = (f"twinwatch gateway: {n} machines, {n - len(lost)} ran, {len(lost)} "
                  "lost" + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items())
                            if lost else ""))
         return RunSummary(machines=[self._machine_summary(m) for m in machines], total=total,

@@ -34,8 +34,9 @@ only estimates and hands each processed window to that thread through a bounded 
 state database whose write lock another process holds: each write waits SQLite's busy timeout,
 5 s) never holds up the estimation (issue 26: a backup tool's 30 s lock cost 5 windows, dropped
 as estimation overruns). While the gate's database is locked the windows wait in memory
-(:attr:`WindowPipeline.delayed`, at most :data:`HELD_MAX`): each is stored as soon as the lock
-is released and only then given to the publishers, oldest first (stored before published). A
+(:attr:`WindowPipeline.keeper`, a :class:`~twinwatch.daemon.gatekeeper.GateKeeper`, at most
+:data:`HELD_MAX`): each is stored as soon as the lock is released and only then given to the
+publishers, oldest first (stored before published). A
 pipeline without that thread (a library daemon that calls :meth:`WindowPipeline.process`
 itself) writes the outputs from the caller's thread.
 """
@@ -54,6 +55,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
+from twinwatch.daemon.gatekeeper import HELD_MAX, GateKeeper
 from twinwatch.sinks.base import Gate, ProcessedWindow, Sink
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.diagnosis import Diagnoser, shaft_speed
@@ -70,7 +72,7 @@ from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HealthCallback", "ProcessedWindow", "WindowDigest", "WindowPipeline"]
+__all__ = ["HELD_MAX", "HealthCallback", "ProcessedWindow", "WindowDigest", "WindowPipeline"]
 
 HealthCallback = Callable[[HealthMessage], None]
 """Called with each window's typed health message (worker thread)."""
@@ -80,11 +82,6 @@ OUTPUT_QUEUE = 64
 the estimation (the gate's lock does not fill it: those windows wait in :data:`HELD_MAX`); the
 estimation worker then waits, and an overrun names that output (:meth:`WindowPipeline.
 backpressure`)."""
-
-HELD_MAX = 1000
-"""Windows kept in memory while the state database is locked by another process (about 33
-minutes of 2 s windows): stored and published once the lock is released. Beyond it a window
-waits in the store's own backlog and is not published (as on a full disk)."""
 
 MEMORY_TAIL = OUTPUT_QUEUE + 16
 """With a state store that reads back (:meth:`~twinwatch.sinks.store.StateStore.last_docs`),
@@ -119,8 +116,9 @@ class WindowPipeline:
         run: the run id every health message carries (:attr:`run`).
         nominal: parameter -> nominal value the deviations are measured from.
         counters: returns the daemon's counters for the health message.
-        source: returns what the source waits for (None when it delivers) and its silent
-            messages, for the health message's ``source``.
+        source: returns, for a window, what the source waited for (None when it delivered),
+            its silent messages and the device's own faults when the window's last sample was
+            read, for the health message's ``source``.
         history: health messages kept in memory (:attr:`history`).
         diagnoser: ranks the machine's fault modes each window (the message's ``diagnosis``);
             None: no diagnosis.
@@ -128,7 +126,8 @@ class WindowPipeline:
     Attributes:
         sinks: written in order for each window (the gate first: stored before published).
         gate: the sink that must take a window before the publishing sinks get it (the state
-            store), or None.
+            store), or None; it and the windows held for its lock are the :attr:`keeper`'s.
+        keeper: the gate and the windows held while another process locks its database.
         latest: the last health message (typed); ``history`` the last ``history`` of them.
         windows_estimated: windows processed.
         run: the run id of the messages (a reload's pipeline takes the running one's).
@@ -137,7 +136,8 @@ class WindowPipeline:
     def __init__(self, *, adapter: TwinAdapter, alarms: AlarmEvaluator, machine: str,
                  model_name: str, run: str, nominal: Mapping[str, float],
                  counters: Callable[[], Mapping[str, int]], history: int,
-                 source: Callable[[], tuple[str | None, list[str]]] | None = None,
+                 source: Callable[[WindowData], tuple[str | None, list[str], list[str]]]
+                 | None = None,
                  diagnoser: Diagnoser | None = None) -> None:
         self.adapter = adapter
         self.run = run
@@ -151,7 +151,6 @@ class WindowPipeline:
         self.fault_alarms: FaultAlarms | None = None
         self._diagnosis_failed = False
         self.sinks: list[Sink] = []
-        self.gate: Gate | None = None
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
         self.callbacks: list[HealthCallback] = []
         self.latest: HealthMessage | None = None
@@ -166,17 +165,31 @@ class WindowPipeline:
         self.windows_estimated = 0
         self._failing: set[str] = set()
         self._lock = threading.Lock()
-        #: windows that waited in memory for the gate's lock (another process's), in all
-        self.delayed = 0
-        #: the longest such wait [s]
-        self.locked_longest = 0.0
-        self._held: list[ProcessedWindow] = []
-        self._locked_since: float | None = None
+        self.keeper = GateKeeper(machine, self._write, logger)
         self._writing: tuple[str, float] | None = None  # (output, since) while one writes
         self._queue: queue.Queue[Any] | None = None
         self._thread: threading.Thread | None = None
         self._stop_by: float | None = None  # monotonic: give up on the lock after it
         self._blocked = False  # the worker waits for room in the outputs' queue
+
+    @property
+    def gate(self) -> Gate | None:
+        """The sink that must take a window before the publishing sinks get it (the keeper's)."""
+        return self.keeper.gate
+
+    @gate.setter
+    def gate(self, gate: Gate | None) -> None:
+        self.keeper.gate = gate
+
+    @property
+    def delayed(self) -> int:
+        """Windows that waited in memory for the gate's lock (another process's), in all."""
+        return self.keeper.delayed
+
+    @property
+    def locked_longest(self) -> float:
+        """The longest such wait [s]."""
+        return self.keeper.locked_longest
 
     # -- the outputs' thread -------------------------------------------------------------------
     def start(self, name: str = "twinwatch-outputs") -> None:
@@ -213,13 +226,13 @@ class WindowPipeline:
     def queued(self) -> int:
         """Windows waiting for the outputs' thread, and held for a locked state database."""
         q = self._queue
-        return (q.qsize() if q is not None else 0) + len(self._held)
+        return (q.qsize() if q is not None else 0) + self.keeper.held
 
     def backpressure(self) -> str | None:
         """Why the estimation worker waits on the outputs now (their queue is full, or, without
         the outputs' thread, one writes a window for more than a second), or None: what an
         overrun's message names instead of the estimation's cost."""
-        writing = self._writing
+        writing = self._writing or self.keeper.writing
         if not self._blocked and (writing is None or self._thread is not None
                                   or time.monotonic() - writing[1] <= 1.0):
             return None
@@ -235,24 +248,18 @@ class WindowPipeline:
     def counters(self) -> dict[str, int]:
         """``store_delayed`` (windows that waited in memory for the state database's lock,
         in all) and ``outputs_queued`` (windows waiting for the outputs now)."""
-        return {"store_delayed": int(self.delayed), "outputs_queued": int(self.queued)}
+        return {**self.keeper.counters(), "outputs_queued": int(self.queued)}
 
     def summary(self) -> list[str]:
         """The windows that waited for a locked state database, if any."""
-        if not self.delayed:
-            return []
-        held = len(self._held)
-        return [f"state database: locked by another process for up to "
-                f"{self.locked_longest:.0f} s; {self.delayed} windows waited in memory meanwhile "
-                f"and were stored and published once it was released"
-                + (f" ({held} still waiting at the end: not published)" if held else "")]
+        return self.keeper.summary()
 
     def _run(self) -> None:
         q = self._queue
         assert q is not None
         stopping = False
-        while not stopping or self._held:
-            if self._held:  # the gate's database is locked: take what comes, try again
+        while not stopping or self.keeper.held:
+            if self.keeper.held:  # the gate's database is locked: take what comes, try again
                 stopping = self._drain_into_held(q) or stopping
                 self._retry_held(give_up=stopping and self._past_stop())
                 continue
@@ -280,83 +287,32 @@ class WindowPipeline:
                 self._hold(got)
 
     def _hold(self, out: ProcessedWindow) -> None:
-        """A window behind the locked database: kept in memory (the gate's backlog) to be
-        stored and published once the lock goes; the recorders get it now."""
-        gate = self.gate
-        assert gate is not None
-        if len(self._held) >= HELD_MAX:  # too long: stored later, not published
-            gate.hold(out)
-            gate.not_stored += 1
-            self._held_events.extend(out.events)
-            self._write_others(out, stored=False)
-            return
-        gate.hold(out)
-        self._held.append(out)
-        self.delayed += 1
-        self._write_others(out, stored=None)
+        """A window behind the locked database: the keeper holds it to be stored and published
+        once the lock goes (beyond :data:`HELD_MAX`: not published); the recorders get it
+        now."""
+        stored = self.keeper.hold(out)
+        # not held (False): the fan-out keeps its alarm events for the next stored window
+        self._write_others(out, stored=stored)
 
     def _retry_held(self, give_up: bool) -> None:
-        """One more attempt to store the held windows (it waits up to the busy timeout);
-        stored: published, oldest first. Not stored and the lock gone (another failure: a
-        full disk), or ``give_up``: they are left to the gate's backlog, not published."""
-        gate = self.gate
-        if gate is None:
-            self._held.clear()
+        """One more attempt to store the held windows (:meth:`GateKeeper.retry`); stored:
+        published, oldest first; given up: their alarm events wait for the next stored
+        window."""
+        released = self.keeper.retry(give_up)
+        if released is None:
             return
-        started = time.monotonic()
-        self._writing = (gate.name, started)
-        try:
-            stored = gate.retry()
-        except Exception as exc:  # noqa: BLE001 - as _write: one output must not stop the rest
-            logger.error("the %s output failed (%s: %s)", gate.name, type(exc).__name__, exc)
-            stored = False
-        finally:
-            self._writing = None
-        if self._locked_since is not None:
-            self.locked_longest = max(self.locked_longest,
-                                      time.monotonic() - self._locked_since)
-        held, stored_now = list(self._held), stored
-        if not stored and time.monotonic() - started < 0.2:
-            time.sleep(0.2)  # a lock error at once (not after the busy timeout): no spinning
-        if stored_now:
-            self._held.clear()
-            self._locked_since = None
-            gate.not_stored -= 1  # the first held window, counted when its write failed
-            logger.warning("state database of %s released: %d windows that waited in memory "
-                           "are stored and published now", self.machine, len(held))
-            for out in held:
+        held, stored = released
+        for out in held:
+            if stored:
                 self._write_others(out, stored=True, recorders=False)
-        elif give_up or not gate.locked:
-            self._held.clear()
-            self._locked_since = None
-            gate.not_stored += len(held) - 1
-            for out in held:
+            else:
                 self._held_events.extend(out.events)
-            why = "the daemon stops" if give_up else "it cannot be written"
-            logger.error("state database of %s: %d windows that waited for its lock are not "
-                         "published (%s); they wait in its backlog", self.machine, len(held),
-                         why)
 
     # -- the windows ---------------------------------------------------------------------------
     def _deliver(self, out: ProcessedWindow) -> None:
         """Write one processed window to every output: the gate first, then the others (the
         publishers only if it was stored)."""
-        gate = self.gate
-        stored = True
-        if gate is not None:
-            self._writing = (gate.name, time.monotonic())
-            try:
-                stored = self._write(gate, out) is not False
-            finally:
-                self._writing = None
-            if not stored and self._thread is not None and gate.locked:
-                # another process holds the database's lock: keep the window (and the ones
-                # after it) in memory until it is stored, then publish them
-                self._locked_since = time.monotonic()
-                self._held.append(out)
-                self.delayed += 1
-                self._write_others(out, stored=None)
-                return
+        stored = self.keeper.store(out, can_hold=self._thread is not None)
         self._write_others(out, stored=stored)
 
     def _write_others(self, out: ProcessedWindow, *, stored: bool | None,
@@ -420,8 +376,9 @@ class WindowPipeline:
 
     def _source_health(self, window: WindowData) -> SourceHealth:
         """The window's ``source``: its stamps' jitter against the grid the ring buffer placed
-        it on [us], and what the source waits for or lacks now."""
-        waiting, silent = self._source() if self._source is not None else (None, [])
+        it on [us], and what the source waited for or lacked when its last sample was read."""
+        waiting, silent, faults = (self._source(window) if self._source is not None
+                                   else (None, [], []))
         jitter = window.stamp_jitter
         if jitter is None or jitter.size == 0:
             rms = peak = 0.0
@@ -429,7 +386,7 @@ class WindowPipeline:
             rms = float(np.sqrt(np.mean(np.square(jitter)))) * 1e6
             peak = float(np.max(np.abs(jitter))) * 1e6
         return SourceHealth(jitter_rms_us=rms, jitter_max_us=peak, waiting=waiting,
-                            silent=list(silent))
+                            silent=list(silent), device_faults=list(faults))
 
     def _stored_docs(self) -> Callable[[str, str, int], list[str]] | None:
         """The gate's reader of stored messages (machine, run, limit -> JSON, oldest first),

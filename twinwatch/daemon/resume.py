@@ -25,12 +25,14 @@ if TYPE_CHECKING:
     from twinwatch.daemon.ringbuffer import RingBuffer
     from twinwatch.sinks.base import Gate
     from twinwatch.twin.adaptation import TwinAdapter
+    from twinwatch.twin.health import HealthView
     from twinwatch.twin.prognostics import Prognostics
 
 # the daemon's log lines keep the logger name they had before it was split (journal filters)
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
-__all__ = ["continue_numbering", "note_new_run", "replay_trends", "restore", "resumes"]
+__all__ = ["continue_numbering", "degrading", "note_fresh", "note_new_run", "replay_trends",
+           "restore", "resumes", "say_trend"]
 
 
 def resumes(config: TwinwatchConfig, resume: bool | None) -> bool | None:
@@ -48,11 +50,13 @@ def resumes(config: TwinwatchConfig, resume: bool | None) -> bool | None:
     return True
 
 
-def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvaluator
-            ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvaluator,
+            run: str | None = None) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """Resume from the state database: the last accepted twin (trusted parameters and
     meta-model terms) and the alarm levels of the last window. Both are read before either is
-    used: a corrupt database (moved aside by ``recover_corrupt``) resumes nothing.
+    used: a corrupt database (moved aside by ``recover_corrupt``) resumes nothing. The trends
+    are replayed (:func:`replay_trends`) and one line says so (:func:`say_trend`); ``run``: the
+    daemon's run id (a reload goes on in the same run).
 
     Returns:
         ``(restored, resumed)``: the twin state given to the adapter (None when none was
@@ -81,8 +85,15 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
     raised = last.alarms if last is not None and last.alarms else None
     if raised is not None:
         alarms.restore(raised)
-    if state is not None and adapter.prognostics is not None:
-        replay_trends(store, machine, adapter.prognostics)
+    if last is not None:  # a restart: whether the trends go on, in one line (say_trend)
+        if adapter.prognostics is None:
+            say_trend(machine, last, "not resumed: [prognostics] enabled = false")
+        elif state is None:
+            say_trend(machine, last, "not resumed: no twin was saved (no window of the "
+                                     "previous run was trusted)")
+        else:
+            say_trend(machine, last, replay_trends(store, machine, adapter.prognostics,
+                                                   run=run))
     if restored is None and raised is None:
         return restored, None
     trusted, terms = _twin_summary(restored or {})
@@ -103,19 +114,83 @@ def _twin_summary(state: Mapping[str, Any]) -> tuple[dict[str, float], int]:
     return dict(state.get("trusted") or {}), len(state.get("terms") or [])
 
 
-def replay_trends(store: Gate, machine: str, prognostics: Prognostics) -> None:
+def replay_trends(store: Gate, machine: str, prognostics: Prognostics,
+                  run: str | None = None) -> str:
     """Rebuild the parameters' trends from the evidence the stored windows published (the last
     ``[prognostics] horizon`` seconds of plant time, on the time line that ends with the last
     window: across earlier restarts, :meth:`~twinwatch.sinks.base.Gate.timeline`), read
     through their typed views, so a restart resumes the trends and their RUL instead of
-    waiting ``min_evidence`` windows."""
+    waiting ``min_evidence`` windows.
+
+    Args:
+        run: the resuming daemon's run id: windows of that run are "this run" (a reload's),
+            the others "previous" (a restart's).
+
+    Returns:
+        What was resumed, for :func:`say_trend`: ``resumed from 57 windows of the previous
+        run (Ra degrading: RUL 5.2 min to its alarm threshold)``, or ``not resumed: ...``.
+    """
+    from twinwatch.twin.prognostics.rul import format_duration
+
     last = store.latest_health(machine)
     if last is None or last.t_end is None:
+        return "not resumed: the last stored window has no time"
+    horizon = prognostics.config.horizon
+    messages = store.timeline(machine, float(last.t_end) - horizon)
+    if not prognostics.replay(messages):
+        return (f"not resumed: the stored windows of the last {format_duration(horizon)} "
+                "([prognostics] horizon) carry no trend evidence")
+    trends = prognostics.trends.values()
+    windows = max(t.evidence for t in trends)
+    first = min(t.t[0] for t in trends if t.t)
+    runs = {m.run for m in messages if m.t_end is not None and m.t_end >= first}
+    earlier = len(runs - {run})
+    where = ("of this run" if not earlier else
+             f"of this run and {earlier} earlier" if run in runs else
+             "of the previous run" if earlier == 1 else f"of the previous {earlier} runs")
+    parts = []
+    for name, p in prognostics.predict(float(last.t_end)).items():
+        if not p.trend.degrading:
+            continue
+        alarm = p.rul.alarm if p.rul is not None else None
+        if alarm is None:
+            parts.append(f"{name} degrading")
+        elif alarm.status == "crossed":
+            parts.append(f"{name} degrading, beyond its alarm threshold")
+        elif alarm.status == "predicted":
+            parts.append(f"{name} degrading: RUL {format_duration(alarm.rul_s)} to its alarm "
+                         "threshold")
+        else:
+            parts.append(f"{name} degrading, its alarm threshold not likely reached")
+    return (f"resumed from {windows} windows {where} "
+            f"({'; '.join(parts) or 'no parameter degrading'})")
+
+
+def degrading(last: HealthView) -> list[str]:
+    """The parameters whose trend the stored message ``last`` reported degrading."""
+    return [name for name, p in (last.parameters or {}).items()
+            if p.trend is not None and p.trend.degrading]
+
+
+def say_trend(machine: str, last: HealthView, what: str) -> None:
+    """One line per machine at a restart: whether its trends were resumed (``motor-1: trend
+    resumed from 57 windows of the previous run (Ra degrading: RUL 5.2 min to its alarm
+    threshold)``) or why not. A warning, so the default log level shows it, when the last
+    stored window reported a parameter degrading (a restart mid-degradation: a RUL that did
+    not resume starts over from no evidence); else at info."""
+    level = logging.WARNING if degrading(last) else logging.INFO
+    logger.log(level, "%s: trend %s", machine, what)
+
+
+def note_fresh(store: Gate, machine: str) -> None:
+    """``twinwatch run --fresh``: the stored twin and trends are not resumed: say so (a
+    warning mid-degradation, :func:`say_trend`) when the database holds this machine's
+    earlier windows."""
+    last = store.latest_health(machine)
+    if last is None or store.recovered:
         return
-    messages = store.timeline(machine, float(last.t_end) - prognostics.config.horizon)
-    n = prognostics.replay(messages)
-    if n:
-        logger.info("resumed the parameters' trends from %d stored windows", n)
+    say_trend(machine, last, "not resumed: twinwatch run --fresh starts from the nameplate "
+                             f"values ({store.path} keeps the earlier runs)")
 
 
 def note_new_run(store: Gate, machine: str, driver_type: str, run_id: str
@@ -134,6 +209,8 @@ def note_new_run(store: Gate, machine: str, driver_type: str, run_id: str
     logger.info("a new run %s of %s: %s; the twin starts from the nameplate values, the "
                 "alarms from normal (%s keeps the earlier runs)", run_id, machine, reason,
                 store.path)
+    say_trend(machine, last, f"not resumed: a new run ({reason}; twinwatch run --resume "
+                             "continues the last run)")
     return {"reason": reason, "path": str(store.path), "run": last.run}
 
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import secrets
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Collection, Container, Mapping
@@ -37,7 +38,13 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from twinwatch.daemon.acquisition import STOP_AT_WINDOW_S, Acquisition
 from twinwatch.daemon.outputs import Outputs, close_logged
-from twinwatch.daemon.resume import continue_numbering, note_new_run, restore, resumes
+from twinwatch.daemon.resume import (
+    continue_numbering,
+    note_fresh,
+    note_new_run,
+    restore,
+    resumes,
+)
 from twinwatch.daemon.window_worker import (
     QUEUE_WAITS,
     RECENT_WINDOWS,
@@ -183,9 +190,12 @@ class Daemon:
         self.nominal = {p.name: config.machine.parameters.get(p.name, p.nominal)
                         for p in self.model.parameters}
         self.watchdog = watchdog
+        #: window index -> the source's state when its last sample was read (:meth:`_submit`)
+        self._source_at_window: dict[int, tuple[str | None, list[str], list[str]]] = {}
+        self._source_lock = threading.Lock()
         self.pipeline: WindowPipeline = make_pipeline(
             config, self.model, self.nominal, run=run_id or new_run_id(),
-            counters=self.counters, source=self.source_state)
+            counters=self.counters, source=self.window_source_state)
         self.acquisition = Acquisition(config, self.model, own_driver=driver is None,
                                        watchdog=watchdog)
         if slots is not None and config.acquisition.stagger:
@@ -215,6 +225,8 @@ class Daemon:
                 decision = resumes(config, resume)
                 if decision:
                     self._restore()
+                elif decision is False:
+                    note_fresh(self.store, self.machine)
                 elif decision is None:
                     self.new_run = note_new_run(self.store, self.machine,
                                                 config.driver.type, self.run_id)
@@ -389,7 +401,7 @@ class Daemon:
         """Resume from the state database (:func:`~twinwatch.daemon.resume.restore`)."""
         assert self.store is not None
         self.restored, self.resumed = restore(self.store, self.machine, self.adapter,
-                                              self.alarms)
+                                              self.alarms, run=self.run_id)
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
@@ -455,11 +467,13 @@ class Daemon:
         describe the machine), each output's :attr:`~twinwatch.sinks.base.Sink.problem`.
         """
         out = []
-        waiting, silent = self.source_state()
+        waiting, silent, faults = self.source_state()
         if waiting:
             out.append(f"waiting for the source: {waiting}")
         if silent:
             out.append("silent: " + ", ".join(silent))
+        if faults:
+            out.append("device fault: " + ", ".join(faults))
         if (p := self.estimation_problem()) is not None:
             out.append(p)
         last = self.pipeline.latest
@@ -470,11 +484,32 @@ class Daemon:
             out.append(check_function_line(last.diagnosis, label="CHECK FUNCTION"))
         return out + self.outputs.problems()
 
-    def source_state(self) -> tuple[str | None, list[str]]:
+    def source_state(self) -> tuple[str | None, list[str], list[str]]:
         """What the driver waits for (a device absent, a bus being reopened; None when it
-        delivers) and its silent messages (:attr:`~twinwatch.drivers.base.Driver.waiting`,
-        :attr:`~twinwatch.drivers.base.Driver.silent`)."""
+        delivers), its silent messages and what the device reports wrong with itself
+        (:attr:`~twinwatch.drivers.base.Driver.waiting`,
+        :attr:`~twinwatch.drivers.base.Driver.silent`,
+        :attr:`~twinwatch.drivers.base.Driver.device_faults`)."""
         return self.acquisition.source_state()
+
+    def _submit(self, window: WindowData, block: bool) -> None:
+        """Queue a completed window for the worker, with the source's state as its last
+        sample left it (the acquisition's thread)."""
+        with self._source_lock:
+            self._source_at_window[window.index] = self.source_state()
+        self.worker.submit(window, block=block)
+
+    def window_source_state(self, window: WindowData) -> tuple[str | None, list[str], list[str]]:
+        """The source's state (:meth:`source_state`) when ``window``'s last sample was read:
+        a drive's fault, a silent message that began after it, is not said in its health
+        message, but in the next one's (on a simulated clock the acquisition runs windows
+        ahead of the estimation; before, the state was read when the message was built).
+        The state now for a window that was not submitted by :meth:`run`."""
+        with self._source_lock:
+            state = self._source_at_window.pop(window.index, None)
+            for old in [k for k in self._source_at_window if k < window.index]:
+                del self._source_at_window[old]  # overruns: never processed
+        return state if state is not None else self.source_state()
 
     def estimation_problem(self) -> str | None:
         """A line when at least half of the last windows (at least 3 of at most
@@ -520,9 +555,7 @@ class Daemon:
             # writes them
             self.outputs.start(self._thread_prefix)
         try:
-            self.acquisition.run(
-                duration, lambda window, block: self.worker.submit(window, block=block),
-                self.worker.abandoned)
+            self.acquisition.run(duration, self._submit, self.worker.abandoned)
         finally:
             self._drain()
         return self.windows_estimated

@@ -172,6 +172,11 @@ class SourceKeeper(Driver):
         inner = self._inner
         return () if inner is None else inner.silent
 
+    @property
+    def device_faults(self) -> tuple[str, ...]:
+        inner = self._inner
+        return () if inner is None else inner.device_faults
+
     # -- reading ----------------------------------------------------------------------------
     def _read_internal(self, timeout: float | None) -> Sample | None:
         inner = self._inner

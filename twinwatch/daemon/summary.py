@@ -262,11 +262,13 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
         lines.append(f"source: time stamps jitter around the {cfg.acquisition.sample_period:g} s "
                      f"grid the samples were placed on in {len(jittered)} windows: RMS up to "
                      f"{rms:.3g} us, max {peak:.3g} us")
-    waiting, silent = daemon.source_state()
+    waiting, silent, faults = daemon.source_state()
     if waiting:
         lines.append(f"source: waiting for {waiting}")
     if silent:
         lines.append("source: silent: " + ", ".join(silent))
+    if faults:
+        lines.append("source: device fault: " + ", ".join(faults))
     if lost:
         reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
         lines.append(f"source: {ring.samples} samples received, {lost} not in any window "

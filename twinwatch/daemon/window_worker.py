@@ -72,7 +72,8 @@ def make_diagnoser(config: TwinwatchConfig) -> Diagnoser | None:
 
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,
                   run: str, counters: Callable[[], Mapping[str, int]],
-                  source: Callable[[], tuple[str | None, list[str]]]) -> WindowPipeline:
+                  source: Callable[[WindowData], tuple[str | None, list[str], list[str]]]
+                  ) -> WindowPipeline:
     """The window pipeline of a daemon on ``config``: the twin's adapter (estimation,
     discovery, prognostics, the adaptive window), the alarms (and the fault alarms of the
     diagnosis) and the diagnosis, on ``model`` with the ``nominal`` parameter values; its

@@ -674,11 +674,17 @@ class ProcessHost(ServiceHost):
                     by_file.setdefault(p.name, MachineSummary(name=p.stem, file=p.name,
                                                               lost=w.given_up))
         machines = [by_file[f] for f in sorted(by_file)]
-        lost = [f"{m.name} ({m.file}): {m.lost}" for m in machines if m.lost is not None]
+        # a machine is its name, not its file: a file renamed (its machine summarised under
+        # both names by two incarnations of its worker) counts once, by its current file
+        current = {p.name for w in self.workers for p in w.files}
+        names = {m.name for m in machines if m.file in current}
+        gone = {m.name: m for m in machines if m.file not in current and m.name not in names}
+        counted = [m for m in machines if m.file in current] + list(gone.values())
+        lost = [f"{m.name} ({m.file}): {m.lost}" for m in counted if m.lost is not None]
         restarted = sum(1 for w in self.workers for c in w.codes if c < 0)
         stalls = [f"worker {w.index} {w.stalls} time{'s' if w.stalls > 1 else ''} "
                   f"({', '.join(p.stem for p in w.files)})" for w in self.workers if w.stalls]
-        total = (f"twinwatch gateway: {len(machines)} machines, {len(machines) - len(lost)} "
+        total = (f"twinwatch gateway: {len(counted)} machines, {len(counted) - len(lost)} "
                  f"ran, {len(lost)} lost" + (": " + "; ".join(lost) if lost else "")
                  + f" ({len(self.workers)} worker processes, {restarted} restarted"
                  + (f"; stalled: {'; '.join(stalls)}: their machines' windows meanwhile were "

@@ -62,10 +62,12 @@ ENTRY_POINT_GROUP = "twinwatch.drivers"
 #: Built-in drivers: name => "module:Class".
 BUILTIN_DRIVERS: Mapping[str, str] = {
     "can": "twinwatch.drivers.can:CanDriver",
+    "canopen": "twinwatch.drivers.canopen:CanopenDriver",
     "file": "twinwatch.drivers.file:FileDriver",
     "modbus": "twinwatch.drivers.modbus:ModbusDriver",
     "opcua": "twinwatch.drivers.opcua:OpcUaDriver",
     "simulated": "twinwatch.drivers.simulated:SimulatedDriver",
+    "simulated_canopen": "twinwatch.drivers.simulated_canopen:SimulatedCanopenDriver",
     "simulated_modbus": "twinwatch.drivers.simulated_modbus:SimulatedModbusDriver",
     "simulated_opcua": "twinwatch.drivers.simulated_opcua:SimulatedOpcUaDriver",
 }

@@ -294,6 +294,14 @@ class Driver(Closeable, abc.ABC):
         health message and systemd's STATUS; empty by default. Thread-safe to read."""
         return ()
 
+    @property
+    def device_faults(self) -> tuple[str, ...]:
+        """What the device reports wrong with itself while it delivers (a drive in fault: its
+        EMCY, its CiA 402 statusword's fault bit; an NMT state other than operational), for
+        the health message (``source.device_faults``) and systemd's STATUS; empty by default.
+        Thread-safe to read."""
+        return ()
+
     def log_once(self, key: str, msg: str, *args: object, level: int = logging.WARNING) -> None:
         """Log ``msg`` at ``level`` the first time ``key`` is seen, at DEBUG afterwards.
 

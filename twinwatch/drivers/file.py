@@ -23,6 +23,14 @@ Formats:
   mapped "column" is a numeric variable holding a vector (N x 1, 1 x N or N), all of the same
   length N. MAT files usually hold no time vector, hence ``sample_period``.
 
+A CSV still being written (a logger's file): ``follow = true`` reads it as ``tail -f`` does.
+The rows there at open are replayed as usual, then each line appended is read once it is
+complete (polled every :data:`FOLLOW_POLL` s), until no row came for ``idle_timeout`` seconds
+(then :class:`~twinwatch.drivers.base.EndOfStream`, as at the end of a file), the file was
+truncated or replaced (said once, the end too), or ``stop`` rows were read. A file opened
+without ``follow`` that has grown by the time its last row is replayed says so once (the rows
+written since are not replayed, and how to read them).
+
 Bad input is counted, logged once, and the driver goes on (see
 :class:`~twinwatch.drivers.base.DriverStats`): NaN or infinite values count in
 ``stats.bad_values`` and are delivered as they are; a row whose time stamp is not a number is
@@ -44,8 +52,10 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
 import logging
 import math
+import os
 import time
 import warnings
 from collections.abc import Iterable, Mapping
@@ -86,6 +96,10 @@ PACE_SLACK = 0.2
 #: Rows converted to Python floats at once (:meth:`FileDriver._read_internal`).
 _CHUNK_ROWS = 256
 
+#: How often a followed file (``follow = true``) is looked at for new rows once its rows are
+#: replayed [s]: a window of the daemon is seconds long, a stat every 0.1 s costs nothing.
+FOLLOW_POLL = 0.1
+
 
 class FileColumnMap(ScaledChannel):
     """Where one twin channel comes from: ``value_twin = value_file * scale + offset``.
@@ -117,7 +131,13 @@ class FileDriverConfig(DriverConfig):
             time stamp is due on the wall clock (relative to the first row delivered), never
             early and at most 0.1 s late (:data:`PACE_SLACK`: one wake-up per 0.1 s).
         start: index of the first row to replay (0-based, like a Python slice; default 0).
-        stop: index one past the last row to replay (default: the end of the file).
+        stop: index one past the last row to replay (default: the end of the file; with
+            ``follow``, the end once that row is written).
+        follow: CSV only: after the rows there at open, read the rows appended to the file as
+            they are written (``tail -f``), until ``idle_timeout``; False: the file as it is
+            at open (a file that grew meanwhile is said once at its end).
+        idle_timeout: with ``follow``: seconds without a new row after which the file counts
+            as finished (> 0; the run ends as at the end of a file).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -133,11 +153,19 @@ class FileDriverConfig(DriverConfig):
     realtime: bool = False
     start: StrictInt | None = Field(default=None, ge=0)
     stop: StrictInt | None = Field(default=None, ge=0)
+    follow: bool = False
+    idle_timeout: StrictFloat = Field(default=60.0, gt=0, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _check(self) -> FileDriverConfig:
         if self.sample_period is None and self.time_column is None:
             raise ValueError("sample_period is required unless time_column is given")
+        if "idle_timeout" in self.model_fields_set and not self.follow:
+            raise ValueError("idle_timeout applies to a followed file only: set follow = true "
+                             "or remove idle_timeout")
+        if self.follow and self.sample_period is None:
+            raise ValueError("sample_period is required with follow = true (the rows there at "
+                             "open may be too few to infer it)")
         if self.start is not None and self.stop is not None and self.stop < self.start:
             raise ValueError(f"stop ({self.stop}) is before start ({self.start})")
         return self
@@ -250,9 +278,23 @@ class FileDriver(Driver):
                     f"format: cannot tell the format of {str(path)!r} from its suffix "
                     f"{suffix!r}; set format = 'csv' or 'mat'"
                 )
+        self._size_at_open = _size(path)
+        self._follow: _Tail | None = None
         if fmt == "csv":
             delimiter = config.delimiter or _CSV_SUFFIXES.get(path.suffix.lower(), ",")
-            table = self._load_csv(path, delimiter)
+            text: str | None = None
+            if config.follow:  # the complete lines there now; the rest is read as it comes
+                self._follow, text = _Tail.open(path, delimiter)
+            table = self._load_csv(path, delimiter, text=text)
+            if self._follow is not None:  # the header checked: where the columns are
+                header = next(row for row in csv.reader(io.StringIO(text or ""),
+                                                        delimiter=delimiter)
+                              if any(cell.strip() for cell in row))
+                header = [h.strip() for h in header]
+                self._follow.index = {c: header.index(c) for _, c in self._keys()}
+        elif config.follow:
+            raise DriverConfigError(f"follow: {path.name} is a MAT file, written whole; "
+                                    "follow = true reads a CSV still being written")
         else:
             table = self._load_mat(path)
         n_total = len(next(iter(table.values())))
@@ -271,6 +313,8 @@ class FileDriver(Driver):
         self._t: FloatArray = t[lo:hi]
         self._values: FloatArray = values[lo:hi]
         self.n_rows = len(self._t)
+        self._base = 0  # rows dropped from the front of _t (delivered) while following
+        self._rows_in_file = n_total  # rows of the file read so far (before start/stop)
         self.sample_period = (
             config.sample_period
             if config.sample_period is not None
@@ -303,14 +347,15 @@ class FileDriver(Driver):
             )
         return float(np.median(steps))
 
-    def _load_csv_fast(self, path: Path, delimiter: str) -> dict[str, FloatArray] | None:
+    def _load_csv_fast(self, path: Path, delimiter: str, text: str | None = None
+                       ) -> dict[str, FloatArray] | None:
         """The columns of a well-formed CSV (a header, then numbers only: no quotes, no empty
         or missing cells) read by numpy's parser, without a Python object per cell (a 15,400-
         row recording: 51 -> 12 ms of CPU, and about 1 MB less left in a fleet worker's heap);
         None for anything else, which :meth:`_load_csv` reads cell by cell."""
         try:
             skip, line = 0, ""
-            with path.open(newline="", encoding="utf-8-sig") as f:
+            with _open_text(path, text) as f:
                 while not line.strip():  # the header: the first line that is not blank
                     line = f.readline()
                     skip += 1
@@ -325,7 +370,8 @@ class FileDriver(Driver):
             used = sorted({header.index(c) for c in columns})
             with warnings.catch_warnings():  # a header alone: said below, naming the key
                 warnings.simplefilter("ignore", UserWarning)
-                data = np.loadtxt(path, delimiter=delimiter, skiprows=skip, usecols=used,
+                data = np.loadtxt(path if text is None else io.StringIO(text),
+                                  delimiter=delimiter, skiprows=skip, usecols=used,
                                   ndmin=2, comments=None, encoding="utf-8-sig",
                                   dtype=np.float64)
         except (OSError, UnicodeDecodeError, ValueError):
@@ -334,8 +380,11 @@ class FileDriver(Driver):
             return None
         return {c: np.ascontiguousarray(data[:, used.index(header.index(c))]) for c in columns}
 
-    def _load_csv(self, path: Path, delimiter: str) -> dict[str, FloatArray]:
-        fast = self._load_csv_fast(path, delimiter)
+    def _load_csv(self, path: Path, delimiter: str, text: str | None = None
+                  ) -> dict[str, FloatArray]:
+        """The mapped columns of the CSV at ``path`` (or of ``text``, its complete lines as
+        read at open when it is followed: then a header alone is no error)."""
+        fast = self._load_csv_fast(path, delimiter, text)
         if fast is not None:
             return fast
         # One physical line is one row: a numeric recording never quotes a line break, so a
@@ -345,7 +394,7 @@ class FileDriver(Driver):
         rows: list[list[str]] = []
         open_quotes: list[int] = []
         try:
-            with path.open(newline="", encoding="utf-8-sig") as f:
+            with _open_text(path, text) as f:
                 for lineno, line in enumerate(f, start=1):
                     if not line.strip():
                         continue
@@ -383,7 +432,7 @@ class FileDriver(Driver):
                     f"{key}: column {column!r} not in {path.name}; {_available(column, header)}"
                 )
             index[column] = header.index(column)
-        if not rows:
+        if not rows and self._follow is None:
             raise DriverConfigError(f"path: CSV {str(path)!r} has no data rows")
 
         table: dict[str, FloatArray] = {}
@@ -464,8 +513,13 @@ class FileDriver(Driver):
     def _read_internal(self, timeout: float | None) -> Sample | None:
         while True:
             k = self._next
-            if k >= self.n_rows:
-                raise EndOfStream(f"end of {self.config.path.name} after {self.n_rows} rows")
+            if k >= len(self._t):
+                if self._follow is None:
+                    self._say_grown()
+                    raise EndOfStream(f"end of {self.config.path.name} after {self.n_rows} rows")
+                if not self._wait_for_rows(timeout):
+                    return None
+                continue
             t = float(self._t[k])
             if self.config.realtime and math.isfinite(t) and not self._wait_until(t, timeout):
                 return None
@@ -477,7 +531,7 @@ class FileDriver(Driver):
                     "time",
                     "%s row %d has no valid time stamp; row skipped (stats.bad_frames)",
                     self.config.path.name,
-                    k,
+                    self._base + k,
                 )
                 continue
             if not self._chunk_lo <= k < self._chunk_lo + len(self._chunk):
@@ -494,10 +548,113 @@ class FileDriver(Driver):
                     "nonfinite",
                     "%s row %d: %s empty or not finite; delivered as NaN (stats.bad_values)",
                     self.config.path.name,
-                    k,
+                    self._base + k,
                     ", ".join(bad),
                 )
             return Sample(t, values)
+
+    def _say_grown(self) -> None:
+        """Once, at the end of a file opened without ``follow``: it grew since it was opened
+        (a logger still writing it), so the rows written since were not replayed."""
+        size = _size(self.config.path)
+        if size > self._size_at_open and "grown" not in self._logged_once:
+            self.log_once(
+                "grown",
+                "%s grew by %d bytes after it was opened (still being written?): the rows "
+                "written since are not replayed; set driver.follow = true to read them as they "
+                "come",
+                self.config.path.name,
+                size - self._size_at_open,
+            )
+
+    def _wait_for_rows(self, timeout: float | None) -> bool:
+        """A followed file whose rows are all replayed: wait up to ``timeout`` [s] (None: until
+        a row comes) for rows appended to it. True when some came.
+
+        Raises:
+            EndOfStream: no row for ``idle_timeout`` s, the file was truncated or replaced,
+                or ``stop`` rows were read.
+        """
+        tail = self._follow
+        assert tail is not None
+        cfg = self.config
+        end = None if timeout is None else time.monotonic() + timeout
+        delivered = self._base + self._next
+        if delivered != tail.delivered:  # idle from the last row delivered, or come
+            tail.delivered = delivered
+            tail.last_row = max(tail.last_row, time.monotonic())
+        while True:
+            if cfg.stop is not None and self._rows_in_file >= cfg.stop:
+                raise EndOfStream(f"end of {cfg.path.name} after {self.n_rows} rows "
+                                  f"(driver.stop = {cfg.stop})")
+            lines = tail.poll()
+            if lines is None:
+                self.log_once("replaced", "%s was truncated or replaced while followed: "
+                              "its run ends here (start again to read the new file)",
+                              cfg.path.name)
+                raise EndOfStream(f"end of {cfg.path.name}: truncated or replaced after "
+                                  f"{self.n_rows} rows")
+            if lines and self._append(lines):
+                return True
+            idle = time.monotonic() - tail.last_row
+            if idle >= cfg.idle_timeout:
+                raise EndOfStream(f"end of {cfg.path.name}: no new row for "
+                                  f"{cfg.idle_timeout:g} s (driver.idle_timeout) after "
+                                  f"{self.n_rows} rows")
+            now = time.monotonic()
+            if end is not None and now >= end:
+                return False
+            pause = min(FOLLOW_POLL, cfg.idle_timeout - idle)
+            time.sleep(max(0.0, pause if end is None else min(pause, end - now)))
+
+    def _append(self, lines: list[str]) -> int:
+        """Parse the complete lines appended to a followed file and queue their rows (those
+        within ``start``/``stop``); the rows already delivered are dropped. Returns the rows
+        queued."""
+        tail = self._follow
+        assert tail is not None and tail.index is not None
+        index = tail.index
+        cfg = self.config
+        rows = [row for row in csv.reader(lines, delimiter=tail.delimiter)
+                if any(cell.strip() for cell in row)]
+        if not rows:
+            return 0
+        first = self._rows_in_file
+        self._rows_in_file += len(rows)
+        lo = max(cfg.start or 0, first) - first
+        hi = len(rows) if cfg.stop is None else max(0, min(len(rows), cfg.stop - first))
+        rows = rows[lo:hi] if lo < hi else []
+        if not rows:
+            return 0
+        tail.last_row = time.monotonic()
+
+        def column(name: str) -> FloatArray:
+            j = index[name]
+            out = np.full(len(rows), np.nan)
+            for k, row in enumerate(rows):
+                cell = row[j].strip() if j < len(row) else ""
+                try:
+                    out[k] = float(cell)
+                except ValueError:
+                    pass  # an empty cell or text: NaN, counted when delivered
+            return out
+
+        values = np.empty((len(rows), len(self.channels)), dtype=np.float64)
+        for j, mapping in enumerate(cfg.columns.values()):
+            values[:, j] = column(mapping.column) * mapping.scale + mapping.offset
+        if cfg.time_column is not None:
+            t = column(cfg.time_column) * cfg.time_scale
+        else:
+            assert cfg.sample_period is not None  # required with follow
+            t = (first + lo + np.arange(len(rows), dtype=np.float64)) * cfg.sample_period
+        done = self._next  # delivered: dropped, so a file followed for days stays small
+        self._t = np.concatenate((self._t[done:], t))
+        self._values = np.concatenate((self._values[done:], values))
+        self._base += done
+        self._next = 0
+        self._chunk, self._chunk_lo = [], 0
+        self.n_rows = self._base + len(self._t)
+        return len(rows)
 
     def _wait_until(self, t: float, timeout: float | None) -> bool:
         """Sleep until file time ``t`` is due; False if ``timeout`` [s] ran out first."""
@@ -518,3 +675,85 @@ class FileDriver(Driver):
         late = wait + PACE_SLACK
         time.sleep(late if timeout is None else min(late, timeout))
         return True
+
+
+def _size(path: Path) -> int:
+    """The file's size [bytes] (0 when it cannot be read)."""
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _open_text(path: Path, text: str | None) -> io.TextIOBase:
+    """The CSV's lines: the file, or ``text`` (its lines as read at open when followed)."""
+    if text is not None:
+        return io.StringIO(text, newline="")
+    return path.open(newline="", encoding="utf-8-sig")  # type: ignore[return-value]
+
+
+class _Tail:
+    """A CSV followed as it is written: where its complete lines end, which file it is.
+
+    Attributes:
+        path: the file.
+        delimiter: its field separator.
+        offset: bytes read so far (the end of the last complete line read).
+        inode: the file's (device, inode) at open: another file under its name is a
+            replacement (a logger's rotation).
+        index: column name -> its index in the header (set once the header is read).
+        last_row: monotonic time [s] a row last came, or the rows queued were last all
+            delivered (what ``idle_timeout`` counts from).
+        delivered: the rows delivered when the replay last waited for more.
+    """
+
+    def __init__(self, path: Path, delimiter: str, offset: int, inode: tuple[int, int]
+                 ) -> None:
+        self.path = path
+        self.delimiter = delimiter
+        self.offset = offset
+        self.inode = inode
+        self.index: dict[str, int] | None = None
+        self.last_row = time.monotonic()
+        self.delivered = -1  # rows delivered when the replay last waited for more
+
+    @classmethod
+    def open(cls, path: Path, delimiter: str) -> tuple[_Tail, str]:
+        """Start following ``path``: its complete lines now (a line being written is read
+        once it ends) as text, and the tail after them.
+
+        Raises:
+            DriverConfigError: the file cannot be read, or it is not UTF-8.
+        """
+        try:
+            with path.open("rb") as f:
+                st = os.fstat(f.fileno())
+                data = f.read()
+        except OSError as exc:
+            raise DriverConfigError(f"path: cannot read CSV {str(path)!r}: {exc}") from exc
+        cut = data.rfind(b"\n") + 1
+        try:
+            text = data[:cut].decode("utf-8-sig")
+        except UnicodeDecodeError as exc:
+            raise DriverConfigError(f"path: cannot read CSV {str(path)!r}: {exc}") from exc
+        return cls(path, delimiter, cut, (st.st_dev, st.st_ino)), text
+
+    def poll(self) -> list[str] | None:
+        """The complete lines appended since the last poll ([] when none); None when the file
+        was truncated, replaced or removed."""
+        try:
+            with self.path.open("rb") as f:
+                st = os.fstat(f.fileno())
+                if (st.st_dev, st.st_ino) != self.inode or st.st_size < self.offset:
+                    return None
+                if st.st_size == self.offset:
+                    return []
+                f.seek(self.offset)
+                data = f.read(st.st_size - self.offset)
+        except FileNotFoundError:
+            return None
+        except OSError:
+            return []  # read again at the next poll
+        cut = data.rfind(b"\n") + 1
+        self.offset += cut
+        return data[:cut].decode("utf-8", errors="replace").splitlines()

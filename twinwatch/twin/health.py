@@ -407,6 +407,10 @@ class SourceHealth(_Part):
     silent: list[str] = Field(default_factory=list, description="bus messages (and the "
                               "channels they carry) not received for longer than the "
                               "driver's silence limit")
+    device_faults: list[str] = Field(default_factory=list, description="what the device "
+                                     "reports wrong with itself while it delivers: a drive "
+                                     "in fault (its EMCY, the CiA 402 statusword's fault "
+                                     "bit), an NMT state other than operational")
 
 
 class AcquisitionHealth(_Part):

@@ -3,6 +3,9 @@ paper's open last step, Section 6).
 
 * :mod:`~twinwatch.twin.diagnosis.library`: the fault library per machine model, as data
   (shipped TOML, extended by ``[diagnosis]``);
+* :mod:`~twinwatch.twin.diagnosis.evidence`: the evidence kinds a fault's signature lists
+  (deviations, trends, terms, model check, output checks, sensors), each with the validation
+  of its names and its likelihood, behind one registry (``EVIDENCE_KINDS``);
 * :mod:`~twinwatch.twin.diagnosis.inference`: a noisy-OR network ranking the fault modes with
   their probabilities and the evidence for and against each (:class:`Diagnoser`).
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import combinations
 from typing import Literal
 
@@ -43,17 +43,22 @@ import numpy as np
 from scipy.special import betainc
 
 from twinwatch.twin.diagnosis.deviation import HI_PCT, likelihood
+from twinwatch.twin.diagnosis.evidence import (
+    EVIDENCE_KINDS,
+    LEAK,
+    S_MIN,
+    Variable,
+    clip,
+    estimated_parameters,
+    explains_check,
+    model_check_variable,
+)
 from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode
 from twinwatch.twin.health import DiagnosisHealth, FaultHealth, HealthMessage, TermHealth
 from twinwatch.twin.model import WindowData
 
 __all__ = ["LEAK", "Diagnoser", "shaft_speed"]
 
-#: Probability of each kind of evidence with no fault in the library (model error, an
-#: operating point the twin does not cover): a deviation beyond its size, a degrading trend,
-#: a kept term, a failed model check, a stuck sensor.
-LEAK = {"deviation": 0.002, "trend": 0.05, "term": 0.001, "model_check": 0.05,
-        "sensor": 0.001}
 #: The leak of a deviation (or a trend) of a parameter in the equation of a term no fault
 #: explains (the library's ``equations``), at full strength of that term: the twin lacks a
 #: component there and the estimate absorbs part of it (measured: a drive's 2 V dead zone at 1 %
@@ -73,8 +78,6 @@ UNKNOWN_CHECK_RATE_LINK = 0.3
 #: leak give the same term on p): the fault's match is discounted by this share of the
 #: failure's strength, and the rest left to the unknown fault.
 TERM_MISFIT_DISCOUNT = 0.5
-#: Strengths are kept in [S_MIN, 1 - S_MIN]: no single reading is certain.
-S_MIN = 1e-4
 #: An evidence variable is said for or against a fault when it moves the fault's odds by more
 #: than this (log likelihood ratio against no fault; 0.3: a factor 1.35).
 LLR_SAID = 0.3
@@ -116,10 +119,6 @@ def _phi(z: float) -> float:
     return 0.5 * math.erfc(-z / math.sqrt(2.0))
 
 
-def _clip(s: float) -> float:
-    return min(max(s, S_MIN), 1.0 - S_MIN)
-
-
 def shaft_speed(window: WindowData, channel: str) -> tuple[float, float] | None:
     """The window's mean absolute shaft speed and its standard deviation [rad/s] from
     ``channel`` (None without the channel or with the shaft at rest)."""
@@ -159,24 +158,6 @@ class _Ratio:
     b_std: float      # its standard error
     speed: float      # the window's mean absolute shaft speed
     spread: float     # the speed's spread within the window
-
-
-@dataclass
-class _Var:
-    """One evidence variable: its strength, leak, each fault's link and the words."""
-
-    key: str
-    kind: str
-    s: float
-    present: str            # sentence when the evidence is there
-    absent: str             # sentence when it is not
-    links: dict[str, float] = field(default_factory=dict)
-    what: dict[str, str] = field(default_factory=dict)  # fault -> what the fault expects
-    leak: float | None = None  # None: LEAK[kind]
-    # faults whose link explains the evidence when present, its absence no evidence against
-    # them (a check an unbalance may leave failing or passing)
-    may: set[str] = field(default_factory=set)
-    unexplained: bool = False  # a deviation or trend no library fault expects
 
 
 @dataclass
@@ -268,7 +249,7 @@ class Diagnoser:
             dev = (p.value / p.nominal - 1.0) * 100.0
             sd = max(abs(p.rel_std_pct) * abs(p.value / p.nominal), SD_FLOOR_PCT)
             self._last[name] = _Dev(dev, sd, p.value, p.nominal, p.unit, health.window,
-                                    p.status, _estimated(health), float(health.t_end))
+                                    p.status, estimated_parameters(health), float(health.t_end))
         ev = self._last.get(name)
         if ev is None or health.window - ev.window > STALE_MAX_WINDOWS:
             return None
@@ -280,11 +261,11 @@ class Diagnoser:
         return ev
 
     def _variables(self, health: HealthMessage, speed: tuple[float, float] | None
-                   ) -> tuple[list[_Var], list[TermHealth]]:
+                   ) -> tuple[list[Variable], list[TermHealth]]:
         """The window's evidence variables (trends, model check, stuck sensors, discovered
         terms and the terms faults expect but the window lacks; deviations are
         :meth:`_dev_factors`') and the terms no fault explains."""
-        out: dict[str, _Var] = {}
+        out: dict[str, Variable] = {}
         self._dev_leak = {}
         if health.model_check is not None:
             self._outputs.append((health.window, {k: o.passed for k, o in
@@ -293,13 +274,13 @@ class Diagnoser:
             self._signature_vars(health, f, out)
         self._unexplained_vars(health, out)
         if "model_check" not in out:
-            out["model_check"] = self._check_var(health)
+            out["model_check"] = model_check_variable(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
         if health.model_check is not None:
             for name in health.model_check.outputs:
                 key = f"check:{name}"
                 if key not in out:
-                    out[key] = self._check_rate_var(name)
+                    out[key] = self.check_rate_variable(name)
                 out[key].links["unknown"] = UNKNOWN_CHECK_RATE_LINK
                 out[key].may.add("unknown")  # a fault its term captures passes the check
                 out[key].what["unknown"] = (f"{name}'s model check failing in most windows "
@@ -309,48 +290,16 @@ class Diagnoser:
         self._missing_term_vars(health, seen_speed, out)
         return list(out.values()), unexplained
 
-    def _signature_vars(self, health: HealthMessage, f: FaultMode, out: dict[str, _Var]
-                        ) -> None:
-        """A fault's trend, model-check and stuck-sensor variables (shared by key)."""
-        estimated = _estimated(health)
-        for t in f.trends:
-            if not t.applies(estimated):
-                continue
-            key = f"trend:{t.parameter}:{t.direction}"
-            if key not in out:
-                out[key] = self._trend_var(health, key, t.parameter, t.direction)
-            out[key].links[f.id] = t.link
-            out[key].what[f.id] = f"{t.parameter} drifting {t.direction}"
-        if f.model_check:
-            key = "model_check"
-            if key not in out:
-                out[key] = self._check_var(health)
-            out[key].links[f.id] = f.model_check
-            out[key].what[f.id] = "the model check failing"
-        for cs in f.checks:
-            key = f"check:{cs.output}"
-            if key not in out:
-                out[key] = self._check_rate_var(cs.output)
-            out[key].links[f.id] = cs.link
-            if cs.may_pass:
-                out[key].may.add(f.id)
-            out[key].what[f.id] = f"{cs.output}'s model check failing in most windows"
-        for ss in f.sensors:
-            key = f"sensor:{ss.kind}:{ss.channel}"
-            if key not in out:
-                hit = [s for s in health.sensors
-                       if s.kind == ss.kind and ss.channel in ("*", s.channel)]
-                names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
-                                  f"{s.duration_s:.1f} s" for s in hit
-                                  if s.value is not None and s.duration_s is not None)
-                out[key] = _Var(key, "sensor", _clip(1.0 if hit else 0.0),
-                                f"{names or _chan(ss.channel) + ' ' + ss.kind} in this "
-                                f"window", f"no {ss.kind} sensor in this window")
-            out[key].links[f.id] = ss.link
-            out[key].what[f.id] = f"{_chan(ss.channel)} {ss.kind}"
+    def _signature_vars(self, health: HealthMessage, f: FaultMode,
+                        out: dict[str, Variable]) -> None:
+        """A fault's variables of every evidence kind that has them (trends, model check,
+        output checks, stuck sensors: :data:`~twinwatch.twin.diagnosis.evidence.
+        EVIDENCE_KINDS`, shared by key)."""
+        for kind in EVIDENCE_KINDS.values():
+            kind.add_variables(self, health, f, out)
 
     def _term_vars(self, health: HealthMessage, seen_speed: list[list[_Ratio] | None],
-                   out: dict[str, _Var]) -> list[TermHealth]:
+                   out: dict[str, Variable]) -> list[TermHealth]:
         """One variable per discovered term, each fault's link scaled by its match; returns
         the terms no fault explains (the unknown fault's, and model error in their
         equation: :meth:`_model_error`)."""
@@ -375,7 +324,7 @@ class Diagnoser:
         return unexplained
 
     def _missing_term_vars(self, health: HealthMessage,
-                           seen_speed: list[list[_Ratio] | None], out: dict[str, _Var]) -> None:
+                           seen_speed: list[list[_Ratio] | None], out: dict[str, Variable]) -> None:
         """Faults expecting a term the window lacks: evidence against them, naming the term
         of that kind found elsewhere (an unbalance's periodic term at another frequency than
         the shaft's: "found: 10 rad/s against 1 x 18.5 = 18.5 rad/s")."""
@@ -392,12 +341,12 @@ class Diagnoser:
                         for i, t in enumerate(health.terms)
                         if t.kind in sg.kinds and t.attach in sg.attach and sg.harmonic]
                 found = (f" (found: {near[0].split('(')[-1].rstrip(')')})" if near else "")
-                out[key] = _Var(key, "term", S_MIN, "",
+                out[key] = Variable(key, "term", S_MIN, "",
                                 f"no {kinds} term on {where}{harm}{found}")
                 out[key].links[f.id] = sg.link
                 out[key].what[f.id] = f"a {kinds} term on {where}{harm}"
 
-    def _unexplained_vars(self, health: HealthMessage, out: dict[str, _Var]) -> None:
+    def _unexplained_vars(self, health: HealthMessage, out: dict[str, Variable]) -> None:
         """A degrading trend in a direction no fault expects is the unknown fault's evidence
         (link :data:`UNKNOWN_DEV_LINK`); deviations are :meth:`_dev_factors`'."""
         for name, p in health.parameters.items():
@@ -407,7 +356,7 @@ class Diagnoser:
             for direction in ("up", "down"):
                 key = f"trend:{name}:{direction}"
                 if key not in out:
-                    var = self._trend_var(health, key, name, direction)
+                    var = self.trend_variable(health, key, name, direction)
                     var.links["unknown"] = UNKNOWN_DEV_LINK
                     var.what["unknown"] = (f"{name} drifting {direction}, which no fault of "
                                            f"the library does")
@@ -477,7 +426,7 @@ class Diagnoser:
         return out
 
     @staticmethod
-    def _unexplained_dev_var(devs: list[_DevFactor]) -> _Var | None:
+    def _unexplained_dev_var(devs: list[_DevFactor]) -> Variable | None:
         """One variable for the unknown fault: some parameter moved beyond
         :data:`UNEXPLAINED_PCT` in a direction no fault of the library moves it (the
         strongest such deviation's strength). One, not one per parameter: a fault the library
@@ -493,14 +442,14 @@ class Diagnoser:
                                f"{direction}")
         if best is None:
             return None
-        var = _Var("dev:unexplained", "deviation", _clip(best[0]), best[1],
+        var = Variable("dev:unexplained", "deviation", clip(best[0]), best[1],
                    "no parameter moved where no fault of the library moves it",
                    links={"unknown": UNKNOWN_DEV_LINK},
                    what={"unknown": "a parameter moving where no fault of the library "
                                     "moves it"}, unexplained=True)
         return var
 
-    def _model_error(self, out: dict[str, _Var], term: TermHealth, weight: float) -> None:
+    def _model_error(self, out: dict[str, Variable], term: TermHealth, weight: float) -> None:
         """A term no fault explains is model error in its equation: the deviations and trends
         of that equation's parameters (the library's ``equations``) leak up to
         :data:`LEAK_UNEXPLAINED`, by ``weight`` (the term's strength times how little the
@@ -558,14 +507,19 @@ class Diagnoser:
         self._tracks = kept
         return out
 
-    def _trend_var(self, health: HealthMessage, key: str, name: str, direction: str) -> _Var:
+    def trend_variable(self, health: HealthMessage, key: str, name: str, direction: str
+                       ) -> Variable:
+        """A parameter's trend degrading in ``direction``: strength 0.95 for a degrading trend
+        that way, 0.05 the other way, 0.2 for a flat one, 0.5 without a trend or without an
+        estimate since the change (:class:`~twinwatch.twin.diagnosis.evidence.
+        EvidenceSource`)."""
         p = health.parameters.get(name)
         t = p.trend if p is not None else None
         if t is None or t.model is None or t.rate is None:
-            return _Var(key, "trend", 0.5, "", f"{name}: no trend yet")
+            return Variable(key, "trend", 0.5, "", f"{name}: no trend yet")
         if self._deviation(health, name) is None:
             # not estimated since the change (or for long): its trend is the held value's
-            return _Var(key, "trend", 0.5, "", f"{name}: not estimated since the change")
+            return Variable(key, "trend", 0.5, "", f"{name}: not estimated since the change")
         up = t.rate > 0
         if t.degrading:
             s = 0.95 if up == (direction == "up") else 0.05
@@ -576,7 +530,7 @@ class Diagnoser:
         text = (f"{name} trend ({t.model}, {t.evidence} windows) "
                 + (f"degrading at {rate}" if t.degrading else f"flat within its uncertainty "
                    f"({rate})"))
-        return _Var(key, "trend", _clip(s), text, text)
+        return Variable(key, "trend", clip(s), text, text)
 
     def _misfit_since(self, window: int | None) -> float:
         """Probability that the twin fails its model check (any output) in more than
@@ -588,7 +542,7 @@ class Diagnoser:
         n, k = len(seen), sum(1 for ok in seen if not ok)
         return _rate_above(k, n)
 
-    def _check_rate_var(self, output: str) -> _Var:
+    def check_rate_variable(self, output: str) -> Variable:
         """An output failing its model check persistently: the share of the last
         :data:`CHECK_RATE_WINDOWS` windows that failed on it, its strength the probability
         that the output's failure rate exceeds :data:`CHECK_RATE` (a Beta posterior from a
@@ -596,23 +550,14 @@ class Diagnoser:
         seen = [o[output] for _, o in self._outputs if output in o]
         n, k = len(seen), sum(1 for ok in seen if not ok)
         if n == 0:
-            return _Var(f"check:{output}", "model_check", 0.5, "", f"no model check of {output}")
+            return Variable(f"check:{output}", "model_check", 0.5, "",
+                            f"no model check of {output}")
         s = _rate_above(k, n)
         text = f"{output}'s model check failed in {k} of the last {n} windows"
-        return _Var(f"check:{output}", "model_check", _clip(s), text, text)
+        return Variable(f"check:{output}", "model_check", clip(s), text, text)
 
     @staticmethod
-    def _check_var(health: HealthMessage) -> _Var:
-        mc = health.model_check
-        if mc is None:
-            return _Var("model_check", "model_check", 0.5, "", "model check disabled")
-        why = "; ".join(mc.reasons) if mc.reasons else ""
-        return _Var("model_check", "model_check", _clip(0.0 if mc.passed else 1.0),
-                    f"the model check failed ({why})" if why else "the model check failed",
-                    "the model check passed (the residual is white)")
-
-    @staticmethod
-    def _term_var(i: int, term: TermHealth) -> _Var:
+    def _term_var(i: int, term: TermHealth) -> Variable:
         # the main coefficient against its standard error: over the windows the term has
         # explained (params_std) or, before its first polish, this window's significance
         sig = term.significance
@@ -623,10 +568,10 @@ class Diagnoser:
                 if v == term.weight and std:
                     z_all = abs(v) / std
         z = max(x for x in (sig, z_all, 0.0) if x is not None)
-        s = _clip(_phi((z if (sig is not None or z_all is not None) else 5.0) - 3.0))
+        s = clip(_phi((z if (sig is not None or z_all is not None) else 5.0) - 3.0))
         sig_txt = (f"{z:.1f} standard errors from 0"
                    if sig is not None or z_all is not None else "kept")
-        return _Var(f"term:{i}", "term", s,
+        return Variable(f"term:{i}", "term", s,
                     f"term {term.equation} ({sig_txt}, since window {term.since_window})",
                     f"term {term.equation} is not significant ({sig_txt})")
 
@@ -647,36 +592,20 @@ class Diagnoser:
             variables.append(extra)
         marg, post, lik0, s, leak = self._posterior(variables, devs)
         p_none = float(post[0])
-        faults: list[FaultHealth] = []
-        said: dict[int, tuple[list[tuple[float, str, str]], list[str]]] = {}
         order = [int(i) for i in np.argsort(-marg[:-1])]
-        for rank, i in enumerate(order):
-            said[i] = self._said(i, variables, devs, lik0, s, leak)
-            pro, con = said[i]
-            if rank < self.listed:
-                f = self.faults[i]
-                faults.append(FaultHealth(
-                    id=f.id, component=f.component, probability=float(marg[i]),
-                    action=f.action, urgency=f.urgency, source=f.source,
-                    evidence_for=[t for _, t, _ in pro], evidence_against=con))
+        said = {i: self._said(i, variables, devs, lik0, s, leak) for i in order}
+        faults = self._listed(order, marg, said)
         ruled_out = [self._why_not(i, float(marg[i]), said[i], order[0], said[order[0]])
                      for rank, i in enumerate(order)
                      if rank > 0 and marg[i] < 0.2
                      and (said[i][0] or any("(found: " in c for c in said[i][1]))]
         p_unknown = float(marg[-1])
         top = faults[0] if faults else None
-        best = max(p_none, p_unknown, top.probability if top else 0.0)
-        status: Literal["no_fault", "fault", "unknown", "check_function"]
-        if top is not None and best == top.probability:
-            status = "fault"
-        elif best == p_unknown and p_unknown > p_none:
-            status = "unknown"
-        else:
-            status = "no_fault"
+        status, best = _outcome(p_none, p_unknown, top)
         since, record, share = self._check_function(health)
         # a named fault or a discovered term no fault explains (the unknown fault) is the
         # failed checks' explanation: the twin lacks that, it is not a twin that stopped fitting
-        explained = ((status == "fault" and order and self._explains_check(said[order[0]][0]))
+        explained = ((status == "fault" and order and _explains_check(said[order[0]][0]))
                      or (status == "unknown" and bool(unexplained)))
         if since is not None and not explained:
             status = "check_function"
@@ -699,7 +628,22 @@ class Diagnoser:
             ruled_out=ruled_out,
         )
 
-    def _posterior(self, variables: list[_Var], devs: list[_DevFactor]
+    def _listed(self, order: list[int], marg: np.ndarray,
+                said: dict[int, tuple[list[tuple[float, str, str]], list[str]]]
+                ) -> list[FaultHealth]:
+        """The :attr:`listed` most probable fault modes (``order``: the faults by decreasing
+        marginal ``marg``), each with its evidence for and against (``said``)."""
+        faults: list[FaultHealth] = []
+        for i in order[:self.listed]:
+            pro, con = said[i]
+            f = self.faults[i]
+            faults.append(FaultHealth(
+                id=f.id, component=f.component, probability=float(marg[i]),
+                action=f.action, urgency=f.urgency, source=f.source,
+                evidence_for=[t for _, t, _ in pro], evidence_against=con))
+        return faults
+
+    def _posterior(self, variables: list[Variable], devs: list[_DevFactor]
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Exact posterior over the hypotheses of at most two faults (the module's model):
         each fault's marginal (n_faults + 1, unknown last), the hypotheses' posterior
@@ -731,7 +675,7 @@ class Diagnoser:
         post /= post.sum()
         return self._hyp.T @ post, post, lik[0], s, leak
 
-    def _said(self, i: int, variables: list[_Var], devs: list[_DevFactor], lik0: np.ndarray,
+    def _said(self, i: int, variables: list[Variable], devs: list[_DevFactor], lik0: np.ndarray,
               s: np.ndarray, leak: np.ndarray
               ) -> tuple[list[tuple[float, str, str]], list[str]]:
         """The evidence for fault ``i`` (log likelihood ratio, sentence, what it is about) and
@@ -792,18 +736,10 @@ class Diagnoser:
             ": " + "; ".join(why) if why else "")
 
     @staticmethod
-    def _unexplained_lines(variables: list[_Var]) -> list[str]:
+    def _unexplained_lines(variables: list[Variable]) -> list[str]:
         """The deviations and trends no fault of the library expects that are there (the
         unknown fault's evidence), for a person."""
         return [v.present for v in variables if v.unexplained and v.s > 0.5 and v.present]
-
-    @staticmethod
-    def _explains_check(pro: list[tuple[float, str, str]]) -> bool:
-        """The top fault's evidence for it includes a discovered term, the failed model check
-        or a stuck sensor: the failed checks are its evidence (what the twin lacks, a sensor
-        it cannot follow), not a twin that no longer fits."""
-        return any(k.startswith(("term:", "model_check", "check:", "sensor:"))
-                   for _, _, k in pro)
 
     def _check_function(self, health: HealthMessage
                         ) -> tuple[float | None, str | None, float]:
@@ -843,6 +779,18 @@ def _rate_above(k: int, n: int) -> float:
     return float(betainc(n - k + 1, k + 1, 1.0 - CHECK_RATE))
 
 
+def _outcome(p_none: float, p_unknown: float, top: FaultHealth | None
+             ) -> tuple[Literal["no_fault", "fault", "unknown", "check_function"], float]:
+    """The window's status before the check function and its probability: the most probable
+    of a named fault (``top``), a fault the library does not know and no fault."""
+    best = max(p_none, p_unknown, top.probability if top else 0.0)
+    if top is not None and best == top.probability:
+        return "fault", best
+    if best == p_unknown and p_unknown > p_none:
+        return "unknown", best
+    return "no_fault", best
+
+
 def _change_onset(health: HealthMessage) -> float | None:
     """The earliest onset [s] (change point) among the window's trends, or None: a trend
     that has stopped rising (a step, a drift that ended) keeps the onset it found."""
@@ -851,13 +799,12 @@ def _change_onset(health: HealthMessage) -> float | None:
     return min(onsets) if onsets else None
 
 
-def _estimated(health: HealthMessage) -> frozenset[str]:
-    """The parameters the window estimated."""
-    return frozenset(n for n, p in health.parameters.items() if p.status == "estimated")
-
-
-def _chan(channel: str) -> str:
-    return "a sensor" if channel == "*" else f"the {channel} sensor"
+def _explains_check(pro: list[tuple[float, str, str]]) -> bool:
+    """The top fault's evidence for it includes a discovered term, the failed model check
+    or a stuck sensor (the evidence kinds that explain failed checks): the failed checks are
+    its evidence (what the twin lacks, a sensor it cannot follow), not a twin that no longer
+    fits."""
+    return any(explains_check(k) for _, _, k in pro)
 
 
 def _term_match(sg: object, term: TermHealth, track: list[_Ratio] | None

@@ -20,7 +20,6 @@ Signature items (each with ``link``, the noisy-OR probability that the fault sho
 
 from __future__ import annotations
 
-import difflib
 import tomllib
 from collections.abc import Sequence
 from functools import cache
@@ -37,6 +36,8 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+
+from twinwatch.twin.diagnosis.evidence import EVIDENCE_KINDS, ModelNames, closest
 
 __all__ = [
     "CheckSign",
@@ -152,8 +153,7 @@ class FaultMode(_Strict):
 
     @model_validator(mode="after")
     def _has_signature(self) -> FaultMode:
-        if not (self.deviations or self.trends or self.terms or self.sensors
-                or self.model_check or self.checks):
+        if not any(kind.present(self) for kind in EVIDENCE_KINDS.values()):
             raise ValueError(f"fault {self.id!r}: its signature is empty (give deviations, "
                              f"trends, terms, sensors or model_check)")
         return self
@@ -216,11 +216,6 @@ def one_line(exc: ValidationError) -> str:
             msg = "required key is missing"
         parts.append(f"{loc}: {msg}" if loc else msg)
     return "; ".join(parts)
-
-
-def _closest(name: str, known: Sequence[str]) -> str:
-    close = difflib.get_close_matches(name, list(known), n=1)
-    return (f"did you mean {close[0]!r}? " if close else "") + f"known: {', '.join(known)}"
 
 
 @cache
@@ -333,47 +328,17 @@ class DiagnosisConfig(_Strict):
             if extra.speed_channel and channels and extra.speed_channel not in channels:
                 raise ValueError(f"{where}: speed_channel {extra.speed_channel!r} is not a "
                                  f"channel of the {model} twin; "
-                                 f"{_closest(extra.speed_channel, channels)}")
+                                 f"{closest(extra.speed_channel, channels)}")
         lib = self.resolve(model)
         inline = {f.id for f in self.faults}
-        kinds = available_kinds()
+        known = ModelNames(model, tuple(parameter_names), tuple(attach_names), tuple(channels),
+                           tuple(outputs), tuple(available_kinds()))
         for f in lib.faults:
             key = "diagnosis.faults" if f.id in inline else where
-            for name in sorted(f.parameters()):
-                if name not in parameter_names:
-                    raise ValueError(f"{key}: fault {f.id!r} names the parameter {name!r}; "
-                                     f"the {model} model has {list(parameter_names)}")
-            for t in f.terms:
-                for a in t.attach:
-                    if a != "*" and a not in attach_names:
-                        raise ValueError(f"{key}: fault {f.id!r} names the attach point "
-                                         f"{a!r}; the {model} model has {attach_names}")
-                for k in t.kinds:
-                    if k != "*" and k not in kinds:
-                        raise ValueError(f"{key}: fault {f.id!r} names the meta-model kind "
-                                         f"{k!r}, which the registry does not know; "
-                                         f"{_closest(k, kinds)}")
-            for cs in f.checks:
-                # a channel the twin reads (an output in one structure may be an input in
-                # another: Va in closed loop and open loop; a check that is not compared in
-                # this configuration never fails, it is not a mistake)
-                if channels and cs.output not in channels:
-                    raise ValueError(f"{key}: fault {f.id!r} names the output {cs.output!r} "
-                                     f"in checks, which is not a channel of the {model} "
-                                     f"twin; {_closest(cs.output, channels)}")
-            conditions = [(*d.when_held, *d.when_estimated) for d in f.deviations] + [
-                (*t.when_held, *t.when_estimated) for t in f.trends]
-            for held_or_estimated in conditions:
-                for name in held_or_estimated:
-                    if name not in parameter_names:
-                        raise ValueError(f"{key}: fault {f.id!r} names the parameter {name!r} "
-                                         f"in when_held/when_estimated; the {model} model has "
-                                         f"{list(parameter_names)}")
-            for ss in f.sensors:
-                if ss.channel != "*" and outputs and ss.channel not in outputs:
-                    raise ValueError(f"{key}: fault {f.id!r} names the sensor channel "
-                                     f"{ss.channel!r}, which the {model} twin does not "
-                                     f"measure; {_closest(ss.channel, outputs)}")
+            for kind in EVIDENCE_KINDS.values():
+                problem = kind.problem(f, known)
+                if problem is not None:
+                    raise ValueError(f"{key}: fault {f.id!r} {problem}")
         for a, names in lib.equations.items():
             if a not in attach_names:
                 raise ValueError(f"diagnosis: equations names the attach point {a!r}; the "

@@ -19,8 +19,8 @@ the algorithm and the termination:
 
 and the shared core: ``fit`` (the one fitting core every variant of the twin is scored by:
 residuals, the swarm, the least-squares polish, the standard errors), ``statistics`` (residual
-tests: white noise, AR(1), Ljung-Box, the residual-input test, BIC), ``identify``
-(commissioning the baseline from a recording).
+tests: white noise, AR(1), Ljung-Box, the residual-input test, BIC). Commissioning the
+baseline from a recording uses them from its own room (:mod:`twinwatch.commissioning`).
 
 May import: :mod:`twinwatch.twin.model` (the contract) and this room. Never a machine
 (:mod:`twinwatch.twin.models`), the discovery, or anything outside the twin.

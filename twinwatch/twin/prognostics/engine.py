@@ -275,6 +275,13 @@ class Prognostics:
                 trend.refit(trend.t[-1], full=True)
         return n
 
+    def predict(self, t_end: float) -> dict[str, Prognosis]:
+        """Every parameter's prognosis at ``t_end`` [s] from its trend as it stands, without
+        new evidence and without changing it (nor :attr:`latest`): what a restart resumed
+        (:meth:`replay`) predicts before the next window."""
+        return {name: self._prognosis(name, trend, None, t_end, None)
+                for name, trend in self.trends.items()}
+
     # -- reports ------------------------------------------------------------------------------
     def _prognosis(self, name: str, trend: ParameterTrend, ev: Evidence | None, t_end: float,
                    wall: float | None) -> Prognosis:

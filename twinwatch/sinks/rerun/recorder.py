@@ -4,7 +4,7 @@ One :class:`RerunRecorder` per monitored machine, each with its own
 :class:`rerun.RecordingStream` (never the global one, so several recorders coexist in one
 process). What it logs and the default blueprint (the entities, their styles, the layout
 that tells the machine's story at one glance) are
-:class:`~twinwatch.sinks.rerun_views.RecordingViews`; this module keeps the files, the live
+:class:`~twinwatch.sinks.rerun_views.RecordingViews`; this package keeps the files, the live
 server and the faults.
 
 Per-run files: ``[recording] path`` (``twinwatch.rrd``) is a stable name, a symbolic link to
@@ -78,11 +78,7 @@ together (``rerun twinwatch-*.rrd twinwatch.rbl``).
 
 from __future__ import annotations
 
-import ipaddress
 import logging
-import os
-import re
-import socket
 import threading
 import time
 import uuid
@@ -91,22 +87,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 import numpy as np
-from pydantic import Field, StrictFloat, StrictInt, field_validator
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import RecorderError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.base import (
-    AlarmBands,
-    ProcessedWindow,
-    Role,
-    Sink,
-    SinkConfig,
-    SinkContext,
-    _frozen,
-)
-from twinwatch.sinks.locks import FileLock, LockedError
-from twinwatch.sinks.rerun_views import TIMELINE, Op, RecordingViews, emit
+from twinwatch.sinks.base import AlarmBands, ProcessedWindow, Role, Sink, SinkContext, _frozen
+from twinwatch.sinks.locks import FileLock
+from twinwatch.sinks.rerun.config import RecordingConfig
+from twinwatch.sinks.rerun.files import RecordingFiles
+from twinwatch.sinks.rerun.live import LiveServer, bury
+from twinwatch.sinks.rerun_views import RecordingViews, emit
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -117,149 +107,12 @@ else:  # imported when a recording opens: loading a configuration does not load 
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")
 
-logger = logging.getLogger(__name__)
+#: the package's name, as before the split (the log lines name it)
+logger = logging.getLogger(__package__)
 
-__all__ = ["TIMELINE", "RecorderError", "RecordingConfig", "RerunRecorder"]
+__all__ = ["RerunRecorder"]
 
-_RUN_STAMP = "%Y%m%dT%H%M%SZ"
-
-
-class RecordingConfig(SinkConfig):
-    """The ``[recording]`` section of a machine configuration.
-
-    Attributes:
-        path: the recording's stable name (``~`` expanded): a symbolic link to the file of
-            the run being written, ``<stem>-<run id>.rrd`` beside it.
-        enabled: when false, :class:`RerunRecorder` writes nothing and logging is a no-op.
-        application_id: Rerun application id; the viewer groups recordings by it.
-        rotate_windows: windows per file before it is closed and renamed (0: one file).
-        keep_files: older files of ``path`` kept when a file is rotated (0: all).
-        recent_s: how much plant time before the cursor the outputs' views show [s].
-        serve: also serve the recording live over gRPC (Rerun's server).
-        serve_bind: the address the live server listens on (loopback by default).
-        serve_port: its TCP port.
-        server_memory_limit: the history the live server keeps for late viewers (``256MiB``,
-            ``2GB``, ``10%`` of the RAM): oldest dropped first.
-
-    Unknown keys are an error (``extra="forbid"``).
-    """
-
-    path: str = "twinwatch.rrd"
-    enabled: bool = True
-    application_id: str = "twinwatch"
-    rotate_windows: StrictInt = Field(1800, ge=0, description="start a new file after this many "
-                                      "windows (0: never; Rerun keeps each chunk's footer entry "
-                                      "in memory until its file is closed)")
-    keep_files: StrictInt = Field(
-        48, ge=0, description="older files of path kept (rotated ones and "
-        "earlier runs'; 0: all), the oldest deleted when a file rotates")
-    recent_s: StrictFloat = Field(10.0, gt=0.0, le=86400.0, description="plant time before the "
-                                  "cursor shown by the outputs' and residuals' views [s]")
-    serve: bool = Field(False, description="also serve the recording live (Rerun gRPC "
-                        "server): rerun rerun+http://<serve_bind>:<serve_port>/proxy")
-    serve_bind: str = Field("127.0.0.1", description="address the live server listens on")
-    serve_port: StrictInt = Field(9876, ge=1, le=65535, description="TCP port of the live server")
-    server_memory_limit: str = Field("256MiB", description="history the live server keeps "
-                                     "for viewers that connect late (oldest dropped first)")
-
-    @field_validator("path", "application_id")
-    @classmethod
-    def _not_blank(cls, value: str) -> str:
-        if not value.strip():
-            raise ValueError("must not be empty")
-        return value
-
-    @field_validator("serve_bind")
-    @classmethod
-    def _address(cls, value: str) -> str:
-        try:
-            ipaddress.ip_address(value)
-        except ValueError:
-            raise ValueError(f"{value!r} is not an IP address (127.0.0.1: this machine "
-                             "only)") from None
-        return value
-
-    @field_validator("server_memory_limit")
-    @classmethod
-    def _memory(cls, value: str) -> str:
-        if not re.fullmatch(r"\s*\d+(\.\d+)?\s*(B|kB|KB|KiB|MB|MiB|GB|GiB|TB|TiB|%)\s*", value):
-            raise ValueError(f"{value!r} is not an amount of memory (e.g. '256MiB', '2GB', "
-                             "'10%')")
-        return value.strip()
-
-    def output_files(self, cwd: Path) -> dict[str, Path]:
-        """The recording's link (its directory must exist and be writable)."""
-        path = Path(self.path).expanduser()
-        return {"path": path if path.is_absolute() else cwd / path}
-
-    def exclusive_resources(self, cwd: Path) -> set[str]:
-        """The recording (its link and the run's file it names) and, when serving, the live
-        server's endpoint."""
-        link = self.output_files(cwd)["path"]
-        held = {str(link.absolute()), str(link.resolve())}
-        if self.serve:
-            held.add(f"tcp/{self.serve_bind}:{self.serve_port}")
-        return held
-
-
-def _check_directory(path: Path) -> None:
-    """``path``'s directory exists and is writable, and ``path`` is no directory.
-
-    Raises:
-        RecorderError: saying what to change.
-    """
-    parent = path.parent
-    if path.is_dir() and not path.is_symlink():
-        raise RecorderError(
-            f"recording path {path} is a directory: set [recording].path to a file name"
-        )
-    if not parent.exists():
-        raise RecorderError(
-            f"cannot record to {path}: directory {parent} does not exist; create it or set "
-            "[recording].path"
-        )
-    if not parent.is_dir():
-        raise RecorderError(f"cannot record to {path}: {parent} is not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise RecorderError(
-            f"cannot record to {path}: directory {parent} is not writable by this user; "
-            "fix its permissions or set [recording].path"
-        )
-
-
-_FIX = "stop it, or set another [recording].path"
-
-
-def _check_writable(path: Path) -> FileLock:
-    """Lock ``path`` (created empty if absent, not truncated) for this recorder.
-
-    Raises:
-        RecorderError: ``path`` cannot be created or written, or another process holds it.
-    """
-    _check_directory(path)
-    try:
-        return FileLock(path, "recording", _FIX)
-    except LockedError as exc:
-        raise RecorderError(str(exc)) from None
-    except OSError as exc:
-        raise RecorderError(f"cannot record to {path}: {exc.strerror or exc}") from exc
-
-
-def _free_name(path: Path) -> Path:
-    """``path``, or ``<stem>-2<suffix>``, ``-3``, ... : the first name nothing uses."""
-    candidate, n = path, 1
-    while candidate.exists() or candidate.is_symlink():
-        n += 1
-        candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
-    return candidate
-
-
-def _run_label(run: str | None) -> str:
-    """A run id as a file-name part (letters, digits, ``._-``; at most 40 characters)."""
-    return re.sub(r"[^A-Za-z0-9._-]", "_", run or "")[:40].strip("._-")
-
-
-class RerunRecorder(Sink):
+class RerunRecorder(RecordingFiles, Sink):
     """Records measured vs twin outputs, parameter health and data quality to a ``.rrd`` file
     of its own per run (and serves them live when configured): the built-in output ``rerun``
     (table ``[recording]``, a recorder: it gets every window).
@@ -309,9 +162,6 @@ class RerunRecorder(Sink):
     reopen_max: float = 1800.0
     """The longest wait between two attempts to reopen the file [s]."""
 
-    min_free: int = 64 * 2**20
-    """Bytes the disk must keep free for the recording to go on [B]."""
-
     serve_timeout: float = 5.0
     """Seconds the live server may take to listen before opening fails [s]."""
 
@@ -355,9 +205,7 @@ class RerunRecorder(Sink):
         self._reopen_delay = self.reopen_after
         self._lock = threading.Lock()
         self._rec: rr.RecordingStream | None = None
-        self._live: rr.RecordingStream | None = None
-        self._live_url: str | None = None
-        self._live_problem: str | None = None
+        self._live: LiveServer | None = None  # the live view, with ``serve``
         self._file_lock: FileLock | None = None
         self.rotations = 0
         self._file_windows = 0
@@ -372,12 +220,15 @@ class RerunRecorder(Sink):
             return
         self._recording_id = uuid.uuid4()  # every file of this recorder shares it
         if config.serve:
-            self._probe_port()  # before any file is touched
+            self._live = LiveServer(machine, config.serve_bind, config.serve_port,
+                                    config.server_memory_limit)
+            self._live.probe()  # before any file is touched
         self._file_lock = self._claim(run)
         try:
             self._rec = self._open_stream()
-            if config.serve:
-                self._live = self._open_live()
+            if self._live is not None:
+                self._live.open(config.application_id, self._recording_id,
+                                self.views.blueprint(), self._log_static, self.serve_timeout)
         except BaseException:
             if self._rec is not None:
                 self._rec.disconnect()
@@ -386,85 +237,6 @@ class RerunRecorder(Sink):
             raise
         self._closed = False
         logger.info("recording %s to %s (%s)", machine, self.path, self.link)
-
-    # -- the run's file and the link -----------------------------------------------------------
-    def _claim(self, run: str | None) -> FileLock:
-        """Make sure no other process records at :attr:`link`, keep a regular file found there
-        (an earlier version's recording), create and lock this run's file, and point the link
-        at it.
-
-        Raises:
-            RecorderError: the directory is missing or read-only, the link names a file another
-                process writes, or the file cannot be created.
-        """
-        link = self.link
-        _check_directory(link)
-        if link.is_symlink():
-            if link.exists():  # the file of the run that wrote last: in use?
-                try:
-                    FileLock(link, "recording", _FIX).release()
-                except LockedError as exc:
-                    raise RecorderError(str(exc)) from None
-                except OSError:
-                    pass  # cannot open it: not ours to check, the link is replaced
-        elif link.exists():
-            lock = _check_writable(link)
-            try:
-                st = link.stat()
-                if st.st_size:
-                    stamp = time.strftime(_RUN_STAMP, time.gmtime(st.st_mtime))
-                    aside = _free_name(link.with_name(f"{link.stem}-{stamp}{link.suffix}"))
-                    link.rename(aside)
-                    self._kept_aside = aside
-                    logger.info("the recording found at %s (%d bytes) is kept as %s", link,
-                                st.st_size, aside.name)
-                else:
-                    link.unlink()
-            except OSError as exc:
-                raise RecorderError(f"cannot keep the recording {link} aside: "
-                                    f"{exc.strerror or exc}") from exc
-            finally:
-                lock.release()
-        label = _run_label(run)
-        if not re.match(r"\d{8}T\d{6}Z", label):  # a run id starts with its UTC start
-            label = time.strftime(_RUN_STAMP, time.gmtime()) + (f"-{label}" if label else "")
-        self.path = _free_name(link.with_name(f"{link.stem}-{label}{link.suffix}"))
-        lock = _check_writable(self.path)
-        self._point_link()
-        return lock
-
-    def _point_link(self, target: Path | None = None) -> None:
-        """Make :attr:`link` a symbolic link to the run's file, or ``target`` beside it
-        (atomically; logged once when the file system cannot)."""
-        target = target or self.path
-        if self.link == target:
-            return
-        tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
-        try:
-            tmp.unlink(missing_ok=True)
-            os.symlink(target.name, tmp)
-            os.replace(tmp, self.link)
-        except OSError as exc:
-            tmp.unlink(missing_ok=True)
-            if self._link_problem is None:
-                self._link_problem = f"cannot link {self.link} to {target.name}: {exc}"
-                logger.warning("%s; open %s itself", self._link_problem, self.path)
-            return
-        if self._link_problem is not None:
-            logger.info("%s links to %s again", self.link, self.path.name)
-            self._link_problem = None
-
-    def _check_link(self) -> None:
-        """Point the link again if something removed or changed it (one readlink a window)."""
-        try:
-            if os.readlink(self.link) == self.path.name:
-                return
-        except OSError:
-            pass
-        if self._link_problem is None:
-            logger.warning("%s no longer named the run's recording %s: linked again",
-                           self.link, self.path.name)
-        self._point_link()
 
     def _open_stream(self) -> rr.RecordingStream:
         """The recorder's one recording stream, saving to :attr:`path` with the default
@@ -504,217 +276,11 @@ class RerunRecorder(Sink):
         emit(rec, self.views.static_ops())
 
     @property
-    def blueprint_path(self) -> Path:
-        """``<stem>.rbl`` beside :attr:`link`: the viewer layout, for files opened together
-        (``rerun twinwatch-*.rrd twinwatch.rbl``)."""
-        return self.link.with_suffix(".rbl")
-
-    def _family(self) -> list[Path]:
-        """The older files of :attr:`link` (earlier runs', rotated ones), oldest first."""
-        pattern = re.compile(re.escape(self.link.stem) + r"-\d{8}T\d{6}Z([-.][A-Za-z0-9._-]*)?"
-                             + re.escape(self.link.suffix))
-        found = []
-        for p in self.link.parent.iterdir():
-            if p != self.path and pattern.fullmatch(p.name) and not p.is_symlink():
-                try:
-                    found.append((p.stat().st_mtime, p.name, p))
-                except OSError:
-                    continue
-        return [p for _, _, p in sorted(found)]
-
-    def _rotate(self) -> None:
-        """Rename the run's file with the UTC time, point the recording stream at a new file of
-        the run's name (the renamed file's footer is written and its manifest memory freed),
-        and delete the older files of the link beyond ``keep_files``. Called with the lock held.
-        A failure stops the recording (logged once).
-
-        The stream is kept, not replaced: the Rerun SDK (0.41) never frees a Python recording
-        stream (rerun-io/rerun#2116: its batcher threads live on after ``disconnect``), so a new
-        stream per file (and one per blueprint sent) leaked about 1 MiB and four threads per
-        rotation. Every file of one run
-        therefore shares one recording id: opened together, the viewer shows them as one
-        recording. The blueprint is sent to the first file only (each send is a new stream);
-        the others use :attr:`blueprint_path`."""
-        rec = self._rec
-        assert rec is not None
-        if not self._flush(rec):
-            return  # the writer died: the file was kept aside and a new one will be opened
-        stamp = time.strftime(_RUN_STAMP, time.gmtime())
-        aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
-                                    f"{self.path.suffix}")
-        try:
-            self.path.rename(aside)  # the open file sink keeps writing to the renamed file
-            self._relock()
-            self._attach_file(rec)
-        except (OSError, RecorderError) as exc:
-            self.errors += 1
-            logger.error("cannot rotate the recording %s (%s): recording stops; fix the "
-                         "directory's permissions or space and restart", self.path, exc)
-            self._closed = True
-            self._broken = f"recording stopped: cannot rotate {self.path} ({exc})"
-            self._rec = None
-            rec.disconnect()
-            self._release()
-            return
-        self.rotations += 1
-        self._rotated[aside] = self._file_windows
-        self._file_windows = 0
-        logger.info("recording rotated: %s closed, now writing %s", aside, self.path)
-        keep = self.config.keep_files
-        if keep:
-            for old in self._family()[:-keep]:
-                try:
-                    old.unlink()
-                    self._rotated.pop(old, None)
-                    logger.info("old recording %s deleted ([recording] keep_files = %d)",
-                                old.name, keep)
-                except OSError as exc:
-                    logger.warning("cannot delete old recording %s: %s", old, exc)
-
-    def _check_file(self, window: Any) -> bool:
-        """The file at :attr:`path` is still the one being written (called with the lock held,
-        before each window). Deleted, replaced or moved away: count the windows lost with it
-        (and with the rotated files that went with its directory), and go on in a new file at
-        the path, its directory created again (one level) if it was removed, the link made
-        again. Returns False while no new file can be started (the window is then not
-        recorded)."""
-        rec = self._rec
-        if rec is None:  # its file writer died: a new stream and file come with _reopen
-            return True
-        if self._file_gone is None:
-            why = self._file_lock.changed() if self._file_lock is not None else None
-            if why is None:
-                self._check_link()
-                return True
-            gone = 0 if why == "moved" else self._file_windows
-            with_it = ""
-            for aside, n in list(self._rotated.items()):
-                if not aside.exists():  # its directory was removed with it
-                    gone += n
-                    with_it = " and in the rotated files beside it"
-                    del self._rotated[aside]
-            self.lost += gone
-            self._file_gone = (f"recording {self.path} was {why} while running (noticed at "
-                               f"window {window}): {gone} windows recorded in it{with_it} "
-                               f"are lost")
-            self._file_gone_lost = gone
-        try:
-            if not self.path.parent.exists():
-                self.path.parent.mkdir(mode=0o750)  # its parent must be there: one level only
-                logger.warning("recording directory %s created again", self.path.parent)
-            self._relock()
-            self._attach_file(rec)  # the old file is finalised (footer) wherever it is now
-        except (OSError, RecorderError) as exc:
-            if self._no_new_file is None:
-                self._no_new_file = f"{self._file_gone}; no new file can be started ({exc})"
-                logger.error("%s: the windows are not recorded; tried again with each window",
-                             self._no_new_file)
-            return False
-        self._point_link()
-        self._save_blueprint()
-        logger.log(logging.ERROR if self._file_gone_lost else logging.WARNING,
-                   "%s; recording goes on in a new file %s", self._file_gone, self.path)
-        self._file_windows = 0
-        self._file_gone = self._no_new_file = None
-        return True
-
-    def _relock(self) -> None:
-        """Lock the file now at :attr:`path` (after a rename) and release the old one."""
-        old = self._file_lock
-        self._file_lock = _check_writable(self.path)
-        if old is not None:
-            old.release()
-
-    def _release(self) -> None:
-        lock, self._file_lock = self._file_lock, None
-        if lock is not None:
-            lock.release()
-
-    # -- live viewing ----------------------------------------------------------------------------
-    def _probe_port(self) -> None:
-        """The live server's address is free.
-
-        Raises:
-            RecorderError: naming the address and the key to change.
-        """
-        bind, port = self.config.serve_bind, self.config.serve_port
-        with _LIVE_LOCK:
-            if (bind, port) in _LIVE:
-                return  # this process's server, kept from a recorder closed before
-        family = socket.AF_INET6 if ":" in bind else socket.AF_INET
-        with socket.socket(family, socket.SOCK_STREAM) as probe:
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                probe.bind((bind, port))
-            except OSError as exc:
-                raise RecorderError(
-                    f"cannot serve the recording live on {bind}:{port}: {exc.strerror or exc} "
-                    "(another viewer or twinwatch?); set [recording] serve_port") from None
-
-    def _open_live(self) -> rr.RecordingStream:
-        """A second recording stream whose only sink is Rerun's gRPC server on
-        ``serve_bind:serve_port``, with the blueprint; the file's stream never touches it.
-
-        The server of a recorder closed before in this process (a reload) is taken over, with
-        its viewers and its history: a gRPC server does not stop while a viewer is connected
-        (Rerun SDK 0.41), so it is kept for the life of the process instead.
-
-        Raises:
-            RecorderError: the server does not listen in time.
-        """
-        bind, port = self.config.serve_bind, self.config.serve_port
-        blueprint = self.views.blueprint()
-        with _LIVE_LOCK:
-            parked = _LIVE.pop((bind, port), None)
-        if parked is not None:
-            live, self._live_url = parked
-            live.send_blueprint(blueprint, make_active=True, make_default=True)
-            self._log_static(live)
-            logger.info("recording of %s served live (the server goes on): rerun %s",
-                        self.machine, self._live_url)
-            return live
-        live = rr.RecordingStream(self.config.application_id, recording_id=self._recording_id)
-        sink = rr.GrpcServerSink(bind_ip=bind, port=port,
-                                 server_memory_limit=self.config.server_memory_limit)
-        live.set_sinks(sink, default_blueprint=blueprint)
-        url = sink.uri
-        del sink  # the stream owns the server
-        self._log_static(live)
-        deadline = time.monotonic() + self.serve_timeout
-        while True:
-            try:
-                with socket.create_connection((bind if bind not in ("0.0.0.0", "::") else
-                                               "127.0.0.1", port), timeout=0.5):
-                    break
-            except OSError as exc:
-                if time.monotonic() > deadline:
-                    live.disconnect()
-                    raise RecorderError(f"the live recording server on {bind}:{port} does not "
-                                        f"listen ({exc})") from None
-                time.sleep(0.05)
-        self._live_url = url
-        logger.info("recording of %s served live: rerun %s", self.machine, self._live_url)
-        return live
-
-    @property
     def live_url(self) -> str | None:
         """Where a viewer connects (``rerun+http://127.0.0.1:9876/proxy``), None when not
         serving."""
-        return self._live_url if self._live is not None else None
-
-    def _emit_live(self, ops: list[Op]) -> None:
-        """Send one window to the live server; a failure stops the live view only (logged
-        once). Called with the lock held."""
         live = self._live
-        if live is None:
-            return
-        try:
-            emit(live, ops)
-        except Exception as exc:  # noqa: BLE001 - the file goes on whatever the server does
-            self._live = None
-            self._live_problem = f"live recording server stopped: {exc}"
-            logger.error("%s; the file goes on", self._live_problem)
-            _bury(live)
+        return live.url if live is not None and live.stream is not None else None
 
     # -- the sink contract ---------------------------------------------------------------------
     @classmethod
@@ -750,8 +316,8 @@ class RerunRecorder(Sink):
             ops = self.views.set_alarm_bands(context.alarm_bands)
             if ops and self._rec is not None:
                 emit(self._rec, ops)
-            if ops:
-                self._emit_live(ops)
+            if ops and self._live is not None:
+                self._live.emit(ops)
 
     def counters(self) -> dict[str, int]:
         """``lost``: windows not recorded."""
@@ -803,37 +369,13 @@ class RerunRecorder(Sink):
         if self.lost:
             # what was lost stays reported (as the state database's lost windows do)
             return f"recording: {self.lost} windows not recorded"
-        return self._live_problem
-
-    def _free(self) -> int | None:
-        """Free bytes on the recording's file system (None if unknown)."""
-        try:
-            st = os.statvfs(self.path.parent)
-        except OSError:
-            return None
-        return st.f_bavail * st.f_frsize
-
-    def _room(self) -> bool:
-        """True if the disk has ``min_free`` bytes free; pauses and resumes (logged once)."""
-        free = self._free()
-        if free is None or free >= self.min_free:
-            if self._paused is not None:
-                logger.warning("recording to %s resumes: the disk has room again (%d windows "
-                               "were not recorded)", self.path, self.lost)
-                self._paused = None
-            return True
-        if self._paused is None:
-            self._paused = (f"recording to {self.path} paused: {free / 2**20:.0f} MiB free on "
-                            f"its disk, it keeps {self.min_free / 2**20:.0f} MiB for the state "
-                            f"database")
-            logger.error("%s; it resumes when there is room", self._paused)
-        return False
+        return self._live.problem if self._live is not None else None
 
     def _writer_died(self, rec: rr.RecordingStream, exc: BaseException) -> None:
         """The file sink is gone: abandon the stream (see the module docstring), keep the
         broken file under a rotated name, and schedule a new file. Called with the lock held."""
         now = time.monotonic()
-        _bury(rec)
+        bury(rec)
         self._rec = None
         if self._dead_since is None:
             self._dead_since = now
@@ -986,7 +528,8 @@ class RerunRecorder(Sink):
                 return
             ops = self.views.window_ops(times, meas, sim, estimates, doc, health_json,
                                    terms_changed, list(events))
-            self._emit_live(ops)
+            if self._live is not None:
+                self._live.emit(ops)
             window = doc.window
             if (not self._check_file(window) or not self._room()
                     or (self._rec is None and not self._reopen())):
@@ -1047,16 +590,8 @@ class RerunRecorder(Sink):
             if self._closed:
                 return
             self._closed = True
-            live, self._live = self._live, None
-            if live is not None:
-                try:
-                    live.flush(timeout_sec=self.flush_timeout)
-                except Exception as exc:  # noqa: BLE001 - the file still closes
-                    logger.warning("flushing the live recording server: %s", exc)
-                assert self._live_url is not None
-                with _LIVE_LOCK:  # a later recorder on this address goes on with it
-                    _LIVE[(self.config.serve_bind, self.config.serve_port)] = (
-                        live, self._live_url)
+            if self._live is not None:  # kept for a later recorder on its address
+                self._live.park(self.flush_timeout)
             rec, self._rec = self._rec, None
             if rec is None:  # never opened, or its file writer died (abandoned)
                 self._release()
@@ -1081,27 +616,3 @@ class RerunRecorder(Sink):
         return (
             f"RerunRecorder({str(self.path)!r}, {self.machine!r}, {state}, windows={self.windows})"
         )
-
-
-_LIVE: dict[tuple[str, int], tuple[Any, str]] = {}
-"""Live servers of closed recorders, by address, with their URL: a gRPC server stays up while a
-viewer is connected, so it is kept, and taken over by the next recorder on that address."""
-_LIVE_LOCK = threading.Lock()
-
-_GRAVEYARD: list[Any] = []
-"""Recording streams whose file writer died: kept referenced so that nothing frees them."""
-
-
-def _bury(rec: rr.RecordingStream) -> None:
-    """Abandon a stream whose file writer died. With the Rerun SDK 0.41 every later flush,
-    disconnect or new file on it, its ``__del__`` (a sweep of orphaned recordings) and the
-    SDK's exit hook wait forever for the dead writer: disable the instance's helpers, keep it
-    referenced for the life of the process, and unregister the exit hook (each recorder
-    disconnects its own stream in :meth:`RerunRecorder.close`)."""
-    rec._flush = lambda *args, **kwargs: None
-    rec._disconnect_orphaned_recordings = lambda *args, **kwargs: None
-    _GRAVEYARD.append((rec, getattr(rec, "inner", None)))
-    rr.unregister_shutdown()
-
-
-

@@ -60,111 +60,19 @@ from collections.abc import Hashable, Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal, Self
 
-from pydantic import Field, StrictFloat, StrictInt
-
 from twinwatch.errors import StoreError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.base import (
-    Gate,
-    HistoryPage,
-    OutboxRow,
-    ProcessedWindow,
-    SinkConfig,
-    SinkContext,
-    _frozen,
-)
+from twinwatch.sinks.base import Gate, ProcessedWindow, SinkContext, _frozen
 from twinwatch.sinks.locks import FileLock, LockedError
+from twinwatch.sinks.store import queries
+from twinwatch.sinks.store.outbox import StoreOutbox
+from twinwatch.sinks.store.schema import CACHE_KIB, SCHEMA, SCHEMA_VERSION, StateConfig, is_corrupt
 from twinwatch.twin.health import HealthView, read_health
 
-logger = logging.getLogger(__name__)
+#: the package's name, as before the split (the log lines name it)
+logger = logging.getLogger(__package__)
 
-__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError", "StoreOutbox"]
-
-SCHEMA_VERSION = 1
-
-#: SQLite page cache per connection [KiB] (``PRAGMA cache_size``; SQLite's default is 2000):
-#: measured in a 50-machine worker, the default's caches grew with the database by about
-#: 9 KB a window per machine
-CACHE_KIB = 256
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS schema_version (
-    version INTEGER NOT NULL,
-    applied_wall REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS health (
-    id INTEGER PRIMARY KEY,
-    machine TEXT NOT NULL,
-    run TEXT NOT NULL,
-    window INTEGER NOT NULL,
-    t_start REAL NOT NULL,
-    t_end REAL NOT NULL,
-    wall REAL NOT NULL,
-    doc TEXT NOT NULL
-);
-CREATE INDEX IF NOT EXISTS health_plant ON health (machine, t_start);
-CREATE INDEX IF NOT EXISTS health_wall ON health (machine, wall);
-CREATE INDEX IF NOT EXISTS health_run ON health (machine, run, t_start);
-CREATE TABLE IF NOT EXISTS twin (
-    machine TEXT PRIMARY KEY,
-    run TEXT NOT NULL,
-    window INTEGER NOT NULL,
-    t_end REAL NOT NULL,
-    wall REAL NOT NULL,
-    state TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS outbox_position (
-    output TEXT NOT NULL,
-    machine TEXT NOT NULL,
-    health_id INTEGER NOT NULL,
-    wall REAL NOT NULL,
-    PRIMARY KEY (output, machine)
-);
-CREATE TABLE IF NOT EXISTS outbox_ack (
-    output TEXT NOT NULL,
-    machine TEXT NOT NULL,
-    run TEXT NOT NULL,
-    window INTEGER NOT NULL,
-    health_id INTEGER NOT NULL,
-    wall REAL NOT NULL,
-    PRIMARY KEY (output, machine, run, window)
-);
-"""
-
-
-class StateConfig(SinkConfig):
-    """``[state]``: the state database (health history and last accepted twin).
-
-    Example::
-
-        [state]
-        path = "state.sqlite"      # relative to the working directory (the unit's StateDirectory)
-        synchronous = "FULL"       # FULL: survives power loss; NORMAL: survives SIGKILL only
-        keep_days = 30
-        keep_rows = 1000000
-    """
-
-    enabled: bool = Field(True, description="keep the history and the twin; restore at start")
-    path: str = Field("state.sqlite", min_length=1,
-                      description="SQLite file, relative to the working directory")
-    synchronous: Literal["FULL", "NORMAL"] = Field(
-        "FULL", description="FULL fsyncs every window (power-loss safe), NORMAL does not")
-    keep_days: StrictFloat = Field(30.0, gt=0, description="delete history older than this [days]")
-    keep_rows: StrictInt = Field(1_000_000, ge=1, description="keep at most this many windows")
-    recover_corrupt: bool = Field(False, description="move a corrupt database aside and start "
-                                  "a new one instead of refusing to start")
-
-    def output_files(self, cwd: Path) -> dict[str, Path]:
-        """The database file (its directory must exist and be writable)."""
-        path = Path(self.path).expanduser()
-        return {"path": path if path.is_absolute() else cwd / path}
-
-
-def _is_corrupt(exc: BaseException) -> bool:
-    """SQLite's "database disk image is malformed" / "file is not a database"."""
-    msg = str(exc)
-    return isinstance(exc, sqlite3.DatabaseError) and ("not a database" in msg
-                                                      or "malformed" in msg)
+__all__ = ["StateStore"]
 
 
 def _dumps(obj: Any) -> str:
@@ -351,7 +259,7 @@ class StateStore(Gate):
 
     def _error(self, what: str, exc: BaseException) -> StoreError:
         msg = str(exc)
-        corrupt = _is_corrupt(exc)
+        corrupt = is_corrupt(exc)
         if corrupt:
             hint = (f"the file is corrupt or not a twinwatch database: stop the service, move "
                     f"it aside (mv {self.path} {self.path}.bad) and start again to begin a new "
@@ -460,7 +368,7 @@ class StateStore(Gate):
                                  f"no schema_version: it is not a twinwatch database; point "
                                  f"the store at another file")
             conn.execute("BEGIN IMMEDIATE")
-            for stmt in _SCHEMA.split(";"):
+            for stmt in SCHEMA.split(";"):
                 if stmt.strip():
                     conn.execute(stmt)
             if conn.execute("SELECT COUNT(*) FROM schema_version").fetchone()[0] == 0:
@@ -803,7 +711,7 @@ class StateStore(Gate):
                     conn.execute("ROLLBACK")
                 except sqlite3.Error:
                     pass
-            if retry and self.recover_corrupt and _is_corrupt(exc):
+            if retry and self.recover_corrupt and is_corrupt(exc):
                 try:
                     self._recover(exc)
                 except StoreError as err:
@@ -923,15 +831,9 @@ class StateStore(Gate):
         Args:
             machine: whose twin (default: the most recently saved one).
         """
-        def read(conn: sqlite3.Connection) -> Any:
-            if machine is None:
-                return conn.execute("SELECT state FROM twin ORDER BY wall DESC LIMIT 1"
-                                    ).fetchone()
-            return conn.execute("SELECT state FROM twin WHERE machine = ?",
-                                (machine,)).fetchone()
-
-        row = self._read("cannot read the twin state", read)
-        return None if row is None else dict(json.loads(row[0]))
+        state = self._read("cannot read the twin state",
+                           lambda conn: queries.twin_state(conn, machine))
+        return None if state is None else dict(json.loads(state))
 
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
@@ -964,40 +866,11 @@ class StateStore(Gate):
             ``next_after`` is the cursor of the next page (by wall time the last one's
             stored wall stamp, which the message does not carry).
         """
-        if by not in ("plant", "wall"):
-            raise ValueError(f"by must be 'plant' or 'wall', not {by!r}")
-        where: list[str] = []
-        args: list[Any] = []
-        if machine is not None:
-            where.append("machine = ?")
-            args.append(machine)
-        if run is not None:
-            where.append("run = ?")
-            args.append(run)
-        lo = "t_end" if by == "plant" else "wall"
-        hi = "t_start" if by == "plant" else "wall"
-        if t_from is not None and math.isfinite(t_from):
-            where.append(f"{lo} >= ?")
-            args.append(float(t_from))
-        if t_to is not None and math.isfinite(t_to):
-            where.append(f"{hi} <= ?")
-            args.append(float(t_to))
-        if after is not None and math.isfinite(after):
-            where.append(f"{lo} > ?")
-            args.append(float(after))
-        sql = f"SELECT doc, {lo} FROM health"
-        if where:
-            sql += " WHERE " + " AND ".join(where)
-        sql += " ORDER BY id"
-        if limit is not None:
-            sql += " LIMIT ?"
-            args.append(int(limit))
+        sql, args = queries.history_query(t_from, t_to, limit, by=by, machine=machine, run=run,
+                                          after=after)
         rows = self._read("cannot read the history",
                           lambda conn: conn.execute(sql, args).fetchall())
-        # the cursor of the next page in the time asked: by wall time the stamp the store
-        # keeps (the messages carry plant time only, a caller could not page on them)
-        return HistoryPage((read_health(r[0]) for r in rows),
-                           next_after=float(rows[-1][1]) if rows else None)
+        return queries.history_page(rows)
 
     def timeline(self, machine: str, t_from: float | None = None) -> list[HealthView]:
         """The machine's health messages on the time line that ends with its last stored
@@ -1012,34 +885,16 @@ class StateStore(Gate):
         restarted more than once (the run before the last may have lasted a few windows).
         """
         lower = float(t_from) if t_from is not None and math.isfinite(t_from) else -math.inf
-
-        def read(conn: sqlite3.Connection) -> list[str]:
-            docs: list[str] = []
-            after: float | None = None  # t_start of the window saved after this one
-            cur = conn.execute("SELECT doc, t_start, t_end FROM health WHERE machine = ? "
-                               "ORDER BY id DESC", (machine,))
-            for doc, t_start, t_end in cur:
-                if (after is not None and not t_end < after) or t_end < lower:
-                    break
-                docs.append(doc)
-                after = t_start
-            cur.close()
-            return docs
-
-        docs = self._read("cannot read the history", read)
+        docs = self._read("cannot read the history",
+                          lambda conn: queries.timeline_docs(conn, machine, lower))
         return [read_health(d) for d in reversed(docs)]
 
     def latest_health(self, machine: str | None = None) -> HealthView | None:
         """The last health message saved, through its typed view (e.g. to restore the alarm
         state at start)."""
-        sql = "SELECT doc FROM health"
-        args: tuple[Any, ...] = ()
-        if machine is not None:
-            sql += " WHERE machine = ?"
-            args = (machine,)
-        row = self._read("cannot read the history", lambda conn: conn.execute(
-            sql + " ORDER BY id DESC LIMIT 1", args).fetchone())
-        return None if row is None else read_health(row[0])
+        doc = self._read("cannot read the history",
+                         lambda conn: queries.latest_doc(conn, machine))
+        return None if doc is None else read_health(doc)
 
     def last_docs(self, machine: str, run: str, limit: int) -> list[str]:
         """The last ``limit`` health messages of ``machine``'s run ``run``, as saved (JSON
@@ -1050,27 +905,23 @@ class StateStore(Gate):
         Raises:
             StoreError: the database cannot be read (the message says why).
         """
-        sql = "SELECT doc FROM health WHERE machine = ? AND run = ? ORDER BY id DESC LIMIT ?"
-        args = (machine, run, int(limit))
         if self._closed_for_good:  # a run's history is still read after its daemon stopped
             try:
                 conn = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True,
                                        timeout=self.busy_timeout)
                 try:
-                    rows = conn.execute(sql, args).fetchall()
+                    return queries.last_docs(conn, machine, run, limit)
                 finally:
                     conn.close()
             except sqlite3.Error as exc:
                 raise self._error("cannot read the history", exc) from exc
-        else:
-            rows = self._read("cannot read the history",
-                              lambda conn: conn.execute(sql, args).fetchall())
-        return [r[0] for r in reversed(rows)]
+        docs: list[str] = self._read("cannot read the history",
+                                     lambda conn: queries.last_docs(conn, machine, run, limit))
+        return docs
 
     def count(self) -> int:
         """Health rows stored."""
-        return int(self._read("cannot count the history", lambda conn: conn.execute(
-            "SELECT COUNT(*) FROM health").fetchone()[0]))
+        return int(self._read("cannot count the history", queries.count))
 
     # -- the outbox of a store-and-forward output ------------------------------------------------
     def outbox(self, output: str, machine: str) -> StoreOutbox:
@@ -1142,157 +993,3 @@ def _packed(row: tuple[Any, ...]) -> tuple[Any, ...]:
 def _unpacked(row: tuple[Any, ...]) -> tuple[Any, ...]:
     """The ``health`` row :func:`_packed` kept."""
     return (*row[:6], zlib.decompress(row[6]).decode())
-
-
-class StoreOutbox:
-    """One output's outbox in the state database (:class:`~twinwatch.sinks.base.Outbox`): the
-    ``health`` table holds the windows, this records which of them the output has delivered.
-
-    Two small tables, written through the store's rules (the calling thread's own connection,
-    the store's write lock, one transaction per call): ``outbox_position`` (output, machine ->
-    a ``health`` row id at or below which every window is delivered) and ``outbox_ack``
-    (output, machine, run, window -> delivered, for the windows above the position, e.g.
-    acknowledged while an older one was still in flight). The retention's pruning counts the
-    windows it deletes undelivered (:attr:`dropped`) and moves the position past them.
-
-    Args:
-        store: the open state store.
-        output: the output's registry name (``mqtt``).
-        machine: whose windows.
-    """
-
-    # The queries read the health table by row id ranges (``+machine``: not through the
-    # machine's time indexes, which would visit every row of the machine, up to a million).
-
-    def __init__(self, store: StateStore, output: str, machine: str) -> None:
-        self.store = store
-        self.output = output
-        self.machine = machine
-        self.generation = store.generation
-
-    @property
-    def changed(self) -> bool:
-        """The store has opened another database file since this outbox was made (deleted,
-        replaced or moved away): its row ids and position are stale; ask the gate for a new
-        outbox."""
-        return self.store.generation != self.generation
-
-    def _same_file(self, conn: sqlite3.Connection) -> sqlite3.Connection:
-        """``conn`` if the store still writes the file of this outbox (checked under the
-        store's lock, after it looked at the path); else raises (nothing read or written)."""
-        if self.changed:
-            raise sqlite3.OperationalError("the state database file changed: its outbox is "
-                                           "read again")
-        return conn
-
-    @property
-    def dropped(self) -> int:
-        """Windows deleted by the retention before they were delivered (since the store
-        opened)."""
-        return self.store.outbox_dropped.get((self.output, self.machine), 0)
-
-    def start(self) -> int:
-        """The delivered position; on the output's first open, the newest stored window of
-        the machine (0 if none): the history before the output existed is not sent.
-
-        Raises:
-            StoreError: the database cannot be read or written.
-        """
-        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
-            "SELECT health_id FROM outbox_position WHERE output = ? AND machine = ?",
-            (self.output, self.machine)).fetchone())
-        if row is not None:
-            return int(row[0])
-        position = self.latest_id() or 0
-
-        def create(conn: sqlite3.Connection) -> None:
-            self._same_file(conn).execute(
-                "INSERT OR IGNORE INTO outbox_position (output, machine, health_id, wall) "
-                "VALUES (?, ?, ?, ?)", (self.output, self.machine, position, time.time()))
-
-        self.store._write("cannot create the outbox", create)
-        return self.start()
-
-    def pending(self, after: int, limit: int) -> list[OutboxRow]:
-        """Stored windows of the machine above row id ``after`` not delivered, oldest first.
-
-        Raises:
-            StoreError: the database cannot be read.
-        """
-        rows = self.store._read("cannot read the outbox", lambda conn: self._same_file(
-            conn).execute(
-            "SELECT h.id, h.run, h.window, h.wall, h.doc FROM health h WHERE h.id > ? AND "
-            "+h.machine = ? AND NOT EXISTS (SELECT 1 FROM outbox_ack a WHERE a.output = ? AND "
-            "a.machine = h.machine AND a.run = h.run AND a.window = h.window) ORDER BY h.id "
-            "LIMIT ?", (int(after), self.machine, self.output, int(limit))).fetchall())
-        return [OutboxRow(int(i), str(r), int(w), float(t), str(d)) for i, r, w, t, d in rows]
-
-    def count(self, position: int) -> int:
-        """Stored windows of the machine above ``position`` not delivered.
-
-        Raises:
-            StoreError: the database cannot be read.
-        """
-        def read(conn: sqlite3.Connection) -> int:
-            stored = self._same_file(conn).execute(
-                "SELECT COUNT(*) FROM health WHERE id > ? AND +machine = ?",
-                (int(position), self.machine)).fetchone()[0]
-            acked = conn.execute(
-                "SELECT COUNT(*) FROM outbox_ack a WHERE a.output = ? AND a.machine = ? AND "
-                "a.health_id > ? AND EXISTS (SELECT 1 FROM health h WHERE h.id = a.health_id)",
-                (self.output, self.machine, int(position))).fetchone()[0]
-            return max(int(stored) - int(acked), 0)
-
-        return int(self.store._read("cannot count the outbox", read))
-
-    def latest_id(self) -> int | None:
-        """The newest stored window's row id of the machine, None if none.
-
-        Raises:
-            StoreError: the database cannot be read.
-        """
-        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
-            "SELECT id FROM health WHERE +machine = ? ORDER BY id DESC LIMIT 1",
-            (self.machine,)).fetchone())
-        return None if row is None else int(row[0])
-
-    def doc_at_or_before(self, health_id: int) -> str | None:
-        """The health message of the newest window of the machine at or below ``health_id``.
-
-        Raises:
-            StoreError: the database cannot be read.
-        """
-        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
-            "SELECT doc FROM health WHERE +machine = ? AND id <= ? ORDER BY id DESC LIMIT 1",
-            (self.machine, int(health_id))).fetchone())
-        return None if row is None else str(row[0])
-
-    def ack(self, delivered: list[OutboxRow], position: int) -> None:
-        """Record the ``delivered`` windows and the new delivered ``position`` (the marks at
-        or below it are no longer needed) in one transaction.
-
-        Raises:
-            StoreError: the database cannot be written (nothing is recorded; call again).
-        """
-        wall = time.time()
-
-        def write(conn: sqlite3.Connection) -> None:
-            self._same_file(conn).executemany(
-                "INSERT OR IGNORE INTO outbox_ack (output, machine, run, window, health_id, "
-                "wall) VALUES (?, ?, ?, ?, ?, ?)",
-                [(self.output, self.machine, r.run, r.window, r.id, wall) for r in delivered
-                 if r.id > position])
-            conn.execute(
-                "INSERT INTO outbox_position (output, machine, health_id, wall) VALUES "
-                "(?, ?, ?, ?) ON CONFLICT (output, machine) DO UPDATE SET health_id = "
-                "MAX(health_id, excluded.health_id), wall = excluded.wall",
-                (self.output, self.machine, int(position), wall))
-            conn.execute("DELETE FROM outbox_ack WHERE output = ? AND machine = ? AND "
-                         "health_id <= (SELECT health_id FROM outbox_position WHERE output = ? "
-                         "AND machine = ?)", (self.output, self.machine, self.output,
-                                              self.machine))
-
-        self.store._write("cannot record the delivered windows", write)
-
-    def __repr__(self) -> str:
-        return f"StoreOutbox({self.output!r}, {self.machine!r}, {self.store.path})"

@@ -1,0 +1,297 @@
+"""``twinwatch watch`` and ``tail``: the machines on a Zenoh network (:mod:`twinwatch.watch`), and
+the options by which they, and ``explain``, reach the daemons.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import click
+
+CONNECT_HELP = ("Zenoh endpoint to connect to: a daemon (a peer) or a router the daemons "
+                "connect to (repeatable). Default: tcp/127.0.0.1:7447 only, where a daemon "
+                "listens unless its [zenoh] listen says otherwise. No scouting: only these are "
+                "used.")
+
+CONFIG_HELP = ("Also watch the machines configured in this file or gateway directory "
+               "(*.toml): each one's Zenoh endpoint ([zenoh] listen; a client's connect, its "
+               "router; 0.0.0.0 read as 127.0.0.1) and their key_prefix. An endpoint of theirs "
+               "where nothing answers (a machine not running) is skipped with a note. Without "
+               "--connect, only these are used.")
+
+
+def zenoh_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """--connect, --mode, --prefix: how ``watch``, ``tail`` and ``explain`` reach the
+    daemons."""
+    fn = click.option("--prefix", default="twinwatch", show_default=True,
+                      help="The daemons' [zenoh] key_prefix.")(fn)
+    fn = click.option("--mode", type=click.Choice(["client", "peer"]), default="client",
+                      show_default=True, help="Zenoh mode of this session.")(fn)
+    return click.option("--connect", "connect", multiple=True, default=("tcp/127.0.0.1:7447",),
+                        show_default=True, metavar="ENDPOINT", help=CONNECT_HELP)(fn)
+
+
+def config_option(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """--config: ``watch`` and ``tail`` find the endpoints of configured machines."""
+    return click.option("--config", "config", default=None, metavar="PATH",
+                        type=click.Path(exists=True, path_type=Path), help=CONFIG_HELP)(fn)
+
+
+@dataclass(frozen=True)
+class Reach:
+    """Where a watcher connects: the endpoints (``optional``: those read from --config, which
+    may have nothing answering), the key prefix, and which machine files name each endpoint
+    read from the configuration."""
+
+    connect: tuple[str, ...]
+    prefix: str
+    optional: frozenset[str] = frozenset()
+    files: dict[str, list[str]] = field(default_factory=dict)
+
+    def skip(self, endpoint: str, why: str) -> None:
+        """Say on stderr that nothing answers at a configured machine's endpoint (``why``, the
+        session's error, is left out: it says the same at length)."""
+        names = self.files.get(endpoint, [])
+        more = f" and {len(names) - 3} more" if len(names) > 3 else ""
+        click.echo(f"twinwatch: nothing answers at {endpoint} ({', '.join(names[:3])}{more}): "
+                   "not watched (not running?)", err=True)
+
+
+def reach(connect: tuple[str, ...], config: Path | None, prefix: str) -> Reach:
+    """The endpoints and the prefix ``watch``/``tail`` use: ``--connect`` as given (its default
+    when neither it nor ``--config`` is given) and the endpoints the machines configured at
+    ``--config`` publish on (:func:`config_endpoints`), their key prefix unless ``--prefix``
+    is given.
+
+    Raises:
+        click.BadParameter: --config unreadable or not a configuration (one line), no machine
+            there publishes on Zenoh, or they use several key prefixes and --prefix is not
+            given.
+    """
+    if config is None:
+        return Reach(connect, prefix)
+    ctx = click.get_current_context()
+    explicit = ctx.get_parameter_source("connect") not in (
+        click.core.ParameterSource.DEFAULT, None)
+    found, prefixes = config_endpoints(config)
+    if not found:
+        raise click.BadParameter(f"{config}: no machine there publishes on Zenoh "
+                                 "([zenoh] enabled = false)", param_hint="--config")
+    if ctx.get_parameter_source("prefix") in (click.core.ParameterSource.DEFAULT, None):
+        if len(prefixes) > 1:
+            raise click.BadParameter(f"{config}: the machines use several key prefixes "
+                                     f"({', '.join(sorted(prefixes))}): give --prefix",
+                                     param_hint="--config")
+        prefix = next(iter(prefixes))
+    given = tuple(connect) if explicit else ()
+    derived = tuple(e for e in found if e not in given)
+    return Reach(given + derived, prefix, frozenset(derived), found)
+
+
+def config_endpoints(path: Path) -> tuple[dict[str, list[str]], set[str]]:
+    """The Zenoh endpoints the machines configured at ``path`` (a machine configuration, or a
+    gateway's directory: its ``*.toml`` files) publish on, each with the files that name it,
+    and their key prefixes. A machine's endpoints are its ``[zenoh] listen`` (a peer or a
+    router; ``0.0.0.0`` and ``[::]`` read as this host's loopback), else its ``connect`` (a
+    client: the router); a machine whose ``[zenoh]`` output is off has none. Only the
+    ``[zenoh]`` table is read (validated by the Zenoh output's own model), not the rest of the
+    configuration.
+
+    Raises:
+        click.BadParameter: a file cannot be read, is not TOML, or its [zenoh] table is not
+            valid (one line naming the file and the key); a directory without ``*.toml``.
+    """
+    import tomllib
+
+    from pydantic import ValidationError
+
+    from twinwatch.sinks.zenoh import ZenohConfig
+
+    if path.is_dir():
+        from twinwatch.daemon.host import MACHINE_GLOB
+
+        files = sorted(p for p in path.glob(MACHINE_GLOB) if p.is_file())
+        if not files:
+            raise click.BadParameter(f"{path}: no machine configuration ({MACHINE_GLOB}) in "
+                                     "this directory", param_hint="--config")
+    else:
+        files = [path]
+    found: dict[str, list[str]] = {}
+    prefixes: set[str] = set()
+    for f in files:
+        try:
+            data = tomllib.loads(f.read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise click.BadParameter(f"{f}: cannot read it: {exc.strerror}",
+                                     param_hint="--config") from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise click.BadParameter(f"{f}: not a TOML configuration: {exc}",
+                                     param_hint="--config") from None
+        try:
+            table = ZenohConfig.model_validate(data.get("zenoh", {}))
+        except ValidationError as exc:
+            err = exc.errors(include_url=False)[0]
+            loc = ".".join(str(x) for x in ("zenoh", *err["loc"]))
+            raise click.BadParameter(f"{f}: {loc}: {err['msg']}", param_hint="--config"
+                                     ) from None
+        if not table.enabled:
+            continue
+        endpoints = table.listen if table.mode != "client" and table.listen else table.connect
+        for e in endpoints:
+            found.setdefault(watch_endpoint(e), []).append(f.name)
+        if endpoints:
+            prefixes.add(table.key_prefix)
+    return found, prefixes
+
+
+def watch_endpoint(listen: str) -> str:
+    """The endpoint a watcher on this host connects to for a daemon's ``listen`` endpoint:
+    its metadata (``#...``, ``?...``) dropped, an unspecified address (``0.0.0.0``, ``[::]``)
+    read as the loopback one."""
+    proto, _, rest = listen.partition("/")
+    rest = rest.split("#", 1)[0].split("?", 1)[0]
+    host, _, port = rest.rpartition(":")
+    host = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}.get(host, host)
+    return f"{proto}/{host}:{port}"
+
+
+@click.command()
+@zenoh_options
+@config_option
+@click.option("--once", is_flag=True,
+              help="Print one snapshot and exit (after at most --wait seconds).")
+@click.option("--json", "as_json", is_flag=True,
+              help="JSON instead of the table: with --once one document, else one line per "
+              "refresh (for scripts).")
+@click.option("--wait", type=click.FloatRange(min=0), default=2.0, show_default=True,
+              help="--once: the longest wait for the machines to report [s]; it prints as soon "
+              "as every machine found has reported its last window.")
+@click.option("--interval", type=click.FloatRange(min=0.1), default=1.0, show_default=True,
+              help="Refresh period [s].")
+@click.option("--stale", type=click.FloatRange(min=0), default=10.0, show_default=True,
+              help="A machine on the network without a window for this long (at least 3 "
+              "window lengths) is shown stale [s].")
+def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None, once: bool,
+          as_json: bool, wait: float, interval: float, stale: float) -> None:
+    """Every machine on a Zenoh network at a glance: found by their daemons' liveliness tokens
+    (directly or through a router), each with its state (alive, stale, gone and since when),
+    its last window (age, index, run), each parameter's deviation from nominal, status, alarm
+    level and remaining useful life, its raised alarms, its discovered terms and its data
+    quality. Machines appear and disappear as their daemons start and stop. Ctrl-C exits.
+
+    What it connects to: only the endpoints given, no scouting. By default
+    tcp/127.0.0.1:7447, where a daemon listens unless its [zenoh] listen says otherwise (most
+    DC motor examples); a machine publishing on another port (the hydraulic examples on 7448
+    and 7449, the OPC UA ones on 7450 and 7451, the CANopen one on 7453, a gateway whose
+    machines' [zenoh] table says another) is not shown unless its endpoint is given with
+    --connect or its configuration with --config (a file or a gateway's directory: twinwatch
+    watch --config config/ watches every shipped example that runs).
+
+    Exit status: 0; 1 when the network cannot be reached; 2 for a bad option (--config
+    unreadable)."""
+    from twinwatch.watch import Fleet, WatchError, console, render, watching
+
+    where = reach(connect, config, prefix)
+    connect, prefix = where.connect, where.prefix
+    fleet = Fleet(stale_after=stale)
+    try:
+        with watching(connect, mode, prefix, fleet,  # type: ignore[arg-type]
+                      optional=where.optional, on_skip=where.skip) as watcher:
+            if once:
+                watcher.settle(wait)
+                snap = fleet.snapshot()
+                if as_json:
+                    click.echo(json.dumps(snap, indent=2, allow_nan=False))
+                else:
+                    console().print(render(snap, title=_fleet_title(connect, mode)))
+                return
+            if not sys.stdout.isatty():
+                # into a file or a pipe: every refresh written and flushed (a Live display
+                # wrote nothing until it ended, and nothing at all when stopped by SIGTERM)
+                import signal
+
+                def _stop(*_: Any) -> None:
+                    raise KeyboardInterrupt
+
+                with contextlib.suppress(ValueError):  # not the main thread (tests)
+                    signal.signal(signal.SIGTERM, _stop)
+            try:
+                if as_json:
+                    while True:
+                        time.sleep(interval)
+                        click.echo(json.dumps(fleet.snapshot(), separators=(",", ":"),
+                                              allow_nan=False))
+                        sys.stdout.flush()
+                if not sys.stdout.isatty():
+                    out = console()
+                    title = _fleet_title(connect, mode)
+                    while True:
+                        fleet.changed.wait(interval)
+                        fleet.changed.clear()
+                        out.print(render(fleet.snapshot(), title=title))
+                        sys.stdout.flush()
+                from rich.live import Live
+
+                title = _fleet_title(connect, mode)
+                with Live(render(fleet.snapshot(), title=title), auto_refresh=False) as live:
+                    while True:
+                        fleet.changed.wait(interval)
+                        fleet.changed.clear()
+                        live.update(render(fleet.snapshot(), title=title), refresh=True)
+            except KeyboardInterrupt:
+                return
+    except WatchError as exc:
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(1)
+
+
+def _fleet_title(connect: tuple[str, ...], mode: str) -> str:
+    return f"twinwatch fleet on {', '.join(connect)} ({mode})"
+
+
+@click.command()
+@click.argument("machine")
+@zenoh_options
+@config_option
+@click.option("--json", "as_json", is_flag=True,
+              help="Each health message as one line of JSON, exactly as published.")
+@click.option("--count", type=click.IntRange(min=1), default=None,
+              help="Exit after this many health messages.")
+@click.option("--history", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Start with each machine's last N windows (from its daemon's cache, at most "
+              "its [zenoh] cache).")
+def tail(machine: str, connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
+         as_json: bool, count: int | None, history: int) -> None:
+    """Follow MACHINE (its [machine] name, or * for every machine): one line per health message
+    as it arrives, the last window (or --history N) first; in text, each alarm change too. The
+    machine appearing and going are said on stderr, and so are windows missed on the way (a
+    router outage): those are then asked from the machine's history and printed once got.
+    Ctrl-C exits. It connects where `watch` does (--connect, --config: see `twinwatch watch
+    --help`).
+
+    Exit status: 0; 1 when the network cannot be reached; 2 for a bad option."""
+    from twinwatch.watch import Fleet, Tail, WatchError, watching
+
+    where = reach(connect, config, prefix)
+    connect, prefix = where.connect, where.prefix
+    printer = Tail(click.echo, as_json=as_json, note=lambda line: click.echo(line, err=True))
+    try:
+        with watching(connect, mode, prefix, Fleet(), machine,  # type: ignore[arg-type]
+                      optional=where.optional, on_skip=where.skip,
+                      history=history, alarm_history=0, on_health=printer.on_health,
+                      on_alarm=printer.on_alarm, on_token=printer.on_token,
+                      on_gap=printer.on_gap):
+            try:
+                printer.run(count, waiting=f"{prefix}/{machine}")
+            except KeyboardInterrupt:
+                return
+    except WatchError as exc:
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(1)

@@ -1,0 +1,960 @@
+"""CANopen driver: a CiA 301 / CiA 402 drive's PDOs decoded passively into twin samples.
+
+A CANopen drive ships no DBC: its frames are described by its EDS (or the DCF a commissioning
+tool wrote), read with the ``canopen`` library (:func:`canopen.import_od`, ``$NODEID``
+resolved for the configured node id). The driver reads from that object dictionary, never from
+the drive, which PDOs the drive sends and what they carry: each TPDO's communication parameter
+(0x1800+n: COB-ID, transmission type) and mapping parameter (0x1A00+n: index, sub-index and bit
+length of each mapped object), and likewise each RPDO (0x1400+n / 0x1600+n), which the master
+(the PLC) sends to the drive, e.g. the CiA 402 target velocity: a listener hears both. A twin
+channel names an object (``"0x606C"``, ``"0x6078sub0"`` or its EDS name, ``"Velocity actual
+value"``) and how its raw value becomes the twin's SI unit: ``value = raw * factor + offset``,
+the factor a number or a named unit (:data:`FACTORS`: ``"0.001rpm"``, ``"mV"``,
+``"per_mille_rated_current"``, which reads the motor rated current 0x6075 from the EDS/DCF,
+``"inc/s"``, the position encoder resolution 0x608F ...).
+
+Passive: the driver never sends. It builds no ``canopen.Network`` (that object owns the bus
+and can send NMT, SDO, SYNC and PDO frames), decodes the frames itself from the mapping, and
+never calls ``send`` on its bus; a live interface is put in receive-only mode where python-can
+allows it. (``tests/test_drivers_canopen.py`` listens on the bus and sees no frame of it.)
+
+Samples:
+
+* ``sample_on = "sync"`` (default): one sample per SYNC frame (COB-ID from 0x1005, 0x80 by
+  default), stamped with that SYNC's time stamp (bus or log clock), once every TPDO that carries
+  a channel and is sent on every SYNC (transmission type 1) has arrived after it; channels of
+  other PDOs (event-driven, every n-th SYNC, an RPDO) hold their latest value. A SYNC with a
+  counter (0x1019 > 1) numbers the cycles: a jump counts the missed samples in ``stats.gaps``.
+* ``sample_on = "TPDO1"`` (a drive that sends event-driven TPDOs, no SYNC on the bus): one
+  sample each time that TPDO arrives, stamped with its frame's time.
+
+The drive's state, read from its own frames (a drive in fault keeps sending):
+
+* EMCY (0x80 + node id): an error code other than 0x00xx puts the drive *in fault* (counted in
+  ``stats.extra["emcy_faults"]``); an EMCY with code 0x0000 (error reset) clears it;
+* the CiA 402 statusword 0x6041, when a PDO maps it: its fault bit (bit 3) set puts the drive in
+  fault (``statusword_faults``), cleared takes it out;
+* the heartbeat (0x700 + node id): missing for longer than ``heartbeat_margin`` times the
+  producer time (0x1017 of the EDS/DCF, or ``heartbeat_time``) counts in ``heartbeat_lost``
+  and is named in :attr:`CanopenDriver.silent`; a boot-up message (the drive restarted) counts
+  in ``boot_ups``; an NMT state other than operational is named with the faults.
+
+The drive in fault is :attr:`CanopenDriver.device_faults` (systemd's STATUS, the health
+message's ``source.device_faults``), the heartbeat missing :attr:`CanopenDriver.silent`
+(``source.silent``); both within the window they happen in. The samples go on: the twin sees
+what the drive does while it is in fault.
+
+Bad input is counted, logged once, and survived (:class:`~twinwatch.drivers.base.DriverStats`):
+a frame of another node or of an object not needed counts in ``frames`` only (``other_frames``);
+a PDO shorter than its mapping (a truncated PDO) in ``bad_frames`` and ``truncated_pdos`` (its
+values are not used); a SYNC cycle in which a needed TPDO did not arrive in
+``incomplete_syncs``; NaN in ``bad_values``.
+
+Example (TOML, the ``[driver]`` table of a machine config)::
+
+    [driver]
+    type = "canopen"
+    interface = "socketcan"
+    channel = "can0"
+    node_id = 5
+    eds = "drive.eds"                     # or the DCF; relative to this file
+    sample_period = 0.01                  # the SYNC period
+    [driver.channels]
+    omega = { object = "0x606C", factor = "0.001rpm", unit = "rad/s" }
+    ia = { object = "0x6078", factor = "per_mille_rated_current", unit = "A" }
+    Va = { object = "0x2100", factor = "mV", unit = "V" }
+    setpoint = { object = "0x60FF", factor = "0.001rpm", unit = "rad/s" }
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import struct
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, field_validator
+
+from twinwatch.drivers.base import (
+    Driver,
+    DriverConfig,
+    DriverConfigError,
+    DriverInitializationError,
+    DriverOperationError,
+    Sample,
+    validated_config,
+)
+from twinwatch.io.counter import SampleCounter
+
+if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no CAN stack
+    import can
+
+    from twinwatch.drivers.can import _FrameSource
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["FACTORS", "CanopenChannel", "CanopenDriver", "CanopenDriverConfig", "load_plan"]
+
+_RPM = 2.0 * math.pi / 60.0
+
+#: Named factors, raw value -> SI unit. Numbers need no name; these are the CiA 402 units a
+#: drive's manual states. ``per_mille_rated_current`` / ``per_mille_rated_torque`` read the
+#: motor rated current 0x6075 [mA] / rated torque 0x6076 [mN m] from the EDS/DCF; ``inc/s`` and
+#: ``inc`` the position encoder resolution 0x608F (increments per motor revolutions).
+FACTORS: Mapping[str, float | None] = {
+    "rad/s": 1.0,
+    "rpm": _RPM,
+    "0.1rpm": _RPM * 0.1,
+    "0.01rpm": _RPM * 0.01,
+    "0.001rpm": _RPM * 0.001,
+    "rev/s": 2.0 * math.pi,
+    "V": 1.0,
+    "mV": 1e-3,
+    "A": 1.0,
+    "mA": 1e-3,
+    "Nm": 1.0,
+    "mNm": 1e-3,
+    "per_mille_rated_current": None,
+    "per_mille_rated_torque": None,
+    "inc/s": None,
+    "inc": None,
+}
+
+_OBJECT_RE = re.compile(r"^0x([0-9A-Fa-f]{1,4})(?:sub(?:0x)?([0-9A-Fa-f]{1,2}))?$")
+_TPDO_RE = re.compile(r"^[Tt][Pp][Dd][Oo]([1-9][0-9]{0,2})$")
+
+#: ODVariable data types (CiA 301) the driver decodes as numbers: (signed, float)
+_INTEGER_TYPES = {0x2: True, 0x3: True, 0x4: True, 0x10: True, 0x12: True, 0x13: True,
+                  0x14: True, 0x15: True, 0x5: False, 0x6: False, 0x7: False, 0x16: False,
+                  0x18: False, 0x19: False, 0x1A: False, 0x1B: False, 0x1: False}
+_FLOAT_TYPES = {0x8: struct.Struct("<f"), 0x11: struct.Struct("<d")}
+
+_NMT_STATES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
+
+
+class CanopenChannel(BaseModel):
+    """Where one twin channel comes from: ``value_twin = raw * factor + offset``.
+
+    Attributes:
+        object: the mapped object: ``"0x606C"`` (sub-index 0), ``"0x6078sub0"``, or its EDS
+            ``ParameterName`` (``"Velocity actual value"``; a record's member as
+            ``"Record name.Member name"``).
+        factor: raw value -> the twin's SI unit: a number, or a name of :data:`FACTORS`.
+        offset: added after scaling, in the twin's unit.
+        unit: the twin channel's unit, for documentation.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    object: str = Field(min_length=1)
+    factor: StrictFloat | str = 1.0
+    offset: StrictFloat = Field(0.0, allow_inf_nan=False)
+    unit: str | None = None
+
+    @field_validator("factor")
+    @classmethod
+    def _known_factor(cls, value: float | str) -> float | str:
+        if isinstance(value, str):
+            if value not in FACTORS:
+                raise ValueError(f"unknown factor {value!r}; give a number or one of: "
+                                 f"{', '.join(FACTORS)}")
+        elif not math.isfinite(value) or value == 0.0:
+            raise ValueError("factor must be a finite number other than 0")
+        return value
+
+
+class CanopenDriverConfig(DriverConfig):
+    """Configuration of :class:`CanopenDriver` (the ``[driver]`` table, ``type = "canopen"``).
+
+    Attributes:
+        type: always ``"canopen"``.
+        interface, channel, bitrate, bus_options: the python-can bus, as for the CAN driver
+            (``socketcan``/``can0``, ``pcan``/``PCAN_USBBUS1``, ...).
+        log_file: replay a candump ``.log`` / ``.asc`` / ``.blf`` ... instead of a live bus.
+        realtime: pace a log replay by its time stamps.
+        node_id: the drive's node id, 1-127 (its PDO, EMCY and heartbeat COB-IDs).
+        eds: the drive's EDS or DCF (relative to the configuration file's directory, or
+            ``twinwatch:plant/dcmotor-cia402.eds``): its PDO mapping is read from it.
+        sample_period: the nominal sample period [s] (the SYNC period).
+        sample_on: ``"sync"``, or ``"TPDO<n>"``: one sample per frame of that TPDO.
+        heartbeat_time: the drive's heartbeat producer time [s]; None: 0x1017 of the EDS/DCF;
+            0: not watched.
+        heartbeat_margin: the heartbeat is missing after this many producer times.
+        channels: twin channel -> :class:`CanopenChannel`, at least one.
+        reopen_after, silent_after: as the CAN driver's (a live bus with no frame at all for
+            ``reopen_after`` s is reopened; a held PDO not received for ``silent_after`` s of
+            frame time leaves its channels out).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["canopen"]
+    interface: str | None = None
+    channel: str | StrictInt | None = None
+    bitrate: StrictInt | None = Field(default=None, gt=0)
+    bus_options: dict[str, str | int | float | bool] = Field(default_factory=dict)
+    log_file: Path | None = None
+    realtime: bool = False
+    node_id: StrictInt = Field(ge=1, le=127)
+    eds: Path
+    sample_period: StrictFloat = Field(gt=0, allow_inf_nan=False)
+    sample_on: str = "sync"
+    heartbeat_time: StrictFloat | None = Field(None, ge=0, allow_inf_nan=False)
+    heartbeat_margin: StrictFloat = Field(1.5, ge=1.0, allow_inf_nan=False)
+    channels: dict[str, CanopenChannel] = Field(min_length=1)
+    reopen_after: StrictFloat | None = Field(2.0, gt=0, allow_inf_nan=False)
+    silent_after: StrictFloat = Field(1.0, gt=0, allow_inf_nan=False)
+
+    @field_validator("interface")
+    @classmethod
+    def _known_interface(cls, value: str | None) -> str | None:
+        import can
+
+        if value is not None and value not in can.interfaces.VALID_INTERFACES:
+            raise ValueError(f"python-can has no interface {value!r}; known: "
+                             f"{', '.join(sorted(can.interfaces.VALID_INTERFACES))}")
+        return value
+
+    @field_validator("sample_on")
+    @classmethod
+    def _sample_on(cls, value: str) -> str:
+        if value != "sync" and not _TPDO_RE.match(value):
+            raise ValueError(f"expected 'sync' or 'TPDO<n>' (e.g. 'TPDO1'), got {value!r}")
+        return value
+
+    def twin_channels(self) -> tuple[str, ...]:
+        """The twin channels this driver delivers (``channels``)."""
+        return tuple(self.channels)
+
+    def required_files(self, base_dir: Path) -> dict[str, Path]:
+        """Config key -> file that must exist to start (``eds``, ``log_file``)."""
+        cfg = self.resolved(base_dir)
+        files = {"driver.eds": cfg.eds}
+        if cfg.log_file is not None:
+            files["driver.log_file"] = cfg.log_file
+        return files
+
+    def resolved(self, base_dir: Path | None) -> CanopenDriverConfig:
+        """A copy whose relative ``eds`` and ``log_file`` are joined to ``base_dir``."""
+        from twinwatch.drivers.can import _resolve
+
+        if base_dir is None:
+            return self
+        update: dict[str, Path] = {"eds": _resolve(self.eds, base_dir)}
+        if self.log_file is not None:
+            update["log_file"] = _resolve(self.log_file, base_dir)
+        return self.model_copy(update=update)
+
+
+# -- the plan: what the EDS/DCF says the drive sends ------------------------------------------
+
+
+@dataclass(slots=True)
+class _Entry:
+    """One mapped object of a PDO: where it sits and how it decodes."""
+
+    index: int
+    subindex: int
+    name: str
+    bit_offset: int
+    bits: int
+    data_type: int
+
+
+@dataclass(slots=True)
+class _Pdo:
+    """One PDO of the EDS/DCF (a TPDO the drive sends or an RPDO the master sends)."""
+
+    name: str  # "TPDO1", "RPDO1"
+    cob_id: int
+    trans_type: int
+    entries: list[_Entry]
+    #: the mapping's length [bits], dummy entries included: a shorter frame is truncated
+    bits: int
+    #: (twin channel, entry, factor, offset) decoded from each frame
+    channels: list[tuple[str, _Entry, float, float]] = field(default_factory=list)
+    statusword: _Entry | None = None
+
+
+    @property
+    def every_sync(self) -> bool:
+        """Sent (TPDO) on every SYNC: a sample waits for it."""
+        return self.name.startswith("T") and self.trans_type == 1
+
+
+@dataclass(slots=True)
+class CanopenPlan:
+    """What the driver listens for, from the configuration and the EDS/DCF.
+
+    Attributes:
+        pdos: COB-ID -> the PDO carrying channels or the statusword.
+        all_pdos: every enabled PDO of the EDS/DCF, by name (``TPDO1``, ``RPDO1``).
+        sync_id: the SYNC COB-ID (0x1005).
+        sync_counter: the SYNC counter overflow value (0x1019; 0/1: no counter).
+        heartbeat_s: the producer time [s] watched (0: not watched).
+        channels: twin channel -> ``"TPDO1 0x606C Velocity actual value"``.
+    """
+
+    pdos: dict[int, _Pdo]
+    all_pdos: dict[str, _Pdo]
+    sync_id: int
+    sync_counter: int
+    heartbeat_s: float
+    channels: dict[str, str]
+
+
+def _od_value(var: Any) -> Any:
+    """A variable's value as the EDS/DCF gives it: a DCF's value, else the default."""
+    return var.value if getattr(var, "value", None) is not None else var.default
+
+
+def _lookup(od: Any, text: str) -> Any:
+    """The OD variable an ``object`` key names, or None."""
+    import canopen.objectdictionary as cod
+
+    m = _OBJECT_RE.match(text.strip())
+    try:
+        if m:
+            index = int(m.group(1), 16)
+            sub = int(m.group(2), 16) if m.group(2) is not None else None
+            obj = od[index]
+            if isinstance(obj, cod.ODVariable):
+                return obj if sub in (None, 0) else None
+            return obj[0 if sub is None else sub]
+        if text in od:
+            obj = od[text]
+            return obj if isinstance(obj, cod.ODVariable) else None
+        head, dot, tail = text.partition(".")
+        if dot and head in od:
+            obj = od[head]
+            if not isinstance(obj, cod.ODVariable):
+                return obj[tail]
+    except KeyError:
+        return None
+    return None
+
+
+def _read_pdos(od: Any, node_id: int, eds: Path) -> dict[str, _Pdo]:
+    """Every enabled PDO the EDS/DCF describes (communication and mapping parameters)."""
+    pdos: dict[str, _Pdo] = {}
+    for kind, com_base, map_base, predefined in (("TPDO", 0x1800, 0x1A00, 0x180),
+                                                 ("RPDO", 0x1400, 0x1600, 0x200)):
+        for n in range(512):
+            if com_base + n not in od or map_base + n not in od:
+                continue
+            name = f"{kind}{n + 1}"
+            com, mapping = od[com_base + n], od[map_base + n]
+            try:
+                cob_raw = int(_od_value(com[1]))
+                trans = int(_od_value(com[2]) or 0) if 2 in com else 255
+                count = int(_od_value(mapping[0]) or 0)
+                words = [int(_od_value(mapping[s]) or 0) for s in range(1, count + 1)]
+            except (KeyError, TypeError, ValueError) as exc:
+                raise DriverConfigError(
+                    f"eds: {str(eds)!r}: {name}'s parameters 0x{com_base + n:04X} / "
+                    f"0x{map_base + n:04X} are incomplete ({type(exc).__name__}: {exc})"
+                ) from None
+            if cob_raw & 0x80000000:
+                continue  # not valid: the PDO is not sent
+            cob_id = cob_raw & 0x1FFFFFFF
+            if n < 4 and cob_id == predefined + n * 0x100:
+                cob_id += node_id  # a default written without $NODEID: the predefined set
+            entries, offset = [], 0
+            for word in words:
+                index, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
+                if index == 0 or bits == 0:
+                    continue
+                if index < 0x20:  # a dummy entry (a data type's index): padding
+                    offset += bits
+                    continue
+                try:
+                    var = od.get_variable(index, sub)
+                except KeyError:
+                    var = None
+                if var is None:
+                    raise DriverConfigError(
+                        f"eds: {str(eds)!r}: {name} maps 0x{index:04X}sub{sub}, which the "
+                        f"file does not define")
+                entries.append(_Entry(index, sub, var.name, offset, bits, int(var.data_type)))
+                offset += bits
+            pdos[name] = _Pdo(name, cob_id, trans, entries, offset)
+    return pdos
+
+
+def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
+    """Read the EDS/DCF and check the configuration against it (no bus is touched).
+
+    Args:
+        config: the resolved configuration (``eds`` an absolute path or relative to the
+            current directory).
+
+    Returns:
+        The :class:`CanopenPlan`.
+
+    Raises:
+        DriverConfigError: the EDS/DCF is missing or does not parse (``eds: ...``), a channel's
+            object is not in it or mapped to no PDO (``channels.<ch>.object: ...``), its
+            factor needs an object the file lacks (``channels.<ch>.factor: ...``), or
+            ``sample_on`` names no enabled TPDO.
+    """
+    import canopen
+
+    eds = config.eds
+    if not eds.is_file():
+        raise DriverConfigError(f"eds: file {str(eds)!r} not found")
+    if eds.suffix.lower() not in (".eds", ".dcf"):
+        raise DriverConfigError(f"eds: {str(eds)!r} is not an .eds or .dcf file")
+    try:
+        od = canopen.import_od(str(eds), config.node_id)
+    except Exception as exc:  # noqa: BLE001 - a parse of a user's file: configparser, int(), KeyError...
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DriverConfigError(
+            f"eds: {str(eds)!r} does not parse as an EDS/DCF ({type(exc).__name__}: {first})"
+        ) from None
+    if len(od) == 0:
+        raise DriverConfigError(f"eds: {str(eds)!r} defines no object: is it an EDS/DCF?")
+    all_pdos = _read_pdos(od, config.node_id, eds)
+    by_object: dict[tuple[int, int], list[tuple[_Pdo, _Entry]]] = {}
+    for pdo in all_pdos.values():
+        for entry in pdo.entries:
+            by_object.setdefault((entry.index, entry.subindex), []).append((pdo, entry))
+    used: dict[int, _Pdo] = {}
+    described: dict[str, str] = {}
+    for ch, spec in config.channels.items():
+        var = _lookup(od, spec.object)
+        if var is None:
+            raise DriverConfigError(
+                f"channels.{ch}.object: {spec.object!r} is not an object of {str(eds)!r} "
+                "(write 0x6064, 0x6078sub0 or the EDS ParameterName)")
+        sub = var.subindex if var.parent is not None and var.parent is not od else 0
+        found = by_object.get((var.index, sub))
+        if not found:
+            mapped = sorted({f"0x{e.index:04X} {e.name}" for p in all_pdos.values()
+                             for e in p.entries})
+            raise DriverConfigError(
+                f"channels.{ch}.object: {spec.object!r} (0x{var.index:04X}sub{sub} "
+                f"{var.name}) is mapped to no TPDO or RPDO of {str(eds)!r}: the drive does not "
+                f"send it; mapped: {', '.join(mapped) or 'nothing'}")
+        # a TPDO (the drive's own) before an RPDO (the master's)
+        pdo, entry = sorted(found, key=lambda pe: (pe[0].name[0] != "T", pe[0].name))[0]
+        if entry.data_type not in _INTEGER_TYPES and entry.data_type not in _FLOAT_TYPES:
+            raise DriverConfigError(
+                f"channels.{ch}.object: {var.name} has data type 0x{entry.data_type:X}, not a "
+                "number")
+        factor = _factor(od, ch, spec.factor, eds)
+        pdo.channels.append((ch, entry, factor, spec.offset))
+        used[pdo.cob_id] = pdo
+        described[ch] = f"{pdo.name} 0x{entry.index:04X} {entry.name}"
+    for pdo in all_pdos.values():  # the statusword's fault bit, wherever it is mapped
+        for entry in pdo.entries:
+            if entry.index == 0x6041 and entry.subindex == 0 and pdo.name.startswith("T"):
+                pdo.statusword = entry
+                used[pdo.cob_id] = pdo
+    if config.sample_on != "sync":
+        target = all_pdos.get(config.sample_on.upper())
+        if target is None or not target.name.startswith("T"):
+            raise DriverConfigError(
+                f"sample_on: {config.sample_on!r} is not an enabled TPDO of {str(eds)!r}; "
+                f"its TPDOs: {', '.join(n for n in all_pdos if n.startswith('T')) or 'none'}")
+        used[target.cob_id] = target
+    sync_id, counter = 0x80, 0
+    if 0x1005 in od:
+        sync_id = int(_od_value(od[0x1005]) or 0x80) & 0x7FF
+    if 0x1019 in od:
+        counter = int(_od_value(od[0x1019]) or 0)
+    if config.heartbeat_time is not None:
+        heartbeat = config.heartbeat_time
+    elif 0x1017 in od:
+        heartbeat = float(_od_value(od[0x1017]) or 0) / 1000.0
+    else:
+        heartbeat = 0.0
+    return CanopenPlan(pdos=used, all_pdos=all_pdos, sync_id=sync_id, sync_counter=counter,
+                       heartbeat_s=heartbeat, channels=described)
+
+
+def _factor(od: Any, ch: str, factor: float | str, eds: Path) -> float:
+    """A channel's factor as a number (a named one that needs the EDS/DCF read from it)."""
+    if not isinstance(factor, str):
+        return float(factor)
+    fixed = FACTORS[factor]
+    if fixed is not None:
+        return fixed
+
+    def need(index: int, sub: int, what: str) -> float:
+        try:
+            var = od.get_variable(index, sub)
+            value = None if var is None else _od_value(var)
+        except KeyError:
+            value = None
+        if not value:
+            raise DriverConfigError(
+                f"channels.{ch}.factor: {factor!r} needs the {what} (0x{index:04X}sub{sub}) "
+                f"and {str(eds)!r} gives none; write the factor as a number")
+        return float(value)
+
+    if factor == "per_mille_rated_current":
+        return need(0x6075, 0, "motor rated current [mA]") * 1e-3 / 1000.0
+    if factor == "per_mille_rated_torque":
+        return need(0x6076, 0, "motor rated torque [mN m]") * 1e-3 / 1000.0
+    increments = need(0x608F, 1, "position encoder increments")
+    revolutions = need(0x608F, 2, "position encoder motor revolutions")
+    return 2.0 * math.pi * revolutions / increments  # inc/s -> rad/s, inc -> rad
+
+
+def _decode(entry: _Entry, data: bytes) -> float:
+    """One mapped object's raw value from a PDO's data (little endian, bit offsets)."""
+    if entry.data_type in _FLOAT_TYPES and entry.bit_offset % 8 == 0:
+        start = entry.bit_offset // 8
+        return float(_FLOAT_TYPES[entry.data_type].unpack_from(data, start)[0])
+    raw = (int.from_bytes(data, "little") >> entry.bit_offset) & ((1 << entry.bits) - 1)
+    if _INTEGER_TYPES.get(entry.data_type) and raw >> (entry.bits - 1):
+        raw -= 1 << entry.bits
+    return float(raw)
+
+
+# -- the driver ------------------------------------------------------------------------------
+
+
+class CanopenDriver(Driver):
+    """Twin samples from a CANopen drive's PDOs, decoded from its EDS/DCF; never transmits.
+
+    Args:
+        config: the validated configuration (:class:`CanopenDriverConfig`).
+        bus: an already open python-can bus to listen on (the simulated drive's virtual bus);
+            the driver never shuts it down.
+        base_dir: directory relative ``eds`` and ``log_file`` paths are resolved against.
+        listen_only: put a live interface in receive-only mode (``check-config``).
+
+    Attributes:
+        plan: what the EDS/DCF says (:class:`CanopenPlan`).
+
+    Raises:
+        DriverConfigError: see :func:`load_plan`; a log file that cannot be read.
+        DriverInitializationError: the bus cannot be opened.
+    """
+
+    config_class = CanopenDriverConfig
+    sample_model = "dc_motor"
+    sample_machine = "dc-motor-canopen"
+    sample_title = "a CiA 402 drive on a CANopen bus"
+
+    @classmethod
+    def safe_to_probe(cls, config: DriverConfig) -> bool:
+        """A log replay can be opened; a live bus is probed receive-only (:meth:`probe`)."""
+        return getattr(config, "log_file", None) is not None
+
+    @classmethod
+    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
+        """``check-config``: the EDS/DCF read and the channels checked against its mapping,
+        then the source opened (a live interface receive-only where python-can allows it) and
+        closed, nothing sent.
+
+        Raises:
+            DriverError: the EDS/DCF, a channel, the log or the interface.
+        """
+        assert isinstance(config, CanopenDriverConfig)
+        plan = load_plan(config.resolved(base_dir))
+        mapped = "; ".join(f"{ch} <- {where}" for ch, where in plan.channels.items())
+        with cls(config, base_dir=base_dir, listen_only=config.log_file is None) as driver:
+            if config.log_file is not None:
+                return f"log {str(driver.config.log_file)!r} opened; {mapped}"
+            mode = ("receive-only" if driver.receive_only else "this interface has no "
+                    "receive-only mode; twinwatch never sends")
+            return f"{cls.describe(config)} opened ({mode}); {mapped}"
+
+    @classmethod
+    def reopens(cls, config: DriverConfig) -> bool:
+        """A live bus (no ``log_file``) may come and go: waited for and reopened."""
+        return getattr(config, "log_file", None) is None
+
+    @classmethod
+    def describe(cls, config: DriverConfig) -> str:
+        """``"CANopen node 5 on CAN interface 'socketcan' channel 'can0'"``, or the log."""
+        assert isinstance(config, CanopenDriverConfig)
+        if config.log_file is not None:
+            return f"CANopen node {config.node_id} in log {str(config.log_file)!r}"
+        return (f"CANopen node {config.node_id} on CAN interface {config.interface!r} "
+                f"channel {config.channel!r}")
+
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """A log replayed from its start is a new run; a live bus goes on."""
+        return getattr(config, "log_file", None) is not None
+
+    def __init__(self, config: CanopenDriverConfig, *, bus: can.BusABC | None = None,
+                 base_dir: Path | None = None, listen_only: bool = False) -> None:
+        super().__init__()
+        self._source: _FrameSource | None = None
+        self._listen_only = listen_only
+        #: the bus was put in receive-only mode (``listen_only`` and the interface allows it)
+        self.receive_only = False
+        try:
+            self._setup(config.resolved(base_dir), bus)
+        except BaseException:
+            self.close()
+            raise
+
+    @classmethod
+    def from_config(cls, config: CanopenDriverConfig | Mapping[str, Any], *,
+                    base_dir: Path | None = None,
+                    bus: can.BusABC | None = None) -> CanopenDriver:
+        """Build a driver from a validated config or a raw ``[driver]`` table.
+
+        Raises:
+            DriverInitializationError: the table does not validate, or see the class.
+        """
+        config = validated_config(CanopenDriverConfig, config, "CANopen")
+        return cls(config, bus=bus, base_dir=base_dir)
+
+    # -- construction -------------------------------------------------------------------------
+    def _setup(self, config: CanopenDriverConfig, bus: can.BusABC | None) -> None:
+        self.config = config
+        self.channels = tuple(config.channels)
+        self.sample_period = config.sample_period
+        self.plan = plan = load_plan(config)
+        node = config.node_id
+        self._emcy_id, self._heartbeat_id = 0x80 + node, 0x700 + node
+        self._sync_id = plan.sync_id if config.sample_on == "sync" else None
+        self._sample_pdo = (None if config.sample_on == "sync"
+                            else plan.all_pdos[config.sample_on.upper()].cob_id)
+        #: the TPDOs a SYNC's sample waits for (sent on every SYNC, carrying a channel)
+        self._every_sync = frozenset(p.cob_id for p in plan.pdos.values()
+                                     if p.channels and p.every_sync)
+        #: every PDO carrying channels, watched for silence (PDO name -> its channels)
+        self._watched = {p.name: [ch for ch, *_ in p.channels] for p in plan.pdos.values()
+                         if p.channels}
+        #: the PDOs whose channels hold their latest value: left out of the samples when silent
+        self._held = {p.name: [ch for ch, *_ in p.channels] for p in plan.pdos.values()
+                      if p.channels and (self._sync_id is None or not p.every_sync)
+                      and p.cob_id != self._sample_pdo}
+        self._latest: dict[str, float] = {}
+        self._cycle_t: float | None = None  # the open SYNC cycle's stamp
+        self._pending: set[int] = set()
+        self._skip_cycle = False
+        self._counter = SampleCounter(plan.sync_counter if plan.sync_counter > 1 else None)
+        # the drive's state
+        self._emcy: str | None = None
+        self._status_fault = False
+        self._nmt: int | None = None
+        self._last_heartbeat: float | None = None
+        self._heartbeat_missing = False
+        self._first_stamp: float | None = None
+        self._now: float | None = None  # the last frame's stamp
+        self._seen: dict[str, float] = {}
+        self._silent: tuple[str, ...] = ()
+        self._silent_logged: set[str] = set()
+        self._faults: tuple[str, ...] = ()
+        self._last_frame_wall = time.monotonic()
+        self._source = self._open_source(config, bus)
+        from twinwatch.drivers.can import _BusSource
+
+        self._watch_silence = (isinstance(self._source, _BusSource) and self._source.owned
+                               and config.reopen_after is not None)
+        logger.info("CANopen driver ready: node %d, %s, EDS %s, %s; %s; heartbeat %s",
+                    node, self.describe(config), config.eds,
+                    f"sample on SYNC 0x{plan.sync_id:X}" if self._sync_id is not None
+                    else f"sample on {config.sample_on}",
+                    "; ".join(f"{ch} <- {w}" for ch, w in plan.channels.items()),
+                    f"{plan.heartbeat_s:g} s" if plan.heartbeat_s else "not watched")
+
+    def _wanted_ids(self) -> list[int]:
+        ids = {self._emcy_id, self._heartbeat_id, *self.plan.pdos}
+        if self._sync_id is not None:
+            ids.add(self._sync_id)
+        return sorted(ids)
+
+    def _open_source(self, config: CanopenDriverConfig, bus: can.BusABC | None) -> _FrameSource:
+        import can
+
+        from twinwatch.drivers.can import _BusSource, _LogSource, _receive_only
+
+        if bus is not None:
+            if config.log_file is not None:
+                raise DriverConfigError("log_file and a bus were both given; pick one")
+            return _BusSource(bus, owned=False)
+        if config.log_file is not None:
+            return _LogSource(config.log_file, realtime=config.realtime,
+                              on_bad=self._on_bad_line)
+        if config.interface is None or config.channel is None:
+            raise DriverConfigError(
+                "interface and channel are required for a live bus (or give log_file)")
+        kwargs: dict[str, Any] = dict(config.bus_options)
+        if config.bitrate is not None:
+            kwargs["bitrate"] = config.bitrate
+        kwargs.setdefault("can_filters", [{"can_id": i, "can_mask": 0x7FF, "extended": False}
+                                          for i in self._wanted_ids()])
+        try:
+            opened = can.Bus(interface=config.interface, channel=config.channel, **kwargs)
+        except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
+            raise DriverInitializationError(
+                f"cannot open CAN interface {config.interface!r} channel {config.channel!r}: "
+                f"{exc}") from exc
+        if self._listen_only:
+            self.receive_only = _receive_only(opened)
+        return _BusSource(opened, owned=True)
+
+    # -- state for STATUS and the health message ------------------------------------------------
+    @property
+    def silent(self) -> tuple[str, ...]:
+        """The drive's heartbeat when missing, and held PDOs not received for
+        ``silent_after`` s (with their channels)."""
+        return self._silent
+
+    @property
+    def device_faults(self) -> tuple[str, ...]:
+        """The drive in fault (its EMCY, its statusword's fault bit) or not operational."""
+        return self._faults
+
+    def _bump(self, key: str, n: int = 1) -> None:
+        self.stats.extra[key] = self.stats.extra.get(key, 0) + n
+
+    def _update_faults(self) -> None:
+        node = self.config.node_id
+        faults = []
+        if self._emcy is not None:
+            faults.append(f"node {node} in fault: EMCY {self._emcy}")
+        if self._status_fault:
+            faults.append(f"node {node} in fault: statusword 0x6041 fault bit set")
+        if self._nmt is not None and self._nmt not in (5,):
+            faults.append(f"node {node} NMT state "
+                          f"{_NMT_STATES.get(self._nmt, hex(self._nmt))}")
+        self._faults = tuple(faults)
+
+    def _check_heartbeat(self, now: float) -> None:
+        """Whether the heartbeat is missing at frame time ``now`` [s]."""
+        producer = self.plan.heartbeat_s
+        if not producer:
+            return
+        since = self._last_heartbeat if self._last_heartbeat is not None else self._first_stamp
+        assert since is not None
+        age = now - since
+        missing = age > producer * self.config.heartbeat_margin
+        if missing and not self._heartbeat_missing:
+            self._heartbeat_missing = True
+            self._bump("heartbeat_lost")
+            logger.warning("CANopen node %d: no heartbeat for %.2f s (producer time %g s): the "
+                           "drive may be off the bus or its firmware stuck", self.config.node_id,
+                           age, producer)
+        elif not missing and self._heartbeat_missing:
+            self._heartbeat_missing = False
+            logger.warning("CANopen node %d: heartbeat received again", self.config.node_id)
+        else:
+            return
+        self._update_silent(now, age if missing else None)
+
+    def _update_silent(self, now: float, heartbeat_age: float | None) -> None:
+        silent = []
+        if heartbeat_age is not None:
+            silent.append(f"node {self.config.node_id} heartbeat for {heartbeat_age:.1f} s "
+                          f"(producer time {self.plan.heartbeat_s:g} s)")
+        assert self._first_stamp is not None
+        for name, chans in self._watched.items():
+            age = now - self._seen.get(name, self._first_stamp)
+            if age > self.config.silent_after:
+                silent.append(f"{name} ({', '.join(chans)}) for {age:.1f} s")
+                if name not in self._silent_logged:
+                    self._silent_logged.add(name)
+                    self._bump("silent_pdos")
+                    logger.warning("CANopen %s (channels %s) not received for %.1f s: its "
+                                   "channels are missing from the samples until it is back",
+                                   name, ", ".join(chans), age)
+            elif name in self._silent_logged:
+                self._silent_logged.discard(name)
+                logger.warning("CANopen %s is received again", name)
+        self._silent = tuple(silent)
+
+    # -- reading --------------------------------------------------------------------------------
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        source = self._source
+        if source is None:  # pragma: no cover - only after a failed construction
+            raise DriverOperationError("CANopen driver has no frame source")
+        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        overtime = 0
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if self._watch_silence and remaining is None:
+                remaining = 1.0
+            frame = source.recv(remaining)
+            if frame is None:
+                self._check_bus_silence()
+                if deadline is None:
+                    continue
+                return None
+            self._last_frame_wall = time.monotonic()
+            sample = self._on_frame(frame)
+            if sample is not None:
+                return sample
+            if remaining == 0.0:
+                overtime += 1
+                if overtime >= 1000:
+                    return None
+
+    def _check_bus_silence(self) -> None:
+        if not self._watch_silence:
+            return
+        quiet = time.monotonic() - self._last_frame_wall
+        assert self.config.reopen_after is not None
+        if quiet > self.config.reopen_after:
+            raise DriverOperationError(
+                f"no CAN frame for {quiet:.1f} s ({self.describe(self.config)}): the bus is "
+                "silent or the interface down")
+
+    def _on_bad_line(self, line: int, exc: BaseException) -> None:
+        self.stats.frames += 1
+        self.stats.bad_frames += 1
+        self.log_once("log-line", "CAN log line %d is malformed (%s: %s): skipped, counted in "
+                      "stats.bad_frames", line, type(exc).__name__, exc)
+
+    def _on_frame(self, frame: can.Message) -> Sample | None:
+        """Account for one frame; a sample when it completes one."""
+        self.stats.frames += 1
+        if frame.is_error_frame or frame.is_remote_frame or frame.is_extended_id:
+            self._bump("other_frames")
+            return None
+        cob = frame.arbitration_id
+        now = float(frame.timestamp)
+        if self._first_stamp is None:
+            self._first_stamp = now
+        self._now = now
+        data = bytes(frame.data)
+        sample = None
+        if cob == self._sync_id:
+            sample = self._on_sync(now, data)
+        elif cob in self.plan.pdos:
+            sample = self._on_pdo(self.plan.pdos[cob], now, data)
+        elif cob == self._emcy_id:
+            self._on_emcy(data, now)
+        elif cob == self._heartbeat_id:
+            self._on_heartbeat(data, now)
+        else:
+            self._bump("other_frames")  # another node, or an object not needed
+        self._check_heartbeat(now)
+        return sample
+
+    def _on_sync(self, now: float, data: bytes) -> Sample | None:
+        if self._cycle_t is not None and self._pending:
+            self._bump("incomplete_syncs")
+            names = [p.name for p in self.plan.pdos.values() if p.cob_id in self._pending]
+            self.log_once("incomplete", "CANopen SYNC cycle at %.3f s ended without %s: no "
+                          "sample for it; counted in stats.extra['incomplete_syncs']",
+                          self._cycle_t, ", ".join(names))
+            self._update_silent(now, self._heartbeat_age())  # no sample: say what is missing
+        self._skip_cycle = False
+        if data and self._counter.modulus is not None:
+            step, missing = self._counter.update(data[0] - 1)
+            if step in ("duplicate", "stale"):
+                self._bump("duplicates" if step == "duplicate" else "reordered")
+                self._skip_cycle = True
+            elif step == "reset":
+                self._bump("counter_resets")
+            elif missing:
+                self.stats.gaps += missing
+                self.log_once("gap", "CANopen SYNC counter jumped by %d: %d samples lost; "
+                              "counted in stats.gaps", missing + 1, missing)
+        self._cycle_t = now
+        self._pending = set(self._every_sync)
+        if not self._pending and not self._skip_cycle:
+            return self._assemble(now)
+        return None
+
+    def _on_pdo(self, pdo: _Pdo, now: float, data: bytes) -> Sample | None:
+        if len(data) * 8 < pdo.bits:
+            self.stats.bad_frames += 1
+            self._bump("truncated_pdos")
+            self.log_once(f"short:{pdo.name}", "CANopen %s (0x%X) has %d bytes, its mapping %d "
+                          "bits: truncated, its values not used; counted in stats.bad_frames",
+                          pdo.name, pdo.cob_id, len(data), pdo.bits)
+            return None
+        self._seen[pdo.name] = now
+        for ch, entry, factor, offset in pdo.channels:
+            value = _decode(entry, data) * factor + offset
+            if not math.isfinite(value):
+                self.stats.bad_values += 1
+                self.log_once(f"nonfinite:{ch}", "CANopen %s -> %s decoded to %s; counted in "
+                              "stats.bad_values", entry.name, ch, value)
+            self._latest[ch] = value
+        if pdo.statusword is not None:
+            fault = bool(int(_decode(pdo.statusword, data)) & 0x08)
+            if fault != self._status_fault:
+                self._status_fault = fault
+                if fault:
+                    self._bump("statusword_faults")
+                logger.warning("CANopen node %d: statusword fault bit %s", self.config.node_id,
+                               "set: the drive is in fault" if fault else "cleared")
+                self._update_faults()
+        if pdo.cob_id == self._sample_pdo:
+            return self._assemble(now)
+        if self._cycle_t is not None and pdo.cob_id in self._pending:
+            self._pending.discard(pdo.cob_id)
+            if not self._pending and not self._skip_cycle:
+                return self._assemble(self._cycle_t)
+        return None
+
+    def _on_emcy(self, data: bytes, now: float) -> None:
+        if len(data) < 3:
+            self.stats.bad_frames += 1
+            self.log_once("emcy-short", "CANopen EMCY of node %d with %d bytes (8 expected): "
+                          "counted in stats.bad_frames", self.config.node_id, len(data))
+            return
+        from canopen.emcy import EmcyError
+
+        code, register = int.from_bytes(data[:2], "little"), data[2]
+        if code & 0xFF00 == 0:
+            if self._emcy is not None:
+                logger.warning("CANopen node %d: EMCY error reset (was %s)",
+                               self.config.node_id, self._emcy)
+            self._emcy = None
+        else:
+            text = f"{EmcyError(code, register, data[3:], now)}, error register 0x{register:02X}"
+            if text != self._emcy:
+                self._bump("emcy_faults")
+                logger.warning("CANopen node %d: EMCY %s: the drive is in fault",
+                               self.config.node_id, text)
+            self._emcy = text
+        self._update_faults()
+
+    def _on_heartbeat(self, data: bytes, now: float) -> None:
+        if not data:
+            self.stats.bad_frames += 1
+            return
+        state = data[0] & 0x7F
+        if state == 0:
+            self._bump("boot_ups")
+            logger.warning("CANopen node %d: boot-up message (the drive restarted)",
+                           self.config.node_id)
+        self._last_heartbeat = now
+        if state != self._nmt:
+            self._nmt = state
+            self._update_faults()
+
+    def _assemble(self, t: float) -> Sample | None:
+        self._pending = set()
+        self._cycle_t = None
+        assert self._now is not None
+        self._update_silent(self._now, self._heartbeat_age())
+        gone = {ch for name, chans in self._held.items() if name in self._silent_logged
+                for ch in chans}  # a PDO every SYNC waits for gives no sample while silent
+        missing = [ch for ch in self.channels if ch not in self._latest]
+        if missing:
+            self._bump("incomplete_syncs")
+            self.log_once("first", "CANopen sample at %.3f s before %s was received: no sample "
+                          "yet", t, ", ".join(missing), level=logging.INFO)
+            return None
+        return Sample(t, {ch: self._latest[ch] for ch in self.channels if ch not in gone})
+
+    def _heartbeat_age(self) -> float | None:
+        if not self._heartbeat_missing or self._now is None:
+            return None
+        since = self._last_heartbeat if self._last_heartbeat is not None else self._first_stamp
+        return None if since is None else self._now - since
+
+    def _close_internal(self) -> None:
+        source, self._source = self._source, None
+        if source is not None:
+            source.close()
+            logger.debug("CANopen driver closed (%s)", self.stats.as_dict())

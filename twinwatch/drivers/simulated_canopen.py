@@ -1,0 +1,238 @@
+"""The simulated DC motor as a CiA 402 drive on a virtual CANopen bus, read back passively.
+
+The plant (:mod:`twinwatch.plant.dcmotor`) sits behind a ``canopen`` local node with the EDS
+shipped in the package (:mod:`twinwatch.plant.canopen_drive`: SYNC and RPDO1 of a master, the
+drive's TPDOs, EMCY and heartbeat, every frame stamped with plant time) on an in-process
+python-can ``virtual`` bus; a :class:`~twinwatch.drivers.canopen.CanopenDriver` listening on the
+same channel decodes them from the same EDS exactly as it would decode a real drive's frames.
+The samples' time is the SYNC frames' stamps: plant time, so a run is the same as fast as
+possible or in real time.
+
+The plant is stepped lazily, one sample whenever the CANopen driver has nothing left to decode
+(as :mod:`twinwatch.drivers.simulated` does over the DBC); ``realtime = true`` sends each
+sample's frames when the wall clock reaches its plant time.
+
+Monitoring only: the simulated drive sends on a ``virtual`` bus and nothing else; the driver
+sends nothing at all.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt
+
+from twinwatch.drivers.base import (
+    Driver,
+    DriverConfig,
+    DriverInitializationError,
+    Sample,
+    validated_config,
+)
+from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
+
+if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no CAN stack
+    import can
+
+    from twinwatch.drivers.canopen import CanopenDriver
+    from twinwatch.plant.canopen_drive import CiA402Drive
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["SimulatedCanopenDriver", "SimulatedCanopenDriverConfig", "drive_channels"]
+
+_channel_ids = itertools.count()
+
+
+def drive_channels() -> dict[str, dict[str, Any]]:
+    """The twin channels of the shipped EDS: channel -> ``[driver.channels]`` entry."""
+    return {
+        "Va": {"object": "0x2100", "factor": "mV", "unit": "V"},
+        "ia": {"object": "0x6078", "factor": "per_mille_rated_current", "unit": "A"},
+        "omega": {"object": "0x606C", "factor": "0.001rpm", "unit": "rad/s"},
+        "setpoint": {"object": "0x60FF", "factor": "0.001rpm", "unit": "rad/s"},
+    }
+
+
+class SimulatedCanopenDriverConfig(DriverConfig):
+    """The ``[driver]`` table with ``type = "simulated_canopen"``.
+
+    Attributes:
+        machine: the simulated plant (only ``dc_motor``).
+        plant: the plant's scenario, duration, noise, set-points (``[driver.plant]``).
+        node_id: the simulated drive's node id.
+        channel: the in-process virtual CAN channel ("auto": a unique name).
+        realtime: pace the plant by the wall clock instead of running as fast as possible.
+        fault_at, fault_code, fault_reset_at, heartbeat_stop_at: the drive's own faults, at
+            plant times [s] (for tests and demonstrations; None: never).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["simulated_canopen"]
+    machine: Literal["dc_motor"] = "dc_motor"
+    plant: DCMotorPlantConfig = Field(default_factory=DCMotorPlantConfig)
+    node_id: StrictInt = Field(5, ge=1, le=127)
+    interface: Literal["virtual"] = Field(
+        "virtual", description="only the in-process virtual bus: twinwatch never sends on a "
+        "real bus")
+    channel: str = "auto"
+    realtime: bool = False
+    fault_at: StrictFloat | None = Field(
+        None, ge=0, allow_inf_nan=False, description="plant time [s] the drive faults: an "
+        "EMCY with fault_code and the statusword's fault bit (None: never)")
+    fault_code: StrictInt = Field(0x2310, ge=0x1000, le=0xFFFF, description="the EMCY's "
+                                  "error code (0x2310: continuous over-current)")
+    fault_reset_at: StrictFloat | None = Field(
+        None, ge=0, allow_inf_nan=False, description="plant time [s] the fault is reset (an "
+        "EMCY error reset, the statusword operational again)")
+    heartbeat_stop_at: StrictFloat | None = Field(
+        None, ge=0, allow_inf_nan=False, description="plant time [s] the drive stops sending "
+        "its heartbeat (a stuck firmware)")
+
+    def twin_channels(self) -> tuple[str, ...]:
+        """The channels the drive's TPDOs and the master's RPDO carry."""
+        return tuple(drive_channels())
+
+
+class SimulatedCanopenDriver(Driver):
+    """Simulated plant -> CiA 402 drive (canopen local node) -> virtual bus ->
+    :class:`CanopenDriver`.
+
+    Attributes:
+        drive: the simulated drive (tests inject an EMCY fault and stop its heartbeat).
+        canopen: the CANopen driver reading it; its counters are this driver's :attr:`stats`.
+
+    Raises:
+        DriverInitializationError: the EDS or the virtual bus cannot be opened.
+        EndOfStream: from :meth:`read` once the plant reaches its duration.
+    """
+
+    config_class = SimulatedCanopenDriverConfig
+    sample_model = "dc_motor"
+    sample_machine = "dc-motor-canopen-sim"
+    sample_title = "the simulated DC motor as a CiA 402 drive on a virtual CANopen bus"
+
+    @classmethod
+    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
+        """The plant's sample period [s] (the SYNC period)."""
+        assert isinstance(config, SimulatedCanopenDriverConfig)
+        return config.plant.sample_period
+
+    @classmethod
+    def duration(cls, config: DriverConfig) -> float | None:
+        """The plant's duration [s of plant time]."""
+        assert isinstance(config, SimulatedCanopenDriverConfig)
+        return config.plant.duration
+
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """The plant starts from t = 0 at every open: a new run."""
+        return True
+
+    def __init__(self, config: SimulatedCanopenDriverConfig) -> None:
+        import can
+
+        from twinwatch.drivers.canopen import CanopenDriver, CanopenDriverConfig
+        from twinwatch.plant.canopen_drive import CiA402Drive, drive_eds_path
+
+        super().__init__()
+        self.config = config
+        self.sample_period = config.plant.sample_period
+        self.live = config.realtime
+        channel = config.channel
+        if channel == "auto":
+            channel = f"twinwatch-canopen-sim-{next(_channel_ids)}"
+        self._tx: can.BusABC | None = None
+        self._rx: can.BusABC | None = None
+        self.canopen: CanopenDriver | None = None
+        self.drive: CiA402Drive | None = None
+        try:
+            self._rx = can.Bus(interface="virtual", channel=channel)
+            self._tx = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            self.drive = CiA402Drive(DCMotorPlant(config.plant), self._tx,
+                                     node_id=config.node_id)
+            co_cfg = CanopenDriverConfig.model_validate({
+                "type": "canopen", "node_id": config.node_id, "eds": drive_eds_path(),
+                "sample_period": config.plant.sample_period, "channels": drive_channels()})
+            self.canopen = CanopenDriver(co_cfg, bus=self._rx)
+        except Exception as exc:
+            self.close()
+            if isinstance(exc, DriverInitializationError):
+                raise
+            raise DriverInitializationError(
+                f"simulated CANopen drive could not start: {exc}") from exc
+        self.channels = self.canopen.channels
+        self.stats = self.canopen.stats  # one set of counters: the CANopen driver's
+        self._t0_wall: float | None = None
+        self._done: set[str] = set()
+        logger.info("simulated %s plant as CiA 402 node %d, scenario %s, %.0f s, on virtual CAN "
+                    "channel %r", config.machine, config.node_id, config.plant.scenario,
+                    config.plant.duration, channel)
+
+    @classmethod
+    def from_config(cls, config: SimulatedCanopenDriverConfig | Mapping[str, Any], *,
+                    base_dir: Path | None = None) -> SimulatedCanopenDriver:
+        """Build the driver from a validated config or a raw ``[driver]`` table.
+
+        Raises:
+            DriverInitializationError: the table does not validate, or see the class.
+        """
+        config = validated_config(SimulatedCanopenDriverConfig, config, "simulated CANopen")
+        return cls(config)
+
+    @property
+    def silent(self) -> tuple[str, ...]:
+        return () if self.canopen is None else self.canopen.silent
+
+    @property
+    def device_faults(self) -> tuple[str, ...]:
+        return () if self.canopen is None else self.canopen.device_faults
+
+    def _send_next(self) -> None:
+        """Advance the plant one sample and put its frames on the bus."""
+        assert self.drive is not None
+        if self.config.realtime:
+            t = self.drive.plant.t
+            if self._t0_wall is None:
+                self._t0_wall = time.monotonic() - t
+            delay = self._t0_wall + t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        t = self.drive.step().t  # raises EndOfStream at the end
+        c = self.config
+        if c.fault_at is not None and t >= c.fault_at and "fault" not in self._done:
+            self._done.add("fault")
+            self.drive.inject_fault(c.fault_code)
+        if (c.fault_reset_at is not None and t >= c.fault_reset_at
+                and "reset" not in self._done):
+            self._done.add("reset")
+            self.drive.reset_fault()
+        if c.heartbeat_stop_at is not None and t >= c.heartbeat_stop_at:
+            self.drive.heartbeat = False
+
+    def _take(self, timeout: float) -> Sample | None:
+        assert self.canopen is not None
+        sample = self.canopen.read(timeout=timeout)
+        if sample is not None:
+            self.stats.samples -= 1  # counted again by Driver.read of this driver
+        return sample
+
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        sample = self._take(0.0)
+        if sample is not None:
+            return sample
+        self._send_next()
+        return self._take(1.0 if timeout is None else max(timeout, 0.05))
+
+    def _close_internal(self) -> None:
+        if self.canopen is not None:
+            self.canopen.close()
+        for bus in (self._tx, self._rx):
+            if bus is not None:
+                bus.shutdown()

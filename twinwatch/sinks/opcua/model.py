@@ -1,0 +1,346 @@
+"""The OPC UA information model of one machine and the encoding of a window into it: the NE 107
+device health (:func:`device_health`), the window's values by node path (:func:`flat_values`),
+the nodes of a machine (:class:`_Builder`, one AddNodes call) with their engineering units
+(UN/CEFACT) and ranges, and the window's source time stamps. The server
+(:mod:`~twinwatch.sinks.opcua.server`) creates the nodes and writes the values.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any
+
+from twinwatch.sinks.opcua import _ua
+
+# the real modules once a server opens (:func:`~twinwatch.sinks.opcua._ua.bind` rebinds these
+# names here: every ``ua.X`` through the lazy module costs an import-system lookup)
+asyncua: Any = _ua.asyncua
+ua: Any = _ua.ua
+_ua.rebinds(globals())
+
+if TYPE_CHECKING:
+    from twinwatch.sinks.base import SinkContext
+    from twinwatch.twin.health import DiagnosisHealth, HealthMessage
+
+__all__ = ["COUNTERS_EVERY_S", "DEVICE_HEALTH", "SEVERITY", "device_health", "flat_values"]
+
+#: The counters are written at most this often [s of plant time] (every window's other values
+#: are written as they change).
+COUNTERS_EVERY_S = 10.0
+
+#: OPC UA Part 100 (Devices) DeviceHealthEnumeration: NAMUR NE 107's states, by value.
+DEVICE_HEALTH: Mapping[str, int] = {"NORMAL": 0, "FAILURE": 1, "CHECK_FUNCTION": 2,
+                                    "OFF_SPEC": 3, "MAINTENANCE_REQUIRED": 4}
+
+_NAN = "NaN"  # a NaN's key among the values written last
+_WALL_CLOCK_FROM = 946_684_800.0  # 2000-01-01: a source time after it is on the wall clock
+
+#: Alarm event severity by the level an event moves to (OPC UA 1..1000).
+SEVERITY: Mapping[str, int] = {"alarm": 800, "warning": 500, "normal": 200}
+
+#: UN/CEFACT common codes of the SI units the twins use (EUInformation.UnitId); others -1.
+_CEFACT: Mapping[str, str] = {"ohm": "OHM", "H": "81", "A": "AMP", "V": "VLT", "s": "SEC",
+                              "rad/s": "2A", "rad": "C81", "kg m^2": "B32", "N m": "NU",
+                              "Pa": "PAL", "m": "MTR", "m/s": "MTS", "N": "NEW", "kg": "KGM",
+                              "m^3/s": "MQS", "W": "WTT", "1/s": "C97"}
+_UNITS_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
+
+
+def device_health(health: HealthMessage) -> tuple[int, str]:
+    """The window's DeviceHealth (OPC UA Part 100, NAMUR NE 107) and why, for a person.
+
+    Args:
+        health: the window's typed health message (its ``alarms``, ``diagnosis``,
+            ``source``).
+
+    Returns:
+        ``(value, reason)``: a :data:`DEVICE_HEALTH` value and one line. The source lost (no
+        window for ``stale_after``) is the publisher's, not the message's.
+    """
+    alarms = health.alarms
+    diag = health.diagnosis
+    raised = _raised_faults(diag)
+    dev_alarm = [n for n, a in alarms.items() if a.level == "alarm"]
+    high = [f for f, u in raised if u == "high"]
+    if dev_alarm or high:
+        what = [f"{n} beyond its alarm threshold" for n in dev_alarm]
+        what += [f"fault {f} (urgency high)" for f in high]
+        return DEVICE_HEALTH["FAILURE"], "failure: " + "; ".join(what)
+    if diag is not None and diag.status == "check_function":
+        return (DEVICE_HEALTH["CHECK_FUNCTION"], "check function: the twin does not describe "
+                "this machine" + (f" ({diag.check_failed})" if diag.check_failed else ""))
+    if health.source.silent:
+        return (DEVICE_HEALTH["CHECK_FUNCTION"],
+                "check function: silent on the bus: " + ", ".join(health.source.silent))
+    warn = [n for n, a in alarms.items() if a.level == "warning"]
+    if warn:
+        return (DEVICE_HEALTH["OFF_SPEC"],
+                "off spec: " + "; ".join(f"{n} beyond its warning threshold" for n in warn))
+    rul = [f"{n} RUL {a.rul.level}" for n, a in alarms.items()
+           if a.rul is not None and a.rul.level != "normal"]
+    rul += [f"fault {f} (urgency {u})" for f, u in raised if u != "high"]
+    if rul:
+        return DEVICE_HEALTH["MAINTENANCE_REQUIRED"], "maintenance required: " + "; ".join(rul)
+    return DEVICE_HEALTH["NORMAL"], "normal"
+
+
+def _raised_faults(diag: DiagnosisHealth | None) -> list[tuple[str, str]]:
+    """(fault id, urgency) of the diagnosis' raised fault alarms (the check function aside)."""
+    if diag is None:
+        return []
+    urgency = {f.id: f.urgency for f in diag.faults}
+    return [(f, urgency.get(f, "medium")) for f in diag.alarms if f != "check_function"]
+
+
+class _Machine:
+    """One machine's nodes: its object, the variables by path, the run's clock anchor."""
+
+    def __init__(self, name: str, obj: Any, stale_after: float) -> None:
+        self.name = name
+        self.obj = obj
+        self.stale_after = stale_after                  # s without a window: CHECK_FUNCTION
+        self.vars: dict[str, tuple[Any, Any]] = {}     # path -> (NodeId, VariantType)
+        self.anchor: tuple[str, float] | None = None    # (run, wall - plant) for plant time
+        self.last_window = time.monotonic()
+        self.stale = False
+        self.health: tuple[int, str] = (DEVICE_HEALTH["NORMAL"], "no window yet")
+        self.events: list[Any] = []                     # event generators (machine, Server)
+        self.last: dict[str, tuple[Any, int | None]] = {}  # path -> what was written last
+        self.nodes: list[Any] = []                      # every node made for it
+        self.active: dict[str, dict[str, Any]] = {}     # condition -> its raising event
+        self.counters_t: float | None = None            # plant time the counters were written
+
+
+_PARAM_LEAVES: tuple[tuple[str, str, str], ...] = (
+    ("Low", "Double", "Double"), ("High", "Double", "Double"),
+    ("Status", "String", "String"), ("Nominal", "Double", "Double"),
+    ("Deviation_pct", "Double", "Double"), ("RelStd_pct", "Double", "Double"),
+    ("AlarmLevel", "String", "String"), ("RulAlarmLevel", "String", "String"),
+    ("Trend.Model", "String", "String"), ("Trend.Rate", "Double", "Double"),
+    ("Trend.RateLow", "Double", "Double"), ("Trend.RateHigh", "Double", "Double"),
+    ("Trend.RatePctPerHour", "Double", "Double"), ("Trend.Degrading", "Boolean", "Boolean"),
+    ("RUL.Status", "String", "String"), ("RUL.Alarm_s", "Double", "Double"),
+    ("RUL.AlarmLow_s", "Double", "Double"), ("RUL.AlarmHigh_s", "Double", "Double"),
+    ("RUL.Warning_s", "Double", "Double"), ("RUL.WarningLow_s", "Double", "Double"),
+    ("RUL.WarningHigh_s", "Double", "Double"))
+
+_DIAG_LEAVES: tuple[tuple[str, str, str], ...] = (
+    ("Status", "String", "String"), ("TopFault", "String", "String"),
+    ("Part", "String", "String"), ("Probability", "Double", "Double"),
+    ("Action", "String", "String"), ("Urgency", "String", "String"),
+    ("NoFault", "Double", "Double"), ("Unknown", "Double", "Double"),
+    ("Alarms", "String", "String"), ("Faults.Ids", "String", "String"),
+    ("Faults.Parts", "String", "String"), ("Faults.Probabilities", "Double", "Double"),
+    ("Faults.Actions", "String", "String"), ("Faults.Urgencies", "String", "String"))
+
+
+class _Builder:
+    """The AddNodesItems of one machine, created in one AddNodes call."""
+
+    def __init__(self, ns: int, machine: str) -> None:
+        self.ns = ns
+        self.machine = machine
+        self.items: list[Any] = []
+        self.references: list[Any] = []
+        self.nodes: dict[str, Any] = {}
+
+    def _nid(self, path: str | None) -> Any:
+        return ua.NodeId(self.machine if path is None else f"{self.machine}.{path}", self.ns)
+
+    def object(self, m: _Machine | None, path: str | None, parent: Any, *,
+               browse: str | None = None, folder_parent: bool = False) -> Any:
+        nid = self._nid(path)
+        item = ua.AddNodesItem()
+        item.RequestedNewNodeId = nid
+        name = browse or (path or self.machine).rsplit(".", 1)[-1]
+        item.BrowseName = ua.QualifiedName(name, self.ns)
+        item.ParentNodeId = parent
+        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.Organizes if folder_parent
+                                         else ua.ObjectIds.HasComponent)
+        item.NodeClass = ua.NodeClass.Object
+        item.TypeDefinition = ua.NodeId(ua.ObjectIds.BaseObjectType)
+        attrs = ua.ObjectAttributes()
+        attrs.DisplayName = ua.LocalizedText(name)
+        attrs.Description = ua.LocalizedText(name)
+        attrs.EventNotifier = 1 if path is None else 0   # the machine: SubscribeToEvents
+        attrs.WriteMask = attrs.UserWriteMask = 0
+        item.NodeAttributes = attrs
+        self.items.append(item)
+        if path is None:  # the Server object notifies of the machine's events
+            ref = ua.AddReferencesItem()
+            ref.SourceNodeId = ua.NodeId(ua.ObjectIds.Server)
+            ref.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasNotifier)
+            ref.IsForward = True
+            ref.TargetNodeId = nid
+            ref.TargetNodeClass = ua.NodeClass.Object
+            self.references.append(ref)
+        if path is not None:
+            self.nodes[path] = nid
+        return nid
+
+    def variable(self, m: _Machine, parent: Any, path: str, value: Any, datatype: Any, *,
+                 browse: str | None = None, vtype: Any = None) -> Any:
+        nid = self._nid(path)
+        item = ua.AddNodesItem()
+        item.RequestedNewNodeId = nid
+        name = browse or path.rsplit(".", 1)[-1]
+        item.BrowseName = ua.QualifiedName(name, self.ns)
+        item.ParentNodeId = parent
+        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasComponent)
+        item.NodeClass = ua.NodeClass.Variable
+        item.TypeDefinition = vtype or ua.NodeId(ua.ObjectIds.BaseDataVariableType)
+        item.NodeAttributes = _var_attrs(name, value, datatype)
+        self.items.append(item)
+        m.vars[path] = (nid, value.VariantType)
+        return nid
+
+    def prop(self, parent: Any, path: str, browse: str, value: Any, datatype: Any) -> Any:
+        nid = self._nid(path)
+        item = ua.AddNodesItem()
+        item.RequestedNewNodeId = nid
+        item.BrowseName = ua.QualifiedName(browse, 0)
+        item.ParentNodeId = parent
+        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasProperty)
+        item.NodeClass = ua.NodeClass.Variable
+        item.TypeDefinition = ua.NodeId(ua.ObjectIds.PropertyType)
+        item.NodeAttributes = _var_attrs(browse, value, datatype)
+        self.items.append(item)
+        return nid
+
+
+def _var_attrs(name: str, value: Any, datatype: Any) -> Any:
+    attrs = ua.VariableAttributes()
+    attrs.DisplayName = ua.LocalizedText(name)
+    attrs.Description = ua.LocalizedText(name)
+    attrs.DataType = datatype
+    attrs.Value = value
+    if isinstance(value.Value, list):
+        attrs.ValueRank = ua.ValueRank.OneDimension
+        attrs.ArrayDimensions = [0]
+    else:
+        attrs.ValueRank = ua.ValueRank.Scalar
+    attrs.WriteMask = attrs.UserWriteMask = 0
+    attrs.AccessLevel = attrs.UserAccessLevel = (ua.AccessLevel.CurrentRead.mask
+                                                  | ua.AccessLevel.HistoryRead.mask)
+    attrs.Historizing = False
+    return attrs
+
+
+def _eu(unit: str) -> Any:
+    """EUInformation of an SI unit (UN/CEFACT code where there is one, else UnitId -1)."""
+    code = _CEFACT.get(unit)
+    unit_id = -1
+    if code is not None:
+        unit_id = 0
+        for c in code:
+            unit_id = (unit_id << 8) | ord(c)
+    return ua.EUInformation(NamespaceUri=_UNITS_URI, UnitId=unit_id,
+                            DisplayName=ua.LocalizedText(unit),
+                            Description=ua.LocalizedText(unit))
+
+
+def _eu_range(p: str, ctx: SinkContext) -> Any:
+    """EURange: the parameter's ``[alarms]`` alarm band around nominal when it has a rule
+    (what a bar graph should span), else 0 .. 2 x nominal."""
+    nom = float(ctx.nominal.get(p, math.nan))
+    bands = ctx.alarm_bands.get(p)
+    if not math.isfinite(nom):
+        return ua.Range(Low=math.nan, High=math.nan)
+    lo, hi = 0.0, 2.0 * nom
+    if bands is not None:
+        high = bands.alarm_high if bands.alarm_high is not None else bands.warning_high
+        low = bands.alarm_low if bands.alarm_low is not None else bands.warning_low
+        if high is not None:
+            hi = nom * (1.0 + high / 100.0)
+        if low is not None:
+            lo = nom * (1.0 + low / 100.0)
+    return ua.Range(Low=min(lo, hi), High=max(lo, hi))
+
+
+def _source_time(m: _Machine, run: str | None, t: float, now: datetime) -> datetime:
+    """The wall-clock time of plant time ``t``: ``t`` itself on a wall-clock source, else
+    anchored once per run (the run's first window written at ``now``)."""
+    if t >= _WALL_CLOCK_FROM:
+        return datetime.fromtimestamp(t, UTC)
+    if run is not None and (m.anchor is None or m.anchor[0] != run):
+        m.anchor = (run, now.timestamp() - t)
+    offset = m.anchor[1] if m.anchor is not None else now.timestamp() - t
+    return datetime.fromtimestamp(offset + t, UTC)
+
+
+def _num(x: Any) -> float:
+    return float(x) if isinstance(x, int | float) and not isinstance(x, bool) else math.nan
+
+
+_PARAM_STATUS: Mapping[str, int] = {"held": 0x40900000,     # UncertainLastUsableValue
+                                    "suspect": 0x40000000}  # Uncertain
+
+
+def flat_values(h: HealthMessage, health: tuple[int, str]) -> dict[str, tuple[Any, int | None]]:
+    """The window's values by node path (``Parameters.Ra.Value``), each with its OPC UA status
+    code (None: Good). A null of the message is NaN (numbers) or ``""`` (texts).
+
+    Args:
+        h: the typed health message.
+        health: its :func:`device_health`.
+    """
+    out: dict[str, tuple[Any, int | None]] = {
+        "DeviceHealth": (health[0], None), "DeviceHealthReason": (health[1], None),
+        "Model": (h.model, None), "Run": (h.run, None), "Window": (h.window, None),
+        "WindowStart_s": (h.t_start, None), "WindowEnd_s": (h.t_end, None),
+        "Trusted": (h.trusted, None), "NRMSE": (_num(h.nrmse), None),
+        "Terms": ([t.equation for t in h.terms], None)}
+    for name, p in h.parameters.items():
+        base = f"Parameters.{name}."
+        value = _num(p.value)
+        rel = _num(p.rel_std_pct) / 100.0
+        half = 2.0 * abs(value) * rel
+        a = h.alarms.get(name)
+        rul = p.rul
+        t = p.trend
+        out[base + "Value"] = (value, _PARAM_STATUS.get(p.status))
+        out[base + "Low"] = (value - half, None)
+        out[base + "High"] = (value + half, None)
+        out[base + "Status"] = (p.status, None)
+        out[base + "Nominal"] = (_num(p.nominal), None)
+        out[base + "Deviation_pct"] = (_num(p.deviation_pct), None)
+        out[base + "RelStd_pct"] = (_num(p.rel_std_pct), None)
+        out[base + "AlarmLevel"] = (a.level if a is not None else "", None)
+        out[base + "RulAlarmLevel"] = (a.rul.level if a is not None and a.rul is not None
+                                       else "", None)
+        out[base + "Trend.Model"] = ((t.model or "") if t is not None else "", None)
+        out[base + "Trend.Rate"] = (_num(t.rate) if t else math.nan, None)
+        out[base + "Trend.RateLow"] = (_num(t.rate_low) if t else math.nan, None)
+        out[base + "Trend.RateHigh"] = (_num(t.rate_high) if t else math.nan, None)
+        out[base + "Trend.RatePctPerHour"] = (_num(t.rate_pct_per_h) if t else math.nan, None)
+        out[base + "Trend.Degrading"] = (bool(t.degrading) if t else False, None)
+        out[base + "RUL.Status"] = (rul.status if rul is not None else "", None)
+        for level, c in (("Alarm", rul.alarm if rul else None),
+                         ("Warning", rul.warning if rul else None)):
+            out[base + f"RUL.{level}_s"] = (_num(c.rul_s) if c else math.nan, None)
+            out[base + f"RUL.{level}Low_s"] = (_num(c.low_s) if c else math.nan, None)
+            out[base + f"RUL.{level}High_s"] = (_num(c.high_s) if c else math.nan, None)
+    d = h.diagnosis
+    if d is not None:
+        top = d.faults[0] if d.status == "fault" and d.faults else None
+        out.update({
+            "Diagnosis.Status": (d.status, None),
+            "Diagnosis.TopFault": (top.id if top else "", None),
+            "Diagnosis.Part": (top.component if top else "", None),
+            "Diagnosis.Probability": (float(d.probability), None),
+            "Diagnosis.Action": (top.action if top else "", None),
+            "Diagnosis.Urgency": (top.urgency if top else "", None),
+            "Diagnosis.NoFault": (float(d.no_fault), None),
+            "Diagnosis.Unknown": (float(d.unknown), None),
+            "Diagnosis.Alarms": (list(d.alarms), None),
+            "Diagnosis.Faults.Ids": ([f.id for f in d.faults], None),
+            "Diagnosis.Faults.Parts": ([f.component for f in d.faults], None),
+            "Diagnosis.Faults.Probabilities": ([float(f.probability) for f in d.faults], None),
+            "Diagnosis.Faults.Actions": ([f.action for f in d.faults], None),
+            "Diagnosis.Faults.Urgencies": ([f.urgency for f in d.faults], None)})
+    for name, v in h.counters.items():
+        out[f"Counters.{name}"] = (int(v), None)
+    return out

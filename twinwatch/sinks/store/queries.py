@@ -1,0 +1,123 @@
+"""The state database's read side, as functions over one :mod:`sqlite3` connection: the
+history's SQL and its paging cursor, the time line's walk back, the latest message, a run's
+last messages, the saved twin. :class:`~twinwatch.sinks.store.database.StateStore` runs them
+on the calling thread's connection, behind its file checks and corruption recovery
+(``StateStore._read``); nothing here writes, locks or recovers.
+"""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+from collections.abc import Sequence
+from typing import Any, Literal
+
+from twinwatch.sinks.base import HistoryPage
+from twinwatch.twin.health import read_health
+
+__all__ = ["count", "history_page", "history_query", "last_docs", "latest_doc",
+           "timeline_docs", "twin_state"]
+
+
+def history_query(t_from: float | None, t_to: float | None, limit: int | None, *,
+                  by: Literal["plant", "wall"], machine: str | None, run: str | None,
+                  after: float | None) -> tuple[str, list[Any]]:
+    """The SQL and its arguments of :meth:`StateStore.history
+    <twinwatch.sinks.store.database.StateStore.history>` (see it for the arguments): each row
+    is ``(doc, cursor)``, the cursor the window's ``t_end`` by plant time, its stored wall
+    stamp by wall time.
+
+    Raises:
+        ValueError: ``by`` is neither ``"plant"`` nor ``"wall"``.
+    """
+    if by not in ("plant", "wall"):
+        raise ValueError(f"by must be 'plant' or 'wall', not {by!r}")
+    where: list[str] = []
+    args: list[Any] = []
+    if machine is not None:
+        where.append("machine = ?")
+        args.append(machine)
+    if run is not None:
+        where.append("run = ?")
+        args.append(run)
+    lo = "t_end" if by == "plant" else "wall"
+    hi = "t_start" if by == "plant" else "wall"
+    if t_from is not None and math.isfinite(t_from):
+        where.append(f"{lo} >= ?")
+        args.append(float(t_from))
+    if t_to is not None and math.isfinite(t_to):
+        where.append(f"{hi} <= ?")
+        args.append(float(t_to))
+    if after is not None and math.isfinite(after):
+        where.append(f"{lo} > ?")
+        args.append(float(after))
+    sql = f"SELECT doc, {lo} FROM health"
+    if where:
+        sql += " WHERE " + " AND ".join(where)
+    sql += " ORDER BY id"
+    if limit is not None:
+        sql += " LIMIT ?"
+        args.append(int(limit))
+    return sql, args
+
+
+def history_page(rows: Sequence[tuple[str, float]]) -> HistoryPage:
+    """The rows of :func:`history_query` as a page of typed views, with the cursor of the next
+    page in the time asked: by wall time the stamp the store keeps (the messages carry plant
+    time only, a caller could not page on them)."""
+    return HistoryPage((read_health(r[0]) for r in rows),
+                       next_after=float(rows[-1][1]) if rows else None)
+
+
+def timeline_docs(conn: sqlite3.Connection, machine: str, lower: float) -> list[str]:
+    """The messages (JSON text) of ``machine``'s time line that ends with its last stored
+    window, newest first: read back in the order they were saved while each window ends
+    before the one saved after it starts, and ends at or after ``lower`` [s, plant time]
+    (see :meth:`StateStore.timeline <twinwatch.sinks.store.database.StateStore.timeline>`)."""
+    docs: list[str] = []
+    after: float | None = None  # t_start of the window saved after this one
+    cur = conn.execute("SELECT doc, t_start, t_end FROM health WHERE machine = ? "
+                       "ORDER BY id DESC", (machine,))
+    for doc, t_start, t_end in cur:
+        if (after is not None and not t_end < after) or t_end < lower:
+            break
+        docs.append(doc)
+        after = t_start
+    cur.close()
+    return docs
+
+
+def latest_doc(conn: sqlite3.Connection, machine: str | None) -> str | None:
+    """The last message saved (of ``machine``; None: of any), JSON text, or None."""
+    sql = "SELECT doc FROM health"
+    args: tuple[Any, ...] = ()
+    if machine is not None:
+        sql += " WHERE machine = ?"
+        args = (machine,)
+    row = conn.execute(sql + " ORDER BY id DESC LIMIT 1", args).fetchone()
+    return None if row is None else str(row[0])
+
+
+#: the last ``limit`` messages of one machine's run, newest first
+LAST_DOCS_SQL = "SELECT doc FROM health WHERE machine = ? AND run = ? ORDER BY id DESC LIMIT ?"
+
+
+def last_docs(conn: sqlite3.Connection, machine: str, run: str, limit: int) -> list[str]:
+    """The last ``limit`` messages (JSON text) of ``machine``'s run ``run``, oldest first."""
+    rows = conn.execute(LAST_DOCS_SQL, (machine, run, int(limit))).fetchall()
+    return [r[0] for r in reversed(rows)]
+
+
+def twin_state(conn: sqlite3.Connection, machine: str | None) -> str | None:
+    """The saved twin (JSON text) of ``machine`` (None: the most recently saved one), or
+    None."""
+    if machine is None:
+        row = conn.execute("SELECT state FROM twin ORDER BY wall DESC LIMIT 1").fetchone()
+    else:
+        row = conn.execute("SELECT state FROM twin WHERE machine = ?", (machine,)).fetchone()
+    return None if row is None else str(row[0])
+
+
+def count(conn: sqlite3.Connection) -> int:
+    """Health rows stored."""
+    return int(conn.execute("SELECT COUNT(*) FROM health").fetchone()[0])

@@ -1,0 +1,478 @@
+"""The subscription: :class:`FleetWatcher` feeds a :class:`~twinwatch.watch.fleet.Fleet` from a
+Zenoh session (liveliness, health and alarm events through ``zenoh.ext`` advanced subscribers,
+the windows missed asked from the machine's history, each window delivered once), and
+:func:`watching` opens the sessions and the watchers for ``watch`` and ``tail``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import queue
+import threading
+import time
+from collections.abc import Callable, Collection, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
+
+from twinwatch._lazy import lazy_module
+from twinwatch.errors import WatchError
+from twinwatch.watch.fleet import Delivery, Fleet, Gap
+from twinwatch.watch.session import (
+    CHUNKS_RE,
+    Mode,
+    check_endpoints,
+    check_prefix,
+    decode_health,
+    decode_json,
+    health_view,
+    machine_of,
+    open_session,
+)
+from twinwatch.watch.view import number
+
+if TYPE_CHECKING:
+    import zenoh
+    from zenoh import ext as zenoh_ext
+
+    from twinwatch.twin.health import HealthView
+else:  # imported when a session opens
+    zenoh = lazy_module("zenoh")
+    zenoh_ext = lazy_module("zenoh.ext")
+
+
+LATEST_AFTER_S = 0.3
+"""A machine whose token is there but whose publisher's cache gave no window this long after
+the watcher started is asked for its latest window (a daemon with plain publishers: [zenoh]
+cache = 0, or an older twinwatch) [s]."""
+
+
+HISTORY_TIMEOUT_S = 10.0
+"""How long one history query may take to answer [s]."""
+
+
+HISTORY_ATTEMPTS = 3
+"""Tries of the history query for a gap (1 s, then 2 s apart) before it is given up."""
+
+
+@dataclass
+class _Sequence:
+    """The windows of one run of one machine delivered so far: every window from the first
+    delivered to ``contiguous``, and the ones above it in ``above`` (window -> t_end)."""
+
+    run: Any
+    contiguous: int
+    t_end: float | None  # plant time [s] at the end of window ``contiguous``
+    above: dict[int, float | None] = field(default_factory=dict)
+
+    def add(self, window: int, t_end: float | None) -> bool:
+        """Record ``window``; False when it was delivered already."""
+        if window <= self.contiguous or window in self.above:
+            return False
+        self.above[window] = t_end
+        while self.contiguous + 1 in self.above:
+            self.contiguous += 1
+            self.t_end = self.above.pop(self.contiguous)
+        return True
+
+    def settle(self) -> None:
+        """After a gap was filled from the history: what it did not return was never published
+        (an overrun, a failed window), so the sequence goes on from the highest delivered."""
+        if self.above:
+            self.contiguous = max(self.above)
+            self.t_end = self.above[self.contiguous]
+            self.above.clear()
+
+
+class FleetWatcher:
+    """Feeds a :class:`Fleet` from a Zenoh session: liveliness, health, alarm events.
+
+    Health and alarm events are followed with ``zenoh.ext`` advanced subscribers: at start (and
+    when a daemon appears later) each machine's last ``history`` windows come from its
+    publisher's cache (``[zenoh] cache``), a loss on the way (a router restarting, a dropped
+    link) is recovered from that cache, and what the cache no longer holds is reported by the
+    sample-miss listener: those windows are then asked from the machine's state database
+    (``<prefix>/<machine>/history?run=<run>;t_from=<the last window before the gap>``, target
+    ALL so a storage declared complete on the prefix does not capture it), delivered with
+    ``delivery="history"``, counted in the fleet (``missed``, ``recovered``) and reported
+    through ``on_gap``. A machine whose token is there but whose cache gave nothing within
+    :data:`LATEST_AFTER_S` (plain publishers: ``cache = 0``, an older daemon) is asked for its
+    latest window (``get(<prefix>/*/health)``). Each window is delivered once.
+
+    Args:
+        session: an open session (:func:`open_session`); the caller closes it.
+        fleet: what to feed.
+        prefix: the daemons' ``[zenoh] key_prefix``.
+        machine: only this machine (``*``: every machine).
+        history: windows per machine asked from the publishers' caches at start, and again
+            when a publisher is seen anew after a router outage (at most their ``[zenoh]
+            cache``; 1: the latest; what a gap needs beyond it comes from the history).
+        alarm_history: alarm events per machine asked at start (0: only new ones).
+        on_health: called with the machine, a health message not delivered before (its typed
+            view, :func:`~twinwatch.twin.health.read_health`), its text as published and its
+            delivery (``live`` or ``history``).
+        on_alarm, on_token: called with the machine and an alarm event, a token's presence.
+        on_gap: called with a :class:`Gap` once the history was asked for it.
+
+    Callbacks run on Zenoh's threads or the watcher's (never two at once for health).
+
+    Raises:
+        WatchError: the prefix or the machine name is malformed, or ``history`` < 1.
+
+    Use as a context manager (the subscribers are undeclared on exit).
+    """
+
+    def __init__(self, session: zenoh.Session, fleet: Fleet, *, prefix: str = "twinwatch",
+                 machine: str = "*", history: int = 1, alarm_history: int = 5,
+                 on_health: Callable[[str, HealthView, str, Delivery], None] | None = None,
+                 on_alarm: Callable[[str, dict[str, Any]], None] | None = None,
+                 on_token: Callable[[str, bool], None] | None = None,
+                 on_gap: Callable[[Gap], None] | None = None) -> None:
+        # the health message's typed view (pydantic): loaded here, before any subscriber (a
+        # first import in a callback can let a live window overtake the cached ones)
+        import twinwatch.twin.health  # noqa: F401
+
+        self.session = session
+        self.fleet = fleet
+        self.prefix = check_prefix(prefix)
+        if machine != "*" and (CHUNKS_RE.match(machine) is None or "/" in machine):
+            raise WatchError(f"machine {machine!r}: give the daemon's [machine] name (letters, "
+                             "digits, '_', '-', '.') or * for every machine")
+        if history < 1 or alarm_history < 0:
+            raise WatchError(f"history {history}: ask at least the latest window (1)")
+        self.machine = machine
+        self.history = history
+        self.alarm_history = alarm_history
+        self._subs: list[Any] = []
+        self._threads: list[threading.Thread] = []
+        self.queried = threading.Event()
+        self.on_health = on_health
+        self.on_alarm = on_alarm
+        self.on_token = on_token
+        self.on_gap = on_gap
+        self._lock = threading.RLock()  # one health delivery at a time, in order
+        self._seq: dict[str, _Sequence] = {}
+        self._sources: dict[tuple[str, int], str] = {}  # publisher (zid, eid) -> machine
+        self._gaps: queue.Queue[tuple[str | None, int] | None] = queue.Queue()
+        self._closing = threading.Event()
+
+    def key(self, suffix: str) -> str:
+        return f"{self.prefix}/{self.machine}/{suffix}"
+
+    def resume(self, machine: str, run: str | None, window: int,
+               t_end: float | None) -> None:
+        """Go on from where an earlier subscriber stopped (a central store restarted): the
+        windows of ``machine``'s ``run`` up to ``window`` count as delivered, and the ones
+        after it (plant time after ``t_end`` [s]) are asked from its history once started,
+        delivered with ``delivery="history"`` and told through ``on_gap`` (``missed`` 0: zenoh
+        did not count them). A later run of that machine (its daemon restarted meanwhile) is
+        followed from what its cache holds. Call before :meth:`start`.
+
+        Raises:
+            WatchError: ``machine`` is not a machine name.
+        """
+        if CHUNKS_RE.match(machine) is None or "/" in machine:
+            raise WatchError(f"machine {machine!r}: give the daemon's [machine] name")
+        with self._lock:
+            self._seq[machine] = _Sequence(run, window, t_end)
+        self._gaps.put((machine, 0))
+
+    def start(self) -> FleetWatcher:
+        """Declare the subscribers (the tokens that exist and the caches' windows arrive at
+        once), then ask the machines that gave nothing for their latest window in the
+        background (:attr:`queried` is set once done)."""
+        live = self.session.liveliness()
+        self._subs.append(live.declare_subscriber(self.key("alive"), self._on_token,
+                                                  history=True))
+        recovery = zenoh_ext.RecoveryConfig(periodic_queries=None, heartbeat=True)
+        health = zenoh_ext.declare_advanced_subscriber(
+            self.session, self.key("health"), self._on_health, recovery=recovery,
+            history=zenoh_ext.HistoryConfig(detect_late_publishers=True,
+                                            max_samples=self.history))
+        self._subs.append(health)
+        self._subs.append(health.sample_miss_listener(self._on_miss))
+        alarm_history = (zenoh_ext.HistoryConfig(detect_late_publishers=True,
+                                                 max_samples=self.alarm_history)
+                         if self.alarm_history else None)
+        self._subs.append(zenoh_ext.declare_advanced_subscriber(
+            self.session, self.key("alarm"), self._on_alarm, recovery=recovery,
+            history=alarm_history))
+        for target, name in ((self._ask_latest, "twinwatch-watch-query"),
+                             (self._fill_gaps, "twinwatch-watch-history")):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        return self
+
+    # -- arriving ------------------------------------------------------------------------------
+    def _ask_latest(self) -> None:
+        try:
+            if self._closing.wait(LATEST_AFTER_S):
+                return
+            if all(m["window"] is not None for m in self.fleet.snapshot()["machines"]
+                   if m["token"]):
+                return
+            for reply in self.session.get(self.key("health"), timeout=5.0):
+                if reply.ok is None:
+                    continue
+                machine = machine_of(str(reply.ok.key_expr), self.prefix, "health")
+                with self._lock:  # only a machine nothing came from: never out of order
+                    if machine is not None and machine not in self._seq:
+                        self._health(str(reply.ok.key_expr), reply.ok.payload, "live")
+        except zenoh.ZError:  # the session closed under the query
+            pass
+        finally:
+            self.queried.set()
+            self.fleet.changed.set()
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        machine = machine_of(str(sample.key_expr), self.prefix, "alive")
+        if machine is None:
+            return
+        present = sample.kind == zenoh.SampleKind.PUT
+        self.fleet.token(machine, present)
+        if self.on_token is not None:
+            self.on_token(machine, present)
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        machine = self._health(str(sample.key_expr), sample.payload, "live")
+        info = sample.source_info
+        if machine is not None and info is not None:
+            source = info.source_id
+            with self._lock:
+                self._sources[(str(source.zid), int(source.eid))] = machine
+
+    def _health(self, key: str, payload: Any, delivery: Delivery) -> str | None:
+        """Deliver one health message unless it was delivered before; its machine."""
+        machine = machine_of(key, self.prefix, "health")
+        got = decode_health(payload)
+        if machine is None or got is None:
+            return None
+        self._deliver(machine, *got, delivery)
+        return machine
+
+    def _deliver(self, machine: str, doc: HealthView, text: str,
+                 delivery: Delivery) -> bool:
+        window, t_end = doc.window, number(doc.t_end)
+        with self._lock:
+            if isinstance(window, int) and not isinstance(window, bool):
+                seq = self._seq.get(machine)
+                if seq is None or seq.run != doc.run:
+                    self._seq[machine] = _Sequence(doc.run, window, t_end)
+                elif not seq.add(window, t_end):
+                    return False
+            self.fleet.health(machine, doc)
+            if self.on_health is not None:
+                self.on_health(machine, doc, text, delivery)
+        return True
+
+    def _on_alarm(self, sample: zenoh.Sample) -> None:
+        machine = machine_of(str(sample.key_expr), self.prefix, "alarm")
+        doc = decode_json(sample.payload)
+        if machine is None or doc is None:
+            return
+        self.fleet.alarm(machine, doc)
+        if self.on_alarm is not None:
+            self.on_alarm(machine, doc)
+
+    # -- gaps ----------------------------------------------------------------------------------
+    def _on_miss(self, miss: Any) -> None:
+        """Zenoh's sample-miss listener (its thread): ``miss.nb`` windows of the publisher
+        ``miss.source`` were neither received nor recovered from its cache."""
+        source = miss.source
+        with self._lock:
+            machine = self._sources.get((str(source.zid), int(source.eid)))
+        self._gaps.put((machine, int(miss.nb)))
+
+    def _fill_gaps(self) -> None:
+        while True:
+            item = self._gaps.get()
+            if item is None or self._closing.is_set():
+                return
+            machine, missed = item
+            with self._lock:
+                machines = [machine] if machine is not None else sorted(self._seq)
+            for m in machines:  # a publisher not heard yet: every machine is asked
+                gap = self._fill(m, missed if machine is not None else 0)
+                if gap is not None:
+                    self.fleet.gap(gap)
+                    if self.on_gap is not None:
+                        self.on_gap(gap)
+
+    def _fill(self, machine: str, missed: int) -> Gap | None:
+        """Ask ``machine``'s history for the windows after the last one delivered without a
+        gap; deliver those not delivered. None when nothing was missed or returned."""
+        gap = Gap(machine, missed)
+        with self._lock:
+            seq = self._seq.get(machine)
+            if seq is None:
+                return gap if missed else None
+            run, t_from = seq.run, seq.t_end
+        params = [f"run={run}"] if isinstance(run, str) and run else []
+        if t_from is not None:
+            params.append(f"t_from={t_from!r}")
+        for attempt in range(HISTORY_ATTEMPTS):
+            if attempt and self._closing.wait(float(attempt)):
+                return None
+            try:
+                self._page(machine, params, gap)
+            except (WatchError, zenoh.ZError) as exc:
+                gap.error = str(exc)
+                continue
+            gap.error = None
+            break
+        with self._lock:
+            seq = self._seq.get(machine)
+            if seq is not None and seq.run == run and gap.error is None:
+                seq.settle()
+        return gap if (gap.missed or gap.recovered or gap.error) else None
+
+    def _page(self, machine: str, params: list[str], gap: Gap) -> None:
+        """Deliver the history after ``params``' ``t_from``, page by page.
+
+        Raises:
+            WatchError: the daemon refused the query or did not answer.
+        """
+        key = f"{self.prefix}/{machine}/history"
+        while True:
+            selector = f"{key}?{';'.join(params)}" if params else key
+            pages = []
+            for reply in self.session.get(selector, target=zenoh.QueryTarget.ALL,
+                                          timeout=HISTORY_TIMEOUT_S):
+                if reply.ok is not None:
+                    page = decode_json(reply.ok.payload)
+                    if page is not None and isinstance(page.get("windows"), list):
+                        pages.append(page)
+                else:
+                    err = reply.err
+                    raise WatchError(f"{key}: " + (err.payload.to_string() if err is not None
+                                                   else "an error without a message"))
+            if not pages:
+                raise WatchError(f"{key}: no answer within {HISTORY_TIMEOUT_S:g} s (the "
+                                 "daemon is not reachable, or keeps no state database)")
+            last_t = None
+            for page in pages:  # {"windows": [health message, ...], "more": bool}
+                for raw in page["windows"]:
+                    if not isinstance(raw, dict):
+                        continue
+                    text = json.dumps(raw, separators=(",", ":"))  # as published
+                    doc = health_view(raw)
+                    if self._deliver(machine, doc, text, "history"):
+                        gap.recovered.append(doc.window)
+                    t_end = number(doc.t_end)
+                    if t_end is not None:
+                        last_t = t_end if last_t is None else max(last_t, t_end)
+            if not any(p.get("more") for p in pages) or last_t is None:
+                return
+            # the next page: windows ending after the last one (t_from is inclusive and
+            # returned that window again)
+            params = [p for p in params if not p.startswith("after=")]
+            params.append(f"after={last_t!r}")
+
+    # -- waiting and closing -------------------------------------------------------------------
+    def settle(self, timeout: float) -> None:
+        """Wait until every machine with a token has reported a window and the machines that
+        gave nothing were asked for their latest, or ``timeout`` [s] has passed (what ``watch
+        --once`` prints)."""
+        deadline = time.monotonic() + timeout
+        time.sleep(min(0.2, timeout))  # the tokens that exist arrive within milliseconds
+        while time.monotonic() < deadline:
+            snap = self.fleet.snapshot()["machines"]
+            tokens = [m for m in snap if m["token"]]
+            if all(m["window"] is not None for m in tokens) and (
+                    tokens or self.queried.is_set()):
+                return
+            self.fleet.changed.wait(max(min(0.05, deadline - time.monotonic()), 0.0))
+            self.fleet.changed.clear()
+
+    def close(self) -> None:
+        """Undeclare the subscribers and stop the watcher's threads (idempotent)."""
+        self._closing.set()
+        self._gaps.put(None)
+        subs, self._subs = self._subs, []
+        for sub in reversed(subs):
+            try:
+                sub.undeclare()
+            except zenoh.ZError:
+                pass
+        threads, self._threads = self._threads, []
+        for thread in threads:
+            thread.join(timeout=HISTORY_TIMEOUT_S + 1)
+
+    def __enter__(self) -> FleetWatcher:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@contextmanager
+def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
+             machine: str = "*", *, optional: Collection[str] = (),
+             on_skip: Callable[[str, str], None] | None = None,
+             **options: Any) -> Iterator[Settling]:
+    """A session on ``connect`` and a started :class:`FleetWatcher` on it (``options``: its
+    ``history``, ``alarm_history`` and ``on_*``), closed on exit.
+
+    Args:
+        optional: endpoints (of ``connect``) that may have nothing answering there (a
+            configured machine whose daemon is not running, client mode): each such one is
+            skipped and, once another answered, ``on_skip`` called with it and why; the others
+            must answer.
+
+    Raises:
+        WatchError: see :func:`open_session` and :class:`FleetWatcher`; every endpoint was
+            skipped.
+    """
+    check_prefix(prefix)
+    check_endpoints(connect)  # a malformed endpoint is refused, optional or not
+    skippable = set(optional)
+    # A client session talks to one of its endpoints only (the first that answers): with
+    # `--connect A --connect B` the machines behind B never showed although the header
+    # listed both (issue 24). In client mode each endpoint gets a session of its own, all
+    # feeding the one fleet; a peer session connects to every endpoint itself.
+    groups = ([[e] for e in connect] if mode == "client" and (len(connect) > 1 or skippable)
+              else [list(connect)])
+    with contextlib.ExitStack() as stack:
+        watchers: list[FleetWatcher] = []
+        skipped: list[tuple[str, str]] = []
+        for group in groups:
+            try:
+                session = open_session(group, mode)
+            except WatchError as exc:
+                if not set(group) <= skippable:
+                    raise
+                skipped.append((group[0], str(exc)))
+                continue
+            stack.callback(session.close)
+            watchers.append(stack.enter_context(
+                FleetWatcher(session, fleet, prefix=prefix, machine=machine, **options)))
+        if not watchers:
+            raise WatchError(f"nothing answers at {', '.join(connect)}: start a daemon "
+                             "(twinwatch run) or a zenoh router there")
+        for endpoint, why in skipped:
+            if on_skip is not None:
+                on_skip(endpoint, why)
+        yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)
+
+
+class Settling(Protocol):
+    """What :func:`watching` yields: one :class:`FleetWatcher`, or several as one."""
+
+    def settle(self, timeout: float) -> None:
+        """Wait until every machine with a token has reported a window, or ``timeout`` [s]
+        has passed (:meth:`FleetWatcher.settle`)."""
+
+
+class _Watchers:
+    """Several :class:`FleetWatcher` (one per endpoint in client mode) as one."""
+
+    def __init__(self, watchers: Sequence[FleetWatcher]) -> None:
+        self.watchers = list(watchers)
+
+    def settle(self, timeout: float) -> None:
+        """:meth:`FleetWatcher.settle` on each, within one ``timeout`` [s] in all."""
+        deadline = time.monotonic() + timeout
+        for w in self.watchers:
+            w.settle(max(0.0, deadline - time.monotonic()))
