@@ -34,6 +34,7 @@ READERS = [
     "sinks/rerun/files.py",
     "sinks/rerun/live.py",
     "sinks/mqtt.py",
+    "sinks/sparkplug.py",
     "sinks/opcua/model.py",
     "sinks/opcua/server.py",
     "sinks/opcua/publisher.py",

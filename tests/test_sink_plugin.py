@@ -357,7 +357,8 @@ def test_the_built_in_outputs_are_the_same_contract(tmp_path: Path):
     cfg = load_config(ROOT / "config" / "dc-motor-sim.toml")
     assert [t.name for t in cfg.output_tables()] == list(BUILTIN_SINKS)[:3] == [
         "store", "zenoh", "rerun"]
-    assert list(BUILTIN_SINKS)[3:] == ["mqtt", "opcua"]  # under [outputs.mqtt], [outputs.opcua]
+    # under [outputs.mqtt], [outputs.sparkplug], [outputs.opcua]
+    assert list(BUILTIN_SINKS)[3:] == ["mqtt", "sparkplug", "opcua"]
     roles = {}
     for t in cfg.output_tables():
         cls = sink_class(t.name)

@@ -38,6 +38,7 @@ BUILTIN_SINKS: Mapping[str, str] = {
     "zenoh": "twinwatch.sinks.zenoh:HealthPublisher",
     "rerun": "twinwatch.sinks.rerun:RerunRecorder",
     "mqtt": "twinwatch.sinks.mqtt:MqttPublisher",
+    "sparkplug": "twinwatch.sinks.sparkplug:SparkplugPublisher",
     "opcua": "twinwatch.sinks.opcua:OpcUaPublisher",
 }
 

@@ -103,6 +103,7 @@ __all__ = [
     "HomeAssistantConfig",
     "MemoryOutbox",
     "MqttConfig",
+    "MqttConnectionConfig",
     "MqttPublisher",
     "MqttTlsConfig",
     "discovery_payload",
@@ -183,20 +184,9 @@ class HomeAssistantConfig(BaseModel):
         return _check_topic(value, "prefix")
 
 
-class MqttConfig(SinkConfig):
-    """``[outputs.mqtt]``: the MQTT output (see the module docstring).
-
-    Example::
-
-        [outputs.mqtt]
-        host = "127.0.0.1"
-        port = 1883
-        topic_prefix = "twinwatch"       # twinwatch/<machine>/health
-        username = "twinwatch"
-        password_file = "/etc/twinwatch/mqtt.password"   # 0640 root:twinwatch
-        [outputs.mqtt.home_assistant]
-        discovery = true
-    """
+class MqttConnectionConfig(SinkConfig):
+    """The broker connection and the outbox's pace: the keys ``[outputs.mqtt]`` shares with
+    ``[outputs.sparkplug]`` (:mod:`twinwatch.sinks.sparkplug`)."""
 
     enabled: bool = Field(True, description="false: the output is not opened")
     host: str = Field("127.0.0.1", min_length=1, description="the broker's host name or address")
@@ -210,8 +200,6 @@ class MqttConfig(SinkConfig):
     password: str | None = Field(None,
                                  description="the password inline (the file is then a secret)")
     tls: MqttTlsConfig | None = Field(None, description="TLS to the broker")
-    topic_prefix: str = Field("twinwatch",
-                              description="<prefix>/<machine>/health, .../parameters/<name>/value")
     keepalive: StrictInt = Field(
         30, ge=5, le=65535,
         description="s between pings; silent for 1.5x: offline (last will)")
@@ -234,12 +222,6 @@ class MqttConfig(SinkConfig):
                                        "is away)")
     memory_outbox: StrictInt = Field(10_000, ge=1,
                                      description="windows kept in memory without a state database")
-    home_assistant: HomeAssistantConfig = Field(default_factory=HomeAssistantConfig)
-
-    @field_validator("topic_prefix")
-    @classmethod
-    def _prefix(cls, value: str) -> str:
-        return _check_topic(value, "topic_prefix")
 
     @field_validator("client_id")
     @classmethod
@@ -296,6 +278,31 @@ class MqttConfig(SinkConfig):
         """The client id at the broker (a second connection with it would take the session
         over): a reload that keeps it waits for the running output to disconnect."""
         return {f"mqtt://{self.host}:{self.port}/{self.client_id or ''}"}
+
+
+class MqttConfig(MqttConnectionConfig):
+    """``[outputs.mqtt]``: the MQTT output (see the module docstring).
+
+    Example::
+
+        [outputs.mqtt]
+        host = "127.0.0.1"
+        port = 1883
+        topic_prefix = "twinwatch"       # twinwatch/<machine>/health
+        username = "twinwatch"
+        password_file = "/etc/twinwatch/mqtt.password"   # 0640 root:twinwatch
+        [outputs.mqtt.home_assistant]
+        discovery = true
+    """
+
+    topic_prefix: str = Field("twinwatch",
+                              description="<prefix>/<machine>/health, .../parameters/<name>/value")
+    home_assistant: HomeAssistantConfig = Field(default_factory=HomeAssistantConfig)
+
+    @field_validator("topic_prefix")
+    @classmethod
+    def _prefix(cls, value: str) -> str:
+        return _check_topic(value, "topic_prefix")
 
 
 # -- what is published ------------------------------------------------------------------------
@@ -630,6 +637,12 @@ class MqttPublisher(Sink):
 
     config_class: ClassVar[type[MqttConfig]] = MqttConfig
     counter_prefix: ClassVar[str | None] = "mqtt"
+    #: the table's name in messages (``outputs.<table>.<key>``)
+    table: ClassVar[str] = "mqtt"
+    #: the default client id is ``<client_prefix>-<machine>``
+    client_prefix: ClassVar[str] = "twinwatch"
+
+    config: MqttConfig
 
     def __init__(self, config: MqttConfig, context: SinkContext) -> None:
         self._closed = True  # until fully open
@@ -637,13 +650,8 @@ class MqttPublisher(Sink):
         self.machine = context.machine
         self.model = context.model
         self.parameters = dict(context.parameters)
-        self.base = f"{config.topic_prefix}/{context.machine}"
-        _check_topic(self.base, "topic_prefix/machine")
-        self.health_topic = f"{self.base}/health"
-        self.availability_topic = f"{self.base}/availability"
-        self.client_id = config.client_id or f"twinwatch-{context.machine}"
-        ha = config.home_assistant
-        self.discovery_topic = f"{ha.prefix}/device/{ha_device_id(context.machine)}/config"
+        self.client_id = config.client_id or f"{self.client_prefix}-{context.machine}"
+        self._topics(context)
         # counters (written by the thread, read by the worker and the main thread)
         self.delivered = 0
         self.pending = 0
@@ -685,9 +693,20 @@ class MqttPublisher(Sink):
         self._bind(context)
         self.client = self._make_client()
         self.client.connect_async(config.host, config.port, keepalive=config.keepalive)
-        self._thread = threading.Thread(target=self._run, name="twinwatch-mqtt", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"twinwatch-{self.table}",
+                                        daemon=True)
         self._closed = False
         self._thread.start()
+
+    def _topics(self, context: SinkContext) -> None:
+        """The topics (set before the client is made; a subclass publishes others)."""
+        config = self.config
+        self.base = f"{config.topic_prefix}/{context.machine}"
+        _check_topic(self.base, "topic_prefix/machine")
+        self.health_topic = f"{self.base}/health"
+        self.availability_topic = f"{self.base}/availability"
+        ha = config.home_assistant
+        self.discovery_topic = f"{ha.prefix}/device/{ha_device_id(context.machine)}/config"
 
     # -- opening ------------------------------------------------------------------------------
     @classmethod
@@ -717,7 +736,8 @@ class MqttPublisher(Sink):
             with open(cfg.password_file, encoding="utf-8") as f:
                 return f.readline().rstrip("\r\n")
         except OSError as exc:
-            raise PublisherError(f"cannot read outputs.mqtt.password_file = {cfg.password_file}"
+            raise PublisherError(f"cannot read outputs.{self.table}.password_file = "
+                                 f"{cfg.password_file}"
                                  f": {exc.strerror or exc}; fix the path or the file's "
                                  f"permissions (the service user must read it)") from exc
 
@@ -738,8 +758,8 @@ class MqttPublisher(Sink):
                                keyfile=tls.keyfile, cert_reqs=ssl.CERT_REQUIRED,
                                tls_version=ssl.PROTOCOL_TLS_CLIENT)
             except (OSError, ssl.SSLError, ValueError) as exc:
-                raise PublisherError(f"outputs.mqtt.tls: cannot set up TLS: {exc}; check the "
-                                     f"certificate and key files") from exc
+                raise PublisherError(f"outputs.{self.table}.tls: cannot set up TLS: {exc}; "
+                                     f"check the certificate and key files") from exc
             client.tls_insecure_set(not tls.verify_hostname)
         client.will_set(self.availability_topic, "offline", qos=1, retain=True)
         client.on_connect = self._on_connect
@@ -768,7 +788,7 @@ class MqttPublisher(Sink):
             # daemon stored meanwhile were taken for old history and never sent (issue 26;
             # the reload hand-over test lost its first 3 windows in 4 of 8 runs).
             try:
-                box = context.outbox(self.name or "mqtt")
+                box = context.outbox(self.name or self.table)
                 if box is not None:
                     box.start()
             except StoreError:
@@ -990,7 +1010,7 @@ class MqttPublisher(Sink):
         box: Outbox | None = self._memory
         try:
             if box is None and getter is not None:
-                box = getter(self.name or "mqtt")
+                box = getter(self.name or self.table)
             if box is None:
                 self._outbox = None  # detached (a reload): wait for attach()
                 return
@@ -1057,6 +1077,11 @@ class MqttPublisher(Sink):
             logger.info("publishing health of %s on %s (MQTT broker %s:%d)", self.machine,
                         self.health_topic, self.config.host, self.config.port)
         self._last_error = None
+        self._announce(client)
+        self._wake.set()
+
+    def _announce(self, client: mqtt.Client) -> None:
+        """Connected: ``online`` on the availability topic, the discovery (or its clearing)."""
         client.publish(self.availability_topic, "online", qos=1, retain=True)
         ha = self.config.home_assistant
         if ha.discovery:
@@ -1065,7 +1090,6 @@ class MqttPublisher(Sink):
             self._send_discovery(force=True)
         else:
             client.publish(self.discovery_topic, b"", qos=1, retain=True)
-        self._wake.set()
 
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any,
                        properties: Any) -> None:
@@ -1104,10 +1128,10 @@ class MqttPublisher(Sink):
         if self._takeovers == TAKEOVERS:
             logger.error("another client uses client id %r on MQTT broker %s:%d: the "
                          "connection was taken over %d times in a row, each within %.0f s: "
-                         "give each daemon its own [outputs.mqtt] client_id (or machine "
+                         "give each daemon its own [outputs.%s] client_id (or machine "
                          "name); connecting less often meanwhile, windows wait in the outbox",
                          self.client_id, self.config.host, self.config.port, self._takeovers,
-                         TAKEOVER_S)
+                         TAKEOVER_S, self.table)
         hold = min(5.0 * 2 ** (self._takeovers - TAKEOVERS), 60.0) * random.uniform(0.75, 1.25)
         self._hold_until = time.monotonic() + hold
 
@@ -1287,9 +1311,9 @@ class MqttPublisher(Sink):
         self._flush_acks()
         self._count()
         if self._connected:
-            info = self.client.publish(self.availability_topic, "offline", qos=1, retain=True)
+            infos = self._farewell()
             end = time.monotonic() + 2.0
-            while (self._connected and not info.is_published()
+            while (self._connected and not all(i.is_published() for i in infos)
                    and time.monotonic() < end):
                 self.client.loop(timeout=0.05)
             self.client.disconnect()
@@ -1297,6 +1321,10 @@ class MqttPublisher(Sink):
         self._flush_acks()
         if self._memory is not None:
             self.pending = self._memory.count(self._position_now())
+
+    def _farewell(self) -> list[mqtt.MQTTMessageInfo]:
+        """A clean stop, still connected: ``offline`` on the availability topic."""
+        return [self.client.publish(self.availability_topic, "offline", qos=1, retain=True)]
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else ("connected" if self._connected else "connecting")
