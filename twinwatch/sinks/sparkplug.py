@@ -55,14 +55,10 @@ from pydantic import Field, field_validator
 
 from twinwatch.errors import PublisherError
 from twinwatch.sinks.base import OutboxRow, SinkContext
-from twinwatch.sinks.mqtt import (
-    MqttConnectionConfig,
-    MqttPublisher,
-    _std,
-    _view,
-    _Window,
-    diagnosis_values,
-)
+from twinwatch.sinks.mqtt.config import MqttConnectionConfig
+from twinwatch.sinks.mqtt.encoding import _std, _view, diagnosis_values
+from twinwatch.sinks.mqtt.outbox import _Window
+from twinwatch.sinks.mqtt.publisher import MqttPublisher
 from twinwatch.sinks.sparkplug_pb import DATATYPE, payload_class
 
 if TYPE_CHECKING:

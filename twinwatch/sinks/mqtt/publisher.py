@@ -1,51 +1,6 @@
-"""Publishing machine health to an MQTT broker, store-and-forward (paho-mqtt 2.x).
-
-The built-in output ``mqtt`` (table ``[outputs.mqtt]``, a publisher: it gets only the windows
-the state database stored). With ``P = {topic_prefix}/{machine}`` it publishes:
-
-* ``P/health``: the health message (the stored text, byte for byte), QoS ``qos`` (1), one per
-  window, oldest first;
-* ``P/parameters/<name>/{value, deviation_pct, status}``, and ``rul`` / ``rul_warning`` (the
-  median time [s] to the alarm / warning threshold, ``parameters.<name>.rul.<level>.rul_s``)
-  when the message has a ``rul`` field, and ``alarm`` (the level: ``normal``, ``warning``,
-  ``alarm``) for a parameter with an alarm rule: retained, plain text (a number as JSON writes
-  it, ``null`` when there is none), the state of the newest stored window for tools that do
-  not parse JSON;
-* ``P/alarm``: one JSON event per alarm-level change (QoS ``qos``, not retained): the alarm
-  evaluator's event when this process estimated the window, else the change read from two
-  consecutive stored messages (``"reconstructed": true``);
-* ``P/availability``: ``online`` (retained) while connected, ``offline`` when it stops, and
-  ``offline`` through the broker's last will when the process dies (SIGKILL, power loss,
-  network loss past the keepalive): the MQTT counterpart of Zenoh's liveliness token;
-* optional Home Assistant device discovery on ``<discovery prefix>/device/twinwatch_<machine>/
-  config`` (retained; sent again when Home Assistant's ``<discovery prefix>/status`` says
-  ``online``; an empty retained payload clears it when ``[outputs.mqtt.home_assistant]
-  discovery`` is false).
-
-**The delivery contract** (docs/architecture.md, docs/mqtt.md). The state database is the
-outbox (:class:`~twinwatch.sinks.base.Outbox`): a window is published only once stored, and is
-*delivered* once the broker acknowledged every message it produced (PUBACK for QoS 1, PUBCOMP
-for QoS 2); the outbox records that (keyed by output, machine, run and window) in the state
-database. After a broker outage and after a restart of the daemon, every stored window not yet
-delivered is sent, oldest first, at most ``inflight`` windows unacknowledged at a time and at
-most ``rate`` windows a second, for as long as the state database's retention keeps it
-(windows it deletes undelivered are counted as ``dropped``). Hence: exactly once when nothing
-fails; at least once across a crash (a window acknowledged but not yet recorded is sent again
-after the restart) and across a connection lost with windows in flight (paho sends them again
-with the DUP flag; with QoS 1 the broker may then deliver a window twice). A repeat is the
-stored text again, byte for byte: a subscriber that must not count a window twice drops a
-message it has already seen.
-
-Threads: one thread, ``twinwatch-mqtt``, owns the paho client (its network loop, the
-reconnection with a capped, jittered backoff, the callbacks) and the outbox's reads and writes
-(its own SQLite connection): :meth:`MqttPublisher.write`, called by the window pipeline, only
-notes the window's alarm events and wakes it, so a slow or absent broker never holds up the
-estimation. paho keeps at most ``inflight`` windows in memory; the rest stay in the state
-database (paho's own queue is memory only, and after a reconnect it sends all of it at once,
-ignoring its inflight limit: eclipse-paho/paho.mqtt.python#223, #698).
-
-Without a state database (``[state] enabled = false``, or a library daemon without a gate) the
-outbox is in memory (the last ``memory_outbox`` windows): a restart loses what was pending.
+"""The MQTT output itself: the paho client in its own thread, connecting and reconnecting,
+delivering the outbox's windows oldest first and recording their acknowledgements (the
+delivery contract: docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -54,28 +9,14 @@ import hashlib
 import itertools
 import json
 import logging
-import math
 import random
-import re
 import ssl
 import threading
 import time
-from collections import deque
-from collections.abc import Collection, Hashable, Mapping
+from collections.abc import Hashable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
+from typing import TYPE_CHECKING, Any, ClassVar, Self
 
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    StrictFloat,
-    StrictInt,
-    field_validator,
-    model_validator,
-)
-
-from twinwatch import __version__
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError, StoreError
 from twinwatch.sinks.base import (
@@ -83,32 +24,33 @@ from twinwatch.sinks.base import (
     OutboxRow,
     ProcessedWindow,
     Sink,
-    SinkConfig,
     SinkContext,
 )
 
 if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
 
-    from twinwatch.twin.health import DiagnosisView, HealthView, ParameterView
+    from twinwatch.twin.health import HealthView
 else:  # imported when the output opens: loading a configuration does not load paho
     mqtt = lazy_module("paho.mqtt.client")
+from twinwatch.sinks.mqtt.config import MqttConfig, _check_topic
+from twinwatch.sinks.mqtt.encoding import (
+    _components,
+    _levels,
+    _view,
+    discovery_payload,
+    flat_values,
+    ha_device_id,
+    reconstructed_events,
+)
+from twinwatch.sinks.mqtt.outbox import MemoryOutbox, _Window
 
-logger = logging.getLogger(__name__)
+logger = logging.getLogger(__package__)  # the output's name in its log lines: twinwatch.sinks.mqtt
+
+
 #: At stop, with windows still to deliver and no connection: the spacing of the connection
 #: attempts until ``close_timeout`` [s].
 CLOSE_RETRY_S = 1.0
-
-__all__ = [
-    "HomeAssistantConfig",
-    "MemoryOutbox",
-    "MqttConfig",
-    "MqttConnectionConfig",
-    "MqttPublisher",
-    "MqttTlsConfig",
-    "discovery_payload",
-    "flat_values",
-]
 
 TAKEOVERS = 3
 """Connections lost in a row, each within :data:`TAKEOVER_S` of being made, that name a
@@ -116,510 +58,6 @@ client-id conflict (another client connecting with the same id takes the session
 
 TAKEOVER_S = 10.0
 """A connection lost within this many seconds of being made counts as taken over [s]."""
-
-# A topic level: no wildcards, no NUL; '/' separates levels.
-_LEVEL_RE = re.compile(r"^[^#+\x00/]+$")
-_HA_ID_RE = re.compile(r"[^A-Za-z0-9_-]")
-
-
-def _check_topic(value: str, what: str) -> str:
-    """A topic (prefix) by MQTT's rules (MQTT 3.1.1 Section 4.7): non-empty levels, no
-    wildcards, no NUL, at most 65535 bytes of UTF-8, and not a ``$`` topic (``$SYS/...`` is the
-    broker's own: a subscriber's ``#`` never receives it, and a broker may refuse publishing
-    there: 10 windows were counted delivered that no subscriber could receive)."""
-    if not value or any(_LEVEL_RE.match(level) is None for level in value.split("/")):
-        raise ValueError(f"{what} {value!r} must be non-empty topic levels separated by '/', "
-                         f"without the wildcards '+' and '#', NUL (and no leading or trailing "
-                         f"'/')")
-    if value.startswith("$"):
-        raise ValueError(f"{what} {value!r} starts with '$': such topics are the broker's "
-                         f"own ($SYS), not for applications (MQTT 3.1.1 Section 4.7.2)")
-    if len(value.encode("utf-8")) > 60_000:  # the machine and the suffixes need room
-        raise ValueError(f"{what} is {len(value.encode('utf-8'))} bytes: an MQTT topic is "
-                         f"at most 65535 bytes with its machine and suffix")
-    return value
-
-
-class MqttTlsConfig(BaseModel):
-    """``[outputs.mqtt.tls]``: TLS to the broker (``port`` is then usually 8883). Paths are
-    relative to the configuration file's directory; the private key is a secret (refused when
-    others can read it: install it ``0640 root:twinwatch``).
-    """
-
-    model_config = ConfigDict(extra="forbid")
-
-    ca_certs: str | None = Field(None,
-                                 description="the broker's CA (PEM); unset: the system's CAs")
-    certfile: str | None = Field(None,
-                                 description="our client certificate (PEM), if asked for")
-    keyfile: str | None = Field(None, description="its private key (PEM; a secret: 0640)")
-    verify_hostname: bool = Field(True,
-                                  description="check the broker's name against its certificate")
-
-    FILES: ClassVar[tuple[str, ...]] = ("ca_certs", "certfile", "keyfile")
-    SECRET_FILES: ClassVar[tuple[str, ...]] = ("keyfile",)
-
-    @model_validator(mode="after")
-    def _pair(self) -> Self:
-        if bool(self.certfile) != bool(self.keyfile):
-            raise ValueError("certfile and keyfile go together (a client certificate and its "
-                             "private key)")
-        return self
-
-
-class HomeAssistantConfig(BaseModel):
-    """``[outputs.mqtt.home_assistant]``: Home Assistant's MQTT device discovery."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    discovery: bool = Field(False, description="announce a Home Assistant device; false clears it")
-    prefix: str = Field("homeassistant",
-                        description="Home Assistant's discovery prefix (birth on <prefix>/status)")
-    device_name: str | None = Field(None,
-                                    description="its name; unset: the machine name")
-
-    @field_validator("prefix")
-    @classmethod
-    def _prefix(cls, value: str) -> str:
-        return _check_topic(value, "prefix")
-
-
-class MqttConnectionConfig(SinkConfig):
-    """The broker connection and the outbox's pace: the keys ``[outputs.mqtt]`` shares with
-    ``[outputs.sparkplug]`` (:mod:`twinwatch.sinks.sparkplug`)."""
-
-    enabled: bool = Field(True, description="false: the output is not opened")
-    host: str = Field("127.0.0.1", min_length=1, description="the broker's host name or address")
-    port: StrictInt = Field(1883, ge=1, le=65535, description="the broker's port (8883 for TLS)")
-    client_id: str | None = Field(None, min_length=1, max_length=128,
-                                  description="unique per broker; unset: twinwatch-<machine>")
-    username: str | None = Field(None, min_length=1,
-                                 description="user name, if the broker asks for one")
-    password_file: str | None = Field(None,
-                                      description="the password's file (first line; a secret)")
-    password: str | None = Field(None,
-                                 description="the password inline (the file is then a secret)")
-    tls: MqttTlsConfig | None = Field(None, description="TLS to the broker")
-    keepalive: StrictInt = Field(
-        30, ge=5, le=65535,
-        description="s between pings; silent for 1.5x: offline (last will)")
-    qos: Literal[1, 2] = Field(1, description="1: at least once; 2: exactly once while connected")
-    inflight: StrictInt = Field(10, ge=1, le=1000,
-                                description="windows sent, not yet acknowledged, at most")
-    rate: StrictFloat = Field(20.0, gt=0, description="windows a second, at most, when catching up")
-    reconnect_min: StrictFloat = Field(0.5, gt=0,
-                                       description="s to the first retry; doubles to reconnect_max")
-    reconnect_max: StrictFloat = Field(30.0, gt=0,
-                                       description="s, the longest retry delay (+-25 % jitter)")
-    ack_timeout: StrictFloat = Field(
-        30.0, gt=0, allow_inf_nan=False,
-        description="s a window may wait for the broker's acknowledgement before DEGRADED")
-    connect_timeout: StrictFloat = Field(
-        5.0, gt=0, description="s, one connection attempt's timeout")
-    close_timeout: StrictFloat = Field(5.0, ge=0,
-                                       description="s at stop to deliver what is pending "
-                                       "(reconnecting every second meanwhile if the broker "
-                                       "is away)")
-    memory_outbox: StrictInt = Field(10_000, ge=1,
-                                     description="windows kept in memory without a state database")
-
-    @field_validator("client_id")
-    @classmethod
-    def _client_id(cls, value: str | None) -> str | None:
-        # MQTT 3.1.1 Section 3.1.3.1: a UTF-8 string; a NUL or a control character passed
-        # check-config, then nothing was delivered and nothing said why
-        if value is not None and any(ord(c) < 0x20 or ord(c) == 0x7F for c in value):
-            raise ValueError("client_id must not contain NUL or control characters")
-        return value
-
-    @model_validator(mode="after")
-    def _check(self) -> Self:
-        if self.password is not None and self.password_file is not None:
-            raise ValueError("give password_file or password, not both")
-        if (self.password is not None or self.password_file is not None) and not self.username:
-            raise ValueError("a password needs a username")
-        if self.reconnect_min > self.reconnect_max:
-            raise ValueError("reconnect_min must not exceed reconnect_max")
-        return self
-
-    def input_files(self) -> dict[str, str]:
-        """Key -> path of the files read at open (certificates, key, password file)."""
-        out = {}
-        if self.tls is not None:
-            out.update({f"tls.{k}": v for k in MqttTlsConfig.FILES
-                        if (v := getattr(self.tls, k))})
-        if self.password_file:
-            out["password_file"] = self.password_file
-        return out
-
-    def secret_input_files(self) -> dict[str, str]:
-        """The private key and the password file: refused when others can read them."""
-        secret = {f"tls.{k}" for k in MqttTlsConfig.SECRET_FILES} | {"password_file"}
-        return {k: v for k, v in self.input_files().items() if k in secret}
-
-    def inline_secret_keys(self) -> list[str]:
-        """``password`` written in the configuration itself."""
-        return ["password"] if self.password is not None else []
-
-    def resolve_paths(self, base_dir: Path) -> None:
-        """Make the file paths absolute against ``base_dir`` (``~`` expanded)."""
-        def resolve(v: str) -> str:
-            p = Path(v).expanduser()
-            return str(p if p.is_absolute() else (base_dir / p).resolve())
-
-        if self.tls is not None:
-            for k in MqttTlsConfig.FILES:
-                if (v := getattr(self.tls, k)):
-                    setattr(self.tls, k, resolve(v))
-        if self.password_file:
-            self.password_file = resolve(self.password_file)
-
-    def exclusive_resources(self, cwd: Path) -> set[str]:
-        """The client id at the broker (a second connection with it would take the session
-        over): a reload that keeps it waits for the running output to disconnect."""
-        return {f"mqtt://{self.host}:{self.port}/{self.client_id or ''}"}
-
-
-class MqttConfig(MqttConnectionConfig):
-    """``[outputs.mqtt]``: the MQTT output (see the module docstring).
-
-    Example::
-
-        [outputs.mqtt]
-        host = "127.0.0.1"
-        port = 1883
-        topic_prefix = "twinwatch"       # twinwatch/<machine>/health
-        username = "twinwatch"
-        password_file = "/etc/twinwatch/mqtt.password"   # 0640 root:twinwatch
-        [outputs.mqtt.home_assistant]
-        discovery = true
-    """
-
-    topic_prefix: str = Field("twinwatch",
-                              description="<prefix>/<machine>/health, .../parameters/<name>/value")
-    home_assistant: HomeAssistantConfig = Field(default_factory=HomeAssistantConfig)
-
-    @field_validator("topic_prefix")
-    @classmethod
-    def _prefix(cls, value: str) -> str:
-        return _check_topic(value, "topic_prefix")
-
-
-# -- what is published ------------------------------------------------------------------------
-def _number(value: Any) -> str:
-    """A flat value's text: a number as JSON writes it, ``null`` when absent or not finite."""
-    if isinstance(value, bool) or value is None:
-        return "null" if value is None else json.dumps(value)
-    if isinstance(value, int | float):
-        return json.dumps(value) if math.isfinite(value) else "null"
-    return "null"
-
-
-def _std(value: Any, rel_std_pct: Any) -> float | None:
-    """The standard error of ``value`` from its relative one [%], or None."""
-    if (isinstance(value, int | float) and isinstance(rel_std_pct, int | float)
-            and not isinstance(rel_std_pct, bool) and math.isfinite(value)
-            and math.isfinite(rel_std_pct) and rel_std_pct > 0):
-        return abs(value) * rel_std_pct / 100.0
-    return None
-
-
-def _rounded(value: Any, std: float | None, *, floor: float | None = None,
-             digits: int = 6) -> Any:
-    """``value`` rounded to what its interval supports: two significant digits of its
-    standard error ``std`` (Ra 6.16593 +- 0.0006: 6.16593), never finer than ``floor``;
-    without one, ``digits`` significant digits. A deviation of 4.440892098500626e-14 %
-    (a float's rounding) is published as 0.0."""
-    if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
-        return value
-    step = std if std is not None and std > 0 else None
-    if floor is not None:
-        step = max(step, floor) if step is not None else floor
-    if step is not None:
-        decimals = max(0, 1 - math.floor(math.log10(step)))
-        return round(float(value), min(decimals, 15))
-    if value == 0:
-        return 0.0
-    return float(f"{value:.{digits}g}")
-
-
-def _rul_s(param: ParameterView, level: str) -> Any:
-    rul = param.rul
-    crossing = (rul.alarm if level == "alarm" else rul.warning) if rul is not None else None
-    return crossing.rul_s if crossing is not None else None
-
-
-def _view(doc: HealthView | Mapping[str, Any] | str | bytes) -> HealthView:
-    """``doc`` (a typed view, the decoded message or its JSON text) as the health message's
-    typed view (parsed once).
-
-    Raises:
-        ValueError: text that is not a health message (:func:`~twinwatch.twin.health.read_health`).
-    """
-    from twinwatch.twin.health import HealthView, read_health
-
-    return doc if isinstance(doc, HealthView) else read_health(doc)
-
-
-def flat_values(doc: HealthView | Mapping[str, Any]) -> dict[str, str]:
-    """The retained flat topics of one health message (its typed view,
-    :func:`~twinwatch.twin.health.read_health`, or the decoded message): suffix
-    (``parameters/Ra/value``) -> plain-text payload.
-
-    Per parameter: ``value``, ``deviation_pct`` (numbers; ``null`` when there is none),
-    ``status``; ``rul`` and ``rul_warning`` (median seconds to the alarm / warning threshold,
-    ``parameters.<name>.rul.<level>.rul_s``) when the message has a ``rul`` field (the
-    prognostics); ``alarm`` (the level) when the parameter has an alarm rule (``alarms``).
-    """
-    from twinwatch.twin.health import sent
-
-    doc = _view(doc)
-    out: dict[str, str] = {}
-    alarms = doc.alarms or {}
-    for name, p in (doc.parameters or {}).items():
-        base = f"parameters/{name}"
-        value, dev, rel = p.value, p.deviation_pct, p.rel_std_pct
-        std = _std(value, rel)
-        out[f"{base}/value"] = _number(_rounded(value, std))
-        nom = p.nominal
-        dev_std = (std / abs(nom) * 100.0
-                   if isinstance(nom, int | float) and nom and std else None)
-        out[f"{base}/deviation_pct"] = _number(_rounded(dev, dev_std, floor=1e-4))
-        out[f"{base}/status"] = str(p.status or "")
-        if sent(p, "rul"):
-            out[f"{base}/rul"] = _number(_rul_s(p, "alarm"))
-            out[f"{base}/rul_warning"] = _number(_rul_s(p, "warning"))
-        alarm = alarms.get(name)
-        if alarm is not None:
-            out[f"{base}/alarm"] = str(alarm.level or "normal")
-    if doc.diagnosis is not None:
-        out.update(diagnosis_values(doc.diagnosis))
-    return out
-
-
-_NO_ACTION = {"no_fault": "none",
-              "unknown": "inspect: the twin found a change no fault mode of the library "
-                         "explains (twinwatch explain)",
-              "check_function": "check the sensors (wiring, scaling, offsets) and the model: "
-                                "the twin does not describe this machine, its estimates are "
-                                "held (twinwatch explain)"}
-
-
-def diagnosis_values(diag: DiagnosisView) -> dict[str, str]:
-    """The diagnosis' flat topics: ``diagnosis/fault`` (the most probable fault's id, or
-    ``no_fault`` / ``unknown`` / ``check_function``), ``diagnosis/probability`` (its
-    probability [%], one decimal),
-    ``diagnosis/action`` (the fault's maintenance action, or what to do without one; never
-    empty: an empty retained payload deletes the topic; at most 255 characters, Home
-    Assistant's limit of a state)."""
-    status = str(diag.status or "no_fault")
-    faults = diag.faults or []
-    top = faults[0] if status == "fault" and faults else None
-    prob = diag.probability
-    return {
-        "diagnosis/fault": str(top.id) if top else status,
-        "diagnosis/probability": _number(round(100.0 * prob, 1)
-                                         if isinstance(prob, int | float) else None),
-        "diagnosis/action": (str(top.action or "") if top else _NO_ACTION.get(
-            status, "none"))[:255],
-    }
-
-
-def _levels(doc: HealthView | None) -> dict[str, str]:
-    alarms = (doc.alarms if doc is not None else None) or {}
-    return {k: str(v.level or "normal") for k, v in alarms.items() if v is not None}
-
-
-def reconstructed_events(doc: HealthView | None, previous: dict[str, str]
-                         ) -> list[dict[str, Any]]:
-    """Alarm-level changes between the previous stored message's levels and ``doc``'s (its
-    typed view; None: an unreadable message, no change), as events (the evaluator's keys it
-    can give, ``"reconstructed": true``)."""
-    events: list[dict[str, Any]] = []
-    if doc is None:
-        return events
-    params = doc.parameters or {}
-    for name, level in _levels(doc).items():
-        before = previous.get(name, "normal")
-        if level == before:
-            continue
-        a = (doc.alarms or {})[name]
-        p = params.get(name)
-        dev = a.deviation_pct
-        events.append({
-            "machine": doc.machine, "parameter": name, "level": level,
-            "previous": before, "deviation_pct": dev,
-            "value": p.value if p is not None else None,
-            "unit": p.unit if p is not None else None,
-            "nominal": p.nominal if p is not None else None, "t": doc.t_end,
-            "window": doc.window, "since_t": a.since_t,
-            "message": (f"{doc.machine}: {name} {before} -> {level}"
-                        + (f" ({dev:+.2f} % of nominal)" if isinstance(dev, int | float)
-                           and math.isfinite(dev) else "")
-                        + " (reconstructed from the stored health messages)"),
-            "reconstructed": True})
-    return events
-
-
-def ha_device_id(machine: str) -> str:
-    """Home Assistant's device id for ``machine``: ``twinwatch_<machine>``, characters outside
-    ``[A-Za-z0-9_-]`` replaced by ``_`` (the discovery topic's object id)."""
-    return _HA_ID_RE.sub("_", f"twinwatch_{machine}")
-
-
-def discovery_payload(machine: str, model: str, base: str,
-                      doc: HealthView | Mapping[str, Any] | None,
-                      parameters: dict[str, str], *, qos: int = 1,
-                      device_name: str | None = None,
-                      rules: Collection[str] | None = None,
-                      nominal: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """Home Assistant's device-based discovery payload for one machine (abbreviated keys, as
-    Home Assistant's MQTT documentation lists them).
-
-    Args:
-        machine: the machine name.
-        model: the twin model (the device's model).
-        base: the machine's topic base ``<prefix>/<machine>``.
-        doc: the newest health message (its typed view, or decoded), or None: which
-            parameters have an alarm
-            rule (``alarms``) and a ``rul`` field; without it, every parameter of
-            ``parameters`` gets its value, deviation and status only.
-        parameters: parameter name -> SI unit (the twin's, in order).
-        qos: the QoS Home Assistant subscribes with.
-        device_name: the device's name (default: the machine name).
-        rules: the parameters with an ``[alarms]`` rule (the configuration's): their alarm
-            and RUL entities are announced in the first message, before any health message
-            (before, the first discovery had 18 components and the next, once a message
-            came, 25), and only theirs (a RUL without a rule stayed ``unknown`` for ever).
-        nominal: parameter -> nominal value, for each value entity's display precision.
-
-    Returns:
-        The payload: ``dev`` (ids, name, mf, mdl, sw), ``o`` (name, sw, url), ``avty_t``,
-        ``qos`` and ``cmps``: per parameter a ``sensor`` for its value (unit,
-        ``state_class: measurement``), its deviation [%] and its status; a ``binary_sensor``
-        ``device_class: problem`` per alarm rule (on while the level is not ``normal``); a
-        ``sensor`` ``device_class: duration`` [s] for the RUL where the message has one; the
-        diagnosis' most probable fault, its probability [%] and the maintenance action
-        (unless the message has no ``diagnosis``: ``[diagnosis] enabled = false``).
-    """
-    from twinwatch.twin.health import sent
-
-    view = _view(doc) if doc is not None else None
-    dev_id = ha_device_id(machine)
-    params = dict(parameters)
-    doc_params = (view.parameters if view is not None else None) or {}
-    for name, p in doc_params.items():
-        params.setdefault(name, str(p.unit or ""))
-    alarms = set(_levels(view)) | set(rules or ())
-    number = "{{ value_json }}"  # JSON null -> None -> Home Assistant's "unknown"
-    cmps: dict[str, dict[str, Any]] = {}
-
-    def add(key: str, platform: str, name: str, topic: str, **extra: Any) -> None:
-        cmps[key] = {"p": platform, "name": name, "uniq_id": f"{dev_id}_{key}",
-                     "stat_t": f"{base}/{topic}", **extra}
-
-    for name, unit in params.items():
-        t = f"parameters/{name}"
-        value: dict[str, Any] = {"stat_cla": "measurement", "val_tpl": number}
-        if unit:
-            value["unit_of_meas"] = unit
-        nom = (nominal or {}).get(name)
-        if nom is not None and math.isfinite(nom) and nom != 0:
-            # four significant digits of the nameplate value: Ra 6.500 ohm, J 0.001171
-            value["suggested_display_precision"] = max(0, 3 - math.floor(math.log10(abs(nom))))
-        add(f"{name}_value", "sensor", name, f"{t}/value", **value)
-        add(f"{name}_deviation", "sensor", f"{name} deviation", f"{t}/deviation_pct",
-            unit_of_meas="%", stat_cla="measurement", val_tpl=number, ic="mdi:delta",
-            suggested_display_precision=2)
-        add(f"{name}_status", "sensor", f"{name} status", f"{t}/status",
-            ic="mdi:information-outline")
-        if name in alarms:
-            add(f"{name}_alarm", "binary_sensor", f"{name} alarm", f"{t}/alarm",
-                dev_cla="problem", val_tpl="{{ 'OFF' if value == 'normal' else 'ON' }}")
-        if name in alarms and (rules is not None or (
-                name in doc_params and sent(doc_params[name], "rul"))):
-            add(f"{name}_rul", "sensor", f"{name} remaining useful life", f"{t}/rul",
-                dev_cla="duration", unit_of_meas="s", stat_cla="measurement", val_tpl=number,
-                suggested_display_precision=0)
-    if view is None or view.diagnosis is not None:  # [diagnosis] is on by default
-        add("diagnosis_fault", "sensor", "most probable fault", "diagnosis/fault",
-            ic="mdi:stethoscope")
-        add("diagnosis_probability", "sensor", "most probable fault probability",
-            "diagnosis/probability", unit_of_meas="%", stat_cla="measurement",
-            val_tpl=number, suggested_display_precision=1)
-        add("diagnosis_action", "sensor", "maintenance action", "diagnosis/action",
-            ic="mdi:wrench")
-    return {
-        "dev": {"ids": [dev_id], "name": device_name or machine, "mf": "twinwatch",
-                "mdl": f"{model} digital twin" if model else "digital twin", "sw": __version__},
-        "o": {"name": "twinwatch", "sw": __version__},
-        "avty_t": f"{base}/availability",
-        "qos": qos,
-        "cmps": cmps,
-    }
-
-
-# -- the outbox without a state database --------------------------------------------------------
-class MemoryOutbox:
-    """An :class:`~twinwatch.sinks.base.Outbox` in memory (no state database): the last
-    ``size`` windows given to :meth:`add`; older undelivered ones are :attr:`dropped`."""
-
-    def __init__(self, size: int) -> None:
-        self._rows: deque[OutboxRow] = deque()
-        self._size = size
-        self._next = 1
-        self._delivered: set[int] = set()
-        self._lock = threading.Lock()
-        self.dropped = 0
-
-    def add(self, doc: str, window: int) -> None:
-        with self._lock:
-            self._rows.append(OutboxRow(self._next, "memory", window, time.time(), doc))
-            self._next += 1
-            while len(self._rows) > self._size:
-                old = self._rows.popleft()
-                if old.id not in self._delivered:
-                    self.dropped += 1
-                self._delivered.discard(old.id)
-
-    def start(self) -> int:
-        with self._lock:
-            return self._rows[0].id - 1 if self._rows else self._next - 1
-
-    def pending(self, after: int, limit: int) -> list[OutboxRow]:
-        with self._lock:
-            return [r for r in self._rows if r.id > after
-                    and r.id not in self._delivered][:limit]
-
-    def count(self, position: int) -> int:
-        with self._lock:
-            return sum(1 for r in self._rows if r.id > position and r.id not in self._delivered)
-
-    def latest_id(self) -> int | None:
-        with self._lock:
-            return self._rows[-1].id if self._rows else None
-
-    def doc_at_or_before(self, health_id: int) -> str | None:
-        with self._lock:
-            return next((r.doc for r in reversed(self._rows) if r.id <= health_id), None)
-
-    def ack(self, delivered: list[OutboxRow], position: int) -> None:
-        with self._lock:
-            self._delivered.update(r.id for r in delivered)
-            self._delivered = {i for i in self._delivered if i > position}
-            while self._rows and self._rows[0].id <= position:
-                self._rows.popleft()
-
-
-class _Window:
-    """A window handed to paho: its row and the message ids not acknowledged yet."""
-
-    __slots__ = ("mids", "row", "sent")
-
-    def __init__(self, row: OutboxRow) -> None:
-        self.row = row
-        self.mids: set[int] = set()
-        self.sent = time.monotonic()
 
 
 class MqttPublisher(Sink):
@@ -1329,12 +767,3 @@ class MqttPublisher(Sink):
     def __repr__(self) -> str:
         state = "closed" if self._closed else ("connected" if self._connected else "connecting")
         return f"MqttPublisher({self.health_topic!r}, {state}, delivered={self.delivered})"
-
-
-def _components(doc: HealthView) -> tuple[frozenset[str], frozenset[str]]:
-    """What the discovery depends on in a message: parameters with an alarm rule, with a
-    ``rul`` field."""
-    from twinwatch.twin.health import sent
-
-    params = doc.parameters or {}
-    return (frozenset(_levels(doc)), frozenset(k for k, p in params.items() if sent(p, "rul")))
