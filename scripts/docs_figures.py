@@ -29,7 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 MOTOSHIELD = ("config/dc-motor-motoshield-raw.toml", "config/dc-motor-motoshield.toml")
 
-FAST_LANE = [sys.executable, "-m", "pytest", "-q", "-m", "not slow"]
+FAST_LANE = [sys.executable, "-m", "pytest", "-q", "-n", "2", "-m", "not slow"]
 
 
 def _env() -> dict[str, str]:

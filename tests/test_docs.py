@@ -79,7 +79,10 @@ def test_the_readme_is_the_front_page() -> None:
     assert blocks[0] == ("python3 -m venv .venv && . .venv/bin/activate && pip install -e . "
                          "&& twinwatch run")
     assert blocks[1] == ("python3 -m venv .venv && . .venv/bin/activate && pip install -e "
-                         "'.[test]' && python -m pytest -q")
+                         "'.[test]' && python -m pytest -q -n 2")
+    # CI runs exactly the README's test command
+    ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8").splitlines()
+    assert blocks[1].rsplit(" && ", 1)[1] in ci, ".ci/run does not run the README's tests"
     # the two commands come first: nothing but their one-line introductions before them
     assert README.index(blocks[1]) < 1000
 

@@ -1634,7 +1634,7 @@ def _recording_directory_removed(ctx: Context) -> dict[str, Any]:
 
 
 @case("issue 14: SIGHUP (an alarm threshold changed) while a CSV recording of 20 windows is "
-      "replayed as fast as possible",
+      "replayed as fast as possible", slow=True,
       exit_code=0, says_reloaded=True, runs=1, windows=list(range(20)),
       t_start=[2.0 * k for k in range(20)])
 def _reloaded_file_source(ctx: Context) -> dict[str, Any]:

@@ -613,6 +613,7 @@ def test_a_machine_whose_source_never_answers_does_not_hold_the_others(
         mute.close()
 
 
+@pytest.mark.slow
 def test_a_reload_sees_an_edited_fault_library_and_says_what_it_did_in_one_line(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:

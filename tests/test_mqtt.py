@@ -560,6 +560,7 @@ def test_sighup_reads_a_fixed_password_file_again(tmp_path: Path):
 
 
 @needs_mosquitto
+@pytest.mark.slow
 def test_a_refused_connection_is_one_line_not_paho_s_on_every_retry(tmp_path: Path) -> None:
     """Issue 37: a broker refusing the connection (Not authorized) got, on every retry
     (about one a second), paho's ERROR 'Client is not connected' besides our line: the wait

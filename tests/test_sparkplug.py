@@ -610,6 +610,7 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
 
 
 @needs_mosquitto
+@pytest.mark.slow
 def test_a_broker_whose_acl_drops_the_births_and_the_will_is_one_line(tmp_path: Path,
                                                                       caplog: Any) -> None:
     """Mosquitto 2.0 accepts a connection whose will its ACL forbids and acknowledges the
