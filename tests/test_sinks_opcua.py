@@ -317,6 +317,7 @@ def test_alarm_events_when_ra_is_raised_and_cleared_and_a_machine_removed_disapp
         c.close()
 
 
+@pytest.mark.slow
 def test_bad_tables_refused_naming_the_key_and_a_taken_port(tmp_path: Path,
                                                           processed: Any) -> None:
     from tests.test_fault_injection import sim_config
@@ -458,8 +459,10 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
     service host puts them in one worker process): another process browses every machine,
     reads Ra with its unit, DeviceHealth, the RUL and the diagnosis, receives the ALARM event
     when the default run's Ra alarm is raised (m00 runs the default scenario, as fast as it
-    estimates, for 1200 s of plant time; the others in real time), and sees m19 disappear when its
-    file is removed and the gateway reloaded (SIGHUP)."""
+    estimates, for 1200 s of plant time; the others in real time) and, on m01 (Ra 15 % up from
+    60 s, repaired at 200 s, as fast as it estimates), when an alarm is raised and when it
+    clears, and sees m19 disappear when its file is removed and the gateway reloaded
+    (SIGHUP)."""
     import json
     import signal
 
@@ -470,10 +473,17 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
     machines.mkdir()
     table = f'\n[outputs.opcua]\nendpoint = "opc.tcp://127.0.0.1:{port}"\n'
     for i in range(20):
-        fast = i == 0
+        fast = i <= 1
         path = machine_config(machines, f"m{i:02d}", port=None,
-                              duration=1200.0 if fast else 600.0, realtime=not fast)
-        path.write_text(path.read_text() + table)
+                              duration=(1200.0, 400.0)[i] if fast else 600.0,
+                              realtime=not fast)
+        text = path.read_text() + table
+        if i == 1:  # a fault that is repaired: the Ra alarm raised, then cleared
+            assert 'scenario = "resistance_degradation"' in text
+            text = text.replace('scenario = "resistance_degradation"', (
+                'scenario = "nominal"\nparameter_faults = [{ parameter = "Ra", change = 15.0, '
+                'start = 60.0, ramp = 0.0, end = 200.0 }]'))
+        path.write_text(text)
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(machines)],
                             cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
@@ -516,6 +526,15 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
             assert got["health"] in DEVICE_HEALTH.values()
             assert got["diagnosis"] in ("no_fault", "fault", "unknown", "check_function")
             assert got["rul"] in ("", "insufficient", "not_degrading", "degrading")
+        # m01's repaired fault: the Ra alarm raised, then cleared (OPC UA A&C, severity 200)
+        back = "CLEARED to normal: Ra"
+        last = until(lambda d: any(e["source"] == "m01" and back in e["message"]
+                                   for e in d["events"]), 600)
+        m01 = [e for e in last["events"] if e["source"] == "m01"]
+        raised = [k for k, e in enumerate(m01) if "ALARM: Ra" in e["message"]]
+        cleared = [k for k, e in enumerate(m01) if back in e["message"]]
+        assert raised and cleared and raised[0] < cleared[-1], m01
+        assert m01[raised[0]]["severity"] == 800 and m01[cleared[-1]]["severity"] == 200
         # the default run's Ra alarm (about 1080 s of plant time on m00)
         last = until(lambda d: any(e["source"] == "m00" and "ALARM: Ra" in e["message"]
                                    for e in d["events"]), 600)
