@@ -207,7 +207,7 @@ def test_check_config_validates_the_plugin_output_table(tmp_path: Path, plugin_p
         tmp_path, "[outputs.mqttx]\nhost = 'broker'\n")), cwd=tmp_path)
     assert unknown.returncode == 1
     line = next(ln for ln in unknown.stderr.splitlines() if "outputs.mqttx" in ln)
-    assert "unknown output 'mqttx'; known outputs: mqtt, opcua, jsonl" in line
+    assert "unknown output 'mqttx'; known outputs: mqtt, sparkplug, opcua, jsonl" in line
     assert "[state]" in line and "[zenoh]" in line and "[recording]" in line
 
     builtin = _twinwatch(plugin_path, "check-config", str(_config(
