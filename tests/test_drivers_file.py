@@ -354,7 +354,7 @@ def test_follow_reads_the_rows_appended_as_they_are_written(tmp_path: Path) -> N
                                               r"after 4 rows"):
             while True:
                 assert driver.read(0.1) is None
-        assert 0.5 < time.monotonic() - start < 2.0
+        assert 0.5 < time.monotonic() - start < 30.0  # ends on its own (a generous deadline)
     finally:
         driver.close()
 
