@@ -460,7 +460,7 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
     reads Ra with its unit, DeviceHealth, the RUL and the diagnosis, receives the ALARM event
     when the default run's Ra alarm is raised (m00 runs the default scenario, as fast as it
     estimates, for 1200 s of plant time; the others in real time) and, on m01 (Ra 15 % up from
-    60 s, repaired at 200 s, as fast as it estimates), when an alarm is raised and when it
+    60 s, repaired at 140 s, as fast as it estimates), when an alarm is raised and when it
     clears, and sees m19 disappear when its file is removed and the gateway reloaded
     (SIGHUP)."""
     import json
@@ -475,14 +475,14 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
     for i in range(20):
         fast = i <= 1
         path = machine_config(machines, f"m{i:02d}", port=None,
-                              duration=(1200.0, 400.0)[i] if fast else 600.0,
+                              duration=(1200.0, 300.0)[i] if fast else 600.0,
                               realtime=not fast)
         text = path.read_text() + table
         if i == 1:  # a fault that is repaired: the Ra alarm raised, then cleared
             assert 'scenario = "resistance_degradation"' in text
             text = text.replace('scenario = "resistance_degradation"', (
                 'scenario = "nominal"\nparameter_faults = [{ parameter = "Ra", change = 15.0, '
-                'start = 60.0, ramp = 0.0, end = 200.0 }]'))
+                'start = 60.0, ramp = 0.0, end = 140.0 }]'))
         path.write_text(text)
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(machines)],
                             cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -529,7 +529,7 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
         # m01's repaired fault: the Ra alarm raised, then cleared (OPC UA A&C, severity 200)
         back = "CLEARED to normal: Ra"
         last = until(lambda d: any(e["source"] == "m01" and back in e["message"]
-                                   for e in d["events"]), 600)
+                                   for e in d["events"]), 900)  # a loaded CI box: slow
         m01 = [e for e in last["events"] if e["source"] == "m01"]
         raised = [k for k, e in enumerate(m01) if "ALARM: Ra" in e["message"]]
         cleared = [k for k, e in enumerate(m01) if back in e["message"]]
