@@ -23,10 +23,11 @@ import pytest
 from twinwatch.config.loader import load_config
 from twinwatch.errors import ConfigError
 from twinwatch.sinks.sparkplug import (
+    DeviceSession,
+    EdgeNodeSession,
     MetricSpec,
     SparkplugConfig,
     SparkplugPublisher,
-    SparkplugSession,
     metric_specs,
     metric_values,
 )
@@ -208,11 +209,13 @@ def test_the_compiled_descriptor_is_the_shipped_proto() -> None:
 
 
 def test_seq_and_bdseq_wrap_aliases_are_unique_and_case_clashes_refused() -> None:
-    s = SparkplugSession("g", "e", "d")
-    assert [s.new_connection() for _ in range(258)][-3:] == [255, 0, 1]
+    node = EdgeNodeSession("g", "e")
+    s = DeviceSession(node, "d")
+    assert [node.new_connection() for _ in range(258)][-3:] == [255, 0, 1]
+    assert EdgeNodeSession("g", "e", bd_seq=255).new_connection() == 0   # kept, then wraps
     assert s.declare([MetricSpec("A/x", "Double", "m"), MetricSpec("A/y", "Int32")])
     assert not s.declare([MetricSpec("A/x", "Double", "m")])
-    nbirth = Payload.FromString(s.nbirth(1))
+    nbirth = Payload.FromString(node.nbirth(1))
     assert nbirth.seq == 0
     seqs = [Payload.FromString(s.ddata({"A/x": 1.0}, 1, 1)).seq for _ in range(300)]
     assert seqs[:3] == [1, 2, 3] and seqs[254:257] == [255, 0, 1]

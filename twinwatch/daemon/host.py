@@ -411,7 +411,7 @@ class Host(ServiceHost):
             60.0 if self.fleet else None)
         n = default_workers() if workers is None else workers
         self.slots = EstimationSlots(n, stuck_after=stuck_after) if n > 0 and self.fleet else None
-        self.shared = SharedResources()
+        self.shared = SharedResources(self.work_root)
         self.machines: dict[Path | None, Machine] = {}
         self.retired: list[Machine] = []
         self._names: dict[str, Machine] = {}

@@ -36,10 +36,13 @@ stalled (default 30; 0: never) it is killed and started again with ``--resume``,
 watchdog would restart a frozen service; one that sends again first is back.
 
 Placement: machines whose ``[zenoh]`` tables are the same share one session and its listening
-port, and machines naming one ``[outputs.opcua]`` endpoint share one OPC UA server, so they go
-to the same worker (a second process could not listen on the port); the other machines (Zenoh
-off, or a session of their own) are spread to balance the workers. A machine
-keeps its worker across reloads; a new file goes to the worker with fewest machines.
+port, machines naming one ``[outputs.opcua]`` endpoint share one OPC UA server, and machines
+naming one Sparkplug edge node (``[outputs.sparkplug]`` broker, ``group_id``,
+``edge_node_id``) are devices of one MQTT session, so they go to the same worker (a second
+process could not listen on the port, a second session of the edge node would take the first
+one's over); the other machines (Zenoh off, or a session of their own) are spread to balance
+the workers. A machine keeps its worker across reloads; a new file goes to the worker with
+fewest machines.
 """
 
 from __future__ import annotations
@@ -108,7 +111,10 @@ def session_keys(path: Path) -> tuple[str, ...]:
     """What ties a machine file to others, each key a resource one process must hold for
     every machine that names it: its ``[zenoh]`` table when Zenoh is on (machines configured
     alike share one session and its port), its ``[outputs.opcua]`` endpoint when that output
-    is on (machines naming one endpoint share one server); else its machine's name (two files
+    is on (machines naming one endpoint share one server), its ``[outputs.sparkplug]`` edge
+    node when it names one (broker, ``group_id``, ``edge_node_id``: the machines of one edge
+    node are devices of one MQTT session; two processes' sessions of one edge node would take
+    each other's over); else its machine's name (two files
     naming one machine, a file renamed: one process decides which runs); the file itself when
     it cannot be read."""
     try:
@@ -125,6 +131,11 @@ def session_keys(path: Path) -> tuple[str, ...]:
     opcua = outputs.get("opcua") if isinstance(outputs, dict) else None
     if isinstance(opcua, dict) and opcua.get("enabled", True) is not False:
         keys.append(f"opcua:{opcua.get('endpoint', OPCUA_ENDPOINT)}")
+    spb = outputs.get("sparkplug") if isinstance(outputs, dict) else None
+    if (isinstance(spb, dict) and spb.get("enabled", True) is not False
+            and spb.get("edge_node_id") is not None):
+        keys.append(f"sparkplug:{spb.get('host', '127.0.0.1')}:{spb.get('port', 1883)}/"
+                    f"{spb.get('group_id', 'twinwatch')}/{spb.get('edge_node_id')}")
     if not keys:
         keys.append(f"name:{name}" if isinstance(name, str) else f"file:{path.name}")
     _GROUPS[path] = tuple(keys)

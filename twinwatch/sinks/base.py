@@ -252,9 +252,15 @@ class SharedResources:
     Thread-safe: daemons open and close their outputs from their own threads. Opening holds
     the lock (a second machine asking for the same session waits for the first to open it,
     instead of opening a second one on the same port).
+
+    Args:
+        directory: the process's working root (the gateway's ``--work-root``, a fleet of
+            one's working directory): where a shared object keeps its own small files (the
+            Sparkplug edge node's ``bdSeq``); None: each output's ``SinkContext.cwd``.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, directory: Path | None = None) -> None:
+        self.directory = directory
         self._lock = threading.Lock()
         self._items: dict[str, list[Any]] = {}  # key -> [object, references, close]
 

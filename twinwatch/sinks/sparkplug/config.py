@@ -1,0 +1,91 @@
+"""``[outputs.sparkplug]``: the Sparkplug B output's table, and which of its keys the machines
+sharing one edge node (one MQTT session) must set alike.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from twinwatch.sinks.mqtt.config import MqttConnectionConfig
+
+__all__ = ["NAMESPACE", "NODE_KEYS", "SparkplugConfig", "check_id", "node_key"]
+
+NAMESPACE = "spBv1.0"
+
+NODE_KEYS = ("host", "port", "client_id", "username", "password_file", "password", "tls",
+             "keepalive", "qos", "reconnect_min", "reconnect_max", "connect_timeout",
+             "primary_host_id")
+"""The keys of the edge node's one MQTT session: every machine that is a device of one edge
+node (same broker, ``group_id`` and ``edge_node_id``) must set them alike (the others,
+``device_id``, ``inflight``, ``rate``, ``ack_timeout``, ``close_timeout``, ``memory_outbox``,
+are the device's own)."""
+
+
+def check_id(value: str, what: str) -> str:
+    """A Sparkplug id (group, edge node, device, host): one MQTT topic level, UTF-8, without
+    ``/``, ``+``, ``#`` (Sparkplug 3.0, 1.4.1.8: the MQTT topic rules).
+
+    Raises:
+        ValueError: naming what is wrong.
+    """
+    bad = [c for c in ("/", "+", "#", "\x00") if c in value]
+    if not value or bad:
+        raise ValueError(f"{what} {value!r} must be one non-empty topic level: no "
+                         f"{', '.join(repr(c) for c in bad) or 'empty value'} (Sparkplug ids "
+                         f"are MQTT topic levels without '/', '+', '#')")
+    if len(value.encode("utf-8")) > 1000:
+        raise ValueError(f"{what} is longer than 1000 bytes")
+    return value
+
+
+class SparkplugConfig(MqttConnectionConfig):
+    """``[outputs.sparkplug]``: the Sparkplug B output (docs/sparkplug.md).
+
+    Example::
+
+        [outputs.sparkplug]
+        host = "127.0.0.1"
+        port = 1883
+        group_id = "plant1"             # spBv1.0/plant1/DDATA/line3-edge/<machine>
+        edge_node_id = "line3-edge"     # every machine naming it: a device of this node
+        primary_host_id = "ignition"    # wait for spBv1.0/STATE/ignition online
+    """
+
+    client_id: str | None = Field(None, min_length=1, max_length=128,
+                                  description="unique per broker; unset: "
+                                  "twinwatch-sparkplug-<group_id>-<edge_node_id>")
+    qos: Literal[0, 1] = Field(  # type: ignore[assignment]  # Sparkplug allows 0, not 2
+        1, description="1: each window acknowledged (the outbox's delivery); 0: as Sparkplug "
+        "3.0 says for births and data")
+    group_id: str = Field("twinwatch", description="the Sparkplug group id (a topic level)")
+    edge_node_id: str | None = Field(None, description="the edge node id: the machines of one "
+                                     "process naming the same one are its devices, over one "
+                                     "MQTT session; unset: the machine name (an edge node per "
+                                     "machine)")
+    device_id: str | None = Field(None, description="the machine's device id; unset: the "
+                                  "machine name")
+    primary_host_id: str | None = Field(None, description="wait for this primary host "
+                                        "application's STATE online before publishing; unset: "
+                                        "do not wait")
+
+    @field_validator("group_id", "edge_node_id", "device_id", "primary_host_id")
+    @classmethod
+    def _ids(cls, value: str | None) -> str | None:
+        return None if value is None else check_id(value, "the id")
+
+    def exclusive_resources(self, cwd: Path) -> set[str]:
+        """The client id and the edge node at the broker (a second session of one edge node
+        would take its births and deaths over)."""
+        return {f"mqtt://{self.host}:{self.port}/{self.client_id or ''}",
+                f"sparkplug://{self.host}:{self.port}/{self.group_id}/"
+                f"{self.edge_node_id or ''}"}
+
+
+def node_key(config: SparkplugConfig, machine: str) -> str:
+    """The edge node a machine's table names (the key its session is shared by):
+    ``sparkplug://<host>:<port>/<group_id>/<edge_node_id or machine>``."""
+    return (f"sparkplug://{config.host}:{config.port}/{config.group_id}/"
+            f"{config.edge_node_id or machine}")

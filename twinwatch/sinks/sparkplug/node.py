@@ -1,0 +1,557 @@
+"""The edge node's transport: one paho client and one thread for every machine (device) of the
+process that names the same broker, ``group_id`` and ``edge_node_id``.
+
+The node connects (a fresh client and a new ``bdSeq`` in its NDEATH will at each CONNECT),
+publishes NBIRTH, then each device's DBIRTH and DDATA from the device's own outbox (the
+:class:`~twinwatch.sinks.sparkplug.publisher.SparkplugPublisher` of each machine keeps its
+delivery state; the node's thread drives it), answers NCMD and DCMD rebirths, honours the
+primary host's STATE, publishes a device's DDEATH when its machine's output closes and, when
+the last one has left, NDEATH and disconnects. Every message goes out from the node's thread,
+so ``seq`` (one count per edge node) is in the order the broker receives them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import random
+import ssl
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from twinwatch._lazy import lazy_module
+from twinwatch.errors import PublisherError
+from twinwatch.sinks.mqtt.publisher import CLOSE_RETRY_S, TAKEOVER_S, TAKEOVERS
+from twinwatch.sinks.sparkplug.config import NAMESPACE, NODE_KEYS, SparkplugConfig
+from twinwatch.sinks.sparkplug.session import (
+    DEVICE_REBIRTH,
+    REBIRTH,
+    BdSeqFile,
+    EdgeNodeSession,
+    now_ms,
+)
+from twinwatch.sinks.sparkplug_pb import payload_class
+
+if TYPE_CHECKING:
+    import paho.mqtt.client as mqtt
+
+    from twinwatch.sinks.sparkplug.publisher import SparkplugPublisher
+else:
+    mqtt = lazy_module("paho.mqtt.client")
+
+logger = logging.getLogger(__package__)
+
+__all__ = ["EdgeNode"]
+
+
+class EdgeNode:
+    """One Sparkplug edge node: its MQTT session and thread, shared by its devices.
+
+    Args:
+        config: the first device's table (its :data:`~twinwatch.sinks.sparkplug.config.NODE_KEYS`
+            are the session's; a device that sets one differently is refused by :meth:`join`).
+        edge_node_id: the edge node id.
+        password: the password read from ``password_file`` (or ``password``), or None.
+        directory: where ``bdSeq`` is kept across restarts (:class:`BdSeqFile`); None: not kept.
+        machine: the first device's machine (named when another one's settings differ).
+
+    Raises:
+        PublisherError: the TLS setup fails.
+    """
+
+    def __init__(self, config: SparkplugConfig, edge_node_id: str, password: str | None,
+                 directory: Path | None, machine: str) -> None:
+        self.config = config
+        self.machine = machine
+        self.bd_file = (BdSeqFile(directory, config.group_id, edge_node_id)
+                        if directory is not None else None)
+        self.session = EdgeNodeSession(config.group_id, edge_node_id,
+                                       self.bd_file.load() if self.bd_file else None)
+        self.client_id = (config.client_id
+                          or f"twinwatch-sparkplug-{config.group_id}-{edge_node_id}")
+        self.state_topic = (f"{NAMESPACE}/STATE/{config.primary_host_id}"
+                            if config.primary_host_id else None)
+        self._password = password
+        self.devices: dict[str, SparkplugPublisher] = {}
+        self._owners: dict[str, str] = {}  # device id -> machine
+        self._lock = threading.Lock()
+        self.wake = threading.Event()
+        self._stop = threading.Event()
+        self.connected = False
+        self.born = False            # NBIRTH sent on this connection (the host online)
+        self.births = 0
+        self.rebirths = 0
+        self.connects = 0
+        self.disconnects = 0
+        self.errors = 0
+        self._down_since: float | None = time.monotonic()
+        self._connected_at = 0.0
+        self._last_error: str | None = None
+        self._refused = False
+        self._takeovers = 0
+        self._takeover_total = 0
+        self._hold_until = 0.0
+        self._host_online: bool | None = None if config.primary_host_id else True
+        self._host_ts = -1
+        self._leaving = False        # a disconnection of our own (the primary host offline)
+        self.live_since = 0.0        # windows stored before it are replays (historical)
+        self._birth_at: float | None = None  # our NBIRTH not yet heard back since (monotonic)
+        self._unheard: str | None = None
+        self._dcmd_said = False
+        self._mid_owner: dict[int, SparkplugPublisher] = {}
+        self.client = self._make_client()   # the TLS setup checked now
+        self._thread = threading.Thread(target=self._run, daemon=True,
+                                        name=f"twinwatch-sparkplug-{edge_node_id}"[:64])
+        self._thread.start()
+
+    # -- the devices ------------------------------------------------------------------------
+    def join(self, device: SparkplugPublisher, config: SparkplugConfig, machine: str) -> None:
+        """Add ``device`` (its DBIRTH follows with its first window, or at once when one is
+        stored).
+
+        Raises:
+            PublisherError: one line naming ``outputs.sparkplug.<key>``: a session key set
+                otherwise than by the node's first machine, or a device id already used.
+        """
+        s = self.session
+        where = (f"edge node {s.group_id}/{s.edge_node_id} on {self.config.host}:"
+                 f"{self.config.port}")
+        for key in NODE_KEYS:
+            if getattr(config, key) != getattr(self.config, key):
+                raise PublisherError(
+                    f"outputs.sparkplug.{key}: machine {machine!r} is a device of {where} "
+                    f"with machine {self.machine!r}, whose {key} differs (one edge node is one "
+                    f"MQTT session); set {key} alike or give {machine!r} its own edge_node_id")
+        with self._lock:
+            owner = self._owners.get(device.device.device_id)
+            if owner is not None:
+                raise PublisherError(
+                    f"outputs.sparkplug.device_id: {device.device.device_id!r} is already "
+                    f"machine {owner!r}'s device of {where}; set device_id (unset: the "
+                    f"machine name)")
+            self.devices[device.device.device_id] = device
+            self._owners[device.device.device_id] = machine
+        self.wake.set()
+
+    def leave(self, device: SparkplugPublisher) -> None:
+        """``device``'s output closes: the node delivers what it has pending for up to its
+        ``close_timeout`` and publishes its DDEATH, then sets ``device.left``."""
+        device.leave_by = time.monotonic() + device.config.close_timeout
+        self.wake.set()
+        if not self._thread.is_alive():
+            self._retire(device, ddeath=False)
+
+    def _snapshot(self) -> list[SparkplugPublisher]:
+        with self._lock:
+            return list(self.devices.values())
+
+    def _retire(self, device: SparkplugPublisher, ddeath: bool) -> None:
+        """The device leaves: its DDEATH (if born and connected), its deliveries recorded."""
+        if ddeath and device.device_born and self.connected:
+            self.client.publish(device.device.ddeath_topic, device.device.ddeath(now_ms()),
+                                qos=1)
+        device.device_born = False
+        device.finish()
+        with self._lock:
+            self.devices.pop(device.device.device_id, None)
+            self._owners.pop(device.device.device_id, None)
+        for mid in [m for m, d in self._mid_owner.items() if d is device]:
+            del self._mid_owner[mid]
+        device.left.set()
+
+    def close(self) -> None:
+        """The last device has left: NDEATH, disconnect, the thread ends."""
+        self._stop.set()
+        self.wake.set()
+        self._thread.join(timeout=self.config.connect_timeout + 10)
+        if self._thread.is_alive():
+            logger.warning("the Sparkplug thread of edge node %s did not stop in time",
+                           self.session.edge_node_id)
+
+    # -- the client -------------------------------------------------------------------------
+    def _make_client(self) -> mqtt.Client:
+        cfg = self.config
+        client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id,
+                             clean_session=True, protocol=mqtt.MQTTv311)
+        client.connect_timeout = cfg.connect_timeout
+        client.max_inflight_messages_set(0)   # the inflight limit is the devices', in windows
+        client.max_queued_messages_set(0)
+        client.enable_logger(logging.getLogger(f"{__name__}.paho"))
+        if cfg.username:
+            client.username_pw_set(cfg.username, self._password)
+        if cfg.tls is not None:
+            tls = cfg.tls
+            try:
+                client.tls_set(ca_certs=tls.ca_certs, certfile=tls.certfile,
+                               keyfile=tls.keyfile, cert_reqs=ssl.CERT_REQUIRED,
+                               tls_version=ssl.PROTOCOL_TLS_CLIENT)
+            except (OSError, ssl.SSLError, ValueError) as exc:
+                raise PublisherError(f"outputs.sparkplug.tls: cannot set up TLS: {exc}; "
+                                     f"check the certificate and key files") from exc
+            client.tls_insecure_set(not tls.verify_hostname)
+        client.will_set(self.session.ndeath_topic, self.session.ndeath(now_ms()), qos=1,
+                        retain=False)
+        client.on_connect = self._on_connect
+        client.on_disconnect = self._on_disconnect
+        client.on_publish = self._on_publish
+        client.on_message = self._on_message
+        return client
+
+    def _connect(self) -> None:
+        """A new CONNECT: a new ``bdSeq`` (kept in its file first) in a new client's will. A
+        fresh client, not paho's reconnection: paho sends the previous connection's
+        unacknowledged messages again after the CONNACK, after our NBIRTH, with their old
+        ``seq`` (a host would see the sequence broken); those windows are sent again from the
+        devices' outboxes instead, after the births."""
+        for d in self._snapshot():
+            d.reset_connection()
+        self._mid_owner.clear()
+        self.born = False
+        if self.config.primary_host_id:
+            self._host_online = None
+        old = self.client
+        bd_seq = self.session.new_connection()
+        if self.bd_file is not None:
+            self.bd_file.save(bd_seq)
+        self.client = self._make_client()
+        self.client.connect_async(self.config.host, self.config.port,
+                                  keepalive=self.config.keepalive)
+        with contextlib.suppress(Exception):
+            old._sock_close()  # noqa: SLF001 - a half-open attempt's socket (no public close)
+        self._refused = False
+        try:
+            self.client.reconnect()
+        except (OSError, ssl.SSLError, ValueError) as exc:
+            self._unreachable(str(exc) or type(exc).__name__)
+            return
+        end = time.monotonic() + self.config.connect_timeout
+        while not self.connected and not self._refused and time.monotonic() < end:
+            if self.client.loop(timeout=0.05) != mqtt.MQTT_ERR_SUCCESS:
+                break
+
+    def _unreachable(self, why: str) -> None:
+        if self._last_error != why:
+            level = logging.WARNING if self._last_error is None else logging.DEBUG
+            logger.log(level, "MQTT broker %s:%d unreachable (%s); windows wait in the "
+                       "state database and are sent once it answers", self.config.host,
+                       self.config.port, why)
+        self._last_error = why
+
+    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any,
+                    properties: Any) -> None:
+        if reason.is_failure:
+            if "authori" in str(reason).lower() and self._last_error is None:
+                logger.error("outputs.sparkplug: the MQTT broker %s:%d refused the connection "
+                             "(%s): the client %r must be allowed to connect with its will on "
+                             "%s (the NDEATH) and to publish spBv1.0/%s/#; fix the broker's "
+                             "ACL or outputs.sparkplug.username", self.config.host,
+                             self.config.port, reason, self.client_id,
+                             self.session.ndeath_topic, self.session.group_id)
+            self._unreachable(f"connection refused: {reason}")
+            self._refused = True
+            client.disconnect()
+            return
+        self.connected = True
+        self._connected_at = time.monotonic()
+        self._down_since = None
+        self.connects += 1
+        devices = ", ".join(sorted(self.devices))
+        if self._last_error is not None or self.connects > 1:
+            logger.warning("MQTT broker %s:%d reached: Sparkplug edge node %s (devices %s) "
+                           "publishes again", self.config.host, self.config.port,
+                           self.session.edge_node_id, devices)
+        else:
+            logger.info("Sparkplug edge node %s/%s on MQTT broker %s:%d (devices %s)",
+                        self.session.group_id, self.session.edge_node_id, self.config.host,
+                        self.config.port, devices)
+        self._last_error = None
+        self.live_since = time.time()
+        client.subscribe(self.session.ncmd_topic, qos=1)
+        client.subscribe(self.session.dcmd_topics, qos=1)
+        client.subscribe(self.session.nbirth_topic, qos=0)  # our own NBIRTH back: _check_heard
+        if self.state_topic is not None:
+            client.subscribe(self.state_topic, qos=1)
+        if self._host_online:
+            self._births(client)
+        self.wake.set()
+
+    def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any,
+                       properties: Any) -> None:
+        self.born = False
+        for d in self._snapshot():
+            d.device_born = False
+        if self._leaving:  # our own (the primary host went offline): quiet, not a take-over
+            self._leaving = False
+            self.connected = False
+            self.disconnects += 1
+            self._down_since = time.monotonic()
+            return
+        if self.connected and not self._stop.is_set():
+            self._taken_over(time.monotonic() - self._connected_at)
+        if self.connected:
+            self.disconnects += 1
+            if self._takeovers < TAKEOVERS and not self._stop.is_set():
+                logger.warning("MQTT connection to %s:%d lost (%s): the windows in flight are "
+                               "sent again on reconnection", self.config.host,
+                               self.config.port, reason)
+        self.connected = False
+        if self._down_since is None:
+            self._down_since = time.monotonic()
+
+    def _taken_over(self, lasted: float) -> None:
+        """As the MQTT output's (:meth:`MqttPublisher._taken_over`): three connections in a
+        row lost within 10 s of being made name a client-id conflict once and space the next
+        attempts."""
+        if lasted > TAKEOVER_S:
+            self._takeovers = 0
+            return
+        self._takeovers += 1
+        self._takeover_total += 1
+        if self._takeovers == TAKEOVERS:
+            logger.error("another client uses client id %r on MQTT broker %s:%d: the "
+                         "connection was taken over %d times in a row, each within %.0f s: "
+                         "give each process its own edge node (outputs.sparkplug."
+                         "edge_node_id) or client_id; connecting less often meanwhile",
+                         self.client_id, self.config.host, self.config.port, self._takeovers,
+                         TAKEOVER_S)
+        if self._takeovers >= TAKEOVERS:
+            hold = min(5.0 * 2 ** (self._takeovers - TAKEOVERS), 60.0)
+            self._hold_until = time.monotonic() + hold * random.uniform(0.75, 1.25)
+
+    def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason: Any,
+                    properties: Any) -> None:
+        device = self._mid_owner.pop(mid, None)
+        if device is not None:
+            device._on_publish(client, userdata, mid, reason, properties)
+
+    def track(self, mid: int, device: SparkplugPublisher) -> None:
+        """A DDATA's message id, to hand its acknowledgement to ``device``."""
+        self._mid_owner[mid] = device
+
+    # -- births, commands, the primary host -------------------------------------------------
+    def _births(self, client: mqtt.Client) -> None:
+        """NBIRTH, then the DBIRTH of every device with a stored window (the others' comes
+        with their first: its metrics and values, not a birth of nulls)."""
+        client.publish(self.session.nbirth_topic, self.session.nbirth(now_ms()),
+                       qos=self.config.qos)
+        if self._birth_at is None and self._unheard is None:
+            self._birth_at = time.monotonic()
+        self.born = True
+        self.births += 1
+        for d in self._snapshot():
+            d.device_born = False
+            if d.latest_doc is not None:
+                d.device_birth()
+
+    def _on_message(self, client: mqtt.Client, userdata: Any, msg: Any) -> None:
+        """NCMD (Node Control/Rebirth), DCMD (Device Control/Rebirth), the primary host's
+        STATE, our own NBIRTH back."""
+        topic = msg.topic
+        if topic == self.session.nbirth_topic:
+            if self._unheard is not None:
+                logger.warning("outputs.sparkplug: the broker delivers the NBIRTH on %s now",
+                               topic)
+            self._birth_at = None
+            self._unheard = None
+            return
+        if self.state_topic is not None and topic == self.state_topic:
+            self._on_state(client, msg.payload)
+            return
+        try:
+            cmd = payload_class().FromString(msg.payload)
+        except Exception:  # noqa: BLE001 - a malformed command is counted and ignored
+            self.errors += 1
+            logger.warning("a command on %s that is not a Sparkplug B payload: ignored", topic)
+            return
+        names = {m.name for m in cmd.metrics if m.boolean_value}
+        if topic == self.session.ncmd_topic:
+            if REBIRTH in names and self._host_online and self.connected:
+                logger.info("Sparkplug rebirth asked on %s: NBIRTH and every DBIRTH again",
+                            topic)
+                self.rebirths += 1
+                self._births(client)
+            return
+        device = self.devices.get(topic.rsplit("/", 1)[-1])
+        if DEVICE_REBIRTH in names and device is not None and self.born:
+            logger.info("Sparkplug device rebirth asked on %s: its DBIRTH again", topic)
+            self.rebirths += 1
+            if device.latest_doc is not None:
+                device.device_birth()
+        elif not self._dcmd_said:
+            self._dcmd_said = True
+            logger.info("a DCMD on %s other than %s ignored (twinwatch only monitors: it "
+                        "writes to no machine)", topic, DEVICE_REBIRTH)
+
+    def _on_state(self, client: mqtt.Client, payload: bytes) -> None:
+        """Sparkplug 3.0 STATE: ``{"online": bool, "timestamp": ms}``; an older timestamp than
+        the last one seen is ignored."""
+        try:
+            state = json.loads(payload)
+            online = state["online"]
+            stamp = int(state.get("timestamp", 0))
+            if not isinstance(online, bool):
+                raise ValueError("online is not a boolean")
+        except (ValueError, TypeError, KeyError, AttributeError):
+            self.errors += 1
+            logger.warning("a STATE on %s that is not Sparkplug 3.0's {\"online\": true|false, "
+                           "\"timestamp\": ms}: ignored", self.state_topic)
+            return
+        if stamp < self._host_ts:
+            return
+        self._host_ts = stamp
+        if online and not self._host_online:
+            logger.info("primary host %s online: publishing", self.config.primary_host_id)
+            self._host_online = True
+            self.live_since = time.time()
+            self._births(client)
+            self.wake.set()
+        elif not online and self._host_online:
+            logger.warning("primary host %s offline: NDEATH, the windows wait in the outbox "
+                           "until it is back", self.config.primary_host_id)
+            self._host_online = False
+            client.publish(self.session.ndeath_topic, self.session.ndeath(now_ms()), qos=1)
+            self._leaving = True
+            client.disconnect()
+        else:
+            self._host_online = online
+
+    def _check_heard(self) -> None:
+        """A broker may accept the connection and acknowledge every publish while its ACL
+        drops them (Mosquitto 2.0 does, MQTT 3.1.1 has no refusal for a publish nor for a
+        will): our NBIRTH, subscribed to, not heard back within 5 s is said once, naming the
+        key (the will is then dropped too, most likely)."""
+        if self._birth_at is None or self._unheard is not None:
+            return
+        if time.monotonic() - self._birth_at < 5.0:
+            return
+        self._unheard = (
+            f"outputs.sparkplug: the MQTT broker {self.config.host}:{self.config.port} took "
+            f"the NBIRTH on {self.session.nbirth_topic} but did not deliver it back to this "
+            f"client (subscribed) in 5 s: its ACL most likely forbids client "
+            f"{self.client_id!r} to publish (or to read) spBv1.0/{self.session.group_id}/#, "
+            f"and then drops its will (the NDEATH) too; allow both")
+        logger.error("%s", self._unheard)
+
+    def problem(self, pending: int) -> str | None:
+        """What is degraded in the session (one line), for a device with ``pending``
+        windows; None when it works."""
+        out = []
+        if not self.connected and self._down_since is not None and not self._stop.is_set():
+            since = time.monotonic() - self._down_since
+            if since > 2 * self.config.connect_timeout or self.connects:
+                why = f" ({self._last_error})" if self._last_error else ""
+                out.append(f"MQTT broker {self.config.host}:{self.config.port} unreachable for "
+                           f"{since:.0f} s{why}: {pending} windows pending, sent when it is "
+                           f"back")
+        if self._takeovers >= TAKEOVERS:
+            out.append(f"another client uses MQTT client id {self.client_id!r} on "
+                       f"{self.config.host}:{self.config.port} ({self._takeover_total} "
+                       f"connections taken over): {pending} windows pending")
+        if self._unheard:
+            out.append(self._unheard)
+        return "; ".join(out) or None
+
+    # -- the thread -------------------------------------------------------------------------
+    def _run(self) -> None:
+        """The thread: :meth:`_loop`, restarted after an unexpected error (logged with its
+        traceback, counted): the output must not die silently."""
+        while True:
+            try:
+                self._loop()
+                return
+            except Exception:  # noqa: BLE001 - logged; the loop goes on
+                self.errors += 1
+                logger.exception("the Sparkplug edge node %s failed; it goes on in 1 s",
+                                 self.session.edge_node_id)
+                if self._stop.wait(1.0) and not self._snapshot():
+                    self._finish()
+                    return
+
+    def _loop(self) -> None:
+        cfg = self.config
+        delay = cfg.reconnect_min
+        next_attempt = 0.0
+        last_poll = 0.0
+        last_count = 0.0
+        close_attempt = 0.0
+        while True:
+            now = time.monotonic()
+            devices = self._snapshot()
+            for d in devices:
+                if d.rebind_due():
+                    d._rebind_outbox()
+            if self._stop.is_set() and not devices:
+                break
+            if not self.connected:
+                waiting = False
+                for d in devices:
+                    if d.leave_by is None:
+                        continue
+                    if now >= d.leave_by or not (d._inflight or d._has_pending()):
+                        self._retire(d, ddeath=False)
+                    else:
+                        waiting = True
+                if waiting and now >= close_attempt:
+                    # a closing device's windows wait: an attempt every CLOSE_RETRY_S until
+                    # its close_timeout (the backoff may be sleeping through a broker back)
+                    self._connect()
+                    close_attempt = time.monotonic() + CLOSE_RETRY_S
+                elif now >= next_attempt and now >= self._hold_until:
+                    self._connect()
+                    if not self.connected:  # capped exponential backoff, +-25 % jitter
+                        next_attempt = time.monotonic() + delay * random.uniform(0.75, 1.25)
+                        delay = min(2 * delay, cfg.reconnect_max)
+                if not self.connected:
+                    for d in devices:
+                        d._flush_acks()
+                    if now - last_count > 1.0:
+                        for d in devices:
+                            d._count()
+                        last_count = now
+                    if self.wake.wait(min(0.2, max(next_attempt - time.monotonic(), 0.01))):
+                        self.wake.clear()
+                        for d in self._snapshot():
+                            d._count()  # a window stored: one more pending
+                        last_count = time.monotonic()
+                    continue
+            delay = cfg.reconnect_min
+            self.client.loop(timeout=0.05)
+            if not self.connected:
+                continue
+            self._check_heard()
+            woken = self.wake.is_set()
+            self.wake.clear()
+            poll = woken or now - last_poll > 0.5
+            if poll:
+                last_poll = now
+            for d in devices:
+                leaving = d.leave_by is not None
+                if self.born and (poll or leaving):
+                    d._feed(now, all_rows=woken or leaving)
+                if leaving and d.leave_by is not None and (
+                        now >= d.leave_by or not (d._inflight or d._has_pending())):
+                    self._retire(d, ddeath=self.born)
+                    continue
+                d._flush_acks()
+            if now - last_count > 1.0:
+                for d in devices:
+                    d._count()
+                last_count = now
+        self._finish()
+
+    def _finish(self) -> None:
+        """Every device has left: NDEATH with this connection's ``bdSeq``, disconnect."""
+        if self.connected:
+            info = self.client.publish(self.session.ndeath_topic,
+                                       self.session.ndeath(now_ms()), qos=1)
+            end = time.monotonic() + 2.0
+            while self.connected and not info.is_published() and time.monotonic() < end:
+                self.client.loop(timeout=0.05)
+            self.client.disconnect()
+        self.connected = self.born = False
+        logger.info("Sparkplug edge node %s/%s closed (NDEATH, bdSeq %d)",
+                    self.session.group_id, self.session.edge_node_id,
+                    max(self.session.bd_seq, 0))
