@@ -61,6 +61,7 @@ class HostDecoder:
 
     sub: Subscriber
     aliases: dict[int, str] = field(default_factory=dict)
+    device_aliases: dict[tuple[str, str], dict[int, str]] = field(default_factory=dict)
 
     @classmethod
     def start(cls, port: int) -> HostDecoder:
@@ -90,26 +91,30 @@ class HostDecoder:
 
     def check_session(self) -> dict[str, int]:
         """The rules every message must keep (asserted): an NBIRTH has ``seq`` 0 and a
-        ``bdSeq``; every later message of the node up to the next NBIRTH has the next ``seq``
-        (mod 256), none missing; a DBIRTH comes before any DDATA of the device after each
-        NBIRTH; a DDATA names no metric, carries only aliases its DBIRTH announced; an NDEATH
-        with the ``bdSeq`` of the live NBIRTH ends the session (counted ``NDEATH``), another
-        is ignored as a host ignores it (``stale NDEATH``). Per edge node (the aliases' names are
-        the same metric list for every machine here). Returns counts by kind."""
+        ``bdSeq``; every later message of the node up to the next NBIRTH, whichever device it
+        is about, has the next ``seq`` (mod 256), none missing; after each NBIRTH a DBIRTH
+        comes before any DDATA of its device; a DDATA names no metric, carries only aliases its
+        device's DBIRTH announced; an NDEATH with the ``bdSeq`` of the live NBIRTH ends the
+        session (counted ``NDEATH``), another is ignored as a host ignores it (``stale
+        NDEATH``). Returns counts by kind."""
         seqs: dict[str, int | None] = {}
         bd_seqs: dict[str, int] = {}
-        borns: dict[str, set[int] | None] = {}
+        borns: dict[tuple[str, str], set[int] | None] = {}
         counts: dict[str, int] = {}
         for d in self.messages():
             counts[d.kind] = counts.get(d.kind, 0) + 1
-            if d.kind in ("STATE", "NCMD"):
+            if d.kind in ("STATE", "NCMD", "DCMD"):
                 continue
             p = d.payload
-            node = d.topic.split("/")[3]
+            parts = d.topic.split("/")
+            node = parts[3]
+            device = (node, parts[4] if len(parts) > 4 else "")
             if d.kind == "NBIRTH":
                 assert p.seq == 0, f"NBIRTH seq {p.seq}"
                 (bd,) = [m.long_value for m in p.metrics if m.name == "bdSeq"]
-                bd_seqs[node], seqs[node], borns[node] = bd, 0, None
+                bd_seqs[node], seqs[node] = bd, 0
+                for key in [k for k in borns if k[0] == node]:
+                    borns[key] = None   # a new NBIRTH: every device is born again
                 assert any(m.name == "Node Control/Rebirth" for m in p.metrics)
                 continue
             if d.kind == "NDEATH":
@@ -125,29 +130,35 @@ class HostDecoder:
                 continue
             seq = seqs.get(node)
             assert seq is not None, f"{d.kind} before any NBIRTH"
-            assert p.seq == (seq + 1) % 256, f"{d.kind} seq {p.seq} after {seq}"
+            assert p.seq == (seq + 1) % 256, f"{d.kind} of {device} seq {p.seq} after {seq}"
             seqs[node] = p.seq
             if d.kind == "DBIRTH":
-                born = borns[node] = {m.alias for m in p.metrics}
+                born = borns[device] = {m.alias for m in p.metrics}
+                names = self.device_aliases.setdefault(device, {})
                 for m in p.metrics:
                     assert m.name and m.alias and m.datatype
-                    self.aliases[m.alias] = m.name
+                    self.aliases[m.alias] = names[m.alias] = m.name
                 assert len(born) == len(p.metrics), "aliases not unique"
             elif d.kind == "DDATA":
-                born = borns.get(node)
-                assert born is not None, "DDATA before its DBIRTH"
+                born = borns.get(device)
+                assert born is not None, f"DDATA of {device} before its DBIRTH"
                 assert all(not m.name and m.alias in born for m in p.metrics)
             elif d.kind == "DDEATH":
-                borns[node] = None
+                borns[device] = None
         return counts
 
-    def windows(self) -> list[tuple[str, int, bool]]:
-        """(run, window, historical) of every DDATA, in the order received."""
+    def windows(self, device: str | None = None) -> list[tuple[str, int, bool]]:
+        """(run, window, historical) of every DDATA (of ``device`` only, if given), in the
+        order received (after :meth:`check_session`: the aliases)."""
         out = []
         for d in self.messages():
             if d.kind != "DDATA":
                 continue
-            v = {self.aliases[m.alias]: m for m in d.payload.metrics}
+            parts = d.topic.split("/")
+            if device is not None and parts[4] != device:
+                continue
+            names = self.device_aliases.get((parts[3], parts[4]), self.aliases)
+            v = {names[m.alias]: m for m in d.payload.metrics}
             out.append((v["Window/Run"].string_value, v["Window/Index"].long_value,
                         v["Window/Index"].is_historical))
         return out
