@@ -123,7 +123,8 @@ def test_two_machines_are_devices_of_one_edge_node_on_one_session(tmp_path: Path
     assert [w for _, w, _ in host.windows("m1")] == [0, 1, 2, 3]
     assert [w for _, w, _ in host.windows("m2")] == [0, 1, 2]
     assert [w for _, w, _ in host.windows("m3")] == [0]
-    seqs = [d.payload.seq for d in host.messages() if d.kind not in ("NDEATH", "STATE", "NCMD", "DCMD")]
+    seqs = [d.payload.seq for d in host.messages()
+            if d.kind not in ("NDEATH", "STATE", "NCMD", "DCMD")]
     assert len(seqs) == 19 and seqs[:3] == [0, 1, 2]
     # bdSeq kept across restarts: the next start's NBIRTH carries the one after
     bd = _bd_seq(next(d.payload for d in host.messages() if d.kind == "NBIRTH"))

@@ -483,8 +483,13 @@ class EdgeNode:
             for d in devices:
                 if d.rebind_due():
                     d._rebind_outbox()
-            if self._stop.is_set() and not devices:
-                break
+            if not devices:
+                if self._stop.is_set():
+                    break
+                if not self.connected:  # no device yet (the first is joining): no empty NBIRTH
+                    self.wake.wait(0.05)
+                    self.wake.clear()
+                    continue
             if not self.connected:
                 waiting = False
                 for d in devices:
@@ -529,6 +534,8 @@ class EdgeNode:
                 last_poll = now
             for d in devices:
                 leaving = d.leave_by is not None
+                if self.born and not d.device_born and d.latest_doc is not None:
+                    d.device_birth()  # a device joined with a stored window: born at once
                 if self.born and (poll or leaving):
                     d._feed(now, all_rows=woken or leaving)
                 if leaving and d.leave_by is not None and (
