@@ -336,7 +336,7 @@ def _open(tmp_path: Path, port: int, **kw: Any) -> tuple[SparkplugPublisher, Any
     store = StateStore(tmp_path / "s.sqlite", prune_every=0)
     cfg = SparkplugConfig(port=port, keepalive=5, reconnect_max=1.0, group_id="g", **kw)
     pub = SparkplugPublisher.open("sparkplug", cfg, SinkContext(
-        machine="m1", model="dc_motor", parameters={"Ra": "ohm"},
+        machine="m1", model="dc_motor", parameters={"Ra": "ohm"}, cwd=tmp_path,
         outbox=lambda name: store.outbox(name, "m1")))
     return pub, store
 
