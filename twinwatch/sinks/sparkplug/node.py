@@ -258,7 +258,7 @@ class EdgeNode:
         self._connected_at = time.monotonic()
         self._down_since = None
         self.connects += 1
-        devices = ", ".join(sorted(self.devices))
+        devices = ", ".join(sorted(d.device.device_id for d in self._snapshot()))
         if self._last_error is not None or self.connects > 1:
             logger.warning("MQTT broker %s:%d reached: Sparkplug edge node %s (devices %s) "
                            "publishes again", self.config.host, self.config.port,
@@ -374,7 +374,8 @@ class EdgeNode:
                 self.rebirths += 1
                 self._births(client)
             return
-        device = self.devices.get(topic.rsplit("/", 1)[-1])
+        with self._lock:
+            device = self.devices.get(topic.rsplit("/", 1)[-1])
         if DEVICE_REBIRTH in names and device is not None and self.born:
             logger.info("Sparkplug device rebirth asked on %s: its DBIRTH again", topic)
             self.rebirths += 1
