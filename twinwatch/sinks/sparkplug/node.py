@@ -511,6 +511,7 @@ class EdgeNode:
                         next_attempt = time.monotonic() + delay * random.uniform(0.75, 1.25)
                         delay = min(2 * delay, cfg.reconnect_max)
                 if not self.connected:
+                    devices = self._snapshot()   # without the ones retired just now
                     for d in devices:
                         d._flush_acks()
                     if now - last_count > 1.0:
@@ -546,7 +547,8 @@ class EdgeNode:
                 d._flush_acks()
             if now - last_count > 1.0:
                 for d in devices:
-                    d._count()
+                    if not d.left.is_set():  # a retired one's store may be closed already
+                        d._count()
                 last_count = now
         self._finish()
 
