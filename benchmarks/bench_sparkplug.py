@@ -178,7 +178,7 @@ def devices(docs: list[str], n: int, windows: int) -> None:
         finally:
             broker.terminate()
             broker.wait()
-    print(f"{n} machines as devices of one edge node (one session, {threads} threads): "
+    print(f"{n} machine(s) as devices of one edge node (one session, {threads} threads): "
           f"{delivered}/{total} windows delivered (QoS 1) in {wall:.2f} s; CPU "
           f"{cpu / max(delivered, 1) * 1e6:.0f} us per machine-window (every thread of the "
           f"process: the typed view, the metrics, the protobuf, paho, the outboxes)")

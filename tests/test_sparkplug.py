@@ -554,7 +554,9 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
     # the plant as fast as it runs (about 6 windows a second here) and the output held to 4
     # windows a second: the outbox falls behind, the kill leaves windows undelivered; the
     # second start at the default pace catches up
-    first = sim_config(tmp_path, duration=600.0, extra=table(broker.port, "rate = 4.0\n"))
+    # the machine a device of the edge node line1-edge (the process), not an edge node of its own
+    node = 'edge_node_id = "line1-edge"\n'
+    first = sim_config(tmp_path, duration=600.0, extra=table(broker.port, node + "rate = 4.0\n"))
 
     def ddata() -> int:
         return sum(d.kind == "DDATA" for d in host.messages())
@@ -575,7 +577,7 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
     host.wait(lambda ms: ms[-1].kind == "NDEATH", 30, "the will (NDEATH) after the kill")
     # the backlog and 150 new windows: a faster pace and time at the stop to catch up
     second = sim_config(tmp_path, duration=300.0, extra=table(
-        broker.port, "rate = 100.0\nclose_timeout = 60.0\n"))
+        broker.port, node + "rate = 100.0\nclose_timeout = 60.0\n"))
     proc = twinwatch(second, "--fresh", cwd=tmp_path)
     try:
         host.wait(lambda ms: [d.kind for d in ms].count("NBIRTH") >= 3, 120, "the restart")
@@ -585,7 +587,7 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
         c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-scada-300")
         c.connect("127.0.0.1", broker.port)
         c.loop_start()
-        c.publish("spBv1.0/plant1/NCMD/dc-motor-sim", cmd.SerializeToString(),
+        c.publish("spBv1.0/plant1/NCMD/line1-edge", cmd.SerializeToString(),
                   qos=1).wait_for_publish(5)
         c.loop_stop()
         c.disconnect()
@@ -609,6 +611,11 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
     assert counts["NDEATH"] in (2, 3), counts
     runs = sorted({r for r, _ in windows}, key=[r for r, _ in windows].index)
     assert len(runs) == 2
+    assert {d.topic for d in host.messages() if d.kind == "DDATA"} == {
+        "spBv1.0/plant1/DDATA/line1-edge/dc-motor-sim"}
+    nbirths = [d.payload for d in host.messages() if d.kind == "NBIRTH"]
+    bd = [next(m.long_value for m in p.metrics if m.name == "bdSeq") for p in nbirths]
+    assert bd[2] > bd[1], bd   # kept across the kill: the restart's NBIRTH a bdSeq after
     # the first run's windows the kill left undelivered came with the second run: replays
     births, late = 0, []
     for d in host.messages():
