@@ -551,12 +551,12 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
 
     host = HostDecoder(Subscriber(broker.port, ["spBv1.0/#"], client_id="test-host-300",
                                   persistent=True))   # the broker queues for it while away
-    # the plant as fast as it runs (about 6 windows a second here) and the output held to 4
-    # windows a second: the outbox falls behind, the kill leaves windows undelivered; the
-    # second start at the default pace catches up
+    # the plant as fast as it runs (about 6 windows a second on a quiet box, 3-4 on one loaded
+    # by other work) and the output held to 2 windows a second: the outbox falls behind, the
+    # kill leaves windows undelivered; the second start at the default pace catches up
     # the machine a device of the edge node line1-edge (the process), not an edge node of its own
     node = 'edge_node_id = "line1-edge"\n'
-    first = sim_config(tmp_path, duration=600.0, extra=table(broker.port, node + "rate = 4.0\n"))
+    first = sim_config(tmp_path, duration=600.0, extra=table(broker.port, node + "rate = 2.0\n"))
 
     def ddata() -> int:
         return sum(d.kind == "DDATA" for d in host.messages())
@@ -571,12 +571,18 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
         host.wait(lambda ms: ddata() >= 60, 300, "60 DDATA")
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
+    except AssertionError as exc:   # what the daemon said, for the failure's report
+        proc.kill()
+        raise AssertionError(f"{exc}; the daemon's log: {proc.communicate()[1][-4000:]}") \
+            from None
     finally:
         if proc.poll() is None:
             proc.kill()
     host.wait(lambda ms: ms[-1].kind == "NDEATH", 30, "the will (NDEATH) after the kill")
-    # the backlog and 150 new windows: a faster pace and time at the stop to catch up
-    second = sim_config(tmp_path, duration=300.0, extra=table(
+    # the backlog and new windows to make 300 at least (150 or more: a window is 2 s of
+    # plant time): a faster pace and time at the stop to catch up
+    before = len(stored(tmp_path / "state.sqlite"))
+    second = sim_config(tmp_path, duration=max(300.0, 2.0 * (310 - before)), extra=table(
         broker.port, node + "rate = 100.0\nclose_timeout = 60.0\n"))
     proc = twinwatch(second, "--fresh", cwd=tmp_path)
     try:
@@ -600,7 +606,7 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
     counts = host.check_session()
     windows = stored(tmp_path / "state.sqlite")
     got = host.windows()
-    assert len(windows) >= 250, len(windows)
+    assert len(windows) >= 300, len(windows)
     assert {(r, w) for r, w, _ in got} == set(windows), "every stored window delivered"
     repeats = len(got) - len({(r, w) for r, w, _ in got})
     assert repeats <= 20, repeats           # at most the windows in flight, per disruption
