@@ -320,6 +320,97 @@ class RingBuffer:
         self._count += 1
         if self._count < self.window:
             return None
+        return self._complete()
+
+    @property
+    def needed(self) -> int:
+        """Samples that complete the window being filled (the next window's requested length
+        when none is being filled)."""
+        if self._count == 0 and self._next_window is not None:
+            return self._next_window
+        return self.window - self._count
+
+    def extend(self, t: np.ndarray, values: np.ndarray, checked: bool = False
+               ) -> tuple[int, WindowData | None]:
+        """Add the samples of a block at once (a driver's rows that were due together:
+        stamps ``t`` [s], shape (n,), and ``values``, shape (n, channels) in :attr:`channels`'
+        order); exactly what :meth:`append` would do with each, for the samples that need none
+        of its checks' actions: finite values, stamps after the previous one within the band.
+        The first sample that needs more is left for :meth:`append`, and so is every sample
+        after a completed window (the caller reads what the window changes). ``checked``: the
+        caller knows every stamp and value finite (a driver's :meth:`read_block`).
+
+        Returns:
+            ``(m, window)``: the samples taken (the first ``m``; 0 when the first one is left
+            for :meth:`append`) and the window they completed, or None.
+        """
+        n = min(int(t.shape[0]), self.needed)
+        if n <= 0:
+            return 0, None
+        if not checked:
+            finite = np.isfinite(values[:n]).all(axis=1) & np.isfinite(t[:n])
+            if not finite.all():
+                n = int(np.argmin(finite))
+        if n == 0 or t[0] == self._last_t:  # a repeated stamp: append's duplicate check
+            return 0, None
+        t = t[:n]
+        c0 = self._count
+        period = self.sample_period
+        band = (2.0 * self.jitter_tolerance - _BAND_MARGIN) * period
+        if c0 == 0:  # the window starts at t[0]
+            t_first, lo, hi, sums = float(t[0]), 0.0, 0.0, (0.0, 0.0, 0.0, 0.0)
+            k0, rest = 1, t[1:]
+            after = bool((rest > t[:-1]).all()) if n > 1 else True
+        else:
+            t_first, lo, hi, sums = self._t_first, self._lo, self._hi, self._sums
+            k0, rest = c0, t
+            after = t[0] > self._last_t and (n == 1 or bool((t[1:] > t[:-1]).all()))
+        # as _check_time, sample by sample: after the previous stamp, within the band (the
+        # band only widens: when the block's last band fits, every one before it did)
+        offset = (rest - t_first) - np.arange(k0, k0 + rest.shape[0]) * period
+        offsets: list[float] = offset.tolist()
+        if offsets:
+            lo_n, hi_n = min(lo, min(offsets)), max(hi, max(offsets))
+            if not after or hi_n - lo_n >= band:
+                prev = self._last_t if c0 else float(t[0])
+                for j, (tj, o) in enumerate(zip(rest.tolist(), offsets, strict=True)):
+                    lo_j, hi_j = min(lo, o), max(hi, o)
+                    if not (tj > prev and hi_j - lo_j < band):
+                        offsets = offsets[:j]
+                        n = j + (1 if c0 == 0 else 0)
+                        break
+                    prev, lo, hi = tj, lo_j, hi_j
+                if n == 0:
+                    return 0, None
+                t = t[:n]
+            else:
+                lo, hi = lo_n, hi_n
+        if c0 == 0 and self._next_window is not None:
+            self.window, self._next_window = self._next_window, None
+        self.samples += n
+        # the drift line's sums, added in append's order
+        sk, sk2, so, sko = sums
+        for j, o in enumerate(offsets, k0):
+            sk, sk2, so, sko = sk + j, sk2 + j * j, so + o, sko + j * o
+        self._sums, self._lo, self._hi, self._t_first = (sk, sk2, so, sko), lo, hi, t_first
+        head = self._head
+        if head + n <= self.capacity:
+            self._t[head:head + n] = t
+            self._v[head:head + n] = values[:n]
+        else:
+            idx = (head + np.arange(n)) % self.capacity
+            self._t[idx] = t
+            self._v[idx] = values[:n]
+        self._last_t = float(t[-1])
+        self._last_row = values[n - 1].tolist()
+        self._head = (head + n) % self.capacity
+        self._count += n
+        if self._count < self.window:
+            return n, None
+        return n, self._complete()
+
+    def _complete(self) -> WindowData:
+        """The window just filled (its samples the last ``window`` of the ring)."""
         self._count = 0
         self._stretch_lost = self._stretch_windows = 0
         idx = (self._head - self.window + np.arange(self.window)) % self.capacity
