@@ -225,9 +225,13 @@ class Run:
         cores are shared)."""
         if not self.wall_s:
             return ""
+        per_window = (f"; the fleet's CPU {self.cpu_s:.0f} s, "
+                      f"{1e3 * self.cpu_s / self.estimated:.1f} ms per window estimated (less "
+                      f"load-sensitive than the overruns; windows dropped cost their "
+                      f"acquisition)" if self.estimated else "")
         return (f"box busy {100 * self.box_s / self.wall_s:.0f} % over the run, of which "
                 f"other processes {100 * max(self.box_s - self.cpu_s, 0.0) / self.wall_s:.0f} %,"
-                f" steal {100 * self.steal_s / self.wall_s:.0f} %")
+                f" steal {100 * self.steal_s / self.wall_s:.0f} %" + per_window)
 
     def row(self) -> str:
         e = sorted(self.elapsed)
