@@ -1,8 +1,7 @@
 """Fixed-size ring buffer that turns a stream of samples into acquisition windows.
 
-The acquisition side appends one sample at a time (or a driver's block of samples at once,
-:meth:`RingBuffer.extend`: the same result); every ``window`` consecutive good samples become
-one :class:`~twinwatch.twin.model.WindowData`. Memory is allocated once.
+The acquisition side appends one sample at a time; every ``window`` consecutive good samples
+become one :class:`~twinwatch.twin.model.WindowData`. Memory is allocated once.
 
 Time stamps as they come. A source's stamps are rarely on an exact grid: a CAN adapter stamps
 a frame when it is received (+-50 us on a busy bus), a logger rounds its time column, a
