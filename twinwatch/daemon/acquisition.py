@@ -23,8 +23,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
@@ -131,15 +129,6 @@ class Acquisition:
         # a source on a simulated clock (replayed as fast as possible) ticks every sample: its
         # samples come faster than the wall clock, and a reload acts before it ends
         tick_s = TICK_S if live else 0.0
-        # the samples a driver has ready at once (a recording's rows due together) go to the
-        # ring buffer as one block: a window's 200 rows in a few calls (issue 35 item 4: the
-        # per-sample path was 3.4 ms of CPU a window, 15 % of a 200-machine gateway's)
-        ring = self.ring
-        driver = self.driver
-        blocks = type(driver).read_block is not Driver.read_block and set(
-            ring.channels) <= set(driver.channels)
-        cols = (None if tuple(ring.channels) == tuple(driver.channels)
-                else [driver.channels.index(c) for c in ring.channels] if blocks else None)
         while not self.stopping.is_set():
             if self._stop_at_window is not None and (
                     self.ring.pending == 0 or time.monotonic() > self._stop_at_window):
@@ -150,25 +139,6 @@ class Acquisition:
                     self.watchdog.tick()
                 for fn in self.ticks:
                     fn()
-            block = driver.read_block(ring.needed) if blocks else None
-            if block is not None:
-                if stalled:
-                    logger.warning("driver delivers samples again after a stall of %.1f s",
-                                   time.monotonic() - last_sample)
-                    stalled = False
-                last_sample = time.monotonic()
-                t_block, v_block = block
-                if cols is not None:
-                    v_block = v_block[:, cols]
-                if t_first is None:
-                    t_first = float(t_block[0])
-                if duration is not None and float(t_block[-1]) - t_first >= duration:
-                    cut = int(np.argmax(t_block - t_first >= duration))
-                    self._take_block(t_block[:cut], v_block[:cut], submit, abandoned, live)
-                    self.ended = "duration reached"
-                    break
-                self._take_block(t_block, v_block, submit, abandoned, live)
-                continue
             try:
                 sample = self.driver.read(timeout=0.2)
             except EndOfStream as exc:
@@ -202,41 +172,18 @@ class Acquisition:
             if duration is not None and sample.t - t_first >= duration:
                 self.ended = "duration reached"
                 break
-            self._took(self.ring.append(sample.t, sample.values), submit, abandoned, live)
-
-    def _took(self, window: WindowData | None, submit: Callable[[WindowData, bool], None],
-              abandoned: Callable[[int], None], live: bool) -> None:
-        """After samples went into the ring buffer: the staggered first window's end, the
-        windows it abandoned, the window it completed."""
-        if self._phase_pending and not self.ring.window_requested:
-            # the first window has started at its staggered length: the next ones are
-            # of the configured length again
-            self._phase_pending = False
-            self.ring.request_window(self.config.acquisition.window)
-        n_abandoned = sum(self.ring.causes.values())
-        if n_abandoned > self._abandoned_seen:
-            abandoned(n_abandoned - self._abandoned_seen)
-            self._abandoned_seen = n_abandoned
-        if window is not None:
-            submit(window, not live)
-
-    def _take_block(self, t: np.ndarray, values: np.ndarray,
-                    submit: Callable[[WindowData, bool], None],
-                    abandoned: Callable[[int], None], live: bool) -> None:
-        """A driver's block (:meth:`Driver.read_block`) into the ring buffer: as many samples
-        at once as :meth:`RingBuffer.extend` takes, a sample it leaves through
-        :meth:`RingBuffer.append`, each window handled as it completes."""
-        ring = self.ring
-        channels = ring.channels
-        i, n = 0, int(t.shape[0])
-        while i < n:
-            m, window = ring.extend(t[i:], values[i:], checked=True)
-            if m == 0:
-                window = ring.append(float(t[i]), dict(zip(channels, values[i].tolist(),
-                                                           strict=True)))
-                m = 1
-            i += m
-            self._took(window, submit, abandoned, live)
+            window = self.ring.append(sample.t, sample.values)
+            if self._phase_pending and not self.ring.window_requested:
+                # the first window has started at its staggered length: the next ones are
+                # of the configured length again
+                self._phase_pending = False
+                self.ring.request_window(self.config.acquisition.window)
+            n_abandoned = sum(self.ring.causes.values())
+            if n_abandoned > self._abandoned_seen:
+                abandoned(n_abandoned - self._abandoned_seen)
+                self._abandoned_seen = n_abandoned
+            if window is not None:
+                submit(window, not live)
 
     def stop(self, at_window: bool = False) -> None:
         """Ask :meth:`run` to return after the current sample (thread- and signal-safe), or

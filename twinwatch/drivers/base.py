@@ -267,16 +267,6 @@ class Driver(Closeable, abc.ABC):
             self.stats.samples += 1
         return sample
 
-    def read_block(self, limit: int) -> tuple[Any, Any] | None:
-        """The samples ready now, at most ``limit``, at once, without waiting: ``(t, values)``,
-        numpy arrays of shape (n,) [s] and (n, len(:attr:`channels`)), in :attr:`channels`'
-        order, every stamp and value finite and the stamps not decreasing; None when none is
-        ready so (then :meth:`read` delivers the next sample as it comes, whatever it is).
-        What they cost a source that has them in arrays already (a recording replayed in real
-        time: a window's 200 rows in a few calls, not 200), the same samples as :meth:`read`.
-        Default: None (every sample through :meth:`read`)."""
-        return None
-
     def close(self) -> None:
         """Release the driver's resources. Idempotent."""
         if self._closed:

@@ -556,37 +556,6 @@ class FileDriver(Driver):
                 )
             return Sample(t, values)
 
-    def read_block(self, limit: int) -> tuple[FloatArray, FloatArray] | None:
-        """The rows due now (real time) or the next ones (as fast as possible), at most
-        ``limit``, as arrays (:meth:`Driver.read_block`): the same rows, values and counts as
-        :meth:`read`, up to the first row :meth:`read` must treat itself (a stamp or value
-        not finite, a stamp going back, a row not due yet: it paces and logs as before)."""
-        if self._closed:
-            return None
-        k = self._next
-        hi = min(len(self._t), k + limit)
-        if hi <= k:
-            return None
-        t = self._t[k:hi]
-        values = self._values[k:hi]
-        good = np.isfinite(values).all(axis=1)
-        good &= np.isfinite(t)
-        good[1:] &= t[1:] >= t[:-1]
-        n = int(good.size) if good.all() else int(np.argmin(good))
-        if n and self.config.realtime:  # of those, the rows due now, paced as read() paces
-            if self._origin is None or not t[0] >= self._last_paced:
-                return None
-            wall, start = self._origin
-            n = int(np.searchsorted(t[:n], start + (time.monotonic() - wall), side="right"))
-        if n == 0:
-            return None
-        self._next = k + n
-        self.stats.frames += n
-        self.stats.samples += n
-        if self.config.realtime:
-            self._last_paced = float(t[n - 1])
-        return t[:n], values[:n]
-
     def _say_grown(self) -> None:
         """Once, at the end of a file opened without ``follow``: it grew since it was opened
         (a logger still writing it), so the rows written since were not replayed."""
