@@ -23,7 +23,9 @@ process maps, about 130 MB each, once per process; PSS divides each shared page 
 processes that map it: the memory the box gives the fleet), and ``late60``: the worst window
 after the first minute of plant time, how much later than the machine's promptest window it
 was stored (ms; the file replays in real time, so a window's end is due at a fixed offset from
-its plant time: this is the queueing a window suffered beyond the machine's best case).
+its plant time: this is the queueing a window suffered beyond the machine's best case), and
+under the row the box's load from other processes and the fleet's CPU seconds per window
+estimated (less sensitive to that load than the overruns).
 ``--cold`` points ``NUMBA_CACHE_DIR`` at an empty directory: every kernel is compiled, as on
 the first start after an install (a reboot with an installed unit keeps its cache in
 ``/var/cache/twinwatch``). Each run is bounded by ``--seconds`` + 150 s of wall time.
