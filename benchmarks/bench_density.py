@@ -23,7 +23,9 @@ process maps, about 130 MB each, once per process; PSS divides each shared page 
 processes that map it: the memory the box gives the fleet), and ``late60``: the worst window
 after the first minute of plant time, how much later than the machine's promptest window it
 was stored (ms; the file replays in real time, so a window's end is due at a fixed offset from
-its plant time: this is the queueing a window suffered beyond the machine's best case).
+its plant time: this is the queueing a window suffered beyond the machine's best case), and
+under the row the box's load from other processes and the fleet's CPU seconds per window
+estimated (less sensitive to that load than the overruns).
 ``--cold`` points ``NUMBA_CACHE_DIR`` at an empty directory: every kernel is compiled, as on
 the first start after an install (a reboot with an installed unit keeps its cache in
 ``/var/cache/twinwatch``). Each run is bounded by ``--seconds`` + 150 s of wall time.
@@ -225,9 +227,13 @@ class Run:
         cores are shared)."""
         if not self.wall_s:
             return ""
+        per_window = (f"; the fleet's CPU {self.cpu_s:.0f} s, "
+                      f"{1e3 * self.cpu_s / self.estimated:.1f} ms per window estimated (less "
+                      f"load-sensitive than the overruns; windows dropped cost their "
+                      f"acquisition)" if self.estimated else "")
         return (f"box busy {100 * self.box_s / self.wall_s:.0f} % over the run, of which "
                 f"other processes {100 * max(self.box_s - self.cpu_s, 0.0) / self.wall_s:.0f} %,"
-                f" steal {100 * self.steal_s / self.wall_s:.0f} %")
+                f" steal {100 * self.steal_s / self.wall_s:.0f} %" + per_window)
 
     def row(self) -> str:
         e = sorted(self.elapsed)

@@ -279,13 +279,16 @@ _PARAM_STATUS: Mapping[str, int] = {"held": 0x40900000,     # UncertainLastUsabl
                                     "suspect": 0x40000000}  # Uncertain
 
 
-def flat_values(h: HealthMessage, health: tuple[int, str]) -> dict[str, tuple[Any, int | None]]:
+def flat_values(h: HealthMessage, health: tuple[int, str], counters: bool = True
+                ) -> dict[str, tuple[Any, int | None]]:
     """The window's values by node path (``Parameters.Ra.Value``), each with its OPC UA status
     code (None: Good). A null of the message is NaN (numbers) or ``""`` (texts).
 
     Args:
         h: the typed health message.
         health: its :func:`device_health`.
+        counters: with the ``Counters.<name>`` values (False: a window whose counters are not
+            written, :data:`COUNTERS_EVERY_S`).
     """
     out: dict[str, tuple[Any, int | None]] = {
         "DeviceHealth": (health[0], None), "DeviceHealthReason": (health[1], None),
@@ -297,8 +300,9 @@ def flat_values(h: HealthMessage, health: tuple[int, str]) -> dict[str, tuple[An
         _parameter_values(out, f"Parameters.{name}.", p, h.alarms.get(name))
     if h.diagnosis is not None:
         out.update(_diagnosis_values(h.diagnosis))
-    for name, v in h.counters.items():
-        out[f"Counters.{name}"] = (int(v), None)
+    if counters:
+        for name, v in h.counters.items():
+            out[f"Counters.{name}"] = (int(v), None)
     return out
 
 

@@ -93,6 +93,9 @@ class OpcUaServer:
         self.writes = 0
         self.errors = 0
         self._tasks: set[asyncio.Task[None]] = set()
+        self._names: set[str] = set()        # machines added (their nodes made or to be)
+        self._names_lock = threading.Lock()
+        self._building: dict[str, asyncio.Task[None]] = {}  # machine -> its nodes' making
         try:
             self._call(self._start(), 30.0)
         except BaseException:
@@ -175,17 +178,42 @@ class OpcUaServer:
     # -- machines ---------------------------------------------------------------------------
     def add_machine(self, context: SinkContext, stale_after: float) -> None:
         """Create ``context.machine``'s object (its parameters from the context: units,
-        nominal values, alarm bands) and its alarm event generators.
+        nominal values, alarm bands) and its alarm event generators, on the server's loop,
+        without waiting for it: a gateway's machines start at once instead of one after the
+        other (some 47 ms of CPU a machine's 220 nodes; 200 machines started 10 s later), and
+        whatever is handed to the loop after this call (the machine's windows, a client's
+        request, :meth:`flush`) comes after its nodes. Nodes that cannot be made (a bug) are
+        logged and counted in :attr:`errors`.
 
         Raises:
             PublisherError: the machine is already served by this server (two outputs of one
-                machine), or the nodes cannot be created.
+                machine).
         """
-        self._call(self._add_machine(context, stale_after))
+        name = context.machine
+        with self._names_lock:
+            if name in self._names:
+                raise PublisherError(f"outputs.opcua: machine {name!r} is already served on "
+                                     f"{self.config.endpoint}; give each machine one name")
+            self._names.add(name)
+        self._loop.call_soon_threadsafe(self._schedule_add, context, stale_after)
+
+    def _schedule_add(self, context: SinkContext, stale_after: float) -> None:
+        task = self._loop.create_task(self._add_machine(context, stale_after))
+        self._building[context.machine] = task
+        self._tasks.add(task)
+        task.add_done_callback(self._done)
+
+    async def _built(self, machine: str) -> None:
+        """Wait until the machine's nodes are made (its :meth:`add_machine`'s task)."""
+        task = self._building.get(machine)
+        if task is not None and not task.done():
+            await asyncio.gather(task, return_exceptions=True)
 
     def remove_machine(self, machine: str) -> None:
         """Delete the machine's object and every node under it (a machine stopped or removed
         by a reload)."""
+        with self._names_lock:
+            self._names.discard(machine)
         if self._closed:
             return
         try:
@@ -221,14 +249,15 @@ class OpcUaServer:
         self._tasks.discard(task)
         if not task.cancelled() and task.exception() is not None:
             self.errors += 1
-            if self.errors == 1:
+            building = [m for m, t in self._building.items() if t is task]
+            if building:
+                logger.error("OPC UA: %s's nodes could not be made: %s", building[0],
+                             task.exception())
+            elif self.errors == 1:
                 logger.error("OPC UA: writing a window failed: %s", task.exception())
 
     async def _add_machine(self, ctx: SinkContext, stale_after: float) -> None:
         name = ctx.machine
-        if name in self.machines:
-            raise PublisherError(f"outputs.opcua: machine {name!r} is already served on "
-                                 f"{self.config.endpoint}; give each machine one name")
         ns = self.ns
         b = _Builder(ns, name)
         obj = b.object(None, name, self.root.nodeid, folder_parent=True)
@@ -298,6 +327,8 @@ class OpcUaServer:
         self.machines[name] = m
 
     async def _remove_machine(self, machine: str) -> None:
+        await self._built(machine)
+        self._building.pop(machine, None)
         m = self.machines.pop(machine, None)
         if m is None:
             return
@@ -326,6 +357,7 @@ class OpcUaServer:
 
     async def _publish(self, machine: str, h: HealthMessage, events: list[dict[str, Any]]
                        ) -> None:
+        await self._built(machine)
         m = self.machines.get(machine)
         if m is None:
             return
@@ -334,16 +366,15 @@ class OpcUaServer:
         m.stale = False
         ts = _source_time(m, h.run, h.t_end, now)
         m.health = device_health(h)
-        values = flat_values(h, m.health)
         # the counters (some 40 a machine, most changing every window) at most every
         # COUNTERS_EVERY_S of plant time: half the writes of a window, and a SCADA trends them
-        # at that pace anyway (measured: a 50-machine gateway's output cost 9 % of a core)
+        # at that pace anyway (measured: a 50-machine gateway's output cost 9 % of a core);
+        # not even flattened in the other windows
         counters_due = (m.counters_t is None or h.t_end < m.counters_t
                         or h.t_end - m.counters_t >= COUNTERS_EVERY_S)
         if counters_due:
             m.counters_t = h.t_end
-        else:
-            values = {k: v for k, v in values.items() if not k.startswith("Counters.")}
+        values = flat_values(h, m.health, counters=counters_due)
         write = self.aspace.write_attribute_value
         value_attr = ua.AttributeIds.Value
         good = ua.StatusCode()
