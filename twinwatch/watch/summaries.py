@@ -1,0 +1,192 @@
+"""The fleet's summaries (:mod:`twinwatch.twin.summary`) as a Zenoh network shows them:
+:class:`SummaryWatcher` follows ``<prefix>/<machines>/summary`` with a ``zenoh.ext`` advanced
+subscriber (each machine's latest summary from its publisher's cache when the watcher joins or a
+publisher appears, and again after a router outage: the publisher is seen anew and its cache
+asked), keeps each machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's
+full health only when asked (:meth:`SummaryWatcher.health`). What it holds is read by
+:mod:`twinwatch.watch.ranking`.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from twinwatch._lazy import lazy_module
+from twinwatch.errors import WatchError
+from twinwatch.watch.ranking import Received
+from twinwatch.watch.session import check_prefix, decode_health
+
+if TYPE_CHECKING:
+    import zenoh
+    from zenoh import ext as zenoh_ext
+
+    from twinwatch.twin.health import HealthView
+else:  # imported when a session opens
+    zenoh = lazy_module("zenoh")
+    zenoh_ext = lazy_module("zenoh.ext")
+
+
+SETTLE_QUIET_S = 1.0
+""":meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
+this long [s]."""
+
+
+def machines_key(prefix: str, machines: str) -> str:
+    """``<prefix>/<machines>/summary``, ``machines`` one key-expression chunk: a machine's
+    name, ``*`` (every machine), or a pattern such as ``line1-$*`` (every machine whose name
+    starts with ``line1-``; ``$*`` is zenoh's wildcard inside a chunk).
+
+    Raises:
+        WatchError: the prefix or the pattern is not a key expression (named).
+    """
+    check_prefix(prefix)
+    key = f"{prefix}/{machines}/summary"
+    if not machines or "/" in machines or "**" in machines:
+        raise WatchError(f"machines {machines!r}: give one chunk of a key expression: a "
+                         "machine's name, * or a pattern like line1-$*")
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        raise WatchError(f"machines {machines!r}: not a zenoh key expression chunk ({exc}); "
+                         "use * for every machine or $* inside a name (line1-$*)") from None
+    return key
+
+
+class SummaryWatcher:
+    """Each machine's latest fleet summary on a Zenoh session.
+
+    Args:
+        session: an open session (:func:`~twinwatch.watch.session.open_session`); the caller
+            closes it.
+        prefix: the daemons' ``[zenoh] key_prefix``.
+        machines: one key-expression chunk selecting the machines (:func:`machines_key`).
+        clock: wall clock [s since the epoch].
+        on_summary: called with the machine and a summary newer than the one held (zenoh's
+            thread).
+
+    Thread-safe; use as a context manager (the subscriber is undeclared on exit).
+
+    Raises:
+        WatchError: a bad prefix or pattern.
+    """
+
+    def __init__(self, session: zenoh.Session, *, prefix: str = "twinwatch",
+                 machines: str = "*", clock: Callable[[], float] = time.time,
+                 on_summary: Callable[[str, dict[str, Any]], None] | None = None) -> None:
+        self.session = session
+        self.prefix = prefix
+        self.key = machines_key(prefix, machines)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._received: dict[str, Received] = {}
+        self.delivered = 0  # summaries received (a repeat of the held one not counted)
+        self.changed = threading.Event()
+        self.on_summary = on_summary
+        self._sub: Any = None
+        self._last_new = time.monotonic()
+
+    def start(self) -> SummaryWatcher:
+        """Declare the subscriber: the publishers' caches answer at once (and when a publisher
+        appears later, or is seen again after a router outage)."""
+        self._sub = zenoh_ext.declare_advanced_subscriber(
+            self.session, self.key, self._on_sample,
+            recovery=zenoh_ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+            history=zenoh_ext.HistoryConfig(detect_late_publishers=True, max_samples=1))
+        self._last_new = time.monotonic()
+        return self
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            doc = json.loads(sample.payload.to_string())
+        except (ValueError, UnicodeDecodeError):
+            return
+        if not isinstance(doc, dict):
+            return
+        key = str(sample.key_expr)
+        machine = key[len(self.prefix) + 1:-len("/summary")]
+        self.put(machine, doc)
+
+    def put(self, machine: str, summary: dict[str, Any]) -> bool:
+        """Hold ``summary`` as ``machine``'s latest unless it is older than the one held (the
+        same run, an earlier window) or the same.
+
+        Returns:
+            True if it is now the machine's latest.
+        """
+        now = self._clock()
+        with self._lock:
+            old = self._received.get(machine)
+            if old is not None and old.summary.get("run") == summary.get("run"):
+                ow, nw = old.summary.get("window"), summary.get("window")
+                if isinstance(ow, int) and isinstance(nw, int) and (
+                        nw < ow or (nw == ow and old.summary.get("wall") == summary.get(
+                            "wall"))):
+                    return False
+            if old is None:
+                self._last_new = time.monotonic()
+            self._received[machine] = Received(summary, now)
+            self.delivered += 1
+        self.changed.set()
+        if self.on_summary is not None:
+            self.on_summary(machine, summary)
+        return True
+
+    @property
+    def received(self) -> dict[str, Received]:
+        """machine -> its latest summary and when it arrived (a copy)."""
+        with self._lock:
+            return dict(self._received)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._received)
+
+    def settle(self, timeout: float, *, expected: int | None = None,
+               quiet: float = SETTLE_QUIET_S) -> None:
+        """Wait until ``expected`` machines are held, or (without it) no new machine came for
+        ``quiet`` [s] after the first, or ``timeout`` [s] passed."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            n = len(self)
+            if expected is not None and n >= expected:
+                return
+            if expected is None and n and time.monotonic() - self._last_new >= quiet:
+                return
+            self.changed.wait(min(0.05, max(deadline - time.monotonic(), 0.0)))
+            self.changed.clear()
+
+    def health(self, machine: str, timeout: float = 5.0) -> HealthView | None:
+        """``machine``'s full health: its latest window, asked from its daemon
+        (``get(<prefix>/<machine>/health)``) only now; None when nothing answered.
+
+        Raises:
+            WatchError: ``machine`` is not a machine's name.
+        """
+        if not machine or "/" in machine or "*" in machine or "$" in machine:
+            raise WatchError(f"machine {machine!r}: give one machine's name")
+        for reply in self.session.get(f"{self.prefix}/{machine}/health", timeout=timeout,
+                                      target=zenoh.QueryTarget.ALL):
+            if reply.ok is not None:
+                got = decode_health(reply.ok.payload)
+                if got is not None:
+                    return got[0]
+        return None
+
+    def close(self) -> None:
+        """Undeclare the subscriber (idempotent)."""
+        sub, self._sub = self._sub, None
+        if sub is not None:
+            try:
+                sub.undeclare()
+            except zenoh.ZError:
+                pass
+
+    def __enter__(self) -> SummaryWatcher:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
