@@ -9,16 +9,24 @@ full health only when asked (:meth:`SummaryWatcher.health`). What it holds is re
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Iterator, Sequence
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
 from twinwatch.watch.ranking import Received
-from twinwatch.watch.session import check_prefix, decode_health
+from twinwatch.watch.session import (
+    Mode,
+    check_endpoints,
+    check_prefix,
+    decode_health,
+    open_session,
+)
 
 if TYPE_CHECKING:
     import zenoh
@@ -190,3 +198,85 @@ class SummaryWatcher:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class Summaries:
+    """Several :class:`SummaryWatcher` (one per endpoint in client mode) read as one."""
+
+    def __init__(self, watchers: list[SummaryWatcher]) -> None:
+        self.watchers = watchers
+
+    @property
+    def received(self) -> dict[str, Received]:
+        """machine -> its latest summary over every watcher (the one that arrived last)."""
+        out: dict[str, Received] = {}
+        for w in self.watchers:
+            for m, r in w.received.items():
+                if m not in out or r.at > out[m].at:
+                    out[m] = r
+        return out
+
+    def settle(self, timeout: float, *, expected: int | None = None,
+               quiet: float = SETTLE_QUIET_S) -> None:
+        """:meth:`SummaryWatcher.settle` on each, within one ``timeout`` [s]."""
+        deadline = time.monotonic() + timeout
+        for w in self.watchers:
+            w.settle(max(0.0, deadline - time.monotonic()), expected=expected, quiet=quiet)
+
+    def wait(self, timeout: float) -> None:
+        """Wait until a summary arrives or ``timeout`` [s] passed."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(w.changed.is_set() for w in self.watchers):
+                break
+            time.sleep(min(0.05, max(deadline - time.monotonic(), 0.0)))
+        for w in self.watchers:
+            w.changed.clear()
+
+    def health(self, machine: str, timeout: float = 5.0) -> HealthView | None:
+        """:meth:`SummaryWatcher.health` through each watcher until one answers."""
+        for w in self.watchers:
+            got = w.health(machine, timeout)
+            if got is not None:
+                return got
+        return None
+
+
+@contextmanager
+def following(connect: Sequence[str], mode: Mode, prefix: str, machines: str = "*", *,
+              optional: Collection[str] = (),
+              on_skip: Callable[[str, str], None] | None = None) -> Iterator[Summaries]:
+    """Sessions on ``connect`` (one per endpoint in client mode, as
+    :func:`~twinwatch.watch.subscription.watching`) and a started :class:`SummaryWatcher` on
+    each, closed on exit.
+
+    Raises:
+        WatchError: a bad endpoint, prefix or pattern; nothing answers (``optional``
+            endpoints may be skipped, each told to ``on_skip``).
+    """
+    machines_key(prefix, machines)
+    check_endpoints(connect)
+    skippable = set(optional)
+    groups = ([[e] for e in connect] if mode == "client" and (len(connect) > 1 or skippable)
+              else [list(connect)])
+    with contextlib.ExitStack() as stack:
+        watchers: list[SummaryWatcher] = []
+        skipped: list[tuple[str, str]] = []
+        for group in groups:
+            try:
+                session = open_session(group, mode)
+            except WatchError as exc:
+                if not set(group) <= skippable:
+                    raise
+                skipped.append((group[0], str(exc)))
+                continue
+            stack.callback(session.close)
+            watchers.append(stack.enter_context(
+                SummaryWatcher(session, prefix=prefix, machines=machines)))
+        if not watchers:
+            raise WatchError(f"nothing answers at {', '.join(connect)}: start a daemon "
+                             "(twinwatch run) or a zenoh router there")
+        for endpoint, why in skipped:
+            if on_skip is not None:
+                on_skip(endpoint, why)
+        yield Summaries(watchers)
