@@ -224,12 +224,20 @@ def role_client(a: argparse.Namespace) -> None:
     threading.Thread(target=commands, daemon=True).start()
     out = Console(file=io.StringIO(), width=160)
     full_at = None
+    last_progress = time.monotonic()
     while not stop.is_set():
         t = time.monotonic()
         view = fleet_view(watcher.received, time.time(), limit=20)
         out.file = io.StringIO()
         out.print(render_fleet(view, title="bench"))
         render_ms = 1e3 * (time.monotonic() - t)
+        if full_at is None and time.monotonic() - last_progress >= 5.0:
+            last_progress = time.monotonic()
+            boxes: dict[str, int] = {}
+            for m in watcher.received:
+                boxes[m.split("-")[0]] = boxes.get(m.split("-")[0], 0) + 1
+            say(event="progress", held=view["machines_total"],
+                after_s=round(last_progress - t_open, 1), boxes=boxes)
         if full_at is None and view["machines_total"] >= a.expect:
             full_at = time.monotonic()
             say(event="full", after_s=round(full_at - t_open, 2),
@@ -271,6 +279,9 @@ class Proc:
                 raise TimeoutError(f"{self.name}: no {event} within {timeout} s") from None
             if e.get("event") == event:
                 return e
+            if e.get("event") == "progress":
+                print(f"  [{self.name}] {e['held']} machines held after {e['after_s']} s "
+                      f"{e.get('boxes')}", file=sys.stderr, flush=True)
 
     def send(self, line: str) -> None:
         assert self.p.stdin is not None

@@ -196,3 +196,38 @@ def test_a_key_expression_filters_the_machines_followed() -> None:
         finally:
             for p in pubs.values():
                 p.close()
+
+
+def test_after_a_router_outage_the_watcher_gets_each_machines_latest_again() -> None:
+    """The summaries published while the router was down never reach the watcher live; when
+    the machines' tokens come back it asks their latest (one get), and holds it."""
+    from .test_fleet import Router
+
+    ep = endpoint(free_port())
+    router = Router(ep)
+    router.start()
+    pubs = {m: HealthPublisher(ZenohConfig(mode="client", connect=[ep]), m)
+            for m in ("m1", "m2")}
+    session = zsession("client", connect=[ep])
+    try:
+        with SummaryWatcher(session) as watcher:
+            for m, p in pubs.items():
+                p.publish_summary(summary(machine=m, window=1))
+            watcher.settle(10.0, expected=2)
+            assert watcher.queried.wait(10.0)
+            asked = watcher.asked
+            router.stop()
+            time.sleep(1.0)
+            for m, p in pubs.items():  # state changes nobody hears
+                assert p.publish_summary(summary(machine=m, window=2, level="alarm"))
+            router.start()
+            wait_for(lambda: all(r.summary["window"] == 2
+                                 for r in watcher.received.values()), 20.0,
+                     "each machine's latest after the router came back")
+            assert {r.summary["state"] for r in watcher.received.values()} == {"alarm"}
+            assert watcher.asked > asked  # asked again, not heard live
+    finally:
+        session.close()
+        for p in pubs.values():
+            p.close()
+        router.stop()

@@ -59,7 +59,7 @@ def report(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None
     horizon, whose diagnosis urges action (its fault alarm raised, a fault of high urgency at
     least 0.5 probable, or check function: the twin cannot see the machine), or with an alarm
     raised; with the part and the action, most urgent first. Read from each machine's latest
-    fleet summary (its publisher's cache answers at once).
+    fleet summary (one get, each daemon answering with its machines' latest).
 
     Exit status: 0 (nothing due too); 1 when the network cannot be reached; 2 for a bad
     option."""

@@ -17,8 +17,8 @@ with ``P = {key_prefix}/{machine}``:
   queryable below and ``P/**`` never match (``@`` chunks are verbatim in zenoh);
 * the machine's fleet summary on ``P/summary`` (:mod:`twinwatch.twin.summary`: state, alarm
   levels, top fault, RUL, deviations in a few hundred bytes), when it changed and at least
-  every ``[zenoh] summary_interval`` seconds (:meth:`HealthPublisher.publish_summary`); its
-  publisher caches the latest one for late joiners;
+  every ``[zenoh] summary_interval`` seconds (:meth:`HealthPublisher.publish_summary`), a plain
+  publisher: late joiners get the latest from the queryable below;
 * a liveliness token ``P/alive``, present while the publisher is open: a remote process sees the
   machine appear and disappear with ``session.liveliness().declare_subscriber(...)`` or polls it
   with ``session.liveliness().get(...)``;
@@ -832,9 +832,9 @@ class HealthPublisher(Sink):
         """Publish a fleet summary (:func:`~twinwatch.twin.summary.fleet_summary`) on
         ``P/summary`` if it changed since the last one published
         (:func:`~twinwatch.twin.summary.summary_changed`) or ``[zenoh] summary_interval``
-        seconds passed since; it is kept as the latest (a get on ``P/summary`` returns it) and
-        by the summary's publisher for late joiners (an advanced publisher caching the last
-        one when ``[zenoh] cache`` > 0).
+        seconds passed since; it is kept as the latest: a get on ``P/summary`` (or
+        ``<prefix>/*/summary`` for the fleet) returns it, which is how a late joiner or a
+        watcher back from a router outage gets it (the summary's publisher is a plain one).
 
         Args:
             summary: the summary (plain JSON types).
@@ -867,10 +867,12 @@ class HealthPublisher(Sink):
                 text = payload if isinstance(payload, str) else to_json(payload)
                 publisher = self._publishers.get(key)
                 if publisher is None:
-                    # the summary's publisher keeps the latest one only (late joiners want
-                    # each machine's state, not its past)
+                    # the summary's publisher is a plain one: its latest is this queryable's
+                    # (a fleet of 5000 machines' advanced publishers through three routers
+                    # left a far advanced subscriber without a quarter of them for minutes:
+                    # benchmarks/bench_fleet.py, docs/fleet.md)
                     cfg = (self.config if key != self.summary_key else self.config.model_copy(
-                        update={"cache": min(self.config.cache, 1)}))
+                        update={"cache": 0}))
                     publisher = declare_publisher(self._session, key, cfg)
                     self._publishers[key] = publisher
                 publisher.put(text)

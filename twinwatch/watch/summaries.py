@@ -1,8 +1,8 @@
 """The fleet's summaries (:mod:`twinwatch.twin.summary`) as a Zenoh network shows them:
-:class:`SummaryWatcher` follows ``<prefix>/<machines>/summary`` with a ``zenoh.ext`` advanced
-subscriber (each machine's latest summary from its publisher's cache when the watcher joins or a
-publisher appears, and again after a router outage: the publisher is seen anew and its cache
-asked), keeps each machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's
+:class:`SummaryWatcher` follows ``<prefix>/<machines>/summary`` with a plain subscriber, asks
+every machine's latest once when it starts (one get, each machine's queryable answering) and
+again when the machines' liveliness tokens appear anew (a router back from an outage, a daemon
+restarted), keeps each machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's
 full health only when asked (:meth:`SummaryWatcher.health`). What it holds is read by
 :mod:`twinwatch.watch.ranking`.
 """
@@ -30,13 +30,19 @@ from twinwatch.watch.session import (
 
 if TYPE_CHECKING:
     import zenoh
-    from zenoh import ext as zenoh_ext
 
     from twinwatch.twin.health import HealthView
 else:  # imported when a session opens
     zenoh = lazy_module("zenoh")
-    zenoh_ext = lazy_module("zenoh.ext")
 
+
+LATEST_TIMEOUT_S = 20.0
+"""How long one ask of every machine's latest summary may take [s] (10 000 replies through
+routers on a loaded box took about 2 s: docs/fleet.md)."""
+
+REASK_QUIET_S = 0.5
+"""Machines' tokens that appear again (a router back) are waited for until none came for this
+long [s], then the latest summaries are asked once."""
 
 SETTLE_QUIET_S = 1.0
 """:meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
@@ -95,17 +101,62 @@ class SummaryWatcher:
         self.changed = threading.Event()
         self.on_summary = on_summary
         self._sub: Any = None
+        self._live: Any = None
         self._last_new = time.monotonic()
+        self._token_at = -1e9
+        self._ask = threading.Event()
+        self._closing = threading.Event()
+        self._asker: threading.Thread | None = None
+        self.queried = threading.Event()  # the first ask of the latest summaries ended
+        self.asked = 0  # asks of the latest summaries that ended
 
     def start(self) -> SummaryWatcher:
-        """Declare the subscriber: the publishers' caches answer at once (and when a publisher
-        appears later, or is seen again after a router outage)."""
-        self._sub = zenoh_ext.declare_advanced_subscriber(
-            self.session, self.key, self._on_sample,
-            recovery=zenoh_ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
-            history=zenoh_ext.HistoryConfig(detect_late_publishers=True, max_samples=1))
+        """Declare the subscriber (live summaries) and the liveliness subscriber on the
+        machines' ``alive`` tokens, then ask every machine's latest summary once (a get on the
+        summaries' key, target ALL, each machine's queryable answering) in a thread of its own
+        (``twinwatch-watch-summaries``); :attr:`queried` is set once it ended. Whenever tokens
+        appear again (a router back from an outage, a daemon restarted) the latest are asked
+        again, once the tokens stopped coming for :data:`REASK_QUIET_S`."""
+        self._sub = self.session.declare_subscriber(self.key, self._on_sample)
+        alive = self.key.removesuffix("/summary") + "/alive"
+        self._live = self.session.liveliness().declare_subscriber(alive, self._on_token)
         self._last_new = time.monotonic()
+        self._asker = threading.Thread(target=self._ask_loop, name="twinwatch-watch-summaries",
+                                       daemon=True)
+        self._ask.set()
+        self._asker.start()
         return self
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._token_at = time.monotonic()
+            self._ask.set()
+
+    def _ask_loop(self) -> None:
+        """Ask the latest summaries when :attr:`_ask` is set (at start without waiting; after
+        tokens appeared, once they stopped coming for :data:`REASK_QUIET_S`)."""
+        first = True
+        while self._ask.wait():
+            if self._closing.is_set():
+                return
+            if not first:  # tokens come in a burst: ask once it ended
+                while time.monotonic() - self._token_at < REASK_QUIET_S:
+                    if self._closing.wait(REASK_QUIET_S / 2):
+                        return
+            self._ask.clear()
+            try:
+                for reply in self.session.get(self.key, target=zenoh.QueryTarget.ALL,
+                                              timeout=LATEST_TIMEOUT_S):
+                    if reply.ok is not None:
+                        self._on_sample(reply.ok)
+                self.asked += 1
+            except zenoh.ZError:  # the session closed under the query
+                return
+            finally:
+                if first:
+                    self.queried.set()
+                    self.changed.set()
+                first = False
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         try:
@@ -162,8 +213,11 @@ class SummaryWatcher:
             n = len(self)
             if expected is not None and n >= expected:
                 return
-            if expected is None and n and time.monotonic() - self._last_new >= quiet:
+            if expected is None and n and self.queried.is_set() and (
+                    time.monotonic() - self._last_new >= quiet):
                 return
+            if expected is None and not n and self.queried.is_set():
+                return  # nobody answered
             self.changed.wait(min(0.05, max(deadline - time.monotonic(), 0.0)))
             self.changed.clear()
 
@@ -185,13 +239,20 @@ class SummaryWatcher:
         return None
 
     def close(self) -> None:
-        """Undeclare the subscriber (idempotent)."""
-        sub, self._sub = self._sub, None
-        if sub is not None:
-            try:
-                sub.undeclare()
-            except zenoh.ZError:
-                pass
+        """Undeclare the subscribers and stop asking (idempotent)."""
+        self._closing.set()
+        self._ask.set()
+        for attr in ("_live", "_sub"):
+            sub = getattr(self, attr)
+            setattr(self, attr, None)
+            if sub is not None:
+                try:
+                    sub.undeclare()
+                except zenoh.ZError:
+                    pass
+        asker, self._asker = self._asker, None
+        if asker is not None:
+            asker.join(timeout=LATEST_TIMEOUT_S + 1)
 
     def __enter__(self) -> SummaryWatcher:
         return self.start()
