@@ -44,6 +44,9 @@ REASK_QUIET_S = 0.5
 """Machines' tokens that appear again (a router back) are waited for until none came for this
 long [s], then the latest summaries are asked once."""
 
+REASK_ONE_BY_ONE = 20
+"""At most this many machines back at once are asked one by one; more: one get for all."""
+
 SETTLE_QUIET_S = 1.0
 """:meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
 this long [s]."""
@@ -105,6 +108,7 @@ class SummaryWatcher:
         self._last_new = time.monotonic()
         self._token_at = -1e9
         self._ask = threading.Event()
+        self._pending: set[str] = set()  # machines whose tokens appeared again
         self._closing = threading.Event()
         self._asker: threading.Thread | None = None
         self.queried = threading.Event()  # the first ask of the latest summaries ended
@@ -114,9 +118,10 @@ class SummaryWatcher:
         """Declare the subscriber (live summaries) and the liveliness subscriber on the
         machines' ``alive`` tokens, then ask every machine's latest summary once (a get on the
         summaries' key, target ALL, each machine's queryable answering) in a thread of its own
-        (``twinwatch-watch-summaries``); :attr:`queried` is set once it ended. Whenever tokens
-        appear again (a router back from an outage, a daemon restarted) the latest are asked
-        again, once the tokens stopped coming for :data:`REASK_QUIET_S`."""
+        (``twinwatch-watch-summaries``); :attr:`queried` is set once it ended. Whenever the
+        tokens of machines it holds appear again (a router back from an outage, a daemon
+        restarted) their latest are asked again, once the tokens stopped coming for
+        :data:`REASK_QUIET_S` (one by one, or all at once beyond :data:`REASK_ONE_BY_ONE`)."""
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
         self._live = self.session.liveliness().declare_subscriber(alive, self._on_token)
@@ -128,9 +133,18 @@ class SummaryWatcher:
         return self
 
     def _on_token(self, sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.PUT:
-            self._token_at = time.monotonic()
-            self._ask.set()
+        """A machine's token: one this watcher holds a summary of that appears again (its
+        daemon reached anew: a router back, a restart) is asked for its latest; a new machine's
+        first summary comes live."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        machine = str(sample.key_expr)[len(self.prefix) + 1:-len("/alive")]
+        with self._lock:
+            if machine not in self._received:
+                return
+            self._pending.add(machine)
+        self._token_at = time.monotonic()
+        self._ask.set()
 
     def _ask_loop(self) -> None:
         """Ask the latest summaries when :attr:`_ask` is set (at start without waiting; after
@@ -144,11 +158,17 @@ class SummaryWatcher:
                     if self._closing.wait(REASK_QUIET_S / 2):
                         return
             self._ask.clear()
+            with self._lock:
+                pending, self._pending = self._pending, set()
+            # a few machines: each its own get; more: one get for all (each answers once)
+            keys = ([self.key] if first or len(pending) > REASK_ONE_BY_ONE else
+                    [f"{self.prefix}/{m}/summary" for m in sorted(pending)])
             try:
-                for reply in self.session.get(self.key, target=zenoh.QueryTarget.ALL,
-                                              timeout=LATEST_TIMEOUT_S):
-                    if reply.ok is not None:
-                        self._on_sample(reply.ok)
+                for key in keys:
+                    for reply in self.session.get(key, target=zenoh.QueryTarget.ALL,
+                                                  timeout=LATEST_TIMEOUT_S):
+                        if reply.ok is not None:
+                            self._on_sample(reply.ok)
                 self.asked += 1
             except zenoh.ZError:  # the session closed under the query
                 return
