@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 URGENCY_RANK = {"high": 3, "medium": 2, "low": 1}
@@ -29,10 +29,15 @@ STALE_AFTER_S = 180.0
 
 @dataclass(frozen=True)
 class Received:
-    """One machine's last summary and the wall time [s since the epoch] it arrived."""
+    """One machine's last summary, the wall time [s since the epoch] it arrived and its
+    :func:`urgency` (computed once, when it arrived: a view of 10 000 machines sorts these)."""
 
     summary: Mapping[str, Any]
     at: float
+    key: tuple[float, float, float, str] = field(default=(0.0, 0.0, 0.0, ""), compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "key", urgency(self.summary))
 
 
 def _number(x: Any) -> float | None:
@@ -103,26 +108,43 @@ def fleet_view(received: Mapping[str, Received], now: float, *,
         "stale", "first"}}, "machines": [entry, ...]}``: counts of the matching machines;
         ``first``: each box's most urgent machine; ``more``: matching machines not listed.
     """
-    rows = [entry(r, now, stale_after) for r in received.values()]
     wanted = set(states)
-    rows = [e for e in rows
-            if (not wanted or e.get("state") in wanted or e["seen"] in wanted)
-            and (not models or e.get("model") in models)]
-    rows.sort(key=urgency)
+    rows: list[tuple[tuple[float, float, float, str], Received, str]] = []
     counts: dict[str, int] = {}
     boxes: dict[str, dict[str, Any]] = {}
-    for e in rows:
-        state = str(e.get("state"))
+    for r in received.values():  # each machine once; a row is made for those shown only
+        s = r.summary
+        seen = "stale" if now - r.at > stale_after else "alive"
+        state = str(s.get("state"))
+        if wanted and state not in wanted and seen not in wanted:
+            continue
+        if models and s.get("model") not in models:
+            continue
+        key = r.key
+        rows.append((key, r, seen))
         counts[state] = counts.get(state, 0) + 1
-        box = boxes.setdefault(str(e.get("box")), {
-            "machines": 0, "alarm": 0, "warning": 0, "check_function": 0, "normal": 0,
-            "stale": 0, "first": e.get("machine")})
+        box = boxes.get(str(s.get("box")))
+        if box is None:
+            box = boxes[str(s.get("box"))] = {
+                "machines": 0, "alarm": 0, "warning": 0, "check_function": 0, "normal": 0,
+                "stale": 0, "first": s.get("machine"), "_key": key}
         box["machines"] += 1
         if state in box:
             box[state] += 1
-        if e["seen"] == "stale":
+        if seen == "stale":
             box["stale"] += 1
-    shown = rows if limit is None else rows[:max(limit, 0)]
+        if key < box["_key"]:
+            box["first"], box["_key"] = s.get("machine"), key
+    for box in boxes.values():
+        del box["_key"]
+    if limit is None or limit >= len(rows):
+        rows.sort(key=lambda x: x[0])
+        top = rows
+    else:
+        import heapq
+
+        top = heapq.nsmallest(max(limit, 0), rows, key=lambda x: x[0])
+    shown = [entry(r, now, stale_after) for _, r, _ in top]
     return {"t": now, "machines_total": len(received), "matched": len(rows),
             "shown": len(shown), "more": len(rows) - len(shown), "states": counts,
             "boxes": dict(sorted(boxes.items())), "machines": shown}
