@@ -430,9 +430,14 @@ def run(a: argparse.Namespace) -> None:
         print(f"boxes declared their machines in {max(r['declared_s'] for r in ready):.1f} s "
               f"(slowest box), all publishing {time.monotonic() - t_boxes:.1f} s after start; "
               f"{sum(r['full'] for r in ready)} machines publish their full health")
-        full = watch.expect("full", a.full_timeout)
-        print(f"far client holds all {n} machines {time.monotonic() - t_boxes:.1f} s after "
-              f"the boxes started")
+        try:
+            full = watch.expect("full", a.full_timeout)
+            print(f"far client holds all {n} machines {time.monotonic() - t_boxes:.1f} s "
+                  "after the boxes started")
+        except TimeoutError:  # measure the rest anyway: the limit is what this shows
+            full = {"rss0_kb": 0, "render_ms": float("nan")}
+            print(f"far client does NOT hold all {n} machines {a.full_timeout:g} s after the "
+                  "boxes started (see its progress above); measuring on")
 
         def dump(p: Proc, path: Path) -> dict[str, Any]:
             p.send(f"dump {path}")
