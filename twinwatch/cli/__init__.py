@@ -3,7 +3,8 @@
 
 One module per job: ``app`` (the group, the logging, loading a configuration as ``run`` reads
 it), ``run``, ``check`` (``check-config``), ``identify`` (commissioning), ``explain``,
-``watch`` (``watch``, ``tail`` and the Zenoh options), ``samples`` (``sample-config``). The
+``watch`` (``watch``, ``tail`` and the Zenoh options), ``fleet`` (``fleet report``: what needs
+service, from the fleet summaries), ``samples`` (``sample-config``). The
 only room that prints. Everything else logs. Each command imports what it needs when it runs,
 so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_startup.py``).
 """
@@ -13,12 +14,13 @@ from __future__ import annotations
 from twinwatch.cli.app import EX_CONFIG, main
 from twinwatch.cli.check import check_config
 from twinwatch.cli.explain import explain
+from twinwatch.cli.fleet import fleet
 from twinwatch.cli.identify import identify
 from twinwatch.cli.run import run
 from twinwatch.cli.samples import sample_config
 from twinwatch.cli.watch import tail, watch
 
-for _command in (run, check_config, watch, tail, explain, identify, sample_config):
+for _command in (run, check_config, watch, tail, fleet, explain, identify, sample_config):
     main.add_command(_command)
 
 __all__ = ["EX_CONFIG", "main"]

@@ -175,11 +175,38 @@ def watch_endpoint(listen: str) -> str:
               "as every machine found has reported its last window.")
 @click.option("--interval", type=click.FloatRange(min=0.1), default=1.0, show_default=True,
               help="Refresh period [s].")
-@click.option("--stale", type=click.FloatRange(min=0), default=10.0, show_default=True,
+@click.option("--stale", type=click.FloatRange(min=0), default=None,
               help="A machine on the network without a window for this long (at least 3 "
-              "window lengths) is shown stale [s].")
+              "window lengths) is shown stale [s]. Default 10; with --fleet, without a "
+              "summary for this long: 180 (3 summary intervals).")
+@click.option("--fleet", "fleet_mode", is_flag=True,
+              help="The fleet at size: read each machine's fleet summary (a few hundred bytes, "
+              "<prefix>/<machine>/summary) instead of its full health, rank the machines by "
+              "urgency (alarm, then the diagnosis' urgency, then the RUL median), list a "
+              "screen's worth and count the rest.")
+@click.option("--state", "states", multiple=True,
+              type=click.Choice(["alarm", "check_function", "warning", "normal", "stale",
+                                 "alive"]),
+              help="--fleet: only machines in this state (repeatable; stale/alive: whether "
+              "their summary is older than --stale).")
+@click.option("--model", "models", multiple=True, metavar="MODEL",
+              help="--fleet: only machines of this twin model (repeatable).")
+@click.option("--machines", default="*", show_default=True, metavar="PATTERN",
+              help="--fleet: the machines to follow, one chunk of a Zenoh key expression: a "
+              "name, * or a pattern such as 'line1-$*' (names starting with line1-).")
+@click.option("--by-box", is_flag=True,
+              help="--fleet: one line per box (the host a daemon runs on, [zenoh] box): its "
+              "machines by state and its most urgent one.")
+@click.option("--limit", type=click.IntRange(min=0), default=None,
+              help="--fleet: machines listed (default: a screen's worth; with --json every "
+              "one; 0: none, only the counts).")
+@click.option("--show", "show", default=None, metavar="MACHINE",
+              help="--fleet: fetch this machine's full health (its latest window) and print "
+              "it, then exit.")
 def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None, once: bool,
-          as_json: bool, wait: float, interval: float, stale: float) -> None:
+          as_json: bool, wait: float, interval: float, stale: float | None, fleet_mode: bool,
+          states: tuple[str, ...], models: tuple[str, ...], machines: str, by_box: bool,
+          limit: int | None, show: str | None) -> None:
     """Every machine on a Zenoh network at a glance: found by their daemons' liveliness tokens
     (directly or through a router), each with its state (alive, stale, gone and since when),
     its last window (age, index, run), each parameter's deviation from nominal, status, alarm
@@ -200,7 +227,15 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
 
     where = reach(connect, config, prefix)
     connect, prefix = where.connect, where.prefix
-    fleet = Fleet(stale_after=stale)
+    if fleet_mode or show:
+        watch_fleet(where, mode, once=once, as_json=as_json, wait=wait, interval=interval,
+                    stale=180.0 if stale is None else stale, states=states, models=models,
+                    machines=machines, by_box=by_box, limit=limit, show=show)
+        return
+    if any((states, models, machines != "*", by_box, limit is not None)):
+        raise click.UsageError("--state, --model, --machines, --by-box and --limit go with "
+                               "--fleet")
+    fleet = Fleet(stale_after=10.0 if stale is None else stale)
     try:
         with watching(connect, mode, prefix, fleet,  # type: ignore[arg-type]
                       optional=where.optional, on_skip=where.skip) as watcher:
@@ -245,6 +280,80 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
                         fleet.changed.wait(interval)
                         fleet.changed.clear()
                         live.update(render(fleet.snapshot(), title=title), refresh=True)
+            except KeyboardInterrupt:
+                return
+    except WatchError as exc:
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(1)
+
+
+def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: float,
+                interval: float, stale: float, states: tuple[str, ...],
+                models: tuple[str, ...], machines: str, by_box: bool, limit: int | None,
+                show: str | None) -> None:
+    """``watch --fleet``: the machines' summaries ranked (:mod:`twinwatch.watch.ranking`)."""
+    from twinwatch.watch import Fleet, WatchError, console, render
+    from twinwatch.watch.ranking import fleet_view
+    from twinwatch.watch.render import render_fleet, screen_rows
+    from twinwatch.watch.summaries import following
+
+    title = _fleet_title(where.connect, mode)
+    try:
+        with following(where.connect, mode, where.prefix, machines,  # type: ignore[arg-type]
+                       optional=where.optional, on_skip=where.skip) as summaries:
+            if show:
+                doc = summaries.health(show, timeout=max(wait, 1.0))
+                if doc is None:
+                    click.echo(f"Error: {show}: no health answered within {max(wait, 1.0):g} s "
+                               "(not running, or not on this network)", err=True)
+                    sys.exit(1)
+                if as_json:
+                    click.echo(json.dumps(doc.model_dump(by_alias=True, exclude_unset=True),
+                                          indent=2, allow_nan=False))
+                    return
+                one = Fleet(stale_after=1e9)
+                one.health(show, doc)
+                console().print(render(one.snapshot(), title=f"{title}: {show}"))
+                return
+            out = console()
+
+            def view() -> dict[str, Any]:
+                rows = limit if limit is not None else (
+                    None if as_json else screen_rows(out.size.height if out.is_terminal
+                                                     else None))
+                return fleet_view(summaries.received, time.time(), states=states,
+                                  models=models, limit=rows, stale_after=stale)
+
+            def show_view(live: Any = None) -> None:
+                v = view()
+                if as_json:
+                    click.echo(json.dumps(v, indent=2 if once else None, allow_nan=False,
+                                          separators=None if once else (",", ":")))
+                    sys.stdout.flush()
+                elif live is not None:
+                    live.update(render_fleet(v, title=title, by_box=by_box), refresh=True)
+                else:
+                    out.print(render_fleet(v, title=title, by_box=by_box))
+                    sys.stdout.flush()
+
+            if once:
+                summaries.settle(wait)
+                show_view()
+                return
+            try:
+                if as_json or not sys.stdout.isatty():
+                    while True:
+                        summaries.wait(interval)
+                        show_view()
+                        time.sleep(interval)
+                from rich.live import Live
+
+                with Live(render_fleet(view(), title=title, by_box=by_box),
+                          auto_refresh=False) as live:
+                    while True:
+                        summaries.wait(interval)
+                        show_view(live)
+                        time.sleep(interval)
             except KeyboardInterrupt:
                 return
     except WatchError as exc:

@@ -15,6 +15,10 @@ with ``P = {key_prefix}/{machine}``:
   many it missed (its sample-miss listener) and asks ``P/history`` for them (``twinwatch
   watch``/``tail`` do). Its cache and heartbeat live under ``P/health/@adv/...``, which the
   queryable below and ``P/**`` never match (``@`` chunks are verbatim in zenoh);
+* the machine's fleet summary on ``P/summary`` (:mod:`twinwatch.twin.summary`: state, alarm
+  levels, top fault, RUL, deviations in a few hundred bytes), when it changed and at least
+  every ``[zenoh] summary_interval`` seconds (:meth:`HealthPublisher.publish_summary`), a plain
+  publisher: late joiners get the latest from the queryable below;
 * a liveliness token ``P/alive``, present while the publisher is open: a remote process sees the
   machine appear and disappear with ``session.liveliness().declare_subscriber(...)`` or polls it
   with ``session.liveliness().get(...)``;
@@ -65,6 +69,7 @@ import logging
 import math
 import random
 import re
+import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -91,6 +96,7 @@ from twinwatch.sinks.base import (
     SinkConfig,
     SinkContext,
 )
+from twinwatch.twin.summary import fleet_summary, summary_changed
 
 if TYPE_CHECKING:
     import zenoh
@@ -194,6 +200,11 @@ class ZenohConfig(SinkConfig):
         heartbeat: period [s] of the sporadic heartbeat that lets a subscriber notice a lost
             *last* sample (sent only when something was published since the last one); 0: a
             loss is noticed at the next sample only.
+        summary_interval: longest time [s, wall] between two fleet summaries of a machine on
+            ``P/summary`` (:mod:`twinwatch.twin.summary`): one goes out at once when it
+            changed, else at least this often.
+        box: what identifies this daemon's host in the fleet summaries (the fleet view groups
+            machines by it); None: the host name.
         tls: ``[zenoh.tls]`` (:class:`ZenohTlsConfig`), needed by ``tls/`` endpoints.
         auth: ``[zenoh.auth]`` (:class:`ZenohAuthConfig`).
         access_control: zenoh's ``access_control`` table verbatim (``enabled``,
@@ -210,6 +221,8 @@ class ZenohConfig(SinkConfig):
     retry_max: StrictFloat = Field(30.0, gt=0)
     cache: StrictInt = Field(30, ge=0, le=100_000)
     heartbeat: StrictFloat = Field(1.0, ge=0)
+    summary_interval: StrictFloat = Field(60.0, gt=0, le=86400)
+    box: str | None = Field(None, min_length=1, max_length=128)
     tls: ZenohTlsConfig | None = None
     auth: ZenohAuthConfig | None = None
     access_control: dict[str, Any] | None = None
@@ -406,7 +419,7 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
 
 
 SESSION_FIELDS_NOT_SHARED = frozenset({"key_prefix", "enabled", "retry_max", "cache",
-                                       "heartbeat"})
+                                       "heartbeat", "summary_interval", "box"})
 """``[zenoh]`` keys that do not make the session (each machine's publisher has its own), so
 machines that differ only in them share one session in a gateway."""
 
@@ -561,7 +574,12 @@ class HealthPublisher(Sink):
         self.machine = machine
         self.base_key = f"{config.key_prefix}/{machine}"
         self.health_key = f"{self.base_key}/health"
+        self.summary_key = f"{self.base_key}/summary"
         self.alive_key = f"{self.base_key}/alive"
+        self.box = config.box or socket.gethostname() or "localhost"
+        self.summaries = 0
+        self._summary: dict[str, Any] | None = None  # the last summary published
+        self._summary_at = -math.inf  # monotonic time it was published [s]
         self.published = 0
         self.errors = 0
         self.not_connected = 0
@@ -802,10 +820,38 @@ class HealthPublisher(Sink):
     def write(self, out: ProcessedWindow) -> None:
         """The window pipeline's sink call: the window's health on ``P/health`` (its one
         encoding, :attr:`~twinwatch.sinks.base.ProcessedWindow.health_json`), then its alarm
-        events on ``P/alarm``."""
+        events on ``P/alarm``, then its fleet summary on ``P/summary`` when it changed or
+        ``[zenoh] summary_interval`` passed (:meth:`publish_summary`)."""
         self._put(self.health_key, out.health_json)
         for event in out.events:
             self.publish_json("alarm", event)
+        self.publish_summary(fleet_summary(out.health, box=self.box, wall=time.time()))
+
+    def publish_summary(self, summary: Mapping[str, Any], *, now: float | None = None
+                        ) -> bool:
+        """Publish a fleet summary (:func:`~twinwatch.twin.summary.fleet_summary`) on
+        ``P/summary`` if it changed since the last one published
+        (:func:`~twinwatch.twin.summary.summary_changed`) or ``[zenoh] summary_interval``
+        seconds passed since; it is kept as the latest: a get on ``P/summary`` (or
+        ``<prefix>/*/summary`` for the fleet) returns it, which is how a late joiner or a
+        watcher back from a router outage gets it (the summary's publisher is a plain one).
+
+        Args:
+            summary: the summary (plain JSON types).
+            now: monotonic time [s] (default: :func:`time.monotonic`).
+
+        Returns:
+            True if it was published.
+        """
+        now = time.monotonic() if now is None else now
+        doc = dict(summary)
+        if not summary_changed(self._summary, doc) and (
+                now - self._summary_at < self.config.summary_interval):
+            return False
+        self._summary, self._summary_at = doc, now
+        self._put(self.summary_key, doc)
+        self.summaries += 1
+        return True
 
     def _put(self, key: str, payload: Mapping[str, Any] | str) -> None:
         with self._lock:
@@ -813,14 +859,21 @@ class HealthPublisher(Sink):
                 logger.debug("publisher closed, dropping %s", key)
                 return
             if self._session is None:  # router not reached yet (retry_connect)
-                self.not_connected += 1
+                if key != self.summary_key:  # windows and events, not their summaries
+                    self.not_connected += 1
                 self._latest[key] = payload if isinstance(payload, str) else to_json(payload)
                 return
             try:
                 text = payload if isinstance(payload, str) else to_json(payload)
                 publisher = self._publishers.get(key)
                 if publisher is None:
-                    publisher = declare_publisher(self._session, key, self.config)
+                    # the summary's publisher is a plain one: its latest is this queryable's
+                    # (a fleet of 5000 machines' advanced publishers through three routers
+                    # left a far advanced subscriber without a quarter of them for minutes:
+                    # benchmarks/bench_fleet.py, docs/fleet.md)
+                    cfg = (self.config if key != self.summary_key else self.config.model_copy(
+                        update={"cache": 0}))
+                    publisher = declare_publisher(self._session, key, cfg)
                     self._publishers[key] = publisher
                 publisher.put(text)
             except (zenoh.ZError, TypeError, ValueError) as exc:

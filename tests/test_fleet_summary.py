@@ -1,0 +1,233 @@
+"""The fleet summary (issue 39, item 1): what it says of a window's health message, when a
+machine publishes it (on change, at least every ``[zenoh] summary_interval``), and that a late
+joiner through a router gets every machine's latest (the summary publisher's cache and the
+latest-get), on loopback with free ports and scouting off.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+from pydantic import ValidationError
+
+from twinwatch.config.loader import ConfigError, load_config
+from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig
+from twinwatch.twin.health import read_health
+from twinwatch.twin.summary import fleet_summary, summary_changed
+from twinwatch.watch.summaries import SummaryWatcher, machines_key
+
+from .conftest import ROOT
+from .test_fleet import router_on
+from .test_service import wait_for, zsession
+from .test_zenoh_publisher import endpoint, free_port
+
+
+def health(machine: str = "m1", window: int = 10, *, ra_dev: float = -1.2,
+           level: str = "normal", rul_level: str = "normal", status: str = "no_fault",
+           fault: str = "winding_short", urgency: str = "high", probability: float = 0.9,
+           raised: bool = False, rul: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A health message as a daemon publishes it (the parts a summary reads)."""
+    crossing = rul or {"status": "predicted", "rul_s": 5000.0, "low_s": 4000.0,
+                       "high_s": 7000.0}
+    return {
+        "schema": 10, "machine": machine, "model": "dc_motor", "run": "r1", "window": window,
+        "t_start": 2.0 * window, "t_end": 2.0 * window + 1.99, "samples": 200,
+        "parameters": {
+            "Ra": {"value": 6.5 * (1 + ra_dev / 100), "unit": "ohm", "nominal": 6.5,
+                   "deviation_pct": ra_dev, "status": "estimated",
+                   "rul": {"status": "degrading", "method": "monte_carlo",
+                           "alarm": {"threshold": 5.85, **crossing}}},
+            "D": {"value": 0.00143, "unit": "N m s/rad", "nominal": 0.00143,
+                  "deviation_pct": 0.01, "status": "estimated"}},
+        "alarms": {"Ra": {"level": level, "since_t": 0.0, "since_window": 0,
+                          "deviation_pct": ra_dev, "pending": None,
+                          "rul": {"level": rul_level, "since_t": 0.0, "since_window": 0,
+                                  "rul_s": 5000.0, "pending": None}}},
+        "diagnosis": {"status": status, "top": fault if status == "fault" else None,
+                      "probability": probability, "no_fault": 1 - probability,
+                      "unknown": 0.01, "unknown_terms": [], "shaft_speed": 18.5,
+                      "library": "dc_motor (shipped)", "evidence": 2,
+                      "alarms": [fault] if raised else [],
+                      "faults": [{"id": fault, "component": "armature winding",
+                                  "probability": probability,
+                                  "action": "measure the armature resistance",
+                                  "urgency": urgency, "source": "IEEE 43",
+                                  "evidence_for": [], "evidence_against": []}]},
+    }
+
+
+def summary(**kw: Any) -> dict[str, Any]:
+    return fleet_summary(read_health(health(**kw)), box="gw-a", wall=1000.0)
+
+
+# -- what it says ------------------------------------------------------------------------------
+def test_a_summary_holds_state_alarms_fault_rul_and_deviations_in_a_few_hundred_bytes() -> None:
+    s = summary(status="fault", raised=True, level="warning")
+    assert s["state"] == "alarm"  # the fault's probability alarm is raised
+    assert s["alarms"] == {"Ra": {"level": "warning", "rul": "normal"}}
+    assert s["deviation"] == {"Ra": -1.2}  # the ruled parameters only
+    assert s["diagnosis"] == {"status": "fault", "fault": "winding_short", "probability": 0.9,
+                              "part": "armature winding",
+                              "action": "measure the armature resistance",
+                              "urgency": "high", "alarm": True}
+    assert s["rul"] == {"parameter": "Ra", "status": "predicted", "median_s": 5000.0,
+                        "low_s": 4000.0, "high_s": 7000.0}
+    assert (s["machine"], s["box"], s["run"], s["window"]) == ("m1", "gw-a", "r1", 10)
+    assert len(json.dumps(s, separators=(",", ":"))) < 700
+    assert summary(level="warning")["state"] == "warning"
+    assert summary(rul_level="alarm")["state"] == "alarm"
+    assert summary(status="check_function")["state"] == "check_function"
+    assert summary()["state"] == "normal"
+    assert summary()["diagnosis"]["fault"] is None  # no fault: no part, no action
+    crossed = summary(rul={"status": "crossed"})["rul"]
+    assert (crossed["status"], crossed["median_s"], crossed["low_s"]) == ("crossed", 0.0, 0.0)
+    none = summary(rul={"status": "not_reached"})
+    assert none["rul"] is None
+
+
+def test_a_summary_reads_an_older_message_without_the_parts() -> None:
+    s = fleet_summary(read_health({"schema": 6, "machine": "m1", "run": "r", "window": 1}),
+                      box="b", wall=0.0)
+    assert (s["state"], s["alarms"], s["diagnosis"], s["rul"]) == ("normal", {}, None, None)
+
+
+def test_what_counts_as_a_change() -> None:
+    base = summary()
+    assert summary_changed(None, base)
+    assert not summary_changed(base, summary(window=11, ra_dev=-1.3))  # drift: the interval
+    assert summary_changed(base, summary(level="warning"))
+    assert summary_changed(base, summary(status="fault"))
+    assert summary_changed(base, summary(status="fault", raised=True))
+    moved = {"status": "predicted", "rul_s": 4000.0, "low_s": 3000.0, "high_s": 6000.0}
+    assert summary_changed(base, summary(rul=moved))  # 20 % sooner
+    near = {"status": "predicted", "rul_s": 4800.0, "low_s": 3800.0, "high_s": 6000.0}
+    assert not summary_changed(base, summary(rul=near))  # 4 %
+
+
+# -- the configuration -------------------------------------------------------------------------
+def test_summary_interval_is_checked_naming_the_key(tmp_path: Any) -> None:
+    assert ZenohConfig().summary_interval == 60.0
+    assert ZenohConfig(summary_interval=5).summary_interval == 5.0
+    for bad in (0, -1, "often"):
+        with pytest.raises(ValidationError, match="summary_interval"):
+            ZenohConfig(summary_interval=bad)
+    path = tmp_path / "m.toml"
+    text = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+    path.write_text(text.replace("[zenoh]", "[zenoh]\nsummary_interval = 0", 1))
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    # one line naming the key (under the file's heading, as every bad key is said)
+    assert "zenoh.summary_interval: Input should be greater than 0" in str(err.value)
+    assert len(str(err.value).strip().splitlines()) == 2
+
+
+# -- when it goes out, and a late joiner -------------------------------------------------------
+def test_published_on_change_and_at_least_every_interval_and_a_late_joiner_gets_each_latest(
+        ) -> None:
+    ep = endpoint(free_port())
+    with router_on(ep):
+        cfg = ZenohConfig(mode="client", connect=[ep], summary_interval=3600.0, box="gw-a")
+        pubs = {m: HealthPublisher(cfg, m) for m in ("m1", "m2", "m3")}
+        try:
+            pub = pubs["m1"]
+            assert pub.publish_summary(summary(window=1), now=0.0)
+            assert not pub.publish_summary(summary(window=2), now=10.0)  # no change
+            assert pub.publish_summary(summary(window=3, level="warning"), now=11.0)
+            assert not pub.publish_summary(summary(window=4, level="warning"), now=12.0)
+            assert pub.publish_summary(summary(window=5, level="warning"), now=3611.0)
+            assert pub.summaries == 3
+            # the window pipeline's call: the health, then the summary (its first: a change)
+            doc = health("m2", 7, status="fault", raised=True)
+            pubs["m2"].write(SimpleNamespace(health=read_health(doc),  # type: ignore[arg-type]
+                                             health_json=json.dumps(doc), events=[]))
+            assert pubs["m2"].summaries == 1
+            pubs["m3"].publish_summary(summary(machine="m3", window=9))
+            # a watcher joining now, through the router, holds each machine's latest
+            with zsession("client", connect=[ep]) as session, \
+                    SummaryWatcher(session) as watcher:
+                watcher.settle(10.0, expected=3)
+                got = {m: (r.summary["window"], r.summary["state"])
+                       for m, r in watcher.received.items()}
+                assert got == {"m1": (5, "warning"), "m2": (7, "alarm"), "m3": (9, "normal")}
+                assert watcher.received["m2"].summary["box"] == "gw-a"
+                # a new summary reaches it live
+                pubs["m3"].publish_summary(summary(machine="m3", window=12, level="alarm"))
+                wait_for(lambda: watcher.received["m3"].summary["window"] == 12, 10.0,
+                         "m3's new summary")
+                # the full health only when asked
+                full = watcher.health("m2")
+                assert full is not None and full.window == 7
+                # and the latest answers a plain get on the summary key
+                replies = [json.loads(r.ok.payload.to_string())
+                           for r in session.get("twinwatch/*/summary", timeout=5.0)
+                           if r.ok is not None]
+                assert sorted(r["machine"] for r in replies) == ["m1", "m2", "m3"]
+        finally:
+            for p in pubs.values():
+                p.close()
+
+
+def test_the_machines_selected_by_a_key_expression() -> None:
+    assert machines_key("twinwatch", "line1-$*") == "twinwatch/line1-$*/summary"
+    from twinwatch.errors import WatchError
+
+    for bad in ("a/b", "**", ""):
+        with pytest.raises(WatchError, match="machines"):
+            machines_key("twinwatch", bad)
+
+
+def test_a_key_expression_filters_the_machines_followed() -> None:
+    ep = endpoint(free_port())
+    with router_on(ep):
+        cfg = ZenohConfig(mode="client", connect=[ep])
+        pubs = {m: HealthPublisher(cfg, m) for m in ("line1-a", "line1-b", "line2-a")}
+        try:
+            for m, p in pubs.items():
+                p.publish_summary(summary(machine=m))
+            with zsession("client", connect=[ep]) as session, \
+                    SummaryWatcher(session, machines="line1-$*") as watcher:
+                watcher.settle(10.0, expected=2)
+                time.sleep(0.5)
+                assert sorted(watcher.received) == ["line1-a", "line1-b"]
+        finally:
+            for p in pubs.values():
+                p.close()
+
+
+def test_after_a_router_outage_the_watcher_gets_each_machines_latest_again() -> None:
+    """The summaries published while the router was down never reach the watcher live; when
+    the machines' tokens come back it asks their latest (one get), and holds it."""
+    from .test_fleet import Router
+
+    ep = endpoint(free_port())
+    router = Router(ep)
+    router.start()
+    pubs = {m: HealthPublisher(ZenohConfig(mode="client", connect=[ep]), m)
+            for m in ("m1", "m2")}
+    session = zsession("client", connect=[ep])
+    try:
+        with SummaryWatcher(session) as watcher:
+            for m, p in pubs.items():
+                p.publish_summary(summary(machine=m, window=1))
+            watcher.settle(10.0, expected=2)
+            assert watcher.queried.wait(10.0)
+            asked = watcher.asked
+            router.stop()
+            time.sleep(1.0)
+            for m, p in pubs.items():  # state changes nobody hears
+                assert p.publish_summary(summary(machine=m, window=2, level="alarm"))
+            router.start()
+            wait_for(lambda: all(r.summary["window"] == 2
+                                 for r in watcher.received.values()), 20.0,
+                     "each machine's latest after the router came back")
+            assert {r.summary["state"] for r in watcher.received.values()} == {"alarm"}
+            assert watcher.asked > asked  # asked again, not heard live
+    finally:
+        session.close()
+        for p in pubs.values():
+            p.close()
+        router.stop()

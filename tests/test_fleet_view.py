@@ -1,0 +1,194 @@
+"""The fleet's question from the summaries (issue 39, items 2 and 4): ``twinwatch watch --fleet``
+ranks machines by urgency, filters them, counts them by box, lists a screen's worth and counts
+the rest; ``twinwatch fleet report`` lists exactly the machines due within the horizon, with
+the part and the action. Publishers are the daemon's Zenoh output (clients of a router on
+loopback, a free port, scouting off), the summaries synthetic.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from twinwatch.cli import main
+from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig
+from twinwatch.twin.health import read_health
+from twinwatch.twin.summary import fleet_summary
+from twinwatch.watch.ranking import (
+    Received,
+    due,
+    fleet_view,
+    parse_duration,
+    service_report,
+    urgency,
+)
+
+from .test_fleet import router_on
+from .test_fleet_summary import health
+from .test_zenoh_publisher import endpoint, free_port
+
+DAY = 86400.0
+
+
+def rul(days_low: float, days: float | None = None, days_high: float | None = None
+        ) -> dict[str, Any]:
+    days = days_low * 1.5 if days is None else days
+    return {"status": "predicted", "rul_s": days * DAY, "low_s": days_low * DAY,
+            "high_s": None if days_high is None else days_high * DAY}
+
+
+#: machine -> (box, health keywords, due within 7 days?)
+FLEET: dict[str, tuple[str, dict[str, Any], bool]] = {
+    "a-rul-3d": ("gw-a", {"rul": rul(3)}, True),
+    "a-rul-6.9d": ("gw-a", {"rul": rul(6.9, 9, 12)}, True),
+    "a-rul-8d": ("gw-a", {"rul": rul(8, 12)}, False),
+    "a-crossed": ("gw-a", {"rul": {"status": "crossed"}, "level": "alarm"}, True),
+    "b-fault-alarm": ("gw-b", {"rul": rul(300), "status": "fault", "raised": True}, True),
+    "b-fault-high": ("gw-b", {"rul": rul(300), "status": "fault", "probability": 0.6}, True),
+    "b-fault-high-unlikely": ("gw-b", {"rul": rul(300), "status": "fault",
+                                       "probability": 0.3}, False),
+    "b-fault-medium": ("gw-b", {"rul": rul(300), "status": "fault", "urgency": "medium",
+                                "probability": 0.9}, False),
+    "c-check": ("gw-c", {"rul": rul(300), "status": "check_function"}, True),
+    "c-warning": ("gw-c", {"rul": rul(30), "level": "warning"}, False),
+    "c-normal": ("gw-c", {"rul": rul(300)}, False),
+    "c-not-degrading": ("gw-c", {"rul": {"status": "not_reached"}}, False),
+}
+DUE = sorted(m for m, (_, _, d) in FLEET.items() if d)
+
+
+def summaries(now: float = 1e6) -> dict[str, Received]:
+    return {m: Received(fleet_summary(read_health(health(m, **kw)), box=box, wall=now), now)
+            for m, (box, kw, _) in FLEET.items()}
+
+
+def test_machines_rank_by_alarm_then_diagnosis_then_rul() -> None:
+    ranked = [e["machine"] for e in fleet_view(summaries(), 1e6)["machines"]]
+    # state alarm: the fault alarm (the diagnosis urges most) before the crossed threshold
+    assert ranked[:2] == ["b-fault-alarm", "a-crossed"]
+    assert ranked[2] == "c-check"  # check function next
+    assert ranked[3] == "c-warning"
+    # normal: the diagnosis' urgency first, then the RUL median (sooner first, none last)
+    assert ranked[4:] == ["b-fault-high", "b-fault-medium", "a-rul-3d", "a-rul-6.9d",
+                          "a-rul-8d", "b-fault-high-unlikely", "c-normal", "c-not-degrading"]
+    keys = [urgency(r.summary) for r in summaries().values()]
+    assert sorted(keys) == sorted(keys, key=lambda k: k)  # a total order
+
+
+def test_the_view_filters_counts_by_box_and_lists_a_screens_worth() -> None:
+    got = summaries()
+    view = fleet_view(got, 1e6, limit=3)
+    assert (view["machines_total"], view["matched"], view["shown"], view["more"]) == (
+        12, 12, 3, 9)
+    assert view["states"] == {"alarm": 2, "check_function": 1, "warning": 1, "normal": 8}
+    assert view["boxes"]["gw-b"] == {"machines": 4, "alarm": 1, "warning": 0,
+                                     "check_function": 0, "normal": 3, "stale": 0,
+                                     "first": "b-fault-alarm"}
+    alarm = fleet_view(got, 1e6, states=["alarm", "warning"])
+    assert sorted(e["machine"] for e in alarm["machines"]) == ["a-crossed", "b-fault-alarm",
+                                                                 "c-warning"]
+    assert fleet_view(got, 1e6, models=["hydraulic_actuator"])["matched"] == 0
+    late = fleet_view(got, 1e6 + 200.0, states=["stale"], stale_after=180.0)
+    assert late["matched"] == 12 and late["machines"][0]["seen"] == "stale"
+
+
+def test_the_report_lists_exactly_the_machines_due() -> None:
+    rows = service_report(summaries(), 1e6, 7 * DAY)
+    assert sorted(r["machine"] for r in rows) == DUE
+    by = {r["machine"]: r for r in rows}
+    assert by["b-fault-alarm"]["part"] == "armature winding"
+    assert by["b-fault-alarm"]["action"] == "measure the armature resistance"
+    assert by["b-fault-alarm"]["why"] == "diagnosis"
+    assert by["a-rul-3d"]["why"] == "rul" and by["a-rul-3d"]["rul_low_s"] == 3 * DAY
+    assert by["a-rul-3d"]["part"] == "the part behind Ra"
+    assert by["a-crossed"]["why"] == "rul+alarm"
+    assert by["c-check"]["part"] == "sensors and model"
+    # an 8-day RUL is due in a 9-day horizon, and after 1.5 days of age in a 7-day one
+    assert "a-rul-8d" in {r["machine"] for r in service_report(summaries(), 1e6, 9 * DAY)}
+    old = summaries(now=1e6 - 1.5 * DAY)
+    assert "a-rul-8d" in {r["machine"] for r in service_report(old, 1e6, 7 * DAY)}
+    assert due(old["c-normal"].summary, 7 * DAY, 1.5 * DAY) == []
+
+
+def test_durations() -> None:
+    assert [parse_duration(x) for x in ("7d", "12h", "30min", "30m", "90s", "60", "1w")] == [
+        7 * DAY, 43200.0, 1800.0, 1800.0, 90.0, 60.0, 7 * DAY]
+    for bad in ("soon", "-1d", "inf"):
+        with pytest.raises(ValueError):
+            parse_duration(bad)
+
+
+# -- the commands, through a router ------------------------------------------------------------
+@pytest.fixture
+def published() -> Any:
+    ep = endpoint(free_port())
+    with router_on(ep):
+        pubs = []
+        try:
+            for m, (box, kw, _) in FLEET.items():
+                pub = HealthPublisher(ZenohConfig(mode="client", connect=[ep], box=box), m)
+                pubs.append(pub)
+                doc = health(m, **kw)
+                pub.publish(doc)  # the full health stays behind, fetched when asked
+                pub.publish_summary(fleet_summary(read_health(doc), box=box,
+                                                  wall=__import__("time").time()))
+            yield ep
+        finally:
+            for p in pubs:
+                p.close()
+
+
+def test_fleet_report_through_a_router_lists_exactly_the_machines_made_due(
+        published: str, tmp_path: Path) -> None:
+    runner = CliRunner()
+    out = runner.invoke(main, ["fleet", "report", "--connect", published, "--horizon", "7d",
+                               "--json", "-", "--expect", str(len(FLEET)), "--wait", "15"])
+    assert out.exit_code == 0, out.output
+    doc = json.loads(out.stdout)
+    assert doc["machines"] == len(FLEET)
+    assert sorted(r["machine"] for r in doc["rows"]) == DUE
+    path = tmp_path / "due.csv"
+    out = runner.invoke(main, ["fleet", "report", "--connect", published, "--horizon", "9d",
+                               "--csv", str(path), "--expect", str(len(FLEET))])
+    assert out.exit_code == 0, out.output
+    rows = list(csv.DictReader(path.open()))
+    assert sorted(r["machine"] for r in rows) == sorted([*DUE, "a-rul-8d"])
+    assert {r["machine"]: r["part"] for r in rows}["b-fault-high"] == "armature winding"
+    text = runner.invoke(main, ["fleet", "report", "--connect", published,
+                                "--expect", str(len(FLEET))])
+    assert text.exit_code == 0 and f"{len(DUE)} of {len(FLEET)} machines" in text.output
+    bad = runner.invoke(main, ["fleet", "report", "--horizon", "soon"])
+    assert bad.exit_code == 2 and "not a duration" in bad.output
+
+
+def test_watch_fleet_ranks_filters_groups_and_fetches_the_full_health_when_asked(
+        published: str) -> None:
+    runner = CliRunner()
+    base = ["watch", "--fleet", "--connect", published, "--once", "--wait", "15"]
+    out = runner.invoke(main, [*base, "--json", "--limit", "4"])
+    assert out.exit_code == 0, out.output
+    view = json.loads(out.stdout)
+    assert view["machines_total"] == len(FLEET) and view["more"] == len(FLEET) - 4
+    assert [m["machine"] for m in view["machines"]] == ["b-fault-alarm", "a-crossed",
+                                                         "c-check", "c-warning"]
+    out = runner.invoke(main, [*base, "--json", "--state", "warning", "--machines", "c-$*"])
+    assert [m["machine"] for m in json.loads(out.stdout)["machines"]] == ["c-warning"]
+    table = runner.invoke(main, [*base, "--limit", "2"])
+    assert table.exit_code == 0, table.output
+    assert "a-crossed" in table.output and "c-normal" not in table.output
+    assert "and 10 more machines" in table.output
+    boxes = runner.invoke(main, [*base, "--by-box"])
+    assert "gw-a" in boxes.output and "gw-c" in boxes.output
+    full = runner.invoke(main, ["watch", "--fleet", "--connect", published, "--show",
+                                "b-fault-alarm", "--json"])
+    assert full.exit_code == 0, full.output
+    doc = json.loads(full.stdout)
+    assert doc["machine"] == "b-fault-alarm" and doc["diagnosis"]["alarms"] == [
+        "winding_short"]
+    misuse = runner.invoke(main, ["watch", "--state", "alarm"])
+    assert misuse.exit_code == 2 and "--fleet" in misuse.output

@@ -1,0 +1,363 @@
+"""The fleet's summaries (:mod:`twinwatch.twin.summary`) as a Zenoh network shows them:
+:class:`SummaryWatcher` follows ``<prefix>/<machines>/summary`` with a plain subscriber, asks
+every machine's latest once when it starts (one get, each machine's queryable answering) and
+again when the machines' liveliness tokens appear anew (a router back from an outage, a daemon
+restarted), keeps each machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's
+full health only when asked (:meth:`SummaryWatcher.health`). What it holds is read by
+:mod:`twinwatch.watch.ranking`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import threading
+import time
+from collections.abc import Callable, Collection, Iterator, Sequence
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any
+
+from twinwatch._lazy import lazy_module
+from twinwatch.errors import WatchError
+from twinwatch.watch.ranking import Received
+from twinwatch.watch.session import (
+    Mode,
+    check_endpoints,
+    check_prefix,
+    decode_health,
+    open_session,
+)
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from twinwatch.twin.health import HealthView
+else:  # imported when a session opens
+    zenoh = lazy_module("zenoh")
+
+
+LATEST_TIMEOUT_S = 20.0
+"""How long one ask of every machine's latest summary may take [s] (10 000 replies through
+routers on a loaded box took about 2 s: docs/fleet.md)."""
+
+REASK_QUIET_S = 0.5
+"""Machines' tokens that appear again (a router back) are waited for until none came for this
+long [s], then the latest summaries are asked once."""
+
+REASK_ONE_BY_ONE = 20
+"""At most this many machines back at once are asked one by one; more: one get for all."""
+
+SETTLE_QUIET_S = 1.0
+""":meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
+this long [s]."""
+
+
+def machines_key(prefix: str, machines: str) -> str:
+    """``<prefix>/<machines>/summary``, ``machines`` one key-expression chunk: a machine's
+    name, ``*`` (every machine), or a pattern such as ``line1-$*`` (every machine whose name
+    starts with ``line1-``; ``$*`` is zenoh's wildcard inside a chunk).
+
+    Raises:
+        WatchError: the prefix or the pattern is not a key expression (named).
+    """
+    check_prefix(prefix)
+    key = f"{prefix}/{machines}/summary"
+    if not machines or "/" in machines or "**" in machines:
+        raise WatchError(f"machines {machines!r}: give one chunk of a key expression: a "
+                         "machine's name, * or a pattern like line1-$*")
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        raise WatchError(f"machines {machines!r}: not a zenoh key expression chunk ({exc}); "
+                         "use * for every machine or $* inside a name (line1-$*)") from None
+    return key
+
+
+class SummaryWatcher:
+    """Each machine's latest fleet summary on a Zenoh session.
+
+    Args:
+        session: an open session (:func:`~twinwatch.watch.session.open_session`); the caller
+            closes it.
+        prefix: the daemons' ``[zenoh] key_prefix``.
+        machines: one key-expression chunk selecting the machines (:func:`machines_key`).
+        clock: wall clock [s since the epoch].
+        on_summary: called with the machine and a summary newer than the one held (zenoh's
+            thread).
+
+    Thread-safe; use as a context manager (the subscriber is undeclared on exit).
+
+    Raises:
+        WatchError: a bad prefix or pattern.
+    """
+
+    def __init__(self, session: zenoh.Session, *, prefix: str = "twinwatch",
+                 machines: str = "*", clock: Callable[[], float] = time.time,
+                 on_summary: Callable[[str, dict[str, Any]], None] | None = None) -> None:
+        self.session = session
+        self.prefix = prefix
+        self.key = machines_key(prefix, machines)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._received: dict[str, Received] = {}
+        self.delivered = 0  # summaries received (a repeat of the held one not counted)
+        self.changed = threading.Event()
+        self.on_summary = on_summary
+        self._sub: Any = None
+        self._live: Any = None
+        self._last_new = time.monotonic()
+        self._token_at = -1e9
+        self._ask = threading.Event()
+        self._pending: set[str] = set()  # machines whose tokens appeared again
+        self._closing = threading.Event()
+        self._asker: threading.Thread | None = None
+        self.queried = threading.Event()  # the first ask of the latest summaries ended
+        self.asked = 0  # asks of the latest summaries that ended
+
+    def start(self) -> SummaryWatcher:
+        """Declare the subscriber (live summaries) and the liveliness subscriber on the
+        machines' ``alive`` tokens, then ask every machine's latest summary once (a get on the
+        summaries' key, target ALL, each machine's queryable answering) in a thread of its own
+        (``twinwatch-watch-summaries``); :attr:`queried` is set once it ended. Whenever the
+        tokens of machines it holds appear again (a router back from an outage, a daemon
+        restarted) their latest are asked again, once the tokens stopped coming for
+        :data:`REASK_QUIET_S` (one by one, or all at once beyond :data:`REASK_ONE_BY_ONE`)."""
+        self._sub = self.session.declare_subscriber(self.key, self._on_sample)
+        alive = self.key.removesuffix("/summary") + "/alive"
+        self._live = self.session.liveliness().declare_subscriber(alive, self._on_token)
+        self._last_new = time.monotonic()
+        self._asker = threading.Thread(target=self._ask_loop, name="twinwatch-watch-summaries",
+                                       daemon=True)
+        self._ask.set()
+        self._asker.start()
+        return self
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        """A machine's token: one this watcher holds a summary of that appears again (its
+        daemon reached anew: a router back, a restart) is asked for its latest; a new machine's
+        first summary comes live."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        machine = str(sample.key_expr)[len(self.prefix) + 1:-len("/alive")]
+        with self._lock:
+            if machine not in self._received:
+                return
+            self._pending.add(machine)
+        self._token_at = time.monotonic()
+        self._ask.set()
+
+    def _ask_loop(self) -> None:
+        """Ask the latest summaries when :attr:`_ask` is set (at start without waiting; after
+        tokens appeared, once they stopped coming for :data:`REASK_QUIET_S`)."""
+        first = True
+        while self._ask.wait():
+            if self._closing.is_set():
+                return
+            if not first:  # tokens come in a burst: ask once it ended
+                while time.monotonic() - self._token_at < REASK_QUIET_S:
+                    if self._closing.wait(REASK_QUIET_S / 2):
+                        return
+            self._ask.clear()
+            with self._lock:
+                pending, self._pending = self._pending, set()
+            # a few machines: each its own get; more: one get for all (each answers once)
+            keys = ([self.key] if first or len(pending) > REASK_ONE_BY_ONE else
+                    [f"{self.prefix}/{m}/summary" for m in sorted(pending)])
+            try:
+                for key in keys:
+                    for reply in self.session.get(key, target=zenoh.QueryTarget.ALL,
+                                                  timeout=LATEST_TIMEOUT_S):
+                        if reply.ok is not None:
+                            self._on_sample(reply.ok)
+                self.asked += 1
+            except zenoh.ZError:  # the session closed under the query
+                return
+            finally:
+                if first:
+                    self.queried.set()
+                    self.changed.set()
+                first = False
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            doc = json.loads(sample.payload.to_string())
+        except (ValueError, UnicodeDecodeError):
+            return
+        if not isinstance(doc, dict):
+            return
+        key = str(sample.key_expr)
+        machine = key[len(self.prefix) + 1:-len("/summary")]
+        self.put(machine, doc)
+
+    def put(self, machine: str, summary: dict[str, Any]) -> bool:
+        """Hold ``summary`` as ``machine``'s latest unless it is older than the one held (the
+        same run, an earlier window) or the same.
+
+        Returns:
+            True if it is now the machine's latest.
+        """
+        now = self._clock()
+        with self._lock:
+            old = self._received.get(machine)
+            if old is not None and old.summary.get("run") == summary.get("run"):
+                ow, nw = old.summary.get("window"), summary.get("window")
+                if isinstance(ow, int) and isinstance(nw, int) and (
+                        nw < ow or (nw == ow and old.summary.get("wall") == summary.get(
+                            "wall"))):
+                    return False
+            if old is None:
+                self._last_new = time.monotonic()
+            self._received[machine] = Received(summary, now)
+            self.delivered += 1
+        self.changed.set()
+        if self.on_summary is not None:
+            self.on_summary(machine, summary)
+        return True
+
+    @property
+    def received(self) -> dict[str, Received]:
+        """machine -> its latest summary and when it arrived (a copy)."""
+        with self._lock:
+            return dict(self._received)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._received)
+
+    def settle(self, timeout: float, *, expected: int | None = None,
+               quiet: float = SETTLE_QUIET_S) -> None:
+        """Wait until ``expected`` machines are held, or (without it) no new machine came for
+        ``quiet`` [s] after the first, or ``timeout`` [s] passed."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            n = len(self)
+            if expected is not None and n >= expected:
+                return
+            if expected is None and n and self.queried.is_set() and (
+                    time.monotonic() - self._last_new >= quiet):
+                return
+            if expected is None and not n and self.queried.is_set():
+                return  # nobody answered
+            self.changed.wait(min(0.05, max(deadline - time.monotonic(), 0.0)))
+            self.changed.clear()
+
+    def health(self, machine: str, timeout: float = 5.0) -> HealthView | None:
+        """``machine``'s full health: its latest window, asked from its daemon
+        (``get(<prefix>/<machine>/health)``) only now; None when nothing answered.
+
+        Raises:
+            WatchError: ``machine`` is not a machine's name.
+        """
+        if not machine or "/" in machine or "*" in machine or "$" in machine:
+            raise WatchError(f"machine {machine!r}: give one machine's name")
+        for reply in self.session.get(f"{self.prefix}/{machine}/health", timeout=timeout,
+                                      target=zenoh.QueryTarget.ALL):
+            if reply.ok is not None:
+                got = decode_health(reply.ok.payload)
+                if got is not None:
+                    return got[0]
+        return None
+
+    def close(self) -> None:
+        """Undeclare the subscribers and stop asking (idempotent)."""
+        self._closing.set()
+        self._ask.set()
+        for attr in ("_live", "_sub"):
+            sub = getattr(self, attr)
+            setattr(self, attr, None)
+            if sub is not None:
+                try:
+                    sub.undeclare()
+                except zenoh.ZError:
+                    pass
+        asker, self._asker = self._asker, None
+        if asker is not None:
+            asker.join(timeout=LATEST_TIMEOUT_S + 1)
+
+    def __enter__(self) -> SummaryWatcher:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Summaries:
+    """Several :class:`SummaryWatcher` (one per endpoint in client mode) read as one."""
+
+    def __init__(self, watchers: list[SummaryWatcher]) -> None:
+        self.watchers = watchers
+
+    @property
+    def received(self) -> dict[str, Received]:
+        """machine -> its latest summary over every watcher (the one that arrived last)."""
+        out: dict[str, Received] = {}
+        for w in self.watchers:
+            for m, r in w.received.items():
+                if m not in out or r.at > out[m].at:
+                    out[m] = r
+        return out
+
+    def settle(self, timeout: float, *, expected: int | None = None,
+               quiet: float = SETTLE_QUIET_S) -> None:
+        """:meth:`SummaryWatcher.settle` on each, within one ``timeout`` [s]."""
+        deadline = time.monotonic() + timeout
+        for w in self.watchers:
+            w.settle(max(0.0, deadline - time.monotonic()), expected=expected, quiet=quiet)
+
+    def wait(self, timeout: float) -> None:
+        """Wait until a summary arrives or ``timeout`` [s] passed."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(w.changed.is_set() for w in self.watchers):
+                break
+            time.sleep(min(0.05, max(deadline - time.monotonic(), 0.0)))
+        for w in self.watchers:
+            w.changed.clear()
+
+    def health(self, machine: str, timeout: float = 5.0) -> HealthView | None:
+        """:meth:`SummaryWatcher.health` through each watcher until one answers."""
+        for w in self.watchers:
+            got = w.health(machine, timeout)
+            if got is not None:
+                return got
+        return None
+
+
+@contextmanager
+def following(connect: Sequence[str], mode: Mode, prefix: str, machines: str = "*", *,
+              optional: Collection[str] = (),
+              on_skip: Callable[[str, str], None] | None = None) -> Iterator[Summaries]:
+    """Sessions on ``connect`` (one per endpoint in client mode, as
+    :func:`~twinwatch.watch.subscription.watching`) and a started :class:`SummaryWatcher` on
+    each, closed on exit.
+
+    Raises:
+        WatchError: a bad endpoint, prefix or pattern; nothing answers (``optional``
+            endpoints may be skipped, each told to ``on_skip``).
+    """
+    machines_key(prefix, machines)
+    check_endpoints(connect)
+    skippable = set(optional)
+    groups = ([[e] for e in connect] if mode == "client" and (len(connect) > 1 or skippable)
+              else [list(connect)])
+    with contextlib.ExitStack() as stack:
+        watchers: list[SummaryWatcher] = []
+        skipped: list[tuple[str, str]] = []
+        for group in groups:
+            try:
+                session = open_session(group, mode)
+            except WatchError as exc:
+                if not set(group) <= skippable:
+                    raise
+                skipped.append((group[0], str(exc)))
+                continue
+            stack.callback(session.close)
+            watchers.append(stack.enter_context(
+                SummaryWatcher(session, prefix=prefix, machines=machines)))
+        if not watchers:
+            raise WatchError(f"nothing answers at {', '.join(connect)}: start a daemon "
+                             "(twinwatch run) or a zenoh router there")
+        for endpoint, why in skipped:
+            if on_skip is not None:
+                on_skip(endpoint, why)
+        yield Summaries(watchers)
