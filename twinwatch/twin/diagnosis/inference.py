@@ -343,7 +343,7 @@ class Diagnoser:
                 found = (f" (found: {near[0].split('(')[-1].rstrip(')')})" if near else "")
                 out[key] = Variable(key, "term", S_MIN, "",
                                 f"no {kinds} term on {where}{harm}{found}")
-                out[key].links[f.id] = sg.link
+                out[key].links[f.id] = sg.absence_link
                 out[key].what[f.id] = f"a {kinds} term on {where}{harm}"
 
     def _unexplained_vars(self, health: HealthMessage, out: dict[str, Variable]) -> None:

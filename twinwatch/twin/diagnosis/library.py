@@ -109,6 +109,16 @@ class TermSign(_Strict):
     tolerance: StrictFloat = Field(0.15, gt=0, le=1, description="relative tolerance of the "
                                    "harmonic")
     link: float = Link
+    missing_link: float | None = Field(
+        None, gt=0, le=1, description="probability the term is found while the fault acts, "
+        "for the term's absence as evidence against the fault (none: the link). A coulomb "
+        "term at a speed of one sign is a constant braking torque discovery cannot tell "
+        "from a sensor's offset or from D: its absence says little")
+
+    @property
+    def absence_link(self) -> float:
+        """How strongly the term's absence speaks against the fault (its link unless said)."""
+        return self.link if self.missing_link is None else self.missing_link
 
 
 class SensorSign(_Strict):
