@@ -294,7 +294,7 @@ def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: flo
     """``watch --fleet``: the machines' summaries ranked (:mod:`twinwatch.watch.ranking`)."""
     from twinwatch.watch import Fleet, WatchError, console, render
     from twinwatch.watch.ranking import fleet_view
-    from twinwatch.watch.render import render_fleet, screen_rows
+    from twinwatch.watch.render_fleet import render_fleet, screen_rows
     from twinwatch.watch.summaries import following
 
     title = _fleet_title(where.connect, mode)
