@@ -551,14 +551,20 @@ def test_300_windows_with_a_broker_restart_a_kill_9_and_a_rebirth(tmp_path: Path
 
     host = HostDecoder(Subscriber(broker.port, ["spBv1.0/#"], client_id="test-host-300",
                                   persistent=True))   # the broker queues for it while away
-    # the plant as fast as it runs (about 6 windows a second on a quiet box, 3-4 on one loaded
-    # by other work) and the output held to 2 windows a second: the outbox falls behind, the
-    # kill leaves windows undelivered; the second start at the default pace catches up
+    # the plant as fast as it runs (11 windows a second on a quiet box, 3-4 on one loaded by
+    # other work) and the output held to 2 windows a second: the outbox falls behind, the
+    # kill leaves windows undelivered; the second start at a faster pace catches up. The
+    # first run must outlive 60 DDATA at 2 a second and the broker's restart (about 45 s of
+    # wall time): 1200 windows of plant, not 300 (which a quiet box ran in 27 s, and the
+    # daemon then stopped, its close_timeout over, before the 60th DDATA)
     # the machine a device of the edge node line1-edge (the process), not an edge node of its own
     node = 'edge_node_id = "line1-edge"\n'
-    first = sim_config(tmp_path, duration=600.0, extra=table(broker.port, node + "rate = 2.0\n"))
+    first = sim_config(tmp_path, duration=2400.0, extra=table(broker.port, node + "rate = 2.0\n"),
+                       **{'scenario = "resistance_degradation"':
+                          'scenario = "resistance_degradation"\nfault_period = 1200.0'})
 
     def ddata() -> int:
+        assert proc.poll() is None, "the daemon stopped before the test was done with it"
         return sum(d.kind == "DDATA" for d in host.messages())
 
     proc = twinwatch(first, cwd=tmp_path)
