@@ -54,6 +54,21 @@ def test_gap_nan_and_backwards_time_abandon_the_partial_window(caplog):
     assert rb.discarded["time stamp jumped backwards"] == 1
 
 
+def test_a_nan_or_inf_time_stamp_is_a_bad_sample_not_a_window_sample(caplog):
+    """A stamp that is not a number (a decoder's NaN, an inf) has no slot on the grid: the
+    sample is counted bad, the partial window abandoned (logged once), and the windows after
+    it are whole and finite."""
+    rb = RingBuffer(CH, window=10, sample_period=0.01)
+    ts = list(np.arange(45) * 0.01)
+    ts[5], ts[27] = math.nan, math.inf
+    wins = _feed(rb, ts)
+    assert rb.bad_samples == 2 and rb.causes["bad_value"] == 2
+    assert [len(w.t) for w in wins] == [10, 10, 10]   # 6-15, 16-25, 28-37
+    for w in wins:
+        assert np.all(np.isfinite(w.t)) and np.all(np.diff(w.t) < 0.015)
+    assert sum("time stamp NaN or inf" in r.message for r in caplog.records) == 1
+
+
 class _PlantDriver(Driver):
     """The plant without a bus, as a *live* source that cannot wait."""
 

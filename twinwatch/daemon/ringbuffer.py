@@ -279,10 +279,15 @@ class RingBuffer:
         """Add one sample (time stamp ``t`` [s] on the source's clock); return a completed
         window, else None.
 
-        A gap, a stamp that went back, jitter beyond the tolerance, a missing channel or a
-        non-finite value abandons the partial window (counted, logged once per reason).
+        A gap, a stamp that went back, jitter beyond the tolerance, a missing channel, a
+        non-finite value or a non-finite stamp abandons the partial window (counted, logged
+        once per reason).
         """
         self.samples += 1
+        if not math.isfinite(t):  # no slot on the grid: the sample and the partial window go
+            self.bad_samples += 1
+            self._abandon("time stamp NaN or inf", "bad_value", math.nan, bad=1)
+            return None
         if t == self._last_t and self._repeated(t, values):
             return None
         self._check_time(t)
