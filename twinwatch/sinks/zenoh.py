@@ -751,10 +751,11 @@ class HealthPublisher(Sink):
                 "windows": [w.model_dump(by_alias=True, exclude_unset=True) for w in windows]}
 
     def counters(self) -> dict[str, int]:
-        """``published`` (puts), ``errors`` (failed puts), ``not_connected`` (windows before
-        the router was reached)."""
-        return {"published": int(self.published), "errors": int(self.errors),
-                "not_connected": int(self.not_connected)}
+        """``published`` (the windows' and events' puts), ``summaries`` (the fleet summaries
+        sent, :meth:`publish_summary`), ``errors`` (failed puts), ``not_connected`` (windows
+        before the router was reached)."""
+        return {"published": int(self.published), "summaries": int(self.summaries),
+                "errors": int(self.errors), "not_connected": int(self.not_connected)}
 
     @property
     def status(self) -> str:
@@ -885,7 +886,8 @@ class HealthPublisher(Sink):
                     logger.debug("publishing on %s failed again: %s", key, exc)
                 return
             self._latest[key] = text
-            self.published += 1
+            if key != self.summary_key:  # the summaries are counted in summaries
+                self.published += 1
             if self._failing:
                 logger.info("publishing on %s works again", key)
                 self._failing = False
