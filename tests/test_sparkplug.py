@@ -291,6 +291,41 @@ def test_the_example_config_passes_check_config() -> None:
     assert result.exit_code == 0, result.output
 
 
+def test_check_config_on_a_gateway_directory_names_the_machines_edge_node_clashes(
+        tmp_path: Path) -> None:
+    """Machines of one gateway that are devices of one edge node must set its session keys
+    alike and take device ids of their own: ``check-config`` on the directory says so, naming
+    the file and the key (the gateway refuses the second at its start)."""
+    from click.testing import CliRunner
+
+    from twinwatch.cli import main
+
+    from .test_gateway import machine_config
+
+    machines = tmp_path / "machines"
+    machines.mkdir()
+    node = '\n[outputs.sparkplug]\ngroup_id = "plant1"\nedge_node_id = "line1"\n'
+    for name, extra in (("m1", ""), ("m2", "")):
+        path = machine_config(machines, name, port=None, realtime=False)
+        path.write_text(path.read_text() + node + extra)
+
+    def check() -> Any:
+        return CliRunner().invoke(main, ["check-config", str(machines)])
+
+    r = check()
+    assert r.exit_code == 0 and "2 of 2 machine configurations OK" in r.output, r.output
+    m2 = machines / "m2.toml"
+    m2.write_text(m2.read_text() + 'keepalive = 17\ndevice_id = "m1"\n')
+    r = check()
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.output.splitlines() if "m2.toml: outputs.sparkplug" in ln]
+    assert len(lines) == 2, r.output
+    assert "outputs.sparkplug.keepalive: machine 'm2' is a device of edge node plant1/line1" \
+        in lines[0] and f"({machines / 'm1.toml'})" in lines[0]
+    assert "outputs.sparkplug.device_id: 'm1' is already a device" in lines[1]
+    assert "1 of 2 machine configurations OK" in r.output
+
+
 # -- against Mosquitto --------------------------------------------------------------------------
 @needs_mosquitto
 def test_a_run_births_data_by_alias_and_ndeath_on_a_clean_stop(tmp_path: Path,

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -40,10 +41,18 @@ def check_config(config: Path, force: bool) -> None:
         sys.exit(1)
     names: dict[str, Path] = {}
     failed = 0
+    sparkplug: list[tuple[str, str, Any]] = []
     for path in files:
-        ok, line = _check_one(path, names=names)
+        ok, line = _check_one(path, names=names, sparkplug=sparkplug)
         click.echo(line, err=not ok)
         failed += not ok
+    if sparkplug:  # what only the gateway's machines together can clash on
+        from twinwatch.sinks.sparkplug.config import node_clashes
+
+        clashes = node_clashes(sparkplug)
+        for line in clashes:
+            click.echo(line, err=True)
+        failed += len({line.split(":", 1)[0] for line in clashes})
     from twinwatch.daemon.host import skipped
 
     for entry, why in skipped(config).items():
@@ -54,9 +63,12 @@ def check_config(config: Path, force: bool) -> None:
 
 
 def _check_one(config: Path, names: dict[str, Path] | None = None, *,
-               force: bool | None = None) -> tuple[bool, str]:
+               force: bool | None = None,
+               sparkplug: list[tuple[str, str, Any]] | None = None) -> tuple[bool, str]:
     """``check-config`` on one file: (usable, the line to print). ``names``: the machine
-    names seen so far in a gateway's directory (a second file naming one fails). ``force``:
+    names seen so far in a gateway's directory (a second file naming one fails).
+    ``sparkplug``: a usable file's enabled ``[outputs.sparkplug]`` is appended there as (file
+    name, machine, table), for the gateway's clashes between machines. ``force``:
     a single file is checked as ``run`` loads it (a commissioning file refused unless True);
     None (a gateway's file): as the gateway loads it."""
     from twinwatch.config.loader import ConfigError
@@ -91,6 +103,10 @@ def _check_one(config: Path, names: dict[str, Path] | None = None, *,
                        f"here: {exc} (`run` would wait for it)"
                        if get_driver_class(cfg.driver.type).reopens(cfg.driver)
                        else f"{config}: driver: {exc}")
+    if sparkplug is not None:
+        for out in cfg.output_tables():
+            if out.name == "sparkplug" and getattr(out.config, "enabled", True):
+                sparkplug.append((str(config), cfg.machine.name, out.config))
     if refused is not None:
         return False, (f"{refused}; it is valid for `twinwatch identify {config}` "
                        f"({cfg.machine.model} '{cfg.machine.name}', {cfg.driver.type} driver)")

@@ -11,7 +11,7 @@ from pydantic import Field, field_validator
 
 from twinwatch.sinks.mqtt.config import MqttConnectionConfig
 
-__all__ = ["NAMESPACE", "NODE_KEYS", "SparkplugConfig", "check_id", "node_key"]
+__all__ = ["NAMESPACE", "NODE_KEYS", "SparkplugConfig", "check_id", "node_clashes", "node_key"]
 
 NAMESPACE = "spBv1.0"
 
@@ -89,3 +89,37 @@ def node_key(config: SparkplugConfig, machine: str) -> str:
     ``sparkplug://<host>:<port>/<group_id>/<edge_node_id or machine>``."""
     return (f"sparkplug://{config.host}:{config.port}/{config.group_id}/"
             f"{config.edge_node_id or machine}")
+
+
+def node_clashes(tables: list[tuple[str, str, SparkplugConfig]]) -> list[str]:
+    """What a gateway's machines' ``[outputs.sparkplug]`` tables would be refused for when the
+    gateway starts them (:meth:`~twinwatch.sinks.sparkplug.node.EdgeNode.join`), for
+    ``check-config`` on a directory: machines that are devices of one edge node with a session
+    key (:data:`NODE_KEYS`) set otherwise than the first of them, or with one device id.
+
+    Args:
+        tables: (file name, machine name, its validated table) of each machine in the order
+            the gateway reads them.
+
+    Returns:
+        One line per clash, naming the file, the key and the fix; empty if none.
+    """
+    first: dict[str, tuple[str, str, SparkplugConfig]] = {}
+    devices: dict[tuple[str, str], str] = {}
+    out = []
+    for source, machine, cfg in tables:
+        key = node_key(cfg, machine)
+        head = first.setdefault(key, (source, machine, cfg))
+        where = f"edge node {cfg.group_id}/{cfg.edge_node_id or machine} on {cfg.host}:{cfg.port}"
+        for name in NODE_KEYS:
+            if getattr(cfg, name) != getattr(head[2], name):
+                out.append(f"{source}: outputs.sparkplug.{name}: machine {machine!r} is a "
+                           f"device of {where} with machine {head[1]!r} ({head[0]}), whose "
+                           f"{name} differs (one edge node is one MQTT session); set {name} "
+                           f"alike or give {machine!r} its own edge_node_id")
+        device = cfg.device_id or machine
+        owner = devices.setdefault((key, device), source)
+        if owner != source:
+            out.append(f"{source}: outputs.sparkplug.device_id: {device!r} is already a device "
+                       f"of {where} ({owner}); set device_id (unset: the machine name)")
+    return out
