@@ -203,6 +203,48 @@ def test_fusion_of_linear_evidence_is_the_batch_least_squares() -> None:
     assert g.state.cov[0, 0] < 1e-3
 
 
+def _linear_window(level: float, sd: float, cols: tuple[int, ...] = (0,)) -> tuple[
+        object, np.ndarray]:
+    """A window that says ``level`` (ln) for each of ``cols`` with standard error ``sd``."""
+    k = len(cols)
+
+    def lin(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.eye(k), x[list(cols)] - level
+    return lin, np.full(k, sd * sd)
+
+
+def test_a_sudden_change_moves_the_level_not_its_rate() -> None:
+    """Issue 34: a window far beyond the prediction (a step of 10 % told with 0.1 %) inflates
+    the levels it determines, not the rates: the filter follows the step at once and the
+    fused value then stays put while no window informs it. Scaling the whole covariance (as
+    before) let the step set a rate that later windows never corrected: the noise-free DC
+    motor's fused Ke fell 0.3 %/s for 90 s, to -25 %."""
+    f = ParameterFusion(("Ra", "Ke"), np.ones(2), FusionConfig())
+    for k in range(30):          # settled at 0 from windows that inform both
+        f.update(2.0 * k, *_linear_window(0.0, 0.001, (0, 1)), cols=np.array([0, 1]))
+    jump = f.update(60.0, *_linear_window(math.log(1.1), 0.001), cols=np.array([0]))
+    assert jump
+    assert abs(f.state.mean[0] - math.log(1.1)) < 0.005
+    assert abs(f.state.mean[2]) < 1e-4 and abs(f.state.mean[3]) < 1e-4   # the rates
+    for k in range(31, 80):      # windows that fail their check: the filter only advances
+        f.update(2.0 * k)
+    assert abs(f.state.mean[0] - math.log(1.1)) < 0.01, f.state.mean
+    assert abs(f.state.mean[1]) < 0.005, f.state.mean
+
+
+def test_a_window_that_halves_a_determined_parameter_at_once_is_an_outlier() -> None:
+    """Issue 34: a sudden change beyond a factor 2 (``JUMP_LIMIT``) in one window is the
+    model's outlier (a parameter held at a wrong value pushing the others), not wear: the
+    window is not fused (counted), the level stays; a step of 30 % is followed."""
+    f = ParameterFusion(("D",), np.ones(1), FusionConfig())
+    for k in range(20):
+        f.update(2.0 * k, *_linear_window(0.0, 0.001))
+    assert not f.update(40.0, *_linear_window(math.log(0.35), 0.001))
+    assert f.outliers == 1 and abs(f.state.mean[0]) < 0.005
+    assert f.update(42.0, *_linear_window(math.log(1.3), 0.001))
+    assert f.outliers == 1 and abs(f.state.mean[0] - math.log(1.3)) < 0.005
+
+
 def test_fused_d_tracks_bearing_wear_with_noise() -> None:
     """DC motor bearing wear (paper scenario 2), 1 % noise: the fused D follows the plant's
     within 2 % after the first minute, and its interval covers it."""

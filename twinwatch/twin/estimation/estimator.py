@@ -918,8 +918,15 @@ class Estimator:
         if self.fusion is None:
             return {}, False
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
-        return fuse_window(self.fusion, problem, polished, len(decision.selected), t_mid,
-                           informative, step_tol=step_tol)
+        before = self.fusion.outliers
+        out = fuse_window(self.fusion, problem, polished, len(decision.selected), t_mid,
+                          informative, step_tol=step_tol)
+        if self.fusion.outliers > before:
+            logger.log(logging.INFO if before == 0 else logging.DEBUG,
+                       "window %d: its evidence would move a parameter by more than a factor "
+                       "2 at once: an outlier of the model, not fused (%d so far)",
+                       window.index, self.fusion.outliers)
+        return out
 
     def _trust(self, decision: GateDecision, values: Mapping[str, float], t: float) -> None:
         """Make the window's estimates the trusted values where their standard error is at
