@@ -484,9 +484,13 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
                 'scenario = "nominal"\nparameter_faults = [{ parameter = "Ra", change = 15.0, '
                 'start = 60.0, ramp = 0.0, end = 140.0 }]'))
         path.write_text(text)
+    # the gateway's output to files: 20 machines' log lines fill a pipe nobody reads while
+    # the test waits (64 KiB by about a minute), and every machine then blocks on its next
+    # log line (the address space stopped at window 30, no event came)
+    log_out = (tmp_path / "gateway.out").open("w")
+    log_err = (tmp_path / "gateway.err").open("w")
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(machines)],
-                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            cwd=tmp_path, stdout=log_out, stderr=log_err, text=True)
     script = tmp_path / "client.py"
     script.write_text(CLIENT)
     client = None
@@ -497,7 +501,7 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
                 with socket.create_connection(("127.0.0.1", port), timeout=0.5):
                     break
             except OSError:
-                assert proc.poll() is None, proc.communicate()
+                assert proc.poll() is None, (tmp_path / "gateway.err").read_text()[-3000:]
                 time.sleep(0.5)
         client = subprocess.Popen([sys.executable, str(script), f"opc.tcp://127.0.0.1:{port}",
                                    "20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -517,7 +521,9 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
                     return last
             if client.poll() is not None:
                 last["client stderr"] = client.communicate()[1][-3000:]
-            raise AssertionError(f"not seen within {timeout} s: {str(last)[:6000]}")
+            log_err.flush()
+            raise AssertionError(f"not seen within {timeout} s: {str(last)[:6000]}; the "
+                                 f"gateway's log: {(tmp_path / 'gateway.err').read_text()[-3000:]}")
 
         last = until(lambda d: len(d["read"]) == 20, 180)
         assert sorted(last["machines"]) == [f"m{i:02d}" for i in range(20)]
@@ -553,7 +559,9 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
             client.kill()
             client.communicate()
         proc.terminate()
-        proc.communicate(timeout=120)
+        proc.wait(timeout=120)
+        log_out.close()
+        log_err.close()
 
 
 def _certificate(directory: Path, name: str, uri: str, server: bool) -> tuple[Path, Path]:
