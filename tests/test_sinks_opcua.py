@@ -528,7 +528,7 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
             raise AssertionError(f"not seen within {timeout} s: {str(last)[:6000]}; the "
                                  f"gateway's log: {(tmp_path / 'gateway.err').read_text()[-3000:]}")
 
-        last = until(lambda d: len(d["read"]) == 20, 180)
+        last = until(lambda d: len(d["read"]) == 20, 600)   # 20 starts on a loaded CI box
         assert sorted(last["machines"]) == [f"m{i:02d}" for i in range(20)]
         for m, got in last["read"].items():
             assert got["unit"] == "ohm" and 5.0 < got["Ra"] < 7.0, (m, got)
