@@ -478,6 +478,9 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
                               duration=(1200.0, 300.0)[i] if fast else 3600.0,
                               realtime=not fast)
         text = path.read_text() + table
+        if not fast:  # an hour of the default degradation: the part is replaced every 20 min
+            text = text.replace('scenario = "resistance_degradation"',
+                                'scenario = "resistance_degradation"\nfault_period = 1200.0')
         if i == 1:  # a fault that is repaired: the Ra alarm raised, then cleared
             assert 'scenario = "resistance_degradation"' in text
             text = text.replace('scenario = "resistance_degradation"', (
@@ -531,7 +534,7 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
         last = until(lambda d: len(d["read"]) == 20, 600)   # 20 starts on a loaded CI box
         assert sorted(last["machines"]) == [f"m{i:02d}" for i in range(20)]
         for m, got in last["read"].items():
-            assert got["unit"] == "ohm" and 5.0 < got["Ra"] < 7.0, (m, got)
+            assert got["unit"] == "ohm" and 5.0 < got["Ra"] < 8.0, (m, got)  # m01: +15 %
             assert got["health"] in DEVICE_HEALTH.values()
             assert got["diagnosis"] in ("no_fault", "fault", "unknown", "check_function")
             assert got["rul"] in ("", "insufficient", "not_degrading", "degrading")
