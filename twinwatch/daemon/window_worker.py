@@ -143,6 +143,7 @@ class WindowWorker:
         self._failure: tuple[str | None, int] = (None, 0)
         self.queue_waits: deque[float] = deque(maxlen=QUEUE_WAITS)
         self.overruns = 0
+        self._overrun_causes: set[str] = set()   # the causes already said (:meth:`submit`)
         self.numeric_failures = 0
         self.dropped_at_stop = 0
         self.recent_outcomes: deque[str] = deque(maxlen=RECENT_WINDOWS)
@@ -170,15 +171,22 @@ class WindowWorker:
             self.overruns += 1
             self.recent_outcomes.append("overrun")
             waiting = self._backpressure()
+            # said at the first overrun of each cause and at the 10th, 100th, ... (counted
+            # in every window: `overruns`); a box that cannot keep up logged every window
+            cause = "outputs" if waiting is not None else "estimation"
+            first = cause not in self._overrun_causes
+            self._overrun_causes.add(cause)
+            level = (logging.WARNING if first or _power_of_ten(self.overruns)
+                     else logging.DEBUG)
             if waiting is not None:  # the real cause: an output holds up the worker
-                logger.warning("estimation overrun: window %d dropped (%d so far); the "
-                               "estimation waits for the outputs: %s", window.index,
-                               self.overruns, waiting)
+                logger.log(level, "estimation overrun: window %d dropped (%d so far); the "
+                           "estimation waits for the outputs: %s", window.index,
+                           self.overruns, waiting)
                 return
-            logger.warning("estimation overrun: window %d dropped (%d so far); the "
-                           "estimation does not keep up with acquisition: lower "
-                           "[estimation.pso].max_generations or the time budget",
-                           window.index, self.overruns)
+            logger.log(level, "estimation overrun: window %d dropped (%d so far); the "
+                       "estimation does not keep up with acquisition: lower "
+                       "[estimation.pso].max_generations or the time budget",
+                       window.index, self.overruns)
 
     def abandoned(self, n: int) -> None:
         """``n`` more windows were abandoned by the ring buffer (gaps, bad values, ...)."""
@@ -282,3 +290,11 @@ class WindowWorker:
         kinds = ", ".join(f"{n} {k}" for k, n in sorted(
             {k: bad.count(k) for k in set(bad)}.items()))
         return f"{len(bad)} of the last {len(recent)} windows not estimated ({kinds})"
+
+
+def _power_of_ten(n: int) -> bool:
+    """Whether ``n`` is 10, 100, 1000, ...: the counts at which a repeated condition is said
+    again."""
+    while n >= 10 and n % 10 == 0:
+        n //= 10
+    return n == 1
