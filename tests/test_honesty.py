@@ -241,6 +241,8 @@ def test_a_window_that_halves_a_determined_parameter_at_once_is_an_outlier() -> 
         f.update(2.0 * k, *_linear_window(0.0, 0.001))
     assert not f.update(40.0, *_linear_window(math.log(0.35), 0.001))
     assert f.outliers == 1 and abs(f.state.mean[0]) < 0.005
+    assert f.last_outlier is not None and f.last_outlier[0] == "D"
+    assert f.last_outlier[1] == pytest.approx(0.35, rel=0.05)   # said in the log line
     assert f.update(42.0, *_linear_window(math.log(1.3), 0.001))
     assert f.outliers == 1 and abs(f.state.mean[0] - math.log(1.3)) < 0.005
 

@@ -580,8 +580,9 @@ def test_watch_finds_the_configured_machines_on_their_own_ports(tmp_path: Any) -
 
 def test_the_configured_endpoints_are_read_from_the_zenoh_tables(tmp_path: Any) -> None:
     """What `watch --config` connects to: the shipped examples' ports (7447, the hydraulic
-    ones' 7448 and 7449, the OPC UA ones' 7450 and 7451, the CANopen one's 7453, the TLS example's router), a client's
-    router, none for a machine whose Zenoh output is off; a bad table is one line."""
+    ones' 7448 and 7449, the OPC UA ones' 7450 and 7451, the CANopen one's 7453, the TLS
+    example's router), a client's router, none for a machine whose Zenoh output is off; a
+    bad table is one line."""
     import click
 
     from twinwatch.cli.watch import config_endpoints, watch_endpoint

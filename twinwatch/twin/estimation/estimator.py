@@ -922,10 +922,11 @@ class Estimator:
         out = fuse_window(self.fusion, problem, polished, len(decision.selected), t_mid,
                           informative, step_tol=step_tol)
         if self.fusion.outliers > before:
+            name, factor = self.fusion.last_outlier or ("a parameter", float("nan"))
             logger.log(logging.INFO if before == 0 else logging.DEBUG,
-                       "window %d: its evidence would move a parameter by more than a factor "
-                       "2 at once: an outlier of the model, not fused (%d so far)",
-                       window.index, self.fusion.outliers)
+                       "window %d: its evidence would move %s by a factor %.3g at once "
+                       "(more than 2): an outlier of the model, not fused (%d so far)",
+                       window.index, name, factor, self.fusion.outliers)
         return out
 
     def _trust(self, decision: GateDecision, values: Mapping[str, float], t: float) -> None:

@@ -133,6 +133,8 @@ class ParameterFusion:
         self.n = len(names)
         self.trend = config.model == "trend"
         self.outliers = 0   # windows not fused: a sudden change beyond JUMP_LIMIT
+        #: the last such window's parameter moved most and its factor (new / predicted)
+        self.last_outlier: tuple[str, float] | None = None
         self.reset(start)
 
     @property
@@ -296,9 +298,13 @@ class ParameterFusion:
                         np.maximum(np.diag(hess_inv)[:n], 0.0))):
                     break
             if jump:
-                moved = np.abs(x[:n] - mean[:n])[sel if firm is None else firm]
+                at = np.asarray(sel if firm is None else firm, dtype=int)
+                moved = np.abs(x[:n] - mean[:n])[at]
                 if moved.size and float(np.max(moved)) > JUMP_LIMIT:
                     self.outliers += 1
+                    worst = int(at[int(np.argmax(moved))])
+                    self.last_outlier = (self.names[worst],
+                                         math.exp(float(x[worst] - mean[worst])))
                     self.state = predicted
                     return False
             cov_post = _safe_inverse(y_prior + h.T @ info @ h)
