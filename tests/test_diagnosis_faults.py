@@ -132,6 +132,39 @@ def test_a_few_failed_checks_are_not_check_function(
     assert out[-1].check_failed == "the model check failed in 10 of the last 30 windows (60 s)"
 
 
+def test_a_sensor_that_clips_now_and_then_explains_the_term_fitted_to_it(
+        nominal_messages: list[HealthMessage]) -> None:
+    """Issue 34: a reading that clips only while it crosses its range (the hydraulic p at
+    50 400 Pa: 8 of 70 windows) stays the sensor's evidence for 60 windows, and a term the
+    twin fits on that channel meanwhile is the sensor's, not a fault of the process: before,
+    the windows between read the term as the leak (0.86) and the sensor fell to 0.13. A
+    frozen reading is evidence for the sensor although it is not also saturated (the two
+    kinds counted as two variables held the frozen position reading at 0.54)."""
+    from twinwatch.twin.health import SensorHealth, TermHealth
+
+    base = nominal_messages[-1]
+    stuck = SensorHealth(channel="ia", kind="saturated", value=1.5, t_start=0.0,
+                         duration_s=1.0, samples=100)
+    term = TermHealth(kind="linear", attach="d(ia)/dt", mode="additive", input="ia",
+                      t_ref=0.0, params={"a": -0.02}, params_std={"a": 0.001}, weight=-0.02,
+                      significance=20.0, evidence_windows=5.0,
+                      equation="d(ia)/dt += -0.02*ia", meaning="", since_window=3)
+    d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
+    out = []
+    for w in range(80):
+        msg = base.model_copy(update={"window": w, "t_start": 2.0 * w, "t_end": 2.0 * w + 1.99,
+                                      "sensors": [stuck] if w in (2, 9) else [],
+                                      "terms": [term] if w >= 3 else []})
+        out.append(d.update(msg, None))
+    for w in (2, 5, 40, 69):   # flagged at 2 and 9: the evidence lasts to window 69
+        assert out[w].top == "sensor_fault" and out[w].probability >= 0.8, (w, out[w])
+        assert out[w].unknown < 0.2, (w, out[w])
+    assert "ia saturated at 1.5 for 1.0 s (window 9)" in " ".join(out[40].faults[0].evidence_for)
+    # 60 windows after the last flag the term is no longer the sensor's: a fault the
+    # library does not know
+    assert out[79].top != "sensor_fault" and out[79].unknown >= 0.5, out[79]
+
+
 # -- end to end ------------------------------------------------------------------------------
 
 def test_a_current_sensor_reading_high_is_the_sensor_not_the_winding_and_the_bearings() -> None:

@@ -247,6 +247,34 @@ def test_a_window_that_halves_a_determined_parameter_at_once_is_an_outlier() -> 
     assert f.outliers == 1 and abs(f.state.mean[0] - math.log(1.3)) < 0.005
 
 
+def test_fusion_follows_a_level_shift_told_by_windows_of_three_standard_errors() -> None:
+    """Issue 34: a level that steps by 12 % while each window says so with a 3 % standard
+    error (a PWM drive's Ra: innovations of 2-4 standard errors, never the 5 of the one-window
+    jump test) is followed within a few windows by the windowed test
+    (:data:`~twinwatch.twin.estimation.fusion.SHIFT_WINDOWS`); before it, the fused Ra stayed
+    near -3 % for 20 windows. Windows at the old level raise nothing."""
+    rng = np.random.default_rng(3)
+    sd = 0.03
+
+    def run(level: float, n: int) -> tuple[list[float], list[bool]]:
+        f = ParameterFusion(("Ra",), np.ones(1), FusionConfig())
+        means, jumps = [], []
+        for k in range(n):
+            true = level if k >= 20 else 0.0
+            y = true + sd * rng.normal()
+            jumps.append(f.update(2.0 * k, lambda x, y=y: (np.ones((1, 1)), x[:1] - y),
+                                  np.array([sd * sd])))
+            means.append(float(f.state.mean[0]))
+        return means, jumps
+
+    means, jumps = run(math.log(0.88), 40)
+    assert not any(jumps[:20])
+    assert any(jumps[20:26])                                  # seen within six windows
+    assert all(abs(m - math.log(0.88)) < 0.03 for m in means[28:])
+    flat, flat_jumps = run(0.0, 60)
+    assert not any(flat_jumps) and max(abs(m) for m in flat[10:]) < 0.03, flat
+
+
 def test_fused_d_tracks_bearing_wear_with_noise() -> None:
     """DC motor bearing wear (paper scenario 2), 1 % noise: the fused D follows the plant's
     within 2 % after the first minute, and its interval covers it."""
@@ -336,12 +364,14 @@ def test_a_mis_stated_drive_publishes_its_structural_error_in_the_interval() -> 
     parameters absorbed the tick of integral action (Ke -1.72 % +- 0.009 %); every later window
     held it and published Ra 0.052 % off with 0.012 %: covered in 20 of the 37 estimated of
     these 60 windows before the floor (24 % over 150). The scatter of the windows' Ke now
-    widens Ra's interval (through its gain on the held Ke) to cover; the matching twin's stays
-    as narrow as its noise-free fit (median 2 sigma 0.025 %)."""
+    widened Ra's interval (through its gain on the held Ke) to cover. Since the windows hold a
+    never-trusted parameter the fusion contradicts at its fused value (issue 34), Ke is held
+    where the windows put it and Ra's interval covers without the floor's widening (37 of 37);
+    the matching twin's stays as narrow as its noise-free fit (median 2 sigma 0.025 %)."""
     plant, runs = _methods_run("forward_euler", "trapezoidal", 60)
     n, ok = _coverage(plant, runs)
     late = [e for w, e in runs if w.index >= 80 + 40 and e.status["Ra"] == "estimated"]
-    assert late and all(e.floor["Ra"] > 0.0002 for e in late)  # the Ke scatter seen
+    assert late
     assert n >= 25 and ok >= 0.9 * n, (n, ok)
     plant, runs = _methods_run("forward_euler", "forward_euler", 60)
     n, ok = _coverage(plant, runs)

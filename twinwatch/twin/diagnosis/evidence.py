@@ -28,7 +28,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
-from twinwatch.twin.health import HealthMessage
+from twinwatch.twin.health import HealthMessage, SensorHealth
 
 if TYPE_CHECKING:
     from twinwatch.twin.diagnosis.library import DeviationSign, FaultMode, TrendSign
@@ -112,6 +112,12 @@ class EvidenceSource(Protocol):
 
     def check_rate_variable(self, output: str) -> Variable:
         """An output failing its model check persistently over the recent windows."""
+        ...
+
+    def recent_sensors(self, health: HealthMessage) -> list[tuple[int, SensorHealth]]:
+        """The stuck sensors found in this window or the recent ones, with the window each
+        was last found in (a clipping sensor shows only while its reading crosses the
+        range; a stuck one stays stuck)."""
         ...
 
 
@@ -297,8 +303,12 @@ class Checks(EvidenceKind):
 
 
 class Sensors(EvidenceKind):
-    """A frozen or saturated sensor (``SensorSign``): present when the window's quality names
-    one of that kind on the channel."""
+    """A frozen or saturated sensor (``SensorSign``): present when the window's quality, or
+    that of one of the recent windows (:meth:`EvidenceSource.recent_sensors`), names one of
+    the fault's kinds on its channel. A fault's signs are one variable, "any of them": a
+    stuck reading is frozen *or* saturated, and the kind it does not show is no evidence
+    against it (two variables counted the missing kind against the fault at 1 - link: a
+    frozen position reading read ``sensor_fault`` 0.54)."""
 
     name = "sensors"
     variable = "sensor"
@@ -314,19 +324,26 @@ class Sensors(EvidenceKind):
 
     def add_variables(self, source: EvidenceSource, health: HealthMessage, fault: FaultMode,
                       out: dict[str, Variable]) -> None:
-        for ss in fault.sensors:
-            key = f"{self.prefix}{ss.kind}:{ss.channel}"
-            if key not in out:
-                hit = [s for s in health.sensors
-                       if s.kind == ss.kind and ss.channel in ("*", s.channel)]
-                names = ", ".join(f"{s.channel} {s.kind} at {s.value:.4g} for "
-                                  f"{s.duration_s:.1f} s" for s in hit
-                                  if s.value is not None and s.duration_s is not None)
-                out[key] = Variable(key, self.variable, clip(1.0 if hit else 0.0),
-                                    f"{names or _chan(ss.channel) + ' ' + ss.kind} in this "
-                                    f"window", f"no {ss.kind} sensor in this window")
-            out[key].links[fault.id] = ss.link
-            out[key].what[fault.id] = f"{_chan(ss.channel)} {ss.kind}"
+        if not fault.sensors:
+            return
+        signs = sorted({(ss.kind, ss.channel) for ss in fault.sensors})
+        key = self.prefix + "|".join(f"{kind}:{channel}" for kind, channel in signs)
+        kinds = " or ".join(dict.fromkeys(kind for kind, _ in signs))
+        channels = {channel for _, channel in signs}
+        where = _chan(next(iter(channels))) if len(channels) == 1 else "a sensor"
+        if key not in out:
+            hit = [(w, s) for w, s in source.recent_sensors(health)
+                   if any(s.kind == kind and channel in ("*", s.channel)
+                          for kind, channel in signs)]
+            names = ", ".join(
+                f"{s.channel} {s.kind} at {s.value:.4g} for {s.duration_s:.1f} s"
+                + ("" if w == health.window else f" (window {w})") for w, s in hit)
+            out[key] = Variable(key, self.variable, clip(1.0 if hit else 0.0),
+                                names or f"{where} {kinds}",
+                                f"no {kinds} sensor in this window or the recent ones")
+        link = max(ss.link for ss in fault.sensors)
+        out[key].links[fault.id] = max(link, out[key].links.get(fault.id, 0.0))
+        out[key].what[fault.id] = f"{where} {kinds}"
 
 
 #: The evidence kinds: the signature's key -> its kind. Their order is the order a fault's

@@ -54,7 +54,13 @@ from twinwatch.twin.diagnosis.evidence import (
     model_check_variable,
 )
 from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode
-from twinwatch.twin.health import DiagnosisHealth, FaultHealth, HealthMessage, TermHealth
+from twinwatch.twin.health import (
+    DiagnosisHealth,
+    FaultHealth,
+    HealthMessage,
+    SensorHealth,
+    TermHealth,
+)
 from twinwatch.twin.model import WindowData
 
 __all__ = ["LEAK", "Diagnoser", "shaft_speed"]
@@ -108,6 +114,15 @@ STALE_SD_PCT = 0.15
 #: about it now: a parameter the windows have not estimated since (Ke held since the start
 #: on a motor at a steady set-point) neither supports nor rules out the faults that move it.
 STALE_MAX_WINDOWS = 60
+#: A frozen or saturated sensor found in one of this many recent windows is still evidence
+#: (a fault's ``sensors``), as long as any evidence (:data:`STALE_MAX_WINDOWS`): a reading
+#: that clips at 50 400 Pa does so only in the windows whose pressure crosses it (8 of the
+#: 70 windows after its onset), and the twin meanwhile fits a gain term on p to the clipped
+#: readings (read ``internal_leak`` 0.86 between them).
+SENSOR_WINDOWS = STALE_MAX_WINDOWS
+#: A term on a channel a recent stuck sensor reads (or on its derivative) is what the twin
+#: fits to that sensor's readings: the faults naming such a sensor explain it with this link.
+SENSOR_TERM_LINK = 0.9
 #: Windows over which an output's model-check failures are counted (a fault's ``checks``).
 CHECK_RATE_WINDOWS = 10
 #: An output whose check fails in more than this share of those windows fails persistently
@@ -235,6 +250,9 @@ class Diagnoser:
         # per window: (window, output -> its check passed), for the faults' ``checks``
         self._outputs: deque[tuple[int, dict[str, bool]]] = deque(maxlen=CHECK_RATE_WINDOWS)
         self._dev_leak: dict[str, tuple[float, str]] = {}  # this window's raised leaks
+        # (kind, channel) -> (the window it was last found stuck in, what was found)
+        self._stuck: dict[tuple[str, str], tuple[int, SensorHealth]] = {}
+        self._stuck_window = -1
 
     # -- evidence -----------------------------------------------------------------------------
     def _deviation(self, health: HealthMessage, name: str) -> _Dev | None:
@@ -304,6 +322,7 @@ class Diagnoser:
         the terms no fault explains (the unknown fault's, and model error in their
         equation: :meth:`_model_error`)."""
         unexplained: list[TermHealth] = []
+        stuck = {s.channel for _, s in self.recent_sensors(health)}
         for i, term in enumerate(health.terms):
             var = self._term_var(i, term)
             best = 0.0
@@ -314,6 +333,14 @@ class Diagnoser:
                         var.links[f.id] = m * sg.link
                         var.what[f.id] = words
                     best = max(best, m if sg.link >= 0.5 else 0.0)
+            on = {c for c in stuck if term.attach in (c, f"d({c})/dt")}
+            if on:  # fitted to a stuck sensor's readings: the faults naming it explain it
+                for f in self.faults:
+                    if any(ss.channel in ("*", *on) for ss in f.sensors):
+                        var.links[f.id] = max(var.links.get(f.id, 0.0), SENSOR_TERM_LINK)
+                        var.what[f.id] = (f"a term the twin fits to the stuck "
+                                          f"{'/'.join(sorted(on))} readings")
+                        best = 1.0
             best *= 1.0 - TERM_MISFIT_DISCOUNT * self._misfit_since(term.since_window)
             var.links["unknown"] = max(UNKNOWN_TERM_LINK * (1.0 - best), 1e-3)
             var.what["unknown"] = "a term no fault of the library explains"
@@ -541,6 +568,16 @@ class Diagnoser:
             return 0.0
         n, k = len(seen), sum(1 for ok in seen if not ok)
         return _rate_above(k, n)
+
+    def recent_sensors(self, health: HealthMessage) -> list[tuple[int, SensorHealth]]:
+        """The stuck sensors of this window and of the last :data:`SENSOR_WINDOWS` (the window
+        each was last found in, what was found then)."""
+        if self._stuck_window != health.window:
+            self._stuck_window = health.window
+            for s in health.sensors:
+                self._stuck[(s.kind, s.channel)] = (health.window, s)
+        return [(w, s) for w, s in self._stuck.values()
+                if 0 <= health.window - w <= SENSOR_WINDOWS]
 
     def check_rate_variable(self, output: str) -> Variable:
         """An output failing its model check persistently: the share of the last

@@ -430,6 +430,9 @@ class Estimator:
         #: The last window's admitted set (the gate's, before the model check): a local-first
         #: window polishes only these, and the gate confirms the set (:meth:`_fit`).
         self._admitted: list[int] | None = None
+        #: Whether the last window was trusted (fit, check passed, sensors sound): only then
+        #: does a window hold a :meth:`_stale` parameter at its fused value.
+        self._fits = False
         #: The interval's floor: the between-window structural variance of each estimated
         #: parameter (:mod:`~twinwatch.twin.estimation.floor`), added to the published
         #: standard errors only.
@@ -533,7 +536,11 @@ class Estimator:
             ValueError: if a channel is missing or holds non-finite values.
         """
         check_window(self.model, window)
-        return WindowProblem(fit or self.window_fit(window), self.pmap, self.trusted,
+        # held at the fused value only while the twin fits without a term: a term's fit or a
+        # failing check moves the fusion with the model's error (the noise-free dead zone:
+        # La fused +7 % while the clip term was found and switched off, then held there)
+        held = self.trusted if terms or not self._fits else self._held_values()
+        return WindowProblem(fit or self.window_fit(window), self.pmap, held,
                              self.lower, self.upper, terms,
                              initial=self.config.initial_state and bool(self.model.initial_states))
 
@@ -600,6 +607,7 @@ class Estimator:
                       cfg.fusion.max_rel_std, suspect=self._suspect(check, faults, nrmse),
                       held_std=self.trusted_std_values())
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
+        self._fits = trusted
         if trusted:
             self._trust(decision, out.values, t_mid)
         floors = self._floor(decision, twin.theta, t_mid, trusted, rates, out)
@@ -743,6 +751,43 @@ class Estimator:
                 else:
                     self.trusted[:], self.trusted_std[:] = saved
         return _Fitted(problem, found, polished, decision, point, twin, check)
+
+    def _stale(self) -> list[int]:
+        """The estimated parameters (positions) whose trusted value the fusion contradicts:
+        never trusted from an estimate of their own, and the fused value determined (within
+        the fusion's ``max_rel_std``) and beyond 2 fused standard errors from it."""
+        f = self.fusion
+        if f is None:
+            return []
+        mean, cov = f.state.mean, f.state.cov
+        limit = self.config.fusion.max_rel_std
+        out = []
+        for k in range(len(self.pmap.idx)):
+            if self.pmap.estimate[k] in self._anew:
+                continue
+            sd = math.sqrt(max(float(cov[k, k]), 0.0))
+            trusted = float(self.trusted[self.pmap.idx[k]])
+            if (sd <= limit and trusted > 0
+                    and abs(math.log(trusted) - float(mean[k])) > 2.0 * sd):
+                out.append(k)
+        return out
+
+    def _held_values(self) -> FloatArray:
+        """The values a window holds the parameters it does not estimate at (full): the
+        trusted values, except a :meth:`_stale` one, held at its fused value. A parameter the
+        windows determine only now and then, each time too loosely to be trusted, keeps its
+        nameplate as trusted value while the fusion follows it: a PWM drive's Ra 12 % down,
+        estimated at -11 % +- 2-3 % in half the windows; the other half held it at the
+        nameplate and Ke, J and D absorbed the difference (-4 %, -7 %, -7 %), which read as
+        a speed sensor's gain (benchmarks/bench_diagnosis.py)."""
+        stale = self._stale()
+        if not stale or self.fusion is None:
+            return self.trusted
+        base = self.trusted.copy()
+        for k in stale:
+            base[self.pmap.idx[k]] = math.exp(float(self.fusion.state.mean[k]))
+        self.pmap.apply_ties(base)
+        return base
 
     def _stale_held(self, admitted: list[int]) -> bool:
         """Whether a parameter the admitted-only polish would hold at its trusted value has
