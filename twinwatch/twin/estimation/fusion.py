@@ -61,6 +61,13 @@ OWN_INFORMATION = 0.01
 #: (the noise-free DC motor with J +15 %, J held at its nameplate: one window moved D by
 #: -106 % and Ke by -13.6 %, the next put D back; Ke, no later window informing it, stayed).
 JUMP_LIMIT = math.log(2.0)
+#: Windows in a row whose evidence moves the same parameter beyond :data:`JUMP_LIMIT` by
+#: about the same factor (within :data:`OUTLIER_AGREE`, ln) after which the move is the
+#: machine's and is fused: one odd window is the model's outlier, a step the windows keep
+#: telling is not (D x4 at once, a seized bearing, was never followed: the fused D stayed at
+#: its nameplate while every window said x4).
+OUTLIER_RUN = 3
+OUTLIER_AGREE = 0.1
 #: Windows over which a parameter's innovations are summed to test for a level shift the
 #: single-window jump test misses (:meth:`ParameterFusion.update`): a PWM drive's Ra stepping
 #: -12 % gave innovations of 2-4 standard errors per window, never the 5 the jump test needs,
@@ -160,6 +167,7 @@ class ParameterFusion:
             var[n:] = c.initial_rate_std**2
         self.state = FusionState(mean, np.diag(var), None)
         self._shift = {}
+        self._outlier_run: list[tuple[int, float]] = []   # (parameter, ln move) in a row
 
     # -- the filter -------------------------------------------------------------------------
     def _predict(self, dt: float) -> tuple[FloatArray, FloatArray]:
@@ -314,12 +322,19 @@ class ParameterFusion:
                 at = np.asarray(sel if firm is None else firm, dtype=int)
                 moved = np.abs(x[:n] - mean[:n])[at]
                 if moved.size and float(np.max(moved)) > JUMP_LIMIT:
-                    self.outliers += 1
                     worst = int(at[int(np.argmax(moved))])
-                    self.last_outlier = (self.names[worst],
-                                         math.exp(float(x[worst] - mean[worst])))
-                    self.state = predicted
-                    return False
+                    ln_move = float(x[worst] - mean[worst])
+                    run = self._outlier_run
+                    if run and (run[-1][0] != worst
+                                or abs(run[-1][1] - ln_move) > OUTLIER_AGREE):
+                        run.clear()
+                    run.append((worst, ln_move))
+                    if len(run) < OUTLIER_RUN:   # else: the windows keep telling it: fused
+                        self.outliers += 1
+                        self.last_outlier = (self.names[worst], math.exp(ln_move))
+                        self.state = predicted
+                        return False
+            self._outlier_run = []
             cov_post = _safe_inverse(y_prior + h.T @ info @ h)
             mean = x
             cov = 0.5 * (cov_post + cov_post.T)
