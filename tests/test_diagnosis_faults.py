@@ -165,6 +165,29 @@ def test_a_sensor_that_clips_now_and_then_explains_the_term_fitted_to_it(
     assert out[79].top != "sensor_fault" and out[79].unknown >= 0.5, out[79]
 
 
+def test_a_fault_no_window_can_see_is_said_unobserved_not_ruled_out(
+        nominal_messages: list[HealthMessage]) -> None:
+    """Issue 34 (say what is not identifiable): on the default motor J is held in every
+    window, so a load inertia change cannot be seen: "no fault" is its prior, not a finding,
+    and the diagnosis says so naming J; once a window determines J it is seen again (a
+    load inertia step of 50 % read "no fault 0.98" and nothing said why)."""
+    from twinwatch.twin.diagnosis.explain import explain_lines
+
+    assert all(h.parameters["J"].status == "held" for h in nominal_messages)
+    d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
+    for h in nominal_messages:
+        out = d.update(h, None)
+    assert out.status == "no_fault"
+    assert out.unobserved == ["load_inertia_change (coupled load) cannot be seen now: J held, "
+                              "never determined by a window"], out.unobserved
+    last = nominal_messages[-1].model_copy(update={"diagnosis": out})
+    assert out.unobserved[0] in "\n".join(explain_lines([last]))  # type: ignore[list-item]
+    j = last.parameters["J"].model_copy(update={"status": "estimated", "rel_std_pct": 0.5})
+    seen = last.model_copy(update={"window": last.window + 1,
+                                   "parameters": {**last.parameters, "J": j}})
+    assert d.update(seen, None).unobserved == []
+
+
 # -- end to end ------------------------------------------------------------------------------
 
 def test_a_current_sensor_reading_high_is_the_sensor_not_the_winding_and_the_bearings() -> None:

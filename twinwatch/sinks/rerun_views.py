@@ -1275,6 +1275,8 @@ def _diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[st
         lines.append("next: " + ", ".join(others) + "  ")
     if status != "fault":  # no part named: why the plausible ones were ruled out, short
         lines += [f"*{x.split(' (expects ')[0]}*  " for x in (d.ruled_out or [])[:2]]
+        # and what the diagnosis cannot see (its "no fault" there is the prior)
+        lines += [f"*{x}*  " for x in (getattr(d, "unobserved", None) or [])[:2]]
     return [*lines, ""]
 
 

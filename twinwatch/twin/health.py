@@ -475,6 +475,11 @@ class DiagnosisHealth(_Part):
                                    "unknown fault's evidence)")
     ruled_out: list[str] = Field(default_factory=list, description="fault modes with evidence "
                                  "for them that the diagnosis ruled out, and why")
+    unobserved: list[str] = Field(default_factory=list, description="fault modes the "
+                                  "diagnosis cannot see now, and why: every parameter their "
+                                  "signature moves is without evidence from a recent window "
+                                  "(held or not estimated), and nothing else shows them; "
+                                  "their probability is their prior, not a finding")
 
 
 class HealthMessage(_Part):

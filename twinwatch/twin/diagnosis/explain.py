@@ -174,6 +174,8 @@ def _diagnosis_lines(last: Any) -> list[str]:
         lines.append(f"   no fault mode explains: {text}")
     for text in diag.ruled_out or []:
         lines.append(f"   {text}")
+    for text in getattr(diag, "unobserved", None) or []:
+        lines.append(f"   {text}")
     lines.append("")
     lines.append(diagnosis_line(diag) or "")
     developing = developing_line(diag, last.parameters or {})

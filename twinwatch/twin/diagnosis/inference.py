@@ -663,7 +663,33 @@ class Diagnoser:
             check_failed=record,
             unexplained=self._unexplained_lines(variables),
             ruled_out=ruled_out,
+            unobserved=self._unobserved(health),
         )
+
+    def _unobserved(self, health: HealthMessage) -> list[str]:
+        """The fault modes this window cannot see: each parameter their deviation signs move
+        (link 0.5 or more) has no evidence from the last :data:`STALE_MAX_WINDOWS` windows,
+        and they have no term, sensor or output-check sign (which every window can show).
+        "No fault" about them is their prior, not a finding (a load inertia step of 50 % with
+        J never determined by a window read "no fault 0.98")."""
+        out = []
+        for f in self.faults:
+            if f.terms or f.sensors or any(c.link >= 0.5 for c in f.checks):
+                continue
+            names = list(dict.fromkeys(d.parameter for d in f.deviations if d.link >= 0.5))
+            if not names or any(self._deviation(health, n) is not None for n in names):
+                continue
+            why = []
+            for n in names:
+                p = health.parameters.get(n)
+                seen = self._last.get(n)
+                since = ("never determined by a window" if seen is None else
+                         f"last determined in window {seen.window}")
+                state = "not estimated" if p is None or p.status in ("fixed", "tied") \
+                    else p.status
+                why.append(f"{n} {state}, {since}")
+            out.append(f"{f.id} ({f.component}) cannot be seen now: {'; '.join(why)}")
+        return out
 
     def _listed(self, order: list[int], marg: np.ndarray,
                 said: dict[int, tuple[list[tuple[float, str, str]], list[str]]]
