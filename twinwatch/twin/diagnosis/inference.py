@@ -37,7 +37,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 from itertools import combinations
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from scipy.special import betainc
@@ -95,6 +95,9 @@ HARMONIC_WINDOWS = 5
 #: speed (an unbalance following the shaft) keeps its track; a fixed-frequency term against a
 #: shaft speeding up moves along it and matches no harmonic until the speed settles.
 RATIO_STEP = 0.15
+#: How well an undecided periodic term matches the harmonic its attach point's last decided
+#: track had (:meth:`Diagnoser._harmonic_recall`); the other harmonics match at 1 minus it.
+HARMONIC_RECALL = 0.8
 #: Floor of a deviation's standard error [% of nameplate] (the twin's own model error).
 SD_FLOOR_PCT = 0.05
 #: The unknown fault's link to a parameter's deviation (or trend) in a direction no fault of
@@ -235,6 +238,8 @@ class Diagnoser:
         self._onset: float | None = None
         self._onset_window = -1
         self._tracks: list[tuple[str, list[_Ratio]]] = []  # (attach, ratios in a row)
+        # attach point -> the harmonic its last decided track had, and that window
+        self._harmonic: dict[str, tuple[float, int]] = {}
         ids = [f.id for f in self.faults] + ["unknown"]
         self._ids = ids
         n = len(ids)
@@ -326,13 +331,14 @@ class Diagnoser:
         for i, term in enumerate(health.terms):
             var = self._term_var(i, term)
             best = 0.0
-            for f in self.faults:
-                for sg in f.terms:
-                    m, words = _term_match(sg, term, seen_speed[i])
-                    if m >= 0.2 and m * sg.link > var.links.get(f.id, 0.0):
-                        var.links[f.id] = m * sg.link
-                        var.what[f.id] = words
-                    best = max(best, m if sg.link >= 0.5 else 0.0)
+            matches = [(f, sg, *_term_match(sg, term, seen_speed[i]))
+                       for f in self.faults for sg in f.terms]
+            matches = self._harmonic_recall(health, term, seen_speed[i], matches)
+            for f, sg, m, words in matches:
+                if m >= 0.2 and m * sg.link > var.links.get(f.id, 0.0):
+                    var.links[f.id] = m * sg.link
+                    var.what[f.id] = words
+                best = max(best, m if sg.link >= 0.5 else 0.0)
             on = {c for c in stuck if term.attach in (c, f"d({c})/dt")}
             if on:  # fitted to a stuck sensor's readings: the faults naming it explain it
                 for f in self.faults:
@@ -349,6 +355,42 @@ class Diagnoser:
                 self._model_error(out, term, var.s * (1.0 - best))
             out[var.key] = var
         return unexplained
+
+    def _harmonic_recall(self, health: HealthMessage, term: TermHealth,
+                         track: list[_Ratio] | None,
+                         matches: list[tuple[FaultMode, Any, float, str]]
+                         ) -> list[tuple[FaultMode, Any, float, str]]:
+        """A periodic term's harmonic, remembered per attach point across a speed change: a
+        decided track (one harmonic matched at 0.9 or more, every other at 0.1 or less) is
+        kept; a track still undecided (fewer than :data:`HARMONIC_WINDOWS` windows since the
+        shaft's last speed change, the term re-found at the new speed) within
+        :data:`STALE_MAX_WINDOWS` windows of it matches that harmonic at
+        :data:`HARMONIC_RECALL` and the others at 1 minus that, not 0.5 each (a misalignment
+        decided at 2x read as the unbalance, 0.45 against 0.22, after each set-point
+        change: the priors decided)."""
+        harm = [(k, sg.harmonic, m) for k, (_, sg, m, _) in enumerate(matches)
+                if sg.harmonic is not None]
+        if not harm or track is None:
+            return matches
+        if len(track) >= HARMONIC_WINDOWS:
+            won = {h for _, h, m in harm if m >= 0.9}
+            if len(won) == 1 and all(m <= 0.1 for _, h, m in harm if h not in won):
+                self._harmonic[term.attach] = (won.pop(), health.window)
+            return matches
+        kept = self._harmonic.get(term.attach)
+        if kept is None or health.window - kept[1] > STALE_MAX_WINDOWS:
+            return matches
+        h_kept, w_kept = kept
+        out = list(matches)
+        for k, h, m in harm:
+            f, sg, _, words = out[k]
+            if m != 0.5:   # not undecided for this signature (no shaft speed, another kind)
+                continue
+            recall = HARMONIC_RECALL if h == h_kept else 1.0 - HARMONIC_RECALL
+            out[k] = (f, sg, recall, words.split(" (undecided")[0]
+                      + f" (undecided since the shaft's speed changed; its track was "
+                        f"{h_kept:g} x the shaft speed in window {w_kept})")
+        return out
 
     def _missing_term_vars(self, health: HealthMessage,
                            seen_speed: list[list[_Ratio] | None], out: dict[str, Variable]) -> None:
