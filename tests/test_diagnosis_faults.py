@@ -230,6 +230,50 @@ def test_a_decided_harmonic_is_kept_across_a_speed_change(
     assert fresh.top != "misalignment" or fresh.faults[0].probability < 0.5, fresh
 
 
+def test_a_deviation_beyond_every_fault_s_largest_size_is_unknown(
+        nominal_messages: list[HealthMessage]) -> None:
+    """Issue 34: a fault's ``max_pct`` bounds what it can make. The hydraulic fluid's
+    degradation moves D by at most +100 % (an oil is condemned at about 10 % of viscosity
+    change): D four times its nameplate in every window (a position reading offset by 2 cm,
+    fitted at nRMSE 2e-6) read ``fluid_degradation`` 0.99. Here on the DC motor's library
+    with every fault that moves D up bounded alike: D +283 % is not the bearings but a fault
+    the library does not know, naming the bound; D +25 % is still the bearings."""
+    import pydantic
+
+    from twinwatch.twin.diagnosis.library import DeviationSign, FaultLibrary
+
+    lib = shipped_library("dc_motor")
+    assert lib is not None
+    data = lib.model_dump()
+    for f in data["faults"]:   # every fault that moves D up: at most +100 %
+        for dev in f["deviations"]:
+            if dev["parameter"] == "D" and dev["direction"] == "up":
+                dev["max_pct"] = 100.0
+    bounded = FaultLibrary.model_validate(data)
+    with pytest.raises(pydantic.ValidationError, match="max_pct 3 must exceed min_pct 5"):
+        DeviationSign(parameter="D", direction="up", min_pct=5.0, max_pct=3.0)
+
+    def run(change_pct: float) -> Any:
+        d = Diagnoser(bounded)
+        for h in nominal_messages[-10:]:
+            p = h.parameters["D"]
+            moved = p.model_copy(update={"value": p.nominal * (1 + change_pct / 100),
+                                         "status": "estimated", "rel_std_pct": 0.5})
+            out = d.update(h.model_copy(update={"parameters": {**h.parameters, "D": moved}}),
+                           None)
+        return out
+
+    far = run(283.0)
+    bearings = next((f.probability for f in far.faults if f.id == "bearing_wear"), 0.0)
+    # the unknown fault's link to a deviation no fault explains is 0.2 (UNKNOWN_DEV_LINK): it
+    # rises from 0.01 to about 0.4, no part is named
+    assert far.top is None and bearings < 0.2 and far.unknown >= 0.3, far
+    assert any("beyond the 100 % any fault of the library moves D up" in u
+               for u in far.unexplained), far.unexplained
+    near = run(25.0)
+    assert near.top == "bearing_wear" and near.probability >= 0.8, near
+
+
 # -- end to end ------------------------------------------------------------------------------
 
 def test_a_current_sensor_reading_high_is_the_sensor_not_the_winding_and_the_bearings() -> None:

@@ -9,10 +9,11 @@ the likelihood of ``x`` under a hypothesis (a set of faults present), one factor
   nameplate (:data:`NOMINAL_SPREAD_PCT`), mixed with a small leak ``lam``: something outside the
   model moved it by at least :data:`BROAD_MIN_PCT` in either direction;
 * a fault moves it in ``direction`` by a magnitude ``m`` at least ``a`` (its ``min_pct``), ``m``
-  log-uniform on ``[a, HI_PCT]`` (scale-free: a 2 % and a 20 % change are equally plausible a
-  priori), observed through ``N(m, sd^2)``; each fault of the hypothesis acts with its ``link``
-  (noisy-OR), the smallest size of the acting faults in a direction standing for them, and a
-  hypothesis moving it both ways splits the two.
+  log-uniform on ``[a, b]`` with ``b`` its ``max_pct`` (:data:`HI_PCT` unless the library says
+  less; scale-free: a 2 % and a 20 % change are equally plausible a priori), observed through
+  ``N(m, sd^2)``; each fault of the hypothesis acts with its ``link`` (noisy-OR), the smallest
+  size and the largest ``max_pct`` of the acting faults in a direction standing for them, and
+  a hypothesis moving it both ways splits the two.
 
 One factor per parameter, whatever the sizes the faults name: a current sensor's Ra -0.8 %
 (its size 0.5 %) and a winding's (1 %) are read from the same number, never counted twice, and
@@ -22,7 +23,7 @@ binary "beyond 1 %" variable cannot say.
 The log-uniform density convolved with the Gaussian is taken in closed form with ``1/m``
 evaluated at ``max(|x|, a)`` (exact to a few percent while ``sd`` is small against ``|x|``, and
 the right tail beyond the size otherwise):
-``p(x) = [Phi((x - a)/sd) - Phi((x - HI)/sd)] / (max(x, a) ln(HI/a))`` for ``up``.
+``p(x) = [Phi((x - a)/sd) - Phi((x - b)/sd)] / (clip(x, a, b) ln(b/a))`` for ``up``.
 """
 
 from __future__ import annotations
@@ -43,25 +44,30 @@ NOMINAL_SPREAD_PCT = 0.25
 BROAD_MIN_PCT = 1.0
 
 
-def moved_density(x: float, sd: float, size: np.ndarray | float, up: bool) -> np.ndarray:
+def moved_density(x: float, sd: float, size: np.ndarray | float, up: bool,
+                  hi: np.ndarray | float = HI_PCT) -> np.ndarray:
     """Density of an observed deviation ``x`` [%] with standard error ``sd`` [%] when the
-    parameter moved ``up`` (else down) by a log-uniform magnitude in ``[size, HI_PCT]``.
+    parameter moved ``up`` (else down) by a log-uniform magnitude in ``[size, hi]``.
 
     Args:
         x: the observed deviation [% of nameplate], signed.
         sd: its 1-sigma standard error [%] (> 0).
         size: the smallest magnitude [%], scalar or an array (one per hypothesis).
+        hi: the largest magnitude [%] (a fault's ``max_pct``; :data:`HI_PCT` by default),
+            scalar or an array like ``size``.
     Returns:
         the density [1/%], the shape of ``size``.
     """
-    a = np.minimum(np.asarray(size, dtype=float), HI_PCT / 2)
+    b = np.minimum(np.asarray(hi, dtype=float), HI_PCT)
+    a = np.minimum(np.asarray(size, dtype=float), b / 2)
     y = x if up else -x
-    mass = ndtr((y - a) / sd) - ndtr((y - HI_PCT) / sd)
-    return np.asarray(mass / (np.maximum(y, a) * np.log(HI_PCT / a)))
+    mass = ndtr((y - a) / sd) - ndtr((y - b) / sd)
+    return np.asarray(mass / (np.clip(y, a, b) * np.log(b / a)))
 
 
 def likelihood(x: float, sd: float, p_up: np.ndarray, size_up: np.ndarray, p_down: np.ndarray,
-               size_down: np.ndarray, leak: float) -> np.ndarray:
+               size_down: np.ndarray, leak: float, hi_up: np.ndarray | float = HI_PCT,
+               hi_down: np.ndarray | float = HI_PCT) -> np.ndarray:
     """Likelihood of the observed deviation under each hypothesis (the module's model).
 
     Args:
@@ -71,6 +77,7 @@ def likelihood(x: float, sd: float, p_up: np.ndarray, size_up: np.ndarray, p_dow
         size_up, size_down: the smallest size among those faults [%] (any value where the
             probability is 0), shape (n_hypotheses,).
         leak: probability that something outside the library moved it.
+        hi_up, hi_down: the largest size those faults make [%] (their ``max_pct``).
     Returns:
         p(x | hypothesis) [1/%], shape (n_hypotheses,).
     """
@@ -83,6 +90,6 @@ def likelihood(x: float, sd: float, p_up: np.ndarray, size_up: np.ndarray, p_dow
     w_up = p_up - 0.5 * both
     w_down = p_down - 0.5 * both
     none = (1.0 - p_up) * (1.0 - p_down)
-    out: np.ndarray = (none * base + w_up * moved_density(x, sd, size_up, True)
-                       + w_down * moved_density(x, sd, size_down, False))
+    out: np.ndarray = (none * base + w_up * moved_density(x, sd, size_up, True, hi_up)
+                       + w_down * moved_density(x, sd, size_down, False, hi_down))
     return out

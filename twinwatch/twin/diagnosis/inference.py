@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import combinations
 from typing import Any, Literal
 
@@ -188,6 +188,9 @@ class _Comps:
     size_down: np.ndarray
     sizes: dict[tuple[int, str], float]  # (fault index, direction) -> its size [%]
     unexplained: tuple[str, ...]         # directions no library fault moves it in
+    hi_up: np.ndarray | float = HI_PCT   # (n_hyp,) the largest size of the faults moving it
+    hi_down: np.ndarray | float = HI_PCT
+    reach: dict[str, float] = field(default_factory=dict)  # direction -> largest of any fault
 
 
 @dataclass
@@ -445,23 +448,29 @@ class Diagnoser:
         if c is not None:
             return c
         n_h = self._hyp.shape[0]
-        items: list[tuple[int, str, float, float]] = [
-            (i, d.direction, d.min_pct, d.link) for i, d in signs if d.applies(estimated)]
-        covered = {direction for _, direction, _, _ in items}
+        items: list[tuple[int, str, float, float, float]] = [
+            (i, d.direction, d.min_pct, d.link, d.max_pct or HI_PCT)
+            for i, d in signs if d.applies(estimated)]
+        covered = {direction for _, direction, _, _, _ in items}
         missing = tuple(d for d in ("up", "down") if d not in covered)
-        arrays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        arrays: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        reach: dict[str, float] = {}
         for direction in ("up", "down"):
             log_q = np.zeros(n_h)
             size = np.full(n_h, HI_PCT / 2)
-            for i, d, a, link in items:
+            hi = np.zeros(n_h)
+            for i, d, a, link, b in items:
                 if d != direction:
                     continue
                 on = self._hyp[:, i] > 0
                 log_q += self._hyp[:, i] * math.log1p(-min(link, 1.0 - 1e-9))
                 size = np.where(on, np.minimum(size, a), size)
-            arrays[direction] = (1.0 - np.exp(log_q), size)
+                hi = np.where(on, np.maximum(hi, b), hi)
+                reach[direction] = max(reach.get(direction, 0.0), b)
+            arrays[direction] = (1.0 - np.exp(log_q), size, np.where(hi > 0, hi, HI_PCT))
         c = _Comps(arrays["up"][0], arrays["up"][1], arrays["down"][0], arrays["down"][1],
-                   {(i, d): a for i, d, a, _ in items}, missing)
+                   {(i, d): a for i, d, a, _, _ in items}, missing, arrays["up"][2],
+                   arrays["down"][2], reach)
         self._comps[key] = c
         return c
 
@@ -481,7 +490,7 @@ class Diagnoser:
             comps = self._components(name, ev.estimated)
             leak, note = self._dev_leak.get(name, (LEAK["deviation"], ""))
             lik = likelihood(ev.dev, sd, comps.p_up, comps.size_up, comps.p_down,
-                             comps.size_down, leak)
+                             comps.size_down, leak, comps.hi_up, comps.hi_down)
             when = "" if ev.window == health.window else f", last sound window {ev.window}"
             # which uncertainty: this window's estimate (rel_std_pct), not the fused evidence's
             # narrower one; floored at the twin's model error, widened with the evidence's age
@@ -497,8 +506,9 @@ class Diagnoser:
     @staticmethod
     def _unexplained_dev_var(devs: list[_DevFactor]) -> Variable | None:
         """One variable for the unknown fault: some parameter moved beyond
-        :data:`UNEXPLAINED_PCT` in a direction no fault of the library moves it (the
-        strongest such deviation's strength). One, not one per parameter: a fault the library
+        :data:`UNEXPLAINED_PCT` in a direction no fault of the library moves it, or beyond the
+        largest size (``max_pct``) of every fault that moves it that way (the strongest such
+        deviation's strength). One, not one per parameter: a fault the library
         does not know moves some parameter, and every other one staying put is no evidence
         against it."""
         best: tuple[float, str] | None = None
@@ -509,6 +519,14 @@ class Diagnoser:
                 if best is None or s > best[0]:
                     best = (s, f"{d.text}: no fault of the library moves {d.name} "
                                f"{direction}")
+            for direction, reach in d.comps.reach.items():
+                if reach >= HI_PCT:
+                    continue
+                signed = d.ev.dev if direction == "up" else -d.ev.dev
+                s = _phi((signed - reach) / d.sd)
+                if best is None or s > best[0]:
+                    best = (s, f"{d.text}: beyond the {reach:g} % any fault of the library "
+                               f"moves {d.name} {direction}")
         if best is None:
             return None
         var = Variable("dev:unexplained", "deviation", clip(best[0]), best[1],

@@ -67,6 +67,10 @@ class DeviationSign(_Strict):
     direction: Literal["up", "down"] = Field(description="above (up) or below (down) its "
                                              "nameplate")
     min_pct: StrictFloat = Field(gt=0, description="size of the deviation the fault makes [%]")
+    max_pct: StrictFloat | None = Field(None, gt=0, le=300.0, description="the largest "
+                                        "deviation the fault can make [%] (default 300): "
+                                        "beyond it the deviation is evidence of a fault the "
+                                        "library does not know, not of this one")
     link: float = Link
     when_held: list[str] = Field(default_factory=list, description="expected only in windows "
                                  "that hold these parameters (a fault seen through a held "
@@ -79,6 +83,13 @@ class DeviationSign(_Strict):
         """Whether the expectation holds in a window estimating ``estimated``."""
         return (not any(p in estimated for p in self.when_held)
                 and all(p in estimated for p in self.when_estimated))
+
+    @model_validator(mode="after")
+    def _sizes(self) -> DeviationSign:
+        if self.max_pct is not None and self.max_pct <= self.min_pct:
+            raise ValueError(f"{self.parameter} {self.direction}: max_pct {self.max_pct:g} must "
+                             f"exceed min_pct {self.min_pct:g}")
+        return self
 
 
 class TrendSign(_Strict):
