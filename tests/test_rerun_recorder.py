@@ -933,6 +933,19 @@ def test_the_model_and_the_parameters_table_fit_at_1600x1000(tmp_path: Path) -> 
     # the model and the table in one panel, as before, did not fit
     together = model + "\n" + table
     assert _rendered_lines(together, int((1600 * 0.75 / 2.0 - 20) / 6.3)) * 15 > height
+    # no part named: what was ruled out and what cannot be seen (issue 34), and it still fits
+    w["health"]["diagnosis"].update(
+        status="no_fault", top=None, probability=0.95, no_fault=0.95,
+        ruled_out=["unbalance (rotor and load balance) ruled out at 0.00: no periodic term on "
+                   "d(omega)/dt at 1 x the shaft speed"],
+        unobserved=["load_inertia_change (coupled load) cannot be seen now: J held, never "
+                    "determined by a window"])
+    quiet = _model_document("m1", 999.99, read_health(json.dumps(w["health"])))
+    assert "**Diagnosis: no fault** (probability 0.95)" in quiet
+    assert "*load_inertia_change (coupled load) cannot be seen now: J held, never determined " \
+           "by a window*" in quiet
+    chars = int((1600 * shares[0] / sum(shares) - 20) / 6.3)
+    assert _rendered_lines(quiet, chars) * 15 <= height, (quiet, chars, height)
 
 
 def _documents(path: Path, entity: str) -> list[tuple[float, str]]:
