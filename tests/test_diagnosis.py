@@ -263,6 +263,20 @@ def test_a_fault_alarm_has_hysteresis(leak_history: list[HealthMessage]) -> None
         assert diagnosis.alarms == (["internal_leak"] if 2 <= i < 11 else [])
     assert got == [(2, "alarm", "internal_leak"), (11, "normal", "internal_leak")]
 
+    # a window the twin did not describe (not trusted) brings no evidence against the fault:
+    # it neither clears the alarm nor resets the count (CANopen, Ra at -1 % with a few
+    # failing windows, raised and cleared the winding 3 times in 40 s)
+    alarms = FaultAlarms(0.8, 0.5, 3, 3, "m1")
+    got = []
+    for i, (p, sound) in enumerate([(0.9, True)] * 3 + [(0.1, False)] * 5 + [(0.9, True)]
+                                   + [(0.3, True), (0.2, False), (0.3, True), (0.3, True)]):
+        h = template.model_copy(deep=True, update={"window": i, "trusted": sound})
+        assert h.diagnosis is not None
+        h.diagnosis.faults[0].probability = p
+        _, events = alarms.update(h.diagnosis, h)
+        got += [(i, e["level"]) for e in events]
+    assert got == [(2, "alarm"), (12, "normal")], got
+
 
 def test_a_degrading_fluid_is_the_fluid_not_the_seal() -> None:
     """The hydraulic fluid degradation (D rises from 10 s): the fluid ranks first >= 0.8 and

@@ -37,7 +37,9 @@ health message's ``alarms.<name>.rul`` holds the RUL level.
 **Faults.** :class:`FaultAlarms` raises an alarm on a fault mode of the diagnosis
 (``diagnosis.faults[]``) whose probability has been at least ``[diagnosis] alarm`` (0.8) for
 ``raise_after_windows`` windows in a row, and clears it once below ``clear`` (0.5: the
-hysteresis) for ``clear_after_windows``; its events have ``kind`` ``diagnosis``, the fault's
+hysteresis) for ``clear_after_windows`` sound windows (a window the twin did not describe,
+not ``trusted``, brings no new evidence against it and is not counted); its events have
+``kind`` ``diagnosis``, the fault's
 ``fault`` id and the action; ``diagnosis.alarms`` lists the raised ones. The diagnosis' check
 function (the twin has not described the machine for ``check_function_after_s``: NAMUR NE 107)
 is raised and cleared the same way as the fault ``check_function``.
@@ -497,6 +499,13 @@ class FaultAlarms:
                     self._above.pop(fid)
                     events.append(self._event(health, fid, "alarm", "normal", p, what))
             else:
+                if p < self.clear and not health.trusted and fid != CHECK_FUNCTION:
+                    # a window the twin did not describe (its check failed, a sensor stuck)
+                    # brings no new evidence against the fault, only older evidence grown
+                    # uncertain: it neither counts toward clearing nor resets the count (over
+                    # CANopen, Ra at -1 % with a few failing windows cleared and raised the
+                    # winding 3 times in 40 s)
+                    continue
                 self._below[fid] = self._below.get(fid, 0) + 1 if p < self.clear else 0
                 if self._below[fid] >= self.clear_after:
                     self.raised.pop(fid)
