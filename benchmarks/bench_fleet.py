@@ -184,7 +184,7 @@ def role_client(a: argparse.Namespace) -> None:
     from rich.console import Console
 
     from twinwatch.watch.ranking import fleet_view
-    from twinwatch.watch.render import render_fleet
+    from twinwatch.watch.render_fleet import render_fleet
     from twinwatch.watch.summaries import SummaryWatcher
 
     rss0 = _rss_kb()

@@ -182,3 +182,27 @@ def test_every_example_is_listed_and_records_behind_its_own_link() -> None:
         rec = tomllib.loads(path.read_text()).get("recording", {}).get("path", "twinwatch.rrd")
         assert rec not in links, f"{path.name} and {links.get(rec)} both record behind {rec}"
         links[rec] = path.name
+
+
+def test_every_benchmark_and_script_imports_what_exists() -> None:
+    """Each ``from twinwatch... import name`` in benchmarks/ and scripts/ names a module or an
+    attribute that exists: the benchmarks run outside the suite, and one moved function
+    (``render_fleet``, to ``twinwatch.watch.render_fleet``) broke bench_fleet unseen."""
+    import ast
+    import importlib
+
+    missing = []
+    for path in sorted([*(ROOT / "benchmarks").glob("*.py"), *(ROOT / "scripts").glob("*.py")]):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.ImportFrom) and node.module
+                    and node.module.split(".")[0] == "twinwatch"):
+                continue
+            module = importlib.import_module(node.module)
+            for alias in node.names:
+                if hasattr(module, alias.name):
+                    continue
+                try:
+                    importlib.import_module(f"{node.module}.{alias.name}")
+                except ImportError:
+                    missing.append(f"{path.name}: from {node.module} import {alias.name}")
+    assert not missing, missing
