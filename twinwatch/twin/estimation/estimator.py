@@ -809,20 +809,7 @@ class Estimator:
         at a stale value, the others absorb its error (hydraulic D never admitted at 0.005 %
         noise, its trusted value 40 % behind the fluid's degradation while the fused D
         followed within 2 %: 17 % of the windows published suspect)."""
-        f = self.fusion
-        if f is None:
-            return False
-        mean, cov = f.state.mean, f.state.cov
-        limit = self.config.fusion.max_rel_std
-        for k in range(len(self.pmap.idx)):
-            if k in admitted or self.pmap.estimate[k] in self._anew:
-                continue
-            sd = math.sqrt(max(float(cov[k, k]), 0.0))
-            trusted = float(self.trusted[self.pmap.idx[k]])
-            if (sd <= limit and trusted > 0
-                    and abs(math.log(trusted) - float(mean[k])) > 2.0 * sd):
-                return True
-        return False
+        return any(k not in admitted for k in self._stale())
 
     def _residual_too_large(self, problem: WindowProblem, r: FloatArray) -> str:
         """Why a local fit's normalised residuals ``r`` (M,) are beyond what the window's
