@@ -226,12 +226,18 @@ def test_a_router_restart_loses_no_window(tmp_path: Path) -> None:
         assert sorted(windows) == list(range(g.windows)), (m, got)  # each one, once
         from_history = [w for w, how in got if how == "history"]
         gap = [x for x in followed.gaps if x.machine == m]
-        assert gap and sum(x.missed for x in gap) == len(from_history) > 0, (gap, got)
-        assert all(x.error is None for x in gap)
+        missed = sum(x.missed for x in gap)
+        assert gap and all(x.error is None for x in gap), (gap, got)
         assert sorted(w for x in gap for w in x.recovered) == from_history
-        assert set(from_history) <= set(range(5, 15))  # the outage's windows, beyond the cache
-        assert snap[m]["delivery"] == {"missed": len(from_history),
-                                       "recovered": len(from_history), "error": None}
+        # the outage's windows beyond the cache: every one zenoh counted missed came from the
+        # history (a cached one the query returned first counts there too) ...
+        outage = [w for w in from_history if w < 15]
+        assert set(outage) <= set(range(5, 15)) and len(outage) >= missed > 0, (gap, got)
+        # ... and the query, unbounded above, may return a window published after the restart
+        # before its live copy arrives (CI saw window 15 so): each is still delivered once
+        assert all(w >= 15 for w in from_history if w not in outage)
+        assert snap[m]["delivery"] == {"missed": missed, "recovered": len(from_history),
+                                       "error": None}
         assert after[m] == list(range(g.windows))  # and the history holds every one
         print(f"{m}: {g.windows} windows, {len(from_history)} got from the history after the "
               f"router's restart, {10 - len(from_history)} from the publisher's cache")

@@ -38,7 +38,11 @@ class Gap:
         missed: windows zenoh's sample-miss detection counted (not received live, not
             recovered from the publisher's cache).
         recovered: the windows the history query returned that this watcher had not seen,
-            oldest first (their window numbers).
+            oldest first (their window numbers). The query is not bounded above (a bound
+            taken from what has arrived could cut a gap whose next window is still on its
+            way), so it can also return a window published after the gap before its live
+            copy arrives: ``len(recovered)`` may exceed ``missed``; each window is delivered
+            once.
         error: why the history could not be asked (after every attempt), or None.
     """
 
