@@ -182,10 +182,38 @@ def test_csv_realtime_wakes_once_per_pace_slack_never_early(
     assert 1 <= len(sleeps) <= 0.3 / file_mod.PACE_SLACK + 2, sleeps  # 30 before
 
 
+def test_csv_realtime_at_speed_10_is_paced_ten_times_faster_never_early(
+        tmp_path: Path) -> None:
+    """``speed = 10``: 201 rows of 10 ms (2 s) are replayed in about 0.2 s of wall time, no
+    row before its time stamp over 10 is due."""
+    data = tmp_path / "fast.csv"
+    data.write_text("t,u\n" + "".join(f"{k * 0.01!r},{k}.0\n" for k in range(201)))
+    config = FileDriverConfig.model_validate({
+        "type": "file", "path": str(data), "time_column": "t", "realtime": True,
+        "speed": 10.0, "columns": {"Va": {"column": "u"}}})
+    early, n = [], 0
+    with FileDriver(config) as driver:
+        start = time.monotonic()
+        with pytest.raises(EndOfStream):
+            while True:
+                s = driver.read(None)
+                if s is not None:
+                    n += 1
+                    if time.monotonic() - start < s.t / 10.0 - 1e-3:
+                        early.append(s.t)
+        elapsed = time.monotonic() - start
+    assert n == 201 and not early
+    assert elapsed >= 0.199  # paced: the last row is due 2 s / 10 after the first
+    # (well under the 2 s of a speed-1 replay: a wait, not a speed bound, for a loaded box)
+    assert elapsed < 1.5
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [
         ({"sample_period": None}, "sample_period is required unless time_column is given"),
+        ({"speed": 10.0}, "speed paces a realtime replay only"),
+        ({"speed": 0.0}, "speed"),
         ({"start": 3, "stop": 1}, "stop \\(1\\) is before start \\(3\\)"),
         ({"colums": {}}, "Extra inputs are not permitted"),
         ({"format": "xlsx"}, "format"),

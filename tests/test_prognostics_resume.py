@@ -138,7 +138,7 @@ def test_the_time_line_spans_resumed_runs_and_stops_where_the_clock_went_back(tm
 @pytest.mark.slow
 def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path) -> None:
     """As the unit runs it: ``twinwatch run`` in a subprocess, stopped by SIGTERM once it has
-    stored about 85 windows (170 s; read as fast as it goes, 5-10 more by the stop), started
+    stored about 85 windows (170 s, replayed 20 times faster than real time), started
     again (``--resume``, the source going on from the row after the last stored window, in
     real time), stopped again 5 windows later, started again to the end: every window after
     the first stop is the uninterrupted run's."""
@@ -154,12 +154,15 @@ def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path
     stops = []
     for i, stop_after in enumerate((85, 5, None)):
         driver = _driver(data, start)
-        if stop_after == 5:
-            # replayed in real time: five windows take 10 s, the SIGTERM lands long before
-            # the file's end (as fast as read, the 30 windows left took under a second and
-            # a loaded box let the run finish first: the third run had nothing to resume)
-            driver = driver.replace("sample_period = 0.01\n",
-                                    "sample_period = 0.01\nrealtime = true\n")
+        if stop_after is not None:
+            # paced, so that the SIGTERM lands long before the file's end: the first run 20
+            # times faster than real time (85 windows in 8.5 s; read as fast as it went, a
+            # loaded box stored 127 of the 130 windows before the stop took effect and the
+            # second run had 2 to resume), the second in real time (five windows take 10 s;
+            # as fast as read, the 30 windows left took under a second and the third run had
+            # nothing to resume)
+            pace = "realtime = true\n" + ("speed = 20.0\n" if stop_after == 85 else "")
+            driver = driver.replace("sample_period = 0.01\n", "sample_period = 0.01\n" + pace)
         cfg = with_driver(tmp_path, driver, **RULE)
         before = len(db_rows(db))
         proc = popen(cfg, tmp_path, *(("--resume",) if i else ()))

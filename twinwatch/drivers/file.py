@@ -130,6 +130,8 @@ class FileDriverConfig(DriverConfig):
         realtime: False replays as fast as the caller reads; True delivers each row when its
             time stamp is due on the wall clock (relative to the first row delivered), never
             early and at most 0.1 s late (:data:`PACE_SLACK`: one wake-up per 0.1 s).
+        speed: with ``realtime``: the replay's speed over the recording's own (10: ten times
+            faster, a 2 s window every 0.2 s; > 0, default 1).
         start: index of the first row to replay (0-based, like a Python slice; default 0).
         stop: index one past the last row to replay (default: the end of the file; with
             ``follow``, the end once that row is written).
@@ -151,6 +153,7 @@ class FileDriverConfig(DriverConfig):
     delimiter: str | None = Field(default=None, min_length=1, max_length=1)
     columns: dict[str, FileColumnMap] = Field(min_length=1)
     realtime: bool = False
+    speed: StrictFloat = Field(default=1.0, gt=0, le=1000, allow_inf_nan=False)
     start: StrictInt | None = Field(default=None, ge=0)
     stop: StrictInt | None = Field(default=None, ge=0)
     follow: bool = False
@@ -166,6 +169,9 @@ class FileDriverConfig(DriverConfig):
         if not self.follow and self.idle_timeout != default:
             raise ValueError("idle_timeout applies to a followed file only: set follow = true "
                              "or remove idle_timeout")
+        if not self.realtime and self.speed != 1.0:
+            raise ValueError("speed paces a realtime replay only: set realtime = true or "
+                             "remove speed")
         if self.follow and self.sample_period is None:
             raise ValueError("sample_period is required with follow = true (the rows there at "
                              "open may be too few to infer it)")
@@ -667,7 +673,7 @@ class FileDriver(Driver):
             # the other): paced from here, not bursting until its time catches up
             self._origin = (now, t)
         self._last_paced = t
-        wait = self._origin[0] + (t - self._origin[1]) - now
+        wait = self._origin[0] + (t - self._origin[1]) / self.config.speed - now
         if wait <= 0:
             return True
         if timeout is not None and wait > timeout:
