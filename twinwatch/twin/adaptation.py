@@ -48,6 +48,7 @@ from twinwatch.twin.discovery.terms import Term, compose, format_terms
 from twinwatch.twin.discovery.trigger import StructureEvidence, WindowStructure
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, WindowEstimate
 from twinwatch.twin.estimation.fit import Residual, WindowFit
+from twinwatch.twin.estimation.readings import ReadingCheck, reading_check
 from twinwatch.twin.estimation.statistics import noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 from twinwatch.twin.prognostics import (
@@ -96,6 +97,9 @@ class AdaptationResult:
         structure: the final residual's structure test (None without discovery).
         evidence_p: the combined p-value of the last ``trigger_windows`` windows' tests,
             before a discovery this window ran on them (None without discovery).
+        readings: the reading check: a wrong reading of each output on the healthy twin
+            (:mod:`twinwatch.twin.estimation.readings`); None when the healthy twin does not
+            simulate the window.
     """
 
     estimate: WindowEstimate
@@ -113,6 +117,7 @@ class AdaptationResult:
     window_choice: WindowChoice | None = None
     structure: WindowStructure | None = None
     evidence_p: float | None = None
+    readings: ReadingCheck | None = None
 
 
 class TwinAdapter:
@@ -287,6 +292,11 @@ class TwinAdapter:
         choose the next window's length (``[acquisition.adaptive]``)."""
         t0 = time.perf_counter()
         est = result.estimate
+        # the reading check (one simulation of the healthy twin): what the diagnosis tells a
+        # sensor's error from a process fault by
+        result.readings = reading_check(
+            fit, self.estimator.nominal, est.nrmse,
+            compose(result.terms, window) if result.terms else None)
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
         evidence = {}
         if self.prognostics is not None:

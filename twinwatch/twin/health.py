@@ -100,6 +100,8 @@ __all__ = [
     "OutputCheckHealth",
     "HealthMessage",
     "ParameterHealth",
+    "ReadingFitHealth",
+    "ReadingsHealth",
     "ResidualFit",
     "ResidualHealth",
     "RulAlarmStatus",
@@ -120,7 +122,7 @@ __all__ = [
     "trend_line",
 ]
 
-SCHEMA_VERSION = 10
+SCHEMA_VERSION = 11
 
 ParameterStatus = Literal["estimated", "fused", "suspect", "held", "tied", "fixed"]
 """The estimation's :data:`~twinwatch.twin.estimation.publish.ParameterStatus`, restated so
@@ -380,6 +382,25 @@ class ModelCheckHealth(_Part):
     outputs: dict[str, OutputCheckHealth]
 
 
+class ReadingFitHealth(_Part):
+    """``readings.outputs.<output>``: that output's reading corrected on the healthy twin."""
+
+    gain: Num = Field(description="g of reading = g x the healthy twin's output (1: none)")
+    gain_nrmse: Num = Field(description="the healthy twin's nRMSE with that gain")
+    offset: Num = Field(description="o of reading = the healthy twin's output + o [its unit]")
+    offset_nrmse: Num = Field(description="the healthy twin's nRMSE with that offset")
+    mean: Num = Field(description="the healthy twin's mean of the output [its unit]")
+
+
+class ReadingsHealth(_Part):
+    """``readings``: could one wrong reading on a healthy machine explain the window
+    (:mod:`twinwatch.twin.estimation.readings`)?"""
+
+    nominal_nrmse: Num = Field(description="nRMSE of the twin at its nameplate parameters")
+    fit_nrmse: Num = Field(description="nRMSE of the window's process fit (the estimate)")
+    outputs: dict[str, ReadingFitHealth]
+
+
 class SensorHealth(_Part):
     """``sensors[]``: a measured output stuck at one value while the twin moves
     (:mod:`twinwatch.twin.estimation.quality`): a data-quality fact about that channel."""
@@ -518,6 +539,8 @@ class HealthMessage(_Part):
     alarms: dict[str, AlarmStatus] = Field(default_factory=dict)
     acquisition: AcquisitionHealth | None = Field(None, description="the window's length "
                                                   "and why")
+    readings: ReadingsHealth | None = Field(None, description="the reading check (null: "
+                                            "the healthy twin did not simulate the window)")
     diagnosis: DiagnosisHealth | None = Field(None, description="the ranked fault modes "
                                               "(null: [diagnosis] off or no library)")
 
@@ -656,6 +679,8 @@ def build_health(
         source=source if source is not None else SourceHealth(),
         alarms=dict(alarms or {}),
         acquisition=_acquisition(window, adaptation.window_choice),
+        readings=(ReadingsHealth.model_validate(adaptation.readings.as_dict())
+                  if adaptation.readings is not None else None),
         diagnosis=diagnosis,
     )
 
