@@ -1,7 +1,8 @@
 """The evidence kinds a fault's signature may list, behind one registry (:data:`EVIDENCE_KINDS`).
 
 Each kind is a small class: the signature key it reads in a fault mode (``deviations``,
-``trends``, ``terms``, ``model_check``, ``checks``, ``sensors``: docs/diagnosis.md), the
+``trends``, ``terms``, ``model_check``, ``checks``, ``sensors``, ``readings``:
+docs/diagnosis.md), the
 *validation* of its names against the machine (:meth:`EvidenceKind.problem`: a name that does
 not exist makes a fault that can never match, refused by ``check-config``) and its
 *likelihood* in the noisy-OR network (:mod:`twinwatch.twin.diagnosis.inference`): the evidence
@@ -24,6 +25,7 @@ variables are built in (the posterior sums their log likelihoods in that order).
 from __future__ import annotations
 
 import difflib
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, ClassVar, Protocol
@@ -35,13 +37,14 @@ if TYPE_CHECKING:
 
 __all__ = ["EVIDENCE_KINDS", "LEAK", "S_MIN", "EvidenceKind", "EvidenceSource", "ModelNames",
            "Variable", "clip", "closest", "estimated_parameters", "explains_check",
-           "model_check_variable"]
+           "model_check_variable", "reading_variable"]
 
 #: Probability of each kind of evidence variable with no fault in the library (model error, an
 #: operating point the twin does not cover): a deviation beyond its size, a degrading trend,
-#: a kept term, a failed model check, a stuck sensor.
+#: a kept term, a failed model check, a stuck sensor, one reading's error explaining a window
+#: (a process fault that moves the outputs as a wrong reading would).
 LEAK = {"deviation": 0.002, "trend": 0.05, "term": 0.001, "model_check": 0.05,
-        "sensor": 0.001}
+        "sensor": 0.001, "reading": 0.02}
 #: Strengths are kept in [S_MIN, 1 - S_MIN]: no single reading is certain.
 S_MIN = 1e-4
 
@@ -346,11 +349,99 @@ class Sensors(EvidenceKind):
         out[key].what[fault.id] = f"{where} {kinds}"
 
 
+#: The healthy twin's nRMSE over the fit's (floored at :data:`READING_FLOOR`) from which a
+#: reading check speaks at all, and from which at full strength: below, the window has
+#: nothing a reading could explain.
+READING_ANOMALY = (1.1, 1.5)
+#: A fit's nRMSE below this is read as this (the twin's integration and a fault's growth
+#: within a window: a noise-free fit reaches 1e-4; the reading check's ``NRMSE_FLOOR``).
+READING_FLOOR = 2e-4
+#: A reading explains the window when the healthy twin with it corrected leaves at most this
+#: much more mean squared error than the process fit (relative), with this spread: measured
+#: on the default motor at 1 % noise, the current reading's gain of 1.1 left 0.001 more,
+#: bearing wear read as a speed reading 0.96 x left 0.15 more, a shorted winding with worn
+#: bearings read as a current reading 1.11 x left 8 times more.
+READING_EXCESS = (0.05, 0.02)
+
+
+def _phi(z: float) -> float:
+    return 0.5 * math.erfc(-z / math.sqrt(2.0))
+
+
+class Readings(EvidenceKind):
+    """One wrong reading on a healthy machine explaining the window (``ReadingSign``; the
+    health message's ``readings``, :mod:`twinwatch.twin.estimation.readings`): one variable
+    per output and direction, strong when the healthy twin with that reading corrected (its
+    gain or its offset, the better) fits as well as the process fit, weak when it leaves
+    more; neutral (no variable) while the window has nothing to explain."""
+
+    name = "readings"
+    variable = "reading"
+    prefix = "reading:"
+    explains_check = True
+
+    def problem(self, fault: FaultMode, names: ModelNames) -> str | None:
+        for rs in fault.readings:
+            if names.outputs and rs.output not in names.outputs:
+                return (f"names the output {rs.output!r} in readings, which the "
+                        f"{names.model} twin does not measure; "
+                        f"{closest(rs.output, names.outputs)}")
+        return None
+
+    def add_variables(self, source: EvidenceSource, health: HealthMessage, fault: FaultMode,
+                      out: dict[str, Variable]) -> None:
+        for rs in fault.readings:
+            key = f"{self.prefix}{rs.output}:{rs.direction}"
+            if key not in out:
+                var = reading_variable(health, key, rs.output, rs.direction)
+                if var is None:
+                    continue
+                out[key] = var
+            out[key].links[fault.id] = rs.link
+            out[key].what[fault.id] = f"the {rs.output} reading too {rs.direction}"
+
+
+def reading_variable(health: HealthMessage, key: str, output: str, direction: str
+                     ) -> Variable | None:
+    """The window's evidence that ``output`` reads too ``direction`` on a healthy machine
+    (None: no reading check, or nothing to explain)."""
+    r = health.readings
+    x = r.outputs.get(output) if r is not None else None
+    if r is None or x is None or r.nominal_nrmse is None or r.fit_nrmse is None:
+        return None
+    fit = max(r.fit_nrmse, READING_FLOOR)
+    lo, hi = READING_ANOMALY
+    weight = min(max((r.nominal_nrmse / fit - lo) / (hi - lo), 0.0), 1.0)
+    if weight <= 0.0:
+        return None
+    cands = []
+    if x.gain is not None and x.gain_nrmse is not None:
+        cands.append((x.gain_nrmse, "gain", x.gain))
+    if x.offset is not None and x.offset_nrmse is not None:
+        cands.append((x.offset_nrmse, "offset", x.offset))
+    if not cands:
+        return None
+    best, how, value = min(cands)
+    sign = 1.0 if (x.mean or 0.0) >= 0.0 else -1.0
+    high = (value > 1.0) if how == "gain" else (value * sign > 0.0)
+    excess = (best * best - fit * fit) / (fit * fit)
+    mid, sd = READING_EXCESS
+    explains = _phi((mid - excess) / sd) if high == (direction == "high") else 0.0
+    s = 0.5 + weight * (clip(explains) - 0.5)
+    said = (f"{value:.4g} x" if how == "gain" else f"{value:+.4g}") + f" ({how})"
+    numbers = (f"the healthy twin with the {output} reading corrected by {said} leaves nRMSE "
+               f"{best:.4g} against the fit's {r.fit_nrmse:.4g} (the nameplate twin "
+               f"{r.nominal_nrmse:.4g})")
+    return Variable(key, "reading", s, f"the {output} reading too {direction} explains the "
+                    f"window: {numbers}",
+                    f"no {output} reading too {direction} explains the window: {numbers}")
+
+
 #: The evidence kinds: the signature's key -> its kind. Their order is the order a fault's
 #: variables are built in and its names checked.
 EVIDENCE_KINDS: dict[str, EvidenceKind] = {
     kind.name: kind for kind in (Deviations(), Trends(), Terms(), ModelCheck(), Checks(),
-                                 Sensors())}
+                                 Sensors(), Readings())}
 
 #: How the keys of the variables that explain failed model checks begin.
 _EXPLAINS_CHECK = tuple(k.prefix for k in EVIDENCE_KINDS.values() if k.explains_check)

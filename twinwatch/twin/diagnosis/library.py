@@ -15,7 +15,9 @@ Signature items (each with ``link``, the noisy-OR probability that the fault sho
   (``mode`` optional); ``harmonic``: a periodic term whose angular frequency ``b`` [rad/s] is
   ``harmonic`` times the shaft speed (the library's ``speed_channel``) within ``tolerance``;
 * ``model_check``: the window's model validation failed;
-* ``sensors``: a frozen or saturated sensor (``channel``: one, or ``*``).
+* ``sensors``: a frozen or saturated sensor (``channel``: one, or ``*``);
+* ``readings``: one output read too ``high`` or ``low`` (a gain or an offset) on the healthy
+  twin explains the window (the reading check).
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ __all__ = [
     "DiagnosisConfig",
     "FaultLibrary",
     "FaultMode",
+    "ReadingSign",
     "SensorSign",
     "TermSign",
     "TrendSign",
@@ -151,6 +154,17 @@ class CheckSign(_Strict):
                            "a passing one is none against it")
 
 
+class ReadingSign(_Strict):
+    """One wrong reading on a healthy machine explaining the window (the health message's
+    reading check, :mod:`twinwatch.twin.estimation.readings`): the output read too high (a
+    gain above 1 or an offset with the reading's sign) or too low."""
+
+    output: str = Field(description="the twin's measured output (ia, omega, x, p, ...)")
+    direction: Literal["high", "low"] = Field(description="the reading is too high or too "
+                                              "low")
+    link: float = Link
+
+
 class FaultMode(_Strict):
     """One fault mode of a machine model."""
 
@@ -166,6 +180,8 @@ class FaultMode(_Strict):
     sensors: list[SensorSign] = Field(default_factory=list)
     checks: list[CheckSign] = Field(default_factory=list, description="outputs whose model "
                                     "check the fault makes fail persistently")
+    readings: list[ReadingSign] = Field(default_factory=list, description="the reading whose "
+                                        "error explains the window on the healthy twin")
     action: str = Field(min_length=1, description="the maintenance action")
     urgency: Literal["low", "medium", "high"] = Field("medium", description="how soon to act")
     prior: float = Field(0.01, gt=0, lt=0.5, description="probability the fault is present at "
@@ -176,7 +192,7 @@ class FaultMode(_Strict):
     def _has_signature(self) -> FaultMode:
         if not any(kind.present(self) for kind in EVIDENCE_KINDS.values()):
             raise ValueError(f"fault {self.id!r}: its signature is empty (give deviations, "
-                             f"trends, terms, sensors or model_check)")
+                             f"trends, terms, sensors, readings or model_check)")
         return self
 
     def parameters(self) -> set[str]:
