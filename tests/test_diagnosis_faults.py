@@ -298,6 +298,26 @@ def test_a_current_sensor_reading_high_is_the_sensor_not_the_winding_and_the_bea
                for r in last.ruled_out), last.ruled_out
 
 
+def test_a_shorted_winding_with_worn_bearings_is_not_a_current_reading() -> None:
+    """Ra -12 % and D +25 % from 20 s over 20 s (issue 34's fault matrix: it read as
+    current_sensor_high 0.95, the two faults' directions being the reading's): the reading
+    check finds that the healthy motor with its current reading corrected leaves several
+    times the fit's nRMSE, so the current sensor never reaches 0.5 and a part is named."""
+    faults = [{"parameter": "Ra", "change": -12.0, "start": 20.0, "ramp": 20.0},
+              {"parameter": "D", "change": 25.0, "start": 20.0, "ramp": 20.0}]
+    history, _ = _run(70.0, parameter_faults=faults)
+    worst = max((f.probability, h.window) for h in history
+                for f in h.diagnosis.faults  # type: ignore[union-attr]
+                if f.id == "current_sensor_high")
+    assert worst[0] < 0.5, worst
+    last = history[-1].diagnosis
+    assert last is not None and last.top in ("winding_short", "bearing_wear"), last
+    sensor = [f for f in last.faults if f.id == "current_sensor_high"]
+    against = sensor[0].evidence_against if sensor else []
+    assert not sensor or any("no ia reading too high explains the window" in e
+                             for e in against), against
+
+
 @pytest.mark.slow
 def test_a_twin_that_does_not_fit_is_check_function_and_a_step_under_it_is_named_after() -> None:
     """The speed reading 1.1x from 20 s to 110 s (the twin cannot follow it: its model check
@@ -392,3 +412,40 @@ def test_a_check_a_fault_may_leave_passing_is_no_evidence_against_it(
     assert "model check failed in 0 of the last 10" not in against.get("unbalance", "")
     assert ("speed_sensor_high" not in listed
             or "Va's model check failed in 0 of the last 10" in against["speed_sensor_high"])
+
+
+def _with_readings(h: HealthMessage, nominal: float, fit: float,
+                   ia: tuple[float, float]) -> HealthMessage:
+    """``h`` with a reading check: the nameplate twin's and the fit's nRMSE, and the ia
+    reading's best correction (gain, the nRMSE it leaves); the other outputs explain nothing."""
+    from twinwatch.twin.health import ReadingsHealth
+
+    far = {"gain": 1.0, "gain_nrmse": nominal, "offset": 0.0, "offset_nrmse": nominal,
+           "mean": 5.0}
+    outputs = {"omega": far, "Va": far,
+               "ia": {"gain": ia[0], "gain_nrmse": ia[1], "offset": 0.0,
+                      "offset_nrmse": nominal, "mean": 1.2}}
+    return h.model_copy(update={"readings": ReadingsHealth.model_validate(
+        {"nominal_nrmse": nominal, "fit_nrmse": fit, "outputs": outputs})})
+
+
+def test_the_reading_evidence_is_graded_by_what_the_corrected_reading_leaves(
+        nominal_messages: list[HealthMessage]) -> None:
+    """The reading kind's variable (twinwatch/twin/diagnosis/evidence.py): none while the
+    nameplate twin fits as the estimate does; for the reading's direction strong when the
+    corrected reading leaves the fit's nRMSE, weak when it leaves 1.5 times it, nothing for
+    the other direction; half strength halfway up the anomaly's fade-in."""
+    from twinwatch.twin.diagnosis.evidence import S_MIN, reading_variable
+
+    h = nominal_messages[-1]
+    assert reading_variable(_with_readings(h, 0.0105, 0.01, (1.0, 0.0105)), "k", "ia",
+                            "high") is None
+    explained = _with_readings(h, 0.05, 0.01, (1.1, 0.01005))
+    high = reading_variable(explained, "k", "ia", "high")
+    low = reading_variable(explained, "k", "ia", "low")
+    assert high is not None and high.s > 0.97 and "1.1 x (gain)" in high.present
+    assert low is not None and low.s <= S_MIN
+    left = reading_variable(_with_readings(h, 0.05, 0.01, (1.1, 0.015)), "k", "ia", "high")
+    assert left is not None and left.s <= S_MIN
+    half = reading_variable(_with_readings(h, 0.013, 0.01, (1.1, 0.01005)), "k", "ia", "high")
+    assert half is not None and half.s == pytest.approx(0.5 + 0.5 * (high.s - 0.5), abs=0.01)
