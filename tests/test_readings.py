@@ -102,8 +102,9 @@ def test_the_message_carries_the_check() -> None:
     """health.readings (schema 11) is the check as computed."""
     from twinwatch.twin.health import build_health
 
+    gain = {"channel": "ia", "kind": "gain", "gain": 1.1, "start": 0.0}
     cfg = DCMotorPlantConfig(scenario="nominal", duration=30, noise=NOISE, seed=3,
-                             sensor_faults=[{"channel": "ia", "kind": "gain", "gain": 1.1, "start": 0.0}])
+                             sensor_faults=[gain])
     _, wins = plant_windows(cfg, 2, skip=2)
     model = DCMotorTwin()
     adapter = TwinAdapter(model, EstimationConfig(estimate=["Ra", "D"]))
