@@ -13,7 +13,8 @@ reported):
 * ``window``: from the ring buffer's completed window to the health message encoded
   (:meth:`TwinAdapter.process`: estimation, fusion, discovery when due, prognostics; then
   :func:`~twinwatch.twin.health.build_health` and its JSON), split into the estimation
-  (:meth:`Estimator.estimate`, fusion included), the prognostics and the rest. The outputs'
+  (:meth:`Estimator.estimate`, fusion included), the prognostics and the rest (the reading
+  check among it: the outputs the fault library names, ``ia`` here). The outputs'
   own writes (SQLite, Zenoh, MQTT) are not included: they belong to the sinks, measured by
   ``bench_density.py`` in a running host.
 * ``acquisition``: the ring buffer's ``append`` for a window's 200 samples; the file driver
@@ -44,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from twinwatch.config.loader import default_config  # noqa: E402
 from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
+from twinwatch.daemon.window_worker import reading_outputs  # noqa: E402
 from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
 from twinwatch.plant.dcmotor import DCMotorPlant  # noqa: E402
 from twinwatch.twin.adaptation import TwinAdapter  # noqa: E402
@@ -84,7 +86,8 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0) -> tuple[list
     acq = cfg.acquisition
     adapter = TwinAdapter(model, cfg.estimation, cfg.discovery, nominal,
                           prognostics=cfg.prognostics,
-                          thresholds=cfg.alarms.rul_targets(nominal), adaptive=acq.adaptive)
+                          thresholds=cfg.alarms.rul_targets(nominal), adaptive=acq.adaptive,
+                          readings=reading_outputs(cfg))
     ring = RingBuffer(model.required_channels(), window=acq.window,
                       sample_period=acq.sample_period, jitter_tolerance=acq.jitter_tolerance,
                       capacity=4 * acq.window)

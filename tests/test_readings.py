@@ -116,3 +116,18 @@ def test_the_message_carries_the_check() -> None:
     assert doc["outputs"]["ia"]["gain"] == pytest.approx(result.readings.outputs["ia"].gain)
     assert set(doc) == {"nominal_nrmse", "fit_nrmse", "outputs"}
     assert np.isfinite(doc["fit_nrmse"])
+
+
+def test_the_daemon_tests_the_readings_its_fault_library_names() -> None:
+    """The default motor's library names the current reading (its sensor modes); the
+    hydraulic library names none, so its daemon runs no check; diagnosis off, none."""
+    from twinwatch.config.loader import default_config, load_config
+    from twinwatch.daemon.window_worker import reading_outputs
+
+    from .conftest import ROOT
+
+    cfg = default_config()
+    assert reading_outputs(cfg) == ("ia",)
+    cfg.diagnosis.enabled = False
+    assert reading_outputs(cfg) == ()
+    assert reading_outputs(load_config(ROOT / "config" / "hydraulic-modbus-sim.toml")) == ()

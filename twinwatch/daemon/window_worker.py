@@ -70,6 +70,16 @@ def make_diagnoser(config: TwinwatchConfig) -> Diagnoser | None:
                      check_function_clear=d.check_function_clear_windows)
 
 
+def reading_outputs(config: TwinwatchConfig) -> tuple[str, ...]:
+    """The measured outputs the reading check tests: those the machine's fault library names
+    in a fault's ``readings`` (none with ``[diagnosis]`` off or no such fault)."""
+    d = config.diagnosis
+    if not d.enabled:
+        return ()
+    library = d.resolve(config.machine.model)
+    return tuple(dict.fromkeys(r.output for f in library.faults for r in f.readings))
+
+
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,
                   run: str, counters: Callable[[], Mapping[str, int]],
                   source: Callable[[WindowData], tuple[str | None, list[str], list[str]]]
@@ -82,7 +92,8 @@ def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[st
     adapter = TwinAdapter(model, config.estimation, config.discovery, nominal,
                           prognostics=config.prognostics,
                           thresholds=config.alarms.rul_targets(nominal),
-                          adaptive=acq.adaptive, label=config.machine.name)
+                          adaptive=acq.adaptive, label=config.machine.name,
+                          readings=reading_outputs(config))
     machine = config.machine.name
     pipeline = WindowPipeline(
         adapter=adapter, alarms=AlarmEvaluator(config.alarms, machine), machine=machine,

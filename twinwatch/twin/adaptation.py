@@ -32,7 +32,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -131,6 +131,10 @@ class TwinAdapter:
         prognostics: the ``[prognostics]`` table (None: its defaults).
         thresholds: parameter -> its alarm rule's thresholds [SI] (the RUL's targets).
         adaptive: the ``[acquisition.adaptive]`` table (None or disabled: a fixed window).
+        label: the machine's name, leading each log line.
+        readings: the measured outputs the reading check tests each window
+            (:mod:`twinwatch.twin.estimation.readings`; None: every one; empty: no check,
+            ``readings`` None). The daemon passes those its fault library names.
 
     Raises:
         ValueError: a configuration names a parameter, attach point or input the model lacks.
@@ -141,8 +145,11 @@ class TwinAdapter:
                  nominal: Mapping[str, float] | None = None,
                  prognostics: PrognosticsConfig | None = None,
                  thresholds: Mapping[str, Thresholds] | None = None,
-                 adaptive: AdaptiveWindowConfig | None = None, label: str = "") -> None:
+                 adaptive: AdaptiveWindowConfig | None = None, label: str = "",
+                 readings: Sequence[str] | None = None) -> None:
         self.model = model
+        #: The outputs the reading check tests (None: every one; empty: no check).
+        self.readings = None if readings is None else tuple(readings)
         #: The log, each line led by ``label`` (the machine's name: a gateway's log says which
         #: machine found a component).
         self._log: logging.Logger | logging.LoggerAdapter[logging.Logger] = (
@@ -294,9 +301,10 @@ class TwinAdapter:
         est = result.estimate
         # the reading check (one simulation of the healthy twin): what the diagnosis tells a
         # sensor's error from a process fault by
-        result.readings = reading_check(
-            fit, self.estimator.nominal, est.nrmse,
-            compose(result.terms, window) if result.terms else None)
+        if self.readings is None or self.readings:
+            result.readings = reading_check(
+                fit, self.estimator.nominal, est.nrmse,
+                compose(result.terms, window) if result.terms else None, self.readings)
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
         evidence = {}
         if self.prognostics is not None:

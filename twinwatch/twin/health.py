@@ -539,8 +539,9 @@ class HealthMessage(_Part):
     alarms: dict[str, AlarmStatus] = Field(default_factory=dict)
     acquisition: AcquisitionHealth | None = Field(None, description="the window's length "
                                                   "and why")
-    readings: ReadingsHealth | None = Field(None, description="the reading check (null: "
-                                            "the healthy twin did not simulate the window)")
+    readings: ReadingsHealth | None = Field(None, description="the reading check (null: no "
+                                            "fault mode asks for one, or the healthy twin did "
+                                            "not simulate the window)")
     diagnosis: DiagnosisHealth | None = Field(None, description="the ranked fault modes "
                                               "(null: [diagnosis] off or no library)")
 

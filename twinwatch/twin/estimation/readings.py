@@ -25,14 +25,15 @@ fitted by least squares over every output with the twin's response taken as line
 reading alone, its integrator starting 0.5 V off and settling within the window).
 
 Cost: one simulation of the twin per window (the healthy twin); when it fits worse than the
-estimate by :data:`EXPLAIN`, two more per output it starts from or is driven by (a gain, an
-offset probed).
+estimate by :data:`EXPLAIN`, two more per output tested that it starts from or is driven by (a
+gain, an offset probed). The daemon tests the outputs its fault library's ``readings`` name
+(the default motor: ia), none without one.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -99,7 +100,8 @@ class ReadingCheck:
 
 
 def reading_check(fit: WindowFit, nominal: FloatArray, fit_nrmse: float,
-                  terms: Mapping[str, FloatArray] | None = None) -> ReadingCheck | None:
+                  terms: Mapping[str, FloatArray] | None = None,
+                  outputs: Sequence[str] | None = None) -> ReadingCheck | None:
     """Test, for each measured output, a wrong reading on a healthy machine.
 
     Args:
@@ -108,6 +110,8 @@ def reading_check(fit: WindowFit, nominal: FloatArray, fit_nrmse: float,
         nominal: the nameplate parameter vector (n_params,) [SI].
         fit_nrmse: the normalised RMSE of the window's process fit.
         terms: the meta-model terms in the twin (attach point -> values (N,)), as in the fit.
+        outputs: the measured outputs whose reading is tested (None: every one; the daemon
+            passes those its fault library's ``readings`` name).
 
     Returns:
         The check, or None when the healthy twin does not simulate the window (it blew up).
@@ -126,8 +130,11 @@ def reading_check(fit: WindowFit, nominal: FloatArray, fit_nrmse: float,
     explain = base > EXPLAIN * max(fit_nrmse, NRMSE_FLOOR)
     norm = fit.normalisation
     r0 = (meas[1:] - y0[1:]) * norm
-    outputs: dict[str, ReadingFit] = {}
+    wanted = set(fit.names if outputs is None else outputs)
+    checked: dict[str, ReadingFit] = {}
     for j, name in enumerate(fit.names):
+        if name not in wanted:
+            continue
         m = meas[1:, j]
         gain, offset = _gain(y0[1:, j], m), float(np.mean(m - y0[1:, j]))
         # the hypotheses' outputs, linear in the correction: y0 + x z (z: the reading's own
@@ -147,9 +154,9 @@ def reading_check(fit: WindowFit, nominal: FloatArray, fit_nrmse: float,
                 z_o += (y_o - y0) / o1
         u = _lsq(r0, z_g[1:] * norm)
         o = _lsq(r0, z_o[1:] * norm)
-        outputs[name] = ReadingFit(1.0 + u, fit.nrmse_of(y0 + u * z_g), o,
+        checked[name] = ReadingFit(1.0 + u, fit.nrmse_of(y0 + u * z_g), o,
                                    fit.nrmse_of(y0 + o * z_o), float(np.mean(y0[1:, j])))
-    return ReadingCheck(base, float(fit_nrmse), outputs)
+    return ReadingCheck(base, float(fit_nrmse), checked)
 
 
 def _lsq(r: FloatArray, z: FloatArray) -> float:
