@@ -373,7 +373,9 @@ def test_a_sagging_supply_is_never_named_as_the_brushes_with_confidence() -> Non
     """A supply delivering 0.9 of the commanded voltage from 20 s (ramp 20 s), 120 s: Ra
     appears 11 % up exactly as worn brushes make it, every check passing: the motor's data
     cannot tell the two apart, so neither is named at 0.8 (before: brushes 0.94, its alarm
-    raised) and both are listed."""
+    raised) and both are listed. Until Ra's trend dates the change, the change's onset is
+    the last window Ra was within its interval: Ke, read in window 0 and held since, is from
+    before it and does not count against the supply (it did: brushes 0.81 in two windows)."""
     history, _ = _run(120.0, supply_fault={"ratio": 0.9, "start": 20.0, "ramp": 20.0})
     worst = max(f.probability for h in history
                 for f in h.diagnosis.faults  # type: ignore[union-attr]

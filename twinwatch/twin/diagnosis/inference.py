@@ -126,6 +126,10 @@ SENSOR_WINDOWS = STALE_MAX_WINDOWS
 #: A term on a channel a recent stuck sensor reads (or on its derivative) is what the twin
 #: fits to that sensor's readings: the faults naming such a sensor explain it with this link.
 SENSOR_TERM_LINK = 0.9
+#: A sound estimate this many standard errors from its nameplate, and at least
+#: :data:`MOVED_PCT` percent, has moved (the change's onset until the trends date it).
+MOVED_SD = 3.0
+MOVED_PCT = 0.5
 #: Windows over which an output's model-check failures are counted (a fault's ``checks``).
 CHECK_RATE_WINDOWS = 10
 #: An output whose check fails in more than this share of those windows fails persistently
@@ -237,9 +241,12 @@ class Diagnoser:
         self._cf_since: float | None = None
         self.faults: list[FaultMode] = list(library.faults)
         self._last: dict[str, _Dev] = {}
-        # the last change point the trends dated [s] (kept when a trend's model drops it)
+        # the change's onset [s]: evidence from before it is not used (:meth:`_observe`)
         self._onset: float | None = None
-        self._onset_window = -1
+        # the last change point the trends dated [s] (kept when a trend's model drops it)
+        self._trend_onset: float | None = None
+        # parameter -> the end [s] of its last sound window within its nameplate's interval
+        self._quiet: dict[str, float] = {}
         self._tracks: list[tuple[str, list[_Ratio]]] = []  # (attach, ratios in a row)
         # attach point -> the harmonic its last decided track had, and that window
         self._harmonic: dict[str, tuple[float, int]] = {}
@@ -263,27 +270,48 @@ class Diagnoser:
         self._stuck_window = -1
 
     # -- evidence -----------------------------------------------------------------------------
+    def _observe(self, health: HealthMessage) -> None:
+        """Read the window's sound estimates (once per window, before any evidence): each
+        becomes its parameter's last sound evidence, and the change onset is dated.
+
+        Only a window that estimated a parameter is new evidence: a fused value in a window
+        that did not (held, or its check failed) is the fusion's prediction from the
+        estimates already read, not a new observation. The onset is the trends' change point
+        (:func:`_change_onset`, kept once a trend's model drops it); until a trend dates one
+        (they need a few windows), the last window in which a parameter that has moved since
+        was still within :data:`MOVED_SD` standard errors (and :data:`MOVED_PCT`) of its
+        nameplate. Evidence older than the onset is from before the change: a held Ke read
+        in window 0 counted against a sagging supply while its Ra rose, until Ra's trend
+        dated the change (brushes 0.81 for two windows)."""
+        for name, p in health.parameters.items():
+            if (p.status == "estimated" and p.value is not None and p.nominal
+                    and p.rel_std_pct is not None):
+                dev = (p.value / p.nominal - 1.0) * 100.0
+                sd = max(abs(p.rel_std_pct) * abs(p.value / p.nominal), SD_FLOOR_PCT)
+                self._last[name] = _Dev(dev, sd, p.value, p.nominal, p.unit, health.window,
+                                        p.status, estimated_parameters(health),
+                                        float(health.t_end))
+                if not _moved(dev, sd):
+                    self._quiet[name] = float(health.t_end)
+        dated = _change_onset(health)
+        if dated is not None:
+            self._trend_onset = dated
+        if self._trend_onset is not None:
+            self._onset = self._trend_onset
+            return
+        moved = [self._quiet[n] for n, ev in self._last.items()
+                 if n in self._quiet and _moved(ev.dev, ev.sd)
+                 and health.window - ev.window <= STALE_MAX_WINDOWS]
+        self._onset = max(moved, default=None)
+
     def _deviation(self, health: HealthMessage, name: str) -> _Dev | None:
-        p = health.parameters.get(name)
-        if p is None:
-            return self._last.get(name)
-        # only a window that estimated it is new evidence: a fused value in a window that
-        # did not (held, or its check failed) is the fusion's prediction from the estimates
-        # already read, not a new observation
-        if (p.status == "estimated" and p.value is not None and p.nominal
-                and p.rel_std_pct is not None):
-            dev = (p.value / p.nominal - 1.0) * 100.0
-            sd = max(abs(p.rel_std_pct) * abs(p.value / p.nominal), SD_FLOOR_PCT)
-            self._last[name] = _Dev(dev, sd, p.value, p.nominal, p.unit, health.window,
-                                    p.status, estimated_parameters(health), float(health.t_end))
+        """The last sound evidence on ``name`` (read by :meth:`_observe`), unless it is too
+        old or from before the change onset."""
         ev = self._last.get(name)
         if ev is None or health.window - ev.window > STALE_MAX_WINDOWS:
             return None
-        if self._onset_window != health.window:   # once per window: the last onset stands
-            self._onset_window = health.window
-            self._onset = _change_onset(health) or self._onset
         if self._onset is not None and ev.t_end < self._onset:
-            return None  # from before the change the trends date: says nothing about it
+            return None  # from before the change: says nothing about it
         return ev
 
     def _variables(self, health: HealthMessage, speed: tuple[float, float] | None
@@ -682,6 +710,7 @@ class Diagnoser:
             speed: the window's mean absolute shaft speed and its spread [rad/s]
                 (:func:`shaft_speed`), for a periodic term's harmonic.
         """
+        self._observe(health)
         variables, unexplained = self._variables(health, speed)
         devs = self._dev_factors(health)
         extra = self._unexplained_dev_var(devs)
@@ -912,6 +941,11 @@ def _outcome(p_none: float, p_unknown: float, top: FaultHealth | None
     if best == p_unknown and p_unknown > p_none:
         return "unknown", best
     return "no_fault", best
+
+
+def _moved(dev: float, sd: float) -> bool:
+    """A deviation [%] with standard error ``sd`` [%] beyond its nameplate's interval."""
+    return abs(dev) > max(MOVED_SD * sd, MOVED_PCT)
 
 
 def _change_onset(health: HealthMessage) -> float | None:

@@ -151,7 +151,8 @@ class WindowFit:
     @property
     def normalisation(self) -> FloatArray:
         """Per output ``w_j / s_j`` (n_out,): what an error is multiplied by in the fitness."""
-        return self._norm
+        norm: FloatArray = self._norm
+        return norm
 
     def nrmse_of(self, y: FloatArray) -> float:
         """The normalised RMSE of one trajectory ``y`` (N, n_out): :meth:`residual`'s
