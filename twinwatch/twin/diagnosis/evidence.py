@@ -353,8 +353,8 @@ class Sensors(EvidenceKind):
 #: reading check speaks at all, and from which at full strength: below, the window has
 #: nothing a reading could explain.
 READING_ANOMALY = (1.1, 1.5)
-#: A fit's nRMSE below this is read as this (the twin's integration and a fault's growth
-#: within a window: a noise-free fit reaches 1e-4; the reading check's ``NRMSE_FLOOR``).
+#: A fit's nRMSE below this is read as this (a noise-free fit reaches 1e-6, 2e-4 in the
+#: windows of a growing fault; the reading check's ``NRMSE_FLOOR``).
 READING_FLOOR = 2e-4
 #: A reading explains the window when the healthy twin with it corrected leaves at most this
 #: much more mean squared error than the process fit (relative), with this spread: measured
