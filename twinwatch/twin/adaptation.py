@@ -195,7 +195,7 @@ class TwinAdapter:
                             fit=fit)
         if self.discovery is None:
             noise = self._noise(fit, est.simulated)
-            return self._prognose(window, AdaptationResult(
+            return self._finish(window, AdaptationResult(
                 est, [], fit.residual(est.simulated), None, noise, False, 0), prior, fit)
         theta = self._theta(est)
         reval = None
@@ -275,7 +275,7 @@ class TwinAdapter:
             self._log.info("DT'' is now:\n%s", format_terms(self.terms) or "(no terms)")
         y_dt = fit.simulate(theta[None, :])[0] if self.terms else est.simulated
         est = dataclasses.replace(est, elapsed_s=time.perf_counter() - t0)
-        return self._prognose(window, AdaptationResult(
+        return self._finish(window, AdaptationResult(
             estimate=est,
             terms=list(self.terms),
             dt_prime=fit.residual(y_dt),
@@ -292,6 +292,22 @@ class TwinAdapter:
         ), prior, fit)
 
     # -- prognostics ----------------------------------------------------------------------
+    def _finish(self, window: WindowData, result: AdaptationResult,
+                prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit
+                ) -> AdaptationResult:
+        """After the twin's fit: the reading check, then the prognostics."""
+        if self.readings is None or self.readings:
+            # one simulation of the healthy twin (more when it misfits): what the diagnosis
+            # tells a sensor's error from a process fault by
+            t0 = time.perf_counter()
+            result.readings = reading_check(
+                fit, self.estimator.nominal, result.estimate.nrmse,
+                compose(result.terms, window) if result.terms else None, self.readings)
+            result.estimate = dataclasses.replace(
+                result.estimate,
+                elapsed_s=result.estimate.elapsed_s + time.perf_counter() - t0)
+        return self._prognose(window, result, prior, fit)
+
     def _prognose(self, window: WindowData, result: AdaptationResult,
                   prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit
                   ) -> AdaptationResult:
@@ -299,12 +315,6 @@ class TwinAdapter:
         choose the next window's length (``[acquisition.adaptive]``)."""
         t0 = time.perf_counter()
         est = result.estimate
-        # the reading check (one simulation of the healthy twin): what the diagnosis tells a
-        # sensor's error from a process fault by
-        if self.readings is None or self.readings:
-            result.readings = reading_check(
-                fit, self.estimator.nominal, est.nrmse,
-                compose(result.terms, window) if result.terms else None, self.readings)
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
         evidence = {}
         if self.prognostics is not None:

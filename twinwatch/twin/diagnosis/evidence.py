@@ -179,6 +179,16 @@ class EvidenceKind:
         return None
 
 
+def _not_measured(label: str, name: str, where: str, names: ModelNames) -> str | None:
+    """``names <label> '<name>'<where>, which the <model> twin does not measure; did you mean
+    ...`` when the machine's measured outputs are known and ``name`` is not one (None:
+    it is, or they are not known)."""
+    if names.outputs and name not in names.outputs:
+        return (f"names {label} {name!r}{where}, which the {names.model} twin does not "
+                f"measure; {closest(name, names.outputs)}")
+    return None
+
+
 def _unknown_condition(signs: Sequence[DeviationSign | TrendSign], names: ModelNames
                        ) -> str | None:
     """The first parameter a sign's ``when_held``/``when_estimated`` names that the model
@@ -320,9 +330,9 @@ class Sensors(EvidenceKind):
 
     def problem(self, fault: FaultMode, names: ModelNames) -> str | None:
         for ss in fault.sensors:
-            if ss.channel != "*" and names.outputs and ss.channel not in names.outputs:
-                return (f"names the sensor channel {ss.channel!r}, which the {names.model} "
-                        f"twin does not measure; {closest(ss.channel, names.outputs)}")
+            if ss.channel != "*" and (why := _not_measured("the sensor channel", ss.channel,
+                                                           "", names)):
+                return why
         return None
 
     def add_variables(self, source: EvidenceSource, health: HealthMessage, fault: FaultMode,
@@ -382,10 +392,8 @@ class Readings(EvidenceKind):
 
     def problem(self, fault: FaultMode, names: ModelNames) -> str | None:
         for rs in fault.readings:
-            if names.outputs and rs.output not in names.outputs:
-                return (f"names the output {rs.output!r} in readings, which the "
-                        f"{names.model} twin does not measure; "
-                        f"{closest(rs.output, names.outputs)}")
+            if why := _not_measured("the output", rs.output, " in readings", names):
+                return why
         return None
 
     def add_variables(self, source: EvidenceSource, health: HealthMessage, fault: FaultMode,
