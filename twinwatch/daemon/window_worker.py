@@ -80,6 +80,20 @@ def reading_outputs(config: TwinwatchConfig) -> tuple[str, ...]:
     return tuple(dict.fromkeys(r.output for f in library.faults for r in f.readings))
 
 
+def alias_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, ...]:
+    """The parameters whose alias the adapter computes when the window did not estimate them
+    (:mod:`twinwatch.twin.estimation.aliases`): the model's parameters no fault of the
+    machine's library names in a deviation sign, but tied ones (none with ``[diagnosis]``
+    off; the default motor's library names them all: none)."""
+    d = config.diagnosis
+    if not d.enabled:
+        return ()
+    library = d.resolve(config.machine.model)
+    named = {s.parameter for f in library.faults for s in f.deviations}
+    tied = set(config.estimation.resolved(model).tie or {})
+    return tuple(n for n in model.parameter_names if n not in named and n not in tied)
+
+
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,
                   run: str, counters: Callable[[], Mapping[str, int]],
                   source: Callable[[WindowData], tuple[str | None, list[str], list[str]]]
@@ -93,7 +107,8 @@ def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[st
                           prognostics=config.prognostics,
                           thresholds=config.alarms.rul_targets(nominal),
                           adaptive=acq.adaptive, label=config.machine.name,
-                          readings=reading_outputs(config))
+                          readings=reading_outputs(config),
+                          aliases=alias_parameters(config, model))
     machine = config.machine.name
     pipeline = WindowPipeline(
         adapter=adapter, alarms=AlarmEvaluator(config.alarms, machine), machine=machine,

@@ -46,6 +46,7 @@ from twinwatch.twin.discovery.search import (
 )
 from twinwatch.twin.discovery.terms import Term, compose, format_terms
 from twinwatch.twin.discovery.trigger import StructureEvidence, WindowStructure
+from twinwatch.twin.estimation.aliases import Alias, aliases
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, WindowEstimate
 from twinwatch.twin.estimation.fit import Residual, WindowFit
 from twinwatch.twin.estimation.readings import ReadingCheck, reading_check
@@ -100,6 +101,9 @@ class AdaptationResult:
         readings: the reading check: a wrong reading of each output on the healthy twin
             (:mod:`twinwatch.twin.estimation.readings`); None when the healthy twin does not
             simulate the window.
+        aliases: each parameter the window did not estimate -> how a change of it shows in
+            the estimates (:mod:`twinwatch.twin.estimation.aliases`); empty when no estimate
+            moved beyond twice its standard error from its nameplate.
     """
 
     estimate: WindowEstimate
@@ -118,6 +122,7 @@ class AdaptationResult:
     structure: WindowStructure | None = None
     evidence_p: float | None = None
     readings: ReadingCheck | None = None
+    aliases: dict[str, Alias] = field(default_factory=dict)
 
 
 class TwinAdapter:
@@ -135,6 +140,9 @@ class TwinAdapter:
         readings: the measured outputs the reading check tests each window
             (:mod:`twinwatch.twin.estimation.readings`; None: every one; empty: no check,
             ``readings`` None). The daemon passes those its fault library names.
+        aliases: the parameters whose alias is computed in a window that did not estimate
+            them and whose estimates moved (:mod:`twinwatch.twin.estimation.aliases`; None:
+            every one; empty: none). The daemon passes those no fault of its library names.
 
     Raises:
         ValueError: a configuration names a parameter, attach point or input the model lacks.
@@ -146,8 +154,11 @@ class TwinAdapter:
                  prognostics: PrognosticsConfig | None = None,
                  thresholds: Mapping[str, Thresholds] | None = None,
                  adaptive: AdaptiveWindowConfig | None = None, label: str = "",
-                 readings: Sequence[str] | None = None) -> None:
+                 readings: Sequence[str] | None = None,
+                 aliases: Sequence[str] | None = None) -> None:
         self.model = model
+        #: The parameters whose alias is computed (None: every one; empty: none).
+        self.alias_parameters = None if aliases is None else tuple(aliases)
         #: The outputs the reading check tests (None: every one; empty: no check).
         self.readings = None if readings is None else tuple(readings)
         #: The log, each line led by ``label`` (the machine's name: a gateway's log says which
@@ -295,18 +306,46 @@ class TwinAdapter:
     def _finish(self, window: WindowData, result: AdaptationResult,
                 prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit
                 ) -> AdaptationResult:
-        """After the twin's fit: the reading check, then the prognostics."""
+        """After the twin's fit: the reading check and the aliases, then the prognostics."""
+        t0 = time.perf_counter()
+        terms = compose(result.terms, window) if result.terms else None
         if self.readings is None or self.readings:
             # one simulation of the healthy twin (more when it misfits): what the diagnosis
             # tells a sensor's error from a process fault by
-            t0 = time.perf_counter()
             result.readings = reading_check(
-                fit, self.estimator.nominal, result.estimate.nrmse,
-                compose(result.terms, window) if result.terms else None, self.readings)
-            result.estimate = dataclasses.replace(
-                result.estimate,
-                elapsed_s=result.estimate.elapsed_s + time.perf_counter() - t0)
+                fit, self.estimator.nominal, result.estimate.nrmse, terms, self.readings)
+        if (self.alias_parameters is None or self.alias_parameters) \
+                and self._moved(result.estimate):
+            # what the diagnosis tells a change of a parameter the window did not estimate by
+            est = result.estimate
+            names = self.model.parameter_names
+            pmap = self.estimator.pmap
+            result.aliases = aliases(
+                fit, np.array([est.fitted[n] for n in names]),
+                [n for n in names if est.status.get(n) == "estimated"],
+                [n for n in names if est.status.get(n) not in ("estimated", "tied")
+                 and (self.alias_parameters is None or n in self.alias_parameters)],
+                {names[d]: names[s] for d, s in pmap.ties}, terms, est.initial)
+        result.estimate = dataclasses.replace(
+            result.estimate, elapsed_s=result.estimate.elapsed_s + time.perf_counter() - t0)
         return self._prognose(window, result, prior, fit)
+
+    #: An estimate this many standard errors from its nameplate (and :data:`MOVED_PCT`) has
+    #: moved: the window's aliases are computed.
+    MOVED_SD = 2.0
+    MOVED_PCT = 0.5
+
+    def _moved(self, est: WindowEstimate) -> bool:
+        """Some parameter the window estimated is away from its nameplate."""
+        names = self.model.parameter_names
+        for n, v in est.estimated.items():
+            nom = float(self.estimator.nominal[names.index(n)])
+            if not nom:
+                continue
+            dev = abs(v / nom - 1.0)
+            if dev * 100.0 > self.MOVED_PCT and dev > self.MOVED_SD * est.rel_std.get(n, 0.0):
+                return True
+        return False
 
     def _prognose(self, window: WindowData, result: AdaptationResult,
                   prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit

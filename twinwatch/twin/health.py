@@ -12,6 +12,10 @@ from the model, :func:`read_health` (:data:`HealthView`), never by the decoded J
 The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 12: ``aliases``: how a change of each parameter the window did not estimate shows in the
+  estimates (:mod:`twinwatch.twin.estimation.aliases`), what the diagnosis reads a change the
+  library does not know by.
+* 11: ``readings``: the reading check (:mod:`twinwatch.twin.estimation.readings`).
 * 10: the ``diagnosis`` says ``check_function`` (NAMUR NE 107) when the twin has not
   described the machine for a while (``check_function_since``, ``check_failed``), names the
   deviations no fault explains (``unexplained``) and why plausible faults were ruled out
@@ -90,6 +94,7 @@ if TYPE_CHECKING:  # the builder's inputs: a reader of the message (the watcher)
 __all__ = [
     "SCHEMA_VERSION",
     "AcquisitionHealth",
+    "AliasHealth",
     "AlarmStatus",
     "CrossingHealth",
     "DiagnosisHealth",
@@ -122,7 +127,7 @@ __all__ = [
     "trend_line",
 ]
 
-SCHEMA_VERSION = 11
+SCHEMA_VERSION = 12
 
 ParameterStatus = Literal["estimated", "fused", "suspect", "held", "tied", "fixed"]
 """The estimation's :data:`~twinwatch.twin.estimation.publish.ParameterStatus`, restated so
@@ -401,6 +406,18 @@ class ReadingsHealth(_Part):
     outputs: dict[str, ReadingFitHealth]
 
 
+class AliasHealth(_Part):
+    """``aliases.<parameter>``: how a change of a parameter the window did not estimate shows
+    in the estimates (:mod:`twinwatch.twin.estimation.aliases`)."""
+
+    absorbed: Num = Field(description="share (0..1) of its effect the estimated parameters "
+                          "mimic (1: a change of it shows only through them)")
+    moves: dict[str, Num] = Field(description="estimated parameter -> its change [%] per 1 % "
+                                  "change of this one")
+    effect: Num = Field(description="the normalised RMSE a 1 % change of it makes, nothing "
+                        "re-estimated")
+
+
 class SensorHealth(_Part):
     """``sensors[]``: a measured output stuck at one value while the twin moves
     (:mod:`twinwatch.twin.estimation.quality`): a data-quality fact about that channel."""
@@ -539,6 +556,9 @@ class HealthMessage(_Part):
     alarms: dict[str, AlarmStatus] = Field(default_factory=dict)
     acquisition: AcquisitionHealth | None = Field(None, description="the window's length "
                                                   "and why")
+    aliases: dict[str, AliasHealth] = Field(
+        default_factory=dict, description="parameter the window did not estimate -> how a "
+        "change of it shows in the estimates (empty: no estimate moved)")
     readings: ReadingsHealth | None = Field(None, description="the reading check (null: no "
                                             "fault mode asks for one, or the healthy twin did "
                                             "not simulate the window)")
@@ -682,6 +702,8 @@ def build_health(
         acquisition=_acquisition(window, adaptation.window_choice),
         readings=(ReadingsHealth.model_validate(adaptation.readings.as_dict())
                   if adaptation.readings is not None else None),
+        aliases={n: AliasHealth.model_validate(a.as_dict())
+                 for n, a in adaptation.aliases.items()},
         diagnosis=diagnosis,
     )
 

@@ -40,7 +40,7 @@ from itertools import combinations
 from typing import Any, Literal
 
 import numpy as np
-from scipy.special import betainc
+from scipy.special import betainc, chdtrc
 
 from twinwatch.twin.diagnosis.deviation import HI_PCT, likelihood
 from twinwatch.twin.diagnosis.evidence import (
@@ -108,6 +108,21 @@ UNKNOWN_DEV_LINK = 0.2
 #: Size [% of nameplate] beyond which a deviation no fault expects counts as the unknown
 #: fault's evidence.
 UNEXPLAINED_PCT = 3.0
+#: The unknown fault's link to each estimate its alias pattern moves (:meth:`Diagnoser._alias`:
+#: the estimates moved together as a change of a parameter the window does not estimate and
+#: no fault of the library names would move them).
+ALIAS_LINK = 0.9
+#: An alias is read only when the estimates mimic at least this share of the parameter's
+#: effect (a change of it shows through them alone).
+ALIAS_ABSORBED = 0.9
+#: The alias pattern's size must be this many of its standard errors from 0.
+ALIAS_Z = 3.0
+#: ... and it must move at least two estimates, each by this much [% of nameplate] and twice
+#: its standard error: one estimate moving alone is the library's (a deviation some fault
+#: expects), a pattern across several is one change, not several faults.
+ALIAS_MIN_PCT = 1.0
+#: The pattern must fit the estimates: the chi-square p-value of what it leaves at least this.
+ALIAS_FIT_P = 0.01
 #: Growth of a held parameter's last sound evidence's standard error with its age [% of
 #: nameplate per square root of a window]: a random walk, so that evidence from before a fault
 #: (La held at its nameplate since window 20) does not speak against it forever (1.5 % after
@@ -198,6 +213,18 @@ class _Comps:
 
 
 @dataclass
+class _AliasFit:
+    """The estimates read as one change of a not-estimated parameter (:meth:`Diagnoser._alias`)."""
+
+    parameter: str
+    change: float               # its change [%] the estimates read
+    change_sd: float            # the change's standard error [%]
+    absorbed: float
+    signs: dict[str, tuple[str, float]]   # estimate -> (direction, smallest size [%])
+    text: str
+
+
+@dataclass
 class _DevFactor:
     """One parameter's deviation evidence: its log-likelihood under every hypothesis."""
 
@@ -261,7 +288,10 @@ class Diagnoser:
         priors = np.array([f.prior for f in self.faults] + [unknown_prior])
         self._log_prior = (self._hyp @ np.log(priors)
                            + (1.0 - self._hyp) @ np.log1p(-priors))
-        self._comps: dict[tuple[str, frozenset[str]], _Comps] = {}
+        self._comps: dict[tuple[str, frozenset[str], tuple[str, float] | None], _Comps] = {}
+        self._alias_fit: _AliasFit | None = None  # the last one read (:meth:`_alias`)
+        # parameter -> (the window of the evidence its alias sign was read from, the sign)
+        self._alias_signs: dict[str, tuple[int, tuple[str, float]]] = {}
         # per window: (window, output -> its check passed), for the faults' ``checks``
         self._outputs: deque[tuple[int, dict[str, bool]]] = deque(maxlen=CHECK_RATE_WINDOWS)
         self._dev_leak: dict[str, tuple[float, str]] = {}  # this window's raised leaks
@@ -327,6 +357,14 @@ class Diagnoser:
         for f in self.faults:
             self._signature_vars(health, f, out)
         self._unexplained_vars(health, out)
+        for name, (_, (direction, _)) in self._alias_signs.items():
+            # the unknown fault that moves an estimate moves its trend too: a drift read as
+            # one change of a parameter the window does not estimate is not the library's
+            key = f"trend:{name}:{direction}"
+            var = out.get(key)
+            if var is not None and "unknown" not in var.links:
+                var.links["unknown"] = max(var.links.values(), default=UNKNOWN_DEV_LINK)
+                var.what["unknown"] = f"{name} drifting {direction} (the alias pattern)"
         if "model_check" not in out:
             out["model_check"] = model_check_variable(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
@@ -464,14 +502,18 @@ class Diagnoser:
                     out[key] = var
 
     # -- graded deviations (twinwatch.twin.diagnosis.deviation) -----------------------------
-    def _components(self, name: str, estimated: frozenset[str] = frozenset()) -> _Comps:
+    def _components(self, name: str, estimated: frozenset[str] = frozenset(),
+                    alias: tuple[str, float] | None = None) -> _Comps:
         """Per hypothesis, the probability its faults move ``name`` up and down and their
         smallest sizes, and the directions no fault moves it in, in a window that estimated
-        ``estimated`` (a signature's ``when_held``/``when_estimated``; cached)."""
+        ``estimated`` (a signature's ``when_held``/``when_estimated``; cached); ``alias``:
+        the unknown fault's sign on it in this window (direction, smallest size [%]:
+        :meth:`_alias`), which leaves the directions no library fault moves it in as they
+        are."""
         signs = [(i, d) for i, f in enumerate(self.faults) for d in f.deviations
                  if d.parameter == name]
         cond = frozenset(p for _, d in signs for p in (*d.when_held, *d.when_estimated))
-        key = (name, estimated & cond)
+        key = (name, estimated & cond, alias)
         c = self._comps.get(key)
         if c is not None:
             return c
@@ -481,6 +523,9 @@ class Diagnoser:
             for i, d in signs if d.applies(estimated)]
         covered = {direction for _, direction, _, _, _ in items}
         missing = tuple(d for d in ("up", "down") if d not in covered)
+        library_items = list(items)
+        if alias is not None:
+            items.append((len(self.faults), alias[0], alias[1], ALIAS_LINK, HI_PCT))
         arrays: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         reach: dict[str, float] = {}
         for direction in ("up", "down"):
@@ -494,28 +539,60 @@ class Diagnoser:
                 log_q += self._hyp[:, i] * math.log1p(-min(link, 1.0 - 1e-9))
                 size = np.where(on, np.minimum(size, a), size)
                 hi = np.where(on, np.maximum(hi, b), hi)
-                reach[direction] = max(reach.get(direction, 0.0), b)
             arrays[direction] = (1.0 - np.exp(log_q), size, np.where(hi > 0, hi, HI_PCT))
+        for _, d, _, _, b in library_items:
+            reach[d] = max(reach.get(d, 0.0), b)
         c = _Comps(arrays["up"][0], arrays["up"][1], arrays["down"][0], arrays["down"][1],
                    {(i, d): a for i, d, a, _, _ in items}, missing, arrays["up"][2],
                    arrays["down"][2], reach)
         self._comps[key] = c
         return c
 
-    def _dev_factors(self, health: HealthMessage) -> list[_DevFactor]:
-        """One factor per parameter with sound evidence (the last, with its standard error
-        grown by :data:`STALE_SD_PCT` per square root of its age in windows)."""
+    def _evidence(self, health: HealthMessage) -> dict[str, tuple[_Dev, float]]:
+        """Each parameter's last sound evidence and the standard error used [%] (grown by
+        :data:`STALE_SD_PCT` per square root of its age in windows)."""
         names = dict.fromkeys([d.parameter for f in self.faults for d in f.deviations]
                               + [n for n, p in health.parameters.items()
                                  if p.status not in ("tied", "fixed") and p.nominal])
-        out = []
+        evs: dict[str, tuple[_Dev, float]] = {}
         for name in names:
             ev = self._deviation(health, name)
             if ev is None:
                 continue
             age = max(health.window - ev.window, 0)
-            sd = math.hypot(ev.sd, STALE_SD_PCT * math.sqrt(age))
-            comps = self._components(name, ev.estimated)
+            evs[name] = (ev, math.hypot(ev.sd, STALE_SD_PCT * math.sqrt(age)))
+        return evs
+
+    def _read_aliases(self, health: HealthMessage) -> None:
+        """This window's alias fit (:meth:`_alias`), its signs kept with the window of the
+        evidence they were read from: a parameter whose last sound evidence is still that
+        window's keeps the unknown fault's sign on it (the window after one that estimated Ra,
+        Ke, J and D may estimate Ke and D only, and Ra's evidence is still the former's)."""
+        fit = self._alias(health, self._evidence(health))
+        if fit is not None:
+            self._alias_fit = fit
+            for name, sign in fit.signs.items():
+                self._alias_signs[name] = (health.window, sign)
+        window = {n: ev.window for n, (ev, _) in self._evidence(health).items()}
+        for name in list(self._alias_signs):
+            if window.get(name) != self._alias_signs[name][0]:
+                del self._alias_signs[name]
+        if not self._alias_signs:
+            self._alias_fit = None
+
+    def _alias_sign(self, name: str, ev: _Dev) -> tuple[str, float] | None:
+        """The unknown fault's sign on ``name`` read from ``ev``'s window, or None."""
+        kept = self._alias_signs.get(name)
+        return kept[1] if kept is not None and kept[0] == ev.window else None
+
+    def _dev_factors(self, health: HealthMessage) -> list[_DevFactor]:
+        """One factor per parameter with sound evidence (the last, with its standard error
+        grown by :data:`STALE_SD_PCT` per square root of its age in windows)."""
+        evs = self._evidence(health)
+        out = []
+        for name, (ev, sd) in evs.items():
+            age = max(health.window - ev.window, 0)
+            comps = self._components(name, ev.estimated, self._alias_sign(name, ev))
             leak, note = self._dev_leak.get(name, (LEAK["deviation"], ""))
             lik = likelihood(ev.dev, sd, comps.p_up, comps.size_up, comps.p_down,
                              comps.size_down, leak, comps.hi_up, comps.hi_down)
@@ -530,6 +607,63 @@ class Diagnoser:
             out.append(_DevFactor(name, ev, text, np.log(np.maximum(lik, 1e-300)), comps,
                                   sd, note))
         return out
+
+    def _alias(self, health: HealthMessage, evs: dict[str, tuple[_Dev, float]]
+               ) -> _AliasFit | None:
+        """The estimates of this window read as one change of a parameter it did not
+        estimate and no fault of the library names (``health.aliases``,
+        :mod:`twinwatch.twin.estimation.aliases`): the unknown fault's signature in this
+        window, or None.
+
+        For each such parameter ``p`` whose effect the estimates mimic
+        (:data:`ALIAS_ABSORBED`), the change ``c`` [%] that best explains this window's
+        deviations ``x_e`` (standard errors ``sd_e``) along its alias ``a_e`` is weighted
+        least squares, ``c = sum(a x / sd^2) / sum(a^2 / sd^2)``. It is read when ``c`` is
+        :data:`ALIAS_Z` standard errors from 0, what it leaves fits (chi-square p-value at
+        least :data:`ALIAS_FIT_P`) and it moves two estimates or more by
+        :data:`ALIAS_MIN_PCT` and twice their standard error; the best fit wins. The unknown
+        fault then moves each of those estimates in the alias' direction by at least half
+        the size it predicts (link :data:`ALIAS_LINK`): the PWM drive's tau_e +50 % (fixed
+        in that twin) published Ra +28 %, Ke -6 %, J -12 %, D -6 %, which read as worn
+        brushes and a weakened magnet at once."""
+        named = {d.parameter for f in self.faults for d in f.deviations}
+        best: tuple[float, _AliasFit] | None = None
+        for p, a in health.aliases.items():
+            if p in named or a.absorbed is None or a.absorbed < ALIAS_ABSORBED:
+                continue
+            pts = [(e, float(m), *evs[e]) for e, m in a.moves.items()
+                   if m is not None and e in evs and evs[e][0].window == health.window]
+            if len(pts) < 2:
+                continue
+            x = np.array([m for _, m, _, _ in pts])
+            d = np.array([ev.dev for _, _, ev, _ in pts])
+            sd = np.array([sd for _, _, _, sd in pts])
+            w = 1.0 / sd ** 2
+            sxx = float(np.sum(w * x * x))
+            if sxx <= 0.0:
+                continue
+            c = float(np.sum(w * x * d)) / sxx
+            c_sd = 1.0 / math.sqrt(sxx)
+            pred = c * x
+            chi = float(np.sum(w * (d - pred) ** 2))
+            fit_p = float(chdtrc(len(pts) - 1, chi))
+            moved = [(e, float(v)) for (e, _, _, s_e), v in zip(pts, pred, strict=True)
+                     if abs(v) >= max(ALIAS_MIN_PCT, 2.0 * s_e)]
+            if abs(c) < ALIAS_Z * c_sd or fit_p < ALIAS_FIT_P or len(moved) < 2:
+                continue
+            signs = {e: ("up" if v > 0 else "down", _grid(0.5 * abs(v))) for e, v in moved}
+            said = ", ".join(f"{e} {ev.dev:+.1f} %" for e, _, ev, _ in pts
+                             if e in signs)
+            status = health.parameters[p].status if p in health.parameters else "fixed"
+            fit = _AliasFit(p, c, c_sd, float(a.absorbed), signs,
+                            f"{said} moved together as a change of {p} ({status}: not "
+                            f"estimated) by {c:+.1f} % +/- {2 * c_sd:.1f} % (2 sigma) would "
+                            f"move them (its alias, {100 * a.absorbed:.1f} % of its effect; "
+                            f"what the alias leaves: p = {fit_p:.2f}): a change the library "
+                            f"does not know")
+            if best is None or fit_p > best[0]:
+                best = (fit_p, fit)
+        return best[1] if best is not None else None
 
     @staticmethod
     def _unexplained_dev_var(devs: list[_DevFactor]) -> Variable | None:
@@ -711,6 +845,7 @@ class Diagnoser:
                 (:func:`shaft_speed`), for a periodic term's harmonic.
         """
         self._observe(health)
+        self._read_aliases(health)
         variables, unexplained = self._variables(health, speed)
         devs = self._dev_factors(health)
         extra = self._unexplained_dev_var(devs)
@@ -750,7 +885,9 @@ class Diagnoser:
                       + sum(1 for d in devs if np.ptp(d.log_lik) > 0.2)),
             check_function_since=since,
             check_failed=record,
-            unexplained=self._unexplained_lines(variables),
+            unexplained=self._unexplained_lines(variables) + (
+                [self._alias_fit.text] if self._alias_fit is not None and p_unknown > 0.2
+                else []),
             ruled_out=ruled_out,
             unobserved=self._unobserved(health),
         )
@@ -929,6 +1066,11 @@ def _rate_above(k: int, n: int) -> float:
     """Probability that a check's failure rate exceeds :data:`CHECK_RATE` after ``k``
     failures in ``n`` windows (the Beta(k + 1, n - k + 1) posterior of a uniform prior)."""
     return float(betainc(n - k + 1, k + 1, 1.0 - CHECK_RATE))
+
+
+def _grid(x: float) -> float:
+    """``x`` > 0 on a grid of 20 steps a decade (a cache key that stays small)."""
+    return float(10.0 ** (round(20.0 * math.log10(x)) / 20.0))
 
 
 def _outcome(p_none: float, p_unknown: float, top: FaultHealth | None
