@@ -570,17 +570,18 @@ class Diagnoser:
             evs[name] = (ev, math.hypot(ev.sd, STALE_SD_PCT * math.sqrt(age)))
         return evs
 
-    def _read_aliases(self, health: HealthMessage) -> None:
+    def _read_aliases(self, health: HealthMessage,
+                      evs: dict[str, tuple[_Dev, float]]) -> None:
         """This window's alias fit (:meth:`_alias`), its signs kept with the window of the
         evidence they were read from: a parameter whose last sound evidence is still that
         window's keeps the unknown fault's sign on it (the window after one that estimated Ra,
         Ke, J and D may estimate Ke and D only, and Ra's evidence is still the former's)."""
-        fit = self._alias(health, self._evidence(health))
+        fit = self._alias(health, evs)
         if fit is not None:
             self._alias_fit = fit
             for name, sign in fit.signs.items():
                 self._alias_signs[name] = (health.window, sign)
-        window = {n: ev.window for n, (ev, _) in self._evidence(health).items()}
+        window = {n: ev.window for n, (ev, _) in evs.items()}
         for name in list(self._alias_signs):
             if window.get(name) != self._alias_signs[name][0]:
                 del self._alias_signs[name]
@@ -592,10 +593,13 @@ class Diagnoser:
         kept = self._alias_signs.get(name)
         return kept[1] if kept is not None and kept[0] == ev.window else None
 
-    def _dev_factors(self, health: HealthMessage) -> list[_DevFactor]:
+    def _dev_factors(self, health: HealthMessage,
+                     evs: dict[str, tuple[_Dev, float]] | None = None) -> list[_DevFactor]:
         """One factor per parameter with sound evidence (the last, with its standard error
-        grown by :data:`STALE_SD_PCT` per square root of its age in windows)."""
-        evs = self._evidence(health)
+        grown by :data:`STALE_SD_PCT` per square root of its age in windows; ``evs``:
+        :meth:`_evidence`'s, read once a window)."""
+        if evs is None:
+            evs = self._evidence(health)
         out = []
         for name, (ev, sd) in evs.items():
             age = max(health.window - ev.window, 0)
@@ -852,9 +856,10 @@ class Diagnoser:
                 (:func:`shaft_speed`), for a periodic term's harmonic.
         """
         self._observe(health)
-        self._read_aliases(health)
+        evs = self._evidence(health)
+        self._read_aliases(health, evs)
         variables, unexplained = self._variables(health, speed)
-        devs = self._dev_factors(health)
+        devs = self._dev_factors(health, evs)
         extra = self._unexplained_dev_var(devs)
         if extra is not None:
             variables.append(extra)
