@@ -552,7 +552,16 @@ def test_the_dead_zone_example_is_unknown_within_20_s_and_stays_so(noise: float)
     assert len(named) >= 0.9 * len(after), (len(named), len(after))
     d = _final(history)
     a, b = _clip_term(d.unknown_terms[0])
-    assert a == pytest.approx(-1 / 0.673, rel=0.03) and b == pytest.approx(DEAD_ZONE, rel=0.02)
+    # the term acts in the twin's d(ia)/dt, whose La is estimated: its slope is -1/La of that
+    # twin (measured: a = -1.4396, the twin's La 0.6884 H, +2.3 %: 0.9 % off), and within 5 %
+    # of the plant's -1/0.673 (3.1 % off: the slope trades with the twin's La, see
+    # docs/diagnosis.md's Limits; the equation's 3 digits read -1.44 or -1.45 across numpy
+    # builds, a 3 % bound on the plant's La flipped with them)
+    la = history[-1].parameters["La"].value
+    assert la is not None
+    term = next(t for t in history[-1].terms if t.kind == "input_dead_zone")
+    assert term.params["a"] == pytest.approx(-1 / la, rel=0.03), (term.params, la)
+    assert a == pytest.approx(-1 / 0.673, rel=0.05) and b == pytest.approx(DEAD_ZONE, rel=0.02)
 
 
 @pytest.mark.slow
