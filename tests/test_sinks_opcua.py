@@ -547,9 +547,11 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
         cleared = [k for k, e in enumerate(m01) if back in e["message"]]
         assert raised and cleared and raised[0] < cleared[-1], m01
         assert m01[raised[0]]["severity"] == 800 and m01[cleared[-1]]["severity"] == 200
-        # the default run's Ra alarm (about 1080 s of plant time on m00)
+        # the default run's Ra alarm (about 1080 s of plant time on m00, which shares its
+        # process with the 19 machines in real time: on 2026-11-25's CI box m00 had reached
+        # 526 s of plant time when a 600 s wait ran out; a liveness bound, not a speed goal)
         last = until(lambda d: any(e["source"] == "m00" and "ALARM: Ra" in e["message"]
-                                   for e in d["events"]), 600)
+                                   for e in d["events"]), 1500)
         alarm = next(e for e in last["events"] if "ALARM: Ra" in e["message"])
         assert alarm["severity"] == 800
         last = until(lambda d: d["read"].get("m00", {}).get("health")
