@@ -55,7 +55,6 @@ from twinwatch.twin.diagnosis.evidence import (
 )
 from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode
 from twinwatch.twin.health import (
-    AliasHealth,
     DiagnosisHealth,
     FaultHealth,
     HealthMessage,
@@ -124,9 +123,6 @@ ALIAS_Z = 3.0
 ALIAS_MIN_PCT = 1.0
 #: The pattern must fit the estimates: the chi-square p-value of what it leaves at least this.
 ALIAS_FIT_P = 0.01
-#: A fault whose parameter the window held moves an estimate it aliases onto by at least this
-#: much per percent of its own change (:meth:`Diagnoser._through_aliases`).
-ALIAS_THROUGH = 0.2
 #: Growth of a held parameter's last sound evidence's standard error with its age [% of
 #: nameplate per square root of a window]: a random walk, so that evidence from before a fault
 #: (La held at its nameplate since window 20) does not speak against it forever (1.5 % after
@@ -273,8 +269,6 @@ class Diagnoser:
         self.faults: list[FaultMode] = list(library.faults)
         self._last: dict[str, _Dev] = {}
         self._prev: dict[str, _Dev] = {}  # the sound evidence before the last (a jump's check)
-        # window -> its aliases, for the windows the kept evidence is from
-        self._aliases_at: dict[int, dict[str, AliasHealth]] = {}
         # the change's onset [s]: evidence from before it is not used (:meth:`_observe`)
         self._onset: float | None = None
         # the last change point the trends dated [s] (kept when a trend's model drops it)
@@ -295,7 +289,7 @@ class Diagnoser:
         priors = np.array([f.prior for f in self.faults] + [unknown_prior])
         self._log_prior = (self._hyp @ np.log(priors)
                            + (1.0 - self._hyp) @ np.log1p(-priors))
-        self._comps: dict[tuple[Any, ...], _Comps] = {}
+        self._comps: dict[tuple[str, frozenset[str], tuple[str, float] | None], _Comps] = {}
         self._alias_fit: _AliasFit | None = None  # the last one read (:meth:`_alias`)
         # parameter -> (the window of the evidence its alias sign was read from, the sign)
         self._alias_signs: dict[str, tuple[int, tuple[str, float]]] = {}
@@ -332,11 +326,6 @@ class Diagnoser:
                                         float(health.t_end))
                 if not _moved(dev, sd):
                     self._quiet[name] = float(health.t_end)
-        if health.aliases:
-            self._aliases_at[health.window] = dict(health.aliases)
-        kept = {ev.window for ev in (*self._last.values(), *self._prev.values())}
-        for w in [w for w in self._aliases_at if w not in kept]:
-            del self._aliases_at[w]
         dated = _change_onset(health)
         if dated is not None:
             self._trend_onset = dated
@@ -521,21 +510,17 @@ class Diagnoser:
 
     # -- graded deviations (twinwatch.twin.diagnosis.deviation) -----------------------------
     def _components(self, name: str, estimated: frozenset[str] = frozenset(),
-                    alias: tuple[str, float] | None = None,
-                    through: tuple[tuple[int, str, float, float, float], ...] = ()
-                    ) -> _Comps:
+                    alias: tuple[str, float] | None = None) -> _Comps:
         """Per hypothesis, the probability its faults move ``name`` up and down and their
         smallest sizes, and the directions no fault moves it in, in a window that estimated
         ``estimated`` (a signature's ``when_held``/``when_estimated``; cached); ``alias``:
         the unknown fault's sign on it in this window (direction, smallest size [%]:
         :meth:`_alias`), which leaves the directions no library fault moves it in as they
-        are; ``through``: the library faults' signs on it through the alias of a parameter
-        the window held (:meth:`_through_aliases`: fault index, direction, smallest and
-        largest size [%], link)."""
+        are."""
         signs = [(i, d) for i, f in enumerate(self.faults) for d in f.deviations
                  if d.parameter == name]
         cond = frozenset(p for _, d in signs for p in (*d.when_held, *d.when_estimated))
-        key = (name, estimated & cond, alias, through)
+        key = (name, estimated & cond, alias)
         c = self._comps.get(key)
         if c is not None:
             return c
@@ -543,7 +528,6 @@ class Diagnoser:
         items: list[tuple[int, str, float, float, float]] = [
             (i, d.direction, d.min_pct, d.link, d.max_pct or HI_PCT)
             for i, d in signs if d.applies(estimated)]
-        items += [(i, d, a, link, b) for i, d, a, b, link in through]
         covered = {direction for _, direction, _, _, _ in items}
         missing = tuple(d for d in ("up", "down") if d not in covered)
         library_items = list(items)
@@ -609,37 +593,6 @@ class Diagnoser:
         kept = self._alias_signs.get(name)
         return kept[1] if kept is not None and kept[0] == ev.window else None
 
-    def _through_aliases(self, name: str, ev: _Dev
-                         ) -> tuple[tuple[int, str, float, float, float], ...]:
-        """The library faults' signs on ``name`` through the aliases of ``ev``'s window: a
-        fault that moves a parameter ``p`` the window held moves ``name`` as ``p``'s alias
-        says (:mod:`twinwatch.twin.estimation.aliases`; when the estimates mimic at least
-        :data:`ALIAS_ABSORBED` of ``p``'s effect and ``name`` moves by
-        :data:`ALIAS_THROUGH` % or more per % of ``p``): in the direction and by the share
-        the alias gives, with the fault's link. A fault with a sign of its own on ``name``
-        that holds in the window keeps it. What the library's ``when_held`` signs write by
-        hand (a weakened magnet moves D up while Ke is held), computed for every fault."""
-        aliases = self._aliases_at.get(ev.window)
-        if not aliases:
-            return ()
-        out: list[tuple[int, str, float, float, float]] = []
-        for i, f in enumerate(self.faults):
-            if any(d.parameter == name and d.applies(ev.estimated) for d in f.deviations):
-                continue
-            for d in f.deviations:
-                a = aliases.get(d.parameter)
-                if d.parameter == name or d.parameter in ev.estimated or a is None \
-                        or a.absorbed is None or a.absorbed < ALIAS_ABSORBED:
-                    continue
-                m = a.moves.get(name)
-                if m is None or abs(m) < ALIAS_THROUGH:
-                    continue
-                up = (d.direction == "up") == (m > 0)
-                hi = (d.max_pct or HI_PCT) * abs(m)
-                out.append((i, "up" if up else "down", _grid(d.min_pct * abs(m)),
-                            _grid(min(hi, HI_PCT)), round(d.link, 2)))
-        return tuple(sorted(set(out)))
-
     def _dev_factors(self, health: HealthMessage,
                      evs: dict[str, tuple[_Dev, float]] | None = None) -> list[_DevFactor]:
         """One factor per parameter with sound evidence (the last, with its standard error
@@ -650,8 +603,7 @@ class Diagnoser:
         out = []
         for name, (ev, sd) in evs.items():
             age = max(health.window - ev.window, 0)
-            comps = self._components(name, ev.estimated, self._alias_sign(name, ev),
-                                     self._through_aliases(name, ev))
+            comps = self._components(name, ev.estimated, self._alias_sign(name, ev))
             leak, note = self._dev_leak.get(name, (LEAK["deviation"], ""))
             lik = likelihood(ev.dev, sd, comps.p_up, comps.size_up, comps.p_down,
                              comps.size_down, leak, comps.hi_up, comps.hi_down)
