@@ -151,14 +151,10 @@ def test_csv_realtime_is_paced_by_the_sample_period(csv_file: Path) -> None:
     assert elapsed >= 0.079  # paced by the sample period: 5 rows span 0.08 s
 
 
-def test_csv_realtime_wakes_once_per_pace_slack_never_early(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A real-time replay of 10 ms rows sleeps about once per PACE_SLACK, not once a row (a
-    sleep a row cost 74 us of CPU a row), and delivers no row before it is due."""
+def _count_sleeps(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """The file driver's sleeps, each still slept, in a list filled as it asks them."""
     import twinwatch.drivers.file as file_mod
 
-    data = tmp_path / "fast.csv"
-    data.write_text("t,u\n" + "".join(f"{k * 0.01!r},{k}.0\n" for k in range(31)))
     sleeps: list[float] = []
     real_sleep = time.sleep
 
@@ -167,6 +163,18 @@ def test_csv_realtime_wakes_once_per_pace_slack_never_early(
         real_sleep(s)
 
     monkeypatch.setattr(file_mod.time, "sleep", counted)
+    return sleeps
+
+
+def test_csv_realtime_wakes_once_per_pace_slack_never_early(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real-time replay of 10 ms rows sleeps about once per PACE_SLACK, not once a row (a
+    sleep a row cost 74 us of CPU a row), and delivers no row before it is due."""
+    import twinwatch.drivers.file as file_mod
+
+    data = tmp_path / "fast.csv"
+    data.write_text("t,u\n" + "".join(f"{k * 0.01!r},{k}.0\n" for k in range(31)))
+    sleeps = _count_sleeps(monkeypatch)
     config = FileDriverConfig.model_validate({
         "type": "file", "path": str(data), "time_column": "t", "realtime": True,
         "columns": {"Va": {"column": "u"}}})
@@ -190,14 +198,7 @@ def test_csv_realtime_at_speed_10_is_paced_ten_times_faster_never_early(
     break it)."""
     import twinwatch.drivers.file as file_mod
 
-    sleeps: list[float] = []
-    real_sleep = time.sleep
-
-    def counted(s: float) -> None:
-        sleeps.append(s)
-        real_sleep(s)
-
-    monkeypatch.setattr(file_mod.time, "sleep", counted)
+    sleeps = _count_sleeps(monkeypatch)
     data = tmp_path / "fast.csv"
     data.write_text("t,u\n" + "".join(f"{k * 0.01!r},{k}.0\n" for k in range(201)))
     config = FileDriverConfig.model_validate({

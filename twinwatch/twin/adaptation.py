@@ -308,14 +308,16 @@ class TwinAdapter:
                 ) -> AdaptationResult:
         """After the twin's fit: the reading check and the aliases, then the prognostics."""
         t0 = time.perf_counter()
-        terms = compose(result.terms, window) if result.terms else None
-        if self.readings is None or self.readings:
+        check = self.readings is None or bool(self.readings)
+        alias = (self.alias_parameters is None or bool(self.alias_parameters)) \
+            and self._moved(result.estimate)
+        terms = compose(result.terms, window) if result.terms and (check or alias) else None
+        if check:
             # one simulation of the healthy twin (more when it misfits): what the diagnosis
             # tells a sensor's error from a process fault by
             result.readings = reading_check(
                 fit, self.estimator.nominal, result.estimate.nrmse, terms, self.readings)
-        if (self.alias_parameters is None or self.alias_parameters) \
-                and self._moved(result.estimate):
+        if alias:
             # what the diagnosis tells a change of a parameter the window did not estimate by
             est = result.estimate
             names = self.model.parameter_names

@@ -291,6 +291,8 @@ class Diagnoser:
                            + (1.0 - self._hyp) @ np.log1p(-priors))
         self._comps: dict[tuple[str, frozenset[str], tuple[str, float] | None], _Comps] = {}
         self._alias_fit: _AliasFit | None = None  # the last one read (:meth:`_alias`)
+        # the parameters some fault's deviation sign names (not the unknown fault's aliases)
+        self._named = frozenset(d.parameter for f in self.faults for d in f.deviations)
         # parameter -> (the window of the evidence its alias sign was read from, the sign)
         self._alias_signs: dict[str, tuple[int, tuple[str, float]]] = {}
         # per window: (window, output -> its check passed), for the faults' ``checks``
@@ -594,12 +596,9 @@ class Diagnoser:
         return kept[1] if kept is not None and kept[0] == ev.window else None
 
     def _dev_factors(self, health: HealthMessage,
-                     evs: dict[str, tuple[_Dev, float]] | None = None) -> list[_DevFactor]:
-        """One factor per parameter with sound evidence (the last, with its standard error
-        grown by :data:`STALE_SD_PCT` per square root of its age in windows; ``evs``:
-        :meth:`_evidence`'s, read once a window)."""
-        if evs is None:
-            evs = self._evidence(health)
+                     evs: dict[str, tuple[_Dev, float]]) -> list[_DevFactor]:
+        """One factor per parameter with sound evidence (``evs``: :meth:`_evidence`'s, read
+        once a window)."""
         out = []
         for name, (ev, sd) in evs.items():
             age = max(health.window - ev.window, 0)
@@ -637,10 +636,9 @@ class Diagnoser:
         the size it predicts (link :data:`ALIAS_LINK`): the PWM drive's tau_e +50 % (fixed
         in that twin) published Ra +28 %, Ke -6 %, J -12 %, D -6 %, which read as worn
         brushes and a weakened magnet at once."""
-        named = {d.parameter for f in self.faults for d in f.deviations}
         best: tuple[float, _AliasFit] | None = None
         for p, a in health.aliases.items():
-            if p in named or a.absorbed is None or a.absorbed < ALIAS_ABSORBED:
+            if p in self._named or a.absorbed is None or a.absorbed < ALIAS_ABSORBED:
                 continue
             pts = [(e, float(m), *evs[e]) for e, m in a.moves.items()
                    if m is not None and e in evs and evs[e][0].window == health.window]
@@ -667,11 +665,11 @@ class Diagnoser:
                              if e in signs)
             status = health.parameters[p].status if p in health.parameters else "fixed"
             fit = _AliasFit(p, c, c_sd, float(a.absorbed), signs,
-                            f"{said} moved together as a change of {p} ({status}: not "
-                            f"estimated) by {c:+.1f} % +/- {2 * c_sd:.1f} % (2 sigma) would "
-                            f"move them (its alias, {100 * a.absorbed:.1f} % of its effect; "
-                            f"what the alias leaves: p = {fit_p:.2f}): a change the library "
-                            f"does not know")
+                            f"{said} moved together, as a change of {p} by {c:+.1f} % +/- "
+                            f"{2 * c_sd:.1f} % (2 sigma) would move them: {p} is not "
+                            f"estimated here ({status}), and the estimates carry "
+                            f"{100 * a.absorbed:.1f} % of its effect (the pattern fits: "
+                            f"p = {fit_p:.2f}); a change the library does not know")
             if best is None or fit_p > best[0]:
                 best = (fit_p, fit)
         return best[1] if best is not None else None

@@ -16,7 +16,8 @@ and the share of ``p``'s effect the estimates mimic is ``1 - |s_p - S_E a_p|^2 /
 (a recording of its own simulation, tau_e raised 50 %, 2026-11-25): tau_e's alias in a window
 that estimated Ra, Ke, J and D was Ra +0.54, Ke -0.15, J -0.35, D -0.14 % per % of tau_e,
 99.8 % of its effect absorbed; that window published Ra +28.4, Ke -5.8, J -11.7, D -5.8 %:
-tau_e +52 % read through its alias, where the fault library read worn brushes (Ra up) at 0.85.
+tau_e +43.8 % +- 10.1 % (2 sigma; the plant's +50 %) read through its alias, where the
+fault library read worn brushes (Ra up) at 0.85.
 
 The diagnosis (:mod:`twinwatch.twin.diagnosis`) reads the aliases of the parameters no fault
 of its library names as the unknown fault's signature in that window: several estimates that
