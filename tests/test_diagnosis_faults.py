@@ -135,7 +135,9 @@ def test_a_few_failed_checks_are_not_check_function(
 def test_a_sensor_that_clips_now_and_then_explains_the_term_fitted_to_it(
         nominal_messages: list[HealthMessage]) -> None:
     """Issue 34: a reading that clips only while it crosses its range (the hydraulic p at
-    50 400 Pa: 8 of 70 windows) stays the sensor's evidence for 60 windows, and a term the
+    50 400 Pa: 8 of 70 windows) stays the sensor's evidence for 300 windows (10 min; it ended
+    on "no fault" with 60: the matrix's clipped pressure readings were last flagged 62 and 64
+    windows before their end), and a term the
     twin fits on that channel meanwhile is the sensor's, not a fault of the process: before,
     the windows between read the term as the leak (0.86) and the sensor fell to 0.13. A
     frozen reading is evidence for the sensor although it is not also saturated (the two
@@ -151,18 +153,18 @@ def test_a_sensor_that_clips_now_and_then_explains_the_term_fitted_to_it(
                       equation="d(ia)/dt += -0.02*ia", meaning="", since_window=3)
     d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
     out = []
-    for w in range(80):
+    for w in range(320):
         msg = base.model_copy(update={"window": w, "t_start": 2.0 * w, "t_end": 2.0 * w + 1.99,
                                       "sensors": [stuck] if w in (2, 9) else [],
                                       "terms": [term] if w >= 3 else []})
         out.append(d.update(msg, None))
-    for w in (2, 5, 40, 69):   # flagged at 2 and 9: the evidence lasts to window 69
+    for w in (2, 5, 40, 69, 200, 309):   # flagged at 2 and 9: the evidence lasts to 309
         assert out[w].top == "sensor_fault" and out[w].probability >= 0.8, (w, out[w])
         assert out[w].unknown < 0.2, (w, out[w])
     assert "ia saturated at 1.5 for 1.0 s (window 9)" in " ".join(out[40].faults[0].evidence_for)
-    # 60 windows after the last flag the term is no longer the sensor's: a fault the
+    # 300 windows after the last flag the term is no longer the sensor's: a fault the
     # library does not know
-    assert out[79].top != "sensor_fault" and out[79].unknown >= 0.5, out[79]
+    assert out[319].top != "sensor_fault" and out[319].unknown >= 0.5, out[319]
 
 
 def test_a_fault_no_window_can_see_is_said_unobserved_not_ruled_out(
@@ -272,6 +274,81 @@ def test_a_deviation_beyond_every_fault_s_largest_size_is_unknown(
                for u in far.unexplained), far.unexplained
     near = run(25.0)
     assert near.top == "bearing_wear" and near.probability >= 0.8, near
+
+
+def _with_d(h: HealthMessage, window: int, change_pct: float,
+            rel_std_pct: float = 2.0) -> HealthMessage:
+    """``h`` as window ``window`` (2 s each) with D estimated ``change_pct`` % from its
+    nameplate (its relative standard error ``rel_std_pct`` %)."""
+    p = h.parameters["D"]
+    moved = p.model_copy(update={"value": p.nominal * (1 + change_pct / 100),
+                                 "status": "estimated", "rel_std_pct": rel_std_pct})
+    return h.model_copy(update={"window": window, "t_start": 2.0 * window,
+                                "t_end": 2.0 * window + 1.99,
+                                "parameters": {**h.parameters, "D": moved}})
+
+
+def test_a_change_that_comes_and_goes_is_a_fault_the_library_does_not_know(
+        nominal_messages: list[HealthMessage]) -> None:
+    """Issue 34 (off-library): an intermittent load (+40 % on 10 s of every 20 s in the fault
+    matrix) publishes D +168 % and its nameplate by turns with every check passing; no wear
+    fault of the library comes back by itself, so once D has come back twice it is the
+    unknown fault's evidence, named in ``unexplained``, in the windows at the nameplate
+    too (before: "no fault" 0.98 at the end). A repaired step comes back once: no fault."""
+    base = nominal_messages[-1]
+
+    def run(profile: list[float], rel_std_pct: float = 2.0) -> list[Any]:
+        d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
+        return [d.update(_with_d(base, w, c, rel_std_pct), None)
+                for w, c in enumerate(profile)]
+
+    swings = [0.0] * 10 + ([150.0] * 5 + [0.0] * 5) * 3 + [0.0] * 4
+    out = run(swings)
+    last = out[-1]   # D at its nameplate for 9 windows
+    assert last.status == "unknown" and last.unknown >= 0.8, last
+    assert any("D moved up to 150 % from its nameplate and came back 3 times" in u
+               for u in last.unexplained), last.unexplained
+    assert all(f.probability < 0.8 for f in last.faults), last.faults
+    # before the second return it is a deviation: the bearings' (D +150 %)
+    assert out[22].unknown < 0.2 and not any("came back" in u for u in out[22].unexplained)
+    repaired = run([0.0] * 10 + [150.0] * 10 + [0.0] * 20)[-1]
+    assert repaired.status == "no_fault" and repaired.unknown < 0.2, repaired
+    assert not any("came back" in u for u in repaired.unexplained)
+    # the PWM drive's scatter (standard errors of 9 %) about a D +25 % step is not a change
+    # that comes and goes: it does not come back to a quarter of the step
+    noisy = run([0.0] * 10 + [25.0, 16.0, 34.0, 21.0, 30.0, 13.0, 27.0, 19.0, 31.0, 24.0] * 4,
+                rel_std_pct=9.0)[-1]
+    assert not any("came back" in u for u in noisy.unexplained), noisy.unexplained
+
+
+def test_a_twin_failing_in_bursts_is_a_fault_the_library_does_not_know(
+        nominal_messages: list[HealthMessage]) -> None:
+    """Issue 34 (off-library): an unmeasured force on the hydraulic rod on 10 s of every 20 s
+    made the check fail in 39 of 60 windows, in 8 runs, and ended on "no fault" 0.82 (below
+    the check function's 80 %). Bursts of failures (30 % of the last 60 windows or more, in 3
+    runs or more, 30 % passing) are the unknown fault's evidence; the faults that may leave
+    a check failing or passing (the unbalance's ``may_pass``) explain it as well, a fault
+    whose check fails throughout (a speed reading's gain) does not. Failing throughout is
+    check function, not this."""
+    base = nominal_messages[-1]
+
+    def run(passed: list[bool]) -> Any:
+        d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
+        for w, ok in enumerate(passed):
+            out = d.update(_failing(base, w, ok), None)
+        return out
+
+    bursts = run([True] * 10 + ([False] * 5 + [True] * 5) * 6)
+    assert bursts.status == "unknown" and bursts.unknown >= 0.8, bursts
+    assert "the model check failed in 30 of the last 60 windows, in 6 separate runs" \
+        in bursts.unexplained, bursts.unexplained
+    assert all(f.id not in ("speed_sensor_high", "speed_sensor_low") or f.probability < 0.2
+               for f in bursts.faults), bursts.faults
+    throughout = run([True] * 10 + [False] * 60)
+    assert throughout.status == "check_function", throughout
+    assert not any("separate runs" in u for u in throughout.unexplained)
+    scattered = run([True] * 10 + ([False] + [True] * 9) * 6)   # 10 %: a noisy healthy twin
+    assert scattered.status == "no_fault", scattered
 
 
 # -- end to end ------------------------------------------------------------------------------
