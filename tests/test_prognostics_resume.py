@@ -155,13 +155,15 @@ def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path
     for i, stop_after in enumerate((85, 5, None)):
         driver = _driver(data, start)
         if stop_after is not None:
-            # paced, so that the SIGTERM lands long before the file's end: the first run 20
-            # times faster than real time (85 windows in 8.5 s; read as fast as it went, a
+            # paced, so that the SIGTERM lands long before the file's end: the first run 5
+            # times faster than real time (85 windows in 34 s; read as fast as it went, a
             # loaded box stored 127 of the 130 windows before the stop took effect and the
-            # second run had 2 to resume), the second in real time (five windows take 10 s;
+            # second run had 2 to resume; at 20 times, a window every 0.1 s, CI's box dropped
+            # one as an estimation overrun and the trend's evidence was 81 where the
+            # uninterrupted run's was 82), the second in real time (five windows take 10 s;
             # as fast as read, the 30 windows left took under a second and the third run had
             # nothing to resume)
-            pace = "realtime = true\n" + ("speed = 20.0\n" if stop_after == 85 else "")
+            pace = "realtime = true\n" + ("speed = 5.0\n" if stop_after == 85 else "")
             driver = driver.replace("sample_period = 0.01\n", "sample_period = 0.01\n" + pace)
         cfg = with_driver(tmp_path, driver, **RULE)
         before = len(db_rows(db))
@@ -195,6 +197,10 @@ def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path
     after = [t for t in sorted(restarted) if t > stops[0]]
     assert after and after[-1] == round(SECONDS)
     print(f"\nstopped at {stops[0]:.2f} s and {stops[1]:.2f} s; {len(after)} windows after")
+    # a paced run drops a window its estimation overran (a live source's rule): its trend
+    # then has one evidence window fewer than the uninterrupted run's; say so
+    missing = [t for t in range(2, round(SECONDS) + 1, 2) if t not in restarted]
+    assert not missing, f"windows not stored (estimation overruns?): {missing}; {per_run}"
     for t in after:
         a, b = whole[t], restarted[t]
         assert b["evidence"] == a["evidence"], (t, a, b)
