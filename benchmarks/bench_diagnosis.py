@@ -585,8 +585,9 @@ def seen(library: Any, truth: Iterable[str], messages: list[Any], onset: float) 
                         or q.rel_std_pct is None or not d.applies(estimated)):
                     continue
                 dev = (q.value / q.nominal - 1.0) * 100.0
+                sd = abs(q.rel_std_pct * q.value / q.nominal)  # % of the nameplate
                 signed_dev = dev if d.direction == "up" else -dev
-                if signed_dev >= max(d.min_pct, 2.0 * abs(q.rel_std_pct)):
+                if signed_dev >= max(d.min_pct, 2.0 * sd):
                     return True
             for t in f.terms:
                 if any(("*" in t.kinds or term.kind in t.kinds)

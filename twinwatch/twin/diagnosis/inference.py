@@ -157,8 +157,9 @@ CHECK_RATE = 0.3
 #: Windows over which a change that comes and goes is read (2 min at 2 s windows).
 INTERMITTENT_WINDOWS = STALE_MAX_WINDOWS
 #: A sound estimate this far from its nameplate [%], and :data:`INTERMITTENT_AWAY_SD`
-#: standard errors, is away; back within :data:`INTERMITTENT_HOME_PCT` (or 3 standard
-#: errors) and below a quarter of how far it was, it is home again. A wear fault does not
+#: standard errors, is away; back within :data:`INTERMITTENT_HOME_PCT` (or
+#: :data:`INTERMITTENT_HOME_SD` standard errors) and below a quarter of how far it was, it
+#: is home again. A wear fault does not
 #: come back by itself; a load or a fault that comes and goes does (the fault matrix's
 #: intermittent load, +40 % on 10 s of every 20 s, published D +168 % and its nameplate by
 #: turns with every check passing, and ended on "no fault" 0.98). 20 %: beyond the PWM
@@ -167,6 +168,7 @@ INTERMITTENT_WINDOWS = STALE_MAX_WINDOWS
 INTERMITTENT_AWAY_PCT = 20.0
 INTERMITTENT_AWAY_SD = 2.0
 INTERMITTENT_HOME_PCT = 2.0
+INTERMITTENT_HOME_SD = 3.0
 #: Returns home after being away, within :data:`INTERMITTENT_WINDOWS`, that make a change
 #: intermittent (a repaired fault returns once).
 INTERMITTENT_RETURNS = 2
@@ -781,15 +783,17 @@ class Diagnoser:
                 if abs(dev) >= max(INTERMITTENT_AWAY_PCT, INTERMITTENT_AWAY_SD * sd):
                     away, peak = True, max(peak, abs(dev))
                     first = w if first is None else first
-                elif abs(dev) <= max(INTERMITTENT_HOME_PCT, 3.0 * sd) and abs(dev) < peak / 4:
+                elif (abs(dev) <= max(INTERMITTENT_HOME_PCT, INTERMITTENT_HOME_SD * sd)
+                      and abs(dev) < peak / 4):
                     if away:
                         returns += 1
                     away, peak = False, 0.0
             if returns >= INTERMITTENT_RETURNS and (best is None or returns > best[0]):
-                top = max(abs(d) for _, d, _ in seq)
-                best = (returns, f"{name} moved up to {top:.0f} % from its nameplate and came "
-                                 f"back {returns} times in the last {len(self._sound)} "
-                                 f"windows (from window {first})")
+                far = max((d for _, d, _ in seq), key=abs)
+                best = (returns, f"{name} went {far:+.0f} % from its nameplate and came back "
+                                 f"to it {returns} times in the last {len(self._sound)} "
+                                 f"windows (since window {first}): a change that comes and "
+                                 f"goes")
         if best is not None:
             out.append(Variable(
                 "intermittent:parameter", "deviation", clip(1.0), best[1],
@@ -803,7 +807,7 @@ class Diagnoser:
         if (2 * n >= INTERMITTENT_WINDOWS and runs >= INTERMITTENT_RUNS
                 and k >= INTERMITTENT_FAIL_SHARE * n and n - k >= INTERMITTENT_FAIL_SHARE * n):
             text = (f"the model check failed in {k} of the last {n} windows, in {runs} "
-                    f"separate runs")
+                    f"separate runs: something that comes and goes")
             var = Variable("intermittent:model_check", "model_check", clip(1.0), text,
                            "the model check did not fail in bursts",
                            links={"unknown": INTERMITTENT_LINK},
