@@ -598,11 +598,28 @@ def seen(library: Any, truth: Iterable[str], messages: list[Any], onset: float) 
     return False
 
 
+def sensor_named(meta: dict[str, Any], messages: list[Any]) -> bool:
+    """Whether a sensor case's faulted reading was flagged, and only it: a window from the
+    onset whose data-quality check (``health.sensors``) names a channel, every channel named
+    from the onset being one the case faults (``spec.sensor_faults``). Then the library's
+    stuck-sensor mode (``sensor_fault``: "check the named sensor") names the right part: an
+    omega offset of +10 rad/s holds the speed reading at 10 at standstill, flagged as
+    saturated there."""
+    faulted = {str(sf["channel"]) for sf in meta.get("spec", {}).get("sensor_faults", [])}
+    if meta["category"] != "sensor_supply" or not faulted:
+        return False
+    named = {str(s.channel) for h in messages if float(h.t_end) >= float(meta["onset"])
+             for s in h.sensors}
+    return bool(named) and named <= faulted
+
+
 def judge(meta: dict[str, Any], diagnoses: list[tuple[float, Any]],
-          library_ids: list[str]) -> dict[str, Any]:
+          library_ids: list[str], *, also: Iterable[str] = ()) -> dict[str, Any]:
     """Score one case's diagnoses (``(t_end, DiagnosisHealth)`` per window) against its
-    ``meta`` (``case.json``); ``library_ids``: the fault ids of the library replayed."""
-    accept, tolerate = set(meta["accept"]), set(meta["tolerate"])
+    ``meta`` (``case.json``); ``library_ids``: the fault ids of the library replayed;
+    ``also``: answers acceptable in this recording beyond the case's own (``sensor_fault``
+    when :func:`sensor_named`), reported as ``accepted_also``."""
+    accept, tolerate = set(meta["accept"]) | set(also), set(meta["tolerate"])
     onset, nominal = float(meta["onset"]), meta["category"] == "nominal"
     not_wrong = accept | tolerate
     answers = [(t, *_answer(d)) for t, d in diagnoses]
@@ -646,7 +663,8 @@ def judge(meta: dict[str, Any], diagnoses: list[tuple[float, Any]],
             "wrong_id": wrong_id, "confident_wrong": max_wrong >= NAMED,
             "alarm_s": None if alarm_t is None else round(alarm_t, 1),
             "windows": len(diagnoses), "brier": round(brier, 4), "false_alarm": false_alarm,
-            "check_function_since": cf_since}
+            "check_function_since": cf_since,
+            "accepted_also": final in set(also) and final not in set(meta["accept"])}
 
 
 def replay_case(case_dir: Path, by_name: dict[str, Case],
@@ -683,7 +701,8 @@ def replay_case(case_dir: Path, by_name: dict[str, Case],
     meta = {**meta, "category": case.category, "onset": case.onset,
             "accept": sorted(case.accept), "truth": list(case.truth),
             "tolerate": sorted(case.tolerate)}
-    result = judge(meta, out, ids)
+    also = ["sensor_fault"] if "sensor_fault" in ids and sensor_named(meta, messages) else []
+    result = judge(meta, out, ids, also=also)
     result["record_wall_s"], result["record_cpu_s"] = meta["wall_s"], meta["cpu_s"]
     result["seen"] = (seen(diag.library, case.truth, messages, case.onset)
                       if case.category == "library" else None)
@@ -712,6 +731,8 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
             "library_unseen": [r["name"] for r in cat["library"] if r.get("seen") is False],
             "confident_wrong": share(results, "confident_wrong"),
             "acceptable_sensor_supply": share(cat["sensor_supply"], "right"),
+            "sensor_supply_by_stuck_sensor": [r["name"] for r in cat["sensor_supply"]
+                                              if r.get("accepted_also")],
             "acceptable_off_library": share(cat["off_library"], "right"),
             "nominal_false_alarms": share(cat["nominal"], "false_alarm"),
             "alarm_median_s": statistics.median(alarms) if alarms else None,
@@ -727,7 +748,8 @@ def print_table(results: list[dict[str, Any]], summary: dict[str, Any],
     print("-" * len(head))
     for r in results:
         wrong = (f"{r['max_wrong_p']:.2f} {r['wrong_id']}" if r["wrong_id"] else "0")[:22]
-        mark = ("" if r["right"] else " x") + (" (unseen)" if r.get("seen") is False else "")
+        mark = (("" if r["right"] else " x") + (" (unseen)" if r.get("seen") is False else "")
+                + (" (its sensor)" if r.get("accepted_also") else ""))
         print(f"{r['name']:34} {r['category']:13} {r['expected'][:42]:42} "
               f"{(r['final'] + ' ' + _fmt(r['p']) + mark)[:32]:32} {wrong:22} "
               f"{_fmt(r['alarm_s'], 0):>7} {r['windows']:>4}")
@@ -744,6 +766,9 @@ def print_table(results: list[dict[str, Any]], summary: dict[str, Any],
               f"{len(s['library_unseen'])} cases published none")
     print(f"confident-wrong (a wrong fault >= 0.8):   {frac(s['confident_wrong'])}")
     print(f"acceptable on sensor/supply cases:        {frac(s['acceptable_sensor_supply'])}")
+    if s.get("sensor_supply_by_stuck_sensor"):
+        print(f"... of which by the stuck-sensor mode naming the faulted reading, and only it: "
+              f"{', '.join(s['sensor_supply_by_stuck_sensor'])}")
     print(f"acceptable on off-library cases:          {frac(s['acceptable_off_library'])}")
     print(f"nominal runs with a false alarm (> 0.2):  {frac(s['nominal_false_alarms'])}")
     print(f"median time onset -> alarm:               {_fmt(s['alarm_median_s'], 0)} s "

@@ -149,3 +149,32 @@ def test_a_case_is_seen_only_when_the_twin_published_its_fault_s_evidence():
     assert not bench.seen(lib, ["unbalance"], [msg(100.0, "held", 0.0)], 60.0)
     # a case whose answer is no fault has no such signature
     assert bench.seen(lib, ["no_fault"], [msg(100.0, "estimated", -4.0)], 60.0) is None
+
+
+def test_a_stuck_sensor_finding_counts_for_a_sensor_case_only_on_the_faulted_reading():
+    """``sensor_named``: an omega offset of +10 rad/s holds the speed reading at 10 at
+    standstill (flagged saturated there); ``sensor_fault`` ("check the named sensor") then names
+    the right part. It is acceptable only when every reading flagged from the onset is one the
+    case faults, never before the onset's flags count, and never for another category."""
+    def h(t: float, *channels: str) -> Any:
+        return SimpleNamespace(t_end=t, sensors=[SimpleNamespace(channel=c) for c in channels])
+
+    meta = _meta(category="sensor_supply", accept=["speed_sensor_high", "unknown",
+                                                   "check_function"],
+                 truth=["speed_sensor_high"],
+                 spec={"sensor_faults": [{"channel": "omega", "kind": "offset"}]})
+    assert bench.sensor_named(meta, [h(4.0, "ia"), h(12.0, "omega"), h(14.0)])
+    assert not bench.sensor_named(meta, [h(12.0, "omega"), h(14.0, "ia")])  # another reading
+    assert not bench.sensor_named(meta, [h(4.0, "omega"), h(14.0)])  # only before the onset
+    assert not bench.sensor_named({**meta, "category": "library"}, [h(12.0, "omega")])
+    assert not bench.sensor_named({**meta, "spec": {}}, [h(12.0, "omega")])
+
+    stuck = _d("fault", "sensor_fault", 0.75, {"sensor_fault": 0.75}, no_fault=0.2)
+    ids = ["sensor_fault", "speed_sensor_high"]
+    r = bench.judge(meta, [(20.0, stuck)], ids)
+    assert not r["right"] and not r["accepted_also"]
+    r = bench.judge(meta, [(20.0, stuck)], ids, also=["sensor_fault"])
+    assert r["right"] and r["accepted_also"] and r["max_wrong_p"] < 0.75
+    summary = bench.summarise([{**r, "brier": 0.1, "alarm_s": None, "false_alarm": None}])
+    assert summary["acceptable_sensor_supply"] == [1, 1]
+    assert summary["sensor_supply_by_stuck_sensor"] == ["x"]
