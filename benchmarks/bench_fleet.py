@@ -109,8 +109,9 @@ def role_box(a: argparse.Namespace) -> None:
     summaries, texts = rec["summaries"], rec["texts"]
     n_rec = len(summaries)
     shared = SharedResources()
+    prefix = f"twinwatch/{a.box}" if a.layout == "box" else "twinwatch"
     cfg = ZenohConfig(mode="client", connect=[a.endpoint], summary_interval=a.interval,
-                      box=a.box, cache=a.cache)
+                      box=a.box, cache=a.cache, key_prefix=prefix)
     names = [f"{a.box}-m{j:05d}" for j in range(a.machines)]
     t0 = time.monotonic()
     pubs = [HealthPublisher(cfg, name, shared=shared) for name in names]
@@ -194,13 +195,16 @@ def role_client(a: argparse.Namespace) -> None:
     health = [0]
 
     def on_summary(machine: str, s: dict[str, Any]) -> None:
-        received.append((machine, s.get("window", -1)))
+        received.append((machine.rsplit("/", 1)[-1], s.get("window", -1)))
 
     def on_health(sample: Any) -> None:
         health[0] += 1
 
-    watcher = SummaryWatcher(session, on_summary=on_summary).start()
-    sub = session.declare_subscriber("twinwatch/*/health", on_health) if a.health else None
+    boxed = a.layout == "box"  # keys twinwatch/<box>/<machine>/...: machines named <box>/<m>
+    watcher = SummaryWatcher(session, prefix="twinwatch/*" if boxed else "twinwatch",
+                             on_summary=on_summary).start()
+    sub = (session.declare_subscriber("twinwatch/*/*/health" if boxed else "twinwatch/*/health",
+                                      on_health) if a.health else None)
     say(event="ready")
     stop = threading.Event()
 
@@ -210,7 +214,8 @@ def role_client(a: argparse.Namespace) -> None:
             if not cmd:
                 continue
             if cmd[0] == "dump":
-                held = {m: r.summary.get("window") for m, r in watcher.received.items()}
+                held = {m.rsplit("/", 1)[-1]: r.summary.get("window")
+                        for m, r in watcher.received.items()}
                 Path(cmd[1]).write_text(json.dumps(held))
                 say(event="dumped", held=len(held), delivered=len(received), health=health[0],
                     rss_kb=_rss_kb(), rss0_kb=rss0)
@@ -235,7 +240,8 @@ def role_client(a: argparse.Namespace) -> None:
             last_progress = time.monotonic()
             boxes: dict[str, int] = {}
             for m in watcher.received:
-                boxes[m.split("-")[0]] = boxes.get(m.split("-")[0], 0) + 1
+                b = m.rsplit("/", 1)[-1].split("-")[0]
+                boxes[b] = boxes.get(b, 0) + 1
             say(event="progress", held=view["machines_total"],
                 after_s=round(last_progress - t_open, 1), boxes=boxes)
         if full_at is None and view["machines_total"] >= a.expect:
@@ -367,6 +373,10 @@ def main() -> None:
                     help="share of the machines publishing their full health every window "
                     "(default 0.02)")
     ap.add_argument("--cache", type=int, default=30, help="[zenoh] cache (default 30)")
+    ap.add_argument("--layout", choices=("flat", "box"), default="flat",
+                    help="keys twinwatch/<machine>/... (flat, default) or "
+                         "twinwatch/<box>/<machine>/... (box: [zenoh] key_prefix per box, the "
+                         "client on twinwatch/*)")
     ap.add_argument("--steady", type=float, default=30.0, help="steady-state measure [s]")
     ap.add_argument("--outage", type=float, default=5.0, help="router R1 down for [s]")
     ap.add_argument("--recording", type=Path, default=None,
@@ -403,13 +413,14 @@ def run(a: argparse.Namespace) -> None:
         return p
 
     def client(name: str, health: bool) -> Proc:
-        args = ["--role", "client", "--endpoint", eps[2], "--expect", str(n)]
+        args = ["--role", "client", "--endpoint", eps[2], "--expect", str(n),
+                "--layout", a.layout]
         return Proc(args + (["--health"] if health else []), name)
 
     print(f"{n} machines on {boxes} boxes ({per[0]} each), summary interval "
           f"{a.summary_interval:g} s, full health of {a.health_share:.0%} of the machines, "
-          f"cache {a.cache}; routers R0, R1 -> R0, R2 -> R0 + R1; boxes on R0 and R1, the "
-          "client on R2")
+          f"cache {a.cache}, keys {a.layout}; routers R0, R1 -> R0, R2 -> R0 + R1; boxes on R0 "
+          "and R1, the client on R2")
     try:
         routers = [router(i) for i in range(3)]
         procs += routers
@@ -421,7 +432,8 @@ def run(a: argparse.Namespace) -> None:
         for i in range(boxes):
             name = f"b{i:02d}"
             p = Proc(["--role", "box", "--endpoint", eps[i % 2], "--box", name, "--machines",
-                      str(per[i]), "--interval", str(a.summary_interval), "--health-share",
+                      str(per[i]), "--interval", str(a.summary_interval), "--layout", a.layout,
+                      "--health-share",
                       str(a.health_share), "--cache", str(a.cache), "--recording", str(rec),
                       "--log", str(tmp / f"{name}.log.json")], name, nice=a.nice)
             box_procs.append(p)

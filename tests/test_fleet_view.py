@@ -192,3 +192,48 @@ def test_watch_fleet_ranks_filters_groups_and_fetches_the_full_health_when_asked
         "winding_short"]
     misuse = runner.invoke(main, ["watch", "--state", "alarm"])
     assert misuse.exit_code == 2 and "--fleet" in misuse.output
+
+
+def test_a_fleet_laid_out_by_box_is_followed_with_a_wildcard_prefix() -> None:
+    """Gateways whose ``[zenoh] key_prefix`` puts their box before their machines
+    (``twinwatch/gw-a/<machine>``: a router matches a key chunk by chunk, and 10 000 machines
+    in one chunk cost it quadratically, docs/fleet.md) are followed by ``--prefix
+    'twinwatch/*'``: every machine once, named ``<box>/<machine>``, ranked, reported, its full
+    health fetched by that name; the same machine name on two boxes is two machines."""
+    ep = endpoint(free_port())
+    layout = {"gw-a": ["a-crossed", "c-normal"], "gw-b": ["b-fault-alarm", "c-normal"]}
+    with router_on(ep):
+        pubs = []
+        try:
+            for box, machines in layout.items():
+                for m in machines:
+                    pub = HealthPublisher(ZenohConfig(mode="client", connect=[ep], box=box,
+                                                      key_prefix=f"twinwatch/{box}"), m)
+                    pubs.append(pub)
+                    doc = health(m, **FLEET[m][1])
+                    pub.publish(doc)
+                    pub.publish_summary(fleet_summary(read_health(doc), box=box,
+                                                      wall=__import__("time").time()))
+            runner = CliRunner()
+            out = runner.invoke(main, ["watch", "--fleet", "--connect", ep, "--prefix",
+                                       "twinwatch/*", "--once", "--json", "--wait", "15"])
+            assert out.exit_code == 0, out.output
+            view = json.loads(out.stdout)
+            assert [m["machine"] for m in view["machines"]] == [
+                "gw-b/b-fault-alarm", "gw-a/a-crossed", "gw-a/c-normal", "gw-b/c-normal"]
+            rep = runner.invoke(main, ["fleet", "report", "--connect", ep, "--prefix",
+                                       "twinwatch/*", "--json", "-", "--expect", "4"])
+            assert rep.exit_code == 0, rep.output
+            assert sorted(r["machine"] for r in json.loads(rep.stdout)["rows"]) == [
+                "gw-a/a-crossed", "gw-b/b-fault-alarm"]
+            full = runner.invoke(main, ["watch", "--fleet", "--connect", ep, "--prefix",
+                                        "twinwatch/*", "--show", "gw-b/b-fault-alarm",
+                                        "--json"])
+            assert full.exit_code == 0, full.output
+            assert json.loads(full.stdout)["machine"] == "b-fault-alarm"
+            bad = runner.invoke(main, ["watch", "--fleet", "--connect", ep, "--prefix",
+                                       "*/twinwatch", "--once"])
+            assert bad.exit_code != 0 and "first plain" in bad.output
+        finally:
+            for p in pubs:
+                p.close()

@@ -65,6 +65,35 @@ def check_prefix(prefix: str) -> str:
     return prefix
 
 
+FLEET_PREFIX_RE = re.compile(r"^[A-Za-z0-9_.\-]+(/([A-Za-z0-9_.\-]+|\*))*$")
+
+
+def check_fleet_prefix(prefix: str) -> str:
+    """The key prefix of a fleet's summaries, checked: as :func:`check_prefix`, and chunks
+    after the first may be ``*`` (one chunk, any name), so that one watcher follows the
+    gateways whose ``[zenoh] key_prefix`` put a chunk of their own before their machines
+    (``twinwatch/*`` follows ``twinwatch/gw-line1/<machine>``, ``twinwatch/gw-line2/...``).
+
+    Raises:
+        WatchError: the first chunk is not plain, or a chunk has other wildcards or reserved
+            characters.
+    """
+    if FLEET_PREFIX_RE.match(prefix) is None:
+        raise WatchError(f"key prefix {prefix!r} must be chunks of letters, digits, '_', '-' "
+                         "or '.' separated by '/', the first plain and any other may be * "
+                         "(one chunk: twinwatch/* for key prefixes twinwatch/<box>)")
+    return prefix
+
+
+def prefix_base(prefix: str) -> str:
+    """The plain chunks a fleet prefix (:func:`check_fleet_prefix`) starts with: what the keys
+    of its machines share (``twinwatch/*`` -> ``twinwatch``). A machine is then named by the
+    rest of its key before the topic (``gw-line1/m17``)."""
+    chunks = prefix.split("/")
+    n = chunks.index("*") if "*" in chunks else len(chunks)
+    return "/".join(chunks[:n])
+
+
 def open_session(connect: Sequence[str] = DEFAULT_CONNECT, mode: Mode = "client"
                  ) -> zenoh.Session:
     """A Zenoh session that talks only to ``connect``: no listening, multicast and gossip

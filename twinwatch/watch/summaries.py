@@ -21,11 +21,13 @@ from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
 from twinwatch.watch.ranking import Received
 from twinwatch.watch.session import (
+    CHUNKS_RE,
     Mode,
     check_endpoints,
-    check_prefix,
+    check_fleet_prefix,
     decode_health,
     open_session,
+    prefix_base,
 )
 
 if TYPE_CHECKING:
@@ -55,12 +57,13 @@ this long [s]."""
 def machines_key(prefix: str, machines: str) -> str:
     """``<prefix>/<machines>/summary``, ``machines`` one key-expression chunk: a machine's
     name, ``*`` (every machine), or a pattern such as ``line1-$*`` (every machine whose name
-    starts with ``line1-``; ``$*`` is zenoh's wildcard inside a chunk).
+    starts with ``line1-``; ``$*`` is zenoh's wildcard inside a chunk). ``prefix`` may hold
+    ``*`` chunks after its first (:func:`~twinwatch.watch.session.check_fleet_prefix`).
 
     Raises:
         WatchError: the prefix or the pattern is not a key expression (named).
     """
-    check_prefix(prefix)
+    check_fleet_prefix(prefix)
     key = f"{prefix}/{machines}/summary"
     if not machines or "/" in machines or "**" in machines:
         raise WatchError(f"machines {machines!r}: give one chunk of a key expression: a "
@@ -79,7 +82,9 @@ class SummaryWatcher:
     Args:
         session: an open session (:func:`~twinwatch.watch.session.open_session`); the caller
             closes it.
-        prefix: the daemons' ``[zenoh] key_prefix``.
+        prefix: the daemons' ``[zenoh] key_prefix``; ``*`` chunks after the first follow
+            several (``twinwatch/*``: the gateways' ``twinwatch/<box>``). A machine is then
+            named by its key's chunks after the prefix's plain ones (``gw-line1/m17``).
         machines: one key-expression chunk selecting the machines (:func:`machines_key`).
         clock: wall clock [s since the epoch].
         on_summary: called with the machine and a summary newer than the one held (zenoh's
@@ -97,6 +102,7 @@ class SummaryWatcher:
         self.session = session
         self.prefix = prefix
         self.key = machines_key(prefix, machines)
+        self.base = prefix_base(prefix)  # a machine's key is <base>/<its name>/<topic>
         self._clock = clock
         self._lock = threading.Lock()
         self._received: dict[str, Received] = {}
@@ -140,7 +146,7 @@ class SummaryWatcher:
         first summary comes live."""
         if sample.kind != zenoh.SampleKind.PUT:
             return
-        machine = str(sample.key_expr)[len(self.prefix) + 1:-len("/alive")]
+        machine = str(sample.key_expr)[len(self.base) + 1:-len("/alive")]
         with self._lock:
             if machine not in self._received:
                 return
@@ -164,7 +170,7 @@ class SummaryWatcher:
                 pending, self._pending = self._pending, set()
             # a few machines: each its own get; more: one get for all (each answers once)
             keys = ([self.key] if first or len(pending) > REASK_ONE_BY_ONE else
-                    [f"{self.prefix}/{m}/summary" for m in sorted(pending)])
+                    [f"{self.base}/{m}/summary" for m in sorted(pending)])
             try:
                 for key in keys:
                     for reply in self.session.get(key, target=zenoh.QueryTarget.ALL,
@@ -188,16 +194,19 @@ class SummaryWatcher:
         if not isinstance(doc, dict):
             return
         key = str(sample.key_expr)
-        machine = key[len(self.prefix) + 1:-len("/summary")]
+        machine = key[len(self.base) + 1:-len("/summary")]
         self.put(machine, doc)
 
     def put(self, machine: str, summary: dict[str, Any]) -> bool:
         """Hold ``summary`` as ``machine``'s latest unless it is older than the one held (the
-        same run, an earlier window) or the same.
+        same run, an earlier window) or the same; its ``machine`` is the name its key gives
+        (``gw-line1/m17`` under a prefix with ``*``).
 
         Returns:
             True if it is now the machine's latest.
         """
+        if summary.get("machine") != machine:  # named by its key (<box>/<machine>: prefix *)
+            summary = {**summary, "machine": machine}
         now = self._clock()
         with self._lock:
             old = self._received.get(machine)
@@ -232,7 +241,7 @@ class SummaryWatcher:
         these, 0.02: benchmarks/bench_fleet.py, docs/fleet.md). The wildcard subscriber still
         finds new machines and receives every summary once."""
         try:
-            sub = self.session.declare_subscriber(f"{self.prefix}/{machine}/summary",
+            sub = self.session.declare_subscriber(f"{self.base}/{machine}/summary",
                                                   lambda sample: None)
         except zenoh.ZError:  # the session closed meanwhile
             return
@@ -280,9 +289,9 @@ class SummaryWatcher:
         Raises:
             WatchError: ``machine`` is not a machine's name.
         """
-        if not machine or "/" in machine or "*" in machine or "$" in machine:
+        if CHUNKS_RE.match(machine) is None:
             raise WatchError(f"machine {machine!r}: give one machine's name")
-        for reply in self.session.get(f"{self.prefix}/{machine}/health", timeout=timeout,
+        for reply in self.session.get(f"{self.base}/{machine}/health", timeout=timeout,
                                       target=zenoh.QueryTarget.ALL):
             if reply.ok is not None:
                 got = decode_health(reply.ok.payload)
