@@ -202,7 +202,8 @@ def role_client(a: argparse.Namespace) -> None:
 
     boxed = a.layout == "box"  # keys twinwatch/<box>/<machine>/...: machines named <box>/<m>
     watcher = SummaryWatcher(session, prefix="twinwatch/*" if boxed else "twinwatch",
-                             on_summary=on_summary).start()
+                             on_summary=on_summary,
+                             exact=False if a.no_exact else None).start()
     sub = (session.declare_subscriber("twinwatch/*/*/health" if boxed else "twinwatch/*/health",
                                       on_health) if a.health else None)
     say(event="ready")
@@ -373,6 +374,9 @@ def main() -> None:
                     help="share of the machines publishing their full health every window "
                     "(default 0.02)")
     ap.add_argument("--cache", type=int, default=30, help="[zenoh] cache (default 30)")
+    ap.add_argument("--no-exact", action="store_true",
+                    help="the fleet client declares no subscriber per machine "
+                         "(SummaryWatcher(exact=False); the default with --layout box)")
     ap.add_argument("--layout", choices=("flat", "box"), default="flat",
                     help="keys twinwatch/<machine>/... (flat, default) or "
                          "twinwatch/<box>/<machine>/... (box: [zenoh] key_prefix per box, the "
@@ -414,13 +418,15 @@ def run(a: argparse.Namespace) -> None:
 
     def client(name: str, health: bool) -> Proc:
         args = ["--role", "client", "--endpoint", eps[2], "--expect", str(n),
-                "--layout", a.layout]
+                "--layout", a.layout] + (["--no-exact"] if a.no_exact else [])
         return Proc(args + (["--health"] if health else []), name)
 
     print(f"{n} machines on {boxes} boxes ({per[0]} each), summary interval "
           f"{a.summary_interval:g} s, full health of {a.health_share:.0%} of the machines, "
-          f"cache {a.cache}, keys {a.layout}; routers R0, R1 -> R0, R2 -> R0 + R1; boxes on R0 "
-          "and R1, the client on R2")
+          f"cache {a.cache}, keys {a.layout}, "
+          f"{'no ' if a.no_exact or a.layout == 'box' else ''}subscriber per machine; "
+          "routers R0, R1 -> R0, "
+          "R2 -> R0 + R1; boxes on R0 and R1, the client on R2")
     try:
         routers = [router(i) for i in range(3)]
         procs += routers

@@ -237,3 +237,18 @@ def test_a_fleet_laid_out_by_box_is_followed_with_a_wildcard_prefix() -> None:
         finally:
             for p in pubs:
                 p.close()
+
+
+def test_a_subscriber_per_machine_only_when_the_machines_share_one_chunk() -> None:
+    """Under one chunk (``twinwatch/<machine>``) a router matches each put against every
+    machine unless a subscriber sits on the machine's own key; under their boxes' chunks
+    (``twinwatch/*``) 10 000 such subscribers left a far client with each machine's first
+    summary only (docs/fleet.md), so none are declared there unless asked."""
+    from twinwatch.watch.session import prefix_base
+    from twinwatch.watch.summaries import SummaryWatcher
+
+    assert SummaryWatcher(object()).exact  # type: ignore[arg-type]
+    boxed = SummaryWatcher(object(), prefix="twinwatch/*")  # type: ignore[arg-type]
+    assert not boxed.exact and boxed.key == "twinwatch/*/*/summary"
+    assert SummaryWatcher(object(), prefix="acme/*", exact=True).exact  # type: ignore[arg-type]
+    assert prefix_base("acme/plant1/*/line") == "acme/plant1"

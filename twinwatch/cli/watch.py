@@ -31,7 +31,9 @@ def zenoh_options(fn: Callable[..., Any]) -> Callable[..., Any]:
     """--connect, --mode, --prefix: how ``watch``, ``tail`` and ``explain`` reach the
     daemons."""
     fn = click.option("--prefix", default="twinwatch", show_default=True,
-                      help="The daemons' [zenoh] key_prefix.")(fn)
+                      help="The daemons' [zenoh] key_prefix (with --fleet and for fleet "
+                           "report, chunks after the first may be *: twinwatch/* follows "
+                           "gateways whose key_prefix is twinwatch/<box>).")(fn)
     fn = click.option("--mode", type=click.Choice(["client", "peer"]), default="client",
                       show_default=True, help="Zenoh mode of this session.")(fn)
     return click.option("--connect", "connect", multiple=True, default=("tcp/127.0.0.1:7447",),

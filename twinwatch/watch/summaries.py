@@ -89,6 +89,14 @@ class SummaryWatcher:
         clock: wall clock [s since the epoch].
         on_summary: called with the machine and a summary newer than the one held (zenoh's
             thread).
+        exact: declare a do-nothing subscriber on each machine's own summary key
+            (:meth:`_declare_exact`): fewer route computations at the router delivering to
+            this watcher, one more declaration per machine for every router. None (default):
+            only when the prefix has no ``*`` (machines all children of one key chunk). With
+            the machines under their boxes' chunks, a put's route is matched against one
+            box's machines, and 10 000 such subscribers left the far client with the first
+            summary of each machine only (benchmarks/bench_fleet.py --layout box: every
+            machine held 81 s after the boxes started without them; docs/fleet.md).
 
     Thread-safe; use as a context manager (the subscriber is undeclared on exit).
 
@@ -98,7 +106,8 @@ class SummaryWatcher:
 
     def __init__(self, session: zenoh.Session, *, prefix: str = "twinwatch",
                  machines: str = "*", clock: Callable[[], float] = time.time,
-                 on_summary: Callable[[str, dict[str, Any]], None] | None = None) -> None:
+                 on_summary: Callable[[str, dict[str, Any]], None] | None = None,
+                 exact: bool | None = None) -> None:
         self.session = session
         self.prefix = prefix
         self.key = machines_key(prefix, machines)
@@ -113,6 +122,7 @@ class SummaryWatcher:
         self._live: Any = None
         #: machine -> a subscriber on its own summary key, which does nothing (:meth:`put`)
         self._exact: dict[str, Any] = {}
+        self.exact = "*" not in prefix.split("/") if exact is None else exact
         self._last_new = time.monotonic()
         self._token_at = -1e9
         self._ask = threading.Event()
@@ -220,7 +230,8 @@ class SummaryWatcher:
                 self._last_new = time.monotonic()
             self._received[machine] = Received(summary, now)
             self.delivered += 1
-            exact = (old is None and self._sub is not None and machine not in self._exact
+            exact = (self.exact and old is None and self._sub is not None
+                     and machine not in self._exact
                      and not self._closing.is_set())
             if exact:
                 self._exact[machine] = None   # declared below, once

@@ -1,0 +1,175 @@
+"""What a Zenoh router mesh pays to route a fleet's declarations, by the layout of the keys
+(issue 39): ``twinwatch/<machine>/...`` (flat: every machine a child of one chunk) against
+``twinwatch/<box>/<machine>/...`` (box: ``[zenoh] key_prefix = "twinwatch/<box>"``).
+
+A Zenoh 1.x router registers each key it is told about by matching it against the keys it
+holds, chunk by chunk: every child of a chunk is tried (``Resource::get_matches``; ``perf`` on
+the fleet benchmark's routers at 10 000 machines: 78-82 % of their CPU, called from
+``register_expr`` on every declaration). With N machines under one chunk, each declaration
+costs O(N) and the fleet's O(N^2); under a box's chunk, O(N / boxes + boxes).
+
+Processes, all on 127.0.0.1 (free ports, scouting off): three routers (R0; R1 -> R0; R2 -> R0
+and R1), ``--boxes`` box processes (clients, half of R0 and half of R1) declaring, per machine,
+what a gateway declares for it (the latest/history queryable on ``P/**``, the liveliness token
+``P/alive``, the health's advanced publisher with its cache and publisher detection), and a
+client on R2 following the tokens. Printed: when the far client saw every machine's token,
+when the routers went quiet (under 0.1 s of CPU in 2 s), and each router's CPU [s].
+
+    python benchmarks/bench_router_keys.py --machines 4000 --layout flat
+    python benchmarks/bench_router_keys.py --machines 10000 --layout box
+
+Measured figures: docs/fleet.md. Not part of the test suite.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from typing import Any
+
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def zconf(mode: str, listen: list[str], connect: list[str]) -> Any:
+    import zenoh
+
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(mode))
+    c.insert_json5("listen/endpoints", json.dumps(listen))
+    c.insert_json5("connect/endpoints", json.dumps(connect))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("scouting/gossip/enabled", "false")
+    return c
+
+
+def cpu_s(pid: int) -> float:
+    f = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / TICK
+
+
+def machine_key(layout: str, box: str, j: int) -> str:
+    return f"twinwatch/{box}-m{j:05d}" if layout == "flat" else f"twinwatch/{box}/{box}-m{j:05d}"
+
+
+def role_router(listen: str, connect: list[str]) -> None:
+    import zenoh
+
+    session = zenoh.open(zconf("router", [listen], connect))
+    print("ready", flush=True)
+    sys.stdin.read()
+    session.close()
+
+
+def role_box(endpoint: str, machines: int, layout: str, box: str) -> None:
+    import zenoh
+    import zenoh.ext as zx
+
+    session = zenoh.open(zconf("client", [], [endpoint]))
+    keep = []
+    for j in range(machines):
+        base = machine_key(layout, box, j)
+        keep.append(session.declare_queryable(base + "/**", lambda q: None))
+        keep.append(session.liveliness().declare_token(base + "/alive"))
+        keep.append(zx.declare_advanced_publisher(
+            session, base + "/health", cache=zx.CacheConfig(30),
+            sample_miss_detection=zx.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=1.0),
+            publisher_detection=True))
+    print("ready", flush=True)
+    sys.stdin.read()
+    os._exit(0)  # closing thousands of entities one by one is not what is measured
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--role", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--endpoint", help=argparse.SUPPRESS)
+    ap.add_argument("--connect", nargs="*", default=[], help=argparse.SUPPRESS)
+    ap.add_argument("--box", help=argparse.SUPPRESS)
+    ap.add_argument("--machines", type=int, default=4000, help="machines in all (default 4000)")
+    ap.add_argument("--boxes", type=int, default=None, help="default: one per 500 machines")
+    ap.add_argument("--layout", choices=("flat", "box"), default="flat")
+    ap.add_argument("--timeout", type=float, default=600.0, help="give up after [s]")
+    a = ap.parse_args()
+    if a.role == "router":
+        role_router(a.endpoint, a.connect)
+        return
+    if a.role == "box":
+        role_box(a.endpoint, a.machines, a.layout, a.box)
+        return
+    import zenoh
+
+    boxes = a.boxes or max(2, a.machines // 500)
+    per = a.machines // boxes
+    n = per * boxes
+    eps = [f"tcp/127.0.0.1:{free_port()}" for _ in range(3)]
+    connect = [[], [eps[0]], [eps[0], eps[1]]]
+
+    def spawn(*args: str) -> subprocess.Popen[str]:
+        return subprocess.Popen([sys.executable, __file__, *args], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, text=True)
+
+    print(f"{n} machines on {boxes} boxes, keys {a.layout} "
+          f"({machine_key(a.layout, 'b00', 0)}/...); routers R0, R1 -> R0, R2 -> R0 + R1")
+    routers = [spawn("--role", "router", "--endpoint", eps[i], "--connect", *connect[i])
+               for i in range(3)]
+    procs = list(routers)
+    try:
+        for r in routers:
+            r.stdout.readline()  # type: ignore[union-attr]
+        client = zenoh.open(zconf("client", [], [eps[2]]))
+        seen: set[str] = set()
+        pattern = "twinwatch/*/alive" if a.layout == "flat" else "twinwatch/*/*/alive"
+        sub = client.liveliness().declare_subscriber(
+            pattern, lambda s: seen.add(str(s.key_expr)))
+        c0 = [cpu_s(r.pid) for r in routers]
+        t0 = time.monotonic()
+        boxes_p = [spawn("--role", "box", "--endpoint", eps[i % 2], "--machines", str(per),
+                         "--layout", a.layout, "--box", f"b{i:02d}") for i in range(boxes)]
+        procs += boxes_p
+        for b in boxes_p:
+            b.stdout.readline()  # type: ignore[union-attr]
+        declared = time.monotonic() - t0
+        while len(seen) < n and time.monotonic() - t0 < a.timeout:
+            time.sleep(0.5)
+        all_seen = time.monotonic() - t0
+        prev = [cpu_s(r.pid) for r in routers]
+        while time.monotonic() - t0 < a.timeout:
+            time.sleep(2.0)
+            cur = [cpu_s(r.pid) for r in routers]
+            if max(c - p for c, p in zip(cur, prev, strict=True)) < 0.1:
+                break
+            prev = cur
+        quiet = time.monotonic() - t0
+        used = [cpu_s(r.pid) - c for r, c in zip(routers, c0, strict=True)]
+        print(f"boxes declared their machines in {declared:.1f} s; the far client saw "
+              f"{len(seen)} of {n} tokens after {all_seen:.1f} s; routers quiet after "
+              f"{quiet:.1f} s; router CPU R0 {used[0]:.1f} s, R1 {used[1]:.1f} s, "
+              f"R2 {used[2]:.1f} s; load average {os.getloadavg()[0]:.1f} (2 cores)")
+        sub.undeclare()
+    finally:
+        for p in procs:
+            try:
+                p.stdin.close()  # type: ignore[union-attr]
+            except OSError:
+                pass
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+    os._exit(0)  # the client session's close is not what is measured
+
+
+if __name__ == "__main__":
+    main()
