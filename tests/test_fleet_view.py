@@ -234,6 +234,10 @@ def test_a_fleet_laid_out_by_box_is_followed_with_a_wildcard_prefix() -> None:
             bad = runner.invoke(main, ["watch", "--fleet", "--connect", ep, "--prefix",
                                        "*/twinwatch", "--once"])
             assert bad.exit_code != 0 and "first plain" in bad.output
+            full_health = runner.invoke(main, ["watch", "--connect", ep, "--prefix",
+                                               "twinwatch/*", "--once"])
+            assert full_health.exit_code != 0 and "goes with watch --fleet" in (
+                full_health.output)
         finally:
             for p in pubs:
                 p.close()

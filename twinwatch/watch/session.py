@@ -60,8 +60,10 @@ def check_prefix(prefix: str) -> str:
         WatchError: it is empty or has wildcards or reserved characters.
     """
     if CHUNKS_RE.match(prefix) is None:
+        hint = (": a * in the prefix goes with watch --fleet and fleet report (the summaries); "
+                "for the full health give one box's prefix" if "*" in prefix.split("/") else "")
         raise WatchError(f"key prefix {prefix!r} must be chunks of letters, digits, '_', '-' or "
-                         "'.' separated by '/' (the daemons' [zenoh] key_prefix)")
+                         f"'.' separated by '/' (the daemons' [zenoh] key_prefix){hint}")
     return prefix
 
 
