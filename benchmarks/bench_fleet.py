@@ -194,8 +194,11 @@ def role_client(a: argparse.Namespace) -> None:
     received: list[tuple[str, int]] = []
     health = [0]
 
+    def short(machine: str) -> str:  # <box>/<name> (--layout box) -> <name>, as the boxes log
+        return machine.rsplit("/", 1)[-1]
+
     def on_summary(machine: str, s: dict[str, Any]) -> None:
-        received.append((machine.rsplit("/", 1)[-1], s.get("window", -1)))
+        received.append((short(machine), s.get("window", -1)))
 
     def on_health(sample: Any) -> None:
         health[0] += 1
@@ -215,8 +218,7 @@ def role_client(a: argparse.Namespace) -> None:
             if not cmd:
                 continue
             if cmd[0] == "dump":
-                held = {m.rsplit("/", 1)[-1]: r.summary.get("window")
-                        for m, r in watcher.received.items()}
+                held = {short(m): r.summary.get("window") for m, r in watcher.received.items()}
                 Path(cmd[1]).write_text(json.dumps(held))
                 say(event="dumped", held=len(held), delivered=len(received), health=health[0],
                     rss_kb=_rss_kb(), rss0_kb=rss0)
@@ -259,7 +261,7 @@ def role_client(a: argparse.Namespace) -> None:
             last_progress = time.monotonic()
             boxes: dict[str, int] = {}
             for m in watcher.received:
-                b = m.rsplit("/", 1)[-1].split("-")[0]
+                b = short(m).split("-")[0]
                 boxes[b] = boxes.get(b, 0) + 1
             say(event="progress", held=held, after_s=round(last_progress - t_open, 1),
                 boxes=boxes)
@@ -439,8 +441,7 @@ def run(a: argparse.Namespace) -> None:
           f"{a.summary_interval:g} s, full health of {a.health_share:.0%} of the machines, "
           f"cache {a.cache}, keys {a.layout}, "
           f"{'no ' if a.no_exact or a.layout == 'box' else ''}subscriber per machine; "
-          "routers R0, R1 -> R0, "
-          "R2 -> R0 + R1; boxes on R0 and R1, the client on R2")
+          "routers R0, R1 -> R0, R2 -> R0 + R1; boxes on R0 and R1, the client on R2")
     try:
         routers = [router(i) for i in range(3)]
         procs += routers
@@ -453,8 +454,8 @@ def run(a: argparse.Namespace) -> None:
             name = f"b{i:02d}"
             p = Proc(["--role", "box", "--endpoint", eps[i % 2], "--box", name, "--machines",
                       str(per[i]), "--interval", str(a.summary_interval), "--layout", a.layout,
-                      "--health-share",
-                      str(a.health_share), "--cache", str(a.cache), "--recording", str(rec),
+                      "--health-share", str(a.health_share), "--cache", str(a.cache),
+                      "--recording", str(rec),
                       "--log", str(tmp / f"{name}.log.json")], name, nice=a.nice)
             box_procs.append(p)
         procs += box_procs

@@ -24,27 +24,12 @@ Measured figures: docs/fleet.md. Not part of the test suite.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import socket
 import subprocess
 import sys
 import time
-from typing import Any
 
-TICK = os.sysconf("SC_CLK_TCK")
-
-
-def zconf(mode: str, listen: list[str], connect: list[str]) -> Any:
-    import zenoh
-
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps(mode))
-    c.insert_json5("listen/endpoints", json.dumps(listen))
-    c.insert_json5("connect/endpoints", json.dumps(connect))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("scouting/gossip/enabled", "false")
-    return c
+from bench_fleet import TICK, free_port, zconf  # the fleet benchmark's loopback set-up
 
 
 def cpu_s(pid: int) -> float:
@@ -70,7 +55,7 @@ def role_box(endpoint: str, machines: int, layout: str, box: str) -> None:
     import zenoh.ext as zx
 
     session = zenoh.open(zconf("client", [], [endpoint]))
-    keep = []
+    keep: list[object] = []
     for j in range(machines):
         base = machine_key(layout, box, j)
         keep.append(session.declare_queryable(base + "/**", lambda q: None))
@@ -82,12 +67,6 @@ def role_box(endpoint: str, machines: int, layout: str, box: str) -> None:
     print("ready", flush=True)
     sys.stdin.read()
     os._exit(0)  # closing thousands of entities one by one is not what is measured
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def main() -> None:

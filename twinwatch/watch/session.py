@@ -77,13 +77,13 @@ def check_fleet_prefix(prefix: str) -> str:
     (``twinwatch/*`` follows ``twinwatch/gw-line1/<machine>``, ``twinwatch/gw-line2/...``).
 
     Raises:
-        WatchError: the first chunk is not plain, or a chunk has other wildcards or reserved
+        WatchError: the first chunk is a wildcard, or a chunk has other wildcards or reserved
             characters.
     """
     if FLEET_PREFIX_RE.match(prefix) is None:
         raise WatchError(f"key prefix {prefix!r} must be chunks of letters, digits, '_', '-' "
-                         "or '.' separated by '/', the first plain and any other may be * "
-                         "(one chunk: twinwatch/* for key prefixes twinwatch/<box>)")
+                         "or '.' separated by '/'; a chunk after the first may be a whole * "
+                         "(twinwatch/* follows gateways whose key_prefix is twinwatch/<box>)")
     return prefix
 
 
