@@ -4,6 +4,7 @@ configurations; the Zenoh session shared by the machines configured alike."""
 
 from __future__ import annotations
 
+import json
 import socket
 import threading
 import time
@@ -109,6 +110,47 @@ def test_machines_configured_alike_share_one_zenoh_session() -> None:
         p1.close()
         p2.close()
     assert shared.keys() == []  # the last one closed it
+
+
+def test_machines_sharing_a_session_answer_gets_through_one_queryable_per_prefix() -> None:
+    """A gateway declares one queryable per session and key prefix, not one per machine (a
+    fleet's routers match every machine's P/** otherwise: docs/fleet.md); a get still reaches
+    exactly the machines its key names, each replying on its own keys."""
+    zenoh = pytest.importorskip("zenoh")
+    port = _free_port()
+    cfg = ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])
+    other = cfg.model_copy(update={"key_prefix": "plant2"})
+    shared = SharedResources()
+    pubs = {m: HealthPublisher.from_config(c, SinkContext(machine=m, shared=shared))
+            for m, c in (("m1", cfg), ("m2", cfg), ("m3", other))}
+    conf = to_zenoh_config(ZenohConfig(mode="client", listen=[],
+                                       connect=[f"tcp/127.0.0.1:{port}"]))
+
+    def get(session: Any, key: str) -> dict[str, Any]:
+        return {str(r.ok.key_expr): json.loads(r.ok.payload.to_string())
+                for r in session.get(key, timeout=5.0) if r.ok is not None}
+
+    try:
+        assert len({p.session for p in pubs.values()}) == 1
+        assert sorted(k.split("|")[-1] for k in shared.keys() if "|queryable|" in k) == [
+            "plant2", "twinwatch"]
+        for m, p in pubs.items():
+            p.publish({"window": int(m[1])})
+        with zenoh.open(conf) as session:
+            assert get(session, "twinwatch/m1/health") == {"twinwatch/m1/health": {"window": 1}}
+            assert get(session, "twinwatch/*/health") == {"twinwatch/m1/health": {"window": 1},
+                                                          "twinwatch/m2/health": {"window": 2}}
+            assert get(session, "plant2/**") == {"plant2/m3/health": {"window": 3}}
+            pubs["m1"].close()
+            assert get(session, "twinwatch/*/health") == {"twinwatch/m2/health": {"window": 2}}
+            pubs["m2"].close()
+            assert not any("|queryable|twinwatch" in k for k in shared.keys())
+            assert get(session, "twinwatch/**") == {}
+            assert get(session, "plant2/m3/health") == {"plant2/m3/health": {"window": 3}}
+    finally:
+        for p in pubs.values():
+            p.close()
+    assert shared.keys() == []
 
 
 @pytest.mark.slow

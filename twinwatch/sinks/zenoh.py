@@ -22,10 +22,12 @@ with ``P = {key_prefix}/{machine}``:
 * a liveliness token ``P/alive``, present while the publisher is open: a remote process sees the
   machine appear and disappear with ``session.liveliness().declare_subscriber(...)`` or polls it
   with ``session.liveliness().get(...)``;
-* one queryable on ``P/**`` that answers a ``session.get(selector)`` with the *latest* payload of
-  every topic above whose key intersects the selector: ``get("twinwatch/m1/health")`` returns
-  the last health document, ``get("twinwatch/m1/**")`` the last health and the last alarm.
-  Topics not published yet are not answered (the get ends with no reply).
+* one queryable on ``P/**`` (in a gateway, one on ``<key_prefix>/**`` for every machine sharing
+  the session: :class:`QueryDispatch`) that answers a ``session.get(selector)`` with the
+  *latest* payload of every topic above whose key intersects the selector:
+  ``get("twinwatch/m1/health")`` returns the last health document, ``get("twinwatch/m1/**")``
+  the last health and the last alarm. Topics not published yet are not answered (the get
+  ends with no reply).
 
 * handlers added with :meth:`HealthPublisher.add_query_handler` answer their own key under the
   same queryable; opened as the daemon's output (:meth:`HealthPublisher.from_config`) it serves
@@ -111,6 +113,7 @@ __all__ = [
     "HISTORY_LIMIT",
     "HealthPublisher",
     "PublisherError",
+    "QueryDispatch",
     "ZenohAuthConfig",
     "ZenohConfig",
     "ZenohTlsConfig",
@@ -537,6 +540,61 @@ def _client(query: zenoh.Query) -> str:
     return f"peer {zid}" if zid is not None else "a peer"
 
 
+class QueryDispatch:
+    """One queryable on ``<key_prefix>/**`` answering the gets of every machine that shares a
+    session in a gateway (:class:`~twinwatch.sinks.base.SharedResources`), each asked only
+    when the get's key expression reaches its ``<key_prefix>/<machine>/**``.
+
+    A queryable per machine on ``P/**`` made every router of a fleet match each machine's
+    wildcard key against the keys it holds: at 10 000 machines behind a three-router mesh the
+    far end saw every machine 40 s after their boxes started and 12.7 s after a router
+    restart; one per box, 14 s and 7.3 s, with a third of the routers' CPU
+    (benchmarks/bench_router_keys.py, docs/fleet.md). A get sees no difference: each machine
+    replies on its own keys.
+
+    Args:
+        session: the shared session.
+        prefix: the machines' ``[zenoh] key_prefix``.
+
+    Raises:
+        zenoh.ZError: the queryable could not be declared (the session closed).
+    """
+
+    def __init__(self, session: zenoh.Session, prefix: str) -> None:
+        self.prefix = prefix
+        self._lock = threading.Lock()
+        self._machines: dict[str, tuple[zenoh.KeyExpr, Callable[[zenoh.Query], None]]] = {}
+        self._queryable = session.declare_queryable(f"{prefix}/**", self._on_query)
+
+    def add(self, machine: str, answer: Callable[[zenoh.Query], None]) -> None:
+        """Answer the gets reaching ``<prefix>/<machine>/**`` with ``answer(query)`` (which
+        replies and does not drop the query)."""
+        with self._lock:
+            self._machines[machine] = (zenoh.KeyExpr(f"{self.prefix}/{machine}/**"), answer)
+
+    def remove(self, machine: str) -> None:
+        """Stop answering for ``machine`` (a get running meanwhile may still reach it)."""
+        with self._lock:
+            self._machines.pop(machine, None)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with self._lock:
+            machines = list(self._machines.values())
+        try:
+            for key, answer in machines:
+                if query.key_expr.intersects(key):
+                    answer(query)
+        finally:
+            query.drop()
+
+    def close(self) -> None:
+        """Undeclare the queryable (waits for a running callback)."""
+        try:
+            self._queryable.undeclare()
+        except zenoh.ZError as exc:
+            logger.warning("closing the zenoh queryable on %s/** failed: %s", self.prefix, exc)
+
+
 class HealthPublisher(Sink):
     """Publishes one machine's health (and other JSON topics) on zenoh: the built-in output
     ``zenoh`` (table ``[zenoh]``, a publisher: it gets only the windows the state store stored).
@@ -597,6 +655,9 @@ class HealthPublisher(Sink):
         self._detached = False
         self._shared = shared
         self._shared_key: str | None = None
+        # in a gateway, the queryable every machine of the shared session answers through
+        self._dispatch: QueryDispatch | None = None
+        self._dispatch_key: str | None = None
         if not config.enabled:
             logger.info("zenoh publishing disabled for %s", machine)
             return
@@ -644,11 +705,23 @@ class HealthPublisher(Sink):
 
     def _attach(self, session: zenoh.Session) -> None:
         """Declare the health publisher, queryable and token on ``session`` and use it."""
+        queryable: zenoh.Queryable[None] | None = None
         try:
             publisher = declare_publisher(session, self.health_key, self.config)
-            queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
+            if self._shared is not None and self._shared_key is not None:
+                self._dispatch_key = (f"{self._shared_key}|queryable|"
+                                      f"{self.config.key_prefix}")
+                dispatch: QueryDispatch = self._shared.acquire(
+                    self._dispatch_key,
+                    lambda: QueryDispatch(session, self.config.key_prefix),
+                    QueryDispatch.close)
+                dispatch.add(self.machine, self._answer)
+                self._dispatch = dispatch
+            else:
+                queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
             token = session.liveliness().declare_token(self.alive_key)
         except zenoh.ZError as exc:
+            self._leave_dispatch()
             self._close_session(session)
             raise PublisherError(
                 f"cannot declare zenoh entities under {self.base_key}: {exc}"
@@ -892,8 +965,25 @@ class HealthPublisher(Sink):
                 logger.info("publishing on %s works again", key)
                 self._failing = False
 
+    def _leave_dispatch(self) -> None:
+        """Stop answering through the gateway's queryable; the last machine undeclares it."""
+        dispatch, key = self._dispatch, self._dispatch_key
+        self._dispatch = self._dispatch_key = None
+        if dispatch is not None:
+            dispatch.remove(self.machine)
+        if self._shared is not None and key is not None:
+            self._shared.release(key)
+
     def _on_query(self, query: zenoh.Query) -> None:
-        """Answer a get with the latest payload of every topic its key expression intersects."""
+        """Answer a get on this machine's own queryable (:meth:`_answer`), then drop it."""
+        try:
+            self._answer(query)
+        finally:
+            query.drop()
+
+    def _answer(self, query: zenoh.Query) -> None:
+        """Answer a get with the latest payload of every topic its key expression intersects
+        and the handlers' answers (the query is not dropped: the caller does)."""
         with self._lock:
             latest = list(self._latest.items())
         try:
@@ -920,8 +1010,6 @@ class HealthPublisher(Sink):
                 query.reply(key, to_json(answer), encoding=zenoh.Encoding.APPLICATION_JSON)
         except zenoh.ZError as exc:
             logger.debug("replying to query %s failed: %s", query.selector, exc)
-        finally:
-            query.drop()
 
     def close(self) -> None:
         """Undeclare the token, queryable and publishers, then close the session. Idempotent."""
@@ -943,6 +1031,7 @@ class HealthPublisher(Sink):
             steps.append(("liveliness token", token.undeclare))
         if queryable is not None:
             steps.append(("queryable", queryable.undeclare))
+        steps.append(("gateway's queryable", self._leave_dispatch))
         steps += [("publisher", p.undeclare) for p in publishers]
         if session is not None:
             steps.append(("session", lambda: self._close_session(session)))
