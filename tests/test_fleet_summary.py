@@ -265,3 +265,72 @@ def test_after_a_router_outage_the_watcher_gets_each_machines_latest_again() -> 
         for p in pubs.values():
             p.close()
         router.stop()
+
+
+def test_machines_back_from_a_router_are_asked_by_their_box_not_the_whole_fleet() -> None:
+    """A router's boxes back at once: one get per box whose machines came back (the others'
+    machines are not asked again); a few machines one by one; flat keys one get for all."""
+    boxed = SummaryWatcher(object(), prefix="twinwatch/*", machines="line1-$*")  # type: ignore[arg-type]
+    many = {f"gw-{b}/line1-m{j:02d}" for b in ("a", "b") for j in range(15)}
+    assert boxed._reask_keys(many) == ["twinwatch/gw-a/line1-$*/summary",
+                                       "twinwatch/gw-b/line1-$*/summary"]
+    assert boxed._reask_keys({"gw-a/m1", "gw-b/m2"}) == ["twinwatch/gw-a/m1/summary",
+                                                          "twinwatch/gw-b/m2/summary"]
+    flat = SummaryWatcher(object(), prefix="twinwatch")  # type: ignore[arg-type]
+    assert flat._reask_keys({f"m{j:02d}" for j in range(30)}) == ["twinwatch/*/summary"]
+
+
+class _LateQueryables:
+    """A session whose gets find no machine's queryable for the first ``silent`` asks after
+    the start (a router back: the tokens came before its queryables were known)."""
+
+    def __init__(self, silent: int) -> None:
+        self.gets: list[str] = []
+        self.silent = silent
+        self.latest = summary(machine="m1", window=2, level="alarm")
+
+    def declare_subscriber(self, key: str, callback: Any) -> Any:
+        return SimpleNamespace(undeclare=lambda: None)
+
+    def liveliness(self) -> Any:
+        return self
+
+    def get(self, key: str, handler: Any, **kw: Any) -> None:
+        self.gets.append(key)
+        if len(self.gets) > 1 + self.silent:  # the first ask, then the silent ones
+            sample = SimpleNamespace(key_expr="twinwatch/m1/summary",
+                                     payload=SimpleNamespace(to_string=lambda: json.dumps(
+                                         self.latest)))
+            handler.callback(SimpleNamespace(ok=sample))
+        handler.drop()
+
+
+def test_a_machine_back_that_does_not_answer_is_asked_again_until_it_does(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import zenoh
+
+    from twinwatch.watch import summaries
+
+    monkeypatch.setattr(summaries, "REASK_RETRIES_S", (0.2, 0.4, 0.8, 1.6))
+
+    session = _LateQueryables(silent=2)
+    with SummaryWatcher(session) as watcher:  # type: ignore[arg-type]
+        assert watcher.queried.wait(5.0)
+        watcher.put("m1", summary(machine="m1", window=1))
+        watcher._on_token(SimpleNamespace(kind=zenoh.SampleKind.PUT,  # type: ignore[arg-type]
+                                          key_expr="twinwatch/m1/alive"))
+        wait_for(lambda: watcher.received["m1"].summary["window"] == 2, 10.0,
+                 "the machine's latest, asked again after no answer")
+        assert session.gets == ["twinwatch/*/summary"] + ["twinwatch/m1/summary"] * 3
+        time.sleep(1.5)  # answered: not asked again
+        assert len(session.gets) == 4
+    # a machine that never answers is asked a bounded number of times
+    session = _LateQueryables(silent=100)
+    with SummaryWatcher(session) as watcher:  # type: ignore[arg-type]
+        assert watcher.queried.wait(5.0)
+        watcher.put("m1", summary(machine="m1", window=1))
+        watcher._on_token(SimpleNamespace(kind=zenoh.SampleKind.PUT,  # type: ignore[arg-type]
+                                          key_expr="twinwatch/m1/alive"))
+        wait_for(lambda: len(session.gets) == 6, 15.0, "five asks of the machine back")
+        time.sleep(2.0)
+        assert len(session.gets) == 6 and watcher.received["m1"].summary["window"] == 1

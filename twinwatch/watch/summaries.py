@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import threading
 import time
 from collections.abc import Callable, Collection, Iterator, Sequence
@@ -37,17 +38,33 @@ if TYPE_CHECKING:
 else:  # imported when a session opens
     zenoh = lazy_module("zenoh")
 
+logger = logging.getLogger(__name__)
 
 LATEST_TIMEOUT_S = 20.0
 """How long one ask of every machine's latest summary may take [s] (10 000 replies through
 routers on a loaded box took about 2 s: docs/fleet.md)."""
+
+REASK_TIMEOUT_S = 5.0
+"""How long an ask of machines back may take [s]; those that did not answer by then are asked
+again (:data:`REASK_RETRIES_S`)."""
 
 REASK_QUIET_S = 0.5
 """Machines' tokens that appear again (a router back) are waited for until none came for this
 long [s], then the latest summaries are asked once."""
 
 REASK_ONE_BY_ONE = 20
-"""At most this many machines back at once are asked one by one; more: one get for all."""
+"""At most this many machines back at once are asked one by one; more: one get per box
+(:data:`REASK_BOXES`) or for all."""
+
+REASK_BOXES = 100
+"""More machines back at once under a prefix with ``*`` are asked one get per box (the chunks
+before the machine's name), for at most this many boxes; more: one get for all."""
+
+REASK_RETRIES_S = (1.0, 2.0, 4.0, 8.0)
+"""A machine back that did not answer the ask is asked again after these delays [s], one
+after the other: after a router restart its token may reach the watcher before the routers
+know its queryable (10 000 machines: every latest held 65 s after the restart, at the
+machines' next periodic summary, when only the first ask was made; docs/fleet.md)."""
 
 SETTLE_QUIET_S = 1.0
 """:meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
@@ -112,6 +129,7 @@ class SummaryWatcher:
         self.session = session
         self.prefix = prefix
         self.key = machines_key(prefix, machines)
+        self.machines = machines
         self.base = prefix_base(prefix)  # a machine's key is <base>/<its name>/<topic>
         self._clock = clock
         self._lock = threading.Lock()
@@ -128,6 +146,7 @@ class SummaryWatcher:
         self._token_at = -1e9
         self._ask = threading.Event()
         self._pending: set[str] = set()  # machines whose tokens appeared again
+        self._retries: dict[str, int] = {}  # machine back, not answering -> asks repeated
         self._closing = threading.Event()
         self._asker: threading.Thread | None = None
         self.queried = threading.Event()  # the first ask of the latest summaries ended
@@ -140,7 +159,7 @@ class SummaryWatcher:
         (``twinwatch-watch-summaries``); :attr:`queried` is set once it ended. Whenever the
         tokens of machines it holds appear again (a router back from an outage, a daemon
         restarted) their latest are asked again, once the tokens stopped coming for
-        :data:`REASK_QUIET_S` (one by one, or all at once beyond :data:`REASK_ONE_BY_ONE`)."""
+        :data:`REASK_QUIET_S` (:meth:`_reask_keys`: one by one, by box or all at once)."""
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
         self._live = self.session.liveliness().declare_subscriber(alive, self._on_token)
@@ -167,7 +186,8 @@ class SummaryWatcher:
 
     def _ask_loop(self) -> None:
         """Ask the latest summaries when :attr:`_ask` is set (at start without waiting; after
-        tokens appeared, once they stopped coming for :data:`REASK_QUIET_S`)."""
+        tokens appeared, once they stopped coming for :data:`REASK_QUIET_S`; machines back
+        that did not answer, again after :data:`REASK_RETRIES_S`)."""
         first = True
         while self._ask.wait():
             if self._closing.is_set():
@@ -179,15 +199,10 @@ class SummaryWatcher:
             self._ask.clear()
             with self._lock:
                 pending, self._pending = self._pending, set()
-            # a few machines: each its own get; more: one get for all (each answers once)
-            keys = ([self.key] if first or len(pending) > REASK_ONE_BY_ONE else
-                    [f"{self.base}/{m}/summary" for m in sorted(pending)])
+            keys = [self.key] if first else self._reask_keys(pending)
+            t0 = time.monotonic()
             try:
-                for key in keys:
-                    for reply in self.session.get(key, target=zenoh.QueryTarget.ALL,
-                                                  timeout=LATEST_TIMEOUT_S):
-                        if reply.ok is not None:
-                            self._on_sample(reply.ok)
+                answered = self._get_all(keys, LATEST_TIMEOUT_S if first else REASK_TIMEOUT_S)
                 self.asked += 1
             except zenoh.ZError:  # the session closed under the query
                 return
@@ -195,18 +210,84 @@ class SummaryWatcher:
                 if first:
                     self.queried.set()
                     self.changed.set()
-                first = False
+            again = set() if first else self._retry(pending - answered, answered)
+            logger.debug("asked the latest summaries (%s): %d answered in %.1f s; %d machines "
+                         "back that did not answer asked again", "all" if first else
+                         f"{len(pending)} machines back, {len(keys)} gets", len(answered),
+                         time.monotonic() - t0, len(again))
+            first = False
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
+    def _get_all(self, keys: list[str], timeout: float) -> set[str]:
+        """Send a get (target ALL) on each of ``keys`` at once, hold every summary replied
+        until each ended or ``timeout`` [s] passed; returns the machines that answered (a
+        router's ten boxes asked one after the other took 38 s at 10 000 machines).
+
+        Raises:
+            zenoh.ZError: the session closed.
+        """
+        answered: set[str] = set()
+        ended = [threading.Event() for _ in keys]
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                machine = self._on_sample(reply.ok)
+                if machine is not None:
+                    answered.add(machine)
+
+        for key, end in zip(keys, ended, strict=True):
+            self.session.get(key, zenoh.handlers.Callback(on_reply, end.set),
+                             target=zenoh.QueryTarget.ALL, timeout=timeout)
+        deadline = time.monotonic() + timeout + 1.0
+        for end in ended:
+            if not end.wait(max(deadline - time.monotonic(), 0.0)):
+                break
+        return set(answered)
+
+    def _retry(self, missing: set[str], answered: set[str]) -> set[str]:
+        """Ask ``missing`` machines again after the next of :data:`REASK_RETRIES_S` (each at
+        most that many times); returns those asked again."""
+        for m in answered:
+            self._retries.pop(m, None)
+        again = {m for m in missing if self._retries.get(m, 0) < len(REASK_RETRIES_S)}
+        for m in missing - again:
+            self._retries.pop(m, None)
+        if not again:
+            return again
+        delay = REASK_RETRIES_S[min(self._retries.get(m, 0) for m in again)]
+        for m in again:
+            self._retries[m] = self._retries.get(m, 0) + 1
+        with self._lock:
+            self._pending |= again
+        # the loop asks once REASK_QUIET_S passed since _token_at: delay from now
+        self._token_at = max(self._token_at, time.monotonic() + delay - REASK_QUIET_S)
+        self._ask.set()
+        return again
+
+    def _reask_keys(self, pending: set[str]) -> list[str]:
+        """The gets that ask ``pending`` machines' latest summaries again: a few machines
+        (:data:`REASK_ONE_BY_ONE`), each its own; more, under a prefix with ``*``, one get per
+        box whose machines came back (a router's boxes: at 10 000 machines a get for all
+        made every box answer for machines the watcher already held,
+        benchmarks/bench_fleet.py); else one get for all."""
+        if len(pending) <= REASK_ONE_BY_ONE:
+            return [f"{self.base}/{m}/summary" for m in sorted(pending)]
+        boxes = {m.rpartition("/")[0] for m in pending}
+        if "" in boxes or len(boxes) > REASK_BOXES:
+            return [self.key]
+        return [f"{self.base}/{b}/{self.machines}/summary" for b in sorted(boxes)]
+
+    def _on_sample(self, sample: zenoh.Sample) -> str | None:
+        """Hold a summary's sample (:meth:`put`); returns its machine (None: not a summary)."""
         try:
             doc = json.loads(sample.payload.to_string())
         except (ValueError, UnicodeDecodeError):
-            return
+            return None
         if not isinstance(doc, dict):
-            return
+            return None
         key = str(sample.key_expr)
         machine = key[len(self.base) + 1:-len("/summary")]
         self.put(machine, doc)
+        return machine
 
     def put(self, machine: str, summary: dict[str, Any]) -> bool:
         """Hold ``summary`` as ``machine``'s latest unless it is older than the one held (the
