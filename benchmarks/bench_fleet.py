@@ -180,6 +180,7 @@ def _rss_kb(pid: int | str = "self") -> int:
 
 def role_client(a: argparse.Namespace) -> None:
     import io
+    import logging
 
     import zenoh
     from rich.console import Console
@@ -188,6 +189,10 @@ def role_client(a: argparse.Namespace) -> None:
     from twinwatch.watch.render_fleet import render_fleet
     from twinwatch.watch.summaries import SummaryWatcher
 
+    # the watcher's asks (how many machines answered, asked again) on stderr, timed
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
+                        format=f"  [{a.name}] %(relativeCreated).0f ms %(message)s")
+    logging.getLogger("twinwatch.watch.summaries").setLevel(logging.DEBUG)
     rss0 = _rss_kb()
     t_open = time.monotonic()
     session = zenoh.open(zconf("client", [], [a.endpoint]))
@@ -376,6 +381,7 @@ def main() -> None:
     ap.add_argument("--endpoint", help=argparse.SUPPRESS)
     ap.add_argument("--connect", nargs="*", default=[], help=argparse.SUPPRESS)
     ap.add_argument("--box", help=argparse.SUPPRESS)
+    ap.add_argument("--name", default="client", help=argparse.SUPPRESS)
     ap.add_argument("--log", help=argparse.SUPPRESS)
     ap.add_argument("--expect", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--health", action="store_true", help=argparse.SUPPRESS)
@@ -433,7 +439,7 @@ def run(a: argparse.Namespace) -> None:
         return p
 
     def client(name: str, health: bool) -> Proc:
-        args = ["--role", "client", "--endpoint", eps[2], "--expect", str(n),
+        args = ["--role", "client", "--name", name, "--endpoint", eps[2], "--expect", str(n),
                 "--layout", a.layout] + (["--no-exact"] if a.no_exact else [])
         return Proc(args + (["--health"] if health else []), name)
 

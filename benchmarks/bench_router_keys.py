@@ -29,7 +29,12 @@ import subprocess
 import sys
 import time
 
-from bench_fleet import TICK, free_port, zconf  # the fleet benchmark's loopback set-up
+from bench_fleet import (  # the fleet benchmark's loopback set-up
+    TICK,
+    free_port,
+    role_router,
+    zconf,
+)
 
 
 def cpu_s(pid: int) -> float:
@@ -41,24 +46,19 @@ def machine_key(layout: str, box: str, j: int) -> str:
     return f"twinwatch/{box}-m{j:05d}" if layout == "flat" else f"twinwatch/{box}/{box}-m{j:05d}"
 
 
-def role_router(listen: str, connect: list[str]) -> None:
-    import zenoh
-
-    session = zenoh.open(zconf("router", [listen], connect))
-    print("ready", flush=True)
-    sys.stdin.read()
-    session.close()
-
-
-def role_box(endpoint: str, machines: int, layout: str, box: str) -> None:
+def role_box(endpoint: str, machines: int, layout: str, box: str, entities: str) -> None:
     import zenoh
     import zenoh.ext as zx
 
     session = zenoh.open(zconf("client", [], [endpoint]))
     keep: list[object] = []
+    if entities == "box-queryable" and layout == "box":
+        keep.append(session.declare_queryable(f"twinwatch/{box}/**", lambda q: None))
     for j in range(machines):
         base = machine_key(layout, box, j)
-        keep.append(session.declare_queryable(base + "/**", lambda q: None))
+        if entities == "machine":
+            keep.append(session.declare_queryable(base + "/**", lambda q: None))
+        keep.append(session.declare_publisher(base + "/summary"))
         keep.append(session.liveliness().declare_token(base + "/alive"))
         keep.append(zx.declare_advanced_publisher(
             session, base + "/health", cache=zx.CacheConfig(30),
@@ -79,12 +79,19 @@ def main() -> None:
     ap.add_argument("--boxes", type=int, default=None, help="default: one per 500 machines")
     ap.add_argument("--layout", choices=("flat", "box"), default="flat")
     ap.add_argument("--timeout", type=float, default=600.0, help="give up after [s]")
+    ap.add_argument("--entities", choices=("machine", "box-queryable"), default="machine",
+                    help="per machine a latest/history queryable on P/** (machine, default) "
+                    "or one queryable per box on twinwatch/<box>/** (box-queryable, "
+                    "--layout box)")
+    ap.add_argument("--restart", type=float, default=None,
+                    help="then kill R1, restart it after this many seconds and time until "
+                    "the far client sees every token again")
     a = ap.parse_args()
     if a.role == "router":
         role_router(a.endpoint, a.connect)
         return
     if a.role == "box":
-        role_box(a.endpoint, a.machines, a.layout, a.box)
+        role_box(a.endpoint, a.machines, a.layout, a.box, a.entities)
         return
     import zenoh
 
@@ -108,13 +115,23 @@ def main() -> None:
             r.stdout.readline()  # type: ignore[union-attr]
         client = zenoh.open(zconf("client", [], [eps[2]]))
         seen: set[str] = set()
-        pattern = "twinwatch/*/alive" if a.layout == "flat" else "twinwatch/*/*/alive"
-        sub = client.liveliness().declare_subscriber(
-            pattern, lambda s: seen.add(str(s.key_expr)))
+        alive: set[str] = set()  # tokens present now (gone on DELETE: their router killed)
+        pattern = "twinwatch/*/*/alive" if a.layout == "box" else "twinwatch/*/alive"
+
+        def on_token(s: zenoh.Sample) -> None:
+            key = str(s.key_expr)
+            if s.kind == zenoh.SampleKind.PUT:
+                seen.add(key)
+                alive.add(key)
+            else:
+                alive.discard(key)
+
+        sub = client.liveliness().declare_subscriber(pattern, on_token)
         c0 = [cpu_s(r.pid) for r in routers]
         t0 = time.monotonic()
         boxes_p = [spawn("--role", "box", "--endpoint", eps[i % 2], "--machines", str(per),
-                         "--layout", a.layout, "--box", f"b{i:02d}") for i in range(boxes)]
+                         "--layout", a.layout, "--box", f"b{i:02d}", "--entities", a.entities)
+                   for i in range(boxes)]
         procs += boxes_p
         for b in boxes_p:
             b.stdout.readline()  # type: ignore[union-attr]
@@ -135,6 +152,30 @@ def main() -> None:
               f"{len(seen)} of {n} tokens after {all_seen:.1f} s; routers quiet after "
               f"{quiet:.1f} s; router CPU R0 {used[0]:.1f} s, R1 {used[1]:.1f} s, "
               f"R2 {used[2]:.1f} s; load average {os.getloadavg()[0]:.1f} (2 cores)")
+        if a.restart is not None:
+            c0 = [cpu_s(r.pid) for r in routers]
+            t_kill = time.monotonic()
+            routers[1].kill()
+            routers[1].wait()
+            while len(alive) > n - n // 2 and time.monotonic() - t_kill < 60:
+                time.sleep(0.1)
+            gone = n - len(alive)
+            time.sleep(max(a.restart - (time.monotonic() - t_kill), 0.0))
+            routers[1] = spawn("--role", "router", "--endpoint", eps[1], "--connect",
+                               *connect[1])
+            procs.append(routers[1])
+            routers[1].stdout.readline()  # type: ignore[union-attr]
+            c0[1] = 0.0  # a new process: its CPU from 0
+            t_up = time.monotonic()
+            while len(alive) < n and time.monotonic() - t_up < a.timeout:
+                time.sleep(0.1)
+            back = time.monotonic() - t_up
+            used = [cpu_s(r.pid) - c for r, c in zip(routers, c0, strict=True)]
+            print(f"R1 killed: {gone} tokens gone at the far client; restarted after "
+                  f"{t_up - t_kill:.1f} s; every token back {back:.1f} s later "
+                  f"({len(alive)} of {n}); router CPU meanwhile R0 {used[0]:.1f} s, "
+                  f"R1 {used[1]:.1f} s, R2 {used[2]:.1f} s; load average "
+                  f"{os.getloadavg()[0]:.1f}")
         sub.undeclare()
     finally:
         for p in procs:
