@@ -110,7 +110,8 @@ def role_box(a: argparse.Namespace) -> None:
     n_rec = len(summaries)
     shared = SharedResources()
     prefix = f"twinwatch/{a.box}" if a.layout == "box" else "twinwatch"
-    cfg = ZenohConfig(mode="client", connect=[a.endpoint], summary_interval=a.interval,
+    cfg = ZenohConfig(mode="client", connect=[a.endpoint, *a.connect],
+                      summary_interval=a.interval,
                       box=a.box, cache=a.cache, key_prefix=prefix)
     names = [f"{a.box}-m{j:05d}" for j in range(a.machines)]
     t0 = time.monotonic()
@@ -403,6 +404,10 @@ def main() -> None:
                     help="keys twinwatch/<machine>/... (flat, default) or "
                          "twinwatch/<box>/<machine>/... (box: [zenoh] key_prefix per box, the "
                          "client on twinwatch/*)")
+    ap.add_argument("--failover", action="store_true",
+                    help="each box lists the other router too ([zenoh] connect = [its router, "
+                    "the other]): a box whose router is killed goes to the other, and the "
+                    "catch-up is timed from the kill")
     ap.add_argument("--steady", type=float, default=30.0, help="steady-state measure [s]")
     ap.add_argument("--outage", type=float, default=5.0, help="router R1 down for [s]")
     ap.add_argument("--recording", type=Path, default=None,
@@ -458,7 +463,9 @@ def run(a: argparse.Namespace) -> None:
         box_procs = []
         for i in range(boxes):
             name = f"b{i:02d}"
-            p = Proc(["--role", "box", "--endpoint", eps[i % 2], "--box", name, "--machines",
+            p = Proc(["--role", "box", "--endpoint", eps[i % 2],
+                      *(["--connect", eps[1 - i % 2]] if a.failover else []),
+                      "--box", name, "--machines",
                       str(per[i]), "--interval", str(a.summary_interval), "--layout", a.layout,
                       "--health-share", str(a.health_share), "--cache", str(a.cache),
                       "--recording", str(rec),
@@ -541,22 +548,38 @@ def run(a: argparse.Namespace) -> None:
         held_before = dump(watch, tmp / "k0.json")["data"]
         t_kill, w_kill = time.monotonic(), time.time()
         routers[1].kill()
-        time.sleep(a.outage)
+
+        def is_behind(held: int | None, latest: int) -> bool:
+            return (held if held is not None else -1) < latest
+
+        def catch_up(since: float) -> tuple[float | None, list[str], dict[str, Any]]:
+            """Until the client holds every box's latest summary (or 120 s): the time [s]
+            from ``since``, the machines behind at the end, what the client held."""
+            lag: list[str] = []
+            held: dict[str, Any] = {}
+            while time.monotonic() - since < 120:
+                latest = box_latest()
+                time.sleep(0.3)
+                held = dump(watch, tmp / "k1.json")["data"]
+                lag = [m for m, w in latest.items() if is_behind(held.get(m), w)]
+                if not lag:
+                    return time.monotonic() - since, lag, held
+                time.sleep(0.5)
+            return None, lag, held
+
+        if a.failover:  # R1's boxes go to R0: caught up with R1 still down?
+            caught, lag, held = catch_up(t_kill)
+            lost = [m for m in held_before if m not in held]
+            print(f"R1 killed, its boxes on R0 (--failover): {len(lost)} machines lost from "
+                  "the view; the client held every machine's latest summary "
+                  + (f"{caught:.1f} s after the kill" if caught is not None
+                     else f"NOT within 120 s ({len(lag)} behind)"))
+        time.sleep(max(a.outage - (time.monotonic() - t_kill), 0.0))
         procs.remove(routers[1])
         routers[1] = router(1)
         procs.append(routers[1])
         t_restart, w_restart = time.monotonic(), time.time()
-        caught = None
-        while time.monotonic() - t_restart < 120:
-            latest = box_latest()
-            time.sleep(0.3)
-            held = dump(watch, tmp / "k1.json")["data"]
-            lag = [m for m, w in latest.items() if (held.get(m) if held.get(m) is not None
-                                                    else -1) < w]
-            if not lag:
-                caught = time.monotonic() - t_restart
-                break
-            time.sleep(0.5)
+        caught, lag, held = catch_up(t_restart)
         lost = [m for m in held_before if m not in held]
         print(f"R1 killed, restarted after {a.outage:g} s and routing again "
               f"{t_restart - t_kill:.1f} s after the kill ({sum(per[1::2])} machines behind it): "

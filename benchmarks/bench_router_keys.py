@@ -46,11 +46,12 @@ def machine_key(layout: str, box: str, j: int) -> str:
     return f"twinwatch/{box}-m{j:05d}" if layout == "flat" else f"twinwatch/{box}/{box}-m{j:05d}"
 
 
-def role_box(endpoint: str, machines: int, layout: str, box: str, entities: str) -> None:
+def role_box(endpoint: str, machines: int, layout: str, box: str, entities: str,
+             also: list[str]) -> None:
     import zenoh
     import zenoh.ext as zx
 
-    session = zenoh.open(zconf("client", [], [endpoint]))
+    session = zenoh.open(zconf("client", [], [endpoint, *also]))
     keep: list[object] = []
     if entities == "box-queryable" and layout == "box":
         keep.append(session.declare_queryable(f"twinwatch/{box}/**", lambda q: None))
@@ -83,6 +84,9 @@ def main() -> None:
                     help="per machine a latest/history queryable on P/** (machine, default) "
                     "or one queryable per box on twinwatch/<box>/** (box-queryable, "
                     "--layout box)")
+    ap.add_argument("--failover", action="store_true",
+                    help="each box lists the other router too ([zenoh] connect = [its "
+                    "router, the other]): a box whose router is killed goes to the other")
     ap.add_argument("--restart", type=float, default=None,
                     help="then kill R1, restart it after this many seconds and time until "
                     "the far client sees every token again")
@@ -91,7 +95,7 @@ def main() -> None:
         role_router(a.endpoint, a.connect)
         return
     if a.role == "box":
-        role_box(a.endpoint, a.machines, a.layout, a.box, a.entities)
+        role_box(a.endpoint, a.machines, a.layout, a.box, a.entities, a.connect)
         return
     import zenoh
 
@@ -129,7 +133,9 @@ def main() -> None:
         sub = client.liveliness().declare_subscriber(pattern, on_token)
         c0 = [cpu_s(r.pid) for r in routers]
         t0 = time.monotonic()
-        boxes_p = [spawn("--role", "box", "--endpoint", eps[i % 2], "--machines", str(per),
+        boxes_p = [spawn("--role", "box", "--endpoint", eps[i % 2],
+                         *(["--connect", eps[1 - i % 2]] if a.failover else []),
+                         "--machines", str(per),
                          "--layout", a.layout, "--box", f"b{i:02d}", "--entities", a.entities)
                    for i in range(boxes)]
         procs += boxes_p
@@ -157,10 +163,13 @@ def main() -> None:
             t_kill = time.monotonic()
             routers[1].kill()
             routers[1].wait()
-            while len(alive) > n - n // 2 and time.monotonic() - t_kill < 60:
-                time.sleep(0.1)
-            gone = n - len(alive)
-            time.sleep(max(a.restart - (time.monotonic() - t_kill), 0.0))
+            fewest, back_at = n, None  # the most tokens gone; when all were there again
+            while time.monotonic() - t_kill < a.restart:
+                fewest = min(fewest, len(alive))
+                if fewest < n and back_at is None and len(alive) == n:
+                    back_at = time.monotonic() - t_kill
+                time.sleep(0.05)
+            gone = n - fewest
             routers[1] = spawn("--role", "router", "--endpoint", eps[1], "--connect",
                                *connect[1])
             procs.append(routers[1])
@@ -171,6 +180,10 @@ def main() -> None:
                 time.sleep(0.1)
             back = time.monotonic() - t_up
             used = [cpu_s(r.pid) - c for r, c in zip(routers, c0, strict=True)]
+            if a.failover:
+                print(f"R1 killed: at most {gone} tokens gone at the far client, every token "
+                      "back " + (f"{back_at:.1f} s after the kill (the boxes on R0 now)"
+                                 if back_at is not None else f"NOT within {a.restart:g} s"))
             print(f"R1 killed: {gone} tokens gone at the far client; restarted after "
                   f"{t_up - t_kill:.1f} s; every token back {back:.1f} s later "
                   f"({len(alive)} of {n}); router CPU meanwhile R0 {used[0]:.1f} s, "
