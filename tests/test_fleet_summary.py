@@ -6,6 +6,7 @@ latest-get), on loopback with free ports and scouting off.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from types import SimpleNamespace
@@ -334,3 +335,37 @@ def test_a_machine_back_that_does_not_answer_is_asked_again_until_it_does(
         wait_for(lambda: len(session.gets) == 6, 15.0, "five asks of the machine back")
         time.sleep(2.0)
         assert len(session.gets) == 6 and watcher.received["m1"].summary["window"] == 1
+
+
+def test_a_gateway_listing_two_routers_goes_to_the_second_when_its_router_dies() -> None:
+    """[zenoh] connect = [its router, a second]: the router it uses is killed, the gateway
+    reaches the watcher through the other (docs/fleet.md: two routers per box)."""
+    ep_a, ep_b = endpoint(free_port()), endpoint(free_port())
+    router_a = zsession("router", listen=[ep_a])
+    router_b = zsession("router", listen=[ep_b], connect=[ep_a])
+    pub = HealthPublisher(ZenohConfig(mode="client", connect=[ep_a, ep_b],
+                                      summary_interval=0.01), "m1")  # each window sent
+    session = zsession("client", connect=[ep_b])
+    try:
+        with SummaryWatcher(session) as watcher:
+            window = iter(range(1, 1000))
+
+            def latest_is_new() -> bool:
+                w = next(window)
+                assert pub.publish_summary(summary(machine="m1", window=w))
+                time.sleep(0.2)
+                held = watcher.received.get("m1")
+                return held is not None and held.summary["window"] == w
+
+            wait_for(latest_is_new, 10.0, "m1's summary through router A then B")
+            router_a.close()
+            wait_for(latest_is_new, 20.0, "m1's summary through router B alone")
+            got = [r.ok for r in session.get("twinwatch/m1/summary", timeout=5.0)
+                   if r.ok is not None]
+            assert len(got) == 1  # its queryable answers through B too
+    finally:
+        session.close()
+        pub.close()
+        router_b.close()
+        with contextlib.suppress(Exception):
+            router_a.close()
