@@ -153,6 +153,34 @@ def test_machines_sharing_a_session_answer_gets_through_one_queryable_per_prefix
     assert shared.keys() == []
 
 
+def test_a_get_for_one_machine_reaches_it_among_two_gateways_on_the_same_prefix() -> None:
+    """Two gateways' queryables both cover ``twinwatch/**``: a get with Zenoh's default target
+    (best matching: every queryable that is not complete) still gets the one machine's
+    answer, from the gateway that has it."""
+    zenoh = pytest.importorskip("zenoh")
+    port = _free_port()
+    router = zenoh.open(to_zenoh_config(ZenohConfig(mode="router",
+                                                    listen=[f"tcp/127.0.0.1:{port}"])))
+    cfg = ZenohConfig(mode="client", listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    pubs = []
+    try:
+        for machines in (("m1", "m2"), ("m3", "m4")):
+            shared = SharedResources()  # each gateway process its own
+            for m in machines:
+                pubs.append(HealthPublisher.from_config(cfg, SinkContext(machine=m,
+                                                                         shared=shared)))
+                pubs[-1].publish({"machine": m})
+        with zenoh.open(to_zenoh_config(cfg)) as session:
+            for m in ("m1", "m2", "m3", "m4"):
+                got = [json.loads(r.ok.payload.to_string()) for r in session.get(
+                    f"twinwatch/{m}/health", timeout=5.0) if r.ok is not None]
+                assert got == [{"machine": m}]
+    finally:
+        for p in pubs:
+            p.close()
+        router.close()
+
+
 @pytest.mark.slow
 def test_one_stalled_source_and_one_raising_machine_do_not_touch_the_healthy_ones(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
