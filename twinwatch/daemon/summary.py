@@ -167,9 +167,15 @@ def _status(p: ParameterHealth) -> str:
         p.status, p.reason or p.status)  # tied, fixed: the reason says to what
     fused = p.fused
     if fused is not None and fused.value is not None and p.status in ("estimated", "held"):
-        text += (f"; fused {fused.value:.6g} +- {2 * (fused.rel_std_pct or math.nan):.2g} % "
-                 "(2 sigma)")
+        text += f"; fused {fused.value:.6g} +- {_pct(2 * (fused.rel_std_pct or math.nan))} % " \
+                "(2 sigma)"
     return text
+
+
+def _pct(x: float) -> str:
+    """A relative error [%] to two significant digits, without an exponent from 100 up
+    (``100``, not ``1e+02``: a held parameter no window informed shows the fusion's prior)."""
+    return f"{x:.0f}" if x >= 100 else f"{x:.2g}"
 
 
 def alarm_lines(last: HealthMessage) -> list[str]:

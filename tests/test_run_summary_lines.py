@@ -1,0 +1,22 @@
+"""The run summary's parameter lines (twinwatch.daemon.summary), as an operator reads them."""
+
+from __future__ import annotations
+
+from twinwatch.daemon.summary import _status
+from twinwatch.twin.health import FusedHealth, ParameterHealth
+
+
+def _held_j(rel_std_pct: float) -> ParameterHealth:
+    return ParameterHealth(
+        value=0.001171, unit="kg m^2", nominal=0.001171, deviation_pct=0.0, status="held",
+        fused=FusedHealth(value=0.001171, rel_std_pct=rel_std_pct, low=0.0, high=0.0023),
+        held=True, reason="held with Ke (lower priority): held at last trusted value",
+        rel_std_pct=None)
+
+
+def test_a_held_parameters_fused_interval_is_a_plain_percentage() -> None:
+    """No window informed J: its fused interval is the fusion's prior, +- 100 % (2 sigma),
+    written as 100 (it read 1e+02); a narrow one keeps two digits."""
+    assert _status(_held_j(50.0)).endswith("; fused 0.001171 +- 100 % (2 sigma)")
+    assert _status(_held_j(0.0011)).endswith("; fused 0.001171 +- 0.0022 % (2 sigma)")
+    assert _status(_held_j(6.2)).endswith("+- 12 % (2 sigma)")
