@@ -20,3 +20,5 @@ def test_a_held_parameters_fused_interval_is_a_plain_percentage() -> None:
     assert _status(_held_j(50.0)).endswith("; fused 0.001171 +- 100 % (2 sigma)")
     assert _status(_held_j(0.0011)).endswith("; fused 0.001171 +- 0.0022 % (2 sigma)")
     assert _status(_held_j(6.2)).endswith("+- 12 % (2 sigma)")
+    assert _status(_held_j(272.6)).endswith("+- 550 % (2 sigma)")  # two digits, as below 100
+    assert _status(_held_j(49.8)).endswith("+- 100 % (2 sigma)")

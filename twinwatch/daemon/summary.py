@@ -175,7 +175,8 @@ def _status(p: ParameterHealth) -> str:
 def _pct(x: float) -> str:
     """A relative error [%] to two significant digits, without an exponent from 100 up
     (``100``, not ``1e+02``: a held parameter no window informed shows the fusion's prior)."""
-    return f"{x:.0f}" if x >= 100 else f"{x:.2g}"
+    two = f"{x:.2g}"
+    return f"{float(two):.0f}" if "e+" in two else two
 
 
 def alarm_lines(last: HealthMessage) -> list[str]:
