@@ -241,12 +241,13 @@ def role_client(a: argparse.Namespace) -> None:
     last_progress = time.monotonic()
     last_render = -1e9
 
-    def render() -> tuple[dict[str, Any], float]:
+    def render() -> float:
+        """Rank and draw a screen's worth, as `watch --fleet` does; returns its time [ms]."""
         t = time.monotonic()
         view = fleet_view(watcher.received, time.time(), limit=20)
         out.file = io.StringIO()
         out.print(render_fleet(view, title="bench"))
-        return view, 1e3 * (time.monotonic() - t)
+        return 1e3 * (time.monotonic() - t)
 
     # the screen is rendered once a second, as `watch --fleet` refreshes it, and when every
     # machine is first held; the count is polled every 0.1 s (rendering 10 000 machines'
@@ -256,7 +257,7 @@ def role_client(a: argparse.Namespace) -> None:
         held = len(watcher)
         if full_at is None and held >= a.expect:
             full_at = time.monotonic()
-            view, render_ms = render()
+            render_ms = render()
             last_render = time.monotonic()
             say(event="full", after_s=round(full_at - t_open, 2),
                 render_ms=round(render_ms, 1), rss_kb=_rss_kb(), rss0_kb=rss0)

@@ -10,13 +10,17 @@ costs O(N) and the fleet's O(N^2); under a box's chunk, O(N / boxes + boxes).
 
 Processes, all on 127.0.0.1 (free ports, scouting off): three routers (R0; R1 -> R0; R2 -> R0
 and R1), ``--boxes`` box processes (clients, half of R0 and half of R1) declaring, per machine,
-what a gateway declares for it (the latest/history queryable on ``P/**``, the liveliness token
-``P/alive``, the health's advanced publisher with its cache and publisher detection), and a
-client on R2 following the tokens. Printed: when the far client saw every machine's token,
-when the routers went quiet (under 0.1 s of CPU in 2 s), and each router's CPU [s].
+what a gateway declares for it (the latest/history queryable on ``P/**``, or with
+``--entities box-queryable`` one per box on ``twinwatch/<box>/**`` as a gateway now declares;
+the summary's publisher; the liveliness token ``P/alive``; the health's advanced publisher with
+its cache and publisher detection), and a client on R2 following the tokens. Printed: when
+the far client saw every machine's token, when the routers went quiet (under 0.1 s of CPU in
+2 s), and each router's CPU [s]. With ``--restart S``, R1 is then killed and restarted after
+S seconds: when every token was back at the far client, and the routers' CPU meanwhile
+(``--failover``: each box lists the other router too, and goes there when R1 dies).
 
     python benchmarks/bench_router_keys.py --machines 4000 --layout flat
-    python benchmarks/bench_router_keys.py --machines 10000 --layout box
+    python benchmarks/bench_router_keys.py --machines 10000 --layout box --restart 5
 
 Measured figures: docs/fleet.md. Not part of the test suite.
 """

@@ -306,20 +306,25 @@ class _LateQueryables:
         handler.drop()
 
 
-def test_a_machine_back_that_does_not_answer_is_asked_again_until_it_does(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+def _held_then_back(watcher: SummaryWatcher) -> None:
+    """``m1`` held at window 1, then its token appears again (a router back)."""
     import zenoh
 
+    assert watcher.queried.wait(5.0)
+    watcher.put("m1", summary(machine="m1", window=1))
+    watcher._on_token(SimpleNamespace(kind=zenoh.SampleKind.PUT,  # type: ignore[arg-type]
+                                      key_expr="twinwatch/m1/alive"))
+
+
+def test_a_machine_back_that_does_not_answer_is_asked_again_until_it_does(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     from twinwatch.watch import summaries
 
     monkeypatch.setattr(summaries, "REASK_RETRIES_S", (0.2, 0.4, 0.8, 1.6))
 
     session = _LateQueryables(silent=2)
     with SummaryWatcher(session) as watcher:  # type: ignore[arg-type]
-        assert watcher.queried.wait(5.0)
-        watcher.put("m1", summary(machine="m1", window=1))
-        watcher._on_token(SimpleNamespace(kind=zenoh.SampleKind.PUT,  # type: ignore[arg-type]
-                                          key_expr="twinwatch/m1/alive"))
+        _held_then_back(watcher)
         wait_for(lambda: watcher.received["m1"].summary["window"] == 2, 10.0,
                  "the machine's latest, asked again after no answer")
         assert session.gets == ["twinwatch/*/summary"] + ["twinwatch/m1/summary"] * 3
@@ -328,10 +333,7 @@ def test_a_machine_back_that_does_not_answer_is_asked_again_until_it_does(
     # a machine that never answers is asked a bounded number of times
     session = _LateQueryables(silent=100)
     with SummaryWatcher(session) as watcher:  # type: ignore[arg-type]
-        assert watcher.queried.wait(5.0)
-        watcher.put("m1", summary(machine="m1", window=1))
-        watcher._on_token(SimpleNamespace(kind=zenoh.SampleKind.PUT,  # type: ignore[arg-type]
-                                          key_expr="twinwatch/m1/alive"))
+        _held_then_back(watcher)
         wait_for(lambda: len(session.gets) == 6, 15.0, "five asks of the machine back")
         time.sleep(2.0)
         assert len(session.gets) == 6 and watcher.received["m1"].summary["window"] == 1

@@ -709,14 +709,12 @@ class HealthPublisher(Sink):
         try:
             publisher = declare_publisher(session, self.health_key, self.config)
             if self._shared is not None and self._shared_key is not None:
-                self._dispatch_key = (f"{self._shared_key}|queryable|"
-                                      f"{self.config.key_prefix}")
+                key = f"{self._shared_key}|queryable|{self.config.key_prefix}"
                 dispatch: QueryDispatch = self._shared.acquire(
-                    self._dispatch_key,
-                    lambda: QueryDispatch(session, self.config.key_prefix),
+                    key, lambda: QueryDispatch(session, self.config.key_prefix),
                     QueryDispatch.close)
+                self._dispatch, self._dispatch_key = dispatch, key  # released on failure
                 dispatch.add(self.machine, self._answer)
-                self._dispatch = dispatch
             else:
                 queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
             token = session.liveliness().declare_token(self.alive_key)

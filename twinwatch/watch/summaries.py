@@ -226,13 +226,15 @@ class SummaryWatcher:
             zenoh.ZError: the session closed.
         """
         answered: set[str] = set()
+        lock = threading.Lock()  # replies come on zenoh's threads, also after the deadline
         ended = [threading.Event() for _ in keys]
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
                 machine = self._on_sample(reply.ok)
                 if machine is not None:
-                    answered.add(machine)
+                    with lock:
+                        answered.add(machine)
 
         for key, end in zip(keys, ended, strict=True):
             self.session.get(key, zenoh.handlers.Callback(on_reply, end.set),
@@ -241,7 +243,8 @@ class SummaryWatcher:
         for end in ended:
             if not end.wait(max(deadline - time.monotonic(), 0.0)):
                 break
-        return set(answered)
+        with lock:
+            return set(answered)
 
     def _retry(self, missing: set[str], answered: set[str]) -> set[str]:
         """Ask ``missing`` machines again after the next of :data:`REASK_RETRIES_S` (each at
