@@ -136,9 +136,25 @@ def model_check_variable(health: HealthMessage) -> Variable:
                     "the model check passed (the residual is white)")
 
 
+#: A held value this far from its nameplate [%] carries a change in the window's twin.
+CARRIED_PCT = 0.5
+
+
 def estimated_parameters(health: HealthMessage) -> frozenset[str]:
-    """The parameters the window estimated."""
-    return frozenset(n for n, p in health.parameters.items() if p.status == "estimated")
+    """The parameters whose change the window's twin carries, for a sign's ``when_held`` and
+    ``when_estimated``: those it estimated, and those it held at a value more than
+    :data:`CARRIED_PCT` from the nameplate (the trusted value the twin ran with already has
+    the change in; a ``fused`` value is not the twin's). A weakened field estimated once at
+    Ke -3.00 % and held there since leaves D at its nameplate: "D up while Ke is held" no
+    longer applies (it argued against the weakened field: no fault 0.79)."""
+    out = set()
+    for n, p in health.parameters.items():
+        if p.status == "estimated":
+            out.add(n)
+        elif (p.status == "held" and p.value is not None and p.nominal
+              and abs(p.value / p.nominal - 1.0) * 100.0 > CARRIED_PCT):
+            out.add(n)
+    return frozenset(out)
 
 
 def _chan(channel: str) -> str:

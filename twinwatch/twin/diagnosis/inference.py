@@ -371,6 +371,8 @@ class Diagnoser:
                                         float(health.t_end))
                 if not _moved(dev, sd):
                     self._quiet[name] = float(health.t_end)
+            elif p.status == "held" and p.value is not None and p.nominal:
+                self._confirm_by_estimator(name, (p.value / p.nominal - 1.0) * 100.0)
         dated = _change_onset(health)
         if dated is not None:
             self._trend_onset = dated
@@ -381,6 +383,22 @@ class Diagnoser:
                  if n in self._quiet and _moved(ev.dev, ev.sd)
                  and health.window - ev.window <= STALE_MAX_WINDOWS]
         self._onset = max(moved, default=None)
+
+    def _confirm_by_estimator(self, name: str, dev: float) -> None:
+        """A window that did not estimate ``name`` publishes the estimator's own value of it
+        (``fused``: the filter's, which took the last estimate in; ``held``: the trusted one)
+        at ``dev`` [%]: when that is the last sound estimate, a jump not yet confirmed by a
+        sound window of its own (:func:`_confirmed`) is confirmed by it. A parameter that a
+        window seldom determines (the DC motor's Ke: once in 40 windows, after a set-point
+        step) has no next sound window to confirm a jump: a field weakened 3 % was estimated
+        -3.00 % +- 0.02 % once, fused at -2.95 % for 8 windows and trusted at -3.00 %, and the
+        diagnosis kept reading the estimate before the jump (no fault 0.98)."""
+        ev, prev = self._last.get(name), self._prev.get(name)
+        if ev is None or prev is None or _confirmed(ev, prev):
+            return
+        if abs(dev - ev.dev) <= max(JUMP_SD * ev.sd, MOVED_PCT) \
+                and abs(dev - prev.dev) > abs(dev - ev.dev):
+            self._prev[name] = ev
 
     def _deviation(self, health: HealthMessage, name: str) -> _Dev | None:
         """The last sound evidence on ``name`` (read by :meth:`_observe`), unless it is too
