@@ -18,7 +18,10 @@ with ``P = {key_prefix}/{machine}``:
 * the machine's fleet summary on ``P/summary`` (:mod:`twinwatch.twin.summary`: state, alarm
   levels, top fault, RUL, deviations in a few hundred bytes), when it changed and at least
   every ``[zenoh] summary_interval`` seconds (:meth:`HealthPublisher.publish_summary`), a plain
-  publisher: late joiners get the latest from the queryable below;
+  publisher: late joiners get the latest from the queryable below. Its matching listener sends
+  the latest summary again whenever a subscriber becomes reachable (the router's session
+  failed over to another router, a restarted router is back, the first subscriber came): a
+  watcher holds it without asking, as soon as routes exist again (``summaries_resent``);
 * a liveliness token ``P/alive``, present while the publisher is open: a remote process sees the
   machine appear and disappear with ``session.liveliness().declare_subscriber(...)`` or polls it
   with ``session.liveliness().get(...)``;
@@ -636,6 +639,9 @@ class HealthPublisher(Sink):
         self.alive_key = f"{self.base_key}/alive"
         self.box = config.box or socket.gethostname() or "localhost"
         self.summaries = 0
+        self.summaries_resent = 0
+        self._matching: zenoh.MatchingListener | None = None
+        self._summary_matching = False  # a subscriber of P/summary was reachable last
         self._summary: dict[str, Any] | None = None  # the last summary published
         self._summary_at = -math.inf  # monotonic time it was published [s]
         self.published = 0
@@ -823,9 +829,11 @@ class HealthPublisher(Sink):
 
     def counters(self) -> dict[str, int]:
         """``published`` (the windows' and events' puts), ``summaries`` (the fleet summaries
-        sent, :meth:`publish_summary`), ``errors`` (failed puts), ``not_connected`` (windows
-        before the router was reached)."""
+        sent, :meth:`publish_summary`), ``summaries_resent`` (the latest summary sent again
+        when a subscriber became reachable again), ``errors`` (failed puts), ``not_connected``
+        (windows before the router was reached)."""
         return {"published": int(self.published), "summaries": int(self.summaries),
+                "summaries_resent": int(self.summaries_resent),
                 "errors": int(self.errors), "not_connected": int(self.not_connected)}
 
     @property
@@ -947,6 +955,9 @@ class HealthPublisher(Sink):
                         update={"cache": 0}))
                     publisher = declare_publisher(self._session, key, cfg)
                     self._publishers[key] = publisher
+                    if key == self.summary_key and isinstance(publisher, zenoh.Publisher):
+                        self._matching = publisher.declare_matching_listener(
+                            self._on_summary_matching)
                 publisher.put(text)
             except (zenoh.ZError, TypeError, ValueError) as exc:
                 self.errors += 1
@@ -962,6 +973,29 @@ class HealthPublisher(Sink):
             if self._failing:
                 logger.info("publishing on %s works again", key)
                 self._failing = False
+
+    def _on_summary_matching(self, status: zenoh.MatchingStatus) -> None:
+        """The summary publisher's matching listener (on a zenoh thread, never under the
+        lock: it may run inside the declaration): when a subscriber becomes reachable again,
+        the latest summary is sent again. Measured (a box on two routers, the first killed):
+        the box's session failed over at once, matching went false and true in the same
+        10 ms, and the latest summary reached the watcher on the other router then, where a
+        get to that box went unanswered while the mesh settled."""
+        matching = bool(status.matching)
+        was, self._summary_matching = self._summary_matching, matching
+        if not matching or was or self._closed:
+            return
+        text = self._latest.get(self.summary_key)
+        publisher = self._publishers.get(self.summary_key)
+        if text is None or publisher is None:
+            return
+        try:
+            publisher.put(text)
+        except zenoh.ZError as exc:
+            logger.debug("sending %s again failed: %s", self.summary_key, exc)
+            return
+        self.summaries_resent += 1
+        logger.debug("%s sent again: a subscriber is reachable again", self.summary_key)
 
     def _leave_dispatch(self) -> None:
         """Stop answering through the gateway's queryable; the last machine undeclares it."""
@@ -1021,6 +1055,7 @@ class HealthPublisher(Sink):
             self._closed = True
             token, queryable, session = self._token, self._queryable, self._session
             publishers = list(self._publishers.values())
+            matching, self._matching = self._matching, None
             self._token = self._queryable = None
             self._publishers.clear()
         # Outside the lock: undeclaring the queryable waits for a running _on_query callback.
@@ -1030,6 +1065,8 @@ class HealthPublisher(Sink):
         if queryable is not None:
             steps.append(("queryable", queryable.undeclare))
         steps.append(("gateway's queryable", self._leave_dispatch))
+        if matching is not None:
+            steps.append(("summary's matching listener", matching.undeclare))
         steps += [("publisher", p.undeclare) for p in publishers]
         if session is not None:
             steps.append(("session", lambda: self._close_session(session)))
