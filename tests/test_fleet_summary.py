@@ -377,33 +377,54 @@ def test_a_gateway_listing_two_routers_goes_to_the_second_when_its_router_dies()
             router_a.close()
 
 
-def test_the_latest_summary_is_sent_again_when_a_subscriber_is_reachable_again() -> None:
+@pytest.mark.parametrize("shared", [False, True], ids=["own session", "gateway"])
+def test_the_latest_summary_is_sent_again_when_a_subscriber_is_reachable_again(
+        shared: bool) -> None:
     """A box on two routers whose router dies: its session fails over to the other, and the
-    summary publisher's matching listener sends the latest summary again as soon as a
-    subscriber is reachable, so a watcher on the far router holds it without a get (the gets
-    to a box went unanswered for 20-80 s while a 10 000-machine mesh settled,
-    docs/fleet.md)."""
+    latest summary of each machine is sent again as soon as a subscriber is reachable, so a
+    watcher on the far router holds it without a get (the gets to a box went unanswered for
+    20-80 s while a 10 000-machine mesh settled, docs/fleet.md). A machine of its own session
+    listens on its summary publisher; a gateway's machines share one listener (the
+    session's: QueryDispatch)."""
+    from twinwatch.sinks.base import SharedResources
+
     ep_a, ep_b = endpoint(free_port()), endpoint(free_port())
     router_a = zsession("router", listen=[ep_a])
     router_b = zsession("router", listen=[ep_b], connect=[ep_a])
-    pub = HealthPublisher(ZenohConfig(mode="client", connect=[ep_a, ep_b]), "m1")
+    res = SharedResources() if shared else None
+    cfg = ZenohConfig(mode="client", connect=[ep_a, ep_b])
+    pubs = {m: HealthPublisher(cfg, m, shared=res) for m in (("m1", "m2") if shared else ("m1",))}
     session = zsession("client", connect=[ep_b])
-    got: list[int] = []
-    sub = session.declare_subscriber(
-        "twinwatch/m1/summary", lambda s: got.append(json.loads(s.payload.to_string())["window"]))
+    got: dict[str, list[int]] = {m: [] for m in pubs}
+
+    def on(sample: Any) -> None:
+        doc = json.loads(sample.payload.to_string())
+        got[doc["machine"]].append(doc["window"])
+
+    sub = session.declare_subscriber("twinwatch/*/summary", on)
     try:
-        wait_for(lambda: pub.publish_summary(summary(machine="m1", window=len(got) + 1))
-                 and (time.sleep(0.2) or bool(got)), 10.0, "m1's summary through A then B")
-        assert pub.counters()["summaries_resent"] <= 1  # at most the first match's
-        before, resent = len(got), pub.counters()["summaries_resent"]
+        def each_heard() -> bool:
+            for m, p in pubs.items():
+                p.publish_summary(summary(machine=m, window=len(got[m]) + 1))
+            time.sleep(0.2)
+            return all(got.values())
+
+        wait_for(each_heard, 10.0, "each machine's summary through A then B")
+        before = {m: len(w) for m, w in got.items()}
+        resent = {m: p.counters()["summaries_resent"] for m, p in pubs.items()}
         router_a.close()
-        wait_for(lambda: len(got) > before, 20.0, "the latest summary sent again through B")
-        assert got[-1] == got[before - 1]  # the same latest, nobody asked, nothing new published
-        assert pub.counters()["summaries_resent"] > resent
+        wait_for(lambda: all(len(got[m]) > before[m] for m in pubs), 20.0,
+                 "each latest summary sent again through B")
+        for m, p in pubs.items():  # the same latest: nobody asked, nothing new published
+            assert got[m][-1] == got[m][before[m] - 1], got
+            assert p.counters()["summaries_resent"] > resent[m]
+        if shared:  # one listener for the session, none of the machines' own
+            assert all(p._matching is None for p in pubs.values())
     finally:
         sub.undeclare()
         session.close()
-        pub.close()
+        for p in pubs.values():
+            p.close()
         router_b.close()
         with contextlib.suppress(Exception):
             router_a.close()

@@ -546,7 +546,8 @@ def _client(query: zenoh.Query) -> str:
 class QueryDispatch:
     """One queryable on ``<key_prefix>/**`` answering the gets of every machine that shares a
     session in a gateway (:class:`~twinwatch.sinks.base.SharedResources`), each asked only
-    when the get's key expression reaches its ``<key_prefix>/<machine>/**``.
+    when the get's key expression reaches its ``<key_prefix>/<machine>/**``; and one matching
+    listener telling them all when a subscriber of their summaries is reachable again.
 
     A queryable per machine on ``P/**`` made every router of a fleet match each machine's
     wildcard key against the keys it holds: at 10 000 machines behind a three-router mesh the
@@ -554,6 +555,13 @@ class QueryDispatch:
     restart; one per box, 14 s and 7.3 s, with a third of the routers' CPU
     (benchmarks/bench_router_keys.py, docs/fleet.md). A get sees no difference: each machine
     replies on its own keys.
+
+    The matching listener is the session's, not a machine's: a publisher that never puts,
+    declared on the first machine's summary key (which a fleet watcher's subscription
+    covers), whose matching status turning true again (the session failed over to another
+    router, a restarted router is back) sends every machine's latest summary again
+    (:meth:`HealthPublisher.resend_summary`). A listener per machine had every router of a
+    10 000-machine mesh keep 10 000 interests, and a failover renew 5000 of them at once.
 
     Args:
         session: the shared session.
@@ -565,20 +573,53 @@ class QueryDispatch:
 
     def __init__(self, session: zenoh.Session, prefix: str) -> None:
         self.prefix = prefix
+        self._session = session
         self._lock = threading.Lock()
         self._machines: dict[str, tuple[zenoh.KeyExpr, Callable[[zenoh.Query], None]]] = {}
+        self._resend: dict[str, Callable[[], None]] = {}
+        self._probe: zenoh.Publisher | None = None
+        self._listener: zenoh.MatchingListener | None = None
+        self._matching = False
         self._queryable = session.declare_queryable(f"{prefix}/**", self._on_query)
 
-    def add(self, machine: str, answer: Callable[[zenoh.Query], None]) -> None:
+    def add(self, machine: str, answer: Callable[[zenoh.Query], None],
+            resend: Callable[[], None] | None = None) -> None:
         """Answer the gets reaching ``<prefix>/<machine>/**`` with ``answer(query)`` (which
-        replies and does not drop the query)."""
+        replies and does not drop the query); call ``resend()`` (which sends the machine's
+        latest summary again) when a subscriber of the summaries is reachable again.
+
+        Raises:
+            zenoh.ZError: the first machine's probe could not be declared.
+        """
         with self._lock:
             self._machines[machine] = (zenoh.KeyExpr(f"{self.prefix}/{machine}/**"), answer)
+            if resend is not None:
+                self._resend[machine] = resend
+            probe = None
+            if self._probe is None and resend is not None:
+                probe = self._probe = self._session.declare_publisher(
+                    f"{self.prefix}/{machine}/summary")
+        if probe is not None:
+            # outside the lock: the listener's first status may come in its declaration
+            self._listener = probe.declare_matching_listener(self._on_matching)
 
     def remove(self, machine: str) -> None:
         """Stop answering for ``machine`` (a get running meanwhile may still reach it)."""
         with self._lock:
             self._machines.pop(machine, None)
+            self._resend.pop(machine, None)
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        """The probe's matching listener (on a zenoh thread): a subscriber reachable again
+        sends every machine's latest summary again."""
+        matching = bool(status.matching)
+        was, self._matching = self._matching, matching
+        if not matching or was:
+            return
+        with self._lock:
+            resend = list(self._resend.values())
+        for send in resend:
+            send()
 
     def _on_query(self, query: zenoh.Query) -> None:
         with self._lock:
@@ -591,11 +632,18 @@ class QueryDispatch:
             query.drop()
 
     def close(self) -> None:
-        """Undeclare the queryable (waits for a running callback)."""
-        try:
-            self._queryable.undeclare()
-        except zenoh.ZError as exc:
-            logger.warning("closing the zenoh queryable on %s/** failed: %s", self.prefix, exc)
+        """Undeclare the queryable, the matching listener and its probe (each waits for a
+        running callback)."""
+        entities = (("queryable", self._queryable), ("matching listener", self._listener),
+                    ("summary probe", self._probe))
+        for what, entity in entities:
+            if entity is None:
+                continue
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                logger.warning("closing the zenoh %s on %s/** failed: %s", what, self.prefix,
+                               exc)
 
 
 class HealthPublisher(Sink):
@@ -720,7 +768,7 @@ class HealthPublisher(Sink):
                     key, lambda: QueryDispatch(session, self.config.key_prefix),
                     QueryDispatch.close)
                 self._dispatch, self._dispatch_key = dispatch, key  # released on failure
-                dispatch.add(self.machine, self._answer)
+                dispatch.add(self.machine, self._answer, self.resend_summary)
             else:
                 queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
             token = session.liveliness().declare_token(self.alive_key)
@@ -955,7 +1003,9 @@ class HealthPublisher(Sink):
                         update={"cache": 0}))
                     publisher = declare_publisher(self._session, key, cfg)
                     self._publishers[key] = publisher
-                    if key == self.summary_key and isinstance(publisher, zenoh.Publisher):
+                    if (key == self.summary_key and self._dispatch is None
+                            and isinstance(publisher, zenoh.Publisher)):
+                        # its own session's listener (a gateway's: QueryDispatch's)
                         self._matching = publisher.declare_matching_listener(
                             self._on_summary_matching)
                 publisher.put(text)
@@ -975,15 +1025,22 @@ class HealthPublisher(Sink):
                 self._failing = False
 
     def _on_summary_matching(self, status: zenoh.MatchingStatus) -> None:
-        """The summary publisher's matching listener (on a zenoh thread, never under the
-        lock: it may run inside the declaration): when a subscriber becomes reachable again,
-        the latest summary is sent again. Measured (a box on two routers, the first killed):
-        the box's session failed over at once, matching went false and true in the same
-        10 ms, and the latest summary reached the watcher on the other router then, where a
-        get to that box went unanswered while the mesh settled."""
+        """The summary publisher's matching listener, a machine of its own session (on a
+        zenoh thread, never under the lock: it may run inside the declaration): when a
+        subscriber becomes reachable again, the latest summary is sent again
+        (:meth:`resend_summary`). Measured (a box on two routers, the first killed): the
+        box's session failed over at once, matching went false and true in the same 10 ms,
+        and the latest summary reached the watcher on the other router then, where a get to
+        that box went unanswered while the mesh settled."""
         matching = bool(status.matching)
         was, self._summary_matching = self._summary_matching, matching
-        if not matching or was or self._closed:
+        if matching and not was:
+            self.resend_summary()
+
+    def resend_summary(self) -> None:
+        """Send the latest summary again (none yet, or closed: nothing); counted in
+        ``summaries_resent``. Called on a zenoh thread, without the lock."""
+        if self._closed:
             return
         text = self._latest.get(self.summary_key)
         publisher = self._publishers.get(self.summary_key)
