@@ -580,3 +580,41 @@ def test_a_seldom_estimated_change_the_estimator_holds_since_is_confirmed_by_it(
         taken.faults[0].evidence_against
     odd = run(0.0)
     assert odd.status == "no_fault" and all(f.probability < 0.2 for f in odd.faults), odd
+
+
+def test_a_braking_constant_with_the_twin_fitting_is_dry_friction_not_the_speed_reading(
+        nominal_messages: list[HealthMessage]) -> None:
+    """Issue 34: Coulomb friction at a speed of one sign is a constant braking torque, which
+    discovery finds as a constant on d(omega)/dt (-4.2 rad/s^2 for Tc 0.006 N m in the fault
+    matrix, Va's check passing): it ended on a fault the library does not know (0.85). A
+    speed reading's gain leaves the same kind of term and Va's check failing in most
+    windows: the speed sensor explains both, so it is never dry friction with confidence."""
+    from twinwatch.twin.health import ModelCheckHealth, TermHealth
+
+    base = nominal_messages[-1]
+    assert base.model_check is not None
+    constant = TermHealth(kind="linear", attach="d(omega)/dt", mode="additive", input="t",
+                          t_ref=0.0, params={"b": -4.2}, params_std={"b": 0.04}, weight=4.2,
+                          significance=100.0, evidence_windows=10.0,
+                          equation="d(omega)/dt += -4.20 rad/s^2", meaning="", since_window=0)
+
+    def run(va_passes: bool) -> Any:
+        d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
+        check = base.model_check.model_dump()
+        check["outputs"]["Va"]["passed"] = va_passes
+        check["passed"] = va_passes
+        check["reasons"] = [] if va_passes else ["residual of Va not white"]
+        out = None
+        for w in range(20):
+            msg = base.model_copy(update={
+                "window": w, "t_start": 2.0 * w, "t_end": 2.0 * w + 1.99,
+                "terms": [constant], "model_check": ModelCheckHealth.model_validate(check)})
+            out = d.update(msg, (12.0, 0.1))
+        return out
+
+    friction = run(True)
+    assert friction.top == "dry_friction" and friction.faults[0].probability >= 0.5, friction
+    assert friction.unknown < 0.3, friction
+    reading = run(False)
+    dry = next(f for f in reading.faults if f.id == "dry_friction")
+    assert dry.probability < 0.5 and reading.top != "dry_friction", reading
