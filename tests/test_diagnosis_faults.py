@@ -665,3 +665,32 @@ def test_a_decided_harmonic_stays_the_fault_s_evidence_while_the_twin_fails_with
     assert gone.top != "misalignment", gone
     forgotten = run(TERM_MEMORY_WINDOWS + 5, passed=False)
     assert forgotten.top != "misalignment" or forgotten.faults[0].probability < 0.5, forgotten
+
+
+def test_a_deviation_that_scales_as_one_over_the_speed_is_dry_friction_not_the_bearings(
+        nominal_messages: list[HealthMessage]) -> None:
+    """Issue 34: before discovery finds its term, Coulomb friction at a speed of one sign is
+    absorbed into the viscous friction, D reading D + Tc/omega: across set-points its
+    deviation scales as 1/omega (the fault matrix, Tc 0.002 N m: +25 % at 5.5 rad/s, +8 % at
+    17.7), where worn bearings' D stays put. The first read bearing_wear 0.58-0.60."""
+    base = nominal_messages[-1]
+    speeds = [14.2, 14.6, 17.4, 18.8, 9.9, 7.3, 6.1, 5.5, 15.1, 17.7] * 2
+
+    def run(dev_at: Any) -> Any:
+        d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
+        out = None
+        for w in range(30):
+            sp = speeds[w - 10] if w >= 10 else 12.0
+            dev = dev_at(sp) if w >= 10 else 0.0
+            out = d.update(_with(base, w, D=("estimated", dev, 0.3),
+                                 Ra=("estimated", 0.0, 0.05)), (sp, 0.1))
+        return out
+
+    friction = run(lambda sp: 140.0 / sp)
+    assert friction.top == "dry_friction" and friction.faults[0].probability >= 0.5, friction
+    assert any("D's deviation scales as the shaft speed to the power -1.00" in e
+               for e in friction.faults[0].evidence_for), friction.faults[0].evidence_for
+    bearings = run(lambda sp: 12.0)
+    assert bearings.top == "bearing_wear", bearings
+    dry = next(f for f in bearings.faults if f.id == "dry_friction")
+    assert dry.probability < 0.3, bearings

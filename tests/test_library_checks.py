@@ -28,6 +28,7 @@ terms = [{ kinds = ["periodic"], attach = ["d(omega)/dt"], harmonic = 1.0 }]
 sensors = [{ kind = "frozen", channel = "ia" }]
 checks = [{ output = "Va", link = 0.5 }]
 deviations = [{ parameter = "D", direction = "up", min_pct = 3.0, when_held = ["Ke"] }]
+scaling = [{ parameter = "D", power = -1.0 }]
 action = "look"
 source = "test"
 """
@@ -49,6 +50,8 @@ BAD = [
      "fault 'shaft_custom' names the parameter 'Kee' in when_held/when_estimated"),
     ('kind = "frozen"', 'kind = "stuck"',
      "faults.0.sensors.0.kind: Input should be 'frozen' or 'saturated'"),
+    ('scaling = [{ parameter = "D"', 'scaling = [{ parameter = "Dd"',
+     "fault 'shaft_custom' names the parameter 'Dd'; the dc_motor model has"),
 ]
 
 
@@ -59,7 +62,7 @@ def _machine(tmp_path: Path, library: Path) -> Path:
 
 
 @pytest.mark.parametrize(("good", "bad", "why"), BAD, ids=["kind", "speed", "sensor", "model",
-                                                           "check", "when", "key"])
+                                                           "check", "when", "key", "scaling"])
 def test_a_bad_library_is_refused_in_one_line_naming_the_key(
         tmp_path: Path, good: str, bad: str, why: str) -> None:
     library = tmp_path / "faults.toml"

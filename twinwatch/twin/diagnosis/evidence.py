@@ -44,7 +44,7 @@ __all__ = ["EVIDENCE_KINDS", "LEAK", "S_MIN", "EvidenceKind", "EvidenceSource", 
 #: a kept term, a failed model check, a stuck sensor, one reading's error explaining a window
 #: (a process fault that moves the outputs as a wrong reading would).
 LEAK = {"deviation": 0.002, "trend": 0.05, "term": 0.001, "model_check": 0.05,
-        "sensor": 0.001, "reading": 0.02}
+        "sensor": 0.001, "reading": 0.02, "scaling": 0.01}
 #: Strengths are kept in [S_MIN, 1 - S_MIN]: no single reading is certain.
 S_MIN = 1e-4
 
@@ -115,6 +115,12 @@ class EvidenceSource(Protocol):
 
     def check_rate_variable(self, output: str) -> Variable:
         """An output failing its model check persistently over the recent windows."""
+        ...
+
+    def scaling_variable(self, health: HealthMessage, key: str, name: str,
+                         power: float) -> Variable | None:
+        """``name``'s deviation scaling as the shaft speed to ``power`` across the recent
+        windows (None: not decided yet)."""
         ...
 
     def recent_sensors(self, health: HealthMessage) -> list[tuple[int, SensorHealth]]:
@@ -463,9 +469,43 @@ def reading_variable(health: HealthMessage, key: str, output: str, direction: st
 
 #: The evidence kinds: the signature's key -> its kind. Their order is the order a fault's
 #: variables are built in and its names checked.
+class Scaling(EvidenceKind):
+    """A parameter's deviation scaling with the shaft speed across operating points
+    (``ScalingSign``): one variable per parameter and power, undecided (none) until the
+    windows since the change span enough speeds (``Diagnoser.scaling_variable``)."""
+
+    name = "scaling"
+    variable = "scaling"
+    prefix = "scaling:"
+
+    def problem(self, fault: FaultMode, names: ModelNames) -> str | None:
+        for sg in fault.scaling:
+            if sg.parameter not in names.parameters:
+                return (f"names the parameter {sg.parameter!r}; the {names.model} model has "
+                        f"{list(names.parameters)}")
+        return None
+
+    def add_variables(self, source: EvidenceSource, health: HealthMessage, fault: FaultMode,
+                      out: dict[str, Variable]) -> None:
+        for sg in fault.scaling:
+            key = f"{self.prefix}{sg.parameter}:{sg.power:g}"
+            if key not in out:
+                var = source.scaling_variable(health, key, sg.parameter, sg.power)
+                if var is None:
+                    continue
+                out[key] = var
+            out[key].links[fault.id] = sg.link
+            # a deviation that does not scale is no evidence against: a term found for the
+            # fault takes the change out of the parameter (Coulomb friction's constant term:
+            # D back within a few % at every speed)
+            out[key].may.add(fault.id)
+            out[key].what[fault.id] = (f"{sg.parameter}'s deviation scaling as the shaft "
+                                       f"speed to the power {sg.power:g}")
+
+
 EVIDENCE_KINDS: dict[str, EvidenceKind] = {
     kind.name: kind for kind in (Deviations(), Trends(), Terms(), ModelCheck(), Checks(),
-                                 Sensors(), Readings())}
+                                 Sensors(), Readings(), Scaling())}
 
 #: How the keys of the variables that explain failed model checks begin.
 _EXPLAINS_CHECK = tuple(k.prefix for k in EVIDENCE_KINDS.values() if k.explains_check)

@@ -135,6 +135,17 @@ class TermSign(_Strict):
         return self.link if self.missing_link is None else self.missing_link
 
 
+class ScalingSign(_Strict):
+    """A parameter's deviation that scales as the shaft speed to ``power`` across operating
+    points: -1 for a Coulomb friction torque ``Tc`` absorbed into the viscous friction (``D``
+    then reads ``D + Tc/omega``: +25 % at 5.5 rad/s, +8 % at 17.7 for Tc 0.002 N m on the DC
+    motor), where a worn bearing's D stays put (power 0)."""
+
+    parameter: str = Field(description="the twin's parameter whose deviation scales")
+    power: StrictFloat = Field(-1.0, description="the power of the shaft speed it scales as")
+    link: float = Link
+
+
 class SensorSign(_Strict):
     """A frozen or saturated sensor."""
 
@@ -178,6 +189,8 @@ class FaultMode(_Strict):
     model_check: float | None = Field(None, gt=0, le=1, description="link to a failed model "
                                       "check")
     sensors: list[SensorSign] = Field(default_factory=list)
+    scaling: list[ScalingSign] = Field(default_factory=list, description="parameters whose "
+                                       "deviation scales with the shaft speed")
     checks: list[CheckSign] = Field(default_factory=list, description="outputs whose model "
                                     "check the fault makes fail persistently")
     readings: list[ReadingSign] = Field(default_factory=list, description="the reading whose "
