@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, ClassVar, Protocol
 from twinwatch.twin.health import HealthMessage, SensorHealth
 
 if TYPE_CHECKING:
-    from twinwatch.twin.diagnosis.library import DeviationSign, FaultMode, TrendSign
+    from twinwatch.twin.diagnosis.library import DeviationSign, FaultMode, ScalingSign, TrendSign
 
 __all__ = ["EVIDENCE_KINDS", "LEAK", "S_MIN", "EvidenceKind", "EvidenceSource", "ModelNames",
            "Variable", "clip", "closest", "estimated_parameters", "explains_check",
@@ -211,6 +211,17 @@ def _not_measured(label: str, name: str, where: str, names: ModelNames) -> str |
     return None
 
 
+def _unknown_parameter(signs: Sequence[DeviationSign | TrendSign | ScalingSign],
+                       names: ModelNames) -> str | None:
+    """The first parameter a sign names that the model does not have, as ``names the
+    parameter 'Rx'; the dc_motor model has [...]``."""
+    for sign in signs:
+        if sign.parameter not in names.parameters:
+            return (f"names the parameter {sign.parameter!r}; the {names.model} model has "
+                    f"{list(names.parameters)}")
+    return None
+
+
 def _unknown_condition(signs: Sequence[DeviationSign | TrendSign], names: ModelNames
                        ) -> str | None:
     """The first parameter a sign's ``when_held``/``when_estimated`` names that the model
@@ -232,11 +243,8 @@ class Deviations(EvidenceKind):
     prefix = "dev:"
 
     def problem(self, fault: FaultMode, names: ModelNames) -> str | None:
-        for d in fault.deviations:
-            if d.parameter not in names.parameters:
-                return (f"names the parameter {d.parameter!r}; the {names.model} model has "
-                        f"{list(names.parameters)}")
-        return _unknown_condition(fault.deviations, names)
+        return (_unknown_parameter(fault.deviations, names)
+                or _unknown_condition(fault.deviations, names))
 
 
 class Trends(EvidenceKind):
@@ -248,11 +256,7 @@ class Trends(EvidenceKind):
     prefix = "trend:"
 
     def problem(self, fault: FaultMode, names: ModelNames) -> str | None:
-        for t in fault.trends:
-            if t.parameter not in names.parameters:
-                return (f"names the parameter {t.parameter!r}; the {names.model} model has "
-                        f"{list(names.parameters)}")
-        return _unknown_condition(fault.trends, names)
+        return _unknown_parameter(fault.trends, names) or _unknown_condition(fault.trends, names)
 
     def add_variables(self, source: EvidenceSource, health: HealthMessage, fault: FaultMode,
                       out: dict[str, Variable]) -> None:
@@ -467,8 +471,6 @@ def reading_variable(health: HealthMessage, key: str, output: str, direction: st
                     f"no {output} reading too {direction} explains the window: {numbers}")
 
 
-#: The evidence kinds: the signature's key -> its kind. Their order is the order a fault's
-#: variables are built in and its names checked.
 class Scaling(EvidenceKind):
     """A parameter's deviation scaling with the shaft speed across operating points
     (``ScalingSign``): one variable per parameter and power, undecided (none) until the
@@ -479,11 +481,7 @@ class Scaling(EvidenceKind):
     prefix = "scaling:"
 
     def problem(self, fault: FaultMode, names: ModelNames) -> str | None:
-        for sg in fault.scaling:
-            if sg.parameter not in names.parameters:
-                return (f"names the parameter {sg.parameter!r}; the {names.model} model has "
-                        f"{list(names.parameters)}")
-        return None
+        return _unknown_parameter(fault.scaling, names)
 
     def add_variables(self, source: EvidenceSource, health: HealthMessage, fault: FaultMode,
                       out: dict[str, Variable]) -> None:
@@ -503,6 +501,8 @@ class Scaling(EvidenceKind):
                                        f"speed to the power {sg.power:g}")
 
 
+#: The evidence kinds: the signature's key -> its kind. Their order is the order a fault's
+#: variables are built in and its names checked.
 EVIDENCE_KINDS: dict[str, EvidenceKind] = {
     kind.name: kind for kind in (Deviations(), Trends(), Terms(), ModelCheck(), Checks(),
                                  Sensors(), Readings(), Scaling())}
