@@ -53,7 +53,7 @@ from twinwatch.twin.diagnosis.evidence import (
     explains_check,
     model_check_variable,
 )
-from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode
+from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode, TermSign
 from twinwatch.twin.health import (
     DiagnosisHealth,
     FaultHealth,
@@ -355,9 +355,11 @@ class Diagnoser:
         self._speed_devs: dict[str, deque[tuple[int, float, float, float, float]]] = {}
 
     # -- evidence -----------------------------------------------------------------------------
-    def _observe(self, health: HealthMessage) -> None:
+    def _observe(self, health: HealthMessage, speed: tuple[float, float] | None) -> None:
         """Read the window's sound estimates (once per window, before any evidence): each
-        becomes its parameter's last sound evidence, and the change onset is dated.
+        becomes its parameter's last sound evidence, kept with the window's shaft speed
+        ``speed`` (mean, spread [rad/s]; :meth:`scaling_variable`), and the change onset is
+        dated.
 
         Only a window that estimated a parameter is new evidence: a fused value in a window
         that did not (held, or its check failed) is the fusion's prediction from the
@@ -372,6 +374,7 @@ class Diagnoser:
         self._sound.append((health.window, sound))
         if health.model_check is not None:
             self._passed.append(bool(health.model_check.passed))
+        carried = estimated_parameters(health)
         for name, p in health.parameters.items():
             if (p.status == "estimated" and p.value is not None and p.nominal
                     and p.rel_std_pct is not None):
@@ -381,8 +384,10 @@ class Diagnoser:
                 if name in self._last:
                     self._prev[name] = self._last[name]
                 self._last[name] = _Dev(dev, sd, p.value, p.nominal, p.unit, health.window,
-                                        p.status, estimated_parameters(health),
-                                        float(health.t_end))
+                                        p.status, carried, float(health.t_end))
+                if speed is not None and speed[0] > 0:
+                    self._speed_devs.setdefault(name, deque(maxlen=SCALING_WINDOWS)).append(
+                        (health.window, float(health.t_end), float(speed[0]), dev, sd))
                 if not _moved(dev, sd):
                     self._quiet[name] = float(health.t_end)
             elif p.status == "held" and p.value is not None and p.nominal:
@@ -399,14 +404,15 @@ class Diagnoser:
         self._onset = max(moved, default=None)
 
     def _confirm_by_estimator(self, name: str, dev: float) -> None:
-        """A window that did not estimate ``name`` publishes the estimator's own value of it
-        (``fused``: the filter's, which took the last estimate in; ``held``: the trusted one)
-        at ``dev`` [%]: when that is the last sound estimate, a jump not yet confirmed by a
-        sound window of its own (:func:`_confirmed`) is confirmed by it. A parameter that a
-        window seldom determines (the DC motor's Ke: once in 40 windows, after a set-point
-        step) has no next sound window to confirm a jump: a field weakened 3 % was estimated
-        -3.00 % +- 0.02 % once, fused at -2.95 % for 8 windows and trusted at -3.00 %, and the
-        diagnosis kept reading the estimate before the jump (no fault 0.98)."""
+        """A window that held ``name`` publishes the estimator's trusted value of it at ``dev``
+        [%]: when that is the last sound estimate, a jump not yet confirmed by a sound window
+        of its own (:func:`_confirmed`) is confirmed by it (a ``fused`` value does not
+        confirm: the filter took in the intermittent hydraulic load's one odd window too). A
+        parameter that a window seldom determines (the DC motor's Ke: once in 40 windows,
+        after a set-point step) has no next sound window to confirm a jump: a field weakened
+        3 % was estimated -3.00 % +- 0.02 % once, fused at -2.95 % for 8 windows and trusted
+        at -3.00 %, and the diagnosis kept reading the estimate before the jump (no fault
+        0.98)."""
         ev, prev = self._last.get(name), self._prev.get(name)
         if ev is None or prev is None or _confirmed(ev, prev):
             return
@@ -570,7 +576,7 @@ class Diagnoser:
                 out[key].links[f.id] = sg.absence_link
                 out[key].what[f.id] = f"a {kinds} term on {where}{harm}"
 
-    def _remembered_term(self, health: HealthMessage, f: FaultMode, sg: Any,
+    def _remembered_term(self, health: HealthMessage, f: FaultMode, sg: TermSign,
                          out: dict[str, Variable]) -> bool:
         """A periodic term the window lacks whose harmonic an attach point's track decided
         in the last :data:`TERM_MEMORY_WINDOWS` windows (:meth:`_harmonic_recall`), while
@@ -1002,20 +1008,6 @@ class Diagnoser:
         text = f"{output}'s model check failed in {k} of the last {n} windows"
         return Variable(f"check:{output}", "model_check", clip(s), text, text)
 
-    def _observe_speed(self, health: HealthMessage,
-                       speed: tuple[float, float] | None) -> None:
-        """Keep each estimated parameter's deviation [%] and standard error with the window's
-        shaft speed (the last :data:`SCALING_WINDOWS` windows: :meth:`scaling_variable`)."""
-        if speed is None or speed[0] <= 0:
-            return
-        for name, p in health.parameters.items():
-            if (p.status == "estimated" and p.value is not None and p.nominal
-                    and p.rel_std_pct is not None):
-                dev = (p.value / p.nominal - 1.0) * 100.0
-                sd = max(abs(p.rel_std_pct * p.value / p.nominal), SD_FLOOR_PCT)
-                self._speed_devs.setdefault(name, deque(maxlen=SCALING_WINDOWS)).append(
-                    (health.window, float(health.t_end), float(speed[0]), dev, sd))
-
     def scaling_variable(self, health: HealthMessage, key: str, name: str,
                          power: float) -> Variable | None:
         """``name``'s deviation scaling as the shaft speed to ``power``: over the windows of
@@ -1074,8 +1066,7 @@ class Diagnoser:
             speed: the window's mean absolute shaft speed and its spread [rad/s]
                 (:func:`shaft_speed`), for a periodic term's harmonic.
         """
-        self._observe(health)
-        self._observe_speed(health, speed)
+        self._observe(health, speed)
         evs = self._evidence(health)
         self._read_aliases(health, evs)
         variables, unexplained = self._variables(health, speed)
@@ -1366,8 +1357,6 @@ def _term_match(sg: object, term: TermHealth, track: list[_Ratio] | None
                 ) -> tuple[float, str]:
     """How well a discovered term fits a signature's term (0..1) and what it expects; a
     harmonic is judged on the term's ``track`` (:meth:`Diagnoser._track`)."""
-    from twinwatch.twin.diagnosis.library import TermSign
-
     assert isinstance(sg, TermSign)
     kinds = "/".join(sg.kinds).replace("*", "any")
     where = "/".join(sg.attach)
