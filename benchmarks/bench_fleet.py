@@ -197,14 +197,14 @@ def role_client(a: argparse.Namespace) -> None:
     rss0 = _rss_kb()
     t_open = time.monotonic()
     session = zenoh.open(zconf("client", [], [a.endpoint]))
-    received: list[tuple[str, int]] = []
+    received: list[tuple[str, int, float]] = []  # machine, window, wall time received
     health = [0]
 
     def short(machine: str) -> str:  # <box>/<name> (--layout box) -> <name>, as the boxes log
         return machine.rsplit("/", 1)[-1]
 
     def on_summary(machine: str, s: dict[str, Any]) -> None:
-        received.append((short(machine), s.get("window", -1)))
+        received.append((short(machine), s.get("window", -1), time.time()))
 
     def on_health(sample: Any) -> None:
         health[0] += 1
@@ -547,6 +547,7 @@ def run(a: argparse.Namespace) -> None:
         # -- router R1 killed and restarted --------------------------------------------------
         on_r1 = {f"{p.name}-m" for i, p in enumerate(box_procs) if i % 2 == 1}
         held_before = dump(watch, tmp / "k0.json")["data"]
+        ck0 = {p.name: p.cpu_s() for p in procs if p is not routers[1]}
         t_kill, w_kill = time.monotonic(), time.time()
         routers[1].kill()
 
@@ -558,6 +559,7 @@ def run(a: argparse.Namespace) -> None:
             from ``since``, the machines behind at the end, what the client held."""
             lag: list[str] = []
             held: dict[str, Any] = {}
+            told = False
             while time.monotonic() - since < 120:
                 latest = box_latest()
                 time.sleep(0.3)
@@ -565,12 +567,22 @@ def run(a: argparse.Namespace) -> None:
                 lag = [m for m, w in latest.items() if is_behind(held.get(m), w)]
                 if not lag:
                     return time.monotonic() - since, lag, held
+                if not told and time.monotonic() - since >= 10.0:
+                    told = True
+                    print(f"  {time.monotonic() - since:.1f} s on: {len(lag)} machines behind "
+                          f"(e.g. {', '.join(sorted(lag)[:3])})")
                 time.sleep(0.5)
             return None, lag, held
 
         if a.failover:  # R1's boxes go to R0: caught up with R1 still down?
             caught, lag, held = catch_up(t_kill)
             lost = [m for m in held_before if m not in held]
+            dk = time.monotonic() - t_kill
+            ck1 = {name: p.cpu_s() for name, p in ((p.name, p) for p in procs) if name in ck0}
+            share = {n: (ck1[n] - ck0[n]) / dk for n in ck0}
+            print(f"  CPU (share of one core) from the kill on, {dk:.0f} s: " + ", ".join(
+                f"{n} {v:.2f}" for n, v in share.items() if not n.startswith(("b", "late")))
+                + f"; boxes {sum(v for n, v in share.items() if n.startswith('b')):.2f} in all")
             print(f"R1 killed, its boxes on R0 (--failover): {len(lost)} machines lost from "
                   "the view; the client held every machine's latest summary "
                   + (f"{caught:.1f} s after the kill" if caught is not None
@@ -598,7 +610,10 @@ def run(a: argparse.Namespace) -> None:
         published: list[tuple[str, int, float]] = []
         for p in box_procs:
             published += json.loads((tmp / f"{p.name}.log.json").read_text())
-        got = {(m, w) for m, w in json.loads((tmp / "received.json").read_text())}
+        arrived: dict[tuple[str, int], float] = {}
+        for m, w, t in json.loads((tmp / "received.json").read_text()):
+            arrived.setdefault((m, w), t)
+        got = set(arrived)
         steady = [(m, w) for m, w, t in published if w0 <= t <= w1]
         missing = [x for x in steady if x not in got]
         print(f"steady-state losses: {len(missing)} of {len(steady)} summaries published "
@@ -608,6 +623,25 @@ def run(a: argparse.Namespace) -> None:
                   and any(m.startswith(b) for b in on_r1)]
         print(f"from the kill to the restart R1's boxes published {len(outage)} summaries, "
               f"{sum(1 for x in outage if x in got)} of them reached the client")
+        edges = (0.1, 0.5, 1, 2, 5, 10, 20, 60, 1e9)
+
+        def histogram(xs: list[float]) -> str:
+            counts = [sum(1 for x in xs if lo <= x < hi)
+                      for lo, hi in zip((0.0, *edges[:-1]), edges, strict=True)]
+            return ", ".join(f"<{hi:g}: {c}" for hi, c in zip(edges, counts, strict=True) if c)
+
+        for who, odd in (("R0's boxes", False), ("R1's boxes", True)):
+            print(f"  steady state, {who}: delivered after [s]: " + histogram(
+                [arrived[(m, w)] - t for m, w, t in published if w0 <= t <= w1
+                 and (m, w) in got and any(m.startswith(b) for b in on_r1) == odd]))
+        for who, moved in (("R1's boxes (moved)", True), ("R0's boxes", False)):
+            sent = [(m, w, t) for m, w, t in published if w_kill <= t <= w_kill + 30
+                    and any(m.startswith(b) for b in on_r1) == moved]
+            lost = [t - w_kill for m, w, t in sent if (m, w) not in got]
+            late = [arrived[(m, w)] - t for m, w, t in sent if (m, w) in got]
+            print(f"  {who}, the 30 s after the kill: {len(sent)} summaries sent, "
+                  f"{len(lost)} never delivered (sent this long after the kill [s]: "
+                  f"{histogram(lost) or '-'}); delivered after [s]: {histogram(late) or '-'}")
         print(f"load average now: {os.getloadavg()[0]:.1f} (2 cores, shared)")
     finally:
         for p in procs:
