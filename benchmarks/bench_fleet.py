@@ -635,11 +635,13 @@ def run(a: argparse.Namespace) -> None:
                 [arrived[(m, w)] - t for m, w, t in published if w0 <= t <= w1
                  and (m, w) in got and any(m.startswith(b) for b in on_r1) == odd]))
         for who, moved in (("R1's boxes (moved)", True), ("R0's boxes", False)):
-            sent = [(m, w, t) for m, w, t in published if w_kill <= t <= w_kill + 30
+            sent = [(m, w, t) for m, w, t in published
+                    if w_kill <= t <= min(w_kill + 30, w_restart)
                     and any(m.startswith(b) for b in on_r1) == moved]
             lost = [t - w_kill for m, w, t in sent if (m, w) not in got]
             late = [arrived[(m, w)] - t for m, w, t in sent if (m, w) in got]
-            print(f"  {who}, the 30 s after the kill: {len(sent)} summaries sent, "
+            print(f"  {who}, from the kill to the restart (30 s at most): {len(sent)} "
+                  "summaries sent, "
                   f"{len(lost)} never delivered (sent this long after the kill [s]: "
                   f"{histogram(lost) or '-'}); delivered after [s]: {histogram(late) or '-'}")
         print(f"load average now: {os.getloadavg()[0]:.1f} (2 cores, shared)")

@@ -154,6 +154,13 @@ def _diagnosis_lines(last: HealthMessage) -> list[str]:
     return [x for x in (line, developing and f"  {developing}") if x]
 
 
+UNINFORMED_PCT = 50.0
+"""A fused relative standard error [%, 1 sigma] from which a held parameter is said not to be
+determined across the windows: the fusion's default prior on the nameplate value
+(``[estimation.fusion] initial_std`` 0.5), which a parameter no window informed keeps, or
+exceeds as its level wanders (the README's run: J +- 540 % after 600 windows)."""
+
+
 def _value(value: float | None) -> str:
     return f"{value:<11.6g}" if value is not None else f"{'n/a':<11}"
 
@@ -167,8 +174,12 @@ def _status(p: ParameterHealth) -> str:
         p.status, p.reason or p.status)  # tied, fixed: the reason says to what
     fused = p.fused
     if fused is not None and fused.value is not None and p.status in ("estimated", "held"):
-        text += f"; fused {fused.value:.6g} +- {_pct(2 * (fused.rel_std_pct or math.nan))} % " \
-                "(2 sigma)"
+        rel = fused.rel_std_pct if fused.rel_std_pct is not None else math.nan
+        if p.status == "held" and rel >= UNINFORMED_PCT:
+            text += (f"; not determined across the windows either: fused +- {_pct(2 * rel)} % "
+                     "(2 sigma), no narrower than its nameplate prior")
+        else:
+            text += f"; fused {fused.value:.6g} +- {_pct(2 * rel)} % (2 sigma)"
     return text
 
 
