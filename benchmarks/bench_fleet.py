@@ -66,10 +66,12 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def zconf(mode: str, listen: list[str], connect: list[str]) -> Any:
+def zconf(mode: str, listen: list[str], connect: list[str], base: Path | None = None) -> Any:
+    """A session's configuration on loopback, scouting off; ``base``: a zenohd configuration
+    file to start from (its endpoints replaced), e.g. config/zenoh-site-router.json5."""
     import zenoh
 
-    conf = zenoh.Config()
+    conf = zenoh.Config() if base is None else zenoh.Config.from_file(str(base))
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps(connect))
@@ -84,13 +86,13 @@ def say(**event: Any) -> None:
 
 
 # -- the roles (each its own process) ----------------------------------------------------------
-def role_router(listen: str, connect: list[str]) -> None:
+def role_router(listen: str, connect: list[str], base: Path | None = None) -> None:
     import zenoh
 
     deadline = time.monotonic() + 20
     while True:
         try:
-            session = zenoh.open(zconf("router", [listen], connect))
+            session = zenoh.open(zconf("router", [listen], connect, base))
             break
         except zenoh.ZError:  # the port of a router just killed may take a moment
             if time.monotonic() > deadline:
@@ -414,11 +416,16 @@ def main() -> None:
     ap.add_argument("--recording", type=Path, default=None,
                     help="a state database to replay (default: record one)")
     ap.add_argument("--nice", type=int, default=0, help="nice of the boxes' processes")
+    ap.add_argument("--site-acl", type=Path, nargs="?", default=None,
+                    const=ROOT / "config" / "zenoh-site-router.json5",
+                    help="the routers start from this zenohd configuration (default "
+                         "config/zenoh-site-router.json5: the boxes' advanced publishers' "
+                         "declarations stay off the mesh, as behind a site's router)"),
     ap.add_argument("--full-timeout", type=float, default=600.0,
                     help="longest wait for the far client to hold every machine [s]")
     a = ap.parse_args()
     if a.role == "router":
-        return role_router(a.endpoint, a.connect)
+        return role_router(a.endpoint, a.connect, a.site_acl)
     if a.role == "box":
         a.recording = str(a.recording)
         return role_box(a)
@@ -439,8 +446,8 @@ def run(a: argparse.Namespace) -> None:
     procs: list[Proc] = []
 
     def router(i: int) -> Proc:
-        p = Proc(["--role", "router", "--endpoint", eps[i], "--connect", *router_connect[i]],
-                 f"R{i}")
+        p = Proc(["--role", "router", "--endpoint", eps[i], "--connect", *router_connect[i],
+                  *(["--site-acl", str(a.site_acl)] if a.site_acl else [])], f"R{i}")
         p.expect("ready", 30)
         return p
 
@@ -453,7 +460,8 @@ def run(a: argparse.Namespace) -> None:
           f"{a.summary_interval:g} s, full health of {a.health_share:.0%} of the machines, "
           f"cache {a.cache}, keys {a.layout}, "
           f"{'no ' if a.no_exact or a.layout == 'box' else ''}subscriber per machine; "
-          "routers R0, R1 -> R0, R2 -> R0 + R1; boxes on R0 and R1, the client on R2")
+          "routers R0, R1 -> R0, R2 -> R0 + R1; boxes on R0 and R1, the client on R2"
+          + (f"; the routers' configuration {a.site_acl.name}" if a.site_acl else ""))
     try:
         routers = [router(i) for i in range(3)]
         procs += routers

@@ -325,6 +325,7 @@ def test_a_machine_back_that_does_not_answer_is_asked_again_until_it_does(
     from twinwatch.watch import summaries
 
     monkeypatch.setattr(summaries, "REASK_RETRIES_S", (0.2, 0.4, 0.8, 1.6))
+    monkeypatch.setattr(summaries, "SWEEP_AFTER_S", ())  # the sweeps: the test below
 
     session = _LateQueryables(silent=2)
     with SummaryWatcher(session) as watcher:  # type: ignore[arg-type]
@@ -428,3 +429,58 @@ def test_the_latest_summary_is_sent_again_when_a_subscriber_is_reachable_again(
         router_b.close()
         with contextlib.suppress(Exception):
             router_a.close()
+
+
+class _Fleet:
+    """A session whose first ask finds nothing; later gets answer each machine's latest
+    (``latest``) that the key reaches: m1's box moved to another router, m2's did not, and
+    m2's window 2 was lost meanwhile."""
+
+    def __init__(self) -> None:
+        self.gets: list[str] = []
+        self.latest = {m: summary(machine=m, window=2, level="alarm") for m in ("m1", "m2")}
+
+    def declare_subscriber(self, key: str, callback: Any) -> Any:
+        return SimpleNamespace(undeclare=lambda: None)
+
+    def liveliness(self) -> Any:
+        return self
+
+    def get(self, key: str, handler: Any, **kw: Any) -> None:
+        self.gets.append(key)
+        if len(self.gets) > 1:
+            for m, doc in self.latest.items():
+                if key in ("twinwatch/*/summary", f"twinwatch/{m}/summary"):
+                    sample = SimpleNamespace(
+                        key_expr=f"twinwatch/{m}/summary",
+                        payload=SimpleNamespace(to_string=lambda d=doc: json.dumps(d)))
+                    handler.callback(SimpleNamespace(ok=sample))
+        handler.drop()
+
+
+def test_after_machines_came_back_every_machines_latest_is_asked_again(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A router died: m1's token came back through another router, m2's never went, but the
+    mesh lost m2's window 2 while it recomputed its routes (at 10 000 machines: 716 summaries
+    of boxes moved and not, held again only at the machines' next periodic summary, 71.5 s
+    after the kill). After the machines back are asked, every machine's latest is asked once
+    per :data:`SWEEP_AFTER_S`, and m2's lost window arrives; a summary held is not taken
+    twice."""
+    from twinwatch.watch import summaries
+
+    monkeypatch.setattr(summaries, "SWEEP_AFTER_S", (0.3, 0.6))
+    session = _Fleet()
+    got: list[tuple[str, int]] = []
+    with SummaryWatcher(session, on_summary=lambda m, s: got.append(  # type: ignore[arg-type]
+            (m, s["window"]))) as watcher:
+        assert watcher.queried.wait(5.0)
+        watcher.put("m2", summary(machine="m2", window=1))
+        _held_then_back(watcher)
+        wait_for(lambda: watcher.received["m1"].summary["window"] == 2, 5.0, "m1 asked back")
+        wait_for(lambda: watcher.swept == 2, 5.0, "the two sweeps")
+        assert watcher.received["m2"].summary["window"] == 2
+        assert session.gets == ["twinwatch/*/summary", "twinwatch/m1/summary",
+                                "twinwatch/*/summary", "twinwatch/*/summary"]
+        assert got == [("m2", 1), ("m1", 1), ("m1", 2), ("m2", 2)]
+        time.sleep(0.8)  # no token came again: no further sweep
+        assert len(session.gets) == 4

@@ -2,8 +2,9 @@
 :class:`SummaryWatcher` follows ``<prefix>/<machines>/summary`` with a plain subscriber, asks
 every machine's latest once when it starts (one get, each machine's queryable answering) and
 again when the machines' liveliness tokens appear anew (a router back from an outage, a daemon
-restarted), keeps each machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's
-full health only when asked (:meth:`SummaryWatcher.health`). What it holds is read by
+restarted) and every machine's twice more after that (:data:`SWEEP_AFTER_S`), keeps each
+machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's full health only
+when asked (:meth:`SummaryWatcher.health`). What it holds is read by
 :mod:`twinwatch.watch.ranking`.
 """
 
@@ -65,6 +66,15 @@ REASK_RETRIES_S = (1.0, 2.0, 4.0, 8.0)
 after the other: after a router restart its token may reach the watcher before the routers
 know its queryable (10 000 machines: every latest held 65 s after the restart, at the
 machines' next periodic summary, when only the first ask was made; docs/fleet.md)."""
+
+SWEEP_AFTER_S = (3.0, 10.0)
+"""After machines' tokens came back (a router died or restarted), every machine's latest summary
+is asked once more this long [s] after the last of them came, once per delay: the summaries
+that the mesh lost while it recomputed its routes, of machines whose tokens never went (their
+box did not move), are otherwise held only at their next periodic summary. Measured at 10 000
+machines with a router killed (benchmarks/bench_fleet.py): in one run of two, 716 summaries
+sent 5-10 s after the kill, from boxes moved and not, never arrived, and the view held every
+latest 71.5 s after the kill, at the machines' next periodic summary."""
 
 SETTLE_QUIET_S = 1.0
 """:meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
@@ -147,10 +157,12 @@ class SummaryWatcher:
         self._ask = threading.Event()
         self._pending: set[str] = set()  # machines whose tokens appeared again
         self._retries: dict[str, int] = {}  # machine back, not answering -> asks repeated
+        self._sweeps: list[float] = []  # monotonic times to ask every machine's latest again
         self._closing = threading.Event()
         self._asker: threading.Thread | None = None
         self.queried = threading.Event()  # the first ask of the latest summaries ended
         self.asked = 0  # asks of the latest summaries that ended
+        self.swept = 0  # asks of every machine's latest after machines came back (sweeps)
 
     def start(self) -> SummaryWatcher:
         """Declare the subscriber (live summaries) and the liveliness subscriber on the
@@ -159,7 +171,8 @@ class SummaryWatcher:
         (``twinwatch-watch-summaries``); :attr:`queried` is set once it ended. Whenever the
         tokens of machines it holds appear again (a router back from an outage, a daemon
         restarted) their latest are asked again, once the tokens stopped coming for
-        :data:`REASK_QUIET_S` (:meth:`_reask_keys`: one by one, by box or all at once)."""
+        :data:`REASK_QUIET_S` (:meth:`_reask_keys`: one by one, by box or all at once), and
+        every machine's latest once more after each of :data:`SWEEP_AFTER_S` (:meth:`_sweep`)."""
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
         self._live = self.session.liveliness().declare_subscriber(alive, self._on_token)
@@ -182,14 +195,23 @@ class SummaryWatcher:
                 return
             self._pending.add(machine)
         self._token_at = time.monotonic()
+        with self._lock:
+            self._sweeps = [self._token_at + d for d in SWEEP_AFTER_S]
         self._ask.set()
 
     def _ask_loop(self) -> None:
         """Ask the latest summaries when :attr:`_ask` is set (at start without waiting; after
         tokens appeared, once they stopped coming for :data:`REASK_QUIET_S`; machines back
-        that did not answer, again after :data:`REASK_RETRIES_S`)."""
+        that did not answer, again after :data:`REASK_RETRIES_S`); and every machine's latest
+        when a sweep of :data:`SWEEP_AFTER_S` is due."""
         first = True
-        while self._ask.wait():
+        while True:
+            with self._lock:
+                due = min(self._sweeps, default=None)
+            if not self._ask.wait(None if due is None else max(due - time.monotonic(), 0.0)):
+                if self._closing.is_set() or not self._sweep():
+                    return
+                continue
             if self._closing.is_set():
                 return
             if not first:  # tokens come in a burst: ask once it ended
@@ -216,6 +238,25 @@ class SummaryWatcher:
                          f"{len(pending)} machines back, {len(keys)} gets", len(answered),
                          time.monotonic() - t0, len(again))
             first = False
+
+    def _sweep(self) -> bool:
+        """Ask every machine's latest summary once (a sweep of :data:`SWEEP_AFTER_S`); the
+        replies newer than what is held replace it, the others are dropped (:meth:`put`).
+        Returns False when the session closed under the query."""
+        now = time.monotonic()
+        with self._lock:
+            self._sweeps = [t for t in self._sweeps if t > now]
+            delivered = self.delivered
+        t0 = time.monotonic()
+        try:
+            answered = self._get_all([self.key], LATEST_TIMEOUT_S)
+        except zenoh.ZError:
+            return False
+        self.swept += 1
+        logger.debug("asked every machine's latest summary again after machines came back: "
+                     "%d answered in %.1f s, %d summaries newer than held meanwhile",
+                     len(answered), time.monotonic() - t0, self.delivered - delivered)
+        return True
 
     def _get_all(self, keys: list[str], timeout: float) -> set[str]:
         """Send a get (target ALL) on each of ``keys`` at once, hold every summary replied
