@@ -2,7 +2,7 @@
 :class:`SummaryWatcher` follows ``<prefix>/<machines>/summary`` with a plain subscriber, asks
 every machine's latest once when it starts (one get, each machine's queryable answering) and
 again when the machines' liveliness tokens appear anew (a router back from an outage, a daemon
-restarted) and every machine's twice more after that (:data:`SWEEP_AFTER_S`), keeps each
+restarted) and every machine's once more after that (:data:`SWEEP_AFTER_S`), keeps each
 machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's full health only
 when asked (:meth:`SummaryWatcher.health`). What it holds is read by
 :mod:`twinwatch.watch.ranking`.
@@ -67,14 +67,17 @@ after the other: after a router restart its token may reach the watcher before t
 know its queryable (10 000 machines: every latest held 65 s after the restart, at the
 machines' next periodic summary, when only the first ask was made; docs/fleet.md)."""
 
-SWEEP_AFTER_S = (3.0, 10.0)
+SWEEP_AFTER_S = (10.0,)
 """After machines' tokens came back (a router died or restarted), every machine's latest summary
 is asked once more this long [s] after the last of them came, once per delay: the summaries
 that the mesh lost while it recomputed its routes, of machines whose tokens never went (their
 box did not move), are otherwise held only at their next periodic summary. Measured at 10 000
 machines with a router killed (benchmarks/bench_fleet.py): in one run of two, 716 summaries
 sent 5-10 s after the kill, from boxes moved and not, never arrived, and the view held every
-latest 71.5 s after the kill, at the machines' next periodic summary."""
+latest 71.5 s after the kill, at the machines' next periodic summary. Not sooner: the sweep's
+10 000 replies cross the mesh while it is still busy (sweeps at 3 and 10 s: every latest held
+14.1 and 15.8 s after the kill in two runs, where the runs without took 7.8 s when nothing was
+lost)."""
 
 SETTLE_QUIET_S = 1.0
 """:meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
