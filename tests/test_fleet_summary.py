@@ -285,14 +285,12 @@ def test_machines_back_from_a_router_are_asked_by_their_box_not_the_whole_fleet(
     assert flat._reask_keys({f"m{j:02d}" for j in range(30)}) == ["twinwatch/*/summary"]
 
 
-class _LateQueryables:
-    """A session whose gets find no machine's queryable for the first ``silent`` asks after
-    the start (a router back: the tokens came before its queryables were known)."""
+class _FakeSession:
+    """A session whose subscribers do nothing and whose gets are recorded (:meth:`get` in
+    each subclass), answered with :meth:`reply`."""
 
-    def __init__(self, silent: int) -> None:
+    def __init__(self) -> None:
         self.gets: list[str] = []
-        self.silent = silent
-        self.latest = summary(machine="m1", window=2, level="alarm")
 
     def declare_subscriber(self, key: str, callback: Any) -> Any:
         return SimpleNamespace(undeclare=lambda: None)
@@ -300,13 +298,28 @@ class _LateQueryables:
     def liveliness(self) -> Any:
         return self
 
+    @staticmethod
+    def reply(handler: Any, machine: str, doc: dict[str, Any]) -> None:
+        """Reply ``doc`` on ``machine``'s summary key."""
+        text = json.dumps(doc)
+        sample = SimpleNamespace(key_expr=f"twinwatch/{machine}/summary",
+                                 payload=SimpleNamespace(to_string=lambda: text))
+        handler.callback(SimpleNamespace(ok=sample))
+
+
+class _LateQueryables(_FakeSession):
+    """A session whose gets find no machine's queryable for the first ``silent`` asks after
+    the start (a router back: the tokens came before its queryables were known)."""
+
+    def __init__(self, silent: int) -> None:
+        super().__init__()
+        self.silent = silent
+        self.latest = summary(machine="m1", window=2, level="alarm")
+
     def get(self, key: str, handler: Any, **kw: Any) -> None:
         self.gets.append(key)
         if len(self.gets) > 1 + self.silent:  # the first ask, then the silent ones
-            sample = SimpleNamespace(key_expr="twinwatch/m1/summary",
-                                     payload=SimpleNamespace(to_string=lambda: json.dumps(
-                                         self.latest)))
-            handler.callback(SimpleNamespace(ok=sample))
+            self.reply(handler, "m1", self.latest)
         handler.drop()
 
 
@@ -431,30 +444,21 @@ def test_the_latest_summary_is_sent_again_when_a_subscriber_is_reachable_again(
             router_a.close()
 
 
-class _Fleet:
+class _Fleet(_FakeSession):
     """A session whose first ask finds nothing; later gets answer each machine's latest
     (``latest``) that the key reaches: m1's box moved to another router, m2's did not, and
     m2's window 2 was lost meanwhile."""
 
     def __init__(self) -> None:
-        self.gets: list[str] = []
+        super().__init__()
         self.latest = {m: summary(machine=m, window=2, level="alarm") for m in ("m1", "m2")}
-
-    def declare_subscriber(self, key: str, callback: Any) -> Any:
-        return SimpleNamespace(undeclare=lambda: None)
-
-    def liveliness(self) -> Any:
-        return self
 
     def get(self, key: str, handler: Any, **kw: Any) -> None:
         self.gets.append(key)
         if len(self.gets) > 1:
             for m, doc in self.latest.items():
                 if key in ("twinwatch/*/summary", f"twinwatch/{m}/summary"):
-                    sample = SimpleNamespace(
-                        key_expr=f"twinwatch/{m}/summary",
-                        payload=SimpleNamespace(to_string=lambda d=doc: json.dumps(d)))
-                    handler.callback(SimpleNamespace(ok=sample))
+                    self.reply(handler, m, doc)
         handler.drop()
 
 
