@@ -3,8 +3,9 @@
 Its access control keeps the boxes' advanced publishers' machinery (the full health's and the
 alarms' cache queryables, publisher tokens and heartbeats: the ``@adv`` keys) off the mesh, and
 lets through what a fleet view reads: the summaries, the machines' liveliness tokens, the
-full health where subscribed. Checked on loopback with the product's own publisher
-declaration, against a plain router that lets the ``@adv`` token through (so the test can fail).
+box's queryable (``watch --fleet --show``), the full health where subscribed. Checked on
+loopback with the product's own publisher declaration, against a plain router that lets the
+``@adv`` token through (so the test can fail).
 """
 
 from __future__ import annotations
@@ -82,6 +83,13 @@ def test_the_site_router_keeps_the_advanced_publishers_off_and_lets_the_summary_
         adv = [str(r.ok.key_expr) for r in far.liveliness().get(
             "twinwatch/gw1/m1/health/@adv/**", timeout=2) if r.ok]
         assert alive == ["twinwatch/gw1/m1/alive"]
+        # `watch --fleet --show gw1/m1`: the full health from the box's queryable crosses
+        box_q = box.declare_queryable("twinwatch/gw1/**", lambda q: q.reply(
+            "twinwatch/gw1/m1/health", json.dumps({"window": 0})))
+        shown = [r.ok.payload.to_string() for r in far.get("twinwatch/gw1/m1/health",
+                                                            timeout=5) if r.ok]
+        assert shown == ['{"window": 0}']
+        box_q.undeclare()
         if base is None:  # a plain router: the publisher's token crosses
             assert adv and adv[0].startswith("twinwatch/gw1/m1/health/@adv/pub/"), adv
         else:
