@@ -469,10 +469,17 @@ def test_after_machines_came_back_every_machines_latest_is_asked_again(
     of boxes moved and not, held again only at the machines' next periodic summary, 71.5 s
     after the kill). After the machines back are asked, every machine's latest is asked once
     per :data:`SWEEP_AFTER_S`, and m2's lost window arrives; a summary held is not taken
-    twice."""
+    twice. One daemon back alone (restarted) is not worth a sweep of the fleet."""
     from twinwatch.watch import summaries
 
     monkeypatch.setattr(summaries, "SWEEP_AFTER_S", (0.3, 0.6))
+    # one daemon back (a restart) is asked alone, the fleet not swept
+    with SummaryWatcher(_Fleet()) as watcher:  # type: ignore[arg-type]
+        _held_then_back(watcher)
+        wait_for(lambda: watcher.received["m1"].summary["window"] == 2, 5.0, "m1 asked back")
+        time.sleep(0.8)
+        assert watcher.swept == 0
+    monkeypatch.setattr(summaries, "SWEEP_MIN_MACHINES", 1)  # here: m1 stands for a router's
     session = _Fleet()
     got: list[tuple[str, int]] = []
     with SummaryWatcher(session, on_summary=lambda m, s: got.append(  # type: ignore[arg-type]

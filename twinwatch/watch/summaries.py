@@ -79,6 +79,11 @@ latest 71.5 s after the kill, at the machines' next periodic summary. Not sooner
 14.1 and 15.8 s after the kill in two runs, where the runs without took 7.8 s when nothing was
 lost)."""
 
+SWEEP_MIN_MACHINES = 20
+"""A sweep (:data:`SWEEP_AFTER_S`) follows a burst of at least this many machines back (a
+router's boxes moving, a router back): one daemon restarted is asked for its own latest only,
+not every machine of a fleet again."""
+
 SETTLE_QUIET_S = 1.0
 """:meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
 this long [s]."""
@@ -161,6 +166,7 @@ class SummaryWatcher:
         self._pending: set[str] = set()  # machines whose tokens appeared again
         self._retries: dict[str, int] = {}  # machine back, not answering -> asks repeated
         self._sweeps: list[float] = []  # monotonic times to ask every machine's latest again
+        self._burst = 0  # machines back since the last ask (tokens that appeared again)
         self._closing = threading.Event()
         self._asker: threading.Thread | None = None
         self.queried = threading.Event()  # the first ask of the latest summaries ended
@@ -175,7 +181,8 @@ class SummaryWatcher:
         tokens of machines it holds appear again (a router back from an outage, a daemon
         restarted) their latest are asked again, once the tokens stopped coming for
         :data:`REASK_QUIET_S` (:meth:`_reask_keys`: one by one, by box or all at once), and
-        every machine's latest once more after each of :data:`SWEEP_AFTER_S` (:meth:`_sweep`)."""
+        after a burst of :data:`SWEEP_MIN_MACHINES` or more, every machine's latest once more
+        after each of :data:`SWEEP_AFTER_S` (:meth:`_sweep`)."""
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
         self._live = self.session.liveliness().declare_subscriber(alive, self._on_token)
@@ -199,7 +206,9 @@ class SummaryWatcher:
             self._pending.add(machine)
         self._token_at = time.monotonic()
         with self._lock:
-            self._sweeps = [self._token_at + d for d in SWEEP_AFTER_S]
+            self._burst += 1
+            if self._burst >= SWEEP_MIN_MACHINES:
+                self._sweeps = [self._token_at + d for d in SWEEP_AFTER_S]
         self._ask.set()
 
     def _ask_loop(self) -> None:
@@ -224,6 +233,7 @@ class SummaryWatcher:
             self._ask.clear()
             with self._lock:
                 pending, self._pending = self._pending, set()
+                self._burst = 0
             keys = [self.key] if first else self._reask_keys(pending)
             t0 = time.monotonic()
             try:
