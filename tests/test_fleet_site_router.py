@@ -86,9 +86,13 @@ def test_the_site_router_keeps_the_advanced_publishers_off_and_lets_the_summary_
         # `watch --fleet --show gw1/m1`: the full health from the box's queryable crosses
         box_q = box.declare_queryable("twinwatch/gw1/**", lambda q: q.reply(
             "twinwatch/gw1/m1/health", json.dumps({"window": 0})))
-        shown = [r.ok.payload.to_string() for r in far.get("twinwatch/gw1/m1/health",
-                                                            timeout=5) if r.ok]
-        assert shown == ['{"window": 0}']
+
+        def shown() -> list[str]:  # once the queryable's declaration reached the router
+            return [r.ok.payload.to_string() for r in far.get("twinwatch/gw1/m1/health",
+                                                              timeout=1) if r.ok]
+
+        assert wait_for(shown, 10, "the box's queryable through the router") == [
+            '{"window": 0}']
         box_q.undeclare()
         if base is None:  # a plain router: the publisher's token crosses
             assert adv and adv[0].startswith("twinwatch/gw1/m1/health/@adv/pub/"), adv
