@@ -586,7 +586,7 @@ def run(a: argparse.Namespace) -> None:
             caught, lag, held = catch_up(t_kill)
             lost = [m for m in held_before if m not in held]
             dk = time.monotonic() - t_kill
-            ck1 = {name: p.cpu_s() for name, p in ((p.name, p) for p in procs) if name in ck0}
+            ck1 = {p.name: p.cpu_s() for p in procs if p.name in ck0}
             share = {n: (ck1[n] - ck0[n]) / dk for n in ck0}
             print(f"  CPU (share of one core) from the kill on, {dk:.0f} s: " + ", ".join(
                 f"{n} {v:.2f}" for n, v in share.items() if not n.startswith(("b", "late")))

@@ -67,9 +67,9 @@ after the other: after a router restart its token may reach the watcher before t
 know its queryable (10 000 machines: every latest held 65 s after the restart, at the
 machines' next periodic summary, when only the first ask was made; docs/fleet.md)."""
 
-SWEEP_AFTER_S = (10.0,)
+SWEEP_AFTER_S = 10.0
 """After machines' tokens came back (a router died or restarted), every machine's latest summary
-is asked once more this long [s] after the last of them came, once per delay: the summaries
+is asked once more this long [s] after the last of them came (a sweep): the summaries
 that the mesh lost while it recomputed its routes, of machines whose tokens never went (their
 box did not move), are otherwise held only at their next periodic summary. Measured at 10 000
 machines with a router killed (benchmarks/bench_fleet.py): in one run of two, 716 summaries
@@ -165,7 +165,7 @@ class SummaryWatcher:
         self._ask = threading.Event()
         self._pending: set[str] = set()  # machines whose tokens appeared again
         self._retries: dict[str, int] = {}  # machine back, not answering -> asks repeated
-        self._sweeps: list[float] = []  # monotonic times to ask every machine's latest again
+        self._sweep_at: float | None = None  # monotonic time of the next sweep
         self._burst = 0  # machines back since the last ask (tokens that appeared again)
         self._closing = threading.Event()
         self._asker: threading.Thread | None = None
@@ -182,7 +182,7 @@ class SummaryWatcher:
         restarted) their latest are asked again, once the tokens stopped coming for
         :data:`REASK_QUIET_S` (:meth:`_reask_keys`: one by one, by box or all at once), and
         after a burst of :data:`SWEEP_MIN_MACHINES` or more, every machine's latest once more
-        after each of :data:`SWEEP_AFTER_S` (:meth:`_sweep`)."""
+        :data:`SWEEP_AFTER_S` after its last token (:meth:`_sweep`)."""
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
         self._live = self.session.liveliness().declare_subscriber(alive, self._on_token)
@@ -208,18 +208,18 @@ class SummaryWatcher:
         with self._lock:
             self._burst += 1
             if self._burst >= SWEEP_MIN_MACHINES:
-                self._sweeps = [self._token_at + d for d in SWEEP_AFTER_S]
+                self._sweep_at = self._token_at + SWEEP_AFTER_S
         self._ask.set()
 
     def _ask_loop(self) -> None:
         """Ask the latest summaries when :attr:`_ask` is set (at start without waiting; after
         tokens appeared, once they stopped coming for :data:`REASK_QUIET_S`; machines back
         that did not answer, again after :data:`REASK_RETRIES_S`); and every machine's latest
-        when a sweep of :data:`SWEEP_AFTER_S` is due."""
+        when a sweep (:data:`SWEEP_AFTER_S`) is due."""
         first = True
         while True:
             with self._lock:
-                due = min(self._sweeps, default=None)
+                due = self._sweep_at
             if not self._ask.wait(None if due is None else max(due - time.monotonic(), 0.0)):
                 if self._closing.is_set() or not self._sweep():
                     return
@@ -253,12 +253,11 @@ class SummaryWatcher:
             first = False
 
     def _sweep(self) -> bool:
-        """Ask every machine's latest summary once (a sweep of :data:`SWEEP_AFTER_S`); the
+        """Ask every machine's latest summary once (a sweep, :data:`SWEEP_AFTER_S`); the
         replies newer than what is held replace it, the others are dropped (:meth:`put`).
         Returns False when the session closed under the query."""
-        now = time.monotonic()
         with self._lock:
-            self._sweeps = [t for t in self._sweeps if t > now]
+            self._sweep_at = None
             delivered = self.delivered
         t0 = time.monotonic()
         try:
