@@ -82,16 +82,21 @@ def reading_outputs(config: TwinwatchConfig) -> tuple[str, ...]:
 
 def alias_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, ...]:
     """The parameters whose alias the adapter computes when the window did not estimate them
-    (:mod:`twinwatch.twin.estimation.aliases`): the model's parameters no fault of the
-    machine's library names in a deviation sign, but tied ones (none with ``[diagnosis]``
-    off; the default motor's library names them all: none)."""
+    (:mod:`twinwatch.twin.estimation.aliases`): the model's parameters, but tied ones, that no
+    fault of the machine's library names in a deviation sign (the unknown fault's) or that
+    the estimation never estimates (a fault naming one is seen only through the estimates:
+    the PWM drive's fixed Tc, whose rise moves Ra, Ke, J and D together); none with
+    ``[diagnosis]`` off; the default motor estimates all its library names: none."""
     d = config.diagnosis
     if not d.enabled:
         return ()
     library = d.resolve(config.machine.model)
     named = {s.parameter for f in library.faults for s in f.deviations}
-    tied = set(config.estimation.resolved(model).tie or {})
-    return tuple(n for n in model.parameter_names if n not in named and n not in tied)
+    resolved = config.estimation.resolved(model)
+    tied = set(resolved.tie or {})
+    estimated = set(resolved.estimate or ())
+    return tuple(n for n in model.parameter_names
+                 if n not in tied and (n not in named or n not in estimated))
 
 
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,

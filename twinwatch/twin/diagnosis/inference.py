@@ -135,6 +135,13 @@ ALIAS_Z = 3.0
 ALIAS_MIN_PCT = 1.0
 #: The pattern must fit the estimates: the chi-square p-value of what it leaves at least this.
 ALIAS_FIT_P = 0.01
+#: An alias read in one of this many recent windows (a minute at 2 s windows) is read again
+#: in a window whose estimates still fit it with a change of the same sign, even if it moves
+#: only one of them beyond twice its standard error now: a change of a parameter the twin
+#: does not estimate does not come and go between two windows (the PWM drive's tau_e +50 %
+#: read as the alias in most windows, and in those between, whose Ke, J and D sat within
+#: their wider intervals, as worn brushes at 0.93).
+ALIAS_MEMORY_WINDOWS = 30
 #: Growth of a held parameter's last sound evidence's standard error with its age [% of
 #: nameplate per square root of a window]: a random walk, so that evidence from before a fault
 #: (La held at its nameplate since window 20) does not speak against it forever (1.5 % after
@@ -265,8 +272,10 @@ class _AliasFit:
     change: float               # its change [%] the estimates read
     change_sd: float            # the change's standard error [%]
     absorbed: float
-    signs: dict[str, tuple[str, float]]   # estimate -> (direction, smallest size [%])
+    signs: dict[str, tuple[str, float, tuple[int, ...]]]  # estimate -> (direction, smallest
+    #                                     size [%], the hypothesis columns of the faults moving it)
     text: str
+    named: bool = False         # a library fault names the parameter (else the unknown fault's)
 
 
 @dataclass
@@ -334,12 +343,24 @@ class Diagnoser:
         priors = np.array([f.prior for f in self.faults] + [unknown_prior])
         self._log_prior = (self._hyp @ np.log(priors)
                            + (1.0 - self._hyp) @ np.log1p(-priors))
-        self._comps: dict[tuple[str, frozenset[str], tuple[str, float] | None], _Comps] = {}
+        self._comps: dict[tuple[str, frozenset[str], tuple[str, float, tuple[int, ...]] | None],
+                          _Comps] = {}
         self._alias_fit: _AliasFit | None = None  # the last one read (:meth:`_alias`)
+        # parameter -> (the window its alias was last read in, the sign of its change)
+        self._alias_seen: dict[str, tuple[int, float]] = {}
         # the parameters some fault's deviation sign names (not the unknown fault's aliases)
         self._named = frozenset(d.parameter for f in self.faults for d in f.deviations)
         # parameter -> (the window of the evidence its alias sign was read from, the sign)
-        self._alias_signs: dict[str, tuple[int, tuple[str, float]]] = {}
+        self._alias_signs: dict[str, tuple[int, tuple[str, float, tuple[int, ...]]]] = {}
+        # parameter -> the faults a change of it in that direction is seen through the
+        # estimates for while it is not estimated (a deviation sign on it, and signs that
+        # hold when it is held: dry friction's Tc)
+        self._through: dict[tuple[str, str], tuple[int, ...]] = {
+            (q, direction): tuple(
+                i for i, f in enumerate(self.faults)
+                if any(d.parameter == q and d.direction == direction for d in f.deviations)
+                and any(q in d.when_held for d in f.deviations))
+            for q in self._named for direction in ("up", "down")}
         # per window: (window, output -> its check passed), for the faults' ``checks``
         self._outputs: deque[tuple[int, dict[str, bool]]] = deque(maxlen=CHECK_RATE_WINDOWS)
         self._dev_leak: dict[str, tuple[float, str]] = {}  # this window's raised leaks
@@ -447,14 +468,19 @@ class Diagnoser:
         for f in self.faults:
             self._signature_vars(health, f, out)
         self._unexplained_vars(health, out)
-        for name, (_, (direction, _)) in self._alias_signs.items():
-            # the unknown fault that moves an estimate moves its trend too: a drift read as
-            # one change of a parameter the window does not estimate is not the library's
+        for name, (_, (direction, _, owners)) in self._alias_signs.items():
+            # the fault that moves an estimate moves its trend too: a drift read as one change
+            # of a parameter the window does not estimate is that change's (the unknown
+            # fault's, or the faults naming it), not the library's faults of that estimate
             key = f"trend:{name}:{direction}"
             var = out.get(key)
-            if var is not None and "unknown" not in var.links:
-                var.links["unknown"] = max(var.links.values(), default=UNKNOWN_DEV_LINK)
-                var.what["unknown"] = f"{name} drifting {direction} (the alias pattern)"
+            if var is None:
+                continue
+            for i in owners:
+                fid = "unknown" if i == len(self.faults) else self.faults[i].id
+                if fid not in var.links:
+                    var.links[fid] = max(var.links.values(), default=UNKNOWN_DEV_LINK)
+                    var.what[fid] = f"{name} drifting {direction} (the alias pattern)"
         if "model_check" not in out:
             out["model_check"] = model_check_variable(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
@@ -624,13 +650,14 @@ class Diagnoser:
 
     # -- graded deviations (twinwatch.twin.diagnosis.deviation) -----------------------------
     def _components(self, name: str, estimated: frozenset[str] = frozenset(),
-                    alias: tuple[str, float] | None = None) -> _Comps:
+                    alias: tuple[str, float, tuple[int, ...]] | None = None) -> _Comps:
         """Per hypothesis, the probability its faults move ``name`` up and down and their
         smallest sizes, and the directions no fault moves it in, in a window that estimated
         ``estimated`` (a signature's ``when_held``/``when_estimated``; cached); ``alias``:
-        the unknown fault's sign on it in this window (direction, smallest size [%]:
+        the alias' sign on it in this window (direction, smallest size [%], the columns of
+        the faults moving it: the unknown fault's, or those naming the parameter;
         :meth:`_alias`), which leaves the directions no library fault moves it in as they
-        are."""
+        are (a fault whose own sign moves it that way keeps its own)."""
         signs = [(i, d) for i, f in enumerate(self.faults) for d in f.deviations
                  if d.parameter == name]
         cond = frozenset(p for _, d in signs for p in (*d.when_held, *d.when_estimated))
@@ -646,7 +673,9 @@ class Diagnoser:
         missing = tuple(d for d in ("up", "down") if d not in covered)
         library_items = list(items)
         if alias is not None:
-            items.append((len(self.faults), alias[0], alias[1], ALIAS_LINK, HI_PCT))
+            own = {i for i, d, _, _, _ in library_items if d == alias[0]}
+            items.extend((i, alias[0], alias[1], ALIAS_LINK, HI_PCT) for i in alias[2]
+                         if i not in own)
         arrays: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         reach: dict[str, float] = {}
         for direction in ("up", "down"):
@@ -693,6 +722,7 @@ class Diagnoser:
         fit = self._alias(health, evs)
         if fit is not None:
             self._alias_fit = fit
+            self._alias_seen[fit.parameter] = (health.window, fit.change)
             for name, sign in fit.signs.items():
                 self._alias_signs[name] = (health.window, sign)
         window = {n: ev.window for n, (ev, _) in evs.items()}
@@ -702,7 +732,7 @@ class Diagnoser:
         if not self._alias_signs:
             self._alias_fit = None
 
-    def _alias_sign(self, name: str, ev: _Dev) -> tuple[str, float] | None:
+    def _alias_sign(self, name: str, ev: _Dev) -> tuple[str, float, tuple[int, ...]] | None:
         """The unknown fault's sign on ``name`` read from ``ev``'s window, or None."""
         kept = self._alias_signs.get(name)
         return kept[1] if kept is not None and kept[0] == ev.window else None
@@ -733,9 +763,11 @@ class Diagnoser:
     def _alias(self, health: HealthMessage, evs: dict[str, tuple[_Dev, float]]
                ) -> _AliasFit | None:
         """The estimates of this window read as one change of a parameter it did not
-        estimate and no fault of the library names (``health.aliases``,
-        :mod:`twinwatch.twin.estimation.aliases`): the unknown fault's signature in this
-        window, or None.
+        estimate (``health.aliases``, :mod:`twinwatch.twin.estimation.aliases`): the unknown
+        fault's signature in this window when no fault of the library names the parameter,
+        else that of the faults seen through the estimates while it is held (a deviation
+        sign on it that way and ``when_held`` signs on it: the PWM drive's dry friction and
+        its fixed Tc), or None.
 
         For each such parameter ``p`` whose effect the estimates mimic
         (:data:`ALIAS_ABSORBED`), the change ``c`` [%] that best explains this window's
@@ -747,10 +779,18 @@ class Diagnoser:
         fault then moves each of those estimates in the alias' direction by at least half
         the size it predicts (link :data:`ALIAS_LINK`): the PWM drive's tau_e +50 % (fixed
         in that twin) published Ra +28 %, Ke -6 %, J -12 %, D -6 %, which read as worn
-        brushes and a weakened magnet at once."""
+        brushes and a weakened magnet at once.
+
+        An alias read in the last :data:`ALIAS_MEMORY_WINDOWS` windows is read with one
+        estimate moved (the unknown fault's only). A library fault's alias needs each
+        estimate the pattern moves to have moved its way by a standard error itself: its
+        Coulomb torque Tc +150 % published Ra +9 %, Ke -4 %, J -12 %, D +13 % (a current
+        sensor reading low was named beside the friction at 0.92), while worn brushes and
+        bearings at once, Ra +13 % and D +23 % with Ke put, fitted Tc's pattern loosely
+        (p 0.02) and read as dry friction at 0.96 until that check."""
         best: tuple[float, _AliasFit] | None = None
         for p, a in health.aliases.items():
-            if p in self._named or a.absorbed is None or a.absorbed < ALIAS_ABSORBED:
+            if a.absorbed is None or a.absorbed < ALIAS_ABSORBED:
                 continue
             pts = [(e, float(m), *evs[e]) for e, m in a.moves.items()
                    if m is not None and e in evs and evs[e][0].window == health.window]
@@ -770,18 +810,37 @@ class Diagnoser:
             fit_p = float(chdtrc(len(pts) - 1, chi))
             moved = [(e, float(v)) for (e, _, _, s_e), v in zip(pts, pred, strict=True)
                      if abs(v) >= max(ALIAS_MIN_PCT, 2.0 * s_e)]
-            if abs(c) < ALIAS_Z * c_sd or fit_p < ALIAS_FIT_P or len(moved) < 2:
+            named = p in self._named
+            seen = self._alias_seen.get(p)
+            recalled = (not named and seen is not None
+                        and health.window - seen[0] <= ALIAS_MEMORY_WINDOWS and seen[1] * c > 0)
+            if abs(c) < ALIAS_Z * c_sd or fit_p < ALIAS_FIT_P or len(moved) < (
+                    1 if recalled else 2):
                 continue
-            signs = {e: ("up" if v > 0 else "down", _grid(0.5 * abs(v))) for e, v in moved}
+            if named and not all(ev.dev * v >= 0 and abs(ev.dev) >= s_e
+                                 for (e, _, ev, s_e), v in zip(pts, pred, strict=True)
+                                 if any(e == m for m, _ in moved)):
+                # a fault of the library would explain these estimates through it: each one
+                # the pattern moves must have moved its way itself (a Ke that stayed put
+                # is no Coulomb friction's, whatever Ra and D did)
+                continue
+            owners = (self._through.get((p, "up" if c > 0 else "down"), ()) if named
+                      else (len(self.faults),))
+            if not owners:  # named, and no fault is seen through the estimates that way
+                continue
+            signs = {e: ("up" if v > 0 else "down", _grid(0.5 * abs(v)), owners)
+                     for e, v in moved}
             said = ", ".join(f"{e} {ev.dev:+.1f} %" for e, _, ev, _ in pts
                              if e in signs)
             status = health.parameters[p].status if p in health.parameters else "fixed"
+            whose = (", ".join(self.faults[i].id for i in owners) + f" moves {p} so"
+                     if named else "a change the library does not know")
             fit = _AliasFit(p, c, c_sd, float(a.absorbed), signs,
                             f"{said} moved together, as a change of {p} by {c:+.1f} % +/- "
                             f"{2 * c_sd:.1f} % (2 sigma) would move them: {p} is not "
                             f"estimated here ({status}), and the estimates carry "
                             f"{100 * a.absorbed:.1f} % of its effect (the pattern fits: "
-                            f"p = {fit_p:.2f}); a change the library does not know")
+                            f"p = {fit_p:.2f}); {whose}", named)
             if best is None or fit_p > best[0]:
                 best = (fit_p, fit)
         return best[1] if best is not None else None
@@ -1110,8 +1169,8 @@ class Diagnoser:
             check_function_since=since,
             check_failed=record,
             unexplained=self._unexplained_lines(variables) + (
-                [self._alias_fit.text] if self._alias_fit is not None and p_unknown > 0.2
-                else []),
+                [self._alias_fit.text] if self._alias_fit is not None
+                and not self._alias_fit.named and p_unknown > 0.2 else []),
             ruled_out=ruled_out,
             unobserved=self._unobserved(health),
         )
