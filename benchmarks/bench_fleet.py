@@ -142,6 +142,9 @@ def role_box(a: argparse.Namespace) -> None:
         stop.set()
 
     threading.Thread(target=commands, daemon=True).start()
+    if a.trace_routers:
+        threading.Thread(target=_trace_routers, args=(a.box, pubs[0], stop),
+                         daemon=True).start()
     say(event="ready", declared_s=round(declared, 2), full=len(full))
     start = time.monotonic()
     # machine j's windows end at start + phase_j + k * WINDOW_S (staggered over the window)
@@ -172,6 +175,22 @@ def role_box(a: argparse.Namespace) -> None:
     for p in pubs:
         p.close()
     say(event="done")
+
+
+def _trace_routers(box: str, pub: Any, stop: threading.Event) -> None:
+    """``--trace-routers``: print (not as an event) each change of the routers the box's
+    session is connected to, with the wall time: when a box lost R1 and reached R0."""
+    session = pub._session  # the box's shared session (a benchmark may look inside)
+    seen: list[str] | None = None
+    while not stop.wait(0.05):
+        try:
+            now = sorted(str(z)[:8] for z in session.info.routers_zid())
+        except Exception:  # noqa: BLE001 - the session closing
+            return
+        if now != seen:
+            sys.stdout.write(f"routers {now} at {time.time():.3f}\n")
+            sys.stdout.flush()
+            seen = now
 
 
 def _rss_kb(pid: int | str = "self") -> int:
@@ -421,6 +440,9 @@ def main() -> None:
                     help="the routers start from this zenohd configuration (default "
                          "config/zenoh-site-router.json5: the boxes' advanced publishers' "
                          "declarations stay off the mesh, as behind a site's router)"),
+    ap.add_argument("--trace-routers", action="store_true",
+                    help="each box prints when its session's router changes, and the kill's "
+                         "wall time is printed (why a box's tokens come back late)")
     ap.add_argument("--full-timeout", type=float, default=600.0,
                     help="longest wait for the far client to hold every machine [s]")
     a = ap.parse_args()
@@ -478,7 +500,8 @@ def run(a: argparse.Namespace) -> None:
                       str(per[i]), "--interval", str(a.summary_interval), "--layout", a.layout,
                       "--health-share", str(a.health_share), "--cache", str(a.cache),
                       "--recording", str(rec),
-                      "--log", str(tmp / f"{name}.log.json")], name, nice=a.nice)
+                      "--log", str(tmp / f"{name}.log.json"),
+                      *(["--trace-routers"] if a.trace_routers else [])], name, nice=a.nice)
             box_procs.append(p)
         procs += box_procs
         ready = [p.expect("ready", 900) for p in box_procs]
@@ -558,6 +581,8 @@ def run(a: argparse.Namespace) -> None:
         ck0 = {p.name: p.cpu_s() for p in procs if p is not routers[1]}
         t_kill, w_kill = time.monotonic(), time.time()
         routers[1].kill()
+        if a.trace_routers:
+            print(f"  R1 killed at {w_kill:.3f}", file=sys.stderr)
 
         def is_behind(held: int | None, latest: int) -> bool:
             return (held if held is not None else -1) < latest
