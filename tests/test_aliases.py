@@ -123,26 +123,35 @@ def _library_without_la() -> Any:
     return FaultLibrary.model_validate(data)
 
 
-def _diagnose(messages: list[HealthMessage], pattern: dict[str, tuple[float, float]],
-              alias: dict[str, Any] | None) -> Any:
-    d = Diagnoser(_library_without_la())
+def _diagnose_each(messages: list[HealthMessage],
+                   patterns: list[dict[str, tuple[float, float]]], alias: dict[str, Any] | None,
+                   library: Any = None) -> Any:
+    """The diagnosis of the last ``len(patterns)`` windows, each with its pattern (deviation
+    [%], 1-sigma [%] per parameter, status ``estimated``) and, if given, La's ``alias`` (La
+    fixed), on ``library`` (default: the default motor's without La)."""
+    d = Diagnoser(library if library is not None else _library_without_la())
     out = None
-    for h in messages[-6:]:
+    for h, pattern in zip(messages[-len(patterns):], patterns, strict=True):
         params = dict(h.parameters)
         for name, (dev, sd) in pattern.items():
             p = params[name]
             params[name] = p.model_copy(update={"value": p.nominal * (1 + dev / 100),
                                                 "deviation_pct": dev, "status": "estimated",
                                                 "rel_std_pct": sd})
-        if "Ke" in pattern:
-            params["Kt"] = params["Kt"].model_copy(update={"value": params["Ke"].value})
-        la = params["La"].model_copy(update={"status": "fixed", "rel_std_pct": None})
-        params["La"] = la
+        params["Kt"] = params["Kt"].model_copy(update={"value": params["Ke"].value})
+        params["La"] = params["La"].model_copy(update={"status": "fixed", "rel_std_pct": None})
         update: dict[str, Any] = {"parameters": params}
         if alias is not None:
             update["aliases"] = {"La": AliasHealth.model_validate(alias)}
         out = d.update(h.model_copy(update=update), None)
     return out
+
+
+def _diagnose(messages: list[HealthMessage], pattern: dict[str, tuple[float, float]],
+              alias: dict[str, Any] | None) -> Any:
+    """The diagnosis of the last six windows, each with ``pattern`` (deviation [%], 1-sigma
+    [%] per parameter) and, if given, La's ``alias`` (La fixed)."""
+    return _diagnose_each(messages, [pattern] * 6, alias)
 
 
 def test_estimates_moving_along_an_alias_are_one_unknown_change_not_two_faults(
@@ -178,26 +187,6 @@ def test_one_estimate_moving_is_the_library_s_even_along_an_alias(
     assert not any("change of La" in u for u in out.unexplained)
 
 
-def _diagnose_each(messages: list[HealthMessage],
-                   patterns: list[dict[str, tuple[float, float]]], alias: dict[str, Any] | None,
-                   library: Any = None) -> Any:
-    """:func:`_diagnose` with one pattern a window, over the last ``len(patterns)`` windows."""
-    d = Diagnoser(library if library is not None else _library_without_la())
-    out = None
-    for h, pattern in zip(messages[-len(patterns):], patterns, strict=True):
-        params = dict(h.parameters)
-        for name, (dev, sd) in pattern.items():
-            p = params[name]
-            params[name] = p.model_copy(update={"value": p.nominal * (1 + dev / 100),
-                                                "deviation_pct": dev, "status": "estimated",
-                                                "rel_std_pct": sd})
-        params["Kt"] = params["Kt"].model_copy(update={"value": params["Ke"].value})
-        params["La"] = params["La"].model_copy(update={"status": "fixed", "rel_std_pct": None})
-        update: dict[str, Any] = {"parameters": params}
-        if alias is not None:
-            update["aliases"] = {"La": AliasHealth.model_validate(alias)}
-        out = d.update(h.model_copy(update=update), None)
-    return out
 
 
 #: The window between two read along tau_e's alias (bench_diagnosis pwm/off/tau_e+50%,
