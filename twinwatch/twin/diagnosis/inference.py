@@ -733,7 +733,8 @@ class Diagnoser:
             self._alias_fit = None
 
     def _alias_sign(self, name: str, ev: _Dev) -> tuple[str, float, tuple[int, ...]] | None:
-        """The unknown fault's sign on ``name`` read from ``ev``'s window, or None."""
+        """The alias' sign on ``name`` read from ``ev``'s window (the unknown fault's, or the
+        faults naming the aliased parameter: :meth:`_alias`), or None."""
         kept = self._alias_signs.get(name)
         return kept[1] if kept is not None and kept[0] == ev.window else None
 
