@@ -18,12 +18,10 @@ from .conftest import plant_windows
 TRUE = {"Ra": 6.5, "La": 0.673, "J": 0.001171, "Ke": 0.038, "D": 0.00143}
 
 
-def _step_window(noise_pct: float | None = None):
+def _step_window():
     # A set-point step half a second into the window: a transient pins every parameter.
-    noise = {} if noise_pct is None else {"noise": {"ia": noise_pct, "omega": noise_pct}}
     cfg = DCMotorPlantConfig(scenario="nominal", duration=30,
-                             setpoint=SetpointSchedule(steps=[(0.0, 10.0), (20.5, 15.0)]),
-                             **noise)
+                             setpoint=SetpointSchedule(steps=[(0.0, 10.0), (20.5, 15.0)]))
     return plant_windows(cfg, 1, skip=10)[1][0]
 
 
@@ -46,26 +44,13 @@ def test_transient_window_determines_electrical_and_mechanical_dynamics():
 
 def test_ke_and_d_trade_off_even_in_a_transient_window():
     """With the viscous load c = 0.006 >> D = 0.00143, D = Ke*ia/omega - c amplifies a Ke
-    error about 5 times: at 0.1 % measurement noise freeing Ke makes D undetermined, so with
-    the default priority (D before Ke) Ke is held and D estimated."""
-    r = Estimator(DCMotorTwin(), EstimationConfig()).estimate(_step_window(0.1))
+    error about 5 times: freeing Ke makes D undetermined, so with the default priority
+    (D before Ke) Ke is held and D estimated."""
+    r = Estimator(DCMotorTwin(), EstimationConfig()).estimate(_step_window())
     assert {"Ra", "D"} <= set(r.estimated)
     assert "Ke" in r.held and "not separable from D" in r.held["Ke"]
-    assert r.values["D"] == pytest.approx(TRUE["D"], rel=2e-3)
-    assert r.values["Ra"] == pytest.approx(TRUE["Ra"], rel=2e-4)
-
-
-def test_a_noise_free_transient_window_pins_ke_beside_d():
-    """Without noise the residual is the twin's own arithmetic, smooth (lag-1 autocorrelation
-    near 1) and far below the ``model_error`` floor: the gate takes the floor as white there,
-    and the smooth residual's AR(1) factor (up to 199) does not multiply it. Multiplied, it
-    held Ke "not separable from D" in this window, and the PWM drive's Ra for its whole
-    noise-free run while the fit moved Ke and D in its place (bench_diagnosis
-    pwm/winding_short/Ra-12%/n0: no fault 0.93)."""
-    r = Estimator(DCMotorTwin(), EstimationConfig()).estimate(_step_window())
-    assert {"Ra", "D", "Ke", "La"} <= set(r.estimated)
-    for name in ("Ra", "D", "Ke", "La"):
-        assert r.values[name] == pytest.approx(TRUE[name], rel=1e-5), name
+    assert r.values["D"] == pytest.approx(TRUE["D"], rel=1e-4)
+    assert r.values["Ra"] == pytest.approx(TRUE["Ra"], rel=1e-5)
 
 
 def test_quasi_static_window_holds_what_it_cannot_determine():
@@ -197,28 +182,3 @@ def test_sensitivity_columns_reused_at_the_same_point_are_the_same_numbers():
     v2[0] += 1e-3
     first.local.sensitivity_and_residuals(v2, held)
     assert first.fit.evaluations > evals
-
-
-def test_the_gate_takes_the_floor_as_white_below_a_numerical_residual_only():
-    """A smooth residual far below the floor (noise-free arithmetic, lag-1 autocorrelation
-    0.99): the floor inflated by (1 + rho)/(1 - rho), but for the gate (``numerical``) the
-    floor alone; a smooth residual at a tenth of the floor (the MotoShield recording's
-    current) keeps the inflated floor either way; white noise above the floor its own.
-    Residuals are normalised (the RMS level is ``sqrt(sum r^2)``): a level x is
-    ``x / sqrt(M)`` a row."""
-    from twinwatch.twin.estimation.fit import NUMERICAL_SHARE, residual_variances
-
-    m, floor = 400, 1e-4
-    smooth = np.sin(np.linspace(0.0, 3.0, m)) / math.sqrt(m)  # rho near 1: clipped at 0.99
-    white = np.random.default_rng(1).normal(0.0, 1e-2, m) / math.sqrt(m)
-
-    def level(r: np.ndarray, numerical: float = 0.0) -> float:  # a row's variance times M
-        v = residual_variances(r, 1, floor, 0, numerical) * r.size
-        assert np.all(v == v[0])
-        return float(v[0])
-
-    assert level(1e-8 * smooth) == pytest.approx(floor**2 * 199)
-    assert level(1e-8 * smooth, NUMERICAL_SHARE) == pytest.approx(floor**2)
-    tenth = 0.3 * floor * smooth / math.sqrt(float(np.sum(smooth**2)))
-    assert level(tenth, NUMERICAL_SHARE) == pytest.approx(floor**2 * 199)
-    assert level(white, NUMERICAL_SHARE) == pytest.approx(float(np.sum(white**2)), rel=0.15)

@@ -4,9 +4,7 @@ At the polished optimum the Jacobian ``S`` of the normalised residuals with resp
 ln-parameters gives each parameter's relative standard error (the sandwich covariance of
 :func:`~twinwatch.twin.estimation.fit.parameter_covariance`: each output's residual variance,
 floored by ``model_error`` so that noise-free data do not make a collinear set look determined,
-inflated by its AR(1) factor, but white below a hundredth of the floor's mean square, where the
-residual is the simulation's arithmetic: :data:`~twinwatch.twin.estimation.fit.NUMERICAL_SHARE`;
-the window's initial state always free beside them). Parameters
+inflated by its AR(1) factor; the window's initial state always free beside them). Parameters
 are admitted in the configured priority order while every admitted one keeps its relative
 standard error at most ``max_rel_std``; the first that fails and every one after it are *held*
 at their last trusted value, with the reason, and the admitted ones are re-fitted with them
@@ -29,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinwatch.twin.estimation.fit import NUMERICAL_SHARE, relative_std
+from twinwatch.twin.estimation.fit import relative_std
 from twinwatch.twin.estimation.polish import Polished
 from twinwatch.twin.estimation.problem import FitPoint, WindowProblem
 from twinwatch.twin.estimation.statistics import ModelCheck
@@ -83,7 +81,7 @@ class IdentifiabilityGate:
     def relative_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
         """Relative standard errors (n,) of the ln-parameter columns of ``jac`` (M, n) at
         residuals ``r`` (M,) (:func:`~twinwatch.twin.estimation.fit.relative_std`)."""
-        return relative_std(jac, r, self.n_out, self.model_error, NUMERICAL_SHARE)
+        return relative_std(jac, r, self.n_out, self.model_error)
 
     def select(self, jac: FloatArray, r: FloatArray,
                unexcited: Mapping[str, str] | None = None, n_nuisance: int = 0
