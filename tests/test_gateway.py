@@ -733,7 +733,9 @@ def test_a_reload_sees_an_edited_fault_library_and_says_what_it_did_in_one_line(
 
     def drive() -> None:
         try:
+            # the window counter moves before the pipeline's latest message is set: wait for both
             wait_for(lambda: all((d := daemon(n)) is not None and d.windows_estimated >= 1
+                                 and d.pipeline.latest is not None
                                  for n in ("m1", "m2", "m3")))
             assert "custom_before" in faults("m1")
             seen.update({n: daemon(n) for n in ("m1", "m2", "m3")})
