@@ -143,7 +143,7 @@ def role_box(a: argparse.Namespace) -> None:
 
     threading.Thread(target=commands, daemon=True).start()
     if a.trace_routers:
-        threading.Thread(target=_trace_routers, args=(a.box, pubs[0], stop),
+        threading.Thread(target=_trace_routers, args=(pubs[0], stop),
                          daemon=True).start()
     say(event="ready", declared_s=round(declared, 2), full=len(full))
     start = time.monotonic()
@@ -177,7 +177,7 @@ def role_box(a: argparse.Namespace) -> None:
     say(event="done")
 
 
-def _trace_routers(box: str, pub: Any, stop: threading.Event) -> None:
+def _trace_routers(pub: Any, stop: threading.Event) -> None:
     """``--trace-routers``: print (not as an event) each change of the routers the box's
     session is connected to, with the wall time: when a box lost R1 and reached R0."""
     session = pub._session  # the box's shared session (a benchmark may look inside)
