@@ -437,9 +437,11 @@ def test_a_drive_dead_zone_is_an_unknown_fault_naming_the_discovered_term() -> N
     assert a == pytest.approx(-1 / 0.673, rel=0.05) and b == pytest.approx(DEAD_ZONE, rel=0.05)
     assert max(f.probability for h in history for f in h.diagnosis.faults) < 0.2  # type: ignore[union-attr]
 
-    # Explaining away: at 1 % noise the estimates absorb part of the dead zone (Ra published
-    # +1.1 to +2.8 % in sound windows). Ra +2 % with the unexplained term on d(ia)/dt (Ra's
-    # equation) is model error, not worn brushes; the same Ra without the term is the brushes.
+    # Explaining away: at 1 % noise the estimates absorbed part of the dead zone (Ra published
+    # +1.1 to +2.8 % in sound windows, before the gate took the term's scale as a nuisance:
+    # Ra is held beside the term now). Ra +2 % with the unexplained term on d(ia)/dt (Ra's
+    # equation) is model error, not worn brushes; the same Ra in windows where the twin fits
+    # without a term (before the dead zone) is the brushes.
     from twinwatch.twin.diagnosis import Diagnoser
 
     def with_ra(h: HealthMessage, terms: bool) -> HealthMessage:
@@ -448,9 +450,10 @@ def test_a_drive_dead_zone_is_an_unknown_fault_naming_the_discovered_term() -> N
         ra.value, ra.status, ra.rel_std_pct = 6.5 * 1.02, "estimated", 0.05  # type: ignore[assignment]
         return h
 
+    fitting = [h for h in history if h.t_end <= 10.0][-3:]
     for terms in (True, False):
         diag = Diagnoser(lib)
-        got = [diag.update(with_ra(h, terms)) for h in history[-3:]][-1]
+        got = [diag.update(with_ra(h, terms)) for h in (history[-3:] if terms else fitting)][-1]
         brushes = next(f for f in got.faults if f.id == "brushes_connections")
         if terms:
             assert got.status == "unknown" and brushes.probability < 0.2, got

@@ -18,10 +18,12 @@ from .conftest import plant_windows
 TRUE = {"Ra": 6.5, "La": 0.673, "J": 0.001171, "Ke": 0.038, "D": 0.00143}
 
 
-def _step_window():
+def _step_window(noise_pct: float | None = None):
     # A set-point step half a second into the window: a transient pins every parameter.
+    noise = {} if noise_pct is None else {"noise": {"ia": noise_pct, "omega": noise_pct}}
     cfg = DCMotorPlantConfig(scenario="nominal", duration=30,
-                             setpoint=SetpointSchedule(steps=[(0.0, 10.0), (20.5, 15.0)]))
+                             setpoint=SetpointSchedule(steps=[(0.0, 10.0), (20.5, 15.0)]),
+                             **noise)
     return plant_windows(cfg, 1, skip=10)[1][0]
 
 
@@ -44,13 +46,26 @@ def test_transient_window_determines_electrical_and_mechanical_dynamics():
 
 def test_ke_and_d_trade_off_even_in_a_transient_window():
     """With the viscous load c = 0.006 >> D = 0.00143, D = Ke*ia/omega - c amplifies a Ke
-    error about 5 times: freeing Ke makes D undetermined, so with the default priority
-    (D before Ke) Ke is held and D estimated."""
-    r = Estimator(DCMotorTwin(), EstimationConfig()).estimate(_step_window())
+    error about 5 times: at 0.1 % measurement noise freeing Ke makes D undetermined, so with
+    the default priority (D before Ke) Ke is held and D estimated."""
+    r = Estimator(DCMotorTwin(), EstimationConfig()).estimate(_step_window(0.1))
     assert {"Ra", "D"} <= set(r.estimated)
     assert "Ke" in r.held and "not separable from D" in r.held["Ke"]
-    assert r.values["D"] == pytest.approx(TRUE["D"], rel=1e-4)
-    assert r.values["Ra"] == pytest.approx(TRUE["Ra"], rel=1e-5)
+    assert r.values["D"] == pytest.approx(TRUE["D"], rel=2e-3)
+    assert r.values["Ra"] == pytest.approx(TRUE["Ra"], rel=2e-4)
+
+
+def test_a_noise_free_transient_window_pins_ke_beside_d():
+    """Without noise the residual is the twin's own arithmetic, smooth (lag-1 autocorrelation
+    near 1) and far below the ``model_error`` floor: the gate takes the floor as white there,
+    and the smooth residual's AR(1) factor (up to 199) does not multiply it. Multiplied, it
+    held Ke "not separable from D" in this window, and the PWM drive's Ra for its whole
+    noise-free run while the fit moved Ke and D in its place (bench_diagnosis
+    pwm/winding_short/Ra-12%/n0: no fault 0.93)."""
+    r = Estimator(DCMotorTwin(), EstimationConfig()).estimate(_step_window())
+    assert {"Ra", "D", "Ke", "La"} <= set(r.estimated)
+    for name in ("Ra", "D", "Ke", "La"):
+        assert r.values[name] == pytest.approx(TRUE[name], rel=1e-5), name
 
 
 def test_quasi_static_window_holds_what_it_cannot_determine():
@@ -182,3 +197,75 @@ def test_sensitivity_columns_reused_at_the_same_point_are_the_same_numbers():
     v2[0] += 1e-3
     first.local.sensitivity_and_residuals(v2, held)
     assert first.fit.evaluations > evals
+
+
+def test_the_gate_takes_the_floor_as_white_below_a_numerical_residual_only():
+    """A smooth residual far below the floor (noise-free arithmetic, lag-1 autocorrelation
+    0.99): the floor inflated by (1 + rho)/(1 - rho), but for the gate (``numerical``) the
+    floor alone; a smooth residual at a tenth of the floor (the MotoShield recording's
+    current) keeps the inflated floor either way; white noise above the floor its own.
+    Residuals are normalised (the RMS level is ``sqrt(sum r^2)``): a level x is
+    ``x / sqrt(M)`` a row."""
+    from twinwatch.twin.estimation.fit import NUMERICAL_SHARE, residual_variances
+
+    m, floor = 400, 1e-4
+    smooth = np.sin(np.linspace(0.0, 3.0, m)) / math.sqrt(m)  # rho near 1: clipped at 0.99
+    white = np.random.default_rng(1).normal(0.0, 1e-2, m) / math.sqrt(m)
+
+    def level(r: np.ndarray, numerical: float = 0.0) -> float:  # a row's variance times M
+        v = residual_variances(r, 1, floor, 0, numerical) * r.size
+        assert np.all(v == v[0])
+        return float(v[0])
+
+    assert level(1e-8 * smooth) == pytest.approx(floor**2 * 199)
+    assert level(1e-8 * smooth, NUMERICAL_SHARE) == pytest.approx(floor**2)
+    tenth = 0.3 * floor * smooth / math.sqrt(float(np.sum(smooth**2)))
+    assert level(tenth, NUMERICAL_SHARE) == pytest.approx(floor**2 * 199)
+    assert level(white, NUMERICAL_SHARE) == pytest.approx(float(np.sum(white**2)), rel=0.15)
+
+
+def _dead_zone_window():
+    # The drive's 2 V dead zone from the start, 10 rad/s held: a quasi-static window where Va
+    # stays above the band, so the clip term is a constant offset on d(ia)/dt.
+    cfg = DCMotorPlantConfig(scenario="dead_zone", fault_start=0.0, duration=30,
+                             setpoint=SetpointSchedule(steps=[(0.0, 10.0)]))
+    return plant_windows(cfg, 1, skip=10)[1][0]
+
+
+def _clip_term(window, scale: float) -> dict[str, np.ndarray]:
+    # The dead zone as the twin's meta-model holds it: -clip(Va, b)/La on d(ia)/dt
+    # (config/dc-motor-deadzone-sim.toml's plant: b = 2 V, La = 0.673 H), times ``scale``.
+    return {"d(ia)/dt": scale * -np.clip(window.channels["Va"], -2.0, 2.0) / TRUE["La"]}
+
+
+def test_a_held_term_that_stands_in_for_a_parameter_keeps_it_out_of_the_gate():
+    """A meta-model term is held while the parameters are fitted; a parameter whose effect the
+    term's can take (La against the dead zone's constant offset on d(ia)/dt above its band:
+    their columns correlate to 1.0) is not determined by the window. With the term 10 % off
+    (a discovered term's coefficients are not exact), a gate blind to the term published La
+    +10.6 % 'estimated' in this noise-free window (the shipped dead-zone example ended with
+    the twin's La +37 % beside its clip term, test_diagnosis)."""
+    window = _dead_zone_window()
+    for scale in (1.0, 0.9):
+        r = Estimator(DCMotorTwin(), EstimationConfig(estimate=["La"])).estimate(
+            window, _clip_term(window, scale))
+        assert "La" in r.held and "not determined by this window" in r.held["La"], scale
+        assert r.values["La"] == pytest.approx(TRUE["La"], rel=1e-9)  # its trusted value
+
+
+def test_a_terms_sensitivity_column_is_the_residuals_change_with_its_scale():
+    """:meth:`LocalFit.term_sensitivity`: the DC twin is linear in a term on d(ia)/dt, so the
+    column times a 10 % scale is the residuals' change when the term is scaled by 1.1; none
+    without terms."""
+    window = _dead_zone_window()
+    est = Estimator(DCMotorTwin(), EstimationConfig())
+    term = _clip_term(window, 1.0)
+    problem = est.problem(window, term)
+    v = problem.local.start(problem.start())
+    col = problem.local.term_sensitivity(v)
+    assert col.shape == (problem.local.residuals(v).shape[1], 1)
+    moved = est.problem(window, {k: 1.1 * a for k, a in term.items()}, problem.fit)
+    change = moved.local.residuals(v)[0] - problem.local.residuals(v)[0]
+    np.testing.assert_allclose(0.1 * col[:, 0], change, rtol=1e-3, atol=1e-9)
+    bare = est.problem(window, None)
+    assert bare.local.term_sensitivity(v).shape[1] == 0

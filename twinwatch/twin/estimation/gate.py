@@ -4,7 +4,11 @@ At the polished optimum the Jacobian ``S`` of the normalised residuals with resp
 ln-parameters gives each parameter's relative standard error (the sandwich covariance of
 :func:`~twinwatch.twin.estimation.fit.parameter_covariance`: each output's residual variance,
 floored by ``model_error`` so that noise-free data do not make a collinear set look determined,
-inflated by its AR(1) factor; the window's initial state always free beside them). Parameters
+inflated by its AR(1) factor, but white below a hundredth of the floor's mean square, where the
+residual is the simulation's arithmetic: :data:`~twinwatch.twin.estimation.fit.NUMERICAL_SHARE`;
+the window's initial state, and the scale of each meta-model term the twin holds, always free
+beside them: a term stands for what the physics lacks, and a parameter whose effect it can take
+is not determined by the window, whatever the floor). Parameters
 are admitted in the configured priority order while every admitted one keeps its relative
 standard error at most ``max_rel_std``; the first that fails and every one after it are *held*
 at their last trusted value, with the reason, and the admitted ones are re-fitted with them
@@ -27,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinwatch.twin.estimation.fit import relative_std
+from twinwatch.twin.estimation.fit import NUMERICAL_SHARE, relative_std
 from twinwatch.twin.estimation.polish import Polished
 from twinwatch.twin.estimation.problem import FitPoint, WindowProblem
 from twinwatch.twin.estimation.statistics import ModelCheck
@@ -81,7 +85,7 @@ class IdentifiabilityGate:
     def relative_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
         """Relative standard errors (n,) of the ln-parameter columns of ``jac`` (M, n) at
         residuals ``r`` (M,) (:func:`~twinwatch.twin.estimation.fit.relative_std`)."""
-        return relative_std(jac, r, self.n_out, self.model_error)
+        return relative_std(jac, r, self.n_out, self.model_error, NUMERICAL_SHARE)
 
     def select(self, jac: FloatArray, r: FloatArray,
                unexcited: Mapping[str, str] | None = None, n_nuisance: int = 0
@@ -141,6 +145,18 @@ class IdentifiabilityGate:
         other = self.names[cand[worst]] if worst is not None else "others"
         return f"not separable from {other} in this window: held at last trusted value"
 
+    @staticmethod
+    def _with_terms(problem: WindowProblem, point: FitPoint) -> tuple[FloatArray, int]:
+        """The Jacobian :meth:`select` reads: ``point``'s (the parameters, then the initial
+        state) with a column per held meta-model term's scale appended
+        (:meth:`~twinwatch.twin.estimation.fit.LocalFit.term_sensitivity`), and the number
+        of nuisance columns (the initial state's and the terms')."""
+        n_nuis = problem.nuisance.size
+        if not problem.terms:
+            return point.jac, n_nuis
+        cols = problem.local.term_sensitivity(point.v)
+        return np.hstack([point.jac, cols]), n_nuis + cols.shape[1]
+
     def admit(self, problem: WindowProblem, polished: Polished,
               unexcited: Mapping[str, str] | None = None) -> tuple[GateDecision, FitPoint]:
         """Select the parameters the polished optimum determines and, if some are held,
@@ -157,8 +173,8 @@ class IdentifiabilityGate:
             the admitted parameters' standard errors from its Jacobian).
         """
         point = polished.point
-        selected, rel_std, reasons = self.select(point.jac, point.r, unexcited,
-                                                 problem.nuisance.size)
+        jac, n_nuis = self._with_terms(problem, point)
+        selected, rel_std, reasons = self.select(jac, point.r, unexcited, n_nuis)
         held = {name: reasons[k] for k, name in enumerate(self.names) if k not in selected}
         if len(selected) < problem.n_est:
             held_pos = [k for k in range(problem.n_est) if k not in selected]
@@ -179,8 +195,8 @@ class IdentifiabilityGate:
         initial-state columns at the re-fit's optimum); None when it admits another set
         (the caller polishes every parameter and runs :meth:`admit`)."""
         point = polished.point
-        sel, rel_std, reasons = self.select(point.jac, point.r, unexcited,
-                                            problem.nuisance.size)
+        jac, n_nuis = self._with_terms(problem, point)
+        sel, rel_std, reasons = self.select(jac, point.r, unexcited, n_nuis)
         if sel != list(selected):
             return None
         held = {name: reasons[k] for k, name in enumerate(self.names) if k not in sel}
