@@ -212,9 +212,11 @@ def role_client(a: argparse.Namespace) -> None:
     from twinwatch.watch.render_fleet import render_fleet
     from twinwatch.watch.summaries import SummaryWatcher
 
-    # the watcher's asks (how many machines answered, asked again) on stderr, timed
+    # the watcher's asks (how many machines answered, asked again) on stderr, timed (with
+    # --trace-routers also at wall time [s], beside the kill's)
+    wall = " at %(created).3f" if a.trace_routers else ""
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
-                        format=f"  [{a.name}] %(relativeCreated).0f ms %(message)s")
+                        format=f"  [{a.name}] %(relativeCreated).0f ms{wall} %(message)s")
     logging.getLogger("twinwatch.watch.summaries").setLevel(logging.DEBUG)
     rss0 = _rss_kb()
     t_open = time.monotonic()
@@ -445,8 +447,9 @@ def main() -> None:
                     help="the boxes' [zenoh] presence: a liveliness token per machine "
                          "(machine, the default) or one per box standing for its machines")
     ap.add_argument("--trace-routers", action="store_true",
-                    help="each box prints when its session's router changes, and the kill's "
-                         "wall time is printed (why a box's tokens come back late)")
+                    help="each box prints when its session's router changes, the client's "
+                         "log lines their wall time, and the kill's wall time is printed (why "
+                         "a box's tokens come back late)")
     ap.add_argument("--full-timeout", type=float, default=600.0,
                     help="longest wait for the far client to hold every machine [s]")
     a = ap.parse_args()
@@ -479,7 +482,8 @@ def run(a: argparse.Namespace) -> None:
 
     def client(name: str, health: bool) -> Proc:
         args = ["--role", "client", "--name", name, "--endpoint", eps[2], "--expect", str(n),
-                "--layout", a.layout] + (["--no-exact"] if a.no_exact else [])
+                "--layout", a.layout] + (["--no-exact"] if a.no_exact else []) + (
+                    ["--trace-routers"] if a.trace_routers else [])
         return Proc(args + (["--health"] if health else []), name)
 
     print(f"{n} machines on {boxes} boxes ({per[0]} each), summary interval "
