@@ -7,7 +7,8 @@ Processes, all on 127.0.0.1 (free ports, scouting off):
   R0, R1 connected to R0, R2 connected to R0 and R1 (a full mesh);
 * ``--boxes`` box processes (gateways), half clients of R0 and half of R1, each holding its
   share of the N machines as the daemon's own Zenoh output (``HealthPublisher``: liveliness
-  token, latest queryable, advanced publishers; one session per box, shared as in a gateway).
+  token, latest queryable, advanced publishers; one session per box, shared as in a gateway;
+  ``--presence box``: one liveliness token per box instead of one per machine).
   Each machine replays a recorded message stream (``twinwatch run`` on the simulated DC motor
   with its resistance degrading, 300 windows of 2 s: the state database's health messages and
   their fleet summaries) under its own name, from its own offset in the recording, a window
@@ -114,7 +115,7 @@ def role_box(a: argparse.Namespace) -> None:
     prefix = f"twinwatch/{a.box}" if a.layout == "box" else "twinwatch"
     cfg = ZenohConfig(mode="client", connect=[a.endpoint, *a.connect],
                       summary_interval=a.interval,
-                      box=a.box, cache=a.cache, key_prefix=prefix)
+                      box=a.box, cache=a.cache, key_prefix=prefix, presence=a.presence)
     names = [f"{a.box}-m{j:05d}" for j in range(a.machines)]
     t0 = time.monotonic()
     pubs = [HealthPublisher(cfg, name, shared=shared) for name in names]
@@ -211,9 +212,11 @@ def role_client(a: argparse.Namespace) -> None:
     from twinwatch.watch.render_fleet import render_fleet
     from twinwatch.watch.summaries import SummaryWatcher
 
-    # the watcher's asks (how many machines answered, asked again) on stderr, timed
+    # the watcher's asks (how many machines answered, asked again) on stderr, timed (with
+    # --trace-routers also at wall time [s], beside the kill's)
+    wall = " at %(created).3f" if a.trace_routers else ""
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
-                        format=f"  [{a.name}] %(relativeCreated).0f ms %(message)s")
+                        format=f"  [{a.name}] %(relativeCreated).0f ms{wall} %(message)s")
     logging.getLogger("twinwatch.watch.summaries").setLevel(logging.DEBUG)
     rss0 = _rss_kb()
     t_open = time.monotonic()
@@ -440,9 +443,13 @@ def main() -> None:
                     help="the routers start from this zenohd configuration (default "
                          "config/zenoh-site-router.json5: the boxes' advanced publishers' "
                          "declarations stay off the mesh, as behind a site's router)"),
+    ap.add_argument("--presence", choices=("machine", "box"), default="machine",
+                    help="the boxes' [zenoh] presence: a liveliness token per machine "
+                         "(machine, the default) or one per box standing for its machines")
     ap.add_argument("--trace-routers", action="store_true",
-                    help="each box prints when its session's router changes, and the kill's "
-                         "wall time is printed (why a box's tokens come back late)")
+                    help="each box prints when its session's router changes, the client's "
+                         "log lines their wall time, and the kill's wall time is printed (why "
+                         "a box's tokens come back late)")
     ap.add_argument("--full-timeout", type=float, default=600.0,
                     help="longest wait for the far client to hold every machine [s]")
     a = ap.parse_args()
@@ -475,12 +482,13 @@ def run(a: argparse.Namespace) -> None:
 
     def client(name: str, health: bool) -> Proc:
         args = ["--role", "client", "--name", name, "--endpoint", eps[2], "--expect", str(n),
-                "--layout", a.layout] + (["--no-exact"] if a.no_exact else [])
+                "--layout", a.layout] + (["--no-exact"] if a.no_exact else []) + (
+                    ["--trace-routers"] if a.trace_routers else [])
         return Proc(args + (["--health"] if health else []), name)
 
     print(f"{n} machines on {boxes} boxes ({per[0]} each), summary interval "
           f"{a.summary_interval:g} s, full health of {a.health_share:.0%} of the machines, "
-          f"cache {a.cache}, keys {a.layout}, "
+          f"cache {a.cache}, keys {a.layout}, presence by {a.presence}, "
           f"{'no ' if a.no_exact or a.layout == 'box' else ''}subscriber per machine; "
           "routers R0, R1 -> R0, R2 -> R0 + R1; boxes on R0 and R1, the client on R2"
           + (f"; the routers' configuration {a.site_acl.name}" if a.site_acl else ""))
@@ -500,7 +508,7 @@ def run(a: argparse.Namespace) -> None:
                       str(per[i]), "--interval", str(a.summary_interval), "--layout", a.layout,
                       "--health-share", str(a.health_share), "--cache", str(a.cache),
                       "--recording", str(rec),
-                      "--log", str(tmp / f"{name}.log.json"),
+                      "--log", str(tmp / f"{name}.log.json"), "--presence", a.presence,
                       *(["--trace-routers"] if a.trace_routers else [])], name, nice=a.nice)
             box_procs.append(p)
         procs += box_procs

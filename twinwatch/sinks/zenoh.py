@@ -24,7 +24,9 @@ with ``P = {key_prefix}/{machine}``:
   watcher holds it without asking, as soon as routes exist again (``summaries_resent``);
 * a liveliness token ``P/alive``, present while the publisher is open: a remote process sees the
   machine appear and disappear with ``session.liveliness().declare_subscriber(...)`` or polls it
-  with ``session.liveliness().get(...)``;
+  with ``session.liveliness().get(...)``. With ``[zenoh] presence = "box"`` the machines of a
+  gateway's shared session declare none: one token per box, ``<key_prefix>/@box/<box>/<zid>``,
+  stands for them all, and a get on that key answers their names (:class:`QueryDispatch`);
 * one queryable on ``P/**`` (in a gateway, one on ``<key_prefix>/**`` for every machine sharing
   the session: :class:`QueryDispatch`) that answers a ``session.get(selector)`` with the
   *latest* payload of every topic above whose key intersects the selector:
@@ -101,7 +103,7 @@ from twinwatch.sinks.base import (
     SinkConfig,
     SinkContext,
 )
-from twinwatch.twin.summary import fleet_summary, summary_changed
+from twinwatch.twin.summary import box_chunk, box_token_key, fleet_summary, summary_changed
 
 if TYPE_CHECKING:
     import zenoh
@@ -211,6 +213,12 @@ class ZenohConfig(SinkConfig):
             changed, else at least this often.
         box: what identifies this daemon's host in the fleet summaries (the fleet view groups
             machines by it); None: the host name.
+        presence: how the network sees that a machine is there. ``"machine"`` (default): a
+            liveliness token ``P/alive`` per machine. ``"box"``: in a gateway (machines sharing
+            a session) one token per box, ``<key_prefix>/@box/<box>/<session id>``, stands for
+            all its machines (:class:`QueryDispatch`; a get on it answers their names), and
+            its machines declare none: a router's death moves one declaration per box, not one
+            per machine. A daemon with a session of its own keeps its machine's token.
         tls: ``[zenoh.tls]`` (:class:`ZenohTlsConfig`), needed by ``tls/`` endpoints.
         auth: ``[zenoh.auth]`` (:class:`ZenohAuthConfig`).
         access_control: zenoh's ``access_control`` table verbatim (``enabled``,
@@ -229,6 +237,7 @@ class ZenohConfig(SinkConfig):
     heartbeat: StrictFloat = Field(1.0, ge=0)
     summary_interval: StrictFloat = Field(60.0, gt=0, le=86400)
     box: str | None = Field(None, min_length=1, max_length=128)
+    presence: Literal["machine", "box"] = "machine"
     tls: ZenohTlsConfig | None = None
     auth: ZenohAuthConfig | None = None
     access_control: dict[str, Any] | None = None
@@ -425,7 +434,7 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
 
 
 SESSION_FIELDS_NOT_SHARED = frozenset({"key_prefix", "enabled", "retry_max", "cache",
-                                       "heartbeat", "summary_interval", "box"})
+                                       "heartbeat", "summary_interval", "box", "presence"})
 """``[zenoh]`` keys that do not make the session (each machine's publisher has its own), so
 machines that differ only in them share one session in a gateway."""
 
@@ -563,6 +572,15 @@ class QueryDispatch:
     (:meth:`HealthPublisher.resend_summary`). A listener per machine had every router of a
     10 000-machine mesh keep 10 000 interests, and a failover renew 5000 of them at once.
 
+    With ``[zenoh] presence = "box"`` it also holds the box's presence: one liveliness token
+    on :func:`~twinwatch.twin.summary.box_token_key` (``<prefix>/@box/<box>/<session zid>``)
+    for every machine of that box added with ``box``, and a queryable on the same key
+    answering ``{"box": <name>, "machines": [<machine>, ...]}`` (what ``twinwatch watch``
+    reads to show those machines alive, or gone when the token goes). The token is declared
+    with the box's first machine and undeclared with its last. A router's death then moves
+    one token per box through the mesh where it moved one per machine (docs/fleet.md, fifth
+    round).
+
     Args:
         session: the shared session.
         prefix: the machines' ``[zenoh] key_prefix``.
@@ -580,21 +598,26 @@ class QueryDispatch:
         self._probe: zenoh.Publisher | None = None
         self._listener: zenoh.MatchingListener | None = None
         self._matching = False
+        # box chunk -> [name, its machines, liveliness token, queryable on its key, the key]
+        self._boxes: dict[str, list[Any]] = {}
         self._queryable = session.declare_queryable(f"{prefix}/**", self._on_query)
 
     def add(self, machine: str, answer: Callable[[zenoh.Query], None],
-            resend: Callable[[], None] | None = None) -> None:
+            resend: Callable[[], None] | None = None, *, box: str | None = None) -> None:
         """Answer the gets reaching ``<prefix>/<machine>/**`` with ``answer(query)`` (which
         replies and does not drop the query); call ``resend()`` (which sends the machine's
-        latest summary again) when a subscriber of the summaries is reachable again.
+        latest summary again) when a subscriber of the summaries is reachable again; with
+        ``box`` (``[zenoh] presence = "box"``), the machine's presence is that box's token.
 
         Raises:
-            zenoh.ZError: the first machine's probe could not be declared.
+            zenoh.ZError: the first machine's probe, or its box's token, could not be declared.
         """
         with self._lock:
             self._machines[machine] = (zenoh.KeyExpr(f"{self.prefix}/{machine}/**"), answer)
             if resend is not None:
                 self._resend[machine] = resend
+            if box is not None:
+                self._add_to_box(machine, box)
             probe = None
             if self._probe is None and resend is not None:
                 probe = self._probe = self._session.declare_publisher(
@@ -603,11 +626,63 @@ class QueryDispatch:
             # outside the lock: the listener's first status may come in its declaration
             self._listener = probe.declare_matching_listener(self._on_matching)
 
+    def _add_to_box(self, machine: str, box: str) -> None:
+        """``machine`` is present through ``box``'s token, declared now if it is the box's
+        first (under the lock: a query on the box's key waits for it)."""
+        chunk = box_chunk(box)
+        entry = self._boxes.get(chunk)
+        if entry is None:
+            key = box_token_key(self.prefix, box, str(self._session.zid()))
+            queryable = self._session.declare_queryable(key, self._on_box_query)
+            try:
+                token = self._session.liveliness().declare_token(key)
+            except zenoh.ZError:
+                queryable.undeclare()
+                raise
+            entry = self._boxes[chunk] = [box, set(), token, queryable, key]
+            logger.info("presence of the machines of box %s: the liveliness token %s", box, key)
+        entry[1].add(machine)
+
+    @property
+    def box_tokens(self) -> list[str]:
+        """The key of every box token declared now."""
+        with self._lock:
+            return [e[4] for e in self._boxes.values()]
+
+    def _on_box_query(self, query: zenoh.Query) -> None:
+        """A get on a box's token key: ``{"box", "machines"}`` of every box it reaches."""
+        try:
+            with self._lock:
+                boxes = [(e[4], e[0], sorted(e[1])) for e in self._boxes.values()]
+            for key, name, machines in boxes:
+                if query.key_expr.intersects(key):
+                    query.reply(key, json.dumps({"box": name, "machines": machines}),
+                                encoding=zenoh.Encoding.APPLICATION_JSON)
+        except zenoh.ZError as exc:
+            logger.debug("replying to query %s failed: %s", query.selector, exc)
+        finally:
+            query.drop()
+
     def remove(self, machine: str) -> None:
-        """Stop answering for ``machine`` (a get running meanwhile may still reach it)."""
+        """Stop answering for ``machine`` (a get running meanwhile may still reach it); the
+        last machine of a box undeclares its token."""
+        gone: list[list[Any]] = []
         with self._lock:
             self._machines.pop(machine, None)
             self._resend.pop(machine, None)
+            for chunk, entry in list(self._boxes.items()):
+                entry[1].discard(machine)
+                if not entry[1]:
+                    gone.append(self._boxes.pop(chunk))
+        for entry in gone:  # outside the lock: the queryable waits for a running callback
+            self._undeclare_box(entry)
+
+    def _undeclare_box(self, entry: list[Any]) -> None:
+        for what, entity in (("liveliness token", entry[2]), ("queryable", entry[3])):
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                logger.warning("closing the zenoh %s of box %s failed: %s", what, entry[0], exc)
 
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:
         """The probe's matching listener (on a zenoh thread): a subscriber reachable again
@@ -633,7 +708,11 @@ class QueryDispatch:
 
     def close(self) -> None:
         """Undeclare the queryable, the matching listener and its probe (each waits for a
-        running callback)."""
+        running callback), and the boxes' tokens left."""
+        with self._lock:
+            boxes, self._boxes = list(self._boxes.values()), {}
+        for entry in boxes:
+            self._undeclare_box(entry)
         entities = (("queryable", self._queryable), ("matching listener", self._listener),
                     ("summary probe", self._probe))
         for what, entity in entities:
@@ -768,10 +847,13 @@ class HealthPublisher(Sink):
                     key, lambda: QueryDispatch(session, self.config.key_prefix),
                     QueryDispatch.close)
                 self._dispatch, self._dispatch_key = dispatch, key  # released on failure
-                dispatch.add(self.machine, self._answer, self.resend_summary)
+                by_box = self.config.presence == "box"
+                dispatch.add(self.machine, self._answer, self.resend_summary,
+                             box=self.box if by_box else None)
             else:
+                by_box = False  # a session of its own: the machine's token is the box's
                 queryable = session.declare_queryable(f"{self.base_key}/**", self._on_query)
-            token = session.liveliness().declare_token(self.alive_key)
+            token = None if by_box else session.liveliness().declare_token(self.alive_key)
         except zenoh.ZError as exc:
             self._leave_dispatch()
             self._close_session(session)

@@ -10,7 +10,9 @@ scouting off: :func:`open_session`), connected to a daemon directly (it is a pee
 
 * finds the machines by liveliness (a subscriber on ``<prefix>/*/alive`` with the tokens that
   exist already): a machine appears when its daemon starts and is marked gone when its token
-  goes (a stop, a crash, a lost link: the router drops a dead session's tokens);
+  goes (a stop, a crash, a lost link: the router drops a dead session's tokens); with
+  ``[zenoh] presence = "box"`` by its gateway's box token (``<prefix>/@box/*/*``), asked for
+  the machines it stands for;
 * follows ``<prefix>/*/health`` and ``<prefix>/*/alarm`` with ``zenoh.ext`` advanced
   subscribers: each machine's last windows come at once from its publisher's cache (also for a
   daemon that starts later), a loss on the way (a router restarting) is recovered from that

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
+from twinwatch.twin.summary import BOX_TOKENS
 from twinwatch.watch.fleet import Delivery, Fleet, Gap
 from twinwatch.watch.session import (
     CHUNKS_RE,
@@ -46,6 +47,16 @@ LATEST_AFTER_S = 0.3
 """A machine whose token is there but whose publisher's cache gave no window this long after
 the watcher started is asked for its latest window (a daemon with plain publishers: [zenoh]
 cache = 0, or an older twinwatch) [s]."""
+
+
+BOX_LIST_TIMEOUT_S = 5.0
+"""How long a get of a box's machines (on its token's key, ``[zenoh] presence = "box"``) may
+take [s]."""
+
+BOX_LIST_EVERY_S = 1.0
+"""A window of a machine no token stands for, while boxes' tokens are present, asks the boxes'
+machines again (a machine added to a gateway after its box's token came), at most this often
+[s]."""
 
 
 HISTORY_TIMEOUT_S = 10.0
@@ -99,6 +110,12 @@ class FleetWatcher:
     through ``on_gap``. A machine whose token is there but whose cache gave nothing within
     :data:`LATEST_AFTER_S` (plain publishers: ``cache = 0``, an older daemon) is asked for its
     latest window (``get(<prefix>/*/health)``). Each window is delivered once.
+
+    A machine's presence is its token ``<prefix>/<machine>/alive``, or with ``[zenoh] presence
+    = "box"`` its gateway's box token ``<prefix>/@box/<box>/<zid>``: when one appears, the
+    machines it stands for are asked from it (a get on its key,
+    :class:`~twinwatch.sinks.zenoh.QueryDispatch` answering) and shown present; when it goes,
+    they are shown gone (unless another box's token still names them).
 
     Args:
         session: an open session (:func:`open_session`); the caller closes it.
@@ -156,6 +173,15 @@ class FleetWatcher:
         self._sources: dict[tuple[str, int], str] = {}  # publisher (zid, eid) -> machine
         self._gaps: queue.Queue[tuple[str | None, int] | None] = queue.Queue()
         self._closing = threading.Event()
+        # boxes' presence ([zenoh] presence = "box")
+        self._box_lock = threading.Lock()
+        self._box_members: dict[str, set[str]] = {}  # box token's key -> the machines it names
+        self._boxed: set[str] = set()  # every machine a box token present names
+        self._tokened: set[str] = set()  # machines whose own token was seen
+        self._box_listing = 0  # gets of boxes' machines not ended yet
+        self._box_idle = threading.Event()
+        self._box_idle.set()
+        self._box_asked = -float("inf")  # monotonic time of the last ask for unknown machines
 
     def key(self, suffix: str) -> str:
         return f"{self.prefix}/{self.machine}/{suffix}"
@@ -185,6 +211,8 @@ class FleetWatcher:
         live = self.session.liveliness()
         self._subs.append(live.declare_subscriber(self.key("alive"), self._on_token,
                                                   history=True))
+        self._subs.append(live.declare_subscriber(f"{self.prefix}/{BOX_TOKENS}/*/*",
+                                                  self._on_box_token, history=True))
         recovery = zenoh_ext.RecoveryConfig(periodic_queries=None, heartbeat=True)
         health = zenoh_ext.declare_advanced_subscriber(
             self.session, self.key("health"), self._on_health, recovery=recovery,
@@ -210,6 +238,7 @@ class FleetWatcher:
         try:
             if self._closing.wait(LATEST_AFTER_S):
                 return
+            self._box_idle.wait(BOX_LIST_TIMEOUT_S)  # the machines of the boxes there
             if all(m["window"] is not None for m in self.fleet.snapshot()["machines"]
                    if m["token"]):
                 return
@@ -231,12 +260,92 @@ class FleetWatcher:
         if machine is None:
             return
         present = sample.kind == zenoh.SampleKind.PUT
+        if present:
+            with self._box_lock:
+                self._tokened.add(machine)
+        self._token(machine, present)
+
+    def _token(self, machine: str, present: bool) -> None:
+        """``machine``'s presence (its token's or its box's) changed."""
         self.fleet.token(machine, present)
         if self.on_token is not None:
             self.on_token(machine, present)
 
+    # -- boxes' presence ([zenoh] presence = "box") --------------------------------------------
+    def _on_box_token(self, sample: zenoh.Sample) -> None:
+        """A box's token appeared (its machines are asked from it: :meth:`_list_boxes`) or
+        went (the machines it named are gone, unless another box's token names them)."""
+        key = str(sample.key_expr)
+        if sample.kind == zenoh.SampleKind.PUT:
+            with self._box_lock:
+                self._box_members.setdefault(key, set())
+            self._list_boxes(key)
+            return
+        with self._box_lock:
+            members = self._box_members.pop(key, set())
+            self._boxed = set().union(*self._box_members.values())
+            gone = sorted(members - self._boxed)
+        for m in gone:
+            self._token(m, False)
+
+    def _list_boxes(self, key: str) -> None:
+        """Ask the box tokens' queryables reaching ``key`` for their machines (replies on
+        Zenoh's threads: :meth:`_on_box_reply`)."""
+        with self._box_lock:
+            self._box_listing += 1
+            self._box_idle.clear()
+        try:
+            self.session.get(key, zenoh.handlers.Callback(self._on_box_reply,
+                                                          self._box_listed),
+                             target=zenoh.QueryTarget.ALL, timeout=BOX_LIST_TIMEOUT_S)
+        except zenoh.ZError:  # the session closed
+            self._box_listed()
+
+    def _box_listed(self) -> None:
+        with self._box_lock:
+            self._box_listing -= 1
+            if self._box_listing <= 0:
+                self._box_listing = 0
+                self._box_idle.set()
+
+    def _on_box_reply(self, reply: zenoh.Reply) -> None:
+        """A box's machines (``{"box", "machines"}``): the new ones are present, those it no
+        longer names (and no other box does) gone."""
+        if reply.ok is None:
+            return
+        key = str(reply.ok.key_expr)
+        doc = decode_json(reply.ok.payload)
+        names = doc.get("machines") if doc is not None else None
+        if not isinstance(names, list):
+            return
+        machines = {m for m in names if isinstance(m, str) and CHUNKS_RE.match(m) is not None
+                    and "/" not in m and self.machine in ("*", m)}
+        with self._box_lock:
+            old = self._box_members.get(key)
+            if old is None:  # its token went meanwhile, or is not here yet
+                return
+            self._box_members[key] = machines
+            self._boxed = set().union(*self._box_members.values())
+            came, went = sorted(machines - old), sorted(old - self._boxed)
+        for m in came:
+            self._token(m, True)
+        for m in went:
+            self._token(m, False)
+
+    def _unnamed(self, machine: str) -> None:
+        """A window of ``machine``: if no token stands for it while boxes' tokens are
+        present, ask the boxes' machines again (at most every :data:`BOX_LIST_EVERY_S`)."""
+        with self._box_lock:
+            if (not self._box_members or machine in self._boxed or machine in self._tokened
+                    or time.monotonic() - self._box_asked < BOX_LIST_EVERY_S):
+                return
+            self._box_asked = time.monotonic()
+        self._list_boxes(f"{self.prefix}/{BOX_TOKENS}/*/*")
+
     def _on_health(self, sample: zenoh.Sample) -> None:
         machine = self._health(str(sample.key_expr), sample.payload, "live")
+        if machine is not None:
+            self._unnamed(machine)
         info = sample.source_info
         if machine is not None and info is not None:
             source = info.source_id

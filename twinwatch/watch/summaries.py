@@ -2,7 +2,8 @@
 :class:`SummaryWatcher` follows ``<prefix>/<machines>/summary`` with a plain subscriber, asks
 every machine's latest once when it starts (one get, each machine's queryable answering) and
 again when the machines' liveliness tokens appear anew (a router back from an outage, a daemon
-restarted) and every machine's once more after that (:data:`SWEEP_AFTER_S`), keeps each
+restarted), or their box's token (``[zenoh] presence = "box"``), and every machine's once more
+after that (:data:`SWEEP_AFTER_S`), keeps each
 machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's full health only
 when asked (:meth:`SummaryWatcher.health`). What it holds is read by
 :mod:`twinwatch.watch.ranking`.
@@ -21,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
+from twinwatch.twin.summary import BOX_TOKENS, box_chunk
 from twinwatch.watch.ranking import Received
 from twinwatch.watch.session import (
     CHUNKS_RE,
@@ -157,6 +159,7 @@ class SummaryWatcher:
         self.on_summary = on_summary
         self._sub: Any = None
         self._live: Any = None
+        self._boxes: Any = None  # the liveliness subscriber on the boxes' tokens
         #: machine -> a subscriber on its own summary key, which does nothing (:meth:`put`)
         self._exact: dict[str, Any] = {}
         self.exact = "*" not in prefix.split("/") if exact is None else exact
@@ -182,10 +185,15 @@ class SummaryWatcher:
         restarted) their latest are asked again, once the tokens stopped coming for
         :data:`REASK_QUIET_S` (:meth:`_reask_keys`: one by one, by box or all at once), and
         after a burst of :data:`SWEEP_MIN_MACHINES` or more, every machine's latest once more
-        :data:`SWEEP_AFTER_S` after its last token (:meth:`_sweep`)."""
+        :data:`SWEEP_AFTER_S` after its last token (:meth:`_sweep`). A box's token
+        (``<prefix>/@box/<box>/<zid>``, ``[zenoh] presence = "box"``) appearing stands for
+        every machine held of that box (:meth:`_on_box_token`)."""
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
-        self._live = self.session.liveliness().declare_subscriber(alive, self._on_token)
+        live = self.session.liveliness()
+        self._live = live.declare_subscriber(alive, self._on_token)
+        self._boxes = live.declare_subscriber(f"{self.prefix}/{BOX_TOKENS}/*/*",
+                                              self._on_box_token)
         self._last_new = time.monotonic()
         self._asker = threading.Thread(target=self._ask_loop, name="twinwatch-watch-summaries",
                                        daemon=True)
@@ -203,10 +211,37 @@ class SummaryWatcher:
         with self._lock:
             if machine not in self._received:
                 return
-            self._pending.add(machine)
+        self._back({machine})
+
+    def _on_box_token(self, sample: zenoh.Sample) -> None:
+        """A box's token (``<base>/<chunks>/@box/<box>/<zid>``, ``[zenoh] presence =
+        "box"``) appearing: every machine held under those chunks whose summary names that
+        box counts as a machine's token back (:meth:`_on_token`), asked again together
+        (:meth:`_reask_keys`: one get per box under a prefix with ``*``) and counted toward a
+        sweep's burst as that many tokens. A box this watcher holds no machine of is new:
+        its machines' first summaries come live."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        chunks = str(sample.key_expr)[len(self.base) + 1:].split("/")
+        if len(chunks) < 3 or chunks[-3] != BOX_TOKENS:
+            return
+        where, box = "/".join(chunks[:-3]), chunks[-2]
+        with self._lock:
+            machines = {m for m, r in self._received.items()
+                        if m.rpartition("/")[0] == where
+                        and box_chunk(str(r.summary.get("box"))) == box}
+        if machines:
+            logger.debug("box %s back (%s): its %d machines are asked again", box,
+                         sample.key_expr, len(machines))
+            self._back(machines)
+
+    def _back(self, machines: set[str]) -> None:
+        """``machines`` held came back (their tokens or their box's): ask them again once the
+        tokens stopped coming, and sweep after a burst of :data:`SWEEP_MIN_MACHINES`."""
         self._token_at = time.monotonic()
         with self._lock:
-            self._burst += 1
+            self._pending |= machines
+            self._burst += len(machines)
             if self._burst >= SWEEP_MIN_MACHINES:
                 self._sweep_at = self._token_at + SWEEP_AFTER_S
         self._ask.set()
@@ -452,7 +487,7 @@ class SummaryWatcher:
         """Undeclare the subscribers and stop asking (idempotent)."""
         self._closing.set()
         self._ask.set()
-        for attr in ("_live", "_sub"):
+        for attr in ("_boxes", "_live", "_sub"):
             sub = getattr(self, attr)
             setattr(self, attr, None)
             if sub is not None:
