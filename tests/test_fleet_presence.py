@@ -17,9 +17,9 @@ import zenoh
 from pydantic import ValidationError
 
 from twinwatch.config.loader import ConfigError, load_config
+from twinwatch.io.keys import box_chunk, box_token_key
 from twinwatch.sinks.base import SharedResources
 from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig
-from twinwatch.twin.summary import box_chunk, box_token_key
 from twinwatch.watch.fleet import Fleet
 from twinwatch.watch.subscription import FleetWatcher
 from twinwatch.watch.summaries import SummaryWatcher

@@ -6,7 +6,8 @@ Modbus register map and codec that the Modbus driver reads with and the simulate
 serves with; :mod:`twinwatch.io.drive` describes how a drive's controller runs (loops, periods,
 limits), which the closed-loop twins and the simulated plants both implement;
 :mod:`twinwatch.io.counter` unwraps a source's sample counter (the CAN and Modbus drivers share
-it); :mod:`twinwatch.io.encoding` is the one JSON encoder. ``twinwatch.plant``,
+it); :mod:`twinwatch.io.encoding` is the one JSON encoder; :mod:`twinwatch.io.keys` the Zenoh key
+layout the publisher and the watchers share (the boxes' tokens). ``twinwatch.plant``,
 ``twinwatch.drivers`` and the twin's machines import from here, never from each other's
 internals. Imports nothing of twinwatch but this room.
 """

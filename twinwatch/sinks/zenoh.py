@@ -96,6 +96,7 @@ from pydantic import (
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
+from twinwatch.io.keys import box_chunk, box_token_key
 from twinwatch.sinks.base import (
     ProcessedWindow,
     SharedResources,
@@ -103,7 +104,7 @@ from twinwatch.sinks.base import (
     SinkConfig,
     SinkContext,
 )
-from twinwatch.twin.summary import box_chunk, box_token_key, fleet_summary, summary_changed
+from twinwatch.twin.summary import fleet_summary, summary_changed
 
 if TYPE_CHECKING:
     import zenoh
@@ -573,7 +574,7 @@ class QueryDispatch:
     10 000-machine mesh keep 10 000 interests, and a failover renew 5000 of them at once.
 
     With ``[zenoh] presence = "box"`` it also holds the box's presence: one liveliness token
-    on :func:`~twinwatch.twin.summary.box_token_key` (``<prefix>/@box/<box>/<session zid>``)
+    on :func:`~twinwatch.io.keys.box_token_key` (``<prefix>/@box/<box>/<session zid>``)
     for every machine of that box added with ``box``, and a queryable on the same key
     answering ``{"box": <name>, "machines": [<machine>, ...]}`` (what ``twinwatch watch``
     reads to show those machines alive, or gone when the token goes). The token is declared

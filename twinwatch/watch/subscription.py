@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
-from twinwatch.twin.summary import BOX_TOKENS
+from twinwatch.io.keys import BOX_TOKENS
 from twinwatch.watch.fleet import Delivery, Fleet, Gap
 from twinwatch.watch.session import (
     CHUNKS_RE,

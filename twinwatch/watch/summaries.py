@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
-from twinwatch.twin.summary import BOX_TOKENS, box_chunk
+from twinwatch.io.keys import BOX_TOKENS, box_chunk
 from twinwatch.watch.ranking import Received
 from twinwatch.watch.session import (
     CHUNKS_RE,
