@@ -71,6 +71,7 @@ An external process subscribes with (``pip install eclipse-zenoh``)::
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -553,6 +554,19 @@ def _client(query: zenoh.Query) -> str:
     return f"peer {zid}" if zid is not None else "a peer"
 
 
+@dataclasses.dataclass
+class _BoxPresence:
+    """A box's presence in :class:`QueryDispatch` (``[zenoh] presence = "box"``): its name, the
+    key of its token and queryable (:func:`~twinwatch.io.keys.box_token_key`), the two
+    entities, and the machines it stands for."""
+
+    name: str
+    key: str
+    token: zenoh.LivelinessToken
+    queryable: zenoh.Queryable[None]
+    machines: set[str] = dataclasses.field(default_factory=set)
+
+
 class QueryDispatch:
     """One queryable on ``<key_prefix>/**`` answering the gets of every machine that shares a
     session in a gateway (:class:`~twinwatch.sinks.base.SharedResources`), each asked only
@@ -599,8 +613,7 @@ class QueryDispatch:
         self._probe: zenoh.Publisher | None = None
         self._listener: zenoh.MatchingListener | None = None
         self._matching = False
-        # box chunk -> [name, its machines, liveliness token, queryable on its key, the key]
-        self._boxes: dict[str, list[Any]] = {}
+        self._boxes: dict[str, _BoxPresence] = {}  # box chunk -> its token and machines
         self._queryable = session.declare_queryable(f"{prefix}/**", self._on_query)
 
     def add(self, machine: str, answer: Callable[[zenoh.Query], None],
@@ -640,21 +653,21 @@ class QueryDispatch:
             except zenoh.ZError:
                 queryable.undeclare()
                 raise
-            entry = self._boxes[chunk] = [box, set(), token, queryable, key]
+            entry = self._boxes[chunk] = _BoxPresence(box, key, token, queryable)
             logger.info("presence of the machines of box %s: the liveliness token %s", box, key)
-        entry[1].add(machine)
+        entry.machines.add(machine)
 
     @property
     def box_tokens(self) -> list[str]:
         """The key of every box token declared now."""
         with self._lock:
-            return [e[4] for e in self._boxes.values()]
+            return [e.key for e in self._boxes.values()]
 
     def _on_box_query(self, query: zenoh.Query) -> None:
         """A get on a box's token key: ``{"box", "machines"}`` of every box it reaches."""
         try:
             with self._lock:
-                boxes = [(e[4], e[0], sorted(e[1])) for e in self._boxes.values()]
+                boxes = [(e.key, e.name, sorted(e.machines)) for e in self._boxes.values()]
             for key, name, machines in boxes:
                 if query.key_expr.intersects(key):
                     query.reply(key, json.dumps({"box": name, "machines": machines}),
@@ -667,23 +680,24 @@ class QueryDispatch:
     def remove(self, machine: str) -> None:
         """Stop answering for ``machine`` (a get running meanwhile may still reach it); the
         last machine of a box undeclares its token."""
-        gone: list[list[Any]] = []
+        gone: list[_BoxPresence] = []
         with self._lock:
             self._machines.pop(machine, None)
             self._resend.pop(machine, None)
             for chunk, entry in list(self._boxes.items()):
-                entry[1].discard(machine)
-                if not entry[1]:
+                entry.machines.discard(machine)
+                if not entry.machines:
                     gone.append(self._boxes.pop(chunk))
         for entry in gone:  # outside the lock: the queryable waits for a running callback
             self._undeclare_box(entry)
 
-    def _undeclare_box(self, entry: list[Any]) -> None:
-        for what, entity in (("liveliness token", entry[2]), ("queryable", entry[3])):
+    def _undeclare_box(self, entry: _BoxPresence) -> None:
+        for what, entity in (("liveliness token", entry.token), ("queryable", entry.queryable)):
             try:
                 entity.undeclare()
             except zenoh.ZError as exc:
-                logger.warning("closing the zenoh %s of box %s failed: %s", what, entry[0], exc)
+                logger.warning("closing the zenoh %s of box %s failed: %s", what, entry.name,
+                               exc)
 
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:
         """The probe's matching listener (on a zenoh thread): a subscriber reachable again
