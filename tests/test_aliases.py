@@ -157,15 +157,17 @@ def _diagnose(messages: list[HealthMessage], pattern: dict[str, tuple[float, flo
 def test_estimates_moving_along_an_alias_are_one_unknown_change_not_two_faults(
         messages: list[HealthMessage]) -> None:
     """Ra +28 %, Ke -6 %, J -12 %, D -6 % at once: without the alias, a weakened magnet (Ke)
-    and worn brushes (Ra) read as two faults, each above 0.6 (on the PWM drive's library the
-    brushes reached 0.85). Along La's alias (La
+    and a second library fault read as two faults, each above 0.5 (one window alone: worn
+    brushes for Ra, as on the PWM drive's library, 0.85; the six windows' estimates pooled:
+    a current reading low, which moves Ra up and J and D down). Along La's alias (La
     not estimated, named by no fault) they are one change the library does not know: unknown
     first, every library fault below 0.5, the sentence naming La and the change it reads,
     whose 2-sigma interval covers the plant's +50 %."""
     without = _diagnose(messages, PATTERN, None)
     two = {f.id: f.probability for f in without.faults[:2]}
-    assert set(two) == {"brushes_connections", "magnet_weakening"}, without.faults
-    assert min(two.values()) > 0.6 and without.unknown < 0.1, without
+    assert "magnet_weakening" in two, without.faults
+    assert set(two) <= {"brushes_connections", "magnet_weakening", "current_sensor_low"}
+    assert min(two.values()) > 0.5 and without.unknown < 0.1, without
     out = _diagnose(messages, PATTERN, ALIAS)
     assert out.status == "unknown" and out.unknown >= 0.8, out
     assert all(f.probability < 0.5 for f in out.faults), out.faults
