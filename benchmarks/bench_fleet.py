@@ -18,15 +18,21 @@ Processes, all on 127.0.0.1 (free ports, scouting off):
 * the far client on R2: ``SummaryWatcher`` (what ``twinwatch watch --fleet`` and ``twinwatch
   fleet report`` read) and ``watch --fleet``'s screen every second (the ranked view rendered,
   a screen's worth), plus a plain subscriber counting the full health messages;
-* a late joiner on R2 started in the steady state.
+* a late joiner on R2 started in the steady state;
+* then ``twinwatch fleet report`` on R2 (its own process, as a user runs it: ``--expect N
+  --horizon`` ``--report-horizon``, default 5min, ``--json``).
 
 Printed: the time for the far client to hold every machine (from the boxes' start); in the
 steady state the messages per second delivered to it, the summaries delivered of those
 published (losses), the CPU of each router and of the client (share of one core), the
 client's memory per machine; the late joiner's time to hold every machine's latest summary
-and to render its first full screen; with R1 killed (SIGKILL) and restarted after
-``--outage`` s: the machines lost from the view, the summaries published meanwhile and
-delivered, and the time until the client holds every machine's latest summary again.
+and to render its first full screen; the machines the fleet report listed against those
+due by the same rule (:func:`twinwatch.watch.ranking.service_report`) from the summaries the
+boxes last published before the report's time (their age counted from when published), the
+machines whose due-ness changed while it ran counted apart, its wall time and CPU; with R1
+killed (SIGKILL) and restarted after ``--outage`` s: the machines lost from the view, the
+summaries published meanwhile and delivered, and the time until the client holds every
+machine's latest summary again.
 
 Usage::
 
@@ -81,6 +87,17 @@ def zconf(mode: str, listen: list[str], connect: list[str], base: Path | None = 
     return conf
 
 
+def replayed(summaries: list[dict[str, Any]], box: str, j: int, k: int,
+             wall: float) -> dict[str, Any]:
+    """Machine ``j`` of ``box``'s summary of its window ``k``, published at ``wall`` [s since
+    the epoch]: the recording's window at the machine's own offset (the boxes publish these;
+    the parent rebuilds them to check the fleet report)."""
+    n_rec = len(summaries)
+    s = dict(summaries[((j * 37) % n_rec + k) % n_rec])
+    s.update(machine=f"{box}-m{j:05d}", box=box, run=f"{box}-run", window=k, wall=wall)
+    return s
+
+
 def say(**event: Any) -> None:
     sys.stdout.write(json.dumps(event) + "\n")
     sys.stdout.flush()
@@ -110,7 +127,7 @@ def role_box(a: argparse.Namespace) -> None:
 
     rec = json.loads(Path(a.recording).read_text())
     summaries, texts = rec["summaries"], rec["texts"]
-    n_rec = len(summaries)
+    n_rec = len(summaries)  # the texts' windows as replayed()'s summaries
     shared = SharedResources()
     prefix = f"twinwatch/{a.box}" if a.layout == "box" else "twinwatch"
     cfg = ZenohConfig(mode="client", connect=[a.endpoint, *a.connect],
@@ -120,7 +137,6 @@ def role_box(a: argparse.Namespace) -> None:
     t0 = time.monotonic()
     pubs = [HealthPublisher(cfg, name, shared=shared) for name in names]
     declared = time.monotonic() - t0
-    run = f"{a.box}-run"
     offsets = [(j * 37) % n_rec for j in range(a.machines)]
     full = {j for j in range(a.machines) if (j * 7919) % 1000 < a.health_share * 1000}
     window = [0] * a.machines
@@ -138,6 +154,20 @@ def role_box(a: argparse.Namespace) -> None:
                 with lock:
                     Path(cmd[1]).write_text(json.dumps(last))
                 say(event="dumped")
+            elif cmd[0] == "since":  # each machine's summaries published from a wall time
+                t = float(cmd[2])    # on, newest first, and the one standing then
+                out: dict[str, list[tuple[int, float]]] = {}
+                done: set[str] = set()
+                with lock:
+                    for name, k, w in reversed(log):
+                        if name not in done:
+                            out.setdefault(name, []).append((k, w))
+                            if w < t:
+                                done.add(name)
+                        if len(done) == len(names):
+                            break
+                Path(cmd[1]).write_text(json.dumps(out))
+                say(event="sent")
             elif cmd[0] == "quit":
                 break
         stop.set()
@@ -164,8 +194,7 @@ def role_box(a: argparse.Namespace) -> None:
             pub, name = pubs[j], names[j]
             if j in full:
                 pub.publish(texts[i].replace(PLACEHOLDER, name))
-            s = dict(summaries[i])
-            s.update(machine=name, box=a.box, run=run, window=k, wall=round(time.time(), 3))
+            s = replayed(summaries, a.box, j, k, round(time.time(), 3))
             if pub.publish_summary(s):
                 with lock:
                     last[name] = k
@@ -401,6 +430,85 @@ def record(path: Path | None, tmp: Path) -> Path:
     return out
 
 
+def check_report(a: argparse.Namespace, n: int, endpoint: str, box_procs: list[Proc],
+                 rec: Path, tmp: Path) -> None:
+    """``twinwatch fleet report`` run as a user runs it (its own process, on the client's
+    router), its list against what the boxes last published: the machines due by the
+    report's own rule (:func:`~twinwatch.watch.ranking.service_report`, the age of a summary
+    from when its box published it) at the report's time."""
+    import resource
+
+    from twinwatch.watch.ranking import Received, service_report
+
+    summaries = json.loads(rec.read_text())["summaries"]
+    out = tmp / "report.json"
+    cmd = [sys.executable, "-m", "twinwatch", "fleet", "report", "--connect", endpoint,
+           "--prefix", "twinwatch/*" if a.layout == "box" else "twinwatch",
+           "--expect", str(n), "--wait", "60", "--horizon", a.report_horizon,
+           "--json", str(out)]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    w_start, t_start = time.time(), time.monotonic()
+    p = subprocess.run(cmd, cwd=tmp, env=env, capture_output=True, text=True, timeout=300)
+    took = time.monotonic() - t_start
+    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = ru1.ru_utime - ru0.ru_utime + ru1.ru_stime - ru0.ru_stime
+    if p.returncode != 0 or not out.exists():
+        print(f"fleet report FAILED (exit {p.returncode}): {p.stderr.strip()[-2000:]}")
+        return
+    doc = json.loads(out.read_text())
+    t_r, horizon = float(doc["t"]), float(doc["horizon_s"])
+    listed = {str(r["machine"]).rsplit("/", 1)[-1] for r in doc["rows"]}  # <box>/<machine>
+    # what each box published from the report's start on, newest first, and what stood then
+    published: dict[str, list[tuple[int, float]]] = {}
+    for b in box_procs:
+        path = tmp / f"{b.name}.since.json"
+        b.send(f"since {path} {w_start}")
+        b.expect("sent", 60)
+        published.update(json.loads(path.read_text()))
+
+    def summary(m: str, k: int, wall: float) -> dict[str, Any]:
+        box, j = m.rsplit("-m", 1)
+        return replayed(summaries, box, int(j), k, wall)
+
+    def is_due(s: dict[str, Any], at: float) -> bool:  # the report's rule, at its time
+        return bool(service_report({"m": Received(s, at)}, t_r, horizon))
+
+    truth: dict[str, Received] = {}
+    changed: set[str] = set()   # its due-ness changed from the report's start to its time
+    for m, entries in published.items():
+        during = [(k, w) for k, w in entries if w <= t_r]  # newest first
+        standing = [x for x in during if x[1] >= w_start] + [
+            x for x in during if x[1] < w_start][:1]
+        if not standing:
+            continue
+        k, w = standing[0]
+        truth[m] = Received(summary(m, k, w), w)
+        if len({is_due(summary(m, k2, w2), w2) for k2, w2 in standing}) > 1:
+            changed.add(m)
+    rows = service_report(truth, t_r, horizon)
+    due = {str(r["machine"]) for r in rows}
+    why: dict[str, int] = {}
+    for r in rows:
+        for reason in r["why"].split("+"):
+            why[reason] = why.get(reason, 0) + 1
+    missing = sorted(due - listed - changed)
+    extra = sorted(listed - due - changed)
+    # the report counts a summary's age from when it arrived (after the report started):
+    # a machine due only by its summary's age since its box published it
+    by_age = [m for m in missing if not is_due(truth[m].summary, max(truth[m].at, w_start))]
+    print(f"fleet report (--horizon {a.report_horizon}): {len(due)} machines due of "
+          f"{len(truth)} ({', '.join(f'{k} {v}' for k, v in sorted(why.items()))}); the "
+          f"report listed {len(listed)} (of {doc['machines']} machines it held); missing: "
+          f"{len(missing)} {missing[:5]}; extra: {len(extra)} {extra[:5]}")
+    print(f"  {len(changed)} machines' due-ness changed while it ran (not compared: "
+          f"{len(changed & listed)} of them listed); "
+          f"{len(by_age)} of the missing due only by their summary's age since published "
+          f"(the report counts it from arrival); the report took {took:.1f} s wall, "
+          f"{cpu:.1f} s CPU ({cpu / took:.2f} of a core), its time "
+          f"{t_r - w_start:.1f} s after its start")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--role", default=None, help=argparse.SUPPRESS)
@@ -450,6 +558,10 @@ def main() -> None:
                     help="each box prints when its session's router changes, the client's "
                          "log lines their wall time, and the kill's wall time is printed (why "
                          "a box's tokens come back late)")
+    ap.add_argument("--report-horizon", default="5min",
+                    help="`twinwatch fleet report --horizon` after the late joiner, checked "
+                         "against the boxes' latest (default 5min: about a quarter of the "
+                         "recording's summaries due; 'none': no report)")
     ap.add_argument("--full-timeout", type=float, default=600.0,
                     help="longest wait for the far client to hold every machine [s]")
     a = ap.parse_args()
@@ -582,6 +694,11 @@ def run(a: argparse.Namespace) -> None:
                   "behind their box's latest summary")
         late.send("quit")
         late.close()
+
+        # -- `twinwatch fleet report`, as a user runs it ---------------------------------------
+        if a.report_horizon != "none":
+            check_report(a, n, eps[2], box_procs, rec, tmp)
+            time.sleep(2.0)
 
         # -- router R1 killed and restarted --------------------------------------------------
         on_r1 = {f"{p.name}-m" for i, p in enumerate(box_procs) if i % 2 == 1}
