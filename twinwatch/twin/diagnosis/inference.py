@@ -477,13 +477,10 @@ class Diagnoser:
                 and abs(dev - prev.dev) > abs(dev - ev.dev):
             self._prev[name] = ev
 
-    def _deviation(self, health: HealthMessage, name: str, pool: bool = True
-                   ) -> _Dev | None:
+    def _deviation(self, health: HealthMessage, name: str) -> _Dev | None:
         """The last sound evidence on ``name`` (read by :meth:`_observe`), unless it is too
         old or from before the change onset; while a jump away from the nameplate is not
-        confirmed by the next sound window (:func:`_confirmed`), the evidence before it.
-        With ``pool``, the last windows' estimates pooled when they allow it
-        (:meth:`_pooled`)."""
+        confirmed by the next sound window (:func:`_confirmed`), the evidence before it."""
         ev = self._last.get(name)
         prev = self._prev.get(name)
         if ev is not None and prev is not None and not _confirmed(ev, prev):
@@ -492,7 +489,7 @@ class Diagnoser:
             return None
         if self._onset is not None and ev.t_end < self._onset:
             return None  # from before the change: says nothing about it
-        return self._pooled(health, name, ev) if pool else ev
+        return ev
 
     def _pooled(self, health: HealthMessage, name: str, ev: _Dev) -> _Dev:
         """``ev`` (the last sound evidence on ``name``) with the deviation and standard
@@ -764,22 +761,29 @@ class Diagnoser:
         self._comps[key] = c
         return c
 
-    def _evidence(self, health: HealthMessage, pool: bool = True
-                  ) -> dict[str, tuple[_Dev, float]]:
-        """Each parameter's last sound evidence (pooled across windows with ``pool``:
-        :meth:`_pooled`) and the standard error used [%] (grown by :data:`STALE_SD_PCT` per
-        square root of its age in windows)."""
+    def _evidence(self, health: HealthMessage) -> dict[str, tuple[_Dev, float]]:
+        """Each parameter's last sound evidence and the standard error used [%] (grown by
+        :data:`STALE_SD_PCT` per square root of its age in windows)."""
         names = dict.fromkeys([d.parameter for f in self.faults for d in f.deviations]
                               + [n for n, p in health.parameters.items()
                                  if p.status not in ("tied", "fixed") and p.nominal])
         evs: dict[str, tuple[_Dev, float]] = {}
         for name in names:
-            ev = self._deviation(health, name, pool)
-            if ev is None:
-                continue
-            age = max(health.window - ev.window, 0)
-            evs[name] = (ev, math.hypot(ev.sd, STALE_SD_PCT * math.sqrt(age)))
+            ev = self._deviation(health, name)
+            if ev is not None:
+                evs[name] = (ev, _aged_sd(ev, health.window))
         return evs
+
+    def _pooled_evidence(self, health: HealthMessage, evs: dict[str, tuple[_Dev, float]]
+                         ) -> dict[str, tuple[_Dev, float]]:
+        """``evs`` (:meth:`_evidence`'s) with each parameter's evidence pooled across the last
+        windows where they allow it (:meth:`_pooled`; after :meth:`_read_aliases`, which reads
+        the window's own)."""
+        out = {}
+        for name, (ev, sd) in evs.items():
+            pooled = self._pooled(health, name, ev)
+            out[name] = (ev, sd) if pooled is ev else (pooled, _aged_sd(pooled, health.window))
+        return out
 
     def _read_aliases(self, health: HealthMessage,
                       evs: dict[str, tuple[_Dev, float]]) -> None:
@@ -1197,9 +1201,10 @@ class Diagnoser:
                 (:func:`shaft_speed`), for a periodic term's harmonic.
         """
         self._observe(health, speed)
-        # an alias is read from this window's own estimates: its pattern is the window's
-        self._read_aliases(health, self._evidence(health, pool=False))
         evs = self._evidence(health)
+        # an alias is read from this window's own estimates: its pattern is the window's
+        self._read_aliases(health, evs)
+        evs = self._pooled_evidence(health, evs)
         variables, unexplained = self._variables(health, speed)
         devs = self._dev_factors(health, evs)
         extra = self._unexplained_dev_var(devs)
@@ -1428,6 +1433,12 @@ def _rate_above(k: int, n: int) -> float:
 #: estimate before it is not the machine's until the next sound window confirms it.
 JUMP_SD = 3.0
 JUMP_SHARE = 0.5
+
+
+def _aged_sd(ev: _Dev, window: int) -> float:
+    """``ev``'s standard error [%] grown by :data:`STALE_SD_PCT` per square root of its age in
+    windows at ``window``."""
+    return math.hypot(ev.sd, STALE_SD_PCT * math.sqrt(max(window - ev.window, 0)))
 
 
 def _confirmed(ev: _Dev, prev: _Dev) -> bool:
