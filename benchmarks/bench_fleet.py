@@ -87,13 +87,18 @@ def zconf(mode: str, listen: list[str], connect: list[str], base: Path | None = 
     return conf
 
 
+def rec_index(j: int, k: int, n_rec: int) -> int:
+    """The recording's window that machine ``j`` replays as its window ``k`` (each machine
+    from its own offset in the ``n_rec`` windows)."""
+    return ((j * 37) % n_rec + k) % n_rec
+
+
 def replayed(summaries: list[dict[str, Any]], box: str, j: int, k: int,
              wall: float) -> dict[str, Any]:
     """Machine ``j`` of ``box``'s summary of its window ``k``, published at ``wall`` [s since
-    the epoch]: the recording's window at the machine's own offset (the boxes publish these;
-    the parent rebuilds them to check the fleet report)."""
-    n_rec = len(summaries)
-    s = dict(summaries[((j * 37) % n_rec + k) % n_rec])
+    the epoch] (:func:`rec_index`; the boxes publish these, the parent rebuilds them to
+    check the fleet report)."""
+    s = dict(summaries[rec_index(j, k, len(summaries))])
     s.update(machine=f"{box}-m{j:05d}", box=box, run=f"{box}-run", window=k, wall=wall)
     return s
 
@@ -127,7 +132,7 @@ def role_box(a: argparse.Namespace) -> None:
 
     rec = json.loads(Path(a.recording).read_text())
     summaries, texts = rec["summaries"], rec["texts"]
-    n_rec = len(summaries)  # the texts' windows as replayed()'s summaries
+    n_rec = len(summaries)
     shared = SharedResources()
     prefix = f"twinwatch/{a.box}" if a.layout == "box" else "twinwatch"
     cfg = ZenohConfig(mode="client", connect=[a.endpoint, *a.connect],
@@ -137,7 +142,6 @@ def role_box(a: argparse.Namespace) -> None:
     t0 = time.monotonic()
     pubs = [HealthPublisher(cfg, name, shared=shared) for name in names]
     declared = time.monotonic() - t0
-    offsets = [(j * 37) % n_rec for j in range(a.machines)]
     full = {j for j in range(a.machines) if (j * 7919) % 1000 < a.health_share * 1000}
     window = [0] * a.machines
     last: dict[str, int] = {}
@@ -190,7 +194,7 @@ def role_box(a: argparse.Namespace) -> None:
             if delay > 0 and stop.wait(delay):
                 break
             k = window[j]
-            i = (offsets[j] + k) % n_rec
+            i = rec_index(j, k, n_rec)  # the full health of replayed()'s summary
             pub, name = pubs[j], names[j]
             if j in full:
                 pub.publish(texts[i].replace(PLACEHOLDER, name))
