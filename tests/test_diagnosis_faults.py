@@ -728,3 +728,11 @@ def test_a_small_change_every_window_estimates_is_read_from_the_windows_pooled(
     assert all(f.probability < 0.5 for f in alone.faults), alone
     beside_held = run(10, La=("held", 0.0, None))
     assert all(f.probability < 0.5 for f in beside_held.faults), beside_held
+    # a change under way (Ke falling 0.5 % a window, each to +- 0.2 %): the windows disagree
+    # beyond their errors and their mean lags; the evidence is the last window's
+    d = Diagnoser(lib, pool_windows=10)
+    for w in range(30):
+        ramp = ("estimated", -0.5 * (w - 9) if w >= 10 else 0.0, 0.2)
+        falling = d.update(_with(base, w, **{**quiet, "Ke": ramp}), None)
+    said = [e for f in falling.faults for e in f.evidence_for if e.startswith("Ke = ")]
+    assert said and all("is -10.00 %" in e and "this window's estimate" in e for e in said), said

@@ -148,20 +148,22 @@ ALIAS_MEMORY_WINDOWS = 30
 #: (La held at its nameplate since window 20) does not speak against it forever (1.5 % after
 #: 100 windows, 3 % after 400).
 STALE_SD_PCT = 0.15
-#: A parameter's deviation evidence pools its sound estimates from the last this many
-#: windows (after the change's onset; not while the estimates are read along an alias) when
-#: each comes from a window that estimated every parameter of the twin (nothing held or
+#: A parameter's deviation evidence pools its sound estimates from the last this many windows
+#: (after the change's onset; not while the estimates are read along an alias; not when,
+#: widened, the pool tells less than the last window: a change under way, whose mean lags it)
+#: when each comes from a window that estimated every parameter of the twin (nothing held or
 #: fused: its estimates' errors are that window's noise alone, independent of the other
-#: windows'; an estimate fitted beside a held value carries that value's lag, the same in
-#: every such window). The weighted mean, its standard error inflated by the Birge ratio
-#: (the windows' scatter beyond their stated errors) and shrunk at most :data:`POOL_SHRINK`
-#: times below the last pooled window's. Measured on the fault matrix
-#: (benchmarks/bench_diagnosis.py, replayed, 2026-11-26): the PWM drive at 1 % noise reads
-#: Ke -3 % +- 1.3 % (1 sigma) a window, and the field weakened 3 % read "no fault" 0.92;
-#: pooled, magnet weakening 0.92 (top-1 60 -> 65 of 82, confident-wrong 0, Brier 0.035 ->
-#: 0.030). Pooling every sound window instead (the twin held Ra at a fused value lagging the
-#: apparent -10 % of a current reading 1.1 times too high, and Ke absorbed it, -2 % in each
-#: such window) named dry friction 0.88 on that sensor: 5 of 121 cases confident-wrong.
+#: windows'; an estimate fitted beside a held value carries that value's lag, the same in every
+#: such window). The weighted mean, its standard error inflated by the Birge ratio (the windows'
+#: scatter beyond their stated errors) and shrunk at most :data:`POOL_SHRINK` times below the
+#: last pooled window's. Measured on the fault matrix (benchmarks/bench_diagnosis.py, replayed,
+#: 2026-11-26): the PWM drive at 1 % noise reads Ke -3 % +- 1.3 % (1 sigma) a window, and the
+#: field weakened 3 % read "no fault" 0.92; pooled, magnet weakening 0.92 (top-1 60 -> 65 of 82,
+#: confident-wrong 0, Brier 0.035 -> 0.030; the hydraulic fluid rising +42 to +46 % over ten
+#: windows read +44.4 % +- 0.92 % pooled before the last-window rule, beside a published +46.3 %
+#: +- 0.08 %). Pooling every sound window instead (the twin held Ra at a fused value lagging the
+#: apparent -10 % of a current reading 1.1 times too high, and Ke absorbed it, -2 % in each such
+#: window) named dry friction 0.88 on that sensor: 5 of 121 cases confident-wrong.
 POOL_WINDOWS = 10
 #: Fewest windows pooled (else the last window's estimate alone).
 POOL_MIN = 3
@@ -497,7 +499,8 @@ class Diagnoser:
         onset, that estimated every parameter (:data:`POOL_WINDOWS`: inverse-variance
         weighted mean, its standard error times the Birge ratio ``sqrt(chi^2 / (n - 1))``
         when above 1, and at least the last pooled one's over :data:`POOL_SHRINK`); ``ev``
-        itself when fewer than :data:`POOL_MIN` windows qualify, the last jump is not
+        itself when that error is not below ``ev``'s, fewer than :data:`POOL_MIN` windows
+        qualify, the last jump is not
         confirmed yet, or the estimates are read along an alias (:meth:`_alias`: they move
         with a parameter the twin does not estimate, an error every window shares). It keeps
         ``ev``'s window (its age, the alias read from it)."""
@@ -515,6 +518,8 @@ class Diagnoser:
         chi2 = float(np.sum(w * (dev - mean) ** 2))
         sd = math.sqrt(max(1.0, chi2 / (len(pool) - 1)) / float(np.sum(w)))
         sd = max(sd, pool[-1].sd / POOL_SHRINK, SD_FLOOR_PCT)
+        if sd >= ev.sd:  # the windows disagree beyond their errors: a change under way, the
+            return ev    # last estimate tells more than their mean (which lags it)
         return dataclasses.replace(ev, dev=mean, sd=sd,
                                    value=ev.nominal * (1.0 + mean / 100.0), pooled=len(pool))
 
