@@ -99,6 +99,26 @@ def alias_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, ..
                  if n not in tied and (n not in named or n not in estimated))
 
 
+def tracked_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, ...]:
+    """The parameters whose alias the adapter computes in every window that holds them (the
+    diagnosis reads their change across windows, from how the estimates moved with the
+    windows' aliases): those a fault of the machine's library names in a deviation sign and
+    the estimation estimates when a window determines them (J on the default motor, held in
+    nearly every window), but tied ones; none with ``[diagnosis]`` off. A parameter the
+    estimation never estimates (the PWM drive's fixed Tc) is read window by window
+    (:func:`alias_parameters`)."""
+    d = config.diagnosis
+    if not d.enabled:
+        return ()
+    library = d.resolve(config.machine.model)
+    named = {s.parameter for f in library.faults for s in f.deviations}
+    resolved = config.estimation.resolved(model)
+    tied = set(resolved.tie or {})
+    estimated = set(resolved.estimate or ())
+    return tuple(n for n in model.parameter_names
+                 if n in named and n in estimated and n not in tied)
+
+
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,
                   run: str, counters: Callable[[], Mapping[str, int]],
                   source: Callable[[WindowData], tuple[str | None, list[str], list[str]]]
@@ -113,7 +133,8 @@ def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[st
                           thresholds=config.alarms.rul_targets(nominal),
                           adaptive=acq.adaptive, label=config.machine.name,
                           readings=reading_outputs(config),
-                          aliases=alias_parameters(config, model))
+                          aliases=alias_parameters(config, model),
+                          tracked=tracked_parameters(config, model))
     machine = config.machine.name
     pipeline = WindowPipeline(
         adapter=adapter, alarms=AlarmEvaluator(config.alarms, machine), machine=machine,

@@ -143,6 +143,12 @@ class TwinAdapter:
         aliases: the parameters whose alias is computed in a window that did not estimate
             them and whose estimates moved (:mod:`twinwatch.twin.estimation.aliases`; None:
             every one; empty: none). The daemon passes those no fault of its library names.
+        tracked: the parameters whose alias is computed in *every* window that did not
+            estimate them, whether or not its estimates moved: the diagnosis reads a change
+            of such a parameter across windows, from how the estimates moved with the
+            windows' aliases (:meth:`~twinwatch.twin.diagnosis.Diagnoser` and
+            docs/diagnosis.md, "read across windows"). The daemon passes those its fault
+            library names.
 
     Raises:
         ValueError: a configuration names a parameter, attach point or input the model lacks.
@@ -155,10 +161,13 @@ class TwinAdapter:
                  thresholds: Mapping[str, Thresholds] | None = None,
                  adaptive: AdaptiveWindowConfig | None = None, label: str = "",
                  readings: Sequence[str] | None = None,
-                 aliases: Sequence[str] | None = None) -> None:
+                 aliases: Sequence[str] | None = None,
+                 tracked: Sequence[str] = ()) -> None:
         self.model = model
         #: The parameters whose alias is computed (None: every one; empty: none).
         self.alias_parameters = None if aliases is None else tuple(aliases)
+        #: The parameters whose alias is computed in every window that holds them.
+        self.tracked_parameters = tuple(tracked)
         #: The outputs the reading check tests (None: every one; empty: no check).
         self.readings = None if readings is None else tuple(readings)
         #: The log, each line led by ``label`` (the machine's name: a gateway's log says which
@@ -309,8 +318,13 @@ class TwinAdapter:
         """After the twin's fit: the reading check and the aliases, then the prognostics."""
         t0 = time.perf_counter()
         check = self.readings is None or bool(self.readings)
-        alias = (self.alias_parameters is None or bool(self.alias_parameters)) \
-            and self._moved(result.estimate)
+        est = result.estimate
+        names = self.model.parameter_names
+        moved = (self.alias_parameters is None or bool(self.alias_parameters)) \
+            and self._moved(est)
+        tracked = [n for n in self.tracked_parameters
+                   if n in names and est.status.get(n) not in ("estimated", "tied")]
+        alias = (moved or bool(tracked)) and any(s == "estimated" for s in est.status.values())
         terms = compose(result.terms, window) if result.terms and (check or alias) else None
         if check:
             # one simulation of the healthy twin (more when it misfits): what the diagnosis
@@ -319,14 +333,13 @@ class TwinAdapter:
                 fit, self.estimator.nominal, result.estimate.nrmse, terms, self.readings)
         if alias:
             # what the diagnosis tells a change of a parameter the window did not estimate by
-            est = result.estimate
-            names = self.model.parameter_names
             pmap = self.estimator.pmap
+            asked = [n for n in names if est.status.get(n) not in ("estimated", "tied")
+                     and (n in tracked or moved and (self.alias_parameters is None
+                                                     or n in self.alias_parameters))]
             result.aliases = aliases(
                 fit, np.array([est.fitted[n] for n in names]),
-                [n for n in names if est.status.get(n) == "estimated"],
-                [n for n in names if est.status.get(n) not in ("estimated", "tied")
-                 and (self.alias_parameters is None or n in self.alias_parameters)],
+                [n for n in names if est.status.get(n) == "estimated"], asked,
                 {names[d]: names[s] for d, s in pmap.ties}, terms, est.initial)
         result.estimate = dataclasses.replace(
             result.estimate, elapsed_s=result.estimate.elapsed_s + time.perf_counter() - t0)

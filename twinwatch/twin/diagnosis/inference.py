@@ -172,6 +172,32 @@ POOL_MIN = 3
 #: no pooling averages away (at 3 the PWM drive's slower current loop, tau_e +50 %, read as
 #: an encoder reading high at 0.85 in one window; at 2.5 at most 0.75).
 POOL_SHRINK = 2.5
+#: A parameter the windows hold (J on the default motor: never determined beside D in one
+#: window) is read across the last this many windows after the onset, from how the estimates
+#: moved with each window's alias of it (:meth:`Diagnoser._across`): the estimates ``x_ie``
+#: of window i are ``delta_e + c a_ie`` (``a_ie``: the held parameter's alias in window i, its
+#: change ``c`` [%]; ``delta_e``: each estimate's own change, the same in every window),
+#: weighted least squares over the windows, ``c``'s standard error times the Birge ratio. A
+#: set-point step makes ``a`` change sign (the inertia's torque accelerates, then brakes),
+#: where a change of D itself moves every window alike.
+ACROSS_WINDOWS = 30
+#: Fewest windows with an alias (and sound estimates) for a read across windows.
+ACROSS_MIN = 6
+#: A read across windows with a standard error above this [%] says nothing.
+ACROSS_MAX_SD = 20.0
+#: Least share of the change's information that is its own, not shared with the estimates'
+#: own changes (``1 / (I_cc (I^-1)_cc)``): an alias the same in every window (Ke's on the
+#: default motor, D -5.15 to -5.25 % per % in every window) reads any slow drift of D's
+#: error with the operating point as a change of Ke (a nominal run at 1 % noise read Ke
+#: +20 % +- 4.6 %, and a speed reading low at 0.91).
+ACROSS_OWN = 0.3
+#: Largest reduced chi-square of the differences about the alias' line: beyond it the
+#: estimates moved with something else between windows (a drifting D, whose rise across the
+#: gap of a set-point step read as J -190 % +- 19 % under bearing wear at 1 % noise).
+ACROSS_FIT = 4.0
+#: A read across windows this many standard errors from 0 explains the estimates it moves:
+#: each is read net of it (its alias times the change) in the window's evidence.
+ACROSS_Z = 3.0
 #: Evidence on a parameter older than this many windows (2 min at 2 s windows) says nothing
 #: about it now: a parameter the windows have not estimated since (Ke held since the start
 #: on a motor at a steady set-point) neither supports nor rules out the faults that move it.
@@ -266,6 +292,7 @@ class _Dev:
     t_end: float = 0.0                        # its window's end [s]
     full: bool = False                        # its window estimated every parameter
     pooled: int = 1                           # the windows' estimates it pools
+    across: str = ""                          # read across windows: how (for a person)
 
 
 @dataclass
@@ -408,6 +435,14 @@ class Diagnoser:
         self._passed: deque[bool] = deque(maxlen=INTERMITTENT_WINDOWS)
         # parameter -> (window, its end [s], shaft speed, deviation, standard error [%])
         self._speed_devs: dict[str, deque[tuple[int, float, float, float, float]]] = {}
+        # per window: (window, its end [s], its sound estimates (deviation, standard error
+        # [%]), named parameter -> its alias (estimate -> % per %)): the read across windows
+        self._aliased: deque[tuple[int, float, dict[str, tuple[float, float]],
+                                   dict[str, dict[str, float]]]] = deque(maxlen=ACROSS_WINDOWS)
+        # the recent windows whose twin held a meta-model term
+        self._with_terms: deque[int] = deque(maxlen=ACROSS_WINDOWS)
+        # parameter -> this window's read across windows (:meth:`_across`)
+        self._across_fit: dict[str, tuple[float, float, dict[str, float]]] = {}
 
     # -- evidence -----------------------------------------------------------------------------
     def _observe(self, health: HealthMessage, speed: tuple[float, float] | None) -> None:
@@ -451,6 +486,11 @@ class Diagnoser:
                     self._quiet[name] = float(health.t_end)
             elif p.status == "held" and p.value is not None and p.nominal:
                 self._confirm_by_estimator(name, (p.value / p.nominal - 1.0) * 100.0)
+        if health.terms:
+            self._with_terms.append(health.window)
+        self._aliased.append((health.window, float(health.t_end), sound, {
+            p: {e: float(m) for e, m in a.moves.items() if m is not None}
+            for p, a in health.aliases.items() if p in self._named}))
         dated = _change_onset(health)
         if dated is not None:
             self._trend_onset = dated
@@ -790,6 +830,149 @@ class Diagnoser:
             out[name] = (ev, sd) if pooled is ev else (pooled, _aged_sd(pooled, health.window))
         return out
 
+    def _across(self, health: HealthMessage, p: str
+                ) -> tuple[float, float, int] | None:
+        """A parameter ``p`` no window of the last :data:`ACROSS_WINDOWS` (after the onset)
+        estimated, read from how the estimates moved with its alias from one sound window to
+        the next (:data:`ACROSS_WINDOWS`' model, differenced).
+
+        Per estimate ``e``, over its sound windows in order: ``x_k - x_{k-1} = c (a_k -
+        a_{k-1}) + n_k - n_{k-1}``, the windows' noises ``n`` independent (standard errors
+        ``s``), so the differences' covariance is tridiagonal (``s_k^2 + s_{k-1}^2``, and
+        ``-s_k^2`` beside); generalised least squares over every estimate's differences,
+        ``c``'s standard error times the Birge ratio. A window that computed aliases but not
+        ``p``'s (its effect negligible there: a steady speed) has ``a = 0``. Differencing
+        takes each estimate's own change out, a step or a drift alike, but for the one
+        difference it falls in.
+
+        Returns:
+            (its change ``c`` [%], standard error [%], the windows read) or None: ``p``
+            estimated in one of those windows (its own estimates are its evidence), fewer
+            than :data:`ACROSS_MIN` windows, the alias barely changing between windows
+            (:data:`ACROSS_OWN`: a change of ``p`` and of the estimates themselves are then
+            one pattern) or a standard error above :data:`ACROSS_MAX_SD`.
+        """
+        seqs: dict[str, list[tuple[float, float, float]]] = {}  # e -> [(a, x, s)]
+        windows = 0
+        for win, t_end, sound, al in self._aliased:
+            if health.window - win >= ACROSS_WINDOWS or (
+                    self._onset is not None and t_end <= self._onset):
+                continue
+            if p in sound:
+                # estimated in the pool: its own estimates are its evidence (read along the
+                # alias too, the PWM drive's Ra, held in one window of three, read +4 to
+                # +6 % where its own windows said +10 %: a current reading low at 0.84)
+                return None
+            if not al:
+                continue   # no alias computed: nothing estimated, or nothing asked
+            if win in self._with_terms:
+                # a meta-model term stands in the twin: what the physics lacks moves the
+                # estimates between windows too (a drive's dead zone, its clip term in the
+                # twin, read J -10 % +- 1.7 % and a speed reading high at 0.91)
+                return None
+            moves = al.get(p, {})
+            used = False
+            for e, (d, sd) in sound.items():
+                if e in moves or p not in al:
+                    seqs.setdefault(e, []).append((moves.get(e, 0.0), d, max(sd, SD_FLOOR_PCT)))
+                    used = True
+            windows += used
+        if windows < ACROSS_MIN:
+            return None
+        ests = [e for e, seq in seqs.items() if len(seq) >= 3]
+        n_par = 1
+        normal = np.zeros((n_par, n_par))
+        rhs = np.zeros(n_par)
+        level = 0.0
+        parts = []
+        for e in ests:
+            seq = seqs[e]
+            a = np.array([q[0] for q in seq])
+            x = np.array([q[1] for q in seq])
+            v = np.array([q[2] for q in seq]) ** 2
+            dx = np.diff(x)
+            design = np.zeros((dx.size, n_par))
+            design[:, 0] = np.diff(a)
+            cov = np.diag(v[1:] + v[:-1])
+            if dx.size > 1:
+                off = -v[1:-1]
+                cov += np.diag(off, 1) + np.diag(off, -1)
+            try:
+                ci = np.linalg.inv(cov)
+            except np.linalg.LinAlgError:
+                continue
+            normal += design.T @ ci @ design
+            rhs += design.T @ ci @ dx
+            level += float(np.sum(a * a / v))
+            parts.append((design, dx, ci))
+        if not parts:
+            return None
+        try:
+            inv = np.linalg.inv(normal)
+        except np.linalg.LinAlgError:
+            return None
+        info = 1.0 / float(inv[0, 0]) if inv[0, 0] > 0 else 0.0
+        if not info > 0 or info < ACROSS_OWN * level:
+            return None   # the alias barely changes: c and the estimates' changes are one
+        beta = inv @ rhs
+        c = float(beta[0])
+        chi2 = sum(float((dx - d @ beta) @ ci @ (dx - d @ beta)) for d, dx, ci in parts)
+        dof = sum(dx.size for _, dx, _ in parts) - n_par
+        if dof < 2:
+            return None
+        if chi2 / dof > ACROSS_FIT:
+            return None   # the differences do not follow the alias: something else moved
+        sd_c = math.sqrt(max(1.0, chi2 / dof) / info)
+        if not sd_c < ACROSS_MAX_SD:
+            return None
+        return c, sd_c, windows
+
+    def _across_evidence(self, health: HealthMessage, evs: dict[str, tuple[_Dev, float]]
+                         ) -> dict[str, tuple[_Dev, float]]:
+        """``evs`` with the read across windows (:meth:`_across`) of each parameter a fault
+        names that this window did not estimate, where it tells more than the parameter's own
+        last evidence; when it is :data:`ACROSS_Z` standard errors from 0 each estimate of
+        this window it moves is read net of it (explaining away: the held inertia's torque,
+        taken by D after a set-point step, is not D's own change)."""
+        out = dict(evs)
+        self._across_fit = {}
+        carried = estimated_parameters(health)
+        own = self._aliased[-1][3] if self._aliased and \
+            self._aliased[-1][0] == health.window else {}
+        for p in sorted(self._named):
+            par = health.parameters.get(p)
+            if par is None or par.status in ("estimated", "tied", "fixed") \
+                    or not par.nominal:
+                continue   # a fixed one is read window by window (:meth:`_alias`)
+            read = self._across(health, p)
+            if read is None:
+                continue
+            c, sd_c, n = read
+            prev = out.get(p)
+            if prev is not None and prev[1] <= sd_c:
+                continue
+            ev = _Dev(c, sd_c, par.nominal * (1.0 + c / 100.0), par.nominal, par.unit,
+                      health.window, "read across windows", carried, float(health.t_end),
+                      pooled=n, across=f"read across {n} windows from how the estimates "
+                                       f"moved with {p}'s alias in each")
+            out[p] = (ev, sd_c)
+            self._across_fit[p] = (c, sd_c, own.get(p, {}))
+            if abs(c) < ACROSS_Z * sd_c:
+                continue
+            for e, a in own.get(p, {}).items():
+                got = out.get(e)
+                if got is None or got[0].window != health.window or e == p:
+                    continue
+                e_ev, e_sd = got
+                moved = a * c
+                sd = math.sqrt(e_sd ** 2 + (a * sd_c) ** 2)
+                out[e] = (dataclasses.replace(
+                    e_ev, dev=e_ev.dev - moved, sd=sd,
+                    value=e_ev.nominal * (1.0 + (e_ev.dev - moved) / 100.0),
+                    across=f"net of {p}'s {c:+.1f} % read across windows ({moved:+.2f} % of "
+                           f"its {e_ev.dev:+.2f} %)"), sd)
+        return out
+
     def _read_aliases(self, health: HealthMessage,
                       evs: dict[str, tuple[_Dev, float]]) -> None:
         """This window's alias fit (:meth:`_alias`), its signs kept with the window of the
@@ -829,7 +1012,8 @@ class Diagnoser:
             when = "" if ev.window == health.window else f", last sound window {ev.window}"
             # which uncertainty: this window's estimate (rel_std_pct), not the fused evidence's
             # narrower one; floored at the twin's model error, widened with the evidence's age
-            pooled = f"{ev.pooled} windows' estimates pooled" if ev.pooled > 1 else ""
+            pooled = (ev.across if ev.across else
+                      f"{ev.pooled} windows' estimates pooled" if ev.pooled > 1 else "")
             whose = ("the model-error floor" if sd <= SD_FLOOR_PCT * 1.0001 else
                      f"{pooled}, grown with its age" if age and pooled else
                      "grown with its age" if age else pooled or "this window's estimate")
@@ -891,6 +1075,9 @@ class Diagnoser:
             moved = [(e, float(v)) for (e, _, _, s_e), v in zip(pts, pred, strict=True)
                      if abs(v) >= max(ALIAS_MIN_PCT, 2.0 * s_e)]
             named = p in self._named
+            if named and p in health.parameters \
+                    and health.parameters[p].status != "fixed":
+                continue  # a parameter the twin estimates at times: read across windows
             seen = self._alias_seen.get(p)
             recalled = (not named and seen is not None
                         and health.window - seen[0] <= ALIAS_MEMORY_WINDOWS and seen[1] * c > 0)
@@ -1210,6 +1397,7 @@ class Diagnoser:
         # an alias is read from this window's own estimates: its pattern is the window's
         self._read_aliases(health, evs)
         evs = self._pooled_evidence(health, evs)
+        evs = self._across_evidence(health, evs)
         variables, unexplained = self._variables(health, speed)
         devs = self._dev_factors(health, evs)
         extra = self._unexplained_dev_var(devs)
@@ -1268,7 +1456,8 @@ class Diagnoser:
             if f.terms or f.sensors or any(c.link >= 0.5 for c in f.checks):
                 continue
             names = list(dict.fromkeys(d.parameter for d in f.deviations if d.link >= 0.5))
-            if not names or any(self._deviation(health, n) is not None for n in names):
+            if not names or any(self._deviation(health, n) is not None
+                                or n in self._across_fit for n in names):
                 continue
             why = []
             for n in names:
