@@ -102,8 +102,8 @@ def alias_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, ..
 def tracked_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, ...]:
     """The parameters whose alias the adapter computes in every window that holds them (the
     diagnosis reads their change across windows, from how the estimates moved with the
-    windows' aliases): those a fault of the machine's library names in a deviation sign and
-    the estimation estimates when a window determines them (J on the default motor, held in
+    windows' aliases): those the machine's library lists in ``read_across`` that the
+    estimation estimates when a window determines them (J on the default motor, held in
     nearly every window), but tied ones; none with ``[diagnosis]`` off. A parameter the
     estimation never estimates (the PWM drive's fixed Tc) is read window by window
     (:func:`alias_parameters`)."""
@@ -111,12 +111,11 @@ def tracked_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, 
     if not d.enabled:
         return ()
     library = d.resolve(config.machine.model)
-    named = {s.parameter for f in library.faults for s in f.deviations}
     resolved = config.estimation.resolved(model)
     tied = set(resolved.tie or {})
     estimated = set(resolved.estimate or ())
     return tuple(n for n in model.parameter_names
-                 if n in named and n in estimated and n not in tied)
+                 if n in library.read_across and n in estimated and n not in tied)
 
 
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,

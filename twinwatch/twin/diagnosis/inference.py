@@ -191,6 +191,11 @@ ACROSS_MAX_SD = 20.0
 #: error with the operating point as a change of Ke (a nominal run at 1 % noise read Ke
 #: +20 % +- 4.6 %, and a speed reading low at 0.91).
 ACROSS_OWN = 0.3
+#: A read across windows is evidence once this many windows in a row read it alike (within
+#: three combined standard errors): the paper's bearing wear at 1 % noise read J -18.5 % +-
+#: 0.6 % in one window at 690 s (D's rise across a step's gap) and named a load inertia
+#: change at 0.88; the inertia's own reads hold for tens of windows.
+ACROSS_CONFIRM = 3
 #: Largest reduced chi-square of the differences about the alias' line: beyond it the
 #: estimates moved with something else between windows (a drifting D, whose rise across the
 #: gap of a set-point step read as J -190 % +- 19 % under bearing wear at 1 % noise).
@@ -439,6 +444,8 @@ class Diagnoser:
         # [%]), named parameter -> its alias (estimate -> % per %)): the read across windows
         self._aliased: deque[tuple[int, float, dict[str, tuple[float, float]],
                                    dict[str, dict[str, float]]]] = deque(maxlen=ACROSS_WINDOWS)
+        # parameter -> its last reads across windows (change, standard error) or None
+        self._across_hist: dict[str, deque[tuple[float, float] | None]] = {}
         # the recent windows whose twin held a meta-model term
         self._with_terms: deque[int] = deque(maxlen=ACROSS_WINDOWS)
         # parameter -> this window's read across windows (:meth:`_across`)
@@ -939,15 +946,21 @@ class Diagnoser:
         carried = estimated_parameters(health)
         own = self._aliased[-1][3] if self._aliased and \
             self._aliased[-1][0] == health.window else {}
-        for p in sorted(self._named):
+        for p in self.library.read_across:
             par = health.parameters.get(p)
             if par is None or par.status in ("estimated", "tied", "fixed") \
                     or not par.nominal:
                 continue   # a fixed one is read window by window (:meth:`_alias`)
             read = self._across(health, p)
+            hist = self._across_hist.setdefault(p, deque(maxlen=ACROSS_CONFIRM))
+            hist.append(None if read is None else (read[0], read[1]))
             if read is None:
                 continue
             c, sd_c, n = read
+            if len(hist) < ACROSS_CONFIRM or not all(
+                    q is not None and abs(q[0] - c) <= 3.0 * math.hypot(q[1], sd_c)
+                    for q in hist):
+                continue   # not yet read alike in the last windows
             prev = out.get(p)
             if prev is not None and prev[1] <= sd_c:
                 continue

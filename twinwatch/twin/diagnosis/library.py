@@ -223,6 +223,12 @@ class FaultLibrary(_Strict):
         default_factory=dict, description="attach point -> the parameters of the equation it "
         "adds to: while a term there is one no fault explains, their deviations and trends "
         "may be its model error (the estimates absorb part of what the twin lacks)")
+    read_across: list[str] = Field(
+        default_factory=list, description="parameters the windows hold that the diagnosis "
+        "reads across windows, from how the estimates moved with each window's alias of it "
+        "(docs/diagnosis.md, 'A parameter the windows hold'); each one measured on the fault "
+        "matrix before it is listed (the default motor's La read -33 % to +37 % on a nominal "
+        "winding's run and named a voltage reading low at 0.88)")
     faults: list[FaultMode]
 
     @field_validator("faults")
@@ -340,14 +346,16 @@ class DiagnosisConfig(_Strict):
         faults = {f.id: f for f in (base.faults if base else [])}
         speed = shipped.speed_channel if shipped else ""  # the model's, whatever the faults
         equations = dict(shipped.equations) if shipped else {}
+        across = list(shipped.read_across) if shipped else []
         if self.library is not None:
             extra = load_library(self.library)
             speed = extra.speed_channel or speed
             equations.update(extra.equations)
+            across += [p for p in extra.read_across if p not in across]
             faults.update({f.id: f for f in extra.faults})
         faults.update({f.id: f for f in self.faults})
         return FaultLibrary(model=model, speed_channel=speed, equations=equations,
-                            faults=list(faults.values()))
+                            read_across=across, faults=list(faults.values()))
 
     def check_against(self, model: str, parameter_names: tuple[str, ...] | list[str],
                       attach_names: list[str], channels: Sequence[str] = (),
