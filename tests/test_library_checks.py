@@ -21,6 +21,7 @@ from .test_gateway import machine_config
 
 GOOD = """model = "dc_motor"
 speed_channel = "omega"
+read_across = ["J"]
 [[faults]]
 id = "shaft_custom"
 component = "shaft"
@@ -52,6 +53,8 @@ BAD = [
      "faults.0.sensors.0.kind: Input should be 'frozen' or 'saturated'"),
     ('scaling = [{ parameter = "D"', 'scaling = [{ parameter = "Dd"',
      "fault 'shaft_custom' names the parameter 'Dd'; the dc_motor model has"),
+    ('read_across = ["J"]', 'read_across = ["Jj"]',
+     "read_across names 'Jj', not a parameter of the dc_motor twin; did you mean 'J'?"),
 ]
 
 
@@ -62,7 +65,8 @@ def _machine(tmp_path: Path, library: Path) -> Path:
 
 
 @pytest.mark.parametrize(("good", "bad", "why"), BAD, ids=["kind", "speed", "sensor", "model",
-                                                           "check", "when", "key", "scaling"])
+                                                           "check", "when", "key", "scaling",
+                                                           "across"])
 def test_a_bad_library_is_refused_in_one_line_naming_the_key(
         tmp_path: Path, good: str, bad: str, why: str) -> None:
     library = tmp_path / "faults.toml"

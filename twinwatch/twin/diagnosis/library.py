@@ -397,6 +397,10 @@ class DiagnosisConfig(_Strict):
                 problem = kind.problem(f, known)
                 if problem is not None:
                     raise ValueError(f"{key}: fault {f.id!r} {problem}")
+        for name in lib.read_across:
+            if name not in parameter_names:
+                raise ValueError(f"{where}: read_across names {name!r}, not a parameter of the "
+                                 f"{model} twin; {closest(name, parameter_names)}")
         for a, names in lib.equations.items():
             if a not in attach_names:
                 raise ValueError(f"diagnosis: equations names the attach point {a!r}; the "
