@@ -343,7 +343,11 @@ def test_a_twin_failing_in_bursts_is_a_fault_the_library_does_not_know(
         return out
 
     bursts = run([True] * 10 + ([False] * 5 + [True] * 5) * 6)
-    assert bursts.status == "unknown" and bursts.unknown >= 0.8, bursts
+    # 0.806 before the DC motor's dry friction, which leaves the ia and omega checks failing
+    # in part of the windows before its term is found (may_pass), explained the bursts too:
+    # with D at its nameplate it takes 0.009 of them, the unknown fault 0.799
+    assert bursts.status == "unknown" and bursts.unknown >= 0.75, bursts
+    assert all(f.probability < 0.06 for f in bursts.faults), bursts.faults
     assert ("the model check failed in 30 of the last 60 windows, in 6 separate runs: "
             "something that comes and goes") in bursts.unexplained, bursts.unexplained
     assert all(f.id not in ("speed_sensor_high", "speed_sensor_low") or f.probability < 0.2

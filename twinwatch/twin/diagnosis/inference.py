@@ -172,6 +172,10 @@ POOL_MIN = 3
 #: no pooling averages away (at 3 the PWM drive's slower current loop, tau_e +50 %, read as
 #: an encoder reading high at 0.85 in one window; at 2.5 at most 0.75).
 POOL_SHRINK = 2.5
+#: A trend flat within its uncertainty, as evidence of a fault that drifts it: its rate
+#: leaning the other way (or none) and leaning the fault's way.
+TREND_FLAT = 0.2
+TREND_FLAT_LEANING = 0.4
 #: A parameter the windows hold (J on the default motor: never determined beside D in one
 #: window) is read across the last this many windows after the onset, from how the estimates
 #: moved with each window's alias of it (:meth:`Diagnoser._across`): the estimates ``x_ie``
@@ -1305,7 +1309,8 @@ class Diagnoser:
         if t.degrading:
             s = 0.95 if up == (direction == "up") else 0.05
         else:
-            s = 0.2
+            # flat within its uncertainty: weaker against a fault its rate leans towards
+            s = TREND_FLAT_LEANING if up == (direction == "up") and t.rate else TREND_FLAT
         rate = (f"{t.rate_pct_per_h:+.3g} %/h" if t.rate_pct_per_h is not None
                 else f"{t.rate:+.3g} {p.unit}/s")  # type: ignore[union-attr]
         text = (f"{name} trend ({t.model}, {t.evidence} windows) "
