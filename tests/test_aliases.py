@@ -25,11 +25,12 @@ from .conftest import plant_windows
 QUIET = {"ia": 0.0, "omega": 0.0, "Va": 0.0}
 
 
-def _last(aliases: Any = None, **plant: Any) -> tuple[AdaptationResult, TwinAdapter]:
+def _last(aliases: Any = None, tracked: tuple[str, ...] = (), **plant: Any
+          ) -> tuple[AdaptationResult, TwinAdapter]:
     cfg = DCMotorPlantConfig(scenario="nominal", duration=60, noise=QUIET, seed=3, **plant)
     _, wins = plant_windows(cfg, 4, skip=5)
     adapter = TwinAdapter(DCMotorTwin(), EstimationConfig(estimate=["Ra", "D"]),
-                          aliases=aliases)
+                          aliases=aliases, tracked=tracked)
     result = None
     for w in wins:
         result = adapter.process(w)
@@ -85,6 +86,34 @@ def test_the_daemon_asks_for_the_unnamed_and_the_never_estimated_named_parameter
     asked = alias_parameters(cfg, create_model(cfg.machine.model, cfg.machine.options))
     assert {"Tc", "tau_e"} <= set(asked), asked
     assert not {"Kt", "Ke", "D", "J", "Ra"} & set(asked), asked
+
+
+def test_the_daemon_asks_every_window_for_the_parameters_its_library_reads_across_windows(
+        ) -> None:
+    """The default motor's library reads J across windows (``read_across``): the adapter
+    computes J's alias in every window that holds it, whether its estimates moved or not, and
+    a window that held J publishes it (a steady nominal window's estimates do not move: J's
+    alias is there only because it is tracked). The PWM drive's library reads nothing so; with
+    the diagnosis off nothing is asked."""
+    from pathlib import Path
+
+    from twinwatch.config.loader import default_config, load_config
+    from twinwatch.daemon.window_worker import tracked_parameters
+    from twinwatch.twin.models import create_model
+
+    cfg = default_config()
+    model = create_model(cfg.machine.model, cfg.machine.options)
+    assert tracked_parameters(cfg, model) == ("J",)
+    cfg.diagnosis.enabled = False
+    assert tracked_parameters(cfg, model) == ()
+    cfg = load_config(Path(__file__).parent.parent / "config" / "dc-motor-motoshield.toml")
+    assert tracked_parameters(cfg, create_model(cfg.machine.model, cfg.machine.options)) == ()
+    result, _ = _last(aliases=(), tracked=("J",))
+    assert result.estimate.status["J"] != "estimated"
+    assert "J" in result.aliases and set(result.aliases) == {"J"}, result.aliases
+    assert result.aliases["J"].moves, result.aliases["J"]
+    none, _ = _last(aliases=(), tracked=())
+    assert "J" not in none.aliases
 
 
 # -- the diagnosis ---------------------------------------------------------------------------
