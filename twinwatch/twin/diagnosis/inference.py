@@ -177,13 +177,13 @@ POOL_SHRINK = 2.5
 TREND_FLAT = 0.2
 TREND_FLAT_LEANING = 0.4
 #: A parameter the windows hold (J on the default motor: never determined beside D in one
-#: window) is read across the last this many windows after the onset, from how the estimates
-#: moved with each window's alias of it (:meth:`Diagnoser._across`): the estimates ``x_ie``
-#: of window i are ``delta_e + c a_ie`` (``a_ie``: the held parameter's alias in window i, its
-#: change ``c`` [%]; ``delta_e``: each estimate's own change, the same in every window),
-#: weighted least squares over the windows, ``c``'s standard error times the Birge ratio. A
-#: set-point step makes ``a`` change sign (the inertia's torque accelerates, then brakes),
-#: where a change of D itself moves every window alike.
+#: window; the library's ``read_across``) is read across the last this many windows after
+#: the onset, from how the estimates moved with each window's alias of it
+#: (:meth:`Diagnoser._across`): from one sound window to the next, each estimate moves by
+#: ``c`` times the change of the held parameter's alias (its change ``c`` [%]) plus the two
+#: windows' noise, and its own change (a step or a drift) cancels in the difference. A
+#: set-point step makes the alias change sign (the inertia's torque accelerates, then
+#: brakes), where a change of D itself moves every window alike.
 ACROSS_WINDOWS = 30
 #: Fewest windows with an alias (and sound estimates) for a read across windows.
 ACROSS_MIN = 6
@@ -890,48 +890,29 @@ class Diagnoser:
             windows += used
         if windows < ACROSS_MIN:
             return None
-        ests = [e for e, seq in seqs.items() if len(seq) >= 3]
-        n_par = 1
-        normal = np.zeros((n_par, n_par))
-        rhs = np.zeros(n_par)
-        level = 0.0
+        info = score = level = 0.0
         parts = []
-        for e in ests:
-            seq = seqs[e]
+        for seq in seqs.values():
+            if len(seq) < 3:
+                continue
             a = np.array([q[0] for q in seq])
-            x = np.array([q[1] for q in seq])
             v = np.array([q[2] for q in seq]) ** 2
-            dx = np.diff(x)
-            design = np.zeros((dx.size, n_par))
-            design[:, 0] = np.diff(a)
-            cov = np.diag(v[1:] + v[:-1])
-            if dx.size > 1:
-                off = -v[1:-1]
-                cov += np.diag(off, 1) + np.diag(off, -1)
+            da, dx = np.diff(a), np.diff(np.array([q[1] for q in seq]))
+            cov = np.diag(v[1:] + v[:-1]) - np.diag(v[1:-1], 1) - np.diag(v[1:-1], -1)
             try:
                 ci = np.linalg.inv(cov)
             except np.linalg.LinAlgError:
                 continue
-            normal += design.T @ ci @ design
-            rhs += design.T @ ci @ dx
+            info += float(da @ ci @ da)
+            score += float(da @ ci @ dx)
             level += float(np.sum(a * a / v))
-            parts.append((design, dx, ci))
-        if not parts:
-            return None
-        try:
-            inv = np.linalg.inv(normal)
-        except np.linalg.LinAlgError:
-            return None
-        info = 1.0 / float(inv[0, 0]) if inv[0, 0] > 0 else 0.0
+            parts.append((da, dx, ci))
         if not info > 0 or info < ACROSS_OWN * level:
             return None   # the alias barely changes: c and the estimates' changes are one
-        beta = inv @ rhs
-        c = float(beta[0])
-        chi2 = sum(float((dx - d @ beta) @ ci @ (dx - d @ beta)) for d, dx, ci in parts)
-        dof = sum(dx.size for _, dx, _ in parts) - n_par
-        if dof < 2:
-            return None
-        if chi2 / dof > ACROSS_FIT:
+        c = score / info
+        chi2 = sum(float((dx - c * da) @ ci @ (dx - c * da)) for da, dx, ci in parts)
+        dof = sum(dx.size for _, dx, _ in parts) - 1
+        if dof < 2 or chi2 / dof > ACROSS_FIT:
             return None   # the differences do not follow the alias: something else moved
         sd_c = math.sqrt(max(1.0, chi2 / dof) / info)
         if not sd_c < ACROSS_MAX_SD:
@@ -1094,7 +1075,9 @@ class Diagnoser:
             named = p in self._named
             if named and p in health.parameters \
                     and health.parameters[p].status != "fixed":
-                continue  # a parameter the twin estimates at times: read across windows
+                # estimated at times: its own estimates are its evidence (or, in the
+                # library's read_across, its read across windows: :meth:`_across`)
+                continue
             seen = self._alias_seen.get(p)
             recalled = (not named and seen is not None
                         and health.window - seen[0] <= ALIAS_MEMORY_WINDOWS and seen[1] * c > 0)
