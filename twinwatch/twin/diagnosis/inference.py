@@ -600,6 +600,20 @@ class Diagnoser:
                 if fid not in var.links:
                     var.links[fid] = max(var.links.values(), default=UNKNOWN_DEV_LINK)
                     var.what[fid] = f"{name} drifting {direction} (the alias pattern)"
+        for p, (c, sd_c, moves) in self._across_fit.items():
+            if abs(c) < ACROSS_Z * sd_c:
+                continue
+            for e in moves:
+                # the estimate's trend follows the held parameter's part, which changes sign
+                # with each set-point step (J +50 % on the default motor: D's trend
+                # "degrading at +18 %/h", read as a weaker field's at 0.39): no evidence
+                # either way while the read explains it
+                for direction in ("up", "down"):
+                    var = out.get(f"trend:{e}:{direction}")
+                    if var is not None and var.s != 0.5:
+                        var.s = 0.5
+                        var.present = var.absent = (f"{e}'s trend, moved by {p}'s "
+                                                    f"{c:+.1f} % read across windows")
         if "model_check" not in out:
             out["model_check"] = model_check_variable(health)
         out["model_check"].links["unknown"] = UNKNOWN_CHECK_LINK
