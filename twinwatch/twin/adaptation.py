@@ -146,9 +146,9 @@ class TwinAdapter:
         tracked: the parameters whose alias is computed in *every* window that did not
             estimate them, whether or not its estimates moved: the diagnosis reads a change
             of such a parameter across windows, from how the estimates moved with the
-            windows' aliases (:meth:`~twinwatch.twin.diagnosis.Diagnoser` and
-            docs/diagnosis.md, "read across windows"). The daemon passes those its fault
-            library names.
+            windows' aliases (:class:`~twinwatch.twin.diagnosis.Diagnoser`; docs/diagnosis.md,
+            "A parameter the windows hold"). The daemon passes those its fault library lists
+            in ``read_across`` (:func:`~twinwatch.daemon.window_worker.tracked_parameters`).
 
     Raises:
         ValueError: a configuration names a parameter, attach point or input the model lacks.

@@ -445,7 +445,8 @@ class Diagnoser:
         # parameter -> (window, its end [s], shaft speed, deviation, standard error [%])
         self._speed_devs: dict[str, deque[tuple[int, float, float, float, float]]] = {}
         # per window: (window, its end [s], its sound estimates (deviation, standard error
-        # [%]), named parameter -> its alias (estimate -> % per %)): the read across windows
+        # [%]), read_across parameter -> its alias (estimate -> % per %)): the read across
+        # windows
         self._aliased: deque[tuple[int, float, dict[str, tuple[float, float]],
                                    dict[str, dict[str, float]]]] = deque(maxlen=ACROSS_WINDOWS)
         # parameter -> its last reads across windows (change, standard error) or None
@@ -501,7 +502,7 @@ class Diagnoser:
             self._with_terms.append(health.window)
         self._aliased.append((health.window, float(health.t_end), sound, {
             p: {e: float(m) for e, m in a.moves.items() if m is not None}
-            for p, a in health.aliases.items() if p in self._named}))
+            for p, a in health.aliases.items() if p in self.library.read_across}))
         dated = _change_onset(health)
         if dated is not None:
             self._trend_onset = dated
@@ -865,8 +866,8 @@ class Diagnoser:
         a_{k-1}) + n_k - n_{k-1}``, the windows' noises ``n`` independent (standard errors
         ``s``), so the differences' covariance is tridiagonal (``s_k^2 + s_{k-1}^2``, and
         ``-s_k^2`` beside); generalised least squares over every estimate's differences,
-        ``c``'s standard error times the Birge ratio. A window that computed aliases but not
-        ``p``'s (its effect negligible there: a steady speed) has ``a = 0``. Differencing
+        ``c``'s standard error times the Birge ratio. A window without ``p``'s alias (its
+        effect negligible there, a steady speed, or none computed) is left out. Differencing
         takes each estimate's own change out, a step or a drift alike, but for the one
         difference it falls in.
 
@@ -896,12 +897,11 @@ class Diagnoser:
                 # twin, read J -10 % +- 1.7 % and a speed reading high at 0.91)
                 return None
             moves = al.get(p, {})
-            used = False
-            for e, (d, sd) in sound.items():
-                if e in moves or p not in al:
-                    seqs.setdefault(e, []).append((moves.get(e, 0.0), d, max(sd, SD_FLOOR_PCT)))
-                    used = True
-            windows += used
+            used = [e for e in moves if e in sound]
+            for e in used:
+                d, sd = sound[e]
+                seqs.setdefault(e, []).append((moves[e], d, max(sd, SD_FLOOR_PCT)))
+            windows += bool(used)
         if windows < ACROSS_MIN:
             return None
         info = score = level = 0.0
@@ -935,11 +935,12 @@ class Diagnoser:
 
     def _across_evidence(self, health: HealthMessage, evs: dict[str, tuple[_Dev, float]]
                          ) -> dict[str, tuple[_Dev, float]]:
-        """``evs`` with the read across windows (:meth:`_across`) of each parameter a fault
-        names that this window did not estimate, where it tells more than the parameter's own
-        last evidence; when it is :data:`ACROSS_Z` standard errors from 0 each estimate of
-        this window it moves is read net of it (explaining away: the held inertia's torque,
-        taken by D after a set-point step, is not D's own change)."""
+        """``evs`` with the read across windows (:meth:`_across`) of each parameter of the
+        library's ``read_across`` that this window held (not fixed: those are read window by
+        window, :meth:`_alias`), where it tells more than the parameter's own last evidence;
+        when it is :data:`ACROSS_Z` standard errors from 0 each estimate of this window it
+        moves is read net of it (explaining away: the held inertia's torque, taken by D after
+        a set-point step, is not D's own change)."""
         out = dict(evs)
         self._across_fit = {}
         carried = estimated_parameters(health)
@@ -964,7 +965,7 @@ class Diagnoser:
             if prev is not None and prev[1] <= sd_c:
                 continue
             ev = _Dev(c, sd_c, par.nominal * (1.0 + c / 100.0), par.nominal, par.unit,
-                      health.window, "read across windows", carried, float(health.t_end),
+                      health.window, par.status, carried, float(health.t_end),
                       pooled=n, across=f"read across {n} windows from how the estimates "
                                        f"moved with {p}'s alias in each")
             out[p] = (ev, sd_c)
