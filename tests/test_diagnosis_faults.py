@@ -18,6 +18,7 @@ import pytest
 from twinwatch.config.loader import default_config
 from twinwatch.daemon.alarms import CHECK_FUNCTION, FaultAlarms
 from twinwatch.daemon.runner import Daemon
+from twinwatch.daemon.summary import window_lines
 from twinwatch.twin.diagnosis import Diagnoser, shipped_library
 from twinwatch.twin.diagnosis.deviation import likelihood, moved_density
 from twinwatch.twin.health import HealthMessage, ModelCheckHealth, diagnosis_line
@@ -762,6 +763,15 @@ def test_a_load_inertia_the_windows_hold_is_read_across_windows_from_d_s_respons
     assert last is not None and last.faults[0].id == "load_inertia_change", last
     said = " ".join(last.faults[0].evidence_for)
     assert "read across" in said and "J = " in said, said
+    # the read is published as a number with its interval, which covers the truth (2 sigma),
+    # and the summary's parameter line says it beside the fusion's "not determined"
+    read = last.read_across["J"]
+    assert read.over_windows >= 6 and abs(read.deviation_pct - 50.0) <= 2.0 * read.std_pct, read
+    line = next(x for x in window_lines(history[-1]) if x.lstrip().startswith("J "))
+    assert f"read across {read.over_windows} windows" in line and "(diagnosis)" in line, line
+    before = [h.diagnosis.read_across["J"] for h in history if h.t_end < 60.0
+              and h.diagnosis is not None and "J" in h.diagnosis.read_across]
+    assert before and all(abs(r.deviation_pct) <= 2.0 * r.std_pct for r in before), before
     # a weaker field with Ke held also reads J up (J/Kt), but it moves D up with it: D's
     # estimate net of J's part and D's trend (J's part, which changes sign with each step)
     # leave it well behind (0.39 with D's trend read as degrading)

@@ -95,6 +95,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "AcquisitionHealth",
     "AliasHealth",
+    "AcrossRead",
     "AlarmStatus",
     "CrossingHealth",
     "DiagnosisHealth",
@@ -127,7 +128,7 @@ __all__ = [
     "trend_line",
 ]
 
-SCHEMA_VERSION = 12
+SCHEMA_VERSION = 13
 
 ParameterStatus = Literal["estimated", "fused", "suspect", "held", "tied", "fixed"]
 """The estimation's :data:`~twinwatch.twin.estimation.publish.ParameterStatus`, restated so
@@ -479,6 +480,16 @@ class FaultHealth(_Part):
                                         "show and the window does not)")
 
 
+class AcrossRead(_Part):
+    """``diagnosis.read_across.<parameter>``: a parameter no window estimates (held), its
+    change read across the windows from how the estimates moved with its alias in each (the
+    library's ``read_across``; docs/diagnosis.md, "A parameter the windows hold")."""
+
+    deviation_pct: float = Field(description="its change from the nameplate [%]")
+    std_pct: float = Field(description="the read's standard error [%, 1 sigma]")
+    over_windows: int = Field(description="the windows read")
+
+
 class DiagnosisHealth(_Part):
     """``diagnosis``: from the evidence to the failing part (:mod:`twinwatch.twin.diagnosis`:
     a noisy-OR network over the machine's fault library)."""
@@ -518,6 +529,10 @@ class DiagnosisHealth(_Part):
                                   "signature moves is without evidence from a recent window "
                                   "(held or not estimated), and nothing else shows them; "
                                   "their probability is their prior, not a finding")
+    read_across: dict[str, AcrossRead] = Field(
+        default_factory=dict, description="held parameters whose change the diagnosis reads "
+        "across the windows, read alike in the last windows and used as evidence (parameter "
+        "-> the read); the fusion of their held values knows nothing of it")
 
 
 class HealthMessage(_Part):

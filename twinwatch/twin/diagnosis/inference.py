@@ -56,6 +56,7 @@ from twinwatch.twin.diagnosis.evidence import (
 )
 from twinwatch.twin.diagnosis.library import FaultLibrary, FaultMode, TermSign
 from twinwatch.twin.health import (
+    AcrossRead,
     DiagnosisHealth,
     FaultHealth,
     HealthMessage,
@@ -455,6 +456,7 @@ class Diagnoser:
         self._with_terms: deque[int] = deque(maxlen=ACROSS_WINDOWS)
         # parameter -> this window's read across windows (:meth:`_across`)
         self._across_fit: dict[str, tuple[float, float, dict[str, float]]] = {}
+        self._across_windows: dict[str, int] = {}
 
     # -- evidence -----------------------------------------------------------------------------
     def _observe(self, health: HealthMessage, speed: tuple[float, float] | None) -> None:
@@ -943,6 +945,7 @@ class Diagnoser:
         a set-point step, is not D's own change)."""
         out = dict(evs)
         self._across_fit = {}
+        self._across_windows = {}
         carried = estimated_parameters(health)
         own = self._aliased[-1][3] if self._aliased and \
             self._aliased[-1][0] == health.window else {}
@@ -970,6 +973,7 @@ class Diagnoser:
                                        f"moved with {p}'s alias in each")
             out[p] = (ev, sd_c)
             self._across_fit[p] = (c, sd_c, own.get(p, {}))
+            self._across_windows[p] = n
             if abs(c) < ACROSS_Z * sd_c:
                 continue
             for e, a in own.get(p, {}).items():
@@ -1459,6 +1463,9 @@ class Diagnoser:
                 and not self._alias_fit.named and p_unknown > 0.2 else []),
             ruled_out=ruled_out,
             unobserved=self._unobserved(health),
+            read_across={p: AcrossRead(deviation_pct=c, std_pct=sd_c,
+                                       over_windows=self._across_windows.get(p, 0))
+                         for p, (c, sd_c, _) in self._across_fit.items()},
         )
 
     def _unobserved(self, health: HealthMessage) -> list[str]:
