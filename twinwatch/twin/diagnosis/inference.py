@@ -398,6 +398,8 @@ class Diagnoser:
         self._onset: float | None = None
         # the last change point the trends dated [s] (kept when a trend's model drops it)
         self._trend_onset: float | None = None
+        # parameter -> the last change point its own trend dated [s] (kept likewise)
+        self._own_onset: dict[str, float] = {}
         # parameter -> the end [s] of its last sound window within its nameplate's interval
         self._quiet: dict[str, float] = {}
         self._tracks: list[tuple[str, list[_Ratio]]] = []  # (attach, ratios in a row)
@@ -508,6 +510,9 @@ class Diagnoser:
         dated = _change_onset(health)
         if dated is not None:
             self._trend_onset = dated
+        for name, p in health.parameters.items():
+            if p.trend is not None and p.trend.onset is not None:
+                self._own_onset[name] = float(p.trend.onset)
         if self._trend_onset is not None:
             self._onset = self._trend_onset
             return
@@ -543,9 +548,20 @@ class Diagnoser:
             ev = prev
         if ev is None or health.window - ev.window > STALE_MAX_WINDOWS:
             return None
-        if self._onset is not None and ev.t_end < self._onset:
+        onset = self._onset_of(name)
+        if onset is not None and ev.t_end < onset:
             return None  # from before the change: says nothing about it
         return ev
+
+    def _onset_of(self, name: str) -> float | None:
+        """The change onset [s] evidence on ``name`` is read after: the change point its own
+        trend dated last, else the trends' (:meth:`_observe`). Another parameter's later
+        change point says nothing of this one's evidence: on the PWM drive a winding -4 %
+        was estimated -4.0 % in every window that determined Ra, and its trend's onset (57 s)
+        dropped from the model; then J's trend, drifting with the fusion, dated a change at
+        178 s and every Ra estimate before it was set aside (winding 0.81, then 0.01)."""
+        own = self._own_onset.get(name)
+        return own if own is not None else self._onset
 
     def _pooled(self, health: HealthMessage, name: str, ev: _Dev) -> _Dev:
         """``ev`` (the last sound evidence on ``name``) with the deviation and standard
@@ -561,9 +577,10 @@ class Diagnoser:
         if (self.pool_windows < POOL_MIN or ev is not self._last.get(name)
                 or self._alias_signs):
             return ev
+        onset = self._onset_of(name)
         pool = [d for d in self._pool.get(name, ())
                 if d.full and health.window - d.window < self.pool_windows
-                and (self._onset is None or d.t_end > self._onset)]
+                and (onset is None or d.t_end > onset)]
         if len(pool) < POOL_MIN:
             return ev
         dev = np.array([d.dev for d in pool])
