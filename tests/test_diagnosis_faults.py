@@ -782,3 +782,46 @@ def test_a_load_inertia_the_windows_hold_is_read_across_windows_from_d_s_respons
         wrong = [(f.id, f.probability) for f in d.faults
                  if f.id != "load_inertia_change" and f.probability >= 0.8]
         assert not wrong, (h.window, wrong)
+
+
+def _trend(onset: float | None) -> Any:
+    """A flat trend whose change point is ``onset`` [s] (None: its model dates none)."""
+    from twinwatch.twin.health import TrendHealth
+
+    return TrendHealth.model_validate({
+        "model": "linear", "onset": onset, "since_t": onset, "evidence": 10, "level": None,
+        "level_std": None, "rate": None, "rate_low": None, "rate_high": None,
+        "rate_pct_per_h": None, "growth": None, "degrading": False, "model_weight": None,
+        "monotonicity": None, "trendability": None, "restarted": False, "restart": None,
+        "restarts": 0, "window_evidence": None})
+
+
+def test_another_parameter_s_later_change_point_leaves_this_one_s_evidence(
+        nominal_messages: list[HealthMessage]) -> None:
+    """Evidence on a parameter is read after its own trend's change point. On the PWM drive
+    (fault matrix, 2026-11-27) a winding -4 % was estimated -4.0 % in every window that
+    determined Ra, Ra's trend dated the change at 57 s and later dropped it; then J's trend,
+    drifting with the fusion, dated a change at 178 s, and every Ra estimate before it was set
+    aside: winding 0.81, then no fault 0.96. Here Ra -4 % +- 0.5 % (trend onset 20 s) in
+    windows 10-20, then held while J's trend dates a change at 50 s: the winding stays first;
+    a change point of Ra's own after its estimates (a repair) sets them aside."""
+    base = nominal_messages[-1]
+
+    def run(j_onset: float | None, ra_later: float | None) -> Any:
+        d = Diagnoser(shipped_library("dc_motor"))  # type: ignore[arg-type]
+        out = None
+        for w in range(10, 36):
+            h = _with(base, w, Ra=("estimated", -4.0, 0.5) if w <= 20 else ("held", -4.0, None))
+            trends = {"Ra": _trend(20.0)} if w <= 20 else {"Ra": _trend(ra_later),
+                                                           "J": _trend(j_onset)}
+            h = h.model_copy(update={"parameters": {
+                **h.parameters, **{n: h.parameters[n].model_copy(update={"trend": t})
+                                   for n, t in trends.items()}}})
+            out = d.update(h, None)
+        return out
+
+    kept = run(j_onset=50.0, ra_later=None)
+    assert kept.faults[0].id == "winding_short" and kept.faults[0].probability >= 0.8, kept
+    repaired = run(j_onset=None, ra_later=60.0)
+    assert repaired.faults[0].id != "winding_short" or repaired.faults[0].probability < 0.2, \
+        repaired.faults[0]
