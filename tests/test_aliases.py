@@ -242,7 +242,8 @@ def test_a_window_between_two_along_an_alias_is_not_the_library_s(
 def _library_through_la(drop: str | None = None) -> Any:
     """The default motor's library with La standing for the PWM drive's Coulomb torque Tc
     (fixed in that twin): dry friction raises it and, while it is held, shows as D up and Ke
-    down (its ``when_held`` signs, as in dc_motor_pwm.toml); without the fault ``drop``."""
+    down (its ``when_held`` signs, and its coulomb term's absence saying little, as in
+    dc_motor_pwm.toml); without the fault ``drop``."""
     from twinwatch.twin.diagnosis.library import FaultLibrary
 
     data = _library_without_la().model_dump()
@@ -255,6 +256,9 @@ def _library_through_la(drop: str | None = None) -> Any:
                  "when_held": ["La"]},
                 {"parameter": "Ke", "direction": "down", "min_pct": 2.0, "link": 0.5,
                  "when_held": ["La"]}]
+            # as the drive's: at one speed a coulomb term's absence says little
+            f["terms"] = [{"kinds": ["coulomb"], "attach": ["d(omega)/dt"], "link": 0.9,
+                           "missing_link": 0.3}]
     return FaultLibrary.model_validate(data)
 
 
@@ -271,13 +275,15 @@ TWO_ALIAS = {"absorbed": 0.999, "effect": 2.9e-4,
 def test_a_fault_that_names_a_held_parameter_explains_the_estimates_along_its_alias(
         messages: list[HealthMessage]) -> None:
     """Ra, Ke, J and D moving as a rise of the held Tc moves them are dry friction's, which
-    names Tc: without the alias its signature explains D and Ke only, and others take Ra and
-    J (here a sagging supply 0.75; on the PWM drive a current sensor reading low, 0.92,
-    beside the friction); along it, dry friction first and every other fault below 0.5,
-    with the sentence left out of the unknown's lines."""
+    names Tc: without the alias its signature explains D and Ke only, and another fault
+    takes Ra and J (a current sensor reading low, 0.79 here, 0.92 on the PWM drive, beside
+    the friction); along it, Tc's change is read from the estimates (+155 % here) and each
+    estimate net of it, dry friction first and every other fault below 0.5, with the
+    sentence left out of the unknown's lines."""
     lib = _library_through_la()
     without = _diagnose_each(messages, [FRICTION] * 6, None, lib)
-    assert without.top != "dry_friction", without.faults
+    assert any(f.probability >= 0.5 for f in without.faults if f.id != "dry_friction"), \
+        without.faults   # a current sensor reading low took Ra and J beside it (0.79)
     out = _diagnose_each(messages, [FRICTION] * 6, TC_ALIAS, lib)
     assert out.top == "dry_friction" and out.probability >= 0.5, out
     assert all(f.probability < 0.5 for f in out.faults if f.id != "dry_friction"), out.faults
@@ -293,5 +299,49 @@ def test_estimates_the_alias_moves_must_have_moved_for_a_library_fault(
     lib = _library_through_la(drop="supply_sag")  # (on this library it takes Ra, D up)
     out = _diagnose_each(messages, [two] * 6, TWO_ALIAS, lib)
     friction = next((f.probability for f in out.faults if f.id == "dry_friction"), 0.0)
-    assert friction < 0.1, out.faults   # 0.63 when the pattern alone decided
+    # 0.63 when the pattern alone decided; 0.12 on this library, whose coulomb term's
+    # absence says little (as the drive's)
+    assert friction < 0.2, out.faults
     assert {f.id for f in out.faults[:2]} == {"bearing_wear", "brushes_connections"}
+
+
+def test_a_fixed_parameter_s_change_read_along_its_alias_is_kept_for_the_next_windows(
+        messages: list[HealthMessage]) -> None:
+    """The read of a fixed parameter a fault names is its evidence in the windows after it
+    too, while they estimate fewer parameters and its pattern cannot be fitted there (the PWM
+    drive's Coulomb torque +150 % without noise: Tc read +141 to +173 % in the windows that
+    estimated Ra, Ke, J and D; in those between, D +18 to +27 % alone read as worn bearings
+    0.6-0.7, and the case ended on them at 0.59). Here six windows along Tc's alias, then four
+    whose estimates only D moved in (+20 %, its alias there moving D alone): dry friction
+    stays first, worn bearings below 0.5; with the read forgotten (a new diagnoser on the last
+    four windows, or the read kept for its own window only) worn bearings lead."""
+    lib = _library_through_la()
+    tail = {"Ra": (0.5, 2.0), "Ke": (-0.3, 1.0), "J": (0.0, 3.0), "D": (20.0, 1.0)}
+
+    def run(windows: list[tuple[dict[str, tuple[float, float]], dict[str, Any] | None]]) -> Any:
+        d = Diagnoser(lib)
+        out = None
+        for h, (pattern, alias) in zip(messages[-len(windows):], windows, strict=True):
+            params = dict(h.parameters)
+            for name, (dev, sd) in pattern.items():
+                p = params[name]
+                params[name] = p.model_copy(update={
+                    "value": p.nominal * (1 + dev / 100), "deviation_pct": dev,
+                    "status": "estimated", "rel_std_pct": sd})
+            params["Kt"] = params["Kt"].model_copy(update={"value": params["Ke"].value})
+            params["La"] = params["La"].model_copy(update={"status": "fixed",
+                                                           "rel_std_pct": None})
+            update: dict[str, Any] = {"parameters": params}
+            if alias is not None:
+                update["aliases"] = {"La": AliasHealth.model_validate(alias)}
+            out = d.update(h.model_copy(update=update), None)
+        return out
+
+    held_d = {"absorbed": 0.997, "effect": 2e-4,
+              "moves": {"Ra": 0.0, "Ke": -0.002, "J": 0.0, "D": 0.11}}
+    kept = run([(FRICTION, TC_ALIAS)] * 6 + [(tail, held_d)] * 4)
+    assert kept.top == "dry_friction", kept.faults
+    bearing = next((f.probability for f in kept.faults if f.id == "bearing_wear"), 0.0)
+    assert bearing < 0.5, kept.faults
+    alone = run([(tail, held_d)] * 4)
+    assert alone.top == "bearing_wear", alone.faults
