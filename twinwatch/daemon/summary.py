@@ -126,7 +126,8 @@ def plant_moment(t: float) -> str:
 def window_lines(last: HealthMessage) -> list[str]:
     """The last window and each parameter: value, deviation, status."""
     width = max([3, *(len(n) for n in last.parameters)])
-    reads = last.diagnosis.read_across if last.diagnosis is not None else {}
+    diagnosis = getattr(last, "diagnosis", None)  # a message of an older schema has none
+    reads = (getattr(diagnosis, "read_across", None) or {}) if diagnosis is not None else {}
     return [f"last window {last.window} [{plant_span(last.t_start, last.t_end)}], "
             f"nRMSE {last.nrmse or float('nan'):.2e}, estimated in "
             f"{last.elapsed_s * 1e3:.0f} ms:",
