@@ -994,20 +994,9 @@ class Diagnoser:
             out[p] = (ev, sd_c)
             self._across_fit[p] = (c, sd_c, own.get(p, {}))
             self._across_windows[p] = n
-            if abs(c) < ACROSS_Z * sd_c:
-                continue
-            for e, a in own.get(p, {}).items():
-                got = out.get(e)
-                if got is None or got[0].window != health.window or e == p:
-                    continue
-                e_ev, e_sd = got
-                moved = a * c
-                sd = math.sqrt(e_sd ** 2 + (a * sd_c) ** 2)
-                out[e] = (dataclasses.replace(
-                    e_ev, dev=e_ev.dev - moved, sd=sd,
-                    value=e_ev.nominal * (1.0 + (e_ev.dev - moved) / 100.0),
-                    across=f"net of {p}'s {c:+.1f} % read across windows ({moved:+.2f} % of "
-                           f"its {e_ev.dev:+.2f} %)"), sd)
+            if abs(c) >= ACROSS_Z * sd_c:
+                self._net_of(out, p, ev, own.get(p, {}), how="read across windows",
+                             spend=False)
         return out
 
     def _fixed_alias_evidence(self, health: HealthMessage,
@@ -1045,14 +1034,18 @@ class Diagnoser:
                 del self._fixed_read[p]
                 continue
             out[p] = (ev, ev.sd)
-            self._net_of(out, p, ev, moves)
+            self._net_of(out, p, ev, moves, how="read along its alias", spend=True)
         return out
 
     def _net_of(self, out: dict[str, tuple[_Dev, float]], p: str, read: _Dev,
-                moves: Mapping[str, float]) -> None:
+                moves: Mapping[str, float], *, how: str, spend: bool) -> None:
         """Each estimate in ``out`` whose evidence is from the window ``p``'s change was
-        ``read`` in, read net of it along its alias there ``moves`` (estimate -> % per %),
-        in place; the alias signs on them are spent."""
+        ``read`` in (its deviation and standard error [%]), read net of it along its alias
+        there ``moves`` (estimate -> % per % of ``p``), in place: ``x_e - a_e c``, its
+        variance grown by ``(a_e sd_c)^2``; ``how`` the read was made, for a person.
+        ``spend``: the estimate counts as if its window had estimated ``p``, its
+        ``when_held`` signs on ``p`` and its alias signs spent on the read (a fixed
+        parameter's read along its alias, which is those signs' evidence)."""
         c, sd_c = read.dev, read.sd
         for e, a in moves.items():
             got = out.get(e)
@@ -1061,15 +1054,14 @@ class Diagnoser:
             e_ev, e_sd = got
             moved = a * c
             sd = math.sqrt(e_sd ** 2 + (a * sd_c) ** 2)
-            # ... as if its window had estimated p: the signs that stand for p's effect on
-            # it while p is held (``when_held``) are spent on the read
             out[e] = (dataclasses.replace(
                 e_ev, dev=e_ev.dev - moved, sd=sd,
                 value=e_ev.nominal * (1.0 + (e_ev.dev - moved) / 100.0),
-                estimated=e_ev.estimated | {p},
-                across=f"net of {p}'s {c:+.1f} % read along its alias ({moved:+.2f} % of "
-                       f"its {e_ev.dev:+.2f} %)"), sd)
-            self._alias_signs.pop(e, None)
+                estimated=e_ev.estimated | {p} if spend else e_ev.estimated,
+                across=f"net of {p}'s {c:+.1f} % {how} ({moved:+.2f} % of its "
+                       f"{e_ev.dev:+.2f} %)"), sd)
+            if spend:
+                self._alias_signs.pop(e, None)
 
     def _read_aliases(self, health: HealthMessage,
                       evs: dict[str, tuple[_Dev, float]]) -> None:
