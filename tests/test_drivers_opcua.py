@@ -221,6 +221,29 @@ def test_a_bad_status_is_a_missing_sample_counted_per_channel_and_an_overflow_co
         assert d.stats.extra["overflows"] == 1 and got[slots.index(7)].values["Va"] == 7.0
 
 
+def test_samples_missing_with_a_bad_status_are_held_over_by_the_daemons_ring_buffer():
+    """Issue 56: two samples whose ia is Bad (a device's read failing now and then) are
+    missing; with the daemon's default limits the window keeps its other samples, the two
+    slots holding the previous sample's values, instead of being abandoned."""
+    from twinwatch.config.schema import AcquisitionConfig
+    from twinwatch.daemon.ringbuffer import RingBuffer
+
+    acq = AcquisitionConfig()
+    ring = RingBuffer(("Va", "ia"), window=20, sample_period=PERIOD,
+                      max_missing=acq.max_missing, max_missing_run=acq.max_missing_run)
+    with _server() as srv, OpcUaDriver(_config(srv), time_origin=BASE) as d:
+        for k in range(1, 21):
+            status = {"ia": 0x80000000} if k in (8, 9) else None
+            srv.write(k, {"Va": 1.0 * k, "ia": 2.0 * k}, base=BASE, status=status)
+        got = _read_all(d, 19)
+        assert d.stats.gaps == 2
+    wins = [w for s in got if (w := ring.append(s.t, s.values)) is not None]
+    assert len(wins) == 1 and sum(ring.causes.values()) == 0 and ring.missing == 2
+    va = wins[0]["Va"]
+    assert list(va[7:11]) == [7.0, 7.0, 7.0, 10.0] and list(wins[0]["ia"][7:11]) == [
+        14.0, 14.0, 14.0, 20.0]
+
+
 def test_a_channel_that_stops_is_named_silent_and_its_samples_counted_missing():
     with _server() as srv, OpcUaDriver(_config(srv), time_origin=BASE) as d:
         for k in range(1, 6):

@@ -76,7 +76,9 @@ class Acquisition:
         self.ring = RingBuffer(model.required_channels(), window=acq.window,
                                sample_period=acq.sample_period,
                                jitter_tolerance=acq.jitter_tolerance,
-                               capacity=4 * max(longest, acq.window))
+                               capacity=4 * max(longest, acq.window),
+                               max_missing=acq.max_missing,
+                               max_missing_run=acq.max_missing_run)
         self.driver: Driver | None = None
         self._own_driver = own_driver
         self.phase = 0
