@@ -192,6 +192,54 @@ def test_the_right_node_id_hears_no_such_line(cell, caplog):
     assert "not heard" not in caplog.text and driver.silent == ()
 
 
+def test_a_silent_bus_is_one_error_line_however_often_it_is_reopened(cell, caplog):
+    """Issue 56: the bus goes silent under a running acquisition: the source keeper says it
+    once at ERROR; opened again (a virtual interface always opens) and silent again, it is
+    the same outage, until a sample comes (before: an ERROR and a WARNING every reopen, and
+    the acquisition loop's generic ERROR besides). The stall line is INFO, naming it."""
+    import logging
+    import threading
+    import time
+
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.acquisition import Acquisition
+    from twinwatch.daemon.source import open_source
+    from twinwatch.twin.models import create_model
+
+    caplog.set_level(logging.INFO)
+    cfg = default_config()
+    cfg.acquisition.stall_timeout = 0.5
+    dcfg = CanopenDriverConfig.model_validate(_config(cell.channel, reopen_after=0.3))
+    keeper = open_source(dcfg, base_dir=Path("."), wait=True, backoff_max=0.2)
+    acq = Acquisition(cfg, create_model(cfg.machine.model, {}), own_driver=False)
+    acq.open(keeper, base_dir=Path("."), wait=False)
+    runner = threading.Thread(target=acq.run, args=(None, lambda w, b: None, lambda n: None))
+    runner.start()
+
+    def until(what: Any) -> None:
+        deadline = time.monotonic() + 30
+        while not what() and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    try:
+        for _ in range(20):
+            cell.cycle()
+        until(lambda: keeper.stats.extra.get("reopens", 0) >= 3  # silent after each reopen
+              and "no sample from" in caplog.text)
+        for _ in range(50):
+            cell.cycle()
+        until(lambda: "is open again" in caplog.text)
+    finally:
+        acq.stop()
+        runner.join(10)
+        keeper.close()
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "is not available (no CAN frame for" in errors[0], errors
+    assert sum("is open again" in r.getMessage() for r in caplog.records) == 1
+    stall = [r for r in caplog.records if r.getMessage().startswith("no sample from")]
+    assert len(stall) == 1 and stall[0].levelno == logging.INFO
+
+
 def test_frames_of_other_nodes_are_ignored_and_a_truncated_pdo_is_counted(cell):
     # a bus handed in (no receive filter: a live bus opened by the driver filters in the
     # interface, where python-can can): every frame reaches the driver

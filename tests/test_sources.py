@@ -9,6 +9,7 @@ reader's resume.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -381,3 +382,62 @@ def test_backoff_is_capped_and_jittered():
     assert len(delays) == 3, delays
     assert 0.2 <= delays[0] <= 0.5 and 0.5 <= max(delays) <= 1.0
     assert 3 <= flaky.attempts <= 1 + watch / 0.5
+
+
+# -- one ERROR per outage (issue 56) -------------------------------------------------------------
+@pytest.mark.parametrize(("state", "errors", "words"), [
+    ("waiting", [], "OPC UA server x away for 3 s"),
+    ("silent", ["silent: TPDO1 (omega) for 1.2 s"], ""),
+    ("nothing", ["check the device, cable and bus configuration"], "")])
+def test_a_stall_is_said_once_at_error_asking_the_driver_first(caplog, state, errors, words):
+    """The acquisition's stall line asks the driver what it said: a driver that waits for its
+    source said so at ERROR (the stall is INFO: one ERROR per outage); the parts it named
+    silent (at WARNING) are named in the one ERROR; else the generic advice."""
+    import logging
+    import time as _time
+
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.acquisition import Acquisition
+    from twinwatch.drivers.base import Driver, EndOfStream, Sample
+    from twinwatch.twin.models import create_model
+
+    class Stalls(Driver):
+        channels = ("a",)
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.reads = 0
+
+        @classmethod
+        def from_config(cls, config, *, base_dir=None):  # type: ignore[no-untyped-def]
+            raise NotImplementedError
+
+        @property
+        def waiting(self) -> str | None:
+            return "OPC UA server x away for 3 s" if state == "waiting" and self.reads > 3 \
+                else None
+
+        @property
+        def silent(self) -> tuple[str, ...]:
+            return ("TPDO1 (omega) for 1.2 s",) if state == "silent" and self.reads > 3 else ()
+
+        def _read_internal(self, timeout):  # type: ignore[no-untyped-def]
+            self.reads += 1
+            if self.reads <= 3:
+                return Sample(0.01 * self.reads, {"a": 1.0})
+            if self.reads > 12:  # 8 empty reads of 50 ms: beyond the 0.1 s stall_timeout
+                raise EndOfStream("done")
+            _time.sleep(0.05)
+            return None
+
+    cfg = default_config()
+    cfg.acquisition.stall_timeout = 0.1
+    acq = Acquisition(cfg, create_model(cfg.machine.model, {}), own_driver=False)
+    acq.open(Stalls(), base_dir=Path("."), wait=False)
+    caplog.set_level(logging.INFO, logger="twinwatch.daemon.runner")
+    acq.run(None, lambda w, b: None, lambda n: None)
+    stall = [r for r in caplog.records if r.getMessage().startswith("no sample from")]
+    assert len(stall) == 1, [r.getMessage() for r in caplog.records]
+    said = [r.getMessage() for r in stall if r.levelno >= logging.ERROR]
+    assert len(said) == len(errors) and all(e in m for e, m in zip(errors, said, strict=True))
+    assert words in stall[0].getMessage()
