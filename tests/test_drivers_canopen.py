@@ -523,7 +523,8 @@ def test_two_percent_of_the_frames_lost_every_window_is_estimated():
 @pytest.mark.slow
 def test_simulated_drive_ra_within_0p2_percent_after_160_s():
     """The issue's done-when: the example's run (1200 s, Ra degrading from 160 s) over the
-    CANopen path: Ra within 0.2 % of the plant in every window after 160 s, as the DBC path."""
+    CANopen path: Ra within 0.2 % of the plant in every window after 160 s, as the DBC path;
+    no RUL level raised and cleared (issue 56)."""
     from twinwatch.daemon.runner import Daemon
 
     cfg = _sim_config(1200.0)
@@ -533,6 +534,12 @@ def test_simulated_drive_ra_within_0p2_percent_after_160_s():
         hist = list(daemon.history)
         stats = driver.stats.as_dict()
     assert len(hist) == 600 and stats["gaps"] == 0 and stats["bad_frames"] == 0, stats
+    # issue 56: no RUL level that clears (Ra only degrades): before, a RUL ALARM "79 s
+    # (49-752 s)" at 180 s, cleared 40 s later
+    rank = {"normal": 0, "warning": 1, "alarm": 2}
+    levels = [(h["t_end"], rank[h["alarms"]["Ra"]["rul"]["level"]]) for h in hist]
+    assert all(b >= a for (_, a), (_, b) in zip(levels, levels[1:], strict=False)), [
+        (t, lv) for (t, lv), (_, prev) in zip(levels[1:], levels, strict=False) if lv < prev]
     err = _ra_errors(driver.drive.plant, hist, since=160.0)
     print(f"\nover CANopen: Ra error after 160 s over {len(err)} windows: median "
           f"{np.median(np.abs(err)):.4f} %, max {np.max(np.abs(err)):.4f} %")
