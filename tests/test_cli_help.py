@@ -18,7 +18,8 @@ import pytest
 from twinwatch.cli import main
 
 #: ``twinwatch <command> [<subcommand>] --opt ...``: options named with their command
-QUALIFIED = re.compile(r"twinwatch((?: [a-z][a-z-]*)+)((?:\s+--[a-z][a-z0-9-]*(?:[ =][^\s`-][^\s`]*)?)+)")
+QUALIFIED = re.compile(r"twinwatch((?: [a-z][a-z-]*)+)"
+                       r"((?:\s+--[a-z][a-z0-9-]*(?:[ =][^\s`-][^\s`]*)?)+)")
 OPTION = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*")
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
-from tests.conftest import ROOT
+from .helpers.paths import ROOT
 
 sys.path.insert(0, str(ROOT / "scripts"))
 import gen_cli_reference  # noqa: E402
