@@ -219,8 +219,6 @@ class SocketcandServer:
         self.port = port
         self.channel = channel
         self.mute: set[int] = set()
-        self.frames_sent = 0
-        self.connections = 0
         self._seconds, self._seed, self._plant = seconds, seed, plant
         self._lock = threading.Lock()
         self._clients: list[Any] = []
@@ -309,7 +307,6 @@ class SocketcandServer:
                 conn.close()
                 return
             self._clients.append(conn)
-            self.connections += 1
 
     def _stream(self) -> None:
         import time
@@ -332,7 +329,6 @@ class SocketcandServer:
             for c in clients:
                 try:
                     c.sendall(line.encode("ascii"))
-                    self.frames_sent += 1
                 except OSError:
                     with self._lock:
                         if c in self._clients:
