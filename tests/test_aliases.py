@@ -20,7 +20,7 @@ from twinwatch.twin.estimation.estimator import EstimationConfig
 from twinwatch.twin.health import AliasHealth, HealthMessage
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-from .conftest import plant_windows
+from .helpers.plant import plant_windows
 
 QUIET = {"ia": 0.0, "omega": 0.0, "Va": 0.0}
 

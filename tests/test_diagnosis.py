@@ -470,7 +470,7 @@ def test_explain_live_over_zenoh_from_a_running_daemon(tmp_path: Path) -> None:
 
     from twinwatch.cli import main
 
-    from .test_zenoh_publisher import endpoint, free_port
+    from .helpers.net import endpoint, free_port
 
     port = free_port()
     cfg = default_config()

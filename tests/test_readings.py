@@ -17,7 +17,7 @@ from twinwatch.twin.estimation.estimator import EstimationConfig
 from twinwatch.twin.estimation.readings import ReadingCheck
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-from .conftest import plant_windows
+from .helpers.plant import plant_windows
 
 NOISE = {"ia": 1.0, "omega": 1.0, "Va": 1.0}
 
@@ -124,7 +124,7 @@ def test_the_daemon_tests_the_readings_its_fault_library_names() -> None:
     from twinwatch.config.loader import default_config, load_config
     from twinwatch.daemon.window_worker import reading_outputs
 
-    from .conftest import ROOT
+    from .helpers.paths import ROOT
 
     cfg = default_config()
     assert reading_outputs(cfg) == ("ia",)
