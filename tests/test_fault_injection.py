@@ -1787,7 +1787,7 @@ def _can_counter_duplicate_and_reorder(ctx: Context) -> dict[str, Any]:
       reads_per_line_at_most_1_01=True)
 def _asc_log_bad_lines_linear(ctx: Context) -> dict[str, Any]:
     from harness.sources import plant_asc_log
-    from twinwatch.drivers import can as can_driver
+    from twinwatch.drivers import canbus as can_driver
 
     log = ctx.tmp / "m.asc"
     n_lines = plant_asc_log(log, 60.0, bad=300)

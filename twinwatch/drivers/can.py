@@ -51,33 +51,27 @@ from __future__ import annotations
 import difflib
 import logging
 import math
-import socket
-import time
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, ClassVar, Literal
 
 import can
 import cantools
 import cantools.database
-from can.io.generic import TextIOMessageReader
 from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 from cantools.database.errors import DecodeError
 from cantools.database.errors import Error as CantoolsError
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
-from twinwatch.drivers.base import (
-    Driver,
-    DriverConfig,
-    DriverConfigError,
-    DriverInitializationError,
-    DriverOperationError,
-    EndOfStream,
-    Sample,
-    ScaledChannel,
-    validated_config,
+from twinwatch.drivers.base import DriverConfig, DriverConfigError, Sample, ScaledChannel
+from twinwatch.drivers.canbus import (
+    BusDriver,
+    BusDriverConfig,
+    BusSource,
+    LogSource,
+    gateway_address,
 )
 from twinwatch.io.counter import SampleCounter
 
@@ -86,11 +80,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["CanDriver", "CanDriverConfig", "CanSignalMap"]
 
 _TIME_SIGNAL_PREFIX = "signal:"
-#: frames read(timeout) still processes, without waiting, once its timeout has run out
-_MAX_OVERTIME_FRAMES = 1000
-#: share of a receive's wall time spent on the processor beyond which a bus that returned no
-#: frame counts as spinning on a closed connection
-_SPIN_CPU = 0.3
 
 
 def _split_signal_ref(ref: str) -> tuple[str, str]:
@@ -112,7 +101,7 @@ class CanSignalMap(ScaledChannel):
     signal: str = Field(min_length=1)
 
 
-class CanDriverConfig(DriverConfig):
+class CanDriverConfig(BusDriverConfig):
     """Configuration of :class:`CanDriver` (the ``[driver]`` table with ``type = "can"``).
 
     Attributes:
@@ -126,8 +115,8 @@ class CanDriverConfig(DriverConfig):
             resolved against the configuration file's directory (``base_dir``).
         log_file: replay this log (any suffix :func:`can.LogReader` knows) instead of a live
             bus; relative to ``base_dir`` like ``dbc`` (either may be ``twinwatch:<path>``, a
-            file shipped in the package: :data:`PACKAGE_PREFIX`). The end of the log raises
-            :class:`~twinwatch.drivers.base.EndOfStream`.
+            file shipped in the package: :data:`~twinwatch.drivers.canbus.PACKAGE_PREFIX`). The
+            end of the log raises :class:`~twinwatch.drivers.base.EndOfStream`.
         realtime: for ``log_file`` only: pace the replay by the log's time stamps (as
             :class:`can.MessageSync` does); False replays as fast as the caller reads.
         sync_message: DBC message whose arrival emits one sample.
@@ -151,35 +140,14 @@ class CanDriverConfig(DriverConfig):
     """
 
     model_config = ConfigDict(extra="forbid")
+    description_key: ClassVar[str] = "dbc"
 
     type: Literal["can"]
-    interface: str | None = None
-    channel: str | StrictInt | None = None
-    bitrate: StrictInt | None = Field(default=None, gt=0)
-    bus_options: dict[str, str | int | float | bool] = Field(default_factory=dict)
     dbc: Path
-    log_file: Path | None = None
-    realtime: bool = False
     sync_message: str = Field(min_length=1)
     time_source: str = "frame"
     counter_signal: str | None = None
-    sample_period: StrictFloat = Field(gt=0, allow_inf_nan=False)
     signals: dict[str, CanSignalMap] = Field(min_length=1)
-    reopen_after: StrictFloat | None = Field(2.0, gt=0, allow_inf_nan=False)
-    silent_after: StrictFloat = Field(1.0, gt=0, allow_inf_nan=False)
-
-    @field_validator("interface")
-    @classmethod
-    def _known_interface(cls, value: str | None) -> str | None:
-        if value is not None and value not in can.interfaces.VALID_INTERFACES:
-            close = difflib.get_close_matches(value, sorted(can.interfaces.VALID_INTERFACES), 1)
-            hint = (
-                f"did you mean {close[0]!r}?"
-                if close
-                else "known: " + ", ".join(sorted(can.interfaces.VALID_INTERFACES))
-            )
-            raise ValueError(f"python-can has no interface {value!r}; {hint}")
-        return value
 
     @field_validator("counter_signal")
     @classmethod
@@ -208,41 +176,6 @@ class CanDriverConfig(DriverConfig):
         """The twin channels this driver delivers (``signals``)."""
         return tuple(self.signals)
 
-    def required_files(self, base_dir: Path) -> dict[str, Path]:
-        """Config key -> file that must exist to start (``dbc``, ``log_file``)."""
-        cfg = self.resolved(base_dir)
-        files = {"driver.dbc": cfg.dbc}
-        if cfg.log_file is not None:
-            files["driver.log_file"] = cfg.log_file
-        return files
-
-    def resolved(self, base_dir: Path | None) -> CanDriverConfig:
-        """Return a copy whose relative ``dbc`` and ``log_file`` are joined to ``base_dir``."""
-        if base_dir is None:
-            return self
-        update: dict[str, Path] = {"dbc": _resolve(self.dbc, base_dir)}
-        if self.log_file is not None:
-            update["log_file"] = _resolve(self.log_file, base_dir)
-        return self.model_copy(update=update)
-
-
-PACKAGE_PREFIX = "twinwatch:"
-"""A ``dbc`` or ``log_file`` written ``twinwatch:plant/odrive-axis0.log.gz`` is a file shipped
-inside the installed twinwatch package (``twinwatch/plant/...``): found wherever the
-configuration file is copied (a gateway's directory, /etc/twinwatch), unlike a path relative
-to the file."""
-
-
-def _resolve(path: Path, base_dir: Path) -> Path:
-    """``path`` as the driver opens it: a file of the package (:data:`PACKAGE_PREFIX`), or
-    ``~`` expanded and a relative path joined to ``base_dir`` (the config file's directory)."""
-    text = str(path)
-    if text.startswith(PACKAGE_PREFIX):
-        import twinwatch
-
-        return Path(twinwatch.__file__).resolve().parent / text[len(PACKAGE_PREFIX):]
-    path = path.expanduser()
-    return path if path.is_absolute() else Path(base_dir) / path
 
 
 # -- decoding plan ------------------------------------------------------------------------
@@ -296,231 +229,10 @@ def _find_signal(db: Database, key: str, message_name: str, signal_name: str | N
     return message
 
 
-# -- frame sources ------------------------------------------------------------------------
-
-
-class _FrameSource(Protocol):
-    def recv(self, timeout: float | None) -> can.Message | None: ...
-
-    def close(self) -> None: ...
-
-
-class _BusSource:
-    def __init__(self, bus: can.BusABC, *, owned: bool) -> None:
-        self.bus = bus
-        self.owned = owned
-
-    def recv(self, timeout: float | None) -> can.Message | None:
-        start, cpu = time.monotonic(), time.thread_time()
-        try:
-            frame = self.bus.recv(timeout)
-        except (can.CanError, OSError) as exc:
-            raise DriverOperationError(
-                f"CAN receive failed on {self.bus.channel_info}: {exc}"
-            ) from exc
-        if frame is None and timeout and self.owned:
-            # A bus whose connection is closed may spin instead of waiting (python-can's
-            # socketcand bus reads an empty string from the closed socket in a loop until the
-            # timeout: a full core): a wait that burnt the processor is given up.
-            wall = time.monotonic() - start
-            if wall >= 0.04 and time.thread_time() - cpu > _SPIN_CPU * wall:
-                raise DriverOperationError(
-                    f"the CAN interface {self.bus.channel_info} returns no frame without "
-                    f"waiting (its connection is closed)")
-        return frame
-
-    def close(self) -> None:
-        if self.owned:
-            self.bus.shutdown()
-
-
-class _Lines:
-    """The lines of a text log, as the file object a python-can text reader iterates,
-    counting the lines handed out (``lineno``, 1-based)."""
-
-    def __init__(self, path: Path) -> None:
-        self._file = path.open(encoding="utf-8", errors="replace", newline=None)
-        self.lineno = 0
-        self._front: list[str] = []
-
-    def __iter__(self) -> _Lines:
-        return self
-
-    def push_front(self, line: str) -> None:
-        """Hand out ``line`` next (not counted as a line of the file)."""
-        self._front.append(line)
-
-    def __next__(self) -> str:
-        if self._front:
-            return self._front.pop()
-        line = next(self._file)
-        self.lineno += 1
-        return line
-
-    def readline(self) -> str:
-        try:
-            return next(self)
-        except StopIteration:
-            return ""
-
-    def close(self) -> None:
-        self._file.close()
-
-
-#: a text log with more malformed lines than this is refused as not a CAN log at all
-_MAX_BAD_LINES = 1000
-
-
-class _LogSource:
-    """Frames of a log file, optionally paced by their time stamps (see can.MessageSync).
-
-    The pacing is done here rather than with :class:`can.MessageSync` because MessageSync
-    sleeps inside its iterator and so cannot honour ``read(timeout)``.
-
-    A malformed line of a text log (candump ``.log``, ``.asc``, ``.csv``, ``.trc``) is skipped
-    and reported through ``on_bad(line, error)``: python-can's readers are generators that end
-    at the first parse error, so a new reader takes over at the next line with the old one's
-    state (:meth:`_resume`: O(1) per bad line; re-reading from the top made 300 bad lines in
-    18,000 cost a quadratic re-read). A binary log (``.blf``, ``.mf4``) cannot be resumed
-    after a corrupt block: the error ends the replay with one clear line.
-    """
-
-    def __init__(self, path: Path, *, realtime: bool,
-                 on_bad: Callable[[int, BaseException], None] | None = None) -> None:
-        self.path = path
-        self.realtime = realtime
-        self._on_bad = on_bad
-        try:
-            self._reader = can.LogReader(path)
-        except (OSError, ValueError, ImportError) as exc:
-            raise DriverConfigError(f"log_file: cannot read {str(path)!r}: {exc}") from exc
-        self._lines: _Lines | None = None
-        self._bad_lines = 0
-        if isinstance(self._reader, TextIOMessageReader) and path.suffix.lower() != ".gz":
-            self._reader.stop()
-            self._text_reader: type[TextIOMessageReader] | None = type(self._reader)
-            self._lines = _Lines(self.path)
-            # _Lines reads as a text file does (python-can's readers ask a TextIO)
-            self._reader = self._text_reader(file=self._lines)  # type: ignore[arg-type]
-        else:
-            self._text_reader = None
-        self._frames: Iterator[can.Message] = iter(self._reader)
-        self._delivered = 0
-        self._pending: can.Message | None = None
-        self._origin: tuple[float, float] | None = None  # (wall clock, log time) of 1st frame
-
-    def _resume(self) -> None:
-        """Go on reading after a malformed line, at the next line, in O(1): a new reader of
-        the same class takes over the old one's state (the header it parsed: an ASC file's
-        number base and start time, a TRC file's version and columns) and reads on from the
-        current line without parsing a header again (a CSV log's header line is given to it
-        as a placeholder it skips)."""
-        assert self._lines is not None and self._text_reader is not None
-        old = self._reader
-        new = object.__new__(type(old))
-        new.__dict__.update(old.__dict__)
-        new.file = self._lines  # type: ignore[attr-defined]
-        if hasattr(new, "_extract_header"):  # ASC, TRC: the header is in the state copied
-            new._extract_header = lambda: None
-        if isinstance(old, can.CSVReader):  # its __iter__ skips one header line first
-            self._lines.push_front("header\n")
-        self._reader = new
-        self._frames = iter(new)
-
-    def _next_frame(self) -> can.Message:
-        while True:
-            try:
-                frame = next(self._frames)
-            except StopIteration:
-                raise EndOfStream(f"end of CAN log {str(self.path)!r}") from None
-            except (ValueError, IndexError, KeyError, TypeError, OSError, EOFError,
-                    can.CanError) as exc:
-                if self._lines is None or self._text_reader is None:
-                    raise DriverOperationError(
-                        f"CAN log {str(self.path)!r} is corrupt after frame {self._delivered} "
-                        f"({type(exc).__name__}: {exc}); the rest of it cannot be read"
-                    ) from exc
-                bad = self._lines.lineno
-                self._bad_lines += 1
-                if self._bad_lines > _MAX_BAD_LINES:
-                    raise DriverOperationError(
-                        f"CAN log {str(self.path)!r}: more than {_MAX_BAD_LINES} malformed "
-                        f"lines (the last at line {bad}): is it really a "
-                        f"{self.path.suffix} CAN log ({self._text_reader.__name__})?"
-                    ) from exc
-                if self._on_bad is not None:
-                    self._on_bad(bad, exc)
-                self._resume()
-                continue
-            self._delivered += 1
-            return frame
-
-    def recv(self, timeout: float | None) -> can.Message | None:
-        if self._pending is None:
-            self._pending = self._next_frame()
-        if self.realtime:
-            now = time.monotonic()
-            if self._origin is None:
-                self._origin = (now, self._pending.timestamp)
-            wait = self._origin[0] + (self._pending.timestamp - self._origin[1]) - now
-            if wait > 0:
-                if timeout is not None and wait > timeout:
-                    time.sleep(max(timeout, 0.0))
-                    return None
-                time.sleep(wait)
-        frame, self._pending = self._pending, None
-        return frame
-
-    def close(self) -> None:
-        self._reader.stop()
-        if self._lines is not None:
-            self._lines.close()
-
-
-def _gateway_address(config: CanDriverConfig) -> tuple[str, int] | None:
-    """(host, port) of a TCP gateway interface (python-can's ``socketcand``), else None."""
-    if config.interface != "socketcand":
-        return None
-    host, port = config.bus_options.get("host"), config.bus_options.get("port")
-    if not isinstance(host, str) or not isinstance(port, int) or isinstance(port, bool):
-        return None
-    return host, port
-
-
-def _reach_gateway(config: CanDriverConfig, timeout: float = 2.0) -> None:
-    """Fail at once, with one line, when a TCP gateway does not accept a connection: python-
-    can's socketcand bus would retry for 10 s in a loop without a pause, logging each attempt
-    (213,729 lines, a full core) before it fails.
-
-    Raises:
-        DriverInitializationError: the gateway refused or did not answer.
-    """
-    address = _gateway_address(config)
-    if address is None:
-        return
-    try:
-        with socket.create_connection(address, timeout=timeout):
-            pass
-    except OSError as exc:
-        raise DriverInitializationError(
-            f"cannot reach the {config.interface} gateway at {address[0]}:{address[1]} "
-            f"(channel {config.channel!r}): {exc}") from exc
-
-
-def _receive_only(bus: can.BusABC) -> bool:
-    """Put a bus in receive-only (listen-only, passive) mode where python-can's interface
-    allows it; True if it did. twinwatch never calls ``send`` either way."""
-    try:
-        bus.state = can.BusState.PASSIVE
-    except (NotImplementedError, can.CanError, OSError, AttributeError, ValueError):
-        return False
-    return True
-
-
 # -- the driver ---------------------------------------------------------------------------
 
 
-class CanDriver(Driver):
+class CanDriver(BusDriver):
     """Twin samples from DBC-decoded CAN frames (live bus or log replay); never transmits.
 
     Args:
@@ -544,36 +256,11 @@ class CanDriver(Driver):
     """
 
     config_class = CanDriverConfig
+    config: CanDriverConfig
+    bus_name = "CAN"
     sample_model = "dc_motor"
     sample_machine = "dc-motor-can"
     sample_title = "a DC motor drive on a CAN bus"
-
-    @classmethod
-    def safe_to_probe(cls, config: DriverConfig) -> bool:
-        """A log replay can be opened to check its DBC names and log file; a live bus not."""
-        return getattr(config, "log_file", None) is not None
-
-    @classmethod
-    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
-        """``check-config``: a log replay is opened (its DBC names, the log); a live interface
-        is opened receive-only where python-can's interface allows it, never sent on, and
-        closed: the DBC is checked and the interface said to be there or not.
-
-        Raises:
-            DriverError: the DBC, the log or the interface cannot be opened.
-        """
-        assert isinstance(config, CanDriverConfig)
-        with cls(config, base_dir=base_dir, listen_only=config.log_file is None) as driver:
-            if config.log_file is not None:
-                return f"log {str(driver.config.log_file)!r} opened"
-            mode = ("receive-only" if driver.receive_only else "this interface has no "
-                    "receive-only mode; twinwatch never sends")
-            return f"{cls.describe(config)} opened ({mode}), DBC {str(driver.config.dbc)!r}"
-
-    @classmethod
-    def reopens(cls, config: DriverConfig) -> bool:
-        """A live bus (no ``log_file``) may come and go: waited for and reopened."""
-        return getattr(config, "log_file", None) is None
 
     @classmethod
     def describe(cls, config: DriverConfig) -> str:
@@ -581,55 +268,22 @@ class CanDriver(Driver):
         assert isinstance(config, CanDriverConfig)
         if config.log_file is not None:
             return f"CAN log {str(config.log_file)!r}"
-        address = _gateway_address(config)
+        address = gateway_address(config)
         where = f" ({address[0]}:{address[1]})" if address else ""
         return f"CAN interface {config.interface!r} channel {config.channel!r}{where}"
 
     @classmethod
-    def time_starts_over(cls, config: DriverConfig) -> bool:
-        """A log replayed from its start is a new run; a live bus goes on."""
-        return getattr(config, "log_file", None) is not None
-
-    def __init__(
-        self,
-        config: CanDriverConfig,
-        *,
-        bus: can.BusABC | None = None,
-        base_dir: Path | None = None,
-        listen_only: bool = False,
-    ) -> None:
-        super().__init__()
-        self._source: _FrameSource | None = None
-        self._listen_only = listen_only
-        #: the bus was put in receive-only mode (``listen_only`` and the interface allows it)
-        self.receive_only = False
-        try:
-            self._setup(config.resolved(base_dir), bus)
-        except BaseException:
-            self.close()
-            raise
-
-    @classmethod
-    def from_config(
-        cls,
-        config: CanDriverConfig | Mapping[str, Any],
-        *,
-        base_dir: Path | None = None,
-        bus: can.BusABC | None = None,
-    ) -> CanDriver:
+    def from_config(cls, config: CanDriverConfig | Mapping[str, Any], *,
+                    base_dir: Path | None = None, bus: can.BusABC | None = None) -> CanDriver:
         """Build a driver from a validated config or a raw ``[driver]`` table.
 
         Raises:
             DriverInitializationError: the table does not validate, or see :class:`CanDriver`.
         """
-        config = validated_config(CanDriverConfig, config, "CAN")
-        return cls(config, bus=bus, base_dir=base_dir)
+        return super().from_config(config, base_dir=base_dir, bus=bus)
 
     # -- construction -----------------------------------------------------------------------
-    def _setup(self, config: CanDriverConfig, bus: can.BusABC | None) -> None:
-        self.config = config
-        self.channels = tuple(config.signals)
-        self.sample_period = config.sample_period
+    def _setup(self, config: CanDriverConfig) -> None:
         self.database = self._load_dbc(config.dbc)
         self._plans = self._make_plan(config, self.database)
         #: frames we decode, by (arbitration id, extended id flag)
@@ -641,27 +295,17 @@ class CanDriver(Driver):
         self._time_mode = (
             "signal" if config.time_source.startswith(_TIME_SIGNAL_PREFIX) else config.time_source
         )
-
-        # decoding state
-        self._latest: dict[str, float] = {}
         self._time_value: float | None = None
         counter_bits = self._counter_bits(config)
         self._counter = SampleCounter(None if counter_bits is None else 1 << counter_bits)
         self._skip_sync = False  # the counter said the sync's sample is a repeat or late
-
-        # silence: the last frame's wall time (a live bus that delivers nothing is given up
-        # after reopen_after) and each mapped message's last frame time (silent_after)
-        self._last_frame_wall = time.monotonic()
-        self._seen: dict[str, float] = {}
-        self._first_stamp: float | None = None
+        # each mapped message's channels, watched for silence (silent_after)
         self._message_channels: dict[str, list[str]] = {}
         for ch, m in config.signals.items():
             self._message_channels.setdefault(m.message, []).append(ch)
-        self._silent: tuple[str, ...] = ()
-        self._silent_logged: set[str] = set()
-        self._source = self._open_source(config, bus)
-        self._watch_silence = (isinstance(self._source, _BusSource) and self._source.owned
-                               and config.reopen_after is not None)
+
+    def _ready(self) -> None:
+        config = self.config
         logger.info(
             "CAN driver ready: %s, DBC %s, sync on %s, channels %s%s",
             self._describe_source(),
@@ -671,6 +315,9 @@ class CanDriver(Driver):
             "; replaying a log: for a live bus, set [driver] interface and channel (e.g. "
             "socketcan, can0) instead of log_file" if config.log_file is not None else "",
         )
+
+    def _probed(self, live: bool) -> str:
+        return f", DBC {str(self.config.dbc)!r}" if live else ""
 
     @staticmethod
     def _load_dbc(path: Path) -> Database:
@@ -715,141 +362,22 @@ class CanDriver(Driver):
             return None
         return int(signal.length)
 
-    def _open_source(self, config: CanDriverConfig, bus: can.BusABC | None) -> _FrameSource:
-        if bus is not None:
-            if config.log_file is not None:
-                raise DriverConfigError("log_file and a bus were both given; pick one")
-            return _BusSource(bus, owned=False)
-        if config.log_file is not None:
-            return _LogSource(config.log_file, realtime=config.realtime,
-                              on_bad=self._on_bad_line)
-        if config.interface is None or config.channel is None:
-            raise DriverConfigError(
-                "interface and channel are required for a live bus (or give log_file)"
-            )
-        kwargs: dict[str, Any] = dict(config.bus_options)
-        if config.bitrate is not None:
-            kwargs["bitrate"] = config.bitrate
-        # Only the frames we decode reach us (filtered in the kernel/adapter where possible).
-        kwargs.setdefault(
-            "can_filters",
-            [
-                {
-                    "can_id": frame_id,
-                    "can_mask": 0x1FFFFFFF if extended else 0x7FF,
-                    "extended": extended,
-                }
-                for frame_id, extended in self._by_id
-            ],
-        )
-        _reach_gateway(config)
-        try:
-            opened = can.Bus(interface=config.interface, channel=config.channel, **kwargs)
-        except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
-            raise DriverInitializationError(
-                f"cannot open CAN interface {config.interface!r} channel {config.channel!r}: {exc}"
-            ) from exc
-        if self._listen_only:
-            self.receive_only = _receive_only(opened)
-        return _BusSource(opened, owned=True)
+    def _can_filters(self) -> list[dict[str, Any]]:
+        return [{"can_id": frame_id, "can_mask": 0x1FFFFFFF if extended else 0x7FF,
+                 "extended": extended} for frame_id, extended in self._by_id]
 
     def _describe_source(self) -> str:
-        if isinstance(self._source, _LogSource):
+        if isinstance(self._source, LogSource):
             mode = "real time" if self._source.realtime else "as fast as possible"
             return f"log {str(self._source.path)!r} ({mode})"
-        if isinstance(self._source, _BusSource):
+        if isinstance(self._source, BusSource):
             owner = "own" if self._source.owned else "shared"
             return f"{owner} bus {self._source.bus.channel_info}"
         return "no source"
 
     # -- reading ----------------------------------------------------------------------------
-    def _read_internal(self, timeout: float | None) -> Sample | None:
-        source = self._source
-        if source is None:  # pragma: no cover - only after a failed construction
-            raise DriverOperationError("CAN driver has no frame source")
-        # Frames already received are processed even when the timeout has run out (so that
-        # read(0) returns a sample that is complete in the queue), but at most
-        # _MAX_OVERTIME_FRAMES of them, so that a flood without sync messages cannot hold
-        # the caller beyond its timeout.
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
-        overtime = 0
-        while True:
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            if self._watch_silence and remaining is None:
-                remaining = 1.0  # a silent bus must not hold a read(None) beyond reopen_after
-            frame = source.recv(remaining)
-            if frame is None:
-                self._check_silence()
-                if deadline is None:
-                    continue
-                return None
-            self._last_frame_wall = time.monotonic()
-            sample = self._on_frame(frame)
-            if sample is not None:
-                return sample
-            if remaining == 0.0:
-                overtime += 1
-                if overtime >= _MAX_OVERTIME_FRAMES:
-                    return None
-
-    def _check_silence(self) -> None:
-        """Give up a live bus that has delivered no frame for ``reopen_after`` seconds.
-
-        Raises:
-            DriverOperationError: so that the daemon closes it and opens it again.
-        """
-        if not self._watch_silence:
-            return
-        quiet = time.monotonic() - self._last_frame_wall
-        assert self.config.reopen_after is not None
-        if quiet > self.config.reopen_after:
-            assert isinstance(self._source, _BusSource)
-            raise DriverOperationError(
-                f"no CAN frame for {quiet:.1f} s on {self._source.bus.channel_info}: the bus "
-                f"is silent, the interface down or the gateway's connection closed")
-
-    @property
-    def silent(self) -> tuple[str, ...]:
-        """The mapped messages not received for ``silent_after`` seconds of frame time (as of
-        the last sync message), with their channels and how long."""
-        return self._silent
-
-    def _update_silent(self, now: float) -> set[str]:
-        """Which mapped messages are silent at frame time ``now`` [s]; their channels."""
-        if self._first_stamp is None:
-            self._first_stamp = now
-        limit = self.config.silent_after
-        silent, gone = [], set()
-        for message, chans in self._message_channels.items():
-            age = now - self._seen.get(message, self._first_stamp)
-            if age > limit:
-                silent.append(f"{message} ({', '.join(chans)}) for {age:.1f} s")
-                gone.update(chans)
-                if message not in self._silent_logged:
-                    self._silent_logged.add(message)
-                    self._bump("silent_messages")
-                    logger.warning(
-                        "CAN message %s (channels %s) not received for %.1f s (silent_after "
-                        "%g s): its channels are left out of the samples until it is back",
-                        message, ", ".join(chans), age, limit)
-            elif message in self._silent_logged:
-                self._silent_logged.discard(message)
-                logger.warning("CAN message %s is received again", message)
-        self._silent = tuple(silent)
-        return gone
-
-    def _on_bad_line(self, line: int, exc: BaseException) -> None:
-        self.stats.frames += 1
-        self.stats.bad_frames += 1
-        self.log_once("log-line", "CAN log line %d is malformed (%s: %s): skipped, counted in "
-                      "stats.bad_frames; the replay goes on", line, type(exc).__name__, exc)
-
-    def _bump(self, key: str) -> None:
-        self.stats.extra[key] = self.stats.extra.get(key, 0) + 1
-
     def _on_frame(self, frame: can.Message) -> Sample | None:
         """Account for one frame; return a sample if it was a complete sync message."""
-        self.stats.frames += 1
         if frame.is_error_frame:
             self._bump("error_frames")
             return None
@@ -923,40 +451,23 @@ class CanDriver(Driver):
             self.stats.bad_values += 1
             self.log_once("counter:nonint", "CAN sample counter is not an integer: %s", value)
             return
-        raw = int(value)
-        before = self._counter.raw
-        step, missing = self._counter.update(raw)
-        if step in ("duplicate", "stale"):
-            key = "duplicates" if step == "duplicate" else "reordered"
-            self._bump(key)
+        if self._count(self._counter, int(value), "CAN sample counter"):
             self._skip_sync = True
-            self.log_once(
-                f"counter:{step}",
-                "CAN sample counter %d arrived after %d (%s frame): its sample is skipped, the "
-                "count goes on; counted in stats.extra[%r]", raw, before,
-                "a repeated" if step == "duplicate" else "a late, reordered", key)
-        elif step == "reset":
-            self._bump("counter_resets")
-            self.log_once(
-                "counter:reset",
-                "CAN sample counter went back from %d to %d (the source restarted): its clock "
-                "restarts from the new value", before, raw)
-        elif missing:
-            self.stats.gaps += missing
-            self.log_once(
-                "counter:gap",
-                "CAN sample counter jumped from %d to %d: %d samples lost; counted in stats.gaps",
-                before, raw, missing)
 
     def _assemble(self, frame: can.Message) -> Sample | None:
         if self._skip_sync:  # a repeated or late counter frame: not a new sample
             self._skip_sync = False
             return None
-        gone = self._update_silent(float(frame.timestamp))
+        now = float(frame.timestamp)
+        if self._first_stamp is None:
+            self._first_stamp = now
+        silent, gone = self._silent_since(now, self._message_channels, what="CAN message",
+                                          key="silent_messages")
+        self._silent = tuple(silent)
         missing = [ch for ch in self.channels if ch not in self._latest]
         t: float | None
         if self._time_mode == "frame":
-            t = float(frame.timestamp)
+            t = now
         elif self._time_mode == "counter":
             count = self._counter.count
             t = None if count is None else count * self.sample_period
@@ -976,10 +487,3 @@ class CanDriver(Driver):
             )
             return None
         return Sample(t, {ch: self._latest[ch] for ch in self.channels if ch not in gone})
-
-    # -- closing ----------------------------------------------------------------------------
-    def _close_internal(self) -> None:
-        source, self._source = self._source, None
-        if source is not None:
-            source.close()
-            logger.debug("CAN driver closed (%s)", self.stats.as_dict())

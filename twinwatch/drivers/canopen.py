@@ -65,37 +65,27 @@ Example (TOML, the ``[driver]`` table of a machine config)::
     Va = { object = "0x2100", factor = "mV", unit = "V" }
     setpoint = { object = "0x60FF", factor = "0.001rpm", unit = "rad/s" }
 """
-
 from __future__ import annotations
 
 import logging
 import math
 import re
 import struct
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, field_validator
 
-from twinwatch.drivers.base import (
-    Driver,
-    DriverConfig,
-    DriverConfigError,
-    DriverInitializationError,
-    DriverOperationError,
-    Sample,
-    validated_config,
-)
+from twinwatch.drivers.base import DriverConfig, DriverConfigError, Sample
+from twinwatch.drivers.canbus import BusDriver, BusDriverConfig
 from twinwatch.io.counter import SampleCounter
 
 if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no CAN stack
     import can
 
-    from twinwatch.drivers.can import _FrameSource
-
+logger = logging.getLogger(__name__)
 logger = logging.getLogger(__name__)
 
 __all__ = ["FACTORS", "CanopenChannel", "CanopenDriver", "CanopenDriverConfig", "load_plan"]
@@ -167,8 +157,7 @@ class CanopenChannel(BaseModel):
             raise ValueError("factor must be a finite number other than 0")
         return value
 
-
-class CanopenDriverConfig(DriverConfig):
+class CanopenDriverConfig(BusDriverConfig):
     """Configuration of :class:`CanopenDriver` (the ``[driver]`` table, ``type = "canopen"``).
 
     Attributes:
@@ -192,33 +181,15 @@ class CanopenDriverConfig(DriverConfig):
     """
 
     model_config = ConfigDict(extra="forbid")
+    description_key: ClassVar[str] = "eds"
 
     type: Literal["canopen"]
-    interface: str | None = None
-    channel: str | StrictInt | None = None
-    bitrate: StrictInt | None = Field(default=None, gt=0)
-    bus_options: dict[str, str | int | float | bool] = Field(default_factory=dict)
-    log_file: Path | None = None
-    realtime: bool = False
     node_id: StrictInt = Field(ge=1, le=127)
     eds: Path
-    sample_period: StrictFloat = Field(gt=0, allow_inf_nan=False)
     sample_on: str = "sync"
     heartbeat_time: StrictFloat | None = Field(None, ge=0, allow_inf_nan=False)
     heartbeat_margin: StrictFloat = Field(1.5, ge=1.0, allow_inf_nan=False)
     channels: dict[str, CanopenChannel] = Field(min_length=1)
-    reopen_after: StrictFloat | None = Field(2.0, gt=0, allow_inf_nan=False)
-    silent_after: StrictFloat = Field(1.0, gt=0, allow_inf_nan=False)
-
-    @field_validator("interface")
-    @classmethod
-    def _known_interface(cls, value: str | None) -> str | None:
-        import can
-
-        if value is not None and value not in can.interfaces.VALID_INTERFACES:
-            raise ValueError(f"python-can has no interface {value!r}; known: "
-                             f"{', '.join(sorted(can.interfaces.VALID_INTERFACES))}")
-        return value
 
     @field_validator("sample_on")
     @classmethod
@@ -230,25 +201,6 @@ class CanopenDriverConfig(DriverConfig):
     def twin_channels(self) -> tuple[str, ...]:
         """The twin channels this driver delivers (``channels``)."""
         return tuple(self.channels)
-
-    def required_files(self, base_dir: Path) -> dict[str, Path]:
-        """Config key -> file that must exist to start (``eds``, ``log_file``)."""
-        cfg = self.resolved(base_dir)
-        files = {"driver.eds": cfg.eds}
-        if cfg.log_file is not None:
-            files["driver.log_file"] = cfg.log_file
-        return files
-
-    def resolved(self, base_dir: Path | None) -> CanopenDriverConfig:
-        """A copy whose relative ``eds`` and ``log_file`` are joined to ``base_dir``."""
-        from twinwatch.drivers.can import _resolve
-
-        if base_dir is None:
-            return self
-        update: dict[str, Path] = {"eds": _resolve(self.eds, base_dir)}
-        if self.log_file is not None:
-            update["log_file"] = _resolve(self.log_file, base_dir)
-        return self.model_copy(update=update)
 
 
 # -- the plan: what the EDS/DCF says the drive sends ------------------------------------------
@@ -550,11 +502,10 @@ def _decode(entry: _Entry, data: bytes) -> float:
         raw -= 1 << entry.bits
     return float(raw)
 
-
 # -- the driver ------------------------------------------------------------------------------
 
 
-class CanopenDriver(Driver):
+class CanopenDriver(BusDriver):
     """Twin samples from a CANopen drive's PDOs, decoded from its EDS/DCF; never transmits.
 
     Args:
@@ -573,38 +524,11 @@ class CanopenDriver(Driver):
     """
 
     config_class = CanopenDriverConfig
+    config: CanopenDriverConfig
+    bus_name = "CANopen"
     sample_model = "dc_motor"
     sample_machine = "dc-motor-canopen"
     sample_title = "a CiA 402 drive on a CANopen bus"
-
-    @classmethod
-    def safe_to_probe(cls, config: DriverConfig) -> bool:
-        """A log replay can be opened; a live bus is probed receive-only (:meth:`probe`)."""
-        return getattr(config, "log_file", None) is not None
-
-    @classmethod
-    def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
-        """``check-config``: the EDS/DCF read and the channels checked against its mapping,
-        then the source opened (a live interface receive-only where python-can allows it) and
-        closed, nothing sent.
-
-        Raises:
-            DriverError: the EDS/DCF, a channel, the log or the interface.
-        """
-        assert isinstance(config, CanopenDriverConfig)
-        plan = load_plan(config.resolved(base_dir))
-        mapped = "; ".join(f"{ch} <- {where}" for ch, where in plan.channels.items())
-        with cls(config, base_dir=base_dir, listen_only=config.log_file is None) as driver:
-            if config.log_file is not None:
-                return f"log {str(driver.config.log_file)!r} opened; {mapped}"
-            mode = ("receive-only" if driver.receive_only else "this interface has no "
-                    "receive-only mode; twinwatch never sends")
-            return f"{cls.describe(config)} opened ({mode}); {mapped}"
-
-    @classmethod
-    def reopens(cls, config: DriverConfig) -> bool:
-        """A live bus (no ``log_file``) may come and go: waited for and reopened."""
-        return getattr(config, "log_file", None) is None
 
     @classmethod
     def describe(cls, config: DriverConfig) -> str:
@@ -616,24 +540,6 @@ class CanopenDriver(Driver):
                 f"channel {config.channel!r}")
 
     @classmethod
-    def time_starts_over(cls, config: DriverConfig) -> bool:
-        """A log replayed from its start is a new run; a live bus goes on."""
-        return getattr(config, "log_file", None) is not None
-
-    def __init__(self, config: CanopenDriverConfig, *, bus: can.BusABC | None = None,
-                 base_dir: Path | None = None, listen_only: bool = False) -> None:
-        super().__init__()
-        self._source: _FrameSource | None = None
-        self._listen_only = listen_only
-        #: the bus was put in receive-only mode (``listen_only`` and the interface allows it)
-        self.receive_only = False
-        try:
-            self._setup(config.resolved(base_dir), bus)
-        except BaseException:
-            self.close()
-            raise
-
-    @classmethod
     def from_config(cls, config: CanopenDriverConfig | Mapping[str, Any], *,
                     base_dir: Path | None = None,
                     bus: can.BusABC | None = None) -> CanopenDriver:
@@ -642,14 +548,10 @@ class CanopenDriver(Driver):
         Raises:
             DriverInitializationError: the table does not validate, or see the class.
         """
-        config = validated_config(CanopenDriverConfig, config, "CANopen")
-        return cls(config, bus=bus, base_dir=base_dir)
+        return super().from_config(config, base_dir=base_dir, bus=bus)
 
     # -- construction -------------------------------------------------------------------------
-    def _setup(self, config: CanopenDriverConfig, bus: can.BusABC | None) -> None:
-        self.config = config
-        self.channels = tuple(config.channels)
-        self.sample_period = config.sample_period
+    def _setup(self, config: CanopenDriverConfig) -> None:
         self.plan = plan = load_plan(config)
         node = config.node_id
         self._emcy_id, self._heartbeat_id = 0x80 + node, 0x700 + node
@@ -666,7 +568,6 @@ class CanopenDriver(Driver):
         self._held = {p.name: [ch for ch, *_ in p.channels] for p in plan.pdos.values()
                       if p.channels and (self._sync_id is None or not p.every_sync)
                       and p.cob_id != self._sample_pdo}
-        self._latest: dict[str, float] = {}
         self._cycle_t: float | None = None  # the open SYNC cycle's stamp
         self._pending: set[int] = set()
         self._skip_cycle = False
@@ -677,67 +578,33 @@ class CanopenDriver(Driver):
         self._nmt: int | None = None
         self._last_heartbeat: float | None = None
         self._heartbeat_missing = False
-        self._first_stamp: float | None = None
         self._now: float | None = None  # the last frame's stamp
-        self._seen: dict[str, float] = {}
-        self._silent: tuple[str, ...] = ()
-        self._silent_logged: set[str] = set()
         self._faults: tuple[str, ...] = ()
         #: a frame of the drive's own (a TPDO, its EMCY or heartbeat) was received
         self._own_heard = False
         #: other nodes heard on the bus: node id -> the first frame of it (``heartbeat 0x705``)
         self._nodes_heard: dict[int, str] = {}
-        self._last_frame_wall = time.monotonic()
-        self._source = self._open_source(config, bus)
-        from twinwatch.drivers.can import _BusSource
 
-        self._watch_silence = (isinstance(self._source, _BusSource) and self._source.owned
-                               and config.reopen_after is not None)
+    def _ready(self) -> None:
+        config, plan = self.config, self.plan
         logger.info("CANopen driver ready: node %d, %s, EDS %s, %s; %s; heartbeat %s",
-                    node, self.describe(config), config.eds,
+                    config.node_id, self.describe(config), config.eds,
                     f"sample on SYNC 0x{plan.sync_id:X}" if self._sync_id is not None
                     else f"sample on {config.sample_on}",
                     "; ".join(f"{ch} <- {w}" for ch, w in plan.channels.items()),
                     f"{plan.heartbeat_s:g} s" if plan.heartbeat_s else "not watched")
 
-    def _wanted_ids(self) -> list[int]:
+    def _probed(self, live: bool) -> str:
+        return "; " + "; ".join(f"{ch} <- {where}" for ch, where in self.plan.channels.items())
+
+    def _can_filters(self) -> list[dict[str, Any]]:
         ids = {self._emcy_id, self._heartbeat_id, *self.plan.pdos}
         if self._sync_id is not None:
             ids.add(self._sync_id)
-        return sorted(ids)
-
-    def _open_source(self, config: CanopenDriverConfig, bus: can.BusABC | None) -> _FrameSource:
-        import can
-
-        from twinwatch.drivers.can import _BusSource, _LogSource, _receive_only
-
-        if bus is not None:
-            if config.log_file is not None:
-                raise DriverConfigError("log_file and a bus were both given; pick one")
-            return _BusSource(bus, owned=False)
-        if config.log_file is not None:
-            return _LogSource(config.log_file, realtime=config.realtime,
-                              on_bad=self._on_bad_line)
-        if config.interface is None or config.channel is None:
-            raise DriverConfigError(
-                "interface and channel are required for a live bus (or give log_file)")
-        kwargs: dict[str, Any] = dict(config.bus_options)
-        if config.bitrate is not None:
-            kwargs["bitrate"] = config.bitrate
         # and every node's heartbeat (0x701-0x77F, one frame per node per producer time): a
         # node id that never speaks is told apart from a drive at another id
-        kwargs.setdefault("can_filters", [{"can_id": i, "can_mask": 0x7FF, "extended": False}
-                                          for i in self._wanted_ids()]
-                          + [{"can_id": 0x700, "can_mask": 0x780, "extended": False}])
-        try:
-            opened = can.Bus(interface=config.interface, channel=config.channel, **kwargs)
-        except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
-            raise DriverInitializationError(
-                f"cannot open CAN interface {config.interface!r} channel {config.channel!r}: "
-                f"{exc}") from exc
-        if self._listen_only:
-            self.receive_only = _receive_only(opened)
-        return _BusSource(opened, owned=True)
+        return ([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(ids)]
+                + [{"can_id": 0x700, "can_mask": 0x780, "extended": False}])
 
     # -- state for STATUS and the health message ------------------------------------------------
     @property
@@ -750,9 +617,6 @@ class CanopenDriver(Driver):
     def device_faults(self) -> tuple[str, ...]:
         """The drive in fault (its EMCY, its statusword's fault bit) or not operational."""
         return self._faults
-
-    def _bump(self, key: str, n: int = 1) -> None:
-        self.stats.extra[key] = self.stats.extra.get(key, 0) + n
 
     def _update_faults(self) -> None:
         node = self.config.node_id
@@ -796,22 +660,9 @@ class CanopenDriver(Driver):
         if heartbeat_age is not None:
             silent.append(f"node {self.config.node_id} heartbeat for {heartbeat_age:.1f} s "
                           f"(producer time {self.plan.heartbeat_s:g} s)")
-        assert self._first_stamp is not None
-        for name, chans in self._watched.items():
-            age = now - self._seen.get(name, self._first_stamp)
-            if age > self.config.silent_after:
-                silent.append(f"{name} ({', '.join(chans)}) for {age:.1f} s")
-                if name not in self._silent_logged:
-                    self._silent_logged.add(name)
-                    self._bump("silent_pdos")
-                    log = logger.debug if self._say_not_heard(age) else logger.warning
-                    log("CANopen %s (channels %s) not received for %.1f s: its channels are "
-                        "missing from the samples until it is back", name, ", ".join(chans),
-                        age)
-            elif name in self._silent_logged:
-                self._silent_logged.discard(name)
-                logger.warning("CANopen %s is received again", name)
-        self._silent = tuple(silent)
+        pdos, _ = self._silent_since(now, self._watched, what="CANopen", key="silent_pdos",
+                                     quiet=self._say_not_heard)
+        self._silent = tuple(silent + pdos)
 
     def _heard_text(self) -> str:
         """The other nodes heard, for a person: ``node 5 (heartbeat 0x705)``."""
@@ -840,50 +691,8 @@ class CanopenDriver(Driver):
         self._nodes_heard.setdefault(node, f"{what} 0x{cob:03X}")
 
     # -- reading --------------------------------------------------------------------------------
-    def _read_internal(self, timeout: float | None) -> Sample | None:
-        source = self._source
-        if source is None:  # pragma: no cover - only after a failed construction
-            raise DriverOperationError("CANopen driver has no frame source")
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
-        overtime = 0
-        while True:
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            if self._watch_silence and remaining is None:
-                remaining = 1.0
-            frame = source.recv(remaining)
-            if frame is None:
-                self._check_bus_silence()
-                if deadline is None:
-                    continue
-                return None
-            self._last_frame_wall = time.monotonic()
-            sample = self._on_frame(frame)
-            if sample is not None:
-                return sample
-            if remaining == 0.0:
-                overtime += 1
-                if overtime >= 1000:
-                    return None
-
-    def _check_bus_silence(self) -> None:
-        if not self._watch_silence:
-            return
-        quiet = time.monotonic() - self._last_frame_wall
-        assert self.config.reopen_after is not None
-        if quiet > self.config.reopen_after:
-            raise DriverOperationError(
-                f"no CAN frame for {quiet:.1f} s ({self.describe(self.config)}): the bus is "
-                "silent or the interface down")
-
-    def _on_bad_line(self, line: int, exc: BaseException) -> None:
-        self.stats.frames += 1
-        self.stats.bad_frames += 1
-        self.log_once("log-line", "CAN log line %d is malformed (%s: %s): skipped, counted in "
-                      "stats.bad_frames", line, type(exc).__name__, exc)
-
     def _on_frame(self, frame: can.Message) -> Sample | None:
         """Account for one frame; a sample when it completes one."""
-        self.stats.frames += 1
         if frame.is_error_frame or frame.is_remote_frame or frame.is_extended_id:
             self._bump("other_frames")
             return None
@@ -921,16 +730,8 @@ class CanopenDriver(Driver):
             self._update_silent(now, self._heartbeat_age())  # no sample: say what is missing
         self._skip_cycle = False
         if data and self._counter.modulus is not None:
-            step, missing = self._counter.update(data[0] - 1)
-            if step in ("duplicate", "stale"):
-                self._bump("duplicates" if step == "duplicate" else "reordered")
-                self._skip_cycle = True
-            elif step == "reset":
-                self._bump("counter_resets")
-            elif missing:
-                self.stats.gaps += missing
-                self.log_once("gap", "CANopen SYNC counter jumped by %d: %d samples lost; "
-                              "counted in stats.gaps", missing + 1, missing)
+            self._skip_cycle = self._count(self._counter, data[0] - 1, "CANopen SYNC counter",
+                                           shown=1)
         self._cycle_t = now
         self._pending = set(self._every_sync)
         if not self._pending and not self._skip_cycle:
@@ -1031,9 +832,3 @@ class CanopenDriver(Driver):
             return None
         since = self._last_heartbeat if self._last_heartbeat is not None else self._first_stamp
         return None if since is None else self._now - since
-
-    def _close_internal(self) -> None:
-        source, self._source = self._source, None
-        if source is not None:
-            source.close()
-            logger.debug("CANopen driver closed (%s)", self.stats.as_dict())
