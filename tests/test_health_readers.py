@@ -36,6 +36,7 @@ READERS = [
     "sinks/mqtt/encoding.py",
     "sinks/mqtt/publisher.py",
     "sinks/mqtt/outbox.py",
+    "sinks/mqtt/delivery.py",
     "sinks/sparkplug/metrics.py",
     "sinks/sparkplug/publisher.py",
     "sinks/sparkplug/node.py",

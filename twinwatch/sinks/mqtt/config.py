@@ -24,7 +24,7 @@ from twinwatch.sinks.base import SinkConfig
 _LEVEL_RE = re.compile(r"^[^#+\x00/]+$")
 
 
-def _check_topic(value: str, what: str) -> str:
+def check_topic(value: str, what: str) -> str:
     """A topic (prefix) by MQTT's rules (MQTT 3.1.1 Section 4.7): non-empty levels, no
     wildcards, no NUL, at most 65535 bytes of UTF-8, and not a ``$`` topic (``$SYS/...`` is the
     broker's own: a subscriber's ``#`` never receives it, and a broker may refuse publishing
@@ -83,7 +83,7 @@ class HomeAssistantConfig(BaseModel):
     @field_validator("prefix")
     @classmethod
     def _prefix(cls, value: str) -> str:
-        return _check_topic(value, "prefix")
+        return check_topic(value, "prefix")
 
 
 class MqttConnectionConfig(SinkConfig):
@@ -204,7 +204,7 @@ class MqttConfig(MqttConnectionConfig):
     @field_validator("topic_prefix")
     @classmethod
     def _prefix(cls, value: str) -> str:
-        return _check_topic(value, "topic_prefix")
+        return check_topic(value, "topic_prefix")
 
 
 # -- what is published ------------------------------------------------------------------------

@@ -66,7 +66,7 @@ def _rul_s(param: ParameterView, level: str) -> Any:
     return crossing.rul_s if crossing is not None else None
 
 
-def _view(doc: HealthView | Mapping[str, Any] | str | bytes) -> HealthView:
+def health_view(doc: HealthView | Mapping[str, Any] | str | bytes) -> HealthView:
     """``doc`` (a typed view, the decoded message or its JSON text) as the health message's
     typed view (parsed once).
 
@@ -90,7 +90,7 @@ def flat_values(doc: HealthView | Mapping[str, Any]) -> dict[str, str]:
     """
     from twinwatch.twin.health import sent
 
-    doc = _view(doc)
+    doc = health_view(doc)
     out: dict[str, str] = {}
     alarms = doc.alarms or {}
     for name, p in (doc.parameters or {}).items():
@@ -142,7 +142,8 @@ def diagnosis_values(diag: DiagnosisView) -> dict[str, str]:
     }
 
 
-def _levels(doc: HealthView | None) -> dict[str, str]:
+def levels(doc: HealthView | None) -> dict[str, str]:
+    """Each alarm rule's level in ``doc`` (``normal``, ``warning``, ``alarm``)."""
     alarms = (doc.alarms if doc is not None else None) or {}
     return {k: str(v.level or "normal") for k, v in alarms.items() if v is not None}
 
@@ -156,7 +157,7 @@ def reconstructed_events(doc: HealthView | None, previous: dict[str, str]
     if doc is None:
         return events
     params = doc.parameters or {}
-    for name, level in _levels(doc).items():
+    for name, level in levels(doc).items():
         before = previous.get(name, "normal")
         if level == before:
             continue
@@ -221,13 +222,13 @@ def discovery_payload(machine: str, model: str, base: str,
     """
     from twinwatch.twin.health import sent
 
-    view = _view(doc) if doc is not None else None
+    view = health_view(doc) if doc is not None else None
     dev_id = ha_device_id(machine)
     params = dict(parameters)
     doc_params = (view.parameters if view is not None else None) or {}
     for name, p in doc_params.items():
         params.setdefault(name, str(p.unit or ""))
-    alarms = set(_levels(view)) | set(rules or ())
+    alarms = set(levels(view)) | set(rules or ())
     number = "{{ value_json }}"  # JSON null -> None -> Home Assistant's "unknown"
     cmps: dict[str, dict[str, Any]] = {}
 
@@ -279,10 +280,10 @@ def discovery_payload(machine: str, model: str, base: str,
 # -- the outbox without a state database --------------------------------------------------------
 
 
-def _components(doc: HealthView) -> tuple[frozenset[str], frozenset[str]]:
+def components(doc: HealthView) -> tuple[frozenset[str], frozenset[str]]:
     """What the discovery depends on in a message: parameters with an alarm rule, with a
     ``rul`` field."""
     from twinwatch.twin.health import sent
 
     params = doc.parameters or {}
-    return (frozenset(_levels(doc)), frozenset(k for k, p in params.items() if sent(p, "rul")))
+    return (frozenset(levels(doc)), frozenset(k for k, p in params.items() if sent(p, "rul")))

@@ -62,7 +62,7 @@ class MemoryOutbox:
                 self._rows.popleft()
 
 
-class _Window:
+class Window:
     """A window handed to paho: its row and the message ids not acknowledged yet."""
 
     __slots__ = ("mids", "row", "sent")

@@ -15,16 +15,13 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import random
-import ssl
 import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
-from twinwatch.sinks.mqtt.publisher import CLOSE_RETRY_S, TAKEOVER_S, TAKEOVERS
+from twinwatch.sinks.mqtt.session import CLOSE_RETRY_S, MqttSession
 from twinwatch.sinks.sparkplug.config import NAMESPACE, NODE_KEYS, SparkplugConfig
 from twinwatch.sinks.sparkplug.session import (
     DEVICE_REBIRTH,
@@ -39,8 +36,6 @@ if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
 
     from twinwatch.sinks.sparkplug.publisher import SparkplugPublisher
-else:
-    mqtt = lazy_module("paho.mqtt.client")
 
 logger = logging.getLogger(__package__)
 
@@ -48,7 +43,8 @@ __all__ = ["EdgeNode"]
 
 
 class EdgeNode:
-    """One Sparkplug edge node: its MQTT session and thread, shared by its devices.
+    """One Sparkplug edge node: its MQTT session (:class:`MqttSession`) and thread, shared by
+    its devices.
 
     Args:
         config: the first device's table (its :data:`~twinwatch.sinks.sparkplug.config.NODE_KEYS`
@@ -70,30 +66,17 @@ class EdgeNode:
                         if directory is not None else None)
         self.session = EdgeNodeSession(config.group_id, edge_node_id,
                                        self.bd_file.load() if self.bd_file else None)
-        self.client_id = (config.client_id
-                          or f"twinwatch-sparkplug-{config.group_id}-{edge_node_id}")
         self.state_topic = (f"{NAMESPACE}/STATE/{config.primary_host_id}"
                             if config.primary_host_id else None)
-        self._password = password
         self.devices: dict[str, SparkplugPublisher] = {}
         self._owners: dict[str, str] = {}  # device id -> machine
         self._lock = threading.Lock()
         self.wake = threading.Event()
         self._stop = threading.Event()
-        self.connected = False
         self.born = False            # NBIRTH sent on this connection (the host online)
         self.births = 0
         self.rebirths = 0
-        self.connects = 0
-        self.disconnects = 0
         self.errors = 0
-        self._down_since: float | None = time.monotonic()
-        self._connected_at = 0.0
-        self._last_error: str | None = None
-        self._refused = False
-        self._takeovers = 0
-        self._takeover_total = 0
-        self._hold_until = 0.0
         self._host_online: bool | None = None if config.primary_host_id else True
         self._host_ts = -1
         self._leaving = False        # a disconnection of our own (the primary host offline)
@@ -103,10 +86,38 @@ class EdgeNode:
         self.commands_refused = 0    # NCMD/DCMD metrics other than the rebirth (writes)
         self._refused_said: set[str] = set()
         self._mid_owner: dict[int, SparkplugPublisher] = {}
-        self.client = self._make_client()   # the TLS setup checked now
+        self.mqtt = MqttSession(   # the TLS setup checked now
+            config, self, table="sparkplug", password=password,
+            client_id=(config.client_id
+                       or f"twinwatch-sparkplug-{config.group_id}-{edge_node_id}"),
+            will=lambda: (self.session.ndeath_topic, self.session.ndeath(now_ms()), False),
+            log=logger, paho_log=f"{__name__}.paho", stopping=self._stop.is_set,
+            conflict="give each process its own edge node (outputs.sparkplug.edge_node_id) "
+                     "or client_id; connecting less often meanwhile")
+        self.client_id = self.mqtt.client_id
         self._thread = threading.Thread(target=self._run, daemon=True,
                                         name=f"twinwatch-sparkplug-{edge_node_id}"[:64])
         self._thread.start()
+
+    @property
+    def client(self) -> mqtt.Client:
+        """The session's paho client (a new one at each connection)."""
+        return self.mqtt.client
+
+    @property
+    def connected(self) -> bool:
+        """The broker accepted the connection and it is not known lost."""
+        return self.mqtt.connected
+
+    @property
+    def connects(self) -> int:
+        """Connections made so far."""
+        return self.mqtt.connects
+
+    @property
+    def disconnects(self) -> int:
+        """Connections lost so far."""
+        return self.mqtt.disconnects
 
     # -- the devices ------------------------------------------------------------------------
     def join(self, device: SparkplugPublisher, config: SparkplugConfig, machine: str) -> None:
@@ -173,34 +184,6 @@ class EdgeNode:
                            self.session.edge_node_id)
 
     # -- the client -------------------------------------------------------------------------
-    def _make_client(self) -> mqtt.Client:
-        cfg = self.config
-        client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id,
-                             clean_session=True, protocol=mqtt.MQTTv311)
-        client.connect_timeout = cfg.connect_timeout
-        client.max_inflight_messages_set(0)   # the inflight limit is the devices', in windows
-        client.max_queued_messages_set(0)
-        client.enable_logger(logging.getLogger(f"{__name__}.paho"))
-        if cfg.username:
-            client.username_pw_set(cfg.username, self._password)
-        if cfg.tls is not None:
-            tls = cfg.tls
-            try:
-                client.tls_set(ca_certs=tls.ca_certs, certfile=tls.certfile,
-                               keyfile=tls.keyfile, cert_reqs=ssl.CERT_REQUIRED,
-                               tls_version=ssl.PROTOCOL_TLS_CLIENT)
-            except (OSError, ssl.SSLError, ValueError) as exc:
-                raise PublisherError(f"outputs.sparkplug.tls: cannot set up TLS: {exc}; "
-                                     f"check the certificate and key files") from exc
-            client.tls_insecure_set(not tls.verify_hostname)
-        client.will_set(self.session.ndeath_topic, self.session.ndeath(now_ms()), qos=1,
-                        retain=False)
-        client.on_connect = self._on_connect
-        client.on_disconnect = self._on_disconnect
-        client.on_publish = self._on_publish
-        client.on_message = self._on_message
-        return client
-
     def _connect(self) -> None:
         """A new CONNECT: a new ``bdSeq`` (kept in its file first) in a new client's will. A
         fresh client, not paho's reconnection: paho sends the previous connection's
@@ -217,58 +200,33 @@ class EdgeNode:
         bd_seq = self.session.new_connection()
         if self.bd_file is not None:
             self.bd_file.save(bd_seq)
-        self.client = self._make_client()
-        self.client.connect_async(self.config.host, self.config.port,
-                                  keepalive=self.config.keepalive)
+        self.mqtt.new_client().connect_async(self.config.host, self.config.port,
+                                             keepalive=self.config.keepalive)
         with contextlib.suppress(Exception):
             old._sock_close()  # noqa: SLF001 - a half-open attempt's socket (no public close)
-        self._refused = False
-        try:
-            self.client.reconnect()
-        except (OSError, ssl.SSLError, ValueError) as exc:
-            self._unreachable(str(exc) or type(exc).__name__)
-            return
-        end = time.monotonic() + self.config.connect_timeout
-        while not self.connected and not self._refused and time.monotonic() < end:
-            if self.client.loop(timeout=0.05) != mqtt.MQTT_ERR_SUCCESS:
-                break
+        self.mqtt.attempt()
 
-    def _unreachable(self, why: str) -> None:
-        if self._last_error != why:
-            level = logging.WARNING if self._last_error is None else logging.DEBUG
-            logger.log(level, "MQTT broker %s:%d unreachable (%s); windows wait in the "
-                       "state database and are sent once it answers", self.config.host,
-                       self.config.port, why)
-        self._last_error = why
+    def session_refused(self, reason: Any) -> None:
+        """A refusal for authorisation names the ACL the node needs, once."""
+        if "authori" in str(reason).lower() and self.mqtt.last_error is None:
+            logger.error("outputs.sparkplug: the MQTT broker %s refused the connection (%s): "
+                         "the client %r must be allowed to connect with its will on %s (the "
+                         "NDEATH) and to publish spBv1.0/%s/#; fix the broker's ACL or "
+                         "outputs.sparkplug.username", self.mqtt.broker, reason,
+                         self.client_id, self.session.ndeath_topic, self.session.group_id)
 
-    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any,
-                    properties: Any) -> None:
-        if reason.is_failure:
-            if "authori" in str(reason).lower() and self._last_error is None:
-                logger.error("outputs.sparkplug: the MQTT broker %s:%d refused the connection "
-                             "(%s): the client %r must be allowed to connect with its will on "
-                             "%s (the NDEATH) and to publish spBv1.0/%s/#; fix the broker's "
-                             "ACL or outputs.sparkplug.username", self.config.host,
-                             self.config.port, reason, self.client_id,
-                             self.session.ndeath_topic, self.session.group_id)
-            self._unreachable(f"connection refused: {reason}")
-            self._refused = True
-            client.disconnect()
-            return
-        self.connected = True
-        self._connected_at = time.monotonic()
-        self._down_since = None
-        self.connects += 1
+    def session_up(self, client: mqtt.Client, again: bool) -> None:
+        """Connected: subscribe to the commands, the STATE and our NBIRTH; the births when
+        the primary host is online."""
         devices = ", ".join(sorted(d.device.device_id for d in self._snapshot()))
-        if self._last_error is not None or self.connects > 1:
-            logger.warning("MQTT broker %s:%d reached: Sparkplug edge node %s (devices %s) "
-                           "publishes again", self.config.host, self.config.port,
-                           self.session.edge_node_id, devices)
+        if again:
+            logger.warning("MQTT broker %s reached: Sparkplug edge node %s (devices %s) "
+                           "publishes again", self.mqtt.broker, self.session.edge_node_id,
+                           devices)
         else:
-            logger.info("Sparkplug edge node %s/%s on MQTT broker %s:%d (devices %s)",
-                        self.session.group_id, self.session.edge_node_id, self.config.host,
-                        self.config.port, devices)
-        self._last_error = None
+            logger.info("Sparkplug edge node %s/%s on MQTT broker %s (devices %s)",
+                        self.session.group_id, self.session.edge_node_id, self.mqtt.broker,
+                        devices)
         self.live_since = time.time()
         client.subscribe(self.session.ncmd_topic, qos=1)
         client.subscribe(self.session.dcmd_topics, qos=1)
@@ -279,54 +237,25 @@ class EdgeNode:
             self._births(client)
         self.wake.set()
 
-    def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any,
-                       properties: Any) -> None:
+    def session_down(self) -> bool:
+        """The connection is gone: nothing is born; True when we closed it ourselves (the
+        primary host went offline): quiet, not a take-over."""
         self.born = False
         for d in self._snapshot():
             d.device_born = False
-        if self._leaving:  # our own (the primary host went offline): quiet, not a take-over
-            self._leaving = False
-            self.connected = False
-            self.disconnects += 1
-            self._down_since = time.monotonic()
-            return
-        if self.connected and not self._stop.is_set():
-            self._taken_over(time.monotonic() - self._connected_at)
-        if self.connected:
-            self.disconnects += 1
-            if self._takeovers < TAKEOVERS and not self._stop.is_set():
-                logger.warning("MQTT connection to %s:%d lost (%s): the windows in flight are "
-                               "sent again on reconnection", self.config.host,
-                               self.config.port, reason)
-        self.connected = False
-        if self._down_since is None:
-            self._down_since = time.monotonic()
+        own, self._leaving = self._leaving, False
+        return own
 
-    def _taken_over(self, lasted: float) -> None:
-        """As the MQTT output's (:meth:`MqttPublisher._taken_over`): three connections in a
-        row lost within 10 s of being made name a client-id conflict once and space the next
-        attempts."""
-        if lasted > TAKEOVER_S:
-            self._takeovers = 0
-            return
-        self._takeovers += 1
-        self._takeover_total += 1
-        if self._takeovers == TAKEOVERS:
-            logger.error("another client uses client id %r on MQTT broker %s:%d: the "
-                         "connection was taken over %d times in a row, each within %.0f s: "
-                         "give each process its own edge node (outputs.sparkplug."
-                         "edge_node_id) or client_id; connecting less often meanwhile",
-                         self.client_id, self.config.host, self.config.port, self._takeovers,
-                         TAKEOVER_S)
-        if self._takeovers >= TAKEOVERS:
-            hold = min(5.0 * 2 ** (self._takeovers - TAKEOVERS), 60.0)
-            self._hold_until = time.monotonic() + hold * random.uniform(0.75, 1.25)
+    def in_flight(self) -> str:
+        """What a lost connection sends again."""
+        return "the windows in flight"
 
-    def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason: Any,
-                    properties: Any) -> None:
+    def on_publish(self, client: mqtt.Client | None, userdata: Any, mid: int, reason: Any,
+                   properties: Any) -> None:
+        """paho's acknowledgement of a DDATA: handed to its device's delivery."""
         device = self._mid_owner.pop(mid, None)
         if device is not None:
-            device._on_publish(client, userdata, mid, reason, properties)
+            device.delivery.acknowledged(mid)
 
     def track(self, mid: int, device: SparkplugPublisher) -> None:
         """A DDATA's message id, to hand its acknowledgement to ``device``."""
@@ -347,7 +276,7 @@ class EdgeNode:
             if d.latest_doc is not None:
                 d.device_birth()
 
-    def _on_message(self, client: mqtt.Client, userdata: Any, msg: Any) -> None:
+    def on_message(self, client: mqtt.Client, userdata: Any, msg: Any) -> None:
         """NCMD (Node Control/Rebirth), DCMD (Device Control/Rebirth), the primary host's
         STATE, our own NBIRTH back."""
         topic = msg.topic
@@ -456,18 +385,7 @@ class EdgeNode:
     def problem(self, pending: int) -> str | None:
         """What is degraded in the session (one line), for a device with ``pending``
         windows; None when it works."""
-        out = []
-        if not self.connected and self._down_since is not None and not self._stop.is_set():
-            since = time.monotonic() - self._down_since
-            if since > 2 * self.config.connect_timeout or self.connects:
-                why = f" ({self._last_error})" if self._last_error else ""
-                out.append(f"MQTT broker {self.config.host}:{self.config.port} unreachable for "
-                           f"{since:.0f} s{why}: {pending} windows pending, sent when it is "
-                           f"back")
-        if self._takeovers >= TAKEOVERS:
-            out.append(f"another client uses MQTT client id {self.client_id!r} on "
-                       f"{self.config.host}:{self.config.port} ({self._takeover_total} "
-                       f"connections taken over): {pending} windows pending")
+        out = self.mqtt.problems(pending)
         if self._unheard:
             out.append(self._unheard)
         return "; ".join(out) or None
@@ -489,9 +407,7 @@ class EdgeNode:
                     return
 
     def _loop(self) -> None:
-        cfg = self.config
-        delay = cfg.reconnect_min
-        next_attempt = 0.0
+        mqtt_session = self.mqtt
         last_poll = 0.0
         last_count = 0.0
         close_attempt = 0.0
@@ -499,8 +415,8 @@ class EdgeNode:
             now = time.monotonic()
             devices = self._snapshot()
             for d in devices:
-                if d.rebind_due():
-                    d._rebind_outbox()
+                if d.delivery.rebind.is_set():
+                    d.delivery.rebind_outbox()
             if not devices:
                 if self._stop.is_set():
                     break
@@ -513,7 +429,7 @@ class EdgeNode:
                 for d in devices:
                     if d.leave_by is None:
                         continue
-                    if now >= d.leave_by or not (d._inflight or d._has_pending()):
+                    if now >= d.leave_by or not d.has_undelivered():
                         self._retire(d, ddeath=False)
                     else:
                         waiting = True
@@ -522,26 +438,25 @@ class EdgeNode:
                     # its close_timeout (the backoff may be sleeping through a broker back)
                     self._connect()
                     close_attempt = time.monotonic() + CLOSE_RETRY_S
-                elif now >= next_attempt and now >= self._hold_until:
+                elif mqtt_session.due(now):
                     self._connect()
-                    if not self.connected:  # capped exponential backoff, +-25 % jitter
-                        next_attempt = time.monotonic() + delay * random.uniform(0.75, 1.25)
-                        delay = min(2 * delay, cfg.reconnect_max)
+                    if not self.connected:
+                        mqtt_session.backoff()
                 if not self.connected:
                     devices = self._snapshot()   # without the ones retired just now
                     for d in devices:
-                        d._flush_acks()
+                        d.delivery.flush_acks()
                     if now - last_count > 1.0:
                         for d in devices:
-                            d._count()
+                            d.delivery.count()
                         last_count = now
-                    if self.wake.wait(min(0.2, max(next_attempt - time.monotonic(), 0.01))):
+                    wait = min(0.2, max(mqtt_session.next_attempt - time.monotonic(), 0.01))
+                    if self.wake.wait(wait):
                         self.wake.clear()
                         for d in self._snapshot():
-                            d._count()  # a window stored: one more pending
+                            d.delivery.count()  # a window stored: one more pending
                         last_count = time.monotonic()
                     continue
-            delay = cfg.reconnect_min
             self.client.loop(timeout=0.05)
             if not self.connected:
                 continue
@@ -556,16 +471,16 @@ class EdgeNode:
                 if self.born and not d.device_born and d.latest_doc is not None:
                     d.device_birth()  # a device joined with a stored window: born at once
                 if self.born and (poll or leaving):
-                    d._feed(now, all_rows=woken or leaving)
+                    d.delivery.feed(now, all_rows=woken or leaving)
                 if leaving and d.leave_by is not None and (
-                        now >= d.leave_by or not (d._inflight or d._has_pending())):
+                        now >= d.leave_by or not d.has_undelivered()):
                     self._retire(d, ddeath=self.born)
                     continue
-                d._flush_acks()
+                d.delivery.flush_acks()
             if now - last_count > 1.0:
                 for d in devices:
                     if not d.left.is_set():  # a retired one's store may be closed already
-                        d._count()
+                        d.delivery.count()
                 last_count = now
         self._finish()
 
@@ -578,7 +493,7 @@ class EdgeNode:
             while self.connected and not info.is_published() and time.monotonic() < end:
                 self.client.loop(timeout=0.05)
             self.client.disconnect()
-        self.connected = self.born = False
+        self.mqtt.connected = self.born = False
         logger.info("Sparkplug edge node %s/%s closed (NDEATH, bdSeq %d)",
                     self.session.group_id, self.session.edge_node_id,
                     max(self.session.bd_seq, 0))

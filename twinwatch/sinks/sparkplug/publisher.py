@@ -1,12 +1,11 @@
 """The Sparkplug B output of one machine: a device of its edge node.
 
-Each machine's output keeps the MQTT output's delivery state over its own outbox (the state
-database's: which stored windows this output has delivered; the methods of
-:class:`~twinwatch.sinks.mqtt.MqttPublisher` that feed, acknowledge and count) and its device's
-metrics and aliases; the :class:`~twinwatch.sinks.sparkplug.node.EdgeNode` it joins (one per
-broker, group and edge node id in the process, shared through
-:class:`~twinwatch.sinks.base.SharedResources`) holds the one MQTT client and the thread that
-drives every device's delivery.
+Each machine's output keeps its delivery over its own outbox (a
+:class:`~twinwatch.sinks.mqtt.delivery.Delivery`, as the MQTT output does: which stored windows
+this output has delivered) and its device's metrics and aliases; the
+:class:`~twinwatch.sinks.sparkplug.node.EdgeNode` it joins (one per broker, group and edge node
+id in the process, shared through :class:`~twinwatch.sinks.base.SharedResources`) holds the one
+MQTT session and the thread that drives every device's delivery.
 """
 
 from __future__ import annotations
@@ -14,14 +13,13 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-import time
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from twinwatch.errors import PublisherError
-from twinwatch.sinks.base import OutboxRow, SinkContext
-from twinwatch.sinks.mqtt.encoding import _view
-from twinwatch.sinks.mqtt.outbox import MemoryOutbox, _Window
-from twinwatch.sinks.mqtt.publisher import MqttPublisher
+from twinwatch.sinks.base import OutboxRow, ProcessedWindow, SinkContext
+from twinwatch.sinks.mqtt.delivery import DeliveringSink, Delivery
+from twinwatch.sinks.mqtt.encoding import health_view
+from twinwatch.sinks.mqtt.session import read_password
 from twinwatch.sinks.sparkplug.config import SparkplugConfig, check_id, node_key
 from twinwatch.sinks.sparkplug.metrics import metric_specs, metric_values
 from twinwatch.sinks.sparkplug.node import EdgeNode
@@ -41,7 +39,7 @@ logger = logging.getLogger(__package__)
 __all__ = ["SparkplugPublisher"]
 
 
-class SparkplugPublisher(MqttPublisher):
+class SparkplugPublisher(DeliveringSink):
     """The Sparkplug B output (docs/sparkplug.md): the built-in ``sparkplug``,
     ``[outputs.sparkplug]``; the machine is the device ``device_id`` (unset: its name) of the
     edge node ``edge_node_id`` (unset: its name).
@@ -58,16 +56,12 @@ class SparkplugPublisher(MqttPublisher):
             devices set a session key otherwise, the device id is taken.
     """
 
-    config_class: ClassVar[type[SparkplugConfig]] = SparkplugConfig  # type: ignore[assignment]
+    config_class: ClassVar[type[SparkplugConfig]] = SparkplugConfig
     counter_prefix: ClassVar[str | None] = "sparkplug"
-    table: ClassVar[str] = "sparkplug"
-    client_prefix: ClassVar[str] = "twinwatch-sparkplug"
 
-    config: SparkplugConfig  # type: ignore[assignment]  # the subclass' table
+    config: SparkplugConfig
 
     def __init__(self, config: SparkplugConfig, context: SinkContext) -> None:
-        # Not MqttPublisher.__init__: the edge node holds the client and the thread; this
-        # object holds what MqttPublisher's delivery methods read and write.
         self._closed = True  # until fully open
         for key, value in (("edge_node_id", config.edge_node_id),
                            ("device_id", config.device_id)):
@@ -81,33 +75,15 @@ class SparkplugPublisher(MqttPublisher):
         self.model = context.model
         self.parameters = dict(context.parameters)
         self.rules = set(context.alarm_bands)
-        self.delivered = 0
-        self.pending = 0
-        self.errors = 0
         self.device_births = 0
         self.device_born = False
         self.leave_by: float | None = None   # closing: deliver until then (monotonic)
         self.left = threading.Event()        # the node has retired this device
-        self._memory: MemoryOutbox | None = (MemoryOutbox(config.memory_outbox)
-                                             if context.outbox is None else None)
-        self._outbox = None
-        self._events: dict[str, list[dict[str, Any]]] = {}
-        self._events_lock = threading.Lock()
-        self._rebind = threading.Event()
-        self._unacked_logged = False
-        self._failing_store = False
-        self._inflight: dict[int, _Window] = {}
-        self._mids: dict[int, int] = {}
-        self._acked: list[OutboxRow] = []
-        self._position = 0
-        self._cursor = 0
-        self._latest_doc: HealthView | None = None
-        self._previous_levels: dict[str, str] | None = None
-        self._discovery_sent: str | None = None
-        self._discovery_due: float | None = None
-        self._tokens = float(config.inflight)
-        self._token_time = time.monotonic()
-        password = self._read_password()
+        self.delivery = Delivery(
+            config, in_memory=context.outbox is None, outbox_name=lambda: self.name or
+            "sparkplug", send=self._send, machine=self.machine,
+            ready=lambda: self._node.connected and self._node.born)  # DDATA may go out
+        password = read_password(config, "sparkplug")
         edge = config.edge_node_id or context.machine
         self._shared = context.shared
         self._key = node_key(config, context.machine)
@@ -121,18 +97,13 @@ class SparkplugPublisher(MqttPublisher):
         self._node = node
         try:
             self.client_id = node.client_id
-            self._wake = node.wake
             self.device = DeviceSession(node.session, config.device_id or context.machine)
             try:
                 self.device.declare(metric_specs(context.parameters, self.rules, None))
             except ValueError as exc:
                 raise PublisherError(f"outputs.sparkplug: {exc}; rename a parameter") from None
-            self.base = node.session.node_topic % "DDATA"
-            self.health_topic = self.device.ddata_topic
-            self.availability_topic = node.session.ndeath_topic
-            self.discovery_topic = ""
             self.context = context
-            self._bind(context)
+            self.delivery.bind(context)
             node.join(self, config, context.machine)
         except BaseException:
             self._release()
@@ -145,22 +116,34 @@ class SparkplugPublisher(MqttPublisher):
         else:
             self._shared.release(self._key)
 
-    # -- what MqttPublisher's delivery methods read -----------------------------------------
-    @property  # type: ignore[override]
-    def _connected(self) -> bool:
+    # -- the sink contract (as the MQTT output's) --------------------------------------------
+    def attach(self, context: SinkContext) -> None:
+        """A reload's daemon adopts the output: its outbox from now on."""
+        super().attach(context)
+        self.context = context
+        self.delivery.bind(context)
+        self._node.wake.set()
+
+    def write(self, out: ProcessedWindow) -> None:
+        """The window pipeline's call (a stored window): kept in memory when there is no
+        state database; the node's thread woken. Never blocks on the broker."""
+        if self._closed:
+            return
+        if self.delivery.memory is not None:
+            self.delivery.memory.add(out.health_json, out.health.window)
+        self._node.wake.set()
+
+    @property
+    def connected(self) -> bool:
         """The edge node is connected and born (the host online): DDATA may go out."""
         return self._node.connected and self._node.born
-
-    @_connected.setter
-    def _connected(self, value: bool) -> None:
-        pass  # the node's
 
     @property
     def latest_doc(self) -> HealthView | None:
         """The newest stored window of this run's typed message (a DBIRTH's values), or None:
         a new run births with its first window, never with the previous run's last (its run
         id, its alarms, its diagnosis: issue 56), which the outbox holds at a restart."""
-        doc = self._latest_doc
+        doc = self.delivery.latest_doc
         return doc if doc is not None and self._this_run(doc) else None
 
     def _this_run(self, doc: HealthView) -> bool:
@@ -168,26 +151,19 @@ class SparkplugPublisher(MqttPublisher):
         run = self.context.run if self.context is not None else ""
         return not run or getattr(doc, "run", None) == run
 
-    def rebind_due(self) -> bool:
-        """A reload re-bound the output (or the outbox must be read again)."""
-        return self._rebind.is_set()
+    def has_undelivered(self) -> bool:
+        """Windows in flight or pending in the outbox."""
+        return bool(self.delivery.inflight) or self.delivery.has_pending()
 
     def reset_connection(self) -> None:
         """A new connection: the windows in flight are sent again from the outbox, after the
         births, with the new connection's ``seq``."""
-        self._flush_acks()
-        position = self._position_now()
-        self._inflight.clear()
-        self._mids.clear()
-        self._cursor = position
+        self.delivery.reset_connection()
         self.device_born = False
 
     def finish(self) -> None:
         """Retired by the node: record the deliveries."""
-        self._flush_acks()
-        self._count()
-        if self._memory is not None:
-            self.pending = self._memory.count(self._position_now())
+        self.delivery.finish()
 
     # -- the device's messages (in the node's thread) ----------------------------------------
     def device_birth(self) -> None:
@@ -208,14 +184,14 @@ class SparkplugPublisher(MqttPublisher):
         """One window's DDATA (historical when it was stored before this connection's births:
         a replay from the outbox); a metric the birth did not announce (a counter, a RUL
         appearing) makes a new DBIRTH of the device first."""
+        delivery = self.delivery
         try:
-            doc = _view(row.doc)
+            doc = health_view(row.doc)
         except ValueError:
             doc = None
-        if doc is None:
-            self.errors += 1
-            self._inflight[row.id] = _Window(row)
-            self._on_ack_none(row.id)
+        if doc is None:  # a stored row that is no health message: nothing to send
+            delivery.errors += 1
+            delivery.sent(row, [])
             return True
         try:
             grew = self.device.declare(metric_specs(self.parameters, self.rules, doc))
@@ -223,7 +199,7 @@ class SparkplugPublisher(MqttPublisher):
             logger.error("outputs.sparkplug: %s; the new metric is left out", exc)
             grew = False
         if self._this_run(doc) and (newest or self.latest_doc is None):
-            self._latest_doc = doc
+            delivery.latest_doc = doc
         if grew or not self.device_born:
             self.device_birth()
         node = self._node
@@ -231,23 +207,15 @@ class SparkplugPublisher(MqttPublisher):
                                     historical=row.wall < node.live_since)
         info = node.client.publish(self.device.ddata_topic, payload, qos=self.config.qos)
         if info.rc != mqtt.MQTT_ERR_SUCCESS:
-            self.errors += 1
+            delivery.errors += 1
             logger.debug("publishing on %s refused: %s", self.device.ddata_topic,
                          mqtt.error_string(info.rc))
             return False
-        window = _Window(row)
-        window.mids.add(info.mid)
-        self._mids[info.mid] = row.id
-        self._inflight[row.id] = window
+        delivery.sent(row, [info.mid])
         node.track(info.mid, self)
         if self.config.qos == 0 and info.is_published():
-            node._on_publish(node.client, None, info.mid, None, None)
+            node.on_publish(None, None, info.mid, None, None)
         return True
-
-    def _on_ack_none(self, row_id: int) -> None:
-        """A stored row that is no health message: counted delivered (nothing to send)."""
-        window = self._inflight.pop(row_id)
-        self._acked.append(window.row)
 
     # -- the sink contract ------------------------------------------------------------------
     def close(self) -> None:
@@ -274,7 +242,7 @@ class SparkplugPublisher(MqttPublisher):
         return {"delivered": int(self.delivered), "pending": int(self.pending),
                 "dropped": self.dropped, "connects": int(node.connects),
                 "disconnects": int(node.disconnects),
-                "errors": int(self.errors + node.errors), "births": int(node.births),
+                "errors": int(self.delivery.errors + node.errors), "births": int(node.births),
                 "device_births": int(self.device_births), "rebirths": int(node.rebirths),
                 "commands_refused": int(node.commands_refused)}
 
@@ -285,7 +253,8 @@ class SparkplugPublisher(MqttPublisher):
 
     @property
     def problem(self) -> str | None:
-        parts = [self._node.problem(self.pending), self._unacknowledged()]
+        parts = [self._node.problem(self.pending), self.delivery.unacknowledged(
+            self._node.mqtt.broker, self.connected and not self._closed)]
         if self.dropped:
             parts.append(f"Sparkplug: {self.dropped} windows dropped undelivered")
         return "; ".join(p for p in parts if p) or None

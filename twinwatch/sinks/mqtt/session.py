@@ -1,0 +1,296 @@
+"""One MQTT session with a broker, as the MQTT output and a Sparkplug B edge node both hold it:
+the paho client (credentials, TLS, its will), one connection attempt at a time with a capped,
+jittered backoff between them, the CONNACK, the connection lost, another client taking the
+client id over, and what is wrong with the session for STATUS.
+
+The owner (:class:`~twinwatch.sinks.mqtt.publisher.MqttPublisher`, the Sparkplug
+:class:`~twinwatch.sinks.sparkplug.node.EdgeNode`) drives the session from its thread and
+says, through the :class:`SessionOwner` calls, what it publishes when connected and what its
+messages are.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import ssl
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Protocol
+
+from twinwatch._lazy import lazy_module
+from twinwatch.errors import PublisherError
+
+if TYPE_CHECKING:
+    import paho.mqtt.client as mqtt
+
+    from twinwatch.sinks.mqtt.config import MqttConnectionConfig
+else:  # imported when the output opens: loading a configuration does not load paho
+    mqtt = lazy_module("paho.mqtt.client")
+
+__all__ = ["CLOSE_RETRY_S", "TAKEOVERS", "TAKEOVER_S", "MqttSession", "SessionOwner",
+           "read_password"]
+
+#: At stop, with windows still to deliver and no connection: the spacing of the connection
+#: attempts until ``close_timeout`` [s].
+CLOSE_RETRY_S = 1.0
+
+TAKEOVERS = 3
+"""Connections lost in a row, each within :data:`TAKEOVER_S` of being made, that name a
+client-id conflict (another client connecting with the same id takes the session over)."""
+
+TAKEOVER_S = 10.0
+"""A connection lost within this many seconds of being made counts as taken over [s]."""
+
+
+class SessionOwner(Protocol):
+    """What the session asks of its owner (called from paho's callbacks, in the owner's
+    thread)."""
+
+    def session_up(self, client: mqtt.Client, again: bool) -> None:
+        """Connected (``again``: after an outage or a previous connection): announce."""
+
+    def session_down(self) -> bool:
+        """The connection is gone; True when the owner closed it itself (not a loss)."""
+
+    def session_refused(self, reason: Any) -> None:
+        """The broker refused the connection (CONNACK ``reason``)."""
+
+    def in_flight(self) -> str:
+        """What a lost connection sends again, for its log line (``3 windows in flight``)."""
+
+    def on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason: Any,
+                   properties: Any) -> None:
+        """paho's acknowledgement of message ``mid``."""
+
+    def on_message(self, client: mqtt.Client, userdata: Any, msg: Any) -> None:
+        """A message on a topic the owner subscribed to."""
+
+
+class MqttSession:
+    """The session (see the module docstring).
+
+    Args:
+        config: the output's table (its broker connection keys).
+        owner: the output that holds it (:class:`SessionOwner`).
+        table: the output's table in messages (``outputs.<table>.tls``).
+        client_id: the MQTT client id.
+        password: read from ``password_file`` (or ``password``), or None.
+        will: the last will's ``(topic, payload, retain)``, asked at each new client.
+        log: the owner's logger.
+        paho_log: the logger paho's own lines go to.
+        conflict: what the client-id conflict's ERROR line tells the user to do.
+        stopping: whether the owner is closing (a lost connection is then not a take-over).
+
+    Attributes:
+        client: the paho client (:meth:`new_client` replaces it).
+        connected: the broker accepted the connection (CONNACK) and it is not known lost.
+        connects, disconnects: connections made and lost so far.
+
+    Raises:
+        PublisherError: the TLS setup fails.
+    """
+
+    def __init__(self, config: MqttConnectionConfig, owner: SessionOwner, *, table: str,
+                 client_id: str, password: str | None,
+                 will: Callable[[], tuple[str, str | bytes, bool]],
+                 log: logging.Logger, paho_log: str, conflict: str,
+                 stopping: Callable[[], bool]) -> None:
+        self.config = config
+        self.owner = owner
+        self.table = table
+        self.client_id = client_id
+        self._password = password
+        self._will = will
+        self._log = log
+        self._paho_log = paho_log
+        self._conflict = conflict
+        self._stopping = stopping
+        self.connected = False
+        self.connects = 0
+        self.disconnects = 0
+        self.down_since: float | None = time.monotonic()
+        self.connected_at = 0.0
+        self.last_error: str | None = None
+        self.refused = False  # the last attempt's CONNACK refused the connection
+        self.takeovers = 0  # connections lost soon after they were made, in a row
+        self.takeover_total = 0
+        self.hold_until = 0.0  # no connection attempt before (a client-id conflict)
+        self.next_attempt = 0.0
+        self._delay = config.reconnect_min
+        self.client = self.new_client()
+
+    @property
+    def broker(self) -> str:
+        """``host:port`` of the broker."""
+        return f"{self.config.host}:{self.config.port}"
+
+    def new_client(self) -> mqtt.Client:
+        """A paho client with the credentials, the TLS setup and the will; the owner's
+        callbacks set. (The thread's :meth:`attempt` connects it.)
+
+        Raises:
+            PublisherError: the TLS setup fails.
+        """
+        cfg = self.config
+        client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id,
+                             clean_session=True, protocol=mqtt.MQTTv311)
+        client.connect_timeout = cfg.connect_timeout
+        client.max_inflight_messages_set(0)   # the inflight limit is the owner's, in windows
+        client.max_queued_messages_set(0)
+        client.enable_logger(logging.getLogger(self._paho_log))
+        if cfg.username:
+            client.username_pw_set(cfg.username, self._password)
+        if cfg.tls is not None:
+            tls = cfg.tls
+            try:
+                client.tls_set(ca_certs=tls.ca_certs, certfile=tls.certfile,
+                               keyfile=tls.keyfile, cert_reqs=ssl.CERT_REQUIRED,
+                               tls_version=ssl.PROTOCOL_TLS_CLIENT)
+            except (OSError, ssl.SSLError, ValueError) as exc:
+                raise PublisherError(f"outputs.{self.table}.tls: cannot set up TLS: "
+                                     f"{exc}; check the certificate and key files") from exc
+            client.tls_insecure_set(not tls.verify_hostname)
+        topic, payload, retain = self._will()
+        client.will_set(topic, payload, qos=1, retain=retain)
+        client.on_connect = self._on_connect
+        client.on_disconnect = self._on_disconnect
+        client.on_publish = self.owner.on_publish
+        client.on_message = self.owner.on_message
+        self.client = client
+        return client
+
+    # -- connecting ---------------------------------------------------------------------------
+    def due(self, now: float) -> bool:
+        """A connection attempt is due at ``now`` [s, monotonic]: the backoff and a
+        take-over's hold have passed."""
+        return now >= self.next_attempt and now >= self.hold_until
+
+    def backoff(self) -> None:
+        """The attempt failed: the next one after a capped exponential backoff, +-25 %
+        jitter (``reconnect_min`` doubling up to ``reconnect_max`` [s])."""
+        self.next_attempt = time.monotonic() + self._delay * random.uniform(0.75, 1.25)
+        self._delay = min(2 * self._delay, self.config.reconnect_max)
+
+    def attempt(self) -> None:
+        """One connection attempt: TCP (and TLS), CONNECT, then wait for the CONNACK (not
+        past a refusal: its socket is closed, and polling it made paho log an error on every
+        retry)."""
+        self.refused = False
+        try:
+            self.client.reconnect()
+        except (OSError, ssl.SSLError, ValueError) as exc:
+            self.unreachable(str(exc) or type(exc).__name__)
+            return
+        # the CONNACK is waited for while closing too: the closing loop's attempts are how a
+        # backlog reaches a broker that is back after the run's end (leaving at once, each
+        # attempt's socket was closed by the next before its CONNACK was read: a broker back
+        # 25 s after an outage, during the stop, saw a connection a second and got nothing)
+        end = time.monotonic() + self.config.connect_timeout
+        while not self.connected and not self.refused and time.monotonic() < end:
+            if self.client.loop(timeout=0.05) != mqtt.MQTT_ERR_SUCCESS:
+                break
+
+    def unreachable(self, why: str) -> None:
+        """An attempt failed: said once at WARNING per cause (a new cause at DEBUG)."""
+        if self.last_error != why:
+            level = logging.WARNING if self.last_error is None else logging.DEBUG
+            self._log.log(level, "MQTT broker %s unreachable (%s); windows wait in the state "
+                          "database and are sent once it answers", self.broker, why)
+        self.last_error = why
+
+    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any,
+                    properties: Any) -> None:
+        if reason.is_failure:
+            self.owner.session_refused(reason)
+            self.unreachable(f"connection refused: {reason}")
+            self.refused = True
+            client.disconnect()
+            return
+        self.connected = True
+        self.connected_at = time.monotonic()
+        self.down_since = None
+        self.connects += 1
+        self._delay = self.config.reconnect_min
+        self.owner.session_up(client, self.last_error is not None or self.connects > 1)
+        self.last_error = None
+
+    def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any,
+                       properties: Any) -> None:
+        own = self.owner.session_down()
+        was, self.connected = self.connected, False
+        if was:
+            self.disconnects += 1
+        if was and not own and not self._stopping():
+            self._taken_over(time.monotonic() - self.connected_at)
+            if self.takeovers >= TAKEOVERS:
+                self._log.debug("MQTT connection of client id %r taken over again",
+                                self.client_id)
+            else:
+                self._log.warning("MQTT connection to %s lost (%s): %s are sent again on "
+                                  "reconnection", self.broker, reason, self.owner.in_flight())
+        if self.down_since is None or own:
+            self.down_since = time.monotonic()
+
+    def _taken_over(self, lasted: float) -> None:
+        """A connection lost ``lasted`` seconds after it was made. The broker closes a
+        session when another client connects with the same client id (MQTT 3.1.1: no reason
+        given); two daemons with one id take it from each other in turn (issue 26: 78
+        take-overs in 45 s, 13 of 39 windows never received, about 80 warnings per daemon and
+        no line naming the cause). :data:`TAKEOVERS` such losses in a row, each within
+        :data:`TAKEOVER_S` of the connection: named once, and the next attempts wait longer
+        (doubling from 5 s to 60 s); a connection that lasts resets it."""
+        if lasted > TAKEOVER_S:
+            if self.takeovers >= TAKEOVERS:
+                self._log.warning("MQTT client id %r: the connection has lasted %.0f s, no "
+                                  "longer taken over", self.client_id, lasted)
+            self.takeovers = 0
+            return
+        self.takeovers += 1
+        self.takeover_total += 1
+        if self.takeovers < TAKEOVERS:
+            return
+        if self.takeovers == TAKEOVERS:
+            self._log.error("another client uses client id %r on MQTT broker %s: the "
+                            "connection was taken over %d times in a row, each within %.0f s: "
+                            "%s", self.client_id, self.broker, self.takeovers, TAKEOVER_S,
+                            self._conflict)
+        hold = min(5.0 * 2 ** (self.takeovers - TAKEOVERS), 60.0) * random.uniform(0.75, 1.25)
+        self.hold_until = time.monotonic() + hold
+
+    # -- for STATUS ---------------------------------------------------------------------------
+    def problems(self, pending: int) -> list[str]:
+        """The session's part of the output's problem line, with ``pending`` windows: the
+        broker unreachable (past twice ``connect_timeout``, or after a connection), the client
+        id taken over."""
+        out = []
+        if not self.connected and self.down_since is not None and not self._stopping():
+            since = time.monotonic() - self.down_since
+            if since > 2 * self.config.connect_timeout or self.connects:
+                why = f" ({self.last_error})" if self.last_error else ""
+                out.append(f"MQTT broker {self.broker} unreachable for {since:.0f} s{why}: "
+                           f"{pending} windows pending, sent when it is back")
+        if self.takeovers >= TAKEOVERS and not self._stopping():
+            out.append(f"another client uses MQTT client id {self.client_id!r} on "
+                       f"{self.broker} ({self.takeover_total} connections taken over): "
+                       f"{pending} windows pending")
+        return out
+
+
+def read_password(config: Any, table: str) -> str | None:
+    """The password of an MQTT output's table: ``password_file``'s first line, or
+    ``password``.
+
+    Raises:
+        PublisherError: the file cannot be read (naming ``outputs.<table>.password_file``).
+    """
+    if config.password_file is None:
+        return config.password  # type: ignore[no-any-return]
+    try:
+        with open(config.password_file, encoding="utf-8") as f:
+            return f.readline().rstrip("\r\n")
+    except OSError as exc:
+        raise PublisherError(f"cannot read outputs.{table}.password_file = "
+                             f"{config.password_file}"
+                             f": {exc.strerror or exc}; fix the path or the file's "
+                             f"permissions (the service user must read it)") from exc
