@@ -402,7 +402,7 @@ def test_the_blueprint_tells_the_story(tmp_path: Path) -> None:
         assert isinstance(part, rrb.Horizontal), part.name
         assert [str(v.origin).rsplit("/", 1)[-1] for v in part.contents] == [part.name, "summary"]
     # without a parameter under a rule the panels have the column: summaries under the plots
-    from twinwatch.sinks.rerun_views import RecordingViews
+    from twinwatch.sinks.rerun.views import RecordingViews
 
     views_free = RecordingViews("m1", outputs=tuple(STORY_UNITS), parameters=STORY_PARAMETERS,
                               output_units=STORY_UNITS, nominal=rec.views.nominal,
@@ -800,7 +800,7 @@ def test_the_projection_to_the_alarm_is_drawn_latest_only(tmp_path: Path) -> Non
     cursor: one projection on screen, never every window's stacked); the crossing's plant time
     and interval written on it; cleared when a window predicts none; never on a time-series
     view (which would keep every window's)."""
-    from twinwatch.sinks.rerun_views import _BOX
+    from twinwatch.sinks.rerun.projection import BOX as _BOX
 
     windows = []
     for k, (dev, t_cross, t_high) in enumerate(((-4.0, 1090.0, 1200.0),
@@ -873,7 +873,8 @@ def test_the_model_and_the_parameters_table_fit_at_1600x1000(tmp_path: Path) -> 
     margins 45 px; the viewer's menu and the collapsed time panel 65 px)."""
     import rerun.blueprint as rrb
 
-    from twinwatch.sinks.rerun_views import _model_document, _parameter_table
+    from twinwatch.sinks.rerun.texts import model_document as _model_document
+    from twinwatch.sinks.rerun.texts import parameter_table as _parameter_table
     from twinwatch.twin.health import read_health
 
     w = story_window(499, -7.71)
@@ -1050,7 +1051,7 @@ def test_an_alarm_change_is_one_short_row_of_its_own_kind() -> None:
     """Each kind of event gets a row that fits the log panel (the full message is in the
     health message): a fault the diagnosis raised or cleared names the fault, not a
     parameter's deviation (it once read 'alarm cleared to normal (n/a %)')."""
-    from twinwatch.sinks.rerun_views import _event_row
+    from twinwatch.sinks.rerun.texts import event_row as _event_row
 
     fault = {"machine": "m1", "kind": "diagnosis", "fault": "unbalance", "level": "normal",
              "previous": "alarm", "probability": 0.12, "t": 286.0, "window": 142,
@@ -1082,7 +1083,7 @@ def test_the_estimation_panel_keeps_two_labels(high: float, frame: tuple[float, 
     """Issue 24: the estimation strip is about 55 px at 1600x1000; when the first window took
     322 ms the viewer labelled its axis 0 alone (ticks a hundred apart closer than it labels).
     Its frame reaches the next power of ten instead, with room for that label."""
-    from twinwatch.sinks.rerun_views import _sparse_frame
+    from twinwatch.sinks.rerun.style import sparse_frame as _sparse_frame
 
     assert _sparse_frame(high) == pytest.approx(list(frame))
 
@@ -1099,7 +1100,7 @@ def test_an_axis_frame_leaves_room_for_its_outermost_labels(
     fit strip's 100 was cut in half at 1600x1000. The frame reaches a labelled tick at both
     ends and leaves 12 % of the axis beyond it (a parameter's small panel too, whose +-10
     labels the layout gives about 100 px: the summary beside the plot, test above)."""
-    from twinwatch.sinks.rerun_views import _frame
+    from twinwatch.sinks.rerun.style import axis_frame as _frame
 
     assert _frame(np.array(values)) == pytest.approx(list(frame))
     low, high = _frame(np.array([0.0, 0.0]))  # one value: a frame around it, not a line
@@ -1111,7 +1112,7 @@ def test_the_estimation_frame_is_in_every_file() -> None:
     """The estimation panel's frame follows the run's slowest window, is logged only when it
     changes, and again after a new file's static part (a rotated file without it labelled 0
     alone again)."""
-    from twinwatch.sinks.rerun_views import RecordingViews
+    from twinwatch.sinks.rerun.views import RecordingViews
     from twinwatch.twin.health import HealthView
 
     views = RecordingViews("m1", outputs=("ia",), parameters={"Ra": "ohm"})

@@ -9,7 +9,11 @@
   (:class:`~twinwatch.sinks.rerun.live.LiveServer`);
 * :mod:`~twinwatch.sinks.rerun.recorder`: :class:`RerunRecorder`, the recording stream, one
   window's way to it, the writer's failures (the durability and the faults: its docstring);
-* what it draws, the entities and the default blueprint: :mod:`twinwatch.sinks.rerun_views`.
+* what it draws: :mod:`~twinwatch.sinks.rerun.views` (the entities and the default blueprint,
+  :class:`~twinwatch.sinks.rerun.views.RecordingViews`), :mod:`~twinwatch.sinks.rerun.style`
+  (the timeline, colours, markers, numbers for a person), :mod:`~twinwatch.sinks.rerun.
+  projection` (a parameter's trend to its alarm threshold), :mod:`~twinwatch.sinks.rerun.texts`
+  (the documents and rows in words).
 """
 
 from __future__ import annotations
@@ -17,6 +21,6 @@ from __future__ import annotations
 from twinwatch.errors import RecorderError
 from twinwatch.sinks.rerun.config import RecordingConfig
 from twinwatch.sinks.rerun.recorder import RerunRecorder
-from twinwatch.sinks.rerun_views import TIMELINE
+from twinwatch.sinks.rerun.style import TIMELINE
 
 __all__ = ["TIMELINE", "RecorderError", "RecordingConfig", "RerunRecorder"]

@@ -22,7 +22,8 @@ from typing import TYPE_CHECKING, Any
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import RecorderError
-from twinwatch.sinks.rerun_views import Op, emit
+from twinwatch.sinks.rerun.style import Op
+from twinwatch.sinks.rerun.views import emit
 
 if TYPE_CHECKING:
     import rerun as rr

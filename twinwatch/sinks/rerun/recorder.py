@@ -4,7 +4,7 @@ One :class:`RerunRecorder` per monitored machine, each with its own
 :class:`rerun.RecordingStream` (never the global one, so several recorders coexist in one
 process). What it logs and the default blueprint (the entities, their styles, the layout
 that tells the machine's story at one glance) are
-:class:`~twinwatch.sinks.rerun_views.RecordingViews`; this package keeps the files, the live
+:class:`~twinwatch.sinks.rerun.views.RecordingViews`; this package keeps the files, the live
 server and the faults.
 
 Per-run files: ``[recording] path`` (``twinwatch.rrd``) is a stable name, a symbolic link to
@@ -96,7 +96,7 @@ from twinwatch.sinks.locks import FileLock
 from twinwatch.sinks.rerun.config import RecordingConfig
 from twinwatch.sinks.rerun.files import RecordingFiles
 from twinwatch.sinks.rerun.live import LiveServer, bury
-from twinwatch.sinks.rerun_views import RecordingViews, emit
+from twinwatch.sinks.rerun.views import RecordingViews, emit
 
 if TYPE_CHECKING:
     import rerun as rr

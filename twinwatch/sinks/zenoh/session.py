@@ -1,0 +1,157 @@
+"""A zenoh session as the daemon opens it: the configuration (explicit endpoints only, no
+scouting), opening it with a readable error, the key a process shares a session by, and the
+advanced publishers with their cache.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import TYPE_CHECKING
+
+from twinwatch._lazy import lazy_module
+from twinwatch.errors import PublisherError
+
+if TYPE_CHECKING:
+    import zenoh
+    from zenoh import ext as zenoh_ext
+else:  # imported when a session opens: loading a configuration does not load zenoh
+    zenoh = lazy_module("zenoh")
+    zenoh_ext = lazy_module("zenoh.ext")
+from twinwatch.sinks.zenoh.config import RUST_LOCATION_RE, ZenohConfig
+
+logger = logging.getLogger(__package__)  # twinwatch.sinks.zenoh, as before the split
+
+
+
+
+def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+    """Build the :class:`zenoh.Config` for ``cfg``.
+
+    Multicast and gossip scouting are always off: the session only uses the endpoints given.
+    In client mode no listen endpoint is set.
+
+    Raises:
+        PublisherError: zenoh rejected a value (should not happen for a validated ``cfg``).
+    """
+    conf = zenoh.Config()
+    listen = [] if cfg.mode == "client" else list(cfg.listen)
+    try:
+        conf.insert_json5("mode", json.dumps(cfg.mode))
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+        conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("scouting/gossip/enabled", "false")
+        if cfg.tls is not None:
+            for key, value in cfg.tls.model_dump(exclude_none=True).items():
+                conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+        if cfg.auth is not None:
+            for key, value in cfg.auth.model_dump(exclude_none=True).items():
+                conf.insert_json5(f"transport/auth/usrpwd/{key}", json.dumps(value))
+        if cfg.access_control is not None:
+            conf.insert_json5("access_control", json.dumps(cfg.access_control))
+    except zenoh.ZError as exc:
+        # never echo the config: it may hold secrets
+        raise PublisherError(f"invalid zenoh configuration (mode={cfg.mode}): "
+                             f"{RUST_LOCATION_RE.sub('', str(exc)).strip()}") from exc
+    return conf
+
+
+def open_session(cfg: ZenohConfig) -> zenoh.Session:
+    """Open a zenoh session for ``cfg`` (see :func:`to_zenoh_config`).
+
+    The caller owns the session and must ``close()`` it (or use it as a context manager).
+
+    Raises:
+        PublisherError: the session could not open; the message says which endpoint failed
+            and what to change (port already in use, nothing listening, unknown host).
+    """
+    for key, path in cfg.file_paths().items():
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            raise PublisherError(f"cannot read {key} = {path}: {exc.strerror or exc}; fix the "
+                                 f"path in [zenoh.tls]/[zenoh.auth] or the file's permissions "
+                                 f"(the service user must read it)") from exc
+    conf = to_zenoh_config(cfg)
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise PublisherError(explain_open_failure(cfg, str(exc))) from exc
+    logger.debug(
+        "zenoh session %s open (mode=%s, listen=%s, connect=%s)",
+        session.zid(),
+        cfg.mode,
+        cfg.listen if cfg.mode != "client" else [],
+        cfg.connect,
+    )
+    return session
+
+
+SESSION_FIELDS_NOT_SHARED = frozenset({"key_prefix", "enabled", "retry_max", "cache",
+                                       "heartbeat", "summary_interval", "box", "presence"})
+"""``[zenoh]`` keys that do not make the session (each machine's publisher has its own), so
+machines that differ only in them share one session in a gateway."""
+
+
+def session_key(cfg: ZenohConfig) -> str:
+    """What makes a session (mode, endpoints, TLS, authentication, access control), as one
+    string: in a gateway, machines whose ``[zenoh]`` gives the same key share one session
+    (:class:`~twinwatch.sinks.base.SharedResources`)."""
+    data = cfg.model_dump(mode="json", exclude=set(SESSION_FIELDS_NOT_SHARED))
+    return "zenoh:" + json.dumps(data, sort_keys=True, default=str)
+
+
+def declare_publisher(session: zenoh.Session, key: str, cfg: ZenohConfig
+                      ) -> zenoh.Publisher | zenoh_ext.AdvancedPublisher:
+    """Declare the publisher of one topic (``P/health``, ``P/alarm``) on ``session``: with
+    ``cfg.cache`` > 0 a ``zenoh.ext`` advanced publisher (a cache of the last ``cache`` samples
+    for late joiners and recovery, sequence numbers and a sporadic heartbeat every
+    ``cfg.heartbeat`` s for sample-miss detection, publisher detection so a subscriber that
+    is there first asks a publisher that comes later for its cache); else a plain publisher.
+    JSON encoding either way. The one place a topic's publisher is made (a session shared by
+    several machines declares each machine's here too).
+
+    Raises:
+        zenoh.ZError: the declaration failed (the session closed).
+    """
+    encoding = zenoh.Encoding.APPLICATION_JSON
+    if cfg.cache == 0:
+        return session.declare_publisher(key, encoding=encoding)
+    heartbeat = cfg.heartbeat if cfg.heartbeat > 0 else None
+    return zenoh_ext.declare_advanced_publisher(
+        session, key, encoding=encoding, cache=zenoh_ext.CacheConfig(cfg.cache),
+        sample_miss_detection=zenoh_ext.MissDetectionConfig(heartbeat=None,
+                                                            sporadic_heartbeat=heartbeat),
+        publisher_detection=True)
+
+
+def explain_open_failure(cfg: ZenohConfig, message: str) -> str:
+    message = RUST_LOCATION_RE.sub("", message).strip()
+    lowered = message.lower()
+    if "address already in use" in lowered:
+        endpoint = next((e for e in cfg.listen if e in message), None) or ", ".join(cfg.listen)
+        host_port = endpoint.split("/", 1)[-1]
+        host, _, port = host_port.rpartition(":")
+        return (
+            f"cannot listen on {endpoint}: port {port} already in use on {host}: another "
+            "twinwatch or zenoh peer is listening; set [zenoh].listen to another port "
+            f"(zenoh: {message})"
+        )
+    if "unable to connect" in lowered:
+        return (
+            f"cannot connect to {', '.join(cfg.connect)}: nothing answers there; start the zenoh "
+            "router/peer first or fix [zenoh].connect "
+            f"(zenoh: {message})"
+        )
+    if "lookup address" in lowered or "name or service not known" in lowered:
+        return (
+            f"cannot resolve a host in listen={cfg.listen} connect={cfg.connect}: "
+            f"fix the endpoint host in [zenoh] (zenoh: {message})"
+        )
+    return (
+        f"cannot open zenoh session (mode={cfg.mode}, listen={cfg.listen}, "
+        f"connect={cfg.connect}): {message}"
+    )
+
