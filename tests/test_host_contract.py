@@ -46,8 +46,13 @@ def process_host(tmp_path: Path):  # type: ignore[no-untyped-def]
 
 def test_both_hosts_are_one_contract() -> None:
     assert issubclass(Host, ServiceHost) and issubclass(ProcessHost, ServiceHost)
-    assert not ServiceHost.__abstractmethods__ - {"start", "run", "status_line", "exit_status",
-                                                  "summary", "abandon"}
+    # one loop (ServiceHost.run, its tick and stop), each host its strategy (issue 57)
+    assert not {"run", "_tick", "_stop_all"} & ServiceHost.__abstractmethods__
+    assert not ServiceHost.__abstractmethods__ - {
+        "start", "status_line", "exit_status", "summary", "abandon", "_turn", "_rescan",
+        "_healthy", "_refresh_status", "_grace", "_ask_to_stop", "_wait_stopped", "_stopped_why"}
+    for host in (Host, ProcessHost):
+        assert "run" not in vars(host) and "_tick" not in vars(host)
     assert not Host.__abstractmethods__ and not ProcessHost.__abstractmethods__
 
 

@@ -56,12 +56,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from twinwatch.daemon import logfilter
 from twinwatch.daemon.service import (
     EX_CONFIG,
     EX_IOERR,
     EX_TEMPFAIL,
     FLEET_REPORT,
+    MACHINE_GLOB,
     FleetStatus,
     MachineSummary,
     Progress,
@@ -82,8 +82,6 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["MACHINE_GLOB", "Host", "Machine", "MachineNotifier"]
 
-MACHINE_GLOB = "*.toml"
-"""The machine configurations of a directory (one machine per file)."""
 
 class MachineNotifier(Notifier):
     """What a machine tells systemd goes to its host instead (:meth:`Host._from_machine`);
@@ -420,9 +418,6 @@ class Host(ServiceHost):
         self._warned: set[tuple[str, str]] = set()  # the skipped entries named so far
         self._names_lock = threading.Lock()
         self._status_lock = threading.Lock()
-        self._status = ""
-        self._next_status = 0.0
-        self._last_ping = 0.0
         self._ready = False
 
     # -- configuration ------------------------------------------------------------------------
@@ -581,28 +576,10 @@ class Host(ServiceHost):
             assignments.append(f"{FLEET_REPORT}={status.model_dump_json()}")
         self.notifier.notify(*(["READY=1"] if ready else []), *assignments)
 
-    # -- run ----------------------------------------------------------------------------------
-    def run(self) -> None:
-        """Supervise the machines until every one has ended (their sources finished, or
-        ``duration``) or a stop signal; act on SIGHUP; keep STATUS and the watchdog. Stops
-        every machine (each finishes its queued windows) before returning."""
-        try:
-            while not self._stop.is_set():
-                if self._reload.is_set():
-                    self._reload.clear()
-                    self._rescan()
-                if not any(m.thread.is_alive() for m in self.machines.values()):
-                    break
-                self._tick()
-                self._stop.wait(0.2)
-        finally:
-            self._stop_all()
-            gc.unfreeze()  # the stopped machines' cycles are the collector's again
-            self._restore_signal_handlers()
-            logfilter.flush(force=True)
-        why = self._stopped_why()
-        if why is not None:
-            self.notifier.status(f"stopped: {why}")
+    # -- run: the loop's turn (ServiceHost.run) ------------------------------------------------
+    def _turn(self) -> bool:
+        """True while a machine's thread runs."""
+        return any(m.thread.is_alive() for m in self.machines.values())
 
     def _stopped_why(self) -> str | None:
         """Why the run failed, for the last STATUS; None when it did not."""
@@ -622,35 +599,34 @@ class Host(ServiceHost):
             return failed_line(daemon)
         return None
 
-    def _tick(self) -> None:
-        now = time.monotonic()
-        interval = self.notifier.watchdog_interval
-        if (interval is not None and now - self._last_ping >= interval
-                and any(m.healthy() for m in self.machines.values())):
-            self._last_ping = now
-            self.notifier.watchdog()
-        if now >= self._next_status:
-            self._next_status = now + 1.0
-            self._changed()
-            if self.assignment is not None and self._ready:
-                # a worker process's heartbeat: its host calls a worker that sends nothing
-                # for a window plus a margin stalled (a stopped or frozen process is alive)
-                self.notifier.notify(f"{FLEET_REPORT}={self.fleet_status().model_dump_json()}")
+    def _healthy(self, interval: float) -> bool:
+        """A machine is healthy (its loop ticks, its worker is not stuck) or still opening."""
+        return any(m.healthy() for m in self.machines.values())
 
-    def _stop_all(self) -> None:
-        machines = [*self.machines.values(), *self.retired]
-        self.notifier.stopping("stopping: the machines finish their queued windows"
-                               if self.fleet else "stopping: finishing the queued windows")
-        longest = max((m.supervisor.config.acquisition.shutdown_timeout
-                       for m in machines if m.supervisor.config is not None), default=10.0)
-        self.notifier.extend_timeout(longest + 10)
-        for m in machines:
+    def _refresh_status(self) -> None:
+        """A fleet's STATUS when it changed; a worker process's heartbeat to its host."""
+        self._changed()
+        if self.assignment is not None and self._ready:
+            # a worker process's heartbeat: its host calls a worker that sends nothing
+            # for a window plus a margin stalled (a stopped or frozen process is alive)
+            self.notifier.notify(f"{FLEET_REPORT}={self.fleet_status().model_dump_json()}")
+
+    def _grace(self) -> float:
+        """The longest ``shutdown_timeout`` of the machines' configurations [s] (10 s)."""
+        return max((m.supervisor.config.acquisition.shutdown_timeout
+                    for m in [*self.machines.values(), *self.retired]
+                    if m.supervisor.config is not None), default=10.0)
+
+    def _ask_to_stop(self) -> None:
+        for m in [*self.machines.values(), *self.retired]:
             m.supervisor.stop()
-        deadline = time.monotonic() + longest + 5
-        for m in machines:
+
+    def _wait_stopped(self, deadline: float, limit: float) -> None:
+        for m in [*self.machines.values(), *self.retired]:
             m.thread.join(timeout=max(0.1, deadline - time.monotonic()))
             if m.thread.is_alive():
-                logger.error("machine %s did not stop within %.0f s", m.name, longest + 5)
+                logger.error("machine %s did not stop within %.0f s", m.name, limit)
+        gc.unfreeze()  # the stopped machines' cycles are the collector's again
 
     def stop(self) -> None:
         """Ask :meth:`run` to stop every machine and return (thread- and signal-safe)."""
@@ -955,6 +931,7 @@ def _freeze_started() -> None:
     objects) and the machines as they started. A full pass walked them all: 150 ms of CPU in
     a 50-machine worker and a stall of 150-580 ms of every machine's window in it (measured at
     200 machines in four workers: 4-5 such passes per worker in 180 s). A reload and the end
-    of :meth:`Host.run` unfreeze them, so a replaced or stopped machine's cycles are collected
-    as before (a command line run in a test's process leaks nothing)."""
+    of the service loop (:meth:`ServiceHost.run`) unfreeze them, so a replaced or stopped
+    machine's cycles are collected as before (a command line run in a test's process leaks
+    nothing)."""
     gc.freeze()

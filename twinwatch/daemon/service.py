@@ -1,13 +1,18 @@
 """The service contract: what ``twinwatch run`` is, whichever way its machines run.
 
-A :class:`ServiceHost` owns, in the main thread, the loop (:meth:`~ServiceHost.run`), its tick,
-the signals, the stop, the reload, systemd's ``STATUS`` and the end of the run: the exit status
-and a structured summary (:class:`RunSummary`). Two hosts implement it:
+A :class:`ServiceHost` owns, in the main thread, the loop (:meth:`~ServiceHost.run`), its tick
+(the watchdog and ``STATUS``), the signals, the stop, the reload and the end of the run: the
+exit status and a structured summary (:class:`RunSummary`). How the machines run is its
+strategy, one of two hosts:
 
 * :class:`~twinwatch.daemon.host.Host`: the machines in threads of this process (a file, a
   directory with ``--workers 1``, and each worker process of the other);
 * :class:`~twinwatch.daemon.workers.ProcessHost`: a directory's machines in worker processes,
   each one a :class:`~twinwatch.daemon.host.Host` on the machine files it is assigned.
+
+A strategy says what one turn of the loop does (:meth:`~ServiceHost._turn`), whether its
+machines are healthy (:meth:`~ServiceHost._healthy`), what its ``STATUS`` is now, how its
+machines are asked to stop and waited for, and why a run failed.
 
 The command line holds one ``ServiceHost`` and only prints what it returns. A worker reports to
 its host in typed messages, never in prose: its machines' state as a :class:`FleetStatus` in the
@@ -20,6 +25,7 @@ from __future__ import annotations
 import logging
 import signal
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -34,8 +40,11 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["EX_CONFIG", "EX_IOERR", "EX_TEMPFAIL", "FLEET_REPORT", "FleetStatus",
+__all__ = ["EX_CONFIG", "EX_IOERR", "EX_TEMPFAIL", "FLEET_REPORT", "MACHINE_GLOB", "FleetStatus",
            "MachineSummary", "Progress", "RunSummary", "ServiceHost"]
+
+#: The machine configurations of a directory.
+MACHINE_GLOB = "*.toml"
 
 EX_CONFIG = 78
 """Exit status: no machine's configuration can run here (sysexits.h); the units do not restart
@@ -154,11 +163,17 @@ class ServiceHost(ABC):
     #: debug only (its host, which forwarded them, says it once for the gateway)
     signal_log_level: int = logging.WARNING
 
+    #: seconds between two turns of the loop
+    turn_s: float = 0.2
+
     def __init__(self) -> None:
         self._stop = threading.Event()
         self._reload = threading.Event()
         self._stop_signals = 0
         self._previous_handlers: dict[int, Any] = {}
+        self._status = ""  # the last STATUS line sent
+        self._last_ping = 0.0
+        self._next_status = 0.0
 
     # -- the contract -------------------------------------------------------------------------
     @abstractmethod
@@ -169,11 +184,85 @@ class ServiceHost(ABC):
             ConfigError: there is no machine to run (a directory without configurations).
         """
 
-    @abstractmethod
     def run(self) -> None:
         """Supervise until every machine has ended or a stop; act on SIGHUP; keep ``STATUS``
         and the watchdog. Stops every machine before returning, and tells systemd how the run
         ended (``STATUS=stopped: ...``) when it failed."""
+        from twinwatch.daemon import logfilter
+
+        try:
+            while not self._stop.is_set():
+                if self._reload.is_set():
+                    self._reload.clear()
+                    self._rescan()
+                if not self._turn():
+                    break
+                self._tick()
+                self._stop.wait(self.turn_s)
+        finally:
+            self._stop_all()
+            self._restore_signal_handlers()
+            logfilter.flush(force=True)
+        why = self._stopped_why()
+        if why is not None:
+            self.notifier.status(f"stopped: {why}")
+
+    def _tick(self) -> None:
+        """The watchdog pinged while a machine is healthy; ``STATUS`` refreshed every second."""
+        now = time.monotonic()
+        interval = self.notifier.watchdog_interval
+        if (interval is not None and now - self._last_ping >= interval
+                and self._healthy(interval)):
+            self._last_ping = now
+            self.notifier.watchdog()
+        if now >= self._next_status:
+            self._next_status = now + 1.0
+            self._refresh_status()
+
+    def _stop_all(self) -> None:
+        """Stop every machine: ``STOPPING=1``, systemd's stop timeout extended to the longest
+        grace [s] the machines need plus 10 s, each asked to stop, each waited for until the
+        grace plus 5 s."""
+        self.notifier.stopping("stopping: the machines finish their queued windows"
+                               if self.fleet else "stopping: finishing the queued windows")
+        grace = self._grace()
+        self.notifier.extend_timeout(grace + 10)
+        self._ask_to_stop()
+        self._wait_stopped(time.monotonic() + grace + 5, grace + 5)
+
+    # -- the strategy ---------------------------------------------------------------------------
+    @abstractmethod
+    def _turn(self) -> bool:
+        """One turn of the loop; False when every machine has ended."""
+
+    @abstractmethod
+    def _rescan(self) -> None:
+        """SIGHUP: the machines started, stopped and reloaded as the configuration says."""
+
+    @abstractmethod
+    def _healthy(self, interval: float) -> bool:
+        """A machine is healthy (the watchdog is pinged every ``interval`` [s])."""
+
+    @abstractmethod
+    def _refresh_status(self) -> None:
+        """Send ``STATUS`` when it changed."""
+
+    @abstractmethod
+    def _grace(self) -> float:
+        """The longest the machines take to finish their queued windows [s]."""
+
+    @abstractmethod
+    def _ask_to_stop(self) -> None:
+        """Ask every machine to stop."""
+
+    @abstractmethod
+    def _wait_stopped(self, deadline: float, limit: float) -> None:
+        """Wait for every machine until ``deadline`` [s, monotonic], ``limit`` [s] after
+        the stop was asked."""
+
+    @abstractmethod
+    def _stopped_why(self) -> str | None:
+        """Why the run failed, for the last STATUS; None when it did not."""
 
     @abstractmethod
     def status_line(self) -> str:

@@ -64,7 +64,6 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from twinwatch.daemon import logfilter
 from twinwatch.daemon.host import MACHINE_GLOB, RELOAD_REPORT, reload_line, skipped, warn_skipped
 from twinwatch.daemon.service import (
     EX_CONFIG,
@@ -389,6 +388,7 @@ class ProcessHost(ServiceHost):
     """
 
     fleet = True
+    turn_s = 0.1
 
     def __init__(self, directory: Path, *, workers: int, work_root: Path | None = None,
                  resume: bool | None = None, duration: float | None = None,
@@ -408,9 +408,6 @@ class ProcessHost(ServiceHost):
         self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
         self.run_dir = Path(tempfile.mkdtemp(prefix="twinwatch-host-"))
         self.workers: list[Worker] = []
-        self._status = ""
-        self._last_ping = 0.0
-        self._next_status = 0.0
         # a SIGHUP's one line, once every worker signalled said what it did: (deadline, the
         # workers signalled, what the host itself did)
         self._reload_pending: tuple[float, list[Worker], list[str]] | None = None
@@ -453,32 +450,20 @@ class ProcessHost(ServiceHost):
             self._stop.wait(0.1)
         self.notifier.ready(status=self.status_line())
 
-    # -- run ----------------------------------------------------------------------------------
-    def run(self) -> None:
-        """Supervise the workers until every one has ended or a stop signal; restart a worker
-        that dies; act on SIGHUP; keep STATUS and the watchdog. Stops every worker before
-        returning."""
-        try:
-            while not self._stop.is_set():
-                if self._reload.is_set():
-                    self._reload.clear()
-                    self._rescan()
-                for w in self.workers:
-                    w.drain()
-                    self._check(w)
-                    self._watch(w)
-                self._reload_done()
-                if not any(w.alive() for w in self.workers):
-                    break
-                self._tick()
-                self._stop.wait(0.1)
-        finally:
-            self._stop_all()
-            self._restore_signal_handlers()
-            logfilter.flush(force=True)
+    # -- run: the loop's turn (ServiceHost.run) ------------------------------------------------
+    def _turn(self) -> bool:
+        """Read the workers, start again one that a signal ended, watch for a stalled one, say
+        what a SIGHUP did; True while a worker runs."""
+        for w in self.workers:
+            w.drain()
+            self._check(w)
+            self._watch(w)
+        self._reload_done()
+        return any(w.alive() for w in self.workers)
+
+    def _stopped_why(self) -> str | None:
         code = self.exit_status()
-        if code:
-            self.notifier.status(f"stopped: exit status {code}")
+        return f"exit status {code}" if code else None
 
     def _check(self, w: Worker) -> None:
         """A worker that a signal ended is started again (its machines resume); one that
@@ -549,19 +534,15 @@ class ProcessHost(ServiceHost):
             with contextlib.suppress(ProcessLookupError):
                 w.proc.kill()  # SIGKILL ends a stopped process too
 
-    def _tick(self) -> None:
-        now = time.monotonic()
-        interval = self.notifier.watchdog_interval
-        if (interval is not None and now - self._last_ping >= interval
-                and any(w.healthy(interval) for w in self.workers)):
-            self._last_ping = now
-            self.notifier.watchdog()
-        if now >= self._next_status:
-            self._next_status = now + 1.0
-            line = self.status_line()
-            if line != self._status:
-                self._status = line
-                self.notifier.status(line)
+    def _healthy(self, interval: float) -> bool:
+        """A worker is healthy (it reported within the interval and is not stalled)."""
+        return any(w.healthy(interval) for w in self.workers)
+
+    def _refresh_status(self) -> None:
+        line = self.status_line()
+        if line != self._status:
+            self._status = line
+            self.notifier.status(line)
 
     def _rescan(self) -> None:
         """SIGHUP: place the directory's files again (a file keeps its worker, a new one goes
@@ -601,21 +582,24 @@ class ProcessHost(ServiceHost):
         logger.warning("%s", reload_line(items, sum(len(w.files) for w in self.workers),
                                          str(self.directory)))
 
-    def _stop_all(self) -> None:
-        self.notifier.stopping("stopping: the machines finish their queued windows")
-        self.notifier.extend_timeout(30.0)
+    def _grace(self) -> float:
+        """A worker's machines finish their queued windows within 20 s [s]."""
+        return 20.0
+
+    def _ask_to_stop(self) -> None:
         for w in self.workers:
             w.send(signal.SIGTERM)
             if w.stalled_since is not None:
                 w.send(signal.SIGCONT)  # a stopped worker can then stop as asked
-        deadline = time.monotonic() + 25.0
+
+    def _wait_stopped(self, deadline: float, limit: float) -> None:
         for w in self.workers:
             if w.proc is None:
                 continue
             try:
                 w.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                logger.error("worker %d did not stop within 25 s: killed", w.index)
+                logger.error("worker %d did not stop within %.0f s: killed", w.index, limit)
                 w.proc.kill()
                 w.proc.wait()
             w.join_output(5.0)
