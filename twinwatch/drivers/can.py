@@ -389,39 +389,9 @@ class CanDriver(BusDriver):
             return None
         message = plan.message
         self._seen[message.name] = float(frame.timestamp)
-        data = bytes(frame.data)
-        try:
-            decoded = message.decode(
-                data, decode_choices=False, scaling=True, allow_truncated=False, allow_excess=True
-            )
-        except (DecodeError, ValueError, KeyError, IndexError) as exc:
-            self.stats.bad_frames += 1
-            self.log_once(
-                f"decode:{message.name}",
-                "CAN frame 0x%X (%s, %d bytes) not decodable: %s; counted in stats.bad_frames",
-                frame.arbitration_id,
-                message.name,
-                len(data),
-                exc,
-            )
+        decoded = self._decode(message, frame)
+        if decoded is None:
             return None
-        if not isinstance(decoded, dict):  # container frames decode to lists
-            self.stats.bad_frames += 1
-            self.log_once(
-                f"container:{message.name}", "CAN container message %s ignored", message.name
-            )
-            return None
-        if len(data) > message.length:
-            self.log_once(
-                f"long:{message.name}",
-                "CAN frame 0x%X (%s) has %d bytes, DBC says %d; extra bytes ignored",
-                frame.arbitration_id,
-                message.name,
-                len(data),
-                message.length,
-                level=logging.INFO,
-            )
-
         for channel, signal, scale, offset in plan.channels:
             raw = decoded.get(signal)
             if raw is None:  # multiplexed signal not in this frame
@@ -446,6 +416,35 @@ class CanDriver(BusDriver):
             return self._assemble(frame)
         return None
 
+    def _decode(self, message: DbcMessage, frame: can.Message) -> dict[str, Any] | None:
+        """A needed message's frame decoded (signal -> physical value); None, counted in
+        ``stats.bad_frames`` and logged once, when it cannot be (too short, a container)."""
+        data = bytes(frame.data)
+        try:
+            decoded = message.decode(
+                data, decode_choices=False, scaling=True, allow_truncated=False, allow_excess=True
+            )
+        except (DecodeError, ValueError, KeyError, IndexError) as exc:
+            self.stats.bad_frames += 1
+            self.log_once(
+                f"decode:{message.name}",
+                "CAN frame 0x%X (%s, %d bytes) not decodable: %s; counted in stats.bad_frames",
+                frame.arbitration_id, message.name, len(data), exc)
+            return None
+        if not isinstance(decoded, dict):  # container frames decode to lists
+            self.stats.bad_frames += 1
+            self.log_once(
+                f"container:{message.name}", "CAN container message %s ignored", message.name
+            )
+            return None
+        if len(data) > message.length:
+            self.log_once(
+                f"long:{message.name}",
+                "CAN frame 0x%X (%s) has %d bytes, DBC says %d; extra bytes ignored",
+                frame.arbitration_id, message.name, len(data), message.length,
+                level=logging.INFO)
+        return decoded
+
     def _on_counter(self, value: float) -> None:
         if not value.is_integer():
             self.stats.bad_values += 1
@@ -465,14 +464,7 @@ class CanDriver(BusDriver):
                                           key="silent_messages")
         self._silent = tuple(silent)
         missing = [ch for ch in self.channels if ch not in self._latest]
-        t: float | None
-        if self._time_mode == "frame":
-            t = now
-        elif self._time_mode == "counter":
-            count = self._counter.count
-            t = None if count is None else count * self.sample_period
-        else:
-            t = self._time_value
+        t = self._sample_time(now)
         if missing or t is None:
             self._bump("incomplete_syncs")
             self.log_once(
@@ -487,3 +479,13 @@ class CanDriver(BusDriver):
             )
             return None
         return Sample(t, {ch: self._latest[ch] for ch in self.channels if ch not in gone})
+
+    def _sample_time(self, stamp: float) -> float | None:
+        """The sample's time [s] by ``time_source``: the sync frame's ``stamp``, the counter
+        times ``sample_period``, or the time signal's latest value (None before one)."""
+        if self._time_mode == "frame":
+            return stamp
+        if self._time_mode == "counter":
+            count = self._counter.count
+            return None if count is None else count * self.sample_period
+        return self._time_value

@@ -316,26 +316,37 @@ def _read_pdos(od: Any, node_id: int, eds: Path) -> dict[str, _Pdo]:
             cob_id = cob_raw & 0x1FFFFFFF
             if n < 4 and cob_id == predefined + n * 0x100:
                 cob_id += node_id  # a default written without $NODEID: the predefined set
-            entries, offset = [], 0
-            for word in words:
-                index, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
-                if index == 0 or bits == 0:
-                    continue
-                if index < 0x20:  # a dummy entry (a data type's index): padding
-                    offset += bits
-                    continue
-                try:
-                    var = od.get_variable(index, sub)
-                except KeyError:
-                    var = None
-                if var is None:
-                    raise DriverConfigError(
-                        f"eds: {str(eds)!r}: {name} maps 0x{index:04X}sub{sub}, which the "
-                        f"file does not define")
-                entries.append(_Entry(index, sub, var.name, offset, bits, int(var.data_type)))
-                offset += bits
-            pdos[name] = _Pdo(name, cob_id, trans, entries, offset)
+            entries, bits = _mapped(od, words, name, eds)
+            pdos[name] = _Pdo(name, cob_id, trans, entries, bits)
     return pdos
+
+
+def _mapped(od: Any, words: list[int], name: str, eds: Path) -> tuple[list[_Entry], int]:
+    """A PDO's mapping parameter's words as entries (a dummy entry is padding), and the
+    mapping's length [bits].
+
+    Raises:
+        DriverConfigError: an entry maps an object the file does not define.
+    """
+    entries, offset = [], 0
+    for word in words:
+        index, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
+        if index == 0 or bits == 0:
+            continue
+        if index < 0x20:  # a dummy entry (a data type's index): padding
+            offset += bits
+            continue
+        try:
+            var = od.get_variable(index, sub)
+        except KeyError:
+            var = None
+        if var is None:
+            raise DriverConfigError(
+                f"eds: {str(eds)!r}: {name} maps 0x{index:04X}sub{sub}, which the "
+                f"file does not define")
+        entries.append(_Entry(index, sub, var.name, offset, bits, int(var.data_type)))
+        offset += bits
+    return entries, offset
 
 
 def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
@@ -565,9 +576,8 @@ class CanopenDriver(BusDriver):
         self._watched = {p.name: [ch for ch, *_ in p.channels] for p in plan.pdos.values()
                          if p.channels}
         #: the PDOs whose channels hold their latest value: left out of the samples when silent
-        self._held = {p.name: [ch for ch, *_ in p.channels] for p in plan.pdos.values()
-                      if p.channels and (self._sync_id is None or not p.every_sync)
-                      and p.cob_id != self._sample_pdo}
+        self._held = {name: chans for name, chans in self._watched.items()
+                      if self._holds(plan.all_pdos[name])}
         self._cycle_t: float | None = None  # the open SYNC cycle's stamp
         self._pending: set[int] = set()
         self._skip_cycle = False
@@ -584,6 +594,11 @@ class CanopenDriver(BusDriver):
         self._own_heard = False
         #: other nodes heard on the bus: node id -> the first frame of it (``heartbeat 0x705``)
         self._nodes_heard: dict[int, str] = {}
+
+    def _holds(self, pdo: _Pdo) -> bool:
+        """A PDO whose channels hold their latest value: not one a sample waits for (sent on
+        every SYNC, or the TPDO samples are taken on)."""
+        return (self._sync_id is None or not pdo.every_sync) and pdo.cob_id != self._sample_pdo
 
     def _ready(self) -> None:
         config, plan = self.config, self.plan

@@ -235,69 +235,91 @@ class MqttPublisher(DeliveringSink):
                     return
 
     def _loop(self) -> None:
-        session, delivery = self.session, self.delivery
-        last_poll = 0.0
-        last_count = 0.0
+        session = self.session
+        self._last_poll = self._last_count = self._close_attempt = 0.0
         deadline: float | None = None
-        close_attempt = 0.0
         while True:
             now = time.monotonic()
-            if delivery.rebind.is_set():
-                delivery.rebind_outbox()
+            if self.delivery.rebind.is_set():
+                self.delivery.rebind_outbox()
             if self._stop.is_set():  # closing: deliver what is pending, for a while
                 if deadline is None:
                     deadline = now + self.config.close_timeout
-                if now >= deadline:
+                step = self._closing(now, deadline)
+                if step == "done":
                     break
-                if not session.connected:
-                    # while windows wait: an attempt at once and then every
-                    # CLOSE_RETRY_S until the deadline (the backoff may be sleeping through a
-                    # broker that is back; a single attempt gave up on a broker started a
-                    # second after a short run's end, its backlog left for the next start)
-                    if not (delivery.inflight or delivery.has_pending()):
-                        break
-                    if now >= close_attempt:
-                        session.attempt()
-                        close_attempt = time.monotonic() + CLOSE_RETRY_S
-                    if not session.connected:
-                        delivery.flush_acks()
-                        time.sleep(max(0.0, min(0.2, deadline - time.monotonic())))
+                if step == "wait":
                     continue
-                if not delivery.inflight:
-                    delivery.feed(now, all_rows=True)
-                    if not delivery.inflight and not delivery.has_pending():
-                        break
-            if not session.connected:
-                if session.due(now):
-                    session.attempt()
-                    if not session.connected:
-                        session.backoff()
-                if not session.connected:
-                    delivery.flush_acks()
-                    if now - last_count > 1.0:
-                        delivery.count()
-                        last_count = now
-                    wait = min(0.2, max(session.next_attempt - time.monotonic(), 0.01))
-                    if self._wake.wait(wait):
-                        self._wake.clear()
-                        delivery.count()  # a window stored: one more pending
-                        last_count = time.monotonic()
-                    continue
-            session.client.loop(timeout=0.05)
-            if not session.connected:
+            if not session.connected and not self._offline(now):
                 continue
-            woken = self._wake.is_set()
-            self._wake.clear()
-            if woken or self._stop.is_set() or now - last_poll > 0.5:
-                delivery.feed(now, all_rows=woken or self._stop.is_set())
-                last_poll = now
-            if self._discovery_due is not None and now >= self._discovery_due:
-                self._send_discovery(force=True)
-            delivery.flush_acks()
-            if now - last_count > 1.0:
-                delivery.count()
-                last_count = now
+            session.client.loop(timeout=0.05)
+            if session.connected:
+                self._online(now)
         self._finish()
+
+    def _closing(self, now: float, deadline: float) -> str:
+        """A turn while closing: ``"done"`` once every window is delivered or the deadline
+        [s, monotonic] passed; ``"wait"`` while unconnected (an attempt at once and then
+        every :data:`CLOSE_RETRY_S`); ``"go"``: deliver."""
+        session, delivery = self.session, self.delivery
+        if now >= deadline:
+            return "done"
+        if not session.connected:
+            # while windows wait: an attempt at once and then every CLOSE_RETRY_S until the
+            # deadline (the backoff may be sleeping through a broker that is back; a single
+            # attempt gave up on a broker started a second after a short run's end, its
+            # backlog left for the next start)
+            if not (delivery.inflight or delivery.has_pending()):
+                return "done"
+            if now >= self._close_attempt:
+                session.attempt()
+                self._close_attempt = time.monotonic() + CLOSE_RETRY_S
+            if not session.connected:
+                delivery.flush_acks()
+                time.sleep(max(0.0, min(0.2, deadline - time.monotonic())))
+            return "wait"
+        if not delivery.inflight:
+            delivery.feed(now, all_rows=True)
+            if not delivery.inflight and not delivery.has_pending():
+                return "done"
+        return "go"
+
+    def _offline(self, now: float) -> bool:
+        """A turn without a connection: an attempt when due (capped exponential backoff);
+        else the deliveries recorded and counted while waiting for a window stored or the
+        next attempt. True when connected."""
+        session, delivery = self.session, self.delivery
+        if session.due(now):
+            session.attempt()
+            if not session.connected:
+                session.backoff()
+        if session.connected:
+            return True
+        delivery.flush_acks()
+        if now - self._last_count > 1.0:
+            delivery.count()
+            self._last_count = now
+        if self._wake.wait(min(0.2, max(session.next_attempt - time.monotonic(), 0.01))):
+            self._wake.clear()
+            delivery.count()  # a window stored: one more pending
+            self._last_count = time.monotonic()
+        return False
+
+    def _online(self, now: float) -> None:
+        """A connected turn: feed on a wake-up (or every 0.5 s), the discovery when Home
+        Assistant asked, the deliveries recorded and counted."""
+        delivery = self.delivery
+        woken = self._wake.is_set()
+        self._wake.clear()
+        if woken or self._stop.is_set() or now - self._last_poll > 0.5:
+            delivery.feed(now, all_rows=woken or self._stop.is_set())
+            self._last_poll = now
+        if self._discovery_due is not None and now >= self._discovery_due:
+            self._send_discovery(force=True)
+        delivery.flush_acks()
+        if now - self._last_count > 1.0:
+            delivery.count()
+            self._last_count = now
 
     # -- sending ------------------------------------------------------------------------------
     def _send_discovery(self, force: bool = False) -> None:

@@ -468,17 +468,13 @@ class RecordingViews:
                                  for i in range(len(names))],
             widths=[1.5] * len(names)), static=True)
 
-    def window_ops(self, times: np.ndarray, meas: Mapping[str, np.ndarray],
-                    sim: Mapping[str, np.ndarray], estimates: Mapping[str, float],
-                    doc: HealthView, health_json: str, terms_changed: bool,
-                    events: list[Mapping[str, Any]]) -> list[Op]:
-        """Everything one window logs, in order (called with the lock held). ``doc`` is the
-        health message's typed view (:func:`~twinwatch.twin.health.read_health` of
-        ``health_json``)."""
+    def _output_ops(self, times: np.ndarray, meas: Mapping[str, np.ndarray],
+                    sim: Mapping[str, np.ndarray]) -> list[Op]:
+        """Each output's measured and twin samples, its residual, and their axis frames."""
         m = self.machine
-        t0, t_end = float(times[0]), float(times[-1])
+        t_end = float(times[-1])
         ops: list[Op] = []
-        index = [rr.TimeColumn(TIMELINE, timestamp=times) if t0 >= WALL_CLOCK_AFTER
+        index = [rr.TimeColumn(TIMELINE, timestamp=times) if float(times[0]) >= WALL_CLOCK_AFTER
                  else rr.TimeColumn(TIMELINE, duration=times)]
         for kind, channels in (("measured", meas), ("twin", sim)):
             for name, values in channels.items():
@@ -496,13 +492,14 @@ class RecordingViews:
             frame = self._output_frame(f"residual/{name}", t_end, residual, two_ticks=False)
             if frame is not None:
                 ops.append(Op(entity(m, "residual", name, "frame"), rr.Scalars(frame), t_end))
-        for variant, rmse in residual_rmse(doc).items():
-            per_output = [as_number(rmse.get(o)) for o in self.outputs]
-            if any(math.isfinite(v) for v in per_output):
-                ops.append(Op(entity(m, "residual_rmse", variant), rr.Scalars(per_output),
-                              t_end))
-        ops.append(Op(entity(m, "parameters"), rr.Scalars(
-            [estimates.get(p, math.nan) for p in self.parameters]), t_end))
+        return ops
+
+
+    def _parameter_ops(self, doc: HealthView, events: list[Mapping[str, Any]],
+                       t_end: float) -> list[Op]:
+        """Each estimated parameter's health view and projection, the window's alarm events,
+        then each parameter's summary in words."""
+        ops: list[Op] = []
         params = doc.parameters or {}
         for p in self.estimated:
             ph = params.get(p)
@@ -516,9 +513,29 @@ class RecordingViews:
         for p in self.estimated:
             ph = params.get(p)
             if ph is not None:
-                ops.append(Op(entity(m, "health", p, "summary"), rr.TextDocument(
+                ops.append(Op(entity(self.machine, "health", p, "summary"), rr.TextDocument(
                     self._summary(p, ph, alarms.get(p)),
                     media_type=rr.MediaType.MARKDOWN), t_end))
+        return ops
+
+    def window_ops(self, times: np.ndarray, meas: Mapping[str, np.ndarray],
+                    sim: Mapping[str, np.ndarray], estimates: Mapping[str, float],
+                    doc: HealthView, health_json: str, terms_changed: bool,
+                    events: list[Mapping[str, Any]]) -> list[Op]:
+        """Everything one window logs, in order (called with the lock held). ``doc`` is the
+        health message's typed view (:func:`~twinwatch.twin.health.read_health` of
+        ``health_json``)."""
+        m = self.machine
+        t0, t_end = float(times[0]), float(times[-1])
+        ops = self._output_ops(times, meas, sim)
+        for variant, rmse in residual_rmse(doc).items():
+            per_output = [as_number(rmse.get(o)) for o in self.outputs]
+            if any(math.isfinite(v) for v in per_output):
+                ops.append(Op(entity(m, "residual_rmse", variant), rr.Scalars(per_output),
+                              t_end))
+        ops.append(Op(entity(m, "parameters"), rr.Scalars(
+            [estimates.get(p, math.nan) for p in self.parameters]), t_end))
+        ops += self._parameter_ops(doc, events, t_end)
         ops += self._quality_ops(doc, t_end)
         ops.append(Op(entity(m, "model"), rr.TextDocument(
             model_document(m, t_end, doc), media_type=rr.MediaType.MARKDOWN), t_end))
@@ -633,21 +650,7 @@ class RecordingViews:
         and status, its trend, the RUL to each threshold of its rule (median and 95 %
         interval, and the plant time of the crossing), the moments its deviation and RUL alarms
         were raised or cleared, and its 2-sigma band when that leaves the view."""
-        dev = as_number(ph.deviation_pct)
-        status = as_text(ph.status)
-        rel = as_number(ph.rel_std_pct)
-        head = f"**{p} {fmt(dev, '+.2f')} %** {status}"
-        if status in ("estimated", "fused") and math.isfinite(rel):
-            head += f" +- {2 * rel:.2g} % (2 sigma)"  # as the summary and the diagnosis say
-        trend = ph.trend
-        if trend is None or trend.model is None:
-            head += "; no trend yet" if trend is not None and trend.model_fields_set else ""
-        elif trend.degrading is False:
-            head += "; not degrading"
-        else:
-            rate = as_number(trend.rate_pct_per_h)
-            head += f"; trend {trend.model} {fmt(rate, '+.3g')} %/h"
-        lines = [head]
+        lines = [_summary_head(p, ph)]
         rul = ph.rul
         if p in self.alarm_bands:
             text = rul_text(ph, at=True)
@@ -655,6 +658,21 @@ class RecordingViews:
                 lines.append(f"**{text}**")
             elif rul is not None and rul.status in ("insufficient", "not_degrading"):
                 lines.append("RUL: " + str(rul.status).replace("_", " "))
+        said = self._moments_said(p, alarm)
+        if said:
+            lines.append(said)
+        low, high = band_pct(ph)
+        clip = self._band_clip(p)
+        if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
+            # words between the numbers, and no exponent below 10^5 %: a narrow summary
+            # wraps at the spaces (``-95.5..+2.1e+03`` was broken after its ``-`` and ``e+``)
+            lines.append(f"2-sigma band from {pct_text(low)} to {pct_text(high)} %, "
+                         f"drawn to +-{clip:g} %")
+        return "  \n".join(lines) + "\n"
+
+    def _moments_said(self, p: str, alarm: AlarmView | None) -> str:
+        """When ``p``'s deviation and RUL alarms were raised or cleared (those raised before
+        this recording began at their ``since_t``): ``deviation warning raised at 14:38``."""
         moments = dict(self._moments.get(p, {}))
         for rule, state in (("deviation", alarm), ("rul", alarm.rul if alarm else None)):
             level = as_text(state.level, "normal") if state is not None else "normal"
@@ -669,19 +687,10 @@ class RecordingViews:
             if seen:
                 said.append(f"{name} " + ", ".join(
                     f"{level} {what} at {clock(t)}" for t, what, level in seen))
-        if said:
-            lines.append("; ".join(said))
-        low, high = band_pct(ph)
-        clip = self._band_clip(p)
-        if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
-            # words between the numbers, and no exponent below 10^5 %: a narrow summary
-            # wraps at the spaces (``-95.5..+2.1e+03`` was broken after its ``-`` and ``e+``)
-            lines.append(f"2-sigma band from {pct_text(low)} to {pct_text(high)} %, "
-                         f"drawn to +-{clip:g} %")
-        return "  \n".join(lines) + "\n"
+        return "; ".join(said)
 
     def _quality_ops(self, doc: HealthView, t: float) -> list[Op]:
-        """nRMSE and the model check, the adaptation time, the counters of lost data."""
+        """nRMSE and the model check, the estimation time, the counters of lost data."""
         m = self.machine
         ops = []
         residual = doc.residual
@@ -703,6 +712,12 @@ class RecordingViews:
             if check is not None and check.passed is False:
                 ops.append(Op(entity(m, "quality", "model_check_failed"),
                               rr.Scalars(nrmse * PPM), t))
+        return ops + self._elapsed_ops(doc, t) + self._problem_ops(doc, t)
+
+    def _elapsed_ops(self, doc: HealthView, t: float) -> list[Op]:
+        """The window's estimation time [ms], and its axis frame over the run."""
+        m = self.machine
+        ops = []
         elapsed = as_number(doc.elapsed_s)
         if math.isfinite(elapsed):
             ops.append(Op(entity(m, "quality", "elapsed_ms"), rr.Scalars(elapsed * 1e3), t))
@@ -715,6 +730,12 @@ class RecordingViews:
                 self._frames[view] = frame
                 ops.append(Op(entity(m, "quality", "elapsed_ms", "frame"), rr.Scalars(frame),
                               t))
+        return ops
+
+    def _problem_ops(self, doc: HealthView, t: float) -> list[Op]:
+        """The counters of lost data (a counter seen for the first time restyles the view)."""
+        m = self.machine
+        ops = []
         counters = doc.counters
         if counters is not None:
             new = [k for k in counters if k not in self._problem_counters
@@ -798,3 +819,22 @@ def emit(rec: rr.RecordingStream, ops: Sequence[Op]) -> None:
             rec.log(op.entity, op.payload)
 
 
+def _summary_head(p: str, ph: ParameterView) -> str:
+    """A parameter panel's first line: its deviation [%], status (and 2-sigma band when
+    estimated or fused) and trend: ``**Ra -5.14 %** estimated +- 0.066 % (2 sigma); trend
+    exponential -1.2 %/h``."""
+    dev = as_number(ph.deviation_pct)
+    status = as_text(ph.status)
+    rel = as_number(ph.rel_std_pct)
+    head = f"**{p} {fmt(dev, '+.2f')} %** {status}"
+    if status in ("estimated", "fused") and math.isfinite(rel):
+        head += f" +- {2 * rel:.2g} % (2 sigma)"  # as the summary and the diagnosis say
+    trend = ph.trend
+    if trend is None or trend.model is None:
+        head += "; no trend yet" if trend is not None and trend.model_fields_set else ""
+    elif trend.degrading is False:
+        head += "; not degrading"
+    else:
+        rate = as_number(trend.rate_pct_per_h)
+        head += f"; trend {trend.model} {fmt(rate, '+.3g')} %/h"
+    return head

@@ -407,10 +407,7 @@ class EdgeNode:
                     return
 
     def _loop(self) -> None:
-        mqtt_session = self.mqtt
-        last_poll = 0.0
-        last_count = 0.0
-        close_attempt = 0.0
+        self._last_poll = self._last_count = self._close_attempt = 0.0
         while True:
             now = time.monotonic()
             devices = self._snapshot()
@@ -425,64 +422,86 @@ class EdgeNode:
                     self.wake.clear()
                     continue
             if not self.connected:
-                waiting = False
-                for d in devices:
-                    if d.leave_by is None:
-                        continue
-                    if now >= d.leave_by or not d.has_undelivered():
-                        self._retire(d, ddeath=False)
-                    else:
-                        waiting = True
-                if waiting and now >= close_attempt:
-                    # a closing device's windows wait: an attempt every CLOSE_RETRY_S until
-                    # its close_timeout (the backoff may be sleeping through a broker back)
-                    self._connect()
-                    close_attempt = time.monotonic() + CLOSE_RETRY_S
-                elif mqtt_session.due(now):
-                    self._connect()
-                    if not self.connected:
-                        mqtt_session.backoff()
+                self._offline(now, devices)
                 if not self.connected:
-                    devices = self._snapshot()   # without the ones retired just now
-                    for d in devices:
-                        d.delivery.flush_acks()
-                    if now - last_count > 1.0:
-                        for d in devices:
-                            d.delivery.count()
-                        last_count = now
-                    wait = min(0.2, max(mqtt_session.next_attempt - time.monotonic(), 0.01))
-                    if self.wake.wait(wait):
-                        self.wake.clear()
-                        for d in self._snapshot():
-                            d.delivery.count()  # a window stored: one more pending
-                        last_count = time.monotonic()
                     continue
             self.client.loop(timeout=0.05)
-            if not self.connected:
-                continue
-            self._check_heard()
-            woken = self.wake.is_set()
-            self.wake.clear()
-            poll = woken or now - last_poll > 0.5
-            if poll:
-                last_poll = now
-            for d in devices:
-                leaving = d.leave_by is not None
-                if self.born and not d.device_born and d.latest_doc is not None:
-                    d.device_birth()  # a device joined with a stored window: born at once
-                if self.born and (poll or leaving):
-                    d.delivery.feed(now, all_rows=woken or leaving)
-                if leaving and d.leave_by is not None and (
-                        now >= d.leave_by or not d.has_undelivered()):
-                    self._retire(d, ddeath=self.born)
-                    continue
-                d.delivery.flush_acks()
-            if now - last_count > 1.0:
-                for d in devices:
-                    if not d.left.is_set():  # a retired one's store may be closed already
-                        d.delivery.count()
-                last_count = now
+            if self.connected:
+                self._online(now, devices)
         self._finish()
+
+    def _offline(self, now: float, devices: list[SparkplugPublisher]) -> None:
+        """A turn without a connection: closing devices whose windows wait retired or their
+        last attempts made, a connection attempted when due, the deliveries recorded and
+        counted; waits for a window stored or the next attempt."""
+        if self._closing_wait(now, devices) and now >= self._close_attempt:
+            # a closing device's windows wait: an attempt every CLOSE_RETRY_S until its
+            # close_timeout (the backoff may be sleeping through a broker back)
+            self._connect()
+            self._close_attempt = time.monotonic() + CLOSE_RETRY_S
+        elif self.mqtt.due(now):
+            self._connect()
+            if not self.connected:
+                self.mqtt.backoff()
+        if self.connected:
+            return
+        devices = self._snapshot()   # without the ones retired just now
+        for d in devices:
+            d.delivery.flush_acks()
+        if now - self._last_count > 1.0:
+            for d in devices:
+                d.delivery.count()
+            self._last_count = now
+        if self.wake.wait(min(0.2, max(self.mqtt.next_attempt - time.monotonic(), 0.01))):
+            self.wake.clear()
+            for d in self._snapshot():
+                d.delivery.count()  # a window stored: one more pending
+            self._last_count = time.monotonic()
+
+    def _closing_wait(self, now: float, devices: list[SparkplugPublisher]) -> bool:
+        """Offline: a closing device past its ``close_timeout`` or with nothing left to
+        deliver is retired; True when a closing device's windows still wait."""
+        waiting = False
+        for d in devices:
+            if d.leave_by is None:
+                continue
+            if now >= d.leave_by or not d.has_undelivered():
+                self._retire(d, ddeath=False)
+            else:
+                waiting = True
+        return waiting
+
+    def _online(self, now: float, devices: list[SparkplugPublisher]) -> None:
+        """A connected turn: each device born when it can be, fed (on a wake-up, every
+        0.5 s, while it leaves), retired once it has left; the deliveries recorded and
+        counted."""
+        self._check_heard()
+        woken = self.wake.is_set()
+        self.wake.clear()
+        poll = woken or now - self._last_poll > 0.5
+        if poll:
+            self._last_poll = now
+        for d in devices:
+            self._serve(d, now, poll, woken)
+        if now - self._last_count > 1.0:
+            for d in devices:
+                if not d.left.is_set():  # a retired one's store may be closed already
+                    d.delivery.count()
+            self._last_count = now
+
+    def _serve(self, d: SparkplugPublisher, now: float, poll: bool, woken: bool) -> None:
+        """One device in a connected turn: born at once when it joined with a stored window,
+        fed, retired once it has left (past ``close_timeout`` or delivered), acks recorded."""
+        leaving = d.leave_by is not None
+        if self.born and not d.device_born and d.latest_doc is not None:
+            d.device_birth()  # a device joined with a stored window: born at once
+        if self.born and (poll or leaving):
+            d.delivery.feed(now, all_rows=woken or leaving)
+        if leaving and d.leave_by is not None and (
+                now >= d.leave_by or not d.has_undelivered()):
+            self._retire(d, ddeath=self.born)
+            return
+        d.delivery.flush_acks()
 
     def _finish(self) -> None:
         """Every device has left: NDEATH with this connection's ``bdSeq``, disconnect."""

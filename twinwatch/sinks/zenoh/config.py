@@ -78,6 +78,23 @@ class ZenohTlsConfig(BaseModel):
     INLINE_SECRETS: ClassVar[tuple[str, ...]] = ("listen_private_key_base64",
                                                  "connect_private_key_base64")
 
+    def missing(self, *, listen: bool, connect: bool, client: bool) -> str | None:
+        """What a ``tls/`` ``listen`` or ``connect`` endpoint, or mutual TLS on a ``client``
+        connection, needs of this table and it lacks; None when nothing."""
+        if listen and not (self.listen_certificate
+                           and (self.listen_private_key or self.listen_private_key_base64)):
+            return ("a tls/ listen endpoint needs [zenoh.tls] listen_certificate and "
+                    "listen_private_key")
+        if connect and not self.root_ca_certificate:
+            return ("a tls/ connect endpoint needs [zenoh.tls] root_ca_certificate (the CA "
+                    "that signed the router's certificate)")
+        if self.enable_mtls and client and not (
+                self.connect_certificate
+                and (self.connect_private_key or self.connect_private_key_base64)):
+            return ("enable_mtls with connect endpoints needs [zenoh.tls] connect_certificate "
+                    "and connect_private_key")
+        return None
+
 
 class ZenohAuthConfig(BaseModel):
     """``[zenoh.auth]``: zenoh user/password authentication (``transport/auth/usrpwd``).
@@ -247,22 +264,16 @@ class ZenohConfig(SinkConfig):
             raise ValueError(
                 f"mode {self.mode!r} needs a [zenoh].listen or a [zenoh].connect endpoint"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _check_tls(self) -> Self:
         listen = [] if self.mode == "client" else self.listen
-        tls = self.tls
-        if any(e.startswith("tls/") for e in listen):
-            if tls is None or not tls.listen_certificate or not (
-                    tls.listen_private_key or tls.listen_private_key_base64):
-                raise ValueError("a tls/ listen endpoint needs [zenoh.tls] listen_certificate "
-                                 "and listen_private_key")
-        if any(e.startswith("tls/") for e in self.connect):
-            if tls is None or not tls.root_ca_certificate:
-                raise ValueError("a tls/ connect endpoint needs [zenoh.tls] root_ca_certificate "
-                                 "(the CA that signed the router's certificate)")
-        if tls is not None and tls.enable_mtls and self.connect and not (
-                tls.connect_certificate and (tls.connect_private_key
-                                             or tls.connect_private_key_base64)):
-            raise ValueError("enable_mtls with connect endpoints needs [zenoh.tls] "
-                             "connect_certificate and connect_private_key")
+        problem = (self.tls or ZenohTlsConfig()).missing(
+            listen=any(e.startswith("tls/") for e in listen),
+            connect=any(e.startswith("tls/") for e in self.connect), client=bool(self.connect))
+        if problem is not None:
+            raise ValueError(problem)
         return self
 
 
