@@ -67,6 +67,7 @@ from twinwatch.daemon.service import (
     Progress,
     RunSummary,
     ServiceHost,
+    worst_exit,
 )
 from twinwatch.daemon.slots import EstimationSlots, default_workers
 from twinwatch.daemon.summary import failed_line, machine_lines, new_run_line, resumed_line
@@ -386,10 +387,9 @@ class Host(ServiceHost):
         if assignment is not None:  # a worker process: its host says the signals once
             self.signal_log_level = logging.DEBUG
         self.fleet = target is not None and target.is_dir()
-        if not self.fleet and load is None:
-            raise ValueError("a fleet of one needs its loader")
-        if self.fleet and read is None:
-            raise ValueError("a directory needs a reader")
+        if (read if self.fleet else load) is None:
+            raise ValueError("a directory needs a reader" if self.fleet
+                             else "a fleet of one needs its loader")
         self.directory = target if self.fleet else None
         self._read = read
         self._check = check
@@ -400,15 +400,10 @@ class Host(ServiceHost):
         self.resume = resume
         self.duration = duration
         self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
-        interval = self.notifier.watchdog_interval
-        if stuck_after is None:
-            stuck_after = 2.0 * interval if interval is not None else 30.0
-        self.stuck_after = stuck_after
-        self.quiet_after = quiet_after if quiet_after is not None else stuck_after
-        self.start_timeout = start_timeout if start_timeout is not None else (
-            60.0 if self.fleet else None)
+        self._timeouts(stuck_after, quiet_after, start_timeout)
         n = default_workers() if workers is None else workers
-        self.slots = EstimationSlots(n, stuck_after=stuck_after) if n > 0 and self.fleet else None
+        self.slots = (EstimationSlots(n, stuck_after=self.stuck_after) if n > 0 and self.fleet
+                      else None)
         self.shared = SharedResources(self.work_root)
         self.machines: dict[Path | None, Machine] = {}
         self.retired: list[Machine] = []
@@ -419,6 +414,18 @@ class Host(ServiceHost):
         self._names_lock = threading.Lock()
         self._status_lock = threading.Lock()
         self._ready = False
+
+    def _timeouts(self, stuck_after: float | None, quiet_after: float | None,
+                  start_timeout: float | None) -> None:
+        """``stuck_after``, ``quiet_after`` and ``start_timeout`` [s] with their defaults (see
+        the class)."""
+        interval = self.notifier.watchdog_interval
+        if stuck_after is None:
+            stuck_after = 2.0 * interval if interval is not None else 30.0
+        self.stuck_after = stuck_after
+        self.quiet_after = quiet_after if quiet_after is not None else stuck_after
+        self.start_timeout = start_timeout if start_timeout is not None else (
+            60.0 if self.fleet else None)
 
     # -- configuration ------------------------------------------------------------------------
     def read(self, path: Path) -> TwinwatchConfig:
@@ -668,20 +675,9 @@ class Host(ServiceHost):
                 m.supervisor.stop()
                 self.retired.append(m)
         for path in sorted(p for p in files if p is not None):
-            current = self.machines.get(path)
-            if current is None:
-                done.append(f"{path.stem} started ({path.name} added)")
-                self._add(path)
-                continue
-            m = current
-            if m.lost is not None or not m.thread.is_alive():
-                done.append(f"{m.name} tried again ({path.name}: it was not running)")
-                if m.supervisor.daemon is not None:  # it ran: its summary is still given
-                    self.retired.append(m)
-                self._add(path)
-            elif changed := m.changed():
-                done.append(f"{m.name} reloaded ({', '.join(changed)} changed)")
-                m.supervisor.reload()
+            said = self._rescan_file(path)
+            if said is not None:
+                done.append(said)
         # one line per SIGHUP, also when nothing changed (a worker's host merges its workers')
         line = reload_line(done, len(self.machines), str(self.directory))
         if self.assignment is not None:
@@ -689,6 +685,23 @@ class Host(ServiceHost):
         else:
             logger.warning("%s", line)
         self._send_status(ready=True)
+
+    def _rescan_file(self, path: Path) -> str | None:
+        """SIGHUP, a file of the directory: its machine started (a new file), started again
+        (not running), or reloaded (its files changed); what was done, or None."""
+        m = self.machines.get(path)
+        if m is None:
+            self._add(path)
+            return f"{path.stem} started ({path.name} added)"
+        if m.lost is not None or not m.thread.is_alive():
+            if m.supervisor.daemon is not None:  # it ran: its summary is still given
+                self.retired.append(m)
+            self._add(path)
+            return f"{m.name} tried again ({path.name}: it was not running)"
+        if changed := m.changed():
+            m.supervisor.reload()
+            return f"{m.name} reloaded ({', '.join(changed)} changed)"
+        return None
 
     def _renamed(self, files: set[Path]) -> dict[Path, Path]:
         """Old file -> new file, for each running machine whose file is gone while a new file
@@ -767,19 +780,10 @@ class Host(ServiceHost):
         failed, it raised), else the worst machine's 74 (estimated windows lost) or 75 (more
         windows failed than estimated), else 0 (also after a stop during the start)."""
         if self.lost():
-            current = list(self.machines.values())
-            every_config = all(m.lost is not None and m.config_error for m in current)
-            return EX_CONFIG if every_config else 1
-        worst = 0
-        for m in self.all_machines():
-            daemon = m.supervisor.daemon
-            if daemon is None:
-                continue
-            if daemon.lost():
-                worst = EX_IOERR
-            elif daemon.mostly_failed() and worst != EX_IOERR:
-                worst = EX_TEMPFAIL
-        return worst
+            return worst_exit([EX_CONFIG if m.lost is not None and m.config_error else 1
+                               for m in self.machines.values()] or [EX_CONFIG])
+        return worst_exit(EX_IOERR if d.lost() else EX_TEMPFAIL if d.mostly_failed() else 0
+                          for m in self.all_machines() if (d := m.supervisor.daemon) is not None)
 
     def abandon(self) -> None:
         """A second stop signal: every machine abandons its queued windows."""

@@ -27,7 +27,7 @@ import signal
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from types import FrameType
 from typing import TYPE_CHECKING, Any
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 __all__ = ["EX_CONFIG", "EX_IOERR", "EX_TEMPFAIL", "FLEET_REPORT", "MACHINE_GLOB", "FleetStatus",
-           "MachineSummary", "Progress", "RunSummary", "ServiceHost"]
+           "MachineSummary", "Progress", "RunSummary", "ServiceHost", "worst_exit"]
 
 #: The machine configurations of a directory.
 MACHINE_GLOB = "*.toml"
@@ -137,6 +137,19 @@ class Progress:
     name: str
     total: float | None
     add_callback: Callable[[Callable[[HealthMessage], None]], None]
+
+
+def worst_exit(codes: Iterable[int]) -> int:
+    """The service's exit status from its machines' (or its worker processes') own: 78 when
+    every one is 78 (no configuration could run), 1 when one was lost (1, a 78 among others,
+    or ended by a signal), else 74 (estimated windows lost) before 75 (more windows failed than
+    estimated) before 0."""
+    codes = list(codes)
+    if codes and all(c == EX_CONFIG for c in codes):
+        return EX_CONFIG
+    if any(c in (1, EX_CONFIG) or c < 0 for c in codes):
+        return 1
+    return next((c for c in (EX_IOERR, EX_TEMPFAIL) if c in codes), 0)
 
 
 class ServiceHost(ABC):

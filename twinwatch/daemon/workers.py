@@ -66,7 +66,6 @@ from pydantic import ValidationError
 
 from twinwatch.daemon.host import MACHINE_GLOB, RELOAD_REPORT, reload_line, skipped, warn_skipped
 from twinwatch.daemon.service import (
-    EX_CONFIG,
     EX_IOERR,
     EX_TEMPFAIL,
     FLEET_REPORT,
@@ -74,6 +73,7 @@ from twinwatch.daemon.service import (
     MachineSummary,
     RunSummary,
     ServiceHost,
+    worst_exit,
 )
 from twinwatch.daemon.systemd import Notifier
 from twinwatch.errors import ConfigError
@@ -480,6 +480,13 @@ class ProcessHost(ServiceHost):
                 "worker %d (pid %d) ended (exit status %d): its machines stopped", w.index,
                 w.proc.pid, code)
             return
+        self._restart(w, code)
+
+    def _restart(self, w: Worker, code: int) -> None:
+        """A worker ended by signal ``-code``: started again (its machines resume from their
+        state databases), unless it ended so more than :data:`RESTART_LIMIT` times within
+        :data:`RESTART_WINDOW` seconds: then given up, its machines lost."""
+        assert w.proc is not None
         try:
             name = signal.Signals(-code).name
         except ValueError:
@@ -658,23 +665,8 @@ class ProcessHost(ServiceHost):
         incarnations, or twice by one, e.g. lost and tried again by a reload: by the last; a
         killed incarnation gives none; a given-up worker's machines are lost), and the total
         line."""
-        by_file: dict[str, MachineSummary] = {}
-        for w in self.workers:
-            for report in w.summaries:
-                for m in report.machines:
-                    by_file[m.file] = m
-        for w in self.workers:
-            if w.given_up is not None:
-                for p in w.files:
-                    by_file.setdefault(p.name, MachineSummary(name=p.stem, file=p.name,
-                                                              lost=w.given_up))
-        machines = [by_file[f] for f in sorted(by_file)]
-        # a machine is its name, not its file: a file renamed (its machine summarised under
-        # both names by two incarnations of its worker) counts once, by its current file
-        current = {p.name for w in self.workers for p in w.files}
-        names = {m.name for m in machines if m.file in current}
-        gone = {m.name: m for m in machines if m.file not in current and m.name not in names}
-        counted = [m for m in machines if m.file in current] + list(gone.values())
+        machines = self._machine_summaries()
+        counted = self._counted(machines)
         lost = [f"{m.name} ({m.file}): {m.lost}" for m in counted if m.lost is not None]
         restarted = sum(1 for w in self.workers for c in w.codes if c < 0)
         stalls = [f"worker {w.index} {w.stalls} time{'s' if w.stalls > 1 else ''} "
@@ -686,24 +678,40 @@ class ProcessHost(ServiceHost):
                     f"not estimated" if stalls else "") + ")")
         return RunSummary(machines=machines, total=total, exit_status=self.exit_status())
 
+    def _machine_summaries(self) -> list[MachineSummary]:
+        """Each machine's last block, in file order; a given-up worker's machines lost."""
+        by_file: dict[str, MachineSummary] = {}
+        for w in self.workers:
+            for report in w.summaries:
+                for m in report.machines:
+                    by_file[m.file] = m
+        for w in self.workers:
+            if w.given_up is not None:
+                for p in w.files:
+                    by_file.setdefault(p.name, MachineSummary(name=p.stem, file=p.name,
+                                                              lost=w.given_up))
+        return [by_file[f] for f in sorted(by_file)]
+
+    def _counted(self, machines: list[MachineSummary]) -> list[MachineSummary]:
+        """The machines counted once each: a machine is its name, not its file (a file
+        renamed, its machine summarised under both names by two incarnations of its worker,
+        counts once, by its current file)."""
+        current = {p.name for w in self.workers for p in w.files}
+        names = {m.name for m in machines if m.file in current}
+        gone = {m.name: m for m in machines if m.file not in current and m.name not in names}
+        return [m for m in machines if m.file in current] + list(gone.values())
+
     def exit_status(self) -> int:
         """The worst of the workers' (their last incarnations'): 78 when every worker's every
         machine had an invalid configuration, 1 when a machine was lost (or a worker given
         up), else 74 (also when a worker stalled: its machines' windows meanwhile were not
         estimated) before 75 before 0."""
-        finals = [w.codes[-1] for w in self.workers if w.codes]
         if any(w.given_up is not None for w in self.workers):
             return 1
-        if finals and all(c == EX_CONFIG for c in finals):
-            return EX_CONFIG
-        if any(c in (1, EX_CONFIG) or c < 0 for c in finals):
-            return 1
-        if any(w.stalls for w in self.workers):
+        code = worst_exit(w.codes[-1] for w in self.workers if w.codes)
+        if code in (0, EX_TEMPFAIL) and any(w.stalls for w in self.workers):
             return EX_IOERR
-        for code in (EX_IOERR, EX_TEMPFAIL):
-            if code in finals:
-                return code
-        return 0
+        return code
 
     def abandon(self) -> None:
         """A second stop signal: each worker gets its second SIGTERM (it abandons its queued
