@@ -35,7 +35,7 @@ import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, Self, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
@@ -60,6 +60,7 @@ __all__ = [
     "DriverConfig",
     "DriverStats",
     "EndOfStream",
+    "PlantDriver",
     "Sample",
     "ScaledChannel",
     "validated_config",
@@ -320,3 +321,53 @@ class Driver(Closeable, abc.ABC):
 
     def _close_internal(self) -> None:  # noqa: B027 - optional hook
         """Release resources; called once by :meth:`close`."""
+
+
+class PlantDriver(Driver):
+    """A driver over a simulated plant of its own (its table's ``plant``), read through one of
+    the real drivers (:meth:`_inner`), whose counters are this driver's: the plant's sample
+    period and duration, its time starting over at every open.
+
+    Subclasses set :attr:`source_name` and implement ``__init__(config)`` and :meth:`_inner`.
+    """
+
+    #: the driver in a validation error's message (``"simulated Modbus"``)
+    source_name: ClassVar[str] = "simulated"
+
+    @classmethod
+    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
+        """The plant's sample period [s]."""
+        return float(config.plant.sample_period)  # type: ignore[attr-defined]
+
+    @classmethod
+    def duration(cls, config: DriverConfig) -> float | None:
+        """The plant's duration [s of plant time]."""
+        return float(config.plant.duration)  # type: ignore[attr-defined]
+
+    @classmethod
+    def time_starts_over(cls, config: DriverConfig) -> bool:
+        """The plant starts from t = 0 at every open: a new run."""
+        return True
+
+    @classmethod
+    def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Self:
+        """Build the driver from a validated config or a raw ``[driver]`` table.
+
+        Raises:
+            DriverInitializationError: the table does not validate, or see the class.
+        """
+        return cls(validated_config(cls.config_class, config, cls.source_name))  # type: ignore[call-arg]
+
+    def _inner(self) -> Driver | None:
+        """The real driver reading the plant (None once closed or before it opened)."""
+        raise NotImplementedError
+
+    def _take(self, timeout: float) -> Sample | None:
+        """The inner driver's next sample within ``timeout`` [s], counted once (by this
+        driver's :meth:`read`)."""
+        inner = self._inner()
+        assert inner is not None
+        sample = inner.read(timeout=timeout)
+        if sample is not None:
+            self.stats.samples -= 1  # counted again by Driver.read of this driver
+        return sample

@@ -21,19 +21,17 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import ConfigDict, Field
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     DriverInitializationError,
+    PlantDriver,
     Sample,
-    validated_config,
 )
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
@@ -83,7 +81,7 @@ class SimulatedDriverConfig(DriverConfig):
         return tuple(ch for _, sigs in _MESSAGES for ch in sigs)
 
 
-class SimulatedDriver(Driver):
+class SimulatedDriver(PlantDriver):
     """Simulated plant -> DBC-encoded frames -> virtual CAN bus -> :class:`CanDriver`.
 
     Args:
@@ -98,23 +96,6 @@ class SimulatedDriver(Driver):
     sample_model = "dc_motor"
     sample_machine = "dc-motor-sim"
     sample_title = "the simulated DC motor (paper Section 5.2) over a virtual CAN bus"
-
-    @classmethod
-    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
-        """The plant's sample period [s]."""
-        assert isinstance(config, SimulatedDriverConfig)
-        return config.plant.sample_period
-
-    @classmethod
-    def duration(cls, config: DriverConfig) -> float | None:
-        """The plant's duration [s of plant time]."""
-        assert isinstance(config, SimulatedDriverConfig)
-        return config.plant.duration
-
-    @classmethod
-    def time_starts_over(cls, config: DriverConfig) -> bool:
-        """The plant starts from t = 0 at every open: a new run."""
-        return True
 
     def __init__(self, config: SimulatedDriverConfig) -> None:
         import can
@@ -163,12 +144,6 @@ class SimulatedDriver(Driver):
         self._t0_wall: float | None = None
         logger.info("simulated %s plant, scenario %s, %.0f s, on virtual CAN channel %r",
                     config.machine, config.plant.scenario, config.plant.duration, channel)
-
-    @classmethod
-    def from_config(cls, config: SimulatedDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None) -> SimulatedDriver:
-        config = validated_config(SimulatedDriverConfig, config, "simulated")
-        return cls(config)
 
     def _send_next(self) -> None:
         """Advance the plant one sample and put its frames on the bus."""

@@ -21,8 +21,6 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Mapping
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import ConfigDict, Field, StrictFloat, StrictInt
@@ -31,8 +29,8 @@ from twinwatch.drivers.base import (
     Driver,
     DriverConfig,
     DriverInitializationError,
+    PlantDriver,
     Sample,
-    validated_config,
 )
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
@@ -125,7 +123,7 @@ class _LossyBus:
         self.bus.send(msg, timeout)
 
 
-class SimulatedCanopenDriver(Driver):
+class SimulatedCanopenDriver(PlantDriver):
     """Simulated plant -> CiA 402 drive (canopen local node) -> virtual bus ->
     :class:`CanopenDriver`.
 
@@ -142,23 +140,7 @@ class SimulatedCanopenDriver(Driver):
     sample_model = "dc_motor"
     sample_machine = "dc-motor-canopen-sim"
     sample_title = "the simulated DC motor as a CiA 402 drive on a virtual CANopen bus"
-
-    @classmethod
-    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
-        """The plant's sample period [s] (the SYNC period)."""
-        assert isinstance(config, SimulatedCanopenDriverConfig)
-        return config.plant.sample_period
-
-    @classmethod
-    def duration(cls, config: DriverConfig) -> float | None:
-        """The plant's duration [s of plant time]."""
-        assert isinstance(config, SimulatedCanopenDriverConfig)
-        return config.plant.duration
-
-    @classmethod
-    def time_starts_over(cls, config: DriverConfig) -> bool:
-        """The plant starts from t = 0 at every open: a new run."""
-        return True
+    source_name = "simulated CANopen"
 
     def __init__(self, config: SimulatedCanopenDriverConfig) -> None:
         import can
@@ -202,17 +184,6 @@ class SimulatedCanopenDriver(Driver):
                     "channel %r", config.machine, config.node_id, config.plant.scenario,
                     config.plant.duration, channel)
 
-    @classmethod
-    def from_config(cls, config: SimulatedCanopenDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None) -> SimulatedCanopenDriver:
-        """Build the driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        config = validated_config(SimulatedCanopenDriverConfig, config, "simulated CANopen")
-        return cls(config)
-
     @property
     def silent(self) -> tuple[str, ...]:
         return () if self.canopen is None else self.canopen.silent
@@ -243,12 +214,8 @@ class SimulatedCanopenDriver(Driver):
         if c.heartbeat_stop_at is not None and t >= c.heartbeat_stop_at:
             self.drive.heartbeat = False
 
-    def _take(self, timeout: float) -> Sample | None:
-        assert self.canopen is not None
-        sample = self.canopen.read(timeout=timeout)
-        if sample is not None:
-            self.stats.samples -= 1  # counted again by Driver.read of this driver
-        return sample
+    def _inner(self) -> Driver | None:
+        return self.canopen
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
         # the virtual bus delivers a frame as it is sent: a step whose frames give no sample

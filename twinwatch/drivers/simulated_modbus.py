@@ -46,8 +46,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
@@ -56,8 +55,8 @@ from twinwatch.drivers.base import (
     DriverConfig,
     DriverInitializationError,
     EndOfStream,
+    PlantDriver,
     Sample,
-    validated_config,
 )
 from twinwatch.io.modbus_registers import ModbusChannelMap, ModbusCounterMap, check_overlaps
 from twinwatch.plant.hydraulic import CHANNELS, HydraulicPlant, HydraulicPlantConfig
@@ -162,7 +161,7 @@ class SimulatedModbusDriverConfig(DriverConfig):
         )
 
 
-class SimulatedModbusDriver(Driver):
+class SimulatedModbusDriver(PlantDriver):
     """Hydraulic plant -> :class:`PlantModbusServer` (TCP, loopback) -> :class:`ModbusDriver`.
 
     Args:
@@ -184,23 +183,7 @@ class SimulatedModbusDriver(Driver):
     sample_model = "hydraulic_actuator"
     sample_machine = "hydraulic-sim"
     sample_title = "the simulated hydraulic actuator (paper Section 5.3) over Modbus TCP"
-
-    @classmethod
-    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
-        """The plant's sample period [s]."""
-        assert isinstance(config, SimulatedModbusDriverConfig)
-        return config.plant.sample_period
-
-    @classmethod
-    def duration(cls, config: DriverConfig) -> float | None:
-        """The plant's duration [s of plant time]."""
-        assert isinstance(config, SimulatedModbusDriverConfig)
-        return config.plant.duration
-
-    @classmethod
-    def time_starts_over(cls, config: DriverConfig) -> bool:
-        """The plant starts from t = 0 at every open: a new run."""
-        return True
+    source_name = "simulated Modbus"
 
     def __init__(self, config: SimulatedModbusDriverConfig) -> None:
         from twinwatch.drivers.modbus import ModbusDriver
@@ -234,23 +217,9 @@ class SimulatedModbusDriver(Driver):
         """The TCP port the simulated device listens on."""
         return self.server.port
 
-    @classmethod
-    def from_config(cls, config: SimulatedModbusDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None) -> SimulatedModbusDriver:
-        """Build the driver from a validated config or a raw ``[driver]`` table.
 
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        config = validated_config(SimulatedModbusDriverConfig, config, "simulated Modbus")
-        return cls(config)
-
-    def _take(self, timeout: float) -> Sample | None:
-        assert self.modbus is not None
-        sample = self.modbus.read(timeout=timeout)
-        if sample is not None:
-            self.stats.samples -= 1  # counted again by Driver.read of this driver
-        return sample
+    def _inner(self) -> Driver | None:
+        return self.modbus
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(1.0 if timeout is None else timeout)

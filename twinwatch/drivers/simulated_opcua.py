@@ -39,8 +39,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
@@ -49,8 +48,8 @@ from twinwatch.drivers.base import (
     DriverConfig,
     DriverInitializationError,
     EndOfStream,
+    PlantDriver,
     Sample,
-    validated_config,
 )
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 from twinwatch.plant.hydraulic import CHANNEL_UNITS as HYDRAULIC_UNITS
@@ -144,7 +143,7 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
                       for ch, unit in SERVED[self.machine][1].items()})
 
 
-class SimulatedOpcUaDriver(Driver):
+class SimulatedOpcUaDriver(PlantDriver):
     """Plant -> :class:`PlantOpcUaServer` (loopback) -> :class:`OpcUaDriver`.
 
     Attributes:
@@ -163,21 +162,7 @@ class SimulatedOpcUaDriver(Driver):
     sample_model = "dc_motor"
     sample_machine = "dc-motor-opcua-sim"
     sample_title = "the simulated DC motor (paper Section 5.2) over OPC UA"
-
-    @classmethod
-    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
-        assert isinstance(config, SimulatedOpcUaDriverConfig)
-        return float(config.plant.sample_period)
-
-    @classmethod
-    def duration(cls, config: DriverConfig) -> float | None:
-        assert isinstance(config, SimulatedOpcUaDriverConfig)
-        return config.plant.duration
-
-    @classmethod
-    def time_starts_over(cls, config: DriverConfig) -> bool:
-        """The plant starts from t = 0 at every open: a new run."""
-        return True
+    source_name = "simulated OPC UA"
 
     @classmethod
     def describe(cls, config: DriverConfig) -> str:
@@ -241,23 +226,8 @@ class SimulatedOpcUaDriver(Driver):
     def waiting(self) -> str | None:
         return None if self.opcua is None else self.opcua.waiting
 
-    @classmethod
-    def from_config(cls, config: SimulatedOpcUaDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None) -> SimulatedOpcUaDriver:
-        """Build the driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        config = validated_config(SimulatedOpcUaDriverConfig, config, "simulated OPC UA")
-        return cls(config)
-
-    def _take(self, timeout: float) -> Sample | None:
-        assert self.opcua is not None
-        sample = self.opcua.read(timeout=timeout)
-        if sample is not None:
-            self.stats.samples -= 1  # counted again by Driver.read of this driver
-        return sample
+    def _inner(self) -> Driver | None:
+        return self.opcua
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(1.0 if timeout is None else timeout)
