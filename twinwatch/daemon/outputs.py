@@ -21,15 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 from twinwatch.sinks import SINKS, sink_class
-from twinwatch.sinks.base import (
-    AlarmBands,
-    Gate,
-    Outbox,
-    Role,
-    SharedResources,
-    Sink,
-    SinkContext,
-)
+from twinwatch.sinks.base import AlarmBands, Gate, Outbox, Role, SharedResources, Sink, SinkContext
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import OutputTable, TwinwatchConfig

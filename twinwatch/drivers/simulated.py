@@ -27,12 +27,7 @@ from typing import TYPE_CHECKING, Literal
 
 from pydantic import ConfigDict, Field
 
-from twinwatch.drivers.base import (
-    DriverConfig,
-    DriverInitializationError,
-    PlantDriver,
-    Sample,
-)
+from twinwatch.drivers.base import DriverConfig, DriverInitializationError, PlantDriver, Sample
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
 if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no CAN stack

@@ -346,6 +346,15 @@ class DeliveringSink(Sink):
         super().detach()
         self.delivery.rebind.set()
 
+    def _with_pending(self, line: str, where: str = "") -> str:
+        """A summary ``line`` with the windows pending (and ``where`` they are kept) and those
+        dropped undelivered, when there are any."""
+        if self.pending:
+            line += f", {self.pending} pending{where}"
+        if self.dropped:
+            line += f", {self.dropped} dropped undelivered"
+        return line
+
     @property
     def delivered(self) -> int:
         """Windows acknowledged by the broker."""

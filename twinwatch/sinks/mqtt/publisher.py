@@ -198,11 +198,7 @@ class MqttPublisher(DeliveringSink):
                  else "lost (no state database)")
         line = (f"health was published on {self.health_topic} (MQTT, broker "
                 f"{self.config.host}:{self.config.port}): {self.delivered} windows delivered")
-        if self.pending:
-            line += f", {self.pending} pending ({where})"
-        if self.dropped:
-            line += f", {self.dropped} dropped undelivered"
-        return [line]
+        return [self._with_pending(line, f" ({where})")]
 
     def close(self) -> None:
         """Deliver what is pending for up to ``close_timeout`` s, record the deliveries,

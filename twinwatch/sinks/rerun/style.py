@@ -19,10 +19,7 @@ if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from twinwatch.twin.health import (
-        HealthView,
-        ParameterView,
-    )
+    from twinwatch.twin.health import HealthView, ParameterView
 else:  # imported when a recording opens: loading a configuration does not load rerun
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")

@@ -92,13 +92,7 @@ import numpy as np
 
 from twinwatch._lazy import lazy_module
 from twinwatch.sinks.base import AlarmBands
-from twinwatch.sinks.rerun.projection import (
-    BOX,
-    HISTORY,
-    draw_projection,
-    rul_text,
-    trend_pct,
-)
+from twinwatch.sinks.rerun.projection import BOX, HISTORY, draw_projection, rul_text, trend_pct
 from twinwatch.sinks.rerun.style import (
     ALARM,
     BAND,
@@ -139,22 +133,13 @@ from twinwatch.sinks.rerun.style import (
     sparse_frame,
     tick_room,
 )
-from twinwatch.sinks.rerun.texts import (
-    event_row,
-    log_row,
-    model_document,
-    parameter_table,
-)
+from twinwatch.sinks.rerun.texts import event_row, log_row, model_document, parameter_table
 
 if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from twinwatch.twin.health import (
-        AlarmView,
-        HealthView,
-        ParameterView,
-    )
+    from twinwatch.twin.health import AlarmView, HealthView, ParameterView
 else:  # imported when a recording opens: loading a configuration does not load rerun
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")

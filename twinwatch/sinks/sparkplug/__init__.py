@@ -47,11 +47,7 @@ from twinwatch.sinks.sparkplug.config import NAMESPACE, SparkplugConfig, node_ke
 from twinwatch.sinks.sparkplug.metrics import MetricSpec, metric_specs, metric_values
 from twinwatch.sinks.sparkplug.node import EdgeNode
 from twinwatch.sinks.sparkplug.publisher import SparkplugPublisher
-from twinwatch.sinks.sparkplug.session import (
-    BdSeqFile,
-    DeviceSession,
-    EdgeNodeSession,
-)
+from twinwatch.sinks.sparkplug.session import BdSeqFile, DeviceSession, EdgeNodeSession
 
 __all__ = [
     "NAMESPACE",

@@ -268,11 +268,7 @@ class SparkplugPublisher(DeliveringSink):
         line = (f"Sparkplug B was published on {self.device.ddata_topic} (broker "
                 f"{self.config.host}:{self.config.port}): {self.delivered} windows delivered, "
                 f"{self.device_births} device births")
-        if self.pending:
-            line += f", {self.pending} pending"
-        if self.dropped:
-            line += f", {self.dropped} dropped undelivered"
-        return [line]
+        return [self._with_pending(line)]
 
     def __repr__(self) -> str:
         state = ("closed" if self._closed else

@@ -47,6 +47,7 @@ the defaults keep 30 days or 1,000,000 windows (about 2 GB), whichever is less, 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -706,11 +707,7 @@ class StateStore(Gate):
                              "state) VALUES (?, ?, ?, ?, ?, ?)", self._twin_pending)
             conn.execute("COMMIT")
         except sqlite3.Error as exc:
-            if conn.in_transaction:
-                try:
-                    conn.execute("ROLLBACK")
-                except sqlite3.Error:
-                    pass
+            _rollback(conn)
             if retry and self.recover_corrupt and is_corrupt(exc):
                 try:
                     self._recover(exc)
@@ -946,11 +943,7 @@ class StateStore(Gate):
                 fn(conn)
                 conn.execute("COMMIT")
             except sqlite3.Error as exc:
-                if conn.in_transaction:
-                    try:
-                        conn.execute("ROLLBACK")
-                    except sqlite3.Error:
-                        pass
+                _rollback(conn)
                 raise self._error(what, exc) from exc
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -993,3 +986,11 @@ def _packed(row: tuple[Any, ...]) -> tuple[Any, ...]:
 def _unpacked(row: tuple[Any, ...]) -> tuple[Any, ...]:
     """The ``health`` row :func:`_packed` kept."""
     return (*row[:6], zlib.decompress(row[6]).decode())
+
+
+def _rollback(conn: sqlite3.Connection) -> None:
+    """Roll back the transaction a failure left open (a rollback that fails too, the
+    connection broken, leaves nothing to undo)."""
+    if conn.in_transaction:
+        with contextlib.suppress(sqlite3.Error):
+            conn.execute("ROLLBACK")

@@ -21,9 +21,7 @@ from pydantic import (
 )
 
 from twinwatch._lazy import lazy_module
-from twinwatch.sinks.base import (
-    SinkConfig,
-)
+from twinwatch.sinks.base import SinkConfig
 
 if TYPE_CHECKING:
     import zenoh

@@ -16,13 +16,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Self
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.base import (
-    AlarmBands,
-    ProcessedWindow,
-    SharedResources,
-    Sink,
-    SinkContext,
-)
+from twinwatch.sinks.base import AlarmBands, ProcessedWindow, SharedResources, Sink, SinkContext
 from twinwatch.twin.summary import fleet_summary, summary_changed
 
 if TYPE_CHECKING:
