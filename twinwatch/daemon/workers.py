@@ -141,12 +141,6 @@ def session_keys(path: Path) -> tuple[str, ...]:
     return _GROUPS[path]
 
 
-def session_group(path: Path) -> str:
-    """The first of :func:`session_keys` (a file's own group, before files sharing another
-    key are joined to it by :func:`session_groups`)."""
-    return session_keys(path)[0]
-
-
 def session_groups(paths: Sequence[Path]) -> dict[Path, str]:
     """Each file's group: files that share any of :func:`session_keys` (a Zenoh table, an
     OPC UA endpoint) form one group, transitively; a group cannot be split over processes."""

@@ -345,17 +345,8 @@ class MqttPublisher(DeliveringSink):
             doc = health_view(row.doc)
         except ValueError:
             doc = None
-        messages: list[tuple[str, str | bytes, bool]] = [(self.health_topic, row.doc, False)]
-        with self._events_lock:
-            events = self._events.pop(row.doc, None)
-        if events is None:
-            events = reconstructed_events(doc, delivery.previous_levels or {})
-        messages += [(f"{self.base}/alarm", json.dumps(e), False) for e in events]
-        if newest:
-            messages += [(f"{self.base}/{k}", v, True)
-                         for k, v in (flat_values(doc) if doc is not None else {}).items()]
         mids = []
-        for topic, payload, retain in messages:
+        for topic, payload, retain in self._messages(row, doc, newest):
             info = self.session.client.publish(topic, payload, qos=qos, retain=retain)
             if info.rc != mqtt.MQTT_ERR_SUCCESS and info.rc != mqtt.MQTT_ERR_NO_CONN:
                 delivery.errors += 1
@@ -370,6 +361,21 @@ class MqttPublisher(DeliveringSink):
                     had is None or components(had) != components(doc)):
                 self._send_discovery()
         return True
+
+    def _messages(self, row: OutboxRow, doc: HealthView | None, newest: bool
+                  ) -> list[tuple[str, str | bytes, bool]]:
+        """A window's messages, ``(topic, payload, retain)``: the health message, its alarm
+        events (the evaluator's, else read from two stored messages), and for the newest
+        window the retained plain values."""
+        messages: list[tuple[str, str | bytes, bool]] = [(self.health_topic, row.doc, False)]
+        with self._events_lock:
+            events = self._events.pop(row.doc, None)
+        if events is None:
+            events = reconstructed_events(doc, self.delivery.previous_levels or {})
+        messages += [(f"{self.base}/alarm", json.dumps(e), False) for e in events]
+        if newest and doc is not None:
+            messages += [(f"{self.base}/{k}", v, True) for k, v in flat_values(doc).items()]
+        return messages
 
     def _finish(self) -> None:
         """Leaving the thread: record the deliveries, go offline, disconnect."""

@@ -49,7 +49,7 @@ default): none (the state database's history is served by Zenoh's history query,
 share one server (:class:`~twinwatch.sinks.base.SharedResources`, reference-counted: the first
 opens it, the last closes it); a machine removed by a reload removes its object. The service
 host places machines with one endpoint in one worker process
-(:func:`twinwatch.daemon.workers.session_group`).
+(:func:`twinwatch.daemon.workers.session_keys`).
 
 Threads: the server runs in its own thread, ``twinwatch-opcua``, on its own asyncio loop;
 :meth:`OpcUaPublisher.write` (the outputs' thread) flattens the window into (node, value) pairs

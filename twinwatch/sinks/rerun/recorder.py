@@ -541,16 +541,21 @@ class RerunRecorder(RecordingFiles, Sink):
             if not self._flush(rec):
                 self.lost += 1
                 return
-            if self._dead_since is not None:
-                logger.warning("recording to %s works again after %.0f s: %d windows were "
-                               "not recorded", self.path, time.monotonic() - self._dead_since,
-                               self.lost)
-                self._dead_since = None
-                self._reopen_delay = self.reopen_after
-            self.windows += 1
-            self._file_windows += 1
-            if self.config.rotate_windows and self._file_windows >= self.config.rotate_windows:
-                self._rotate()
+            self._recorded()
+
+    def _recorded(self) -> None:
+        """A window is in the file: the writer is back if it was dead (said once, with the
+        windows lost meanwhile), counted, the file rotated every ``rotate_windows``."""
+        if self._dead_since is not None:
+            logger.warning("recording to %s works again after %.0f s: %d windows were "
+                           "not recorded", self.path, time.monotonic() - self._dead_since,
+                           self.lost)
+            self._dead_since = None
+            self._reopen_delay = self.reopen_after
+        self.windows += 1
+        self._file_windows += 1
+        if self.config.rotate_windows and self._file_windows >= self.config.rotate_windows:
+            self._rotate()
 
     def write(self, out: ProcessedWindow) -> None:
         """The window pipeline's sink call: :meth:`log_window` with the window's measured and

@@ -183,12 +183,6 @@ class QueryDispatch:
             logger.info("presence of the machines of box %s: the liveliness token %s", box, key)
         entry.machines.add(machine)
 
-    @property
-    def box_tokens(self) -> list[str]:
-        """The key of every box token declared now."""
-        with self._lock:
-            return [e.key for e in self._boxes.values()]
-
     def _on_box_query(self, query: zenoh.Query) -> None:
         """A get on a box's token key: ``{"box", "machines"}`` of every box it reaches."""
         try:
