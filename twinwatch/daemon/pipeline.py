@@ -57,8 +57,8 @@ import numpy as np
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.daemon.gatekeeper import HELD_MAX, GateKeeper
 from twinwatch.sinks.base import Gate, ProcessedWindow, Sink
-from twinwatch.twin.adaptation import TwinAdapter
-from twinwatch.twin.diagnosis import Diagnoser, shaft_speed
+from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
+from twinwatch.twin.diagnosis import Diagnoser
 from twinwatch.twin.health import (
     AlarmStatus,
     DiagnosisHealth,
@@ -359,15 +359,19 @@ class WindowPipeline:
             logger.warning("the %s output works again", sink.name)
         return result
 
-    def _diagnose(self, reading: HealthMessage, window: WindowData) -> DiagnosisHealth | None:
-        """The window's diagnosis from the estimation's message and the window's shaft speed;
-        None without a diagnoser, or when it failed (logged once, then at debug level: the
-        window is published without one)."""
+    def _diagnose(self, reading: HealthMessage, window: WindowData,
+                  result: AdaptationResult) -> DiagnosisHealth | None:
+        """The window's diagnosis: each fault mode's twin fitted on the window's data
+        (``result.fit``) beside the estimation's message; None without a diagnoser, or when
+        it failed (logged once, then at debug level: the window is published without one)."""
         if self.diagnoser is None:
             return None
         try:
-            return self.diagnoser.update(
-                reading, shaft_speed(window, self.diagnoser.library.speed_channel))
+            est = result.estimate
+            free = sum(1 for s in est.status.values() if s == "estimated") + (
+                0 if est.initial is None else int(np.size(est.initial)))
+            return self.diagnoser.update(reading, result.fit, est.simulated, free,
+                                         est.initial)
         except Exception:  # noqa: BLE001 - the window is published without a diagnosis
             log = logger.debug if self._diagnosis_failed else logger.exception
             self._diagnosis_failed = True
@@ -442,7 +446,7 @@ class WindowPipeline:
                                nominal=self.nominal, counters=self._counters(),
                                discovery_enabled=self.adapter.enabled,
                                source=self._source_health(window))
-        diagnosis = self._diagnose(reading, window)
+        diagnosis = self._diagnose(reading, window, result)
         events = self.alarms.update(reading)
         if self.fault_alarms is not None:
             diagnosis, fault_events = self.fault_alarms.update(diagnosis, reading)
