@@ -41,8 +41,14 @@ above 0.2 in any window. Unseen (:func:`seen`): a library case no window of whic
 fault's evidence from the onset (a signed parameter estimated and moved its way, a term, a
 stuck sensor); the top-1 figure is printed again over the cases the twin saw.
 
+**Seeds.** ``--seed N`` draws every case's plant with seed N (its noise, the random
+set-points, the PWM drive's command) instead of 0, the seed the matrix was tuned on: the
+tuning set at seeds 0, 3 and 7 (issue 55). The seed is stored with the recording
+(``case.json``, ``record.json``) and printed with the table; a replay does not run the
+plants again and needs none.
+
     python benchmarks/bench_diagnosis.py [--record DIR | --replay DIR] [--only PREFIX,...]
-                                         [--json FILE] [--workers 2]
+                                         [--json FILE] [--workers 2] [--seed N]
 """
 
 from __future__ import annotations
@@ -79,6 +85,10 @@ ONSET = 60.0
 RAMP = 60.0
 DURATION = 200.0     # s of plant time per faulted case (100 windows of 2 s, 40 at full size)
 NOMINAL_DURATION = 600.0
+#: The seed of every case's plant (its noise, and the random set-points or the PWM drive's
+#: command drawn with it): ``--seed``; 0, the fault matrix as it was tuned. Set before the
+#: worker processes fork.
+SEED = 0
 
 
 @dataclass(frozen=True)
@@ -120,7 +130,7 @@ def _noise(channels: Iterable[str], pct: float) -> dict[str, float]:
     return {ch: float(pct) for ch in channels} if pct else {}
 
 
-def _dc(noise: float = 1.0, duration: float = DURATION, seed: int = 0,
+def _dc(noise: float = 1.0, duration: float = DURATION, seed: int | None = None,
         config: str = "dc-motor-unbalanced-sim.toml", **plant: Any) -> TwinwatchConfig:
     """The DC motor as deployed for diagnosis: config/dc-motor-unbalanced-sim.toml (the default
     machine with discovery on d(omega)/dt, paper Table 1) plus the candidates the library's
@@ -142,14 +152,15 @@ def _dc(noise: float = 1.0, duration: float = DURATION, seed: int = 0,
         base: dict[str, Any] = {"scenario": "nominal"}
     else:
         base = cfg.driver.plant.model_dump(exclude_unset=True)  # type: ignore[attr-defined]
-    base.update(duration=duration, seed=seed, noise=_noise(("ia", "omega"), noise))
+    base.update(duration=duration, seed=SEED if seed is None else seed,
+                noise=_noise(("ia", "omega"), noise))
     base.update(plant)
     cfg.driver.plant = DCMotorPlantConfig.model_validate(base)  # type: ignore[attr-defined]
     cfg.machine.name = "bench-dc"
     return cfg
 
 
-def _hyd(noise: float = 0.0, duration: float = DURATION, seed: int = 0,
+def _hyd(noise: float = 0.0, duration: float = DURATION, seed: int | None = None,
          **plant: Any) -> TwinwatchConfig:
     """The hydraulic actuator as deployed: config/hydraulic-modbus-leak-sim.toml (estimates
     q_pump and D, discovery on the pressure), the plant nominal, the Modbus device on any free
@@ -159,7 +170,8 @@ def _hyd(noise: float = 0.0, duration: float = DURATION, seed: int = 0,
     cfg = load_config(ROOT / "config" / "hydraulic-modbus-leak-sim.toml")
     cfg.estimation.time_budget = 60.0
     cfg.driver.port = 0  # type: ignore[attr-defined]
-    base: dict[str, Any] = {"scenario": "nominal", "duration": duration, "seed": seed,
+    base: dict[str, Any] = {"scenario": "nominal", "duration": duration,
+                            "seed": SEED if seed is None else seed,
                             "noise": _noise(("x", "p"), noise)}
     base.update(plant)
     cfg.driver.plant = HydraulicPlantConfig.model_validate(base)  # type: ignore[attr-defined]
@@ -254,7 +266,7 @@ def _pwm_recording(path: Path, cfg: TwinwatchConfig, duration: float, seed: int,
                header="t,u,y,ifltr", comments="", fmt="%.10g")
 
 
-def _pwm(noise: float = 1.0, duration: float = DURATION, seed: int = 0,
+def _pwm(noise: float = 1.0, duration: float = DURATION, seed: int | None = None,
          parameter_faults: list[dict[str, Any]] | None = None,
          sensor_faults: list[dict[str, Any]] | None = None,
          supply_fault: dict[str, Any] | None = None, tag: str = "pwm") -> TwinwatchConfig:
@@ -265,8 +277,8 @@ def _pwm(noise: float = 1.0, duration: float = DURATION, seed: int = 0,
     cfg.estimation.time_budget = 60.0
     path = Path(tempfile.gettempdir()) / "twinwatch-bench-pwm" / f"{tag}-{os.getpid()}.csv"
     if not _REPLAYING:
-        _pwm_recording(path, cfg, duration, seed, noise, parameter_faults or [],
-                       sensor_faults or [], supply_fault)
+        _pwm_recording(path, cfg, duration, SEED if seed is None else seed, noise,
+                       parameter_faults or [], sensor_faults or [], supply_fault)
     drv = cfg.driver.model_dump()
     drv.update(path=path, format="csv", time_column="t",
                columns={"u": {"column": "u", "unit": "V"},
@@ -520,6 +532,7 @@ def _record_one(args: tuple[str, str]) -> dict[str, Any]:
     (d / "health.jsonl").write_text("".join(line + "\n" for line in lines))
     (d / "speed.json").write_text(json.dumps({str(k): v for k, v in sorted(speeds.items())}))
     meta = {"name": case.name, "machine": case.machine, "model": cfg.machine.model,
+            "seed": SEED,
             "category": case.category, "onset": case.onset, "accept": sorted(case.accept),
             "truth": list(case.truth), "tolerate": sorted(case.tolerate), "note": case.note,
             "spec": case.spec,
@@ -543,7 +556,8 @@ def record(chosen: list[Case], out_dir: Path, workers: int) -> dict[str, Any]:
                   f"{meta['cpu_s']} s CPU", file=sys.stderr, flush=True)
     wall = time.perf_counter() - wall0
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-    summary = {"cases": len(chosen), "workers": workers, "wall_s": round(wall, 1),
+    summary = {"cases": len(chosen), "workers": workers, "seed": SEED,
+               "wall_s": round(wall, 1),
                "cpu_s": round(ru.ru_utime + ru.ru_stime, 1),
                "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                "cpus": os.cpu_count()}
@@ -780,7 +794,7 @@ def print_table(results: list[dict[str, Any]], summary: dict[str, Any],
     if timing:
         print(f"record phase: {timing.get('cases')} cases, {timing.get('wall_s')} s wall, "
               f"{timing.get('cpu_s')} s CPU ({timing.get('workers')} workers, "
-              f"{timing.get('date')})")
+              f"{timing.get('date')}), seed {timing.get('seed', 0)}")
 
 
 def replay(rec_dir: Path, only: str | None) -> tuple[list[dict[str, Any]], dict[str, Any],
@@ -816,7 +830,12 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--list", action="store_true", help="print the case table and exit")
+    ap.add_argument("--seed", type=int, default=None,
+                    help="the seed of every case's plant (default 0)")
     args = ap.parse_args()
+    global SEED
+    if args.seed is not None:
+        SEED = args.seed
     if args.list:
         for c in cases():
             print(f"{c.name:34} {c.category:13} onset {c.onset:>4g} s  accept "
