@@ -378,6 +378,15 @@ class WindowPipeline:
             log("the diagnosis failed on window %d: published without one", window.index)
             return None
 
+    def _twin_state(self, result: AdaptationResult) -> dict[str, Any] | None:
+        """What a restart resumes from: the accepted twin after a trusted window, with the
+        diagnosis' baseline and the evidence since its change point (every window while
+        there is a diagnoser: a fault's windows are often not trusted, and a restart
+        mid-fault must find its evidence)."""
+        if self.diagnoser is None:
+            return self.adapter.state() if result.estimate.trusted else None
+        return {**self.adapter.state(), "diagnosis": self.diagnoser.state()}
+
     def _source_health(self, window: WindowData) -> SourceHealth:
         """The window's ``source``: its stamps' jitter against the grid the ring buffer placed
         it on [us], and what the source waited for or lacked when its last sample was read."""
@@ -457,8 +466,7 @@ class WindowPipeline:
             for name, state in self.alarms.state().items()})
         out = ProcessedWindow(window=window, result=result, health=health,
                               health_json=health.to_json(), events=events,
-                              twin_state=self.adapter.state() if result.estimate.trusted
-                              else None)
+                              twin_state=self._twin_state(result))
         check = health.model_check
         digest = WindowDigest(None if check is None else check.passed, health.elapsed_s,
                               health.source.jitter_rms_us, health.source.jitter_max_us)

@@ -68,7 +68,8 @@ def make_diagnoser(config: TwinwatchConfig, model: TwinModel,
     source = "configured" if (d.replace or d.library or d.faults) else "shipped"
     resolved = config.estimation.resolved(model)
     return Diagnoser(library, model, nominal, estimate=list(resolved.estimate or ()),
-                     ties=dict(resolved.tie or {}), config=d, source=source)
+                     ties=dict(resolved.tie or {}), config=d, source=source,
+                     resolution=config.estimation.model_error)
 
 
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,

@@ -51,13 +51,12 @@ EXACT = 1e-9
 #: reading does not repeat (it cannot be stuck or clipped there).
 STUCK_IMPOSSIBLE = 1e12
 
-#: The finest residual the comparison resolves, as a share of each output's scale (its RMS):
-#: 0.1 %, the accuracy class of precision measuring transducers (IEC 60688 class 0.1) and the
-#: effective resolution of the 12-bit converters drives sample with (10 effective bits: 1e-3;
-#: Kester, *Data Conversion Handbook*, 2005, ch. 2). Below it two twins that both fit are
-#: equally good: a noise-free simulation's residual (1e-9 of the scale) would otherwise make
-#: a rounding error a decisive difference.
-RESOLUTION = 1e-3
+#: The finest residual the comparison resolves by default, as a share of each output's scale
+#: (its RMS): the estimation's default ``model_error`` (``[estimation] model_error``, the
+#: twin-vs-machine floor the commissioning measures; the bank takes the machine's). Below it
+#: two twins that both fit are equally good: a noise-free simulation's residual (1e-9 of the
+#: scale) would otherwise make a rounding error a decisive difference.
+RESOLUTION = 1e-4
 
 
 @dataclass
@@ -100,12 +99,16 @@ class HypothesisBank:
         baseline_windows: windows that set the baseline before any change is looked for.
         keep: windows kept per hypothesis (the change point is looked for among them).
         lag: windows a later window waits before the baseline learns from it.
+        resolution: the finest residual the comparison resolves, a share of each output's
+            scale (the machine's ``[estimation] model_error``).
     """
 
     def __init__(self, model_params: Sequence[str], nominal: FloatArray,
                  hypotheses: Sequence[Hypothesis], estimate: Sequence[str],
                  ties: Mapping[str, str], terms: WindowTerms, *,
-                 baseline_windows: int = 10, keep: int = 150, lag: int = 10) -> None:
+                 baseline_windows: int = 10, keep: int = 150, lag: int = 10,
+                 resolution: float = RESOLUTION) -> None:
+        self.resolution = float(resolution)
         self.names = tuple(model_params)
         self.nominal = np.asarray(nominal, dtype=float).copy()
         self.theta = self.nominal.copy()
@@ -159,6 +162,9 @@ class HypothesisBank:
         self._pairs: dict[str, Hypothesis] = {}
         self._no_pair: set[str] = set()
         self._unknown: deque[float] = deque(maxlen=keep)
+        #: per window kept: how well its best explanation fitted it (1: within the noise;
+        #: the noise's chi-square bound over the residual's otherwise)
+        self.fits_window: deque[float] = deque(maxlen=keep)
         self._pending: deque[tuple[FloatArray, FloatArray, float]] = deque()
         self.detected = False
         self.last: WindowReading | None = None
@@ -220,7 +226,7 @@ class HypothesisBank:
         learning = self.learned < self.baseline_windows
         if self.sigma2 is None:
             ref = r_est if r_est is not None else cols.r0
-            sig2 = np.maximum(np.mean(ref * ref, axis=0), RESOLUTION**2)
+            sig2 = np.maximum(np.mean(ref * ref, axis=0), self.resolution**2)
             kap = np.array([_kappa(ref[:, j]) for j in range(n_out)])
         else:
             sig2, kap = self.sigma2, self.kappa
@@ -257,8 +263,25 @@ class HypothesisBank:
             lab = min(first, key=lambda k: first[k][3])
             cands.append(cols.r0 - np.tensordot(first[lab][2] @ self._combo[lab], dmat,
                                                 axes=1))
+        eta = 1.0
+        for h in self.hypotheses:      # a stuck or clipped reading explains its own way
+            c = h.closed_form
+            if c is not None and c.target in fit.model.output_names:
+                r_c = self._closed_residual(h, cols, fit)
+                if r_c is not None:
+                    cands.append(r_c)
         if cands:
             best = min(cands, key=lambda r: float(np.sum(r * r * kap / sig2)))
+            # how well the best explanation at hand fits the window against the baseline's
+            # noise: its weighted squared residual over the chi-square bound of its samples
+            # (mean plus 3 standard deviations). Above it every twin misses something here
+            # (a drift within the window, an operating point the twin does not cover) and
+            # how they rank in this window counts for that much less between them
+            # (Diagnoser's comparison; a tempered likelihood: Grunwald and van Ommen,
+            # Bayesian Analysis 12(4), 2017)
+            s_best = float(np.sum(best * best * kap / sig2))
+            n_best = float(np.sum(kap) * m_rows)
+            eta = min(1.0, (n_best + 3.0 * math.sqrt(2.0 * n_best)) / max(s_best, 1e-300))
             sig2w = np.maximum(sig2, np.mean(best * best, axis=0))
             if np.any(sig2w > sig2 * (1 + 1e-9)):
                 proj = _Projector(cols, kap, sig2w)
@@ -312,6 +335,7 @@ class HypothesisBank:
                 phis[h.label] = step[h.label][0]
             again = moved
         reading = WindowReading(baseline_nrmse, None, sims=sims)
+        self.fits_window.append(eta)
         for h in everyone:
             track = self.tracks[h.label]
             if h.closed_form is not None:
@@ -346,10 +370,16 @@ class HypothesisBank:
                 if f is not None:
                     reading.fits[h.label] = f
         self._choose_pairs(reading)
+        # the unknown change: a twin the library does not have, taken to explain the window
+        # down to the baseline's noise (its weighted squared residual the chi-square mean of
+        # the samples at the baseline's variances), with as many free numbers as the window's
+        # own estimate: it gains on a library twin only what that leaves above the noise, less
+        # its extra numbers' penalty (a library twin that fits to the noise keeps the window)
+        s_ideal = float(np.sum(kap * m_rows * sig2 / proj.s2))
         if r_est is not None:
             rp = proj(r_est, profile=False)
-            s_est = float(rp @ rp)
-            self._unknown.append(0.5 * (s0 - s_est) - 0.5 * est_free * ln_n)
+            s_ideal = min(s_ideal, float(rp @ rp))
+        self._unknown.append(0.5 * (s0 - s_ideal) - 0.5 * max(est_free, 1) * ln_n)
         reading.unknown, reading.unknown_windows = self._unknown_evidence()
         self.last = reading
         return reading
@@ -358,8 +388,9 @@ class HypothesisBank:
     #: the last size; the steps stop once the size moves less than 1e-4).
     GN_STEPS = 3
 
-    #: Fault modes whose pairs are tried (the best single modes by evidence), and pair twins
-    #: kept at most: two faults at once are tried when no single mode explains the change.
+    #: Partners the best single mode is paired with (the next modes by evidence, those whose
+    #: twins change the windows alike skipped), and pair twins kept at most: two faults at
+    #: once are tried when no single mode explains the change.
     PAIR_OF = 3
     PAIRS_KEPT = 6
 
@@ -396,26 +427,29 @@ class HypothesisBank:
             fid = h.faults[0]
             if fid not in singles or f.evidence > singles[fid][0]:
                 singles[fid] = (f.evidence, h.label)
-        best = sorted(singles.values(), reverse=True)[:self.PAIR_OF]
-        if not best or reading.unknown <= best[0][0]:
+        ranked = sorted(singles.values(), reverse=True)
+        if not ranked or reading.unknown <= ranked[0][0]:
             return      # a single mode explains the change as well as anything: no pair
         by_label = {h.label: h for h in self.hypotheses}
-        for i in range(len(best)):
-            for j in range(i + 1, len(best)):
-                ha, hb = by_label[best[i][1]], by_label[best[j][1]]
-                label = "+".join(sorted((ha.label, hb.label)))
-                if label in self._pairs or label in self._no_pair:
-                    continue
-                pair = Hypothesis((ha.faults[0], hb.faults[0]), (*ha.changes, *hb.changes),
-                                  label)
-                self._pairs[label] = pair
-                self._combo[label] = np.vstack([self._combo[ha.label],
-                                                self._combo[hb.label]])
-                lo_a, hi_a = self._bounds[ha.label]
-                lo_b, hi_b = self._bounds[hb.label]
-                self._bounds[label] = (np.concatenate([lo_a, lo_b]),
-                                       np.concatenate([hi_a, hi_b]))
-                self.tracks[label] = Track(pair.size, self.keep)
+        ha = by_label[ranked[0][1]]
+        tried = 0
+        for _, lab in ranked[1:]:
+            if tried >= self.PAIR_OF:
+                break
+            hb = by_label[lab]
+            label = "+".join(sorted((ha.label, hb.label)))
+            if label in self._no_pair:
+                continue            # the two change the windows alike: next partner
+            tried += 1
+            if label in self._pairs:
+                continue
+            pair = Hypothesis((ha.faults[0], hb.faults[0]), (*ha.changes, *hb.changes), label)
+            self._pairs[label] = pair
+            self._combo[label] = np.vstack([self._combo[ha.label], self._combo[hb.label]])
+            lo_a, hi_a = self._bounds[ha.label]
+            lo_b, hi_b = self._bounds[hb.label]
+            self._bounds[label] = (np.concatenate([lo_a, lo_b]), np.concatenate([hi_a, hi_b]))
+            self.tracks[label] = Track(pair.size, self.keep)
         if len(self._pairs) > self.PAIRS_KEPT:
             ranked = sorted(self._pairs, key=lambda lab: reading.fits[lab].evidence
                             if lab in reading.fits else -math.inf)
@@ -486,6 +520,34 @@ class HypothesisBank:
             out[h.label] = (phi0 + step, s_val, a)
         return out
 
+    def _closed_residual(self, h: Hypothesis, cols: Columns, fit: WindowFit
+                         ) -> FloatArray | None:
+        """A stuck or clipped reading's normalised residual (N-1, n_out), None where the
+        reading cannot be stuck or clipped (it does not repeat)."""
+        c = h.closed_form
+        assert c is not None
+        names = fit.model.output_names
+        r = cols.r0.copy()
+        if c.target not in names:
+            return None
+        j = names.index(c.target)
+        meas = fit.meas[1:, j]
+        tol = EXACT * max(float(np.max(np.abs(meas))), float(cols.scale[j]))
+        if c.kind == "stuck":
+            if float(np.max(meas) - np.min(meas)) > tol:
+                return None
+            r[:, j] = 0.0
+            return r
+        y = cols.y0[1:, j]
+        hi, lo = float(np.max(meas)), float(np.min(meas))
+        at_hi = (np.abs(meas - hi) <= tol) & (y > hi)
+        at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
+        mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
+        if mask.sum() < 2:
+            return None
+        r[mask, j] = 0.0
+        return r
+
     def _closed_form(self, h: Hypothesis, cols: Columns, fit: WindowFit, proj: _Projector
                      ) -> float:
         """A stuck or clipped reading's weighted squared residual.
@@ -520,7 +582,11 @@ class HypothesisBank:
             at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
             mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
             if mask.sum() < 2:
-                return STUCK_IMPOSSIBLE
+                # no sample at the range's end beyond the twin: the clip does not show in
+                # this window, which is the baseline's (a clipping sensor reads true below
+                # its range)
+                rp = proj(r)
+                return float(rp @ rp)
             r[mask, j] = 0.0
         rp = proj(r)
         return float(rp @ rp)
@@ -578,7 +644,7 @@ class HypothesisBank:
         self._kept = []
         if stats:
             self.sigma2 = np.maximum(np.median(np.array([a for a, _ in stats]), axis=0),
-                                     RESOLUTION**2)
+                                     self.resolution**2)
             self.kappa = np.median(np.array([k for _, k in stats]), axis=0)
         else:
             self.sigma2 = np.asarray(proj.s2, dtype=float)
@@ -599,6 +665,7 @@ class HypothesisBank:
             "tracks": {lab: t.as_dict() for lab, t in self.tracks.items()
                        if lab in self._combo and "+" not in lab},
             "unknown": list(self._unknown),
+            "fits_window": list(self.fits_window),
         }
 
     def restore(self, state: Mapping[str, Any]) -> None:
@@ -619,6 +686,8 @@ class HypothesisBank:
             if lab in self.tracks:
                 self.tracks[lab] = Track.from_dict(tr, self.keep)
         self._unknown = deque((float(v) for v in state.get("unknown", [])), maxlen=self.keep)
+        self.fits_window = deque((float(v) for v in state.get("fits_window", [])),
+                                 maxlen=self.keep)
 
     def unknown_gains(self) -> list[float]:
         """The unknown change's per-window gains, oldest first (as a track's ``gain``)."""

@@ -40,8 +40,9 @@ Bayesian information criterion's ``(q/2) ln n`` per freed number (Schwarz, Ann. 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 

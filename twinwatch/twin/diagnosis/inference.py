@@ -27,7 +27,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from twinwatch.twin.diagnosis.engine import HypothesisBank, WindowReading
+from twinwatch.twin.diagnosis.engine import RESOLUTION, HypothesisBank, WindowReading
 from twinwatch.twin.diagnosis.hypotheses import Fitted, Hypothesis, WindowTerms
 from twinwatch.twin.diagnosis.library import DiagnosisConfig, FaultLibrary, FaultMode
 from twinwatch.twin.estimation.fit import WindowFit
@@ -53,7 +53,8 @@ def _t_crit(n: int) -> float:
 SPLIT = 0.1
 
 
-def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[str, float]:
+def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray],
+           fits: np.ndarray | None = None) -> dict[str, float]:
     """Each candidate's evidence against the best one, less what the windows do not agree on.
 
     Two fault modes' twins are not nested (neither is the other with a size set to zero), so
@@ -74,7 +75,7 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[
         return out
     best = max(out, key=lambda k: out[k])
     ref = gains.get(best)
-    if ref is None or ref.size < 2:
+    if ref is None or ref.size == 0:
         return out
     suffix = np.flip(np.cumsum(np.flip(ref)))
     start = int(np.argmax(suffix))
@@ -83,12 +84,22 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[
         if k == best or other is None or other.size == 0:
             continue
         n = min(ref.size, other.size)
-        d = (ref[-n:] - other[-n:])[max(0, start - (ref.size - n)):]
+        d = ref[-n:] - other[-n:]
+        eta = np.ones(n)
+        if fits is not None and fits.size >= n:
+            eta = fits[-n:]
+        first = max(0, start - (ref.size - n))
+        d, eta = d[first:], eta[first:]
         gap = out[best] - out[k]
+        raw = float(np.sum(d))
+        if raw > 0:        # the windows' differences, each tempered by how well it is fitted
+            gap *= min(1.0, max(0.0, float(np.sum(eta * d)) / raw))
+        d = eta * d
         sd = float(np.std(d, ddof=1)) if d.size > 1 else 0.0
         # one window is no sample of the differences: no twin is preferred on it alone
-        z = (0.0 if d.size < 2 else math.inf if sd == 0
-             else float(np.mean(d)) / sd * math.sqrt(d.size))
+        mean = float(np.mean(d)) if d.size else 0.0
+        z = (0.0 if d.size < 2 or mean <= 0 else math.inf if sd == 0
+             else mean / sd * math.sqrt(d.size))
         crit = _t_crit(d.size)
         out[k] = out[best] - gap * min(1.0, max(0.0, z / crit) ** 2)
     return out
@@ -116,11 +127,14 @@ class Diagnoser:
         ties: dependent parameter -> its source (the estimation's ties).
         config: the ``[diagnosis]`` table (its defaults when None).
         source: where the library comes from, as it reads in the message.
+        resolution: the finest residual the comparison resolves, a share of each output's
+            scale (the machine's ``[estimation] model_error``).
     """
 
     def __init__(self, library: FaultLibrary, model: TwinModel, nominal: Mapping[str, float],
                  *, estimate: Sequence[str] = (), ties: Mapping[str, str] | None = None,
-                 config: DiagnosisConfig | None = None, source: str = "shipped") -> None:
+                 config: DiagnosisConfig | None = None, source: str = "shipped",
+                 resolution: float = RESOLUTION) -> None:
         cfg = config or DiagnosisConfig()
         self.library = library
         self.model = model
@@ -139,7 +153,8 @@ class Diagnoser:
                                    dict(ties if ties is not None
                                         else model.estimation_defaults.tie),
                                    WindowTerms(library.speed_channel),
-                                   baseline_windows=cfg.baseline_windows, keep=cfg.keep_windows)
+                                   baseline_windows=cfg.baseline_windows, keep=cfg.keep_windows,
+                                   resolution=resolution)
         self._checks: deque[tuple[float, float, bool]] = deque()
         self._passed_run = 0
         self._cf_since: float | None = None
@@ -213,7 +228,7 @@ class Diagnoser:
             gains[fid] = tr.gain[:tr.m]
         evidence["unknown"] = reading.unknown
         gains["unknown"] = np.array(self.bank.unknown_gains())
-        evidence = _vuong(evidence, gains)
+        evidence = _vuong(evidence, gains, np.array(self.bank.fits_window, dtype=float))
         prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
         # no fault now: none ever, or one that ended (a repair: a second change, as likely as
         # the fault itself) and the windows since are the baseline's
