@@ -370,16 +370,14 @@ class HypothesisBank:
                 if f is not None:
                     reading.fits[h.label] = f
         self._choose_pairs(reading)
-        # the unknown change: a twin the library does not have, taken to explain the window
-        # down to the baseline's noise (its weighted squared residual the chi-square mean of
-        # the samples at the baseline's variances), with as many free numbers as the window's
-        # own estimate: it gains on a library twin only what that leaves above the noise, less
-        # its extra numbers' penalty (a library twin that fits to the noise keeps the window)
-        s_ideal = float(np.sum(kap * m_rows * sig2 / proj.s2))
+        # the unknown change: the window's own estimate (every estimated parameter free in
+        # every window, the kept meta-model terms in its twin), its numbers' penalty paid in
+        # every window: it gains on a library twin only what that leaves unexplained
         if r_est is not None:
             rp = proj(r_est, profile=False)
-            s_ideal = min(s_ideal, float(rp @ rp))
-        self._unknown.append(0.5 * (s0 - s_ideal) - 0.5 * max(est_free, 1) * ln_n)
+            self._unknown.append(0.5 * (s0 - float(rp @ rp)) - 0.5 * max(est_free, 1) * ln_n)
+        else:
+            self._unknown.append(-0.5 * max(est_free, 1) * ln_n)
         reading.unknown, reading.unknown_windows = self._unknown_evidence()
         self.last = reading
         return reading

@@ -354,9 +354,10 @@ class DiagnosisConfig(_Strict):
                       outputs: Sequence[str] = ()) -> None:
         """Every name the faults use exists in the twin: a change's parameters, its channel
         among the twin's ``channels`` (empty: not checked), its attach point; the speed
-        channel; the library file is the machine's ``model``'s. A fault whose every twin names
-        something the machine lacks could never be found: refused (a fault with at least one
-        usable twin is kept: a library shared by twin variants).
+        channel; the library file is the machine's ``model``'s. A configured fault (the
+        library file's, an inline one) naming something the machine lacks is refused; a
+        shipped one only when none of its twins is usable (a library shared by the twin's
+        variants: a Coulomb friction parameter exists only with ``coulomb_friction``).
 
         Raises:
             ValueError: one line naming the key (``diagnosis.library``, ``diagnosis.faults``),
@@ -377,6 +378,8 @@ class DiagnosisConfig(_Strict):
             raise ValueError(f"{where}: speed_channel {lib.speed_channel!r} is not a channel "
                              f"of the {model} twin; {closest(lib.speed_channel, channels)}")
         inline = {f.id for f in self.faults}
+        configured = inline | ({f.id for f in load_library(self.library).faults}
+                               if self.library is not None else set())
         chans = list(channels) or None
         for f in lib.faults:
             key = "diagnosis.faults" if f.id in inline else where
@@ -400,5 +403,7 @@ class DiagnosisConfig(_Strict):
                                         f"speed_channel")
             usable = len(f.hypotheses(parameter_names, chans or [], attach_names)) \
                 if chans is not None else 1
-            if problems and (f.id in inline or usable == 0):
+            # a configured fault is the user's: every name must exist; a shipped one may hold
+            # twins a variant of the model lacks (a Coulomb friction parameter, a Va reading)
+            if problems and (f.id in configured or usable == 0):
                 raise ValueError(f"{key}: fault {f.id!r} {problems[0]}")
