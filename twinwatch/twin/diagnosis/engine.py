@@ -29,6 +29,7 @@ import numpy as np
 
 from twinwatch.twin.diagnosis.hypotheses import (
     LN_STEP,
+    Change,
     Columns,
     Fitted,
     Hypothesis,
@@ -39,6 +40,9 @@ from twinwatch.twin.diagnosis.hypotheses import (
     evidence_many,
     evidence_of,
 )
+from twinwatch.twin.diagnosis.hypotheses import (
+    basis as _basis_of,
+)
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.model import FloatArray
 
@@ -47,9 +51,6 @@ __all__ = ["RESOLUTION", "HypothesisBank", "WindowReading"]
 #: A reading that repeats to this share of its size repeats exactly (one converter code, one
 #: register value): a stuck reading does, a clipped one at its range's end does.
 EXACT = 1e-9
-#: The weighted squared residual given to a stuck or clipped reading's twin in a window whose
-#: reading does not repeat (it cannot be stuck or clipped there).
-STUCK_IMPOSSIBLE = 1e12
 
 #: The finest residual the comparison resolves by default, as a share of each output's scale
 #: (its RMS): the estimation's default ``model_error`` (``[estimation] model_error``, the
@@ -107,8 +108,10 @@ class HypothesisBank:
                  hypotheses: Sequence[Hypothesis], estimate: Sequence[str],
                  ties: Mapping[str, str], terms: WindowTerms, *,
                  baseline_windows: int = 10, keep: int = 150, lag: int = 10,
-                 resolution: float = RESOLUTION) -> None:
+                 resolution: float = RESOLUTION,
+                 attach_scales: Mapping[str, float] | None = None) -> None:
         self.resolution = float(resolution)
+        self._attach_scale = dict(attach_scales or {})
         self.names = tuple(model_params)
         self.nominal = np.asarray(nominal, dtype=float).copy()
         self.theta = self.nominal.copy()
@@ -312,7 +315,7 @@ class HypothesisBank:
             first[h.label] = (a_, b_, phi_, float(r0p @ r0p - 2 * b_ @ phi_ + phi_ @ a_ @ phi_))
         everyone = [*self.hypotheses, *pairs]
         again = [h for h in everyone if h.label in first
-                 and any(c.kind == "scale" for c in h.changes)
+                 and any(c.kind in ("scale", "term") for c in h.changes)
                  and float(np.max(np.abs(first[h.label][2]))) > 1e-3]
         exact: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         phis = {h.label: first[h.label][2] for h in again}
@@ -324,7 +327,8 @@ class HypothesisBank:
             if not again:
                 break
             step = self._exact(again, phis, fit, initial, proj, lin)
-            sims += sum(1 + sum(1 for c in h.changes if c.kind == "scale") for h in again)
+            sims += sum(1 + sum(c.size for c in h.changes if c.kind in ("scale", "term"))
+                        for h in again)
             moved = []
             for h in again:
                 if h.label not in step:
@@ -468,43 +472,69 @@ class HypothesisBank:
     def _exact(self, hyps: list[Hypothesis], phis: dict[str, FloatArray], fit: WindowFit,
                initial: FloatArray | None, proj: _Projector, lin: Mapping[str, FloatArray]
                ) -> dict[str, tuple[FloatArray, float, FloatArray]]:
-        """Each hypothesis's twin simulated at its size and a step beyond it in each scale
-        change (one batch): its exact residual there and a Gauss-Newton step from it. The
-        other changes (readings, terms: the twin is linear in them) keep their columns at the
-        baseline (``lin``: label -> columns (q, M), projected)."""
-        rows = []
+        """Each hypothesis's twin simulated at its size and a step beyond it in each scale and
+        term change (one batch): its exact residual there and a Gauss-Newton step from it.
+        A term enters the twin through its equations (the leak's pressure factor feeds the
+        valve's square-root flow: not linear in it). The reading changes (the twin's outputs
+        are linear in a reading's gain or offset) keep their columns at the baseline
+        (``lin``: label -> columns (q, M), projected)."""
+        window = fit.window
+        rows: list[FloatArray] = []
+        row_terms: list[dict[str, FloatArray]] = []
         layout = []
+        bases: dict[tuple[object, ...], FloatArray] = {}
+
+        def terms_at(h: Hypothesis, phi: FloatArray) -> dict[str, FloatArray]:
+            out_t: dict[str, FloatArray] = {}
+            k = 0
+            for c in h.changes:
+                if c.kind == "term":
+                    for i, d in enumerate(c.directions()):
+                        if d not in bases:
+                            bases[d] = _basis_of(window, d, self.terms)
+                        out_t[c.target] = out_t.get(c.target, 0.0) + float(phi[k + i]) * bases[d]
+                k += c.size
+            return out_t
+
         for h in hyps:
             phi0 = phis[h.label]
             start = len(rows)
             rows.append(self._theta_at(h, phi0))
+            row_terms.append(terms_at(h, phi0))
             k = 0
             for c in h.changes:
-                if c.kind == "scale":
-                    e = np.zeros_like(phi0)
-                    e[k] = LN_STEP
-                    rows.append(self._theta_at(h, phi0 + e))
+                if c.kind in ("scale", "term"):
+                    for i in range(c.size):
+                        e = np.zeros_like(phi0)
+                        e[k + i] = self._fd_step(c)
+                        rows.append(self._theta_at(h, phi0 + e))
+                        row_terms.append(terms_at(h, phi0 + e))
                 k += c.size
             layout.append((h, start, len(rows) - start - 1))
+        attach = {a for t in row_terms for a in t}
+        terms = {a: np.vstack([np.broadcast_to(t.get(a, 0.0), (window.n,)) for t in row_terms])
+                 for a in attach}
         init = None if initial is None else np.repeat(np.asarray(initial)[None], len(rows), 0)
-        y = fit.simulate(np.vstack(rows), None, init)
+        y = fit.simulate(np.vstack(rows), terms or None, init)
         out = {}
-        for h, start, n_scale in layout:
-            block = y[start:start + 1 + n_scale]
+        for h, start, n_fd in layout:
+            block = y[start:start + 1 + n_fd]
             if not np.all(np.isfinite(block)):
                 continue
             phi0 = phis[h.label]
             y1 = block[0]
             base_cols = lin[h.label]
             cols = np.array(base_cols, copy=True)
-            # the linear part's own effect at its size (readings and terms at the baseline
-            # slope), then the exact scale part
+            # the reading changes' own effect at their size (at the baseline's slope), then the
+            # exact scale and term part
             k, j = 0, 1
             lin_shift = np.zeros(cols.shape[1])
             for c in h.changes:
-                if c.kind == "scale":
-                    cols[k] = proj((block[j][1:] - y1[1:]) / (LN_STEP * fit.scale))
-                    j += 1
+                if c.kind in ("scale", "term"):
+                    for i in range(c.size):
+                        cols[k + i] = proj((block[j][1:] - y1[1:])
+                                           / (self._fd_step(c) * fit.scale))
+                        j += 1
                 else:
                     for i in range(k, k + c.size):
                         lin_shift += base_cols[i] * float(phi0[i])
@@ -517,6 +547,14 @@ class HypothesisBank:
             s_val = float(r @ r - 2 * b @ step + step @ a @ step)
             out[h.label] = (phi0 + step, s_val, a)
         return out
+
+    def _fd_step(self, c: Change) -> float:
+        """The finite-difference step of a change's free number: a parameter's logarithm's
+        (:data:`LN_STEP`), a term amplitude's (1e-3 of its attach point's scale)."""
+        if c.kind == "term":
+            a = self._attach_scale.get(c.target, 1.0)
+            return 1e-3 * a
+        return LN_STEP
 
     def _closed_residual(self, h: Hypothesis, cols: Columns, fit: WindowFit
                          ) -> FloatArray | None:
@@ -571,7 +609,7 @@ class HypothesisBank:
         tol = EXACT * max(float(np.max(np.abs(meas))), float(cols.scale[j]))
         if c.kind == "stuck":
             if float(np.max(meas) - np.min(meas)) > tol:
-                return STUCK_IMPOSSIBLE
+                return math.inf
             r[:, j] = 0.0
         else:
             y = cols.y0[1:, j]

@@ -49,7 +49,7 @@ import numpy as np
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
-__all__ = ["LN_STEP", "Change", "Columns", "Fitted", "Hypothesis", "Track", "WindowTerms",
+__all__ = ["LN_STEP", "Change", "basis", "Columns", "Fitted", "Hypothesis", "Track", "WindowTerms",
            "bounded_solve", "columns", "design", "evidence_of", "periodic_angle"]
 
 #: Finite-difference step of a parameter's (or a gain's, a supply ratio's) logarithm. The
@@ -162,7 +162,9 @@ class WindowTerms:
     speed_channel: str = ""
 
 
-def _basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms) -> FloatArray:
+def basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms) -> FloatArray:
+    """A term direction's basis function over the window (N,): ``constant``, ``coulomb``
+    (``-sign`` of the speed), ``sin`` or ``cos`` of the harmonic's shaft angle."""
     _, _, shape, harmonic = direction
     n = window.n
     if shape == "constant":
@@ -250,7 +252,7 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
             rows_theta.append(rows_theta[0])
             rows_init.append(init0)
             term_rows.append((len(rows_theta) - 1, attach.name,
-                              step * _basis(window, d, terms)))
+                              step * basis(window, d, terms)))
             keys.append((d, step))
     for i in range(n_init):
         rows_theta.append(rows_theta[0])
@@ -529,7 +531,8 @@ def evidence_of(track: Track, recent: int = 5, consistent: bool = True) -> Fitte
     suffix_g = _suffix(g)
     k = int(np.argmax(suffix_g))
     top = float(suffix_g[k])
-    ev = top + math.log(float(np.mean(np.exp(suffix_g - top))))
+    ev = (top + math.log(float(np.mean(np.exp(suffix_g - top))))) if math.isfinite(top) \
+        else -math.inf
     lo = max(k, m - recent)
     w = 1.0 / np.maximum(track.std[lo:m], 1e-300) ** 2
     phi = np.sum(w * track.phi[lo:m], axis=0) / np.sum(w, axis=0)

@@ -81,10 +81,12 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray],
     start = int(np.argmax(suffix))
     for k in list(out):
         other = gains.get(k)
-        if k == best or other is None or other.size == 0:
+        if k == best or other is None or other.size == 0 or not math.isfinite(out[k]):
             continue
         n = min(ref.size, other.size)
         d = ref[-n:] - other[-n:]
+        if not np.all(np.isfinite(d)):
+            continue            # a twin impossible in a window (a moving reading is no stuck one)
         eta = np.ones(n)
         if fits is not None and fits.size >= n:
             eta = fits[-n:]
@@ -154,7 +156,8 @@ class Diagnoser:
                                         else model.estimation_defaults.tie),
                                    WindowTerms(library.speed_channel),
                                    baseline_windows=cfg.baseline_windows, keep=cfg.keep_windows,
-                                   resolution=resolution)
+                                   resolution=resolution,
+                                   attach_scales={a.name: a.scale for a in model.attach_points})
         self._checks: deque[tuple[float, float, bool]] = deque()
         self._passed_run = 0
         self._cf_since: float | None = None
@@ -223,7 +226,8 @@ class Diagnoser:
         for fid, fits in by_fault.items():
             evs = [f.evidence for _, f in fits]
             top = max(evs)
-            evidence[fid] = top + math.log(sum(math.exp(e - top) for e in evs) / len(evs))
+            evidence[fid] = (top + math.log(sum(math.exp(e - top) for e in evs) / len(evs))
+                             if math.isfinite(top) else -math.inf)
             tr = self.bank.tracks[best_twin[fid][0]]
             gains[fid] = tr.gain[:tr.m]
         evidence["unknown"] = reading.unknown
@@ -354,7 +358,7 @@ class Diagnoser:
         since = f"the {f.windows} windows since its change point"
         if f.evidence > 0:
             pro.append(f"its twin ({self._size_text(fid, lab, f)}, 2 sigma) fits {since} "
-                       f"better than the healthy baseline (log-evidence {f.evidence:.1f}; "
+                       f"better than the healthy baseline (log-evidence {f.evidence:.3g}; "
                        f"better in {100 * f.share:.0f} % of them)")
         else:
             con.append(f"its twin ({self._size_text(fid, lab, f)}) fits the recent windows no "
@@ -365,7 +369,7 @@ class Diagnoser:
                            default=0.0)
             if best_top - f.evidence > 1.0:
                 con.append(f"{top}'s twin fits the same windows better (log-evidence "
-                           f"{best_top - f.evidence:.1f} more)")
+                           f"{best_top - f.evidence:.3g} more)")
         changed: list[str] = []
         for sub in lab.split("+"):
             mid, no = sub.split("#")
