@@ -326,8 +326,8 @@ def test_the_recordings_model_document_opens_with_the_diagnosis(
     assert re.match(r"\*\*Diagnosis: internal_leak\*\* \(piston seal \(internal leakage\)\), "
                     r"probability (0\.[89]\d|1\.00)", head), head
     assert "replace the piston seals" in head
-    assert "its twin (a constant term on p +0.2" in head and "next: fluid_degradation" not in head.split(
-        "\n")[0]
+    assert "its twin (a constant term on p +0.2" in head
+    assert "next: fluid_degradation" not in head.split("\n")[0]
 
 
 def test_a_fault_alarm_has_hysteresis(leak_history: list[HealthMessage]) -> None:
