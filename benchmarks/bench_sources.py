@@ -5,7 +5,7 @@ CAN driver, clean and with 300 malformed lines: wall time of each and their rati
 costs O(1) (the reader resumes at the next line); it used to cost a re-read from the top.
 
 ``gateway``: CPU while the daemon waits for a CAN gateway that went away. A loopback socketcand
-server (tests/sources_support.py) feeds the simulated motor's frames to ``twinwatch run`` (in a
+server (harness/sources.py) feeds the simulated motor's frames to ``twinwatch run`` (in a
 subprocess, as the unit runs it) in real time; it is stopped for ``--outage`` seconds and
 started again. Prints the process's CPU share while the gateway is away (measured from
 /proc/PID/stat over the outage, less the first second), whether and when it reconnected, and
@@ -30,7 +30,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.sources_support import PLANT_DBC, plant_asc_log  # noqa: E402
+from harness.sources import PLANT_DBC, plant_asc_log  # noqa: E402
 
 
 def _replay_once(log: Path) -> tuple[float, int, int]:
@@ -91,9 +91,8 @@ def _prelude(checkout: str | None) -> str:
 
 
 def gateway(outage: float, checkout: str | None = None) -> None:
-    from tests.sources_support import SocketcandServer, gateway_config
-    from tests.test_fault_injection import Service
-    from tests.test_service import db_rows
+    from harness.daemon import Service, db_rows
+    from harness.sources import SocketcandServer, gateway_config
 
     with tempfile.TemporaryDirectory() as tmp_s, SocketcandServer() as server:
         tmp = Path(tmp_s)

@@ -150,10 +150,10 @@ def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None) -
 
 def can_cost(seconds: float) -> tuple[float, int] | None:
     """CPU [s] and samples of the CAN driver replaying an ASC log of the plant (None without
-    the test helpers)."""
+    the harness beside this checkout)."""
     try:
-        from tests.sources_support import PLANT_DBC, plant_asc_log
-    except Exception:  # noqa: BLE001 - optional: needs the test extras
+        from harness.sources import PLANT_DBC, plant_asc_log
+    except Exception:  # noqa: BLE001 - optional: harness/ beside this checkout
         return None
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "plant.asc"

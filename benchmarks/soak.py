@@ -43,8 +43,6 @@ from twinwatch.config.loader import default_config
 from twinwatch.daemon.runner import Daemon
 from twinwatch.twin.health import HealthMessage
 
-logger = logging.getLogger(__name__)
-
 
 def rss_kib() -> int:
     """Resident set size of this process [KiB] (``VmRSS`` of ``/proc/self/status``)."""

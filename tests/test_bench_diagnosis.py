@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from .conftest import ROOT
+from .helpers.paths import ROOT
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import bench_diagnosis as bench  # noqa: E402

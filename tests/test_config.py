@@ -16,7 +16,7 @@ from click.testing import CliRunner
 from twinwatch.cli import main
 from twinwatch.config.loader import ConfigError, default_config, load_config
 
-from .conftest import ROOT, SHARED
+from .helpers.paths import ROOT, SHARED
 
 EXAMPLES = sorted((ROOT / "config").glob("*.toml"))
 

@@ -421,5 +421,3 @@ def test_explain_reads_a_newer_daemons_message(leak_history: list[HealthMessage]
     assert "4. trend and remaining useful life" in out or "4. no trend" in out, out
     assert re.search(r"1\. internal_leak \(piston seal", out), out
     assert "no diagnosis in the stored messages" not in out
-
-

@@ -14,8 +14,7 @@ import pytest
 from twinwatch.config.loader import load_config
 from twinwatch.daemon.host import Host
 
-from .test_fault_injection import cli
-from .test_gateway import _check, machine_config
+from .helpers.cli import check_machine, cli, machine_config
 
 
 def test_two_files_naming_one_machine_the_first_by_file_name_always_runs(
@@ -92,7 +91,7 @@ def test_a_renamed_file_keeps_its_machine_running(tmp_path: Path,
     machine_config(machines, "m1", port=None, duration=60.0)
     monkeypatch.chdir(tmp_path)
     caplog.set_level(logging.WARNING)
-    gateway = Host(machines, read=load_config, check=_check, workers=1, stuck_after=30.0,
+    gateway = Host(machines, read=load_config, check=check_machine, workers=1, stuck_after=30.0,
                    quiet_after=30.0, start_timeout=120)
     gateway.start()
     runner = __import__("threading").Thread(target=gateway.run, daemon=True)
@@ -143,7 +142,7 @@ def test_a_lost_machine_renamed_and_fixed_counts_once(tmp_path: Path,
     """A machine lost under ``m1.toml`` (its recording missing), its file renamed and fixed,
     SIGHUP: it runs under the new file and the summary counts one machine that ran, exit 0
     (before: "2 machines, 1 ran, 1 lost", exit 1: a machine was its file)."""
-    from .sources_support import FILE_DRIVER, plant_csv
+    from harness.sources import FILE_DRIVER, plant_csv
 
     machines = tmp_path / "machines"
     machines.mkdir()
@@ -151,7 +150,7 @@ def test_a_lost_machine_renamed_and_fixed_counts_once(tmp_path: Path,
     missing = FILE_DRIVER.format(path=tmp_path / "missing.csv")
     path = machine_config(machines, "m1", port=None, driver=missing)
     monkeypatch.chdir(tmp_path)
-    gateway = Host(machines, read=load_config, check=_check, workers=1, start_timeout=60)
+    gateway = Host(machines, read=load_config, check=check_machine, workers=1, start_timeout=60)
     gateway.start()
     try:
         assert gateway.machines[path].lost is not None

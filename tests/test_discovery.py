@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from tests.conftest import ROOT, plant_windows
 from twinwatch.config.loader import load_config
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
 from twinwatch.twin.adaptation import TwinAdapter
@@ -31,6 +30,9 @@ from twinwatch.twin.estimation.estimator import Estimator
 from twinwatch.twin.health import build_health
 from twinwatch.twin.models import create_model
 from twinwatch.twin.models.dcmotor import DCMotorTwin
+
+from .helpers.paths import ROOT
+from .helpers.plant import plant_windows
 
 UNBALANCED_CONFIG = ROOT / "config" / "dc-motor-unbalanced-sim.toml"
 
@@ -245,8 +247,9 @@ def test_term_rendering_matches_the_issue() -> None:
 def test_the_recording_carries_the_model_document_and_residual_trace(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """Rerun: the twin's structure is logged as a text document with every window, and the
     residual trace every window."""
-    from tests.test_rerun_recorder import rerun_cli
     from twinwatch.sinks.rerun import RecordingConfig, RerunRecorder
+
+    from .helpers.recording import rerun_cli
 
     twin = DCMotorTwin()
     term = _truth_term(twin).as_dict()

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
-from tests.conftest import ROOT
+from .helpers.paths import ROOT
 
 sys.path.insert(0, str(ROOT / "scripts"))
 import gen_cli_reference  # noqa: E402
@@ -46,6 +46,11 @@ def test_the_site_builds_in_strict_mode(tmp_path: Path) -> None:
     # commands wrap, a key breaks after its dots only (seen in headless Chromium, 1280 px)
     css = (tmp_path / "site" / "stylesheets" / "extra.css").read_text(encoding="utf-8")
     assert re.search(r"code\.language-sh[^{]*\{[^}]*white-space: pre-wrap", css, re.S)
+    # issue 57: TOML blocks were cut at the right edge (a scroll bar shown only under the
+    # pointer): configuration blocks wrap too, every other block's scroll bar is always drawn
+    assert re.search(r"code\.language-toml[^{]*\{[^}]*white-space: pre-wrap", css, re.S)
+    assert re.search(r"pre > code \{[^}]*scrollbar-color: var\(--md-default-fg-color--light\)",
+                     css)
     assert re.search(r"td:first-child code[^{]*\{[^}]*word-break: normal", css, re.S)
     start = (tmp_path / "site" / "getting-started" / "index.html").read_text(encoding="utf-8")
     assert "stylesheets/extra.css" in start

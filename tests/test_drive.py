@@ -10,14 +10,11 @@ import pytest
 from pydantic import ValidationError
 
 from twinwatch.io.drive import DriveConfig, LoopConfig
-from twinwatch.plant.dcmotor import DCMotorPlantConfig, SetpointSchedule
+from twinwatch.plant.dcmotor import DCMotorPlantConfig
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-from .conftest import plant_windows
-
-#: Set-points that drive the 18 V limit into saturation (20 rad/s needs about 26 V) and out.
-STEPS = SetpointSchedule(steps=[(0.0, 5.0), (6.0, 20.0), (22.0, 10.0), (30.0, 0.0),
-                                (36.0, 15.0)])
+from .helpers.plant import plant_windows
+from .helpers.twin import STEPS
 
 
 def _drive(period: float | None, **speed: object) -> DriveConfig:

@@ -18,64 +18,9 @@ from pathlib import Path
 
 import pytest
 
+from .helpers.plugins import DRIVER_PLUGIN
+
 ROOT = Path(__file__).resolve().parents[1]
-
-PLUGIN = '''
-"""A third-party driver: the DC motor plant delivered directly (no bus)."""
-from __future__ import annotations
-
-from pathlib import Path
-from typing import Literal
-
-from pydantic import ConfigDict, Field
-
-from twinwatch.drivers.base import (
-    Driver, DriverConfig, DriverInitializationError, validated_config,
-)
-from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
-
-
-class DirectConfig(DriverConfig):
-    model_config = ConfigDict(extra="forbid")
-
-    type: Literal["plant_direct"]
-    plant: DCMotorPlantConfig = Field(default_factory=DCMotorPlantConfig)
-    licence_file: str | None = None   # checked when the driver opens (check-config probes)
-
-
-class PlantDirectDriver(Driver):
-    config_class = DirectConfig
-    channels = ("Va", "ia", "omega", "Tload", "setpoint")
-
-    @classmethod
-    def nominal_sample_period(cls, config: DriverConfig) -> float | None:
-        assert isinstance(config, DirectConfig)
-        return config.plant.sample_period
-
-    @classmethod
-    def duration(cls, config: DriverConfig) -> float | None:
-        assert isinstance(config, DirectConfig)
-        return config.plant.duration
-
-    @classmethod
-    def safe_to_probe(cls, config: DriverConfig) -> bool:
-        return True
-
-    @classmethod
-    def from_config(cls, config, *, base_dir: Path | None = None) -> PlantDirectDriver:
-        cfg = validated_config(DirectConfig, config, "plant_direct")
-        if cfg.licence_file and not ((base_dir or Path.cwd()) / cfg.licence_file).exists():
-            raise DriverInitializationError(f"licence_file {cfg.licence_file} not found")
-        return cls(cfg)
-
-    def __init__(self, cfg: DirectConfig) -> None:
-        super().__init__()
-        self.plant = DCMotorPlant(cfg.plant)
-        self.sample_period = cfg.plant.sample_period
-
-    def _read_internal(self, timeout):
-        return self.plant.next_sample()   # EndOfStream at the plant's duration
-'''
 
 ENTRY_POINTS = """
 [twinwatch.drivers]
@@ -90,7 +35,7 @@ def plugin_path(tmp_path: Path) -> Path:
     pkg = site / "twdemo_plugin"
     pkg.mkdir(parents=True)
     (pkg / "__init__.py").write_text("")
-    (pkg / "direct.py").write_text(PLUGIN)
+    (pkg / "direct.py").write_text(DRIVER_PLUGIN)
     info = site / "twdemo_plugin-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: twdemo-plugin\nVersion: 0.1\n")

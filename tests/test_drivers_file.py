@@ -475,8 +475,10 @@ def test_twinwatch_run_follows_a_recording_as_it_is_written(tmp_path: Path) -> N
     row. Before: 2 of the 6 windows, the run ended at the rows there at start, silently."""
     import threading
 
-    from .sources_support import FILE_DRIVER, plant_csv
-    from .test_fault_injection import cli, with_driver
+    from harness.daemon import with_driver
+    from harness.sources import FILE_DRIVER, plant_csv
+
+    from .helpers.cli import cli
 
     lines = plant_csv(tmp_path / "plant.csv", 12.0).read_text().splitlines(keepends=True)
     live = tmp_path / "live.csv"

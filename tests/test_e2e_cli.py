@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -16,6 +15,8 @@ import time
 from pathlib import Path
 
 import pytest
+
+from .helpers.cli import rerun_exe
 
 SUBSCRIBER = r"""
 import json, sys, time, zenoh
@@ -55,13 +56,6 @@ print(json.dumps({"health": got, "latest": latest, "alive": alive}))
 def _port_free(port: int) -> bool:
     with socket.socket() as s:
         return s.connect_ex(("127.0.0.1", port)) != 0
-
-
-def _rerun() -> str:
-    exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
-    if exe is None:
-        pytest.skip("the rerun CLI is not installed")
-    return exe
 
 
 def _stored(db: Path) -> int:
@@ -123,7 +117,7 @@ def test_readme_first_command_publishes_health_to_another_process(tmp_path: Path
     assert "150 windows estimated" in out
     rrd = tmp_path / "twinwatch.rrd"
     assert rrd.stat().st_size > 0
-    verify = subprocess.run([_rerun(), "rrd", "verify", str(rrd)], capture_output=True,
+    verify = subprocess.run([rerun_exe(), "rrd", "verify", str(rrd)], capture_output=True,
                             text=True, env=env, timeout=120)
     assert verify.returncode == 0, verify.stderr
 
@@ -157,7 +151,7 @@ def test_recording_is_valid_after_a_signal(tmp_path: Path, env, sig):
     estimated = int(re.search(r"(\d+) windows estimated", out).group(1))  # type: ignore[union-attr]
     assert _stored(db) == estimated >= 2
     assert "recording of dc-motor-sim closed" in err and "zenoh" not in out
-    verify = subprocess.run([_rerun(), "rrd", "verify", str(rrd)], capture_output=True,
+    verify = subprocess.run([rerun_exe(), "rrd", "verify", str(rrd)], capture_output=True,
                             text=True, env=env, timeout=120)
     assert verify.returncode == 0, verify.stderr
 

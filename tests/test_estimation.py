@@ -13,7 +13,7 @@ from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSO
 from twinwatch.twin.estimation.gate import IdentifiabilityGate
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-from .conftest import plant_windows
+from .helpers.plant import plant_windows
 
 TRUE = {"Ra": 6.5, "La": 0.673, "J": 0.001171, "Ke": 0.038, "D": 0.00143}
 

@@ -15,10 +15,11 @@ from types import SimpleNamespace
 import pytest
 from click.testing import CliRunner
 
-from tests.conftest import ROOT, SHARED
 from twinwatch.cli import main
 from twinwatch.daemon.summary import alarm_lines, plant_moment, plant_span, window_lines
 from twinwatch.drivers.can import CanDriverConfig
+
+from .helpers.paths import ROOT, SHARED
 
 EXAMPLE = ROOT / "config" / "dc-motor-odrive.toml"
 ODRIVE_DBC = SHARED / "data" / "dbc" / "odrive-cansimple-0.6.10.dbc"

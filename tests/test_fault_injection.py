@@ -37,14 +37,12 @@ import can
 import cantools
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from twinwatch.cli import main
+from harness.daemon import SIM, Service, endless_sim, sim_config, with_driver
 from twinwatch.sinks.store import StateStore
 
-from .conftest import ROOT
-
-SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
+from .helpers.cli import DiskFull, cli
+from .helpers.paths import ROOT
 
 
 @dataclass(frozen=True)
@@ -78,37 +76,6 @@ def case(name: str, *, slow: bool = False, **expected: Any
 
 
 # -- helpers ------------------------------------------------------------------------------
-def sim_config(tmp: Path, *, duration: float = 6.0, zenoh: bool = False,
-               recording: bool = False, extra: str = "", **replace: str) -> Path:
-    """The simulated motor's example config, short, written to ``tmp/m.toml``."""
-    text = SIM.replace("duration = 1200.0", f"duration = {duration}")
-    if not zenoh:
-        text = text.replace("[zenoh]", "[zenoh]\nenabled = false")
-    if not recording:
-        text = text.replace("[recording]", "[recording]\nenabled = false")
-    text = text.replace('path = "state.sqlite"', f'path = "{tmp / "state.sqlite"}"')
-    for old, new in replace.items():
-        assert old in text, old
-        text = text.replace(old, new)
-    path = tmp / "m.toml"
-    path.write_text(text + extra)
-    return path
-
-
-def with_driver(tmp: Path, driver: str, **kw: Any) -> Path:
-    """:func:`sim_config` with its ``[driver]`` tables replaced by ``driver`` (TOML)."""
-    path = sim_config(tmp, **kw)
-    text = path.read_text()
-    start, end = text.index("[driver]"), text.index("[zenoh]")
-    path.write_text(text[:start] + driver.strip() + "\n\n" + text[end:])
-    return path
-
-
-def cli(*args: str) -> Any:
-    """``twinwatch ARGS`` in this process (click's runner): exit code and output."""
-    return CliRunner().invoke(main, list(args), catch_exceptions=True)
-
-
 def health(window: int, machine: str = "dc-motor-sim") -> dict[str, Any]:
     return {"machine": machine, "window": window, "t_start": 2.0 * window,
             "t_end": 2.0 * window + 1.99, "parameters": {}, "alarms": {}}
@@ -133,7 +100,7 @@ def filled_store(db: Path, windows: int = 300) -> None:
 
 # -- issue #5's faults: Zenoh unreachable, secrets readable by others ------------------------
 def _client_config(port: int) -> str:
-    from .test_zenoh_publisher import endpoint
+    from .helpers.net import endpoint
 
     text = SIM.replace('mode = "peer"', 'mode = "client"')
     text = text.replace('listen = ["tcp/127.0.0.1:7447"]', f'connect = ["{endpoint(port)}"]')
@@ -152,15 +119,16 @@ def _zenoh_unreachable_then_lost(ctx: Context) -> dict[str, Any]:
     import subprocess
     import sys
 
-    from .test_service import Collector, _env, db_rows, get_json, wait_for, zsession
-    from .test_zenoh_publisher import endpoint, free_port
+    from harness.daemon import db_rows, twinwatch_env
+
+    from .helpers.net import Collector, endpoint, free_port, get_json, wait_for, zsession
 
     port = free_port()
     cfg = ctx.tmp / "m.toml"
     cfg.write_text(_client_config(port))
     db = ctx.tmp / "state.sqlite"
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(cfg), "--no-progress",
-                             "--log-level", "info"], cwd=ctx.tmp, env=_env(),
+                             "--log-level", "info"], cwd=ctx.tmp, env=twinwatch_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     key = "twinwatch/dc-motor-sim"
     out: dict[str, Any] = {}
@@ -503,7 +471,7 @@ def _missing_dbc(ctx: Context) -> dict[str, Any]:
 
 @case("Zenoh TLS: the CA certificate file is missing", **NOT_RUNNABLE)
 def _missing_tls_file(ctx: Context) -> dict[str, Any]:
-    from .test_zenoh_publisher import endpoint, free_port
+    from .helpers.net import endpoint, free_port
 
     cfg = sim_config(ctx.tmp, zenoh=True, extra='\n[zenoh.tls]\nroot_ca_certificate = '
                      '"missing-ca.pem"\n', **{'listen = ["tcp/127.0.0.1:7447"]':
@@ -561,28 +529,11 @@ def _dbc_without_the_message(ctx: Context) -> dict[str, Any]:
 
 
 # -- 2. a window that cannot be stored is not published; the loss is reported ----------------
-class DiskFull:
-    """The state database's writes fail (as on a full disk) for the windows in ``windows``."""
-
-    def __init__(self, monkeypatch: pytest.MonkeyPatch, windows: range) -> None:
-        self.windows = windows
-        original = StateStore._flush
-
-        def flush(store: StateStore, retry: bool = True) -> bool:
-            if store._pending and store._pending[-1][2] in self.windows:
-                return store._flush_failed(sqlite3.OperationalError(
-                    "database or disk is full"))
-            return original(store, retry)
-
-        monkeypatch.setattr(StateStore, "_flush", flush)
-
-
 def run_with_subscriber(ctx: Context, cfg_text_kw: dict[str, Any], *args: str
                         ) -> tuple[Any, list[int], list[int]]:
     """`run` as a Zenoh client of a router (this test) that subscribes to the health before
     the daemon starts: the result, the windows published and the windows stored."""
-    from .test_service import Collector, zsession
-    from .test_zenoh_publisher import endpoint, free_port
+    from .helpers.net import Collector, endpoint, free_port, zsession
 
     port = free_port()
     cfg = sim_config(ctx.tmp, zenoh=True, **cfg_text_kw,
@@ -673,14 +624,14 @@ def _state_database_locked_30_s(ctx: Context) -> dict[str, Any]:
     import subprocess
     import sys
 
-    from .test_service import _env
+    from harness.daemon import twinwatch_env
 
     # 26 windows of 2 s in real time; the lock from about window 3 to window 18
     cfg = sim_config(ctx.tmp, duration=52.0,
                      **{"realtime = false": "realtime = true"})
     db = ctx.tmp / "state.sqlite"
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(cfg),
-                             "--no-progress"], cwd=ctx.tmp, env=_env(),
+                             "--no-progress"], cwd=ctx.tmp, env=twinwatch_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     locker = None
     try:
@@ -746,9 +697,10 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
     import subprocess
     import sys
 
-    from .test_e2e_cli import _rerun
-    from .test_service import Collector, _env, zsession
-    from .test_zenoh_publisher import endpoint, free_port
+    from harness.daemon import twinwatch_env
+
+    from .helpers.cli import rerun_exe
+    from .helpers.net import Collector, endpoint, free_port, zsession
 
     port = free_port()
     # 40 windows: the recording (its layout alone is 228 kB) fails at once, the state database
@@ -762,7 +714,7 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
         col = Collector(router, "twinwatch/dc-motor-sim/health")
         proc = subprocess.Popen([sys.executable, "-c", DISK_FULL, "400000", "run", str(cfg),
                                  "--no-progress", "--log-level", "info"], cwd=ctx.tmp,
-                                env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                env=twinwatch_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True)
         err: list[str] = []
 
@@ -789,8 +741,8 @@ def _file_size_limit_end_to_end(ctx: Context) -> dict[str, Any]:
         published = {h["window"] for h in col.snapshot()}
     with StateStore(ctx.tmp / "state.sqlite") as st:
         stored = [h.window for h in st.history(limit=None)]
-    verify = subprocess.run([_rerun(), "rrd", "verify", str(ctx.tmp / "twinwatch.rrd")],
-                            capture_output=True, text=True, env=_env(), timeout=120)
+    verify = subprocess.run([rerun_exe(), "rrd", "verify", str(ctx.tmp / "twinwatch.rrd")],
+                            capture_output=True, text=True, env=twinwatch_env(), timeout=120)
     return {"exit_code": proc.returncode,
             "published_not_stored": sorted(published - set(stored)),
             "stored_all": stored == list(range(40)),
@@ -809,10 +761,10 @@ def _recording_pauses_on_a_nearly_full_disk(ctx: Context) -> dict[str, Any]:
 
     import numpy as np
 
+    from harness.daemon import twinwatch_env
     from twinwatch.sinks.rerun import RecordingConfig, RerunRecorder
 
-    from .test_e2e_cli import _rerun
-    from .test_service import _env
+    from .helpers.cli import rerun_exe
 
     real = os.statvfs
     full = [False]
@@ -831,8 +783,8 @@ def _recording_pauses_on_a_nearly_full_disk(ctx: Context) -> dict[str, Any]:
             rec.log_window(t=t, measured={"y": np.sin(t)}, simulated={"y": np.sin(t)},
                            parameters={"k": 1.0}, health={"window": w})
             problems.append(rec.problem)
-    verify = subprocess.run([_rerun(), "rrd", "verify", str(path)], capture_output=True,
-                            text=True, env=_env(), timeout=120)
+    verify = subprocess.run([rerun_exe(), "rrd", "verify", str(path)], capture_output=True,
+                            text=True, env=twinwatch_env(), timeout=120)
     return {"recorded": rec.windows, "lost": rec.lost,
             "problem_while_full": all(p and "paused" in p for p in problems[2:4]),
             "problem_after": problems[-1], "file_verifies": verify.returncode == 0}
@@ -849,8 +801,9 @@ def _second_run_same_directory(ctx: Context) -> dict[str, Any]:
     import subprocess
     import sys
 
-    from .test_service import _env, db_rows, wait_for
-    from .test_zenoh_publisher import endpoint, free_port
+    from harness.daemon import db_rows, twinwatch_env
+
+    from .helpers.net import endpoint, free_port, wait_for
 
     port = free_port()
     kw = {'listen = ["tcp/127.0.0.1:7447"]': f'listen = ["{endpoint(port)}"]',
@@ -860,7 +813,7 @@ def _second_run_same_directory(ctx: Context) -> dict[str, Any]:
         text = text.replace(old, new)
     (ctx.tmp / "first.toml").write_text(text)
     first = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "first.toml",
-                              "--no-progress"], cwd=ctx.tmp, env=_env(),
+                              "--no-progress"], cwd=ctx.tmp, env=twinwatch_env(),
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     rrd = ctx.tmp / "twinwatch.rrd"
     try:
@@ -944,7 +897,7 @@ def _demo_resume_and_fresh(ctx: Context) -> dict[str, Any]:
     second = cli("run", str(cfg), "--no-progress")
     resumed = cli("run", str(cfg), "--no-progress", "--resume")
     fresh = cli("run", str(cfg), "--no-progress", "--fresh")
-    from .test_service import db_rows
+    from harness.daemon import db_rows
 
     rows = db_rows(ctx.tmp / "state.sqlite")
 
@@ -974,8 +927,7 @@ def _history_bad_parameters(ctx: Context) -> dict[str, Any]:
     from twinwatch.config.loader import default_config
     from twinwatch.daemon.runner import Daemon
 
-    from .test_service import zsession
-    from .test_zenoh_publisher import endpoint, free_port
+    from .helpers.net import endpoint, free_port, zsession
 
     port = free_port()
     cfg = default_config()
@@ -1082,7 +1034,7 @@ def honest_run(skip: int, n: int, *, drive: dict[str, Any] | None = None,
     from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
     from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-    from .conftest import plant_windows
+    from .helpers.plant import plant_windows
 
     cfg = DCMotorPlantConfig(scenario="resistance_degradation", duration=2 * (skip + n) + 10,
                              drive=drive or HONEST_DRIVE, noise=noise or {}, seed=5, **plant)
@@ -1160,7 +1112,7 @@ def _matched_integrator(ctx: Context) -> dict[str, Any]:
     from twinwatch.plant.dcmotor import DCMotorPlantConfig
     from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-    from .conftest import plant_windows
+    from .helpers.plant import plant_windows
 
     drive = _method_drive("backward_euler")
     _, wins = plant_windows(DCMotorPlantConfig(scenario="nominal", duration=40.0, drive=drive,
@@ -1232,95 +1184,6 @@ def stop_timeout() -> float:
     return float(match.group(1))
 
 
-class Service:
-    """``twinwatch run CONFIG --log-level info`` in a subprocess, as the unit runs it; its stderr
-    is read line by line by a thread (a log flood cannot block it on a full pipe).
-
-    Args:
-        prelude: Python run in the child before the CLI (e.g. a resource limit).
-    """
-
-    #: run CONFIG as a fleet (a directory holding a link to it: the host's directory path,
-    #: ``twinwatch-gateway.service``) instead of one file (``twinwatch@.service``)
-    fleet = False
-
-    def __init__(self, cfg: Path, cwd: Path, prelude: str = "") -> None:
-        import subprocess
-        import sys
-
-        from .test_service import _env
-
-        target = cfg
-        if self.fleet:
-            target = cwd / "machines.d"
-            target.mkdir(exist_ok=True)
-            (target / cfg.name).symlink_to(cfg)
-        code = f"import sys\n{prelude}\nfrom twinwatch.cli import main\nmain(sys.argv[1:])\n"
-        self.proc = subprocess.Popen(
-            [sys.executable, "-c", code, "run", str(target), "--no-progress", "--log-level",
-             "info"],
-            cwd=cwd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.lines: list[str] = []
-        self.stdout = ""
-        self._lock = threading.Lock()
-        self._reader = threading.Thread(target=self._read, name="stderr-reader", daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            with self._lock:
-                self.lines.append(line.rstrip("\n"))
-
-    def count(self, *texts: str) -> int:
-        """Lines of stderr holding any of ``texts``."""
-        with self._lock:
-            return sum(any(t in ln for t in texts) for ln in self.lines)
-
-    def wait_for(self, *texts: str, n: int = 1, timeout: float = 60.0) -> bool:
-        """True once ``n`` lines hold one of ``texts``; False on timeout or when it exits."""
-        import time
-
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.count(*texts) >= n:
-                return True
-            if self.proc.poll() is not None:
-                self._reader.join(timeout=10)
-                return self.count(*texts) >= n
-            time.sleep(0.02)
-        return False
-
-    def send(self, signum: int) -> None:
-        self.proc.send_signal(signum)
-
-    def wait(self, timeout: float) -> int | None:
-        """Its exit status, or None if it still runs after ``timeout`` [s]."""
-        import subprocess
-
-        try:
-            return self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            return None
-
-    def open_files(self) -> int:
-        """Descriptors the process has open (/proc/PID/fd)."""
-        import os
-
-        return len(os.listdir(f"/proc/{self.proc.pid}/fd"))
-
-    def close(self) -> None:
-        """Kill it if it still runs; keep its stdout (the summary)."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-        self._reader.join(timeout=10)
-        assert self.proc.stdout is not None and self.proc.stderr is not None
-        self.stdout = self.proc.stdout.read()
-        self.proc.stdout.close()
-        self.proc.stderr.close()
-
-
 WINDOW_LINE = "twinwatch.daemon.pipeline: window "
 """The per-window INFO line (``summary_line``)."""
 
@@ -1336,7 +1199,7 @@ def unreachable_source(cfg: Path, port: int | None = None) -> str:
     """``cfg``'s text with a CAN bus served by socketcand on 127.0.0.1:``port`` (default: a
     port nobody listens on: opening it fails at once, the gateway refuses; python-can used to
     try it for 10 s logging each attempt, until issue 15 probed the gateway first)."""
-    from .test_zenoh_publisher import free_port
+    from .helpers.net import free_port
 
     text = cfg.read_text()
     start, end = text.index("[driver]"), text.index("[zenoh]")
@@ -1346,15 +1209,9 @@ def unreachable_source(cfg: Path, port: int | None = None) -> str:
     return text[:start] + driver.strip() + "\n\n" + text[end:]
 
 
-def endless_sim(tmp: Path, **replace: str) -> Path:
-    """The simulated motor running until stopped (its armature replaced every 1200 s)."""
-    return sim_config(tmp, duration=100000.0,
-                      **{"# fault_period = 1200.0": "fault_period = 1200.0"}, **replace)
-
-
 def stored_windows(db: Path) -> tuple[list[int], int]:
     """The window indices in the state database, in the order stored, and its run ids."""
-    from .test_service import db_rows
+    from harness.daemon import db_rows
 
     rows = db_rows(db)
     return [h["window"] for h in rows], len({h["_run"] for h in rows})
@@ -1367,7 +1224,7 @@ def sigterm_during_reload(ctx: Context, signals: int) -> dict[str, Any]:
     import signal
     import time
 
-    from .sources_support import MuteGateway
+    from harness.sources import MuteGateway
 
     cfg = endless_sim(ctx.tmp)
     gateway = MuteGateway()
@@ -1410,7 +1267,7 @@ def _two_sigterms_during_reload(ctx: Context) -> dict[str, Any]:
 def _sigterm_during_start(ctx: Context) -> dict[str, Any]:
     import signal
 
-    from .sources_support import MuteGateway
+    from harness.sources import MuteGateway
 
     cfg = endless_sim(ctx.tmp)
     gateway = MuteGateway()
@@ -1599,11 +1456,11 @@ def _recording_directory_removed(ctx: Context) -> dict[str, Any]:
     import shutil
     import subprocess
 
+    from harness.daemon import twinwatch_env
     from twinwatch.daemon.supervisor import Supervisor
     from twinwatch.sinks.rerun import RerunRecorder
 
-    from .test_e2e_cli import _rerun
-    from .test_service import _env
+    from .helpers.cli import rerun_exe
 
     folder = ctx.tmp / "rec"
     folder.mkdir()
@@ -1624,8 +1481,8 @@ def _recording_directory_removed(ctx: Context) -> dict[str, Any]:
     r = cli("run", str(cfg), "--no-progress", "--log-level", "info")
     noticed = re.search(r"recording \S+ was deleted.*\(noticed at window (\d+)", ctx.caplog.text)
     lost = re.search(r"recording: (\d+) windows", r.output)
-    verify = subprocess.run([_rerun(), "rrd", "verify", str(rrd)], capture_output=True,
-                            text=True, env=_env(), timeout=120) if rrd.exists() else None
+    verify = subprocess.run([rerun_exe(), "rrd", "verify", str(rrd)], capture_output=True,
+                            text=True, env=twinwatch_env(), timeout=120) if rrd.exists() else None
     return {"exit_code": r.exit_code,
             "noticed_at_window": int(noticed.group(1)) if noticed else None,
             "lost": int(lost.group(1)) if lost else None,
@@ -1694,7 +1551,7 @@ sample_period = 0.01
         r = cli("run", str(cfg), "--no-progress", "--log-level", "info")
     finally:
         supervisor_log.removeHandler(handler)
-    from .test_service import db_rows
+    from harness.daemon import db_rows
 
     rows = db_rows(ctx.tmp / "state.sqlite")
     return {"exit_code": r.exit_code,
@@ -1707,9 +1564,9 @@ sample_period = 0.01
 # Sources as real machines deliver them: clocks that jitter, counters that repeat, devices and
 # gateways that come late or go away, replays with bad lines, a real drive's log. Helpers (the
 # plant's CAN log, CSV and Modbus device, a socketcand server, systemd's socket) are in
-# tests/sources_support.py; the parts are tested in tests/test_sources.py.
+# harness/sources.py; the parts are tested in tests/test_sources.py.
 def _ra_by_window(db: Path) -> dict[int, float]:
-    from .test_service import db_rows
+    from harness.daemon import db_rows
 
     return {h["window"]: h["parameters"]["Ra"]["value"] for h in db_rows(db)}
 
@@ -1718,7 +1575,7 @@ def jitter_run(ctx: Context, make: Callable[[Path, float], str], jitter: float,
                seconds: float) -> dict[str, Any]:
     """`run` on a recording whose time stamps jitter by +-``jitter`` [s] and on the same
     recording with exact stamps: windows estimated, failed, Ra against the exact run."""
-    from .test_service import db_rows
+    from harness.daemon import db_rows
 
     out: dict[str, Any] = {}
     ras = []
@@ -1753,7 +1610,7 @@ def jitter_run(ctx: Context, make: Callable[[Path, float], str], jitter: float,
       numeric_failures=0, windows_abandoned=0, jitter_reported=True,
       Ra_as_with_exact_stamps=True)
 def _can_frame_stamps_jitter(ctx: Context) -> dict[str, Any]:
-    from .sources_support import CAN_DRIVER, plant_can_log
+    from harness.sources import CAN_DRIVER, plant_can_log
 
     def make(d: Path, jit: float) -> str:
         log = plant_can_log(d / "m.log", 24.0, jitter=jit,
@@ -1767,7 +1624,7 @@ def _can_frame_stamps_jitter(ctx: Context) -> dict[str, Any]:
       windows_estimated=12, numeric_failures=0, windows_abandoned=0, jitter_reported=True,
       Ra_as_with_exact_stamps=True)
 def _csv_time_column_jitter(ctx: Context) -> dict[str, Any]:
-    from .sources_support import FILE_DRIVER, plant_csv
+    from harness.sources import FILE_DRIVER, plant_csv
 
     def make(d: Path, jit: float) -> str:
         csv_path = plant_csv(d / "m.csv", 24.0, jitter=jit,
@@ -1784,10 +1641,9 @@ def poll_windows(port: int, counter: bool, seconds: float) -> tuple[list[Any], A
     import time
     import tomllib
 
+    from harness.sources import dc_modbus_driver
     from twinwatch.daemon.ringbuffer import RingBuffer
     from twinwatch.drivers import create_driver
-
-    from .sources_support import dc_modbus_driver
 
     table = tomllib.loads(dc_modbus_driver(port, counter=counter,
                                            poll_period=0.005 if counter else None))
@@ -1809,10 +1665,9 @@ def poll_windows(port: int, counter: bool, seconds: float) -> tuple[list[Any], A
 def _modbus_poll_clock(ctx: Context) -> dict[str, Any]:
     import statistics
 
+    from harness.sources import ServedDevice
     from twinwatch.config.loader import load_config
     from twinwatch.daemon.runner import Daemon
-
-    from .sources_support import ServedDevice
 
     results = {}
     for counter in (True, False):
@@ -1871,7 +1726,7 @@ def _no_driver(period: float) -> Any:
       "replayed in real time): STATUS says DEGRADED while it runs, the summary why, exit 75",
       exit_code=75, degraded_status=True, summary_says=True, windows_estimated=0, slow=True)
 def _every_window_fails(ctx: Context) -> dict[str, Any]:
-    from .sources_support import CAN_DRIVER, NotifySocket, plant_frames
+    from harness.sources import CAN_DRIVER, NotifySocket, plant_frames
 
     log = ctx.tmp / "m.log"
     log.write_text("\n".join(f"({t * 1.01:.6f}) can0 {i:03X}#{d.hex().upper()}"
@@ -1899,8 +1754,8 @@ def _every_window_fails(ctx: Context) -> dict[str, Any]:
       windows_estimated=19, windows_abandoned_gap=1, duplicates=1, reordered=1,
       counter_resets=0)
 def _can_counter_duplicate_and_reorder(ctx: Context) -> dict[str, Any]:
-    from .sources_support import CAN_DRIVER, candump_line, plant_frames
-    from .test_service import db_rows
+    from harness.daemon import db_rows
+    from harness.sources import CAN_DRIVER, candump_line, plant_frames
 
     dbc = ctx.tmp / "dcmotor8.dbc"  # the plant's DBC with an 8-bit rolling counter
     dbc.write_text(PLANT_DBC.read_text().replace("sample_counter : 32|32@1+",
@@ -1929,9 +1784,8 @@ def _can_counter_duplicate_and_reorder(ctx: Context) -> dict[str, Any]:
       "per line of the log)", end="end of stream", samples=6000, bad_frames=300,
       reads_per_line_at_most_1_01=True)
 def _asc_log_bad_lines_linear(ctx: Context) -> dict[str, Any]:
+    from harness.sources import plant_asc_log
     from twinwatch.drivers import can as can_driver
-
-    from .sources_support import plant_asc_log
 
     log = ctx.tmp / "m.asc"
     n_lines = plant_asc_log(log, 60.0, bad=300)
@@ -1964,7 +1818,7 @@ def _can_gateway_absent_at_start(ctx: Context) -> dict[str, Any]:
     import signal
     import time
 
-    from .sources_support import NotifySocket, SocketcandServer, gateway_config
+    from harness.sources import NotifySocket, SocketcandServer, gateway_config
 
     server = SocketcandServer()  # not started: nobody listens on its port
     cfg = gateway_config(ctx.tmp, server.port)
@@ -1998,8 +1852,8 @@ def _can_gateway_dropped(ctx: Context) -> dict[str, Any]:
     import signal
     import time
 
-    from .sources_support import NotifySocket, SocketcandServer, gateway_config
-    from .test_service import db_rows
+    from harness.daemon import db_rows
+    from harness.sources import NotifySocket, SocketcandServer, gateway_config
 
     server = SocketcandServer().start()
     cfg = gateway_config(ctx.tmp, server.port)
@@ -2039,8 +1893,8 @@ def _can_message_silent(ctx: Context) -> dict[str, Any]:
     import signal
     import time
 
-    from .sources_support import NotifySocket, SocketcandServer, gateway_config
-    from .test_service import db_rows
+    from harness.daemon import db_rows
+    from harness.sources import NotifySocket, SocketcandServer, gateway_config
 
     server = SocketcandServer().start()
     cfg = gateway_config(ctx.tmp, server.port)
@@ -2074,7 +1928,7 @@ def modbus_service(ctx: Context, port: int) -> tuple[Any, Path]:
     """`run` on the DC motor served as a Modbus device on 127.0.0.1:``port`` (its sample
     counter as time source; the device in lock step with the reader, so that a loaded machine
     loses no sample), as the unit runs it."""
-    from .sources_support import dc_modbus_driver
+    from harness.sources import dc_modbus_driver
 
     cfg = with_driver(ctx.tmp, dc_modbus_driver(port, counter=True, lockstep=True),
                       duration=100000.0)
@@ -2087,7 +1941,7 @@ def _modbus_exception_burst(ctx: Context) -> dict[str, Any]:
     import signal
     import time
 
-    from .sources_support import ServedDevice
+    from harness.sources import ServedDevice
 
     with ServedDevice(counter=True, exceptions=[(6.0, 6.5, 2)], pacing="lockstep") as dev:
         svc, _ = modbus_service(ctx, dev.port)
@@ -2113,9 +1967,8 @@ def _modbus_absent_then_exception(ctx: Context) -> dict[str, Any]:
     import signal
     import time
 
+    from harness.sources import NotifySocket, ServedDevice
     from twinwatch.plant.modbus_server import free_tcp_port
-
-    from .sources_support import NotifySocket, ServedDevice
 
     port = free_tcp_port()
     sock = NotifySocket(ctx.tmp / "notify")
@@ -2153,7 +2006,7 @@ def _odrive_example(ctx: Context) -> dict[str, Any]:
     import subprocess
     import sys
 
-    from .test_service import _env, db_rows
+    from harness.daemon import db_rows, twinwatch_env
 
     if not ODRIVE_DBC.exists():
         pytest.skip(f"ODrive's DBC is not at {ODRIVE_DBC} (../shared/data is not here)")
@@ -2168,8 +2021,8 @@ def _odrive_example(ctx: Context) -> dict[str, Any]:
     cfg = ctx.tmp / "odrive.toml"
     cfg.write_text(text)
     r = subprocess.run([sys.executable, "-m", "twinwatch", "run", str(cfg), "--no-progress",
-                        "--log-level", "info"], cwd=ctx.tmp, env=_env(), capture_output=True,
-                       text=True, timeout=300)
+                        "--log-level", "info"], cwd=ctx.tmp, env=twinwatch_env(),
+                       capture_output=True, text=True, timeout=300)
     rows = db_rows(ctx.tmp / "state.sqlite")
     last = rows[-1]["parameters"] if rows else {}
     truth = {"Ke": 0.0306, "D": 1e-4}

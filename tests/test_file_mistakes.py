@@ -11,8 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from .sources_support import FILE_DRIVER, plant_csv
-from .test_fault_injection import cli, with_driver
+from harness.daemon import with_driver
+from harness.sources import FILE_DRIVER, plant_csv
+
+from .helpers.cli import cli
 
 
 def _text_column(tmp_path: Path) -> Path:

@@ -36,6 +36,7 @@ from typing import Any, Literal
 import pytest
 import zenoh
 
+from harness.daemon import db_rows
 from twinwatch.sinks.base import SinkContext
 from twinwatch.sinks.store import StateStore
 from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig
@@ -43,49 +44,14 @@ from twinwatch.twin.health import HealthView, read_health
 from twinwatch.watch import Fleet, FleetWatcher, Gap, gap_line, render
 from twinwatch.watch.subscription import _Sequence
 
-from .conftest import ROOT
-from .test_service import db_rows, wait_for, zsession
-from .test_watch import _daemon_config, _env
-from .test_zenoh_publisher import endpoint, free_port
+from .helpers.cli import watch_daemon_config, watch_env
+from .helpers.net import Router, endpoint, free_port, router_on, wait_for, zsession
+from .helpers.paths import ROOT
 
 FLEET_DOC = (ROOT / "docs" / "fleet.md").read_text()
 
 
 # -- the pieces ------------------------------------------------------------------------------
-class Router:
-    """A zenoh router on ``ep`` that can be stopped and started again on the same port."""
-
-    def __init__(self, ep: str) -> None:
-        self.ep = ep
-        self.session: zenoh.Session | None = None
-
-    def start(self) -> None:
-        deadline = time.monotonic() + 10
-        while True:  # the port of the router just closed may take a moment to be free
-            try:
-                self.session = zsession("router", listen=[self.ep])
-                return
-            except zenoh.ZError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.2)
-
-    def stop(self) -> None:
-        if self.session is not None:
-            self.session.close()
-            self.session = None
-
-
-@contextmanager
-def router_on(ep: str) -> Iterator[Router]:
-    router = Router(ep)
-    router.start()
-    try:
-        yield router
-    finally:
-        router.stop()
-
-
 class Gateway:
     """One machine's outputs as a daemon opens them: its state database, then its Zenoh
     publisher (a client of the router), serving the history from that database."""
@@ -320,7 +286,7 @@ def test_the_central_store_of_docs_fleet_md_holds_every_window_once(tmp_path: Pa
 def _gateway_config(name: str, ep: str, cache: int) -> str:
     """A daemon of the simulated motor in real time, a Zenoh client of the router on ``ep``
     whose publishers keep the last ``cache`` windows."""
-    text = _daemon_config(name, ep)
+    text = watch_daemon_config(name, ep)
     text = text.replace("# cache = 30 ", f"cache = {cache} ")
     text = text.replace('synchronous = "FULL"', 'synchronous = "NORMAL"')
     assert f"\ncache = {cache} " in text
@@ -392,7 +358,7 @@ def test_two_gateways_through_a_router_a_late_tail_and_a_restart(tmp_path: Path)
             dbs[name] = d / "state.sqlite"
             daemons[name] = subprocess.Popen(
                 [sys.executable, "-m", "twinwatch", "run", "m.toml", "--no-progress"],
-                cwd=d, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                cwd=d, env=watch_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                 text=True)
         errs = {m: Lines(p.stderr) for m, p in daemons.items()}
         wait_for(lambda: all(len(_stored(p)) >= 6 for p in dbs.values()), 240,
@@ -402,7 +368,7 @@ def test_two_gateways_through_a_router_a_late_tail_and_a_restart(tmp_path: Path)
         before = {m: max(_stored(p)) for m, p in dbs.items()}
         tail = subprocess.Popen(
             [sys.executable, "-m", "twinwatch", "tail", "*", "--json", "--history", "4",
-             "--connect", ep], env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+             "--connect", ep], env=watch_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             text=True)
         out, notes = Lines(tail.stdout), Lines(tail.stderr)
         wait_for(lambda: all(len(_tailed(out).get(m, [])) >= 4 for m in dbs), 30,

@@ -24,11 +24,9 @@ from twinwatch.watch.fleet import Fleet
 from twinwatch.watch.subscription import FleetWatcher
 from twinwatch.watch.summaries import SummaryWatcher
 
-from .conftest import ROOT
-from .test_fleet import router_on
-from .test_fleet_summary import _FakeSession, health, summary
-from .test_service import wait_for, zsession
-from .test_zenoh_publisher import endpoint, free_port
+from .helpers.fleet import FakeSession, health, summary
+from .helpers.net import endpoint, free_port, router_on, wait_for, zsession
+from .helpers.paths import ROOT
 
 
 def tokens(session: zenoh.Session, key: str) -> list[str]:
@@ -172,7 +170,7 @@ def test_a_watcher_asks_a_box_s_machines_again_when_its_token_comes_back(
 def test_a_box_token_stands_for_the_machines_of_that_box_only_on_flat_keys() -> None:
     """Flat keys (``twinwatch/<machine>``, several boxes under one prefix): the box's token
     names the box (its summaries' ``box`` as a key chunk), so only its machines are asked."""
-    session = _FakeSession()
+    session = FakeSession()
     session.get = lambda key, handler, **kw: (session.gets.append(key),  # type: ignore[attr-defined]
                                               handler.drop())
     with SummaryWatcher(session) as watcher:  # type: ignore[arg-type]

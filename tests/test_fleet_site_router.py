@@ -19,9 +19,8 @@ import zenoh
 
 from twinwatch.sinks.zenoh import ZenohConfig, declare_publisher
 
-from .conftest import ROOT
-from .test_service import wait_for
-from .test_zenoh_publisher import endpoint, free_port
+from .helpers.net import endpoint, free_port, wait_for
+from .helpers.paths import ROOT
 
 SITE_ROUTER = ROOT / "config" / "zenoh-site-router.json5"
 

@@ -21,48 +21,9 @@ from twinwatch.twin.health import read_health
 from twinwatch.twin.summary import fleet_summary, summary_changed
 from twinwatch.watch.summaries import SummaryWatcher, machines_key
 
-from .conftest import ROOT
-from .test_fleet import router_on
-from .test_service import wait_for, zsession
-from .test_zenoh_publisher import endpoint, free_port
-
-
-def health(machine: str = "m1", window: int = 10, *, ra_dev: float = -1.2,
-           level: str = "normal", rul_level: str = "normal", status: str = "no_fault",
-           fault: str = "winding_short", urgency: str = "high", probability: float = 0.9,
-           raised: bool = False, rul: dict[str, Any] | None = None) -> dict[str, Any]:
-    """A health message as a daemon publishes it (the parts a summary reads)."""
-    crossing = rul or {"status": "predicted", "rul_s": 5000.0, "low_s": 4000.0,
-                       "high_s": 7000.0}
-    return {
-        "schema": 10, "machine": machine, "model": "dc_motor", "run": "r1", "window": window,
-        "t_start": 2.0 * window, "t_end": 2.0 * window + 1.99, "samples": 200,
-        "parameters": {
-            "Ra": {"value": 6.5 * (1 + ra_dev / 100), "unit": "ohm", "nominal": 6.5,
-                   "deviation_pct": ra_dev, "status": "estimated",
-                   "rul": {"status": "degrading", "method": "monte_carlo",
-                           "alarm": {"threshold": 5.85, **crossing}}},
-            "D": {"value": 0.00143, "unit": "N m s/rad", "nominal": 0.00143,
-                  "deviation_pct": 0.01, "status": "estimated"}},
-        "alarms": {"Ra": {"level": level, "since_t": 0.0, "since_window": 0,
-                          "deviation_pct": ra_dev, "pending": None,
-                          "rul": {"level": rul_level, "since_t": 0.0, "since_window": 0,
-                                  "rul_s": 5000.0, "pending": None}}},
-        "diagnosis": {"status": status, "top": fault if status == "fault" else None,
-                      "probability": probability, "no_fault": 1 - probability,
-                      "unknown": 0.01, "unknown_terms": [], "shaft_speed": 18.5,
-                      "library": "dc_motor (shipped)", "evidence": 2,
-                      "alarms": [fault] if raised else [],
-                      "faults": [{"id": fault, "component": "armature winding",
-                                  "probability": probability,
-                                  "action": "measure the armature resistance",
-                                  "urgency": urgency, "source": "IEEE 43",
-                                  "evidence_for": [], "evidence_against": []}]},
-    }
-
-
-def summary(**kw: Any) -> dict[str, Any]:
-    return fleet_summary(read_health(health(**kw)), box="gw-a", wall=1000.0)
+from .helpers.fleet import FakeSession, health, summary
+from .helpers.net import endpoint, free_port, router_on, wait_for, zsession
+from .helpers.paths import ROOT
 
 
 # -- what it says ------------------------------------------------------------------------------
@@ -239,7 +200,7 @@ def test_after_a_router_outage_the_watcher_gets_each_machines_latest_again() -> 
     again when the watcher's subscription is reachable again (``summaries_resent``), and
     the watcher asks the machines whose tokens came back (the asks are the fake sessions'
     tests below: here the resent summary often comes first)."""
-    from .test_fleet import Router
+    from .helpers.net import Router
 
     ep = endpoint(free_port())
     router = Router(ep)
@@ -285,29 +246,7 @@ def test_machines_back_from_a_router_are_asked_by_their_box_not_the_whole_fleet(
     assert flat._reask_keys({f"m{j:02d}" for j in range(30)}) == ["twinwatch/*/summary"]
 
 
-class _FakeSession:
-    """A session whose subscribers do nothing and whose gets are recorded (:meth:`get` in
-    each subclass), answered with :meth:`reply`."""
-
-    def __init__(self) -> None:
-        self.gets: list[str] = []
-
-    def declare_subscriber(self, key: str, callback: Any) -> Any:
-        return SimpleNamespace(undeclare=lambda: None)
-
-    def liveliness(self) -> Any:
-        return self
-
-    @staticmethod
-    def reply(handler: Any, machine: str, doc: dict[str, Any]) -> None:
-        """Reply ``doc`` on ``machine``'s summary key."""
-        text = json.dumps(doc)
-        sample = SimpleNamespace(key_expr=f"twinwatch/{machine}/summary",
-                                 payload=SimpleNamespace(to_string=lambda: text))
-        handler.callback(SimpleNamespace(ok=sample))
-
-
-class _LateQueryables(_FakeSession):
+class _LateQueryables(FakeSession):
     """A session whose gets find no machine's queryable for the first ``silent`` asks after
     the start (a router back: the tokens came before its queryables were known)."""
 
@@ -443,7 +382,7 @@ def test_the_latest_summary_is_sent_again_when_a_subscriber_is_reachable_again(
             router_a.close()
 
 
-class _Fleet(_FakeSession):
+class _Fleet(FakeSession):
     """A session whose first ask finds nothing; later gets answer each machine's latest
     (``latest``) that the key reaches: m1's box moved to another router, m2's did not, and
     m2's window 2 was lost meanwhile."""

@@ -28,9 +28,8 @@ from twinwatch.watch.ranking import (
     urgency,
 )
 
-from .test_fleet import router_on
-from .test_fleet_summary import health
-from .test_zenoh_publisher import endpoint, free_port
+from .helpers.fleet import health
+from .helpers.net import endpoint, free_port, router_on
 
 DAY = 86400.0
 

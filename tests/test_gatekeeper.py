@@ -13,7 +13,6 @@ from typing import Any
 
 import pytest
 
-from tests.conftest import plant_windows
 from twinwatch.config.loader import default_config
 from twinwatch.daemon.gatekeeper import GateKeeper
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
@@ -22,6 +21,8 @@ from twinwatch.sinks.store import StateStore
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import build_health
 from twinwatch.twin.models import create_model
+
+from .helpers.plant import plant_windows
 
 log = logging.getLogger("twinwatch.daemon.pipeline")
 

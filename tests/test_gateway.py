@@ -14,16 +14,15 @@ from typing import Any
 
 import pytest
 
+from harness.sources import CAN_DRIVER, PLANT_DBC, SocketcandServer
 from twinwatch.config.loader import load_config
-from twinwatch.config.preflight import check_runnable
 from twinwatch.daemon.host import Host
 from twinwatch.daemon.pipeline import WindowPipeline
 from twinwatch.daemon.slots import EstimationSlots
 from twinwatch.sinks.base import SharedResources, SinkContext
 from twinwatch.sinks.zenoh import HealthPublisher, ZenohConfig, to_zenoh_config
 
-from .sources_support import CAN_DRIVER, PLANT_DBC, SocketcandServer
-from .test_fault_injection import cli
+from .helpers.cli import check_machine, cli, machine_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
@@ -33,30 +32,6 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def machine_config(directory: Path, name: str, *, port: int | None, duration: float = 1200.0,
-                   realtime: bool = True, driver: str | None = None) -> Path:
-    """The simulated motor's example configuration as machine ``name`` of a gateway: Zenoh on
-    127.0.0.1:``port`` (None: off), no recording, the plant paced by the wall clock."""
-    text = SIM.replace('name = "dc-motor-sim"', f'name = "{name}"')
-    text = text.replace("duration = 1200.0", f"duration = {duration}")
-    text = text.replace("realtime = false", f"realtime = {str(realtime).lower()}")
-    text = text.replace("[recording]", "[recording]\nenabled = false")
-    if port is None:
-        text = text.replace("[zenoh]", "[zenoh]\nenabled = false")
-    else:
-        text = text.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
-    if driver is not None:
-        start, end = text.index("[driver]"), text.index("[zenoh]")
-        text = text[:start] + driver.strip() + "\n\n" + text[end:]
-    path = directory / f"{name}.toml"
-    path.write_text(text)
-    return path
-
-
-def _check(cfg: Any, path: Path, work_dir: Path) -> None:
-    check_runnable(cfg, str(path), base_dir=path.parent, cwd=work_dir)
 
 
 def test_estimation_slots_bound_concurrency_and_skip_a_stuck_holder() -> None:
@@ -211,7 +186,7 @@ def test_one_stalled_source_and_one_raising_machine_do_not_touch_the_healthy_one
 
     monkeypatch.setattr(WindowPipeline, "process", process)
     monkeypatch.chdir(tmp_path)
-    gateway = Host(machines, read=load_config, check=_check, duration=12.0, workers=2,
+    gateway = Host(machines, read=load_config, check=check_machine, duration=12.0, workers=2,
                    stuck_after=30.0, quiet_after=4.0, start_timeout=120)
     statuses: list[str] = []
     done = threading.Event()
@@ -313,7 +288,7 @@ def test_sighup_adds_removes_and_reloads_machines(tmp_path: Path,
     for name in ("m1", "m2", "m3"):
         machine_config(machines, name, port=None)
     monkeypatch.chdir(tmp_path)
-    gateway = Host(machines, read=load_config, check=_check, workers=2, stuck_after=30.0,
+    gateway = Host(machines, read=load_config, check=check_machine, workers=2, stuck_after=30.0,
                    quiet_after=30.0, start_timeout=120)
 
     def daemon(name: str) -> Any:
@@ -473,7 +448,7 @@ def test_a_machine_stuck_in_one_window_does_not_hold_the_others(
         machine_config(machines, name, port=None)
     # the stuck one replays a recording in real time: a live source, whose windows overrun
     # (are dropped) while its estimation is stuck
-    from .sources_support import FILE_DRIVER, plant_csv
+    from harness.sources import FILE_DRIVER, plant_csv
 
     recording = plant_csv(tmp_path / "plant.csv", 20.0)
     path = machine_config(machines, "stuck", port=None, driver=FILE_DRIVER.format(
@@ -489,7 +464,7 @@ def test_a_machine_stuck_in_one_window_does_not_hold_the_others(
 
     monkeypatch.setattr(WindowPipeline, "process", process)
     monkeypatch.chdir(tmp_path)
-    gateway = Host(machines, read=load_config, check=_check, duration=14.0, workers=1,
+    gateway = Host(machines, read=load_config, check=check_machine, duration=14.0, workers=1,
                    stuck_after=3.0, quiet_after=30.0, start_timeout=120)
     statuses: list[str] = []
 
@@ -538,7 +513,7 @@ def test_the_gateway_as_a_service_ready_status_hup_and_term(tmp_path: Path,
     import subprocess
     import sys
 
-    from .sources_support import NotifySocket
+    from harness.sources import NotifySocket
 
     machines = tmp_path / "machines"
     machines.mkdir()
@@ -647,7 +622,7 @@ def test_a_machine_whose_source_never_answers_does_not_hold_the_others(
     bus would wait for its greeting for ever): the gateway is READY within its start timeout,
     the other machine estimates, STATUS names the one still opening or waiting, and a stop
     returns."""
-    from .sources_support import MuteGateway
+    from harness.sources import MuteGateway
 
     machines = tmp_path / "machines"
     machines.mkdir()
@@ -658,7 +633,7 @@ def test_a_machine_whose_source_never_answers_does_not_hold_the_others(
         f'bus_options = {{ host = "127.0.0.1", port = {mute.port} }}')
     machine_config(machines, "mute", port=None, driver=driver)
     monkeypatch.chdir(tmp_path)
-    gateway = Host(machines, read=load_config, check=_check, workers=2, stuck_after=30.0,
+    gateway = Host(machines, read=load_config, check=check_machine, workers=2, stuck_after=30.0,
                    quiet_after=30.0, start_timeout=20)
     try:
         t0 = time.monotonic()
@@ -707,7 +682,7 @@ def test_a_reload_sees_an_edited_fault_library_and_says_what_it_did_in_one_line(
         if name != "m3":
             path.write_text(path.read_text() + f'\n[diagnosis]\nlibrary = "{library}"\n')
     monkeypatch.chdir(tmp_path)
-    gateway = Host(machines, read=load_config, check=_check, workers=2, stuck_after=30.0,
+    gateway = Host(machines, read=load_config, check=check_machine, workers=2, stuck_after=30.0,
                    quiet_after=30.0, start_timeout=120)
 
     def daemon(name: str) -> Any:

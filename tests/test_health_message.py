@@ -22,7 +22,6 @@ from typing import Any
 import pytest
 from pydantic import BaseModel, ValidationError
 
-from tests.conftest import ROOT, plant_windows
 from twinwatch.config.loader import default_config
 from twinwatch.daemon.pipeline import ProcessedWindow
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
@@ -30,6 +29,9 @@ from twinwatch.sinks.store import StateStore
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.health import SCHEMA_VERSION, HealthMessage, build_health, summary_line
 from twinwatch.twin.models import create_model
+
+from .helpers.paths import ROOT
+from .helpers.plant import plant_windows
 
 PLACEHOLDER = re.compile(r"<[^>]+>")
 

@@ -18,7 +18,7 @@ from pydantic import BaseModel
 
 from twinwatch.twin.health import HealthMessage, read_health, sent
 
-from .conftest import ROOT
+from .helpers.paths import ROOT
 
 PACKAGE = ROOT / "twinwatch"
 

@@ -17,14 +17,8 @@ from twinwatch.twin.estimation.fusion import FusionConfig, ParameterFusion
 from twinwatch.twin.estimation.statistics import check_model, cross_correlation_test, ljung_box
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-from .conftest import plant_windows
-from .test_drive import STEPS
-
-BOUNDS = {"Ra": (1.0, 30.0), "D": (1e-4, 1e-2), "Ke": (0.01, 0.1), "La": (0.1, 3.0),
-          "J": (1e-4, 1e-2)}
-#: A stiff drive updating every 1 ms with the voltage held and clamped to [0, 24] V.
-DRIVE = DriveConfig(period=0.001, speed=LoopConfig(kp=2.0, ki=2.0, output_min=0.0,
-                                                   output_max=24.0))
+from .helpers.plant import plant_windows
+from .helpers.twin import BOUNDS, DRIVE, STEPS
 
 
 def _run(twin: DCMotorTwin, noise: dict[str, float], n: int, skip: int = 80,

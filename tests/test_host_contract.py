@@ -20,7 +20,7 @@ from twinwatch.daemon.service import (
 )
 from twinwatch.daemon.workers import ProcessHost, Worker
 
-from .conftest import ROOT
+from .helpers.paths import ROOT
 
 
 def _send(path: Path, *assignments: str) -> None:

@@ -28,8 +28,8 @@ from twinwatch.twin.model import WindowData
 from twinwatch.twin.models import create_model
 from twinwatch.twin.models.hydraulic import HydraulicActuatorTwin, ValveDriveConfig
 
-from .conftest import ROOT
-from .test_twin_hydraulic import ESTIMATION
+from .helpers.paths import ROOT
+from .helpers.twin import HYDRAULIC_ESTIMATION
 
 A_MAX = 7.1e-5  # m^2: below the 7.2e-5 the paper's motion needs, so the valve saturates
 #: The drive periods of the cases below: 1 ms in the fast lane, 0.5 and 2 ms in the slow one.
@@ -198,7 +198,7 @@ def test_estimator_tracks_d_while_the_valve_sits_at_its_limit(period: float) -> 
     starts = [*range(36, 58, 2), *range(86, 94, 2), *range(124, 132, 2)]
     twin = HydraulicActuatorTwin(structure="closed_loop", drive=_drive(period))
     assert twin.exogenous == ("x_ref", "F_load")
-    est = Estimator(twin, EstimationConfig(**ESTIMATION), nominal={"A_max": A_MAX})
+    est = Estimator(twin, EstimationConfig(**HYDRAULIC_ESTIMATION), nominal={"A_max": A_MAX})
     truth = HydraulicPlant(HydraulicPlantConfig(scenario="fluid_degradation", fault_start=0.0))
     errors, held, limited = [], [], 0
     for start in starts:

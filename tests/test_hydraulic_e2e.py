@@ -38,7 +38,7 @@ from twinwatch.drivers.simulated_modbus import (
 from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
 from twinwatch.plant.modbus_server import PlantModbusServer, PtyLink
 
-from .conftest import ROOT
+from .helpers.paths import ROOT
 
 SIM = ROOT / "config" / "hydraulic-modbus-sim.toml"
 LEAK = ROOT / "config" / "hydraulic-modbus-leak-sim.toml"

@@ -16,8 +16,7 @@ import pytest
 
 from twinwatch.config.loader import ConfigError, load_config
 
-from .test_fault_injection import cli
-from .test_gateway import machine_config
+from .helpers.cli import cli, machine_config
 
 GOOD = """model = "dc_motor"
 speed_channel = "omega"

@@ -16,8 +16,8 @@ from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
 from twinwatch.twin.estimation.fusion import FusionConfig, ParameterFusion
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-from .conftest import plant_windows
-from .test_honesty import BOUNDS, DRIVE
+from .helpers.plant import plant_windows
+from .helpers.twin import BOUNDS, DRIVE
 
 
 def _windows(n: int, noise: dict[str, float] | None = None, skip: int = 80):  # type: ignore[no-untyped-def]

@@ -2,7 +2,7 @@
 twice with other values, two captures one after the other.
 
 The ring buffer's rules on a synthetic stream, then ``twinwatch run`` on CSV recordings of the
-simulated DC motor (tests/sources_support.py) written as a logger would: every 97th row twice,
+simulated DC motor (harness/sources.py) written as a logger would: every 97th row twice,
 and two captures concatenated (the clock starts over at the seam).
 """
 
@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.daemon import db_rows, with_driver
+from harness.sources import FILE_DRIVER, plant_csv
 from twinwatch.daemon.ringbuffer import RingBuffer
 
-from .sources_support import FILE_DRIVER, plant_csv
-from .test_fault_injection import cli, with_driver
-from .test_service import db_rows
+from .helpers.cli import cli
 
 CH = ("a", "b")
 

@@ -10,7 +10,7 @@ import pytest
 from twinwatch.config.loader import load_config
 from twinwatch.daemon.runner import Daemon
 
-from .conftest import ROOT, shared_path
+from .helpers.paths import ROOT, shared_path
 
 
 def test_motoshield_pwm_twin_passes_the_model_check_and_tracks_ke_in_every_window():

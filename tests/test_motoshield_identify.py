@@ -23,7 +23,7 @@ from twinwatch.config.identify import AS_CONFIGURED, merge_options
 from twinwatch.config.loader import load_config
 from twinwatch.daemon.runner import Daemon
 
-from .conftest import ROOT, shared_path
+from .helpers.paths import ROOT, shared_path
 
 CONFIG = ROOT / "config" / "dc-motor-motoshield.toml"
 RAW = ROOT / "config" / "dc-motor-motoshield-raw.toml"

@@ -20,23 +20,25 @@ from typing import Any
 
 import pytest
 
+from harness.daemon import sim_config
 from twinwatch.config.loader import load_config
 from twinwatch.errors import ConfigError
 from twinwatch.sinks.mqtt import MqttConfig, discovery_payload, flat_values
 
-from .conftest import ROOT
-from .mqtt_helpers import (
+from .helpers.mqtt import (
     Broker,
     Subscriber,
-    free_port,
+    finish,
     make_pki,
     mqtt_table,
     needs_mosquitto,
     retained,
     running_broker,
+    stored_window,
     twinwatch,
 )
-from .test_fault_injection import sim_config
+from .helpers.net import free_port
+from .helpers.paths import ROOT
 
 M = "twinwatch/dc-motor-sim"
 
@@ -78,19 +80,6 @@ def wait_for(fn: Any, timeout: float, what: str) -> Any:
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
         time.sleep(0.1)
-
-
-def finish(proc: subprocess.Popen[str], sig: int | None = None,
-           timeout: float = 300) -> tuple[int, str, str]:
-    if sig is not None:
-        proc.send_signal(sig)
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    return proc.returncode, out, err
 
 
 # -- configuration ---------------------------------------------------------------------------
@@ -583,20 +572,6 @@ def test_a_refused_connection_is_one_line_not_paho_s_on_every_retry(tmp_path: Pa
 
 
 # -- the sink on its own: a reload hands it over; without a state database ---------------------
-def _window(store: Any, w: int, machine: str = "m1") -> Any:
-    """Store one small health message as the gate does and return what write() gets."""
-    from types import SimpleNamespace
-
-    doc = json.dumps({"machine": machine, "window": w, "t_start": 2.0 * w,
-                      "t_end": 2.0 * w + 1.99, "parameters": {"Ra": {
-                          "value": 6.5 - 0.01 * w, "unit": "ohm", "deviation_pct": -0.15 * w,
-                          "status": "estimated"}}, "alarms": {}})
-    if store is not None:
-        assert store.save_window({"machine": machine, "window": w, "t_start": 2.0 * w,
-                                  "t_end": 2.0 * w + 1.99}, None, doc=doc)
-    return SimpleNamespace(health=SimpleNamespace(window=w), health_json=doc, events=[])
-
-
 @needs_mosquitto
 def test_a_reload_hands_the_output_over_and_no_gate_keeps_an_outbox_in_memory(
         tmp_path: Path, broker: Broker):
@@ -616,10 +591,10 @@ def test_a_reload_hands_the_output_over_and_no_gate_keeps_an_outbox_in_memory(
     pub = MqttPublisher.open("mqtt", cfg, context())
     try:
         for w in range(3):
-            pub.write(_window(store, w))
+            pub.write(stored_window(store, w))
         sub.wait(lambda: len(sub.on(topic)) == 3, 20, "3 windows")
         pub.detach()                              # a reload: the old daemon lets it go
-        held = [_window(store, w) for w in (3, 4)]   # stored meanwhile (the new daemon's)
+        held = [stored_window(store, w) for w in (3, 4)]   # stored meanwhile (the new daemon's)
         pub.attach(context())                     # the new daemon adopts it
         for out in held:
             pub.write(out)
@@ -635,7 +610,7 @@ def test_a_reload_hands_the_output_over_and_no_gate_keeps_an_outbox_in_memory(
     pub = MqttPublisher.open("mqtt", cfg, SinkContext(machine="m1", parameters={"Ra": "ohm"}))
     try:
         for w in range(5, 8):
-            pub.write(_window(None, w))
+            pub.write(stored_window(None, w))
         sub.wait(lambda: len(sub.on(topic)) == 8, 20, "3 windows from memory")
     finally:
         pub.close()
@@ -695,14 +670,14 @@ def test_a_broker_that_stops_acknowledging_is_degraded_and_logged_once(
     pub = MqttPublisher.open("mqtt", cfg, ctx)
     assert broker.proc is not None
     try:
-        pub.write(_window(store, 0))
+        pub.write(stored_window(store, 0))
         sub.wait(lambda: len(sub.on(topic)) == 1, 20, "the first window")
         assert pub.problem is None
         caplog.set_level(logging.WARNING, logger="twinwatch.sinks.mqtt")
         os.kill(broker.proc.pid, signal.SIGSTOP)
         try:
             for w in (1, 2):
-                pub.write(_window(store, w))
+                pub.write(stored_window(store, w))
             deadline = time.monotonic() + 10
             while time.monotonic() < deadline and not (pub.problem or "").count(
                     "has not acknowledged"):

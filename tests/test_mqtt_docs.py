@@ -16,11 +16,12 @@ from typing import Any
 
 import pytest
 
+from harness.daemon import sim_config
 from twinwatch.sinks.mqtt import discovery_payload, flat_values
 
-from .conftest import ROOT
-from .mqtt_helpers import free_port
-from .test_fault_injection import cli, sim_config
+from .helpers.cli import cli
+from .helpers.net import free_port
+from .helpers.paths import ROOT
 
 DOC = (ROOT / "docs" / "mqtt.md").read_text()
 

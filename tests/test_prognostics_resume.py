@@ -19,11 +19,11 @@ from typing import Any
 
 import pytest
 
+from harness.daemon import db_rows, with_driver
+from harness.sources import FILE_DRIVER, plant_csv
 from twinwatch.twin.health import HealthView, read_health
 
-from .sources_support import FILE_DRIVER, plant_csv
-from .test_fault_injection import cli, with_driver
-from .test_service import db_rows
+from .helpers.cli import cli
 
 SECONDS = 260.0
 RESTARTS = (200.0, 210.0)  # plant seconds at which the daemon is stopped and started again
@@ -144,8 +144,8 @@ def test_twinwatch_run_stopped_by_sigterm_and_started_again_twice(runs, tmp_path
     the first stop is the uninterrupted run's."""
     import signal
 
-    from .test_service import _run as popen
-    from .test_service import wait_for
+    from .helpers.cli import run_daemon as popen
+    from .helpers.net import wait_for
 
     whole, _ = runs
     data = plant_csv(tmp_path / "plant.csv", SECONDS, plant=PLANT)

@@ -15,7 +15,6 @@ import math
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT, plant_windows
 from twinwatch.config.loader import load_config
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
 from twinwatch.twin.adaptation import TwinAdapter
@@ -23,6 +22,9 @@ from twinwatch.twin.discovery.metamodels import get_meta_model
 from twinwatch.twin.discovery.search import RefinementConfig
 from twinwatch.twin.discovery.terms import Term
 from twinwatch.twin.models.dcmotor import DCMotorTwin
+
+from .helpers.paths import ROOT
+from .helpers.plant import plant_windows
 
 CONFIG = ROOT / "config" / "dc-motor-unbalanced-sim.toml"
 #: Unlike the paper's 5 rad/s^2 at 10 rad/s.

@@ -27,41 +27,13 @@ from pydantic import ValidationError
 
 from twinwatch.sinks.rerun import RecorderError, RecordingConfig, RerunRecorder
 
+from .helpers.recording import DT, OUTPUTS, PARAMETERS, TIMEOUT, N, recorder, rerun_cli, window
+
 ROOT = Path(__file__).resolve().parents[1]
-RERUN_CLI = Path(sys.executable).with_name("rerun")
-OUTPUTS = ("ia", "omega")
-PARAMETERS = {"Ra": "ohm", "La": "H", "J": "kg m^2"}
-N = 200  # samples per window
-DT = 0.01  # sample period [s]
-TIMEOUT = 60.0
-
-
-def rerun_cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
-    if not RERUN_CLI.exists():
-        pytest.skip(f"rerun CLI not found at {RERUN_CLI}")
-    return subprocess.run(
-        [str(RERUN_CLI), *map(str, args)],
-        env={**os.environ, "CI": "true"},
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT,
-    )
 
 
 def verify(path: Path, *options: str) -> subprocess.CompletedProcess[str]:
     return rerun_cli("rrd", "verify", *options, path)
-
-
-def window(k: int) -> dict[str, Any]:
-    """Arguments of log_window for window ``k`` (200 samples at 10 ms, starting at 2k s)."""
-    t = k * N * DT + DT * np.arange(N)
-    return {
-        "t": t,
-        "measured": {"ia": np.sin(t), "omega": 100 * np.cos(t)},
-        "simulated": {"ia": 0.9 * np.sin(t), "omega": 99 * np.cos(t)},
-        "parameters": {"Ra": 1.2 + 0.1 * k, "La": np.float64(2e-3), "J": 1e-4},
-        "health": {"machine": "m1", "window": k, "status": "ok", "rmse": np.float32(0.05)},
-    }
 
 
 def rows(path: Path) -> Counter[str]:
@@ -86,12 +58,6 @@ def expected_rows(machine: str, windows: int) -> Counter[str]:
     counts[f"/{machine}/log"] = windows
     counts[f"/{machine}/model"] = windows  # the twin DT'' at each window
     return counts
-
-
-def recorder(path: Path, machine: str = "m1") -> RerunRecorder:
-    return RerunRecorder(
-        RecordingConfig(path=str(path)), machine, outputs=OUTPUTS, parameters=PARAMETERS
-    )
 
 
 def test_windows_are_recorded_and_the_file_verifies(tmp_path: Path) -> None:
@@ -178,7 +144,7 @@ def test_directory_without_write_permission_raises_recorder_error(
 CHILD = r"""
 import os, signal, sys, time
 import numpy as np
-from tests.test_rerun_recorder import recorder, window
+from tests.helpers.recording import recorder, window
 
 mode, path = sys.argv[1], sys.argv[2]
 if mode == "sigterm-handled":  # what the daemon's CLI does: SIGTERM becomes a normal shutdown

@@ -22,8 +22,7 @@ from twinwatch.daemon.runner import Daemon
 from twinwatch.sinks.store import StateStore
 from twinwatch.twin.health import HealthMessage
 
-from .test_service import get_json, zsession
-from .test_zenoh_publisher import endpoint, free_port
+from .helpers.net import endpoint, free_port, get_json, zsession
 
 MACHINE = "dc-motor-sim"
 

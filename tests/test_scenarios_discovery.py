@@ -16,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT
 from twinwatch.config.loader import load_config
 from twinwatch.daemon.runner import Daemon
 from twinwatch.drivers.simulated import SimulatedDriver
@@ -24,6 +23,8 @@ from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 from twinwatch.twin.adaptation import TwinAdapter
 from twinwatch.twin.model import WindowData
 from twinwatch.twin.models import create_model
+
+from .helpers.paths import ROOT
 
 CONFIG = ROOT / "config" / "dc-motor-unbalanced-sim.toml"
 

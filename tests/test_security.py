@@ -23,8 +23,8 @@ import zenoh.ext
 from twinwatch.config.loader import load_config
 from twinwatch.sinks.zenoh import HealthPublisher, PublisherError
 
-from .conftest import ROOT
-from .test_zenoh_publisher import free_port
+from .helpers.net import free_port
+from .helpers.paths import ROOT
 
 EXAMPLE = ROOT / "config" / "dc-motor-sim-tls.toml"
 

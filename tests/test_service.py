@@ -9,82 +9,24 @@ temporary working directory, so ``state.sqlite`` lands there.
 from __future__ import annotations
 
 import json
-import os
 import signal
-import sqlite3
 import subprocess
 import sys
-import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
-import zenoh
 
+from harness.daemon import db_rows, twinwatch_env
 from twinwatch.config.loader import default_config
 from twinwatch.daemon.alarms import AlarmConfig, AlarmRule
 from twinwatch.daemon.runner import Daemon
 from twinwatch.sinks.store import StateStore
 
-from .conftest import ROOT
-from .test_zenoh_publisher import endpoint, free_port
-
-
-def zsession(mode: str, *, listen: list[str] = (), connect: list[str] = ()) -> zenoh.Session:
-    """A zenoh session on loopback, scouting off (as in tests/test_zenoh_publisher.py)."""
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("scouting/gossip/enabled", "false")
-    return zenoh.open(conf)
-
-
-def wait_for(pred: Callable[[], Any], timeout: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.05)
-    pytest.fail(f"timed out after {timeout} s waiting for {what}")
-
-
-def get_json(session: zenoh.Session, selector: str) -> list[Any]:
-    out = []
-    for r in session.get(selector, timeout=5.0):
-        if r.ok is not None:
-            out.append(json.loads(r.ok.payload.to_string()))
-        else:
-            out.append({"error": r.err.payload.to_string()})
-    return out
-
-
-def db_rows(path: Path, run: str | None = None) -> list[dict[str, Any]]:
-    """Health rows of the state database (read-only, while the daemon may be writing)."""
-    if not path.exists():
-        return []
-    for attempt in range(50):
-        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5)
-        try:
-            sql = "SELECT run, doc FROM health ORDER BY id"
-            rows = [(r, json.loads(d)) for r, d in con.execute(sql)]
-            break
-        except sqlite3.OperationalError as exc:
-            if "no such table" in str(exc):  # tables not created yet
-                return []
-            # busy or not openable while a daemon opens or recovers the database: read again
-            # (read as no rows, a resume test took 95 stored windows for 0 and stopped its
-            # next run before it stored any)
-            if attempt == 49:
-                raise
-            time.sleep(0.1)
-        finally:
-            con.close()
-    return [d | {"_run": r} for r, d in rows if run is None or r == run]
+from .helpers.cli import run_daemon
+from .helpers.net import Collector, endpoint, free_port, get_json, wait_for, zsession
+from .helpers.paths import ROOT
 
 
 # -- in process: history queryable and alarms -----------------------------------------------
@@ -151,10 +93,6 @@ def test_history_is_served_by_time_range_and_alarms_are_published(tmp_path: Path
 
 
 # -- subprocesses: SIGKILL mid-window, restart from the saved twin, SIGHUP reload --------------
-def _env() -> dict[str, str]:
-    return dict(os.environ, PYTHONPATH=str(ROOT), CI="true")
-
-
 def _write_config(path: Path, text: str) -> None:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(text)
@@ -170,29 +108,6 @@ def _unbalanced(connect: str, duration: float = 300.0) -> str:
     return text.replace("[recording]", "[recording]\nenabled = false")
 
 
-class Collector:
-    """Health messages received by a subscriber on the test's router."""
-
-    def __init__(self, session: zenoh.Session, key: str) -> None:
-        self.items: list[dict[str, Any]] = []
-        self._lock = threading.Lock()
-        self.sub = session.declare_subscriber(key, self._on)
-
-    def _on(self, smp: zenoh.Sample) -> None:
-        with self._lock:
-            self.items.append(json.loads(smp.payload.to_string()))
-
-    def snapshot(self) -> list[dict[str, Any]]:
-        with self._lock:
-            return list(self.items)
-
-
-def _run(cfg: Path, cwd: Path, *args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "twinwatch", "run", str(cfg), "--no-progress",
-                             "--log-level", "info", *args], cwd=cwd, env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
 @pytest.mark.slow  # about 7 s on the shared 2-core box: out of the fast lane
 def test_sigkill_mid_window_loses_nothing_and_restart_resumes_the_twin(tmp_path: Path) -> None:
     port = free_port()
@@ -201,7 +116,7 @@ def test_sigkill_mid_window_loses_nothing_and_restart_resumes_the_twin(tmp_path:
     db = tmp_path / "state.sqlite"
     with zsession("router", listen=[endpoint(port)]) as router:
         seen = Collector(router, "twinwatch/dc-motor-unbalanced/health")
-        proc = _run(cfg, tmp_path)
+        proc = run_daemon(cfg, tmp_path)
         try:
             # run until the unbalanced shaft is discovered (window <= 5) and a few windows more
             wait_for(lambda: any(h["terms"] for h in seen.snapshot())
@@ -224,7 +139,7 @@ def test_sigkill_mid_window_loses_nothing_and_restart_resumes_the_twin(tmp_path:
         # restart (--resume: the simulated plant starts over at t = 0, a new run otherwise):
         # the first health message shows the saved twin (term and held values)
         seen.items.clear()
-        proc = _run(cfg, tmp_path, "--duration", "4", "--resume")
+        proc = run_daemon(cfg, tmp_path, "--duration", "4", "--resume")
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 0, err
         assert "resumed the twin of dc-motor-unbalanced" in err
@@ -248,7 +163,7 @@ def test_sighup_reloads_a_valid_config_and_refuses_a_bad_one(tmp_path: Path) -> 
     cfg = tmp_path / "m.toml"
     _write_config(cfg, base)
     db = tmp_path / "state.sqlite"
-    proc = _run(cfg, tmp_path)
+    proc = run_daemon(cfg, tmp_path)
     try:
         wait_for(lambda: len(db_rows(db)) >= 2, 60, "two stored windows")
         # a bad new config: refused, the old one keeps running
@@ -287,10 +202,9 @@ def test_bad_config_at_start_exits_78(tmp_path: Path) -> None:
     cfg.write_text((ROOT / "config" / "dc-motor-sim.toml").read_text()
                    .replace("[zenoh]", "[zenoh]\nmulticast = true"))
     r = subprocess.run([sys.executable, "-m", "twinwatch", "run", str(cfg)], cwd=tmp_path,
-                       env=_env(), capture_output=True, text=True, timeout=60)
+                       env=twinwatch_env(), capture_output=True, text=True, timeout=60)
     assert r.returncode == 78  # EX_CONFIG: the unit's RestartPreventExitStatus
     assert "zenoh.multicast: unknown key" in r.stderr
-
 
 
 def test_a_reload_that_changes_the_state_settings_reopens_the_database_once_released(
@@ -298,11 +212,10 @@ def test_a_reload_that_changes_the_state_settings_reopens_the_database_once_rele
     """[state] keep_days changed: the new store needs the same file, so it opens once the old
     daemon has released it; the [driver] table is unchanged, so the plant is handed over and its
     time goes on (not restarted at 0); the window numbering goes on."""
+    from harness.daemon import endless_sim
     from twinwatch.config.loader import load_config
     from twinwatch.daemon.supervisor import Supervisor
     from twinwatch.twin.health import HealthMessage
-
-    from .test_fault_injection import endless_sim
 
     monkeypatch.chdir(tmp_path)
     cfg = endless_sim(tmp_path)

@@ -25,13 +25,14 @@ from typing import Any
 
 import pytest
 
+from harness.daemon import sim_config
 from twinwatch.config.loader import load_config
 from twinwatch.drivers import DRIVERS
 from twinwatch.sinks import SINKS
 
-from .conftest import ROOT
-from .test_driver_plugin import PLUGIN as DRIVER_PLUGIN
-from .test_fault_injection import DiskFull, cli, sim_config
+from .helpers.cli import DiskFull, cli
+from .helpers.paths import ROOT
+from .helpers.plugins import DRIVER_PLUGIN
 
 PLUGIN = '''
 """A third-party output: every health message it gets, one JSON line in a file."""

@@ -20,7 +20,6 @@ from typing import Any
 
 import pytest
 
-from tests.conftest import plant_windows
 from twinwatch.config.loader import default_config, load_config
 from twinwatch.errors import ConfigError, PublisherError
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
@@ -36,6 +35,8 @@ from twinwatch.twin.health import (
     build_health,
 )
 from twinwatch.twin.models import create_model
+
+from .helpers.plant import plant_windows
 
 asyncua = pytest.importorskip("asyncua")
 ua = asyncua.ua
@@ -320,7 +321,7 @@ def test_alarm_events_when_ra_is_raised_and_cleared_and_a_machine_removed_disapp
 @pytest.mark.slow
 def test_bad_tables_refused_naming_the_key_and_a_taken_port(tmp_path: Path,
                                                           processed: Any) -> None:
-    from tests.test_fault_injection import sim_config
+    from harness.daemon import sim_config
 
     with pytest.raises(ConfigError, match=r"outputs\.opcua\.endpoint"):
         load_config(sim_config(tmp_path, extra='\n[outputs.opcua]\nendpoint = "tcp://x:1"\n'))
@@ -359,7 +360,7 @@ def test_bad_tables_refused_naming_the_key_and_a_taken_port(tmp_path: Path,
         with pytest.raises(PublisherError, match=rf"port {port} on 127.0.0.1 is already taken"):
             OpcUaPublisher.open("opcua", cfg, context("m1", None, processed[0]))
         # `twinwatch run`: one line naming it, no traceback (asyncua's own is filtered)
-        from tests.test_fault_injection import cli
+        from .helpers.cli import cli
 
         path = sim_config(tmp_path, extra=f'\n[outputs.opcua]\nendpoint = '
                                           f'"opc.tcp://127.0.0.1:{port}"\n')
@@ -468,7 +469,7 @@ def test_a_separate_client_process_reads_a_20_machine_gateway(tmp_path: Path) ->
     import json
     import signal
 
-    from tests.test_gateway import machine_config
+    from .helpers.cli import machine_config
 
     port = free_port()
     machines = tmp_path / "machines"

@@ -11,15 +11,14 @@ from __future__ import annotations
 import json
 import re
 import signal
-import sqlite3
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from harness.daemon import sim_config
 from twinwatch.config.loader import load_config
 from twinwatch.errors import ConfigError
 from twinwatch.sinks.sparkplug import (
@@ -31,14 +30,20 @@ from twinwatch.sinks.sparkplug import (
     metric_specs,
     metric_values,
 )
-from twinwatch.sinks.sparkplug_pb import DATATYPE, FILE_DESCRIPTOR, payload_class
+from twinwatch.sinks.sparkplug_pb import DATATYPE, FILE_DESCRIPTOR
 
-from .conftest import ROOT
-from .mqtt_helpers import Broker, Subscriber, free_port, needs_mosquitto, running_broker, twinwatch
-from .test_fault_injection import sim_config
-from .test_mqtt import finish
+from .helpers.mqtt import (
+    Broker,
+    Subscriber,
+    finish,
+    needs_mosquitto,
+    running_broker,
+    stored_window,
+    twinwatch,
+)
+from .helpers.paths import ROOT
+from .helpers.sparkplug import HostDecoder, Payload, stored
 
-Payload = payload_class()
 PROTO = ROOT / "twinwatch" / "sinks" / "sparkplug_pb" / "sparkplug_b.proto"
 
 
@@ -48,134 +53,6 @@ def broker(tmp_path: Path) -> Iterator[Broker]:
 
 
 # -- the host decoder ---------------------------------------------------------------------------
-@dataclass
-class Decoded:
-    topic: str
-    kind: str          # NBIRTH, DBIRTH, DDATA, DDEATH, NDEATH, NCMD, STATE
-    payload: Any       # the decoded Payload (STATE: the JSON)
-
-
-@dataclass
-class HostDecoder:
-    """A Sparkplug host application's view: every ``spBv1.0/#`` message decoded, in order."""
-
-    sub: Subscriber
-    aliases: dict[int, str] = field(default_factory=dict)
-    device_aliases: dict[tuple[str, str], dict[int, str]] = field(default_factory=dict)
-
-    @classmethod
-    def start(cls, port: int) -> HostDecoder:
-        return cls(Subscriber(port, ["spBv1.0/#"], client_id=f"test-host-{free_port()}"))
-
-    def messages(self) -> list[Decoded]:
-        with self.sub.lock:
-            raw = list(self.sub.messages)
-        out = []
-        seen: set[tuple[str, bytes]] = set()
-        for m in raw:
-            if m.dup and (m.topic, m.payload) in seen:
-                continue  # the broker's QoS 1 redelivery to this subscriber (not a new message)
-            seen.add((m.topic, m.payload))
-            parts = m.topic.split("/")
-            if parts[1] == "STATE":
-                out.append(Decoded(m.topic, "STATE", json.loads(m.payload)))
-            else:
-                out.append(Decoded(m.topic, parts[2], Payload.FromString(m.payload)))
-        return out
-
-    def kinds(self) -> list[str]:
-        return [d.kind for d in self.messages()]
-
-    def wait(self, predicate: Any, timeout: float, what: str) -> None:
-        self.sub.wait(lambda: predicate(self.messages()), timeout, what)
-
-    def check_session(self) -> dict[str, int]:
-        """The rules every message must keep (asserted): an NBIRTH has ``seq`` 0 and a
-        ``bdSeq``; every later message of the node up to the next NBIRTH, whichever device it
-        is about, has the next ``seq`` (mod 256), none missing; after each NBIRTH a DBIRTH
-        comes before any DDATA of its device; a DDATA names no metric, carries only aliases its
-        device's DBIRTH announced; an NDEATH with the ``bdSeq`` of the live NBIRTH ends the
-        session (counted ``NDEATH``), another is ignored as a host ignores it (``stale
-        NDEATH``). Returns counts by kind."""
-        seqs: dict[str, int | None] = {}
-        bd_seqs: dict[str, int] = {}
-        borns: dict[tuple[str, str], set[int] | None] = {}
-        counts: dict[str, int] = {}
-        for d in self.messages():
-            counts[d.kind] = counts.get(d.kind, 0) + 1
-            if d.kind in ("STATE", "NCMD", "DCMD"):
-                continue
-            p = d.payload
-            parts = d.topic.split("/")
-            node = parts[3]
-            device = (node, parts[4] if len(parts) > 4 else "")
-            if d.kind == "NBIRTH":
-                assert p.seq == 0, f"NBIRTH seq {p.seq}"
-                (bd,) = [m.long_value for m in p.metrics if m.name == "bdSeq"]
-                bd_seqs[node], seqs[node] = bd, 0
-                for key in [k for k in borns if k[0] == node]:
-                    borns[key] = None   # a new NBIRTH: every device is born again
-                assert any(m.name == "Node Control/Rebirth" for m in p.metrics)
-                continue
-            if d.kind == "NDEATH":
-                (bd,) = [m.long_value for m in p.metrics if m.name == "bdSeq"]
-                assert not p.HasField("seq")
-                if bd != bd_seqs.get(node) or seqs.get(node) is None:
-                    # an older connection's will (the broker's, after a restart) or a second
-                    # copy: a host ignores it, which bdSeq is for (Sparkplug 3.0)
-                    counts["NDEATH"] -= 1
-                    counts["stale NDEATH"] = counts.get("stale NDEATH", 0) + 1
-                    continue
-                seqs[node] = None
-                continue
-            seq = seqs.get(node)
-            assert seq is not None, f"{d.kind} before any NBIRTH"
-            assert p.seq == (seq + 1) % 256, f"{d.kind} of {device} seq {p.seq} after {seq}"
-            seqs[node] = p.seq
-            if d.kind == "DBIRTH":
-                born = borns[device] = {m.alias for m in p.metrics}
-                names = self.device_aliases.setdefault(device, {})
-                for m in p.metrics:
-                    assert m.name and m.alias and m.datatype
-                    self.aliases[m.alias] = names[m.alias] = m.name
-                assert len(born) == len(p.metrics), "aliases not unique"
-            elif d.kind == "DDATA":
-                born = borns.get(device)
-                assert born is not None, f"DDATA of {device} before its DBIRTH"
-                assert all(not m.name and m.alias in born for m in p.metrics)
-            elif d.kind == "DDEATH":
-                borns[device] = None
-        return counts
-
-    def windows(self, device: str | None = None) -> list[tuple[str, int, bool]]:
-        """(run, window, historical) of every DDATA (of ``device`` only, if given), in the
-        order received (after :meth:`check_session`: the aliases)."""
-        out = []
-        for d in self.messages():
-            if d.kind != "DDATA":
-                continue
-            parts = d.topic.split("/")
-            if device is not None and parts[4] != device:
-                continue
-            names = self.device_aliases.get((parts[3], parts[4]), self.aliases)
-            v = {names[m.alias]: m for m in d.payload.metrics}
-            out.append((v["Window/Run"].string_value, v["Window/Index"].long_value,
-                        v["Window/Index"].is_historical))
-        return out
-
-    def close(self) -> None:
-        self.sub.close()
-
-
-def stored(db: Path) -> list[tuple[str, int]]:
-    con = sqlite3.connect(db, timeout=10)
-    try:
-        return [(json.loads(d)["run"], json.loads(d)["window"])
-                for (d,) in con.execute("SELECT doc FROM health ORDER BY id")]
-    finally:
-        con.close()
-
-
 def table(port: int, extra: str = "") -> str:
     return (f'\n[outputs.sparkplug]\nport = {port}\ngroup_id = "plant1"\nkeepalive = 5\n'
             f"reconnect_max = 1.0\n{extra}")
@@ -300,7 +177,7 @@ def test_check_config_on_a_gateway_directory_names_the_machines_edge_node_clashe
 
     from twinwatch.cli import main
 
-    from .test_gateway import machine_config
+    from .helpers.cli import machine_config
 
     machines = tmp_path / "machines"
     machines.mkdir()
@@ -358,12 +235,6 @@ def test_a_run_births_data_by_alias_and_ndeath_on_a_clean_stop(tmp_path: Path,
     host.close()
 
 
-def _window(store: Any, w: int, machine: str = "m1") -> Any:
-    from .test_mqtt import _window as mqtt_window
-
-    return mqtt_window(store, w, machine)
-
-
 def _open(tmp_path: Path, port: int, **kw: Any) -> tuple[SparkplugPublisher, Any]:
     from twinwatch.sinks.base import SinkContext
     from twinwatch.sinks.store import StateStore
@@ -385,7 +256,7 @@ def test_ncmd_rebirth_and_a_broker_restart_replays_historical(tmp_path: Path,
     pub, store = _open(tmp_path, broker.port)
     try:
         for w in range(3):
-            pub.write(_window(store, w))
+            pub.write(stored_window(store, w))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 3, 20, "3 DDATA")
         # Node Control/Rebirth, as Ignition sends it
         cmd = Payload(timestamp=int(time.time() * 1000))
@@ -398,7 +269,7 @@ def test_ncmd_rebirth_and_a_broker_restart_replays_historical(tmp_path: Path,
         c.loop_stop()
         c.disconnect()
         host.wait(lambda ms: [d.kind for d in ms].count("NBIRTH") == 2, 20, "the rebirth")
-        pub.write(_window(store, 3))
+        pub.write(stored_window(store, 3))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 4, 20, "4 DDATA")
         assert pub.counters()["rebirths"] == 1
 
@@ -407,7 +278,7 @@ def test_ncmd_rebirth_and_a_broker_restart_replays_historical(tmp_path: Path,
         host.close()
         broker.stop()
         for w in range(4, 8):
-            pub.write(_window(store, w))
+            pub.write(stored_window(store, w))
         time.sleep(1.0)
         broker.start()
         host = HostDecoder.start(broker.port)
@@ -445,14 +316,14 @@ def test_the_primary_host_state_is_waited_for(tmp_path: Path, broker: Broker) ->
     pub, store = _open(tmp_path, broker.port, primary_host_id="scada")
     try:
         for w in range(2):
-            pub.write(_window(store, w))
+            pub.write(stored_window(store, w))
         time.sleep(2.0)
         assert [d.kind for d in host.messages()] == ["STATE"]   # nothing while it is offline
         state(True)
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 2, 20, "2 DDATA")
         state(False)   # the host leaves: NDEATH, the windows wait
         host.wait(lambda ms: any(d.kind == "NDEATH" for d in ms), 20, "the NDEATH")
-        pub.write(_window(store, 2))
+        pub.write(stored_window(store, 2))
         time.sleep(1.5)
         assert sum(d.kind == "DDATA" for d in host.messages()) == 2
         state(True)
@@ -521,7 +392,6 @@ def test_a_broker_refusing_the_client_is_one_line(tmp_path: Path, caplog: Any) -
     assert len(lines) == 1 and "refused" in lines[0] and "NDEATH" in lines[0], lines
 
 
-
 @needs_mosquitto
 @pytest.mark.slow
 def test_a_reload_adding_and_removing_a_machine_gives_dbirth_and_ddeath(
@@ -531,7 +401,7 @@ def test_a_reload_adding_and_removing_a_machine_gives_dbirth_and_ddeath(
     import subprocess
     import sys
 
-    from .test_gateway import machine_config
+    from .helpers.cli import machine_config
 
     machines = tmp_path / "machines"
     machines.mkdir()
@@ -693,7 +563,7 @@ def test_a_broker_whose_acl_drops_the_births_and_the_will_is_one_line(tmp_path: 
         with caplog.at_level("ERROR", logger="twinwatch.sinks.sparkplug"):
             pub, store = _open(tmp_path, b.port)
             try:
-                pub.write(_window(store, 0))
+                pub.write(stored_window(store, 0))
                 deadline = time.monotonic() + 15
                 while pub.problem is None and time.monotonic() < deadline:
                     time.sleep(0.2)
@@ -715,7 +585,7 @@ def test_qos_0_as_sparkplug_says_still_counts_every_window(tmp_path: Path,
     pub, store = _open(tmp_path, broker.port, qos=0)
     try:
         for w in range(5):
-            pub.write(_window(store, w))
+            pub.write(stored_window(store, w))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 5, 20, "5 DDATA")
     finally:
         pub.close()

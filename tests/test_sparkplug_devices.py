@@ -23,8 +23,8 @@ from twinwatch.sinks.base import SharedResources, SinkContext
 from twinwatch.sinks.sparkplug import SparkplugConfig, SparkplugPublisher
 from twinwatch.sinks.sparkplug_pb import DATATYPE
 
-from .mqtt_helpers import Broker, Subscriber, needs_mosquitto, running_broker
-from .test_sparkplug import HostDecoder, Payload, _window, stored
+from .helpers.mqtt import Broker, Subscriber, needs_mosquitto, running_broker, stored_window
+from .helpers.sparkplug import HostDecoder, Payload, stored
 
 
 @pytest.fixture
@@ -83,8 +83,8 @@ def test_two_machines_are_devices_of_one_edge_node_on_one_session(tmp_path: Path
     try:
         assert m1._node is m2._node and shared.references(m1._key) == 2   # one session
         for w in range(3):
-            m1.write(_window(s1, w, "m1"))
-            m2.write(_window(s2, w, "m2"))
+            m1.write(stored_window(s1, w, "m1"))
+            m2.write(stored_window(s2, w, "m2"))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 6, 20, "6 DDATA")
         # NCMD: NBIRTH and both DBIRTHs again
         _command(broker.port, "spBv1.0/g/NCMD/edge", "Node Control/Rebirth")
@@ -93,7 +93,7 @@ def test_two_machines_are_devices_of_one_edge_node_on_one_session(tmp_path: Path
         _command(broker.port, "spBv1.0/g/DCMD/edge/m2", "Device Control/Rebirth")
         host.wait(lambda ms: sum(d.kind == "DBIRTH" for d in ms) == 5, 20, "m2's rebirth")
         assert _kinds(host)[-1] == ("DBIRTH", "m2")
-        m1.write(_window(s1, 3, "m1"))
+        m1.write(stored_window(s1, 3, "m1"))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 7, 20, "7 DDATA")
         m2.close()   # a machine leaves: its DDEATH, the node stays
         host.wait(lambda ms: any(d.kind == "DDEATH" for d in ms), 20, "m2's DDEATH")
@@ -102,7 +102,7 @@ def test_two_machines_are_devices_of_one_edge_node_on_one_session(tmp_path: Path
         # a machine joins the live node: its DBIRTH with its first window, no NBIRTH
         m3, s3 = _device(tmp_path, shared, "m3", broker.port)
         stores.append(s3)
-        m3.write(_window(s3, 0, "m3"))
+        m3.write(stored_window(s3, 0, "m3"))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 8, 20, "m3's DDATA")
         m3.close()
         m1.close()
@@ -172,7 +172,7 @@ def test_a_gateway_never_splits_an_edge_node_over_worker_processes(tmp_path: Pat
     MQTT session), those naming another or none are spread."""
     from twinwatch.daemon.workers import place, worker_processes
 
-    from .test_gateway import machine_config
+    from .helpers.cli import machine_config
 
     d = tmp_path / "machines"
     d.mkdir()
@@ -204,7 +204,7 @@ def test_a_gateway_is_one_edge_node_across_a_reload_a_kill_9_and_a_restart(
     m2's DDEATH and m4's DBIRTH on the same session (no new NBIRTH); ``kill -9``: the will's
     NDEATH; the restart: NBIRTH with bdSeq + 1, every stored window of every machine delivered
     (the first run's undelivered ones flagged historical); SIGTERM: every DDEATH, then NDEATH."""
-    from .test_gateway import machine_config
+    from .helpers.cli import machine_config
 
     machines = tmp_path / "machines"
     machines.mkdir()
@@ -230,7 +230,7 @@ def test_a_gateway_is_one_edge_node_across_a_reload_a_kill_9_and_a_restart(
     def run(*args: str) -> subprocess.Popen[str]:
         import os
 
-        from .conftest import ROOT
+        from .helpers.paths import ROOT
         env = dict(os.environ, CI="true", PYTHONPATH=str(ROOT))
         return subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "--no-progress",
                                  "--workers", "1", *args, str(machines)], cwd=tmp_path,

@@ -56,7 +56,7 @@ def test_each_machine_s_guard_swarm_comes_at_its_own_window() -> None:
     from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
     from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-    from .conftest import plant_windows
+    from .helpers.plant import plant_windows
 
     _, wins = plant_windows(DCMotorPlantConfig(noise={"ia": 0.5, "omega": 0.5}), 16)
     phases = {}

@@ -9,7 +9,7 @@ import os
 import subprocess
 import sys
 
-from tests.conftest import ROOT
+from .helpers.paths import ROOT
 
 HEAVY = ("zenoh", "rerun", "pymodbus", "cantools", "can", "numba", "pymoo", "scipy")
 

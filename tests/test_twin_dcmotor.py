@@ -9,7 +9,7 @@ from twinwatch.plant.dcmotor import DCMotorPlantConfig, SetpointSchedule
 from twinwatch.twin.model import composite_zoh
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-from .conftest import plant_windows
+from .helpers.plant import plant_windows
 
 STEP = SetpointSchedule(steps=[(0.0, 10.0), (3.0, 15.0)])
 

@@ -10,10 +10,12 @@ import pytest
 
 from twinwatch.drivers.base import EndOfStream
 from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
-from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, PSOSettings
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
 from twinwatch.twin.model import WindowData
 from twinwatch.twin.models import create_model
 from twinwatch.twin.models.hydraulic import HydraulicActuatorTwin
+
+from .helpers.twin import HYDRAULIC_ESTIMATION
 
 # The reference 0.5 + 0.45 sin(2 pi 0.005 t) reverses at t = 50 + 100 n s and moves fastest at
 # t = 100 n s. Windows are 200 samples (2 s, paper Table 2).
@@ -198,15 +200,6 @@ def test_registered_as_hydraulic_actuator():
 
 # -- estimation (DT', paper Section 5.3.1) ----------------------------------------------------
 
-#: The estimation settings this machine needs: model_error 1e-7 is the measured twin-vs-plant
-#: floor (D drifting within a window; with the default 1e-4, D's 1.4e-4 share of the pressure
-#: is never determined); max_rel_std 0.005 then holds exactly the windows touching a reversal.
-#: q_pump comes first so that a reversal holds D alone (the priority list is a hierarchy).
-ESTIMATION = dict(estimate=["q_pump", "D"], tie={}, bounds={"D": (20.0, 500.0),
-                  "q_pump": (0.01, 0.04)}, model_error=1e-7, max_rel_std=0.005,
-                  trust_rel_std=0.005, pso=PSOSettings(max_generations=10), seed=0)
-
-
 def test_fluid_degradation_d_within_three_percent_and_reversal_held():
     """Paper: D error below 3 %, spikes where the piston reverses. Measured with these settings
     on all 219 windows of 160-598 s, in order: 209 (95.4 %) published, each within 0.044 % of
@@ -214,7 +207,7 @@ def test_fluid_degradation_d_within_three_percent_and_reversal_held():
     348-350 s, 448-450 s, 548-550 s). Here: three fast windows, each after the window before it
     (a value becomes trusted when the next window's estimate agrees with it), and one reversal
     (350 s), where D is held at the value the window at 300 s made trusted."""
-    est = Estimator(HydraulicActuatorTwin(), EstimationConfig(**ESTIMATION))
+    est = Estimator(HydraulicActuatorTwin(), EstimationConfig(**HYDRAULIC_ESTIMATION))
     wins = _degradation_windows()
     trusted_d = math.nan
     for start in (298.0, 300.0, 348.0, 398.0, 400.0, 498.0, 500.0):

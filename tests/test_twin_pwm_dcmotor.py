@@ -20,7 +20,7 @@ from twinwatch.twin.models.pwm_dcmotor import (
     PWMDCMotorTwin,
 )
 
-from .conftest import ROOT
+from .helpers.paths import ROOT
 
 TS = 0.02
 TRUE = {"Ra": 120.0, "tau_e": 1.2e-4, "Ke": 0.0043, "Kt": 0.0043, "J": 1e-8, "D": 2.5e-8,

@@ -17,7 +17,6 @@ free at run time, scouting off.
 from __future__ import annotations
 
 import json
-import os
 import queue
 import re
 import signal
@@ -32,9 +31,9 @@ import pytest
 
 from twinwatch.watch import Fleet, FleetWatcher, health_line, render
 
-from .conftest import ROOT
-from .test_service import Collector, wait_for, zsession
-from .test_zenoh_publisher import endpoint, free_port
+from .helpers.cli import watch_daemon_config, watch_env
+from .helpers.net import Collector, endpoint, free_port, wait_for, zsession
+from .helpers.paths import ROOT
 
 SIM = (ROOT / "config" / "dc-motor-sim.toml").read_text()
 
@@ -140,7 +139,6 @@ def test_the_diagnosis_column_shows_the_most_probable_fault() -> None:
     assert "winding short" in text and "0.93" in text
 
 
-
 def test_each_cell_of_the_table_and_the_tail_line_say_what_the_message_does() -> None:
     """The table's cells (render's named parts) and ``tail``'s line on what the other tests'
     machine does not carry: a machine gone, one without a window, a held parameter past its
@@ -190,31 +188,9 @@ def test_each_cell_of_the_table_and_the_tail_line_say_what_the_message_does() ->
 
 
 # -- end to end: a router, three daemons ------------------------------------------------------
-def _daemon_config(name: str, connect: str, *, degraded: bool = False) -> str:
-    text = SIM.replace('name = "dc-motor-sim"', f'name = "{name}"')
-    text = text.replace('mode = "peer"  ', 'mode = "client"')
-    text = text.replace('listen = ["tcp/127.0.0.1:7447"]', f'connect = ["{connect}"]')
-    text = text.replace("\nconnect = []", "")
-    text = text.replace("[recording]", "[recording]\nenabled = false")
-    text = text.replace("realtime = false", "realtime = true")
-    if degraded:  # Ra 13 % below the nameplate (the plant's is 6.5 ohm): alarm at once
-        text = text.replace("Ra = 6.5          # ohm", "Ra = 7.5          # ohm")
-        text = text.replace("raise_after_s = 10.0", "raise_after_s = 2.0")
-        # the alarm rule's key only ([diagnosis] has a commented key of the same name)
-        text = text.replace("# raise_after_windows = 3      # ... and at least",
-                            "raise_after_windows = 1        # ... and at least")
-        assert "raise_after_windows = 1 " in text
-    assert f'connect = ["{connect}"]' in text and "realtime = true" in text
-    return text
-
-
-def _env() -> dict[str, str]:
-    return dict(os.environ, PYTHONPATH=str(ROOT), CI="true", COLUMNS="200")
-
-
 def _twinwatch(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "twinwatch", *args], capture_output=True,
-                          text=True, timeout=timeout, env=_env())
+                          text=True, timeout=timeout, env=watch_env())
 
 
 class Fleet3:
@@ -236,10 +212,10 @@ def fleet3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet3]:
             for name in ("m1", "m2", "m3"):
                 d = tmp / name
                 d.mkdir()
-                (d / "m.toml").write_text(_daemon_config(name, ep, degraded=name == "m2"))
+                (d / "m.toml").write_text(watch_daemon_config(name, ep, degraded=name == "m2"))
                 procs[name] = subprocess.Popen(
                     [sys.executable, "-m", "twinwatch", "run", "m.toml", "--no-progress"],
-                    cwd=d, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                    cwd=d, env=watch_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                     text=True)
             wait_for(lambda: {h["machine"] for h in health.snapshot()} == {"m1", "m2", "m3"}
                      and any(h["machine"] == "m2" and h["alarms"]["Ra"]["level"] == "alarm"
@@ -323,7 +299,7 @@ def test_tail_prints_one_line_per_health_message(fleet3: Fleet3) -> None:
 @pytest.mark.slow  # three daemons in real time: about 30 s
 def test_live_watch_marks_a_killed_daemon_gone(fleet3: Fleet3) -> None:
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "watch", "--connect",
-                             fleet3.ep, "--json", "--interval", "0.3"], env=_env(),
+                             fleet3.ep, "--json", "--interval", "0.3"], env=watch_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines: queue.Queue[str] = queue.Queue()
     reader = threading.Thread(target=lambda: [lines.put(ln) for ln in proc.stdout or []],
@@ -421,7 +397,7 @@ def test_watch_into_a_file_writes_every_refresh_and_flushes_on_sigterm(
     with out.open("w") as f:
         proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "watch", "--connect",
                                  fleet3.ep, "--interval", "0.5"], stdout=f,
-                                stderr=subprocess.PIPE, text=True, env=_env())
+                                stderr=subprocess.PIPE, text=True, env=watch_env())
         try:
             wait_for(lambda: out.read_text().count("machines") >= 2, 60,
                      "two refreshes written while it runs")
@@ -449,10 +425,10 @@ def test_watch_once_json_over_two_endpoints_lists_every_machine(tmp_path: Any) -
             for name, ep in (("ma", eps[0]), ("mb", eps[1])):
                 d = tmp_path / name
                 d.mkdir()
-                (d / "m.toml").write_text(_daemon_config(name, ep))
+                (d / "m.toml").write_text(watch_daemon_config(name, ep))
                 procs.append(subprocess.Popen(
                     [sys.executable, "-m", "twinwatch", "run", "m.toml", "--no-progress"],
-                    cwd=d, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                    cwd=d, env=watch_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                     text=True))
             wait_for(lambda: all(c.snapshot() for c in cols), 120, "a window behind each")
             r = _twinwatch("watch", "--connect", eps[0], "--connect", eps[1], "--once",

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import pytest
 
+from harness.daemon import twinwatch_env
+from harness.sources import plant_csv
 from twinwatch.daemon.workers import place
 
-from .sources_support import plant_csv
-from .test_gateway import machine_config
-from .test_service import _env
+from .helpers.cli import machine_config
 
 FILE_DRIVER = """[driver]
 type = "file"
@@ -128,7 +128,7 @@ def test_a_killed_worker_is_restarted_and_its_machines_resume_the_others_untouch
     err = (tmp_path / "stderr.txt").open("w")
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "--no-progress",
                              "--log-level", "info", "--workers", "2", str(machines)],
-                            cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=err,
+                            cwd=tmp_path, env=twinwatch_env(), stdout=subprocess.PIPE, stderr=err,
                             text=True)
 
     def wait_until(what, timeout: float, why: str) -> float:  # type: ignore[no-untyped-def]
@@ -204,7 +204,7 @@ def test_a_stopped_worker_is_reported_stalled_and_restarted(tmp_path: Path) -> N
     machines not counted, named), killed and started again after ``[acquisition]
     stalled_restart`` (here 4 s) with its machines resuming, and the summary and the exit
     status (74) say it stalled."""
-    from .sources_support import NotifySocket
+    from harness.sources import NotifySocket
 
     machines = tmp_path / "machines"
     machines.mkdir()
@@ -218,7 +218,7 @@ def test_a_stopped_worker_is_reported_stalled_and_restarted(tmp_path: Path) -> N
     err = (tmp_path / "stderr.txt").open("w")
     proc = subprocess.Popen([sys.executable, "-m", "twinwatch", "run", "--no-progress",
                              "--log-level", "info", "--workers", "2", str(machines)],
-                            cwd=tmp_path, env=dict(_env(), NOTIFY_SOCKET=str(notify.path)),
+                            cwd=tmp_path, env=dict(twinwatch_env(), NOTIFY_SOCKET=str(notify.path)),
                             stdout=subprocess.PIPE, stderr=err, text=True)
 
     def wait_until(what, timeout: float, why: str) -> float:  # type: ignore[no-untyped-def]

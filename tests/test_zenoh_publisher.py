@@ -31,6 +31,8 @@ from twinwatch.sinks.zenoh import (
     to_zenoh_config,
 )
 
+from .helpers.net import endpoint, free_port
+
 TIMEOUT = 10.0  # upper bound of any single wait; the tests take well under a second each
 
 OBSERVER = r"""
@@ -80,19 +82,6 @@ with zenoh.open(conf) as session:
     sub.undeclare()
     live.undeclare()
 """
-
-
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now (bound then released)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-    assert port != 7447
-    return port
-
-
-def endpoint(port: int) -> str:
-    return f"tcp/127.0.0.1:{port}"
 
 
 class Observer:

@@ -12,7 +12,7 @@ Rules, the same for every registry:
 * a plug-in cannot replace a built-in: the clash is logged once and the entry point ignored;
 * an unknown name raises :class:`~twinwatch.errors.PluginError` listing the known ones;
 * a module that cannot be imported raises :class:`~twinwatch.errors.PluginError` saying which
-  package (and extra) to install;
+  package to install (a dependency of twinwatch's own: install twinwatch again);
 * the loaded object must be a subclass of the registry's base class.
 
 Each room keeps its own registry next to its base class (:data:`twinwatch.drivers.DRIVERS`,
@@ -27,10 +27,12 @@ import importlib
 import json
 import logging
 import math
+import re
 import threading
 import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
+from importlib import metadata
 from importlib.metadata import entry_points
 from typing import Any, Generic, TypeVar
 
@@ -42,8 +44,12 @@ logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-#: Third-party modules whose absence an extra of twinwatch's pyproject.toml would mend.
-_EXTRAS: Mapping[str, str] = {"paho": "mqtt", "rich": "watch"}
+#: twinwatch's own dependencies (``[project] dependencies``) whose import name is not their
+#: distribution's name. Every backend twinwatch imports is one of its dependencies (the extras
+#: hold only the test and documentation tools), so a missing one is a broken install.
+_DISTRIBUTIONS: Mapping[str, str] = {"can": "python-can", "paho": "paho-mqtt",
+                                     "zenoh": "eclipse-zenoh", "rerun": "rerun-sdk",
+                                     "google": "protobuf"}
 
 
 class Registry(Generic[T]):
@@ -138,11 +144,24 @@ class Registry(Generic[T]):
             self._loaded.clear()
 
 
+def _dependencies() -> set[str]:
+    """The distributions twinwatch's installed metadata requires, normalised (no extras'
+    requirements); empty when twinwatch's metadata cannot be read."""
+    try:
+        requires = metadata.requires("twinwatch") or []
+    except metadata.PackageNotFoundError:
+        return set()
+    return {re.split(r"[\s\[<>=!~;]", r, maxsplit=1)[0].lower().replace("_", "-")
+            for r in requires if "extra ==" not in r}
+
+
 def _install_hint(exc: ImportError, module_name: str) -> str:
     """What to install so that ``module_name`` imports."""
     missing = (getattr(exc, "name", None) or "").split(".")[0]
-    if missing in _EXTRAS:
-        return f"Install it with: pip install 'twinwatch[{_EXTRAS[missing]}]'"
+    dist = _DISTRIBUTIONS.get(missing, missing).lower().replace("_", "-")
+    if missing and dist in _dependencies():
+        return (f"{dist} is a dependency of twinwatch, missing from this environment: install "
+                f"twinwatch again (pip install twinwatch) or pip install {dist}")
     if missing and not module_name.startswith(missing):
         return f"Install the package that provides {missing!r} (pip install {missing})"
     return (f"Is the package that provides {module_name} installed, with its extras? "

@@ -13,7 +13,7 @@ from typing import Any
 
 import click
 
-from twinwatch.cli.watch import config_option, reach, zenoh_options
+from twinwatch.cli.watch import FLEET_PREFIX_HELP, config_option, reach, zenoh_options
 
 
 @click.group()
@@ -33,8 +33,8 @@ def _horizon(ctx: click.Context, param: click.Parameter, value: str) -> float:
 
 
 @fleet.command()
-@zenoh_options
-@config_option
+@zenoh_options(prefix_help=FLEET_PREFIX_HELP)
+@config_option(verb="ask")
 @click.option("--horizon", default="7d", show_default=True, callback=_horizon,
               help="What is due within this long from now: 7d, 12h, 30min, 90s.")
 @click.option("--machines", default="*", show_default=True, metavar="PATTERN",

@@ -5,6 +5,7 @@ the options by which they, and ``explain``, reach the daemons.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import sys
 import time
@@ -20,30 +21,43 @@ CONNECT_HELP = ("Zenoh endpoint to connect to: a daemon (a peer) or a router the
                 "listens unless its [zenoh] listen says otherwise. No scouting: only these are "
                 "used.")
 
-CONFIG_HELP = ("Also watch the machines configured in this file or gateway directory "
+CONFIG_HELP = ("Also {verb} the machines configured in this file or gateway directory "
                "(*.toml): each one's Zenoh endpoint ([zenoh] listen; a client's connect, its "
                "router; 0.0.0.0 read as 127.0.0.1) and their key_prefix. An endpoint of theirs "
                "where nothing answers (a machine not running) is skipped with a note. Without "
                "--connect, only these are used.")
 
+#: --prefix's help: plain (``tail``, ``explain``), and where a ``*`` chunk is taken: ``watch``
+#: with --fleet and ``fleet report`` read the fleet summaries under it
+PREFIX_HELP = "The daemons' [zenoh] key_prefix."
+WILDCARD = ("chunks after the first may be *: twinwatch/* follows gateways whose key_prefix is "
+            "twinwatch/<box>")
+WATCH_PREFIX_HELP = f"The daemons' [zenoh] key_prefix (with --fleet, {WILDCARD})."
+FLEET_PREFIX_HELP = f"The daemons' [zenoh] key_prefix ({WILDCARD})."
 
-def zenoh_options(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """--connect, --mode, --prefix: how ``watch``, ``tail`` and ``explain`` reach the
-    daemons."""
-    fn = click.option("--prefix", default="twinwatch", show_default=True,
-                      help="The daemons' [zenoh] key_prefix (with --fleet and for fleet "
-                           "report, chunks after the first may be *: twinwatch/* follows "
-                           "gateways whose key_prefix is twinwatch/<box>).")(fn)
+
+def zenoh_options(fn: Callable[..., Any] | None = None, *, prefix_help: str = PREFIX_HELP
+                  ) -> Any:
+    """--connect, --mode, --prefix: how ``watch``, ``tail``, ``explain`` and ``fleet report``
+    reach the daemons (``@zenoh_options``, or ``@zenoh_options(prefix_help=...)`` for a
+    command that takes a ``*`` chunk in --prefix)."""
+    if fn is None:
+        return functools.partial(zenoh_options, prefix_help=prefix_help)
+    fn = click.option("--prefix", default="twinwatch", show_default=True, help=prefix_help)(fn)
     fn = click.option("--mode", type=click.Choice(["client", "peer"]), default="client",
                       show_default=True, help="Zenoh mode of this session.")(fn)
     return click.option("--connect", "connect", multiple=True, default=("tcp/127.0.0.1:7447",),
                         show_default=True, metavar="ENDPOINT", help=CONNECT_HELP)(fn)
 
 
-def config_option(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """--config: ``watch`` and ``tail`` find the endpoints of configured machines."""
+def config_option(fn: Callable[..., Any] | None = None, *, verb: str = "watch") -> Any:
+    """--config: ``watch``, ``tail`` and ``fleet report`` find the endpoints of configured
+    machines (``verb``: what the command does with them, for the help)."""
+    if fn is None:
+        return functools.partial(config_option, verb=verb)
     return click.option("--config", "config", default=None, metavar="PATH",
-                        type=click.Path(exists=True, path_type=Path), help=CONFIG_HELP)(fn)
+                        type=click.Path(exists=True, path_type=Path),
+                        help=CONFIG_HELP.format(verb=verb))(fn)
 
 
 @dataclass(frozen=True)
@@ -165,7 +179,7 @@ def watch_endpoint(listen: str) -> str:
 
 
 @click.command()
-@zenoh_options
+@zenoh_options(prefix_help=WATCH_PREFIX_HELP)
 @config_option
 @click.option("--once", is_flag=True,
               help="Print one snapshot and exit (after at most --wait seconds).")
@@ -370,7 +384,7 @@ def _fleet_title(connect: tuple[str, ...], mode: str) -> str:
 @click.command()
 @click.argument("machine")
 @zenoh_options
-@config_option
+@config_option(verb="follow")
 @click.option("--json", "as_json", is_flag=True,
               help="Each health message as one line of JSON, exactly as published.")
 @click.option("--count", type=click.IntRange(min=1), default=None,

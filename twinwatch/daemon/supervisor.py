@@ -213,6 +213,9 @@ class Supervisor:
         self._next: _Build | None = None  # a reload's daemon, open: takes over at the boundary
         self._resume = resume
         self._problems: list[str] = []
+        # the worker thread (after each window) and the acquisition loop (every second) both
+        # report the problems: read, compare, keep and send them as one step
+        self._problems_lock = threading.Lock()
         self._next_status = 0.0
 
     # -- start --------------------------------------------------------------------------------
@@ -300,10 +303,11 @@ class Supervisor:
         daemon, cfg = self.daemon, self.config
         if daemon is None or cfg is None:
             return
-        now = daemon.problems()
-        if now != self._problems:
-            self._problems = now
-            self.notifier.status(status_line(cfg, daemon))
+        with self._problems_lock:  # else STATUS could end on the report read first
+            now = daemon.problems()
+            if now != self._problems:
+                self._problems = now
+                self.notifier.status(status_line(cfg, daemon))
 
     # -- requests (from the host) ----------------------------------------------------------
     def stop(self) -> None:

@@ -185,8 +185,6 @@ class PlantModbusServer:
         self._lock = threading.Lock()  # guards the plant and the register image
         #: answer every read with this Modbus exception code while set (None: serve)
         self.exception_code: int | None = None
-        #: reads answered with an exception so far
-        self.exceptions_answered = 0
 
     # -- lifecycle --------------------------------------------------------------------------
     @property
@@ -344,7 +342,6 @@ class PlantModbusServer:
             return None  # coils / writes: pymodbus refuses them (read-only)
         code = self.exception_code
         if code is not None:
-            self.exceptions_answered += 1
             return ExcCodes(code)
         with self._lock:
             c = self.counter

@@ -8,6 +8,7 @@ package where it can; without it the tests skip, saying so.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -23,7 +24,8 @@ from typing import Any
 
 import pytest
 
-from .conftest import ROOT
+from .net import free_port
+from .paths import ROOT
 
 MOSQUITTO = shutil.which("mosquitto") or (
     "/usr/sbin/mosquitto" if os.path.exists("/usr/sbin/mosquitto") else None)
@@ -31,12 +33,6 @@ MOSQUITTO = shutil.which("mosquitto") or (
 needs_mosquitto = pytest.mark.skipif(
     MOSQUITTO is None, reason="Mosquitto is not installed (Debian: apt-get install mosquitto; "
     ".ci/run installs it when it runs as root)")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Broker:
@@ -220,3 +216,30 @@ def make_pki(d: Path) -> None:
         openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
                 "-CAcreateserial", "-out", f"{name}.pem", "-days", "2", "-extfile", "ext.cnf")
         (d / f"{name}.key").chmod(0o600)
+
+
+def finish(proc: subprocess.Popen[str], sig: int | None = None,
+           timeout: float = 300) -> tuple[int, str, str]:
+    if sig is not None:
+        proc.send_signal(sig)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    return proc.returncode, out, err
+
+
+def stored_window(store: Any, w: int, machine: str = "m1") -> Any:
+    """Store one small health message as the gate does and return what write() gets."""
+    from types import SimpleNamespace
+
+    doc = json.dumps({"machine": machine, "window": w, "t_start": 2.0 * w,
+                      "t_end": 2.0 * w + 1.99, "parameters": {"Ra": {
+                          "value": 6.5 - 0.01 * w, "unit": "ohm", "deviation_pct": -0.15 * w,
+                          "status": "estimated"}}, "alarms": {}})
+    if store is not None:
+        assert store.save_window({"machine": machine, "window": w, "t_start": 2.0 * w,
+                                  "t_end": 2.0 * w + 1.99}, None, doc=doc)
+    return SimpleNamespace(health=SimpleNamespace(window=w), health_json=doc, events=[])

@@ -1,12 +1,14 @@
-"""Sources as real machines deliver them, for the issue 15 tests and benchmarks.
+"""Sources as real machines deliver them, for the tests and the benchmarks.
 
-* :func:`plant_can_log`: a candump log of the simulated DC motor (the package's DBC), with
-  frame time stamps on a jittery clock, duplicated or reordered counter frames and malformed
-  lines where asked;
+* :func:`plant_frames`: the simulated DC motor's frames as (time stamp, id, data), on a jittery
+  receive clock; :func:`plant_can_log` and :func:`plant_asc_log` write them as a candump or a
+  Vector ASC log (malformed lines where asked), :func:`plant_csv` as a CSV file;
 * :class:`SocketcandServer`: a tiny server of the socketcand protocol on 127.0.0.1 (python-can's
   ``socketcand`` interface connects to it: a loopback CAN gateway that can be dropped and
-  brought back);
-* :func:`frame_lines`: a plant's frames as (time stamp, id, data).
+  brought back); :class:`MuteGateway`, one that accepts and never answers;
+* :func:`dc_modbus_server` and :class:`ServedDevice`: the motor as a Modbus device, in this
+  process or in one of its own (``python -m harness.sources``);
+* :class:`NotifySocket`: systemd's notification socket, read by the tests.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from typing import Any
 
 import cantools
 
-from .conftest import ROOT
+from harness import ROOT
 
 PLANT_DBC = ROOT / "twinwatch" / "plant" / "dcmotor.dbc"
 MESSAGES = (("TW_Motor_Electrical", ("Va", "ia")),
@@ -217,8 +219,6 @@ class SocketcandServer:
         self.port = port
         self.channel = channel
         self.mute: set[int] = set()
-        self.frames_sent = 0
-        self.connections = 0
         self._seconds, self._seed, self._plant = seconds, seed, plant
         self._lock = threading.Lock()
         self._clients: list[Any] = []
@@ -307,7 +307,6 @@ class SocketcandServer:
                 conn.close()
                 return
             self._clients.append(conn)
-            self.connections += 1
 
     def _stream(self) -> None:
         import time
@@ -330,7 +329,6 @@ class SocketcandServer:
             for c in clients:
                 try:
                     c.sendall(line.encode("ascii"))
-                    self.frames_sent += 1
                 except OSError:
                     with self._lock:
                         if c in self._clients:
@@ -390,7 +388,7 @@ def gateway_config(tmp: Path, port: int, **kw: Any) -> Path:
     """The simulated motor's example config reading the plant's frames from a socketcand
     gateway on 127.0.0.1:``port`` (time source: the plant's sample counter), running until
     stopped."""
-    from .test_fault_injection import with_driver
+    from harness.daemon import with_driver
 
     driver = CAN_DRIVER.format(dbc=PLANT_DBC, log="", time_source="counter").replace(
         'log_file = ""', 'interface = "socketcand"\nchannel = "can0"\n'
@@ -419,7 +417,7 @@ class ServedDevice:
         args = json.dumps({"counter": counter, "seed": seed, "port": port, "plant": plant,
                            "seconds": seconds, "exceptions": list(exceptions),
                            "pacing": pacing})
-        self.proc = subprocess.Popen([sys.executable, "-m", "tests.sources_support", args],
+        self.proc = subprocess.Popen([sys.executable, "-m", "harness.sources", args],
                                      cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      text=True)
         assert self.proc.stdout is not None
@@ -449,7 +447,7 @@ class ServedDevice:
 
 
 def _serve(args: dict[str, Any]) -> None:
-    """``python -m tests.sources_support JSON``: serve until stdin closes."""
+    """``python -m harness.sources JSON``: serve until stdin closes."""
     import sys
     import threading
     import time
