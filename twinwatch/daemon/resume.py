@@ -80,8 +80,8 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
                          store.path, exc)
         else:
             restored = state
-            if diagnoser is not None and state.get("diagnosis"):
-                diagnoser.restore(state["diagnosis"])
+            if diagnoser is not None:
+                _restore_diagnosis(state, diagnoser)
             trusted, terms = _twin_summary(state)
             logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
                         machine, store.path,
@@ -110,6 +110,14 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
         "alarms": {k: a.level for k, a in (raised or {}).items()
                    if a is not None and a.level not in (None, "normal")},
     }
+
+
+def _restore_diagnosis(state: Mapping[str, Any], diagnoser: Diagnoser) -> None:
+    """The diagnosis' baseline and evidence saved with the twin (the pipeline's twin state,
+    not a health message), given back to ``diagnoser``."""
+    saved = state.get("diagnosis")
+    if saved:
+        diagnoser.restore(saved)
 
 
 def _twin_summary(state: Mapping[str, Any]) -> tuple[dict[str, float], int]:
