@@ -48,6 +48,13 @@ from twinwatch.twin.model import FloatArray
 
 __all__ = ["RESOLUTION", "HypothesisBank", "WindowReading"]
 
+#: The baseline's prior: each fitted parameter about its nameplate with this standard
+#: deviation of its logarithm (10 %: the spread of a machine's constants about its maker's
+#: rated values, of the order of the tolerances IEC 60034-1 sets on rated quantities). The
+#: directions the baseline's windows do not determine (a regulated motor's Ke, D and J
+#: trade off) stay near the nameplate instead of wandering with the noise.
+NAMEPLATE_TOLERANCE = 0.1
+
 #: A reading that repeats to this share of its size repeats exactly (one converter code, one
 #: register value): a stuck reading does, a clipped one at its range's end does.
 EXACT = 1e-9
@@ -154,7 +161,7 @@ class HypothesisBank:
         g = len(self.groups)
         self._prec = np.zeros((g, g))
         self._rhs = np.zeros(g)
-        self._prior = np.eye(g)          # ln-sd 1 about the nameplate: a weak prior
+        self._prior = np.eye(g) / NAMEPLATE_TOLERANCE**2
         self.learned = 0
         self.sigma2: FloatArray | None = None
         self.kappa: FloatArray | None = None
@@ -165,10 +172,13 @@ class HypothesisBank:
         self._pairs: dict[str, Hypothesis] = {}
         self._no_pair: set[str] = set()
         self._unknown: deque[float] = deque(maxlen=keep)
-        #: per window kept: how well its best explanation fitted it (1: within the noise;
-        #: the noise's chi-square bound over the residual's otherwise)
+        #: per window kept: the power its log-likelihoods were tempered by (1: the library's
+        #: best twin fitted it within the noise; the noise's chi-square bound over that
+        #: twin's residual otherwise)
         self.fits_window: deque[float] = deque(maxlen=keep)
-        self._pending: deque[tuple[FloatArray, FloatArray, float]] = deque()
+        #: the last ``lag`` windows' baseline normal equations (a, b, x0), waiting to be
+        #: learned from once no change was seen during them (:meth:`settle`)
+        self._pending: deque[tuple[FloatArray, FloatArray, FloatArray]] = deque()
         self.detected = False
         self.last: WindowReading | None = None
 
@@ -259,37 +269,6 @@ class HypothesisBank:
             return out
 
         first = fit_all(proj, r0p)
-        # the window's residual variance: the baseline's, or what its best explanation (the
-        # window's own estimate, or the best hypothesis) leaves when that is more (Birge)
-        cands = [] if r_est is None else [r_est]
-        if first:
-            lab = min(first, key=lambda k: first[k][3])
-            cands.append(cols.r0 - np.tensordot(first[lab][2] @ self._combo[lab], dmat,
-                                                axes=1))
-        eta = 1.0
-        for h in self.hypotheses:      # a stuck or clipped reading explains its own way
-            c = h.closed_form
-            if c is not None and c.target in fit.model.output_names:
-                r_c = self._closed_residual(h, cols, fit)
-                if r_c is not None:
-                    cands.append(r_c)
-        if cands:
-            best = min(cands, key=lambda r: float(np.sum(r * r * kap / sig2)))
-            # how well the best explanation at hand fits the window against the baseline's
-            # noise: its weighted squared residual over the chi-square bound of its samples
-            # (mean plus 3 standard deviations). Above it every twin misses something here
-            # (a drift within the window, an operating point the twin does not cover) and
-            # how they rank in this window counts for that much less between them
-            # (Diagnoser's comparison; a tempered likelihood: Grunwald and van Ommen,
-            # Bayesian Analysis 12(4), 2017)
-            s_best = float(np.sum(best * best * kap / sig2))
-            n_best = float(np.sum(kap) * m_rows)
-            eta = min(1.0, (n_best + 3.0 * math.sqrt(2.0 * n_best)) / max(s_best, 1e-300))
-            sig2w = np.maximum(sig2, np.mean(best * best, axis=0))
-            if np.any(sig2w > sig2 * (1 + 1e-9)):
-                proj = _Projector(cols, kap, sig2w)
-                r0p = proj(cols.r0)
-                first = fit_all(proj, r0p)
         s0 = float(r0p @ r0p)
         n_eff = max(float(np.sum(kap) * m_rows), 2.0)
         ln_n = math.log(n_eff)
@@ -339,24 +318,40 @@ class HypothesisBank:
                 phis[h.label] = step[h.label][0]
             again = moved
         reading = WindowReading(baseline_nrmse, None, sims=sims)
+        fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
+        for h in everyone:
+            if h.closed_form is not None:
+                fitted[h.label] = (np.zeros(1), self._closed_form(h, cols, fit, proj),
+                                   np.zeros((1, 1)))
+            else:
+                a, b, phi, s_h = first[h.label]
+                fitted[h.label] = exact.get(h.label, (phi, s_h, a))
+        # how well the window's best twin of the library fits it against the baseline's
+        # noise: the chi-square bound of its effective samples (mean plus 3 standard
+        # deviations) over its weighted squared residual, at most 1. Below 1 every twin of the
+        # library misses something in this window (a drift within it, an operating point the
+        # twin does not cover): its log-likelihoods are tempered by that power (a
+        # misspecified model's likelihood: Grunwald and van Ommen, Bayesian Analysis 12(4),
+        # 2017), so that how the twins rank in it counts for that much less
+        bound = n_eff + 3.0 * math.sqrt(2.0 * n_eff)
+        s_lib = min((v[1] for v in fitted.values()), default=s0)
+        eta = min(1.0, bound / max(s_lib, 1e-300))
         self.fits_window.append(eta)
         for h in everyone:
             track = self.tracks[h.label]
+            phi, s_h, a = fitted[h.label]
+            half = 0.5 * eta * (s0 - s_h) if math.isfinite(s_h) else -math.inf
             if h.closed_form is not None:
-                s_h = self._closed_form(h, cols, fit, proj)
-                track.append(0.5 * (s0 - s_h) - 0.5 * ln_n, np.zeros(1), np.ones(1), t_mid)
-            else:
-                a, b, phi, s_h = first[h.label]
-                if h.label in exact:
-                    phi, s_h, a = exact[h.label]
-                std = (np.array([1.0 / math.sqrt(a[0, 0])]) if a.shape == (1, 1)
-                       and a[0, 0] > 0 else np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)),
-                                                               0.0)))
-                lo, hi = self._bounds[h.label]
-                span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
-                info = bool(np.max(np.diag(a) * np.minimum(span, 1.0) ** 2) > 1.0)
-                track.append(0.5 * (s0 - s_h) - 0.5 * h.size * ln_n, phi, std, t_mid,
-                             info, 0.5 * (s0 - s_h), ln_n)
+                track.append(half - 0.5 * ln_n, np.zeros(1), np.ones(1), t_mid)
+                continue
+            # the tempered likelihood's information: eta times the window's
+            a = eta * a
+            std = (np.array([1.0 / math.sqrt(a[0, 0])]) if a.shape == (1, 1)
+                   and a[0, 0] > 0 else np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0)))
+            lo, hi = self._bounds[h.label]
+            span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+            info = bool(np.max(np.diag(a) * np.minimum(span, 1.0) ** 2) > 1.0)
+            track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
         # the evidence: a line of sizes for a part's change (all such twins of one size at
         # once), each window's own size for the others
         groups: dict[tuple[int, int], list[Hypothesis]] = {}
@@ -379,10 +374,17 @@ class HypothesisBank:
         # every window: it gains on a library twin only what that leaves unexplained
         if r_est is not None:
             rp = proj(r_est, profile=False)
-            self._unknown.append(0.5 * (s0 - float(rp @ rp)) - 0.5 * max(est_free, 1) * ln_n)
+            s_est = float(rp @ rp)
+            eta_u = min(1.0, bound / max(s_est, 1e-300))
+            self._unknown.append(0.5 * eta_u * (s0 - s_est) - 0.5 * max(est_free, 1) * ln_n)
         else:
             self._unknown.append(-0.5 * max(est_free, 1) * ln_n)
         reading.unknown, reading.unknown_windows = self._unknown_evidence()
+        # this window's baseline normal equations: learned from once it is ``lag`` windows old
+        # with no change seen since (:meth:`settle`)
+        if self.groups:
+            xg = proj.many(self._group_columns(cols))
+            self._pending.append((xg @ xg.T, xg @ r0p, self._ln_theta()))
         self.last = reading
         return reading
 
@@ -685,6 +687,20 @@ class HypothesisBank:
         else:
             self.sigma2 = np.asarray(proj.s2, dtype=float)
             self.kappa = np.asarray(proj.kappa, dtype=float)
+
+    def settle(self, no_change: bool) -> None:
+        """After the diagnosis of the last window: while no change is seen (``no_change``),
+        the window ``lag`` windows back joins the baseline (this machine's parameters learned
+        from every window without a change, not from the first ones alone: a baseline known
+        from 10 windows drifts from the truth by its own error, which hundreds of later windows
+        would read as a change); once a change is seen, the windows since wait, and those of
+        the change are never learned from."""
+        if not no_change:
+            self._pending.clear()
+            return
+        while len(self._pending) > self.lag:
+            a, b, x0 = self._pending.popleft()
+            self._learn(a, b, x0)
 
     # -- state ----------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:

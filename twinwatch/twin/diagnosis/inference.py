@@ -53,8 +53,14 @@ def _t_crit(n: int) -> float:
 SPLIT = 0.1
 
 
-def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray],
-           fits: np.ndarray | None = None) -> dict[str, float]:
+def _log_sum_exp(values: list[float]) -> float:
+    top = max(values)
+    if not math.isfinite(top):
+        return top
+    return top + math.log(sum(math.exp(v - top) for v in values))
+
+
+def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[str, float]:
     """Each candidate's evidence against the best one, less what the windows do not agree on.
 
     Two fault modes' twins are not nested (neither is the other with a size set to zero), so
@@ -87,16 +93,8 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray],
         d = ref[-n:] - other[-n:]
         if not np.all(np.isfinite(d)):
             continue            # a twin impossible in a window (a moving reading is no stuck one)
-        eta = np.ones(n)
-        if fits is not None and fits.size >= n:
-            eta = fits[-n:]
-        first = max(0, start - (ref.size - n))
-        d, eta = d[first:], eta[first:]
+        d = d[max(0, start - (ref.size - n)):]
         gap = out[best] - out[k]
-        raw = float(np.sum(d))
-        if raw > 0:        # the windows' differences, each tempered by how well it is fitted
-            gap *= min(1.0, max(0.0, float(np.sum(eta * d)) / raw))
-        d = eta * d
         sd = float(np.std(d, ddof=1)) if d.size > 1 else 0.0
         # one window is no sample of the differences: no twin is preferred on it alone
         mean = float(np.mean(d)) if d.size else 0.0
@@ -188,6 +186,7 @@ class Diagnoser:
             out = self._learning(health, reading, speed, since, record)
         else:
             out = self._decide(health, reading, speed, since, record, share)
+            self.bank.settle(out.no_fault >= 0.5 and out.status != "check_function")
         self._last = out
         return out
 
@@ -232,26 +231,32 @@ class Diagnoser:
             gains[fid] = tr.gain[:tr.m]
         evidence["unknown"] = reading.unknown
         gains["unknown"] = np.array(self.bank.unknown_gains())
-        evidence = _vuong(evidence, gains, np.array(self.bank.fits_window, dtype=float))
         prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
-        # no fault now: none ever, or one that ended (a repair: a second change, as likely as
+
+        def log_prior(key: str) -> float:
+            if key == "unknown":
+                return math.log(cfg.unknown_prior)
+            return sum(math.log(self.faults[f].prior) for f in key.split("+"))
+
+        # no change now: none ever, or one that ended (a repair: a second change, as likely as
         # the fault itself) and the windows since are the baseline's
         terms_none = [math.log(max(1.0 - prior_sum, 1e-6))]
         for key, (_, fitted) in best_twin.items():
             if "+" not in key and fitted.ended > -math.inf:
                 terms_none.append(2.0 * math.log(self.faults[key].prior) + fitted.ended)
-        top_none = max(terms_none)
-        log_post = {"no_fault": top_none + math.log(sum(math.exp(v - top_none)
-                                                        for v in terms_none))}
-        for key, ev in evidence.items():
-            if key == "unknown":
-                pr = cfg.unknown_prior
-            else:
-                pr = math.prod(self.faults[f].prior for f in key.split("+"))
-            log_post[key] = math.log(pr) + ev
-        top = max(log_post.values())
-        z = sum(math.exp(v - top) for v in log_post.values())
-        joint = {k: math.exp(v - top) / z for k, v in log_post.items()}
+        log_none = _log_sum_exp(terms_none)
+        # a change now, against no change: each twin's likelihood ratio with the baseline
+        # (nested: its size zero is the baseline), with its prior
+        log_change = _log_sum_exp([log_prior(k) + ev for k, ev in evidence.items()])
+        p_change = 1.0 / (1.0 + math.exp(min(log_none - log_change, 700.0)))
+        # which change: the twins against each other (not nested: Vuong's comparison)
+        between = _vuong(evidence, gains)
+        logs = {k: log_prior(k) + ev for k, ev in between.items() if math.isfinite(ev)}
+        top_l = max(logs.values()) if logs else 0.0
+        zz = sum(math.exp(v - top_l) for v in logs.values()) or 1.0
+        joint = {k: p_change * math.exp(v - top_l) / zz for k, v in logs.items()}
+        joint.setdefault("unknown", 0.0)
+        joint["no_fault"] = 1.0 - p_change
         p_none, p_unknown = joint.pop("no_fault"), joint.pop("unknown")
         # each fault's probability: alone, or with another (a pair's twin)
         post = {k: v for k, v in joint.items() if "+" not in k}
