@@ -224,3 +224,28 @@ def test_rules_checked_against_the_model() -> None:
         tied.check_against(["Ra", "Kt"], estimated=["Ra", "D", "Ke", "La", "J"])
     with pytest.raises(ValidationError, match="enabeld"):
         AlarmConfig.model_validate({"enabeld": True})
+
+
+def test_every_example_that_says_it_is_the_default_run_has_its_alarm_rules() -> None:
+    """Issue 56: the examples whose header says they run as config/dc-motor-sim.toml (the
+    Sparkplug, MQTT, TLS, CANopen and OPC UA ones) carry its [alarms] table, the RUL rule
+    included (before: the Sparkplug and MQTT ones lacked rul_warning and rul_alarm, 3 alarm
+    lines instead of the README's 5; the TLS one had no [alarms] at all)."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    config = Path(__file__).resolve().parents[1] / "config"
+    default = tomllib.loads((config / "dc-motor-sim.toml").read_text())["alarms"]
+    assert default["parameters"]["Ra"]["rul_alarm"] == 180.0
+    claims = []
+    for path in sorted(config.glob("*.toml")):
+        text = path.read_text()
+        head = "".join(line for line in text.splitlines(keepends=True)[:20]
+                       if line.startswith("#"))
+        if path.name != "dc-motor-sim.toml" and re.search(
+                r"[Aa]s config/dc-motor-sim\.toml|Same plant, scenario and twin", head):
+            claims.append(path.name)
+            assert tomllib.loads(text).get("alarms") == default, path.name
+    assert {"dc-motor-sim-sparkplug.toml", "dc-motor-sim-mqtt.toml",
+            "dc-motor-sim-tls.toml"} <= set(claims), claims

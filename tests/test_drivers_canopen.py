@@ -155,6 +155,91 @@ def test_samples_are_scaled_to_si_and_stamped_by_sync_and_nothing_is_sent(cell):
     assert {m.arbitration_id for m in heard} == {0x80, 0x205, 0x185, 0x285, 0x705}
 
 
+def test_a_node_id_that_never_speaks_while_another_does_is_one_line_naming_it(cell, caplog):
+    """Issue 56: node_id = 6 on a bus where node 5 sends: one WARNING naming node 5 and the
+    key (before: six warnings that node 6 was off the bus, none saying node 5 was on it);
+    STATUS's silent says it too. The live bus's receive filter lets every heartbeat in."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="twinwatch.drivers.canopen")
+    driver = CanopenDriver.from_config(_config(cell.channel, node_id=6), base_dir=Path("."))
+    try:
+        for _ in range(300):  # 3 s: the heartbeat and every PDO long missing
+            cell.cycle()
+        frames = -1
+        while driver.stats.frames != frames:  # until every frame queued is read
+            frames = driver.stats.frames
+            assert driver.read(timeout=0.05) is None
+        silent = driver.silent
+    finally:
+        driver.close()
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1, warnings
+    assert warnings[0].startswith("CANopen node 6 not heard on the bus") and \
+        "node 5 (heartbeat 0x705)" in warnings[0] and "driver.node_id" in warnings[0]
+    assert silent[0] == "node 6 never heard (heard on the bus: node 5 (heartbeat 0x705))"
+    assert driver.stats.extra["silent_pdos"] == 3  # still counted
+
+
+def test_the_right_node_id_hears_no_such_line(cell, caplog):
+    driver = CanopenDriver.from_config(_config(cell.channel), base_dir=Path("."))
+    try:
+        for _ in range(50):
+            cell.cycle()
+        assert len(_read(driver, 49)) == 49
+    finally:
+        driver.close()
+    assert "not heard" not in caplog.text and driver.silent == ()
+
+
+def test_a_silent_bus_is_one_error_line_however_often_it_is_reopened(cell, caplog):
+    """Issue 56: the bus goes silent under a running acquisition: the source keeper says it
+    once at ERROR; opened again (a virtual interface always opens) and silent again, it is
+    the same outage, until a sample comes (before: an ERROR and a WARNING every reopen, and
+    the acquisition loop's generic ERROR besides). The stall line is INFO, naming it."""
+    import logging
+    import threading
+    import time
+
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.acquisition import Acquisition
+    from twinwatch.daemon.source import open_source
+    from twinwatch.twin.models import create_model
+
+    caplog.set_level(logging.INFO)
+    cfg = default_config()
+    cfg.acquisition.stall_timeout = 0.5
+    dcfg = CanopenDriverConfig.model_validate(_config(cell.channel, reopen_after=0.3))
+    keeper = open_source(dcfg, base_dir=Path("."), wait=True, backoff_max=0.2)
+    acq = Acquisition(cfg, create_model(cfg.machine.model, {}), own_driver=False)
+    acq.open(keeper, base_dir=Path("."), wait=False)
+    runner = threading.Thread(target=acq.run, args=(None, lambda w, b: None, lambda n: None))
+    runner.start()
+
+    def until(what: Any) -> None:
+        deadline = time.monotonic() + 30
+        while not what() and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    try:
+        for _ in range(20):
+            cell.cycle()
+        until(lambda: keeper.stats.extra.get("reopens", 0) >= 3  # silent after each reopen
+              and "no sample from" in caplog.text)
+        for _ in range(50):
+            cell.cycle()
+        until(lambda: "is open again" in caplog.text)
+    finally:
+        acq.stop()
+        runner.join(10)
+        keeper.close()
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "is not available (no CAN frame for" in errors[0], errors
+    assert sum("is open again" in r.getMessage() for r in caplog.records) == 1
+    stall = [r for r in caplog.records if r.getMessage().startswith("no sample from")]
+    assert len(stall) == 1 and stall[0].levelno == logging.INFO
+
+
 def test_frames_of_other_nodes_are_ignored_and_a_truncated_pdo_is_counted(cell):
     # a bus handed in (no receive filter: a live bus opened by the driver filters in the
     # interface, where python-can can): every frame reaches the driver
@@ -396,10 +481,50 @@ def test_simulated_drive_fault_and_lost_heartbeat_reach_the_health_message_and_s
     assert np.all(np.abs(err) <= 0.2), err
 
 
+def _lossy_run(duration: float, loss: float) -> tuple[Any, list[dict[str, Any]], dict[str, int],
+                                                     dict[str, int]]:
+    """The example's drive, Ra degrading from 0 s, with ``loss`` of its bus's frames lost:
+    the driver, the health messages, the daemon's and the driver's counters."""
+    from twinwatch.daemon.runner import Daemon
+
+    cfg = _sim_config(duration)
+    cfg.driver.plant.fault_start = 0.0  # type: ignore[attr-defined]
+    cfg.driver.frame_loss = loss  # type: ignore[attr-defined]
+    with create_driver(cfg.driver, base_dir=Path(".")) as driver:
+        with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
+            daemon.run()
+            counters = daemon.counters()
+        hist = list(daemon.history)
+        stats = driver.stats.as_dict()
+    return driver, hist, counters, stats
+
+
+def test_two_percent_of_the_frames_lost_every_window_is_estimated():
+    """Issue 56: 2 % of the bus's frames (SYNC, PDOs, heartbeat) lost at random; a SYNC cycle
+    without its SYNC or one of its TPDOs gives no sample (about 6 % of the cycles). Before,
+    each missing sample abandoned its window (0 of 17 windows, exit 75); now its slot holds
+    the previous sample and every window is estimated, Ra within 0.2 % of the plant, as
+    without loss."""
+    driver, hist, c, stats = _lossy_run(60.0, 0.02)
+    lost = driver.drive.network.bus  # the simulated bus that lost the frames
+    assert 0.01 < lost.lost / (lost.lost + stats["frames"]) < 0.03, (lost.lost, stats)
+    assert len(hist) == 30 and c["windows_abandoned"] == 0, c
+    assert stats["gaps"] > 50 and stats["incomplete_syncs"] > 100, stats  # SYNCs, TPDOs lost
+    # each missing sample is counted: a SYNC lost (its counter jumped) or a cycle incomplete,
+    # less the ones between two windows (no slot to fill) and the first cycles' (no sample yet)
+    assert 0.97 * (stats["gaps"] + stats["incomplete_syncs"]) <= c["samples_missing"] \
+        <= stats["gaps"] + stats["incomplete_syncs"], (c, stats)
+    assert c["windows_with_missing"] == 30
+    assert hist[-1]["counters"]["samples_missing"] == c["samples_missing"]
+    err = _ra_errors(driver.drive.plant, hist, since=0.0)
+    assert np.all(np.abs(err) <= 0.2), err
+
+
 @pytest.mark.slow
 def test_simulated_drive_ra_within_0p2_percent_after_160_s():
     """The issue's done-when: the example's run (1200 s, Ra degrading from 160 s) over the
-    CANopen path: Ra within 0.2 % of the plant in every window after 160 s, as the DBC path."""
+    CANopen path: Ra within 0.2 % of the plant in every window after 160 s, as the DBC path;
+    no RUL level raised and cleared (issue 56)."""
     from twinwatch.daemon.runner import Daemon
 
     cfg = _sim_config(1200.0)
@@ -409,9 +534,32 @@ def test_simulated_drive_ra_within_0p2_percent_after_160_s():
         hist = list(daemon.history)
         stats = driver.stats.as_dict()
     assert len(hist) == 600 and stats["gaps"] == 0 and stats["bad_frames"] == 0, stats
+    # issue 56: no RUL level that clears (Ra only degrades): before, a RUL ALARM "79 s
+    # (49-752 s)" at 180 s, cleared 40 s later
+    rank = {"normal": 0, "warning": 1, "alarm": 2}
+    levels = [(h["t_end"], rank[h["alarms"]["Ra"]["rul"]["level"]]) for h in hist]
+    assert all(b >= a for (_, a), (_, b) in zip(levels, levels[1:], strict=False)), [
+        (t, lv) for (t, lv), (_, prev) in zip(levels[1:], levels, strict=False) if lv < prev]
     err = _ra_errors(driver.drive.plant, hist, since=160.0)
     print(f"\nover CANopen: Ra error after 160 s over {len(err)} windows: median "
           f"{np.median(np.abs(err)):.4f} %, max {np.max(np.abs(err)):.4f} %")
+    assert np.all(np.abs(err) <= 0.2), np.percentile(np.abs(err), [50, 95, 100])
+
+
+@pytest.mark.slow
+def test_two_percent_of_the_frames_lost_over_the_examples_run():
+    """Issue 56's done-when over the example's 1200 s: 2 % of the frames lost at random, at
+    least 95 % of the windows estimated (measured: 595 of 600; the 4 abandoned had more than
+    20 samples missing), Ra within 0.2 % of the plant after 160 s as without loss (measured
+    2026-11-27: median 0.0018 %, 95th percentile 0.042 %, max 0.198 %; without loss 0.0019,
+    0.043, 0.186 %)."""
+    driver, hist, c, stats = _lossy_run(1200.0, 0.02)
+    assert len(hist) >= 570, (len(hist), c)
+    assert c["windows_abandoned"] == c["windows_abandoned_gap"] <= 30, c
+    err = _ra_errors(driver.drive.plant, hist, since=160.0)
+    print(f"\n2 % of the frames lost: {len(hist)} windows, {c['samples_missing']} samples "
+          f"missing; Ra error after 160 s: median {np.median(np.abs(err)):.4f} %, 95th "
+          f"percentile {np.percentile(np.abs(err), 95):.4f} %, max {np.max(np.abs(err)):.4f} %")
     assert np.all(np.abs(err) <= 0.2), np.percentile(np.abs(err), [50, 95, 100])
 
 

@@ -210,6 +210,30 @@ def test_counter_time_duplicates_gaps_and_wrap() -> None:
     assert drv.stats.extra["counter_resets"] == 0
 
 
+def test_missed_samples_are_held_over_by_the_daemons_ring_buffer() -> None:
+    """Issue 56: a device whose counter skips two samples (a poll lost on a loaded link):
+    with the daemon's default limits the window keeps its samples, the two slots holding the
+    previous sample's values, instead of being abandoned."""
+    from twinwatch.config.schema import AcquisitionConfig
+    from twinwatch.daemon.ringbuffer import RingBuffer
+
+    regs = {"x": ModbusChannelMap(address=1, table="holding", type="float32")}
+    ks = [k for k in range(20) if k not in (6, 13)]
+    plant = ListPlant([Sample(k * 0.01, {"x": float(k)}) for k in ks])
+    with PlantModbusServer(plant, regs, counter=COUNTER, pacing="lockstep") as srv:
+        with ModbusDriver(driver_config(srv.port, regs)) as drv:
+            got = read_all(drv, 30, timeout=0.3)
+    assert drv.stats.gaps == 2 and len(got) == 18
+    acq = AcquisitionConfig()
+    ring = RingBuffer(("x",), window=20, sample_period=0.01, max_missing=acq.max_missing,
+                      max_missing_run=acq.max_missing_run)
+    wins = [w for s in got if (w := ring.append(s.t, s.values)) is not None]
+    assert len(wins) == 1 and sum(ring.causes.values()) == 0 and ring.missing == 2
+    held = [float(k) for k in range(20)]
+    held[6], held[13] = 5.0, 12.0
+    assert list(wins[0]["x"]) == held
+
+
 def test_polling_twice_per_sample_skips_duplicates_and_misses_nothing() -> None:
     """Realtime server at 20 ms, driver polling every 10 ms: every sample once, in order."""
     regs = {"x": ModbusChannelMap(address=2, table="input"),

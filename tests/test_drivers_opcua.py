@@ -221,6 +221,29 @@ def test_a_bad_status_is_a_missing_sample_counted_per_channel_and_an_overflow_co
         assert d.stats.extra["overflows"] == 1 and got[slots.index(7)].values["Va"] == 7.0
 
 
+def test_samples_missing_with_a_bad_status_are_held_over_by_the_daemons_ring_buffer():
+    """Issue 56: two samples whose ia is Bad (a device's read failing now and then) are
+    missing; with the daemon's default limits the window keeps its other samples, the two
+    slots holding the previous sample's values, instead of being abandoned."""
+    from twinwatch.config.schema import AcquisitionConfig
+    from twinwatch.daemon.ringbuffer import RingBuffer
+
+    acq = AcquisitionConfig()
+    ring = RingBuffer(("Va", "ia"), window=20, sample_period=PERIOD,
+                      max_missing=acq.max_missing, max_missing_run=acq.max_missing_run)
+    with _server() as srv, OpcUaDriver(_config(srv), time_origin=BASE) as d:
+        for k in range(1, 21):
+            status = {"ia": 0x80000000} if k in (8, 9) else None
+            srv.write(k, {"Va": 1.0 * k, "ia": 2.0 * k}, base=BASE, status=status)
+        got = _read_all(d, 19)
+        assert d.stats.gaps == 2
+    wins = [w for s in got if (w := ring.append(s.t, s.values)) is not None]
+    assert len(wins) == 1 and sum(ring.causes.values()) == 0 and ring.missing == 2
+    va = wins[0]["Va"]
+    assert list(va[7:11]) == [7.0, 7.0, 7.0, 10.0] and list(wins[0]["ia"][7:11]) == [
+        14.0, 14.0, 14.0, 20.0]
+
+
 def test_a_channel_that_stops_is_named_silent_and_its_samples_counted_missing():
     with _server() as srv, OpcUaDriver(_config(srv), time_origin=BASE) as d:
         for k in range(1, 6):
@@ -330,6 +353,91 @@ def test_basic256sha256_sign_and_encrypt_and_an_untrusted_certificate(tmp_path: 
             OpcUaDriver(_config(srv, **secure))
     assert str(exc.value).startswith("driver.certificate: the OPC UA server")
     assert "refused the client certificate" in str(exc.value)
+
+
+def _opcua_machine(tmp_path: Path, driver: dict[str, Any]) -> Path:
+    """The OPC UA example with its ``[driver]`` table replaced by ``driver``."""
+    src = Path(__file__).parents[1] / "config" / "dc-motor-opcua-sim.toml"
+    head, _, rest = src.read_text().partition("[driver]")
+    rest = rest[rest.index("\n[zenoh]"):].replace("[zenoh]", "[zenoh]\nenabled = false", 1)
+    channels = driver.pop("channels")
+    lines = ["[driver]", *(f"{k} = {_toml(v)}" for k, v in driver.items()), "[driver.channels]",
+             *(f"{ch} = {_toml(m)}" for ch, m in channels.items()), ""]
+    path = tmp_path / "m.toml"
+    path.write_text(head + "\n".join(lines) + rest)
+    return path
+
+
+def test_a_server_without_the_configured_security_is_a_configuration_error(tmp_path: Path,
+                                                                            caplog: Any):
+    """Issue 56: a server that offers Basic256Sha256 SignAndEncrypt only, a configuration
+    asking for no security: one line naming driver.security_policy and what the server
+    offers; `run` exits 78 at once instead of waiting for a server that will never accept it
+    (before: retried as "not available" forever, 60 s later still waiting), and check-config
+    says it."""
+    from click.testing import CliRunner
+
+    from twinwatch.cli import main
+
+    pki = _pki(tmp_path)
+    with _server(pki=pki) as srv:
+        with pytest.raises(DriverConfigError) as exc:
+            OpcUaDriver(_config(srv))
+        line = str(exc.value)
+        assert line.startswith("driver.security_policy: the OPC UA server")
+        assert "no endpoint for security 'None'" in line
+        assert "it offers Basic256Sha256 SignAndEncrypt" in line and "\n" not in line
+        channels = {ch: {"node": f"ns=2;s=Dev.{ch}"} for ch in ("Va", "ia", "omega", "Tload",
+                                                                 "setpoint")}
+        path = _opcua_machine(tmp_path, {"type": "opcua", "endpoint": srv.endpoint,
+                                         "sample_period": 0.01, "channels": channels})
+        start = time.monotonic()
+        r = CliRunner().invoke(main, ["run", "--no-progress", str(path)])
+        took = time.monotonic() - start
+        print(f"\nrun exited {r.exit_code} after {took:.2f} s")
+        assert r.exit_code == 78, r.output
+        assert "driver.security_policy: the OPC UA server" in r.output, r.output
+        assert "not available" not in r.output + caplog.text  # refused, not waited for
+        r = CliRunner().invoke(main, ["check-config", str(path)])
+        assert r.exit_code == 1 and "driver.security_policy:" in r.output, r.output
+
+
+def test_a_killed_server_is_one_error_line(caplog: Any):
+    """Issue 56: the server goes away under a running acquisition: the driver's ERROR is the
+    only one (before: the acquisition loop's generic "check the device, cable and bus" too);
+    its stall line is INFO, naming what the driver waits for."""
+    import logging
+
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.acquisition import Acquisition
+    from twinwatch.twin.models import create_model
+
+    cfg = default_config()
+    cfg.acquisition.stall_timeout = 0.5
+    caplog.set_level(logging.INFO)
+    srv = _TestServer(CHANNELS).start()
+    driver = OpcUaDriver(_config(srv), time_origin=BASE)
+    acq = Acquisition(cfg, create_model(cfg.machine.model, {}), own_driver=False)
+    acq.open(driver, base_dir=Path("."), wait=False)
+    runner = threading.Thread(target=acq.run, args=(None, lambda w, b: None, lambda n: None))
+    runner.start()
+    try:
+        for k in range(1, 6):
+            srv.write(k, {"Va": 1.0, "ia": 1.0}, base=BASE)
+        srv.stop()
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and "no sample from" not in caplog.text:
+            time.sleep(0.05)
+    finally:
+        acq.stop()
+        runner.join(10)
+        driver.close()
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR
+              and r.name.startswith("twinwatch")]
+    assert len(errors) == 1 and errors[0].startswith("OPC UA server"), errors
+    stall = [r for r in caplog.records if r.getMessage().startswith("no sample from")]
+    assert len(stall) == 1 and stall[0].levelno == logging.INFO
+    assert "away for" in stall[0].getMessage()
 
 
 def test_an_unreachable_server_is_an_initialization_error_the_daemon_waits_for():

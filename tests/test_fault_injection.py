@@ -1750,9 +1750,10 @@ def _every_window_fails(ctx: Context) -> dict[str, Any]:
 
 
 @case("issue 15: a duplicated and a reordered CAN counter frame after 11 wraps of an 8-bit "
-      "counter (40 s log)", exit_code=0, time_never_back=True, last_t_end=38.4,
-      windows_estimated=19, windows_abandoned_gap=1, duplicates=1, reordered=1,
-      counter_resets=0)
+      "counter (40 s log): the late frame's sample, skipped, is one missing sample its window "
+      "holds over (issue 56)", exit_code=0, time_never_back=True, last_t_end=39.99,
+      windows_estimated=20, windows_abandoned_gap=0, samples_missing=1, duplicates=1,
+      reordered=1, counter_resets=0)
 def _can_counter_duplicate_and_reorder(ctx: Context) -> dict[str, Any]:
     from harness.daemon import db_rows
     from harness.sources import CAN_DRIVER, candump_line, plant_frames
@@ -1776,6 +1777,7 @@ def _can_counter_duplicate_and_reorder(ctx: Context) -> dict[str, Any]:
             "last_t_end": round(ends[-1], 2) if ends else None,
             "windows_estimated": len(rows),
             "windows_abandoned_gap": c.get("windows_abandoned_gap"),
+            "samples_missing": c.get("samples_missing"),
             "duplicates": c.get("driver_duplicates"), "reordered": c.get("driver_reordered"),
             "counter_resets": c.get("driver_counter_resets", 0)}
 

@@ -276,3 +276,151 @@ def test_a_subscriber_per_machine_only_when_the_machines_share_one_chunk() -> No
     assert not boxed.exact and boxed.key == "twinwatch/*/*/summary"
     assert SummaryWatcher(object(), prefix="acme/*", exact=True).exact  # type: ignore[arg-type]
     assert prefix_base("acme/plant1/*/line") == "acme/plant1"
+
+
+# -- issue 56: the worst parameter, a stopped daemon's machines, waiting for the fleet ---------
+def _drifting(machine: str, d_dev: float, ra_dev: float = 0.0) -> dict[str, Any]:
+    doc = health(machine, ra_dev=ra_dev)
+    doc["parameters"]["D"]["deviation_pct"] = d_dev
+    doc["parameters"]["D"]["value"] = 0.00143 * (1 + d_dev / 100)
+    return doc
+
+
+def test_the_worst_parameter_by_its_own_threshold() -> None:
+    """D +20 % without a rule (5 %: share 4) outranks Ra nominal; with its own rule at 50 %
+    (bearing wear), D +20 % (0.4 of it) is below Ra -3 % (0.6 of Ra's 5 %)."""
+    from twinwatch.sinks.base import AlarmBands
+    from twinwatch.sinks.zenoh import worst_parameter
+
+    ra = {"Ra": AlarmBands(warning_high=5.0, warning_low=-5.0, alarm_high=10.0,
+                           alarm_low=-10.0)}
+    assert worst_parameter(read_health(_drifting("m", 20.0)), ra) == {
+        "parameter": "D", "deviation_pct": 20.0, "threshold_pct": None, "share": 4.0}
+    both = {**ra, "D": AlarmBands(warning_high=50.0, alarm_high=100.0)}
+    worst = worst_parameter(read_health(_drifting("m", 20.0, ra_dev=-3.0)), both)
+    assert worst is not None and (worst["parameter"], worst["share"]) == ("Ra", 0.6)
+    # a side the rule does not watch counts nothing (D falling, its rule high only)
+    worst = worst_parameter(read_health(_drifting("m", -20.0)), both)
+    assert worst is not None and worst["parameter"] == "Ra"
+
+
+def test_watch_fleet_shows_d_plus_20_on_a_machine_whose_ra_is_nominal() -> None:
+    """Issue 56's done-when: the daemon's Zenoh output sends the worst parameter with the
+    summary and `watch --fleet` leads the deviation column with it (before: Ra +0.00 %
+    only, the machine looking healthy)."""
+    import types
+
+    from twinwatch.sinks.base import AlarmBands, SinkContext
+
+    ep = endpoint(free_port())
+    with router_on(ep):
+        ctx = SinkContext(machine="m-d20", model="dc_motor", alarm_bands={"Ra": AlarmBands(
+            warning_high=5.0, warning_low=-5.0, alarm_high=10.0, alarm_low=-10.0)})
+        pub = HealthPublisher.open("zenoh", ZenohConfig(mode="client", connect=[ep],
+                                                        box="gw-a"), ctx)
+        try:
+            doc = _drifting("m-d20", 20.0)
+            pub.write(types.SimpleNamespace(health=read_health(doc), health_json=json.dumps(
+                doc), events=[]))  # type: ignore[arg-type]
+            runner = CliRunner()
+            base = ["watch", "--fleet", "--connect", ep, "--once", "--wait", "15"]
+            out = runner.invoke(main, [*base, "--json"])
+            assert out.exit_code == 0, out.output
+            (m,) = json.loads(out.stdout)["machines"]
+            assert m["worst"] == {"parameter": "D", "deviation_pct": 20.0,
+                                  "threshold_pct": None, "share": 4.0}
+            table = runner.invoke(main, base, terminal_width=200)
+        finally:
+            pub.close()
+    row = next(line for line in table.output.splitlines() if "m-d20" in line)
+    assert "D +20.00 %" in row and row.index("D +20.00 %") < row.index("Ra +0.00 %"), row
+
+
+def test_a_stopped_daemons_machines_are_stale_at_once_from_their_token() -> None:
+    """Issue 56: a daemon that stops takes its liveliness token with it: its machine is shown
+    stale at once (before: current for 180 s, 3 summary intervals); the other stays alive, and
+    a machine back (its token again) is alive again."""
+    import time
+
+    from twinwatch.watch.summaries import following
+
+    ep = endpoint(free_port())
+    with router_on(ep):
+        pubs = {}
+        for m in ("m-stays", "m-stops"):
+            pubs[m] = HealthPublisher(ZenohConfig(mode="client", connect=[ep], box="gw-a"), m)
+            pubs[m].publish_summary(fleet_summary(read_health(health(m)), box="gw-a",
+                                                  wall=time.time()))
+        try:
+            with following([ep], "client", "twinwatch") as summaries:
+                summaries.settle(15, expected=2)
+
+                def seen() -> dict[str, str]:
+                    view = fleet_view(summaries.received, time.time())
+                    return {r["machine"]: r["seen"] for r in view["machines"]}
+
+                assert seen() == {"m-stays": "alive", "m-stops": "alive"}
+                pubs.pop("m-stops").close()
+                deadline = time.monotonic() + 20
+                while seen()["m-stops"] != "stale" and time.monotonic() < deadline:
+                    summaries.wait(0.2)
+                assert seen() == {"m-stays": "alive", "m-stops": "stale"}
+                rows = fleet_view(summaries.received, time.time())["machines"]
+                gone = {r["machine"]: r["gone_s"] for r in rows}
+                assert gone["m-stays"] is None and gone["m-stops"] is not None
+                again = HealthPublisher(ZenohConfig(mode="client", connect=[ep], box="gw-a"),
+                                        "m-stops")
+                pubs["m-stops"] = again
+                deadline = time.monotonic() + 20
+                while seen()["m-stops"] != "alive" and time.monotonic() < deadline:
+                    summaries.wait(0.2)
+                assert seen() == {"m-stays": "alive", "m-stops": "alive"}
+        finally:
+            for p in pubs.values():
+                p.close()
+
+
+def test_watch_fleet_waits_for_the_network_and_the_first_summary_saying_so() -> None:
+    """Issue 56: `watch --fleet` before any daemon is up waits (before: exit 1 at once), one
+    line for the network not answering yet and one for the first summary, then follows."""
+    import threading
+    import time
+
+    from twinwatch.cli.watch import fleet_following
+
+    from .test_fleet import Router
+
+    ep = endpoint(free_port())
+    router = Router(ep)
+    lines: list[str] = []
+    pubs: list[HealthPublisher] = []
+
+    def sleep(delay: float) -> None:  # the network's first retry: the router comes up
+        if router.session is None:
+            router.start()
+        time.sleep(min(delay, 0.1))
+
+    def publish_later() -> None:
+        pub = HealthPublisher(ZenohConfig(mode="client", connect=[ep], box="gw-a"), "m-late")
+        pubs.append(pub)
+        pub.publish_summary(fleet_summary(read_health(health("m-late")), box="gw-a",
+                                          wall=time.time()))
+
+    def say(line: str) -> None:
+        lines.append(line)
+        if "first fleet summary" in line:  # connected, nothing yet: a daemon starts now
+            threading.Thread(target=publish_later).start()
+
+    try:
+        with fleet_following((ep,), "client", "twinwatch", "*", wait=True, say=say,
+                             sleep=sleep) as summaries:
+            got = sorted(summaries.received)
+    finally:
+        for p in pubs:
+            p.close()
+        router.stop()
+    assert got == ["m-late"]
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("twinwatch: waiting for the fleet: cannot connect to " + ep)
+    assert lines[1].startswith("twinwatch: waiting for the first fleet summary on "
+                               "twinwatch/*/summary")

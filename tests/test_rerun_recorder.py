@@ -482,6 +482,33 @@ def story_window(k: int, dev: float, level: str = "normal",
     return w
 
 
+def test_the_log_rows_follow_the_machines_state_a_rul_alarm_is_warn(tmp_path: Path) -> None:
+    """Issue 56: Ra in deviation warning with its RUL alarm raised (schedule the maintenance:
+    NE 107 MAINTENANCE_REQUIRED) is a WARN row, as its RUL ALARM event (before: every row
+    ERROR while the machine was in WARNING); a deviation alarm is ERROR."""
+    path = tmp_path / "m1.rrd"
+    rul_ev = {"kind": "rul", "parameter": "Ra", "level": "alarm", "previous": "warning",
+              "rul_s": 79.0, "rul_low_s": 49.0, "rul_high_s": 752.0, "t": 3.99, "window": 1,
+              "message": "m1: RUL ALARM: Ra reaches its alarm threshold in 79 s"}
+
+    def rul(k: int, dev: float, level: str, rul_level: str) -> dict[str, Any]:
+        w = story_window(k, dev, level)
+        w["health"]["alarms"]["Ra"]["rul"] = {"level": rul_level, "rul_s": 79.0}
+        w["health"]["model_check"] = {"passed": True, "reasons": []}
+        w["health"]["counters"] = {}
+        return w
+
+    with story_recorder(path) as rec:
+        rec.log_window(**rul(0, -6.0, "warning", "warning"))
+        rec.log_window(**rul(1, -7.0, "warning", "alarm"), events=[rul_ev])
+        rec.log_window(**rul(2, -11.0, "alarm", "alarm"))
+    rows = _log_rows(rec.path, "m1")
+    per_window = [lvl for lvl, text in rows if text.startswith("window ")]
+    assert per_window == ["WARN", "WARN", "ERROR"], rows
+    (event,) = [(lvl, text) for lvl, text in rows if "RUL ALARM raised" in text]
+    assert event[0] == "WARN", rows
+
+
 def test_alarm_changes_and_values_are_in_the_log_and_on_the_plot(tmp_path: Path) -> None:
     """An alarm raise is an ERROR row with its message and a red marker at its deviation; a
     clear a WARN row and a green marker; the rows of windows in alarm are ERROR, in warning

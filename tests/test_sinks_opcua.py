@@ -244,9 +244,10 @@ def test_rul_diagnosis_and_device_health_follow_the_message(
         assert c.read("m1.Diagnosis.Probability").Value.Value == pytest.approx(0.93)
         assert c.read("m1.Diagnosis.Urgency").Value.Value == "high"
         assert c.read("m1.Diagnosis.Faults.Ids").Value.Value == ["winding_short"]
-        # a raised fault of urgency high: FAILURE (NE 107)
-        assert c.read("m1.DeviceHealth").Value.Value == DEVICE_HEALTH["FAILURE"]
-        assert "winding_short" in c.read("m1.DeviceHealthReason").Value.Value
+        # a raised fault of urgency high whose action is for the next stop: maintenance, not
+        # FAILURE (issue 56: before, red in every SCADA on Ra -1.8 %)
+        assert c.read("m1.DeviceHealth").Value.Value == DEVICE_HEALTH["MAINTENANCE_REQUIRED"]
+        assert "winding_short (urgency high)" in c.read("m1.DeviceHealthReason").Value.Value
         # the same with the fault's urgency medium: the RUL warning and the fault ask for
         # maintenance
         medium = diag.model_copy(update={"faults": [fault.model_copy(update={"urgency":
@@ -267,21 +268,184 @@ def test_rul_diagnosis_and_device_health_follow_the_message(
         c.close()
 
 
-def test_the_ne107_mapping(processed: Any) -> None:
+def _fault(urgency: str = "high") -> DiagnosisHealth:
+    """The diagnosis with winding_short raised (its action: at the next stop)."""
+    fault = FaultHealth(id="winding_short", component="armature winding", probability=0.93,
+                        action="measure the armature resistance at the next stop",
+                        urgency=urgency, source="test", evidence_for=[], evidence_against=[])
+    return DiagnosisHealth(status="fault", top="winding_short", probability=0.93,
+                           no_fault=0.05, unknown=0.02, unknown_terms=[], faults=[fault],
+                           shaft_speed=None, library="dc_motor", evidence=3,
+                           alarms=["winding_short"])
+
+
+def _level(level: str, rul: str | None = None) -> AlarmStatus:
+    return AlarmStatus(level=level, since_t=0.0, since_window=0, deviation_pct=6.0,
+                       pending=None, rul=None if rul is None else RulAlarmStatus(
+                           level=rul, since_t=0.0, since_window=0, rul_s=120.0, pending=None))
+
+
+_CHECK = DiagnosisHealth(status="check_function", top=None, probability=1.0, no_fault=0.0,
+                         unknown=0.0, unknown_terms=[], faults=[], shaft_speed=None,
+                         library="dc_motor", evidence=0, check_failed="30 of 30")
+
+#: docs/opcua-output.md's DeviceHealth table, row by row (its first column, in order): the
+#: message that meets the row (and none above it), the state, a word of the reason
+NE107_ROWS: list[tuple[str, str, dict[str, Any], str]] = [
+    ("stale", "CHECK_FUNCTION", {}, "no window for"),
+    ("deviation alarm", "FAILURE", {"alarms": {"Ra": _level("alarm", "alarm")},
+                                    "diagnosis": _CHECK}, "inspect the machine now"),
+    ("check function", "CHECK_FUNCTION", {"diagnosis": _CHECK,
+                                          "alarms": {"Ra": _level("warning")}},
+     "does not describe"),
+    ("silent", "CHECK_FUNCTION", {"source": {"silent": ["TPDO1 (omega) for 1.2 s"]}},
+     "silent on the bus"),
+    ("deviation warning", "OFF_SPEC", {"alarms": {"Ra": _level("warning", "alarm")},
+                                       "diagnosis": _fault()}, "beyond its warning threshold"),
+    ("rul", "MAINTENANCE_REQUIRED", {"alarms": {"Ra": _level("normal", "alarm")}},
+     "Ra RUL alarm"),
+    ("fault", "MAINTENANCE_REQUIRED", {"diagnosis": _fault("high")},
+     "winding_short (urgency high): measure the armature resistance at the next stop"),
+    ("normal", "NORMAL", {"alarms": {"Ra": _level("normal", "normal")}}, "normal"),
+]
+
+
+@pytest.mark.parametrize(("row", "state", "update", "says"), NE107_ROWS,
+                         ids=[r[0] for r in NE107_ROWS])
+def test_the_ne107_mapping_row_by_row(processed: Any, row: str, state: str,
+                                      update: dict[str, Any], says: str) -> None:
+    """Each row of docs/opcua-output.md's table: the state a message meeting it gets, what
+    must be done named in the reason; a row meets none above it, and the conditions of the
+    rows below it (given too) do not change it: the first row that applies wins."""
     h = message(processed, "m1")
-    assert device_health(h)[0] == DEVICE_HEALTH["NORMAL"]
-    warn = AlarmStatus(level="warning", since_t=0.0, since_window=0, deviation_pct=6.0,
-                       pending=None)
-    assert device_health(h.model_copy(update={"alarms": {"Ra": warn}}))[0] == 3  # OFF_SPEC
-    alarm = warn.model_copy(update={"level": "alarm"})
-    assert device_health(h.model_copy(update={"alarms": {"Ra": alarm}}))[0] == 1  # FAILURE
-    check = DiagnosisHealth(status="check_function", top=None, probability=1.0, no_fault=0.0,
-                            unknown=0.0, unknown_terms=[], faults=[], shaft_speed=None,
-                            library="dc_motor", evidence=0, check_failed="30 of 30")
-    assert device_health(h.model_copy(update={"diagnosis": check}))[0] == 2
-    # a failure outranks the check function (NE 107's priority)
-    both = h.model_copy(update={"diagnosis": check, "alarms": {"Ra": alarm}})
-    assert device_health(both)[0] == 1
+    if "source" in update:
+        update = {**update, "source": h.source.model_copy(update=update["source"])}
+    if row == "stale":  # the server's: no window for stale_after, whatever the last said
+        port = free_port()
+        cfg = OpcUaConfig(endpoint=f"opc.tcp://127.0.0.1:{port}", stale_after=1.0)
+        sink = OpcUaPublisher.open("opcua", cfg, context("m1", None, processed[0]))
+        try:
+            sink.write(out(message(processed, "m1", alarms={"Ra": _level("alarm")}), processed))
+            sink.server.flush()
+            c = Client(f"opc.tcp://127.0.0.1:{port}")
+            try:
+                c.pump(10.0, until=lambda: c.read("m1.DeviceHealth").Value.Value
+                       == DEVICE_HEALTH[state])
+                value = c.read("m1.DeviceHealth").Value.Value
+                reason = c.read("m1.DeviceHealthReason").Value.Value
+            finally:
+                c.close()
+        finally:
+            sink.close()
+    else:
+        value, reason = device_health(h.model_copy(update=update))
+    assert value == DEVICE_HEALTH[state], (row, reason)
+    assert says in reason, reason
+
+
+def test_the_docs_table_is_the_tested_rows() -> None:
+    """docs/opcua-output.md's DeviceHealth table has the tested rows, in their order."""
+    import re
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "opcua-output.md").read_text()
+    table = page.split("## DeviceHealth: the NE 107 mapping", 1)[1].split("\n## ", 1)[0]
+    states = re.findall(r"^\| `([A-Z_]+)` \(\d\) \|", table, re.MULTILINE)
+    assert states == [r[1] for r in NE107_ROWS], states
+
+
+def test_a_client_that_registers_a_server_is_refused_and_find_servers_lists_twinwatch(
+        served: tuple[str, SharedResources, dict[str, Any]], caplog: Any) -> None:
+    """Issue 56: an anonymous client, without a session, sends RegisterServer and
+    RegisterServer2 pointing at an address of its choosing: Bad_UserAccessDenied (before:
+    accepted, and FindServers listed it); FindServers lists twinwatch only."""
+    url = served[0]
+    rogue = ua.RegisteredServer(ServerUri="urn:rogue", ProductUri="urn:rogue",
+                                ServerNames=[ua.LocalizedText("rogue")],
+                                ServerType=ua.ApplicationType.Server,
+                                DiscoveryUrls=["opc.tcp://127.0.0.1:1"], IsOnline=True)
+
+    async def attempt() -> tuple[list[str], list[Any]]:
+        client = asyncua.Client(url, timeout=10)
+        await client.connect_socket()
+        refused = []
+        try:
+            await client.send_hello()
+            await client.open_secure_channel()
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await client.uaclient.register_server(rogue)
+            refused.append("RegisterServer")
+            params = ua.RegisterServer2Parameters(
+                Server=rogue, DiscoveryConfiguration=[ua.MdnsDiscoveryConfiguration(
+                    MdnsServerName="rogue", ServerCapabilities=["NA"])])
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await client.uaclient.register_server2(params)
+            refused.append("RegisterServer2")
+            found = await client.find_servers()
+            await client.close_secure_channel()
+        finally:
+            client.disconnect_socket()
+        return refused, found
+
+    refused, found = asyncio.run(attempt())
+    assert refused == ["RegisterServer", "RegisterServer2"]
+    assert [f.ApplicationUri for f in found] == ["urn:freeopcua:python:server"], found
+    assert sum("tried to register a server" in r.getMessage() for r in caplog.records) == 1
+
+
+@pytest.mark.parametrize("history", [0, 10])
+def test_history_read_is_advertised_only_where_history_is_kept(processed: Any,
+                                                                history: int) -> None:
+    """Issue 56: AccessLevel (and Historizing) from [outputs.opcua] history: a parameter's
+    Value is CurrentRead | HistoryRead only with history > 0; every other variable is
+    CurrentRead only (before: HistoryRead everywhere, with history = 0)."""
+    port = free_port()
+    cfg = OpcUaConfig(endpoint=f"opc.tcp://127.0.0.1:{port}", history=history)
+    sink = OpcUaPublisher.open("opcua", cfg, context("m1", None, processed[0]))
+    try:
+        sink.server.flush()
+        c = Client(f"opc.tcp://127.0.0.1:{port}")
+        try:
+            def attrs(path: str) -> tuple[int, int, bool]:
+                node = c.node(path)
+                got = c.run(node.read_attributes([ua.AttributeIds.AccessLevel,
+                                                  ua.AttributeIds.UserAccessLevel,
+                                                  ua.AttributeIds.Historizing]))
+                return tuple(d.Value.Value for d in got)  # type: ignore[return-value]
+
+            read = ua.AccessLevel.CurrentRead.mask
+            hist = ua.AccessLevel.HistoryRead.mask
+            kept = history > 0
+            for p in ("Ra", "D", "J"):
+                assert attrs(f"m1.Parameters.{p}.Value") == (
+                    read | (hist if kept else 0), read | (hist if kept else 0), kept)
+            for path in ("m1.DeviceHealth", "m1.Window", "m1.Parameters.Ra.Low",
+                         "m1.Parameters.Ra.RUL.Alarm_s", "m1.Diagnosis.Status"):
+                assert attrs(path) == (read, read, False), path
+        finally:
+            c.close()
+    finally:
+        sink.close()
+
+
+def test_older_clients_read_the_device_health_state_names(
+        served: tuple[str, SharedResources, dict[str, Any]]) -> None:
+    """The DeviceHealthEnumeration data type carries EnumStrings (what clients before OPC UA
+    1.04 read) besides its DataTypeDefinition: NORMAL, FAILURE, CHECK_FUNCTION, OFF_SPEC,
+    MAINTENANCE_REQUIRED, value = index."""
+    served[2]["m1"].server.flush()  # m1's nodes made
+    c = Client(served[0])
+    try:
+        dtype = c.run(c.node("m1.DeviceHealth").read_data_type())
+        node = c.client.get_node(dtype)
+        prop = c.run(node.get_child("0:EnumStrings"))
+        names = [t.Text for t in c.run(prop.read_value())]
+        assert names == ["NORMAL", "FAILURE", "CHECK_FUNCTION", "OFF_SPEC",
+                         "MAINTENANCE_REQUIRED"]
+        assert [DEVICE_HEALTH[n] for n in names] == list(range(5))
+        definition = c.run(node.read_data_type_definition())
+        assert [(f.Name, f.Value) for f in definition.Fields] == list(DEVICE_HEALTH.items())
+    finally:
+        c.close()
 
 
 def test_alarm_events_when_ra_is_raised_and_cleared_and_a_machine_removed_disappears(

@@ -9,6 +9,7 @@ reader's resume.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -94,6 +95,88 @@ def test_each_abandoned_window_is_counted_by_its_cause(cause, third):
 def test_tolerance_outside_half_a_period_is_refused():
     with pytest.raises(ValueError, match="jitter_tolerance"):
         RingBuffer(("a",), sample_period=T, jitter_tolerance=0.6)
+
+
+# -- missing samples (issue 56: a lossy bus) ---------------------------------------------------
+def _feed_missing(rb: RingBuffer, stamps: np.ndarray, missing: set[int]) -> list:
+    """Feed sample ``k`` (value ``k``) at ``stamps[k]`` for every ``k`` not in ``missing``."""
+    wins = []
+    for k, t in enumerate(stamps):
+        if k not in missing and (w := rb.append(float(t), {"a": float(k)})) is not None:
+            wins.append(w)
+    return wins
+
+
+def test_a_few_missing_samples_hold_the_previous_value_and_the_window_is_kept(caplog):
+    rb = RingBuffer(("a",), window=20, sample_period=T, max_missing=0.15, max_missing_run=2)
+    wins = _feed_missing(rb, 3.0 + np.arange(40) * T, missing={5, 12, 13})
+    assert [w.index for w in wins] == [0, 1] and sum(rb.causes.values()) == 0
+    a = wins[0]["a"]
+    expected = np.arange(20.0)
+    expected[5], expected[12], expected[13] = 4.0, 11.0, 11.0  # held over
+    np.testing.assert_array_equal(a, expected)
+    np.testing.assert_allclose(wins[0].t, 3.0 + np.arange(20) * T, rtol=0, atol=1e-12)
+    assert wins[0].stamp_jitter is None  # the filled slots are on the exact grid too
+    np.testing.assert_array_equal(wins[1]["a"], np.arange(20.0, 40.0))
+    assert rb.missing == 3 and rb.windows_filled == 1 and rb.samples == 37
+    assert sum(rb.lost.values()) == 0
+    said = [r.message for r in caplog.records if "missing before" in r.message]
+    assert len(said) == 1 and "acquisition.max_missing_run" in said[0]  # logged once
+
+
+def test_a_filled_slot_adds_nothing_to_the_measured_jitter():
+    rng = np.random.default_rng(4)
+    stamps = np.arange(40) * T + rng.uniform(-0.3 * T, 0.3 * T, 40)
+    rb = RingBuffer(("a",), window=20, sample_period=T, max_missing=0.1, max_missing_run=2)
+    wins = _feed_missing(rb, stamps, missing={7})
+    assert len(wins) == 2 and rb.missing == 1
+    jit = wins[0].stamp_jitter
+    assert jit is not None and jit[7] == 0.0
+    real = [k for k in range(20) if k != 7]
+    np.testing.assert_allclose((wins[0].t + jit)[real], stamps[real], rtol=0, atol=1e-9)
+
+
+def test_missing_samples_at_a_windows_end_complete_it_and_the_next_sample_starts_the_next():
+    rb = RingBuffer(("a",), window=10, sample_period=T, max_missing=0.2, max_missing_run=2)
+    wins = _feed_missing(rb, np.arange(20) * T, missing={8, 9})
+    assert len(wins) == 2 and rb.missing == 2
+    np.testing.assert_array_equal(wins[0]["a"], [0, 1, 2, 3, 4, 5, 6, 7, 7, 7])
+    np.testing.assert_array_equal(wins[1]["a"], np.arange(10.0, 20.0))
+
+
+@pytest.mark.parametrize(("missing", "says"), [
+    ({4, 5, 6}, "more than acquisition.max_missing_run = 2 in a row"),
+    ({2, 4, 6}, "more than acquisition.max_missing = 0.1 of the window allows (2 of 20)")])
+def test_more_missing_than_the_limits_abandons_the_window_saying_which(caplog, missing, says):
+    rb = RingBuffer(("a",), window=20, sample_period=T, max_missing=0.1, max_missing_run=2)
+    wins = _feed_missing(rb, np.arange(60) * T, missing=missing)
+    assert rb.causes["gap"] == 1 and [len(w.t) for w in wins] == [20, 20]
+    gap = [r.message for r in caplog.records if "time stamp gap" in r.message]
+    assert len(gap) == 1 and says in gap[0], gap
+    # the abandoned window's received samples are lost, its filled slots not counted at all
+    lost = sum(rb.lost.values())
+    assert rb.missing == 0 and lost == max(missing) - len(missing) + 1, (lost, rb.lost)
+
+
+def test_jitter_and_a_gap_together_are_not_filled():
+    """A sample that lies on no later slot (1.5 periods after its own, at tolerance 0.25) is
+    not taken for missing samples: the window is abandoned (a gap, as before)."""
+    rb = RingBuffer(("a",), window=20, sample_period=T, jitter_tolerance=0.25,
+                    max_missing=0.1, max_missing_run=2)
+    stamps = np.arange(40) * T
+    stamps[6:] += 0.5 * T
+    _feed_missing(rb, stamps, missing={5})
+    assert rb.missing == 0 and rb.causes["gap"] == 1
+
+
+def test_the_daemons_default_fills_up_to_a_tenth_of_a_window_three_in_a_row():
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.acquisition import Acquisition
+    from twinwatch.twin.models import create_model
+
+    cfg = default_config()
+    acq = Acquisition(cfg, create_model(cfg.machine.model, {}), own_driver=False)
+    assert (acq.ring.missing_budget, acq.ring.max_missing_run) == (20, 3)
 
 
 # -- counters ---------------------------------------------------------------------------------
@@ -299,3 +382,62 @@ def test_backoff_is_capped_and_jittered():
     assert len(delays) == 3, delays
     assert 0.2 <= delays[0] <= 0.5 and 0.5 <= max(delays) <= 1.0
     assert 3 <= flaky.attempts <= 1 + watch / 0.5
+
+
+# -- one ERROR per outage (issue 56) -------------------------------------------------------------
+@pytest.mark.parametrize(("state", "errors", "words"), [
+    ("waiting", [], "OPC UA server x away for 3 s"),
+    ("silent", ["silent: TPDO1 (omega) for 1.2 s"], ""),
+    ("nothing", ["check the device, cable and bus configuration"], "")])
+def test_a_stall_is_said_once_at_error_asking_the_driver_first(caplog, state, errors, words):
+    """The acquisition's stall line asks the driver what it said: a driver that waits for its
+    source said so at ERROR (the stall is INFO: one ERROR per outage); the parts it named
+    silent (at WARNING) are named in the one ERROR; else the generic advice."""
+    import logging
+    import time as _time
+
+    from twinwatch.config.loader import default_config
+    from twinwatch.daemon.acquisition import Acquisition
+    from twinwatch.drivers.base import Driver, EndOfStream, Sample
+    from twinwatch.twin.models import create_model
+
+    class Stalls(Driver):
+        channels = ("a",)
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.reads = 0
+
+        @classmethod
+        def from_config(cls, config, *, base_dir=None):  # type: ignore[no-untyped-def]
+            raise NotImplementedError
+
+        @property
+        def waiting(self) -> str | None:
+            return "OPC UA server x away for 3 s" if state == "waiting" and self.reads > 3 \
+                else None
+
+        @property
+        def silent(self) -> tuple[str, ...]:
+            return ("TPDO1 (omega) for 1.2 s",) if state == "silent" and self.reads > 3 else ()
+
+        def _read_internal(self, timeout):  # type: ignore[no-untyped-def]
+            self.reads += 1
+            if self.reads <= 3:
+                return Sample(0.01 * self.reads, {"a": 1.0})
+            if self.reads > 12:  # 8 empty reads of 50 ms: beyond the 0.1 s stall_timeout
+                raise EndOfStream("done")
+            _time.sleep(0.05)
+            return None
+
+    cfg = default_config()
+    cfg.acquisition.stall_timeout = 0.1
+    acq = Acquisition(cfg, create_model(cfg.machine.model, {}), own_driver=False)
+    acq.open(Stalls(), base_dir=Path("."), wait=False)
+    caplog.set_level(logging.INFO, logger="twinwatch.daemon.runner")
+    acq.run(None, lambda w, b: None, lambda n: None)
+    stall = [r for r in caplog.records if r.getMessage().startswith("no sample from")]
+    assert len(stall) == 1, [r.getMessage() for r in caplog.records]
+    said = [r.getMessage() for r in stall if r.levelno >= logging.ERROR]
+    assert len(said) == len(errors) and all(e in m for e, m in zip(errors, said, strict=True))
+    assert words in stall[0].getMessage()

@@ -595,3 +595,185 @@ def test_qos_0_as_sparkplug_says_still_counts_every_window(tmp_path: Path,
     assert [w for _, w, _ in host.windows()] == list(range(5))
     assert pub.counters()["delivered"] == 5 and pub.counters()["pending"] == 0
     host.close()
+
+
+# -- issue 56: a restart's births, write attempts, seq past 255 ---------------------------------
+def _run_window(store: Any, run: str, w: int, machine: str = "m1") -> Any:
+    """Store window ``w`` of ``run`` as the gate does (its alarm: Ra in alarm in run r1) and
+    return what write() gets."""
+    from types import SimpleNamespace
+
+    level = "alarm" if run == "r1" else "normal"
+    doc = json.dumps({"machine": machine, "run": run, "window": w, "t_start": 2.0 * w,
+                      "t_end": 2.0 * w + 1.99, "parameters": {"Ra": {
+                          "value": 7.5 if run == "r1" else 6.5, "unit": "ohm",
+                          "deviation_pct": 15.0 if run == "r1" else 0.0,
+                          "status": "estimated"}},
+                      "alarms": {"Ra": {"level": level, "since_t": 0.0, "since_window": 0,
+                                        "deviation_pct": 15.0, "pending": None}}})
+    assert store.save_window({"machine": machine, "window": w, "t_start": 2.0 * w,
+                              "t_end": 2.0 * w + 1.99}, None, doc=doc)
+    return SimpleNamespace(health=SimpleNamespace(window=w), health_json=doc, events=[])
+
+
+def _open_run(tmp_path: Path, port: int, store: Any, run: str) -> SparkplugPublisher:
+    from twinwatch.sinks.base import AlarmBands, SinkContext
+
+    cfg = SparkplugConfig(port=port, keepalive=5, reconnect_max=1.0, group_id="g")
+    return SparkplugPublisher.open("sparkplug", cfg, SinkContext(
+        machine="m1", model="dc_motor", parameters={"Ra": "ohm"}, cwd=tmp_path, run=run,
+        alarm_bands={"Ra": AlarmBands(alarm_high=10.0, alarm_low=-10.0)},
+        outbox=lambda name: store.outbox(name, "m1")))
+
+
+def _dbirth_runs(host: HostDecoder) -> list[tuple[int, str | None]]:
+    """(the NBIRTH it follows, its Window/Run or None when null) of every DBIRTH."""
+    out, births = [], 0
+    for d in host.messages():
+        births += d.kind == "NBIRTH"
+        if d.kind == "DBIRTH":
+            (run,) = [m for m in d.payload.metrics if m.name == "Window/Run"]
+            out.append((births, None if run.is_null else run.string_value))
+    return out
+
+
+@needs_mosquitto
+def test_a_new_run_never_births_with_the_previous_runs_window(tmp_path: Path,
+                                                              broker: Broker) -> None:
+    """Issue 56: run r1 ends with Ra in alarm and one window not delivered (a kill); the next
+    start is a new run r2. Its births carry r2's first window, or nulls until it comes (the
+    undelivered r1 window then replayed, historical); never r1's last window (before: the
+    first DBIRTH of every restart carried the old run id, Ra in alarm, for 1.5 s)."""
+    from twinwatch.sinks.store import StateStore
+
+    host = HostDecoder.start(broker.port)
+    store = StateStore(tmp_path / "s.sqlite", prune_every=0)
+    try:
+        pub = _open_run(tmp_path, broker.port, store, "r1")
+        try:
+            for w in range(3):
+                pub.write(_run_window(store, "r1", w))
+            host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 3, 20, "r1's 3 DDATA")
+        finally:
+            pub.close()
+        _run_window(store, "r1", 3)   # stored, never delivered: the process was killed
+        pub = _open_run(tmp_path, broker.port, store, "r2")
+        try:
+            host.wait(lambda ms: [d.kind for d in ms].count("NBIRTH") == 2, 20, "r2's NBIRTH")
+            host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 4, 20, "r1's last")
+            pub.write(_run_window(store, "r2", 0))
+            host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 5, 20, "r2's first")
+        finally:
+            pub.close()
+    finally:
+        store.close()
+    host.wait(lambda ms: [d.kind for d in ms].count("NDEATH") == 2, 20, "the NDEATH")
+    host.check_session()
+    births = _dbirth_runs(host)
+    assert births[0] == (1, "r1")
+    assert [r for n, r in births if n == 2] and all(r in (None, "r2") for n, r in births
+                                                    if n == 2), births
+    got = host.windows()
+    assert [(r, w) for r, w, _ in got] == [("r1", 0), ("r1", 1), ("r1", 2), ("r1", 3),
+                                           ("r2", 0)]
+    assert got[3][2] and not got[4][2]   # r1's last a replay (historical), r2's live
+    host.close()
+
+
+@needs_mosquitto
+def test_a_command_that_writes_is_refused_once_per_topic_naming_its_metrics(
+        tmp_path: Path, broker: Broker, caplog: Any) -> None:
+    """Issue 56: a DCMD setting a metric and an NCMD other than Rebirth: nothing written, no
+    birth, one WARNING per topic naming the metrics (before: the DCMD at INFO, invisible at
+    the default level; the NCMD without a line), counted in commands_refused."""
+    import logging
+
+    import paho.mqtt.client as mqtt
+
+    caplog.set_level(logging.INFO)
+    host = HostDecoder.start(broker.port)
+    pub, store = _open(tmp_path, broker.port)
+    c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-scada-write")
+    c.connect("127.0.0.1", broker.port)
+    c.loop_start()
+    try:
+        pub.write(_window(store, 0))
+        host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 1, 20, "a DDATA")
+
+        def send(topic: str, **metrics: Any) -> None:
+            cmd = Payload(timestamp=int(time.time() * 1000))
+            for name, value in metrics.items():
+                m = cmd.metrics.add(name=name.replace("__", "/"))
+                if isinstance(value, bool):
+                    m.datatype, m.boolean_value = DATATYPE["Boolean"], value
+                else:
+                    m.datatype, m.double_value = DATATYPE["Double"], value
+            c.publish(topic, cmd.SerializeToString(), qos=1).wait_for_publish(5)
+
+        for _ in range(2):
+            send("spBv1.0/g/DCMD/m1/m1", Parameters__Ra__Nominal=7.0)
+            send("spBv1.0/g/NCMD/m1", **{"Node Control__Reboot": True})
+        host.wait(lambda ms: sum(d.kind in ("DCMD", "NCMD") for d in ms) == 4, 20,
+                  "the 4 commands")
+        pub.write(_window(store, 1))   # the node goes on: a window after the commands
+        host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 2, 20, "the next DDATA")
+        refused = pub.counters()["commands_refused"]
+    finally:
+        c.loop_stop()
+        c.disconnect()
+        pub.close()
+        store.close()
+    said = [r for r in caplog.records if "writes" in r.getMessage()
+            and r.levelno == logging.WARNING]
+    assert len(said) == 2, [r.getMessage() for r in said]
+    assert "DCMD on spBv1.0/g/DCMD/m1/m1 writes Parameters/Ra/Nominal: refused" in \
+        said[0].getMessage()
+    assert "NCMD on spBv1.0/g/NCMD/m1 writes Node Control/Reboot: refused" in \
+        said[1].getMessage()
+    assert refused == 4
+    counts = host.check_session()
+    assert counts["NBIRTH"] == 1 and counts["DBIRTH"] == 1, counts   # no birth, nothing else
+    host.close()
+
+
+@needs_mosquitto
+def test_seq_wraps_past_255_within_one_connection_without_a_gap(tmp_path: Path,
+                                                                 broker: Broker) -> None:
+    """Issue 56: 300 windows in one connection (seq 0 .. 255, 0 .. 45): every message handed
+    to paho has the next seq (nothing built and not sent), and a host whose session the
+    broker keeps (QoS 1, persistent: it misses nothing even across its own reconnection)
+    sees the NBIRTH, the DBIRTH and 300 DDATA without a gap. Rules out the one seq gap seen
+    once inside a connection (issue 56) on twinwatch's side."""
+    host = HostDecoder(Subscriber(broker.port, ["spBv1.0/#"], client_id="test-host-wrap",
+                                  persistent=True))
+    pub, store = _open(tmp_path, broker.port)
+    handed: list[tuple[str, int]] = []
+    try:
+        pub.write(_window(store, 0))
+        host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 1, 20, "the first DDATA")
+        node = pub._node
+        client = node.client
+        publish = client.publish
+
+        def recording(topic: str, payload: bytes, *a: Any, **kw: Any) -> Any:
+            handed.append((topic.split("/")[2], Payload.FromString(payload).seq))
+            return publish(topic, payload, *a, **kw)
+
+        client.publish = recording  # type: ignore[method-assign]
+        for w in range(1, 300):
+            pub.write(_window(store, w))
+        host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 300, 120, "300 DDATA")
+        assert node.client is client and node.connects == 1   # one connection throughout
+    finally:
+        pub.close()
+        store.close()
+    host.wait(lambda ms: any(d.kind == "NDEATH" for d in ms), 20, "the NDEATH")
+    counts = host.check_session()   # asserts each seq is the one after the last, mod 256
+    assert counts == {"NBIRTH": 1, "DBIRTH": 1, "DDATA": 300, "DDEATH": 1, "NDEATH": 1}, counts
+    seqs = [seq for kind, seq in handed if kind != "NDEATH"]
+    assert seqs == [(seqs[0] + k) % 256 for k in range(len(seqs))]
+    assert len(seqs) >= 300 and 255 in seqs and seqs.index(255) < len(seqs) - 1
+    ddata = [d.payload.seq for d in host.messages() if d.kind == "DDATA"]
+    assert ddata[:2] == [2, 3] and ddata[253:256] == [255, 0, 1], ddata[250:258]
+    assert [w for _, w, _ in host.windows()] == list(range(300))
+    host.close()

@@ -9,7 +9,7 @@ import functools
 import json
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -307,16 +307,18 @@ def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: flo
                 interval: float, stale: float, states: tuple[str, ...],
                 models: tuple[str, ...], machines: str, by_box: bool, limit: int | None,
                 show: str | None) -> None:
-    """``watch --fleet``: the machines' summaries ranked (:mod:`twinwatch.watch.ranking`)."""
+    """``watch --fleet``: the machines' summaries ranked (:mod:`twinwatch.watch.ranking`);
+    live (not ``--once``, not ``--show``) it waits for the network and the first summary
+    (:func:`fleet_following`)."""
     from twinwatch.watch import Fleet, WatchError, console, render
     from twinwatch.watch.ranking import fleet_view
     from twinwatch.watch.render_fleet import render_fleet, screen_rows
-    from twinwatch.watch.summaries import following
 
     title = _fleet_title(where.connect, mode)
     try:
-        with following(where.connect, mode, where.prefix, machines,  # type: ignore[arg-type]
-                       optional=where.optional, on_skip=where.skip) as summaries:
+        with fleet_following(where.connect, mode, where.prefix, machines,
+                             optional=where.optional, on_skip=where.skip,
+                             wait=not (once or show)) as summaries:
             if show:
                 doc = summaries.health(show, timeout=max(wait, 1.0))
                 if doc is None:
@@ -372,9 +374,64 @@ def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: flo
                         time.sleep(interval)
             except KeyboardInterrupt:
                 return
+    except KeyboardInterrupt:  # while it waited for the network or the first summary
+        return
     except WatchError as exc:
         click.echo(f"Error: {exc}", err=True)
         sys.exit(1)
+
+
+#: ``watch --fleet``: the first and the longest delay between attempts to reach the network
+#: while nothing answers there yet [s]
+FLEET_RETRY_S = (0.5, 5.0)
+
+
+@contextlib.contextmanager
+def fleet_following(connect: tuple[str, ...], mode: str, prefix: str, machines: str, *,
+                    optional: frozenset[str] = frozenset(),
+                    on_skip: Callable[[str, str], None] | None = None, wait: bool = False,
+                    say: Callable[[str], None] | None = None,
+                    sleep: Callable[[float], None] = time.sleep) -> Iterator[Any]:
+    """The fleet's summaries (:func:`~twinwatch.watch.summaries.following`). With ``wait``
+    (``watch --fleet`` live, not ``--once``): until the network answers and the first fleet
+    summary has come, each wait said once on stderr, instead of exiting because no daemon is
+    up yet (issue 56); nothing answering is tried again with a delay doubling from
+    :data:`FLEET_RETRY_S` ``[0]`` to ``[1]`` s. Ctrl-C ends the wait.
+
+    Raises:
+        WatchError: a bad endpoint, prefix or pattern; nothing answers (without ``wait``).
+    """
+    from twinwatch.watch.session import Unreachable
+    from twinwatch.watch.summaries import following, machines_key
+
+    say = say or (lambda line: click.echo(line, err=True))
+    key = machines_key(prefix, machines)
+    delay, said = FLEET_RETRY_S[0], set()
+    while True:
+        stack = contextlib.ExitStack()
+        try:
+            summaries = stack.enter_context(following(
+                connect, mode, prefix, machines, optional=optional,  # type: ignore[arg-type]
+                on_skip=on_skip))
+        except Unreachable as exc:
+            stack.close()
+            if not wait:
+                raise
+            if "network" not in said:
+                said.add("network")
+                say(f"twinwatch: waiting for the fleet: {exc}; trying again (Ctrl-C to stop)")
+            sleep(delay)
+            delay = min(2 * delay, FLEET_RETRY_S[1])
+            continue
+        break
+    with stack:
+        if wait and not summaries.received:
+            say(f"twinwatch: waiting for the first fleet summary on {key} (a daemon publishes "
+                "its machine's at its first window, then on a change and every [zenoh] "
+                "summary_interval; Ctrl-C to stop)")
+            while not summaries.received:
+                summaries.wait(1.0)
+        yield summaries
 
 
 def _fleet_title(connect: tuple[str, ...], mode: str) -> str:

@@ -71,6 +71,12 @@ MAX_WINDOW = 100_000
 """Most samples per window: the ring buffer holds 4 windows of every channel, and the twin
 simulates a window per candidate (100,000 samples is 1000 s at 10 ms)."""
 
+MAX_MISSING_DEFAULT = 0.1
+"""``[acquisition] max_missing``: a window keeps its samples when up to this fraction of them
+is missing (20 of 200; see :mod:`twinwatch.daemon.ringbuffer`)."""
+MAX_MISSING_RUN_DEFAULT = 3
+"""``[acquisition] max_missing_run``: at most this many missing samples in a row are filled."""
+
 
 def _estimation_config() -> type[EstimationConfig]:
     from twinwatch.twin.estimation.estimator import EstimationConfig
@@ -265,6 +271,15 @@ class AcquisitionConfig(BaseModel):
         "span around their slots on the nominal grid, in sample periods (0.5: narrower than a "
         "period, each stamp in its own slot; the samples are placed on the grid; a stamp "
         "beyond it is a gap or jitter beyond tolerance and abandons the window)")
+    max_missing: StrictFloat = Field(
+        MAX_MISSING_DEFAULT, ge=0, lt=0.5, description="the largest fraction of a window's "
+        "samples that may be missing (a lossy bus: a frame lost or malformed, a poll missed): "
+        "their slots hold the previous sample's values and the window is estimated (counted in "
+        "samples_missing); beyond it, or beyond max_missing_run in a row, the window is "
+        "abandoned (0: every missing sample abandons its window)")
+    max_missing_run: StrictInt = Field(
+        MAX_MISSING_RUN_DEFAULT, ge=0, le=100, description="the most missing samples in a row "
+        "that are filled (a longer gap abandons the window)")
     reopen_max: StrictFloat = Field(30.0, ge=0.5, le=3600, description="cap of the delay [s] "
                                     "between attempts to open a live source that is absent or "
                                     "failed (a bus, a device: waited for, never an exit)")

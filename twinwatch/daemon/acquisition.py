@@ -76,7 +76,9 @@ class Acquisition:
         self.ring = RingBuffer(model.required_channels(), window=acq.window,
                                sample_period=acq.sample_period,
                                jitter_tolerance=acq.jitter_tolerance,
-                               capacity=4 * max(longest, acq.window))
+                               capacity=4 * max(longest, acq.window),
+                               max_missing=acq.max_missing,
+                               max_missing_run=acq.max_missing_run)
         self.driver: Driver | None = None
         self._own_driver = own_driver
         self.phase = 0
@@ -125,6 +127,7 @@ class Acquisition:
         stall_timeout = self.config.acquisition.stall_timeout
         last_sample = time.monotonic()
         stalled = False
+        driver_said = False  # the driver said the stall's cause itself (at ERROR)
         next_tick = 0.0
         # a source on a simulated clock (replayed as fast as possible) ticks every sample: its
         # samples come faster than the wall clock, and a reload acts before it ends
@@ -157,14 +160,11 @@ class Acquisition:
                 next_tick = 0.0  # nothing came within the read's timeout: tick now
                 if not stalled and now - last_sample > stall_timeout:
                     stalled = True
-                    logger.error(
-                        "no sample from the %s driver for %.1f s: check the device, "
-                        "cable and bus configuration; waiting for data",
-                        self.config.driver.type, now - last_sample)
+                    driver_said = self._say_stall(now - last_sample)
                 continue
             if stalled:
-                logger.warning("driver delivers samples again after a stall of %.1f s",
-                               now - last_sample)
+                (logger.info if driver_said else logger.warning)(
+                    "driver delivers samples again after a stall of %.1f s", now - last_sample)
                 stalled = False
             last_sample = now
             if t_first is None:
@@ -184,6 +184,26 @@ class Acquisition:
                 self._abandoned_seen = n_abandoned
             if window is not None:
                 submit(window, not live)
+
+    def _say_stall(self, quiet: float) -> bool:
+        """Say once that no sample came for ``quiet`` seconds, asking the driver what it knows
+        first, so an outage is one ERROR line: a driver that waits for its source (a server
+        away, a device not answering, a bus being reopened: :attr:`Driver.waiting`) said so at
+        ERROR itself, the stall is at INFO; the parts it named silent (at WARNING) are named
+        in the ERROR instead of the generic advice. Returns whether the driver said it."""
+        kind = self.config.driver.type
+        waiting, silent, _ = self.source_state()
+        if waiting:
+            logger.info("no sample from the %s driver for %.1f s: %s; waiting for data",
+                        kind, quiet, waiting)
+            return True
+        if silent:
+            logger.error("no sample from the %s driver for %.1f s: silent: %s; waiting for "
+                         "data", kind, quiet, ", ".join(silent))
+        else:
+            logger.error("no sample from the %s driver for %.1f s: check the device, cable "
+                         "and bus configuration; waiting for data", kind, quiet)
+        return False
 
     def stop(self, at_window: bool = False) -> None:
         """Ask :meth:`run` to return after the current sample (thread- and signal-safe), or

@@ -28,8 +28,12 @@ in between still count as time).
 parameter's predicted time to its alarm threshold (``parameters.<name>.rul``: the median, or the
 interval's earliest end with ``rul_basis = "low"``), in a second state per parameter with the
 same minimum durations: a RUL below ``rul_alarm`` raises an alarm, below ``rul_warning`` a
-warning; a level clears once the RUL is back above its threshold times ``1 + rul_hysteresis``
-(or the trend is no longer degrading). A RUL that is ``insufficient`` (too little evidence
+warning, once the prediction's interval agrees: its whole 95 % interval (the late end) within
+the rule's horizon, ``rul_warning`` (``rul_alarm`` without one), so a weak early trend whose
+median is near but whose interval reaches far beyond raises nothing (issue 56: the CANopen
+example's RUL alarm "79 s (49-752 s)" at 180 s, cleared 40 s later); a level clears once the
+RUL is back above its threshold times ``1 + rul_hysteresis`` (or the trend is no longer
+degrading), whatever the interval. A RUL that is ``insufficient`` (too little evidence
 since the start or a restart) is not evidence. The event says what to plan: ``Ra reaches its
 alarm threshold in 6 min (4-9 min)``. Events carry ``kind`` (``deviation`` or ``rul``); the
 health message's ``alarms.<name>.rul`` holds the RUL level.
@@ -270,6 +274,8 @@ class AlarmEvaluator:
             if value <= th * margin:
                 target = lvl  # type: ignore[assignment]
                 break
+        if _RANK[target] > _RANK[s.level] and not _interval_agrees(rule, rul, crossing):
+            target = s.level  # raised only on an interval that agrees; an active level stays
         moved = _advance(s, rule, target, t_start, t_end, dt, int(health.window))
         if moved is None:
             return None
@@ -370,6 +376,29 @@ class AlarmEvaluator:
             "since_t": since_t,
             "message": msg,
         }
+
+
+def rul_horizon(rule: AlarmRule) -> float:
+    """The rule's RUL horizon [s]: its longest RUL threshold (``rul_warning``, else
+    ``rul_alarm``)."""
+    th = rule.rul_warning if rule.rul_warning is not None else rule.rul_alarm
+    assert th is not None
+    return float(th)
+
+
+def _interval_agrees(rule: AlarmRule, rul: Any, crossing: Any) -> bool:
+    """Whether a RUL prediction may raise a level: its whole 95 % interval of the crossing
+    lies within the rule's horizon (:func:`rul_horizon`: the late end ``high_s`` within it,
+    or the threshold already crossed). A prediction whose median is near but whose interval
+    reaches far beyond (an early, weak trend: the CANopen example's "79 s (49-752 s)" at 180 s,
+    raised and cleared 40 s later; issue 56) raises nothing; the level, once the interval
+    agrees, is read from ``rul_basis`` as before."""
+    if rul.status != "degrading" or crossing is None:
+        return False
+    if crossing.status == "crossed":
+        return True
+    high = crossing.high_s
+    return high is not None and math.isfinite(high) and high <= rul_horizon(rule)
 
 
 def _run_state(s: _ParamState) -> dict[str, Any]:

@@ -43,10 +43,24 @@ residuals from that grid (the measured jitter, RMS and maximum,
 :attr:`WindowData.stamp_jitter`) travel with the window and are reported in its health
 message. Stamps already on the grid (within 1e-6 periods) are kept as they are.
 
-Only real faults abandon a window: a gap, a time stamp that went back, jitter beyond the
-tolerance, a missing channel or a NaN/inf value abandons the partial window (logged once per
-reason) and acquisition starts a fresh window at the next good sample. Nothing is estimated
-silently on broken data.
+Missing samples (a lossy bus: a frame lost or malformed now and then, a poll missed). A sample
+that lies on a later slot, ``m`` periods after the next one, means ``m`` samples are missing.
+When there are few (at most ``max_missing_run`` in a row, and at most ``max_missing`` in the
+window, the missing ones before included), their slots are *filled* and the window goes on:
+each filled slot holds the previous sample's values (a zero-order hold, what a drive's
+controller does between two set-points; the twin gets a complete grid) and a stamp on the
+window's grid (the centre of its band: it adds nothing to the measured jitter, which is the
+real stamps' only). A gap at the end of a window fills its last slots and the window completes;
+the sample that revealed it starts the next window. The filled samples are counted
+(:attr:`RingBuffer.missing`, :attr:`RingBuffer.windows_filled`, the health counters
+``samples_missing`` and ``windows_with_missing``) and logged once. With both limits at 0 (the
+default of this class; the daemon's are ``[acquisition] max_missing`` and ``max_missing_run``)
+every missing sample abandons its window.
+
+Only real faults abandon a window: a gap longer than that, a time stamp that went back, jitter
+beyond the tolerance, a missing channel or a NaN/inf value abandons the partial window (logged
+once per reason) and acquisition starts a fresh window at the next good sample. Nothing is
+estimated silently on broken data.
 
 Loss accounting: :attr:`RingBuffer.lost` counts, by reason, the samples received that did not
 become part of a window (the bad sample itself and the good ones of the partial window it
@@ -104,10 +118,15 @@ class RingBuffer:
             docstring).
         first_index: index of the first window (a reload goes on from the last window of the
             run instead of numbering from 0 again).
+        max_missing: the largest fraction of a window's samples that may be missing and
+            filled (held from the previous sample) instead of the window being abandoned
+            (0 <= fraction < 1; 0: none; a window of 200 at 0.05: 10 samples).
+        max_missing_run: the most missing samples in a row that are filled [samples; 0:
+            none].
 
     Raises:
-        ValueError: ``window`` < 2, ``capacity`` below one window, or a tolerance outside
-            (0, 0.5].
+        ValueError: ``window`` < 2, ``capacity`` below one window, a tolerance outside
+            (0, 0.5], or a missing-sample limit out of its range.
     """
 
     def __init__(
@@ -119,6 +138,8 @@ class RingBuffer:
         capacity: int | None = None,
         jitter_tolerance: float = MAX_JITTER_TOLERANCE,
         first_index: int = 0,
+        max_missing: float = 0.0,
+        max_missing_run: int = 0,
     ) -> None:
         if window < 2:
             raise ValueError("window must hold at least 2 samples")
@@ -132,10 +153,18 @@ class RingBuffer:
         if self.capacity < window:
             raise ValueError("capacity must be at least one window")
         self.jitter_tolerance = jitter_tolerance
+        if not 0.0 <= max_missing < 1.0 or max_missing_run < 0:
+            raise ValueError(f"max_missing must be a fraction in [0, 1) and max_missing_run "
+                             f">= 0 samples, not {max_missing} and {max_missing_run}")
+        self.max_missing = float(max_missing)
+        self.max_missing_run = int(max_missing_run)
         self._t = np.empty(self.capacity)
         self._v = np.empty((self.capacity, len(self.channels)))
+        self._filled = np.zeros(self.capacity, dtype=bool)  # slot filled (no sample of its own)
         self._head = 0  # next write position
-        self._count = 0  # samples in the current (partial) window
+        self._count = 0  # samples in the current (partial) window, filled slots included
+        self._n_filled = 0  # filled slots in the current (partial) window
+        self._fill = 0  # slots to fill before the sample being appended (set by _check_time)
         self._lo = self._hi = 0.0  # band of the partial window's offsets t_k - t_first - k*T
         self._sums = (0.0, 0.0, 0.0, 0.0)  # sum k, k^2, offset, k*offset (the drift line)
         self._t_first = 0.0  # stamp of the partial window's first sample
@@ -149,6 +178,8 @@ class RingBuffer:
         self.lost: Counter[str] = Counter()  #: reason -> samples received but not in a window
         self.samples = 0  #: samples received
         self.bad_samples = 0
+        self.missing = 0  #: missing samples filled in completed windows (held values)
+        self.windows_filled = 0  #: completed windows with at least one filled slot
         self._stretch_lost = 0  # samples lost since the last completed window
         self._stretch_windows = 0  # windows counted as abandoned for them
         self._warned: set[str] = set()
@@ -186,15 +217,18 @@ class RingBuffer:
 
     def _abandon(self, reason: str, cause: Cause, t: float, bad: int = 0,
                  detail: str = "") -> None:
-        self._lose(reason, cause, self._count + bad)
+        received = self._count - self._n_filled
+        self._lose(reason, cause, received + bad)
         msg = "%s at t=%.6f s%s: partial window of %d samples abandoned, a fresh window starts"
         if reason not in self._warned:
             self._warned.add(reason)
             logger.warning(msg + " (logged once per reason; counted in health counters)",
-                           reason, t, detail, self._count)
+                           reason, t, detail, received)
         else:
-            logger.debug(msg, reason, t, detail, self._count)
+            logger.debug(msg, reason, t, detail, received)
         self._count = 0
+        self._n_filled = 0
+        self._fill = 0
 
     def _check_time(self, t: float) -> None:
         """Match ``t`` to the partial window's grid; abandon the window if it does not fit."""
@@ -224,9 +258,13 @@ class RingBuffer:
                 f"acquisition.sample_period = {period:g} s: they drift off the grid; is the "
                 f"period right?)")
         elif rho >= 1.0 - tol:
+            m, why = self._fillable(n, offset)
+            if m:
+                self._fill = m
+                return
             self._abandon("time stamp gap", "gap", t,
                           detail=f" ({rho:.2f} periods after its slot: about "
-                          f"{max(1, round(rho))} samples missing)")
+                          f"{max(1, round(rho))} samples missing{why})")
         else:
             self._abandon(
                 "time stamp jitter beyond tolerance", "jitter", t,
@@ -234,6 +272,54 @@ class RingBuffer:
                 f"{(self._hi - self._lo) / period:.2f} periods; the band may not reach "
                 f"{2 * tol:g}: a clock that jitters this much; a sample counter as time "
                 f"source avoids it)")
+
+    def _fillable(self, n: int, offset: float) -> tuple[int, str]:
+        """How many missing slots to fill before the sample at ``offset`` [s] from slot ``n``
+        (0 when it is not to be filled) and, when not, why (for the gap's line)."""
+        if self.max_missing_run == 0 or self.max_missing == 0:
+            return 0, ""
+        period = self.sample_period
+        m = round((offset - 0.5 * (self._lo + self._hi)) / period)
+        if m < 1:
+            return 0, ""
+        if m > self.max_missing_run:
+            return 0, (f"; more than acquisition.max_missing_run = {self.max_missing_run} "
+                       f"in a row")
+        budget = self.missing_budget
+        if self._n_filled + min(m, self.window - n) > budget:
+            return 0, (f"; with the {self._n_filled} missing before, more than "
+                       f"acquisition.max_missing = {self.max_missing:g} of the window allows "
+                       f"({budget} of {self.window})")
+        shifted = offset - m * period
+        lo, hi = min(self._lo, shifted), max(self._hi, shifted)
+        if hi - lo >= (2.0 * self.jitter_tolerance - _BAND_MARGIN) * period:
+            return 0, ""  # not on a later slot either: jitter and a gap
+        return m, ""
+
+    def _fill_slots(self, m: int, t: float) -> WindowData | None:
+        """Fill ``m`` missing slots with the previous sample's values (a zero-order hold);
+        the window they complete, if they do (the sample at ``t`` then starts the next)."""
+        prev = self._v[(self._head - 1) % self.capacity].copy()
+        centre = 0.5 * (self._lo + self._hi)
+        if "missing" not in self._warned:
+            self._warned.add("missing")
+            logger.warning(
+                "%d samples missing before t=%.6f s: their slots hold the previous sample's "
+                "values and the window goes on (up to %d samples in a row and %d of a window "
+                "of %d: acquisition.max_missing_run, acquisition.max_missing); logged once, "
+                "counted in samples_missing", m, t, self.max_missing_run, self.missing_budget,
+                self.window)
+        for _ in range(m):
+            head = self._head
+            self._t[head] = self._t_first + self._count * self.sample_period + centre
+            self._v[head] = prev
+            self._filled[head] = True
+            self._head = (head + 1) % self.capacity
+            self._count += 1
+            self._n_filled += 1
+            if self._count == self.window:
+                return self._complete()
+        return None
 
     def _repeated(self, t: float, values: Mapping[str, float]) -> bool:
         """A sample stamped as the previous one: an exact duplicate is dropped and counted
@@ -263,12 +349,13 @@ class RingBuffer:
         """The mean step [s] of stamps that drift off the grid at a steady rate (a clock at
         another rate than the period), when the offsets so far and ``offset`` (sample ``n``)
         lie on a line within the tolerance and that line spans the band; else None."""
-        if n < _DRIFT_MIN_SAMPLES:
+        points = n - self._n_filled  # the filled slots have no stamp of their own
+        if points < _DRIFT_MIN_SAMPLES:
             return None
         sk, sk2, so, sko = self._sums
-        den = n * sk2 - sk * sk
-        slope = (n * sko - sk * so) / den
-        icpt = (so - slope * sk) / n
+        den = points * sk2 - sk * sk
+        slope = (points * sko - sk * so) / den
+        icpt = (so - slope * sk) / points
         period = self.sample_period
         tol = self.jitter_tolerance * period
         if abs(offset - (icpt + slope * n)) > 0.5 * tol or abs(slope * n) < tol:
@@ -279,9 +366,10 @@ class RingBuffer:
         """Add one sample (time stamp ``t`` [s] on the source's clock); return a completed
         window, else None.
 
-        A gap, a stamp that went back, jitter beyond the tolerance, a missing channel, a
-        non-finite value or a non-finite stamp abandons the partial window (counted, logged
-        once per reason).
+        A few missing samples (``max_missing``, ``max_missing_run``) are filled with the
+        previous sample's values; a longer gap, a stamp that went back, jitter beyond the
+        tolerance, a missing channel, a non-finite value or a non-finite stamp abandons the
+        partial window (counted, logged once per reason).
         """
         self.samples += 1
         if not math.isfinite(t):  # no slot on the grid: the sample and the partial window go
@@ -291,6 +379,7 @@ class RingBuffer:
         if t == self._last_t and self._repeated(t, values):
             return None
         self._check_time(t)
+        fill, self._fill = self._fill, 0
         self._last_t = t
         self._last_row = None
         try:
@@ -306,6 +395,7 @@ class RingBuffer:
             self._abandon(f"NaN or inf in {', '.join(repr(c) for c in bad)}", "bad_value", t,
                           bad=1)
             return None
+        done = self._fill_slots(fill, t) if fill else None
         if self._count == 0 and self._next_window is not None:
             self.window, self._next_window = self._next_window, None
         if self._count == 0:
@@ -320,16 +410,26 @@ class RingBuffer:
             self._sums = (sk + k, sk2 + k * k, so + offset, sko + k * offset)
         self._t[self._head] = t
         self._v[self._head] = row
+        self._filled[self._head] = False
         self._last_row = row
         self._head = (self._head + 1) % self.capacity
         self._count += 1
+        if done is not None:  # missing slots completed a window; this sample starts the next
+            return done
         if self._count < self.window:
             return None
-        self._count = 0
+        return self._complete()
+
+    def _complete(self) -> WindowData:
+        """The window of the last ``window`` slots; a fresh window starts."""
+        if self._n_filled:
+            self.missing += self._n_filled
+            self.windows_filled += 1
+        self._count = self._n_filled = 0
         self._stretch_lost = self._stretch_windows = 0
         idx = (self._head - self.window + np.arange(self.window)) % self.capacity
         stamps = self._t[idx].copy()
-        t_win, jitter = self._on_grid(stamps)
+        t_win, jitter = self._on_grid(stamps, self._filled[idx])
         win = WindowData(
             t=t_win,
             channels={c: self._v[idx, j].copy() for j, c in enumerate(self.channels)},
@@ -339,18 +439,28 @@ class RingBuffer:
         self._windows += 1
         return win
 
-    def _on_grid(self, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    def _on_grid(self, stamps: np.ndarray, filled: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
         """The window's times on its nominal grid ``t0 + k*T`` (``t0``: the mean offset of the
-        stamps) and the stamps' residuals from it [s]; the stamps themselves (and None) when
-        they are on the grid already."""
+        received samples' stamps) and the stamps' residuals from it [s] (0 at a filled slot,
+        which has no stamp of its own); the stamps themselves (and None) when they are on the
+        grid already."""
         k = np.arange(stamps.shape[0], dtype=np.float64)
         period = self.sample_period
         rel = (stamps - stamps[0]) - k * period
-        offset = stamps[0] + float(np.mean(rel))
-        jitter = rel - float(np.mean(rel))
+        real = ~filled
+        mean = float(np.mean(rel[real]))
+        offset = stamps[0] + mean
+        jitter = np.where(real, rel - mean, 0.0)
         if float(np.max(np.abs(jitter))) <= GRID_EXACT * period:
             return stamps, None
         return offset + k * period, jitter
+
+    @property
+    def missing_budget(self) -> int:
+        """The most missing samples the current window may have filled: ``max_missing``
+        times its length, rounded down [samples]."""
+        return math.floor(self.max_missing * self.window + 1e-9)
 
     @property
     def windows(self) -> int:

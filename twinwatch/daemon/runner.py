@@ -459,6 +459,8 @@ class Daemon:
         c.update(self.pipeline.counters())
         c["samples_received"] = self.ring.samples
         c["samples_lost"] = sum(self.ring.lost.values())
+        c["samples_missing"] = self.ring.missing
+        c["windows_with_missing"] = self.ring.windows_filled
         return c
 
     def problems(self) -> list[str]:

@@ -106,6 +106,7 @@ class SourceKeeper(Driver):
         self._thread: threading.Thread | None = None
         self._since: float | None = None  # monotonic time the source went missing
         self._error = ""
+        self._refusal = ""  # the last configuration refusal said at ERROR
         self._attempts = 0
         self._next_try: float | None = None
         try:
@@ -155,11 +156,15 @@ class SourceKeeper(Driver):
 
     @property
     def waiting(self) -> str | None:
-        """What the keeper waits for (opening the source again), or the driver's own."""
+        """What the keeper waits for (opening the source again, or the first sample of the
+        driver opened again: an outage ends with a sample), or the driver's own."""
         inner = self._inner
-        if inner is not None:
-            return inner.waiting
         since = self._since
+        if inner is not None:
+            if since is None or inner.waiting is not None:
+                return inner.waiting
+            return (f"{self.source_name} open again, no sample for "
+                    f"{time.monotonic() - since:.0f} s ({self._error})")
         if since is None:
             return None
         left = "" if self._next_try is None else (
@@ -187,24 +192,29 @@ class SourceKeeper(Driver):
             if inner is None:
                 return None
         try:
-            return inner.read(timeout)
+            sample = inner.read(timeout)
         except EndOfStream:
             raise
         except DriverOperationError as exc:
             self._lost(inner, exc)
             return None
+        if sample is not None and self._since is not None:  # the outage ends with a sample
+            logger.warning("%s is open again after %.1f s (%d attempts); acquisition goes on",
+                           self.source_name, time.monotonic() - self._since, self._attempts)
+            self._since = None
+            self._attempts = 0
+        return sample
 
     def _take_opened(self) -> Driver | None:
-        """The driver the opener thread has opened (the source is back), or None."""
+        """The driver the opener thread has opened (the source is back), or None. The outage
+        lasts until it delivers a sample: a bus that opens but stays silent (its interface
+        up, no frame) fails again without a second ERROR line."""
         with self._lock:
             self._ready.clear()
             inner = self._inner
         if inner is not None:
-            down = time.monotonic() - (self._since or time.monotonic())
-            logger.warning("%s is open again after %.1f s (%d attempts); acquisition goes on",
-                           self.source_name, down, self._attempts)
-            self._since = None
-            self._attempts = 0
+            logger.debug("%s opened again (%d attempts); waiting for its first sample",
+                         self.source_name, self._attempts)
             self._next_try = None
         return inner
 
@@ -247,6 +257,18 @@ class SourceKeeper(Driver):
         else:
             logger.debug("%s still not available: %s", self.source_name, self._error)
 
+    def _refused(self, exc: DriverConfigError) -> None:
+        """The source answers but refuses the configuration (a server reconfigured while the
+        daemon waited: another security policy, a user removed): at ERROR once per reason,
+        naming the key; the keeper goes on trying (the configuration is reloaded by SIGHUP)."""
+        line = exc.keyed()
+        if line != self._refusal:
+            self._refusal = line
+            logger.error("%s answers but refuses the configuration: %s; the daemon keeps "
+                         "trying (fix the configuration and reload, or the source)",
+                         self.source_name, line)
+        self._missing(exc, first=False)
+
     def _start_opener(self) -> None:
         if self._stopping.is_set():
             return
@@ -267,7 +289,7 @@ class SourceKeeper(Driver):
             try:
                 driver = self._attempt()
             except DriverConfigError as exc:  # the configuration changed under us: keep trying
-                self._missing(exc, first=False)
+                self._refused(exc)
             except (DriverError, OSError) as exc:
                 self._missing(exc, first=False)
             except Exception as exc:  # noqa: BLE001 - a driver's bug must not end the retries

@@ -292,6 +292,10 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
         reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
         lines.append(f"source: {ring.samples} samples received, {lost} not in any window "
                      f"({reasons})")
+    if ring.missing:
+        lines.append(f"source: {ring.missing} samples missing in {ring.windows_filled} windows "
+                     f"(a lost or malformed frame, a missed poll), each slot holding the "
+                     f"previous sample's values (acquisition.max_missing)")
     if daemon.latest_health is not None or daemon.windows_estimated:
         return lines
     if ring.samples == 0:

@@ -683,6 +683,10 @@ class CanopenDriver(Driver):
         self._silent: tuple[str, ...] = ()
         self._silent_logged: set[str] = set()
         self._faults: tuple[str, ...] = ()
+        #: a frame of the drive's own (a TPDO, its EMCY or heartbeat) was received
+        self._own_heard = False
+        #: other nodes heard on the bus: node id -> the first frame of it (``heartbeat 0x705``)
+        self._nodes_heard: dict[int, str] = {}
         self._last_frame_wall = time.monotonic()
         self._source = self._open_source(config, bus)
         from twinwatch.drivers.can import _BusSource
@@ -720,8 +724,11 @@ class CanopenDriver(Driver):
         kwargs: dict[str, Any] = dict(config.bus_options)
         if config.bitrate is not None:
             kwargs["bitrate"] = config.bitrate
+        # and every node's heartbeat (0x701-0x77F, one frame per node per producer time): a
+        # node id that never speaks is told apart from a drive at another id
         kwargs.setdefault("can_filters", [{"can_id": i, "can_mask": 0x7FF, "extended": False}
-                                          for i in self._wanted_ids()])
+                                          for i in self._wanted_ids()]
+                          + [{"can_id": 0x700, "can_mask": 0x780, "extended": False}])
         try:
             opened = can.Bus(interface=config.interface, channel=config.channel, **kwargs)
         except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
@@ -771,9 +778,9 @@ class CanopenDriver(Driver):
         if missing and not self._heartbeat_missing:
             self._heartbeat_missing = True
             self._bump("heartbeat_lost")
-            logger.warning("CANopen node %d: no heartbeat for %.2f s (producer time %g s): the "
-                           "drive may be off the bus or its firmware stuck", self.config.node_id,
-                           age, producer)
+            log = logger.debug if self._say_not_heard(age) else logger.warning
+            log("CANopen node %d: no heartbeat for %.2f s (producer time %g s): the drive may "
+                "be off the bus or its firmware stuck", self.config.node_id, age, producer)
         elif not missing and self._heartbeat_missing:
             self._heartbeat_missing = False
             logger.warning("CANopen node %d: heartbeat received again", self.config.node_id)
@@ -783,6 +790,9 @@ class CanopenDriver(Driver):
 
     def _update_silent(self, now: float, heartbeat_age: float | None) -> None:
         silent = []
+        if not self._own_heard and self._nodes_heard:
+            silent.append(f"node {self.config.node_id} never heard (heard on the bus: "
+                          f"{self._heard_text()})")
         if heartbeat_age is not None:
             silent.append(f"node {self.config.node_id} heartbeat for {heartbeat_age:.1f} s "
                           f"(producer time {self.plan.heartbeat_s:g} s)")
@@ -794,13 +804,40 @@ class CanopenDriver(Driver):
                 if name not in self._silent_logged:
                     self._silent_logged.add(name)
                     self._bump("silent_pdos")
-                    logger.warning("CANopen %s (channels %s) not received for %.1f s: its "
-                                   "channels are missing from the samples until it is back",
-                                   name, ", ".join(chans), age)
+                    log = logger.debug if self._say_not_heard(age) else logger.warning
+                    log("CANopen %s (channels %s) not received for %.1f s: its channels are "
+                        "missing from the samples until it is back", name, ", ".join(chans),
+                        age)
             elif name in self._silent_logged:
                 self._silent_logged.discard(name)
                 logger.warning("CANopen %s is received again", name)
         self._silent = tuple(silent)
+
+    def _heard_text(self) -> str:
+        """The other nodes heard, for a person: ``node 5 (heartbeat 0x705)``."""
+        return ", ".join(f"node {n} ({what})" for n, what in sorted(self._nodes_heard.items()))
+
+    def _say_not_heard(self, age: float) -> bool:
+        """While the drive has sent nothing at all but other nodes have: say so once, naming
+        them (the node id is likely wrong), and return True (the symptoms, its heartbeat and
+        PDOs missing, are then logged at DEBUG only); else False."""
+        if self._own_heard or not self._nodes_heard:
+            return False
+        self.log_once("not-heard", "CANopen node %d not heard on the bus for %.2f s (no "
+                      "heartbeat, no PDO of its EDS) while the bus carries %s: is "
+                      "driver.node_id right? No sample until it is heard", self.config.node_id,
+                      age, self._heard_text())
+        return True
+
+    def _other_node(self, cob: int) -> None:
+        """Note the node a frame of the predefined connection set comes from (its heartbeat,
+        EMCY or a TPDO1-4), when it is not the drive's."""
+        node, function = cob & 0x7F, cob & 0x780
+        what = {0x700: "heartbeat", 0x080: "EMCY", 0x180: "TPDO1", 0x280: "TPDO2",
+                0x380: "TPDO3", 0x480: "TPDO4"}.get(function)
+        if what is None or node == 0 or node == self.config.node_id:
+            return
+        self._nodes_heard.setdefault(node, f"{what} 0x{cob:03X}")
 
     # -- reading --------------------------------------------------------------------------------
     def _read_internal(self, timeout: float | None) -> Sample | None:
@@ -867,6 +904,7 @@ class CanopenDriver(Driver):
             self._on_heartbeat(data, now)
         else:
             self._bump("other_frames")  # another node, or an object not needed
+            self._other_node(cob)
         self._check_heartbeat(now)
         return sample
 
@@ -874,9 +912,12 @@ class CanopenDriver(Driver):
         if self._cycle_t is not None and self._pending:
             self._bump("incomplete_syncs")
             names = [p.name for p in self.plan.pdos.values() if p.cob_id in self._pending]
-            self.log_once("incomplete", "CANopen SYNC cycle at %.3f s ended without %s: no "
-                          "sample for it; counted in stats.extra['incomplete_syncs']",
-                          self._cycle_t, ", ".join(names))
+            msg = ("CANopen SYNC cycle at %.3f s ended without %s: no sample for it; counted "
+                   "in stats.extra['incomplete_syncs']")
+            if self._own_heard:
+                self.log_once("incomplete", msg, self._cycle_t, ", ".join(names))
+            else:  # the drive not heard yet: its heartbeat's or PDOs' absence says it
+                logger.debug(msg, self._cycle_t, ", ".join(names))
             self._update_silent(now, self._heartbeat_age())  # no sample: say what is missing
         self._skip_cycle = False
         if data and self._counter.modulus is not None:
@@ -897,6 +938,8 @@ class CanopenDriver(Driver):
         return None
 
     def _on_pdo(self, pdo: _Pdo, now: float, data: bytes) -> Sample | None:
+        if pdo.name.startswith("T"):
+            self._own_heard = True  # the drive's own frame (an RPDO is the master's)
         if len(data) * 8 < pdo.bits:
             self.stats.bad_frames += 1
             self._bump("truncated_pdos")
@@ -930,6 +973,7 @@ class CanopenDriver(Driver):
         return None
 
     def _on_emcy(self, data: bytes, now: float) -> None:
+        self._own_heard = True
         if len(data) < 3:
             self.stats.bad_frames += 1
             self.log_once("emcy-short", "CANopen EMCY of node %d with %d bytes (8 expected): "
@@ -953,6 +997,7 @@ class CanopenDriver(Driver):
         self._update_faults()
 
     def _on_heartbeat(self, data: bytes, now: float) -> None:
+        self._own_heard = True
         if not data:
             self.stats.bad_frames += 1
             return

@@ -33,7 +33,8 @@ Time source (``time_source``)
     unwraps it: a counter that has not advanced since the previous poll is a duplicate poll and
     the sample is skipped (``stats.extra["duplicates"]``), one a few steps back is a stale
     answer, skipped too (``["reordered"]``); a jump of ``n > 1`` adds ``n - 1`` to
-    ``stats.gaps`` (the ring buffer downstream abandons the window the gap falls in); a counter
+    ``stats.gaps`` (the ring buffer downstream holds a few missing samples of a window over,
+    ``[acquisition] max_missing``, and abandons the window of a longer gap); a counter
     that goes further back counts in ``stats.extra["counter_resets"]`` and restarts the clock
     from the new value.
 

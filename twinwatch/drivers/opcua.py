@@ -12,9 +12,11 @@ Nodes
     When a unit is declared, the node's ``EngineeringUnits`` property (an ``EUInformation``)
     must name it (its display name, or the UNECE code of the unit); a mismatch refuses to
     start naming the node and both units. A node that does not exist, a browse path that
-    matches nothing, a server that rejects the user or the certificate: the start refuses with
-    one line naming the key (:class:`~twinwatch.drivers.base.DriverConfigError`, ``run`` exits
-    78).
+    matches nothing, a server that rejects the user or the certificate, or offers no endpoint
+    with the configured security (``driver.security_policy``, naming what it offers): the
+    start refuses with one line naming the key
+    (:class:`~twinwatch.drivers.base.DriverConfigError`, ``run`` exits 78; ``check-config``
+    connects and says the same).
 
 The subscription
     One subscription holds one monitored item per channel. Its sampling interval is the sample
@@ -38,9 +40,10 @@ Sample times, and how channels are joined into samples
     values' times (their jitter reaches the ring buffer, which judges it). Each monitored item
     delivers its values in order, so once slot ``k`` is complete no earlier slot can still
     complete: the slots skipped since the last sample (a channel's value missing, a dropped
-    notification, a reconnect) are counted in ``stats.gaps`` and the ring buffer abandons the
-    window they fall in. A value for a slot already delivered (the current value a server sends
-    when a subscription is recreated) is skipped (``stats.extra["duplicates"]``). A source time
+    notification, a reconnect) are counted in ``stats.gaps`` (a few per window the ring buffer
+    holds over, more abandon the window: ``[acquisition] max_missing``). A value for a slot
+    already delivered (the current value a server sends when a subscription is recreated) is
+    skipped (``stats.extra["duplicates"]``). A source time
     more than an hour away from the last sample's (a clock set, a device restarted) counts in
     ``stats.extra["time_jumps"]``, not as missing samples. A channel whose values stop while
     the others' go on is named in :attr:`OpcUaDriver.silent` (its slots are counted missing).
@@ -521,7 +524,7 @@ class OpcUaDriver(Driver):
                     f"OPC UA client for {self.config.endpoint} failed: {exc}")
             else:
                 self._fatal = f"OPC UA client for {self.config.endpoint} failed: {exc}"
-                logger.error("%s", self._fatal)
+                logger.debug("%s", self._fatal)  # raised to the reader, who says it
         finally:
             self._opened.set()
 
@@ -548,7 +551,8 @@ class OpcUaDriver(Driver):
                     self._open_error = exc
                     return
                 self._fatal = str(exc)
-                logger.error("OPC UA driver stopped: %s", exc)
+                # said once, at ERROR, by whoever reads it (the source keeper, the acquisition)
+                logger.debug("OPC UA driver stopped: %s", exc)
                 return
             except Exception as exc:  # noqa: BLE001 - any failure to connect is retried
                 await self._disconnect(client)
@@ -624,6 +628,10 @@ class OpcUaDriver(Driver):
             await asyncio.wait_for(client.connect(), cfg.timeout * 2)
         except ua.UaStatusCodeError as exc:
             raise self._refusal(exc) from exc
+        except ua.UaError as exc:
+            if "No matching endpoints" not in str(exc):
+                raise
+            raise DriverConfigError(await self._no_endpoint()) from exc
         nodes: list[Node] = []
         for ch, m in cfg.channels.items():
             nodes.append(await self._find(client, ch, m))
@@ -631,6 +639,29 @@ class OpcUaDriver(Driver):
             if m.unit is not None:
                 await self._check_unit(node, ch, m)
         return nodes
+
+    async def _no_endpoint(self) -> str:
+        """The line for a server that offers no endpoint with the configured security: what
+        it offers (asked again: asyncua's connect does not say), naming the key."""
+        from asyncua import Client
+
+        cfg = self.config
+        asked = (cfg.security_policy if cfg.security_policy == "None"
+                 else f"{cfg.security_policy} {cfg.security_mode}")
+        try:
+            probe = Client(cfg.endpoint, timeout=cfg.timeout)
+            endpoints = await asyncio.wait_for(probe.connect_and_get_server_endpoints(),
+                                               cfg.timeout * 2)
+            offers = sorted({f"{ep.SecurityPolicyUri.rsplit('#', 1)[-1]} "
+                             f"{ep.SecurityMode.name}".replace(" None_", "").strip()
+                             for ep in endpoints})
+            offered = f"it offers {', '.join(offers) or 'no endpoint'}"
+        except Exception as exc:  # noqa: BLE001 - the line is said without the list
+            offered = f"its endpoints could not be listed ({_describe(exc)})"
+        return (f"driver.security_policy: the OPC UA server {cfg.endpoint} has no endpoint for "
+                f"security {asked!r}; {offered}: set security_policy and security_mode to one "
+                "of those (Basic256Sha256 needs certificate, private_key and "
+                "server_certificate)")
 
     def _refusal(self, exc: Exception) -> Exception:
         """A connect the server refused: the user or the certificate (config) or else."""

@@ -70,6 +70,9 @@ class SimulatedCanopenDriverConfig(DriverConfig):
         realtime: pace the plant by the wall clock instead of running as fast as possible.
         fault_at, fault_code, fault_reset_at, heartbeat_stop_at: the drive's own faults, at
             plant times [s] (for tests and demonstrations; None: never).
+        frame_loss: the fraction of the frames on the bus (SYNC, PDOs, heartbeat, EMCY) lost
+            at random, seeded by ``plant.seed`` (a loaded bus; for tests and demonstrations;
+            0: none).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -94,10 +97,32 @@ class SimulatedCanopenDriverConfig(DriverConfig):
     heartbeat_stop_at: StrictFloat | None = Field(
         None, ge=0, allow_inf_nan=False, description="plant time [s] the drive stops sending "
         "its heartbeat (a stuck firmware)")
+    frame_loss: StrictFloat = Field(
+        0.0, ge=0, le=0.5, allow_inf_nan=False, description="fraction of the frames on the "
+        "bus lost at random, seeded by plant.seed (a loaded bus; 0: none)")
 
     def twin_channels(self) -> tuple[str, ...]:
         """The channels the drive's TPDOs and the master's RPDO carry."""
         return tuple(drive_channels())
+
+
+class _LossyBus:
+    """A bus that loses a fraction of the frames sent on it, at random (seeded): what the
+    listener of a loaded bus misses. Only :meth:`send` (all the simulated drive uses)."""
+
+    def __init__(self, bus: can.BusABC, loss: float, seed: int) -> None:
+        import random
+
+        self.bus = bus
+        self.loss = loss
+        self.lost = 0
+        self._rng = random.Random(f"frame_loss:{seed}")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self._rng.random() < self.loss:
+            self.lost += 1
+            return
+        self.bus.send(msg, timeout)
 
 
 class SimulatedCanopenDriver(Driver):
@@ -155,8 +180,10 @@ class SimulatedCanopenDriver(Driver):
         try:
             self._rx = can.Bus(interface="virtual", channel=channel)
             self._tx = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-            self.drive = CiA402Drive(DCMotorPlant(config.plant), self._tx,
-                                     node_id=config.node_id)
+            tx: Any = self._tx
+            if config.frame_loss > 0:
+                tx = _LossyBus(self._tx, config.frame_loss, config.plant.seed)
+            self.drive = CiA402Drive(DCMotorPlant(config.plant), tx, node_id=config.node_id)
             co_cfg = CanopenDriverConfig.model_validate({
                 "type": "canopen", "node_id": config.node_id, "eds": drive_eds_path(),
                 "sample_period": config.plant.sample_period, "channels": drive_channels()})
@@ -224,11 +251,18 @@ class SimulatedCanopenDriver(Driver):
         return sample
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
+        # the virtual bus delivers a frame as it is sent: a step whose frames give no sample
+        # (a frame lost, the first cycles) is followed by the next one at once, up to the
+        # read's timeout, instead of waiting for the timeout on each
         sample = self._take(0.0)
         if sample is not None:
             return sample
-        self._send_next()
-        return self._take(1.0 if timeout is None else max(timeout, 0.05))
+        deadline = time.monotonic() + (1.0 if timeout is None else max(timeout, 0.05))
+        while True:
+            self._send_next()
+            sample = self._take(0.0)
+            if sample is not None or time.monotonic() >= deadline:
+                return sample
 
     def _close_internal(self) -> None:
         if self.canopen is not None:

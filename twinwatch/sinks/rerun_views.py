@@ -52,10 +52,12 @@ Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
   beside it, every parameter's value and status (a table; the fixed ones in a line under it,
   why the held ones are held); ``M/health``: the window's health message (JSON); ``M/log``: one
   short :class:`rerun.TextLog` row per window (at most about 80 characters: a row is not
-  wrapped) with the ruled parameters' deviations and levels (INFO; WARN while a parameter is in
-  warning, the model check fails, the structure changed or data were lost; ERROR while one is
-  in alarm) and one row per alarm change (``15:08 ALARM raised: Ra -10.02 % of nominal``; a
-  raise WARN or ERROR, a clear WARN; the event's full message is in the health message);
+  wrapped) with the ruled parameters' deviations and levels, at the machine's state (INFO;
+  WARN while a parameter is in warning or has a RUL level raised, the model check fails, the
+  structure changed or data were lost; ERROR only while one is in deviation alarm) and one row
+  per alarm change (``15:08 ALARM raised: Ra -10.02 % of nominal``; a deviation alarm's raise
+  ERROR, every other raise and a clear WARN; the event's full message is in the health
+  message);
   ``M/key``: what the colours mean (static).
 
 The default blueprint (:meth:`RecordingViews.blueprint`): the time panel follows the newest
@@ -654,7 +656,9 @@ class RecordingViews:
         t = t if math.isfinite(t) else t_end
         raised = _RANK.get(str(level), 0) > _RANK.get(str(previous), 0)
         kind = str(level) if raised else "cleared"
-        severity = rr.TextLogLevel.ERROR if (raised and level == "alarm") else rr.TextLogLevel.WARN
+        # ERROR only for a deviation alarm raised (stop now); a RUL alarm plans maintenance
+        severity = (rr.TextLogLevel.ERROR if (raised and level == "alarm" and rule == "deviation")
+                    else rr.TextLogLevel.WARN)
         ops = [Op(entity(m, "log"), rr.TextLog(_event_row(ev, t, rule, raised, params),
                                                level=severity), t)]
         if p:  # a diagnosis names no parameter
@@ -1398,9 +1402,10 @@ def _event_row(ev: Mapping[str, Any], t: float, rule: str, raised: bool,
 def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
              grew: Mapping[str, int], health_json: str = "{}") -> tuple[str, rr.TextLogLevel]:
     """One short line for the window (a Rerun log row is not wrapped: about 85 characters fit
-    the log panel at 1600x1000), and its level: ERROR while a parameter is in alarm, WARN while
-    one is in warning, the model check fails, the structure changed or data were lost, else
-    INFO. The window and the plant time of its end; each parameter with an alarm rule: its
+    the log panel at 1600x1000), and its level, the machine's state: ERROR while a parameter is
+    in deviation alarm, WARN while one is in warning or has a RUL level raised, the model check
+    fails, the structure changed or data were lost, else INFO.
+    The window and the plant time of its end; each parameter with an alarm rule: its
     deviation [% of nominal], value, status when not ``estimated``, its deviation and RUL
     levels when raised (else the RUL's median); then what went wrong (model check, DT''
     changed, data lost). The other parameters and the fit are in the table and panels at the
@@ -1436,8 +1441,10 @@ def _log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
 def _ruled_parts(alarms: Mapping[str, AlarmView],
                  params: Mapping[str, ParameterView]) -> tuple[list[str], int]:
     """The log row's part for each parameter with an alarm rule (tied and fixed ones left
-    out): ``Ra -5.14 % (6.16593 ohm) WARNING, RUL ALARM``; and the worst level raised (0
-    none, 1 warning, 2 alarm, :data:`_RANK`)."""
+    out): ``Ra -5.14 % (6.16593 ohm) WARNING, RUL ALARM``; and the machine's state as the
+    row's level (0 normal, 1 warning, 2 alarm, :data:`_RANK`): 2 only for a deviation alarm
+    (the one level that says inspect now, NE 107 FAILURE); a deviation warning or any RUL
+    level raised is 1 (the OPC UA output's OFF_SPEC and MAINTENANCE_REQUIRED)."""
     worst = 0
     ruled = []
     for name, a in alarms.items():
@@ -1453,7 +1460,9 @@ def _ruled_parts(alarms: Mapping[str, AlarmView],
             words.append(level.upper())
         rul_level = str(a.rul.level if a.rul is not None else None)
         if _RANK.get(rul_level, 0) > 0:
-            worst = max(worst, _RANK[rul_level])
+            # a RUL level asks to plan the maintenance (NE 107 MAINTENANCE_REQUIRED): WARN,
+            # whatever its level; only a deviation alarm (stop now) is ERROR
+            worst = max(worst, 1)
             words.append(f"RUL {rul_level.upper()}")
         elif ph is not None and (rul := _rul_short(ph)):
             words.append(rul)

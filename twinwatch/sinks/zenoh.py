@@ -99,6 +99,7 @@ from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
 from twinwatch.io.keys import box_chunk, box_token_key
 from twinwatch.sinks.base import (
+    AlarmBands,
     ProcessedWindow,
     SharedResources,
     Sink,
@@ -116,8 +117,14 @@ else:  # imported when a session opens: loading a configuration does not load ze
 
 logger = logging.getLogger(__name__)
 
+UNRULED_THRESHOLD_PCT = 5.0
+"""A parameter without an alarm rule is measured against this deviation [% of nominal] for
+the fleet summary's ``worst`` (:func:`worst_parameter`): the examples' warning threshold."""
+
 __all__ = [
     "HISTORY_LIMIT",
+    "UNRULED_THRESHOLD_PCT",
+    "worst_parameter",
     "HealthPublisher",
     "PublisherError",
     "QueryDispatch",
@@ -1046,11 +1053,15 @@ class HealthPublisher(Sink):
         """The window pipeline's sink call: the window's health on ``P/health`` (its one
         encoding, :attr:`~twinwatch.sinks.base.ProcessedWindow.health_json`), then its alarm
         events on ``P/alarm``, then its fleet summary on ``P/summary`` when it changed or
-        ``[zenoh] summary_interval`` passed (:meth:`publish_summary`)."""
+        ``[zenoh] summary_interval`` passed (:meth:`publish_summary`), with the machine's
+        worst parameter by its own threshold (:func:`worst_parameter`) as ``worst``."""
         self._put(self.health_key, out.health_json)
         for event in out.events:
             self.publish_json("alarm", event)
-        self.publish_summary(fleet_summary(out.health, box=self.box, wall=time.time()))
+        summary = fleet_summary(out.health, box=self.box, wall=time.time())
+        bands = self.context.alarm_bands if self.context is not None else {}
+        summary["worst"] = worst_parameter(out.health, bands)
+        self.publish_summary(summary)
 
     def publish_summary(self, summary: Mapping[str, Any], *, now: float | None = None
                         ) -> bool:
@@ -1070,8 +1081,8 @@ class HealthPublisher(Sink):
         """
         now = time.monotonic() if now is None else now
         doc = dict(summary)
-        if not summary_changed(self._summary, doc) and (
-                now - self._summary_at < self.config.summary_interval):
+        if not summary_changed(self._summary, doc) and not _worst_changed(
+                self._summary, doc) and now - self._summary_at < self.config.summary_interval:
             return False
         self._summary, self._summary_at = doc, now
         self._put(self.summary_key, doc)
@@ -1313,3 +1324,57 @@ def _items(params: Any) -> list[tuple[str, str]]:
     if isinstance(params, dict):
         return list(params.items())
     return [(str(k), str(v)) for k, v in params]
+
+
+def worst_parameter(health: Any, bands: Mapping[str, AlarmBands]) -> dict[str, Any] | None:
+    """The parameter furthest off nominal by its own threshold, for the fleet summary's
+    ``worst`` (the fleet view's deviation column leads with it; issue 56: with only Ra's
+    deviation shown, a machine with D +20 % looked healthy).
+
+    Each parameter with a finite deviation (not ``tied`` nor ``fixed``: those are not
+    estimated) is measured as ``|deviation| / threshold``: its alarm rule's warning threshold
+    on the side it deviates to (the alarm threshold when the rule has no warning there; 0 when
+    the rule has no threshold on that side: a side the rule does not watch), or
+    :data:`UNRULED_THRESHOLD_PCT` without a rule.
+
+    Args:
+        health: the window's typed message (its ``parameters``).
+        bands: the ``[alarms]`` thresholds by parameter [% of nominal]
+            (:attr:`~twinwatch.sinks.base.SinkContext.alarm_bands`).
+
+    Returns:
+        ``{"parameter", "deviation_pct", "threshold_pct" (null without a rule), "share"
+        (|deviation| / threshold)}``, or None when no parameter has a deviation.
+    """
+    best: tuple[float, dict[str, Any]] | None = None
+    for name, p in (health.parameters or {}).items():
+        if p is None or p.status in ("tied", "fixed"):
+            continue
+        dev = p.deviation_pct
+        if not isinstance(dev, int | float) or not math.isfinite(dev):
+            continue
+        b = bands.get(name)
+        if b is None:
+            threshold: float | None = None
+            share = abs(dev) / UNRULED_THRESHOLD_PCT
+        else:
+            if dev >= 0:
+                th = b.warning_high if b.warning_high is not None else b.alarm_high
+            else:
+                th = b.warning_low if b.warning_low is not None else b.alarm_low
+            threshold = None if th is None else abs(float(th))
+            share = abs(dev) / threshold if threshold else 0.0
+        if best is None or share > best[0]:
+            best = (share, {"parameter": name, "deviation_pct": float(f"{dev:.4g}"),
+                            "threshold_pct": threshold, "share": round(share, 3)})
+    return best[1] if best is not None else None
+
+
+def _worst_changed(old: Mapping[str, Any] | None, new: Mapping[str, Any]) -> bool:
+    """The worst parameter (:func:`worst_parameter`) is another one than in the summary
+    published last: a change, published at once."""
+    def name(doc: Mapping[str, Any] | None) -> Any:
+        worst = doc.get("worst") if doc is not None else None
+        return worst.get("parameter") if isinstance(worst, Mapping) else None
+
+    return old is not None and name(old) != name(new)

@@ -30,11 +30,14 @@ STALE_AFTER_S = 180.0
 @dataclass(frozen=True)
 class Received:
     """One machine's last summary, the wall time [s since the epoch] it arrived and its
-    :func:`urgency` (computed once, when it arrived: a view of 10 000 machines sorts these)."""
+    :func:`urgency` (computed once, when it arrived: a view of 10 000 machines sorts these);
+    ``gone_at``: when its presence (its daemon's liveliness token, or its box's) went, None
+    while it is there: a stopped daemon's machines are stale at once."""
 
     summary: Mapping[str, Any]
     at: float
     key: tuple[float, float, float, str] = field(default=(0.0, 0.0, 0.0, ""), compare=False)
+    gone_at: float | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "key", urgency(self.summary))
@@ -90,12 +93,20 @@ def urgency(summary: Mapping[str, Any]) -> tuple[float, float, float, str]:
             rul if rul is not None else math.inf, str(summary.get("machine", "")))
 
 
+def seen(r: Received, now: float, stale_after: float = STALE_AFTER_S) -> str:
+    """``stale`` when the machine's presence went (its daemon stopped: its liveliness token
+    is gone) or its summary arrived more than ``stale_after`` [s] ago (the link, whatever the
+    clocks), else ``alive``."""
+    return "stale" if r.gone_at is not None or now - r.at > stale_after else "alive"
+
+
 def entry(r: Received, now: float, stale_after: float = STALE_AFTER_S) -> dict[str, Any]:
     """One machine's row of the fleet view: its summary plus ``age_s`` (since it was made:
-    :attr:`Received.made`) and ``seen`` (``alive``, or ``stale`` when it arrived more than
-    ``stale_after`` [s] ago: the link, whatever the clocks)."""
+    :attr:`Received.made`), ``seen`` (:func:`seen`) and ``gone_s`` (since its presence went,
+    None while it is there)."""
     return {**r.summary, "age_s": round(max(now - r.made, 0.0), 1),
-            "seen": "stale" if now - r.at > stale_after else "alive"}
+            "seen": seen(r, now, stale_after),
+            "gone_s": None if r.gone_at is None else round(max(now - r.gone_at, 0.0), 1)}
 
 
 def fleet_view(received: Mapping[str, Received], now: float, *,
@@ -125,14 +136,14 @@ def fleet_view(received: Mapping[str, Received], now: float, *,
     boxes: dict[str, dict[str, Any]] = {}
     for r in received.values():  # each machine once; a row is made for those shown only
         s = r.summary
-        seen = "stale" if now - r.at > stale_after else "alive"
+        was = seen(r, now, stale_after)
         state = str(s.get("state"))
-        if wanted and state not in wanted and seen not in wanted:
+        if wanted and state not in wanted and was not in wanted:
             continue
         if models and s.get("model") not in models:
             continue
         key = r.key
-        rows.append((key, r, seen))
+        rows.append((key, r, was))
         counts[state] = counts.get(state, 0) + 1
         box = boxes.get(str(s.get("box")))
         if box is None:
@@ -142,7 +153,7 @@ def fleet_view(received: Mapping[str, Received], now: float, *,
         box["machines"] += 1
         if state in box:
             box[state] += 1
-        if seen == "stale":
+        if was == "stale":
             box["stale"] += 1
         if key < box["_key"]:
             box["first"], box["_key"] = s.get("machine"), key

@@ -98,15 +98,36 @@ def _fleet_rul(m: Mapping[str, Any]) -> Text:
                 style="cyan")
 
 
+_RANK = {"alarm": 2, "warning": 1}
+
+
 def _fleet_deviation(m: Mapping[str, Any]) -> Text:
+    """The deviation column, the machine's worst parameter first: the summary's ``worst``
+    (by its own threshold: its rule's, or 5 % without one; a daemon before issue 56 sends
+    none), then the ruled parameters by level and size. The column is cut at its width: what
+    leads it is what matters (before, Ra's deviation led whatever it was, and a machine with D
+    +20 % looked healthy)."""
     from rich.text import Text
 
     out = Text()
     alarms = m.get("alarms") or {}
-    for name, dev in (m.get("deviation") or {}).items():
+    devs = dict(m.get("deviation") or {})
+    worst = m.get("worst")
+    order: list[tuple[str, Any]] = []
+    if isinstance(worst, Mapping) and worst.get("parameter"):
+        name = str(worst["parameter"])
+        order.append((name, worst.get("deviation_pct")))
+        devs.pop(name, None)
+    order += sorted(devs.items(), key=lambda kv: (
+        -_RANK.get(str((alarms.get(kv[0]) or {}).get("level")), 0),
+        -abs(number(kv[1], 0.0))))
+    for k, (name, dev) in enumerate(order):
         if out:
             out.append(" ")
-        level = (alarms.get(name) or {}).get("level")
-        out.append(f"{name} {deviation_text(number(dev))}", style=_LEVEL_STYLE.get(
-            str(level), ""))
+        level = str((alarms.get(name) or {}).get("level"))
+        style = _LEVEL_STYLE.get(level, "")
+        if k == 0 and isinstance(worst, Mapping) and level not in _RANK and (
+                number(worst.get("share"), 0.0) >= 1.0):
+            style = "yellow"  # beyond its own threshold, without a rule that says so
+        out.append(f"{name} {deviation_text(number(dev))}", style=style)
     return out

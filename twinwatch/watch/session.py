@@ -96,6 +96,11 @@ def prefix_base(prefix: str) -> str:
     return "/".join(chunks[:n])
 
 
+class Unreachable(WatchError):
+    """Nothing answers at the endpoints (no daemon nor router up there yet): a watcher that
+    follows may wait for one (``watch --fleet``)."""
+
+
 def open_session(connect: Sequence[str] = DEFAULT_CONNECT, mode: Mode = "client"
                  ) -> zenoh.Session:
     """A Zenoh session that talks only to ``connect``: no listening, multicast and gossip
@@ -124,7 +129,7 @@ def open_session(connect: Sequence[str] = DEFAULT_CONNECT, mode: Mode = "client"
     except zenoh.ZError as exc:
         msg = re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).strip()
         if "unable to connect" in msg.lower():
-            raise WatchError(f"cannot connect to {', '.join(endpoints)}: nothing answers there; "
+            raise Unreachable(f"cannot connect to {', '.join(endpoints)}: nothing answers there; "
                              "start a daemon (twinwatch run) or a zenoh router there, or give "
                              f"--connect (zenoh: {msg})") from exc
         raise WatchError(f"cannot open a zenoh session (mode={mode}, connect={endpoints}): "

@@ -12,6 +12,7 @@ when asked (:meth:`SummaryWatcher.health`). What it holds is read by
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import threading
@@ -27,6 +28,7 @@ from twinwatch.watch.ranking import Received
 from twinwatch.watch.session import (
     CHUNKS_RE,
     Mode,
+    Unreachable,
     check_endpoints,
     check_fleet_prefix,
     decode_health,
@@ -204,14 +206,41 @@ class SummaryWatcher:
     def _on_token(self, sample: zenoh.Sample) -> None:
         """A machine's token: one this watcher holds a summary of that appears again (its
         daemon reached anew: a router back, a restart) is asked for its latest; a new machine's
-        first summary comes live."""
-        if sample.kind != zenoh.SampleKind.PUT:
-            return
+        first summary comes live. A token that goes (its daemon stopped, killed, or cut off)
+        marks the machine gone at once (:meth:`_gone`): shown stale, not after the summaries'
+        ``stale_after``."""
         machine = str(sample.key_expr)[len(self.base) + 1:-len("/alive")]
+        if sample.kind != zenoh.SampleKind.PUT:
+            self._gone({machine})
+            return
         with self._lock:
             if machine not in self._received:
                 return
+            self._alive({machine})
         self._back({machine})
+
+    def _gone(self, machines: Collection[str]) -> None:
+        """The presence of ``machines`` went (their tokens, or their box's): each held is
+        marked gone (:attr:`Received.gone_at`, now) until its token or a summary comes
+        again."""
+        now = self._clock()
+        with self._lock:
+            marked = [m for m in machines if (r := self._received.get(m)) is not None
+                      and r.gone_at is None]
+            for m in marked:
+                self._received[m] = dataclasses.replace(self._received[m], gone_at=now)
+        if marked:
+            logger.debug("%d machines gone (their presence token went): %s", len(marked),
+                         ", ".join(sorted(marked)[:5]))
+            self.changed.set()
+
+    def _alive(self, machines: Collection[str]) -> None:
+        """Their presence is back: no longer gone (the caller holds the lock)."""
+        for m in machines:
+            r = self._received.get(m)
+            if r is not None and r.gone_at is not None:
+                self._received[m] = dataclasses.replace(r, gone_at=None)
+                self.changed.set()
 
     def _on_box_token(self, sample: zenoh.Sample) -> None:
         """A box's token (``<base>/<chunks>/@box/<box>/<zid>``, ``[zenoh] presence =
@@ -220,8 +249,6 @@ class SummaryWatcher:
         (:meth:`_reask_keys`: one get per box under a prefix with ``*``) and counted toward a
         sweep's burst as that many tokens. A box this watcher holds no machine of is new:
         its machines' first summaries come live."""
-        if sample.kind != zenoh.SampleKind.PUT:
-            return
         chunks = str(sample.key_expr)[len(self.base) + 1:].split("/")
         if len(chunks) < 3 or chunks[-3] != BOX_TOKENS:
             return
@@ -230,6 +257,11 @@ class SummaryWatcher:
             machines = {m for m, r in self._received.items()
                         if m.rpartition("/")[0] == where
                         and box_chunk(str(r.summary.get("box"))) == box}
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive(machines)
+        if sample.kind != zenoh.SampleKind.PUT:
+            self._gone(machines)
+            return
         if machines:
             logger.debug("box %s back (%s): its %d machines are asked again", box,
                          sample.key_expr, len(machines))
@@ -586,8 +618,8 @@ def following(connect: Sequence[str], mode: Mode, prefix: str, machines: str = "
             watchers.append(stack.enter_context(
                 SummaryWatcher(session, prefix=prefix, machines=machines)))
         if not watchers:
-            raise WatchError(f"nothing answers at {', '.join(connect)}: start a daemon "
-                             "(twinwatch run) or a zenoh router there")
+            raise Unreachable(f"nothing answers at {', '.join(connect)}: start a daemon "
+                              "(twinwatch run) or a zenoh router there")
         for endpoint, why in skipped:
             if on_skip is not None:
                 on_skip(endpoint, why)

@@ -50,7 +50,21 @@ _UNITS_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
 
 
 def device_health(health: HealthMessage) -> tuple[int, str]:
-    """The window's DeviceHealth (OPC UA Part 100, NAMUR NE 107) and why, for a person.
+    """The window's DeviceHealth (OPC UA Part 100, NAMUR NE 107) and why, for a person: by
+    what the operator must do, the first that applies (docs/opcua-output.md's table, a test
+    per row):
+
+    * ``FAILURE``: a parameter's deviation alarm (its event says "inspect the machine now; ...
+      take it out of service"): the only state that asks to stop now;
+    * ``CHECK_FUNCTION``: the twin does not describe the machine (the diagnosis' check
+      function), or part of the source is silent: the values are not valid;
+    * ``OFF_SPEC``: a parameter's deviation warning: outside its specified band, still within
+      its alarm threshold (its event: plan an inspection at the next stop);
+    * ``MAINTENANCE_REQUIRED``: a RUL level raised (the time left to the alarm threshold is
+      short: schedule the intervention), or a raised fault alarm of the diagnosis, whatever
+      its urgency (each fault's action is a maintenance action, "at the next stop", "check
+      ..."; the urgency says how soon, in the reason);
+    * ``NORMAL``: none of these (a drift within the warning band is normal).
 
     Args:
         health: the window's typed health message (its ``alarms``, ``diagnosis``,
@@ -62,13 +76,10 @@ def device_health(health: HealthMessage) -> tuple[int, str]:
     """
     alarms = health.alarms
     diag = health.diagnosis
-    raised = _raised_faults(diag)
     dev_alarm = [n for n, a in alarms.items() if a.level == "alarm"]
-    high = [f for f, u in raised if u == "high"]
-    if dev_alarm or high:
-        what = [f"{n} beyond its alarm threshold" for n in dev_alarm]
-        what += [f"fault {f} (urgency high)" for f in high]
-        return DEVICE_HEALTH["FAILURE"], "failure: " + "; ".join(what)
+    if dev_alarm:
+        return (DEVICE_HEALTH["FAILURE"], "failure: " + "; ".join(
+            f"{n} beyond its alarm threshold (inspect the machine now)" for n in dev_alarm))
     if diag is not None and diag.status == "check_function":
         return (DEVICE_HEALTH["CHECK_FUNCTION"], "check function: the twin does not describe "
                 "this machine" + (f" ({diag.check_failed})" if diag.check_failed else ""))
@@ -79,20 +90,23 @@ def device_health(health: HealthMessage) -> tuple[int, str]:
     if warn:
         return (DEVICE_HEALTH["OFF_SPEC"],
                 "off spec: " + "; ".join(f"{n} beyond its warning threshold" for n in warn))
-    rul = [f"{n} RUL {a.rul.level}" for n, a in alarms.items()
-           if a.rul is not None and a.rul.level != "normal"]
-    rul += [f"fault {f} (urgency {u})" for f, u in raised if u != "high"]
-    if rul:
-        return DEVICE_HEALTH["MAINTENANCE_REQUIRED"], "maintenance required: " + "; ".join(rul)
+    todo = [f"{n} RUL {a.rul.level}" for n, a in alarms.items()
+            if a.rul is not None and a.rul.level != "normal"]
+    todo += [f"fault {f} (urgency {u}): {action}" if action else f"fault {f} (urgency {u})"
+             for f, u, action in _raised_faults(diag)]
+    if todo:
+        return DEVICE_HEALTH["MAINTENANCE_REQUIRED"], "maintenance required: " + "; ".join(todo)
     return DEVICE_HEALTH["NORMAL"], "normal"
 
 
-def _raised_faults(diag: DiagnosisHealth | None) -> list[tuple[str, str]]:
-    """(fault id, urgency) of the diagnosis' raised fault alarms (the check function aside)."""
+def _raised_faults(diag: DiagnosisHealth | None) -> list[tuple[str, str, str]]:
+    """(fault id, urgency, action) of the diagnosis' raised fault alarms (the check function
+    aside)."""
     if diag is None:
         return []
-    urgency = {f.id: f.urgency for f in diag.faults}
-    return [(f, urgency.get(f, "medium")) for f in diag.alarms if f != "check_function"]
+    known = {f.id: f for f in diag.faults}
+    return [(f, known[f].urgency, known[f].action) if f in known else (f, "medium", "")
+            for f in diag.alarms if f != "check_function"]
 
 
 class _Machine:
@@ -182,7 +196,7 @@ class _Builder:
         return nid
 
     def variable(self, m: _Machine, parent: Any, path: str, value: Any, datatype: Any, *,
-                 browse: str | None = None, vtype: Any = None) -> Any:
+                 browse: str | None = None, vtype: Any = None, history: bool = False) -> Any:
         nid = self._nid(path)
         item = ua.AddNodesItem()
         item.RequestedNewNodeId = nid
@@ -192,7 +206,7 @@ class _Builder:
         item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasComponent)
         item.NodeClass = ua.NodeClass.Variable
         item.TypeDefinition = vtype or ua.NodeId(ua.ObjectIds.BaseDataVariableType)
-        item.NodeAttributes = _var_attrs(name, value, datatype)
+        item.NodeAttributes = _var_attrs(name, value, datatype, history=history)
         self.items.append(item)
         m.vars[path] = (nid, value.VariantType)
         return nid
@@ -211,7 +225,10 @@ class _Builder:
         return nid
 
 
-def _var_attrs(name: str, value: Any, datatype: Any) -> Any:
+def _var_attrs(name: str, value: Any, datatype: Any, *, history: bool = False) -> Any:
+    """A read-only variable's attributes: ``AccessLevel`` ``CurrentRead``, with ``HistoryRead``
+    (and ``Historizing``) only where ``history`` is kept (``[outputs.opcua] history`` > 0, the
+    parameters' ``Value``)."""
     attrs = ua.VariableAttributes()
     attrs.DisplayName = ua.LocalizedText(name)
     attrs.Description = ua.LocalizedText(name)
@@ -223,9 +240,11 @@ def _var_attrs(name: str, value: Any, datatype: Any) -> Any:
     else:
         attrs.ValueRank = ua.ValueRank.Scalar
     attrs.WriteMask = attrs.UserWriteMask = 0
-    attrs.AccessLevel = attrs.UserAccessLevel = (ua.AccessLevel.CurrentRead.mask
-                                                  | ua.AccessLevel.HistoryRead.mask)
-    attrs.Historizing = False
+    access = ua.AccessLevel.CurrentRead.mask
+    if history:
+        access |= ua.AccessLevel.HistoryRead.mask
+    attrs.AccessLevel = attrs.UserAccessLevel = access
+    attrs.Historizing = history
     return attrs
 
 

@@ -55,7 +55,8 @@ __all__ = ["OpcUaServer"]
 class _ReadOnly:
     """asyncua permission rule set: every user may read, browse, subscribe, read history and
     call the server's standard methods (ConditionRefresh); nobody may write or change the
-    address space."""
+    address space. (asyncua answers RegisterServer and RegisterServer2 before any session,
+    without consulting it: :func:`_refuse_register` closes those.)"""
 
     DENIED: ClassVar[tuple[str, ...]] = (
         "WriteRequest", "AddNodesRequest", "DeleteNodesRequest", "AddReferencesRequest",
@@ -68,6 +69,29 @@ class _ReadOnly:
 
     def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
         return action_type_id not in self._denied
+
+
+def _refuse_register(iserver: Any) -> None:
+    """Refuse RegisterServer and RegisterServer2 to every client, anonymous or not: asyncua's
+    message processor hands them to the internal server before any session exists and without
+    the permission rule set (asyncua 2.1, ``server/uaprocessor.py``), so any client could add
+    an entry to ``FindServers`` pointing discovery at an address of its choosing. twinwatch is
+    no discovery server: the call is answered ``Bad_UserAccessDenied`` (a ServiceFault) and
+    ``FindServers`` lists twinwatch only. Logged once per server at WARNING (the client's
+    address is not known there)."""
+    said = False
+
+    def refuse(*_args: Any) -> None:
+        nonlocal said
+        if not said:
+            said = True
+            logger.warning("OPC UA: a client tried to register a server (RegisterServer): "
+                           "refused, Bad_UserAccessDenied (twinwatch is no discovery server; "
+                           "logged once)")
+        raise ua.uaerrors.BadUserAccessDenied()
+
+    iserver.register_server = refuse
+    iserver.register_server2 = refuse
 
 
 class OpcUaServer:
@@ -115,6 +139,7 @@ class OpcUaServer:
         host, port = cfg.host_port()
         server = asyncua.Server()
         await server.init()
+        _refuse_register(server.iserver)
         server.set_endpoint(cfg.endpoint)
         server.set_server_name("twinwatch")
         server.allow_remote_admin(False)
@@ -155,8 +180,17 @@ class OpcUaServer:
         self.ns = await server.register_namespace(cfg.namespace)
         from asyncua.common.structures104 import new_enum
 
-        self.health_type = (await new_enum(server, self.ns, "DeviceHealthEnumeration",
-                                           list(DEVICE_HEALTH))).nodeid
+        health_type = await new_enum(server, self.ns, "DeviceHealthEnumeration",
+                                     list(DEVICE_HEALTH))
+        # the state names for clients before OPC UA 1.04, which read EnumStrings rather than
+        # the DataTypeDefinition (the values are 0..4 in order, as EnumStrings requires)
+        await health_type.add_property(
+            ua.NodeId("DeviceHealthEnumeration.EnumStrings", self.ns),
+            ua.QualifiedName("EnumStrings", 0),
+            ua.Variant([ua.LocalizedText(n) for n in DEVICE_HEALTH],
+                       ua.VariantType.LocalizedText),
+            datatype=ua.NodeId(ua.ObjectIds.LocalizedText))
+        self.health_type = health_type.nodeid
         objects = server.get_objects_node()
         self.root = await objects.add_folder(ua.NodeId("TwinWatch", self.ns),
                                              ua.QualifiedName("TwinWatch", self.ns))
@@ -281,7 +315,8 @@ class OpcUaServer:
             value = b.variable(m, po, f"Parameters.{p}.Value",
                                ua.Variant(math.nan, ua.VariantType.Double),
                                ua.NodeId(dt.Double), browse="Value",
-                               vtype=ua.NodeId(dt.AnalogItemType))
+                               vtype=ua.NodeId(dt.AnalogItemType),
+                               history=self.config.history > 0)
             b.prop(value, f"Parameters.{p}.Value.EngineeringUnits", "EngineeringUnits",
                    ua.Variant(_eu(unit), ua.VariantType.ExtensionObject),
                    ua.NodeId(dt.EUInformation))

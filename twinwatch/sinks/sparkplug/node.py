@@ -100,7 +100,8 @@ class EdgeNode:
         self.live_since = 0.0        # windows stored before it are replays (historical)
         self._birth_at: float | None = None  # our NBIRTH not yet heard back since (monotonic)
         self._unheard: str | None = None
-        self._dcmd_said = False
+        self.commands_refused = 0    # NCMD/DCMD metrics other than the rebirth (writes)
+        self._refused_said: set[str] = set()
         self._mid_owner: dict[int, SparkplugPublisher] = {}
         self.client = self._make_client()   # the TLS setup checked now
         self._thread = threading.Thread(target=self._run, daemon=True,
@@ -373,6 +374,7 @@ class EdgeNode:
                             topic)
                 self.rebirths += 1
                 self._births(client)
+            self._refuse_writes(topic, "NCMD", cmd, REBIRTH)
             return
         with self._lock:
             device = self.devices.get(topic.rsplit("/", 1)[-1])
@@ -381,10 +383,25 @@ class EdgeNode:
             self.rebirths += 1
             if device.latest_doc is not None:
                 device.device_birth()
-        elif not self._dcmd_said:
-            self._dcmd_said = True
-            logger.info("a DCMD on %s other than %s ignored (twinwatch only monitors: it "
-                        "writes to no machine)", topic, DEVICE_REBIRTH)
+        self._refuse_writes(topic, "DCMD", cmd, DEVICE_REBIRTH)
+
+    def _refuse_writes(self, topic: str, kind: str, cmd: Any, rebirth: str) -> None:
+        """A command's metrics other than the rebirth are a write attempt (a SCADA setting a
+        value, a tag written by mistake): nothing is written (twinwatch only monitors),
+        counted in ``commands_refused``, logged at WARNING once per topic naming the metrics
+        (later ones at DEBUG)."""
+        writes = [m.name or f"alias {m.alias}" for m in cmd.metrics if m.name != rebirth]
+        if not writes:
+            return
+        self.commands_refused += 1
+        shown = ", ".join(writes[:10]) + (f" and {len(writes) - 10} more"
+                                          if len(writes) > 10 else "")
+        level = logging.DEBUG if topic in self._refused_said else logging.WARNING
+        self._refused_said.add(topic)
+        logger.log(level, "outputs.sparkplug: %s %s on %s writes %s: refused, nothing "
+                   "written (twinwatch only monitors: it writes to no machine; only %s is "
+                   "answered); logged once per topic, counted in sparkplug_commands_refused",
+                   "an" if kind == "NCMD" else "a", kind, topic, shown, rebirth)
 
     def _on_state(self, client: mqtt.Client, payload: bytes) -> None:
         """Sparkplug 3.0 STATE: ``{"online": bool, "timestamp": ms}``; an older timestamp than

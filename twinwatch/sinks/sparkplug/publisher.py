@@ -157,8 +157,16 @@ class SparkplugPublisher(MqttPublisher):
 
     @property
     def latest_doc(self) -> HealthView | None:
-        """The newest stored window's typed message (a DBIRTH's values), or None."""
-        return self._latest_doc
+        """The newest stored window of this run's typed message (a DBIRTH's values), or None:
+        a new run births with its first window, never with the previous run's last (its run
+        id, its alarms, its diagnosis: issue 56), which the outbox holds at a restart."""
+        doc = self._latest_doc
+        return doc if doc is not None and self._this_run(doc) else None
+
+    def _this_run(self, doc: HealthView) -> bool:
+        """``doc`` is of the daemon's run (any, when the context names none)."""
+        run = self.context.run if self.context is not None else ""
+        return not run or getattr(doc, "run", None) == run
 
     def rebind_due(self) -> bool:
         """A reload re-bound the output (or the outbox must be read again)."""
@@ -183,8 +191,9 @@ class SparkplugPublisher(MqttPublisher):
 
     # -- the device's messages (in the node's thread) ----------------------------------------
     def device_birth(self) -> None:
-        """DBIRTH: every metric with the newest stored window's values."""
-        doc = self._latest_doc
+        """DBIRTH: every metric with the newest stored window of this run's values (none yet:
+        nulls, e.g. before a previous run's windows the outbox still holds are replayed)."""
+        doc = self.latest_doc
         values: dict[str, Any] = {}
         if doc is not None:
             with contextlib.suppress(ValueError):  # named when the window is sent
@@ -213,7 +222,7 @@ class SparkplugPublisher(MqttPublisher):
         except ValueError as exc:
             logger.error("outputs.sparkplug: %s; the new metric is left out", exc)
             grew = False
-        if newest or self._latest_doc is None:
+        if self._this_run(doc) and (newest or self.latest_doc is None):
             self._latest_doc = doc
         if grew or not self.device_born:
             self.device_birth()
@@ -259,13 +268,15 @@ class SparkplugPublisher(MqttPublisher):
     def counters(self) -> dict[str, int]:
         """The MQTT output's (``delivered``, ``pending``, ``dropped``, ``errors``; the edge
         node's ``connects``, ``disconnects``) and ``births`` (the node's NBIRTHs),
-        ``device_births`` (this device's DBIRTHs), ``rebirths`` (asked by NCMD or DCMD)."""
+        ``device_births`` (this device's DBIRTHs), ``rebirths`` (asked by NCMD or DCMD),
+        ``commands_refused`` (the node's NCMD and DCMD that tried to write a metric)."""
         node = self._node
         return {"delivered": int(self.delivered), "pending": int(self.pending),
                 "dropped": self.dropped, "connects": int(node.connects),
                 "disconnects": int(node.disconnects),
                 "errors": int(self.errors + node.errors), "births": int(node.births),
-                "device_births": int(self.device_births), "rebirths": int(node.rebirths)}
+                "device_births": int(self.device_births), "rebirths": int(node.rebirths),
+                "commands_refused": int(node.commands_refused)}
 
     @property
     def births(self) -> int:
