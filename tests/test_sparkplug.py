@@ -697,7 +697,7 @@ def test_a_command_that_writes_is_refused_once_per_topic_naming_its_metrics(
     c.connect("127.0.0.1", broker.port)
     c.loop_start()
     try:
-        pub.write(_window(store, 0))
+        pub.write(stored_window(store, 0))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 1, 20, "a DDATA")
 
         def send(topic: str, **metrics: Any) -> None:
@@ -715,7 +715,7 @@ def test_a_command_that_writes_is_refused_once_per_topic_naming_its_metrics(
             send("spBv1.0/g/NCMD/m1", **{"Node Control__Reboot": True})
         host.wait(lambda ms: sum(d.kind in ("DCMD", "NCMD") for d in ms) == 4, 20,
                   "the 4 commands")
-        pub.write(_window(store, 1))   # the node goes on: a window after the commands
+        pub.write(stored_window(store, 1))   # the node goes on: a window after the commands
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 2, 20, "the next DDATA")
         refused = pub.counters()["commands_refused"]
     finally:
@@ -749,7 +749,7 @@ def test_seq_wraps_past_255_within_one_connection_without_a_gap(tmp_path: Path,
     pub, store = _open(tmp_path, broker.port)
     handed: list[tuple[str, int]] = []
     try:
-        pub.write(_window(store, 0))
+        pub.write(stored_window(store, 0))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 1, 20, "the first DDATA")
         node = pub._node
         client = node.client
@@ -761,7 +761,7 @@ def test_seq_wraps_past_255_within_one_connection_without_a_gap(tmp_path: Path,
 
         client.publish = recording  # type: ignore[method-assign]
         for w in range(1, 300):
-            pub.write(_window(store, w))
+            pub.write(stored_window(store, w))
         host.wait(lambda ms: sum(d.kind == "DDATA" for d in ms) == 300, 120, "300 DDATA")
         assert node.client is client and node.connects == 1   # one connection throughout
     finally:
