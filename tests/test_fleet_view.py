@@ -388,7 +388,7 @@ def test_watch_fleet_waits_for_the_network_and_the_first_summary_saying_so() -> 
 
     from twinwatch.cli.watch import fleet_following
 
-    from .test_fleet import Router
+    from .helpers.net import Router
 
     ep = endpoint(free_port())
     router = Router(ep)
