@@ -593,7 +593,7 @@ def test_two_percent_of_the_frames_lost_every_window_is_estimated(tmp_path, time
     from twinwatch.daemon.runner import Daemon
     from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
-    from .sources_support import CAN_DRIVER, candump_line, plant_frames
+    from harness.sources import CAN_DRIVER, candump_line, plant_frames
 
     plant = {"scenario": "resistance_degradation", "fault_start": 0.0}
     rng = random.Random(56)
