@@ -229,12 +229,17 @@ def test_a_repaired_part_reads_no_fault_again() -> None:
 
 
 def test_a_frozen_speed_reading_is_the_sensor_and_a_settled_one_is_not() -> None:
-    """The speed reading frozen from 30 s while the motor changes speed: the stuck reading's
-    twin is named. A noise-free motor that settles and stops (its readings repeat exactly,
+    """The speed reading frozen from 30 s while the motor changes speed: a twin of the speed
+    reading is named, no part of the motor. A noise-free motor that settles and stops (its readings repeat exactly,
     the stopped motor reads exactly 0) is no stuck sensor."""
     frozen = _motor(sensor_faults=[{"channel": "omega", "kind": "frozen", "start": ONSET,
                                     "ramp": 0.0}])
-    assert _final(frozen).top == "sensor_fault", _final(frozen)
+    d = _final(frozen)
+    # the speed reading is the part named (stuck, or a reading off by a drifting offset: the
+    # windows where the set-point holds cannot tell them apart), never a part of the motor
+    assert d.top in ("sensor_fault", "speed_sensor_low", "speed_sensor_high"), d
+    assert "omega reading" in d.faults[0].changes, d.faults[0]
+    assert _worst_wrong(frozen, {"sensor_fault", "speed_sensor_low", "speed_sensor_high"}) < 0.8
     settled = _motor(duration=80.0, noise=0.0,
                      setpoint=SetpointSchedule(steps=[(0.0, 10.0), (25.0, 0.0)]))
     worst = max((f.probability for h in settled if h.diagnosis is not None

@@ -589,11 +589,10 @@ def test_two_percent_of_the_frames_lost_every_window_is_estimated(tmp_path, time
     loss; the missing samples are counted."""
     import random
 
+    from harness.sources import CAN_DRIVER, candump_line, plant_frames
     from twinwatch.config.loader import load_config
     from twinwatch.daemon.runner import Daemon
     from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
-
-    from harness.sources import CAN_DRIVER, candump_line, plant_frames
 
     plant = {"scenario": "resistance_degradation", "fault_start": 0.0}
     rng = random.Random(56)

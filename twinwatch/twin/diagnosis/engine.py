@@ -667,7 +667,7 @@ class HypothesisBank:
                 break
             self._prec, self._rhs = prec - self._prior, rhs - self._prior @ x_nom
         stats = []
-        for f, init in self._kept[len(self._kept) // 2:]:
+        for f, init in self._kept:
             c = columns(f, self.theta, [], self.terms, init)
             if c is None:
                 continue
@@ -681,8 +681,12 @@ class HypothesisBank:
         self._stats = stats
         self._kept = []
         if stats:
-            self.sigma2 = np.maximum(np.median(np.array([a for a, _ in stats]), axis=0),
-                                     self.resolution**2)
+            # each output's variance: the 90th percentile of the baseline's windows (the misfit
+            # a healthy window of this machine reaches, its operating points varying: a
+            # residual threshold set on healthy data, Isermann 2006, sec. 7.3), not their
+            # median, which a later healthy window's model error exceeds half the time
+            self.sigma2 = np.maximum(np.percentile(np.array([a for a, _ in stats]), 90,
+                                                   axis=0), self.resolution**2)
             self.kappa = np.median(np.array([k for _, k in stats]), axis=0)
         else:
             self.sigma2 = np.asarray(proj.s2, dtype=float)

@@ -75,8 +75,9 @@ class Change:
             a braking torque), ``periodic`` (``sin`` and ``cos`` of ``harmonic`` times the
             shaft angle: two amplitudes).
         harmonic: a periodic term's multiple of the shaft's rotation.
-        low, high: the free size's plausible range (ln factor for scale, gain and supply; the
-            channel's unit for offset; the attach point's unit for a term; None: unbounded).
+        low, high: the free size's plausible range (ln factor for scale and supply; ``g`` of a
+            gain; a share of the reading's scale for an offset; the attach point's unit for a
+            term; None: unbounded).
     """
 
     kind: str
@@ -213,9 +214,10 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
     """Simulate the baseline twin and each direction's sensitivity on one window.
 
     Directions: ``("p", name)`` the parameter's logarithm; ``("gain", channel)`` a reading's
-    log-gain (measured = exp(phi) x true); ``("offset", channel)`` a reading's offset [its
-    unit]; ``("supply", channel)`` the log-ratio of what the machine receives on an input to
-    what it reports; ``("term", attach, shape, harmonic)`` a meta-model term's amplitude [the
+    gain (measured = (1 + phi) x true); ``("offset", channel)`` a reading's offset [a share
+    of the reading's scale: its RMS over the window, at least the output's floor];
+    ``("supply", channel)`` the log-ratio of what the machine receives on an input to what
+    it reports; ``("term", attach, shape, harmonic)`` a meta-model term's amplitude [the
     attach point's unit]. Parameter and term directions share one batched simulation; each
     channel correction of an input (the open-loop Va, the closed-loop Va that starts the
     controller's integrator) one more.
@@ -288,12 +290,13 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
         col = np.zeros_like(r0)
         if ch in outputs and d[0] != "supply":
             j = outputs.index(ch)
-            col[:, j] = (y0[1:, j] if d[0] == "gain" else 1.0) / scale[j]
+            # a gain per unit of (g - 1); an offset per unit of the output's scale (its RMS)
+            col[:, j] = y0[1:, j] / scale[j] if d[0] == "gain" else 1.0
         if ch in model.inputs:
-            if d[0] == "offset":
-                w2 = _transformed(window, ch, offset=1e-3 * float(np.sqrt(np.mean(
-                    np.square(window[ch])))) + 1e-12)
-                step = float(np.asarray(window[ch])[0] - w2[ch][0])
+            if d[0] == "offset":     # per unit of the reading's RMS over the window
+                rms = float(np.sqrt(np.mean(np.square(window[ch])))) + 1e-12
+                w2 = _transformed(window, ch, offset=1e-3 * rms)
+                step = 1e-3
             elif d[0] == "gain":      # the true input is the reading over exp(phi)
                 w2 = _transformed(window, ch, gain=math.exp(-LN_STEP))
                 step = LN_STEP

@@ -277,10 +277,13 @@ class Diagnoser:
         p_top = post[order[0]] if order else 0.0
         status: Literal["no_fault", "fault", "unknown", "check_function"]
         best = max(p_none, p_unknown, p_top)
-        if order and best == p_top:
+        split_mass = sum(post[f] for f in order[:3] if post[f] >= SPLIT)
+        if order and best == p_top and (p_top >= 0.5 or split_mass >= 0.5):
             status = "fault"
-        elif best == p_unknown and p_unknown > p_none:
-            status = "unknown"
+        elif 1.0 - p_none > p_none:
+            # a change, but no mode of the library (nor two) stands out among those that fit:
+            # not a finding about a part
+            status, best = "unknown", 1.0 - p_none
         else:
             status = "no_fault"
         split: list[str] = []
@@ -340,11 +343,12 @@ class Diagnoser:
                     continue
                 phi = f.phi[k:k + c.size]
                 sd = f.std[k:k + c.size]
-                if c.kind in ("scale", "gain", "supply"):
-                    v = 100.0 * (float(phi[0]) if c.kind == "gain"
+                if c.kind in ("scale", "gain", "supply", "offset"):
+                    v = 100.0 * (float(phi[0]) if c.kind in ("gain", "offset")
                                  else math.expm1(float(phi[0])))
                     s2 = 200.0 * float(sd[0])
-                    parts.append(f"{spec.describe()} {v:+.2f} % +- {s2:.2f} %")
+                    of = " of its RMS" if c.kind == "offset" else ""
+                    parts.append(f"{spec.describe()} {v:+.2f} %{of} +- {s2:.2f} %")
                 elif c.kind == "term" and c.size == 2:
                     amp = float(np.hypot(phi[0], phi[1]))
                     parts.append(f"{spec.describe()}, amplitude {amp:.3g}")

@@ -15,8 +15,8 @@ A change (one of):
   factor to its power (a supply delivering ``r`` times the voltage the drive reports divides
   Eq. 4's Ra, La and Ke by ``r``); ``range`` the factor's change [%];
 * ``gain = "ia"``: a reading is ``(1 + g)`` times the true value; ``range`` g [%];
-* ``offset = "omega"``: a reading is the true value plus an offset; ``range`` in the channel's
-  unit (one side: its sign);
+* ``offset = "omega"``: a reading is the true value plus an offset; ``range`` in % of the
+  reading's scale (its RMS over the window; one side: its sign);
 * ``supply = "Va"``: the machine receives ``(1 + r)`` times the input it reports; ``range``
   r [%];
 * ``term = "d(omega)/dt"`` with ``shape``: a meta-model term at the attach point (paper
@@ -89,7 +89,7 @@ class ChangeSpec(_Strict):
                                   "shaft's rotation")
     range: tuple[StrictFloat, StrictFloat] | None = Field(
         None, description="the change's plausible size: [%] for parameter, scale, gain and "
-        "supply; the channel's unit for offset; the attach point's unit for a term")
+        "supply; [% of the reading's RMS] for offset; the attach point's unit for a term")
 
     @model_validator(mode="after")
     def _one(self) -> ChangeSpec:
@@ -100,6 +100,10 @@ class ChangeSpec(_Strict):
         if self.range is not None and self.range[0] >= self.range[1]:
             raise ValueError(f"range {list(self.range)}: low must be below high")
         pct = self.kind in ("parameter", "scale", "gain", "supply")
+        if self.kind == "offset" and self.range is not None and (
+                self.range[0] < -1000.0 or self.range[1] > 1000.0):
+            raise ValueError(f"range {list(self.range)}: an offset's range is in % of the "
+                             f"reading's scale (-1000 to 1000)")
         if pct and self.range is not None and self.range[0] <= -100.0:
             raise ValueError(f"range {list(self.range)}: a change in % must stay above -100")
         return self
@@ -134,8 +138,12 @@ class ChangeSpec(_Strict):
             powers = ((str(self.parameter), 1.0),) if self.kind == "parameter" else tuple(
                 (k, float(v)) for k, v in (self.scale or {}).items())
             return Change("scale", powers=powers, low=ln(lo), high=ln(hi))
-        if self.kind in ("gain", "supply"):
+        if self.kind == "supply":
             return Change(self.kind, self.target, low=ln(lo), high=ln(hi))
+        if self.kind in ("gain", "offset"):      # g, and an offset's share of the scale
+            return Change(self.kind, self.target,
+                          low=None if lo is None else lo / 100.0,
+                          high=None if hi is None else hi / 100.0)
         if self.kind == "term":
             return Change("term", self.target, basis=self.shape, harmonic=self.harmonic,
                           low=lo, high=hi)
