@@ -230,8 +230,8 @@ def test_a_repaired_part_reads_no_fault_again() -> None:
 
 def test_a_frozen_speed_reading_is_the_sensor_and_a_settled_one_is_not() -> None:
     """The speed reading frozen from 30 s while the motor changes speed: a twin of the speed
-    reading is named, no part of the motor. A noise-free motor that settles and stops (its readings repeat exactly,
-    the stopped motor reads exactly 0) is no stuck sensor."""
+    reading is named, no part of the motor. A noise-free motor that settles and stops (its
+    readings repeat exactly, the stopped motor reads exactly 0) is no stuck sensor."""
     frozen = _motor(sensor_faults=[{"channel": "omega", "kind": "frozen", "start": ONSET,
                                     "ramp": 0.0}])
     d = _final(frozen)
