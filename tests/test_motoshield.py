@@ -41,15 +41,14 @@ def test_motoshield_pwm_twin_passes_the_model_check_and_tracks_ke_in_every_windo
         for p in h["parameters"].values():
             assert p["value"] > 0  # every published parameter is physical
     # The diagnosis (the dc_motor_pwm library) on the healthy motor warming from a cold start:
-    # no fault at the end, and no part but the field ever named with confidence. The field's
-    # constant Ke reads -2.6 % in window 19 (a ferrite magnet loses about 0.2 %/K as the motor
-    # warms), past the magnets' 2 %: that window names the magnets (measured 0.89), the
-    # windows after it read no fault again (docs/diagnosis.md, "Limits").
+    # no part named with confidence in any window. The field's constant Ke moves about -2 % over
+    # the recording (a ferrite magnet loses about 0.2 %/K as the motor warms): the windows after
+    # the baseline read a change the data split between the magnets and the speed reading
+    # (measured: at most 0.55, 0.46 at the end; docs/diagnosis.md, "Limits").
     for h in hist:
         d = h["diagnosis"]
         assert d["library"] == "dc_motor_pwm (shipped)", d
-        assert all(f["probability"] < 0.8 for f in d["faults"] if f["id"] != "magnet_weakening")
-    assert hist[-1]["diagnosis"]["status"] == "no_fault" and hist[-1]["diagnosis"]["no_fault"] > 0.9
+        assert all(f["probability"] < 0.8 for f in d["faults"]), d
 
 
 @pytest.mark.slow
