@@ -72,7 +72,13 @@ from pydantic import (
 )
 
 from twinwatch.twin.estimation.check import ValidationConfig, check_twin, model_check
-from twinwatch.twin.estimation.fit import ParameterMap, WindowFit, relative_std
+from twinwatch.twin.estimation.fit import (
+    NUMERICAL_SHARE,
+    ParameterMap,
+    WindowFit,
+    long_run_factors,
+    relative_std,
+)
 from twinwatch.twin.estimation.floor import FloorState, StructuralFloor
 from twinwatch.twin.estimation.fusion import (
     FusionConfig,
@@ -294,6 +300,9 @@ class WindowEstimate:
         floor: parameter the window determined -> the structural term added to its published
             relative standard error (1 sigma, fraction; :mod:`~twinwatch.twin.estimation.floor`):
             ``rel_std = sqrt(sigma^2 + floor^2)``, ``sigma`` the window's own.
+        long_run: parameter the window determined -> the factor its published standard error
+            was multiplied by for the residual's serial correlation with its sensitivity
+            (:func:`~twinwatch.twin.estimation.fit.long_run_factors`; >= 1), before the floor.
     """
 
     values: dict[str, float]
@@ -320,6 +329,7 @@ class WindowEstimate:
     search: Literal["swarm", "local"] = "swarm"
     search_reason: str = ""
     floor: dict[str, float] = field(default_factory=dict)
+    long_run: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -652,6 +662,7 @@ class Estimator:
                       cfg.fusion.max_rel_std, suspect=suspect,
                       held_std=self.trusted_std_values())
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
+        long_run = self._long_run(decision, fitted.point, check, out)
         self._fits = trusted
         if trusted:
             self._trust(decision, out.values, t_mid)
@@ -685,7 +696,32 @@ class Estimator:
             search="swarm" if why else "local",
             search_reason=why,
             floor=floors,
+            long_run=long_run,
         )
+
+    def _long_run(self, decision: GateDecision, point: FitPoint, check: ModelCheck | None,
+                  out: Any) -> dict[str, float]:
+        """The sandwich's long-run factor of each parameter the window determined
+        (:func:`~twinwatch.twin.estimation.fit.long_run_factors` at the window's final point:
+        its Jacobian's columns are the admitted parameters, then the initial state), applied
+        to its published relative standard error (``out``, in place) where the model check
+        passed (a failed one widened them already, :attr:`ModelCheck.widen`)."""
+        if not decision.selected or (check is not None and not check.passed):
+            return {}
+        n_sel = len(decision.selected)
+        if point.jac.shape[1] < n_sel:
+            return {}
+        factors = long_run_factors(point.jac, point.r, len(self.model.outputs),
+                                   self.config.model_error, NUMERICAL_SHARE)
+        estimate = self.pmap.estimate
+        used = {}
+        for i, k in enumerate(decision.selected):
+            n = estimate[k]
+            f = float(factors[i])
+            used[n] = f
+            if n in out.rel_std and out.status.get(n) in ("estimated", "suspect"):
+                out.rel_std[n] *= f
+        return used
 
     def _floor(self, decision: GateDecision, theta: FloatArray, t_mid: float, sound: bool,
                rates: Mapping[str, tuple[float, float]], out: Any,
@@ -712,10 +748,10 @@ class Estimator:
         for k, f in self.floor.floors(decision.selected, decision.gain).items():
             n = estimate[k]
             floors[n] = f
-            if f <= 0.0 or out.status.get(n) not in ("estimated", "suspect") \
-                    or n not in out.rel_std:
+            if out.status.get(n) not in ("estimated", "suspect") or n not in out.rel_std:
                 continue
-            out.rel_std[n] = math.hypot(out.rel_std[n], f)
+            if f > 0.0:
+                out.rel_std[n] = math.hypot(out.rel_std[n], f)
             if out.status[n] == "estimated" and out.rel_std[n] > self.config.max_rel_std:
                 self._beyond_floor(out, n, f, (fused or {}).get(n))
         return floors
@@ -727,10 +763,10 @@ class Estimator:
         else held at its trusted value, with the reason (the windows' estimates scatter
         beyond their standard errors: the error the twin makes differs from window to window,
         and an estimate is that far from the machine's value, whatever the window says)."""
-        why = (f"the windows' estimates scatter beyond their standard errors (between windows "
-               f"{floor * 100:.2g} %, 1 sigma: the published error {out.rel_std[name] * 100:.2g}"
-               f" % > max_rel_std {self.config.max_rel_std * 100:.2g} %): the twin does not "
-               "determine it on this machine")
+        why = (f"its published error, the twin's own added, is {out.rel_std[name] * 100:.2g} "
+               f"% > max_rel_std {self.config.max_rel_std * 100:.2g} % (the windows' scatter "
+               f"{floor * 100:.2g} %, 1 sigma, and the residual's correlation with its "
+               "sensitivity): the twin does not determine it on this machine")
         if fused is not None and fused[1] <= self.config.fusion.max_rel_std:
             out.status[name] = "fused"
             out.values[name], out.rel_std[name] = fused
