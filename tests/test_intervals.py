@@ -143,3 +143,31 @@ def test_the_floor_pairs_no_estimates_across_a_sudden_change() -> None:
     fl.restart_pairs()
     fl.observe([0], np.array([math.log(4.0)]), {0: 0.001}, 4.0)
     assert fl.tau()[0] == 0.0 and fl.state.pairs[0] == 1
+
+
+def test_a_rolled_back_window_publishes_no_fused_value_that_took_its_evidence() -> None:
+    """A window the adaptation rolls back (its residual too large for the model) published
+    fused values that included its own evidence (issue 55: Ra fused at -82 % during a ramp of
+    the magnet); withdrawn, they are the rolled-back filter's, and a parameter published
+    ``fused`` is either the earlier windows' fused value or held with the reason."""
+    cfg = DCMotorPlantConfig(scenario="nominal", duration=40, noise={"ia": 1.0, "omega": 1.0},
+                             seed=2)
+    _, wins = plant_windows(cfg, 6, skip=2)
+    est = Estimator(DCMotorTwin(), EstimationConfig())
+    for w in wins[:-1]:
+        est.estimate(w)
+    before = est.snapshot()
+    fused_before = est.fusion.values()
+    e = est.estimate(wins[-1])
+    assert e.fused["Ra"][0] != fused_before["Ra"]  # the window's evidence moved it
+    est.rollback(before)
+    w = est.withdraw(e)
+    ratio = est.fusion.birge()
+    for name, (value, sd) in w.fused.items():
+        assert value == pytest.approx(fused_before[name], rel=1e-12)
+        assert sd == pytest.approx(est.fusion.rel_std()[name] * ratio[name], rel=1e-12)
+    for name, status in w.status.items():
+        if status == "fused":
+            assert w.values[name] == pytest.approx(w.fused[name][0], rel=1e-12)
+        elif e.status[name] == "fused":
+            assert status == "held" and "rolled back" in w.held[name]
