@@ -49,8 +49,8 @@ from benchmarks.bench_heldout import (  # noqa: E402
     FAST_ELECTRICAL,
     _dirname,
     _interval,
-    _simulate,
     _sim_tasks,
+    _simulate,
     select,
 )
 from benchmarks.heldout.cases import Case, batches, cases  # noqa: E402
