@@ -227,9 +227,10 @@ class TwinAdapter:
         self.consecutive = self.consecutive + 1 if too_large else 0
         evidence_p = self.evidence.add(structure)
         if too_large and est.trusted:
-            # The window misses a component: its estimates are biased, do not trust them.
+            # The window misses a component: its estimates are biased, do not trust them, and
+            # publish no fused value that took its evidence (the filter is rolled back)
             est_.rollback(snapshot)
-            est = dataclasses.replace(est, trusted=False)
+            est = est_.withdraw(dataclasses.replace(est, trusted=False))
         disc = None
         if self._cooldown > 0:
             self._cooldown -= 1
