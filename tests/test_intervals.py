@@ -18,7 +18,7 @@ from twinwatch.twin.estimation.floor import StructuralFloor
 from twinwatch.twin.estimation.fusion import FusionConfig, FusionState, ParameterFusion
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
-from .conftest import plant_windows
+from .helpers.plant import plant_windows
 
 #: A drive updating its voltage every 1 ms (a PI on the speed, +-24 V): between two samples of
 #: 10 ms the voltage moves, and the open-loop twin holds the sampled one.
