@@ -463,7 +463,9 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     phis = np.stack([t.phi[:m] for t in tracks])                         # (H, m, q)
     sds = np.stack([t.std[:m] for t in tracks])
     n_eff = np.exp(np.stack([t.ln_n[:m] for t in tracks]))
-    a = np.where(np.isfinite(sds) & (sds > 0), 1.0 / np.maximum(sds, 1e-300) ** 2, 0.0)
+    with np.errstate(divide="ignore", over="ignore"):  # a standard deviation below 1e-150:
+        # an exact window, weight inf, as without the guard (no warning on the daemon's stderr)
+        a = np.where(np.isfinite(sds) & (sds > 0), 1.0 / np.maximum(sds, 1e-300) ** 2, 0.0)
 
     def suf(x: FloatArray) -> FloatArray:
         out: FloatArray = x[:, ::-1].cumsum(axis=1)[:, ::-1]
