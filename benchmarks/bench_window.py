@@ -45,7 +45,6 @@ sys.path.insert(0, str(ROOT))
 
 from twinwatch.config.loader import default_config  # noqa: E402
 from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
-from twinwatch.daemon.window_worker import reading_outputs  # noqa: E402
 from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
 from twinwatch.plant.dcmotor import DCMotorPlant  # noqa: E402
 from twinwatch.twin.adaptation import TwinAdapter  # noqa: E402
@@ -86,8 +85,7 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0) -> tuple[list
     acq = cfg.acquisition
     adapter = TwinAdapter(model, cfg.estimation, cfg.discovery, nominal,
                           prognostics=cfg.prognostics,
-                          thresholds=cfg.alarms.rul_targets(nominal), adaptive=acq.adaptive,
-                          readings=reading_outputs(cfg))
+                          thresholds=cfg.alarms.rul_targets(nominal), adaptive=acq.adaptive)
     ring = RingBuffer(model.required_channels(), window=acq.window,
                       sample_period=acq.sample_period, jitter_tolerance=acq.jitter_tolerance,
                       capacity=4 * acq.window)

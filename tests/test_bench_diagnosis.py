@@ -120,35 +120,16 @@ def test_a_nominal_run_is_judged_from_its_first_window():
     assert r["right"] and r["false_alarm"] is True and not r["confident_wrong"]
 
 
-def test_a_case_is_seen_only_when_the_twin_published_its_fault_s_evidence():
-    """``seen``: the top-1 figure on library faults is split by whether the twin published the
-    fault's evidence at all (a J step that no window estimates, a hydraulic D held at 0.5 %
-    noise): a signed parameter estimated and moved its way by its size and 2 standard errors
-    from the onset, a term of its kinds on its attach points, or a stuck sensor."""
-    from twinwatch.twin.diagnosis.library import shipped_library
-
-    lib = shipped_library("dc_motor")
-
-    def msg(t: float, status: str, dev: float, rel: float | None = 0.5,
-            terms: list[Any] | None = None) -> Any:
-        ra = SimpleNamespace(status=status, nominal=6.5, value=6.5 * (1 + dev / 100),
-                             rel_std_pct=rel)
-        return SimpleNamespace(t_end=t, parameters={"Ra": ra}, terms=terms or [], sensors=[])
-
-    winding = ["winding_short"]
-    assert bench.seen(lib, winding, [msg(100.0, "estimated", -4.0)], 60.0) is True
-    # held, or moved the other way, or within its size, or before the onset: not seen
-    assert bench.seen(lib, winding, [msg(100.0, "held", -4.0)], 60.0) is False
-    assert bench.seen(lib, winding, [msg(100.0, "estimated", 4.0)], 60.0) is False
-    assert bench.seen(lib, winding, [msg(100.0, "estimated", -0.8)], 60.0) is False
-    assert bench.seen(lib, winding, [msg(100.0, "estimated", -4.0, rel=3.0)], 60.0) is False
-    assert bench.seen(lib, winding, [msg(30.0, "estimated", -4.0)], 60.0) is False
-    # a term fault by its term
-    periodic = SimpleNamespace(kind="periodic", attach="d(omega)/dt")
-    assert bench.seen(lib, ["unbalance"], [msg(100.0, "held", 0.0, terms=[periodic])], 60.0)
-    assert not bench.seen(lib, ["unbalance"], [msg(100.0, "held", 0.0)], 60.0)
-    # a case whose answer is no fault has no such signature
-    assert bench.seen(lib, ["no_fault"], [msg(100.0, "estimated", -4.0)], 60.0) is None
+def test_an_honest_split_naming_the_truth_is_right_and_one_without_it_is_not():
+    """The diagnosis may name two modes the data cannot tell apart (``split``) and the check
+    that can: the case is right when the split holds its top answer and an accepted one."""
+    split = _d("fault", "supply_sag", 0.55, {"supply_sag": 0.55, "winding_short": 0.4})
+    split.split = ["supply_sag", "winding_short"]
+    r = bench.judge(_meta(), [(20.0, split)], ["winding_short", "supply_sag"])
+    assert r["right"] and r["split"] == ["supply_sag", "winding_short"]
+    other = _d("fault", "supply_sag", 0.55, {"supply_sag": 0.55, "bearing_wear": 0.4})
+    other.split = ["supply_sag", "bearing_wear"]
+    assert not bench.judge(_meta(), [(20.0, other)], ["winding_short", "supply_sag"])["right"]
 
 
 def test_a_stuck_sensor_finding_counts_for_a_sensor_case_only_on_the_faulted_reading():

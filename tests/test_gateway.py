@@ -673,9 +673,8 @@ def test_a_reload_sees_an_edited_fault_library_and_says_what_it_did_in_one_line(
     machines.mkdir()
     library = tmp_path / "faults.toml"
     fault = ('model = "dc_motor"\n[[faults]]\nid = "{id}"\ncomponent = "armature"\n'
-             'description = "x"\ndeviations = [{{ parameter = "Ra", direction = "down", '
-             'min_pct = 1.0, link = 0.9 }}]\naction = "look"\nurgency = "low"\nprior = 0.01\n'
-             'source = "test"\n')
+             'description = "x"\nchange = {{ parameter = "Ra", range = [-50.0, 0.0] }}\n'
+             'action = "look"\nurgency = "low"\nprior = 0.01\nsource = "test"\n')
     library.write_text(fault.format(id="custom_before"))
     for name in ("m1", "m2", "m3"):
         path = machine_config(machines, name, port=None)

@@ -135,7 +135,7 @@ def _message(processed: tuple[Any, Any, Any], **over: Any) -> HealthMessage:
 
 def test_each_parameter_has_a_typed_status(processed) -> None:  # type: ignore[no-untyped-def]
     h = _message(processed)
-    assert h.as_dict()["schema"] == SCHEMA_VERSION == 13
+    assert h.as_dict()["schema"] == SCHEMA_VERSION == 14
     assert h.as_dict()["run"] == "r1"
     status = {n: p.status for n, p in h.parameters.items()}
     assert status["Kt"] == "tied" and status["Ra"] == "estimated"

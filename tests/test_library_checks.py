@@ -20,40 +20,36 @@ from .helpers.cli import cli, machine_config
 
 GOOD = """model = "dc_motor"
 speed_channel = "omega"
-read_across = ["J"]
 [[faults]]
 id = "shaft_custom"
 component = "shaft"
-terms = [{ kinds = ["periodic"], attach = ["d(omega)/dt"], harmonic = 1.0 }]
-sensors = [{ kind = "frozen", channel = "ia" }]
-checks = [{ output = "Va", link = 0.5 }]
-deviations = [{ parameter = "D", direction = "up", min_pct = 3.0, when_held = ["Ke"] }]
-scaling = [{ parameter = "D", power = -1.0 }]
+alternatives = [{ term = "d(omega)/dt", shape = "periodic", harmonic = 1.0 },
+                { stuck = "ia" }, { gain = "Va", range = [0.0, 50.0] },
+                { parameter = "D", range = [0.0, 100.0] },
+                { scale = { Ke = 1.0, Kt = 1.0 }, range = [-50.0, 0.0] }]
 action = "look"
 source = "test"
 """
 
 BAD = [
-    ('kinds = ["periodic"]', 'kinds = ["periodc"]',
-     "meta-model kind 'periodc', which the registry does not know; did you mean 'periodic'?"),
+    ('term = "d(omega)/dt"', 'term = "d(omegaa)/dt"',
+     "fault 'shaft_custom' names the attach point 'd(omegaa)/dt'; did you mean 'd(omega)/dt'?"),
     ('speed_channel = "omega"', 'speed_channel = "omegaa"',
      "speed_channel 'omegaa' is not a channel of the dc_motor twin; did you mean 'omega'?"),
-    ('channel = "ia"', 'channel = "iaa"',
-     "fault 'shaft_custom' names the sensor channel 'iaa', which the dc_motor twin does not "
-     "measure; did you mean 'ia'?"),
+    ('stuck = "ia"', 'stuck = "iaa"',
+     "fault 'shaft_custom' names the channel 'iaa'; did you mean 'ia'?"),
     ('model = "dc_motor"', 'model = "hydraulic_actuator"',
      "the library is for the 'hydraulic_actuator' model; this machine's model is 'dc_motor'"),
-    ('output = "Va"', 'output = "Vaa"',
-     "fault 'shaft_custom' names the output 'Vaa' in checks, which is not a channel of the "
-     "dc_motor twin; did you mean 'Va'?"),
-    ('when_held = ["Ke"]', 'when_held = ["Kee"]',
-     "fault 'shaft_custom' names the parameter 'Kee' in when_held/when_estimated"),
-    ('kind = "frozen"', 'kind = "stuck"',
-     "faults.0.sensors.0.kind: Input should be 'frozen' or 'saturated'"),
-    ('scaling = [{ parameter = "D"', 'scaling = [{ parameter = "Dd"',
-     "fault 'shaft_custom' names the parameter 'Dd'; the dc_motor model has"),
-    ('read_across = ["J"]', 'read_across = ["Jj"]',
-     "read_across names 'Jj', not a parameter of the dc_motor twin; did you mean 'J'?"),
+    ('gain = "Va"', 'gain = "Vaa"',
+     "fault 'shaft_custom' names the channel 'Vaa'; did you mean 'Va'?"),
+    ('shape = "periodic"', 'shape = "periodc"',
+     "faults.0.alternatives.0.shape: Input should be 'constant', 'coulomb' or 'periodic'"),
+    ('parameter = "D"', 'parameter = "Dd"',
+     "fault 'shaft_custom' names the parameter 'Dd'; did you mean 'D'?"),
+    ('Ke = 1.0, Kt', 'Kee = 1.0, Kt',
+     "fault 'shaft_custom' names the parameter 'Kee'; did you mean 'Ke'?"),
+    ('range = [0.0, 100.0]', 'range = [100.0, 0.0]',
+     "faults.0.alternatives.3: range [100.0, 0.0]: low must be below high"),
 ]
 
 
@@ -63,9 +59,9 @@ def _machine(tmp_path: Path, library: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize(("good", "bad", "why"), BAD, ids=["kind", "speed", "sensor", "model",
-                                                           "check", "when", "key", "scaling",
-                                                           "across"])
+@pytest.mark.parametrize(("good", "bad", "why"), BAD, ids=["attach", "speed", "stuck", "model",
+                                                           "gain", "shape", "parameter",
+                                                           "scale", "range"])
 def test_a_bad_library_is_refused_in_one_line_naming_the_key(
         tmp_path: Path, good: str, bad: str, why: str) -> None:
     library = tmp_path / "faults.toml"
@@ -86,15 +82,16 @@ def test_a_bad_library_is_refused_in_one_line_naming_the_key(
     assert r.exit_code == 78 and why in r.output, r.output
 
 
-def test_an_inline_fault_with_a_misspelt_kind_is_refused() -> None:
+def test_an_inline_fault_with_a_misspelt_parameter_is_refused() -> None:
     from twinwatch.twin.diagnosis.library import DiagnosisConfig
 
     cfg = DiagnosisConfig.model_validate({"replace": True, "faults": [{
         "id": "x", "component": "c", "action": "a", "source": "s",
-        "terms": [{"kinds": ["sinus"], "attach": ["*"]}]}]})
-    with pytest.raises(ValueError, match=r"^diagnosis.faults: fault 'x' names the meta-model "
-                       r"kind 'sinus'"):
-        cfg.check_against("dc_motor", ["Ra"], ["d(ia)/dt"], channels=["ia"], outputs=["ia"])
+        "change": {"parameter": "Raa", "range": [0.0, 10.0]}}]})
+    with pytest.raises(ValueError, match=r"^diagnosis.faults: fault 'x' names the parameter "
+                       r"'Raa'; did you mean 'Ra'\?"):
+        cfg.check_against("dc_motor", ["Ra"], ["d(ia)/dt"], channels=["ia", "omega"],
+                          outputs=["ia", "omega"])
 
 
 def test_a_reload_refuses_a_bad_library_in_one_log_line(
@@ -123,7 +120,7 @@ def test_a_reload_refuses_a_bad_library_in_one_log_line(
                 assert time.monotonic() < deadline
                 time.sleep(0.2)
             seen["daemon"] = d
-            library.write_text(GOOD.replace('kinds = ["periodic"]', 'kinds = ["periodc"]'))
+            library.write_text(GOOD.replace('parameter = "D"', 'parameter = "Dd"'))
             host.reload()
             while not refused():
                 assert time.monotonic() < deadline
@@ -148,7 +145,7 @@ def test_a_reload_refuses_a_bad_library_in_one_log_line(
     (record,) = refused()
     msg = record.getMessage()
     assert "\n" not in msg and "https://" not in msg, msg
-    assert "diagnosis.library" in msg and "meta-model kind 'periodc'" in msg, msg
+    assert "diagnosis.library" in msg and "names the parameter 'Dd'" in msg, msg
     # and the SIGHUP said what changed, in one line (issue 37: a file it reads, not its own)
     hup = [r.getMessage() for r in caplog.records if r.getMessage().startswith("SIGHUP")]
     assert hup == ["SIGHUP: changed: diagnosis.library (faults.toml); reloading m1.toml"], hup

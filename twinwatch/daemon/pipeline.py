@@ -57,8 +57,8 @@ import numpy as np
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.daemon.gatekeeper import HELD_MAX, GateKeeper
 from twinwatch.sinks.base import Gate, ProcessedWindow, Sink
-from twinwatch.twin.adaptation import TwinAdapter
-from twinwatch.twin.diagnosis import Diagnoser, shaft_speed
+from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
+from twinwatch.twin.diagnosis import Diagnoser
 from twinwatch.twin.health import (
     AlarmStatus,
     DiagnosisHealth,
@@ -359,20 +359,33 @@ class WindowPipeline:
             logger.warning("the %s output works again", sink.name)
         return result
 
-    def _diagnose(self, reading: HealthMessage, window: WindowData) -> DiagnosisHealth | None:
-        """The window's diagnosis from the estimation's message and the window's shaft speed;
-        None without a diagnoser, or when it failed (logged once, then at debug level: the
-        window is published without one)."""
+    def _diagnose(self, reading: HealthMessage, window: WindowData,
+                  result: AdaptationResult) -> DiagnosisHealth | None:
+        """The window's diagnosis: each fault mode's twin fitted on the window's data
+        (``result.fit``) beside the estimation's message; None without a diagnoser, or when
+        it failed (logged once, then at debug level: the window is published without one)."""
         if self.diagnoser is None:
             return None
         try:
-            return self.diagnoser.update(
-                reading, shaft_speed(window, self.diagnoser.library.speed_channel))
+            est = result.estimate
+            free = sum(1 for s in est.status.values() if s == "estimated") + (
+                0 if est.initial is None else int(np.size(est.initial)))
+            return self.diagnoser.update(reading, result.fit, est.simulated, free,
+                                         est.initial)
         except Exception:  # noqa: BLE001 - the window is published without a diagnosis
             log = logger.debug if self._diagnosis_failed else logger.exception
             self._diagnosis_failed = True
             log("the diagnosis failed on window %d: published without one", window.index)
             return None
+
+    def _twin_state(self, result: AdaptationResult) -> dict[str, Any] | None:
+        """What a restart resumes from: the accepted twin after a trusted window, with the
+        diagnosis' baseline and the evidence since its change point (every window while
+        there is a diagnoser: a fault's windows are often not trusted, and a restart
+        mid-fault must find its evidence)."""
+        if self.diagnoser is None:
+            return self.adapter.state() if result.estimate.trusted else None
+        return {**self.adapter.state(), "diagnosis": self.diagnoser.state()}
 
     def _source_health(self, window: WindowData) -> SourceHealth:
         """The window's ``source``: its stamps' jitter against the grid the ring buffer placed
@@ -442,7 +455,7 @@ class WindowPipeline:
                                nominal=self.nominal, counters=self._counters(),
                                discovery_enabled=self.adapter.enabled,
                                source=self._source_health(window))
-        diagnosis = self._diagnose(reading, window)
+        diagnosis = self._diagnose(reading, window, result)
         events = self.alarms.update(reading)
         if self.fault_alarms is not None:
             diagnosis, fault_events = self.fault_alarms.update(diagnosis, reading)
@@ -453,8 +466,7 @@ class WindowPipeline:
             for name, state in self.alarms.state().items()})
         out = ProcessedWindow(window=window, result=result, health=health,
                               health_json=health.to_json(), events=events,
-                              twin_state=self.adapter.state() if result.estimate.trusted
-                              else None)
+                              twin_state=self._twin_state(result))
         check = health.model_check
         digest = WindowDigest(None if check is None else check.passed, health.elapsed_s,
                               health.source.jitter_rms_us, health.source.jitter_max_us)

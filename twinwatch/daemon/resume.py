@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from twinwatch.daemon.ringbuffer import RingBuffer
     from twinwatch.sinks.base import Gate
     from twinwatch.twin.adaptation import TwinAdapter
+    from twinwatch.twin.diagnosis import Diagnoser
     from twinwatch.twin.health import HealthView
     from twinwatch.twin.prognostics import Prognostics
 
@@ -51,7 +52,8 @@ def resumes(config: TwinwatchConfig, resume: bool | None) -> bool | None:
 
 
 def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvaluator,
-            run: str | None = None) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+            run: str | None = None, diagnoser: Diagnoser | None = None
+            ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """Resume from the state database: the last accepted twin (trusted parameters and
     meta-model terms) and the alarm levels of the last window. Both are read before either is
     used: a corrupt database (moved aside by ``recover_corrupt``) resumes nothing. The trends
@@ -78,6 +80,8 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
                          store.path, exc)
         else:
             restored = state
+            if diagnoser is not None:
+                _restore_diagnosis(state, diagnoser)
             trusted, terms = _twin_summary(state)
             logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
                         machine, store.path,
@@ -106,6 +110,14 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
         "alarms": {k: a.level for k, a in (raised or {}).items()
                    if a is not None and a.level not in (None, "normal")},
     }
+
+
+def _restore_diagnosis(state: Mapping[str, Any], diagnoser: Diagnoser) -> None:
+    """The diagnosis' baseline and evidence saved with the twin (the pipeline's twin state,
+    not a health message), given back to ``diagnoser``."""
+    saved = state.get("diagnosis")
+    if saved:
+        diagnoser.restore(saved)
 
 
 def _twin_summary(state: Mapping[str, Any]) -> tuple[dict[str, float], int]:

@@ -401,7 +401,8 @@ class Daemon:
         """Resume from the state database (:func:`~twinwatch.daemon.resume.restore`)."""
         assert self.store is not None
         self.restored, self.resumed = restore(self.store, self.machine, self.adapter,
-                                              self.alarms, run=self.run_id)
+                                              self.alarms, run=self.run_id,
+                                              diagnoser=self.pipeline.diagnoser)
 
     def stored_history(self, t_from: float | None = None, t_to: float | None = None,
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.pipeline import WindowDigest
     from twinwatch.daemon.runner import Daemon
-    from twinwatch.twin.health import AcrossRead, HealthMessage, ParameterHealth
+    from twinwatch.twin.health import HealthMessage, ParameterHealth
 
 __all__ = ["EPOCH_PLANT_TIME", "alarm_lines", "failed_line", "machine_lines", "new_run_line",
            "plant_moment", "plant_span", "resumed_line", "window_lines"]
@@ -126,14 +126,12 @@ def plant_moment(t: float) -> str:
 def window_lines(last: HealthMessage) -> list[str]:
     """The last window and each parameter: value, deviation, status."""
     width = max([3, *(len(n) for n in last.parameters)])
-    diagnosis = getattr(last, "diagnosis", None)  # a message of an older schema has none
-    reads = (getattr(diagnosis, "read_across", None) or {}) if diagnosis is not None else {}
     return [f"last window {last.window} [{plant_span(last.t_start, last.t_end)}], "
             f"nRMSE {last.nrmse or float('nan'):.2e}, estimated in "
             f"{last.elapsed_s * 1e3:.0f} ms:",
             *(f"  {name:<{width}} = {_value(p.value)} {p.unit:<10} "
               f"({'n/a' if p.deviation_pct is None else f'{p.deviation_pct:+.2f}'} % vs nominal "
-              f"{p.nominal:g}) {_status(p, reads.get(name))}"
+              f"{p.nominal:g}) {_status(p)}"
               for name, p in last.parameters.items())]
 
 
@@ -168,12 +166,9 @@ def _value(value: float | None) -> str:
     return f"{value:<11.6g}" if value is not None else f"{'n/a':<11}"
 
 
-def _status(p: ParameterHealth, read: AcrossRead | None = None) -> str:
+def _status(p: ParameterHealth) -> str:
     """Why the parameter has its value (estimated, fused, held: the reason), with the fused
-    evidence of an estimated or held one, and the diagnosis' ``read`` of a held one's change
-    across the windows (:class:`~twinwatch.twin.health.AcrossRead`: the fusion of its held
-    values knows nothing of it, the README's run: J "not determined across the windows"
-    while the diagnosis read it +50 %)."""
+    evidence of an estimated or held one."""
     text = {"estimated": "estimated",
             "fused": f"fused over the windows (this one alone: {p.reason})",
             "held": f"held: {p.reason}"}.get(
@@ -186,10 +181,6 @@ def _status(p: ParameterHealth, read: AcrossRead | None = None) -> str:
                      "(2 sigma), no narrower than its nameplate prior")
         else:
             text += f"; fused {fused.value:.6g} +- {_pct(2 * rel)} % (2 sigma)"
-    if read is not None and p.status != "estimated":
-        text += (f"; its change read across {read.over_windows} windows from how the estimates "
-                 f"moved with it (diagnosis): {read.deviation_pct:+.1f} % +- "
-                 f"{_pct(2 * read.std_pct)} % (2 sigma)")
     return text
 
 

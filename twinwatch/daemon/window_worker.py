@@ -53,10 +53,12 @@ RECENT_WINDOWS = 20
 systemd's STATUS whether estimation works *now* (:meth:`WindowWorker.estimation_problem`)."""
 
 
-def make_diagnoser(config: TwinwatchConfig) -> Diagnoser | None:
+def make_diagnoser(config: TwinwatchConfig, model: TwinModel,
+                   nominal: Mapping[str, float]) -> Diagnoser | None:
     """The machine's diagnosis (``[diagnosis]``): its fault library (shipped for the model,
-    extended by the configuration) in a :class:`~twinwatch.twin.diagnosis.Diagnoser`; None when
-    off or when the model has no fault mode."""
+    extended by the configuration) as hypothesis twins of ``model`` at this machine's
+    baseline (:class:`~twinwatch.twin.diagnosis.Diagnoser`); None when off or when the model
+    has no fault mode."""
     d = config.diagnosis
     if not d.enabled:
         return None
@@ -64,58 +66,10 @@ def make_diagnoser(config: TwinwatchConfig) -> Diagnoser | None:
     if not library.faults:
         return None
     source = "configured" if (d.replace or d.library or d.faults) else "shipped"
-    return Diagnoser(library, unknown_prior=d.unknown_prior, listed=d.listed, source=source,
-                     check_function_after_s=d.check_function_after_s,
-                     check_function_share=d.check_function_share,
-                     check_function_clear=d.check_function_clear_windows)
-
-
-def reading_outputs(config: TwinwatchConfig) -> tuple[str, ...]:
-    """The measured outputs the reading check tests: those the machine's fault library names
-    in a fault's ``readings`` (none with ``[diagnosis]`` off or no such fault)."""
-    d = config.diagnosis
-    if not d.enabled:
-        return ()
-    library = d.resolve(config.machine.model)
-    return tuple(dict.fromkeys(r.output for f in library.faults for r in f.readings))
-
-
-def alias_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, ...]:
-    """The parameters whose alias the adapter computes when the window did not estimate them
-    (:mod:`twinwatch.twin.estimation.aliases`): the model's parameters, but tied ones, that no
-    fault of the machine's library names in a deviation sign (the unknown fault's) or that
-    the estimation never estimates (a fault naming one is seen only through the estimates:
-    the PWM drive's fixed Tc, whose rise moves Ra, Ke, J and D together); none with
-    ``[diagnosis]`` off; the default motor estimates all its library names: none."""
-    d = config.diagnosis
-    if not d.enabled:
-        return ()
-    library = d.resolve(config.machine.model)
-    named = {s.parameter for f in library.faults for s in f.deviations}
     resolved = config.estimation.resolved(model)
-    tied = set(resolved.tie or {})
-    estimated = set(resolved.estimate or ())
-    return tuple(n for n in model.parameter_names
-                 if n not in tied and (n not in named or n not in estimated))
-
-
-def tracked_parameters(config: TwinwatchConfig, model: TwinModel) -> tuple[str, ...]:
-    """The parameters whose alias the adapter computes in every window that holds them (the
-    diagnosis reads their change across windows, from how the estimates moved with the
-    windows' aliases): those the machine's library lists in ``read_across`` that the
-    estimation estimates when a window determines them (J on the default motor, held in
-    nearly every window), but tied ones; none with ``[diagnosis]`` off. A parameter the
-    estimation never estimates (the PWM drive's fixed Tc) is read window by window
-    (:func:`alias_parameters`)."""
-    d = config.diagnosis
-    if not d.enabled:
-        return ()
-    library = d.resolve(config.machine.model)
-    resolved = config.estimation.resolved(model)
-    tied = set(resolved.tie or {})
-    estimated = set(resolved.estimate or ())
-    return tuple(n for n in model.parameter_names
-                 if n in library.read_across and n in estimated and n not in tied)
+    return Diagnoser(library, model, nominal, estimate=list(resolved.estimate or ()),
+                     ties=dict(resolved.tie or {}), config=d, source=source,
+                     resolution=config.estimation.model_error)
 
 
 def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[str, float], *,
@@ -130,15 +84,12 @@ def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[st
     adapter = TwinAdapter(model, config.estimation, config.discovery, nominal,
                           prognostics=config.prognostics,
                           thresholds=config.alarms.rul_targets(nominal),
-                          adaptive=acq.adaptive, label=config.machine.name,
-                          readings=reading_outputs(config),
-                          aliases=alias_parameters(config, model),
-                          tracked=tracked_parameters(config, model))
+                          adaptive=acq.adaptive, label=config.machine.name)
     machine = config.machine.name
     pipeline = WindowPipeline(
         adapter=adapter, alarms=AlarmEvaluator(config.alarms, machine), machine=machine,
         model_name=config.machine.model, run=run, nominal=nominal, counters=counters,
-        history=acq.history, source=source, diagnoser=make_diagnoser(config))
+        history=acq.history, source=source, diagnoser=make_diagnoser(config, model, nominal))
     dc = config.diagnosis
     if pipeline.diagnoser is not None and dc.alarm is not None:
         pipeline.fault_alarms = FaultAlarms(dc.alarm, dc.clear, dc.raise_after_windows,

@@ -32,7 +32,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,10 +46,8 @@ from twinwatch.twin.discovery.search import (
 )
 from twinwatch.twin.discovery.terms import Term, compose, format_terms
 from twinwatch.twin.discovery.trigger import StructureEvidence, WindowStructure
-from twinwatch.twin.estimation.aliases import Alias, aliases
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator, WindowEstimate
 from twinwatch.twin.estimation.fit import Residual, WindowFit
-from twinwatch.twin.estimation.readings import ReadingCheck, reading_check
 from twinwatch.twin.estimation.statistics import noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 from twinwatch.twin.prognostics import (
@@ -98,12 +96,6 @@ class AdaptationResult:
         structure: the final residual's structure test (None without discovery).
         evidence_p: the combined p-value of the last ``trigger_windows`` windows' tests,
             before a discovery this window ran on them (None without discovery).
-        readings: the reading check: a wrong reading of each output on the healthy twin
-            (:mod:`twinwatch.twin.estimation.readings`); None when the healthy twin does not
-            simulate the window.
-        aliases: each parameter the window did not estimate -> how a change of it shows in
-            the estimates (:mod:`twinwatch.twin.estimation.aliases`); empty when no estimate
-            moved beyond twice its standard error from its nameplate.
     """
 
     estimate: WindowEstimate
@@ -121,8 +113,9 @@ class AdaptationResult:
     window_choice: WindowChoice | None = None
     structure: WindowStructure | None = None
     evidence_p: float | None = None
-    readings: ReadingCheck | None = None
-    aliases: dict[str, Alias] = field(default_factory=dict)
+    #: the window's fit problem (its data and the twin): what the diagnosis fits its
+    #: hypothesis twins on (:mod:`twinwatch.twin.diagnosis`)
+    fit: WindowFit | None = field(default=None, repr=False)
 
 
 class TwinAdapter:
@@ -137,18 +130,6 @@ class TwinAdapter:
         thresholds: parameter -> its alarm rule's thresholds [SI] (the RUL's targets).
         adaptive: the ``[acquisition.adaptive]`` table (None or disabled: a fixed window).
         label: the machine's name, leading each log line.
-        readings: the measured outputs the reading check tests each window
-            (:mod:`twinwatch.twin.estimation.readings`; None: every one; empty: no check,
-            ``readings`` None). The daemon passes those its fault library names.
-        aliases: the parameters whose alias is computed in a window that did not estimate
-            them and whose estimates moved (:mod:`twinwatch.twin.estimation.aliases`; None:
-            every one; empty: none). The daemon passes those no fault of its library names.
-        tracked: the parameters whose alias is computed in *every* window that did not
-            estimate them, whether or not its estimates moved: the diagnosis reads a change
-            of such a parameter across windows, from how the estimates moved with the
-            windows' aliases (:class:`~twinwatch.twin.diagnosis.Diagnoser`; docs/diagnosis.md,
-            "A parameter the windows hold"). The daemon passes those its fault library lists
-            in ``read_across`` (:func:`~twinwatch.daemon.window_worker.tracked_parameters`).
 
     Raises:
         ValueError: a configuration names a parameter, attach point or input the model lacks.
@@ -159,17 +140,8 @@ class TwinAdapter:
                  nominal: Mapping[str, float] | None = None,
                  prognostics: PrognosticsConfig | None = None,
                  thresholds: Mapping[str, Thresholds] | None = None,
-                 adaptive: AdaptiveWindowConfig | None = None, label: str = "",
-                 readings: Sequence[str] | None = None,
-                 aliases: Sequence[str] | None = None,
-                 tracked: Sequence[str] = ()) -> None:
+                 adaptive: AdaptiveWindowConfig | None = None, label: str = "") -> None:
         self.model = model
-        #: The parameters whose alias is computed (None: every one; empty: none).
-        self.alias_parameters = None if aliases is None else tuple(aliases)
-        #: The parameters whose alias is computed in every window that holds them.
-        self.tracked_parameters = tuple(tracked)
-        #: The outputs the reading check tests (None: every one; empty: no check).
-        self.readings = None if readings is None else tuple(readings)
         #: The log, each line led by ``label`` (the machine's name: a gateway's log says which
         #: machine found a component).
         self._log: logging.Logger | logging.LoggerAdapter[logging.Logger] = (
@@ -255,9 +227,10 @@ class TwinAdapter:
         self.consecutive = self.consecutive + 1 if too_large else 0
         evidence_p = self.evidence.add(structure)
         if too_large and est.trusted:
-            # The window misses a component: its estimates are biased, do not trust them.
+            # The window misses a component: its estimates are biased, do not trust them, and
+            # publish no fused value that took its evidence (the filter is rolled back)
             est_.rollback(snapshot)
-            est = dataclasses.replace(est, trusted=False)
+            est = est_.withdraw(dataclasses.replace(est, trusted=False))
         disc = None
         if self._cooldown > 0:
             self._cooldown -= 1
@@ -315,52 +288,10 @@ class TwinAdapter:
     def _finish(self, window: WindowData, result: AdaptationResult,
                 prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit
                 ) -> AdaptationResult:
-        """After the twin's fit: the reading check and the aliases, then the prognostics."""
-        t0 = time.perf_counter()
-        check = self.readings is None or bool(self.readings)
-        est = result.estimate
-        names = self.model.parameter_names
-        moved = (self.alias_parameters is None or bool(self.alias_parameters)) \
-            and self._moved(est)
-        tracked = [n for n in self.tracked_parameters
-                   if n in names and est.status.get(n) not in ("estimated", "tied")]
-        alias = (moved or bool(tracked)) and any(s == "estimated" for s in est.status.values())
-        terms = compose(result.terms, window) if result.terms and (check or alias) else None
-        if check:
-            # one simulation of the healthy twin (more when it misfits): what the diagnosis
-            # tells a sensor's error from a process fault by
-            result.readings = reading_check(
-                fit, self.estimator.nominal, result.estimate.nrmse, terms, self.readings)
-        if alias:
-            # what the diagnosis tells a change of a parameter the window did not estimate by
-            pmap = self.estimator.pmap
-            asked = [n for n in names if est.status.get(n) not in ("estimated", "tied")
-                     and (n in tracked or moved and (self.alias_parameters is None
-                                                     or n in self.alias_parameters))]
-            result.aliases = aliases(
-                fit, np.array([est.fitted[n] for n in names]),
-                [n for n in names if est.status.get(n) == "estimated"], asked,
-                {names[d]: names[s] for d, s in pmap.ties}, terms, est.initial)
-        result.estimate = dataclasses.replace(
-            result.estimate, elapsed_s=result.estimate.elapsed_s + time.perf_counter() - t0)
+        """After the twin's fit: keep the fit problem for the diagnosis, then the
+        prognostics."""
+        result.fit = fit
         return self._prognose(window, result, prior, fit)
-
-    #: An estimate this many standard errors from its nameplate (and :data:`MOVED_PCT`) has
-    #: moved: the window's aliases are computed.
-    MOVED_SD = 2.0
-    MOVED_PCT = 0.5
-
-    def _moved(self, est: WindowEstimate) -> bool:
-        """Some parameter the window estimated is away from its nameplate."""
-        names = self.model.parameter_names
-        for n, v in est.estimated.items():
-            nom = float(self.estimator.nominal[names.index(n)])
-            if not nom:
-                continue
-            dev = abs(v / nom - 1.0)
-            if dev * 100.0 > self.MOVED_PCT and dev > self.MOVED_SD * est.rel_std.get(n, 0.0):
-                return True
-        return False
 
     def _prognose(self, window: WindowData, result: AdaptationResult,
                   prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit

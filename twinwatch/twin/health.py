@@ -12,6 +12,12 @@ from the model, :func:`read_health` (:data:`HealthView`), never by the decoded J
 The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`:
 
+* 14: the ``diagnosis`` fits each fault mode as a change of the twin on the windows'
+  data (:mod:`twinwatch.twin.diagnosis`): ``split`` and ``separate`` name the modes the data
+  cannot tell apart and the check on the machine that can; ``read_across`` (13), the
+  ``readings`` check (11) and the ``aliases`` (12) are gone, superseded by the hypothesis
+  twins.
+* 13: ``diagnosis.read_across``.
 * 12: ``aliases``: how a change of each parameter the window did not estimate shows in the
   estimates (:mod:`twinwatch.twin.estimation.aliases`), what the diagnosis reads a change the
   library does not know by.
@@ -94,8 +100,6 @@ if TYPE_CHECKING:  # the builder's inputs: a reader of the message (the watcher)
 __all__ = [
     "SCHEMA_VERSION",
     "AcquisitionHealth",
-    "AliasHealth",
-    "AcrossRead",
     "AlarmStatus",
     "CrossingHealth",
     "DiagnosisHealth",
@@ -106,8 +110,6 @@ __all__ = [
     "OutputCheckHealth",
     "HealthMessage",
     "ParameterHealth",
-    "ReadingFitHealth",
-    "ReadingsHealth",
     "ResidualFit",
     "ResidualHealth",
     "RulAlarmStatus",
@@ -128,7 +130,7 @@ __all__ = [
     "trend_line",
 ]
 
-SCHEMA_VERSION = 13
+SCHEMA_VERSION = 14
 
 ParameterStatus = Literal["estimated", "fused", "suspect", "held", "tied", "fixed"]
 """The estimation's :data:`~twinwatch.twin.estimation.publish.ParameterStatus`, restated so
@@ -388,37 +390,6 @@ class ModelCheckHealth(_Part):
     outputs: dict[str, OutputCheckHealth]
 
 
-class ReadingFitHealth(_Part):
-    """``readings.outputs.<output>``: that output's reading corrected on the healthy twin."""
-
-    gain: Num = Field(description="g of reading = g x the healthy twin's output (1: none)")
-    gain_nrmse: Num = Field(description="the healthy twin's nRMSE with that gain")
-    offset: Num = Field(description="o of reading = the healthy twin's output + o [its unit]")
-    offset_nrmse: Num = Field(description="the healthy twin's nRMSE with that offset")
-    mean: Num = Field(description="the healthy twin's mean of the output [its unit]")
-
-
-class ReadingsHealth(_Part):
-    """``readings``: could one wrong reading on a healthy machine explain the window
-    (:mod:`twinwatch.twin.estimation.readings`)?"""
-
-    nominal_nrmse: Num = Field(description="nRMSE of the twin at its nameplate parameters")
-    fit_nrmse: Num = Field(description="nRMSE of the window's process fit (the estimate)")
-    outputs: dict[str, ReadingFitHealth]
-
-
-class AliasHealth(_Part):
-    """``aliases.<parameter>``: how a change of a parameter the window did not estimate shows
-    in the estimates (:mod:`twinwatch.twin.estimation.aliases`)."""
-
-    absorbed: Num = Field(description="share (0..1) of its effect the estimated parameters "
-                          "mimic (1: a change of it shows only through them)")
-    moves: dict[str, Num] = Field(description="estimated parameter -> its change [%] per 1 % "
-                                  "change of this one")
-    effect: Num = Field(description="the normalised RMSE a 1 % change of it makes, nothing "
-                        "re-estimated")
-
-
 class SensorHealth(_Part):
     """``sensors[]``: a measured output stuck at one value while the twin moves
     (:mod:`twinwatch.twin.estimation.quality`): a data-quality fact about that channel."""
@@ -478,21 +449,15 @@ class FaultHealth(_Part):
                                     "first, as sentences with the numbers")
     evidence_against: list[str] = Field(description="the evidence against it (what it would "
                                         "show and the window does not)")
-
-
-class AcrossRead(_Part):
-    """``diagnosis.read_across.<parameter>``: a parameter no window estimates (held), its
-    change read across the windows from how the estimates moved with its alias in each (the
-    library's ``read_across``; docs/diagnosis.md, "A parameter the windows hold")."""
-
-    deviation_pct: float = Field(description="its change from the nameplate [%]")
-    std_pct: float = Field(description="the read's standard error [%, 1 sigma]")
-    over_windows: int = Field(description="the windows read")
+    changes: list[str] = Field(default_factory=list, description="what its twin changes: "
+                               "parameters by name, readings as '<channel> reading', terms "
+                               "by their attach point")
 
 
 class DiagnosisHealth(_Part):
-    """``diagnosis``: from the evidence to the failing part (:mod:`twinwatch.twin.diagnosis`:
-    a noisy-OR network over the machine's fault library)."""
+    """``diagnosis``: from the windows' data to the failing part (:mod:`twinwatch.twin.
+    diagnosis`: each fault mode of the machine's library a change of the twin, fitted on the
+    windows since its change point against this machine's healthy baseline)."""
 
     status: Literal["no_fault", "fault", "unknown", "check_function"] = Field(
         description="the most probable outcome: no fault, a fault of the library (top), a "
@@ -529,10 +494,12 @@ class DiagnosisHealth(_Part):
                                   "signature moves is without evidence from a recent window "
                                   "(held or not estimated), and nothing else shows them; "
                                   "their probability is their prior, not a finding")
-    read_across: dict[str, AcrossRead] = Field(
-        default_factory=dict, description="held parameters whose change the diagnosis reads "
-        "across the windows, read alike in the last windows and used as evidence (parameter "
-        "-> the read); the fusion of their held values knows nothing of it")
+    split: list[str] = Field(default_factory=list, description="fault modes whose twins fit "
+                             "the windows alike (each at least 0.1, none at the alarm): the "
+                             "data cannot tell them apart; the check on the machine that does "
+                             "is in separate")
+    separate: str | None = Field(None, description="the checks on the machine that tell the "
+                                 "split modes apart (null: no split)")
 
 
 class HealthMessage(_Part):
@@ -571,12 +538,6 @@ class HealthMessage(_Part):
     alarms: dict[str, AlarmStatus] = Field(default_factory=dict)
     acquisition: AcquisitionHealth | None = Field(None, description="the window's length "
                                                   "and why")
-    aliases: dict[str, AliasHealth] = Field(
-        default_factory=dict, description="parameter the window did not estimate -> how a "
-        "change of it shows in the estimates (empty: no estimate moved)")
-    readings: ReadingsHealth | None = Field(None, description="the reading check (null: no "
-                                            "fault mode asks for one, or the healthy twin did "
-                                            "not simulate the window)")
     diagnosis: DiagnosisHealth | None = Field(None, description="the ranked fault modes "
                                               "(null: [diagnosis] off or no library)")
 
@@ -715,10 +676,6 @@ def build_health(
         source=source if source is not None else SourceHealth(),
         alarms=dict(alarms or {}),
         acquisition=_acquisition(window, adaptation.window_choice),
-        readings=(ReadingsHealth.model_validate(adaptation.readings.as_dict())
-                  if adaptation.readings is not None else None),
-        aliases={n: AliasHealth.model_validate(a.as_dict())
-                 for n, a in adaptation.aliases.items()},
         diagnosis=diagnosis,
     )
 
@@ -838,6 +795,10 @@ def diagnosis_line(d: DiagnosisHealth | None) -> str | None:
         what = "; ".join(d.unknown_terms + d.unexplained) or "no term yet"
         return (f"diagnosis: a fault the library does not know ({d.unknown:.2f}): {what}")
     f = d.faults[0]
+    if d.split:
+        named = " or ".join(f"{x.id} {x.probability:.2f}" for x in d.faults if x.id in d.split)
+        return (f"diagnosis: {named}: the data cannot tell them apart; to tell: "
+                f"{d.separate or f.action}")
     return (f"diagnosis: {f.id} ({f.component}) {f.probability:.2f}, urgency {f.urgency}: "
             f"{f.action}")
 
@@ -863,12 +824,8 @@ def developing_line(d: DiagnosisHealth | None,
         w = rul.warning
         if w is None or w.status != "predicted":
             continue
-        # the faults this trend is evidence for that nothing else in the window speaks against
-        # (a current sensor reading high expects D up too: D flat rules it out)
-        causes = [f"{f.id} ({f.component})" for f in d.faults
-                  if any(s.startswith(f"{name} trend") for s in f.evidence_for)
-                  and all(s.startswith((f"{name} = ", f"{name} trend"))
-                          for s in f.evidence_against)]
+        # the faults whose twin changes this parameter
+        causes = [f"{f.id} ({f.component})" for f in d.faults if name in f.changes]
         dev = f" {p.deviation_pct:+.2f} % vs nominal," if p.deviation_pct is not None else ""
         rate = (f" degrading {t.rate_pct_per_h:+.3g} %/h," if t.rate_pct_per_h is not None
                 else " degrading,")

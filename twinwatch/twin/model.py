@@ -230,6 +230,27 @@ class TwinModel(abc.ABC):
             raise.
         """
 
+    def time_constants(self, values: Mapping[str, float]) -> dict[str, tuple[float, str]]:
+        """Parameters that set a time constant of the twin on their own, with it.
+
+        A dynamic faster than the sample period leaves almost nothing in the sampled outputs:
+        sampled every ``T``, a pole at ``-1/tau`` becomes ``z = exp(-T/tau)`` (Astrom and
+        Wittenmark, *Computer-Controlled Systems*, 3rd ed., Section 2.3), and with ``tau``
+        below ``T`` both ``z`` and its sensitivity ``(T/tau^2) z`` to ``tau`` are small (a
+        fifth of the period: ``z`` 0.7 %), while what drives it between two samples (a drive's
+        voltage updated every millisecond) is not in the window at all. The estimator does not
+        estimate such a parameter: it is held, its reason saying it is not observable at this
+        sample rate (:mod:`twinwatch.twin.estimation.estimator`). Default: none.
+
+        Args:
+            values: every parameter -> its current value [SI] (the trusted values).
+
+        Returns:
+            parameter name -> (its time constant [s] at ``values``, how it is formed, e.g.
+            ``"tau_e = La/Ra"``).
+        """
+        return {}
+
     def excitation(self, window: WindowData) -> dict[str, str]:
         """Parameters this window does not excite physically, with the reason.
 

@@ -103,8 +103,6 @@ def _parameter_lines(last_doc: HealthView) -> list[str]:
     interval (the one the diagnosis reads) and, when fused, the evidence of every window."""
     lines = ["2. the parameters (the last window; 2-sigma intervals of this window's estimate, "
              "and of the fused evidence):"]
-    diag = last_doc.diagnosis
-    reads = (diag.read_across or {}) if diag is not None else {}
     for name, p in (last_doc.parameters or {}).items():
         status = p.status
         if status in ("tied", "fixed"):
@@ -121,12 +119,6 @@ def _parameter_lines(last_doc: HealthView) -> list[str]:
         lines.append(f"   {name:<8} {_num(value, '.6g')} {p.unit}{band}, "
                      f"{_num(dev, '+.2f')} % vs nameplate {p.nominal:g}, {status}"
                      + (f" ({p.reason})" if p.reason else "") + fz)
-        read = reads.get(name)
-        if read is not None and status != "estimated" and read.deviation_pct is not None \
-                and read.std_pct is not None:
-            lines.append(f"   {'':<8} its change read across {read.over_windows} windows from "
-                         f"how the estimates moved with it (diagnosis): "
-                         f"{read.deviation_pct:+.1f} % +/- {2 * read.std_pct:.2g} %")
     return lines
 
 

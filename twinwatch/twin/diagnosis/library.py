@@ -1,27 +1,40 @@
-"""Fault libraries: each machine model's fault modes as data (TOML), validated with pydantic.
+"""Fault libraries: each machine model's fault modes as changes of its twin (TOML), validated
+with pydantic.
 
-A fault mode names the part it concerns, its signature over the evidence the health message
-publishes, the maintenance action, its urgency and its source (the paper's Table 1 and
-Sections 5.2-5.3, standard references). One library is shipped per twin model
-(``twinwatch/twin/diagnosis/library/<model>.toml``); a machine's ``[diagnosis]`` table extends or
-overrides it (``library = "path.toml"``, inline ``[[diagnosis.faults]]``: a fault with a
+A fault mode names the part it concerns and **what changes in the twin** when it is present,
+never which estimates move or by how much: that follows from the twin on each window's data
+(:mod:`~twinwatch.twin.diagnosis.hypotheses`). One library is shipped per twin model
+(``twinwatch/twin/diagnosis/library/<model>.toml``); a machine's ``[diagnosis]`` table extends
+or overrides it (``library = "path.toml"``, inline ``[[diagnosis.faults]]``: a fault with a
 shipped id replaces it). Format and meaning: docs/diagnosis.md.
 
-Signature items (each with ``link``, the noisy-OR probability that the fault shows it):
+A change (one of):
 
-* ``deviations``: a parameter beyond ``min_pct`` percent of its nameplate, ``up`` or ``down``;
-* ``trends``: a parameter's trend degrading ``up`` or ``down`` (``parameters.<name>.trend``);
-* ``terms``: a discovered meta-model term of one of ``kinds`` (``*``: any) at one of ``attach``
-  (``mode`` optional); ``harmonic``: a periodic term whose angular frequency ``b`` [rad/s] is
-  ``harmonic`` times the shaft speed (the library's ``speed_channel``) within ``tolerance``;
-* ``model_check``: the window's model validation failed;
-* ``sensors``: a frozen or saturated sensor (``channel``: one, or ``*``);
-* ``readings``: one output read too ``high`` or ``low`` (a gain or an offset) on the healthy
-  twin explains the window (the reading check).
+* ``parameter = "Ra"``: the parameter scaled; ``range = [low, high]`` its plausible change [%];
+* ``scale = { Ra = 1, La = 1, Ke = 1 }``: parameters scaled together, each by the common
+  factor to its power (a supply delivering ``r`` times the voltage the drive reports divides
+  Eq. 4's Ra, La and Ke by ``r``); ``range`` the factor's change [%];
+* ``gain = "ia"``: a reading is ``(1 + g)`` times the true value; ``range`` g [%];
+* ``offset = "omega"``: a reading is the true value plus an offset; ``range`` in % of the
+  reading's scale (its RMS over the window; one side: its sign);
+* ``supply = "Va"``: the machine receives ``(1 + r)`` times the input it reports; ``range``
+  r [%];
+* ``term = "d(omega)/dt"`` with ``shape``: a meta-model term at the attach point (paper
+  Eq. 3): ``constant``, ``coulomb`` (a braking ``-sign(speed)``), ``periodic`` (the shaft's
+  ``harmonic``: 1 an unbalance, 2 a misalignment, ISO 21940-11); ``range`` its amplitude in the
+  attach point's unit (``coulomb``: ``[0, ...]``);
+* ``stuck = "omega"``: the reading constant while the twin predicts it changing;
+  ``clipped = "ia"``: the reading limited at its extreme.
+
+``alternatives`` lists the twins a fault may be (each one change); ``together`` one twin of
+several changes at once (where the physics ties them). A fault's ``prior`` is the probability
+it is present at any window; ``confirm`` the check that tells it apart on the machine (said
+when the data cannot).
 """
 
 from __future__ import annotations
 
+import math
 import tomllib
 from collections.abc import Sequence
 from functools import cache
@@ -39,178 +52,176 @@ from pydantic import (
     model_validator,
 )
 
-from twinwatch.twin.diagnosis.evidence import EVIDENCE_KINDS, ModelNames, closest
+from twinwatch.twin.diagnosis.hypotheses import Change, Hypothesis
 
-__all__ = [
-    "CheckSign",
-    "DeviationSign",
-    "DiagnosisConfig",
-    "FaultLibrary",
-    "FaultMode",
-    "ReadingSign",
-    "SensorSign",
-    "TermSign",
-    "TrendSign",
-    "load_library",
-    "shipped_library",
-]
+__all__ = ["ChangeSpec", "DiagnosisConfig", "FaultLibrary", "FaultMode", "closest",
+           "load_library", "shipped_library"]
 
-Link = Field(0.9, gt=0, le=1, description="probability the fault shows this evidence "
-             "(noisy-OR link)")
+_KINDS = ("parameter", "scale", "gain", "offset", "supply", "term", "stuck", "clipped")
+
+
+def closest(name: str, known: Sequence[str]) -> str:
+    """``did you mean 'omega'? known: ia, omega`` (the closest known name, if any)."""
+    import difflib
+
+    close = difflib.get_close_matches(name, list(known), n=1)
+    return (f"did you mean {close[0]!r}? " if close else "") + f"known: {', '.join(known)}"
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-class DeviationSign(_Strict):
-    """A parameter beyond ``min_pct`` % of its nameplate in ``direction``."""
+class ChangeSpec(_Strict):
+    """One change of the twin (exactly one of the kinds; see the module docstring)."""
 
-    parameter: str = Field(description="the twin's parameter (Ra, D, q_pump, ...)")
-    direction: Literal["up", "down"] = Field(description="above (up) or below (down) its "
-                                             "nameplate")
-    min_pct: StrictFloat = Field(gt=0, description="size of the deviation the fault makes [%]")
-    max_pct: StrictFloat | None = Field(None, gt=0, le=300.0, description="the largest "
-                                        "deviation the fault can make [%] (default 300): "
-                                        "beyond it the deviation is evidence of a fault the "
-                                        "library does not know, not of this one")
-    link: float = Link
-    when_held: list[str] = Field(default_factory=list, description="expected only in windows "
-                                 "that hold these parameters (a fault seen through a held "
-                                 "parameter: a weaker magnet reads as D up while Ke is held)")
-    when_estimated: list[str] = Field(default_factory=list, description="expected only in "
-                                      "windows that estimate these parameters (a supply sag "
-                                      "moves D through Kt = Ke only while Ke is estimated)")
-
-    def applies(self, estimated: frozenset[str]) -> bool:
-        """Whether the expectation holds in a window estimating ``estimated``."""
-        return (not any(p in estimated for p in self.when_held)
-                and all(p in estimated for p in self.when_estimated))
+    parameter: str | None = None
+    scale: dict[str, StrictFloat] | None = None
+    gain: str | None = None
+    offset: str | None = None
+    supply: str | None = None
+    term: str | None = None
+    stuck: str | None = None
+    clipped: str | None = None
+    shape: Literal["constant", "coulomb", "periodic"] = Field(
+        "constant", description="a term's shape")
+    harmonic: StrictFloat = Field(1.0, gt=0, description="a periodic term's multiple of the "
+                                  "shaft's rotation")
+    range: tuple[StrictFloat, StrictFloat] | None = Field(
+        None, description="the change's plausible size: [%] for parameter, scale, gain and "
+        "supply; [% of the reading's RMS] for offset; the attach point's unit for a term")
 
     @model_validator(mode="after")
-    def _sizes(self) -> DeviationSign:
-        if self.max_pct is not None and self.max_pct <= self.min_pct:
-            raise ValueError(f"{self.parameter} {self.direction}: max_pct {self.max_pct:g} must "
-                             f"exceed min_pct {self.min_pct:g}")
+    def _one(self) -> ChangeSpec:
+        given = [k for k in _KINDS if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"a change names exactly one of {', '.join(_KINDS)} (got "
+                             f"{', '.join(given) or 'none'})")
+        if self.range is not None and self.range[0] >= self.range[1]:
+            raise ValueError(f"range {list(self.range)}: low must be below high")
+        pct = self.kind in ("parameter", "scale", "gain", "supply")
+        if self.kind == "offset" and self.range is not None and (
+                self.range[0] < -1000.0 or self.range[1] > 1000.0):
+            raise ValueError(f"range {list(self.range)}: an offset's range is in % of the "
+                             f"reading's scale (-1000 to 1000)")
+        if pct and self.range is not None and self.range[0] <= -100.0:
+            raise ValueError(f"range {list(self.range)}: a change in % must stay above -100")
         return self
 
-
-class TrendSign(_Strict):
-    """A parameter's trend degrading in ``direction``."""
-
-    parameter: str = Field(description="the twin's parameter")
-    direction: Literal["up", "down"] = Field(description="the trend's direction")
-    link: float = Field(0.5, gt=0, le=1, description="probability the fault shows this "
-                        "evidence (a wear trends; a sudden fault steps)")
-    when_held: list[str] = Field(default_factory=list, description="as a deviation's")
-    when_estimated: list[str] = Field(default_factory=list, description="as a deviation's")
-
-    def applies(self, estimated: frozenset[str]) -> bool:
-        """Whether the expectation holds in a window estimating ``estimated``."""
-        return (not any(p in estimated for p in self.when_held)
-                and all(p in estimated for p in self.when_estimated))
-
-
-class TermSign(_Strict):
-    """A discovered meta-model term."""
-
-    kinds: list[str] = Field(min_length=1, description="meta-model kinds, '*' for any")
-    attach: list[str] = Field(min_length=1, description="attach points, '*' for any")
-    mode: Literal["additive", "multiplicative"] | None = Field(
-        None, description="the term's mode (none: either)")
-    harmonic: StrictFloat | None = Field(None, gt=0, description="a periodic term's angular "
-                                         "frequency over the shaft speed (1: once per turn)")
-    tolerance: StrictFloat = Field(0.15, gt=0, le=1, description="relative tolerance of the "
-                                   "harmonic")
-    link: float = Link
-    missing_link: float | None = Field(
-        None, gt=0, le=1, description="probability the term is found while the fault acts, "
-        "for the term's absence as evidence against the fault (none: the link). A coulomb "
-        "term at a speed of one sign is a constant braking torque discovery cannot tell "
-        "from a sensor's offset or from D: its absence says little")
+    @property
+    def kind(self) -> str:
+        return next(k for k in _KINDS if getattr(self, k) is not None)
 
     @property
-    def absence_link(self) -> float:
-        """How strongly the term's absence speaks against the fault (its link unless said)."""
-        return self.link if self.missing_link is None else self.missing_link
+    def target(self) -> str:
+        v = getattr(self, self.kind)
+        return "" if isinstance(v, dict) else str(v)
 
+    def names(self) -> tuple[list[str], list[str], list[str]]:
+        """(parameters, channels, attach points) it names."""
+        if self.kind == "parameter":
+            return [str(self.parameter)], [], []
+        if self.kind == "scale":
+            return list(self.scale or {}), [], []
+        if self.kind == "term":
+            return [], [], [str(self.term)]
+        return [], [self.target], []
 
-class ScalingSign(_Strict):
-    """A parameter's deviation that scales as the shaft speed to ``power`` across operating
-    points: -1 for a Coulomb friction torque ``Tc`` absorbed into the viscous friction (``D``
-    then reads ``D + Tc/omega``: +25 % at 5.5 rad/s, +8 % at 17.7 for Tc 0.002 N m on the DC
-    motor), where a worn bearing's D stays put (power 0)."""
+    def change(self) -> Change:
+        """The hypothesis module's :class:`~twinwatch.twin.diagnosis.hypotheses.Change`."""
+        lo, hi = self.range if self.range is not None else (None, None)
 
-    parameter: str = Field(description="the twin's parameter whose deviation scales")
-    power: StrictFloat = Field(-1.0, description="the power of the shaft speed it scales as")
-    link: float = Link
+        def ln(v: float | None) -> float | None:
+            return None if v is None else math.log1p(v / 100.0)
 
+        if self.kind in ("parameter", "scale"):
+            powers = ((str(self.parameter), 1.0),) if self.kind == "parameter" else tuple(
+                (k, float(v)) for k, v in (self.scale or {}).items())
+            return Change("scale", powers=powers, low=ln(lo), high=ln(hi))
+        if self.kind == "supply":
+            return Change(self.kind, self.target, low=ln(lo), high=ln(hi))
+        if self.kind in ("gain", "offset"):      # g, and an offset's share of the scale
+            return Change(self.kind, self.target,
+                          low=None if lo is None else lo / 100.0,
+                          high=None if hi is None else hi / 100.0)
+        if self.kind == "term":
+            return Change("term", self.target, basis=self.shape, harmonic=self.harmonic,
+                          low=lo, high=hi)
+        return Change(self.kind, self.target, low=lo, high=hi)
 
-class SensorSign(_Strict):
-    """A frozen or saturated sensor."""
-
-    kind: Literal["frozen", "saturated"] = Field(description="the stuck sensor's kind")
-    channel: str = Field("*", description="its channel ('*': any)")
-    link: float = Link
-
-
-class CheckSign(_Strict):
-    """One output's model check failing persistently (a share of the recent windows): a
-    reading the twin cannot reproduce while the others fit (a voltage reading's gain)."""
-
-    output: str = Field(description="the twin's output (Va, omega, p, ...)")
-    link: float = Link
-    may_pass: bool = Field(False, description="the fault may as well leave the check passing "
-                           "(an unbalance whose term fits): a failing check is its evidence, "
-                           "a passing one is none against it")
-
-
-class ReadingSign(_Strict):
-    """One wrong reading on a healthy machine explaining the window (the health message's
-    reading check, :mod:`twinwatch.twin.estimation.readings`): the output read too high (a
-    gain above 1 or an offset with the reading's sign) or too low."""
-
-    output: str = Field(description="the twin's measured output (ia, omega, x, p, ...)")
-    direction: Literal["high", "low"] = Field(description="the reading is too high or too "
-                                              "low")
-    link: float = Link
+    def describe(self) -> str:
+        """For a person: ``Ra``, ``Ke and Kt together``, ``ia reading's gain``."""
+        k = self.kind
+        if k == "parameter":
+            return str(self.parameter)
+        if k == "scale":
+            return " and ".join(self.scale or {}) + " together"
+        if k == "term":
+            extra = f" at {self.harmonic:g}x the shaft speed" if self.shape == "periodic" else ""
+            return f"a {self.shape} term on {self.term}{extra}"
+        return {"gain": f"{self.target} reading's gain", "offset": f"{self.target} reading's "
+                "offset", "supply": f"the supply's ratio on {self.target}",
+                "stuck": f"{self.target} reading stuck", "clipped": f"{self.target} reading "
+                "clipped"}[k]
 
 
 class FaultMode(_Strict):
-    """One fault mode of a machine model."""
+    """One fault mode of a machine model: a change of the twin."""
 
     id: str = Field(pattern=r"^[a-z0-9_]+$", max_length=48, description="the fault mode's id "
                     "(lower case, digits, _): published as diagnosis.top")
     component: str = Field(min_length=1, description="the part it concerns")
     description: str = Field("", description="what fails, for a person")
-    deviations: list[DeviationSign] = Field(default_factory=list)
-    trends: list[TrendSign] = Field(default_factory=list)
-    terms: list[TermSign] = Field(default_factory=list)
-    model_check: float | None = Field(None, gt=0, le=1, description="link to a failed model "
-                                      "check")
-    sensors: list[SensorSign] = Field(default_factory=list)
-    scaling: list[ScalingSign] = Field(default_factory=list, description="parameters whose "
-                                       "deviation scales with the shaft speed")
-    checks: list[CheckSign] = Field(default_factory=list, description="outputs whose model "
-                                    "check the fault makes fail persistently")
-    readings: list[ReadingSign] = Field(default_factory=list, description="the reading whose "
-                                        "error explains the window on the healthy twin")
+    change: ChangeSpec | None = Field(None, description="the twin's one change")
+    alternatives: list[ChangeSpec] = Field(default_factory=list, description="the twins the "
+                                           "fault may be, one change each")
+    together: list[ChangeSpec] = Field(default_factory=list, description="changes made at "
+                                       "once (one twin)")
     action: str = Field(min_length=1, description="the maintenance action")
+    confirm: str = Field("", description="the check on the machine that confirms it (said "
+                         "when the data cannot tell it from another mode; default: action)")
     urgency: Literal["low", "medium", "high"] = Field("medium", description="how soon to act")
     prior: float = Field(0.01, gt=0, lt=0.5, description="probability the fault is present at "
                          "any window")
-    source: str = Field(min_length=1, description="the reference the signature comes from")
+    source: str = Field(min_length=1, description="the reference its physics comes from")
 
     @model_validator(mode="after")
-    def _has_signature(self) -> FaultMode:
-        if not any(kind.present(self) for kind in EVIDENCE_KINDS.values()):
-            raise ValueError(f"fault {self.id!r}: its signature is empty (give deviations, "
-                             f"trends, terms, sensors, readings or model_check)")
+    def _has_change(self) -> FaultMode:
+        if not (self.change or self.alternatives or self.together):
+            raise ValueError(f"fault {self.id!r}: give its change (change, alternatives or "
+                             f"together)")
         return self
 
-    def parameters(self) -> set[str]:
-        """The parameters its signature names."""
-        return {d.parameter for d in self.deviations} | {t.parameter for t in self.trends}
+    def twins(self) -> list[list[ChangeSpec]]:
+        """Its twins: each a list of changes made at once."""
+        out: list[list[ChangeSpec]] = []
+        if self.change is not None:
+            out.append([self.change])
+        out += [[c] for c in self.alternatives]
+        if self.together:
+            out.append(list(self.together))
+        return out
+
+    def hypotheses(self, parameters: Sequence[str], channels: Sequence[str],
+                   attach: Sequence[str]) -> list[Hypothesis]:
+        """Its twins as hypotheses, those a twin without the names they need left out (a
+        library shared by twin variants: the PWM drive has no Va channel)."""
+        out = []
+        for i, twin in enumerate(self.twins()):
+            usable = True
+            for c in twin:
+                p, ch, a = c.names()
+                if (any(n not in parameters for n in p) or any(n not in channels for n in ch)
+                        or any(n not in attach for n in a)):
+                    usable = False
+            if usable:
+                out.append(Hypothesis((self.id,), tuple(c.change() for c in twin),
+                                      f"{self.id}#{i}"))
+        return out
+
+    def explained(self, twin: int) -> str:
+        tw = self.twins()[twin]
+        return ", ".join(c.describe() for c in tw)
 
 
 class FaultLibrary(_Strict):
@@ -218,17 +229,7 @@ class FaultLibrary(_Strict):
 
     model: str = Field(description="the twin model it is for (registry name)")
     speed_channel: str = Field("", description="the shaft speed channel [rad/s] a periodic "
-                               "term's frequency is compared with ('' : none)")
-    equations: dict[str, list[str]] = Field(
-        default_factory=dict, description="attach point -> the parameters of the equation it "
-        "adds to: while a term there is one no fault explains, their deviations and trends "
-        "may be its model error (the estimates absorb part of what the twin lacks)")
-    read_across: list[str] = Field(
-        default_factory=list, description="parameters the windows hold that the diagnosis "
-        "reads across windows, from how the estimates moved with each window's alias of it "
-        "(docs/diagnosis.md, 'A parameter the windows hold'); each one measured on the fault "
-        "matrix before it is listed (the default motor's La read -33 % to +37 % on a nominal "
-        "winding's run and named a voltage reading low at 0.88)")
+                               "or Coulomb term is built from ('' : none)")
     faults: list[FaultMode]
 
     @field_validator("faults")
@@ -247,9 +248,8 @@ def load_library(path: str | Path) -> FaultLibrary:
 
     Raises:
         OSError: the file cannot be read (IsADirectoryError: a directory). ValueError: a bad
-        key, in one line naming each bad key with its location (``faults.0.deviations.0.
-        direction: Input should be 'up' or 'down'``), no pydantic link;
-        tomllib.TOMLDecodeError: not TOML.
+        key, in one line naming each bad key with its location (``faults.0.change.range:
+        ...``), no pydantic link; tomllib.TOMLDecodeError: not TOML.
     """
     with open(path, "rb") as fh:
         data = tomllib.load(fh)
@@ -260,8 +260,8 @@ def load_library(path: str | Path) -> FaultLibrary:
 
 
 def one_line(exc: ValidationError) -> str:
-    """A validation error in one line: ``key: message; key: message`` (each key dotted, a
-    fault named by its id where it has one), without pydantic's links."""
+    """A validation error in one line: ``key: message; key: message`` (each key dotted),
+    without pydantic's links."""
     parts = []
     for err in exc.errors(include_url=False):
         loc = ".".join(str(p) for p in err["loc"])
@@ -285,7 +285,7 @@ def shipped_library(model: str) -> FaultLibrary | None:
 
 
 class DiagnosisConfig(_Strict):
-    """``[diagnosis]``: which fault library the diagnosis reads (docs/diagnosis.md)."""
+    """``[diagnosis]``: the fault library and how the diagnosis reads it (docs/diagnosis.md)."""
 
     enabled: bool = Field(True, description="rank the fault modes every window (the health "
                           "message's diagnosis)")
@@ -296,8 +296,13 @@ class DiagnosisConfig(_Strict):
                           "shipped library")
     faults: list[FaultMode] = Field(default_factory=list, description="[[diagnosis.faults]]: "
                                     "fault modes extending or replacing the library's")
-    unknown_prior: float = Field(0.01, gt=0, lt=0.5, description="prior of a fault the "
-                                 "library does not know (a term no fault mode explains)")
+    unknown_prior: float = Field(0.01, gt=0, lt=0.5, description="prior of a change the "
+                                 "library does not know")
+    baseline_windows: int = Field(10, ge=2, le=10000, description="windows that learn this "
+                                  "machine's healthy baseline before a change is looked for "
+                                  "(the machine is taken as healthy then)")
+    keep_windows: int = Field(150, ge=10, le=10000, description="windows kept per hypothesis: "
+                              "a change point is looked for among them")
     listed: int = Field(5, ge=1, le=50, description="most fault modes listed in the message")
     alarm: float | None = Field(0.8, gt=0, le=1, description="a fault whose probability "
                                 "reaches this raises an alarm event (twinwatch/<name>/alarm, "
@@ -344,28 +349,23 @@ class DiagnosisConfig(_Strict):
         shipped = shipped_library(model)
         base = None if self.replace else shipped
         faults = {f.id: f for f in (base.faults if base else [])}
-        speed = shipped.speed_channel if shipped else ""  # the model's, whatever the faults
-        equations = dict(shipped.equations) if shipped else {}
-        across = list(shipped.read_across) if shipped else []
+        speed = shipped.speed_channel if shipped else ""
         if self.library is not None:
             extra = load_library(self.library)
             speed = extra.speed_channel or speed
-            equations.update(extra.equations)
-            across += [p for p in extra.read_across if p not in across]
             faults.update({f.id: f for f in extra.faults})
         faults.update({f.id: f for f in self.faults})
-        return FaultLibrary(model=model, speed_channel=speed, equations=equations,
-                            read_across=across, faults=list(faults.values()))
+        return FaultLibrary(model=model, speed_channel=speed, faults=list(faults.values()))
 
-    def check_against(self, model: str, parameter_names: tuple[str, ...] | list[str],
-                      attach_names: list[str], channels: Sequence[str] = (),
+    def check_against(self, model: str, parameter_names: Sequence[str],
+                      attach_names: Sequence[str], channels: Sequence[str] = (),
                       outputs: Sequence[str] = ()) -> None:
-        """Every name the faults and the library use exists: the parameters and attach points
-        in the twin, the terms' kinds in the meta-model registry
-        (:func:`~twinwatch.twin.discovery.metamodels.available_kinds`), the speed channel
-        among the twin's ``channels``, a sensor's channel among its measured ``outputs`` (empty:
-        not checked), and the library file is the machine's ``model``'s. A name that does not
-        exist makes a fault that can never match, silently: refused instead.
+        """Every name the faults use exists in the twin: a change's parameters, its channel
+        among the twin's ``channels`` (empty: not checked), its attach point; the speed
+        channel; the library file is the machine's ``model``'s. A configured fault (the
+        library file's, an inline one) naming something the machine lacks is refused; a
+        shipped one only when none of its twins is usable (a library shared by the twin's
+        variants: a Coulomb friction parameter exists only with ``coulomb_friction``).
 
         Raises:
             ValueError: one line naming the key (``diagnosis.library``, ``diagnosis.faults``),
@@ -373,8 +373,6 @@ class DiagnosisConfig(_Strict):
         """
         if not self.enabled:
             return
-        from twinwatch.twin.discovery.metamodels import available_kinds
-
         where = "diagnosis"
         if self.library is not None:
             extra = load_library(self.library)
@@ -383,29 +381,37 @@ class DiagnosisConfig(_Strict):
                 raise ValueError(f"{where}: the library is for the {extra.model!r} model; this "
                                  f"machine's model is {model!r}: set its model = {model!r} or "
                                  f"give the {model} library")
-            if extra.speed_channel and channels and extra.speed_channel not in channels:
-                raise ValueError(f"{where}: speed_channel {extra.speed_channel!r} is not a "
-                                 f"channel of the {model} twin; "
-                                 f"{closest(extra.speed_channel, channels)}")
         lib = self.resolve(model)
+        if lib.speed_channel and channels and lib.speed_channel not in channels:
+            raise ValueError(f"{where}: speed_channel {lib.speed_channel!r} is not a channel "
+                             f"of the {model} twin; {closest(lib.speed_channel, channels)}")
         inline = {f.id for f in self.faults}
-        known = ModelNames(model, tuple(parameter_names), tuple(attach_names), tuple(channels),
-                           tuple(outputs), tuple(available_kinds()))
+        configured = inline | ({f.id for f in load_library(self.library).faults}
+                               if self.library is not None else set())
+        chans = list(channels) or None
         for f in lib.faults:
             key = "diagnosis.faults" if f.id in inline else where
-            for kind in EVIDENCE_KINDS.values():
-                problem = kind.problem(f, known)
-                if problem is not None:
-                    raise ValueError(f"{key}: fault {f.id!r} {problem}")
-        for name in lib.read_across:
-            if name not in parameter_names:
-                raise ValueError(f"{where}: read_across names {name!r}, not a parameter of the "
-                                 f"{model} twin; {closest(name, parameter_names)}")
-        for a, names in lib.equations.items():
-            if a not in attach_names:
-                raise ValueError(f"diagnosis: equations names the attach point {a!r}; the "
-                                 f"{model} model has {attach_names}")
-            for name in names:
-                if name not in parameter_names:
-                    raise ValueError(f"diagnosis: equations.{a} names the parameter {name!r}; "
-                                     f"the {model} model has {list(parameter_names)}")
+            problems = []
+            for twin in f.twins():
+                for c in twin:
+                    p, ch, a = c.names()
+                    for n in p:
+                        if n not in parameter_names:
+                            problems.append(f"names the parameter {n!r}; "
+                                            f"{closest(n, parameter_names)}")
+                    for n in a:
+                        if n not in attach_names:
+                            problems.append(f"names the attach point {n!r}; "
+                                            f"{closest(n, attach_names)}")
+                    for n in ch:
+                        if chans is not None and n not in chans:
+                            problems.append(f"names the channel {n!r}; {closest(n, chans)}")
+                    if c.kind == "term" and c.shape != "constant" and not lib.speed_channel:
+                        problems.append(f"has a {c.shape} term, which needs the library's "
+                                        f"speed_channel")
+            usable = len(f.hypotheses(parameter_names, chans or [], attach_names)) \
+                if chans is not None else 1
+            # a configured fault is the user's: every name must exist; a shipped one may hold
+            # twins a variant of the model lacks (a Coulomb friction parameter, a Va reading)
+            if problems and (f.id in configured or usable == 0):
+                raise ValueError(f"{key}: fault {f.id!r} {problems[0]}")

@@ -51,6 +51,7 @@ voltage [V] weigh alike.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -71,7 +72,13 @@ from pydantic import (
 )
 
 from twinwatch.twin.estimation.check import ValidationConfig, check_twin, model_check
-from twinwatch.twin.estimation.fit import ParameterMap, WindowFit, relative_std
+from twinwatch.twin.estimation.fit import (
+    NUMERICAL_SHARE,
+    ParameterMap,
+    WindowFit,
+    long_run_factors,
+    relative_std,
+)
 from twinwatch.twin.estimation.floor import FloorState, StructuralFloor
 from twinwatch.twin.estimation.fusion import (
     FusionConfig,
@@ -293,6 +300,9 @@ class WindowEstimate:
         floor: parameter the window determined -> the structural term added to its published
             relative standard error (1 sigma, fraction; :mod:`~twinwatch.twin.estimation.floor`):
             ``rel_std = sqrt(sigma^2 + floor^2)``, ``sigma`` the window's own.
+        long_run: parameter the window determined -> the factor its published standard error
+            was multiplied by for the residual's serial correlation with its sensitivity
+            (:func:`~twinwatch.twin.estimation.fit.long_run_factors`; >= 1), before the floor.
     """
 
     values: dict[str, float]
@@ -319,6 +329,7 @@ class WindowEstimate:
     search: Literal["swarm", "local"] = "swarm"
     search_reason: str = ""
     floor: dict[str, float] = field(default_factory=dict)
+    long_run: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -468,6 +479,38 @@ class Estimator:
             self.fusion.state = state.fusion.copy()
         # the windows since were biased (a missing component): search globally again
         self._swarm_next = "rolled back"
+
+    def withdraw(self, est: WindowEstimate) -> WindowEstimate:
+        """The window's estimate once :meth:`rollback` has taken its evidence back (the
+        adaptation found its residual too large for the model: a component is missing, its
+        estimates biased): the fused values are the rolled-back filter's, so no published
+        fused value includes the window. A parameter published ``fused`` keeps that status
+        with the earlier windows' fused value where it still meets the fusion's gate, else it
+        is held at its trusted value (issue 55: a fused value moved by a window that was then
+        rolled back was published, Ra fused at -82 % during a ramp of the magnet)."""
+        if self.fusion is None or not est.fused:
+            return est
+        f_val, f_std, ratio = self.fusion.values(), self.fusion.rel_std(), self.fusion.birge()
+        fused = {n: (f_val[n], f_std[n] * ratio[n]) for n in est.fused}
+        status, values = dict(est.status), dict(est.values)
+        rel_std, held = dict(est.rel_std), dict(est.held)
+        for n, st in est.status.items():
+            if st != "fused" or n not in fused:
+                continue
+            value, sd = fused[n]
+            if sd <= self.config.fusion.max_rel_std:
+                values[n], rel_std[n] = value, sd
+                continue
+            status[n] = "held"
+            values[n] = float(self.trusted[self.names.index(n)])
+            rel_std.pop(n, None)
+            held[n] = ("the fused evidence without this window (rolled back: its residual is "
+                       "too large for the model) does not determine it: held at last trusted "
+                       "value")
+        for dep, src in self.pmap.ties:
+            values[self.names[dep]] = values[self.names[src]]
+        return dataclasses.replace(est, fused=fused, status=status, values=values,
+                                   rel_std=rel_std, held=held)
 
     def fusion_state(self) -> dict[str, Any] | None:
         """The fusion's state (JSON-serialisable), for persistence."""
@@ -619,10 +662,13 @@ class Estimator:
                       cfg.fusion.max_rel_std, suspect=suspect,
                       held_std=self.trusted_std_values())
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
+        long_run = self._long_run(decision, fitted.point, check, out)
         self._fits = trusted
         if trusted:
             self._trust(decision, out.values, t_mid)
-        floors = self._floor(decision, twin.theta, t_mid, trusted, rates, out)
+        if jump or (self.fusion is not None and self.fusion.outliers > outliers):
+            self.floor.restart_pairs()  # a change of the machine is no scatter of the twin
+        floors = self._floor(decision, twin.theta, t_mid, trusted, rates, out, fused)
         if run and not faults:  # an output once seen live stays known to be live
             for name, live in live_outputs(problem.fit, run).items():
                 self._live[name] = self._live.get(name, False) or live
@@ -650,16 +696,44 @@ class Estimator:
             search="swarm" if why else "local",
             search_reason=why,
             floor=floors,
+            long_run=long_run,
         )
 
+    def _long_run(self, decision: GateDecision, point: FitPoint, check: ModelCheck | None,
+                  out: Any) -> dict[str, float]:
+        """The sandwich's long-run factor of each parameter the window determined
+        (:func:`~twinwatch.twin.estimation.fit.long_run_factors` at the window's final point:
+        its Jacobian's columns are the admitted parameters, then the initial state), applied
+        to its published relative standard error (``out``, in place) where the model check
+        passed (a failed one widened them already, :attr:`ModelCheck.widen`)."""
+        if not decision.selected or (check is not None and not check.passed):
+            return {}
+        n_sel = len(decision.selected)
+        if point.jac.shape[1] < n_sel:
+            return {}
+        factors = long_run_factors(point.jac, point.r, len(self.model.outputs),
+                                   self.config.model_error, NUMERICAL_SHARE)
+        estimate = self.pmap.estimate
+        used = {}
+        for i, k in enumerate(decision.selected):
+            n = estimate[k]
+            f = float(factors[i])
+            used[n] = f
+            if n in out.rel_std and out.status.get(n) in ("estimated", "suspect"):
+                out.rel_std[n] *= f
+        return used
+
     def _floor(self, decision: GateDecision, theta: FloatArray, t_mid: float, sound: bool,
-               rates: Mapping[str, tuple[float, float]], out: Any) -> dict[str, float]:
+               rates: Mapping[str, tuple[float, float]], out: Any,
+               fused: Mapping[str, tuple[float, float]] | None = None) -> dict[str, float]:
         """The interval's floor (:mod:`~twinwatch.twin.estimation.floor`): a sound window's
         estimates join the between-window scatter, then each parameter the window determined
         has its published relative standard error ``sigma`` made ``sqrt(sigma^2 + floor^2)``
         (``out``, the :class:`~twinwatch.twin.estimation.publish.Published`, in place; a fused
-        value keeps the fusion's). The status stays the window's: the gate's ``max_rel_std``
-        is on what the window determines (``sigma``), the floor on what the twin is.
+        value keeps the fusion's). The gate's ``max_rel_std`` judged what the window
+        determines (``sigma``); a parameter whose published error, the twin's scatter added,
+        is now above it is not published ``estimated``: the window determines it, the twin on
+        this machine does not (:meth:`_beyond_floor`).
 
         Returns:
             Parameter -> its floor (relative, 1 sigma), for the parameters the window
@@ -674,11 +748,36 @@ class Estimator:
         for k, f in self.floor.floors(decision.selected, decision.gain).items():
             n = estimate[k]
             floors[n] = f
-            if f <= 0.0 or out.status.get(n) not in ("estimated", "suspect") \
-                    or n not in out.rel_std:
+            if out.status.get(n) not in ("estimated", "suspect") or n not in out.rel_std:
                 continue
-            out.rel_std[n] = math.hypot(out.rel_std[n], f)
+            if f > 0.0:
+                out.rel_std[n] = math.hypot(out.rel_std[n], f)
+            if out.status[n] == "estimated" and out.rel_std[n] > self.config.max_rel_std:
+                self._beyond_floor(out, n, f, (fused or {}).get(n))
         return floors
+
+    def _beyond_floor(self, out: Any, name: str, floor: float,
+                      fused: tuple[float, float] | None) -> None:
+        """Publish ``name`` (``out``, in place) as what it is when the twin's scatter makes
+        its error exceed ``max_rel_std``: the fused value where that meets the fusion's gate,
+        else held at its trusted value, with the reason (the windows' estimates scatter
+        beyond their standard errors: the error the twin makes differs from window to window,
+        and an estimate is that far from the machine's value, whatever the window says)."""
+        why = (f"its published error, the twin's own added, is {out.rel_std[name] * 100:.2g} "
+               f"% > max_rel_std {self.config.max_rel_std * 100:.2g} % (the windows' scatter "
+               f"{floor * 100:.2g} %, 1 sigma, and the residual's correlation with its "
+               "sensitivity): the twin does not determine it on this machine")
+        if fused is not None and fused[1] <= self.config.fusion.max_rel_std:
+            out.status[name] = "fused"
+            out.values[name], out.rel_std[name] = fused
+            out.held[name] = f"{why}; the fused value is published"
+        else:
+            out.status[name] = "held"
+            out.values[name] = float(self.trusted[self.names.index(name)])
+            out.rel_std.pop(name, None)
+            out.held[name] = f"{why}: held at last trusted value"
+        for dep, src in self.pmap.ties:
+            out.values[self.names[dep]] = out.values[self.names[src]]
 
     def stagger_guard(self, name: str) -> int:
         """Bring the first guard swarm forward by a phase of 0 to ``swarm_every - 1`` windows
@@ -724,7 +823,8 @@ class Estimator:
                                        model_error=cfg.model_error)
             if not self._residual_too_large(problem, polished.point.r):
                 admitted = self.gate.confirm(problem, polished, self._admitted,
-                                             self.model.excitation(window))
+                                             self.model.excitation(window),
+                                             self.unobservable(window))
         if admitted is None:
             polished = polish(problem, found.q, enabled=cfg.polish,
                               model_error=cfg.model_error)
@@ -844,7 +944,8 @@ class Estimator:
         """
         cfg = self.config
         if admitted is None:
-            admitted = self.gate.admit(problem, polished, self.model.excitation(window))
+            admitted = self.gate.admit(problem, polished, self.model.excitation(window),
+                                       self.unobservable(window))
         decision, point = admitted
         self._admitted = list(decision.selected)
         # ... their standard errors marginal over the held values' own uncertainty
@@ -949,6 +1050,24 @@ class Estimator:
             return f"the model check failed ({first})"
         return None
 
+    def unobservable(self, window: WindowData) -> dict[str, str]:
+        """The estimated parameters this window's sample rate cannot observe, with the reason:
+        those whose time constant (:meth:`TwinModel.time_constants`, at the trusted values) is
+        below the window's sample period. The gate holds them at their trusted value (without
+        holding the parameters after them) and the fusion never informs them: published
+        ``held`` with that reason, never a number with an interval (issue 55: a servo's La,
+        tau_e 2 ms sampled every 10 ms, was published estimated 3-5 of its 2-sigma off)."""
+        period = window.sample_period
+        if not (period > 0):
+            return {}
+        out = {}
+        for name, (tau, what) in self.model.time_constants(self.trusted_values()).items():
+            if name in self.pmap.estimate and 0 < tau < period:
+                out[name] = (f"not observable at this sample rate ({what} = "
+                             f"{tau * 1e3:.3g} ms, below the {period * 1e3:.3g} ms sample "
+                             "period)")
+        return out
+
     def trusted_std_values(self) -> dict[str, float]:
         """Every parameter's trusted value's relative standard error (0: a nameplate or a
         resumed value, taken as exact)."""
@@ -963,8 +1082,9 @@ class Estimator:
             return {}, False
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
         before = self.fusion.outliers
-        out = fuse_window(self.fusion, problem, polished, len(decision.selected), t_mid,
-                          informative, step_tol=step_tol)
+        skip = [k for k, n in enumerate(self.pmap.estimate) if n in self.unobservable(window)]
+        out = fuse_window(self.fusion, problem, polished, decision.selected, t_mid,
+                          informative, step_tol=step_tol, skip=skip)
         if self.fusion.outliers > before:
             name, factor = self.fusion.last_outlier or ("a parameter", float("nan"))
             logger.log(logging.INFO if before == 0 else logging.DEBUG,

@@ -577,6 +577,59 @@ def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: floa
     return covariance(jac, residual_variances(r, n_out, floor, n, numerical))
 
 
+def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
+                     numerical: float = 0.0, lags: int | None = None) -> FloatArray:
+    """Per column of ``jac``, how much wider its standard error is when the residual's
+    serial correlation with the sensitivities is counted: ``sqrt(max(1, V_hac / V))``, ``V``
+    the variance :func:`parameter_covariance` gives (each output's residual variance with its
+    AR(1) factor), ``V_hac`` the heteroskedasticity and autocorrelation consistent sandwich
+    ``A^-1 S A^-1`` (White 1982, *Maximum likelihood estimation of misspecified models*,
+    Econometrica 50: the least-squares estimate of a misspecified model is normal about its
+    pseudo-true value with this covariance; Newey and West 1987, Econometrica 55: ``S`` the
+    long-run variance of the per-sample scores ``g_t = J_t^T r_t``, Bartlett weights
+    ``1 - l/(L+1)`` over ``L = N // 4`` lags, as :func:`~.statistics.long_run_factor`).
+
+    A twin that misses part of the machine leaves a residual that follows the inputs, and the
+    parameters whose sensitivities follow them too take it up window after window: their
+    scores stay of one sign for many samples, which the AR(1) factor of the residual alone
+    does not see. White residuals give about 1.
+
+    Args:
+        jac: (M, n) Jacobian of the normalised residuals (``n_out`` outputs interleaved).
+        r: (M,) the residuals.
+        n_out: outputs.
+        floor, numerical: :func:`parameter_covariance`'s.
+        lags: L (default ``N // 4``).
+
+    Returns:
+        (n,) factors >= 1 (1 for a column without a finite variance).
+    """
+    m, n = jac.shape
+    nt = m // n_out
+    out = np.ones(n)
+    if n == 0 or nt < 4 or not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
+        return out
+    base = np.diag(parameter_covariance(jac, r, n_out, floor, numerical=numerical))
+    g = (jac * r[:, None]).reshape(nt, n_out, n).sum(axis=1)
+    big_l = max(1, min(lags if lags is not None else nt // 4, nt - 1))
+    s = g.T @ g
+    for lag in range(1, big_l + 1):
+        gl = g[lag:].T @ g[:-lag]
+        s += (1.0 - lag / (big_l + 1.0)) * (gl + gl.T)
+    norms = np.linalg.norm(jac, axis=0)
+    safe = np.where(norms > 0, norms, 1.0)
+    js = jac / safe
+    lam, vec = np.linalg.eigh(js.T @ js)
+    keep = lam > RCOND * max(float(lam.max()), 1e-300)
+    a_inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
+    hac = np.diag(a_inv @ (s / np.outer(safe, safe)) @ a_inv) / (safe * safe)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = hac / base
+    good = np.isfinite(ratio) & np.isfinite(base) & (base > 0)
+    out[good] = np.sqrt(np.maximum(ratio[good], 1.0))
+    return out
+
+
 def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int,
                        numerical: float = 0.0) -> FloatArray:
     """Variance of each normalised residual row (M,), estimated per output: the mean square

@@ -139,6 +139,13 @@ class StructuralFloor:
                 s.pairs[k] += 1
             s.last[k] = (x, sd * sd, t)
 
+    def restart_pairs(self) -> None:
+        """Pair no estimate with one before now: the fusion found a sudden change (a step of
+        the machine, which the pairs' model, a stationary parameter with the fused rate's
+        drift, does not describe: D x4 at once counted as scatter made every later interval
+        of D 100 % wide). The pairs summed so far stay."""
+        self.state.last = [None] * self.n_est
+
     def tau(self) -> FloatArray:
         """(n_est,) each parameter's between-window standard deviation of ln p (0 without a
         pair, or when the pairs scatter no more than their standard errors say)."""

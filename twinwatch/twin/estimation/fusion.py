@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -112,24 +112,35 @@ class FusionConfig(BaseModel):
 
 @dataclass
 class FusionState:
-    """The filter's state: mean (n_state,) and covariance (n_state, n_state), and the time of
-    the last update [s] (None before the first window)."""
+    """The filter's state: mean (n_state,) and covariance (n_state, n_state), the time of
+    the last update [s] (None before the first window), and per parameter the sum of the
+    fused windows' squared normalised innovations and their count (2, n) (the Birge ratio's,
+    :meth:`ParameterFusion.birge`; None: none yet)."""
 
     mean: FloatArray
     cov: FloatArray
     t: float | None
+    scatter: FloatArray | None = None
 
     def copy(self) -> FusionState:
-        return FusionState(self.mean.copy(), self.cov.copy(), self.t)
+        return FusionState(self.mean.copy(), self.cov.copy(), self.t,
+                           None if self.scatter is None else self.scatter.copy())
 
     def as_dict(self) -> dict[str, Any]:
-        return {"mean": [float(v) for v in self.mean],
-                "cov": [[float(v) for v in row] for row in self.cov], "t": self.t}
+        out: dict[str, Any] = {"mean": [float(v) for v in self.mean],
+                               "cov": [[float(v) for v in row] for row in self.cov],
+                               "t": self.t}
+        if self.scatter is not None:
+            out["scatter"] = [[float(v) for v in row] for row in self.scatter]
+        return out
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> FusionState:
+        """:meth:`as_dict` read back (a state saved before the scatter: none yet)."""
+        sc = d.get("scatter")
         return cls(np.asarray(d["mean"], dtype=float), np.asarray(d["cov"], dtype=float),
-                   None if d.get("t") is None else float(d["t"]))
+                   None if d.get("t") is None else float(d["t"]),
+                   None if sc is None else np.asarray(sc, dtype=float))
 
 
 class ParameterFusion:
@@ -165,7 +176,7 @@ class ParameterFusion:
         var = np.full(self.n_state, c.initial_std**2)
         if self.trend:
             var[n:] = c.initial_rate_std**2
-        self.state = FusionState(mean, np.diag(var), None)
+        self.state = FusionState(mean, np.diag(var), None, np.zeros((2, n)))
         self._shift = {}
         self._outlier_run: list[tuple[int, float]] = []   # (parameter, ln move) in a row
 
@@ -238,7 +249,8 @@ class ParameterFusion:
             the filter only advances (counted in ``outliers``) and False is returned.
         """
         mean, cov = self.predict(t)
-        predicted = FusionState(mean.copy(), cov.copy(), t)
+        scatter = self._scatter()
+        predicted = FusionState(mean.copy(), cov.copy(), t, scatter.copy())
         jump = False
         if linearize is not None and row_var is not None:
             n = self.n
@@ -291,6 +303,7 @@ class ParameterFusion:
                 self._shift = {}
             else:
                 jump = self._level_shift(step, info, cov, sel)
+            z2 = self._normalised_innovations(step, info, cov, sel)
             y_prior = _safe_inverse(cov)
             x = mean.copy()
             if start is not None:
@@ -338,8 +351,36 @@ class ParameterFusion:
             cov_post = _safe_inverse(y_prior + h.T @ info @ h)
             mean = x
             cov = 0.5 * (cov_post + cov_post.T)
-        self.state = FusionState(mean, cov, t)
+            for i, v in z2.items():
+                scatter[0, i] += v
+                scatter[1, i] += 1.0
+        self.state = FusionState(mean, cov, t, scatter)
         return jump
+
+    def _scatter(self) -> FloatArray:
+        """The state's Birge sums (2, n), zeros when it has none (or of another size)."""
+        sc = self.state.scatter
+        if sc is None or sc.shape != (2, self.n):
+            return np.zeros((2, self.n))
+        return sc.copy()
+
+    @staticmethod
+    def _normalised_innovations(step: FloatArray, info: FloatArray, cov: FloatArray,
+                                sel: np.ndarray) -> dict[int, float]:
+        """Per parameter the window informs, its squared normalised innovation: the window's
+        own estimate against the prediction (``step``, ln), over the sum of the prediction's
+        variance (after a jump's or a level shift's inflation) and the window's marginal one;
+        about 1 on average when the windows' standard errors and the filter are right."""
+        if sel.size == 0:
+            return {}
+        r = _safe_inverse(info[np.ix_(sel, sel)])
+        out = {}
+        for j, i in enumerate(sel):
+            var = float(cov[i, i]) + float(r[j, j])
+            d = float(step[i])
+            if float(r[j, j]) > 0 and math.isfinite(var) and math.isfinite(d):
+                out[int(i)] = d * d / var
+        return out
 
     def _level_shift(self, step: FloatArray, info: FloatArray, cov: FloatArray,
                      sel: np.ndarray) -> bool:
@@ -383,6 +424,30 @@ class ParameterFusion:
         """Fused relative (ln) standard error of each parameter."""
         d = np.diag(self.state.cov)[:self.n]
         return {n: float(math.sqrt(max(d[i], 0.0))) for i, n in enumerate(self.names)}
+
+    def birge(self) -> dict[str, float]:
+        """Each parameter's Birge ratio across the fused windows (>= 1): the root mean square
+        of their normalised innovations (the window's own estimate against the filter's
+        prediction, over their combined standard error), 1 without any or when the windows
+        scatter no more than their standard errors say.
+
+        Birge (1932), *The calculation of errors by the method of least squares*, Phys. Rev.
+        40, 207: when independent determinations of a quantity scatter about their weighted
+        mean by more than their stated errors explain, the ratio ``R = sqrt(chi^2 / dof)``
+        measures the error they share unstated, and the mean's standard error is multiplied
+        by it. Here the determinations are the windows, the mean the filter's prediction, and
+        ``chi^2 / dof`` the mean normalised innovation squared (the Kalman filter's own
+        consistency test, Bar-Shalom, Li and Kirubarajan, *Estimation with Applications to
+        Tracking and Navigation*, 2001, Section 5.4): a twin whose error differs from window
+        to window (its excitation) scatters its windows' estimates, and a fused value that
+        averages them is no more precise than that scatter allows. Read by the published
+        interval only (:func:`fuse_window`); the filter's state keeps its own covariance."""
+        sc = self._scatter()
+        out = {}
+        for i, n in enumerate(self.names):
+            cnt = float(sc[1, i])
+            out[n] = math.sqrt(max(1.0, float(sc[0, i]) / cnt)) if cnt > 0 else 1.0
+        return out
 
     def rates(self) -> dict[str, float]:
         """Fused relative rate of change of each parameter [1/s] (0 for a random walk)."""
@@ -456,15 +521,16 @@ def _information(cov: FloatArray) -> FloatArray:
 
 
 def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polished,
-                n_selected: int, t_mid: float, informative: bool, step_tol: float = 0.0
-                ) -> tuple[dict[str, tuple[float, float]], bool]:
+                selected: Sequence[int], t_mid: float, informative: bool, step_tol: float = 0.0,
+                skip: Sequence[int] = ()) -> tuple[dict[str, tuple[float, float]], bool]:
     """Stage 5, the evidence across windows: fuse one window into the filter.
 
     A window that is ``informative`` (its fit good enough to trust and its model check
     passed) informs the parameters it determined and the first it could not (weakly: noise,
     not structure, may be why); the ones after it are held at their trusted values, as the
     window's estimate held them (with a viscous load J, Ke and D trade off exactly: jointly, no
-    window determines D). Its least-squares problem is re-linearised at each iterate of the
+    window determines D); a parameter in ``skip`` (not observable at this sample rate) is
+    never informed. Its least-squares problem is re-linearised at each iterate of the
     filter (:meth:`ParameterFusion.update`) around the polished initial state, with the
     polish's row variances as weights. Any other window only advances the filter to its time.
 
@@ -472,14 +538,17 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
         fusion: the filter (its state is updated).
         problem: the window's problem.
         polished: the polish over every estimated parameter (initial state, row variances).
-        n_selected: parameters the gate admitted (the first ``n_selected`` in priority).
+        selected: the positions the gate admitted, in priority order.
         t_mid: the window's middle [s].
         informative: fuse the window's evidence (else advance only).
         step_tol: :meth:`ParameterFusion.update`'s ``step_tol``.
+        skip: positions never fused (the gate held them as not observable at this sample
+            rate: :meth:`~twinwatch.twin.estimation.gate.IdentifiabilityGate.select`).
 
     Returns:
-        (estimated parameter -> (fused value [SI], relative standard error), whether the
-        window was a jump for the filter).
+        (estimated parameter -> (fused value [SI], relative standard error: the filter's
+        times its Birge ratio, :meth:`ParameterFusion.birge`), whether the window was a
+        jump for the filter).
     """
     jump = False
     if informative:
@@ -487,9 +556,12 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
         base_ln = np.log(problem.base[problem.pmap.idx])
         nuis = problem.nuisance
         local = problem.local
-        cols = np.arange(min(n_selected + 1, n_est))
+        firm = np.asarray(list(selected), dtype=int)
+        held = [k for k in range(n_est) if k not in set(selected) and k not in set(skip)]
+        # the admitted ones, then the first held one (the priority's next)
+        cols = np.concatenate([firm, np.asarray(held[:1], dtype=int)])
         start = polished.point.v[:n_est]
-        if n_selected < n_est:
+        if held:
             step = _first_held_step(problem, polished, cols, base_ln)
             if step is None:
                 cols = cols[:-1]
@@ -509,11 +581,11 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
 
         jump = fusion.update(t_mid, linearize, polished.row_var, nuis.size, cols=cols,
                              bounds=(problem.xl, problem.xu),
-                             start=start, step_tol=step_tol, firm=cols[:n_selected])
+                             start=start, step_tol=step_tol, firm=firm)
     else:
         fusion.update(t_mid)
-    f_val, f_std = fusion.values(), fusion.rel_std()
-    return {n: (f_val[n], f_std[n]) for n in problem.pmap.estimate}, jump
+    f_val, f_std, ratio = fusion.values(), fusion.rel_std(), fusion.birge()
+    return {n: (f_val[n], f_std[n] * ratio[n]) for n in problem.pmap.estimate}, jump
 
 
 __all__ = ["FusionConfig", "FusionState", "ParameterFusion", "fuse_window"]

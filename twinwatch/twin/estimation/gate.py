@@ -88,7 +88,8 @@ class IdentifiabilityGate:
         return relative_std(jac, r, self.n_out, self.model_error, NUMERICAL_SHARE)
 
     def select(self, jac: FloatArray, r: FloatArray,
-               unexcited: Mapping[str, str] | None = None, n_nuisance: int = 0
+               unexcited: Mapping[str, str] | None = None, n_nuisance: int = 0,
+               unobservable: Mapping[str, str] | None = None
                ) -> tuple[list[int], dict[int, float], dict[int, str]]:
         """Admit parameters in priority order while all admitted stay determined.
 
@@ -100,6 +101,10 @@ class IdentifiabilityGate:
             unexcited: parameters the model says this window does not excite
                 (:meth:`TwinModel.excitation`), with the reason; held like undetermined ones.
             n_nuisance: nuisance columns at the end of ``jac``.
+            unobservable: parameters not observable at this sample rate
+                (:meth:`TwinModel.time_constants`), with the reason: held, and skipped without
+                holding the ones after them (unlike an undetermined or unexcited one: the
+                others' evidence does not trade off with a dynamic the samples do not see).
 
         Returns:
             (admitted positions, their relative standard errors, position -> reason for each
@@ -113,6 +118,9 @@ class IdentifiabilityGate:
         nuis = list(range(n_par, jac.shape[1]))
         for k in range(n_par):
             name = self.names[k]
+            if unobservable and name in unobservable:
+                reasons[k] = f"{unobservable[name]}: held at last trusted value"
+                continue
             if blocked is not None:
                 reasons[k] = (f"held with {blocked} (lower priority): held at last trusted "
                               "value")
@@ -158,7 +166,8 @@ class IdentifiabilityGate:
         return np.hstack([point.jac, cols]), n_nuis + cols.shape[1]
 
     def admit(self, problem: WindowProblem, polished: Polished,
-              unexcited: Mapping[str, str] | None = None) -> tuple[GateDecision, FitPoint]:
+              unexcited: Mapping[str, str] | None = None,
+              unobservable: Mapping[str, str] | None = None) -> tuple[GateDecision, FitPoint]:
         """Select the parameters the polished optimum determines and, if some are held,
         re-fit the admitted ones (and the initial state) with the held ones at their trusted
         values.
@@ -166,7 +175,7 @@ class IdentifiabilityGate:
         Args:
             problem: the window's problem.
             polished: the optimum over every estimated parameter.
-            unexcited: see :meth:`select`.
+            unexcited, unobservable: see :meth:`select`.
 
         Returns:
             (the decision, the point the window's twin is simulated at: the re-fit's, with
@@ -174,7 +183,7 @@ class IdentifiabilityGate:
         """
         point = polished.point
         jac, n_nuis = self._with_terms(problem, point)
-        selected, rel_std, reasons = self.select(jac, point.r, unexcited, n_nuis)
+        selected, rel_std, reasons = self.select(jac, point.r, unexcited, n_nuis, unobservable)
         held = {name: reasons[k] for k, name in enumerate(self.names) if k not in selected}
         if len(selected) < problem.n_est:
             held_pos = [k for k in range(problem.n_est) if k not in selected]
@@ -185,7 +194,8 @@ class IdentifiabilityGate:
         return GateDecision(selected, rel_std, held), point
 
     def confirm(self, problem: WindowProblem, polished: Polished, selected: list[int],
-                unexcited: Mapping[str, str] | None = None
+                unexcited: Mapping[str, str] | None = None,
+                unobservable: Mapping[str, str] | None = None
                 ) -> tuple[GateDecision, FitPoint] | None:
         """The gate on a polish that moved only ``selected`` (the last window's admitted
         set), the others at their trusted values, with a Jacobian of every column
@@ -196,7 +206,7 @@ class IdentifiabilityGate:
         (the caller polishes every parameter and runs :meth:`admit`)."""
         point = polished.point
         jac, n_nuis = self._with_terms(problem, point)
-        sel, rel_std, reasons = self.select(jac, point.r, unexcited, n_nuis)
+        sel, rel_std, reasons = self.select(jac, point.r, unexcited, n_nuis, unobservable)
         if sel != list(selected):
             return None
         held = {name: reasons[k] for k, name in enumerate(self.names) if k not in sel}

@@ -367,6 +367,12 @@ class DCMotorTwin(TwinModel):
         extra = tuple(p.name for p in self.parameters[len(DC_MOTOR_PARAMETERS):])
         return EstimationDefaults(("Ra", "D", "Ke", "La", "J", *extra), {"Kt": "Ke"})
 
+    def time_constants(self, values: Mapping[str, float]) -> dict[str, tuple[float, str]]:
+        """La's: the armature's electrical time constant ``tau_e = La/Ra``
+        (:meth:`TwinModel.time_constants`)."""
+        ra, la = float(values.get("Ra", 0.0)), float(values.get("La", 0.0))
+        return {"La": (la / ra, "tau_e = La/Ra")} if ra > 0 and la > 0 else {}
+
     def _effective_pi(self) -> tuple[float, float]:
         """The ideal drive's PI as the sub-step map applies it: ``Va = kp_eff*e + ki*z`` with
         ``z`` the integral of the error up to the previous sub-step; an integrator that

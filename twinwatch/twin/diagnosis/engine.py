@@ -1,0 +1,793 @@
+"""The hypothesis bank: this machine's healthy baseline and every fault mode's twin, window after
+window (:mod:`~twinwatch.twin.diagnosis.hypotheses` has the method and its sources).
+
+1. **Baseline.** The first ``baseline_windows`` windows fit this machine's own parameters: the
+   estimated parameters (with the estimation's ties) by Gauss-Newton over every window so far
+   (their normal equations summed, each window linearised at the baseline of its time), the
+   nameplate their weak prior. The residual left measures each output's variance and lag-1
+   correlation: the weights of every later comparison. While nothing is detected the
+   baseline goes on learning from windows old enough (``lag`` windows) that a change
+   detected since would have stopped it; a change detected rolls it back to before the
+   change point.
+2. **Each window** the baseline twin and each direction's sensitivity are simulated once
+   (:func:`~twinwatch.twin.diagnosis.hypotheses.columns`); every hypothesis's local quadratic
+   is appended to its segment; the few best are linearised again at their fitted size.
+3. **Evidence** per hypothesis: :func:`~twinwatch.twin.diagnosis.hypotheses.fit_segment`;
+   the unknown change's from the window's own estimate (every estimated parameter free in
+   every window, and the kept meta-model terms), penalised per window.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from twinwatch.twin.diagnosis.hypotheses import (
+    LN_STEP,
+    Change,
+    Columns,
+    Fitted,
+    Hypothesis,
+    Track,
+    WindowTerms,
+    bounded_solve,
+    columns,
+    evidence_many,
+    evidence_of,
+)
+from twinwatch.twin.diagnosis.hypotheses import (
+    basis as _basis_of,
+)
+from twinwatch.twin.estimation.fit import WindowFit
+from twinwatch.twin.model import FloatArray
+
+__all__ = ["RESOLUTION", "HypothesisBank", "WindowReading"]
+
+#: The baseline's prior: each fitted parameter about its nameplate with this standard
+#: deviation of its logarithm (10 %: the spread of a machine's constants about its maker's
+#: rated values, of the order of the tolerances IEC 60034-1 sets on rated quantities). The
+#: directions the baseline's windows do not determine (a regulated motor's Ke, D and J
+#: trade off) stay near the nameplate instead of wandering with the noise.
+NAMEPLATE_TOLERANCE = 0.1
+
+#: A reading that repeats to this share of its size repeats exactly (one converter code, one
+#: register value): a stuck reading does, a clipped one at its range's end does.
+EXACT = 1e-9
+
+#: The finest residual the comparison resolves by default, as a share of each output's scale
+#: (its RMS): the estimation's default ``model_error`` (``[estimation] model_error``, the
+#: twin-vs-machine floor the commissioning measures; the bank takes the machine's). Below it
+#: two twins that both fit are equally good: a noise-free simulation's residual (1e-9 of the
+#: scale) would otherwise make a rounding error a decisive difference.
+RESOLUTION = 1e-4
+
+
+@dataclass
+class WindowReading:
+    """What one window told the bank.
+
+    Attributes:
+        baseline_nrmse: the baseline twin's normalised RMSE on the window.
+        learning: the baseline is still being learned (windows so far, of how many).
+        fits: hypothesis label -> its fit over the windows since its change point.
+        unknown: the unknown change's log-evidence [nats].
+        sims: twin simulations this window cost.
+    """
+
+    baseline_nrmse: float
+    learning: tuple[int, int] | None
+    fits: dict[str, Fitted] = field(default_factory=dict)
+    unknown: float = -math.inf
+    unknown_windows: int = 0
+    sims: int = 0
+
+
+def _autocorr(r: FloatArray) -> float:
+    d = float(np.dot(r[:-1], r[:-1]))
+    if d <= 0:
+        return 0.0
+    return float(np.dot(r[1:], r[:-1]) / d)
+
+
+class HypothesisBank:
+    """This machine's baseline and its hypothesis twins (see the module docstring).
+
+    Args:
+        model_params: the twin's parameter names, in order.
+        nominal: the nameplate vector (n_params,) [SI].
+        hypotheses: the single fault modes' twins.
+        estimate: the parameters the baseline fits (the estimation's).
+        ties: dependent parameter -> its source (the estimation's ties).
+        terms: what term bases need (the speed channel).
+        baseline_windows: windows that set the baseline before any change is looked for.
+        keep: windows kept per hypothesis (the change point is looked for among them).
+        lag: windows a later window waits before the baseline learns from it.
+        resolution: the finest residual the comparison resolves, a share of each output's
+            scale (the machine's ``[estimation] model_error``).
+    """
+
+    def __init__(self, model_params: Sequence[str], nominal: FloatArray,
+                 hypotheses: Sequence[Hypothesis], estimate: Sequence[str],
+                 ties: Mapping[str, str], terms: WindowTerms, *,
+                 baseline_windows: int = 10, keep: int = 150, lag: int = 10,
+                 resolution: float = RESOLUTION,
+                 attach_scales: Mapping[str, float] | None = None) -> None:
+        self.resolution = float(resolution)
+        self._attach_scale = dict(attach_scales or {})
+        self.names = tuple(model_params)
+        self.nominal = np.asarray(nominal, dtype=float).copy()
+        self.theta = self.nominal.copy()
+        self.hypotheses = list(hypotheses)
+        self.terms = terms
+        self.baseline_windows = baseline_windows
+        self.keep = keep
+        self.lag = lag
+        self.ties = dict(ties)
+        self.groups = [(p, [p, *[d for d, s in ties.items() if s == p]])
+                       for p in estimate if p in self.names and p not in ties]
+        dirs: dict[tuple[object, ...], None] = {}
+        for _, members in self.groups:
+            for m in members:
+                dirs[("p", m)] = None
+        for h in self.hypotheses:
+            for c in h.changes:
+                for d in c.directions():
+                    dirs[d] = None
+        self.directions = list(dirs)
+        index = {d: i for i, d in enumerate(self.directions)}
+        #: hypothesis label -> its columns as combinations of the directions (q, n_dir)
+        self._combo: dict[str, FloatArray] = {}
+        self._bounds: dict[str, tuple[FloatArray, FloatArray]] = {}
+        for h in self.hypotheses:
+            rows = []
+            for c in h.changes:
+                if c.kind == "scale":
+                    row = np.zeros(len(self.directions))
+                    for name, power in c.powers:
+                        row[index[("p", name)]] += power
+                    rows.append(row)
+                else:
+                    for d in c.directions():
+                        row = np.zeros(len(self.directions))
+                        row[index[d]] = 1.0
+                        rows.append(row)
+            self._combo[h.label] = np.array(rows).reshape(len(rows), len(self.directions))
+            self._bounds[h.label] = h.bounds()
+        g = len(self.groups)
+        self._prec = np.zeros((g, g))
+        self._rhs = np.zeros(g)
+        self._prior = np.eye(g) / NAMEPLATE_TOLERANCE**2
+        self.learned = 0
+        self.sigma2: FloatArray | None = None
+        self.kappa: FloatArray | None = None
+        self._stats: list[tuple[FloatArray, FloatArray]] = []
+        self._kept: list[tuple[WindowFit, FloatArray | None]] = []
+        self.tracks: dict[str, Track] = {h.label: Track(max(h.size, 1), keep)
+                                         for h in self.hypotheses}
+        self._pairs: dict[str, Hypothesis] = {}
+        self._no_pair: set[str] = set()
+        self._unknown: deque[float] = deque(maxlen=keep)
+        #: per window kept: the power its log-likelihoods were tempered by (1: the library's
+        #: best twin fitted it within the noise; the noise's chi-square bound over that
+        #: twin's residual otherwise)
+        self.fits_window: deque[float] = deque(maxlen=keep)
+        #: the last ``lag`` windows' baseline normal equations (a, b, x0), waiting to be
+        #: learned from once no change was seen during them (:meth:`settle`)
+        self._pending: deque[tuple[FloatArray, FloatArray, FloatArray]] = deque()
+        self.detected = False
+        self.last: WindowReading | None = None
+
+    # -- baseline ---------------------------------------------------------------------------
+    def _group_columns(self, cols: Columns) -> FloatArray:
+        out = []
+        for _, members in self.groups:
+            acc = np.zeros_like(cols.r0)
+            for m in members:
+                acc = acc + cols.cols[("p", m)]
+            out.append(acc)
+        return np.array(out) if out else np.zeros((0, *cols.r0.shape))
+
+    def _ln_theta(self) -> FloatArray:
+        return np.log(np.array([self.theta[self.names.index(p)] for p, _ in self.groups]))
+
+    def _set_groups(self, x: FloatArray) -> None:
+        for (_p, members), v in zip(self.groups, x, strict=True):
+            for m in members:
+                self.theta[self.names.index(m)] = math.exp(float(v))
+
+    def _learn(self, a: FloatArray, b: FloatArray, x0: FloatArray) -> None:
+        """Add a window's normal equations (linearised at ``x0``, the groups' ln values) and
+        solve the baseline again."""
+        self._prec += a
+        self._rhs += b + a @ x0
+        x_nom = np.log(np.array([self.nominal[self.names.index(p)] for p, _ in self.groups]))
+        lhs = self._prec + self._prior
+        rhs = self._rhs + self._prior @ x_nom
+        try:
+            x = np.linalg.solve(lhs, rhs)
+        except np.linalg.LinAlgError:
+            return
+        self._set_groups(x)
+
+    # -- one window -------------------------------------------------------------------------
+    def update(self, fit: WindowFit, est_simulated: FloatArray | None, est_free: int,
+               initial: FloatArray | None, t_mid: float) -> WindowReading | None:
+        """Test every hypothesis on one window.
+
+        Args:
+            fit: the window's fit problem.
+            est_simulated: the window's own estimate's outputs (N, n_out), None if none.
+            est_free: numbers the estimate fitted in this window (parameters, offsets).
+            initial: the estimate's initial-state offsets.
+            t_mid: the window's middle time [s].
+
+        Returns:
+            The window's reading, or None when the baseline twin does not simulate it.
+        """
+        cols = columns(fit, self.theta, self.directions, self.terms, initial)
+        if cols is None:
+            return None
+        m_rows, n_out = cols.r0.shape
+        r_est = None
+        if est_simulated is not None and np.all(np.isfinite(est_simulated)):
+            r_est = (fit.meas[1:] - est_simulated[1:]) / cols.scale
+        learning = self.learned < self.baseline_windows
+        if self.sigma2 is None:
+            ref = r_est if r_est is not None else cols.r0
+            sig2 = np.maximum(np.mean(ref * ref, axis=0), self.resolution**2)
+            kap = np.array([_kappa(ref[:, j]) for j in range(n_out)])
+        else:
+            sig2, kap = self.sigma2, self.kappa
+            assert kap is not None
+        proj = _Projector(cols, kap, sig2)
+        r0p = proj(cols.r0)
+        baseline_nrmse = float(np.sqrt(np.mean((cols.r0 * fit.weights) ** 2)))
+        if learning:
+            self._learn_window(cols, proj, r0p, fit, initial)
+            return WindowReading(baseline_nrmse, (self.learned, self.baseline_windows),
+                                 sims=cols.sims)
+        dmat = np.stack([cols.cols[d] for d in self.directions]) if self.directions else \
+            np.zeros((0, *cols.r0.shape))
+        open_ = [h for h in self.hypotheses if h.closed_form is None]
+
+        def fit_all(pr: _Projector, rp: FloatArray) -> dict[str, tuple[FloatArray, FloatArray,
+                                                                       FloatArray, float]]:
+            dp = pr.many(dmat)
+            gram, grad, s00 = dp @ dp.T, dp @ rp, float(rp @ rp)
+            out = {}
+            for h in open_:
+                cmb = self._combo[h.label]
+                a, b = cmb @ gram @ cmb.T, cmb @ grad
+                lo, hi = self._bounds[h.label]
+                phi = bounded_solve(a, b, lo, hi)
+                out[h.label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
+            return out
+
+        first = fit_all(proj, r0p)
+        s0 = float(r0p @ r0p)
+        n_eff = max(float(np.sum(kap) * m_rows), 2.0)
+        ln_n = math.log(n_eff)
+        sims = cols.sims
+        # the scale hypotheses (the twin is not linear in its parameters) linearised again at
+        # their size: one Gauss-Newton step from the exact twin there
+        pairs = self._pairs_now()
+        dp_all = proj.many(dmat) if pairs else None
+        for h in list(pairs):
+            cmb = self._combo[h.label]
+            assert dp_all is not None
+            a_, b_ = cmb @ (dp_all @ dp_all.T) @ cmb.T, cmb @ (dp_all @ r0p)
+            q1 = self._combo[h.label].shape[0] // 2 or 1
+            c11, c22 = np.diag(a_)[:q1].sum(), np.diag(a_)[q1:].sum()
+            c12 = np.abs(a_[:q1, q1:]).sum()
+            if c11 > 0 and c22 > 0 and c12 / math.sqrt(c11 * c22) > self.PAIR_CORRELATION:
+                # the two twins change the window alike: together they are not two findings
+                self._drop_pair(h.label, forever=True)
+                pairs.remove(h)
+                continue
+            lo_, hi_ = self._bounds[h.label]
+            phi_ = bounded_solve(a_, b_, lo_, hi_)
+            first[h.label] = (a_, b_, phi_, float(r0p @ r0p - 2 * b_ @ phi_ + phi_ @ a_ @ phi_))
+        everyone = [*self.hypotheses, *pairs]
+        again = [h for h in everyone if h.label in first
+                 and any(c.kind in ("scale", "term") for c in h.changes)
+                 and float(np.max(np.abs(first[h.label][2]))) > 1e-3]
+        exact: dict[str, tuple[FloatArray, float, FloatArray]] = {}
+        phis = {h.label: first[h.label][2] for h in again}
+        lin = {}
+        if again:
+            dp = proj.many(dmat)
+            lin = {h.label: self._combo[h.label] @ dp for h in again}
+        for _ in range(self.GN_STEPS):
+            if not again:
+                break
+            step = self._exact(again, phis, fit, initial, proj, lin)
+            sims += sum(1 + sum(c.size for c in h.changes if c.kind in ("scale", "term"))
+                        for h in again)
+            moved = []
+            for h in again:
+                if h.label not in step:
+                    continue
+                exact[h.label] = step[h.label]
+                if float(np.max(np.abs(step[h.label][0] - phis[h.label]))) > 1e-4:
+                    moved.append(h)
+                phis[h.label] = step[h.label][0]
+            again = moved
+        reading = WindowReading(baseline_nrmse, None, sims=sims)
+        fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
+        for h in everyone:
+            if h.closed_form is not None:
+                fitted[h.label] = (np.zeros(1), self._closed_form(h, cols, fit, proj),
+                                   np.zeros((1, 1)))
+            else:
+                a, b, phi, s_h = first[h.label]
+                fitted[h.label] = exact.get(h.label, (phi, s_h, a))
+        # how well the window's best twin of the library fits it against the baseline's
+        # noise: the chi-square bound of its effective samples (mean plus 3 standard
+        # deviations) over its weighted squared residual, at most 1. Below 1 every twin of the
+        # library misses something in this window (a drift within it, an operating point the
+        # twin does not cover): its log-likelihoods are tempered by that power (a
+        # misspecified model's likelihood: Grunwald and van Ommen, Bayesian Analysis 12(4),
+        # 2017), so that how the twins rank in it counts for that much less
+        bound = n_eff + 3.0 * math.sqrt(2.0 * n_eff)
+        s_lib = min((v[1] for v in fitted.values()), default=s0)
+        eta = min(1.0, bound / max(s_lib, 1e-300))
+        self.fits_window.append(eta)
+        for h in everyone:
+            track = self.tracks[h.label]
+            phi, s_h, a = fitted[h.label]
+            half = 0.5 * eta * (s0 - s_h) if math.isfinite(s_h) else -math.inf
+            if h.closed_form is not None:
+                track.append(half - 0.5 * ln_n, np.zeros(1), np.ones(1), t_mid)
+                continue
+            # the tempered likelihood's information: eta times the window's
+            a = eta * a
+            std = (np.array([1.0 / math.sqrt(a[0, 0])]) if a.shape == (1, 1)
+                   and a[0, 0] > 0 else np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0)))
+            lo, hi = self._bounds[h.label]
+            span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+            info = bool(np.max(np.diag(a) * np.minimum(span, 1.0) ** 2) > 1.0)
+            track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
+        # the evidence: a line of sizes for a part's change (all such twins of one size at
+        # once), each window's own size for the others
+        groups: dict[tuple[int, int], list[Hypothesis]] = {}
+        for h in everyone:
+            if self._consistent(h):
+                groups.setdefault((self.tracks[h.label].q, self.tracks[h.label].m),
+                                  []).append(h)
+            else:
+                f = evidence_of(self.tracks[h.label], consistent=False)
+                if f is not None:
+                    reading.fits[h.label] = f
+        for hs in groups.values():
+            for h, f in zip(hs, evidence_many([self.tracks[h.label] for h in hs]),
+                            strict=True):
+                if f is not None:
+                    reading.fits[h.label] = f
+        self._choose_pairs(reading)
+        # the unknown change: the window's own estimate (every estimated parameter free in
+        # every window, the kept meta-model terms in its twin), its numbers' penalty paid in
+        # every window: it gains on a library twin only what that leaves unexplained
+        if r_est is not None:
+            rp = proj(r_est, profile=False)
+            s_est = float(rp @ rp)
+            eta_u = min(1.0, bound / max(s_est, 1e-300))
+            self._unknown.append(0.5 * eta_u * (s0 - s_est) - 0.5 * max(est_free, 1) * ln_n)
+        else:
+            self._unknown.append(-0.5 * max(est_free, 1) * ln_n)
+        reading.unknown, reading.unknown_windows = self._unknown_evidence()
+        # this window's baseline normal equations: learned from once it is ``lag`` windows old
+        # with no change seen since (:meth:`settle`)
+        if self.groups:
+            xg = proj.many(self._group_columns(cols))
+            self._pending.append((xg @ xg.T, xg @ r0p, self._ln_theta()))
+        self.last = reading
+        return reading
+
+    #: Gauss-Newton steps at most per scale hypothesis and window (each from the exact twin at
+    #: the last size; the steps stop once the size moves less than 1e-4).
+    GN_STEPS = 3
+
+    #: Partners the best single mode is paired with (the next modes by evidence, those whose
+    #: twins change the windows alike skipped), and pair twins kept at most: two faults at
+    #: once are tried when no single mode explains the change.
+    PAIR_OF = 3
+    PAIRS_KEPT = 6
+
+    #: Two twins whose columns correlate beyond this (their information matrix's off-diagonal
+    #: over the geometric mean of its diagonal) change a window alike: their pair would fit
+    #: the noise with sizes that cancel (a winding's Ra down with a voltage reading's scale
+    #: up), so it is not tried.
+    PAIR_CORRELATION = 0.9
+
+    @staticmethod
+    def _consistent(h: Hypothesis) -> bool:
+        """A part's change (one size, or a steady drift, across the windows): every twin but
+        a periodic term (its phase is each window's own) and a stuck or clipped reading."""
+        return h.size > 0 and not any(c.kind == "term" and c.basis == "periodic"
+                                      for c in h.changes)
+
+    def _pairs_now(self) -> list[Hypothesis]:
+        return list(self._pairs.values())
+
+    def _drop_pair(self, label: str, forever: bool = False) -> None:
+        self._pairs.pop(label, None)
+        self.tracks.pop(label, None)
+        if forever:
+            self._no_pair.add(label)
+
+    def _choose_pairs(self, reading: WindowReading) -> None:
+        """Start tracking the pairs of the best single fault modes (their best twins) that
+        are not tracked yet; drop the least evident pairs beyond :data:`PAIRS_KEPT`."""
+        singles: dict[str, tuple[float, str]] = {}
+        for h in self.hypotheses:
+            f = reading.fits.get(h.label)
+            if f is None or h.closed_form is not None or f.evidence <= 0:
+                continue
+            fid = h.faults[0]
+            if fid not in singles or f.evidence > singles[fid][0]:
+                singles[fid] = (f.evidence, h.label)
+        ranked = sorted(singles.values(), reverse=True)
+        if not ranked or reading.unknown <= ranked[0][0]:
+            return      # a single mode explains the change as well as anything: no pair
+        by_label = {h.label: h for h in self.hypotheses}
+        ha = by_label[ranked[0][1]]
+        tried = 0
+        for _, lab in ranked[1:]:
+            if tried >= self.PAIR_OF:
+                break
+            hb = by_label[lab]
+            label = "+".join(sorted((ha.label, hb.label)))
+            if label in self._no_pair:
+                continue            # the two change the windows alike: next partner
+            tried += 1
+            if label in self._pairs:
+                continue
+            pair = Hypothesis((ha.faults[0], hb.faults[0]), (*ha.changes, *hb.changes), label)
+            self._pairs[label] = pair
+            self._combo[label] = np.vstack([self._combo[ha.label], self._combo[hb.label]])
+            lo_a, hi_a = self._bounds[ha.label]
+            lo_b, hi_b = self._bounds[hb.label]
+            self._bounds[label] = (np.concatenate([lo_a, lo_b]), np.concatenate([hi_a, hi_b]))
+            self.tracks[label] = Track(pair.size, self.keep)
+        if len(self._pairs) > self.PAIRS_KEPT:
+            ranked = sorted(self._pairs, key=lambda lab: reading.fits[lab].evidence
+                            if lab in reading.fits else -math.inf)
+            for lab in ranked[:len(self._pairs) - self.PAIRS_KEPT]:
+                self._drop_pair(lab)
+                reading.fits.pop(lab, None)
+
+    def _theta_at(self, h: Hypothesis, phi: FloatArray) -> FloatArray:
+        th = self.theta.copy()
+        k = 0
+        for c in h.changes:
+            if c.kind == "scale":
+                for name, power in c.powers:
+                    th[self.names.index(name)] *= math.exp(power * float(phi[k]))
+            k += c.size
+        return th
+
+    def _exact(self, hyps: list[Hypothesis], phis: dict[str, FloatArray], fit: WindowFit,
+               initial: FloatArray | None, proj: _Projector, lin: Mapping[str, FloatArray]
+               ) -> dict[str, tuple[FloatArray, float, FloatArray]]:
+        """Each hypothesis's twin simulated at its size and a step beyond it in each scale and
+        term change (one batch): its exact residual there and a Gauss-Newton step from it.
+        A term enters the twin through its equations (the leak's pressure factor feeds the
+        valve's square-root flow: not linear in it). The reading changes (the twin's outputs
+        are linear in a reading's gain or offset) keep their columns at the baseline
+        (``lin``: label -> columns (q, M), projected)."""
+        window = fit.window
+        rows: list[FloatArray] = []
+        row_terms: list[dict[str, FloatArray]] = []
+        layout = []
+        bases: dict[tuple[object, ...], FloatArray] = {}
+
+        def terms_at(h: Hypothesis, phi: FloatArray) -> dict[str, FloatArray]:
+            out_t: dict[str, FloatArray] = {}
+            k = 0
+            for c in h.changes:
+                if c.kind == "term":
+                    for i, d in enumerate(c.directions()):
+                        if d not in bases:
+                            bases[d] = _basis_of(window, d, self.terms)
+                        out_t[c.target] = out_t.get(c.target, 0.0) + float(phi[k + i]) * bases[d]
+                k += c.size
+            return out_t
+
+        for h in hyps:
+            phi0 = phis[h.label]
+            start = len(rows)
+            rows.append(self._theta_at(h, phi0))
+            row_terms.append(terms_at(h, phi0))
+            k = 0
+            for c in h.changes:
+                if c.kind in ("scale", "term"):
+                    for i in range(c.size):
+                        e = np.zeros_like(phi0)
+                        e[k + i] = self._fd_step(c)
+                        rows.append(self._theta_at(h, phi0 + e))
+                        row_terms.append(terms_at(h, phi0 + e))
+                k += c.size
+            layout.append((h, start, len(rows) - start - 1))
+        attach = {a for t in row_terms for a in t}
+        terms = {a: np.vstack([np.broadcast_to(t.get(a, 0.0), (window.n,)) for t in row_terms])
+                 for a in attach}
+        init = None if initial is None else np.repeat(np.asarray(initial)[None], len(rows), 0)
+        y = fit.simulate(np.vstack(rows), terms or None, init)
+        out = {}
+        for h, start, n_fd in layout:
+            block = y[start:start + 1 + n_fd]
+            if not np.all(np.isfinite(block)):
+                continue
+            phi0 = phis[h.label]
+            y1 = block[0]
+            base_cols = lin[h.label]
+            cols = np.array(base_cols, copy=True)
+            # the reading changes' own effect at their size (at the baseline's slope), then the
+            # exact scale and term part
+            k, j = 0, 1
+            lin_shift = np.zeros(cols.shape[1])
+            for c in h.changes:
+                if c.kind in ("scale", "term"):
+                    for i in range(c.size):
+                        cols[k + i] = proj((block[j][1:] - y1[1:])
+                                           / (self._fd_step(c) * fit.scale))
+                        j += 1
+                else:
+                    for i in range(k, k + c.size):
+                        lin_shift += base_cols[i] * float(phi0[i])
+                k += c.size
+            r = proj((fit.meas[1:] - y1[1:]) / fit.scale) - lin_shift
+            a = cols @ cols.T
+            b = cols @ r
+            lo, hi = self._bounds[h.label]
+            step = bounded_solve(a, b, lo - phi0, hi - phi0)
+            s_val = float(r @ r - 2 * b @ step + step @ a @ step)
+            out[h.label] = (phi0 + step, s_val, a)
+        return out
+
+    def _fd_step(self, c: Change) -> float:
+        """The finite-difference step of a change's free number: a parameter's logarithm's
+        (:data:`LN_STEP`), a term amplitude's (1e-3 of its attach point's scale)."""
+        if c.kind == "term":
+            a = self._attach_scale.get(c.target, 1.0)
+            return 1e-3 * a
+        return LN_STEP
+
+    def _closed_residual(self, h: Hypothesis, cols: Columns, fit: WindowFit
+                         ) -> FloatArray | None:
+        """A stuck or clipped reading's normalised residual (N-1, n_out), None where the
+        reading cannot be stuck or clipped (it does not repeat)."""
+        c = h.closed_form
+        assert c is not None
+        names = fit.model.output_names
+        r = cols.r0.copy()
+        if c.target not in names:
+            return None
+        j = names.index(c.target)
+        meas = fit.meas[1:, j]
+        tol = EXACT * max(float(np.max(np.abs(meas))), float(cols.scale[j]))
+        if c.kind == "stuck":
+            if float(np.max(meas) - np.min(meas)) > tol:
+                return None
+            r[:, j] = 0.0
+            return r
+        y = cols.y0[1:, j]
+        hi, lo = float(np.max(meas)), float(np.min(meas))
+        at_hi = (np.abs(meas - hi) <= tol) & (y > hi)
+        at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
+        mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
+        if mask.sum() < 2:
+            return None
+        r[mask, j] = 0.0
+        return r
+
+    def _closed_form(self, h: Hypothesis, cols: Columns, fit: WindowFit, proj: _Projector
+                     ) -> float:
+        """A stuck or clipped reading's weighted squared residual.
+
+        A stuck reading repeats one value (to the :data:`RESOLUTION` of its scale): its own
+        residual is the twin's prediction against nothing (the reading carries none), the
+        other outputs' the baseline's. A reading that moves is not stuck: its movement is
+        counted at the resolution, so the hypothesis loses. A clipped reading repeats its
+        extreme (two samples or more at it within the resolution): the samples at it are
+        explained by the clip, the others are the baseline's. A settled, noise-free drive whose
+        readings repeat exactly gains nothing from either: its twin predicts the same constant.
+        """
+        c = h.closed_form
+        assert c is not None
+        names = fit.model.output_names
+        r = cols.r0.copy()
+        if c.target not in names:
+            rp = proj(r)
+            return float(rp @ rp)
+        j = names.index(c.target)
+        meas = fit.meas[1:, j]
+        # a stuck register or a converter at its range's end repeats one code exactly
+        tol = EXACT * max(float(np.max(np.abs(meas))), float(cols.scale[j]))
+        if c.kind == "stuck":
+            if float(np.max(meas) - np.min(meas)) > tol:
+                return math.inf
+            r[:, j] = 0.0
+        else:
+            y = cols.y0[1:, j]
+            hi, lo = float(np.max(meas)), float(np.min(meas))
+            at_hi = (np.abs(meas - hi) <= tol) & (y > hi)
+            at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
+            mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
+            if mask.sum() < 2:
+                # no sample at the range's end beyond the twin: the clip does not show in
+                # this window, which is the baseline's (a clipping sensor reads true below
+                # its range)
+                rp = proj(r)
+                return float(rp @ rp)
+            r[mask, j] = 0.0
+        rp = proj(r)
+        return float(rp @ rp)
+
+    #: Gauss-Newton passes over the baseline's windows once they are all in (each simulates
+    #: every kept window again at the baseline of the pass before).
+    BASELINE_PASSES = 3
+
+    def _learn_window(self, cols: Columns, proj: _Projector, r0p: FloatArray,
+                      fit: WindowFit, initial: FloatArray | None) -> None:
+        """One baseline window: its normal equations join the running solution; the window is
+        kept so that, once the baseline's windows are all in, Gauss-Newton passes over all of
+        them together (each linearised at the same baseline) settle it, and the residual it
+        leaves in them gives each output's variance and correlation."""
+        x = self._group_columns(cols)
+        xp = proj.many(x) if len(x) else np.zeros((0, r0p.size))
+        self._learn(xp @ xp.T, xp @ r0p, self._ln_theta())
+        self._kept.append((fit, None if initial is None else np.array(initial)))
+        self.learned += 1
+        if self.learned < self.baseline_windows:
+            return
+        x_nom = np.log(np.array([self.nominal[self.names.index(p)] for p, _ in self.groups]))
+        for _ in range(self.BASELINE_PASSES if self.groups else 0):
+            prec = self._prior.copy()
+            x0 = self._ln_theta()
+            rhs = self._prior @ x_nom
+            for f, init in self._kept:
+                c = columns(f, self.theta, [("p", m) for _, ms in self.groups for m in ms],
+                            self.terms, init)
+                if c is None:
+                    continue
+                pr = _Projector(c, proj.kappa, proj.s2)
+                xg = pr.many(self._group_columns(c))
+                a = xg @ xg.T
+                prec += a
+                rhs += xg @ pr(c.r0) + a @ x0
+            try:
+                self._set_groups(np.linalg.solve(prec, rhs))
+            except np.linalg.LinAlgError:
+                break
+            self._prec, self._rhs = prec - self._prior, rhs - self._prior @ x_nom
+        stats = []
+        for f, init in self._kept:
+            c = columns(f, self.theta, [], self.terms, init)
+            if c is None:
+                continue
+            zr = c.nuisance.reshape(c.nuisance.shape[0], -1)
+            r = c.r0.reshape(-1)
+            if zr.shape[0]:
+                r = r - zr.T @ np.linalg.lstsq(zr @ zr.T, zr @ r, rcond=None)[0]
+            res = r.reshape(c.r0.shape)
+            stats.append((np.mean(res * res, axis=0),
+                          np.array([_kappa(res[:, j]) for j in range(res.shape[1])])))
+        self._stats = stats
+        self._kept = []
+        if stats:
+            # each output's variance: the 90th percentile of the baseline's windows (the misfit
+            # a healthy window of this machine reaches, its operating points varying: a
+            # residual threshold set on healthy data, Isermann 2006, sec. 7.3), not their
+            # median, which a later healthy window's model error exceeds half the time
+            self.sigma2 = np.maximum(np.percentile(np.array([a for a, _ in stats]), 90,
+                                                   axis=0), self.resolution**2)
+            self.kappa = np.median(np.array([k for _, k in stats]), axis=0)
+        else:
+            self.sigma2 = np.asarray(proj.s2, dtype=float)
+            self.kappa = np.asarray(proj.kappa, dtype=float)
+
+    def settle(self, no_change: bool) -> None:
+        """After the diagnosis of the last window: while no change is seen (``no_change``),
+        the window ``lag`` windows back joins the baseline (this machine's parameters learned
+        from every window without a change, not from the first ones alone: a baseline known
+        from 10 windows drifts from the truth by its own error, which hundreds of later windows
+        would read as a change); once a change is seen, the windows since wait, and those of
+        the change are never learned from."""
+        if not no_change:
+            self._pending.clear()
+            return
+        while len(self._pending) > self.lag:
+            a, b, x0 = self._pending.popleft()
+            self._learn(a, b, x0)
+
+    # -- state ----------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """The baseline, its statistics and every hypothesis's windows since the change, as
+        JSON-able data (a restart resumes from it: :meth:`restore`)."""
+        def arr(x: FloatArray | None) -> list[float] | None:
+            return None if x is None else [float(v) for v in np.ravel(x)]
+
+        return {
+            "names": list(self.names), "labels": [h.label for h in self.hypotheses],
+            "theta": arr(self.theta), "learned": self.learned, "sigma2": arr(self.sigma2),
+            "kappa": arr(self.kappa), "prec": arr(self._prec), "rhs": arr(self._rhs),
+            "stats": [[arr(a), arr(b)] for a, b in self._stats],
+            "tracks": {lab: t.as_dict() for lab, t in self.tracks.items()
+                       if lab in self._combo and "+" not in lab},
+            "unknown": list(self._unknown),
+            "fits_window": list(self.fits_window),
+        }
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Resume from :meth:`state`; a state of another twin or library (other parameter
+        names or hypotheses) is ignored: the baseline is learned again."""
+        if list(state.get("names", [])) != list(self.names) or \
+                list(state.get("labels", [])) != [h.label for h in self.hypotheses]:
+            return
+        self.theta = np.array(state["theta"], dtype=float)
+        self.learned = int(state["learned"])
+        self.sigma2 = None if state["sigma2"] is None else np.array(state["sigma2"])
+        self.kappa = None if state["kappa"] is None else np.array(state["kappa"])
+        g = len(self.groups)
+        self._prec = np.array(state["prec"], dtype=float).reshape(g, g)
+        self._rhs = np.array(state["rhs"], dtype=float)
+        self._stats = [(np.array(a), np.array(b)) for a, b in state.get("stats", [])]
+        for lab, tr in state.get("tracks", {}).items():
+            if lab in self.tracks:
+                self.tracks[lab] = Track.from_dict(tr, self.keep)
+        self._unknown = deque((float(v) for v in state.get("unknown", [])), maxlen=self.keep)
+        self.fits_window = deque((float(v) for v in state.get("fits_window", [])),
+                                 maxlen=self.keep)
+
+    def unknown_gains(self) -> list[float]:
+        """The unknown change's per-window gains, oldest first (as a track's ``gain``)."""
+        return list(self._unknown)
+
+    def _unknown_evidence(self) -> tuple[float, int]:
+        if not self._unknown:
+            return -math.inf, 0
+        u = np.array(self._unknown)
+        suffix = np.flip(np.cumsum(np.flip(u)))
+        top = float(np.max(suffix))
+        start = int(np.argmax(suffix))
+        ev = top + math.log(float(np.mean(np.exp(suffix - top))))
+        return ev, len(u) - start
+
+
+class _Projector:
+    """Weigh a normalised residual (N-1, n_out) by each output's ``sqrt(kappa_j/sigma_j^2)``
+    and project out the initial-state offsets (nuisance: fitted with every hypothesis)."""
+
+    def __init__(self, cols: Columns, kappa: FloatArray, sigma2: FloatArray) -> None:
+        self.s2 = sigma2
+        self.kappa = kappa
+        self.sw = np.sqrt(kappa / sigma2)
+        n_init = cols.nuisance.shape[0]
+        self.zw = (cols.nuisance * self.sw).reshape(n_init, -1)
+        self.ginv = np.linalg.pinv(self.zw @ self.zw.T) if n_init else np.zeros((0, 0))
+
+    def many(self, v: FloatArray) -> FloatArray:
+        """:meth:`__call__` for a stack of residual-shaped arrays (k, N-1, n_out) -> (k, M)."""
+        vw: FloatArray = (v * self.sw).reshape(v.shape[0], -1)
+        if self.zw.shape[0]:
+            vw = vw - ((vw @ self.zw.T) @ self.ginv) @ self.zw
+        return vw
+
+    def __call__(self, v: FloatArray, profile: bool = True) -> FloatArray:
+        vw: FloatArray = (v * self.sw).reshape(-1)
+        if profile and self.zw.shape[0]:
+            vw = vw - self.zw.T @ (self.ginv @ (self.zw @ vw))
+        return vw
+
+
+def _kappa(r: FloatArray) -> float:
+    """The share of independent samples in an AR(1) residual: (1 - rho)/(1 + rho), rho its
+    lag-1 autocorrelation (negative rho counted as none), at least one sample in all."""
+    rho = min(max(_autocorr(r - float(np.mean(r))), 0.0), 0.999999)
+    return max((1.0 - rho) / (1.0 + rho), 1.0 / max(r.shape[0], 1))

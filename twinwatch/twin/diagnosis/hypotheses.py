@@ -1,0 +1,545 @@
+"""Hypothesis twins: every fault mode a change of the twin, fitted on the window's own data.
+
+Multiple-model fault isolation (Willsky and Jones, "A generalized likelihood ratio approach to
+the detection and estimation of jumps in linear systems", IEEE TAC 21(1), 1976; Basseville and
+Nikiforov, *Detection of Abrupt Changes*, 1993, ch. 2 and 7; Isermann, *Fault-Diagnosis
+Systems*, 2006, ch. 9-10): a fault mode of the library is a change of the twin (a parameter
+scaled, several scaled together where the physics ties them, a reading's gain or offset, the
+supply's ratio on an input, a meta-model term at an attach point, a reading stuck or clipped).
+Each window the twin at this machine's healthy **baseline** is simulated once, and each change
+once more as a sensitivity (a finite difference of a parameter's logarithm, a corrected input,
+a term's basis function; the initial state's offsets are nuisance directions, exact because
+the twin is linear in them). A change's effect on the window's residual is then a local
+quadratic in its free size ``phi`` (one or two numbers):
+
+    S_k(phi) = C_k - 2 B_k' phi + phi' A_k phi          (weighted squared residual, window k)
+
+which sums over windows: the windows since a change point fit one size (a step) or a size and
+its rate (a drift) by generalised least squares, and the generalised likelihood ratio against
+the baseline is ``GLR = sum S0_k - min_phi sum S_k(phi)`` (Willsky and Jones' GLR with the
+change time maximised over the windows kept, Basseville and Nikiforov Eq. 2.4.39). The few
+best hypotheses are linearised again at their fitted size (Gauss-Newton), so a large change
+(an inertia +50 %) is fitted as the twin would simulate it, not on the baseline's slope.
+
+**The residual's statistics.** Each output's squared residual is weighed by ``kappa_j /
+sigma_j^2``: ``sigma_j^2`` the larger of the baseline windows' residual variance and that left
+by the window's best explanation (a Birge ratio: a window the library cannot explain weighs
+less, Birge, Phys. Rev. 40, 1932), and ``kappa_j = (1 - rho_j)/(1 + rho_j)`` the share of
+independent samples of an AR(1) residual with lag-1 correlation ``rho_j`` measured on the
+baseline (the large-sample variance of a mean under AR(1) errors: Box, Jenkins and Reinsel,
+*Time Series Analysis*, 4th ed., Eq. 2.1.13). A model error (the twin's integrator, a drive's
+update between samples) leaves a residual correlated from sample to sample, so a twin that
+misses the machine a little everywhere gains few effective samples and cannot make a
+confident case for a change that merely reshapes it.
+
+Nothing here is tuned: the weights come from this machine's baseline, the penalties are the
+Bayesian information criterion's ``(q/2) ln n`` per freed number (Schwarz, Ann. Stat. 6(2),
+1978) and the change point's uniform prior over the windows kept.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from twinwatch.twin.estimation.fit import WindowFit
+from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+
+__all__ = ["LN_STEP", "Change", "basis", "Columns", "Fitted", "Hypothesis", "Track", "WindowTerms",
+           "bounded_solve", "columns", "design", "evidence_of", "periodic_angle"]
+
+#: Finite-difference step of a parameter's (or a gain's, a supply ratio's) logarithm. The
+#: twins are smooth in their parameters; 1e-4 keeps the truncation error (O(step)) far below
+#: a 1 % noise's information while the simulation's rounding (1e-13 relative) stays negligible.
+LN_STEP = 1e-4
+
+
+@dataclass(frozen=True)
+class Change:
+    """One change of the twin (a fault mode's hypothesis is one change or a pair).
+
+    Attributes:
+        kind: ``scale`` (parameters scaled together: ``theta_i * exp(power_i * phi)``), ``gain``
+            (a reading ``exp(phi)`` times the true value), ``offset`` (a reading plus ``phi``
+            in the channel's unit), ``supply`` (the machine receives ``exp(phi)`` times the
+            input it reports), ``term`` (a meta-model term at an attach point, its
+            amplitude(s) free), ``stuck`` (a reading held constant), ``clipped`` (a reading
+            limited at its extreme).
+        target: the channel (gain, offset, supply, stuck, clipped) or attach point (term).
+        powers: parameter -> power (scale).
+        basis: the term's shape: ``constant``, ``coulomb`` (``-sign`` of the speed channel:
+            a braking torque), ``periodic`` (``sin`` and ``cos`` of ``harmonic`` times the
+            shaft angle: two amplitudes).
+        harmonic: a periodic term's multiple of the shaft's rotation.
+        low, high: the free size's plausible range (ln factor for scale and supply; ``g`` of a
+            gain; a share of the reading's scale for an offset; the attach point's unit for a
+            term; None: unbounded).
+    """
+
+    kind: str
+    target: str = ""
+    powers: tuple[tuple[str, float], ...] = ()
+    basis: str = ""
+    harmonic: float = 1.0
+    low: float | None = None
+    high: float | None = None
+
+    @property
+    def size(self) -> int:
+        """Free numbers the change adds (0: stuck and clipped, fitted in closed form)."""
+        if self.kind in ("stuck", "clipped"):
+            return 0
+        return 2 if self.kind == "term" and self.basis == "periodic" else 1
+
+    def directions(self) -> list[tuple[object, ...]]:
+        """The sensitivity directions this change is a combination of (see :func:`columns`)."""
+        if self.kind == "scale":
+            return [("p", name) for name, _ in self.powers]
+        if self.kind == "term":
+            if self.basis == "periodic":
+                return [("term", self.target, "sin", self.harmonic),
+                        ("term", self.target, "cos", self.harmonic)]
+            return [("term", self.target, self.basis, 0.0)]
+        if self.kind in ("gain", "offset", "supply"):
+            return [(self.kind, self.target)]
+        return []
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One twin to test: the changes of one fault mode's alternative, or of a pair of modes.
+
+    Attributes:
+        faults: the fault ids it stands for (one, or two for a pair).
+        changes: its changes (their free sizes concatenated in order).
+        label: for a person (``Ra`` ``ia gain``).
+    """
+
+    faults: tuple[str, ...]
+    changes: tuple[Change, ...]
+    label: str
+
+    @property
+    def size(self) -> int:
+        return sum(c.size for c in self.changes)
+
+    @property
+    def closed_form(self) -> Change | None:
+        """The stuck or clipped reading this hypothesis is (fitted without sensitivities)."""
+        for c in self.changes:
+            if c.kind in ("stuck", "clipped"):
+                return c
+        return None
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        lo, hi = [], []
+        for c in self.changes:
+            for _ in range(c.size):
+                lo.append(-math.inf if c.low is None else c.low)
+                hi.append(math.inf if c.high is None else c.high)
+        return np.array(lo), np.array(hi)
+
+
+def periodic_angle(window: WindowData, channel: str, harmonic: float) -> FloatArray:
+    """``harmonic`` times the shaft angle [rad] over the window, shape (N,): the speed channel
+    [rad/s] integrated by the trapezoid rule from 0 at the first sample (an unbalance turns with
+    the shaft: its torque is ``a sin(angle) + b cos(angle)``, ISO 21940-11)."""
+    w = np.asarray(window[channel], dtype=float)
+    t = window.t
+    ang = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))])
+    out: FloatArray = harmonic * ang
+    return out
+
+
+@dataclass
+class WindowTerms:
+    """What a term's basis needs from the window: the shaft speed channel (coulomb, periodic);
+    empty: none."""
+
+    speed_channel: str = ""
+
+
+def basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms) -> FloatArray:
+    """A term direction's basis function over the window (N,): ``constant``, ``coulomb``
+    (``-sign`` of the speed), ``sin`` or ``cos`` of the harmonic's shaft angle."""
+    _, _, shape, harmonic = direction
+    n = window.n
+    if shape == "constant":
+        return np.ones(n)
+    if not terms.speed_channel:
+        raise ValueError(f"a {shape} term needs the library's speed_channel")
+    if shape == "coulomb":
+        out: FloatArray = -np.sign(np.asarray(window[terms.speed_channel], dtype=float))
+        return out
+    ang = periodic_angle(window, terms.speed_channel, float(harmonic))  # type: ignore[arg-type]
+    return np.sin(ang) if shape == "sin" else np.cos(ang)
+
+
+@dataclass
+class Columns:
+    """One window's baseline twin and its sensitivities, in normalised units (each output's
+    error over its scale, samples 1..N-1: the first is the initial state).
+
+    Attributes:
+        y0: the baseline twin's outputs (N, n_out).
+        r0: measured minus baseline, normalised (N-1, n_out).
+        cols: direction -> the outputs' change per unit of the direction's number, normalised
+            (N-1, n_out).
+        nuisance: the initial-state offsets' columns (n_init, N-1, n_out).
+        scale: each output's scale (n_out,).
+    """
+
+    y0: FloatArray
+    r0: FloatArray
+    cols: dict[tuple[object, ...], FloatArray]
+    nuisance: FloatArray
+    scale: FloatArray
+    sims: int = 0
+
+
+def _transformed(window: WindowData, channel: str, gain: float = 1.0, offset: float = 0.0
+                 ) -> WindowData:
+    ch = dict(window.channels)
+    ch[channel] = (np.asarray(window[channel], dtype=float) - offset) * gain
+    return WindowData(t=window.t, channels=ch, index=window.index,
+                      stamp_jitter=window.stamp_jitter)
+
+
+def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object, ...]],
+            terms: WindowTerms, initial: FloatArray | None = None) -> Columns | None:
+    """Simulate the baseline twin and each direction's sensitivity on one window.
+
+    Directions: ``("p", name)`` the parameter's logarithm; ``("gain", channel)`` a reading's
+    gain (measured = (1 + phi) x true); ``("offset", channel)`` a reading's offset [a share
+    of the reading's scale: its RMS over the window, at least the output's floor];
+    ``("supply", channel)`` the log-ratio of what the machine receives on an input to what
+    it reports; ``("term", attach, shape, harmonic)`` a meta-model term's amplitude [the
+    attach point's unit]. Parameter and term directions share one batched simulation; each
+    channel correction of an input (the open-loop Va, the closed-loop Va that starts the
+    controller's integrator) one more.
+
+    Args:
+        fit: the window's fit problem.
+        theta: the baseline parameter vector (n_params,) [SI].
+        directions: the directions wanted.
+        terms: what the term bases need.
+        initial: the initial-state offsets the baseline starts from (None: the fit's).
+
+    Returns:
+        The columns, or None when the baseline twin does not simulate the window.
+    """
+    model: TwinModel = fit.model
+    window = fit.window
+    names = model.parameter_names
+    n_init = len(model.initial_states)
+    init0 = np.zeros(n_init) if initial is None else np.asarray(initial, dtype=float)
+    rows_theta = [np.asarray(theta, dtype=float)]
+    rows_init = [init0]
+    keys: list[tuple[tuple[object, ...], float]] = []
+    term_rows: list[tuple[int, str, FloatArray]] = []
+    for d in directions:
+        if d[0] == "p":
+            th = rows_theta[0].copy()
+            th[names.index(str(d[1]))] *= math.exp(LN_STEP)
+            rows_theta.append(th)
+            rows_init.append(init0)
+            keys.append((d, LN_STEP))
+        elif d[0] == "term":
+            attach = model.attach_point(str(d[1]))
+            step = 1e-3 * (attach.scale if attach.mode == "additive" else 1.0)
+            rows_theta.append(rows_theta[0])
+            rows_init.append(init0)
+            term_rows.append((len(rows_theta) - 1, attach.name,
+                              step * basis(window, d, terms)))
+            keys.append((d, step))
+    for i in range(n_init):
+        rows_theta.append(rows_theta[0])
+        e = init0.copy()
+        e[i] += fit.initial_scale[i] * 1e-3
+        rows_init.append(e)
+    p = len(rows_theta)
+    th = np.vstack(rows_theta)
+    tm: dict[str, FloatArray] = {}
+    for row, attach_name, values in term_rows:
+        arr = tm.setdefault(attach_name, np.zeros((p, window.n)))
+        arr[row] = values
+    inits = np.vstack(rows_init) if n_init else None
+    y = fit.simulate(th, tm or None, inits)
+    if not np.all(np.isfinite(y[0])):
+        return None
+    scale = fit.scale
+    y0 = y[0]
+    r0 = (fit.meas[1:] - y0[1:]) / scale
+    cols: dict[tuple[object, ...], FloatArray] = {}
+    for j, (d, step) in enumerate(keys, start=1):
+        cols[d] = (y[j, 1:] - y0[1:]) / (step * scale)
+    nuis = np.empty((n_init, y0.shape[0] - 1, y0.shape[1]))
+    for i in range(n_init):
+        row = p - n_init + i
+        nuis[i] = (y[row, 1:] - y0[1:]) / (fit.initial_scale[i] * 1e-3 * scale)
+    sims = p
+    outputs = model.output_names
+    for d in directions:
+        if d[0] not in ("gain", "offset", "supply"):
+            continue
+        ch = str(d[1])
+        col = np.zeros_like(r0)
+        if ch in outputs and d[0] != "supply":
+            j = outputs.index(ch)
+            # a gain per unit of (g - 1); an offset per unit of the output's scale (its RMS)
+            col[:, j] = y0[1:, j] / scale[j] if d[0] == "gain" else 1.0
+        if ch in model.inputs:
+            if d[0] == "offset":     # per unit of the reading's RMS over the window
+                rms = float(np.sqrt(np.mean(np.square(window[ch])))) + 1e-12
+                w2 = _transformed(window, ch, offset=1e-3 * rms)
+                step = 1e-3
+            elif d[0] == "gain":      # the true input is the reading over exp(phi)
+                w2 = _transformed(window, ch, gain=math.exp(-LN_STEP))
+                step = LN_STEP
+            else:                     # the machine receives exp(phi) x the input
+                w2 = _transformed(window, ch, gain=math.exp(LN_STEP))
+                step = LN_STEP
+            y2 = model.simulate(th[:1], w2, None, inits[:1] if inits is not None else None)
+            sims += 1
+            if np.all(np.isfinite(y2)):
+                col += (y2[0, 1:] - y0[1:]) / (step * scale)
+        cols[d] = col
+    return Columns(y0=y0, r0=r0, cols=cols, nuisance=nuis, scale=scale, sims=sims)
+
+
+def design(cols: Columns, h: Hypothesis) -> FloatArray:
+    """The hypothesis's columns (q, N-1, n_out): each change's directions combined (a scale's
+    parameters weighed by their powers)."""
+    out = []
+    for c in h.changes:
+        if c.kind == "scale":
+            acc = np.zeros_like(cols.r0)
+            for name, power in c.powers:
+                acc = acc + power * cols.cols[("p", name)]
+            out.append(acc)
+        else:
+            for d in c.directions():
+                out.append(cols.cols[d])
+    return np.array(out) if out else np.zeros((0, *cols.r0.shape))
+
+
+def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
+                  ) -> FloatArray:
+    """``argmin phi' a phi - 2 b' phi`` within ``lo <= phi <= hi`` (a few numbers: an active
+    set, each out-of-range number fixed at its bound and the rest solved again)."""
+    q = b.shape[0]
+    if q == 1:
+        a0 = float(a[0, 0])
+        x1 = float(b[0]) / a0 if a0 > 0 else 0.0
+        return np.array([min(max(x1, float(lo[0])), float(hi[0]))])
+    fixed = np.zeros(q, dtype=bool)
+    x = np.zeros(q)
+    for _ in range(q + 1):
+        free = ~fixed
+        if np.any(free):
+            af = a[np.ix_(free, free)]
+            bf = b[free] - a[np.ix_(free, fixed)] @ x[fixed]
+            reg = 1e-12 * max(1.0, float(np.trace(af))) * np.eye(af.shape[0])
+            x[free] = np.linalg.lstsq(af + reg, bf, rcond=None)[0]
+        out = (x < lo) | (x > hi)
+        if not np.any(out & free):
+            break
+        x = np.clip(x, lo, hi)
+        fixed |= out
+    out_x: FloatArray = np.clip(x, lo, hi)
+    return out_x
+
+
+class Track:
+    """One hypothesis's per-window fits over the windows kept (oldest first), in arrays.
+
+    Attributes (the first :attr:`m` rows are filled):
+        gain: each window's log-likelihood gain over the baseline less its penalty [nats]:
+            ``(S0_k - S_k)/2 - (q/2) ln n_k`` (the Bayesian information criterion's penalty for
+            the window's own fitted size: Schwarz 1978).
+        half: ``(S0_k - S_k)/2`` alone.
+        ln_n: the window's effective samples' logarithm.
+        phi: each window's fitted size (m, q); std: its standard error (m, q).
+        t: the windows' middle times [s].
+        info: the window could tell the change over its plausible range.
+    """
+
+    def __init__(self, q: int, keep: int) -> None:
+        self.q, self.keep, self.m = q, keep, 0
+        self.gain = np.zeros(keep)
+        self.half = np.zeros(keep)
+        self.ln_n = np.zeros(keep)
+        self.t = np.zeros(keep)
+        self.info = np.zeros(keep, dtype=bool)
+        self.phi = np.zeros((keep, q))
+        self.std = np.zeros((keep, q))
+
+    def append(self, gain: float, phi: FloatArray, std: FloatArray, t: float,
+               info: bool = True, half: float = 0.0, ln_n: float = 0.0) -> None:
+        if self.m == self.keep:
+            for a in (self.gain, self.half, self.ln_n, self.t, self.info, self.phi, self.std):
+                a[:-1] = a[1:]
+            self.m -= 1
+        k = self.m
+        self.gain[k], self.half[k], self.ln_n[k], self.t[k] = gain, half, ln_n, t
+        self.info[k] = info
+        self.phi[k] = np.ravel(phi)[:self.q]
+        self.std[k] = np.ravel(std)[:self.q]
+        self.m += 1
+
+    def __len__(self) -> int:
+        return self.m
+
+    def as_dict(self) -> dict[str, Any]:
+        m = self.m
+        return {"q": self.q, "gain": self.gain[:m].tolist(), "half": self.half[:m].tolist(),
+                "ln_n": self.ln_n[:m].tolist(), "t": self.t[:m].tolist(),
+                "info": self.info[:m].tolist(), "phi": self.phi[:m].tolist(),
+                "std": self.std[:m].tolist()}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], keep: int) -> Track:
+        tr = cls(int(d["q"]), keep)
+        rows = zip(d["gain"], d["half"], d["ln_n"], d["t"], d["info"], d["phi"], d["std"],
+                   strict=True)
+        for g, h, ln, t, inf, p, sd in rows:
+            tr.append(g, np.array(p, dtype=float), np.array(sd, dtype=float), t, bool(inf),
+                      h, ln)
+        return tr
+
+
+@dataclass
+class Fitted:
+    """A hypothesis over the windows since its most likely change point.
+
+    Attributes:
+        evidence: its log-evidence against the baseline [nats]: the windows' gains summed
+            since each change point, averaged over the change points (their uniform prior).
+        start: index (into the windows kept) of the most likely change point.
+        windows: windows since it.
+        phi: the size fitted in the last windows since it (their inverse-variance mean, the
+            last ``recent`` windows), shape (q,).
+        std: its standard error (q,).
+        share: the share of those windows whose gain is positive.
+        informative: one of the last ``recent`` windows could tell: the change over its
+            plausible range would have moved its weighted squared residual by more than 1.
+        birge: the sizes' Birge ratio about their line since the change point.
+        ended: the log-evidence that the change held from its change point to a later
+            window and the machine is back at its baseline since (a repair) [nats]; -inf
+            when not looked for.
+    """
+
+    evidence: float
+    start: int
+    windows: int
+    phi: FloatArray
+    std: FloatArray
+    share: float
+    informative: bool = True
+    birge: float = 1.0
+    ended: float = -math.inf
+
+
+def _suffix(x: FloatArray) -> FloatArray:
+    """Sums from each row to the last along axis 0."""
+    out: FloatArray = np.flip(np.cumsum(np.flip(x, axis=0), axis=0), axis=0)
+    return out
+
+
+def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | None]:
+    """:func:`evidence_of` (``consistent``) for many tracks of one size and length at once:
+    the same arithmetic on (H, m, q) arrays (one pass of numpy calls for all hypotheses)."""
+    if not tracks:
+        return []
+    m, q = tracks[0].m, tracks[0].q
+    if m == 0:
+        return [None] * len(tracks)
+    half = np.stack([t.half[:m] for t in tracks])                       # (H, m)
+    tt = (np.stack([t.t[:m] for t in tracks]) - tracks[0].t[m - 1])[..., None]
+    phis = np.stack([t.phi[:m] for t in tracks])                         # (H, m, q)
+    sds = np.stack([t.std[:m] for t in tracks])
+    n_eff = np.exp(np.stack([t.ln_n[:m] for t in tracks]))
+    with np.errstate(divide="ignore", over="ignore"):  # a standard deviation below 1e-150:
+        # an exact window, weight inf, as without the guard (no warning on the daemon's stderr)
+        a = np.where(np.isfinite(sds) & (sds > 0), 1.0 / np.maximum(sds, 1e-300) ** 2, 0.0)
+
+    def suf(x: FloatArray) -> FloatArray:
+        out: FloatArray = x[:, ::-1].cumsum(axis=1)[:, ::-1]
+        return out
+
+    sa, sat, satt = suf(a), suf(a * tt), suf(a * tt * tt)
+    sap, sapt, sapp = suf(a * phis), suf(a * phis * tt), suf(a * phis**2)
+    half_s, n_s = suf(half), suf(n_eff)
+
+    def line(ra: FloatArray, rat: FloatArray, ratt: FloatArray, rap: FloatArray,
+             rapt: FloatArray, rapp: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        det = ra * ratt - rat * rat
+        good = det > 1e-12 * np.maximum(ra * ratt, 1e-300)
+        safe = np.where(good, det, 1.0)
+        alpha = np.where(good, (ratt * rap - rat * rapt) / safe, rap / np.maximum(ra, 1e-300))
+        beta = np.where(good, (ra * rapt - rat * rap) / safe, 0.0)
+        chi2 = np.sum(np.maximum(rapp - alpha * rap - beta * rapt, 0.0), axis=-1)
+        params = np.sum(np.where(good, 2.0, 1.0), axis=-1)
+        return alpha, chi2, params
+
+    alpha, chi2, params = line(sa, sat, satt, sap, sapt, sapp)
+    ev_c = half_s - 0.5 * chi2 - 0.5 * params * np.log(np.maximum(n_s, 2.0))   # (H, m)
+    ks = np.argmax(ev_c, axis=1)
+    out: list[Fitted | None] = []
+    for h, tr in enumerate(tracks):
+        k = int(ks[h])
+        row = ev_c[h]
+        top = float(row[k])
+        ev = top + math.log(float(np.mean(np.exp(row - top))))
+        ended = -math.inf
+        if m - k >= 2:
+            e = np.arange(k + 1, m)
+            _, chi_e, par_e = line(*(x[h, k] - x[h, e] for x in (sa, sat, satt, sap, sapt,
+                                                                 sapp)))
+            ev_e = (half_s[h, k] - half_s[h, e]) - 0.5 * chi_e - 0.5 * par_e * np.log(
+                np.maximum(n_s[h, k] - n_s[h, e], 2.0))
+            ended = float(np.max(ev_e))
+        g = tr.gain[k:m]
+        out.append(Fitted(ev, k, m - k, np.asarray(alpha[h, k], dtype=float),
+                          1.0 / np.sqrt(np.maximum(sa[h, k], 1e-300)), float(np.mean(g > 0)),
+                          bool(np.any(tr.info[max(0, m - recent):m])),
+                          max(1.0, float(chi2[h, k]) / max(q * (m - k - 2), 1)), ended))
+    return out
+
+
+def evidence_of(track: Track, recent: int = 5, consistent: bool = True) -> Fitted | None:
+    """The hypothesis's evidence over every change point of its windows (see :class:`Fitted`).
+
+    ``consistent`` (a part that changes: one size, or a size drifting at a steady rate): the
+    windows since a change point share one straight line of sizes in time. Each window's own
+    fit gives its log-likelihood gain at its own size ``phi_k`` and that size's information
+    ``a_k = 1/std_k^2``; near it the gain falls as ``a_k (phi - phi_k)^2 / 2``, so the line's
+    evidence is ``sum_k (S0_k - S_k)/2 - chi2/2 - (p/2) ln N`` (``chi2`` the sizes' weighted
+    scatter about the line, ``p`` its numbers, ``N`` the windows' effective samples). A twin
+    that explains windows by sizes that jump from window to window (an intermittent load read
+    as the bearings) loses what the jumps cost. The evidence that the change *ended* (the
+    line held to a later window, the baseline since: a repair) is given too. Otherwise (a
+    periodic term, whose phase is each window's own; a reading stuck): each window's gain less
+    its own size's penalty.
+    """
+    m = track.m
+    if m == 0:
+        return None
+    g = track.gain[:m]
+    info = bool(np.any(track.info[max(0, m - recent):m]))
+    if consistent:
+        return evidence_many([track], recent)[0]
+    suffix_g = _suffix(g)
+    k = int(np.argmax(suffix_g))
+    top = float(suffix_g[k])
+    ev = (top + math.log(float(np.mean(np.exp(suffix_g - top))))) if math.isfinite(top) \
+        else -math.inf
+    lo = max(k, m - recent)
+    w = 1.0 / np.maximum(track.std[lo:m], 1e-300) ** 2
+    phi = np.sum(w * track.phi[lo:m], axis=0) / np.sum(w, axis=0)
+    return Fitted(ev, k, m - k, phi, 1.0 / np.sqrt(np.sum(w, axis=0)),
+                  float(np.mean(g[k:] > 0)), info)
