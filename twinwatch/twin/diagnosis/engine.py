@@ -232,92 +232,29 @@ class HypothesisBank:
         cols = columns(fit, self.theta, self.directions, self.terms, initial)
         if cols is None:
             return None
-        m_rows, n_out = cols.r0.shape
+        m_rows = cols.r0.shape[0]
         r_est = None
         if est_simulated is not None and np.all(np.isfinite(est_simulated)):
             r_est = (fit.meas[1:] - est_simulated[1:]) / cols.scale
-        learning = self.learned < self.baseline_windows
-        if self.sigma2 is None:
-            ref = r_est if r_est is not None else cols.r0
-            sig2 = np.maximum(np.mean(ref * ref, axis=0), self.resolution**2)
-            kap = np.array([_kappa(ref[:, j]) for j in range(n_out)])
-        else:
-            sig2, kap = self.sigma2, self.kappa
-            assert kap is not None
+        sig2, kap = self._noise(cols, r_est)
         proj = _Projector(cols, kap, sig2)
         r0p = proj(cols.r0)
         baseline_nrmse = float(np.sqrt(np.mean((cols.r0 * fit.weights) ** 2)))
-        if learning:
+        if self.learned < self.baseline_windows:
             self._learn_window(cols, proj, r0p, fit, initial)
             return WindowReading(baseline_nrmse, (self.learned, self.baseline_windows),
                                  sims=cols.sims)
         dmat = np.stack([cols.cols[d] for d in self.directions]) if self.directions else \
             np.zeros((0, *cols.r0.shape))
-        open_ = [h for h in self.hypotheses if h.closed_form is None]
-
-        def fit_all(pr: _Projector, rp: FloatArray) -> dict[str, tuple[FloatArray, FloatArray,
-                                                                       FloatArray, float]]:
-            dp = pr.many(dmat)
-            gram, grad, s00 = dp @ dp.T, dp @ rp, float(rp @ rp)
-            out = {}
-            for h in open_:
-                cmb = self._combo[h.label]
-                a, b = cmb @ gram @ cmb.T, cmb @ grad
-                lo, hi = self._bounds[h.label]
-                phi = bounded_solve(a, b, lo, hi)
-                out[h.label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
-            return out
-
-        first = fit_all(proj, r0p)
+        dp = proj.many(dmat)
+        first = self._fit_linear(dp, r0p)
         s0 = float(r0p @ r0p)
         n_eff = max(float(np.sum(kap) * m_rows), 2.0)
         ln_n = math.log(n_eff)
-        sims = cols.sims
-        # the scale hypotheses (the twin is not linear in its parameters) linearised again at
-        # their size: one Gauss-Newton step from the exact twin there
-        pairs = self._pairs_now()
-        dp_all = proj.many(dmat) if pairs else None
-        for h in list(pairs):
-            cmb = self._combo[h.label]
-            assert dp_all is not None
-            a_, b_ = cmb @ (dp_all @ dp_all.T) @ cmb.T, cmb @ (dp_all @ r0p)
-            q1 = self._combo[h.label].shape[0] // 2 or 1
-            c11, c22 = np.diag(a_)[:q1].sum(), np.diag(a_)[q1:].sum()
-            c12 = np.abs(a_[:q1, q1:]).sum()
-            if c11 > 0 and c22 > 0 and c12 / math.sqrt(c11 * c22) > self.PAIR_CORRELATION:
-                # the two twins change the window alike: together they are not two findings
-                self._drop_pair(h.label, forever=True)
-                pairs.remove(h)
-                continue
-            lo_, hi_ = self._bounds[h.label]
-            phi_ = bounded_solve(a_, b_, lo_, hi_)
-            first[h.label] = (a_, b_, phi_, float(r0p @ r0p - 2 * b_ @ phi_ + phi_ @ a_ @ phi_))
+        pairs = self._fit_pairs(dp, r0p, first)
         everyone = [*self.hypotheses, *pairs]
-        again = [h for h in everyone if h.label in first
-                 and any(c.kind in ("scale", "term") for c in h.changes)
-                 and float(np.max(np.abs(first[h.label][2]))) > 1e-3]
-        exact: dict[str, tuple[FloatArray, float, FloatArray]] = {}
-        phis = {h.label: first[h.label][2] for h in again}
-        lin = {}
-        if again:
-            dp = proj.many(dmat)
-            lin = {h.label: self._combo[h.label] @ dp for h in again}
-        for _ in range(self.GN_STEPS):
-            if not again:
-                break
-            step = self._exact(again, phis, fit, initial, proj, lin)
-            sims += sum(1 + sum(c.size for c in h.changes if c.kind in ("scale", "term"))
-                        for h in again)
-            moved = []
-            for h in again:
-                if h.label not in step:
-                    continue
-                exact[h.label] = step[h.label]
-                if float(np.max(np.abs(step[h.label][0] - phis[h.label]))) > 1e-4:
-                    moved.append(h)
-                phis[h.label] = step[h.label][0]
-            again = moved
-        reading = WindowReading(baseline_nrmse, None, sims=sims)
+        exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj)
+        reading = WindowReading(baseline_nrmse, None, sims=cols.sims + sims)
         fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         for h in everyone:
             if h.closed_form is not None:
@@ -337,37 +274,8 @@ class HypothesisBank:
         s_lib = min((v[1] for v in fitted.values()), default=s0)
         eta = min(1.0, bound / max(s_lib, 1e-300))
         self.fits_window.append(eta)
-        for h in everyone:
-            track = self.tracks[h.label]
-            phi, s_h, a = fitted[h.label]
-            half = 0.5 * eta * (s0 - s_h) if math.isfinite(s_h) else -math.inf
-            if h.closed_form is not None:
-                track.append(half - 0.5 * ln_n, np.zeros(1), np.ones(1), t_mid)
-                continue
-            # the tempered likelihood's information: eta times the window's
-            a = eta * a
-            std = (np.array([1.0 / math.sqrt(a[0, 0])]) if a.shape == (1, 1)
-                   and a[0, 0] > 0 else np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0)))
-            lo, hi = self._bounds[h.label]
-            span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
-            info = bool(np.max(np.diag(a) * np.minimum(span, 1.0) ** 2) > 1.0)
-            track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
-        # the evidence: a line of sizes for a part's change (all such twins of one size at
-        # once), each window's own size for the others
-        groups: dict[tuple[int, int], list[Hypothesis]] = {}
-        for h in everyone:
-            if self._consistent(h):
-                groups.setdefault((self.tracks[h.label].q, self.tracks[h.label].m),
-                                  []).append(h)
-            else:
-                f = evidence_of(self.tracks[h.label], consistent=False)
-                if f is not None:
-                    reading.fits[h.label] = f
-        for hs in groups.values():
-            for h, f in zip(hs, evidence_many([self.tracks[h.label] for h in hs]),
-                            strict=True):
-                if f is not None:
-                    reading.fits[h.label] = f
+        self._append_tracks(everyone, fitted, eta, s0, ln_n, t_mid)
+        self._read_evidence(everyone, reading)
         self._choose_pairs(reading)
         # the unknown change: the window's own estimate (every estimated parameter free in
         # every window, the kept meta-model terms in its twin), its numbers' penalty paid in
@@ -387,6 +295,132 @@ class HypothesisBank:
             self._pending.append((xg @ xg.T, xg @ r0p, self._ln_theta()))
         self.last = reading
         return reading
+
+    def _noise(self, cols: Any, r_est: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+        """The residual's variance (n_out,) and AR(1) factor (n_out,) per output: the
+        baseline's once learned, else this window's (its own estimate's residual, or the
+        baseline twin's), floored by the resolution."""
+        if self.sigma2 is not None:
+            assert self.kappa is not None
+            return self.sigma2, self.kappa
+        ref = r_est if r_est is not None else cols.r0
+        sig2 = np.maximum(np.mean(ref * ref, axis=0), self.resolution**2)
+        kap = np.array([_kappa(ref[:, j]) for j in range(ref.shape[1])])
+        return sig2, kap
+
+    def _fit_linear(self, dp: FloatArray, rp: FloatArray
+                    ) -> dict[str, tuple[FloatArray, FloatArray, FloatArray, float]]:
+        """Each open hypothesis's size on the window, linearised at the baseline (bounded
+        least squares on the projected columns ``dp``, (D, M), against the projected
+        residual ``rp``, (M,)): label -> (information, gradient, size, squared residual)."""
+        gram, grad, s00 = dp @ dp.T, dp @ rp, float(rp @ rp)
+        out = {}
+        for h in self.hypotheses:
+            if h.closed_form is not None:
+                continue
+            cmb = self._combo[h.label]
+            a, b = cmb @ gram @ cmb.T, cmb @ grad
+            lo, hi = self._bounds[h.label]
+            phi = bounded_solve(a, b, lo, hi)
+            out[h.label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
+        return out
+
+    def _fit_pairs(self, dp: FloatArray, r0p: FloatArray,
+                   first: dict[str, tuple[FloatArray, FloatArray, FloatArray, float]]
+                   ) -> list[Hypothesis]:
+        """The pair twins of this window fitted linearised (into ``first``); a pair whose two
+        twins change the window alike (correlation beyond PAIR_CORRELATION) is dropped for
+        good. Returns the pairs kept."""
+        pairs = self._pairs_now()
+        for h in list(pairs):
+            cmb = self._combo[h.label]
+            a_, b_ = cmb @ (dp @ dp.T) @ cmb.T, cmb @ (dp @ r0p)
+            q1 = cmb.shape[0] // 2 or 1
+            c11, c22 = np.diag(a_)[:q1].sum(), np.diag(a_)[q1:].sum()
+            c12 = np.abs(a_[:q1, q1:]).sum()
+            if c11 > 0 and c22 > 0 and c12 / math.sqrt(c11 * c22) > self.PAIR_CORRELATION:
+                # the two twins change the window alike: together they are not two findings
+                self._drop_pair(h.label, forever=True)
+                pairs.remove(h)
+                continue
+            lo_, hi_ = self._bounds[h.label]
+            phi_ = bounded_solve(a_, b_, lo_, hi_)
+            first[h.label] = (a_, b_, phi_, float(r0p @ r0p - 2 * b_ @ phi_ + phi_ @ a_ @ phi_))
+        return pairs
+
+    def _gauss_newton(self, everyone: list[Hypothesis],
+                      first: Mapping[str, tuple[FloatArray, FloatArray, FloatArray, float]],
+                      dp: FloatArray, fit: WindowFit, initial: FloatArray | None,
+                      proj: _Projector) -> tuple[dict[str, tuple[FloatArray, float, FloatArray]],
+                                                 int]:
+        """The scale and term hypotheses (the twin is not linear in them) linearised again at
+        their size: up to GN_STEPS Gauss-Newton steps from the exact twin there, stopping once
+        a size moves less than 1e-4. Returns label -> (size, squared residual, information)
+        and the simulations run."""
+        again = [h for h in everyone if h.label in first
+                 and any(c.kind in ("scale", "term") for c in h.changes)
+                 and float(np.max(np.abs(first[h.label][2]))) > 1e-3]
+        exact: dict[str, tuple[FloatArray, float, FloatArray]] = {}
+        phis = {h.label: first[h.label][2] for h in again}
+        lin = {h.label: self._combo[h.label] @ dp for h in again}
+        sims = 0
+        for _ in range(self.GN_STEPS):
+            if not again:
+                break
+            step = self._exact(again, phis, fit, initial, proj, lin)
+            sims += sum(1 + sum(c.size for c in h.changes if c.kind in ("scale", "term"))
+                        for h in again)
+            moved = []
+            for h in again:
+                if h.label not in step:
+                    continue
+                exact[h.label] = step[h.label]
+                if float(np.max(np.abs(step[h.label][0] - phis[h.label]))) > 1e-4:
+                    moved.append(h)
+                phis[h.label] = step[h.label][0]
+            again = moved
+        return exact, sims
+
+    def _append_tracks(self, everyone: list[Hypothesis],
+                       fitted: Mapping[str, tuple[FloatArray, float, FloatArray]], eta: float,
+                       s0: float, ln_n: float, t_mid: float) -> None:
+        """Each hypothesis's window joins its track: the tempered log-likelihood ratio with
+        the baseline less its sizes' penalty (Schwarz), its size, the size's standard error
+        from the tempered information, and whether the window informs the size at all."""
+        for h in everyone:
+            track = self.tracks[h.label]
+            phi, s_h, a = fitted[h.label]
+            half = 0.5 * eta * (s0 - s_h) if math.isfinite(s_h) else -math.inf
+            if h.closed_form is not None:
+                track.append(half - 0.5 * ln_n, np.zeros(1), np.ones(1), t_mid)
+                continue
+            # the tempered likelihood's information: eta times the window's
+            a = eta * a
+            std = (np.array([1.0 / math.sqrt(a[0, 0])]) if a.shape == (1, 1)
+                   and a[0, 0] > 0 else np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0)))
+            lo, hi = self._bounds[h.label]
+            span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+            info = bool(np.max(np.diag(a) * np.minimum(span, 1.0) ** 2) > 1.0)
+            track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
+
+    def _read_evidence(self, everyone: list[Hypothesis], reading: WindowReading) -> None:
+        """The evidence of each hypothesis since its change point (into ``reading.fits``): a
+        line of sizes for a part's change (all such twins of one size at once,
+        :func:`evidence_many`), each window's own size for the others."""
+        groups: dict[tuple[int, int], list[Hypothesis]] = {}
+        for h in everyone:
+            if self._consistent(h):
+                groups.setdefault((self.tracks[h.label].q, self.tracks[h.label].m),
+                                  []).append(h)
+            else:
+                f = evidence_of(self.tracks[h.label], consistent=False)
+                if f is not None:
+                    reading.fits[h.label] = f
+        for hs in groups.values():
+            for h, f in zip(hs, evidence_many([self.tracks[h.label] for h in hs]),
+                            strict=True):
+                if f is not None:
+                    reading.fits[h.label] = f
 
     #: Gauss-Newton steps at most per scale hypothesis and window (each from the exact twin at
     #: the last size; the steps stop once the size moves less than 1e-4).

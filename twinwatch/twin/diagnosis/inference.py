@@ -53,6 +53,18 @@ def _t_crit(n: int) -> float:
 SPLIT = 0.1
 
 
+def _fold_pairs(best_twin: dict[str, tuple[str, Fitted]]) -> None:
+    """A pair's twin stands for each of its modes that has no better twin of its own; the
+    pairs' keys are then removed (in place)."""
+    for k in list(best_twin):
+        if "+" in k:
+            for f in k.split("+"):
+                lab, fitted = best_twin[k]
+                if f not in best_twin or fitted.evidence > best_twin[f][1].evidence:
+                    best_twin.setdefault(f, best_twin[k])
+            del best_twin[k]
+
+
 def _log_sum_exp(values: list[float]) -> float:
     top = max(values)
     if not math.isfinite(top):
@@ -212,86 +224,19 @@ class Diagnoser:
     def _decide(self, health: HealthMessage, reading: WindowReading,
                 speed: tuple[float, float] | None, since: float | None, record: str | None,
                 share: float) -> DiagnosisHealth:
+        """The window's diagnosis from the bank's reading: the posterior
+        (:meth:`_posterior`), the status (:meth:`_status`), the modes the data cannot tell
+        apart (:meth:`_split`) and the sentences."""
         cfg = self.config
-        by_fault: dict[str, list[tuple[str, Fitted]]] = {}
-        for lab, f in reading.fits.items():
-            key = ("+".join(x.split("#")[0] for x in lab.split("+")) if "+" in lab
-                   else lab.split("#")[0])
-            by_fault.setdefault(key, []).append((lab, f))
-        evidence: dict[str, float] = {}
-        gains: dict[str, np.ndarray] = {}
-        best_twin = {fid: max(fits, key=lambda lf: lf[1].evidence)
-                     for fid, fits in by_fault.items()}
-        for fid, fits in by_fault.items():
-            evs = [f.evidence for _, f in fits]
-            top = max(evs)
-            evidence[fid] = (top + math.log(sum(math.exp(e - top) for e in evs) / len(evs))
-                             if math.isfinite(top) else -math.inf)
-            tr = self.bank.tracks[best_twin[fid][0]]
-            gains[fid] = tr.gain[:tr.m]
-        evidence["unknown"] = reading.unknown
-        gains["unknown"] = np.array(self.bank.unknown_gains())
-        prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
-
-        def log_prior(key: str) -> float:
-            if key == "unknown":
-                return math.log(cfg.unknown_prior)
-            return sum(math.log(self.faults[f].prior) for f in key.split("+"))
-
-        # no change now: none ever, or one that ended (a repair: a second change, as likely as
-        # the fault itself) and the windows since are the baseline's
-        terms_none = [math.log(max(1.0 - prior_sum, 1e-6))]
-        for key, (_, fitted) in best_twin.items():
-            if "+" not in key and fitted.ended > -math.inf:
-                terms_none.append(2.0 * math.log(self.faults[key].prior) + fitted.ended)
-        log_none = _log_sum_exp(terms_none)
-        # a change now, against no change: each twin's likelihood ratio with the baseline
-        # (nested: its size zero is the baseline), with its prior
-        log_change = _log_sum_exp([log_prior(k) + ev for k, ev in evidence.items()])
-        p_change = 1.0 / (1.0 + math.exp(min(log_none - log_change, 700.0)))
-        # which change: the twins against each other (not nested: Vuong's comparison)
-        between = _vuong(evidence, gains)
-        logs = {k: log_prior(k) + ev for k, ev in between.items() if math.isfinite(ev)}
-        top_l = max(logs.values()) if logs else 0.0
-        zz = sum(math.exp(v - top_l) for v in logs.values()) or 1.0
-        joint = {k: p_change * math.exp(v - top_l) / zz for k, v in logs.items()}
-        joint.setdefault("unknown", 0.0)
-        joint["no_fault"] = 1.0 - p_change
-        p_none, p_unknown = joint.pop("no_fault"), joint.pop("unknown")
-        # each fault's probability: alone, or with another (a pair's twin)
-        post = {k: v for k, v in joint.items() if "+" not in k}
-        for k, v in joint.items():
-            if "+" in k:
-                for f in k.split("+"):
-                    post[f] = post.get(f, 0.0) + v
-        for k in list(best_twin):
-            if "+" in k:
-                for f in k.split("+"):
-                    lab, fitted = best_twin[k]
-                    if f not in best_twin or fitted.evidence > best_twin[f][1].evidence:
-                        best_twin.setdefault(f, best_twin[k])
-                del best_twin[k]
+        best_twin, evidence, gains = self._by_fault(reading)
+        p_none, p_unknown, post = self._posterior(best_twin, evidence, gains)
+        _fold_pairs(best_twin)
         order = sorted(post, key=lambda k: -post[k])
         listed = [self._fault(fid, post[fid], best_twin[fid], reading, order[0])
                   for fid in order[:cfg.listed]]
         p_top = post[order[0]] if order else 0.0
-        status: Literal["no_fault", "fault", "unknown", "check_function"]
-        best = max(p_none, p_unknown, p_top)
-        split_mass = sum(post[f] for f in order[:3] if post[f] >= SPLIT)
-        if order and best == p_top and (p_top >= 0.5 or split_mass >= 0.5):
-            status = "fault"
-        elif 1.0 - p_none > p_none:
-            # a change, but no mode of the library (nor two) stands out among those that fit:
-            # not a finding about a part
-            status, best = "unknown", 1.0 - p_none
-        else:
-            status = "no_fault"
-        split: list[str] = []
-        separate = None
-        if len(order) > 1 and post[order[1]] >= SPLIT and p_top < (cfg.alarm or 0.8):
-            split = [fid for fid in order if post[fid] >= SPLIT][:3]
-            separate = "; ".join(f"{fid}: {self.faults[fid].confirm or self.faults[fid].action}"
-                                 for fid in split)
+        status, best = self._status(order, p_top, post, p_none, p_unknown, since, share)
+        split, separate = self._split(order, post, p_top)
         unexplained: list[str] = []
         terms = [t.equation for t in health.terms]
         if p_unknown >= SPLIT:
@@ -300,9 +245,6 @@ class Diagnoser:
                 f"{', the kept meta-model terms' if terms else ''}) fits the "
                 f"{reading.unknown_windows} windows since the change better than any fault "
                 f"mode's twin: a change the library does not know")
-        if since is not None and not (status == "fault" and p_top >= (cfg.alarm or 0.8)):
-            status = "check_function"
-            best = share
         ruled_out = [self._why_not(fid, post[fid], best_twin[fid], order[0])
                      for fid in order[1:] if post[fid] < 0.05
                      and best_twin[fid][1].evidence > 0][:cfg.listed]
@@ -328,6 +270,106 @@ class Diagnoser:
             split=split,
             separate=separate,
         )
+
+    def _by_fault(self, reading: WindowReading) -> tuple[
+            dict[str, tuple[str, Fitted]], dict[str, float], dict[str, np.ndarray]]:
+        """Each mode's (or pair's) twins gathered: its best twin (label, fit), its evidence
+        (the log of the mean likelihood ratio over its twins: the alternatives of a mode are
+        equally likely a priori) and the per-window gains of its best twin; the window's own
+        estimate as ``unknown``."""
+        by_fault: dict[str, list[tuple[str, Fitted]]] = {}
+        for lab, f in reading.fits.items():
+            key = ("+".join(x.split("#")[0] for x in lab.split("+")) if "+" in lab
+                   else lab.split("#")[0])
+            by_fault.setdefault(key, []).append((lab, f))
+        evidence: dict[str, float] = {}
+        gains: dict[str, np.ndarray] = {}
+        best_twin = {fid: max(fits, key=lambda lf: lf[1].evidence)
+                     for fid, fits in by_fault.items()}
+        for fid, fits in by_fault.items():
+            evs = [f.evidence for _, f in fits]
+            top = max(evs)
+            evidence[fid] = (top + math.log(sum(math.exp(e - top) for e in evs) / len(evs))
+                             if math.isfinite(top) else -math.inf)
+            tr = self.bank.tracks[best_twin[fid][0]]
+            gains[fid] = tr.gain[:tr.m]
+        evidence["unknown"] = reading.unknown
+        gains["unknown"] = np.array(self.bank.unknown_gains())
+        return best_twin, evidence, gains
+
+    def _posterior(self, best_twin: Mapping[str, tuple[str, Fitted]],
+                   evidence: Mapping[str, float], gains: Mapping[str, np.ndarray]
+                   ) -> tuple[float, float, dict[str, float]]:
+        """P(no change), P(a change the library does not know) and each mode's probability
+        (alone or in a pair). A change against none: each twin's likelihood ratio with the
+        baseline (nested: its size zero is the baseline) with its prior; which change: the
+        twins against each other (not nested: Vuong's comparison, :func:`_vuong`)."""
+        cfg = self.config
+        prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
+
+        def log_prior(key: str) -> float:
+            if key == "unknown":
+                return math.log(cfg.unknown_prior)
+            return sum(math.log(self.faults[f].prior) for f in key.split("+"))
+
+        # no change now: none ever, or one that ended (a repair: a second change, as likely as
+        # the fault itself) and the windows since are the baseline's
+        terms_none = [math.log(max(1.0 - prior_sum, 1e-6))]
+        for key, (_, fitted) in best_twin.items():
+            if "+" not in key and fitted.ended > -math.inf:
+                terms_none.append(2.0 * math.log(self.faults[key].prior) + fitted.ended)
+        log_none = _log_sum_exp(terms_none)
+        log_change = _log_sum_exp([log_prior(k) + ev for k, ev in evidence.items()])
+        p_change = 1.0 / (1.0 + math.exp(min(log_none - log_change, 700.0)))
+        between = _vuong(dict(evidence), dict(gains))
+        logs = {k: log_prior(k) + ev for k, ev in between.items() if math.isfinite(ev)}
+        top_l = max(logs.values()) if logs else 0.0
+        zz = sum(math.exp(v - top_l) for v in logs.values()) or 1.0
+        joint = {k: p_change * math.exp(v - top_l) / zz for k, v in logs.items()}
+        joint.setdefault("unknown", 0.0)
+        p_none, p_unknown = 1.0 - p_change, joint.pop("unknown")
+        # each fault's probability: alone, or with another (a pair's twin)
+        post = {k: v for k, v in joint.items() if "+" not in k}
+        for k, v in joint.items():
+            if "+" in k:
+                for f in k.split("+"):
+                    post[f] = post.get(f, 0.0) + v
+        return p_none, p_unknown, post
+
+    def _status(self, order: list[str], p_top: float, post: Mapping[str, float],
+                p_none: float, p_unknown: float, since: float | None, share: float
+                ) -> tuple[Literal["no_fault", "fault", "unknown", "check_function"], float]:
+        """The status and its probability: a fault when the top mode is the likeliest answer
+        and holds half the mass (or the modes the data cannot tell apart do together); a
+        change no mode stands out for: unknown; the twin no longer fitting: check function,
+        unless a fault is named at the alarm level."""
+        cfg = self.config
+        status: Literal["no_fault", "fault", "unknown", "check_function"]
+        best = max(p_none, p_unknown, p_top)
+        split_mass = sum(post[f] for f in order[:3] if post[f] >= SPLIT)
+        if order and best == p_top and (p_top >= 0.5 or split_mass >= 0.5):
+            status = "fault"
+        elif 1.0 - p_none > p_none:
+            # a change, but no mode of the library (nor two) stands out among those that fit:
+            # not a finding about a part
+            status, best = "unknown", 1.0 - p_none
+        else:
+            status = "no_fault"
+        if since is not None and not (status == "fault" and p_top >= (cfg.alarm or 0.8)):
+            status = "check_function"
+            best = share
+        return status, best
+
+    def _split(self, order: list[str], post: Mapping[str, float], p_top: float
+               ) -> tuple[list[str], str | None]:
+        """The modes the data cannot tell apart (each at SPLIT or more, the top below the
+        alarm) and the checks on the machine that separate them."""
+        if len(order) > 1 and post[order[1]] >= SPLIT and p_top < (self.config.alarm or 0.8):
+            split = [fid for fid in order if post[fid] >= SPLIT][:3]
+            return split, "; ".join(
+                f"{fid}: {self.faults[fid].confirm or self.faults[fid].action}"
+                for fid in split)
+        return [], None
 
     def _size_text(self, fid: str, lab: str, f: Fitted) -> str:
         """The fitted change(s) of a twin (one mode's, or a pair's) for a person."""

@@ -648,16 +648,9 @@ class Estimator:
         if jump:
             self._swarm_next = "sudden change"
         suspect = self._suspect(check, faults, nrmse)
-        if (suspect is None and self.fusion is not None and self.fusion.outliers > outliers
-                and self.fusion.last_outlier is not None):
-            # the fusion did not take the window (a move beyond JUMP_LIMIT at once): its
-            # estimates are not the machine's either (a position reading offset by 2 cm was
-            # fitted by the hydraulic twin with D x4.1 at nRMSE 2e-6 and read as the fluid's
-            # degradation at 0.99)
-            name, factor = self.fusion.last_outlier
-            suspect = (f"{name} would move by a factor {factor:.3g} in one window (beyond 2): "
-                       f"an outlier of the model, not fused")
-            trusted = False
+        outlier = None if suspect is not None else self._outlier(outliers)
+        if outlier is not None:
+            suspect, trusted = outlier, False
         out = publish(twin.theta, self.pmap, cfg.tie or {}, decision, fused,
                       cfg.fusion.max_rel_std, suspect=suspect,
                       held_std=self.trusted_std_values())
@@ -698,6 +691,18 @@ class Estimator:
             floor=floors,
             long_run=long_run,
         )
+
+    def _outlier(self, before: int) -> str | None:
+        """Why the window is suspect when the fusion did not take it (its outlier count went up
+        from ``before``: a move beyond JUMP_LIMIT at once), else None. Its estimates are not
+        the machine's either: a position reading offset by 2 cm was fitted by the hydraulic twin
+        with D x4.1 at nRMSE 2e-6 and read as the fluid's degradation at 0.99."""
+        fusion = self.fusion
+        if fusion is None or fusion.outliers <= before or fusion.last_outlier is None:
+            return None
+        name, factor = fusion.last_outlier
+        return (f"{name} would move by a factor {factor:.3g} in one window (beyond 2): "
+                f"an outlier of the model, not fused")
 
     def _long_run(self, decision: GateDecision, point: FitPoint, check: ModelCheck | None,
                   out: Any) -> dict[str, float]:
