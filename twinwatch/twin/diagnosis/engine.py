@@ -193,7 +193,9 @@ class HypothesisBank:
         return np.array(out) if out else np.zeros((0, *cols.r0.shape))
 
     def _ln_theta(self) -> FloatArray:
-        return np.log(np.array([self.theta[self.names.index(p)] for p, _ in self.groups]))
+        out: FloatArray = np.log(np.array([self.theta[self.names.index(p)]
+                                           for p, _ in self.groups]))
+        return out
 
     def _set_groups(self, x: FloatArray) -> None:
         for (_p, members), v in zip(self.groups, x, strict=True):
@@ -489,11 +491,11 @@ class HypothesisBank:
             self._bounds[label] = (np.concatenate([lo_a, lo_b]), np.concatenate([hi_a, hi_b]))
             self.tracks[label] = Track(pair.size, self.keep)
         if len(self._pairs) > self.PAIRS_KEPT:
-            ranked = sorted(self._pairs, key=lambda lab: reading.fits[lab].evidence
-                            if lab in reading.fits else -math.inf)
-            for lab in ranked[:len(self._pairs) - self.PAIRS_KEPT]:
-                self._drop_pair(lab)
-                reading.fits.pop(lab, None)
+            weakest = sorted(self._pairs, key=lambda key: reading.fits[key].evidence
+                             if key in reading.fits else -math.inf)
+            for key in weakest[:len(self._pairs) - self.PAIRS_KEPT]:
+                self._drop_pair(key)
+                reading.fits.pop(key, None)
 
     def _theta_at(self, h: Hypothesis, phi: FloatArray) -> FloatArray:
         th = self.theta.copy()
@@ -705,11 +707,11 @@ class HypothesisBank:
             c = columns(f, self.theta, [], self.terms, init)
             if c is None:
                 continue
-            zr = c.nuisance.reshape(c.nuisance.shape[0], -1)
+            zr = c.nuisance.reshape(len(c.nuisance), -1)
             r = c.r0.reshape(-1)
             if zr.shape[0]:
                 r = r - zr.T @ np.linalg.lstsq(zr @ zr.T, zr @ r, rcond=None)[0]
-            res = r.reshape(c.r0.shape)
+            res: FloatArray = r.reshape(c.r0.shape)
             stats.append((np.mean(res * res, axis=0),
                           np.array([_kappa(res[:, j]) for j in range(res.shape[1])])))
         self._stats = stats
@@ -824,4 +826,4 @@ def _kappa(r: FloatArray) -> float:
     """The share of independent samples in an AR(1) residual: (1 - rho)/(1 + rho), rho its
     lag-1 autocorrelation (negative rho counted as none), at least one sample in all."""
     rho = min(max(_autocorr(r - float(np.mean(r))), 0.0), 0.999999)
-    return max((1.0 - rho) / (1.0 + rho), 1.0 / max(r.shape[0], 1))
+    return float(max((1.0 - rho) / (1.0 + rho), 1.0 / max(len(r), 1)))
