@@ -38,6 +38,14 @@ def diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[str
                  f"{f.action}  "]
         lines += [f"+ {x}  " for x in f.evidence_for or []]
         lines += [f"- {x}  " for x in f.evidence_against or []]
+        split = list(getattr(d, "split", None) or [])
+        if len(split) > 1:  # the modes the data cannot tell apart, and the check that can
+            lines.append(f"*the data cannot tell {' and '.join(split)} apart; to tell: "
+                         f"{d.separate}*  ")
+        if (d.unknown or 0.0) >= 0.1:  # a share for a change the library does not know
+            lines.append(f"*unknown {fmt(d.unknown, '.2f')}: "
+                         + "; ".join(d.unexplained or ["a change the library does not know"])
+                         + "*  ")
     elif status == "check_function":
         since = d.check_function_since
         lines = ["**CHECK FUNCTION: the twin does not describe this machine**"
