@@ -32,20 +32,7 @@ def diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[str
     faults = d.faults or []
     status = d.status
     if status == "fault" and faults:
-        f = faults[0]
-        lines = [f"**Diagnosis: {f.id}** ({f.component}), probability "
-                 f"{fmt(f.probability, '.2f')}, urgency {f.urgency}: "
-                 f"{f.action}  "]
-        lines += [f"+ {x}  " for x in f.evidence_for or []]
-        lines += [f"- {x}  " for x in f.evidence_against or []]
-        split = list(getattr(d, "split", None) or [])
-        if len(split) > 1:  # the modes the data cannot tell apart, and the check that can
-            lines.append(f"*the data cannot tell {' and '.join(split)} apart; to tell: "
-                         f"{d.separate}*  ")
-        if (d.unknown or 0.0) >= 0.1:  # a share for a change the library does not know
-            lines.append(f"*unknown {fmt(d.unknown, '.2f')}: "
-                         + "; ".join(d.unexplained or ["a change the library does not know"])
-                         + "*  ")
+        lines = _fault_lines(d, faults[0])
     elif status == "check_function":
         since = d.check_function_since
         lines = ["**CHECK FUNCTION: the twin does not describe this machine**"
@@ -74,6 +61,25 @@ def diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[str
         # and what the diagnosis cannot see (its "no fault" there is the prior)
         lines += [f"*{x}*  " for x in (getattr(d, "unobserved", None) or [])[:2]]
     return [*lines, ""]
+
+
+def _fault_lines(d: DiagnosisView, f: Any) -> list[str]:
+    """The part named: its action, its evidence for and against, the modes the data cannot
+    tell it from (with the check that can) and a share for a change the library does not
+    know."""
+    lines = [f"**Diagnosis: {f.id}** ({f.component}), probability "
+             f"{fmt(f.probability, '.2f')}, urgency {f.urgency}: {f.action}  "]
+    lines += [f"+ {x}  " for x in f.evidence_for or []]
+    lines += [f"- {x}  " for x in f.evidence_against or []]
+    split = list(getattr(d, "split", None) or [])
+    if len(split) > 1:
+        lines.append(f"*the data cannot tell {' and '.join(split)} apart; to tell: "
+                     f"{d.separate}*  ")
+    if (d.unknown or 0.0) >= 0.1:
+        lines.append(f"*unknown {fmt(d.unknown, '.2f')}: "
+                     + "; ".join(d.unexplained or ["a change the library does not know"])
+                     + "*  ")
+    return lines
 
 
 def parameter_table(doc: HealthView) -> str:
