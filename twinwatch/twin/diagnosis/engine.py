@@ -56,7 +56,9 @@ __all__ = ["RESOLUTION", "HypothesisBank", "WindowReading"]
 NAMEPLATE_TOLERANCE = 0.1
 
 #: A reading that repeats to this share of its size repeats exactly (one converter code, one
-#: register value): a stuck reading does, a clipped one at its range's end does.
+#: register value): a stuck reading does, a clipped one at its range's end does. 1e-9 lies
+#: far below one code of a 24-bit converter (6e-8 of full scale) and far above float64's
+#: rounding (1e-16), so it tells one code repeated from two neighbouring codes.
 EXACT = 1e-9
 
 #: The finest residual the comparison resolves by default, as a share of each output's scale
@@ -593,34 +595,6 @@ class HypothesisBank:
             a = self._attach_scale.get(c.target, 1.0)
             return 1e-3 * a
         return LN_STEP
-
-    def _closed_residual(self, h: Hypothesis, cols: Columns, fit: WindowFit
-                         ) -> FloatArray | None:
-        """A stuck or clipped reading's normalised residual (N-1, n_out), None where the
-        reading cannot be stuck or clipped (it does not repeat)."""
-        c = h.closed_form
-        assert c is not None
-        names = fit.model.output_names
-        r = cols.r0.copy()
-        if c.target not in names:
-            return None
-        j = names.index(c.target)
-        meas = fit.meas[1:, j]
-        tol = EXACT * max(float(np.max(np.abs(meas))), float(cols.scale[j]))
-        if c.kind == "stuck":
-            if float(np.max(meas) - np.min(meas)) > tol:
-                return None
-            r[:, j] = 0.0
-            return r
-        y = cols.y0[1:, j]
-        hi, lo = float(np.max(meas)), float(np.min(meas))
-        at_hi = (np.abs(meas - hi) <= tol) & (y > hi)
-        at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
-        mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
-        if mask.sum() < 2:
-            return None
-        r[mask, j] = 0.0
-        return r
 
     def _closed_form(self, h: Hypothesis, cols: Columns, fit: WindowFit, proj: _Projector
                      ) -> float:

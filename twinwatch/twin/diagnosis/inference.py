@@ -36,7 +36,9 @@ from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 __all__ = ["Diagnoser", "shaft_speed"]
 
-#: The two-sided level at which one twin fits better than another in Vuong's test (5 %).
+#: The two-sided level at which one twin fits better than another in Vuong's test (5 %: the
+#: conventional level; the statistic is compared with a critical value at it, Vuong,
+#: Econometrica 57(2), 1989).
 VUONG_LEVEL = 0.05
 
 
