@@ -37,8 +37,8 @@ from twinwatch.twin.diagnosis.hypotheses import (
     WindowTerms,
     bounded_solve,
     columns,
+    evidence_each_many,
     evidence_many,
-    evidence_of,
 )
 from twinwatch.twin.diagnosis.hypotheses import (
     basis as _basis_of,
@@ -145,6 +145,8 @@ class HypothesisBank:
         #: hypothesis label -> its columns as combinations of the directions (q, n_dir)
         self._combo: dict[str, FloatArray] = {}
         self._bounds: dict[str, tuple[FloatArray, FloatArray]] = {}
+        #: label -> its sizes' plausible range squared, at most 1 (whether a window informs it)
+        self._reach: dict[str, FloatArray] = {}
         for h in self.hypotheses:
             rows = []
             for c in h.changes:
@@ -402,29 +404,34 @@ class HypothesisBank:
             a = eta * a
             std = (np.array([1.0 / math.sqrt(a[0, 0])]) if a.shape == (1, 1)
                    and a[0, 0] > 0 else np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0)))
-            lo, hi = self._bounds[h.label]
-            span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
-            info = bool(np.max(np.diag(a) * np.minimum(span, 1.0) ** 2) > 1.0)
+            reach = self._reach.get(h.label)
+            if reach is None:
+                lo, hi = self._bounds[h.label]
+                span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+                reach = self._reach[h.label] = np.minimum(span, 1.0) ** 2
+            info = bool((a[0, 0] * reach[0] if a.shape == (1, 1)
+                         else np.max(np.diag(a) * reach)) > 1.0)
             track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
 
     def _read_evidence(self, everyone: list[Hypothesis], reading: WindowReading) -> None:
         """The evidence of each hypothesis since its change point (into ``reading.fits``): a
-        line of sizes for a part's change (all such twins of one size at once,
-        :func:`evidence_many`), each window's own size for the others."""
-        groups: dict[tuple[int, int], list[Hypothesis]] = {}
+        line of sizes for a part's change (:func:`evidence_many`), each window's own size for
+        the others (:func:`evidence_each_many`); the twins of one size at once."""
+        groups: dict[tuple[bool, int, int], list[Hypothesis]] = {}
         for h in everyone:
-            if self._consistent(h):
-                groups.setdefault((self.tracks[h.label].q, self.tracks[h.label].m),
-                                  []).append(h)
-            else:
-                f = evidence_of(self.tracks[h.label], consistent=False)
-                if f is not None:
-                    reading.fits[h.label] = f
-        for hs in groups.values():
-            for h, f in zip(hs, evidence_many([self.tracks[h.label] for h in hs]),
-                            strict=True):
-                if f is not None:
-                    reading.fits[h.label] = f
+            tr = self.tracks[h.label]
+            groups.setdefault((self._consistent(h), tr.q, tr.m), []).append(h)
+        found: dict[str, Fitted | None] = {}
+        for (consistent, _, _), hs in groups.items():
+            many = evidence_many if consistent else evidence_each_many
+            found.update(zip((h.label for h in hs), many([self.tracks[h.label] for h in hs]),
+                             strict=True))
+        # the others first, then the parts' changes by size (the order the fits are read in)
+        order = [h.label for h in everyone if not self._consistent(h)] + [
+            h.label for (consistent, _, _), hs in groups.items() if consistent for h in hs]
+        for label in order:
+            if (f := found[label]) is not None:
+                reading.fits[label] = f
 
     #: Gauss-Newton steps at most per scale hypothesis and window (each from the exact twin at
     #: the last size; the steps stop once the size moves less than 1e-4).
@@ -491,6 +498,7 @@ class HypothesisBank:
             lo_a, hi_a = self._bounds[ha.label]
             lo_b, hi_b = self._bounds[hb.label]
             self._bounds[label] = (np.concatenate([lo_a, lo_b]), np.concatenate([hi_a, hi_b]))
+            self._reach.pop(label, None)    # its two modes' order is the best one's first
             self.tracks[label] = Track(pair.size, self.keep)
         if len(self._pairs) > self.PAIRS_KEPT:
             weakest = sorted(self._pairs, key=lambda key: reading.fits[key].evidence

@@ -370,25 +370,38 @@ class Track:
 
     def __init__(self, q: int, keep: int) -> None:
         self.q, self.keep, self.m = q, keep, 0
-        self.gain = np.zeros(keep)
-        self.half = np.zeros(keep)
-        self.ln_n = np.zeros(keep)
-        self.t = np.zeros(keep)
-        self.info = np.zeros(keep, dtype=bool)
-        self.phi = np.zeros((keep, q))
-        self.std = np.zeros((keep, q))
+        # twice the windows kept: a full track drops its oldest window by moving its start,
+        # and copies its windows back to the front once per ``keep`` windows
+        self._start = 0
+        self._buf = (np.zeros(2 * keep), np.zeros(2 * keep), np.zeros(2 * keep),
+                     np.zeros(2 * keep), np.zeros(2 * keep, dtype=bool),
+                     np.zeros((2 * keep, q)), np.zeros((2 * keep, q)))
+
+    def _view(self, i: int) -> np.ndarray:
+        return self._buf[i][self._start:self._start + self.keep]
+
+    gain = property(lambda self: self._view(0))
+    half = property(lambda self: self._view(1))
+    ln_n = property(lambda self: self._view(2))
+    t = property(lambda self: self._view(3))
+    info = property(lambda self: self._view(4))
+    phi = property(lambda self: self._view(5))
+    std = property(lambda self: self._view(6))
 
     def append(self, gain: float, phi: FloatArray, std: FloatArray, t: float,
                info: bool = True, half: float = 0.0, ln_n: float = 0.0) -> None:
         if self.m == self.keep:
-            for a in (self.gain, self.half, self.ln_n, self.t, self.info, self.phi, self.std):
-                a[:-1] = a[1:]
+            self._start += 1
             self.m -= 1
-        k = self.m
-        self.gain[k], self.half[k], self.ln_n[k], self.t[k] = gain, half, ln_n, t
-        self.info[k] = info
-        self.phi[k] = np.ravel(phi)[:self.q]
-        self.std[k] = np.ravel(std)[:self.q]
+        k = self._start + self.m
+        if k == len(self._buf[0]):
+            for a in self._buf:
+                a[:self.m] = a[self._start:k]
+            self._start, k = 0, self.m
+        b = self._buf
+        b[0][k], b[1][k], b[2][k], b[3][k], b[4][k] = gain, half, ln_n, t, info
+        b[5][k] = np.ravel(phi)[:self.q]
+        b[6][k] = np.ravel(std)[:self.q]
         self.m += 1
 
     def __len__(self) -> int:
@@ -444,12 +457,6 @@ class Fitted:
     ended: float = -math.inf
 
 
-def _suffix(x: FloatArray) -> FloatArray:
-    """Sums from each row to the last along axis 0."""
-    out: FloatArray = np.flip(np.cumsum(np.flip(x, axis=0), axis=0), axis=0)
-    return out
-
-
 def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | None]:
     """:func:`evidence_of` (``consistent``) for many tracks of one size and length at once:
     the same arithmetic on (H, m, q) arrays (one pass of numpy calls for all hypotheses)."""
@@ -489,25 +496,30 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     alpha, chi2, params = line(sa, sat, satt, sap, sapt, sapp)
     ev_c = half_s - 0.5 * chi2 - 0.5 * params * np.log(np.maximum(n_s, 2.0))   # (H, m)
     ks = np.argmax(ev_c, axis=1)
+    rows = np.arange(len(tracks))
+    top = ev_c[rows, ks]
+    spread = np.mean(np.exp(ev_c - top[:, None]), axis=1)
+    # the change ended at a later window e > k: the line from k to e, the baseline since
+    # (every e at once; those at or before k masked out)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        _, chi_e, par_e = line(*(x[rows, ks][:, None] - x for x in (sa, sat, satt, sap, sapt,
+                                                                    sapp)))
+        ev_e = ((half_s[rows, ks][:, None] - half_s) - 0.5 * chi_e - 0.5 * par_e * np.log(
+            np.maximum(n_s[rows, ks][:, None] - n_s, 2.0)))
+    later = np.arange(m)[None, :] > ks[:, None]
+    ended = np.max(np.where(later, ev_e, -np.inf), axis=1)
+    since = np.arange(m)[None, :] >= ks[:, None]
+    positive = np.sum(since & (np.stack([t.gain[:m] for t in tracks]) > 0), axis=1)
+    informative = np.any(np.stack([t.info[max(0, m - recent):m] for t in tracks]), axis=1)
+    std = 1.0 / np.sqrt(np.maximum(sa[rows, ks], 1e-300))
     out: list[Fitted | None] = []
-    for h, tr in enumerate(tracks):
+    for h in range(len(tracks)):
         k = int(ks[h])
-        row = ev_c[h]
-        top = float(row[k])
-        ev = top + math.log(float(np.mean(np.exp(row - top))))
-        ended = -math.inf
-        if m - k >= 2:
-            e = np.arange(k + 1, m)
-            _, chi_e, par_e = line(*(x[h, k] - x[h, e] for x in (sa, sat, satt, sap, sapt,
-                                                                 sapp)))
-            ev_e = (half_s[h, k] - half_s[h, e]) - 0.5 * chi_e - 0.5 * par_e * np.log(
-                np.maximum(n_s[h, k] - n_s[h, e], 2.0))
-            ended = float(np.max(ev_e))
-        g = tr.gain[k:m]
-        out.append(Fitted(ev, k, m - k, np.asarray(alpha[h, k], dtype=float),
-                          1.0 / np.sqrt(np.maximum(sa[h, k], 1e-300)), float(np.mean(g > 0)),
-                          bool(np.any(tr.info[max(0, m - recent):m])),
-                          max(1.0, float(chi2[h, k]) / max(q * (m - k - 2), 1)), ended))
+        out.append(Fitted(float(top[h]) + math.log(float(spread[h])), k, m - k,
+                          np.asarray(alpha[h, k], dtype=float), std[h],
+                          float(positive[h]) / (m - k), bool(informative[h]),
+                          max(1.0, float(chi2[h, k]) / max(q * (m - k - 2), 1)),
+                          float(ended[h])))
     return out
 
 
@@ -526,20 +538,44 @@ def evidence_of(track: Track, recent: int = 5, consistent: bool = True) -> Fitte
     periodic term, whose phase is each window's own; a reading stuck): each window's gain less
     its own size's penalty.
     """
-    m = track.m
-    if m == 0:
-        return None
-    g = track.gain[:m]
-    info = bool(np.any(track.info[max(0, m - recent):m]))
     if consistent:
         return evidence_many([track], recent)[0]
-    suffix_g = _suffix(g)
-    k = int(np.argmax(suffix_g))
-    top = float(suffix_g[k])
-    ev = (top + math.log(float(np.mean(np.exp(suffix_g - top))))) if math.isfinite(top) \
-        else -math.inf
-    lo = max(k, m - recent)
-    w = 1.0 / np.maximum(track.std[lo:m], 1e-300) ** 2
-    phi = np.sum(w * track.phi[lo:m], axis=0) / np.sum(w, axis=0)
-    return Fitted(ev, k, m - k, phi, 1.0 / np.sqrt(np.sum(w, axis=0)),
-                  float(np.mean(g[k:] > 0)), info)
+    return evidence_each_many([track], recent)[0]
+
+
+def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | None]:
+    """:func:`evidence_of` (not ``consistent``: each window's own size) for many tracks of one
+    size and length at once."""
+    if not tracks:
+        return []
+    m = tracks[0].m
+    if m == 0:
+        return [None] * len(tracks)
+    g = np.stack([t.gain[:m] for t in tracks])                           # (H, m)
+    suffix_g = g[:, ::-1].cumsum(axis=1)[:, ::-1]
+    ks = np.argmax(suffix_g, axis=1)
+    rows = np.arange(len(tracks))
+    top = suffix_g[rows, ks]
+    with np.errstate(invalid="ignore"):   # a row at -inf: its evidence is -inf, as alone
+        spread = np.mean(np.exp(suffix_g - top[:, None]), axis=1)
+    since = np.arange(m)[None, :] >= ks[:, None]
+    positive = np.sum(since & (g > 0), axis=1)
+    last = max(0, m - recent)
+    informative = np.any(np.stack([t.info[last:m] for t in tracks]), axis=1)
+    # each one's size: the inverse-variance mean over its last windows since its change point
+    lo = np.maximum(ks, last)
+    use = (np.arange(last, m)[None, :] >= lo[:, None])[..., None]        # (H, L, 1)
+    w = np.where(use, 1.0 / np.maximum(np.stack([t.std[last:m] for t in tracks]),
+                                       1e-300) ** 2, 0.0)
+    wsum = np.sum(w, axis=1)
+    phis = np.stack([t.phi[last:m] for t in tracks])
+    phi = np.sum(np.where(use, w * phis, 0.0), axis=1) / wsum
+    std = 1.0 / np.sqrt(wsum)
+    out: list[Fitted | None] = []
+    for h in range(len(tracks)):
+        k, t0 = int(ks[h]), float(top[h])
+        ev = t0 + math.log(float(spread[h])) if math.isfinite(t0) else -math.inf
+        out.append(Fitted(ev, k, m - k, phi[h], std[h], float(positive[h]) / (m - k),
+                          bool(informative[h])))
+    return out
+
