@@ -14,7 +14,9 @@ reported):
   (:meth:`TwinAdapter.process`: estimation, fusion, discovery when due, prognostics; then
   :func:`~twinwatch.twin.health.build_health` and its JSON), split into the estimation
   (:meth:`Estimator.estimate`, fusion included), the prognostics and the rest (the reading
-  check among it: the outputs the fault library names, ``ia`` here). The outputs'
+  check among it: the outputs the fault library names, ``ia`` here), and the diagnosis
+  (:meth:`~twinwatch.twin.diagnosis.Diagnoser.update`: the fault library's hypothesis twins
+  fitted on the window, as the daemon's pipeline runs it). The outputs'
   own writes (SQLite, Zenoh, MQTT) are not included: they belong to the sinks, measured by
   ``bench_density.py`` in a running host.
 * ``acquisition``: the ring buffer's ``append`` for a window's 200 samples; the file driver
@@ -45,10 +47,11 @@ sys.path.insert(0, str(ROOT))
 
 from twinwatch.config.loader import default_config  # noqa: E402
 from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
+from twinwatch.daemon.window_worker import make_diagnoser  # noqa: E402
 from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
 from twinwatch.plant.dcmotor import DCMotorPlant  # noqa: E402
 from twinwatch.twin.adaptation import TwinAdapter  # noqa: E402
-from twinwatch.twin.health import build_health  # noqa: E402
+from twinwatch.twin.health import build_health, complete_health  # noqa: E402
 from twinwatch.twin.models import create_model  # noqa: E402
 
 
@@ -76,7 +79,7 @@ def _stats(x: list[float]) -> str:
 
 def window_cost(n_windows: int, t_from: float, noise: float = 0.0) -> tuple[list, Any]:
     """Per window from ``t_from`` [s] on, CPU [s]: (whole, estimation, prognostics, ring
-    buffer); and the samples. The windows before are processed (the trends' evidence, the
+    buffer, diagnosis); and the samples. The windows before are processed (the trends' evidence, the
     fusion's history), not reported. ``noise``: the plant's measurement noise on ia and omega
     [% of their scale] (the density benchmark's plants have 0.5)."""
     cfg = default_config()
@@ -89,6 +92,7 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0) -> tuple[list
     ring = RingBuffer(model.required_channels(), window=acq.window,
                       sample_period=acq.sample_period, jitter_tolerance=acq.jitter_tolerance,
                       capacity=4 * acq.window)
+    diagnoser = make_diagnoser(cfg, model, nominal)
     plant_cfg = cfg.driver.plant  # type: ignore[union-attr]
     if noise:
         plant_cfg = plant_cfg.model_copy(update={"noise": {"ia": noise, "omega": noise}})
@@ -114,9 +118,17 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0) -> tuple[list
         health = build_health(machine="bench", model_name=cfg.machine.model, run="bench",
                               model=model, window=win, adaptation=result, nominal=nominal,
                               counters={}, discovery_enabled=adapter.enabled)
-        health.to_json()
+        d = time.process_time()
+        diagnosis = None
+        if diagnoser is not None:
+            e = result.estimate
+            free = sum(1 for s in e.status.values() if s == "estimated") + (
+                0 if e.initial is None else int(np.size(e.initial)))
+            diagnosis = diagnoser.update(health, result.fit, e.simulated, free, e.initial)
+        diag_cpu = time.process_time() - d
+        complete_health(health, diagnosis=diagnosis, alarms={}).to_json()
         if win.t[0] >= t_from and win.index > 0:
-            rows.append((time.process_time() - c, est.spent, prog.spent, ring_cpu))
+            rows.append((time.process_time() - c, est.spent, prog.spent, ring_cpu, diag_cpu))
         ring_cpu = 0.0
     return rows, samples[-n_windows * acq.window:]
 
@@ -200,8 +212,9 @@ def main() -> None:
     print(f"  whole window (ring buffer's window -> health message): {_stats(list(a[:, 0]))}")
     print(f"    estimation (fusion included):                       {_stats(list(a[:, 1]))}")
     print(f"    prognostics:                                        {_stats(list(a[:, 2]))}")
+    print(f"    diagnosis (the fault library's twins):              {_stats(list(a[:, 4]))}")
     print(f"    the rest (discovery check, health, JSON):            "
-          f"{_stats(list(a[:, 0] - a[:, 1] - a[:, 2]))}")
+          f"{_stats(list(a[:, 0] - a[:, 1] - a[:, 2] - a[:, 4]))}")
     print("\nacquisition, CPU per window of 200 samples:")
     print(f"  ring buffer append:                                   {_stats(list(a[:, 3]))}")
     chans = list(samples[0].values)
