@@ -418,16 +418,20 @@ class HypothesisBank:
         line of sizes for a part's change (:func:`evidence_many`), each window's own size for
         the others (:func:`evidence_each_many`); the twins of one size at once."""
         groups: dict[tuple[bool, int, int], list[Hypothesis]] = {}
+        others: list[str] = []
         for h in everyone:
             tr = self.tracks[h.label]
-            groups.setdefault((self._consistent(h), tr.q, tr.m), []).append(h)
+            consistent = self._consistent(h)
+            groups.setdefault((consistent, tr.q, tr.m), []).append(h)
+            if not consistent:
+                others.append(h.label)
         found: dict[str, Fitted | None] = {}
         for (consistent, _, _), hs in groups.items():
             many = evidence_many if consistent else evidence_each_many
             found.update(zip((h.label for h in hs), many([self.tracks[h.label] for h in hs]),
                              strict=True))
         # the others first, then the parts' changes by size (the order the fits are read in)
-        order = [h.label for h in everyone if not self._consistent(h)] + [
+        order = others + [
             h.label for (consistent, _, _), hs in groups.items() if consistent for h in hs]
         for label in order:
             if (f := found[label]) is not None:
@@ -559,9 +563,12 @@ class HypothesisBank:
                         row_terms.append(terms_at(h, phi0 + e))
                 k += c.size
             layout.append((h, start, len(rows) - start - 1))
-        attach = {a for t in row_terms for a in t}
-        terms = {a: np.vstack([np.broadcast_to(t.get(a, 0.0), (window.n,)) for t in row_terms])
-                 for a in attach}
+        terms: dict[str, FloatArray] = {}
+        for i, t in enumerate(row_terms):
+            for point, values in t.items():
+                if point not in terms:
+                    terms[point] = np.zeros((len(rows), window.n))
+                terms[point][i] = values
         init = None if initial is None else np.repeat(np.asarray(initial)[None], len(rows), 0)
         y = fit.simulate(np.vstack(rows), terms or None, init)
         out = {}

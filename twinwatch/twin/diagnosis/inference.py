@@ -109,9 +109,11 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[
             continue            # a twin impossible in a window (a moving reading is no stuck one)
         d = d[max(0, start - (ref.size - n)):]
         gap = out[best] - out[k]
-        sd = float(np.std(d, ddof=1)) if d.size > 1 else 0.0
         # one window is no sample of the differences: no twin is preferred on it alone
-        mean = float(np.mean(d)) if d.size else 0.0
+        # (np.mean's and np.std's arithmetic, without their wrappers)
+        mean = float(np.add.reduce(d) / d.size) if d.size else 0.0
+        dev = d - mean
+        sd = math.sqrt(float(np.add.reduce(dev * dev)) / (d.size - 1)) if d.size > 1 else 0.0
         z = (0.0 if d.size < 2 or mean <= 0 else math.inf if sd == 0
              else mean / sd * math.sqrt(d.size))
         crit = _t_crit(d.size)
