@@ -426,3 +426,25 @@ def test_explain_reads_a_newer_daemons_message(leak_history: list[HealthMessage]
     assert "4. trend and remaining useful life" in out or "4. no trend" in out, out
     assert re.search(r"1\. internal_leak \(piston seal", out), out
     assert "no diagnosis in the stored messages" not in out
+
+
+def test_vuong_critical_values_are_student_t_without_scipy_stats() -> None:
+    """Vuong's critical value is Student's t quantile at the 5 % level (two-sided) for the
+    windows' count less one (12.71 for two windows, 1.98 for 150), the same numbers as
+    ``scipy.stats.t.ppf``; the daemon's diagnosis reads it without importing ``scipy.stats``
+    (46 MB of resident memory a process)."""
+    import subprocess
+    import sys
+
+    from scipy.stats import t as student_t
+
+    from twinwatch.twin.diagnosis.inference import _t_crit
+
+    assert _t_crit(2) == pytest.approx(12.706, abs=1e-3)
+    assert _t_crit(150) == pytest.approx(1.976, abs=1e-3)
+    assert all(_t_crit(n) == float(student_t.ppf(0.975, n - 1)) for n in range(2, 151))
+    code = ("import sys; from twinwatch.twin.diagnosis.inference import _t_crit; _t_crit(7); "
+            "print('scipy.stats' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "False", out
