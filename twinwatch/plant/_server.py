@@ -7,13 +7,21 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 import threading
 import time
 from typing import ClassVar, Self
 
 from twinwatch._lifecycle import Closeable
 
-__all__ = ["ServerThread"]
+__all__ = ["ServerThread", "free_tcp_port"]
+
+
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (for tests)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 class ServerThread(Closeable):
@@ -99,9 +107,7 @@ class ServerThread(Closeable):
         self._thread = None
         self._log.debug("plant %s server on %s stopped", self.kind, self.endpoint)
 
-    def close(self) -> None:
-        """:meth:`stop`."""
-        self.stop()
+    close = stop
 
     def __enter__(self) -> Self:
         if not self.running:

@@ -44,7 +44,6 @@ import logging
 import math
 import os
 import select
-import socket
 import threading
 import time
 import tty
@@ -64,7 +63,7 @@ from twinwatch.io.modbus_registers import (
     check_overlaps,
 )
 from twinwatch.io.sample import EndOfStream, Sample
-from twinwatch.plant._server import ServerThread
+from twinwatch.plant._server import ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
 
@@ -89,13 +88,6 @@ class PlantSource(Protocol):
     def next_sample(self) -> Sample:
         """The next sample; raises EndOfStream after the last one."""
         ...
-
-
-def free_tcp_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (for tests)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class PlantModbusServer(ServerThread):

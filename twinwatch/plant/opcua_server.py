@@ -42,7 +42,7 @@ from datetime import UTC, datetime, timedelta
 from typing import Any, Literal, Protocol, cast
 
 from twinwatch.io.sample import EndOfStream, Sample
-from twinwatch.plant._server import ServerThread
+from twinwatch.plant._server import ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
 
@@ -186,11 +186,7 @@ class PlantOpcUaServer(ServerThread):
     def _before_start(self) -> None:
         """Port 0: a free port picked now (the endpoint names it before the server starts)."""
         if self.port == 0:
-            import socket
-
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-                s.bind((self.host, 0))
-                self.port = int(s.getsockname()[1])
+            self.port = free_tcp_port()
 
     # -- the server thread ------------------------------------------------------------------
     async def _serve(self) -> None:

@@ -379,6 +379,11 @@ class Sink(Closeable, abc.ABC):
     #: value makes ``twinwatch run`` exit 74 (a subclass counts them in this attribute).
     lost: int = 0
 
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` has run (or when the output is disabled: never opened)."""
+        return self._closed
+
     # -- opening ------------------------------------------------------------------------------
     @classmethod
     @abc.abstractmethod
