@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import subprocess
@@ -14,8 +15,9 @@ import pytest
 from pydantic import ValidationError
 
 from twinwatch.config.loader import load_config
+from twinwatch.io.encoding import to_json
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
-from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.adaptation import TwinAdapter, TwinState
 from twinwatch.twin.discovery.metamodels import get_meta_model
 from twinwatch.twin.discovery.search import (
     CandidateConfig,
@@ -191,11 +193,41 @@ def test_health_fields_and_state_round_trip() -> None:
     res = fields["residual"]
     assert res["dt_prime"]["max_abs"]["omega"] > 0.4
     assert res["dt_second"]["max_abs"]["omega"] < 0.02
-    # Persistence: the accepted twin comes back as it was.
+    # Persistence: the accepted twin comes back as it was, through the JSON the store keeps
+    # (no "diagnosis" key without a diagnoser), and is written again byte for byte.
+    saved = adapter.state()
+    assert "diagnosis" not in saved.as_dict() and saved.terms[0]["kind"] == "periodic"
+    again = TwinState.from_dict(json.loads(to_json(saved.as_dict())))
+    assert to_json(again.as_dict()) == to_json(saved.as_dict())
     other = TwinAdapter(twin, cfg.estimation, disc_cfg)
-    other.restore(adapter.state())
+    other.restore(again)
     assert [t.as_dict() for t in other.terms] == [t.as_dict() for t in adapter.terms]
     np.testing.assert_array_equal(other.estimator.trusted, adapter.estimator.trusted)
+
+
+def test_a_twin_state_in_the_format_saved_before_the_record_restores() -> None:
+    """A state database written before :class:`TwinState` (the adapter's dict and the
+    pipeline's ``diagnosis`` beside it, built here as that code built it) restores: trusted
+    values, term, diagnosis; and the record writes the same JSON again."""
+    cfg, twin, disc_cfg = _setup()
+    before = TwinAdapter(twin, cfg.estimation, disc_cfg)
+    before.estimator.set_trusted({"Ra": 6.1})
+    est = before.estimator
+    file = to_json({"trusted": est.trusted_values(), "terms": [_truth_term(twin).state_dict()],
+                    "fusion": est.fusion_state(), "floor": est.floor_state(),
+                    "diagnosis": {"names": ["Ra"], "learned": 3}})
+    state = TwinState.from_dict(json.loads(file))
+    assert to_json(state.as_dict()) == file
+    assert state.diagnosis == {"names": ["Ra"], "learned": 3}
+    adapter = TwinAdapter(twin, cfg.estimation, disc_cfg)
+    adapter.restore(state)
+    assert adapter.estimator.trusted_values()["Ra"] == 6.1
+    assert [t.as_dict() for t in adapter.terms] == [_truth_term(twin).as_dict()]
+    # an older file without fusion, floor and diagnosis restores its trusted values
+    old = TwinState.from_dict({"trusted": {"Ra": 5.9}, "terms": []})
+    assert old.fusion is None and old.diagnosis is None and "diagnosis" not in old.as_dict()
+    adapter.restore(old)
+    assert adapter.estimator.trusted_values()["Ra"] == 5.9 and adapter.terms == []
 
 
 def test_bic_prefers_the_simpler_model_on_white_noise() -> None:

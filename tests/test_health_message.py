@@ -26,7 +26,7 @@ from twinwatch.config.loader import default_config
 from twinwatch.daemon.pipeline import ProcessedWindow
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
 from twinwatch.sinks.store import StateStore
-from twinwatch.twin.adaptation import TwinAdapter
+from twinwatch.twin.adaptation import TwinAdapter, TwinState
 from twinwatch.twin.health import SCHEMA_VERSION, HealthMessage, build_health, summary_line
 from twinwatch.twin.models import create_model
 
@@ -185,7 +185,7 @@ def test_non_finite_numbers_are_null_in_every_copy(processed, tmp_path: Path) ->
     assert msg["nrmse"] is None and msg["parameters"]["Ra"]["deviation_pct"] is None
     model, w, result = processed
     out = ProcessedWindow(window=w, result=result, health=h, health_json=text, events=[],
-                          twin_state={"trusted": {"Ra": math.nan}})
+                          twin_state=TwinState({"Ra": math.nan}))
     with StateStore(tmp_path / "s.sqlite") as store:
         store.write(out)
         # a message handed to the store as a plain mapping goes through the same encoder
@@ -196,7 +196,8 @@ def test_non_finite_numbers_are_null_in_every_copy(processed, tmp_path: Path) ->
     con.close()
     assert rows[0] == text  # stored byte for byte as published
     assert '"nrmse":null' in rows[1] and "NaN" not in rows[1]
-    assert json.loads(twin) == {"trusted": {"Ra": None}}
+    assert json.loads(twin) == {"trusted": {"Ra": None}, "terms": [], "fusion": None,
+                                "floor": None}
 
 
 def test_a_built_message_is_frozen(processed) -> None:  # type: ignore[no-untyped-def]

@@ -434,41 +434,41 @@ def _advance(s: _ParamState, rule: AlarmRule, target: Level, t_start: float, t_e
              dt: float, window: int) -> tuple[Level, Level, float] | None:
     """One evidence window towards ``target``: the runs, the minimum durations. Returns
     (previous, new level, the time the run began) when the level changes."""
-    new: Level | None = None
+    reached = False
     if _RANK[target] > _RANK[s.level]:
-        s.down = None
-        s.down_level = None
-        if s.up is None:
-            s.up = _Run(t_start, 0)
-        s.up.windows += 1
+        s.down = s.down_level = None
+        s.up, reached = _extend(s.up, t_start, t_end, dt, rule.raise_after_windows,
+                                rule.raise_after_s)
         # The run counts for the highest level reached; falling back from alarm to
         # warning territory keeps the run (it is still beyond warning).
         s.up_level = target
-        if (s.up.windows >= rule.raise_after_windows
-                and t_end - s.up.since_t + dt >= rule.raise_after_s - 1e-9):
-            new = target
     elif _RANK[target] < _RANK[s.level]:
-        s.up = None
-        s.up_level = None
-        if s.down is None:
-            s.down = _Run(t_start, 0)
-        s.down.windows += 1
+        s.up = s.up_level = None
+        s.down, reached = _extend(s.down, t_start, t_end, dt, rule.clear_after_windows,
+                                  rule.clear_after_s)
         s.down_level = target
-        if (s.down.windows >= rule.clear_after_windows
-                and t_end - s.down.since_t + dt >= rule.clear_after_s - 1e-9):
-            new = target
     else:
         s.up = s.down = None
         s.up_level = s.down_level = None
-    if new is None:
+    if not reached:
         return None
     run = s.up if s.up is not None else s.down
     assert run is not None
     previous = s.level
-    s.level, s.since_t, s.since_window = new, t_end, window
+    s.level, s.since_t, s.since_window = target, t_end, window
     s.up = s.down = None
     s.up_level = s.down_level = None
-    return previous, new, run.since_t
+    return previous, target, run.since_t
+
+
+def _extend(run: _Run | None, t_start: float, t_end: float, dt: float, windows: int,
+            seconds: float) -> tuple[_Run, bool]:
+    """``run`` one window (``t_start`` to ``t_end`` [s], sample period ``dt`` [s]) longer
+    (None: a run from this window), and whether it now holds ``windows`` windows and
+    ``seconds`` [s]."""
+    run = _Run(t_start, 0) if run is None else run
+    run.windows += 1
+    return run, run.windows >= windows and t_end - run.since_t + dt >= seconds - 1e-9
 
 
 #: The fault id of the diagnosis' check-function state in the alarms (``diagnosis.alarms``,

@@ -57,7 +57,7 @@ import numpy as np
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.daemon.gatekeeper import HELD_MAX, GateKeeper
 from twinwatch.sinks.base import Gate, ProcessedWindow, Sink
-from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter
+from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter, TwinState
 from twinwatch.twin.diagnosis import Diagnoser
 from twinwatch.twin.health import (
     AlarmStatus,
@@ -378,14 +378,14 @@ class WindowPipeline:
             log("the diagnosis failed on window %d: published without one", window.index)
             return None
 
-    def _twin_state(self, result: AdaptationResult) -> dict[str, Any] | None:
+    def _twin_state(self, result: AdaptationResult) -> TwinState | None:
         """What a restart resumes from: the accepted twin after a trusted window, with the
         diagnosis' baseline and the evidence since its change point (every window while
         there is a diagnoser: a fault's windows are often not trusted, and a restart
         mid-fault must find its evidence)."""
         if self.diagnoser is None:
             return self.adapter.state() if result.estimate.trusted else None
-        return {**self.adapter.state(), "diagnosis": self.diagnoser.state()}
+        return dataclasses.replace(self.adapter.state(), diagnosis=self.diagnoser.state())
 
     def _source_health(self, window: WindowData) -> SourceHealth:
         """The window's ``source``: its stamps' jitter against the grid the ring buffer placed

@@ -16,15 +16,15 @@ prognostics what it held; the daemon keeps what they return (``restored``, ``res
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
+
+from twinwatch.twin.adaptation import TwinAdapter, TwinState
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.alarms import AlarmEvaluator
     from twinwatch.daemon.ringbuffer import RingBuffer
     from twinwatch.sinks.base import Gate
-    from twinwatch.twin.adaptation import TwinAdapter
     from twinwatch.twin.diagnosis import Diagnoser
     from twinwatch.twin.health import HealthView
     from twinwatch.twin.prognostics import Prognostics
@@ -53,7 +53,7 @@ def resumes(config: TwinwatchConfig, resume: bool | None) -> bool | None:
 
 def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvaluator,
             run: str | None = None, diagnoser: Diagnoser | None = None
-            ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+            ) -> tuple[TwinState | None, dict[str, Any] | None]:
     """Resume from the state database: the last accepted twin (trusted parameters and
     meta-model terms) and the alarm levels of the last window. Both are read before either is
     used: a corrupt database (moved aside by ``recover_corrupt``) resumes nothing. The trends
@@ -70,22 +70,23 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
     last = store.latest_health(machine)
     if store.recovered:
         state = last = None
-    restored: dict[str, Any] | None = None
+    restored: TwinState | None = None
     if state is not None:
         try:
-            adapter.restore(state)
+            twin = TwinState.from_dict(state)
+            adapter.restore(twin)
         except (KeyError, TypeError, ValueError) as exc:
             logger.error("the saved twin of %s in %s cannot be used with this "
                          "configuration (%s): starting from the nominal values", machine,
                          store.path, exc)
         else:
-            restored = state
-            if diagnoser is not None:
-                _restore_diagnosis(state, diagnoser)
-            trusted, terms = _twin_summary(state)
+            restored = twin
+            if diagnoser is not None and twin.diagnosis:
+                diagnoser.restore(twin.diagnosis)
             logger.info("resumed the twin of %s from %s: %s; %d meta-model term(s)",
                         machine, store.path,
-                        ", ".join(f"{k}={v:.6g}" for k, v in trusted.items()), terms)
+                        ", ".join(f"{k}={v:.6g}" for k, v in twin.trusted.items()),
+                        len(twin.terms))
     raised = last.alarms if last is not None and last.alarms else None
     if raised is not None:
         alarms.restore(raised)
@@ -100,30 +101,15 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
                                                    run=run))
     if restored is None and raised is None:
         return restored, None
-    trusted, terms = _twin_summary(restored or {})
     return restored, {
         "path": str(store.path),
         "window": None if last is None else last.window,
         "t_end": None if last is None else last.t_end,
-        "trusted": trusted,
-        "terms": terms,
+        "trusted": {} if restored is None else dict(restored.trusted),
+        "terms": 0 if restored is None else len(restored.terms),
         "alarms": {k: a.level for k, a in (raised or {}).items()
                    if a is not None and a.level not in (None, "normal")},
     }
-
-
-def _restore_diagnosis(state: Mapping[str, Any], diagnoser: Diagnoser) -> None:
-    """The diagnosis' baseline and evidence saved with the twin (the pipeline's twin state,
-    not a health message), given back to ``diagnoser``."""
-    saved = state.get("diagnosis")
-    if saved:
-        diagnoser.restore(saved)
-
-
-def _twin_summary(state: Mapping[str, Any]) -> tuple[dict[str, float], int]:
-    """A saved twin (:meth:`~twinwatch.twin.adaptation.TwinAdapter.state`, not a health
-    message): its trusted parameters and its number of meta-model terms."""
-    return dict(state.get("trusted") or {}), len(state.get("terms") or [])
 
 
 def replay_trends(store: Gate, machine: str, prognostics: Prognostics,

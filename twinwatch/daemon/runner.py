@@ -64,7 +64,7 @@ if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never 
     from twinwatch.daemon.systemd import Watchdog
     from twinwatch.drivers.base import Driver
     from twinwatch.sinks.base import Gate, Outbox, SharedResources, Sink
-    from twinwatch.twin.adaptation import TwinAdapter
+    from twinwatch.twin.adaptation import TwinAdapter, TwinState
     from twinwatch.twin.estimation.estimator import Estimator
     from twinwatch.twin.health import HealthMessage, HealthView
     from twinwatch.twin.model import TwinModel, WindowData
@@ -211,7 +211,7 @@ class Daemon:
                                       "recorder": record},
                                run=lambda: self.run_id, base_dir=self.base_dir,
                                work_dir=self.work_dir, shared=shared)
-        self.restored: dict[str, Any] | None = None
+        self.restored: TwinState | None = None
         self.resumed: dict[str, Any] | None = None
         self.new_run: dict[str, Any] | None = None
         reuse = dict(reuse or {})

@@ -44,18 +44,17 @@ import logging
 import math
 import os
 import select
-import socket
 import threading
 import time
 import tty
 from collections.abc import Mapping
-from types import TracebackType
-from typing import Literal, Protocol, Self
+from typing import Literal, Protocol
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from twinwatch._lifecycle import Closeable
 from twinwatch.io.modbus_registers import (
     FUNCTION_CODES,
     ModbusChannelMap,
@@ -64,14 +63,13 @@ from twinwatch.io.modbus_registers import (
     check_overlaps,
 )
 from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.plant._server import ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["PlantModbusServer", "PlantSource", "PtyLink", "free_tcp_port"]
 
 Pacing = Literal["realtime", "lockstep"]
-_THREAD_NAME = "twinwatch-modbus-server"
-_START_TIMEOUT = 5.0  # [s]
 
 
 class PlantSource(Protocol):
@@ -92,14 +90,7 @@ class PlantSource(Protocol):
         ...
 
 
-def free_tcp_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (for tests)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class PlantModbusServer:
+class PlantModbusServer(ServerThread):
     """A Modbus TCP (or RTU) device serving a plant's samples.
 
     Args:
@@ -120,6 +111,9 @@ class PlantModbusServer:
         ValueError: a mapped channel is not a plant channel, registers overlap, or lock-step
             without a counter.
     """
+
+    kind = "Modbus"
+    thread_name = "twinwatch-modbus-server"
 
     def __init__(
         self,
@@ -177,76 +171,16 @@ class PlantModbusServer:
             self._spans[reg.table] = (lo, [0] * (hi - lo))
         self._inexact_logged: set[str] = set()
         self._t0_wall: float | None = None  # monotonic time of sample 0 (realtime)
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop_event: asyncio.Event | None = None
-        self._ready = threading.Event()
-        self._start_error: BaseException | None = None
+        super().__init__()
         self._lock = threading.Lock()  # guards the plant and the register image
         #: answer every read with this Modbus exception code while set (None: serve)
         self.exception_code: int | None = None
 
     # -- lifecycle --------------------------------------------------------------------------
     @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
-    @property
     def finished(self) -> bool:
         """True once the plant raised EndOfStream (the last sample stays served)."""
         return self._finished
-
-    def start(self) -> Self:
-        """Start serving (returns once the server listens).
-
-        Raises:
-            RuntimeError: already running, or the server could not listen (port in use, serial
-                device missing); the thread is joined before raising.
-        """
-        if self.running:
-            raise RuntimeError("PlantModbusServer is already running")
-        self._ready.clear()
-        self._start_error = None
-        self._thread = threading.Thread(target=self._thread_main, name=_THREAD_NAME, daemon=True)
-        self._thread.start()
-        if not self._ready.wait(_START_TIMEOUT):
-            self.stop()
-            raise RuntimeError(f"Modbus server did not start within {_START_TIMEOUT} s")
-        if self._start_error is not None:
-            err = self._start_error
-            self.stop()
-            raise RuntimeError(f"Modbus server could not start on {self.endpoint}: {err}") from err
-        logger.info("plant Modbus server on %s (%s pacing)", self.endpoint, self.pacing)
-        return self
-
-    def stop(self) -> None:
-        """Stop serving and join the thread. Idempotent; :meth:`start` may be called again."""
-        thread, loop, stop_event = self._thread, self._loop, self._stop_event
-        if thread is None:
-            return
-        if loop is not None and stop_event is not None and thread.is_alive():
-            with contextlib.suppress(RuntimeError):  # loop already closed
-                loop.call_soon_threadsafe(stop_event.set)
-        thread.join(_START_TIMEOUT)
-        if thread.is_alive():  # pragma: no cover - the loop is stuck
-            logger.warning("plant Modbus server thread did not stop in time")
-        self._thread = None
-        logger.debug("plant Modbus server on %s stopped", self.endpoint)
-
-    close = stop
-
-    def __enter__(self) -> Self:
-        if not self.running:
-            self.start()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
 
     @property
     def endpoint(self) -> str:
@@ -255,19 +189,6 @@ class PlantModbusServer:
         return f"tcp {self.host}:{self.port}"
 
     # -- the server thread ------------------------------------------------------------------
-    def _thread_main(self) -> None:
-        try:
-            with asyncio.Runner() as runner:
-                runner.run(self._serve())
-        except BaseException as exc:  # noqa: BLE001 - reported to start() or logged
-            if not self._ready.is_set():
-                self._start_error = exc
-            else:
-                logger.error("plant Modbus server failed: %s", exc)
-        finally:
-            self._loop = None
-            self._ready.set()
-
     async def _serve(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._stop_event = asyncio.Event()
@@ -415,7 +336,7 @@ class PlantModbusServer:
         image[reg.address - start : reg.end - start] = regs
 
 
-class PtyLink:
+class PtyLink(Closeable):
     """A virtual null-modem cable: two pseudo-terminals cross-connected by a thread.
 
     Bytes written to :attr:`port_a` come out of :attr:`port_b` and vice versa, like
@@ -469,14 +390,3 @@ class PtyLink:
             with contextlib.suppress(OSError):
                 os.close(fd)
         self._fds = []
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()

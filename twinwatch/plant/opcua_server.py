@@ -39,9 +39,10 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime, timedelta
-from typing import Any, Literal, Protocol, Self, cast
+from typing import Any, Literal, Protocol, cast
 
 from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.plant._server import ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
 
@@ -109,7 +110,7 @@ def _unit_id(code: str) -> int:
     return value
 
 
-class PlantOpcUaServer:
+class PlantOpcUaServer(ServerThread):
     """An OPC UA server serving a plant's samples on 127.0.0.1.
 
     Args:
@@ -133,6 +134,11 @@ class PlantOpcUaServer:
             (plant steps and writes, the subscriptions' publishing): updated after each write.
     """
 
+    kind = "OPC UA"
+    thread_name = _THREAD_NAME
+    start_timeout = _START_TIMEOUT
+    listen_verb = "listen on"
+
     def __init__(self, plant: PlantSource, units: Mapping[str, str], *,
                  object_name: str = "Motor", pacing: Pacing = "realtime",
                  host: Literal["127.0.0.1"] = "127.0.0.1", port: int = 0,
@@ -155,17 +161,12 @@ class PlantOpcUaServer:
         self.samples_served = 0
         self.last_sample: Sample | None = None
         self.base = time.time()
-        self.cpu_seconds = 0.0
         self.serving_cpu_seconds = 0.0
         self._cpu_ready = 0.0
         self._serving_before = 0.0
         self._finished = False
         self._t0_mono: float | None = None
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop_event: asyncio.Event | None = None
-        self._ready = threading.Event()
-        self._start_error: BaseException | None = None
+        super().__init__()
         self._nodes: dict[str, Any] = {}
         self._server: Any = None
         self.ns = 2
@@ -175,10 +176,6 @@ class PlantOpcUaServer:
         return f"opc.tcp://{self.host}:{self.port}"
 
     @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
-    @property
     def finished(self) -> bool:
         return self._finished
 
@@ -186,74 +183,12 @@ class PlantOpcUaServer:
         """The NodeId string of a served channel's variable."""
         return f"ns={self.ns};s={self.object_name}.{channel}"
 
-    def start(self) -> Self:
-        """Start serving (returns once the server listens).
-
-        Raises:
-            RuntimeError: already running, or it could not listen (port in use: the message
-                names it).
-        """
-        if self.running:
-            raise RuntimeError("PlantOpcUaServer is already running")
+    def _before_start(self) -> None:
+        """Port 0: a free port picked now (the endpoint names it before the server starts)."""
         if self.port == 0:
-            import socket
-
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-                s.bind((self.host, 0))
-                self.port = int(s.getsockname()[1])
-        self._ready.clear()
-        self._start_error = None
-        self._thread = threading.Thread(target=self._thread_main, name=_THREAD_NAME, daemon=True)
-        self._thread.start()
-        if not self._ready.wait(_START_TIMEOUT):
-            self.stop()
-            raise RuntimeError(f"OPC UA server did not start within {_START_TIMEOUT} s")
-        if self._start_error is not None:
-            err = self._start_error
-            self.stop()
-            raise RuntimeError(f"OPC UA server could not listen on {self.endpoint}: "
-                               f"{err}") from err
-        logger.info("plant OPC UA server on %s (%s pacing)", self.endpoint, self.pacing)
-        return self
-
-    def stop(self) -> None:
-        """Stop serving and join the thread. Idempotent; :meth:`start` may be called again."""
-        thread, loop, stop_event = self._thread, self._loop, self._stop_event
-        if thread is None:
-            return
-        if loop is not None and stop_event is not None and thread.is_alive():
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(stop_event.set)
-        thread.join(_START_TIMEOUT)
-        self._thread = None
-        logger.debug("plant OPC UA server on %s stopped", self.endpoint)
-
-    close = stop
-
-    def __enter__(self) -> Self:
-        if not self.running:
-            self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+            self.port = free_tcp_port()
 
     # -- the server thread ------------------------------------------------------------------
-    def _thread_main(self) -> None:
-        cpu0 = time.thread_time()
-        try:
-            with asyncio.Runner() as runner:
-                runner.run(self._serve())
-        except BaseException as exc:  # noqa: BLE001 - reported to start() or logged
-            if not self._ready.is_set():
-                self._start_error = exc
-            else:
-                logger.error("plant OPC UA server failed: %s", exc)
-        finally:
-            self.cpu_seconds += time.thread_time() - cpu0
-            self._loop = None
-            self._ready.set()
-
     async def _serve(self) -> None:
         from asyncua import Server, ua
 

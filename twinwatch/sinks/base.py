@@ -48,7 +48,7 @@ from twinwatch._lifecycle import Closeable
 from twinwatch.plugins import commented_table
 
 if TYPE_CHECKING:  # annotations only: opening a sink does not load the twin's estimation
-    from twinwatch.twin.adaptation import AdaptationResult
+    from twinwatch.twin.adaptation import AdaptationResult, TwinState
     from twinwatch.twin.health import HealthMessage, HealthView
     from twinwatch.twin.model import WindowData
 
@@ -84,8 +84,9 @@ class ProcessedWindow:
         health_json: ``health`` encoded, once, by the one encoder
             (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): the text every sink writes.
         events: alarm-state changes this window caused (published on ``<machine>/alarm``).
-        twin_state: the accepted twin to persist (``TwinAdapter.state()``) when this window
-            was trusted, else None (the stored twin is kept).
+        twin_state: the accepted twin to persist (``TwinAdapter.state()``, with the diagnosis'
+            when there is a diagnoser) when this window was trusted or a diagnoser runs, else
+            None (the stored twin is kept).
     """
 
     window: WindowData
@@ -93,7 +94,7 @@ class ProcessedWindow:
     health: HealthMessage
     health_json: str
     events: list[dict[str, Any]]
-    twin_state: dict[str, Any] | None
+    twin_state: TwinState | None
 
 
 class HistoryPage(list["HealthView"]):
@@ -377,6 +378,11 @@ class Sink(Closeable, abc.ABC):
     #: Windows given to it that it lost for good (never stored, not recorded, ...): a nonzero
     #: value makes ``twinwatch run`` exit 74 (a subclass counts them in this attribute).
     lost: int = 0
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` has run (or when the output is disabled: never opened)."""
+        return self._closed
 
     # -- opening ------------------------------------------------------------------------------
     @classmethod

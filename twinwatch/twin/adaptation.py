@@ -70,7 +70,7 @@ class _Labelled(logging.LoggerAdapter[logging.Logger]):
     def process(self, msg: object, kwargs: Any) -> tuple[object, Any]:
         return f"{(self.extra or {}).get('label')}: {msg}", kwargs
 
-__all__ = ["AdaptationResult", "Residual", "TwinAdapter"]
+__all__ = ["AdaptationResult", "Residual", "TwinAdapter", "TwinState"]
 
 
 @dataclass
@@ -116,6 +116,44 @@ class AdaptationResult:
     #: the window's fit problem (its data and the twin): what the diagnosis fits its
     #: hypothesis twins on (:mod:`twinwatch.twin.diagnosis`)
     fit: WindowFit | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True)
+class TwinState:
+    """The accepted twin a restart resumes from, as the state database keeps it (JSON).
+
+    Attributes:
+        trusted: parameter -> its trusted value [SI].
+        terms: the kept meta-model terms (:meth:`Term.state_dict
+            <twinwatch.twin.discovery.terms.Term.state_dict>` each).
+        fusion: the fusion's state (None without fusion).
+        floor: the interval floor's state (None: measured again from the windows).
+        diagnosis: the diagnosis' baseline and evidence (``Diagnoser.state()``; None without
+            a diagnoser: the key is then not written).
+    """
+
+    trusted: dict[str, float] = field(default_factory=dict)
+    terms: list[dict[str, Any]] = field(default_factory=list)
+    fusion: dict[str, Any] | None = None
+    floor: dict[str, Any] | None = None
+    diagnosis: dict[str, Any] | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The JSON object saved: ``trusted``, ``terms``, ``fusion``, ``floor`` and, with a
+        diagnoser, ``diagnosis``."""
+        out = {"trusted": self.trusted, "terms": self.terms, "fusion": self.fusion,
+               "floor": self.floor}
+        return out if self.diagnosis is None else {**out, "diagnosis": self.diagnosis}
+
+    @classmethod
+    def from_dict(cls, state: Mapping[str, Any]) -> TwinState:
+        """Read :meth:`as_dict`'s object (a key missing, as in an older file: its default).
+
+        Raises:
+            TypeError, ValueError: ``trusted`` or ``terms`` is not a mapping or a list.
+        """
+        return cls(dict(state.get("trusted") or {}), list(state.get("terms") or []),
+                   state.get("fusion"), state.get("floor"), state.get("diagnosis"))
 
 
 class TwinAdapter:
@@ -356,27 +394,27 @@ class TwinAdapter:
         return self.window_controller.decide(n, drift, ratio)
 
     # -- persistence ----------------------------------------------------------------------
-    def state(self) -> dict[str, Any]:
-        """The accepted twin: trusted parameters and kept terms (JSON-serialisable)."""
-        return {
-            "trusted": self.estimator.trusted_values(),
-            "terms": [t.state_dict() for t in self.terms],
-            "fusion": self.estimator.fusion_state(),
-            "floor": self.estimator.floor_state(),
-        }
+    def state(self) -> TwinState:
+        """The accepted twin: trusted parameters and kept terms (without ``diagnosis``)."""
+        return TwinState(self.estimator.trusted_values(), [t.state_dict() for t in self.terms],
+                         self.estimator.fusion_state(), self.estimator.floor_state())
 
-    def restore(self, state: Mapping[str, Any]) -> None:
-        """Resume from :meth:`state` (unknown parameters are ignored with a warning)."""
-        for name in self.estimator.set_trusted(state.get("trusted", {})):
+    def restore(self, state: TwinState) -> None:
+        """Resume from :meth:`state` (unknown parameters are ignored with a warning).
+
+        Raises:
+            KeyError, TypeError, ValueError: a saved term does not fit the model.
+        """
+        for name in self.estimator.set_trusted(state.trusted):
             self._log.warning("saved state names unknown parameter %r: ignored", name)
-        if not self.estimator.set_fusion_state(state.get("fusion")) and state.get("fusion"):
+        if not self.estimator.set_fusion_state(state.fusion) and state.fusion:
             self._log.warning("saved fusion state does not fit the estimated parameters: the "
                                 "fusion starts again from the trusted values")
-        if not self.estimator.set_floor_state(state.get("floor")) and state.get("floor"):
+        if not self.estimator.set_floor_state(state.floor) and state.floor:
             self._log.warning("the saved structural term of the intervals (the floor) cannot be "
                                 "read: it is measured again from this run's windows, the published "
                                 "intervals narrower until it is")
-        self.terms = [Term.from_dict(d, self.model) for d in state.get("terms", [])]
+        self.terms = [Term.from_dict(d, self.model) for d in state.terms]
 
     # -- helpers --------------------------------------------------------------------------
     def _theta(self, est: WindowEstimate) -> FloatArray:

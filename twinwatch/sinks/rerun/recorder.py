@@ -418,11 +418,6 @@ class RerunRecorder(RecordingFiles, Sink):
         return True
 
     @property
-    def closed(self) -> bool:
-        """True once :meth:`close` has run (or when recording is disabled)."""
-        return self._closed
-
-    @property
     def recording(self) -> rr.RecordingStream | None:
         """The underlying Rerun recording stream (``None`` when disabled)."""
         return self._rec

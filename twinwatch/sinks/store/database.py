@@ -609,10 +609,7 @@ class StateStore(Gate):
             True if the window is stored; False if it waits in memory (the pipeline then does
             not publish it: stored before published; counted in :attr:`not_stored`).
         """
-        h = out.health
-        ok = self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
-                               "t_start": h.t_start, "t_end": h.t_end}, out.twin_state,
-                              doc=out.health_json)
+        ok = self._save(out)
         self.not_stored += not ok
         return ok
 
@@ -621,10 +618,15 @@ class StateStore(Gate):
         :attr:`locked`: a try would wait the busy timeout); written by :meth:`retry` or the
         next successful write. Not counted in :attr:`not_stored` (the pipeline counts it if
         it is not published)."""
-        h = out.health
-        self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
-                          "t_start": h.t_start, "t_end": h.t_end}, out.twin_state,
-                         doc=out.health_json, flush=False)
+        self._save(out, flush=False)
+
+    def _save(self, out: ProcessedWindow, flush: bool = True) -> bool:
+        """:meth:`save_window` of ``out``: its indexed keys, its one encoding, its twin."""
+        h, twin = out.health, out.twin_state
+        return self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
+                                 "t_start": h.t_start, "t_end": h.t_end},
+                                None if twin is None else twin.as_dict(), doc=out.health_json,
+                                flush=flush)
 
     def retry(self) -> bool:
         """One attempt to write the windows waiting in memory (waits up to the busy timeout

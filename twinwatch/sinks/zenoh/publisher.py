@@ -312,11 +312,6 @@ class HealthPublisher(Sink):
         self._handlers[f"{self.base_key}/{key_suffix}"] = handler
 
     @property
-    def closed(self) -> bool:
-        """True once :meth:`close` has run (or when publishing is disabled)."""
-        return self._closed
-
-    @property
     def session(self) -> zenoh.Session | None:
         """The underlying zenoh session (``None`` when disabled)."""
         return self._session

@@ -1,0 +1,133 @@
+"""The thread a simulated device's server runs in (the plant's Modbus and OPC UA servers): its
+own asyncio loop, a start that returns once the server listens (or says why it could not), a
+stop that joins it, as a context manager."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+import threading
+import time
+from typing import ClassVar, Self
+
+from twinwatch._lifecycle import Closeable
+
+__all__ = ["ServerThread", "free_tcp_port"]
+
+
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (for tests)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class ServerThread(Closeable):
+    """A server serving in a thread of its own (subclasses: :meth:`_serve`, a coroutine that
+    sets ``_loop``, ``_stop_event`` and ``_ready`` once it listens and returns once
+    ``_stop_event`` is set; ``__init__`` calls this one's).
+
+    Attributes:
+        cpu_seconds: CPU time [s] the server's thread has used in all its starts.
+        pacing: ``"realtime"`` or ``"lockstep"`` (the subclass sets it).
+    """
+
+    #: the device in messages (``"Modbus"``, ``"OPC UA"``)
+    kind: ClassVar[str]
+    #: its thread's name
+    thread_name: ClassVar[str]
+    #: seconds :meth:`start` waits for the server to listen
+    start_timeout: ClassVar[float] = 5.0
+    #: ``could not <listen_verb> <endpoint>`` when it fails to start
+    listen_verb: ClassVar[str] = "start on"
+    pacing: str
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_event: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._start_error: BaseException | None = None
+        self.cpu_seconds = 0.0
+        self._log = logging.getLogger(type(self).__module__)
+
+    @property
+    def endpoint(self) -> str:
+        """Where it listens, for a person."""
+        raise NotImplementedError
+
+    @property
+    def running(self) -> bool:
+        """The server's thread runs."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def _before_start(self) -> None:
+        """What to settle before the thread starts (a free port)."""
+
+    def start(self) -> Self:
+        """Start serving (returns once the server listens).
+
+        Raises:
+            RuntimeError: already running, or the server could not listen (port in use, serial
+                device missing: the message names it); the thread is joined before raising.
+        """
+        if self.running:
+            raise RuntimeError(f"{type(self).__name__} is already running")
+        self._before_start()
+        self._ready.clear()
+        self._start_error = None
+        self._thread = threading.Thread(target=self._thread_main, name=self.thread_name,
+                                        daemon=True)
+        self._thread.start()
+        if not self._ready.wait(self.start_timeout):
+            self.stop()
+            raise RuntimeError(f"{self.kind} server did not start within {self.start_timeout} s")
+        if self._start_error is not None:
+            err = self._start_error
+            self.stop()
+            raise RuntimeError(f"{self.kind} server could not {self.listen_verb} "
+                               f"{self.endpoint}: {err}") from err
+        self._log.info("plant %s server on %s (%s pacing)", self.kind, self.endpoint,
+                       self.pacing)
+        return self
+
+    def stop(self) -> None:
+        """Stop serving and join the thread. Idempotent; :meth:`start` may be called again."""
+        thread, loop, stop_event = self._thread, self._loop, self._stop_event
+        if thread is None:
+            return
+        if loop is not None and stop_event is not None and thread.is_alive():
+            with contextlib.suppress(RuntimeError):  # loop already closed
+                loop.call_soon_threadsafe(stop_event.set)
+        thread.join(self.start_timeout)
+        if thread.is_alive():  # pragma: no cover - the loop is stuck
+            self._log.warning("plant %s server thread did not stop in time", self.kind)
+        self._thread = None
+        self._log.debug("plant %s server on %s stopped", self.kind, self.endpoint)
+
+    close = stop
+
+    def __enter__(self) -> Self:
+        if not self.running:
+            self.start()
+        return self
+
+    def _thread_main(self) -> None:
+        cpu0 = time.thread_time()
+        try:
+            with asyncio.Runner() as runner:
+                runner.run(self._serve())
+        except BaseException as exc:  # noqa: BLE001 - reported to start() or logged
+            if not self._ready.is_set():
+                self._start_error = exc
+            else:
+                self._log.error("plant %s server failed: %s", self.kind, exc)
+        finally:
+            self.cpu_seconds += time.thread_time() - cpu0
+            self._loop = None
+            self._ready.set()
+
+    async def _serve(self) -> None:
+        raise NotImplementedError
