@@ -86,8 +86,6 @@ OTHER_DOCUMENTS = {
     ("daemon/summary.py", "new_run_line"): "the daemon's new-run summary (Daemon.new_run)",
     ("sinks/zenoh/queries.py", "history_parameters"): "the history query's parameters",
     ("sinks/opcua/server.py", "OpcUaServer._alarm"): "an alarm event (out.events)",
-    ("daemon/resume.py", "_twin_summary"): "the saved twin (TwinAdapter.state())",
-    ("daemon/resume.py", "_restore_diagnosis"): "the saved twin (the diagnoser's state in it)",
 }
 """(file, function) -> the document it reads instead of the health message."""
 
