@@ -357,7 +357,8 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
 class Track:
     """One hypothesis's per-window fits over the windows kept (oldest first), in arrays.
 
-    Attributes (the first :attr:`m` rows are filled):
+    Attributes (views of length ``keep``, the first :attr:`m` rows filled; a window appended
+    to a full track drops the oldest):
         gain: each window's log-likelihood gain over the baseline less its penalty [nats]:
             ``(S0_k - S_k)/2 - (q/2) ln n_k`` (the Bayesian information criterion's penalty for
             the window's own fitted size: Schwarz 1978).
@@ -459,7 +460,19 @@ class Fitted:
 
 def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | None]:
     """:func:`evidence_of` (``consistent``) for many tracks of one size and length at once:
-    the same arithmetic on (H, m, q) arrays (one pass of numpy calls for all hypotheses)."""
+    the same arithmetic on (H, m, q) arrays (one pass of numpy calls for all hypotheses).
+
+    Args:
+        tracks: H tracks, each of size ``q`` with ``m`` windows (the first one's; the others
+            must match).
+        recent: windows that say whether a track is informative now.
+
+    Returns:
+        H fits in ``tracks``' order (None each when ``m`` is 0): the log-evidence [nats] over
+        the change points, Basseville and Nikiforov 1993 ch. 2 (the windows' gains summed
+        since each one, averaged over them), the line of sizes since the most likely one,
+        and whether the change ended.
+    """
     if not tracks:
         return []
     m, q = tracks[0].m, tracks[0].q
@@ -545,7 +558,17 @@ def evidence_of(track: Track, recent: int = 5, consistent: bool = True) -> Fitte
 
 def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | None]:
     """:func:`evidence_of` (not ``consistent``: each window's own size) for many tracks of one
-    size and length at once."""
+    size and length at once.
+
+    Args:
+        tracks: H tracks, each of size ``q`` with ``m`` windows (the first one's; the others
+            must match).
+        recent: the last windows whose sizes are averaged (inverse-variance) and that say
+            whether a track is informative now.
+
+    Returns:
+        H fits in ``tracks``' order (None each when ``m`` is 0).
+    """
     if not tracks:
         return []
     m = tracks[0].m
