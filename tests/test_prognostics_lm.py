@@ -156,3 +156,43 @@ def test_the_small_symmetric_pseudo_inverse_is_numpys() -> None:
     np.testing.assert_array_equal(pinv_sym(a, rcond=1e-12), np.diag([1.0, 0.0]))
     np.testing.assert_array_equal(np.linalg.pinv(a, rcond=1e-12, hermitian=True),
                                   np.diag([1.0, 0.0]))
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("free", [("c",), ("c", "m"), ("c", "m", "t0"), ("c", "m", "r"),
+                                  ("c", "m", "r", "t0")])
+def test_the_compiled_fit_statistics_are_the_numpy_ones(seed: int, free: tuple[str, ...]
+                                                        ) -> None:
+    """fit_statistics (issue 58: a polished model's residuals, information matrix, long-run
+    factor and chi-square floor in one compiled pass) gives what the numpy model, Jacobian and
+    FFT long-run factor give, to rounding, on the paper's resistance law with noise."""
+    from twinwatch.twin.prognostics._lm import fit_statistics
+    from twinwatch.twin.prognostics._lm import long_run_factor as compiled_lrf
+    from twinwatch.twin.prognostics.degradation import long_run_factor
+
+    t, y, s = evidence(seed)
+    t_ref = float(t[-1])
+    kind = "exponential" if "r" in free else ("linear" if "m" in free else "none")
+    fit = DegradationFit(kind, t_ref, 6.4, -3e-4 if "m" in free else 0.0,
+                         0.0025 if "r" in free else 0.0, 250.0 if "t0" in free else None,
+                         free=free)
+    want_r = (fit.value(t) - y) / s
+    want_j = fit.jacobian(t) / s[:, None]
+    base = np.array([fit.c, fit.m, fit.r, fit.onset or 0.0])
+    codes = np.array([CODE[p] for p in free], dtype=np.int64)
+    x = np.array([fit._get(p) for p in free])
+    r, chi2, info, lrf, floor = fit_statistics(t, y, s, t_ref, base, fit.onset is not None,
+                                               codes, x, 1e-9)
+    np.testing.assert_allclose(r, want_r, rtol=1e-12, atol=1e-12)
+    assert chi2 == pytest.approx(float(want_r @ want_r), rel=1e-12)
+    np.testing.assert_allclose(info, want_j.T @ want_j, rtol=1e-12)
+    # correlated residuals (the misfit of a wrong start) give a factor well above 1
+    assert lrf == pytest.approx(long_run_factor(want_r), rel=1e-10)
+    assert lrf > 2.0
+    assert compiled_lrf(want_r, 3) == pytest.approx(long_run_factor(want_r, 3), rel=1e-10)
+    assert floor == pytest.approx(float(np.sum((1e-9 * np.max(np.abs(y)) / s) ** 2)),
+                                  rel=1e-12)
+    white = np.random.default_rng(seed).standard_normal(200)
+    assert compiled_lrf(white) == pytest.approx(long_run_factor(white), rel=1e-10)
+    assert compiled_lrf(np.zeros(20)) == 1.0 == long_run_factor(np.zeros(20))
+    assert compiled_lrf(np.ones(5)) == 1.0 == long_run_factor(np.ones(5))

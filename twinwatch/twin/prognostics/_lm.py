@@ -228,3 +228,76 @@ def wls_grid(t: np.ndarray, y: np.ndarray, w: np.ndarray, t_ref: float, rs: np.n
                 m[j] = 0.0
                 chi2[j] = math.inf
     return chi2, c, m
+
+
+@njit(cache=True, nogil=True)
+def long_run_factor(r: np.ndarray, lags: int = -1) -> float:
+    """Long-run over short-run variance of a residual series ``r`` (N,) (>= 1, <= N): ``1 + 2
+    sum_k w_k rho_k`` with Bartlett weights ``w_k = 1 - k/(L+1)`` (Newey-West), ``L = min(N/4,
+    30)`` unless ``lags`` >= 0 gives it; 1 below 8 points or for zero residuals.
+    :func:`~twinwatch.twin.prognostics.degradation.long_run_factor` is the same sum through
+    the FFT; here the lag products are summed directly (at most 30 lags of a trend's at most
+    ``max_points`` points)."""
+    n = r.size
+    if n < 8:
+        return 1.0
+    big_l = max(1, min(lags if lags >= 0 else min(n // 4, 30), n - 1))
+    den = 0.0
+    for i in range(n):
+        den += r[i] * r[i]
+    if den <= 0.0:
+        return 1.0
+    acc = 0.0
+    for k in range(1, big_l + 1):
+        a = 0.0
+        for i in range(n - k):
+            a += r[i] * r[i + k]
+        acc += (1.0 - k / (big_l + 1.0)) * (a / den)
+    return min(max(1.0 + 2.0 * acc, 1.0), float(n))
+
+
+@njit(cache=True, nogil=True)
+def fit_statistics(t: np.ndarray, y: np.ndarray, s: np.ndarray, t_ref: float,
+                   base: np.ndarray, has_onset: bool, codes: np.ndarray, x: np.ndarray,
+                   rounding: float) -> tuple[np.ndarray, float, np.ndarray, float, float]:
+    """What a polished degradation model says of its evidence, in one pass over it (the model
+    and Jacobian of :func:`levenberg_marquardt`).
+
+    Args:
+        t, y, s: evidence times [s], values [SI], 1-sigma [SI] (N,).
+        t_ref: the reference time [s].
+        base: the model's ``(c, m, r, t0)`` (4,); the free ones are overwritten by ``x``.
+        has_onset: whether the model has an onset (``t0``).
+        codes: the free parameters' codes (k,) in ``x``'s order.
+        x: the free parameters (k,).
+        rounding: the values' relative rounding (the chi-square floor's residual).
+
+    Returns:
+        (normalised residuals ``(model - y)/s`` (N,), their chi-square, the information
+        matrix ``J^T J`` of the normalised Jacobian (k, k), the residuals' long-run variance
+        factor (:func:`long_run_factor`), the chi-square of residuals at ``rounding`` times
+        the largest ``|y|``).
+    """
+    n = t.size
+    k = codes.size
+    p = _unpack(x, codes, base)
+    res = np.empty(n)
+    chi2 = _resid(t, y, s, t_ref, p, has_onset, res)
+    jm = np.empty((n, k))
+    _jac(t, s, t_ref, p, has_onset, codes, jm)
+    info = np.zeros((k, k))
+    for i in range(n):
+        for a in range(k):
+            for b in range(a, k):
+                info[a, b] += jm[i, a] * jm[i, b]
+    for a in range(k):
+        for b in range(a):
+            info[a, b] = info[b, a]
+    y_max = 0.0
+    for i in range(n):
+        y_max = max(y_max, abs(y[i]))
+    floor = 0.0
+    for i in range(n):
+        q = rounding * y_max / s[i]
+        floor += q * q
+    return res, chi2, info, long_run_factor(res), floor

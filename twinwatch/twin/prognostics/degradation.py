@@ -43,7 +43,7 @@ from typing import Literal
 import numpy as np
 
 from twinwatch.twin.model import FloatArray
-from twinwatch.twin.prognostics._lm import levenberg_marquardt, wls_grid
+from twinwatch.twin.prognostics._lm import fit_statistics, levenberg_marquardt, wls_grid
 
 __all__ = ["ModelKind", "DegradationFit", "bin_evidence", "fit_models", "long_run_factor",
            "pinv_sym", "refit_models", "select"]
@@ -261,63 +261,45 @@ def _jacobian(t: FloatArray, fit: DegradationFit, free: tuple[str, ...]) -> Floa
 def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref: float,
             c: float, m: float, r: float, onset: float | None, free: tuple[str, ...]
             ) -> DegradationFit:
-    """Polish the grid's best by least squares, then the scaled covariance and the BIC."""
-    fit = DegradationFit(kind, t_ref, c, m, r, onset, free=free)
-    names = free
-
-    def unpack(x: FloatArray) -> DegradationFit:
-        f = DegradationFit(kind, t_ref, fit.c, fit.m, fit.r, fit.onset, free=free)
-        for i, p in enumerate(names):
-            if p == "t0":
-                f.onset = float(x[i])
-            else:
-                setattr(f, p, float(x[i]))
-        return f
-
-    def resid(x: FloatArray) -> FloatArray:
-        return (unpack(x).value(t) - y) / s
-
-    def jac(x: FloatArray) -> FloatArray:
-        f = unpack(x)
-        return f.jacobian(t) / s[:, None]
-
-    x0 = np.array([fit._get(p) for p in names])
-    if kind != "none" and len(names) > 2:
-        lo = np.full(len(names), -np.inf)
-        hi = np.full(len(names), np.inf)
+    """Polish the grid's best by least squares, then the scaled covariance and the BIC (the
+    polish and the residuals' statistics compiled: :mod:`._lm`)."""
+    k = len(free)
+    codes = np.array([_CODE[p] for p in free], dtype=np.int64)
+    base = np.array([c, m, r, onset if onset is not None else 0.0])
+    x = base[codes]
+    if kind != "none" and k > 2:
+        lo = np.full(k, -np.inf)
+        hi = np.full(k, np.inf)
         span = max(float(t[-1] - t[0]), 1e-9)
-        for i, p in enumerate(names):
+        for i, p in enumerate(free):
             if p == "r":
                 lo[i], hi[i] = -6.0 / span, 12.0 / span
             elif p == "t0":
                 lo[i], hi[i] = float(t[0]), float(t[-1])
         pad = 1e-9 * np.where(np.isfinite(hi - lo), hi - lo, 0.0)
-        x0 = np.clip(x0, lo + pad, hi - pad)
-        codes = np.array([_CODE[p] for p in names], dtype=np.int64)
-        base = np.array([fit.c, fit.m, fit.r,
-                         fit.onset if fit.onset is not None else 0.0])
-        x0 = levenberg_marquardt(t, y, s, t_ref, base, fit.onset is not None, codes, x0,
-                                 lo, hi)
-    fit = unpack(x0)
-    r_norm = resid(x0)
-    chi2 = float(r_norm @ r_norm)
+        x = np.clip(x, lo + pad, hi - pad)
+        x = levenberg_marquardt(t, y, s, t_ref, base, onset is not None, codes, x, lo, hi)
+    r_norm, chi2, info, lrf, floor = fit_statistics(t, y, s, t_ref, base, onset is not None,
+                                                    codes, x, _ROUNDING)
+    fit = DegradationFit(kind, t_ref, c, m, r, onset, free=free)
+    for i, p in enumerate(free):
+        if p == "t0":
+            fit.onset = float(x[i])
+        else:
+            setattr(fit, p, float(x[i]))
     n = int(t.size)
-    k = len(names)
-    j = jac(x0)
-    info = j.T @ j
     try:
         cov = pinv_sym(info, rcond=1e-12)
     except np.linalg.LinAlgError:
         cov = np.full((k, k), np.inf)
     dof = max(n - k, 1)
     red = chi2 / dof
-    lrf = long_run_factor(r_norm)
     scale = max(red, 1.0) * lrf
     fit.cov = cov * scale
     fit.chi2 = chi2
     # residuals below the values' rounding (the floor of ``s`` in fit_models) are not
     # information: a criterion comparing fits of exact evidence compares their rounding
-    fit.chi2_floor = float(np.sum((_ROUNDING * float(np.max(np.abs(y))) / s) ** 2))
+    fit.chi2_floor = floor
     fit.n = n
     fit.scale = scale
     fit.rms_norm = float(math.sqrt(chi2 / max(n, 1)))

@@ -128,9 +128,16 @@ def trendability(t: FloatArray, x: FloatArray) -> float | None:
     constant history."""
     t = np.asarray(t, dtype=float)
     x = np.asarray(x, dtype=float)
-    if x.size < 3 or float(np.std(x)) <= 0 or float(np.std(t)) <= 0:
+    if x.size < 3:
         return None
-    return float(abs(np.corrcoef(t, x)[0, 1]))
+    # Pearson's r from the centred series (numpy's corrcoef builds a covariance matrix first:
+    # 60 us of overhead on a trend's points, each window)
+    tc = t - t.mean()
+    xc = x - x.mean()
+    stt, sxx = float(tc @ tc), float(xc @ xc)
+    if stt <= 0 or sxx <= 0:
+        return None
+    return float(min(abs(float(tc @ xc)) / math.sqrt(stt * sxx), 1.0))
 
 
 @dataclass
