@@ -231,6 +231,44 @@ def test_crossing_times_closed_form() -> None:
     assert out[3] == 0.0                                           # already beyond it
 
 
+def _numpy_crossing_times(c, m, r, tau0, threshold, direction):  # type: ignore[no-untyped-def]
+    """The numpy expression crossing_times compiled (issue 58), kept as the reference."""
+    lin = np.abs(r) < 1e-12
+    safe_r = np.where(lin, 1.0, r)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        level_now = c + m * np.where(lin, tau0, np.expm1(np.clip(r * tau0, -700, 700))
+                                     / safe_r)
+        q = (threshold - c) / m
+        arg = 1.0 + r * q
+        tau_exp = np.where(arg > 0, np.log(np.where(arg > 0, arg, 1.0)) / safe_r, np.inf)
+        tau = np.where(lin, q, tau_exp)
+        tau = np.where(np.isfinite(tau) & (m != 0) & (tau >= 0), tau, np.inf)
+    out = np.maximum(tau - tau0, 0.0)
+    return np.where((level_now - threshold) * direction >= 0, 0.0, out)
+
+
+@pytest.mark.parametrize("direction,threshold", [(-1, 5.85), (1, 7.15)])
+def test_crossing_times_are_the_numpy_expression(direction: int, threshold: float) -> None:
+    """The compiled crossing times are the numpy closed form's, to rounding, on draws around
+    the paper's resistance law, with the edge cases: no drift, a line, a saturating
+    exponential, NaN draws, already beyond the threshold."""
+    rng = np.random.default_rng(1)
+    n = 5000
+    c = 6.5 + 0.3 * rng.standard_normal(n)
+    m = 1e-3 * rng.standard_normal(n)
+    r = np.where(rng.uniform(size=n) < 0.2, 0.0, 0.003 + 0.004 * rng.standard_normal(n))
+    m[:5], r[5:10], c[10:12], m[12] = 0.0, 1e-13, np.nan, np.nan
+    for tau0 in (0.0, 37.5):
+        got = crossing_times(c, m, r, tau0, threshold, direction)
+        want = _numpy_crossing_times(c, m, r, tau0, threshold, direction)
+        np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
+        np.testing.assert_array_equal(got == 0.0, want == 0.0)
+        fin = np.isfinite(want)
+        np.testing.assert_allclose(got[fin], want[fin], rtol=1e-12)
+        # every kind of answer is in the sample: a real comparison, not all "never"
+        assert 0 < int(np.sum(got == 0.0)) < int(np.sum(fin & (got > 0))) < n - 100
+
+
 def test_format_says_what_to_plan() -> None:
     assert format_crossing(360.0, 240.0, 540.0) == "6 min (4-9 min)"
     assert format_crossing(45.0, 30.0, 61.0) == "45 s (30-61 s)"

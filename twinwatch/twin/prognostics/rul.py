@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from numba import njit
 
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.degradation import DegradationFit
@@ -82,21 +83,41 @@ def crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
         tau0: the window's end minus the reference time [s] (>= 0).
         threshold: [SI].
         direction: +1 for a threshold crossed upwards (a high one), -1 downwards (a low one).
+
+    Returns:
+        (n,) times [s]; compiled, one pass over the draws (the numpy expression of the
+        module docstring's closed form made ten temporaries of ``draws`` elements, twice a
+        window and level).
     """
-    c, m, r = (np.asarray(a, dtype=float) for a in (c, m, r))
-    lin = np.abs(r) < 1e-12
-    safe_r = np.where(lin, 1.0, r)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        level_now = c + m * np.where(lin, tau0, np.expm1(np.clip(r * tau0, -700, 700))
-                                     / safe_r)
-        q = (threshold - c) / m
-        arg = 1.0 + r * q
-        tau_exp = np.where(arg > 0, np.log(np.where(arg > 0, arg, 1.0)) / safe_r, np.inf)
-        tau = np.where(lin, q, tau_exp)
-        # Heading away from the threshold (q < 0), or no drift: never.
-        tau = np.where(np.isfinite(tau) & (m != 0) & (tau >= 0), tau, np.inf)
-    out = np.maximum(tau - tau0, 0.0)
-    return np.where((level_now - threshold) * direction >= 0, 0.0, out)
+    c, m, r = (np.ascontiguousarray(a, dtype=float) for a in (c, m, r))
+    return _crossing_times(c, m, r, float(tau0), float(threshold), int(direction))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
+                    threshold: float, direction: int) -> FloatArray:
+    out = np.empty(c.size)
+    for i in range(c.size):
+        ci, mi, ri = c[i], m[i], r[i]
+        lin = abs(ri) < 1e-12
+        if lin:
+            level_now = ci + mi * tau0
+        else:
+            level_now = ci + mi * (math.expm1(min(max(ri * tau0, -700.0), 700.0)) / ri)
+        q = (threshold - ci) / mi
+        if lin:
+            tau = q
+        else:
+            arg = 1.0 + ri * q
+            tau = math.log(arg) / ri if arg > 0 else math.inf
+        # heading away from the threshold (q < 0), or no drift: never
+        if not (math.isfinite(tau) and mi != 0 and tau >= 0):
+            tau = math.inf
+        if (level_now - threshold) * direction >= 0:
+            out[i] = 0.0
+        else:
+            out[i] = max(tau - tau0, 0.0)
+    return out
 
 
 def _quantile(s: FloatArray, q: float) -> float | None:
