@@ -55,6 +55,7 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
+from twinwatch._table import StrictTable
 from twinwatch.config.alarms import AlarmConfig
 from twinwatch.drivers import (
     DriverConfig,
@@ -217,10 +218,8 @@ def _output_model(name: str) -> type[SinkConfig]:
     return sink_class(name).config_class
 
 
-class MachineConfig(BaseModel):
+class MachineConfig(StrictTable):
     """``[machine]``: what is monitored."""
-
-    model_config = ConfigDict(extra="forbid")
 
     name: str = Field(max_length=64,
                       description="machine name: the Zenoh key segment (letters, digits, _ -; "
@@ -254,10 +253,10 @@ class MachineConfig(BaseModel):
         return v
 
 
-class AcquisitionConfig(BaseModel):
+class AcquisitionConfig(StrictTable):
     """``[acquisition]``: windows and buffering (paper: 200 samples every 10 ms)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(allow_inf_nan=False)
 
     sample_period: StrictFloat = Field(0.01, gt=0, le=3600, description="nominal sample period [s]")
     window: StrictInt = Field(
@@ -345,10 +344,8 @@ def _driver_table(value: Any) -> DriverConfig:
         )]) from None
 
 
-class TwinwatchConfig(BaseModel):
+class TwinwatchConfig(StrictTable):
     """The whole configuration file."""
-
-    model_config = ConfigDict(extra="forbid")
 
     machine: MachineConfig
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)

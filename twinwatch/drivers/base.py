@@ -37,9 +37,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Self, TypeVar
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ValidationError
 
 from twinwatch._lifecycle import Closeable
+from twinwatch._table import StrictTable
 from twinwatch.errors import (
     DriverConfigError,
     DriverError,
@@ -67,15 +68,13 @@ __all__ = [
 ]
 
 
-class DriverConfig(BaseModel):
+class DriverConfig(StrictTable):
     """Base of every driver's configuration model (its ``[driver]`` table).
 
     Attributes:
         type: the driver's registry name (``"can"``, ``"file"``, ...); subclasses narrow it
             to their own name (``type: Literal["can"]``).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: str
 

@@ -25,7 +25,7 @@ from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import ConfigDict, Field
+from pydantic import Field
 
 from twinwatch.drivers.base import DriverConfig, DriverInitializationError, PlantDriver, Sample
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
@@ -59,8 +59,6 @@ class SimulatedDriverConfig(DriverConfig):
         channel: name of the in-process virtual CAN channel ("auto": a unique name).
         realtime: pace the plant by the wall clock instead of running as fast as possible.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated"]
     machine: Literal["dc_motor"] = "dc_motor"

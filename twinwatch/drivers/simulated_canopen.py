@@ -23,7 +23,7 @@ import logging
 import time
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt
+from pydantic import Field, StrictFloat, StrictInt
 
 from twinwatch.drivers.base import (
     Driver,
@@ -72,8 +72,6 @@ class SimulatedCanopenDriverConfig(DriverConfig):
             at random, seeded by ``plant.seed`` (a loaded bus; for tests and demonstrations;
             0: none).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated_canopen"]
     machine: Literal["dc_motor"] = "dc_motor"

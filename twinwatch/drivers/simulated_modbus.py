@@ -48,7 +48,7 @@ import logging
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -104,8 +104,6 @@ class SimulatedModbusDriverConfig(DriverConfig):
             needs ``x``, ``p``, ``A_valve`` and ``F_load``.
         counter: the sample-counter register (default :data:`DEFAULT_COUNTER`).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated_modbus"]
     machine: Literal["hydraulic_actuator"] = "hydraulic_actuator"

@@ -41,7 +41,7 @@ import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -91,8 +91,6 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
         queue_size: each monitored item's queue (lock-step bursts are a quarter of it).
         timeout, backoff_max: the driver's request timeout and reconnect cap [s].
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated_opcua"]
     machine: Literal["dc_motor", "hydraulic_actuator"] = "dc_motor"

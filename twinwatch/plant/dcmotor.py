@@ -78,8 +78,6 @@ from typing import Literal
 import numpy as np
 from numba import njit
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     StrictBool,
     StrictFloat,
@@ -87,6 +85,7 @@ from pydantic import (
     model_validator,
 )
 
+from twinwatch._table import StrictTable
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
@@ -103,7 +102,7 @@ _SCENARIO_CODE = {"nominal": 0, "resistance_degradation": 1, "bearing_wear": 2,
 CHANNELS: tuple[str, ...] = ("Va", "ia", "omega", "Tload", "setpoint")
 
 
-class SetpointSchedule(BaseModel):
+class SetpointSchedule(StrictTable):
     """Speed set-point schedule.
 
     Either explicit ``steps`` ([[t_s, value_rad_s], ...], first at t = 0) or a seeded random
@@ -112,8 +111,6 @@ class SetpointSchedule(BaseModel):
     seconds, so dwells of 20-60 s let the motor approach steady state (our choice; the paper only
     says "at different times").
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     steps: list[tuple[StrictFloat, StrictFloat]] | None = None
     initial: StrictFloat = Field(10.0, description="set-point from t = 0 [rad/s]")
@@ -152,7 +149,7 @@ class SetpointSchedule(BaseModel):
         return np.asarray(times), np.asarray(values)
 
 
-class SensorFaultConfig(BaseModel):
+class SensorFaultConfig(StrictTable):
     """A sensor fault of the simulated plant (``[[driver.plant.sensor_faults]]``): from
     ``start`` for ``duration`` seconds (to the end of the run without one) the reported
     ``channel`` is
@@ -167,8 +164,6 @@ class SensorFaultConfig(BaseModel):
     ``start`` (a drift: ``g(t) = 1 + f (gain - 1)``, ``o(t) = f offset``, ``f = min(1, (t -
     start)/ramp)``). Applied to the reported value after noise and quantisation; the plant
     itself and its drive (which reads its own feedback) are untouched."""
-
-    model_config = ConfigDict(extra="forbid")
 
     channel: str
     kind: Literal["frozen", "saturated", "gain", "offset"]
@@ -239,10 +234,8 @@ DC_FAULT_PARAMETERS: dict[str, str] = {
     "Tc": "N m", "load": "N m s/rad", "unbalance": "rad/s^2", "misalignment": "rad/s^2"}
 
 
-class DCMotorPlantConfig(BaseModel):
+class DCMotorPlantConfig(StrictTable):
     """Configuration of the simulated DC motor plant (table ``[driver.plant]``)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     scenario: Scenario = "resistance_degradation"
     duration: StrictFloat = Field(1200.0, gt=0, description="simulated time [s]")

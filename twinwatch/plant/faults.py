@@ -25,15 +25,15 @@ comes and goes); the sizes are the configuration's.
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, model_validator
+from pydantic import Field, StrictFloat, model_validator
+
+from twinwatch._table import StrictTable
 
 __all__ = ["FaultProfile", "ParameterFaultConfig", "SupplyFaultConfig"]
 
 
-class FaultProfile(BaseModel):
+class FaultProfile(StrictTable):
     """When a fault acts and how it grows (see the module docstring for ``f(t)``)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     start: StrictFloat = Field(0.0, ge=0, description="onset [s of plant time]")
     ramp: StrictFloat = Field(0.0, ge=0, description="seconds from onset to full size: a "

@@ -90,8 +90,9 @@ from typing import Literal
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 
+from twinwatch._table import StrictTable
 from twinwatch.io.drive import LoopConfig, ValveDriveConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
@@ -125,13 +126,11 @@ HYD_FAULT_PARAMETERS: dict[str, str] = {
     "leak": "1", "friction": "N"}
 
 
-class HydraulicPlantConfig(BaseModel):
+class HydraulicPlantConfig(StrictTable):
     """Configuration of the simulated hydraulic actuator (table ``[driver.plant]``).
 
     Defaults are the paper's Table 4 and Eq. 17 values (NOTES.md).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     scenario: Scenario = "fluid_degradation"
     duration: StrictFloat = Field(600.0, gt=0, description="simulated time [s]")
