@@ -89,7 +89,7 @@ from twinwatch._table import StrictTable
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
-from twinwatch.plant.faults import ParameterFaultConfig, SupplyFaultConfig
+from twinwatch.plant.faults import ParameterFaultConfig, SupplyFaultConfig, check_plant_table
 
 logger = logging.getLogger(__name__)
 
@@ -316,28 +316,8 @@ class DCMotorPlantConfig(StrictTable):
 
     @model_validator(mode="after")
     def _check(self) -> DCMotorPlantConfig:
-        ratio = self.sample_period / self.step
-        if abs(ratio - round(ratio)) > 1e-6 * ratio or round(ratio) < 1:
-            raise ValueError("sample_period must be a whole multiple of step")
-        for table, name in ((self.noise, "noise"), (self.quantisation, "quantisation")):
-            for ch, v in table.items():
-                if ch not in CHANNELS:
-                    raise ValueError(f"{name}.{ch}: unknown channel; use one of {CHANNELS}")
-                if v < 0:
-                    raise ValueError(f"{name}.{ch}: must be >= 0")
-        for i, fault in enumerate(self.sensor_faults):
-            if fault.channel not in CHANNELS:
-                raise ValueError(f"sensor_faults[{i}].channel: unknown channel "
-                                 f"{fault.channel!r}; use one of {CHANNELS}")
-        nominal = self.fault_nominals()
-        for i, pf in enumerate(self.parameter_faults):
-            if pf.parameter not in DC_FAULT_PARAMETERS:
-                raise ValueError(f"parameter_faults[{i}].parameter: unknown parameter "
-                                 f"{pf.parameter!r}; use one of {tuple(DC_FAULT_PARAMETERS)}")
-            if pf.change is not None and nominal[pf.parameter] == 0.0:
-                raise ValueError(f"parameter_faults[{i}].change: {pf.parameter} is 0 at "
-                                 f"nominal, a percentage of it is nothing; give absolute "
-                                 f"[{DC_FAULT_PARAMETERS[pf.parameter]}]")
+        check_plant_table(self, CHANNELS, DC_FAULT_PARAMETERS,
+                          {"noise": self.noise, "quantisation": self.quantisation})
         try:
             self.drive_config.ticks(self.step)
         except ValueError as exc:
