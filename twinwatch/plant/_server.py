@@ -13,7 +13,7 @@ import time
 from typing import ClassVar, Literal, Protocol, Self
 
 from twinwatch._lifecycle import Closeable
-from twinwatch.io.sample import Sample
+from twinwatch.io.sample import EndOfStream, Sample
 
 __all__ = ["Pacing", "PlantSource", "ServerThread", "free_tcp_port"]
 
@@ -98,6 +98,22 @@ class ServerThread(Closeable):
     def finished(self) -> bool:
         """True once the plant raised EndOfStream (the last sample stays served)."""
         return self._finished
+
+    def _next_from_plant(self) -> Sample | None:
+        """The plant's next sample, counted in :attr:`samples_served` and kept as
+        :attr:`last_sample`; None once the plant has ended (logged when it ends)."""
+        if self._finished:
+            return None
+        try:
+            sample = self.plant.next_sample()
+        except EndOfStream:
+            self._finished = True
+            self._log.info("plant finished after %d samples; serving the last one",
+                           self.samples_served)
+            return None
+        self.samples_served += 1
+        self.last_sample = sample
+        return sample
 
     @property
     def running(self) -> bool:

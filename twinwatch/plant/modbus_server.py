@@ -61,7 +61,7 @@ from twinwatch.io.modbus_registers import (
     ModbusRegister,
     check_overlaps,
 )
-from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.io.sample import Sample
 from twinwatch.plant._server import Pacing, PlantSource, ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
@@ -264,19 +264,9 @@ class PlantModbusServer(ServerThread):
             self._advance_one()
 
     def _advance_one(self) -> None:
-        if self._finished:
-            return
-        try:
-            sample = self.plant.next_sample()
-        except EndOfStream:
-            self._finished = True
-            logger.info(
-                "plant finished after %d samples; serving the last one", self.samples_served
-            )
-            return
-        self.samples_served += 1
-        self.last_sample = sample
-        self._write(sample)
+        sample = self._next_from_plant()
+        if sample is not None:
+            self._write(sample)
 
     def _write(self, sample: Sample) -> None:
         for ch, m in self.registers.items():

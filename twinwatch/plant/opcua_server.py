@@ -41,7 +41,7 @@ from collections.abc import Callable, Mapping
 from datetime import UTC, datetime, timedelta
 from typing import Any, Literal, cast
 
-from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.io.sample import Sample
 from twinwatch.plant._server import Pacing, PlantSource, ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
@@ -246,17 +246,9 @@ class PlantOpcUaServer(ServerThread):
         await self._wait_stop(1e9)
 
     async def _advance_one(self) -> None:
-        if self._finished:
+        sample = self._next_from_plant()
+        if sample is None:
             return
-        try:
-            sample = self.plant.next_sample()
-        except EndOfStream:
-            self._finished = True
-            logger.info("plant finished after %d samples; serving the last one",
-                        self.samples_served)
-            return
-        self.samples_served += 1
-        self.last_sample = sample
         await self._write(sample)
         self.serving_cpu_seconds = (self._serving_before + time.thread_time()
                                     - self._cpu_ready)
