@@ -53,6 +53,7 @@ from twinwatch.daemon.window_worker import (
     make_diagnoser,
     make_pipeline,
 )
+from twinwatch.drivers.base import source_problem_lines
 from twinwatch.sinks import SINKS
 from twinwatch.twin.models import create_model
 
@@ -428,10 +429,7 @@ class Daemon:
         waiting, silent, faults = self.source_state()
         if waiting:
             out.append(f"waiting for the source: {waiting}")
-        if silent:
-            out.append("silent: " + ", ".join(silent))
-        if faults:
-            out.append("device fault: " + ", ".join(faults))
+        out.extend(source_problem_lines(silent, faults))
         if (p := self.estimation_problem()) is not None:
             out.append(p)
         last = self.pipeline.latest

@@ -33,7 +33,7 @@ from __future__ import annotations
 import abc
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Self, TypeVar
@@ -127,6 +127,14 @@ class DriverStats:
         }
         d.update(self.extra)
         return d
+
+
+def source_problem_lines(silent: Sequence[str], faults: Sequence[str]) -> list[str]:
+    """A driver's silent messages and the faults its device reports (:attr:`Driver.silent`,
+    :attr:`Driver.device_faults`) as lines of the daemon's STATUS and of the run's summary:
+    ``silent: a, b`` and ``device fault: c``, each only when there is any."""
+    return [f"{what}: {', '.join(items)}"
+            for what, items in (("silent", silent), ("device fault", faults)) if items]
 
 
 class Driver(Closeable, abc.ABC):
