@@ -42,7 +42,6 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Annotated, Any, Literal, NamedTuple
 
 from pydantic import (
-    BaseModel,
     BeforeValidator,
     ConfigDict,
     Field,
@@ -55,6 +54,7 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
+from twinwatch._lazy import lazy_module
 from twinwatch._table import StrictTable
 from twinwatch.config.alarms import AlarmConfig
 from twinwatch.drivers import (
@@ -79,43 +79,28 @@ MAX_MISSING_RUN_DEFAULT = 3
 """``[acquisition] max_missing_run``: at most this many missing samples in a row are filled."""
 
 
-def _estimation_config() -> type[EstimationConfig]:
-    from twinwatch.twin.estimation.estimator import EstimationConfig
+def _table_model(target: str) -> Callable[[], type[Any]]:
+    """The table model ``"module:Class"`` that the twin owns (or the identification), as a
+    function that imports it when called: when a configuration is validated, not when this
+    module is imported (the twin's modules load pymoo, scipy and numba)."""
+    module, _, name = target.partition(":")
 
-    return EstimationConfig
+    def model() -> type[Any]:
+        cls: type[Any] = getattr(lazy_module(module), name)
+        return cls
 
-
-def _discovery_config() -> type[DiscoveryConfig]:
-    from twinwatch.twin.discovery.search import DiscoveryConfig
-
-    return DiscoveryConfig
-
-
-def _prognostics_config() -> type[PrognosticsConfig]:
-    from twinwatch.twin.prognostics.config import PrognosticsConfig
-
-    return PrognosticsConfig
+    return model
 
 
-def _adaptive_config() -> type[AdaptiveWindowConfig]:
-    from twinwatch.twin.prognostics.config import AdaptiveWindowConfig
-
-    return AdaptiveWindowConfig
-
-
-def _diagnosis_config() -> type[DiagnosisConfig]:
-    from twinwatch.twin.diagnosis.library import DiagnosisConfig
-
-    return DiagnosisConfig
+_estimation_config = _table_model("twinwatch.twin.estimation.estimator:EstimationConfig")
+_discovery_config = _table_model("twinwatch.twin.discovery.search:DiscoveryConfig")
+_prognostics_config = _table_model("twinwatch.twin.prognostics.config:PrognosticsConfig")
+_adaptive_config = _table_model("twinwatch.twin.prognostics.config:AdaptiveWindowConfig")
+_diagnosis_config = _table_model("twinwatch.twin.diagnosis.library:DiagnosisConfig")
+_identify_config = _table_model("twinwatch.config.identify:IdentifyConfig")
 
 
-def _identify_config() -> type[IdentifyConfig]:
-    from twinwatch.config.identify import IdentifyConfig
-
-    return IdentifyConfig
-
-
-def _twin_table(model: Callable[[], type[BaseModel]]) -> Any:
+def _twin_table(model: Callable[[], type[Any]]) -> Any:
     """A table whose model the twin owns, imported when a configuration is validated rather
     than when this module is (the twin's modules load pymoo, scipy and numba); errors keep
     their location in the table."""
