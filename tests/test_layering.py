@@ -27,7 +27,8 @@ _MODULE_STRING = re.compile(r"^(twinwatch(?:\.[a-z_][a-z0-9_]*)+)(?::[A-Za-z_]\w
 #: Room -> the module prefixes it holds (the longest prefix places a module).
 ROOMS: dict[str, tuple[str, ...]] = {
     "base": ("twinwatch.errors", "twinwatch.plugins", "twinwatch._lazy",
-             "twinwatch._lifecycle", "twinwatch._kernels", "twinwatch.__init__"),
+             "twinwatch._lifecycle", "twinwatch._kernels", "twinwatch._table",
+             "twinwatch._forward", "twinwatch.__init__"),
     "io": ("twinwatch.io",),
     "plant": ("twinwatch.plant",),
     "twin.model": ("twinwatch.twin.model",),

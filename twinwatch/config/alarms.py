@@ -19,7 +19,9 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
+
+from twinwatch._table import StrictTable
 
 if TYPE_CHECKING:
     from twinwatch.twin.prognostics.config import Thresholds
@@ -30,15 +32,13 @@ Level = Literal["normal", "warning", "alarm"]
 LEVELS: tuple[Level, ...] = ("normal", "warning", "alarm")
 
 
-class AlarmRule(BaseModel):
+class AlarmRule(StrictTable):
     """``[alarms.parameters.<name>]``: thresholds on one parameter's deviation from nominal.
 
     All thresholds and the hysteresis are in percent of the nominal value (``deviation_pct`` of
     the health message). Give ``warning``/``alarm`` (symmetric on the magnitude) or the
     one-sided ``*_high`` (> 0) / ``*_low`` (< 0) keys, not both for the same level.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     warning: StrictFloat | None = Field(
         None, gt=0, description="warning when |deviation| >= this [%]")
@@ -147,7 +147,7 @@ class AlarmRule(BaseModel):
         return None
 
 
-class AlarmConfig(BaseModel):
+class AlarmConfig(StrictTable):
     """``[alarms]``: per-parameter alarm rules; published on ``twinwatch/<machine>/alarm``.
 
     Example::
@@ -159,8 +159,6 @@ class AlarmConfig(BaseModel):
         raise_after_s = 10.0
         clear_after_s = 30.0
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(True, description="evaluate alarms and publish their changes")
     parameters: dict[str, AlarmRule] = Field(default_factory=dict,

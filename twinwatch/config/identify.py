@@ -27,11 +27,12 @@ from pydantic import (
     model_validator,
 )
 
+from twinwatch._table import StrictTable
 from twinwatch.twin.estimation.estimator import EstimationConfig, PSOSettings
 from twinwatch.twin.model import TwinModel
 
 
-class FixedValue(BaseModel):
+class FixedValue(StrictTable):
     """A stated value of one parameter (``[identify.fixed]``): held there when the recording
     does not determine the parameter."""
 
@@ -42,10 +43,8 @@ class FixedValue(BaseModel):
     reason: str = Field("", description="where the value comes from (a nameplate, a "
                         "datasheet, another experiment)")
 
-    model_config = ConfigDict(extra="forbid")
 
-
-class Candidate(BaseModel):
+class Candidate(StrictTable):
     """A candidate model structure (``[[identify.candidates]]``): model options over
     ``[machine.options]`` (tables merged key by key: ``drive = { period = 0.002 }`` changes only
     the period)."""
@@ -55,10 +54,8 @@ class Candidate(BaseModel):
                                     "[machine.options] (integrator method, controller period, "
                                     "input hold, filters, power stage, ...)")
 
-    model_config = ConfigDict(extra="forbid")
 
-
-class IdentifyConfig(BaseModel):
+class IdentifyConfig(StrictTable):
     """The ``[identify]`` table: how ``twinwatch identify`` fits the baseline.
 
     Ranges are fractions of the recording's samples: ``[0.0, 0.5]`` is its first half.
@@ -103,7 +100,7 @@ class IdentifyConfig(BaseModel):
                               "free-run problem has local optima a single swarm may settle in)")
     seed: StrictInt = 0
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+    model_config = ConfigDict(populate_by_name=True)
 
     @field_validator("fixed", mode="before")
     @classmethod

@@ -42,7 +42,6 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Annotated, Any, Literal, NamedTuple
 
 from pydantic import (
-    BaseModel,
     BeforeValidator,
     ConfigDict,
     Field,
@@ -55,6 +54,8 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
+from twinwatch._lazy import lazy_module
+from twinwatch._table import StrictTable
 from twinwatch.config.alarms import AlarmConfig
 from twinwatch.drivers import (
     DriverConfig,
@@ -78,43 +79,28 @@ MAX_MISSING_RUN_DEFAULT = 3
 """``[acquisition] max_missing_run``: at most this many missing samples in a row are filled."""
 
 
-def _estimation_config() -> type[EstimationConfig]:
-    from twinwatch.twin.estimation.estimator import EstimationConfig
+def _table_model(target: str) -> Callable[[], type[Any]]:
+    """The table model ``"module:Class"`` that the twin owns (or the identification), as a
+    function that imports it when called: when a configuration is validated, not when this
+    module is imported (the twin's modules load pymoo, scipy and numba)."""
+    module, _, name = target.partition(":")
 
-    return EstimationConfig
+    def model() -> type[Any]:
+        cls: type[Any] = getattr(lazy_module(module), name)
+        return cls
 
-
-def _discovery_config() -> type[DiscoveryConfig]:
-    from twinwatch.twin.discovery.search import DiscoveryConfig
-
-    return DiscoveryConfig
-
-
-def _prognostics_config() -> type[PrognosticsConfig]:
-    from twinwatch.twin.prognostics.config import PrognosticsConfig
-
-    return PrognosticsConfig
+    return model
 
 
-def _adaptive_config() -> type[AdaptiveWindowConfig]:
-    from twinwatch.twin.prognostics.config import AdaptiveWindowConfig
-
-    return AdaptiveWindowConfig
-
-
-def _diagnosis_config() -> type[DiagnosisConfig]:
-    from twinwatch.twin.diagnosis.library import DiagnosisConfig
-
-    return DiagnosisConfig
+_estimation_config = _table_model("twinwatch.twin.estimation.estimator:EstimationConfig")
+_discovery_config = _table_model("twinwatch.twin.discovery.search:DiscoveryConfig")
+_prognostics_config = _table_model("twinwatch.twin.prognostics.config:PrognosticsConfig")
+_adaptive_config = _table_model("twinwatch.twin.prognostics.config:AdaptiveWindowConfig")
+_diagnosis_config = _table_model("twinwatch.twin.diagnosis.library:DiagnosisConfig")
+_identify_config = _table_model("twinwatch.config.identify:IdentifyConfig")
 
 
-def _identify_config() -> type[IdentifyConfig]:
-    from twinwatch.config.identify import IdentifyConfig
-
-    return IdentifyConfig
-
-
-def _twin_table(model: Callable[[], type[BaseModel]]) -> Any:
+def _twin_table(model: Callable[[], type[Any]]) -> Any:
     """A table whose model the twin owns, imported when a configuration is validated rather
     than when this module is (the twin's modules load pymoo, scipy and numba); errors keep
     their location in the table."""
@@ -217,10 +203,8 @@ def _output_model(name: str) -> type[SinkConfig]:
     return sink_class(name).config_class
 
 
-class MachineConfig(BaseModel):
+class MachineConfig(StrictTable):
     """``[machine]``: what is monitored."""
-
-    model_config = ConfigDict(extra="forbid")
 
     name: str = Field(max_length=64,
                       description="machine name: the Zenoh key segment (letters, digits, _ -; "
@@ -254,10 +238,10 @@ class MachineConfig(BaseModel):
         return v
 
 
-class AcquisitionConfig(BaseModel):
+class AcquisitionConfig(StrictTable):
     """``[acquisition]``: windows and buffering (paper: 200 samples every 10 ms)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(allow_inf_nan=False)
 
     sample_period: StrictFloat = Field(0.01, gt=0, le=3600, description="nominal sample period [s]")
     window: StrictInt = Field(
@@ -345,10 +329,8 @@ def _driver_table(value: Any) -> DriverConfig:
         )]) from None
 
 
-class TwinwatchConfig(BaseModel):
+class TwinwatchConfig(StrictTable):
     """The whole configuration file."""
-
-    model_config = ConfigDict(extra="forbid")
 
     machine: MachineConfig
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)

@@ -54,6 +54,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from twinwatch._forward import Forward
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.daemon.gatekeeper import HELD_MAX, GateKeeper
 from twinwatch.sinks.base import Gate, ProcessedWindow, Sink
@@ -181,15 +182,10 @@ class WindowPipeline:
     def gate(self, gate: Gate | None) -> None:
         self.keeper.gate = gate
 
-    @property
-    def delayed(self) -> int:
-        """Windows that waited in memory for the gate's lock (another process's), in all."""
-        return self.keeper.delayed
-
-    @property
-    def locked_longest(self) -> float:
-        """The longest such wait [s]."""
-        return self.keeper.locked_longest
+    delayed: Forward[int] = Forward(
+        "keeper.delayed", "Windows that waited in memory for the gate's lock (another process's), "
+        "in all.")
+    locked_longest: Forward[float] = Forward("keeper.locked_longest", "The longest such wait [s].")
 
     # -- the outputs' thread -------------------------------------------------------------------
     def start(self, name: str = "twinwatch-outputs") -> None:

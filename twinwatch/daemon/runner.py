@@ -36,6 +36,7 @@ from collections.abc import Callable, Collection, Container, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
+from twinwatch._forward import Forward
 from twinwatch.daemon.acquisition import STOP_AT_WINDOW_S, Acquisition
 from twinwatch.daemon.outputs import Outputs, close_logged
 from twinwatch.daemon.resume import (
@@ -52,6 +53,7 @@ from twinwatch.daemon.window_worker import (
     make_diagnoser,
     make_pipeline,
 )
+from twinwatch.drivers.base import source_problem_lines
 from twinwatch.sinks import SINKS
 from twinwatch.twin.models import create_model
 
@@ -239,74 +241,38 @@ class Daemon:
         self.outputs.wire(attach=False)  # an adopted output serves the running daemon until then
 
     # -- the parts' state, as the callers read it -------------------------------------------
-    @property
-    def run_id(self) -> str:
-        """This run's id (in every health message and stored row; kept by a reload)."""
-        return self.pipeline.run
-
-    @property
-    def adapter(self) -> TwinAdapter:
-        """The twin's estimation, discovery and prognostics."""
-        return self.pipeline.adapter
-
-    @property
-    def estimator(self) -> Estimator:
-        """The twin's parameter estimator."""
-        return self.pipeline.adapter.estimator
-
-    @property
-    def alarms(self) -> AlarmEvaluator:
-        """The alarm evaluator (restored from the state database)."""
-        return self.pipeline.alarms
-
-    @property
-    def ring(self) -> RingBuffer:
-        """The acquisition's ring buffer."""
-        return self.acquisition.ring
-
-    @property
-    def driver(self) -> Driver | None:
-        """The open driver (None before it opens and after :meth:`close`)."""
-        return self.acquisition.driver
-
-    @property
-    def ended(self) -> str | None:
-        """Why :meth:`run` returned by itself: the end of the source, the duration reached,
-        a driver failure; None otherwise."""
-        return self.acquisition.ended
-
-    @property
-    def failure(self) -> str | None:
-        """The driver's failure line (the CLI exits 1), or None."""
-        return self.acquisition.failure
-
-    @property
-    def queue_waits(self) -> deque[float]:
-        """Seconds each window waited between its submission and the start of its processing
-        (the queue, and in a gateway the estimation slot), the last QUEUE_WAITS windows."""
-        return self.worker.queue_waits
-
-    @property
-    def overruns(self) -> int:
-        """Windows of a live source dropped because the estimation did not keep up."""
-        return self.worker.overruns
-
-    @property
-    def numeric_failures(self) -> int:
-        """Windows whose processing raised."""
-        return self.worker.numeric_failures
-
-    @property
-    def dropped_at_stop(self) -> int:
-        """Windows queued at a stop that the worker did not reach within
-        ``shutdown_timeout``."""
-        return self.worker.dropped_at_stop
-
-    @property
-    def recent_outcomes(self) -> deque[str]:
-        """The last RECENT_WINDOWS outcomes: "estimated", "failed" (numeric failure),
-        "abandoned" (gap, bad value, ...), "overrun"."""
-        return self.worker.recent_outcomes
+    run_id: Forward[str] = Forward(
+        "pipeline.run", "This run's id (in every health message and stored row; kept by a "
+        "reload).")
+    adapter: Forward[TwinAdapter] = Forward(
+        "pipeline.adapter", "The twin's estimation, discovery and prognostics.")
+    estimator: Forward[Estimator] = Forward(
+        "pipeline.adapter.estimator", "The twin's parameter estimator.")
+    alarms: Forward[AlarmEvaluator] = Forward(
+        "pipeline.alarms", "The alarm evaluator (restored from the state database).")
+    ring: Forward[RingBuffer] = Forward("acquisition.ring", "The acquisition's ring buffer.")
+    driver: Forward[Driver | None] = Forward(
+        "acquisition.driver", "The open driver (None before it opens and after :meth:`close`).")
+    ended: Forward[str | None] = Forward(
+        "acquisition.ended", "Why :meth:`run` returned by itself: the end of the source, the "
+        "duration reached, a driver failure; None otherwise.")
+    failure: Forward[str | None] = Forward(
+        "acquisition.failure", "The driver's failure line (the CLI exits 1), or None.")
+    queue_waits: Forward[deque[float]] = Forward(
+        "worker.queue_waits", "Seconds each window waited between its submission and the start of "
+        "its processing (the queue, and in a gateway the estimation slot), the last QUEUE_WAITS "
+        "windows.")
+    overruns: Forward[int] = Forward(
+        "worker.overruns", "Windows of a live source dropped because the estimation did not keep "
+        "up.")
+    numeric_failures: Forward[int] = Forward(
+        "worker.numeric_failures", "Windows whose processing raised.")
+    dropped_at_stop: Forward[int] = Forward(
+        "worker.dropped_at_stop", "Windows queued at a stop that the worker did not reach within "
+        "``shutdown_timeout``.")
+    recent_outcomes: Forward[deque[str]] = Forward(
+        "worker.recent_outcomes", 'The last RECENT_WINDOWS outcomes: "estimated", "failed" '
+        '(numeric failure), "abandoned" (gap, bad value, ...), "overrun".')
 
     @property
     def abandon(self) -> bool:
@@ -352,15 +318,10 @@ class Daemon:
                                                           config.machine.options))
 
     # -- the window pipeline's results ------------------------------------------------------
-    @property
-    def windows_estimated(self) -> int:
-        """Windows the pipeline processed."""
-        return self.pipeline.windows_estimated
-
-    @property
-    def latest_health(self) -> HealthMessage | None:
-        """The last health message (typed)."""
-        return self.pipeline.latest
+    windows_estimated: Forward[int] = Forward(
+        "pipeline.windows_estimated", "Windows the pipeline processed.")
+    latest_health: Forward[HealthMessage | None] = Forward(
+        "pipeline.latest", "The last health message (typed).")
 
     @property
     def health_history(self) -> list[HealthMessage]:
@@ -385,16 +346,11 @@ class Daemon:
         return [h.as_dict() for h in self.pipeline.recent()]
 
     # -- the outputs ------------------------------------------------------------------------
-    @property
-    def sinks(self) -> dict[str, Sink]:
-        """Registry name -> the open output, in the order each window is written to them (the
-        gate first: stored before published)."""
-        return self.outputs.sinks
-
-    @property
-    def store(self) -> Gate | None:
-        """The gate (the state store) while it is open, or None."""
-        return self.outputs.store
+    sinks: Forward[dict[str, Sink]] = Forward(
+        "outputs.sinks", "Registry name -> the open output, in the order each window is written "
+        "to them (the gate first: stored before published).")
+    store: Forward[Gate | None] = Forward(
+        "outputs.store", "The gate (the state store) while it is open, or None.")
 
     # -- persistence ------------------------------------------------------------------------
     def _restore(self) -> None:
@@ -473,10 +429,7 @@ class Daemon:
         waiting, silent, faults = self.source_state()
         if waiting:
             out.append(f"waiting for the source: {waiting}")
-        if silent:
-            out.append("silent: " + ", ".join(silent))
-        if faults:
-            out.append("device fault: " + ", ".join(faults))
+        out.extend(source_problem_lines(silent, faults))
         if (p := self.estimation_problem()) is not None:
             out.append(p)
         last = self.pipeline.latest

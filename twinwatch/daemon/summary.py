@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from twinwatch.drivers.base import source_problem_lines
+
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.pipeline import WindowDigest
@@ -284,10 +286,7 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
     waiting, silent, faults = daemon.source_state()
     if waiting:
         lines.append(f"source: waiting for {waiting}")
-    if silent:
-        lines.append("source: silent: " + ", ".join(silent))
-    if faults:
-        lines.append("source: device fault: " + ", ".join(faults))
+    lines.extend(f"source: {line}" for line in source_problem_lines(silent, faults))
     if lost:
         reasons = ", ".join(f"{n} {reason}" for reason, n in ring.lost.most_common())
         lines.append(f"source: {ring.samples} samples received, {lost} not in any window "

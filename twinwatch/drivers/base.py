@@ -32,14 +32,16 @@ from __future__ import annotations
 
 import abc
 import logging
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Self, TypeVar
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ValidationError
 
 from twinwatch._lifecycle import Closeable
+from twinwatch._table import StrictTable
 from twinwatch.errors import (
     DriverConfigError,
     DriverError,
@@ -67,15 +69,13 @@ __all__ = [
 ]
 
 
-class DriverConfig(BaseModel):
+class DriverConfig(StrictTable):
     """Base of every driver's configuration model (its ``[driver]`` table).
 
     Attributes:
         type: the driver's registry name (``"can"``, ``"file"``, ...); subclasses narrow it
             to their own name (``type: Literal["can"]``).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: str
 
@@ -127,6 +127,14 @@ class DriverStats:
         }
         d.update(self.extra)
         return d
+
+
+def source_problem_lines(silent: Sequence[str], faults: Sequence[str]) -> list[str]:
+    """A driver's silent messages and the faults its device reports (:attr:`Driver.silent`,
+    :attr:`Driver.device_faults`) as lines of the daemon's STATUS and of the run's summary:
+    ``silent: a, b`` and ``device fault: c``, each only when there is any."""
+    return [f"{what}: {', '.join(items)}"
+            for what, items in (("silent", silent), ("device fault", faults)) if items]
 
 
 class Driver(Closeable, abc.ABC):
@@ -323,16 +331,63 @@ class Driver(Closeable, abc.ABC):
         """Release resources; called once by :meth:`close`."""
 
 
+InnerT = TypeVar("InnerT", bound=Driver)
+
+
 class PlantDriver(Driver):
     """A driver over a simulated plant of its own (its table's ``plant``), read through one of
     the real drivers (:meth:`_inner`), whose counters are this driver's: the plant's sample
     period and duration, its time starting over at every open.
 
-    Subclasses set :attr:`source_name` and implement ``__init__(config)`` and :meth:`_inner`.
+    Subclasses set :attr:`source_name` and implement ``__init__(config)`` (calling this one's,
+    then :meth:`_open_inner`) and :meth:`_inner`.
+
+    Args:
+        config: the validated table (its ``plant`` has the ``sample_period`` [s]).
+        live: the plant runs in real time (:attr:`Driver.live`).
     """
 
     #: the driver in a validation error's message (``"simulated Modbus"``)
     source_name: ClassVar[str] = "simulated"
+
+    def __init__(self, config: Any, *, live: bool) -> None:
+        super().__init__()
+        self.config = config
+        self.sample_period = config.plant.sample_period
+        self.live = live
+        self._t0_wall: float | None = None  # monotonic time of plant time 0 (real time)
+
+    def _open_inner(self, open_inner: Callable[[], InnerT], failure: str) -> InnerT:
+        """Open the real driver that reads the plant and take over its channels and counters
+        (one set of counters: the inner driver's).
+
+        Args:
+            open_inner: opens what serves the plant and the driver reading it; returns the
+                driver.
+            failure: the message when it fails, ``{exc}`` standing for the error.
+
+        Raises:
+            DriverInitializationError: it failed (whatever opened is closed first).
+        """
+        try:
+            inner = open_inner()
+        except Exception as exc:
+            self.close()
+            if isinstance(exc, DriverInitializationError):
+                raise
+            raise DriverInitializationError(failure.format(exc=exc)) from exc
+        self.channels = inner.channels
+        self.stats = inner.stats
+        return inner
+
+    def _pace(self, t: float) -> None:
+        """Wait until plant time ``t`` [s] is due on the wall clock (real-time pacing: the
+        first call ties plant time 0 to the wall clock)."""
+        if self._t0_wall is None:
+            self._t0_wall = time.monotonic() - t
+        delay = self._t0_wall + t - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
 
     @classmethod
     def nominal_sample_period(cls, config: DriverConfig) -> float | None:

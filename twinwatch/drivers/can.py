@@ -63,7 +63,7 @@ from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 from cantools.database.errors import DecodeError
 from cantools.database.errors import Error as CantoolsError
-from pydantic import ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from twinwatch.drivers.base import DriverConfig, DriverConfigError, Sample, ScaledChannel
 from twinwatch.drivers.canbus import (
@@ -139,7 +139,6 @@ class CanDriverConfig(BusDriverConfig):
             raise it for a message sent more slowly than that.
     """
 
-    model_config = ConfigDict(extra="forbid")
     description_key: ClassVar[str] = "dbc"
 
     type: Literal["can"]

@@ -76,8 +76,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, field_validator
+from pydantic import ConfigDict, Field, StrictFloat, StrictInt, field_validator
 
+from twinwatch._table import StrictTable
 from twinwatch.drivers.base import DriverConfig, DriverConfigError, Sample
 from twinwatch.drivers.canbus import BusDriver, BusDriverConfig
 from twinwatch.io.counter import SampleCounter
@@ -127,7 +128,7 @@ _FLOAT_TYPES = {0x8: struct.Struct("<f"), 0x11: struct.Struct("<d")}
 _NMT_STATES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
 
 
-class CanopenChannel(BaseModel):
+class CanopenChannel(StrictTable):
     """Where one twin channel comes from: ``value_twin = raw * factor + offset``.
 
     Attributes:
@@ -139,7 +140,7 @@ class CanopenChannel(BaseModel):
         unit: the twin channel's unit, for documentation.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
     object: str = Field(min_length=1)
     factor: StrictFloat | str = 1.0
@@ -180,7 +181,6 @@ class CanopenDriverConfig(BusDriverConfig):
             frame time leaves its channels out).
     """
 
-    model_config = ConfigDict(extra="forbid")
     description_key: ClassVar[str] = "eds"
 
     type: Literal["canopen"]

@@ -64,7 +64,7 @@ from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
@@ -141,8 +141,6 @@ class FileDriverConfig(DriverConfig):
         idle_timeout: with ``follow``: seconds without a new row after which the file counts
             as finished (> 0; the run ends as at the end of a file).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["file"]
     path: Path

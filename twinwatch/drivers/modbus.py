@@ -95,7 +95,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse
@@ -183,8 +183,6 @@ class ModbusDriverConfig(DriverConfig):
         registers: twin channel -> :class:`ModbusChannelMap`, at least one; the table order is
             the order of :attr:`ModbusDriver.channels`.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["modbus"]
     transport: Literal["tcp", "rtu"] = "tcp"

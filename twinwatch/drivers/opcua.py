@@ -99,8 +99,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 
+from twinwatch._table import StrictTable
 from twinwatch.drivers.base import (
     Driver,
     DriverConfig,
@@ -187,7 +188,7 @@ for _name in _ASYNCUA_LOGGERS:
 # -- configuration ----------------------------------------------------------------------------
 
 
-class OpcUaChannelMap(BaseModel):
+class OpcUaChannelMap(StrictTable):
     """One twin channel's variable (``[driver.channels] <channel> = {...}``).
 
     Attributes:
@@ -197,8 +198,6 @@ class OpcUaChannelMap(BaseModel):
         scale, offset: ``twin value = value * scale + offset``.
         unit: the twin channel's unit; when given, the node's EngineeringUnits must name it.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     node: str | None = Field(None, min_length=1, description='NodeId string, "ns=2;s=Motor.ia"')
     browse_path: str | None = Field(
@@ -236,8 +235,6 @@ class OpcUaDriverConfig(DriverConfig):
         username, password_file, password: user identity (password: first line of the file).
         channels: twin channel -> :class:`OpcUaChannelMap`, at least one.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["opcua"]
     endpoint: str = Field(pattern=r"^opc\.tcp://[^/\s]+(/\S*)?$",

@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import itertools
 import logging
-import time
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import ConfigDict, Field
+from pydantic import Field
 
-from twinwatch.drivers.base import DriverConfig, DriverInitializationError, PlantDriver, Sample
+from twinwatch.drivers.base import Driver, DriverConfig, PlantDriver, Sample
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
 if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no CAN stack
@@ -59,8 +58,6 @@ class SimulatedDriverConfig(DriverConfig):
         channel: name of the in-process virtual CAN channel ("auto": a unique name).
         realtime: pace the plant by the wall clock instead of running as fast as possible.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated"]
     machine: Literal["dc_motor"] = "dc_motor"
@@ -98,11 +95,8 @@ class SimulatedDriver(PlantDriver):
 
         from twinwatch.drivers.can import CanDriver, CanDriverConfig, CanSignalMap
 
-        super().__init__()
-        self.config = config
+        super().__init__(config, live=config.realtime)
         self.plant = DCMotorPlant(config.plant)
-        self.sample_period = config.plant.sample_period
-        self.live = config.realtime
         channel = config.channel
         if channel == "auto":
             channel = f"twinwatch-sim-{next(_channel_ids)}"
@@ -110,7 +104,7 @@ class SimulatedDriver(PlantDriver):
         self._tx: can.BusABC | None = None
         self._rx: can.BusABC | None = None
         self._can: CanDriver | None = None
-        try:
+        def open_inner() -> CanDriver:
             db = cantools.database.load_file(str(dbc))
             assert isinstance(db, cantools.database.can.Database)
             self._db = db
@@ -128,15 +122,9 @@ class SimulatedDriver(PlantDriver):
                 signals={ch: CanSignalMap(message=m, signal=ch) for m, sigs in _MESSAGES
                          for ch in sigs},
             )
-            self._can = CanDriver(can_cfg, bus=self._rx)
-        except Exception as exc:
-            self.close()
-            if isinstance(exc, DriverInitializationError):
-                raise
-            raise DriverInitializationError(f"simulated plant could not start: {exc}") from exc
-        self.channels = self._can.channels
-        self.stats = self._can.stats  # one set of counters: the CAN driver's
-        self._t0_wall: float | None = None
+            return CanDriver(can_cfg, bus=self._rx)
+
+        self._can = self._open_inner(open_inner, "simulated plant could not start: {exc}")
         logger.info("simulated %s plant, scenario %s, %.0f s, on virtual CAN channel %r",
                     config.machine, config.plant.scenario, config.plant.duration, channel)
 
@@ -145,11 +133,7 @@ class SimulatedDriver(PlantDriver):
         assert self._tx is not None
         sample = self.plant.next_sample()  # raises EndOfStream at the end
         if self.config.realtime:
-            if self._t0_wall is None:
-                self._t0_wall = time.monotonic() - sample.t
-            delay = self._t0_wall + sample.t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+            self._pace(sample.t)
         counter = int(round(sample.t / self.sample_period)) & 0xFFFFFFFF
         for msg, sigs in self._messages:
             data = {s: sample.values[s] for s in sigs}
@@ -158,17 +142,15 @@ class SimulatedDriver(PlantDriver):
             self._tx.send(self._message(arbitration_id=msg.frame_id, data=msg.encode(data),
                                         is_extended_id=False))
 
+    def _inner(self) -> Driver | None:
+        return self._can
+
     def _read_internal(self, timeout: float | None) -> Sample | None:
-        assert self._can is not None
-        sample = self._can.read(timeout=0.0)
+        sample = self._take(0.0)
         if sample is not None:
-            self.stats.samples -= 1  # counted again by Driver.read of this driver
             return sample
         self._send_next()
-        sample = self._can.read(timeout=1.0 if timeout is None else max(timeout, 0.05))
-        if sample is not None:
-            self.stats.samples -= 1
-        return sample
+        return self._take(1.0 if timeout is None else max(timeout, 0.05))
 
     def _close_internal(self) -> None:
         if self._can is not None:

@@ -23,12 +23,11 @@ import logging
 import time
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt
+from pydantic import Field, StrictFloat, StrictInt
 
 from twinwatch.drivers.base import (
     Driver,
     DriverConfig,
-    DriverInitializationError,
     PlantDriver,
     Sample,
 )
@@ -72,8 +71,6 @@ class SimulatedCanopenDriverConfig(DriverConfig):
             at random, seeded by ``plant.seed`` (a loaded bus; for tests and demonstrations;
             0: none).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated_canopen"]
     machine: Literal["dc_motor"] = "dc_motor"
@@ -148,10 +145,7 @@ class SimulatedCanopenDriver(PlantDriver):
         from twinwatch.drivers.canopen import CanopenDriver, CanopenDriverConfig
         from twinwatch.plant.canopen_drive import CiA402Drive, drive_eds_path
 
-        super().__init__()
-        self.config = config
-        self.sample_period = config.plant.sample_period
-        self.live = config.realtime
+        super().__init__(config, live=config.realtime)
         channel = config.channel
         if channel == "auto":
             channel = f"twinwatch-canopen-sim-{next(_channel_ids)}"
@@ -159,7 +153,8 @@ class SimulatedCanopenDriver(PlantDriver):
         self._rx: can.BusABC | None = None
         self.canopen: CanopenDriver | None = None
         self.drive: CiA402Drive | None = None
-        try:
+
+        def open_inner() -> CanopenDriver:
             self._rx = can.Bus(interface="virtual", channel=channel)
             self._tx = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
             tx: Any = self._tx
@@ -169,16 +164,10 @@ class SimulatedCanopenDriver(PlantDriver):
             co_cfg = CanopenDriverConfig.model_validate({
                 "type": "canopen", "node_id": config.node_id, "eds": drive_eds_path(),
                 "sample_period": config.plant.sample_period, "channels": drive_channels()})
-            self.canopen = CanopenDriver(co_cfg, bus=self._rx)
-        except Exception as exc:
-            self.close()
-            if isinstance(exc, DriverInitializationError):
-                raise
-            raise DriverInitializationError(
-                f"simulated CANopen drive could not start: {exc}") from exc
-        self.channels = self.canopen.channels
-        self.stats = self.canopen.stats  # one set of counters: the CANopen driver's
-        self._t0_wall: float | None = None
+            return CanopenDriver(co_cfg, bus=self._rx)
+
+        self.canopen = self._open_inner(open_inner,
+                                        "simulated CANopen drive could not start: {exc}")
         self._done: set[str] = set()
         logger.info("simulated %s plant as CiA 402 node %d, scenario %s, %.0f s, on virtual CAN "
                     "channel %r", config.machine, config.node_id, config.plant.scenario,
@@ -196,12 +185,7 @@ class SimulatedCanopenDriver(PlantDriver):
         """Advance the plant one sample and put its frames on the bus."""
         assert self.drive is not None
         if self.config.realtime:
-            t = self.drive.plant.t
-            if self._t0_wall is None:
-                self._t0_wall = time.monotonic() - t
-            delay = self._t0_wall + t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+            self._pace(self.drive.plant.t)
         t = self.drive.step().t  # raises EndOfStream at the end
         c = self.config
         if c.fault_at is not None and t >= c.fault_at and "fault" not in self._done:

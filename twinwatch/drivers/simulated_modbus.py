@@ -48,12 +48,11 @@ import logging
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
     DriverConfig,
-    DriverInitializationError,
     EndOfStream,
     PlantDriver,
     Sample,
@@ -104,8 +103,6 @@ class SimulatedModbusDriverConfig(DriverConfig):
             needs ``x``, ``p``, ``A_valve`` and ``F_load``.
         counter: the sample-counter register (default :data:`DEFAULT_COUNTER`).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated_modbus"]
     machine: Literal["hydraulic_actuator"] = "hydraulic_actuator"
@@ -189,25 +186,18 @@ class SimulatedModbusDriver(PlantDriver):
         from twinwatch.drivers.modbus import ModbusDriver
         from twinwatch.plant.modbus_server import PlantModbusServer
 
-        super().__init__()
-        self.config = config
+        super().__init__(config, live=config.pacing == "realtime")
         self.plant = HydraulicPlant(config.plant)
-        self.sample_period = config.plant.sample_period
-        self.live = config.pacing == "realtime"
         self.server = PlantModbusServer(self.plant, config.registers, counter=config.counter,
                                         pacing=config.pacing, host=LOOPBACK, port=config.port)
         self.modbus: ModbusDriver | None = None
-        try:
+
+        def open_inner() -> ModbusDriver:
             self.server.start()
-            self.modbus = ModbusDriver(config.modbus_config(self.server.port))
-        except Exception as exc:
-            self.close()
-            if isinstance(exc, DriverInitializationError):
-                raise
-            raise DriverInitializationError(
-                f"simulated Modbus device could not start: {exc}") from exc
-        self.channels = self.modbus.channels
-        self.stats = self.modbus.stats  # one set of counters: the Modbus driver's
+            return ModbusDriver(config.modbus_config(self.server.port))
+
+        self.modbus = self._open_inner(open_inner,
+                                       "simulated Modbus device could not start: {exc}")
         logger.info("simulated hydraulic plant, scenario %s, %.0f s, served over Modbus TCP "
                     "on %s:%d (%s pacing)", config.plant.scenario, config.plant.duration,
                     LOOPBACK, self.server.port, config.pacing)

@@ -41,12 +41,11 @@ import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
     Driver,
     DriverConfig,
-    DriverInitializationError,
     EndOfStream,
     PlantDriver,
     Sample,
@@ -91,8 +90,6 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
         queue_size: each monitored item's queue (lock-step bursts are a quarter of it).
         timeout, backoff_max: the driver's request timeout and reconnect cap [s].
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     type: Literal["simulated_opcua"]
     machine: Literal["dc_motor", "hydraulic_actuator"] = "dc_motor"
@@ -173,14 +170,11 @@ class SimulatedOpcUaDriver(PlantDriver):
         from twinwatch.drivers.opcua import OpcUaDriver
         from twinwatch.plant.opcua_server import PlantOpcUaServer
 
-        super().__init__()
-        self.config = config
+        super().__init__(config, live=config.pacing == "realtime")
         self.plant: DCMotorPlant | HydraulicPlant = (
             DCMotorPlant(config.plant) if isinstance(config.plant, DCMotorPlantConfig)
             else HydraulicPlant(config.plant))
         object_name, units = SERVED[config.machine]
-        self.sample_period = config.plant.sample_period
-        self.live = config.pacing == "realtime"
         self._taken = 0
         self._last_t = -math.inf
         self._last_arrival = time.monotonic()
@@ -191,19 +185,15 @@ class SimulatedOpcUaDriver(PlantDriver):
             port=config.port, publishing_interval=config.publishing_interval,
             burst=max(1, config.queue_size // 4), may_advance=self._may_advance)
         self.opcua: OpcUaDriver | None = None
-        try:
+
+        def open_inner() -> OpcUaDriver:
             self.server.start()
-            self.opcua = OpcUaDriver(config.opcua_config(self.server),
-                                     time_origin=self.server.base, on_take=self._on_take)
-        except Exception as exc:
-            self.close()
-            if isinstance(exc, DriverInitializationError):
-                raise
-            raise DriverInitializationError(
-                f"driver.port: the simulated OPC UA server could not start: {exc}; choose "
-                "another port (0: any free one)") from exc
-        self.channels = self.opcua.channels
-        self.stats = self.opcua.stats  # one set of counters: the OPC UA driver's
+            return OpcUaDriver(config.opcua_config(self.server),
+                               time_origin=self.server.base, on_take=self._on_take)
+
+        self.opcua = self._open_inner(
+            open_inner, "driver.port: the simulated OPC UA server could not start: {exc}; "
+            "choose another port (0: any free one)")
         logger.info("simulated %s, scenario %s, %.0f s, served over OPC UA on %s "
                     "(%s pacing)", config.machine, config.plant.scenario, config.plant.duration,
                     self.server.endpoint, config.pacing)

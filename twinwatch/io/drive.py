@@ -57,7 +57,9 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, field_validator, model_validator
+from pydantic import Field, StrictFloat, field_validator, model_validator
+
+from twinwatch._table import StrictTable
 
 FloatArray = NDArray[np.float64]
 
@@ -73,7 +75,7 @@ PACKED = ("kp", "ki", "kd", "n_filter", "output_min", "output_max", "anti_windup
           "tracking_time", "feedforward", "sign", "integrator_c", "filter_c")
 
 
-class LoopConfig(BaseModel):
+class LoopConfig(StrictTable):
     """One discrete PID loop of a drive (see the module docstring for the update).
 
     Attributes:
@@ -93,8 +95,6 @@ class LoopConfig(BaseModel):
             ``backward_euler`` (up to and including this tick) or ``trapezoidal``.
         filter_method: the same for the derivative's filter (MATLAB's "Filter method").
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     kp: StrictFloat = Field(0.0, allow_inf_nan=False)
     ki: StrictFloat = Field(0.0, allow_inf_nan=False)
@@ -140,7 +140,7 @@ class LoopConfig(BaseModel):
         ])
 
 
-class DriveConfig(BaseModel):
+class DriveConfig(StrictTable):
     """A DC motor drive: speed loop, optional inner current loop, update period.
 
     Attributes:
@@ -156,8 +156,6 @@ class DriveConfig(BaseModel):
             ia [A]; output: Va [V]), or None.
         current_period: the current loop's period [s] (default: ``period``).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     period: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)
     phase: StrictFloat = Field(0.0, ge=0, allow_inf_nan=False)
@@ -214,7 +212,7 @@ PAPER_VALVE_LOOP: dict[str, Any] = {"kp": 0.000346, "ki": 3.513406, "kd": 0.0001
                                     "action": "direct"}
 
 
-class ValveDriveConfig(BaseModel):
+class ValveDriveConfig(StrictTable):
     """The valve controller as it runs (table ``drive``; :mod:`twinwatch.io.drive` semantics).
 
     One update every ``period`` from the position ``x`` [m] (feedback) and the reference
@@ -230,8 +228,6 @@ class ValveDriveConfig(BaseModel):
             Kd 0.000119, N 2.076743, clamping, action ``direct``); ``output_min`` None: 0,
             ``output_max`` None: A_max (the valve's largest area).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     period: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)
     phase: StrictFloat = Field(0.0, ge=0, allow_inf_nan=False)

@@ -19,8 +19,9 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
+from pydantic import ConfigDict, Field, StrictInt, model_validator
 
+from twinwatch._table import StrictTable
 from twinwatch.io.sample import ScaledChannel
 
 if TYPE_CHECKING:
@@ -74,7 +75,7 @@ def _mixin() -> type[ModbusClientMixin]:
     return ModbusClientMixin
 
 
-class ModbusRegister(BaseModel):
+class ModbusRegister(StrictTable):
     """Where a value lives on the device and how it is encoded.
 
     Attributes:
@@ -86,7 +87,7 @@ class ModbusRegister(BaseModel):
             ``"little"`` = low word at ``address``.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
     address: StrictInt = Field(ge=0, le=65535)
     table: RegisterTable = "holding"

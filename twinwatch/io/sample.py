@@ -12,8 +12,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat
+from pydantic import ConfigDict, Field, StrictFloat
 
+from twinwatch._table import StrictTable
 from twinwatch.errors import DriverError, EndOfStream
 
 __all__ = ["DriverError", "EndOfStream", "Sample", "ScaledChannel"]
@@ -33,7 +34,7 @@ class Sample:
     values: dict[str, float]
 
 
-class ScaledChannel(BaseModel):
+class ScaledChannel(StrictTable):
     """How a source value becomes a twin channel value: ``value = raw * scale + offset``.
 
     Attributes:
@@ -42,7 +43,7 @@ class ScaledChannel(BaseModel):
         unit: the twin channel's unit, for documentation and display.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
     scale: StrictFloat = Field(default=1.0, allow_inf_nan=False)
     offset: StrictFloat = Field(default=0.0, allow_inf_nan=False)

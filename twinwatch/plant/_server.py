@@ -1,6 +1,6 @@
 """The thread a simulated device's server runs in (the plant's Modbus and OPC UA servers): its
 own asyncio loop, a start that returns once the server listens (or says why it could not), a
-stop that joins it, as a context manager."""
+stop that joins it, as a context manager; and what both servers keep of the plant they serve."""
 
 from __future__ import annotations
 
@@ -10,11 +10,33 @@ import logging
 import socket
 import threading
 import time
-from typing import ClassVar, Self
+from typing import ClassVar, Literal, Protocol, Self
 
 from twinwatch._lifecycle import Closeable
+from twinwatch.io.sample import EndOfStream, Sample
 
-__all__ = ["ServerThread", "free_tcp_port"]
+__all__ = ["Pacing", "PlantSource", "ServerThread", "free_tcp_port"]
+
+Pacing = Literal["realtime", "lockstep"]
+"""How a plant's server steps the plant: in real time, or as fast as its client keeps up."""
+
+
+class PlantSource(Protocol):
+    """What the server needs from a plant (e.g. :class:`~twinwatch.plant.dcmotor.DCMotorPlant`)."""
+
+    @property
+    def sample_period(self) -> float:
+        """Seconds between samples."""
+        ...
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Names of the values in each sample."""
+        ...
+
+    def next_sample(self) -> Sample:
+        """The next sample; raises EndOfStream after the last one."""
+        ...
 
 
 def free_tcp_port() -> int:
@@ -25,13 +47,20 @@ def free_tcp_port() -> int:
 
 
 class ServerThread(Closeable):
-    """A server serving in a thread of its own (subclasses: :meth:`_serve`, a coroutine that
-    sets ``_loop``, ``_stop_event`` and ``_ready`` once it listens and returns once
-    ``_stop_event`` is set; ``__init__`` calls this one's).
+    """A server of a plant's samples serving in a thread of its own (subclasses:
+    :meth:`_serve`, a coroutine that sets ``_loop``, ``_stop_event`` and ``_ready`` once it
+    listens and returns once ``_stop_event`` is set; ``__init__`` calls this one's).
+
+    Args:
+        plant: the sample source.
+        pacing: ``"realtime"`` or ``"lockstep"``.
+        host, port: where it listens (port 0: a free one, chosen at the first start).
 
     Attributes:
         cpu_seconds: CPU time [s] the server's thread has used in all its starts.
-        pacing: ``"realtime"`` or ``"lockstep"`` (the subclass sets it).
+        sample_period: the plant's [s].
+        samples_served: samples taken from the plant so far.
+        last_sample: the last sample served (None before the first).
     """
 
     #: the device in messages (``"Modbus"``, ``"OPC UA"``)
@@ -42,9 +71,16 @@ class ServerThread(Closeable):
     start_timeout: ClassVar[float] = 5.0
     #: ``could not <listen_verb> <endpoint>`` when it fails to start
     listen_verb: ClassVar[str] = "start on"
-    pacing: str
 
-    def __init__(self) -> None:
+    def __init__(self, plant: PlantSource, pacing: Pacing, host: str, port: int) -> None:
+        self.plant = plant
+        self.pacing: Pacing = pacing
+        self.host = host
+        self.port = port
+        self.sample_period = float(plant.sample_period)
+        self.samples_served = 0
+        self.last_sample: Sample | None = None
+        self._finished = False
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_event: asyncio.Event | None = None
@@ -57,6 +93,27 @@ class ServerThread(Closeable):
     def endpoint(self) -> str:
         """Where it listens, for a person."""
         raise NotImplementedError
+
+    @property
+    def finished(self) -> bool:
+        """True once the plant raised EndOfStream (the last sample stays served)."""
+        return self._finished
+
+    def _next_from_plant(self) -> Sample | None:
+        """The plant's next sample, counted in :attr:`samples_served` and kept as
+        :attr:`last_sample`; None once the plant has ended (logged when it ends)."""
+        if self._finished:
+            return None
+        try:
+            sample = self.plant.next_sample()
+        except EndOfStream:
+            self._finished = True
+            self._log.info("plant finished after %d samples; serving the last one",
+                           self.samples_served)
+            return None
+        self.samples_served += 1
+        self.last_sample = sample
+        return sample
 
     @property
     def running(self) -> bool:

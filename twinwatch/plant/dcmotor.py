@@ -78,8 +78,6 @@ from typing import Literal
 import numpy as np
 from numba import njit
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     StrictBool,
     StrictFloat,
@@ -87,10 +85,11 @@ from pydantic import (
     model_validator,
 )
 
+from twinwatch._table import StrictTable
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
-from twinwatch.plant.faults import ParameterFaultConfig, SupplyFaultConfig
+from twinwatch.plant.faults import ParameterFaultConfig, SupplyFaultConfig, check_plant_table
 
 logger = logging.getLogger(__name__)
 
@@ -103,7 +102,7 @@ _SCENARIO_CODE = {"nominal": 0, "resistance_degradation": 1, "bearing_wear": 2,
 CHANNELS: tuple[str, ...] = ("Va", "ia", "omega", "Tload", "setpoint")
 
 
-class SetpointSchedule(BaseModel):
+class SetpointSchedule(StrictTable):
     """Speed set-point schedule.
 
     Either explicit ``steps`` ([[t_s, value_rad_s], ...], first at t = 0) or a seeded random
@@ -112,8 +111,6 @@ class SetpointSchedule(BaseModel):
     seconds, so dwells of 20-60 s let the motor approach steady state (our choice; the paper only
     says "at different times").
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     steps: list[tuple[StrictFloat, StrictFloat]] | None = None
     initial: StrictFloat = Field(10.0, description="set-point from t = 0 [rad/s]")
@@ -152,7 +149,7 @@ class SetpointSchedule(BaseModel):
         return np.asarray(times), np.asarray(values)
 
 
-class SensorFaultConfig(BaseModel):
+class SensorFaultConfig(StrictTable):
     """A sensor fault of the simulated plant (``[[driver.plant.sensor_faults]]``): from
     ``start`` for ``duration`` seconds (to the end of the run without one) the reported
     ``channel`` is
@@ -167,8 +164,6 @@ class SensorFaultConfig(BaseModel):
     ``start`` (a drift: ``g(t) = 1 + f (gain - 1)``, ``o(t) = f offset``, ``f = min(1, (t -
     start)/ramp)``). Applied to the reported value after noise and quantisation; the plant
     itself and its drive (which reads its own feedback) are untouched."""
-
-    model_config = ConfigDict(extra="forbid")
 
     channel: str
     kind: Literal["frozen", "saturated", "gain", "offset"]
@@ -239,10 +234,8 @@ DC_FAULT_PARAMETERS: dict[str, str] = {
     "Tc": "N m", "load": "N m s/rad", "unbalance": "rad/s^2", "misalignment": "rad/s^2"}
 
 
-class DCMotorPlantConfig(BaseModel):
+class DCMotorPlantConfig(StrictTable):
     """Configuration of the simulated DC motor plant (table ``[driver.plant]``)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     scenario: Scenario = "resistance_degradation"
     duration: StrictFloat = Field(1200.0, gt=0, description="simulated time [s]")
@@ -323,28 +316,8 @@ class DCMotorPlantConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> DCMotorPlantConfig:
-        ratio = self.sample_period / self.step
-        if abs(ratio - round(ratio)) > 1e-6 * ratio or round(ratio) < 1:
-            raise ValueError("sample_period must be a whole multiple of step")
-        for table, name in ((self.noise, "noise"), (self.quantisation, "quantisation")):
-            for ch, v in table.items():
-                if ch not in CHANNELS:
-                    raise ValueError(f"{name}.{ch}: unknown channel; use one of {CHANNELS}")
-                if v < 0:
-                    raise ValueError(f"{name}.{ch}: must be >= 0")
-        for i, fault in enumerate(self.sensor_faults):
-            if fault.channel not in CHANNELS:
-                raise ValueError(f"sensor_faults[{i}].channel: unknown channel "
-                                 f"{fault.channel!r}; use one of {CHANNELS}")
-        nominal = self.fault_nominals()
-        for i, pf in enumerate(self.parameter_faults):
-            if pf.parameter not in DC_FAULT_PARAMETERS:
-                raise ValueError(f"parameter_faults[{i}].parameter: unknown parameter "
-                                 f"{pf.parameter!r}; use one of {tuple(DC_FAULT_PARAMETERS)}")
-            if pf.change is not None and nominal[pf.parameter] == 0.0:
-                raise ValueError(f"parameter_faults[{i}].change: {pf.parameter} is 0 at "
-                                 f"nominal, a percentage of it is nothing; give absolute "
-                                 f"[{DC_FAULT_PARAMETERS[pf.parameter]}]")
+        check_plant_table(self, CHANNELS, DC_FAULT_PARAMETERS,
+                          {"noise": self.noise, "quantisation": self.quantisation})
         try:
             self.drive_config.ticks(self.step)
         except ValueError as exc:

@@ -25,15 +25,18 @@ comes and goes); the sizes are the configuration's.
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, model_validator
+from collections.abc import Mapping
+from typing import Any
 
-__all__ = ["FaultProfile", "ParameterFaultConfig", "SupplyFaultConfig"]
+from pydantic import Field, StrictFloat, model_validator
+
+from twinwatch._table import StrictTable
+
+__all__ = ["FaultProfile", "ParameterFaultConfig", "SupplyFaultConfig", "check_plant_table"]
 
 
-class FaultProfile(BaseModel):
+class FaultProfile(StrictTable):
     """When a fault acts and how it grows (see the module docstring for ``f(t)``)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     start: StrictFloat = Field(0.0, ge=0, description="onset [s of plant time]")
     ramp: StrictFloat = Field(0.0, ge=0, description="seconds from onset to full size: a "
@@ -106,3 +109,44 @@ class SupplyFaultConfig(FaultProfile):
     def factor(self, t: float) -> float:
         """Delivered over commanded at plant time ``t`` [s]."""
         return 1.0 + self.size(t) * (self.ratio - 1.0)
+
+
+def check_plant_table(config: Any, channels: tuple[str, ...], fault_parameters: Mapping[str, str],
+                      per_channel: Mapping[str, Mapping[str, float]]) -> None:
+    """The checks every simulated plant's table shares (called by its ``model_validator``).
+
+    Args:
+        config: the plant's table: ``sample_period`` and ``step`` [s], ``sensor_faults``,
+            ``parameter_faults`` and ``fault_nominals()`` (parameter -> nominal value).
+        channels: the plant's channels.
+        fault_parameters: the parameters a fault may change -> their units.
+        per_channel: the tables keyed by channel (``{"noise": config.noise, ...}``): known
+            channels only, values >= 0.
+
+    Raises:
+        ValueError: the sample period is not a whole multiple of the step, a table names an
+            unknown channel or parameter, or a fault changes by a percentage a parameter that
+            is 0 at nominal.
+    """
+    ratio = config.sample_period / config.step
+    if abs(ratio - round(ratio)) > 1e-6 * ratio or round(ratio) < 1:
+        raise ValueError("sample_period must be a whole multiple of step")
+    for name, table in per_channel.items():
+        for ch, v in table.items():
+            if ch not in channels:
+                raise ValueError(f"{name}.{ch}: unknown channel; use one of {channels}")
+            if v < 0:
+                raise ValueError(f"{name}.{ch}: must be >= 0")
+    for i, fault in enumerate(config.sensor_faults):
+        if fault.channel not in channels:
+            raise ValueError(f"sensor_faults[{i}].channel: unknown channel "
+                             f"{fault.channel!r}; use one of {channels}")
+    nominal = config.fault_nominals()
+    for i, pf in enumerate(config.parameter_faults):
+        if pf.parameter not in fault_parameters:
+            raise ValueError(f"parameter_faults[{i}].parameter: unknown parameter "
+                             f"{pf.parameter!r}; use one of {tuple(fault_parameters)}")
+        if pf.change is not None and nominal[pf.parameter] == 0.0:
+            raise ValueError(f"parameter_faults[{i}].change: {pf.parameter} is 0 at "
+                             f"nominal, a percentage of it is nothing; give absolute "
+                             f"[{fault_parameters[pf.parameter]}]")

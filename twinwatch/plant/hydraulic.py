@@ -90,13 +90,14 @@ from typing import Literal
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import Field, StrictFloat, StrictInt, model_validator
 
+from twinwatch._table import StrictTable
 from twinwatch.io.drive import LoopConfig, ValveDriveConfig
 from twinwatch.io.sample import EndOfStream, Sample
 from twinwatch.plant._pid import pid_tick
 from twinwatch.plant.dcmotor import SensorFaultConfig
-from twinwatch.plant.faults import ParameterFaultConfig
+from twinwatch.plant.faults import ParameterFaultConfig, check_plant_table
 
 logger = logging.getLogger(__name__)
 
@@ -125,13 +126,11 @@ HYD_FAULT_PARAMETERS: dict[str, str] = {
     "leak": "1", "friction": "N"}
 
 
-class HydraulicPlantConfig(BaseModel):
+class HydraulicPlantConfig(StrictTable):
     """Configuration of the simulated hydraulic actuator (table ``[driver.plant]``).
 
     Defaults are the paper's Table 4 and Eq. 17 values (NOTES.md).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     scenario: Scenario = "fluid_degradation"
     duration: StrictFloat = Field(600.0, gt=0, description="simulated time [s]")
@@ -183,27 +182,7 @@ class HydraulicPlantConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> HydraulicPlantConfig:
-        ratio = self.sample_period / self.step
-        if abs(ratio - round(ratio)) > 1e-6 * ratio or round(ratio) < 1:
-            raise ValueError("sample_period must be a whole multiple of step")
-        for ch, v in self.noise.items():
-            if ch not in CHANNELS:
-                raise ValueError(f"noise.{ch}: unknown channel; use one of {CHANNELS}")
-            if v < 0:
-                raise ValueError(f"noise.{ch}: must be >= 0")
-        for i, fault in enumerate(self.sensor_faults):
-            if fault.channel not in CHANNELS:
-                raise ValueError(f"sensor_faults[{i}].channel: unknown channel "
-                                 f"{fault.channel!r}; use one of {CHANNELS}")
-        nominal = self.fault_nominals()
-        for i, pf in enumerate(self.parameter_faults):
-            if pf.parameter not in HYD_FAULT_PARAMETERS:
-                raise ValueError(f"parameter_faults[{i}].parameter: unknown parameter "
-                                 f"{pf.parameter!r}; use one of {tuple(HYD_FAULT_PARAMETERS)}")
-            if pf.change is not None and nominal[pf.parameter] == 0.0:
-                raise ValueError(f"parameter_faults[{i}].change: {pf.parameter} is 0 at "
-                                 f"nominal, a percentage of it is nothing; give absolute "
-                                 f"[{HYD_FAULT_PARAMETERS[pf.parameter]}]")
+        check_plant_table(self, CHANNELS, HYD_FAULT_PARAMETERS, {"noise": self.noise})
         if self.drive is not None:
             if (self.kp, self.ki, self.kd, self.n_filter) != _PAPER_GAINS:
                 raise ValueError("kp, ki, kd, n_filter: with a [drive] table set the gains "

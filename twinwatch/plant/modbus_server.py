@@ -48,7 +48,6 @@ import threading
 import time
 import tty
 from collections.abc import Mapping
-from typing import Literal, Protocol
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
@@ -62,33 +61,12 @@ from twinwatch.io.modbus_registers import (
     ModbusRegister,
     check_overlaps,
 )
-from twinwatch.io.sample import EndOfStream, Sample
-from twinwatch.plant._server import ServerThread, free_tcp_port
+from twinwatch.io.sample import Sample
+from twinwatch.plant._server import Pacing, PlantSource, ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["PlantModbusServer", "PlantSource", "PtyLink", "free_tcp_port"]
-
-Pacing = Literal["realtime", "lockstep"]
-
-
-class PlantSource(Protocol):
-    """What the server needs from a plant (e.g. :class:`~twinwatch.plant.dcmotor.DCMotorPlant`)."""
-
-    @property
-    def sample_period(self) -> float:
-        """Seconds between samples."""
-        ...
-
-    @property
-    def channels(self) -> tuple[str, ...]:
-        """Names of the values in each sample."""
-        ...
-
-    def next_sample(self) -> Sample:
-        """The next sample; raises EndOfStream after the last one."""
-        ...
-
 
 class PlantModbusServer(ServerThread):
     """A Modbus TCP (or RTU) device serving a plant's samples.
@@ -145,22 +123,13 @@ class PlantModbusServer(ServerThread):
         if counter is not None:
             entries["counter"] = counter
         check_overlaps(entries)
-        self.plant = plant
+        super().__init__(plant, pacing, host, port)
         self.registers = dict(registers)
         self.counter = counter
-        self.pacing: Pacing = pacing
-        self.host = host
-        self.port = port
         self.serial_port = serial_port
         self.baudrate, self.parity, self.stopbits, self.bytesize = (
             baudrate, parity, stopbits, bytesize)
         self.device_id = device_id
-        self.sample_period = float(plant.sample_period)
-        #: samples taken from the plant so far
-        self.samples_served = 0
-        #: the last sample served (None before the first)
-        self.last_sample: Sample | None = None
-        self._finished = False
         # register image per table: table -> (first address, registers)
         self._spans: dict[str, tuple[int, list[int]]] = {}
         for reg in entries.values():
@@ -171,17 +140,11 @@ class PlantModbusServer(ServerThread):
             self._spans[reg.table] = (lo, [0] * (hi - lo))
         self._inexact_logged: set[str] = set()
         self._t0_wall: float | None = None  # monotonic time of sample 0 (realtime)
-        super().__init__()
         self._lock = threading.Lock()  # guards the plant and the register image
         #: answer every read with this Modbus exception code while set (None: serve)
         self.exception_code: int | None = None
 
     # -- lifecycle --------------------------------------------------------------------------
-    @property
-    def finished(self) -> bool:
-        """True once the plant raised EndOfStream (the last sample stays served)."""
-        return self._finished
-
     @property
     def endpoint(self) -> str:
         if self.serial_port is not None:
@@ -301,19 +264,9 @@ class PlantModbusServer(ServerThread):
             self._advance_one()
 
     def _advance_one(self) -> None:
-        if self._finished:
-            return
-        try:
-            sample = self.plant.next_sample()
-        except EndOfStream:
-            self._finished = True
-            logger.info(
-                "plant finished after %d samples; serving the last one", self.samples_served
-            )
-            return
-        self.samples_served += 1
-        self.last_sample = sample
-        self._write(sample)
+        sample = self._next_from_plant()
+        if sample is not None:
+            self._write(sample)
 
     def _write(self, sample: Sample) -> None:
         for ch, m in self.registers.items():

@@ -39,10 +39,10 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime, timedelta
-from typing import Any, Literal, Protocol, cast
+from typing import Any, Literal, cast
 
-from twinwatch.io.sample import EndOfStream, Sample
-from twinwatch.plant._server import ServerThread, free_tcp_port
+from twinwatch.io.sample import Sample
+from twinwatch.plant._server import Pacing, PlantSource, ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
 
@@ -59,19 +59,6 @@ _UNECE_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
 _THREAD_NAME = "twinwatch-opcua-server"
 _START_TIMEOUT = 20.0  # [s]: asyncua's server loads the standard address space at start
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
-Pacing = Literal["realtime", "lockstep"]
-
-
-class PlantSource(Protocol):
-    """What the server needs from a plant (e.g. :class:`~twinwatch.plant.dcmotor.DCMotorPlant`)."""
-
-    @property
-    def sample_period(self) -> float: ...
-
-    @property
-    def channels(self) -> tuple[str, ...]: ...
-
-    def next_sample(self) -> Sample: ...
 
 
 class _DemoteFromServerThread(logging.Filter):
@@ -148,25 +135,17 @@ class PlantOpcUaServer(ServerThread):
         if unknown or not units:
             raise ValueError(f"units: {', '.join(unknown) or 'nothing'} not plant channels "
                              f"({', '.join(plant.channels)})")
-        self.plant = plant
+        super().__init__(plant, pacing, host, port)
         self.units = dict(units)
         self.object_name = object_name
-        self.pacing: Pacing = pacing
-        self.host = host
-        self.port = port
         self.publishing_interval = publishing_interval
         self.burst = max(1, burst)
         self.may_advance = may_advance or (lambda: True)
-        self.sample_period = float(plant.sample_period)
-        self.samples_served = 0
-        self.last_sample: Sample | None = None
         self.base = time.time()
         self.serving_cpu_seconds = 0.0
         self._cpu_ready = 0.0
         self._serving_before = 0.0
-        self._finished = False
         self._t0_mono: float | None = None
-        super().__init__()
         self._nodes: dict[str, Any] = {}
         self._server: Any = None
         self.ns = 2
@@ -174,10 +153,6 @@ class PlantOpcUaServer(ServerThread):
     @property
     def endpoint(self) -> str:
         return f"opc.tcp://{self.host}:{self.port}"
-
-    @property
-    def finished(self) -> bool:
-        return self._finished
 
     def node_id(self, channel: str) -> str:
         """The NodeId string of a served channel's variable."""
@@ -271,17 +246,9 @@ class PlantOpcUaServer(ServerThread):
         await self._wait_stop(1e9)
 
     async def _advance_one(self) -> None:
-        if self._finished:
+        sample = self._next_from_plant()
+        if sample is None:
             return
-        try:
-            sample = self.plant.next_sample()
-        except EndOfStream:
-            self._finished = True
-            logger.info("plant finished after %d samples; serving the last one",
-                        self.samples_served)
-            return
-        self.samples_served += 1
-        self.last_sample = sample
         await self._write(sample)
         self.serving_cpu_seconds = (self._serving_before + time.thread_time()
                                     - self._cpu_ready)

@@ -42,9 +42,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, Self
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from twinwatch._lifecycle import Closeable
+from twinwatch._table import StrictTable
 from twinwatch.plugins import commented_table
 
 if TYPE_CHECKING:  # annotations only: opening a sink does not load the twin's estimation
@@ -302,7 +303,7 @@ class SharedResources:
             return list(self._items)
 
 
-class SinkConfig(BaseModel):
+class SinkConfig(StrictTable):
     """Base of every output's table model (``[state]``, ``[zenoh]``, ``[recording]``,
     ``[outputs.<name>]``): unknown keys are refused (an error naming the full key).
 
@@ -310,8 +311,6 @@ class SinkConfig(BaseModel):
     from the machine without knowing the output; each key they return is relative to the
     table (``tls.root_ca_certificate``) and reported with the table's path in front.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(True, description="false: the output is not opened")
 

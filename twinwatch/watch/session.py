@@ -5,10 +5,12 @@ message as its typed view, an alarm event or a history page as JSON).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
-from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
+from contextlib import AbstractContextManager, contextmanager
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
@@ -134,6 +136,58 @@ def open_session(connect: Sequence[str] = DEFAULT_CONNECT, mode: Mode = "client"
                              f"--connect (zenoh: {msg})") from exc
         raise WatchError(f"cannot open a zenoh session (mode={mode}, connect={endpoints}): "
                          f"{msg}") from exc
+
+
+W = TypeVar("W")
+
+
+@contextmanager
+def sessions_watched(connect: Sequence[str], mode: Mode,
+                     watcher: Callable[[zenoh.Session], AbstractContextManager[W]], *,
+                     optional: Collection[str] = (),
+                     on_skip: Callable[[str, str], None] | None = None,
+                     unreachable: type[WatchError] = WatchError) -> Iterator[list[W]]:
+    """Sessions on ``connect`` and a watcher entered on each (``watcher(session)``), all
+    closed on exit: in client mode one session per endpoint (a client session talks to one of
+    its endpoints only: the machines behind the others never showed, issue 24), else one
+    session connecting to every endpoint.
+
+    Args:
+        optional: endpoints that may have nothing answering there: each such one is skipped
+            and, once another answered, ``on_skip`` called with it and why.
+        unreachable: the error raised when every endpoint was skipped.
+
+    Yields:
+        The watchers, one per session that opened (at least one).
+
+    Raises:
+        WatchError: a malformed endpoint (optional or not), an endpoint not ``optional`` that
+            does not answer (see :func:`open_session`), or ``unreachable`` when none answers.
+    """
+    check_endpoints(connect)  # a malformed endpoint is refused, optional or not
+    skippable = set(optional)
+    groups = ([[e] for e in connect] if mode == "client" and (len(connect) > 1 or skippable)
+              else [list(connect)])
+    with contextlib.ExitStack() as stack:
+        watchers: list[W] = []
+        skipped: list[tuple[str, str]] = []
+        for group in groups:
+            try:
+                session = open_session(group, mode)
+            except WatchError as exc:
+                if not set(group) <= skippable:
+                    raise
+                skipped.append((group[0], str(exc)))
+                continue
+            stack.callback(session.close)
+            watchers.append(stack.enter_context(watcher(session)))
+        if not watchers:
+            raise unreachable(f"nothing answers at {', '.join(connect)}: start a daemon "
+                              "(twinwatch run) or a zenoh router there")
+        for endpoint, why in skipped:
+            if on_skip is not None:
+                on_skip(endpoint, why)
+        yield watchers
 
 
 def machine_of(key: str, prefix: str, suffix: str) -> str | None:

@@ -6,7 +6,6 @@ the windows missed asked from the machine's history, each window delivered once)
 
 from __future__ import annotations
 
-import contextlib
 import json
 import queue
 import threading
@@ -23,13 +22,12 @@ from twinwatch.watch.fleet import Delivery, Fleet, Gap
 from twinwatch.watch.session import (
     CHUNKS_RE,
     Mode,
-    check_endpoints,
     check_prefix,
     decode_health,
     decode_json,
     health_view,
     machine_of,
-    open_session,
+    sessions_watched,
 )
 from twinwatch.watch.view import number
 
@@ -535,34 +533,11 @@ def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
             skipped.
     """
     check_prefix(prefix)
-    check_endpoints(connect)  # a malformed endpoint is refused, optional or not
-    skippable = set(optional)
-    # A client session talks to one of its endpoints only (the first that answers): with
-    # `--connect A --connect B` the machines behind B never showed although the header
-    # listed both (issue 24). In client mode each endpoint gets a session of its own, all
-    # feeding the one fleet; a peer session connects to every endpoint itself.
-    groups = ([[e] for e in connect] if mode == "client" and (len(connect) > 1 or skippable)
-              else [list(connect)])
-    with contextlib.ExitStack() as stack:
-        watchers: list[FleetWatcher] = []
-        skipped: list[tuple[str, str]] = []
-        for group in groups:
-            try:
-                session = open_session(group, mode)
-            except WatchError as exc:
-                if not set(group) <= skippable:
-                    raise
-                skipped.append((group[0], str(exc)))
-                continue
-            stack.callback(session.close)
-            watchers.append(stack.enter_context(
-                FleetWatcher(session, fleet, prefix=prefix, machine=machine, **options)))
-        if not watchers:
-            raise WatchError(f"nothing answers at {', '.join(connect)}: start a daemon "
-                             "(twinwatch run) or a zenoh router there")
-        for endpoint, why in skipped:
-            if on_skip is not None:
-                on_skip(endpoint, why)
+    with sessions_watched(
+            connect, mode,
+            lambda session: FleetWatcher(session, fleet, prefix=prefix, machine=machine,
+                                         **options),
+            optional=optional, on_skip=on_skip) as watchers:
         yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)
 
 

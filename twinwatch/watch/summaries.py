@@ -29,11 +29,10 @@ from twinwatch.watch.session import (
     CHUNKS_RE,
     Mode,
     Unreachable,
-    check_endpoints,
     check_fleet_prefix,
     decode_health,
-    open_session,
     prefix_base,
+    sessions_watched,
 )
 
 if TYPE_CHECKING:
@@ -599,28 +598,8 @@ def following(connect: Sequence[str], mode: Mode, prefix: str, machines: str = "
             endpoints may be skipped, each told to ``on_skip``).
     """
     machines_key(prefix, machines)
-    check_endpoints(connect)
-    skippable = set(optional)
-    groups = ([[e] for e in connect] if mode == "client" and (len(connect) > 1 or skippable)
-              else [list(connect)])
-    with contextlib.ExitStack() as stack:
-        watchers: list[SummaryWatcher] = []
-        skipped: list[tuple[str, str]] = []
-        for group in groups:
-            try:
-                session = open_session(group, mode)
-            except WatchError as exc:
-                if not set(group) <= skippable:
-                    raise
-                skipped.append((group[0], str(exc)))
-                continue
-            stack.callback(session.close)
-            watchers.append(stack.enter_context(
-                SummaryWatcher(session, prefix=prefix, machines=machines)))
-        if not watchers:
-            raise Unreachable(f"nothing answers at {', '.join(connect)}: start a daemon "
-                              "(twinwatch run) or a zenoh router there")
-        for endpoint, why in skipped:
-            if on_skip is not None:
-                on_skip(endpoint, why)
+    with sessions_watched(
+            connect, mode,
+            lambda session: SummaryWatcher(session, prefix=prefix, machines=machines),
+            optional=optional, on_skip=on_skip, unreachable=Unreachable) as watchers:
         yield Summaries(watchers)

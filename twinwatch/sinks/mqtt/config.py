@@ -9,8 +9,6 @@ from pathlib import Path
 from typing import ClassVar, Literal, Self
 
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     StrictFloat,
     StrictInt,
@@ -18,6 +16,7 @@ from pydantic import (
     model_validator,
 )
 
+from twinwatch._table import StrictTable
 from twinwatch.sinks.base import SinkConfig
 
 # A topic level: no wildcards, no NUL; '/' separates levels.
@@ -42,13 +41,11 @@ def check_topic(value: str, what: str) -> str:
     return value
 
 
-class MqttTlsConfig(BaseModel):
+class MqttTlsConfig(StrictTable):
     """``[outputs.mqtt.tls]``: TLS to the broker (``port`` is then usually 8883). Paths are
     relative to the configuration file's directory; the private key is a secret (refused when
     others can read it: install it ``0640 root:twinwatch``).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     ca_certs: str | None = Field(None,
                                  description="the broker's CA (PEM); unset: the system's CAs")
@@ -69,10 +66,8 @@ class MqttTlsConfig(BaseModel):
         return self
 
 
-class HomeAssistantConfig(BaseModel):
+class HomeAssistantConfig(StrictTable):
     """``[outputs.mqtt.home_assistant]``: Home Assistant's MQTT device discovery."""
-
-    model_config = ConfigDict(extra="forbid")
 
     discovery: bool = Field(False, description="announce a Home Assistant device; false clears it")
     prefix: str = Field("homeassistant",

@@ -16,6 +16,7 @@ from collections.abc import Callable, Hashable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Self
 
+from twinwatch._forward import Forward
 from twinwatch.errors import StoreError
 from twinwatch.sinks.base import Outbox, OutboxRow, Sink, SinkContext
 from twinwatch.sinks.mqtt.encoding import health_view, levels
@@ -355,20 +356,11 @@ class DeliveringSink(Sink):
             line += f", {self.dropped} dropped undelivered"
         return line
 
-    @property
-    def delivered(self) -> int:
-        """Windows acknowledged by the broker."""
-        return self.delivery.delivered
-
-    @property
-    def pending(self) -> int:
-        """Windows stored and not delivered yet."""
-        return self.delivery.pending
-
-    @property
-    def dropped(self) -> int:
-        """Windows deleted by the retention, or pushed out of the memory outbox, undelivered."""
-        return self.delivery.dropped
+    delivered: Forward[int] = Forward("delivery.delivered", "Windows acknowledged by the broker.")
+    pending: Forward[int] = Forward("delivery.pending", "Windows stored and not delivered yet.")
+    dropped: Forward[int] = Forward(
+        "delivery.dropped", "Windows deleted by the retention, or pushed out of the memory "
+        "outbox, undelivered.")
 
     @property
     def lost(self) -> int:  # type: ignore[override]

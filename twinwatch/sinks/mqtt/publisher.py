@@ -12,7 +12,6 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any, ClassVar
 
-from twinwatch._lazy import lazy_module
 from twinwatch.sinks.base import OutboxRow, ProcessedWindow, SinkContext
 from twinwatch.sinks.mqtt.config import MqttConfig, check_topic
 from twinwatch.sinks.mqtt.delivery import DeliveringSink, Delivery
@@ -25,14 +24,10 @@ from twinwatch.sinks.mqtt.encoding import (
     levels,
     reconstructed_events,
 )
-from twinwatch.sinks.mqtt.session import CLOSE_RETRY_S, MqttSession, read_password
+from twinwatch.sinks.mqtt.session import CLOSE_RETRY_S, MqttSession, mqtt, read_password
 
 if TYPE_CHECKING:
-    import paho.mqtt.client as mqtt
-
     from twinwatch.twin.health import HealthView
-else:  # imported when the output opens: loading a configuration does not load paho
-    mqtt = lazy_module("paho.mqtt.client")
 
 logger = logging.getLogger(__package__)  # the output's name in its log lines: twinwatch.sinks.mqtt
 

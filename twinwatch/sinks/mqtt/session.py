@@ -25,7 +25,8 @@ if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
 
     from twinwatch.sinks.mqtt.config import MqttConnectionConfig
-else:  # imported when the output opens: loading a configuration does not load paho
+else:  # imported when the output opens: loading a configuration does not load paho (the MQTT
+    # and Sparkplug publishers take mqtt from here)
     mqtt = lazy_module("paho.mqtt.client")
 
 __all__ = ["CLOSE_RETRY_S", "TAKEOVERS", "TAKEOVER_S", "MqttSession", "SessionOwner",

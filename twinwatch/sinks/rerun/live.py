@@ -18,18 +18,11 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from twinwatch._lazy import lazy_module
 from twinwatch.errors import RecorderError
-from twinwatch.sinks.rerun.style import Op
+from twinwatch.sinks.rerun.style import Op, rr, rrb
 from twinwatch.sinks.rerun.views import emit
-
-if TYPE_CHECKING:
-    import rerun as rr
-    import rerun.blueprint as rrb
-else:  # imported when a recording opens: loading a configuration does not load rerun
-    rr = lazy_module("rerun")
 
 #: the package's name, as before the split (the log lines name it)
 logger = logging.getLogger(__package__)

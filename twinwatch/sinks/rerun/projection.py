@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from twinwatch._lazy import lazy_module
 from twinwatch.sinks.rerun.style import (
     ALARM,
     DEVIATION,
@@ -25,13 +24,7 @@ from twinwatch.sinks.rerun.style import (
 )
 
 if TYPE_CHECKING:
-    import rerun as rr
-    import rerun.blueprint as rrb
-
     from twinwatch.twin.health import ParameterView, RulView
-else:  # imported when a recording opens: loading a configuration does not load rerun
-    rr = lazy_module("rerun")
-    rrb = lazy_module("rerun.blueprint")
 
 
 HISTORY = 1000

@@ -88,7 +88,6 @@ from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 import numpy as np
 
-from twinwatch._lazy import lazy_module
 from twinwatch.errors import RecorderError
 from twinwatch.io.encoding import to_json
 from twinwatch.sinks.base import AlarmBands, ProcessedWindow, Role, Sink, SinkContext, _frozen
@@ -96,16 +95,11 @@ from twinwatch.sinks.locks import FileLock
 from twinwatch.sinks.rerun.config import RecordingConfig
 from twinwatch.sinks.rerun.files import RecordingFiles
 from twinwatch.sinks.rerun.live import LiveServer, bury
+from twinwatch.sinks.rerun.style import rr, rrb
 from twinwatch.sinks.rerun.views import RecordingViews, emit
 
 if TYPE_CHECKING:
-    import rerun as rr
-    import rerun.blueprint as rrb
-
     from twinwatch.twin.health import HealthMessage
-else:  # imported when a recording opens: loading a configuration does not load rerun
-    rr = lazy_module("rerun")
-    rrb = lazy_module("rerun.blueprint")
 
 #: the package's name, as before the split (the log lines name it)
 logger = logging.getLogger(__package__)

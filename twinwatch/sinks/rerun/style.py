@@ -20,7 +20,8 @@ if TYPE_CHECKING:
     import rerun.blueprint as rrb
 
     from twinwatch.twin.health import HealthView, ParameterView
-else:  # imported when a recording opens: loading a configuration does not load rerun
+else:  # imported when a recording opens: loading a configuration does not load rerun (the
+    # recording's other modules take rr and rrb from here)
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")
 

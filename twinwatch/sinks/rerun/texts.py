@@ -9,18 +9,11 @@ import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from twinwatch._lazy import lazy_module
 from twinwatch.sinks.rerun.projection import rul_short
-from twinwatch.sinks.rerun.style import RANK, as_number, as_text, clock, fmt
+from twinwatch.sinks.rerun.style import RANK, as_number, as_text, clock, fmt, rr
 
 if TYPE_CHECKING:
-    import rerun as rr
-    import rerun.blueprint as rrb
-
     from twinwatch.twin.health import AlarmView, DiagnosisView, HealthView, ParameterView
-else:  # imported when a recording opens: loading a configuration does not load rerun
-    rr = lazy_module("rerun")
-    rrb = lazy_module("rerun.blueprint")
 
 
 def diagnosis_lines(d: DiagnosisView | None, parameters: Any = None) -> list[str]:

@@ -90,7 +90,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from twinwatch._lazy import lazy_module
 from twinwatch.sinks.base import AlarmBands
 from twinwatch.sinks.rerun.projection import BOX, HISTORY, draw_projection, rul_text, trend_pct
 from twinwatch.sinks.rerun.style import (
@@ -130,19 +129,15 @@ from twinwatch.sinks.rerun.style import (
     fmt,
     pct_text,
     residual_rmse,
+    rr,
+    rrb,
     sparse_frame,
     tick_room,
 )
 from twinwatch.sinks.rerun.texts import event_row, log_row, model_document, parameter_table
 
 if TYPE_CHECKING:
-    import rerun as rr
-    import rerun.blueprint as rrb
-
     from twinwatch.twin.health import AlarmView, HealthView, ParameterView
-else:  # imported when a recording opens: loading a configuration does not load rerun
-    rr = lazy_module("rerun")
-    rrb = lazy_module("rerun.blueprint")
 
 
 class RecordingViews:

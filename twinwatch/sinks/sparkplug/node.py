@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from twinwatch._forward import Forward
 from twinwatch.errors import PublisherError
 from twinwatch.sinks.mqtt.session import CLOSE_RETRY_S, MqttSession
 from twinwatch.sinks.sparkplug.config import NAMESPACE, NODE_KEYS, SparkplugConfig
@@ -99,25 +100,12 @@ class EdgeNode:
                                         name=f"twinwatch-sparkplug-{edge_node_id}"[:64])
         self._thread.start()
 
-    @property
-    def client(self) -> mqtt.Client:
-        """The session's paho client (a new one at each connection)."""
-        return self.mqtt.client
-
-    @property
-    def connected(self) -> bool:
-        """The broker accepted the connection and it is not known lost."""
-        return self.mqtt.connected
-
-    @property
-    def connects(self) -> int:
-        """Connections made so far."""
-        return self.mqtt.connects
-
-    @property
-    def disconnects(self) -> int:
-        """Connections lost so far."""
-        return self.mqtt.disconnects
+    client: Forward[mqtt.Client] = Forward(
+        "mqtt.client", "The session's paho client (a new one at each connection).")
+    connected: Forward[bool] = Forward(
+        "mqtt.connected", "The broker accepted the connection and it is not known lost.")
+    connects: Forward[int] = Forward("mqtt.connects", "Connections made so far.")
+    disconnects: Forward[int] = Forward("mqtt.disconnects", "Connections lost so far.")
 
     # -- the devices ------------------------------------------------------------------------
     def join(self, device: SparkplugPublisher, config: SparkplugConfig, machine: str) -> None:

@@ -19,20 +19,14 @@ from twinwatch.errors import PublisherError
 from twinwatch.sinks.base import OutboxRow, ProcessedWindow, SinkContext
 from twinwatch.sinks.mqtt.delivery import DeliveringSink, Delivery
 from twinwatch.sinks.mqtt.encoding import health_view
-from twinwatch.sinks.mqtt.session import read_password
+from twinwatch.sinks.mqtt.session import mqtt, read_password
 from twinwatch.sinks.sparkplug.config import SparkplugConfig, check_id, node_key
 from twinwatch.sinks.sparkplug.metrics import metric_specs, metric_values
 from twinwatch.sinks.sparkplug.node import EdgeNode
 from twinwatch.sinks.sparkplug.session import DeviceSession, now_ms
 
 if TYPE_CHECKING:
-    import paho.mqtt.client as mqtt
-
     from twinwatch.twin.health import HealthView
-else:
-    from twinwatch._lazy import lazy_module
-
-    mqtt = lazy_module("paho.mqtt.client")
 
 logger = logging.getLogger(__package__)
 

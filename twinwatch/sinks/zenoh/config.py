@@ -11,8 +11,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     StrictFloat,
     StrictInt,
@@ -21,6 +19,7 @@ from pydantic import (
 )
 
 from twinwatch._lazy import lazy_module
+from twinwatch._table import StrictTable
 from twinwatch.sinks.base import SinkConfig
 
 if TYPE_CHECKING:
@@ -44,7 +43,7 @@ RUST_LOCATION_RE = re.compile(r"\s+at \S+\.rs:\d+\.?")
 # " at /root/.cargo/.../unicast.rs:338." suffixes of zenoh error messages.
 
 
-class ZenohTlsConfig(BaseModel):
+class ZenohTlsConfig(StrictTable):
     """``[zenoh.tls]``: TLS for ``tls/`` endpoints, mutual TLS with ``enable_mtls`` (zenoh's
     ``transport/link/tls``). Paths are relative to the configuration file's directory.
 
@@ -52,8 +51,6 @@ class ZenohTlsConfig(BaseModel):
     load, and a configuration holding a key inline (``*_private_key_base64``) must not be
     readable by others either (install it ``0640 root:twinwatch``).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     root_ca_certificate: str | None = Field(
         None, description="CA certificate (PEM) that signs the peer's certificate")
@@ -94,14 +91,12 @@ class ZenohTlsConfig(BaseModel):
         return None
 
 
-class ZenohAuthConfig(BaseModel):
+class ZenohAuthConfig(StrictTable):
     """``[zenoh.auth]``: zenoh user/password authentication (``transport/auth/usrpwd``).
 
     ``password`` inline makes the configuration a secret (it must not be readable by others);
     ``dictionary_file`` (``user:password`` lines, the routers' side) is a secret file.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     user: str | None = None
     password: str | None = None

@@ -51,8 +51,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     StrictFloat,
     StrictInt,
@@ -60,6 +58,7 @@ from pydantic import (
     model_validator,
 )
 
+from twinwatch._table import StrictTable
 from twinwatch.twin.discovery.metamodels import TABLE_1, MetaModel, get_meta_model
 from twinwatch.twin.discovery.separable import CandidateInput, SeparableFit
 from twinwatch.twin.discovery.terms import TIME, Term, compose, format_terms, term_input
@@ -78,7 +77,7 @@ from twinwatch.twin.model import AttachPoint, FloatArray, TwinModel, WindowData
 logger = logging.getLogger(__name__)
 
 
-class CandidateConfig(BaseModel):
+class CandidateConfig(StrictTable):
     """One ``[[discovery.candidates]]`` entry: meta-models to try at one attach point.
 
     Attributes:
@@ -88,8 +87,6 @@ class CandidateConfig(BaseModel):
         amplitude: largest plausible magnitude of the term in the attach point's unit (bounds
             the main coefficient and offsets); default the attach point's own scale.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     attach: str
     input: str = TIME
@@ -106,11 +103,9 @@ class CandidateConfig(BaseModel):
         return v
 
 
-class RefinementConfig(BaseModel):
+class RefinementConfig(StrictTable):
     """The ``[discovery.refinement]`` table: how a kept term accumulates evidence across
     windows (:meth:`~twinwatch.twin.discovery.terms.Term.refine`)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(True, description="combine every window's evidence on a kept term; "
                           "false: each window's polish replaces the parameters")
@@ -130,10 +125,8 @@ class RefinementConfig(BaseModel):
         "absorb the term's error: the leak example's D +36 %)")
 
 
-class DiscoveryConfig(BaseModel):
+class DiscoveryConfig(StrictTable):
     """The ``[discovery]`` table: when discovery runs and what it may add."""
-
-    model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(False, description="run the DT'' step")
     candidates: list[CandidateConfig] = Field(default_factory=list)

@@ -19,20 +19,19 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
+from pydantic import Field, StrictFloat, StrictInt
 
+from twinwatch._table import StrictTable
 from twinwatch.twin.estimation.fit import WindowFit, explained_rms, parameter_covariance
 from twinwatch.twin.estimation.problem import FitPoint, WindowProblem
 from twinwatch.twin.estimation.statistics import ModelCheck, check_model, noise_level
 from twinwatch.twin.model import FloatArray
 
 
-class ValidationConfig(BaseModel):
+class ValidationConfig(StrictTable):
     """Per-window model validation (table ``[estimation.validation]``; Ljung, System
     Identification, ch. 16): the residual of a twin that describes the machine is white and
     independent of the inputs."""
-
-    model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(True, description="check every window's residuals")
     alpha: StrictFloat = Field(0.01, gt=0, lt=0.5, description="level of the whiteness and "

@@ -62,8 +62,6 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     StrictFloat,
     StrictInt,
@@ -71,6 +69,7 @@ from pydantic import (
     model_validator,
 )
 
+from twinwatch._table import StrictTable
 from twinwatch.twin.estimation.check import ValidationConfig, check_twin, model_check
 from twinwatch.twin.estimation.fit import (
     NUMERICAL_SHARE,
@@ -135,15 +134,13 @@ __all__ = [
 ]
 
 
-class EstimationConfig(BaseModel):
+class EstimationConfig(StrictTable):
     """What to estimate and how (table ``[estimation]``).
 
     ``estimate`` and ``tie`` left out mean "the model's" (:attr:`TwinModel.estimation_defaults`:
     the DC motor estimates Ra, D, Ke, La, J with Kt tied to Ke; the hydraulic actuator q_pump
     and D); :meth:`resolved` fills them in.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     estimate: list[str] | None = Field(
         None,

@@ -34,8 +34,9 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat
+from pydantic import Field, StrictFloat
 
+from twinwatch._table import StrictTable
 from twinwatch.twin.estimation.polish import Polished
 from twinwatch.twin.estimation.problem import WindowProblem
 from twinwatch.twin.model import FloatArray
@@ -76,10 +77,8 @@ OUTLIER_AGREE = 0.1
 SHIFT_WINDOWS = 6
 
 
-class FusionConfig(BaseModel):
+class FusionConfig(StrictTable):
     """The ``[estimation.fusion]`` table: tracking parameters across windows."""
-
-    model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(True, description="fuse the windows' estimates (Kalman filter)")
     max_rel_std: StrictFloat = Field(

@@ -12,17 +12,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
+from pydantic import Field, StrictFloat, StrictInt
 
+from twinwatch._table import StrictTable
 from twinwatch.twin.estimation.fit import pso_minimize
 from twinwatch.twin.estimation.problem import WindowProblem
 from twinwatch.twin.model import FloatArray
 
 
-class PSOSettings(BaseModel):
+class PSOSettings(StrictTable):
     """PSO settings (paper Table 2 for the paper's method)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     pop_size: StrictInt = Field(15, ge=2, description="swarm size")
     max_generations: StrictInt = Field(20, ge=1, description="iteration limit")

@@ -146,6 +146,20 @@ def _affine_step(a: float, b: float, h: float) -> tuple[float, float]:  # pragma
 
 
 @njit(cache=True, nogil=True)
+def _dcm_share(dk: float, tpwm: float, tau_e: float) -> float:  # pragma: no cover
+    """The share of a PWM period's supply voltage that drives the average current in
+    discontinuous conduction: ``dk - tau_e/tpwm * (1 - exp(-dk*tpwm/tau_e))``, at least 0
+    (duty ``dk``, PWM period ``tpwm`` [s], electrical time constant ``tau_e`` [s])."""
+    g = 0.0
+    if dk > 0.0:
+        x = dk * tpwm / tau_e
+        g = dk - tau_e / tpwm * (1.0 - math.exp(-x))
+        if g < 0.0:
+            g = 0.0
+    return g
+
+
+@njit(cache=True, nogil=True)
 def _simulate_kernel(prm: FloatArray, duty: FloatArray, phase: FloatArray, t: FloatArray,
                      w0: FloatArray, f_w: FloatArray, u_i: FloatArray, fb: FloatArray,
                      fa: FloatArray, y_init: FloatArray, n_sub: int, ts: float, vs: float,
@@ -194,12 +208,7 @@ def _simulate_kernel(prm: FloatArray, duty: FloatArray, phase: FloatArray, t: Fl
                 else:
                     ik = 0.0
             else:
-                g = 0.0
-                if dk > 0.0:
-                    x = dk * tpwm / tau_e
-                    g = dk - tau_e / tpwm * (1.0 - math.exp(-x))
-                    if g < 0.0:
-                        g = 0.0
+                g = _dcm_share(dk, tpwm, tau_e)
                 ik = g * (vs - ke * om) / ra
                 if ik < 0.0:
                     ik = 0.0
@@ -210,12 +219,7 @@ def _simulate_kernel(prm: FloatArray, duty: FloatArray, phase: FloatArray, t: Fl
             if k == n_k - 1:
                 break
             # the speed over (t_k, t_k+1]: DCM average current, friction with warm-up
-            g = 0.0
-            if dk > 0.0:
-                x = dk * tpwm / tau_e
-                g = dk - tau_e / tpwm * (1.0 - math.exp(-x))
-                if g < 0.0:
-                    g = 0.0
+            g = _dcm_share(dk, tpwm, tau_e)
             ia0 = g * vs / ra
             ia1 = g * ke / ra
             fw = f_w[qf, k]

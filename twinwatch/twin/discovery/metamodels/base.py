@@ -267,6 +267,36 @@ class MetaModel(abc.ABC):
         """
 
 
+class ScaledShape(MetaModel):
+    """A kind ``U(z) = a*g(z, b)``: one linear coefficient ``a`` times a shape ``g`` of the
+    input with one nonlinear parameter ``b`` (exponential, negative exponential, power,
+    saturation, dead zone). A subclass states :meth:`shape`; the evaluation and the separable
+    basis (one column) follow from it.
+    """
+
+    params = ("a", "b")
+    nonlinear = ("b",)
+
+    @staticmethod
+    @abc.abstractmethod
+    def shape(z: FloatArray, b: FloatArray) -> FloatArray:
+        """The shape ``g(z, b)``, broadcasting ``z`` of shape (1, N) against ``b`` of shape
+        (P, 1) to (P, N); an input outside its domain or an overflow gives inf/nan (it is
+        called with floating-point errors ignored)."""
+
+    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
+        p = np.atleast_2d(np.asarray(p, dtype=float))
+        z = np.asarray(z, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return p[:, 0, None] * self.shape(z, p[:, 1, None])
+
+    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
+        nl = np.atleast_2d(np.asarray(nl, dtype=float))
+        u = np.asarray(u, dtype=float)[None, :]
+        with np.errstate(all="ignore"):
+            return self.shape(u, nl[:, :1])[:, None, :]
+
+
 def wrap_phase(c: float) -> float:
     """An angle in (-pi, pi]."""
     return math.remainder(c, 2 * math.pi)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt
+from twinwatch.twin.discovery.metamodels.base import ScaledShape, fmt
 from twinwatch.twin.model import FloatArray
 
 
@@ -15,7 +15,7 @@ def dead_zone(z: FloatArray, b: FloatArray) -> FloatArray:
     return out
 
 
-class DeadZone(MetaModel):
+class DeadZone(ScaledShape):
     """``U(z) = a*dz(z, b)``: nothing while ``|z| <= b``, then a slope ``a`` from the band's edge.
 
     Separable with the half-width ``b`` the only nonlinear parameter, searched between 0 and
@@ -31,26 +31,13 @@ class DeadZone(MetaModel):
     equation = "a*dz(z, b)"
     conditions = ("backlash, a voltage the power stage needs before current flows, a "
                   "stiction band")
-    params = ("a", "b")
     z_powers = (-1, 1)
-    nonlinear = ("b",)
 
     @staticmethod
     def shape(z: FloatArray, b: FloatArray) -> FloatArray:
         """The band's nonlinearity of ``z`` at half-width ``b`` (broadcasts): :func:`dead_zone`
         (a subclass with another band function shares the rest)."""
         return dead_zone(z, b)
-
-    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
-        p = np.atleast_2d(np.asarray(p, dtype=float))
-        z = np.asarray(z, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return p[:, 0, None] * self.shape(z, p[:, 1, None])
-
-    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
-        nl = np.atleast_2d(np.asarray(nl, dtype=float))
-        u = np.asarray(u, dtype=float)[None, :]
-        return self.shape(u, nl[:, :1])[:, None, :]
 
     def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
                ) -> tuple[FloatArray, FloatArray]:

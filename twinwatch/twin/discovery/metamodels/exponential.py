@@ -7,31 +7,22 @@ import math
 
 import numpy as np
 
-from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt
+from twinwatch.twin.discovery.metamodels.base import ScaledShape, fmt
 from twinwatch.twin.model import FloatArray
 
 
-class Exponential(MetaModel):
+class Exponential(ScaledShape):
     """``U(z) = a*b^z`` (b > 0); nonlinear in the base ``b``."""
 
     kind = "exponential"
     equation = "a*b^z"
     conditions = "current leaking, deterioration, wear and tear, corrosion"
-    params = ("a", "b")
-    nonlinear = ("b",)
     simplifies_to_constant = True
 
-    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
-        p = np.atleast_2d(np.asarray(p, dtype=float))
-        z = np.asarray(z, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return p[:, 0, None] * np.exp(z * np.log(np.abs(p[:, 1, None])))
-
-    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
-        nl = np.atleast_2d(np.asarray(nl, dtype=float))
-        u = np.asarray(u, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return np.exp(u * np.log(np.abs(nl[:, :1])))[:, None, :]
+    @staticmethod
+    def shape(z: FloatArray, b: FloatArray) -> FloatArray:
+        """``b^z`` (of ``|b|``: a negative base is its magnitude's)."""
+        return np.exp(z * np.log(np.abs(b)))
 
     def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
                ) -> tuple[FloatArray, FloatArray]:

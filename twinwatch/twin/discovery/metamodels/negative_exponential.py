@@ -5,32 +5,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt
+from twinwatch.twin.discovery.metamodels.base import ScaledShape, fmt
 from twinwatch.twin.model import FloatArray
 
 
-class NegativeExponential(MetaModel):
+class NegativeExponential(ScaledShape):
     """``U(z) = a*exp(-b*z)`` (b >= 0); nonlinear in the rate ``b``."""
 
     kind = "negative_exponential"
     equation = "a*exp(-b*z)"
     conditions = "ageing, degradation, fatigue, crack growth"
-    params = ("a", "b")
     z_powers = (0, -1)
-    nonlinear = ("b",)
     simplifies_to_constant = True
 
-    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
-        p = np.atleast_2d(np.asarray(p, dtype=float))
-        z = np.asarray(z, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return p[:, 0, None] * np.exp(-p[:, 1, None] * z)
-
-    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
-        nl = np.atleast_2d(np.asarray(nl, dtype=float))
-        u = np.asarray(u, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return np.exp(-nl[:, :1] * u)[:, None, :]
+    @staticmethod
+    def shape(z: FloatArray, b: FloatArray) -> FloatArray:
+        """``exp(-b*z)``."""
+        return np.exp(-b * z)
 
     def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
                ) -> tuple[FloatArray, FloatArray]:

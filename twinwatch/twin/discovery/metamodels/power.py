@@ -4,32 +4,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt
+from twinwatch.twin.discovery.metamodels.base import ScaledShape, fmt
 from twinwatch.twin.model import FloatArray
 
 
-class Power(MetaModel):
+class Power(ScaledShape):
     """``U(z) = a*z^b`` for ``z > 0``; nonlinear in the exponent ``b``."""
 
     kind = "power"
     equation = "a*z^b"
     conditions = "hard stops, overloading, mechanical shock"
-    params = ("a", "b")
     positive_input = True
-    nonlinear = ("b",)
     simplifies_to_constant = True
 
-    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
-        p = np.atleast_2d(np.asarray(p, dtype=float))
-        z = np.asarray(z, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return p[:, 0, None] * np.where(z > 0, z, np.nan) ** p[:, 1, None]
-
-    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
-        nl = np.atleast_2d(np.asarray(nl, dtype=float))
-        u = np.asarray(u, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return (np.where(u > 0, u, np.nan) ** nl[:, :1])[:, None, :]
+    @staticmethod
+    def shape(z: FloatArray, b: FloatArray) -> FloatArray:
+        """``z^b``, nan where ``z <= 0``."""
+        return np.where(z > 0, z, np.nan) ** b
 
     def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
                ) -> tuple[FloatArray, FloatArray]:

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinwatch.twin.discovery.metamodels.base import MetaModel, fmt
+from twinwatch.twin.discovery.metamodels.base import ScaledShape, fmt
 from twinwatch.twin.model import FloatArray
 
 
-class Saturation(MetaModel):
+class Saturation(ScaledShape):
     """``U(z) = a*tanh(z/b)`` (b > 0): slope ``a/b`` near zero, levelling off at ``+-a``.
 
     The smooth ``tanh`` rather than a hard ``a*clip(z/b, -1, 1)``: the same one nonlinear
@@ -22,21 +22,12 @@ class Saturation(MetaModel):
     kind = "saturation"
     equation = "a*tanh(z/b)"
     conditions = "a limit: current limiting, a clamped actuator, magnetic saturation"
-    params = ("a", "b")
     z_powers = (0, 1)
-    nonlinear = ("b",)
 
-    def evaluate(self, p: FloatArray, z: FloatArray) -> FloatArray:
-        p = np.atleast_2d(np.asarray(p, dtype=float))
-        z = np.asarray(z, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return p[:, 0, None] * np.tanh(z / p[:, 1, None])
-
-    def basis(self, nl: FloatArray, u: FloatArray) -> FloatArray:
-        nl = np.atleast_2d(np.asarray(nl, dtype=float))
-        u = np.asarray(u, dtype=float)[None, :]
-        with np.errstate(all="ignore"):
-            return np.tanh(u / nl[:, :1])[:, None, :]
+    @staticmethod
+    def shape(z: FloatArray, b: FloatArray) -> FloatArray:
+        """``tanh(z/b)``."""
+        return np.tanh(z / b)
 
     def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
                ) -> tuple[FloatArray, FloatArray]:
