@@ -53,7 +53,7 @@ __all__ = ["ModelKind", "DegradationFit", "bin_evidence", "fit_models", "long_ru
 def pinv_sym(a: FloatArray, rcond: float = 1e-15) -> FloatArray:
     """Pseudo-inverse of a small symmetric matrix ``a`` (k, k): ``numpy.linalg.pinv(a, rcond,
     hermitian=True)`` (the eigenvalues at most ``rcond`` times the largest dropped) without its
-    general wrapper: compiled (the same LAPACK ``syevd`` under numba), 3-7 against 35-47 us for
+    general wrapper: compiled (the same LAPACK ``syevd`` under numba), 4-7 against 34-55 us for
     k = 1..4 (called about ten times a window by the trends' fits and the fusion's evidence;
     issues 22, 58). Negative eigenvalues are inverted as numpy does: not the fusion's
     ``_safe_inverse``, which treats the matrix as a covariance (drops them, zeroes non-finite
