@@ -101,7 +101,8 @@ def _pinv_sym(a: FloatArray, rcond: float) -> FloatArray:
     for i in range(w.size):
         if aw[i] > cut:
             inv[i] = 1.0 / w[i]
-    return (v * inv) @ v.T
+    out: FloatArray = (v * inv) @ v.T
+    return out
 
 
 ModelKind = Literal["none", "linear", "exponential"]
