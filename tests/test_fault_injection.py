@@ -1660,8 +1660,8 @@ def poll_windows(port: int, counter: bool, seconds: float) -> tuple[list[Any], A
 
 @case("issue 15: a Modbus device without a sample counter, stamped by the poll clock (20 s; "
       "the same device with its counter for reference)", slow=True,
-      windows_estimated=True, numeric_failures=0, lost_only_to_missed_polls=True,
-      Ra_within_noise_of_exact_stamps=True)
+      windows_estimated=True, numeric_failures=0, lost_only_to_late_or_missed_polls=True,
+      most_windows_kept=True, Ra_within_noise_of_exact_stamps=True)
 def _modbus_poll_clock(ctx: Context) -> dict[str, Any]:
     import statistics
 
@@ -1696,11 +1696,15 @@ def _modbus_poll_clock(ctx: Context) -> dict[str, Any]:
     _, _, _, ref = results[True]
     sd = statistics.pstdev(ref + ras)
     # a window is lost only where the poll thread missed a device sample (a gap: the samples
-    # were never read); on a loaded machine this happens with the counter too
-    lost = {k for k, v in getattr(ring, "causes", ring.discarded).items() if v}
+    # were never read) or polled it later than the band allows (jitter: at T = 10 ms a poll
+    # 9 ms late or more is on no slot); both happen on a loaded machine (CI's other worker),
+    # the first with the counter too. Never to a stamp that went back, a bad value or a
+    # missing channel. 20 s is 10 windows: most of them are kept.
+    lost = {k for k, v in ring.causes.items() if v}
     return {"windows_estimated": len(wins) - failures >= 1,
             "numeric_failures": failures,
-            "lost_only_to_missed_polls": lost <= {"gap"},
+            "lost_only_to_late_or_missed_polls": lost <= {"gap", "jitter"},
+            "most_windows_kept": len(wins) >= 5,
             "Ra_within_noise_of_exact_stamps": bool(ras) and abs(
                 statistics.fmean(ras) - statistics.fmean(ref)) < 2 * sd + 1e-3}
 
