@@ -10,60 +10,7 @@ tail, the recording, MQTT and Home Assistant, explain) reads it through one type
 from the model, :func:`read_health` (:data:`HealthView`), never by the decoded JSON's keys.
 
 The table of docs/health-message.md documents every field; a test holds it against this
-model. Layout version :data:`SCHEMA_VERSION`:
-
-* 14: the ``diagnosis`` fits each fault mode as a change of the twin on the windows'
-  data (:mod:`twinwatch.twin.diagnosis`): ``split`` and ``separate`` name the modes the data
-  cannot tell apart and the check on the machine that can; ``read_across`` (13), the
-  ``readings`` check (11) and the ``aliases`` (12) are gone, superseded by the hypothesis
-  twins.
-* 13: ``diagnosis.read_across``.
-* 12: ``aliases``: how a change of each parameter the window did not estimate shows in the
-  estimates (:mod:`twinwatch.twin.estimation.aliases`), what the diagnosis reads a change the
-  library does not know by.
-* 11: ``readings``: the reading check (:mod:`twinwatch.twin.estimation.readings`).
-* 10: the ``diagnosis`` says ``check_function`` (NAMUR NE 107) when the twin has not
-  described the machine for a while (``check_function_since``, ``check_failed``), names the
-  deviations no fault explains (``unexplained``) and why plausible faults were ruled out
-  (``ruled_out``); the shipped libraries know sensor and supply faults.
-* 9: ``discovery.p_value`` and ``discovery.evidence_p``: the residual's whiteness test and its
-  combination over windows (discovery's trigger, :mod:`twinwatch.twin.discovery.trigger`).
-* 8: the window's ``diagnosis``: the fault modes of the machine's fault library ranked by their
-  probability, each with its part, action, urgency, source and the evidence for and against it
-  as sentences; the probabilities of no fault and of a fault the library does not know
-  (:mod:`twinwatch.twin.diagnosis`).
-* 7: each estimated parameter carries its ``trend`` (degradation model, onset, drift rate with
-  its interval, monotonicity and trendability, restarts, the window's evidence) and, with an
-  alarm rule, its ``rul`` (the predicted crossing of the warning and alarm thresholds: median
-  and interval, in plant time, as time from the window's end and on the wall clock;
-  :mod:`twinwatch.twin.prognostics`); each window says which ``acquisition`` window it had and
-  why (the adaptive window).
-  The window's ``source``: the jitter of its time stamps against the nominal grid the
-  samples were placed on (RMS and maximum [us]), what the source waits for (a device absent,
-  a gateway being reopened) and the bus messages that went silent; the counters of windows
-  abandoned by cause (``windows_abandoned_gap``, ``_time_back``, ``_jitter``, ``_bad_value``,
-  ``_missing_channel``).
-  ``status`` may be ``suspect`` (the estimate of a window that is not sound: its model check
-  failed or a sensor is frozen or saturated; or a held value the fused evidence contradicts:
-  treat it like ``held``); ``fused`` is published when the fused evidence meets the fusion's own
-  gate (``[estimation.fusion] max_rel_std``); the window's frozen or saturated sensors are named
-  (``sensors``).
-* 6: every message carries its ``run`` id (one per start of the daemon, kept across a reload;
-  a new run of a simulated plant or of a replayed recording is a new run): windows of different
-  runs share window numbers and plant times, the run tells them apart (the history query
-  filters by it).
-* 5: each meta-model term carries the standard errors of its parameters (``params_std``) and
-  the number of windows whose evidence they combine (``evidence_windows``): a kept term is
-  refined across windows (:mod:`twinwatch.twin.discovery.terms`).
-* 4: ``status`` may be ``fused`` (not determined by this window alone but by the evidence
-  of the windows so far, :mod:`~twinwatch.twin.estimation.fusion`); each estimated parameter
-  carries its fused value, interval and rate (``fused``); the window's model validation
-  (``model_check``: residual whiteness and residual-input tests per output; a window that fails
-  it is not trusted and its intervals are widened).
-* 3: each parameter's ``status`` (``estimated`` / ``held`` / ``tied`` / ``fixed``) next to the
-  human ``reason``; non-finite numbers are ``null`` in every copy (the state store kept a bare
-  ``NaN`` token before); ``discovery.simplified`` documented.
-* 2: adds ``terms``, ``residual``, ``discovery``.
+model. Layout version :data:`SCHEMA_VERSION`; what each version added is listed on that page.
 """
 
 from __future__ import annotations
