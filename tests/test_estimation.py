@@ -167,6 +167,55 @@ def test_covariance_gives_an_undetermined_direction_an_infinite_variance() -> No
         assert np.all(np.isinf(sd[:2])) and sd[2] == pytest.approx(0.006, rel=0.05)
 
 
+def _covariance_numpy(jac: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """fit.covariance as numpy alone computed it (the compiled kernel's reference)."""
+    n = jac.shape[1]
+    norms = np.linalg.norm(jac, axis=0)
+    safe = np.where(norms > 0, norms, 1.0)
+    js = jac / safe
+    lam, vec = np.linalg.eigh(js.T @ js)
+    keep = lam > 1e-12 * max(float(lam.max()), 1e-300)
+    a_inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
+    cov = a_inv @ ((js * weights[:, None]).T @ js) @ a_inv / np.outer(safe, safe)
+    dead = (norms == 0) | (np.sum(vec[:, ~keep] ** 2, axis=1) > 1e-12)
+    cov[dead, :] = np.inf
+    cov[:, dead] = np.inf
+    assert cov.shape == (n, n)
+    return cov
+
+
+def _safe_inverse_numpy(a: np.ndarray) -> np.ndarray:
+    """fusion._safe_inverse as numpy alone computed it."""
+    a = np.where(np.isfinite(a), a, 0.0)
+    w, v = np.linalg.eigh(0.5 * (a + a.T))
+    big = max(float(np.max(np.abs(w))), 1e-300)
+    return (v * np.where(w > 1e-12 * big, 1.0 / np.where(w > 0, w, 1.0), 0.0)) @ v.T
+
+
+def test_the_compiled_covariance_and_inverse_give_numpys_numbers_to_the_bit() -> None:
+    """The sandwich covariance and the fusion's safe inverse run their small (n, n) arithmetic
+    compiled (issue 58): on full-rank, rank-deficient (a repeated or a zero column),
+    badly scaled and non-finite matrices they return what numpy gave, bit for bit."""
+    from twinwatch.twin.estimation.fit import covariance
+    from twinwatch.twin.estimation.fusion import _safe_inverse
+
+    rng = np.random.default_rng(58)
+    for trial in range(300):
+        n = 1 + trial % 6
+        jac = rng.normal(size=(400, n)) * 10.0 ** rng.uniform(-6, 6, size=n)
+        if n > 1 and trial % 3 == 1:
+            jac[:, -1] = jac[:, 0] * 2.0  # an undetermined direction
+        if trial % 7 == 2:
+            jac[:, 0] = 0.0  # a column the outputs do not respond to
+        w = rng.uniform(0.5, 2.0, size=400) * 1e-4
+        assert np.array_equal(covariance(jac, w), _covariance_numpy(jac, w)), trial
+        a = jac.T @ jac
+        if trial % 5 == 3:
+            a[0, -1] = np.inf
+        for m in (a, -a, np.zeros((1, 1))):
+            assert np.array_equal(_safe_inverse(m), _safe_inverse_numpy(m)), trial
+
+
 def test_an_empty_estimate_list_is_refused_naming_the_key() -> None:
     with pytest.raises(ValidationError, match="estimate\n.*no parameter listed"):
         EstimationConfig(estimate=[])

@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 #: The packages whose modules define or call numba kernels.
-_KERNEL_DIRS = ("twin", "twin/models", "twin/prognostics", "plant")
+_KERNEL_DIRS = ("twin", "twin/models", "twin/prognostics", "twin/estimation", "plant")
 
 
 def sources_hash(root: Path | None = None) -> str:

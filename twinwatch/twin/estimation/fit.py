@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from twinwatch.twin.estimation.statistics import ar1
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
@@ -492,18 +493,45 @@ def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
     norms = np.linalg.norm(jac, axis=0)
     safe = np.where(norms > 0, norms, 1.0)
     js = jac / safe
+    # the two (M, n) products stay numpy's (its J^T J is BLAS syrk: numba's gemm differs in
+    # the last bits); the small (n, n) rest is compiled, the same arithmetic to the bit
     try:
-        lam, vec = np.linalg.eigh(js.T @ js)
+        cov: FloatArray = _sandwich(js.T @ js, (js * weights[:, None]).T @ js, safe, norms)
     except np.linalg.LinAlgError:
         return np.full((n, n), np.inf)
-    keep = lam > RCOND * max(float(lam.max()), 1e-300)
-    a_inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
-    cov: FloatArray = a_inv @ ((js * weights[:, None]).T @ js) @ a_inv
+    return cov
+
+
+@njit(cache=True, nogil=True)
+def _equilibrated_inverse(a: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The inverse of the equilibrated ``A = J^T J`` (n, n) on the directions it determines
+    (eigenvalues above :data:`RCOND` of the largest), and per variable its load on the
+    others: the sum of its squared components along them (n,)."""
+    lam, vec = np.linalg.eigh(a)
+    keep = lam > RCOND * max(lam.max(), 1e-300)
+    kept = vec[:, keep]
+    a_inv = (kept / lam[keep]) @ kept.T
+    loads = np.zeros(lam.size)
+    for k in range(lam.size):
+        for i in range(lam.size):
+            if not keep[i]:
+                loads[k] += vec[k, i] ** 2
+    return a_inv, loads
+
+
+@njit(cache=True, nogil=True)
+def _sandwich(a: FloatArray, b: FloatArray, safe: FloatArray, norms: FloatArray
+              ) -> FloatArray:
+    """:func:`covariance`'s ``A^-1 B A^-1`` from the equilibrated ``A`` and ``B = J^T W J``
+    (n, n), scaled back by the column norms ``safe`` (n,), ``inf`` on the rows and columns
+    of a zero column (``norms``) or one that loads on an undetermined direction."""
+    a_inv, loads = _equilibrated_inverse(a)
+    cov = a_inv @ b @ a_inv
     cov = cov / np.outer(safe, safe)
-    loads = np.sum(vec[:, ~keep] ** 2, axis=1) > 1e-12
-    dead = (norms == 0) | loads
-    cov[dead, :] = np.inf
-    cov[:, dead] = np.inf
+    for k in range(safe.size):
+        if norms[k] == 0 or loads[k] > 1e-12:
+            cov[k, :] = np.inf
+            cov[:, k] = np.inf
     return cov
 
 
@@ -619,9 +647,7 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     norms = np.linalg.norm(jac, axis=0)
     safe = np.where(norms > 0, norms, 1.0)
     js = jac / safe
-    lam, vec = np.linalg.eigh(js.T @ js)
-    keep = lam > RCOND * max(float(lam.max()), 1e-300)
-    a_inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
+    a_inv, _ = _equilibrated_inverse(js.T @ js)
     hac = np.diag(a_inv @ (s / np.outer(safe, safe)) @ a_inv) / (safe * safe)
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = hac / base
