@@ -2,44 +2,27 @@
 twin, in one SQLite database (stdlib :mod:`sqlite3`), so a restart resumes from the last trusted
 twin and a subscriber that was away can catch up on the history.
 
-Durability. The database runs in WAL mode. Each window is one transaction (its health row and,
-when the window was trusted, the twin state), so after any crash the database holds a prefix of
-the windows, never half of one:
-
-* ``synchronous=FULL`` (default): every commit fsyncs the WAL. A committed window survives
-  SIGKILL, a kernel panic and power loss. Cost: one fsync per 2 s window.
-* ``synchronous=NORMAL``: commits are written to the WAL without fsync (only checkpoints sync).
-  A committed window survives SIGKILL and any crash of the process (the OS page cache has it);
-  on power loss or a kernel crash the last windows before it (up to the last checkpoint, ~1000
-  pages) may be rolled back, but the database stays consistent. Choose it for flash that must
-  not see an fsync every 2 s.
+Durability. WAL mode; each window is one transaction (its health row and, when trusted, the
+twin), so after any crash the database holds a prefix of the windows, never half of one.
+``synchronous=FULL`` (default) fsyncs every commit: a committed window survives SIGKILL, a
+kernel panic and power loss. ``synchronous=NORMAL`` survives SIGKILL and any crash of the
+process; on power loss the last windows since the last checkpoint may be rolled back (the
+database stays consistent).
 
 Threads. The adaptation worker writes (:meth:`StateStore.save_window`), a Zenoh queryable thread
 reads (:meth:`StateStore.history`). Each thread gets its own connection (``threading.local``):
-in WAL mode readers never block the writer nor see a half-written window, which one shared
-connection behind a lock would not give (a long history query would stall the worker). The
-connection of a thread that has ended (the worker of a daemon a reload replaced) is closed when
-the next thread connects, so reloads leak no descriptor; all are closed by
-:meth:`StateStore.close`.
+in WAL mode readers never block the writer nor see a half-written window. The connection of a
+thread that has ended is closed when the next thread connects; all by :meth:`StateStore.close`.
 
 Faults. A database that is not SQLite or is corrupt raises :class:`StoreError` with what to do
 (or, with ``recover_corrupt=True``, is moved aside to ``<name>.corrupt-<time>`` and a new one
-started, logged as an ERROR). Corruption is recognised wherever SQLite reports it: at open, in
-any read (the twin and alarm restore at start, a history query) and in a write at run time, not
-only in the file header; the windows waiting to be written go to the new database. A locked or
-full database at save time does not stop the daemon: the window stays in a bounded in-memory
-backlog, is written with the next successful save, and the failure is logged once at ERROR (then
-DEBUG until it recovers).
-
-The file deleted, replaced or moved away while the daemon runs (a cleanup script, an operator
-restoring a backup) is noticed before the next window is written and before any read (the
-lock's descriptor against the path, :meth:`~twinwatch.sinks.locks.FileLock.changed`): the
-file the store had open is checkpointed (a file moved away keeps every window), the database
-at the path is opened, or created, the saved twin and the windows still in memory (the last
-``recent``) that it lacks are written to it, and the windows of this run that were stored in the
-old file and are now in no database are counted in :attr:`StateStore.history_lost` (logged at
-ERROR; ``twinwatch run`` then exits 74). The old file's ``-wal`` and ``-shm`` are removed first:
-SQLite would otherwise apply the old database's log to the new file.
+started, logged as an ERROR), wherever SQLite reports it: at open, in a read or in a write. A
+locked or full database at save time does not stop the daemon: the window stays in a bounded
+in-memory backlog, is written with the next successful save, and the failure is logged once at
+ERROR (then DEBUG until it recovers). The file deleted, replaced or moved away while the daemon
+runs is noticed before the next window and before any read (the lock's descriptor,
+:meth:`~twinwatch.sinks.locks.FileLock.changed`) and handled as docs/runtime.md describes: the
+windows of this run lost with it are counted in :attr:`StateStore.history_lost`.
 
 Size: a DC-motor health message is about 2 kB of JSON, so one machine writes about 85 MB a day;
 the defaults keep 30 days or 1,000,000 windows (about 2 GB), whichever is less, pruned in batches.
