@@ -17,7 +17,7 @@ from pydantic import (
 )
 
 from twinwatch._table import StrictTable
-from twinwatch.sinks.base import SinkConfig
+from twinwatch.sinks.base import SinkConfig, resolve_input_files
 
 # A topic level: no wildcards, no NUL; '/' separates levels.
 _LEVEL_RE = re.compile(r"^[^#+\x00/]+$")
@@ -159,17 +159,7 @@ class MqttConnectionConfig(SinkConfig):
         return ["password"] if self.password is not None else []
 
     def resolve_paths(self, base_dir: Path) -> None:
-        """Make the file paths absolute against ``base_dir`` (``~`` expanded)."""
-        def resolve(v: str) -> str:
-            p = Path(v).expanduser()
-            return str(p if p.is_absolute() else (base_dir / p).resolve())
-
-        if self.tls is not None:
-            for k in MqttTlsConfig.FILES:
-                if (v := getattr(self.tls, k)):
-                    setattr(self.tls, k, resolve(v))
-        if self.password_file:
-            self.password_file = resolve(self.password_file)
+        resolve_input_files(self, base_dir)
 
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The client id at the broker (a second connection with it would take the session

@@ -20,7 +20,7 @@ from pydantic import (
 
 from twinwatch._lazy import lazy_module
 from twinwatch._table import StrictTable
-from twinwatch.sinks.base import SinkConfig
+from twinwatch.sinks.base import SinkConfig, resolve_input_files
 
 if TYPE_CHECKING:
     import zenoh
@@ -40,7 +40,6 @@ _ENDPOINT_RE = re.compile(
 _CHUNK_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 # " at /root/.cargo/.../unicast.rs:338." suffixes of zenoh error messages.
 RUST_LOCATION_RE = re.compile(r"\s+at \S+\.rs:\d+\.?")
-# " at /root/.cargo/.../unicast.rs:338." suffixes of zenoh error messages.
 
 
 class ZenohTlsConfig(StrictTable):
@@ -203,25 +202,12 @@ class ZenohConfig(SinkConfig):
         """Dotted key (``zenoh.tls.*``) -> path of every file the session reads."""
         return {f"zenoh.{k}": v for k, v in self.input_files().items()}
 
-    def secret_files(self) -> dict[str, str]:
-        """Dotted key -> path of the files holding secrets (private keys, password lists)."""
-        return {f"zenoh.{k}": v for k, v in self.secret_input_files().items()}
-
     def inline_secrets(self) -> list[str]:
         """Dotted keys (``zenoh.tls.*``) of secrets written in the configuration itself."""
         return [f"zenoh.{k}" for k in self.inline_secret_keys()]
 
     def resolve_paths(self, base_dir: Path) -> None:
-        """Make relative certificate/key paths absolute against ``base_dir`` (the config
-        file's directory); ``~`` is expanded."""
-        for obj, keys in ((self.tls, ZenohTlsConfig.FILES), (self.auth, ("dictionary_file",))):
-            if obj is None:
-                continue
-            for k in keys:
-                v = getattr(obj, k)
-                if v:
-                    p = Path(v).expanduser()
-                    setattr(obj, k, str(p if p.is_absolute() else (base_dir / p).resolve()))
+        resolve_input_files(self, base_dir)
 
     @field_validator("listen", "connect")
     @classmethod
