@@ -53,15 +53,14 @@ from twinwatch.sinks.store.outbox import StoreOutbox
 from twinwatch.sinks.store.schema import CACHE_KIB, SCHEMA, SCHEMA_VERSION, StateConfig, is_corrupt
 from twinwatch.twin.health import HealthView, read_health
 
-#: the package's name, as before the split (the log lines name it)
-logger = logging.getLogger(__package__)
+logger = logging.getLogger(__package__)  # the log lines name the package
 
 __all__ = ["StateStore"]
 
-
-def _dumps(obj: Any) -> str:
-    """The one encoder (:func:`twinwatch.io.encoding.to_json`): NaN and infinities -> null."""
-    return to_json(obj)
+_INSERT_HEALTH = ("INSERT INTO health (machine, run, window, t_start, t_end, wall, doc) "
+                  "VALUES (?, ?, ?, ?, ?, ?, ?)")
+_INSERT_TWIN = ("INSERT OR REPLACE INTO twin (machine, run, window, t_end, wall, state) "
+                "VALUES (?, ?, ?, ?, ?, ?)")
 
 
 class StateStore(Gate):
@@ -169,18 +168,12 @@ class StateStore(Gate):
         self._lock: FileLock | None = None
         self._lock_file()
         try:
-            self._open(check)
-        except StoreError as exc:
-            if not (recover_corrupt and self.path.exists() and exc.corrupt):
-                self._close_all()
-                self._release()
-                raise
             try:
+                self._open(check)
+            except StoreError as exc:
+                if not (recover_corrupt and self.path.exists() and exc.corrupt):
+                    raise
                 self._recover(exc)
-            except BaseException:
-                self._close_all()
-                self._release()
-                raise
         except BaseException:
             self._close_all()
             self._release()
@@ -455,11 +448,9 @@ class StateStore(Gate):
             conn.execute("BEGIN IMMEDIATE")
             top = int(conn.execute("SELECT COALESCE(MAX(id), 0) FROM health").fetchone()[0])
             try:
-                conn.executemany("INSERT INTO health (machine, run, window, t_start, t_end, "
-                                 "wall, doc) VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
+                conn.executemany(_INSERT_HEALTH, rows)
                 if self._twin_saved is not None:
-                    conn.execute("INSERT OR REPLACE INTO twin (machine, run, window, t_end, "
-                                 "wall, state) VALUES (?, ?, ?, ?, ?, ?)", self._twin_saved)
+                    conn.execute(_INSERT_TWIN, self._twin_saved)
                 self._carry_outboxes(conn, top)
                 conn.execute("COMMIT")
             except sqlite3.Error:
@@ -503,8 +494,7 @@ class StateStore(Gate):
         file held before this run's windows were written again to it: history, not sent, as
         at an output's first open), and this run's windows it had delivered are marked
         delivered; the others are pending, so they are delivered from the new file, also
-        after a restart (issue 26: delivery stopped silently, and 20 windows of the run were
-        never delivered after a restart)."""
+        after a restart."""
         wall = time.time()
         for (output, machine), done in self._old_delivered.items():
             conn.execute("INSERT OR IGNORE INTO outbox_position (output, machine, health_id, "
@@ -653,7 +643,7 @@ class StateStore(Gate):
         with self._write_lock:
             self.run_id = str(health.get("run") or self.run_id)  # the run whose windows it holds
             row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
-                   float(health["t_end"]), w, _dumps(health) if doc is None else doc)
+                   float(health["t_end"]), w, to_json(health) if doc is None else doc)
             self._check_file(row[2])
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
@@ -664,7 +654,7 @@ class StateStore(Gate):
             self._pending.append(row)
             if twin_state is not None:
                 self._twin_pending = (machine, self.run_id, row[2], row[4], w,
-                                      _dumps(twin_state))
+                                      to_json(twin_state))
             if not flush:
                 return False
             if self._file_gone is not None:  # no database file to write to yet: wait in memory
@@ -685,11 +675,9 @@ class StateStore(Gate):
             return self._flush_failed(exc)
         try:
             conn.execute("BEGIN IMMEDIATE")
-            conn.executemany("INSERT INTO health (machine, run, window, t_start, t_end, wall, "
-                             "doc) VALUES (?, ?, ?, ?, ?, ?, ?)", list(self._pending))
+            conn.executemany(_INSERT_HEALTH, list(self._pending))
             if self._twin_pending is not None:
-                conn.execute("INSERT OR REPLACE INTO twin (machine, run, window, t_end, wall, "
-                             "state) VALUES (?, ?, ?, ?, ?, ?)", self._twin_pending)
+                conn.execute(_INSERT_TWIN, self._twin_pending)
             conn.execute("COMMIT")
         except sqlite3.Error as exc:
             _rollback(conn)
@@ -837,10 +825,8 @@ class StateStore(Gate):
                 and window numbers start over with every run of a simulated plant or a
                 replay, so a range by plant time is one run's only with it.
             after: only windows ending strictly after this time [s] (by plant time:
-                ``t_end > after``; by wall time: saved after it), the cursor to page with:
-                ``t_from`` is inclusive (a window overlapping it is returned), so paging with
-                ``t_from`` = the last ``t_end`` returned that window again, and with
-                ``limit = 1`` never advanced.
+                ``t_end > after``; by wall time: saved after it): the paging cursor
+                (``t_from`` is inclusive: it would return the last window again).
 
         Returns:
             The stored health messages, each through its typed view
@@ -856,16 +842,11 @@ class StateStore(Gate):
 
     def timeline(self, machine: str, t_from: float | None = None) -> list[HealthView]:
         """The machine's health messages on the time line that ends with its last stored
-        window, oldest first: read back from the last one in the order they were saved, across
-        runs, while each window ends before the one saved after it starts (a run that resumed
-        the twin on a source whose clock goes on, after a restart or a reload, continues the
-        line; where the clock went back, a replay or a simulated plant started over, another
-        line begins and the reading stops) and ends at or after ``t_from`` [s, plant time].
-
-        What a restart resumes the trends from (:meth:`twinwatch.twin.prognostics.
-        Prognostics.replay`): one run's windows alone are not enough when the daemon was
-        restarted more than once (the run before the last may have lasted a few windows).
-        """
+        window, oldest first: read back from the last one across runs while each window ends
+        before the one saved after it starts (where the clock went back, a replay or a
+        simulated plant started over, the reading stops) and ends at or after ``t_from`` [s,
+        plant time]. What a restart resumes the trends from (:meth:`twinwatch.twin.
+        prognostics.Prognostics.replay`), across several restarts."""
         lower = float(t_from) if t_from is not None and math.isfinite(t_from) else -math.inf
         docs = self._read("cannot read the history",
                           lambda conn: queries.timeline_docs(conn, machine, lower))
@@ -887,7 +868,7 @@ class StateStore(Gate):
         Raises:
             StoreError: the database cannot be read (the message says why).
         """
-        if self._closed_for_good:  # a run's history is still read after its daemon stopped
+        if self._closed_for_good:
             try:
                 conn = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True,
                                        timeout=self.busy_timeout)
