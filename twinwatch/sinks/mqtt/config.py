@@ -8,13 +8,7 @@ import re
 from pathlib import Path
 from typing import ClassVar, Literal, Self
 
-from pydantic import (
-    Field,
-    StrictFloat,
-    StrictInt,
-    field_validator,
-    model_validator,
-)
+from pydantic import Field, StrictFloat, StrictInt, field_validator, model_validator
 
 from twinwatch._table import StrictTable
 from twinwatch.sinks.base import SinkConfig, resolve_input_files

@@ -374,17 +374,9 @@ class MqttPublisher(DeliveringSink):
 
     def _finish(self) -> None:
         """Leaving the thread: record the deliveries, go offline, disconnect."""
-        session = self.session
         self.delivery.flush_acks()
         self.delivery.count()
-        if session.connected:
-            info = session.client.publish(self.availability_topic, "offline", qos=1,
-                                          retain=True)
-            end = time.monotonic() + 2.0
-            while session.connected and not info.is_published() and time.monotonic() < end:
-                session.client.loop(timeout=0.05)
-            session.client.disconnect()
-        session.connected = False
+        self.session.leave(self.availability_topic, "offline", retain=True)
         self.delivery.finish()
 
     def __repr__(self) -> str:

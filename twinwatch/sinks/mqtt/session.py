@@ -259,6 +259,17 @@ class MqttSession:
         hold = min(5.0 * 2 ** (self.takeovers - TAKEOVERS), 60.0) * random.uniform(0.75, 1.25)
         self.hold_until = time.monotonic() + hold
 
+    def leave(self, topic: str, payload: str | bytes, retain: bool = False) -> None:
+        """A clean stop: ``payload`` on ``topic`` (what the will says: ``offline``, NDEATH),
+        given 2 s to be acknowledged, then disconnect."""
+        if self.connected:
+            info = self.client.publish(topic, payload, qos=1, retain=retain)
+            end = time.monotonic() + 2.0
+            while self.connected and not info.is_published() and time.monotonic() < end:
+                self.client.loop(timeout=0.05)
+            self.client.disconnect()
+        self.connected = False
+
     # -- for STATUS ---------------------------------------------------------------------------
     def problems(self, pending: int) -> list[str]:
         """The session's part of the output's problem line, with ``pending`` windows: the

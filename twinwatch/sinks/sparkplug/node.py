@@ -493,14 +493,8 @@ class EdgeNode:
 
     def _finish(self) -> None:
         """Every device has left: NDEATH with this connection's ``bdSeq``, disconnect."""
-        if self.connected:
-            info = self.client.publish(self.session.ndeath_topic,
-                                       self.session.ndeath(now_ms()), qos=1)
-            end = time.monotonic() + 2.0
-            while self.connected and not info.is_published() and time.monotonic() < end:
-                self.client.loop(timeout=0.05)
-            self.client.disconnect()
-        self.mqtt.connected = self.born = False
+        self.mqtt.leave(self.session.ndeath_topic, self.session.ndeath(now_ms()))
+        self.born = False
         logger.info("Sparkplug edge node %s/%s closed (NDEATH, bdSeq %d)",
                     self.session.group_id, self.session.edge_node_id,
                     max(self.session.bd_seq, 0))
