@@ -11,21 +11,12 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any, ClassVar, Self
+from typing import Any, ClassVar, Self
 
-from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
 from twinwatch.sinks.base import AlarmBands, ProcessedWindow, SharedResources, Sink, SinkContext
-from twinwatch.twin.summary import fleet_summary, summary_changed
-
-if TYPE_CHECKING:
-    import zenoh
-    from zenoh import ext as zenoh_ext
-else:  # imported when a session opens: loading a configuration does not load zenoh
-    zenoh = lazy_module("zenoh")
-    zenoh_ext = lazy_module("zenoh.ext")
-from twinwatch.sinks.zenoh.config import ZenohConfig, check_key
+from twinwatch.sinks.zenoh.config import ZenohConfig, check_key, zenoh, zenoh_ext
 from twinwatch.sinks.zenoh.queries import (
     QUERY_LOG_INTERVAL,
     QueryDispatch,
@@ -34,8 +25,9 @@ from twinwatch.sinks.zenoh.queries import (
     history_parameters,
 )
 from twinwatch.sinks.zenoh.session import declare_publisher, open_session, session_key
+from twinwatch.twin.summary import fleet_summary, summary_changed
 
-logger = logging.getLogger(__package__)  # twinwatch.sinks.zenoh, as before the split
+logger = logging.getLogger(__package__)
 
 
 UNRULED_THRESHOLD_PCT = 5.0
@@ -175,21 +167,15 @@ class HealthPublisher(Sink):
         except zenoh.ZError as exc:
             self._leave_dispatch()
             self._close_session(session)
-            raise PublisherError(
-                f"cannot declare zenoh entities under {self.base_key}: {exc}"
-            ) from exc
+            raise PublisherError(f"cannot declare zenoh entities under {self.base_key}: {exc}"
+                                 ) from exc
         with self._lock:
             self._publishers[self.health_key] = publisher
             self._queryable, self._token, self._session = queryable, token, session
         cfg = self.config
-        logger.info(
-            "publishing health of %s on %s (mode=%s, listen=%s, connect=%s)",
-            self.machine,
-            self.health_key,
-            cfg.mode,
-            cfg.listen if cfg.mode != "client" else [],
-            cfg.connect,
-        )
+        logger.info("publishing health of %s on %s (mode=%s, listen=%s, connect=%s)",
+                    self.machine, self.health_key, cfg.mode,
+                    cfg.listen if cfg.mode != "client" else [], cfg.connect)
 
     def _connect_loop(self) -> None:
         """Open the session in the background until it works or :meth:`close` is called;
@@ -531,18 +517,12 @@ class HealthPublisher(Sink):
                 step()
             except zenoh.ZError as exc:
                 logger.warning("closing zenoh %s of %s failed: %s", what, self.machine, exc)
-        logger.info(
-            "zenoh publisher of %s closed (%d published, %d errors)",
-            self.machine,
-            self.published,
-            self.errors,
-        )
+        logger.info("zenoh publisher of %s closed (%d published, %d errors)", self.machine,
+                    self.published, self.errors)
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"HealthPublisher({self.health_key!r}, {state}, published={self.published})"
-
-
 
 
 def worst_parameter(health: Any, bands: Mapping[str, AlarmBands]) -> dict[str, Any] | None:

@@ -13,19 +13,12 @@ import re
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
-from twinwatch._lazy import lazy_module
 from twinwatch.io.keys import box_chunk, box_token_key
+from twinwatch.sinks.zenoh.config import zenoh
 
-if TYPE_CHECKING:
-    import zenoh
-    from zenoh import ext as zenoh_ext
-else:  # imported when a session opens: loading a configuration does not load zenoh
-    zenoh = lazy_module("zenoh")
-    zenoh_ext = lazy_module("zenoh.ext")
-
-logger = logging.getLogger(__package__)  # twinwatch.sinks.zenoh, as before the split
+logger = logging.getLogger(__package__)
 
 
 QUERY_LOG_INTERVAL = 60.0
@@ -258,8 +251,6 @@ class QueryDispatch:
             except zenoh.ZError as exc:
                 logger.warning("closing the zenoh %s on %s/** failed: %s", what, self.prefix,
                                exc)
-
-
 
 
 HISTORY_LIMIT = 1000
