@@ -45,8 +45,7 @@ if TYPE_CHECKING:
     from twinwatch.sinks.base import SinkContext
     from twinwatch.twin.health import HealthMessage
 
-#: the package's name, as before the split (the log lines name it)
-logger = logging.getLogger(__package__)
+logger = logging.getLogger(__package__)  # the log lines name the package
 
 __all__ = ["OpcUaServer"]
 

@@ -55,8 +55,7 @@ from twinwatch.sinks.rerun.views import RecordingViews, emit
 if TYPE_CHECKING:
     from twinwatch.twin.health import HealthMessage
 
-#: the package's name, as before the split (the log lines name it)
-logger = logging.getLogger(__package__)
+logger = logging.getLogger(__package__)  # the log lines name the package
 
 __all__ = ["RerunRecorder"]
 
