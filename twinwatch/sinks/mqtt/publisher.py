@@ -257,9 +257,7 @@ class MqttPublisher(DeliveringSink):
             return "done"
         if not session.connected:
             # while windows wait: an attempt at once and then every CLOSE_RETRY_S until the
-            # deadline (the backoff may be sleeping through a broker that is back; a single
-            # attempt gave up on a broker started a second after a short run's end, its
-            # backlog left for the next start)
+            # deadline (the backoff may be sleeping through a broker that is back)
             if not (delivery.inflight or delivery.has_pending()):
                 return "done"
             if now >= self._close_attempt:

@@ -30,7 +30,6 @@ class OpcUaConfig(SinkConfig):
         # private_key = "/etc/twinwatch/opcua-server.pem"    # 0640 root:twinwatch
     """
 
-    enabled: bool = Field(True, description="false: the output is not opened")
     endpoint: str = Field("opc.tcp://127.0.0.1:4840",
                           description="opc.tcp://host:port the server listens on")
     namespace: str = Field("urn:twinwatch:health", min_length=1,

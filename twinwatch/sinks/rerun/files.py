@@ -227,9 +227,7 @@ class RecordingFiles:
         assert rec is not None
         if not self._flush(rec):
             return  # the writer died: the file was kept aside and a new one will be opened
-        stamp = time.strftime(RUN_STAMP, time.gmtime())
-        aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
-                                    f"{self.path.suffix}")
+        aside = self._aside_name()
         try:
             self.path.rename(aside)  # the open file sink keeps writing to the renamed file
             self._relock()
@@ -258,6 +256,13 @@ class RecordingFiles:
                                 old.name, keep)
                 except OSError as exc:
                     logger.warning("cannot delete old recording %s: %s", old, exc)
+
+    def _aside_name(self) -> Path:
+        """The name the run's file is rotated (or kept aside) to:
+        ``<run file stem>.<UTC time>.<n>.rrd``."""
+        stamp = time.strftime(RUN_STAMP, time.gmtime())
+        return self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
+                                   f"{self.path.suffix}")
 
     def _check_file(self, window: Any) -> bool:
         """The file at :attr:`path` is still the one being written (called with the lock held,

@@ -112,19 +112,12 @@ class RerunRecorder(RecordingFiles, Sink):
     serve_timeout: float = 5.0
     """Seconds the live server may take to listen before opening fails [s]."""
 
-    def __init__(
-        self,
-        config: RecordingConfig,
-        machine: str,
-        *,
-        outputs: Sequence[str],
-        parameters: Mapping[str, str],
-        output_units: Mapping[str, str] | None = None,
-        nominal: Mapping[str, float] | None = None,
-        estimated: Sequence[str] | None = None,
-        alarm_bands: Mapping[str, AlarmBands] | None = None,
-        run: str | None = None,
-    ) -> None:
+    def __init__(self, config: RecordingConfig, machine: str, *, outputs: Sequence[str],
+                 parameters: Mapping[str, str], output_units: Mapping[str, str] | None = None,
+                 nominal: Mapping[str, float] | None = None,
+                 estimated: Sequence[str] | None = None,
+                 alarm_bands: Mapping[str, AlarmBands] | None = None,
+                 run: str | None = None) -> None:
         self._closed = True  # until fully open, so __del__ and close() are safe
         if not machine:
             raise ValueError("machine must not be empty")
@@ -333,9 +326,7 @@ class RerunRecorder(RecordingFiles, Sink):
             self._reopen_delay = min(2 * self._reopen_delay, self.reopen_max)
             logger.debug("recording to %s failed again: %s", self.path, exc)
         if self._file_windows:
-            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-            aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
-                                        f"{self.path.suffix}")
+            aside = self._aside_name()
             try:
                 self.path.rename(aside)
                 self._rotated[aside] = self._file_windows
@@ -369,15 +360,11 @@ class RerunRecorder(RecordingFiles, Sink):
         """The underlying Rerun recording stream (``None`` when disabled)."""
         return self._rec
 
-    # -- what the viewer shows -------------------------------------------------------------------
     # -- one window ----------------------------------------------------------------------------
-    def _validate(
-        self,
-        t: np.ndarray,
-        measured: Mapping[str, np.ndarray],
-        simulated: Mapping[str, np.ndarray],
-        parameters: Mapping[str, float],
-    ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray], dict[str, float]]:
+    def _validate(self, t: np.ndarray, measured: Mapping[str, np.ndarray],
+                  simulated: Mapping[str, np.ndarray], parameters: Mapping[str, float]
+                  ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray],
+                             dict[str, float]]:
         times = np.asarray(t, dtype=np.float64)
         if times.ndim != 1 or times.size == 0:
             raise ValueError(f"t must have shape (N,) with N >= 1, got {times.shape}")
@@ -388,36 +375,26 @@ class RerunRecorder(RecordingFiles, Sink):
             arrays: dict[str, np.ndarray] = {}
             for name, values in channels.items():
                 if name not in self.outputs:
-                    raise ValueError(
-                        f"{label} channel {name!r} is not a declared output {list(self.outputs)}"
-                    )
+                    raise ValueError(f"{label} channel {name!r} is not a declared output "
+                                     f"{list(self.outputs)}")
                 array = np.asarray(values, dtype=np.float64)
                 if array.shape != times.shape:
-                    raise ValueError(
-                        f"{label}[{name!r}] has shape {array.shape}, expected {times.shape}"
-                    )
+                    raise ValueError(f"{label}[{name!r}] has shape {array.shape}, expected "
+                                     f"{times.shape}")
                 arrays[name] = array
             series.append(arrays)
         unknown = set(parameters) - set(self.parameters)
         if unknown:
-            raise ValueError(
-                f"parameters {sorted(unknown)} are not declared {list(self.parameters)}"
-            )
+            raise ValueError(f"parameters {sorted(unknown)} are not declared "
+                             f"{list(self.parameters)}")
         estimates = {name: float(value) for name, value in parameters.items()}
         return times, series[0], series[1], estimates
 
-    def log_window(
-        self,
-        *,
-        t: np.ndarray,
-        measured: Mapping[str, np.ndarray],
-        simulated: Mapping[str, np.ndarray],
-        parameters: Mapping[str, float],
-        health: HealthMessage | Mapping[str, Any],
-        terms_changed: bool = False,
-        health_json: str | None = None,
-        events: Sequence[Mapping[str, Any]] = (),
-    ) -> None:
+    def log_window(self, *, t: np.ndarray, measured: Mapping[str, np.ndarray],
+                   simulated: Mapping[str, np.ndarray], parameters: Mapping[str, float],
+                   health: HealthMessage | Mapping[str, Any], terms_changed: bool = False,
+                   health_json: str | None = None,
+                   events: Sequence[Mapping[str, Any]] = ()) -> None:
         """Record one acquisition window, then flush it to the file (and send it to the live
         server when serving).
 
@@ -504,16 +481,11 @@ class RerunRecorder(RecordingFiles, Sink):
         twin outputs, estimates, its typed health message (and that message's one encoding)
         and its alarm changes."""
         est = out.result.estimate
-        self.log_window(
-            t=out.window.t,
-            measured={o: out.window[o] for o in self.outputs},
-            simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
-            parameters=est.values,
-            health=out.health,
-            terms_changed=out.result.changed,
-            health_json=out.health_json,
-            events=out.events,
-        )
+        self.log_window(t=out.window.t, measured={o: out.window[o] for o in self.outputs},
+                        simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
+                        parameters=est.values, health=out.health,
+                        terms_changed=out.result.changed, health_json=out.health_json,
+                        events=out.events)
 
     def _flush(self, rec: rr.RecordingStream) -> bool:
         """Flush to the file; False (logged once, counted) if it failed. A file writer that
@@ -554,12 +526,10 @@ class RerunRecorder(RecordingFiles, Sink):
             if self._flush(rec):
                 rec.disconnect()
             self._release()
-        logger.info(
-            "recording of %s closed: %d windows in %s", self.machine, self.windows, self.path
-        )
+        logger.info("recording of %s closed: %d windows in %s", self.machine, self.windows,
+                    self.path)
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
-        return (
-            f"RerunRecorder({str(self.path)!r}, {self.machine!r}, {state}, windows={self.windows})"
-        )
+        return (f"RerunRecorder({str(self.path)!r}, {self.machine!r}, {state}, "
+                f"windows={self.windows})")

@@ -119,8 +119,6 @@ def entity(*parts: str) -> str:
     return "/".join(rr.escape_entity_path_part(p) for p in parts)
 
 
-
-
 RANK = {"normal": 0, "warning": 1, "alarm": 2}
 
 
@@ -233,8 +231,6 @@ def band_pct(ph: ParameterView) -> tuple[float, float]:
     return (low / nom - 1.0) * 100.0, (high / nom - 1.0) * 100.0
 
 
-
-
 def clock(t: float) -> str:
     """Plant time for a person: ``14:38`` (minutes:seconds), ``1:02:05`` past an hour,
     ``-0:05`` before zero, the UTC time of day ``14:38:05Z`` for a wall clock (from
@@ -270,5 +266,3 @@ def span(seconds: float) -> str:
 def fmt(x: Any, spec: str = ".6g") -> str:
     v = as_number(x)
     return format(v, spec) if math.isfinite(v) else "n/a"
-
-

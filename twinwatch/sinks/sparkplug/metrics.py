@@ -136,4 +136,3 @@ def set_value(metric: Any, datatype: str, value: Any) -> None:
         metric.boolean_value = bool(value)
     else:
         metric.string_value = str(value)
-

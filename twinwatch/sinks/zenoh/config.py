@@ -252,4 +252,3 @@ def check_key(key: str, *, what: str) -> None:
     if not key or any(_CHUNK_RE.match(chunk) is None for chunk in key.split("/")):
         raise ValueError(f"{what} {key!r} must be non-empty chunks of letters, digits, '_', '-' "
                          "or '.' separated by '/' (no wildcards, no leading or trailing '/')")
-

@@ -39,10 +39,6 @@ class HealthPublisher(Sink):
     """Publishes one machine's health (and other JSON topics) on zenoh: the built-in output
     ``zenoh`` (table ``[zenoh]``, a publisher: it gets only the windows the state store stored).
 
-    Keys, with ``P = {config.key_prefix}/{machine}``: ``P/health`` (publisher and queryable
-    answering the latest document), ``P/<suffix>`` for :meth:`publish_json`, liveliness token
-    ``P/alive``. See the package docstring for how a remote process reads them.
-
     :meth:`publish` and :meth:`publish_json` may be called from a worker thread while
     :meth:`close` is called from another; a failing put is logged once (then at DEBUG until a
     put succeeds again), counted in :attr:`errors`, and never raised. After :meth:`close`,
@@ -381,9 +377,7 @@ class HealthPublisher(Sink):
                 publisher = self._publishers.get(key)
                 if publisher is None:
                     # the summary's publisher is a plain one: its latest is this queryable's
-                    # (a fleet of 5000 machines' advanced publishers through three routers
-                    # left a far advanced subscriber without a quarter of them for minutes:
-                    # benchmarks/bench_fleet.py, docs/fleet.md)
+                    # (advanced ones did not scale: benchmarks/bench_fleet.py, docs/fleet.md)
                     cfg = (self.config if key != self.summary_key else self.config.model_copy(
                         update={"cache": 0}))
                     publisher = declare_publisher(self._session, key, cfg)
@@ -413,10 +407,7 @@ class HealthPublisher(Sink):
         """The summary publisher's matching listener, a machine of its own session (on a
         zenoh thread, never under the lock: it may run inside the declaration): when a
         subscriber becomes reachable again, the latest summary is sent again
-        (:meth:`resend_summary`). Measured (a box on two routers, the first killed): the
-        box's session failed over at once, matching went false and true in the same 10 ms,
-        and the latest summary reached the watcher on the other router then, where a get to
-        that box went unanswered while the mesh settled."""
+        (:meth:`resend_summary`): at a failover it reaches the watcher before a get would."""
         matching = bool(status.matching)
         was, self._summary_matching = self._summary_matching, matching
         if matching and not was:
@@ -527,8 +518,7 @@ class HealthPublisher(Sink):
 
 def worst_parameter(health: Any, bands: Mapping[str, AlarmBands]) -> dict[str, Any] | None:
     """The parameter furthest off nominal by its own threshold, for the fleet summary's
-    ``worst`` (the fleet view's deviation column leads with it; issue 56: with only Ra's
-    deviation shown, a machine with D +20 % looked healthy).
+    ``worst`` (the fleet view's deviation column leads with it).
 
     Each parameter with a finite deviation (not ``tied`` nor ``fixed``: those are not
     estimated) is measured as ``|deviation| / threshold``: its alarm rule's warning threshold
@@ -577,4 +567,3 @@ def _worst_changed(old: Mapping[str, Any] | None, new: Mapping[str, Any]) -> boo
         return worst.get("parameter") if isinstance(worst, Mapping) else None
 
     return old is not None and name(old) != name(new)
-

@@ -129,4 +129,3 @@ def explain_open_failure(cfg: ZenohConfig, message: str) -> str:
                 f"fix the endpoint host in [zenoh] (zenoh: {message})")
     return (f"cannot open zenoh session (mode={cfg.mode}, listen={cfg.listen}, "
             f"connect={cfg.connect}): {message}")
-
