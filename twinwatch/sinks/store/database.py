@@ -106,22 +106,12 @@ class StateStore(Gate):
     counter_prefix: ClassVar[str | None] = "store"
     open_order: ClassVar[int] = 20  # its lock before the recording's (which truncates a file)
 
-    def __init__(
-        self,
-        path: str | os.PathLike[str],
-        *,
-        synchronous: Literal["FULL", "NORMAL"] = "FULL",
-        keep_days: float | None = 30.0,
-        keep_rows: int | None = 1_000_000,
-        prune_every: int = 100,
-        prune_batch: int = 1000,
-        busy_timeout: float = 5.0,
-        backlog: int = 10_000,
-        recover_corrupt: bool = False,
-        check: bool = False,
-        recent: int = 1000,
-        run: str | None = None,
-    ) -> None:
+    def __init__(self, path: str | os.PathLike[str], *,
+                 synchronous: Literal["FULL", "NORMAL"] = "FULL",
+                 keep_days: float | None = 30.0, keep_rows: int | None = 1_000_000,
+                 prune_every: int = 100, prune_batch: int = 1000, busy_timeout: float = 5.0,
+                 backlog: int = 10_000, recover_corrupt: bool = False, check: bool = False,
+                 recent: int = 1000, run: str | None = None) -> None:
         if synchronous not in ("FULL", "NORMAL"):
             raise ValueError(f"synchronous must be FULL or NORMAL, not {synchronous!r}")
         self.path = Path(path)
