@@ -70,14 +70,9 @@ class RerunRecorder(RecordingFiles, Sink):
 
     Args:
         config: the ``[recording]`` configuration.
-        machine: machine name, first part of every entity path.
-        outputs: names of the output channels compared between plant and twin, e.g.
-            ``("ia", "omega")``.
-        parameters: parameter name -> unit, e.g. ``{"Ra": "ohm", "J": "kg m^2"}``.
-        output_units: output -> unit, for the views' titles (default: none shown).
-        nominal: parameter -> nominal value [SI], for the health views' titles.
-        estimated: the parameters that get a health view (default: every parameter).
-        alarm_bands: parameter -> its alarm thresholds [% of nominal], drawn on its view.
+        machine, outputs, parameters, output_units, nominal, estimated, alarm_bands: as
+            :class:`~twinwatch.sinks.rerun.views.RecordingViews` (default ``estimated``: every
+            parameter).
         run: the run's id (``20261122T101530Z-3f9a2c``), the file's name after ``<stem>-``
             (default: the UTC start time; an id that does not start with one follows it).
 
