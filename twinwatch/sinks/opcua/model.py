@@ -15,8 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from twinwatch.sinks.opcua import _ua
 
-# the real modules once a server opens (:func:`~twinwatch.sinks.opcua._ua.bind` rebinds these
-# names here: every ``ua.X`` through the lazy module costs an import-system lookup)
+# the real modules once a server opens (:func:`~twinwatch.sinks.opcua._ua.rebinds`)
 asyncua: Any = _ua.asyncua
 ua: Any = _ua.ua
 _ua.rebinds(globals())

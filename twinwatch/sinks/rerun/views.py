@@ -202,8 +202,8 @@ class RecordingViews:
             its alarms were raised, a band beyond the view); beside them, for a parameter
             with an alarm rule, its projection to the alarm threshold at the cursor. With
             ``beside`` (a parameter without a rule whose grid shares the column with ruled
-            ones), the summary beside the plot, which keeps the row's height: under it, the
-            plot was about 50 px at 1600x1000, too short for its +-10 labels."""
+            ones), the summary beside the plot, which keeps the row's height for its +-10
+            labels."""
             series = rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
                                         contents=["$origin/**", "- $origin/summary",
                                                   "- $origin/projection/**"], **whole())
@@ -226,8 +226,7 @@ class RecordingViews:
         shares = [2.0] * len(ruled)
         if others:
             # beside the ruled panels, the grid's rows are short (1.4 to their 2.0): each
-            # summary beside its plot; alone in the column (discovery, the leak), under it
-            # (beside, the discovery's 300 s axis lost its minute labels: too narrow)
+            # summary beside its plot; alone in the column, under it (its axis keeps its labels)
             views = [panel(p, beside=bool(ruled)) for p in others]
             columns = 1 if len(others) == 1 else 2
             health.append(rrb.Grid(*views, grid_columns=columns, name="other parameters"))
@@ -245,8 +244,7 @@ class RecordingViews:
             column_shares=[1.6, 1.0, 1.0], name="data quality")
         left = rrb.Vertical(
             rrb.Vertical(*health, row_shares=shares, name="health"), quality,
-            # the quality strip a sixth of the column at least: with five small panels
-            # (the discovery example) its ticks were cut at 1600x1000
+            # the quality strip a sixth of the column at least (its ticks readable at 1600x1000)
             row_shares=[max(sum(shares), 1.0), max(1.0, 0.21 * sum(shares))],
             name="health and data quality")
         pairs = [(rrb.TimeSeriesView(origin=origin("outputs", o),
@@ -358,7 +356,7 @@ class RecordingViews:
     def _band_clip(self, p: str) -> float:
         """How far from nominal ``p``'s 2-sigma band is drawn at most [%]: ``BAND_CLIP`` times
         its outer threshold, or within the headroom of its scale when it has no rule (a small
-        panel then keeps its ticks -10, 0, 10: at +-15 % it labelled only 0)."""
+        panel then keeps its ticks -10, 0, 10)."""
         outer = max(abs(value) for _, value, _ in self._limits(p))
         return (BAND_CLIP if p in self.alarm_bands else SCALE_HEADROOM) * outer
 
@@ -603,8 +601,8 @@ class RecordingViews:
         low, high = band_pct(ph)
         clip = self._band_clip(p)
         if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
-            # words between the numbers, and no exponent below 10^5 %: a narrow summary
-            # wraps at the spaces (``-95.5..+2.1e+03`` was broken after its ``-`` and ``e+``)
+            # words between the numbers, and no exponent below 10^5 %: a narrow summary wraps
+            # at the spaces
             lines.append(f"2-sigma band from {pct_text(low)} to {pct_text(high)} %, "
                          f"drawn to +-{clip:g} %")
         return "  \n".join(lines) + "\n"

@@ -209,9 +209,6 @@ class StateStore(Gate):
                                    check_same_thread=False)
             conn.execute(f"PRAGMA synchronous={self.synchronous}")
             conn.execute("PRAGMA foreign_keys=ON")
-            # the page cache per connection (SQLite's default 2 MB): the writer appends and
-            # the readers page, neither rereads much; in a fleet every machine has two or
-            # three connections
             conn.execute(f"PRAGMA cache_size=-{CACHE_KIB}")
         except sqlite3.Error as exc:
             raise self._error("cannot open", exc) from exc
