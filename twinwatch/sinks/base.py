@@ -2,35 +2,17 @@
 asks of it.
 
 Modelled on python-can's ``BusABC`` (as :class:`twinwatch.drivers.Driver` is): one abstract base,
-:class:`Sink`, that every output subclasses, the built-ins (the state store, the Zenoh
-publisher, the Rerun recorder) as well as a plug-in registered through the entry-point group
-``twinwatch.sinks``. A sink declares
-
-* its configuration: :attr:`Sink.config_class` (a :class:`SinkConfig` subclass: unknown keys
-  refused), configured under ``[outputs.<name>]`` (the built-ins keep their historic
-  top-level tables ``[state]``, ``[zenoh]``, ``[recording]``:
-  :data:`twinwatch.sinks.HISTORIC_TABLES`);
-* how it opens: :meth:`Sink.from_config` with its validated table and a :class:`SinkContext`
-  (what it needs from the daemon: machine name, the twin's outputs and parameter units,
-  directories, the stored history), raising a :class:`~twinwatch.errors.SinkError` subclass
-  with a clear message when it cannot (``twinwatch run`` exits 1);
-* its role (:attr:`Sink.role`): the ``gate`` (the state store: a window it cannot take is not
-  given to the publishers, see :class:`Gate`), a ``publisher`` (makes the window visible to
-  others: gets only the windows the gate stored) or a ``recorder`` (keeps its own copy: gets
-  every window);
-* what it does with a window: :meth:`Sink.write` (:class:`ProcessedWindow`: the window, the
-  typed health message and its one encoding, the alarm events, the twin to persist);
-* what it reports: :meth:`Sink.counters` (merged into the health message's counters as
-  ``<counter_prefix>_<name>``), :attr:`Sink.lost` (windows lost: ``twinwatch run`` exits 74),
-  :attr:`Sink.problem` (a line for systemd's ``STATUS`` while degraded), :attr:`Sink.status`
-  (what it serves, for ``STATUS``), :meth:`Sink.summary` (lines for the run's summary);
-* whether a reload may keep it open: :meth:`Sink.reload_key` (equal keys: the new daemon adopts
-  the open sink, :meth:`Sink.attach` re-binds it to the new daemon's context);
-* its commented sample (:meth:`Sink.sample`, printed by ``twinwatch sample-config``);
-* :meth:`Sink.close`: idempotent.
-
-A new output is one module (a :class:`Sink` subclass with its :class:`SinkConfig`) and one line
-in :data:`twinwatch.sinks.BUILTIN_SINKS`, or an entry point in another package.
+:class:`Sink`, that every output subclasses, the built-ins as well as a plug-in registered
+through the entry-point group ``twinwatch.sinks``. A sink declares its table
+(:attr:`Sink.config_class`, a :class:`SinkConfig`: ``[outputs.<name>]``, or the built-ins'
+:data:`twinwatch.sinks.HISTORIC_TABLES`), how it opens (:meth:`Sink.from_config`, with a
+:class:`SinkContext`), its :attr:`Sink.role` (the ``gate``, a ``publisher`` or a
+``recorder``), what it does with a window (:meth:`Sink.write`, a :class:`ProcessedWindow`),
+what it reports (:meth:`Sink.counters`, :attr:`Sink.lost`, :attr:`Sink.problem`,
+:attr:`Sink.status`, :meth:`Sink.summary`), whether a reload keeps it open
+(:meth:`Sink.reload_key`, :meth:`Sink.attach`), its sample (:meth:`Sink.sample`) and
+:meth:`Sink.close`. A new output, step by step: docs/extending.md ("Where a new output plugs
+in").
 """
 
 from __future__ import annotations
@@ -343,6 +325,23 @@ class SinkConfig(StrictTable):
         endpoints it listens on): a reload that changes its table but not these must wait for
         the running output to release them. Default: the :meth:`output_files`, resolved."""
         return {str(p.resolve()) for p in self.output_files(cwd).values()}
+
+
+def resolve_input_files(config: SinkConfig, base_dir: Path) -> None:
+    """A :meth:`SinkConfig.resolve_paths` for a table whose :meth:`~SinkConfig.input_files`
+    keys are its dotted keys (``tls.ca_certs``, ``trusted_clients.0``): each path made
+    absolute against ``base_dir`` (``~`` expanded)."""
+    for key, value in config.input_files().items():
+        *parents, last = key.split(".")
+        obj: Any = config
+        for part in parents:
+            obj = getattr(obj, part)
+        path = Path(value).expanduser()
+        resolved = str(path if path.is_absolute() else (base_dir / path).resolve())
+        if isinstance(obj, list):
+            obj[int(last)] = resolved
+        else:
+            setattr(obj, last, resolved)
 
 
 class Sink(Closeable, abc.ABC):

@@ -8,16 +8,10 @@ import re
 from pathlib import Path
 from typing import ClassVar, Literal, Self
 
-from pydantic import (
-    Field,
-    StrictFloat,
-    StrictInt,
-    field_validator,
-    model_validator,
-)
+from pydantic import Field, StrictFloat, StrictInt, field_validator, model_validator
 
 from twinwatch._table import StrictTable
-from twinwatch.sinks.base import SinkConfig
+from twinwatch.sinks.base import SinkConfig, resolve_input_files
 
 # A topic level: no wildcards, no NUL; '/' separates levels.
 _LEVEL_RE = re.compile(r"^[^#+\x00/]+$")
@@ -26,8 +20,7 @@ _LEVEL_RE = re.compile(r"^[^#+\x00/]+$")
 def check_topic(value: str, what: str) -> str:
     """A topic (prefix) by MQTT's rules (MQTT 3.1.1 Section 4.7): non-empty levels, no
     wildcards, no NUL, at most 65535 bytes of UTF-8, and not a ``$`` topic (``$SYS/...`` is the
-    broker's own: a subscriber's ``#`` never receives it, and a broker may refuse publishing
-    there: 10 windows were counted delivered that no subscriber could receive)."""
+    broker's own: a subscriber's ``#`` never receives it)."""
     if not value or any(_LEVEL_RE.match(level) is None for level in value.split("/")):
         raise ValueError(f"{what} {value!r} must be non-empty topic levels separated by '/', "
                          f"without the wildcards '+' and '#', NUL (and no leading or trailing "
@@ -85,7 +78,6 @@ class MqttConnectionConfig(SinkConfig):
     """The broker connection and the outbox's pace: the keys ``[outputs.mqtt]`` shares with
     ``[outputs.sparkplug]`` (:mod:`twinwatch.sinks.sparkplug`)."""
 
-    enabled: bool = Field(True, description="false: the output is not opened")
     host: str = Field("127.0.0.1", min_length=1, description="the broker's host name or address")
     port: StrictInt = Field(1883, ge=1, le=65535, description="the broker's port (8883 for TLS)")
     client_id: str | None = Field(None, min_length=1, max_length=128,
@@ -123,8 +115,8 @@ class MqttConnectionConfig(SinkConfig):
     @field_validator("client_id")
     @classmethod
     def _client_id(cls, value: str | None) -> str | None:
-        # MQTT 3.1.1 Section 3.1.3.1: a UTF-8 string; a NUL or a control character passed
-        # check-config, then nothing was delivered and nothing said why
+        # MQTT 3.1.1 Section 3.1.3.1: a UTF-8 string; with a NUL or control character nothing
+        # is delivered
         if value is not None and any(ord(c) < 0x20 or ord(c) == 0x7F for c in value):
             raise ValueError("client_id must not contain NUL or control characters")
         return value
@@ -159,17 +151,7 @@ class MqttConnectionConfig(SinkConfig):
         return ["password"] if self.password is not None else []
 
     def resolve_paths(self, base_dir: Path) -> None:
-        """Make the file paths absolute against ``base_dir`` (``~`` expanded)."""
-        def resolve(v: str) -> str:
-            p = Path(v).expanduser()
-            return str(p if p.is_absolute() else (base_dir / p).resolve())
-
-        if self.tls is not None:
-            for k in MqttTlsConfig.FILES:
-                if (v := getattr(self.tls, k)):
-                    setattr(self.tls, k, resolve(v))
-        if self.password_file:
-            self.password_file = resolve(self.password_file)
+        resolve_input_files(self, base_dir)
 
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The client id at the broker (a second connection with it would take the session

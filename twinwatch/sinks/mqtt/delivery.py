@@ -98,10 +98,8 @@ class Delivery:
         output); the thread binds it (:meth:`rebind_outbox`)."""
         self.context = context
         if context.outbox is not None:
-            # The delivered position exists before the output's thread first runs: created
-            # there, lazily, it was placed at the newest stored window, and the windows the
-            # daemon stored meanwhile were taken for old history and never sent (issue 26;
-            # the reload hand-over test lost its first 3 windows in 4 of 8 runs).
+            # The delivered position exists before the output's thread first runs (created
+            # there, the windows stored meanwhile would be taken for old history, never sent)
             try:
                 box = context.outbox(self._outbox_name())
                 if box is not None:
@@ -267,7 +265,7 @@ class Delivery:
         outbox's row ids are stale. The windows in flight and delivered but not yet recorded
         are forgotten (sent again from the new file: at least once), the outbox is bound
         again: the windows the store wrote to the new file and this output had not
-        delivered are pending there (delivery went on silently nowhere before, issue 26)."""
+        delivered are pending there."""
         box = self.outbox
         if box is None or not getattr(box, "changed", False):
             return False
@@ -295,8 +293,7 @@ class Delivery:
     def unacknowledged(self, broker: str, connected: bool) -> str | None:
         """Connected, but the oldest window handed to the broker waits for its
         acknowledgement longer than ``ack_timeout``: a broker that accepts and never
-        acknowledges (issue 26: 36 windows pending for 70 s, STATUS never said DEGRADED, not
-        one log line). Logged once per episode."""
+        acknowledges. Logged once per episode."""
         if not connected:
             self._unacked_logged = False
             return None
@@ -331,8 +328,7 @@ class DeliveringSink(Sink):
     def reload_key(cls, config: Any, context: SinkContext) -> Hashable:
         """The table's values and what its files hold now (the password file, the TLS
         certificates and key): a SIGHUP after a password or a certificate was renewed opens
-        the output again with them; the same table and files keep it connected. (Before,
-        only the table counted: a fixed password file was read again only by a restart.)"""
+        the output again with them; the same table and files keep it connected."""
         files = []
         for key, path in sorted(config.input_files().items()):
             try:

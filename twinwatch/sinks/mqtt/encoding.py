@@ -61,9 +61,21 @@ def _rounded(value: Any, std: float | None, *, floor: float | None = None,
 
 
 def _rul_s(param: ParameterView, level: str) -> Any:
+    """The median time [s] to ``level``'s threshold (``rul.<level>.rul_s``), or None."""
     rul = param.rul
     crossing = (rul.alarm if level == "alarm" else rul.warning) if rul is not None else None
     return crossing.rul_s if crossing is not None else None
+
+
+def known_parameters(parameters: Mapping[str, str], view: HealthView | None
+                     ) -> tuple[dict[str, str], Mapping[str, ParameterView]]:
+    """The configured parameters (name -> unit) with those ``view`` carries beyond them, and
+    ``view``'s parameters."""
+    params = dict(parameters)
+    doc_params = (view.parameters if view is not None else None) or {}
+    for name, p in doc_params.items():
+        params.setdefault(name, str(p.unit or ""))
+    return params, doc_params
 
 
 def health_view(doc: HealthView | Mapping[str, Any] | str | bytes) -> HealthView:
@@ -125,10 +137,9 @@ _NO_ACTION = {"no_fault": "none",
 def diagnosis_values(diag: DiagnosisView) -> dict[str, str]:
     """The diagnosis' flat topics: ``diagnosis/fault`` (the most probable fault's id, or
     ``no_fault`` / ``unknown`` / ``check_function``), ``diagnosis/probability`` (its
-    probability [%], one decimal),
-    ``diagnosis/action`` (the fault's maintenance action, or what to do without one; never
-    empty: an empty retained payload deletes the topic; at most 255 characters, Home
-    Assistant's limit of a state)."""
+    probability [%], one decimal), ``diagnosis/action`` (the fault's maintenance action, or
+    what to do without one; never empty: an empty retained payload deletes the topic; at most
+    255 characters, Home Assistant's limit of a state)."""
     status = str(diag.status or "no_fault")
     faults = diag.faults or []
     top = faults[0] if status == "fault" and faults else None
@@ -199,16 +210,14 @@ def discovery_payload(machine: str, model: str, base: str,
         model: the twin model (the device's model).
         base: the machine's topic base ``<prefix>/<machine>``.
         doc: the newest health message (its typed view, or decoded), or None: which
-            parameters have an alarm
-            rule (``alarms``) and a ``rul`` field; without it, every parameter of
-            ``parameters`` gets its value, deviation and status only.
+            parameters have an alarm rule (``alarms``) and a ``rul`` field; without it, every
+            parameter of ``parameters`` gets its value, deviation and status only.
         parameters: parameter name -> SI unit (the twin's, in order).
         qos: the QoS Home Assistant subscribes with.
         device_name: the device's name (default: the machine name).
         rules: the parameters with an ``[alarms]`` rule (the configuration's): their alarm
-            and RUL entities are announced in the first message, before any health message
-            (before, the first discovery had 18 components and the next, once a message
-            came, 25), and only theirs (a RUL without a rule stayed ``unknown`` for ever).
+            and RUL entities, and only theirs, are announced in the first message, before
+            any health message.
         nominal: parameter -> nominal value, for each value entity's display precision.
 
     Returns:
@@ -224,10 +233,7 @@ def discovery_payload(machine: str, model: str, base: str,
 
     view = health_view(doc) if doc is not None else None
     dev_id = ha_device_id(machine)
-    params = dict(parameters)
-    doc_params = (view.parameters if view is not None else None) or {}
-    for name, p in doc_params.items():
-        params.setdefault(name, str(p.unit or ""))
+    params, doc_params = known_parameters(parameters, view)
     alarms = set(levels(view)) | set(rules or ())
     number = "{{ value_json }}"  # JSON null -> None -> Home Assistant's "unknown"
     cmps: dict[str, dict[str, Any]] = {}
@@ -275,9 +281,6 @@ def discovery_payload(machine: str, model: str, base: str,
         "qos": qos,
         "cmps": cmps,
     }
-
-
-# -- the outbox without a state database --------------------------------------------------------
 
 
 def components(doc: HealthView) -> tuple[frozenset[str], frozenset[str]]:

@@ -257,9 +257,7 @@ class MqttPublisher(DeliveringSink):
             return "done"
         if not session.connected:
             # while windows wait: an attempt at once and then every CLOSE_RETRY_S until the
-            # deadline (the backoff may be sleeping through a broker that is back; a single
-            # attempt gave up on a broker started a second after a short run's end, its
-            # backlog left for the next start)
+            # deadline (the backoff may be sleeping through a broker that is back)
             if not (delivery.inflight or delivery.has_pending()):
                 return "done"
             if now >= self._close_attempt:
@@ -374,17 +372,9 @@ class MqttPublisher(DeliveringSink):
 
     def _finish(self) -> None:
         """Leaving the thread: record the deliveries, go offline, disconnect."""
-        session = self.session
         self.delivery.flush_acks()
         self.delivery.count()
-        if session.connected:
-            info = session.client.publish(self.availability_topic, "offline", qos=1,
-                                          retain=True)
-            end = time.monotonic() + 2.0
-            while session.connected and not info.is_published() and time.monotonic() < end:
-                session.client.loop(timeout=0.05)
-            session.client.disconnect()
-        session.connected = False
+        self.session.leave(self.availability_topic, "offline", retain=True)
         self.delivery.finish()
 
     def __repr__(self) -> str:

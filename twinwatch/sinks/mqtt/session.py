@@ -184,9 +184,7 @@ class MqttSession:
             self.unreachable(str(exc) or type(exc).__name__)
             return
         # the CONNACK is waited for while closing too: the closing loop's attempts are how a
-        # backlog reaches a broker that is back after the run's end (leaving at once, each
-        # attempt's socket was closed by the next before its CONNACK was read: a broker back
-        # 25 s after an outage, during the stop, saw a connection a second and got nothing)
+        # backlog reaches a broker that is back after the run's end
         end = time.monotonic() + self.config.connect_timeout
         while not self.connected and not self.refused and time.monotonic() < end:
             if self.client.loop(timeout=0.05) != mqtt.MQTT_ERR_SUCCESS:
@@ -236,9 +234,8 @@ class MqttSession:
     def _taken_over(self, lasted: float) -> None:
         """A connection lost ``lasted`` seconds after it was made. The broker closes a
         session when another client connects with the same client id (MQTT 3.1.1: no reason
-        given); two daemons with one id take it from each other in turn (issue 26: 78
-        take-overs in 45 s, 13 of 39 windows never received, about 80 warnings per daemon and
-        no line naming the cause). :data:`TAKEOVERS` such losses in a row, each within
+        given); two daemons with one id take it from each other in turn. :data:`TAKEOVERS`
+        such losses in a row, each within
         :data:`TAKEOVER_S` of the connection: named once, and the next attempts wait longer
         (doubling from 5 s to 60 s); a connection that lasts resets it."""
         if lasted > TAKEOVER_S:
@@ -258,6 +255,17 @@ class MqttSession:
                             self._conflict)
         hold = min(5.0 * 2 ** (self.takeovers - TAKEOVERS), 60.0) * random.uniform(0.75, 1.25)
         self.hold_until = time.monotonic() + hold
+
+    def leave(self, topic: str, payload: str | bytes, retain: bool = False) -> None:
+        """A clean stop: ``payload`` on ``topic`` (what the will says: ``offline``, NDEATH),
+        given 2 s to be acknowledged, then disconnect."""
+        if self.connected:
+            info = self.client.publish(topic, payload, qos=1, retain=retain)
+            end = time.monotonic() + 2.0
+            while self.connected and not info.is_published() and time.monotonic() < end:
+                self.client.loop(timeout=0.05)
+            self.client.disconnect()
+        self.connected = False
 
     # -- for STATUS ---------------------------------------------------------------------------
     def problems(self, pending: int) -> list[str]:

@@ -9,7 +9,7 @@ from typing import Literal, Self
 
 from pydantic import Field, StrictFloat, StrictInt, field_validator, model_validator
 
-from twinwatch.sinks.base import SinkConfig
+from twinwatch.sinks.base import SinkConfig, resolve_input_files
 
 __all__ = ["SECURITY", "OpcUaConfig"]
 
@@ -30,7 +30,6 @@ class OpcUaConfig(SinkConfig):
         # private_key = "/etc/twinwatch/opcua-server.pem"    # 0640 root:twinwatch
     """
 
-    enabled: bool = Field(True, description="false: the output is not opened")
     endpoint: str = Field("opc.tcp://127.0.0.1:4840",
                           description="opc.tcp://host:port the server listens on")
     namespace: str = Field("urn:twinwatch:health", min_length=1,
@@ -89,16 +88,7 @@ class OpcUaConfig(SinkConfig):
         return {"private_key": self.private_key} if self.private_key else {}
 
     def resolve_paths(self, base_dir: Path) -> None:
-        """Make the file paths absolute against ``base_dir`` (``~`` expanded)."""
-        def resolve(v: str) -> str:
-            p = Path(v).expanduser()
-            return str(p if p.is_absolute() else (base_dir / p).resolve())
-
-        if self.certificate:
-            self.certificate = resolve(self.certificate)
-        if self.private_key:
-            self.private_key = resolve(self.private_key)
-        self.trusted_clients = [resolve(p) for p in self.trusted_clients]
+        resolve_input_files(self, base_dir)
 
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The port the server listens on."""

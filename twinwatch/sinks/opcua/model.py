@@ -15,8 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from twinwatch.sinks.opcua import _ua
 
-# the real modules once a server opens (:func:`~twinwatch.sinks.opcua._ua.bind` rebinds these
-# names here: every ``ua.X`` through the lazy module costs an import-system lookup)
+# the real modules once a server opens (:func:`~twinwatch.sinks.opcua._ua.rebinds`)
 asyncua: Any = _ua.asyncua
 ua: Any = _ua.ua
 _ua.rebinds(globals())
@@ -51,20 +50,11 @@ _UNITS_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
 
 def device_health(health: HealthMessage) -> tuple[int, str]:
     """The window's DeviceHealth (OPC UA Part 100, NAMUR NE 107) and why, for a person: by
-    what the operator must do, the first that applies (docs/opcua-output.md's table, a test
-    per row):
-
-    * ``FAILURE``: a parameter's deviation alarm (its event says "inspect the machine now; ...
-      take it out of service"): the only state that asks to stop now;
-    * ``CHECK_FUNCTION``: the twin does not describe the machine (the diagnosis' check
-      function), or part of the source is silent: the values are not valid;
-    * ``OFF_SPEC``: a parameter's deviation warning: outside its specified band, still within
-      its alarm threshold (its event: plan an inspection at the next stop);
-    * ``MAINTENANCE_REQUIRED``: a RUL level raised (the time left to the alarm threshold is
-      short: schedule the intervention), or a raised fault alarm of the diagnosis, whatever
-      its urgency (each fault's action is a maintenance action, "at the next stop", "check
-      ..."; the urgency says how soon, in the reason);
-    * ``NORMAL``: none of these (a drift within the warning band is normal).
+    what the operator must do, the first that applies (the rules and why: docs/opcua-output.md's
+    table, a test per row): ``FAILURE`` (a deviation alarm), ``CHECK_FUNCTION`` (the
+    diagnosis' check function, a silent source), ``OFF_SPEC`` (a deviation warning),
+    ``MAINTENANCE_REQUIRED`` (a RUL level raised, a raised fault alarm whatever its urgency),
+    else ``NORMAL``.
 
     Args:
         health: the window's typed health message (its ``alarms``, ``diagnosis``,

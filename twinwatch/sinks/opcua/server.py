@@ -35,8 +35,7 @@ from twinwatch.sinks.opcua.model import (
     flat_values,
 )
 
-# the real modules once a server opens (:func:`~twinwatch.sinks.opcua._ua.bind` rebinds these
-# names here: every ``ua.X`` through the lazy module costs an import-system lookup)
+# the real modules once a server opens (:func:`~twinwatch.sinks.opcua._ua.rebinds`)
 asyncua: Any = _ua.asyncua
 ua: Any = _ua.ua
 _ua.rebinds(globals())
@@ -45,8 +44,7 @@ if TYPE_CHECKING:
     from twinwatch.sinks.base import SinkContext
     from twinwatch.twin.health import HealthMessage
 
-#: the package's name, as before the split (the log lines name it)
-logger = logging.getLogger(__package__)
+logger = logging.getLogger(__package__)  # the log lines name the package
 
 __all__ = ["OpcUaServer"]
 
@@ -401,10 +399,8 @@ class OpcUaServer:
         m.stale = False
         ts = _source_time(m, h.run, h.t_end, now)
         m.health = device_health(h)
-        # the counters (some 40 a machine, most changing every window) at most every
-        # COUNTERS_EVERY_S of plant time: half the writes of a window, and a SCADA trends them
-        # at that pace anyway (measured: a 50-machine gateway's output cost 9 % of a core);
-        # not even flattened in the other windows
+        # the counters (some 40 a machine) at most every COUNTERS_EVERY_S of plant time: half
+        # the writes of a window, and a SCADA trends them at that pace anyway
         counters_due = (m.counters_t is None or h.t_end < m.counters_t
                         or h.t_end - m.counters_t >= COUNTERS_EVERY_S)
         if counters_due:

@@ -22,8 +22,7 @@ if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
 
-#: the package's name, as before the split (the log lines name it)
-logger = logging.getLogger(__package__)
+logger = logging.getLogger(__package__)  # the log lines name the package
 
 __all__ = ["FIX", "RecordingFiles", "check_directory", "check_writable", "free_name",
            "run_label"]
@@ -37,21 +36,16 @@ def check_directory(path: Path) -> None:
     """
     parent = path.parent
     if path.is_dir() and not path.is_symlink():
-        raise RecorderError(
-            f"recording path {path} is a directory: set [recording].path to a file name"
-        )
+        raise RecorderError(f"recording path {path} is a directory: set [recording].path to a "
+                            "file name")
     if not parent.exists():
-        raise RecorderError(
-            f"cannot record to {path}: directory {parent} does not exist; create it or set "
-            "[recording].path"
-        )
+        raise RecorderError(f"cannot record to {path}: directory {parent} does not exist; "
+                            "create it or set [recording].path")
     if not parent.is_dir():
         raise RecorderError(f"cannot record to {path}: {parent} is not a directory")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise RecorderError(
-            f"cannot record to {path}: directory {parent} is not writable by this user; "
-            "fix its permissions or set [recording].path"
-        )
+        raise RecorderError(f"cannot record to {path}: directory {parent} is not writable by "
+                            "this user; fix its permissions or set [recording].path")
 
 
 FIX = "stop it, or set another [recording].path"
@@ -225,20 +219,15 @@ class RecordingFiles:
         and delete the older files of the link beyond ``keep_files``. Called with the lock held.
         A failure stops the recording (logged once).
 
-        The stream is kept, not replaced: the Rerun SDK (0.41) never frees a Python recording
-        stream (rerun-io/rerun#2116: its batcher threads live on after ``disconnect``), so a new
-        stream per file (and one per blueprint sent) leaked about 1 MiB and four threads per
-        rotation. Every file of one run
-        therefore shares one recording id: opened together, the viewer shows them as one
-        recording. The blueprint is sent to the first file only (each send is a new stream);
-        the others use :attr:`blueprint_path`."""
+        The stream is kept, not replaced (the Rerun SDK 0.41 never frees a Python recording
+        stream: rerun-io/rerun#2116, docs/runtime.md), so every file of one run shares one
+        recording id (opened together: one recording). The blueprint is sent to the first
+        file only (each send is a new stream); the others use :attr:`blueprint_path`."""
         rec = self._rec
         assert rec is not None
         if not self._flush(rec):
             return  # the writer died: the file was kept aside and a new one will be opened
-        stamp = time.strftime(RUN_STAMP, time.gmtime())
-        aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
-                                    f"{self.path.suffix}")
+        aside = self._aside_name()
         try:
             self.path.rename(aside)  # the open file sink keeps writing to the renamed file
             self._relock()
@@ -267,6 +256,13 @@ class RecordingFiles:
                                 old.name, keep)
                 except OSError as exc:
                     logger.warning("cannot delete old recording %s: %s", old, exc)
+
+    def _aside_name(self) -> Path:
+        """The name the run's file is rotated (or kept aside) to:
+        ``<run file stem>.<UTC time>.<n>.rrd``."""
+        stamp = time.strftime(RUN_STAMP, time.gmtime())
+        return self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
+                                   f"{self.path.suffix}")
 
     def _check_file(self, window: Any) -> bool:
         """The file at :attr:`path` is still the one being written (called with the lock held,

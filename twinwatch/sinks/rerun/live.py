@@ -24,8 +24,7 @@ from twinwatch.errors import RecorderError
 from twinwatch.sinks.rerun.style import Op, rr, rrb
 from twinwatch.sinks.rerun.views import emit
 
-#: the package's name, as before the split (the log lines name it)
-logger = logging.getLogger(__package__)
+logger = logging.getLogger(__package__)  # the log lines name the package
 
 __all__ = ["LiveServer", "bury"]
 
@@ -99,11 +98,9 @@ class LiveServer:
     def open(self, application_id: str, recording_id: uuid.UUID, blueprint: rrb.Blueprint,
              log_static: Callable[[rr.RecordingStream], None], timeout: float) -> None:
         """Open :attr:`stream`, a second recording stream whose only sink is Rerun's gRPC
-        server on ``bind:port``, with the blueprint and what ``log_static`` sends once.
-
-        The server of a recorder closed before in this process (a reload) is taken over, with
-        its viewers and its history: a gRPC server does not stop while a viewer is connected
-        (Rerun SDK 0.41), so it is kept for the life of the process instead.
+        server on ``bind:port``, with the blueprint and what ``log_static`` sends once; the
+        server a recorder closed before parked (:meth:`park`) is taken over, with its viewers
+        and its history.
 
         Raises:
             RecorderError: the server does not listen within ``timeout`` [s].

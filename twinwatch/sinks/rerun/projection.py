@@ -271,5 +271,3 @@ def rul_short(ph: ParameterView) -> str:
         elif c.status == "predicted" and math.isfinite(as_number(c.rul_s)):
             return f"RUL {level} {span(as_number(c.rul_s))}"
     return crossed
-
-

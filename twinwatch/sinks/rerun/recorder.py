@@ -2,78 +2,32 @@
 
 One :class:`RerunRecorder` per monitored machine, each with its own
 :class:`rerun.RecordingStream` (never the global one, so several recorders coexist in one
-process). What it logs and the default blueprint (the entities, their styles, the layout
-that tells the machine's story at one glance) are
+process). What it logs and the default blueprint are
 :class:`~twinwatch.sinks.rerun.views.RecordingViews`; this package keeps the files, the live
-server and the faults.
+server and the faults. The operator's side (one file per run behind the link ``path``, live
+viewing, ``rerun rrd optimize`` for a file without footer): docs/operating.md; the rotation,
+the dead file writer, a file deleted under the daemon: docs/runtime.md.
 
-Per-run files: ``[recording] path`` (``twinwatch.rrd``) is a stable name, a symbolic link to
-the file of the run being written, ``<stem>-<run id>.rrd`` beside it (the run id starts with the
-run's UTC start: ``twinwatch-20261122T101530Z-3f9a2c.rrd``). A run never
-replaces another run's recording: each run writes its own file, and a regular file found at
-``path`` (from an earlier version) is kept, renamed to ``<stem>-<its UTC time>.rrd``.
-``rerun twinwatch.rrd`` opens the newest run; the summary names the run's file.
-
-Live viewing: with ``[recording] serve = true`` the recorder also serves the same entities, with
-the same blueprint, from a Rerun gRPC server (``serve_bind``, 127.0.0.1 by default, and
-``serve_port``) on a second recording stream with the same recording id: ``rerun
-rerun+http://127.0.0.1:9876/proxy``. The server keeps up to ``server_memory_limit`` of the
-history (oldest dropped first; static data never), so a viewer that connects late gets it; a
-viewer that connects, stalls or goes away never blocks a window (nothing waits for it). The file
-and the server are separate streams: a file rotated, reopened or deleted never disturbs the
-viewers, and a server that fails stops only the live view (logged once, :attr:`problem`). A gRPC
-server does not stop while a viewer is connected (Rerun SDK 0.41): a closed recorder leaves its
-server to the next recorder on the same address (a reload keeps the viewers and the history),
-and it ends with the process.
-
-Durability: the recording is flushed to the file after every window, so the data of every
-completed window is on disk whatever happens next. The RRD *footer* (chunk manifest) is written
-by :meth:`RerunRecorder.close`, and also by the Rerun SDK when the interpreter exits normally
-(end of ``main``, ``KeyboardInterrupt``, ``SystemExit`` raised by a SIGTERM handler). A hard
+Durability: the recording is flushed to the file after every window. The RRD *footer* is written
+by :meth:`RerunRecorder.close`, and by the Rerun SDK when the interpreter exits normally; a hard
 stop (SIGKILL, ``os._exit``, SIGTERM with its default action, power loss) leaves a file without
-footer: the viewer opens it and ``rerun rrd verify --check-footers false FILE`` accepts it,
-plain ``rerun rrd verify`` reports "Missing RRD footer"; ``rerun rrd optimize FILE -o OUT``
-writes a complete copy. The daemon must therefore turn SIGTERM into a normal shutdown.
+footer: the daemon must therefore turn SIGTERM into a normal shutdown.
 
-Faults: the run's file is locked (``flock``) while it is written, and a second twinwatch whose
-``path`` links to a file in use fails at start instead of writing beside the one running. The
-disk must keep ``RerunRecorder.min_free`` bytes free (64 MiB): below that the recording pauses
-(logged once, the windows counted in :attr:`RerunRecorder.lost`) and resumes when there is room
-again, so a slowly filling disk leaves its last space to the state database and never kills the
-Rerun file writer. When the writer dies anyway (the disk filled at once, "File-writer thread
-shut down prematurely" or a flush that times out), the recorder says so (an ERROR, and
-:attr:`RerunRecorder.problem` until it recovers), keeps the broken file under a rotated name
-(its windows are readable; ``rerun rrd optimize`` adds the footer), counts the windows it
-cannot record, and opens a new file at ``path`` on a *new* recording stream after
-``reopen_after`` seconds (doubling while it keeps failing). The dead stream is never touched
-again: with the Rerun SDK 0.41 a flush, a new file or a disconnect on it, and its exit hook,
-wait forever, so its helpers are disabled and Rerun's exit hook is unregistered (the recorder
-closes its own stream).
+Faults: the run's file is locked (``flock``) while it is written. Below ``RerunRecorder.min_free``
+bytes free (64 MiB) the recording pauses (windows counted in :attr:`RerunRecorder.lost`). A dead
+file writer (the disk filled at once, a flush that times out) is reported (:attr:`problem`), its
+file kept under a rotated name, and a new file opened on a *new* stream after ``reopen_after``
+seconds (doubling); the dead stream is never touched again (in the Rerun SDK 0.41 a flush, a new
+file or a disconnect on it, and its exit hook, wait forever). The run's file deleted, replaced or
+moved away is noticed before the next window (:meth:`~twinwatch.sinks.locks.FileLock.changed`):
+the windows lost with it are counted in :attr:`RerunRecorder.lost` and the same stream goes on in
+a new file of the same name.
 
-The run's file or its directory deleted, replaced or moved away while the daemon runs (a
-cleanup script, an operator) is noticed before the next window is recorded (the lock's
-descriptor against the path, :meth:`~twinwatch.sinks.locks.FileLock.changed`): the windows
-recorded in the file that is gone, and in the rotated files that went with its directory, are
-counted in :attr:`RerunRecorder.lost`, the directory is created again if it was removed (its
-last level only), and the same recording stream goes on in a new file of the same name, the link
-at ``path`` made again (a file moved away is finalised, footer written, and loses nothing).
-While no new file can be started, the windows are counted as not recorded and it is tried again
-with each window.
-
-Memory and rotation: to write the footer, the Rerun SDK (0.41) keeps every chunk's manifest
-entry in memory for the life of the file (``rerun.save(..., write_footer=True)``): one entry per
-entity and flush, some 28 per window here (measured: 27 MiB per 1000 windows of the default
-machine, and 76 kB of file per window), about 40 since each parameter's panel writes its
-summary and the outputs' axes get their frames (measured on 2026-11-22: 99 kB of file per
-window of the default machine, 86 kB before; the manifest's memory, not measured again, grows
-with the chunks), so a service writing one file for months would grow without bound.
-The recorder therefore rotates: after ``[recording] rotate_windows`` windows
-(default 1800, one hour of 2 s windows) it renames the run's file to
-``<run file stem>.<UTC time>.<n>.rrd`` beside it and points the same recording stream at a new
-file of the run's name (the renamed file is finalised: footer written, manifest freed). Of the
-older files of ``path`` (rotated ones and earlier runs'), the newest ``keep_files`` are kept when
-it rotates (oldest deleted first). ``<stem>.rbl`` holds the viewer layout for files opened
-together (``rerun twinwatch-*.rrd twinwatch.rbl``).
+Rotation: the SDK keeps every chunk's manifest entry in memory for the life of a file, so after
+``[recording] rotate_windows`` windows the run's file is renamed to
+``<run file stem>.<UTC time>.<n>.rrd`` (finalised) and the same stream goes on in a new file of
+the run's name; the newest ``keep_files`` older files of ``path`` are kept. ``<stem>.rbl`` holds
+the viewer layout for files opened together (``rerun twinwatch-*.rrd twinwatch.rbl``).
 """
 
 from __future__ import annotations
@@ -101,8 +55,7 @@ from twinwatch.sinks.rerun.views import RecordingViews, emit
 if TYPE_CHECKING:
     from twinwatch.twin.health import HealthMessage
 
-#: the package's name, as before the split (the log lines name it)
-logger = logging.getLogger(__package__)
+logger = logging.getLogger(__package__)  # the log lines name the package
 
 __all__ = ["RerunRecorder"]
 
@@ -117,14 +70,9 @@ class RerunRecorder(RecordingFiles, Sink):
 
     Args:
         config: the ``[recording]`` configuration.
-        machine: machine name, first part of every entity path.
-        outputs: names of the output channels compared between plant and twin, e.g.
-            ``("ia", "omega")``.
-        parameters: parameter name -> unit, e.g. ``{"Ra": "ohm", "J": "kg m^2"}``.
-        output_units: output -> unit, for the views' titles (default: none shown).
-        nominal: parameter -> nominal value [SI], for the health views' titles.
-        estimated: the parameters that get a health view (default: every parameter).
-        alarm_bands: parameter -> its alarm thresholds [% of nominal], drawn on its view.
+        machine, outputs, parameters, output_units, nominal, estimated, alarm_bands: as
+            :class:`~twinwatch.sinks.rerun.views.RecordingViews` (default ``estimated``: every
+            parameter).
         run: the run's id (``20261122T101530Z-3f9a2c``), the file's name after ``<stem>-``
             (default: the UTC start time; an id that does not start with one follows it).
 
@@ -159,19 +107,12 @@ class RerunRecorder(RecordingFiles, Sink):
     serve_timeout: float = 5.0
     """Seconds the live server may take to listen before opening fails [s]."""
 
-    def __init__(
-        self,
-        config: RecordingConfig,
-        machine: str,
-        *,
-        outputs: Sequence[str],
-        parameters: Mapping[str, str],
-        output_units: Mapping[str, str] | None = None,
-        nominal: Mapping[str, float] | None = None,
-        estimated: Sequence[str] | None = None,
-        alarm_bands: Mapping[str, AlarmBands] | None = None,
-        run: str | None = None,
-    ) -> None:
+    def __init__(self, config: RecordingConfig, machine: str, *, outputs: Sequence[str],
+                 parameters: Mapping[str, str], output_units: Mapping[str, str] | None = None,
+                 nominal: Mapping[str, float] | None = None,
+                 estimated: Sequence[str] | None = None,
+                 alarm_bands: Mapping[str, AlarmBands] | None = None,
+                 run: str | None = None) -> None:
         self._closed = True  # until fully open, so __del__ and close() are safe
         if not machine:
             raise ValueError("machine must not be empty")
@@ -380,9 +321,7 @@ class RerunRecorder(RecordingFiles, Sink):
             self._reopen_delay = min(2 * self._reopen_delay, self.reopen_max)
             logger.debug("recording to %s failed again: %s", self.path, exc)
         if self._file_windows:
-            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-            aside = self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
-                                        f"{self.path.suffix}")
+            aside = self._aside_name()
             try:
                 self.path.rename(aside)
                 self._rotated[aside] = self._file_windows
@@ -416,15 +355,11 @@ class RerunRecorder(RecordingFiles, Sink):
         """The underlying Rerun recording stream (``None`` when disabled)."""
         return self._rec
 
-    # -- what the viewer shows -------------------------------------------------------------------
     # -- one window ----------------------------------------------------------------------------
-    def _validate(
-        self,
-        t: np.ndarray,
-        measured: Mapping[str, np.ndarray],
-        simulated: Mapping[str, np.ndarray],
-        parameters: Mapping[str, float],
-    ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray], dict[str, float]]:
+    def _validate(self, t: np.ndarray, measured: Mapping[str, np.ndarray],
+                  simulated: Mapping[str, np.ndarray], parameters: Mapping[str, float]
+                  ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray],
+                             dict[str, float]]:
         times = np.asarray(t, dtype=np.float64)
         if times.ndim != 1 or times.size == 0:
             raise ValueError(f"t must have shape (N,) with N >= 1, got {times.shape}")
@@ -435,36 +370,26 @@ class RerunRecorder(RecordingFiles, Sink):
             arrays: dict[str, np.ndarray] = {}
             for name, values in channels.items():
                 if name not in self.outputs:
-                    raise ValueError(
-                        f"{label} channel {name!r} is not a declared output {list(self.outputs)}"
-                    )
+                    raise ValueError(f"{label} channel {name!r} is not a declared output "
+                                     f"{list(self.outputs)}")
                 array = np.asarray(values, dtype=np.float64)
                 if array.shape != times.shape:
-                    raise ValueError(
-                        f"{label}[{name!r}] has shape {array.shape}, expected {times.shape}"
-                    )
+                    raise ValueError(f"{label}[{name!r}] has shape {array.shape}, expected "
+                                     f"{times.shape}")
                 arrays[name] = array
             series.append(arrays)
         unknown = set(parameters) - set(self.parameters)
         if unknown:
-            raise ValueError(
-                f"parameters {sorted(unknown)} are not declared {list(self.parameters)}"
-            )
+            raise ValueError(f"parameters {sorted(unknown)} are not declared "
+                             f"{list(self.parameters)}")
         estimates = {name: float(value) for name, value in parameters.items()}
         return times, series[0], series[1], estimates
 
-    def log_window(
-        self,
-        *,
-        t: np.ndarray,
-        measured: Mapping[str, np.ndarray],
-        simulated: Mapping[str, np.ndarray],
-        parameters: Mapping[str, float],
-        health: HealthMessage | Mapping[str, Any],
-        terms_changed: bool = False,
-        health_json: str | None = None,
-        events: Sequence[Mapping[str, Any]] = (),
-    ) -> None:
+    def log_window(self, *, t: np.ndarray, measured: Mapping[str, np.ndarray],
+                   simulated: Mapping[str, np.ndarray], parameters: Mapping[str, float],
+                   health: HealthMessage | Mapping[str, Any], terms_changed: bool = False,
+                   health_json: str | None = None,
+                   events: Sequence[Mapping[str, Any]] = ()) -> None:
         """Record one acquisition window, then flush it to the file (and send it to the live
         server when serving).
 
@@ -551,16 +476,11 @@ class RerunRecorder(RecordingFiles, Sink):
         twin outputs, estimates, its typed health message (and that message's one encoding)
         and its alarm changes."""
         est = out.result.estimate
-        self.log_window(
-            t=out.window.t,
-            measured={o: out.window[o] for o in self.outputs},
-            simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
-            parameters=est.values,
-            health=out.health,
-            terms_changed=out.result.changed,
-            health_json=out.health_json,
-            events=out.events,
-        )
+        self.log_window(t=out.window.t, measured={o: out.window[o] for o in self.outputs},
+                        simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
+                        parameters=est.values, health=out.health,
+                        terms_changed=out.result.changed, health_json=out.health_json,
+                        events=out.events)
 
     def _flush(self, rec: rr.RecordingStream) -> bool:
         """Flush to the file; False (logged once, counted) if it failed. A file writer that
@@ -601,12 +521,10 @@ class RerunRecorder(RecordingFiles, Sink):
             if self._flush(rec):
                 rec.disconnect()
             self._release()
-        logger.info(
-            "recording of %s closed: %d windows in %s", self.machine, self.windows, self.path
-        )
+        logger.info("recording of %s closed: %d windows in %s", self.machine, self.windows,
+                    self.path)
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
-        return (
-            f"RerunRecorder({str(self.path)!r}, {self.machine!r}, {state}, windows={self.windows})"
-        )
+        return (f"RerunRecorder({str(self.path)!r}, {self.machine!r}, {state}, "
+                f"windows={self.windows})")

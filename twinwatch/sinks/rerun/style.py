@@ -81,7 +81,7 @@ HEADROOM = 1.6
 scale) on each side that has one: the lines never sit on its edge."""
 SCALE_HEADROOM = 1.15
 """The same for the +-10 % scale of a parameter without a rule: its small panel then labels
-the ticks -10, 0, 10 (at 1.6 it labelled only 0)."""
+the ticks -10, 0, 10."""
 _TICK_ROOM = 0.12
 """The least room between an axis' outermost labelled tick and its edge, as a share of the
 axis (:func:`tick_room`): half a label's height on a small panel at 1600x1000."""
@@ -92,8 +92,7 @@ BAND_CLIP = 1.5
 """The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
 nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
 panel's summary says so (``2-sigma band from -420 to +420 %, drawn to +-15 %``; within
-``SCALE_HEADROOM`` for a parameter without a rule). At 3 a +-30 % band took a small panel's
-axis to -100..100 (its labelled ticks a hundred apart)."""
+``SCALE_HEADROOM`` for a parameter without a rule)."""
 PPM = 1e6
 """The fit panel shows the nRMSE in parts per million (ppm) of the output's scale: 1.6e-4 and
 3e-7 have readable ticks (160 and 0.3), the bare fraction's ticks read ``0``."""
@@ -117,8 +116,6 @@ class Op(NamedTuple):
 def entity(*parts: str) -> str:
     """An entity path from raw parts, each escaped (a '/' in a name stays inside its part)."""
     return "/".join(rr.escape_entity_path_part(p) for p in parts)
-
-
 
 
 RANK = {"normal": 0, "warning": 1, "alarm": 2}
@@ -176,9 +173,9 @@ def sparse_frame(high: float) -> list[float]:
     """The axis frame ``[0, top]`` (the unit of ``high``) of a small panel of positive values
     up to ``high`` (the estimation time [ms]); ``[0, 1]`` when ``high`` is not positive. From 0
     to ``high`` when at most 2.3 steps of its power of ten span it (0, 100, 200 for 220 ms),
-    else to the next power of ten (0, 1000 for 322 ms: with 0, 100, 200, 300 in the strip's
-    55 px the viewer labelled 0 alone, its labels at least about 19 px apart), and
-    ``_TICK_ROOM`` above for the top label (0 sits on the viewer's own margin)."""
+    else to the next power of ten (0, 1000 for 322 ms: the viewer's labels are at least about
+    19 px apart in the strip's 55 px), and ``_TICK_ROOM`` above for the top label (0 sits on
+    the viewer's own margin)."""
     if not math.isfinite(high) or high <= 0.0:
         return [0.0, 1.0]
     step = 10.0 ** math.floor(math.log10(high))
@@ -233,8 +230,6 @@ def band_pct(ph: ParameterView) -> tuple[float, float]:
     return (low / nom - 1.0) * 100.0, (high / nom - 1.0) * 100.0
 
 
-
-
 def clock(t: float) -> str:
     """Plant time for a person: ``14:38`` (minutes:seconds), ``1:02:05`` past an hour,
     ``-0:05`` before zero, the UTC time of day ``14:38:05Z`` for a wall clock (from
@@ -270,5 +265,3 @@ def span(seconds: float) -> str:
 def fmt(x: Any, spec: str = ".6g") -> str:
     v = as_number(x)
     return format(v, spec) if math.isfinite(v) else "n/a"
-
-

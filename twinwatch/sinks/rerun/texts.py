@@ -286,4 +286,3 @@ def _wrong_parts(doc: HealthView, terms_changed: bool,
     if grew:
         wrong.append("lost: " + ", ".join(f"{k} +{v}" for k, v in grew.items()))
     return wrong, failed, changed
-

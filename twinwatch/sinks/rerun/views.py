@@ -2,81 +2,40 @@
 
 :class:`RecordingViews` turns one window (its samples, estimates, health message and alarm
 changes) into what :class:`~twinwatch.sinks.rerun.RerunRecorder` logs, and describes the layout
-an operator opens: the story of the machine's health at one glance.
+an operator opens. Entity paths, with ``M`` the machine name and ``plant_time`` the timeline
+[s] (docs/operating.md tabulates them for the operator):
 
-Entity paths, with ``M`` the machine name and ``plant_time`` the timeline [s]:
-
-* ``M/outputs/<output>/measured`` and ``M/outputs/<output>/twin``: the window's measured and
-  twin-simulated output samples in the output's unit (:class:`rerun.Scalars`, one
-  ``send_columns`` per series and window); ``M/outputs/<output>/frame``: two transparent
-  values per window that give the axis two labelled ticks, with room for their labels
-  (:func:`axis_frame`, :meth:`RecordingViews._output_frame`);
-  ``M/residual/<output>``: measured - twin, every sample (``.../frame``: the same for its
-  axis); ``M/residual_rmse/dt_prime`` and
-  ``.../dt_second``: per window, the RMSE of the twin
-  without (DT') and with (DT'') its meta-model terms, one series per output (its unit);
-* ``M/parameters``: every parameter's estimate [SI], one series per parameter (the twin's
-  order), one point per window;
-* ``M/health/<name>/...`` for each estimated parameter, in percent of its nominal value:
-  ``deviation`` (series, in drawing order: the 2-sigma band's low and high ends, 0 = nominal,
-  the ``[alarms]`` thresholds (or a +-10 % scale when it has no rule), two transparent headroom
-  series that keep the thresholds off the axis' edges, and last the deviation itself),
-  ``frame`` (two transparent values: two labelled ticks over the run), ``estimated`` /
-  ``fused`` / ``held`` (the deviation again, one point per window on the entity of the
-  window's status: drawn as different markers), ``events/warning``, ``events/alarm``,
-  ``events/cleared`` (the deviation rule's changes, a large marker at the event's deviation),
-  ``events/rul_warning``, ``events/rul_alarm`` (the RUL rule's raises, a down-triangle at the
-  parameter's deviation then); ``health/<name>/trend``: the parameter's trend when the message
-  carries one (``parameters.<name>.trend.level`` +- 2 ``level_std``, in %: low, high, level);
-  ``health/<name>/projection/lines`` and ``.../labels``, for a parameter with an alarm rule
-  while its message predicts the alarm's crossing (cleared, ``health/<name>/projection``,
-  when it stops): a drawing of the trend's projection in a 2-D view's units (``BOX``, y down;
-  plant time across, % of nominal up): the thresholds in range, the moment now, the
-  deviations of the recent windows, the trend from its level now to the alarm threshold at the
-  median crossing (pink) and at both ends of its 95 % interval (dim), and as labels the
-  thresholds, now, the level and the crossing's plant time with its interval;
-  ``health/<name>/summary``: what the panel says in words under its plot, every window
-  (markdown): the deviation, status and trend, the RUL to each threshold of the rule (median,
-  95 % interval, and the plant time of the crossing), the moments the deviation alarm and the
-  RUL alarm were raised or cleared (apart), a 2-sigma band beyond the view; the RUL's median is
-  also in the log row;
-* ``M/quality/nrmse`` (the published twin's), ``M/quality/nrmse_dt_prime`` and
-  ``.../nrmse_dt_second`` (without and with the terms), ``M/quality/model_check_failed`` (the
-  nRMSE of the windows whose model check failed), all in ppm, ``M/quality/frame`` (its axis'
-  frame), ``M/quality/elapsed_ms`` (adaptation time per window [ms]; ``.../frame`` its
-  axis' frame, :func:`sparse_frame`), ``M/quality/problems`` (the counters of lost or bad
-  data, cumulative: abandoned windows, overruns, gaps, bad samples, windows not stored or not
-  recorded, ... one series each, named after the counter);
-* ``M/model``: the twin DT'' as a markdown document, every window: the diagnosis, each
-  meta-model term's equation with its meaning and evidence, the fit; ``M/parameter_table``:
-  beside it, every parameter's value and status (a table; the fixed ones in a line under it,
-  why the held ones are held); ``M/health``: the window's health message (JSON); ``M/log``: one
-  short :class:`rerun.TextLog` row per window (at most about 80 characters: a row is not
-  wrapped) with the ruled parameters' deviations and levels, at the machine's state (INFO;
-  WARN while a parameter is in warning or has a RUL level raised, the model check fails, the
-  structure changed or data were lost; ERROR only while one is in deviation alarm) and one row
-  per alarm change (``15:08 ALARM raised: Ra -10.02 % of nominal``; a deviation alarm's raise
-  ERROR, every other raise and a clear WARN; the event's full message is in the health
-  message);
-  ``M/key``: what the colours mean (static).
+* ``M/outputs/<output>/measured``, ``.../twin`` (every sample, the output's unit, one
+  ``send_columns`` per series and window), ``M/residual/<output>`` (measured - twin),
+  ``M/residual_rmse/dt_prime``, ``.../dt_second`` (per window, one series per output); each
+  output's and residual's ``.../frame``: two transparent values per window that give the axis
+  two labelled ticks (:func:`axis_frame`, :meth:`RecordingViews._output_frame`);
+* ``M/parameters``: every parameter's estimate [SI], one series per parameter, per window;
+* ``M/health/<name>/...`` per estimated parameter, in % of nominal: ``deviation`` (in drawing
+  order: the 2-sigma band's ends, 0, the ``[alarms]`` thresholds or a scale, two transparent
+  headroom series, the deviation), ``frame``, ``estimated`` / ``fused`` / ``held`` (the
+  deviation on the entity of the window's status), ``events/{warning, alarm, cleared,
+  rul_warning, rul_alarm}``, ``trend`` (low, high, level), ``projection/lines`` and
+  ``.../labels`` (:func:`~twinwatch.sinks.rerun.projection.draw_projection`, 2-D, cleared when
+  no crossing is predicted), ``summary`` (markdown: deviation, status, trend, RUL, the alarms'
+  moments, a band beyond the view);
+* ``M/quality/{nrmse, nrmse_dt_prime, nrmse_dt_second, model_check_failed}`` [ppm],
+  ``elapsed_ms`` [ms], ``problems`` (the cumulative counters of lost or bad data, one series
+  each), and their ``frame`` (:func:`sparse_frame` for ``elapsed_ms``);
+* ``M/model`` (the twin DT'' as markdown), ``M/parameter_table``, ``M/health`` (the message,
+  JSON), ``M/log`` (one :class:`rerun.TextLog` row of at most about 80 characters per window,
+  INFO / WARN / ERROR by the machine's state, and one per alarm change: ERROR for a deviation
+  alarm raised, WARN otherwise), ``M/key`` (what the colours mean, static).
 
 The default blueprint (:meth:`RecordingViews.blueprint`): the time panel follows the newest
-data (a finished file opens on its end); the parameters' health and the data-quality strip show
-the whole run, the outputs and residuals the last ``recent_s`` seconds before the time cursor,
-the model, the parameters' table, the log and the projections the state at the cursor; no
-legend covers a trace (the key says what the colours mean), no axis zooms in on noise
-(deviations in % with their thresholds or a scale).
-Plant time is written as minutes:seconds (``14:38``) in the summaries, the log and the model;
-the axes' ticks are the viewer's (``+10m``).
+data; the parameters' health and the data quality show the whole run, the outputs and residuals
+the last ``recent_s`` seconds before the time cursor, the model, the table, the log and the
+projections the state at the cursor; no legend covers a trace, no axis zooms in on noise.
 
-The trend's projection to the alarm threshold is drawn beside the panel of each parameter
-with an alarm rule, in a 2-D view (``health/<name>/projection``), not in its time-series view:
-Rerun (0.41) draws every row ever logged at a time of a time-series view's range, so each
-window's projection into the future would stay beside the next (a ``Clear`` only breaks a
-line), and points logged at future plant times move the time cursor, which follows the newest
-data, past the last window (the outputs' views, the last ``recent_s`` before it, go empty). A
-2-D view shows what is latest at the cursor: the window's own projection, any window's when
-the cursor is moved back.
+The projection is a 2-D view beside the panel, not in the time-series view: Rerun (0.41) draws
+every row ever logged at a time of a time-series view's range (each window's projection would
+stay beside the next), and points at future plant times move the following time cursor past
+the last window. A 2-D view shows what is latest at the cursor.
 """
 
 from __future__ import annotations
@@ -243,8 +202,8 @@ class RecordingViews:
             its alarms were raised, a band beyond the view); beside them, for a parameter
             with an alarm rule, its projection to the alarm threshold at the cursor. With
             ``beside`` (a parameter without a rule whose grid shares the column with ruled
-            ones), the summary beside the plot, which keeps the row's height: under it, the
-            plot was about 50 px at 1600x1000, too short for its +-10 labels."""
+            ones), the summary beside the plot, which keeps the row's height for its +-10
+            labels."""
             series = rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
                                         contents=["$origin/**", "- $origin/summary",
                                                   "- $origin/projection/**"], **whole())
@@ -267,8 +226,7 @@ class RecordingViews:
         shares = [2.0] * len(ruled)
         if others:
             # beside the ruled panels, the grid's rows are short (1.4 to their 2.0): each
-            # summary beside its plot; alone in the column (discovery, the leak), under it
-            # (beside, the discovery's 300 s axis lost its minute labels: too narrow)
+            # summary beside its plot; alone in the column, under it (its axis keeps its labels)
             views = [panel(p, beside=bool(ruled)) for p in others]
             columns = 1 if len(others) == 1 else 2
             health.append(rrb.Grid(*views, grid_columns=columns, name="other parameters"))
@@ -286,8 +244,7 @@ class RecordingViews:
             column_shares=[1.6, 1.0, 1.0], name="data quality")
         left = rrb.Vertical(
             rrb.Vertical(*health, row_shares=shares, name="health"), quality,
-            # the quality strip a sixth of the column at least: with five small panels
-            # (the discovery example) its ticks were cut at 1600x1000
+            # the quality strip a sixth of the column at least (its ticks readable at 1600x1000)
             row_shares=[max(sum(shares), 1.0), max(1.0, 0.21 * sum(shares))],
             name="health and data quality")
         pairs = [(rrb.TimeSeriesView(origin=origin("outputs", o),
@@ -399,7 +356,7 @@ class RecordingViews:
     def _band_clip(self, p: str) -> float:
         """How far from nominal ``p``'s 2-sigma band is drawn at most [%]: ``BAND_CLIP`` times
         its outer threshold, or within the headroom of its scale when it has no rule (a small
-        panel then keeps its ticks -10, 0, 10: at +-15 % it labelled only 0)."""
+        panel then keeps its ticks -10, 0, 10)."""
         outer = max(abs(value) for _, value, _ in self._limits(p))
         return (BAND_CLIP if p in self.alarm_bands else SCALE_HEADROOM) * outer
 
@@ -644,8 +601,8 @@ class RecordingViews:
         low, high = band_pct(ph)
         clip = self._band_clip(p)
         if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
-            # words between the numbers, and no exponent below 10^5 %: a narrow summary
-            # wraps at the spaces (``-95.5..+2.1e+03`` was broken after its ``-`` and ``e+``)
+            # words between the numbers, and no exponent below 10^5 %: a narrow summary wraps
+            # at the spaces
             lines.append(f"2-sigma band from {pct_text(low)} to {pct_text(high)} %, "
                          f"drawn to +-{clip:g} %")
         return "  \n".join(lines) + "\n"

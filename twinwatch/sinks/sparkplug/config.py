@@ -11,7 +11,8 @@ from pydantic import Field, field_validator
 
 from twinwatch.sinks.mqtt.config import MqttConnectionConfig
 
-__all__ = ["NAMESPACE", "NODE_KEYS", "SparkplugConfig", "check_id", "node_clashes", "node_key"]
+__all__ = ["NAMESPACE", "NODE_KEYS", "SparkplugConfig", "check_id", "key_clash", "node_clashes",
+           "node_key"]
 
 NAMESPACE = "spBv1.0"
 
@@ -91,6 +92,14 @@ def node_key(config: SparkplugConfig, machine: str) -> str:
             f"{config.edge_node_id or machine}")
 
 
+def key_clash(key: str, machine: str, where: str, first: str) -> str:
+    """Why ``machine``'s ``key`` (one of :data:`NODE_KEYS`) is refused: the edge node ``where``
+    has it otherwise from its first machine (``first``, as the message names it)."""
+    return (f"outputs.sparkplug.{key}: machine {machine!r} is a device of {where} with machine "
+            f"{first}, whose {key} differs (one edge node is one MQTT session); set {key} alike "
+            f"or give {machine!r} its own edge_node_id")
+
+
 def node_clashes(tables: list[tuple[str, str, SparkplugConfig]]) -> list[str]:
     """What a gateway's machines' ``[outputs.sparkplug]`` tables would be refused for when the
     gateway starts them (:meth:`~twinwatch.sinks.sparkplug.node.EdgeNode.join`), for
@@ -113,10 +122,8 @@ def node_clashes(tables: list[tuple[str, str, SparkplugConfig]]) -> list[str]:
         where = f"edge node {cfg.group_id}/{cfg.edge_node_id or machine} on {cfg.host}:{cfg.port}"
         for name in NODE_KEYS:
             if getattr(cfg, name) != getattr(head[2], name):
-                out.append(f"{source}: outputs.sparkplug.{name}: machine {machine!r} is a "
-                           f"device of {where} with machine {head[1]!r} ({head[0]}), whose "
-                           f"{name} differs (one edge node is one MQTT session); set {name} "
-                           f"alike or give {machine!r} its own edge_node_id")
+                out.append(f"{source}: " + key_clash(name, machine, where,
+                                                     f"{head[1]!r} ({head[0]})"))
         device = cfg.device_id or machine
         owner = devices.setdefault((key, device), source)
         if owner != source:

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from twinwatch.sinks.mqtt.encoding import _std, diagnosis_values
+from twinwatch.sinks.mqtt.encoding import _rul_s, _std, diagnosis_values, known_parameters
 
 if TYPE_CHECKING:
     from twinwatch.twin.health import HealthView
@@ -55,10 +55,7 @@ def metric_specs(parameters: Mapping[str, str], rules: set[str], doc: HealthView
     """
     from twinwatch.twin.health import sent
 
-    params = dict(parameters)
-    doc_params = (doc.parameters if doc is not None else None) or {}
-    for name, p in doc_params.items():
-        params.setdefault(name, str(p.unit or ""))
+    params, doc_params = known_parameters(parameters, doc)
     alarms = set(rules) | set((doc.alarms if doc is not None else None) or {})
     out = [MetricSpec("Window/Index", "Int64"), MetricSpec("Window/Start", "Double", "s"),
            MetricSpec("Window/End", "Double", "s"), MetricSpec("Window/Trusted", "Boolean"),
@@ -111,11 +108,8 @@ def metric_values(doc: HealthView) -> dict[str, Any]:
         level = str(a.level or "normal") if a is not None else None
         out[f"{base}/Alarm"] = level
         out[f"{base}/Alarm Level"] = _ALARM_LEVEL.get(level) if level is not None else None
-        rul = p.rul
-        alarm = rul.alarm if rul is not None else None
-        warning = rul.warning if rul is not None else None
-        out[f"{base}/RUL"] = _num(alarm.rul_s) if alarm is not None else None
-        out[f"{base}/RUL Warning"] = _num(warning.rul_s) if warning is not None else None
+        out[f"{base}/RUL"] = _num(_rul_s(p, "alarm"))
+        out[f"{base}/RUL Warning"] = _num(_rul_s(p, "warning"))
     if doc.diagnosis is not None:
         flat = diagnosis_values(doc.diagnosis)
         out["Diagnosis/Status"] = str(doc.diagnosis.status or "no_fault")
@@ -142,4 +136,3 @@ def set_value(metric: Any, datatype: str, value: Any) -> None:
         metric.boolean_value = bool(value)
     else:
         metric.string_value = str(value)
-

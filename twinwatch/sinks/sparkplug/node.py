@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from twinwatch._forward import Forward
 from twinwatch.errors import PublisherError
 from twinwatch.sinks.mqtt.session import CLOSE_RETRY_S, MqttSession
-from twinwatch.sinks.sparkplug.config import NAMESPACE, NODE_KEYS, SparkplugConfig
+from twinwatch.sinks.sparkplug.config import NAMESPACE, NODE_KEYS, SparkplugConfig, key_clash
 from twinwatch.sinks.sparkplug.session import (
     DEVICE_REBIRTH,
     REBIRTH,
@@ -121,10 +121,7 @@ class EdgeNode:
                  f"{self.config.port}")
         for key in NODE_KEYS:
             if getattr(config, key) != getattr(self.config, key):
-                raise PublisherError(
-                    f"outputs.sparkplug.{key}: machine {machine!r} is a device of {where} "
-                    f"with machine {self.machine!r}, whose {key} differs (one edge node is one "
-                    f"MQTT session); set {key} alike or give {machine!r} its own edge_node_id")
+                raise PublisherError(key_clash(key, machine, where, repr(self.machine)))
         with self._lock:
             owner = self._owners.get(device.device.device_id)
             if owner is not None:
@@ -493,14 +490,8 @@ class EdgeNode:
 
     def _finish(self) -> None:
         """Every device has left: NDEATH with this connection's ``bdSeq``, disconnect."""
-        if self.connected:
-            info = self.client.publish(self.session.ndeath_topic,
-                                       self.session.ndeath(now_ms()), qos=1)
-            end = time.monotonic() + 2.0
-            while self.connected and not info.is_published() and time.monotonic() < end:
-                self.client.loop(timeout=0.05)
-            self.client.disconnect()
-        self.mqtt.connected = self.born = False
+        self.mqtt.leave(self.session.ndeath_topic, self.session.ndeath(now_ms()))
+        self.born = False
         logger.info("Sparkplug edge node %s/%s closed (NDEATH, bdSeq %d)",
                     self.session.group_id, self.session.edge_node_id,
                     max(self.session.bd_seq, 0))

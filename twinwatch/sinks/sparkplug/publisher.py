@@ -136,7 +136,7 @@ class SparkplugPublisher(DeliveringSink):
     def latest_doc(self) -> HealthView | None:
         """The newest stored window of this run's typed message (a DBIRTH's values), or None:
         a new run births with its first window, never with the previous run's last (its run
-        id, its alarms, its diagnosis: issue 56), which the outbox holds at a restart."""
+        id, its alarms, its diagnosis), which the outbox holds at a restart."""
         doc = self.delivery.latest_doc
         return doc if doc is not None and self._this_run(doc) else None
 

@@ -111,7 +111,6 @@ class DeviceSession:
         self.dbirth_topic = f"{base % 'DBIRTH'}/{device_id}"
         self.ddata_topic = f"{base % 'DDATA'}/{device_id}"
         self.ddeath_topic = f"{base % 'DDEATH'}/{device_id}"
-        self.dcmd_topic = f"{base % 'DCMD'}/{device_id}"
         self.specs: dict[str, MetricSpec] = {}
         self.aliases: dict[str, int] = {}
 

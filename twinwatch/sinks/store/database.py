@@ -2,44 +2,27 @@
 twin, in one SQLite database (stdlib :mod:`sqlite3`), so a restart resumes from the last trusted
 twin and a subscriber that was away can catch up on the history.
 
-Durability. The database runs in WAL mode. Each window is one transaction (its health row and,
-when the window was trusted, the twin state), so after any crash the database holds a prefix of
-the windows, never half of one:
-
-* ``synchronous=FULL`` (default): every commit fsyncs the WAL. A committed window survives
-  SIGKILL, a kernel panic and power loss. Cost: one fsync per 2 s window.
-* ``synchronous=NORMAL``: commits are written to the WAL without fsync (only checkpoints sync).
-  A committed window survives SIGKILL and any crash of the process (the OS page cache has it);
-  on power loss or a kernel crash the last windows before it (up to the last checkpoint, ~1000
-  pages) may be rolled back, but the database stays consistent. Choose it for flash that must
-  not see an fsync every 2 s.
+Durability. WAL mode; each window is one transaction (its health row and, when trusted, the
+twin), so after any crash the database holds a prefix of the windows, never half of one.
+``synchronous=FULL`` (default) fsyncs every commit: a committed window survives SIGKILL, a
+kernel panic and power loss. ``synchronous=NORMAL`` survives SIGKILL and any crash of the
+process; on power loss the last windows since the last checkpoint may be rolled back (the
+database stays consistent).
 
 Threads. The adaptation worker writes (:meth:`StateStore.save_window`), a Zenoh queryable thread
 reads (:meth:`StateStore.history`). Each thread gets its own connection (``threading.local``):
-in WAL mode readers never block the writer nor see a half-written window, which one shared
-connection behind a lock would not give (a long history query would stall the worker). The
-connection of a thread that has ended (the worker of a daemon a reload replaced) is closed when
-the next thread connects, so reloads leak no descriptor; all are closed by
-:meth:`StateStore.close`.
+in WAL mode readers never block the writer nor see a half-written window. The connection of a
+thread that has ended is closed when the next thread connects; all by :meth:`StateStore.close`.
 
 Faults. A database that is not SQLite or is corrupt raises :class:`StoreError` with what to do
 (or, with ``recover_corrupt=True``, is moved aside to ``<name>.corrupt-<time>`` and a new one
-started, logged as an ERROR). Corruption is recognised wherever SQLite reports it: at open, in
-any read (the twin and alarm restore at start, a history query) and in a write at run time, not
-only in the file header; the windows waiting to be written go to the new database. A locked or
-full database at save time does not stop the daemon: the window stays in a bounded in-memory
-backlog, is written with the next successful save, and the failure is logged once at ERROR (then
-DEBUG until it recovers).
-
-The file deleted, replaced or moved away while the daemon runs (a cleanup script, an operator
-restoring a backup) is noticed before the next window is written and before any read (the
-lock's descriptor against the path, :meth:`~twinwatch.sinks.locks.FileLock.changed`): the
-file the store had open is checkpointed (a file moved away keeps every window), the database
-at the path is opened, or created, the saved twin and the windows still in memory (the last
-``recent``) that it lacks are written to it, and the windows of this run that were stored in the
-old file and are now in no database are counted in :attr:`StateStore.history_lost` (logged at
-ERROR; ``twinwatch run`` then exits 74). The old file's ``-wal`` and ``-shm`` are removed first:
-SQLite would otherwise apply the old database's log to the new file.
+started, logged as an ERROR), wherever SQLite reports it: at open, in a read or in a write. A
+locked or full database at save time does not stop the daemon: the window stays in a bounded
+in-memory backlog, is written with the next successful save, and the failure is logged once at
+ERROR (then DEBUG until it recovers). The file deleted, replaced or moved away while the daemon
+runs is noticed before the next window and before any read (the lock's descriptor,
+:meth:`~twinwatch.sinks.locks.FileLock.changed`) and handled as docs/runtime.md describes: the
+windows of this run lost with it are counted in :attr:`StateStore.history_lost`.
 
 Size: a DC-motor health message is about 2 kB of JSON, so one machine writes about 85 MB a day;
 the defaults keep 30 days or 1,000,000 windows (about 2 GB), whichever is less, pruned in batches.
@@ -70,15 +53,14 @@ from twinwatch.sinks.store.outbox import StoreOutbox
 from twinwatch.sinks.store.schema import CACHE_KIB, SCHEMA, SCHEMA_VERSION, StateConfig, is_corrupt
 from twinwatch.twin.health import HealthView, read_health
 
-#: the package's name, as before the split (the log lines name it)
-logger = logging.getLogger(__package__)
+logger = logging.getLogger(__package__)  # the log lines name the package
 
 __all__ = ["StateStore"]
 
-
-def _dumps(obj: Any) -> str:
-    """The one encoder (:func:`twinwatch.io.encoding.to_json`): NaN and infinities -> null."""
-    return to_json(obj)
+_INSERT_HEALTH = ("INSERT INTO health (machine, run, window, t_start, t_end, wall, doc) "
+                  "VALUES (?, ?, ?, ?, ?, ?, ?)")
+_INSERT_TWIN = ("INSERT OR REPLACE INTO twin (machine, run, window, t_end, wall, state) "
+                "VALUES (?, ?, ?, ?, ?, ?)")
 
 
 class StateStore(Gate):
@@ -124,22 +106,12 @@ class StateStore(Gate):
     counter_prefix: ClassVar[str | None] = "store"
     open_order: ClassVar[int] = 20  # its lock before the recording's (which truncates a file)
 
-    def __init__(
-        self,
-        path: str | os.PathLike[str],
-        *,
-        synchronous: Literal["FULL", "NORMAL"] = "FULL",
-        keep_days: float | None = 30.0,
-        keep_rows: int | None = 1_000_000,
-        prune_every: int = 100,
-        prune_batch: int = 1000,
-        busy_timeout: float = 5.0,
-        backlog: int = 10_000,
-        recover_corrupt: bool = False,
-        check: bool = False,
-        recent: int = 1000,
-        run: str | None = None,
-    ) -> None:
+    def __init__(self, path: str | os.PathLike[str], *,
+                 synchronous: Literal["FULL", "NORMAL"] = "FULL",
+                 keep_days: float | None = 30.0, keep_rows: int | None = 1_000_000,
+                 prune_every: int = 100, prune_batch: int = 1000, busy_timeout: float = 5.0,
+                 backlog: int = 10_000, recover_corrupt: bool = False, check: bool = False,
+                 recent: int = 1000, run: str | None = None) -> None:
         if synchronous not in ("FULL", "NORMAL"):
             raise ValueError(f"synchronous must be FULL or NORMAL, not {synchronous!r}")
         self.path = Path(path)
@@ -186,18 +158,12 @@ class StateStore(Gate):
         self._lock: FileLock | None = None
         self._lock_file()
         try:
-            self._open(check)
-        except StoreError as exc:
-            if not (recover_corrupt and self.path.exists() and exc.corrupt):
-                self._close_all()
-                self._release()
-                raise
             try:
+                self._open(check)
+            except StoreError as exc:
+                if not (recover_corrupt and self.path.exists() and exc.corrupt):
+                    raise
                 self._recover(exc)
-            except BaseException:
-                self._close_all()
-                self._release()
-                raise
         except BaseException:
             self._close_all()
             self._release()
@@ -243,9 +209,6 @@ class StateStore(Gate):
                                    check_same_thread=False)
             conn.execute(f"PRAGMA synchronous={self.synchronous}")
             conn.execute("PRAGMA foreign_keys=ON")
-            # the page cache per connection (SQLite's default 2 MB): the writer appends and
-            # the readers page, neither rereads much; in a fleet every machine has two or
-            # three connections
             conn.execute(f"PRAGMA cache_size=-{CACHE_KIB}")
         except sqlite3.Error as exc:
             raise self._error("cannot open", exc) from exc
@@ -472,11 +435,9 @@ class StateStore(Gate):
             conn.execute("BEGIN IMMEDIATE")
             top = int(conn.execute("SELECT COALESCE(MAX(id), 0) FROM health").fetchone()[0])
             try:
-                conn.executemany("INSERT INTO health (machine, run, window, t_start, t_end, "
-                                 "wall, doc) VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
+                conn.executemany(_INSERT_HEALTH, rows)
                 if self._twin_saved is not None:
-                    conn.execute("INSERT OR REPLACE INTO twin (machine, run, window, t_end, "
-                                 "wall, state) VALUES (?, ?, ?, ?, ?, ?)", self._twin_saved)
+                    conn.execute(_INSERT_TWIN, self._twin_saved)
                 self._carry_outboxes(conn, top)
                 conn.execute("COMMIT")
             except sqlite3.Error:
@@ -520,8 +481,7 @@ class StateStore(Gate):
         file held before this run's windows were written again to it: history, not sent, as
         at an output's first open), and this run's windows it had delivered are marked
         delivered; the others are pending, so they are delivered from the new file, also
-        after a restart (issue 26: delivery stopped silently, and 20 windows of the run were
-        never delivered after a restart)."""
+        after a restart."""
         wall = time.time()
         for (output, machine), done in self._old_delivered.items():
             conn.execute("INSERT OR IGNORE INTO outbox_position (output, machine, health_id, "
@@ -670,7 +630,7 @@ class StateStore(Gate):
         with self._write_lock:
             self.run_id = str(health.get("run") or self.run_id)  # the run whose windows it holds
             row = (machine, self.run_id, int(health["window"]), float(health["t_start"]),
-                   float(health["t_end"]), w, _dumps(health) if doc is None else doc)
+                   float(health["t_end"]), w, to_json(health) if doc is None else doc)
             self._check_file(row[2])
             if len(self._pending) == self._pending.maxlen:
                 self.dropped += 1
@@ -681,7 +641,7 @@ class StateStore(Gate):
             self._pending.append(row)
             if twin_state is not None:
                 self._twin_pending = (machine, self.run_id, row[2], row[4], w,
-                                      _dumps(twin_state))
+                                      to_json(twin_state))
             if not flush:
                 return False
             if self._file_gone is not None:  # no database file to write to yet: wait in memory
@@ -702,11 +662,9 @@ class StateStore(Gate):
             return self._flush_failed(exc)
         try:
             conn.execute("BEGIN IMMEDIATE")
-            conn.executemany("INSERT INTO health (machine, run, window, t_start, t_end, wall, "
-                             "doc) VALUES (?, ?, ?, ?, ?, ?, ?)", list(self._pending))
+            conn.executemany(_INSERT_HEALTH, list(self._pending))
             if self._twin_pending is not None:
-                conn.execute("INSERT OR REPLACE INTO twin (machine, run, window, t_end, wall, "
-                             "state) VALUES (?, ?, ?, ?, ?, ?)", self._twin_pending)
+                conn.execute(_INSERT_TWIN, self._twin_pending)
             conn.execute("COMMIT")
         except sqlite3.Error as exc:
             _rollback(conn)
@@ -854,10 +812,8 @@ class StateStore(Gate):
                 and window numbers start over with every run of a simulated plant or a
                 replay, so a range by plant time is one run's only with it.
             after: only windows ending strictly after this time [s] (by plant time:
-                ``t_end > after``; by wall time: saved after it), the cursor to page with:
-                ``t_from`` is inclusive (a window overlapping it is returned), so paging with
-                ``t_from`` = the last ``t_end`` returned that window again, and with
-                ``limit = 1`` never advanced.
+                ``t_end > after``; by wall time: saved after it): the paging cursor
+                (``t_from`` is inclusive: it would return the last window again).
 
         Returns:
             The stored health messages, each through its typed view
@@ -873,16 +829,11 @@ class StateStore(Gate):
 
     def timeline(self, machine: str, t_from: float | None = None) -> list[HealthView]:
         """The machine's health messages on the time line that ends with its last stored
-        window, oldest first: read back from the last one in the order they were saved, across
-        runs, while each window ends before the one saved after it starts (a run that resumed
-        the twin on a source whose clock goes on, after a restart or a reload, continues the
-        line; where the clock went back, a replay or a simulated plant started over, another
-        line begins and the reading stops) and ends at or after ``t_from`` [s, plant time].
-
-        What a restart resumes the trends from (:meth:`twinwatch.twin.prognostics.
-        Prognostics.replay`): one run's windows alone are not enough when the daemon was
-        restarted more than once (the run before the last may have lasted a few windows).
-        """
+        window, oldest first: read back from the last one across runs while each window ends
+        before the one saved after it starts (where the clock went back, a replay or a
+        simulated plant started over, the reading stops) and ends at or after ``t_from`` [s,
+        plant time]. What a restart resumes the trends from (:meth:`twinwatch.twin.
+        prognostics.Prognostics.replay`), across several restarts."""
         lower = float(t_from) if t_from is not None and math.isfinite(t_from) else -math.inf
         docs = self._read("cannot read the history",
                           lambda conn: queries.timeline_docs(conn, machine, lower))
@@ -904,7 +855,7 @@ class StateStore(Gate):
         Raises:
             StoreError: the database cannot be read (the message says why).
         """
-        if self._closed_for_good:  # a run's history is still read after its daemon stopped
+        if self._closed_for_good:
             try:
                 conn = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True,
                                        timeout=self.busy_timeout)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import sqlite3
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from twinwatch.sinks.base import OutboxRow
 
@@ -31,6 +31,9 @@ class StoreOutbox:
         store: the open state store.
         output: the output's registry name (``mqtt``).
         machine: whose windows.
+
+    Every method raises :class:`~twinwatch.errors.StoreError` when the database cannot be
+    read or written (nothing is then recorded: call again).
     """
 
     # The queries read the health table by row id ranges (``+machine``: not through the
@@ -57,6 +60,11 @@ class StoreOutbox:
                                            "read again")
         return conn
 
+    def _one(self, sql: str, args: tuple[Any, ...]) -> Any:
+        """The first row (or None) of a read of this outbox's file."""
+        return self.store._read("cannot read the outbox",
+                                lambda conn: self._same_file(conn).execute(sql, args).fetchone())
+
     @property
     def dropped(self) -> int:
         """Windows deleted by the retention before they were delivered (since the store
@@ -65,14 +73,9 @@ class StoreOutbox:
 
     def start(self) -> int:
         """The delivered position; on the output's first open, the newest stored window of
-        the machine (0 if none): the history before the output existed is not sent.
-
-        Raises:
-            StoreError: the database cannot be read or written.
-        """
-        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
-            "SELECT health_id FROM outbox_position WHERE output = ? AND machine = ?",
-            (self.output, self.machine)).fetchone())
+        the machine (0 if none): the history before the output existed is not sent."""
+        row = self._one("SELECT health_id FROM outbox_position WHERE output = ? AND machine = ?",
+                        (self.output, self.machine))
         if row is not None:
             return int(row[0])
         position = self.latest_id() or 0
@@ -86,11 +89,7 @@ class StoreOutbox:
         return self.start()
 
     def pending(self, after: int, limit: int) -> list[OutboxRow]:
-        """Stored windows of the machine above row id ``after`` not delivered, oldest first.
-
-        Raises:
-            StoreError: the database cannot be read.
-        """
+        """Stored windows of the machine above row id ``after`` not delivered, oldest first."""
         rows = self.store._read("cannot read the outbox", lambda conn: self._same_file(
             conn).execute(
             "SELECT h.id, h.run, h.window, h.wall, h.doc FROM health h WHERE h.id > ? AND "
@@ -100,11 +99,7 @@ class StoreOutbox:
         return [OutboxRow(int(i), str(r), int(w), float(t), str(d)) for i, r, w, t, d in rows]
 
     def count(self, position: int) -> int:
-        """Stored windows of the machine above ``position`` not delivered.
-
-        Raises:
-            StoreError: the database cannot be read.
-        """
+        """Stored windows of the machine above ``position`` not delivered."""
         def read(conn: sqlite3.Connection) -> int:
             stored = self._same_file(conn).execute(
                 "SELECT COUNT(*) FROM health WHERE id > ? AND +machine = ?",
@@ -118,34 +113,20 @@ class StoreOutbox:
         return int(self.store._read("cannot count the outbox", read))
 
     def latest_id(self) -> int | None:
-        """The newest stored window's row id of the machine, None if none.
-
-        Raises:
-            StoreError: the database cannot be read.
-        """
-        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
-            "SELECT id FROM health WHERE +machine = ? ORDER BY id DESC LIMIT 1",
-            (self.machine,)).fetchone())
+        """The newest stored window's row id of the machine, None if none."""
+        row = self._one("SELECT id FROM health WHERE +machine = ? ORDER BY id DESC LIMIT 1",
+                        (self.machine,))
         return None if row is None else int(row[0])
 
     def doc_at_or_before(self, health_id: int) -> str | None:
-        """The health message of the newest window of the machine at or below ``health_id``.
-
-        Raises:
-            StoreError: the database cannot be read.
-        """
-        row = self.store._read("cannot read the outbox", lambda conn: self._same_file(conn).execute(
-            "SELECT doc FROM health WHERE +machine = ? AND id <= ? ORDER BY id DESC LIMIT 1",
-            (self.machine, int(health_id))).fetchone())
+        """The health message of the newest window of the machine at or below ``health_id``."""
+        row = self._one("SELECT doc FROM health WHERE +machine = ? AND id <= ? ORDER BY id DESC "
+                        "LIMIT 1", (self.machine, int(health_id)))
         return None if row is None else str(row[0])
 
     def ack(self, delivered: list[OutboxRow], position: int) -> None:
         """Record the ``delivered`` windows and the new delivered ``position`` (the marks at
-        or below it are no longer needed) in one transaction.
-
-        Raises:
-            StoreError: the database cannot be written (nothing is recorded; call again).
-        """
+        or below it are no longer needed) in one transaction."""
         wall = time.time()
 
         def write(conn: sqlite3.Connection) -> None:

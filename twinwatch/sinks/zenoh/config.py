@@ -10,17 +10,11 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
-from pydantic import (
-    Field,
-    StrictFloat,
-    StrictInt,
-    field_validator,
-    model_validator,
-)
+from pydantic import Field, StrictFloat, StrictInt, field_validator, model_validator
 
 from twinwatch._lazy import lazy_module
 from twinwatch._table import StrictTable
-from twinwatch.sinks.base import SinkConfig
+from twinwatch.sinks.base import SinkConfig, resolve_input_files
 
 if TYPE_CHECKING:
     import zenoh
@@ -29,7 +23,7 @@ else:  # imported when a session opens: loading a configuration does not load ze
     zenoh = lazy_module("zenoh")
     zenoh_ext = lazy_module("zenoh.ext")
 
-logger = logging.getLogger(__package__)  # twinwatch.sinks.zenoh, as before the split
+logger = logging.getLogger(__package__)
 
 
 _ENDPOINT_RE = re.compile(
@@ -40,7 +34,6 @@ _ENDPOINT_RE = re.compile(
 _CHUNK_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 # " at /root/.cargo/.../unicast.rs:338." suffixes of zenoh error messages.
 RUST_LOCATION_RE = re.compile(r"\s+at \S+\.rs:\d+\.?")
-# " at /root/.cargo/.../unicast.rs:338." suffixes of zenoh error messages.
 
 
 class ZenohTlsConfig(StrictTable):
@@ -203,25 +196,12 @@ class ZenohConfig(SinkConfig):
         """Dotted key (``zenoh.tls.*``) -> path of every file the session reads."""
         return {f"zenoh.{k}": v for k, v in self.input_files().items()}
 
-    def secret_files(self) -> dict[str, str]:
-        """Dotted key -> path of the files holding secrets (private keys, password lists)."""
-        return {f"zenoh.{k}": v for k, v in self.secret_input_files().items()}
-
     def inline_secrets(self) -> list[str]:
         """Dotted keys (``zenoh.tls.*``) of secrets written in the configuration itself."""
         return [f"zenoh.{k}" for k in self.inline_secret_keys()]
 
     def resolve_paths(self, base_dir: Path) -> None:
-        """Make relative certificate/key paths absolute against ``base_dir`` (the config
-        file's directory); ``~`` is expanded."""
-        for obj, keys in ((self.tls, ZenohTlsConfig.FILES), (self.auth, ("dictionary_file",))):
-            if obj is None:
-                continue
-            for k in keys:
-                v = getattr(obj, k)
-                if v:
-                    p = Path(v).expanduser()
-                    setattr(obj, k, str(p if p.is_absolute() else (base_dir / p).resolve()))
+        resolve_input_files(self, base_dir)
 
     @field_validator("listen", "connect")
     @classmethod
@@ -229,10 +209,9 @@ class ZenohConfig(SinkConfig):
         for endpoint in value:
             match = _ENDPOINT_RE.match(endpoint)
             if match is None:
-                raise ValueError(
-                    f"endpoint {endpoint!r} is not of the form proto/host:port "
-                    "(proto one of tcp, udp, tls, quic, ws), e.g. 'tcp/127.0.0.1:7447'"
-                )
+                raise ValueError(f"endpoint {endpoint!r} is not of the form proto/host:port "
+                                 "(proto one of tcp, udp, tls, quic, ws), e.g. "
+                                 "'tcp/127.0.0.1:7447'")
             port = int(match["port"])
             if not 1 <= port <= 65535:
                 raise ValueError(f"endpoint {endpoint!r}: port {port} is not in 1..65535")
@@ -250,13 +229,11 @@ class ZenohConfig(SinkConfig):
             if not self.connect:
                 raise ValueError("mode 'client' needs at least one [zenoh].connect endpoint")
             if "listen" in self.model_fields_set and self.listen:
-                raise ValueError(
-                    "mode 'client' does not listen: remove [zenoh].listen or use mode 'peer'"
-                )
+                raise ValueError("mode 'client' does not listen: remove [zenoh].listen or use "
+                                 "mode 'peer'")
         elif not self.listen and not self.connect:
-            raise ValueError(
-                f"mode {self.mode!r} needs a [zenoh].listen or a [zenoh].connect endpoint"
-            )
+            raise ValueError(f"mode {self.mode!r} needs a [zenoh].listen or a [zenoh].connect "
+                             "endpoint")
         return self
 
     @model_validator(mode="after")
@@ -273,8 +250,5 @@ class ZenohConfig(SinkConfig):
 def check_key(key: str, *, what: str) -> None:
     """Raise :class:`ValueError` unless ``key`` is ``/``-separated plain chunks."""
     if not key or any(_CHUNK_RE.match(chunk) is None for chunk in key.split("/")):
-        raise ValueError(
-            f"{what} {key!r} must be non-empty chunks of letters, digits, '_', '-' or '.' "
-            "separated by '/' (no wildcards, no leading or trailing '/')"
-        )
-
+        raise ValueError(f"{what} {key!r} must be non-empty chunks of letters, digits, '_', '-' "
+                         "or '.' separated by '/' (no wildcards, no leading or trailing '/')")

@@ -11,21 +11,12 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any, ClassVar, Self
+from typing import Any, ClassVar, Self
 
-from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
 from twinwatch.sinks.base import AlarmBands, ProcessedWindow, SharedResources, Sink, SinkContext
-from twinwatch.twin.summary import fleet_summary, summary_changed
-
-if TYPE_CHECKING:
-    import zenoh
-    from zenoh import ext as zenoh_ext
-else:  # imported when a session opens: loading a configuration does not load zenoh
-    zenoh = lazy_module("zenoh")
-    zenoh_ext = lazy_module("zenoh.ext")
-from twinwatch.sinks.zenoh.config import ZenohConfig, check_key
+from twinwatch.sinks.zenoh.config import ZenohConfig, check_key, zenoh, zenoh_ext
 from twinwatch.sinks.zenoh.queries import (
     QUERY_LOG_INTERVAL,
     QueryDispatch,
@@ -34,8 +25,9 @@ from twinwatch.sinks.zenoh.queries import (
     history_parameters,
 )
 from twinwatch.sinks.zenoh.session import declare_publisher, open_session, session_key
+from twinwatch.twin.summary import fleet_summary, summary_changed
 
-logger = logging.getLogger(__package__)  # twinwatch.sinks.zenoh, as before the split
+logger = logging.getLogger(__package__)
 
 
 UNRULED_THRESHOLD_PCT = 5.0
@@ -46,10 +38,6 @@ the fleet summary's ``worst`` (:func:`worst_parameter`): the examples' warning t
 class HealthPublisher(Sink):
     """Publishes one machine's health (and other JSON topics) on zenoh: the built-in output
     ``zenoh`` (table ``[zenoh]``, a publisher: it gets only the windows the state store stored).
-
-    Keys, with ``P = {config.key_prefix}/{machine}``: ``P/health`` (publisher and queryable
-    answering the latest document), ``P/<suffix>`` for :meth:`publish_json`, liveliness token
-    ``P/alive``. See the package docstring for how a remote process reads them.
 
     :meth:`publish` and :meth:`publish_json` may be called from a worker thread while
     :meth:`close` is called from another; a failing put is logged once (then at DEBUG until a
@@ -175,21 +163,15 @@ class HealthPublisher(Sink):
         except zenoh.ZError as exc:
             self._leave_dispatch()
             self._close_session(session)
-            raise PublisherError(
-                f"cannot declare zenoh entities under {self.base_key}: {exc}"
-            ) from exc
+            raise PublisherError(f"cannot declare zenoh entities under {self.base_key}: {exc}"
+                                 ) from exc
         with self._lock:
             self._publishers[self.health_key] = publisher
             self._queryable, self._token, self._session = queryable, token, session
         cfg = self.config
-        logger.info(
-            "publishing health of %s on %s (mode=%s, listen=%s, connect=%s)",
-            self.machine,
-            self.health_key,
-            cfg.mode,
-            cfg.listen if cfg.mode != "client" else [],
-            cfg.connect,
-        )
+        logger.info("publishing health of %s on %s (mode=%s, listen=%s, connect=%s)",
+                    self.machine, self.health_key, cfg.mode,
+                    cfg.listen if cfg.mode != "client" else [], cfg.connect)
 
     def _connect_loop(self) -> None:
         """Open the session in the background until it works or :meth:`close` is called;
@@ -395,9 +377,7 @@ class HealthPublisher(Sink):
                 publisher = self._publishers.get(key)
                 if publisher is None:
                     # the summary's publisher is a plain one: its latest is this queryable's
-                    # (a fleet of 5000 machines' advanced publishers through three routers
-                    # left a far advanced subscriber without a quarter of them for minutes:
-                    # benchmarks/bench_fleet.py, docs/fleet.md)
+                    # (advanced ones did not scale: benchmarks/bench_fleet.py, docs/fleet.md)
                     cfg = (self.config if key != self.summary_key else self.config.model_copy(
                         update={"cache": 0}))
                     publisher = declare_publisher(self._session, key, cfg)
@@ -427,10 +407,7 @@ class HealthPublisher(Sink):
         """The summary publisher's matching listener, a machine of its own session (on a
         zenoh thread, never under the lock: it may run inside the declaration): when a
         subscriber becomes reachable again, the latest summary is sent again
-        (:meth:`resend_summary`). Measured (a box on two routers, the first killed): the
-        box's session failed over at once, matching went false and true in the same 10 ms,
-        and the latest summary reached the watcher on the other router then, where a get to
-        that box went unanswered while the mesh settled."""
+        (:meth:`resend_summary`): at a failover it reaches the watcher before a get would."""
         matching = bool(status.matching)
         was, self._summary_matching = self._summary_matching, matching
         if matching and not was:
@@ -531,24 +508,17 @@ class HealthPublisher(Sink):
                 step()
             except zenoh.ZError as exc:
                 logger.warning("closing zenoh %s of %s failed: %s", what, self.machine, exc)
-        logger.info(
-            "zenoh publisher of %s closed (%d published, %d errors)",
-            self.machine,
-            self.published,
-            self.errors,
-        )
+        logger.info("zenoh publisher of %s closed (%d published, %d errors)", self.machine,
+                    self.published, self.errors)
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"HealthPublisher({self.health_key!r}, {state}, published={self.published})"
 
 
-
-
 def worst_parameter(health: Any, bands: Mapping[str, AlarmBands]) -> dict[str, Any] | None:
     """The parameter furthest off nominal by its own threshold, for the fleet summary's
-    ``worst`` (the fleet view's deviation column leads with it; issue 56: with only Ra's
-    deviation shown, a machine with D +20 % looked healthy).
+    ``worst`` (the fleet view's deviation column leads with it).
 
     Each parameter with a finite deviation (not ``tied`` nor ``fixed``: those are not
     estimated) is measured as ``|deviation| / threshold``: its alarm rule's warning threshold
@@ -597,4 +567,3 @@ def _worst_changed(old: Mapping[str, Any] | None, new: Mapping[str, Any]) -> boo
         return worst.get("parameter") if isinstance(worst, Mapping) else None
 
     return old is not None and name(old) != name(new)
-

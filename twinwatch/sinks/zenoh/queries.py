@@ -13,19 +13,12 @@ import re
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
-from twinwatch._lazy import lazy_module
 from twinwatch.io.keys import box_chunk, box_token_key
+from twinwatch.sinks.zenoh.config import zenoh
 
-if TYPE_CHECKING:
-    import zenoh
-    from zenoh import ext as zenoh_ext
-else:  # imported when a session opens: loading a configuration does not load zenoh
-    zenoh = lazy_module("zenoh")
-    zenoh_ext = lazy_module("zenoh.ext")
-
-logger = logging.getLogger(__package__)  # twinwatch.sinks.zenoh, as before the split
+logger = logging.getLogger(__package__)
 
 
 QUERY_LOG_INTERVAL = 60.0
@@ -96,31 +89,21 @@ class _BoxPresence:
 class QueryDispatch:
     """One queryable on ``<key_prefix>/**`` answering the gets of every machine that shares a
     session in a gateway (:class:`~twinwatch.sinks.base.SharedResources`), each asked only
-    when the get's key expression reaches its ``<key_prefix>/<machine>/**``; and one matching
-    listener telling them all when a subscriber of their summaries is reachable again.
+    when the get's key expression reaches its ``<key_prefix>/<machine>/**`` (a get sees no
+    difference: each machine replies on its own keys); one per box instead of one per machine
+    keeps the routers' key matching small (the figures: docs/fleet.md,
+    benchmarks/bench_router_keys.py).
 
-    A queryable per machine on ``P/**`` made every router of a fleet match each machine's
-    wildcard key against the keys it holds: at 10 000 machines behind a three-router mesh the
-    far end saw every machine 40 s after their boxes started and 12.7 s after a router
-    restart; one per box, 14 s and 7.3 s, with a third of the routers' CPU
-    (benchmarks/bench_router_keys.py, docs/fleet.md). A get sees no difference: each machine
-    replies on its own keys.
-
-    The matching listener is the session's, not a machine's: a publisher that never puts,
-    declared on the first machine's summary key (which a fleet watcher's subscription
-    covers), whose matching status turning true again (the session failed over to another
-    router, a restarted router is back) sends every machine's latest summary again
-    (:meth:`HealthPublisher.resend_summary`). A listener per machine had every router of a
-    10 000-machine mesh keep 10 000 interests, and a failover renew 5000 of them at once.
+    One matching listener for the session, not one per machine: a publisher that never puts,
+    declared on the first machine's summary key, whose matching status turning true again (a
+    failover, a restarted router) sends every machine's latest summary again
+    (:meth:`HealthPublisher.resend_summary`).
 
     With ``[zenoh] presence = "box"`` it also holds the box's presence: one liveliness token
-    on :func:`~twinwatch.io.keys.box_token_key` (``<prefix>/@box/<box>/<session zid>``)
-    for every machine of that box added with ``box``, and a queryable on the same key
-    answering ``{"box": <name>, "machines": [<machine>, ...]}`` (what ``twinwatch watch``
-    reads to show those machines alive, or gone when the token goes). The token is declared
-    with the box's first machine and undeclared with its last. A router's death then moves
-    one token per box through the mesh where it moved one per machine (docs/fleet.md, fifth
-    round).
+    on :func:`~twinwatch.io.keys.box_token_key` (``<prefix>/@box/<box>/<session zid>``),
+    declared with the box's first machine added with ``box`` and undeclared with its last,
+    and a queryable on the same key answering ``{"box": <name>, "machines": [<machine>,
+    ...]}`` (what ``twinwatch watch`` reads to show those machines alive, or gone).
 
     Args:
         session: the shared session.
@@ -260,8 +243,6 @@ class QueryDispatch:
                                exc)
 
 
-
-
 HISTORY_LIMIT = 1000
 """Most windows one history query returns (page on with ``after`` = the reply's
 ``next_after``)."""
@@ -334,4 +315,3 @@ def _items(params: Any) -> list[tuple[str, str]]:
     if isinstance(params, dict):
         return list(params.items())
     return [(str(k), str(v)) for k, v in params]
-

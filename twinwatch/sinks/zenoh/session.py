@@ -7,22 +7,11 @@ from __future__ import annotations
 
 import json
 import logging
-from typing import TYPE_CHECKING
 
-from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
+from twinwatch.sinks.zenoh.config import RUST_LOCATION_RE, ZenohConfig, zenoh, zenoh_ext
 
-if TYPE_CHECKING:
-    import zenoh
-    from zenoh import ext as zenoh_ext
-else:  # imported when a session opens: loading a configuration does not load zenoh
-    zenoh = lazy_module("zenoh")
-    zenoh_ext = lazy_module("zenoh.ext")
-from twinwatch.sinks.zenoh.config import RUST_LOCATION_RE, ZenohConfig
-
-logger = logging.getLogger(__package__)  # twinwatch.sinks.zenoh, as before the split
-
-
+logger = logging.getLogger(__package__)
 
 
 def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
@@ -79,13 +68,8 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
         raise PublisherError(explain_open_failure(cfg, str(exc))) from exc
-    logger.debug(
-        "zenoh session %s open (mode=%s, listen=%s, connect=%s)",
-        session.zid(),
-        cfg.mode,
-        cfg.listen if cfg.mode != "client" else [],
-        cfg.connect,
-    )
+    logger.debug("zenoh session %s open (mode=%s, listen=%s, connect=%s)", session.zid(),
+                 cfg.mode, cfg.listen if cfg.mode != "client" else [], cfg.connect)
     return session
 
 
@@ -134,24 +118,14 @@ def explain_open_failure(cfg: ZenohConfig, message: str) -> str:
         endpoint = next((e for e in cfg.listen if e in message), None) or ", ".join(cfg.listen)
         host_port = endpoint.split("/", 1)[-1]
         host, _, port = host_port.rpartition(":")
-        return (
-            f"cannot listen on {endpoint}: port {port} already in use on {host}: another "
-            "twinwatch or zenoh peer is listening; set [zenoh].listen to another port "
-            f"(zenoh: {message})"
-        )
+        return (f"cannot listen on {endpoint}: port {port} already in use on {host}: another "
+                "twinwatch or zenoh peer is listening; set [zenoh].listen to another port "
+                f"(zenoh: {message})")
     if "unable to connect" in lowered:
-        return (
-            f"cannot connect to {', '.join(cfg.connect)}: nothing answers there; start the zenoh "
-            "router/peer first or fix [zenoh].connect "
-            f"(zenoh: {message})"
-        )
+        return (f"cannot connect to {', '.join(cfg.connect)}: nothing answers there; start "
+                f"the zenoh router/peer first or fix [zenoh].connect (zenoh: {message})")
     if "lookup address" in lowered or "name or service not known" in lowered:
-        return (
-            f"cannot resolve a host in listen={cfg.listen} connect={cfg.connect}: "
-            f"fix the endpoint host in [zenoh] (zenoh: {message})"
-        )
-    return (
-        f"cannot open zenoh session (mode={cfg.mode}, listen={cfg.listen}, "
-        f"connect={cfg.connect}): {message}"
-    )
-
+        return (f"cannot resolve a host in listen={cfg.listen} connect={cfg.connect}: "
+                f"fix the endpoint host in [zenoh] (zenoh: {message})")
+    return (f"cannot open zenoh session (mode={cfg.mode}, listen={cfg.listen}, "
+            f"connect={cfg.connect}): {message}")
