@@ -19,6 +19,13 @@ reported):
   fitted on the window, as the daemon's pipeline runs it). The outputs'
   own writes (SQLite, Zenoh, MQTT) are not included: they belong to the sinks, measured by
   ``bench_density.py`` in a running host.
+* ``floor``: what a window's twin costs at its least, on the last timed window: one
+  simulation of the window through the twin's exact step matrices (``model.simulate``, one
+  parameter vector), and a Gauss-Newton fit of the parameters the window's gate admitted,
+  from the nameplate, through the same kernel (the Jacobian by forward differences in
+  ln-parameters, its columns one batched call; plain ``lstsq`` steps until they fall below
+  1e-10). Its values beside the estimator's published ones say that the floor fits the same
+  window to the same answer.
 * ``acquisition``: the ring buffer's ``append`` for a window's 200 samples; the file driver
   reading them from a CSV as fast as it can (``realtime = false``) and replaying
   ``--realtime-windows`` windows in real time (``realtime = true``: its waiting included); the
@@ -77,11 +84,14 @@ def _stats(x: list[float]) -> str:
             f"p95 {np.percentile(a, 95):7.2f} ms")
 
 
-def window_cost(n_windows: int, t_from: float, noise: float = 0.0) -> tuple[list, Any]:
+def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
+                keep: dict[str, Any] | None = None) -> tuple[list, Any]:
     """Per window from ``t_from`` [s] on, CPU [s]: (whole, estimation, prognostics, ring
     buffer, diagnosis); and the samples. The windows before are processed (the trends' evidence, the
     fusion's history), not reported. ``noise``: the plant's measurement noise on ia and omega
-    [% of their scale] (the density benchmark's plants have 0.5)."""
+    [% of their scale] (the density benchmark's plants have 0.5). ``keep``: given, receives the
+    twin (``model``), its nameplate (``nominal``), the last window (``window``) and its
+    estimate (``estimate``)."""
     cfg = default_config()
     model = create_model(cfg.machine.model, cfg.machine.options)
     nominal = {p.name: cfg.machine.parameters.get(p.name, p.nominal) for p in model.parameters}
@@ -129,8 +139,53 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0) -> tuple[list
         complete_health(health, diagnosis=diagnosis, alarms={}).to_json()
         if win.t[0] >= t_from and win.index > 0:
             rows.append((time.process_time() - c, est.spent, prog.spent, ring_cpu, diag_cpu))
+            if keep is not None:
+                keep.update(model=model, nominal=nominal, window=win, estimate=result.estimate)
         ring_cpu = 0.0
     return rows, samples[-n_windows * acq.window:]
+
+
+def floor_cost(model: Any, window: Any, estimated: list[str], nominal: dict[str, float],
+               reps: int = 200) -> tuple[float, float, int, dict[str, float]]:
+    """The floor of a window's twin (module docstring): CPU [s] of one simulation (median of
+    ``reps``), CPU [s] of one Gauss-Newton fit of ``estimated`` from ``nominal`` (median of
+    ``reps // 10``), its iterations (one batched kernel call each) and the values it ends at."""
+    names = list(model.parameter_names)
+    theta0 = np.array([[nominal[n] for n in names]])
+    idx = [names.index(n) for n in estimated]
+    meas = np.column_stack([np.asarray(window[o], dtype=float) for o in model.output_names])
+    scale = np.maximum(np.sqrt(np.mean(meas**2, axis=0)), 1e-12)
+
+    def fit() -> tuple[np.ndarray, int]:
+        x = np.log(theta0[0, idx])
+        pts = np.repeat(theta0, len(idx) + 1, axis=0)
+        calls = 0
+        while calls < 20:
+            pts[:, idx] = np.exp(x)
+            for k, j in enumerate(idx):
+                pts[k + 1, j] = np.exp(x[k] + 1e-6)
+            y = model.simulate(pts, window)
+            calls += 1
+            r = ((y[:, 1:, :] - meas[None, 1:, :]) / scale).reshape(len(pts), -1)
+            jac = (r[1:] - r[0]).T / 1e-6
+            dx = np.linalg.lstsq(jac, -r[0], rcond=None)[0]
+            x = x + dx
+            if np.max(np.abs(dx)) < 1e-10:
+                break
+        return np.exp(x), calls
+
+    sim = []
+    for _ in range(reps):
+        c = time.process_time()
+        model.simulate(theta0, window)
+        sim.append(time.process_time() - c)
+    fits = []
+    for _ in range(max(reps // 10, 1)):
+        c = time.process_time()
+        values, iterations = fit()
+        fits.append(time.process_time() - c)
+    return (float(np.median(sim)), float(np.median(fits)), iterations,
+            dict(zip(estimated, values.tolist(), strict=True)))
 
 
 def _write_csv(path: Path, samples: list) -> None:
@@ -204,7 +259,8 @@ def main() -> None:
     logging.disable(logging.WARNING)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"python {platform.python_version()}, load {os.getloadavg()[0]:.2f}")
-    rows, samples = window_cost(args.windows, args.t_from, args.noise)
+    kept: dict[str, Any] = {}
+    rows, samples = window_cost(args.windows, args.t_from, args.noise, keep=kept)
     a = np.array(rows)
     per = 200
     print(f"\nwindow of {per} samples (2 s), CPU over {len(rows)} windows from "
@@ -215,6 +271,17 @@ def main() -> None:
     print(f"    diagnosis (the fault library's twins):              {_stats(list(a[:, 4]))}")
     print(f"    the rest (discovery check, health, JSON):            "
           f"{_stats(list(a[:, 0] - a[:, 1] - a[:, 2] - a[:, 4]))}")
+    e = kept["estimate"]
+    estimated = [n for n, st in e.status.items() if st == "estimated"]
+    sim, gn, iterations, values = floor_cost(kept["model"], kept["window"], estimated,
+                                                   kept["nominal"])
+    print(f"\nfloor, on the last window ({', '.join(estimated)} estimated):")
+    print(f"  one simulation of the window (exact step matrices):   {sim * 1e3:7.3f} ms")
+    print(f"  Gauss-Newton fit from the nameplate, same kernel:      {gn * 1e3:7.3f} ms "
+          f"({iterations} iterations, a batched twin call each)")
+    for n, v in values.items():
+        pub = float(e.values[n])
+        print(f"    {n}: floor fit {v:.6g}, estimator {pub:.6g} ({(v / pub - 1) * 100:+.4f} %)")
     print("\nacquisition, CPU per window of 200 samples:")
     print(f"  ring buffer append:                                   {_stats(list(a[:, 3]))}")
     chans = list(samples[0].values)
