@@ -1,54 +1,21 @@
 """Commissioning: the baseline parameters of a machine, identified offline from a recording,
-and what the recording can and cannot tell about them.
+and what the recording can and cannot tell about them (docs/drives.md, "Commissioning").
 
-The monitor compares every window's estimates with a baseline (``[machine.parameters]``); on a
-machine nobody has measured, that baseline must itself come from data, and from more of it than
-one window. :func:`identify`:
+:func:`identify` fits the twin to a training stretch in one free run (output error; PSO over
+the ln-parameters, then bounded least squares with the initial state, ``[identify] starts``
+swarms), analyses identifiability at the optimum (Ljung, *System Identification*, 2nd ed.,
+ch. 4.6 and 9; MATLAB's ``getcov``/``getpvec``), holds the undetermined parameters at stated
+values (``[identify.fixed]``, else ``[machine.parameters]``; a stated 1-sigma propagated as
+``S diag(sigma^2) S^T``) and re-fits the rest, scores both fits on a validation stretch
+(``fit % = 100 * (1 - ||y - y_hat|| / ||y - mean(y)||)``, MATLAB ``compare``; negative fails
+the model check), and gives AIC/BIC (MATLAB ``aic``) by which :func:`compare_structures` ranks
+``[identify.candidates]``. :func:`parameters_block` writes the ``[machine.parameters]`` lines
+to paste: only the determined parameters; the held ones commented out with the reason.
 
-1. **fits** the twin to a long training stretch (one free-run simulation from the stretch's
-   measured initial state, the output-error criterion of system identification), with the
-   daemon's global + local search: PSO over the logarithms of the estimated parameters within
-   their bounds, then bounded least squares with the initial state (``[identify] starts``
-   independent swarms, the best training fit kept);
-2. **analyses identifiability** at that optimum (Ljung, *System Identification*, 2nd ed.,
-   ch. 4.6 and 9; MATLAB's ``getcov``/``getpvec``): the information matrix of the
-   ln-parameters, its numerical rank and condition number, the parameter combinations it
-   leaves undetermined (the eigenvectors of its small eigenvalues, as relative changes:
-   ``a_adc - 0.41 Ra + 0.41 J`` is a direction the data cannot tell from no change), the
-   correlation matrix's strong pairs, and the parameters the search left at a bound;
-3. **holds the undetermined ones at stated values** and re-fits the rest: while a free
-   parameter's 1-sigma relative error exceeds ``[identify] max_rel_std`` (default 10 %), the
-   weakest combination that a stated value can resolve gives up one parameter: of those with
-   a stated value (``[identify.fixed]``: a value, its own 1-sigma and where it comes from;
-   else the configured ``[machine.parameters]`` value, the nameplate), the one with the
-   largest weight (then the last in ``estimate``'s priority order) is held there and the
-   others are polished again. A stated value's 1-sigma is propagated to the re-fitted
-   parameters (``S diag(sigma^2) S^T``, S how the optimum follows the held value). What
-   remains free within ``max_rel_std`` is *determined*; a parameter whose combination nobody
-   stated a value for stays free and *not determined* (never held at an arbitrary value,
-   which would make the others look determined). A parameter the search left at a bound is
-   held there, flagged;
-4. **scores** both fits on a validation stretch it was not fitted to, per output::
-
-       fit % = 100 * (1 - ||y - y_hat|| / ||y - mean(y)||)
-
-   (MATLAB ``compare``'s NRMSE fit; 100 % is a perfect fit, 0 % no better than the mean), with
-   the model check of the monitoring (:func:`twinwatch.twin.estimation.statistics.check_model`)
-   on both stretches. An output fitted worse than its mean (negative fit %) fails the check,
-   whatever the residual tests say;
-5. gives the **information criteria** of the full fit on the training residual (MATLAB's
-   ``aic``/``aic(...,'BIC')``), by which :func:`compare_structures` ranks the candidate model
-   structures ``[identify.candidates]`` lists (the daemon's ``commission`` identifies each).
-
-:func:`parameters_block` writes the ``[machine.parameters]`` lines to paste: only the determined
-parameters; the held ones commented out with the reason.
-
-The covariance is the least-squares one the monitoring uses
-(:func:`~twinwatch.twin.estimation.fit.parameter_covariance`: each output's residual variance,
-AR(1)-inflated, floored by ``model_error``, in the sandwich form ``A^-1 (J^T W J) A^-1`` with
-``A = J^T J``, since the fit weighs the outputs by their scale, not by their residual variance);
-the information matrix analysed is its inverse over the parameters (the initial-state offsets
-profiled out), which is ``J^T W J`` itself when the weights are the inverse variances.
+The covariance is the monitoring's
+(:func:`~twinwatch.twin.estimation.fit.parameter_covariance`: the sandwich
+``A^-1 (J^T W J) A^-1``, ``A = J^T J``); the information matrix analysed is its inverse over
+the parameters (the initial-state offsets profiled out).
 """
 
 from __future__ import annotations

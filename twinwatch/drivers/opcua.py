@@ -1,77 +1,11 @@
 """OPC UA driver: one subscription on a server's variables into twin samples; never writes.
 
 A background thread (``twinwatch-opcua-in``) runs asyncua's client in an asyncio loop of its own
-and hands complete samples to :meth:`~twinwatch.drivers.base.Driver.read` through a queue, as
-the Modbus driver's polling thread does.
-
-Nodes
-    ``[driver.channels]`` maps each twin channel to a variable: by NodeId string
-    (``node = "ns=2;s=Motor.ia"``) or by browse path from the Root folder
-    (``browse_path = "0:Objects/2:Motor/2:ia"``, qualified names separated by ``/``), with
-    ``scale``, ``offset`` (``twin value = value * scale + offset``) and an optional ``unit``.
-    When a unit is declared, the node's ``EngineeringUnits`` property (an ``EUInformation``)
-    must name it (its display name, or the UNECE code of the unit); a mismatch refuses to
-    start naming the node and both units. A node that does not exist, a browse path that
-    matches nothing, a server that rejects the user or the certificate, or offers no endpoint
-    with the configured security (``driver.security_policy``, naming what it offers): the
-    start refuses with one line naming the key
-    (:class:`~twinwatch.drivers.base.DriverConfigError`, ``run`` exits 78; ``check-config``
-    connects and says the same).
-
-The subscription
-    One subscription holds one monitored item per channel. Its sampling interval is the sample
-    period, its publishing interval ``publishing_interval`` (50 ms by default: 5 samples of
-    10 ms per notification), each monitored item's queue ``queue_size`` values (default: four
-    publishing intervals' worth, at least 10) with DiscardOldest, and its data-change filter
-    reports a new *source timestamp* even when the value repeats (trigger
-    StatusValueTimestamp: a constant set-point is still one value per sample). A server may
-    revise the publishing interval (logged; a warning when the queue would not hold one
-    interval of samples); asyncua's client does not report a revised queue size: a queue the
-    server shortened shows as values with the Overflow info bit (its queue discarded older
-    values), counted in ``stats.extra["overflows"]``, the discarded samples as a gap.
-
-Sample times, and how channels are joined into samples
-    Each value's time is its SourceTimestamp (the device's clock); a server that sends none
-    gives its ServerTimestamp instead (said once in the log, ``stats.extra["server_stamps"]``).
-    ``t`` is POSIX seconds (minus ``time_origin``, which only the simulated plant sets: its
-    plant time). The values of the channels are joined into one sample per *slot*, the source
-    time rounded to the sample period: ``k = round(t / sample_period)``. A slot becomes a
-    sample when every channel has delivered a value for it; its ``t`` is the mean of those
-    values' times (their jitter reaches the ring buffer, which judges it). Each monitored item
-    delivers its values in order, so once slot ``k`` is complete no earlier slot can still
-    complete: the slots skipped since the last sample (a channel's value missing, a dropped
-    notification, a reconnect) are counted in ``stats.gaps`` (a few per window the ring buffer
-    holds over, more abandon the window: ``[acquisition] max_missing``). A value for a slot
-    already delivered (the current value a server sends when a subscription is recreated) is
-    skipped (``stats.extra["duplicates"]``). A source time
-    more than an hour away from the last sample's (a clock set, a device restarted) counts in
-    ``stats.extra["time_jumps"]``, not as missing samples. A channel whose values stop while
-    the others' go on is named in :attr:`OpcUaDriver.silent` (its slots are counted missing).
-
-Status codes
-    A value whose StatusCode is not Good (Uncertain or Bad: a sensor fault, a device not
-    connected, ...) is never used: its slot becomes a missing sample (``stats.gaps``), counted
-    per channel in ``stats.extra["status_<channel>"]`` and logged once per channel with its
-    status name. A value that is not a finite number counts in ``stats.bad_values``, likewise
-    missing.
-
-Failures
-    A lost connection (the server stopped, a network failure, a session or subscription the
-    server dropped) is logged at ERROR once, the client is closed and a new session and
-    subscription are created after a jittered exponential backoff (0.1 s doubling up to
-    ``backoff_max``); ``stats.extra["outages"]``, ``["reconnects"]``, ``stats.errors``. The
-    samples lost meanwhile are a gap in the source timestamps, counted as above. While the
-    server is away :attr:`OpcUaDriver.waiting` says since when and why.
-
-Security
-    ``security_policy = "None"`` (default, for a server on the loopback) or
-    ``"Basic256Sha256"`` with ``security_mode = "Sign"`` or ``"SignAndEncrypt"``, the client's
-    ``certificate`` and ``private_key`` and the trusted ``server_certificate`` (files, PEM or
-    DER); ``username`` with ``password_file`` (its first line; or ``password`` inline) as the
-    MQTT output takes them. ``check-config`` refuses a missing file before anything opens.
-
-Monitoring only: the driver reads attributes, browses, and subscribes; it never writes a node
-and never calls a method.
+and hands complete samples to :meth:`~twinwatch.drivers.base.Driver.read` through a queue.
+Nodes (NodeId or browse path, unit checked against EngineeringUnits), the subscription, how
+values are joined into samples by source-time slot ``k = round(t / sample_period)``, status
+codes, reconnects, security and the one-line refusals (:class:`DriverConfigError`, ``run``
+exits 78): docs/opcua-input.md.
 
 Example configuration (TOML)::
 

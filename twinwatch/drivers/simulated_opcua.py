@@ -1,36 +1,16 @@
 """The simulated DC motor (or hydraulic actuator), served by an OPC UA server on loopback and
-read back through a subscription.
+read back through a subscription (docs/opcua-input.md, "The simulated motor over OPC UA").
 
-The plant (:mod:`twinwatch.plant.dcmotor`, paper Section 5.2) is served by a
-:class:`~twinwatch.plant.opcua_server.PlantOpcUaServer` on ``127.0.0.1:<port>`` (one object
-``Motor`` with the variables ``Va`` [V], ``ia`` [A], ``omega`` [rad/s], ``Tload`` [N m] and
-``setpoint`` [rad/s], each with its EngineeringUnits); an
-:class:`~twinwatch.drivers.opcua.OpcUaDriver` subscribes to them exactly as it would to a
-drive's or a PLC's server, so every sample travels the real OPC UA path (monitored-item
-queues, publish responses, binary encoding, source timestamps, the units' check,
-reconnects). With ``machine = "hydraulic_actuator"`` the hydraulic plant (paper Section 5.3)
-is served instead, object ``Actuator`` with ``x`` [m], ``p`` [Pa], ``A_valve`` [m^2],
-``F_load`` [N] and ``x_ref`` [m] (as Double: no register encoding to choose, unlike over
-Modbus).
-
-Pacing (``pacing``):
-
-* ``"lockstep"`` (default): the server writes the plant's samples in bursts of a quarter of the
-  monitored items' queue, one burst per publishing interval, while the driver has fewer than
-  two windows' worth of samples in flight or unread (in-process flow control: a subscription
-  cannot make a server wait, so this is where the pacing lives). Nothing is lost and a run is
-  as fast as the estimation (or the OPC UA stack) allows; the driver is not ``live``.
-* ``"realtime"``: one sample every ``plant.sample_period`` of wall time; the driver is
-  ``live``. Stopping the server (:attr:`SimulatedOpcUaDriver.server`) makes the driver count
-  the outage and reconnect with its capped backoff; the plant's clock runs on meanwhile, so
-  the samples of the outage are a counted gap and the ring buffer abandons the windows they
-  fall in.
-
-Sample time: the source timestamps are the plant's time on a wall-clock base (the server's
-start); the driver subtracts that base, so ``t`` is plant time as over CAN.
-
-Monitoring only: the driver subscribes and reads; the server's variables are read-only and it
-listens on the loopback interface only.
+The plant (:mod:`twinwatch.plant.dcmotor`, paper Section 5.2; or :mod:`twinwatch.plant.hydraulic`,
+Section 5.3, with ``machine = "hydraulic_actuator"``) is served by a
+:class:`~twinwatch.plant.opcua_server.PlantOpcUaServer` on ``127.0.0.1:<port>`` (object
+``Motor``: ``Va`` [V], ``ia`` [A], ``omega`` [rad/s], ``Tload`` [N m], ``setpoint`` [rad/s];
+or ``Actuator``: ``x`` [m], ``p`` [Pa], ``A_valve`` [m^2], ``F_load`` [N], ``x_ref`` [m]) and
+read by an :class:`~twinwatch.drivers.opcua.OpcUaDriver` through a real subscription.
+``pacing``: ``"lockstep"`` (default, not ``live``: in-process flow control, nothing lost) or
+``"realtime"`` (``live``; stopping :attr:`SimulatedOpcUaDriver.server` costs a counted gap).
+The source timestamps are plant time on a wall-clock base, which the driver subtracts: ``t`` is
+plant time. Monitoring only: the variables are read-only, the server listens on loopback.
 """
 
 from __future__ import annotations

@@ -7,24 +7,13 @@
 :data:`NAMESPACE`), each with its ``EngineeringUnits`` property (an ``EUInformation`` with the
 UNECE code of the unit, OPC UA Part 8). Every plant sample is written to every variable as a
 ``DataValue`` whose SourceTimestamp is the sample's time on a wall-clock base (the server's
-start, POSIX, plus plant time) and whose ServerTimestamp is the wall clock: a subscriber's
-monitored items queue each sample; asyncua's server reports every write (its monitored items
-are event-driven, not sampled).
+start, POSIX, plus plant time) and whose ServerTimestamp is the wall clock.
 
-Pacing:
-
-* ``"realtime"``: a timer writes each sample when the wall clock reaches its plant time (the
-  clock starts once ``may_advance()`` first says so: the simulated driver has subscribed). The
-  plant's clock keeps running while the server is stopped: after :meth:`start` again the
-  plant catches up and a client sees the samples of the outage missing (a gap).
-* ``"lockstep"``: the plant advances in bursts of ``burst`` samples, one burst per
-  ``publishing_interval``, while ``may_advance()`` says the consumer keeps up (in-process flow
-  control: the simulated driver reports how many samples it has not yet read). The samples still
-  travel through a real subscription (queues, publish responses, decoding); only their rate
-  follows the consumer. Source timestamps then run ahead of the wall clock. A subscription
-  cannot make a server wait for its client; this is the nearest a server can come to lock
-  step: every sample is written once, with its own source timestamp, and a burst never exceeds
-  what a monitored item's queue holds between two publish responses.
+Pacing: ``"realtime"``, a timer writes each sample when the wall clock reaches its plant time
+(from the first ``may_advance()``; the plant's clock runs on while the server is stopped);
+``"lockstep"``, bursts of ``burst`` samples, one per ``publishing_interval``, while
+``may_advance()`` says the consumer keeps up (docs/opcua-input.md: a subscription cannot make
+a server wait).
 
 All variables are read-only (AccessLevel CurrentRead); the server offers security None only
 and listens on the loopback interface.
