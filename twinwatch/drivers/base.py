@@ -31,7 +31,11 @@ configured source without naming it.
 from __future__ import annotations
 
 import abc
+import contextlib
 import logging
+import queue
+import random
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -63,6 +67,7 @@ __all__ = [
     "DriverStats",
     "EndOfStream",
     "PlantDriver",
+    "QueuedDriver",
     "Sample",
     "ScaledChannel",
     "validated_config",
@@ -329,6 +334,84 @@ class Driver(Closeable, abc.ABC):
 
     def _close_internal(self) -> None:  # noqa: B027 - optional hook
         """Release resources; called once by :meth:`close`."""
+
+
+class QueuedDriver(Driver):
+    """A driver whose own thread hands complete samples to :meth:`read` through a queue (the
+    Modbus and OPC UA drivers): the read with its deadline, the oldest sample dropped for a
+    reader that falls behind, the jittered reconnect delay and an outage's bookkeeping (the
+    first failure at ERROR, the rest at DEBUG, the recovery at WARNING).
+
+    Subclasses call :meth:`_init_queue` from their constructor and set :attr:`source_name`.
+    """
+
+    #: the driver in the log (``"Modbus"``, ``"OPC UA"``)
+    source_name: ClassVar[str]
+
+    def _init_queue(self, maxsize: int) -> None:
+        self._queue: queue.Queue[Sample] = queue.Queue(maxsize=maxsize)
+        self._stop = threading.Event()
+        self._fatal: str | None = None
+        self._down_since: float | None = None
+        self._last_error = ""
+        self._rng = random.Random()
+
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        while True:
+            if self._fatal is not None:
+                raise DriverOperationError(self._fatal)
+            remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
+            try:
+                if remaining <= 0:
+                    return self._queue.get_nowait()
+                return self._queue.get(timeout=remaining)
+            except queue.Empty:
+                if deadline is not None and time.monotonic() >= deadline:
+                    if self._fatal is not None:
+                        raise DriverOperationError(self._fatal) from None
+                    return None
+
+    def _put_dropping_oldest(self, sample: Sample) -> None:
+        """Queue ``sample``; a full queue (a reader that does not read) loses its oldest one
+        (``stats.extra["dropped"]``)."""
+        try:
+            self._queue.put_nowait(sample)
+        except queue.Full:
+            with contextlib.suppress(queue.Empty):  # the reader just emptied it
+                self._queue.get_nowait()
+            self.stats.extra["dropped"] += 1
+            self.log_once("dropped", "%s driver: %d samples not read; dropping the oldest "
+                          "(stats.extra.dropped)", self.source_name, self._queue.maxsize)
+            self._queue.put_nowait(sample)
+
+    def _jittered(self, backoff: float) -> float:
+        """A reconnect delay [s]: ``backoff`` times a uniform factor in [0.5, 1)."""
+        return backoff * (0.5 + 0.5 * self._rng.random())
+
+    def _outage(self, reason: str, first: str, *args: object, again: str) -> None:
+        """A failure: counted in ``stats.errors``; the first of an outage starts it
+        (``stats.extra["outages"]``) and is logged at ERROR (``first % args``), the others at
+        DEBUG (``again``)."""
+        self.stats.errors += 1
+        self._last_error = reason
+        log = logging.getLogger(type(self).__module__)
+        if self._down_since is None:
+            self._down_since = time.monotonic()
+            self.stats.extra["outages"] += 1
+            log.error(first, *args)
+        else:
+            log.debug("%s", again)
+
+    def _recovered(self) -> float | None:
+        """The outage's duration [s] when one has ended (``stats.extra["reconnects"]``), else
+        None."""
+        if self._down_since is None:
+            return None
+        down = time.monotonic() - self._down_since
+        self._down_since = None
+        self.stats.extra["reconnects"] += 1
+        return down
 
 
 InnerT = TypeVar("InnerT", bound=Driver)

@@ -88,7 +88,6 @@ from __future__ import annotations
 import logging
 import math
 import queue
-import random
 import threading
 import time
 from collections.abc import Mapping
@@ -101,10 +100,9 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.pdu import ExceptionResponse
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     DriverInitializationError,
-    DriverOperationError,
+    QueuedDriver,
     Sample,
     validated_config,
 )
@@ -301,7 +299,7 @@ _EXTRA_COUNTERS = (
 _LIVE_QUEUE = 1024
 
 
-class ModbusDriver(Driver):
+class ModbusDriver(QueuedDriver):
     """Twin samples polled from a Modbus TCP or RTU device; read requests only.
 
     Args:
@@ -323,6 +321,7 @@ class ModbusDriver(Driver):
     sample_model = "hydraulic_actuator"
     sample_machine = "hydraulic-modbus"
     sample_title = "a hydraulic actuator read from a Modbus device"
+    source_name = "Modbus"
 
     @classmethod
     def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
@@ -373,14 +372,7 @@ class ModbusDriver(Driver):
         )
         self._counter = SampleCounter(None if config.counter is None
                                       else config.counter.modulus)
-        self._queue: queue.Queue[Sample] = queue.Queue(
-            maxsize=1 if config.lockstep else _LIVE_QUEUE
-        )
-        self._stop = threading.Event()
-        self._fatal: str | None = None
-        self._down_since: float | None = None
-        self._last_error = ""
-        self._rng = random.Random()
+        self._init_queue(1 if config.lockstep else _LIVE_QUEUE)
         self.client = self._make_client(config)
         self._thread = threading.Thread(
             target=self._run, name=f"{_POLL_THREAD_NAME}-{config.describe_endpoint()}", daemon=True
@@ -444,25 +436,6 @@ class ModbusDriver(Driver):
                 f"cannot create the Modbus {config.transport} client: {exc}"
             ) from exc
 
-    # -- reading (caller's thread) ----------------------------------------------------------
-    def _read_internal(self, timeout: float | None) -> Sample | None:
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
-        while True:
-            self._raise_if_failed()
-            remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
-            try:
-                if remaining <= 0:
-                    return self._queue.get_nowait()
-                return self._queue.get(timeout=remaining)
-            except queue.Empty:
-                if deadline is not None and time.monotonic() >= deadline:
-                    self._raise_if_failed()
-                    return None
-
-    def _raise_if_failed(self) -> None:
-        if self._fatal is not None:
-            raise DriverOperationError(self._fatal)
-
     # -- polling (the driver's thread) ------------------------------------------------------
     def _run(self) -> None:
         period = self.config.effective_poll_period
@@ -477,7 +450,7 @@ class ModbusDriver(Driver):
                 t, regs = self._poll()
             except _DeviceFailure as exc:
                 self._on_failure(exc)
-                delay = backoff * (0.5 + 0.5 * self._rng.random())
+                delay = self._jittered(backoff)
                 backoff = min(2 * backoff, self.config.backoff_max)
                 if self._stop.wait(delay):
                     break
@@ -638,20 +611,7 @@ class ModbusDriver(Driver):
                 except queue.Full:
                     continue
             return
-        try:
-            self._queue.put_nowait(sample)
-        except queue.Full:
-            try:
-                self._queue.get_nowait()
-            except queue.Empty:  # pragma: no cover - the reader just emptied it
-                pass
-            self.stats.extra["dropped"] += 1
-            self.log_once(
-                "dropped",
-                "Modbus driver: %d samples not read; dropping the oldest (stats.extra.dropped)",
-                _LIVE_QUEUE,
-            )
-            self._queue.put_nowait(sample)
+        self._put_dropping_oldest(sample)
 
     @property
     def waiting(self) -> str | None:
@@ -665,27 +625,15 @@ class ModbusDriver(Driver):
                 f"up to {self.config.backoff_max:g} s")
 
     def _on_failure(self, exc: _DeviceFailure) -> None:
-        self.stats.errors += 1
         self.stats.extra[exc.kind] += 1
-        self._last_error = str(exc)
-        if self._down_since is None:
-            self._down_since = time.monotonic()
-            self.stats.extra["outages"] += 1
-            logger.error(
-                "Modbus device %s not available: %s; retrying with backoff up to %.3g s "
-                "(further failures at DEBUG)",
-                self.config.describe_endpoint(),
-                exc,
-                self.config.backoff_max,
-            )
-        else:
-            logger.debug("Modbus device %s still down: %s", self.config.describe_endpoint(), exc)
+        where = self.config.describe_endpoint()
+        self._outage(str(exc), "Modbus device %s not available: %s; retrying with backoff up "
+                     "to %.3g s (further failures at DEBUG)", where, exc,
+                     self.config.backoff_max, again=f"Modbus device {where} still down: {exc}")
 
     def _on_success(self) -> None:
-        if self._down_since is not None:
-            down = time.monotonic() - self._down_since
-            self._down_since = None
-            self.stats.extra["reconnects"] += 1
+        down = self._recovered()
+        if down is not None:
             logger.warning(
                 "Modbus device %s is back after %.2f s down (%d errors so far)",
                 self.config.describe_endpoint(),

@@ -24,8 +24,6 @@ import asyncio
 import contextlib
 import logging
 import math
-import queue
-import random
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -37,11 +35,10 @@ from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch._table import StrictTable
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     DriverConfigError,
     DriverInitializationError,
-    DriverOperationError,
+    QueuedDriver,
     Sample,
     validated_config,
 )
@@ -272,7 +269,7 @@ class _Slot:
         self.t_sum = 0.0
 
 
-class OpcUaDriver(Driver):
+class OpcUaDriver(QueuedDriver):
     """Twin samples from an OPC UA server's variables through one subscription; never writes.
 
     Args:
@@ -303,6 +300,7 @@ class OpcUaDriver(Driver):
     live = True
     sample_machine = "dc-motor-opcua"
     sample_title = "a DC motor drive's OPC UA server, through one subscription"
+    source_name = "OPC UA"
 
     @classmethod
     def reopens(cls, config: DriverConfig) -> bool:
@@ -343,14 +341,9 @@ class OpcUaDriver(Driver):
         self.revised: tuple[float, dict[str, int]] | None = None
         self.cpu_seconds = 0.0
         self._cpu_base: float | None = None
-        self._queue: queue.Queue[Sample] = queue.Queue(maxsize=_LIVE_QUEUE)
-        self._stop = threading.Event()
+        self._init_queue(_LIVE_QUEUE)
         self._opened = threading.Event()
         self._open_error: Exception | None = None
-        self._fatal: str | None = None
-        self._down_since: float | None = None
-        self._last_error = ""
-        self._rng = random.Random()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._wake: asyncio.Event | None = None
         # slot bookkeeping (the loop thread only)
@@ -398,21 +391,10 @@ class OpcUaDriver(Driver):
 
     # -- reading (caller's thread) ----------------------------------------------------------
     def _read_internal(self, timeout: float | None) -> Sample | None:
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
-        while True:
-            if self._fatal is not None:
-                raise DriverOperationError(self._fatal)
-            remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
-            try:
-                sample = (self._queue.get_nowait() if remaining <= 0
-                          else self._queue.get(timeout=remaining))
-            except queue.Empty:
-                if deadline is not None and time.monotonic() >= deadline:
-                    return None
-                continue
-            if self._on_take is not None:
-                self._on_take(1)
-            return sample
+        sample = super()._read_internal(timeout)
+        if sample is not None and self._on_take is not None:
+            self._on_take(1)
+        return sample
 
     @property
     def backlog(self) -> int:
@@ -493,7 +475,7 @@ class OpcUaDriver(Driver):
                         f"{_describe(exc)}")
                     return
                 self._on_failure(_describe(exc))
-                delay = backoff * (0.5 + 0.5 * self._rng.random())
+                delay = self._jittered(backoff)
                 backoff = min(2 * backoff, self.config.backoff_max)
                 await self._sleep(delay)
                 continue
@@ -509,7 +491,7 @@ class OpcUaDriver(Driver):
             await self._disconnect(client)
             if reason is not None:
                 self._on_failure(reason)
-                await self._sleep(backoff * (0.5 + 0.5 * self._rng.random()))
+                await self._sleep(self._jittered(backoff))
 
     async def _sleep(self, delay: float) -> None:
         assert self._wake is not None
@@ -857,7 +839,7 @@ class OpcUaDriver(Driver):
         if slot.bad or slot.n < len(self.channels):
             self.stats.gaps += 1
             return
-        self._deliver(Sample(slot.t_sum / slot.n, dict(zip(self.channels, slot.values,
+        self._put_dropping_oldest(Sample(slot.t_sum / slot.n, dict(zip(self.channels, slot.values,
                                                               strict=True))))
 
     def _time_jump(self, what: str) -> None:
@@ -871,35 +853,16 @@ class OpcUaDriver(Driver):
         self._last_k = None
         self._pending.clear()
 
-    def _deliver(self, sample: Sample) -> None:
-        try:
-            self._queue.put_nowait(sample)
-        except queue.Full:
-            with contextlib.suppress(queue.Empty):
-                self._queue.get_nowait()
-            self.stats.extra["dropped"] += 1
-            self.log_once("dropped", "OPC UA driver: %d samples not read; dropping the oldest "
-                          "(stats.extra.dropped)", _LIVE_QUEUE)
-            self._queue.put_nowait(sample)
-
     # -- outages ----------------------------------------------------------------------------
     def _on_failure(self, reason: str) -> None:
-        self.stats.errors += 1
-        self._last_error = reason
-        if self._down_since is None:
-            self._down_since = time.monotonic()
-            self.stats.extra["outages"] += 1
-            logger.error("OPC UA server %s not available: %s; reconnecting with backoff up to "
-                         "%.3g s (further failures at DEBUG)", self.config.endpoint, reason,
-                         self.config.backoff_max)
-        else:
-            logger.debug("OPC UA server %s still away: %s", self.config.endpoint, reason)
+        where = self.config.endpoint
+        self._outage(reason, "OPC UA server %s not available: %s; reconnecting with backoff up "
+                     "to %.3g s (further failures at DEBUG)", where, reason,
+                     self.config.backoff_max, again=f"OPC UA server {where} still away: {reason}")
 
     def _on_success(self) -> None:
-        if self._down_since is not None:
-            down = time.monotonic() - self._down_since
-            self._down_since = None
-            self.stats.extra["reconnects"] += 1
+        down = self._recovered()
+        if down is not None:
             logger.warning("OPC UA server %s is back after %.2f s; subscription recreated",
                            self.config.endpoint, down)
 
