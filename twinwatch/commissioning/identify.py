@@ -431,13 +431,8 @@ def _null_combinations(names: Sequence[str], null: FloatArray) -> list[Combinati
     out: list[Combination] = []
     for k in range(null.shape[1]):
         vec = null[:, k]
-        m = float(np.max(np.abs(vec))) if vec.size else 0.0
-        if m <= 0:
-            continue
-        sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
-        out.append(Combination(
-            {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)
-             if abs(x) > NULL_COMPONENT}, math.inf))
+        if vec.size and float(np.max(np.abs(vec))) > 0:
+            out.append(_combination(names, vec, math.inf, NULL_COMPONENT))
     return out
 
 
@@ -453,10 +448,18 @@ def _weak_combinations(names: Sequence[str], w: FloatArray, vecs: FloatArray,
         std = math.sqrt(w[k]) / m if m > 0 else math.inf
         if std <= max_rel_std:
             continue
-        sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
-        out.append(Combination(
-            {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)}, std))
+        out.append(_combination(names, vec, std))
     return out
+
+
+def _combination(names: Sequence[str], vec: FloatArray, std: float,
+                 cut: float = -1.0) -> Combination:
+    """The direction ``vec`` (n,) over ``names`` scaled so that its largest component is +1,
+    components of magnitude ``cut`` or less left out."""
+    m = float(np.max(np.abs(vec)))
+    sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
+    return Combination({nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)
+                        if abs(x) > cut}, std)
 
 
 def _correlation(c: FloatArray, sd: FloatArray, finite: BoolArray) -> FloatArray:
@@ -918,8 +921,8 @@ def _weakest_stated(a: Identifiability, holds: _Holds) -> tuple[str, str] | None
             0 if n in holds.config.fixed else 1, -abs(weights[n]), -names_est.index(n)))
         others = [n for n in comb.weights if n != name and abs(comb.weights[n]) >= LABEL_CUT]
         if others:
-            return name, f"in {comb.label()} (+-{_pct(comb.std)})"
-        return name, f"the outputs barely respond to it (+-{_pct(comb.std)} alone)"
+            return name, f"in {comb.label()} (+-{percent(comb.std)})"
+        return name, f"the outputs barely respond to it (+-{percent(comb.std)} alone)"
     return None
 
 
@@ -933,18 +936,18 @@ def _unresolved(name: str, analysis: Identifiability) -> str:
         if share >= LABEL_CUT and (best is None or share > best[0]):
             best = (share, comb)
     if best is None:
-        return f"the outputs barely respond to it (above the {_pct(analysis.max_rel_std)} " \
+        return f"the outputs barely respond to it (above the {percent(analysis.max_rel_std)} " \
             "allowed)"
     comb = best[1]
     top = max(abs(x) for x in comb.weights.values())
     partners = [n for n, x in comb.weights.items() if abs(x) >= MAIN_SHARE * top]
     if name not in partners:
         partners.append(name)
-    return (f"in {comb.label()} (+-{_pct(comb.std)}); state a value of "
+    return (f"in {comb.label()} (+-{percent(comb.std)}); state a value of "
             f"{' or '.join(partners)} to determine it")
 
 
-def _pct(x: float) -> str:
+def percent(x: float) -> str:
     """A relative error as a percentage for reports: ``8.1 %``, ``118 %``, ``4e+06 %``."""
     if not math.isfinite(x):
         return "inf %"
@@ -1066,13 +1069,13 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
                      "([identify.candidates]), or accept that error ([estimation] model_error)")
     elif result.held or result.undetermined:
         lines.append(f"# Pasted: the parameters the recording determines within "
-                     f"{_pct(result.max_rel_std)} (1 sigma)"
+                     f"{percent(result.max_rel_std)} (1 sigma)"
                      + (", given the held values below." if result.held else "."))
     lines.append("[machine.parameters]")
     for name in result.determined:
         value = result.values[name]
         unit = result.units.get(name, "")
-        note = f"{unit}, identified +- {_pct(result.rel_std[name])} (1 sigma)"
+        note = f"{unit}, identified +- {percent(result.rel_std[name])} (1 sigma)"
         if name not in pasted:
             note += ", NOT PASTED: the model check failed"
         lines.append(("" if name in pasted else "# ") + f"{name} = {value:.6g}".ljust(24)
@@ -1090,7 +1093,7 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
         for name, why in result.undetermined.items():
             unit = result.units.get(name, "")
             lines.append(f"# {name} = {result.values[name]:.6g}".ljust(24)
-                         + f"# {unit}, not determined (+-{_pct(result.rel_std[name])}): {why}")
+                         + f"# {unit}, not determined (+-{percent(result.rel_std[name])}): {why}")
         for dep, src in result.tied.items():
             if src not in pasted:
                 lines.append(f"# {dep} = {result.values[dep]:.6g}".ljust(24)
@@ -1117,4 +1120,4 @@ def _toml_value(value: Any) -> str:
 __all__ = ["Combination", "Comparison", "FullFit", "HeldParameter", "Identifiability",
            "Identification", "InformationCriteria", "StretchScore", "analyse",
            "compare_structures", "fit_percent", "identify", "information_criteria",
-           "parameters_block"]
+           "parameters_block", "percent"]

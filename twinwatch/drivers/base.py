@@ -345,8 +345,13 @@ class QueuedDriver(Driver):
     Subclasses call :meth:`_init_queue` from their constructor and set :attr:`source_name`.
     """
 
-    #: the driver in the log (``"Modbus"``, ``"OPC UA"``)
+    #: the driver in the log and in a validation error (``"Modbus"``, ``"OPC UA"``)
     source_name: ClassVar[str]
+
+    @classmethod
+    def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Self:
+        checked = validated_config(cls.config_class, config, cls.source_name)
+        return cls(checked, base_dir=base_dir)  # type: ignore[call-arg]
 
     def _init_queue(self, maxsize: int) -> None:
         self._queue: queue.Queue[Sample] = queue.Queue(maxsize=maxsize)

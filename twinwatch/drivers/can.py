@@ -51,7 +51,7 @@ from __future__ import annotations
 import difflib
 import logging
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -270,16 +270,6 @@ class CanDriver(BusDriver):
         address = gateway_address(config)
         where = f" ({address[0]}:{address[1]})" if address else ""
         return f"CAN interface {config.interface!r} channel {config.channel!r}{where}"
-
-    @classmethod
-    def from_config(cls, config: CanDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None, bus: can.BusABC | None = None) -> CanDriver:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see :class:`CanDriver`.
-        """
-        return super().from_config(config, base_dir=base_dir, bus=bus)
 
     # -- construction -----------------------------------------------------------------------
     def _setup(self, config: CanDriverConfig) -> None:

@@ -509,17 +509,6 @@ class CanopenDriver(BusDriver):
         return (f"CANopen node {config.node_id} on CAN interface {config.interface!r} "
                 f"channel {config.channel!r}")
 
-    @classmethod
-    def from_config(cls, config: CanopenDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None,
-                    bus: can.BusABC | None = None) -> CanopenDriver:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        return super().from_config(config, base_dir=base_dir, bus=bus)
-
     # -- construction -------------------------------------------------------------------------
     def _setup(self, config: CanopenDriverConfig) -> None:
         self.plan = plan = load_plan(config)

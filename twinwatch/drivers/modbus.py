@@ -90,9 +90,8 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -104,7 +103,6 @@ from twinwatch.drivers.base import (
     DriverInitializationError,
     QueuedDriver,
     Sample,
-    validated_config,
 )
 from twinwatch.io.counter import SampleCounter
 from twinwatch.io.modbus_registers import (
@@ -304,6 +302,7 @@ class ModbusDriver(QueuedDriver):
 
     Args:
         config: the validated configuration (see :class:`ModbusDriverConfig`).
+        base_dir: accepted for the driver contract; no path in this config is relative.
 
     Attributes:
         channels: twin channel names, in the order of ``config.registers``.
@@ -353,7 +352,7 @@ class ModbusDriver(QueuedDriver):
         assert isinstance(config, ModbusDriverConfig)
         return f"Modbus device {config.describe_endpoint()}"
 
-    def __init__(self, config: ModbusDriverConfig) -> None:
+    def __init__(self, config: ModbusDriverConfig, *, base_dir: Path | None = None) -> None:
         super().__init__()
         self.config = config
         self.channels = tuple(config.registers)
@@ -386,21 +385,6 @@ class ModbusDriver(QueuedDriver):
             len(self.blocks),
             ", ".join(self.channels),
         )
-
-    @classmethod
-    def from_config(
-        cls, config: ModbusDriverConfig | Mapping[str, Any], *, base_dir: Path | None = None
-    ) -> ModbusDriver:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        ``base_dir`` is accepted for the driver contract; no path in this config is relative.
-
-        Raises:
-            DriverInitializationError: the table does not validate (the message names the key),
-                or see :class:`ModbusDriver`.
-        """
-        config = validated_config(ModbusDriverConfig, config, "Modbus")
-        return cls(config)
 
     # -- construction -----------------------------------------------------------------------
     def _block_of(self, reg: ModbusRegister) -> tuple[int, int]:

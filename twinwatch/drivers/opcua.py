@@ -40,7 +40,6 @@ from twinwatch.drivers.base import (
     DriverInitializationError,
     QueuedDriver,
     Sample,
-    validated_config,
 )
 
 if TYPE_CHECKING:  # asyncua is imported when the driver opens: validating loads nothing
@@ -191,14 +190,13 @@ class OpcUaDriverConfig(DriverConfig):
 
     @model_validator(mode="after")
     def _consistent(self) -> OpcUaDriverConfig:
+        keys = ("security_mode", "certificate", "private_key", "server_certificate")
         if self.security_policy == "None":
-            given = [k for k in ("security_mode", "certificate", "private_key",
-                                 "server_certificate") if getattr(self, k) is not None]
+            given = [k for k in keys if getattr(self, k) is not None]
             if given:
                 raise ValueError(f"{', '.join(given)} need security_policy = 'Basic256Sha256'")
         else:
-            missing = [k for k in ("security_mode", "certificate", "private_key",
-                                   "server_certificate") if getattr(self, k) is None]
+            missing = [k for k in keys if getattr(self, k) is None]
             if missing:
                 raise ValueError(f"security_policy = {self.security_policy!r} needs "
                                  f"{', '.join(missing)}")
@@ -366,17 +364,6 @@ class OpcUaDriver(QueuedDriver):
                     "%.4g s, queue %d", self.config.endpoint, ", ".join(self.channels),
                     self.sample_period, self.config.publishing_interval,
                     self.config.effective_queue_size)
-
-    @classmethod
-    def from_config(cls, config: OpcUaDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None) -> OpcUaDriver:
-        """Open the driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverConfigError, DriverInitializationError: see the class.
-        """
-        config = validated_config(OpcUaDriverConfig, config, "OPC UA")
-        return cls(config, base_dir=base_dir)
 
     def _read_password(self) -> str | None:
         cfg = self.config
