@@ -1,19 +1,13 @@
-"""The simulated DC motor as a CiA 402 drive on a virtual CANopen bus, read back passively.
+"""The simulated DC motor as a CiA 402 drive on a virtual CANopen bus, read back passively
+(docs/canopen.md, "The simulated drive").
 
-The plant (:mod:`twinwatch.plant.dcmotor`) sits behind a ``canopen`` local node with the EDS
-shipped in the package (:mod:`twinwatch.plant.canopen_drive`: SYNC and RPDO1 of a master, the
-drive's TPDOs, EMCY and heartbeat, every frame stamped with plant time) on an in-process
-python-can ``virtual`` bus; a :class:`~twinwatch.drivers.canopen.CanopenDriver` listening on the
-same channel decodes them from the same EDS exactly as it would decode a real drive's frames.
-The samples' time is the SYNC frames' stamps: plant time, so a run is the same as fast as
-possible or in real time.
-
-The plant is stepped lazily, one sample whenever the CANopen driver has nothing left to decode
-(as :mod:`twinwatch.drivers.simulated` does over the DBC); ``realtime = true`` sends each
-sample's frames when the wall clock reaches its plant time.
-
-Monitoring only: the simulated drive sends on a ``virtual`` bus and nothing else; the driver
-sends nothing at all.
+The plant sits behind a ``canopen`` local node with the EDS shipped in the package
+(:mod:`twinwatch.plant.canopen_drive`) on an in-process python-can ``virtual`` bus; a
+:class:`~twinwatch.drivers.canopen.CanopenDriver` on the same channel decodes its frames from the
+same EDS as it would a real drive's. The samples' time is the SYNC frames' stamps (plant time).
+The plant is stepped lazily, one sample whenever the driver has nothing left to decode;
+``realtime = true`` sends each sample's frames when the wall clock reaches its plant time.
+Monitoring only: the simulated drive sends on a ``virtual`` bus; the driver sends nothing.
 """
 
 from __future__ import annotations

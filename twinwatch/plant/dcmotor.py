@@ -51,15 +51,11 @@ the motor receives, s(t), while the reported Va stays the drive's command; ``sen
 of kind ``gain`` and ``offset`` change a reported channel only. The numba kernel reads the
 parameters from the array it is handed each sample: no recompilation, the same speed.
 
-The drive (:class:`~twinwatch.io.drive.DriveConfig`, ``[driver.plant.drive]``) runs as a real
-drive does: it updates every ``period`` and holds its output in between, clamps it to its limits
-with anti-windup, and may have an inner current loop; without a ``drive`` table it is the
-paper's PI (``kp``, ``ki``) updated every step. The variants a real drive has, for testing the
-twin on machines unlike it: ``coulomb_friction`` Tc [N m], ``power_stage = "unidirectional"``
-(a single switch and a freewheeling diode: the current cannot reverse), sensor low-pass filters
-on the reported current and speed (``current_filter``, ``speed_filter`` [s]; first order, stepped
-with the plant), and an incremental encoder (``encoder_cpr``: the reported speed is the encoder
-count of the last sample period times 2*pi/(cpr*Ts)).
+The drive (:class:`~twinwatch.io.drive.DriveConfig`, ``[driver.plant.drive]``) updates every
+``period`` and holds its output in between, clamped with anti-windup, with an optional inner
+current loop; without a ``drive`` table it is the paper's PI (``kp``, ``ki``) every step. The
+other variants of a real drive (``coulomb_friction``, ``power_stage``, ``current_filter``,
+``speed_filter``, ``encoder_cpr``): :class:`DCMotorPlantConfig`.
 
 A sample at t_k reports the state reached at t_k (through the sensor filters), the voltage the
 drive applies from t_k on (after an update at t_k), the set-point in force from t_k on and Tload

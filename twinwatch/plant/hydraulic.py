@@ -48,16 +48,10 @@ valve area changes within a sample, so an open-loop twin holding the sampled are
 biased; :class:`twinwatch.twin.models.hydraulic.HydraulicActuatorTwin` interpolates it linearly
 between samples by default (see there for the measured effect).
 
-**The controller as a drive runs it** (``drive``, table ``[driver.plant.drive]``,
+**The controller as a drive runs it** (``drive``, ``[driver.plant.drive]``,
 :class:`~twinwatch.twin.models.hydraulic.ValveDriveConfig`; the update of :mod:`twinwatch.io.drive`
-with action ``direct``): an update every ``period`` (from ``phase``), the area held in between,
-clamped to the loop's limits (default the valve's [0, A_max]; they must lie within it), with
-clamping or back-calculation anti-windup; keys left out of ``[driver.plant.drive.valve]`` take
-the paper's gains. Without the table the plant is the PID above every step, bit for bit. With
-the paper's gains a drive period is unstable from 0.2 ms on (measured: 0.2 ms grows
-by about 1.4x every 5 s; 0.3-0.5 ms reach a limit cycle of about 1 mm within 10-35 s, the valve
-hitting A_max; 1, 2, 5 and 10 ms: 1.2, 1.4, 2.3 and 3.9 mm): a 0.5-2 ms drive needs gains for
-its period, e.g. Kp 0.01, Ki 0.25 (the paper's Kd and N; about 20 rad/s, damping about 0.4;
+with action ``direct``): without the table the plant is the PID above every step, bit for bit;
+the paper's gains are unstable from a 0.2 ms period on (docs/hydraulic.md;
 tests/test_hydraulic_drive.py).
 
 **Reference and start.** x_ref(t) = offset + amplitude*sin(2*pi*f*t) (0.5 m + 0.45 m at
