@@ -58,7 +58,7 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -305,17 +305,7 @@ class FileDriver(Driver):
         else:
             table = self._load_mat(path)
         n_total = len(next(iter(table.values())))
-
-        # values: one row per sample, one column per channel, in the twin's units
-        values = np.empty((n_total, len(self.channels)), dtype=np.float64)
-        for j, mapping in enumerate(config.columns.values()):
-            values[:, j] = table[mapping.column] * mapping.scale + mapping.offset
-        if config.time_column is not None:
-            t = table[config.time_column] * config.time_scale
-        else:
-            assert config.sample_period is not None  # checked by the config model
-            t = np.arange(n_total, dtype=np.float64) * config.sample_period
-
+        t, values = self._arrays(table.__getitem__, n_total, 0)
         lo, hi, _ = slice(config.start, config.stop).indices(n_total)
         self._t: FloatArray = t[lo:hi]
         self._values: FloatArray = values[lo:hi]
@@ -444,18 +434,7 @@ class FileDriver(Driver):
 
         table: dict[str, FloatArray] = {}
         for column, j in index.items():
-            out = np.full(len(rows), np.nan)
-            not_numbers = 0
-            example = ""
-            for k, row in enumerate(rows):
-                cell = row[j].strip() if j < len(row) else ""
-                if not cell:
-                    continue
-                try:
-                    out[k] = float(cell)
-                except ValueError:
-                    not_numbers += 1
-                    example = example or cell
+            out, not_numbers, example = _cells(rows, j)
             if not_numbers and not np.isfinite(out).any():
                 # a column of text (a state, a label): every window would be abandoned
                 raise DriverConfigError(
@@ -508,6 +487,20 @@ class FileDriver(Driver):
         if length is None or length[1] == 0:
             raise DriverConfigError(f"path: {str(path)!r}: the variables are empty")
         return table
+
+    def _arrays(self, column: Callable[[str], FloatArray], n: int, first: int
+                ) -> tuple[FloatArray, FloatArray]:
+        """(t (n,), values (n, channels) in the twin's units) of ``n`` rows whose columns
+        ``column(name)`` gives; ``first``: the file row of the first (``t = k *
+        sample_period``)."""
+        cfg = self.config
+        values = np.empty((n, len(self.channels)), dtype=np.float64)
+        for j, mapping in enumerate(cfg.columns.values()):
+            values[:, j] = column(mapping.column) * mapping.scale + mapping.offset
+        if cfg.time_column is not None:
+            return column(cfg.time_column) * cfg.time_scale, values
+        assert cfg.sample_period is not None  # checked by the config model
+        return (first + np.arange(n, dtype=np.float64)) * cfg.sample_period, values
 
     def _keys(self) -> list[tuple[str, str]]:
         """(config key, column) of every column to load; the key names it in errors."""
@@ -634,26 +627,9 @@ class FileDriver(Driver):
         if not rows:
             return 0
         tail.last_row = time.monotonic()
-
-        def column(name: str) -> FloatArray:
-            j = index[name]
-            out = np.full(len(rows), np.nan)
-            for k, row in enumerate(rows):
-                cell = row[j].strip() if j < len(row) else ""
-                try:
-                    out[k] = float(cell)
-                except ValueError:
-                    pass  # an empty cell or text: NaN, counted when delivered
-            return out
-
-        values = np.empty((len(rows), len(self.channels)), dtype=np.float64)
-        for j, mapping in enumerate(cfg.columns.values()):
-            values[:, j] = column(mapping.column) * mapping.scale + mapping.offset
-        if cfg.time_column is not None:
-            t = column(cfg.time_column) * cfg.time_scale
-        else:
-            assert cfg.sample_period is not None  # required with follow
-            t = (first + lo + np.arange(len(rows), dtype=np.float64)) * cfg.sample_period
+        # an empty cell or text: NaN, counted when delivered
+        t, values = self._arrays(lambda name: _cells(rows, index[name])[0], len(rows),
+                                 first + lo)
         done = self._next  # delivered: dropped, so a file followed for days stays small
         self._t = np.concatenate((self._t[done:], t))
         self._values = np.concatenate((self._values[done:], values))
@@ -682,6 +658,23 @@ class FileDriver(Driver):
         late = wait + PACE_SLACK
         time.sleep(late if timeout is None else min(late, timeout))
         return True
+
+
+def _cells(rows: list[list[str]], j: int) -> tuple[FloatArray, int, str]:
+    """Column ``j`` of CSV ``rows`` as numbers (NaN for an empty or missing cell and for
+    text), the count of cells that are not numbers, and the first of them."""
+    out = np.full(len(rows), np.nan)
+    not_numbers, example = 0, ""
+    for k, row in enumerate(rows):
+        cell = row[j].strip() if j < len(row) else ""
+        if not cell:
+            continue
+        try:
+            out[k] = float(cell)
+        except ValueError:
+            not_numbers += 1
+            example = example or cell
+    return out, not_numbers, example
 
 
 def _size(path: Path) -> int:
