@@ -117,6 +117,7 @@ from twinwatch.io.modbus_registers import (
     check_overlaps,
     plan_blocks,
 )
+from twinwatch.io.threadlog import demote_thread_records
 
 logger = logging.getLogger(__name__)
 
@@ -242,28 +243,9 @@ class ModbusDriverConfig(DriverConfig):
 # -- pymodbus log noise -------------------------------------------------------------------------
 
 
-class _DemoteFromPollThreads(logging.Filter):
-    """Demote pymodbus' records emitted from our polling threads to DEBUG.
-
-    pymodbus logs every failed connect and every timeout at ERROR; the driver reports an
-    outage itself (ERROR once, DEBUG while it lasts, WARNING on recovery).
-    """
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno > logging.DEBUG and threading.current_thread().name.startswith(
-            _POLL_THREAD_NAME
-        ):
-            # the logger's level check has passed at the record's original level: redo it
-            if not _PYMODBUS_LOGGER.isEnabledFor(logging.DEBUG):
-                return False
-            record.levelno = logging.DEBUG
-            record.levelname = logging.getLevelName(logging.DEBUG)
-        return True
-
-
-_PYMODBUS_LOGGER = logging.getLogger("pymodbus.logging")
-if not any(isinstance(f, _DemoteFromPollThreads) for f in _PYMODBUS_LOGGER.filters):
-    _PYMODBUS_LOGGER.addFilter(_DemoteFromPollThreads())
+# pymodbus logs every failed connect and every timeout at ERROR from the polling threads: at
+# DEBUG, the driver reports an outage itself
+demote_thread_records(_POLL_THREAD_NAME, ("pymodbus.logging",), critical=True)
 
 
 # -- the driver -------------------------------------------------------------------------------

@@ -41,6 +41,7 @@ from twinwatch.drivers.base import (
     QueuedDriver,
     Sample,
 )
+from twinwatch.io.threadlog import demote_thread_records
 
 if TYPE_CHECKING:  # asyncua is imported when the driver opens: validating loads nothing
     from asyncua import Client, Node
@@ -87,32 +88,14 @@ def unit_matches(declared: str, display_name: str | None, unit_id: int | None) -
     return bool(code) and unit_id is not None and unit_id == unece_unit_id(code)
 
 
-class _DemoteFromClientThread(logging.Filter):
-    """asyncua's records from the driver's thread at DEBUG: the revised subscription values,
-    each failed reconnect; the driver reports what matters itself (an outage once, at ERROR;
-    the recovery at WARNING; a refusal in one line)."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno > logging.DEBUG and threading.current_thread().name.startswith(
-                _THREAD_NAME) and record.levelno < logging.CRITICAL:
-            if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
-                return False
-            record.levelno = logging.DEBUG
-            record.levelname = "DEBUG"
-        return True
-
-
-#: the asyncua loggers the client's records come from (a logger's filter sees only its own)
-_ASYNCUA_LOGGERS = (
+# asyncua's records from the driver's thread (the revised subscription values, each failed
+# reconnect) at DEBUG, from the loggers the client's records come from
+demote_thread_records(_THREAD_NAME, (
     "asyncua", "asyncua.client.client", "asyncua.client.ua_client",
     "asyncua.client.ua_client.UaClient", "asyncua.client.ua_client.UASocketProtocol",
     "asyncua.common.subscription", "asyncua.client.ua_session",
     "asyncua.client.ua_session.UaSession", "asyncua.common.node", "asyncua.crypto.uacrypto",
-    "asyncua.crypto.security_policies", "asyncua.client.ua_file_transfer")
-for _name in _ASYNCUA_LOGGERS:
-    _log = logging.getLogger(_name)
-    if not any(isinstance(f, _DemoteFromClientThread) for f in _log.filters):
-        _log.addFilter(_DemoteFromClientThread())
+    "asyncua.crypto.security_policies", "asyncua.client.ua_file_transfer"))
 
 
 # -- configuration ----------------------------------------------------------------------------

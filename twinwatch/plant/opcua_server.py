@@ -24,13 +24,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
 import time
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime, timedelta
 from typing import Any, Literal, cast
 
 from twinwatch.io.sample import Sample
+from twinwatch.io.threadlog import demote_thread_records
 from twinwatch.plant._server import Pacing, PlantSource, ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
@@ -50,26 +50,12 @@ _START_TIMEOUT = 20.0  # [s]: asyncua's server loads the standard address space 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 
-class _DemoteFromServerThread(logging.Filter):
-    """asyncua's server records from the plant's server thread at DEBUG: a loopback server
-    with security None warns at every start that it offers no signing (on purpose here), and a
-    port already taken is logged with its traceback: :meth:`PlantOpcUaServer.start` says it in
-    one line instead."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if (logging.DEBUG < record.levelno < logging.CRITICAL
-                and threading.current_thread().name.startswith(_THREAD_NAME)):
-            if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
-                return False
-            record.levelno, record.levelname = logging.DEBUG, "DEBUG"
-        return True
-
-
-for _name in ("asyncua.server.server", "asyncua.server.internal_server",
-              "asyncua.server.binary_server_asyncio", "asyncua.server.address_space"):
-    _log = logging.getLogger(_name)
-    if not any(isinstance(f, _DemoteFromServerThread) for f in _log.filters):
-        _log.addFilter(_DemoteFromServerThread())
+# asyncua's server records from the plant's server thread at DEBUG: a loopback server with
+# security None warns at every start that it offers no signing (on purpose here), and a port
+# already taken is logged with its traceback: PlantOpcUaServer.start says it in one line
+demote_thread_records(_THREAD_NAME, (
+    "asyncua.server.server", "asyncua.server.internal_server",
+    "asyncua.server.binary_server_asyncio", "asyncua.server.address_space"))
 
 
 def _node_id(identifier: str, ns: int) -> Any:
