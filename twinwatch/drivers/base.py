@@ -428,7 +428,8 @@ class PlantDriver(Driver):
     period and duration, its time starting over at every open.
 
     Subclasses set :attr:`source_name` and implement ``__init__(config)`` (calling this one's,
-    then :meth:`_open_inner`) and :meth:`_inner`.
+    then :meth:`_open_inner`). Closing closes the inner driver, stops :attr:`server` and shuts
+    the virtual buses of :meth:`_virtual_pair` down.
 
     Args:
         config: the validated table (its ``plant`` has the ``sample_period`` [s]).
@@ -437,6 +438,8 @@ class PlantDriver(Driver):
 
     #: the driver in a validation error's message (``"simulated Modbus"``)
     source_name: ClassVar[str] = "simulated"
+    #: what serves the plant (a Modbus device, an OPC UA server: ``start``, ``stop``, ``port``)
+    server: Any = None
 
     def __init__(self, config: Any, *, live: bool) -> None:
         super().__init__()
@@ -444,6 +447,8 @@ class PlantDriver(Driver):
         self.sample_period = config.plant.sample_period
         self.live = live
         self._t0_wall: float | None = None  # monotonic time of plant time 0 (real time)
+        self._inner_driver: Driver | None = None
+        self._buses: list[Any] = []  # the virtual buses opened (shut down on close)
 
     def _open_inner(self, open_inner: Callable[[], InnerT], failure: str) -> InnerT:
         """Open the real driver that reads the plant and take over its channels and counters
@@ -466,7 +471,22 @@ class PlantDriver(Driver):
             raise DriverInitializationError(failure.format(exc=exc)) from exc
         self.channels = inner.channels
         self.stats = inner.stats
+        self._inner_driver = inner
         return inner
+
+    def _virtual_pair(self, channel: str, **tx_options: Any) -> tuple[Any, Any]:
+        """(receiving, sending) python-can ``virtual`` buses on ``channel``, shut down on
+        close."""
+        import can
+
+        for options in ({}, tx_options):
+            self._buses.append(can.Bus(interface="virtual", channel=channel, **options))
+        return self._buses[-2], self._buses[-1]
+
+    @property
+    def port(self) -> int:
+        """The TCP port the simulated server listens on."""
+        return int(self.server.port)
 
     def _pace(self, t: float) -> None:
         """Wait until plant time ``t`` [s] is due on the wall clock (real-time pacing: the
@@ -502,8 +522,16 @@ class PlantDriver(Driver):
         return cls(validated_config(cls.config_class, config, cls.source_name))  # type: ignore[call-arg]
 
     def _inner(self) -> Driver | None:
-        """The real driver reading the plant (None once closed or before it opened)."""
-        raise NotImplementedError
+        """The real driver reading the plant (None before it opened)."""
+        return self._inner_driver
+
+    def _close_internal(self) -> None:
+        if self._inner_driver is not None:
+            self._inner_driver.close()
+        if self.server is not None:
+            self.server.stop()
+        for bus in self._buses:
+            bus.shutdown()
 
     def _take(self, timeout: float) -> Sample | None:
         """The inner driver's next sample within ``timeout`` [s], counted once (by this

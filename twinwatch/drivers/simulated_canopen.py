@@ -20,7 +20,6 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import Field, StrictFloat, StrictInt
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     PlantDriver,
     Sample,
@@ -134,8 +133,6 @@ class SimulatedCanopenDriver(PlantDriver):
     source_name = "simulated CANopen"
 
     def __init__(self, config: SimulatedCanopenDriverConfig) -> None:
-        import can
-
         from twinwatch.drivers.canopen import CanopenDriver, CanopenDriverConfig
         from twinwatch.plant.canopen_drive import CiA402Drive, drive_eds_path
 
@@ -143,22 +140,18 @@ class SimulatedCanopenDriver(PlantDriver):
         channel = config.channel
         if channel == "auto":
             channel = f"twinwatch-canopen-sim-{next(_channel_ids)}"
-        self._tx: can.BusABC | None = None
-        self._rx: can.BusABC | None = None
         self.canopen: CanopenDriver | None = None
         self.drive: CiA402Drive | None = None
 
         def open_inner() -> CanopenDriver:
-            self._rx = can.Bus(interface="virtual", channel=channel)
-            self._tx = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-            tx: Any = self._tx
+            rx, tx = self._virtual_pair(channel, preserve_timestamps=True)
             if config.frame_loss > 0:
-                tx = _LossyBus(self._tx, config.frame_loss, config.plant.seed)
+                tx = _LossyBus(tx, config.frame_loss, config.plant.seed)
             self.drive = CiA402Drive(DCMotorPlant(config.plant), tx, node_id=config.node_id)
             co_cfg = CanopenDriverConfig.model_validate({
                 "type": "canopen", "node_id": config.node_id, "eds": drive_eds_path(),
                 "sample_period": config.plant.sample_period, "channels": drive_channels()})
-            return CanopenDriver(co_cfg, bus=self._rx)
+            return CanopenDriver(co_cfg, bus=rx)
 
         self.canopen = self._open_inner(open_inner,
                                         "simulated CANopen drive could not start: {exc}")
@@ -192,9 +185,6 @@ class SimulatedCanopenDriver(PlantDriver):
         if c.heartbeat_stop_at is not None and t >= c.heartbeat_stop_at:
             self.drive.heartbeat = False
 
-    def _inner(self) -> Driver | None:
-        return self.canopen
-
     def _read_internal(self, timeout: float | None) -> Sample | None:
         # the virtual bus delivers a frame as it is sent: a step whose frames give no sample
         # (a frame lost, the first cycles) is followed by the next one at once, up to the
@@ -208,10 +198,3 @@ class SimulatedCanopenDriver(PlantDriver):
             sample = self._take(0.0)
             if sample is not None or time.monotonic() >= deadline:
                 return sample
-
-    def _close_internal(self) -> None:
-        if self.canopen is not None:
-            self.canopen.close()
-        for bus in (self._tx, self._rx):
-            if bus is not None:
-                bus.shutdown()

@@ -43,7 +43,6 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     EndOfStream,
     PlantDriver,
@@ -194,15 +193,6 @@ class SimulatedModbusDriver(PlantDriver):
                     "on %s:%d (%s pacing)", config.plant.scenario, config.plant.duration,
                     LOOPBACK, self.server.port, config.pacing)
 
-    @property
-    def port(self) -> int:
-        """The TCP port the simulated device listens on."""
-        return self.server.port
-
-
-    def _inner(self) -> Driver | None:
-        return self.modbus
-
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(1.0 if timeout is None else timeout)
         if sample is None and self.server.finished:
@@ -213,8 +203,3 @@ class SimulatedModbusDriver(PlantDriver):
                 raise EndOfStream(
                     f"simulated plant reached its duration ({self.config.plant.duration} s)")
         return sample
-
-    def _close_internal(self) -> None:
-        if self.modbus is not None:
-            self.modbus.close()
-        self.server.stop()

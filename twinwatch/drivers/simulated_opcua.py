@@ -24,7 +24,6 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     EndOfStream,
     PlantDriver,
@@ -188,16 +187,8 @@ class SimulatedOpcUaDriver(PlantDriver):
         self._taken += n
 
     @property
-    def port(self) -> int:
-        """The TCP port the simulated server listens on."""
-        return self.server.port
-
-    @property
     def waiting(self) -> str | None:
         return None if self.opcua is None else self.opcua.waiting
-
-    def _inner(self) -> Driver | None:
-        return self.opcua
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(1.0 if timeout is None else timeout)
@@ -225,8 +216,3 @@ class SimulatedOpcUaDriver(PlantDriver):
                 raise EndOfStream(
                     f"simulated plant reached its duration ({self.config.plant.duration} s)")
         return None
-
-    def _close_internal(self) -> None:
-        if self.opcua is not None:
-            self.opcua.close()
-        self.server.stop()
