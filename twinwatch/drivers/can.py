@@ -234,13 +234,7 @@ def _find_signal(db: Database, key: str, message_name: str, signal_name: str | N
 class CanDriver(BusDriver):
     """Twin samples from DBC-decoded CAN frames (live bus or log replay); never transmits.
 
-    Args:
-        config: the validated configuration (see :class:`CanDriverConfig`).
-        bus: an already open python-can bus to listen on (e.g. a ``virtual`` bus shared with a
-            simulated plant). The driver never shuts it down; the caller owns it. When given,
-            ``interface``, ``channel``, ``bitrate`` and ``bus_options`` are ignored.
-        base_dir: directory that relative ``dbc`` and ``log_file`` paths are resolved against
-            (the configuration file's directory); None means the current directory.
+    Args: :class:`~twinwatch.drivers.canbus.BusDriver`'s (``config`` a :class:`CanDriverConfig`).
 
     Attributes:
         channels: twin channel names, in the order of ``config.signals``.

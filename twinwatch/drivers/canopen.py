@@ -478,12 +478,8 @@ def _decode(entry: _Entry, data: bytes) -> float:
 class CanopenDriver(BusDriver):
     """Twin samples from a CANopen drive's PDOs, decoded from its EDS/DCF; never transmits.
 
-    Args:
-        config: the validated configuration (:class:`CanopenDriverConfig`).
-        bus: an already open python-can bus to listen on (the simulated drive's virtual bus);
-            the driver never shuts it down.
-        base_dir: directory relative ``eds`` and ``log_file`` paths are resolved against.
-        listen_only: put a live interface in receive-only mode (``check-config``).
+    Args: :class:`~twinwatch.drivers.canbus.BusDriver`'s (``config`` a
+    :class:`CanopenDriverConfig`).
 
     Attributes:
         plan: what the EDS/DCF says (:class:`CanopenPlan`).
