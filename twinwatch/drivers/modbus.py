@@ -8,35 +8,23 @@ thread exists so that ``read(timeout)`` never blocks much longer than ``timeout`
 sync request cannot be given a per-call deadline, and a device that stops answering holds a
 request for ``timeout * (retries + 1)`` seconds.
 
-Register map
-    ``[driver.registers]`` maps each twin channel to a register:
-    ``{address, table = "input"|"holding", type = int16|uint16|int32|uint32|float32,
-    word_order = "big"|"little", scale, offset, unit}`` (see :class:`ModbusChannelMap`); the
-    twin value is ``raw * scale + offset``. Addresses are 0-based protocol addresses (the PDU
-    address, as pymodbus uses them: "40001" in a manual is holding address 0). 32-bit types
-    take two registers; ``word_order = "big"`` puts the high word first (Modbus convention),
-    ``"little"`` the low word first; bytes inside a register are always big-endian.
-
-Requests
-    The registers of one table are read as one block spanning the lowest to the highest mapped
-    address, split only where a block would exceed the protocol's 125 registers per read. A
-    block includes the unmapped registers between channels: the device must answer reads of
-    them. The block holding the counter is read first in each poll.
+Register map and requests
+    ``[driver.registers]`` maps each twin channel to a register (:class:`ModbusChannelMap`:
+    address, table, type, word order; :mod:`twinwatch.io.modbus_registers`); the twin value is
+    ``raw * scale + offset``. The registers of one table are read as one block from the lowest
+    to the highest mapped address (:func:`~twinwatch.io.modbus_registers.plan_blocks`: the
+    device must answer reads of the unmapped registers between them); the block holding the
+    counter is read first in each poll.
 
 Time source (``time_source``)
     ``"clock"``: t [s] is :func:`time.monotonic` at the middle of the poll's first request
     (the acquisition computer's clock); a poll that falls more than one period behind its
     schedule counts the missed polls in ``stats.gaps``. ``"counter"``: t = counter *
     ``sample_period`` where ``counter`` is a uint16/uint32 register the device increments once
-    per sample (unwrapped modulo 2**16 / 2**32), i.e. the device's own clock. Whenever a
-    counter is configured (with either time source), :class:`~twinwatch.io.counter.SampleCounter`
-    unwraps it: a counter that has not advanced since the previous poll is a duplicate poll and
-    the sample is skipped (``stats.extra["duplicates"]``), one a few steps back is a stale
-    answer, skipped too (``["reordered"]``); a jump of ``n > 1`` adds ``n - 1`` to
-    ``stats.gaps`` (the ring buffer downstream holds a few missing samples of a window over,
-    ``[acquisition] max_missing``, and abandons the window of a longer gap); a counter
-    that goes further back counts in ``stats.extra["counter_resets"]`` and restarts the clock
-    from the new value.
+    per sample, i.e. the device's own clock. A configured counter (with either time source) is
+    unwrapped by :class:`~twinwatch.io.counter.SampleCounter`: a duplicate poll or a stale
+    answer is skipped (``stats.extra["duplicates"]``, ``["reordered"]``), a jump of ``n > 1``
+    adds ``n - 1`` to ``stats.gaps``, a restart counts in ``stats.extra["counter_resets"]``.
 
 Lock-step (``lockstep = true``)
     For a simulated device that advances one sample each time its counter block is read
@@ -48,21 +36,20 @@ Lock-step (``lockstep = true``)
 Failures
     A request that times out, a refused or dropped connection, and an exception response a
     device gives for a while (02 ILLEGAL DATA ADDRESS: a PLC being reprogrammed answers it for
-    its registers; 04 device failure, 05, 06 busy, 0A/0B gateway) count in ``stats.errors``
-    (and in ``stats.extra``:
-    ``timeouts``, ``connect_failures``, ``exception_responses``). The client is then closed and
-    reopened after a jittered exponential backoff (0.1 s doubling up to ``backoff_max``). An
-    outage is logged at ERROR once, at DEBUG while it lasts, and at WARNING on recovery with its
-    duration (``stats.extra["outages"]``, ``["reconnects"]``); pymodbus' own error messages
-    from the polling thread are demoted to DEBUG meanwhile. While the device is down,
-    ``read(timeout)`` returns None after ``timeout`` and :attr:`ModbusDriver.waiting` says
-    since when and why (the daemon's STATUS). An exception response ILLEGAL FUNCTION or ILLEGAL
-    DATA VALUE means the register map does not match the device: the polling stops and
+    its registers; 04 device failure, 05, 06 busy, 0A/0B gateway) count in ``stats.errors`` (and
+    ``stats.extra``: ``timeouts``, ``connect_failures``, ``exception_responses``). The client is
+    then closed and reopened after a jittered exponential backoff (0.1 s doubling up to
+    ``backoff_max``). An outage is logged at ERROR once, at DEBUG while it lasts, and at WARNING
+    on recovery with its duration (``stats.extra["outages"]``, ``["reconnects"]``); pymodbus'
+    own error messages from the polling thread are demoted to DEBUG meanwhile. While the device
+    is down, ``read(timeout)`` returns None after ``timeout`` and :attr:`ModbusDriver.waiting`
+    says since when and why (the daemon's STATUS). An exception response ILLEGAL FUNCTION or
+    ILLEGAL DATA VALUE means the register map does not match the device: the polling stops and
     ``read`` raises :class:`~twinwatch.drivers.base.DriverOperationError` (the daemon opens the
     driver again with a longer backoff, :mod:`twinwatch.daemon.source`: the unit stays up and
-    STATUS says why).
-    A decoded NaN or infinite value counts in ``stats.bad_values`` and is delivered as it is;
-    a response with the wrong number of registers counts in ``stats.bad_frames``.
+    STATUS says why). A decoded NaN or infinite value counts in ``stats.bad_values`` and is
+    delivered as it is; a response with the wrong number of registers counts in
+    ``stats.bad_frames``.
 
 Monitoring only: the driver sends read requests (function codes 3 and 4) and nothing else.
 
