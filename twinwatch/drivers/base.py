@@ -1,31 +1,17 @@
-"""The acquisition driver contract.
+"""The acquisition driver contract (docs/extending.md, "Where a new driver plugs in").
 
 Modelled on python-can's ``BusABC``: one abstract base owns the public :meth:`Driver.read`,
 backends override the protected :meth:`Driver._read_internal`; :meth:`Driver.close` is
-idempotent, a driver is a context manager, and a driver never closed warns when collected.
+idempotent, a driver is a context manager, and a driver never closed warns when collected. A
+driver delivers :class:`Sample` objects, one time stamp [s] and one value per *twin* channel
+(mapping bus signals to twin channels, with unit scaling, is the driver's job).
 
-A driver delivers :class:`Sample` objects: one time stamp [s] and one value per twin channel
-(for the DC motor ``Va``, ``ia``, ``omega``, ``Tload``, ``setpoint``). Channel names are the
-twin's, never the bus's: mapping bus signals to twin channels (with unit scaling) is the
-driver's job and lives in its configuration.
-
-Errors follow the lifecycle, as in ``can/exceptions.py``:
-
-* :class:`DriverInitializationError` while opening (bad port, device absent, ...), its subclass
-  :class:`DriverConfigError` when the configuration or a file it names is at fault (DBC not
-  found, a mapped column missing, ...),
-* :class:`DriverOperationError` for a failure while reading that the driver could not survive,
-* :class:`EndOfStream` when a finite source (a file, a simulation of fixed duration) is exhausted.
-
-Recoverable bad input (an undecodable frame, a NaN, a gap) is *not* raised: it is counted in
+Errors follow the lifecycle, as in ``can/exceptions.py``: :class:`DriverInitializationError`
+while opening (its subclass :class:`DriverConfigError` when the configuration or a file it
+names is at fault), :class:`DriverOperationError` for a failure while reading that the driver
+could not survive, :class:`EndOfStream` when a finite source is exhausted. Recoverable bad
+input (an undecodable frame, a NaN, a gap) is *not* raised: it is counted in
 :attr:`Driver.stats`, logged once, and the driver goes on.
-
-A driver owns its configuration: :attr:`Driver.config_class` is the pydantic model of its
-``[driver]`` table (a :class:`DriverConfig`), through which the configuration loader validates
-the table (by its ``type``, via the registry in :mod:`twinwatch.drivers`), and the classmethods
-:meth:`Driver.from_config`, :meth:`Driver.nominal_sample_period`, :meth:`Driver.duration` and
-:meth:`Driver.safe_to_probe` answer what the daemon and the command line need to know about a
-configured source without naming it.
 """
 
 from __future__ import annotations
