@@ -24,7 +24,7 @@ import random
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, ClassVar, Self, TypeVar
 
@@ -108,16 +108,9 @@ class DriverStats:
     extra: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, int]:
-        d = {
-            "frames": self.frames,
-            "samples": self.samples,
-            "bad_frames": self.bad_frames,
-            "bad_values": self.bad_values,
-            "gaps": self.gaps,
-            "errors": self.errors,
-        }
-        d.update(self.extra)
-        return d
+        """The counters, the fixed ones first, then :attr:`extra`'s."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "extra"}
+        return {**d, **self.extra}
 
 
 def source_problem_lines(silent: Sequence[str], faults: Sequence[str]) -> list[str]:
