@@ -603,12 +603,8 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
              options: Mapping[str, Any] | None = None) -> Identification:
     """Identify the estimated parameters on ``train``, say which the recording determines,
     re-fit with the others held at stated values, and score both fits on ``validation``
-    (see the module docstring).
-
-    The steps: the stretches checked (:func:`_check_stretches`), the multi-start search
-    (:func:`_search`), the full fit scored and analysed (:func:`_full_fit`), what the
-    recording does not determine held and the rest re-fitted (:func:`_hold_and_refit`), the
-    result scored.
+    (see the module docstring; the steps: :func:`_check_stretches`, :func:`_search`,
+    :func:`_full_fit`, :func:`_hold_and_refit`).
 
     Args:
         model: the twin (its structure and options as configured).
