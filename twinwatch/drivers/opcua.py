@@ -104,12 +104,10 @@ demote_thread_records(_THREAD_NAME, (
 class OpcUaChannelMap(StrictTable):
     """One twin channel's variable (``[driver.channels] <channel> = {...}``).
 
+    ``node``, ``browse_path`` and ``unit`` are documented in their fields.
+
     Attributes:
-        node: the variable's NodeId string, e.g. ``"ns=2;s=Motor.ia"``, ``"ns=3;i=1001"``.
-        browse_path: or its browse path from the Root folder, qualified names separated by
-            ``/`` (``"0:Objects/2:Motor/2:ia"``).
         scale, offset: ``twin value = value * scale + offset``.
-        unit: the twin channel's unit; when given, the node's EngineeringUnits must name it.
     """
 
     node: str | None = Field(None, min_length=1, description='NodeId string, "ns=2;s=Motor.ia"')
@@ -133,18 +131,14 @@ class OpcUaChannelMap(StrictTable):
 class OpcUaDriverConfig(DriverConfig):
     """Configuration of :class:`OpcUaDriver` (the ``[driver]`` table with ``type = "opcua"``).
 
+    The keys with a description in their field are documented there.
+
     Attributes:
-        endpoint: the server's endpoint URL, ``opc.tcp://host:port[/path]``.
         sample_period: the variables' sample period [s]: the monitored items' sampling
             interval and the slot width samples are joined on.
-        publishing_interval: the subscription's publishing interval [s] (default 0.05).
-        queue_size: each monitored item's queue (default: 4 publishing intervals, >= 10).
         timeout: per request and connect [s].
         backoff_max: cap of the reconnect delay [s] (starts at 0.1 s, doubles, jittered).
         security_policy: ``"None"`` or ``"Basic256Sha256"``.
-        security_mode: ``"Sign"`` or ``"SignAndEncrypt"`` (Basic256Sha256 only).
-        certificate, private_key: the client's certificate and key (files, PEM or DER).
-        server_certificate: the trusted server certificate (file).
         username, password_file, password: user identity (password: first line of the file).
         channels: twin channel -> :class:`OpcUaChannelMap`, at least one.
     """

@@ -58,11 +58,9 @@ class SimulatedCanopenDriverConfig(DriverConfig):
         node_id: the simulated drive's node id.
         channel: the in-process virtual CAN channel ("auto": a unique name).
         realtime: pace the plant by the wall clock instead of running as fast as possible.
-        fault_at, fault_code, fault_reset_at, heartbeat_stop_at: the drive's own faults, at
-            plant times [s] (for tests and demonstrations; None: never).
-        frame_loss: the fraction of the frames on the bus (SYNC, PDOs, heartbeat, EMCY) lost
-            at random, seeded by ``plant.seed`` (a loaded bus; for tests and demonstrations;
-            0: none).
+
+    The drive's own faults and the frames lost (for tests and demonstrations): the fields'
+    descriptions.
     """
 
     type: Literal["simulated_canopen"]

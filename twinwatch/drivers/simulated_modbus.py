@@ -86,7 +86,6 @@ class SimulatedModbusDriverConfig(DriverConfig):
 
     Attributes:
         plant: the hydraulic plant's scenario, duration, noise, ... (``[driver.plant]``).
-        port: TCP port of the simulated device on 127.0.0.1 (0: any free port).
         pacing: ``"lockstep"`` (as fast as possible, nothing lost) or ``"realtime"``.
         timeout: the driver's per-request timeout [s].
         backoff_max: cap of the driver's reconnect delay [s].

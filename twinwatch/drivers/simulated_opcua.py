@@ -63,10 +63,8 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
             [m]).
         plant: the plant's scenario, duration, noise, ... (``[driver.plant]``: the DC
             motor's or the hydraulic actuator's keys, by ``machine``).
-        port: TCP port of the simulated server on 127.0.0.1 (0: any free port).
         pacing: ``"lockstep"`` (as fast as the consumer, nothing lost) or ``"realtime"``.
         publishing_interval: the subscription's publishing interval [s].
-        queue_size: each monitored item's queue (lock-step bursts are a quarter of it).
         timeout, backoff_max: the driver's request timeout and reconnect cap [s].
     """
 
