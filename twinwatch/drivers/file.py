@@ -88,9 +88,8 @@ FloatArray = npt.NDArray[np.float64]
 
 #: A real-time replay delivers a row at most this late [s]: it sleeps until the next row is
 #: due plus this, and the rows due by then follow at once (one wake-up per 0.2 s, not one a
-#: row; a window of the daemon is seconds long and stamped by the file's clock). A wake-up
-#: costs 70-190 us of CPU on a virtual machine (measured): at 0.1 s, 3.8 ms a 2 s window,
-#: at 0.2 s (the acquisition loop's read timeout, which caps a sleep anyway) 2 ms.
+#: row, each 70-190 us of CPU; 0.2 s is the acquisition loop's read timeout, which caps a
+#: sleep anyway; a window is seconds long and stamped by the file's clock).
 PACE_SLACK = 0.2
 
 #: Rows converted to Python floats at once (:meth:`FileDriver._read_internal`).
@@ -347,9 +346,8 @@ class FileDriver(Driver):
     def _load_csv_fast(self, path: Path, delimiter: str, text: str | None = None
                        ) -> dict[str, FloatArray] | None:
         """The columns of a well-formed CSV (a header, then numbers only: no quotes, no empty
-        or missing cells) read by numpy's parser, without a Python object per cell (a 15,400-
-        row recording: 51 -> 12 ms of CPU, and about 1 MB less left in a fleet worker's heap);
-        None for anything else, which :meth:`_load_csv` reads cell by cell."""
+        or missing cells) read by numpy's parser, without a Python object per cell; None for
+        anything else, which :meth:`_load_csv` reads cell by cell."""
         try:
             skip, line = 0, ""
             with _open_text(path, text) as f:
@@ -654,7 +652,6 @@ class FileDriver(Driver):
             time.sleep(max(timeout, 0.0))
             return False
         # never early; up to PACE_SLACK late, so the rows due meanwhile come in one wake-up
-        # (a sleep per 10 ms row cost 74 us of CPU a row, 15 ms per 2 s window)
         late = wait + PACE_SLACK
         time.sleep(late if timeout is None else min(late, timeout))
         return True
