@@ -237,8 +237,6 @@ class CanDriver(BusDriver):
     Args: :class:`~twinwatch.drivers.canbus.BusDriver`'s (``config`` a :class:`CanDriverConfig`).
 
     Attributes:
-        channels: twin channel names, in the order of ``config.signals``.
-        sample_period: ``config.sample_period`` [s].
         database: the loaded cantools database.
 
     Raises:

@@ -212,7 +212,6 @@ class FileDriver(Driver):
             file's directory); None means the current directory.
 
     Attributes:
-        channels: twin channel names, in the order of ``config.columns``.
         sample_period: ``config.sample_period`` [s], or the median time step of
             ``time_column`` when no period is configured.
         n_rows: number of rows that will be replayed (after ``start``/``stop``).

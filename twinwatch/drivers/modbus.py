@@ -274,8 +274,6 @@ class ModbusDriver(QueuedDriver):
         base_dir: accepted for the driver contract; no path in this config is relative.
 
     Attributes:
-        channels: twin channel names, in the order of ``config.registers``.
-        sample_period: ``config.sample_period`` [s].
         live: False in lock-step mode, True otherwise.
         blocks: the read requests of one poll, in order.
         client: the pymodbus sync client (owned by the polling thread; do not use it).

@@ -257,7 +257,6 @@ class OpcUaDriver(QueuedDriver):
 
     Attributes:
         channels: twin channel names, in the order of ``config.channels``.
-        sample_period: ``config.sample_period`` [s].
         live: True (a server does not wait for its clients).
         revised: the server's revised publishing interval [s] and the queue size requested
             per channel.

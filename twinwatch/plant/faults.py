@@ -183,8 +183,7 @@ class SimulatedPlant:
     def _check_end(self) -> None:
         """Raises :class:`EndOfStream` once the plant has reached its duration."""
         if self._k >= self._n_samples:
-            raise EndOfStream(
-                f"simulated plant reached its duration ({self.config.duration} s)")
+            raise EndOfStream(f"simulated plant reached its duration ({self.config.duration} s)")
 
     def _faulted(self, t: float) -> dict[str, float]:
         """Every parameter a parameter fault may move, at plant time ``t`` [s] (the nominal
