@@ -9,12 +9,8 @@ Any driver works: a file (CSV, .mat), a CAN log, the simulated plants, or a live
 and left out; a range that the source interrupted (a time step above ``max_gap`` sample
 periods) is refused with the time of the gap, since one free-run simulation cannot cross it.
 
-The report is :mod:`~twinwatch.commissioning.report` (text and Markdown); the Rerun file
-(:func:`~twinwatch.commissioning.record.record_fit`) is what MATLAB users know as ``compare``
-and ``resid``: per output, measured and twin overlaid over both ranges with the fit % in the
-title; the residual's autocorrelation with its 99 % band (+-2.58/sqrt(N)) and the
-residual-input cross-correlation; the parameter table and the identifiability analysis as
-Markdown tables.
+The report is :mod:`~twinwatch.commissioning.report` (text and Markdown); the Rerun file,
+MATLAB's ``compare`` and ``resid``: :func:`~twinwatch.commissioning.record.record_fit`.
 """
 
 from __future__ import annotations

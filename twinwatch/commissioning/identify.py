@@ -1,54 +1,21 @@
 """Commissioning: the baseline parameters of a machine, identified offline from a recording,
-and what the recording can and cannot tell about them.
+and what the recording can and cannot tell about them (docs/drives.md, "Commissioning").
 
-The monitor compares every window's estimates with a baseline (``[machine.parameters]``); on a
-machine nobody has measured, that baseline must itself come from data, and from more of it than
-one window. :func:`identify`:
+:func:`identify` fits the twin to a training stretch in one free run (output error; PSO over
+the ln-parameters, then bounded least squares with the initial state, ``[identify] starts``
+swarms), analyses identifiability at the optimum (Ljung, *System Identification*, 2nd ed.,
+ch. 4.6 and 9; MATLAB's ``getcov``/``getpvec``), holds the undetermined parameters at stated
+values (``[identify.fixed]``, else ``[machine.parameters]``; a stated 1-sigma propagated as
+``S diag(sigma^2) S^T``) and re-fits the rest, scores both fits on a validation stretch
+(``fit % = 100 * (1 - ||y - y_hat|| / ||y - mean(y)||)``, MATLAB ``compare``; negative fails
+the model check), and gives AIC/BIC (MATLAB ``aic``) by which :func:`compare_structures` ranks
+``[identify.candidates]``. :func:`parameters_block` writes the ``[machine.parameters]`` lines
+to paste: only the determined parameters; the held ones commented out with the reason.
 
-1. **fits** the twin to a long training stretch (one free-run simulation from the stretch's
-   measured initial state, the output-error criterion of system identification), with the
-   daemon's global + local search: PSO over the logarithms of the estimated parameters within
-   their bounds, then bounded least squares with the initial state (``[identify] starts``
-   independent swarms, the best training fit kept);
-2. **analyses identifiability** at that optimum (Ljung, *System Identification*, 2nd ed.,
-   ch. 4.6 and 9; MATLAB's ``getcov``/``getpvec``): the information matrix of the
-   ln-parameters, its numerical rank and condition number, the parameter combinations it
-   leaves undetermined (the eigenvectors of its small eigenvalues, as relative changes:
-   ``a_adc - 0.41 Ra + 0.41 J`` is a direction the data cannot tell from no change), the
-   correlation matrix's strong pairs, and the parameters the search left at a bound;
-3. **holds the undetermined ones at stated values** and re-fits the rest: while a free
-   parameter's 1-sigma relative error exceeds ``[identify] max_rel_std`` (default 10 %), the
-   weakest combination that a stated value can resolve gives up one parameter: of those with
-   a stated value (``[identify.fixed]``: a value, its own 1-sigma and where it comes from;
-   else the configured ``[machine.parameters]`` value, the nameplate), the one with the
-   largest weight (then the last in ``estimate``'s priority order) is held there and the
-   others are polished again. A stated value's 1-sigma is propagated to the re-fitted
-   parameters (``S diag(sigma^2) S^T``, S how the optimum follows the held value). What
-   remains free within ``max_rel_std`` is *determined*; a parameter whose combination nobody
-   stated a value for stays free and *not determined* (never held at an arbitrary value,
-   which would make the others look determined). A parameter the search left at a bound is
-   held there, flagged;
-4. **scores** both fits on a validation stretch it was not fitted to, per output::
-
-       fit % = 100 * (1 - ||y - y_hat|| / ||y - mean(y)||)
-
-   (MATLAB ``compare``'s NRMSE fit; 100 % is a perfect fit, 0 % no better than the mean), with
-   the model check of the monitoring (:func:`twinwatch.twin.estimation.statistics.check_model`)
-   on both stretches. An output fitted worse than its mean (negative fit %) fails the check,
-   whatever the residual tests say;
-5. gives the **information criteria** of the full fit on the training residual (MATLAB's
-   ``aic``/``aic(...,'BIC')``), by which :func:`compare_structures` ranks the candidate model
-   structures ``[identify.candidates]`` lists (the daemon's ``commission`` identifies each).
-
-:func:`parameters_block` writes the ``[machine.parameters]`` lines to paste: only the determined
-parameters; the held ones commented out with the reason.
-
-The covariance is the least-squares one the monitoring uses
-(:func:`~twinwatch.twin.estimation.fit.parameter_covariance`: each output's residual variance,
-AR(1)-inflated, floored by ``model_error``, in the sandwich form ``A^-1 (J^T W J) A^-1`` with
-``A = J^T J``, since the fit weighs the outputs by their scale, not by their residual variance);
-the information matrix analysed is its inverse over the parameters (the initial-state offsets
-profiled out), which is ``J^T W J`` itself when the weights are the inverse variances.
+The covariance is the monitoring's
+(:func:`~twinwatch.twin.estimation.fit.parameter_covariance`: the sandwich
+``A^-1 (J^T W J) A^-1``, ``A = J^T J``); the information matrix analysed is its inverse over
+the parameters (the initial-state offsets profiled out).
 """
 
 from __future__ import annotations
@@ -464,13 +431,8 @@ def _null_combinations(names: Sequence[str], null: FloatArray) -> list[Combinati
     out: list[Combination] = []
     for k in range(null.shape[1]):
         vec = null[:, k]
-        m = float(np.max(np.abs(vec))) if vec.size else 0.0
-        if m <= 0:
-            continue
-        sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
-        out.append(Combination(
-            {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)
-             if abs(x) > NULL_COMPONENT}, math.inf))
+        if vec.size and float(np.max(np.abs(vec))) > 0:
+            out.append(_combination(names, vec, math.inf, NULL_COMPONENT))
     return out
 
 
@@ -486,10 +448,18 @@ def _weak_combinations(names: Sequence[str], w: FloatArray, vecs: FloatArray,
         std = math.sqrt(w[k]) / m if m > 0 else math.inf
         if std <= max_rel_std:
             continue
-        sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
-        out.append(Combination(
-            {nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)}, std))
+        out.append(_combination(names, vec, std))
     return out
+
+
+def _combination(names: Sequence[str], vec: FloatArray, std: float,
+                 cut: float = -1.0) -> Combination:
+    """The direction ``vec`` (n,) over ``names`` scaled so that its largest component is +1,
+    components of magnitude ``cut`` or less left out."""
+    m = float(np.max(np.abs(vec)))
+    sign = 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
+    return Combination({nm: float(sign * x / m) for nm, x in zip(names, vec, strict=True)
+                        if abs(x) > cut}, std)
 
 
 def _correlation(c: FloatArray, sd: FloatArray, finite: BoolArray) -> FloatArray:
@@ -633,12 +603,8 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
              options: Mapping[str, Any] | None = None) -> Identification:
     """Identify the estimated parameters on ``train``, say which the recording determines,
     re-fit with the others held at stated values, and score both fits on ``validation``
-    (see the module docstring).
-
-    The steps: the stretches checked (:func:`_check_stretches`), the multi-start search
-    (:func:`_search`), the full fit scored and analysed (:func:`_full_fit`), what the
-    recording does not determine held and the rest re-fitted (:func:`_hold_and_refit`), the
-    result scored.
+    (see the module docstring; the steps: :func:`_check_stretches`, :func:`_search`,
+    :func:`_full_fit`, :func:`_hold_and_refit`).
 
     Args:
         model: the twin (its structure and options as configured).
@@ -951,8 +917,8 @@ def _weakest_stated(a: Identifiability, holds: _Holds) -> tuple[str, str] | None
             0 if n in holds.config.fixed else 1, -abs(weights[n]), -names_est.index(n)))
         others = [n for n in comb.weights if n != name and abs(comb.weights[n]) >= LABEL_CUT]
         if others:
-            return name, f"in {comb.label()} (+-{_pct(comb.std)})"
-        return name, f"the outputs barely respond to it (+-{_pct(comb.std)} alone)"
+            return name, f"in {comb.label()} (+-{percent(comb.std)})"
+        return name, f"the outputs barely respond to it (+-{percent(comb.std)} alone)"
     return None
 
 
@@ -966,18 +932,18 @@ def _unresolved(name: str, analysis: Identifiability) -> str:
         if share >= LABEL_CUT and (best is None or share > best[0]):
             best = (share, comb)
     if best is None:
-        return f"the outputs barely respond to it (above the {_pct(analysis.max_rel_std)} " \
+        return f"the outputs barely respond to it (above the {percent(analysis.max_rel_std)} " \
             "allowed)"
     comb = best[1]
     top = max(abs(x) for x in comb.weights.values())
     partners = [n for n, x in comb.weights.items() if abs(x) >= MAIN_SHARE * top]
     if name not in partners:
         partners.append(name)
-    return (f"in {comb.label()} (+-{_pct(comb.std)}); state a value of "
+    return (f"in {comb.label()} (+-{percent(comb.std)}); state a value of "
             f"{' or '.join(partners)} to determine it")
 
 
-def _pct(x: float) -> str:
+def percent(x: float) -> str:
     """A relative error as a percentage for reports: ``8.1 %``, ``118 %``, ``4e+06 %``."""
     if not math.isfinite(x):
         return "inf %"
@@ -1099,13 +1065,13 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
                      "([identify.candidates]), or accept that error ([estimation] model_error)")
     elif result.held or result.undetermined:
         lines.append(f"# Pasted: the parameters the recording determines within "
-                     f"{_pct(result.max_rel_std)} (1 sigma)"
+                     f"{percent(result.max_rel_std)} (1 sigma)"
                      + (", given the held values below." if result.held else "."))
     lines.append("[machine.parameters]")
     for name in result.determined:
         value = result.values[name]
         unit = result.units.get(name, "")
-        note = f"{unit}, identified +- {_pct(result.rel_std[name])} (1 sigma)"
+        note = f"{unit}, identified +- {percent(result.rel_std[name])} (1 sigma)"
         if name not in pasted:
             note += ", NOT PASTED: the model check failed"
         lines.append(("" if name in pasted else "# ") + f"{name} = {value:.6g}".ljust(24)
@@ -1123,7 +1089,7 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
         for name, why in result.undetermined.items():
             unit = result.units.get(name, "")
             lines.append(f"# {name} = {result.values[name]:.6g}".ljust(24)
-                         + f"# {unit}, not determined (+-{_pct(result.rel_std[name])}): {why}")
+                         + f"# {unit}, not determined (+-{percent(result.rel_std[name])}): {why}")
         for dep, src in result.tied.items():
             if src not in pasted:
                 lines.append(f"# {dep} = {result.values[dep]:.6g}".ljust(24)
@@ -1150,4 +1116,4 @@ def _toml_value(value: Any) -> str:
 __all__ = ["Combination", "Comparison", "FullFit", "HeldParameter", "Identifiability",
            "Identification", "InformationCriteria", "StretchScore", "analyse",
            "compare_structures", "fit_percent", "identify", "information_criteria",
-           "parameters_block"]
+           "parameters_block", "percent"]

@@ -1,9 +1,5 @@
-"""The commissioning's Rerun file (:func:`record_fit`), what MATLAB users know as ``compare``
-and ``resid``: per output, measured and twin overlaid over both ranges with the fit % in the
-title; the residual's autocorrelation with its 99 % band (+-2.58/sqrt(N)) and the
-residual-input cross-correlation (:func:`residual_tests`); the parameter table and the
-identifiability analysis as Markdown tables (:mod:`~twinwatch.commissioning.report`).
-"""
+"""The commissioning's Rerun file (:func:`record_fit`: what MATLAB users know as ``compare``
+and ``resid``, the residual tests :func:`residual_tests`) and its layout."""
 
 from __future__ import annotations
 

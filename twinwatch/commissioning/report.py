@@ -7,17 +7,10 @@ on both ranges, the model checks) and as the Markdown tables of the Rerun file
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 from twinwatch.commissioning.identify import Comparison, Identification, StretchScore
-
-
-def _pct(x: float) -> str:
-    if not math.isfinite(x):
-        return "inf %"
-    p = 100.0 * x
-    return f"{p:.3g} %" if p < 1e3 else f"{p:.0f} %" if p < 1e5 else f"{p:.1e} %"
+from twinwatch.commissioning.identify import percent as _pct
 
 
 def _check_text(score: StretchScore) -> str:

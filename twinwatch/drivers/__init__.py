@@ -1,18 +1,11 @@
 """Acquisition drivers and their registry.
 
 Like python-can's ``can/interfaces/__init__.py``: a table maps a driver name (the ``type`` of a
-``[driver]`` configuration table) to the module and class implementing it. The table is
-extended by the entry-point group ``twinwatch.drivers`` (``name = "package.module:Class"``), and
-a driver's module is imported only when that driver is used, so a missing optional dependency
-only matters to the configurations that need it.
-
-Every driver class declares its configuration model (:attr:`Driver.config_class`) and provides
-``from_config(config, *, base_dir) -> Driver`` (``config`` is its validated configuration model
-or the raw table; ``base_dir`` resolves relative paths). :func:`validate_driver_config` is how
-the configuration loader validates a ``[driver]`` table: by its ``type``, importing only that
-driver's module. Adding a driver is one module plus one line here (or one entry point).
-
-The base contract (:class:`Driver`, :class:`Sample`, the errors) is re-exported here.
+``[driver]`` table) to the module and class implementing it, extended by the entry-point group
+``twinwatch.drivers``; a driver's module is imported only when that driver is used.
+:func:`validate_driver_config` is how the configuration loader validates a ``[driver]`` table.
+Adding a driver: docs/extending.md. The base contract (:class:`Driver`, :class:`Sample`, the
+errors) is re-exported here.
 """
 
 from __future__ import annotations

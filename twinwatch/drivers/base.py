@@ -1,40 +1,30 @@
-"""The acquisition driver contract.
+"""The acquisition driver contract (docs/extending.md, "Where a new driver plugs in").
 
 Modelled on python-can's ``BusABC``: one abstract base owns the public :meth:`Driver.read`,
 backends override the protected :meth:`Driver._read_internal`; :meth:`Driver.close` is
-idempotent, a driver is a context manager, and a driver never closed warns when collected.
+idempotent, a driver is a context manager, and a driver never closed warns when collected. A
+driver delivers :class:`Sample` objects, one time stamp [s] and one value per *twin* channel
+(mapping bus signals to twin channels, with unit scaling, is the driver's job).
 
-A driver delivers :class:`Sample` objects: one time stamp [s] and one value per twin channel
-(for the DC motor ``Va``, ``ia``, ``omega``, ``Tload``, ``setpoint``). Channel names are the
-twin's, never the bus's: mapping bus signals to twin channels (with unit scaling) is the
-driver's job and lives in its configuration.
-
-Errors follow the lifecycle, as in ``can/exceptions.py``:
-
-* :class:`DriverInitializationError` while opening (bad port, device absent, ...), its subclass
-  :class:`DriverConfigError` when the configuration or a file it names is at fault (DBC not
-  found, a mapped column missing, ...),
-* :class:`DriverOperationError` for a failure while reading that the driver could not survive,
-* :class:`EndOfStream` when a finite source (a file, a simulation of fixed duration) is exhausted.
-
-Recoverable bad input (an undecodable frame, a NaN, a gap) is *not* raised: it is counted in
+Errors follow the lifecycle, as in ``can/exceptions.py``: :class:`DriverInitializationError`
+while opening (its subclass :class:`DriverConfigError` when the configuration or a file it
+names is at fault), :class:`DriverOperationError` for a failure while reading that the driver
+could not survive, :class:`EndOfStream` when a finite source is exhausted. Recoverable bad
+input (an undecodable frame, a NaN, a gap) is *not* raised: it is counted in
 :attr:`Driver.stats`, logged once, and the driver goes on.
-
-A driver owns its configuration: :attr:`Driver.config_class` is the pydantic model of its
-``[driver]`` table (a :class:`DriverConfig`), through which the configuration loader validates
-the table (by its ``type``, via the registry in :mod:`twinwatch.drivers`), and the classmethods
-:meth:`Driver.from_config`, :meth:`Driver.nominal_sample_period`, :meth:`Driver.duration` and
-:meth:`Driver.safe_to_probe` answer what the daemon and the command line need to know about a
-configured source without naming it.
 """
 
 from __future__ import annotations
 
 import abc
+import contextlib
 import logging
+import queue
+import random
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, ClassVar, Self, TypeVar
 
@@ -63,6 +53,7 @@ __all__ = [
     "DriverStats",
     "EndOfStream",
     "PlantDriver",
+    "QueuedDriver",
     "Sample",
     "ScaledChannel",
     "validated_config",
@@ -117,16 +108,9 @@ class DriverStats:
     extra: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, int]:
-        d = {
-            "frames": self.frames,
-            "samples": self.samples,
-            "bad_frames": self.bad_frames,
-            "bad_values": self.bad_values,
-            "gaps": self.gaps,
-            "errors": self.errors,
-        }
-        d.update(self.extra)
-        return d
+        """The counters, the fixed ones first, then :attr:`extra`'s."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "extra"}
+        return {**d, **self.extra}
 
 
 def source_problem_lines(silent: Sequence[str], faults: Sequence[str]) -> list[str]:
@@ -331,6 +315,89 @@ class Driver(Closeable, abc.ABC):
         """Release resources; called once by :meth:`close`."""
 
 
+class QueuedDriver(Driver):
+    """A driver whose own thread hands complete samples to :meth:`read` through a queue (the
+    Modbus and OPC UA drivers): the read with its deadline, the oldest sample dropped for a
+    reader that falls behind, the jittered reconnect delay and an outage's bookkeeping (the
+    first failure at ERROR, the rest at DEBUG, the recovery at WARNING).
+
+    Subclasses call :meth:`_init_queue` from their constructor and set :attr:`source_name`.
+    """
+
+    #: the driver in the log and in a validation error (``"Modbus"``, ``"OPC UA"``)
+    source_name: ClassVar[str]
+
+    @classmethod
+    def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Self:
+        checked = validated_config(cls.config_class, config, cls.source_name)
+        return cls(checked, base_dir=base_dir)  # type: ignore[call-arg]
+
+    def _init_queue(self, maxsize: int) -> None:
+        self._queue: queue.Queue[Sample] = queue.Queue(maxsize=maxsize)
+        self._stop = threading.Event()
+        self._fatal: str | None = None
+        self._down_since: float | None = None
+        self._last_error = ""
+        self._rng = random.Random()
+
+    def _read_internal(self, timeout: float | None) -> Sample | None:
+        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        while True:
+            if self._fatal is not None:
+                raise DriverOperationError(self._fatal)
+            remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
+            try:
+                if remaining <= 0:
+                    return self._queue.get_nowait()
+                return self._queue.get(timeout=remaining)
+            except queue.Empty:
+                if deadline is not None and time.monotonic() >= deadline:
+                    if self._fatal is not None:
+                        raise DriverOperationError(self._fatal) from None
+                    return None
+
+    def _put_dropping_oldest(self, sample: Sample) -> None:
+        """Queue ``sample``; a full queue (a reader that does not read) loses its oldest one
+        (``stats.extra["dropped"]``)."""
+        try:
+            self._queue.put_nowait(sample)
+        except queue.Full:
+            with contextlib.suppress(queue.Empty):  # the reader just emptied it
+                self._queue.get_nowait()
+            self.stats.extra["dropped"] += 1
+            self.log_once("dropped", "%s driver: %d samples not read; dropping the oldest "
+                          "(stats.extra.dropped)", self.source_name, self._queue.maxsize)
+            self._queue.put_nowait(sample)
+
+    def _jittered(self, backoff: float) -> float:
+        """A reconnect delay [s]: ``backoff`` times a uniform factor in [0.5, 1)."""
+        return backoff * (0.5 + 0.5 * self._rng.random())
+
+    def _outage(self, reason: str, first: str, *args: object, again: str) -> None:
+        """A failure: counted in ``stats.errors``; the first of an outage starts it
+        (``stats.extra["outages"]``) and is logged at ERROR (``first % args``), the others at
+        DEBUG (``again``)."""
+        self.stats.errors += 1
+        self._last_error = reason
+        log = logging.getLogger(type(self).__module__)
+        if self._down_since is None:
+            self._down_since = time.monotonic()
+            self.stats.extra["outages"] += 1
+            log.error(first, *args)
+        else:
+            log.debug("%s", again)
+
+    def _recovered(self) -> float | None:
+        """The outage's duration [s] when one has ended (``stats.extra["reconnects"]``), else
+        None."""
+        if self._down_since is None:
+            return None
+        down = time.monotonic() - self._down_since
+        self._down_since = None
+        self.stats.extra["reconnects"] += 1
+        return down
+
+
 InnerT = TypeVar("InnerT", bound=Driver)
 
 
@@ -340,7 +407,8 @@ class PlantDriver(Driver):
     period and duration, its time starting over at every open.
 
     Subclasses set :attr:`source_name` and implement ``__init__(config)`` (calling this one's,
-    then :meth:`_open_inner`) and :meth:`_inner`.
+    then :meth:`_open_inner`). Closing closes the inner driver, stops :attr:`server` and shuts
+    the virtual buses of :meth:`_virtual_pair` down.
 
     Args:
         config: the validated table (its ``plant`` has the ``sample_period`` [s]).
@@ -349,6 +417,8 @@ class PlantDriver(Driver):
 
     #: the driver in a validation error's message (``"simulated Modbus"``)
     source_name: ClassVar[str] = "simulated"
+    #: what serves the plant (a Modbus device, an OPC UA server: ``start``, ``stop``, ``port``)
+    server: Any = None
 
     def __init__(self, config: Any, *, live: bool) -> None:
         super().__init__()
@@ -356,6 +426,8 @@ class PlantDriver(Driver):
         self.sample_period = config.plant.sample_period
         self.live = live
         self._t0_wall: float | None = None  # monotonic time of plant time 0 (real time)
+        self._inner_driver: Driver | None = None
+        self._buses: list[Any] = []  # the virtual buses opened (shut down on close)
 
     def _open_inner(self, open_inner: Callable[[], InnerT], failure: str) -> InnerT:
         """Open the real driver that reads the plant and take over its channels and counters
@@ -378,7 +450,22 @@ class PlantDriver(Driver):
             raise DriverInitializationError(failure.format(exc=exc)) from exc
         self.channels = inner.channels
         self.stats = inner.stats
+        self._inner_driver = inner
         return inner
+
+    def _virtual_pair(self, channel: str, **tx_options: Any) -> tuple[Any, Any]:
+        """(receiving, sending) python-can ``virtual`` buses on ``channel``, shut down on
+        close."""
+        import can
+
+        for options in ({}, tx_options):
+            self._buses.append(can.Bus(interface="virtual", channel=channel, **options))
+        return self._buses[-2], self._buses[-1]
+
+    @property
+    def port(self) -> int:
+        """The TCP port the simulated server listens on."""
+        return int(self.server.port)
 
     def _pace(self, t: float) -> None:
         """Wait until plant time ``t`` [s] is due on the wall clock (real-time pacing: the
@@ -414,8 +501,16 @@ class PlantDriver(Driver):
         return cls(validated_config(cls.config_class, config, cls.source_name))  # type: ignore[call-arg]
 
     def _inner(self) -> Driver | None:
-        """The real driver reading the plant (None once closed or before it opened)."""
-        raise NotImplementedError
+        """The real driver reading the plant (None before it opened)."""
+        return self._inner_driver
+
+    def _close_internal(self) -> None:
+        if self._inner_driver is not None:
+            self._inner_driver.close()
+        if self.server is not None:
+            self.server.stop()
+        for bus in self._buses:
+            bus.shutdown()
 
     def _take(self, timeout: float) -> Sample | None:
         """The inner driver's next sample within ``timeout`` [s], counted once (by this

@@ -51,7 +51,7 @@ from __future__ import annotations
 import difflib
 import logging
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -234,17 +234,9 @@ def _find_signal(db: Database, key: str, message_name: str, signal_name: str | N
 class CanDriver(BusDriver):
     """Twin samples from DBC-decoded CAN frames (live bus or log replay); never transmits.
 
-    Args:
-        config: the validated configuration (see :class:`CanDriverConfig`).
-        bus: an already open python-can bus to listen on (e.g. a ``virtual`` bus shared with a
-            simulated plant). The driver never shuts it down; the caller owns it. When given,
-            ``interface``, ``channel``, ``bitrate`` and ``bus_options`` are ignored.
-        base_dir: directory that relative ``dbc`` and ``log_file`` paths are resolved against
-            (the configuration file's directory); None means the current directory.
+    Args: :class:`~twinwatch.drivers.canbus.BusDriver`'s (``config`` a :class:`CanDriverConfig`).
 
     Attributes:
-        channels: twin channel names, in the order of ``config.signals``.
-        sample_period: ``config.sample_period`` [s].
         database: the loaded cantools database.
 
     Raises:
@@ -270,16 +262,6 @@ class CanDriver(BusDriver):
         address = gateway_address(config)
         where = f" ({address[0]}:{address[1]})" if address else ""
         return f"CAN interface {config.interface!r} channel {config.channel!r}{where}"
-
-    @classmethod
-    def from_config(cls, config: CanDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None, bus: can.BusABC | None = None) -> CanDriver:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see :class:`CanDriver`.
-        """
-        return super().from_config(config, base_dir=base_dir, bus=bus)
 
     # -- construction -----------------------------------------------------------------------
     def _setup(self, config: CanDriverConfig) -> None:

@@ -220,9 +220,8 @@ class LogSource:
     A malformed line of a text log (candump ``.log``, ``.asc``, ``.csv``, ``.trc``) is skipped
     and reported through ``on_bad(line, error)``: python-can's readers are generators that end
     at the first parse error, so a new reader takes over at the next line with the old one's
-    state (:meth:`_resume`: O(1) per bad line; re-reading from the top made 300 bad lines in
-    18,000 cost a quadratic re-read). A binary log (``.blf``, ``.mf4``) cannot be resumed
-    after a corrupt block: the error ends the replay with one clear line.
+    state (:meth:`_resume`, O(1) per bad line). A binary log (``.blf``, ``.mf4``) cannot be
+    resumed after a corrupt block: the error ends the replay with one clear line.
     """
 
     def __init__(self, path: Path, *, realtime: bool,

@@ -1,54 +1,13 @@
 """CANopen driver: a CiA 301 / CiA 402 drive's PDOs decoded passively into twin samples.
 
-A CANopen drive ships no DBC: its frames are described by its EDS (or the DCF a commissioning
-tool wrote), read with the ``canopen`` library (:func:`canopen.import_od`, ``$NODEID``
-resolved for the configured node id). The driver reads from that object dictionary, never from
-the drive, which PDOs the drive sends and what they carry: each TPDO's communication parameter
-(0x1800+n: COB-ID, transmission type) and mapping parameter (0x1A00+n: index, sub-index and bit
-length of each mapped object), and likewise each RPDO (0x1400+n / 0x1600+n), which the master
-(the PLC) sends to the drive, e.g. the CiA 402 target velocity: a listener hears both. A twin
-channel names an object (``"0x606C"``, ``"0x6078sub0"`` or its EDS name, ``"Velocity actual
-value"``) and how its raw value becomes the twin's SI unit: ``value = raw * factor + offset``,
-the factor a number or a named unit (:data:`FACTORS`: ``"0.001rpm"``, ``"mV"``,
-``"per_mille_rated_current"``, which reads the motor rated current 0x6075 from the EDS/DCF,
-``"inc/s"``, the position encoder resolution 0x608F ...).
-
-Passive: the driver never sends. It builds no ``canopen.Network`` (that object owns the bus
-and can send NMT, SDO, SYNC and PDO frames), decodes the frames itself from the mapping, and
-never calls ``send`` on its bus; a live interface is put in receive-only mode where python-can
-allows it. (``tests/test_drivers_canopen.py`` listens on the bus and sees no frame of it.)
-
-Samples:
-
-* ``sample_on = "sync"`` (default): one sample per SYNC frame (COB-ID from 0x1005, 0x80 by
-  default), stamped with that SYNC's time stamp (bus or log clock), once every TPDO that carries
-  a channel and is sent on every SYNC (transmission type 1) has arrived after it; channels of
-  other PDOs (event-driven, every n-th SYNC, an RPDO) hold their latest value. A SYNC with a
-  counter (0x1019 > 1) numbers the cycles: a jump counts the missed samples in ``stats.gaps``.
-* ``sample_on = "TPDO1"`` (a drive that sends event-driven TPDOs, no SYNC on the bus): one
-  sample each time that TPDO arrives, stamped with its frame's time.
-
-The drive's state, read from its own frames (a drive in fault keeps sending):
-
-* EMCY (0x80 + node id): an error code other than 0x00xx puts the drive *in fault* (counted in
-  ``stats.extra["emcy_faults"]``); an EMCY with code 0x0000 (error reset) clears it;
-* the CiA 402 statusword 0x6041, when a PDO maps it: its fault bit (bit 3) set puts the drive in
-  fault (``statusword_faults``), cleared takes it out;
-* the heartbeat (0x700 + node id): missing for longer than ``heartbeat_margin`` times the
-  producer time (0x1017 of the EDS/DCF, or ``heartbeat_time``) counts in ``heartbeat_lost``
-  and is named in :attr:`CanopenDriver.silent`; a boot-up message (the drive restarted) counts
-  in ``boot_ups``; an NMT state other than operational is named with the faults.
-
-The drive in fault is :attr:`CanopenDriver.device_faults` (systemd's STATUS, the health
-message's ``source.device_faults``), the heartbeat missing :attr:`CanopenDriver.silent`
-(``source.silent``); both within the window they happen in. The samples go on: the twin sees
-what the drive does while it is in fault.
-
-Bad input is counted, logged once, and survived (:class:`~twinwatch.drivers.base.DriverStats`):
-a frame of another node or of an object not needed counts in ``frames`` only (``other_frames``);
-a PDO shorter than its mapping (a truncated PDO) in ``bad_frames`` and ``truncated_pdos`` (its
-values are not used); a SYNC cycle in which a needed TPDO did not arrive in
-``incomplete_syncs``; NaN in ``bad_values``.
+The TPDO and RPDO mapping (0x1800+n/0x1A00+n, 0x1400+n/0x1600+n) is read from the drive's EDS or
+DCF with the ``canopen`` library (:func:`canopen.import_od`), never from the drive. A channel
+names an object (``"0x606C"``, ``"0x6078sub0"`` or its EDS name) and
+``value = raw * factor + offset``, the factor a number or a named unit (:data:`FACTORS`).
+Passive: no ``canopen.Network``, no ``send``; a live interface is receive-only where python-can
+allows it. Samples (``sample_on = "sync"`` or ``"TPDO1"``), the drive's state from EMCY, the
+statusword 0x6041 and the heartbeat (:attr:`CanopenDriver.device_faults`,
+:attr:`CanopenDriver.silent`) and the counters of bad input: docs/canopen.md.
 
 Example (TOML, the ``[driver]`` table of a machine config)::
 
@@ -519,12 +478,8 @@ def _decode(entry: _Entry, data: bytes) -> float:
 class CanopenDriver(BusDriver):
     """Twin samples from a CANopen drive's PDOs, decoded from its EDS/DCF; never transmits.
 
-    Args:
-        config: the validated configuration (:class:`CanopenDriverConfig`).
-        bus: an already open python-can bus to listen on (the simulated drive's virtual bus);
-            the driver never shuts it down.
-        base_dir: directory relative ``eds`` and ``log_file`` paths are resolved against.
-        listen_only: put a live interface in receive-only mode (``check-config``).
+    Args: :class:`~twinwatch.drivers.canbus.BusDriver`'s (``config`` a
+    :class:`CanopenDriverConfig`).
 
     Attributes:
         plan: what the EDS/DCF says (:class:`CanopenPlan`).
@@ -549,17 +504,6 @@ class CanopenDriver(BusDriver):
             return f"CANopen node {config.node_id} in log {str(config.log_file)!r}"
         return (f"CANopen node {config.node_id} on CAN interface {config.interface!r} "
                 f"channel {config.channel!r}")
-
-    @classmethod
-    def from_config(cls, config: CanopenDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None,
-                    bus: can.BusABC | None = None) -> CanopenDriver:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        return super().from_config(config, base_dir=base_dir, bus=bus)
 
     # -- construction -------------------------------------------------------------------------
     def _setup(self, config: CanopenDriverConfig) -> None:

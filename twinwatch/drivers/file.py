@@ -58,7 +58,7 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -88,9 +88,8 @@ FloatArray = npt.NDArray[np.float64]
 
 #: A real-time replay delivers a row at most this late [s]: it sleeps until the next row is
 #: due plus this, and the rows due by then follow at once (one wake-up per 0.2 s, not one a
-#: row; a window of the daemon is seconds long and stamped by the file's clock). A wake-up
-#: costs 70-190 us of CPU on a virtual machine (measured): at 0.1 s, 3.8 ms a 2 s window,
-#: at 0.2 s (the acquisition loop's read timeout, which caps a sleep anyway) 2 ms.
+#: row, each 70-190 us of CPU; 0.2 s is the acquisition loop's read timeout, which caps a
+#: sleep anyway; a window is seconds long and stamped by the file's clock).
 PACE_SLACK = 0.2
 
 #: Rows converted to Python floats at once (:meth:`FileDriver._read_internal`).
@@ -213,7 +212,6 @@ class FileDriver(Driver):
             file's directory); None means the current directory.
 
     Attributes:
-        channels: twin channel names, in the order of ``config.columns``.
         sample_period: ``config.sample_period`` [s], or the median time step of
             ``time_column`` when no period is configured.
         n_rows: number of rows that will be replayed (after ``start``/``stop``).
@@ -305,17 +303,7 @@ class FileDriver(Driver):
         else:
             table = self._load_mat(path)
         n_total = len(next(iter(table.values())))
-
-        # values: one row per sample, one column per channel, in the twin's units
-        values = np.empty((n_total, len(self.channels)), dtype=np.float64)
-        for j, mapping in enumerate(config.columns.values()):
-            values[:, j] = table[mapping.column] * mapping.scale + mapping.offset
-        if config.time_column is not None:
-            t = table[config.time_column] * config.time_scale
-        else:
-            assert config.sample_period is not None  # checked by the config model
-            t = np.arange(n_total, dtype=np.float64) * config.sample_period
-
+        t, values = self._arrays(table.__getitem__, n_total, 0)
         lo, hi, _ = slice(config.start, config.stop).indices(n_total)
         self._t: FloatArray = t[lo:hi]
         self._values: FloatArray = values[lo:hi]
@@ -357,9 +345,8 @@ class FileDriver(Driver):
     def _load_csv_fast(self, path: Path, delimiter: str, text: str | None = None
                        ) -> dict[str, FloatArray] | None:
         """The columns of a well-formed CSV (a header, then numbers only: no quotes, no empty
-        or missing cells) read by numpy's parser, without a Python object per cell (a 15,400-
-        row recording: 51 -> 12 ms of CPU, and about 1 MB less left in a fleet worker's heap);
-        None for anything else, which :meth:`_load_csv` reads cell by cell."""
+        or missing cells) read by numpy's parser, without a Python object per cell; None for
+        anything else, which :meth:`_load_csv` reads cell by cell."""
         try:
             skip, line = 0, ""
             with _open_text(path, text) as f:
@@ -444,18 +431,7 @@ class FileDriver(Driver):
 
         table: dict[str, FloatArray] = {}
         for column, j in index.items():
-            out = np.full(len(rows), np.nan)
-            not_numbers = 0
-            example = ""
-            for k, row in enumerate(rows):
-                cell = row[j].strip() if j < len(row) else ""
-                if not cell:
-                    continue
-                try:
-                    out[k] = float(cell)
-                except ValueError:
-                    not_numbers += 1
-                    example = example or cell
+            out, not_numbers, example = _cells(rows, j)
             if not_numbers and not np.isfinite(out).any():
                 # a column of text (a state, a label): every window would be abandoned
                 raise DriverConfigError(
@@ -508,6 +484,20 @@ class FileDriver(Driver):
         if length is None or length[1] == 0:
             raise DriverConfigError(f"path: {str(path)!r}: the variables are empty")
         return table
+
+    def _arrays(self, column: Callable[[str], FloatArray], n: int, first: int
+                ) -> tuple[FloatArray, FloatArray]:
+        """(t (n,), values (n, channels) in the twin's units) of ``n`` rows whose columns
+        ``column(name)`` gives; ``first``: the file row of the first (``t = k *
+        sample_period``)."""
+        cfg = self.config
+        values = np.empty((n, len(self.channels)), dtype=np.float64)
+        for j, mapping in enumerate(cfg.columns.values()):
+            values[:, j] = column(mapping.column) * mapping.scale + mapping.offset
+        if cfg.time_column is not None:
+            return column(cfg.time_column) * cfg.time_scale, values
+        assert cfg.sample_period is not None  # checked by the config model
+        return (first + np.arange(n, dtype=np.float64)) * cfg.sample_period, values
 
     def _keys(self) -> list[tuple[str, str]]:
         """(config key, column) of every column to load; the key names it in errors."""
@@ -634,26 +624,9 @@ class FileDriver(Driver):
         if not rows:
             return 0
         tail.last_row = time.monotonic()
-
-        def column(name: str) -> FloatArray:
-            j = index[name]
-            out = np.full(len(rows), np.nan)
-            for k, row in enumerate(rows):
-                cell = row[j].strip() if j < len(row) else ""
-                try:
-                    out[k] = float(cell)
-                except ValueError:
-                    pass  # an empty cell or text: NaN, counted when delivered
-            return out
-
-        values = np.empty((len(rows), len(self.channels)), dtype=np.float64)
-        for j, mapping in enumerate(cfg.columns.values()):
-            values[:, j] = column(mapping.column) * mapping.scale + mapping.offset
-        if cfg.time_column is not None:
-            t = column(cfg.time_column) * cfg.time_scale
-        else:
-            assert cfg.sample_period is not None  # required with follow
-            t = (first + lo + np.arange(len(rows), dtype=np.float64)) * cfg.sample_period
+        # an empty cell or text: NaN, counted when delivered
+        t, values = self._arrays(lambda name: _cells(rows, index[name])[0], len(rows),
+                                 first + lo)
         done = self._next  # delivered: dropped, so a file followed for days stays small
         self._t = np.concatenate((self._t[done:], t))
         self._values = np.concatenate((self._values[done:], values))
@@ -678,10 +651,26 @@ class FileDriver(Driver):
             time.sleep(max(timeout, 0.0))
             return False
         # never early; up to PACE_SLACK late, so the rows due meanwhile come in one wake-up
-        # (a sleep per 10 ms row cost 74 us of CPU a row, 15 ms per 2 s window)
         late = wait + PACE_SLACK
         time.sleep(late if timeout is None else min(late, timeout))
         return True
+
+
+def _cells(rows: list[list[str]], j: int) -> tuple[FloatArray, int, str]:
+    """Column ``j`` of CSV ``rows`` as numbers (NaN for an empty or missing cell and for
+    text), the count of cells that are not numbers, and the first of them."""
+    out = np.full(len(rows), np.nan)
+    not_numbers, example = 0, ""
+    for k, row in enumerate(rows):
+        cell = row[j].strip() if j < len(row) else ""
+        if not cell:
+            continue
+        try:
+            out[k] = float(cell)
+        except ValueError:
+            not_numbers += 1
+            example = example or cell
+    return out, not_numbers, example
 
 
 def _size(path: Path) -> int:

@@ -8,35 +8,23 @@ thread exists so that ``read(timeout)`` never blocks much longer than ``timeout`
 sync request cannot be given a per-call deadline, and a device that stops answering holds a
 request for ``timeout * (retries + 1)`` seconds.
 
-Register map
-    ``[driver.registers]`` maps each twin channel to a register:
-    ``{address, table = "input"|"holding", type = int16|uint16|int32|uint32|float32,
-    word_order = "big"|"little", scale, offset, unit}`` (see :class:`ModbusChannelMap`); the
-    twin value is ``raw * scale + offset``. Addresses are 0-based protocol addresses (the PDU
-    address, as pymodbus uses them: "40001" in a manual is holding address 0). 32-bit types
-    take two registers; ``word_order = "big"`` puts the high word first (Modbus convention),
-    ``"little"`` the low word first; bytes inside a register are always big-endian.
-
-Requests
-    The registers of one table are read as one block spanning the lowest to the highest mapped
-    address, split only where a block would exceed the protocol's 125 registers per read. A
-    block includes the unmapped registers between channels: the device must answer reads of
-    them. The block holding the counter is read first in each poll.
+Register map and requests
+    ``[driver.registers]`` maps each twin channel to a register (:class:`ModbusChannelMap`:
+    address, table, type, word order; :mod:`twinwatch.io.modbus_registers`); the twin value is
+    ``raw * scale + offset``. The registers of one table are read as one block from the lowest
+    to the highest mapped address (:func:`~twinwatch.io.modbus_registers.plan_blocks`: the
+    device must answer reads of the unmapped registers between them); the block holding the
+    counter is read first in each poll.
 
 Time source (``time_source``)
     ``"clock"``: t [s] is :func:`time.monotonic` at the middle of the poll's first request
     (the acquisition computer's clock); a poll that falls more than one period behind its
     schedule counts the missed polls in ``stats.gaps``. ``"counter"``: t = counter *
     ``sample_period`` where ``counter`` is a uint16/uint32 register the device increments once
-    per sample (unwrapped modulo 2**16 / 2**32), i.e. the device's own clock. Whenever a
-    counter is configured (with either time source), :class:`~twinwatch.io.counter.SampleCounter`
-    unwraps it: a counter that has not advanced since the previous poll is a duplicate poll and
-    the sample is skipped (``stats.extra["duplicates"]``), one a few steps back is a stale
-    answer, skipped too (``["reordered"]``); a jump of ``n > 1`` adds ``n - 1`` to
-    ``stats.gaps`` (the ring buffer downstream holds a few missing samples of a window over,
-    ``[acquisition] max_missing``, and abandons the window of a longer gap); a counter
-    that goes further back counts in ``stats.extra["counter_resets"]`` and restarts the clock
-    from the new value.
+    per sample, i.e. the device's own clock. A configured counter (with either time source) is
+    unwrapped by :class:`~twinwatch.io.counter.SampleCounter`: a duplicate poll or a stale
+    answer is skipped (``stats.extra["duplicates"]``, ``["reordered"]``), a jump of ``n > 1``
+    adds ``n - 1`` to ``stats.gaps``, a restart counts in ``stats.extra["counter_resets"]``.
 
 Lock-step (``lockstep = true``)
     For a simulated device that advances one sample each time its counter block is read
@@ -48,21 +36,20 @@ Lock-step (``lockstep = true``)
 Failures
     A request that times out, a refused or dropped connection, and an exception response a
     device gives for a while (02 ILLEGAL DATA ADDRESS: a PLC being reprogrammed answers it for
-    its registers; 04 device failure, 05, 06 busy, 0A/0B gateway) count in ``stats.errors``
-    (and in ``stats.extra``:
-    ``timeouts``, ``connect_failures``, ``exception_responses``). The client is then closed and
-    reopened after a jittered exponential backoff (0.1 s doubling up to ``backoff_max``). An
-    outage is logged at ERROR once, at DEBUG while it lasts, and at WARNING on recovery with its
-    duration (``stats.extra["outages"]``, ``["reconnects"]``); pymodbus' own error messages
-    from the polling thread are demoted to DEBUG meanwhile. While the device is down,
-    ``read(timeout)`` returns None after ``timeout`` and :attr:`ModbusDriver.waiting` says
-    since when and why (the daemon's STATUS). An exception response ILLEGAL FUNCTION or ILLEGAL
-    DATA VALUE means the register map does not match the device: the polling stops and
+    its registers; 04 device failure, 05, 06 busy, 0A/0B gateway) count in ``stats.errors`` (and
+    ``stats.extra``: ``timeouts``, ``connect_failures``, ``exception_responses``). The client is
+    then closed and reopened after a jittered exponential backoff (0.1 s doubling up to
+    ``backoff_max``). An outage is logged at ERROR once, at DEBUG while it lasts, and at WARNING
+    on recovery with its duration (``stats.extra["outages"]``, ``["reconnects"]``); pymodbus'
+    own error messages from the polling thread are demoted to DEBUG meanwhile. While the device
+    is down, ``read(timeout)`` returns None after ``timeout`` and :attr:`ModbusDriver.waiting`
+    says since when and why (the daemon's STATUS). An exception response ILLEGAL FUNCTION or
+    ILLEGAL DATA VALUE means the register map does not match the device: the polling stops and
     ``read`` raises :class:`~twinwatch.drivers.base.DriverOperationError` (the daemon opens the
     driver again with a longer backoff, :mod:`twinwatch.daemon.source`: the unit stays up and
-    STATUS says why).
-    A decoded NaN or infinite value counts in ``stats.bad_values`` and is delivered as it is;
-    a response with the wrong number of registers counts in ``stats.bad_frames``.
+    STATUS says why). A decoded NaN or infinite value counts in ``stats.bad_values`` and is
+    delivered as it is; a response with the wrong number of registers counts in
+    ``stats.bad_frames``.
 
 Monitoring only: the driver sends read requests (function codes 3 and 4) and nothing else.
 
@@ -88,12 +75,10 @@ from __future__ import annotations
 import logging
 import math
 import queue
-import random
 import threading
 import time
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -101,12 +86,10 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.pdu import ExceptionResponse
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     DriverInitializationError,
-    DriverOperationError,
+    QueuedDriver,
     Sample,
-    validated_config,
 )
 from twinwatch.io.counter import SampleCounter
 from twinwatch.io.modbus_registers import (
@@ -121,6 +104,7 @@ from twinwatch.io.modbus_registers import (
     check_overlaps,
     plan_blocks,
 )
+from twinwatch.io.threadlog import demote_thread_records
 
 logger = logging.getLogger(__name__)
 
@@ -246,28 +230,9 @@ class ModbusDriverConfig(DriverConfig):
 # -- pymodbus log noise -------------------------------------------------------------------------
 
 
-class _DemoteFromPollThreads(logging.Filter):
-    """Demote pymodbus' records emitted from our polling threads to DEBUG.
-
-    pymodbus logs every failed connect and every timeout at ERROR; the driver reports an
-    outage itself (ERROR once, DEBUG while it lasts, WARNING on recovery).
-    """
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno > logging.DEBUG and threading.current_thread().name.startswith(
-            _POLL_THREAD_NAME
-        ):
-            # the logger's level check has passed at the record's original level: redo it
-            if not _PYMODBUS_LOGGER.isEnabledFor(logging.DEBUG):
-                return False
-            record.levelno = logging.DEBUG
-            record.levelname = logging.getLevelName(logging.DEBUG)
-        return True
-
-
-_PYMODBUS_LOGGER = logging.getLogger("pymodbus.logging")
-if not any(isinstance(f, _DemoteFromPollThreads) for f in _PYMODBUS_LOGGER.filters):
-    _PYMODBUS_LOGGER.addFilter(_DemoteFromPollThreads())
+# pymodbus logs every failed connect and every timeout at ERROR from the polling threads: at
+# DEBUG, the driver reports an outage itself
+demote_thread_records(_POLL_THREAD_NAME, ("pymodbus.logging",), critical=True)
 
 
 # -- the driver -------------------------------------------------------------------------------
@@ -301,15 +266,14 @@ _EXTRA_COUNTERS = (
 _LIVE_QUEUE = 1024
 
 
-class ModbusDriver(Driver):
+class ModbusDriver(QueuedDriver):
     """Twin samples polled from a Modbus TCP or RTU device; read requests only.
 
     Args:
         config: the validated configuration (see :class:`ModbusDriverConfig`).
+        base_dir: accepted for the driver contract; no path in this config is relative.
 
     Attributes:
-        channels: twin channel names, in the order of ``config.registers``.
-        sample_period: ``config.sample_period`` [s].
         live: False in lock-step mode, True otherwise.
         blocks: the read requests of one poll, in order.
         client: the pymodbus sync client (owned by the polling thread; do not use it).
@@ -323,6 +287,7 @@ class ModbusDriver(Driver):
     sample_model = "hydraulic_actuator"
     sample_machine = "hydraulic-modbus"
     sample_title = "a hydraulic actuator read from a Modbus device"
+    source_name = "Modbus"
 
     @classmethod
     def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
@@ -354,7 +319,7 @@ class ModbusDriver(Driver):
         assert isinstance(config, ModbusDriverConfig)
         return f"Modbus device {config.describe_endpoint()}"
 
-    def __init__(self, config: ModbusDriverConfig) -> None:
+    def __init__(self, config: ModbusDriverConfig, *, base_dir: Path | None = None) -> None:
         super().__init__()
         self.config = config
         self.channels = tuple(config.registers)
@@ -373,14 +338,7 @@ class ModbusDriver(Driver):
         )
         self._counter = SampleCounter(None if config.counter is None
                                       else config.counter.modulus)
-        self._queue: queue.Queue[Sample] = queue.Queue(
-            maxsize=1 if config.lockstep else _LIVE_QUEUE
-        )
-        self._stop = threading.Event()
-        self._fatal: str | None = None
-        self._down_since: float | None = None
-        self._last_error = ""
-        self._rng = random.Random()
+        self._init_queue(1 if config.lockstep else _LIVE_QUEUE)
         self.client = self._make_client(config)
         self._thread = threading.Thread(
             target=self._run, name=f"{_POLL_THREAD_NAME}-{config.describe_endpoint()}", daemon=True
@@ -394,21 +352,6 @@ class ModbusDriver(Driver):
             len(self.blocks),
             ", ".join(self.channels),
         )
-
-    @classmethod
-    def from_config(
-        cls, config: ModbusDriverConfig | Mapping[str, Any], *, base_dir: Path | None = None
-    ) -> ModbusDriver:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        ``base_dir`` is accepted for the driver contract; no path in this config is relative.
-
-        Raises:
-            DriverInitializationError: the table does not validate (the message names the key),
-                or see :class:`ModbusDriver`.
-        """
-        config = validated_config(ModbusDriverConfig, config, "Modbus")
-        return cls(config)
 
     # -- construction -----------------------------------------------------------------------
     def _block_of(self, reg: ModbusRegister) -> tuple[int, int]:
@@ -444,25 +387,6 @@ class ModbusDriver(Driver):
                 f"cannot create the Modbus {config.transport} client: {exc}"
             ) from exc
 
-    # -- reading (caller's thread) ----------------------------------------------------------
-    def _read_internal(self, timeout: float | None) -> Sample | None:
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
-        while True:
-            self._raise_if_failed()
-            remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
-            try:
-                if remaining <= 0:
-                    return self._queue.get_nowait()
-                return self._queue.get(timeout=remaining)
-            except queue.Empty:
-                if deadline is not None and time.monotonic() >= deadline:
-                    self._raise_if_failed()
-                    return None
-
-    def _raise_if_failed(self) -> None:
-        if self._fatal is not None:
-            raise DriverOperationError(self._fatal)
-
     # -- polling (the driver's thread) ------------------------------------------------------
     def _run(self) -> None:
         period = self.config.effective_poll_period
@@ -477,7 +401,7 @@ class ModbusDriver(Driver):
                 t, regs = self._poll()
             except _DeviceFailure as exc:
                 self._on_failure(exc)
-                delay = backoff * (0.5 + 0.5 * self._rng.random())
+                delay = self._jittered(backoff)
                 backoff = min(2 * backoff, self.config.backoff_max)
                 if self._stop.wait(delay):
                     break
@@ -638,20 +562,7 @@ class ModbusDriver(Driver):
                 except queue.Full:
                     continue
             return
-        try:
-            self._queue.put_nowait(sample)
-        except queue.Full:
-            try:
-                self._queue.get_nowait()
-            except queue.Empty:  # pragma: no cover - the reader just emptied it
-                pass
-            self.stats.extra["dropped"] += 1
-            self.log_once(
-                "dropped",
-                "Modbus driver: %d samples not read; dropping the oldest (stats.extra.dropped)",
-                _LIVE_QUEUE,
-            )
-            self._queue.put_nowait(sample)
+        self._put_dropping_oldest(sample)
 
     @property
     def waiting(self) -> str | None:
@@ -665,27 +576,15 @@ class ModbusDriver(Driver):
                 f"up to {self.config.backoff_max:g} s")
 
     def _on_failure(self, exc: _DeviceFailure) -> None:
-        self.stats.errors += 1
         self.stats.extra[exc.kind] += 1
-        self._last_error = str(exc)
-        if self._down_since is None:
-            self._down_since = time.monotonic()
-            self.stats.extra["outages"] += 1
-            logger.error(
-                "Modbus device %s not available: %s; retrying with backoff up to %.3g s "
-                "(further failures at DEBUG)",
-                self.config.describe_endpoint(),
-                exc,
-                self.config.backoff_max,
-            )
-        else:
-            logger.debug("Modbus device %s still down: %s", self.config.describe_endpoint(), exc)
+        where = self.config.describe_endpoint()
+        self._outage(str(exc), "Modbus device %s not available: %s; retrying with backoff up "
+                     "to %.3g s (further failures at DEBUG)", where, exc,
+                     self.config.backoff_max, again=f"Modbus device {where} still down: {exc}")
 
     def _on_success(self) -> None:
-        if self._down_since is not None:
-            down = time.monotonic() - self._down_since
-            self._down_since = None
-            self.stats.extra["reconnects"] += 1
+        down = self._recovered()
+        if down is not None:
             logger.warning(
                 "Modbus device %s is back after %.2f s down (%d errors so far)",
                 self.config.describe_endpoint(),

@@ -1,77 +1,11 @@
 """OPC UA driver: one subscription on a server's variables into twin samples; never writes.
 
 A background thread (``twinwatch-opcua-in``) runs asyncua's client in an asyncio loop of its own
-and hands complete samples to :meth:`~twinwatch.drivers.base.Driver.read` through a queue, as
-the Modbus driver's polling thread does.
-
-Nodes
-    ``[driver.channels]`` maps each twin channel to a variable: by NodeId string
-    (``node = "ns=2;s=Motor.ia"``) or by browse path from the Root folder
-    (``browse_path = "0:Objects/2:Motor/2:ia"``, qualified names separated by ``/``), with
-    ``scale``, ``offset`` (``twin value = value * scale + offset``) and an optional ``unit``.
-    When a unit is declared, the node's ``EngineeringUnits`` property (an ``EUInformation``)
-    must name it (its display name, or the UNECE code of the unit); a mismatch refuses to
-    start naming the node and both units. A node that does not exist, a browse path that
-    matches nothing, a server that rejects the user or the certificate, or offers no endpoint
-    with the configured security (``driver.security_policy``, naming what it offers): the
-    start refuses with one line naming the key
-    (:class:`~twinwatch.drivers.base.DriverConfigError`, ``run`` exits 78; ``check-config``
-    connects and says the same).
-
-The subscription
-    One subscription holds one monitored item per channel. Its sampling interval is the sample
-    period, its publishing interval ``publishing_interval`` (50 ms by default: 5 samples of
-    10 ms per notification), each monitored item's queue ``queue_size`` values (default: four
-    publishing intervals' worth, at least 10) with DiscardOldest, and its data-change filter
-    reports a new *source timestamp* even when the value repeats (trigger
-    StatusValueTimestamp: a constant set-point is still one value per sample). A server may
-    revise the publishing interval (logged; a warning when the queue would not hold one
-    interval of samples); asyncua's client does not report a revised queue size: a queue the
-    server shortened shows as values with the Overflow info bit (its queue discarded older
-    values), counted in ``stats.extra["overflows"]``, the discarded samples as a gap.
-
-Sample times, and how channels are joined into samples
-    Each value's time is its SourceTimestamp (the device's clock); a server that sends none
-    gives its ServerTimestamp instead (said once in the log, ``stats.extra["server_stamps"]``).
-    ``t`` is POSIX seconds (minus ``time_origin``, which only the simulated plant sets: its
-    plant time). The values of the channels are joined into one sample per *slot*, the source
-    time rounded to the sample period: ``k = round(t / sample_period)``. A slot becomes a
-    sample when every channel has delivered a value for it; its ``t`` is the mean of those
-    values' times (their jitter reaches the ring buffer, which judges it). Each monitored item
-    delivers its values in order, so once slot ``k`` is complete no earlier slot can still
-    complete: the slots skipped since the last sample (a channel's value missing, a dropped
-    notification, a reconnect) are counted in ``stats.gaps`` (a few per window the ring buffer
-    holds over, more abandon the window: ``[acquisition] max_missing``). A value for a slot
-    already delivered (the current value a server sends when a subscription is recreated) is
-    skipped (``stats.extra["duplicates"]``). A source time
-    more than an hour away from the last sample's (a clock set, a device restarted) counts in
-    ``stats.extra["time_jumps"]``, not as missing samples. A channel whose values stop while
-    the others' go on is named in :attr:`OpcUaDriver.silent` (its slots are counted missing).
-
-Status codes
-    A value whose StatusCode is not Good (Uncertain or Bad: a sensor fault, a device not
-    connected, ...) is never used: its slot becomes a missing sample (``stats.gaps``), counted
-    per channel in ``stats.extra["status_<channel>"]`` and logged once per channel with its
-    status name. A value that is not a finite number counts in ``stats.bad_values``, likewise
-    missing.
-
-Failures
-    A lost connection (the server stopped, a network failure, a session or subscription the
-    server dropped) is logged at ERROR once, the client is closed and a new session and
-    subscription are created after a jittered exponential backoff (0.1 s doubling up to
-    ``backoff_max``); ``stats.extra["outages"]``, ``["reconnects"]``, ``stats.errors``. The
-    samples lost meanwhile are a gap in the source timestamps, counted as above. While the
-    server is away :attr:`OpcUaDriver.waiting` says since when and why.
-
-Security
-    ``security_policy = "None"`` (default, for a server on the loopback) or
-    ``"Basic256Sha256"`` with ``security_mode = "Sign"`` or ``"SignAndEncrypt"``, the client's
-    ``certificate`` and ``private_key`` and the trusted ``server_certificate`` (files, PEM or
-    DER); ``username`` with ``password_file`` (its first line; or ``password`` inline) as the
-    MQTT output takes them. ``check-config`` refuses a missing file before anything opens.
-
-Monitoring only: the driver reads attributes, browses, and subscribes; it never writes a node
-and never calls a method.
+and hands complete samples to :meth:`~twinwatch.drivers.base.Driver.read` through a queue.
+Nodes (NodeId or browse path, unit checked against EngineeringUnits), the subscription, how
+values are joined into samples by source-time slot ``k = round(t / sample_period)``, status
+codes, reconnects, security and the one-line refusals (:class:`DriverConfigError`, ``run``
+exits 78): docs/opcua-input.md.
 
 Example configuration (TOML)::
 
@@ -90,8 +24,6 @@ import asyncio
 import contextlib
 import logging
 import math
-import queue
-import random
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -103,14 +35,13 @@ from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch._table import StrictTable
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     DriverConfigError,
     DriverInitializationError,
-    DriverOperationError,
+    QueuedDriver,
     Sample,
-    validated_config,
 )
+from twinwatch.io.threadlog import demote_thread_records
 
 if TYPE_CHECKING:  # asyncua is imported when the driver opens: validating loads nothing
     from asyncua import Client, Node
@@ -157,32 +88,14 @@ def unit_matches(declared: str, display_name: str | None, unit_id: int | None) -
     return bool(code) and unit_id is not None and unit_id == unece_unit_id(code)
 
 
-class _DemoteFromClientThread(logging.Filter):
-    """asyncua's records from the driver's thread at DEBUG: the revised subscription values,
-    each failed reconnect; the driver reports what matters itself (an outage once, at ERROR;
-    the recovery at WARNING; a refusal in one line)."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno > logging.DEBUG and threading.current_thread().name.startswith(
-                _THREAD_NAME) and record.levelno < logging.CRITICAL:
-            if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
-                return False
-            record.levelno = logging.DEBUG
-            record.levelname = "DEBUG"
-        return True
-
-
-#: the asyncua loggers the client's records come from (a logger's filter sees only its own)
-_ASYNCUA_LOGGERS = (
+# asyncua's records from the driver's thread (the revised subscription values, each failed
+# reconnect) at DEBUG, from the loggers the client's records come from
+demote_thread_records(_THREAD_NAME, (
     "asyncua", "asyncua.client.client", "asyncua.client.ua_client",
     "asyncua.client.ua_client.UaClient", "asyncua.client.ua_client.UASocketProtocol",
     "asyncua.common.subscription", "asyncua.client.ua_session",
     "asyncua.client.ua_session.UaSession", "asyncua.common.node", "asyncua.crypto.uacrypto",
-    "asyncua.crypto.security_policies", "asyncua.client.ua_file_transfer")
-for _name in _ASYNCUA_LOGGERS:
-    _log = logging.getLogger(_name)
-    if not any(isinstance(f, _DemoteFromClientThread) for f in _log.filters):
-        _log.addFilter(_DemoteFromClientThread())
+    "asyncua.crypto.security_policies", "asyncua.client.ua_file_transfer"))
 
 
 # -- configuration ----------------------------------------------------------------------------
@@ -191,12 +104,10 @@ for _name in _ASYNCUA_LOGGERS:
 class OpcUaChannelMap(StrictTable):
     """One twin channel's variable (``[driver.channels] <channel> = {...}``).
 
+    ``node``, ``browse_path`` and ``unit`` are documented in their fields.
+
     Attributes:
-        node: the variable's NodeId string, e.g. ``"ns=2;s=Motor.ia"``, ``"ns=3;i=1001"``.
-        browse_path: or its browse path from the Root folder, qualified names separated by
-            ``/`` (``"0:Objects/2:Motor/2:ia"``).
         scale, offset: ``twin value = value * scale + offset``.
-        unit: the twin channel's unit; when given, the node's EngineeringUnits must name it.
     """
 
     node: str | None = Field(None, min_length=1, description='NodeId string, "ns=2;s=Motor.ia"')
@@ -220,18 +131,14 @@ class OpcUaChannelMap(StrictTable):
 class OpcUaDriverConfig(DriverConfig):
     """Configuration of :class:`OpcUaDriver` (the ``[driver]`` table with ``type = "opcua"``).
 
+    The keys with a description in their field are documented there.
+
     Attributes:
-        endpoint: the server's endpoint URL, ``opc.tcp://host:port[/path]``.
         sample_period: the variables' sample period [s]: the monitored items' sampling
             interval and the slot width samples are joined on.
-        publishing_interval: the subscription's publishing interval [s] (default 0.05).
-        queue_size: each monitored item's queue (default: 4 publishing intervals, >= 10).
         timeout: per request and connect [s].
         backoff_max: cap of the reconnect delay [s] (starts at 0.1 s, doubles, jittered).
         security_policy: ``"None"`` or ``"Basic256Sha256"``.
-        security_mode: ``"Sign"`` or ``"SignAndEncrypt"`` (Basic256Sha256 only).
-        certificate, private_key: the client's certificate and key (files, PEM or DER).
-        server_certificate: the trusted server certificate (file).
         username, password_file, password: user identity (password: first line of the file).
         channels: twin channel -> :class:`OpcUaChannelMap`, at least one.
     """
@@ -260,14 +167,13 @@ class OpcUaDriverConfig(DriverConfig):
 
     @model_validator(mode="after")
     def _consistent(self) -> OpcUaDriverConfig:
+        keys = ("security_mode", "certificate", "private_key", "server_certificate")
         if self.security_policy == "None":
-            given = [k for k in ("security_mode", "certificate", "private_key",
-                                 "server_certificate") if getattr(self, k) is not None]
+            given = [k for k in keys if getattr(self, k) is not None]
             if given:
                 raise ValueError(f"{', '.join(given)} need security_policy = 'Basic256Sha256'")
         else:
-            missing = [k for k in ("security_mode", "certificate", "private_key",
-                                   "server_certificate") if getattr(self, k) is None]
+            missing = [k for k in keys if getattr(self, k) is None]
             if missing:
                 raise ValueError(f"security_policy = {self.security_policy!r} needs "
                                  f"{', '.join(missing)}")
@@ -338,7 +244,7 @@ class _Slot:
         self.t_sum = 0.0
 
 
-class OpcUaDriver(Driver):
+class OpcUaDriver(QueuedDriver):
     """Twin samples from an OPC UA server's variables through one subscription; never writes.
 
     Args:
@@ -351,7 +257,6 @@ class OpcUaDriver(Driver):
 
     Attributes:
         channels: twin channel names, in the order of ``config.channels``.
-        sample_period: ``config.sample_period`` [s].
         live: True (a server does not wait for its clients).
         revised: the server's revised publishing interval [s] and the queue size requested
             per channel.
@@ -369,6 +274,7 @@ class OpcUaDriver(Driver):
     live = True
     sample_machine = "dc-motor-opcua"
     sample_title = "a DC motor drive's OPC UA server, through one subscription"
+    source_name = "OPC UA"
 
     @classmethod
     def reopens(cls, config: DriverConfig) -> bool:
@@ -409,14 +315,9 @@ class OpcUaDriver(Driver):
         self.revised: tuple[float, dict[str, int]] | None = None
         self.cpu_seconds = 0.0
         self._cpu_base: float | None = None
-        self._queue: queue.Queue[Sample] = queue.Queue(maxsize=_LIVE_QUEUE)
-        self._stop = threading.Event()
+        self._init_queue(_LIVE_QUEUE)
         self._opened = threading.Event()
         self._open_error: Exception | None = None
-        self._fatal: str | None = None
-        self._down_since: float | None = None
-        self._last_error = ""
-        self._rng = random.Random()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._wake: asyncio.Event | None = None
         # slot bookkeeping (the loop thread only)
@@ -440,17 +341,6 @@ class OpcUaDriver(Driver):
                     self.sample_period, self.config.publishing_interval,
                     self.config.effective_queue_size)
 
-    @classmethod
-    def from_config(cls, config: OpcUaDriverConfig | Mapping[str, Any], *,
-                    base_dir: Path | None = None) -> OpcUaDriver:
-        """Open the driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverConfigError, DriverInitializationError: see the class.
-        """
-        config = validated_config(OpcUaDriverConfig, config, "OPC UA")
-        return cls(config, base_dir=base_dir)
-
     def _read_password(self) -> str | None:
         cfg = self.config
         if cfg.password_file is None:
@@ -464,21 +354,10 @@ class OpcUaDriver(Driver):
 
     # -- reading (caller's thread) ----------------------------------------------------------
     def _read_internal(self, timeout: float | None) -> Sample | None:
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
-        while True:
-            if self._fatal is not None:
-                raise DriverOperationError(self._fatal)
-            remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
-            try:
-                sample = (self._queue.get_nowait() if remaining <= 0
-                          else self._queue.get(timeout=remaining))
-            except queue.Empty:
-                if deadline is not None and time.monotonic() >= deadline:
-                    return None
-                continue
-            if self._on_take is not None:
-                self._on_take(1)
-            return sample
+        sample = super()._read_internal(timeout)
+        if sample is not None and self._on_take is not None:
+            self._on_take(1)
+        return sample
 
     @property
     def backlog(self) -> int:
@@ -559,7 +438,7 @@ class OpcUaDriver(Driver):
                         f"{_describe(exc)}")
                     return
                 self._on_failure(_describe(exc))
-                delay = backoff * (0.5 + 0.5 * self._rng.random())
+                delay = self._jittered(backoff)
                 backoff = min(2 * backoff, self.config.backoff_max)
                 await self._sleep(delay)
                 continue
@@ -575,7 +454,7 @@ class OpcUaDriver(Driver):
             await self._disconnect(client)
             if reason is not None:
                 self._on_failure(reason)
-                await self._sleep(backoff * (0.5 + 0.5 * self._rng.random()))
+                await self._sleep(self._jittered(backoff))
 
     async def _sleep(self, delay: float) -> None:
         assert self._wake is not None
@@ -923,7 +802,7 @@ class OpcUaDriver(Driver):
         if slot.bad or slot.n < len(self.channels):
             self.stats.gaps += 1
             return
-        self._deliver(Sample(slot.t_sum / slot.n, dict(zip(self.channels, slot.values,
+        self._put_dropping_oldest(Sample(slot.t_sum / slot.n, dict(zip(self.channels, slot.values,
                                                               strict=True))))
 
     def _time_jump(self, what: str) -> None:
@@ -937,35 +816,16 @@ class OpcUaDriver(Driver):
         self._last_k = None
         self._pending.clear()
 
-    def _deliver(self, sample: Sample) -> None:
-        try:
-            self._queue.put_nowait(sample)
-        except queue.Full:
-            with contextlib.suppress(queue.Empty):
-                self._queue.get_nowait()
-            self.stats.extra["dropped"] += 1
-            self.log_once("dropped", "OPC UA driver: %d samples not read; dropping the oldest "
-                          "(stats.extra.dropped)", _LIVE_QUEUE)
-            self._queue.put_nowait(sample)
-
     # -- outages ----------------------------------------------------------------------------
     def _on_failure(self, reason: str) -> None:
-        self.stats.errors += 1
-        self._last_error = reason
-        if self._down_since is None:
-            self._down_since = time.monotonic()
-            self.stats.extra["outages"] += 1
-            logger.error("OPC UA server %s not available: %s; reconnecting with backoff up to "
-                         "%.3g s (further failures at DEBUG)", self.config.endpoint, reason,
-                         self.config.backoff_max)
-        else:
-            logger.debug("OPC UA server %s still away: %s", self.config.endpoint, reason)
+        where = self.config.endpoint
+        self._outage(reason, "OPC UA server %s not available: %s; reconnecting with backoff up "
+                     "to %.3g s (further failures at DEBUG)", where, reason,
+                     self.config.backoff_max, again=f"OPC UA server {where} still away: {reason}")
 
     def _on_success(self) -> None:
-        if self._down_since is not None:
-            down = time.monotonic() - self._down_since
-            self._down_since = None
-            self.stats.extra["reconnects"] += 1
+        down = self._recovered()
+        if down is not None:
             logger.warning("OPC UA server %s is back after %.2f s; subscription recreated",
                            self.config.endpoint, down)
 

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field
 
-from twinwatch.drivers.base import Driver, DriverConfig, PlantDriver, Sample
+from twinwatch.drivers.base import DriverConfig, PlantDriver, Sample
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 
 if TYPE_CHECKING:  # imported when the driver opens: validating a config loads no CAN stack
@@ -102,7 +102,6 @@ class SimulatedDriver(PlantDriver):
             channel = f"twinwatch-sim-{next(_channel_ids)}"
         dbc = plant_dbc_path()
         self._tx: can.BusABC | None = None
-        self._rx: can.BusABC | None = None
         self._can: CanDriver | None = None
         def open_inner() -> CanDriver:
             db = cantools.database.load_file(str(dbc))
@@ -110,8 +109,7 @@ class SimulatedDriver(PlantDriver):
             self._db = db
             self._messages = [(self._db.get_message_by_name(m), sigs) for m, sigs in _MESSAGES]
             self._message = can.Message
-            self._rx = can.Bus(interface="virtual", channel=channel)
-            self._tx = can.Bus(interface="virtual", channel=channel)
+            rx, self._tx = self._virtual_pair(channel)
             can_cfg = CanDriverConfig(
                 type="can",
                 dbc=dbc,
@@ -122,7 +120,7 @@ class SimulatedDriver(PlantDriver):
                 signals={ch: CanSignalMap(message=m, signal=ch) for m, sigs in _MESSAGES
                          for ch in sigs},
             )
-            return CanDriver(can_cfg, bus=self._rx)
+            return CanDriver(can_cfg, bus=rx)
 
         self._can = self._open_inner(open_inner, "simulated plant could not start: {exc}")
         logger.info("simulated %s plant, scenario %s, %.0f s, on virtual CAN channel %r",
@@ -142,19 +140,9 @@ class SimulatedDriver(PlantDriver):
             self._tx.send(self._message(arbitration_id=msg.frame_id, data=msg.encode(data),
                                         is_extended_id=False))
 
-    def _inner(self) -> Driver | None:
-        return self._can
-
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(0.0)
         if sample is not None:
             return sample
         self._send_next()
         return self._take(1.0 if timeout is None else max(timeout, 0.05))
-
-    def _close_internal(self) -> None:
-        if self._can is not None:
-            self._can.close()
-        for bus in (self._tx, self._rx):
-            if bus is not None:
-                bus.shutdown()

@@ -1,19 +1,13 @@
-"""The simulated DC motor as a CiA 402 drive on a virtual CANopen bus, read back passively.
+"""The simulated DC motor as a CiA 402 drive on a virtual CANopen bus, read back passively
+(docs/canopen.md, "The simulated drive").
 
-The plant (:mod:`twinwatch.plant.dcmotor`) sits behind a ``canopen`` local node with the EDS
-shipped in the package (:mod:`twinwatch.plant.canopen_drive`: SYNC and RPDO1 of a master, the
-drive's TPDOs, EMCY and heartbeat, every frame stamped with plant time) on an in-process
-python-can ``virtual`` bus; a :class:`~twinwatch.drivers.canopen.CanopenDriver` listening on the
-same channel decodes them from the same EDS exactly as it would decode a real drive's frames.
-The samples' time is the SYNC frames' stamps: plant time, so a run is the same as fast as
-possible or in real time.
-
-The plant is stepped lazily, one sample whenever the CANopen driver has nothing left to decode
-(as :mod:`twinwatch.drivers.simulated` does over the DBC); ``realtime = true`` sends each
-sample's frames when the wall clock reaches its plant time.
-
-Monitoring only: the simulated drive sends on a ``virtual`` bus and nothing else; the driver
-sends nothing at all.
+The plant sits behind a ``canopen`` local node with the EDS shipped in the package
+(:mod:`twinwatch.plant.canopen_drive`) on an in-process python-can ``virtual`` bus; a
+:class:`~twinwatch.drivers.canopen.CanopenDriver` on the same channel decodes its frames from the
+same EDS as it would a real drive's. The samples' time is the SYNC frames' stamps (plant time).
+The plant is stepped lazily, one sample whenever the driver has nothing left to decode;
+``realtime = true`` sends each sample's frames when the wall clock reaches its plant time.
+Monitoring only: the simulated drive sends on a ``virtual`` bus; the driver sends nothing.
 """
 
 from __future__ import annotations
@@ -26,7 +20,6 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import Field, StrictFloat, StrictInt
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     PlantDriver,
     Sample,
@@ -65,11 +58,9 @@ class SimulatedCanopenDriverConfig(DriverConfig):
         node_id: the simulated drive's node id.
         channel: the in-process virtual CAN channel ("auto": a unique name).
         realtime: pace the plant by the wall clock instead of running as fast as possible.
-        fault_at, fault_code, fault_reset_at, heartbeat_stop_at: the drive's own faults, at
-            plant times [s] (for tests and demonstrations; None: never).
-        frame_loss: the fraction of the frames on the bus (SYNC, PDOs, heartbeat, EMCY) lost
-            at random, seeded by ``plant.seed`` (a loaded bus; for tests and demonstrations;
-            0: none).
+
+    The drive's own faults and the frames lost (for tests and demonstrations): the fields'
+    descriptions.
     """
 
     type: Literal["simulated_canopen"]
@@ -140,8 +131,6 @@ class SimulatedCanopenDriver(PlantDriver):
     source_name = "simulated CANopen"
 
     def __init__(self, config: SimulatedCanopenDriverConfig) -> None:
-        import can
-
         from twinwatch.drivers.canopen import CanopenDriver, CanopenDriverConfig
         from twinwatch.plant.canopen_drive import CiA402Drive, drive_eds_path
 
@@ -149,22 +138,18 @@ class SimulatedCanopenDriver(PlantDriver):
         channel = config.channel
         if channel == "auto":
             channel = f"twinwatch-canopen-sim-{next(_channel_ids)}"
-        self._tx: can.BusABC | None = None
-        self._rx: can.BusABC | None = None
         self.canopen: CanopenDriver | None = None
         self.drive: CiA402Drive | None = None
 
         def open_inner() -> CanopenDriver:
-            self._rx = can.Bus(interface="virtual", channel=channel)
-            self._tx = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-            tx: Any = self._tx
+            rx, tx = self._virtual_pair(channel, preserve_timestamps=True)
             if config.frame_loss > 0:
-                tx = _LossyBus(self._tx, config.frame_loss, config.plant.seed)
+                tx = _LossyBus(tx, config.frame_loss, config.plant.seed)
             self.drive = CiA402Drive(DCMotorPlant(config.plant), tx, node_id=config.node_id)
             co_cfg = CanopenDriverConfig.model_validate({
                 "type": "canopen", "node_id": config.node_id, "eds": drive_eds_path(),
                 "sample_period": config.plant.sample_period, "channels": drive_channels()})
-            return CanopenDriver(co_cfg, bus=self._rx)
+            return CanopenDriver(co_cfg, bus=rx)
 
         self.canopen = self._open_inner(open_inner,
                                         "simulated CANopen drive could not start: {exc}")
@@ -198,9 +183,6 @@ class SimulatedCanopenDriver(PlantDriver):
         if c.heartbeat_stop_at is not None and t >= c.heartbeat_stop_at:
             self.drive.heartbeat = False
 
-    def _inner(self) -> Driver | None:
-        return self.canopen
-
     def _read_internal(self, timeout: float | None) -> Sample | None:
         # the virtual bus delivers a frame as it is sent: a step whose frames give no sample
         # (a frame lost, the first cycles) is followed by the next one at once, up to the
@@ -214,10 +196,3 @@ class SimulatedCanopenDriver(PlantDriver):
             sample = self._take(0.0)
             if sample is not None or time.monotonic() >= deadline:
                 return sample
-
-    def _close_internal(self) -> None:
-        if self.canopen is not None:
-            self.canopen.close()
-        for bus in (self._tx, self._rx):
-            if bus is not None:
-                bus.shutdown()

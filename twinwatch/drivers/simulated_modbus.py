@@ -6,17 +6,9 @@ The plant (:mod:`twinwatch.plant.hydraulic`, paper Section 4.2 and 5.3) is serve
 real hydraulic controller, so every sample travels the real Modbus data path (register
 encoding, float32 word order, scaled integers, the sample counter, timeouts, reconnects).
 
-Pacing (``pacing``):
-
-* ``"lockstep"`` (default): the server advances the plant once per read of its counter block
-  and the driver polls as fast as the daemon consumes; nothing is lost and a run is as fast as
-  the estimation allows. The driver is not ``live`` (the daemon waits instead of dropping).
-* ``"realtime"``: the server advances the plant by the wall clock (one sample every
-  ``plant.sample_period``); the driver polls twice per sample period (a poll that finds the
-  counter unchanged is a duplicate, skipped) and is ``live``. Stopping the server
-  (:attr:`SimulatedModbusDriver.server`) makes the driver count the outage and reconnect with
-  its capped backoff; the plant's clock runs on meanwhile, so the counter jumps and the gap is
-  counted (``stats.gaps``) and the ring buffer abandons the window it falls in.
+``pacing``: ``"lockstep"`` (default; the driver is not ``live``) or ``"realtime"`` (the driver
+polls twice per sample period and is ``live``), as
+:class:`~twinwatch.plant.modbus_server.PlantModbusServer` paces the plant.
 
 The default register map (input registers, function code 4; 0-based PDU addresses; 32-bit
 values high word first, i.e. ``word_order = "big"``; ``twin value = raw * scale + offset``):
@@ -35,8 +27,8 @@ address  channel   type     scale   unit   why this encoding
 10-11    x_ref     float32  1       m      the position reference (not a twin input)
 =======  ========  =======  ======  =====  =======================================
 
-Measured (tests/test_hydraulic_e2e.py and the report of issue 4): with this map the published
-D over Modbus is the same as from the plant's exact values to well within the paper's 3 %.
+With this map the D published over Modbus equals the one from the plant's exact values to well
+within the paper's 3 % (tests/test_hydraulic_e2e.py).
 
 Monitoring only: the driver sends read requests and nothing else; the server it starts
 listens on the loopback interface only and answers writes with an exception.
@@ -51,7 +43,6 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     EndOfStream,
     PlantDriver,
@@ -95,7 +86,6 @@ class SimulatedModbusDriverConfig(DriverConfig):
 
     Attributes:
         plant: the hydraulic plant's scenario, duration, noise, ... (``[driver.plant]``).
-        port: TCP port of the simulated device on 127.0.0.1 (0: any free port).
         pacing: ``"lockstep"`` (as fast as possible, nothing lost) or ``"realtime"``.
         timeout: the driver's per-request timeout [s].
         backoff_max: cap of the driver's reconnect delay [s].
@@ -202,15 +192,6 @@ class SimulatedModbusDriver(PlantDriver):
                     "on %s:%d (%s pacing)", config.plant.scenario, config.plant.duration,
                     LOOPBACK, self.server.port, config.pacing)
 
-    @property
-    def port(self) -> int:
-        """The TCP port the simulated device listens on."""
-        return self.server.port
-
-
-    def _inner(self) -> Driver | None:
-        return self.modbus
-
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(1.0 if timeout is None else timeout)
         if sample is None and self.server.finished:
@@ -221,8 +202,3 @@ class SimulatedModbusDriver(PlantDriver):
                 raise EndOfStream(
                     f"simulated plant reached its duration ({self.config.plant.duration} s)")
         return sample
-
-    def _close_internal(self) -> None:
-        if self.modbus is not None:
-            self.modbus.close()
-        self.server.stop()

@@ -1,36 +1,16 @@
 """The simulated DC motor (or hydraulic actuator), served by an OPC UA server on loopback and
-read back through a subscription.
+read back through a subscription (docs/opcua-input.md, "The simulated motor over OPC UA").
 
-The plant (:mod:`twinwatch.plant.dcmotor`, paper Section 5.2) is served by a
-:class:`~twinwatch.plant.opcua_server.PlantOpcUaServer` on ``127.0.0.1:<port>`` (one object
-``Motor`` with the variables ``Va`` [V], ``ia`` [A], ``omega`` [rad/s], ``Tload`` [N m] and
-``setpoint`` [rad/s], each with its EngineeringUnits); an
-:class:`~twinwatch.drivers.opcua.OpcUaDriver` subscribes to them exactly as it would to a
-drive's or a PLC's server, so every sample travels the real OPC UA path (monitored-item
-queues, publish responses, binary encoding, source timestamps, the units' check,
-reconnects). With ``machine = "hydraulic_actuator"`` the hydraulic plant (paper Section 5.3)
-is served instead, object ``Actuator`` with ``x`` [m], ``p`` [Pa], ``A_valve`` [m^2],
-``F_load`` [N] and ``x_ref`` [m] (as Double: no register encoding to choose, unlike over
-Modbus).
-
-Pacing (``pacing``):
-
-* ``"lockstep"`` (default): the server writes the plant's samples in bursts of a quarter of the
-  monitored items' queue, one burst per publishing interval, while the driver has fewer than
-  two windows' worth of samples in flight or unread (in-process flow control: a subscription
-  cannot make a server wait, so this is where the pacing lives). Nothing is lost and a run is
-  as fast as the estimation (or the OPC UA stack) allows; the driver is not ``live``.
-* ``"realtime"``: one sample every ``plant.sample_period`` of wall time; the driver is
-  ``live``. Stopping the server (:attr:`SimulatedOpcUaDriver.server`) makes the driver count
-  the outage and reconnect with its capped backoff; the plant's clock runs on meanwhile, so
-  the samples of the outage are a counted gap and the ring buffer abandons the windows they
-  fall in.
-
-Sample time: the source timestamps are the plant's time on a wall-clock base (the server's
-start); the driver subtracts that base, so ``t`` is plant time as over CAN.
-
-Monitoring only: the driver subscribes and reads; the server's variables are read-only and it
-listens on the loopback interface only.
+The plant (:mod:`twinwatch.plant.dcmotor`, paper Section 5.2; or :mod:`twinwatch.plant.hydraulic`,
+Section 5.3, with ``machine = "hydraulic_actuator"``) is served by a
+:class:`~twinwatch.plant.opcua_server.PlantOpcUaServer` on ``127.0.0.1:<port>`` (object
+``Motor``: ``Va`` [V], ``ia`` [A], ``omega`` [rad/s], ``Tload`` [N m], ``setpoint`` [rad/s];
+or ``Actuator``: ``x`` [m], ``p`` [Pa], ``A_valve`` [m^2], ``F_load`` [N], ``x_ref`` [m]) and
+read by an :class:`~twinwatch.drivers.opcua.OpcUaDriver` through a real subscription.
+``pacing``: ``"lockstep"`` (default, not ``live``: in-process flow control, nothing lost) or
+``"realtime"`` (``live``; stopping :attr:`SimulatedOpcUaDriver.server` costs a counted gap).
+The source timestamps are plant time on a wall-clock base, which the driver subtracts: ``t`` is
+plant time. Monitoring only: the variables are read-only, the server listens on loopback.
 """
 
 from __future__ import annotations
@@ -44,7 +24,6 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch.drivers.base import (
-    Driver,
     DriverConfig,
     EndOfStream,
     PlantDriver,
@@ -84,10 +63,8 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
             [m]).
         plant: the plant's scenario, duration, noise, ... (``[driver.plant]``: the DC
             motor's or the hydraulic actuator's keys, by ``machine``).
-        port: TCP port of the simulated server on 127.0.0.1 (0: any free port).
         pacing: ``"lockstep"`` (as fast as the consumer, nothing lost) or ``"realtime"``.
         publishing_interval: the subscription's publishing interval [s].
-        queue_size: each monitored item's queue (lock-step bursts are a quarter of it).
         timeout, backoff_max: the driver's request timeout and reconnect cap [s].
     """
 
@@ -208,16 +185,8 @@ class SimulatedOpcUaDriver(PlantDriver):
         self._taken += n
 
     @property
-    def port(self) -> int:
-        """The TCP port the simulated server listens on."""
-        return self.server.port
-
-    @property
     def waiting(self) -> str | None:
         return None if self.opcua is None else self.opcua.waiting
-
-    def _inner(self) -> Driver | None:
-        return self.opcua
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(1.0 if timeout is None else timeout)
@@ -245,8 +214,3 @@ class SimulatedOpcUaDriver(PlantDriver):
                 raise EndOfStream(
                     f"simulated plant reached its duration ({self.config.plant.duration} s)")
         return None
-
-    def _close_internal(self) -> None:
-        if self.opcua is not None:
-            self.opcua.close()
-        self.server.stop()

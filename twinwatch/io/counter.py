@@ -11,9 +11,7 @@ reading:
   samples): skip it;
 * ``"stale"``: a few steps back (at most :attr:`SampleCounter.reorder`): a frame that arrived
   late, after a newer one (a gateway or a bus adapter reordered them): skip it, keeping the
-  count. Before this helper a late frame was taken for a restart: after 11 wraps of an 8-bit
-  counter one reordered frame threw away every wrap, and plant time went back 28 s for the rest
-  of the run;
+  count;
 * ``"reset"``: further back, or stale readings several times in a row (:attr:`streak`): the
   device restarted; the count restarts from the new value.
 

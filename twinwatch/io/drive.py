@@ -3,7 +3,7 @@
 A real drive does not run its controller continuously: it samples its feedback every controller
 period, computes a new output, and holds that output until the next update (zero-order hold),
 clamped to what its power stage can deliver. A twin that updates the controller on every
-integration sub-step, or not at all, is biased against such a drive (issue 9: 0.7-2.9 % on Ra).
+integration sub-step, or not at all, is biased against such a drive (0.7-2.9 % on Ra).
 :class:`LoopConfig` and :class:`DriveConfig` state the controller as the drive runs it; the twin
 (:mod:`twinwatch.twin.models.dcmotor`, :mod:`twinwatch.twin.models.hydraulic`) and the
 simulated plants (:mod:`twinwatch.plant`) each implement exactly this algorithm, in their own code.

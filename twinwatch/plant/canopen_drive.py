@@ -2,22 +2,18 @@
 
 A ``canopen`` :class:`~canopen.LocalNode` holds the drive's object dictionary, read from the
 EDS shipped beside this module (``dcmotor-cia402.eds``: see its ``[Comments]``), and its PDO
-mappings (read from that OD, as a drive's firmware has them). Each :meth:`CiA402Drive.step`
-advances the plant (:class:`~twinwatch.plant.dcmotor.DCMotorPlant`) one sample and puts on the
-bus what a real cell would:
-
-* the master's SYNC (COB-ID 0x80, with a counter 1..240 as 0x1019 says) and its RPDO1
-  (controlword 0x000F, target velocity 0x60FF: the speed set-point) - a PLC's frames;
-* the drive's TPDO1 (statusword 0x6041, velocity actual 0x606C, in 0.001 rev/min), TPDO2
-  (current actual 0x6078, per mille of the rated current 0x6075 = 4 A; armature voltage 0x2100,
-  mV) on every SYNC, TPDO3 (DC-link voltage 0x6079, mV) every 10th;
-* its heartbeat (0x700 + node id, state operational) every producer time (0x1017, 100 ms).
+mappings. Each :meth:`CiA402Drive.step` advances the plant
+(:class:`~twinwatch.plant.dcmotor.DCMotorPlant`) one sample and puts on the bus what a real cell
+would: the master's SYNC (0x80, counter 1..240 as 0x1019 says) and RPDO1 (controlword 0x000F,
+target velocity 0x60FF), the drive's TPDO1-3 (statusword 0x6041, velocity actual 0x606C,
+current actual 0x6078, armature voltage 0x2100; DC-link voltage 0x6079 every 10th SYNC) and
+its heartbeat every producer time (0x1017); the frames and units: docs/canopen.md.
 
 Every frame is stamped with plant time (the bus must keep the stamps it is given: a
-``virtual`` bus with ``preserve_timestamps=True``), so a run as fast as possible reads as a
-real-time one. For tests, :meth:`CiA402Drive.inject_fault` sends an EMCY and sets the
-statusword's fault bit, :meth:`CiA402Drive.reset_fault` clears both, and
-:attr:`CiA402Drive.heartbeat` off stops the heartbeat.
+``virtual`` bus with ``preserve_timestamps=True``). For tests,
+:meth:`CiA402Drive.inject_fault` sends an EMCY and sets the statusword's fault bit,
+:meth:`CiA402Drive.reset_fault` clears both, and :attr:`CiA402Drive.heartbeat` off stops the
+heartbeat.
 """
 
 from __future__ import annotations

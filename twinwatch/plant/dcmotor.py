@@ -51,15 +51,11 @@ the motor receives, s(t), while the reported Va stays the drive's command; ``sen
 of kind ``gain`` and ``offset`` change a reported channel only. The numba kernel reads the
 parameters from the array it is handed each sample: no recompilation, the same speed.
 
-The drive (:class:`~twinwatch.io.drive.DriveConfig`, ``[driver.plant.drive]``) runs as a real
-drive does: it updates every ``period`` and holds its output in between, clamps it to its limits
-with anti-windup, and may have an inner current loop; without a ``drive`` table it is the
-paper's PI (``kp``, ``ki``) updated every step. The variants a real drive has, for testing the
-twin on machines unlike it: ``coulomb_friction`` Tc [N m], ``power_stage = "unidirectional"``
-(a single switch and a freewheeling diode: the current cannot reverse), sensor low-pass filters
-on the reported current and speed (``current_filter``, ``speed_filter`` [s]; first order, stepped
-with the plant), and an incremental encoder (``encoder_cpr``: the reported speed is the encoder
-count of the last sample period times 2*pi/(cpr*Ts)).
+The drive (:class:`~twinwatch.io.drive.DriveConfig`, ``[driver.plant.drive]``) updates every
+``period`` and holds its output in between, clamped with anti-windup, with an optional inner
+current loop; without a ``drive`` table it is the paper's PI (``kp``, ``ki``) every step. The
+other variants of a real drive (``coulomb_friction``, ``power_stage``, ``current_filter``,
+``speed_filter``, ``encoder_cpr``): :class:`DCMotorPlantConfig`.
 
 A sample at t_k reports the state reached at t_k (through the sensor filters), the voltage the
 drive applies from t_k on (after an update at t_k), the set-point in force from t_k on and Tload
@@ -87,9 +83,14 @@ from pydantic import (
 
 from twinwatch._table import StrictTable
 from twinwatch.io.drive import DriveConfig, LoopConfig
-from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.io.sample import Sample
 from twinwatch.plant._pid import pid_tick
-from twinwatch.plant.faults import ParameterFaultConfig, SupplyFaultConfig, check_plant_table
+from twinwatch.plant.faults import (
+    ParameterFaultConfig,
+    SimulatedPlant,
+    SupplyFaultConfig,
+    check_plant_table,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -458,7 +459,7 @@ class PlantTruth:
     supply: float = 1.0
 
 
-class DCMotorPlant:
+class DCMotorPlant(SimulatedPlant):
     """The simulated DC motor plant; one call to :meth:`next_sample` per acquisition sample.
 
     Args:
@@ -473,11 +474,9 @@ class DCMotorPlant:
     def __init__(self, config: DCMotorPlantConfig | None = None) -> None:
         self.config = config or DCMotorPlantConfig()
         c = self.config
-        self.sample_period = c.sample_period
-        self.n_sub = int(round(c.sample_period / c.step))
+        super().__init__(c)
         self._p = np.array([c.Ra, c.La, c.J, c.Ke, c.Kt, c.D, c.load_coefficient, 1.0, 0.0,
                             0.0])
-        self._nominal = c.fault_nominals()
         self._tc = c.coulomb_friction
         self._scenario = _SCENARIO_CODE[c.scenario]
         self._sp_times, self._sp_values = c.setpoint.build(c.duration)
@@ -489,28 +488,11 @@ class DCMotorPlant:
         # The motor starts at rest, the drive's states at zero (see the _IA... indices).
         self._state = np.zeros(12)
         self._state[_LAST] = -1.0
-        self._k = 0  # sample index
-        self._n_samples = int(round(c.duration / c.sample_period)) + 1
-        self._rng = np.random.default_rng(c.seed)
         self._counts = 0  # encoder count at the last sample
-        self._frozen: dict[int, float] = {}  # a frozen sensor's reading
-
-    @property
-    def t(self) -> float:
-        """Plant time of the next sample [s]."""
-        return self._k * self.sample_period
 
     def setpoint_at(self, t: float) -> float:
         idx = int(np.searchsorted(self._sp_times, t + 1e-9, side="right")) - 1
         return float(self._sp_values[max(idx, 0)])
-
-    def _faulted(self, t: float) -> dict[str, float]:
-        """Every parameter a parameter fault may move, at plant time ``t`` [s] (the nominal
-        plus the faults' changes; the scenarios' laws not included)."""
-        values = dict(self._nominal)
-        for pf in self.config.parameter_faults:
-            values[pf.parameter] += pf.delta(self._nominal[pf.parameter], t)
-        return values
 
     def truth(self, t: float) -> PlantTruth:
         """The plant's true parameters at plant time ``t`` [s]: the scenario's law (Ra, D) and
@@ -544,9 +526,8 @@ class DCMotorPlant:
 
     def next_sample(self) -> Sample:
         """Report the sample at the current time, then advance the plant one sample period."""
-        if self._k >= self._n_samples:
-            raise EndOfStream(f"simulated plant reached its duration ({self.config.duration} s)")
         c = self.config
+        self._check_end()
         t = self.t
         sp = self.setpoint_at(t)
         j0 = self._k * self.n_sub
@@ -567,14 +548,7 @@ class DCMotorPlant:
             self._counts = counts
         if self._has_current:
             values["current_reference"] = float(st[_IREF])
-        for ch, pct in c.noise.items():
-            if pct > 0:
-                values[ch] += float(self._rng.normal(0.0, pct / 100.0 * abs(values[ch])))
-        for ch, q in c.quantisation.items():
-            if q > 0:
-                values[ch] = round(values[ch] / q) * q
-        for fault in c.sensor_faults:
-            values[fault.channel] = fault.apply(values[fault.channel], t, self._frozen)
+        self._report(values, t, c.quantisation)
         _advance(st, j0, self.n_sub, c.step, sp, self._p, self._scenario, c.fault_start,
                  c.fault_period or 0.0, c.unbalance_amplitude,
                  math.nan if c.unbalance_follows_shaft else c.unbalance_frequency,

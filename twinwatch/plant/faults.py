@@ -28,11 +28,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 from pydantic import Field, StrictFloat, model_validator
 
 from twinwatch._table import StrictTable
+from twinwatch.io.sample import EndOfStream
 
-__all__ = ["FaultProfile", "ParameterFaultConfig", "SupplyFaultConfig", "check_plant_table"]
+__all__ = ["FaultProfile", "ParameterFaultConfig", "SimulatedPlant", "SupplyFaultConfig",
+           "check_plant_table"]
 
 
 class FaultProfile(StrictTable):
@@ -150,3 +153,55 @@ def check_plant_table(config: Any, channels: tuple[str, ...], fault_parameters: 
             raise ValueError(f"parameter_faults[{i}].change: {pf.parameter} is 0 at "
                              f"nominal, a percentage of it is nothing; give absolute "
                              f"[{fault_parameters[pf.parameter]}]")
+
+
+class SimulatedPlant:
+    """What the simulated plants share: the sample clock, the parameter faults' values and the
+    reported values' noise, quantisation and sensor faults.
+
+    Args:
+        config: the plant's table (``sample_period``, ``step``, ``duration`` [s], ``seed``,
+            ``noise``, ``sensor_faults``, ``parameter_faults``, ``fault_nominals()``).
+    """
+
+    config: Any
+
+    def __init__(self, config: Any) -> None:
+        self.sample_period = config.sample_period
+        self.n_sub = int(round(config.sample_period / config.step))
+        self._nominal: dict[str, float] = config.fault_nominals()
+        self._frozen: dict[int, float] = {}  # a frozen sensor's reading
+        self._k = 0  # sample index
+        self._n_samples = int(round(config.duration / config.sample_period)) + 1
+        self._rng = np.random.default_rng(config.seed)
+
+    @property
+    def t(self) -> float:
+        """Plant time of the next sample [s]."""
+        return self._k * self.sample_period
+
+    def _check_end(self) -> None:
+        """Raises :class:`EndOfStream` once the plant has reached its duration."""
+        if self._k >= self._n_samples:
+            raise EndOfStream(f"simulated plant reached its duration ({self.config.duration} s)")
+
+    def _faulted(self, t: float) -> dict[str, float]:
+        """Every parameter a parameter fault may move, at plant time ``t`` [s] (the nominal
+        plus the faults' changes; the scenarios' laws not included)."""
+        values = dict(self._nominal)
+        for pf in self.config.parameter_faults:
+            values[pf.parameter] += pf.delta(self._nominal[pf.parameter], t)
+        return values
+
+    def _report(self, values: dict[str, float], t: float,
+                quantisation: Mapping[str, float]) -> None:
+        """The reported ``values`` at ``t`` [s], in place: Gaussian noise (``config.noise``,
+        percent of reading), then ``quantisation`` (channel -> step), then the sensor faults."""
+        for ch, pct in self.config.noise.items():
+            if pct > 0:
+                values[ch] += float(self._rng.normal(0.0, pct / 100.0 * abs(values[ch])))
+        for ch, q in quantisation.items():
+            if q > 0:
+                values[ch] = round(values[ch] / q) * q
+        for fault in self.config.sensor_faults:
+            values[fault.channel] = fault.apply(values[fault.channel], t, self._frozen)

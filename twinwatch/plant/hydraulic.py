@@ -48,16 +48,10 @@ valve area changes within a sample, so an open-loop twin holding the sampled are
 biased; :class:`twinwatch.twin.models.hydraulic.HydraulicActuatorTwin` interpolates it linearly
 between samples by default (see there for the measured effect).
 
-**The controller as a drive runs it** (``drive``, table ``[driver.plant.drive]``,
+**The controller as a drive runs it** (``drive``, ``[driver.plant.drive]``,
 :class:`~twinwatch.twin.models.hydraulic.ValveDriveConfig`; the update of :mod:`twinwatch.io.drive`
-with action ``direct``): an update every ``period`` (from ``phase``), the area held in between,
-clamped to the loop's limits (default the valve's [0, A_max]; they must lie within it), with
-clamping or back-calculation anti-windup; keys left out of ``[driver.plant.drive.valve]`` take
-the paper's gains. Without the table the plant is the PID above every step, bit for bit. With
-the paper's gains a drive period is unstable from 0.2 ms on (measured: 0.2 ms grows
-by about 1.4x every 5 s; 0.3-0.5 ms reach a limit cycle of about 1 mm within 10-35 s, the valve
-hitting A_max; 1, 2, 5 and 10 ms: 1.2, 1.4, 2.3 and 3.9 mm): a 0.5-2 ms drive needs gains for
-its period, e.g. Kp 0.01, Ki 0.25 (the paper's Kd and N; about 20 rad/s, damping about 0.4;
+with action ``direct``): without the table the plant is the PID above every step, bit for bit;
+the paper's gains are unstable from a 0.2 ms period on (docs/hydraulic.md;
 tests/test_hydraulic_drive.py).
 
 **Reference and start.** x_ref(t) = offset + amplitude*sin(2*pi*f*t) (0.5 m + 0.45 m at
@@ -94,10 +88,10 @@ from pydantic import Field, StrictFloat, StrictInt, model_validator
 
 from twinwatch._table import StrictTable
 from twinwatch.io.drive import LoopConfig, ValveDriveConfig
-from twinwatch.io.sample import EndOfStream, Sample
+from twinwatch.io.sample import Sample
 from twinwatch.plant._pid import pid_tick
 from twinwatch.plant.dcmotor import SensorFaultConfig
-from twinwatch.plant.faults import ParameterFaultConfig, check_plant_table
+from twinwatch.plant.faults import ParameterFaultConfig, SimulatedPlant, check_plant_table
 
 logger = logging.getLogger(__name__)
 
@@ -282,7 +276,7 @@ class HydraulicTruth:
     friction: float = 0.0
 
 
-class HydraulicPlant:
+class HydraulicPlant(SimulatedPlant):
     """The simulated hydraulic actuator; one call to :meth:`next_sample` per sample.
 
     Args:
@@ -297,20 +291,14 @@ class HydraulicPlant:
     def __init__(self, config: HydraulicPlantConfig | None = None) -> None:
         self.config = config or HydraulicPlantConfig()
         c = self.config
-        self.sample_period = c.sample_period
-        self.n_sub = int(round(c.sample_period / c.step))
+        super().__init__(c)
         self._prm = np.array([c.k_spring, c.D, c.q_pump, c.A_max, c.A_piston, c.F_resist,
                               c.F_load, c.ref_offset, c.ref_amplitude, c.ref_frequency, 0.0,
                               0.0])
-        self._nominal = c.fault_nominals()
-        self._frozen: dict[int, float] = {}  # a frozen sensor's reading
         drive = c.drive_config
         self._loop = drive.pack(c.A_max)
         self._m, self._ph = drive.ticks(c.step)
         self._scenario = _SCENARIO_CODE[c.scenario]
-        self._k = 0
-        self._n_samples = int(round(c.duration / c.sample_period)) + 1
-        self._rng = np.random.default_rng(c.seed)
         # Start in steady tracking: on the reference, moving with it, the integrator holding
         # the area that gives that velocity (bumpless start).
         truth = self.truth(0.0)
@@ -326,23 +314,10 @@ class HydraulicPlant:
         if self._ph == 0:  # the first update at t = 0, on the reference: e = 0
             _pid(self._state, self._loop, x0, self._m * c.step)
 
-    @property
-    def t(self) -> float:
-        """Plant time of the next sample [s]."""
-        return self._k * self.sample_period
-
     def reference(self, t: float) -> float:
         """Position reference x_ref(t) [m]."""
         c = self.config
         return c.ref_offset + c.ref_amplitude * math.sin(2.0 * math.pi * c.ref_frequency * t)
-
-    def _faulted(self, t: float) -> dict[str, float]:
-        """Every parameter a parameter fault may move, at plant time ``t`` [s] (nominal plus
-        the faults' changes; the scenarios' laws not included)."""
-        values = dict(self._nominal)
-        for pf in self.config.parameter_faults:
-            values[pf.parameter] += pf.delta(self._nominal[pf.parameter], t)
-        return values
 
     def truth(self, t: float) -> HydraulicTruth:
         """The plant's true parameters at plant time ``t`` [s]: the scenario's law (D, C) and
@@ -377,19 +352,14 @@ class HydraulicPlant:
         Raises:
             EndOfStream: after ``config.duration`` seconds.
         """
-        if self._k >= self._n_samples:
-            raise EndOfStream(f"simulated plant reached its duration ({self.config.duration} s)")
         c = self.config
+        self._check_end()
         t = self.t
         x, p, _, _, a = (float(v) for v in self._state)
         self._apply_faults(t)
         values = {"x": x, "p": p, "A_valve": a, "F_load": float(self._prm[6]),
                   "x_ref": self.reference(t)}
-        for ch, pct in c.noise.items():
-            if pct > 0:
-                values[ch] += float(self._rng.normal(0.0, pct / 100.0 * abs(values[ch])))
-        for fault in c.sensor_faults:
-            values[fault.channel] = fault.apply(values[fault.channel], t, self._frozen)
+        self._report(values, t, {})
         _advance(self._state, self._k * self.n_sub, self.n_sub, c.step, self._prm,
                  self._scenario, c.fault_start, c.leak_coefficient, self._loop, self._m,
                  self._ph)

@@ -2,30 +2,24 @@
 
 The shipped log ``twinwatch/plant/odrive-axis0.log.gz`` (candump format, gzip) holds 60 s of
 axis 0 of an ODrive-like drive speaking CANSimple 0.6.10, recorded from the built-in DC motor
-plant (:mod:`twinwatch.plant.dcmotor`) with the motor the example's nameplate describes (Ra
-0.05 ohm, La 20 uH, Ke = Kt 0.0306, D 1e-4, a flywheel: J 1e-3 kg m^2, no load) and a PI speed
-loop that updates every 10 ms, with its output held in between (kp 0.01 V s/rad, ki 0.1 V/rad,
-+-24 V), stepping set-points between 50 and 200 rad/s every 2 to 6 s. The applied voltage is
-therefore constant between two messages, which the open-loop twin of the example assumes (a
-drive whose voltage changes within a sample period needs the closed-loop twin with the drive's
-own loop, ``io/drive.py``). Every 10 ms, as the drive's cyclic messages with
+plant with the motor, the PI speed loop (every 10 ms, its output held in between: the applied
+voltage is constant between two messages, as the example's open-loop twin assumes) and the
+set-points of :data:`PLANT`. Every 10 ms, as the drive's cyclic messages with
 ``*_msg_rate_ms = 10``:
 
-* ``Axis0_Get_Iq`` (0x014): ``Iq_Measured`` the armature current with 1 % noise (an FOC drive's
-  q-axis current plays the DC motor's), ``Iq_Setpoint`` without;
-* ``Axis0_Get_Bus_Voltage_Current`` (0x017): ``Bus_Voltage`` the armature voltage the drive
-  applies, ``Bus_Current`` the current: this drive runs at full modulation, so its DC link is
-  the armature voltage (a real ODrive's bus voltage is only an upper bound of it:
-  ``config/dc-motor-odrive.toml`` says what that costs);
-* ``Axis0_Get_Encoder_Estimates`` (0x009, the sync message, last): ``Vel_Estimate`` [rev/s]
-  with 0.5 % noise, ``Pos_Estimate`` [rev];
+* ``Axis0_Get_Iq`` (0x014): ``Iq_Measured`` the armature current (an FOC drive's q-axis
+  current plays the DC motor's), ``Iq_Setpoint`` the same;
+* ``Axis0_Get_Bus_Voltage_Current`` (0x017): ``Bus_Voltage`` the armature voltage (this drive
+  runs at full modulation; a real ODrive's bus voltage is only an upper bound of it:
+  ``config/dc-motor-odrive.toml`` says what that costs), ``Bus_Current`` the current;
+* ``Axis0_Get_Encoder_Estimates`` (0x009, the sync message, last): ``Vel_Estimate`` [rev/s],
+  ``Pos_Estimate`` [rev];
 
 and ``Axis0_Heartbeat`` (0x001) every 100 ms, which the example does not map. Frames carry no
-sample counter (as ODrive's): each is stamped with the receive clock of a bus adapter, the
-sample's time plus a uniform jitter of +-50 us (``time_source = "frame"``). Signals are encoded
-with ODrive's own DBC (from the PyPI package odrive-can 2.1.0, MIT licence: shipping data in
-its format is allowed; the DBC itself is not shipped: the example reads it from
-``../shared/data/dbc``).
+sample counter (as ODrive's): each is stamped with a bus adapter's receive clock, the sample's
+time plus a uniform jitter of +-50 us (``time_source = "frame"``). Signals are encoded with
+ODrive's own DBC (PyPI odrive-can 2.1.0, MIT licence; not shipped: the example reads it from
+``../shared/data/dbc``). docs/sources.md.
 
 Record it again (deterministic: the same bytes once decompressed)::
 

@@ -7,24 +7,13 @@
 :data:`NAMESPACE`), each with its ``EngineeringUnits`` property (an ``EUInformation`` with the
 UNECE code of the unit, OPC UA Part 8). Every plant sample is written to every variable as a
 ``DataValue`` whose SourceTimestamp is the sample's time on a wall-clock base (the server's
-start, POSIX, plus plant time) and whose ServerTimestamp is the wall clock: a subscriber's
-monitored items queue each sample; asyncua's server reports every write (its monitored items
-are event-driven, not sampled).
+start, POSIX, plus plant time) and whose ServerTimestamp is the wall clock.
 
-Pacing:
-
-* ``"realtime"``: a timer writes each sample when the wall clock reaches its plant time (the
-  clock starts once ``may_advance()`` first says so: the simulated driver has subscribed). The
-  plant's clock keeps running while the server is stopped: after :meth:`start` again the
-  plant catches up and a client sees the samples of the outage missing (a gap).
-* ``"lockstep"``: the plant advances in bursts of ``burst`` samples, one burst per
-  ``publishing_interval``, while ``may_advance()`` says the consumer keeps up (in-process flow
-  control: the simulated driver reports how many samples it has not yet read). The samples still
-  travel through a real subscription (queues, publish responses, decoding); only their rate
-  follows the consumer. Source timestamps then run ahead of the wall clock. A subscription
-  cannot make a server wait for its client; this is the nearest a server can come to lock
-  step: every sample is written once, with its own source timestamp, and a burst never exceeds
-  what a monitored item's queue holds between two publish responses.
+Pacing: ``"realtime"``, a timer writes each sample when the wall clock reaches its plant time
+(from the first ``may_advance()``; the plant's clock runs on while the server is stopped);
+``"lockstep"``, bursts of ``burst`` samples, one per ``publishing_interval``, while
+``may_advance()`` says the consumer keeps up (docs/opcua-input.md: a subscription cannot make
+a server wait).
 
 All variables are read-only (AccessLevel CurrentRead); the server offers security None only
 and listens on the loopback interface.
@@ -35,13 +24,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
 import time
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime, timedelta
 from typing import Any, Literal, cast
 
 from twinwatch.io.sample import Sample
+from twinwatch.io.threadlog import demote_thread_records
 from twinwatch.plant._server import Pacing, PlantSource, ServerThread, free_tcp_port
 
 logger = logging.getLogger(__name__)
@@ -61,26 +50,12 @@ _START_TIMEOUT = 20.0  # [s]: asyncua's server loads the standard address space 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 
-class _DemoteFromServerThread(logging.Filter):
-    """asyncua's server records from the plant's server thread at DEBUG: a loopback server
-    with security None warns at every start that it offers no signing (on purpose here), and a
-    port already taken is logged with its traceback: :meth:`PlantOpcUaServer.start` says it in
-    one line instead."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if (logging.DEBUG < record.levelno < logging.CRITICAL
-                and threading.current_thread().name.startswith(_THREAD_NAME)):
-            if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
-                return False
-            record.levelno, record.levelname = logging.DEBUG, "DEBUG"
-        return True
-
-
-for _name in ("asyncua.server.server", "asyncua.server.internal_server",
-              "asyncua.server.binary_server_asyncio", "asyncua.server.address_space"):
-    _log = logging.getLogger(_name)
-    if not any(isinstance(f, _DemoteFromServerThread) for f in _log.filters):
-        _log.addFilter(_DemoteFromServerThread())
+# asyncua's server records from the plant's server thread at DEBUG: a loopback server with
+# security None warns at every start that it offers no signing (on purpose here), and a port
+# already taken is logged with its traceback: PlantOpcUaServer.start says it in one line
+demote_thread_records(_THREAD_NAME, (
+    "asyncua.server.server", "asyncua.server.internal_server",
+    "asyncua.server.binary_server_asyncio", "asyncua.server.address_space"))
 
 
 def _node_id(identifier: str, ns: int) -> Any:
