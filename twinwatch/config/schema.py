@@ -1,37 +1,17 @@
-"""The configuration schema: one TOML file per machine, validated strictly.
+"""The configuration schema: one TOML file per machine, validated strictly (every key:
+docs/configuration.md).
 
-Every table refuses unknown keys (pydantic ``extra = "forbid"``), so a misspelt key stops the
-daemon at start-up with the key's path instead of being silently ignored (as in Telegraf).
-Each part validates itself: the ``[driver]`` table by the driver its ``type`` names (looked up
-in the driver registry, :func:`twinwatch.drivers.validate_driver_config`, which imports only
-that driver's module: built-in or registered through the ``twinwatch.drivers`` entry points),
-the output tables by the outputs of the sink registry (:data:`twinwatch.sinks.SINKS`: the
-built-ins' historic tables ``[state]``, ``[zenoh]``, ``[recording]``; every other output, a
-plug-in's included, under ``[outputs.<name>]``), the estimation table by the estimator, the
-plant by the plant (through its simulated driver).
+Every table refuses unknown keys (pydantic ``extra = "forbid"``): a misspelt key stops the
+daemon at start-up with the key's path. The ``[driver]`` table is validated by the driver its
+``type`` names (:func:`twinwatch.drivers.validate_driver_config`, importing only that
+driver's module), the output tables by the sink registry (:data:`twinwatch.sinks.SINKS`:
+``[state]``, ``[zenoh]``, ``[recording]`` and ``[outputs.<name>]``), the estimation table by the
+estimator, the plant by its simulated driver. Importing this module loads none of the backends
+nor the outputs' modules.
 
-Importing this module loads none of the backends (zenoh, rerun, pymodbus, cantools, numba, pymoo,
-scipy), nor the outputs' modules: the output tables are validated through the registry, the
-twin's tables (``[estimation]``, ``[discovery]``) and model when a configuration is validated,
-as is the driver's; the sinks import their backends when they open.
-
-Layout::
-
-    [machine]          name, model, nominal parameters, model options
-    [acquisition]      sample period, window length (and [acquisition.adaptive]), gap and
-                       queue settings
-    [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
-    [discovery]        meta-model candidates (kind, input, attach point) and when to search
-    [prognostics]      trend and remaining useful life of each estimated parameter
-    [diagnosis]        the fault library the ranked diagnosis reads (shipped per model)
-    [identify]         commissioning: training/validation ranges of `twinwatch identify`
-    [driver]           type = a registered driver ("simulated", "can", "file", "modbus",
-                       "simulated_modbus", or a plug-in's) + that driver's own keys
-    [zenoh]            session mode and endpoints (loopback by default)     output "zenoh"
-    [recording]        Rerun .rrd path                                      output "rerun"
-    [alarms]           per-parameter warning/alarm thresholds ([alarms.parameters.<name>])
-    [state]            state database: health history and the last accepted twin  "store"
-    [outputs.<name>]   any other output of the sink registry (a plug-in), its own keys
+Layout: ``[machine]``, ``[acquisition]`` (and ``[acquisition.adaptive]``), ``[estimation]``,
+``[discovery]``, ``[prognostics]``, ``[diagnosis]``, ``[identify]``, ``[driver]``,
+``[zenoh]``, ``[recording]``, ``[alarms]``, ``[state]``, ``[outputs.<name>]``.
 """
 
 from __future__ import annotations

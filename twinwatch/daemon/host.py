@@ -1,45 +1,31 @@
-"""The service host: what ``twinwatch run`` is to systemd and to the person at the terminal.
+"""The service host: what ``twinwatch run`` is to systemd and to the person at the terminal
+(docs/service.md, docs/gateway.md).
 
-One code path for one machine (``twinwatch run m1.toml``, ``twinwatch@.service``) and for a
-directory of machines (``twinwatch run DIR``, ``twinwatch-gateway.service``): one machine is a
-fleet of one. :class:`Host` owns, in the main thread,
+One code path for one machine (``twinwatch run m1.toml``) and a directory of machines
+(``twinwatch run DIR``): one machine is a fleet of one. :class:`Host` owns, in the main thread,
 
-* the **signals**. SIGTERM/SIGINT: every machine finishes its queued windows and stops (also
-  while it opens or reloads: the opening is abandoned); a second one abandons the queued
-  windows. Once a stop was requested the handlers stay installed to the end of the process: a
-  second SIGTERM still on its way (systemd, an operator) while the summary is written must not
-  end a cleanly stopped service with -15. SIGHUP: a reload (below).
+* the **signals**. SIGTERM/SIGINT: every machine finishes its queued windows and stops (an
+  opening is abandoned); a second one abandons the queued windows. Once a stop was requested
+  the handlers stay installed to the end of the process (a late SIGTERM must not end a cleanly
+  stopped service with -15). SIGHUP: a reload.
 * **systemd**: ``READY=1``, ``STATUS=``, ``RELOADING=1``, ``STOPPING=1``,
-  ``EXTEND_TIMEOUT_USEC`` and ``WATCHDOG=1``. Each machine tells the host (its
-  :class:`MachineNotifier`) where it is; for a fleet of one the machine's own lines are the
-  service's (``monitoring m1 (dc_motor, simulated driver), ...``), for a fleet the host keeps
-  one line (``gateway: 3 of 4 machines monitored (DIR); DEGRADED: m3: lost (...)``). The
-  watchdog is pinged from the host's loop while at least one machine is healthy (its
-  acquisition loop ticks its :class:`~twinwatch.daemon.systemd.Watchdog` and the worker is not
-  stuck, nor silent under ``watchdog = "windows"``) or still opening: a stuck machine among
-  healthy ones is reported in STATUS, not restarted with them; a fleet of one stuck, or every
-  machine stuck, stops the pings and systemd restarts the service.
-* the **reload** (SIGHUP): a machine's file changed (always, for a fleet of one) reloads that
-  machine (validated first, built beside the running daemon, taking over at a window boundary:
-  :class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
-  removed stops its machine, a machine not running (lost, or its source ended) starts again.
-* the **stop**, the **summary** (:meth:`Host.summary`: a
-  :class:`~twinwatch.daemon.service.RunSummary`, each machine's lines made by
-  :mod:`twinwatch.daemon.summary`) and the **exit status** (:meth:`Host.exit_status`): the
-  :class:`~twinwatch.daemon.service.ServiceHost` contract, which
-  :class:`~twinwatch.daemon.workers.ProcessHost` keeps too. A worker process's host (``assignment``)
-  reports its machines to its own host as a :class:`~twinwatch.daemon.service.FleetStatus`
-  beside its STATUS line.
+  ``EXTEND_TIMEOUT_USEC`` and ``WATCHDOG=1``. A fleet of one's machine's lines are the
+  service's; a fleet keeps one line (``gateway: 3 of 4 machines monitored (DIR); DEGRADED:
+  ...``). The watchdog is pinged while at least one machine is healthy or opening
+  (:meth:`Machine.healthy`): a stuck machine among healthy ones is reported in STATUS.
+* the **reload** (SIGHUP): a changed machine is reloaded
+  (:class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
+  removed stops it, a machine not running starts again.
+* the **stop**, the **summary** (:meth:`Host.summary`) and the **exit status**
+  (:meth:`Host.exit_status`): the :class:`~twinwatch.daemon.service.ServiceHost` contract. A
+  worker process's host (``assignment``) reports its machines as a
+  :class:`~twinwatch.daemon.service.FleetStatus` beside its STATUS line.
 
-Each machine runs in a thread of its own (``twinwatch-<file>`` in a fleet): its supervisor's
-acquisition loop, with the daemon's worker thread beside it. What the machines of a process
-share: one Zenoh session per distinct ``[zenoh]`` session setting
-(:class:`~twinwatch.sinks.base.SharedResources`) and the estimation slots
-(:class:`~twinwatch.daemon.slots.EstimationSlots`).
-
-Isolation: a machine whose configuration is invalid, whose device cannot be opened, whose driver
-fails or whose thread raises is *lost*: logged and reported under its name (STATUS, the summary,
-:meth:`Host.lost`), and the others go on.
+Each machine runs in a thread of its own (``twinwatch-<file>`` in a fleet); the machines share
+one Zenoh session per ``[zenoh]`` setting (:class:`~twinwatch.sinks.base.SharedResources`) and
+the estimation slots (:class:`~twinwatch.daemon.slots.EstimationSlots`). A machine whose
+configuration is invalid, whose device cannot be opened or whose thread raises is *lost*:
+logged and reported under its name, and the others go on.
 """
 
 from __future__ import annotations
@@ -929,13 +915,9 @@ def reload_line(done: list[str], machines: int, directory: str) -> str:
 
 
 def _freeze_started() -> None:
-    """Keep what the started process holds out of the garbage collector's full passes
-    (:func:`gc.freeze`; garbage frozen with it waits for the unfreeze): the libraries'
-    modules and functions (numba's alone about 17000 of a machine process's 156000 tracked
-    objects) and the machines as they started. A full pass walked them all: 150 ms of CPU in
-    a 50-machine worker and a stall of 150-580 ms of every machine's window in it (measured at
-    200 machines in four workers: 4-5 such passes per worker in 180 s). A reload and the end
-    of the service loop (:meth:`ServiceHost.run`) unfreeze them, so a replaced or stopped
-    machine's cycles are collected as before (a command line run in a test's process leaks
-    nothing)."""
+    """Keep what the started process holds (the libraries' modules, the machines as they
+    started) out of the garbage collector's full passes (:func:`gc.freeze`), which stalled
+    every machine's window of a large worker. A reload and the end of the service loop
+    (:meth:`ServiceHost.run`) unfreeze them, so a replaced or stopped machine's cycles are
+    collected (a command line run in a test's process leaks nothing)."""
     gc.freeze()

@@ -13,14 +13,10 @@
     after a reload, the run id and the window numbering of a reload
 
 * the caller's thread (the supervisor's: the machine's thread) runs :meth:`Daemon.run`: it
-  reads the driver, fills the ring buffer and hands each full window to the worker. It never
-  estimates, so acquisition is never blocked by the optimiser.
-* the worker runs the window pipeline, then the sinks in order: the gate (the state database),
-  then the others (Zenoh, Rerun, plug-ins). Stored before published: a health message a
-  subscriber has seen is always in the database, also after SIGKILL.
-* zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
-  database (one SQLite connection per thread, WAL: readers never block the worker).
-
+The caller's thread (the machine's) runs :meth:`Daemon.run`: it reads the driver, fills the ring
+buffer and hands each full window to the worker, never estimating. Stored before published (the
+gate first). Zenoh's threads answer the history query from the state database (one SQLite
+connection per thread, WAL).
 The daemon's public attributes and methods are what the supervisor, the host, the command line
 and the tests use; each part keeps its own state, the daemon forwards to it.
 """
