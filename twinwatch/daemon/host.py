@@ -571,11 +571,9 @@ class Host(ServiceHost):
 
     # -- run: the loop's turn (ServiceHost.run) ------------------------------------------------
     def _turn(self) -> bool:
-        """True while a machine's thread runs."""
         return any(m.thread.is_alive() for m in self.machines.values())
 
     def _stopped_why(self) -> str | None:
-        """Why the run failed, for the last STATUS; None when it did not."""
         if self.fleet:
             lost = self.lost()
             return f"{len(lost)} machine(s) lost" if lost else None
@@ -593,7 +591,6 @@ class Host(ServiceHost):
         return None
 
     def _healthy(self, interval: float) -> bool:
-        """A machine is healthy (its loop ticks, its worker is not stuck) or still opening."""
         return any(m.healthy() for m in self.machines.values())
 
     def _refresh_status(self) -> None:
@@ -607,28 +604,26 @@ class Host(ServiceHost):
     def _grace(self) -> float:
         """The longest ``shutdown_timeout`` of the machines' configurations [s] (10 s)."""
         return max((m.supervisor.config.acquisition.shutdown_timeout
-                    for m in [*self.machines.values(), *self.retired]
+                    for m in self.all_machines()
                     if m.supervisor.config is not None), default=10.0)
 
     def _ask_to_stop(self) -> None:
-        for m in [*self.machines.values(), *self.retired]:
+        for m in self.all_machines():
             m.supervisor.stop()
 
     def _wait_stopped(self, deadline: float, limit: float) -> None:
-        for m in [*self.machines.values(), *self.retired]:
+        for m in self.all_machines():
             m.thread.join(timeout=max(0.1, deadline - time.monotonic()))
             if m.thread.is_alive():
                 logger.error("machine %s did not stop within %.0f s", m.name, limit)
         gc.unfreeze()  # the stopped machines' cycles are the collector's again
 
     def stop(self) -> None:
-        """Ask :meth:`run` to stop every machine and return (thread- and signal-safe)."""
         super().stop()
         for m in self.all_machines():  # at once: a machine opening abandons its opening
             m.supervisor.stop()
 
     def reload(self) -> None:
-        """Ask for a reload, as SIGHUP does (thread- and signal-safe)."""
         gc.unfreeze()  # the machines replaced are the collector's again (_freeze_started)
         if not self.fleet:  # its acquisition loop acts on it at its next tick, not in 0.2 s
             for m in list(self.machines.values()):
@@ -761,10 +756,7 @@ class Host(ServiceHost):
                                                default=None))
 
     def exit_status(self) -> int:
-        """The process's exit status once :meth:`run` returned: 78 when no machine's
-        configuration could run, 1 when a machine was lost (it could not start, its driver
-        failed, it raised), else the worst machine's 74 (estimated windows lost) or 75 (more
-        windows failed than estimated), else 0 (also after a stop during the start)."""
+        """:meth:`ServiceHost.exit_status`; 0 also after a stop during the start."""
         if self.lost():
             return worst_exit([EX_CONFIG if m.lost is not None and m.config_error else 1
                                for m in self.machines.values()] or [EX_CONFIG])
@@ -772,7 +764,6 @@ class Host(ServiceHost):
                           for m in self.all_machines() if (d := m.supervisor.daemon) is not None)
 
     def abandon(self) -> None:
-        """A second stop signal: every machine abandons its queued windows."""
         for m in self.all_machines():
             m.supervisor.abandon()
 

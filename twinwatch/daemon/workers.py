@@ -516,7 +516,6 @@ class ProcessHost(ServiceHost):
                 w.proc.kill()  # SIGKILL ends a stopped process too
 
     def _healthy(self, interval: float) -> bool:
-        """A worker is healthy (it reported within the interval and is not stalled)."""
         return any(w.healthy(interval) for w in self.workers)
 
     def _refresh_status(self) -> None:
