@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from twinwatch.daemon.systemd import Watchdog
     from twinwatch.twin.model import TwinModel, WindowData
 
-# the daemon's log lines keep the logger name they had before it was split (journal filters)
+# the daemon's parts log as twinwatch.daemon.runner (journal filters)
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
 __all__ = ["QUEUE_WAITS", "RECENT_WINDOWS", "WindowWorker", "make_diagnoser", "make_pipeline"]
