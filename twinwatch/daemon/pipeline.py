@@ -28,6 +28,7 @@ written from the caller's thread.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import queue
@@ -73,8 +74,7 @@ MEMORY_TAIL = OUTPUT_QUEUE + 16
 """With a state store that reads back (:meth:`~twinwatch.sinks.store.StateStore.last_docs`),
 the health messages kept in memory: the store holds the rest of ``[acquisition] history``
 (:meth:`WindowPipeline.recent` reads it from there; more than the outputs' queue holds, so
-a window leaves memory after it was stored). Measured in a 50-machine worker: the
-history in memory grew 9 KB a window per machine (9 MB at its 1000)."""
+a window leaves memory after it was stored)."""
 
 
 class WindowDigest(NamedTuple):
@@ -140,9 +140,9 @@ class WindowPipeline:
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
         self.callbacks: list[HealthCallback] = []
         self.latest: HealthMessage | None = None
-        #: the last ``history`` health messages as their JSON (9 KB each where the typed
-        #: message holds about 40: measured with tracemalloc); :meth:`recent` types them. With
-        #: a gate that reads back, only the last :data:`MEMORY_TAIL` (the rest is stored)
+        #: the last ``history`` health messages as their JSON (a fraction of the typed
+        #: message's memory); :meth:`recent` types them. With a gate that reads back, only the
+        #: last :data:`MEMORY_TAIL` (the rest is stored)
         self.history: deque[str] = deque(maxlen=history)
         self.history_size = history
         #: the last ``history`` windows' :class:`WindowDigest` (the run's summary)
@@ -192,10 +192,8 @@ class WindowPipeline:
         if thread is None or q is None:
             return
         self._stop_by = time.monotonic() + timeout
-        try:  # blocks at most while the thread writes the queued windows
+        with contextlib.suppress(queue.Full):  # blocks while the queued windows are written
             q.put(_STOP, timeout=timeout + 30.0)
-        except queue.Full:
-            pass
         thread.join(timeout=timeout + 30.0)
         if thread.is_alive():
             logger.warning("%s: the outputs did not finish writing within %.0f s",
