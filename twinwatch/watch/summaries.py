@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import logging
 import threading
 import time
@@ -24,6 +23,7 @@ from twinwatch.watch.session import (
     Unreachable,
     check_fleet_prefix,
     decode_health,
+    decode_json,
     prefix_base,
     sessions_watched,
 )
@@ -376,11 +376,8 @@ class SummaryWatcher:
 
     def _on_sample(self, sample: zenoh.Sample) -> str | None:
         """Hold a summary's sample (:meth:`put`); returns its machine (None: not a summary)."""
-        try:
-            doc = json.loads(sample.payload.to_string())
-        except (ValueError, UnicodeDecodeError):
-            return None
-        if not isinstance(doc, dict):
+        doc = decode_json(sample.payload)
+        if doc is None:
             return None
         key = str(sample.key_expr)
         machine = key[len(self.base) + 1:-len("/summary")]
