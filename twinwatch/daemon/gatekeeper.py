@@ -99,11 +99,10 @@ class GateKeeper:
         """
         gate = self.gate
         assert gate is not None
+        gate.hold(out)
         if len(self._held) >= HELD_MAX:  # too long: stored later, not published
-            gate.hold(out)
             gate.not_stored += 1
             return False
-        gate.hold(out)
         self._held.append(out)
         self.delayed += 1
         return None

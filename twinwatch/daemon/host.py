@@ -112,20 +112,17 @@ class Machine:
             and checks it in the machine's directory (``<work root>/<machine name>``).
 
     Attributes:
-        path: the configuration file, or None.
         name: ``[machine] name`` once the configuration loaded (the file's stem before).
         supervisor: its supervisor (its ``daemon`` holds the counters and history).
-        watchdog: its own watchdog (the host reads it: a worker stuck in one window, a
-            machine whose windows stopped, an acquisition loop that no longer ticks).
+        watchdog: its own watchdog (the host reads it to find a stuck or quiet machine).
         lost: why the machine stopped or never started (one line), or None.
         failure: the same in full (every line), or None.
         error: what its start raised (a configuration error, a start error, :class:`Stopped`).
         config_error: ``lost`` is an invalid configuration.
-        watched: what a reload compares: the configuration file and every file it reads
-            (:func:`~twinwatch.config.preflight.referenced_files`: fault library, DBC, CAN
-            log, recording, certificates), label (``m1.toml``, ``diagnosis.library``) -> path.
-        digests: their contents' SHA-256 when the machine (re)loaded them (a reload leaves the
-            machine alone when every one is equal).
+        watched: what a reload compares: label (``m1.toml``, ``diagnosis.library``) -> path
+            of the configuration file and every file it reads
+            (:func:`~twinwatch.config.preflight.referenced_files`).
+        digests: their contents' SHA-256 when the machine (re)loaded them.
     """
 
     def __init__(self, host: Host, path: Path | None,
@@ -341,15 +338,13 @@ class Host(ServiceHost):
         duration: each machine stops after this many seconds of source time (None: runs on).
         workers: estimation slots (:class:`EstimationSlots`); None: the cores; 0: no limit.
         stuck_after: seconds one window may take before its machine counts as stuck (and its
-            estimation slot stops counting); None: ``WatchdogSec=`` (twice the ping interval),
-            30 s outside systemd's watchdog.
+            estimation slot stops counting); None: ``WatchdogSec=``, 30 s without it.
         quiet_after: seconds without a finished window before a machine counts as quiet;
             None: as ``stuck_after``.
         assignment: a worker process's (:mod:`twinwatch.daemon.workers`): a file naming the
             directory's machine files it runs, one a line (re-read at each SIGHUP).
         start_timeout: seconds :meth:`start` waits for the machines to open before READY
-            (None: a fleet of one waits for its machine, a fleet 60 s: a machine whose
-            source never answers is named ``starting`` in STATUS).
+            (None: a fleet of one waits for its machine, a fleet 60 s).
 
     Attributes:
         fleet: ``target`` is a directory.
@@ -403,8 +398,7 @@ class Host(ServiceHost):
 
     def _timeouts(self, stuck_after: float | None, quiet_after: float | None,
                   start_timeout: float | None) -> None:
-        """``stuck_after``, ``quiet_after`` and ``start_timeout`` [s] with their defaults (see
-        the class)."""
+        """``stuck_after``, ``quiet_after`` and ``start_timeout`` [s] with their defaults."""
         interval = self.notifier.watchdog_interval
         if stuck_after is None:
             stuck_after = 2.0 * interval if interval is not None else 30.0
@@ -497,9 +491,7 @@ class Host(ServiceHost):
         Raises:
             ConfigError: the directory holds no machine configuration.
         """
-        # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the
-        # journal) first, so a stuck worker or a hung driver read shows where it was. (An
-        # stderr without a file descriptor, e.g. click's test runner, has nowhere to write it.)
+        # systemd's watchdog kills with SIGABRT: every thread's stack to stderr (the journal)
         try:
             faulthandler.enable()
         except (AttributeError, ValueError, OSError):

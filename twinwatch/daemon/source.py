@@ -118,8 +118,7 @@ class SourceKeeper(Driver):
 
     @live.setter
     def live(self, value: bool) -> None:
-        """Refused: the keeper's liveness is its open driver's (``Driver.live`` is a class
-        attribute a driver sets; the setter only keeps the override an attribute's).
+        """Refused (``Driver.live`` is a class attribute; the keeper's is its driver's).
 
         Raises:
             AttributeError: always.
@@ -287,10 +286,8 @@ class SourceKeeper(Driver):
                 self._missing(exc, first=False)
             else:
                 with self._lock:
-                    if self._stopping.is_set():
-                        closed = True
-                    else:
-                        closed = False
+                    closed = self._stopping.is_set()
+                    if not closed:
                         self._inner = driver
                         self._own.extra["reopens"] += 1
                 if closed:
