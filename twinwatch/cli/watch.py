@@ -252,6 +252,7 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
         raise click.UsageError("--state, --model, --machines, --by-box and --limit go with "
                                "--fleet")
     fleet = Fleet(stale_after=10.0 if stale is None else stale)
+    title = _fleet_title(connect, mode)
     try:
         with watching(connect, mode, prefix, fleet,  # type: ignore[arg-type]
                       optional=where.optional, on_skip=where.skip) as watcher:
@@ -261,7 +262,7 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
                 if as_json:
                     click.echo(json.dumps(snap, indent=2, allow_nan=False))
                 else:
-                    console().print(render(snap, title=_fleet_title(connect, mode)))
+                    console().print(render(snap, title=title))
                 return
             if not sys.stdout.isatty():
                 # into a file or a pipe: every refresh written and flushed (a Live display
@@ -282,7 +283,6 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
                         sys.stdout.flush()
                 if not sys.stdout.isatty():
                     out = console()
-                    title = _fleet_title(connect, mode)
                     while True:
                         fleet.changed.wait(interval)
                         fleet.changed.clear()
@@ -290,7 +290,6 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
                         sys.stdout.flush()
                 from rich.live import Live
 
-                title = _fleet_title(connect, mode)
                 with Live(render(fleet.snapshot(), title=title), auto_refresh=False) as live:
                     while True:
                         fleet.changed.wait(interval)
@@ -395,7 +394,7 @@ def fleet_following(connect: tuple[str, ...], mode: str, prefix: str, machines: 
     """The fleet's summaries (:func:`~twinwatch.watch.summaries.following`). With ``wait``
     (``watch --fleet`` live, not ``--once``): until the network answers and the first fleet
     summary has come, each wait said once on stderr, instead of exiting because no daemon is
-    up yet (issue 56); nothing answering is tried again with a delay doubling from
+    up yet; nothing answering is tried again with a delay doubling from
     :data:`FLEET_RETRY_S` ``[0]`` to ``[1]`` s. Ctrl-C ends the wait.
 
     Raises:

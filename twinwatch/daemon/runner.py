@@ -91,11 +91,9 @@ class Daemon:
         publish: open the outputs whose role is ``publisher`` (Zenoh, plug-ins; each only if
             its table is enabled).
         record: open the outputs whose role is ``recorder`` (the Rerun recording).
-        persist: open the gate (the state database, if ``[state]`` is enabled): restore the
-            last accepted twin and the alarm levels from it, save every window, serve the
-            history query. Off by default for library use and tests; the CLI turns it on.
-        watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
-            each window).
+        persist: open the gate (the state database, if ``[state]`` is enabled): resume from
+            it, save every window, serve the history query (off by default; the CLI's on).
+        watchdog: the systemd watchdog gate (ticked by the acquisition, busy/idle by the worker).
         reuse: what a reload hands over from the running daemon (:meth:`handover`): open
             outputs (registry name -> sink) adopted when they fit
             (:meth:`~twinwatch.sinks.base.Sink.keeps`), and under ``"driver"`` its open driver.
@@ -108,40 +106,29 @@ class Daemon:
             :attr:`new_run`).
         run_id: the run id every health message carries (a reload passes the running
             daemon's: the same run goes on); None: a new one (:func:`new_run_id`).
-        defer: outputs (registry names) not to open yet: the running daemon holds their file
-            or port (a reload that changed their table, :meth:`handover`'s ``wait``);
-            :meth:`open_deferred` opens them once it has released them.
+        defer: outputs (registry names) not to open yet (:meth:`handover`'s ``wait``):
+            :meth:`open_deferred` opens them once the running daemon has released them.
         wait_for_source: a live source that cannot be opened now is waited for
-            (:mod:`twinwatch.daemon.source`: the daemon starts and says what it waits for);
-            False raises instead (a reload: the running configuration goes on).
-        work_dir: the directory the files the outputs create are relative to (the state
-            database, the recording); default the working directory. A gateway gives each
-            machine its own (``<working directory>/<machine>``).
+            (:mod:`twinwatch.daemon.source`); False raises instead (a reload).
+        work_dir: the directory the files the outputs create are relative to; default the
+            working directory (a gateway: ``<working directory>/<machine>``).
         slots: the estimation slots the worker takes a window's processing under (a
             gateway's, shared by every machine; the first window staggered, ``[acquisition]
             stagger``); None: no limit.
         shared: what the daemons of one process share (a gateway's
-            :class:`~twinwatch.sinks.base.SharedResources`: the Zenoh session), given to the
-            outputs in their context; None: each output opens its own.
-        thread_prefix: the worker thread is ``<prefix>-adaptation``, the outputs' thread
-            ``<prefix>-outputs`` (a gateway names each machine's).
+            :class:`~twinwatch.sinks.base.SharedResources`); None: each output opens its own.
+        thread_prefix: the threads are ``<prefix>-adaptation`` and ``<prefix>-outputs``.
 
     Attributes:
-        acquisition: the driver and ring buffer and the loop between them
-            (:class:`~twinwatch.daemon.acquisition.Acquisition`).
-        worker: the window worker (:class:`~twinwatch.daemon.window_worker.WindowWorker`).
-        pipeline: what a window goes through (:class:`~twinwatch.daemon.pipeline.
-            WindowPipeline`: the twin's adapter, the alarms, the diagnosis).
-        outputs: the sinks (:class:`~twinwatch.daemon.outputs.Outputs`).
+        acquisition, worker, pipeline, outputs: the parts
+            (:class:`~twinwatch.daemon.acquisition.Acquisition`,
+            :class:`~twinwatch.daemon.window_worker.WindowWorker`,
+            :class:`~twinwatch.daemon.pipeline.WindowPipeline`,
+            :class:`~twinwatch.daemon.outputs.Outputs`).
         restored, resumed: what was resumed from the state database
             (:func:`twinwatch.daemon.resume.restore`), or None.
-        sinks: registry name -> the open output, in the order each window is written to them
-            (the gate first: stored before published).
-        run_id: this run's id (in every health message and stored row; kept by a reload).
-        new_run: set when the state database holds this machine's earlier windows that were
-            not resumed because the source's time starts over (``resume`` not given):
-            ``reason``, ``path`` (the database), ``run`` (the id of the last stored run);
-            None otherwise.
+        new_run: the stored windows not resumed because the source's time starts over
+            (:func:`~twinwatch.daemon.resume.note_new_run`), or None.
 
     Raises:
         twinwatch.drivers.base.DriverInitializationError, twinwatch.errors.SinkError (and

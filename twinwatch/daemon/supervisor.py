@@ -156,19 +156,13 @@ class Supervisor:
             naming the bad key.
         base_dir: directory relative paths in the configuration are resolved against.
         source: how to name the configuration in messages (its path).
-        resume: resume the twin and alarm levels saved in the state database at start
-            (False: the nameplate values, ``twinwatch run --fresh``; True: also on a source
-            whose time starts over, ``--resume``; None: unless the source's time starts over,
-            a simulated plant or a replay; a reload always resumes, in the same run).
+        resume: as the :class:`~twinwatch.daemon.runner.Daemon`'s, at start (``--fresh``:
+            False, ``--resume``: True); a reload always resumes, in the same run.
         notifier: where systemd's notifications go (default: the process's own, from
-            ``NOTIFY_SOCKET``); a gateway gives each machine a silent one (the gateway tells
-            systemd about them all).
+            ``NOTIFY_SOCKET``; a gateway's machines: their host).
         watchdog: the watchdog its daemons tick and mark busy/idle (default: one on the
-            notifier); a gateway gives each machine one that pings nothing and reads it to
-            find a stuck machine.
-        work_dir, slots, shared: handed to every :class:`~twinwatch.daemon.runner.Daemon`
-            (a gateway's per-machine directory, its estimation slots, its shared Zenoh
-            session).
+            notifier; a gateway's machines: one the host reads).
+        work_dir, slots, shared: handed to every :class:`~twinwatch.daemon.runner.Daemon`.
         thread_prefix: prefixes the names of the opening threads (``twinwatch-start``).
 
     Attributes:

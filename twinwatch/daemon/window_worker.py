@@ -115,9 +115,8 @@ class WindowWorker:
             (``[acquisition] abandon_on_stop``; a second SIGTERM sets it).
 
     Attributes:
-        queue_waits: seconds each window waited between its submission and the start of its
-            processing (the queue, and in a gateway the estimation slot), the last
-            :data:`QUEUE_WAITS` windows.
+        queue_waits: seconds each of the last :data:`QUEUE_WAITS` windows waited from its
+            submission to the start of its processing (the queue, and a gateway's slot).
         overruns: windows of a live source dropped because the queue was full.
         numeric_failures: windows whose processing raised.
         dropped_at_stop: windows queued at a stop that the worker did not reach within the
