@@ -873,11 +873,8 @@ def _digest(path: Path) -> str:
     """The file's SHA-256 ("" when it cannot be read: a file that appears or goes away is a
     change too)."""
     try:
-        h = hashlib.sha256()
         with path.open("rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-        return h.hexdigest()
+            return hashlib.file_digest(f, "sha256").hexdigest()
     except OSError:
         return ""
 

@@ -179,11 +179,10 @@ class FleetWatcher:
     def resume(self, machine: str, run: str | None, window: int,
                t_end: float | None) -> None:
         """Go on from where an earlier subscriber stopped (a central store restarted): the
-        windows of ``machine``'s ``run`` up to ``window`` count as delivered, and the ones
-        after it (plant time after ``t_end`` [s]) are asked from its history once started,
-        delivered with ``delivery="history"`` and told through ``on_gap`` (``missed`` 0: zenoh
-        did not count them). A later run of that machine (its daemon restarted meanwhile) is
-        followed from what its cache holds. Call before :meth:`start`.
+        windows of ``machine``'s ``run`` up to ``window`` count as delivered, the ones after
+        ``t_end`` [s] are asked from its history once started (``delivery="history"``,
+        ``on_gap`` with ``missed`` 0); a later run is followed from the publisher's cache.
+        Call before :meth:`start`.
 
         Raises:
             WatchError: ``machine`` is not a machine name.
@@ -513,10 +512,7 @@ def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
     ``history``, ``alarm_history`` and ``on_*``), closed on exit.
 
     Args:
-        optional: endpoints (of ``connect``) that may have nothing answering there (a
-            configured machine whose daemon is not running, client mode): each such one is
-            skipped and, once another answered, ``on_skip`` called with it and why; the others
-            must answer.
+        optional, on_skip: as :func:`~twinwatch.watch.session.sessions_watched`'s.
 
     Raises:
         WatchError: see :func:`open_session` and :class:`FleetWatcher`; every endpoint was
