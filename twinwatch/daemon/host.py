@@ -324,16 +324,15 @@ class Host(ServiceHost):
 
     Args:
         target: a machine configuration file (a fleet of one), a directory of them
-            (``*.toml``, one machine each), or None (the built-in default configuration).
+            (``*.toml``), or None (the built-in default configuration).
         read: reads and validates one configuration file of a directory (raises
             :class:`ConfigError` naming the file and key).
-        check: checks a directory's configuration can run with its files in its machine's
-            directory (``check(cfg, path, work_dir)``; raises :class:`ConfigError`).
-        load: a fleet of one's loader (the file read and checked to run here; called at start
-            and at each SIGHUP); required when ``target`` is not a directory.
-        work_root: in a fleet each machine's state database and recording go to
-            ``<work_root>/<machine name>/`` (created); a fleet of one works in the current
-            directory.
+        check: ``check(cfg, path, work_dir)``: a directory's configuration can run with its
+            files in its machine's directory (raises :class:`ConfigError`).
+        load: a fleet of one's loader (at start and at each SIGHUP); required when ``target``
+            is not a directory.
+        work_root: a fleet's machines work in ``<work_root>/<machine name>/`` (created); a
+            fleet of one in the current directory.
         resume: as :class:`~twinwatch.daemon.supervisor.Supervisor`'s.
         duration: each machine stops after this many seconds of source time (None: runs on).
         workers: estimation slots (:class:`EstimationSlots`); None: the cores; 0: no limit.

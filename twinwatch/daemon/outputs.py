@@ -68,12 +68,9 @@ class Outputs:
     # -- opening ----------------------------------------------------------------------------
     def open(self, reuse: dict[str, Sink], skip: Collection[str] = ()) -> set[str]:
         """Open the enabled outputs whose role is wanted, adopting the ``reuse``d ones that
-        fit; :attr:`sinks` ends in writing order (the gate first, then the registry's order).
-
-        Every exclusive resource before any file is touched: the outputs open in their
-        ``open_order`` (the Zenoh port, then the state database's lock, then the recording's
-        lock and only then its truncation), so a second twinwatch in the same directory fails
-        without harming the first. The outputs in ``skip`` are not opened (yet).
+        fit, in their ``open_order`` (every exclusive resource before any file is touched: a
+        second twinwatch in the same directory fails without harming the first); :attr:`sinks`
+        ends in writing order (the gate first). The outputs in ``skip`` are not opened (yet).
 
         Returns:
             The names of the adopted outputs.

@@ -10,14 +10,9 @@ strategy, one of two hosts:
 * :class:`~twinwatch.daemon.workers.ProcessHost`: a directory's machines in worker processes,
   each one a :class:`~twinwatch.daemon.host.Host` on the machine files it is assigned.
 
-A strategy says what one turn of the loop does (:meth:`~ServiceHost._turn`), whether its
-machines are healthy (:meth:`~ServiceHost._healthy`), what its ``STATUS`` is now, how its
-machines are asked to stop and waited for, and why a run failed.
-
-The command line holds one ``ServiceHost`` and only prints what it returns. A worker reports to
-its host in typed messages, never in prose: its machines' state as a :class:`FleetStatus` in the
-``TWINWATCH_FLEET=`` assignment of its notifications (beside the human ``STATUS=`` line), and its
-summary as one :class:`RunSummary` in JSON on its stdout.
+A strategy implements the abstract methods (one turn of the loop, health, ``STATUS``, the stop,
+why a run failed). The command line holds one ``ServiceHost`` and only prints what it returns; a
+worker reports to its host in typed messages (:class:`FleetStatus`, :class:`RunSummary`).
 """
 
 from __future__ import annotations
@@ -161,9 +156,8 @@ class ServiceHost(ABC):
     ended or a stop, then :meth:`summary`.
 
     Signals, installed by :meth:`start` in the main thread: SIGTERM/SIGINT call :meth:`stop` (a
-    second one :meth:`abandon`), SIGHUP :meth:`reload`. Once a stop was requested the handlers
-    stay installed to the end of the process (a second SIGTERM still on its way must find them,
-    not the default action).
+    second one :meth:`abandon`), SIGHUP :meth:`reload`; once a stop was requested they stay
+    installed to the end of the process.
 
     Attributes:
         fleet: a directory of machines (one block per machine in the summary).

@@ -88,14 +88,10 @@ OPCUA_ENDPOINT = "opc.tcp://127.0.0.1:4840"
 
 def session_keys(path: Path) -> tuple[str, ...]:
     """What ties a machine file to others, each key a resource one process must hold for
-    every machine that names it: its ``[zenoh]`` table when Zenoh is on (machines configured
-    alike share one session and its port), its ``[outputs.opcua]`` endpoint when that output
-    is on (machines naming one endpoint share one server), its ``[outputs.sparkplug]`` edge
-    node when it names one (broker, ``group_id``, ``edge_node_id``: the machines of one edge
-    node are devices of one MQTT session; two processes' sessions of one edge node would take
-    each other's over); else its machine's name (two files
-    naming one machine, a file renamed: one process decides which runs); the file itself when
-    it cannot be read."""
+    every machine that names it (the module's "Placement"): its ``[zenoh]`` table when Zenoh
+    is on, its ``[outputs.opcua]`` endpoint, its ``[outputs.sparkplug]`` edge node; else its
+    machine's name (two files naming one machine: one process decides which runs); the file
+    itself when it cannot be read."""
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
@@ -176,9 +172,8 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
 
 def worker_processes(directory: Path, workers: int | None) -> int:
     """The worker processes a directory's machines run in: ``workers`` (default
-    :func:`~twinwatch.daemon.slots.default_processes`), at most one per session group
-    (:func:`session_groups`: a group cannot be split); 1 (every machine in the host process)
-    for a directory of fewer than two machines.
+    :func:`~twinwatch.daemon.slots.default_processes`), at most one per session group; 1 for a
+    directory of fewer than two machines.
 
     Args:
         directory: the machine configurations (``*.toml``).
@@ -348,8 +343,7 @@ class Worker:
 
 class ProcessHost(ServiceHost):
     """The service host of a directory, its machines in ``workers`` processes (see the module
-    docstring). Owns the signals, systemd, the reload, the stop, the summary and the exit
-    status, as :class:`~twinwatch.daemon.host.Host` does in one process.
+    docstring): the :class:`~twinwatch.daemon.service.ServiceHost` contract.
 
     Args:
         directory: the machine configurations (``*.toml``).
