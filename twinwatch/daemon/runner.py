@@ -274,10 +274,10 @@ class Daemon:
         """What a reload to ``config`` may do with this daemon's open outputs.
 
         Returns:
-            ``(keep, wait)``: the outputs a daemon on ``config`` may adopt open (their table
-            and context unchanged: :meth:`~twinwatch.sinks.base.Sink.keeps`), and those it may
-            open only once this daemon has released them (another table, but the same file or
-            port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
+            ``(keep, wait)``: the outputs a daemon on ``config`` may adopt open
+            (:meth:`~twinwatch.sinks.base.Sink.keeps`), and those it may open only once this
+            daemon has released them (:meth:`~twinwatch.sinks.base.SinkConfig.
+            exclusive_resources`).
         """
         return self.outputs.handover(config, create_model(config.machine.model,
                                                           config.machine.options))
@@ -383,10 +383,8 @@ class Daemon:
 
     def problems(self) -> list[str]:
         """What is degraded right now, for systemd's STATUS and the log (empty if nothing):
-        what the source waits for or lacks (:meth:`source_state`), estimation that fails
-        (:meth:`estimation_problem`), the diagnosis' check function (the twin does not
-        describe the machine), each output's :attr:`~twinwatch.sinks.base.Sink.problem`.
-        """
+        the source, the estimation, the diagnosis' check function, each output's
+        :attr:`~twinwatch.sinks.base.Sink.problem`."""
         out = []
         waiting, silent, faults = self.source_state()
         if waiting:
@@ -492,14 +490,13 @@ class Daemon:
         return health
 
     def close(self, keep: Container[str] = ()) -> dict[str, Sink]:
-        """Stop everything and release the driver and the outputs (after the worker has
-        drained): the driver first, then the outputs in writing order reversed (the gate, the
-        state database, last). Idempotent.
+        """Stop everything and release the driver, then the outputs
+        (:meth:`~twinwatch.daemon.outputs.Outputs.close`), after the worker has drained.
+        Idempotent.
 
         Args:
             keep: the outputs (registry names; :data:`SINKS` for all) and ``"driver"`` to
-                leave open for a new daemon (a reload): each output is detached from this
-                daemon.
+                leave open (detached) for a reload's daemon.
 
         Returns:
             name -> output for the kept outputs.

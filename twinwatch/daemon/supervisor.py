@@ -202,9 +202,8 @@ class Supervisor:
 
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
-        """Load the configuration, open the daemon (driver and
-        sinks) and compile the twin in the ``twinwatch-start`` thread, and tell systemd
-        ``READY=1``.
+        """Load the configuration, open the daemon in the ``twinwatch-start`` thread, and tell
+        systemd ``READY=1``.
 
         Raises:
             ValueError: the configuration is invalid (from ``load``; systemd's status says so).
@@ -421,7 +420,7 @@ class Supervisor:
     def run(self, duration: float | None = None) -> None:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
         have been acquired, or a stop signal; restart the daemon on each valid reload. Closes
-        the daemon (driver, Zenoh, the Rerun file, the state database) before returning.
+        the daemon before returning.
 
         Raises:
             StartError: after a reload, neither the new nor the previous configuration could
