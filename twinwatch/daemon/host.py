@@ -184,7 +184,6 @@ class Machine:
         work_dir.mkdir(mode=0o750, exist_ok=True)
         self.supervisor.work_dir = work_dir
         self.host.check(cfg, self.path, work_dir)
-        self.name = name
         self._watch(cfg)
         return cfg
 
@@ -623,13 +622,9 @@ class Host(ServiceHost):
         super().reload()
 
     def _rescan(self) -> None:
-        """SIGHUP. A fleet of one: reload its machine. A fleet: start the machines of new
-        files, stop those whose file was removed, reload those whose file changed, and start
-        again those not running (lost, or their source ended)."""
-        if not self.fleet:
-            for m in list(self.machines.values()):
-                m.supervisor.reload()
-            return
+        """SIGHUP in a fleet (a fleet of one reloads in :meth:`reload`): start the machines of
+        new files, stop those whose file was removed, reload those whose file changed, and
+        start again those not running (lost, or their source ended)."""
         self.notifier.reloading("re-reading the machine directory")
         files = set(self._scan())
         done: list[str] = []
