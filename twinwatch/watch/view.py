@@ -130,11 +130,8 @@ def machine_view(m: Machine, now: float, stale_after: float) -> dict[str, Any]:
         "token": m.token,
         "state_since_s": None if m.since is None else max(now - m.since, 0.0),
         "last_window_age_s": age,
-        "model": h.model if h is not None else None,
-        "run": h.run if h is not None else None,
-        "window": h.window if h is not None else None,
-        "t_start": h.t_start if h is not None else None,
-        "t_end": h.t_end if h is not None else None,
+        **{k: getattr(h, k) if h is not None else None
+           for k in ("model", "run", "window", "t_start", "t_end")},
         "parameters": _parameters(h) if h is not None else {},
         "alarms": {k: {"level": a.level, "since_t": a.since_t,
                        "deviation_pct": a.deviation_pct,
