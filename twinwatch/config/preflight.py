@@ -49,11 +49,6 @@ def _file_problem(key: str, f: Path, *, readable: bool = False) -> str | None:
     return None
 
 
-def _is_gate(name: str) -> bool:
-    """The output ``name`` is the pipeline's gate (the state store)."""
-    return sink_class(name).role == "gate"
-
-
 def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None = None,
                       persist: bool = True) -> list[str]:
     """Everything that keeps ``cfg`` from starting here, one ``key: why`` line each.
@@ -74,7 +69,7 @@ def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None 
     files = required_files(base_dir) if required_files is not None else {}
     found = [_file_problem(key, Path(path)) for key, path in files.items()]
     for output in cfg.output_tables():
-        if not output.config.enabled or (not persist and _is_gate(output.name)):
+        if not output.config.enabled or (not persist and sink_class(output.name).role == "gate"):
             continue
         found += [_file_problem(f"{output.key}.{key}", Path(file), readable=True)
                   for key, file in output.config.input_files().items()]

@@ -140,31 +140,6 @@ class OutputTable(NamedTuple):
     config: SinkConfig
 
 
-def _outputs_table(value: Any) -> dict[str, SinkConfig]:
-    """``[outputs.<name>]``: each table validated by the model of the output ``name`` names
-    in the sink registry (only that output's module is imported). Errors keep their location
-    (``outputs.mqtt.port``); an unknown name is reported with the known ones; a built-in with
-    a historic table is pointed to it."""
-    if not isinstance(value, dict):
-        raise ValueError("must be a table of [outputs.<name>] tables")
-    errors: list[InitErrorDetails] = []
-    validated: dict[str, SinkConfig] = {}
-    for name, table in value.items():
-        try:
-            validated[name] = _output_model(name).model_validate(table)
-        except PluginError as exc:
-            errors.append(InitErrorDetails(
-                type=PydanticCustomError("output_name", "{reason}", {"reason": str(exc)}),
-                loc=(name,), input=table))
-        except ValidationError as exc:  # its own keys: located inside [outputs.<name>]
-            errors.extend(InitErrorDetails(
-                type=PydanticCustomError(e["type"], e["msg"]), loc=(name, *e["loc"]),
-                input=e["input"]) for e in exc.errors(include_url=False))
-    if errors:
-        raise ValidationError.from_exception_data("outputs", errors)
-    return validated
-
-
 def _output_model(name: str) -> type[SinkConfig]:
     """The table model of ``[outputs.<name>]``.
 
@@ -292,23 +267,6 @@ class AcquisitionConfig(StrictTable):
         return self
 
 
-def _driver_table(value: Any) -> DriverConfig:
-    """``[driver]``: validated by the model of the driver its ``type`` names.
-
-    Errors keep their location inside the table (``driver.signals.ia.message``); an unknown
-    or unavailable driver is reported at ``driver.type`` with the known names.
-    """
-    if not isinstance(value, DriverConfig | dict):
-        raise ValueError("must be a table with a 'type' key naming the driver")
-    try:
-        return validate_driver_config(value)
-    except DriverInitializationError as exc:
-        raise ValidationError.from_exception_data("driver", [InitErrorDetails(
-            type=PydanticCustomError("driver_type", "{reason}", {"reason": str(exc)}),
-            loc=("type",), input=value.get("type") if isinstance(value, dict) else value,
-        )]) from None
-
-
 class TwinwatchConfig(StrictTable):
     """The whole configuration file."""
 
@@ -330,12 +288,46 @@ class TwinwatchConfig(StrictTable):
     @field_validator("driver", mode="before")
     @classmethod
     def _driver(cls, value: Any) -> DriverConfig:
-        return _driver_table(value)
+        """``[driver]``: validated by the model of the driver its ``type`` names.
+
+        Errors keep their location inside the table (``driver.signals.ia.message``); an unknown
+        or unavailable driver is reported at ``driver.type`` with the known names.
+        """
+        if not isinstance(value, DriverConfig | dict):
+            raise ValueError("must be a table with a 'type' key naming the driver")
+        try:
+            return validate_driver_config(value)
+        except DriverInitializationError as exc:
+            raise ValidationError.from_exception_data("driver", [InitErrorDetails(
+                type=PydanticCustomError("driver_type", "{reason}", {"reason": str(exc)}),
+                loc=("type",), input=value.get("type") if isinstance(value, dict) else value,
+            )]) from None
 
     @field_validator("outputs", mode="before")
     @classmethod
     def _outputs(cls, value: Any) -> dict[str, SinkConfig]:
-        return _outputs_table(value)
+        """``[outputs.<name>]``: each table validated by the model of the output ``name`` names
+        in the sink registry (only that output's module is imported). Errors keep their location
+        (``outputs.mqtt.port``); an unknown name is reported with the known ones; a built-in with
+        a historic table is pointed to it."""
+        if not isinstance(value, dict):
+            raise ValueError("must be a table of [outputs.<name>] tables")
+        errors: list[InitErrorDetails] = []
+        validated: dict[str, SinkConfig] = {}
+        for name, table in value.items():
+            try:
+                validated[name] = _output_model(name).model_validate(table)
+            except PluginError as exc:
+                errors.append(InitErrorDetails(
+                    type=PydanticCustomError("output_name", "{reason}", {"reason": str(exc)}),
+                    loc=(name,), input=table))
+            except ValidationError as exc:  # its own keys: located inside [outputs.<name>]
+                errors.extend(InitErrorDetails(
+                    type=PydanticCustomError(e["type"], e["msg"]), loc=(name, *e["loc"]),
+                    input=e["input"]) for e in exc.errors(include_url=False))
+        if errors:
+            raise ValidationError.from_exception_data("outputs", errors)
+        return validated
 
     def output_tables(self) -> list[OutputTable]:
         """Every output's table, in the sink registry's order (the order windows are written;

@@ -240,16 +240,14 @@ class WindowPipeline:
         while not stopping or self.keeper.held:
             if self.keeper.held:  # the gate's database is locked: take what comes, try again
                 stopping = self._drain_into_held(q) or stopping
-                self._retry_held(give_up=stopping and self._past_stop())
+                past = self._stop_by is not None and time.monotonic() >= self._stop_by
+                self._retry_held(give_up=stopping and past)
                 continue
             got = q.get()
             if got is _STOP:
                 stopping = True
                 continue
             self._deliver(got)
-
-    def _past_stop(self) -> bool:
-        return self._stop_by is not None and time.monotonic() >= self._stop_by
 
     def _drain_into_held(self, q: queue.Queue[Any]) -> bool:
         """Every queued window into the gate's memory (none written now). True if the stop

@@ -35,11 +35,6 @@ _STATE_CHANGES = frozenset({"READY", "RELOADING", "STOPPING"})
 __all__ = ["Notifier", "Watchdog"]
 
 
-def _monotonic_usec() -> int:
-    """CLOCK_MONOTONIC in microseconds (the clock systemd compares ``MONOTONIC_USEC`` with)."""
-    return time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
-
-
 class Notifier:
     """Sends ``sd_notify`` messages to the service manager; a no-op outside systemd.
 
@@ -172,7 +167,9 @@ class Notifier:
     def reloading(self, status: str | None = None) -> bool:
         """``RELOADING=1`` with ``MONOTONIC_USEC``: a reload (SIGHUP) started. Send
         :meth:`ready` when the new configuration runs (or the old one was kept)."""
-        return self.notify("RELOADING=1", f"MONOTONIC_USEC={_monotonic_usec()}",
+        # CLOCK_MONOTONIC [us]: the clock systemd compares MONOTONIC_USEC with
+        usec = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
+        return self.notify("RELOADING=1", f"MONOTONIC_USEC={usec}",
                            *self._status(status))
 
     def stopping(self, status: str | None = None) -> bool:
