@@ -494,16 +494,13 @@ class Host(ServiceHost):
             faulthandler.enable()
         except (AttributeError, ValueError, OSError):
             logger.debug("faulthandler not enabled: stderr has no file descriptor")
-        files = self._scan() if self.fleet else self.files()
-        if self.fleet and not files:
+        files: list[Path | None] = [*self._scan()] if self.fleet else [self.target]
+        if not files:
             raise ConfigError(f"{self.directory}: no machine configuration ({MACHINE_GLOB}) "
                               "in this directory")
         self._install_signal_handlers()
-        if self.fleet:
-            for path in files:
-                self._add(path)
-        else:
-            self._add(self.target)
+        for path in files:
+            self._add(path)
         deadline = None if self.start_timeout is None else time.monotonic() + self.start_timeout
         for m in list(self.machines.values()):
             while not m.started.wait(0.2):
@@ -554,7 +551,7 @@ class Host(ServiceHost):
         """A fleet's STATUS (with READY=1 after a start or a reload); a worker process's host
         adds its :class:`FleetStatus` in the :data:`FLEET_REPORT` assignment, for its host."""
         status = self.fleet_status()
-        assignments = [f"STATUS={self._status_text(status)}"]
+        assignments = [f"STATUS={status.line(str(self.directory))}"]
         if self.assignment is not None:
             assignments.append(f"{FLEET_REPORT}={status.model_dump_json()}")
         self.notifier.notify(*(["READY=1"] if ready else []), *assignments)
@@ -723,10 +720,7 @@ class Host(ServiceHost):
             if cfg is None or daemon is None:
                 return m.lost or "starting"
             return status_line(cfg, daemon)
-        return self._status_text(self.fleet_status())
-
-    def _status_text(self, status: FleetStatus) -> str:
-        return status.line(str(self.directory))
+        return self.fleet_status().line(str(self.directory))
 
     def fleet_status(self) -> FleetStatus:
         """A fleet's machines monitored and the degraded ones by name (its STATUS line's
