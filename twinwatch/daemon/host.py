@@ -53,6 +53,7 @@ from twinwatch.daemon.service import (
     Progress,
     RunSummary,
     ServiceHost,
+    gateway_total,
     worst_exit,
 )
 from twinwatch.daemon.slots import EstimationSlots, default_workers
@@ -789,9 +790,7 @@ class Host(ServiceHost):
         machines = self.all_machines()
         lost = self.lost()
         n = len(self.counted())  # a machine renamed or tried again counts once
-        total = (f"twinwatch gateway: {n} machines, {n - len(lost)} ran, {len(lost)} "
-                 "lost" + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items())
-                           if lost else ""))
+        total = gateway_total(n, [f"{k}: {v}" for k, v in lost.items()])
         return RunSummary(machines=[self._machine_summary(m) for m in machines], total=total,
                           exit_status=code)
 

@@ -36,7 +36,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 __all__ = ["EX_CONFIG", "EX_IOERR", "EX_TEMPFAIL", "FLEET_REPORT", "MACHINE_GLOB", "FleetStatus",
-           "MachineSummary", "Progress", "RunSummary", "ServiceHost", "worst_exit"]
+           "MachineSummary", "Progress", "RunSummary", "ServiceHost", "gateway_total",
+           "worst_exit"]
 
 #: The machine configurations of a directory.
 MACHINE_GLOB = "*.toml"
@@ -54,6 +55,12 @@ EX_TEMPFAIL = 75
 FLEET_REPORT = "TWINWATCH_FLEET"
 """The notification assignment a worker process's host sends its :class:`FleetStatus` in (JSON,
 beside ``STATUS=``; systemd ignores assignments it does not know)."""
+
+
+def gateway_total(machines: int, lost: list[str]) -> str:
+    """A gateway's summary line: ``twinwatch gateway: 3 machines, 2 ran, 1 lost: m3 (...)``."""
+    return (f"twinwatch gateway: {machines} machines, {machines - len(lost)} ran, {len(lost)} "
+            "lost" + (": " + "; ".join(lost) if lost else ""))
 
 
 class _Report(BaseModel):

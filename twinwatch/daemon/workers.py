@@ -53,6 +53,7 @@ from twinwatch.daemon.service import (
     MachineSummary,
     RunSummary,
     ServiceHost,
+    gateway_total,
     worst_exit,
 )
 from twinwatch.daemon.systemd import Notifier
@@ -638,8 +639,7 @@ class ProcessHost(ServiceHost):
         restarted = sum(1 for w in self.workers for c in w.codes if c < 0)
         stalls = [f"worker {w.index} {w.stalls} time{'s' if w.stalls > 1 else ''} "
                   f"({', '.join(p.stem for p in w.files)})" for w in self.workers if w.stalls]
-        total = (f"twinwatch gateway: {len(counted)} machines, {len(counted) - len(lost)} "
-                 f"ran, {len(lost)} lost" + (": " + "; ".join(lost) if lost else "")
+        total = (gateway_total(len(counted), lost)
                  + f" ({len(self.workers)} worker processes, {restarted} restarted"
                  + (f"; stalled: {'; '.join(stalls)}: their machines' windows meanwhile were "
                     f"not estimated" if stalls else "") + ")")
