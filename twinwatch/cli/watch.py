@@ -265,8 +265,7 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
                     console().print(render(snap, title=title))
                 return
             if not sys.stdout.isatty():
-                # into a file or a pipe: every refresh written and flushed (a Live display
-                # wrote nothing until it ended, and nothing at all when stopped by SIGTERM)
+                # into a file or a pipe: every refresh written and flushed, SIGTERM ends it
                 import signal
 
                 def _stop(*_: Any) -> None:

@@ -324,8 +324,7 @@ class ServiceHost(ABC):
 
     def _restore_signal_handlers(self) -> None:
         if threading.current_thread() is not threading.main_thread() or self._stop_signals:
-            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
-            # handler, not the default action (exit -15 after a clean stop)
+            # stopping: a late SIGTERM must find our handler (see the class)
             return
         for signum, handler in self._previous_handlers.items():
             signal.signal(signum, handler)

@@ -453,8 +453,6 @@ def _start_errors() -> Iterator[None]:
     nothing); a driver's configuration error is marked as such (``run`` exits 78)."""
     from twinwatch.errors import DriverConfigError, DriverError, PluginError, SinkError
 
-    # each output raises a SinkError subclass (PublisherError, RecorderError, StoreError, a
-    # plug-in's own) that says what failed and what to do
     try:
         yield
     except StartError:
