@@ -51,8 +51,7 @@ class Acquisition:
         config: validated configuration (``[driver]``, ``[acquisition]``).
         model: the twin model (the channels the ring buffer keeps).
         own_driver: the driver is ours to close (:meth:`release`; False: given by the caller).
-        watchdog: the systemd watchdog gate, ticked every :data:`TICK_S` while samples arrive
-            and after each read that had none.
+        watchdog: the systemd watchdog gate, ticked as the module docstring says.
 
     Attributes:
         ring: the ring buffer.

@@ -45,8 +45,7 @@ class Outputs:
 
     Attributes:
         sinks: registry name -> the open output, in writing order (the gate first).
-        closed: the outputs closed by :meth:`close` (their accounting stays readable).
-        adopted: the names of the outputs handed over by a running daemon.
+        closed: the outputs :meth:`close` closed; adopted: those a running daemon handed over.
     """
 
     def __init__(self, config: TwinwatchConfig, model: TwinModel, *, machine: str,
