@@ -82,9 +82,8 @@ class Reach:
 
 def reach(connect: tuple[str, ...], config: Path | None, prefix: str) -> Reach:
     """The endpoints and the prefix ``watch``/``tail`` use: ``--connect`` as given (its default
-    when neither it nor ``--config`` is given) and the endpoints the machines configured at
-    ``--config`` publish on (:func:`config_endpoints`), their key prefix unless ``--prefix``
-    is given.
+    without ``--config``) and those of :func:`config_endpoints`, their key prefix unless
+    ``--prefix`` is given.
 
     Raises:
         click.BadParameter: --config unreadable or not a configuration (one line), no machine
@@ -112,13 +111,10 @@ def reach(connect: tuple[str, ...], config: Path | None, prefix: str) -> Reach:
 
 
 def config_endpoints(path: Path) -> tuple[dict[str, list[str]], set[str]]:
-    """The Zenoh endpoints the machines configured at ``path`` (a machine configuration, or a
-    gateway's directory: its ``*.toml`` files) publish on, each with the files that name it,
-    and their key prefixes. A machine's endpoints are its ``[zenoh] listen`` (a peer or a
-    router; ``0.0.0.0`` and ``[::]`` read as this host's loopback), else its ``connect`` (a
-    client: the router); a machine whose ``[zenoh]`` output is off has none. Only the
-    ``[zenoh]`` table is read (validated by the Zenoh output's own model), not the rest of the
-    configuration.
+    """The Zenoh endpoints the machines configured at ``path`` (a file, or a gateway's
+    directory) publish on, each with the files that name it, and their key prefixes: a
+    machine's ``[zenoh] listen`` (:func:`watch_endpoint`), else its ``connect`` (a client: the
+    router); none when its Zenoh output is off. Only the ``[zenoh]`` table is read.
 
     Raises:
         click.BadParameter: a file cannot be read, is not TOML, or its [zenoh] table is not
