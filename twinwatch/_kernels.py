@@ -4,9 +4,7 @@ numba's ``cache=True`` keys a kernel's cache on the file that defines it (its mo
 time and size), not on the files it calls into: a kernel in ``twin/models/dcmotor.py`` that
 calls ``pid_update`` from ``twin/models/_pid.py`` keeps its compiled code after ``_pid.py``
 changes (a ``git pull``, an editable install upgraded), and the twin silently simulates the
-old drive. Measured: after issue 15 changed the PID's discretisation, the hydraulic twin's
-backward-Euler and trapezoidal drives ran with the stale forward-Euler kernel (errors of
-1e-6 where the exact composition gives 1e-12) until the cache was deleted.
+old drive.
 
 :func:`configure` points numba's cache at ``<base>/<hash of every kernel source>``, so a
 change to any of them compiles everything afresh. ``<base>`` is ``NUMBA_CACHE_DIR`` when the

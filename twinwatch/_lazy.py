@@ -1,9 +1,8 @@
 """A module imported on first use, so commands that never touch a backend never load it.
 
 ``twinwatch --help`` and loading a configuration must not pay for zenoh, rerun and the like
-(about 3 s on the 2-core reference machine, see ``benchmarks/bench_startup.py``). A module
-that needs a backend only inside its functions binds the backend's name to
-:func:`lazy_module` instead of importing it::
+(``benchmarks/bench_startup.py``). A module that needs a backend only inside its functions
+binds the backend's name to :func:`lazy_module` instead of importing it::
 
     if TYPE_CHECKING:
         import zenoh

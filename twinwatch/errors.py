@@ -119,10 +119,8 @@ class SinkError(TwinwatchError):
 
 
 class PublisherError(SinkError):
-    """The zenoh session or one of its declarations could not be created.
-
-    The message names the endpoint involved and what to change in the configuration.
-    """
+    """The zenoh session or one of its declarations could not be created; the message names
+    the endpoint involved and what to change in the configuration."""
 
 
 class RecorderError(SinkError):

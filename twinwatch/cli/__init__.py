@@ -1,12 +1,9 @@
 """Command line: ``twinwatch run``, ``check-config``, ``sample-config``, ``identify``,
 ``explain``, and ``watch`` / ``tail`` (the health on a Zenoh network, :mod:`twinwatch.watch`).
 
-One module per job: ``app`` (the group, the logging, loading a configuration as ``run`` reads
-it), ``run``, ``check`` (``check-config``), ``identify`` (commissioning), ``explain``,
-``watch`` (``watch``, ``tail`` and the Zenoh options), ``fleet`` (``fleet report``: what needs
-service, from the fleet summaries), ``samples`` (``sample-config``). The
-only room that prints. Everything else logs. Each command imports what it needs when it runs,
-so ``twinwatch --help`` loads click and nothing else (``benchmarks/bench_startup.py``).
+One module per command (``app``: the group, the logging, loading a configuration). The only
+room that prints; everything else logs. Each command imports what it needs when it runs, so
+``twinwatch --help`` loads click and nothing else (``benchmarks/bench_startup.py``).
 """
 
 from __future__ import annotations

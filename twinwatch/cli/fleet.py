@@ -63,7 +63,7 @@ def report(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None
 
     Exit status: 0 (nothing due too); 1 when the network cannot be reached; 2 for a bad
     option."""
-    from twinwatch.watch import WatchError
+    from twinwatch.watch import WatchError, age
     from twinwatch.watch.ranking import REPORT_COLUMNS, flat, service_report
     from twinwatch.watch.summaries import following
 
@@ -96,7 +96,7 @@ def report(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None
         _print(rows, len(received), horizon)
     elif "-" not in (str(csv_path), str(json_path)):
         click.echo(f"{len(rows)} of {len(received)} machines need service within "
-                   f"{_words(horizon)}", err=True)
+                   f"{age(horizon)}", err=True)
 
 
 def _write(path: Path, text: str) -> None:
@@ -109,18 +109,12 @@ def _write(path: Path, text: str) -> None:
         raise click.BadParameter(f"{path}: cannot write it: {exc.strerror}") from None
 
 
-def _words(seconds: float) -> str:
-    from twinwatch.watch import age
-
-    return age(seconds)
-
-
 def _print(rows: list[dict[str, Any]], machines: int, horizon: float) -> None:
     from rich.table import Table
 
     from twinwatch.watch import age, console
 
-    table = Table(title=f"what needs service within {_words(horizon)}: {len(rows)} of "
+    table = Table(title=f"what needs service within {age(horizon)}: {len(rows)} of "
                   f"{machines} machines", title_justify="left", expand=True)
     for header in ("machine", "box", "state", "why", "part", "action", "RUL (95 %)"):
         table.add_column(header, overflow="fold")

@@ -83,10 +83,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
             for name in cfg.identify.weights:
                 if name not in _outputs(cfg):
                     raise ConfigError(f"--weight {name}: not an output of the twin")
-    except ConfigError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(EX_CONFIG)
-    except ValueError as exc:  # a bad --train/--validate range
+    except ValueError as exc:  # a ConfigError, or a bad --train/--validate range
         click.echo(f"Error: {exc}", err=True)
         sys.exit(EX_CONFIG)
     from twinwatch.commissioning.commission import CommissionError, commission

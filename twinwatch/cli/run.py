@@ -28,10 +28,9 @@ logger = logging.getLogger("twinwatch")
 def _ignore_late_stops() -> None:
     """The run has ended: a SIGTERM or SIGINT arriving while the summary is written or the
     interpreter shuts down, a second one from systemd or an impatient operator, must not kill
-    the process with the default action (exit -15 after a clean stop: measured under load in
-    the "two SIGTERMs while a reload opens" case). Ignored at the OS level (``SIG_IGN``): at
-    its finalization Python puts ``SIG_DFL`` back in place of every handler written in Python,
-    so a Python handler does not cover the last milliseconds of the process."""
+    the process with the default action (exit -15 after a clean stop). Ignored at the OS level
+    (``SIG_IGN``): at its finalization Python puts ``SIG_DFL`` back in place of every Python
+    handler."""
     import signal
 
     for signum in (signal.SIGTERM, signal.SIGINT):

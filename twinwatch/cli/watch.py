@@ -82,9 +82,8 @@ class Reach:
 
 def reach(connect: tuple[str, ...], config: Path | None, prefix: str) -> Reach:
     """The endpoints and the prefix ``watch``/``tail`` use: ``--connect`` as given (its default
-    when neither it nor ``--config`` is given) and the endpoints the machines configured at
-    ``--config`` publish on (:func:`config_endpoints`), their key prefix unless ``--prefix``
-    is given.
+    without ``--config``) and those of :func:`config_endpoints`, their key prefix unless
+    ``--prefix`` is given.
 
     Raises:
         click.BadParameter: --config unreadable or not a configuration (one line), no machine
@@ -112,13 +111,10 @@ def reach(connect: tuple[str, ...], config: Path | None, prefix: str) -> Reach:
 
 
 def config_endpoints(path: Path) -> tuple[dict[str, list[str]], set[str]]:
-    """The Zenoh endpoints the machines configured at ``path`` (a machine configuration, or a
-    gateway's directory: its ``*.toml`` files) publish on, each with the files that name it,
-    and their key prefixes. A machine's endpoints are its ``[zenoh] listen`` (a peer or a
-    router; ``0.0.0.0`` and ``[::]`` read as this host's loopback), else its ``connect`` (a
-    client: the router); a machine whose ``[zenoh]`` output is off has none. Only the
-    ``[zenoh]`` table is read (validated by the Zenoh output's own model), not the rest of the
-    configuration.
+    """The Zenoh endpoints the machines configured at ``path`` (a file, or a gateway's
+    directory) publish on, each with the files that name it, and their key prefixes: a
+    machine's ``[zenoh] listen`` (:func:`watch_endpoint`), else its ``connect`` (a client: the
+    router); none when its Zenoh output is off. Only the ``[zenoh]`` table is read.
 
     Raises:
         click.BadParameter: a file cannot be read, is not TOML, or its [zenoh] table is not
@@ -252,6 +248,7 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
         raise click.UsageError("--state, --model, --machines, --by-box and --limit go with "
                                "--fleet")
     fleet = Fleet(stale_after=10.0 if stale is None else stale)
+    title = _fleet_title(connect, mode)
     try:
         with watching(connect, mode, prefix, fleet,  # type: ignore[arg-type]
                       optional=where.optional, on_skip=where.skip) as watcher:
@@ -261,11 +258,10 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
                 if as_json:
                     click.echo(json.dumps(snap, indent=2, allow_nan=False))
                 else:
-                    console().print(render(snap, title=_fleet_title(connect, mode)))
+                    console().print(render(snap, title=title))
                 return
             if not sys.stdout.isatty():
-                # into a file or a pipe: every refresh written and flushed (a Live display
-                # wrote nothing until it ended, and nothing at all when stopped by SIGTERM)
+                # into a file or a pipe: every refresh written and flushed, SIGTERM ends it
                 import signal
 
                 def _stop(*_: Any) -> None:
@@ -282,7 +278,6 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
                         sys.stdout.flush()
                 if not sys.stdout.isatty():
                     out = console()
-                    title = _fleet_title(connect, mode)
                     while True:
                         fleet.changed.wait(interval)
                         fleet.changed.clear()
@@ -290,7 +285,6 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
                         sys.stdout.flush()
                 from rich.live import Live
 
-                title = _fleet_title(connect, mode)
                 with Live(render(fleet.snapshot(), title=title), auto_refresh=False) as live:
                     while True:
                         fleet.changed.wait(interval)
@@ -395,7 +389,7 @@ def fleet_following(connect: tuple[str, ...], mode: str, prefix: str, machines: 
     """The fleet's summaries (:func:`~twinwatch.watch.summaries.following`). With ``wait``
     (``watch --fleet`` live, not ``--once``): until the network answers and the first fleet
     summary has come, each wait said once on stderr, instead of exiting because no daemon is
-    up yet (issue 56); nothing answering is tried again with a delay doubling from
+    up yet; nothing answering is tried again with a delay doubling from
     :data:`FLEET_RETRY_S` ``[0]`` to ``[1]`` s. Ctrl-C ends the wait.
 
     Raises:

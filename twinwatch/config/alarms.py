@@ -1,17 +1,6 @@
-"""``[alarms]``: the rules an operator sets on parameter drift (evaluated by
-:class:`twinwatch.daemon.alarms.AlarmEvaluator`).
-
-Per parameter (``[alarms.parameters.<name>]``) a rule gives thresholds in percent of nominal,
-either symmetric on ``|deviation_pct|`` (``warning``, ``alarm``) or one-sided (``warning_high``,
-``alarm_high`` > 0; ``warning_low``, ``alarm_low`` < 0), a hysteresis and minimum durations.
-
-It may also alarm on the **remaining useful life** (``rul_warning``, ``rul_alarm`` [s]): the
-time until the parameter's trend reaches the rule's alarm threshold (its warning threshold when
-it has no alarm one), predicted by :mod:`twinwatch.twin.prognostics`. A RUL below ``rul_alarm``
-raises an alarm, below ``rul_warning`` a warning, with the same minimum durations as the
-deviation's and a hysteresis of ``rul_hysteresis`` (a fraction: a level clears once the RUL is
-back above its threshold times ``1 + rul_hysteresis``). The RUL read is the median, or the
-interval's earliest end with ``rul_basis = "low"`` (the earliest plausible crossing).
+"""``[alarms]``: the rules an operator sets on parameter drift and on the remaining useful life
+to the rule's alarm threshold (its warning one without it), evaluated by
+:class:`twinwatch.daemon.alarms.AlarmEvaluator` (its module docstring says how).
 """
 
 from __future__ import annotations

@@ -3,11 +3,8 @@ recording (:mod:`twinwatch.commissioning`): the training and validation ranges, 
 weights, what to identify within which bounds, the stated values to hold an undetermined
 parameter at, the candidate model structures and the global search's settings.
 
-It stands in the configuration's room, as ``[alarms]`` does (:mod:`twinwatch.config.alarms`),
-since the commissioning that reads it stands above the configuration. It imports the
-estimation's table (``[identify] pso`` is the estimator's swarm settings) and the model
-contract, which loads the estimation's numerics: :mod:`twinwatch.config.schema` imports this
-module when a configuration is validated, not when it is imported.
+It imports the estimation's table and the model contract (the estimation's numerics):
+:mod:`twinwatch.config.schema` imports this module when a configuration is validated.
 """
 
 from __future__ import annotations

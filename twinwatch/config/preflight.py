@@ -1,11 +1,7 @@
 """What a valid configuration still needs from the machine it runs on, checked before anything
 is opened: the files it names exist, the directories it writes to exist, and the driver delivers
-every channel the twin needs.
-
-``twinwatch check-config`` and ``twinwatch run`` (at start and on each SIGHUP reload) call the
-same :func:`check_runnable`, so check-config refuses what run refuses, and run refuses it with
-exit status 78 (EX_CONFIG: systemd does not restart it in a loop) before touching a device or a
-file.
+every channel the twin needs. ``twinwatch check-config`` and ``twinwatch run`` (at start and on
+each SIGHUP) call the same :func:`check_runnable`; run refuses with exit status 78.
 
 Drivers and outputs take part without being named here: a driver configuration may provide
 ``twin_channels() -> tuple[str, ...]`` (the twin channels it delivers) and
@@ -42,9 +38,15 @@ def _dir_problem(key: str, path: Path) -> str | None:
     return None
 
 
-def _is_gate(name: str) -> bool:
-    """The output ``name`` is the pipeline's gate (the state store)."""
-    return sink_class(name).role == "gate"
+def _file_problem(key: str, f: Path, *, readable: bool = False) -> str | None:
+    """Why the file ``f`` cannot be read, or None."""
+    if f.is_dir():
+        return f"{key}: {f} is a directory: give the file in it"
+    if not f.is_file():
+        return f"{key}: file {f} not found"
+    if readable and not os.access(f, os.R_OK):
+        return f"{key}: file {f} is not readable by this user"
+    return None
 
 
 def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None = None,
@@ -64,27 +66,16 @@ def runnable_problems(cfg: TwinwatchConfig, *, base_dir: Path, cwd: Path | None 
     cwd = Path.cwd() if cwd is None else cwd
     problems: list[str] = []
     required_files = getattr(cfg.driver, "required_files", None)
-    if required_files is not None:
-        for key, path in required_files(base_dir).items():
-            if Path(path).is_dir():
-                problems.append(f"{key}: {path} is a directory: give the file in it")
-            elif not Path(path).is_file():
-                problems.append(f"{key}: file {path} not found")
+    files = required_files(base_dir) if required_files is not None else {}
+    found = [_file_problem(key, Path(path)) for key, path in files.items()]
     for output in cfg.output_tables():
-        if not output.config.enabled or (not persist and _is_gate(output.name)):
+        if not output.config.enabled or (not persist and sink_class(output.name).role == "gate"):
             continue
-        for key, file in output.config.input_files().items():
-            f = Path(file)
-            if f.is_dir():
-                problems.append(f"{output.key}.{key}: {f} is a directory: give the file in it")
-            elif not f.is_file():
-                problems.append(f"{output.key}.{key}: file {f} not found")
-            elif not os.access(f, os.R_OK):
-                problems.append(f"{output.key}.{key}: file {f} is not readable by this user")
-        for key, path in output.config.output_files(cwd).items():
-            problem = _dir_problem(f"{output.key}.{key}", path)
-            if problem:
-                problems.append(problem)
+        found += [_file_problem(f"{output.key}.{key}", Path(file), readable=True)
+                  for key, file in output.config.input_files().items()]
+        found += [_dir_problem(f"{output.key}.{key}", path)
+                  for key, path in output.config.output_files(cwd).items()]
+    problems += [p for p in found if p]
     channels = getattr(cfg.driver, "twin_channels", None)
     if channels is not None:
         delivered = set(channels())

@@ -1,20 +1,14 @@
 """Sample configurations, one per driver, printed by ``twinwatch sample-config [--driver X]``.
 
 Each sample is a complete, valid configuration that documents every key of every table it uses
-(optional keys commented out with their default): a header, the machine's tables (``[machine]``,
-``[estimation]``, ``[discovery]``, ``[alarms]``), ``[acquisition]``, the driver's ``[driver]``
-tables, then the outputs' tables (``[zenoh]``, ``[recording]``, ``[state]``, then each other
-installed output's ``[outputs.<name>]``, commented out).
-
-The drivers and the outputs are the registries' (:data:`twinwatch.drivers.DRIVERS`,
-:data:`twinwatch.sinks.SINKS`), plug-ins included: ``--driver`` takes any registered driver. A
-built-in ships its sample part in ``samples/`` beside this module (``driver_<name>.toml``; the
-built-in outputs' tables in ``common.toml``); a plug-in provides its own
-(:meth:`twinwatch.drivers.Driver.sample`, :meth:`twinwatch.sinks.base.Sink.sample`, generated
-from its configuration model unless it overrides them). The machine's tables are shared: the DC
-motor's serve the simulated, CAN and file samples, the hydraulic actuator's the Modbus ones
-(a driver's ``sample_model``). The ``simulated`` sample is the built-in default
-(``default.toml``, ``config/dc-motor-sim.toml``); tests keep them equal.
+(optional keys commented out with their default): a header, the machine's tables,
+``[acquisition]``, the driver's tables, then the outputs' (each other installed output's
+``[outputs.<name>]`` commented out). A built-in ships its part in ``samples/`` beside this
+module (``driver_<name>.toml``, ``common.toml``); a plug-in's is generated from its
+configuration model (:meth:`twinwatch.drivers.Driver.sample`,
+:meth:`twinwatch.sinks.base.Sink.sample`). The machine's tables are a driver's
+``sample_model``'s. The ``simulated`` sample is the built-in default (``default.toml``,
+``config/dc-motor-sim.toml``); tests keep them equal.
 """
 
 from __future__ import annotations

@@ -1,37 +1,17 @@
-"""The configuration schema: one TOML file per machine, validated strictly.
+"""The configuration schema: one TOML file per machine, validated strictly (every key:
+docs/configuration.md).
 
-Every table refuses unknown keys (pydantic ``extra = "forbid"``), so a misspelt key stops the
-daemon at start-up with the key's path instead of being silently ignored (as in Telegraf).
-Each part validates itself: the ``[driver]`` table by the driver its ``type`` names (looked up
-in the driver registry, :func:`twinwatch.drivers.validate_driver_config`, which imports only
-that driver's module: built-in or registered through the ``twinwatch.drivers`` entry points),
-the output tables by the outputs of the sink registry (:data:`twinwatch.sinks.SINKS`: the
-built-ins' historic tables ``[state]``, ``[zenoh]``, ``[recording]``; every other output, a
-plug-in's included, under ``[outputs.<name>]``), the estimation table by the estimator, the
-plant by the plant (through its simulated driver).
+Every table refuses unknown keys (pydantic ``extra = "forbid"``): a misspelt key stops the
+daemon at start-up with the key's path. The ``[driver]`` table is validated by the driver its
+``type`` names (:func:`twinwatch.drivers.validate_driver_config`, importing only that
+driver's module), the output tables by the sink registry (:data:`twinwatch.sinks.SINKS`:
+``[state]``, ``[zenoh]``, ``[recording]`` and ``[outputs.<name>]``), the estimation table by the
+estimator, the plant by its simulated driver. Importing this module loads none of the backends
+nor the outputs' modules.
 
-Importing this module loads none of the backends (zenoh, rerun, pymodbus, cantools, numba, pymoo,
-scipy), nor the outputs' modules: the output tables are validated through the registry, the
-twin's tables (``[estimation]``, ``[discovery]``) and model when a configuration is validated,
-as is the driver's; the sinks import their backends when they open.
-
-Layout::
-
-    [machine]          name, model, nominal parameters, model options
-    [acquisition]      sample period, window length (and [acquisition.adaptive]), gap and
-                       queue settings
-    [estimation]       which parameters, bounds, ties, PSO settings, identifiability gate
-    [discovery]        meta-model candidates (kind, input, attach point) and when to search
-    [prognostics]      trend and remaining useful life of each estimated parameter
-    [diagnosis]        the fault library the ranked diagnosis reads (shipped per model)
-    [identify]         commissioning: training/validation ranges of `twinwatch identify`
-    [driver]           type = a registered driver ("simulated", "can", "file", "modbus",
-                       "simulated_modbus", or a plug-in's) + that driver's own keys
-    [zenoh]            session mode and endpoints (loopback by default)     output "zenoh"
-    [recording]        Rerun .rrd path                                      output "rerun"
-    [alarms]           per-parameter warning/alarm thresholds ([alarms.parameters.<name>])
-    [state]            state database: health history and the last accepted twin  "store"
-    [outputs.<name>]   any other output of the sink registry (a plug-in), its own keys
+Layout: ``[machine]``, ``[acquisition]`` (and ``[acquisition.adaptive]``), ``[estimation]``,
+``[discovery]``, ``[prognostics]``, ``[diagnosis]``, ``[identify]``, ``[driver]``,
+``[zenoh]``, ``[recording]``, ``[alarms]``, ``[state]``, ``[outputs.<name>]``.
 """
 
 from __future__ import annotations
@@ -158,31 +138,6 @@ class OutputTable(NamedTuple):
     name: str
     key: str
     config: SinkConfig
-
-
-def _outputs_table(value: Any) -> dict[str, SinkConfig]:
-    """``[outputs.<name>]``: each table validated by the model of the output ``name`` names
-    in the sink registry (only that output's module is imported). Errors keep their location
-    (``outputs.mqtt.port``); an unknown name is reported with the known ones; a built-in with
-    a historic table is pointed to it."""
-    if not isinstance(value, dict):
-        raise ValueError("must be a table of [outputs.<name>] tables")
-    errors: list[InitErrorDetails] = []
-    validated: dict[str, SinkConfig] = {}
-    for name, table in value.items():
-        try:
-            validated[name] = _output_model(name).model_validate(table)
-        except PluginError as exc:
-            errors.append(InitErrorDetails(
-                type=PydanticCustomError("output_name", "{reason}", {"reason": str(exc)}),
-                loc=(name,), input=table))
-        except ValidationError as exc:  # its own keys: located inside [outputs.<name>]
-            errors.extend(InitErrorDetails(
-                type=PydanticCustomError(e["type"], e["msg"]), loc=(name, *e["loc"]),
-                input=e["input"]) for e in exc.errors(include_url=False))
-    if errors:
-        raise ValidationError.from_exception_data("outputs", errors)
-    return validated
 
 
 def _output_model(name: str) -> type[SinkConfig]:
@@ -312,23 +267,6 @@ class AcquisitionConfig(StrictTable):
         return self
 
 
-def _driver_table(value: Any) -> DriverConfig:
-    """``[driver]``: validated by the model of the driver its ``type`` names.
-
-    Errors keep their location inside the table (``driver.signals.ia.message``); an unknown
-    or unavailable driver is reported at ``driver.type`` with the known names.
-    """
-    if not isinstance(value, DriverConfig | dict):
-        raise ValueError("must be a table with a 'type' key naming the driver")
-    try:
-        return validate_driver_config(value)
-    except DriverInitializationError as exc:
-        raise ValidationError.from_exception_data("driver", [InitErrorDetails(
-            type=PydanticCustomError("driver_type", "{reason}", {"reason": str(exc)}),
-            loc=("type",), input=value.get("type") if isinstance(value, dict) else value,
-        )]) from None
-
-
 class TwinwatchConfig(StrictTable):
     """The whole configuration file."""
 
@@ -350,12 +288,46 @@ class TwinwatchConfig(StrictTable):
     @field_validator("driver", mode="before")
     @classmethod
     def _driver(cls, value: Any) -> DriverConfig:
-        return _driver_table(value)
+        """``[driver]``: validated by the model of the driver its ``type`` names.
+
+        Errors keep their location inside the table (``driver.signals.ia.message``); an unknown
+        or unavailable driver is reported at ``driver.type`` with the known names.
+        """
+        if not isinstance(value, DriverConfig | dict):
+            raise ValueError("must be a table with a 'type' key naming the driver")
+        try:
+            return validate_driver_config(value)
+        except DriverInitializationError as exc:
+            raise ValidationError.from_exception_data("driver", [InitErrorDetails(
+                type=PydanticCustomError("driver_type", "{reason}", {"reason": str(exc)}),
+                loc=("type",), input=value.get("type") if isinstance(value, dict) else value,
+            )]) from None
 
     @field_validator("outputs", mode="before")
     @classmethod
     def _outputs(cls, value: Any) -> dict[str, SinkConfig]:
-        return _outputs_table(value)
+        """``[outputs.<name>]``: each table validated by the model of the output ``name`` names
+        in the sink registry (only that output's module is imported). Errors keep their location
+        (``outputs.mqtt.port``); an unknown name is reported with the known ones; a built-in with
+        a historic table is pointed to it."""
+        if not isinstance(value, dict):
+            raise ValueError("must be a table of [outputs.<name>] tables")
+        errors: list[InitErrorDetails] = []
+        validated: dict[str, SinkConfig] = {}
+        for name, table in value.items():
+            try:
+                validated[name] = _output_model(name).model_validate(table)
+            except PluginError as exc:
+                errors.append(InitErrorDetails(
+                    type=PydanticCustomError("output_name", "{reason}", {"reason": str(exc)}),
+                    loc=(name,), input=table))
+            except ValidationError as exc:  # its own keys: located inside [outputs.<name>]
+                errors.extend(InitErrorDetails(
+                    type=PydanticCustomError(e["type"], e["msg"]), loc=(name, *e["loc"]),
+                    input=e["input"]) for e in exc.errors(include_url=False))
+        if errors:
+            raise ValidationError.from_exception_data("outputs", errors)
+        return validated
 
     def output_tables(self) -> list[OutputTable]:
         """Every output's table, in the sink registry's order (the order windows are written;

@@ -2,15 +2,11 @@
 
 :class:`Acquisition` runs in the caller's thread (the machine's thread:
 :meth:`twinwatch.daemon.runner.Daemon.run`): it reads the driver (``read(timeout=0.2)``), fills
-the :class:`~twinwatch.daemon.ringbuffer.RingBuffer` and hands each full window on (to the
-window worker's queue, :class:`~twinwatch.daemon.window_worker.WindowWorker`). It never
-estimates, so acquisition is never blocked by the optimiser. It ticks the machine's watchdog
-and the ticks it was given (the supervisor's reload and STATUS) every :data:`TICK_S` for a live
-source, every sample for one on a simulated clock, and whenever the driver had nothing within
-its 0.2 s read (so at least that often), reports a
-stall after ``[acquisition] stall_timeout``, and stops when the source ends, the duration is
-reached, the driver fails, or :meth:`Acquisition.stop` is called (at once, or at the next window
-boundary: a reload hands the source over without losing or repeating a sample).
+the :class:`~twinwatch.daemon.ringbuffer.RingBuffer` and hands each full window to the window
+worker's queue; it never estimates. It ticks the watchdog and the supervisor's ticks
+(:data:`TICK_S`), reports a stall after ``[acquisition] stall_timeout``, and stops when the
+source ends, the duration is reached, the driver fails, or :meth:`Acquisition.stop` is called
+(at once, or at the next window boundary: a reload neither loses nor repeats a sample).
 """
 
 from __future__ import annotations
@@ -32,16 +28,15 @@ if TYPE_CHECKING:
     from twinwatch.daemon.systemd import Watchdog
     from twinwatch.twin.model import TwinModel, WindowData
 
-# the daemon's log lines keep the logger name they had before it was split (journal filters)
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
 __all__ = ["STOP_AT_WINDOW_S", "TICK_S", "Acquisition"]
 
 TICK_S = 0.05
 """Seconds [wall] between the acquisition loop's ticks (the watchdog, the supervisor's reload
-and STATUS checks) while a live source's samples arrive: once per sample they cost about 0.3 ms
-of CPU per 2 s window (a 100 Hz source; issue 22), for checks that act on a scale of seconds.
-A source on a simulated clock ticks every sample (its 2 s windows may pass in milliseconds)."""
+and STATUS checks) while a live source's samples arrive (once per sample they cost CPU for
+checks that act on a scale of seconds), and after each read that had none. A source on a
+simulated clock ticks every sample (its 2 s windows may pass in milliseconds)."""
 
 STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
@@ -56,8 +51,7 @@ class Acquisition:
         config: validated configuration (``[driver]``, ``[acquisition]``).
         model: the twin model (the channels the ring buffer keeps).
         own_driver: the driver is ours to close (:meth:`release`; False: given by the caller).
-        watchdog: the systemd watchdog gate, ticked every :data:`TICK_S` while samples arrive
-            and after each read that had none.
+        watchdog: the systemd watchdog gate, ticked as the module docstring says.
 
     Attributes:
         ring: the ring buffer.
@@ -101,9 +95,8 @@ class Acquisition:
     def stagger(self, name: str) -> int:
         """Lengthen the first window by a phase of 0 to ``window - 1`` samples from ``name``
         (CRC-32: the same machine keeps its phase across restarts), so the windows of machines
-        started together complete spread over a window's length instead of at one moment
-        (measured with 200 machines: issue 22, ``benchmarks/bench_density.py``). Returns the
-        phase [samples]; nothing is dropped (the first window is longer)."""
+        started together complete spread over a window's length instead of at one moment.
+        Returns the phase [samples]; nothing is dropped (the first window is longer)."""
         window = self.config.acquisition.window
         self.phase = zlib.crc32(name.encode()) % window
         if self.phase:
@@ -129,8 +122,6 @@ class Acquisition:
         stalled = False
         driver_said = False  # the driver said the stall's cause itself (at ERROR)
         next_tick = 0.0
-        # a source on a simulated clock (replayed as fast as possible) ticks every sample: its
-        # samples come faster than the wall clock, and a reload acts before it ends
         tick_s = TICK_S if live else 0.0
         while not self.stopping.is_set():
             if self._stop_at_window is not None and (

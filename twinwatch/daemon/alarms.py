@@ -1,52 +1,29 @@
 """Alarms on parameter drift: warning and alarm thresholds on the deviation from nominal, with
 hysteresis and minimum durations, so a parameter drifting near a threshold does not flap.
 
-The health message gives each parameter's ``deviation_pct`` (estimate vs nominal, percent) and
-its ``status``: an ``estimated`` value (this window's) or a ``fused`` one (the evidence of the
-windows so far) is evidence; a ``held`` one is the last trusted value, not new evidence;
-``tied`` and ``fixed`` ones are not estimated at all.
 :class:`AlarmEvaluator` turns the stream of health messages into alarm-state changes, one event
-per change, to publish on ``twinwatch/<machine>/alarm``.
+per change, to publish on ``twinwatch/<machine>/alarm``. A parameter's ``deviation_pct`` is
+evidence when its ``status`` is ``estimated`` or ``fused``; ``held``, ``tied``, ``fixed`` and
+non-finite deviations neither start, extend nor interrupt a run (durations are plant time).
+The rule keys (``[alarms.parameters.<name>]``: symmetric or one-sided thresholds in percent of
+nominal, ``hysteresis`` in percentage points, ``raise_after_s``/``_windows``,
+``clear_after_s``/``_windows``) are in docs/configuration.md.
 
-Per parameter (``[alarms.parameters.<name>]``) a rule gives thresholds in percent of nominal,
-either symmetric on ``|deviation_pct|`` (``warning``, ``alarm``) or one-sided (``warning_high``,
-``alarm_high`` > 0; ``warning_low``, ``alarm_low`` < 0), and:
-
-* ``hysteresis`` [percentage points]: a level entered at threshold ``T`` is left only once the
-  deviation is back inside ``T - hysteresis`` (for a symmetric or high threshold);
-* ``raise_after_s`` / ``raise_after_windows``: the deviation must stay beyond the threshold this
-  long (plant time, from the first window's start to the last one's end) *and* for this many
-  consecutive evidence windows before the level is raised;
-* ``clear_after_s`` / ``clear_after_windows``: likewise, inside the threshold minus the
-  hysteresis, before it is lowered.
-
-Parameters not estimated in a window and non-finite deviations are not evidence: they neither
-start, extend nor interrupt a run (the run's duration is measured in plant time, so held windows
-in between still count as time).
-
-**Remaining useful life.** A rule with ``rul_warning`` / ``rul_alarm`` [s] also alarms on the
-parameter's predicted time to its alarm threshold (``parameters.<name>.rul``: the median, or the
-interval's earliest end with ``rul_basis = "low"``), in a second state per parameter with the
-same minimum durations: a RUL below ``rul_alarm`` raises an alarm, below ``rul_warning`` a
-warning, once the prediction's interval agrees: its whole 95 % interval (the late end) within
-the rule's horizon, ``rul_warning`` (``rul_alarm`` without one), so a weak early trend whose
-median is near but whose interval reaches far beyond raises nothing (issue 56: the CANopen
-example's RUL alarm "79 s (49-752 s)" at 180 s, cleared 40 s later); a level clears once the
-RUL is back above its threshold times ``1 + rul_hysteresis`` (or the trend is no longer
-degrading), whatever the interval. A RUL that is ``insufficient`` (too little evidence
-since the start or a restart) is not evidence. The event says what to plan: ``Ra reaches its
-alarm threshold in 6 min (4-9 min)``. Events carry ``kind`` (``deviation`` or ``rul``); the
+**Remaining useful life** (docs/prognostics.md): ``rul_warning`` / ``rul_alarm`` [s] alarm on
+``parameters.<name>.rul`` (the median, or the early end with ``rul_basis = "low"``) in a second
+state per parameter, once the whole 95 % interval is within the rule's horizon
+(``rul_warning``, else ``rul_alarm``); a level clears once the RUL is above its threshold times
+``1 + rul_hysteresis`` (or the trend is not degrading), whatever the interval. An
+``insufficient`` RUL is not evidence. Events carry ``kind`` (``deviation`` or ``rul``); the
 health message's ``alarms.<name>.rul`` holds the RUL level.
 
-**Faults.** :class:`FaultAlarms` raises an alarm on a fault mode of the diagnosis
-(``diagnosis.faults[]``) whose probability has been at least ``[diagnosis] alarm`` (0.8) for
-``raise_after_windows`` windows in a row, and clears it once below ``clear`` (0.5: the
-hysteresis) for ``clear_after_windows`` sound windows (a window the twin did not describe,
-not ``trusted``, brings no new evidence against it and is not counted); its events have
-``kind`` ``diagnosis``, the fault's
-``fault`` id and the action; ``diagnosis.alarms`` lists the raised ones. The diagnosis' check
-function (the twin has not described the machine for ``check_function_after_s``: NAMUR NE 107)
-is raised and cleared the same way as the fault ``check_function``.
+**Faults.** :class:`FaultAlarms` raises an alarm on a fault mode (``diagnosis.faults[]``) whose
+probability has been at least ``[diagnosis] alarm`` (0.8) for ``raise_after_windows`` windows in
+a row, and clears it once below ``clear`` (0.5) for ``clear_after_windows`` sound windows (a
+window not ``trusted`` is not counted); events have ``kind`` ``diagnosis``, the ``fault`` id and
+the action; ``diagnosis.alarms`` lists the raised ones. The check function (NAMUR NE 107: no
+description for ``check_function_after_s``) is raised and cleared as the fault
+``check_function``.
 """
 
 from __future__ import annotations
@@ -178,14 +155,9 @@ class AlarmEvaluator:
         with self._lock:
             out: dict[str, dict[str, Any]] = {}
             for name, s in self._state.items():
-                pending: Level | None = None
-                if s.up is not None:
-                    pending = s.up_level
-                elif s.down is not None:
-                    pending = s.down_level
                 out[name] = {"level": s.level, "since_t": s.since_t,
                              "since_window": s.since_window, "deviation_pct": s.deviation,
-                             "pending": pending, **_run_state(s)}
+                             "pending": _pending(s), **_run_state(s)}
                 r = self._rul.get(name)
                 if r is not None:
                     out[name]["rul"] = {"level": r.level, "since_t": r.since_t,
@@ -213,19 +185,12 @@ class AlarmEvaluator:
                     logger.warning("alarm state for %r (%r) not restored: no such rule or "
                                    "level", name, level)
                     continue
-                s.level = level  # type: ignore[assignment]
-                s.since_t = snap.since_t
-                s.since_window = snap.since_window
+                _restore(s, snap)
                 s.deviation = snap.deviation_pct
-                _restore_run(s, snap.pending, snap.pending_since_t, snap.pending_windows)
                 r, rsnap = self._rul.get(name), snap.rul
                 if r is not None and rsnap is not None and rsnap.level in _RANK:
-                    r.level = rsnap.level  # type: ignore[assignment]
-                    r.since_t = rsnap.since_t
-                    r.since_window = rsnap.since_window
+                    _restore(r, rsnap)
                     r.rul = rsnap.rul_s
-                    _restore_run(r, rsnap.pending, rsnap.pending_since_t,
-                                 rsnap.pending_windows)
 
     # -- internals --------------------------------------------------------------------------
     def _target(self, rule: AlarmRule, dev: float, current: Level) -> tuple[Level, float | None]:
@@ -282,12 +247,15 @@ class AlarmEvaluator:
         previous, new, since_t = moved
         return self._rul_event(name, rule, new, previous, value, p, health, t_end, since_t)
 
+    def _who(self, name: str, health: HealthMessage) -> tuple[str, str]:
+        """The machine of an event and the parameter as named in its message."""
+        meaning = self.meanings.get(name)
+        return self.machine or health.machine, f"{name} ({meaning})" if meaning else name
+
     def _rul_event(self, name: str, rule: AlarmRule, level: Level, previous: Level,
                    value: float, p: ParameterHealth, health: HealthMessage, t: float,
                    since_t: float) -> dict[str, Any]:
-        machine = self.machine or health.machine
-        meaning = self.meanings.get(name)
-        what = f"{name} ({meaning})" if meaning else name
+        machine, what = self._who(name, health)
         rul = p.rul
         crossing = (rul.alarm or rul.warning) if rul is not None else None
         which = "alarm" if rul is not None and rul.alarm is not None else "warning"
@@ -339,9 +307,7 @@ class AlarmEvaluator:
     def _event(self, name: str, rule: AlarmRule, level: Level, previous: Level, dev: float,
                threshold: float | None, p: ParameterHealth, health: HealthMessage,
                t: float, since_t: float) -> dict[str, Any]:
-        machine = self.machine or health.machine
-        meaning = self.meanings.get(name)
-        what = f"{name} ({meaning})" if meaning else name
+        machine, what = self._who(name, health)
         unit = p.unit or ""
         value, nominal = p.value, p.nominal
         side = "above" if dev >= 0 else "below"
@@ -389,10 +355,8 @@ def rul_horizon(rule: AlarmRule) -> float:
 def _interval_agrees(rule: AlarmRule, rul: Any, crossing: Any) -> bool:
     """Whether a RUL prediction may raise a level: its whole 95 % interval of the crossing
     lies within the rule's horizon (:func:`rul_horizon`: the late end ``high_s`` within it,
-    or the threshold already crossed). A prediction whose median is near but whose interval
-    reaches far beyond (an early, weak trend: the CANopen example's "79 s (49-752 s)" at 180 s,
-    raised and cleared 40 s later; issue 56) raises nothing; the level, once the interval
-    agrees, is read from ``rul_basis`` as before."""
+    or the threshold already crossed): an early, weak trend whose median is near but whose
+    interval reaches far beyond raises nothing."""
     if rul.status != "degrading" or crossing is None:
         return False
     if crossing.status == "crossed":
@@ -408,10 +372,13 @@ def _run_state(s: _ParamState) -> dict[str, Any]:
             "pending_windows": run.windows if run else None}
 
 
-def _restore_run(s: _ParamState, pending: str | None, since_t: float | None,
-                 windows: int | None) -> None:
-    """Re-seed the evidence run a snapshot recorded (issue 37: a restart mid-degradation
-    lagged the raise by ``raise_after_s``, its run started again from nothing)."""
+def _restore(s: _ParamState, snap: Any) -> None:
+    """Re-seed a state's level and the evidence run a snapshot (an ``AlarmView`` or its
+    ``rul``) recorded (a restart mid-degradation does not start its run again from nothing)."""
+    s.level = snap.level
+    s.since_t = snap.since_t
+    s.since_window = snap.since_window
+    pending, since_t, windows = snap.pending, snap.pending_since_t, snap.pending_windows
     if pending not in _RANK or since_t is None or not windows or pending == s.level:
         return
     run = _Run(float(since_t), int(windows))
@@ -530,10 +497,8 @@ class FaultAlarms:
             else:
                 if p < self.clear and not health.trusted and fid != CHECK_FUNCTION:
                     # a window the twin did not describe (its check failed, a sensor stuck)
-                    # brings no new evidence against the fault, only older evidence grown
-                    # uncertain: it neither counts toward clearing nor resets the count (over
-                    # CANopen, Ra at -1 % with a few failing windows cleared and raised the
-                    # winding 3 times in 40 s)
+                    # is no evidence against the fault: it neither counts toward clearing
+                    # nor resets the count
                     continue
                 self._below[fid] = self._below.get(fid, 0) + 1 if p < self.clear else 0
                 if self._below[fid] >= self.clear_after:
@@ -556,10 +521,9 @@ class FaultAlarms:
             if level != "alarm":
                 what = ("the twin describes the machine again (its model check passes): its "
                         "estimates are trusted again")
-            return {"machine": machine, "kind": "diagnosis", "fault": fid, "level": level,
-                    "previous": previous, "probability": p, "t": health.t_end,
-                    "window": int(health.window), "message": f"{machine}: {word}: {what}"}
+            message = f"{machine}: {word}: {what}"
+        else:
+            message = f"{machine}: {word}: {fid} (probability {p:.2f}): {what}"
         return {"machine": machine, "kind": "diagnosis", "fault": fid, "level": level,
                 "previous": previous, "probability": p, "t": health.t_end,
-                "window": int(health.window),
-                "message": f"{machine}: {word}: {fid} (probability {p:.2f}): {what}"}
+                "window": int(health.window), "message": message}

@@ -1,12 +1,8 @@
 """The pipeline's gate and the windows it holds (:class:`GateKeeper`): each processed window
 is written to the gate (the state store) first; while another process holds the gate's
-database lock (a backup tool), the windows wait here in memory (:data:`HELD_MAX`) instead of
-each waiting SQLite's busy timeout, are tried again, and are released, oldest first, either
-stored (then published) or given up (left to the store's backlog, not published).
-
-The keeper decides, the :class:`~twinwatch.daemon.pipeline.WindowPipeline` acts: it keeps
-the outputs' queue and the fan-out to the other outputs (the publishers only once a window is
-stored, the recorders at once), and the alarm events of the windows not published.
+database lock, the windows wait here in memory (:data:`HELD_MAX`), are tried again, and are
+released, oldest first, stored (then published) or given up (left to the store's backlog).
+The keeper decides, the :class:`~twinwatch.daemon.pipeline.WindowPipeline` acts.
 """
 
 from __future__ import annotations
@@ -36,8 +32,7 @@ class GateKeeper:
         machine: whose windows (for the log).
         write: writes one window to one output, its failures counted and logged once (the
             pipeline's ``_write``); its result for the gate: False when not stored.
-        log: where it logs (the pipeline's logger: its lines name the pipeline, as before the
-            keeper was a part of its own).
+        log: where it logs (the pipeline's logger).
 
     Attributes:
         gate: the sink that must take a window before the publishing outputs get it (the
@@ -104,11 +99,10 @@ class GateKeeper:
         """
         gate = self.gate
         assert gate is not None
+        gate.hold(out)
         if len(self._held) >= HELD_MAX:  # too long: stored later, not published
-            gate.hold(out)
             gate.not_stored += 1
             return False
-        gate.hold(out)
         self._held.append(out)
         self.delayed += 1
         return None

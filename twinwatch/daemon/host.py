@@ -1,45 +1,31 @@
-"""The service host: what ``twinwatch run`` is to systemd and to the person at the terminal.
+"""The service host: what ``twinwatch run`` is to systemd and to the person at the terminal
+(docs/service.md, docs/gateway.md).
 
-One code path for one machine (``twinwatch run m1.toml``, ``twinwatch@.service``) and for a
-directory of machines (``twinwatch run DIR``, ``twinwatch-gateway.service``): one machine is a
-fleet of one. :class:`Host` owns, in the main thread,
+One code path for one machine (``twinwatch run m1.toml``) and a directory of machines
+(``twinwatch run DIR``): one machine is a fleet of one. :class:`Host` owns, in the main thread,
 
-* the **signals**. SIGTERM/SIGINT: every machine finishes its queued windows and stops (also
-  while it opens or reloads: the opening is abandoned); a second one abandons the queued
-  windows. Once a stop was requested the handlers stay installed to the end of the process: a
-  second SIGTERM still on its way (systemd, an operator) while the summary is written must not
-  end a cleanly stopped service with -15. SIGHUP: a reload (below).
+* the **signals**. SIGTERM/SIGINT: every machine finishes its queued windows and stops (an
+  opening is abandoned); a second one abandons the queued windows. Once a stop was requested
+  the handlers stay installed to the end of the process (a late SIGTERM must not end a cleanly
+  stopped service with -15). SIGHUP: a reload.
 * **systemd**: ``READY=1``, ``STATUS=``, ``RELOADING=1``, ``STOPPING=1``,
-  ``EXTEND_TIMEOUT_USEC`` and ``WATCHDOG=1``. Each machine tells the host (its
-  :class:`MachineNotifier`) where it is; for a fleet of one the machine's own lines are the
-  service's (``monitoring m1 (dc_motor, simulated driver), ...``), for a fleet the host keeps
-  one line (``gateway: 3 of 4 machines monitored (DIR); DEGRADED: m3: lost (...)``). The
-  watchdog is pinged from the host's loop while at least one machine is healthy (its
-  acquisition loop ticks its :class:`~twinwatch.daemon.systemd.Watchdog` and the worker is not
-  stuck, nor silent under ``watchdog = "windows"``) or still opening: a stuck machine among
-  healthy ones is reported in STATUS, not restarted with them; a fleet of one stuck, or every
-  machine stuck, stops the pings and systemd restarts the service.
-* the **reload** (SIGHUP): a machine's file changed (always, for a fleet of one) reloads that
-  machine (validated first, built beside the running daemon, taking over at a window boundary:
-  :class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
-  removed stops its machine, a machine not running (lost, or its source ended) starts again.
-* the **stop**, the **summary** (:meth:`Host.summary`: a
-  :class:`~twinwatch.daemon.service.RunSummary`, each machine's lines made by
-  :mod:`twinwatch.daemon.summary`) and the **exit status** (:meth:`Host.exit_status`): the
-  :class:`~twinwatch.daemon.service.ServiceHost` contract, which
-  :class:`~twinwatch.daemon.workers.ProcessHost` keeps too. A worker process's host (``assignment``)
-  reports its machines to its own host as a :class:`~twinwatch.daemon.service.FleetStatus`
-  beside its STATUS line.
+  ``EXTEND_TIMEOUT_USEC`` and ``WATCHDOG=1``. A fleet of one's machine's lines are the
+  service's; a fleet keeps one line (``gateway: 3 of 4 machines monitored (DIR); DEGRADED:
+  ...``). The watchdog is pinged while at least one machine is healthy or opening
+  (:meth:`Machine.healthy`): a stuck machine among healthy ones is reported in STATUS.
+* the **reload** (SIGHUP): a changed machine is reloaded
+  (:class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
+  removed stops it, a machine not running starts again.
+* the **stop**, the **summary** (:meth:`Host.summary`) and the **exit status**
+  (:meth:`Host.exit_status`): the :class:`~twinwatch.daemon.service.ServiceHost` contract. A
+  worker process's host (``assignment``) reports its machines as a
+  :class:`~twinwatch.daemon.service.FleetStatus` beside its STATUS line.
 
-Each machine runs in a thread of its own (``twinwatch-<file>`` in a fleet): its supervisor's
-acquisition loop, with the daemon's worker thread beside it. What the machines of a process
-share: one Zenoh session per distinct ``[zenoh]`` session setting
-(:class:`~twinwatch.sinks.base.SharedResources`) and the estimation slots
-(:class:`~twinwatch.daemon.slots.EstimationSlots`).
-
-Isolation: a machine whose configuration is invalid, whose device cannot be opened, whose driver
-fails or whose thread raises is *lost*: logged and reported under its name (STATUS, the summary,
-:meth:`Host.lost`), and the others go on.
+Each machine runs in a thread of its own (``twinwatch-<file>`` in a fleet); the machines share
+one Zenoh session per ``[zenoh]`` setting (:class:`~twinwatch.sinks.base.SharedResources`) and
+the estimation slots (:class:`~twinwatch.daemon.slots.EstimationSlots`). A machine whose
+configuration is invalid, whose device cannot be opened or whose thread raises is *lost*:
+logged and reported under its name, and the others go on.
 """
 
 from __future__ import annotations
@@ -67,6 +53,7 @@ from twinwatch.daemon.service import (
     Progress,
     RunSummary,
     ServiceHost,
+    gateway_total,
     worst_exit,
 )
 from twinwatch.daemon.slots import EstimationSlots, default_workers
@@ -126,20 +113,17 @@ class Machine:
             and checks it in the machine's directory (``<work root>/<machine name>``).
 
     Attributes:
-        path: the configuration file, or None.
         name: ``[machine] name`` once the configuration loaded (the file's stem before).
         supervisor: its supervisor (its ``daemon`` holds the counters and history).
-        watchdog: its own watchdog (the host reads it: a worker stuck in one window, a
-            machine whose windows stopped, an acquisition loop that no longer ticks).
+        watchdog: its own watchdog (the host reads it to find a stuck or quiet machine).
         lost: why the machine stopped or never started (one line), or None.
         failure: the same in full (every line), or None.
         error: what its start raised (a configuration error, a start error, :class:`Stopped`).
         config_error: ``lost`` is an invalid configuration.
-        watched: what a reload compares: the configuration file and every file it reads
-            (:func:`~twinwatch.config.preflight.referenced_files`: fault library, DBC, CAN
-            log, recording, certificates), label (``m1.toml``, ``diagnosis.library``) -> path.
-        digests: their contents' SHA-256 when the machine (re)loaded them (a reload leaves the
-            machine alone when every one is equal).
+        watched: what a reload compares: label (``m1.toml``, ``diagnosis.library``) -> path
+            of the configuration file and every file it reads
+            (:func:`~twinwatch.config.preflight.referenced_files`).
+        digests: their contents' SHA-256 when the machine (re)loaded them.
     """
 
     def __init__(self, host: Host, path: Path | None,
@@ -201,7 +185,6 @@ class Machine:
         work_dir.mkdir(mode=0o750, exist_ok=True)
         self.supervisor.work_dir = work_dir
         self.host.check(cfg, self.path, work_dir)
-        self.name = name
         self._watch(cfg)
         return cfg
 
@@ -341,29 +324,26 @@ class Host(ServiceHost):
 
     Args:
         target: a machine configuration file (a fleet of one), a directory of them
-            (``*.toml``, one machine each), or None (the built-in default configuration).
+            (``*.toml``), or None (the built-in default configuration).
         read: reads and validates one configuration file of a directory (raises
             :class:`ConfigError` naming the file and key).
-        check: checks a directory's configuration can run with its files in its machine's
-            directory (``check(cfg, path, work_dir)``; raises :class:`ConfigError`).
-        load: a fleet of one's loader (the file read and checked to run here; called at start
-            and at each SIGHUP); required when ``target`` is not a directory.
-        work_root: in a fleet each machine's state database and recording go to
-            ``<work_root>/<machine name>/`` (created); a fleet of one works in the current
-            directory.
+        check: ``check(cfg, path, work_dir)``: a directory's configuration can run with its
+            files in its machine's directory (raises :class:`ConfigError`).
+        load: a fleet of one's loader (at start and at each SIGHUP); required when ``target``
+            is not a directory.
+        work_root: a fleet's machines work in ``<work_root>/<machine name>/`` (created); a
+            fleet of one in the current directory.
         resume: as :class:`~twinwatch.daemon.supervisor.Supervisor`'s.
         duration: each machine stops after this many seconds of source time (None: runs on).
         workers: estimation slots (:class:`EstimationSlots`); None: the cores; 0: no limit.
         stuck_after: seconds one window may take before its machine counts as stuck (and its
-            estimation slot stops counting); None: ``WatchdogSec=`` (twice the ping interval),
-            30 s outside systemd's watchdog.
+            estimation slot stops counting); None: ``WatchdogSec=``, 30 s without it.
         quiet_after: seconds without a finished window before a machine counts as quiet;
             None: as ``stuck_after``.
         assignment: a worker process's (:mod:`twinwatch.daemon.workers`): a file naming the
             directory's machine files it runs, one a line (re-read at each SIGHUP).
         start_timeout: seconds :meth:`start` waits for the machines to open before READY
-            (None: a fleet of one waits for its machine, a fleet 60 s: a machine whose
-            source never answers is named ``starting`` in STATUS).
+            (None: a fleet of one waits for its machine, a fleet 60 s).
 
     Attributes:
         fleet: ``target`` is a directory.
@@ -417,8 +397,7 @@ class Host(ServiceHost):
 
     def _timeouts(self, stuck_after: float | None, quiet_after: float | None,
                   start_timeout: float | None) -> None:
-        """``stuck_after``, ``quiet_after`` and ``start_timeout`` [s] with their defaults (see
-        the class)."""
+        """``stuck_after``, ``quiet_after`` and ``start_timeout`` [s] with their defaults."""
         interval = self.notifier.watchdog_interval
         if stuck_after is None:
             stuck_after = 2.0 * interval if interval is not None else 30.0
@@ -511,23 +490,18 @@ class Host(ServiceHost):
         Raises:
             ConfigError: the directory holds no machine configuration.
         """
-        # systemd's watchdog kills with SIGABRT: write every thread's stack to stderr (the
-        # journal) first, so a stuck worker or a hung driver read shows where it was. (An
-        # stderr without a file descriptor, e.g. click's test runner, has nowhere to write it.)
+        # systemd's watchdog kills with SIGABRT: every thread's stack to stderr (the journal)
         try:
             faulthandler.enable()
         except (AttributeError, ValueError, OSError):
             logger.debug("faulthandler not enabled: stderr has no file descriptor")
-        files = self._scan() if self.fleet else self.files()
-        if self.fleet and not files:
+        files: list[Path | None] = [*self._scan()] if self.fleet else [self.target]
+        if not files:
             raise ConfigError(f"{self.directory}: no machine configuration ({MACHINE_GLOB}) "
                               "in this directory")
         self._install_signal_handlers()
-        if self.fleet:
-            for path in files:
-                self._add(path)
-        else:
-            self._add(self.target)
+        for path in files:
+            self._add(path)
         deadline = None if self.start_timeout is None else time.monotonic() + self.start_timeout
         for m in list(self.machines.values()):
             while not m.started.wait(0.2):
@@ -578,18 +552,16 @@ class Host(ServiceHost):
         """A fleet's STATUS (with READY=1 after a start or a reload); a worker process's host
         adds its :class:`FleetStatus` in the :data:`FLEET_REPORT` assignment, for its host."""
         status = self.fleet_status()
-        assignments = [f"STATUS={self._status_text(status)}"]
+        assignments = [f"STATUS={status.line(str(self.directory))}"]
         if self.assignment is not None:
             assignments.append(f"{FLEET_REPORT}={status.model_dump_json()}")
         self.notifier.notify(*(["READY=1"] if ready else []), *assignments)
 
     # -- run: the loop's turn (ServiceHost.run) ------------------------------------------------
     def _turn(self) -> bool:
-        """True while a machine's thread runs."""
         return any(m.thread.is_alive() for m in self.machines.values())
 
     def _stopped_why(self) -> str | None:
-        """Why the run failed, for the last STATUS; None when it did not."""
         if self.fleet:
             lost = self.lost()
             return f"{len(lost)} machine(s) lost" if lost else None
@@ -607,7 +579,6 @@ class Host(ServiceHost):
         return None
 
     def _healthy(self, interval: float) -> bool:
-        """A machine is healthy (its loop ticks, its worker is not stuck) or still opening."""
         return any(m.healthy() for m in self.machines.values())
 
     def _refresh_status(self) -> None:
@@ -621,28 +592,26 @@ class Host(ServiceHost):
     def _grace(self) -> float:
         """The longest ``shutdown_timeout`` of the machines' configurations [s] (10 s)."""
         return max((m.supervisor.config.acquisition.shutdown_timeout
-                    for m in [*self.machines.values(), *self.retired]
+                    for m in self.all_machines()
                     if m.supervisor.config is not None), default=10.0)
 
     def _ask_to_stop(self) -> None:
-        for m in [*self.machines.values(), *self.retired]:
+        for m in self.all_machines():
             m.supervisor.stop()
 
     def _wait_stopped(self, deadline: float, limit: float) -> None:
-        for m in [*self.machines.values(), *self.retired]:
+        for m in self.all_machines():
             m.thread.join(timeout=max(0.1, deadline - time.monotonic()))
             if m.thread.is_alive():
                 logger.error("machine %s did not stop within %.0f s", m.name, limit)
         gc.unfreeze()  # the stopped machines' cycles are the collector's again
 
     def stop(self) -> None:
-        """Ask :meth:`run` to stop every machine and return (thread- and signal-safe)."""
         super().stop()
         for m in self.all_machines():  # at once: a machine opening abandons its opening
             m.supervisor.stop()
 
     def reload(self) -> None:
-        """Ask for a reload, as SIGHUP does (thread- and signal-safe)."""
         gc.unfreeze()  # the machines replaced are the collector's again (_freeze_started)
         if not self.fleet:  # its acquisition loop acts on it at its next tick, not in 0.2 s
             for m in list(self.machines.values()):
@@ -651,13 +620,9 @@ class Host(ServiceHost):
         super().reload()
 
     def _rescan(self) -> None:
-        """SIGHUP. A fleet of one: reload its machine. A fleet: start the machines of new
-        files, stop those whose file was removed, reload those whose file changed, and start
-        again those not running (lost, or their source ended)."""
-        if not self.fleet:
-            for m in list(self.machines.values()):
-                m.supervisor.reload()
-            return
+        """SIGHUP in a fleet (a fleet of one reloads in :meth:`reload`): start the machines of
+        new files, stop those whose file was removed, reload those whose file changed, and
+        start again those not running (lost, or their source ended)."""
         self.notifier.reloading("re-reading the machine directory")
         files = set(self._scan())
         done: list[str] = []
@@ -756,10 +721,7 @@ class Host(ServiceHost):
             if cfg is None or daemon is None:
                 return m.lost or "starting"
             return status_line(cfg, daemon)
-        return self._status_text(self.fleet_status())
-
-    def _status_text(self, status: FleetStatus) -> str:
-        return status.line(str(self.directory))
+        return self.fleet_status().line(str(self.directory))
 
     def fleet_status(self) -> FleetStatus:
         """A fleet's machines monitored and the degraded ones by name (its STATUS line's
@@ -775,10 +737,7 @@ class Host(ServiceHost):
                                                default=None))
 
     def exit_status(self) -> int:
-        """The process's exit status once :meth:`run` returned: 78 when no machine's
-        configuration could run, 1 when a machine was lost (it could not start, its driver
-        failed, it raised), else the worst machine's 74 (estimated windows lost) or 75 (more
-        windows failed than estimated), else 0 (also after a stop during the start)."""
+        """:meth:`ServiceHost.exit_status`; 0 also after a stop during the start."""
         if self.lost():
             return worst_exit([EX_CONFIG if m.lost is not None and m.config_error else 1
                                for m in self.machines.values()] or [EX_CONFIG])
@@ -786,7 +745,6 @@ class Host(ServiceHost):
                           for m in self.all_machines() if (d := m.supervisor.daemon) is not None)
 
     def abandon(self) -> None:
-        """A second stop signal: every machine abandons its queued windows."""
         for m in self.all_machines():
             m.supervisor.abandon()
 
@@ -832,9 +790,7 @@ class Host(ServiceHost):
         machines = self.all_machines()
         lost = self.lost()
         n = len(self.counted())  # a machine renamed or tried again counts once
-        total = (f"twinwatch gateway: {n} machines, {n - len(lost)} ran, {len(lost)} "
-                 "lost" + (": " + "; ".join(f"{k}: {v}" for k, v in lost.items())
-                           if lost else ""))
+        total = gateway_total(n, [f"{k}: {v}" for k, v in lost.items()])
         return RunSummary(machines=[self._machine_summary(m) for m in machines], total=total,
                           exit_status=code)
 
@@ -904,11 +860,8 @@ def _digest(path: Path) -> str:
     """The file's SHA-256 ("" when it cannot be read: a file that appears or goes away is a
     change too)."""
     try:
-        h = hashlib.sha256()
         with path.open("rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-        return h.hexdigest()
+            return hashlib.file_digest(f, "sha256").hexdigest()
     except OSError:
         return ""
 
@@ -929,13 +882,9 @@ def reload_line(done: list[str], machines: int, directory: str) -> str:
 
 
 def _freeze_started() -> None:
-    """Keep what the started process holds out of the garbage collector's full passes
-    (:func:`gc.freeze`; garbage frozen with it waits for the unfreeze): the libraries'
-    modules and functions (numba's alone about 17000 of a machine process's 156000 tracked
-    objects) and the machines as they started. A full pass walked them all: 150 ms of CPU in
-    a 50-machine worker and a stall of 150-580 ms of every machine's window in it (measured at
-    200 machines in four workers: 4-5 such passes per worker in 180 s). A reload and the end
-    of the service loop (:meth:`ServiceHost.run`) unfreeze them, so a replaced or stopped
-    machine's cycles are collected as before (a command line run in a test's process leaks
-    nothing)."""
+    """Keep what the started process holds (the libraries' modules, the machines as they
+    started) out of the garbage collector's full passes (:func:`gc.freeze`), which stalled
+    every machine's window of a large worker. A reload and the end of the service loop
+    (:meth:`ServiceHost.run`) unfreeze them, so a replaced or stopped machine's cycles are
+    collected (a command line run in a test's process leaks nothing)."""
     gc.freeze()

@@ -1,16 +1,12 @@
 """A rate limit on third-party log floods.
 
-A library that logs in a tight loop buries the journal and twinwatch's own lines under it:
-python-can's socketcand bus, opening a server that does not answer, logs every connection
-attempt for 10 s (129,334 warnings in one failed reload, measured). twinwatch's own modules log
-each cause once; the libraries under it (python-can, pymodbus, zenoh, ...) do not.
-
+A library that logs in a tight loop (python-can's socketcand bus retrying a server that does
+not answer) buries the journal; twinwatch's own modules log each cause once.
 :class:`RepeatFilter`, attached to the handlers the CLI logs through (:func:`install`), lets the
 first ``burst`` identical messages of a third-party logger (same logger, level and text) through
 in every ``interval`` and counts the others; once the interval is over, one line from the same
-logger says how many were suppressed. That line comes with the next identical message, or from
-:func:`flush`, which the supervisor calls from the acquisition loop (at most once a second) and
-forces after a reload attempt and at stop, so a flood that has ended is still counted. Records of
+logger says how many were suppressed, with the next identical message or from :func:`flush`
+(the supervisor's acquisition loop, forced after a reload attempt and at stop). Records of
 ``twinwatch`` loggers pass untouched.
 """
 

@@ -1,15 +1,11 @@
 """A daemon's outputs: the sinks it opens, adopts from a reload, hands to the pipeline and closes.
 
 :class:`Outputs` opens the configured outputs through the sink registry
-(:data:`twinwatch.sinks.SINKS`, :class:`~twinwatch.sinks.base.Sink`) and knows none by name:
-their roles decide which open (the gate, the publishers, the recorders) and the order of writing
-(the gate first: stored before published), their ``open_order`` the order of opening (every
-exclusive resource before any file is touched). It answers a reload's question of what may be
-kept open (:meth:`Outputs.handover`), adopts what a running daemon hands over, gives the open
-outputs to the :class:`~twinwatch.daemon.pipeline.WindowPipeline` (:meth:`Outputs.wire`),
-starts and stops the outputs' thread for a live source (the pipeline's ``<prefix>-outputs``),
-and keeps the accounting of every output, open or closed: counters, problems, losses, STATUS
-parts and summary lines.
+(:data:`twinwatch.sinks.SINKS`) and knows none by name: their roles decide which open and the
+order of writing (the gate first), their ``open_order`` the order of opening. It answers a
+reload's :meth:`Outputs.handover`, adopts what a running daemon hands over, wires the outputs
+to the :class:`~twinwatch.daemon.pipeline.WindowPipeline`, and keeps the accounting of every
+output, open or closed.
 """
 
 from __future__ import annotations
@@ -30,7 +26,6 @@ if TYPE_CHECKING:
     from twinwatch.twin.health import HealthView
     from twinwatch.twin.model import TwinModel
 
-# the daemon's log lines keep the logger name they had before it was split (journal filters)
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
 __all__ = ["Outputs", "close_logged", "sink_context"]
@@ -50,8 +45,7 @@ class Outputs:
 
     Attributes:
         sinks: registry name -> the open output, in writing order (the gate first).
-        closed: the outputs closed by :meth:`close` (their accounting stays readable).
-        adopted: the names of the outputs handed over by a running daemon.
+        closed: the outputs :meth:`close` closed; adopted: those a running daemon handed over.
     """
 
     def __init__(self, config: TwinwatchConfig, model: TwinModel, *, machine: str,
@@ -73,12 +67,9 @@ class Outputs:
     # -- opening ----------------------------------------------------------------------------
     def open(self, reuse: dict[str, Sink], skip: Collection[str] = ()) -> set[str]:
         """Open the enabled outputs whose role is wanted, adopting the ``reuse``d ones that
-        fit; :attr:`sinks` ends in writing order (the gate first, then the registry's order).
-
-        Every exclusive resource before any file is touched: the outputs open in their
-        ``open_order`` (the Zenoh port, then the state database's lock, then the recording's
-        lock and only then its truncation), so a second twinwatch in the same directory fails
-        without harming the first. The outputs in ``skip`` are not opened (yet).
+        fit, in their ``open_order`` (every exclusive resource before any file is touched: a
+        second twinwatch in the same directory fails without harming the first); :attr:`sinks`
+        ends in writing order (the gate first). The outputs in ``skip`` are not opened (yet).
 
         Returns:
             The names of the adopted outputs.
@@ -169,10 +160,8 @@ class Outputs:
 
     # -- the outputs' thread (a live source) ------------------------------------------------
     def start(self, prefix: str) -> None:
-        """Start the outputs' thread (``<prefix>-outputs``): the outputs write from their own
-        thread, so a state database locked by another process (each write waits the busy
-        timeout) does not hold up the estimation and no window of a live source is dropped for
-        it. A source on a simulated clock has none: the worker writes the outputs itself."""
+        """Start the outputs' thread (``<prefix>-outputs``, a live source's: a locked state
+        database does not hold up the estimation); on a simulated clock the worker writes."""
         self.pipeline.start(name=f"{prefix}-outputs")
 
     def stop(self, timeout: float) -> None:

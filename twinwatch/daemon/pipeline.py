@@ -1,4 +1,5 @@
-"""One window's way from the twin to the sinks (the adaptation worker's job, paper Fig. 2).
+"""One window's way from the twin to the sinks (the adaptation worker's job, paper Fig. 2;
+docs/runtime.md, docs/architecture.md).
 
 :class:`WindowPipeline` runs, for each window the ring buffer completes::
 
@@ -9,40 +10,25 @@
       -> sinks, in order: the gate (state store), then the others (Zenoh, Rerun, plug-ins)
       -> callbacks (the CLI's progress bar)
 
-The health message is typed (:class:`~twinwatch.twin.health.HealthMessage`) from end to end
-(the alarms, the sinks and the callbacks read it typed) and frozen. The diagnosis and the alarms
-are derived from the window's estimation, so :meth:`WindowPipeline.process` builds the
-estimation's message first (what they read), then the window's message once from everything it
-carries (the estimation, the source, the diagnosis, the alarm states): nothing is written into
-a message after it is built. It is encoded once
-(:meth:`~twinwatch.twin.health.HealthMessage.to_json`): every sink writes the same text. The
-sinks share one contract, :class:`~twinwatch.sinks.base.Sink` (``write(ProcessedWindow)``,
-``close()``, its role); the pipeline knows none by name. Their order is the guarantee "stored
-before published": a health message a subscriber has seen is always in the state database, also
-after SIGKILL. The sink whose role is ``gate`` (the state store) is the pipeline's
-:attr:`~WindowPipeline.gate`: a window it cannot store (a full disk, a read-only file; it waits
-in the store's backlog) is not given to the sinks that publish (role ``publisher``: Zenoh, a
-plug-in by default), and its alarm events wait for the next window that is stored; the
-recorders (Rerun) still get it.
+The health message is typed and frozen: :meth:`WindowPipeline.process` builds the estimation's
+message first (what the diagnosis and alarms read), then the window's message once; it is
+encoded once and every sink writes the same text. Sinks share the
+:class:`~twinwatch.sinks.base.Sink` contract; "stored before published": a window the
+:attr:`~WindowPipeline.gate` cannot store is not given to the publishers, its alarm events wait
+for the next stored window; the recorders still get it.
 
-:class:`~twinwatch.daemon.runner.Daemon` calls :meth:`WindowPipeline.process` from its
-``twinwatch-adaptation`` worker, one window at a time. Once :meth:`WindowPipeline.start` has
-started the outputs' thread (``twinwatch-outputs``; the daemon does when it runs a live source:
-a bus, a real-time replay), the worker
-only estimates and hands each processed window to that thread through a bounded queue
-(:data:`OUTPUT_QUEUE`): the outputs write there, in the same order, so an output that waits (a
-state database whose write lock another process holds: each write waits SQLite's busy timeout,
-5 s) never holds up the estimation (issue 26: a backup tool's 30 s lock cost 5 windows, dropped
-as estimation overruns). While the gate's database is locked the windows wait in memory
+Once :meth:`WindowPipeline.start` has started the ``twinwatch-outputs`` thread (a live source),
+the worker only estimates and hands each window through a bounded queue (:data:`OUTPUT_QUEUE`),
+so an output that waits (a locked state database: SQLite's busy timeout, 5 s) never holds up the
+estimation. While the gate's database is locked the windows wait in memory
 (:attr:`WindowPipeline.keeper`, a :class:`~twinwatch.daemon.gatekeeper.GateKeeper`, at most
-:data:`HELD_MAX`): each is stored as soon as the lock is released and only then given to the
-publishers, oldest first (stored before published). A
-pipeline without that thread (a library daemon that calls :meth:`WindowPipeline.process`
-itself) writes the outputs from the caller's thread.
+:data:`HELD_MAX`), stored and then published oldest first. Without that thread the outputs are
+written from the caller's thread.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import queue
@@ -88,8 +74,7 @@ MEMORY_TAIL = OUTPUT_QUEUE + 16
 """With a state store that reads back (:meth:`~twinwatch.sinks.store.StateStore.last_docs`),
 the health messages kept in memory: the store holds the rest of ``[acquisition] history``
 (:meth:`WindowPipeline.recent` reads it from there; more than the outputs' queue holds, so
-a window leaves memory after it was stored). Measured in a 50-machine worker: the
-history in memory grew 9 KB a window per machine (9 MB at its 1000)."""
+a window leaves memory after it was stored)."""
 
 
 class WindowDigest(NamedTuple):
@@ -155,9 +140,9 @@ class WindowPipeline:
         self._held_events: deque[dict[str, Any]] = deque(maxlen=1000)
         self.callbacks: list[HealthCallback] = []
         self.latest: HealthMessage | None = None
-        #: the last ``history`` health messages as their JSON (9 KB each where the typed
-        #: message holds about 40: measured with tracemalloc); :meth:`recent` types them. With
-        #: a gate that reads back, only the last :data:`MEMORY_TAIL` (the rest is stored)
+        #: the last ``history`` health messages as their JSON (a fraction of the typed
+        #: message's memory); :meth:`recent` types them. With a gate that reads back, only the
+        #: last :data:`MEMORY_TAIL` (the rest is stored)
         self.history: deque[str] = deque(maxlen=history)
         self.history_size = history
         #: the last ``history`` windows' :class:`WindowDigest` (the run's summary)
@@ -207,10 +192,8 @@ class WindowPipeline:
         if thread is None or q is None:
             return
         self._stop_by = time.monotonic() + timeout
-        try:  # blocks at most while the thread writes the queued windows
+        with contextlib.suppress(queue.Full):  # blocks while the queued windows are written
             q.put(_STOP, timeout=timeout + 30.0)
-        except queue.Full:
-            pass
         thread.join(timeout=timeout + 30.0)
         if thread.is_alive():
             logger.warning("%s: the outputs did not finish writing within %.0f s",
@@ -257,16 +240,14 @@ class WindowPipeline:
         while not stopping or self.keeper.held:
             if self.keeper.held:  # the gate's database is locked: take what comes, try again
                 stopping = self._drain_into_held(q) or stopping
-                self._retry_held(give_up=stopping and self._past_stop())
+                past = self._stop_by is not None and time.monotonic() >= self._stop_by
+                self._retry_held(give_up=stopping and past)
                 continue
             got = q.get()
             if got is _STOP:
                 stopping = True
                 continue
             self._deliver(got)
-
-    def _past_stop(self) -> bool:
-        return self._stop_by is not None and time.monotonic() >= self._stop_by
 
     def _drain_into_held(self, q: queue.Queue[Any]) -> bool:
         """Every queued window into the gate's memory (none written now). True if the stop

@@ -1,16 +1,10 @@
 """Resume: what a daemon takes over from the state database and from the daemon before it.
 
-A :class:`~twinwatch.daemon.runner.Daemon` with a gate (the state store, ``[state]``) resumes at
-start the last accepted twin (trusted parameters and meta-model terms), the alarm levels of the
-last window and the parameters' trends (:func:`restore`), unless the source's time starts over
-when it opens (a simulated plant from t = 0, a recording replayed from its start): that is a new
-run, said once (:func:`note_new_run`). A reload's daemon resumes the same way once the previous
-daemon has finished (:meth:`~twinwatch.daemon.runner.Daemon.continue_from`), and goes on with its
-run id and its window numbering (:func:`continue_numbering`).
-
-Nothing here holds state: the functions read the gate and hand the twin, the alarms and the
-prognostics what it held; the daemon keeps what they return (``restored``, ``resumed``,
-``new_run``).
+A daemon with a gate (``[state]``) resumes at start the last accepted twin, the alarm levels
+and the trends (:func:`restore`), unless the source's time starts over when it opens: a new
+run, said once (:func:`note_new_run`). A reload's daemon resumes once the previous one has
+finished (:meth:`~twinwatch.daemon.runner.Daemon.continue_from`) and goes on with its run id and
+window numbering (:func:`continue_numbering`). Nothing here holds state.
 """
 
 from __future__ import annotations
@@ -29,7 +23,6 @@ if TYPE_CHECKING:
     from twinwatch.twin.health import HealthView
     from twinwatch.twin.prognostics import Prognostics
 
-# the daemon's log lines keep the logger name they had before it was split (journal filters)
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
 __all__ = ["continue_numbering", "degrading", "note_fresh", "note_new_run", "replay_trends",

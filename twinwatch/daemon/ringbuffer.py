@@ -1,75 +1,33 @@
 """Fixed-size ring buffer that turns a stream of samples into acquisition windows.
 
 The acquisition side appends one sample at a time; every ``window`` consecutive good samples
-become one :class:`~twinwatch.twin.model.WindowData`. Memory is allocated once.
+become one :class:`~twinwatch.twin.model.WindowData`. Memory is allocated once. The rules
+(docs/sources.md, docs/runtime.md) in short:
 
-Time stamps as they come. A source's stamps are rarely on an exact grid: a CAN adapter stamps
-a frame when it is received (+-50 us on a busy bus), a logger rounds its time column, a
-Modbus device without a sample counter is stamped by the poll clock (a poll thread that shares
-the processor with the estimation is late by milliseconds). The twin integrates on the nominal
-grid (its sub-step composition needs the period), so the ring buffer matches the stamps to the
-window's grid: sample ``k`` of a window belongs to slot ``t_first + k * T`` (``T`` the nominal
-``sample_period``), and its *offset* ``o_k = t_k - t_first - k * T`` says how far its stamp is
-from that slot. A window's offsets must lie within a band narrower than ``2 * tol * T``
-(``tol`` = ``[acquisition] jitter_tolerance``, default and at most 0.5 periods): with 0.5 the
-band is narrower than one period, so the stamps of a window cannot be those of a grid with a
-sample missing or repeated, and each sample is the slot it is counted as. A sample that would
-widen the band beyond that is classified by its distance ``rho`` (in periods) from the band's
-centre:
+* sample ``k`` of a window belongs to slot ``t_first + k * T`` (``T`` the nominal
+  ``sample_period``); its offsets ``o_k = t_k - t_first - k * T`` must lie within a band
+  narrower than ``2 * tol * T`` (``tol`` = ``[acquisition] jitter_tolerance``, at most 0.5).
+  A sample that would widen the band is classified by its distance ``rho`` (in periods) from
+  the band's centre: ``rho >= 1 - tol`` is a *gap*; otherwise (or offsets on a line leaving
+  the band: a clock at another rate) *jitter beyond tolerance*. A stamp before the previous
+  one: *time stamp jumped backwards*; the previous stamp with other values: *time stamp
+  repeated with other values* (that sample is dropped too). An exact duplicate is dropped and
+  counted (:attr:`RingBuffer.duplicates`, :attr:`RingBuffer.lost`).
+* a completed window is put on its grid ``t0 + k * T`` (``t0`` the mean offset); the stamps'
+  residuals (:attr:`WindowData.stamp_jitter`, RMS and maximum) travel with it. Stamps within
+  :data:`GRID_EXACT` periods of the grid are kept as they are.
+* up to ``max_missing_run`` missing samples in a row and ``max_missing`` of a window are
+  filled (zero-order hold, stamped at the band's centre; :attr:`RingBuffer.missing`,
+  :attr:`RingBuffer.windows_filled`); with both at 0 (this class's default) every missing
+  sample abandons its window.
+* a longer gap, a stamp going back, jitter beyond tolerance, a missing channel or a NaN/inf
+  abandons the partial window (logged once per reason); a fresh window starts at the next
+  good sample.
 
-* ``rho >= 1 - tol``: it lies on a later slot: samples are missing, a *gap*;
-* otherwise (early, or between two slots): *jitter beyond tolerance*; also when the offsets
-  lie on a line that leaves the band (a clock at another rate than the configured period: the
-  message gives the mean step measured);
-* a stamp before the previous one: *time stamp jumped backwards* (a capture that restarts
-  its clock: the partial window at the seam is abandoned, the next window starts at the
-  sample that went back);
-* the previous stamp again with other values: *time stamp repeated with other values* (the
-  partial window and that sample are abandoned: which of the two is the plant's is unknown).
-
-An exact duplicate (the previous stamp again with the same values: a data logger's retry, a
-frame sent twice) is dropped and counted (:attr:`RingBuffer.duplicates`, and in
-:attr:`RingBuffer.lost` under its own reason); the window goes on.
-
-The band, not a distance from the mean, because a poll clock's jitter is one-sided (a poll is
-late, never early): a window whose polls are on time or up to 9 ms late at ``T`` = 10 ms is
-kept, whatever order the late ones come in. A smaller tolerance refuses stamps that are nearly
-ambiguous (0.25: a band of half a period). Jitter that is only in the stamps (a bus adapter's
-receive clock, a logger's rounding) costs nothing on the grid; a source whose stamps are its
-true sampling instants (the poll clock) is placed within the band's width of them, less than
-the age of a device's held value that such a source reads anyway. When a window completes it
-is put on its grid ``t0 + k * T`` with ``t0`` the mean offset of its stamps; the stamps'
-residuals from that grid (the measured jitter, RMS and maximum,
-:attr:`WindowData.stamp_jitter`) travel with the window and are reported in its health
-message. Stamps already on the grid (within 1e-6 periods) are kept as they are.
-
-Missing samples (a lossy bus: a frame lost or malformed now and then, a poll missed). A sample
-that lies on a later slot, ``m`` periods after the next one, means ``m`` samples are missing.
-When there are few (at most ``max_missing_run`` in a row, and at most ``max_missing`` in the
-window, the missing ones before included), their slots are *filled* and the window goes on:
-each filled slot holds the previous sample's values (a zero-order hold, what a drive's
-controller does between two set-points; the twin gets a complete grid) and a stamp on the
-window's grid (the centre of its band: it adds nothing to the measured jitter, which is the
-real stamps' only). A gap at the end of a window fills its last slots and the window completes;
-the sample that revealed it starts the next window. The filled samples are counted
-(:attr:`RingBuffer.missing`, :attr:`RingBuffer.windows_filled`, the health counters
-``samples_missing`` and ``windows_with_missing``) and logged once. With both limits at 0 (the
-default of this class; the daemon's are ``[acquisition] max_missing`` and ``max_missing_run``)
-every missing sample abandons its window.
-
-Only real faults abandon a window: a gap longer than that, a time stamp that went back, jitter
-beyond the tolerance, a missing channel or a NaN/inf value abandons the partial window (logged
-once per reason) and acquisition starts a fresh window at the next good sample. Nothing is
-estimated silently on broken data.
-
-Loss accounting: :attr:`RingBuffer.lost` counts, by reason, the samples received that did not
-become part of a window (the bad sample itself and the good ones of the partial window it
-cut). :attr:`RingBuffer.discarded` counts, by reason, the *windows* abandoned: a stretch of
-lost samples between two completed windows costs ``ceil(lost / window)`` windows, so a source
-whose every other sample is NaN loses 20 windows over 20 windows of samples, not one per cut.
-:attr:`RingBuffer.causes` counts the same windows by cause (:data:`CAUSES`: ``gap``,
-``time_back``, ``jitter``, ``bad_value``, ``missing_channel``), the health counters
-``windows_abandoned_<cause>``.
+Loss accounting: :attr:`RingBuffer.lost` counts by reason the samples that did not become part
+of a window; :attr:`RingBuffer.discarded` the *windows* abandoned (a stretch of lost samples
+between two completed windows costs ``ceil(lost / window)``); :attr:`RingBuffer.causes` the
+same windows by cause (:data:`CAUSES`), the health counters ``windows_abandoned_<cause>``.
 """
 
 from __future__ import annotations

@@ -13,14 +13,10 @@
     after a reload, the run id and the window numbering of a reload
 
 * the caller's thread (the supervisor's: the machine's thread) runs :meth:`Daemon.run`: it
-  reads the driver, fills the ring buffer and hands each full window to the worker. It never
-  estimates, so acquisition is never blocked by the optimiser.
-* the worker runs the window pipeline, then the sinks in order: the gate (the state database),
-  then the others (Zenoh, Rerun, plug-ins). Stored before published: a health message a
-  subscriber has seen is always in the database, also after SIGKILL.
-* zenoh's threads answer the history query (``twinwatch/<machine>/history``) from the state
-  database (one SQLite connection per thread, WAL: readers never block the worker).
-
+The caller's thread (the machine's) runs :meth:`Daemon.run`: it reads the driver, fills the ring
+buffer and hands each full window to the worker, never estimating. Stored before published (the
+gate first). Zenoh's threads answer the history query from the state database (one SQLite
+connection per thread, WAL).
 The daemon's public attributes and methods are what the supervisor, the host, the command line
 and the tests use; each part keeps its own state, the daemon forwards to it.
 """
@@ -95,70 +91,49 @@ class Daemon:
         publish: open the outputs whose role is ``publisher`` (Zenoh, plug-ins; each only if
             its table is enabled).
         record: open the outputs whose role is ``recorder`` (the Rerun recording).
-        persist: open the gate (the state database, if ``[state]`` is enabled): restore the
-            last accepted twin and the alarm levels from it, save every window, serve the
-            history query. Off by default for library use and tests; the CLI turns it on.
-        watchdog: the systemd watchdog gate (ticked by the acquisition loop, busy/idle around
-            each window).
+        persist: open the gate (the state database, if ``[state]`` is enabled): resume from
+            it, save every window, serve the history query (off by default; the CLI's on).
+        watchdog: the systemd watchdog gate (ticked by the acquisition, busy/idle by the worker).
         reuse: what a reload hands over from the running daemon (:meth:`handover`): open
-            outputs (registry name -> sink) whose table and context are unchanged
-            (:meth:`~twinwatch.sinks.base.Sink.keeps`), adopted instead of opening new ones,
-            and under ``"driver"`` its open driver (the ``[driver]`` table unchanged: the
-            source goes on where it was, nothing is opened again). They stay the running
-            daemon's until :meth:`continue_from` (a failed start leaves them open and bound
-            to it); one that does not fit is left alone.
+            outputs (registry name -> sink) adopted when they fit
+            (:meth:`~twinwatch.sinks.base.Sink.keeps`), and under ``"driver"`` its open driver.
+            They stay the running daemon's until :meth:`continue_from` (a failed start leaves
+            them open and bound to it).
         resume: restore the saved twin and alarm levels from the state database (False:
-            start from the nameplate values, ``twinwatch run --fresh``; a reload restores
-            them in :meth:`continue_from`, once the previous daemon has finished). None (the
-            default): resume unless the source's time starts over when it opens (a simulated
-            plant from t = 0, a replayed recording:
-            :meth:`~twinwatch.drivers.base.Driver.time_starts_over`): such a run is a new
-            run, not the continuation of the stored one (:attr:`new_run`).
+            ``twinwatch run --fresh``; a reload restores them in :meth:`continue_from`).
+            None: resume unless the source's time starts over when it opens
+            (:meth:`~twinwatch.drivers.base.Driver.time_starts_over`: a new run,
+            :attr:`new_run`).
         run_id: the run id every health message carries (a reload passes the running
             daemon's: the same run goes on); None: a new one (:func:`new_run_id`).
-        defer: outputs (registry names) not to open yet: the running daemon holds their file
-            or port (a reload that changed their table, :meth:`handover`'s ``wait``);
-            :meth:`open_deferred` opens them once it has released them.
+        defer: outputs (registry names) not to open yet (:meth:`handover`'s ``wait``):
+            :meth:`open_deferred` opens them once the running daemon has released them.
         wait_for_source: a live source that cannot be opened now is waited for
-            (:mod:`twinwatch.daemon.source`: the daemon starts and says what it waits for);
-            False raises instead (a reload: the running configuration goes on).
-        work_dir: the directory the files the outputs create are relative to (the state
-            database, the recording); default the working directory. A gateway gives each
-            machine its own (``<working directory>/<machine>``).
-        slots: the estimation slots the worker takes a window's processing under (a gateway:
-            one pool sized to the cores, shared by every machine; the time waited for one is
-            part of the window's queue wait; its first window staggered,
-            ``[acquisition] stagger``); None: no limit (one daemon per process).
+            (:mod:`twinwatch.daemon.source`); False raises instead (a reload).
+        work_dir: the directory the files the outputs create are relative to; default the
+            working directory (a gateway: ``<working directory>/<machine>``).
+        slots: the estimation slots the worker takes a window's processing under (a
+            gateway's, shared by every machine; the first window staggered, ``[acquisition]
+            stagger``); None: no limit.
         shared: what the daemons of one process share (a gateway's
-            :class:`~twinwatch.sinks.base.SharedResources`: the Zenoh session), given to the
-            outputs in their context; None: each output opens its own.
-        thread_prefix: the worker thread is ``<prefix>-adaptation``, the outputs' thread
-            ``<prefix>-outputs`` (a gateway names each machine's).
+            :class:`~twinwatch.sinks.base.SharedResources`); None: each output opens its own.
+        thread_prefix: the threads are ``<prefix>-adaptation`` and ``<prefix>-outputs``.
 
     Attributes:
-        acquisition: the driver and ring buffer and the loop between them
-            (:class:`~twinwatch.daemon.acquisition.Acquisition`).
-        worker: the window worker (:class:`~twinwatch.daemon.window_worker.WindowWorker`).
-        pipeline: what a window goes through (:class:`~twinwatch.daemon.pipeline.
-            WindowPipeline`: the twin's adapter, the alarms, the diagnosis).
-        outputs: the sinks (:class:`~twinwatch.daemon.outputs.Outputs`).
+        acquisition, worker, pipeline, outputs: the parts
+            (:class:`~twinwatch.daemon.acquisition.Acquisition`,
+            :class:`~twinwatch.daemon.window_worker.WindowWorker`,
+            :class:`~twinwatch.daemon.pipeline.WindowPipeline`,
+            :class:`~twinwatch.daemon.outputs.Outputs`).
         restored, resumed: what was resumed from the state database
             (:func:`twinwatch.daemon.resume.restore`), or None.
-        sinks: registry name -> the open output, in the order each window is written to them
-            (the gate first: stored before published).
-        run_id: this run's id (in every health message and stored row; kept by a reload).
-        new_run: set when the state database holds this machine's earlier windows that were
-            not resumed because the source's time starts over (``resume`` not given):
-            ``reason``, ``path`` (the database), ``run`` (the id of the last stored run);
-            None otherwise.
+        new_run: the stored windows not resumed because the source's time starts over
+            (:func:`~twinwatch.daemon.resume.note_new_run`), or None.
 
     Raises:
-        twinwatch.drivers.base.DriverInitializationError, twinwatch.errors.SinkError (its
-        subclasses PublisherError, RecorderError, StoreError, a plug-in's), PluginError,
-        ValueError: on a start-up problem, with a message that says what to fix. Every
-        exclusive resource is taken before any file is touched (the outputs open in their
-        ``open_order``: the Zenoh port, the state database's lock, the recording's lock),
-        and the device last.
+        twinwatch.drivers.base.DriverInitializationError, twinwatch.errors.SinkError (and
+        subclasses), PluginError, ValueError: on a start-up problem, saying what to fix.
+        Every exclusive resource is taken before any file is touched, the device last.
     """
 
     def __init__(
@@ -241,9 +216,7 @@ class Daemon:
         self.outputs.wire(attach=False)  # an adopted output serves the running daemon until then
 
     # -- the parts' state, as the callers read it -------------------------------------------
-    run_id: Forward[str] = Forward(
-        "pipeline.run", "This run's id (in every health message and stored row; kept by a "
-        "reload).")
+    run_id: Forward[str] = Forward("pipeline.run", "This run's id (kept by a reload).")
     adapter: Forward[TwinAdapter] = Forward(
         "pipeline.adapter", "The twin's estimation, discovery and prognostics.")
     estimator: Forward[Estimator] = Forward(
@@ -253,26 +226,18 @@ class Daemon:
     ring: Forward[RingBuffer] = Forward("acquisition.ring", "The acquisition's ring buffer.")
     driver: Forward[Driver | None] = Forward(
         "acquisition.driver", "The open driver (None before it opens and after :meth:`close`).")
-    ended: Forward[str | None] = Forward(
-        "acquisition.ended", "Why :meth:`run` returned by itself: the end of the source, the "
-        "duration reached, a driver failure; None otherwise.")
+    ended: Forward[str | None] = Forward("acquisition.ended", ":attr:`Acquisition.ended`.")
     failure: Forward[str | None] = Forward(
         "acquisition.failure", "The driver's failure line (the CLI exits 1), or None.")
     queue_waits: Forward[deque[float]] = Forward(
-        "worker.queue_waits", "Seconds each window waited between its submission and the start of "
-        "its processing (the queue, and in a gateway the estimation slot), the last QUEUE_WAITS "
-        "windows.")
-    overruns: Forward[int] = Forward(
-        "worker.overruns", "Windows of a live source dropped because the estimation did not keep "
-        "up.")
+        "worker.queue_waits", ":attr:`WindowWorker.queue_waits` [s].")
+    overruns: Forward[int] = Forward("worker.overruns", ":attr:`WindowWorker.overruns`.")
     numeric_failures: Forward[int] = Forward(
         "worker.numeric_failures", "Windows whose processing raised.")
     dropped_at_stop: Forward[int] = Forward(
-        "worker.dropped_at_stop", "Windows queued at a stop that the worker did not reach within "
-        "``shutdown_timeout``.")
+        "worker.dropped_at_stop", ":attr:`WindowWorker.dropped_at_stop`.")
     recent_outcomes: Forward[deque[str]] = Forward(
-        "worker.recent_outcomes", 'The last RECENT_WINDOWS outcomes: "estimated", "failed" '
-        '(numeric failure), "abandoned" (gap, bad value, ...), "overrun".')
+        "worker.recent_outcomes", ":attr:`WindowWorker.recent_outcomes`.")
 
     @property
     def abandon(self) -> bool:
@@ -309,10 +274,10 @@ class Daemon:
         """What a reload to ``config`` may do with this daemon's open outputs.
 
         Returns:
-            ``(keep, wait)``: the outputs a daemon on ``config`` may adopt open (their table
-            and context unchanged: :meth:`~twinwatch.sinks.base.Sink.keeps`), and those it may
-            open only once this daemon has released them (another table, but the same file or
-            port: :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`).
+            ``(keep, wait)``: the outputs a daemon on ``config`` may adopt open
+            (:meth:`~twinwatch.sinks.base.Sink.keeps`), and those it may open only once this
+            daemon has released them (:meth:`~twinwatch.sinks.base.SinkConfig.
+            exclusive_resources`).
         """
         return self.outputs.handover(config, create_model(config.machine.model,
                                                           config.machine.options))
@@ -347,8 +312,7 @@ class Daemon:
 
     # -- the outputs ------------------------------------------------------------------------
     sinks: Forward[dict[str, Sink]] = Forward(
-        "outputs.sinks", "Registry name -> the open output, in the order each window is written "
-        "to them (the gate first: stored before published).")
+        "outputs.sinks", "Registry name -> the open output, in writing order (the gate first).")
     store: Forward[Gate | None] = Forward(
         "outputs.store", "The gate (the state store) while it is open, or None.")
 
@@ -390,10 +354,8 @@ class Daemon:
 
         Args:
             at_window: return once the window being filled is complete instead (a reload: the
-                source, handed to the next daemon, goes on there exactly where this one
-                stopped; a replayed file neither loses nor repeats a row). A source that does
-                not complete the window within its length plus :data:`STOP_AT_WINDOW_S` of
-                wall time stops then (the partial window is dropped).
+                source goes on in the next daemon exactly where this one stopped), at most its
+                length plus :data:`STOP_AT_WINDOW_S` of wall time.
         """
         self.acquisition.stop(at_window)
 
@@ -421,10 +383,8 @@ class Daemon:
 
     def problems(self) -> list[str]:
         """What is degraded right now, for systemd's STATUS and the log (empty if nothing):
-        what the source waits for or lacks (:meth:`source_state`), estimation that fails
-        (:meth:`estimation_problem`), the diagnosis' check function (the twin does not
-        describe the machine), each output's :attr:`~twinwatch.sinks.base.Sink.problem`.
-        """
+        the source, the estimation, the diagnosis' check function, each output's
+        :attr:`~twinwatch.sinks.base.Sink.problem`."""
         out = []
         waiting, silent, faults = self.source_state()
         if waiting:
@@ -441,11 +401,8 @@ class Daemon:
         return out + self.outputs.problems()
 
     def source_state(self) -> tuple[str | None, list[str], list[str]]:
-        """What the driver waits for (a device absent, a bus being reopened; None when it
-        delivers), its silent messages and what the device reports wrong with itself
-        (:attr:`~twinwatch.drivers.base.Driver.waiting`,
-        :attr:`~twinwatch.drivers.base.Driver.silent`,
-        :attr:`~twinwatch.drivers.base.Driver.device_faults`)."""
+        """:meth:`Acquisition.source_state`: what the driver waits for, its silent messages,
+        the device's own faults."""
         return self.acquisition.source_state()
 
     def _submit(self, window: WindowData, block: bool) -> None:
@@ -459,7 +416,7 @@ class Daemon:
         """The source's state (:meth:`source_state`) when ``window``'s last sample was read:
         a drive's fault, a silent message that began after it, is not said in its health
         message, but in the next one's (on a simulated clock the acquisition runs windows
-        ahead of the estimation; before, the state was read when the message was built).
+        ahead of the estimation).
         The state now for a window that was not submitted by :meth:`run`."""
         with self._source_lock:
             state = self._source_at_window.pop(window.index, None)
@@ -468,9 +425,7 @@ class Daemon:
         return state if state is not None else self.source_state()
 
     def estimation_problem(self) -> str | None:
-        """A line when at least half of the last windows (at least 3 of at most
-        :data:`RECENT_WINDOWS`) were not estimated (numeric failures, abandoned: gaps, bad
-        values, jitter, time jumps; overruns), else None."""
+        """:meth:`WindowWorker.estimation_problem`."""
         return self.worker.estimation_problem()
 
     def windows_failed(self) -> int:
@@ -506,9 +461,7 @@ class Daemon:
         """
         assert self.driver is not None
         self.worker.start(f"{self._thread_prefix}-adaptation")
-        if self.driver.live:  # the outputs write from their own thread (a locked state
-            # database does not hold up the estimation); on a simulated clock the worker
-            # writes them
+        if self.driver.live:  # on a simulated clock the worker writes the outputs
             self.outputs.start(self._thread_prefix)
         try:
             self.acquisition.run(duration, self._submit, self.worker.abandoned)
@@ -537,14 +490,13 @@ class Daemon:
         return health
 
     def close(self, keep: Container[str] = ()) -> dict[str, Sink]:
-        """Stop everything and release the driver and the outputs (after the worker has
-        drained): the driver first, then the outputs in writing order reversed (the gate, the
-        state database, last). Idempotent.
+        """Stop everything and release the driver, then the outputs
+        (:meth:`~twinwatch.daemon.outputs.Outputs.close`), after the worker has drained.
+        Idempotent.
 
         Args:
             keep: the outputs (registry names; :data:`SINKS` for all) and ``"driver"`` to
-                leave open for a new daemon (a reload): each output is detached from this
-                daemon.
+                leave open (detached) for a reload's daemon.
 
         Returns:
             name -> output for the kept outputs.

@@ -10,14 +10,9 @@ strategy, one of two hosts:
 * :class:`~twinwatch.daemon.workers.ProcessHost`: a directory's machines in worker processes,
   each one a :class:`~twinwatch.daemon.host.Host` on the machine files it is assigned.
 
-A strategy says what one turn of the loop does (:meth:`~ServiceHost._turn`), whether its
-machines are healthy (:meth:`~ServiceHost._healthy`), what its ``STATUS`` is now, how its
-machines are asked to stop and waited for, and why a run failed.
-
-The command line holds one ``ServiceHost`` and only prints what it returns. A worker reports to
-its host in typed messages, never in prose: its machines' state as a :class:`FleetStatus` in the
-``TWINWATCH_FLEET=`` assignment of its notifications (beside the human ``STATUS=`` line), and its
-summary as one :class:`RunSummary` in JSON on its stdout.
+A strategy implements the abstract methods (one turn of the loop, health, ``STATUS``, the stop,
+why a run failed). The command line holds one ``ServiceHost`` and only prints what it returns; a
+worker reports to its host in typed messages (:class:`FleetStatus`, :class:`RunSummary`).
 """
 
 from __future__ import annotations
@@ -41,7 +36,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 __all__ = ["EX_CONFIG", "EX_IOERR", "EX_TEMPFAIL", "FLEET_REPORT", "MACHINE_GLOB", "FleetStatus",
-           "MachineSummary", "Progress", "RunSummary", "ServiceHost", "worst_exit"]
+           "MachineSummary", "Progress", "RunSummary", "ServiceHost", "gateway_total",
+           "worst_exit"]
 
 #: The machine configurations of a directory.
 MACHINE_GLOB = "*.toml"
@@ -59,6 +55,12 @@ EX_TEMPFAIL = 75
 FLEET_REPORT = "TWINWATCH_FLEET"
 """The notification assignment a worker process's host sends its :class:`FleetStatus` in (JSON,
 beside ``STATUS=``; systemd ignores assignments it does not know)."""
+
+
+def gateway_total(machines: int, lost: list[str]) -> str:
+    """A gateway's summary line: ``twinwatch gateway: 3 machines, 2 ran, 1 lost: m3 (...)``."""
+    return (f"twinwatch gateway: {machines} machines, {machines - len(lost)} ran, {len(lost)} "
+            "lost" + (": " + "; ".join(lost) if lost else ""))
 
 
 class _Report(BaseModel):
@@ -161,9 +163,8 @@ class ServiceHost(ABC):
     ended or a stop, then :meth:`summary`.
 
     Signals, installed by :meth:`start` in the main thread: SIGTERM/SIGINT call :meth:`stop` (a
-    second one :meth:`abandon`), SIGHUP :meth:`reload`. Once a stop was requested the handlers
-    stay installed to the end of the process (a second SIGTERM still on its way must find them,
-    not the default action).
+    second one :meth:`abandon`), SIGHUP :meth:`reload`; once a stop was requested they stay
+    installed to the end of the process.
 
     Attributes:
         fleet: a directory of machines (one block per machine in the summary).
@@ -323,8 +324,7 @@ class ServiceHost(ABC):
 
     def _restore_signal_handlers(self) -> None:
         if threading.current_thread() is not threading.main_thread() or self._stop_signals:
-            # stopping: a second SIGTERM still on its way (systemd, an operator) must find our
-            # handler, not the default action (exit -15 after a clean stop)
+            # stopping: a late SIGTERM must find our handler (see the class)
             return
         for signum, handler in self._previous_handlers.items():
             signal.signal(signum, handler)

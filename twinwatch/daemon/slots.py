@@ -28,9 +28,8 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-#: Machines one worker process takes by default (measured on 2 cores, issue 22: 50 machines in
-#: one process, 0 overruns and a 1 ms median queue wait; 100 in one process, its interpreter
-#: lock the limit, windows wait seconds and overrun).
+#: Machines one worker process takes by default (more, and its interpreter lock is the limit:
+#: docs/gateway.md).
 MACHINES_PER_WORKER = 50
 
 
@@ -72,9 +71,7 @@ class EstimationSlots:
 
     def _wake_head(self) -> None:
         """Wake the first in line, only it (the lock held): the others have nothing to do
-        until they are first. (Waking every waiter at each release, as a condition's
-        ``notify_all`` did, cost a worker of 50 machines with a backlog about 100 thread
-        switches a window: measured, context switches tripled once the box was saturated.)"""
+        until they are first (waking every waiter cost thread switches)."""
         if self._line:
             self._line[0][1].set()
 

@@ -1,32 +1,22 @@
-"""Sources that come and go: a live source is opened with retries and reopened when it fails.
+"""Sources that come and go: a live source is opened with retries and reopened when it fails
+(docs/sources.md).
 
-A machine's bus or device is not always there when the daemon is: a CAN gateway that boots
-two minutes after the edge PC, a PLC being reprogrammed (its Modbus server answers exception 02
-for a while), a TCP gateway that drops its connection, a bus that goes bus-off. Before this
-module any of these stopped the unit (exit 1) and, under systemd's restart limits, left it
-failed. :class:`SourceKeeper` wraps the driver of a *live* source (one whose driver class says
-:meth:`~twinwatch.drivers.base.Driver.reopens`: a CAN bus, not a log replay; a Modbus device)
-and keeps it open:
+:class:`SourceKeeper` wraps the driver of a *live* source (its class says
+:meth:`~twinwatch.drivers.base.Driver.reopens`: a CAN bus, a Modbus device; not a log replay):
 
 * at start, a source that cannot be opened (:class:`~twinwatch.errors.DriverInitializationError`,
-  an ``OSError``) is retried in a thread of its own (``twinwatch-source``) with a capped,
-  jittered exponential backoff (0.5 s doubling up to ``[acquisition] reopen_max``, 30 s by
-  default, each delay drawn in [50 %, 100 %] of the step) until it opens or the daemon stops;
-  the daemon is up meanwhile: READY is sent, STATUS and the health message say what it waits
-  for (:attr:`SourceKeeper.waiting`), the watchdog stays fed. A configuration error
-  (:class:`~twinwatch.errors.DriverConfigError`: a DBC without the message, ...) still fails
-  at once (exit 78), and so does a finite source (a file, a log replay: nothing to wait for);
-* at a reload (``wait=False``) the first attempt is made once: a source that cannot open fails
-  the reload and the running configuration goes on (docs/architecture.md, lifecycle);
-* while running, a driver that gives up (:class:`~twinwatch.errors.DriverOperationError`: a
-  connection closed, a bus gone bus-off or silent for its ``reopen_after``, a Modbus device that
-  refuses the register map) is closed and opened again with the same backoff; the acquisition
-  loop's reads return None meanwhile after their timeout (waiting on an event: no spinning).
+  an ``OSError``) is retried in its own thread (``twinwatch-source``) with a capped, jittered
+  exponential backoff (0.5 s doubling up to ``[acquisition] reopen_max``, each delay drawn in
+  [50 %, 100 %] of the step) until it opens or the daemon stops; meanwhile READY is sent,
+  STATUS and the health message say what it waits for (:attr:`SourceKeeper.waiting`). A
+  :class:`~twinwatch.errors.DriverConfigError` or a finite source still fails at once;
+* at a reload (``wait=False``) one attempt is made: a failure fails the reload;
+* while running, a driver that gives up (:class:`~twinwatch.errors.DriverOperationError`) is
+  closed and opened again with the same backoff; reads return None meanwhile after their
+  timeout.
 
-The counters of every driver the keeper opened add up (:attr:`stats`): a reopened driver's
-counters start from zero, the published ones never go back; the keeper adds
-``open_failures`` (attempts that failed) and ``reopens`` (times a failed source was opened
-again).
+The counters of every driver the keeper opened add up (:attr:`stats`; the published ones never
+go back), plus ``open_failures`` and ``reopens``.
 """
 
 from __future__ import annotations
@@ -128,8 +118,7 @@ class SourceKeeper(Driver):
 
     @live.setter
     def live(self, value: bool) -> None:
-        """Refused: the keeper's liveness is its open driver's (``Driver.live`` is a class
-        attribute a driver sets; the setter only keeps the override an attribute's).
+        """Refused (``Driver.live`` is a class attribute; the keeper's is its driver's).
 
         Raises:
             AttributeError: always.
@@ -297,10 +286,8 @@ class SourceKeeper(Driver):
                 self._missing(exc, first=False)
             else:
                 with self._lock:
-                    if self._stopping.is_set():
-                        closed = True
-                    else:
-                        closed = False
+                    closed = self._stopping.is_set()
+                    if not closed:
                         self._inner = driver
                         self._own.extra["reopens"] += 1
                 if closed:

@@ -1,38 +1,26 @@
-"""One machine's lifecycle: start, reload with fallback, sink handover, stop.
+"""One machine's lifecycle: start, reload with fallback, sink handover, stop (docs/service.md).
 
 :class:`Supervisor` runs one machine for the service host (:class:`~twinwatch.daemon.host.Host`,
-which owns the signals, systemd, the summary and the exit status: ``twinwatch run``). It never
-touches signal handlers; the host calls :meth:`Supervisor.stop` and :meth:`Supervisor.reload`.
-In the machine's thread it
+which owns the signals, systemd, the summary and the exit status). It never touches signal
+handlers; the host calls :meth:`Supervisor.stop` and :meth:`Supervisor.reload`. In the
+machine's thread it
 
-* opens every daemon (the driver, the sinks, the twin's compiled kernels) in a thread of its
-  own (``twinwatch-start``, ``twinwatch-reload``), never in the main thread: a driver or library
-  that takes long to open (a device that does not answer) cannot hold up a stop. A stop
-  requested while a daemon is being opened abandons it (closed once it is open) and returns at
-  once, at start and at a reload alike.
-* tells its notifier where it is (``READY=1`` with a status line, ``RELOADING=1``,
-  ``STOPPING=1``, ``EXTEND_TIMEOUT_USEC`` for the shutdown: the host decides what of it reaches
-  systemd) and marks the watchdog through the daemon
-  (:class:`~twinwatch.daemon.systemd.Watchdog`: the host reads it).
-* on SIGHUP, re-reads the configuration *while acquisition goes on* (a tick of the daemon's
-  loop). A configuration that does not validate is refused (logged, naming the key) and the
-  running one goes on. A valid one is built beside the running daemon, which keeps acquiring
-  meanwhile: the driver (its ``[driver]`` table unchanged) and the outputs whose table is
-  unchanged (each output's :meth:`~twinwatch.sinks.base.Sink.reload_key`: the Zenoh session, the
-  Rerun file, the state database) are shared with it, the others opened anew (an output that
-  keeps its file or port, :meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`, is
-  opened only once the old one has released it: :meth:`Daemon.handover`). If the new daemon
-  cannot start (a device, a port), the reload fails and the running daemon goes on untouched:
-  same source, same run, window numbering going on. Once it has started, the running daemon
-  stops at its next window boundary, finishes its queued windows and releases what it does not
-  hand over; the new one continues the window numbering, resumes the twin and alarm levels from
-  the state database and reads on from the same source (a recording replayed goes on where it
-  stopped).
-* rate-limits third-party log floods (:mod:`twinwatch.daemon.logfilter`: it reports what was
-  suppressed from the acquisition loop, after a reload attempt and at stop).
+* opens every daemon in a thread of its own (``twinwatch-start``, ``twinwatch-reload``): a
+  stop requested meanwhile abandons the opening (closed once open) and returns at once.
+* tells its notifier where it is (``READY=1``, ``RELOADING=1``, ``STOPPING=1``,
+  ``EXTEND_TIMEOUT_USEC``) and marks the watchdog through the daemon.
+* on SIGHUP, re-reads the configuration while acquisition goes on. An invalid one is refused
+  (logged, naming the key). A valid one is built beside the running daemon, sharing the driver
+  (``[driver]`` unchanged) and the outputs whose
+  :meth:`~twinwatch.sinks.base.Sink.reload_key` is unchanged; an output holding a file or port
+  (:meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`) is opened once the old one
+  released it (:meth:`Daemon.handover`). If it cannot start, the running daemon goes on
+  untouched; else the running daemon stops at its next window boundary, finishes its queued
+  windows, and the new one continues the window numbering, resumes the twin and alarm levels
+  and reads on from the same source.
+* rate-limits third-party log floods (:mod:`twinwatch.daemon.logfilter`).
 
-The supervisor never reads files itself: ``load`` (given by the caller) returns the validated
-configuration, at start and at each reload.
+The supervisor never reads files itself: ``load`` returns the validated configuration.
 """
 
 from __future__ import annotations
@@ -168,19 +156,13 @@ class Supervisor:
             naming the bad key.
         base_dir: directory relative paths in the configuration are resolved against.
         source: how to name the configuration in messages (its path).
-        resume: resume the twin and alarm levels saved in the state database at start
-            (False: the nameplate values, ``twinwatch run --fresh``; True: also on a source
-            whose time starts over, ``--resume``; None: unless the source's time starts over,
-            a simulated plant or a replay; a reload always resumes, in the same run).
+        resume: as the :class:`~twinwatch.daemon.runner.Daemon`'s, at start (``--fresh``:
+            False, ``--resume``: True); a reload always resumes, in the same run.
         notifier: where systemd's notifications go (default: the process's own, from
-            ``NOTIFY_SOCKET``); a gateway gives each machine a silent one (the gateway tells
-            systemd about them all).
+            ``NOTIFY_SOCKET``; a gateway's machines: their host).
         watchdog: the watchdog its daemons tick and mark busy/idle (default: one on the
-            notifier); a gateway gives each machine one that pings nothing and reads it to
-            find a stuck machine.
-        work_dir, slots, shared: handed to every :class:`~twinwatch.daemon.runner.Daemon`
-            (a gateway's per-machine directory, its estimation slots, its shared Zenoh
-            session).
+            notifier; a gateway's machines: one the host reads).
+        work_dir, slots, shared: handed to every :class:`~twinwatch.daemon.runner.Daemon`.
         thread_prefix: prefixes the names of the opening threads (``twinwatch-start``).
 
     Attributes:
@@ -220,9 +202,8 @@ class Supervisor:
 
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
-        """Load the configuration, open the daemon (driver and
-        sinks) and compile the twin in the ``twinwatch-start`` thread, and tell systemd
-        ``READY=1``.
+        """Load the configuration, open the daemon in the ``twinwatch-start`` thread, and tell
+        systemd ``READY=1``.
 
         Raises:
             ValueError: the configuration is invalid (from ``load``; systemd's status says so).
@@ -439,7 +420,7 @@ class Supervisor:
     def run(self, duration: float | None = None) -> None:
         """Acquire and estimate until the source ends, ``duration`` seconds of source time
         have been acquired, or a stop signal; restart the daemon on each valid reload. Closes
-        the daemon (driver, Zenoh, the Rerun file, the state database) before returning.
+        the daemon before returning.
 
         Raises:
             StartError: after a reload, neither the new nor the previous configuration could
@@ -472,8 +453,6 @@ def _start_errors() -> Iterator[None]:
     nothing); a driver's configuration error is marked as such (``run`` exits 78)."""
     from twinwatch.errors import DriverConfigError, DriverError, PluginError, SinkError
 
-    # each output raises a SinkError subclass (PublisherError, RecorderError, StoreError, a
-    # plug-in's own) that says what failed and what to do
     try:
         yield
     except StartError:

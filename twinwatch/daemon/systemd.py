@@ -7,11 +7,9 @@ assignments per notification: ``READY=1``, ``STATUS=...``, ``WATCHDOG=1``, ``REL
 (with ``MONOTONIC_USEC=``, required by ``Type=notify-reload`` from systemd 253), ``STOPPING=1``,
 ``EXTEND_TIMEOUT_USEC=``. Outside systemd (no ``$NOTIFY_SOCKET``) every call is a no-op.
 
-Why not a library: ``systemd-python`` needs libsystemd headers and a C compiler on the target (a
-fresh edge PC has neither); ``sdnotify`` (0.3.2, last release 2019) is 40 lines that swallow every
-exception with a bare ``except``, connect once (a datagram to a socket systemd re-created after
-``daemon-reexec`` is lost) and know nothing of the watchdog interval or ``MONOTONIC_USEC``. The
-protocol itself is the ~30 lines of :meth:`Notifier.notify`, tested against a real socket.
+Not a library: ``systemd-python`` needs libsystemd headers and a C compiler on the target;
+``sdnotify`` swallows every exception, connects once and knows nothing of the watchdog interval
+or ``MONOTONIC_USEC``. The protocol is :meth:`Notifier.notify`, tested against a real socket.
 
 Errors never propagate: a monitoring daemon must not stop because systemd did not hear it. The
 first failure is logged as a WARNING, later ones at DEBUG (the watchdog will say the rest).
@@ -37,11 +35,6 @@ _STATE_CHANGES = frozenset({"READY", "RELOADING", "STOPPING"})
 __all__ = ["Notifier", "Watchdog"]
 
 
-def _monotonic_usec() -> int:
-    """CLOCK_MONOTONIC in microseconds (the clock systemd compares ``MONOTONIC_USEC`` with)."""
-    return time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
-
-
 class Notifier:
     """Sends ``sd_notify`` messages to the service manager; a no-op outside systemd.
 
@@ -57,13 +50,10 @@ class Notifier:
             meant for another process (``WATCHDOG_PID`` differs from our pid).
         dropped: notifications dropped because the manager's queue was full.
 
-    Thread-safe: each notification is one ``sendto`` under a lock. It never blocks the
-    caller on a full queue (a Unix datagram socket queues 10 datagrams by default,
-    ``net.unix.max_dgram_qlen``, and a blocking ``sendto`` waits until the reader takes one: a
-    notify socket nobody read hung a daemon's acquisition thread for good). A state change
-    (``READY``, ``RELOADING``, ``STOPPING``) is tried for up to :data:`STATE_WAIT` seconds; a
-    watchdog ping or a STATUS line that finds the queue full is dropped, counted in
-    ``dropped`` and logged once per episode (the next one says the same or newer).
+    Thread-safe: each notification is one ``sendto`` under a lock, never blocking the caller
+    on a full queue (``net.unix.max_dgram_qlen``: 10 datagrams by default). A state change is
+    tried for up to :data:`STATE_WAIT` seconds; a watchdog ping or a STATUS line that finds the
+    queue full is dropped, counted in ``dropped`` and logged once per episode.
     """
 
     def __init__(self, *, env: Mapping[str, str] | None = None,
@@ -177,7 +167,9 @@ class Notifier:
     def reloading(self, status: str | None = None) -> bool:
         """``RELOADING=1`` with ``MONOTONIC_USEC``: a reload (SIGHUP) started. Send
         :meth:`ready` when the new configuration runs (or the old one was kept)."""
-        return self.notify("RELOADING=1", f"MONOTONIC_USEC={_monotonic_usec()}",
+        # CLOCK_MONOTONIC [us]: the clock systemd compares MONOTONIC_USEC with
+        usec = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
+        return self.notify("RELOADING=1", f"MONOTONIC_USEC={usec}",
                            *self._status(status))
 
     def stopping(self, status: str | None = None) -> bool:
@@ -213,25 +205,14 @@ class Watchdog:
     """When to send ``WATCHDOG=1``: from the acquisition loop, at the notifier's interval, and
     only while windows are being processed.
 
-    The acquisition loop calls :meth:`tick` every 50 ms while a live source's samples arrive
-    (every sample for one on a simulated clock) and after each read that had none
-    (``Driver.read`` returns within 0.2 s, with or without a sample), so a hung
-    driver read or a dead main loop stops the pings.
-    The worker calls :meth:`busy` before and :meth:`idle` after each window. The pings stop, and
-    systemd restarts the service (``Restart=on-failure`` covers the watchdog), when
-
-    * the worker has been in one window for more than ``max_busy`` seconds (stuck), or
-    * with ``require_windows`` (``[acquisition] watchdog = "windows"``, the default), no window
-      has finished for more than ``max_quiet`` seconds: the source went silent (the runner
-      reports the stall after ``stall_timeout``; if the driver does not recover it within
-      ``WatchdogSec=``, a fresh process is the next recovery step). A source the driver
-      reports it is recovering (:attr:`source_waiting`: a device absent at start, a gateway
-      being reopened with backoff) does not count as quiet: the process is at work, STATUS
-      says what it waits for, and a restart could do no more.
-
-    With ``require_windows`` off (``watchdog = "alive"``, for machines that are idle for long,
-    e.g. switched off at night) a silent source does not stop the pings: the stall is reported
-    and the daemon waits for data instead of restarting every ``WatchdogSec=``.
+    The acquisition loop calls :meth:`tick` (:data:`~twinwatch.daemon.acquisition.TICK_S`, and
+    after each empty read), so a hung driver read or a dead main loop stops the pings; the
+    worker calls :meth:`busy` before and :meth:`idle` after each window. The pings stop (and
+    systemd restarts the service) when the worker has been in one window for more than
+    ``max_busy`` seconds, or, with ``require_windows`` (``[acquisition] watchdog =
+    "windows"``), no window has finished for more than ``max_quiet`` seconds, unless the driver
+    reports it is recovering the source (:attr:`source_waiting`). With ``watchdog = "alive"``
+    a silent source is reported and waited for instead.
 
     Args:
         notifier: where to send the pings.
@@ -262,9 +243,7 @@ class Watchdog:
         self._why_logged: str | None = None
         self.pings = 0
         #: returns True while the driver is recovering a source it reports as absent
-        #: (:attr:`~twinwatch.drivers.base.Driver.waiting`): no window is expected then, the
-        #: pings go on (the outage is in STATUS), so a source that comes late or goes away for
-        #: a while does not restart the service into its start limit
+        #: (:attr:`~twinwatch.drivers.base.Driver.waiting`): the pings go on (STATUS says it)
         self.source_waiting: Callable[[], bool] = lambda: False
 
     @property

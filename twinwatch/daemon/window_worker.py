@@ -6,13 +6,11 @@ prognostics, :class:`~twinwatch.twin.adaptation.TwinAdapter`; the health message
 diagnosis; the alarms). :class:`WindowWorker` runs it, one window at a time, in its own thread
 (``<prefix>-adaptation``), so acquisition is never blocked by the optimiser.
 
-Between the acquisition and the worker a bounded queue. For a live source (a bus, a real-time
-replay) a full queue means the estimation does not keep up: the window is dropped and counted
-as an *overrun* (published in every health message). For a source on a simulated clock (the
-simulated plant or a file replayed as fast as possible) the acquisition waits instead, so no
-window is ever lost. In a gateway the worker takes a window's processing under one of the
-process's estimation slots (:class:`~twinwatch.daemon.slots.EstimationSlots`); the time waited
-for one is part of the window's queue wait.
+Between the acquisition and the worker a bounded queue: for a live source a full queue drops
+the window as an *overrun* (counted in every health message); on a simulated clock the
+acquisition waits instead. In a gateway a window is processed under one of the process's
+estimation slots (:class:`~twinwatch.daemon.slots.EstimationSlots`), its wait part of the
+window's queue wait.
 """
 
 from __future__ import annotations
@@ -36,7 +34,7 @@ if TYPE_CHECKING:
     from twinwatch.daemon.systemd import Watchdog
     from twinwatch.twin.model import TwinModel, WindowData
 
-# the daemon's log lines keep the logger name they had before it was split (journal filters)
+# the daemon's parts log as twinwatch.daemon.runner (journal filters)
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
 __all__ = ["QUEUE_WAITS", "RECENT_WINDOWS", "WindowWorker", "make_diagnoser", "make_pipeline"]
@@ -117,9 +115,8 @@ class WindowWorker:
             (``[acquisition] abandon_on_stop``; a second SIGTERM sets it).
 
     Attributes:
-        queue_waits: seconds each window waited between its submission and the start of its
-            processing (the queue, and in a gateway the estimation slot), the last
-            :data:`QUEUE_WAITS` windows.
+        queue_waits: seconds each of the last :data:`QUEUE_WAITS` windows waited from its
+            submission to the start of its processing (the queue, and a gateway's slot).
         overruns: windows of a live source dropped because the queue was full.
         numeric_failures: windows whose processing raised.
         dropped_at_stop: windows queued at a stop that the worker did not reach within the
@@ -173,8 +170,7 @@ class WindowWorker:
             self.overruns += 1
             self.recent_outcomes.append("overrun")
             waiting = self._backpressure()
-            # said at the first overrun of each cause and at the 10th, 100th, ... (counted
-            # in every window: `overruns`); a box that cannot keep up logged every window
+            # said at the first overrun of each cause and at the 10th, 100th, ...
             cause = "outputs" if waiting is not None else "estimation"
             first = cause not in self._overrun_causes
             self._overrun_causes.add(cause)
@@ -260,8 +256,7 @@ class WindowWorker:
     def _window_failed(self, exc: Exception | None, index: int) -> None:
         """A window's failure is logged once, then counted: the same failure again (its type
         and message) only adds to the count; a different one, or the first window estimated
-        again, is logged with how many times the previous one repeated (a machine whose
-        every window raises logged one ERROR a window, about 1,800 an hour)."""
+        again, is logged with how many times the previous one repeated."""
         key = None if exc is None else f"{type(exc).__name__}: {exc}"
         last, repeats = self._failure
         if key is not None and key == last:

@@ -1,48 +1,28 @@
-"""Every core: the host spreads a directory's machines over worker processes.
+"""Every core: the host spreads a directory's machines over worker processes (docs/gateway.md).
 
-One Python process estimates on one core (the GIL serialises the Python stages of every
-machine's window), and a native abort in it takes every machine of it down. With ``twinwatch
-run DIR --workers N`` (default: one per core) the service host (:class:`ProcessHost`) starts
+With ``twinwatch run DIR --workers N`` (default: one per core) :class:`ProcessHost` starts
 ``N`` worker processes, each one ``twinwatch run DIR --assignment FILE``: the same
-:class:`~twinwatch.daemon.host.Host` on the machines its assignment file names, in threads, as
-in one process. What crosses between the host and a worker:
+:class:`~twinwatch.daemon.host.Host` on the machines its assignment file names. What crosses:
 
-* **down**: the assignment file (the machine files it runs; rewritten atomically, then
-  SIGHUP), SIGHUP (re-read it and the machines' files), SIGTERM (stop; a second one abandons
-  the queued windows);
-* **up**, in typed messages (:mod:`twinwatch.daemon.service`), never in prose: systemd's
-  notification protocol on a datagram socket of the host's per worker (``NOTIFY_SOCKET``:
-  ``READY=1``, its machines monitored and degraded as a
-  :class:`~twinwatch.daemon.service.FleetStatus` in ``TWINWATCH_FLEET=`` (JSON) beside its human
-  ``STATUS=``, ``WATCHDOG=1`` while one of its machines is healthy, ``STOPPING=1``), the
-  worker's :class:`~twinwatch.daemon.service.RunSummary` as one JSON document on its stdout
-  (read once it ended), its log lines on the host's stderr (the journal), and its exit status.
+* **down**: the assignment file (rewritten atomically, then SIGHUP), SIGHUP, SIGTERM (a second
+  one abandons the queued windows);
+* **up**, typed (:mod:`twinwatch.daemon.service`), never prose: systemd's notification protocol
+  on a datagram socket per worker (``READY=1``, a
+  :class:`~twinwatch.daemon.service.FleetStatus` in ``TWINWATCH_FLEET=`` beside ``STATUS=``,
+  ``WATCHDOG=1``, ``STOPPING=1``), the worker's
+  :class:`~twinwatch.daemon.service.RunSummary` as one JSON document on its stdout, its log
+  lines on the host's stderr, and its exit status.
 
-The host tells systemd READY once every worker did, keeps one STATUS line (the workers' machines
-summed, the degraded ones by name), pings the watchdog while a worker is healthy, and at the end
-prints the workers' summaries with one total line and exits with the worst status.
+A worker that dies (a signal ended it) is started again at once with ``--resume``; one that
+dies 5 times within 120 s is given up (its machines are lost). One that ended by itself is
+started again only by a SIGHUP that finds its machines not running. One that sends nothing for
+a window plus :data:`STALL_MARGIN` is **stalled** (not monitored, no watchdog ping, exit 74) and
+after ``[acquisition] stalled_restart`` seconds (0: never) killed and started with ``--resume``.
 
-A worker that dies (SIGKILL, SIGABRT, out of memory: a signal ended it) is started again at
-once with ``--resume``: its machines resume their twins from their state databases; the other
-workers are untouched. One that dies 5 times within 120 s is given up (its machines are lost).
-A worker that ended by itself (its machines' sources finished) is started again only by a
-SIGHUP that finds its machines not running.
-
-A worker that is alive but sends nothing (SIGSTOP, a freeze holding its main loop) for one
-window (its machines' longest) plus :data:`STALL_MARGIN` is **stalled**: its machines are
-counted as not monitored and named in STATUS, it no longer keeps the watchdog pinged, and the
-run's summary and exit status (74) say so. After ``[acquisition] stalled_restart`` seconds
-stalled (default 30; 0: never) it is killed and started again with ``--resume``, as systemd's
-watchdog would restart a frozen service; one that sends again first is back.
-
-Placement: machines whose ``[zenoh]`` tables are the same share one session and its listening
-port, machines naming one ``[outputs.opcua]`` endpoint share one OPC UA server, and machines
-naming one Sparkplug edge node (``[outputs.sparkplug]`` broker, ``group_id``,
-``edge_node_id``) are devices of one MQTT session, so they go to the same worker (a second
-process could not listen on the port, a second session of the edge node would take the first
-one's over); the other machines (Zenoh off, or a session of their own) are spread to balance
-the workers. A machine keeps its worker across reloads; a new file goes to the worker with
-fewest machines.
+Placement: machines sharing a ``[zenoh]`` session, an ``[outputs.opcua]`` endpoint or a
+Sparkplug edge node (broker, ``group_id``, ``edge_node_id``) go to the same worker; the others
+are spread to balance the workers. A machine keeps its worker across reloads; a new file goes
+to the worker with fewest machines.
 """
 
 from __future__ import annotations
@@ -73,6 +53,7 @@ from twinwatch.daemon.service import (
     MachineSummary,
     RunSummary,
     ServiceHost,
+    gateway_total,
     worst_exit,
 )
 from twinwatch.daemon.systemd import Notifier
@@ -108,14 +89,10 @@ OPCUA_ENDPOINT = "opc.tcp://127.0.0.1:4840"
 
 def session_keys(path: Path) -> tuple[str, ...]:
     """What ties a machine file to others, each key a resource one process must hold for
-    every machine that names it: its ``[zenoh]`` table when Zenoh is on (machines configured
-    alike share one session and its port), its ``[outputs.opcua]`` endpoint when that output
-    is on (machines naming one endpoint share one server), its ``[outputs.sparkplug]`` edge
-    node when it names one (broker, ``group_id``, ``edge_node_id``: the machines of one edge
-    node are devices of one MQTT session; two processes' sessions of one edge node would take
-    each other's over); else its machine's name (two files
-    naming one machine, a file renamed: one process decides which runs); the file itself when
-    it cannot be read."""
+    every machine that names it (the module's "Placement"): its ``[zenoh]`` table when Zenoh
+    is on, its ``[outputs.opcua]`` endpoint, its ``[outputs.sparkplug]`` edge node; else its
+    machine's name (two files naming one machine: one process decides which runs); the file
+    itself when it cannot be read."""
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
@@ -196,9 +173,8 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
 
 def worker_processes(directory: Path, workers: int | None) -> int:
     """The worker processes a directory's machines run in: ``workers`` (default
-    :func:`~twinwatch.daemon.slots.default_processes`), at most one per session group
-    (:func:`session_groups`: a group cannot be split); 1 (every machine in the host process)
-    for a directory of fewer than two machines.
+    :func:`~twinwatch.daemon.slots.default_processes`), at most one per session group; 1 for a
+    directory of fewer than two machines.
 
     Args:
         directory: the machine configurations (``*.toml``).
@@ -368,8 +344,7 @@ class Worker:
 
 class ProcessHost(ServiceHost):
     """The service host of a directory, its machines in ``workers`` processes (see the module
-    docstring). Owns the signals, systemd, the reload, the stop, the summary and the exit
-    status, as :class:`~twinwatch.daemon.host.Host` does in one process.
+    docstring): the :class:`~twinwatch.daemon.service.ServiceHost` contract.
 
     Args:
         directory: the machine configurations (``*.toml``).
@@ -536,7 +511,6 @@ class ProcessHost(ServiceHost):
                 w.proc.kill()  # SIGKILL ends a stopped process too
 
     def _healthy(self, interval: float) -> bool:
-        """A worker is healthy (it reported within the interval and is not stalled)."""
         return any(w.healthy(interval) for w in self.workers)
 
     def _refresh_status(self) -> None:
@@ -665,8 +639,7 @@ class ProcessHost(ServiceHost):
         restarted = sum(1 for w in self.workers for c in w.codes if c < 0)
         stalls = [f"worker {w.index} {w.stalls} time{'s' if w.stalls > 1 else ''} "
                   f"({', '.join(p.stem for p in w.files)})" for w in self.workers if w.stalls]
-        total = (f"twinwatch gateway: {len(counted)} machines, {len(counted) - len(lost)} "
-                 f"ran, {len(lost)} lost" + (": " + "; ".join(lost) if lost else "")
+        total = (gateway_total(len(counted), lost)
                  + f" ({len(self.workers)} worker processes, {restarted} restarted"
                  + (f"; stalled: {'; '.join(stalls)}: their machines' windows meanwhile were "
                     f"not estimated" if stalls else "") + ")")

@@ -38,11 +38,8 @@ class Gap:
         missed: windows zenoh's sample-miss detection counted (not received live, not
             recovered from the publisher's cache).
         recovered: the windows the history query returned that this watcher had not seen,
-            oldest first (their window numbers). The query is not bounded above (a bound
-            taken from what has arrived could cut a gap whose next window is still on its
-            way), so it can also return a window published after the gap before its live
-            copy arrives: ``len(recovered)`` may exceed ``missed``; each window is delivered
-            once.
+            oldest first (their window numbers). The query is not bounded above, so
+            ``len(recovered)`` may exceed ``missed``; each window is delivered once.
         error: why the history could not be asked (after every attempt), or None.
     """
 
@@ -146,13 +143,11 @@ class Fleet:
               "last_event": {...} | null}, ...]}
 
         ``state_since_s``: since the watcher saw the token appear or go (null: it was there
-        before the watcher started). Parameters that are ``tied`` or ``fixed`` are left out
-        (not estimated); ``alarm`` is
-        the parameter's alarm level when it has a rule; ``rul_s`` the median remaining useful
-        life to the alarm threshold [s] when the message carries a prediction. ``delivery``:
-        the windows zenoh reported this watcher missed (a router outage, a lost link: beyond
-        what the publisher's cache gave back), how many of them the daemon's history query
-        then returned, and why the last such query failed (null: it did not).
+        before the watcher started). Parameters ``tied`` or ``fixed`` are left out; ``alarm``
+        is the parameter's alarm level when it has a rule; ``rul_s`` the median remaining
+        useful life to the alarm threshold [s]. ``delivery``: the windows zenoh reported this
+        watcher missed (beyond the publisher's cache), how many the daemon's history query
+        returned, and why the last such query failed (null: it did not).
         """
         now = self._clock()
         with self._lock:
@@ -161,8 +156,6 @@ class Fleet:
                              if m.token is False and m.since is not None
                              and now - m.since > self.forget_after]:
                     del self._machines[name]
-            machines = [self._view(m, now) for _, m in sorted(self._machines.items())]
+            machines = [machine_view(m, now, self.stale_after)
+                        for _, m in sorted(self._machines.items())]
         return {"t": now, "machines": machines}
-
-    def _view(self, m: Machine, now: float) -> dict[str, Any]:
-        return machine_view(m, now, self.stale_after)

@@ -47,9 +47,7 @@ class Received:
         """When the summary was made [s since the epoch]: its ``wall``, but never after it
         arrived (a box's clock ahead of this one's), else its arrival. A summary asked
         with a get arrives now but may be up to ``[zenoh] summary_interval`` old: its RUL
-        has run down meanwhile (measured with ``benchmarks/bench_fleet.py``: counted from
-        the arrival, ``fleet report`` missed 20 of 3378 machines due within 5 min at
-        10 000 machines)."""
+        has run down meanwhile."""
         wall = _number(self.summary.get("wall"))
         return min(wall, self.at) if wall is not None and math.isfinite(wall) else self.at
 

@@ -65,9 +65,8 @@ _STATE_MARK = {"alive": "●", "stale": "◐", "gone": "✕", "unknown": "?"}
 
 
 FILE_WIDTH = 180
-"""Columns of the table written to a file or a pipe (on a terminal: the terminal's width).
-The columns' least widths add up to about 110: at rich's default 80 for a non-terminal every
-column was folded (issue 24)."""
+"""Columns of the table written to a file or a pipe (on a terminal: the terminal's width); the
+columns' least widths add up to about 110."""
 
 
 def console(file: Any = None) -> Any:
@@ -83,12 +82,8 @@ def console(file: Any = None) -> Any:
 
 
 def render(snapshot: Mapping[str, Any], *, title: str = "twinwatch fleet") -> RenderableType:
-    """The rich table of :meth:`Fleet.snapshot`: one row per machine with its state (alive /
-    stale / gone, for how long), its last window (age, index, plant time, run), each parameter's
-    value, deviation from nominal, status, alarm level and RUL, the raised alarms and the last
-    event, the discovered terms, the most probable fault and its probability, and the data
-    quality (fit, model check, losses). Each cell is its own function (``_<column>_cell``),
-    given the machine's entry of the snapshot."""
+    """The rich table of :meth:`Fleet.snapshot`: one row per machine, each cell its own
+    function (``_<column>_cell``) given the machine's entry of the snapshot."""
     from rich.table import Table
     from rich.text import Text
 

@@ -103,10 +103,8 @@ _RANK = {"alarm": 2, "warning": 1}
 
 def _fleet_deviation(m: Mapping[str, Any]) -> Text:
     """The deviation column, the machine's worst parameter first: the summary's ``worst``
-    (by its own threshold: its rule's, or 5 % without one; a daemon before issue 56 sends
-    none), then the ruled parameters by level and size. The column is cut at its width: what
-    leads it is what matters (before, Ra's deviation led whatever it was, and a machine with D
-    +20 % looked healthy)."""
+    (by its own threshold: its rule's, or 5 % without one; an older daemon sends none), then
+    the ruled parameters by level and size: the column is cut at its width."""
     from rich.text import Text
 
     out = Text()

@@ -149,8 +149,7 @@ def sessions_watched(connect: Sequence[str], mode: Mode,
                      unreachable: type[WatchError] = WatchError) -> Iterator[list[W]]:
     """Sessions on ``connect`` and a watcher entered on each (``watcher(session)``), all
     closed on exit: in client mode one session per endpoint (a client session talks to one of
-    its endpoints only: the machines behind the others never showed, issue 24), else one
-    session connecting to every endpoint.
+    its endpoints only), else one session connecting to every endpoint.
 
     Args:
         optional: endpoints that may have nothing answering there: each such one is skipped

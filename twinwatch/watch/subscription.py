@@ -6,6 +6,7 @@ the windows missed asked from the machine's history, each window delivered once)
 
 from __future__ import annotations
 
+import contextlib
 import json
 import queue
 import threading
@@ -97,23 +98,14 @@ class _Sequence:
 class FleetWatcher:
     """Feeds a :class:`Fleet` from a Zenoh session: liveliness, health, alarm events.
 
-    Health and alarm events are followed with ``zenoh.ext`` advanced subscribers: at start (and
-    when a daemon appears later) each machine's last ``history`` windows come from its
-    publisher's cache (``[zenoh] cache``), a loss on the way (a router restarting, a dropped
-    link) is recovered from that cache, and what the cache no longer holds is reported by the
-    sample-miss listener: those windows are then asked from the machine's state database
+    How (:mod:`twinwatch.watch`): ``zenoh.ext`` advanced subscribers on health and alarms; the
+    windows the publisher's cache no longer holds are asked from the machine's history
     (``<prefix>/<machine>/history?run=<run>;t_from=<the last window before the gap>``, target
-    ALL so a storage declared complete on the prefix does not capture it), delivered with
-    ``delivery="history"``, counted in the fleet (``missed``, ``recovered``) and reported
-    through ``on_gap``. A machine whose token is there but whose cache gave nothing within
-    :data:`LATEST_AFTER_S` (plain publishers: ``cache = 0``, an older daemon) is asked for its
-    latest window (``get(<prefix>/*/health)``). Each window is delivered once.
-
-    A machine's presence is its token ``<prefix>/<machine>/alive``, or with ``[zenoh] presence
-    = "box"`` its gateway's box token ``<prefix>/@box/<box>/<zid>``: when one appears, the
-    machines it stands for are asked from it (a get on its key,
-    :class:`~twinwatch.sinks.zenoh.QueryDispatch` answering) and shown present; when it goes,
-    they are shown gone (unless another box's token still names them).
+    ALL), delivered with ``delivery="history"``, counted in the fleet (``missed``,
+    ``recovered``) and reported through ``on_gap``; a machine whose cache gave nothing within
+    :data:`LATEST_AFTER_S` is asked for its latest window. Each window is delivered once. A box
+    token (``[zenoh] presence = "box"``) is asked for the machines it stands for
+    (:class:`~twinwatch.sinks.zenoh.QueryDispatch`): shown present while a box token names them.
 
     Args:
         session: an open session (:func:`open_session`); the caller closes it.
@@ -187,11 +179,10 @@ class FleetWatcher:
     def resume(self, machine: str, run: str | None, window: int,
                t_end: float | None) -> None:
         """Go on from where an earlier subscriber stopped (a central store restarted): the
-        windows of ``machine``'s ``run`` up to ``window`` count as delivered, and the ones
-        after it (plant time after ``t_end`` [s]) are asked from its history once started,
-        delivered with ``delivery="history"`` and told through ``on_gap`` (``missed`` 0: zenoh
-        did not count them). A later run of that machine (its daemon restarted meanwhile) is
-        followed from what its cache holds. Call before :meth:`start`.
+        windows of ``machine``'s ``run`` up to ``window`` count as delivered, the ones after
+        ``t_end`` [s] are asked from its history once started (``delivery="history"``,
+        ``on_gap`` with ``missed`` 0); a later run is followed from the publisher's cache.
+        Call before :meth:`start`.
 
         Raises:
             WatchError: ``machine`` is not a machine name.
@@ -499,10 +490,8 @@ class FleetWatcher:
         self._gaps.put(None)
         subs, self._subs = self._subs, []
         for sub in reversed(subs):
-            try:
+            with contextlib.suppress(zenoh.ZError):
                 sub.undeclare()
-            except zenoh.ZError:
-                pass
         threads, self._threads = self._threads, []
         for thread in threads:
             thread.join(timeout=HISTORY_TIMEOUT_S + 1)
@@ -523,10 +512,7 @@ def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
     ``history``, ``alarm_history`` and ``on_*``), closed on exit.
 
     Args:
-        optional: endpoints (of ``connect``) that may have nothing answering there (a
-            configured machine whose daemon is not running, client mode): each such one is
-            skipped and, once another answered, ``on_skip`` called with it and why; the others
-            must answer.
+        optional, on_skip: as :func:`~twinwatch.watch.session.sessions_watched`'s.
 
     Raises:
         WatchError: see :func:`open_session` and :class:`FleetWatcher`; every endpoint was

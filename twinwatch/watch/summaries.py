@@ -1,19 +1,11 @@
-"""The fleet's summaries (:mod:`twinwatch.twin.summary`) as a Zenoh network shows them:
-:class:`SummaryWatcher` follows ``<prefix>/<machines>/summary`` with a plain subscriber, asks
-every machine's latest once when it starts (one get, each machine's queryable answering) and
-again when the machines' liveliness tokens appear anew (a router back from an outage, a daemon
-restarted), or their box's token (``[zenoh] presence = "box"``), and every machine's once more
-after that (:data:`SWEEP_AFTER_S`), keeps each
-machine's latest (:attr:`SummaryWatcher.received`) and fetches a machine's full health only
-when asked (:meth:`SummaryWatcher.health`). What it holds is read by
-:mod:`twinwatch.watch.ranking`.
+"""The fleet's summaries (:mod:`twinwatch.twin.summary`) as a Zenoh network shows them
+(:class:`SummaryWatcher`); what it holds is read by :mod:`twinwatch.watch.ranking`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import logging
 import threading
 import time
@@ -31,6 +23,7 @@ from twinwatch.watch.session import (
     Unreachable,
     check_fleet_prefix,
     decode_health,
+    decode_json,
     prefix_base,
     sessions_watched,
 )
@@ -67,20 +60,13 @@ before the machine's name), for at most this many boxes; more: one get for all."
 REASK_RETRIES_S = (1.0, 2.0, 4.0, 8.0)
 """A machine back that did not answer the ask is asked again after these delays [s], one
 after the other: after a router restart its token may reach the watcher before the routers
-know its queryable (10 000 machines: every latest held 65 s after the restart, at the
-machines' next periodic summary, when only the first ask was made; docs/fleet.md)."""
+know its queryable (docs/fleet.md)."""
 
 SWEEP_AFTER_S = 10.0
 """After machines' tokens came back (a router died or restarted), every machine's latest summary
-is asked once more this long [s] after the last of them came (a sweep): the summaries
-that the mesh lost while it recomputed its routes, of machines whose tokens never went (their
-box did not move), are otherwise held only at their next periodic summary. Measured at 10 000
-machines with a router killed (benchmarks/bench_fleet.py): in one run of two, 716 summaries
-sent 5-10 s after the kill, from boxes moved and not, never arrived, and the view held every
-latest 71.5 s after the kill, at the machines' next periodic summary. Not sooner: the sweep's
-10 000 replies cross the mesh while it is still busy (sweeps at 3 and 10 s: every latest held
-14.1 and 15.8 s after the kill in two runs, where the runs without took 7.8 s when nothing was
-lost)."""
+is asked once more this long [s] after the last of them came (a sweep): the summaries the mesh
+lost while it recomputed its routes are otherwise held only at their next periodic summary. Not
+sooner: the sweep's replies would cross the mesh while it is still busy (docs/fleet.md)."""
 
 SWEEP_MIN_MACHINES = 20
 """A sweep (:data:`SWEEP_AFTER_S`) follows a burst of at least this many machines back (a
@@ -130,12 +116,8 @@ class SummaryWatcher:
         exact: declare a do-nothing subscriber on each machine's own summary key
             (:meth:`_declare_exact`): fewer route computations at the router delivering to
             this watcher, one more declaration per machine for every router. None (default):
-            only when the prefix has no ``*`` (machines all children of one key chunk). With
-            the machines under their boxes' chunks, a put's route is matched against one
-            box's machines, and 10 000 such subscribers left the far client with the first
-            summary of each machine only (benchmarks/bench_fleet.py --layout box: without
-            them every machine held 81 s and 172 s after the boxes started in two runs, none
-            lost; docs/fleet.md).
+            only when the prefix has no ``*`` (machines all children of one key chunk; under
+            their boxes' chunks such subscribers starved the far client: docs/fleet.md).
 
     Thread-safe; use as a context manager (the subscriber is undeclared on exit).
 
@@ -179,16 +161,12 @@ class SummaryWatcher:
 
     def start(self) -> SummaryWatcher:
         """Declare the subscriber (live summaries) and the liveliness subscriber on the
-        machines' ``alive`` tokens, then ask every machine's latest summary once (a get on the
-        summaries' key, target ALL, each machine's queryable answering) in a thread of its own
-        (``twinwatch-watch-summaries``); :attr:`queried` is set once it ended. Whenever the
-        tokens of machines it holds appear again (a router back from an outage, a daemon
-        restarted) their latest are asked again, once the tokens stopped coming for
-        :data:`REASK_QUIET_S` (:meth:`_reask_keys`: one by one, by box or all at once), and
-        after a burst of :data:`SWEEP_MIN_MACHINES` or more, every machine's latest once more
-        :data:`SWEEP_AFTER_S` after its last token (:meth:`_sweep`). A box's token
-        (``<prefix>/@box/<box>/<zid>``, ``[zenoh] presence = "box"``) appearing stands for
-        every machine held of that box (:meth:`_on_box_token`)."""
+        machines' ``alive`` tokens and the boxes' tokens, then ask every machine's latest
+        summary once (target ALL) in a thread of its own (``twinwatch-watch-summaries``);
+        :attr:`queried` is set once it ended. Machines whose tokens appear again are asked
+        again once the tokens stopped coming for :data:`REASK_QUIET_S` (:meth:`_reask_keys`),
+        and after a burst of :data:`SWEEP_MIN_MACHINES` or more every machine once more
+        (:meth:`_sweep`)."""
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
         live = self.session.liveliness()
@@ -338,8 +316,7 @@ class SummaryWatcher:
 
     def _get_all(self, keys: list[str], timeout: float) -> set[str]:
         """Send a get (target ALL) on each of ``keys`` at once, hold every summary replied
-        until each ended or ``timeout`` [s] passed; returns the machines that answered (a
-        router's ten boxes asked one after the other took 38 s at 10 000 machines).
+        until each ended or ``timeout`` [s] passed; returns the machines that answered.
 
         Raises:
             zenoh.ZError: the session closed.
@@ -388,9 +365,8 @@ class SummaryWatcher:
     def _reask_keys(self, pending: set[str]) -> list[str]:
         """The gets that ask ``pending`` machines' latest summaries again: a few machines
         (:data:`REASK_ONE_BY_ONE`), each its own; more, under a prefix with ``*``, one get per
-        box whose machines came back (a router's boxes: at 10 000 machines a get for all
-        made every box answer for machines the watcher already held,
-        benchmarks/bench_fleet.py); else one get for all."""
+        box whose machines came back (not every box answering for machines already held);
+        else one get for all."""
         if len(pending) <= REASK_ONE_BY_ONE:
             return [f"{self.base}/{m}/summary" for m in sorted(pending)]
         boxes = {m.rpartition("/")[0] for m in pending}
@@ -400,11 +376,8 @@ class SummaryWatcher:
 
     def _on_sample(self, sample: zenoh.Sample) -> str | None:
         """Hold a summary's sample (:meth:`put`); returns its machine (None: not a summary)."""
-        try:
-            doc = json.loads(sample.payload.to_string())
-        except (ValueError, UnicodeDecodeError):
-            return None
-        if not isinstance(doc, dict):
+        doc = decode_json(sample.payload)
+        if doc is None:
             return None
         key = str(sample.key_expr)
         machine = key[len(self.base) + 1:-len("/summary")]
@@ -450,21 +423,16 @@ class SummaryWatcher:
         """A subscriber on ``machine``'s own summary key, doing nothing: a Zenoh router
         precomputes and caches the route of a key that has a subscriber on that very key, and
         computes the route of every other put anew, matching it against every key it holds
-        (``Resource::get_matches``, zenoh PR #1717). With only the ``<prefix>/*/summary``
-        subscriber, the router that delivered to a fleet client spent 58 % of its CPU there,
-        growing with the fleet (0.08 of a core for 210 summaries/s at 2000 machines; with
-        these, 0.02: benchmarks/bench_fleet.py, docs/fleet.md). The wildcard subscriber still
-        finds new machines and receives every summary once."""
+        (``Resource::get_matches``, zenoh PR #1717; the cost: docs/fleet.md). The wildcard
+        subscriber still finds new machines and receives every summary once."""
         try:
             sub = self.session.declare_subscriber(f"{self.base}/{machine}/summary",
                                                   lambda sample: None)
         except zenoh.ZError:  # the session closed meanwhile
             return
         with self._lock:
-            if self._closing.is_set():
-                closing = True
-            else:
-                closing = False
+            closing = self._closing.is_set()
+            if not closing:
                 self._exact[machine] = sub
         if closing:
             with contextlib.suppress(zenoh.ZError):
@@ -522,10 +490,8 @@ class SummaryWatcher:
             sub = getattr(self, attr)
             setattr(self, attr, None)
             if sub is not None:
-                try:
+                with contextlib.suppress(zenoh.ZError):
                     sub.undeclare()
-                except zenoh.ZError:
-                    pass
         with self._lock:
             exact, self._exact = self._exact, {}
         for sub in exact.values():

@@ -84,12 +84,8 @@ def _alarm_words(doc: HealthView) -> list[str]:
 
 
 class Tail:
-    """``twinwatch tail``: one line per health message as it arrives (the machine's last
-    windows first: the latest, or ``--history N``), and, in text, each alarm event; the machine
-    appearing and going, and the windows missed and got back from its history, are noted
-    aside. Each window is printed once; a window got from the history after a gap comes when
-    it is got (after the live ones that revealed the gap), marked ``[from the history]`` in
-    text.
+    """``twinwatch tail`` (its ``--help``): each window printed once; a window got from the
+    history after a gap comes when it is got, marked ``[from the history]`` in text.
 
     Give its :meth:`on_health`, :meth:`on_alarm`, :meth:`on_token` and :meth:`on_gap` to the
     :class:`FleetWatcher` (:func:`watching`), then :meth:`run`.

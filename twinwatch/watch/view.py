@@ -21,10 +21,8 @@ is present but no window for longer than the stale time (a silent source, a stuc
 heard only through a health message, no token seen."""
 
 
-#: Counters that report a loss or a fault (nonzero: shown under data quality, "losses"). Not
-#: the driver's activity (``driver_polls``, ``driver_duplicates``: a poll that found the
-#: sample already read, nothing lost; ``driver_reconnects``, ``driver_remote_frames``, the
-#: frames and samples delivered), which the column listed before (issue 24).
+#: Counters that report a loss or a fault (nonzero: shown under data quality, "losses"); not
+#: the driver's activity (``driver_polls``, ``driver_duplicates``, ``driver_reconnects``...).
 PROBLEM_COUNTERS = ("windows_abandoned", "overruns", "numeric_failures", "samples_lost",
                     "bad_samples", "windows_not_stored", "store_waiting", "store_lost",
                     "store_history_lost", "store_errors", "recording_lost", "zenoh_errors",
@@ -75,8 +73,7 @@ def _quality(h: HealthView) -> dict[str, Any]:
 
 def _diagnosis(d: DiagnosisView | None) -> dict[str, Any] | None:
     """The message's diagnosis in short: the most probable fault (``no_fault``, ``unknown``,
-    ``check_function``: the twin does not fit), its probability and action; null without one
-    (a daemon before schema 8, or it is off)."""
+    ``check_function``: the twin does not fit), its probability and action; null without one."""
     if d is None:
         return None
     faults = d.faults or []
@@ -133,11 +130,8 @@ def machine_view(m: Machine, now: float, stale_after: float) -> dict[str, Any]:
         "token": m.token,
         "state_since_s": None if m.since is None else max(now - m.since, 0.0),
         "last_window_age_s": age,
-        "model": h.model if h is not None else None,
-        "run": h.run if h is not None else None,
-        "window": h.window if h is not None else None,
-        "t_start": h.t_start if h is not None else None,
-        "t_end": h.t_end if h is not None else None,
+        **{k: getattr(h, k) if h is not None else None
+           for k in ("model", "run", "window", "t_start", "t_end")},
         "parameters": _parameters(h) if h is not None else {},
         "alarms": {k: {"level": a.level, "since_t": a.since_t,
                        "deviation_pct": a.deviation_pct,
