@@ -12,7 +12,9 @@ become one :class:`~twinwatch.twin.model.WindowData`. Memory is allocated once. 
   the band: a clock at another rate) *jitter beyond tolerance*. A stamp before the previous
   one: *time stamp jumped backwards*; the previous stamp with other values: *time stamp
   repeated with other values* (that sample is dropped too). An exact duplicate is dropped and
-  counted (:attr:`RingBuffer.duplicates`, :attr:`RingBuffer.lost`).
+  counted (:attr:`RingBuffer.duplicates`, :attr:`RingBuffer.lost`). A band, not a distance
+  from the mean, because a poll clock's jitter is one-sided (a poll is late, never early):
+  polls on time or up to 9 ms late at ``T`` = 10 ms are kept, in whatever order.
 * a completed window is put on its grid ``t0 + k * T`` (``t0`` the mean offset); the stamps'
   residuals (:attr:`WindowData.stamp_jitter`, RMS and maximum) travel with it. Stamps within
   :data:`GRID_EXACT` periods of the grid are kept as they are.
