@@ -216,6 +216,29 @@ def test_the_compiled_covariance_and_inverse_give_numpys_numbers_to_the_bit() ->
             assert np.array_equal(_safe_inverse(m), _safe_inverse_numpy(m)), trial
 
 
+def test_a_compiled_decomposition_that_fails_fails_as_numpys_did(monkeypatch) -> None:
+    """numba's ``eigh`` raises ValueError where numpy's raised LinAlgError (no convergence):
+    the compiled pieces' callers still see numpy's contract (the covariance infinite, the
+    inverses LinAlgError, which the prognostics catch)."""
+    from twinwatch.twin.estimation import fit, fusion
+    from twinwatch.twin.prognostics import degradation
+
+    def fails(*_args: object) -> None:
+        raise ValueError("Internal algorithm failed to converge.")
+
+    for module, name in ((fit, "_sandwich"), (fit, "_equilibrated_inverse"),
+                         (fusion, "_safe_inverse_finite"), (degradation, "_pinv_sym")):
+        monkeypatch.setattr(module, name, fails)
+    jac = np.random.default_rng(1).normal(size=(40, 2))
+    assert np.all(np.isinf(fit.covariance(jac, np.full(40, 0.01))))
+    with pytest.raises(np.linalg.LinAlgError):
+        fit.long_run_factors(jac, np.full(40, 0.1), 2, 1e-3)
+    with pytest.raises(np.linalg.LinAlgError):
+        fusion._safe_inverse(np.eye(2))
+    with pytest.raises(np.linalg.LinAlgError):
+        degradation.pinv_sym(np.eye(2))
+
+
 def test_an_empty_estimate_list_is_refused_naming_the_key() -> None:
     with pytest.raises(ValidationError, match="estimate\n.*no parameter listed"):
         EstimationConfig(estimate=[])

@@ -497,7 +497,7 @@ def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
     # the last bits); the small (n, n) rest is compiled, the same arithmetic to the bit
     try:
         cov: FloatArray = _sandwich(js.T @ js, (js * weights[:, None]).T @ js, safe, norms)
-    except np.linalg.LinAlgError:
+    except (np.linalg.LinAlgError, ValueError):  # numba's eigh: ValueError if not converged
         return np.full((n, n), np.inf)
     return cov
 
@@ -647,7 +647,10 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     norms = np.linalg.norm(jac, axis=0)
     safe = np.where(norms > 0, norms, 1.0)
     js = jac / safe
-    a_inv, _ = _equilibrated_inverse(js.T @ js)
+    try:
+        a_inv, _ = _equilibrated_inverse(js.T @ js)
+    except ValueError as exc:  # numba's eigh did not converge: numpy's error, as before
+        raise np.linalg.LinAlgError(str(exc)) from exc
     hac = np.diag(a_inv @ (s / np.outer(safe, safe)) @ a_inv) / (safe * safe)
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = hac / base

@@ -498,11 +498,15 @@ def _first_held_step(problem: WindowProblem, polished: Polished, cols: np.ndarra
 
 def _safe_inverse(a: FloatArray) -> FloatArray:
     """Inverse of a symmetric positive semi-definite matrix through its eigenvalues
-    (near-zero ones treated as zero; never raises)."""
+    (near-zero ones treated as zero; non-finite entries as 0). Raises
+    numpy.linalg.LinAlgError only if the eigen-decomposition does not converge."""
     a = np.asarray(a, dtype=float)
     if not np.all(np.isfinite(a)):
         a = np.where(np.isfinite(a), a, 0.0)
-    out: FloatArray = _safe_inverse_finite(np.ascontiguousarray(a))
+    try:
+        out: FloatArray = _safe_inverse_finite(np.ascontiguousarray(a))
+    except ValueError as exc:  # numba's eigh did not converge: numpy's error, as before
+        raise np.linalg.LinAlgError(str(exc)) from exc
     return out
 
 

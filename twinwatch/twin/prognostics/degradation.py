@@ -72,7 +72,10 @@ def pinv_sym(a: FloatArray, rcond: float = 1e-15) -> FloatArray:
     """
     a = np.ascontiguousarray(a, dtype=float)
     if a.size and _finite(a):
-        out: FloatArray = _pinv_sym(a, rcond)
+        try:
+            out: FloatArray = _pinv_sym(a, rcond)
+        except ValueError as exc:  # numba's eigh did not converge: numpy's error, as before
+            raise np.linalg.LinAlgError(str(exc)) from exc
         return out
     w, v = np.linalg.eigh(a)
     aw = np.abs(w)
