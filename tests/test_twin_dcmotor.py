@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twinwatch.plant.dcmotor import DCMotorPlantConfig, SetpointSchedule
-from twinwatch.twin.model import composite_zoh
+from twinwatch.twin.model import composite_zoh, zoh_propagate
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
 from .helpers.plant import plant_windows
@@ -112,3 +112,35 @@ def test_fault_period_replaces_the_part_and_a_non_physical_run_is_refused():
     with pytest.raises(ValueError, match="duration: under resistance_degradation .* fault_period"):
         DCMotorPlantConfig(scenario="resistance_degradation", duration=2000.0)
     DCMotorPlantConfig(scenario="resistance_degradation", duration=21600.0, fault_period=1200.0)
+
+
+def test_the_compiled_window_equals_the_sub_step_map_composed_then_run():
+    """``zoh_propagate`` (one compiled call) gives the numbers of ``composite_zoh`` followed by
+    the recursion ``x[k+1] = Gamma u[k] + Phi x[k]`` summed in that order, bit for bit, with
+    shared and per-particle meta-model terms."""
+    rng = np.random.default_rng(3)
+    twin = DCMotorTwin()
+    theta = twin.nominal_vector()[None, :] * np.exp(0.1 * rng.standard_normal((3, 6)))
+    a, b = twin.step_matrices(theta, 1e-4)
+    phi, gamma = composite_zoh(a, b, 100)
+    n_samples = 40
+    x0 = rng.standard_normal((3, 3))
+    drive, tload = rng.standard_normal(n_samples), 1e-3 * rng.standard_normal(n_samples)
+    for f_w, f_i in ((np.zeros((1, n_samples)), np.zeros((1, n_samples))),
+                     (rng.standard_normal((3, n_samples)), rng.standard_normal((3, n_samples)))):
+        x = zoh_propagate(a, b, 100, x0, drive, tload, f_w, f_i)
+        for q in range(3):
+            qu = 0 if f_w.shape[0] == 1 else q
+            ref = [list(x0[q])]
+            for k in range(n_samples - 1):
+                u = (drive[k], tload[k], f_w[qu, k], f_i[qu, k])
+                row = []
+                for i in range(3):
+                    acc = 0.0
+                    for j in range(4):
+                        acc += gamma[q, i, j] * u[j]
+                    for j in range(3):
+                        acc += phi[q, i, j] * ref[-1][j]
+                    row.append(acc)
+                ref.append(row)
+            np.testing.assert_array_equal(x[q], np.array(ref))

@@ -376,50 +376,101 @@ def _matrix_power(a: FloatArray, n: int) -> FloatArray:
 
 
 @njit(cache=True, nogil=True)
-def _propagate_kernel(phi: FloatArray, gamma: FloatArray, u: FloatArray,
-                      x: FloatArray) -> None:  # pragma: no cover - compiled
+def _power_into(aug: FloatArray, n: int, out: FloatArray) -> None:  # pragma: no cover
+    """``aug ** n`` (n >= 1) into ``out``: the products of :func:`_matrix_power` (and of
+    ``np.linalg.matrix_power`` for n <= 3) in the same order through the same BLAS ``dgemm``,
+    so the same numbers."""
+    if n == 1:
+        out[:] = aug
+        return
+    if n == 2:
+        out[:] = np.dot(aug, aug)
+        return
+    if n == 3:
+        out[:] = np.dot(np.dot(aug, aug), aug)
+        return
+    z = aug.copy()
+    result = np.empty_like(aug)
+    have = False
+    while True:
+        bit = n % 2
+        n //= 2
+        if bit:
+            if have:
+                result = np.dot(result, z)
+            else:
+                result = z.copy()
+                have = True
+        if n == 0:
+            break
+        z = np.dot(z, z)
+    out[:] = result
+
+
+@njit(cache=True, nogil=True)
+def _zoh_propagate_kernel(a: FloatArray, b: FloatArray, n_sub: int, x: FloatArray,
+                          drive: FloatArray, tl: FloatArray, f_w: FloatArray,
+                          f_i: FloatArray) -> None:  # pragma: no cover - compiled
+    """:func:`zoh_propagate`'s work for the twins whose inputs are ``u = [drive, Tload,
+    f_omega, f_ia]``: per particle, the augmented matrix raised to ``n_sub``, then
+    ``x[k+1] = Phi x[k] + Gamma u[k]`` (``x[:, 0]`` holds the initial states; ``f_w``,
+    ``f_i``: (1 or P, N))."""
     p, nk, n = x.shape
-    m = u.shape[2]
-    shared = u.shape[0] == 1
+    m = b.shape[2]
+    shared = f_w.shape[0] == 1
+    aug = np.zeros((n + m, n + m))
+    powered = np.empty((n + m, n + m))
+    u = np.empty(m)
     for q in range(p):
+        aug[:] = 0.0
+        for i in range(n):
+            for j in range(n):
+                aug[i, j] = a[q, i, j]
+            for j in range(m):
+                aug[i, n + j] = b[q, i, j]
+        for j in range(m):
+            aug[n + j, n + j] = 1.0
+        _power_into(aug, n_sub, powered)
         qu = 0 if shared else q
         for k in range(nk - 1):
+            u[0] = drive[k]
+            u[1] = tl[k]
+            u[2] = f_w[qu, k]
+            u[3] = f_i[qu, k]
             for i in range(n):
                 acc = 0.0
                 for j in range(m):
-                    acc += gamma[q, i, j] * u[qu, k, j]
+                    acc += powered[i, n + j] * u[j]
                 for j in range(n):
-                    acc += phi[q, i, j] * x[q, k, j]
+                    acc += powered[i, j] * x[q, k, j]
                 x[q, k + 1, i] = acc
 
 
-def propagate(
-    phi: FloatArray, gamma: FloatArray, x0: FloatArray, u: FloatArray
-) -> FloatArray:
-    """Run ``x[k+1] = Phi x[k] + Gamma u[k]`` for a swarm.
-
-    The recursion is compiled with numba: a Python loop over 200 samples costs ~1 ms whatever
-    the swarm size, the compiled one ~10 us for 15 particles (profiled; see benchmarks/).
+def zoh_propagate(a: FloatArray, b: FloatArray, n_sub: int, x0: FloatArray,
+                  drive: FloatArray, tload: FloatArray, f_w: FloatArray,
+                  f_i: FloatArray) -> FloatArray:
+    """Run ``n_sub`` sub-steps of ``x' = A x + B u`` per sample with ``u`` held: the same
+    numbers as :func:`composite_zoh` then the recursion ``x[k+1] = Gamma u[k] + Phi x[k]``
+    (summed in that order), in one compiled call: no Python per particle or per sample
+    (``benchmarks/bench_window.py``'s floor row measures a window's simulation).
 
     Args:
-        phi: shape (P, n, n).
-        gamma: shape (P, n, m).
-        x0: initial states, shape (P, n) or (n,).
-        u: inputs held over each sample, shape (N, m) (shared by the swarm) or (P, N, m)
-            (per particle, e.g. meta-model terms); ``u[..., k, :]`` drives step k -> k+1.
+        a: shape (P, n, n).
+        b: shape (P, n, 4), the inputs ``[drive, Tload, f_omega, f_ia]``.
+        n_sub: sub-steps per sample (>= 1).
+        x0: initial states, shape (P, n).
+        drive: the first input per sample, shape (N,) (set-point, Va or its increment).
+        tload: the load torque per sample [N m], shape (N,).
+        f_w, f_i: the meta-model terms per sample, shape (1 or P, N).
 
     Returns:
         States, shape (P, N, n), with ``x[:, 0] = x0``. Overflow gives inf/nan, never raises.
     """
-    p, n, _ = phi.shape
-    u3 = np.asarray(u, dtype=float)
-    if u3.ndim == 2:
-        u3 = u3[None]
-    if u3.shape[0] not in (1, p):
-        raise ValueError(f"u has {u3.shape[0]} rows of inputs for a swarm of {p}")
-    nk = u3.shape[1]
-    x = np.empty((p, nk, n))
+    p, n, _ = a.shape
+    x = np.empty((p, drive.shape[0], n))
     x[:, 0] = x0
-    _propagate_kernel(np.ascontiguousarray(phi), np.ascontiguousarray(gamma),
-                      np.ascontiguousarray(u3), x)
+    _zoh_propagate_kernel(np.ascontiguousarray(a), np.ascontiguousarray(b), int(n_sub), x,
+                          np.ascontiguousarray(drive, dtype=float),
+                          np.ascontiguousarray(tload, dtype=float),
+                          np.ascontiguousarray(f_w), np.ascontiguousarray(f_i))
     return x

@@ -89,9 +89,9 @@ from twinwatch.twin.model import (
     TwinModel,
     WindowData,
     composite_zoh,
-    propagate,
     sub_steps,
     term_array,
+    zoh_propagate,
 )
 from twinwatch.twin.models._pid import pid_update
 
@@ -121,6 +121,61 @@ _TAU_W = ParameterSpec("tau_w", "s", 0.01,
                        "a change of the speed sensor or its filtering")
 _TC = ParameterSpec("Tc", "N m", 1e-3, "Coulomb (dry) friction torque",
                     "bearing or brush wear, contamination, misalignment (rises)")
+
+
+@njit(cache=True, nogil=True)
+def _step_kernel(theta: FloatArray, dt: float, c: float, kp: float, ki: float, closed: bool,
+                 pos: IntArray, a: FloatArray, b: FloatArray) -> None:  # pragma: no cover
+    """:meth:`DCMotorModel.step_matrices` into zeroed ``a`` (P, n, n), ``b`` (P, n, 4):
+    ``pos`` = positions of [z, fi, fw, angle, v] (-1: absent), then the columns of tau_i
+    and tau_w in ``theta`` (-1: absent). The same operations in the same order as the
+    vectorised form it replaced (the same numbers)."""
+    n = a.shape[1]
+    pz, pv = pos[0], pos[4]
+    for q in range(theta.shape[0]):
+        ra, la, j, ke, kt, d = (theta[q, 0], theta[q, 1], theta[q, 2], theta[q, 3],
+                                theta[q, 4], theta[q, 5])
+        a_el = dt / la
+        g = dt * kt / j
+        a[q, 0, 0] = 1.0 - a_el * ra
+        if closed:
+            a[q, 0, 1] = -a_el * (kp + ke)
+            a[q, 0, pz] = a_el * ki
+            b[q, 0, 0] = a_el * kp
+            a[q, pz, 1] = -dt
+            a[q, pz, pz] = 1.0
+            b[q, pz, 0] = dt
+        else:
+            a[q, 0, 1] = -a_el * ke
+            if pv >= 0:
+                a[q, 0, pv] = a_el
+                a[q, pv, pv] = 1.0
+                b[q, pv, 0] = 1.0
+            else:
+                b[q, 0, 0] = a_el
+        b[q, 0, 3] = dt
+        for col in range(n):
+            a[q, 1, col] = g * a[q, 0, col]
+        a[q, 1, 1] += 1.0 - dt * (d + c) / j
+        for col in range(4):
+            b[q, 1, col] = g * b[q, 0, col]
+        b[q, 1, 1] += -dt / j
+        b[q, 1, 2] += dt
+        # the filtered current and speed, then the angle: f' = f + dt/tau*(x' - f)
+        for which in range(3):
+            r = pos[1 + which]
+            if r < 0:
+                continue
+            src = 0 if which == 0 else 1
+            if which < 2:
+                gain = dt / theta[q, pos[5 + which]]
+            else:
+                gain = dt
+            for col in range(n):
+                a[q, r, col] = gain * a[q, src, col]
+            for col in range(4):
+                b[q, r, col] = gain * b[q, src, col]
+            a[q, r, r] += 1.0 if which == 2 else 1.0 - gain
 
 
 @njit(cache=True, nogil=True)
@@ -351,6 +406,7 @@ class DCMotorTwin(TwinModel):
         # element; the others go through the event kernel.
         self._nonlinear = self.power_stage == "unidirectional" or self.coulomb_friction
         self._plans: dict[tuple[float, int, int, int], tuple[np.ndarray, ...]] = {}
+        self._pos_cache: dict[bool, IntArray] = {}
         self._fast = not self._nonlinear and (not closed or self._drive.ideal)
 
     @property
@@ -402,6 +458,19 @@ class DCMotorTwin(TwinModel):
                 pos[name] = len(pos)
         return pos
 
+    def _positions(self, closed_pi: bool) -> IntArray:
+        """:func:`_step_kernel`'s ``pos``: the states z, fi, fw, angle, v (-1: absent), then
+        the parameter columns of tau_i and tau_w (-1: absent). Cached per ``closed_pi``."""
+        got = self._pos_cache.get(closed_pi)
+        if got is None:
+            pos = self._layout(closed_pi)
+            names = self.parameter_names
+            got = np.array([pos.get(k, -1) for k in ("z", "fi", "fw", "angle", "v")]
+                           + [names.index(t) if t in names else -1
+                              for t in ("tau_i", "tau_w")], dtype=np.int64)
+            self._pos_cache[closed_pi] = got
+        return got
+
     def step_matrices(self, theta: FloatArray, dt: float, *, closed_pi: bool | None = None
                       ) -> tuple[FloatArray, FloatArray]:
         """One sub-step of Eq. 11-12 (plus the ideal PI loop) as ``x' = A x + B u``.
@@ -424,50 +493,15 @@ class DCMotorTwin(TwinModel):
         if closed_pi is None:
             closed_pi = self.structure == "closed_loop" and self._fast
         pos = self._layout(closed_pi)
-        names = self.parameter_names
-        ra, la, j, ke, kt, d = (theta[:, k] for k in range(6))
-        c = self.load_coefficient if self.load == "viscous" else 0.0
+        theta = np.ascontiguousarray(theta, dtype=float)
         p = theta.shape[0]
         n = len(pos)
         a = np.zeros((p, n, n))
         b = np.zeros((p, n, 4))
-        a_el = dt / la
-        g = dt * kt / j
+        c = self.load_coefficient if self.load == "viscous" else 0.0
         kp, ki = self._effective_pi()
-        a[:, 0, 0] = 1.0 - a_el * ra
-        if closed_pi:
-            # i' = i + dt/La*(Kp*(sp - w) + Ki*z - Ra*i - Ke*w); z' = z + dt*(sp - w)
-            zi = pos["z"]
-            a[:, 0, 1] = -a_el * (kp + ke)
-            a[:, 0, zi] = a_el * ki
-            b[:, 0, 0] = a_el * kp
-            a[:, zi, 1] = -dt
-            a[:, zi, zi] = 1.0
-            b[:, zi, 0] = dt
-        else:
-            a[:, 0, 1] = -a_el * ke
-            if "v" in pos:
-                a[:, 0, pos["v"]] = a_el  # the voltage is a state that ramps by u[0] per step
-                a[:, pos["v"], pos["v"]] = 1.0
-                b[:, pos["v"], 0] = 1.0
-            else:
-                b[:, 0, 0] = a_el
-        b[:, 0, 3] = dt  # i' += dt*f_ia
-        # w' = w + dt/J*(Kt*i' - c*w - D*w - Tload)   (semi-implicit: uses the new current)
-        a[:, 1, :] = g[:, None] * a[:, 0, :]
-        a[:, 1, 1] += 1.0 - dt * (d + c) / j
-        b[:, 1, :] = g[:, None] * b[:, 0, :]
-        b[:, 1, 1] += -dt / j
-        b[:, 1, 2] += dt  # w' += dt*f_omega
-        # Sensors and the angle follow the new current and speed: f' = f + dt/tau*(x' - f).
-        for state, src, par in (("fi", 0, "tau_i"), ("fw", 1, "tau_w"), ("angle", 1, None)):
-            if state not in pos:
-                continue
-            r = pos[state]
-            gain = dt / theta[:, names.index(par)] if par else np.full(p, dt)
-            a[:, r, :] = gain[:, None] * a[:, src, :]
-            b[:, r, :] = gain[:, None] * b[:, src, :]
-            a[:, r, r] += 1.0 if par is None else 1.0 - gain
+        _step_kernel(theta, float(dt), float(c), float(kp), float(ki), bool(closed_pi),
+                     self._positions(closed_pi), a, b)
         return a, b
 
     # -- simulation -------------------------------------------------------------------------
@@ -612,8 +646,6 @@ class DCMotorTwin(TwinModel):
         closed = self.structure == "closed_loop"
         pos = self._layout(closed)
         a, b = self.step_matrices(theta, self.sub_step, closed_pi=closed)
-        with np.errstate(over="ignore", invalid="ignore"):
-            phi, gamma = composite_zoh(a, b, n_sub)
         ia = window["ia"]
         tl = window["Tload"] if self.load == "measured" else np.zeros_like(ia)
         x0 = self._initial_state(window, 0, pos, off)
@@ -627,13 +659,7 @@ class DCMotorTwin(TwinModel):
             drive = np.append(np.diff(va), 0.0) / n_sub
         else:
             drive = window["Va"]
-        rows = max(f_w.shape[0], 1)
-        u = np.empty((rows, ia.size, 4))
-        u[:, :, 0] = drive
-        u[:, :, 1] = tl
-        u[:, :, 2] = f_w
-        u[:, :, 3] = f_i
-        x = propagate(phi, gamma, x0, u)
+        x = zoh_propagate(a, b, n_sub, x0, drive, tl, f_w, f_i)
         i_out, w_out = self._outputs(x, pos, ts, float(window["omega"][0]))
         y = np.empty(i_out.shape + (3 if closed else 2,))
         y[:, :, 0] = i_out
