@@ -30,7 +30,9 @@ reported):
   reading them from a CSV as fast as it can (``realtime = false``) and replaying
   ``--realtime-windows`` windows in real time (``realtime = true``: its waiting included); the
   CAN driver replaying a Vector ASC log of the same plant (needs the test helpers; skipped
-  without them). The Modbus driver needs a server on a port: ``bench_density.py`` measures it.
+  without them), with the libraries' share of it: python-can's ``LogReader`` reading the log
+  alone and cantools decoding each frame alone (the driver's floor while it uses them). The
+  Modbus driver needs a server on a port: ``bench_density.py`` measures it.
 """
 
 from __future__ import annotations
@@ -215,10 +217,15 @@ def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None) -
         return time.process_time() - c, n
 
 
-def can_cost(seconds: float) -> tuple[float, int] | None:
-    """CPU [s] and samples of the CAN driver replaying an ASC log of the plant (None without
-    the harness beside this checkout)."""
+def can_cost(seconds: float) -> tuple[float, int, float, float, int] | None:
+    """CPU [s] and samples of the CAN driver replaying an ASC log of the plant, then the
+    libraries' share of it: CPU [s] of python-can's ``LogReader`` reading the log alone, of
+    cantools decoding its frames alone, and the frames (None without the harness beside this
+    checkout)."""
     try:
+        import can
+        import cantools
+
         from harness.sources import PLANT_DBC, plant_asc_log
     except Exception:  # noqa: BLE001 - optional: harness/ beside this checkout
         return None
@@ -241,7 +248,17 @@ def can_cost(seconds: float) -> tuple[float, int] | None:
                         n += 1
             except EndOfStream:
                 pass
-            return time.process_time() - c, n
+            cpu = time.process_time() - c
+        c = time.process_time()
+        frames = list(can.LogReader(str(log)))
+        read = time.process_time() - c
+        by_id = {m.frame_id: m for m in cantools.database.load_file(PLANT_DBC).messages}
+        c = time.process_time()
+        for f in frames:
+            by_id[f.arbitration_id].decode(bytes(f.data), decode_choices=False,
+                                           allow_truncated=False, allow_excess=True)
+        decode = time.process_time() - c
+        return cpu, n, read, decode, len(frames)
 
 
 def main() -> None:
@@ -299,9 +316,13 @@ def main() -> None:
     if can is None:
         print("  CAN driver (ASC log replay): skipped (needs the test extras)")
     else:
-        cpu, n = can
+        cpu, n, read, decode, frames = can
         print(f"  CAN driver, ASC log replay ({n} samples):            "
               f"{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a sample)")
+        print(f"    of which python-can reading the log alone ({frames} frames): "
+              f"{read / n * per * 1e3:5.2f} ms ({read / n * 1e6:.1f} us a sample)")
+        print(f"    and cantools decoding its frames alone:             "
+              f"{decode / n * per * 1e3:7.2f} ms ({decode / n * 1e6:.1f} us a sample)")
     print("  Modbus driver: needs a server on a port (bench_density.py measures it in a host)")
 
 
