@@ -50,6 +50,8 @@ def test_a_file_that_is_not_utf8_is_a_configuration_error_naming_it(
     assert f"{bad}: not UTF-8 text" in r.output
     r = cli("check-config", str(machines))
     assert f"{bad}: not UTF-8 text" in r.output and r.exit_code == 1
+    r = cli("identify", str(bad))  # the same message from every command that reads it
+    assert f"{bad}: not UTF-8 text" in r.output and r.exit_code == 78
 
 
 def test_every_entry_of_the_directory_is_run_lost_or_named_as_skipped(

@@ -61,11 +61,7 @@ def load_runnable(config: Path | None, base_dir: Path,
     from twinwatch.config.loader import ConfigError, default_config, load_config
     from twinwatch.config.preflight import check_runnable
 
-    try:
-        cfg = load_config(config) if config else default_config()
-    except UnicodeDecodeError as exc:  # a file in another encoding, or not text at all
-        raise ConfigError(f"{config}: not UTF-8 text (byte {exc.start}: {exc.reason}): a "
-                          "configuration is a TOML file in UTF-8") from None
+    cfg = load_config(config) if config else default_config()
     check_runnable(cfg, str(config) if config else "the built-in default", base_dir=base_dir,
                    cwd=cwd)
     if force is not None and cfg.machine.purpose == "commissioning":

@@ -90,13 +90,17 @@ def load_config(path: str | Path) -> TwinwatchConfig:
     """Read and validate a TOML configuration file.
 
     Raises:
-        ConfigError: the file cannot be read, is not TOML, or a key is invalid.
+        ConfigError: the file cannot be read, is not UTF-8 text, is not TOML, or a key is
+            invalid.
     """
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read the configuration: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:  # a file in another encoding, or not text at all
+        raise ConfigError(f"{p}: not UTF-8 text (byte {exc.start}: {exc.reason}): a "
+                          "configuration is a TOML file in UTF-8") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

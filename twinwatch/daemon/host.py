@@ -174,11 +174,7 @@ class Machine:
             self._watch(cfg)
             return cfg
         assert self.path is not None
-        try:
-            cfg = self.host.read(self.path)
-        except UnicodeDecodeError as exc:
-            raise ConfigError(f"{self.path}: not UTF-8 text (byte {exc.start}: {exc.reason}): "
-                              "a configuration is a TOML file in UTF-8") from None
+        cfg = self.host.read(self.path)
         name = self.name = cfg.machine.name
         self.host.claim(name, self)
         work_dir = self.host.work_root / name
