@@ -292,6 +292,25 @@ def test_realtime_modbus_server_restart_daemon_reconnects_and_reports_the_gap():
     assert not last["parameters"]["q_pump"]["held"]
 
 
+def test_the_simulated_device_says_what_it_waits_for_while_it_does_not_answer():
+    """The simulated Modbus plant reports what its Modbus driver reports (STATUS and the
+    health message read ``waiting``): the device not answering while its server is stopped,
+    nothing once it answers again."""
+    cfg = _config(SIM, duration=20.0, scenario="nominal")
+    assert isinstance(cfg.driver, SimulatedModbusDriverConfig)
+    cfg.driver.timeout = 0.3
+    cfg.driver.backoff_max = 0.4
+    with SimulatedModbusDriver(cfg.driver) as driver:
+        assert driver.read(5.0) is not None and driver.waiting is None
+        driver.server.stop()
+        _wait(lambda: driver.read(0.2) is None and driver.waiting is not None, 10.0,
+              lambda: driver.stats.as_dict())
+        assert "not answering" in str(driver.waiting)
+        driver.server.start()  # same port
+        _wait(lambda: driver.read(0.2) is not None and driver.waiting is None, 15.0,
+              lambda: (driver.waiting, driver.stats.as_dict()))
+
+
 def _wait(cond: Any, timeout: float, state: Any = None) -> None:
     deadline = time.monotonic() + timeout
     while not cond():

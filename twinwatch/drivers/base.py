@@ -504,6 +504,22 @@ class PlantDriver(Driver):
         """The real driver reading the plant (None before it opened)."""
         return self._inner_driver
 
+    # what the real driver reports of its source, reported as the simulated plant's
+    @property
+    def waiting(self) -> str | None:
+        inner = self._inner_driver
+        return None if inner is None else inner.waiting
+
+    @property
+    def silent(self) -> tuple[str, ...]:
+        inner = self._inner_driver
+        return () if inner is None else inner.silent
+
+    @property
+    def device_faults(self) -> tuple[str, ...]:
+        inner = self._inner_driver
+        return () if inner is None else inner.device_faults
+
     def _close_internal(self) -> None:
         if self._inner_driver is not None:
             self._inner_driver.close()

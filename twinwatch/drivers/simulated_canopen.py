@@ -158,14 +158,6 @@ class SimulatedCanopenDriver(PlantDriver):
                     "channel %r", config.machine, config.node_id, config.plant.scenario,
                     config.plant.duration, channel)
 
-    @property
-    def silent(self) -> tuple[str, ...]:
-        return () if self.canopen is None else self.canopen.silent
-
-    @property
-    def device_faults(self) -> tuple[str, ...]:
-        return () if self.canopen is None else self.canopen.device_faults
-
     def _send_next(self) -> None:
         """Advance the plant one sample and put its frames on the bus."""
         assert self.drive is not None

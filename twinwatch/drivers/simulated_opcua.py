@@ -184,10 +184,6 @@ class SimulatedOpcUaDriver(PlantDriver):
     def _on_take(self, n: int) -> None:
         self._taken += n
 
-    @property
-    def waiting(self) -> str | None:
-        return None if self.opcua is None else self.opcua.waiting
-
     def _read_internal(self, timeout: float | None) -> Sample | None:
         sample = self._take(1.0 if timeout is None else timeout)
         if sample is not None:
