@@ -341,3 +341,50 @@ def test_a_terms_sensitivity_column_is_the_residuals_change_with_its_scale():
     np.testing.assert_allclose(0.1 * col[:, 0], change, rtol=1e-3, atol=1e-9)
     bare = est.problem(window, None)
     assert bare.local.term_sensitivity(v).shape[1] == 0
+
+
+def _residuals(fun):
+    """(residuals, forward-difference Jacobian) of ``fun`` at x, as the polish gives them."""
+    def evaluate(x):
+        r = fun(x)
+        jac = np.empty((r.size, x.size))
+        for j in range(x.size):
+            e = x.copy()
+            e[j] += 1e-7
+            jac[:, j] = (fun(e) - r) / 1e-7
+        return r, jac
+    return evaluate
+
+
+def test_the_polish_step_reaches_the_least_squares_optimum_inside_and_on_the_bounds():
+    from twinwatch.twin.estimation.fit import bounded_gauss_newton
+
+    opts = dict(xtol=1e-10, ftol=1e-12, gtol=1e-12, max_evaluations=50)
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((40, 3)), rng.standard_normal(40)
+    free = np.full(3, 10.0)
+    x, done = bounded_gauss_newton(_residuals(lambda x: a @ x - b), np.zeros(3), -free, free,
+                                   **opts)
+    assert done
+    np.testing.assert_allclose(x, np.linalg.lstsq(a, b, rcond=None)[0], rtol=1e-7)
+    # Rosenbrock's valley as residuals: the optimum (1, 1) from the usual start
+    x, done = bounded_gauss_newton(_residuals(lambda x: np.array([10 * (x[1] - x[0] ** 2),
+                                                                   1 - x[0]])),
+                                   np.array([-1.2, 1.0]), np.full(2, -5.0), np.full(2, 5.0),
+                                   **opts)
+    assert done
+    np.testing.assert_allclose(x, [1.0, 1.0], atol=1e-6)
+    # the optimum beyond an upper bound: held on it, the other variable optimal given it
+    target = np.array([2.0, -1.0])
+    x, done = bounded_gauss_newton(_residuals(lambda x: np.array([x[0] - target[0],
+                                                                   x[1] - target[1],
+                                                                   0.1 * x[0] * x[1]])),
+                                   np.zeros(2), np.array([-5.0, -5.0]), np.array([1.5, 5.0]),
+                                   **opts)
+    assert done and x[0] == 1.5
+    # d/dx1 of (x1 + 1)^2 + (0.15 x1)^2 = 0
+    assert x[1] == pytest.approx(-1.0 / (1.0 + 0.15 ** 2), rel=1e-6)
+    # residuals that are not finite at the start: not polished, said so
+    x, done = bounded_gauss_newton(_residuals(lambda x: np.full(3, np.nan)), np.ones(2),
+                                   -free[:2], free[:2], **opts)
+    assert not done and np.array_equal(x, np.ones(2))
