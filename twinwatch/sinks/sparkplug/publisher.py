@@ -16,7 +16,7 @@ import threading
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from twinwatch.errors import PublisherError
-from twinwatch.sinks.base import OutboxRow, SinkContext
+from twinwatch.sinks.base import OutboxRow, SharedResources, SinkContext
 from twinwatch.sinks.mqtt.delivery import DeliveringSink, Delivery
 from twinwatch.sinks.mqtt.encoding import health_view
 from twinwatch.sinks.mqtt.session import mqtt, read_password
@@ -78,15 +78,15 @@ class SparkplugPublisher(DeliveringSink):
             ready=lambda: self._node.connected and self._node.born)  # DDATA may go out
         password = read_password(config, "sparkplug")
         edge = config.edge_node_id or context.machine
-        self._shared = context.shared
-        self._key = node_key(config, context.machine)
-        directory = getattr(self._shared, "directory", None) or context.cwd
+        directory = getattr(context.shared, "directory", None) or context.cwd
 
         def open_node() -> EdgeNode:
             return EdgeNode(config, edge, password, directory, context.machine)
 
-        node: EdgeNode = (open_node() if self._shared is None
-                          else self._shared.acquire(self._key, open_node, EdgeNode.close))
+        node: EdgeNode
+        self._key = node_key(config, context.machine)
+        node, self._release = SharedResources.hold(context.shared, self._key, open_node,
+                                                   EdgeNode.close)
         self._node = node
         self.wake = node.wake
         try:
@@ -102,12 +102,6 @@ class SparkplugPublisher(DeliveringSink):
             self._release()
             raise
         self._closed = False
-
-    def _release(self) -> None:
-        if self._shared is None:
-            self._node.close()
-        else:
-            self._shared.release(self._key)
 
     # -- the device's state ----------------------------------------------------------------
     @property
