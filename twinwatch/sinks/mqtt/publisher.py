@@ -153,11 +153,6 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
                 "disconnects": int(s.disconnects), "errors": int(d.errors)}
 
     @property
-    def connected(self) -> bool:
-        """The broker has accepted the connection (CONNACK) and it is not known lost."""
-        return self.mqtt.connected
-
-    @property
     def problem(self) -> str | None:
         out = [] if self._closed else self.mqtt.problems(self.pending)
         unacked = self.delivery.unacknowledged(self.mqtt.broker,

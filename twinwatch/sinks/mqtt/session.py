@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
+from twinwatch._forward import Forward
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
 
@@ -328,6 +329,9 @@ class SessionThread(Generic[M]):
     wake: threading.Event
     _stop: threading.Event
     _thread: threading.Thread
+
+    connected: Forward[bool] = Forward(
+        "mqtt.connected", "The broker accepted the connection (CONNACK), not known lost.")
 
     def _members(self) -> Sequence[M]:
         """The members served now."""

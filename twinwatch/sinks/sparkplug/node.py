@@ -102,8 +102,6 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
 
     client: Forward[mqtt.Client] = Forward(
         "mqtt.client", "The session's paho client (a new one at each connection).")
-    connected: Forward[bool] = Forward(
-        "mqtt.connected", "The broker accepted the connection and it is not known lost.")
     connects: Forward[int] = Forward("mqtt.connects", "Connections made so far.")
     disconnects: Forward[int] = Forward("mqtt.disconnects", "Connections lost so far.")
 
