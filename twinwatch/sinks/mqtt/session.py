@@ -313,12 +313,9 @@ M = TypeVar("M", bound="DeliveringSink")
 
 class SessionThread(Generic[M]):
     """The thread that drives an :class:`MqttSession` and the deliveries of its members (the
-    MQTT output: itself; a Sparkplug edge node: its devices), as both outputs run it: restarted
-    after an unexpected error; offline, a connection attempt when due (the capped backoff)
-    and, while a closing member's windows wait, every :data:`CLOSE_RETRY_S` until its
-    ``leave_by``; connected, each member fed (on a wake-up, every 0.5 s, while it leaves) and
-    retired once delivered or past ``leave_by``; the deliveries recorded and counted; once
-    stopped and every member retired, :meth:`_finish`.
+    MQTT output: itself; a Sparkplug edge node: its devices), as both outputs run it
+    (:meth:`_run`, :meth:`_offline`, :meth:`_online`); once stopped and every member retired,
+    :meth:`_finish`.
 
     A subclass sets :attr:`mqtt`, :attr:`wake`, ``_stop`` and ``_thread`` (``target``
     :meth:`_run`) and says who its members are, what a member's turn and a connected turn add
@@ -409,8 +406,9 @@ class SessionThread(Generic[M]):
 
     def _offline(self, now: float, members: Sequence[M]) -> None:
         """A turn without a connection: closing members retired when delivered or past their
-        ``leave_by``, a connection attempted, the deliveries recorded and counted; waits for
-        a window stored or the next attempt."""
+        ``leave_by``, a connection attempted when due (the capped backoff; while a closing
+        member's windows wait, every :data:`CLOSE_RETRY_S`), the deliveries recorded and
+        counted; waits for a window stored or the next attempt."""
         waiting = [m for m in members if not self._left(m, now) and m.leave_by is not None]
         closing = self._stop.is_set()  # the whole session closes: only the closing attempts
         if waiting and now >= self._close_attempt:
