@@ -145,7 +145,7 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
             self.client.publish(device.device.ddeath_topic, device.device.ddeath(now_ms()),
                                 qos=1)
         device.device_born = False
-        device.finish()
+        device.delivery.finish()
         with self._lock:
             self.devices.pop(device.device.device_id, None)
             self._owners.pop(device.device.device_id, None)

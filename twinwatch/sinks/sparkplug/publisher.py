@@ -128,10 +128,6 @@ class SparkplugPublisher(DeliveringSink):
         self.delivery.reset_connection()
         self.device_born = False
 
-    def finish(self) -> None:
-        """Retired by the node: record the deliveries."""
-        self.delivery.finish()
-
     # -- the device's messages (in the node's thread) ----------------------------------------
     def device_birth(self) -> None:
         """DBIRTH: every metric with the newest stored window of this run's values (none yet:
