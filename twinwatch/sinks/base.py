@@ -261,6 +261,16 @@ class SharedResources:
             item[1] += 1
             return item[0]
 
+    @staticmethod
+    def hold(shared: SharedResources | None, key: str, open_: Callable[[], Any],
+             close: Callable[[Any], None]) -> tuple[Any, Callable[[], None]]:
+        """The object for ``key`` (:meth:`acquire`; without ``shared``, ``open_()``'s own)
+        and the call that lets it go (:meth:`release`; the own one, ``close(obj)``)."""
+        if shared is None:
+            obj = open_()
+            return obj, lambda: close(obj)
+        return shared.acquire(key, open_, close), lambda: shared.release(key)
+
     def release(self, key: str) -> None:
         """Drop one reference to ``key``'s object; the last closes it (``close(obj)``)."""
         with self._lock:

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Self
 
 from twinwatch._forward import Forward
 from twinwatch.errors import StoreError
-from twinwatch.sinks.base import Outbox, OutboxRow, Sink, SinkContext
+from twinwatch.sinks.base import Outbox, OutboxRow, ProcessedWindow, Sink, SinkContext
 from twinwatch.sinks.mqtt.encoding import health_view, levels
 from twinwatch.sinks.mqtt.outbox import MemoryOutbox, Window
 
@@ -314,10 +314,32 @@ class Delivery:
 class DeliveringSink(Sink):
     """What an output that delivers through a :class:`Delivery` answers (the MQTT and the
     Sparkplug B outputs): its counts, its reload key, its outbox unbound by a reload. A
-    subclass sets :attr:`delivery` and ``_closed``."""
+    subclass sets :attr:`delivery`, ``_closed`` and :attr:`wake` (its thread's); its close sets
+    :attr:`leave_by`."""
 
     delivery: Delivery
     _closed: bool
+    wake: threading.Event
+    leave_by: float | None = None  # closing: deliver until then (monotonic)
+
+    def attach(self, context: SinkContext) -> None:
+        """Deliver from ``context``'s outbox (at open; a reload's daemon adopts the output)."""
+        super().attach(context)
+        self.delivery.bind(context)
+        self.wake.set()
+
+    def write(self, out: ProcessedWindow) -> None:
+        """The window pipeline's call (a stored window): kept in memory when there is no
+        state database, the thread woken. Never blocks on the broker."""
+        if self._closed:
+            return
+        if self.delivery.memory is not None:
+            self.delivery.memory.add(out.health_json, out.health.window)
+        self.wake.set()
+
+    def has_undelivered(self) -> bool:
+        """Windows in flight or pending in the outbox."""
+        return bool(self.delivery.inflight) or self.delivery.has_pending()
 
     @classmethod
     def from_config(cls, config: Any, context: SinkContext) -> Self:

@@ -24,7 +24,7 @@ from twinwatch.sinks.mqtt.encoding import (
     levels,
     reconstructed_events,
 )
-from twinwatch.sinks.mqtt.session import CLOSE_RETRY_S, MqttSession, mqtt, read_password
+from twinwatch.sinks.mqtt.session import MqttSession, SessionThread, mqtt, read_password
 
 if TYPE_CHECKING:
     from twinwatch.twin.health import HealthView
@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__package__)  # the output's name in its log lines: twinwatch.sinks.mqtt
 
 
-class MqttPublisher(DeliveringSink):
+class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
     """The MQTT output (see the module docstring): the built-in ``mqtt``, ``[outputs.mqtt]``.
 
     Args:
@@ -40,7 +40,7 @@ class MqttPublisher(DeliveringSink):
         context: the daemon's context (machine, model, parameters; the gate's outbox).
 
     Attributes:
-        session: the connection to the broker (:class:`MqttSession`).
+        mqtt: the connection to the broker (:class:`MqttSession`).
         delivery: the windows delivered and pending (:class:`Delivery`).
 
     Raises:
@@ -68,16 +68,15 @@ class MqttPublisher(DeliveringSink):
         self.discovery_topic = f"{ha.prefix}/device/{ha_device_id(context.machine)}/config"
         self._events: dict[str, list[dict[str, Any]]] = {}
         self._events_lock = threading.Lock()
-        self._wake = threading.Event()
+        self.wake = threading.Event()
         self._stop = threading.Event()
         self._discovery_sent: str | None = None
         self._discovery_due: float | None = None
         self.delivery = Delivery(config, in_memory=context.outbox is None,
                                  outbox_name=lambda: self.name or "mqtt", send=self._send,
-                                 ready=lambda: self.session.connected, machine=self.machine)
-        self.context = context
-        self._bind(context)
-        self.session = MqttSession(
+                                 ready=lambda: self.mqtt.connected, machine=self.machine)
+        self.attach(context)
+        self.mqtt = MqttSession(
             config, self, table="mqtt",
             client_id=config.client_id or f"twinwatch-{context.machine}",
             password=read_password(config, "mqtt"),
@@ -85,8 +84,8 @@ class MqttPublisher(DeliveringSink):
             paho_log=f"{__name__}.paho", stopping=self._stop.is_set,
             conflict="give each daemon its own [outputs.mqtt] client_id (or machine name); "
                      "connecting less often meanwhile, windows wait in the outbox")
-        self.client_id = self.session.client_id
-        self.session.client.connect_async(config.host, config.port, keepalive=config.keepalive)
+        self.client_id = self.mqtt.client_id
+        self.mqtt.client.connect_async(config.host, config.port, keepalive=config.keepalive)
         self._thread = threading.Thread(target=self._run, name="twinwatch-mqtt", daemon=True)
         self._closed = False
         self._thread.start()
@@ -96,10 +95,10 @@ class MqttPublisher(DeliveringSink):
         """Connected: ``online`` on the availability topic, the discovery (or its clearing)."""
         if again:
             logger.warning("MQTT broker %s reached: %d windows pending are sent now",
-                           self.session.broker, self.delivery.pending)
+                           self.mqtt.broker, self.delivery.pending)
         else:
             logger.info("publishing health of %s on %s (MQTT broker %s)", self.machine,
-                        self.health_topic, self.session.broker)
+                        self.health_topic, self.mqtt.broker)
         client.publish(self.availability_topic, "online", qos=1, retain=True)
         ha = self.config.home_assistant
         if ha.discovery:
@@ -108,7 +107,7 @@ class MqttPublisher(DeliveringSink):
             self._send_discovery(force=True)
         else:
             client.publish(self.discovery_topic, b"", qos=1, retain=True)
-        self._wake.set()
+        self.wake.set()
 
     def session_down(self) -> bool:
         """A lost connection is never our own doing: False."""
@@ -133,50 +132,30 @@ class MqttPublisher(DeliveringSink):
         self.delivery.acknowledged(mid)
 
     # -- the sink contract --------------------------------------------------------------------
-    def attach(self, context: SinkContext) -> None:
-        """A reload's daemon adopts the output: its outbox from now on."""
-        super().attach(context)
-        self._bind(context)
-
-    def _bind(self, context: SinkContext) -> None:
-        self.context = context
-        self.delivery.bind(context)
-        self._wake.set()
-
     def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's call (a stored window): remember its alarm events, keep it
-        in memory when there is no state database, wake the thread. Never blocks on the
-        broker."""
-        if self._closed:
-            return
-        if out.events:
+        """The window pipeline's call (a stored window): its alarm events remembered, then as
+        :meth:`DeliveringSink.write`. Never blocks on the broker."""
+        if out.events and not self._closed:
             with self._events_lock:
                 self._events[out.health_json] = list(out.events)
                 while len(self._events) > 1000:
                     self._events.pop(next(iter(self._events)))
-        if self.delivery.memory is not None:
-            self.delivery.memory.add(out.health_json, out.health.window)
-        self._wake.set()
+        super().write(out)
 
     def counters(self) -> dict[str, int]:
         """``delivered`` (windows acknowledged by the broker), ``pending`` (stored, not yet
         delivered), ``dropped`` (deleted by the retention, or pushed out of the memory outbox,
         before delivery), ``connects``, ``disconnects``, ``errors`` (publishes refused,
         outbox reads or writes that failed)."""
-        d, s = self.delivery, self.session
+        d, s = self.delivery, self.mqtt
         return {"delivered": int(d.delivered), "pending": int(d.pending),
                 "dropped": d.dropped, "connects": int(s.connects),
                 "disconnects": int(s.disconnects), "errors": int(d.errors)}
 
     @property
-    def connected(self) -> bool:
-        """The broker has accepted the connection (CONNACK) and it is not known lost."""
-        return self.session.connected
-
-    @property
     def problem(self) -> str | None:
-        out = [] if self._closed else self.session.problems(self.pending)
-        unacked = self.delivery.unacknowledged(self.session.broker,
+        out = [] if self._closed else self.mqtt.problems(self.pending)
+        unacked = self.delivery.unacknowledged(self.mqtt.broker,
                                                self.connected and not self._closed)
         if unacked is not None:
             out.append(unacked)
@@ -201,120 +180,33 @@ class MqttPublisher(DeliveringSink):
         if self._closed:
             return
         self._closed = True
-        self._stop.set()
-        self._wake.set()
-        self._thread.join(timeout=self.config.close_timeout + self.config.connect_timeout + 10)
-        if self._thread.is_alive():
+        self.leave_by = time.monotonic() + self.config.close_timeout
+        if not self._stop_thread(self.config.close_timeout + self.config.connect_timeout + 10):
             logger.warning("the MQTT thread of %s did not stop in time", self.machine)
         logger.info("MQTT output of %s closed (%d windows delivered, %d pending)",
                     self.machine, self.delivered, self.pending)
 
-    # -- the thread ---------------------------------------------------------------------------
-    def _run(self) -> None:
-        """The thread: :meth:`_loop`, restarted after an unexpected error (logged with its
-        traceback, counted in ``errors``): the output must not die silently."""
-        while True:
-            try:
-                self._loop()
-                return
-            except Exception:  # noqa: BLE001 - logged; the loop goes on
-                self.delivery.errors += 1
-                logger.exception("the MQTT output of %s failed; it goes on in 1 s",
-                                 self.machine)
-                if self._stop.wait(1.0):
-                    self._finish()
-                    return
+    # -- the thread (a SessionThread of one member: the output) -------------------------------
+    def _members(self) -> list[MqttPublisher]:
+        return [self] if self.leave_by is None or time.monotonic() < self.leave_by else []
 
-    def _loop(self) -> None:
-        session = self.session
-        self._last_poll = self._last_count = self._close_attempt = 0.0
-        deadline: float | None = None
-        while True:
-            now = time.monotonic()
-            if self.delivery.rebind.is_set():
-                self.delivery.rebind_outbox()
-            if self._stop.is_set():  # closing: deliver what is pending, for a while
-                if deadline is None:
-                    deadline = now + self.config.close_timeout
-                step = self._closing(now, deadline)
-                if step == "done":
-                    break
-                if step == "wait":
-                    continue
-            if not session.connected and not self._offline(now):
-                continue
-            session.client.loop(timeout=0.05)
-            if session.connected:
-                self._online(now)
-        self._finish()
+    def _retire(self, member: MqttPublisher) -> None:
+        self.leave_by = 0.0  # delivered: the thread finishes
 
-    def _closing(self, now: float, deadline: float) -> str:
-        """A turn while closing: ``"done"`` once every window is delivered or the deadline
-        [s, monotonic] passed; ``"wait"`` while unconnected (an attempt at once and then
-        every :data:`CLOSE_RETRY_S`); ``"go"``: deliver."""
-        session, delivery = self.session, self.delivery
-        if now >= deadline:
-            return "done"
-        if not session.connected:
-            # while windows wait: an attempt at once and then every CLOSE_RETRY_S until the
-            # deadline (the backoff may be sleeping through a broker that is back)
-            if not (delivery.inflight or delivery.has_pending()):
-                return "done"
-            if now >= self._close_attempt:
-                session.attempt()
-                self._close_attempt = time.monotonic() + CLOSE_RETRY_S
-            if not session.connected:
-                delivery.flush_acks()
-                time.sleep(max(0.0, min(0.2, deadline - time.monotonic())))
-            return "wait"
-        if not delivery.inflight:
-            delivery.feed(now, all_rows=True)
-            if not delivery.inflight and not delivery.has_pending():
-                return "done"
-        return "go"
+    def _failed(self) -> None:
+        self.delivery.errors += 1
+        logger.exception("the MQTT output of %s failed; it goes on in 1 s", self.machine)
 
-    def _offline(self, now: float) -> bool:
-        """A turn without a connection: an attempt when due (capped exponential backoff);
-        else the deliveries recorded and counted while waiting for a window stored or the
-        next attempt. True when connected."""
-        session, delivery = self.session, self.delivery
-        if session.due(now):
-            session.attempt()
-            if not session.connected:
-                session.backoff()
-        if session.connected:
-            return True
-        delivery.flush_acks()
-        if now - self._last_count > 1.0:
-            delivery.count()
-            self._last_count = now
-        if self._wake.wait(min(0.2, max(session.next_attempt - time.monotonic(), 0.01))):
-            self._wake.clear()
-            delivery.count()  # a window stored: one more pending
-            self._last_count = time.monotonic()
-        return False
-
-    def _online(self, now: float) -> None:
-        """A connected turn: feed on a wake-up (or every 0.5 s), the discovery when Home
-        Assistant asked, the deliveries recorded and counted."""
-        delivery = self.delivery
-        woken = self._wake.is_set()
-        self._wake.clear()
-        if woken or self._stop.is_set() or now - self._last_poll > 0.5:
-            delivery.feed(now, all_rows=woken or self._stop.is_set())
-            self._last_poll = now
+    def _turn_done(self, now: float) -> None:
+        """The discovery when Home Assistant asked."""
         if self._discovery_due is not None and now >= self._discovery_due:
             self._send_discovery(force=True)
-        delivery.flush_acks()
-        if now - self._last_count > 1.0:
-            delivery.count()
-            self._last_count = now
 
     # -- sending ------------------------------------------------------------------------------
     def _send_discovery(self, force: bool = False) -> None:
         self._discovery_due = None
         ha = self.config.home_assistant
-        if not ha.discovery or not self.session.connected:
+        if not ha.discovery or not self.mqtt.connected:
             return
         ctx = self.context
         payload = json.dumps(discovery_payload(
@@ -325,7 +217,7 @@ class MqttPublisher(DeliveringSink):
             separators=(",", ":"))
         if payload == self._discovery_sent and not force:
             return
-        self.session.client.publish(self.discovery_topic, payload, qos=1, retain=True)
+        self.mqtt.client.publish(self.discovery_topic, payload, qos=1, retain=True)
         self._discovery_sent = payload
 
     def _send(self, row: OutboxRow, newest: bool) -> bool:
@@ -340,7 +232,7 @@ class MqttPublisher(DeliveringSink):
             doc = None
         mids = []
         for topic, payload, retain in self._messages(row, doc, newest):
-            info = self.session.client.publish(topic, payload, qos=qos, retain=retain)
+            info = self.mqtt.client.publish(topic, payload, qos=qos, retain=retain)
             if info.rc != mqtt.MQTT_ERR_SUCCESS and info.rc != mqtt.MQTT_ERR_NO_CONN:
                 delivery.errors += 1
                 logger.debug("publishing on %s refused: %s", topic, mqtt.error_string(info.rc))
@@ -374,10 +266,10 @@ class MqttPublisher(DeliveringSink):
         """Leaving the thread: record the deliveries, go offline, disconnect."""
         self.delivery.flush_acks()
         self.delivery.count()
-        self.session.leave(self.availability_topic, "offline", retain=True)
+        self.mqtt.leave(self.availability_topic, "offline", retain=True)
         self.delivery.finish()
 
     def __repr__(self) -> str:
         state = ("closed" if self._closed else
-                 ("connected" if self.session.connected else "connecting"))
+                 ("connected" if self.mqtt.connected else "connecting"))
         return f"MqttPublisher({self.health_topic!r}, {state}, delivered={self.delivered})"

@@ -4,9 +4,9 @@ jittered backoff between them, the CONNACK, the connection lost, another client 
 client id over, and what is wrong with the session for STATUS.
 
 The owner (:class:`~twinwatch.sinks.mqtt.publisher.MqttPublisher`, the Sparkplug
-:class:`~twinwatch.sinks.sparkplug.node.EdgeNode`) drives the session from its thread and
-says, through the :class:`SessionOwner` calls, what it publishes when connected and what its
-messages are.
+:class:`~twinwatch.sinks.sparkplug.node.EdgeNode`) drives the session from its thread, one
+:class:`SessionThread` loop for both, and says, through the :class:`SessionOwner` calls, what
+it publishes when connected and what its messages are.
 """
 
 from __future__ import annotations
@@ -14,10 +14,12 @@ from __future__ import annotations
 import logging
 import random
 import ssl
+import threading
 import time
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
+from twinwatch._forward import Forward
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import PublisherError
 
@@ -25,12 +27,13 @@ if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
 
     from twinwatch.sinks.mqtt.config import MqttConnectionConfig
+    from twinwatch.sinks.mqtt.delivery import DeliveringSink
 else:  # imported when the output opens: loading a configuration does not load paho (the MQTT
     # and Sparkplug publishers take mqtt from here)
     mqtt = lazy_module("paho.mqtt.client")
 
 __all__ = ["CLOSE_RETRY_S", "TAKEOVERS", "TAKEOVER_S", "MqttSession", "SessionOwner",
-           "read_password"]
+           "SessionThread", "read_password"]
 
 #: At stop, with windows still to deliver and no connection: the spacing of the connection
 #: attempts until ``close_timeout`` [s].
@@ -303,3 +306,157 @@ def read_password(config: Any, table: str) -> str | None:
                              f"{config.password_file}"
                              f": {exc.strerror or exc}; fix the path or the file's "
                              f"permissions (the service user must read it)") from exc
+
+
+M = TypeVar("M", bound="DeliveringSink")
+
+
+class SessionThread(Generic[M]):
+    """The thread that drives an :class:`MqttSession` and the deliveries of its members (the
+    MQTT output: itself; a Sparkplug edge node: its devices), as both outputs run it
+    (:meth:`_run`, :meth:`_offline`, :meth:`_online`); once stopped and every member retired,
+    :meth:`_finish`.
+
+    A subclass sets :attr:`mqtt`, :attr:`wake`, ``_stop`` and ``_thread`` (``target``
+    :meth:`_run`) and says who its members are, what a member's turn and a connected turn add
+    and how a member is retired.
+    """
+
+    mqtt: MqttSession
+    wake: threading.Event
+    _stop: threading.Event
+    _thread: threading.Thread
+
+    connected: Forward[bool] = Forward(
+        "mqtt.connected", "The broker accepted the connection (CONNACK), not known lost.")
+
+    def _members(self) -> Sequence[M]:
+        """The members served now."""
+        raise NotImplementedError
+
+    def _retire(self, member: M) -> None:
+        """``member`` has left (delivered, or past its ``leave_by``)."""
+        raise NotImplementedError
+
+    def _failed(self) -> None:
+        """An unexpected error in the thread: counted and logged with its traceback."""
+        raise NotImplementedError
+
+    def _finish(self) -> None:
+        """The thread ends: the session closed."""
+        raise NotImplementedError
+
+    def _connect(self) -> None:
+        """One connection attempt."""
+        self.mqtt.attempt()
+
+    def _ready(self, member: M) -> bool:
+        """``member`` may be fed in this connected turn."""
+        return True
+
+    def _turn_done(self, now: float) -> None:
+        """What a connected turn does after its members' turns."""
+
+    def _stop_thread(self, timeout: float) -> bool:
+        """Stop the thread (it delivers what its members' ``leave_by`` allows): True when it
+        ended within ``timeout`` [s]."""
+        self._stop.set()
+        self.wake.set()
+        self._thread.join(timeout=timeout)
+        return not self._thread.is_alive()
+
+    def _run(self) -> None:
+        """The thread: :meth:`_loop`, restarted after an unexpected error 1 s later (logged,
+        counted: the output must not die silently); stopped meanwhile, the members retired."""
+        while True:
+            try:
+                self._loop()
+                return
+            except Exception:  # noqa: BLE001 - logged; the loop goes on
+                self._failed()
+                if self._stop.wait(1.0):
+                    for member in self._members():
+                        self._retire(member)
+                    self._finish()
+                    return
+
+    def _loop(self) -> None:
+        self._last_poll = self._last_count = self._close_attempt = 0.0
+        while True:
+            now = time.monotonic()
+            members = self._members()
+            for m in members:
+                if m.delivery.rebind.is_set():
+                    m.delivery.rebind_outbox()
+            if not members:
+                if self._stop.is_set():
+                    break
+                if not self.mqtt.connected:  # no member yet (the first is joining)
+                    self.wake.wait(0.05)
+                    self.wake.clear()
+                    continue
+            if not self.mqtt.connected:
+                self._offline(now, members)
+                if not self.mqtt.connected:
+                    continue
+            self.mqtt.client.loop(timeout=0.05)
+            if self.mqtt.connected:
+                self._online(now, members)
+        self._finish()
+
+    def _offline(self, now: float, members: Sequence[M]) -> None:
+        """A turn without a connection: closing members retired when delivered or past their
+        ``leave_by``, a connection attempted when due (the capped backoff; while a closing
+        member's windows wait, every :data:`CLOSE_RETRY_S`), the deliveries recorded and
+        counted; waits for a window stored or the next attempt."""
+        waiting = [m for m in members if not self._left(m, now) and m.leave_by is not None]
+        closing = self._stop.is_set()  # the whole session closes: only the closing attempts
+        if waiting and now >= self._close_attempt:
+            # a closing member's windows wait (the backoff may sleep through a broker back)
+            self._connect()
+            self._close_attempt = time.monotonic() + CLOSE_RETRY_S
+        elif not closing and self.mqtt.due(now):
+            self._connect()
+            if not self.mqtt.connected:
+                self.mqtt.backoff()
+        if self.mqtt.connected:
+            return
+        for m in self._members():  # without the ones retired just now
+            m.delivery.flush_acks()
+        self._count(now)
+        until = self._close_attempt if closing else self.mqtt.next_attempt
+        if self.wake.wait(min(0.2, max(until - time.monotonic(), 0.01))):
+            self.wake.clear()
+            self._count(now, force=True)  # a window stored: one more pending
+
+    def _online(self, now: float, members: Sequence[M]) -> None:
+        """A connected turn: each member fed (on a wake-up, every 0.5 s, while it leaves),
+        retired once delivered or past its ``leave_by``, its acknowledgements recorded; the
+        deliveries counted."""
+        woken = self.wake.is_set()
+        self.wake.clear()
+        poll = woken or now - self._last_poll > 0.5
+        if poll:
+            self._last_poll = now
+        for m in members:
+            leaving = m.leave_by is not None
+            if self._ready(m) and (poll or leaving):
+                m.delivery.feed(now, all_rows=woken or leaving)
+            if not self._left(m, now):
+                m.delivery.flush_acks()
+        self._turn_done(now)
+        self._count(now)
+
+    def _left(self, m: M, now: float) -> bool:
+        """``m`` closes and is delivered or past its ``leave_by``: retired (True)."""
+        if m.leave_by is None or (now < m.leave_by and m.has_undelivered()):
+            return False
+        self._retire(m)
+        return True
+
+    def _count(self, now: float, force: bool = False) -> None:
+        """Count each member's pending windows, at most once a second unless ``force``."""
+        if force or now - self._last_count > 1.0:
+            for m in self._members():
+                m.delivery.count()
+            self._last_count = time.monotonic() if force else now

@@ -118,27 +118,21 @@ class _Machine:
         self.counters_t: float | None = None            # plant time the counters were written
 
 
-_PARAM_LEAVES: tuple[tuple[str, str, str], ...] = (
-    ("Low", "Double", "Double"), ("High", "Double", "Double"),
-    ("Status", "String", "String"), ("Nominal", "Double", "Double"),
-    ("Deviation_pct", "Double", "Double"), ("RelStd_pct", "Double", "Double"),
-    ("AlarmLevel", "String", "String"), ("RulAlarmLevel", "String", "String"),
-    ("Trend.Model", "String", "String"), ("Trend.Rate", "Double", "Double"),
-    ("Trend.RateLow", "Double", "Double"), ("Trend.RateHigh", "Double", "Double"),
-    ("Trend.RatePctPerHour", "Double", "Double"), ("Trend.Degrading", "Boolean", "Boolean"),
-    ("RUL.Status", "String", "String"), ("RUL.Alarm_s", "Double", "Double"),
-    ("RUL.AlarmLow_s", "Double", "Double"), ("RUL.AlarmHigh_s", "Double", "Double"),
-    ("RUL.Warning_s", "Double", "Double"), ("RUL.WarningLow_s", "Double", "Double"),
-    ("RUL.WarningHigh_s", "Double", "Double"))
+_PARAM_LEAVES: tuple[tuple[str, str], ...] = (
+    ("Low", "Double"), ("High", "Double"), ("Status", "String"), ("Nominal", "Double"),
+    ("Deviation_pct", "Double"), ("RelStd_pct", "Double"), ("AlarmLevel", "String"),
+    ("RulAlarmLevel", "String"), ("Trend.Model", "String"), ("Trend.Rate", "Double"),
+    ("Trend.RateLow", "Double"), ("Trend.RateHigh", "Double"), ("Trend.RatePctPerHour", "Double"),
+    ("Trend.Degrading", "Boolean"), ("RUL.Status", "String"), ("RUL.Alarm_s", "Double"),
+    ("RUL.AlarmLow_s", "Double"), ("RUL.AlarmHigh_s", "Double"), ("RUL.Warning_s", "Double"),
+    ("RUL.WarningLow_s", "Double"), ("RUL.WarningHigh_s", "Double"))
 
-_DIAG_LEAVES: tuple[tuple[str, str, str], ...] = (
-    ("Status", "String", "String"), ("TopFault", "String", "String"),
-    ("Part", "String", "String"), ("Probability", "Double", "Double"),
-    ("Action", "String", "String"), ("Urgency", "String", "String"),
-    ("NoFault", "Double", "Double"), ("Unknown", "Double", "Double"),
-    ("Alarms", "String", "String"), ("Faults.Ids", "String", "String"),
-    ("Faults.Parts", "String", "String"), ("Faults.Probabilities", "Double", "Double"),
-    ("Faults.Actions", "String", "String"), ("Faults.Urgencies", "String", "String"))
+_DIAG_LEAVES: tuple[tuple[str, str], ...] = (
+    ("Status", "String"), ("TopFault", "String"), ("Part", "String"), ("Probability", "Double"),
+    ("Action", "String"), ("Urgency", "String"), ("NoFault", "Double"), ("Unknown", "Double"),
+    ("Alarms", "String"), ("Faults.Ids", "String"), ("Faults.Parts", "String"),
+    ("Faults.Probabilities", "Double"), ("Faults.Actions", "String"),
+    ("Faults.Urgencies", "String"))
 
 
 class _Builder:

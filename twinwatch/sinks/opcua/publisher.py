@@ -10,7 +10,7 @@ from collections.abc import Hashable
 from typing import ClassVar, Self
 
 from twinwatch.errors import PublisherError
-from twinwatch.sinks.base import ProcessedWindow, Sink, SinkContext
+from twinwatch.sinks.base import ProcessedWindow, SharedResources, Sink, SinkContext
 from twinwatch.sinks.opcua.config import OpcUaConfig
 from twinwatch.sinks.opcua.server import OpcUaServer
 
@@ -40,20 +40,16 @@ class OpcUaPublisher(Sink):
         self.machine = context.machine
         self.windows = 0
         self.events = 0
-        self._shared = context.shared
-        self._key = config.server_key()
-        if self._shared is not None:
-            other = [k for k in self._shared.keys() if k.startswith("opcua:") and k != self._key
-                     and json.loads(k[6:]).get("endpoint") == config.endpoint]
-            if other:
-                raise PublisherError(
-                    f"outputs.opcua: {config.endpoint} is served by another machine of this "
-                    f"process with other server settings; give the machines of one endpoint "
-                    f"the same [outputs.opcua] table (stale_after aside)")
-            self.server: OpcUaServer = self._shared.acquire(
-                self._key, lambda: OpcUaServer(config), _close_server)
-        else:
-            self.server = OpcUaServer(config)
+        shared, key = context.shared, config.server_key()
+        if shared is not None and [k for k in shared.keys() if k.startswith("opcua:") and k != key
+                                   and json.loads(k[6:]).get("endpoint") == config.endpoint]:
+            raise PublisherError(
+                f"outputs.opcua: {config.endpoint} is served by another machine of this "
+                f"process with other server settings; give the machines of one endpoint "
+                f"the same [outputs.opcua] table (stale_after aside)")
+        self.server: OpcUaServer
+        self.server, self._release = SharedResources.hold(
+            shared, key, lambda: OpcUaServer(config), OpcUaServer.close)
         try:
             self.server.add_machine(context, config.stale_after)
         except BaseException:
@@ -106,13 +102,3 @@ class OpcUaPublisher(Sink):
         self._closed = True
         self.server.remove_machine(self.machine)
         self._release()
-
-    def _release(self) -> None:
-        if self._shared is not None:
-            self._shared.release(self._key)
-        else:
-            self.server.close()
-
-
-def _close_server(server: OpcUaServer) -> None:
-    server.close()

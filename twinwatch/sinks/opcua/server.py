@@ -321,7 +321,7 @@ class OpcUaServer:
             b.prop(value, f"Parameters.{p}.Value.EURange", "EURange",
                    ua.Variant(_eu_range(p, ctx), ua.VariantType.ExtensionObject),
                    ua.NodeId(dt.Range))
-            for leaf, vt, dtype in _PARAM_LEAVES:
+            for leaf, vt in _PARAM_LEAVES:  # a VariantType, its DataType alike
                 parent = po
                 if "." in leaf:
                     sub, _ = leaf.split(".", 1)
@@ -330,16 +330,16 @@ class OpcUaServer:
                 init: Any = "" if vt == "String" else (False if vt == "Boolean" else math.nan)
                 b.variable(m, parent, f"Parameters.{p}.{leaf}",
                            ua.Variant(init, getattr(ua.VariantType, vt)),
-                           ua.NodeId(getattr(dt, dtype)), browse=leaf.rsplit(".", 1)[-1])
+                           ua.NodeId(getattr(dt, vt)), browse=leaf.rsplit(".", 1)[-1])
         diag = b.object(m, "Diagnosis", obj)
         faults = b.object(m, "Diagnosis.Faults", diag, browse="Faults")
-        for leaf, vt, dtype in _DIAG_LEAVES:
+        for leaf, vt in _DIAG_LEAVES:
             parent = faults if leaf.startswith("Faults.") else diag
             array = leaf.startswith("Faults.") or leaf == "Alarms"
             init = [] if array else ("" if vt == "String" else math.nan)
             b.variable(m, parent, f"Diagnosis.{leaf}",
                        ua.Variant(init, getattr(ua.VariantType, vt)),
-                       ua.NodeId(getattr(dt, dtype)), browse=leaf.rsplit(".", 1)[-1])
+                       ua.NodeId(getattr(dt, vt)), browse=leaf.rsplit(".", 1)[-1])
         b.object(m, "Counters", obj)
         results = await self.isession.add_nodes(b.items)
         for r in results:

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from twinwatch._forward import Forward
 from twinwatch.errors import PublisherError
-from twinwatch.sinks.mqtt.session import CLOSE_RETRY_S, MqttSession
+from twinwatch.sinks.mqtt.session import MqttSession, SessionThread
 from twinwatch.sinks.sparkplug.config import NAMESPACE, NODE_KEYS, SparkplugConfig, key_clash
 from twinwatch.sinks.sparkplug.session import (
     DEVICE_REBIRTH,
@@ -43,7 +43,7 @@ logger = logging.getLogger(__package__)
 __all__ = ["EdgeNode"]
 
 
-class EdgeNode:
+class EdgeNode(SessionThread["SparkplugPublisher"]):
     """One Sparkplug edge node: its MQTT session (:class:`MqttSession`) and thread, shared by
     its devices.
 
@@ -102,8 +102,6 @@ class EdgeNode:
 
     client: Forward[mqtt.Client] = Forward(
         "mqtt.client", "The session's paho client (a new one at each connection).")
-    connected: Forward[bool] = Forward(
-        "mqtt.connected", "The broker accepted the connection and it is not known lost.")
     connects: Forward[int] = Forward("mqtt.connects", "Connections made so far.")
     disconnects: Forward[int] = Forward("mqtt.disconnects", "Connections lost so far.")
 
@@ -139,19 +137,15 @@ class EdgeNode:
         device.leave_by = time.monotonic() + device.config.close_timeout
         self.wake.set()
         if not self._thread.is_alive():
-            self._retire(device, ddeath=False)
+            self._retire(device)
 
-    def _snapshot(self) -> list[SparkplugPublisher]:
-        with self._lock:
-            return list(self.devices.values())
-
-    def _retire(self, device: SparkplugPublisher, ddeath: bool) -> None:
+    def _retire(self, device: SparkplugPublisher) -> None:
         """The device leaves: its DDEATH (if born and connected), its deliveries recorded."""
-        if ddeath and device.device_born and self.connected:
+        if device.device_born and self.connected:
             self.client.publish(device.device.ddeath_topic, device.device.ddeath(now_ms()),
                                 qos=1)
         device.device_born = False
-        device.finish()
+        device.delivery.finish()
         with self._lock:
             self.devices.pop(device.device.device_id, None)
             self._owners.pop(device.device.device_id, None)
@@ -161,10 +155,7 @@ class EdgeNode:
 
     def close(self) -> None:
         """The last device has left: NDEATH, disconnect, the thread ends."""
-        self._stop.set()
-        self.wake.set()
-        self._thread.join(timeout=self.config.connect_timeout + 10)
-        if self._thread.is_alive():
+        if not self._stop_thread(self.config.connect_timeout + 10):
             logger.warning("the Sparkplug thread of edge node %s did not stop in time",
                            self.session.edge_node_id)
 
@@ -175,7 +166,7 @@ class EdgeNode:
         unacknowledged messages again after the CONNACK, after our NBIRTH, with their old
         ``seq`` (a host would see the sequence broken); those windows are sent again from the
         devices' outboxes instead, after the births."""
-        for d in self._snapshot():
+        for d in self._members():
             d.reset_connection()
         self._mid_owner.clear()
         self.born = False
@@ -203,7 +194,7 @@ class EdgeNode:
     def session_up(self, client: mqtt.Client, again: bool) -> None:
         """Connected: subscribe to the commands, the STATE and our NBIRTH; the births when
         the primary host is online."""
-        devices = ", ".join(sorted(d.device.device_id for d in self._snapshot()))
+        devices = ", ".join(sorted(d.device.device_id for d in self._members()))
         if again:
             logger.warning("MQTT broker %s reached: Sparkplug edge node %s (devices %s) "
                            "publishes again", self.mqtt.broker, self.session.edge_node_id,
@@ -215,7 +206,7 @@ class EdgeNode:
         self.live_since = time.time()
         client.subscribe(self.session.ncmd_topic, qos=1)
         client.subscribe(self.session.dcmd_topics, qos=1)
-        client.subscribe(self.session.nbirth_topic, qos=0)  # our own NBIRTH back: _check_heard
+        client.subscribe(self.session.nbirth_topic, qos=0)  # our own NBIRTH back: _turn_done
         if self.state_topic is not None:
             client.subscribe(self.state_topic, qos=1)
         if self._host_online:
@@ -226,7 +217,7 @@ class EdgeNode:
         """The connection is gone: nothing is born; True when we closed it ourselves (the
         primary host went offline): quiet, not a take-over."""
         self.born = False
-        for d in self._snapshot():
+        for d in self._members():
             d.device_born = False
         own, self._leaving = self._leaving, False
         return own
@@ -256,7 +247,7 @@ class EdgeNode:
             self._birth_at = time.monotonic()
         self.born = True
         self.births += 1
-        for d in self._snapshot():
+        for d in self._members():
             d.device_born = False
             if d.latest_doc is not None:
                 d.device_birth()
@@ -350,11 +341,11 @@ class EdgeNode:
         else:
             self._host_online = online
 
-    def _check_heard(self) -> None:
-        """A broker may accept the connection and acknowledge every publish while its ACL
-        drops them (Mosquitto 2.0 does, MQTT 3.1.1 has no refusal for a publish nor for a
-        will): our NBIRTH, subscribed to, not heard back within 5 s is said once, naming the
-        key (the will is then dropped too, most likely)."""
+    def _turn_done(self, now: float) -> None:
+        """A connected turn's end: a broker may accept the connection and acknowledge every
+        publish while its ACL drops them (Mosquitto 2.0 does, MQTT 3.1.1 has no refusal for a
+        publish nor for a will): our NBIRTH, subscribed to, not heard back within 5 s is said
+        once, naming the key (the will is then dropped too, most likely)."""
         if self._birth_at is None or self._unheard is not None:
             return
         if time.monotonic() - self._birth_at < 5.0:
@@ -375,118 +366,21 @@ class EdgeNode:
             out.append(self._unheard)
         return "; ".join(out) or None
 
-    # -- the thread -------------------------------------------------------------------------
-    def _run(self) -> None:
-        """The thread: :meth:`_loop`, restarted after an unexpected error (logged with its
-        traceback, counted): the output must not die silently."""
-        while True:
-            try:
-                self._loop()
-                return
-            except Exception:  # noqa: BLE001 - logged; the loop goes on
-                self.errors += 1
-                logger.exception("the Sparkplug edge node %s failed; it goes on in 1 s",
-                                 self.session.edge_node_id)
-                if self._stop.wait(1.0) and not self._snapshot():
-                    self._finish()
-                    return
+    # -- the thread (a SessionThread of the devices) ----------------------------------------
+    def _members(self) -> list[SparkplugPublisher]:
+        with self._lock:
+            return list(self.devices.values())
 
-    def _loop(self) -> None:
-        self._last_poll = self._last_count = self._close_attempt = 0.0
-        while True:
-            now = time.monotonic()
-            devices = self._snapshot()
-            for d in devices:
-                if d.delivery.rebind.is_set():
-                    d.delivery.rebind_outbox()
-            if not devices:
-                if self._stop.is_set():
-                    break
-                if not self.connected:  # no device yet (the first is joining): no empty NBIRTH
-                    self.wake.wait(0.05)
-                    self.wake.clear()
-                    continue
-            if not self.connected:
-                self._offline(now, devices)
-                if not self.connected:
-                    continue
-            self.client.loop(timeout=0.05)
-            if self.connected:
-                self._online(now, devices)
-        self._finish()
+    def _failed(self) -> None:
+        self.errors += 1
+        logger.exception("the Sparkplug edge node %s failed; it goes on in 1 s",
+                         self.session.edge_node_id)
 
-    def _offline(self, now: float, devices: list[SparkplugPublisher]) -> None:
-        """A turn without a connection: closing devices whose windows wait retired or their
-        last attempts made, a connection attempted when due, the deliveries recorded and
-        counted; waits for a window stored or the next attempt."""
-        if self._closing_wait(now, devices) and now >= self._close_attempt:
-            # a closing device's windows wait: an attempt every CLOSE_RETRY_S until its
-            # close_timeout (the backoff may be sleeping through a broker back)
-            self._connect()
-            self._close_attempt = time.monotonic() + CLOSE_RETRY_S
-        elif self.mqtt.due(now):
-            self._connect()
-            if not self.connected:
-                self.mqtt.backoff()
-        if self.connected:
-            return
-        devices = self._snapshot()   # without the ones retired just now
-        for d in devices:
-            d.delivery.flush_acks()
-        if now - self._last_count > 1.0:
-            for d in devices:
-                d.delivery.count()
-            self._last_count = now
-        if self.wake.wait(min(0.2, max(self.mqtt.next_attempt - time.monotonic(), 0.01))):
-            self.wake.clear()
-            for d in self._snapshot():
-                d.delivery.count()  # a window stored: one more pending
-            self._last_count = time.monotonic()
-
-    def _closing_wait(self, now: float, devices: list[SparkplugPublisher]) -> bool:
-        """Offline: a closing device past its ``close_timeout`` or with nothing left to
-        deliver is retired; True when a closing device's windows still wait."""
-        waiting = False
-        for d in devices:
-            if d.leave_by is None:
-                continue
-            if now >= d.leave_by or not d.has_undelivered():
-                self._retire(d, ddeath=False)
-            else:
-                waiting = True
-        return waiting
-
-    def _online(self, now: float, devices: list[SparkplugPublisher]) -> None:
-        """A connected turn: each device born when it can be, fed (on a wake-up, every
-        0.5 s, while it leaves), retired once it has left; the deliveries recorded and
-        counted."""
-        self._check_heard()
-        woken = self.wake.is_set()
-        self.wake.clear()
-        poll = woken or now - self._last_poll > 0.5
-        if poll:
-            self._last_poll = now
-        for d in devices:
-            self._serve(d, now, poll, woken)
-        if now - self._last_count > 1.0:
-            for d in devices:
-                if not d.left.is_set():  # a retired one's store may be closed already
-                    d.delivery.count()
-            self._last_count = now
-
-    def _serve(self, d: SparkplugPublisher, now: float, poll: bool, woken: bool) -> None:
-        """One device in a connected turn: born at once when it joined with a stored window,
-        fed, retired once it has left (past ``close_timeout`` or delivered), acks recorded."""
-        leaving = d.leave_by is not None
+    def _ready(self, d: SparkplugPublisher) -> bool:
+        """Born at once when it joined with a stored window; fed once the node is born."""
         if self.born and not d.device_born and d.latest_doc is not None:
             d.device_birth()  # a device joined with a stored window: born at once
-        if self.born and (poll or leaving):
-            d.delivery.feed(now, all_rows=woken or leaving)
-        if leaving and d.leave_by is not None and (
-                now >= d.leave_by or not d.has_undelivered()):
-            self._retire(d, ddeath=self.born)
-            return
-        d.delivery.flush_acks()
+        return self.born
 
     def _finish(self) -> None:
         """Every device has left: NDEATH with this connection's ``bdSeq``, disconnect."""

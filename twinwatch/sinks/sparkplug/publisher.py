@@ -16,7 +16,7 @@ import threading
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from twinwatch.errors import PublisherError
-from twinwatch.sinks.base import OutboxRow, ProcessedWindow, SinkContext
+from twinwatch.sinks.base import OutboxRow, SharedResources, SinkContext
 from twinwatch.sinks.mqtt.delivery import DeliveringSink, Delivery
 from twinwatch.sinks.mqtt.encoding import health_view
 from twinwatch.sinks.mqtt.session import mqtt, read_password
@@ -71,7 +71,6 @@ class SparkplugPublisher(DeliveringSink):
         self.rules = set(context.alarm_bands)
         self.device_births = 0
         self.device_born = False
-        self.leave_by: float | None = None   # closing: deliver until then (monotonic)
         self.left = threading.Event()        # the node has retired this device
         self.delivery = Delivery(
             config, in_memory=context.outbox is None, outbox_name=lambda: self.name or
@@ -79,16 +78,17 @@ class SparkplugPublisher(DeliveringSink):
             ready=lambda: self._node.connected and self._node.born)  # DDATA may go out
         password = read_password(config, "sparkplug")
         edge = config.edge_node_id or context.machine
-        self._shared = context.shared
-        self._key = node_key(config, context.machine)
-        directory = getattr(self._shared, "directory", None) or context.cwd
+        directory = getattr(context.shared, "directory", None) or context.cwd
 
         def open_node() -> EdgeNode:
             return EdgeNode(config, edge, password, directory, context.machine)
 
-        node: EdgeNode = (open_node() if self._shared is None
-                          else self._shared.acquire(self._key, open_node, EdgeNode.close))
+        node: EdgeNode
+        self._key = node_key(config, context.machine)
+        node, self._release = SharedResources.hold(context.shared, self._key, open_node,
+                                                   EdgeNode.close)
         self._node = node
+        self.wake = node.wake
         try:
             self.client_id = node.client_id
             self.device = DeviceSession(node.session, config.device_id or context.machine)
@@ -96,37 +96,14 @@ class SparkplugPublisher(DeliveringSink):
                 self.device.declare(metric_specs(context.parameters, self.rules, None))
             except ValueError as exc:
                 raise PublisherError(f"outputs.sparkplug: {exc}; rename a parameter") from None
-            self.context = context
-            self.delivery.bind(context)
+            self.attach(context)
             node.join(self, config, context.machine)
         except BaseException:
             self._release()
             raise
         self._closed = False
 
-    def _release(self) -> None:
-        if self._shared is None:
-            self._node.close()
-        else:
-            self._shared.release(self._key)
-
-    # -- the sink contract (as the MQTT output's) --------------------------------------------
-    def attach(self, context: SinkContext) -> None:
-        """A reload's daemon adopts the output: its outbox from now on."""
-        super().attach(context)
-        self.context = context
-        self.delivery.bind(context)
-        self._node.wake.set()
-
-    def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's call (a stored window): kept in memory when there is no
-        state database; the node's thread woken. Never blocks on the broker."""
-        if self._closed:
-            return
-        if self.delivery.memory is not None:
-            self.delivery.memory.add(out.health_json, out.health.window)
-        self._node.wake.set()
-
+    # -- the device's state ----------------------------------------------------------------
     @property
     def connected(self) -> bool:
         """The edge node is connected and born (the host online): DDATA may go out."""
@@ -145,19 +122,11 @@ class SparkplugPublisher(DeliveringSink):
         run = self.context.run if self.context is not None else ""
         return not run or getattr(doc, "run", None) == run
 
-    def has_undelivered(self) -> bool:
-        """Windows in flight or pending in the outbox."""
-        return bool(self.delivery.inflight) or self.delivery.has_pending()
-
     def reset_connection(self) -> None:
         """A new connection: the windows in flight are sent again from the outbox, after the
         births, with the new connection's ``seq``."""
         self.delivery.reset_connection()
         self.device_born = False
-
-    def finish(self) -> None:
-        """Retired by the node: record the deliveries."""
-        self.delivery.finish()
 
     # -- the device's messages (in the node's thread) ----------------------------------------
     def device_birth(self) -> None:
