@@ -442,44 +442,16 @@ class LocalFit:
         return v, r, jac_s
 
 
-def _trust_region_step(a: FloatArray, g: FloatArray, radius: float) -> FloatArray:
-    """The step minimising ``g' s + s' a s / 2`` within ``||s|| <= radius`` (``a`` symmetric
-    positive semi-definite, a few variables): the Gauss-Newton step when it is inside, else
-    ``-(a + mu I)^-1 g`` with ``mu`` such that its length is the radius (Newton's iteration on
-    ``1/||s(mu)||``, Moré and Sorensen 1983, *Computing a trust region step*, SIAM J. Sci.
-    Stat. Comput. 4), by the eigenvectors of ``a``."""
-    w, v = np.linalg.eigh(a)
-    w = np.maximum(w, 0.0)
-    gv = v.T @ g
-    big = w > 1e-12 * max(float(w[-1]), 1e-300)
-    if np.all(big):
-        s = -(gv / w)
-        if float(np.linalg.norm(s)) <= radius:
-            return v @ s
-    mu = 0.0 if np.all(big) else 1e-12 * max(float(w[-1]), 1e-300)
-    for _ in range(30):
-        d = w + mu
-        s = -(gv / d)
-        norm = float(np.linalg.norm(s))
-        if abs(norm - radius) <= 1e-3 * radius:
-            break
-        # d||s||/dmu = -sum(gv^2/d^3)/||s||
-        dnorm = -float(np.sum(gv * gv / d ** 3)) / max(norm, 1e-300)
-        mu_next = mu - (norm - radius) / radius * norm / dnorm
-        mu = mu_next if mu_next > 0 else 0.5 * mu
-    return v @ s
-
-
 def bounded_gauss_newton(evaluate: Callable[[FloatArray], tuple[FloatArray, FloatArray]],
                          x0: FloatArray, lo: FloatArray, hi: FloatArray, *, xtol: float,
                          ftol: float, gtol: float, max_evaluations: int
                          ) -> tuple[FloatArray, bool]:
-    """Minimise ``||r(x)||^2 / 2`` within ``lo <= x <= hi`` from ``x0`` by trust-region
-    Gauss-Newton steps on the free variables, projected on the bounds (the step of
-    :func:`_trust_region_step`; the radius starts at ``||x0||`` and follows the ratio of the
-    actual to the predicted reduction, as scipy's ``least_squares`` TRF does; a variable at a
-    bound whose gradient points out of the box is held there for the step). The polish
-    starts near its optimum (the trusted values or the swarm's best): a few evaluations.
+    """Minimise ``||r(x)||^2 / 2`` within ``lo <= x <= hi`` from ``x0`` by Levenberg-Marquardt
+    steps on the free variables, projected on the bounds (Madsen, Nielsen and Tingleff 2004,
+    *Methods for non-linear least squares problems*, Algorithm 3.16: the damping ``mu`` and
+    its update; a variable at a bound whose gradient points out of the box is held there
+    for the step). The polish starts near its optimum (the trusted values or the swarm's
+    best): the first steps are Gauss-Newton's, a few evaluations in all.
 
     Args:
         evaluate: ``x`` (n,) -> (residuals (M,), Jacobian (M, n)), one batched twin call.
@@ -499,38 +471,42 @@ def bounded_gauss_newton(evaluate: Callable[[FloatArray], tuple[FloatArray, Floa
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
         return x, False
     cost = 0.5 * float(r @ r)
-    radius = float(np.linalg.norm(x)) or 1.0
+    mu = -1.0
+    nu = 2.0
     for _ in range(max_evaluations - 1):
         g = jac.T @ r
-        free = ~(((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
+        at_lo = (x <= lo) & (g > 0)
+        at_hi = (x >= hi) & (g < 0)
+        free = ~(at_lo | at_hi)
         if not np.any(free) or float(np.max(np.abs(g[free]))) < gtol:
             return x, True
-        jf = jac[:, free]
+        a = jac[:, free].T @ jac[:, free]
+        if mu < 0:
+            mu = 1e-6 * float(np.max(np.diag(a)))
         step = np.zeros_like(x)
         try:
-            step[free] = _trust_region_step(jf.T @ jf, g[free], radius)
+            step[free] = np.linalg.solve(a + mu * np.eye(a.shape[0]), -g[free])
         except np.linalg.LinAlgError:
             return x, False
         x_new = np.clip(x + step, lo, hi)
         dx = x_new - x
-        dx_norm = float(np.linalg.norm(dx))
-        if dx_norm <= xtol * (xtol + float(np.linalg.norm(x))):
+        if float(np.linalg.norm(dx)) <= xtol * (xtol + float(np.linalg.norm(x))):
             return x, True
         r_new, jac_new = evaluate(x_new)
-        ok = np.all(np.isfinite(r_new)) and np.all(np.isfinite(jac_new))
-        cost_new = 0.5 * float(r_new @ r_new) if ok else math.inf
-        jd = jac @ dx
-        predicted = -float(g @ dx) - 0.5 * float(jd @ jd)
-        rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
-        if rho < 0.25:
-            radius = 0.25 * dx_norm
-        elif rho > 0.75 and dx_norm >= 0.95 * radius:
-            radius = 2.0 * radius
-        if cost_new < cost:
+        cost_new = 0.5 * float(r_new @ r_new) if np.all(np.isfinite(r_new)) else math.inf
+        # the gain the linear model predicted for the step taken (clipped: its own)
+        predicted = -float(g @ dx) - 0.5 * float(dx @ (jac.T @ (jac @ dx)))
+        if cost_new < cost and np.all(np.isfinite(jac_new)):
+            rho = (cost - cost_new) / predicted if predicted > 0 else 1.0
             converged = cost - cost_new <= ftol * cost
             x, r, jac, cost = x_new, r_new, jac_new, cost_new
             if converged:
                 return x, True
+            mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+        else:
+            mu *= nu
+            nu *= 2.0
     return x, False
 
 
