@@ -414,100 +414,43 @@ class LocalFit:
 
     def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True,
                stats: np.ndarray | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Polish the ``active`` entries of ``v`` (bounded least squares,
-        :func:`bounded_gauss_newton`), then return (v, residuals (M,), Jacobian
-        (M, len(stats)) for the statistics, by :meth:`sensitivity`) at the result; ``stats``:
-        the Jacobian's columns (default ``active``)."""
+        """Polish the ``active`` entries of ``v`` (bounded least squares, trust-region
+        reflective, forward-difference Jacobian from one batched twin call), then return
+        (v, residuals (M,), Jacobian (M, len(stats)) for the statistics, by
+        :meth:`sensitivity`) at the result; ``stats``: the Jacobian's columns (default
+        ``active``)."""
         v = np.array(v, dtype=float, copy=True)
         if polish and active.size:
+            last: dict[str, FloatArray] = {}
             k = active.size
             rows = np.repeat(v[None, :], k + 1, axis=0)
-            steps = 1 + np.arange(k)
 
-            def evaluate(x: FloatArray) -> tuple[FloatArray, FloatArray]:
-                # the point and its forward differences (:meth:`jacobian`'s rows) in one twin
-                # call (each row is simulated on its own: the same numbers as k + 1 calls)
+            def fun(x: FloatArray) -> FloatArray:
+                # The point and its forward differences (:meth:`jacobian`'s rows) in one twin
+                # call: least_squares asks for the Jacobian where it just evaluated fun when it
+                # accepts the step (each row is simulated on its own: the same numbers as two
+                # calls).
                 rows[:, active] = x
-                rows[steps, active] += 1e-6
+                rows[1 + np.arange(k), active] += 1e-6
                 r_all = self.residuals(rows)
-                return r_all[0], ((r_all[1:] - r_all[0][None, :]) / 1e-6).T
+                last["x"], last["r"], last["d"] = x.copy(), r_all[0], r_all[1:]
+                r0: FloatArray = r_all[0]
+                return r0
 
-            lo, hi = self.lower[active] + 1e-12, self.upper[active] - 1e-12
-            # not converged within the evaluations (a valley the window does not determine):
-            # the best point found, as scipy's least_squares at its max_nfev before it
-            v[active] = bounded_gauss_newton(evaluate, np.clip(v[active], lo, hi), lo, hi,
-                                             xtol=1e-10, ftol=1e-12, gtol=1e-12,
-                                             max_evaluations=50)[0]
+            def jac(x: FloatArray) -> FloatArray:
+                if not ("x" in last and np.array_equal(last["x"], x)):
+                    fun(x)
+                return ((last["d"] - last["r"][None, :]) / 1e-6).T
+
+            from scipy.optimize import least_squares  # loaded on first use
+
+            lo, hi = self.lower[active], self.upper[active]
+            x0 = np.clip(v[active], lo + 1e-12, hi - 1e-12)
+            sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
+                                xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
+            v[active] = sol.x
         jac_s, r = self.sensitivity_and_residuals(v, active if stats is None else stats)
         return v, r, jac_s
-
-
-def bounded_gauss_newton(evaluate: Callable[[FloatArray], tuple[FloatArray, FloatArray]],
-                         x0: FloatArray, lo: FloatArray, hi: FloatArray, *, xtol: float,
-                         ftol: float, gtol: float, max_evaluations: int
-                         ) -> tuple[FloatArray, bool]:
-    """Minimise ``||r(x)||^2 / 2`` within ``lo <= x <= hi`` from ``x0`` by Levenberg-Marquardt
-    steps on the free variables, projected on the bounds (Madsen, Nielsen and Tingleff 2004,
-    *Methods for non-linear least squares problems*, Algorithm 3.16: the damping ``mu`` and
-    its update; a variable at a bound whose gradient points out of the box is held there
-    for the step). The polish starts near its optimum (the trusted values or the swarm's
-    best): the first steps are Gauss-Newton's, a few evaluations in all.
-
-    Args:
-        evaluate: ``x`` (n,) -> (residuals (M,), Jacobian (M, n)), one batched twin call.
-        x0: the start (n,), within the bounds.
-        lo, hi: the bounds (n,).
-        xtol, ftol, gtol: stop when a step is shorter than ``xtol * (xtol + ||x||)``, an
-            accepted step lowers the cost by less than ``ftol`` times it, or the projected
-            gradient's largest entry is below ``gtol`` (scipy's ``least_squares`` tolerances).
-        max_evaluations: calls of ``evaluate`` at most.
-
-    Returns:
-        The last accepted point, and whether a tolerance stopped it (False: the evaluations
-        ran out, or the residuals are not finite).
-    """
-    x = np.array(x0, dtype=float)
-    r, jac = evaluate(x)
-    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
-        return x, False
-    cost = 0.5 * float(r @ r)
-    mu = -1.0
-    nu = 2.0
-    for _ in range(max_evaluations - 1):
-        g = jac.T @ r
-        at_lo = (x <= lo) & (g > 0)
-        at_hi = (x >= hi) & (g < 0)
-        free = ~(at_lo | at_hi)
-        if not np.any(free) or float(np.max(np.abs(g[free]))) < gtol:
-            return x, True
-        a = jac[:, free].T @ jac[:, free]
-        if mu < 0:
-            mu = 1e-6 * float(np.max(np.diag(a)))
-        step = np.zeros_like(x)
-        try:
-            step[free] = np.linalg.solve(a + mu * np.eye(a.shape[0]), -g[free])
-        except np.linalg.LinAlgError:
-            return x, False
-        x_new = np.clip(x + step, lo, hi)
-        dx = x_new - x
-        if float(np.linalg.norm(dx)) <= xtol * (xtol + float(np.linalg.norm(x))):
-            return x, True
-        r_new, jac_new = evaluate(x_new)
-        cost_new = 0.5 * float(r_new @ r_new) if np.all(np.isfinite(r_new)) else math.inf
-        # the gain the linear model predicted for the step taken (clipped: its own)
-        predicted = -float(g @ dx) - 0.5 * float(dx @ (jac.T @ (jac @ dx)))
-        if cost_new < cost and np.all(np.isfinite(jac_new)):
-            rho = (cost - cost_new) / predicted if predicted > 0 else 1.0
-            converged = cost - cost_new <= ftol * cost
-            x, r, jac, cost = x_new, r_new, jac_new, cost_new
-            if converged:
-                return x, True
-            mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-            nu = 2.0
-        else:
-            mu *= nu
-            nu *= 2.0
-    return x, False
 
 
 #: Eigenvalues of the equilibrated ``J^T J`` below this share of the largest are directions the

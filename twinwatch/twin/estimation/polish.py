@@ -1,9 +1,8 @@
 """Stage 2, the polish: bounded least squares from the swarm's best (output-error fit).
 
 pymoo's PSO alone stalls short of the best fit (Ra scattered by +-1 % on exact-model data; more
-iterations do not help). From its best particle, bounded Levenberg-Marquardt steps
-(:func:`~twinwatch.twin.estimation.fit.bounded_gauss_newton`, each trial point and its Jacobian
-one batched twin call) reach the optimum of the normalised residuals of paper
+iterations do not help). From its best particle, scipy's trust-region reflective least squares
+(Jacobian from one batched twin call) reaches the optimum of the normalised residuals of paper
 Eq. 2, jointly with the window's initial-state offsets (nuisance variables: a noisy first sample
 otherwise leaves a transient in every residual and biases the estimates). Its Jacobian at the
 optimum is what the identifiability gate and the fusion read.
@@ -70,7 +69,7 @@ def polish_admitted(problem: WindowProblem, q: FloatArray, selected: list[int], 
     (:meth:`~twinwatch.twin.estimation.gate.IdentifiabilityGate.confirm`).
 
     When it does, this is the point :func:`polish` and the gate's re-fit holding the others
-    reach, without the first polish moving the held parameters along the valley
+    reach, without the first trust-region run moving the held parameters along the valley
     the gate then holds (local-first windows: about 31 of 50 twin calls a window).
 
     Returns:
