@@ -407,6 +407,8 @@ class DCMotorTwin(TwinModel):
         self._nonlinear = self.power_stage == "unidirectional" or self.coulomb_friction
         self._plans: dict[tuple[float, int, int, int], tuple[np.ndarray, ...]] = {}
         self._pos_cache: dict[bool, IntArray] = {}
+        self._layouts: dict[bool, dict[str, int]] = {}
+        self._pi: tuple[float, float] | None = None
         self._fast = not self._nonlinear and (not closed or self._drive.ideal)
 
     @property
@@ -434,8 +436,10 @@ class DCMotorTwin(TwinModel):
         ``z`` the integral of the error up to the previous sub-step; an integrator that
         includes this sub-step's error (backward Euler, trapezoidal: ``c_i`` of
         :mod:`twinwatch.io.drive`) adds ``c_i*ki*dt`` to the proportional gain."""
-        sp = self._drive.speed
-        return sp.kp + sp.pack()[10] * sp.ki * self.sub_step, sp.ki
+        if self._pi is None:  # the drive and the sub-step are fixed at construction
+            sp = self._drive.speed
+            self._pi = (sp.kp + sp.pack()[10] * sp.ki * self.sub_step, sp.ki)
+        return self._pi
 
     def n_sub(self, sample_period: float) -> int:
         """Number of sub-steps per sample; raises ValueError if not a whole number."""
@@ -447,8 +451,12 @@ class DCMotorTwin(TwinModel):
 
     # -- the linear sub-step map ------------------------------------------------------------
     def _layout(self, closed_pi: bool) -> dict[str, int]:
-        """State positions: ia, omega, [z], [ia filtered], [omega filtered], [angle], [v]."""
-        pos = {"ia": 0, "omega": 1}
+        """State positions: ia, omega, [z], [ia filtered], [omega filtered], [angle], [v]
+        (kept per ``closed_pi``: read, never changed, by the callers)."""
+        got = self._layouts.get(closed_pi)
+        if got is not None:
+            return got
+        pos = self._layouts[closed_pi] = {"ia": 0, "omega": 1}
         for name, on in (("z", closed_pi), ("fi", self.current_filter),
                          ("fw", self.speed_filter),
                          ("angle", self.speed_measurement == "average"),
