@@ -144,3 +144,8 @@ def test_the_compiled_window_equals_the_sub_step_map_composed_then_run():
                     row.append(acc)
                 ref.append(row)
             np.testing.assert_array_equal(x[q], np.array(ref))
+    # inputs that do not fit the matrices are refused, not read past their ends
+    with pytest.raises(ValueError, match=r"expected b \(3, 3, 4\)"):
+        zoh_propagate(a[:, :, :], b[:, :, :3], 100, x0, drive, tload, f_w, f_i)
+    with pytest.raises(ValueError, match=r"terms \(1 or 3, 40\)"):
+        zoh_propagate(a, b, 100, x0, drive, tload, f_w[:2], f_i[:2])

@@ -464,10 +464,20 @@ def zoh_propagate(a: FloatArray, b: FloatArray, n_sub: int, x0: FloatArray,
         f_w, f_i: the meta-model terms per sample, shape (1 or P, N).
 
     Returns:
-        States, shape (P, N, n), with ``x[:, 0] = x0``. Overflow gives inf/nan, never raises.
+        States, shape (P, N, n), with ``x[:, 0] = x0``. Overflow gives inf/nan.
+
+    Raises:
+        ValueError: ``b`` has not 4 input columns, an input's length is not N, or a term has
+            neither 1 nor P rows (the message gives the shapes).
     """
     p, n, _ = a.shape
-    x = np.empty((p, drive.shape[0], n))
+    nk = drive.shape[0]
+    if (b.shape[2] != 4 or tload.shape != (nk,) or f_w.shape != f_i.shape
+            or f_w.shape[1] != nk or f_w.shape[0] not in (1, p)):
+        raise ValueError(f"zoh_propagate: b {b.shape}, drive {drive.shape}, tload "
+                         f"{tload.shape}, f_w {f_w.shape}, f_i {f_i.shape}: expected b "
+                         f"({p}, {n}, 4), inputs ({nk},) and terms (1 or {p}, {nk})")
+    x = np.empty((p, nk, n))
     x[:, 0] = x0
     _zoh_propagate_kernel(np.ascontiguousarray(a), np.ascontiguousarray(b), int(n_sub), x,
                           np.ascontiguousarray(drive, dtype=float),

@@ -126,7 +126,7 @@ _TC = ParameterSpec("Tc", "N m", 1e-3, "Coulomb (dry) friction torque",
 @njit(cache=True, nogil=True)
 def _step_kernel(theta: FloatArray, dt: float, c: float, kp: float, ki: float, closed: bool,
                  pos: IntArray, a: FloatArray, b: FloatArray) -> None:  # pragma: no cover
-    """:meth:`DCMotorModel.step_matrices` into zeroed ``a`` (P, n, n), ``b`` (P, n, 4):
+    """:meth:`DCMotorTwin.step_matrices` into zeroed ``a`` (P, n, n), ``b`` (P, n, 4):
     ``pos`` = positions of [z, fi, fw, angle, v] (-1: absent), then the columns of tau_i
     and tau_w in ``theta`` (-1: absent). The same operations in the same order as the
     vectorised form it replaced (the same numbers)."""
@@ -139,6 +139,7 @@ def _step_kernel(theta: FloatArray, dt: float, c: float, kp: float, ki: float, c
         g = dt * kt / j
         a[q, 0, 0] = 1.0 - a_el * ra
         if closed:
+            # i' = i + dt/La*(Kp*(sp - w) + Ki*z - Ra*i - Ke*w); z' = z + dt*(sp - w)
             a[q, 0, 1] = -a_el * (kp + ke)
             a[q, 0, pz] = a_el * ki
             b[q, 0, 0] = a_el * kp
@@ -147,13 +148,14 @@ def _step_kernel(theta: FloatArray, dt: float, c: float, kp: float, ki: float, c
             b[q, pz, 0] = dt
         else:
             a[q, 0, 1] = -a_el * ke
-            if pv >= 0:
+            if pv >= 0:  # the voltage is a state that ramps by u[0] per sub-step
                 a[q, 0, pv] = a_el
                 a[q, pv, pv] = 1.0
                 b[q, pv, 0] = 1.0
             else:
                 b[q, 0, 0] = a_el
-        b[q, 0, 3] = dt
+        b[q, 0, 3] = dt  # i' += dt*f_ia
+        # w' = w + dt/J*(Kt*i' - c*w - D*w - Tload) + dt*f_omega (semi-implicit: the new i)
         for col in range(n):
             a[q, 1, col] = g * a[q, 0, col]
         a[q, 1, 1] += 1.0 - dt * (d + c) / j
@@ -406,10 +408,17 @@ class DCMotorTwin(TwinModel):
         # element; the others go through the event kernel.
         self._nonlinear = self.power_stage == "unidirectional" or self.coulomb_friction
         self._plans: dict[tuple[float, int, int, int], tuple[np.ndarray, ...]] = {}
-        self._pos_cache: dict[bool, IntArray] = {}
-        self._layouts: dict[bool, dict[str, int]] = {}
-        self._pi: tuple[float, float] | None = None
         self._fast = not self._nonlinear and (not closed or self._drive.ideal)
+        # fixed from here on: the state layouts (and the step kernel's positions) with and
+        # without the ideal PI in the map, and the effective PI (:meth:`_effective_pi`)
+        self._layouts = {cp: self._make_layout(cp) for cp in (False, True)}
+        names = self.parameter_names
+        self._positions = {cp: np.array(
+            [pos.get(k, -1) for k in ("z", "fi", "fw", "angle", "v")]
+            + [names.index(t) if t in names else -1 for t in ("tau_i", "tau_w")],
+            dtype=np.int64) for cp, pos in self._layouts.items()}
+        sp = self._drive.speed
+        self._pi = (sp.kp + sp.pack()[10] * sp.ki * self.sub_step, sp.ki)
 
     @property
     def drive_config(self) -> DriveConfig:
@@ -436,9 +445,6 @@ class DCMotorTwin(TwinModel):
         ``z`` the integral of the error up to the previous sub-step; an integrator that
         includes this sub-step's error (backward Euler, trapezoidal: ``c_i`` of
         :mod:`twinwatch.io.drive`) adds ``c_i*ki*dt`` to the proportional gain."""
-        if self._pi is None:  # the drive and the sub-step are fixed at construction
-            sp = self._drive.speed
-            self._pi = (sp.kp + sp.pack()[10] * sp.ki * self.sub_step, sp.ki)
         return self._pi
 
     def n_sub(self, sample_period: float) -> int:
@@ -452,11 +458,11 @@ class DCMotorTwin(TwinModel):
     # -- the linear sub-step map ------------------------------------------------------------
     def _layout(self, closed_pi: bool) -> dict[str, int]:
         """State positions: ia, omega, [z], [ia filtered], [omega filtered], [angle], [v]
-        (kept per ``closed_pi``: read, never changed, by the callers)."""
-        got = self._layouts.get(closed_pi)
-        if got is not None:
-            return got
-        pos = self._layouts[closed_pi] = {"ia": 0, "omega": 1}
+        (built once; the callers read it)."""
+        return self._layouts[bool(closed_pi)]
+
+    def _make_layout(self, closed_pi: bool) -> dict[str, int]:
+        pos = {"ia": 0, "omega": 1}
         for name, on in (("z", closed_pi), ("fi", self.current_filter),
                          ("fw", self.speed_filter),
                          ("angle", self.speed_measurement == "average"),
@@ -465,19 +471,6 @@ class DCMotorTwin(TwinModel):
             if on:
                 pos[name] = len(pos)
         return pos
-
-    def _positions(self, closed_pi: bool) -> IntArray:
-        """:func:`_step_kernel`'s ``pos``: the states z, fi, fw, angle, v (-1: absent), then
-        the parameter columns of tau_i and tau_w (-1: absent). Cached per ``closed_pi``."""
-        got = self._pos_cache.get(closed_pi)
-        if got is None:
-            pos = self._layout(closed_pi)
-            names = self.parameter_names
-            got = np.array([pos.get(k, -1) for k in ("z", "fi", "fw", "angle", "v")]
-                           + [names.index(t) if t in names else -1
-                              for t in ("tau_i", "tau_w")], dtype=np.int64)
-            self._pos_cache[closed_pi] = got
-        return got
 
     def step_matrices(self, theta: FloatArray, dt: float, *, closed_pi: bool | None = None
                       ) -> tuple[FloatArray, FloatArray]:
@@ -509,7 +502,7 @@ class DCMotorTwin(TwinModel):
         c = self.load_coefficient if self.load == "viscous" else 0.0
         kp, ki = self._effective_pi()
         _step_kernel(theta, float(dt), float(c), float(kp), float(ki), bool(closed_pi),
-                     self._positions(closed_pi), a, b)
+                     self._positions[bool(closed_pi)], a, b)
         return a, b
 
     # -- simulation -------------------------------------------------------------------------
