@@ -21,7 +21,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from twinwatch.twin.prognostics.config import PrognosticsConfig, Thresholds
-from twinwatch.twin.prognostics.rul import Crossing, predict_crossing
+from twinwatch.twin.prognostics.rul import Crossing, draw_trajectories, predict_crossing
 from twinwatch.twin.prognostics.trend import (
     Evidence,
     ParameterTrend,
@@ -321,13 +321,16 @@ class Prognostics:
             rng = np.random.default_rng([c.seed, zlib.crc32(name.encode()),
                                          int(round(t_end * 1000.0))])
             mixture = list(zip(trend.fits, trend.weights, strict=True))
+            # one sample of the trajectories for both levels (each draw's warning before its
+            # alarm)
+            drawn = draw_trajectories(f, mixture, c.draws, rng)
             for level in ("warning", "alarm"):
                 high, low = th.level(level)
                 if high is None and low is None:
                     continue
                 cr = predict_crossing(f, level, high, low, t_end=t_end, interval=c.interval,
-                                      draws=c.draws, rng=rng, wall_end=wall,
-                                      pace=self._pace.value(), mixture=mixture)
+                                      draws=c.draws, wall_end=wall, pace=self._pace.value(),
+                                      trajectories=drawn)
                 setattr(rul, level, cr)
         return Prognosis(report, rul)
 

@@ -36,7 +36,12 @@ from numba import njit
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.degradation import DegradationFit
 
-__all__ = ["Crossing", "crossing_times", "format_crossing", "format_duration", "predict_crossing"]
+__all__ = ["Crossing", "Trajectories", "crossing_times", "draw_trajectories", "format_crossing",
+           "format_duration", "predict_crossing"]
+
+#: Monte Carlo draws of the degradation models: each model with its share of ``c``, ``m``,
+#: ``r`` (arrays of the model's number of draws).
+Trajectories = list[tuple[DegradationFit, dict[str, FloatArray]]]
 
 
 @dataclass
@@ -134,10 +139,29 @@ def _quantile(s: FloatArray, q: float) -> float | None:
     return float(s[i] + (pos - i) * (s[j] - s[i]))
 
 
+def draw_trajectories(fit: DegradationFit, mixture: Sequence[tuple[DegradationFit, float]],
+                      draws: int, rng: np.random.Generator) -> Trajectories:
+    """``draws`` samples of ``(c, m, r)`` shared among the plausible models by weight (largest
+    remainders), each from its fit's Gaussian (:meth:`DegradationFit.draws`).
+
+    Args:
+        fit: the selected model (alone when ``mixture`` is empty).
+        mixture: the plausible models with their weights (Bayesian model averaging).
+        draws: Monte Carlo samples in all.
+        rng: the generator.
+
+    Returns:
+        Each model drawn from with its draws.
+    """
+    return [(f, f.draws(n_f, rng)) for f, n_f in _share(mixture or [(fit, 1.0)], draws)]
+
+
 def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: float | None,
-                     *, t_end: float, interval: float, draws: int, rng: np.random.Generator,
+                     *, t_end: float, interval: float, draws: int,
+                     rng: np.random.Generator | None = None,
                      wall_end: float | None = None, pace: float = 1.0,
-                     mixture: Sequence[tuple[DegradationFit, float]] = ()) -> Crossing:
+                     mixture: Sequence[tuple[DegradationFit, float]] = (),
+                     trajectories: Trajectories | None = None) -> Crossing:
     """The crossing of a level's threshold(s) by the trend ``fit``.
 
     Args:
@@ -151,12 +175,18 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         interval: central probability of the published interval (0.95: the 2.5-97.5 %
             quantiles).
         draws: Monte Carlo samples.
-        rng: the generator (seeded by the caller: the same evidence gives the same answer).
+        rng: the generator (seeded by the caller: the same evidence gives the same answer);
+            not needed with ``trajectories``.
         wall_end: the wall-clock time at the window's end [s since the epoch], or None.
         pace: wall seconds per plant second over the recent windows.
+        trajectories: the draws (:func:`draw_trajectories`); drawn here when None. One set
+            for every level of a window: each draw's warning comes before its alarm.
 
     Returns:
         The crossing; ``samples`` holds the draws' times from ``t_end`` [s] (inf: never).
+
+    Raises:
+        ValueError: neither ``trajectories`` nor ``rng`` given.
     """
     level_end = float(fit.value(t_end))
     target = high if (fit.m >= 0 and high is not None) or low is None else low
@@ -167,9 +197,13 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         return Crossing(level, crossed, "crossed", t=t_end, t_low=t_end, t_high=t_end,
                         rul_s=0.0, low_s=0.0, high_s=0.0, wall=wall_end, wall_low=wall_end,
                         wall_high=wall_end, probability=1.0, samples=np.zeros(draws))
+    if trajectories is None:
+        if rng is None:
+            raise ValueError("predict_crossing needs trajectories or a generator (rng)")
+        trajectories = draw_trajectories(fit, mixture, draws, rng)
     parts = []
-    for f, n_f in _share(mixture or [(fit, 1.0)], draws):
-        p = f.draws(n_f, rng)
+    for f, p in trajectories:
+        n_f = p["c"].size
         tau0 = max(t_end - f.t_ref, 0.0)
         times = np.full(n_f, np.inf)
         for th, direction in ((high, 1), (low, -1)):

@@ -96,10 +96,10 @@ class TrendSettings:
     smooth: int = 5
     min_weight: float = 0.01
     detection: float = 0.9
-    #: A flat trend (its chosen model ``none``), whose new evidence lies within ``skip_z`` of its
-    #: prediction, is refitted at every ``refit_every``-th evidence only (the fit before
-    #: predicts the window as well; its level, band and rate are evaluated at the window's
-    #: time).
+    #: A flat (its chosen model ``none``) or degrading trend whose new evidence lies within
+    #: ``skip_z`` of its prediction is refitted at every ``refit_every``-th evidence only (the
+    #: fit before predicts the window as well; its level, band, rate and RUL are evaluated at
+    #: the window's time).
     refit_every: int = 2
     skip_z: float = 1.0
     #: Between full fits (the grid search, then the polish) the models are refitted from
@@ -280,11 +280,11 @@ class ParameterTrend:
         or the horizon dropped some).
 
         What changed decides how (``full``: the grid search and the polish, always): a trend
-        that is flat (``none`` chosen) and whose new evidence it predicts (within ``skip_z``)
-        keeps its
-        fit for up to ``refit_every`` windows; otherwise the models are polished again from
-        their last optimum, and the grid searched again every ``regrid_every`` refits or when
-        the evidence left the prediction (``regrid_z``), a restart, a bend or an outlier.
+        that is flat (``none`` chosen) or degrading, and whose new evidence it predicts
+        (within ``skip_z``), keeps its fit for up to ``refit_every`` windows; otherwise the
+        models are polished again from their last optimum, and the grid searched again every
+        ``regrid_every`` evidence or when the evidence left the prediction (``regrid_z``), a
+        restart, a bend or an outlier.
         """
         cfg = self.settings
         if self.t and self.t[0] < t_now - cfg.horizon:
@@ -308,16 +308,15 @@ class ParameterTrend:
         warm = not full and len(self._all) == (5 if cfg.onset else 3) \
             and self._z <= cfg.regrid_z
         if warm and self._z <= cfg.skip_z and n % cfg.refit_every and self.fit is not None \
-                and self.fit.kind == "none":
-            # flat (no degradation chosen: one chosen but not yet past the detection odds
-            # may cross them with this evidence), and the fit before predicts this evidence:
-            # kept (still dirty)
+                and (self.fit.kind == "none" or self.degrading()):
+            # flat or degrading (not a degradation chosen but not yet past the detection odds:
+            # this evidence may cross them), and the fit before predicts this evidence: kept
+            # (still dirty)
             return
         self._dirty = False
         t, y, s = bin_evidence(np.asarray(self.t), np.asarray(self.y), np.asarray(self.s),
                                cfg.max_points)
-        if warm and n % cfg.regrid_every and self.degrading() \
-                and t.size >= max(g.n for g in self._all):
+        if warm and n % cfg.regrid_every and t.size >= max(g.n for g in self._all):
             fits = refit_models(self._all, t, y, s, t_ref=self.t[-1])
         else:
             fits = fit_models(t, y, s, t_ref=self.t[-1], onset=cfg.onset)
