@@ -109,6 +109,29 @@ def test_noisy_evidence_intervals_cover_the_true_crossing() -> None:
     assert covered >= 36 and within >= 36, (covered, within)
 
 
+def test_both_levels_read_one_sample_of_the_trajectories() -> None:
+    """The warning and the alarm of a window are read from the same Monte Carlo draws: every
+    draw reaches the warning (-5 %) no later than the alarm (-10 %), and the window's
+    published times keep that order (0.3 % noise, the paper's law up to 700 s)."""
+    prog = Prognostics(("Ra",), {"Ra": RA0}, PrognosticsConfig(), {"Ra": RA_THRESHOLDS})
+    rng = np.random.default_rng(5)
+    p = None
+    for t in np.arange(1.0, 700.0, 2.0):
+        v = float(paper_ra(t)) * (1 + 0.003 * rng.standard_normal())
+        p = prog.update({"Ra": Evidence(t, v, 0.003 * v)}, t_end=t + 1.0)["Ra"]
+    assert p is not None and p.rul is not None and p.rul.status == "degrading"
+    warning, alarm = p.rul.warning, p.rul.alarm
+    assert warning is not None and alarm is not None
+    assert warning.samples is not None and alarm.samples is not None
+    assert warning.samples.shape == alarm.samples.shape == (2000,)
+    assert np.all(warning.samples <= alarm.samples)
+    assert np.isfinite(warning.samples).mean() >= np.isfinite(alarm.samples).mean()
+    assert warning.t is not None and alarm.t is not None and warning.t < alarm.t
+    with pytest.raises(ValueError, match="trajectories or a generator"):
+        predict_crossing(prog.trends["Ra"].fit, "alarm", None, RA_ALARM, t_end=700.0,
+                         interval=0.95, draws=2000)
+
+
 def test_a_warm_refit_finds_the_grid_searchs_fits() -> None:
     """The models refitted from the last window's optimum (no grid search) on the next
     window's evidence, 0.3 % noise: the same models, as good a fit (chi-square), the same
