@@ -96,10 +96,9 @@ class TrendSettings:
     smooth: int = 5
     min_weight: float = 0.01
     detection: float = 0.9
-    #: A flat (its chosen model ``none``) or degrading trend whose new evidence lies within
-    #: ``skip_z`` of its prediction is refitted at every ``refit_every``-th evidence only (the
-    #: fit before predicts the window as well; its level, band, rate and RUL are evaluated at
-    #: the window's time).
+    #: A trend whose new evidence lies within ``skip_z`` of its prediction is refitted at
+    #: every ``refit_every``-th evidence only (the fit before predicts the window as well; its
+    #: level, band, rate and RUL are evaluated at the window's time).
     refit_every: int = 2
     skip_z: float = 1.0
     #: Between full fits (the grid search, then the polish) the models are refitted from
@@ -280,11 +279,10 @@ class ParameterTrend:
         or the horizon dropped some).
 
         What changed decides how (``full``: the grid search and the polish, always): a trend
-        that is flat (``none`` chosen) or degrading, and whose new evidence it predicts
-        (within ``skip_z``), keeps its fit for up to ``refit_every`` windows; otherwise the
-        models are polished again from their last optimum, and the grid searched again every
-        ``regrid_every`` evidence or when the evidence left the prediction (``regrid_z``), a
-        restart, a bend or an outlier.
+        whose fit predicts its new evidence (within ``skip_z``) keeps it for up to
+        ``refit_every`` windows; otherwise the models are polished again from their last
+        optimum, and the grid searched again every ``regrid_every`` evidence or when the
+        evidence left the prediction (``regrid_z``), a restart, a bend or an outlier.
         """
         cfg = self.settings
         if self.t and self.t[0] < t_now - cfg.horizon:
@@ -307,11 +305,8 @@ class ParameterTrend:
         n = len(self.t) + self._dropped
         warm = not full and len(self._all) == (5 if cfg.onset else 3) \
             and self._z <= cfg.regrid_z
-        if warm and self._z <= cfg.skip_z and n % cfg.refit_every and self.fit is not None \
-                and (self.fit.kind == "none" or self.degrading()):
-            # flat or degrading (not a degradation chosen but not yet past the detection odds:
-            # this evidence may cross them), and the fit before predicts this evidence: kept
-            # (still dirty)
+        if warm and self._z <= cfg.skip_z and n % cfg.refit_every and self.fit is not None:
+            # the fit before predicts this evidence: kept (still dirty)
             return
         self._dirty = False
         t, y, s = bin_evidence(np.asarray(self.t), np.asarray(self.y), np.asarray(self.s),
