@@ -346,8 +346,8 @@ class ParameterTrend:
 
     def scores(self) -> tuple[float | None, float | None]:
         """(monotonicity, trendability) of the segment's evidence."""
-        return (monotonicity(np.asarray(self.y), self.settings.smooth),
-                trendability(np.asarray(self.t), np.asarray(self.y)))
+        y = np.asarray(self.y)
+        return monotonicity(y, self.settings.smooth), trendability(np.asarray(self.t), y)
 
     def model_weight(self) -> float | None:
         """The chosen model's share of the model-averaging weight."""
