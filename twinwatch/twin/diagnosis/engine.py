@@ -39,9 +39,7 @@ from twinwatch.twin.diagnosis.hypotheses import (
     columns,
     evidence_each_many,
     evidence_many,
-)
-from twinwatch.twin.diagnosis.hypotheses import (
-    basis as _basis_of,
+    window_basis,
 )
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.model import FloatArray
@@ -235,7 +233,8 @@ class HypothesisBank:
         Returns:
             The window's reading, or None when the baseline twin does not simulate it.
         """
-        cols = columns(fit, self.theta, self.directions, self.terms, initial)
+        bases: dict[tuple[object, ...], FloatArray] = {}   # the window's term bases, once
+        cols = columns(fit, self.theta, self.directions, self.terms, initial, bases)
         if cols is None:
             return None
         m_rows = cols.r0.shape[0]
@@ -259,7 +258,7 @@ class HypothesisBank:
         ln_n = math.log(n_eff)
         pairs = self._fit_pairs(dp, r0p, first)
         everyone = [*self.hypotheses, *pairs]
-        exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj)
+        exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
         reading = WindowReading(baseline_nrmse, None, sims=cols.sims + sims)
         fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         for h in everyone:
@@ -357,8 +356,8 @@ class HypothesisBank:
     def _gauss_newton(self, everyone: list[Hypothesis],
                       first: Mapping[str, tuple[FloatArray, FloatArray, FloatArray, float]],
                       dp: FloatArray, fit: WindowFit, initial: FloatArray | None,
-                      proj: _Projector) -> tuple[dict[str, tuple[FloatArray, float, FloatArray]],
-                                                 int]:
+                      proj: _Projector, bases: dict[tuple[object, ...], FloatArray]
+                      ) -> tuple[dict[str, tuple[FloatArray, float, FloatArray]], int]:
         """The scale and term hypotheses (the twin is not linear in them) linearised again at
         their size: up to GN_STEPS Gauss-Newton steps from the exact twin there, stopping once
         a size moves less than 1e-4. Returns label -> (size, squared residual, information)
@@ -373,7 +372,7 @@ class HypothesisBank:
         for _ in range(self.GN_STEPS):
             if not again:
                 break
-            step = self._exact(again, phis, fit, initial, proj, lin)
+            step = self._exact(again, phis, fit, initial, proj, lin, bases)
             sims += sum(1 + sum(c.size for c in h.changes if c.kind in ("scale", "term"))
                         for h in again)
             moved = []
@@ -522,19 +521,20 @@ class HypothesisBank:
         return th
 
     def _exact(self, hyps: list[Hypothesis], phis: dict[str, FloatArray], fit: WindowFit,
-               initial: FloatArray | None, proj: _Projector, lin: Mapping[str, FloatArray]
+               initial: FloatArray | None, proj: _Projector, lin: Mapping[str, FloatArray],
+               bases: dict[tuple[object, ...], FloatArray]
                ) -> dict[str, tuple[FloatArray, float, FloatArray]]:
         """Each hypothesis's twin simulated at its size and a step beyond it in each scale and
         term change (one batch): its exact residual there and a Gauss-Newton step from it.
         A term enters the twin through its equations (the leak's pressure factor feeds the
         valve's square-root flow: not linear in it). The reading changes (the twin's outputs
         are linear in a reading's gain or offset) keep their columns at the baseline
-        (``lin``: label -> columns (q, M), projected)."""
+        (``lin``: label -> columns (q, M), projected; ``bases``: the window's term bases,
+        :func:`~twinwatch.twin.diagnosis.hypotheses.window_basis`)."""
         window = fit.window
         rows: list[FloatArray] = []
         row_terms: list[dict[str, FloatArray]] = []
         layout = []
-        bases: dict[tuple[object, ...], FloatArray] = {}
 
         def terms_at(h: Hypothesis, phi: FloatArray) -> dict[str, FloatArray]:
             out_t: dict[str, FloatArray] = {}
@@ -542,9 +542,8 @@ class HypothesisBank:
             for c in h.changes:
                 if c.kind == "term":
                     for i, d in enumerate(c.directions()):
-                        if d not in bases:
-                            bases[d] = _basis_of(window, d, self.terms)
-                        out_t[c.target] = out_t.get(c.target, 0.0) + float(phi[k + i]) * bases[d]
+                        values = window_basis(window, d, self.terms, bases)
+                        out_t[c.target] = out_t.get(c.target, 0.0) + float(phi[k + i]) * values
                 k += c.size
             return out_t
 
