@@ -160,6 +160,11 @@ class HypothesisBank:
                         rows.append(row)
             self._combo[h.label] = np.array(rows).reshape(len(rows), len(self.directions))
             self._bounds[h.label] = h.bounds()
+        #: label -> its one direction's index, for a hypothesis of one number that is one
+        #: direction (not a combination of several)
+        self._single: dict[str, int] = {
+            lab: int(np.flatnonzero(c[0])[0]) for lab, c in self._combo.items()
+            if c.shape[0] == 1 and np.count_nonzero(c[0]) == 1 and np.max(c[0]) == 1.0}
         g = len(self.groups)
         self._prec = np.zeros((g, g))
         self._rhs = np.zeros(g)
@@ -319,13 +324,25 @@ class HypothesisBank:
         least squares on the projected columns ``dp``, (D, M), against the projected
         residual ``rp``, (M,)): label -> (information, gradient, size, squared residual)."""
         gram, grad, s00 = dp @ dp.T, dp @ rp, float(rp @ rp)
+        # a hypothesis of one direction picks its entry of the information and the gradient:
+        # exactly what the products with its combination give (1 x the entry plus zeros),
+        # unless an entry is not finite (0 x inf is NaN): then the products are taken
+        pick = bool(np.all(np.isfinite(gram)) and np.all(np.isfinite(grad)))
         out = {}
         for h in self.hypotheses:
             if h.closed_form is not None:
                 continue
+            lo, hi = self._bounds[h.label]
+            i = self._single.get(h.label, -1) if pick else -1
+            if i >= 0:
+                a, b = gram[i:i + 1, i:i + 1], grad[i:i + 1]
+                phi = bounded_solve(a, b, lo, hi)
+                # the squared residual below in the same order, on the numbers themselves
+                a0, b0, p0 = float(a[0, 0]), float(b[0]), float(phi[0])
+                out[h.label] = (a, b, phi, s00 - 2 * b0 * p0 + p0 * a0 * p0)
+                continue
             cmb = self._combo[h.label]
             a, b = cmb @ gram @ cmb.T, cmb @ grad
-            lo, hi = self._bounds[h.label]
             phi = bounded_solve(a, b, lo, hi)
             out[h.label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
         return out
