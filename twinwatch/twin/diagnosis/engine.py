@@ -379,9 +379,8 @@ class HypothesisBank:
         their size: up to GN_STEPS Gauss-Newton steps from the exact twin there, stopping once
         a size moves less than 1e-4. Returns label -> (size, squared residual, information)
         and the simulations run."""
-        again = [h for h in everyone if h.label in first
-                 and any(c.kind in ("scale", "term") for c in h.changes)
-                 and float(np.max(np.abs(first[h.label][2]))) > 1e-3]
+        again = [h for h in everyone if h.label in first and h.nonlinear
+                 and _largest(first[h.label][2]) > 1e-3]
         exact: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         phis = {h.label: first[h.label][2] for h in again}
         lin = {h.label: self._combo[h.label] @ dp for h in again}
@@ -825,6 +824,11 @@ class _Projector:
         if profile and self.zw.shape[0]:
             vw = vw - self.zw.T @ (self.ginv @ (self.zw @ vw))
         return vw
+
+
+def _largest(phi: FloatArray) -> float:
+    """``max |phi|`` (NaN if one is NaN), one number without numpy's reduction."""
+    return abs(float(phi[0])) if phi.shape == (1,) else float(np.max(np.abs(phi)))
 
 
 def _kappa(r: FloatArray) -> float:

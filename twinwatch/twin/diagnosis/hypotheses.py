@@ -131,6 +131,11 @@ class Hypothesis:
         return sum(c.size for c in self.changes)
 
     @cached_property
+    def nonlinear(self) -> bool:
+        """A scale or term change is among its changes (the twin is not linear in it)."""
+        return any(c.kind in ("scale", "term") for c in self.changes)
+
+    @cached_property
     def closed_form(self) -> Change | None:
         """The stuck or clipped reading this hypothesis is (fitted without sensitivities)."""
         for c in self.changes:
@@ -358,8 +363,11 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
     for _ in range(q + 1):
         free = ~fixed
         if np.any(free):
-            af = a[np.ix_(free, free)]
-            bf = b[free] - a[np.ix_(free, fixed)] @ x[fixed]
+            if np.any(fixed):
+                af = a[np.ix_(free, free)]
+                bf = b[free] - a[np.ix_(free, fixed)] @ x[fixed]
+            else:       # all free: the blocks are ``a`` and ``b`` less nothing
+                af, bf = a, b
             reg = 1e-12 * max(1.0, float(np.trace(af))) * np.eye(af.shape[0])
             x[free] = np.linalg.lstsq(af + reg, bf, rcond=None)[0]
         out = (x < lo) | (x > hi)
@@ -394,6 +402,9 @@ class Track:
         self._buf = (np.zeros(2 * keep), np.zeros(2 * keep), np.zeros(2 * keep),
                      np.zeros(2 * keep), np.zeros(2 * keep, dtype=bool),
                      np.zeros((2 * keep, q)), np.zeros((2 * keep, q)))
+
+    #: the buffers' order
+    FIELDS = {"gain": 0, "half": 1, "ln_n": 2, "t": 3, "info": 4, "phi": 5, "std": 6}
 
     def _view(self, i: int) -> np.ndarray:
         return self._buf[i][self._start:self._start + self.keep]
@@ -441,6 +452,13 @@ class Track:
             tr.append(g, np.array(p, dtype=float), np.array(sd, dtype=float), t, bool(inf),
                       h, ln)
         return tr
+
+
+def _stacked(tracks: Sequence[Track], field: str, first: int, end: int) -> np.ndarray:
+    """The tracks' ``field`` (:attr:`Track.FIELDS`) over their windows ``first`` to ``end``,
+    stacked: (H, end - first) or (H, end - first, q)."""
+    i = Track.FIELDS[field]
+    return np.stack([t._buf[i][t._start + first:t._start + end] for t in tracks])
 
 
 @dataclass
@@ -601,11 +619,11 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     m, q = tracks[0].m, tracks[0].q
     if m == 0:
         return [None] * len(tracks)
-    half = np.stack([t.half[:m] for t in tracks])                       # (H, m)
-    tt = np.stack([t.t[:m] for t in tracks]) - tracks[0].t[m - 1]
-    phis = np.stack([t.phi[:m] for t in tracks])                         # (H, m, q)
-    sds = np.stack([t.std[:m] for t in tracks])
-    n_eff = np.exp(np.stack([t.ln_n[:m] for t in tracks]))
+    half = _stacked(tracks, "half", 0, m)                                # (H, m)
+    tt = _stacked(tracks, "t", 0, m) - tracks[0].t[m - 1]
+    phis = _stacked(tracks, "phi", 0, m)                                 # (H, m, q)
+    sds = _stacked(tracks, "std", 0, m)
+    n_eff = np.exp(_stacked(tracks, "ln_n", 0, m))
     # the weighted sums since each window (sa, sat, satt, sap, sapt, sapp: (6, H, m, q)) and
     # the line through them, in one compiled pass (numpy's arithmetic in numpy's order)
     sums, half_s, n_s, alpha, chi2, params = _suffix_lines(sds, tt, phis, half, n_eff)
@@ -623,17 +641,18 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     later = np.arange(m)[None, :] > ks[:, None]
     ended = np.max(np.where(later, ev_e, -np.inf), axis=1)
     since = np.arange(m)[None, :] >= ks[:, None]
-    positive = np.sum(since & (np.stack([t.gain[:m] for t in tracks]) > 0), axis=1)
-    informative = np.any(np.stack([t.info[max(0, m - recent):m] for t in tracks]), axis=1)
+    positive = np.sum(since & (_stacked(tracks, "gain", 0, m) > 0), axis=1)
+    informative = np.any(_stacked(tracks, "info", max(0, m - recent), m), axis=1)
     std = 1.0 / np.sqrt(np.maximum(sums[0][rows, ks], 1e-300))
+    # as Python numbers once (the same values as float() of each)
+    top_h, spread_h, ended_h = top.tolist(), spread.tolist(), ended.tolist()
+    positive_h, informative_h = positive.tolist(), informative.tolist()
+    chi2_k = chi2[rows, ks].tolist()
     out: list[Fitted | None] = []
-    for h in range(len(tracks)):
-        k = int(ks[h])
-        out.append(Fitted(float(top[h]) + math.log(float(spread[h])), k, m - k,
-                          np.asarray(alpha[h, k], dtype=float), std[h],
-                          float(positive[h]) / (m - k), bool(informative[h]),
-                          max(1.0, float(chi2[h, k]) / max(q * (m - k - 2), 1)),
-                          float(ended[h])))
+    for h, k in enumerate(ks.tolist()):
+        out.append(Fitted(top_h[h] + math.log(spread_h[h]), k, m - k, alpha[h, k], std[h],
+                          positive_h[h] / (m - k), informative_h[h],
+                          max(1.0, chi2_k[h] / max(q * (m - k - 2), 1)), ended_h[h]))
     return out
 
 
@@ -675,7 +694,7 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     m = tracks[0].m
     if m == 0:
         return [None] * len(tracks)
-    g = np.stack([t.gain[:m] for t in tracks])                           # (H, m)
+    g = _stacked(tracks, "gain", 0, m)                                   # (H, m)
     suffix_g = g[:, ::-1].cumsum(axis=1)[:, ::-1]
     ks = np.argmax(suffix_g, axis=1)
     rows = np.arange(len(tracks))
@@ -685,14 +704,14 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     since = np.arange(m)[None, :] >= ks[:, None]
     positive = np.sum(since & (g > 0), axis=1)
     last = max(0, m - recent)
-    informative = np.any(np.stack([t.info[last:m] for t in tracks]), axis=1)
+    informative = np.any(_stacked(tracks, "info", last, m), axis=1)
     # each one's size: the inverse-variance mean over its last windows since its change point
     lo = np.maximum(ks, last)
     use = (np.arange(last, m)[None, :] >= lo[:, None])[..., None]        # (H, L, 1)
-    w = np.where(use, 1.0 / np.maximum(np.stack([t.std[last:m] for t in tracks]),
+    w = np.where(use, 1.0 / np.maximum(_stacked(tracks, "std", last, m),
                                        1e-300) ** 2, 0.0)
     wsum = np.sum(w, axis=1)
-    phis = np.stack([t.phi[last:m] for t in tracks])
+    phis = _stacked(tracks, "phi", last, m)
     phi = np.sum(np.where(use, w * phis, 0.0), axis=1) / wsum
     std = 1.0 / np.sqrt(wsum)
     out: list[Fitted | None] = []
