@@ -39,9 +39,7 @@ from twinwatch.twin.diagnosis.hypotheses import (
     columns,
     evidence_each_many,
     evidence_many,
-)
-from twinwatch.twin.diagnosis.hypotheses import (
-    basis as _basis_of,
+    window_basis,
 )
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.model import FloatArray
@@ -162,6 +160,11 @@ class HypothesisBank:
                         rows.append(row)
             self._combo[h.label] = np.array(rows).reshape(len(rows), len(self.directions))
             self._bounds[h.label] = h.bounds()
+        #: label -> its one direction's index, for a hypothesis of one number that is one
+        #: direction (not a combination of several)
+        self._single: dict[str, int] = {
+            lab: int(np.flatnonzero(c[0])[0]) for lab, c in self._combo.items()
+            if c.shape[0] == 1 and np.count_nonzero(c[0]) == 1 and np.max(c[0]) == 1.0}
         g = len(self.groups)
         self._prec = np.zeros((g, g))
         self._rhs = np.zeros(g)
@@ -235,7 +238,8 @@ class HypothesisBank:
         Returns:
             The window's reading, or None when the baseline twin does not simulate it.
         """
-        cols = columns(fit, self.theta, self.directions, self.terms, initial)
+        bases: dict[tuple[object, ...], FloatArray] = {}   # the window's term bases, once
+        cols = columns(fit, self.theta, self.directions, self.terms, initial, bases)
         if cols is None:
             return None
         m_rows = cols.r0.shape[0]
@@ -259,7 +263,7 @@ class HypothesisBank:
         ln_n = math.log(n_eff)
         pairs = self._fit_pairs(dp, r0p, first)
         everyone = [*self.hypotheses, *pairs]
-        exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj)
+        exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
         reading = WindowReading(baseline_nrmse, None, sims=cols.sims + sims)
         fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         for h in everyone:
@@ -320,13 +324,25 @@ class HypothesisBank:
         least squares on the projected columns ``dp``, (D, M), against the projected
         residual ``rp``, (M,)): label -> (information, gradient, size, squared residual)."""
         gram, grad, s00 = dp @ dp.T, dp @ rp, float(rp @ rp)
+        # a hypothesis of one direction picks its entry of the information and the gradient:
+        # exactly what the products with its combination give (1 x the entry plus zeros),
+        # unless an entry is not finite (0 x inf is NaN): then the products are taken
+        pick = bool(np.all(np.isfinite(gram)) and np.all(np.isfinite(grad)))
         out = {}
         for h in self.hypotheses:
             if h.closed_form is not None:
                 continue
+            lo, hi = self._bounds[h.label]
+            i = self._single.get(h.label, -1) if pick else -1
+            if i >= 0:
+                a, b = gram[i:i + 1, i:i + 1], grad[i:i + 1]
+                phi = bounded_solve(a, b, lo, hi)
+                # the squared residual below in the same order, on the numbers themselves
+                a0, b0, p0 = float(a[0, 0]), float(b[0]), float(phi[0])
+                out[h.label] = (a, b, phi, s00 - 2 * b0 * p0 + p0 * a0 * p0)
+                continue
             cmb = self._combo[h.label]
             a, b = cmb @ gram @ cmb.T, cmb @ grad
-            lo, hi = self._bounds[h.label]
             phi = bounded_solve(a, b, lo, hi)
             out[h.label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
         return out
@@ -357,15 +373,14 @@ class HypothesisBank:
     def _gauss_newton(self, everyone: list[Hypothesis],
                       first: Mapping[str, tuple[FloatArray, FloatArray, FloatArray, float]],
                       dp: FloatArray, fit: WindowFit, initial: FloatArray | None,
-                      proj: _Projector) -> tuple[dict[str, tuple[FloatArray, float, FloatArray]],
-                                                 int]:
+                      proj: _Projector, bases: dict[tuple[object, ...], FloatArray]
+                      ) -> tuple[dict[str, tuple[FloatArray, float, FloatArray]], int]:
         """The scale and term hypotheses (the twin is not linear in them) linearised again at
         their size: up to GN_STEPS Gauss-Newton steps from the exact twin there, stopping once
         a size moves less than 1e-4. Returns label -> (size, squared residual, information)
         and the simulations run."""
-        again = [h for h in everyone if h.label in first
-                 and any(c.kind in ("scale", "term") for c in h.changes)
-                 and float(np.max(np.abs(first[h.label][2]))) > 1e-3]
+        again = [h for h in everyone if h.label in first and h.nonlinear
+                 and _largest(first[h.label][2]) > 1e-3]
         exact: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         phis = {h.label: first[h.label][2] for h in again}
         lin = {h.label: self._combo[h.label] @ dp for h in again}
@@ -373,7 +388,7 @@ class HypothesisBank:
         for _ in range(self.GN_STEPS):
             if not again:
                 break
-            step = self._exact(again, phis, fit, initial, proj, lin)
+            step = self._exact(again, phis, fit, initial, proj, lin, bases)
             sims += sum(1 + sum(c.size for c in h.changes if c.kind in ("scale", "term"))
                         for h in again)
             moved = []
@@ -522,19 +537,20 @@ class HypothesisBank:
         return th
 
     def _exact(self, hyps: list[Hypothesis], phis: dict[str, FloatArray], fit: WindowFit,
-               initial: FloatArray | None, proj: _Projector, lin: Mapping[str, FloatArray]
+               initial: FloatArray | None, proj: _Projector, lin: Mapping[str, FloatArray],
+               bases: dict[tuple[object, ...], FloatArray]
                ) -> dict[str, tuple[FloatArray, float, FloatArray]]:
         """Each hypothesis's twin simulated at its size and a step beyond it in each scale and
         term change (one batch): its exact residual there and a Gauss-Newton step from it.
         A term enters the twin through its equations (the leak's pressure factor feeds the
         valve's square-root flow: not linear in it). The reading changes (the twin's outputs
         are linear in a reading's gain or offset) keep their columns at the baseline
-        (``lin``: label -> columns (q, M), projected)."""
+        (``lin``: label -> columns (q, M), projected; ``bases``: the window's term bases,
+        :func:`~twinwatch.twin.diagnosis.hypotheses.window_basis`)."""
         window = fit.window
         rows: list[FloatArray] = []
         row_terms: list[dict[str, FloatArray]] = []
         layout = []
-        bases: dict[tuple[object, ...], FloatArray] = {}
 
         def terms_at(h: Hypothesis, phi: FloatArray) -> dict[str, FloatArray]:
             out_t: dict[str, FloatArray] = {}
@@ -542,9 +558,8 @@ class HypothesisBank:
             for c in h.changes:
                 if c.kind == "term":
                     for i, d in enumerate(c.directions()):
-                        if d not in bases:
-                            bases[d] = _basis_of(window, d, self.terms)
-                        out_t[c.target] = out_t.get(c.target, 0.0) + float(phi[k + i]) * bases[d]
+                        values = window_basis(window, d, self.terms, bases)
+                        out_t[c.target] = out_t.get(c.target, 0.0) + float(phi[k + i]) * values
                 k += c.size
             return out_t
 
@@ -809,6 +824,11 @@ class _Projector:
         if profile and self.zw.shape[0]:
             vw = vw - self.zw.T @ (self.ginv @ (self.zw @ vw))
         return vw
+
+
+def _largest(phi: FloatArray) -> float:
+    """``max |phi|`` (NaN if one is NaN), one number without numpy's reduction."""
+    return abs(float(phi[0])) if phi.shape == (1,) else float(np.max(np.abs(phi)))
 
 
 def _kappa(r: FloatArray) -> float:

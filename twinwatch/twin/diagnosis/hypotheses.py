@@ -42,15 +42,17 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 __all__ = ["LN_STEP", "Change", "basis", "Columns", "Fitted", "Hypothesis", "Track", "WindowTerms",
-           "bounded_solve", "columns", "design", "evidence_of", "periodic_angle"]
+           "bounded_solve", "columns", "design", "evidence_of", "periodic_angle", "window_basis"]
 
 #: Finite-difference step of a parameter's (or a gain's, a supply ratio's) logarithm. The
 #: twins are smooth in their parameters; 1e-4 keeps the truncation error (O(step)) far below
@@ -123,11 +125,17 @@ class Hypothesis:
     changes: tuple[Change, ...]
     label: str
 
-    @property
+    # cached: a frozen hypothesis's size and closed form are read several times a window
+    @cached_property
     def size(self) -> int:
         return sum(c.size for c in self.changes)
 
-    @property
+    @cached_property
+    def nonlinear(self) -> bool:
+        """A scale or term change is among its changes (the twin is not linear in it)."""
+        return any(c.kind in ("scale", "term") for c in self.changes)
+
+    @cached_property
     def closed_form(self) -> Change | None:
         """The stuck or clipped reading this hypothesis is (fitted without sensitivities)."""
         for c in self.changes:
@@ -179,6 +187,16 @@ def basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms)
     return np.sin(ang) if shape == "sin" else np.cos(ang)
 
 
+def window_basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms,
+                 cache: dict[tuple[object, ...], FloatArray]) -> FloatArray:
+    """:func:`basis`, kept in ``cache`` (direction -> its values over this window) for the
+    window's other uses (its columns, each Gauss-Newton step's twins): computed once."""
+    out = cache.get(direction)
+    if out is None:
+        out = cache[direction] = basis(window, direction, terms)
+    return out
+
+
 @dataclass
 class Columns:
     """One window's baseline twin and its sensitivities, in normalised units (each output's
@@ -210,7 +228,8 @@ def _transformed(window: WindowData, channel: str, gain: float = 1.0, offset: fl
 
 
 def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object, ...]],
-            terms: WindowTerms, initial: FloatArray | None = None) -> Columns | None:
+            terms: WindowTerms, initial: FloatArray | None = None,
+            bases: dict[tuple[object, ...], FloatArray] | None = None) -> Columns | None:
     """Simulate the baseline twin and each direction's sensitivity on one window.
 
     Directions: ``("p", name)`` the parameter's logarithm; ``("gain", channel)`` a reading's
@@ -228,6 +247,8 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
         directions: the directions wanted.
         terms: what the term bases need.
         initial: the initial-state offsets the baseline starts from (None: the fit's).
+        bases: the window's term bases computed so far (:func:`window_basis`; None: none
+            kept).
 
     Returns:
         The columns, or None when the baseline twin does not simulate the window.
@@ -254,7 +275,8 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
             rows_theta.append(rows_theta[0])
             rows_init.append(init0)
             term_rows.append((len(rows_theta) - 1, attach.name,
-                              step * basis(window, d, terms)))
+                              step * window_basis(window, d, terms,
+                                                  {} if bases is None else bases)))
             keys.append((d, step))
     for i in range(n_init):
         rows_theta.append(rows_theta[0])
@@ -341,8 +363,11 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
     for _ in range(q + 1):
         free = ~fixed
         if np.any(free):
-            af = a[np.ix_(free, free)]
-            bf = b[free] - a[np.ix_(free, fixed)] @ x[fixed]
+            if np.any(fixed):
+                af = a[np.ix_(free, free)]
+                bf = b[free] - a[np.ix_(free, fixed)] @ x[fixed]
+            else:       # all free: the blocks are ``a`` and ``b`` less nothing
+                af, bf = a, b
             reg = 1e-12 * max(1.0, float(np.trace(af))) * np.eye(af.shape[0])
             x[free] = np.linalg.lstsq(af + reg, bf, rcond=None)[0]
         out = (x < lo) | (x > hi)
@@ -377,6 +402,9 @@ class Track:
         self._buf = (np.zeros(2 * keep), np.zeros(2 * keep), np.zeros(2 * keep),
                      np.zeros(2 * keep), np.zeros(2 * keep, dtype=bool),
                      np.zeros((2 * keep, q)), np.zeros((2 * keep, q)))
+
+    #: the buffers' order
+    FIELDS = {"gain": 0, "half": 1, "ln_n": 2, "t": 3, "info": 4, "phi": 5, "std": 6}
 
     def _view(self, i: int) -> np.ndarray:
         return self._buf[i][self._start:self._start + self.keep]
@@ -426,6 +454,13 @@ class Track:
         return tr
 
 
+def _stacked(tracks: Sequence[Track], field: str, first: int, end: int) -> np.ndarray:
+    """The tracks' ``field`` (:attr:`Track.FIELDS`) over their windows ``first`` to ``end``,
+    stacked: (H, end - first) or (H, end - first, q)."""
+    i = Track.FIELDS[field]
+    return np.stack([t._buf[i][t._start + first:t._start + end] for t in tracks])
+
+
 @dataclass
 class Fitted:
     """A hypothesis over the windows since its most likely change point.
@@ -458,9 +493,115 @@ class Fitted:
     ended: float = -math.inf
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _max_nan(x: float, floor: float) -> float:  # pragma: no cover - compiled
+    """``np.maximum(x, floor)``: a NaN ``x`` stays NaN."""
+    return x if (x >= floor or x != x) else floor
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _line_point(ra: float, rat: float, ratt: float, rap: float, rapt: float, rapp: float
+                ) -> tuple[float, float, bool]:  # pragma: no cover - compiled
+    """The weighted line of sizes in time through one point's sums (a size's information
+    ``ra``, its times' moments ``rat``, ``ratt``, the sizes' ``rap``, ``rapt``, ``rapp``):
+    its intercept ``alpha`` at the last window, the sizes' chi-square about it, and whether
+    its slope is determined (otherwise the weighted mean, slope 0)."""
+    det = ra * ratt - rat * rat
+    good = det > 1e-12 * _max_nan(ra * ratt, 1e-300)
+    if good:
+        alpha = (ratt * rap - rat * rapt) / det
+        beta = (ra * rapt - rat * rap) / det
+    else:
+        alpha = rap / _max_nan(ra, 1e-300)
+        beta = 0.0
+    return alpha, _max_nan(rapp - alpha * rap - beta * rapt, 0.0), good
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _suffix_lines(sds: FloatArray, tt: FloatArray, phis: FloatArray, half: FloatArray,
+                  n_eff: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
+                                              FloatArray, FloatArray]:  # pragma: no cover
+    """:func:`evidence_many`'s sums since each window and their lines, for (H, m, q) sizes
+    ``phis`` with standard errors ``sds`` at times ``tt`` (H, m) [s, 0 at the last window]:
+    each window's information ``a = 1/sd^2`` (0 for a standard error 0 or not finite), the
+    suffix sums of ``a``, ``a t``, ``a t^2``, ``a phi``, ``a phi t``, ``a phi^2`` (6, H, m,
+    q), of ``half`` and ``n_eff`` (H, m), and each window's line since it: ``alpha`` (H, m,
+    q), ``chi2`` and its numbers (H, m). Element by element the arithmetic of the numpy
+    expressions it replaced, each sum from the last window back (``cumsum``'s order)."""
+    h_n, m, q = phis.shape
+    sums = np.empty((6, h_n, m, q))
+    half_s = np.empty((h_n, m))
+    n_s = np.empty((h_n, m))
+    alpha = np.empty((h_n, m, q))
+    chi2 = np.empty((h_n, m))
+    params = np.empty((h_n, m))
+    for h in range(h_n):
+        half_s[h, m - 1] = half[h, m - 1]
+        n_s[h, m - 1] = n_eff[h, m - 1]
+        for i in range(m - 2, -1, -1):
+            half_s[h, i] = half_s[h, i + 1] + half[h, i]
+            n_s[h, i] = n_s[h, i + 1] + n_eff[h, i]
+        for j in range(q):
+            for i in range(m - 1, -1, -1):
+                sd = sds[h, i, j]
+                a = 0.0
+                if math.isfinite(sd) and sd > 0:
+                    s = _max_nan(sd, 1e-300)
+                    a = 1.0 / (s * s)
+                t = tt[h, i]
+                p = phis[h, i, j]
+                terms = (a, a * t, a * t * t, a * p, a * p * t, a * (p * p))
+                for k in range(6):
+                    if i == m - 1:
+                        sums[k, h, i, j] = terms[k]
+                    else:
+                        sums[k, h, i, j] = sums[k, h, i + 1, j] + terms[k]
+        for i in range(m):
+            for j in range(q):
+                al, chi, good = _line_point(sums[0, h, i, j], sums[1, h, i, j],
+                                            sums[2, h, i, j], sums[3, h, i, j],
+                                            sums[4, h, i, j], sums[5, h, i, j])
+                alpha[h, i, j] = al
+                if j == 0:
+                    chi2[h, i] = chi
+                    params[h, i] = 2.0 if good else 1.0
+                else:
+                    chi2[h, i] += chi
+                    params[h, i] += 2.0 if good else 1.0
+    return sums, half_s, n_s, alpha, chi2, params
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _ended_lines(sums: FloatArray, ks: np.ndarray
+                 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover - compiled
+    """The line from each hypothesis's change point ``ks[h]`` to each window: the sums
+    since ``ks[h]`` less those since the window (:func:`_suffix_lines`' sums), their
+    chi-square and numbers (H, m); every window, those at or before ``ks[h]`` too (masked
+    by the caller)."""
+    _, h_n, m, q = sums.shape
+    chi2 = np.empty((h_n, m))
+    params = np.empty((h_n, m))
+    for h in range(h_n):
+        k0 = ks[h]
+        for i in range(m):
+            for j in range(q):
+                _, chi, good = _line_point(
+                    sums[0, h, k0, j] - sums[0, h, i, j], sums[1, h, k0, j] - sums[1, h, i, j],
+                    sums[2, h, k0, j] - sums[2, h, i, j], sums[3, h, k0, j] - sums[3, h, i, j],
+                    sums[4, h, k0, j] - sums[4, h, i, j], sums[5, h, k0, j] - sums[5, h, i, j])
+                if j == 0:
+                    chi2[h, i] = chi
+                    params[h, i] = 2.0 if good else 1.0
+                else:
+                    chi2[h, i] += chi
+                    params[h, i] += 2.0 if good else 1.0
+    return chi2, params
+
+
 def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | None]:
     """:func:`evidence_of` (``consistent``) for many tracks of one size and length at once:
-    the same arithmetic on (H, m, q) arrays (one pass of numpy calls for all hypotheses).
+    the same arithmetic on (H, m, q) arrays (the sums since each window and their lines
+    compiled, :func:`_suffix_lines`; the logarithms and exponentials numpy's).
 
     Args:
         tracks: H tracks, each of size ``q`` with ``m`` windows (the first one's; the others
@@ -478,35 +619,14 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     m, q = tracks[0].m, tracks[0].q
     if m == 0:
         return [None] * len(tracks)
-    half = np.stack([t.half[:m] for t in tracks])                       # (H, m)
-    tt = (np.stack([t.t[:m] for t in tracks]) - tracks[0].t[m - 1])[..., None]
-    phis = np.stack([t.phi[:m] for t in tracks])                         # (H, m, q)
-    sds = np.stack([t.std[:m] for t in tracks])
-    n_eff = np.exp(np.stack([t.ln_n[:m] for t in tracks]))
-    with np.errstate(divide="ignore", over="ignore"):  # a standard deviation below 1e-150:
-        # an exact window, weight inf, as without the guard (no warning on the daemon's stderr)
-        a = np.where(np.isfinite(sds) & (sds > 0), 1.0 / np.maximum(sds, 1e-300) ** 2, 0.0)
-
-    def suf(x: FloatArray) -> FloatArray:
-        out: FloatArray = x[:, ::-1].cumsum(axis=1)[:, ::-1]
-        return out
-
-    sa, sat, satt = suf(a), suf(a * tt), suf(a * tt * tt)
-    sap, sapt, sapp = suf(a * phis), suf(a * phis * tt), suf(a * phis**2)
-    half_s, n_s = suf(half), suf(n_eff)
-
-    def line(ra: FloatArray, rat: FloatArray, ratt: FloatArray, rap: FloatArray,
-             rapt: FloatArray, rapp: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        det = ra * ratt - rat * rat
-        good = det > 1e-12 * np.maximum(ra * ratt, 1e-300)
-        safe = np.where(good, det, 1.0)
-        alpha = np.where(good, (ratt * rap - rat * rapt) / safe, rap / np.maximum(ra, 1e-300))
-        beta = np.where(good, (ra * rapt - rat * rap) / safe, 0.0)
-        chi2 = np.sum(np.maximum(rapp - alpha * rap - beta * rapt, 0.0), axis=-1)
-        params = np.sum(np.where(good, 2.0, 1.0), axis=-1)
-        return alpha, chi2, params
-
-    alpha, chi2, params = line(sa, sat, satt, sap, sapt, sapp)
+    half = _stacked(tracks, "half", 0, m)                                # (H, m)
+    tt = _stacked(tracks, "t", 0, m) - tracks[0].t[m - 1]
+    phis = _stacked(tracks, "phi", 0, m)                                 # (H, m, q)
+    sds = _stacked(tracks, "std", 0, m)
+    n_eff = np.exp(_stacked(tracks, "ln_n", 0, m))
+    # the weighted sums since each window (sa, sat, satt, sap, sapt, sapp: (6, H, m, q)) and
+    # the line through them, in one compiled pass (numpy's arithmetic in numpy's order)
+    sums, half_s, n_s, alpha, chi2, params = _suffix_lines(sds, tt, phis, half, n_eff)
     ev_c = half_s - 0.5 * chi2 - 0.5 * params * np.log(np.maximum(n_s, 2.0))   # (H, m)
     ks = np.argmax(ev_c, axis=1)
     rows = np.arange(len(tracks))
@@ -514,25 +634,25 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     spread = np.mean(np.exp(ev_c - top[:, None]), axis=1)
     # the change ended at a later window e > k: the line from k to e, the baseline since
     # (every e at once; those at or before k masked out)
+    chi_e, par_e = _ended_lines(sums, ks)
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-        _, chi_e, par_e = line(*(x[rows, ks][:, None] - x for x in (sa, sat, satt, sap, sapt,
-                                                                    sapp)))
         ev_e = ((half_s[rows, ks][:, None] - half_s) - 0.5 * chi_e - 0.5 * par_e * np.log(
             np.maximum(n_s[rows, ks][:, None] - n_s, 2.0)))
     later = np.arange(m)[None, :] > ks[:, None]
     ended = np.max(np.where(later, ev_e, -np.inf), axis=1)
     since = np.arange(m)[None, :] >= ks[:, None]
-    positive = np.sum(since & (np.stack([t.gain[:m] for t in tracks]) > 0), axis=1)
-    informative = np.any(np.stack([t.info[max(0, m - recent):m] for t in tracks]), axis=1)
-    std = 1.0 / np.sqrt(np.maximum(sa[rows, ks], 1e-300))
+    positive = np.sum(since & (_stacked(tracks, "gain", 0, m) > 0), axis=1)
+    informative = np.any(_stacked(tracks, "info", max(0, m - recent), m), axis=1)
+    std = 1.0 / np.sqrt(np.maximum(sums[0][rows, ks], 1e-300))
+    # as Python numbers once (the same values as float() of each)
+    top_h, spread_h, ended_h = top.tolist(), spread.tolist(), ended.tolist()
+    positive_h, informative_h = positive.tolist(), informative.tolist()
+    chi2_k = chi2[rows, ks].tolist()
     out: list[Fitted | None] = []
-    for h in range(len(tracks)):
-        k = int(ks[h])
-        out.append(Fitted(float(top[h]) + math.log(float(spread[h])), k, m - k,
-                          np.asarray(alpha[h, k], dtype=float), std[h],
-                          float(positive[h]) / (m - k), bool(informative[h]),
-                          max(1.0, float(chi2[h, k]) / max(q * (m - k - 2), 1)),
-                          float(ended[h])))
+    for h, k in enumerate(ks.tolist()):
+        out.append(Fitted(top_h[h] + math.log(spread_h[h]), k, m - k, alpha[h, k], std[h],
+                          positive_h[h] / (m - k), informative_h[h],
+                          max(1.0, chi2_k[h] / max(q * (m - k - 2), 1)), ended_h[h]))
     return out
 
 
@@ -574,7 +694,7 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     m = tracks[0].m
     if m == 0:
         return [None] * len(tracks)
-    g = np.stack([t.gain[:m] for t in tracks])                           # (H, m)
+    g = _stacked(tracks, "gain", 0, m)                                   # (H, m)
     suffix_g = g[:, ::-1].cumsum(axis=1)[:, ::-1]
     ks = np.argmax(suffix_g, axis=1)
     rows = np.arange(len(tracks))
@@ -584,14 +704,14 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     since = np.arange(m)[None, :] >= ks[:, None]
     positive = np.sum(since & (g > 0), axis=1)
     last = max(0, m - recent)
-    informative = np.any(np.stack([t.info[last:m] for t in tracks]), axis=1)
+    informative = np.any(_stacked(tracks, "info", last, m), axis=1)
     # each one's size: the inverse-variance mean over its last windows since its change point
     lo = np.maximum(ks, last)
     use = (np.arange(last, m)[None, :] >= lo[:, None])[..., None]        # (H, L, 1)
-    w = np.where(use, 1.0 / np.maximum(np.stack([t.std[last:m] for t in tracks]),
+    w = np.where(use, 1.0 / np.maximum(_stacked(tracks, "std", last, m),
                                        1e-300) ** 2, 0.0)
     wsum = np.sum(w, axis=1)
-    phis = np.stack([t.phi[last:m] for t in tracks])
+    phis = _stacked(tracks, "phi", last, m)
     phi = np.sum(np.where(use, w * phis, 0.0), axis=1) / wsum
     std = 1.0 / np.sqrt(wsum)
     out: list[Fitted | None] = []

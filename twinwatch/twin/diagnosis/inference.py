@@ -28,7 +28,7 @@ from typing import Any, Literal
 import numpy as np
 
 from twinwatch.twin.diagnosis.engine import RESOLUTION, HypothesisBank, WindowReading
-from twinwatch.twin.diagnosis.hypotheses import Fitted, Hypothesis, WindowTerms
+from twinwatch.twin.diagnosis.hypotheses import Change, Fitted, Hypothesis, WindowTerms
 from twinwatch.twin.diagnosis.library import DiagnosisConfig, FaultLibrary, FaultMode
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.health import DiagnosisHealth, FaultHealth, HealthMessage
@@ -101,25 +101,35 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[
         return out
     suffix = np.flip(np.cumsum(np.flip(ref)))
     start = int(np.argmax(suffix))
-    for k in list(out):
+    # the candidates by the windows they share with the best one (n): each group's
+    # differences as the rows of one array, each row reduced as it would be alone
+    shared: dict[int, list[str]] = {}
+    for k in out:
         other = gains.get(k)
         if k == best or other is None or other.size == 0 or not math.isfinite(out[k]):
             continue
-        n = min(ref.size, other.size)
-        d = ref[-n:] - other[-n:]
-        if not np.all(np.isfinite(d)):
-            continue            # a twin impossible in a window (a moving reading is no stuck one)
-        d = d[max(0, start - (ref.size - n)):]
-        gap = out[best] - out[k]
+        shared.setdefault(min(ref.size, other.size), []).append(k)
+    for n, keys in shared.items():
+        d = ref[-n:] - np.stack([gains[k][-n:] for k in keys])
+        # a twin impossible in a window (a moving reading is no stuck one): left as it is
+        finite = np.all(np.isfinite(d), axis=1)
+        d = d[:, max(0, start - (ref.size - n)):]
+        size = d.shape[1]
         # one window is no sample of the differences: no twin is preferred on it alone
         # (np.mean's and np.std's arithmetic, without their wrappers)
-        mean = float(np.add.reduce(d) / d.size) if d.size else 0.0
-        dev = d - mean
-        sd = math.sqrt(float(np.add.reduce(dev * dev)) / (d.size - 1)) if d.size > 1 else 0.0
-        z = (0.0 if d.size < 2 or mean <= 0 else math.inf if sd == 0
-             else mean / sd * math.sqrt(d.size))
-        crit = _t_crit(d.size)
-        out[k] = out[best] - gap * min(1.0, max(0.0, z / crit) ** 2)
+        means = np.add.reduce(d, axis=1) / size if size else np.zeros(len(keys))
+        dev = d - means[:, None]
+        squares = np.add.reduce(dev * dev, axis=1)
+        crit = _t_crit(size)
+        for row, k in enumerate(keys):
+            if not finite[row]:
+                continue
+            gap = out[best] - out[k]
+            mean = float(means[row])
+            sd = math.sqrt(float(squares[row]) / (size - 1)) if size > 1 else 0.0
+            z = (0.0 if size < 2 or mean <= 0 else math.inf if sd == 0
+                 else mean / sd * math.sqrt(size))
+            out[k] = out[best] - gap * min(1.0, max(0.0, z / crit) ** 2)
     return out
 
 
@@ -178,6 +188,7 @@ class Diagnoser:
         self._passed_run = 0
         self._cf_since: float | None = None
         self._last: DiagnosisHealth | None = None
+        self._twins: dict[str, list[tuple[Change, str, list[str]]]] = {}
 
     # -- one window ---------------------------------------------------------------------------
     def update(self, health: HealthMessage, fit: WindowFit | None = None,
@@ -377,17 +388,29 @@ class Diagnoser:
                 for fid in split)
         return [], None
 
+    def _twin(self, sub: str) -> list[tuple[Change, str, list[str]]]:
+        """One twin's changes (``mode#i``): each its hypothesis change, its description for a
+        person and the names it changes (parameters, ``<channel> reading``, attach points);
+        built once per twin (the library is fixed for the diagnoser's life)."""
+        got = self._twins.get(sub)
+        if got is None:
+            mode_id, twin_no = sub.split("#")
+            got = []
+            for spec in self.faults[mode_id].twins()[int(twin_no)]:
+                params, chans, attach = spec.names()
+                got.append((spec.change(), spec.describe(),
+                            params + [f"{c} reading" for c in chans] + attach))
+            self._twins[sub] = got
+        return got
+
     def _size_text(self, fid: str, lab: str, f: Fitted) -> str:
         """The fitted change(s) of a twin (one mode's, or a pair's) for a person."""
         parts = []
         k = 0
         for sub in lab.split("+"):
-            mode_id, twin_no = sub.split("#")
-            twin = self.faults[mode_id].twins()[int(twin_no)]
-            for spec in twin:
-                c = spec.change()
+            for c, what, _ in self._twin(sub):
                 if c.size == 0:
-                    parts.append(spec.describe())
+                    parts.append(what)
                     continue
                 phi = f.phi[k:k + c.size]
                 sd = f.std[k:k + c.size]
@@ -396,12 +419,12 @@ class Diagnoser:
                                  else math.expm1(float(phi[0])))
                     s2 = 200.0 * float(sd[0])
                     of = " of its RMS" if c.kind == "offset" else ""
-                    parts.append(f"{spec.describe()} {v:+.2f} %{of} +- {s2:.2f} %")
+                    parts.append(f"{what} {v:+.2f} %{of} +- {s2:.2f} %")
                 elif c.kind == "term" and c.size == 2:
                     amp = float(np.hypot(phi[0], phi[1]))
-                    parts.append(f"{spec.describe()}, amplitude {amp:.3g}")
+                    parts.append(f"{what}, amplitude {amp:.3g}")
                 else:
-                    parts.append(f"{spec.describe()} {float(phi[0]):+.3g} +- "
+                    parts.append(f"{what} {float(phi[0]):+.3g} +- "
                                  f"{2 * float(sd[0]):.2g}")
                 k += c.size
         return ", ".join(parts)
@@ -429,12 +452,10 @@ class Diagnoser:
                            f"{best_top - f.evidence:.3g} more)")
         changed: list[str] = []
         for sub in lab.split("+"):
-            mid, no = sub.split("#")
-            if mid != fid:
+            if sub.split("#")[0] != fid:
                 continue
-            for spec in self.faults[mid].twins()[int(no)]:
-                params, chans, attach = spec.names()
-                changed += params + [f"{c} reading" for c in chans] + attach
+            for _, _, names in self._twin(sub):
+                changed += names
         return FaultHealth(id=fid, component=mode.component, probability=p,
                            action=mode.action, urgency=mode.urgency, source=mode.source,
                            evidence_for=pro, evidence_against=con,
