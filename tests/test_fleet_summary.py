@@ -361,7 +361,9 @@ def test_the_latest_summary_is_sent_again_when_a_subscriber_is_reachable_again(
             time.sleep(0.2)
             return all(got.values())
 
-        wait_for(each_heard, 10.0, "each machine's summary through A then B")
+        # a deadline against a hang: two routers, a client on both and one on B join in
+        # about a second alone, but took more than 10 s once under the CI's other worker
+        wait_for(each_heard, 60.0, "each machine's summary through A then B")
         before = {m: len(w) for m, w in got.items()}
         resent = {m: p.counters()["summaries_resent"] for m, p in pubs.items()}
         router_a.close()
