@@ -533,8 +533,9 @@ def _suffix_lines(sds: FloatArray, tt: FloatArray, phis: FloatArray, half: Float
     half_s = np.empty((h_n, m))
     n_s = np.empty((h_n, m))
     alpha = np.empty((h_n, m, q))
-    chi2 = np.empty((h_n, m))
-    params = np.empty((h_n, m))
+    # summed over the q sizes from 0.0 (0.0 + chi is chi: _line_point's chi is >= +0.0 or NaN)
+    chi2 = np.zeros((h_n, m))
+    params = np.zeros((h_n, m))
     for h in range(h_n):
         half_s[h, m - 1] = half[h, m - 1]
         n_s[h, m - 1] = n_eff[h, m - 1]
@@ -562,12 +563,8 @@ def _suffix_lines(sds: FloatArray, tt: FloatArray, phis: FloatArray, half: Float
                                             sums[2, h, i, j], sums[3, h, i, j],
                                             sums[4, h, i, j], sums[5, h, i, j])
                 alpha[h, i, j] = al
-                if j == 0:
-                    chi2[h, i] = chi
-                    params[h, i] = 2.0 if good else 1.0
-                else:
-                    chi2[h, i] += chi
-                    params[h, i] += 2.0 if good else 1.0
+                chi2[h, i] += chi
+                params[h, i] += 2.0 if good else 1.0
     return sums, half_s, n_s, alpha, chi2, params
 
 
@@ -579,8 +576,8 @@ def _ended_lines(sums: FloatArray, ks: np.ndarray
     chi-square and numbers (H, m); every window, those at or before ``ks[h]`` too (masked
     by the caller)."""
     _, h_n, m, q = sums.shape
-    chi2 = np.empty((h_n, m))
-    params = np.empty((h_n, m))
+    chi2 = np.zeros((h_n, m))
+    params = np.zeros((h_n, m))
     for h in range(h_n):
         k0 = ks[h]
         for i in range(m):
@@ -589,12 +586,8 @@ def _ended_lines(sums: FloatArray, ks: np.ndarray
                     sums[0, h, k0, j] - sums[0, h, i, j], sums[1, h, k0, j] - sums[1, h, i, j],
                     sums[2, h, k0, j] - sums[2, h, i, j], sums[3, h, k0, j] - sums[3, h, i, j],
                     sums[4, h, k0, j] - sums[4, h, i, j], sums[5, h, k0, j] - sums[5, h, i, j])
-                if j == 0:
-                    chi2[h, i] = chi
-                    params[h, i] = 2.0 if good else 1.0
-                else:
-                    chi2[h, i] += chi
-                    params[h, i] += 2.0 if good else 1.0
+                chi2[h, i] += chi
+                params[h, i] += 2.0 if good else 1.0
     return chi2, params
 
 
