@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from twinwatch.config.identify import AS_CONFIGURED, IdentifyConfig
+from twinwatch.plugins import toml_value
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
 from twinwatch.twin.estimation.fit import (
     LocalFit,
@@ -318,15 +319,6 @@ def _honest_check(check: ModelCheck, fit_pct: Mapping[str, float]) -> ModelCheck
     return ModelCheck(passed=False, reasons=reasons, outputs=outputs, widen=check.widen)
 
 
-def _explained(r: FloatArray, jac: FloatArray, n_out: int, floor: float) -> FloatArray:
-    """Per output, the residual RMS (normalised) that the white noise's effect on the
-    estimates explains (as the monitoring's model check: a noise-free output, such as a
-    closed loop's voltage, carries the trace of the other outputs' noise)."""
-    white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
-    cov = parameter_covariance(jac, r, n_out, floor, white)
-    return explained_rms(jac, cov, n_out)
-
-
 def _score(model: TwinModel, est: Estimator, window: WindowData, theta: FloatArray,
            weights: Mapping[str, float], initial: FloatArray | None,
            explained: FloatArray | None = None) -> StretchScore:
@@ -602,9 +594,8 @@ class _Problem:
     def analyse(self, v: FloatArray, r: FloatArray, jac: FloatArray, free: Sequence[int],
                 held: Mapping[int, float] | None = None
                 ) -> tuple[FloatArray, dict[str, float], Identifiability]:
-        """The parameters at the search vector ``v`` (``theta``, and name -> value) and what
-        the data determine of the ``free`` ones there (:func:`analyse`; ``r``, ``jac`` and
-        ``held`` as :meth:`covariance`'s)."""
+        """The parameters at ``v`` (``theta``; name -> value) and what the data determine of
+        the ``free`` ones there (:func:`analyse`; ``r``, ``jac``, ``held``: :meth:`covariance`)."""
         theta = self.theta(v)
         values = dict(zip(self.model.parameter_names, (float(x) for x in theta), strict=True))
         cov, null = self.covariance(r, jac, len(free), v, held)
@@ -614,9 +605,14 @@ class _Problem:
     def scores(self, theta: FloatArray, v: FloatArray, r: FloatArray, jac: FloatArray
                ) -> tuple[StretchScore, StretchScore]:
         """The twin with ``theta`` on the training stretch (from ``v``'s initial state) and
-        on the validation stretch, the residual RMS the noise explains from the fit's ``r``
-        and ``jac`` (:func:`_explained`)."""
-        explained = _explained(r, jac, self.fit.n_out, self.floor)
+        on the validation stretch; ``r``, ``jac``: the fit's residuals and Jacobian."""
+        # per output, the residual RMS (normalised) that the white noise's effect on the
+        # estimates explains (as the monitoring's model check: a noise-free output, such as a
+        # closed loop's voltage, carries the trace of the other outputs' noise)
+        n_out = self.fit.n_out
+        white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
+        explained = explained_rms(jac, parameter_covariance(jac, r, n_out, self.floor, white),
+                                  n_out)
         train, validation = self.stretches
         weights = self.config.weights
         return (_score(self.model, self.est, train, theta, weights, self.local.initial(v),
@@ -1055,7 +1051,7 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
     if result.structure != AS_CONFIGURED:
         lines.append(f"# structure: {result.structure}; in [machine.options] set:")
         for key, value in (result.options or {}).items():
-            lines.append(f"#   {key} = {_toml_value(value)}")
+            lines.append(f"#   {key} = {toml_value(value)}")
     pasted = result.pasted
     if not result.validation.check.passed:
         lines.append("# NOTHING TO PASTE: the twin fails the model check on the validation "
@@ -1097,18 +1093,6 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
     lines.append("# bounds = { " + ", ".join(f"{n} = [{lo:.4g}, {hi:.4g}]"
                                              for n, (lo, hi) in result.bounds.items()) + " }")
     return "\n".join(lines) + "\n"
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return f'"{value}"'
-    if isinstance(value, Mapping):
-        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 __all__ = ["Combination", "Comparison", "FullFit", "HeldParameter", "Identifiability",
