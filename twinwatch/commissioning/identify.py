@@ -696,12 +696,7 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
 
 
 def _check_stretches(model: TwinModel, train: WindowData, validation: WindowData) -> None:
-    """:func:`identify`'s first step: both stretches long enough (10 samples at least), with
-    every channel the model needs, finite.
-
-    Raises:
-        ValueError: which stretch, and what it lacks.
-    """
+    """:func:`identify`'s first step; ValueError naming the stretch and what it lacks."""
     for w, what in ((train, "training"), (validation, "validation")):
         if w.n < 10:
             raise ValueError(f"the {what} range holds {w.n} samples: too few to identify "
@@ -850,16 +845,9 @@ def _hold_and_refit(prob: _Problem, holds: _Holds, analysis: Identifiability, r:
     """:func:`identify`'s hold-and-re-fit: the parameters the full fit left at a bound held
     there; then, until every free one is determined or none can be held, the weakest
     combination's main parameter with a stated value held at it (:func:`_weakest_stated`) and
-    the rest re-fitted (a re-fit that pushes one to a bound holds it there too).
-
-    Args:
-        prob: the training problem.
-        holds: the full fit's search vector, nothing held; updated in place.
-        analysis: the full fit's identifiability.
-        r, jac: the full fit's residuals and Jacobian.
-
-    Returns:
-        The last re-fit's residuals and Jacobian (the full fit's when nothing was held).
+    the rest re-fitted (a re-fit that pushes one to a bound holds it there too). ``holds``
+    (the full fit's search vector, nothing held) is updated in place; returns the last
+    re-fit's residuals and Jacobian (``r``, ``jac``, the full fit's, when nothing was held).
     """
     config, names_est, bounds = holds.config, holds.names, holds.bounds
     for name, side in analysis.at_bound.items():
