@@ -38,7 +38,7 @@ from typing import Any, Generic, TypeVar
 
 from twinwatch.errors import PluginError
 
-__all__ = ["Registry", "commented_table"]
+__all__ = ["Registry", "commented_table", "toml_value"]
 
 logger = logging.getLogger(__name__)
 
@@ -198,11 +198,11 @@ def commented_table(model: Any, table: str, *, commented: bool = False,
             continue
         note = info.description or ""
         if fixed is not None and key in fixed:
-            lines.append(_line(f"{lead}{key} = {_toml(fixed[key])}", note))
+            lines.append(_line(f"{lead}{key} = {toml_value(fixed[key])}", note))
         elif info.is_required():
             literal = _literal(info.annotation)
             if literal is not None:
-                lines.append(_line(f"{lead}{key} = {_toml(literal)}", note))
+                lines.append(_line(f"{lead}{key} = {toml_value(literal)}", note))
             else:
                 lines.append(_line(f"# {key} = ...", f"required: {note}" if note
                                    else "required"))
@@ -211,7 +211,7 @@ def commented_table(model: Any, table: str, *, commented: bool = False,
                 default = info.get_default(call_default_factory=True, validated_data={})
             except (TypeError, KeyError):  # a factory that needs the other fields
                 default = None
-            value = _toml(default)
+            value = toml_value(default)
             lines.append(_line(f"# {key} = {value}" if value is not None else f"# {key} =",
                                note if value is not None else f"{note} (default: unset)"
                                .strip()))
@@ -242,7 +242,7 @@ def _literal(annotation: Any) -> Any:
     return None
 
 
-def _toml(value: Any) -> str | None:
+def toml_value(value: Any) -> str | None:
     """``value`` as a TOML value, or None when TOML cannot write it (no null in TOML)."""
     if value is None:
         return None
@@ -255,11 +255,11 @@ def _toml(value: Any) -> str | None:
     if isinstance(value, str):
         return json.dumps(value)
     if isinstance(value, list | tuple):
-        items = [_toml(v) for v in value]
+        items = [toml_value(v) for v in value]
         return None if None in items else "[" + ", ".join(typing.cast(list[str], items)) + "]"
     if isinstance(value, Mapping):
-        pairs = [(k, _toml(v)) for k, v in value.items()]
+        pairs = [(k, toml_value(v)) for k, v in value.items()]
         return "{" + ", ".join(f"{k} = {v}" for k, v in pairs if v is not None) + "}"
     if hasattr(value, "model_dump"):
-        return _toml(value.model_dump())
-    return _toml(getattr(value, "value", None)) if hasattr(value, "value") else None
+        return toml_value(value.model_dump())
+    return toml_value(getattr(value, "value", None)) if hasattr(value, "value") else None

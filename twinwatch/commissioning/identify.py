@@ -20,6 +20,7 @@ the parameters (the initial-state offsets profiled out).
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from twinwatch.config.identify import AS_CONFIGURED, IdentifyConfig
+from twinwatch.plugins import toml_value
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
 from twinwatch.twin.estimation.fit import (
     LocalFit,
@@ -317,15 +319,6 @@ def _honest_check(check: ModelCheck, fit_pct: Mapping[str, float]) -> ModelCheck
     return ModelCheck(passed=False, reasons=reasons, outputs=outputs, widen=check.widen)
 
 
-def _explained(r: FloatArray, jac: FloatArray, n_out: int, floor: float) -> FloatArray:
-    """Per output, the residual RMS (normalised) that the white noise's effect on the
-    estimates explains (as the monitoring's model check: a noise-free output, such as a
-    closed loop's voltage, carries the trace of the other outputs' noise)."""
-    white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
-    cov = parameter_covariance(jac, r, n_out, floor, white)
-    return explained_rms(jac, cov, n_out)
-
-
 def _score(model: TwinModel, est: Estimator, window: WindowData, theta: FloatArray,
            weights: Mapping[str, float], initial: FloatArray | None,
            explained: FloatArray | None = None) -> StretchScore:
@@ -475,15 +468,10 @@ def _correlation(c: FloatArray, sd: FloatArray, finite: BoolArray) -> FloatArray
 def _strong_pairs(names: Sequence[str], corr: FloatArray,
                   strong: float) -> list[tuple[str, str, float]]:
     """The pairs whose |correlation| is ``strong`` or more, strongest first."""
-    n = len(names)
-    pairs = []
-    for i in range(n):
-        for j in range(i + 1, n):
-            rho = float(corr[i, j])
-            if math.isfinite(rho) and abs(rho) >= strong:
-                pairs.append((names[i], names[j], rho))
-    pairs.sort(key=lambda p: -abs(p[2]))
-    return pairs
+    pairs = [(names[i], names[j], float(corr[i, j]))
+             for i, j in itertools.combinations(range(len(names)), 2)
+             if math.isfinite(corr[i, j]) and abs(corr[i, j]) >= strong]
+    return sorted(pairs, key=lambda p: -abs(p[2]))
 
 
 #: Singular values of the column-scaled Jacobian below this fraction of the largest are
@@ -543,18 +531,26 @@ def least_squares_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: 
 
 
 class _Problem:
-    """The training problem of :func:`identify`: the fit, the parameter map and the local
-    polish over any subset of the estimated parameters."""
+    """The training problem of :func:`identify`: the fit on the training stretch, the
+    parameter map, the local polish over any subset of the estimated parameters, and the
+    analysis and the scores at a search vector."""
 
-    def __init__(self, model: TwinModel, est: Estimator, fit: WindowFit) -> None:
+    def __init__(self, model: TwinModel, est: Estimator, config: IdentifyConfig,
+                 stretches: tuple[WindowData, WindowData]) -> None:
         cfg = est.config
+        self.model = model
+        self.est = est
+        self.config = config
+        self.stretches = stretches
         self.names = list(cfg.estimate or [])
         self.n_est = len(self.names)
-        self.fit = fit
+        self.fit = WindowFit(model, stretches[0], config.weights)
         self.pmap: ParameterMap = est.pmap
         self.base = est.trusted.copy()
         self.xl, self.xu = np.log(est.lower), np.log(est.upper)
-        self.local = LocalFit(fit, self.pmap, self.base, self.xl, self.xu, None,
+        self.bounds = {n: (float(lo), float(hi)) for n, lo, hi in
+                       zip(self.names, est.lower, est.upper, strict=True)}
+        self.local = LocalFit(self.fit, self.pmap, self.base, self.xl, self.xu, None,
                               initial=cfg.initial_state and bool(model.initial_states))
         self.floor = cfg.model_error
 
@@ -594,6 +590,34 @@ class _Problem:
     def theta(self, v: FloatArray) -> FloatArray:
         out: FloatArray = self.pmap.full(v[None, :self.n_est], self.base)[0]
         return out
+
+    def analyse(self, v: FloatArray, r: FloatArray, jac: FloatArray, free: Sequence[int],
+                held: Mapping[int, float] | None = None
+                ) -> tuple[FloatArray, dict[str, float], Identifiability]:
+        """The parameters at ``v`` (``theta``; name -> value) and what the data determine of
+        the ``free`` ones there (:func:`analyse`; ``r``, ``jac``, ``held``: :meth:`covariance`)."""
+        theta = self.theta(v)
+        values = dict(zip(self.model.parameter_names, (float(x) for x in theta), strict=True))
+        cov, null = self.covariance(r, jac, len(free), v, held)
+        return theta, values, analyse([self.names[i] for i in free], cov, values, self.bounds,
+                                      self.config.max_rel_std, self.config.correlation, null)
+
+    def scores(self, theta: FloatArray, v: FloatArray, r: FloatArray, jac: FloatArray
+               ) -> tuple[StretchScore, StretchScore]:
+        """The twin with ``theta`` on the training stretch (from ``v``'s initial state) and
+        on the validation stretch; ``r``, ``jac``: the fit's residuals and Jacobian."""
+        # per output, the residual RMS (normalised) that the white noise's effect on the
+        # estimates explains (as the monitoring's model check: a noise-free output, such as a
+        # closed loop's voltage, carries the trace of the other outputs' noise)
+        n_out = self.fit.n_out
+        white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
+        explained = explained_rms(jac, parameter_covariance(jac, r, n_out, self.floor, white),
+                                  n_out)
+        train, validation = self.stretches
+        weights = self.config.weights
+        return (_score(self.model, self.est, train, theta, weights, self.local.initial(v),
+                       explained),
+                _score(self.model, self.est, validation, theta, weights, None, explained))
 
 
 def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyConfig,
@@ -635,38 +659,27 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
     nominal = {**(nominal or {}), **{k: f.value for k, f in config.fixed.items()
                                      if k not in estimated}}
     est = Estimator(model, config.estimation(estimation), nominal)
-    cfg = est.config
-    fit = WindowFit(model, train, config.weights)
-    prob = _Problem(model, est, fit)
-    names_est = prob.names
-    best, reached = _search(prob, fit, config, model.parameter_names, start, structure)
-    bounds = {n: (float(lo), float(hi)) for n, lo, hi in
-              zip(names_est, est.lower, est.upper, strict=True)}
-    full, analysis = _full_fit(model, est, prob, fit, config, (train, validation), best,
-                               bounds)
-    holds = _Holds(names_est, bounds, config, dict(nominal), full.values, best[1].copy(),
+    prob = _Problem(model, est, config, (train, validation))
+    best, reached = _search(prob, start, structure)
+    full, analysis = _full_fit(prob, best)
+    holds = _Holds(prob.names, prob.bounds, config, dict(nominal), full.values, best[1].copy(),
                    list(range(prob.n_est)))
-    r, jac = _hold_and_refit(prob, holds, analysis, best[2], best[3], model.parameter_names)
-    v, free = holds.v, holds.free
-    theta = prob.theta(v)
-    values = dict(zip(model.parameter_names, (float(x) for x in theta), strict=True))
-    sub = [names_est[i] for i in free]
-    cov, null = prob.covariance(r, jac, len(free), v, holds.rel_sd())
-    final = analyse(sub, cov, values, bounds, config.max_rel_std, config.correlation, null)
+    r, jac = _hold_and_refit(prob, holds, analysis, best[2], best[3])
+    theta, values, final = prob.analyse(holds.v, r, jac, holds.free, holds.rel_sd())
+    sub = final.names
     determined = [n for n in sub if final.rel_std[n] <= config.max_rel_std]
     undetermined = {n: _unresolved(n, final) for n in sub if n not in determined}
-    init = prob.local.initial(v)
-    explained = _explained(r, jac, fit.n_out, cfg.model_error)
+    train_score, validation_score = prob.scores(theta, holds.v, r, jac)
     return Identification(
         values=values,
         rel_std={n: final.rel_std[n] for n in sub},
-        bounds=bounds,
-        estimated=names_est,
-        tied=dict(cfg.tie or {}),
-        train=_score(model, est, train, theta, config.weights, init, explained),
-        validation=_score(model, est, validation, theta, config.weights, None, explained),
+        bounds=prob.bounds,
+        estimated=prob.names,
+        tied=dict(est.config.tie or {}),
+        train=train_score,
+        validation=validation_score,
         elapsed_s=time.perf_counter() - t_start,
-        evaluations=fit.evaluations,
+        evaluations=prob.fit.evaluations,
         determined=determined,
         held=holds.held,
         undetermined=undetermined,
@@ -683,12 +696,7 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
 
 
 def _check_stretches(model: TwinModel, train: WindowData, validation: WindowData) -> None:
-    """:func:`identify`'s first step: both stretches long enough (10 samples at least), with
-    every channel the model needs, finite.
-
-    Raises:
-        ValueError: which stretch, and what it lacks.
-    """
+    """:func:`identify`'s first step; ValueError naming the stretch and what it lacks."""
     for w, what in ((train, "training"), (validation, "validation")):
         if w.n < 10:
             raise ValueError(f"the {what} range holds {w.n} samples: too few to identify "
@@ -705,9 +713,8 @@ def _check_stretches(model: TwinModel, train: WindowData, validation: WindowData
 _Best = tuple[float, FloatArray, FloatArray, FloatArray]
 
 
-def _search(prob: _Problem, fit: WindowFit, config: IdentifyConfig,
-            parameter_names: Sequence[str], start: Mapping[str, float] | None,
-            structure: str) -> tuple[_Best, list[float]]:
+def _search(prob: _Problem, start: Mapping[str, float] | None, structure: str
+            ) -> tuple[_Best, list[float]]:
     """:func:`identify`'s search over every estimated parameter: ``config.starts`` swarms of
     their own (the configured values, and ``start`` when given, particles of each), each
     followed by the local polish; the time budget shared out over the starts left.
@@ -715,6 +722,7 @@ def _search(prob: _Problem, fit: WindowFit, config: IdentifyConfig,
     Returns:
         The best polished fit of all starts, and each start's polished nRMSE.
     """
+    fit, config, parameter_names = prob.fit, prob.config, prob.model.parameter_names
     rng = np.random.default_rng(config.seed)
 
     def cost(q: FloatArray) -> FloatArray:
@@ -757,30 +765,17 @@ def _search(prob: _Problem, fit: WindowFit, config: IdentifyConfig,
     return best, reached
 
 
-def _full_fit(model: TwinModel, est: Estimator, prob: _Problem, fit: WindowFit,
-              config: IdentifyConfig, stretches: tuple[WindowData, WindowData], best: _Best,
-              bounds: Mapping[str, tuple[float, float]]) -> tuple[FullFit, Identifiability]:
+def _full_fit(prob: _Problem, best: _Best) -> tuple[FullFit, Identifiability]:
     """:func:`identify`'s fit of every estimated parameter (``best``, from :func:`_search`)
-    scored on both ``stretches`` (training, validation), and what the recording determines
-    of it (:func:`analyse`)."""
-    train, validation = stretches
-    sse, v_full, r_full, jac_full = best
-    n_est = prob.n_est
-    theta_full = prob.theta(v_full)
-    values_full = dict(zip(model.parameter_names, (float(x) for x in theta_full), strict=True))
-    init_full = prob.local.initial(v_full)
-    cov_full, null_full = prob.covariance(r_full, jac_full, n_est)
-    analysis = analyse(prob.names, cov_full, values_full, bounds, config.max_rel_std,
-                       config.correlation, null_full)
-    explained = _explained(r_full, jac_full, fit.n_out, est.config.model_error)
-    train_full = _score(model, est, train, theta_full, config.weights, init_full, explained)
+    scored on both stretches, and what the recording determines of it (:func:`analyse`)."""
+    sse, v, r, jac = best
+    theta, values, analysis = prob.analyse(v, r, jac, range(prob.n_est))
+    train, validation = prob.scores(theta, v, r, jac)
     full = FullFit(
-        values=values_full, rel_std=dict(analysis.rel_std), train=train_full,
-        validation=_score(model, est, validation, theta_full, config.weights, None,
-                          explained),
+        values=values, rel_std=dict(analysis.rel_std), train=train, validation=validation,
         nrmse=math.sqrt(sse),
-        criteria=information_criteria(train_full.measured, train_full.simulated,
-                                      n_est + prob.local.n_init))
+        criteria=information_criteria(train.measured, train.simulated,
+                                      prob.n_est + prob.local.n_init))
     return full, analysis
 
 
@@ -846,22 +841,13 @@ class _Holds:
 
 
 def _hold_and_refit(prob: _Problem, holds: _Holds, analysis: Identifiability, r: FloatArray,
-                    jac: FloatArray, parameter_names: Sequence[str]
-                    ) -> tuple[FloatArray, FloatArray]:
+                    jac: FloatArray) -> tuple[FloatArray, FloatArray]:
     """:func:`identify`'s hold-and-re-fit: the parameters the full fit left at a bound held
     there; then, until every free one is determined or none can be held, the weakest
     combination's main parameter with a stated value held at it (:func:`_weakest_stated`) and
-    the rest re-fitted (a re-fit that pushes one to a bound holds it there too).
-
-    Args:
-        prob: the training problem.
-        holds: the full fit's search vector, nothing held; updated in place.
-        analysis: the full fit's identifiability.
-        r, jac: the full fit's residuals and Jacobian.
-        parameter_names: the model's parameters, in its order.
-
-    Returns:
-        The last re-fit's residuals and Jacobian (the full fit's when nothing was held).
+    the rest re-fitted (a re-fit that pushes one to a bound holds it there too). ``holds``
+    (the full fit's search vector, nothing held) is updated in place; returns the last
+    re-fit's residuals and Jacobian (``r``, ``jac``, the full fit's, when nothing was held).
     """
     config, names_est, bounds = holds.config, holds.names, holds.bounds
     for name, side in analysis.at_bound.items():
@@ -874,11 +860,7 @@ def _hold_and_refit(prob: _Problem, holds: _Holds, analysis: Identifiability, r:
         if changed:
             holds.v, r, jac = prob.polish(holds.v, holds.free)
             changed = False
-        cov, null = prob.covariance(r, jac, len(holds.free), holds.v, holds.rel_sd())
-        sub = [names_est[i] for i in holds.free]
-        theta = prob.theta(holds.v)
-        vals = dict(zip(parameter_names, (float(x) for x in theta), strict=True))
-        a = analyse(sub, cov, vals, bounds, config.max_rel_std, config.correlation, null)
+        _, vals, a = prob.analyse(holds.v, r, jac, holds.free, holds.rel_sd())
         newly = [n for n in a.at_bound if n not in analysis.at_bound]
         if newly:
             for name in newly:
@@ -886,7 +868,7 @@ def _hold_and_refit(prob: _Problem, holds: _Holds, analysis: Identifiability, r:
                            f"it to its {a.at_bound[name]} bound", at=vals[name])
             changed = True
             continue
-        if all(a.rel_std[n] <= config.max_rel_std for n in sub):
+        if all(a.rel_std[n] <= config.max_rel_std for n in a.names):
             break
         choice = _weakest_stated(a, holds)
         if choice is None:
@@ -1057,7 +1039,7 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
     if result.structure != AS_CONFIGURED:
         lines.append(f"# structure: {result.structure}; in [machine.options] set:")
         for key, value in (result.options or {}).items():
-            lines.append(f"#   {key} = {_toml_value(value)}")
+            lines.append(f"#   {key} = {toml_value(value)}")
     pasted = result.pasted
     if not result.validation.check.passed:
         lines.append("# NOTHING TO PASTE: the twin fails the model check on the validation "
@@ -1099,18 +1081,6 @@ def parameters_block(result: Identification, source: str, *, nominal_header: str
     lines.append("# bounds = { " + ", ".join(f"{n} = [{lo:.4g}, {hi:.4g}]"
                                              for n, (lo, hi) in result.bounds.items()) + " }")
     return "\n".join(lines) + "\n"
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return f'"{value}"'
-    if isinstance(value, Mapping):
-        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 __all__ = ["Combination", "Comparison", "FullFit", "HeldParameter", "Identifiability",

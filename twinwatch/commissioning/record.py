@@ -205,7 +205,7 @@ def record_fit(path: Path, machine: str, result: Identification,
                              columns=rr.Scalars.columns(scalars=e))
         tests = residual_tests(result, out)
         k = tests.lags
-        _band(rec, f"acf/{esc}/band_{_band_name(tests.band)}", k, tests.band)
+        _band(rec, f"acf/{esc}", k, tests.band)
         for (what, acf), color, shift in zip(tests.autocorrelation.items(), (_TRAIN, _VALID),
                                              (-0.2, 0.2), strict=True):
             rec.log(f"acf/{esc}/{what}", rr.BarChart(acf, abscissa=k + shift,
@@ -213,7 +213,7 @@ def record_fit(path: Path, machine: str, result: Identification,
                     static=True)
         for inp, xcf in tests.cross_correlation.items():
             xbase = f"xcorr/{esc}_{_esc(inp)}"
-            _band(rec, f"{xbase}/band_{_band_name(tests.band)}", k, tests.band)
+            _band(rec, xbase, k, tests.band)
             rec.log(f"{xbase}/validation", rr.BarChart(xcf, abscissa=k,
                                                        widths=np.full(k.size, 0.6),
                                                        color=_VALID), static=True)
@@ -228,18 +228,15 @@ def record_fit(path: Path, machine: str, result: Identification,
     rec.disconnect()
 
 
-def _band(rec: Any, entity: str, lags: np.ndarray, band: float) -> None:
+def _band(rec: Any, base: str, lags: np.ndarray, band: float) -> None:
     """The +-band region of a correlation plot as translucent bars, one up and one down at
-    every lag."""
+    every lag: ``<base>/band_pm0.053``, its half-width in the name (legends show entity
+    paths)."""
     x = np.repeat(lags, 2)
     values = np.tile([band, -band], lags.size)
-    rec.log(entity, rr.BarChart(values, abscissa=x, widths=np.full(x.size, 1.0),
-                                color=_BAND), static=True)
-
-
-def _band_name(band: float) -> str:
-    """``pm0.053``: the band's half-width in an entity name (legends show entity paths)."""
-    return f"pm{band:.3f}"
+    rec.log(f"{base}/band_pm{band:.3f}", rr.BarChart(values, abscissa=x,
+                                                     widths=np.full(x.size, 1.0), color=_BAND),
+            static=True)
 
 
 def _span(start: float, end: float) -> dict[str, Any]:

@@ -2,12 +2,10 @@
 as the text ``twinwatch identify`` prints (:func:`report`: the structures compared, the
 identifiability analysis, every parameter determined or held with the reason, fit % per output
 on both ranges, the model checks) and as the Markdown tables of the Rerun file
-(:func:`report_markdown`); :func:`summary`, the figures as plain data.
+(:func:`markdown_parameters`, :func:`markdown_analysis`, :func:`markdown_reasons`).
 """
 
 from __future__ import annotations
-
-from typing import Any
 
 from twinwatch.commissioning.identify import Comparison, Identification, StretchScore
 from twinwatch.commissioning.identify import percent as _pct
@@ -145,13 +143,6 @@ def _fit_lines(result: Identification) -> list[str]:
     return lines
 
 
-def report_markdown(result: Identification, comparison: Comparison | None = None) -> str:
-    """The report as Markdown tables (what the Rerun file shows): the parameters and fits,
-    the identifiability analysis and the structures, why each parameter not pasted is not."""
-    return "\n".join((markdown_parameters(result), markdown_analysis(result, comparison),
-                      markdown_reasons(result)))
-
-
 def markdown_parameters(result: Identification) -> str:
     """The parameter table (value, 1 sigma given the held ones and with all free, status),
     the fit % table and the model checks, as Markdown."""
@@ -251,18 +242,4 @@ def markdown_reasons(result: Identification) -> str:
     return "\n".join(md or ["Every estimated parameter is determined."]) + "\n"
 
 
-def summary(result: Identification) -> dict[str, Any]:
-    """The figures as plain data (for tests and scripts)."""
-    return {"values": result.values, "rel_std": result.rel_std,
-            "determined": list(result.determined), "pasted": result.pasted,
-            "held": {k: {"value": h.value, "source": h.source, "why": h.why}
-                     for k, h in result.held.items()},
-            "undetermined": dict(result.undetermined),
-            "at_bound": dict(result.at_bound),
-            "fit_train": result.train.fit_pct, "fit_validation": result.validation.fit_pct,
-            "check_train": result.train.check.passed,
-            "check_validation": result.validation.check.passed}
-
-
-__all__ = ["markdown_analysis", "markdown_parameters", "markdown_reasons", "report",
-           "report_markdown", "summary"]
+__all__ = ["markdown_analysis", "markdown_parameters", "markdown_reasons", "report"]

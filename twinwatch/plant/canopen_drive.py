@@ -112,9 +112,6 @@ class CiA402Drive:
         self.node.nmt.state = "OPERATIONAL"
         self.dc_link = 30.0  # V
 
-    def _set(self, pdo: Any, name: str, raw: int) -> None:
-        pdo[name].raw = raw
-
     def step(self) -> Sample:
         """Advance the plant one sample and send this sample period's frames.
 
@@ -131,8 +128,8 @@ class CiA402Drive:
         net.now = t
         self.network.sync.transmit(self._k % self._sync_overflow + 1)
         net.now = t + 20e-6  # the frames follow the SYNC on the bus
-        self._set(self._rpdo, "Controlword", 0x000F)
-        self._set(self._rpdo, "Target velocity", round(v["setpoint"] * _MRPM))
+        self._rpdo["Controlword"].raw = 0x000F
+        self._rpdo["Target velocity"].raw = round(v["setpoint"] * _MRPM)
         self._rpdo.transmit()
         raw = {
             0x6041: self._status,

@@ -66,7 +66,6 @@ steps is compiled with numba (120 000 samples of 100 steps take ~0.1 s).
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -91,8 +90,6 @@ from twinwatch.plant.faults import (
     SupplyFaultConfig,
     check_plant_table,
 )
-
-logger = logging.getLogger(__name__)
 
 Scenario = Literal["nominal", "resistance_degradation", "bearing_wear", "unbalanced_shaft",
                    "dead_zone"]

@@ -77,7 +77,6 @@ to the reported values only, never to the plant state or the controller's input.
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -92,8 +91,6 @@ from twinwatch.io.sample import Sample
 from twinwatch.plant._pid import pid_tick
 from twinwatch.plant.dcmotor import SensorFaultConfig
 from twinwatch.plant.faults import ParameterFaultConfig, SimulatedPlant, check_plant_table
-
-logger = logging.getLogger(__name__)
 
 GRAVITY = 9.81  # m/s^2
 DEGRADATION_GAIN = 36.5  # N/(m/s), D(t) = D + 36.5*(exp(0.003*(t - t_fault)) - 1)

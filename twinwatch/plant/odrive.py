@@ -34,13 +34,12 @@ import math
 import random
 import sys
 from collections.abc import Iterator
-from importlib import resources
 from pathlib import Path
 
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig, SetpointSchedule
 
-__all__ = ["EPOCH", "PLANT", "SECONDS", "odrive_frames", "shipped_log", "write_log"]
+__all__ = ["EPOCH", "PLANT", "SECONDS", "odrive_frames", "write_log"]
 
 SECONDS = 60.0
 """Length of the shipped recording [s]."""
@@ -59,11 +58,6 @@ PLANT = DCMotorPlantConfig(
                               dwell_min=2.0, dwell_max=6.0, seed=15),
     noise={"ia": 1.0, "omega": 0.5}, seed=15)
 """The drive and motor that recorded the shipped log (see the module docstring)."""
-
-
-def shipped_log() -> Path:
-    """Path of the shipped recording."""
-    return Path(str(resources.files("twinwatch.plant").joinpath("odrive-axis0.log.gz")))
 
 
 def odrive_frames(dbc: Path | str, *, plant: DCMotorPlantConfig = PLANT,

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import logging
 import time
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime, timedelta
@@ -32,8 +31,6 @@ from typing import Any, Literal, cast
 from twinwatch.io.sample import Sample
 from twinwatch.io.threadlog import demote_thread_records
 from twinwatch.plant._server import Pacing, PlantSource, ServerThread, free_tcp_port
-
-logger = logging.getLogger(__name__)
 
 __all__ = ["NAMESPACE", "PlantOpcUaServer", "PlantSource", "UNECE"]
 
@@ -63,13 +60,6 @@ def _node_id(identifier: str, ns: int) -> Any:
     from asyncua import ua
 
     return ua.NodeId(ua.String(identifier), ua.Int16(ns))
-
-
-def _unit_id(code: str) -> int:
-    value = 0
-    for ch in code:
-        value = (value << 8) | ord(ch)
-    return value
 
 
 class PlantOpcUaServer(ServerThread):
@@ -159,7 +149,8 @@ class PlantOpcUaServer(ServerThread):
                                          ua.QualifiedName(ch, self.ns),
                                          ua.Variant(0.0, ua.VariantType.Double))
             code, name = UNECE.get(unit, ("", unit))
-            eu = ua.EUInformation(NamespaceUri=_UNECE_URI, UnitId=_unit_id(code) if code else -1,
+            unit_id = int.from_bytes(code.encode("ascii"), "big") if code else -1
+            eu = ua.EUInformation(NamespaceUri=_UNECE_URI, UnitId=unit_id,
                                   DisplayName=ua.LocalizedText(name),
                                   Description=ua.LocalizedText(name))
             await var.add_property(_node_id(f"{self.object_name}.{ch}.EngineeringUnits",

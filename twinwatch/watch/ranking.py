@@ -12,6 +12,8 @@ from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from twinwatch.watch.view import number
+
 URGENCY_RANK = {"high": 3, "medium": 2, "low": 1}
 """A fault mode's ``urgency`` as a rank (higher first)."""
 
@@ -48,12 +50,8 @@ class Received:
         arrived (a box's clock ahead of this one's), else its arrival. A summary asked
         with a get arrives now but may be up to ``[zenoh] summary_interval`` old: its RUL
         has run down meanwhile."""
-        wall = _number(self.summary.get("wall"))
+        wall = number(self.summary.get("wall"))
         return min(wall, self.at) if wall is not None and math.isfinite(wall) else self.at
-
-
-def _number(x: Any) -> float | None:
-    return float(x) if isinstance(x, int | float) and not isinstance(x, bool) else None
 
 
 def diagnosis_rank(summary: Mapping[str, Any]) -> int:
@@ -64,7 +62,7 @@ def diagnosis_rank(summary: Mapping[str, Any]) -> int:
     d = summary.get("diagnosis")
     if not isinstance(d, Mapping):
         return 0
-    p = _number(d.get("probability")) or 0.0
+    p = number(d.get("probability")) or 0.0
     if d.get("status") == "fault":
         if d.get("alarm"):
             return 4
@@ -79,7 +77,7 @@ def diagnosis_rank(summary: Mapping[str, Any]) -> int:
 def rul_median(summary: Mapping[str, Any]) -> float | None:
     """The soonest RUL median to an alarm threshold [s from the summary's window], or None."""
     rul = summary.get("rul")
-    return _number(rul.get("median_s")) if isinstance(rul, Mapping) else None
+    return number(rul.get("median_s")) if isinstance(rul, Mapping) else None
 
 
 def urgency(summary: Mapping[str, Any]) -> tuple[float, float, float, str]:
@@ -184,9 +182,9 @@ def due(summary: Mapping[str, Any], horizon_s: float, age_s: float = 0.0) -> lis
     reasons = []
     rul = summary.get("rul")
     if isinstance(rul, Mapping):
-        first = _number(rul.get("low_s"))
+        first = number(rul.get("low_s"))
         if first is None:
-            first = _number(rul.get("median_s"))
+            first = number(rul.get("median_s"))
         if first is not None and first - age_s <= horizon_s:
             reasons.append("rul")
     if diagnosis_rank(summary) >= 3 or (
@@ -226,7 +224,7 @@ def service_report(received: Mapping[str, Received], now: float, horizon_s: floa
         param = rul.get("parameter")
 
         def left(key: str, rul: Mapping[str, Any] = rul, age: float = age) -> float | None:
-            x = _number(rul.get(key))
+            x = number(rul.get(key))
             return None if x is None else round(max(x - age, 0.0), 1)
 
         if d.get("status") == "fault" and d.get("part"):
@@ -259,12 +257,12 @@ def parse_duration(text: str) -> float:
     t = text.strip().lower()
     for suffix in sorted(units, key=len, reverse=True):
         if t.endswith(suffix):
-            number, scale = t[: -len(suffix)], units[suffix]
+            amount, scale = t[: -len(suffix)], units[suffix]
             break
     else:
-        number, scale = t, 1.0
+        amount, scale = t, 1.0
     try:
-        value = float(number) * scale
+        value = float(amount) * scale
     except ValueError:
         raise ValueError(f"{text!r} is not a duration: give e.g. 7d, 12h, 30min, 90s") from None
     if not math.isfinite(value) or value < 0:

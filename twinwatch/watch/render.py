@@ -58,10 +58,8 @@ _LEVEL_STYLE = {"alarm": "bold red", "warning": "yellow", "normal": "green"}
 _SHORT = {"estimated": "est", "fused": "fused", "held": "held"}
 
 
-_STATE_STYLE = {"alive": "green", "stale": "yellow", "gone": "red", "unknown": "dim"}
-
-
-_STATE_MARK = {"alive": "●", "stale": "◐", "gone": "✕", "unknown": "?"}
+_STATE_LOOK = {"alive": ("●", "green"), "stale": ("◐", "yellow"), "gone": ("✕", "red"),
+               "unknown": ("?", "dim")}
 
 
 FILE_WIDTH = 180
@@ -112,7 +110,8 @@ def _state_cell(m: Mapping[str, Any]) -> Text:
     from rich.text import Text
 
     state = str(m["state"])
-    st = Text(f"{_STATE_MARK.get(state, '?')} {state}", style=_STATE_STYLE.get(state, ""))
+    mark, style = _STATE_LOOK.get(state, ("?", ""))
+    st = Text(f"{mark} {state}", style=style)
     since = m["state_since_s"]
     if since is not None:
         st.append("\n" + (f"for {age(since)}" if m["token"] else f"{age(since)} ago"),

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable, Collection, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 from twinwatch._lazy import lazy_module
 from twinwatch.errors import WatchError
@@ -507,9 +507,10 @@ class FleetWatcher:
 def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
              machine: str = "*", *, optional: Collection[str] = (),
              on_skip: Callable[[str, str], None] | None = None,
-             **options: Any) -> Iterator[Settling]:
-    """A session on ``connect`` and a started :class:`FleetWatcher` on it (``options``: its
-    ``history``, ``alarm_history`` and ``on_*``), closed on exit.
+             **options: Any) -> Iterator[_Watchers]:
+    """Sessions on ``connect`` and a started :class:`FleetWatcher` on each (``options``: its
+    ``history``, ``alarm_history`` and ``on_*``), yielded as one (its ``settle``), closed on
+    exit.
 
     Args:
         optional, on_skip: as :func:`~twinwatch.watch.session.sessions_watched`'s.
@@ -524,19 +525,11 @@ def watching(connect: Sequence[str], mode: Mode, prefix: str, fleet: Fleet,
             lambda session: FleetWatcher(session, fleet, prefix=prefix, machine=machine,
                                          **options),
             optional=optional, on_skip=on_skip) as watchers:
-        yield watchers[0] if len(watchers) == 1 else _Watchers(watchers)
-
-
-class Settling(Protocol):
-    """What :func:`watching` yields: one :class:`FleetWatcher`, or several as one."""
-
-    def settle(self, timeout: float) -> None:
-        """Wait until every machine with a token has reported a window, or ``timeout`` [s]
-        has passed (:meth:`FleetWatcher.settle`)."""
+        yield _Watchers(watchers)
 
 
 class _Watchers:
-    """Several :class:`FleetWatcher` (one per endpoint in client mode) as one."""
+    """The :class:`FleetWatcher` of each session (one per endpoint in client mode) as one."""
 
     def __init__(self, watchers: Sequence[FleetWatcher]) -> None:
         self.watchers = list(watchers)
