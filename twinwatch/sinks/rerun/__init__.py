@@ -21,6 +21,5 @@ from __future__ import annotations
 from twinwatch.errors import RecorderError
 from twinwatch.sinks.rerun.config import RecordingConfig
 from twinwatch.sinks.rerun.recorder import RerunRecorder
-from twinwatch.sinks.rerun.style import TIMELINE
 
-__all__ = ["TIMELINE", "RecorderError", "RecordingConfig", "RerunRecorder"]
+__all__ = ["RecorderError", "RecordingConfig", "RerunRecorder"]
