@@ -109,13 +109,6 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
             client.publish(self.discovery_topic, b"", qos=1, retain=True)
         self.wake.set()
 
-    def session_down(self) -> bool:
-        """A lost connection is never our own doing: False."""
-        return False
-
-    def session_refused(self, reason: Any) -> None:
-        """Nothing to add to the session's line."""
-
     def in_flight(self) -> str:
         """``3 windows in flight``."""
         return f"{len(self.delivery.inflight)} windows in flight"
