@@ -463,7 +463,7 @@ class RecordingViews:
         health message's typed view (:func:`~twinwatch.twin.health.read_health` of
         ``health_json``)."""
         m = self.machine
-        t0, t_end = float(times[0]), float(times[-1])
+        t_end = float(times[-1])
         ops = self._output_ops(times, meas, sim)
         for variant, rmse in residual_rmse(doc).items():
             per_output = [as_number(rmse.get(o)) for o in self.outputs]
@@ -484,8 +484,7 @@ class RecordingViews:
         ops.append(Op(entity(m, "health"), rr.TextDocument(
             f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{pretty}\n```\n",
             media_type=rr.MediaType.MARKDOWN), t_end))
-        text, level = log_row(t0, t_end, doc, terms_changed, self._new_problems(doc),
-                               health_json)
+        text, level = log_row(t_end, doc, terms_changed, self._new_problems(doc), health_json)
         ops.append(Op(entity(m, "log"), rr.TextLog(text, level=level), t_end))
         return ops
 
