@@ -192,10 +192,6 @@ class ZenohConfig(SinkConfig):
         """The endpoints the session listens on."""
         return set() if self.mode == "client" else set(self.listen)
 
-    def file_paths(self) -> dict[str, str]:
-        """Dotted key (``zenoh.tls.*``) -> path of every file the session reads."""
-        return {f"zenoh.{k}": v for k, v in self.input_files().items()}
-
     def inline_secrets(self) -> list[str]:
         """Dotted keys (``zenoh.tls.*``) of secrets written in the configuration itself."""
         return [f"zenoh.{k}" for k in self.inline_secret_keys()]
