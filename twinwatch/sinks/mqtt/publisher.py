@@ -191,7 +191,6 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
         logger.exception("the MQTT output of %s failed; it goes on in 1 s", self.machine)
 
     def _turn_done(self, now: float) -> None:
-        """The discovery when Home Assistant asked."""
         if self._discovery_due is not None and now >= self._discovery_due:
             self._send_discovery(force=True)
 
@@ -256,7 +255,6 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
         return messages
 
     def _finish(self) -> None:
-        """Leaving the thread: record the deliveries, go offline, disconnect."""
         self.delivery.flush_acks()
         self.delivery.count()
         self.mqtt.leave(self.availability_topic, "offline", retain=True)

@@ -130,7 +130,6 @@ class OpcUaServer:
         self._loop.run_forever()
 
     def _call(self, coro: Any, timeout: float = 30.0) -> Any:
-        """Run ``coro`` on the server's loop and wait for its result."""
         return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout)
 
     async def _start(self) -> None:
@@ -234,7 +233,6 @@ class OpcUaServer:
         self._building[context.machine] = self._schedule(self._add_machine, context, stale_after)
 
     async def _built(self, machine: str) -> None:
-        """Wait until the machine's nodes are made (its :meth:`add_machine`'s task)."""
         task = self._building.get(machine)
         if task is not None and not task.done():
             await asyncio.gather(task, return_exceptions=True)

@@ -242,7 +242,6 @@ class RerunRecorder(Sink):
         return rec
 
     def _save_blueprint(self, blueprint: rrb.Blueprint | None = None) -> None:
-        """Write the viewer layout to :attr:`blueprint_path` (best effort)."""
         try:
             (blueprint or self.views.blueprint()).save(self.config.application_id,
                                                  self.blueprint_path)
@@ -609,7 +608,6 @@ class RerunRecorder(Sink):
         return True
 
     def _relock(self) -> None:
-        """Lock the file now at :attr:`path` (after a rename) and release the old one."""
         old = self._file_lock
         self._file_lock = check_writable(self.path)
         if old is not None:
@@ -621,7 +619,6 @@ class RerunRecorder(Sink):
             lock.release()
 
     def _free(self) -> int | None:
-        """Free bytes on the recording's file system (None if unknown)."""
         try:
             st = os.statvfs(self.path.parent)
         except OSError:

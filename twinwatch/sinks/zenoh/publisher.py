@@ -422,7 +422,6 @@ class HealthPublisher(Sink):
         logger.debug("%s sent again: a subscriber is reachable again", self.summary_key)
 
     def _leave_dispatch(self) -> None:
-        """Stop answering through the gateway's queryable; the last machine undeclares it."""
         dispatch, key = self._dispatch, self._dispatch_key
         self._dispatch = self._dispatch_key = None
         if dispatch is not None:
@@ -431,7 +430,6 @@ class HealthPublisher(Sink):
             self._shared.release(key)
 
     def _on_query(self, query: zenoh.Query) -> None:
-        """Answer a get on this machine's own queryable (:meth:`_answer`), then drop it."""
         try:
             self._answer(query)
         finally:
