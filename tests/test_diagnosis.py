@@ -323,7 +323,7 @@ def test_the_recordings_model_document_opens_with_the_diagnosis(
         leak_history: list[HealthMessage]) -> None:
     """The Rerun recording's active text panel (the model document) starts with the fault,
     its action and evidence: readable without touching the viewer."""
-    from twinwatch.sinks.rerun_views import _model_document
+    from twinwatch.sinks.rerun.texts import model_document as _model_document
     from twinwatch.twin.health import read_health
 
     text = _model_document("hydraulic-leak", 40.0, read_health(leak_history[-1]))

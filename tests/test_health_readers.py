@@ -34,7 +34,6 @@ READERS = [
     "sinks/rerun/projection.py",
     "sinks/rerun/style.py",
     "sinks/rerun/recorder.py",
-    "sinks/rerun/files.py",
     "sinks/rerun/live.py",
     "sinks/mqtt/encoding.py",
     "sinks/mqtt/publisher.py",

@@ -135,7 +135,7 @@ def test_directory_without_write_permission_raises_recorder_error(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The permission check itself, also when the tests run as root (which os.access lets by)."""
-    monkeypatch.setattr("twinwatch.sinks.rerun.files.os.access", lambda path, mode: False)
+    monkeypatch.setattr("twinwatch.sinks.rerun.recorder.os.access", lambda path, mode: False)
     with pytest.raises(RecorderError, match="is not writable by this user"):
         recorder(tmp_path / "m1.rrd")
     assert not (tmp_path / "m1.rrd").exists()

@@ -19,13 +19,10 @@ cleanup script, an operator) is noticed within one window by comparing the descr
 from __future__ import annotations
 
 import fcntl
-import logging
 import os
 from pathlib import Path
 
 from twinwatch.errors import LockedError
-
-logger = logging.getLogger(__name__)
 
 __all__ = ["FileLock", "LockedError"]
 
@@ -82,10 +79,6 @@ class FileLock:
             raise
         self._fd: int | None = fd
 
-    @property
-    def held(self) -> bool:
-        return self._fd is not None
-
     def changed(self) -> str | None:
         """Whether :attr:`path` still names the locked file: one ``fstat`` and one ``stat``,
         cheap enough for every window.
@@ -119,4 +112,4 @@ class FileLock:
             os.close(fd)
 
     def __repr__(self) -> str:
-        return f"FileLock({str(self.path)!r}, {'held' if self.held else 'released'})"
+        return f"FileLock({str(self.path)!r}, {'held' if self._fd is not None else 'released'})"

@@ -11,36 +11,13 @@ crash or a lost connection): docs/mqtt.md.
 Threads: one thread, ``twinwatch-mqtt``, owns the paho client and the outbox's reads and writes;
 :meth:`MqttPublisher.write` only notes the window's alarm events and wakes it. paho keeps at
 most ``inflight`` windows in memory, the rest stay in the state database (paho's own queue
-ignores its inflight limit after a reconnect: eclipse-paho/paho.mqtt.python#223, #698). Without
-a state database the outbox is in memory (:class:`MemoryOutbox`, the last ``memory_outbox``).
+ignores its inflight limit after a reconnect: eclipse-paho/paho.mqtt.python#223, #698).
+Without a state database the outbox is in memory (:class:`.outbox.MemoryOutbox`, the last
+``memory_outbox``).
 """
 
-from twinwatch.sinks.mqtt.config import (
-    HomeAssistantConfig,
-    MqttConfig,
-    MqttConnectionConfig,
-    MqttTlsConfig,
-)
-from twinwatch.sinks.mqtt.encoding import (
-    diagnosis_values,
-    discovery_payload,
-    flat_values,
-    ha_device_id,
-    reconstructed_events,
-)
-from twinwatch.sinks.mqtt.outbox import MemoryOutbox
+from twinwatch.sinks.mqtt.config import MqttConfig
+from twinwatch.sinks.mqtt.encoding import discovery_payload, flat_values
 from twinwatch.sinks.mqtt.publisher import MqttPublisher
 
-__all__ = [
-    "HomeAssistantConfig",
-    "MemoryOutbox",
-    "MqttConfig",
-    "MqttConnectionConfig",
-    "MqttPublisher",
-    "MqttTlsConfig",
-    "diagnosis_values",
-    "discovery_payload",
-    "flat_values",
-    "ha_device_id",
-    "reconstructed_events",
-]
+__all__ = ["MqttConfig", "MqttPublisher", "discovery_payload", "flat_values"]

@@ -109,13 +109,6 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
             client.publish(self.discovery_topic, b"", qos=1, retain=True)
         self.wake.set()
 
-    def session_down(self) -> bool:
-        """A lost connection is never our own doing: False."""
-        return False
-
-    def session_refused(self, reason: Any) -> None:
-        """Nothing to add to the session's line."""
-
     def in_flight(self) -> str:
         """``3 windows in flight``."""
         return f"{len(self.delivery.inflight)} windows in flight"
@@ -198,7 +191,6 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
         logger.exception("the MQTT output of %s failed; it goes on in 1 s", self.machine)
 
     def _turn_done(self, now: float) -> None:
-        """The discovery when Home Assistant asked."""
         if self._discovery_due is not None and now >= self._discovery_due:
             self._send_discovery(force=True)
 
@@ -263,7 +255,6 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
         return messages
 
     def _finish(self) -> None:
-        """Leaving the thread: record the deliveries, go offline, disconnect."""
         self.delivery.flush_acks()
         self.delivery.count()
         self.mqtt.leave(self.availability_topic, "offline", retain=True)

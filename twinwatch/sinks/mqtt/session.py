@@ -5,7 +5,7 @@ client id over, and what is wrong with the session for STATUS.
 
 The owner (:class:`~twinwatch.sinks.mqtt.publisher.MqttPublisher`, the Sparkplug
 :class:`~twinwatch.sinks.sparkplug.node.EdgeNode`) drives the session from its thread, one
-:class:`SessionThread` loop for both, and says, through the :class:`SessionOwner` calls, what
+:class:`SessionThread` loop for both, and says, through the thread's session calls, what
 it publishes when connected and what its messages are.
 """
 
@@ -17,7 +17,7 @@ import ssl
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 from twinwatch._forward import Forward
 from twinwatch._lazy import lazy_module
@@ -25,6 +25,7 @@ from twinwatch.errors import PublisherError
 
 if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
+    from paho.mqtt.client import Client  # in SessionThread, ``mqtt`` is its session
 
     from twinwatch.sinks.mqtt.config import MqttConnectionConfig
     from twinwatch.sinks.mqtt.delivery import DeliveringSink
@@ -32,7 +33,7 @@ else:  # imported when the output opens: loading a configuration does not load p
     # and Sparkplug publishers take mqtt from here)
     mqtt = lazy_module("paho.mqtt.client")
 
-__all__ = ["CLOSE_RETRY_S", "TAKEOVERS", "TAKEOVER_S", "MqttSession", "SessionOwner",
+__all__ = ["CLOSE_RETRY_S", "TAKEOVERS", "TAKEOVER_S", "MqttSession",
            "SessionThread", "read_password"]
 
 #: At stop, with windows still to deliver and no connection: the spacing of the connection
@@ -47,36 +48,12 @@ TAKEOVER_S = 10.0
 """A connection lost within this many seconds of being made counts as taken over [s]."""
 
 
-class SessionOwner(Protocol):
-    """What the session asks of its owner (called from paho's callbacks, in the owner's
-    thread)."""
-
-    def session_up(self, client: mqtt.Client, again: bool) -> None:
-        """Connected (``again``: after an outage or a previous connection): announce."""
-
-    def session_down(self) -> bool:
-        """The connection is gone; True when the owner closed it itself (not a loss)."""
-
-    def session_refused(self, reason: Any) -> None:
-        """The broker refused the connection (CONNACK ``reason``)."""
-
-    def in_flight(self) -> str:
-        """What a lost connection sends again, for its log line (``3 windows in flight``)."""
-
-    def on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason: Any,
-                   properties: Any) -> None:
-        """paho's acknowledgement of message ``mid``."""
-
-    def on_message(self, client: mqtt.Client, userdata: Any, msg: Any) -> None:
-        """A message on a topic the owner subscribed to."""
-
-
 class MqttSession:
     """The session (see the module docstring).
 
     Args:
         config: the output's table (its broker connection keys).
-        owner: the output that holds it (:class:`SessionOwner`).
+        owner: the thread that holds it (:class:`SessionThread`: its session calls).
         table: the output's table in messages (``outputs.<table>.tls``).
         client_id: the MQTT client id.
         password: read from ``password_file`` (or ``password``), or None.
@@ -95,7 +72,7 @@ class MqttSession:
         PublisherError: the TLS setup fails.
     """
 
-    def __init__(self, config: MqttConnectionConfig, owner: SessionOwner, *, table: str,
+    def __init__(self, config: MqttConnectionConfig, owner: SessionThread[Any], *, table: str,
                  client_id: str, password: str | None,
                  will: Callable[[], tuple[str, str | bytes, bool]],
                  log: logging.Logger, paho_log: str, conflict: str,
@@ -329,6 +306,33 @@ class SessionThread(Generic[M]):
 
     connected: Forward[bool] = Forward(
         "mqtt.connected", "The broker accepted the connection (CONNACK), not known lost.")
+
+    # -- the session's calls (from paho's callbacks, in the thread) ---------------------------
+    def session_up(self, client: Client, again: bool) -> None:
+        """Connected (``again``: after an outage or a previous connection): announce."""
+        raise NotImplementedError
+
+    def session_down(self) -> bool:
+        """The connection is gone; True when the owner closed it itself (not a loss).
+        Default: never."""
+        return False
+
+    def session_refused(self, reason: Any) -> None:
+        """The broker refused the connection (CONNACK ``reason``). Default: nothing to add to
+        the session's line."""
+
+    def in_flight(self) -> str:
+        """What a lost connection sends again, for its log line (``3 windows in flight``)."""
+        raise NotImplementedError
+
+    def on_publish(self, client: Client, userdata: Any, mid: int, reason: Any,
+                   properties: Any) -> None:
+        """paho's acknowledgement of message ``mid``."""
+        raise NotImplementedError
+
+    def on_message(self, client: Client, userdata: Any, msg: Any) -> None:
+        """A message on a topic the owner subscribed to."""
+        raise NotImplementedError
 
     def _members(self) -> Sequence[M]:
         """The members served now."""

@@ -20,7 +20,5 @@ from __future__ import annotations
 from twinwatch.sinks.opcua.config import OpcUaConfig
 from twinwatch.sinks.opcua.model import DEVICE_HEALTH, device_health, flat_values
 from twinwatch.sinks.opcua.publisher import OpcUaPublisher
-from twinwatch.sinks.opcua.server import OpcUaServer
 
-__all__ = ["DEVICE_HEALTH", "OpcUaConfig", "OpcUaPublisher", "OpcUaServer", "device_health",
-           "flat_values"]
+__all__ = ["DEVICE_HEALTH", "OpcUaConfig", "OpcUaPublisher", "device_health", "flat_values"]

@@ -145,28 +145,31 @@ class _Builder:
         self.references: list[Any] = []
         self.nodes: dict[str, Any] = {}
 
-    def _nid(self, path: str | None) -> Any:
-        return ua.NodeId(self.machine if path is None else f"{self.machine}.{path}", self.ns)
+    def _add(self, path: str | None, browse: Any, parent: Any, reference: Any, node_class: Any,
+             type_definition: Any, attrs: Any) -> Any:
+        nid = ua.NodeId(self.machine if path is None else f"{self.machine}.{path}", self.ns)
+        item = ua.AddNodesItem()
+        item.RequestedNewNodeId = nid
+        item.BrowseName = browse
+        item.ParentNodeId = parent
+        item.ReferenceTypeId = ua.NodeId(reference)
+        item.NodeClass = node_class
+        item.TypeDefinition = type_definition
+        item.NodeAttributes = attrs
+        self.items.append(item)
+        return nid
 
     def object(self, m: _Machine | None, path: str | None, parent: Any, *,
                browse: str | None = None, folder_parent: bool = False) -> Any:
-        nid = self._nid(path)
-        item = ua.AddNodesItem()
-        item.RequestedNewNodeId = nid
         name = browse or (path or self.machine).rsplit(".", 1)[-1]
-        item.BrowseName = ua.QualifiedName(name, self.ns)
-        item.ParentNodeId = parent
-        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.Organizes if folder_parent
-                                         else ua.ObjectIds.HasComponent)
-        item.NodeClass = ua.NodeClass.Object
-        item.TypeDefinition = ua.NodeId(ua.ObjectIds.BaseObjectType)
         attrs = ua.ObjectAttributes()
         attrs.DisplayName = ua.LocalizedText(name)
         attrs.Description = ua.LocalizedText(name)
         attrs.EventNotifier = 1 if path is None else 0   # the machine: SubscribeToEvents
         attrs.WriteMask = attrs.UserWriteMask = 0
-        item.NodeAttributes = attrs
-        self.items.append(item)
+        nid = self._add(path, ua.QualifiedName(name, self.ns), parent,
+                        ua.ObjectIds.Organizes if folder_parent else ua.ObjectIds.HasComponent,
+                        ua.NodeClass.Object, ua.NodeId(ua.ObjectIds.BaseObjectType), attrs)
         if path is None:  # the Server object notifies of the machine's events
             ref = ua.AddReferencesItem()
             ref.SourceNodeId = ua.NodeId(ua.ObjectIds.Server)
@@ -181,32 +184,18 @@ class _Builder:
 
     def variable(self, m: _Machine, parent: Any, path: str, value: Any, datatype: Any, *,
                  browse: str | None = None, vtype: Any = None, history: bool = False) -> Any:
-        nid = self._nid(path)
-        item = ua.AddNodesItem()
-        item.RequestedNewNodeId = nid
         name = browse or path.rsplit(".", 1)[-1]
-        item.BrowseName = ua.QualifiedName(name, self.ns)
-        item.ParentNodeId = parent
-        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasComponent)
-        item.NodeClass = ua.NodeClass.Variable
-        item.TypeDefinition = vtype or ua.NodeId(ua.ObjectIds.BaseDataVariableType)
-        item.NodeAttributes = _var_attrs(name, value, datatype, history=history)
-        self.items.append(item)
+        nid = self._add(path, ua.QualifiedName(name, self.ns), parent, ua.ObjectIds.HasComponent,
+                        ua.NodeClass.Variable,
+                        vtype or ua.NodeId(ua.ObjectIds.BaseDataVariableType),
+                        _var_attrs(name, value, datatype, history=history))
         m.vars[path] = (nid, value.VariantType)
         return nid
 
     def prop(self, parent: Any, path: str, browse: str, value: Any, datatype: Any) -> Any:
-        nid = self._nid(path)
-        item = ua.AddNodesItem()
-        item.RequestedNewNodeId = nid
-        item.BrowseName = ua.QualifiedName(browse, 0)
-        item.ParentNodeId = parent
-        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasProperty)
-        item.NodeClass = ua.NodeClass.Variable
-        item.TypeDefinition = ua.NodeId(ua.ObjectIds.PropertyType)
-        item.NodeAttributes = _var_attrs(browse, value, datatype)
-        self.items.append(item)
-        return nid
+        return self._add(path, ua.QualifiedName(browse, 0), parent, ua.ObjectIds.HasProperty,
+                         ua.NodeClass.Variable, ua.NodeId(ua.ObjectIds.PropertyType),
+                         _var_attrs(browse, value, datatype))
 
 
 def _var_attrs(name: str, value: Any, datatype: Any, *, history: bool = False) -> Any:

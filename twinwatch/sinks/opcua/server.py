@@ -13,6 +13,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable, Coroutine
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -129,7 +130,6 @@ class OpcUaServer:
         self._loop.run_forever()
 
     def _call(self, coro: Any, timeout: float = 30.0) -> Any:
-        """Run ``coro`` on the server's loop and wait for its result."""
         return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout)
 
     async def _start(self) -> None:
@@ -230,13 +230,9 @@ class OpcUaServer:
         self._loop.call_soon_threadsafe(self._schedule_add, context, stale_after)
 
     def _schedule_add(self, context: SinkContext, stale_after: float) -> None:
-        task = self._loop.create_task(self._add_machine(context, stale_after))
-        self._building[context.machine] = task
-        self._tasks.add(task)
-        task.add_done_callback(self._done)
+        self._building[context.machine] = self._schedule(self._add_machine, context, stale_after)
 
     async def _built(self, machine: str) -> None:
-        """Wait until the machine's nodes are made (its :meth:`add_machine`'s task)."""
         task = self._building.get(machine)
         if task is not None and not task.done():
             await asyncio.gather(task, return_exceptions=True)
@@ -259,7 +255,7 @@ class OpcUaServer:
         not wait."""
         if self._closed:
             return
-        self._loop.call_soon_threadsafe(self._schedule, machine, health, events)
+        self._loop.call_soon_threadsafe(self._schedule, self._publish, machine, health, events)
 
     def flush(self, timeout: float = 30.0) -> None:
         """Wait until what :meth:`publish` handed over is written (tests, the benchmark)."""
@@ -271,11 +267,13 @@ class OpcUaServer:
         while self._tasks:
             await asyncio.gather(*list(self._tasks), return_exceptions=True)
 
-    def _schedule(self, machine: str, health: HealthMessage, events: list[dict[str, Any]]
-                  ) -> None:
-        task = self._loop.create_task(self._publish(machine, health, events))
+    def _schedule(self, work: Callable[..., Coroutine[Any, Any, None]], *args: Any
+                  ) -> asyncio.Task[None]:
+        """``work(*args)`` as a task of the server's loop (called there), tracked until done."""
+        task = self._loop.create_task(work(*args))
         self._tasks.add(task)
         task.add_done_callback(self._done)
+        return task
 
     def _done(self, task: asyncio.Task[None]) -> None:
         self._tasks.discard(task)
@@ -353,11 +351,14 @@ class OpcUaServer:
                                                         emitting_node=emitter)
             m.events.append(gen)
         if self.config.history:
-            nodes = [self.server.get_node(nid) for path, (nid, _) in m.vars.items()
-                     if path.endswith(".Value") and path.startswith("Parameters.")]
-            await self.server.historize_node_data_change(nodes, period=None,
+            await self.server.historize_node_data_change(self._value_nodes(m), period=None,
                                                          count=self.config.history)
         self.machines[name] = m
+
+    def _value_nodes(self, m: _Machine) -> list[Any]:
+        """The parameters' ``Value`` nodes (those ``[outputs.opcua] history`` keeps)."""
+        return [self.server.get_node(nid) for path, (nid, _) in m.vars.items()
+                if path.endswith(".Value") and path.startswith("Parameters.")]
 
     async def _remove_machine(self, machine: str) -> None:
         await self._built(machine)
@@ -371,10 +372,8 @@ class OpcUaServer:
                 f"{machine}: {what}: no longer monitored (the machine was stopped or "
                 f"removed)")}, now, when=now)
         if self.config.history:
-            nodes = [self.server.get_node(nid) for path, (nid, _) in m.vars.items()
-                     if path.endswith(".Value") and path.startswith("Parameters.")]
             try:
-                await self.server.dehistorize_node_data_change(nodes)
+                await self.server.dehistorize_node_data_change(self._value_nodes(m))
             except Exception:  # noqa: BLE001
                 logger.debug("dehistorizing %s failed", machine, exc_info=True)
         # every node of the machine, without asyncua's search of the whole address space for

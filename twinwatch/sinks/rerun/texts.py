@@ -190,8 +190,8 @@ def event_row(ev: Mapping[str, Any], t: float, rule: str, raised: bool,
     return f"{when} {p} {previous} cleared to {level} ({fmt(dev, '+.2f')} %)"
 
 
-def log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
-             grew: Mapping[str, int], health_json: str = "{}") -> tuple[str, rr.TextLogLevel]:
+def log_row(t_end: float, doc: HealthView, terms_changed: bool, grew: Mapping[str, int],
+            health_json: str = "{}") -> tuple[str, rr.TextLogLevel]:
     """One short line for the window (a Rerun log row is not wrapped: about 85 characters fit
     the log panel at 1600x1000), and its level, the machine's state: ERROR while a parameter is
     in deviation alarm, WARN while one is in warning or has a RUL level raised, the model check
@@ -200,10 +200,8 @@ def log_row(t0: float, t_end: float, doc: HealthView, terms_changed: bool,
     deviation [% of nominal], value, status when not ``estimated``, its deviation and RUL
     levels when raised (else the RUL's median); then what went wrong (model check, DT''
     changed, data lost). The other parameters and the fit are in the table and panels at the
-    cursor, the whole message in its tab. ``t0`` is the window's start (unused: the row gives
-    its end). A document that is no health message (``health_json``, as logged) shows its
-    top-level scalars."""
-    del t0
+    cursor, the whole message in its tab. A document that is no health message
+    (``health_json``, as logged) shows its top-level scalars."""
     parts = [f"window {as_text(doc.window, '?')} {clock(t_end)}"]
     alarms = doc.alarms or {}
     params = doc.parameters or {}

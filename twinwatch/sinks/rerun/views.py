@@ -398,7 +398,6 @@ class RecordingViews:
         return ops
 
     def _problem_style(self) -> Op:
-        """The style of the data-lost series (one per problem counter seen so far)."""
         names = self._problem_counters
         return Op(entity(self.machine, "quality", "problems"), rr.SeriesLines(
             names=names, colors=[QUALITY_COLORS[i % len(QUALITY_COLORS)]
@@ -407,7 +406,6 @@ class RecordingViews:
 
     def _output_ops(self, times: np.ndarray, meas: Mapping[str, np.ndarray],
                     sim: Mapping[str, np.ndarray]) -> list[Op]:
-        """Each output's measured and twin samples, its residual, and their axis frames."""
         m = self.machine
         t_end = float(times[-1])
         ops: list[Op] = []
@@ -430,7 +428,6 @@ class RecordingViews:
             if frame is not None:
                 ops.append(Op(entity(m, "residual", name, "frame"), rr.Scalars(frame), t_end))
         return ops
-
 
     def _parameter_ops(self, doc: HealthView, events: list[Mapping[str, Any]],
                        t_end: float) -> list[Op]:
@@ -463,7 +460,7 @@ class RecordingViews:
         health message's typed view (:func:`~twinwatch.twin.health.read_health` of
         ``health_json``)."""
         m = self.machine
-        t0, t_end = float(times[0]), float(times[-1])
+        t_end = float(times[-1])
         ops = self._output_ops(times, meas, sim)
         for variant, rmse in residual_rmse(doc).items():
             per_output = [as_number(rmse.get(o)) for o in self.outputs]
@@ -484,8 +481,7 @@ class RecordingViews:
         ops.append(Op(entity(m, "health"), rr.TextDocument(
             f"## {m}: health at t = {t_end:.3f} s\n\n```json\n{pretty}\n```\n",
             media_type=rr.MediaType.MARKDOWN), t_end))
-        text, level = log_row(t0, t_end, doc, terms_changed, self._new_problems(doc),
-                               health_json)
+        text, level = log_row(t_end, doc, terms_changed, self._new_problems(doc), health_json)
         ops.append(Op(entity(m, "log"), rr.TextLog(text, level=level), t_end))
         return ops
 
@@ -627,7 +623,6 @@ class RecordingViews:
         return "; ".join(said)
 
     def _quality_ops(self, doc: HealthView, t: float) -> list[Op]:
-        """nRMSE and the model check, the estimation time, the counters of lost data."""
         m = self.machine
         ops = []
         residual = doc.residual
@@ -652,7 +647,6 @@ class RecordingViews:
         return ops + self._elapsed_ops(doc, t) + self._problem_ops(doc, t)
 
     def _elapsed_ops(self, doc: HealthView, t: float) -> list[Op]:
-        """The window's estimation time [ms], and its axis frame over the run."""
         m = self.machine
         ops = []
         elapsed = as_number(doc.elapsed_s)
@@ -727,7 +721,6 @@ class RecordingViews:
         return frame
 
     def _new_problems(self, doc: HealthView) -> dict[str, int]:
-        """The problem counters that grew since the last window, and by how much."""
         counters = doc.counters
         if counters is None:
             return {}

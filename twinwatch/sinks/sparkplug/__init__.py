@@ -13,22 +13,17 @@ payloads, ``seq``, ``bdSeq`` and its file; no I/O), :mod:`.node` (the edge node:
 its thread), :mod:`.publisher` (a machine's output: its device and outbox).
 """
 
-from twinwatch.sinks.sparkplug.config import NAMESPACE, SparkplugConfig, node_key
+from twinwatch.sinks.sparkplug.config import SparkplugConfig
 from twinwatch.sinks.sparkplug.metrics import MetricSpec, metric_specs, metric_values
-from twinwatch.sinks.sparkplug.node import EdgeNode
 from twinwatch.sinks.sparkplug.publisher import SparkplugPublisher
-from twinwatch.sinks.sparkplug.session import BdSeqFile, DeviceSession, EdgeNodeSession
+from twinwatch.sinks.sparkplug.session import DeviceSession, EdgeNodeSession
 
 __all__ = [
-    "NAMESPACE",
-    "BdSeqFile",
     "DeviceSession",
-    "EdgeNode",
     "EdgeNodeSession",
     "MetricSpec",
     "SparkplugConfig",
     "SparkplugPublisher",
     "metric_specs",
     "metric_values",
-    "node_key",
 ]

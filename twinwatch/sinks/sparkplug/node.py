@@ -140,7 +140,6 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
             self._retire(device)
 
     def _retire(self, device: SparkplugPublisher) -> None:
-        """The device leaves: its DDEATH (if born and connected), its deliveries recorded."""
         if device.device_born and self.connected:
             self.client.publish(device.device.ddeath_topic, device.device.ddeath(now_ms()),
                                 qos=1)
@@ -383,7 +382,6 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
         return self.born
 
     def _finish(self) -> None:
-        """Every device has left: NDEATH with this connection's ``bdSeq``, disconnect."""
         self.mqtt.leave(self.session.ndeath_topic, self.session.ndeath(now_ms()))
         self.born = False
         logger.info("Sparkplug edge node %s/%s closed (NDEATH, bdSeq %d)",

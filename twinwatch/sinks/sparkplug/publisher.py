@@ -118,7 +118,6 @@ class SparkplugPublisher(DeliveringSink):
         return doc if doc is not None and self._this_run(doc) else None
 
     def _this_run(self, doc: HealthView) -> bool:
-        """``doc`` is of the daemon's run (any, when the context names none)."""
         run = self.context.run if self.context is not None else ""
         return not run or getattr(doc, "run", None) == run
 

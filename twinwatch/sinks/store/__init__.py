@@ -8,7 +8,7 @@ the health history and the last accepted twin in one SQLite file. Its parts:
   in-memory backlog (durability, threads and faults: its docstring);
 * :mod:`~twinwatch.sinks.store.queries`: the read side, functions over one connection
   (history and its paging cursor, the time line, the latest message, a run's last ones);
-* :mod:`~twinwatch.sinks.store.outbox`: :class:`StoreOutbox`, which stored windows a
+* :mod:`~twinwatch.sinks.store.outbox`: :class:`.outbox.StoreOutbox`, which stored windows a
   store-and-forward output has delivered.
 """
 
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from twinwatch.errors import StoreError
 from twinwatch.sinks.store.database import StateStore
-from twinwatch.sinks.store.outbox import StoreOutbox
 from twinwatch.sinks.store.schema import SCHEMA_VERSION, StateConfig
 
-__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError", "StoreOutbox"]
+__all__ = ["SCHEMA_VERSION", "StateConfig", "StateStore", "StoreError"]

@@ -198,7 +198,6 @@ class StateStore(Gate):
 
     # -- connections --------------------------------------------------------------------------
     def _connect(self) -> sqlite3.Connection:
-        """This thread's connection (created on first use)."""
         conn: sqlite3.Connection | None = getattr(self._local, "conn", None)
         if conn is not None:
             return conn
@@ -581,7 +580,6 @@ class StateStore(Gate):
         self._save(out, flush=False)
 
     def _save(self, out: ProcessedWindow, flush: bool = True) -> bool:
-        """:meth:`save_window` of ``out``: its indexed keys, its one encoding, its twin."""
         h, twin = out.health, out.twin_state
         return self.save_window({"machine": h.machine, "run": h.run, "window": h.window,
                                  "t_start": h.t_start, "t_end": h.t_end},
@@ -595,8 +593,6 @@ class StateStore(Gate):
             self._check_file()
             if not self._pending and self._twin_pending is None:
                 return True
-            if self._file_gone is not None:
-                return self._flush_failed(StoreError(f"{self.file_event}: not written yet"))
             return self._flush()
 
     # -- writing ------------------------------------------------------------------------------
@@ -644,10 +640,7 @@ class StateStore(Gate):
                                       to_json(twin_state))
             if not flush:
                 return False
-            if self._file_gone is not None:  # no database file to write to yet: wait in memory
-                ok = self._flush_failed(StoreError(f"{self.file_event}: not written yet"))
-            else:
-                ok = self._flush()
+            ok = self._flush()
         if ok:
             self._since_prune += 1
             if self.prune_every and self._since_prune >= self.prune_every:
@@ -656,6 +649,8 @@ class StateStore(Gate):
         return ok
 
     def _flush(self, retry: bool = True) -> bool:
+        if self._file_gone is not None:  # no database file to write to yet: wait in memory
+            return self._flush_failed(StoreError(f"{self.file_event}: not written yet"))
         try:
             conn = self._connect()
         except StoreError as exc:
@@ -937,7 +932,6 @@ def _packed(row: tuple[Any, ...]) -> tuple[Any, ...]:
 
 
 def _unpacked(row: tuple[Any, ...]) -> tuple[Any, ...]:
-    """The ``health`` row :func:`_packed` kept."""
     return (*row[:6], zlib.decompress(row[6]).decode())
 
 

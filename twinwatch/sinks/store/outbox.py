@@ -61,7 +61,6 @@ class StoreOutbox:
         return conn
 
     def _one(self, sql: str, args: tuple[Any, ...]) -> Any:
-        """The first row (or None) of a read of this outbox's file."""
         return self.store._read("cannot read the outbox",
                                 lambda conn: self._same_file(conn).execute(sql, args).fetchone())
 

@@ -32,25 +32,14 @@ def history_query(t_from: float | None, t_to: float | None, limit: int | None, *
     """
     if by not in ("plant", "wall"):
         raise ValueError(f"by must be 'plant' or 'wall', not {by!r}")
-    where: list[str] = []
-    args: list[Any] = []
-    if machine is not None:
-        where.append("machine = ?")
-        args.append(machine)
-    if run is not None:
-        where.append("run = ?")
-        args.append(run)
-    lo = "t_end" if by == "plant" else "wall"
-    hi = "t_start" if by == "plant" else "wall"
-    if t_from is not None and math.isfinite(t_from):
-        where.append(f"{lo} >= ?")
-        args.append(float(t_from))
-    if t_to is not None and math.isfinite(t_to):
-        where.append(f"{hi} <= ?")
-        args.append(float(t_to))
-    if after is not None and math.isfinite(after):
-        where.append(f"{lo} > ?")
-        args.append(float(after))
+    lo, hi = ("t_end", "t_start") if by == "plant" else ("wall", "wall")
+    terms: list[tuple[str, Any]] = [
+        (c, v) for c, v in (("machine = ?", machine), ("run = ?", run)) if v is not None]
+    terms += [(c, float(v)) for c, v in ((f"{lo} >= ?", t_from), (f"{hi} <= ?", t_to),
+                                         (f"{lo} > ?", after))
+              if v is not None and math.isfinite(v)]
+    where = [c for c, _ in terms]
+    args = [v for _, v in terms]
     sql = f"SELECT doc, {lo} FROM health"
     if where:
         sql += " WHERE " + " AND ".join(where)
@@ -98,13 +87,10 @@ def latest_doc(conn: sqlite3.Connection, machine: str | None) -> str | None:
     return None if row is None else str(row[0])
 
 
-#: the last ``limit`` messages of one machine's run, newest first
-LAST_DOCS_SQL = "SELECT doc FROM health WHERE machine = ? AND run = ? ORDER BY id DESC LIMIT ?"
-
-
 def last_docs(conn: sqlite3.Connection, machine: str, run: str, limit: int) -> list[str]:
     """The last ``limit`` messages (JSON text) of ``machine``'s run ``run``, oldest first."""
-    rows = conn.execute(LAST_DOCS_SQL, (machine, run, int(limit))).fetchall()
+    rows = conn.execute("SELECT doc FROM health WHERE machine = ? AND run = ? ORDER BY id DESC "
+                        "LIMIT ?", (machine, run, int(limit))).fetchall()
     return [r[0] for r in reversed(rows)]
 
 

@@ -20,30 +20,20 @@ With ``retry_connect=True`` (the daemon) an unreachable router is retried in the
 
 from twinwatch.errors import PublisherError
 from twinwatch.io.encoding import to_json
-from twinwatch.sinks.zenoh.config import ZenohAuthConfig, ZenohConfig, ZenohTlsConfig
-from twinwatch.sinks.zenoh.publisher import UNRULED_THRESHOLD_PCT, HealthPublisher, worst_parameter
-from twinwatch.sinks.zenoh.queries import HISTORY_LIMIT, QueryDispatch, history_parameters
-from twinwatch.sinks.zenoh.session import (
-    declare_publisher,
-    open_session,
-    session_key,
-    to_zenoh_config,
-)
+from twinwatch.sinks.zenoh.config import ZenohConfig
+from twinwatch.sinks.zenoh.publisher import HealthPublisher, worst_parameter
+from twinwatch.sinks.zenoh.queries import QueryDispatch, history_parameters
+from twinwatch.sinks.zenoh.session import declare_publisher, open_session, to_zenoh_config
 
 __all__ = [
-    "HISTORY_LIMIT",
-    "UNRULED_THRESHOLD_PCT",
-    "worst_parameter",
     "HealthPublisher",
     "PublisherError",
     "QueryDispatch",
-    "ZenohAuthConfig",
     "ZenohConfig",
-    "ZenohTlsConfig",
     "declare_publisher",
     "history_parameters",
     "open_session",
-    "session_key",
     "to_json",
     "to_zenoh_config",
+    "worst_parameter",
 ]

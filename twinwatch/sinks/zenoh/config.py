@@ -5,7 +5,6 @@ control, the publishers' cache and the fleet summary (docs/configuration.md).
 from __future__ import annotations
 
 import json
-import logging
 import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
@@ -22,9 +21,6 @@ if TYPE_CHECKING:
 else:  # imported when a session opens: loading a configuration does not load zenoh
     zenoh = lazy_module("zenoh")
     zenoh_ext = lazy_module("zenoh.ext")
-
-logger = logging.getLogger(__package__)
-
 
 _ENDPOINT_RE = re.compile(
     r"^(?P<proto>tcp|udp|tls|quic|ws)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*))"
@@ -191,10 +187,6 @@ class ZenohConfig(SinkConfig):
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The endpoints the session listens on."""
         return set() if self.mode == "client" else set(self.listen)
-
-    def file_paths(self) -> dict[str, str]:
-        """Dotted key (``zenoh.tls.*``) -> path of every file the session reads."""
-        return {f"zenoh.{k}": v for k, v in self.input_files().items()}
 
     def inline_secrets(self) -> list[str]:
         """Dotted keys (``zenoh.tls.*``) of secrets written in the configuration itself."""

@@ -94,6 +94,7 @@ class HealthPublisher(Sink):
         self._detached = False
         self._shared = shared
         self._shared_key: str | None = None
+        self._release_session: Callable[[], None] = lambda: None
         # in a gateway, the queryable every machine of the shared session answers through
         self._dispatch: QueryDispatch | None = None
         self._dispatch_key: str | None = None
@@ -120,27 +121,17 @@ class HealthPublisher(Sink):
     def _open_session(self) -> zenoh.Session:
         """This publisher's session: its own (:func:`open_session`), or in a gateway the one
         every machine with the same session settings shares (:attr:`SinkContext.shared`,
-        keyed by :func:`session_key`).
+        keyed by :func:`session_key`; the last machine to let it go closes it). Let go with
+        ``_release_session``.
 
         Raises:
             PublisherError: as :func:`open_session`.
         """
-        if self._shared is None:
-            return open_session(self.config)
         key = session_key(self.config)
-        session = self._shared.acquire(key, lambda: open_session(self.config),
-                                       lambda s: s.close())
-        self._shared_key = key
+        session, self._release_session = SharedResources.hold(
+            self._shared, key, lambda: open_session(self.config), lambda s: s.close())
+        self._shared_key = key if self._shared is not None else None
         return session
-
-    def _close_session(self, session: zenoh.Session) -> None:
-        """Close this publisher's own session, or release its share of a shared one (the
-        last machine to release it closes it)."""
-        key, self._shared_key = self._shared_key, None
-        if self._shared is not None and key is not None:
-            self._shared.release(key)
-        else:
-            session.close()
 
     def _attach(self, session: zenoh.Session) -> None:
         """Declare the health publisher, queryable and token on ``session`` and use it."""
@@ -162,7 +153,7 @@ class HealthPublisher(Sink):
             token = None if by_box else session.liveliness().declare_token(self.alive_key)
         except zenoh.ZError as exc:
             self._leave_dispatch()
-            self._close_session(session)
+            self._release_session()
             raise PublisherError(f"cannot declare zenoh entities under {self.base_key}: {exc}"
                                  ) from exc
         with self._lock:
@@ -185,7 +176,7 @@ class HealthPublisher(Sink):
                 delay = min(2 * delay, self.config.retry_max)
                 continue
             if self._give_up.is_set():
-                self._close_session(session)
+                self._release_session()
                 return
             try:
                 self._attach(session)
@@ -431,7 +422,6 @@ class HealthPublisher(Sink):
         logger.debug("%s sent again: a subscriber is reachable again", self.summary_key)
 
     def _leave_dispatch(self) -> None:
-        """Stop answering through the gateway's queryable; the last machine undeclares it."""
         dispatch, key = self._dispatch, self._dispatch_key
         self._dispatch = self._dispatch_key = None
         if dispatch is not None:
@@ -440,7 +430,6 @@ class HealthPublisher(Sink):
             self._shared.release(key)
 
     def _on_query(self, query: zenoh.Query) -> None:
-        """Answer a get on this machine's own queryable (:meth:`_answer`), then drop it."""
         try:
             self._answer(query)
         finally:
@@ -502,7 +491,7 @@ class HealthPublisher(Sink):
             steps.append(("summary's matching listener", matching.undeclare))
         steps += [("publisher", p.undeclare) for p in publishers]
         if session is not None:
-            steps.append(("session", lambda: self._close_session(session)))
+            steps.append(("session", self._release_session))
         for what, step in steps:
             try:
                 step()

@@ -311,7 +311,6 @@ def history_parameters(params: Any) -> tuple[float | None, float | None, int,
 
 
 def _items(params: Any) -> list[tuple[str, str]]:
-    """(key, value) pairs of zenoh ``Parameters`` or a plain mapping."""
     if isinstance(params, dict):
         return list(params.items())
     return [(str(k), str(v)) for k, v in params]

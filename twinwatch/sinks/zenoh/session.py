@@ -55,14 +55,14 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
         PublisherError: the session could not open; the message says which endpoint failed
             and what to change (port already in use, nothing listening, unknown host).
     """
-    for key, path in cfg.file_paths().items():
+    for key, path in cfg.input_files().items():
         try:
             with open(path, "rb"):
                 pass
         except OSError as exc:
-            raise PublisherError(f"cannot read {key} = {path}: {exc.strerror or exc}; fix the "
-                                 f"path in [zenoh.tls]/[zenoh.auth] or the file's permissions "
-                                 f"(the service user must read it)") from exc
+            raise PublisherError(f"cannot read zenoh.{key} = {path}: {exc.strerror or exc}; fix "
+                                 f"the path in [zenoh.tls]/[zenoh.auth] or the file's "
+                                 f"permissions (the service user must read it)") from exc
     conf = to_zenoh_config(cfg)
     try:
         session = zenoh.open(conf)
