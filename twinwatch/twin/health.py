@@ -41,7 +41,6 @@ if TYPE_CHECKING:  # the builder's inputs: a reader of the message (the watcher)
     from twinwatch.twin.estimation.estimator import WindowEstimate
     from twinwatch.twin.estimation.fit import Residual
     from twinwatch.twin.model import TwinModel, WindowData
-    from twinwatch.twin.prognostics import Crossing, RulReport, TrendReport
     from twinwatch.twin.prognostics.window import WindowChoice
 
 __all__ = [
@@ -575,8 +574,10 @@ def build_health(
             held=status != "estimated",
             reason=est.held.get(spec.name),
             rel_std_pct=rel * 100.0 if rel is not None else None,
-            trend=_trend(progn.trend) if progn is not None else None,
-            rul=_rul(progn.rul) if progn is not None and progn.rul is not None else None,
+            trend=(TrendHealth.model_validate(progn.trend, from_attributes=True)
+                   if progn is not None else None),
+            rul=(RulHealth.model_validate(progn.rul, from_attributes=True)
+                 if progn is not None and progn.rul is not None else None),
         )
     disc = adaptation.discovery
     reval = adaptation.revalidation
@@ -644,36 +645,6 @@ def complete_health(reading: HealthMessage, *, diagnosis: DiagnosisHealth | None
     """
     fields = {name: getattr(reading, name) for name in HealthMessage.model_fields}
     return HealthMessage(**fields | {"diagnosis": diagnosis, "alarms": dict(alarms)})
-
-
-def _trend(t: TrendReport) -> TrendHealth:
-    ev = t.window_evidence
-    rs = t.restart
-    return TrendHealth(
-        model=t.model, onset=t.onset, since_t=t.since_t, evidence=t.evidence, level=t.level,
-        level_std=t.level_std, rate=t.rate, rate_low=t.rate_low, rate_high=t.rate_high,
-        rate_pct_per_h=t.rate_pct_per_h, growth=t.growth, degrading=t.degrading,
-        model_weight=t.model_weight, monotonicity=t.monotonicity,
-        trendability=t.trendability, restarted=t.restarted,
-        restart=RestartHealth(t=rs.t, step=rs.step, reason=rs.reason) if rs else None,
-        restarts=t.restarts,
-        window_evidence=(EvidenceHealth(t=ev.t, value=ev.value, std=ev.std,
-                                        source=ev.source)
-                         if ev is not None else None))
-
-
-def _crossing(c: Crossing | None) -> CrossingHealth | None:
-    if c is None:
-        return None
-    return CrossingHealth(threshold=c.threshold, status=c.status, t=c.t, t_low=c.t_low,
-                          t_high=c.t_high, rul_s=c.rul_s, low_s=c.low_s, high_s=c.high_s,
-                          wall=c.wall, wall_low=c.wall_low, wall_high=c.wall_high,
-                          probability=c.probability)
-
-
-def _rul(r: RulReport) -> RulHealth:
-    return RulHealth(status=r.status, warning=_crossing(r.warning), alarm=_crossing(r.alarm),
-                     method=r.method, draws=r.draws, interval=r.interval)
 
 
 def _acquisition(window: WindowData, choice: WindowChoice | None) -> AcquisitionHealth:
