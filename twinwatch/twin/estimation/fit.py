@@ -149,18 +149,6 @@ class WindowFit:
         out: FloatArray = (y[1:] - self.meas[1:]) / self.scale
         return out
 
-    @property
-    def normalisation(self) -> FloatArray:
-        """Per output ``w_j / s_j`` (n_out,): what an error is multiplied by in the fitness."""
-        norm: FloatArray = self._norm
-        return norm
-
-    def nrmse_of(self, y: FloatArray) -> float:
-        """The normalised RMSE of one trajectory ``y`` (N, n_out): :meth:`residual`'s
-        ``nrmse`` alone, without the per-output figures."""
-        err = (y[1:] - self.meas[1:]) * self._norm
-        return float(np.sqrt(np.mean(err * err)))
-
     def residual(self, y: FloatArray) -> Residual:
         """RMSE, worst error (per output, in its unit) and nRMSE of one trajectory (N, n_out)."""
         err = y - self.meas
