@@ -197,15 +197,6 @@ class DiscoveryConfig(StrictTable):
                                  f"'t' nor a channel of the model {sorted(channels)}")
 
 
-def residual_too_large(r: FloatArray, n_out: int, config: DiscoveryConfig,
-                       names: Sequence[str] | None = None) -> bool:
-    """Whether the residual says the model lacks something: its structure test
-    (:func:`~twinwatch.twin.discovery.trigger.residual_structure`) on normalised residuals
-    ``r`` (M,) with ``n_out`` interleaved outputs, scaled by ``1/sqrt(M)`` as the fit's
-    residual vector is."""
-    return window_structure(r, n_out, config, names).structured
-
-
 def window_structure(r: FloatArray, n_out: int, config: DiscoveryConfig,
                      names: Sequence[str] | None = None) -> WindowStructure:
     """:func:`~twinwatch.twin.discovery.trigger.residual_structure` of normalised residuals
@@ -390,7 +381,7 @@ class Discovery:
                                             c.input == best.cand.input)]
             base_vals = compose([*kept, *new], win)
             r_base = self._resid(fit, theta, base_vals)[0]
-            if not residual_too_large(r_base, n_out, cfg):
+            if not window_structure(r_base, n_out, cfg).structured:
                 break  # the residual is down to the noise: nothing left to explain
         report.kept = new
         report.candidates = len(self.candidates)
@@ -708,7 +699,6 @@ __all__ = [
     "delta_bic",
     "format_terms",
     "noise_level",
-    "residual_too_large",
     "term_input",
     "window_structure",
 ]
