@@ -868,27 +868,15 @@ if TYPE_CHECKING:
     # is caught); at run time each attribute may also be None (an older daemon).
     HealthView = HealthMessage
     ParameterView = ParameterHealth
-    TrendView = TrendHealth
     RulView = RulHealth
-    CrossingView = CrossingHealth
     AlarmView = AlarmStatus
-    RulAlarmView = RulAlarmStatus
     DiagnosisView = DiagnosisHealth
-    FaultView = FaultHealth
-    TermView = TermHealth
-    SensorView = SensorHealth
 else:
     HealthView = view_of(HealthMessage)
     ParameterView = view_of(ParameterHealth)
-    TrendView = view_of(TrendHealth)
     RulView = view_of(RulHealth)
-    CrossingView = view_of(CrossingHealth)
     AlarmView = view_of(AlarmStatus)
-    RulAlarmView = view_of(RulAlarmStatus)
     DiagnosisView = view_of(DiagnosisHealth)
-    FaultView = view_of(FaultHealth)
-    TermView = view_of(TermHealth)
-    SensorView = view_of(SensorHealth)
 
 
 def sent(part: BaseModel, field: str) -> bool:
