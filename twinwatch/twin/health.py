@@ -39,7 +39,6 @@ from pydantic import (
 if TYPE_CHECKING:  # the builder's inputs: a reader of the message (the watcher) loads none
     from twinwatch.twin.adaptation import AdaptationResult
     from twinwatch.twin.estimation.estimator import WindowEstimate
-    from twinwatch.twin.estimation.fit import Residual
     from twinwatch.twin.model import TwinModel, WindowData
     from twinwatch.twin.prognostics.window import WindowChoice
 
@@ -506,10 +505,6 @@ def _nums(values: Mapping[str, float]) -> dict[str, float | None]:
     return dict(values)  # validated by Num: non-finite -> None
 
 
-def _residual(r: Residual) -> ResidualFit:
-    return ResidualFit(rmse=_nums(r.rmse), max_abs=_nums(r.max_abs), nrmse=r.nrmse)
-
-
 def build_health(
     *,
     machine: str,
@@ -597,13 +592,14 @@ def build_health(
         generations=est.generations,
         time_capped=est.time_capped,
         evaluations=est.evaluations,
-        model_check=(ModelCheckHealth.model_validate(est.model_check.as_dict())
+        model_check=(ModelCheckHealth.model_validate(est.model_check, from_attributes=True)
                      if est.model_check is not None else None),
-        sensors=[SensorHealth.model_validate(f.as_dict()) for f in est.sensors],
+        sensors=[SensorHealth.model_validate(f, from_attributes=True) for f in est.sensors],
         terms=[TermHealth.model_validate(t.as_dict()) for t in adaptation.terms],
         residual=ResidualHealth(
-            dt_prime=_residual(adaptation.dt_prime),
-            dt_second=_residual(adaptation.dt_second) if adaptation.dt_second else None,
+            dt_prime=ResidualFit.model_validate(adaptation.dt_prime, from_attributes=True),
+            dt_second=(ResidualFit.model_validate(adaptation.dt_second, from_attributes=True)
+                       if adaptation.dt_second else None),
             noise=_nums(adaptation.noise),
         ),
         discovery=DiscoveryStatus(

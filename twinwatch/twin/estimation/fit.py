@@ -35,10 +35,6 @@ from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 BAD_RESIDUAL = 1e6
 
 
-def _num(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
 @dataclass
 class Residual:
     """Fit of one twin variant (DT' or DT'') on a window.
@@ -52,11 +48,6 @@ class Residual:
     rmse: dict[str, float]
     max_abs: dict[str, float]
     nrmse: float
-
-    def as_dict(self) -> dict[str, object]:
-        return {"rmse": {k: _num(v) for k, v in self.rmse.items()},
-                "max_abs": {k: _num(v) for k, v in self.max_abs.items()},
-                "nrmse": _num(self.nrmse)}
 
 
 class WindowFit:
