@@ -69,7 +69,6 @@ from twinwatch.twin.estimation.fit import (
     WindowFit,
     parameter_covariance,
     pso_minimize,
-    relative_std,
 )
 from twinwatch.twin.estimation.statistics import delta_bic, noise_level
 from twinwatch.twin.model import AttachPoint, FloatArray, TwinModel, WindowData
@@ -309,9 +308,6 @@ class Discovery:
     def _fit(self, window: WindowData | WindowFit) -> WindowFit:
         return window if isinstance(window, WindowFit) else self.est.window_fit(window)
 
-    def _std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
-        return relative_std(jac, r, len(self.model.outputs), self.est.config.model_error)
-
     def _resid(self, fit: WindowFit, theta: FloatArray,
                terms: Mapping[str, FloatArray] | None) -> FloatArray:
         """Normalised residuals (P, M) of the twin at ``theta`` (n_params,) with per-particle
@@ -528,7 +524,7 @@ class Discovery:
         p[act] = sol.x
         main = meta.main_index(active)
         col = int(np.cumsum(act)[main]) - 1
-        sd = self._std(np.asarray(sol.jac), r)[col]
+        sd = self.est.relative_std(np.asarray(sol.jac), r)[col]
         sig = abs(float(p[main])) / sd if sd > 0 and math.isfinite(sd) else 0.0
         return p, r, sig
 
