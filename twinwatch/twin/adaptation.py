@@ -326,16 +326,10 @@ class TwinAdapter:
     def _finish(self, window: WindowData, result: AdaptationResult,
                 prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit
                 ) -> AdaptationResult:
-        """After the twin's fit: keep the fit problem for the diagnosis, then the
-        prognostics."""
+        """After the twin's fit: keep the fit problem for the diagnosis, feed the window's
+        evidence to the trends (:mod:`twinwatch.twin.prognostics`) and choose the next
+        window's length (``[acquisition.adaptive]``)."""
         result.fit = fit
-        return self._prognose(window, result, prior, fit)
-
-    def _prognose(self, window: WindowData, result: AdaptationResult,
-                  prior: tuple[FloatArray, FloatArray] | None, fit: WindowFit
-                  ) -> AdaptationResult:
-        """Feed the window's evidence to the trends (:mod:`twinwatch.twin.prognostics`) and
-        choose the next window's length (``[acquisition.adaptive]``)."""
         t0 = time.perf_counter()
         est = result.estimate
         t_mid = float(0.5 * (window.t[0] + window.t[-1]))
@@ -445,7 +439,7 @@ class TwinAdapter:
     def _free(self, est: WindowEstimate) -> list[str]:
         """The physical parameters a kept term is polished jointly with: those this window
         determined (``[discovery.refinement] joint``; none when it is off)."""
-        if self.config is None or not self.config.refinement.joint:
+        if not self.config.refinement.joint:
             return []
         return list(est.estimated)
 

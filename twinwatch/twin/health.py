@@ -39,9 +39,7 @@ from pydantic import (
 if TYPE_CHECKING:  # the builder's inputs: a reader of the message (the watcher) loads none
     from twinwatch.twin.adaptation import AdaptationResult
     from twinwatch.twin.estimation.estimator import WindowEstimate
-    from twinwatch.twin.estimation.fit import Residual
     from twinwatch.twin.model import TwinModel, WindowData
-    from twinwatch.twin.prognostics import Crossing, RulReport, TrendReport
     from twinwatch.twin.prognostics.window import WindowChoice
 
 __all__ = [
@@ -507,10 +505,6 @@ def _nums(values: Mapping[str, float]) -> dict[str, float | None]:
     return dict(values)  # validated by Num: non-finite -> None
 
 
-def _residual(r: Residual) -> ResidualFit:
-    return ResidualFit(rmse=_nums(r.rmse), max_abs=_nums(r.max_abs), nrmse=r.nrmse)
-
-
 def build_health(
     *,
     machine: str,
@@ -575,8 +569,10 @@ def build_health(
             held=status != "estimated",
             reason=est.held.get(spec.name),
             rel_std_pct=rel * 100.0 if rel is not None else None,
-            trend=_trend(progn.trend) if progn is not None else None,
-            rul=_rul(progn.rul) if progn is not None and progn.rul is not None else None,
+            trend=(TrendHealth.model_validate(progn.trend, from_attributes=True)
+                   if progn is not None else None),
+            rul=(RulHealth.model_validate(progn.rul, from_attributes=True)
+                 if progn is not None and progn.rul is not None else None),
         )
     disc = adaptation.discovery
     reval = adaptation.revalidation
@@ -596,13 +592,14 @@ def build_health(
         generations=est.generations,
         time_capped=est.time_capped,
         evaluations=est.evaluations,
-        model_check=(ModelCheckHealth.model_validate(est.model_check.as_dict())
+        model_check=(ModelCheckHealth.model_validate(est.model_check, from_attributes=True)
                      if est.model_check is not None else None),
-        sensors=[SensorHealth.model_validate(f.as_dict()) for f in est.sensors],
+        sensors=[SensorHealth.model_validate(f, from_attributes=True) for f in est.sensors],
         terms=[TermHealth.model_validate(t.as_dict()) for t in adaptation.terms],
         residual=ResidualHealth(
-            dt_prime=_residual(adaptation.dt_prime),
-            dt_second=_residual(adaptation.dt_second) if adaptation.dt_second else None,
+            dt_prime=ResidualFit.model_validate(adaptation.dt_prime, from_attributes=True),
+            dt_second=(ResidualFit.model_validate(adaptation.dt_second, from_attributes=True)
+                       if adaptation.dt_second else None),
             noise=_nums(adaptation.noise),
         ),
         discovery=DiscoveryStatus(
@@ -644,36 +641,6 @@ def complete_health(reading: HealthMessage, *, diagnosis: DiagnosisHealth | None
     """
     fields = {name: getattr(reading, name) for name in HealthMessage.model_fields}
     return HealthMessage(**fields | {"diagnosis": diagnosis, "alarms": dict(alarms)})
-
-
-def _trend(t: TrendReport) -> TrendHealth:
-    ev = t.window_evidence
-    rs = t.restart
-    return TrendHealth(
-        model=t.model, onset=t.onset, since_t=t.since_t, evidence=t.evidence, level=t.level,
-        level_std=t.level_std, rate=t.rate, rate_low=t.rate_low, rate_high=t.rate_high,
-        rate_pct_per_h=t.rate_pct_per_h, growth=t.growth, degrading=t.degrading,
-        model_weight=t.model_weight, monotonicity=t.monotonicity,
-        trendability=t.trendability, restarted=t.restarted,
-        restart=RestartHealth(t=rs.t, step=rs.step, reason=rs.reason) if rs else None,
-        restarts=t.restarts,
-        window_evidence=(EvidenceHealth(t=ev.t, value=ev.value, std=ev.std,
-                                        source=ev.source)
-                         if ev is not None else None))
-
-
-def _crossing(c: Crossing | None) -> CrossingHealth | None:
-    if c is None:
-        return None
-    return CrossingHealth(threshold=c.threshold, status=c.status, t=c.t, t_low=c.t_low,
-                          t_high=c.t_high, rul_s=c.rul_s, low_s=c.low_s, high_s=c.high_s,
-                          wall=c.wall, wall_low=c.wall_low, wall_high=c.wall_high,
-                          probability=c.probability)
-
-
-def _rul(r: RulReport) -> RulHealth:
-    return RulHealth(status=r.status, warning=_crossing(r.warning), alarm=_crossing(r.alarm),
-                     method=r.method, draws=r.draws, interval=r.interval)
 
 
 def _acquisition(window: WindowData, choice: WindowChoice | None) -> AcquisitionHealth:
@@ -897,27 +864,15 @@ if TYPE_CHECKING:
     # is caught); at run time each attribute may also be None (an older daemon).
     HealthView = HealthMessage
     ParameterView = ParameterHealth
-    TrendView = TrendHealth
     RulView = RulHealth
-    CrossingView = CrossingHealth
     AlarmView = AlarmStatus
-    RulAlarmView = RulAlarmStatus
     DiagnosisView = DiagnosisHealth
-    FaultView = FaultHealth
-    TermView = TermHealth
-    SensorView = SensorHealth
 else:
     HealthView = view_of(HealthMessage)
     ParameterView = view_of(ParameterHealth)
-    TrendView = view_of(TrendHealth)
     RulView = view_of(RulHealth)
-    CrossingView = view_of(CrossingHealth)
     AlarmView = view_of(AlarmStatus)
-    RulAlarmView = view_of(RulAlarmStatus)
     DiagnosisView = view_of(DiagnosisHealth)
-    FaultView = view_of(FaultHealth)
-    TermView = view_of(TermHealth)
-    SensorView = view_of(SensorHealth)
 
 
 def sent(part: BaseModel, field: str) -> bool:

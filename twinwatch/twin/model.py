@@ -12,6 +12,8 @@ is the fast, vectorised path that the estimator calls with a whole swarm.
 from __future__ import annotations
 
 import abc
+import dataclasses
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -184,6 +186,16 @@ class TwinModel(abc.ABC):
         """Raise ValueError (saying why) if the twin cannot run at this sample period [s]
         (e.g. it is not a whole number of integration sub-steps). Default: any period."""
 
+    def _check_choices(self) -> None:
+        """ValueError naming an option whose value its ``Literal`` annotation does not admit."""
+        hints = typing.get_type_hints(type(self))
+        for f in dataclasses.fields(self):
+            if f.init and typing.get_origin(hints[f.name]) is Literal:
+                allowed = typing.get_args(hints[f.name])
+                value = getattr(self, f.name)
+                if value not in allowed:
+                    raise ValueError(f"{f.name} must be one of {list(allowed)}, not {value!r}")
+
     def parameter(self, name: str) -> ParameterSpec:
         for p in self.parameters:
             if p.name == name:
@@ -279,6 +291,20 @@ class TwinModel(abc.ABC):
 
     def __str__(self) -> str:
         return self.describe()
+
+
+class SubStepTwin(TwinModel):
+    """A twin integrated at a fixed sub-step: its option ``sub_step`` [s]."""
+
+    sub_step: float
+
+    def n_sub(self, sample_period: float) -> int:
+        """Number of sub-steps per sample; raises ValueError if not a whole number."""
+        return sub_steps(sample_period, self.sub_step)
+
+    def check_sample_period(self, sample_period: float) -> None:
+        """The sample period must be a whole number of sub-steps (ValueError otherwise)."""
+        self.n_sub(sample_period)
 
 
 def sub_steps(sample_period: float, sub_step: float) -> int:

@@ -69,7 +69,6 @@ from twinwatch.twin.estimation.fit import (
     WindowFit,
     parameter_covariance,
     pso_minimize,
-    relative_std,
 )
 from twinwatch.twin.estimation.statistics import delta_bic, noise_level
 from twinwatch.twin.model import AttachPoint, FloatArray, TwinModel, WindowData
@@ -197,15 +196,6 @@ class DiscoveryConfig(StrictTable):
                                  f"'t' nor a channel of the model {sorted(channels)}")
 
 
-def residual_too_large(r: FloatArray, n_out: int, config: DiscoveryConfig,
-                       names: Sequence[str] | None = None) -> bool:
-    """Whether the residual says the model lacks something: its structure test
-    (:func:`~twinwatch.twin.discovery.trigger.residual_structure`) on normalised residuals
-    ``r`` (M,) with ``n_out`` interleaved outputs, scaled by ``1/sqrt(M)`` as the fit's
-    residual vector is."""
-    return window_structure(r, n_out, config, names).structured
-
-
 def window_structure(r: FloatArray, n_out: int, config: DiscoveryConfig,
                      names: Sequence[str] | None = None) -> WindowStructure:
     """:func:`~twinwatch.twin.discovery.trigger.residual_structure` of normalised residuals
@@ -318,9 +308,6 @@ class Discovery:
     def _fit(self, window: WindowData | WindowFit) -> WindowFit:
         return window if isinstance(window, WindowFit) else self.est.window_fit(window)
 
-    def _std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
-        return relative_std(jac, r, len(self.model.outputs), self.est.config.model_error)
-
     def _resid(self, fit: WindowFit, theta: FloatArray,
                terms: Mapping[str, FloatArray] | None) -> FloatArray:
         """Normalised residuals (P, M) of the twin at ``theta`` (n_params,) with per-particle
@@ -390,7 +377,7 @@ class Discovery:
                                             c.input == best.cand.input)]
             base_vals = compose([*kept, *new], win)
             r_base = self._resid(fit, theta, base_vals)[0]
-            if not residual_too_large(r_base, n_out, cfg):
+            if not window_structure(r_base, n_out, cfg).structured:
                 break  # the residual is down to the noise: nothing left to explain
         report.kept = new
         report.candidates = len(self.candidates)
@@ -537,7 +524,7 @@ class Discovery:
         p[act] = sol.x
         main = meta.main_index(active)
         col = int(np.cumsum(act)[main]) - 1
-        sd = self._std(np.asarray(sol.jac), r)[col]
+        sd = self.est.relative_std(np.asarray(sol.jac), r)[col]
         sig = abs(float(p[main])) / sd if sd > 0 and math.isfinite(sd) else 0.0
         return p, r, sig
 
@@ -708,7 +695,6 @@ __all__ = [
     "delta_bic",
     "format_terms",
     "noise_level",
-    "residual_too_large",
     "term_input",
     "window_structure",
 ]

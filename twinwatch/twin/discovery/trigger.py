@@ -53,7 +53,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from scipy.special import chdtrc  # chi2.sf without scipy.stats (22 MB, 0.5 s of import)
@@ -210,10 +209,3 @@ class StructureEvidence:
     def clear(self) -> None:
         """Forget the evidence (a discovery ran on it, or the twin changed)."""
         self.p_values.clear()
-
-    def state(self) -> dict[str, Any]:
-        return {"p_values": list(self.p_values)}
-
-    def restore(self, state: dict[str, Any]) -> None:
-        self.p_values = deque((float(p) for p in state.get("p_values", [])),
-                              maxlen=self.windows)

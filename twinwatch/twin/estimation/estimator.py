@@ -314,8 +314,6 @@ class WindowEstimate:
     time_capped: bool
     evaluations: int
     trusted: bool = False
-    pso_nrmse: float = math.nan
-    extra: dict[str, object] = field(default_factory=dict)
     status: dict[str, ParameterStatus] = field(default_factory=dict)
     initial: FloatArray | None = None
     model_check: ModelCheck | None = None
@@ -351,13 +349,13 @@ class EstimatorState:
     :meth:`Estimator.rollback`."""
 
     trusted: FloatArray
-    fusion: FusionState | None = None
-    trusted_std: FloatArray | None = None
-    candidates: dict[str, tuple[float, float, float]] | None = None
-    depends: dict[str, dict[str, tuple[float, float, int]]] | None = None
-    provisional: frozenset[str] | None = None
-    anew: dict[str, tuple[float, int]] | None = None
-    floor: FloorState | None = None
+    fusion: FusionState | None
+    trusted_std: FloatArray
+    candidates: dict[str, tuple[float, float, float]]
+    depends: dict[str, dict[str, tuple[float, float, int]]]
+    provisional: frozenset[str]
+    anew: dict[str, tuple[float, int]]
+    floor: FloorState
 
 
 class Estimator:
@@ -460,18 +458,12 @@ class Estimator:
         """Forget what windows since :meth:`snapshot` taught (a window the adaptation finds
         biased by a missing component must not update the trusted values or the fusion)."""
         self.trusted[:] = state.trusted
-        if state.trusted_std is not None:
-            self.trusted_std[:] = state.trusted_std
-        if state.candidates is not None:
-            self._candidates = dict(state.candidates)
-        if state.depends is not None:
-            self._depends = {n: dict(d) for n, d in state.depends.items()}
-        if state.provisional is not None:
-            self._provisional = set(state.provisional)
-        if state.anew is not None:
-            self._anew = dict(state.anew)
-        if state.floor is not None:
-            self.floor.state = state.floor.copy()
+        self.trusted_std[:] = state.trusted_std
+        self._candidates = dict(state.candidates)
+        self._depends = {n: dict(d) for n, d in state.depends.items()}
+        self._provisional = set(state.provisional)
+        self._anew = dict(state.anew)
+        self.floor.state = state.floor.copy()
         if self.fusion is not None and state.fusion is not None:
             self.fusion.state = state.fusion.copy()
         # the windows since were biased (a missing component): search globally again
@@ -675,7 +667,6 @@ class Estimator:
             time_capped=found.time_capped,
             evaluations=problem.fit.evaluations - evals0,
             trusted=trusted,
-            pso_nrmse=found.cost,
             status=out.status,
             initial=twin.initial,
             model_check=check,
@@ -995,10 +986,8 @@ class Estimator:
         if not changed:
             return None
         self.pmap.apply_ties(base)
-        for dep, src in self.pmap.ties:
-            std[dep] = std[src]
+        self.pmap.apply_ties(std)
         return base, std
-
 
     def _keep_consistent(self) -> None:
         """Move each trusted value by what its estimate's sensitivity to the values it was
@@ -1143,8 +1132,7 @@ class Estimator:
                 for h, g in decision.gain.get(k, {}).items()}
         self._keep_consistent()
         self.pmap.apply_ties(self.trusted)
-        for dep, src in self.pmap.ties:
-            self.trusted_std[dep] = self.trusted_std[src]
+        self.pmap.apply_ties(self.trusted_std)
 
     def check(self, fit: WindowFit, y: FloatArray, explained: FloatArray | None = None,
               drift: FloatArray | None = None) -> ModelCheck:

@@ -35,10 +35,6 @@ from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 BAD_RESIDUAL = 1e6
 
 
-def _num(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
 @dataclass
 class Residual:
     """Fit of one twin variant (DT' or DT'') on a window.
@@ -52,11 +48,6 @@ class Residual:
     rmse: dict[str, float]
     max_abs: dict[str, float]
     nrmse: float
-
-    def as_dict(self) -> dict[str, object]:
-        return {"rmse": {k: _num(v) for k, v in self.rmse.items()},
-                "max_abs": {k: _num(v) for k, v in self.max_abs.items()},
-                "nrmse": _num(self.nrmse)}
 
 
 class WindowFit:
@@ -148,18 +139,6 @@ class WindowFit:
         column the output's error over its scale (weights left out)."""
         out: FloatArray = (y[1:] - self.meas[1:]) / self.scale
         return out
-
-    @property
-    def normalisation(self) -> FloatArray:
-        """Per output ``w_j / s_j`` (n_out,): what an error is multiplied by in the fitness."""
-        norm: FloatArray = self._norm
-        return norm
-
-    def nrmse_of(self, y: FloatArray) -> float:
-        """The normalised RMSE of one trajectory ``y`` (N, n_out): :meth:`residual`'s
-        ``nrmse`` alone, without the per-output figures."""
-        err = (y[1:] - self.meas[1:]) * self._norm
-        return float(np.sqrt(np.mean(err * err)))
 
     def residual(self, y: FloatArray) -> Residual:
         """RMSE, worst error (per output, in its unit) and nRMSE of one trajectory (N, n_out)."""

@@ -525,18 +525,6 @@ def _safe_inverse_finite(a: FloatArray) -> FloatArray:
     return out
 
 
-def _information(cov: FloatArray) -> FloatArray:
-    """Information matrix of a covariance whose undetermined directions have infinite or huge
-    variance: rows/columns with infinite variance carry none."""
-    cov = np.asarray(cov, dtype=float)
-    good = np.isfinite(np.diag(cov)) & np.all(np.isfinite(cov), axis=0)
-    info = np.zeros_like(cov)
-    if np.any(good):
-        sub = cov[np.ix_(good, good)]
-        info[np.ix_(good, good)] = _safe_inverse(sub)
-    return info
-
-
 def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polished,
                 selected: Sequence[int], t_mid: float, informative: bool, step_tol: float = 0.0,
                 skip: Sequence[int] = ()) -> tuple[dict[str, tuple[float, float]], bool]:

@@ -61,11 +61,6 @@ class SensorFault:
         return (f"sensor {self.channel} {self.kind} at {self.value:.6g}{u} for "
                 f"{self.duration_s:.2f} s from t = {self.t_start:.2f} s")
 
-    def as_dict(self) -> dict[str, object]:
-        return {"channel": self.channel, "kind": self.kind, "value": self.value,
-                "t_start": self.t_start, "duration_s": self.duration_s,
-                "samples": self.samples}
-
 
 def _longest_run(x: FloatArray) -> tuple[int, int]:
     """(first index, length) of the longest run of exactly equal consecutive values."""

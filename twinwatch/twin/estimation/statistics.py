@@ -249,19 +249,6 @@ class ModelCheck:
     outputs: dict[str, OutputCheck] = field(default_factory=dict)
     widen: float = 1.0
 
-    def as_dict(self) -> dict[str, object]:
-        def num(x: float) -> float | None:
-            return float(x) if math.isfinite(x) else None
-
-        return {
-            "passed": self.passed,
-            "reasons": list(self.reasons),
-            "widen": num(self.widen),
-            "outputs": {k: {"rms": num(v.rms), "noise": num(v.noise),
-                            "whiteness_p": num(v.whiteness_p), "cross_p": num(v.cross_p),
-                            "passed": v.passed} for k, v in self.outputs.items()},
-        }
-
 
 def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | None, *,
                 alpha: float, lags: int, floor: float,

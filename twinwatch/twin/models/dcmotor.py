@@ -86,10 +86,9 @@ from twinwatch.twin.model import (
     IntArray,
     OutputSpec,
     ParameterSpec,
-    TwinModel,
+    SubStepTwin,
     WindowData,
     composite_zoh,
-    sub_steps,
     term_array,
     zoh_propagate,
 )
@@ -298,7 +297,7 @@ def _drive_kernel(phis: FloatArray, gams: FloatArray, seg_len: IntArray, seg_typ
 
 
 @dataclass
-class DCMotorTwin(TwinModel):
+class DCMotorTwin(SubStepTwin):
     """DC motor twin; see the module docstring for the equations.
 
     Args:
@@ -347,14 +346,7 @@ class DCMotorTwin(TwinModel):
     coulomb_friction: bool = False
 
     def __post_init__(self) -> None:
-        for key, value, allowed in (
-                ("structure", self.structure, ("closed_loop", "open_loop")),
-                ("load", self.load, ("viscous", "measured")),
-                ("input_hold", self.input_hold, ("zoh", "linear")),
-                ("speed_measurement", self.speed_measurement, ("instant", "average")),
-                ("power_stage", self.power_stage, ("bidirectional", "unidirectional"))):
-            if value not in allowed:
-                raise ValueError(f"{key} must be one of {list(allowed)}, not {value!r}")
+        self._check_choices()
         if not self.sub_step > 0:
             raise ValueError("sub_step must be > 0")
         if isinstance(self.drive, Mapping):
@@ -410,7 +402,11 @@ class DCMotorTwin(TwinModel):
         self._plans: dict[tuple[float, int, int, int], tuple[np.ndarray, ...]] = {}
         self._fast = not self._nonlinear and (not closed or self._drive.ideal)
         # fixed from here on: the state layouts (and the step kernel's positions) with and
-        # without the ideal PI in the map, and the effective PI (:meth:`_effective_pi`)
+        # without the ideal PI in the map, and the effective PI: the ideal drive's PI as the
+        # sub-step map applies it, ``Va = kp_eff*e + ki*z`` with ``z`` the integral of the
+        # error up to the previous sub-step; an integrator that includes this sub-step's error
+        # (backward Euler, trapezoidal: ``c_i`` of :mod:`twinwatch.io.drive`) adds
+        # ``c_i*ki*dt`` to the proportional gain
         self._layouts = {cp: self._make_layout(cp) for cp in (False, True)}
         names = self.parameter_names
         self._positions = {cp: np.array(
@@ -419,11 +415,6 @@ class DCMotorTwin(TwinModel):
             dtype=np.int64) for cp, pos in self._layouts.items()}
         sp = self._drive.speed
         self._pi = (sp.kp + sp.pack()[10] * sp.ki * self.sub_step, sp.ki)
-
-    @property
-    def drive_config(self) -> DriveConfig:
-        """The drive the closed-loop twin runs (``drive``, or the PI ``kp``/``ki``)."""
-        return self._drive
 
     @property
     def estimation_defaults(self) -> EstimationDefaults:
@@ -439,21 +430,6 @@ class DCMotorTwin(TwinModel):
         (:meth:`TwinModel.time_constants`)."""
         ra, la = float(values.get("Ra", 0.0)), float(values.get("La", 0.0))
         return {"La": (la / ra, "tau_e = La/Ra")} if ra > 0 and la > 0 else {}
-
-    def _effective_pi(self) -> tuple[float, float]:
-        """The ideal drive's PI as the sub-step map applies it: ``Va = kp_eff*e + ki*z`` with
-        ``z`` the integral of the error up to the previous sub-step; an integrator that
-        includes this sub-step's error (backward Euler, trapezoidal: ``c_i`` of
-        :mod:`twinwatch.io.drive`) adds ``c_i*ki*dt`` to the proportional gain."""
-        return self._pi
-
-    def n_sub(self, sample_period: float) -> int:
-        """Number of sub-steps per sample; raises ValueError if not a whole number."""
-        return sub_steps(sample_period, self.sub_step)
-
-    def check_sample_period(self, sample_period: float) -> None:
-        """The sample period must be a whole number of sub-steps (ValueError otherwise)."""
-        self.n_sub(sample_period)
 
     # -- the linear sub-step map ------------------------------------------------------------
     def _layout(self, closed_pi: bool) -> dict[str, int]:
@@ -500,7 +476,7 @@ class DCMotorTwin(TwinModel):
         a = np.zeros((p, n, n))
         b = np.zeros((p, n, 4))
         c = self.load_coefficient if self.load == "viscous" else 0.0
-        kp, ki = self._effective_pi()
+        kp, ki = self._pi
         _step_kernel(theta, float(dt), float(c), float(kp), float(ki), bool(closed_pi),
                      self._positions[bool(closed_pi)], a, b)
         return a, b
@@ -652,7 +628,7 @@ class DCMotorTwin(TwinModel):
         x0 = self._initial_state(window, 0, pos, off)
         if closed:
             sp, va = window["setpoint"], window["Va"]
-            kp, ki = self._effective_pi()
+            kp, ki = self._pi
             x0[:, pos["z"]] = (va[0] - kp * (sp[0] - x0[:, 1])) / ki
             drive = sp
         elif "v" in pos:

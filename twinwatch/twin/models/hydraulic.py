@@ -129,9 +129,8 @@ from twinwatch.twin.model import (
     IntArray,
     OutputSpec,
     ParameterSpec,
-    TwinModel,
+    SubStepTwin,
     WindowData,
-    sub_steps,
     term_array,
 )
 from twinwatch.twin.models._pid import pid_update
@@ -403,7 +402,7 @@ def _closed_kernel(theta: FloatArray, a_in: FloatArray, x_in: FloatArray, p_in: 
 
 
 @dataclass
-class HydraulicActuatorTwin(TwinModel):
+class HydraulicActuatorTwin(SubStepTwin):
     """Hydraulic actuator twin; see the module docstring for the equations.
 
     Open loop: inputs ``A_valve`` [m^2] and ``F_load`` [N]; outputs ``x`` [m] and ``p`` [Pa].
@@ -448,12 +447,7 @@ class HydraulicActuatorTwin(TwinModel):
     min_speed: float = 0.0015
 
     def __post_init__(self) -> None:
-        for key, value, allowed in (
-                ("structure", self.structure, ("open_loop", "closed_loop")),
-                ("input_hold", self.input_hold, ("linear", "zoh")),
-                ("reference_hold", self.reference_hold, ("cubic", "linear", "zoh"))):
-            if value not in allowed:
-                raise ValueError(f"{key} must be one of {list(allowed)}, not {value!r}")
+        self._check_choices()
         if not self.sub_step > 0:
             raise ValueError("sub_step must be > 0")
         closed = self.structure == "closed_loop"
@@ -499,11 +493,6 @@ class HydraulicActuatorTwin(TwinModel):
             AttachPoint("d(x)/dt", "additive", "m/s", "piston position"),
         )
 
-    @property
-    def drive_config(self) -> ValveDriveConfig:
-        """The valve controller the closed-loop twin runs (``drive``, or the paper's PID)."""
-        return self._drive
-
     def excitation(self, window: WindowData) -> dict[str, str]:
         """D is not excited while the piston nearly stands still (see ``min_speed``)."""
         if self.min_speed <= 0 or window.n < 2:
@@ -520,14 +509,6 @@ class HydraulicActuatorTwin(TwinModel):
         """q_pump then D (a reversal then holds D alone); k_spring, A_piston and F_resist trade
         off with D within one window and A_max is never excited: kept at nameplate."""
         return EstimationDefaults(("q_pump", "D"))
-
-    def n_sub(self, sample_period: float) -> int:
-        """Number of sub-steps per sample; raises ValueError if not a whole number."""
-        return sub_steps(sample_period, self.sub_step)
-
-    def check_sample_period(self, sample_period: float) -> None:
-        """The sample period must be a whole number of sub-steps (ValueError otherwise)."""
-        self.n_sub(sample_period)
 
     def simulate(self, theta: FloatArray, window: WindowData,
                  terms: Mapping[str, FloatArray] | None = None,

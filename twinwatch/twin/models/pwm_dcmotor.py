@@ -91,9 +91,8 @@ from twinwatch.twin.model import (
     FloatArray,
     OutputSpec,
     ParameterSpec,
-    TwinModel,
+    SubStepTwin,
     WindowData,
-    sub_steps,
     term_array,
 )
 
@@ -283,7 +282,7 @@ def _simulate_kernel(prm: FloatArray, duty: FloatArray, phase: FloatArray, t: Fl
 
 
 @dataclass
-class PWMDCMotorTwin(TwinModel):
+class PWMDCMotorTwin(SubStepTwin):
     """DC motor on a PWM H-bridge in discontinuous conduction, sampled as a microcontroller
     samples it; see the module docstring for the equations.
 
@@ -365,12 +364,7 @@ class PWMDCMotorTwin(TwinModel):
     def _check_options(self) -> None:
         """The named options among their choices, the scales and rates positive numbers,
         ``pwm_counts`` an integer >= 2 (ValueError otherwise)."""
-        for key, value, allowed in (
-                ("duty", self.duty, ("motoshield", "square", "linear")),
-                ("speed_measurement", self.speed_measurement, ("average", "instant")),
-                ("warmup", self.warmup, ("none", "exp", "exp_linear"))):
-            if value not in allowed:
-                raise ValueError(f"{key} must be one of {list(allowed)}, not {value!r}")
+        self._check_choices()
         for key in ("pwm_frequency", "supply_voltage", "input_full_scale", "sub_step",
                     "current_scale", "speed_scale", "omega_dot_scale"):
             v = getattr(self, key)
@@ -426,14 +420,6 @@ class PWMDCMotorTwin(TwinModel):
         window does not determine them (they are for ``twinwatch identify``)."""
         return EstimationDefaults(("Ke", "D", "J", "Ra"), {"Kt": "Ke"})
 
-    def n_sub(self, sample_period: float) -> int:
-        """Number of sub-steps per sample; raises ValueError if not a whole number."""
-        return sub_steps(sample_period, self.sub_step)
-
-    def check_sample_period(self, sample_period: float) -> None:
-        """The sample period must be a whole number of sub-steps (ValueError otherwise)."""
-        self.n_sub(sample_period)
-
     # -- the acquisition ---------------------------------------------------------------------
     def duty_cycle(self, u: FloatArray) -> FloatArray:
         """The PWM duty [0..1] the firmware makes of commands ``u`` [V] (N,) (``duty``)."""
@@ -454,16 +440,6 @@ class PWMDCMotorTwin(TwinModel):
                 else round(math.fmod(sample_period * self.pwm_frequency, 1.0), 9))
         k = np.round(np.asarray(t, dtype=float) / sample_period)
         return np.mod((self.adc_phase or 0.0) + step * k, 1.0)
-
-    def friction_factor(self, t: FloatArray, theta: Mapping[str, float]) -> FloatArray:
-        """The warm-up factor s(t) (N,) at times ``t`` [s] for parameter values ``theta``."""
-        tt = np.maximum(np.asarray(t, dtype=float) - self.warmup_origin, 0.0)
-        if self.warmup == "none":
-            return np.ones_like(tt)
-        s = 1.0 + theta["c_warm"] * np.exp(-tt / theta["tau_warm"])
-        if self.warmup == "exp_linear":
-            s = s - theta["r_warm"] * tt
-        return np.maximum(s, self.warmup_floor)
 
     def _prm(self, theta: FloatArray) -> FloatArray:
         """(P, 12) kernel parameters from full vectors (P, n_params); absent ones 0 / 1."""

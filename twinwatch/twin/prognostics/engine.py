@@ -15,7 +15,7 @@ import math
 import zlib
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Literal, Protocol
 
 import numpy as np
@@ -198,12 +198,8 @@ class Prognostics:
                  thresholds: Mapping[str, Thresholds] | None = None) -> None:
         self.config = config or PrognosticsConfig()
         c = self.config
-        self.settings = TrendSettings(horizon=c.horizon, min_evidence=c.min_evidence,
-                                      min_span=c.min_span,
-                                      max_points=c.max_points, onset=c.onset,
-                                      step_threshold=c.step_threshold,
-                                      step_confirm=c.step_confirm, flat_z=c.flat_z,
-                                      detection=c.detection)
+        knobs = {f.name for f in fields(TrendSettings)}
+        self.settings = TrendSettings(**c.model_dump(include=knobs))
         self.names = tuple(names)
         self.nominal = dict(nominal)
         self.thresholds = dict(thresholds or {})

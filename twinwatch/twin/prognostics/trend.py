@@ -334,9 +334,7 @@ class ParameterTrend:
         f = self.fit
         if f is None or f.kind == "none":
             return False
-        p_none = sum(w for g, w in zip(self.fits, self.weights, strict=True)
-                     if g.kind == "none")
-        if 1.0 - p_none < self.settings.detection:
+        if 1.0 - self._p_none() < self.settings.detection:
             return False
         return abs(f.m) > self.settings.flat_z * f.std("m")
 

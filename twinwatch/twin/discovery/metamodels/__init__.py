@@ -98,11 +98,6 @@ def get_meta_model(kind: str) -> MetaModel:
     return cls()
 
 
-def available_kinds() -> list[str]:
-    """Every kind a configuration may name."""
-    return list(REGISTRY.table())
-
-
 class _Library(Mapping[str, MetaModel]):
     """The library by kind, loaded on access (``META_MODELS["periodic"]``)."""
 
@@ -134,7 +129,6 @@ __all__ = [
     "REGISTRY",
     "TABLE_1",
     "MetaModel",
-    "available_kinds",
     "get_meta_model",
     "working_conditions",
 ]

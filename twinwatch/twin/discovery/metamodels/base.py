@@ -138,10 +138,10 @@ class MetaModel(abc.ABC):
         return tuple(on.get(n, True) for n in self.params)
 
     # -- search space (normalised input u = z / z_ref) ------------------------------------
-    @abc.abstractmethod
     def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
                ) -> tuple[FloatArray, FloatArray]:
-        """Search bounds in normalised coordinates.
+        """Search bounds in normalised coordinates (default: every parameter within
+        +-``amplitude``).
 
         Args:
             amplitude: the largest plausible magnitude of the term, in the attach point's
@@ -152,6 +152,8 @@ class MetaModel(abc.ABC):
         Returns:
             (lower, upper), each of shape (len(params),).
         """
+        a = float(amplitude)
+        return np.full(len(self.params), -a), np.full(len(self.params), a)
 
     def nonlinear_bounds(self, b_range: tuple[float, float] | None = None
                          ) -> tuple[FloatArray, FloatArray]:
@@ -276,6 +278,15 @@ class ScaledShape(MetaModel):
 
     params = ("a", "b")
     nonlinear = ("b",)
+    #: The range of ``b`` the search keeps to where the window does not decide it (normalised).
+    b_bounds: ClassVar[tuple[float, float]]
+
+    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
+               ) -> tuple[FloatArray, FloatArray]:
+        """``|a|`` up to the amplitude, ``b`` in ``b_range`` or :attr:`b_bounds`."""
+        a = float(amplitude)
+        b_lo, b_hi = b_range or self.b_bounds
+        return np.array([-a, b_lo]), np.array([a, b_hi])
 
     @staticmethod
     @abc.abstractmethod

@@ -64,11 +64,6 @@ class Coulomb(MetaModel):
         s = np.repeat(sampled_sign(np.asarray(u, dtype=float))[None, :], n_p, axis=0)
         return np.stack([s, np.ones_like(s)], axis=1)
 
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        a = float(amplitude)
-        return np.array([-a, -a]), np.array([a, a])
-
     def identifiable(self, u: FloatArray) -> bool:
         s = np.sign(np.asarray(u, dtype=float))
         counts = [int(np.sum(s == v)) for v in (-1.0, 0.0, 1.0)]

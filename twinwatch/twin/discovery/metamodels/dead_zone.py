@@ -32,20 +32,14 @@ class DeadZone(ScaledShape):
     conditions = ("backlash, a voltage the power stage needs before current flows, a "
                   "stiction band")
     z_powers = (-1, 1)
+    #: ``0 <= b <= 1`` unless the data say otherwise (``|a|``: per unit of normalised input)
+    b_bounds = (0.0, 1.0)
 
     @staticmethod
     def shape(z: FloatArray, b: FloatArray) -> FloatArray:
         """The band's nonlinearity of ``z`` at half-width ``b`` (broadcasts): :func:`dead_zone`
         (a subclass with another band function shares the rest)."""
         return dead_zone(z, b)
-
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        """|a| up to the amplitude per unit of normalised input; ``0 <= b <= 1`` unless the
-        data say otherwise."""
-        a = float(amplitude)
-        b_lo, b_hi = b_range or (0.0, 1.0)
-        return np.array([-a, b_lo]), np.array([a, b_hi])
 
     def data_range(self, u: FloatArray) -> tuple[float, float] | None:
         hi = float(np.quantile(np.abs(u), 0.95))

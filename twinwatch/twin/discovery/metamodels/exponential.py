@@ -18,16 +18,12 @@ class Exponential(ScaledShape):
     equation = "a*b^z"
     conditions = "current leaking, deterioration, wear and tear, corrosion"
     simplifies_to_constant = True
+    b_bounds = (math.exp(-3.0), math.exp(3.0))
 
     @staticmethod
     def shape(z: FloatArray, b: FloatArray) -> FloatArray:
         """``b^z`` (of ``|b|``: a negative base is its magnitude's)."""
         return np.exp(z * np.log(np.abs(b)))
-
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        a = float(amplitude)
-        return np.array([-a, math.exp(-3.0)]), np.array([a, math.exp(3.0)])
 
     def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
         q = np.array(p, dtype=float, copy=True)

@@ -42,11 +42,6 @@ class Linear(MetaModel):
         u = np.asarray(u, dtype=float)[None, :]
         return np.stack([np.repeat(u, n_p, axis=0), np.ones((n_p, u.shape[1]))], axis=1)
 
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        a = float(amplitude)
-        return np.array([-a, -a]), np.array([a, a])
-
     def shift_origin(self, p: FloatArray, t_ref: float) -> tuple[FloatArray, float]:
         q = np.array(p, dtype=float, copy=True)
         q[1] = q[1] - q[0] * t_ref

@@ -34,11 +34,6 @@ class Logarithmic(MetaModel):
             log = np.repeat(np.log(np.where(u > 0, u, np.nan)), n_p, axis=0)
         return np.stack([log, np.ones((n_p, u.shape[1]))], axis=1)
 
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        a = float(amplitude)
-        return np.array([-a, -a]), np.array([a, a])
-
     def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
         q = np.array(p, dtype=float, copy=True)
         q[..., 1] = q[..., 1] - q[..., 0] * math.log(z_ref)

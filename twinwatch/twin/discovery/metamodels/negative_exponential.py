@@ -17,16 +17,12 @@ class NegativeExponential(ScaledShape):
     conditions = "ageing, degradation, fatigue, crack growth"
     z_powers = (0, -1)
     simplifies_to_constant = True
+    b_bounds = (0.0, 5.0)
 
     @staticmethod
     def shape(z: FloatArray, b: FloatArray) -> FloatArray:
         """``exp(-b*z)``."""
         return np.exp(-b * z)
-
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        a = float(amplitude)
-        return np.array([-a, 0.0]), np.array([a, 5.0])
 
     def move_origin(self, p: FloatArray, d: float) -> FloatArray | None:
         """``a exp(-b z) = (a exp(-b d)) exp(-b (z - d))``."""

@@ -16,16 +16,12 @@ class Power(ScaledShape):
     conditions = "hard stops, overloading, mechanical shock"
     positive_input = True
     simplifies_to_constant = True
+    b_bounds = (0.0, 3.0)
 
     @staticmethod
     def shape(z: FloatArray, b: FloatArray) -> FloatArray:
         """``z^b``, nan where ``z <= 0``."""
         return np.where(z > 0, z, np.nan) ** b
-
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        a = float(amplitude)
-        return np.array([-a, 0.0]), np.array([a, 3.0])
 
     def to_raw(self, p: FloatArray, z_ref: float) -> FloatArray:
         q = np.array(p, dtype=float, copy=True)

@@ -23,17 +23,12 @@ class Saturation(ScaledShape):
     equation = "a*tanh(z/b)"
     conditions = "a limit: current limiting, a clamped actuator, magnetic saturation"
     z_powers = (0, 1)
+    b_bounds = (0.02, 3.0)
 
     @staticmethod
     def shape(z: FloatArray, b: FloatArray) -> FloatArray:
         """``tanh(z/b)``."""
         return np.tanh(z / b)
-
-    def bounds(self, amplitude: float, *, b_range: tuple[float, float] | None = None
-               ) -> tuple[FloatArray, FloatArray]:
-        a = float(amplitude)
-        b_lo, b_hi = b_range or (0.02, 3.0)
-        return np.array([-a, b_lo]), np.array([a, b_hi])
 
     def canonical(self, p: FloatArray) -> FloatArray:
         """``b > 0`` (``a tanh(z/b) = -a tanh(-z/b)``)."""
