@@ -124,9 +124,10 @@ def source_problem_lines(silent: Sequence[str], faults: Sequence[str]) -> list[s
 class Driver(Closeable, abc.ABC):
     """Base class of every acquisition driver.
 
-    Subclasses set :attr:`config_class`, :attr:`channels` (and :attr:`live` if the source
-    cannot wait), implement :meth:`from_config`, :meth:`_read_internal` and, if they hold
-    resources, :meth:`_close_internal`, and override the configuration queries
+    Subclasses set :attr:`config_class`, :attr:`driver_name`, :attr:`channels` (and
+    :attr:`live` if the source cannot wait), implement ``__init__(config, *, base_dir)`` (or
+    :meth:`from_config`), :meth:`_read_internal` and, if they hold resources,
+    :meth:`_close_internal`, and override the configuration queries
     (:meth:`nominal_sample_period`, :meth:`duration`, :meth:`safe_to_probe`,
     :meth:`time_starts_over`) where the defaults do not fit.
     """
@@ -147,17 +148,18 @@ class Driver(Closeable, abc.ABC):
     sample_model: ClassVar[str] = "dc_motor"
     sample_machine: ClassVar[str | None] = None
     sample_title: ClassVar[str | None] = None
+    #: the driver in messages and in a validation error (``"CAN"``, ``"Modbus"``, ``"file"``)
+    driver_name: ClassVar[str] = "acquisition"
 
     # -- what a configuration says about the source ---------------------------------------
     @classmethod
-    @abc.abstractmethod
     def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Driver:
         """Open a driver from its configuration (a driver may take further keyword-only
-        arguments, e.g. an open ``bus=`` for CAN).
+        arguments, e.g. an open ``bus=`` for CAN). Default: ``cls(config, base_dir=base_dir)``
+        with ``config`` validated (:func:`validated_config`).
 
         Args:
-            config: a :attr:`config_class` instance or the raw ``[driver]`` table (use
-                :func:`validated_config`).
+            config: a :attr:`config_class` instance or the raw ``[driver]`` table.
             base_dir: directory relative paths in the configuration are resolved against (the
                 configuration file's directory); None: the current directory.
 
@@ -165,6 +167,8 @@ class Driver(Closeable, abc.ABC):
             DriverInitializationError: the table does not validate (naming the key), or the
                 source cannot be opened.
         """
+        checked = validated_config(cls.config_class, config, cls.driver_name)
+        return cls(checked, base_dir=base_dir)  # type: ignore[call-arg]
 
     @classmethod
     def nominal_sample_period(cls, config: DriverConfig) -> float | None:
@@ -321,16 +325,9 @@ class QueuedDriver(Driver):
     reader that falls behind, the jittered reconnect delay and an outage's bookkeeping (the
     first failure at ERROR, the rest at DEBUG, the recovery at WARNING).
 
-    Subclasses call :meth:`_init_queue` from their constructor and set :attr:`source_name`.
+    Subclasses call :meth:`_init_queue` from their constructor and set
+    :attr:`~Driver.driver_name`.
     """
-
-    #: the driver in the log and in a validation error (``"Modbus"``, ``"OPC UA"``)
-    source_name: ClassVar[str]
-
-    @classmethod
-    def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Self:
-        checked = validated_config(cls.config_class, config, cls.source_name)
-        return cls(checked, base_dir=base_dir)  # type: ignore[call-arg]
 
     def _init_queue(self, maxsize: int) -> None:
         self._queue: queue.Queue[Sample] = queue.Queue(maxsize=maxsize)
@@ -366,7 +363,7 @@ class QueuedDriver(Driver):
                 self._queue.get_nowait()
             self.stats.extra["dropped"] += 1
             self.log_once("dropped", "%s driver: %d samples not read; dropping the oldest "
-                          "(stats.extra.dropped)", self.source_name, self._queue.maxsize)
+                          "(stats.extra.dropped)", self.driver_name, self._queue.maxsize)
             self._queue.put_nowait(sample)
 
     def _jittered(self, backoff: float) -> float:
@@ -406,7 +403,7 @@ class PlantDriver(Driver):
     the real drivers (:meth:`_inner`), whose counters are this driver's: the plant's sample
     period and duration, its time starting over at every open.
 
-    Subclasses set :attr:`source_name` and implement ``__init__(config)`` (calling this one's,
+    Subclasses set :attr:`driver_name` and implement ``__init__(config)`` (calling this one's,
     then :meth:`_open_inner`). Closing closes the inner driver, stops :attr:`server` and shuts
     the virtual buses of :meth:`_virtual_pair` down.
 
@@ -415,8 +412,7 @@ class PlantDriver(Driver):
         live: the plant runs in real time (:attr:`Driver.live`).
     """
 
-    #: the driver in a validation error's message (``"simulated Modbus"``)
-    source_name: ClassVar[str] = "simulated"
+    driver_name: ClassVar[str] = "simulated"
     #: what serves the plant (a Modbus device, an OPC UA server: ``start``, ``stop``, ``port``)
     server: Any = None
 
@@ -493,12 +489,8 @@ class PlantDriver(Driver):
 
     @classmethod
     def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Self:
-        """Build the driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        return cls(validated_config(cls.config_class, config, cls.source_name))  # type: ignore[call-arg]
+        """As :meth:`Driver.from_config`; a plant has no file: ``base_dir`` is not used."""
+        return cls(validated_config(cls.config_class, config, cls.driver_name))  # type: ignore[call-arg]
 
     def _inner(self) -> Driver | None:
         """The real driver reading the plant (None before it opened)."""

@@ -248,8 +248,6 @@ class CanDriver(BusDriver):
 
     config_class = CanDriverConfig
     config: CanDriverConfig
-    bus_name = "CAN"
-    sample_model = "dc_motor"
     sample_machine = "dc-motor-can"
     sample_title = "a DC motor drive on a CAN bus"
 

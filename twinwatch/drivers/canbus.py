@@ -389,12 +389,11 @@ class BusDriver(Driver):
             directory); None: the current directory.
         listen_only: put a live interface in receive-only mode (``check-config``).
 
-    A subclass sets :attr:`bus_name`, implements :meth:`_setup` (what to decode),
+    A subclass sets :attr:`~Driver.driver_name`, implements :meth:`_setup` (what to decode),
     :meth:`_on_frame` (one frame, maybe a sample), :meth:`_can_filters` and :meth:`_ready`.
     """
 
-    #: the driver's name in messages (``"CAN"``, ``"CANopen"``)
-    bus_name: ClassVar[str] = "CAN"
+    driver_name: ClassVar[str] = "CAN"
     config: BusDriverConfig
 
     @classmethod
@@ -431,13 +430,9 @@ class BusDriver(Driver):
     @classmethod
     def from_config(cls, config: Any, *, base_dir: Path | None = None,
                     bus: can.BusABC | None = None) -> Self:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        config = validated_config(cls.config_class, config, cls.bus_name)
-        return cls(config, bus=bus, base_dir=base_dir)
+        """As :meth:`Driver.from_config`, and ``bus``: see the class."""
+        return cls(validated_config(cls.config_class, config, cls.driver_name), bus=bus,
+                   base_dir=base_dir)
 
     def __init__(self, config: BusDriverConfig, *, bus: can.BusABC | None = None,
                  base_dir: Path | None = None, listen_only: bool = False) -> None:
@@ -519,7 +514,7 @@ class BusDriver(Driver):
     def _read_internal(self, timeout: float | None) -> Sample | None:
         source = self._source
         if source is None:  # pragma: no cover - only after a failed construction
-            raise DriverOperationError(f"{self.bus_name} driver has no frame source")
+            raise DriverOperationError(f"{self.driver_name} driver has no frame source")
         # Frames already received are processed even when the timeout has run out (so that
         # read(0) returns a sample that is complete in the queue), but at most
         # _MAX_OVERTIME_FRAMES of them, so that a flood without samples cannot hold the
@@ -645,4 +640,4 @@ class BusDriver(Driver):
         source, self._source = self._source, None
         if source is not None:
             source.close()
-            self._log.debug("%s driver closed (%s)", self.bus_name, self.stats.as_dict())
+            self._log.debug("%s driver closed (%s)", self.driver_name, self.stats.as_dict())

@@ -46,7 +46,6 @@ if TYPE_CHECKING:  # imported when the driver opens: validating a config loads n
     import can
 
 logger = logging.getLogger(__name__)
-logger = logging.getLogger(__name__)
 
 __all__ = ["FACTORS", "CanopenChannel", "CanopenDriver", "CanopenDriverConfig", "load_plan"]
 
@@ -491,8 +490,7 @@ class CanopenDriver(BusDriver):
 
     config_class = CanopenDriverConfig
     config: CanopenDriverConfig
-    bus_name = "CANopen"
-    sample_model = "dc_motor"
+    driver_name = "CANopen"
     sample_machine = "dc-motor-canopen"
     sample_title = "a CiA 402 drive on a CANopen bus"
 

@@ -58,9 +58,9 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -73,7 +73,6 @@ from twinwatch.drivers.base import (
     EndOfStream,
     Sample,
     ScaledChannel,
-    validated_config,
 )
 
 logger = logging.getLogger(__name__)
@@ -224,7 +223,7 @@ class FileDriver(Driver):
     """
 
     config_class = FileDriverConfig
-    sample_model = "dc_motor"
+    driver_name = "file"
     sample_machine = "dc-motor-recording"
     sample_title = "a DC motor recording replayed from a file"
 
@@ -245,18 +244,6 @@ class FileDriver(Driver):
         except BaseException:
             self.close()
             raise
-
-    @classmethod
-    def from_config(
-        cls, config: FileDriverConfig | Mapping[str, Any], *, base_dir: Path | None = None
-    ) -> FileDriver:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverConfigError: the table does not validate, or see :class:`FileDriver`.
-        """
-        config = validated_config(FileDriverConfig, config, "file")
-        return cls(config, base_dir=base_dir)
 
     # -- loading ----------------------------------------------------------------------------
     def _setup(self, config: FileDriverConfig) -> None:

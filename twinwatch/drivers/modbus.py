@@ -287,7 +287,7 @@ class ModbusDriver(QueuedDriver):
     sample_model = "hydraulic_actuator"
     sample_machine = "hydraulic-modbus"
     sample_title = "a hydraulic actuator read from a Modbus device"
-    source_name = "Modbus"
+    driver_name = "Modbus"
 
     @classmethod
     def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:

@@ -274,7 +274,7 @@ class OpcUaDriver(QueuedDriver):
     live = True
     sample_machine = "dc-motor-opcua"
     sample_title = "a DC motor drive's OPC UA server, through one subscription"
-    source_name = "OPC UA"
+    driver_name = "OPC UA"
 
     @classmethod
     def reopens(cls, config: DriverConfig) -> bool:

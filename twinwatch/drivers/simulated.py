@@ -85,7 +85,6 @@ class SimulatedDriver(PlantDriver):
     """
 
     config_class = SimulatedDriverConfig
-    sample_model = "dc_motor"
     sample_machine = "dc-motor-sim"
     sample_title = "the simulated DC motor (paper Section 5.2) over a virtual CAN bus"
 

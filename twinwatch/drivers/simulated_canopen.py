@@ -125,10 +125,9 @@ class SimulatedCanopenDriver(PlantDriver):
     """
 
     config_class = SimulatedCanopenDriverConfig
-    sample_model = "dc_motor"
     sample_machine = "dc-motor-canopen-sim"
     sample_title = "the simulated DC motor as a CiA 402 drive on a virtual CANopen bus"
-    source_name = "simulated CANopen"
+    driver_name = "simulated CANopen"
 
     def __init__(self, config: SimulatedCanopenDriverConfig) -> None:
         from twinwatch.drivers.canopen import CanopenDriver, CanopenDriverConfig

@@ -133,10 +133,9 @@ class SimulatedOpcUaDriver(PlantDriver):
     """
 
     config_class = SimulatedOpcUaDriverConfig
-    sample_model = "dc_motor"
     sample_machine = "dc-motor-opcua-sim"
     sample_title = "the simulated DC motor (paper Section 5.2) over OPC UA"
-    source_name = "simulated OPC UA"
+    driver_name = "simulated OPC UA"
 
     @classmethod
     def describe(cls, config: DriverConfig) -> str:
