@@ -39,12 +39,14 @@ from twinwatch.errors import (
     DriverOperationError,
     EndOfStream,
 )
+from twinwatch.io.counter import SampleCounter
 from twinwatch.io.sample import Sample, ScaledChannel
 from twinwatch.plugins import commented_table
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "PACKAGE_PREFIX",
     "Driver",
     "DriverError",
     "DriverInitializationError",
@@ -56,8 +58,29 @@ __all__ = [
     "QueuedDriver",
     "Sample",
     "ScaledChannel",
+    "resolve_path",
     "validated_config",
 ]
+
+
+PACKAGE_PREFIX = "twinwatch:"
+"""A ``dbc``, ``eds``, ``log_file`` (any of :attr:`DriverConfig.file_keys`) written
+``twinwatch:plant/odrive-axis0.log.gz`` is a file shipped inside the installed twinwatch
+package (``twinwatch/plant/...``): found wherever the configuration file is copied (a gateway's
+directory, /etc/twinwatch), unlike a path relative to the file."""
+
+
+def resolve_path(path: Path, base_dir: Path | None) -> Path:
+    """``path`` as the driver opens it: a file of the package (:data:`PACKAGE_PREFIX`), or
+    ``~`` expanded and a relative path joined to ``base_dir`` (the config file's directory;
+    None: left relative to the current directory)."""
+    text = str(path)
+    if text.startswith(PACKAGE_PREFIX):
+        import twinwatch
+
+        return Path(twinwatch.__file__).resolve().parent / text[len(PACKAGE_PREFIX):]
+    path = path.expanduser()
+    return path if path.is_absolute() or base_dir is None else Path(base_dir) / path
 
 
 class DriverConfig(StrictTable):
@@ -68,7 +91,23 @@ class DriverConfig(StrictTable):
             to their own name (``type: Literal["can"]``).
     """
 
+    #: the keys naming a file (a ``Path`` or None): resolved against the configuration file's
+    #: directory (:meth:`resolved`), each given one required to start (:meth:`required_files`)
+    file_keys: ClassVar[tuple[str, ...]] = ()
+
     type: str
+
+    def resolved(self, base_dir: Path | None) -> Self:
+        """A copy whose :attr:`file_keys` are resolved against ``base_dir``
+        (:func:`resolve_path`)."""
+        update = {k: resolve_path(v, base_dir) for k in self.file_keys
+                  if (v := getattr(self, k)) is not None}
+        return self.model_copy(update=update) if update else self
+
+    def required_files(self, base_dir: Path) -> dict[str, Path]:
+        """Config key -> file that must exist to start (the :attr:`file_keys` given)."""
+        cfg = self.resolved(base_dir)
+        return {f"driver.{k}": v for k in self.file_keys if (v := getattr(cfg, k)) is not None}
 
 
 ConfigT = TypeVar("ConfigT", bound=BaseModel)
@@ -309,6 +348,44 @@ class Driver(Closeable, abc.ABC):
         else:
             self._logged_once.add(key)
             log.log(level, msg, *args)
+
+    def _bump(self, key: str, n: int = 1) -> None:
+        self.stats.extra[key] = self.stats.extra.get(key, 0) + n
+
+    def _count(self, counter: SampleCounter, raw: int, what: str, shown: int = 0, *,
+               unit: str = "frame", repeats_expected: bool = False) -> bool:
+        """Feed a sample counter's value ``raw``: a jump counts the samples lost in
+        ``stats.gaps``; a repeat or a late ``unit`` (a frame, a poll's answer) counts in
+        ``stats.extra["duplicates"]`` / ``["reordered"]``, a step further back (the source
+        restarted) in ``["counter_resets"]``; each logged once (a repeat not at all when
+        ``repeats_expected``: a poll faster than the device samples). ``what`` names the
+        counter in the log, whose values are shown ``raw + shown``.
+
+        Returns:
+            True when the sample of this value is to be skipped (a repeat, a late one).
+        """
+        before = counter.raw
+        step, missing = counter.update(raw)
+        old = None if before is None else before + shown
+        if step in ("duplicate", "stale"):
+            key = "duplicates" if step == "duplicate" else "reordered"
+            self._bump(key)
+            if step == "stale" or not repeats_expected:
+                self.log_once(
+                    f"counter:{step}",
+                    "%s %d arrived after %d (%s %s): its sample is skipped, the count goes on; "
+                    "counted in stats.extra[%r]", what, raw + shown, old,
+                    "a repeated" if step == "duplicate" else "a late, reordered", unit, key)
+            return True
+        if step == "reset":
+            self._bump("counter_resets")
+            self.log_once("counter:reset", "%s went back from %d to %d (the source restarted): "
+                          "its clock restarts from the new value", what, old, raw + shown)
+        elif missing:
+            self.stats.gaps += missing
+            self.log_once("counter:gap", "%s jumped from %d to %d: %d samples lost; counted in "
+                          "stats.gaps", what, old, raw + shown, missing)
+        return False
 
     # -- for subclasses -------------------------------------------------------------------
     @abc.abstractmethod

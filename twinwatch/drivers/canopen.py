@@ -139,7 +139,7 @@ class CanopenDriverConfig(BusDriverConfig):
             frame time leaves its channels out).
     """
 
-    description_key: ClassVar[str] = "eds"
+    file_keys: ClassVar[tuple[str, ...]] = ("eds", "log_file")
 
     type: Literal["canopen"]
     node_id: StrictInt = Field(ge=1, le=127)

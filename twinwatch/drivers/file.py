@@ -60,7 +60,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -140,6 +140,8 @@ class FileDriverConfig(DriverConfig):
             as finished (> 0; the run ends as at the end of a file).
     """
 
+    file_keys: ClassVar[tuple[str, ...]] = ("path",)
+
     type: Literal["file"]
     path: Path
     format: Literal["csv", "mat", "auto"] = "auto"
@@ -179,18 +181,6 @@ class FileDriverConfig(DriverConfig):
         """The twin channels this driver delivers (``columns``)."""
         return tuple(self.columns)
 
-    def required_files(self, base_dir: Path) -> dict[str, Path]:
-        """Config key -> file that must exist to start (``path``)."""
-        return {"driver.path": self.resolved(base_dir).path}
-
-    def resolved(self, base_dir: Path | None) -> FileDriverConfig:
-        """Return a copy whose relative ``path`` is joined to ``base_dir``."""
-        if base_dir is None:
-            return self
-        path = self.path.expanduser()
-        if path.is_absolute():
-            return self
-        return self.model_copy(update={"path": Path(base_dir) / path})
 
 
 def _available(name: str, names: Iterable[str]) -> str:

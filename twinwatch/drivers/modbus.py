@@ -78,7 +78,7 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -362,15 +362,11 @@ class ModbusDriver(QueuedDriver):
 
     @staticmethod
     def _make_client(config: ModbusDriverConfig) -> ModbusTcpClient | ModbusSerialClient:
+        common: dict[str, Any] = {"timeout": config.timeout, "retries": config.retries,
+                                  "name": "twinwatch"}
         try:
             if config.transport == "tcp":
-                return ModbusTcpClient(
-                    config.host,
-                    port=config.port,
-                    timeout=config.timeout,
-                    retries=config.retries,
-                    name="twinwatch",
-                )
+                return ModbusTcpClient(config.host, port=config.port, **common)
             assert config.serial_port is not None
             return ModbusSerialClient(
                 config.serial_port,
@@ -378,9 +374,7 @@ class ModbusDriver(QueuedDriver):
                 parity=config.parity,
                 stopbits=config.stopbits,
                 bytesize=config.bytesize,
-                timeout=config.timeout,
-                retries=config.retries,
-                name="twinwatch",
+                **common,
             )
         except (RuntimeError, TypeError, ValueError) as exc:
             raise DriverInitializationError(
@@ -440,15 +434,10 @@ class ModbusDriver(QueuedDriver):
         t_clock = 0.0
         for i, block in enumerate(self.blocks):
             t0 = time.monotonic()
+            read = (client.read_input_registers if block.table == "input"
+                    else client.read_holding_registers)
             try:
-                if block.table == "input":
-                    rr = client.read_input_registers(
-                        block.address, count=block.count, device_id=self.config.device_id
-                    )
-                else:
-                    rr = client.read_holding_registers(
-                        block.address, count=block.count, device_id=self.config.device_id
-                    )
+                rr = read(block.address, count=block.count, device_id=self.config.device_id)
             except ModbusIOException as exc:
                 self._close_client()
                 raise _DeviceFailure("timeouts", f"no response: {exc}") from exc
@@ -500,7 +489,8 @@ class ModbusDriver(QueuedDriver):
             bi, off = self._counter_where
             counter = self.config.counter
             raw = int(counter.decode(regs[bi][off : off + counter.count]))
-            if not self._on_counter(raw):
+            if self._count(self._counter, raw, "Modbus sample counter", unit="answer",
+                           repeats_expected=True):
                 return None
             if self.config.time_source == "counter":
                 assert self._counter.count is not None
@@ -519,39 +509,6 @@ class ModbusDriver(QueuedDriver):
                 )
             values[ch] = value
         return Sample(t, values)
-
-    def _on_counter(self, raw: int) -> bool:
-        """Account for a counter reading; False if the poll is not a new sample (the counter
-        has not advanced, or went back by a few steps: a stale answer)."""
-        before = self._counter.raw
-        step, missing = self._counter.update(raw)
-        if step == "duplicate":
-            self.stats.extra["duplicates"] += 1
-            return False
-        if step == "stale":
-            self.stats.extra["reordered"] += 1
-            self.log_once("counter:stale", "Modbus sample counter went back from %d to %d (a "
-                          "stale answer): the poll is skipped", before, raw)
-            return False
-        if step == "reset":
-            self.stats.extra["counter_resets"] += 1
-            self.log_once(
-                "counter:reset",
-                "Modbus sample counter went back from %d to %d (device restarted?)",
-                before,
-                raw,
-            )
-        elif missing:
-            self.stats.gaps += missing
-            self.log_once(
-                "counter:gap",
-                "Modbus sample counter jumped from %d to %d: %d samples missed; counted in "
-                "stats.gaps",
-                before,
-                raw,
-                missing,
-            )
-        return True
 
     def _deliver(self, sample: Sample) -> None:
         if self.config.lockstep:
