@@ -444,7 +444,6 @@ class QueuedDriver(Driver):
             self._queue.put_nowait(sample)
 
     def _jittered(self, backoff: float) -> float:
-        """A reconnect delay [s]: ``backoff`` times a uniform factor in [0.5, 1)."""
         return backoff * (0.5 + 0.5 * self._rng.random())
 
     def _outage(self, reason: str, first: str, *args: object, again: str) -> None:
@@ -477,7 +476,7 @@ InnerT = TypeVar("InnerT", bound=Driver)
 
 class PlantDriver(Driver):
     """A driver over a simulated plant of its own (its table's ``plant``), read through one of
-    the real drivers (:meth:`_inner`), whose counters are this driver's: the plant's sample
+    the real drivers (:meth:`_open_inner`), whose counters are this driver's: the plant's sample
     period and duration, its time starting over at every open.
 
     Subclasses set :attr:`driver_name` and implement ``__init__(config)`` (calling this one's,
@@ -569,10 +568,6 @@ class PlantDriver(Driver):
         """As :meth:`Driver.from_config`; a plant has no file: ``base_dir`` is not used."""
         return cls(validated_config(cls.config_class, config, cls.driver_name))  # type: ignore[call-arg]
 
-    def _inner(self) -> Driver | None:
-        """The real driver reading the plant (None before it opened)."""
-        return self._inner_driver
-
     # what the real driver reports of its source, reported as the simulated plant's
     @property
     def waiting(self) -> str | None:
@@ -600,7 +595,7 @@ class PlantDriver(Driver):
     def _take(self, timeout: float) -> Sample | None:
         """The inner driver's next sample within ``timeout`` [s], counted once (by this
         driver's :meth:`read`)."""
-        inner = self._inner()
+        inner = self._inner_driver
         assert inner is not None
         sample = inner.read(timeout=timeout)
         if sample is not None:

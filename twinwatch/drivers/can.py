@@ -193,7 +193,6 @@ class _MessagePlan:
 
 
 def _as_float(raw: object) -> float:
-    """A decoded signal value as float (NaN for anything that is not a number)."""
     return float(raw) if isinstance(raw, int | float) else math.nan
 
 

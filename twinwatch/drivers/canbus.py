@@ -552,8 +552,8 @@ class BusDriver(Driver):
 
     @property
     def silent(self) -> tuple[str, ...]:
-        """The messages (or the drive's heartbeat) not received for ``silent_after`` seconds
-        of frame time, with their channels and how long."""
+        """The messages (CANopen: held PDOs; the drive's heartbeat when missing) not received
+        for ``silent_after`` seconds of frame time, with their channels and how long."""
         return self._silent
 
     def _close_internal(self) -> None:

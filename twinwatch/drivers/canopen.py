@@ -565,12 +565,6 @@ class CanopenDriver(BusDriver):
 
     # -- state for STATUS and the health message ------------------------------------------------
     @property
-    def silent(self) -> tuple[str, ...]:
-        """The drive's heartbeat when missing, and held PDOs not received for
-        ``silent_after`` s (with their channels)."""
-        return self._silent
-
-    @property
     def device_faults(self) -> tuple[str, ...]:
         """The drive in fault (its EMCY, its statusword's fault bit) or not operational."""
         return self._faults

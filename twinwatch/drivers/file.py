@@ -651,7 +651,6 @@ def _cells(rows: list[list[str]], j: int) -> tuple[FloatArray, int, str]:
 
 
 def _size(path: Path) -> int:
-    """The file's size [bytes] (0 when it cannot be read)."""
     try:
         return path.stat().st_size
     except OSError:

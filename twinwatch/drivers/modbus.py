@@ -93,14 +93,9 @@ from twinwatch.drivers.base import (
 )
 from twinwatch.io.counter import SampleCounter
 from twinwatch.io.modbus_registers import (
-    FUNCTION_CODES,
-    MAX_READ_REGISTERS,
     ModbusChannelMap,
     ModbusCounterMap,
     ModbusRegister,
-    RegisterBlock,
-    RegisterTable,
-    RegisterType,
     check_overlaps,
     plan_blocks,
 )
@@ -108,20 +103,7 @@ from twinwatch.io.threadlog import demote_thread_records
 
 logger = logging.getLogger(__name__)
 
-__all__ = [  # the register map is re-exported from twinwatch.io.modbus_registers
-    "FUNCTION_CODES",
-    "MAX_READ_REGISTERS",
-    "ModbusChannelMap",
-    "ModbusCounterMap",
-    "ModbusDriver",
-    "ModbusDriverConfig",
-    "ModbusRegister",
-    "RegisterBlock",
-    "RegisterTable",
-    "RegisterType",
-    "check_overlaps",
-    "plan_blocks",
-]
+__all__ = ["ModbusDriver", "ModbusDriverConfig"]
 
 #: exception codes that mean "the register map does not fit this device" (not transient)
 _FATAL_EXCEPTION_CODES = {1: "ILLEGAL FUNCTION", 3: "ILLEGAL DATA VALUE"}

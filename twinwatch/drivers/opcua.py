@@ -246,8 +246,6 @@ class OpcUaDriver(QueuedDriver):
     Attributes:
         channels: twin channel names, in the order of ``config.channels``.
         live: True (a server does not wait for its clients).
-        revised: the server's revised publishing interval [s] and the queue size requested
-            per channel.
         cpu_seconds: CPU time [s] the client's thread has used since it subscribed (asyncua's
             decoding and the joining; updated after each batch of notifications).
 
@@ -300,7 +298,6 @@ class OpcUaDriver(QueuedDriver):
         self._on_take = on_take
         self.stats.extra.update({name: 0 for name in _EXTRA_COUNTERS})
         self.stats.extra.update({f"status_{ch}": 0 for ch in self.channels})
-        self.revised: tuple[float, dict[str, int]] | None = None
         self.cpu_seconds = 0.0
         self._cpu_base: float | None = None
         self._init_queue(_LIVE_QUEUE)
@@ -346,11 +343,6 @@ class OpcUaDriver(QueuedDriver):
         if sample is not None and self._on_take is not None:
             self._on_take(1)
         return sample
-
-    @property
-    def backlog(self) -> int:
-        """Samples joined and not yet read."""
-        return self._queue.qsize()
 
     @property
     def waiting(self) -> str | None:
@@ -651,7 +643,6 @@ class OpcUaDriver(QueuedDriver):
                           "than the monitored items' queue (%d): values will be discarded "
                           "(counted as overflows and gaps); raise driver.queue_size",
                           revised_pub, round(revised_pub / cfg.sample_period), qsize)
-        self.revised = (revised_pub, {ch: qsize for ch in self.channels})
         return sub
 
     async def _consume(self, sub: Any, lost: asyncio.Event) -> str | None:

@@ -158,7 +158,6 @@ class SimulatedCanopenDriver(PlantDriver):
                     config.plant.duration, channel)
 
     def _send_next(self) -> None:
-        """Advance the plant one sample and put its frames on the bus."""
         assert self.drive is not None
         if self.config.realtime:
             self._pace(self.drive.plant.t)
