@@ -23,12 +23,11 @@ from pymodbus.client import ModbusTcpClient
 from twinwatch.drivers import DriverInitializationError, create_driver
 from twinwatch.drivers import modbus as modbus_module
 from twinwatch.drivers.base import EndOfStream, Sample
-from twinwatch.drivers.modbus import (
+from twinwatch.drivers.modbus import ModbusDriver, ModbusDriverConfig
+from twinwatch.io.modbus_registers import (
     MAX_READ_REGISTERS,
     ModbusChannelMap,
     ModbusCounterMap,
-    ModbusDriver,
-    ModbusDriverConfig,
     plan_blocks,
 )
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig

@@ -39,12 +39,14 @@ from twinwatch.errors import (
     DriverOperationError,
     EndOfStream,
 )
+from twinwatch.io.counter import SampleCounter
 from twinwatch.io.sample import Sample, ScaledChannel
 from twinwatch.plugins import commented_table
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "PACKAGE_PREFIX",
     "Driver",
     "DriverError",
     "DriverInitializationError",
@@ -56,8 +58,29 @@ __all__ = [
     "QueuedDriver",
     "Sample",
     "ScaledChannel",
+    "resolve_path",
     "validated_config",
 ]
+
+
+PACKAGE_PREFIX = "twinwatch:"
+"""A ``dbc``, ``eds``, ``log_file`` (any of :attr:`DriverConfig.file_keys`) written
+``twinwatch:plant/odrive-axis0.log.gz`` is a file shipped inside the installed twinwatch
+package (``twinwatch/plant/...``): found wherever the configuration file is copied (a gateway's
+directory, /etc/twinwatch), unlike a path relative to the file."""
+
+
+def resolve_path(path: Path, base_dir: Path | None) -> Path:
+    """``path`` as the driver opens it: a file of the package (:data:`PACKAGE_PREFIX`), or
+    ``~`` expanded and a relative path joined to ``base_dir`` (the config file's directory;
+    None: left relative to the current directory)."""
+    text = str(path)
+    if text.startswith(PACKAGE_PREFIX):
+        import twinwatch
+
+        return Path(twinwatch.__file__).resolve().parent / text[len(PACKAGE_PREFIX):]
+    path = path.expanduser()
+    return path if path.is_absolute() or base_dir is None else Path(base_dir) / path
 
 
 class DriverConfig(StrictTable):
@@ -68,7 +91,23 @@ class DriverConfig(StrictTable):
             to their own name (``type: Literal["can"]``).
     """
 
+    #: the keys naming a file (a ``Path`` or None): resolved against the configuration file's
+    #: directory (:meth:`resolved`), each given one required to start (:meth:`required_files`)
+    file_keys: ClassVar[tuple[str, ...]] = ()
+
     type: str
+
+    def resolved(self, base_dir: Path | None) -> Self:
+        """A copy whose :attr:`file_keys` are resolved against ``base_dir``
+        (:func:`resolve_path`)."""
+        update = {k: resolve_path(v, base_dir) for k in self.file_keys
+                  if (v := getattr(self, k)) is not None}
+        return self.model_copy(update=update) if update else self
+
+    def required_files(self, base_dir: Path) -> dict[str, Path]:
+        """Config key -> file that must exist to start (the :attr:`file_keys` given)."""
+        cfg = self.resolved(base_dir)
+        return {f"driver.{k}": v for k in self.file_keys if (v := getattr(cfg, k)) is not None}
 
 
 ConfigT = TypeVar("ConfigT", bound=BaseModel)
@@ -124,9 +163,10 @@ def source_problem_lines(silent: Sequence[str], faults: Sequence[str]) -> list[s
 class Driver(Closeable, abc.ABC):
     """Base class of every acquisition driver.
 
-    Subclasses set :attr:`config_class`, :attr:`channels` (and :attr:`live` if the source
-    cannot wait), implement :meth:`from_config`, :meth:`_read_internal` and, if they hold
-    resources, :meth:`_close_internal`, and override the configuration queries
+    Subclasses set :attr:`config_class`, :attr:`driver_name`, :attr:`channels` (and
+    :attr:`live` if the source cannot wait), implement ``__init__(config, *, base_dir)`` (or
+    :meth:`from_config`), :meth:`_read_internal` and, if they hold resources,
+    :meth:`_close_internal`, and override the configuration queries
     (:meth:`nominal_sample_period`, :meth:`duration`, :meth:`safe_to_probe`,
     :meth:`time_starts_over`) where the defaults do not fit.
     """
@@ -147,17 +187,18 @@ class Driver(Closeable, abc.ABC):
     sample_model: ClassVar[str] = "dc_motor"
     sample_machine: ClassVar[str | None] = None
     sample_title: ClassVar[str | None] = None
+    #: the driver in messages and in a validation error (``"CAN"``, ``"Modbus"``, ``"file"``)
+    driver_name: ClassVar[str] = "acquisition"
 
     # -- what a configuration says about the source ---------------------------------------
     @classmethod
-    @abc.abstractmethod
     def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Driver:
         """Open a driver from its configuration (a driver may take further keyword-only
-        arguments, e.g. an open ``bus=`` for CAN).
+        arguments, e.g. an open ``bus=`` for CAN). Default: ``cls(config, base_dir=base_dir)``
+        with ``config`` validated (:func:`validated_config`).
 
         Args:
-            config: a :attr:`config_class` instance or the raw ``[driver]`` table (use
-                :func:`validated_config`).
+            config: a :attr:`config_class` instance or the raw ``[driver]`` table.
             base_dir: directory relative paths in the configuration are resolved against (the
                 configuration file's directory); None: the current directory.
 
@@ -165,6 +206,8 @@ class Driver(Closeable, abc.ABC):
             DriverInitializationError: the table does not validate (naming the key), or the
                 source cannot be opened.
         """
+        checked = validated_config(cls.config_class, config, cls.driver_name)
+        return cls(checked, base_dir=base_dir)  # type: ignore[call-arg]
 
     @classmethod
     def nominal_sample_period(cls, config: DriverConfig) -> float | None:
@@ -306,6 +349,44 @@ class Driver(Closeable, abc.ABC):
             self._logged_once.add(key)
             log.log(level, msg, *args)
 
+    def _bump(self, key: str, n: int = 1) -> None:
+        self.stats.extra[key] = self.stats.extra.get(key, 0) + n
+
+    def _count(self, counter: SampleCounter, raw: int, what: str, shown: int = 0, *,
+               unit: str = "frame", repeats_expected: bool = False) -> bool:
+        """Feed a sample counter's value ``raw``: a jump counts the samples lost in
+        ``stats.gaps``; a repeat or a late ``unit`` (a frame, a poll's answer) counts in
+        ``stats.extra["duplicates"]`` / ``["reordered"]``, a step further back (the source
+        restarted) in ``["counter_resets"]``; each logged once (a repeat not at all when
+        ``repeats_expected``: a poll faster than the device samples). ``what`` names the
+        counter in the log, whose values are shown ``raw + shown``.
+
+        Returns:
+            True when the sample of this value is to be skipped (a repeat, a late one).
+        """
+        before = counter.raw
+        step, missing = counter.update(raw)
+        old = None if before is None else before + shown
+        if step in ("duplicate", "stale"):
+            key = "duplicates" if step == "duplicate" else "reordered"
+            self._bump(key)
+            if step == "stale" or not repeats_expected:
+                self.log_once(
+                    f"counter:{step}",
+                    "%s %d arrived after %d (%s %s): its sample is skipped, the count goes on; "
+                    "counted in stats.extra[%r]", what, raw + shown, old,
+                    "a repeated" if step == "duplicate" else "a late, reordered", unit, key)
+            return True
+        if step == "reset":
+            self._bump("counter_resets")
+            self.log_once("counter:reset", "%s went back from %d to %d (the source restarted): "
+                          "its clock restarts from the new value", what, old, raw + shown)
+        elif missing:
+            self.stats.gaps += missing
+            self.log_once("counter:gap", "%s jumped from %d to %d: %d samples lost; counted in "
+                          "stats.gaps", what, old, raw + shown, missing)
+        return False
+
     # -- for subclasses -------------------------------------------------------------------
     @abc.abstractmethod
     def _read_internal(self, timeout: float | None) -> Sample | None:
@@ -321,16 +402,9 @@ class QueuedDriver(Driver):
     reader that falls behind, the jittered reconnect delay and an outage's bookkeeping (the
     first failure at ERROR, the rest at DEBUG, the recovery at WARNING).
 
-    Subclasses call :meth:`_init_queue` from their constructor and set :attr:`source_name`.
+    Subclasses call :meth:`_init_queue` from their constructor and set
+    :attr:`~Driver.driver_name`.
     """
-
-    #: the driver in the log and in a validation error (``"Modbus"``, ``"OPC UA"``)
-    source_name: ClassVar[str]
-
-    @classmethod
-    def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Self:
-        checked = validated_config(cls.config_class, config, cls.source_name)
-        return cls(checked, base_dir=base_dir)  # type: ignore[call-arg]
 
     def _init_queue(self, maxsize: int) -> None:
         self._queue: queue.Queue[Sample] = queue.Queue(maxsize=maxsize)
@@ -366,11 +440,10 @@ class QueuedDriver(Driver):
                 self._queue.get_nowait()
             self.stats.extra["dropped"] += 1
             self.log_once("dropped", "%s driver: %d samples not read; dropping the oldest "
-                          "(stats.extra.dropped)", self.source_name, self._queue.maxsize)
+                          "(stats.extra.dropped)", self.driver_name, self._queue.maxsize)
             self._queue.put_nowait(sample)
 
     def _jittered(self, backoff: float) -> float:
-        """A reconnect delay [s]: ``backoff`` times a uniform factor in [0.5, 1)."""
         return backoff * (0.5 + 0.5 * self._rng.random())
 
     def _outage(self, reason: str, first: str, *args: object, again: str) -> None:
@@ -403,10 +476,10 @@ InnerT = TypeVar("InnerT", bound=Driver)
 
 class PlantDriver(Driver):
     """A driver over a simulated plant of its own (its table's ``plant``), read through one of
-    the real drivers (:meth:`_inner`), whose counters are this driver's: the plant's sample
+    the real drivers (:meth:`_open_inner`), whose counters are this driver's: the plant's sample
     period and duration, its time starting over at every open.
 
-    Subclasses set :attr:`source_name` and implement ``__init__(config)`` (calling this one's,
+    Subclasses set :attr:`driver_name` and implement ``__init__(config)`` (calling this one's,
     then :meth:`_open_inner`). Closing closes the inner driver, stops :attr:`server` and shuts
     the virtual buses of :meth:`_virtual_pair` down.
 
@@ -415,8 +488,7 @@ class PlantDriver(Driver):
         live: the plant runs in real time (:attr:`Driver.live`).
     """
 
-    #: the driver in a validation error's message (``"simulated Modbus"``)
-    source_name: ClassVar[str] = "simulated"
+    driver_name: ClassVar[str] = "simulated"
     #: what serves the plant (a Modbus device, an OPC UA server: ``start``, ``stop``, ``port``)
     server: Any = None
 
@@ -493,16 +565,8 @@ class PlantDriver(Driver):
 
     @classmethod
     def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Self:
-        """Build the driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        return cls(validated_config(cls.config_class, config, cls.source_name))  # type: ignore[call-arg]
-
-    def _inner(self) -> Driver | None:
-        """The real driver reading the plant (None before it opened)."""
-        return self._inner_driver
+        """As :meth:`Driver.from_config`; a plant has no file: ``base_dir`` is not used."""
+        return cls(validated_config(cls.config_class, config, cls.driver_name))  # type: ignore[call-arg]
 
     # what the real driver reports of its source, reported as the simulated plant's
     @property
@@ -531,7 +595,7 @@ class PlantDriver(Driver):
     def _take(self, timeout: float) -> Sample | None:
         """The inner driver's next sample within ``timeout`` [s], counted once (by this
         driver's :meth:`read`)."""
-        inner = self._inner()
+        inner = self._inner_driver
         assert inner is not None
         sample = inner.read(timeout=timeout)
         if sample is not None:

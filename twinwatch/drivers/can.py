@@ -115,7 +115,7 @@ class CanDriverConfig(BusDriverConfig):
             resolved against the configuration file's directory (``base_dir``).
         log_file: replay this log (any suffix :func:`can.LogReader` knows) instead of a live
             bus; relative to ``base_dir`` like ``dbc`` (either may be ``twinwatch:<path>``, a
-            file shipped in the package: :data:`~twinwatch.drivers.canbus.PACKAGE_PREFIX`). The
+            file shipped in the package: :data:`~twinwatch.drivers.base.PACKAGE_PREFIX`). The
             end of the log raises :class:`~twinwatch.drivers.base.EndOfStream`.
         realtime: for ``log_file`` only: pace the replay by the log's time stamps (as
             :class:`can.MessageSync` does); False replays as fast as the caller reads.
@@ -139,7 +139,7 @@ class CanDriverConfig(BusDriverConfig):
             raise it for a message sent more slowly than that.
     """
 
-    description_key: ClassVar[str] = "dbc"
+    file_keys: ClassVar[tuple[str, ...]] = ("dbc", "log_file")
 
     type: Literal["can"]
     dbc: Path
@@ -193,7 +193,6 @@ class _MessagePlan:
 
 
 def _as_float(raw: object) -> float:
-    """A decoded signal value as float (NaN for anything that is not a number)."""
     return float(raw) if isinstance(raw, int | float) else math.nan
 
 
@@ -248,8 +247,6 @@ class CanDriver(BusDriver):
 
     config_class = CanDriverConfig
     config: CanDriverConfig
-    bus_name = "CAN"
-    sample_model = "dc_motor"
     sample_machine = "dc-motor-can"
     sample_title = "a DC motor drive on a CAN bus"
 

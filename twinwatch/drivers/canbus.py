@@ -38,13 +38,11 @@ from twinwatch.drivers.base import (
     Sample,
     validated_config,
 )
-from twinwatch.io.counter import SampleCounter
 
 if TYPE_CHECKING:  # imported when a source opens: validating a config loads no CAN stack
     import can
 
-__all__ = ["PACKAGE_PREFIX", "BusDriver", "BusDriverConfig", "BusSource", "FrameSource",
-           "LogSource", "resolve_path"]
+__all__ = ["BusDriver", "BusDriverConfig", "BusSource", "FrameSource", "LogSource"]
 
 #: frames read(timeout) still processes, without waiting, once its timeout has run out
 _MAX_OVERTIME_FRAMES = 1000
@@ -54,32 +52,9 @@ _SPIN_CPU = 0.3
 #: a text log with more malformed lines than this is refused as not a CAN log at all
 _MAX_BAD_LINES = 1000
 
-PACKAGE_PREFIX = "twinwatch:"
-"""A ``dbc``, ``eds`` or ``log_file`` written ``twinwatch:plant/odrive-axis0.log.gz`` is a file
-shipped inside the installed twinwatch package (``twinwatch/plant/...``): found wherever the
-configuration file is copied (a gateway's directory, /etc/twinwatch), unlike a path relative
-to the file."""
-
-
-def resolve_path(path: Path, base_dir: Path) -> Path:
-    """``path`` as the driver opens it: a file of the package (:data:`PACKAGE_PREFIX`), or
-    ``~`` expanded and a relative path joined to ``base_dir`` (the config file's directory)."""
-    text = str(path)
-    if text.startswith(PACKAGE_PREFIX):
-        import twinwatch
-
-        return Path(twinwatch.__file__).resolve().parent / text[len(PACKAGE_PREFIX):]
-    path = path.expanduser()
-    return path if path.is_absolute() else Path(base_dir) / path
-
-
 class BusDriverConfig(DriverConfig):
     """The keys of a python-can bus or a log replay, shared by the CAN bus drivers' tables
     (each driver's class documents them for its own table)."""
-
-    #: the key of the file describing the frames (``"dbc"``, ``"eds"``), resolved like
-    #: ``log_file`` against the configuration file's directory
-    description_key: ClassVar[str]
 
     interface: str | None = None
     channel: str | StrictInt | None = None
@@ -106,25 +81,6 @@ class BusDriverConfig(DriverConfig):
     def twin_channels(self) -> tuple[str, ...]:
         """The twin channels the driver delivers (each driver's table maps them)."""
         raise NotImplementedError
-
-    def required_files(self, base_dir: Path) -> dict[str, Path]:
-        """Config key -> file that must exist to start (the description file, ``log_file``)."""
-        cfg = self.resolved(base_dir)
-        files = {f"driver.{self.description_key}": getattr(cfg, self.description_key)}
-        if cfg.log_file is not None:
-            files["driver.log_file"] = cfg.log_file
-        return files
-
-    def resolved(self, base_dir: Path | None) -> Self:
-        """A copy whose relative description file and ``log_file`` are joined to
-        ``base_dir`` (:func:`resolve_path`)."""
-        if base_dir is None:
-            return self
-        key = self.description_key
-        update: dict[str, Path] = {key: resolve_path(getattr(self, key), base_dir)}
-        if self.log_file is not None:
-            update["log_file"] = resolve_path(self.log_file, base_dir)
-        return self.model_copy(update=update)
 
 
 # -- frame sources ------------------------------------------------------------------------
@@ -389,12 +345,11 @@ class BusDriver(Driver):
             directory); None: the current directory.
         listen_only: put a live interface in receive-only mode (``check-config``).
 
-    A subclass sets :attr:`bus_name`, implements :meth:`_setup` (what to decode),
+    A subclass sets :attr:`~Driver.driver_name`, implements :meth:`_setup` (what to decode),
     :meth:`_on_frame` (one frame, maybe a sample), :meth:`_can_filters` and :meth:`_ready`.
     """
 
-    #: the driver's name in messages (``"CAN"``, ``"CANopen"``)
-    bus_name: ClassVar[str] = "CAN"
+    driver_name: ClassVar[str] = "CAN"
     config: BusDriverConfig
 
     @classmethod
@@ -431,13 +386,9 @@ class BusDriver(Driver):
     @classmethod
     def from_config(cls, config: Any, *, base_dir: Path | None = None,
                     bus: can.BusABC | None = None) -> Self:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverInitializationError: the table does not validate, or see the class.
-        """
-        config = validated_config(cls.config_class, config, cls.bus_name)
-        return cls(config, bus=bus, base_dir=base_dir)
+        """As :meth:`Driver.from_config`, and ``bus``: see the class."""
+        return cls(validated_config(cls.config_class, config, cls.driver_name), bus=bus,
+                   base_dir=base_dir)
 
     def __init__(self, config: BusDriverConfig, *, bus: can.BusABC | None = None,
                  base_dir: Path | None = None, listen_only: bool = False) -> None:
@@ -519,7 +470,7 @@ class BusDriver(Driver):
     def _read_internal(self, timeout: float | None) -> Sample | None:
         source = self._source
         if source is None:  # pragma: no cover - only after a failed construction
-            raise DriverOperationError(f"{self.bus_name} driver has no frame source")
+            raise DriverOperationError(f"{self.driver_name} driver has no frame source")
         # Frames already received are processed even when the timeout has run out (so that
         # read(0) returns a sample that is complete in the queue), but at most
         # _MAX_OVERTIME_FRAMES of them, so that a flood without samples cannot hold the
@@ -567,42 +518,6 @@ class BusDriver(Driver):
         self.log_once("log-line", "CAN log line %d is malformed (%s: %s): skipped, counted in "
                       "stats.bad_frames; the replay goes on", line, type(exc).__name__, exc)
 
-    def _bump(self, key: str, n: int = 1) -> None:
-        self.stats.extra[key] = self.stats.extra.get(key, 0) + n
-
-    # -- what the frames say --------------------------------------------------------------------
-    def _count(self, counter: SampleCounter, raw: int, what: str, shown: int = 0) -> bool:
-        """Feed a sample counter's value ``raw``: a jump counts the samples lost in
-        ``stats.gaps``; a repeat or a late frame counts in ``stats.extra["duplicates"]`` /
-        ``["reordered"]``, a step further back (the source restarted) in
-        ``["counter_resets"]``; each logged once. ``what`` names the counter in the log,
-        whose values are shown ``raw + shown``.
-
-        Returns:
-            True when the sample of this value is to be skipped (a repeat, a late frame).
-        """
-        before = counter.raw
-        step, missing = counter.update(raw)
-        old = None if before is None else before + shown
-        if step in ("duplicate", "stale"):
-            key = "duplicates" if step == "duplicate" else "reordered"
-            self._bump(key)
-            self.log_once(
-                f"counter:{step}",
-                "%s %d arrived after %d (%s frame): its sample is skipped, the count goes on; "
-                "counted in stats.extra[%r]", what, raw + shown, old,
-                "a repeated" if step == "duplicate" else "a late, reordered", key)
-            return True
-        if step == "reset":
-            self._bump("counter_resets")
-            self.log_once("counter:reset", "%s went back from %d to %d (the source restarted): "
-                          "its clock restarts from the new value", what, old, raw + shown)
-        elif missing:
-            self.stats.gaps += missing
-            self.log_once("counter:gap", "%s jumped from %d to %d: %d samples lost; counted in "
-                          "stats.gaps", what, old, raw + shown, missing)
-        return False
-
     def _silent_since(self, now: float, watched: Mapping[str, list[str]], *, what: str,
                       key: str, quiet: Callable[[float], bool] | None = None,
                       ) -> tuple[list[str], set[str]]:
@@ -637,12 +552,12 @@ class BusDriver(Driver):
 
     @property
     def silent(self) -> tuple[str, ...]:
-        """The messages (or the drive's heartbeat) not received for ``silent_after`` seconds
-        of frame time, with their channels and how long."""
+        """The messages (CANopen: held PDOs; the drive's heartbeat when missing) not received
+        for ``silent_after`` seconds of frame time, with their channels and how long."""
         return self._silent
 
     def _close_internal(self) -> None:
         source, self._source = self._source, None
         if source is not None:
             source.close()
-            self._log.debug("%s driver closed (%s)", self.bus_name, self.stats.as_dict())
+            self._log.debug("%s driver closed (%s)", self.driver_name, self.stats.as_dict())

@@ -46,7 +46,6 @@ if TYPE_CHECKING:  # imported when the driver opens: validating a config loads n
     import can
 
 logger = logging.getLogger(__name__)
-logger = logging.getLogger(__name__)
 
 __all__ = ["FACTORS", "CanopenChannel", "CanopenDriver", "CanopenDriverConfig", "load_plan"]
 
@@ -140,7 +139,7 @@ class CanopenDriverConfig(BusDriverConfig):
             frame time leaves its channels out).
     """
 
-    description_key: ClassVar[str] = "eds"
+    file_keys: ClassVar[tuple[str, ...]] = ("eds", "log_file")
 
     type: Literal["canopen"]
     node_id: StrictInt = Field(ge=1, le=127)
@@ -491,8 +490,7 @@ class CanopenDriver(BusDriver):
 
     config_class = CanopenDriverConfig
     config: CanopenDriverConfig
-    bus_name = "CANopen"
-    sample_model = "dc_motor"
+    driver_name = "CANopen"
     sample_machine = "dc-motor-canopen"
     sample_title = "a CiA 402 drive on a CANopen bus"
 
@@ -566,12 +564,6 @@ class CanopenDriver(BusDriver):
                 + [{"can_id": 0x700, "can_mask": 0x780, "extended": False}])
 
     # -- state for STATUS and the health message ------------------------------------------------
-    @property
-    def silent(self) -> tuple[str, ...]:
-        """The drive's heartbeat when missing, and held PDOs not received for
-        ``silent_after`` s (with their channels)."""
-        return self._silent
-
     @property
     def device_faults(self) -> tuple[str, ...]:
         """The drive in fault (its EMCY, its statusword's fault bit) or not operational."""

@@ -58,9 +58,9 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -73,7 +73,6 @@ from twinwatch.drivers.base import (
     EndOfStream,
     Sample,
     ScaledChannel,
-    validated_config,
 )
 
 logger = logging.getLogger(__name__)
@@ -141,6 +140,8 @@ class FileDriverConfig(DriverConfig):
             as finished (> 0; the run ends as at the end of a file).
     """
 
+    file_keys: ClassVar[tuple[str, ...]] = ("path",)
+
     type: Literal["file"]
     path: Path
     format: Literal["csv", "mat", "auto"] = "auto"
@@ -180,18 +181,6 @@ class FileDriverConfig(DriverConfig):
         """The twin channels this driver delivers (``columns``)."""
         return tuple(self.columns)
 
-    def required_files(self, base_dir: Path) -> dict[str, Path]:
-        """Config key -> file that must exist to start (``path``)."""
-        return {"driver.path": self.resolved(base_dir).path}
-
-    def resolved(self, base_dir: Path | None) -> FileDriverConfig:
-        """Return a copy whose relative ``path`` is joined to ``base_dir``."""
-        if base_dir is None:
-            return self
-        path = self.path.expanduser()
-        if path.is_absolute():
-            return self
-        return self.model_copy(update={"path": Path(base_dir) / path})
 
 
 def _available(name: str, names: Iterable[str]) -> str:
@@ -224,7 +213,7 @@ class FileDriver(Driver):
     """
 
     config_class = FileDriverConfig
-    sample_model = "dc_motor"
+    driver_name = "file"
     sample_machine = "dc-motor-recording"
     sample_title = "a DC motor recording replayed from a file"
 
@@ -245,18 +234,6 @@ class FileDriver(Driver):
         except BaseException:
             self.close()
             raise
-
-    @classmethod
-    def from_config(
-        cls, config: FileDriverConfig | Mapping[str, Any], *, base_dir: Path | None = None
-    ) -> FileDriver:
-        """Build a driver from a validated config or a raw ``[driver]`` table.
-
-        Raises:
-            DriverConfigError: the table does not validate, or see :class:`FileDriver`.
-        """
-        config = validated_config(FileDriverConfig, config, "file")
-        return cls(config, base_dir=base_dir)
 
     # -- loading ----------------------------------------------------------------------------
     def _setup(self, config: FileDriverConfig) -> None:
@@ -674,7 +651,6 @@ def _cells(rows: list[list[str]], j: int) -> tuple[FloatArray, int, str]:
 
 
 def _size(path: Path) -> int:
-    """The file's size [bytes] (0 when it cannot be read)."""
     try:
         return path.stat().st_size
     except OSError:

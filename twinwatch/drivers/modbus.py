@@ -78,7 +78,7 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -93,14 +93,9 @@ from twinwatch.drivers.base import (
 )
 from twinwatch.io.counter import SampleCounter
 from twinwatch.io.modbus_registers import (
-    FUNCTION_CODES,
-    MAX_READ_REGISTERS,
     ModbusChannelMap,
     ModbusCounterMap,
     ModbusRegister,
-    RegisterBlock,
-    RegisterTable,
-    RegisterType,
     check_overlaps,
     plan_blocks,
 )
@@ -108,20 +103,7 @@ from twinwatch.io.threadlog import demote_thread_records
 
 logger = logging.getLogger(__name__)
 
-__all__ = [  # the register map is re-exported from twinwatch.io.modbus_registers
-    "FUNCTION_CODES",
-    "MAX_READ_REGISTERS",
-    "ModbusChannelMap",
-    "ModbusCounterMap",
-    "ModbusDriver",
-    "ModbusDriverConfig",
-    "ModbusRegister",
-    "RegisterBlock",
-    "RegisterTable",
-    "RegisterType",
-    "check_overlaps",
-    "plan_blocks",
-]
+__all__ = ["ModbusDriver", "ModbusDriverConfig"]
 
 #: exception codes that mean "the register map does not fit this device" (not transient)
 _FATAL_EXCEPTION_CODES = {1: "ILLEGAL FUNCTION", 3: "ILLEGAL DATA VALUE"}
@@ -287,7 +269,7 @@ class ModbusDriver(QueuedDriver):
     sample_model = "hydraulic_actuator"
     sample_machine = "hydraulic-modbus"
     sample_title = "a hydraulic actuator read from a Modbus device"
-    source_name = "Modbus"
+    driver_name = "Modbus"
 
     @classmethod
     def probe(cls, config: DriverConfig, *, base_dir: Path | None = None) -> str | None:
@@ -362,15 +344,11 @@ class ModbusDriver(QueuedDriver):
 
     @staticmethod
     def _make_client(config: ModbusDriverConfig) -> ModbusTcpClient | ModbusSerialClient:
+        common: dict[str, Any] = {"timeout": config.timeout, "retries": config.retries,
+                                  "name": "twinwatch"}
         try:
             if config.transport == "tcp":
-                return ModbusTcpClient(
-                    config.host,
-                    port=config.port,
-                    timeout=config.timeout,
-                    retries=config.retries,
-                    name="twinwatch",
-                )
+                return ModbusTcpClient(config.host, port=config.port, **common)
             assert config.serial_port is not None
             return ModbusSerialClient(
                 config.serial_port,
@@ -378,9 +356,7 @@ class ModbusDriver(QueuedDriver):
                 parity=config.parity,
                 stopbits=config.stopbits,
                 bytesize=config.bytesize,
-                timeout=config.timeout,
-                retries=config.retries,
-                name="twinwatch",
+                **common,
             )
         except (RuntimeError, TypeError, ValueError) as exc:
             raise DriverInitializationError(
@@ -440,15 +416,10 @@ class ModbusDriver(QueuedDriver):
         t_clock = 0.0
         for i, block in enumerate(self.blocks):
             t0 = time.monotonic()
+            read = (client.read_input_registers if block.table == "input"
+                    else client.read_holding_registers)
             try:
-                if block.table == "input":
-                    rr = client.read_input_registers(
-                        block.address, count=block.count, device_id=self.config.device_id
-                    )
-                else:
-                    rr = client.read_holding_registers(
-                        block.address, count=block.count, device_id=self.config.device_id
-                    )
+                rr = read(block.address, count=block.count, device_id=self.config.device_id)
             except ModbusIOException as exc:
                 self._close_client()
                 raise _DeviceFailure("timeouts", f"no response: {exc}") from exc
@@ -500,7 +471,8 @@ class ModbusDriver(QueuedDriver):
             bi, off = self._counter_where
             counter = self.config.counter
             raw = int(counter.decode(regs[bi][off : off + counter.count]))
-            if not self._on_counter(raw):
+            if self._count(self._counter, raw, "Modbus sample counter", unit="answer",
+                           repeats_expected=True):
                 return None
             if self.config.time_source == "counter":
                 assert self._counter.count is not None
@@ -519,39 +491,6 @@ class ModbusDriver(QueuedDriver):
                 )
             values[ch] = value
         return Sample(t, values)
-
-    def _on_counter(self, raw: int) -> bool:
-        """Account for a counter reading; False if the poll is not a new sample (the counter
-        has not advanced, or went back by a few steps: a stale answer)."""
-        before = self._counter.raw
-        step, missing = self._counter.update(raw)
-        if step == "duplicate":
-            self.stats.extra["duplicates"] += 1
-            return False
-        if step == "stale":
-            self.stats.extra["reordered"] += 1
-            self.log_once("counter:stale", "Modbus sample counter went back from %d to %d (a "
-                          "stale answer): the poll is skipped", before, raw)
-            return False
-        if step == "reset":
-            self.stats.extra["counter_resets"] += 1
-            self.log_once(
-                "counter:reset",
-                "Modbus sample counter went back from %d to %d (device restarted?)",
-                before,
-                raw,
-            )
-        elif missing:
-            self.stats.gaps += missing
-            self.log_once(
-                "counter:gap",
-                "Modbus sample counter jumped from %d to %d: %d samples missed; counted in "
-                "stats.gaps",
-                before,
-                raw,
-                missing,
-            )
-        return True
 
     def _deliver(self, sample: Sample) -> None:
         if self.config.lockstep:

@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from pydantic import Field, StrictFloat, StrictInt, model_validator
 
@@ -143,6 +143,9 @@ class OpcUaDriverConfig(DriverConfig):
         channels: twin channel -> :class:`OpcUaChannelMap`, at least one.
     """
 
+    file_keys: ClassVar[tuple[str, ...]] = ("certificate", "private_key", "server_certificate",
+                                            "password_file")
+
     type: Literal["opcua"]
     endpoint: str = Field(pattern=r"^opc\.tcp://[^/\s]+(/\S*)?$",
                           description="opc.tcp://host:port[/path]")
@@ -198,31 +201,16 @@ class OpcUaDriverConfig(DriverConfig):
             return self.queue_size
         return max(10, 4 * math.ceil(self.publishing_interval / self.sample_period - 1e-9))
 
-    def resolved(self, base_dir: Path | None) -> OpcUaDriverConfig:
-        """A copy whose relative file paths are joined to ``base_dir`` (``~`` expanded)."""
-        update: dict[str, Path] = {}
-        for key, path in self._files().items():
-            p = path.expanduser()
-            update[key] = p if p.is_absolute() or base_dir is None else Path(base_dir) / p
-        return self.model_copy(update=update) if update else self
-
-    def _files(self) -> dict[str, Path]:
-        return {k: v for k in ("certificate", "private_key", "server_certificate",
-                               "password_file") if (v := getattr(self, k)) is not None}
-
     def secret_input_files(self, base_dir: Path) -> dict[str, Path]:
         """The private key and the password file (``check-config`` and ``run`` refuse them
         when other users can read them, as the outputs' secrets)."""
-        files = self.resolved(base_dir)._files()
-        return {k: v for k, v in files.items() if k in ("private_key", "password_file")}
+        cfg = self.resolved(base_dir)
+        return {k: v for k in ("private_key", "password_file")
+                if (v := getattr(cfg, k)) is not None}
 
     def inline_secret_keys(self) -> list[str]:
         """``password`` written in the configuration itself (the file is then a secret)."""
         return ["password"] if self.password is not None else []
-
-    def required_files(self, base_dir: Path) -> dict[str, Path]:
-        """Config key -> file that must exist to start (certificates, key, password file)."""
-        return {f"driver.{k}": v for k, v in self.resolved(base_dir)._files().items()}
 
 
 # -- the driver -------------------------------------------------------------------------------
@@ -258,8 +246,6 @@ class OpcUaDriver(QueuedDriver):
     Attributes:
         channels: twin channel names, in the order of ``config.channels``.
         live: True (a server does not wait for its clients).
-        revised: the server's revised publishing interval [s] and the queue size requested
-            per channel.
         cpu_seconds: CPU time [s] the client's thread has used since it subscribed (asyncua's
             decoding and the joining; updated after each batch of notifications).
 
@@ -274,7 +260,7 @@ class OpcUaDriver(QueuedDriver):
     live = True
     sample_machine = "dc-motor-opcua"
     sample_title = "a DC motor drive's OPC UA server, through one subscription"
-    source_name = "OPC UA"
+    driver_name = "OPC UA"
 
     @classmethod
     def reopens(cls, config: DriverConfig) -> bool:
@@ -312,7 +298,6 @@ class OpcUaDriver(QueuedDriver):
         self._on_take = on_take
         self.stats.extra.update({name: 0 for name in _EXTRA_COUNTERS})
         self.stats.extra.update({f"status_{ch}": 0 for ch in self.channels})
-        self.revised: tuple[float, dict[str, int]] | None = None
         self.cpu_seconds = 0.0
         self._cpu_base: float | None = None
         self._init_queue(_LIVE_QUEUE)
@@ -358,11 +343,6 @@ class OpcUaDriver(QueuedDriver):
         if sample is not None and self._on_take is not None:
             self._on_take(1)
         return sample
-
-    @property
-    def backlog(self) -> int:
-        """Samples joined and not yet read."""
-        return self._queue.qsize()
 
     @property
     def waiting(self) -> str | None:
@@ -663,7 +643,6 @@ class OpcUaDriver(QueuedDriver):
                           "than the monitored items' queue (%d): values will be discarded "
                           "(counted as overflows and gaps); raise driver.queue_size",
                           revised_pub, round(revised_pub / cfg.sample_period), qsize)
-        self.revised = (revised_pub, {ch: qsize for ch in self.channels})
         return sub
 
     async def _consume(self, sub: Any, lost: asyncio.Event) -> str | None:
@@ -684,15 +663,10 @@ class OpcUaDriver(QueuedDriver):
                         ev = get.result()
                     except StopAsyncIteration:
                         return "subscription closed"
-                    if isinstance(ev, DataChangeEvent):
-                        self._on_value(ev.data.monitored_item)
-                    # drain what is queued without waiting
-                    while True:
-                        ev = self._nowait(sub)
-                        if ev is None:
-                            break
+                    while ev is not None:  # this one, then what is queued, without waiting
                         if isinstance(ev, DataChangeEvent):
                             self._on_value(ev.data.monitored_item)
+                        ev = self._nowait(sub)
                     self.cpu_seconds = time.thread_time() - (self._cpu_base or 0.0)
                     continue
                 get.cancel()
@@ -709,10 +683,9 @@ class OpcUaDriver(QueuedDriver):
         if q is None:
             return None
         try:
-            item = q.get_nowait()
+            return q.get_nowait()
         except asyncio.QueueEmpty:
             return None
-        return item
 
     # -- joining values into samples (loop thread) ------------------------------------------
     def _on_value(self, item: Any) -> None:

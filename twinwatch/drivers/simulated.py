@@ -85,7 +85,6 @@ class SimulatedDriver(PlantDriver):
     """
 
     config_class = SimulatedDriverConfig
-    sample_model = "dc_motor"
     sample_machine = "dc-motor-sim"
     sample_title = "the simulated DC motor (paper Section 5.2) over a virtual CAN bus"
 
@@ -102,12 +101,11 @@ class SimulatedDriver(PlantDriver):
             channel = f"twinwatch-sim-{next(_channel_ids)}"
         dbc = plant_dbc_path()
         self._tx: can.BusABC | None = None
-        self._can: CanDriver | None = None
+
         def open_inner() -> CanDriver:
             db = cantools.database.load_file(str(dbc))
             assert isinstance(db, cantools.database.can.Database)
-            self._db = db
-            self._messages = [(self._db.get_message_by_name(m), sigs) for m, sigs in _MESSAGES]
+            self._messages = [(db.get_message_by_name(m), sigs) for m, sigs in _MESSAGES]
             self._message = can.Message
             rx, self._tx = self._virtual_pair(channel)
             can_cfg = CanDriverConfig(
@@ -122,12 +120,11 @@ class SimulatedDriver(PlantDriver):
             )
             return CanDriver(can_cfg, bus=rx)
 
-        self._can = self._open_inner(open_inner, "simulated plant could not start: {exc}")
+        self._open_inner(open_inner, "simulated plant could not start: {exc}")
         logger.info("simulated %s plant, scenario %s, %.0f s, on virtual CAN channel %r",
                     config.machine, config.plant.scenario, config.plant.duration, channel)
 
     def _send_next(self) -> None:
-        """Advance the plant one sample and put its frames on the bus."""
         assert self._tx is not None
         sample = self.plant.next_sample()  # raises EndOfStream at the end
         if self.config.realtime:

@@ -125,10 +125,9 @@ class SimulatedCanopenDriver(PlantDriver):
     """
 
     config_class = SimulatedCanopenDriverConfig
-    sample_model = "dc_motor"
     sample_machine = "dc-motor-canopen-sim"
     sample_title = "the simulated DC motor as a CiA 402 drive on a virtual CANopen bus"
-    source_name = "simulated CANopen"
+    driver_name = "simulated CANopen"
 
     def __init__(self, config: SimulatedCanopenDriverConfig) -> None:
         from twinwatch.drivers.canopen import CanopenDriver, CanopenDriverConfig
@@ -159,7 +158,6 @@ class SimulatedCanopenDriver(PlantDriver):
                     config.plant.duration, channel)
 
     def _send_next(self) -> None:
-        """Advance the plant one sample and put its frames on the bus."""
         assert self.drive is not None
         if self.config.realtime:
             self._pace(self.drive.plant.t)

@@ -170,7 +170,7 @@ class SimulatedModbusDriver(PlantDriver):
     sample_model = "hydraulic_actuator"
     sample_machine = "hydraulic-sim"
     sample_title = "the simulated hydraulic actuator (paper Section 5.3) over Modbus TCP"
-    source_name = "simulated Modbus"
+    driver_name = "simulated Modbus"
 
     def __init__(self, config: SimulatedModbusDriverConfig) -> None:
         from twinwatch.drivers.modbus import ModbusDriver

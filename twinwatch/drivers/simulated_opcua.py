@@ -133,10 +133,9 @@ class SimulatedOpcUaDriver(PlantDriver):
     """
 
     config_class = SimulatedOpcUaDriverConfig
-    sample_model = "dc_motor"
     sample_machine = "dc-motor-opcua-sim"
     sample_title = "the simulated DC motor (paper Section 5.2) over OPC UA"
-    source_name = "simulated OPC UA"
+    driver_name = "simulated OPC UA"
 
     @classmethod
     def describe(cls, config: DriverConfig) -> str:
@@ -178,8 +177,7 @@ class SimulatedOpcUaDriver(PlantDriver):
     def _may_advance(self) -> bool:
         if self.opcua is None:  # not subscribed yet: every sample must reach the subscription
             return False
-        lost = self.stats.gaps if self.opcua is not None else 0
-        return self.server.samples_served - self._taken - lost < self._high_water
+        return self.server.samples_served - self._taken - self.stats.gaps < self._high_water
 
     def _on_take(self, n: int) -> None:
         self._taken += n
