@@ -2,22 +2,18 @@
 (docs/service.md, docs/gateway.md).
 
 One code path for one machine (``twinwatch run m1.toml``) and a directory of machines
-(``twinwatch run DIR``): one machine is a fleet of one. :class:`Host` owns, in the main thread,
+(``twinwatch run DIR``): one machine is a fleet of one. :class:`Host` is the threads' strategy
+of the :class:`~twinwatch.daemon.service.ServiceHost` (which owns the loop, the signals, the
+stop and the exit status):
 
-* the **signals**. SIGTERM/SIGINT: every machine finishes its queued windows and stops (an
-  opening is abandoned); a second one abandons the queued windows. Once a stop was requested
-  the handlers stay installed to the end of the process (a late SIGTERM must not end a cleanly
-  stopped service with -15). SIGHUP: a reload.
-* **systemd**: ``READY=1``, ``STATUS=``, ``RELOADING=1``, ``STOPPING=1``,
-  ``EXTEND_TIMEOUT_USEC`` and ``WATCHDOG=1``. A fleet of one's machine's lines are the
-  service's; a fleet keeps one line (``gateway: 3 of 4 machines monitored (DIR); DEGRADED:
-  ...``). The watchdog is pinged while at least one machine is healthy or opening
+* **systemd**: a fleet of one's machine's lines (``READY=1``, ``STATUS=``, ``RELOADING=1``...)
+  are the service's; a fleet keeps one line (``gateway: 3 of 4 machines monitored (DIR);
+  DEGRADED: ...``). The watchdog is pinged while at least one machine is healthy or opening
   (:meth:`Machine.healthy`): a stuck machine among healthy ones is reported in STATUS.
 * the **reload** (SIGHUP): a changed machine is reloaded
   (:class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
   removed stops it, a machine not running starts again.
-* the **stop**, the **summary** (:meth:`Host.summary`) and the **exit status**
-  (:meth:`Host.exit_status`): the :class:`~twinwatch.daemon.service.ServiceHost` contract. A
+* the **summary** (:meth:`Host.summary`) and the **exit status** (:meth:`Host.exit_status`). A
   worker process's host (``assignment``) reports its machines as a
   :class:`~twinwatch.daemon.service.FleetStatus` beside its STATUS line.
 

@@ -235,17 +235,6 @@ class Daemon:
         "worker.numeric_failures", "Windows whose processing raised.")
     dropped_at_stop: Forward[int] = Forward(
         "worker.dropped_at_stop", ":attr:`WindowWorker.dropped_at_stop`.")
-    recent_outcomes: Forward[deque[str]] = Forward(
-        "worker.recent_outcomes", ":attr:`WindowWorker.recent_outcomes`.")
-
-    @property
-    def abandon(self) -> bool:
-        """Drop the queued windows once a stop was asked (a second SIGTERM sets it)."""
-        return self.worker.abandon
-
-    @abandon.setter
-    def abandon(self, value: bool) -> None:
-        self.worker.abandon = value
 
     def open_deferred(self) -> None:
         """Open the outputs the constructor's ``defer`` left closed (a reload, once the

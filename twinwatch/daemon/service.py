@@ -166,7 +166,8 @@ class ServiceHost(ABC):
 
     Signals, installed by :meth:`start` in the main thread: SIGTERM/SIGINT call :meth:`stop` (a
     second one :meth:`abandon`), SIGHUP :meth:`reload`; once a stop was requested they stay
-    installed to the end of the process.
+    installed to the end of the process (a late SIGTERM must not end a cleanly stopped service
+    with -15).
 
     Args:
         notifier: the process's systemd notifier (default: from ``NOTIFY_SOCKET``, which it

@@ -301,7 +301,7 @@ class Supervisor:
         self._stop_requested.set()
         daemon = self.daemon
         if daemon is not None:
-            daemon.abandon = True
+            daemon.worker.abandon = True
             daemon.stop()
 
     def reload(self) -> None:
