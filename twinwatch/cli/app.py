@@ -18,7 +18,6 @@ if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
 
 
-
 def setup_logging(level: str, threads: bool = False) -> None:
     """Log to stderr (the journal under systemd); third-party floods are rate-limited (the
     first 5 identical messages a minute, then one line counting the others). ``threads``

@@ -64,7 +64,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
         cfg = load_config(config)
         update: dict[str, Any] = {}
         for key, value in (("train", _fraction_range(train)),
-                           ("validate_", _fraction_range(validate))):
+                           ("validate", _fraction_range(validate))):
             if value is not None:
                 update[key] = value
         if weights:
@@ -77,8 +77,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
                     raise click.BadParameter(f"{item!r}: give OUTPUT=WEIGHT") from None
             update["weights"] = w
         if update:
-            table = cfg.identify.model_dump(by_alias=True)
-            table.update({("validate" if k == "validate_" else k): v for k, v in update.items()})
+            table = {**cfg.identify.model_dump(by_alias=True), **update}  # by alias: validate
             cfg = cfg.model_copy(update={"identify": type(cfg.identify).model_validate(table)})
             for name in cfg.identify.weights:
                 if name not in _outputs(cfg):

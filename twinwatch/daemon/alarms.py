@@ -284,25 +284,12 @@ class AlarmEvaluator:
             msg = (f"{machine}: RUL {previous} cleared to {level}: {what} reaches its {which} "
                    f"threshold{th_txt} {when}"
                    + ("" if level == "normal" else f"; still {level}: {_RUL_ACTION[level]}"))
-        return {
-            "machine": machine,
-            "kind": "rul",
-            "parameter": name,
-            "level": level,
-            "previous": previous,
-            "rul_s": value if math.isfinite(value) else None,
-            "rul_low_s": crossing.low_s if crossing is not None else None,
-            "rul_high_s": crossing.high_s if crossing is not None else None,
-            "t_cross": crossing.t if crossing is not None else None,
-            "threshold_s": th_level,
-            "value": p.value,
-            "unit": unit,
-            "nominal": p.nominal,
-            "t": t,
-            "window": int(health.window),
-            "since_t": since_t,
-            "message": msg,
-        }
+        return _param_event(
+            machine, "rul", name, level, previous, p, health, t, since_t, msg,
+            rul_s=value if math.isfinite(value) else None,
+            rul_low_s=crossing.low_s if crossing is not None else None,
+            rul_high_s=crossing.high_s if crossing is not None else None,
+            t_cross=crossing.t if crossing is not None else None, threshold_s=th_level)
 
     def _event(self, name: str, rule: AlarmRule, level: Level, previous: Level, dev: float,
                threshold: float | None, p: ParameterHealth, health: HealthMessage,
@@ -326,22 +313,19 @@ class AlarmEvaluator:
                    f"% {side} nominal{vals} since plant time {since_t:.0f} s, back within the "
                    f"{previous} threshold {th} (with {rule.hysteresis:g} %-points hysteresis): "
                    f"{still}")
-        return {
-            "machine": machine,
-            "kind": "deviation",
-            "parameter": name,
-            "level": level,
-            "previous": previous,
-            "deviation_pct": dev,
-            "threshold_pct": threshold,
-            "value": value,
-            "unit": unit,
-            "nominal": nominal,
-            "t": t,
-            "window": int(health.window),
-            "since_t": since_t,
-            "message": msg,
-        }
+        return _param_event(machine, "deviation", name, level, previous, p, health, t, since_t,
+                            msg, deviation_pct=dev, threshold_pct=threshold)
+
+
+def _param_event(machine: str, kind: str, name: str, level: Level, previous: Level,
+                 p: ParameterHealth, health: HealthMessage, t: float, since_t: float,
+                 message: str, **evidence: Any) -> dict[str, Any]:
+    """A parameter's alarm event (:meth:`AlarmEvaluator.update`): the change, ``evidence``
+    (its deviation, or its RUL), the parameter's value and the window."""
+    return {"machine": machine, "kind": kind, "parameter": name, "level": level,
+            "previous": previous, **evidence,
+            "value": p.value, "unit": p.unit or "", "nominal": p.nominal,
+            "t": t, "window": int(health.window), "since_t": since_t, "message": message}
 
 
 def rul_horizon(rule: AlarmRule) -> float:

@@ -2,22 +2,18 @@
 (docs/service.md, docs/gateway.md).
 
 One code path for one machine (``twinwatch run m1.toml``) and a directory of machines
-(``twinwatch run DIR``): one machine is a fleet of one. :class:`Host` owns, in the main thread,
+(``twinwatch run DIR``): one machine is a fleet of one. :class:`Host` is the threads' strategy
+of the :class:`~twinwatch.daemon.service.ServiceHost` (which owns the loop, the signals, the
+stop and the exit status):
 
-* the **signals**. SIGTERM/SIGINT: every machine finishes its queued windows and stops (an
-  opening is abandoned); a second one abandons the queued windows. Once a stop was requested
-  the handlers stay installed to the end of the process (a late SIGTERM must not end a cleanly
-  stopped service with -15). SIGHUP: a reload.
-* **systemd**: ``READY=1``, ``STATUS=``, ``RELOADING=1``, ``STOPPING=1``,
-  ``EXTEND_TIMEOUT_USEC`` and ``WATCHDOG=1``. A fleet of one's machine's lines are the
-  service's; a fleet keeps one line (``gateway: 3 of 4 machines monitored (DIR); DEGRADED:
-  ...``). The watchdog is pinged while at least one machine is healthy or opening
+* **systemd**: a fleet of one's machine's lines (``READY=1``, ``STATUS=``, ``RELOADING=1``...)
+  are the service's; a fleet keeps one line (``gateway: 3 of 4 machines monitored (DIR);
+  DEGRADED: ...``). The watchdog is pinged while at least one machine is healthy or opening
   (:meth:`Machine.healthy`): a stuck machine among healthy ones is reported in STATUS.
 * the **reload** (SIGHUP): a changed machine is reloaded
   (:class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
   removed stops it, a machine not running starts again.
-* the **stop**, the **summary** (:meth:`Host.summary`) and the **exit status**
-  (:meth:`Host.exit_status`): the :class:`~twinwatch.daemon.service.ServiceHost` contract. A
+* the **summary** (:meth:`Host.summary`) and the **exit status** (:meth:`Host.exit_status`). A
   worker process's host (``assignment``) reports its machines as a
   :class:`~twinwatch.daemon.service.FleetStatus` beside its STATUS line.
 
@@ -137,8 +133,10 @@ class Machine:
         self.failure: str | None = None
         self.error: BaseException | None = None
         self.config_error = False
-        self.watched: dict[str, Path] = {path.name: path} if path is not None else {}
-        self.digests: dict[str, str] = {k: _digest(p) for k, p in self.watched.items()}
+        self.base_dir = path.resolve().parent if path is not None else host.base_dir
+        self.watched: dict[str, Path] = {}
+        self.digests: dict[str, str] = {}
+        self._watch(None)
         self.started = threading.Event()  # running, or lost/stopped before it ran
         self.notifier = MachineNotifier(host, self)
         self.watchdog = Watchdog(self.notifier, max_busy=host.stuck_after,
@@ -146,9 +144,8 @@ class Machine:
         self._own_load = load
         self._loaded = False  # loaded once: a load is a reload
         prefix = f"twinwatch-{stem}" if host.fleet else "twinwatch"
-        base_dir = path.resolve().parent if path is not None else host.base_dir
         self.supervisor = Supervisor(
-            self._load, base_dir=base_dir, source=str(path) if path else "the built-in default",
+            self._load, base_dir=self.base_dir, source=str(path) if path else self.file,
             resume=host.resume, notifier=self.notifier, watchdog=self.watchdog,
             slots=host.slots, shared=host.shared, thread_prefix=prefix)
         self.thread = threading.Thread(target=self._run, name=prefix if host.fleet
@@ -173,25 +170,27 @@ class Machine:
             self.name = cfg.machine.name
             self._watch(cfg)
             return cfg
-        assert self.path is not None
-        cfg = self.host.read(self.path)
+        host = self.host
+        assert self.path is not None and host.read is not None  # a fleet has its reader
+        cfg = host.read(self.path)
         name = self.name = cfg.machine.name
-        self.host.claim(name, self)
-        work_dir = self.host.work_root / name
+        host.claim(name, self)
+        work_dir = host.work_root / name
         work_dir.mkdir(mode=0o750, exist_ok=True)
         self.supervisor.work_dir = work_dir
-        self.host.check(cfg, self.path, work_dir)
+        if host.check is not None:
+            host.check(cfg, self.path, work_dir)
         self._watch(cfg)
         return cfg
 
-    def _watch(self, cfg: TwinwatchConfig) -> None:
+    def _watch(self, cfg: TwinwatchConfig | None) -> None:
         """Keep the digests of the configuration file and the files ``cfg`` reads, as they are
         when it loads (what the next SIGHUP compares)."""
         from twinwatch.config.preflight import referenced_files
 
-        base_dir = self.path.resolve().parent if self.path is not None else self.host.base_dir
         watched = {self.path.name: self.path} if self.path is not None else {}
-        watched.update(referenced_files(cfg, base_dir=base_dir))
+        if cfg is not None:
+            watched.update(referenced_files(cfg, base_dir=self.base_dir))
         self.digests = {k: _digest(p) for k, p in watched.items()}
         self.watched = watched
 
@@ -286,13 +285,9 @@ class Machine:
             return True
         if not self.running:
             return False
-        interval = self.host.notifier.watchdog_interval
-        last = self.notifier.last_ping
-        if interval is None:
-            return True
-        if last is None:  # its loop has not ticked yet: the daemon just started
-            return True
-        return time.monotonic() - last < 2.0 * interval
+        interval, last = self.host.notifier.watchdog_interval, self.notifier.last_ping
+        # no last ping: its loop has not ticked yet (the daemon just started)
+        return interval is None or last is None or time.monotonic() - last < 2.0 * interval
 
     def problems(self) -> list[str]:
         """What is degraded for this machine now (for STATUS): lost, stuck, no windows, and
@@ -357,7 +352,8 @@ class Host(ServiceHost):
                  stuck_after: float | None = None, quiet_after: float | None = None,
                  start_timeout: float | None = None,
                  notifier: Notifier | None = None, assignment: Path | None = None) -> None:
-        super().__init__()
+        super().__init__(notifier=notifier, work_root=work_root, resume=resume,
+                         duration=duration)
         self.target = target
         self.assignment = assignment
         if assignment is not None:  # a worker process: its host says the signals once
@@ -367,16 +363,18 @@ class Host(ServiceHost):
             raise ValueError("a directory needs a reader" if self.fleet
                              else "a fleet of one needs its loader")
         self.directory = target if self.fleet else None
-        self._read = read
-        self._check = check
+        self.read = read
+        self.check = check
         self._load = load
         self.base_dir = (target.resolve().parent if target is not None and not self.fleet
                          else Path.cwd())
-        self.work_root = (work_root or Path.cwd()).resolve()
-        self.resume = resume
-        self.duration = duration
-        self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
-        self._timeouts(stuck_after, quiet_after, start_timeout)
+        interval = self.notifier.watchdog_interval
+        if stuck_after is None:
+            stuck_after = 2.0 * interval if interval is not None else 30.0
+        self.stuck_after = stuck_after
+        self.quiet_after = quiet_after if quiet_after is not None else stuck_after
+        self.start_timeout = start_timeout if start_timeout is not None else (
+            60.0 if self.fleet else None)
         n = default_workers() if workers is None else workers
         self.slots = (EstimationSlots(n, stuck_after=self.stuck_after) if n > 0 and self.fleet
                       else None)
@@ -385,61 +383,32 @@ class Host(ServiceHost):
         self.retired: list[Machine] = []
         self._names: dict[str, Machine] = {}
         self._owners: dict[str, Path] = {}  # machine name -> the first file naming it
-        self._skipped: dict[str, str] = {}
         self._warned: set[tuple[str, str]] = set()  # the skipped entries named so far
         self._names_lock = threading.Lock()
         self._status_lock = threading.Lock()
         self._ready = False
 
-    def _timeouts(self, stuck_after: float | None, quiet_after: float | None,
-                  start_timeout: float | None) -> None:
-        """``stuck_after``, ``quiet_after`` and ``start_timeout`` [s] with their defaults."""
-        interval = self.notifier.watchdog_interval
-        if stuck_after is None:
-            stuck_after = 2.0 * interval if interval is not None else 30.0
-        self.stuck_after = stuck_after
-        self.quiet_after = quiet_after if quiet_after is not None else stuck_after
-        self.start_timeout = start_timeout if start_timeout is not None else (
-            60.0 if self.fleet else None)
-
     # -- configuration ------------------------------------------------------------------------
-    def read(self, path: Path) -> TwinwatchConfig:
-        """A fleet's machine file, read and validated by the host's ``read``.
-
-        Raises:
-            ConfigError: naming the file and key.
-        """
-        assert self._read is not None  # a fleet has its reader (checked at construction)
-        return self._read(path)
-
-    def files(self) -> list[Path]:
-        """The machine configurations: the directory's files sorted by name, or the one file."""
-        if not self.fleet:
-            return [self.target] if self.target is not None else []
+    def _scan(self) -> list[Path]:
+        """A fleet's machine files sorted by name (a worker process's: those its assignment
+        names), the first file naming each machine (read with ``tomllib``, so two files naming
+        one machine resolve by file name, not by which opens first), and the directory's other
+        entries named as skipped (logged once per start and reload)."""
         assert self.directory is not None
         files = sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
-        self._skipped = skipped(self.directory)
         if self.assignment is not None:  # a worker process: the files its host gave it
             try:
                 names = set(self.assignment.read_text(encoding="utf-8").split("\n"))
             except OSError:
                 names = set()
             files = [p for p in files if p.name in names]
-        return files
-
-    def _scan(self) -> list[Path]:
-        """The machine files, the first file naming each machine (read with ``tomllib``, so
-        two files naming one machine resolve by file name, not by which opens first), and the
-        directory's other entries named as skipped (logged once per start and reload)."""
-        files = self.files()
+        else:  # a worker process's host names the skipped entries, once for all
+            warn_skipped(skipped(self.directory), self._warned)
         owners: dict[str, Path] = {}
         for p in files:
-            name = _machine_name(p)
-            if name is not None:
+            if (name := _machine_name(p)) is not None:
                 owners.setdefault(name, p)
         self._owners = owners
-        if self.assignment is None:  # a worker process's host names them, once for all
-            warn_skipped(self._skipped, self._warned)
         return files
 
     def claim(self, name: str, machine: Machine) -> None:
@@ -473,10 +442,6 @@ class Host(ServiceHost):
                                   f"{other.file} (removed) did not stop within 60 s")
             other.thread.join(0.2)
 
-    def check(self, cfg: TwinwatchConfig, path: Path, work_dir: Path) -> None:
-        if self._check is not None:
-            self._check(cfg, path, work_dir)
-
     # -- start --------------------------------------------------------------------------------
     def start(self) -> None:
         """Install the signal handlers, start every machine (each opens in its own thread) and
@@ -506,7 +471,10 @@ class Host(ServiceHost):
                     break
                 if deadline is not None and time.monotonic() > deadline:
                     break
-        _freeze_started()
+        # what the started process holds (the libraries' modules, the machines as they
+        # started) is kept out of the collector's full passes, which stalled every machine's
+        # window of a large worker; a reload and the stop unfreeze it (their cycles collected)
+        gc.freeze()
         if self.fleet:
             self._ready = True
             self._send_status(ready=True)
@@ -604,11 +572,10 @@ class Host(ServiceHost):
 
     def stop(self) -> None:
         super().stop()
-        for m in self.all_machines():  # at once: a machine opening abandons its opening
-            m.supervisor.stop()
+        self._ask_to_stop()  # at once: a machine opening abandons its opening
 
     def reload(self) -> None:
-        gc.unfreeze()  # the machines replaced are the collector's again (_freeze_started)
+        gc.unfreeze()  # the machines replaced are the collector's again (start)
         if not self.fleet:  # its acquisition loop acts on it at its next tick, not in 0.2 s
             for m in list(self.machines.values()):
                 m.supervisor.reload()
@@ -876,11 +843,3 @@ def reload_line(done: list[str], machines: int, directory: str) -> str:
     return (f"SIGHUP: {directory}: nothing changed ({machines} machines: their files and the "
             f"files they read are as loaded)")
 
-
-def _freeze_started() -> None:
-    """Keep what the started process holds (the libraries' modules, the machines as they
-    started) out of the garbage collector's full passes (:func:`gc.freeze`), which stalled
-    every machine's window of a large worker. A reload and the end of the service loop
-    (:meth:`ServiceHost.run`) unfreeze them, so a replaced or stopped machine's cycles are
-    collected (a command line run in a test's process leaks nothing)."""
-    gc.freeze()

@@ -125,7 +125,7 @@ class Outputs:
             for name in self.adopted:
                 self.sinks[name].attach(self._sink_context(has_gate=self.store is not None))
         self.pipeline.sinks = list(self.sinks.values())
-        self.pipeline.gate = self.store  # a window it cannot store is not published
+        self.pipeline.keeper.gate = self.store  # a window it cannot store is not published
 
     def context(self, config: TwinwatchConfig, model: TwinModel) -> SinkContext:
         """The outputs' context for a daemon of this one's run, directories and shared
@@ -158,16 +158,6 @@ class Outputs:
                 wait.append(name)
         return keep, wait
 
-    # -- the outputs' thread (a live source) ------------------------------------------------
-    def start(self, prefix: str) -> None:
-        """Start the outputs' thread (``<prefix>-outputs``, a live source's: a locked state
-        database does not hold up the estimation); on a simulated clock the worker writes."""
-        self.pipeline.start(name=f"{prefix}-outputs")
-
-    def stop(self, timeout: float) -> None:
-        """Stop the outputs' thread after the windows it was given (bounded by ``timeout``)."""
-        self.pipeline.stop(timeout)
-
     # -- the gate ---------------------------------------------------------------------------
     @property
     def store(self) -> Gate | None:
@@ -178,8 +168,9 @@ class Outputs:
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
                        run: str | None = None, after: float | None = None
                        ) -> list[HealthView]:
-        """Stored health messages of this machine (:meth:`twinwatch.daemon.runner.Daemon.
-        stored_history`); empty without a state database."""
+        """Stored health messages of this machine in a time range, of one run with ``run``
+        (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
+        database. The outputs ask it through their context (the Zenoh history query)."""
         store = self.store
         if store is None:
             return []
@@ -241,7 +232,7 @@ class Outputs:
                 self.closed[name] = sink  # for the final accounting (lost windows)
         self.sinks = {}
         self.pipeline.sinks = []
-        self.pipeline.gate = None
+        self.pipeline.keeper.gate = None
         return kept
 
 

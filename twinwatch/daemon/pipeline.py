@@ -13,9 +13,9 @@ docs/runtime.md, docs/architecture.md).
 The health message is typed and frozen: :meth:`WindowPipeline.process` builds the estimation's
 message first (what the diagnosis and alarms read), then the window's message once; it is
 encoded once and every sink writes the same text. Sinks share the
-:class:`~twinwatch.sinks.base.Sink` contract; "stored before published": a window the
-:attr:`~WindowPipeline.gate` cannot store is not given to the publishers, its alarm events wait
-for the next stored window; the recorders still get it.
+:class:`~twinwatch.sinks.base.Sink` contract; "stored before published": a window the gate
+(:attr:`~twinwatch.daemon.gatekeeper.GateKeeper.gate`) cannot store is not given to the
+publishers, its alarm events wait for the next stored window; the recorders still get it.
 
 Once :meth:`WindowPipeline.start` has started the ``twinwatch-outputs`` thread (a live source),
 the worker only estimates and hands each window through a bounded queue (:data:`OUTPUT_QUEUE`),
@@ -40,10 +40,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from twinwatch._forward import Forward
 from twinwatch.daemon.alarms import AlarmEvaluator, FaultAlarms
 from twinwatch.daemon.gatekeeper import HELD_MAX, GateKeeper
-from twinwatch.sinks.base import Gate, ProcessedWindow, Sink
+from twinwatch.sinks.base import ProcessedWindow, Sink
 from twinwatch.twin.adaptation import AdaptationResult, TwinAdapter, TwinState
 from twinwatch.twin.diagnosis import Diagnoser
 from twinwatch.twin.health import (
@@ -111,9 +110,9 @@ class WindowPipeline:
 
     Attributes:
         sinks: written in order for each window (the gate first: stored before published).
-        gate: the sink that must take a window before the publishing sinks get it (the state
-            store), or None; it and the windows held for its lock are the :attr:`keeper`'s.
-        keeper: the gate and the windows held while another process locks its database.
+        keeper: the gate (the sink that must take a window before the publishing sinks get
+            it: the state store, or None) and the windows held while another process locks
+            its database.
         latest: the last health message (typed); ``history`` the last ``history`` of them.
         windows_estimated: windows processed.
         run: the run id of the messages (a reload's pipeline takes the running one's).
@@ -157,20 +156,6 @@ class WindowPipeline:
         self._thread: threading.Thread | None = None
         self._stop_by: float | None = None  # monotonic: give up on the lock after it
         self._blocked = False  # the worker waits for room in the outputs' queue
-
-    @property
-    def gate(self) -> Gate | None:
-        """The sink that must take a window before the publishing sinks get it (the keeper's)."""
-        return self.keeper.gate
-
-    @gate.setter
-    def gate(self, gate: Gate | None) -> None:
-        self.keeper.gate = gate
-
-    delayed: Forward[int] = Forward(
-        "keeper.delayed", "Windows that waited in memory for the gate's lock (another process's), "
-        "in all.")
-    locked_longest: Forward[float] = Forward("keeper.locked_longest", "The longest such wait [s].")
 
     # -- the outputs' thread -------------------------------------------------------------------
     def start(self, name: str = "twinwatch-outputs") -> None:
@@ -218,7 +203,7 @@ class WindowPipeline:
         if writing is None:
             return f"the outputs are {OUTPUT_QUEUE} windows behind"
         name, since = writing
-        gate = self.gate
+        gate = self.keeper.gate
         locked = gate is not None and gate.name == name and gate.locked
         why = " (its database is locked by another process)" if locked else ""
         return (f"the {name} output has been writing one window for "
@@ -304,7 +289,7 @@ class WindowPipeline:
             published = dataclasses.replace(out, events=[*self._held_events, *out.events])
             self._held_events.clear()
         for sink in self.sinks:
-            if sink is self.gate:
+            if sink is self.keeper.gate:
                 continue
             if sink.publishes:
                 if not stored:
@@ -382,7 +367,7 @@ class WindowPipeline:
         """The gate's reader of stored messages (machine, run, limit -> JSON, oldest first),
         None when the gate keeps none; the last gate's when the outputs are closed (the
         history is read after the run: a closed store reads its file)."""
-        reader = getattr(self.gate, "last_docs", None)
+        reader = getattr(self.keeper.gate, "last_docs", None)
         if reader is not None:
             self._reader = reader
         return self._reader

@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
-__all__ = ["continue_numbering", "degrading", "note_fresh", "note_new_run", "replay_trends",
+__all__ = ["continue_numbering", "note_fresh", "note_new_run", "replay_trends",
            "restore", "resumes", "say_trend"]
 
 
@@ -157,19 +157,15 @@ def replay_trends(store: Gate, machine: str, prognostics: Prognostics,
             f"({'; '.join(parts) or 'no parameter degrading'})")
 
 
-def degrading(last: HealthView) -> list[str]:
-    """The parameters whose trend the stored message ``last`` reported degrading."""
-    return [name for name, p in (last.parameters or {}).items()
-            if p.trend is not None and p.trend.degrading]
-
-
 def say_trend(machine: str, last: HealthView, what: str) -> None:
     """One line per machine at a restart: whether its trends were resumed (``motor-1: trend
     resumed from 57 windows of the previous run (Ra degrading: RUL 5.2 min to its alarm
     threshold)``) or why not. A warning, so the default log level shows it, when the last
     stored window reported a parameter degrading (a restart mid-degradation: a RUL that did
     not resume starts over from no evidence); else at info."""
-    level = logging.WARNING if degrading(last) else logging.INFO
+    degrading = any(p.trend is not None and p.trend.degrading
+                    for p in (last.parameters or {}).values())
+    level = logging.WARNING if degrading else logging.INFO
     logger.log(level, "%s: trend %s", machine, what)
 
 

@@ -12,7 +12,6 @@
     resume (resume.py): the twin, alarm levels and trends from the state database at start and
     after a reload, the run id and the window numbering of a reload
 
-* the caller's thread (the supervisor's: the machine's thread) runs :meth:`Daemon.run`: it
 The caller's thread (the machine's) runs :meth:`Daemon.run`: it reads the driver, fills the ring
 buffer and hands each full window to the worker, never estimating. Stored before published (the
 gate first). Zenoh's threads answer the history query from the state database (one SQLite
@@ -30,7 +29,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Collection, Container, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 from twinwatch._forward import Forward
 from twinwatch.daemon.acquisition import STOP_AT_WINDOW_S, Acquisition
@@ -61,10 +60,10 @@ if TYPE_CHECKING:  # the configuration is given by the caller; the daemon never 
     from twinwatch.daemon.slots import EstimationSlots
     from twinwatch.daemon.systemd import Watchdog
     from twinwatch.drivers.base import Driver
-    from twinwatch.sinks.base import Gate, Outbox, SharedResources, Sink
+    from twinwatch.sinks.base import Gate, SharedResources, Sink
     from twinwatch.twin.adaptation import TwinAdapter, TwinState
     from twinwatch.twin.estimation.estimator import Estimator
-    from twinwatch.twin.health import HealthMessage, HealthView
+    from twinwatch.twin.health import HealthMessage
     from twinwatch.twin.model import TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
@@ -236,17 +235,6 @@ class Daemon:
         "worker.numeric_failures", "Windows whose processing raised.")
     dropped_at_stop: Forward[int] = Forward(
         "worker.dropped_at_stop", ":attr:`WindowWorker.dropped_at_stop`.")
-    recent_outcomes: Forward[deque[str]] = Forward(
-        "worker.recent_outcomes", ":attr:`WindowWorker.recent_outcomes`.")
-
-    @property
-    def abandon(self) -> bool:
-        """Drop the queued windows once a stop was asked (a second SIGTERM sets it)."""
-        return self.worker.abandon
-
-    @abandon.setter
-    def abandon(self, value: bool) -> None:
-        self.worker.abandon = value
 
     def open_deferred(self) -> None:
         """Open the outputs the constructor's ``defer`` left closed (a reload, once the
@@ -324,20 +312,6 @@ class Daemon:
                                               self.alarms, run=self.run_id,
                                               diagnoser=self.pipeline.diagnoser)
 
-    def stored_history(self, t_from: float | None = None, t_to: float | None = None,
-                       limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
-                       run: str | None = None, after: float | None = None
-                       ) -> list[HealthView]:
-        """Stored health messages of this machine in a time range, of one run with ``run``
-        (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
-        database. The outputs ask it through their context (the Zenoh history query)."""
-        return self.outputs.stored_history(t_from, t_to, limit, by=by, run=run, after=after)
-
-    def outbox(self, output: str) -> Outbox | None:
-        """The gate's outbox of ``output`` for this machine (store-and-forward outputs ask it
-        through their context), None without a gate."""
-        return self.outputs.outbox(output)
-
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
         """Call ``fn()`` from the acquisition loop: every
@@ -386,11 +360,11 @@ class Daemon:
         the source, the estimation, the diagnosis' check function, each output's
         :attr:`~twinwatch.sinks.base.Sink.problem`."""
         out = []
-        waiting, silent, faults = self.source_state()
+        waiting, silent, faults = self.acquisition.source_state()
         if waiting:
             out.append(f"waiting for the source: {waiting}")
         out.extend(source_problem_lines(silent, faults))
-        if (p := self.estimation_problem()) is not None:
+        if (p := self.worker.estimation_problem()) is not None:
             out.append(p)
         last = self.pipeline.latest
         if last is not None and last.diagnosis is not None \
@@ -400,21 +374,16 @@ class Daemon:
             out.append(check_function_line(last.diagnosis, label="CHECK FUNCTION"))
         return out + self.outputs.problems()
 
-    def source_state(self) -> tuple[str | None, list[str], list[str]]:
-        """:meth:`Acquisition.source_state`: what the driver waits for, its silent messages,
-        the device's own faults."""
-        return self.acquisition.source_state()
-
     def _submit(self, window: WindowData, block: bool) -> None:
         """Queue a completed window for the worker, with the source's state as its last
         sample left it (the acquisition's thread)."""
         with self._source_lock:
-            self._source_at_window[window.index] = self.source_state()
+            self._source_at_window[window.index] = self.acquisition.source_state()
         self.worker.submit(window, block=block)
 
     def window_source_state(self, window: WindowData) -> tuple[str | None, list[str], list[str]]:
-        """The source's state (:meth:`source_state`) when ``window``'s last sample was read:
-        a drive's fault, a silent message that began after it, is not said in its health
+        """The source's state (:meth:`Acquisition.source_state`) when ``window``'s last sample
+        was read: a drive's fault, a silent message that began after it, is not said in its health
         message, but in the next one's (on a simulated clock the acquisition runs windows
         ahead of the estimation).
         The state now for a window that was not submitted by :meth:`run`."""
@@ -422,11 +391,7 @@ class Daemon:
             state = self._source_at_window.pop(window.index, None)
             for old in [k for k in self._source_at_window if k < window.index]:
                 del self._source_at_window[old]  # overruns: never processed
-        return state if state is not None else self.source_state()
-
-    def estimation_problem(self) -> str | None:
-        """:meth:`WindowWorker.estimation_problem`."""
-        return self.worker.estimation_problem()
+        return state if state is not None else self.acquisition.source_state()
 
     def windows_failed(self) -> int:
         """Windows of this run that failed: numeric failures plus windows abandoned (gaps, bad
@@ -443,10 +408,6 @@ class Daemon:
         status 74."""
         return self.outputs.lost()
 
-    def status(self) -> list[str]:
-        """What the open outputs serve, in the order they opened (systemd's STATUS)."""
-        return self.outputs.status()
-
     def summary(self) -> list[str]:
         """The outputs' lines for the run's summary (where the windows went, what was lost),
         in writing order."""
@@ -461,8 +422,10 @@ class Daemon:
         """
         assert self.driver is not None
         self.worker.start(f"{self._thread_prefix}-adaptation")
-        if self.driver.live:  # on a simulated clock the worker writes the outputs
-            self.outputs.start(self._thread_prefix)
+        # a live source's outputs get a thread (a locked state database does not hold up the
+        # estimation); on a simulated clock the worker writes them
+        if self.driver.live:
+            self.pipeline.start(f"{self._thread_prefix}-outputs")
         try:
             self.acquisition.run(duration, self._submit, self.worker.abandoned)
         finally:
@@ -476,7 +439,7 @@ class Daemon:
         try:
             self.worker.drain(timeout)
         finally:
-            self.outputs.stop(timeout)
+            self.pipeline.stop(timeout)
 
     def process_window(self, window: WindowData) -> HealthMessage:
         """Adapt the twin to one window and write it to the sinks (the pipeline's

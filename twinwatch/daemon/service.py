@@ -24,13 +24,15 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from twinwatch.daemon.systemd import Notifier
+
 if TYPE_CHECKING:
-    from twinwatch.daemon.systemd import Notifier
     from twinwatch.twin.health import HealthMessage
 
 logger = logging.getLogger(__name__)
@@ -164,7 +166,15 @@ class ServiceHost(ABC):
 
     Signals, installed by :meth:`start` in the main thread: SIGTERM/SIGINT call :meth:`stop` (a
     second one :meth:`abandon`), SIGHUP :meth:`reload`; once a stop was requested they stay
-    installed to the end of the process.
+    installed to the end of the process (a late SIGTERM must not end a cleanly stopped service
+    with -15).
+
+    Args:
+        notifier: the process's systemd notifier (default: from ``NOTIFY_SOCKET``, which it
+            takes from the environment).
+        work_root: where the machines work (default: the current directory).
+        resume: as :class:`~twinwatch.daemon.supervisor.Supervisor`'s.
+        duration: each machine stops after this many seconds of source time (None: runs on).
 
     Attributes:
         fleet: a directory of machines (one block per machine in the summary).
@@ -180,7 +190,12 @@ class ServiceHost(ABC):
     #: seconds between two turns of the loop
     turn_s: float = 0.2
 
-    def __init__(self) -> None:
+    def __init__(self, *, notifier: Notifier | None, work_root: Path | None,
+                 resume: bool | None, duration: float | None) -> None:
+        self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
+        self.work_root = (work_root or Path.cwd()).resolve()
+        self.resume = resume
+        self.duration = duration
         self._stop = threading.Event()
         self._reload = threading.Event()
         self._stop_signals = 0
@@ -257,9 +272,12 @@ class ServiceHost(ABC):
     def _healthy(self, interval: float) -> bool:
         """A machine is healthy (the watchdog is pinged every ``interval`` [s])."""
 
-    @abstractmethod
     def _refresh_status(self) -> None:
         """Send ``STATUS`` when it changed."""
+        line = self.status_line()
+        if line != self._status:
+            self._status = line
+            self.notifier.status(line)
 
     @abstractmethod
     def _grace(self) -> float:
@@ -274,9 +292,10 @@ class ServiceHost(ABC):
         """Wait for every machine until ``deadline`` [s, monotonic], ``limit`` [s] after
         the stop was asked."""
 
-    @abstractmethod
     def _stopped_why(self) -> str | None:
         """Why the run failed, for the last STATUS; None when it did not."""
+        code = self.exit_status()
+        return f"exit status {code}" if code else None
 
     @abstractmethod
     def status_line(self) -> str:

@@ -67,7 +67,6 @@ class SourceKeeper(Driver):
         DriverError: ``wait`` is False and the source cannot be opened.
     """
 
-
     @classmethod
     def from_config(cls, config: DriverConfig, *, base_dir: Path | None = None) -> Driver:
         """A live source's driver kept open (:func:`open_source`, waiting for it)."""

@@ -284,7 +284,7 @@ def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
         lines.append(f"source: time stamps jitter around the {cfg.acquisition.sample_period:g} s "
                      f"grid the samples were placed on in {len(jittered)} windows: RMS up to "
                      f"{rms:.3g} us, max {peak:.3g} us")
-    waiting, silent, faults = daemon.source_state()
+    waiting, silent, faults = daemon.acquisition.source_state()
     if waiting:
         lines.append(f"source: waiting for {waiting}")
     lines.extend(f"source: {line}" for line in source_problem_lines(silent, faults))

@@ -81,7 +81,7 @@ def warm_up(daemon: Daemon) -> None:
 def status_line(config: TwinwatchConfig, daemon: Daemon) -> str:
     """The ``STATUS=`` systemd shows: what is monitored and where the health goes."""
     parts = [f"monitoring {config.machine.name} ({config.machine.model}, "
-             f"{config.driver.type} driver)", *daemon.status()]
+             f"{config.driver.type} driver)", *daemon.outputs.status()]
     if daemon.restored is not None:
         parts.append("twin resumed")
     problems = daemon.problems()
@@ -129,9 +129,6 @@ class _Build:
                 daemon.close(keep=self.keep)
         finally:
             self._done.set()
-
-    def done(self) -> bool:
-        return self._done.is_set()
 
     def wait(self, timeout: float) -> bool:
         """Wait up to ``timeout`` [s]; True once the daemon is open or failed."""
@@ -304,7 +301,7 @@ class Supervisor:
         self._stop_requested.set()
         daemon = self.daemon
         if daemon is not None:
-            daemon.abandon = True
+            daemon.worker.abandon = True
             daemon.stop()
 
     def reload(self) -> None:
@@ -319,7 +316,7 @@ class Supervisor:
         if self._stop_requested.is_set():
             return
         if self._build is not None:
-            if self._build.done():
+            if self._build.wait(0):
                 self._built(self._build)
             return
         if not self._reload_requested.is_set() or self._next is not None:
@@ -328,20 +325,13 @@ class Supervisor:
         self.notifier.reloading("reloading the configuration")
         try:
             new_cfg = self._load()
-        except ValueError as exc:
+            keep, defer = self._handover(new_cfg)
+        except (ValueError, KeyError) as exc:  # invalid, or its machine's model cannot be built
             # one line, whatever the error's (a ConfigError lists one key a line)
             logger.error("reload refused, the running configuration goes on: %s",
                          one_line(str(exc)))
             self.notifier.ready(status=f"reload refused ({str(exc).splitlines()[-1].strip()}); "
                                 "running the previous configuration")
-            return
-        try:
-            keep, defer = self._handover(new_cfg)
-        except (ValueError, KeyError) as exc:  # the new machine's model cannot be built
-            logger.error("reload refused, the running configuration goes on: %s",
-                         one_line(str(exc)))
-            self.notifier.ready(status=f"reload refused ({exc}); running the previous "
-                                "configuration")
             return
         assert self.daemon is not None
         running = self.daemon
@@ -430,11 +420,10 @@ class Supervisor:
         try:
             while True:
                 self.daemon.run(duration=duration)
-                build, self._next = self._next, None
+                build = self._next
                 if build is None or self._stop_requested.is_set() or self.daemon.ended:
-                    if build is not None:
-                        self._next = build  # abandoned below
-                    break
+                    break  # a reload's daemon still pending is abandoned below
+                self._next = None
                 self._take_over(build)
         finally:
             self._abandon_reload()
@@ -443,7 +432,6 @@ class Supervisor:
             if self.daemon is not None:
                 self.daemon.close()
             logfilter.flush(force=True)
-
 
 
 @contextlib.contextmanager

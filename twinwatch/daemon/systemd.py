@@ -229,12 +229,9 @@ class Watchdog:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.notifier = notifier
         self.interval = notifier.watchdog_interval
-        if max_busy is None and self.interval is not None:
-            max_busy = 2.0 * self.interval
-        if max_quiet is None and self.interval is not None:
-            max_quiet = 2.0 * self.interval
-        self.max_busy = max_busy
-        self.max_quiet = max_quiet
+        watchdog_sec = None if self.interval is None else 2.0 * self.interval
+        self.max_busy = max_busy if max_busy is not None else watchdog_sec
+        self.max_quiet = max_quiet if max_quiet is not None else watchdog_sec
         self.require_windows = require_windows
         self._clock = clock
         self._last_ping: float | None = None
@@ -272,9 +269,7 @@ class Watchdog:
             return "stuck", (f"the adaptation worker has been in one window for "
                              f"{now - since:.0f} s: watchdog pings stop and systemd will "
                              "restart twinwatch")
-        if self._last_window is None:
-            self._last_window = now
-        quiet = now - self._last_window
+        quiet = self.quiet_seconds()
         if self.source_waiting():  # the driver recovers the source: waiting is healthy
             self._last_window = now
             quiet = 0.0

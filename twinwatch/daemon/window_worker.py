@@ -176,15 +176,11 @@ class WindowWorker:
             self._overrun_causes.add(cause)
             level = (logging.WARNING if first or _power_of_ten(self.overruns)
                      else logging.DEBUG)
-            if waiting is not None:  # the real cause: an output holds up the worker
-                logger.log(level, "estimation overrun: window %d dropped (%d so far); the "
-                           "estimation waits for the outputs: %s", window.index,
-                           self.overruns, waiting)
-                return
-            logger.log(level, "estimation overrun: window %d dropped (%d so far); the "
-                       "estimation does not keep up with acquisition: lower "
-                       "[estimation.pso].max_generations or the time budget",
-                       window.index, self.overruns)
+            why = (f"the estimation waits for the outputs: {waiting}" if waiting is not None
+                   else "the estimation does not keep up with acquisition: lower "
+                   "[estimation.pso].max_generations or the time budget")
+            logger.log(level, "estimation overrun: window %d dropped (%d so far); %s",
+                       window.index, self.overruns, why)
 
     def abandoned(self, n: int) -> None:
         """``n`` more windows were abandoned by the ring buffer (gaps, bad values, ...)."""

@@ -79,7 +79,6 @@ DEFAULT_STALLED_RESTART = 30.0
 """``[acquisition] stalled_restart``'s default [s], for a worker that has not reported its own."""
 
 
-
 _GROUPS: dict[Path, tuple[str, ...]] = {}
 """The last keys read for each file (a file renamed away keeps its group for placement)."""
 
@@ -365,16 +364,13 @@ class ProcessHost(ServiceHost):
                  notifier: Notifier | None = None) -> None:
         from twinwatch.daemon.slots import default_workers
 
-        super().__init__()
+        super().__init__(notifier=notifier, work_root=work_root, resume=resume,
+                         duration=duration)
         self.directory = directory
         self.n = workers
-        self.work_root = (work_root or Path.cwd()).resolve()
-        self.resume = resume
-        self.duration = duration
         self.log_level = log_level
         self.slots_per_worker = slots if slots is not None else max(
             1, default_workers() // workers)
-        self.notifier = notifier if notifier is not None else Notifier(unset_environment=True)
         self.run_dir = Path(tempfile.mkdtemp(prefix="twinwatch-host-"))
         self.workers: list[Worker] = []
         # a SIGHUP's one line, once every worker signalled said what it did: (deadline, the
@@ -429,10 +425,6 @@ class ProcessHost(ServiceHost):
             self._watch(w)
         self._reload_done()
         return any(w.alive() for w in self.workers)
-
-    def _stopped_why(self) -> str | None:
-        code = self.exit_status()
-        return f"exit status {code}" if code else None
 
     def _check(self, w: Worker) -> None:
         """A worker that a signal ended is started again (its machines resume); one that
@@ -512,12 +504,6 @@ class ProcessHost(ServiceHost):
 
     def _healthy(self, interval: float) -> bool:
         return any(w.healthy(interval) for w in self.workers)
-
-    def _refresh_status(self) -> None:
-        line = self.status_line()
-        if line != self._status:
-            self._status = line
-            self.notifier.status(line)
 
     def _rescan(self) -> None:
         """SIGHUP: place the directory's files again (a file keeps its worker, a new one goes
@@ -602,25 +588,20 @@ class ProcessHost(ServiceHost):
         for w in self.workers:
             if not w.files:
                 continue
+            if w.stalled_since is None and w.report is not None:
+                running += w.report.monitored if w.alive() else 0
+                total += w.report.machines
+                degraded += w.report.degraded
+                continue
+            total += len(w.files)
             if w.stalled_since is not None:
-                total += len(w.files)
                 degraded.append(f"worker {w.index}: stalled for "
                                 f"{time.monotonic() - w.stalled_since + w.stall_limit():.0f} s "
                                 f"(sent nothing; not monitored: "
                                 f"{', '.join(p.stem for p in w.files)})")
-                continue
-            if w.report is None:
-                total += len(w.files)
-                if w.given_up is not None:
-                    degraded.append(w.given_up)
-                elif not w.alive():
-                    degraded.append(f"worker {w.index}: not running")
-                else:
-                    degraded.append(f"worker {w.index}: starting")
-                continue
-            running += w.report.monitored if w.alive() else 0
-            total += w.report.machines
-            degraded += w.report.degraded
+            else:
+                degraded.append(w.given_up or f"worker {w.index}: "
+                                + ("starting" if w.alive() else "not running"))
         return FleetStatus(monitored=running, machines=total, degraded=degraded)
 
     def status_line(self) -> str:
