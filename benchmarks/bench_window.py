@@ -1,11 +1,16 @@
 """A window's CPU in the daemon's own code path, stage by stage, and the acquisition's per window.
 
-    python benchmarks/bench_window.py [--windows 60] [--realtime-windows 2]
+    python benchmarks/bench_window.py [--machine dc|pwm|hydraulic] [--windows 60]
+                                      [--realtime-windows 2]
 
-The default configuration (the simulated DC motor, resistance degradation; default
-``[estimation]``, ``[prognostics]`` and alarm rules), built the way the daemon builds it: the
-twin, its :class:`~twinwatch.twin.adaptation.TwinAdapter` and the ring buffer. The plant's
-samples are made beforehand (the plant's own cost is not the monitor's). Per window, CPU time
+The machine's configuration, built the way the daemon builds it: the twin, its
+:class:`~twinwatch.twin.adaptation.TwinAdapter` and the ring buffer. ``dc`` (default): the
+default configuration (the simulated DC motor, resistance degradation; default
+``[estimation]``, ``[prognostics]`` and alarm rules); ``pwm``: ``config/dc-motor-motoshield.toml``,
+the PWM drive's twin on the MotoShield board's real recording (``../shared``: 24 windows of
+4 s); ``hydraulic``: ``config/hydraulic-modbus-sim.toml``'s plant (fluid degradation) read
+directly, not over Modbus. The samples are made or read beforehand (the plant's own cost is
+not the monitor's). Per window, CPU time
 (``time.process_time``, medians, means and p95 over ``--windows`` windows from ``--from`` seconds
 of plant time on, as in ``bench_estimation.py``; the windows before are processed, not
 reported):
@@ -39,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import logging
 import os
 import platform
@@ -54,7 +60,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from twinwatch.config.loader import default_config  # noqa: E402
+from twinwatch.config.loader import default_config, load_config  # noqa: E402
 from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
 from twinwatch.daemon.window_worker import make_diagnoser  # noqa: E402
 from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
@@ -86,15 +92,53 @@ def _stats(x: list[float]) -> str:
             f"p95 {np.percentile(a, 95):7.2f} ms")
 
 
+#: ``--machine``: the configuration each machine is built from (the default: the built-in
+#: one); the PWM drive replays the MotoShield board's recording (``../shared``), the others
+#: run their simulated plant.
+MACHINES = {"dc": None, "pwm": "dc-motor-motoshield.toml", "hydraulic": "hydraulic-modbus-sim.toml"}
+
+
+def _machine(machine: str, noise: float) -> tuple[Any, Any]:
+    """The configuration of ``machine`` (:data:`MACHINES`) and an iterator of its samples."""
+    name = MACHINES[machine]
+    if name is None:
+        cfg = default_config()
+        plant_cfg = cfg.driver.plant  # type: ignore[union-attr]
+        if noise:
+            plant_cfg = plant_cfg.model_copy(update={"noise": {"ia": noise, "omega": noise}})
+        return cfg, _until_end(DCMotorPlant(plant_cfg).next_sample)
+    cfg = load_config(ROOT / "config" / name)
+    if machine == "hydraulic":
+        from twinwatch.plant.hydraulic import HydraulicPlant
+
+        plant = HydraulicPlant(cfg.driver.plant)  # type: ignore[union-attr]
+        return cfg, _until_end(plant.next_sample)
+
+    def recording() -> Any:
+        with create_driver(cfg.driver, base_dir=ROOT / "config") as drv:
+            yield from (s for s in _until_end(lambda: drv.read(None)) if s is not None)
+    return cfg, recording()
+
+
+def _until_end(next_sample: Callable[[], Any]) -> Any:
+    """The samples ``next_sample`` returns until it raises :class:`EndOfStream`."""
+    try:
+        while True:
+            yield next_sample()
+    except EndOfStream:
+        return
+
+
 def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
-                keep: dict[str, Any] | None = None) -> tuple[list, Any]:
+                keep: dict[str, Any] | None = None, machine: str = "dc") -> tuple[list, Any]:
     """Per window from ``t_from`` [s] on, CPU [s]: (whole, estimation, prognostics, ring
     buffer, diagnosis); and the samples. The windows before are processed (the trends' evidence, the
-    fusion's history), not reported. ``noise``: the plant's measurement noise on ia and omega
+    fusion's history), not reported. ``machine``: a key of :data:`MACHINES`. ``noise``
+    (the default machine's only): the plant's measurement noise on ia and omega
     [% of their scale] (the density benchmark's plants have 0.5). ``keep``: given, receives the
     twin (``model``), its nameplate (``nominal``), the last window (``window``) and its
     estimate (``estimate``)."""
-    cfg = default_config()
+    cfg, source = _machine(machine, noise)
     model = create_model(cfg.machine.model, cfg.machine.options)
     nominal = {p.name: cfg.machine.parameters.get(p.name, p.nominal) for p in model.parameters}
     acq = cfg.acquisition
@@ -105,12 +149,8 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
                       sample_period=acq.sample_period, jitter_tolerance=acq.jitter_tolerance,
                       capacity=4 * acq.window)
     diagnoser = make_diagnoser(cfg, model, nominal)
-    plant_cfg = cfg.driver.plant  # type: ignore[union-attr]
-    if noise:
-        plant_cfg = plant_cfg.model_copy(update={"noise": {"ia": noise, "omega": noise}})
-    plant = DCMotorPlant(plant_cfg)
     before = int(round(t_from / acq.sample_period))
-    samples = [plant.next_sample() for _ in range(before + (n_windows + 1) * acq.window)]
+    samples = list(itertools.islice(source, before + (n_windows + 1) * acq.window))
     est, prog = _Clock(), _Clock()
     adapter.estimator.estimate = est.wrap(adapter.estimator.estimate)  # type: ignore[method-assign]
     if adapter.prognostics is not None:
@@ -264,9 +304,14 @@ def can_cost(seconds: float) -> tuple[float, int, float, float, int] | None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--windows", type=int, default=60, help="timed windows (after the first)")
-    ap.add_argument("--from", dest="t_from", type=float, default=400.0,
-                    help="report the windows from this plant time [s] on (the resistance "
-                    "degrades from 160 s; the windows before are processed, not reported)")
+    ap.add_argument("--machine", choices=sorted(MACHINES), default="dc",
+                    help="dc: the built-in simulated motor; pwm: the PWM drive replaying the "
+                    "MotoShield recording (../shared; 24 windows of 4 s); hydraulic: the "
+                    "simulated hydraulic actuator, fluid degradation")
+    ap.add_argument("--from", dest="t_from", type=float, default=None,
+                    help="report the windows from this plant time [s] on, the windows before "
+                    "processed, not reported (default: dc 400 s, the resistance degrading from "
+                    "160 s; hydraulic 300 s, D from 160 s; pwm 8 s, the recording's third window)")
     ap.add_argument("--noise", type=float, default=0.0,
                     help="plant measurement noise on ia and omega [%% of reading] (the density "
                     "benchmark's plants: 0.5)")
@@ -277,11 +322,14 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"python {platform.python_version()}, load {os.getloadavg()[0]:.2f}")
     kept: dict[str, Any] = {}
-    rows, samples = window_cost(args.windows, args.t_from, args.noise, keep=kept)
+    if args.t_from is None:
+        args.t_from = {"dc": 400.0, "hydraulic": 300.0, "pwm": 8.0}[args.machine]
+    rows, samples = window_cost(args.windows, args.t_from, args.noise, keep=kept,
+                                machine=args.machine)
     a = np.array(rows)
-    per = 200
-    print(f"\nwindow of {per} samples (2 s), CPU over {len(rows)} windows from "
-          f"{args.t_from:g} s:")
+    per = kept["window"].n
+    print(f"\n{args.machine}: window of {per} samples ({per * kept['window'].sample_period:g} s), "
+          f"CPU over {len(rows)} windows from {args.t_from:g} s:")
     print(f"  whole window (ring buffer's window -> health message): {_stats(list(a[:, 0]))}")
     print(f"    estimation (fusion included):                       {_stats(list(a[:, 1]))}")
     print(f"    prognostics:                                        {_stats(list(a[:, 2]))}")
@@ -299,8 +347,11 @@ def main() -> None:
     for n, v in values.items():
         pub = float(e.values[n])
         print(f"    {n}: floor fit {v:.6g}, estimator {pub:.6g} ({(v / pub - 1) * 100:+.4f} %)")
-    print("\nacquisition, CPU per window of 200 samples:")
+    print(f"\nacquisition, CPU per window of {per} samples:")
     print(f"  ring buffer append:                                   {_stats(list(a[:, 3]))}")
+    if args.machine != "dc":
+        print("  the drivers: measured on the default machine (--machine dc)")
+        return
     chans = list(samples[0].values)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "plant.csv"
