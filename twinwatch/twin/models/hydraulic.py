@@ -197,45 +197,50 @@ def _simulate_kernel(theta: FloatArray, a_in: FloatArray, f_in: FloatArray, x0: 
     measured area and load. ``x0``, ``p0`` (P,): each particle's initial state. ``u_p`` (1 or
     P, N): multiplicative pressure term, ``U[k]`` on the sub-steps of step k-1 -> k. ``f_x``
     (1 or P, N): additive velocity term, ``f_x[k]`` on the sub-steps of step k -> k+1. A
-    particle whose state stops being finite gets nan from there.
+    particle whose state stops being finite gets nan from there (nan stays nan through
+    :func:`_piston_step`).
+
+    The particles advance side by side, sub-step by sub-step: each one's arithmetic is its
+    own, in its own order (the same numbers as one particle at a time), while the processor
+    overlaps the particles' independent chains of square roots and products.
     """
     n_p, n_k = y.shape[0], y.shape[1]
     shared_u = u_p.shape[0] == 1
     shared_f = f_x.shape[0] == 1
     inv = 1.0 / n_sub
+    x = np.empty(n_p)
+    p = np.empty(n_p)
+    inv_ap = np.empty(n_p)
+    gain = np.empty(n_p)
+    fx = np.empty(n_p)
     for q in range(n_p):
-        ks, d, qp, a_max, ap, fr = (theta[q, 0], theta[q, 1], theta[q, 2], theta[q, 3],
-                                    theta[q, 4], theta[q, 5])
-        qu = 0 if shared_u else q
-        qf = 0 if shared_f else q
-        x, p = x0[q], p0[q]
-        y[q, 0, 0] = x
-        y[q, 0, 1] = p
-        inv_ap = 1.0 / ap
-        ok = True
-        for k in range(n_k - 1):
-            if not ok:
-                y[q, k + 1, 0] = np.nan
-                y[q, k + 1, 1] = np.nan
-                continue
-            a0, a1 = a_in[k], a_in[k + 1]
-            l0, l1 = f_in[k], f_in[k + 1]
-            gain = 1.0 + u_p[qu, k + 1]
-            fx = f_x[qf, k]
-            for s in range(n_sub):
-                if linear:
-                    w = s * inv
-                    a = a0 + (a1 - a0) * w
-                    fl = l0 + (l1 - l0) * w
-                else:
-                    a = a0
-                    fl = l0
-                x, p = _piston_step(x, p, a, fl, gain, fx, ks, d, qp, a_max, inv_ap, fr, dt)
-            if not (math.isfinite(x) and math.isfinite(p)):
-                ok = False
-                x, p = np.nan, np.nan
-            y[q, k + 1, 0] = x
-            y[q, k + 1, 1] = p
+        x[q], p[q] = x0[q], p0[q]
+        y[q, 0, 0] = x[q]
+        y[q, 0, 1] = p[q]
+        inv_ap[q] = 1.0 / theta[q, 4]
+    for k in range(n_k - 1):
+        a0, a1 = a_in[k], a_in[k + 1]
+        l0, l1 = f_in[k], f_in[k + 1]
+        for q in range(n_p):
+            gain[q] = 1.0 + u_p[0 if shared_u else q, k + 1]
+            fx[q] = f_x[0 if shared_f else q, k]
+        for s in range(n_sub):
+            if linear:
+                w = s * inv
+                a = a0 + (a1 - a0) * w
+                fl = l0 + (l1 - l0) * w
+            else:
+                a = a0
+                fl = l0
+            for q in range(n_p):
+                x[q], p[q] = _piston_step(x[q], p[q], a, fl, gain[q], fx[q], theta[q, 0],
+                                          theta[q, 1], theta[q, 2], theta[q, 3], inv_ap[q],
+                                          theta[q, 5], dt)
+        for q in range(n_p):
+            if not (math.isfinite(x[q]) and math.isfinite(p[q])):
+                x[q], p[q] = np.nan, np.nan
+            y[q, k + 1, 0] = x[q]
+            y[q, k + 1, 1] = p[q]
 
 
 @njit(cache=True, nogil=True)
