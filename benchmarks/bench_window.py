@@ -341,7 +341,7 @@ def main() -> None:
     sim, gn, iterations, values = floor_cost(kept["model"], kept["window"], estimated,
                                                    kept["nominal"])
     print(f"\nfloor, on the last window ({', '.join(estimated)} estimated):")
-    print(f"  one simulation of the window (exact step matrices):   {sim * 1e3:7.3f} ms")
+    print(f"  one simulation of the window (the twin's kernel):      {sim * 1e3:7.3f} ms")
     print(f"  Gauss-Newton fit from the nameplate, same kernel:      {gn * 1e3:7.3f} ms "
           f"({iterations} iterations, a batched twin call each)")
     for n, v in values.items():
