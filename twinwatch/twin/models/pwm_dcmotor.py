@@ -335,6 +335,10 @@ class PWMDCMotorTwin(SubStepTwin):
     omega_dot_scale: float = 1e4
     _fb: FloatArray = field(init=False, repr=False, default_factory=lambda: np.ones(1))
     _fa: FloatArray = field(init=False, repr=False, default_factory=lambda: np.ones(1))
+    #: the last window's command and time arrays (by identity) and their duty and ADC phase
+    #: (N,): a window is simulated tens of times, its inputs are the same each time
+    _inputs: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = field(
+        init=False, repr=False, compare=False, default=None)
 
     def __post_init__(self) -> None:
         """Check the options (:meth:`_check_options`, :meth:`_check_acquisition`), normalise
@@ -504,9 +508,15 @@ class PWMDCMotorTwin(SubStepTwin):
         w0 = omega[0] if self.speed_measurement == "instant" or n < 2 \
             else 0.5 * (omega[0] + omega[1])
         t = np.ascontiguousarray(window.t, dtype=float)
-        duty = np.ascontiguousarray(self.duty_cycle(window["u"]))
         sampled = self.adc_phase is not None
-        phase = np.ascontiguousarray(self.sample_phase(t, ts) if sampled else np.zeros(n))
+        u = window["u"]
+        last = self._inputs
+        if last is not None and last[0] is u and last[1] is window.t:
+            duty, phase = last[2], last[3]
+        else:
+            duty = np.ascontiguousarray(self.duty_cycle(u))
+            phase = np.ascontiguousarray(self.sample_phase(t, ts) if sampled else np.zeros(n))
+            self._inputs = (u, window.t, duty, phase)
         m = self._fa.size - 1
         y_init = np.ascontiguousarray(np.asarray(window["ia"], dtype=float)[:min(m, n)])
         if y_init.size < m:
