@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from twinwatch.twin.estimation._trf import trust_region_reflective
 from twinwatch.twin.estimation.statistics import ar1
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
@@ -421,13 +422,9 @@ class LocalFit:
                     fun(x)
                 return ((last["d"] - last["r"][None, :]) / 1e-6).T
 
-            from scipy.optimize import least_squares  # loaded on first use
-
             lo, hi = self.lower[active], self.upper[active]
             x0 = np.clip(v[active], lo + 1e-12, hi - 1e-12)
-            sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
-                                xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=50)
-            v[active] = sol.x
+            v[active] = trust_region_reflective(fun, jac, x0, lo, hi)
         jac_s, r = self.sensitivity_and_residuals(v, active if stats is None else stats)
         return v, r, jac_s
 

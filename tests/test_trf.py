@@ -1,0 +1,107 @@
+"""The local fit's trust-region reflective loop is scipy's ``least_squares``, bit for bit."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from twinwatch.plant.dcmotor import DCMotorPlantConfig
+from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
+from twinwatch.twin.estimation import _trf, fit
+from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
+from twinwatch.twin.model import WindowData
+from twinwatch.twin.models import create_model
+from twinwatch.twin.models.dcmotor import DCMotorTwin
+
+from .helpers.plant import plant_windows
+from .helpers.twin import HYDRAULIC_ESTIMATION
+
+
+def _public(fun: Any, jac: Any, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray
+            ) -> np.ndarray:
+    x: np.ndarray = least_squares(
+        fun, x0, jac=jac, bounds=(lower, upper), method="trf", x_scale=1.0, xtol=_trf.XTOL,
+        ftol=_trf.FTOL, gtol=_trf.GTOL, max_nfev=_trf.MAX_NFEV).x
+    return x
+
+
+@pytest.fixture
+def both(monkeypatch: pytest.MonkeyPatch) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """Every local fit the estimator runs, solved by both: (ours, scipy's, a bound active)."""
+    pairs: list[tuple[np.ndarray, np.ndarray, bool]] = []
+    ours = _trf.trust_region_reflective
+
+    def spy(fun: Any, jac: Any, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray
+            ) -> np.ndarray:
+        x = ours(fun, jac, x0, lower, upper)
+        ref = _public(fun, jac, x0, lower, upper)
+        span = upper - lower
+        near = bool(np.any(np.minimum(x - lower, upper - x) < 1e-6 * span))
+        pairs.append((x, ref, near))
+        return x
+
+    monkeypatch.setattr(fit, "trust_region_reflective", spy)
+    return pairs
+
+
+def _windows_hydraulic(starts: tuple[float, ...]) -> list[WindowData]:
+    plant = HydraulicPlant(HydraulicPlantConfig(scenario="fluid_degradation", duration=410,
+                                                noise={"x": 0.001, "p": 0.001}, seed=1))
+    out = []
+    for start in starts:
+        while plant.t < start - 1e-9:
+            plant.next_sample()
+        ss = [plant.next_sample() for _ in range(200)]
+        out.append(WindowData(t=np.array([s.t for s in ss]),
+                              channels={c: np.array([s.values[c] for s in ss])
+                                        for c in ss[0].values}))
+    return out
+
+
+def _assert_same(pairs: list[tuple[np.ndarray, np.ndarray, bool]], at_least: int) -> None:
+    assert len(pairs) >= at_least
+    for ours, ref, _ in pairs:
+        assert np.array_equal(ours, ref), (ours, ref)
+
+
+def test_the_dc_motors_local_fits_are_scipys(both: list[Any]) -> None:
+    _, wins = plant_windows(DCMotorPlantConfig(noise={"ia": 1.0, "omega": 1.0}, seed=3), 4,
+                            skip=80)
+    est = Estimator(DCMotorTwin(), EstimationConfig(swarm_every=4, time_budget=60.0))
+    for w in wins:
+        est.estimate(w)
+    _assert_same(both, 4)
+
+
+def test_the_hydraulic_actuators_local_fits_are_scipys(both: list[Any]) -> None:
+    twin = create_model("hydraulic_actuator", {})
+    est = Estimator(twin, EstimationConfig(**HYDRAULIC_ESTIMATION))  # type: ignore[arg-type]
+    for w in _windows_hydraulic((100.0, 300.0, 400.0)):
+        est.estimate(w)
+    _assert_same(both, 3)
+
+
+def test_a_fit_whose_optimum_lies_beyond_a_bound_is_scipys() -> None:
+    """The reflective step and the bound's strict feasibility: a quadratic whose minimum lies
+    outside the box in one variable and inside in the other."""
+    a = np.array([[2.0, 0.3], [0.1, 1.5], [0.4, -0.7]])
+    target = np.array([3.0, -1.0, 0.5])
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        r: np.ndarray = a @ x + 0.05 * np.sin(a @ x) - target
+        return r
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        out: np.ndarray = (1.0 + 0.05 * np.cos(a @ x))[:, None] * a
+        return out
+
+    lower, upper = np.array([-1.0, -1.0]), np.array([1.0, 0.5])
+    x0 = np.array([0.1, 0.1])
+    ours = _trf.trust_region_reflective(fun, jac, x0, lower, upper)
+    assert np.array_equal(ours, _public(fun, jac, x0, lower, upper))
+    assert ours[0] == pytest.approx(1.0, abs=1e-8)   # on its bound
+    with pytest.raises(ValueError, match="outside"):
+        _trf.trust_region_reflective(fun, jac, np.array([2.0, 0.0]), lower, upper)
