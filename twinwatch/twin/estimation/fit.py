@@ -573,12 +573,20 @@ def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: floa
     Returns:
         (n, n) covariance (``inf`` for a variable the outputs do not respond to).
     """
+    args = (jac, r, n_out, floor, levels, numerical)
+    cached = _COVARIANCES.get(args)
+    if cached is not None:
+        out: FloatArray = cached.copy()
+        return out
     m, n = jac.shape
     res = r.reshape(-1, n_out)
     if levels is not None:
         var = np.maximum(np.asarray(levels, dtype=float) ** 2, floor**2)
-        return covariance(jac, np.tile(var / m, res.shape[0]))
-    return covariance(jac, residual_variances(r, n_out, floor, n, numerical))
+        cov = covariance(jac, np.tile(var / m, res.shape[0]))
+    else:
+        cov = covariance(jac, residual_variances(r, n_out, floor, n, numerical))
+    _COVARIANCES.put(args, cov.copy())
+    return cov
 
 
 def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
@@ -656,14 +664,72 @@ def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int,
     misstates (``benchmarks/bench_fidelity.py --only dc``)."""
     m = r.size
     res = r.reshape(-1, n_out)
-    var = np.mean(res * res, axis=0) * m * m / max(m - n_fitted, 1)
+    moments = _MOMENTS.get((r, n_out))
+    if moments is None:
+        moments = (np.mean(res * res, axis=0), [None] * n_out)
+        _MOMENTS.put((r, n_out), moments)
+    mean_square, rhos = moments
+    var = mean_square * m * m / max(m - n_fitted, 1)
     for j in range(n_out):
         if var[j] < numerical * floor**2:
             var[j] = floor**2
             continue
-        rho = ar1(res[:, j], 1)
+        rho = rhos[j]
+        if rho is None:
+            rho = rhos[j] = ar1(res[:, j], 1)
         var[j] = max(var[j], floor**2) * (1.0 + rho) / (1.0 - rho)
     return np.tile(var / m, res.shape[0])
+
+
+class _Recent:
+    """The last few results of a pure function of arrays and numbers, found again when it is
+    called with the same arguments: arrays of the same shape, strides and bytes (the layout
+    too: it decides the BLAS call, and so the last bits), numbers equal. In a window the
+    identifiability gate, the model check and the long-run factor ask for the covariance at
+    the same point with the same residual, and the gate asks for each output's residual
+    moments once per candidate set.
+
+    Shared by every estimator of the process: the results depend on the arguments alone, an
+    entry's key is a copy of the arguments, its value is never replaced (a value computed
+    piecewise, as the moments' autocorrelations, gets each piece once, always the same), and
+    the list is replaced, not edited (a thread reads either list whole).
+
+    Args:
+        size: results kept.
+    """
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._entries: list[tuple[tuple[Any, ...], Any]] = []
+
+    @staticmethod
+    def _same(a: Any, b: Any) -> bool:
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
+                return False
+            return (a.shape == b.shape and a.strides == b.strides and a.dtype == b.dtype
+                    and a.tobytes(order="A") == b.tobytes(order="A"))
+        return bool(type(a) is type(b) and a == b)
+
+    def get(self, args: tuple[Any, ...]) -> Any:
+        """The result stored for ``args``, or None."""
+        for key, value in reversed(self._entries):
+            if len(key) == len(args) and all(map(self._same, key, args)):
+                return value
+        return None
+
+    def put(self, args: tuple[Any, ...], value: Any) -> None:
+        """Store ``value`` for ``args`` (the arrays among them copied, their layout kept)."""
+        key = tuple(np.array(a, order="K", copy=True) if isinstance(a, np.ndarray) else a
+                    for a in args)
+        self._entries = [*self._entries[-(self.size - 1):], (key, value)]
+
+
+#: :func:`parameter_covariance`'s last results.
+_COVARIANCES = _Recent(8)
+#: Per residual vector and output count, each output's mean square and its lag-1
+#: autocorrelation (computed when first needed) (:func:`residual_variances`).
+_MOMENTS = _Recent(4)
 
 
 @functools.cache
