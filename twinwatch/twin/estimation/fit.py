@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from twinwatch.twin.estimation._trf import trust_region_reflective
-from twinwatch.twin.estimation.statistics import ar1
+from twinwatch.twin.estimation.statistics import ar1, mean, norms
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 #: Residual given to every sample of a particle whose simulation blew up.
@@ -375,8 +375,8 @@ class LocalFit:
             fwd = (r[:m] - r0[None, :]) / h
             bwd = -(r[m:2 * m] - r0[None, :]) / h
             central = 0.5 * (fwd + bwd)
-            gap = np.linalg.norm(fwd - bwd, axis=1)
-            size = np.maximum(np.linalg.norm(fwd, axis=1), np.linalg.norm(bwd, axis=1))
+            gap = norms(fwd - bwd, axis=1)
+            size = np.maximum(norms(fwd, axis=1), norms(bwd, axis=1))
             agree = gap <= self.SENSITIVITY_AGREEMENT * np.maximum(size, 1e-300)
             done = agree if i < n_h - 1 else np.ones(m, dtype=bool)
             out[todo[done]] = central[done]
@@ -466,13 +466,14 @@ def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
     n = jac.shape[1]
     if not np.all(np.isfinite(jac)):
         return np.full((n, n), np.inf)
-    norms = np.linalg.norm(jac, axis=0)
-    safe = np.where(norms > 0, norms, 1.0)
+    col_norms = norms(jac, axis=0)
+    safe = np.where(col_norms > 0, col_norms, 1.0)
     js = jac / safe
     # the two (M, n) products stay numpy's (its J^T J is BLAS syrk: numba's gemm differs in
     # the last bits); the small (n, n) rest is compiled, the same arithmetic to the bit
     try:
-        cov: FloatArray = _sandwich(js.T @ js, (js * weights[:, None]).T @ js, safe, norms)
+        cov: FloatArray = _sandwich(js.T @ js, (js * weights[:, None]).T @ js, safe,
+                                    col_norms)
     except (np.linalg.LinAlgError, ValueError):  # numba's eigh: ValueError if not converged
         return np.full((n, n), np.inf)
     return cov
@@ -628,8 +629,8 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     for lag in range(1, big_l + 1):
         gl = g[lag:].T @ g[:-lag]
         s += (1.0 - lag / (big_l + 1.0)) * (gl + gl.T)
-    norms = np.linalg.norm(jac, axis=0)
-    safe = np.where(norms > 0, norms, 1.0)
+    col_norms = norms(jac, axis=0)
+    safe = np.where(col_norms > 0, col_norms, 1.0)
     js = jac / safe
     try:
         a_inv, _ = _equilibrated_inverse(js.T @ js)
@@ -666,7 +667,7 @@ def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int,
     res = r.reshape(-1, n_out)
     moments = _MOMENTS.get((r, n_out))
     if moments is None:
-        moments = (np.mean(res * res, axis=0), [None] * n_out)
+        moments = (mean(res * res, axis=0), [None] * n_out)
         _MOMENTS.put((r, n_out), moments)
     mean_square, rhos = moments
     var = mean_square * m * m / max(m - n_fitted, 1)

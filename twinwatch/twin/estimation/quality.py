@@ -26,6 +26,7 @@ from typing import Literal
 import numpy as np
 
 from twinwatch.twin.estimation.fit import WindowFit
+from twinwatch.twin.estimation.statistics import mean
 from twinwatch.twin.model import FloatArray
 
 __all__ = ["SensorFault", "live_outputs", "sensor_faults"]
@@ -90,8 +91,8 @@ def live_outputs(fit: WindowFit, min_run: int) -> dict[str, bool]:
             continue
         steps = np.abs(d1[d1 != 0])
         quantum = float(steps.min()) if steps.size else math.inf
-        rms1 = float(np.sqrt(np.mean(d1 * d1)))
-        out[name] = (float(np.sqrt(np.mean(d2 * d2))) > rms1
+        rms1 = float(np.sqrt(mean(d1 * d1)))
+        out[name] = (float(np.sqrt(mean(d2 * d2))) > rms1
                      and rms1 / math.sqrt(2.0) > 3.0 * quantum
                      and _longest_run(meas)[1] < max(min_run // 5, 2))
     return out
