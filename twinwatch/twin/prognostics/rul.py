@@ -125,22 +125,41 @@ def _crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
     return out
 
 
+def _ranks(n: int, q: float) -> tuple[int, int]:
+    """The two ranks (0-based) of ``n`` sorted draws the ``q`` quantile interpolates."""
+    i = int(math.floor(q * (n - 1)))
+    return i, min(i + 1, n - 1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _first_crossing(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float, high: float,
+                    low: float) -> FloatArray:
+    """Per draw, the earlier of its crossings of ``high`` upwards and ``low`` downwards
+    (:func:`crossing_times`; NaN: no such threshold; inf: neither reached)."""
+    out = np.full(c.size, np.inf)
+    if not math.isnan(high):
+        out = np.minimum(out, _crossing_times(c, m, r, tau0, high, 1))
+    if not math.isnan(low):
+        out = np.minimum(out, _crossing_times(c, m, r, tau0, low, -1))
+    return out
+
+
 def _quantile(s: FloatArray, q: float) -> float | None:
-    """The ``q`` quantile of sorted draws ``s`` that may be infinite (never), None when
-    infinite (linear interpolation between ranks; between a finite and an infinite rank:
-    infinite)."""
+    """The ``q`` quantile of draws ``s`` that may be infinite (never), None when infinite
+    (linear interpolation between ranks; between a finite and an infinite rank: infinite);
+    ``s`` sorted, or partitioned at the ranks it reads (:func:`_ranks`)."""
     if not s.size:
         return None
     pos = q * (s.size - 1)
-    i = int(math.floor(pos))
-    j = min(i + 1, s.size - 1)
+    i, j = _ranks(s.size, q)
     if not (math.isfinite(s[i]) and math.isfinite(s[j])):
         return None
     return float(s[i] + (pos - i) * (s[j] - s[i]))
 
 
 def draw_trajectories(fit: DegradationFit, mixture: Sequence[tuple[DegradationFit, float]],
-                      draws: int, rng: np.random.Generator) -> Trajectories:
+                      draws: int, rng: np.random.Generator | None = None, *,
+                      normals: FloatArray | None = None) -> Trajectories:
     """``draws`` samples of ``(c, m, r)`` shared among the plausible models by weight (largest
     remainders), each from its fit's Gaussian (:meth:`DegradationFit.draws`).
 
@@ -149,11 +168,24 @@ def draw_trajectories(fit: DegradationFit, mixture: Sequence[tuple[DegradationFi
         mixture: the plausible models with their weights (Bayesian model averaging).
         draws: Monte Carlo samples in all.
         rng: the generator.
+        normals: standard normals (draws, 4) instead of ``rng``: each model takes the next
+            rows (its number of draws) and its first ``k`` columns.
 
     Returns:
         Each model drawn from with its draws.
+
+    Raises:
+        ValueError: neither ``rng`` nor ``normals``.
     """
-    return [(f, f.draws(n_f, rng)) for f, n_f in _share(mixture or [(fit, 1.0)], draws)]
+    out: Trajectories = []
+    row = 0
+    for f, n_f in _share(mixture or [(fit, 1.0)], draws):
+        if normals is None:
+            out.append((f, f.draws(n_f, rng)))
+        else:
+            out.append((f, f.draws(n_f, normals=normals[row:row + n_f])))
+        row += n_f
+    return out
 
 
 def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: float | None,
@@ -188,7 +220,7 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
     Raises:
         ValueError: neither ``trajectories`` nor ``rng`` given.
     """
-    level_end = float(fit.value(t_end))
+    level_end = fit.value_band(t_end)[0]
     target = high if (fit.m >= 0 and high is not None) or low is None else low
     assert target is not None, "a level needs a threshold"
     if (high is not None and level_end >= high) or (low is not None and level_end <= low):
@@ -201,23 +233,19 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         if rng is None:
             raise ValueError("predict_crossing needs trajectories or a generator (rng)")
         trajectories = draw_trajectories(fit, mixture, draws, rng)
-    parts = []
-    for f, p in trajectories:
-        n_f = p["c"].size
-        tau0 = max(t_end - f.t_ref, 0.0)
-        times = np.full(n_f, np.inf)
-        for th, direction in ((high, 1), (low, -1)):
-            if th is not None:
-                times = np.minimum(times, crossing_times(p["c"], p["m"], p["r"], tau0, th,
-                                                         direction))
-        parts.append(times)
-    times = np.concatenate(parts)
+    parts = [_first_crossing(p["c"], p["m"], p["r"], max(t_end - f.t_ref, 0.0),
+                             math.nan if high is None else float(high),
+                             math.nan if low is None else float(low))
+             for f, p in trajectories]
+    times = parts[0] if len(parts) == 1 else np.concatenate(parts)
     a = 0.5 * (1.0 - interval)
-    ranked = np.sort(times)  # once for the three quantiles
-    med = _quantile(ranked, 0.5)
-    lo = _quantile(ranked, a)
-    hi = _quantile(ranked, 1.0 - a)
-    prob = float(np.mean(np.isfinite(times)))
+    # the ranks the three quantiles read, in place of a sort of every draw
+    qs = (0.5, a, 1.0 - a)
+    ranks = sorted({r for q in qs for r in _ranks(times.size, q)})
+    ranked = np.partition(times, ranks) if times.size else times
+    med, lo, hi = (_quantile(ranked, q) for q in qs)
+    prob = float(np.count_nonzero(np.isfinite(times))) / times.size if times.size else \
+        math.nan
     status: Literal["crossed", "predicted", "not_reached"] = (
         "predicted" if med is not None else "not_reached")
 
