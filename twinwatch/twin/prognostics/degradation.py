@@ -175,6 +175,9 @@ class DegradationFit:
     #: (cov, eigenvalues, eigenvectors) of :meth:`draws`, for the ``cov`` it was computed on
     _eigh: tuple[FloatArray, FloatArray, FloatArray] | None = field(
         default=None, init=False, repr=False, compare=False)
+    #: the free parameters' codes (:meth:`_coded`)
+    _codes: npt.NDArray[np.int64] | None = field(default=None, init=False, repr=False,
+                                                  compare=False)
 
     @property
     def k(self) -> int:
@@ -250,7 +253,9 @@ class DegradationFit:
 
     def _coded(self) -> tuple[npt.NDArray[np.int64], FloatArray]:
         """The free parameters' codes (:mod:`._lm`) and ``(c, m, r, t0)``."""
-        codes = np.array([_CODE[p] for p in self.free], dtype=np.int64)
+        codes = self._codes
+        if codes is None:
+            codes = self._codes = np.array([_CODE[p] for p in self.free], dtype=np.int64)
         base = np.array([self.c, self.m, self.r,
                          self.onset if self.onset is not None else 0.0])
         return codes, base

@@ -22,7 +22,12 @@ import numpy as np
 
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.config import PrognosticsConfig, Thresholds
-from twinwatch.twin.prognostics.rul import Crossing, draw_trajectories, predict_crossing
+from twinwatch.twin.prognostics.rul import (
+    Crossing,
+    draw_trajectories,
+    first_crossings,
+    predict_crossing,
+)
 from twinwatch.twin.prognostics.trend import (
     Evidence,
     ParameterTrend,
@@ -338,13 +343,14 @@ class Prognostics:
             # one sample of the trajectories for both levels (each draw's warning before its
             # alarm)
             drawn = draw_trajectories(f, mixture, c.draws, normals=self._normals(name))
-            for level in ("warning", "alarm"):
-                high, low = th.level(level)
-                if high is None and low is None:
-                    continue
+            levels = [(level, *th.level(level)) for level in ("warning", "alarm")]
+            levels = [(level, high, low) for level, high, low in levels
+                      if high is not None or low is not None]
+            times = first_crossings(drawn, t_end, [(high, low) for _, high, low in levels])
+            for (level, high, low), samples in zip(levels, times, strict=True):
                 cr = predict_crossing(f, level, high, low, t_end=t_end, interval=c.interval,
                                       draws=c.draws, wall_end=wall, pace=self._pace.value(),
-                                      trajectories=drawn)
+                                      trajectories=drawn, times=samples)
                 setattr(rul, level, cr)
         return Prognosis(report, rul)
 

@@ -36,8 +36,8 @@ from numba import njit
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.degradation import DegradationFit
 
-__all__ = ["Crossing", "Trajectories", "crossing_times", "draw_trajectories", "format_crossing",
-           "format_duration", "predict_crossing"]
+__all__ = ["Crossing", "Trajectories", "crossing_times", "draw_trajectories", "first_crossings",
+           "format_crossing", "format_duration", "predict_crossing"]
 
 #: Monte Carlo draws of the degradation models: each model with its share of ``c``, ``m``,
 #: ``r`` (arrays of the model's number of draws).
@@ -103,45 +103,82 @@ def _crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
                     threshold: float, direction: int) -> FloatArray:
     out = np.empty(c.size)
     for i in range(c.size):
-        ci, mi, ri = c[i], m[i], r[i]
-        lin = abs(ri) < 1e-12
-        if lin:
-            level_now = ci + mi * tau0
-        else:
-            level_now = ci + mi * (math.expm1(min(max(ri * tau0, -700.0), 700.0)) / ri)
-        q = (threshold - ci) / mi
-        if lin:
-            tau = q
-        else:
-            arg = 1.0 + ri * q
-            tau = math.log(arg) / ri if arg > 0 else math.inf
-        # heading away from the threshold (q < 0), or no drift: never
-        if not (math.isfinite(tau) and mi != 0 and tau >= 0):
-            tau = math.inf
-        if (level_now - threshold) * direction >= 0:
-            out[i] = 0.0
-        else:
-            out[i] = max(tau - tau0, 0.0)
+        out[i] = _crossing(c[i], m[i], r[i], _level(c[i], m[i], r[i], tau0), tau0, threshold,
+                           direction)
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _level(c: float, m: float, r: float, tau0: float) -> float:
+    """One draw's level at ``tau0``."""
+    if abs(r) < 1e-12:
+        return c + m * tau0
+    return c + m * (math.expm1(min(max(r * tau0, -700.0), 700.0)) / r)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _crossing(c: float, m: float, r: float, level_now: float, tau0: float, threshold: float,
+              direction: int) -> float:
+    """One draw's :func:`crossing_times`, its level at ``tau0`` given (:func:`_level`)."""
+    q = (threshold - c) / m
+    if abs(r) < 1e-12:
+        tau = q
+    else:
+        arg = 1.0 + r * q
+        tau = math.log(arg) / r if arg > 0 else math.inf
+    # heading away from the threshold (q < 0), or no drift: never
+    if not (math.isfinite(tau) and m != 0 and tau >= 0):
+        tau = math.inf
+    if (level_now - threshold) * direction >= 0:
+        return 0.0
+    return max(tau - tau0, 0.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _first_crossings(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
+                     thresholds: FloatArray) -> FloatArray:
+    """Per level (row of ``thresholds`` (L, 2): its high and low threshold, NaN where
+    absent) and draw, the earlier of the draw's crossings of the high threshold upwards and
+    the low one downwards (:func:`crossing_times`; inf: neither reached), (L, n): each
+    draw's level at ``tau0`` computed once for every threshold."""
+    out = np.full((thresholds.shape[0], c.size), np.inf)
+    for i in range(c.size):
+        now = _level(c[i], m[i], r[i], tau0)
+        for k in range(thresholds.shape[0]):
+            for side in range(2):
+                th = thresholds[k, side]
+                if not math.isnan(th):
+                    out[k, i] = min(out[k, i], _crossing(c[i], m[i], r[i], now, tau0, th,
+                                                         1 - 2 * side))
+    return out
+
+
+def first_crossings(trajectories: Trajectories, t_end: float,
+                    levels: Sequence[tuple[float | None, float | None]]) -> list[FloatArray]:
+    """Each draw's crossing time [s from ``t_end``] of each level: the earlier of its high
+    threshold upwards and its low one downwards (inf: neither reached; 0: beyond one now),
+    the draws of every model in ``trajectories``' order, in one pass over them.
+
+    Args:
+        trajectories: the draws (:func:`draw_trajectories`).
+        t_end: the window's end [plant time, s].
+        levels: each level's (high, low) thresholds [SI] (None: absent).
+
+    Returns:
+        Per level, the draws' times (draws,).
+    """
+    th = np.array([[math.nan if h is None else float(h), math.nan if lo is None else float(lo)]
+                   for h, lo in levels]).reshape(len(levels), 2)
+    parts = [_first_crossings(p["c"], p["m"], p["r"], max(t_end - f.t_ref, 0.0), th)
+             for f, p in trajectories]
+    out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    return list(out)
 
 
 def _ranks(n: int, q: float) -> tuple[int, int]:
     """The two ranks (0-based) of ``n`` sorted draws the ``q`` quantile interpolates."""
     i = int(math.floor(q * (n - 1)))
     return i, min(i + 1, n - 1)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _first_crossing(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float, high: float,
-                    low: float) -> FloatArray:
-    """Per draw, the earlier of its crossings of ``high`` upwards and ``low`` downwards
-    (:func:`crossing_times`; NaN: no such threshold; inf: neither reached)."""
-    out = np.full(c.size, np.inf)
-    if not math.isnan(high):
-        out = np.minimum(out, _crossing_times(c, m, r, tau0, high, 1))
-    if not math.isnan(low):
-        out = np.minimum(out, _crossing_times(c, m, r, tau0, low, -1))
-    return out
 
 
 def _quantile(s: FloatArray, q: float) -> float | None:
@@ -193,7 +230,8 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
                      rng: np.random.Generator | None = None,
                      wall_end: float | None = None, pace: float = 1.0,
                      mixture: Sequence[tuple[DegradationFit, float]] = (),
-                     trajectories: Trajectories | None = None) -> Crossing:
+                     trajectories: Trajectories | None = None,
+                     times: FloatArray | None = None) -> Crossing:
     """The crossing of a level's threshold(s) by the trend ``fit``.
 
     Args:
@@ -213,6 +251,8 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         pace: wall seconds per plant second over the recent windows.
         trajectories: the draws (:func:`draw_trajectories`); drawn here when None. One set
             for every level of a window: each draw's warning comes before its alarm.
+        times: the draws' crossing times of this level (:func:`first_crossings` of
+            ``trajectories``, every level in one pass); computed here when None.
 
     Returns:
         The crossing; ``samples`` holds the draws' times from ``t_end`` [s] (inf: never).
@@ -229,15 +269,12 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         return Crossing(level, crossed, "crossed", t=t_end, t_low=t_end, t_high=t_end,
                         rul_s=0.0, low_s=0.0, high_s=0.0, wall=wall_end, wall_low=wall_end,
                         wall_high=wall_end, probability=1.0, samples=np.zeros(draws))
-    if trajectories is None:
-        if rng is None:
-            raise ValueError("predict_crossing needs trajectories or a generator (rng)")
-        trajectories = draw_trajectories(fit, mixture, draws, rng)
-    parts = [_first_crossing(p["c"], p["m"], p["r"], max(t_end - f.t_ref, 0.0),
-                             math.nan if high is None else float(high),
-                             math.nan if low is None else float(low))
-             for f, p in trajectories]
-    times = parts[0] if len(parts) == 1 else np.concatenate(parts)
+    if times is None:
+        if trajectories is None:
+            if rng is None:
+                raise ValueError("predict_crossing needs trajectories or a generator (rng)")
+            trajectories = draw_trajectories(fit, mixture, draws, rng)
+        times = first_crossings(trajectories, t_end, [(high, low)])[0]
     a = 0.5 * (1.0 - interval)
     # the ranks the three quantiles read, in place of a sort of every draw
     qs = (0.5, a, 1.0 - a)
@@ -263,6 +300,8 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
 def _share(mixture: Sequence[tuple[DegradationFit, float]], draws: int
            ) -> list[tuple[DegradationFit, int]]:
     """``draws`` shared among the models by weight (largest remainders)."""
+    if len(mixture) == 1:
+        return [(mixture[0][0], draws)]
     w = np.array([max(wi, 0.0) for _, wi in mixture], dtype=float)
     w = w / w.sum() if w.sum() > 0 else np.full(w.size, 1.0 / w.size)
     raw = w * draws

@@ -217,6 +217,8 @@ class ParameterTrend:
     _points: int = 0
     #: the horizon dropped evidence the fits still hold
     _stale: bool = False
+    #: :meth:`scores` of the evidence as it stands (None: to compute)
+    _scores: tuple[float | None, float | None] | None = None
 
     # -- intake -----------------------------------------------------------------------------
     def add(self, ev: Evidence | None, *, jump: bool = False) -> None:
@@ -293,6 +295,7 @@ class ParameterTrend:
         self.src.append(ev.source)
         self._dirty = True
         self._new += 1
+        self._scores = None
 
     def _restart(self, reason: str) -> None:
         first = self.pending[0][0]
@@ -300,6 +303,7 @@ class ParameterTrend:
         step = float(np.mean([e.value for e, _ in self.pending])) - pred
         self.restarts.append(Restart(first.t, step, reason))
         self.t, self.y, self.s, self.src = [], [], [], []
+        self._scores = None
         self._dropped = 0
         self.since_t = None
         for ev, _ in self.pending:
@@ -356,6 +360,7 @@ class ParameterTrend:
             self.src = [self.src[i] for i in keep]
             self._dirty = True
             self._stale = True
+            self._scores = None
         if not self._dirty:
             return
         if len(self.t) < cfg.min_evidence or self.t[-1] - self.t[0] < cfg.min_span:
@@ -414,9 +419,13 @@ class ParameterTrend:
         return sum(w for g, w in zip(self.fits, self.weights, strict=True) if g.kind == "none")
 
     def scores(self) -> tuple[float | None, float | None]:
-        """(monotonicity, trendability) of the segment's evidence."""
-        y = np.asarray(self.y)
-        return monotonicity(y, self.settings.smooth), trendability(np.asarray(self.t), y)
+        """(monotonicity, trendability) of the segment's evidence (computed again only when
+        the evidence changed)."""
+        if self._scores is None:
+            y = np.asarray(self.y)
+            self._scores = (monotonicity(y, self.settings.smooth),
+                            trendability(np.asarray(self.t), y))
+        return self._scores
 
     def model_weight(self) -> float | None:
         """The chosen model's share of the model-averaging weight."""
