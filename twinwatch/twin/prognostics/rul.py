@@ -121,7 +121,9 @@ def _crossing(c: float, m: float, r: float, level_now: float, tau0: float, thres
               direction: int) -> float:
     """One draw's :func:`crossing_times`, its level at ``tau0`` given (:func:`_level`)."""
     q = (threshold - c) / m
-    if abs(r) < 1e-12:
+    if abs(r) < 1e-12 or q < 0:
+        # the line's time; heading away (q < 0) the exponential's is negative or undefined
+        # too (ln(1 + r q) / r < 0 for either sign of r): never, without the logarithm
         tau = q
     else:
         arg = 1.0 + r * q
