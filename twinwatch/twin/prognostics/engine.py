@@ -213,7 +213,7 @@ class Prognostics:
         self.thresholds = dict(thresholds or {})
         self.trends = {n: ParameterTrend(n, self.settings) for n in self.names}
         self._pace = _Pace()
-        self._z: dict[str, FloatArray] = {}
+        self._normal_draws: dict[str, FloatArray] = {}
         #: The last window's prognosis per parameter.
         self.latest: dict[str, Prognosis] = {}
 
@@ -299,10 +299,10 @@ class Prognostics:
         in every window (common random numbers: drawn once, from the ``seed`` and the
         parameter's name; the same evidence gives the same RUL, and a resumed daemon the
         uninterrupted one's)."""
-        z = self._z.get(name)
+        z = self._normal_draws.get(name)
         if z is None:
             rng = np.random.default_rng([self.config.seed, zlib.crc32(name.encode())])
-            z = self._z[name] = rng.standard_normal((self.config.draws, 4))
+            z = self._normal_draws[name] = rng.standard_normal((self.config.draws, 4))
         return z
 
     def _prognosis(self, name: str, trend: ParameterTrend, ev: Evidence | None, t_end: float,
