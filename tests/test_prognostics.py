@@ -218,6 +218,26 @@ def test_a_trend_takes_the_evidence_it_predicts_by_an_update_and_refits_when_ask
     assert detected[TrendSettings().skip_z] <= detected[-1.0], detected
 
 
+def test_a_fit_without_a_finite_covariance_is_fitted_again_not_updated() -> None:
+    """The update needs the fit's covariance: a fit whose covariance is not finite (its
+    information matrix singular) takes the next evidence by a fit to the evidence, and
+    comes out finite."""
+    trend = ParameterTrend("Ra", TrendSettings(min_span=60.0))
+    t = np.arange(1.0, 198.0, 2.0)
+    for tt in t[:-1]:
+        trend.add(Evidence(tt, RA0, 0.003 * RA0))
+        trend.refit(tt)
+    assert trend.fit is not None and len(t) % 10  # the next is not a grid search
+    for f in trend.fits:
+        f.cov = np.full_like(f.cov, np.inf)
+    trend.add(Evidence(t[-1], RA0, 0.003 * RA0))
+    assert trend.innovation(Evidence(t[-1] + 2.0, RA0, 0.003 * RA0)) == 0.0
+    fit = trend.fit
+    trend.refit(t[-1])
+    assert trend.fit is not fit and trend.fit is not None
+    assert np.isfinite(trend.fit.cov).all() and trend.fit.t_ref == t[-1]
+
+
 def test_flat_noisy_evidence_is_not_degrading_in_any_window() -> None:
     """300 windows of a constant parameter with 0.3 % noise (a nominal run): never
     "degrading", never a RUL."""

@@ -337,8 +337,8 @@ class ParameterTrend:
         What changed decides how (``full``: the grid search and the polish, always):
 
         * **update** (the steady state): one new evidence within ``skip_z`` of the
-          prediction is taken into each plausible model by an extended Kalman (recursive
-          least squares) step about its current optimum
+          prediction is taken into each plausible model (with a finite covariance) by an
+          extended Kalman (recursive least squares) step about its current optimum
           (:meth:`~twinwatch.twin.prognostics.degradation.DegradationFit.advance`, ``O(k^2)``);
           the model comparison (the weights, the choice) stands;
         * **polish** from the last optimum
@@ -375,7 +375,8 @@ class ParameterTrend:
             and self._z <= cfg.regrid_z
         regrid = not n % cfg.regrid_every
         if warm and not regrid and self._z <= cfg.skip_z and self._new == 1 \
-                and self.fit is not None and not (self._stale and not n % cfg.refit_every):
+                and self.fit is not None and not (self._stale and not n % cfg.refit_every) \
+                and all(np.isfinite(f.cov).all() for f in self.fits):
             self._dirty = False
             self._new = 0
             for f in self.fits:
