@@ -17,6 +17,7 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from harness.daemon import db_rows, with_driver
@@ -330,3 +331,47 @@ def test_a_restart_that_does_not_resume_the_trend_says_why(
         f"({tmp_path / 'state.sqlite'} keeps the earlier runs)",
         "m: trend not resumed: a new run (the file source's time starts over when it opens; "
         "twinwatch run --resume continues the last run)"], said
+
+
+def test_a_replayed_segment_is_the_trend_the_live_updates_made() -> None:
+    """:meth:`Prognostics.replay` of the messages a live run published rebuilds the state
+    its updates made, evidence after evidence: the same evidence, the same fits (level, rate,
+    growth, onset, covariance, chi-square), weights and schedule, hence the same next RUL.
+    The resistance degradation from 160 s with 0.3 % noise, 257 windows: the live trend takes
+    most evidence by its update, polishes and searches its grid between; a replay that fits
+    the evidence afresh instead gives another state, and fails here."""
+    from twinwatch.twin.prognostics import Evidence, Prognostics, PrognosticsConfig, Thresholds
+
+    ra0 = 6.5
+    rule = {"Ra": Thresholds(warning_low=0.95 * ra0, alarm_low=0.9 * ra0)}
+    live = Prognostics(["Ra"], {"Ra": ra0}, PrognosticsConfig(), rule)
+    rng = np.random.default_rng(7)
+    messages = []
+    for k in range(257):
+        t = 2.0 * k + 1.0
+        true = ra0 - 0.044 * (math.exp(0.003 * max(t - 160.0, 0.0)) - 1.0)
+        value = true * (1.0 + 0.003 * rng.standard_normal())
+        trend = live.update({"Ra": Evidence(t, value, 0.003 * value)}, t_end=t + 1.0)["Ra"].trend
+        ev = trend.window_evidence
+        assert ev is not None
+        messages.append(read_health({"t_end": t + 1.0, "parameters": {"Ra": {"trend": {
+            "since_t": trend.since_t, "restarts": trend.restarts,
+            "window_evidence": {"t": ev.t, "value": ev.value, "std": ev.std,
+                                "source": ev.source}}}}}))
+    a = live.trends["Ra"]
+    assert not a.restarts and not a.outliers and a.degrading()
+    resumed = Prognostics(["Ra"], {"Ra": ra0}, PrognosticsConfig(), rule)
+    assert resumed.replay(messages) == 257
+    b = resumed.trends["Ra"]
+    assert (b.t, b.y, b.s) == (a.t, a.y, a.s)
+    assert (b._z, b._points, b._new, b.weights) == (a._z, a._points, a._new, a.weights)
+    assert [f.label for f in b._all] == [f.label for f in a._all]
+    for f, g in zip(a._all, b._all, strict=True):
+        assert (g.t_ref, g.c, g.m, g.r, g.onset, g.chi2, g.n, g.scale) == (
+            f.t_ref, f.c, f.m, f.r, f.onset, f.chi2, f.n, f.scale), f.label
+        assert np.array_equal(g.cov, f.cov), f.label
+    assert b.fit is not None and a.fit is not None and b.fit.label == a.fit.label
+    t_next = 2.0 * 257 + 2.0
+    p, q = live.predict(t_next)["Ra"], resumed.predict(t_next)["Ra"]
+    assert p.rul is not None and q.rul is not None and p.rul.alarm is not None
+    assert q.rul.alarm is not None and q.rul.alarm.t == p.rul.alarm.t

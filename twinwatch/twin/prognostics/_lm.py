@@ -301,3 +301,117 @@ def fit_statistics(t: np.ndarray, y: np.ndarray, s: np.ndarray, t_ref: float,
         q = rounding * y_max / s[i]
         floor += q * q
     return res, chi2, info, long_run_factor(res), floor
+
+
+@njit(cache=True, nogil=True)
+def value_band(t: float, t_ref: float, base: np.ndarray, has_onset: bool, codes: np.ndarray,
+               cov: np.ndarray) -> tuple[float, float]:
+    """The model and its 1-sigma band at one time (the delta method on the parameters'
+    covariance: ``sqrt(j^T cov j)``, ``j`` the Jacobian row of :func:`levenberg_marquardt`).
+
+    Args:
+        t: the time [s].
+        t_ref: the reference time [s].
+        base: the model's ``(c, m, r, t0)`` (4,).
+        has_onset: whether the model has an onset (``t0``).
+        codes: the free parameters' codes (k,), ``cov``'s order.
+        cov: their covariance (k, k).
+
+    Returns:
+        (value [SI], band [SI]).
+    """
+    tt = np.array([t])
+    one = np.ones(1)
+    res = np.empty(1)
+    _resid(tt, np.zeros(1), one, t_ref, base, has_onset, res)
+    jm = np.empty((1, codes.size))
+    _jac(tt, one, t_ref, base, has_onset, codes, jm)
+    q = 0.0
+    for a in range(codes.size):
+        acc = 0.0
+        for b in range(codes.size):
+            acc += cov[a, b] * jm[0, b]
+        q += jm[0, a] * acc
+    return res[0], math.sqrt(max(q, 0.0))
+
+
+@njit(cache=True, nogil=True)
+def kalman_step(t_ref: float, base: np.ndarray, codes: np.ndarray, cov: np.ndarray, t: float,
+                y: float, s: float
+                ) -> tuple[np.ndarray, np.ndarray, float]:
+    """One evidence point taken into a fitted degradation model: an extended Kalman filter
+    (recursive least squares) step on the free parameters, ``O(k^2)``.
+
+    The model's parameters are referred to the latest evidence (``c`` the level, ``m`` the
+    drift rate there). The *time update* refers them to the new evidence's time ``t``, exactly
+    for the curve (``g(a + b) = g(a) + exp(r a) g(b)``)::
+
+        c' = c + m g(tau, r),   m' = m exp(r tau),   tau = t - t_ref   (t > t0)
+
+    and linearised for the covariance, ``P' = F P F^T`` with ``F`` its Jacobian (the
+    parameters do not change in time: no process noise). The *measurement update* reads the
+    level ``c'`` (``h = e_c``)::
+
+        e = y - c',   S = s^2 + P'_cc,   K = P'_{.c} / S,   x += K e,   P -= K K^T S
+
+    For the line (and ``none``) this is the recursive form of the weighted least squares fit
+    to the evidence and the new point (``P`` the unscaled ``(J^T W J)^-1``); for the
+    exponential and an onset, the fit linearised about its current optimum (the innovation
+    ``e / sqrt(S)`` says how far the new point is from it).
+
+    Args:
+        t_ref: the model's reference time [s] (< ``t``).
+        base: ``(c, m, r, t0)`` (4,); an onset ``t0`` is at most ``t_ref`` (a fit's onset
+            lies within its evidence): the curve from ``t_ref`` on does not depend on it.
+        codes: the free parameters' codes (k,), ``cov``'s order.
+        cov: their covariance (k, k), unscaled (``(J^T W J)^-1``, ``W = 1/s^2``).
+        t, y, s: the new evidence: time [s], value [SI], 1-sigma [SI].
+
+    Returns:
+        (the new ``(c, m, r, t0)`` (4,) at reference time ``t``, the new unscaled covariance
+        (k, k), the point's chi-square ``e^2 / S``).
+    """
+    c, m, r = base[0], base[1], base[2]
+    k = codes.size
+    tau = t - t_ref
+    ex = math.exp(min(max(r * tau, -700.0), 700.0))
+    g = _g1(tau, r)
+    if abs(r) < 1e-12:
+        dg = 0.5 * tau * tau
+    else:
+        dg = (tau * ex - g) / r
+    f = np.eye(k)
+    ic = -1
+    for a in range(k):
+        code = codes[a]
+        if code == 0:
+            ic = a
+            for b in range(k):
+                if codes[b] == 1:
+                    f[a, b] = g
+                elif codes[b] == 2:
+                    f[a, b] = m * dg
+        elif code == 1:
+            for b in range(k):
+                if codes[b] == 1:
+                    f[a, b] = ex
+                elif codes[b] == 2:
+                    f[a, b] = m * tau * ex
+    p = f @ cov @ f.T
+    out = base.copy()
+    out[0] = c + m * g
+    out[1] = m * ex
+    e = y - out[0]
+    var = s * s + p[ic, ic]
+    gain = p[:, ic] / var
+    for a in range(k):
+        out[codes[a]] += gain[a] * e
+    for a in range(k):
+        for b in range(k):
+            p[a, b] -= gain[a] * gain[b] * var
+    for a in range(k):
+        for b in range(a):
+            v = 0.5 * (p[a, b] + p[b, a])
+            p[a, b] = v
+            p[b, a] = v
+    return out, p, e * e / var

@@ -41,10 +41,17 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+import numpy.typing as npt
 from numba import njit
 
 from twinwatch.twin.model import FloatArray
-from twinwatch.twin.prognostics._lm import fit_statistics, levenberg_marquardt, wls_grid
+from twinwatch.twin.prognostics._lm import (
+    fit_statistics,
+    kalman_step,
+    levenberg_marquardt,
+    value_band,
+    wls_grid,
+)
 
 __all__ = ["ModelKind", "DegradationFit", "bin_evidence", "fit_models", "long_run_factor",
            "pinv_sym", "refit_models", "select"]
@@ -131,13 +138,21 @@ class DegradationFit:
         free: names of the free parameters, in ``cov``'s order.
         chi2: weighted residual sum of squares (published uncertainty).
         n: evidence points; ``k`` free parameters.
-        scale: the factor the covariance was multiplied by (>= 1).
+        scale: the factor the covariance was multiplied by (>= 1): ``max(chi2 / (n - k), 1)``
+            times ``long_run``.
+        long_run: the residuals' long-run variance factor (Newey-West, >= 1) of the last
+            fit to the evidence (:meth:`advance` keeps it).
         bic: the Bayesian information criterion (smaller is better): degrading or not.
         aicc: the corrected Akaike criterion: which degradation model predicts best.
         rms_norm: RMS of the normalised residuals (1: the scatter the published
             uncertainty states).
         chi2_floor: the chi-square of residuals at the values' rounding (``1e-9`` of the
             largest): the criteria read ``max(chi2, chi2_floor)``.
+        residuals: the normalised residuals of the evidence fitted (N,).
+
+    ``bic``, ``aicc``, ``chi2_floor`` and ``residuals`` are those of the last fit to the
+    evidence (:func:`fit_models`, :func:`refit_models`): :meth:`advance` updates the
+    parameters, their covariance, ``chi2``, ``n`` and ``scale`` only.
     """
 
     kind: ModelKind
@@ -151,6 +166,7 @@ class DegradationFit:
     chi2: float = 0.0
     n: int = 0
     scale: float = 1.0
+    long_run: float = 1.0
     bic: float = math.inf
     aicc: float = math.inf
     rms_norm: float = math.nan
@@ -159,6 +175,9 @@ class DegradationFit:
     #: (cov, eigenvalues, eigenvectors) of :meth:`draws`, for the ``cov`` it was computed on
     _eigh: tuple[FloatArray, FloatArray, FloatArray] | None = field(
         default=None, init=False, repr=False, compare=False)
+    #: the free parameters' codes (:meth:`_coded`)
+    _codes: npt.NDArray[np.int64] | None = field(default=None, init=False, repr=False,
+                                                  compare=False)
 
     @property
     def k(self) -> int:
@@ -192,6 +211,55 @@ class DegradationFit:
                                              0.0))
         return out
 
+    def value_band(self, t: float) -> tuple[float, float]:
+        """The model at one time ``t`` [s] and its 1-sigma band [SI]: :meth:`value` and
+        :meth:`band` at a scalar, compiled (:func:`~twinwatch.twin.prognostics._lm.
+        value_band`)."""
+        codes, base = self._coded()
+        return value_band(float(t), self.t_ref, base, self.onset is not None, codes, self.cov)
+
+    def advance(self, t: float, y: float, s: float) -> float:
+        """Take one new evidence point into the fit, in place: the extended Kalman (recursive
+        least squares) step of :func:`~twinwatch.twin.prognostics._lm.kalman_step` on the
+        unscaled covariance (``cov / scale``), then ``chi2``, ``n``, ``scale`` (with
+        ``long_run`` kept) and ``t_ref = t``. An onset stays at most ``t``.
+
+        Args:
+            t: the evidence's time [s], after ``t_ref``.
+            y: its value [SI].
+            s: its 1-sigma [SI] (> 0; at least the value's rounding, as in
+                :func:`fit_models`).
+
+        Returns:
+            The point's chi-square against the prediction, ``e^2 / (s^2 + P_cc)``.
+        """
+        codes, base = self._coded()
+        # a stated uncertainty below the value's rounding is not information (fit_models)
+        s = max(float(s), _ROUNDING * abs(float(y)), 1e-300)
+        x, cov, chi2 = kalman_step(self.t_ref, base, codes, self.cov / self.scale, float(t),
+                                   float(y), s)
+        self.t_ref = float(t)
+        self.c, self.m = float(x[0]), float(x[1])
+        if self.kind == "exponential":
+            self.r = float(x[2])
+        if self.onset is not None:
+            self.onset = min(float(x[3]), self.t_ref)
+        self.chi2 += chi2
+        self.n += 1
+        self.scale = max(self.chi2 / max(self.n - self.k, 1), 1.0) * self.long_run
+        self.cov = cov * self.scale
+        self.rms_norm = math.sqrt(self.chi2 / self.n)
+        return chi2
+
+    def _coded(self) -> tuple[npt.NDArray[np.int64], FloatArray]:
+        """The free parameters' codes (:mod:`._lm`) and ``(c, m, r, t0)``."""
+        codes = self._codes
+        if codes is None:
+            codes = self._codes = np.array([_CODE[p] for p in self.free], dtype=np.int64)
+        base = np.array([self.c, self.m, self.r,
+                         self.onset if self.onset is not None else 0.0])
+        return codes, base
+
     def rate_at(self, t: float) -> tuple[float, float]:
         """The drift rate at time ``t`` [s] and its 1-sigma [SI/s] (delta method): ``m`` and
         its standard error at ``t_ref`` (a fit refitted on the latest evidence), ``m exp(r
@@ -207,26 +275,61 @@ class DegradationFit:
         var = float(g @ self.cov @ g)
         return self.m * e, math.sqrt(max(var, 0.0))
 
-    def draws(self, n: int, rng: np.random.Generator) -> dict[str, FloatArray]:
+    def draws(self, n: int, rng: np.random.Generator | None = None, *,
+              normals: FloatArray | None = None) -> dict[str, FloatArray]:
         """``n`` draws of ``c``, ``m``, ``r`` from the fit's Gaussian (the Monte Carlo of the
-        remaining useful life)."""
+        remaining useful life): ``mean + (z sqrt(w)) V^T``, ``w, V`` the covariance's
+        eigen-decomposition.
+
+        Args:
+            n: draws.
+            rng: the generator of the standard normals ``z`` (n, k).
+            normals: the standard normals themselves instead (n, >= k): the first ``k``
+                columns are used (a caller drawing from one fixed set every window).
+
+        Raises:
+            ValueError: neither ``rng`` nor ``normals``, or fewer than (n, k) normals.
+        """
         mean = np.array([self._get(p) for p in self.free])
         if self._eigh is None or self._eigh[0] is not self.cov:
             # once per covariance: a window draws from each fit for each alarm level
             self._eigh = (self.cov, *np.linalg.eigh(0.5 * (self.cov + self.cov.T)))
         _, w, v = self._eigh
-        z = rng.standard_normal((n, len(mean))) * np.sqrt(np.maximum(w, 0.0))
-        x = mean + z @ v.T
-        out = {p: np.full(n, self._get(p)) for p in ("c", "m", "r")}
-        for i, p in enumerate(self.free):
-            if p in out:
-                out[p] = x[:, i]
-        return out
+        if normals is not None:
+            if normals.shape[0] < n or normals.shape[1] < mean.size:
+                raise ValueError(f"{n} draws of {mean.size} parameters need that many normals,"
+                                 f" not {normals.shape}")
+            z = normals[:n, :mean.size]
+        elif rng is not None:
+            z = rng.standard_normal((n, len(mean)))
+        else:
+            raise ValueError("draws needs a generator (rng) or the normals")
+        x = _gaussian_draws(mean, np.sqrt(np.maximum(w, 0.0)), v, z)
+        return {p: x[self.free.index(p)] if p in self.free else np.full(n, self._get(p))
+                for p in ("c", "m", "r")}
 
     def _get(self, name: str) -> float:
         if name == "t0":
             return float(self.onset if self.onset is not None else self.t_ref)
         return float(getattr(self, name))
+
+
+@njit(cache=True, nogil=True, fastmath={"contract"})
+def _gaussian_draws(mean: FloatArray, sw: FloatArray, v: FloatArray, z: FloatArray
+                    ) -> FloatArray:
+    """``mean + (z sw) V^T`` (:meth:`DegradationFit.draws`) in one pass, transposed: (k, n),
+    each parameter's draws contiguous (z (n, k), sw (k,), V (k, k)). The products summed in
+    order with fused multiply-adds (``contract``), as the BLAS ``dgemm`` numpy's ``@`` calls
+    sums them here (x86-64 with FMA: the same draws, bit for bit)."""
+    n, k = z.shape
+    out = np.empty((k, n))
+    for i in range(n):
+        for a in range(k):
+            acc = 0.0
+            for j in range(k):
+                acc += z[i, j] * sw[j] * v[a, j]
+            out[a, i] = mean[a] + acc
+    return out
 
 
 #: Relative rounding of the evidence's values: a stated uncertainty or a residual below it
@@ -329,6 +432,7 @@ def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref:
     red = chi2 / dof
     scale = max(red, 1.0) * lrf
     fit.cov = cov * scale
+    fit.long_run = lrf
     fit.chi2 = chi2
     # residuals below the values' rounding (the floor of ``s`` in fit_models) are not
     # information: a criterion comparing fits of exact evidence compares their rounding

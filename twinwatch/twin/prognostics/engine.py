@@ -20,8 +20,14 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.config import PrognosticsConfig, Thresholds
-from twinwatch.twin.prognostics.rul import Crossing, draw_trajectories, predict_crossing
+from twinwatch.twin.prognostics.rul import (
+    Crossing,
+    draw_trajectories,
+    first_crossings,
+    predict_crossing,
+)
 from twinwatch.twin.prognostics.trend import (
     Evidence,
     ParameterTrend,
@@ -84,6 +90,8 @@ class StoredParameter(Protocol):
 class StoredHealth(Protocol):
     """A stored health message, as :meth:`Prognostics.replay` reads it."""
 
+    @property
+    def t_end(self) -> float | None: ...
     @property
     def parameters(self) -> Mapping[str, StoredParameter] | None: ...
 
@@ -205,6 +213,7 @@ class Prognostics:
         self.thresholds = dict(thresholds or {})
         self.trends = {n: ParameterTrend(n, self.settings) for n in self.names}
         self._pace = _Pace()
+        self._normal_draws: dict[str, FloatArray] = {}
         #: The last window's prognosis per parameter.
         self.latest: dict[str, Prognosis] = {}
 
@@ -239,7 +248,10 @@ class Prognostics:
         (``parameters.<name>.trend.window_evidence``) since the start of the segment the
         latest message names (``trend.since_t``: a restart before it is not replayed again),
         and the restarts it reports (``restarts``, ``restart``), so a restart of the daemon
-        changes neither the trend nor the RUL.
+        changes neither the trend nor the RUL. Each window's evidence is taken as
+        :meth:`update` took it (its innovation, then the trend brought up to it at the
+        window's end, ``t_end``): a segment replayed whole gives the trend state of the
+        uninterrupted updates.
 
         Returns:
             The evidence windows replayed.
@@ -261,14 +273,17 @@ class Prognostics:
             for msg in messages:
                 t = _trend_of(msg, name)
                 ev = t.window_evidence if t is not None else None
-                if ev is None or ev.t is None or ev.value is None or not ev.std \
-                        or ev.t < since or (trend.t and ev.t <= trend.t[-1]):
-                    continue
-                trend._append(Evidence(float(ev.t), float(ev.value), float(ev.std),
-                                       ev.source or "estimated"))
-                n += 1
-            if trend.t:
-                trend.refit(trend.t[-1], full=True)
+                taken = not (ev is None or ev.t is None or ev.value is None or not ev.std
+                             or ev.t < since or (trend.t and ev.t <= trend.t[-1]))
+                if taken:
+                    assert ev is not None and ev.t is not None and ev.value is not None \
+                        and ev.std is not None
+                    e = Evidence(float(ev.t), float(ev.value), float(ev.std),
+                                 ev.source or "estimated")
+                    trend.take(e, trend.innovation(e))
+                    n += 1
+                if trend.t:
+                    trend.refit(float(msg.t_end) if msg.t_end is not None else trend.t[-1])
         return n
 
     def predict(self, t_end: float) -> dict[str, Prognosis]:
@@ -279,6 +294,17 @@ class Prognostics:
                 for name, trend in self.trends.items()}
 
     # -- reports ------------------------------------------------------------------------------
+    def _normals(self, name: str) -> FloatArray:
+        """The standard normals (``draws``, 4) the parameter's RUL draws are made of, the same
+        in every window (common random numbers: drawn once, from the ``seed`` and the
+        parameter's name; the same evidence gives the same RUL, and a resumed daemon the
+        uninterrupted one's)."""
+        z = self._normal_draws.get(name)
+        if z is None:
+            rng = np.random.default_rng([self.config.seed, zlib.crc32(name.encode())])
+            z = self._normal_draws[name] = rng.standard_normal((self.config.draws, 4))
+        return z
+
     def _prognosis(self, name: str, trend: ParameterTrend, ev: Evidence | None, t_end: float,
                    wall: float | None) -> Prognosis:
         f = trend.fit
@@ -298,8 +324,7 @@ class Prognostics:
             rate, sd = f.rate_at(trend.t[-1])
             z = 1.959963984540054
             nom = self.nominal.get(name) or 0.0
-            report.level = float(f.value(t_end))
-            report.level_std = float(f.band(np.array([t_end]))[0])
+            report.level, report.level_std = f.value_band(t_end)
             report.rate = rate
             report.rate_low, report.rate_high = rate - z * sd, rate + z * sd
             report.rate_pct_per_h = rate / nom * 360000.0 if nom else None
@@ -314,19 +339,18 @@ class Prognostics:
         if f is not None:
             rul.status = "degrading" if degrading else "not_degrading"
         if f is not None and degrading:
-            rng = np.random.default_rng([c.seed, zlib.crc32(name.encode()),
-                                         int(round(t_end * 1000.0))])
             mixture = list(zip(trend.fits, trend.weights, strict=True))
             # one sample of the trajectories for both levels (each draw's warning before its
             # alarm)
-            drawn = draw_trajectories(f, mixture, c.draws, rng)
-            for level in ("warning", "alarm"):
-                high, low = th.level(level)
-                if high is None and low is None:
-                    continue
+            drawn = draw_trajectories(f, mixture, c.draws, normals=self._normals(name))
+            levels = [(level, *th.level(level)) for level in ("warning", "alarm")]
+            levels = [(level, high, low) for level, high, low in levels
+                      if high is not None or low is not None]
+            times = first_crossings(drawn, t_end, [(high, low) for _, high, low in levels])
+            for (level, high, low), samples in zip(levels, times, strict=True):
                 cr = predict_crossing(f, level, high, low, t_end=t_end, interval=c.interval,
                                       draws=c.draws, wall_end=wall, pace=self._pace.value(),
-                                      trajectories=drawn)
+                                      trajectories=drawn, times=samples)
                 setattr(rul, level, cr)
         return Prognosis(report, rul)
 

@@ -36,8 +36,8 @@ from numba import njit
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.degradation import DegradationFit
 
-__all__ = ["Crossing", "Trajectories", "crossing_times", "draw_trajectories", "format_crossing",
-           "format_duration", "predict_crossing"]
+__all__ = ["Crossing", "Trajectories", "crossing_times", "draw_trajectories", "first_crossings",
+           "format_crossing", "format_duration", "predict_crossing"]
 
 #: Monte Carlo draws of the degradation models: each model with its share of ``c``, ``m``,
 #: ``r`` (arrays of the model's number of draws).
@@ -103,44 +103,102 @@ def _crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
                     threshold: float, direction: int) -> FloatArray:
     out = np.empty(c.size)
     for i in range(c.size):
-        ci, mi, ri = c[i], m[i], r[i]
-        lin = abs(ri) < 1e-12
-        if lin:
-            level_now = ci + mi * tau0
-        else:
-            level_now = ci + mi * (math.expm1(min(max(ri * tau0, -700.0), 700.0)) / ri)
-        q = (threshold - ci) / mi
-        if lin:
-            tau = q
-        else:
-            arg = 1.0 + ri * q
-            tau = math.log(arg) / ri if arg > 0 else math.inf
-        # heading away from the threshold (q < 0), or no drift: never
-        if not (math.isfinite(tau) and mi != 0 and tau >= 0):
-            tau = math.inf
-        if (level_now - threshold) * direction >= 0:
-            out[i] = 0.0
-        else:
-            out[i] = max(tau - tau0, 0.0)
+        out[i] = _crossing(c[i], m[i], r[i], _level(c[i], m[i], r[i], tau0), tau0, threshold,
+                           direction)
     return out
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _level(c: float, m: float, r: float, tau0: float) -> float:
+    """One draw's level at ``tau0``."""
+    if abs(r) < 1e-12:
+        return c + m * tau0
+    return c + m * (math.expm1(min(max(r * tau0, -700.0), 700.0)) / r)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _crossing(c: float, m: float, r: float, level_now: float, tau0: float, threshold: float,
+              direction: int) -> float:
+    """One draw's :func:`crossing_times`, its level at ``tau0`` given (:func:`_level`)."""
+    q = (threshold - c) / m
+    if abs(r) < 1e-12 or q < 0:
+        # the line's time; heading away (q < 0) the exponential's is negative or undefined
+        # too (ln(1 + r q) / r < 0 for either sign of r): never, without the logarithm
+        tau = q
+    else:
+        arg = 1.0 + r * q
+        tau = math.log(arg) / r if arg > 0 else math.inf
+    # heading away from the threshold (q < 0), or no drift: never
+    if not (math.isfinite(tau) and m != 0 and tau >= 0):
+        tau = math.inf
+    if (level_now - threshold) * direction >= 0:
+        return 0.0
+    return max(tau - tau0, 0.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _first_crossings(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
+                     thresholds: FloatArray) -> FloatArray:
+    """Per level (row of ``thresholds`` (L, 2): its high and low threshold, NaN where
+    absent) and draw, the earlier of the draw's crossings of the high threshold upwards and
+    the low one downwards (:func:`crossing_times`; inf: neither reached), (L, n): each
+    draw's level at ``tau0`` computed once for every threshold."""
+    out = np.full((thresholds.shape[0], c.size), np.inf)
+    for i in range(c.size):
+        now = _level(c[i], m[i], r[i], tau0)
+        for k in range(thresholds.shape[0]):
+            for side in range(2):
+                th = thresholds[k, side]
+                if not math.isnan(th):
+                    out[k, i] = min(out[k, i], _crossing(c[i], m[i], r[i], now, tau0, th,
+                                                         1 - 2 * side))
+    return out
+
+
+def first_crossings(trajectories: Trajectories, t_end: float,
+                    levels: Sequence[tuple[float | None, float | None]]) -> list[FloatArray]:
+    """Each draw's crossing time [s from ``t_end``] of each level: the earlier of its high
+    threshold upwards and its low one downwards (inf: neither reached; 0: beyond one now),
+    the draws of every model in ``trajectories``' order, in one pass over them.
+
+    Args:
+        trajectories: the draws (:func:`draw_trajectories`).
+        t_end: the window's end [plant time, s].
+        levels: each level's (high, low) thresholds [SI] (None: absent).
+
+    Returns:
+        Per level, the draws' times (draws,).
+    """
+    th = np.array([[math.nan if h is None else float(h), math.nan if lo is None else float(lo)]
+                   for h, lo in levels]).reshape(len(levels), 2)
+    parts = [_first_crossings(p["c"], p["m"], p["r"], max(t_end - f.t_ref, 0.0), th)
+             for f, p in trajectories]
+    out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    return list(out)
+
+
+def _ranks(n: int, q: float) -> tuple[int, int]:
+    """The two ranks (0-based) of ``n`` sorted draws the ``q`` quantile interpolates."""
+    i = int(math.floor(q * (n - 1)))
+    return i, min(i + 1, n - 1)
+
+
 def _quantile(s: FloatArray, q: float) -> float | None:
-    """The ``q`` quantile of sorted draws ``s`` that may be infinite (never), None when
-    infinite (linear interpolation between ranks; between a finite and an infinite rank:
-    infinite)."""
+    """The ``q`` quantile of draws ``s`` that may be infinite (never), None when infinite
+    (linear interpolation between ranks; between a finite and an infinite rank: infinite);
+    ``s`` sorted, or partitioned at the ranks it reads (:func:`_ranks`)."""
     if not s.size:
         return None
     pos = q * (s.size - 1)
-    i = int(math.floor(pos))
-    j = min(i + 1, s.size - 1)
+    i, j = _ranks(s.size, q)
     if not (math.isfinite(s[i]) and math.isfinite(s[j])):
         return None
     return float(s[i] + (pos - i) * (s[j] - s[i]))
 
 
 def draw_trajectories(fit: DegradationFit, mixture: Sequence[tuple[DegradationFit, float]],
-                      draws: int, rng: np.random.Generator) -> Trajectories:
+                      draws: int, rng: np.random.Generator | None = None, *,
+                      normals: FloatArray | None = None) -> Trajectories:
     """``draws`` samples of ``(c, m, r)`` shared among the plausible models by weight (largest
     remainders), each from its fit's Gaussian (:meth:`DegradationFit.draws`).
 
@@ -149,11 +207,24 @@ def draw_trajectories(fit: DegradationFit, mixture: Sequence[tuple[DegradationFi
         mixture: the plausible models with their weights (Bayesian model averaging).
         draws: Monte Carlo samples in all.
         rng: the generator.
+        normals: standard normals (draws, 4) instead of ``rng``: each model takes the next
+            rows (its number of draws) and its first ``k`` columns.
 
     Returns:
         Each model drawn from with its draws.
+
+    Raises:
+        ValueError: neither ``rng`` nor ``normals``.
     """
-    return [(f, f.draws(n_f, rng)) for f, n_f in _share(mixture or [(fit, 1.0)], draws)]
+    out: Trajectories = []
+    row = 0
+    for f, n_f in _share(mixture or [(fit, 1.0)], draws):
+        if normals is None:
+            out.append((f, f.draws(n_f, rng)))
+        else:
+            out.append((f, f.draws(n_f, normals=normals[row:row + n_f])))
+        row += n_f
+    return out
 
 
 def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: float | None,
@@ -161,7 +232,8 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
                      rng: np.random.Generator | None = None,
                      wall_end: float | None = None, pace: float = 1.0,
                      mixture: Sequence[tuple[DegradationFit, float]] = (),
-                     trajectories: Trajectories | None = None) -> Crossing:
+                     trajectories: Trajectories | None = None,
+                     times: FloatArray | None = None) -> Crossing:
     """The crossing of a level's threshold(s) by the trend ``fit``.
 
     Args:
@@ -181,6 +253,8 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         pace: wall seconds per plant second over the recent windows.
         trajectories: the draws (:func:`draw_trajectories`); drawn here when None. One set
             for every level of a window: each draw's warning comes before its alarm.
+        times: the draws' crossing times of this level (:func:`first_crossings` of
+            ``trajectories``, every level in one pass); computed here when None.
 
     Returns:
         The crossing; ``samples`` holds the draws' times from ``t_end`` [s] (inf: never).
@@ -188,7 +262,7 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
     Raises:
         ValueError: neither ``trajectories`` nor ``rng`` given.
     """
-    level_end = float(fit.value(t_end))
+    level_end = fit.value_band(t_end)[0]
     target = high if (fit.m >= 0 and high is not None) or low is None else low
     assert target is not None, "a level needs a threshold"
     if (high is not None and level_end >= high) or (low is not None and level_end <= low):
@@ -197,27 +271,20 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         return Crossing(level, crossed, "crossed", t=t_end, t_low=t_end, t_high=t_end,
                         rul_s=0.0, low_s=0.0, high_s=0.0, wall=wall_end, wall_low=wall_end,
                         wall_high=wall_end, probability=1.0, samples=np.zeros(draws))
-    if trajectories is None:
-        if rng is None:
-            raise ValueError("predict_crossing needs trajectories or a generator (rng)")
-        trajectories = draw_trajectories(fit, mixture, draws, rng)
-    parts = []
-    for f, p in trajectories:
-        n_f = p["c"].size
-        tau0 = max(t_end - f.t_ref, 0.0)
-        times = np.full(n_f, np.inf)
-        for th, direction in ((high, 1), (low, -1)):
-            if th is not None:
-                times = np.minimum(times, crossing_times(p["c"], p["m"], p["r"], tau0, th,
-                                                         direction))
-        parts.append(times)
-    times = np.concatenate(parts)
+    if times is None:
+        if trajectories is None:
+            if rng is None:
+                raise ValueError("predict_crossing needs trajectories or a generator (rng)")
+            trajectories = draw_trajectories(fit, mixture, draws, rng)
+        times = first_crossings(trajectories, t_end, [(high, low)])[0]
     a = 0.5 * (1.0 - interval)
-    ranked = np.sort(times)  # once for the three quantiles
-    med = _quantile(ranked, 0.5)
-    lo = _quantile(ranked, a)
-    hi = _quantile(ranked, 1.0 - a)
-    prob = float(np.mean(np.isfinite(times)))
+    # the ranks the three quantiles read, in place of a sort of every draw
+    qs = (0.5, a, 1.0 - a)
+    ranks = sorted({r for q in qs for r in _ranks(times.size, q)})
+    ranked = np.partition(times, ranks) if times.size else times
+    med, lo, hi = (_quantile(ranked, q) for q in qs)
+    prob = float(np.count_nonzero(np.isfinite(times))) / times.size if times.size else \
+        math.nan
     status: Literal["crossed", "predicted", "not_reached"] = (
         "predicted" if med is not None else "not_reached")
 
@@ -235,6 +302,8 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
 def _share(mixture: Sequence[tuple[DegradationFit, float]], draws: int
            ) -> list[tuple[DegradationFit, int]]:
     """``draws`` shared among the models by weight (largest remainders)."""
+    if len(mixture) == 1:
+        return [(mixture[0][0], draws)]
     w = np.array([max(wi, 0.0) for _, wi in mixture], dtype=float)
     w = w / w.sum() if w.sum() > 0 else np.full(w.size, 1.0 / w.size)
     raw = w * draws

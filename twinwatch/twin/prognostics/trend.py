@@ -17,7 +17,9 @@ configured horizon) and, every window:
    (:func:`~twinwatch.twin.prognostics.degradation.select`), and the others keep their weight
    (Bayesian model averaging: the remaining useful life is drawn from every plausible model,
    so an early choice between a line and an exponential widens the interval instead of hiding
-   in it).
+   in it). Between fits, evidence the fits predict is taken in by an update (an extended
+   Kalman step on each plausible model's parameters and covariance); the fit and the
+   comparison are made again when the evidence asks (:meth:`ParameterTrend.refit`).
 3. **Degrading?** Only when the evidence favours a degrading model over ``none`` with odds of
    at least ``detection`` (0.9: the BIC's weights) and the chosen model's drift rate now is
    beyond ``flat_z`` standard errors of zero; otherwise "not degrading" (flat within its
@@ -39,6 +41,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.degradation import (
@@ -96,16 +99,16 @@ class TrendSettings:
     smooth: int = 5
     min_weight: float = 0.01
     detection: float = 0.9
-    #: A trend whose new evidence lies within ``skip_z`` of its prediction is refitted at
-    #: every ``refit_every``-th evidence only (the fit before predicts the window as well; its
-    #: level, band, rate and RUL are evaluated at the window's time).
+    #: New evidence within ``skip_z`` of the prediction is taken into the fits by an update
+    #: (an extended Kalman step, :meth:`ParameterTrend.refit`); beyond it the models are
+    #: polished again from their last optimum
+    #: (:func:`~twinwatch.twin.prognostics.degradation.refit_models`), and so at every
+    #: ``refit_every``-th evidence while the horizon drops evidence (an update does not
+    #: remove it). The grid is searched again at every ``regrid_every``-th evidence, after a
+    #: restart, a bend or an outlier, and whenever new evidence lies beyond ``regrid_z`` of
+    #: the prediction.
     refit_every: int = 2
     skip_z: float = 1.0
-    #: Between full fits (the grid search, then the polish) the models are refitted from
-    #: their last optimum (:func:`~twinwatch.twin.prognostics.degradation.refit_models`);
-    #: the grid is searched again at every ``regrid_every``-th evidence, after a restart, a
-    #: bend or an outlier, and whenever new evidence lies beyond ``regrid_z`` of the
-    #: prediction.
     regrid_every: int = 10
     regrid_z: float = 3.0
 
@@ -113,30 +116,64 @@ class TrendSettings:
 def monotonicity(x: FloatArray, smooth: int = 1) -> float | None:
     """MATLAB's ``monotonicity`` (``sign`` method) of one history: ``|sum sign(diff x)| /
     (n - 1)`` after a moving mean of ``smooth`` points; None below 3 points."""
-    x = np.asarray(x, dtype=float)
-    if smooth > 1 and x.size >= smooth + 2:
-        x = np.convolve(x, np.ones(smooth) / smooth, mode="valid")
-    if x.size < 3:
-        return None
-    d = np.sign(np.diff(x))
-    return float(abs(float(np.sum(d))) / (x.size - 1))
+    value = _monotonicity(np.ascontiguousarray(x, dtype=float), int(smooth))
+    return None if math.isnan(value) else value
 
 
 def trendability(t: FloatArray, x: FloatArray) -> float | None:
     """``|corr(x, t)|`` (Pearson) of one history against time; None below 3 points or for a
     constant history."""
-    t = np.asarray(t, dtype=float)
-    x = np.asarray(x, dtype=float)
-    if x.size < 3:
-        return None
-    # Pearson's r from the centred series (numpy's corrcoef builds a covariance matrix first:
-    # 60 us of overhead on a trend's points, each window)
-    tc = t - t.mean()
-    xc = x - x.mean()
-    stt, sxx = float(tc @ tc), float(xc @ xc)
+    value = _trendability(np.ascontiguousarray(t, dtype=float),
+                          np.ascontiguousarray(x, dtype=float))
+    return None if math.isnan(value) else value
+
+
+@njit(cache=True, nogil=True)
+def _monotonicity(x: FloatArray, smooth: int) -> float:
+    """:func:`monotonicity` compiled (NaN for None): the moving mean's differences' signs
+    summed in one pass."""
+    n = x.size
+    if smooth > 1 and n >= smooth + 2:
+        w = 1.0 / smooth
+        m = n - smooth + 1
+        prev = 0.0
+        total = 0.0
+        for i in range(m):
+            acc = 0.0
+            for j in range(smooth):
+                acc += x[i + j] * w
+            if i:
+                total += np.sign(acc - prev)
+            prev = acc
+        return abs(total) / (m - 1)
+    if n < 3:
+        return math.nan
+    total = 0.0
+    for i in range(1, n):
+        total += np.sign(x[i] - x[i - 1])
+    return abs(total) / (n - 1)
+
+
+@njit(cache=True, nogil=True)
+def _trendability(t: FloatArray, x: FloatArray) -> float:
+    """:func:`trendability` compiled (NaN for None): Pearson's r from the centred series."""
+    n = x.size
+    if n < 3:
+        return math.nan
+    tm = t.mean()
+    xm = x.mean()
+    stt = 0.0
+    sxx = 0.0
+    stx = 0.0
+    for i in range(n):
+        tc = t[i] - tm
+        xc = x[i] - xm
+        stt += tc * tc
+        sxx += xc * xc
+        stx += tc * xc
     if stt <= 0 or sxx <= 0:
-        return None
-    return float(min(abs(float(tc @ xc)) / math.sqrt(stt * sxx), 1.0))
+        return math.nan
+    return min(abs(stx) / math.sqrt(stt * sxx), 1.0)
 
 
 @dataclass
@@ -174,6 +211,14 @@ class ParameterTrend:
     _z: float = math.inf
     #: evidence of the segment the horizon dropped (the refit schedule counts it)
     _dropped: int = 0
+    #: evidence appended since the fits last took evidence (a fit or an update)
+    _new: int = 0
+    #: points (binned) the models were last fitted to
+    _points: int = 0
+    #: the horizon dropped evidence the fits still hold
+    _stale: bool = False
+    #: :meth:`scores` of the evidence as it stands (None: to compute)
+    _scores: tuple[float | None, float | None] | None = None
 
     # -- intake -----------------------------------------------------------------------------
     def add(self, ev: Evidence | None, *, jump: bool = False) -> None:
@@ -210,6 +255,12 @@ class ParameterTrend:
             self.outliers += len(self.pending)
             self.pending = []
             z = math.inf
+        self.take(ev, z)
+
+    def take(self, ev: Evidence, z: float) -> None:
+        """Append evidence that passed the step test (:meth:`add`; :meth:`Prognostics.replay`
+        takes the stored evidence this way), ``z`` its :meth:`innovation` (inf: search the
+        grid at the next fit)."""
         self._append(ev)
         self._z = max(self._z, abs(z)) if self.fit is not None else math.inf
 
@@ -243,6 +294,8 @@ class ParameterTrend:
         self.s.append(ev.std)
         self.src.append(ev.source)
         self._dirty = True
+        self._new += 1
+        self._scores = None
 
     def _restart(self, reason: str) -> None:
         first = self.pending[0][0]
@@ -250,6 +303,7 @@ class ParameterTrend:
         step = float(np.mean([e.value for e, _ in self.pending])) - pred
         self.restarts.append(Restart(first.t, step, reason))
         self.t, self.y, self.s, self.src = [], [], [], []
+        self._scores = None
         self._dropped = 0
         self.since_t = None
         for ev, _ in self.pending:
@@ -258,6 +312,8 @@ class ParameterTrend:
         self.fit = None
         self.fits, self.weights, self._all = [], [], []
         self._z = math.inf
+        self._points = 0
+        self._stale = False
         self.restarted = True
 
     def innovation(self, ev: Evidence) -> float:
@@ -266,23 +322,33 @@ class ParameterTrend:
         f = self.fit
         if f is None:
             return 0.0
-        band = float(f.band(np.array([ev.t]))[0])
+        value, band = f.value_band(ev.t)
         red = max(f.chi2 / max(f.n - f.k, 1), 1.0)
         sig = math.sqrt(red * ev.std * ev.std + band * band)
         if not (sig > 0 and math.isfinite(sig)):
             return 0.0
-        return (ev.value - float(f.value(ev.t))) / sig
+        return (ev.value - value) / sig
 
     # -- fit ----------------------------------------------------------------------------------
     def refit(self, t_now: float, *, full: bool = False) -> None:
-        """Fit the models to the segment's evidence within the horizon (only when it changed
-        or the horizon dropped some).
+        """Bring the models up to the segment's evidence within the horizon (only when it
+        changed or the horizon dropped some).
 
-        What changed decides how (``full``: the grid search and the polish, always): a trend
-        whose fit predicts its new evidence (within ``skip_z``) keeps it for up to
-        ``refit_every`` windows; otherwise the models are polished again from their last
-        optimum, and the grid searched again every ``regrid_every`` evidence or when the
-        evidence left the prediction (``regrid_z``), a restart, a bend or an outlier.
+        What changed decides how (``full``: the grid search and the polish, always):
+
+        * **update** (the steady state): one new evidence within ``skip_z`` of the
+          prediction is taken into each plausible model (with a finite covariance) by an
+          extended Kalman (recursive least squares) step about its current optimum
+          (:meth:`~twinwatch.twin.prognostics.degradation.DegradationFit.advance`, ``O(k^2)``);
+          the model comparison (the weights, the choice) stands;
+        * **polish** from the last optimum
+          (:func:`~twinwatch.twin.prognostics.degradation.refit_models`, the comparison
+          refreshed) when the new evidence lies beyond ``skip_z`` (the linearisation no
+          longer predicts it), when more than one evidence came at once (a bend), and, while
+          the horizon drops evidence, at every ``refit_every``-th evidence;
+        * **grid search** (:func:`~twinwatch.twin.prognostics.degradation.fit_models`) every
+          ``regrid_every``-th evidence, beyond ``regrid_z``, and after a restart, a bend or
+          an outlier.
         """
         cfg = self.settings
         if self.t and self.t[0] < t_now - cfg.horizon:
@@ -293,6 +359,8 @@ class ParameterTrend:
             self.s = [self.s[i] for i in keep]
             self.src = [self.src[i] for i in keep]
             self._dirty = True
+            self._stale = True
+            self._scores = None
         if not self._dirty:
             return
         if len(self.t) < cfg.min_evidence or self.t[-1] - self.t[0] < cfg.min_span:
@@ -300,21 +368,30 @@ class ParameterTrend:
             self.fit, self.fits, self.weights, self._all = None, [], [], []
             return
         # The schedule counts the segment's evidence (the horizon's dropped included), not
-        # windows: a daemon started again (its trends replayed from the stored evidence,
-        # ``full``) refits where the uninterrupted one did.
+        # windows: a daemon started again (its trends replayed from the stored evidence)
+        # takes each evidence as the uninterrupted one did.
         n = len(self.t) + self._dropped
         warm = not full and len(self._all) == (5 if cfg.onset else 3) \
             and self._z <= cfg.regrid_z
-        if warm and self._z <= cfg.skip_z and n % cfg.refit_every and self.fit is not None:
-            # the fit before predicts this evidence: kept (still dirty)
+        regrid = not n % cfg.regrid_every
+        if warm and not regrid and self._z <= cfg.skip_z and self._new == 1 \
+                and self.fit is not None and not (self._stale and not n % cfg.refit_every) \
+                and all(np.isfinite(f.cov).all() for f in self.fits):
+            self._dirty = False
+            self._new = 0
+            for f in self.fits:
+                f.advance(self.t[-1], self.y[-1], self.s[-1])
             return
         self._dirty = False
+        self._new = 0
+        self._stale = False
         t, y, s = bin_evidence(np.asarray(self.t), np.asarray(self.y), np.asarray(self.s),
                                cfg.max_points)
-        if warm and n % cfg.regrid_every and t.size >= max(g.n for g in self._all):
+        if warm and not regrid and t.size >= self._points:
             fits = refit_models(self._all, t, y, s, t_ref=self.t[-1])
         else:
             fits = fit_models(t, y, s, t_ref=self.t[-1], onset=cfg.onset)
+        self._points = int(t.size)
         self._z = 0.0
         self._all = fits
         best, pairs = select(fits, cfg.min_weight)
@@ -343,9 +420,13 @@ class ParameterTrend:
         return sum(w for g, w in zip(self.fits, self.weights, strict=True) if g.kind == "none")
 
     def scores(self) -> tuple[float | None, float | None]:
-        """(monotonicity, trendability) of the segment's evidence."""
-        y = np.asarray(self.y)
-        return monotonicity(y, self.settings.smooth), trendability(np.asarray(self.t), y)
+        """(monotonicity, trendability) of the segment's evidence (computed again only when
+        the evidence changed)."""
+        if self._scores is None:
+            y = np.asarray(self.y)
+            self._scores = (monotonicity(y, self.settings.smooth),
+                            trendability(np.asarray(self.t), y))
+        return self._scores
 
     def model_weight(self) -> float | None:
         """The chosen model's share of the model-averaging weight."""
