@@ -50,11 +50,14 @@ def test_another_argument_is_never_given_a_stored_result() -> None:
     jac_b[7, 1] = np.nextafter(jac_b[7, 1], np.inf)
     assert not np.array_equal(parameter_covariance(jac_b, r, 2, 1e-4), base)
     zeros, neg = np.zeros((10, 2)), -np.zeros((10, 2))
-    key = (zeros, 1.0)
+    _, key = fit._COVARIANCES.get((zeros, 1.0))
     fit._COVARIANCES.put(key, "positive")
-    assert fit._COVARIANCES.get((neg, 1.0)) is None
-    assert fit._COVARIANCES.get((zeros.copy(), 1.0)) == "positive"
-    assert fit._COVARIANCES.get((np.asfortranarray(zeros), 1.0)) is None
-    assert fit._COVARIANCES.get((zeros, 1)) is None
-    assert fit._COVARIANCES.get((zeros, 2.0)) is None
+    assert fit._COVARIANCES.get((neg, 1.0))[0] is None
+    assert fit._COVARIANCES.get((zeros.copy(), 1.0))[0] == "positive"
+    assert fit._COVARIANCES.get((np.asfortranarray(zeros), 1.0))[0] is None
+    assert fit._COVARIANCES.get((zeros, 1))[0] is None
+    assert fit._COVARIANCES.get((zeros, 2.0))[0] is None
+    zeros[0, 0] = 1.0   # the stored key is a copy: writing to the array changes nothing
+    assert fit._COVARIANCES.get((np.zeros((10, 2)), 1.0))[0] == "positive"
+    assert fit._COVARIANCES.get((zeros, 1.0))[0] is None
     assert not np.array_equal(parameter_covariance(jac, r, 2, 2e-2), base)

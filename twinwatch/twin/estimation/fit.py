@@ -574,8 +574,7 @@ def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: floa
     Returns:
         (n, n) covariance (``inf`` for a variable the outputs do not respond to).
     """
-    args = (jac, r, n_out, floor, levels, numerical)
-    cached = _COVARIANCES.get(args)
+    cached, key = _COVARIANCES.get((jac, r, n_out, floor, levels, numerical))
     if cached is not None:
         out: FloatArray = cached.copy()
         return out
@@ -586,7 +585,7 @@ def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: floa
         cov = covariance(jac, np.tile(var / m, res.shape[0]))
     else:
         cov = covariance(jac, residual_variances(r, n_out, floor, n, numerical))
-    _COVARIANCES.put(args, cov.copy())
+    _COVARIANCES.put(key, cov.copy())
     return cov
 
 
@@ -665,10 +664,10 @@ def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int,
     misstates (``benchmarks/bench_fidelity.py --only dc``)."""
     m = r.size
     res = r.reshape(-1, n_out)
-    moments = _MOMENTS.get((r, n_out))
+    moments, key = _MOMENTS.get((r, n_out))
     if moments is None:
         moments = (mean(res * res, axis=0), [None] * n_out)
-        _MOMENTS.put((r, n_out), moments)
+        _MOMENTS.put(key, moments)
     mean_square, rhos = moments
     var = mean_square * m * m / max(m - n_fitted, 1)
     for j in range(n_out):
@@ -684,16 +683,16 @@ def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int,
 
 class _Recent:
     """The last few results of a pure function of arrays and numbers, found again when it is
-    called with the same arguments: arrays of the same shape, strides and bytes (the layout
-    too: it decides the BLAS call, and so the last bits), numbers equal. In a window the
-    identifiability gate, the model check and the long-run factor ask for the covariance at
-    the same point with the same residual, and the gate asks for each output's residual
-    moments once per candidate set.
+    called with the same arguments: arrays of the same shape, strides, dtype and bytes (the
+    layout too: it decides the BLAS call, and so the last bits), numbers of the same type and
+    value. In a window the identifiability gate, the model check and the long-run factor ask
+    for the covariance at the same point with the same residual, and the gate asks for each
+    output's residual moments once per candidate set.
 
     Shared by every estimator of the process: the results depend on the arguments alone, an
-    entry's key is a copy of the arguments, its value is never replaced (a value computed
-    piecewise, as the moments' autocorrelations, gets each piece once, always the same), and
-    the list is replaced, not edited (a thread reads either list whole).
+    entry's key is the arguments' signature (their bytes copied), its value is never replaced
+    (a value computed piecewise, as the moments' autocorrelations, gets each piece once,
+    always the same), and the list is replaced, not edited (a thread reads either list whole).
 
     Args:
         size: results kept.
@@ -704,25 +703,20 @@ class _Recent:
         self._entries: list[tuple[tuple[Any, ...], Any]] = []
 
     @staticmethod
-    def _same(a: Any, b: Any) -> bool:
-        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-            if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
-                return False
-            return (a.shape == b.shape and a.strides == b.strides and a.dtype == b.dtype
-                    and a.tobytes(order="A") == b.tobytes(order="A"))
-        return bool(type(a) is type(b) and a == b)
+    def _signature(args: tuple[Any, ...]) -> tuple[Any, ...]:
+        return tuple((a.shape, a.strides, a.dtype.str, a.tobytes(order="A"))
+                     if isinstance(a, np.ndarray) else (type(a), a) for a in args)
 
-    def get(self, args: tuple[Any, ...]) -> Any:
-        """The result stored for ``args``, or None."""
-        for key, value in reversed(self._entries):
-            if len(key) == len(args) and all(map(self._same, key, args)):
-                return value
-        return None
+    def get(self, args: tuple[Any, ...]) -> tuple[Any, tuple[Any, ...]]:
+        """The result stored for ``args`` (None: none) and their signature (for :meth:`put`)."""
+        key = self._signature(args)
+        for k, value in reversed(self._entries):
+            if k == key:
+                return value, key
+        return None, key
 
-    def put(self, args: tuple[Any, ...], value: Any) -> None:
-        """Store ``value`` for ``args`` (the arrays among them copied, their layout kept)."""
-        key = tuple(np.array(a, order="K", copy=True) if isinstance(a, np.ndarray) else a
-                    for a in args)
+    def put(self, key: tuple[Any, ...], value: Any) -> None:
+        """Store ``value`` under ``key``, the signature :meth:`get` returned."""
         self._entries = [*self._entries[-(self.size - 1):], (key, value)]
 
 

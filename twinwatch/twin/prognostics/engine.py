@@ -11,6 +11,7 @@ what the health message publishes (``parameters.<name>.trend`` and ``.rul``).
 
 from __future__ import annotations
 
+import functools
 import math
 import zlib
 from collections import deque
@@ -213,7 +214,6 @@ class Prognostics:
         self.thresholds = dict(thresholds or {})
         self.trends = {n: ParameterTrend(n, self.settings) for n in self.names}
         self._pace = _Pace()
-        self._normal_draws: dict[str, FloatArray] = {}
         #: The last window's prognosis per parameter.
         self.latest: dict[str, Prognosis] = {}
 
@@ -273,11 +273,8 @@ class Prognostics:
             for msg in messages:
                 t = _trend_of(msg, name)
                 ev = t.window_evidence if t is not None else None
-                taken = not (ev is None or ev.t is None or ev.value is None or not ev.std
-                             or ev.t < since or (trend.t and ev.t <= trend.t[-1]))
-                if taken:
-                    assert ev is not None and ev.t is not None and ev.value is not None \
-                        and ev.std is not None
+                if (ev is not None and ev.t is not None and ev.value is not None and ev.std
+                        and ev.t >= since and not (trend.t and ev.t <= trend.t[-1])):
                     e = Evidence(float(ev.t), float(ev.value), float(ev.std),
                                  ev.source or "estimated")
                     trend.take(e, trend.innovation(e))
@@ -294,17 +291,6 @@ class Prognostics:
                 for name, trend in self.trends.items()}
 
     # -- reports ------------------------------------------------------------------------------
-    def _normals(self, name: str) -> FloatArray:
-        """The standard normals (``draws``, 4) the parameter's RUL draws are made of, the same
-        in every window (common random numbers: drawn once, from the ``seed`` and the
-        parameter's name; the same evidence gives the same RUL, and a resumed daemon the
-        uninterrupted one's)."""
-        z = self._normal_draws.get(name)
-        if z is None:
-            rng = np.random.default_rng([self.config.seed, zlib.crc32(name.encode())])
-            z = self._normal_draws[name] = rng.standard_normal((self.config.draws, 4))
-        return z
-
     def _prognosis(self, name: str, trend: ParameterTrend, ev: Evidence | None, t_end: float,
                    wall: float | None) -> Prognosis:
         f = trend.fit
@@ -342,7 +328,7 @@ class Prognostics:
             mixture = list(zip(trend.fits, trend.weights, strict=True))
             # one sample of the trajectories for both levels (each draw's warning before its
             # alarm)
-            drawn = draw_trajectories(f, mixture, c.draws, normals=self._normals(name))
+            drawn = draw_trajectories(f, mixture, c.draws, normals=_normals(c.seed, name, c.draws))
             levels = [(level, *th.level(level)) for level in ("warning", "alarm")]
             levels = [(level, high, low) for level, high, low in levels
                       if high is not None or low is not None]
@@ -353,6 +339,17 @@ class Prognostics:
                                       trajectories=drawn, times=samples)
                 setattr(rul, level, cr)
         return Prognosis(report, rul)
+
+
+@functools.lru_cache(maxsize=256)
+def _normals(seed: int, name: str, draws: int) -> FloatArray:
+    """The standard normals (``draws``, 4) a parameter's RUL draws are made of, the same in
+    every window (common random numbers, from the ``seed`` and the parameter's name: the same
+    evidence gives the same RUL, and a resumed daemon the uninterrupted one's); read-only,
+    one array for every machine of the process with that seed."""
+    z = np.random.default_rng([seed, zlib.crc32(name.encode())]).standard_normal((draws, 4))
+    z.flags.writeable = False
+    return z
 
 
 def _number(value: float | None) -> float:
