@@ -2,13 +2,12 @@
 
 ``scipy.optimize.least_squares(method="trf")`` spends most of a window's polish in its generic
 wrapper (argument checks, the ``VectorFunction`` that caches and counts, the result's
-packaging): about 1 ms of CPU a window against 0.6 ms in the twin calls themselves
-(``benchmarks/bench_window.py``). :func:`trust_region_reflective` prepares what the wrapper
-prepares for our one case (dense Jacobian, linear loss, unit ``x_scale``, ``tr_solver="exact"``)
-and runs scipy's own ``trf_bounds`` (``trf_no_bounds`` when no bound is finite; Branch, Coleman
-and Li, SIAM J. Sci. Comput. 21(1), 1999), so the iterates are scipy's, bit for bit;
-``tests/test_trf.py`` holds it to the public ``least_squares`` on real windows, so a scipy
-release that changes either fails there.
+packaging), more than in the twin calls themselves. :func:`trust_region_reflective` prepares
+what the wrapper prepares for our one case (dense Jacobian, linear loss, unit ``x_scale``,
+``tr_solver="exact"``) and runs scipy's own ``trf_bounds`` (``trf_no_bounds`` when no bound is
+finite; Branch, Coleman and Li, SIAM J. Sci. Comput. 21(1), 1999), so the iterates are
+scipy's, bit for bit; ``tests/test_trf.py`` holds it to the public ``least_squares`` on real
+windows, so a scipy release that changes either fails there.
 """
 
 from __future__ import annotations

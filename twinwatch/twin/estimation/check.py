@@ -4,13 +4,10 @@ leaves? (Ljung, System Identification, 2nd ed., ch. 16.6; MATLAB's ``resid``.)
 Each output's residual must be white (Ljung-Box) and independent of the model's exogenous
 inputs (:attr:`TwinModel.exogenous`: a closed loop's set-point, an open loop's command). Before
 the tests, what a linear drift of the estimated parameters within the window explains is
-removed (:func:`drift_residual`: the paper's faults are slow degradations, and a drifting
-parameter leaves a smooth residual although the model is right). An output fails only where
-its residual is material: above ``model_error`` and above twice what its white noise and the
-estimates' uncertainty explain (:func:`~twinwatch.twin.estimation.fit.explained_rms`). A window
-that fails is published with its reasons, does not update the trusted values or the fusion, and
-its standard errors are multiplied by :attr:`ModelCheck.widen` (which usually holds the
-parameters at the gate).
+removed (:func:`drift_residual`). An output fails only where its residual is material
+(:func:`~twinwatch.twin.estimation.statistics.check_model`). A window that fails is published
+with its reasons, does not update the trusted values or the fusion, and its standard errors
+are multiplied by :attr:`ModelCheck.widen` (which usually holds the parameters at the gate).
 """
 
 from __future__ import annotations

@@ -1,52 +1,34 @@
 """Per-window parameter estimation: the DT' step (paper Section 3.2), as stages.
 
 Each acquisition window, the parameters that no sensor measures are re-estimated by minimising
-the RMSE between measured and simulated outputs (paper Eq. 1-2) with particle swarm optimisation
-(pymoo's PSO; paper Table 2: swarm 15, up to 1000 iterations, w 0.9, c1 = c2 = 2.0).
+the normalised RMSE between measured and simulated outputs (paper Eq. 1-2,
+:class:`~twinwatch.twin.estimation.fit.WindowFit`). :meth:`Estimator.estimate` builds the
+window's problem (:class:`~twinwatch.twin.estimation.problem.WindowProblem`) and runs small
+stages on it, each a module of this room that says what it implements and why:
 
-As pymoo separates the problem, the algorithm and the termination, :meth:`Estimator.estimate`
-builds the window's problem (:class:`~twinwatch.twin.estimation.problem.WindowProblem`) and runs
-small stages on it, each a module of this room that says what it implements and why:
-
-1. **global search** (:mod:`~twinwatch.twin.estimation.search`): the PSO, with the last trusted
-   estimate as one particle (warm start) and a time budget;
-2. **polish** (:mod:`~twinwatch.twin.estimation.polish`): bounded least squares from the
-   swarm's best, jointly with the window's initial state (pymoo's PSO alone stalls short of the
-   best fit: Ra scattered by +-1 % on exact-model data);
+1. **global search** (:mod:`~twinwatch.twin.estimation.search`): warm-started PSO;
+2. **polish** (:mod:`~twinwatch.twin.estimation.polish`): bounded least squares, jointly with
+   the window's initial state;
 3. **identifiability gate** (:mod:`~twinwatch.twin.estimation.gate`): parameters admitted in
-   priority order while each keeps its relative standard error at most ``max_rel_std``; the
-   others held at their last trusted value and the admitted ones re-fitted with them held;
-4. **model check** (:mod:`~twinwatch.twin.estimation.check`): is the residual white and
-   independent of the inputs? A window that fails has its standard errors widened, and the gate
-   runs again on them (a held parameter is published at its trusted value); then the sensors
-   (:mod:`~twinwatch.twin.estimation.quality`): is a measured output frozen or saturated? A
-   window that fails either is not sound: its estimates are published ``suspect``;
-5. **fusion** (:mod:`~twinwatch.twin.estimation.fusion`): the window's evidence joins a Kalman
-   filter on the parameters across windows;
+   priority order, the others held at their last trusted value;
+4. **model check** (:mod:`~twinwatch.twin.estimation.check`) and sensors
+   (:mod:`~twinwatch.twin.estimation.quality`): a window that fails either is not sound: its
+   estimates are published ``suspect``;
+5. **fusion** (:mod:`~twinwatch.twin.estimation.fusion`): a Kalman filter on the parameters
+   across windows;
 
-then :mod:`~twinwatch.twin.estimation.publish` says what each parameter's published value is
-(estimated, fused, suspect, held, tied, fixed), and a window whose fit, model check and sensors
-are good enough updates the trusted values later windows hold (once the next estimate agrees).
-The PSO stops at ``max_generations`` or ``time_budget`` seconds, whichever comes first; with the
-same seed and no time cap hit, results are bit-for-bit reproducible.
+then :mod:`~twinwatch.twin.estimation.publish` gives each parameter's published value and
+status, and a sound window updates the trusted values later windows hold (once the next
+estimate agrees: :meth:`Estimator._trust`). With the same seed and no time cap hit, results
+are bit-for-bit reproducible.
 
 **Local first** (``[estimation] strategy = "local_first"``, the default). A machine's parameters
-drift slowly: most windows are fitted by the trusted twin polished locally, and the swarm only
-finds again what the trusted values already say. So the global search is skipped and stage 2
-polishes from the trusted values, unless the swarm is due: at the first window, after a window
-whose estimate the fusion found a sudden change (its jump flag) or that the adaptation rolled
-back, and every ``swarm_every`` windows as a guard. A local fit is *rejected*, and the same window
-is estimated again from the start with the swarm (its result is then the swarm path's), when
-its nRMSE exceeds ``local_residual_ratio`` times what the window's noise explains (the
-residual's white-noise level per output, floored by ``model_error``, or the nRMSE of the last
-swarm window if larger: a large residual, a step change the local polish did not follow), or
-when it fails its model check. ``strategy = "swarm"`` runs the swarm every window (the
-behaviour before, stage for stage); the paper's method is ``strategy = "swarm"`` with Table 2's
-swarm (``[estimation.pso] max_generations = 1000``) and ``polish = false``.
-
-Fitness (paper Eq. 2, normalised): ``RMSE_n = sqrt(mean_j mean_k ((y_sim - y_meas)/s_j)^2)``
-with ``s_j = max(rms(y_meas_j), floor_j)`` per output j, so that current [A], speed [rad/s] and
-voltage [V] weigh alike.
+drift slowly, so the global search is skipped and stage 2 polishes from the trusted values,
+unless the swarm is due (:meth:`Estimator._swarm_due`). A local fit is *rejected*, and the
+same window estimated again from the start with the swarm, when its residual is beyond what the
+window's noise explains (:meth:`Estimator._residual_too_large`) or it fails its model check.
+``strategy = "swarm"`` runs the swarm every window; the paper's method is ``strategy = "swarm"``
+with Table 2's swarm (``[estimation.pso] max_generations = 1000``) and ``polish = false``.
 """
 
 from __future__ import annotations
@@ -107,16 +89,8 @@ LOCAL_FUSION_STEP_TOL = 0.01
 #: A local-first window polishes only the parameters the last window's gate admitted (the
 #: others at their trusted values, the set confirmed by the gate on one sensitivity call of
 #: every column; another set: the polish of every parameter): 8 twin calls a window instead of
-#: 50, 3.3 ms of CPU instead of 14.4 on an idle box (benchmarks/bench_estimation.py), the same
-#: Ra and D errors. The full polish's optimum wandered along the (La, J) valley. Two things
-#: made it safe: the fusion fuses the first parameter a window could not determine only when
-#: the window has information on it of its own (Ke beside an admitted D has 1e-7 of it; fed
-#: every window it walked the fused D 3-7 % off:
-#: :data:`~twinwatch.twin.estimation.fusion.OWN_INFORMATION`), and the trusted values'
-#: consistency propagates only values trusted anew (:meth:`Estimator._keep_consistent`: on a
-#: mis-stated drive D and Ke shifted each other every window). The mis-stated drive (the
-#: trapezoidal plant fitted by the backward-Euler twin, 1 % noise, 150 windows): Ra's 2-sigma
-#: interval covers in 125 of 131 estimated windows (full polish: 120 of 129). False: the full
+#: 50. It relies on :data:`~twinwatch.twin.estimation.fusion.OWN_INFORMATION` and on
+#: :meth:`Estimator._keep_consistent` propagating only values trusted anew. False: the full
 #: polish.
 POLISH_ADMITTED = True
 #: A window re-tried with the unconfirmed estimates (:meth:`Estimator._unconfirmed`) keeps
@@ -272,21 +246,15 @@ class WindowEstimate:
         trusted: whether this window updated the trusted parameters.
         initial: the window's estimated initial-state offsets (``model.initial_states``, in
             their units), or None.
-        model_check: the window's model validation (None when disabled); a window that fails
-            it does not update the trusted values and its standard errors are widened.
-        status: every model parameter -> ``estimated`` (determined by this window, whose
-            model check passed and whose sensors are sound), ``fused`` (not by this window
-            alone, but by the evidence of the windows so far: the fused value, :attr:`fused`),
-            ``suspect`` (the estimate of a window that is not sound, or a held value the fused
-            evidence contradicts: treat like held), ``held`` (its last trusted value, reason
-            in :attr:`held`), ``tied`` (equals another parameter) or ``fixed`` (nameplate,
-            not estimated); :mod:`~twinwatch.twin.estimation.publish`.
+        model_check: the window's model validation (None when disabled).
+        status: every model parameter -> its :data:`ParameterStatus` (``estimated``,
+            ``fused``, ``suspect``, ``held``, ``tied``, ``fixed``; defined in
+            :mod:`~twinwatch.twin.estimation.publish`).
         fused: estimated parameter -> (fused value [SI], relative standard error) after this
             window (:mod:`twinwatch.twin.estimation.fusion`); empty when fusion is off.
         fusion_jump: the window's estimate was a sudden change for the fusion (it followed).
-        fitted: every model parameter -> the value the window's twin ran with [SI] (the
-            estimates and the held values it was fitted with; ``values`` may publish a fused
-            value instead): what ``simulated`` is, and what meta-models are fitted beside.
+        fitted: every model parameter -> the value the window's twin ran with [SI] (what
+            ``simulated`` is; ``values`` may publish a fused value instead).
         sensors: the window's frozen or saturated sensors
             (:mod:`~twinwatch.twin.estimation.quality`); such a window is not sound.
         search: ``swarm`` (the global search ran: ``generations`` > 0) or ``local`` (polished
@@ -399,8 +367,7 @@ class Estimator:
         self.upper = np.array(hi)
         #: The trusted parameter vector (full), updated by good windows.
         self.trusted = self.nominal.copy()
-        #: Relative standard error of each trusted value (full; 0 for a nameplate value):
-        #: the window's that made it trusted, propagated to the windows that hold it.
+        #: Relative standard error of each trusted value (full; 0 for a nameplate value).
         self.trusted_std = np.zeros(len(self.names))
         #: The last estimate eligible for trust of each parameter (value [SI], relative
         #: standard error, the window's middle [s]): the next one must agree with it
@@ -414,7 +381,7 @@ class Estimator:
         #: Per output, the level it was last found saturated at.
         self._clips: dict[str, float] = {}
         #: Per trusted parameter, the values it was fitted with held: name -> (d ln p / d ln q,
-        #: q's trusted value then) (:meth:`_keep_consistent`).
+        #: q's trusted value then, q's :attr:`_anew` count then) (:meth:`_keep_consistent`).
         self._depends: dict[str, dict[str, tuple[float, float, int]]] = {}
         #: parameter -> (the value it was last trusted at from its own estimate, a count of
         #: such trusts): what :meth:`_keep_consistent` propagates (not its own shifts)
@@ -439,9 +406,7 @@ class Estimator:
         #: Whether the last window was trusted (fit, check passed, sensors sound): only then
         #: does a window hold a :meth:`_stale` parameter at its fused value.
         self._fits = False
-        #: The interval's floor: the between-window structural variance of each estimated
-        #: parameter (:mod:`~twinwatch.twin.estimation.floor`), added to the published
-        #: standard errors only.
+        #: The interval's floor (:mod:`~twinwatch.twin.estimation.floor`).
         self.floor = StructuralFloor(len(config.estimate))
 
     # -- state ----------------------------------------------------------------------------
@@ -455,8 +420,8 @@ class Estimator:
                               self.floor.state.copy())
 
     def rollback(self, state: EstimatorState) -> None:
-        """Forget what windows since :meth:`snapshot` taught (a window the adaptation finds
-        biased by a missing component must not update the trusted values or the fusion)."""
+        """Forget what windows since :meth:`snapshot` taught (windows the adaptation found
+        biased by a missing component)."""
         self.trusted[:] = state.trusted
         self.trusted_std[:] = state.trusted_std
         self._candidates = dict(state.candidates)
@@ -466,17 +431,13 @@ class Estimator:
         self.floor.state = state.floor.copy()
         if self.fusion is not None and state.fusion is not None:
             self.fusion.state = state.fusion.copy()
-        # the windows since were biased (a missing component): search globally again
+        # search globally again
         self._swarm_next = "rolled back"
 
     def withdraw(self, est: WindowEstimate) -> WindowEstimate:
-        """The window's estimate once :meth:`rollback` has taken its evidence back (the
-        adaptation found its residual too large for the model: a component is missing, its
-        estimates biased): the fused values are the rolled-back filter's, so no published
-        fused value includes the window. A parameter published ``fused`` keeps that status
-        with the earlier windows' fused value where it still meets the fusion's gate, else it
-        is held at its trusted value (issue 55: a fused value moved by a window that was then
-        rolled back was published, Ra fused at -82 % during a ramp of the magnet)."""
+        """The window's estimate once :meth:`rollback` has taken its evidence back: a
+        parameter published ``fused`` keeps the rolled-back filter's value where it still meets
+        the fusion's gate, else it is held at its trusted value."""
         if self.fusion is None or not est.fused:
             return est
         f_val, f_std, ratio = self.fusion.values(), self.fusion.rel_std(), self.fusion.birge()
@@ -569,8 +530,7 @@ class Estimator:
         """
         check_window(self.model, window)
         # held at the fused value only while the twin fits without a term: a term's fit or a
-        # failing check moves the fusion with the model's error (the noise-free dead zone:
-        # La fused +7 % while the clip term was found and switched off, then held there)
+        # failing check moves the fusion with the model's error
         held = self.trusted if terms or not self._fits else self._held_values()
         return WindowProblem(fit or self.window_fit(window), self.pmap, held,
                              self.lower, self.upper, terms,
@@ -579,7 +539,7 @@ class Estimator:
     def estimate(self, window: WindowData,
                  terms: Mapping[str, FloatArray] | None = None,
                  fit: WindowFit | None = None) -> WindowEstimate:
-        """Estimate the parameters on one window (the module docstring's stages, in order).
+        """Estimate the parameters on one window (the module docstring's stages).
 
         Args:
             window: N samples of every channel in ``model.required_channels()``, finite.
@@ -588,7 +548,8 @@ class Estimator:
             fit: the window's :class:`WindowFit` if the caller has built it already.
 
         Returns:
-            The window's estimate; :attr:`trusted` is updated if the fit is good.
+            The window's estimate; :attr:`trusted` is updated if the window is sound and its
+            estimate confirmed (:meth:`_trust`).
 
         Raises:
             ValueError: if a channel is missing or holds non-finite values.
@@ -683,8 +644,7 @@ class Estimator:
     def _outlier(self, before: int) -> str | None:
         """Why the window is suspect when the fusion did not take it (its outlier count went up
         from ``before``: a move beyond JUMP_LIMIT at once), else None. Its estimates are not
-        the machine's either: a position reading offset by 2 cm was fitted by the hydraulic twin
-        with D x4.1 at nRMSE 2e-6 and read as the fluid's degradation at 0.99."""
+        the machine's either."""
         fusion = self.fusion
         if fusion is None or fusion.outliers <= before or fusion.last_outlier is None:
             return None
@@ -694,11 +654,10 @@ class Estimator:
 
     def _long_run(self, decision: GateDecision, point: FitPoint, check: ModelCheck | None,
                   out: Any) -> dict[str, float]:
-        """The sandwich's long-run factor of each parameter the window determined
-        (:func:`~twinwatch.twin.estimation.fit.long_run_factors` at the window's final point:
-        its Jacobian's columns are the admitted parameters, then the initial state), applied
-        to its published relative standard error (``out``, in place) where the model check
-        passed (a failed one widened them already, :attr:`ModelCheck.widen`)."""
+        """The long-run factor (:func:`~twinwatch.twin.estimation.fit.long_run_factors`)
+        of each parameter the window determined, applied to its published relative standard
+        error (``out``, in place) where the model check passed (a failed one widened them
+        already, :attr:`ModelCheck.widen`)."""
         if not decision.selected or (check is not None and not check.passed):
             return {}
         n_sel = len(decision.selected)
@@ -723,10 +682,8 @@ class Estimator:
         estimates join the between-window scatter, then each parameter the window determined
         has its published relative standard error ``sigma`` made ``sqrt(sigma^2 + floor^2)``
         (``out``, the :class:`~twinwatch.twin.estimation.publish.Published`, in place; a fused
-        value keeps the fusion's). The gate's ``max_rel_std`` judged what the window
-        determines (``sigma``); a parameter whose published error, the twin's scatter added,
-        is now above it is not published ``estimated``: the window determines it, the twin on
-        this machine does not (:meth:`_beyond_floor`).
+        value keeps the fusion's). A parameter whose published error is then above
+        ``max_rel_std`` is not published ``estimated`` (:meth:`_beyond_floor`).
 
         Returns:
             Parameter -> its floor (relative, 1 sigma), for the parameters the window
@@ -753,9 +710,7 @@ class Estimator:
                       fused: tuple[float, float] | None) -> None:
         """Publish ``name`` (``out``, in place) as what it is when the twin's scatter makes
         its error exceed ``max_rel_std``: the fused value where that meets the fusion's gate,
-        else held at its trusted value, with the reason (the windows' estimates scatter
-        beyond their standard errors: the error the twin makes differs from window to window,
-        and an estimate is that far from the machine's value, whatever the window says)."""
+        else held at its trusted value, with the reason."""
         why = (f"its published error, the twin's own added, is {out.rel_std[name] * 100:.2g} "
                f"% > max_rel_std {self.config.max_rel_std * 100:.2g} % (the windows' scatter "
                f"{floor * 100:.2g} %, 1 sigma, and the residual's correlation with its "
@@ -775,10 +730,8 @@ class Estimator:
     def stagger_guard(self, name: str) -> int:
         """Bring the first guard swarm forward by a phase of 0 to ``swarm_every - 1`` windows
         from ``name`` (CRC-32, as the acquisition's stagger), so machines started together run
-        their guards spread over ``swarm_every`` windows instead of in the same one (measured
-        with 200 machines on 2 cores, ``benchmarks/bench_density.py``: every 30th window about
-        200 swarms of ~56 ms of CPU came due within 2 s, and the windows queued behind them
-        were 0.8-2.2 s late). Returns the phase [windows]; 0 when the guard is off."""
+        their guards spread over ``swarm_every`` windows instead of in the same one.
+        Returns the phase [windows]; 0 when the guard is off."""
         every = self.config.swarm_every
         self.guard_phase = zlib.crc32(name.encode()) % every if every else 0
         return self.guard_phase
@@ -800,18 +753,14 @@ class Estimator:
 
     def _fit(self, problem: WindowProblem, window: WindowData, found: SearchResult,
              terms: Mapping[str, FloatArray] | None, *, local: bool) -> _Fitted:
-        """Stages 2-4 from the search's best: polish, then :meth:`_gate_and_check`; a window
-        whose model check fails holding a never-confirmed parameter at its nameplate is
-        tried once more holding the latest sound estimates instead (:meth:`_unconfirmed`).
-        ``local``: a local-first window, which stops as soon as it is rejected
-        (:attr:`_Fitted.rejected` says why; the caller runs the swarm path, retry included)."""
+        """Stages 2-4 from the search's best: polish, then :meth:`_gate_and_check`, retried
+        once with :meth:`_unconfirmed` when the model check fails. ``local``: a local-first
+        window, which stops as soon as it is rejected (:attr:`_Fitted.rejected` says why)."""
         cfg = self.config
         admitted = None
         if (POLISH_ADMITTED and local and cfg.polish and self._admitted is not None
                 and not self._stale_held(self._admitted)):
-            # only what the last window's gate admitted moves (the others at their trusted
-            # values, as the gate would hold them); the gate confirms the set on the
-            # Jacobian of every column, else the polish of every parameter below
+            # only what the last window's gate admitted moves (POLISH_ADMITTED)
             polished = polish_admitted(problem, found.q, self._admitted,
                                        model_error=cfg.model_error)
             if not self._residual_too_large(problem, polished.point.r):
@@ -835,8 +784,7 @@ class Estimator:
                 first = check.reasons[0] if check.reasons else "failed"
                 return _Fitted(problem, found, polished, decision, point, twin, check,
                                f"the model check failed ({first})")
-            # ... and, when it fails holding a never-confirmed parameter at its nameplate, once
-            # more holding the latest sound estimates instead (_unconfirmed)
+            # ... and once more holding the latest sound estimates (_unconfirmed)
             retry = self._unconfirmed()
             if retry is not None:
                 saved = self.trusted.copy(), self.trusted_std.copy()
@@ -844,9 +792,8 @@ class Estimator:
                 other = self.problem(window, terms, problem.fit)
                 second = self._gate_and_check(other, polished, window)
                 # accepted only where the data contradict the nameplate plainly: the check
-                # passes and the fit explains the window at least twice as well (with 1 %
-                # noise a check fails now and then by chance; accepting any pass there held
-                # one window's estimates for good: FE plant, TR twin, Ra covered in 75 %)
+                # passes and the fit explains the window at least twice as well (a check
+                # fails now and then by chance)
                 if (second[3] is not None and second[3].passed
                         and second[2].residual.nrmse < RETRY_GAIN * twin.residual.nrmse):
                     problem = other
@@ -881,10 +828,8 @@ class Estimator:
         """The values a window holds the parameters it does not estimate at (full): the
         trusted values, except a :meth:`_stale` one, held at its fused value. A parameter the
         windows determine only now and then, each time too loosely to be trusted, keeps its
-        nameplate as trusted value while the fusion follows it: a PWM drive's Ra 12 % down,
-        estimated at -11 % +- 2-3 % in half the windows; the other half held it at the
-        nameplate and Ke, J and D absorbed the difference (-4 %, -7 %, -7 %), which read as
-        a speed sensor's gain (benchmarks/bench_diagnosis.py)."""
+        nameplate as trusted value while the fusion follows it; held there, the other
+        parameters would absorb the difference."""
         stale = self._stale()
         if not stale or self.fusion is None:
             return self.trusted
@@ -895,13 +840,8 @@ class Estimator:
         return base
 
     def _stale_held(self, admitted: list[int]) -> bool:
-        """Whether a parameter the admitted-only polish would hold at its trusted value has
-        a fused value that contradicts it (beyond 2 fused standard errors, the fused value
-        itself determined: within the fusion's ``max_rel_std``), of the parameters never
-        trusted from an estimate of their own. Such a window polishes every parameter: held
-        at a stale value, the others absorb its error (hydraulic D never admitted at 0.005 %
-        noise, its trusted value 40 % behind the fluid's degradation while the fused D
-        followed within 2 %: 17 % of the windows published suspect)."""
+        """Whether a parameter the admitted-only polish would hold is :meth:`_stale`: such a
+        window polishes every parameter (held at a stale value, the others absorb its error)."""
         return any(k not in admitted for k in self._stale())
 
     def _residual_too_large(self, problem: WindowProblem, r: FloatArray) -> str:
@@ -923,10 +863,9 @@ class Estimator:
                         window: WindowData,
                         admitted: tuple[GateDecision, FitPoint] | None = None
                         ) -> tuple[GateDecision, Any, Any, ModelCheck | None]:
-        """Stages 3 and 4 on ``problem``: the identifiability gate (admit in priority order,
-        re-fit with the others held at their trusted values, standard errors marginal over
-        the held values' own uncertainty), the model check (a failing window's standard
-        errors widened) and the gate again (what is now above ``max_rel_std`` held).
+        """Stages 3 and 4 on ``problem``: the identifiability gate (standard errors marginal
+        over the held values' own uncertainty), the model check (a failing window's standard
+        errors widened) and the gate again (:meth:`IdentifiabilityGate.enforce`).
 
         ``admitted``: the gate's decision and point already confirmed
         (:meth:`IdentifiabilityGate.confirm`), instead of :meth:`IdentifiabilityGate.admit`.
@@ -941,7 +880,6 @@ class Estimator:
                                        self.unobservable(window))
         decision, point = admitted
         self._admitted = list(decision.selected)
-        # ... their standard errors marginal over the held values' own uncertainty
         decision = self.gate.propagate_held(problem, decision, point,
                                             self.trusted_std[self.pmap.idx])
         twin = problem.twin_at(point.v)
@@ -952,7 +890,6 @@ class Estimator:
                                 cfg.model_error)
             if not check.passed:
                 decision = decision.widened(check.widen)
-        # ... and the gate holds whatever is now above max_rel_std, at its trusted value
         before = set(decision.selected)
         decision, point, held_more = self.gate.enforce(problem, decision, point, check)
         if held_more:
@@ -969,13 +906,9 @@ class Estimator:
         latest sound estimate (:meth:`_trust`'s candidates), or None when there is none.
 
         A window whose model check fails while it holds such a parameter at its nameplate
-        is tried once more with these: a machine 25 % off its nameplate (a fouled wall:
-        R_in 0.05 K/W, C 500 J/K against 0.04 and 600) was otherwise published held at the
-        nameplate, deviation 0.0 %, in every window after the first (the windows that do not
-        pin C held it at 600, R_in's re-fit failed its model check, nothing was ever
-        confirmed; tests/test_model_plugin). Only on a failed check: a window that fits
-        holding the nameplate keeps it (one window's Ke -0.6 % held for good made the bearing
-        wear's D 2.3 % off)."""
+        is tried once more with these: otherwise a machine far off its nameplate can fail
+        every check and have nothing ever confirmed. Only on a failed check: a window that
+        fits holding the nameplate keeps it."""
         base, std = self.trusted.copy(), self.trusted_std.copy()
         changed = False
         for n, (value, sd, _t) in self._candidates.items():
@@ -995,13 +928,10 @@ class Estimator:
         estimates: ``ln p += g (ln q' - ln q)``. A trusted value is an estimate conditional on
         the others' trusted values then; two that trade off (D = Ke*ia/omega - c: d ln D /
         d ln Ke ~ 5) and were trusted at different times are otherwise inconsistent, and a
-        window holding both biases what it estimates (measured: D trusted at +2.6 % beside Ke
-        -0.4 %, made trusted later; Ra -0.86 % +- 0.15 %).
+        window holding both biases what it estimates.
 
-        A shift made here is not passed on: D and Ke, each fitted holding the other (d ln D /
-        d ln Ke ~ 5, d ln Ke / d ln D ~ 0.2), shifted each other every window and walked (the
-        trusted D -3 -> -46 %, Ke -0.7 -> -11.6 % in 28 windows of a mis-stated drive, Ra
-        published 6 % off)."""
+        A shift made here is not passed on: D and Ke, each fitted holding the other, would
+        otherwise shift each other every window and walk."""
         for n, deps in self._depends.items():
             i = self.names.index(n)
             shift = 0.0
@@ -1028,8 +958,7 @@ class Estimator:
                  nrmse: float) -> str | None:
         """Why the window's estimates are not sound, or None: its sensor faults (named), else
         a fit that does not explain the window (nRMSE above ``trust_rmse``: a swarm stuck
-        far from the machine, a TR plant fitted by a BE twin at 1 % noise published Ra
-        ``estimated`` +87 % +- 0.08 % at nRMSE 0.84), else its failed model check."""
+        far from the machine), else its failed model check."""
         if faults:
             units = {o.name: o.unit for o in self.model.outputs}
             return "; ".join(f.describe(units.get(f.channel, "")) for f in faults)
@@ -1046,8 +975,7 @@ class Estimator:
         those whose time constant (:meth:`TwinModel.time_constants`, at the trusted values) is
         below the window's sample period. The gate holds them at their trusted value (without
         holding the parameters after them) and the fusion never informs them: published
-        ``held`` with that reason, never a number with an interval (issue 55: a servo's La,
-        tau_e 2 ms sampled every 10 ms, was published estimated 3-5 of its 2-sigma off)."""
+        ``held`` with that reason, never a number with an interval."""
         period = window.sample_period
         if not (period > 0):
             return {}
@@ -1061,7 +989,7 @@ class Estimator:
 
     def trusted_std_values(self) -> dict[str, float]:
         """Every parameter's trusted value's relative standard error (0: a nameplate or a
-        resumed value, taken as exact)."""
+        resumed value)."""
         return dict(zip(self.names, (float(v) for v in self.trusted_std), strict=True))
 
     def _fuse(self, problem: WindowProblem, polished: Polished, decision: GateDecision,
@@ -1094,11 +1022,8 @@ class Estimator:
 
         Why two: a trusted value is what every later window holds, and one window's estimate
         can be far off with a small standard error when the twin does not describe the drive
-        exactly and the error is absorbed by the parameters rather than left in the residual
-        (a speed PI integrating one tick early, noise-free: Ke -0.9 % +- 0.01 %, D -4.6 % +-
-        0.06 %; the 25 windows that held them published Ra 0.027 % off with 0.007-0.012 %,
-        half of them not covering). Such estimates do not repeat from window to window; a
-        drift does.
+        exactly and the error is absorbed by the parameters rather than left in the residual.
+        Such estimates do not repeat from window to window; a drift does.
 
         Args:
             decision: the gate's final decision.
@@ -1136,12 +1061,9 @@ class Estimator:
 
     def check(self, fit: WindowFit, y: FloatArray, explained: FloatArray | None = None,
               drift: FloatArray | None = None) -> ModelCheck:
-        """Validate the twin on a window from its simulated outputs ``y`` (N, n_out)
-        (:func:`~twinwatch.twin.estimation.check.check_twin`: the ``[estimation.validation]``
-        settings, the ``model_error`` floor, the model's exogenous inputs); ``explained``:
-        per output, the residual RMS the estimates' uncertainty explains; ``drift``: the
-        residual matrix to test instead, with what a drift of the estimated parameters within
-        the window explains removed (:func:`~twinwatch.twin.estimation.check.drift_residual`)."""
+        """Validate the twin on a window from its simulated outputs ``y`` (N, n_out) with
+        this estimator's settings (:func:`~twinwatch.twin.estimation.check.check_twin`, whose
+        ``explained`` and ``drift`` these are)."""
         return check_twin(fit, y, self.model.exogenous, self.config.validation,
                           self.config.model_error, explained, drift)
 

@@ -266,10 +266,7 @@ class LocalFit:
         """``d r / d s`` (M, n_terms) at search vector ``v``, ``s`` each held meta-model
         term's relative scale (its values times ``1 + s``), by forward difference of
         :data:`TERM_STEP`; (M, 0) without terms. The identifiability gate takes these columns
-        as nuisance: a term held while the parameters are fitted stands for something the
-        physics lacks, and a parameter whose effect the term's can stand in for (a drive's
-        dead zone above its band is an offset on the voltage, which trades with La and Ra) is
-        not determined by a window that cannot tell them apart."""
+        as nuisance (:mod:`~twinwatch.twin.estimation.gate`)."""
         v = np.atleast_2d(v)[-1:]
         theta = self.pmap.full(v[:, :self.n_est], self.base)
         initial = self.initial(v) if self.n_init else None
@@ -296,19 +293,11 @@ class LocalFit:
         forward and backward differences agree (to :data:`SENSITIVITY_AGREEMENT`), or at the
         largest step if none does; one twin call for all.
 
-        The residual of a drive with a clamped output is not smooth: each controller update
-        where the unclamped output is near its limit switches the clamping anti-windup's
-        integration on or off, a jump of ``ki*T*e`` in the integrator. A difference whose
-        step straddles a jump adds ``jump/step`` to the column, in a direction of its own,
-        and the parameters look determined where they are not, two ways: a column ten times
-        its slope (a drive chattering at its limit, jumps every 2.4e-6 of ln Ra: a 1e-6
-        forward difference gave Ra 0.0037 % against an empirical 0.08 %; there no step below
-        1e-3 is free of jumps, and over 1e-3 they average into the slope the estimate has at
-        the scale of its uncertainty), and the near-cancellation of a degenerate combination
-        broken (one jump within 1e-3 of a Ke column made (J, Ke, D), which trade off along
-        (sJ, sKt, s(D + c) - c), look determined to 0.2-0.9 % where the clean Jacobian says
-        22-105 %). A jump on one side shows as forward and backward differences that
-        disagree; on a smooth residual they agree to the step's order.
+        The residual of a drive with a clamped output is not smooth: the clamping
+        anti-windup switches on or off, a jump in the integrator. A difference whose step
+        straddles a jump adds ``jump/step`` to the column, and the parameters look
+        determined where they are not. A jump on one side shows as forward and backward
+        differences that disagree; on a smooth residual they agree to the step's order.
 
         Args:
             v: the search vector.
@@ -336,8 +325,7 @@ class LocalFit:
         simulated on its own) when it was computed with the same steps, or settled at the
         first step and ``steps`` starts with it."""
         # Step by step, smallest first, only for the columns not settled yet (on a smooth
-        # residual the first step settles every column: 2k + 1 rows, not 2 n_h k + 1). Each
-        # row is simulated on its own, so the numbers are those of one batch of every step.
+        # residual the first step settles every column: 2k + 1 rows, not 2 n_h k + 1).
         active = np.asarray(active, dtype=int)
         k = active.size
         hs = tuple(self.SENSITIVITY_STEPS if steps is None else steps)
@@ -407,9 +395,7 @@ class LocalFit:
 
             def fun(x: FloatArray) -> FloatArray:
                 # The point and its forward differences (:meth:`jacobian`'s rows) in one twin
-                # call: least_squares asks for the Jacobian where it just evaluated fun when it
-                # accepts the step (each row is simulated on its own: the same numbers as two
-                # calls).
+                # call: least_squares asks for the Jacobian where it just evaluated fun.
                 rows[:, active] = x
                 rows[1 + np.arange(k), active] += 1e-6
                 r_all = self.residuals(rows)
@@ -434,12 +420,9 @@ class LocalFit:
 RCOND = 1e-12
 #: A residual whose mean square is below this share of the ``model_error`` floor's (a tenth of
 #: its RMS) shows none of the error the floor stands for: it is the simulation's own
-#: arithmetic (1e-8 against the floor's 1e-4 on a noise-free run of the twin's own plant); the
-#: identifiability gate takes the floor as white there (:func:`residual_variances`'s
-#: ``numerical``). Above it the residual's autocorrelation is the model error's: the MotoShield
-#: recording's current residual sits at 0.1 to 1 times the floor, smooth (lag-1
-#: autocorrelation above 0.9), and its D needs the floor inflated to cover the commissioned
-#: value.
+#: arithmetic; the identifiability gate takes the floor as white there
+#: (:func:`residual_variances`'s ``numerical``). Above it the residual's autocorrelation is the
+#: model error's.
 NUMERICAL_SHARE = 0.01
 
 
@@ -451,10 +434,8 @@ def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
     condition number of ~1e15 in raw form (pressure in Pa against a piston area in m^2), where
     an unequilibrated inverse returns meaningless variances. A direction of the equilibrated
     ``A`` whose eigenvalue is below :data:`RCOND` of the largest is not determined: every
-    variable that loads on it gets an infinite variance (a pseudo-inverse would drop the
-    direction and give those variables a small, finite one: two identical columns each got a
-    standard error of 2.8e-4, Ke and Kt estimated without a tie passed the gate). A column the
-    outputs do not respond to at all is such a direction.
+    variable that loads on it gets an infinite variance (a pseudo-inverse would give them a
+    small, finite one). A column the outputs do not respond to at all is such a direction.
 
     Args:
         jac: (M, n) Jacobian of the residuals.
@@ -596,15 +577,14 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     the variance :func:`parameter_covariance` gives (each output's residual variance with its
     AR(1) factor), ``V_hac`` the heteroskedasticity and autocorrelation consistent sandwich
     ``A^-1 S A^-1`` (White 1982, *Maximum likelihood estimation of misspecified models*,
-    Econometrica 50: the least-squares estimate of a misspecified model is normal about its
-    pseudo-true value with this covariance; Newey and West 1987, Econometrica 55: ``S`` the
+    Econometrica 50; Newey and West 1987, Econometrica 55: ``S`` the
     long-run variance of the per-sample scores ``g_t = J_t^T r_t``, Bartlett weights
     ``1 - l/(L+1)`` over ``L = N // 4`` lags, as :func:`~.statistics.long_run_factor`).
 
     A twin that misses part of the machine leaves a residual that follows the inputs, and the
     parameters whose sensitivities follow them too take it up window after window: their
-    scores stay of one sign for many samples, which the AR(1) factor of the residual alone
-    does not see. White residuals give about 1.
+    scores stay of one sign for many samples, which the AR(1) factor alone does not see.
+    White residuals give about 1.
 
     Args:
         jac: (M, n) Jacobian of the normalised residuals (``n_out`` outputs interleaved).
@@ -653,15 +633,8 @@ def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int,
     With ``numerical`` > 0 (the identifiability gate's :data:`NUMERICAL_SHARE`), an output
     whose mean square is below that share of ``floor**2`` gets the floor alone, not
     inflated: its lag-1 autocorrelation is the simulation's arithmetic's (near 1 on
-    noise-free data: a factor of 199), not the model error's, and inflated it held the PWM
-    drive's Ra "not separable from D" for a whole noise-free run while, after its fault, the
-    fit moved Ke and D in its place (issue 34). The fusion's weights and the model check keep
-    the inflated floor (a noise-free step of D x4 took another path through the fusion with it
-    white). The admitted parameters' published standard errors are the gate's (nothing is
-    published ``estimated`` above ``max_rel_std``: the same numbers decide both), so on
-    noise-free data they narrow: Ra's 2-sigma interval on a simulated drive from 0.027 % to
-    0.008 %, still covering the plant's Ra in 96.5-100 % of the windows of drives the twin
-    misstates (``benchmarks/bench_fidelity.py --only dc``)."""
+    noise-free data), not the model error's. The fusion's weights and the model check keep
+    the inflated floor."""
     m = r.size
     res = r.reshape(-1, n_out)
     moments, key = _MOMENTS.get((r, n_out))
@@ -685,14 +658,11 @@ class _Recent:
     """The last few results of a pure function of arrays and numbers, found again when it is
     called with the same arguments: arrays of the same shape, strides, dtype and bytes (the
     layout too: it decides the BLAS call, and so the last bits), numbers of the same type and
-    value. In a window the identifiability gate, the model check and the long-run factor ask
-    for the covariance at the same point with the same residual, and the gate asks for each
-    output's residual moments once per candidate set.
+    value (the gate, the model check and the long-run factor ask for the same covariance).
 
     Shared by every estimator of the process: the results depend on the arguments alone, an
-    entry's key is the arguments' signature (their bytes copied), its value is never replaced
-    (a value computed piecewise, as the moments' autocorrelations, gets each piece once,
-    always the same), and the list is replaced, not edited (a thread reads either list whole).
+    entry's value is never replaced (a value computed piecewise gets each piece once), and the
+    list is replaced, not edited (a thread reads either list whole).
 
     Args:
         size: results kept.
@@ -770,9 +740,8 @@ def pso_minimize(cost_fn: Callable[[FloatArray], FloatArray], lower: FloatArray,
     runs in :func:`_pso_loop`: pymoo's PSO step by step (its velocity equation, its
     out-of-bounds redraws and repair, its polynomial mutation of the best particle, the
     improvement replacement of the personal bests) on arrays, without pymoo's per-particle
-    ``Individual`` bookkeeping, which cost 13 of a 20-iteration swarm's 16 ms of CPU (the
-    twin's 20 calls 2.7 ms; issue 22). pymoo's ``PSO`` class runs the adaptive variant (its
-    fuzzy ``w``/``c1``/``c2`` updates).
+    ``Individual`` bookkeeping, which costs most of a small swarm's CPU. pymoo's ``PSO`` class
+    runs the adaptive variant (its fuzzy ``w``/``c1``/``c2`` updates).
 
     Args:
         cost_fn: vectorised cost, (P, n) -> (P,).

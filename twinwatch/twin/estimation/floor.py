@@ -5,9 +5,7 @@ that does not describe the drive exactly (a speed PI integrating by another rule
 firmware's, a sub-step or integrator of another order) leaves part of its error in the
 residual, where the model check sees it, and absorbs the rest into the parameters, where no
 statistic of the window's residual can: five parameters free can mimic a tick of integral
-action (measured: a trapezoidal twin on a forward-Euler drive, noise-free, one window whose
-check passed estimated Ke -1.72 % +- 0.009 % and D -9.0 % +- 0.06 %; every later window held
-them and published Ra 0.052 % off with 0.012 %, covered in 24 % of the windows).
+action.
 
 That error differs from window to window (it follows the window's excitation), so it shows
 as a scatter of the windows' estimates beyond what their standard errors explain. Per
@@ -27,7 +25,7 @@ and, through the values it was fitted with held (``d ln a / d ln h = g_ah``,
     published sigma_a = sqrt(sigma_a^2 + floor_a^2)
 
 Only the published interval: the estimates, the gate, the trusted values and the fusion read
-the window's own standard errors, as before. Comparing estimates with estimates (not with the
+the window's own standard errors. Comparing estimates with estimates (not with the
 nameplate) keeps a machine that is simply off its nameplate from looking structurally wrong; a
 twin whose error biases every window alike does not scatter and is not seen here (the model
 check's business). Cost: a few operations per admitted parameter and window, no twin call.
@@ -142,8 +140,7 @@ class StructuralFloor:
     def restart_pairs(self) -> None:
         """Pair no estimate with one before now: the fusion found a sudden change (a step of
         the machine, which the pairs' model, a stationary parameter with the fused rate's
-        drift, does not describe: D x4 at once counted as scatter made every later interval
-        of D 100 % wide). The pairs summed so far stay."""
+        drift, does not describe). The pairs summed so far stay."""
         self.state.last = [None] * self.n_est
 
     def tau(self) -> FloatArray:

@@ -1,16 +1,14 @@
 """Evidence across windows: a Kalman filter on the estimated parameters.
 
 One window of a noisy or weakly excited machine often cannot pin a parameter down (the hydraulic
-damping D is 7 Pa of 50 kPa of pressure: with 0.5 % sensor noise one window's relative standard
-error is 6-170 %), yet every window carries some information about it. As MATLAB's recursive
-estimators do (``recursiveARX`` with a Kalman-filter adaptation; Ljung, System Identification,
-Section 11.2), the parameters are tracked across windows by a Kalman filter whose measurement is
-each window's least-squares estimate with its covariance.
+damping D is 7 Pa of 50 kPa of pressure), yet every window carries some information about it.
+As MATLAB's recursive estimators do (``recursiveARX`` with a Kalman-filter adaptation; Ljung,
+System Identification, Section 11.2), the parameters are tracked across windows by a Kalman
+filter whose measurement is each window's least-squares estimate with its covariance.
 
-**Model.** The state is the natural logarithm of each estimated parameter (a relative change is
-the same for an ohm and a kg m^2) and, with ``model = "trend"``, its rate of change [1/s]: a
-local linear trend, so a slow degradation (the paper's exponential laws) is followed without
-the lag a random walk has::
+**Model.** The state is the natural logarithm of each estimated parameter and, with
+``model = "trend"``, its rate of change [1/s]: a local linear trend, so a slow degradation
+(the paper's exponential laws) is followed without the lag a random walk has::
 
     ln p(t + dt) = ln p(t) + dt * rate(t) + w_level,   var(w_level) = q_level^2 dt (+ trend terms)
     rate(t + dt) = rate(t) + w_rate,                   var(w_rate)  = q_rate^2 dt
@@ -52,29 +50,21 @@ FUSION_STEPS = (1e-6, 1e-3)
 #: its information in the window is its own (1 - R^2 against the parameters the gate admitted
 #: and the initial state: its conditional over its marginal variance). Along a valley the
 #: window's evidence on it is a combination with an admitted one, and the filter, fed that
-#: every window, walks along the valley: DC motor bearing wear, 1 % noise, Ke beside an
-#: admitted D has 1e-7 of its information its own (conditional std 0.08 %, marginal 245 %)
-#: and the fused D drifted 3-7 % off; the hydraulic D beside q_pump has 0.73, and it is known
-#: only from the windows' evidence (benchmarks/bench_fidelity.py --only fusion).
+#: every window, walks along the valley (Ke beside an admitted D has 1e-7 of its own).
 OWN_INFORMATION = 0.01
 #: Largest change of a level (ln-parameter) one window's sudden change may make: a window
 #: whose evidence, after the jump test inflated the prediction, moves a parameter it
-#: determines by more than a factor 2 is an outlier of the model, not wear, and is not fused
-#: (the noise-free DC motor with J +15 %, J held at its nameplate: one window moved D by
-#: -106 % and Ke by -13.6 %, the next put D back; Ke, no later window informing it, stayed).
+#: determines by more than a factor 2 is an outlier of the model, not wear, and is not fused.
 JUMP_LIMIT = math.log(2.0)
 #: Windows in a row whose evidence moves the same parameter beyond :data:`JUMP_LIMIT` by
 #: about the same factor (within :data:`OUTLIER_AGREE`, ln) after which the move is the
 #: machine's and is fused: one odd window is the model's outlier, a step the windows keep
-#: telling is not (D x4 at once, a seized bearing, was never followed: the fused D stayed at
-#: its nameplate while every window said x4).
+#: telling is not (a seized bearing's D x4 at once).
 OUTLIER_RUN = 3
 OUTLIER_AGREE = 0.1
 #: Windows over which a parameter's innovations are summed to test for a level shift the
-#: single-window jump test misses (:meth:`ParameterFusion.update`): a PWM drive's Ra stepping
-#: -12 % gave innovations of 2-4 standard errors per window, never the 5 the jump test needs,
-#: and its fused value stayed at -3 % for 20 windows while every window that estimated Ra said
-#: -11 %; the windows holding Ra at the lagging value pushed Ke, J and D 4-9 % off.
+#: single-window jump test misses (:meth:`ParameterFusion.update`): a step whose innovations
+#: are a few standard errors per window, never the jump test's threshold.
 SHIFT_WINDOWS = 6
 
 
@@ -213,9 +203,8 @@ class ParameterFusion:
 
         The window's least-squares problem and the prediction are combined as the iterated
         extended Kalman filter does: Gauss-Newton on ``||r(p)||^2_W + ||p - p_pred||^2_{P^-1}``,
-        re-linearised at each iterate (a single linearisation at the prediction is not enough:
-        with exact data from a window that determines the parameters the one step missed the
-        truth by 1 % and the filter then trusted it).
+        re-linearised at each iterate (a single linearisation at the prediction is not
+        enough on a window that determines the parameters).
 
         Args:
             t: the window's middle [s].
@@ -229,17 +218,14 @@ class ParameterFusion:
             cols: the parameters (positions) the window informs; the others carry no
                 evidence from it (default: all).
             bounds: (lower, upper) ln-parameter bounds (n,): the levels are kept within them
-                and each Gauss-Newton step moves a level by at most :data:`MAX_STEP` (a
-                window after a jump, its prior inflated, once sent D 250 times below its
-                bound and the next prediction overflowed).
+                and each Gauss-Newton step moves a level by at most :data:`MAX_STEP` (after
+                a jump, its prior inflated, a step can overflow the next prediction).
             start: ln-parameters (n,) to start the iterations from at ``cols`` (the window's
                 own least-squares optimum: the posterior's mode lies between it and the
-                prediction; from the prediction alone, after a jump, the iterations once
-                settled on a D 7 times off with a 1 % standard error); default the prediction.
+                prediction); default the prediction.
             step_tol: also stop once no level moves by more than this share of its posterior
-                standard error (0: only at 1e-9; the local-first path's 0.01: the window's
-                numerical Jacobian, its step chosen afresh at each iterate, leaves steps of
-                1e-5 that never reach 1e-9, and the iterations ran to their limit).
+                standard error (0: only at 1e-9; the numerical Jacobian's steps of ~1e-5
+                never reach 1e-9).
             firm: the parameters (positions) the window determines (default: ``cols``): a
                 jump inflates their levels' variances only.
 
@@ -289,13 +275,9 @@ class ParameterFusion:
             nis = float(step @ s_inv @ step) / max(rank, 1)
             if math.isfinite(nis) and nis > self.config.jump_threshold:
                 # a sudden change is a step of the levels, not of their rates: each level's
-                # variance grows, the rates' and the cross terms stay (scaling the whole
-                # covariance let one odd window set a rate that no later window informed:
-                # the noise-free DC motor's fused Ke then fell 0.3 %/s for 90 s, to -25 %)
-                # only the levels the window determines: the first parameter it could not
-                # determine is fused from weak evidence (:func:`fuse_window`), and with its
-                # prior inflated too that evidence placed it anywhere along its valley (D
-                # -105 % and Ke -13.5 % in one window of the same run)
+                # variance grows, the rates' and the cross terms stay; only the levels the
+                # window determines (the first parameter it could not determine is fused from
+                # weak evidence, which an inflated prior places anywhere along its valley)
                 cov = cov.copy()
                 levels = sel if firm is None else np.asarray(firm, dtype=int)
                 cov[levels, levels] *= nis / self.config.jump_threshold
@@ -436,12 +418,10 @@ class ParameterFusion:
         mean by more than their stated errors explain, the ratio ``R = sqrt(chi^2 / dof)``
         measures the error they share unstated, and the mean's standard error is multiplied
         by it. Here the determinations are the windows, the mean the filter's prediction, and
-        ``chi^2 / dof`` the mean normalised innovation squared (the Kalman filter's own
-        consistency test, Bar-Shalom, Li and Kirubarajan, *Estimation with Applications to
-        Tracking and Navigation*, 2001, Section 5.4): a twin whose error differs from window
-        to window (its excitation) scatters its windows' estimates, and a fused value that
-        averages them is no more precise than that scatter allows. Read by the published
-        interval only (:func:`fuse_window`); the filter's state keeps its own covariance."""
+        ``chi^2 / dof`` the mean normalised innovation squared (Bar-Shalom, Li and
+        Kirubarajan, *Estimation with Applications to Tracking and Navigation*, 2001, Section
+        5.4). Read by the published interval only (:func:`fuse_window`); the filter's state
+        keeps its own covariance."""
         sc = self._scatter()
         out = {}
         for i, n in enumerate(self.names):
@@ -465,12 +445,10 @@ def _first_held_step(problem: WindowProblem, polished: Polished, cols: np.ndarra
     (1 - R^2 against the other columns and the initial state, at the polished point: the
     valley case). Else the Gauss-Newton step (len(cols),) on ``cols`` (the initial state
     free) from the polished point towards the window's own optimum with that parameter free:
-    the filter's iterations start there (:meth:`ParameterFusion.update`'s ``start``). After
-    a polish of every parameter the step is nearly zero; after the admitted-only polish the
-    held parameter sits at its trusted value, which a degrading one has left (hydraulic D
-    rising with the fluid: started from it, the fused D lagged and 17 % of the windows
-    published suspect). The sensitivity is the one the filter starts from (cached: no twin
-    call more)."""
+    the filter's iterations start there (:meth:`ParameterFusion.update`'s ``start``): after
+    the admitted-only polish the held parameter sits at its trusted value, which a degrading
+    one has left. The sensitivity is the one the filter starts from (cached: no twin call
+    more)."""
     nuis = problem.nuisance
     qq = base_ln.copy()
     qq[cols] = polished.point.v[:problem.n_est][cols]
@@ -487,10 +465,7 @@ def _first_held_step(problem: WindowProblem, polished: Polished, cols: np.ndarra
         return None
     step = -(inv @ (jac.T @ (w * r0)))[:cols.size]
     # a step beyond MAX_STEP is no Gauss-Newton step of a valid linearisation: the polish
-    # moved a parameter outside ``cols`` that the filter holds at its trusted value (the
-    # noise-free DC motor, J +15 %: the polish found J +14 %, and from there with J held the
-    # linear step sent D to the -50 % clip and Ke to -14 %; the filter, started there,
-    # settled on D -105 % and Ke -13.5 %, and Ke, no later window informing it, stayed)
+    # moved a parameter outside ``cols`` that the filter holds at its trusted value
     if not (np.all(np.isfinite(step)) and float(np.max(np.abs(step))) <= MAX_STEP):
         return None
     return step
@@ -512,9 +487,8 @@ def _safe_inverse(a: FloatArray) -> FloatArray:
 
 @njit(cache=True, nogil=True)
 def _safe_inverse_finite(a: FloatArray) -> FloatArray:
-    """:func:`_safe_inverse` of a finite matrix, compiled (about a tenth of numpy's calls'
-    cost on these 1-6 square matrices; the same LAPACK ``syevd``, the same result to the
-    bit)."""
+    """:func:`_safe_inverse` of a finite matrix, compiled (the same LAPACK ``syevd`` as
+    numpy's, the same result to the bit)."""
     w, v = np.linalg.eigh(0.5 * (a + a.T))
     big = max(np.max(np.abs(w)), 1e-300)
     inv = np.zeros_like(w)
@@ -533,11 +507,10 @@ def fuse_window(fusion: ParameterFusion, problem: WindowProblem, polished: Polis
     A window that is ``informative`` (its fit good enough to trust and its model check
     passed) informs the parameters it determined and the first it could not (weakly: noise,
     not structure, may be why); the ones after it are held at their trusted values, as the
-    window's estimate held them (with a viscous load J, Ke and D trade off exactly: jointly, no
-    window determines D); a parameter in ``skip`` (not observable at this sample rate) is
-    never informed. Its least-squares problem is re-linearised at each iterate of the
-    filter (:meth:`ParameterFusion.update`) around the polished initial state, with the
-    polish's row variances as weights. Any other window only advances the filter to its time.
+    window's estimate held them; one in ``skip`` is never informed. Its least-squares problem
+    is re-linearised at each iterate of the filter (:meth:`ParameterFusion.update`) around the
+    polished initial state, with the polish's row variances as weights. Any other window only
+    advances the filter to its time.
 
     Args:
         fusion: the filter (its state is updated).

@@ -2,13 +2,10 @@
 
 At the polished optimum the Jacobian ``S`` of the normalised residuals with respect to the
 ln-parameters gives each parameter's relative standard error (the sandwich covariance of
-:func:`~twinwatch.twin.estimation.fit.parameter_covariance`: each output's residual variance,
-floored by ``model_error`` so that noise-free data do not make a collinear set look determined,
-inflated by its AR(1) factor, but white below a hundredth of the floor's mean square, where the
-residual is the simulation's arithmetic: :data:`~twinwatch.twin.estimation.fit.NUMERICAL_SHARE`;
-the window's initial state, and the scale of each meta-model term the twin holds, always free
-beside them: a term stands for what the physics lacks, and a parameter whose effect it can take
-is not determined by the window, whatever the floor). Parameters
+:func:`~twinwatch.twin.estimation.fit.parameter_covariance`, with
+:data:`~twinwatch.twin.estimation.fit.NUMERICAL_SHARE`; the window's initial state, and the
+scale of each meta-model term the twin holds, always free beside them: a parameter whose effect
+a term can take is not determined by the window). Parameters
 are admitted in the configured priority order while every admitted one keeps its relative
 standard error at most ``max_rel_std``; the first that fails and every one after it are *held*
 at their last trusted value, with the reason, and the admitted ones are re-fitted with them
@@ -197,13 +194,11 @@ class IdentifiabilityGate:
                 unexcited: Mapping[str, str] | None = None,
                 unobservable: Mapping[str, str] | None = None
                 ) -> tuple[GateDecision, FitPoint] | None:
-        """The gate on a polish that moved only ``selected`` (the last window's admitted
-        set), the others at their trusted values, with a Jacobian of every column
-        (:func:`~twinwatch.twin.estimation.polish.polish_admitted`): when :meth:`select`
-        admits the same set there, the decision and the point are those :meth:`admit` gives
-        after its re-fit holding the others (the same standard errors: the admitted and
-        initial-state columns at the re-fit's optimum); None when it admits another set
-        (the caller polishes every parameter and runs :meth:`admit`)."""
+        """The gate on a :func:`~twinwatch.twin.estimation.polish.polish_admitted` point
+        (only ``selected`` moved): when :meth:`select` admits the same set there, the
+        decision and the point :meth:`admit` gives after its re-fit holding the others; None
+        when it admits another set (the caller polishes every parameter and runs
+        :meth:`admit`)."""
         point = polished.point
         jac, n_nuis = self._with_terms(problem, point)
         sel, rel_std, reasons = self.select(jac, point.r, unexcited, n_nuis, unobservable)
@@ -223,10 +218,7 @@ class IdentifiabilityGate:
         error; an admitted parameter that trades off with it moves with its error: ``dq_a =
         G dq_h``, ``G = -(S_a^T S_a)^-1 S_a^T S_h`` (the least-squares optimum's sensitivity
         to the held ln-parameters, the initial state free beside the admitted ones), so the
-        marginal variance is the conditional one plus ``G diag(sigma_h^2) G^T``. Measured on a
-        drive with a set-point step every 2-6 s and 1 % noise: a Ke trusted at -0.3 % +-
-        0.3 % moved the next windows' Ke by 2 % and D by 10 % while they stated 0.1 % and
-        0.4 %, and the trusted values walked (Ke +4.5 %, D +23 % after 20 windows).
+        marginal variance is the conditional one plus ``G diag(sigma_h^2) G^T``.
 
         Args:
             problem: the window's problem.
@@ -260,9 +252,7 @@ class IdentifiabilityGate:
         ``max_rel_std`` (after the re-fit with the others held, or widened by a failed model
         check) is held, published at its trusted value, and the others are re-fitted with it
         held. Their standard errors stay those of the fit in which it was free (marginal over
-        it): the re-fit's would be conditional on a held value that may be off, and narrower
-        (on MotoShield a re-fitted D at -3.2 % got 1.5 %, against the 1.6 % its 2-sigma
-        interval needs to cover the commissioned value).
+        it): the re-fit's would be conditional on a held value that may be off, and narrower.
 
         Returns:
             (the decision, the point, whether anything was held here: the twin must then be
@@ -294,8 +284,7 @@ class IdentifiabilityGate:
         active = np.concatenate([np.array(selected, dtype=int), problem.nuisance])
         if not active.size:
             return FitPoint(v, point.r, point.jac), False
-        # every column's sensitivity in the one call: propagate_held reads the held ones at
-        # this point next (LocalFit keeps them: one twin call fewer)
+        # every column's sensitivity in the one call: propagate_held reads the held ones next
         every = np.arange(problem.n_est + problem.nuisance.size)
         v, r, jac = problem.local.refine(v, active, stats=every)
         return FitPoint(v, r, jac[:, active]), True

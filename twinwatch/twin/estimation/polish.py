@@ -1,7 +1,7 @@
 """Stage 2, the polish: bounded least squares from the swarm's best (output-error fit).
 
-pymoo's PSO alone stalls short of the best fit (Ra scattered by +-1 % on exact-model data; more
-iterations do not help). From its best particle, scipy's trust-region reflective least squares
+pymoo's PSO alone stalls short of the best fit (more iterations do not help).
+From its best particle, scipy's trust-region reflective least squares
 (Jacobian from one batched twin call) reaches the optimum of the normalised residuals of paper
 Eq. 2, jointly with the window's initial-state offsets (nuisance variables: a noisy first sample
 otherwise leaves a transient in every residual and biases the estimates). Its Jacobian at the
@@ -70,7 +70,7 @@ def polish_admitted(problem: WindowProblem, q: FloatArray, selected: list[int], 
 
     When it does, this is the point :func:`polish` and the gate's re-fit holding the others
     reach, without the first trust-region run moving the held parameters along the valley
-    the gate then holds (local-first windows: about 31 of 50 twin calls a window).
+    the gate then holds.
 
     Returns:
         As :func:`polish` (the row variances with the same count of fitted variables).

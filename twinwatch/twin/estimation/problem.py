@@ -2,12 +2,9 @@
 
 As pymoo separates the problem from the algorithm that solves it and the termination that
 stops it, the estimator builds a :class:`WindowProblem` once per window and hands it to each
-stage (:mod:`~twinwatch.twin.estimation.search`, :mod:`~twinwatch.twin.estimation.polish`,
-:mod:`~twinwatch.twin.estimation.gate`, :mod:`~twinwatch.twin.estimation.check`,
-:mod:`~twinwatch.twin.estimation.fusion`). It holds no decision of its own: the search
-variables are the natural logarithms of the estimated parameters (paper Eq. 1's decision
-vector, on a log scale so that a relative step is the same for an ohm and a kg m^2), then the
-window's initial-state offsets; every parameter not searched comes from the trusted vector.
+stage. It holds no decision of its own: the search variables are the natural logarithms of the
+estimated parameters (paper Eq. 1's decision vector), then the window's initial-state offsets;
+every parameter not searched comes from the trusted vector.
 """
 
 from __future__ import annotations

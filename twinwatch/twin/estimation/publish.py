@@ -13,8 +13,7 @@
 * ``tied``: equal to another parameter (Kt = Ke); ``fixed``: not estimated (the nameplate).
 
 A fused value is published, never trusted: the twin keeps holding the last value a window
-determined (a fused Ke 1.5 % off, well within its 0.9 % interval, biased D by 8 % through
-D = Ke*ia/omega - c when it was held at it).
+determined (a held value's error propagates: D = Ke*ia/omega - c amplifies Ke's).
 """
 
 from __future__ import annotations

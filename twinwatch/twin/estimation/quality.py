@@ -3,18 +3,11 @@
 A measured output that repeats one value exactly for many samples is not measuring: a live
 sensor's reading carries noise or at least moves by its quantisation step as the machine moves.
 Where the twin's own output moves materially over the same stretch, the stretch is a sensor
-fault, not a steady machine:
-
-* **saturated** when the stuck value is the window's largest (smallest) reading and the twin
-  stays at or beyond it there, going materially beyond: the sensor clips at its range;
-* **frozen** otherwise (a broken wire, a stalled field bus value, a converter that stopped
-  updating), and also where the machine is steady when the reading was live a window before
-  (it carried noise, and now repeats itself exactly).
-
-A drive output that sits at its limit is neither: the twin clamps it too (its own output is as
-flat there). The window's estimates are then not measurements of the machine: the estimator
-publishes them ``suspect`` (:mod:`~twinwatch.twin.estimation.publish`), does not trust or fuse
-them, and the health message names each fault (``sensors``).
+fault, *saturated* or *frozen* (:func:`sensor_faults` gives the rules); a drive output that
+sits at its limit is neither (the twin clamps it too). The window's estimates are then not
+measurements of the machine: the estimator publishes them ``suspect``
+(:mod:`~twinwatch.twin.estimation.publish`), does not trust or fuse them, and the health
+message names each fault (``sensors``).
 """
 
 from __future__ import annotations

@@ -77,7 +77,6 @@ def warm_start(problem: WindowProblem) -> SearchResult:
     call), the local-first strategy's start when the trusted twin still fits
     (:class:`~twinwatch.twin.estimation.estimator.Estimator`). Not the last window's optimum:
     on a drive whose output clamps, the residual is not smooth, and from there the polish
-    stopped in another basin (Ra 0.31 % off in a window where the swarm path is 0.003 %
-    off, benchmarks/bench_fidelity.py's twin 2 ms on a 0.5 ms drive)."""
+    can stop in another basin."""
     q0 = problem.start()
     return SearchResult(q0, float(problem.cost(q0[None, :])[0]))

@@ -5,18 +5,10 @@ each output's scale (see :class:`~.fit.WindowFit`), either as a matrix ``(N, n_o
 (one column per output) or as the flat vector ``(N*n_out,)`` the optimisers minimise, with the
 outputs interleaved (``r.reshape(-1, n_out)`` gives the matrix back).
 
-What is here and where it comes from:
-
-* :func:`noise_level`: the white-noise level of a residual from its first differences (a smooth,
-  model-error residual hardly changes from sample to sample, white noise does).
-* :func:`ar1`: the residuals' pooled lag-1 autocorrelation, and :func:`long_run_factor`, the
-  ratio of the long-run to the short-run variance (Bartlett-weighted autocorrelations, as in the
-  Newey-West estimator): how many samples one independent piece of evidence is worth.
-* :func:`delta_bic`: the Bayesian information criterion change of a model with ``k`` more
-  parameters, on an effective sample size corrected for autocorrelation (discovery's test).
-* :func:`ljung_box` and :func:`cross_correlation_test`: the residual tests of model validation
-  (Ljung, *System Identification*, 2nd ed., Section 16.6; MATLAB ``resid``): a model that
-  describes the data leaves residuals that are white and independent of past inputs.
+What is here: :func:`noise_level`, :func:`ar1` and :func:`long_run_factor` (how many samples
+one independent piece of evidence is worth), :func:`delta_bic` (discovery's test), and the
+residual tests of model validation, :func:`ljung_box` and :func:`cross_correlation_test`
+(Ljung, *System Identification*, 2nd ed., Section 16.6; MATLAB ``resid``).
 """
 
 from __future__ import annotations

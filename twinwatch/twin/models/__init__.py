@@ -77,7 +77,7 @@ def _number_types(annotation: Any) -> set[type]:
 
 def _booleans_for_numbers(cls: type, options: Mapping[str, Any]) -> list[tuple[str, Any]]:
     """Options given ``true``/``false`` where the model's dataclass field takes a number (``int``
-    or ``float``, not ``bool``): Python would take them as 1 and 0 (issue 26 item 3)."""
+    or ``float``, not ``bool``): Python would take them as 1 and 0."""
     if not dataclasses.is_dataclass(cls):
         return []
     try:

@@ -20,9 +20,9 @@ Two structures are offered (option ``structure``):
 * ``closed_loop`` (default for the simulated plant): the twin contains the drive's PI speed
   controller (Kp, Ki known from the drive's configuration) updated every sub-step, driven by the
   measured set-point, and the armature voltage Va becomes an *output*. This is exact for a drive
-  whose controller runs faster than the acquisition: holding the sampled Va over 10 ms while the
-  plant's PI runs every 0.1 ms biases Ra by up to 1.7 % (measured), which would swamp the 0.2 %
-  target. The integrator state at the window start is recovered from the measured Va.
+  whose controller runs faster than the acquisition, where holding the sampled Va over a sample
+  biases Ra by more than the estimation's target. The integrator state at the window start is
+  recovered from the measured Va.
 * ``open_loop``: the measured Va drives the twin, held over each sample. Exact when the voltage
   really is held between samples (e.g. a commanded, piecewise-constant voltage as in the
   MotoShield recording) and the only choice when the controller is unknown.
@@ -60,10 +60,10 @@ by sub-step in a compiled kernel with the plant's own scheme (no exact composite
 **Open loop** states how the voltage behaved between samples (``input_hold``): ``zoh`` (held:
 exact for a commanded, piecewise-constant voltage) or ``linear`` (interpolated between samples).
 An open-loop twin driven by the *sampled* voltage of a drive whose controller updates within the
-sample is biased (the voltage moved between samples): measured, +2.9 % on Ra with a 1 ms drive
-sampled at 100 Hz (benchmarks/bench_fidelity.py); use ``closed_loop`` with the drive described.
+sample is biased (the voltage moved between samples); use ``closed_loop`` with the drive
+described.
 
-Identifiability (measured, see docs/architecture.md): with a viscous load, J, Kt and D cannot be
+Identifiability (docs/architecture.md): with a viscous load, J, Kt and D cannot be
 told apart unless Kt is tied to Ke; in windows without a transient Ra and Ke trade off. The
 estimator decides per window which parameters the data determine.
 """
@@ -127,8 +127,7 @@ def _step_kernel(theta: FloatArray, dt: float, c: float, kp: float, ki: float, c
                  pos: IntArray, a: FloatArray, b: FloatArray) -> None:  # pragma: no cover
     """:meth:`DCMotorTwin.step_matrices` into zeroed ``a`` (P, n, n), ``b`` (P, n, 4):
     ``pos`` = positions of [z, fi, fw, angle, v] (-1: absent), then the columns of tau_i
-    and tau_w in ``theta`` (-1: absent). The same operations in the same order as the
-    vectorised form it replaced (the same numbers)."""
+    and tau_w in ``theta`` (-1: absent)."""
     n = a.shape[1]
     pz, pv = pos[0], pos[4]
     for q in range(theta.shape[0]):

@@ -15,8 +15,7 @@ internal leak of Eq. 18 (the paper's discovery prints ``p_k = p'_k - 0.19999991*
 the same term with the sign of its own convention; ours is ``p = (1 + U)*p'``, U ~ +0.2).
 
 The model is nonlinear (sqrt) and has no exact sample map, so one compiled kernel runs the
-sub-steps for every particle of the swarm and every sample of the window; a window of 200
-samples x 100 sub-steps costs about 0.5 ms per particle (7.6 ms for a swarm of 15, measured).
+sub-steps for every particle of the swarm and every sample of the window.
 
 **Structure: open loop** (the default). The measured valve area and load drive the twin; it
 starts each window from the measured x and p of the window's first sample. The plant's Eq. 17
@@ -24,24 +23,19 @@ PID runs every 1e-4 s (with these gains it is unstable from a 0.2 ms period on; 
 :mod:`twinwatch.plant.hydraulic`), so the area moves within a sample. Option ``input_hold``:
 
 * ``linear`` (default): the area (and load) is interpolated linearly between consecutive samples
-  over the sub-steps (first-order hold). Measured against the plant at its true parameters:
-  x within 2.3e-10 m and p within 5e-12 relative (nominal; leak with U = 0.2), p within
-  4.3e-7 relative under fluid degradation (D drifts ~0.4 % within a 2 s window while the twin
-  holds it constant): all far below D's share of the pressure (1.4e-4).
+  over the sub-steps (first-order hold); against the plant at its true parameters its error
+  stays far below D's share of the pressure (1.4e-4), fluid degradation included.
 * ``zoh``: each sample's value is held until the next one: exact for a valve whose command is
-  really held between samples; against this plant it errs by up to 4.4e-6 m in x (near a
-  reversal) and 1.3e-7 relative in p.
+  really held between samples.
 
 The measured area is clipped to [0, A_max] (the valve cannot open further), so A_max matters
 only when a reading exceeds it: a window never determines A_max.
 
 An open loop on the sampled area is biased wherever the area moved within a sample in a way
-the hold does not describe: against a valve controller that updates every 0.5-2 ms and holds
-its output (a staircase), the linear hold errs by 6e-6 to 2.4e-5 of x and 2e-7 to 1e-6 of p in
-the worst window (at the valve's limit), 1e-7 to 7e-7 of x in the median one
-(tests/test_hydraulic_drive.py). With a well-tuned drive this stays below D's share of the
-pressure, so D is still estimated within 0.012 % there; but the twin does not reproduce the
-machine, and a window where the valve leaves its limit fails the model check.
+the hold does not describe (a valve controller that holds its output between updates: a
+staircase). With a well-tuned drive this stays below D's share of the pressure, so D is still
+estimated; but the twin does not reproduce the machine, and a window where the valve leaves
+its limit fails the model check.
 
 **Structure: closed loop** (``structure = "closed_loop"``, option ``drive``,
 :class:`ValveDriveConfig`). The twin contains the valve controller as the drive runs it
@@ -67,17 +61,12 @@ state is recovered from the data:
   window's only fitted controller state. In a shorter stretch it keeps the value the
   controller ran to (at the first sample: at rest, d = 0).
 
-Measured against the plant with its controller at 0.5, 1 and 2 ms, the valve at its limit
-28 % of the run: every window to rounding (x within 3e-15, p 4e-16, the area 2e-13 of their
-largest values), where the open loop errs by up to 2.4e-5 of x; the paper's PID every
-sub-step to 1e-14 of x and 6e-12 of the area (the integrator's rounding over 100 updates per
-sample). Approximate: a controller whose updates do not fall on the samples
+Against the plant with its controller's own period this reproduces every window to rounding.
+Approximate: a controller whose updates do not fall on the samples
 (``phase``: the update before a window's first sample is taken to have seen that sample's
-error; 0.3 ms measured: median 1e-11, worst 5e-6 of x, in the windows that restart), a stretch
-inside the limits shorter than 3 samples (a valve that slams between its limits, as with the
-paper's gains from a 0.3 ms period on: worst 1.5e-6 of x), and noise on the area or the
-position at a restart (the integrator takes it). A swarm of 15 costs about 20 % more than the
-open loop (the secant runs of the derivative filter's state).
+error), a stretch inside the limits shorter than 3 samples (a valve that slams between its
+limits), and noise on the area or the position at a restart (the integrator takes it). A swarm
+costs about 20 % more than the open loop (the secant runs of the derivative filter's state).
 
 **Meta-model terms** (attach points, :attr:`HydraulicActuatorTwin.attach_points`):
 
@@ -94,13 +83,10 @@ m/s), about 7 Pa of the 50 kPa pressure (a 1.4e-4 share). D is seen only through
 only in clean data, and not at all when the piston reverses (v ~ 0): the estimator holds it
 there. The position fixes q_pump/A_piston and 1/A_piston; the pressure fixes
 (F_load + F_resist)/A_piston, k_spring/A_piston and D/A_piston. Within one 2 s window, though,
-x is nearly linear and v nearly constant, so D*v trades with the pressure level: measured
-(tests/test_twin_hydraulic.py, relative standard errors at a 1e-7 residual floor) q_pump and D
-together are determined (~1e-6 and ~1e-3), D with k_spring, A_piston or F_resist is not (a few
-percent and more), and A_max never (the valve does not saturate). Estimate q_pump and D; keep
-the others at nameplate. The closed loop compares the area too: D enters it through the
-controller's response to the pressure (about half of D's share of p), and the estimator
-reaches the same figures (tests/test_hydraulic_drive.py).
+x is nearly linear and v nearly constant, so D*v trades with the pressure level: q_pump and D
+together are determined, D with k_spring, A_piston or F_resist is not, and A_max never (the
+valve does not saturate). Estimate q_pump and D; keep the others at nameplate. The closed loop
+compares the area too: D enters it through the controller's response to the pressure.
 
 Paper numbers (Table 4, Eq. 17): k_spring 200 N/m, D 100 N/(m/s), q_pump 0.02 m^3/s, A_max 1e-4
 m^2, A_piston 0.196349375 m^2, load 1000 kg; PID Kp 0.000346, Ki 3.513406, Kd 0.000119, N
@@ -321,14 +307,9 @@ def _closed_kernel(theta: FloatArray, a_in: FloatArray, x_in: FloatArray, p_in: 
     the particle's A_max when ``hi_is_amax``. ``tol`` [m^2]: a measured area within it of a
     limit sits at the limit.
 
-    Where the measured area sits at a limit it drives the piston (the integrator is hidden)
-    while the controller keeps running on the twin's position (its derivative filter follows);
-    at the first sample and at each first sample inside the limits after one at a limit, the
-    twin (re)starts from the measured position and pressure, the integrator recovered from
-    the measured area, and the derivative filter's state set so that the closed loop's area
-    over the next ``n_ahead`` samples (at most; within the stretch inside the limits) best
-    matches the measured one (secant steps, at most :data:`SPLIT_ITERATIONS`, until the area is
-    affine in it to rounding). Terms as in :func:`_simulate_kernel`.
+    The limits, restarts and the derivative filter's state over the next ``n_ahead`` samples
+    (at most :data:`SPLIT_ITERATIONS` secant steps) as the module docstring's closed loop
+    says. Terms as in :func:`_simulate_kernel`.
     """
     n_p, n_k = y.shape[0], y.shape[1]
     shared_u = u_p.shape[0] == 1
@@ -526,10 +507,8 @@ class HydraulicActuatorTwin(SubStepTwin):
             window: needs ``A_valve``, ``F_load``, ``x``, ``p`` and, closed loop, ``x_ref``
                 (N samples); the twin starts from the measured x and p of the first sample
                 (closed loop: the controller from the measured area, module docstring).
-            terms: ``p`` (dimensionless; ``U[k]`` multiplies the pressure equation on the
-                sub-steps of step k-1 -> k, so sample k's pressure) and/or ``d(x)/dt`` [m/s]
-                (``f_x[k]`` added to the piston velocity over step k -> k+1); values of shape
-                (N,) or (P, N).
+            terms: ``p`` (dimensionless) and/or ``d(x)/dt`` [m/s] (the module docstring's
+                meta-model terms); values of shape (N,) or (P, N).
             initial: offsets [m] (1,) or (P, 1) added to the measured x of the first sample
                 (the estimator's initial-state estimate); None: 0.
 

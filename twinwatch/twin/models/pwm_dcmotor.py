@@ -4,9 +4,8 @@ The linear DC motor twin (:mod:`twinwatch.twin.models.dcmotor`) takes an armatur
 hobby or evaluation board (the AutomationShield MotoShield: an Arduino Uno, an H-bridge and a
 micro motor with an encoder of 14 edges per turn) no voltage is measured: the firmware turns a
 command ``u`` into a PWM duty cycle, reads one sample of the current at some instant inside the PWM
-period, filters it in software and counts encoder edges. This twin describes exactly that; on
-the MotoShield recording it lifts the held-out fit from 74 % (speed) and 37.7 % (filtered
-current) for the linear twin to about 90 % and 53 % (README).
+period, filters it in software and counts encoder edges. This twin describes exactly that (its
+held-out fit of the MotoShield recording against the linear twin's: README).
 
 **Drive** (option ``duty``): the command ``u`` [V] held over (t_k, t_k+1] becomes the duty
 ``d_k`` of a PWM of frequency ``pwm_frequency`` (period T) from a supply ``supply_voltage``
