@@ -6,18 +6,16 @@
    (:class:`~twinwatch.twin.estimation.Estimator`);
 2. the kept terms are polished and re-validated (:meth:`Discovery.revalidate`); a term that no
    longer earns its place is switched off;
-3. the residual's structure is tested (:mod:`twinwatch.twin.discovery.trigger`): measurement
-   noise is white, a missing component is not. A window whose residual is structured (its
-   Ljung-Box whiteness test below ``window_alpha``, the structure above ``min_nrmse``) does not
-   update the trusted parameters and publishes its estimates ``suspect`` (they are biased by the
-   missing component);
+3. the residual's structure is tested (:mod:`twinwatch.twin.discovery.trigger`): a window whose
+   residual is structured does not update the trusted parameters and publishes its estimates
+   ``suspect`` (they are biased by the missing component);
 4. when the tests of the last ``trigger_windows`` windows, combined, are below ``false_alarm``,
    discovery searches the candidates (:meth:`Discovery.discover`); new terms join DT'', the
    window is re-estimated with them, and the change is reported. A discovery that keeps nothing
    waits ``retry_after`` windows, unless a term is switched off meanwhile (the twin changed:
    the next structured windows are searched again).
 
-Without a ``[discovery]`` table (or with ``enabled = false``) only step 1 runs, exactly as before.
+Without a ``[discovery]`` table (or with ``enabled = false``) only step 1 runs.
 
 Then, every window, the prognostics (:mod:`twinwatch.twin.prognostics`): each estimated
 parameter's evidence from the window (its estimate, or its share of the fused evidence) joins
@@ -180,8 +178,7 @@ class TwinAdapter:
                  thresholds: Mapping[str, Thresholds] | None = None,
                  adaptive: AdaptiveWindowConfig | None = None, label: str = "") -> None:
         self.model = model
-        #: The log, each line led by ``label`` (the machine's name: a gateway's log says which
-        #: machine found a component).
+        #: The log, each line led by ``label`` (the machine's name).
         self._log: logging.Logger | logging.LoggerAdapter[logging.Logger] = (
             _Labelled(logger, {"label": label}) if label else logger)
         self.estimator = Estimator(model, estimation, nominal)
@@ -235,20 +232,18 @@ class TwinAdapter:
             used = [(t, t.params.copy()) for t in self.terms]
             reval = self.discovery.revalidate(fit, theta, self.terms, self._free(est))
             if self._terms_moved(used):
-                # The window was estimated with the terms as the last window left them; their
-                # polish on this window moved them beyond their refined uncertainty (the
-                # first windows after a discovery: the leak's pressure gain from 0.19962 to
-                # 0.2000002, D +232 % in that window): estimate it again with the refined
-                # terms, forgetting what the first estimate taught the fusion.
+                # The terms' polish on this window moved them beyond their refined
+                # uncertainty (typical right after a discovery): estimate it again with the
+                # refined terms, forgetting what the first estimate taught the fusion.
                 self._log.debug("window %d: the kept terms moved in their polish: estimated "
                                   "again with them", window.index)
                 est_.rollback(snapshot)
                 est = est_.estimate(window, compose(self.terms, window), fit=fit)
                 theta = self._theta(est)
             if reval.dropped:
-                # DT'' lost a term: a wait left by an earlier search that found nothing no
-                # longer holds (a shaft-following unbalance's term of time, dropped when the
-                # speed changes, is searched for again at the new speed: issue 34)
+                # DT'' lost a term: a wait left by an earlier fruitless search no longer
+                # holds (e.g. a shaft-following term dropped at a speed change is searched
+                # for again at the new speed)
                 self._cooldown = 0
             for t in reval.dropped:
                 changed = True
@@ -369,8 +364,8 @@ class TwinAdapter:
             if rate is None:
                 rate = rates.get(name, 0.0) * ev.value
             # The window's uncertainty as the evidence scatters about its trend when that is
-            # less than stated (noise-free, the estimator's model-error floor states 30 times
-            # the scatter, and a window lengthened on it lags a drift it cannot see).
+            # less than stated (noise-free, the model-error floor overstates it, and a window
+            # lengthened on it lags a drift it cannot see).
             trend = self.prognostics.trends.get(name) if self.prognostics else None
             fit_ = trend.fit if trend is not None else None
             scale = min(1.0, fit_.rms_norm) if fit_ is not None and fit_.rms_norm > 0 else 1.0
@@ -413,18 +408,16 @@ class TwinAdapter:
     # -- helpers --------------------------------------------------------------------------
     def _theta(self, est: WindowEstimate) -> FloatArray:
         """The parameters the window's twin ran with (its fit), for the meta-models: not the
-        published values, which may be a fused value the window was not fitted with (the
-        unbalanced shaft's periodic term refined beside a fused Ke drifting to -0.7 %: the
-        residual grew until the term was switched off, in window 57 of 100)."""
+        published values, which may be a fused value the window was not fitted with (a term
+        refined beside it would drift away)."""
         vals = est.fitted or est.values
         return np.array([vals[n] for n in self.model.parameter_names])
 
     @staticmethod
     def _suspect(est: WindowEstimate, disc: DiscoveryReport | None) -> WindowEstimate:
-        """The window's residual says the model lacks a component (issue 23, attribution):
-        what it estimated is published ``suspect`` with the reason, so it moves no alarm (the
-        alarms read ``estimated`` and ``fused`` values only); the trends and the fusion already
-        took nothing from it (the window is not trusted, rolled back)."""
+        """The window's residual says the model lacks a component: what it estimated is
+        published ``suspect`` with the reason, so it moves no alarm (the alarms read
+        ``estimated`` and ``fused`` values only)."""
         why = ("suspect: the residual is too large for the model (a component is missing; "
                + ("discovery found none that earns its place yet)" if disc is not None
                   else "discovery pending)"))

@@ -2,12 +2,10 @@
 over time is the machine's health").
 
 :class:`HealthMessage` owns the whole layout (every field typed, unknown fields refused), is
-built in one place (:func:`build_health`, from the public results of the window's estimation
-and adaptation) and serialised by one encoder (:meth:`HealthMessage.to_json`,
-:func:`twinwatch.io.encoding.to_json`) for Zenoh, the state store and the Rerun recording:
-non-finite numbers become ``null`` everywhere. Every reader of a published message (watch and
-tail, the recording, MQTT and Home Assistant, explain) reads it through one typed view derived
-from the model, :func:`read_health` (:data:`HealthView`), never by the decoded JSON's keys.
+built in one place (:func:`build_health`) and serialised by one encoder
+(:meth:`HealthMessage.to_json`): non-finite numbers become ``null`` everywhere. Every reader
+of a published message reads it through one typed view derived from the model,
+:func:`read_health` (:data:`HealthView`), never by the decoded JSON's keys.
 
 The table of docs/health-message.md documents every field; a test holds it against this
 model. Layout version :data:`SCHEMA_VERSION`; what each version added is listed on that page.
@@ -451,8 +449,7 @@ class HealthMessage(_Part):
     """One window's health: the message on ``twinwatch/<machine>/health`` (its reference:
     docs/health-message.md). Build it with :func:`build_health`, once, from everything it
     carries; serialise it with :meth:`to_json`. Frozen: assigning a field raises a
-    :class:`pydantic.ValidationError` (a message is never edited after it is built; a variant
-    is :meth:`~pydantic.BaseModel.model_copy` with ``update``, a new message)."""
+    :class:`pydantic.ValidationError` (a variant is a new message: ``model_copy(update=...)``)."""
 
     schema_: int = Field(SCHEMA_VERSION, alias="schema", description="layout version")
     machine: str = Field(description="machine name from the config")
@@ -496,8 +493,7 @@ class HealthMessage(_Part):
     def to_json(self) -> str:
         """The message as compact, strict JSON: what :func:`twinwatch.io.encoding.to_json`
         makes of :meth:`as_dict` (NaN and infinities ``null``, no spaces), written by
-        pydantic's compiled serialiser (every field is typed: 0.02 ms against 0.24 ms for a
-        9.6 kB message, once per window; issue 22; the same document, tested)."""
+        pydantic's compiled serialiser (the same document, tested)."""
         return self.model_dump_json(by_alias=True)
 
 
@@ -522,16 +518,13 @@ def build_health(
 ) -> HealthMessage:
     """Build the health message of one window, from everything it carries.
 
-    The daemon derives the diagnosis and the alarms from the window's estimation: it builds
-    the message without them first (what the diagnoser and the alarm evaluator read), then the
-    window's message from that one and them (:func:`complete_health`); neither is edited after
-    it is built (the message is frozen).
+    The message is built without the diagnosis and the alarms first (what the diagnoser and
+    the alarm evaluator read), then completed by :func:`complete_health`.
 
     Args:
         machine: machine name (the Zenoh key segment).
         model_name: registry name of the twin model (``dc_motor``).
-        run: the run id (:func:`twinwatch.daemon.runner.new_run_id`: one per start of the
-            daemon, kept across a reload).
+        run: the run id (:func:`twinwatch.daemon.runner.new_run_id`).
         model: the twin (for units).
         window: the estimated window (for its index and time span).
         adaptation: the window's adaptation: its estimate, meta-model terms, DT' and DT''
@@ -626,9 +619,8 @@ def build_health(
 
 def complete_health(reading: HealthMessage, *, diagnosis: DiagnosisHealth | None,
                     alarms: Mapping[str, AlarmStatus]) -> HealthMessage:
-    """The window's message, built (validated) once from everything it carries: the
-    estimation's message ``reading`` (:func:`build_health`, what the diagnosis and the alarms
-    read) and what they derived from it.
+    """The window's message: ``reading`` (:func:`build_health`) with the diagnosis and the
+    alarms derived from it.
 
     Args:
         reading: the window's message as :func:`build_health` made it without them.
@@ -637,7 +629,7 @@ def complete_health(reading: HealthMessage, *, diagnosis: DiagnosisHealth | None
 
     Returns:
         A new message (``reading`` is left as it was). Its parts are ``reading``'s, not
-        validated again: 37 us against 0.8 ms for a second :func:`build_health`.
+        validated again.
     """
     fields = {name: getattr(reading, name) for name in HealthMessage.model_fields}
     return HealthMessage(**fields | {"diagnosis": diagnosis, "alarms": dict(alarms)})
@@ -683,10 +675,8 @@ def _diagnosis_tag(d: DiagnosisHealth | None) -> str:
 
 
 def check_function_line(d: DiagnosisHealth, label: str = "check function") -> str:
-    """The check-function state for a person (NAMUR NE 107), e.g. ``check function: the twin
-    does not describe this machine since plant time 60 s (the model check failed in 30 of the
-    last 30 windows (60 s)): its estimates are held and no fault is named; check the sensors
-    and the model``."""
+    """The check-function state for a person (NAMUR NE 107): since when the twin does not
+    describe the machine, the model check's record, and what to check."""
     since = (f" since plant time {d.check_function_since:.0f} s"
              if d.check_function_since is not None else "")
     why = f" ({d.check_failed})" if d.check_failed else ""
@@ -722,10 +712,9 @@ def developing_line(d: DiagnosisHealth | None,
     """When the diagnosis finds no fault yet but a parameter's trend heads to its warning,
     one line naming it, when it gets there and the faults whose evidence is that trend, e.g.
     ``developing: Ra -0.71 % vs nominal, degrading -15 %/h, its warning in 7.8 min
-    (7.5-8.2 min); if it goes on: winding_short (armature winding)``. A deviation inside a
-    fault's signature size does not make the fault probable (the library's definition), so
-    the diagnosis stays "no fault" while the RUL counts down: this line says both. None when
-    the diagnosis names a fault or nothing is heading to a warning."""
+    (7.5-8.2 min); if it goes on: winding_short (armature winding)``: the diagnosis stays
+    "no fault" while a deviation is inside the faults' signature size. None when the
+    diagnosis names a fault or nothing is heading to a warning."""
     from twinwatch.twin.prognostics.rul import format_crossing
 
     if d is None or d.status != "no_fault":
@@ -800,18 +789,13 @@ def trend_line(name: str, p: ParameterHealth) -> str | None:
 
 
 # -- the readers' view ---------------------------------------------------------------------------
-# Every reader of a published or stored message (watch and tail, the recording, MQTT and Home
-# Assistant, explain, the alarms' restore, the history's paging) reads it through one typed view
-# derived from the model above, never by indexing the decoded JSON with strings: a new field is
-# one line on the model, and the readers that show it. The view is lenient where the model is
-# strict, because a reader meets messages the model would refuse: a daemon of an older schema
-# (no ``run`` before 6, no ``trend`` before 7, no ``diagnosis`` before 8, no
-# ``discovery.p_value`` before 9; the state database keeps them), a newer one (fields and
-# statuses this version does not know: kept, not read), a partial message in a test.
+# Every reader of a published or stored message reads it through one typed view derived from
+# the model above, never by indexing the decoded JSON with strings. The view is lenient where
+# the model is strict, because a reader meets messages the model would refuse: an older
+# schema's (the state database keeps them), a newer one's, a partial one in a test.
 # So in a view every field is None when the message does not carry it (absent or null: also a
 # field the model defaults, e.g. ``schema``), a part of the wrong shape reads as absent, unknown
-# fields are kept (not read), a status is any string, and numbers stay as they were sent (an int
-# stays an int: what a reader prints is what the daemon wrote).
+# fields are kept (not read), a status is any string, and numbers stay as they were sent.
 
 _VIEW_CONFIG = ConfigDict(extra="allow", frozen=True, populate_by_name=True,
                           protected_namespaces=())

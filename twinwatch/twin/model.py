@@ -65,8 +65,8 @@ class WindowData:
     channels: dict[str, FloatArray]
     index: int = 0
     stamp_jitter: FloatArray | None = None
-    #: (the ``t`` it was computed from, the median sample period): :attr:`sample_period` is
-    #: read on every twin call, a few hundred times a window (a median each time: 15 us).
+    #: (the ``t`` it was computed from, the median sample period): a cache, read on every
+    #: twin call.
     _period: tuple[Any, float] | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -75,8 +75,7 @@ class WindowData:
 
     @property
     def sample_period(self) -> float:
-        """Median sample period [s] (computed once for the window's ``t``; a new ``t``
-        array assigned to the window is measured again)."""
+        """Median sample period [s], computed once per ``t`` array."""
         cached = self._period
         if cached is not None and cached[0] is self.t:
             return cached[1]
@@ -95,8 +94,8 @@ class OutputSpec:
     Attributes:
         name: channel name (``ia``, ``omega``, ...).
         unit: SI unit as text.
-        scale: typical magnitude used to normalise residuals when a window's own RMS is
-            smaller (a floor that keeps a near-zero signal from dominating the RMSE).
+        scale: typical magnitude: the floor of a residual's normalisation (so a near-zero
+            signal does not dominate the RMSE).
     """
 
     name: str
@@ -119,10 +118,9 @@ class AttachPoint:
             step k -> k+1); ``multiplicative``: the equation's value at sample k is multiplied
             by ``1 + U[k]`` (U dimensionless).
         unit: unit of an additive term (``rad/s^2``); ``1`` for a multiplicative one.
-        quantity: what the equation governs, in words (``shaft speed``, ``pressure``): the
-            interpretation says where the unknown component acts.
+        quantity: what the equation governs, in words (``shaft speed``, ``pressure``).
         scale: largest plausible magnitude of a term here, in :attr:`unit` (the discovery's
-            default search bound; configurable per candidate).
+            default search bound).
     """
 
     name: str
@@ -161,7 +159,7 @@ class TwinModel(abc.ABC):
     attach_points: tuple[AttachPoint, ...] = field(init=False, default=())
     #: Outputs whose first sample sets the twin's initial state; :meth:`simulate` takes offsets
     #: to them (``initial``), which the estimator fits per window (a noisy first sample would
-    #: otherwise leave a transient in every residual). Empty: the model takes none.
+    #: otherwise leave a transient in every residual).
     initial_states: tuple[str, ...] = field(init=False, default=())
     #: Inputs set from outside the machine's loop (a closed loop's set-point, an open loop's
     #: command): the model validation tests the residual's independence from them. Default:
@@ -178,8 +176,8 @@ class TwinModel(abc.ABC):
 
     @property
     def estimation_defaults(self) -> EstimationDefaults:
-        """What to estimate, and the ties, when the configuration does not say; every
-        parameter, untied, unless the model knows better (override)."""
+        """What to estimate, and the ties, when the configuration does not say (default:
+        every parameter, untied)."""
         return EstimationDefaults(self.parameter_names)
 
     def check_sample_period(self, sample_period: float) -> None:  # noqa: B027 - optional hook
@@ -248,11 +246,9 @@ class TwinModel(abc.ABC):
         A dynamic faster than the sample period leaves almost nothing in the sampled outputs:
         sampled every ``T``, a pole at ``-1/tau`` becomes ``z = exp(-T/tau)`` (Astrom and
         Wittenmark, *Computer-Controlled Systems*, 3rd ed., Section 2.3), and with ``tau``
-        below ``T`` both ``z`` and its sensitivity ``(T/tau^2) z`` to ``tau`` are small (a
-        fifth of the period: ``z`` 0.7 %), while what drives it between two samples (a drive's
-        voltage updated every millisecond) is not in the window at all. The estimator does not
-        estimate such a parameter: it is held, its reason saying it is not observable at this
-        sample rate (:mod:`twinwatch.twin.estimation.estimator`). Default: none.
+        below ``T`` both ``z`` and its sensitivity to ``tau`` are small. The estimator holds
+        such a parameter as not observable at this sample rate
+        (:mod:`twinwatch.twin.estimation.estimator`). Default: none.
 
         Args:
             values: every parameter -> its current value [SI] (the trusted values).
@@ -267,9 +263,9 @@ class TwinModel(abc.ABC):
         """Parameters this window does not excite physically, with the reason.
 
         The estimator's identifiability gate judges what the data determine statistically;
-        this hook adds the physics the data cannot show: with very clean data (float32
-        registers) a damping coefficient is "determined" even while the piston stands still,
-        where the paper expects it to be held. Default: every parameter is excited.
+        this hook adds the physics the data cannot show (with very clean data a damping
+        coefficient is "determined" while the piston stands still). Default: every parameter
+        is excited.
 
         Args:
             window: the measured window.
@@ -360,8 +356,7 @@ def composite_zoh(a: FloatArray, b: FloatArray, n_sub: int) -> tuple[FloatArray,
 
     Returns ``Phi = A^n`` and ``Gamma = sum_{j<n} A^j B``, computed exactly (to rounding) by
     squaring the augmented matrix ``[[A, B], [0, I]]``. This is the exact zero-order-hold
-    discretisation of the sub-stepped model: one 10 ms sample of a model integrated at 1e-4 s
-    costs about log2(100) = 7 small matrix products instead of 100 steps.
+    discretisation of the sub-stepped model, in about log2(n_sub) matrix products.
 
     Args:
         a: shape (P, n, n).
@@ -383,8 +378,7 @@ def composite_zoh(a: FloatArray, b: FloatArray, n_sub: int) -> tuple[FloatArray,
 
 def _matrix_power(a: FloatArray, n: int) -> FloatArray:
     """``np.linalg.matrix_power(a, n)`` for ``n >= 1``, the same products in the same order
-    (the same numbers) through the ``np.matmul`` ufunc, without the wrapper's checks and
-    dispatch (a third of :func:`composite_zoh`'s time on a window's twin call)."""
+    (the same numbers) through the ``np.matmul`` ufunc, without the wrapper's overhead."""
     if n <= 3:
         return np.linalg.matrix_power(a, n)
     mm = np.matmul
@@ -477,8 +471,7 @@ def zoh_propagate(a: FloatArray, b: FloatArray, n_sub: int, x0: FloatArray,
                   f_i: FloatArray) -> FloatArray:
     """Run ``n_sub`` sub-steps of ``x' = A x + B u`` per sample with ``u`` held: the same
     numbers as :func:`composite_zoh` then the recursion ``x[k+1] = Gamma u[k] + Phi x[k]``
-    (summed in that order), in one compiled call: no Python per particle or per sample
-    (``benchmarks/bench_window.py``'s floor row measures a window's simulation).
+    (summed in that order), in one compiled call.
 
     Args:
         a: shape (P, n, n).

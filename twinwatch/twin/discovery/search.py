@@ -7,9 +7,8 @@ meta-models are candidates, what each takes as input (time or a measured channel
 attaches (an :class:`~twinwatch.twin.model.AttachPoint` of the model: additive to a state
 equation such as ``d(omega)/dt``, multiplicative on an equation such as the pressure ``p``).
 
-How the search is made reliable (our design; the paper runs one PSO over every meta-model with
-on/off weights, which on this machine found the unbalanced shaft's periodic term in 2 runs of 10
-and kept spurious terms):
+How the search is made reliable (the paper's single PSO over every meta-model with on/off
+weights is not: it misses terms and keeps spurious ones):
 
 1. **One small search per candidate.** Each (attach point, input, kind) is fitted alone by PSO
    in normalised coordinates (2-4 dimensions), then polished by bounded least squares.
@@ -23,22 +22,17 @@ and kept spurious terms):
    ``min_significance`` standard errors from zero. Then the next candidate is sought with the
    kept ones in place, up to ``max_terms``. Optional offsets are dropped unless they too earn
    their place.
-3. **Re-validation and refinement.** Every later window polishes the kept terms from their
-   refined values; each term's window estimate, with its covariance, joins the evidence of the
-   windows before it (:meth:`~.terms.Term.refine`, ``[discovery.refinement]``),
-   and the twin uses the refined values. Each term is then checked to still earn its place
-   (the same criterion, as a removal test); a term that fails ``drop_after`` windows in a row
-   is switched off.
+3. **Re-validation and refinement.** Every later window polishes the kept terms and refines
+   them with its evidence (:meth:`~.terms.Term.refine`, ``[discovery.refinement]``). Each term
+   is then checked to still earn its place (the same criterion, as a removal test); a term that
+   fails ``drop_after`` windows in a row is switched off.
 
 Beyond the paper's Table 1 the library has the non-smooth terms real drives need (rectifier,
 dead zone, Coulomb friction, saturation); a search that keeps nothing says so, with the closest
 candidate and the criteria it fails (:attr:`DiscoveryReport.verdict`).
 
-Meta-model inputs are *measured* signals (time, or a measured input, output or state): the terms
-do not depend on the simulated state, so they are computed once per particle and the composed
-twin still simulates the whole swarm in one call. An additive term's value for sample k is taken
-at the middle of the step k -> k+1 (the twin holds it over the step); a multiplicative one at
-sample k.
+Meta-model inputs are *measured* signals (time, or a measured input, output or state), so the
+composed twin still simulates the whole swarm in one call (:mod:`.terms`).
 """
 
 from __future__ import annotations
@@ -390,8 +384,7 @@ class Discovery:
     def _select_term(self, fitted: Sequence[_Fitted]) -> _Fitted | None:
         """The candidate to keep: among those that earn their place, the lowest BIC, unless a
         candidate with fewer parameters comes within ``bic_threshold`` of it (the extra
-        parameters must earn their place too: a constant leak is a constant, not an
-        exponential whose base fits to 1.0000)."""
+        parameters must earn their place too)."""
         ok = [f for f in fitted if self._earns_place(f)]
         if not ok:
             return None
@@ -423,10 +416,9 @@ class Discovery:
         """Fit one candidate on a window, the physical parameters ``theta`` and the kept
         terms ``base_vals`` held: a PSO over its nonlinear parameter with the coefficients
         from separable least squares (:class:`~.separable.SeparableFit`), then every form of it
-        polished by bounded least squares; the simplest form whose extra parameters do not
-        earn their place (BIC) is returned, or None when the meta-model cannot take the
-        input or no form could be fitted. ``budget``: the wall time left to the discovery's
-        safety net [s] (the search itself is bounded by generations, not time).
+        polished by bounded least squares; returns :meth:`_simplest_form`, or None when the
+        meta-model cannot take the input or no form could be fitted. ``budget``: the wall time
+        left to the discovery's safety net [s].
         """
         inp = CandidateInput.of(cand.meta, cand.input, cand.attach.mode == "additive",
                                 cand.amplitude, fit.window)
@@ -445,7 +437,7 @@ class Discovery:
         over them only (periodic: the frequency), seeded by the kind from the residual
         (periodic of time: the periodogram's peaks), up to ``max_generations``, within
         the safety net ``budget`` [s], stopping once the best cost has not moved for 8
-        generations (a 1-D search whose seed is right converges in a few)."""
+        generations."""
         meta, cfg = sep.meta, self.config
         if not meta.nonlinear:
             return np.zeros(0)
@@ -551,8 +543,7 @@ class Discovery:
             impr = 1.0 - math.sqrt(float(r_all @ r_all)) / rms0 if rms0 > 0 else 0.0
             ok = dbic <= -self.config.bic_threshold and impr >= self.config.min_improvement
             term.failures = 0 if ok else term.failures + 1
-            # by identity: a term's fields hold arrays (``==`` between two terms raised
-            # ValueError when the one dropped was not the first)
+            # by identity: ``==`` between two terms compares arrays (ValueError)
             at = next(i for i, t in enumerate(terms) if t is term)
             if term.failures >= self.config.drop_after:
                 del terms[at]
@@ -609,15 +600,11 @@ class Discovery:
         ``free`` names physical parameters (the window's determined estimates, with
         ``[discovery.refinement] joint``, the default) that are free in the same least
         squares (their logarithms, ties applied), from ``theta``: the term's window evidence
-        and its covariance are then *marginal* over them. Parameters the window did not
-        determine (a valley such as the DC motor's La and J) stay held: freeing them lets the
-        valley absorb part of a periodic term. Conditional on the window's estimates
-        (``joint = false``, the behaviour before), a parameter the window cannot tell apart
-        from the term absorbs the term's error and
-        the term's refined value then keeps it there: in the leak example the pressure gain
-        kept at 0.199939 (its discovery's) and D published +36 to +50 % for 19 windows, both
-        self-consistent, the refined covariance 1e-8 and wrong. The physical values of the
-        joint solution are not published: the estimator's window estimate is.
+        and its covariance are then *marginal* over them (conditional on the window's
+        estimates, a parameter confounded with the term absorbs the term's error, and the
+        refined term keeps it there). Parameters the window did not determine stay held:
+        freeing them lets their valley absorb part of a periodic term. The physical values of
+        the joint solution are not published: the estimator's window estimate is.
         """
         fit = self._fit(window)
         win = fit.window

@@ -10,7 +10,7 @@ computed once per particle and the composed twin still simulates a whole swarm i
 additive term's value for sample k is taken at the middle of the step k -> k+1 (the twin holds
 it over the step); a multiplicative one at sample k.
 
-**Refinement across windows** (issue 9 item 5). A kept term's parameters accumulate the evidence
+**Refinement across windows**. A kept term's parameters accumulate the evidence
 of every window it has explained (:class:`Refinement`, :meth:`Term.refine`): each window's
 least-squares polish of the term is a measurement of its active parameters with the
 polish's covariance (the Jacobian of the window's residuals, each output weighted by its own
@@ -28,10 +28,9 @@ change; an innovation far outside ``P- + R`` (normalised square per parameter ab
 
 A periodic term of time is refined in the coordinates of the window's centre, where amplitude,
 frequency and phase are nearly uncorrelated, and published in absolute time: its frequency and
-phase are refined *jointly*, so the phase carried from window to window by the refined
-frequency is what each new window tests, and the frequency's precision grows with the time
-span the term has explained, not only with the number of windows. The published intervals
-(``params_std``) are the refined covariance carried to the published coordinates.
+phase are refined *jointly*, so the frequency's precision grows with the time span the term has
+explained. The published intervals (``params_std``) are the refined covariance carried to the
+published coordinates.
 """
 
 from __future__ import annotations
@@ -65,8 +64,8 @@ class Refinement:
         t: time of the last update (the window's centre) [s].
         windows: effective number of windows combined (each older one weighs ``lambda`` less).
         index: the last window whose evidence is in.
-        prior: the state before that window's evidence (a second polish of the same window,
-            after a discovery, replaces its evidence rather than counting it twice).
+        prior: the state before that window's evidence (a second polish of the same window
+            replaces its evidence rather than counting it twice).
         pending: the last window's estimate if it was held out (it disagreed with the rest).
     """
 
@@ -335,8 +334,8 @@ class Term:
         }
 
     def state_dict(self) -> dict[str, Any]:
-        """:meth:`as_dict` plus the refinement's full state (persistence: the correlations
-        between a periodic term's frequency and phase are what makes its phase carry)."""
+        """:meth:`as_dict` plus the refinement's full state (its correlations), for
+        persistence."""
         d = self.as_dict()
         if self.refinement is not None:
             d["refinement"] = self.refinement.as_dict()

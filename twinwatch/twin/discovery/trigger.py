@@ -1,11 +1,9 @@
 """When to search for a missing component: a test on the residual's structure, accumulated.
 
-The paper runs discovery when the residual "stays too large" (Section 3.3). A ratio per window
-(normalised RMSE over three times the noise level) misses a moderate fault on a running machine:
-the DC motor with an unbalance of 3 sin(7 t) rad/s^2 at 1 % noise leaves a speed residual 2.1
-times its noise level, every window, for ever. What gives a missing component away is not the
-residual's size but its *structure*: measurement noise is white, a missing term is not (a
-periodic term is a spectral peak, a drift or an offset is correlated at every lag).
+The paper runs discovery when the residual "stays too large" (Section 3.3). What gives a
+missing component away is not the residual's size (a moderate fault leaves a residual only
+about twice the noise level) but its *structure*: measurement noise is white, a missing term is
+not (a periodic term is a spectral peak, a drift or an offset is correlated at every lag).
 
 Per window, per output (:func:`residual_structure`):
 
@@ -20,12 +18,10 @@ Per window, per output (:func:`residual_structure`):
 * the structure must also matter: its RMS ``sqrt(max(rms^2 - s^2, 0))`` (normalised by the
   output's scale) above ``min_nrmse``;
 * an output without measurement noise (its white-noise level below ``min_nrmse / 10``: a
-  controller's output Va computed from the noisy speed, a 16-bit register at rest) cannot be
-  tested for whiteness: its residual is smooth whatever the model (the PI controller's answer
-  to the speed's noise, 0.2-0.3 % of Va's scale at 2 % noise, is as structured as a missing
-  term). While another output is measured with noise, it is left to that output (a missing
-  component of the machine shows in what is measured); when none is (a noise-free plant), its
-  structure counts by its size alone (p-value 0 above ``min_nrmse``).
+  controller's output computed from the noisy speed, a register at rest) cannot be tested for
+  whiteness: its residual is smooth whatever the model. While another output is measured with
+  noise, it is left to that output; when none is (a noise-free plant), its structure counts by
+  its size alone (p-value 0 above ``min_nrmse``).
 
 The window's p-value is the smallest over the outputs whose structure matters, times their
 number (Bonferroni). A window is *structured* (the residual says the model lacks something; its
@@ -34,13 +30,11 @@ estimates are published ``suspect``) when that p-value is below ``window_alpha``
 Over windows (:class:`StructureEvidence`): Fisher's method combines the last
 ``trigger_windows`` windows' p-values, ``X = -2 sum ln p_i ~ chi^2(2K)``; discovery runs when
 the combined p-value is below ``false_alarm``. With ``K > 1`` each window's p-value is floored
-at ``false_alarm`` itself, so that no single window (a bus hiccup, a set-point step the drive's
-filter smooths) decides alone: two windows at the floor do, three at 1e-3 do. For white residuals
-each test is a false alarm with probability at most ``false_alarm``: the default 1e-6 is at most
-one needless search in 10^6 windows (23 days of 2 s windows) per machine. A search that keeps
-nothing waits ``retry_after`` windows, so a coloured sensor noise the twin does not model costs a
-search every ``retry_after`` windows, never a wrong term (a term must earn its place by BIC,
-improvement and significance: :class:`~twinwatch.twin.discovery.search.Discovery`).
+at ``false_alarm`` itself, so that no single window (a bus hiccup) decides alone. For white
+residuals each test is a false alarm with probability at most ``false_alarm``. A search that
+keeps nothing waits ``retry_after`` windows, so a coloured sensor noise the twin does not model
+costs a search every ``retry_after`` windows, never a wrong term (a term must earn its place:
+:class:`~twinwatch.twin.discovery.search.Discovery`).
 
 References:
     G. M. Ljung, G. E. P. Box, "On a measure of lack of fit in time series models",
@@ -68,7 +62,7 @@ class OutputStructure:
     """One output's residual in one window.
 
     Attributes:
-        ratio: its normalised RMSE over its white-noise level (the former criterion).
+        ratio: its normalised RMSE over its white-noise level (for the log).
         structured_nrmse: RMS of the part of the residual that is not white noise, over the
             output's scale.
         q: the Ljung-Box statistic over ``lags`` lags.

@@ -1,11 +1,9 @@
 """The degradation models' bounded Levenberg-Marquardt, compiled.
 
-The same algorithm, model and Jacobian as the numpy version it replaced (over
-:mod:`~twinwatch.twin.prognostics.degradation`'s ``_curve`` and ``_jacobian``; it is the
-reference in ``tests/test_prognostics_lm.py``): a trend's polish runs a few times per parameter
-and window on at most ``max_points`` evidence points, where numpy's per-call overhead on
-100-element arrays was most of the prognostics' CPU (measured with cProfile on the default
-example: the polish 45 % of the prognostics' CPU; issue 22).
+The same model and Jacobian as :mod:`~twinwatch.twin.prognostics.degradation`'s ``_curve``
+and ``_jacobian`` (the reference in ``tests/test_prognostics_lm.py``), compiled because a
+trend's polish runs a few times per parameter and window on at most ``max_points`` points,
+where numpy's per-call overhead would dominate.
 
 The free parameters are coded ``0: c``, ``1: m``, ``2: r``, ``3: t0`` (onset). The model is
 ``c + m * g(max(t, t0) - t_ref, r)`` with ``g(tau, r) = (exp(r tau) - 1)/r`` (``tau`` where
@@ -173,7 +171,7 @@ def wls_grid(t: np.ndarray, y: np.ndarray, w: np.ndarray, t_ref: float, rs: np.n
     """Closed-form weighted least squares of ``y = c + m * g(max(t, t0) - t_ref, r)`` for
     every growth rate of ``rs`` (R,) and, with ``has_onset``, every onset of ``onsets`` (O,)
     (``g`` as :func:`levenberg_marquardt`'s model; ``r = 0``: the line), without building the
-    (R*O, N) basis (the numpy grid's ``expm1`` over it was 0.2 ms a fit).
+    (R*O, N) basis.
 
     Args:
         t, y, w: evidence times [s], values [SI], weights ``1/s^2`` (N,).
@@ -236,8 +234,7 @@ def long_run_factor(r: np.ndarray, lags: int = -1) -> float:
     sum_k w_k rho_k`` with Bartlett weights ``w_k = 1 - k/(L+1)`` (Newey-West), ``L = min(N/4,
     30)`` unless ``lags`` >= 0 gives it; 1 below 8 points or for zero residuals.
     :func:`~twinwatch.twin.prognostics.degradation.long_run_factor` is the same sum through
-    the FFT; here the lag products are summed directly (at most 30 lags of a trend's at most
-    ``max_points`` points)."""
+    the FFT; here the lag products are summed directly."""
     n = r.size
     if n < 8:
         return 1.0
@@ -264,11 +261,7 @@ def fit_statistics(t: np.ndarray, y: np.ndarray, s: np.ndarray, t_ref: float,
     and Jacobian of :func:`levenberg_marquardt`).
 
     Args:
-        t, y, s: evidence times [s], values [SI], 1-sigma [SI] (N,).
-        t_ref: the reference time [s].
-        base: the model's ``(c, m, r, t0)`` (4,); the free ones are overwritten by ``x``.
-        has_onset: whether the model has an onset (``t0``).
-        codes: the free parameters' codes (k,) in ``x``'s order.
+        t, y, s, t_ref, base, has_onset, codes: as for :func:`levenberg_marquardt`.
         x: the free parameters (k,).
         rounding: the values' relative rounding (the chi-square floor's residual).
 
@@ -311,11 +304,8 @@ def value_band(t: float, t_ref: float, base: np.ndarray, has_onset: bool, codes:
 
     Args:
         t: the time [s].
-        t_ref: the reference time [s].
-        base: the model's ``(c, m, r, t0)`` (4,).
-        has_onset: whether the model has an onset (``t0``).
-        codes: the free parameters' codes (k,), ``cov``'s order.
-        cov: their covariance (k, k).
+        t_ref, base, has_onset, codes: as for :func:`levenberg_marquardt`.
+        cov: the free parameters' covariance (k, k), in ``codes``' order.
 
     Returns:
         (value [SI], band [SI]).

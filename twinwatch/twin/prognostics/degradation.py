@@ -11,27 +11,25 @@ evidence, "now")::
     exponential   y(t) = c + m * (exp(r * tau) - 1) / r           tau = t - t_ref
 
 ``c`` is the level now [SI], ``m`` the drift rate now [SI/s], ``r`` the growth rate of the
-drift [1/s] (the paper's degradation laws, Ra(t) = 6.5 - 0.044 (exp(0.003 (t - 160)) - 1), are
-exponentials with r = 0.003 /s; as r -> 0 the exponential becomes the line). Each degrading
-model also comes with an *onset* ``t0``: flat before it, ``tau = max(t, t0) - t_ref`` (MATLAB's
-models detect the onset with a slope test, ``SlopeDetectionLevel``; here the onset is a
-parameter of the fit, so a history that was flat for 160 s and then degrades is one model, not a
-compromise between the two).
+drift [1/s] (the paper's degradation laws are exponentials with r = 0.003 /s; as r -> 0 the
+exponential becomes the line). Each degrading model also has an *onset* ``t0``: flat before
+it, ``tau = max(t, t0) - t_ref``. The onset is a parameter of the fit (not MATLAB's slope
+test), so a flat-then-degrading history is one model, not a compromise between two.
 
 **Fit.** Weighted least squares, weights ``1/s^2`` (the published uncertainty). For fixed
 ``(r, t0)`` the model is linear in ``(c, m)``: a grid over ``r * span`` and ``t0`` is solved in
-closed form, then the best point is polished by a bounded Levenberg-Marquardt (compiled:
-:mod:`~twinwatch.twin.prognostics._lm`). The
+closed form, then the best point is polished by a bounded Levenberg-Marquardt
+(:mod:`~twinwatch.twin.prognostics._lm`). The
 parameter covariance is ``(J^T W J)^-1`` scaled by the residuals: by the reduced chi-square when
 the scatter exceeds the published uncertainty, and by the residuals' long-run variance factor
 (Newey-West, :func:`~twinwatch.twin.estimation.statistics.long_run_factor`) when consecutive
 windows' errors are correlated, so the interval is never narrower than the evidence supports.
 
-**Choice** (:func:`select`). With the weights known up to a common scale, ``n_eff ln(chi^2 /
-n)`` plus a penalty, ``n_eff`` corrected for the residuals' lag-1 autocorrelation as the
-discovery's criterion is (:func:`~twinwatch.twin.estimation.statistics.delta_bic`): the BIC
-(penalty ``k ln n_eff``) decides whether the parameter degrades at all, the AICc (``2k +
-2k(k+1)/(n_eff - k - 1)``) which degradation model predicts it.
+**Choice** (:func:`select`). ``n_eff ln(chi^2 / n)`` plus a penalty, ``n_eff`` corrected for
+the residuals' lag-1 autocorrelation as in
+:func:`~twinwatch.twin.estimation.statistics.delta_bic`: the BIC (penalty ``k ln n_eff``)
+decides whether the parameter degrades at all, the AICc (``2k + 2k(k+1)/(n_eff - k - 1)``)
+which degradation model predicts it.
 """
 
 from __future__ import annotations
@@ -60,12 +58,9 @@ __all__ = ["ModelKind", "DegradationFit", "bin_evidence", "fit_models", "long_ru
 def pinv_sym(a: FloatArray, rcond: float = 1e-15) -> FloatArray:
     """Pseudo-inverse of a small symmetric matrix ``a`` (k, k): ``numpy.linalg.pinv(a, rcond,
     hermitian=True)`` (the eigenvalues at most ``rcond`` times the largest dropped) without its
-    general wrapper: compiled (the same LAPACK ``syevd`` under numba), 4-7 against 34-55 us for
-    k = 1..4 (called about ten times a window by the trends' fits and the fusion's evidence;
-    issues 22, 58). Negative eigenvalues are inverted as numpy does: not the fusion's
-    ``_safe_inverse``, which treats the matrix as a covariance (drops them, zeroes non-finite
-    entries and never raises). A matrix with a non-finite entry goes through numpy's ``eigh``
-    as before (numba's refuses it).
+    general wrapper, compiled: the trends' fits and the fusion call it about ten times a window.
+    Negative eigenvalues are inverted as numpy does (unlike the fusion's ``_safe_inverse``).
+    A matrix with a non-finite entry goes through numpy's ``eigh`` (numba's refuses it).
 
     Args:
         a: symmetric matrix (k, k); only its lower triangle is read (``eigh``).
@@ -81,7 +76,7 @@ def pinv_sym(a: FloatArray, rcond: float = 1e-15) -> FloatArray:
     if a.size and _finite(a):
         try:
             out: FloatArray = _pinv_sym(a, rcond)
-        except ValueError as exc:  # numba's eigh did not converge: numpy's error, as before
+        except ValueError as exc:  # numba's eigh did not converge: numpy's error
             raise np.linalg.LinAlgError(str(exc)) from exc
         return out
     w, v = np.linalg.eigh(a)
@@ -140,8 +135,7 @@ class DegradationFit:
         n: evidence points; ``k`` free parameters.
         scale: the factor the covariance was multiplied by (>= 1): ``max(chi2 / (n - k), 1)``
             times ``long_run``.
-        long_run: the residuals' long-run variance factor (Newey-West, >= 1) of the last
-            fit to the evidence (:meth:`advance` keeps it).
+        long_run: the residuals' long-run variance factor (Newey-West, >= 1).
         bic: the Bayesian information criterion (smaller is better): degrading or not.
         aicc: the corrected Akaike criterion: which degradation model predicts best.
         rms_norm: RMS of the normalised residuals (1: the scatter the published
@@ -212,9 +206,8 @@ class DegradationFit:
         return out
 
     def value_band(self, t: float) -> tuple[float, float]:
-        """The model at one time ``t`` [s] and its 1-sigma band [SI]: :meth:`value` and
-        :meth:`band` at a scalar, compiled (:func:`~twinwatch.twin.prognostics._lm.
-        value_band`)."""
+        """:meth:`value` and :meth:`band` at one time ``t`` [s], compiled
+        (:func:`~twinwatch.twin.prognostics._lm.value_band`)."""
         codes, base = self._coded()
         return value_band(float(t), self.t_ref, base, self.onset is not None, codes, self.cov)
 
@@ -261,9 +254,8 @@ class DegradationFit:
         return codes, base
 
     def rate_at(self, t: float) -> tuple[float, float]:
-        """The drift rate at time ``t`` [s] and its 1-sigma [SI/s] (delta method): ``m`` and
-        its standard error at ``t_ref`` (a fit refitted on the latest evidence), ``m exp(r
-        (t - t_ref))`` after the onset for a fit some windows old."""
+        """The drift rate at time ``t`` [s] and its 1-sigma [SI/s] (delta method):
+        ``m exp(r (t - t_ref))`` after the onset, 0 before it."""
         if t == self.t_ref or self.kind == "none":
             return self.m, self.std("m")
         if self.onset is not None and t <= self.onset:
@@ -277,15 +269,14 @@ class DegradationFit:
 
     def draws(self, n: int, rng: np.random.Generator | None = None, *,
               normals: FloatArray | None = None) -> dict[str, FloatArray]:
-        """``n`` draws of ``c``, ``m``, ``r`` from the fit's Gaussian (the Monte Carlo of the
-        remaining useful life): ``mean + (z sqrt(w)) V^T``, ``w, V`` the covariance's
-        eigen-decomposition.
+        """``n`` draws of ``c``, ``m``, ``r`` from the fit's Gaussian (the RUL's Monte Carlo):
+        ``mean + (z sqrt(w)) V^T``, ``w, V`` the covariance's eigen-decomposition.
 
         Args:
             n: draws.
             rng: the generator of the standard normals ``z`` (n, k).
-            normals: the standard normals themselves instead (n, >= k): the first ``k``
-                columns are used (a caller drawing from one fixed set every window).
+            normals: the standard normals themselves instead (n, >= k); the first ``k``
+                columns are used.
 
         Raises:
             ValueError: neither ``rng`` nor ``normals``, or fewer than (n, k) normals.
@@ -317,10 +308,9 @@ class DegradationFit:
 @njit(cache=True, nogil=True, fastmath={"contract"})
 def _gaussian_draws(mean: FloatArray, sw: FloatArray, v: FloatArray, z: FloatArray
                     ) -> FloatArray:
-    """``mean + (z sw) V^T`` (:meth:`DegradationFit.draws`) in one pass, transposed: (k, n),
-    each parameter's draws contiguous (z (n, k), sw (k,), V (k, k)). The products summed in
-    order with fused multiply-adds (``contract``), as the BLAS ``dgemm`` numpy's ``@`` calls
-    sums them here (x86-64 with FMA: the same draws, bit for bit)."""
+    """``mean + (z sw) V^T`` (:meth:`DegradationFit.draws`) transposed: (k, n), from z (n, k),
+    sw (k,), V (k, k). Summed in order with fused multiply-adds (``contract``), as numpy's
+    ``@`` (BLAS ``dgemm``) sums them on x86-64 with FMA: the same draws, bit for bit."""
     n, k = z.shape
     out = np.empty((k, n))
     for i in range(n):
@@ -349,8 +339,7 @@ _CLIP = getattr(getattr(np, "_core", None), "umath", np).clip
 def _g(tau: FloatArray, r: float | FloatArray) -> FloatArray:
     """(exp(r tau) - 1)/r, continuous at r = 0 (tau there)."""
     if isinstance(r, float) and isinstance(tau, np.ndarray):
-        # a fit's scalar growth rate (the trend's fits call this a hundred times a window):
-        # the same numbers as below, without the masks when no sample, or every one, is small
+        # hot path (a fit's scalar rate): the numbers below without the masks when possible
         x = r * tau
         small = np.abs(x) < 1e-8
         if not small.any():
@@ -397,8 +386,7 @@ def _jacobian(t: FloatArray, fit: DegradationFit, free: tuple[str, ...]) -> Floa
 def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref: float,
             c: float, m: float, r: float, onset: float | None, free: tuple[str, ...]
             ) -> DegradationFit:
-    """Polish the grid's best by least squares, then the scaled covariance and the BIC (the
-    polish and the residuals' statistics compiled: :mod:`._lm`)."""
+    """Polish the grid's best by least squares (:mod:`._lm`), then the scaled covariance."""
     k = len(free)
     codes = np.array([_CODE[p] for p in free], dtype=np.int64)
     base = np.array([c, m, r, onset if onset is not None else 0.0])
@@ -434,8 +422,7 @@ def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref:
     fit.cov = cov * scale
     fit.long_run = lrf
     fit.chi2 = chi2
-    # residuals below the values' rounding (the floor of ``s`` in fit_models) are not
-    # information: a criterion comparing fits of exact evidence compares their rounding
+    # residuals below the values' rounding are not information (see chi2_floor)
     fit.chi2_floor = floor
     fit.n = n
     fit.scale = scale
@@ -447,8 +434,7 @@ def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref:
 def long_run_factor(r: FloatArray, lags: int | None = None) -> float:
     """Long-run over short-run variance of a residual series (>= 1): ``1 + 2 sum_k w_k
     rho_k`` with Bartlett weights ``w_k = 1 - k/(L+1)`` (Newey-West), ``L = min(n/4, 30)``
-    by default (the estimator's :func:`~twinwatch.twin.estimation.statistics.long_run_factor`
-    for one series, vectorised). White residuals give about 1."""
+    by default (:func:`~twinwatch.twin.estimation.statistics.long_run_factor` for one series)."""
     r = np.asarray(r, dtype=float)
     n = r.size
     if n < 8:
@@ -467,8 +453,7 @@ def bin_evidence(t: FloatArray, y: FloatArray, s: FloatArray, most: int
                  ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """At most ``most`` points: consecutive evidence combined by inverse-variance weighting
     (time, value, and the combined 1-sigma ``1/sqrt(sum w)``), the bins counted back from the
-    latest point so it stays one bin's end. A slow trend loses nothing that matters; the fit
-    costs a fraction."""
+    latest point so it stays one bin's end."""
     n = t.size
     if n <= most:
         return t, y, s
@@ -587,9 +572,7 @@ def refit_models(previous: list[DegradationFit], t: FloatArray, y: FloatArray, s
     """The models of ``previous`` (a :func:`fit_models` answer on fewer evidence points)
     fitted again to the evidence, warm-started: each model's growth rate and onset from its
     previous fit, the level and drift rate solved in closed form at the new reference time,
-    then the same polish, covariance and criteria as :func:`fit_models` (no grid search: the
-    previous optimum is the start; the trend searches the grid again every few windows and
-    whenever the evidence leaves its prediction).
+    then the same polish, covariance and criteria as :func:`fit_models`, without a grid search.
 
     Args:
         previous: the fits to start from (their ``kind``, ``r``, ``onset``, ``free``).
@@ -626,10 +609,9 @@ def select(fits: list[DegradationFit], min_weight: float = 0.01
     """The chosen model and the plausible ones with their weights.
 
     Two questions, two criteria: *is it degrading?* is a test, answered by the BIC (consistent:
-    it does not see a trend in noise; the ``none`` model against the best degrading one by
-    BIC); *how?* is a forecast, answered by the AICc among the degrading models (efficient:
-    the best predictor; the BIC's heavier penalty picks a line over an exponential whose
-    curvature noisy evidence only starts to show, and the line's crossing comes late).
+    it does not see a trend in noise; the ``none`` model against the best degrading one);
+    *how?* is a forecast, answered by the AICc among the degrading models (efficient: the
+    BIC's heavier penalty would pick a line over an exponential just starting to curve).
     Weights: ``exp(-delta/2)`` of each criterion (Bayesian model averaging), the degrading
     models sharing what the BIC leaves them; below ``min_weight`` of the largest, dropped.
 

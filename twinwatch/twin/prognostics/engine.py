@@ -39,11 +39,9 @@ from twinwatch.twin.prognostics.trend import (
 __all__ = ["Prognosis", "Prognostics", "RulReport", "StoredHealth", "TrendReport"]
 
 
-# What :meth:`Prognostics.replay` reads of a stored health message, by attribute: the message's
-# typed view (:func:`twinwatch.twin.health.read_health`, a field an older daemon did not store
-# is None) has these attributes; this room cannot import the message's module (it sits above),
-# so it states them here, read-only. A field renamed in the message fails the type check of
-# the call (daemon/resume.py), not silently the replay at a restart.
+# What :meth:`Prognostics.replay` reads of a stored health message's typed view
+# (:func:`twinwatch.twin.health.read_health`), stated here because this package cannot import
+# the message's module; a field renamed there fails the type check in daemon/resume.py.
 class StoredEvidence(Protocol):
     """``parameters.<name>.trend.window_evidence``: the window's evidence."""
 
@@ -243,15 +241,11 @@ class Prognostics:
 
     def replay(self, messages: Sequence[StoredHealth]) -> int:
         """Rebuild the trends from stored health messages (oldest first, on one time line:
-        the state database's :meth:`~twinwatch.sinks.store.StateStore.timeline` at a restart,
-        each through its typed view): the evidence each window published
-        (``parameters.<name>.trend.window_evidence``) since the start of the segment the
-        latest message names (``trend.since_t``: a restart before it is not replayed again),
-        and the restarts it reports (``restarts``, ``restart``), so a restart of the daemon
-        changes neither the trend nor the RUL. Each window's evidence is taken as
-        :meth:`update` took it (its innovation, then the trend brought up to it at the
-        window's end, ``t_end``): a segment replayed whole gives the trend state of the
-        uninterrupted updates.
+        :meth:`~twinwatch.sinks.store.StateStore.timeline` at a restart): the evidence each
+        window published (``parameters.<name>.trend.window_evidence``) since the segment's
+        start the latest message names (``trend.since_t``), and its restarts, each taken as
+        :meth:`update` took it, so a restart of the daemon changes neither the trend nor the
+        RUL.
 
         Returns:
             The evidence windows replayed.
@@ -326,8 +320,7 @@ class Prognostics:
             rul.status = "degrading" if degrading else "not_degrading"
         if f is not None and degrading:
             mixture = list(zip(trend.fits, trend.weights, strict=True))
-            # one sample of the trajectories for both levels (each draw's warning before its
-            # alarm)
+            # one sample of the trajectories for both levels
             drawn = draw_trajectories(f, mixture, c.draws, normals=_normals(c.seed, name, c.draws))
             levels = [(level, *th.level(level)) for level in ("warning", "alarm")]
             levels = [(level, high, low) for level, high, low in levels
@@ -343,10 +336,9 @@ class Prognostics:
 
 @functools.lru_cache(maxsize=256)
 def _normals(seed: int, name: str, draws: int) -> FloatArray:
-    """The standard normals (``draws``, 4) a parameter's RUL draws are made of, the same in
-    every window (common random numbers, from the ``seed`` and the parameter's name: the same
-    evidence gives the same RUL, and a resumed daemon the uninterrupted one's); read-only,
-    one array for every machine of the process with that seed."""
+    """The standard normals (``draws``, 4) of a parameter's RUL draws, the same in every
+    window (common random numbers from ``seed`` and the name: the same evidence gives the
+    same RUL); read-only, shared by every machine of the process."""
     z = np.random.default_rng([seed, zlib.crc32(name.encode())]).standard_normal((draws, 4))
     z.flags.writeable = False
     return z

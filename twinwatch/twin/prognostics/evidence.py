@@ -5,9 +5,8 @@ uncertainty:
 
 * a parameter the window **estimated** (status ``estimated``, the window trusted): its value and
   standard error (``value * rel_std``);
-* a parameter this window does not determine (status ``fused`` or ``held``: the hydraulic
-  damping D under noise, Ke in a quasi-static stretch) but on which it still carries
-  information for the fusion: the fused value of the Kalman filter
+* a parameter this window does not determine (status ``fused`` or ``held``) but on which it
+  still carries information for the fusion: the fused value of the Kalman filter
   (:mod:`~twinwatch.twin.estimation.fusion`) cannot be used point by point (each one carries
   all the windows before it: a fit would count them again and again), so the window's *own*
   share of that evidence is recovered from the filter's prediction and update,
@@ -22,10 +21,7 @@ uncertainty:
   information (relative standard error above ``max_rel_std``).
 
 A held value itself is never evidence (it is the last trusted one, not new information), nor are
-tied and fixed parameters. Measured on the hydraulic fluid degradation with 0.005 % and 0.02 %
-noise on x and p (D held in every window): the window's share has a relative standard error of
-3 % and 12 % and the truth lies within it as stated (normalised errors of standard deviation 0.98
-and 1.01).
+tied and fixed parameters.
 """
 
 from __future__ import annotations
@@ -85,9 +81,8 @@ def fused_share(names: Sequence[str], prior: tuple[FloatArray, FloatArray],
     if not np.any(keep):
         return {}
     inv = (v[:, keep] / w[keep]) @ v[:, keep].T
-    # A parameter with a share in a direction the window does not inform at all has no
-    # estimate of its own from this window (its variance is infinite, not the minimum-norm
-    # solution's).
+    # A parameter with a share in a direction the window does not inform has no estimate
+    # of its own (infinite variance, not the minimum-norm solution's).
     blind = np.sum(v[:, ~keep] ** 2, axis=1) > 1e-8
     z = inv @ b
     out: dict[str, tuple[float, float]] = {}

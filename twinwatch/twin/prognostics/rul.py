@@ -17,10 +17,8 @@ linear in the parameters (a drift rate near zero makes it unbounded) and because
 probability of never crossing.
 
 Times are plant time [s] (the source's clock): ``t`` the crossing time, ``rul_s`` the time from
-the window's end; the wall-clock time of the crossing (``wall``, seconds since the epoch) is the
-wall time at the window's end plus ``rul_s`` at the pace the source's clock has kept against
-the wall clock over the recent windows (1 for a live machine; a simulated plant run as fast as
-possible reaches it sooner).
+the window's end; ``wall`` (seconds since the epoch) is the wall time at the window's end plus
+``rul_s`` at the pace the source's clock has kept against the wall clock (1 for a live machine).
 """
 
 from __future__ import annotations
@@ -90,9 +88,7 @@ def crossing_times(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
         direction: +1 for a threshold crossed upwards (a high one), -1 downwards (a low one).
 
     Returns:
-        (n,) times [s]; compiled, one pass over the draws (the numpy expression of the
-        module docstring's closed form made ten temporaries of ``draws`` elements, twice a
-        window and level).
+        (n,) times [s] (compiled, one pass over the draws).
     """
     c, m, r = (np.ascontiguousarray(a, dtype=float) for a in (c, m, r))
     return _crossing_times(c, m, r, float(tau0), float(threshold), int(direction))
@@ -139,10 +135,8 @@ def _crossing(c: float, m: float, r: float, level_now: float, tau0: float, thres
 @njit(cache=True, nogil=True, error_model="numpy")
 def _first_crossings(c: FloatArray, m: FloatArray, r: FloatArray, tau0: float,
                      thresholds: FloatArray) -> FloatArray:
-    """Per level (row of ``thresholds`` (L, 2): its high and low threshold, NaN where
-    absent) and draw, the earlier of the draw's crossings of the high threshold upwards and
-    the low one downwards (:func:`crossing_times`; inf: neither reached), (L, n): each
-    draw's level at ``tau0`` computed once for every threshold."""
+    """:func:`first_crossings`' arithmetic: (L, n) times, ``thresholds`` (L, 2) a level's
+    high and low threshold per row (NaN where absent)."""
     out = np.full((thresholds.shape[0], c.size), np.inf)
     for i in range(c.size):
         now = _level(c[i], m[i], r[i], tau0)
@@ -247,8 +241,7 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
         interval: central probability of the published interval (0.95: the 2.5-97.5 %
             quantiles).
         draws: Monte Carlo samples.
-        rng: the generator (seeded by the caller: the same evidence gives the same answer);
-            not needed with ``trajectories``.
+        rng: the generator (seeded by the caller); not needed with ``trajectories``.
         wall_end: the wall-clock time at the window's end [s since the epoch], or None.
         pace: wall seconds per plant second over the recent windows.
         trajectories: the draws (:func:`draw_trajectories`); drawn here when None. One set

@@ -11,28 +11,23 @@ configured horizon) and, every window:
    sudden fault): the trend restarts from the first of them, the evidence before it is
    dropped, and the restart is reported (time, size). One such window alone is an outlier and
    is dropped. When the fusion flagged the window as a sudden change (``fusion_jump``), one
-   window confirms it. A step therefore restarts the trend instead of bending it.
+   window confirms it.
 2. **Fit.** The degradation models (:mod:`~twinwatch.twin.prognostics.degradation`) are fitted
    to the segment's evidence (binned to ``max_points``), the information criteria choose one
    (:func:`~twinwatch.twin.prognostics.degradation.select`), and the others keep their weight
    (Bayesian model averaging: the remaining useful life is drawn from every plausible model,
-   so an early choice between a line and an exponential widens the interval instead of hiding
-   in it). Between fits, evidence the fits predict is taken in by an update (an extended
-   Kalman step on each plausible model's parameters and covariance); the fit and the
-   comparison are made again when the evidence asks (:meth:`ParameterTrend.refit`).
+   so an undecided choice widens the interval). Between fits, evidence the fits predict is
+   taken in by an extended Kalman update (:meth:`ParameterTrend.refit`).
 3. **Degrading?** Only when the evidence favours a degrading model over ``none`` with odds of
    at least ``detection`` (0.9: the BIC's weights) and the chosen model's drift rate now is
    beyond ``flat_z`` standard errors of zero; otherwise "not degrading" (flat within its
    uncertainty).
 
 The history's fitness for prediction is reported as MATLAB's Predictive Maintenance Toolbox
-scores it: **monotonicity** ``|sum sign(diff x)| / (n - 1)`` (its default ``sign`` method) on
-the evidence smoothed by a moving mean of ``smooth`` points (its ``WindowSize`` option; noisy
-evidence is otherwise never monotonic), and **trendability**. MATLAB's trendability is the
-smallest ``|corr(x_j, x_k)|`` between the trajectories of several run-to-failure members
-(Coble and Hines); a machine has one trajectory, so here it is the ``|corr(x, t)|`` of the
-history against its lifetime variable (the single-trajectory form used e.g. by Javed et al.,
-2015): 1 for a history that follows time, 0 for one that does not.
+scores it: **monotonicity** (its ``sign`` method) on the evidence smoothed by a moving mean of
+``smooth`` points (its ``WindowSize``; noisy evidence is otherwise never monotonic), and
+**trendability** in its single-trajectory form ``|corr(x, t)|`` (Javed et al., 2015), since a
+machine has one trajectory (MATLAB's compares run-to-failure members, Coble and Hines).
 """
 
 from __future__ import annotations
@@ -99,14 +94,7 @@ class TrendSettings:
     smooth: int = 5
     min_weight: float = 0.01
     detection: float = 0.9
-    #: New evidence within ``skip_z`` of the prediction is taken into the fits by an update
-    #: (an extended Kalman step, :meth:`ParameterTrend.refit`); beyond it the models are
-    #: polished again from their last optimum
-    #: (:func:`~twinwatch.twin.prognostics.degradation.refit_models`), and so at every
-    #: ``refit_every``-th evidence while the horizon drops evidence (an update does not
-    #: remove it). The grid is searched again at every ``regrid_every``-th evidence, after a
-    #: restart, a bend or an outlier, and whenever new evidence lies beyond ``regrid_z`` of
-    #: the prediction.
+    #: The refit schedule (:meth:`ParameterTrend.refit` says how each is used).
     refit_every: int = 2
     skip_z: float = 1.0
     regrid_every: int = 10
@@ -229,8 +217,8 @@ class ParameterTrend:
                               and ev.std > 0):
             return
         if self.t and ev.t <= self.t[-1]:
-            # The source's clock went back (a recording replayed again, a simulated plant
-            # restarted): the evidence before belongs to another time line.
+            # The source's clock went back (a recording replayed again): the evidence before
+            # belongs to another time line.
             self.pending = [(ev, 0.0)]
             self._restart("the source's clock went back")
             return
@@ -267,9 +255,7 @@ class ParameterTrend:
     def _bend(self) -> bool:
         """Do the windows beyond the trend start a drift rather than a step? They do when a
         degrading model with an onset up to the last evidence before them (a kink, not a
-        jump) explains them within ``step_threshold`` standard errors (a degradation's onset
-        on exact evidence leaves the flat trend by many of its tiny standard errors, but
-        continuously; a part replaced jumps)."""
+        jump) explains them within ``step_threshold`` standard errors."""
         if len(self.t) < self.settings.min_evidence:
             return False
         t = np.asarray(self.t + [e.t for e, _ in self.pending])
@@ -345,7 +331,8 @@ class ParameterTrend:
           (:func:`~twinwatch.twin.prognostics.degradation.refit_models`, the comparison
           refreshed) when the new evidence lies beyond ``skip_z`` (the linearisation no
           longer predicts it), when more than one evidence came at once (a bend), and, while
-          the horizon drops evidence, at every ``refit_every``-th evidence;
+          the horizon drops evidence, at every ``refit_every``-th evidence (an update does
+          not remove dropped evidence);
         * **grid search** (:func:`~twinwatch.twin.prognostics.degradation.fit_models`) every
           ``regrid_every``-th evidence, beyond ``regrid_z``, and after a restart, a bend or
           an outlier.
@@ -367,8 +354,7 @@ class ParameterTrend:
             self._dirty = False
             self.fit, self.fits, self.weights, self._all = None, [], [], []
             return
-        # The schedule counts the segment's evidence (the horizon's dropped included), not
-        # windows: a daemon started again (its trends replayed from the stored evidence)
+        # The schedule counts the segment's evidence, not windows, so a replayed trend
         # takes each evidence as the uninterrupted one did.
         n = len(self.t) + self._dropped
         warm = not full and len(self._all) == (5 if cfg.onset else 3) \
@@ -405,9 +391,8 @@ class ParameterTrend:
         return len(self.t)
 
     def degrading(self) -> bool:
-        """The evidence says so: the degrading models' share of the weight is at least
-        ``detection`` (the BIC's odds against ``none``) and the chosen model's drift rate is
-        beyond ``flat_z`` of its standard errors (not flat within its uncertainty)."""
+        """Step 3 of the module docstring: ``detection`` odds against ``none`` and a drift
+        rate beyond ``flat_z`` standard errors."""
         f = self.fit
         if f is None or f.kind == "none":
             return False

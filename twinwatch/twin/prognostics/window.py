@@ -23,10 +23,9 @@ balanced, window after window:
 
 The rate is the parameter's trend's (:mod:`~twinwatch.twin.prognostics.trend`), or the fusion's
 when the trend has none yet; the standard error is the window's stated one, or the scatter of
-the evidence about its trend when that is smaller (the estimator's model-error floor states
-about 30 times the scatter of noise-free estimates). The decision applies to the next window
-the acquisition starts (a few windows may already be waiting for the estimator); each health
-message says which length its window had and why (``acquisition``).
+the evidence about its trend when that is smaller (the model-error floor overstates it for
+noise-free estimates). The decision applies to the next window the acquisition starts; each
+health message says which length its window had and why (``acquisition``).
 """
 
 from __future__ import annotations
@@ -102,7 +101,7 @@ class WindowController:
                 worst, who = ratio, name
         n = used
         # The length where the drift within the window is drift_ratio of its standard error
-        # (drift grows as N, the standard error falls as N^-1/2: their ratio as N^3/2).
+        # (module docstring).
         target = (used * (c.drift_ratio / worst) ** (2.0 / 3.0) if worst is not None
                   and worst > 0 else math.inf)
         if target < 0.9 * used:

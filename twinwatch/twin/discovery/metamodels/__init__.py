@@ -56,7 +56,7 @@ logger = logging.getLogger(__name__)
 ENTRY_POINT_GROUP = "twinwatch.metamodels"
 
 #: Built-in kinds: kind -> "module:Class". The first six are paper Table 1, in its order; the
-#: others are the non-smooth terms real drives need (issue 9), candidates only where listed.
+#: others are the non-smooth terms real drives need, candidates only where listed.
 BUILTIN_META_MODELS: Mapping[str, str] = {
     "linear": "twinwatch.twin.discovery.metamodels.linear:Linear",
     "exponential": "twinwatch.twin.discovery.metamodels.exponential:Exponential",

@@ -2,13 +2,12 @@
 
 A meta-model is a small interpretable function ``U(z)`` of one input ``z`` (time, a measured
 input, output or state) that the discovery attaches to the twin when re-estimating the physical
-parameters cannot explain the data (DT'' = DT + sum_i U_i(z_i), paper Eq. 3). As PySINDy's
-feature libraries, each kind knows its own basis, bounds, rendering and canonical form, and the
-search hooks the discovery needs, so that the discovery never branches on a kind: a new
-meta-model is one subclass in one file, registered in :mod:`twinwatch.twin.discovery.metamodels` (or
-through the ``twinwatch.metamodels`` entry-point group).
+parameters cannot explain the data (DT'' = DT + sum_i U_i(z_i), paper Eq. 3). Each kind knows
+its own basis, bounds, rendering, canonical form and search hooks, so the discovery never
+branches on a kind: a new meta-model is one subclass in one file, registered in
+:mod:`twinwatch.twin.discovery.metamodels` (or through the ``twinwatch.metamodels`` entry points).
 
-Numerics (our choice, docs/architecture.md): the search runs in *normalised* coordinates
+Numerics (docs/architecture.md): the search runs in *normalised* coordinates
 ``u = z / z_ref`` (``z_ref`` the input's largest magnitude over the window, or the window length
 for time), so that the same bounds suit every input; :meth:`MetaModel.to_raw` converts the fitted
 values back to the input's own units before they are reported or evaluated.
@@ -193,8 +192,8 @@ class MetaModel(abc.ABC):
 
     def seeds(self, residual: FloatArray, window: WindowData, input_is_time: bool,
               z_ref: float, count: int) -> list[FloatArray]:
-        """Promising nonlinear-parameter values (normalised) read off the residual (N, n_out),
-        to seed the swarm; none by default."""
+        """Nonlinear-parameter seeds (normalised) read off the residual (N, n_out); none by
+        default."""
         return []
 
     def time_origin(self, window: WindowData) -> float:
@@ -247,9 +246,8 @@ class MetaModel(abc.ABC):
     def move_origin(self, p: FloatArray, d: float) -> FloatArray | None:
         """The same function of time written from an origin ``d`` later: ``q`` with
         ``U_q(z - d) = U_p(z)`` for every z (raw parameters (len(params),), no wrapping), or
-        None if the kind cannot be rewritten so. Across windows a time term is refined in the
-        coordinates of the current window's centre (:mod:`~twinwatch.twin.discovery.terms`),
-        where its parameters are least correlated."""
+        None if the kind cannot be rewritten so (:mod:`~twinwatch.twin.discovery.terms` refines
+        a time term at each window's centre)."""
         return None
 
     def align(self, p: FloatArray, ref: FloatArray) -> FloatArray:

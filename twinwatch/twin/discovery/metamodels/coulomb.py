@@ -1,6 +1,5 @@
 """Coulomb (dry) friction meta-model ``a*sign(z) + c`` on a speed input: brush, seal or bearing
-friction that opposes motion with a force independent of the speed. Not in paper Table 1
-(issue 9: terms real drives need)."""
+friction that opposes motion with a force independent of the speed. Not in paper Table 1."""
 
 from __future__ import annotations
 
@@ -36,15 +35,11 @@ def sampled_sign(z: FloatArray) -> FloatArray:
 class Coulomb(MetaModel):
     """``U(z) = a*sign(z) + c`` (``sign(0) = 0``: no dry friction at rest); ``c`` optional.
 
-    Linear in both parameters, so the least squares need no smoothing: the input is a
-    *measured* signal and ``sign(z)`` a fixed basis column, fitted exactly in one step. The
-    sign is smoothed for another reason, the sampling (:func:`sampled_sign`): at a speed
-    reversal the plant's friction switches inside a sample interval, the twin holds one value
-    over it; the interval average removes that error (without it, a window with two fast
-    reversals biased ``a`` by 3 % and the smooth saturation ``tanh(z/b)`` fitted better than
-    the sign). A window where the sign barely changes is not used (:meth:`identifiable`: the
-    sign is then a constant, which the linear meta-model states). As a term on
-    ``d(omega)/dt`` it reads ``-Tc/J*sign(omega)``: ``a < 0``.
+    Linear in both parameters (``sign(z)`` of the measured input is a fixed basis column).
+    The sign is averaged over each sample interval (:func:`sampled_sign`), else a speed
+    reversal inside an interval biases ``a``. A window where the sign barely changes is not
+    used (:meth:`identifiable`). As a term on ``d(omega)/dt`` it reads
+    ``-Tc/J*sign(omega)``: ``a < 0``.
     """
 
     kind = "coulomb"

@@ -1,5 +1,5 @@
 """Dead-zone meta-model ``a*dz(z, b)``: backlash, a voltage the power stage needs before any
-current flows, a stiction band. Not in paper Table 1 (issue 9: terms real drives need)."""
+current flows, a stiction band. Not in paper Table 1."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
 """Input dead-zone meta-model ``a*clip(z, b)``: a dead zone of an input the twin already uses
-(a drive's power stage that applies nothing while ``|Va| <= b``). Not in paper Table 1 (issue
-25: the change a fault library does not know)."""
+(a drive's power stage that applies nothing while ``|Va| <= b``). Not in paper Table 1."""
 
 from __future__ import annotations
 
@@ -36,14 +35,11 @@ class InputDeadZone(DeadZone):
     ``-clip(Va, b)/La``: this kind with ``a = -1/La`` and ``b`` the dead zone [V], an exact
     and interpretable term ("the drive applies no voltage while |Va| <= b"), where the
     ``dead_zone`` kind would have to cancel the twin's own ``Va/La`` and the smooth
-    ``saturation`` only approximates the knee (measured: ``-2.94*tanh(Va/1.65)`` for a 2 V
-    dead zone, the residual still structured). With ``a > 0`` it is a hard limit of the
+    ``saturation`` only approximates the knee. With ``a > 0`` it is a hard limit of the
     input's effect.
 
-    Separable: ``b`` the only nonlinear parameter, searched between the 2nd and the 95th
-    percentile of ``|z|`` (:data:`BAND_QUANTILES`: with samples on both sides of the knee). A
-    window whose input magnitude hardly varies cannot tell it from ``b*sign(z)`` or a line
-    (:meth:`identifiable`).
+    Separable: ``b`` the only nonlinear parameter, searched within :data:`BAND_QUANTILES` of
+    ``|z|``; a window whose input magnitude hardly varies is skipped (:meth:`identifiable`).
     """
 
     kind = "input_dead_zone"

@@ -1,6 +1,6 @@
 """Rectifier (piecewise linear) meta-model ``a*max(0, z - b) + c``: a power stage that conducts
 one way only (a unidirectional chopper with its freewheeling diode, a diode), a one-sided load
-or stop. Not in paper Table 1 (issue 9: terms real drives need)."""
+or stop. Not in paper Table 1."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Saturation meta-model ``a*tanh(z/b)``: a limit (current limiting, a clamped actuator),
-magnetic saturation. Not in paper Table 1 (issue 9: terms real drives need)."""
+magnetic saturation. Not in paper Table 1."""
 
 from __future__ import annotations
 
@@ -12,11 +12,9 @@ from twinwatch.twin.model import FloatArray
 class Saturation(ScaledShape):
     """``U(z) = a*tanh(z/b)`` (b > 0): slope ``a/b`` near zero, levelling off at ``+-a``.
 
-    The smooth ``tanh`` rather than a hard ``a*clip(z/b, -1, 1)``: the same one nonlinear
-    parameter (the scale ``b``), but a cost smooth in ``b`` for the swarm and the polish, and
-    it covers the soft limit of magnetic saturation as well as, for small ``b``, a hard current
-    limit. ``b`` is searched from 0.02 to 3 times the input's largest magnitude: beyond, the
-    term is a line (the linear meta-model states it with one parameter fewer).
+    The smooth ``tanh`` rather than a hard clip: a cost smooth in ``b`` for the swarm and the
+    polish, covering both a soft limit and, for small ``b``, a hard one. ``b`` is searched from
+    0.02 to 3 times the input's largest magnitude (beyond, the term is a line).
     """
 
     kind = "saturation"
