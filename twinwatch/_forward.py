@@ -18,7 +18,6 @@ class Forward(Generic[T]):
 
     Args:
         path: the dotted attribute path from the object (``"pipeline.adapter.estimator"``).
-        doc: the attribute's docstring.
     """
 
     def __init__(self, path: str, doc: str) -> None:

@@ -3,14 +3,12 @@
 numba's ``cache=True`` keys a kernel's cache on the file that defines it (its modification
 time and size), not on the files it calls into: a kernel in ``twin/models/dcmotor.py`` that
 calls ``pid_update`` from ``twin/models/_pid.py`` keeps its compiled code after ``_pid.py``
-changes (a ``git pull``, an editable install upgraded), and the twin silently simulates the
-old drive.
+changes, and the twin silently simulates the old drive.
 
 :func:`configure` points numba's cache at ``<base>/<hash of every kernel source>``, so a
 change to any of them compiles everything afresh. ``<base>`` is ``NUMBA_CACHE_DIR`` when the
-user set it, else ``$XDG_CACHE_HOME/twinwatch/numba`` (``~/.cache/...``); when neither can be
-created or written (a read-only home under systemd's ``ProtectHome``), numba's own default is
-left alone (caches beside the sources, or none).
+user set it, else ``$XDG_CACHE_HOME/twinwatch/numba``; when neither can be written (a
+read-only home under systemd's ``ProtectHome``), numba's own default is left alone.
 """
 
 from __future__ import annotations

@@ -9,8 +9,7 @@ binds the backend's name to :func:`lazy_module` instead of importing it::
     else:
         zenoh = lazy_module("zenoh")
 
-Every use (``zenoh.Config()``, ``except zenoh.ZError``) then imports it, once; until then it
-is not in :data:`sys.modules`.
+The first use (``zenoh.Config()``, ``except zenoh.ZError``) imports it.
 """
 
 from __future__ import annotations

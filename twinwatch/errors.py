@@ -25,7 +25,7 @@ Phases::
     └── WatchError               ``twinwatch watch`` / ``tail``: the Zenoh network is unreachable
 
 Recoverable bad input (a bad frame, a NaN, a gap, a dropped link) is never raised: it is counted,
-logged once and survived. This module imports nothing of twinwatch: every room may import it.
+logged once and survived. This module imports nothing of twinwatch.
 """
 
 from __future__ import annotations
@@ -91,13 +91,12 @@ class DriverInitializationError(DriverError):
 class DriverConfigError(DriverInitializationError):
     """The driver cannot start because of its configuration or the files it names (a DBC
     without the configured message, a recording without the mapped column, ...): starting
-    again will not help (``twinwatch run`` exits 78, EX_CONFIG). A driver names the key of
-    its table first (``path: ...``, ``columns.ia.column: ...``); :meth:`keyed` says it as
-    the configuration's key (``driver.path: ...``)."""
+    again will not help (``twinwatch run`` exits 78). The message names the key of its table
+    first (``path: ...``)."""
 
     def keyed(self) -> str:
-        """The message with its key as the configuration names it: ``driver.path: CSV ...
-        has no data rows`` (a message naming no key: ``driver: ...``)."""
+        """The message with its key as the configuration names it (``driver.path: ...``; a
+        message naming no key: ``driver: ...``)."""
         text = str(self)
         head, sep, _ = text.partition(": ")
         if sep and head and " " not in head and not head.startswith("driver"):

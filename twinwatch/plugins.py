@@ -2,18 +2,10 @@
 
 Modelled on python-can's ``can/interfaces/__init__.py``: a table maps a name (the ``type`` of a
 ``[driver]`` table, the ``model`` of ``[machine]``, a meta-model ``kind``, an output's table
-name) to ``"module:Class"``. The table is extended by an entry-point group
-(``name = "package.module:Class"`` in another package's metadata, read once), and a module is
+name) to ``"module:Class"``. The table is extended by an entry-point group, and a module is
 imported only when its name is first used, so a missing optional dependency only matters to the
-configurations that need it.
-
-Rules, the same for every registry:
-
-* a plug-in cannot replace a built-in: the clash is logged once and the entry point ignored;
-* an unknown name raises :class:`~twinwatch.errors.PluginError` listing the known ones;
-* a module that cannot be imported raises :class:`~twinwatch.errors.PluginError` saying which
-  package to install (a dependency of twinwatch's own: install twinwatch again);
-* the loaded object must be a subclass of the registry's base class.
+configurations that need it. A plug-in cannot replace a built-in (the clash is logged once and
+the entry point ignored).
 
 Each room keeps its own registry next to its base class (:data:`twinwatch.drivers.DRIVERS`,
 :data:`twinwatch.twin.models.MODELS`, :data:`twinwatch.twin.discovery.metamodels.META_MODELS`,
@@ -44,9 +36,8 @@ logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-#: twinwatch's own dependencies (``[project] dependencies``) whose import name is not their
-#: distribution's name. Every backend twinwatch imports is one of its dependencies (the extras
-#: hold only the test and documentation tools), so a missing one is a broken install.
+#: twinwatch's own dependencies whose import name is not their distribution's name (a missing
+#: one is a broken install).
 _DISTRIBUTIONS: Mapping[str, str] = {"can": "python-can", "paho": "paho-mqtt",
                                      "zenoh": "eclipse-zenoh", "rerun": "rerun-sdk",
                                      "google": "protobuf"}
@@ -58,7 +49,6 @@ class Registry(Generic[T]):
     Args:
         kind: what the registry holds, for messages (``"driver"``, ``"model"``, ...).
         group: the entry-point group other packages register in (``"twinwatch.drivers"``).
-        builtins: name -> ``"module:Class"`` of the built-in classes.
         base: returns the base class every entry must subclass (a callable, so that the
             registry can be declared before the base class's module is imported).
     """
@@ -76,7 +66,7 @@ class Registry(Generic[T]):
     # -- the table ---------------------------------------------------------------------------
     def table(self) -> Mapping[str, str]:
         """Every known name -> ``"module:Class"``: the built-ins, then the entry points (read
-        once; a plug-in that clashes with a built-in is logged and ignored)."""
+        once)."""
         with self._lock:
             if self._table is None:
                 table = dict(self.builtins)
@@ -145,8 +135,8 @@ class Registry(Generic[T]):
 
 
 def _dependencies() -> set[str]:
-    """The distributions twinwatch's installed metadata requires, normalised (no extras'
-    requirements); empty when twinwatch's metadata cannot be read."""
+    """The distributions twinwatch's installed metadata requires, normalised, without the
+    extras'."""
     try:
         requires = metadata.requires("twinwatch") or []
     except metadata.PackageNotFoundError:
@@ -176,16 +166,14 @@ def commented_table(model: Any, table: str, *, commented: bool = False,
     ``twinwatch sample-config`` prints for a plug-in that ships no sample of its own).
 
     Args:
-        model: the table's pydantic model class (``extra = "forbid"``).
         table: the table's dotted path (``"driver"``, ``"outputs.mqtt"``).
         commented: comment out everything, the header and required keys too (an output that
             stays off until its table is written).
         fixed: key -> value written as a live line (``{"type": "plant_direct"}``).
 
     Returns:
-        TOML text: ``[table]``, its keys (``# key = default  # description``; a required key
-        without a known value ``# key = ...  # required: ...``), then its sub-tables (fields
-        whose type is a model) the same way.
+        TOML text: ``[table]``, its keys (``# key = default  # description``), then its
+        sub-tables the same way.
     """
     lead = "# " if commented else ""
     lines = [f"{lead}[{table}]"]

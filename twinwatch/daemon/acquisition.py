@@ -1,10 +1,8 @@
 """Acquisition: the driver -> ring buffer loop of one machine.
 
-:class:`Acquisition` runs in the caller's thread (the machine's thread:
-:meth:`twinwatch.daemon.runner.Daemon.run`): it reads the driver (``read(timeout=0.2)``), fills
-the :class:`~twinwatch.daemon.ringbuffer.RingBuffer` and hands each full window to the window
-worker's queue; it never estimates. It ticks the watchdog and the supervisor's ticks
-(:data:`TICK_S`), reports a stall after ``[acquisition] stall_timeout``, and stops when the
+:class:`Acquisition` runs in the machine's thread (:meth:`twinwatch.daemon.runner.Daemon.run`):
+it reads the driver, fills the :class:`~twinwatch.daemon.ringbuffer.RingBuffer` and hands each
+full window to the window worker's queue; it never estimates. It stops when the
 source ends, the duration is reached, the driver fails, or :meth:`Acquisition.stop` is called
 (at once, or at the next window boundary: a reload neither loses nor repeats a sample).
 """
@@ -34,9 +32,8 @@ __all__ = ["STOP_AT_WINDOW_S", "TICK_S", "Acquisition"]
 
 TICK_S = 0.05
 """Seconds [wall] between the acquisition loop's ticks (the watchdog, the supervisor's reload
-and STATUS checks) while a live source's samples arrive (once per sample they cost CPU for
-checks that act on a scale of seconds), and after each read that had none. A source on a
-simulated clock ticks every sample (its 2 s windows may pass in milliseconds)."""
+and STATUS checks) while a live source's samples arrive, and after each read that had none. A
+source on a simulated clock ticks every sample (its 2 s windows may pass in milliseconds)."""
 
 STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
@@ -48,18 +45,13 @@ class Acquisition:
     """The driver and the ring buffer of one machine, and the loop between them.
 
     Args:
-        config: validated configuration (``[driver]``, ``[acquisition]``).
-        model: the twin model (the channels the ring buffer keeps).
         own_driver: the driver is ours to close (:meth:`release`; False: given by the caller).
-        watchdog: the systemd watchdog gate, ticked as the module docstring says.
 
     Attributes:
-        ring: the ring buffer.
         driver: the open driver (None before :meth:`open` and after :meth:`release`).
         stopping: set by :meth:`stop` (the window worker reads it too).
         ended: why :meth:`run` returned by itself (``end of the source``, ``duration
             reached``, ``driver failure``), else None.
-        failure: the driver's failure line, or None.
     """
 
     def __init__(self, config: TwinwatchConfig, model: TwinModel, *, own_driver: bool,
@@ -87,16 +79,14 @@ class Acquisition:
 
     def open(self, driver: Driver | None, *, base_dir: Path, wait: bool) -> None:
         """Take ``driver`` (handed over by a reload, or given by the caller) or open the
-        configured source (:func:`~twinwatch.daemon.source.open_source`; ``wait``: a live source
-        that cannot be opened now is waited for)."""
+        configured source (:func:`~twinwatch.daemon.source.open_source`)."""
         self.driver = driver or open_source(self.config.driver, base_dir=base_dir, wait=wait,
                                             backoff_max=self.config.acquisition.reopen_max)
 
     def stagger(self, name: str) -> int:
         """Lengthen the first window by a phase of 0 to ``window - 1`` samples from ``name``
         (CRC-32: the same machine keeps its phase across restarts), so the windows of machines
-        started together complete spread over a window's length instead of at one moment.
-        Returns the phase [samples]; nothing is dropped (the first window is longer)."""
+        started together complete spread over a window's length. Returns the phase [samples]."""
         window = self.config.acquisition.window
         self.phase = zlib.crc32(name.encode()) % window
         if self.phase:
@@ -140,8 +130,7 @@ class Acquisition:
                 self.ended = "end of the source"
                 break
             except DriverError as exc:
-                # the driver gave up: one clear line (the driver said what failed), then
-                # the queued windows are finished and the caller decides (the CLI exits 1)
+                # the driver gave up: the queued windows are finished, the caller decides
                 self.failure = f"the {self.config.driver.type} driver failed: {exc}"
                 logger.error("%s", self.failure)
                 self.ended = "driver failure"
@@ -165,8 +154,7 @@ class Acquisition:
                 break
             window = self.ring.append(sample.t, sample.values)
             if self._phase_pending and not self.ring.window_requested:
-                # the first window has started at its staggered length: the next ones are
-                # of the configured length again
+                # the staggered first window has started: the next ones are of the usual length
                 self._phase_pending = False
                 self.ring.request_window(self.config.acquisition.window)
             n_abandoned = sum(self.ring.causes.values())
@@ -178,10 +166,9 @@ class Acquisition:
 
     def _say_stall(self, quiet: float) -> bool:
         """Say once that no sample came for ``quiet`` seconds, asking the driver what it knows
-        first, so an outage is one ERROR line: a driver that waits for its source (a server
-        away, a device not answering, a bus being reopened: :attr:`Driver.waiting`) said so at
-        ERROR itself, the stall is at INFO; the parts it named silent (at WARNING) are named
-        in the ERROR instead of the generic advice. Returns whether the driver said it."""
+        first, so an outage is one ERROR line (a driver that waits for its source,
+        :attr:`Driver.waiting`, said so itself: the stall is at INFO). Returns whether the
+        driver said it."""
         kind = self.config.driver.type
         waiting, silent, _ = self.source_state()
         if waiting:
@@ -208,9 +195,8 @@ class Acquisition:
             self.stopping.set()
 
     def source_state(self) -> tuple[str | None, list[str], list[str]]:
-        """What the driver waits for (None when it delivers), its silent messages and what
-        the device reports wrong with itself
-        (:attr:`~twinwatch.drivers.base.Driver.device_faults`)."""
+        """What the driver waits for (None when it delivers), its silent messages and its
+        :attr:`~twinwatch.drivers.base.Driver.device_faults`."""
         driver = self.driver
         if driver is None:
             return None, [], []

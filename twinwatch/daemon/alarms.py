@@ -5,25 +5,20 @@ hysteresis and minimum durations, so a parameter drifting near a threshold does 
 per change, to publish on ``twinwatch/<machine>/alarm``. A parameter's ``deviation_pct`` is
 evidence when its ``status`` is ``estimated`` or ``fused``; ``held``, ``tied``, ``fixed`` and
 non-finite deviations neither start, extend nor interrupt a run (durations are plant time).
-The rule keys (``[alarms.parameters.<name>]``: symmetric or one-sided thresholds in percent of
-nominal, ``hysteresis`` in percentage points, ``raise_after_s``/``_windows``,
-``clear_after_s``/``_windows``) are in docs/configuration.md.
+The rule keys (``[alarms.parameters.<name>]``) are in docs/configuration.md.
 
 **Remaining useful life** (docs/prognostics.md): ``rul_warning`` / ``rul_alarm`` [s] alarm on
 ``parameters.<name>.rul`` (the median, or the early end with ``rul_basis = "low"``) in a second
 state per parameter, once the whole 95 % interval is within the rule's horizon
 (``rul_warning``, else ``rul_alarm``); a level clears once the RUL is above its threshold times
 ``1 + rul_hysteresis`` (or the trend is not degrading), whatever the interval. An
-``insufficient`` RUL is not evidence. Events carry ``kind`` (``deviation`` or ``rul``); the
-health message's ``alarms.<name>.rul`` holds the RUL level.
+``insufficient`` RUL is not evidence. Events carry ``kind`` (``deviation`` or ``rul``).
 
 **Faults.** :class:`FaultAlarms` raises an alarm on a fault mode (``diagnosis.faults[]``) whose
 probability has been at least ``[diagnosis] alarm`` (0.8) for ``raise_after_windows`` windows in
 a row, and clears it once below ``clear`` (0.5) for ``clear_after_windows`` sound windows (a
-window not ``trusted`` is not counted); events have ``kind`` ``diagnosis``, the ``fault`` id and
-the action; ``diagnosis.alarms`` lists the raised ones. The check function (NAMUR NE 107: no
-description for ``check_function_after_s``) is raised and cleared as the fault
-``check_function``.
+window not ``trusted`` is not counted); ``diagnosis.alarms`` lists the raised ones. The check
+function (NAMUR NE 107) is raised and cleared as the fault ``check_function``.
 """
 
 from __future__ import annotations
@@ -86,10 +81,9 @@ class AlarmEvaluator:
     """Alarm state per parameter, updated by each health message.
 
     Args:
-        config: the ``[alarms]`` table.
         machine: machine name for the events (default: taken from each health message).
         meanings: parameter -> what it describes (``"armature resistance"``), named in the
-            event's message next to the symbol; default: the symbol alone.
+            event's message next to the symbol.
 
     Thread-safe: :meth:`update` runs on the adaptation worker, :meth:`state` may be read from
     a Zenoh queryable thread.
@@ -107,8 +101,7 @@ class AlarmEvaluator:
 
     # -- public ---------------------------------------------------------------------------
     def update(self, health: HealthMessage) -> list[dict[str, Any]]:
-        """Feed one window's typed health message (its ``parameters``' ``status`` and
-        ``deviation_pct``, the window's times); return the alarm-state changes it caused.
+        """Feed one window's typed health message; return the alarm-state changes it caused.
 
         Returns:
             One event per parameter whose level changed: ``machine``, ``parameter``, ``level``
@@ -166,8 +159,7 @@ class AlarmEvaluator:
             return out
 
     def restore(self, snapshot: Mapping[str, Any]) -> None:
-        """Re-seed levels from a :meth:`state` snapshot (e.g. the ``alarms`` of the state
-        store's last health message at start, read through its typed view
+        """Re-seed levels from a :meth:`state` snapshot (read through
         :class:`~twinwatch.twin.health.AlarmView`), so a restart neither re-raises nor silently
         clears an active alarm. Unknown parameters, bad levels and entries of another shape
         are ignored with a warning."""
@@ -338,9 +330,8 @@ def rul_horizon(rule: AlarmRule) -> float:
 
 def _interval_agrees(rule: AlarmRule, rul: Any, crossing: Any) -> bool:
     """Whether a RUL prediction may raise a level: its whole 95 % interval of the crossing
-    lies within the rule's horizon (:func:`rul_horizon`: the late end ``high_s`` within it,
-    or the threshold already crossed): an early, weak trend whose median is near but whose
-    interval reaches far beyond raises nothing."""
+    lies within :func:`rul_horizon` (or the threshold is already crossed), so an early, weak
+    trend whose median is near but whose interval reaches far beyond raises nothing."""
     if rul.status != "degrading" or crossing is None:
         return False
     if crossing.status == "crossed":
@@ -358,7 +349,7 @@ def _run_state(s: _ParamState) -> dict[str, Any]:
 
 def _restore(s: _ParamState, snap: Any) -> None:
     """Re-seed a state's level and the evidence run a snapshot (an ``AlarmView`` or its
-    ``rul``) recorded (a restart mid-degradation does not start its run again from nothing)."""
+    ``rul``) recorded."""
     s.level = snap.level
     s.since_t = snap.since_t
     s.since_window = snap.since_window
@@ -390,8 +381,7 @@ def _advance(s: _ParamState, rule: AlarmRule, target: Level, t_start: float, t_e
         s.down = s.down_level = None
         s.up, reached = _extend(s.up, t_start, t_end, dt, rule.raise_after_windows,
                                 rule.raise_after_s)
-        # The run counts for the highest level reached; falling back from alarm to
-        # warning territory keeps the run (it is still beyond warning).
+        # falling back from alarm to warning territory keeps the run (still beyond warning)
         s.up_level = target
     elif _RANK[target] < _RANK[s.level]:
         s.up = s.up_level = None
@@ -433,7 +423,6 @@ class FaultAlarms:
     Args:
         alarm: probability that raises an alarm (None: off); clear: the one that clears it.
         raise_after, clear_after: windows in a row before raising / clearing.
-        machine: the machine name for the events.
     """
 
     def __init__(self, alarm: float | None, clear: float, raise_after: int, clear_after: int,
@@ -449,13 +438,9 @@ class FaultAlarms:
                ) -> tuple[DiagnosisHealth | None, list[dict[str, Any]]]:
         """Advance on one window's diagnosis.
 
-        Args:
-            d: the window's diagnosis (None: none this window).
-            health: the window's message (its machine, window and end time for the events).
-
         Returns:
-            The diagnosis with ``alarms``, the faults raised now (a new object: ``d`` is left
-            as it was; ``d`` itself when the alarms are off), and the events.
+            A copy of ``d`` with ``alarms``, the faults raised now (``d`` itself when the alarms
+            are off), and the events.
         """
         if d is None or self.alarm is None:
             return d, []
@@ -480,9 +465,7 @@ class FaultAlarms:
                     events.append(self._event(health, fid, "alarm", "normal", p, what))
             else:
                 if p < self.clear and not health.trusted and fid != CHECK_FUNCTION:
-                    # a window the twin did not describe (its check failed, a sensor stuck)
-                    # is no evidence against the fault: it neither counts toward clearing
-                    # nor resets the count
+                    # an untrusted window is no evidence against the fault: not counted
                     continue
                 self._below[fid] = self._below.get(fid, 0) + 1 if p < self.clear else 0
                 if self._below[fid] >= self.clear_after:

@@ -17,8 +17,8 @@ __all__ = ["HELD_MAX", "GateKeeper", "Released"]
 
 HELD_MAX = 1000
 """Windows kept in memory while the state database is locked by another process (about 33
-minutes of 2 s windows): stored and published once the lock is released. Beyond it a window
-waits in the store's own backlog and is not published (as on a full disk)."""
+minutes of 2 s windows). Beyond it a window waits in the store's own backlog and is not
+published."""
 
 Released = tuple[list[ProcessedWindow], bool]
 """Held windows let go, oldest first, and whether they are stored (publish them) or not (given
@@ -29,16 +29,13 @@ class GateKeeper:
     """The gate of one machine's pipeline and the windows held for its lock.
 
     Args:
-        machine: whose windows (for the log).
-        write: writes one window to one output, its failures counted and logged once (the
-            pipeline's ``_write``); its result for the gate: False when not stored.
-        log: where it logs (the pipeline's logger).
+        write: writes one window to one output (the pipeline's ``_write``); its result for
+            the gate: False when not stored.
 
     Attributes:
         gate: the sink that must take a window before the publishing outputs get it (the
             state store), or None (every window counts as stored).
-        delayed: windows that waited in memory for the gate's lock (another process's), in
-            all (the health message's ``store_delayed``).
+        delayed: windows that waited in memory for the gate's lock, in all.
         locked_longest: the longest such wait [s].
         writing: (the gate's name, since when [monotonic s]) while the gate writes a window.
     """
@@ -81,8 +78,7 @@ class GateKeeper:
         finally:
             self.writing = None
         if not stored and can_hold and gate.locked:
-            # another process holds the database's lock: keep the window (and the ones after
-            # it) in memory until it is stored, then publish them
+            # another process holds the database's lock: keep the window until it is stored
             self._locked_since = time.monotonic()
             self._held.append(out)
             self.delayed += 1
@@ -90,8 +86,8 @@ class GateKeeper:
         return stored
 
     def hold(self, out: ProcessedWindow) -> bool | None:
-        """A window behind the locked database (others are held already): given to the gate's
-        backlog without a write; kept here to be stored and published once the lock goes.
+        """A window behind the locked database: given to the gate's backlog without a write;
+        kept here to be stored and published once the lock goes.
 
         Returns:
             None: held (published later); False: :data:`HELD_MAX` are held already, it is
@@ -111,9 +107,8 @@ class GateKeeper:
         """One more attempt to store the held windows (it waits up to the busy timeout).
 
         Returns:
-            The held windows, stored (publish them, oldest first); or not stored, the lock gone
-            (another failure: a full disk) or ``give_up``: left to the gate's backlog, not
-            published; None while they still wait (or without a gate: dropped).
+            The held windows and whether they were stored (not stored: another failure than
+            the lock, or ``give_up``); None while they still wait (or without a gate).
         """
         gate = self.gate
         if gate is None:
@@ -153,8 +148,7 @@ class GateKeeper:
         return None
 
     def counters(self) -> dict[str, int]:
-        """``store_delayed``: windows that waited in memory for the state database's lock, in
-        all."""
+        """``store_delayed``: :attr:`delayed`."""
         return {"store_delayed": int(self.delayed)}
 
     def summary(self) -> list[str]:

@@ -13,9 +13,6 @@ stop and the exit status):
 * the **reload** (SIGHUP): a changed machine is reloaded
   (:class:`~twinwatch.daemon.supervisor.Supervisor`); a file added starts its machine, a file
   removed stops it, a machine not running starts again.
-* the **summary** (:meth:`Host.summary`) and the **exit status** (:meth:`Host.exit_status`). A
-  worker process's host (``assignment``) reports its machines as a
-  :class:`~twinwatch.daemon.service.FleetStatus` beside its STATUS line.
 
 Each machine runs in a thread of its own (``twinwatch-<file>`` in a fleet); the machines share
 one Zenoh session per ``[zenoh]`` setting (:class:`~twinwatch.sinks.base.SharedResources`) and
@@ -71,10 +68,6 @@ class MachineNotifier(Notifier):
     """What a machine tells systemd goes to its host instead (:meth:`Host._from_machine`);
     ``WATCHDOG=1`` from its acquisition loop is only noted (:attr:`last_ping`): the host pings
     systemd while a machine is healthy.
-
-    Args:
-        host: the host.
-        machine: the machine this notifier belongs to.
     """
 
     def __init__(self, host: Host, machine: Machine) -> None:
@@ -103,22 +96,18 @@ class Machine:
     """One machine of a host: its configuration, its supervisor and thread, and how it ended.
 
     Args:
-        host: the host.
         path: the configuration file (None: the built-in default configuration).
         load: a fleet of one's loader (the host's ``load``); None: the host reads ``path``
             and checks it in the machine's directory (``<work root>/<machine name>``).
 
     Attributes:
         name: ``[machine] name`` once the configuration loaded (the file's stem before).
-        supervisor: its supervisor (its ``daemon`` holds the counters and history).
         watchdog: its own watchdog (the host reads it to find a stuck or quiet machine).
         lost: why the machine stopped or never started (one line), or None.
         failure: the same in full (every line), or None.
         error: what its start raised (a configuration error, a start error, :class:`Stopped`).
-        config_error: ``lost`` is an invalid configuration.
         watched: what a reload compares: label (``m1.toml``, ``diagnosis.library``) -> path
-            of the configuration file and every file it reads
-            (:func:`~twinwatch.config.preflight.referenced_files`).
+            of the configuration file and every file it reads.
         digests: their contents' SHA-256 when the machine (re)loaded them.
     """
 
@@ -184,8 +173,8 @@ class Machine:
         return cfg
 
     def _watch(self, cfg: TwinwatchConfig | None) -> None:
-        """Keep the digests of the configuration file and the files ``cfg`` reads, as they are
-        when it loads (what the next SIGHUP compares)."""
+        """Keep the digests of the configuration file and the files ``cfg`` reads (what the
+        next SIGHUP compares)."""
         from twinwatch.config.preflight import referenced_files
 
         watched = {self.path.name: self.path} if self.path is not None else {}
@@ -208,9 +197,8 @@ class Machine:
 
     def rename(self, path: Path) -> None:
         """Its configuration file was renamed to ``path`` (the same ``[machine] name``): the
-        machine goes on, its file is ``path`` from now on. What the next :meth:`changed`
-        compares is the old file's content as it loaded (an edit made with the rename is a
-        change: the caller reloads)."""
+        machine goes on. The next :meth:`changed` compares the old file's content as it loaded
+        (an edit made with the rename is a change)."""
         old = self.path
         assert old is not None
         self.path = path
@@ -279,8 +267,7 @@ class Machine:
 
     def healthy(self) -> bool:
         """For the host's watchdog: opening, or running with an acquisition loop that ticked
-        its watchdog within the last ``WatchdogSec=`` (it ticks only while the worker is not
-        stuck and, under ``watchdog = "windows"``, windows finish)."""
+        its watchdog within the last ``WatchdogSec=``."""
         if self.opening:
             return True
         if not self.running:
@@ -290,8 +277,7 @@ class Machine:
         return interval is None or last is None or time.monotonic() - last < 2.0 * interval
 
     def problems(self) -> list[str]:
-        """What is degraded for this machine now (for STATUS): lost, stuck, no windows, and
-        the daemon's own problems."""
+        """What is degraded for this machine now (for STATUS)."""
         if self.lost is not None:
             return [f"lost ({self.lost})"]
         if self.opening:
@@ -324,7 +310,6 @@ class Host(ServiceHost):
             is not a directory.
         work_root: a fleet's machines work in ``<work_root>/<machine name>/`` (created); a
             fleet of one in the current directory.
-        resume: as :class:`~twinwatch.daemon.supervisor.Supervisor`'s.
         duration: each machine stops after this many seconds of source time (None: runs on).
         workers: estimation slots (:class:`EstimationSlots`); None: the cores; 0: no limit.
         stuck_after: seconds one window may take before its machine counts as stuck (and its
@@ -337,10 +322,8 @@ class Host(ServiceHost):
             (None: a fleet of one waits for its machine, a fleet 60 s).
 
     Attributes:
-        fleet: ``target`` is a directory.
         machines: configuration file -> its machine, in file order (the current ones).
         retired: machines a reload removed or replaced (their summary is still given).
-        notifier: the process's systemd notifier.
     """
 
     def __init__(self, target: Path | None, *,
@@ -391,12 +374,11 @@ class Host(ServiceHost):
     # -- configuration ------------------------------------------------------------------------
     def _scan(self) -> list[Path]:
         """A fleet's machine files sorted by name (a worker process's: those its assignment
-        names), the first file naming each machine (read with ``tomllib``, so two files naming
-        one machine resolve by file name, not by which opens first), and the directory's other
-        entries named as skipped (logged once per start and reload)."""
+        names). Notes the first file naming each machine (two files naming one machine resolve
+        by file name, not by which opens first) and logs the skipped entries."""
         assert self.directory is not None
         files = sorted(p for p in self.directory.glob(MACHINE_GLOB) if p.is_file())
-        if self.assignment is not None:  # a worker process: the files its host gave it
+        if self.assignment is not None:
             try:
                 names = set(self.assignment.read_text(encoding="utf-8").split("\n"))
             except OSError:
@@ -419,7 +401,6 @@ class Host(ServiceHost):
         """
         first = self._owners.get(name)
         if first is not None and machine.path is not None and first != machine.path:
-            # two files name one machine: the first by file name runs, whatever starts first
             raise ConfigError(f"{machine.path}: machine.name {name!r} is already monitored "
                               f"by {first.name} in this gateway (the first file by name "
                               "runs): each machine needs a name of its own")
@@ -471,9 +452,8 @@ class Host(ServiceHost):
                     break
                 if deadline is not None and time.monotonic() > deadline:
                     break
-        # what the started process holds (the libraries' modules, the machines as they
-        # started) is kept out of the collector's full passes, which stalled every machine's
-        # window of a large worker; a reload and the stop unfreeze it (their cycles collected)
+        # what the started process holds is kept out of the collector's full passes (they
+        # stall every machine's window of a large worker); a reload and the stop unfreeze it
         gc.freeze()
         if self.fleet:
             self._ready = True
@@ -494,8 +474,8 @@ class Host(ServiceHost):
 
     # -- what the machines say ----------------------------------------------------------------
     def _from_machine(self, machine: Machine, assignments: tuple[str, ...]) -> None:
-        """A machine's notification (its supervisor's READY, STATUS, RELOADING, STOPPING): a
-        fleet of one's go to systemd as they are; a fleet's change the host's STATUS line."""
+        """A machine's notification: a fleet of one's go to systemd as they are; a fleet's
+        change the host's STATUS line."""
         if not self.fleet:
             self.notifier.notify(*assignments)
             return
@@ -503,7 +483,7 @@ class Host(ServiceHost):
             self._changed()
 
     def _changed(self) -> None:
-        """Something a fleet's STATUS shows changed: send it now if it did."""
+        """Send a fleet's STATUS now if it changed."""
         if not self.fleet or not self._ready:
             return
         with self._status_lock:
@@ -549,8 +529,7 @@ class Host(ServiceHost):
         """A fleet's STATUS when it changed; a worker process's heartbeat to its host."""
         self._changed()
         if self.assignment is not None and self._ready:
-            # a worker process's heartbeat: its host calls a worker that sends nothing
-            # for a window plus a margin stalled (a stopped or frozen process is alive)
+            # its host calls a worker that sends nothing for a window plus a margin stalled
             self.notifier.notify(f"{FLEET_REPORT}={self.fleet_status().model_dump_json()}")
 
     def _grace(self) -> float:
@@ -583,15 +562,13 @@ class Host(ServiceHost):
         super().reload()
 
     def _rescan(self) -> None:
-        """SIGHUP in a fleet (a fleet of one reloads in :meth:`reload`): start the machines of
-        new files, stop those whose file was removed, reload those whose file changed, and
-        start again those not running (lost, or their source ended)."""
+        """SIGHUP in a fleet (a fleet of one reloads in :meth:`reload`): start, stop, reload or
+        rename machines as the module docstring says, and log one line."""
         self.notifier.reloading("re-reading the machine directory")
         files = set(self._scan())
         done: list[str] = []
         for old, new in self._renamed(files).items():
-            # a machine is its name, not its file: it goes on (its twin, trends, alarms, run
-            # and window numbering), as an operator renaming a file expects
+            # a machine is its name, not its file: it goes on (twin, trends, alarms, runs)
             m = self.machines.pop(old)
             m.rename(new)
             self.machines[new] = m
@@ -615,8 +592,8 @@ class Host(ServiceHost):
         self._send_status(ready=True)
 
     def _rescan_file(self, path: Path) -> str | None:
-        """SIGHUP, a file of the directory: its machine started (a new file), started again
-        (not running), or reloaded (its files changed); what was done, or None."""
+        """SIGHUP, one file of the directory: start, start again or reload its machine; what
+        was done, or None."""
         m = self.machines.get(path)
         if m is None:
             self._add(path)
@@ -633,9 +610,8 @@ class Host(ServiceHost):
 
     def _renamed(self, files: set[Path]) -> dict[Path, Path]:
         """Old file -> new file, for each running machine whose file is gone while a new file
-        (the first file naming it, :meth:`_scan`) names the same machine: a file renamed (or
-        moved within the directory). A machine that is not running (lost, ended) is started
-        again under its new file instead."""
+        (the first file naming it, :meth:`_scan`) names the same machine. A machine that is not
+        running is started again under its new file instead."""
         out: dict[Path, Path] = {}
         for path, m in self.machines.items():
             if path is None or path in files or not m.running or m.supervisor.config is None:
@@ -652,10 +628,9 @@ class Host(ServiceHost):
         return [*self.retired, *self.machines.values()]
 
     def counted(self) -> list[Machine]:
-        """The fleet's machines, each once, by its latest attempt: the current ones (a file
-        each) and, of those a reload retired, the last of each machine whose name and file
-        no current one has (a file removed). A machine is its ``[machine] name``, not its
-        file: a file renamed, or tried again by a reload, is one machine."""
+        """The fleet's machines, each once, by its latest attempt: the current ones and, of
+        those a reload retired, the last of each machine whose name and file no current one
+        has. A file renamed, or tried again by a reload, is one machine."""
         current = list(self.machines.values())
         names = {m.name for m in current}
         paths = {m.path for m in current}
@@ -667,8 +642,8 @@ class Host(ServiceHost):
         return [*gone.values(), *current]
 
     def lost(self) -> dict[str, str]:
-        """Machine (file) -> why, for every machine lost (never started, or stopped on a
-        failure), by its latest attempt (:meth:`counted`)."""
+        """Machine (file) -> why, for every machine lost, by its latest attempt
+        (:meth:`counted`)."""
         return {f"{m.name} ({m.file})": m.lost for m in self.counted() if m.lost is not None}
 
     def problems(self) -> dict[str, list[str]]:
@@ -687,8 +662,7 @@ class Host(ServiceHost):
         return self.fleet_status().line(str(self.directory))
 
     def fleet_status(self) -> FleetStatus:
-        """A fleet's machines monitored and the degraded ones by name (its STATUS line's
-        content, and what a worker process reports to its host)."""
+        """A fleet's STATUS content (also what a worker process reports to its host)."""
         ms = list(self.machines.values())
         acq = [m.supervisor.config.acquisition for m in ms if m.supervisor.config is not None]
         return FleetStatus(monitored=sum(1 for m in ms if m.running), machines=len(ms),
@@ -742,8 +716,7 @@ class Host(ServiceHost):
 
     def summary(self) -> RunSummary:
         """The run's summary: a fleet of one's block (or why it did not run, for stderr); a
-        fleet's block per machine, each attempt a reload made, in file order, and the total
-        line."""
+        fleet's block per machine attempt, in file order, and the total line."""
         code = self.exit_status()
         if not self.fleet:
             m = self.only
@@ -792,9 +765,8 @@ def _machine_name(path: Path) -> str | None:
 
 
 def skipped(directory: Path) -> dict[str, str]:
-    """The entries of a machine directory that are not run, each with why: a link to nothing,
-    a ``*.toml`` that is not a file, any other name (an editor's backup, a ``.disabled`` file):
-    every entry is run, lost or named here."""
+    """The entries of a machine directory that are not run, each with why: every entry is
+    run, lost or named here."""
     out: dict[str, str] = {}
     try:
         entries = sorted(directory.iterdir())
@@ -811,8 +783,7 @@ def skipped(directory: Path) -> dict[str, str]:
 
 
 def warn_skipped(entries: dict[str, str], warned: set[tuple[str, str]]) -> None:
-    """Log each skipped entry of a machine directory (:func:`skipped`) once: when it is first
-    seen or its reason changed, not at every reload nor by every worker process."""
+    """Log each skipped entry of a machine directory (:func:`skipped`) once per reason."""
     for entry, why in entries.items():
         if (entry, why) not in warned:
             warned.add((entry, why))
@@ -835,9 +806,8 @@ list of :func:`reload_line`'s items): its host logs one line for every worker.""
 
 
 def reload_line(done: list[str], machines: int, directory: str) -> str:
-    """The one line a gateway logs per SIGHUP: what it did (``m1 reloaded
-    (diagnosis.library (faults.toml) changed)``, ``m3 started (m3.toml added)``...), or that
-    nothing changed."""
+    """The one line a gateway logs per SIGHUP: what it did (``m3 started (m3.toml added)``...),
+    or that nothing changed."""
     if done:
         return f"SIGHUP: {directory}: " + "; ".join(done)
     return (f"SIGHUP: {directory}: nothing changed ({machines} machines: their files and the "

@@ -5,9 +5,7 @@ not answer) buries the journal; twinwatch's own modules log each cause once.
 :class:`RepeatFilter`, attached to the handlers the CLI logs through (:func:`install`), lets the
 first ``burst`` identical messages of a third-party logger (same logger, level and text) through
 in every ``interval`` and counts the others; once the interval is over, one line from the same
-logger says how many were suppressed, with the next identical message or from :func:`flush`
-(the supervisor's acquisition loop, forced after a reload attempt and at stop). Records of
-``twinwatch`` loggers pass untouched.
+logger says how many were suppressed. Records of ``twinwatch`` loggers pass untouched.
 """
 
 from __future__ import annotations
@@ -41,12 +39,9 @@ class RepeatFilter(logging.Filter):
     """Let through the first ``burst`` identical third-party messages per ``interval``.
 
     Args:
-        burst: identical messages logged per interval (>= 1).
-        interval: the interval [s] (> 0).
         own: the logger hierarchy left alone (twinwatch's own).
         max_kinds: distinct messages tracked at once; beyond it the oldest are forgotten
             (after reporting what they suppressed).
-        clock: monotonic time [s] (tests).
 
     Raises:
         ValueError: ``burst`` < 1 or ``interval`` <= 0.
@@ -106,8 +101,7 @@ class RepeatFilter(logging.Filter):
 
     def flush(self, force: bool = False) -> None:
         """Report what was suppressed in the intervals that are over (``force``: in all, now)
-        and forget the finished ones. Cheap to call often: it looks at most once a second
-        unless forced."""
+        and forget the finished ones. Looks at most once a second unless forced."""
         now = self._clock()
         with self._lock:
             if not force and now < self._next_flush:
@@ -125,7 +119,6 @@ def install(handler: logging.Handler, **kwargs: Any) -> RepeatFilter:
     """Attach a :class:`RepeatFilter` to ``handler`` (once: an existing one is returned).
 
     Args:
-        handler: e.g. the stderr handler of ``logging.basicConfig``.
         **kwargs: :class:`RepeatFilter`'s arguments.
     """
     for f in handler.filters:

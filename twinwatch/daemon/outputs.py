@@ -35,12 +35,9 @@ class Outputs:
     """One daemon's outputs (registry name -> open sink), in the order each window is written.
 
     Args:
-        config: the daemon's configuration (its output tables).
-        model: the daemon's twin model (the outputs' units, parameters).
-        machine: the machine's name (the gate's history and outboxes are this machine's).
         pipeline: the window pipeline the outputs are written by (:meth:`wire`).
         roles: which roles open (``gate``, ``publisher``, ``recorder``).
-        run: returns the daemon's run id (a reload's daemon takes the running one's).
+        run: returns the daemon's run id.
         base_dir, work_dir, shared: the outputs' context (:func:`sink_context`).
 
     Attributes:
@@ -68,8 +65,8 @@ class Outputs:
     def open(self, reuse: dict[str, Sink], skip: Collection[str] = ()) -> set[str]:
         """Open the enabled outputs whose role is wanted, adopting the ``reuse``d ones that
         fit, in their ``open_order`` (every exclusive resource before any file is touched: a
-        second twinwatch in the same directory fails without harming the first); :attr:`sinks`
-        ends in writing order (the gate first). The outputs in ``skip`` are not opened (yet).
+        second twinwatch in the same directory fails without harming the first). The outputs
+        in ``skip`` are not opened (yet).
 
         Returns:
             The names of the adopted outputs.
@@ -98,8 +95,8 @@ class Outputs:
 
     def _adopt(self, wanted: list[OutputTable], reuse: dict[str, Sink]) -> set[str]:
         """Adopt the handed-over outputs whose table and context are unchanged (bound to this
-        daemon by :meth:`wire` once it takes over); one that does not fit is left to the
-        daemon that handed it over (it closes it). Returns the adopted names."""
+        daemon by :meth:`wire`); one that does not fit is left to the daemon that handed it
+        over. Returns the adopted names."""
         context = self.context(self.config, self.model)
         adopted: set[str] = set()
         for t in wanted:
@@ -119,8 +116,8 @@ class Outputs:
             self.sinks.pop(name, None)
 
     def wire(self, attach: bool = True) -> None:
-        """Give the open outputs to the pipeline (the gate first: stored before published);
-        with ``attach``, bind the adopted ones to this daemon (they serve its history)."""
+        """Give the open outputs to the pipeline; with ``attach``, bind the adopted ones to
+        this daemon."""
         if attach:
             for name in self.adopted:
                 self.sinks[name].attach(self._sink_context(has_gate=self.store is not None))
@@ -168,9 +165,8 @@ class Outputs:
                        limit: int | None = 1000, by: Literal["plant", "wall"] = "plant",
                        run: str | None = None, after: float | None = None
                        ) -> list[HealthView]:
-        """Stored health messages of this machine in a time range, of one run with ``run``
-        (the gate's :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state
-        database. The outputs ask it through their context (the Zenoh history query)."""
+        """Stored health messages of this machine (the gate's
+        :meth:`~twinwatch.sinks.base.Gate.history`); empty without a state database."""
         store = self.store
         if store is None:
             return []
@@ -216,8 +212,8 @@ class Outputs:
 
     # -- closing ----------------------------------------------------------------------------
     def close(self, keep: Container[str] = ()) -> dict[str, Sink]:
-        """Close the outputs in writing order reversed (the gate, the state database, last),
-        detaching those in ``keep`` instead (a reload hands them over). Idempotent.
+        """Close the outputs in writing order reversed (the gate last), detaching those in
+        ``keep`` instead (a reload hands them over). Idempotent.
 
         Returns:
             name -> output for the kept outputs.

@@ -10,18 +10,16 @@ docs/runtime.md, docs/architecture.md).
       -> sinks, in order: the gate (state store), then the others (Zenoh, Rerun, plug-ins)
       -> callbacks (the CLI's progress bar)
 
-The health message is typed and frozen: :meth:`WindowPipeline.process` builds the estimation's
-message first (what the diagnosis and alarms read), then the window's message once; it is
-encoded once and every sink writes the same text. Sinks share the
-:class:`~twinwatch.sinks.base.Sink` contract; "stored before published": a window the gate
+The health message is typed and frozen, encoded once; every sink writes the same text.
+"Stored before published": a window the gate
 (:attr:`~twinwatch.daemon.gatekeeper.GateKeeper.gate`) cannot store is not given to the
 publishers, its alarm events wait for the next stored window; the recorders still get it.
 
 Once :meth:`WindowPipeline.start` has started the ``twinwatch-outputs`` thread (a live source),
 the worker only estimates and hands each window through a bounded queue (:data:`OUTPUT_QUEUE`),
-so an output that waits (a locked state database: SQLite's busy timeout, 5 s) never holds up the
+so an output that waits (a locked state database) never holds up the
 estimation. While the gate's database is locked the windows wait in memory
-(:attr:`WindowPipeline.keeper`, a :class:`~twinwatch.daemon.gatekeeper.GateKeeper`, at most
+(:attr:`WindowPipeline.keeper`, at most
 :data:`HELD_MAX`), stored and then published oldest first. Without that thread the outputs are
 written from the caller's thread.
 """
@@ -65,15 +63,12 @@ HealthCallback = Callable[[HealthMessage], None]
 
 OUTPUT_QUEUE = 64
 """Processed windows waiting for the outputs' thread. Full only when an output is slower than
-the estimation (the gate's lock does not fill it: those windows wait in :data:`HELD_MAX`); the
-estimation worker then waits, and an overrun names that output (:meth:`WindowPipeline.
-backpressure`)."""
+the estimation; the estimation worker then waits (:meth:`WindowPipeline.backpressure`)."""
 
 MEMORY_TAIL = OUTPUT_QUEUE + 16
 """With a state store that reads back (:meth:`~twinwatch.sinks.store.StateStore.last_docs`),
 the health messages kept in memory: the store holds the rest of ``[acquisition] history``
-(:meth:`WindowPipeline.recent` reads it from there; more than the outputs' queue holds, so
-a window leaves memory after it was stored)."""
+(more than the outputs' queue holds, so a window leaves memory after it was stored)."""
 
 
 class WindowDigest(NamedTuple):
@@ -94,27 +89,17 @@ class WindowPipeline:
     """Adapt the twin to each window and hand the result to the sinks.
 
     Args:
-        adapter: the twin's estimation and discovery.
-        alarms: the alarm evaluator (restored from the state store by the daemon).
-        machine: machine name (the Zenoh key segment).
-        model_name: registry name of the twin model, for the health message.
-        run: the run id every health message carries (:attr:`run`).
         nominal: parameter -> nominal value the deviations are measured from.
         counters: returns the daemon's counters for the health message.
-        source: returns, for a window, what the source waited for (None when it delivered),
-            its silent messages and the device's own faults when the window's last sample was
-            read, for the health message's ``source``.
-        history: health messages kept in memory (:attr:`history`).
-        diagnoser: ranks the machine's fault modes each window (the message's ``diagnosis``);
-            None: no diagnosis.
+        source: returns the source's state when a window's last sample was read (the health
+            message's ``source``).
+        history: health messages kept (:attr:`history`).
+        diagnoser: ranks the machine's fault modes each window; None: no diagnosis.
 
     Attributes:
-        sinks: written in order for each window (the gate first: stored before published).
-        keeper: the gate (the sink that must take a window before the publishing sinks get
-            it: the state store, or None) and the windows held while another process locks
-            its database.
-        latest: the last health message (typed); ``history`` the last ``history`` of them.
-        windows_estimated: windows processed.
+        sinks: written in order for each window (the gate first).
+        keeper: the gate (the state store, or None) and the windows held while another
+            process locks its database.
         run: the run id of the messages (a reload's pipeline takes the running one's).
     """
 
@@ -140,8 +125,7 @@ class WindowPipeline:
         self.callbacks: list[HealthCallback] = []
         self.latest: HealthMessage | None = None
         #: the last ``history`` health messages as their JSON (a fraction of the typed
-        #: message's memory); :meth:`recent` types them. With a gate that reads back, only the
-        #: last :data:`MEMORY_TAIL` (the rest is stored)
+        #: message's memory); with a gate that reads back, only the last :data:`MEMORY_TAIL`
         self.history: deque[str] = deque(maxlen=history)
         self.history_size = history
         #: the last ``history`` windows' :class:`WindowDigest` (the run's summary)
@@ -171,8 +155,7 @@ class WindowPipeline:
     def stop(self, timeout: float) -> None:
         """Write the windows queued for the outputs, then stop their thread: windows waiting
         for a locked state database are waited for ``timeout`` seconds [wall], then left
-        in the store's backlog (its close writes them once more, or counts them lost) and
-        counted as not published."""
+        in the store's backlog and counted as not published."""
         thread, q = self._thread, self._queue
         if thread is None or q is None:
             return
@@ -195,7 +178,7 @@ class WindowPipeline:
     def backpressure(self) -> str | None:
         """Why the estimation worker waits on the outputs now (their queue is full, or, without
         the outputs' thread, one writes a window for more than a second), or None: what an
-        overrun's message names instead of the estimation's cost."""
+        overrun's message names."""
         writing = self._writing or self.keeper.writing
         if not self._blocked and (writing is None or self._thread is not None
                                   or time.monotonic() - writing[1] <= 1.0):
@@ -249,17 +232,14 @@ class WindowPipeline:
                 self._hold(got)
 
     def _hold(self, out: ProcessedWindow) -> None:
-        """A window behind the locked database: the keeper holds it to be stored and published
-        once the lock goes (beyond :data:`HELD_MAX`: not published); the recorders get it
-        now."""
+        """A window behind the locked database: the keeper holds it (beyond :data:`HELD_MAX`:
+        not published); the recorders get it now."""
         stored = self.keeper.hold(out)
-        # not held (False): the fan-out keeps its alarm events for the next stored window
         self._write_others(out, stored=stored)
 
     def _retry_held(self, give_up: bool) -> None:
         """One more attempt to store the held windows (:meth:`GateKeeper.retry`); stored:
-        published, oldest first; given up: their alarm events wait for the next stored
-        window."""
+        published, oldest first."""
         released = self.keeper.retry(give_up)
         if released is None:
             return
@@ -272,8 +252,7 @@ class WindowPipeline:
 
     # -- the windows ---------------------------------------------------------------------------
     def _deliver(self, out: ProcessedWindow) -> None:
-        """Write one processed window to every output: the gate first, then the others (the
-        publishers only if it was stored)."""
+        """Write one processed window to every output, the gate first."""
         stored = self.keeper.store(out, can_hold=self._thread is not None)
         self._write_others(out, stored=stored)
 
@@ -303,9 +282,8 @@ class WindowPipeline:
                 self._writing = None
 
     def _write(self, sink: Sink, out: ProcessedWindow) -> bool | None:
-        """``sink.write(out)``. An output that raises (a plug-in's bug) does not stop the
-        others: the window is counted in its ``lost`` (``twinwatch run`` exits 74), logged
-        once until it works again; for the gate it is a window not stored."""
+        """``sink.write(out)``. An output that raises does not stop the others: the window is
+        counted in its ``lost``, logged once until it works again."""
         try:
             result = sink.write(out)
         except Exception as exc:  # noqa: BLE001 - one output must not stop the others
@@ -323,9 +301,8 @@ class WindowPipeline:
 
     def _diagnose(self, reading: HealthMessage, window: WindowData,
                   result: AdaptationResult) -> DiagnosisHealth | None:
-        """The window's diagnosis: each fault mode's twin fitted on the window's data
-        (``result.fit``) beside the estimation's message; None without a diagnoser, or when
-        it failed (logged once, then at debug level: the window is published without one)."""
+        """The window's diagnosis; None without a diagnoser, or when it failed (logged once:
+        the window is published without one)."""
         if self.diagnoser is None:
             return None
         try:
@@ -342,9 +319,8 @@ class WindowPipeline:
 
     def _twin_state(self, result: AdaptationResult) -> TwinState | None:
         """What a restart resumes from: the accepted twin after a trusted window, with the
-        diagnosis' baseline and the evidence since its change point (every window while
-        there is a diagnoser: a fault's windows are often not trusted, and a restart
-        mid-fault must find its evidence)."""
+        diagnosis' state (every window while there is a diagnoser: a fault's windows are
+        often not trusted, and a restart mid-fault must find its evidence)."""
         if self.diagnoser is None:
             return self.adapter.state() if result.estimate.trusted else None
         return dataclasses.replace(self.adapter.state(), diagnosis=self.diagnoser.state())
@@ -365,8 +341,7 @@ class WindowPipeline:
 
     def _stored_docs(self) -> Callable[[str, str, int], list[str]] | None:
         """The gate's reader of stored messages (machine, run, limit -> JSON, oldest first),
-        None when the gate keeps none; the last gate's when the outputs are closed (the
-        history is read after the run: a closed store reads its file)."""
+        None when the gate keeps none; the last gate's when the outputs are closed."""
         reader = getattr(self.keeper.gate, "last_docs", None)
         if reader is not None:
             self._reader = reader
@@ -374,8 +349,7 @@ class WindowPipeline:
 
     def recent(self) -> list[HealthMessage]:
         """The last ``history`` health messages, typed, oldest first (safe while the worker
-        appends): those in memory, and before them, with a state store, the stored ones of
-        this run (a message both in memory and stored counts once)."""
+        appends): those in memory, and before them, with a state store, the stored ones."""
         with self._lock:
             kept = list(self.history)
         typed = [HealthMessage.model_validate_json(doc) for doc in kept]
@@ -399,8 +373,7 @@ class WindowPipeline:
             return list(self.digests)
 
     def process(self, window: WindowData) -> HealthMessage:
-        """Adapt the twin to one window (estimation, then discovery when needed), evaluate
-        the alarms, write the window to every sink, call the callbacks.
+        """Run one window through the pipeline (see the module docstring).
 
         Returns:
             The typed health message (its encoding is what the sinks wrote).

@@ -30,10 +30,9 @@ __all__ = ["continue_numbering", "note_fresh", "note_new_run", "replay_trends",
 
 
 def resumes(config: TwinwatchConfig, resume: bool | None) -> bool | None:
-    """Whether a daemon on ``config`` resumes from its state database: True (resume), False
-    (``resume=False``: start from the nameplate values, ``twinwatch run --fresh``), None (not
-    given and the source's time starts over when it opens,
-    :meth:`~twinwatch.drivers.base.Driver.time_starts_over`: a new run, :func:`note_new_run`).
+    """Whether a daemon on ``config`` resumes from its state database: ``resume`` when given;
+    else None when the source's time starts over when it opens (a new run,
+    :func:`note_new_run`), True otherwise.
     """
     from twinwatch.drivers import get_driver_class
 
@@ -47,17 +46,14 @@ def resumes(config: TwinwatchConfig, resume: bool | None) -> bool | None:
 def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvaluator,
             run: str | None = None, diagnoser: Diagnoser | None = None
             ) -> tuple[TwinState | None, dict[str, Any] | None]:
-    """Resume from the state database: the last accepted twin (trusted parameters and
-    meta-model terms) and the alarm levels of the last window. Both are read before either is
-    used: a corrupt database (moved aside by ``recover_corrupt``) resumes nothing. The trends
-    are replayed (:func:`replay_trends`) and one line says so (:func:`say_trend`); ``run``: the
-    daemon's run id (a reload goes on in the same run).
+    """Resume from the state database: the last accepted twin and the alarm levels of the last
+    window. Both are read before either is used: a corrupt database resumes nothing. The trends
+    are replayed (:func:`replay_trends`) and one line says so (:func:`say_trend`).
 
     Returns:
         ``(restored, resumed)``: the twin state given to the adapter (None when none was
         stored or it does not fit the configuration), and what was resumed for the start's
-        line (``path``, ``window``, ``t_end``, ``trusted``, ``terms``, ``alarms`` raised; None
-        when nothing was).
+        line (None when nothing was).
     """
     state = store.load_twin_state(machine)
     last = store.latest_health(machine)
@@ -108,18 +104,17 @@ def restore(store: Gate, machine: str, adapter: TwinAdapter, alarms: AlarmEvalua
 def replay_trends(store: Gate, machine: str, prognostics: Prognostics,
                   run: str | None = None) -> str:
     """Rebuild the parameters' trends from the evidence the stored windows published (the last
-    ``[prognostics] horizon`` seconds of plant time, on the time line that ends with the last
-    window: across earlier restarts, :meth:`~twinwatch.sinks.base.Gate.timeline`), read
-    through their typed views, so a restart resumes the trends and their RUL instead of
-    waiting ``min_evidence`` windows.
+    ``[prognostics] horizon`` seconds of plant time, across earlier restarts:
+    :meth:`~twinwatch.sinks.base.Gate.timeline`), so a restart resumes the trends and their RUL
+    instead of waiting ``min_evidence`` windows.
 
     Args:
         run: the resuming daemon's run id: windows of that run are "this run" (a reload's),
             the others "previous" (a restart's).
 
     Returns:
-        What was resumed, for :func:`say_trend`: ``resumed from 57 windows of the previous
-        run (Ra degrading: RUL 5.2 min to its alarm threshold)``, or ``not resumed: ...``.
+        What was resumed, for :func:`say_trend` (``resumed from 57 windows ...``, or ``not
+        resumed: ...``).
     """
     from twinwatch.twin.prognostics.rul import format_duration
 
@@ -158,11 +153,9 @@ def replay_trends(store: Gate, machine: str, prognostics: Prognostics,
 
 
 def say_trend(machine: str, last: HealthView, what: str) -> None:
-    """One line per machine at a restart: whether its trends were resumed (``motor-1: trend
-    resumed from 57 windows of the previous run (Ra degrading: RUL 5.2 min to its alarm
-    threshold)``) or why not. A warning, so the default log level shows it, when the last
-    stored window reported a parameter degrading (a restart mid-degradation: a RUL that did
-    not resume starts over from no evidence); else at info."""
+    """One line per machine at a restart: whether its trends were resumed or why not. A
+    warning when the last stored window reported a parameter degrading (a RUL that did not
+    resume starts over from no evidence); else at info."""
     degrading = any(p.trend is not None and p.trend.degrading
                     for p in (last.parameters or {}).values())
     level = logging.WARNING if degrading else logging.INFO
@@ -170,9 +163,8 @@ def say_trend(machine: str, last: HealthView, what: str) -> None:
 
 
 def note_fresh(store: Gate, machine: str) -> None:
-    """``twinwatch run --fresh``: the stored twin and trends are not resumed: say so (a
-    warning mid-degradation, :func:`say_trend`) when the database holds this machine's
-    earlier windows."""
+    """``twinwatch run --fresh``: say that the stored twin and trends are not resumed
+    (:func:`say_trend`) when the database holds this machine's earlier windows."""
     last = store.latest_health(machine)
     if last is None or store.recovered:
         return

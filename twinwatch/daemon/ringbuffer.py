@@ -12,16 +12,14 @@ become one :class:`~twinwatch.twin.model.WindowData`. Memory is allocated once. 
   the band: a clock at another rate) *jitter beyond tolerance*. A stamp before the previous
   one: *time stamp jumped backwards*; the previous stamp with other values: *time stamp
   repeated with other values* (that sample is dropped too). An exact duplicate is dropped and
-  counted (:attr:`RingBuffer.duplicates`, :attr:`RingBuffer.lost`). A band, not a distance
-  from the mean, because a poll clock's jitter is one-sided (a poll is late, never early):
-  polls on time or up to 9 ms late at ``T`` = 10 ms are kept, in whatever order.
+  counted. A band, not a distance from the mean, because a poll clock's jitter is one-sided
+  (a poll is late, never early).
 * a completed window is put on its grid ``t0 + k * T`` (``t0`` the mean offset); the stamps'
   residuals (:attr:`WindowData.stamp_jitter`, RMS and maximum) travel with it. Stamps within
   :data:`GRID_EXACT` periods of the grid are kept as they are.
 * up to ``max_missing_run`` missing samples in a row and ``max_missing`` of a window are
-  filled (zero-order hold, stamped at the band's centre; :attr:`RingBuffer.missing`,
-  :attr:`RingBuffer.windows_filled`); with both at 0 (this class's default) every missing
-  sample abandons its window.
+  filled (zero-order hold, stamped at the band's centre); with both at 0 (the default) every
+  missing sample abandons its window.
 * a longer gap, a stamp going back, jitter beyond tolerance, a missing channel or a NaN/inf
   abandons the partial window (logged once per reason); a fresh window starts at the next
   good sample.
@@ -76,11 +74,9 @@ class RingBuffer:
         jitter_tolerance: half the widest band a window's stamp offsets from their grid
             slots may span, in sample periods (0 < tolerance <= 0.5; see the module
             docstring).
-        first_index: index of the first window (a reload goes on from the last window of the
-            run instead of numbering from 0 again).
+        first_index: index of the first window (a reload goes on from the run's last).
         max_missing: the largest fraction of a window's samples that may be missing and
-            filled (held from the previous sample) instead of the window being abandoned
-            (0 <= fraction < 1; 0: none; a window of 200 at 0.05: 10 samples).
+            filled (0 <= fraction < 1; 0: none).
         max_missing_run: the most missing samples in a row that are filled [samples; 0:
             none].
 
@@ -147,8 +143,7 @@ class RingBuffer:
 
     def request_window(self, n: int) -> None:
         """Make the next window that starts ``n`` samples long (the adaptive window; called
-        from the worker thread: the length is read when a window starts, so a window never
-        changes length half-way).
+        from the worker thread: a window never changes length half-way).
 
         Raises:
             ValueError: ``n`` below 2 or above the ring's capacity.
@@ -282,10 +277,9 @@ class RingBuffer:
         return None
 
     def _repeated(self, t: float, values: Mapping[str, float]) -> bool:
-        """A sample stamped as the previous one: an exact duplicate is dropped and counted
-        (True); other values abandon the partial window and this sample too (True: neither
-        is known to be the plant's); after a sample that was not kept (a NaN, a missing
-        channel) it is taken as a new sample (False)."""
+        """A sample stamped as the previous one: True when it is dropped (an exact duplicate,
+        or other values: the partial window is abandoned too); False after a sample that was
+        not kept (it is taken as a new sample)."""
         if self._last_row is None:
             return False
         try:
@@ -324,12 +318,7 @@ class RingBuffer:
 
     def append(self, t: float, values: Mapping[str, float]) -> WindowData | None:
         """Add one sample (time stamp ``t`` [s] on the source's clock); return a completed
-        window, else None.
-
-        A few missing samples (``max_missing``, ``max_missing_run``) are filled with the
-        previous sample's values; a longer gap, a stamp that went back, jitter beyond the
-        tolerance, a missing channel, a non-finite value or a non-finite stamp abandons the
-        partial window (counted, logged once per reason).
+        window, else None (the rules: see the module docstring).
         """
         self.samples += 1
         if not math.isfinite(t):  # no slot on the grid: the sample and the partial window go
@@ -402,9 +391,8 @@ class RingBuffer:
     def _on_grid(self, stamps: np.ndarray, filled: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray | None]:
         """The window's times on its nominal grid ``t0 + k*T`` (``t0``: the mean offset of the
-        received samples' stamps) and the stamps' residuals from it [s] (0 at a filled slot,
-        which has no stamp of its own); the stamps themselves (and None) when they are on the
-        grid already."""
+        received samples' stamps) and the stamps' residuals from it [s] (0 at a filled slot);
+        the stamps themselves (and None) when they are on the grid already."""
         k = np.arange(stamps.shape[0], dtype=np.float64)
         period = self.sample_period
         rel = (stamps - stamps[0]) - k * period

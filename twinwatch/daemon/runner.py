@@ -13,11 +13,8 @@
     after a reload, the run id and the window numbering of a reload
 
 The caller's thread (the machine's) runs :meth:`Daemon.run`: it reads the driver, fills the ring
-buffer and hands each full window to the worker, never estimating. Stored before published (the
-gate first). Zenoh's threads answer the history query from the state database (one SQLite
-connection per thread, WAL).
-The daemon's public attributes and methods are what the supervisor, the host, the command line
-and the tests use; each part keeps its own state, the daemon forwards to it.
+buffer and hands each full window to the worker, never estimating.
+Each part keeps its own state; the daemon forwards to it.
 """
 
 from __future__ import annotations
@@ -83,49 +80,36 @@ class Daemon:
     """One machine's monitor.
 
     Args:
-        config: validated configuration.
         base_dir: directory relative paths in the config are resolved against (the config
             file's directory).
         driver: an already-open driver to use instead of the configured one (tests).
-        publish: open the outputs whose role is ``publisher`` (Zenoh, plug-ins; each only if
-            its table is enabled).
+        publish: open the outputs whose role is ``publisher`` (Zenoh, plug-ins).
         record: open the outputs whose role is ``recorder`` (the Rerun recording).
         persist: open the gate (the state database, if ``[state]`` is enabled): resume from
-            it, save every window, serve the history query (off by default; the CLI's on).
+            it, save every window, serve the history query.
         watchdog: the systemd watchdog gate (ticked by the acquisition, busy/idle by the worker).
         reuse: what a reload hands over from the running daemon (:meth:`handover`): open
-            outputs (registry name -> sink) adopted when they fit
-            (:meth:`~twinwatch.sinks.base.Sink.keeps`), and under ``"driver"`` its open driver.
+            outputs (registry name -> sink) and under ``"driver"`` its open driver.
             They stay the running daemon's until :meth:`continue_from` (a failed start leaves
             them open and bound to it).
         resume: restore the saved twin and alarm levels from the state database (False:
             ``twinwatch run --fresh``; a reload restores them in :meth:`continue_from`).
             None: resume unless the source's time starts over when it opens
-            (:meth:`~twinwatch.drivers.base.Driver.time_starts_over`: a new run,
-            :attr:`new_run`).
-        run_id: the run id every health message carries (a reload passes the running
-            daemon's: the same run goes on); None: a new one (:func:`new_run_id`).
+            (:meth:`~twinwatch.drivers.base.Driver.time_starts_over`).
+        run_id: the run id every health message carries; None: a new one (:func:`new_run_id`).
         defer: outputs (registry names) not to open yet (:meth:`handover`'s ``wait``):
             :meth:`open_deferred` opens them once the running daemon has released them.
         wait_for_source: a live source that cannot be opened now is waited for
             (:mod:`twinwatch.daemon.source`); False raises instead (a reload).
-        work_dir: the directory the files the outputs create are relative to; default the
-            working directory (a gateway: ``<working directory>/<machine>``).
-        slots: the estimation slots the worker takes a window's processing under (a
-            gateway's, shared by every machine; the first window staggered, ``[acquisition]
-            stagger``); None: no limit.
+        work_dir: the outputs' files are relative to it (default: the working directory).
+        slots: the estimation slots the worker processes a window under; None: no limit.
         shared: what the daemons of one process share (a gateway's
             :class:`~twinwatch.sinks.base.SharedResources`); None: each output opens its own.
         thread_prefix: the threads are ``<prefix>-adaptation`` and ``<prefix>-outputs``.
 
     Attributes:
-        acquisition, worker, pipeline, outputs: the parts
-            (:class:`~twinwatch.daemon.acquisition.Acquisition`,
-            :class:`~twinwatch.daemon.window_worker.WindowWorker`,
-            :class:`~twinwatch.daemon.pipeline.WindowPipeline`,
-            :class:`~twinwatch.daemon.outputs.Outputs`).
-        restored, resumed: what was resumed from the state database
-            (:func:`twinwatch.daemon.resume.restore`), or None.
+        acquisition, worker, pipeline, outputs: the parts (see the module docstring).
+        restored, resumed: what was resumed from the state database, or None.
         new_run: the stored windows not resumed because the source's time starts over
             (:func:`~twinwatch.daemon.resume.note_new_run`), or None.
 
@@ -249,9 +233,8 @@ class Daemon:
     def continue_from(self, previous: Daemon) -> None:
         """Take over from ``previous``, the daemon of the configuration before a reload, once
         it has finished its queued windows and released what it did not hand over
-        (:meth:`close` ``keep``): the adopted outputs are bound to this daemon, the window
-        numbering goes on (and the run: :attr:`run_id`), the twin and the alarm levels resume
-        from the state database."""
+        (:meth:`close` ``keep``): the adopted outputs, the run and its window numbering, the
+        twin and the alarm levels."""
         self.pipeline.run = previous.run_id
         continue_numbering(self.ring, previous.ring)
         if self.store is not None:
@@ -314,9 +297,8 @@ class Daemon:
 
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
-        """Call ``fn()`` from the acquisition loop: every
-        :data:`~twinwatch.daemon.acquisition.TICK_S` while samples arrive and after each read
-        that had none (so at least every 0.2 s)."""
+        """Call ``fn()`` from the acquisition loop at each of its ticks
+        (:data:`~twinwatch.daemon.acquisition.TICK_S`; at least every 0.2 s)."""
         self.acquisition.ticks.append(fn)
 
     def add_callback(self, fn: HealthCallback) -> None:
@@ -327,9 +309,8 @@ class Daemon:
         """Ask :meth:`run` to return after the current sample (thread- and signal-safe).
 
         Args:
-            at_window: return once the window being filled is complete instead (a reload: the
-                source goes on in the next daemon exactly where this one stopped), at most its
-                length plus :data:`STOP_AT_WINDOW_S` of wall time.
+            at_window: return once the window being filled is complete instead (a reload), at
+                most its length plus :data:`STOP_AT_WINDOW_S` of wall time.
         """
         self.acquisition.stop(at_window)
 
@@ -356,9 +337,7 @@ class Daemon:
         return c
 
     def problems(self) -> list[str]:
-        """What is degraded right now, for systemd's STATUS and the log (empty if nothing):
-        the source, the estimation, the diagnosis' check function, each output's
-        :attr:`~twinwatch.sinks.base.Sink.problem`."""
+        """What is degraded right now, for systemd's STATUS and the log (empty if nothing)."""
         out = []
         waiting, silent, faults = self.acquisition.source_state()
         if waiting:
@@ -376,17 +355,15 @@ class Daemon:
 
     def _submit(self, window: WindowData, block: bool) -> None:
         """Queue a completed window for the worker, with the source's state as its last
-        sample left it (the acquisition's thread)."""
+        sample left it."""
         with self._source_lock:
             self._source_at_window[window.index] = self.acquisition.source_state()
         self.worker.submit(window, block=block)
 
     def window_source_state(self, window: WindowData) -> tuple[str | None, list[str], list[str]]:
         """The source's state (:meth:`Acquisition.source_state`) when ``window``'s last sample
-        was read: a drive's fault, a silent message that began after it, is not said in its health
-        message, but in the next one's (on a simulated clock the acquisition runs windows
-        ahead of the estimation).
-        The state now for a window that was not submitted by :meth:`run`."""
+        was read (on a simulated clock the acquisition runs windows ahead of the estimation);
+        the state now for a window that was not submitted by :meth:`run`."""
         with self._source_lock:
             state = self._source_at_window.pop(window.index, None)
             for old in [k for k in self._source_at_window if k < window.index]:
@@ -394,8 +371,7 @@ class Daemon:
         return state if state is not None else self.acquisition.source_state()
 
     def windows_failed(self) -> int:
-        """Windows of this run that failed: numeric failures plus windows abandoned (gaps, bad
-        values, jitter beyond tolerance, time jumps, missing channels)."""
+        """Windows of this run that failed: numeric failures plus windows abandoned."""
         return self.numeric_failures + sum(self.ring.discarded.values())
 
     def mostly_failed(self) -> bool:
@@ -403,14 +379,12 @@ class Daemon:
         return self.windows_failed() > self.windows_estimated
 
     def lost(self) -> dict[str, int]:
-        """Windows estimated but lost, by output (its counter prefix: ``store`` never stored,
-        ``recording`` not recorded, ...). Nonzero values make ``twinwatch run`` exit with
-        status 74."""
+        """Windows estimated but lost, by output counter prefix (nonzero: ``twinwatch run``
+        exits 74)."""
         return self.outputs.lost()
 
     def summary(self) -> list[str]:
-        """The outputs' lines for the run's summary (where the windows went, what was lost),
-        in writing order."""
+        """The pipeline's and outputs' lines for the run's summary."""
         return [*self.pipeline.summary(), *self.outputs.summary()]
 
     def run(self, duration: float | None = None) -> int:
@@ -442,10 +416,9 @@ class Daemon:
             self.pipeline.stop(timeout)
 
     def process_window(self, window: WindowData) -> HealthMessage:
-        """Adapt the twin to one window and write it to the sinks (the pipeline's
-        :meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`); with the adaptive window,
-        the ring buffer's next window takes the length it asks for. Returns the typed health
-        message."""
+        """Process one window (:meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`); with
+        the adaptive window, the ring buffer's next window takes the length it asks for. Returns
+        the typed health message."""
         health = self.pipeline.process(window)
         acq = health.acquisition
         if acq is not None and acq.next_window is not None:
@@ -453,9 +426,7 @@ class Daemon:
         return health
 
     def close(self, keep: Container[str] = ()) -> dict[str, Sink]:
-        """Stop everything and release the driver, then the outputs
-        (:meth:`~twinwatch.daemon.outputs.Outputs.close`), after the worker has drained.
-        Idempotent.
+        """Drain the worker, then release the driver and the outputs. Idempotent.
 
         Args:
             keep: the outputs (registry names; :data:`SINKS` for all) and ``"driver"`` to

@@ -10,8 +10,7 @@ strategy, one of two hosts:
 * :class:`~twinwatch.daemon.workers.ProcessHost`: a directory's machines in worker processes,
   each one a :class:`~twinwatch.daemon.host.Host` on the machine files it is assigned.
 
-A strategy implements the abstract methods (one turn of the loop, health, ``STATUS``, the stop,
-why a run failed). The command line holds one ``ServiceHost`` and only prints what it returns; a
+The command line holds one ``ServiceHost`` and only prints what it returns; a
 worker reports to its host in typed messages (:class:`FleetStatus`, :class:`RunSummary`).
 """
 
@@ -132,7 +131,6 @@ class Progress:
     """A fleet of one's progress, for a bar at the terminal.
 
     Attributes:
-        name: the machine's name.
         total: the source time the run covers [s] (None: open-ended).
         add_callback: registers a function called with each window's typed message (in the
             machine's worker thread).
@@ -160,9 +158,8 @@ class ServiceHost(ABC):
     """The service: the loop, the signals, systemd, the stop, the summary and the exit status
     (see the module docstring).
 
-    Use: :meth:`start` (raises :class:`~twinwatch.errors.ConfigError` when there is nothing to
-    run), :meth:`notices` and :meth:`progress` for the terminal, :meth:`run` until every machine
-    ended or a stop, then :meth:`summary`.
+    Use: :meth:`start`, :meth:`notices` and :meth:`progress` for the terminal, :meth:`run`
+    until every machine ended or a stop, then :meth:`summary`.
 
     Signals, installed by :meth:`start` in the main thread: SIGTERM/SIGINT call :meth:`stop` (a
     second one :meth:`abandon`), SIGHUP :meth:`reload`; once a stop was requested they stay
@@ -178,13 +175,11 @@ class ServiceHost(ABC):
 
     Attributes:
         fleet: a directory of machines (one block per machine in the summary).
-        notifier: the process's systemd notifier.
     """
 
     fleet: bool
     notifier: Notifier
-    #: the level the stop signals are logged at: a gateway's worker process logs them at
-    #: debug only (its host, which forwarded them, says it once for the gateway)
+    #: the level the stop signals are logged at (a worker process: debug; its host logs them)
     signal_log_level: int = logging.WARNING
 
     #: seconds between two turns of the loop
@@ -215,8 +210,8 @@ class ServiceHost(ABC):
 
     def run(self) -> None:
         """Supervise until every machine has ended or a stop; act on SIGHUP; keep ``STATUS``
-        and the watchdog. Stops every machine before returning, and tells systemd how the run
-        ended (``STATUS=stopped: ...``) when it failed."""
+        and the watchdog. Stops every machine before returning (``STATUS=stopped: ...`` when
+        the run failed)."""
         from twinwatch.daemon import logfilter
 
         try:
@@ -249,9 +244,8 @@ class ServiceHost(ABC):
             self._refresh_status()
 
     def _stop_all(self) -> None:
-        """Stop every machine: ``STOPPING=1``, systemd's stop timeout extended to the longest
-        grace [s] the machines need plus 10 s, each asked to stop, each waited for until the
-        grace plus 5 s."""
+        """Stop every machine, systemd's stop timeout extended to :meth:`_grace` plus 10 s;
+        each is waited for until the grace plus 5 s."""
         self.notifier.stopping("stopping: the machines finish their queued windows"
                                if self.fleet else "stopping: finishing the queued windows")
         grace = self._grace()
@@ -303,9 +297,7 @@ class ServiceHost(ABC):
 
     @abstractmethod
     def exit_status(self) -> int:
-        """The process's exit status once :meth:`run` returned: 78 when no machine's
-        configuration could run, 1 when a machine was lost, else the worst machine's 74
-        (estimated windows lost) or 75 (more windows failed than estimated), else 0."""
+        """The process's exit status once :meth:`run` returned (:func:`worst_exit`)."""
 
     @abstractmethod
     def summary(self) -> RunSummary:
@@ -316,8 +308,7 @@ class ServiceHost(ABC):
         """A second stop: every machine abandons its queued windows."""
 
     def notices(self) -> list[str]:
-        """Lines for the terminal once started (a fleet of one: what it resumed, or why it
-        starts a new run)."""
+        """Lines for the terminal once started."""
         return []
 
     def progress(self) -> Progress | None:
@@ -343,7 +334,7 @@ class ServiceHost(ABC):
 
     def _restore_signal_handlers(self) -> None:
         if threading.current_thread() is not threading.main_thread() or self._stop_signals:
-            # stopping: a late SIGTERM must find our handler (see the class)
+            # a late SIGTERM must find our handler (see the class)
             return
         for signum, handler in self._previous_handlers.items():
             signal.signal(signum, handler)

@@ -3,10 +3,7 @@
 A process that runs many machines (:class:`~twinwatch.daemon.host.Host`, or one of its worker
 processes) gives every machine's window worker the same :class:`EstimationSlots`: a worker
 processes a window only while it holds a slot, so a window's estimation is not stretched by
-dozens of others competing for the GIL (the rest wait in their machine's queue, the wait
-recorded in :attr:`~twinwatch.daemon.runner.Daemon.queue_waits`). A slot held longer than
-``stuck_after`` (a window stuck in the optimiser) no longer counts, so one stuck machine cannot
-starve the others.
+dozens of others competing for the GIL (the rest wait in their machine's queue).
 """
 
 from __future__ import annotations
@@ -43,13 +40,11 @@ class EstimationSlots:
     """At most ``size`` windows processed at once across the machines of a gateway.
 
     A worker calls :meth:`acquire` before a window and :meth:`release` after it. A slot held
-    for more than ``stuck_after`` seconds stops counting (its window is stuck: a machine's
-    optimiser that does not return), so the other machines go on with one more slot; it is
-    listed by :meth:`stuck`.
+    for more than ``stuck_after`` seconds stops counting (its window is stuck), so one stuck
+    machine cannot starve the others; it is listed by :meth:`stuck`.
 
     Args:
         size: slots (>= 1), normally the cores (:func:`default_workers`).
-        stuck_after: seconds after which a held slot no longer counts [s].
         clock: monotonic clock (tests inject one).
     """
 
@@ -70,15 +65,13 @@ class EstimationSlots:
         return sum(1 for _, t in self._held.values() if now - t < self.stuck_after)
 
     def _wake_head(self) -> None:
-        """Wake the first in line, only it (the lock held): the others have nothing to do
-        until they are first (waking every waiter cost thread switches)."""
+        """Wake the first in line, only it (the lock held)."""
         if self._line:
             self._line[0][1].set()
 
     def acquire(self, holder: str, cancelled: Callable[[], bool] | None = None) -> int | None:
-        """Wait for a slot (the worker's thread), first come first served (a machine cannot be
-        overtaken for ever by the others); returns the token :meth:`release` takes, or None
-        once ``cancelled()`` is true (checked every 0.5 s: the machine is closing)."""
+        """Wait for a slot (the worker's thread), first come first served; returns the token
+        :meth:`release` takes, or None once ``cancelled()`` is true (checked every 0.5 s)."""
         wake = threading.Event()
         with self._lock:
             self._next += 1

@@ -6,17 +6,16 @@
 
 * at start, a source that cannot be opened (:class:`~twinwatch.errors.DriverInitializationError`,
   an ``OSError``) is retried in its own thread (``twinwatch-source``) with a capped, jittered
-  exponential backoff (0.5 s doubling up to ``[acquisition] reopen_max``, each delay drawn in
-  [50 %, 100 %] of the step) until it opens or the daemon stops; meanwhile READY is sent,
-  STATUS and the health message say what it waits for (:attr:`SourceKeeper.waiting`). A
+  exponential backoff (0.5 s doubling up to ``[acquisition] reopen_max``) until it opens or
+  the daemon stops; meanwhile READY is sent, STATUS and the health message say what it waits
+  for (:attr:`SourceKeeper.waiting`). A
   :class:`~twinwatch.errors.DriverConfigError` or a finite source still fails at once;
 * at a reload (``wait=False``) one attempt is made: a failure fails the reload;
 * while running, a driver that gives up (:class:`~twinwatch.errors.DriverOperationError`) is
   closed and opened again with the same backoff; reads return None meanwhile after their
   timeout.
 
-The counters of every driver the keeper opened add up (:attr:`stats`; the published ones never
-go back), plus ``open_failures`` and ``reopens``.
+The counters of every driver the keeper opened add up (:attr:`stats`; they never go back).
 """
 
 from __future__ import annotations
@@ -53,14 +52,12 @@ class SourceKeeper(Driver):
     """A live source's driver, opened with retries and reopened when it fails.
 
     Args:
-        open_driver: opens the driver (the registry's ``create_driver`` for the configuration);
-            raises on failure.
+        open_driver: opens the driver; raises on failure.
         config: the ``[driver]`` table (for the channels and the period before it opens).
         describe: the source for a person (``"can socketcand can0@10.0.0.7:29536"``).
         wait: a source that cannot open at once is retried in the background (at start);
             False: the first failure is raised (a reload).
         backoff_max: cap of the delay between attempts [s].
-        rng: the jitter's random generator (tests).
 
     Raises:
         DriverConfigError: the configuration is at fault (never retried).
@@ -194,9 +191,9 @@ class SourceKeeper(Driver):
         return sample
 
     def _take_opened(self) -> Driver | None:
-        """The driver the opener thread has opened (the source is back), or None. The outage
-        lasts until it delivers a sample: a bus that opens but stays silent (its interface
-        up, no frame) fails again without a second ERROR line."""
+        """The driver the opener thread has opened, or None. The outage lasts until it
+        delivers a sample (a bus that opens but stays silent fails again without a second
+        ERROR line)."""
         with self._lock:
             self._ready.clear()
             inner = self._inner
@@ -247,8 +244,7 @@ class SourceKeeper(Driver):
 
     def _refused(self, exc: DriverConfigError) -> None:
         """The source answers but refuses the configuration (a server reconfigured while the
-        daemon waited: another security policy, a user removed): at ERROR once per reason,
-        naming the key; the keeper goes on trying (the configuration is reloaded by SIGHUP)."""
+        daemon waited): at ERROR once per reason, naming the key; the keeper goes on trying."""
         line = exc.keyed()
         if line != self._refusal:
             self._refusal = line
@@ -317,11 +313,7 @@ def open_source(config: DriverConfig, *, base_dir: Path, wait: bool = True,
     directly.
 
     Args:
-        config: the validated ``[driver]`` table.
-        base_dir: what relative paths in it are relative to.
-        wait: a live source that cannot open at once is waited for (at start); False raises
-            (a reload).
-        backoff_max: cap of the delay between attempts to open it [s].
+        wait, backoff_max: as :class:`SourceKeeper`'s.
 
     Raises:
         DriverConfigError: the configuration is at fault.

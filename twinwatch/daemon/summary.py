@@ -1,10 +1,9 @@
 """The run's summary as text: what ``twinwatch run`` prints when it ends (docs/getting-started.md,
-"What `twinwatch run` prints"), made from what a machine's daemon kept: its typed health
-messages, the windows' digests, its counters and its outputs' own lines.
+"What `twinwatch run` prints"), made from what a machine's daemon kept.
 
 The service host (:class:`~twinwatch.daemon.host.Host`) puts these lines into its
-:class:`~twinwatch.daemon.service.RunSummary`; the command line prints them. Every function here
-returns lines (no trailing newline) and writes nothing.
+:class:`~twinwatch.daemon.service.RunSummary`. Every function here returns lines and writes
+nothing.
 """
 
 from __future__ import annotations
@@ -52,10 +51,8 @@ def new_run_line(daemon: Daemon) -> str:
 
 
 def machine_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
-    """A machine's summary block: the windows estimated and lost, the source, the last
-    window's parameters, trends, alarms, diagnosis and structure, the model check, the times,
-    each output's own lines (where it wrote, what it lost) and, last, why the run's exit
-    status is 74 or 75 when it is."""
+    """A machine's summary block, ending with why the run's exit status is 74 or 75 when it
+    is."""
     c = daemon.counters()
     causes = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in daemon.ring.causes.items()
                        if n)
@@ -91,10 +88,8 @@ def failed_line(daemon: Daemon) -> str:
 
 EPOCH_PLANT_TIME = 1e9
 """A plant time from this many seconds on is a wall clock, seconds since the epoch (a CAN log's
-or a bus adapter's frame stamps, ``time_source = "frame"``; 1e9 s is 2001-09-09): the summary
-shows it as a UTC clock time rather than a ten-digit number of seconds. A plant's own clock
-(a simulated plant, a recording's time column, a sample counter) starts near 0 and stays far
-below it (1e9 s is 31.7 years)."""
+or a bus adapter's frame stamps, ``time_source = "frame"``): the summary shows it as a UTC
+clock time. A plant's own clock starts near 0 and stays far below it (1e9 s is 31.7 years)."""
 
 
 def _utc(t: float, fmt: str) -> str:
@@ -106,8 +101,7 @@ def _utc(t: float, fmt: str) -> str:
 
 def plant_span(t_start: float, t_end: float) -> str:
     """A window's plant time for a person: ``1198.00-1199.99 s``, or, for a source stamped by
-    a wall clock (see :data:`EPOCH_PLANT_TIME`), ``2026-11-21 10:00:58.00-10:01:00.00 UTC``
-    (the end's date when it differs)."""
+    a wall clock (see :data:`EPOCH_PLANT_TIME`), ``2026-11-21 10:00:58.00-10:01:00.00 UTC``."""
     if abs(t_start) < EPOCH_PLANT_TIME:
         return f"{t_start:.2f}-{t_end:.2f} s"
     same_day = _utc(t_start, "%Y-%m-%d") == _utc(t_end, "%Y-%m-%d")
@@ -139,7 +133,7 @@ def window_lines(last: HealthMessage) -> list[str]:
 
 def _trend_lines(last: HealthMessage) -> list[str]:
     """One line per parameter with a trend: where it is going, and when it crosses its alarm
-    rule's thresholds (twinwatch.twin.prognostics)."""
+    rule's thresholds."""
     from twinwatch.twin.health import trend_line
 
     lines = [line for name, p in last.parameters.items() if (line := trend_line(name, p))]
@@ -148,8 +142,7 @@ def _trend_lines(last: HealthMessage) -> list[str]:
 
 
 def _diagnosis_lines(last: HealthMessage) -> list[str]:
-    """The diagnosis: the most probable fault, its probability and the action
-    (twinwatch.twin.diagnosis); ``twinwatch explain`` gives the evidence."""
+    """The diagnosis: the most probable fault, its probability and the action."""
     from twinwatch.twin.health import developing_line, diagnosis_line
 
     line = diagnosis_line(last.diagnosis)
@@ -161,7 +154,7 @@ UNINFORMED_PCT = 50.0
 """A fused relative standard error [%, 1 sigma] from which a held parameter is said not to be
 determined across the windows: the fusion's default prior on the nameplate value
 (``[estimation.fusion] initial_std`` 0.5), which a parameter no window informed keeps, or
-exceeds as its level wanders (the README's run: J +- 540 % after 600 windows)."""
+exceeds as its level wanders."""
 
 
 def _value(value: float | None) -> str:
@@ -187,8 +180,7 @@ def _status(p: ParameterHealth) -> str:
 
 
 def _pct(x: float) -> str:
-    """A relative error [%] to two significant digits, without an exponent from 100 up
-    (``100``, not ``1e+02``: a held parameter no window informed shows the fusion's prior)."""
+    """A relative error [%] to two significant digits, without an exponent from 100 up."""
     two = f"{x:.2g}"
     return f"{float(two):.0f}" if "e+" in two else two
 
@@ -271,8 +263,8 @@ def _wait_lines(daemon: Daemon) -> list[str]:
 
 
 def _source_lines(cfg: TwinwatchConfig, daemon: Daemon) -> list[str]:
-    """What the source delivered and what was lost of it, by reason, with the cause when no
-    window could be completed."""
+    """What the source delivered and lost, by reason, with the cause when no window could be
+    completed."""
     ring = daemon.ring
     lost = sum(ring.lost.values())
     window = cfg.acquisition.window

@@ -1,9 +1,7 @@
 """One machine's lifecycle: start, reload with fallback, sink handover, stop (docs/service.md).
 
 :class:`Supervisor` runs one machine for the service host (:class:`~twinwatch.daemon.host.Host`,
-which owns the signals, systemd, the summary and the exit status). It never touches signal
-handlers; the host calls :meth:`Supervisor.stop` and :meth:`Supervisor.reload`. In the
-machine's thread it
+which owns the signals, systemd, the summary and the exit status). In the machine's thread it
 
 * opens every daemon in a thread of its own (``twinwatch-start``, ``twinwatch-reload``): a
   stop requested meanwhile abandons the opening (closed once open) and returns at once.
@@ -11,13 +9,9 @@ machine's thread it
   ``EXTEND_TIMEOUT_USEC``) and marks the watchdog through the daemon.
 * on SIGHUP, re-reads the configuration while acquisition goes on. An invalid one is refused
   (logged, naming the key). A valid one is built beside the running daemon, sharing the driver
-  (``[driver]`` unchanged) and the outputs whose
-  :meth:`~twinwatch.sinks.base.Sink.reload_key` is unchanged; an output holding a file or port
-  (:meth:`~twinwatch.sinks.base.SinkConfig.exclusive_resources`) is opened once the old one
-  released it (:meth:`Daemon.handover`). If it cannot start, the running daemon goes on
-  untouched; else the running daemon stops at its next window boundary, finishes its queued
-  windows, and the new one continues the window numbering, resumes the twin and alarm levels
-  and reads on from the same source.
+  and the outputs whose table is unchanged (:meth:`Daemon.handover`). If it cannot start, the
+  running daemon goes on untouched; else the running daemon stops at its next window boundary,
+  finishes its queued windows, and the new one continues the run from the same source.
 * rate-limits third-party log floods (:mod:`twinwatch.daemon.logfilter`).
 
 The supervisor never reads files itself: ``load`` returns the validated configuration.
@@ -97,9 +91,7 @@ class _Build:
 
     Args:
         open_daemon: opens the daemon (raises on failure).
-        keep: names (:data:`~twinwatch.daemon.runner.HANDOVER`) shared with the running daemon.
-        config: the configuration being started.
-        name: the thread's name.
+        keep: output names (and ``"driver"``) shared with the running daemon.
     """
 
     def __init__(self, open_daemon: Callable[[], Daemon], *, keep: tuple[str, ...],
@@ -135,8 +127,7 @@ class _Build:
         return self._done.wait(timeout)
 
     def abandon(self) -> None:
-        """Nobody will run the daemon: close it now, or as soon as it is open (what it shares
-        with the running daemon stays open)."""
+        """Nobody will run the daemon: close it now, or as soon as it is open."""
         with self._lock:
             self._abandoned = True
             daemon, self.daemon = self.daemon, None
@@ -151,22 +142,20 @@ class Supervisor:
         load: returns the validated configuration (called at :meth:`start` and at each
             SIGHUP); raises ``ValueError`` (:class:`~twinwatch.config.loader.ConfigError`)
             naming the bad key.
-        base_dir: directory relative paths in the configuration are resolved against.
         source: how to name the configuration in messages (its path).
-        resume: as the :class:`~twinwatch.daemon.runner.Daemon`'s, at start (``--fresh``:
-            False, ``--resume``: True); a reload always resumes, in the same run.
+        resume: as the :class:`~twinwatch.daemon.runner.Daemon`'s, at start; a reload always
+            resumes, in the same run.
         notifier: where systemd's notifications go (default: the process's own, from
             ``NOTIFY_SOCKET``; a gateway's machines: their host).
         watchdog: the watchdog its daemons tick and mark busy/idle (default: one on the
-            notifier; a gateway's machines: one the host reads).
-        work_dir, slots, shared: handed to every :class:`~twinwatch.daemon.runner.Daemon`.
-        thread_prefix: prefixes the names of the opening threads (``twinwatch-start``).
+            notifier).
+        base_dir, work_dir, slots, shared: handed to every
+            :class:`~twinwatch.daemon.runner.Daemon`.
 
     Attributes:
         config: the running configuration (after :meth:`start`).
         daemon: the running daemon, also after :meth:`run` returned (closed; its counters
             and history stay readable for the summary).
-        notifier: the systemd notifier (a no-op outside systemd).
     """
 
     def __init__(self, load: Callable[[], TwinwatchConfig], *, base_dir: Path,
@@ -192,8 +181,7 @@ class Supervisor:
         self._next: _Build | None = None  # a reload's daemon, open: takes over at the boundary
         self._resume = resume
         self._problems: list[str] = []
-        # the worker thread (after each window) and the acquisition loop (every second) both
-        # report the problems: read, compare, keep and send them as one step
+        # the worker thread and the acquisition loop both report the problems (one step)
         self._problems_lock = threading.Lock()
         self._next_status = 0.0
 
@@ -203,9 +191,8 @@ class Supervisor:
         systemd ``READY=1``.
 
         Raises:
-            ValueError: the configuration is invalid (from ``load``; systemd's status says so).
-            Stopped: a stop was requested before the daemon had started (the opening is
-                abandoned: what it opens is closed when it returns).
+            ValueError: the configuration is invalid (from ``load``).
+            Stopped: a stop was requested before the daemon had started.
             StartError: the daemon cannot start.
         """
         try:
@@ -242,8 +229,7 @@ class Supervisor:
               resume: bool | None = None, defer: tuple[str, ...] = (),
               run_id: str | None = None, wait_for_source: bool = True) -> Daemon:
         """A daemon on ``cfg`` (driver and sinks open, the twin's kernels compiled), with the
-        reload tick and callbacks; ``run_id`` None starts a new run (a reload passes the
-        running one's). Runs in a :class:`_Build`'s thread.
+        reload tick and callbacks. Runs in a :class:`_Build`'s thread.
 
         Raises:
             StartError: a device, port, file or the state database cannot be opened.
@@ -265,9 +251,8 @@ class Supervisor:
         return daemon
 
     def _refresh_status(self) -> None:
-        """Acquisition-loop tick (main thread, at most once a second): STATUS follows what the
-        source waits for or lacks and whether windows are estimated, also while no window
-        completes (the callback below runs only after an estimated window)."""
+        """Acquisition-loop tick, at most once a second: STATUS follows the problems also while
+        no window completes."""
         now = time.monotonic()
         if now < self._next_status:
             return
@@ -276,8 +261,7 @@ class Supervisor:
 
     def _watch_problems(self, health: HealthMessage | None) -> None:
         """After each window (worker thread) and every second (main thread): systemd's STATUS
-        follows what is degraded (the source waited for or silent, windows not estimated, the
-        state database not writable, the recording stopped), and returns to normal."""
+        follows :meth:`Daemon.problems`."""
         daemon, cfg = self.daemon, self.config
         if daemon is None or cfg is None:
             return
@@ -327,7 +311,6 @@ class Supervisor:
             new_cfg = self._load()
             keep, defer = self._handover(new_cfg)
         except (ValueError, KeyError) as exc:  # invalid, or its machine's model cannot be built
-            # one line, whatever the error's (a ConfigError lists one key a line)
             logger.error("reload refused, the running configuration goes on: %s",
                          one_line(str(exc)))
             self.notifier.ready(status=f"reload refused ({str(exc).splitlines()[-1].strip()}); "
@@ -344,10 +327,8 @@ class Supervisor:
                              keep=keep, config=new_cfg, name=f"{self._prefix}-reload")
 
     def _handover(self, new_cfg: TwinwatchConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
-        """What the running daemon hands to one on ``new_cfg`` (its driver when the ``[driver]``
-        table is unchanged, the outputs whose table is unchanged), and the outputs the new
-        daemon may open only once the old one has released them (same file or port, another
-        table): :meth:`Daemon.handover`."""
+        """``(keep, defer)``: :meth:`Daemon.handover`, plus the driver when the ``[driver]``
+        table is unchanged."""
         assert self.daemon is not None and self.config is not None
         keep, wait = self.daemon.handover(new_cfg)
         if self.daemon.driver is not None and self.config.driver == new_cfg.driver:
@@ -408,9 +389,8 @@ class Supervisor:
 
     # -- run ----------------------------------------------------------------------------------
     def run(self, duration: float | None = None) -> None:
-        """Acquire and estimate until the source ends, ``duration`` seconds of source time
-        have been acquired, or a stop signal; restart the daemon on each valid reload. Closes
-        the daemon before returning.
+        """Run the daemon until the source ends, ``duration`` seconds of source time, or a stop;
+        a valid reload's daemon takes over. Closes the daemon before returning.
 
         Raises:
             StartError: after a reload, neither the new nor the previous configuration could
@@ -437,8 +417,8 @@ class Supervisor:
 @contextlib.contextmanager
 def _start_errors() -> Iterator[None]:
     """Turn what opening a daemon raises for a missing device, port or file into
-    :class:`StartError` (each says what failed and what to do; a traceback would add
-    nothing); a driver's configuration error is marked as such (``run`` exits 78)."""
+    :class:`StartError` (a traceback would add nothing); a driver's configuration error is
+    marked as such (``run`` exits 78)."""
     from twinwatch.errors import DriverConfigError, DriverError, PluginError, SinkError
 
     try:

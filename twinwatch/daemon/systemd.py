@@ -8,11 +8,10 @@ assignments per notification: ``READY=1``, ``STATUS=...``, ``WATCHDOG=1``, ``REL
 ``EXTEND_TIMEOUT_USEC=``. Outside systemd (no ``$NOTIFY_SOCKET``) every call is a no-op.
 
 Not a library: ``systemd-python`` needs libsystemd headers and a C compiler on the target;
-``sdnotify`` swallows every exception, connects once and knows nothing of the watchdog interval
-or ``MONOTONIC_USEC``. The protocol is :meth:`Notifier.notify`, tested against a real socket.
+``sdnotify`` swallows every exception and knows nothing of the watchdog or ``MONOTONIC_USEC``.
 
 Errors never propagate: a monitoring daemon must not stop because systemd did not hear it. The
-first failure is logged as a WARNING, later ones at DEBUG (the watchdog will say the rest).
+first failure is logged as a WARNING, later ones at DEBUG.
 """
 
 from __future__ import annotations
@@ -40,20 +39,17 @@ class Notifier:
 
     Args:
         env: environment to read ``NOTIFY_SOCKET``, ``WATCHDOG_USEC`` and ``WATCHDOG_PID`` from
-            (default ``os.environ``; tests pass a dict).
+            (default ``os.environ``).
         unset_environment: remove those variables from ``os.environ`` after reading them, so
             child processes do not notify on our behalf (as ``sd_notify(1, ...)``).
 
     Attributes:
-        enabled: a notification socket was given (we run under ``Type=notify``).
         watchdog_usec: ``WatchdogSec=`` in microseconds, or None when the watchdog is off or
-            meant for another process (``WATCHDOG_PID`` differs from our pid).
+            meant for another process.
         dropped: notifications dropped because the manager's queue was full.
 
     Thread-safe: each notification is one ``sendto`` under a lock, never blocking the caller
-    on a full queue (``net.unix.max_dgram_qlen``: 10 datagrams by default). A state change is
-    tried for up to :data:`STATE_WAIT` seconds; a watchdog ping or a STATUS line that finds the
-    queue full is dropped, counted in ``dropped`` and logged once per episode.
+    on a full queue beyond :data:`STATE_WAIT`.
     """
 
     def __init__(self, *, env: Mapping[str, str] | None = None,
@@ -152,8 +148,7 @@ class Notifier:
 
     # -- the messages twinwatch sends --------------------------------------------------------
     def ready(self, status: str | None = None) -> bool:
-        """``READY=1``: start-up finished (drivers, publisher and recorder open), or a reload
-        finished. systemd starts units ordered after us only now."""
+        """``READY=1``: start-up or a reload finished."""
         return self.notify("READY=1", *self._status(status))
 
     def status(self, text: str) -> bool:
@@ -167,7 +162,6 @@ class Notifier:
     def reloading(self, status: str | None = None) -> bool:
         """``RELOADING=1`` with ``MONOTONIC_USEC``: a reload (SIGHUP) started. Send
         :meth:`ready` when the new configuration runs (or the old one was kept)."""
-        # CLOCK_MONOTONIC [us]: the clock systemd compares MONOTONIC_USEC with
         usec = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
         return self.notify("RELOADING=1", f"MONOTONIC_USEC={usec}",
                            *self._status(status))
@@ -178,7 +172,7 @@ class Notifier:
 
     def extend_timeout(self, seconds: float) -> bool:
         """``EXTEND_TIMEOUT_USEC``: ask for ``seconds`` more before systemd's start/stop
-        timeout fires (e.g. while the worker finishes queued windows on stop)."""
+        timeout fires."""
         return self.notify(f"EXTEND_TIMEOUT_USEC={max(0, int(seconds * 1e6))}")
 
     @staticmethod
@@ -205,22 +199,18 @@ class Watchdog:
     """When to send ``WATCHDOG=1``: from the acquisition loop, at the notifier's interval, and
     only while windows are being processed.
 
-    The acquisition loop calls :meth:`tick` (:data:`~twinwatch.daemon.acquisition.TICK_S`, and
-    after each empty read), so a hung driver read or a dead main loop stops the pings; the
-    worker calls :meth:`busy` before and :meth:`idle` after each window. The pings stop (and
-    systemd restarts the service) when the worker has been in one window for more than
-    ``max_busy`` seconds, or, with ``require_windows`` (``[acquisition] watchdog =
+    The acquisition loop calls :meth:`tick`, so a hung driver read or a dead main loop stops
+    the pings; the worker calls :meth:`busy` before and :meth:`idle` after each window. The
+    pings stop (and systemd restarts the service) when the worker has been in one window for
+    more than ``max_busy`` seconds, or, with ``require_windows`` (``[acquisition] watchdog =
     "windows"``), no window has finished for more than ``max_quiet`` seconds, unless the driver
-    reports it is recovering the source (:attr:`source_waiting`). With ``watchdog = "alive"``
-    a silent source is reported and waited for instead.
+    reports it is recovering the source (:attr:`source_waiting`).
 
     Args:
-        notifier: where to send the pings.
         max_busy: seconds one window may take before the worker counts as stuck (default
-            ``WatchdogSec=``, twice the ping interval).
+            ``WatchdogSec=``).
         max_quiet: seconds without a finished window before the pings stop (default
             ``WatchdogSec=``); counted from the first :meth:`tick`, so start-up has as long.
-        require_windows: stop the pings when no window finishes for ``max_quiet`` seconds.
         clock: monotonic clock (tests inject one).
     """
 
@@ -239,8 +229,7 @@ class Watchdog:
         self._last_window: float | None = None
         self._why_logged: str | None = None
         self.pings = 0
-        #: returns True while the driver is recovering a source it reports as absent
-        #: (:attr:`~twinwatch.drivers.base.Driver.waiting`): the pings go on (STATUS says it)
+        #: True while the driver recovers its source (``Driver.waiting``): the pings go on
         self.source_waiting: Callable[[], bool] = lambda: False
 
     @property
@@ -257,8 +246,7 @@ class Watchdog:
         self._last_window = self._clock()
 
     def reset(self) -> None:
-        """Restart the quiet clock (a reload restarts the daemon: its first window needs a
-        window's worth of samples again)."""
+        """Restart the quiet clock (a reload's first window needs a window of samples)."""
         self._last_window = self._clock()
 
     def _unhealthy(self) -> tuple[str, str] | None:
@@ -295,8 +283,7 @@ class Watchdog:
         return now - self._last_window
 
     def healthy(self) -> bool:
-        """False while the worker is stuck in one window or, with ``require_windows``, no
-        window has finished for more than ``max_quiet`` seconds."""
+        """False while the pings must stop (see the class)."""
         return self._unhealthy() is None
 
     def tick(self) -> bool:

@@ -1,16 +1,14 @@
 """The window worker: the thread that processes each window the acquisition completes.
 
-:func:`make_pipeline` builds what a window goes through (the
-:class:`~twinwatch.daemon.pipeline.WindowPipeline`: the twin's estimation, discovery and
-prognostics, :class:`~twinwatch.twin.adaptation.TwinAdapter`; the health message; the
-diagnosis; the alarms). :class:`WindowWorker` runs it, one window at a time, in its own thread
-(``<prefix>-adaptation``), so acquisition is never blocked by the optimiser.
+:func:`make_pipeline` builds what a window goes through
+(:class:`~twinwatch.daemon.pipeline.WindowPipeline`). :class:`WindowWorker` runs it, one window
+at a time, in its own thread (``<prefix>-adaptation``), so acquisition is never blocked by the
+optimiser.
 
 Between the acquisition and the worker a bounded queue: for a live source a full queue drops
 the window as an *overrun* (counted in every health message); on a simulated clock the
 acquisition waits instead. In a gateway a window is processed under one of the process's
-estimation slots (:class:`~twinwatch.daemon.slots.EstimationSlots`), its wait part of the
-window's queue wait.
+estimation slots (:class:`~twinwatch.daemon.slots.EstimationSlots`).
 """
 
 from __future__ import annotations
@@ -53,10 +51,8 @@ systemd's STATUS whether estimation works *now* (:meth:`WindowWorker.estimation_
 
 def make_diagnoser(config: TwinwatchConfig, model: TwinModel,
                    nominal: Mapping[str, float]) -> Diagnoser | None:
-    """The machine's diagnosis (``[diagnosis]``): its fault library (shipped for the model,
-    extended by the configuration) as hypothesis twins of ``model`` at this machine's
-    baseline (:class:`~twinwatch.twin.diagnosis.Diagnoser`); None when off or when the model
-    has no fault mode."""
+    """The machine's diagnosis (``[diagnosis]``, :class:`~twinwatch.twin.diagnosis.Diagnoser`);
+    None when off or when the model has no fault mode."""
     d = config.diagnosis
     if not d.enabled:
         return None
@@ -74,9 +70,7 @@ def make_pipeline(config: TwinwatchConfig, model: TwinModel, nominal: Mapping[st
                   run: str, counters: Callable[[], Mapping[str, int]],
                   source: Callable[[WindowData], tuple[str | None, list[str], list[str]]]
                   ) -> WindowPipeline:
-    """The window pipeline of a daemon on ``config``: the twin's adapter (estimation,
-    discovery, prognostics, the adaptive window), the alarms (and the fault alarms of the
-    diagnosis) and the diagnosis, on ``model`` with the ``nominal`` parameter values; its
+    """The window pipeline of a daemon on ``config``: adapter, alarms and diagnosis; its
     outputs are given later (:meth:`twinwatch.daemon.outputs.Outputs.wire`)."""
     acq = config.acquisition
     adapter = TwinAdapter(model, config.estimation, config.discovery, nominal,
@@ -99,18 +93,12 @@ class WindowWorker:
     """The thread that processes the windows the acquisition submits, one at a time.
 
     Args:
-        machine: the machine's name (its log lines, its estimation slot).
-        process: processes one window (the daemon's
-            :meth:`~twinwatch.daemon.runner.Daemon.process_window`); what it raises is contained
-            to the window (a numeric failure, logged once per kind).
+        process: processes one window; what it raises is contained to the window (a numeric
+            failure, logged once per kind).
         backpressure: names the output that holds up the worker, or None (an overrun's message).
-        stopping: set when the daemon was asked to stop (with :attr:`abandon`, the queued
-            windows are dropped).
-        queue_size: windows waiting between the acquisition and the worker
-            (``[acquisition] queue``).
+        stopping: set when the daemon was asked to stop.
         slots: the estimation slots a window's processing is taken under (a gateway); None: no
             limit.
-        watchdog: marked busy and idle around each window.
         abandon: drop the windows still queued once a stop was asked
             (``[acquisition] abandon_on_stop``; a second SIGTERM sets it).
 
@@ -118,11 +106,10 @@ class WindowWorker:
         queue_waits: seconds each of the last :data:`QUEUE_WAITS` windows waited from its
             submission to the start of its processing (the queue, and a gateway's slot).
         overruns: windows of a live source dropped because the queue was full.
-        numeric_failures: windows whose processing raised.
         dropped_at_stop: windows queued at a stop that the worker did not reach within the
             shutdown timeout.
-        recent_outcomes: the last :data:`RECENT_WINDOWS` outcomes: "estimated", "failed"
-            (numeric failure), "abandoned" (gap, bad value, ...), "overrun".
+        recent_outcomes: the last :data:`RECENT_WINDOWS` outcomes: "estimated", "failed",
+            "abandoned", "overrun".
     """
 
     def __init__(self, *, machine: str, process: Callable[[WindowData], object],
@@ -187,8 +174,7 @@ class WindowWorker:
         self.recent_outcomes.extend(["abandoned"] * min(n, RECENT_WINDOWS))
 
     def drain(self, timeout: float) -> None:
-        """Stop the worker after the windows already queued, bounded by ``timeout`` seconds
-        (``[acquisition] shutdown_timeout``)."""
+        """Stop the worker after the windows already queued, bounded by ``timeout`` seconds."""
         if self._thread is None:
             return
         deadline = time.monotonic() + timeout
@@ -201,8 +187,7 @@ class WindowWorker:
                     break
         self._thread.join(timeout=max(0.0, deadline - time.monotonic()))
         if self._thread.is_alive():
-            # the outputs close next: the worker takes no further window (one it is in the
-            # middle of cannot be stopped; its outputs count it as lost if they are closed)
+            # the outputs close next: the worker takes no further window
             self._closing = True
             logger.warning("%s: adaptation worker did not finish within %.0f s: the windows "
                            "still queued are dropped", self.machine, timeout)
@@ -250,9 +235,9 @@ class WindowWorker:
                     self.watchdog.idle()
 
     def _window_failed(self, exc: Exception | None, index: int) -> None:
-        """A window's failure is logged once, then counted: the same failure again (its type
-        and message) only adds to the count; a different one, or the first window estimated
-        again, is logged with how many times the previous one repeated."""
+        """A window's failure is logged once, then counted: the same failure again only adds
+        to the count; a different one, or the first window estimated again, is logged with
+        how many times the previous one repeated."""
         key = None if exc is None else f"{type(exc).__name__}: {exc}"
         last, repeats = self._failure
         if key is not None and key == last:
@@ -274,8 +259,7 @@ class WindowWorker:
 
     def estimation_problem(self) -> str | None:
         """A line when at least half of the last windows (at least 3 of at most
-        :data:`RECENT_WINDOWS`) were not estimated (numeric failures, abandoned: gaps, bad
-        values, jitter, time jumps; overruns), else None."""
+        :data:`RECENT_WINDOWS`) were not estimated, else None."""
         recent = list(self.recent_outcomes)
         bad = [o for o in recent if o != "estimated"]
         if len(recent) < 3 or 2 * len(bad) < len(recent):
@@ -286,8 +270,7 @@ class WindowWorker:
 
 
 def _power_of_ten(n: int) -> bool:
-    """Whether ``n`` is 10, 100, 1000, ...: the counts at which a repeated condition is said
-    again."""
+    """Whether ``n`` is 10, 100, 1000, ..."""
     while n >= 10 and n % 10 == 0:
         n //= 10
     return n == 1

@@ -7,15 +7,14 @@ With ``twinwatch run DIR --workers N`` (default: one per core) :class:`ProcessHo
 * **down**: the assignment file (rewritten atomically, then SIGHUP), SIGHUP, SIGTERM (a second
   one abandons the queued windows);
 * **up**, typed (:mod:`twinwatch.daemon.service`), never prose: systemd's notification protocol
-  on a datagram socket per worker (``READY=1``, a
-  :class:`~twinwatch.daemon.service.FleetStatus` in ``TWINWATCH_FLEET=`` beside ``STATUS=``,
-  ``WATCHDOG=1``, ``STOPPING=1``), the worker's
+  on a datagram socket per worker (a :class:`~twinwatch.daemon.service.FleetStatus` in
+  ``TWINWATCH_FLEET=`` beside ``STATUS=``), the worker's
   :class:`~twinwatch.daemon.service.RunSummary` as one JSON document on its stdout, its log
   lines on the host's stderr, and its exit status.
 
-A worker that dies (a signal ended it) is started again at once with ``--resume``; one that
-dies 5 times within 120 s is given up (its machines are lost). One that ended by itself is
-started again only by a SIGHUP that finds its machines not running. One that sends nothing for
+A worker that a signal ended is started again at once with ``--resume``, at most
+:data:`RESTART_LIMIT` times within :data:`RESTART_WINDOW` s, then given up (its machines are
+lost). One that ended by itself is started again only by a SIGHUP. One that sends nothing for
 a window plus :data:`STALL_MARGIN` is **stalled** (not monitored, no watchdog ping, exit 74) and
 after ``[acquisition] stalled_restart`` seconds (0: never) killed and started with ``--resume``.
 
@@ -70,7 +69,7 @@ RESTART_WINDOW = 120.0
 
 STALL_MARGIN = 5.0
 """Seconds beyond one window (its machines' longest) a worker may send its host nothing before
-it is stalled: a worker sends its :class:`FleetStatus` every second from its main loop."""
+it is stalled (it sends its :class:`FleetStatus` every second)."""
 
 DEFAULT_WINDOW = 2.0
 """The window [s] assumed for a worker that has not reported its own (the default 200 x 10 ms)."""
@@ -88,10 +87,8 @@ OPCUA_ENDPOINT = "opc.tcp://127.0.0.1:4840"
 
 def session_keys(path: Path) -> tuple[str, ...]:
     """What ties a machine file to others, each key a resource one process must hold for
-    every machine that names it (the module's "Placement"): its ``[zenoh]`` table when Zenoh
-    is on, its ``[outputs.opcua]`` endpoint, its ``[outputs.sparkplug]`` edge node; else its
-    machine's name (two files naming one machine: one process decides which runs); the file
-    itself when it cannot be read."""
+    every machine that names it (the module's "Placement"); else its machine's name (two files
+    naming one machine: one process decides which runs); the file itself when unreadable."""
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
@@ -118,8 +115,8 @@ def session_keys(path: Path) -> tuple[str, ...]:
 
 
 def session_groups(paths: Sequence[Path]) -> dict[Path, str]:
-    """Each file's group: files that share any of :func:`session_keys` (a Zenoh table, an
-    OPC UA endpoint) form one group, transitively; a group cannot be split over processes."""
+    """Each file's group: files that share any of :func:`session_keys` form one group,
+    transitively; a group cannot be split over processes."""
     parent: dict[str, str] = {}
 
     def find(k: str) -> str:
@@ -143,7 +140,6 @@ def place(files: Sequence[Path], current: Sequence[Sequence[Path]], n: int) -> l
     a file of a session group goes where its group is, the others to the worker with fewest.
 
     Args:
-        files: the directory's machine files.
         current: each worker's files so far (may be shorter than ``n``).
         n: workers (>= 1).
     """
@@ -174,10 +170,6 @@ def worker_processes(directory: Path, workers: int | None) -> int:
     """The worker processes a directory's machines run in: ``workers`` (default
     :func:`~twinwatch.daemon.slots.default_processes`), at most one per session group; 1 for a
     directory of fewer than two machines.
-
-    Args:
-        directory: the machine configurations (``*.toml``).
-        workers: ``--workers`` (>= 1), or None.
     """
     from twinwatch.daemon.slots import default_processes
 
@@ -191,10 +183,6 @@ def worker_processes(directory: Path, workers: int | None) -> int:
 class Worker:
     """One worker process of a :class:`ProcessHost`: its assignment, its notification socket,
     its process (started again when it dies) and what it said.
-
-    Args:
-        index: its number (0..).
-        host: the host.
     """
 
     def __init__(self, index: int, host: ProcessHost) -> None:
@@ -264,8 +252,7 @@ class Worker:
                     len(self.files))
 
     def _read(self, proc: subprocess.Popen[str]) -> None:
-        """Read the worker's stdout to its end: its summary, one JSON document (a killed
-        worker writes none)."""
+        """Read the worker's stdout to its end: its summary, one JSON document."""
         assert proc.stdout is not None
         out = proc.stdout.read()
         if not out.strip():
@@ -346,12 +333,9 @@ class ProcessHost(ServiceHost):
     docstring): the :class:`~twinwatch.daemon.service.ServiceHost` contract.
 
     Args:
-        directory: the machine configurations (``*.toml``).
         workers: worker processes (>= 2).
-        work_root: each machine's files go to ``<work_root>/<machine name>/``.
-        resume: as :class:`~twinwatch.daemon.host.Host`'s (a restarted worker resumes).
-        duration: each machine stops after this many seconds of source time.
-        log_level: the workers' log level.
+        work_root, resume, duration: as :class:`~twinwatch.daemon.host.Host`'s (a restarted
+            worker resumes).
         slots: estimation slots per worker (default: the cores shared out, at least 1).
     """
 
@@ -373,8 +357,7 @@ class ProcessHost(ServiceHost):
             1, default_workers() // workers)
         self.run_dir = Path(tempfile.mkdtemp(prefix="twinwatch-host-"))
         self.workers: list[Worker] = []
-        # a SIGHUP's one line, once every worker signalled said what it did: (deadline, the
-        # workers signalled, what the host itself did)
+        # (deadline, the workers signalled, what the host itself did) of a pending SIGHUP
         self._reload_pending: tuple[float, list[Worker], list[str]] | None = None
         self._warned: set[tuple[str, str]] = set()
 
@@ -417,8 +400,7 @@ class ProcessHost(ServiceHost):
 
     # -- run: the loop's turn (ServiceHost.run) ------------------------------------------------
     def _turn(self) -> bool:
-        """Read the workers, start again one that a signal ended, watch for a stalled one, say
-        what a SIGHUP did; True while a worker runs."""
+        """One turn over the workers; True while a worker runs."""
         for w in self.workers:
             w.drain()
             self._check(w)
@@ -427,8 +409,7 @@ class ProcessHost(ServiceHost):
         return any(w.alive() for w in self.workers)
 
     def _check(self, w: Worker) -> None:
-        """A worker that a signal ended is started again (its machines resume); one that
-        ended by itself is left (its machines' sources finished)."""
+        """A worker that a signal ended is started again; one that ended by itself is left."""
         if (w.proc is None or w.alive() or w.given_up is not None or self._stop.is_set()
                 or w.ended):
             return
@@ -444,9 +425,8 @@ class ProcessHost(ServiceHost):
         self._restart(w, code)
 
     def _restart(self, w: Worker, code: int) -> None:
-        """A worker ended by signal ``-code``: started again (its machines resume from their
-        state databases), unless it ended so more than :data:`RESTART_LIMIT` times within
-        :data:`RESTART_WINDOW` seconds: then given up, its machines lost."""
+        """A worker ended by signal ``-code``: started again, unless it ended so more than
+        :data:`RESTART_LIMIT` times within :data:`RESTART_WINDOW` seconds."""
         assert w.proc is not None
         try:
             name = signal.Signals(-code).name
@@ -470,9 +450,8 @@ class ProcessHost(ServiceHost):
         w.start(resume=True)
 
     def _watch(self, w: Worker) -> None:
-        """A worker alive that sent nothing for a window plus a margin is stalled (a stopped
-        or frozen process is alive): reported at once; killed and started again after its
-        ``stalled_restart`` (the restart :meth:`_check` does for a killed worker)."""
+        """A worker alive that sent nothing for :meth:`Worker.stall_limit` is stalled: reported
+        at once; killed after its ``stalled_restart`` (:meth:`_check` restarts it)."""
         if not w.alive() or not w.ready or self._stop.is_set():
             w.stalled_since = None
             return
@@ -506,9 +485,8 @@ class ProcessHost(ServiceHost):
         return any(w.healthy(interval) for w in self.workers)
 
     def _rescan(self) -> None:
-        """SIGHUP: place the directory's files again (a file keeps its worker, a new one goes
-        to the fewest), write each worker's assignment, and SIGHUP the workers (each starts,
-        stops and reloads its machines); a worker that ended and has machines is started."""
+        """SIGHUP: place the directory's files again (:func:`place`), write each worker's
+        assignment, and SIGHUP the workers; a worker that ended and has machines is started."""
         self.notifier.reloading("re-reading the machine directory")
         placed = place(self.files(), [w.files for w in self.workers], self.n)
         signalled: list[Worker] = []
@@ -582,7 +560,7 @@ class ProcessHost(ServiceHost):
     # -- what to report -----------------------------------------------------------------------
     def fleet_status(self) -> FleetStatus:
         """The workers' machines summed from their reports, the degraded ones by name; a
-        worker that has not reported is named (given up, not running, starting)."""
+        worker that has not reported is named."""
         running = total = 0
         degraded: list[str] = []
         for w in self.workers:
@@ -610,10 +588,7 @@ class ProcessHost(ServiceHost):
             f"{self.directory}; {sum(w.alive() for w in self.workers)} worker processes")
 
     def summary(self) -> RunSummary:
-        """Each machine's block, in file order (a machine summarised by two of its worker's
-        incarnations, or twice by one, e.g. lost and tried again by a reload: by the last; a
-        killed incarnation gives none; a given-up worker's machines are lost), and the total
-        line."""
+        """Each machine's last block, in file order, and the total line."""
         machines = self._machine_summaries()
         counted = self._counted(machines)
         lost = [f"{m.name} ({m.file}): {m.lost}" for m in counted if m.lost is not None]
@@ -642,18 +617,15 @@ class ProcessHost(ServiceHost):
 
     def _counted(self, machines: list[MachineSummary]) -> list[MachineSummary]:
         """The machines counted once each: a machine is its name, not its file (a file
-        renamed, its machine summarised under both names by two incarnations of its worker,
-        counts once, by its current file)."""
+        renamed counts once, by its current file)."""
         current = {p.name for w in self.workers for p in w.files}
         names = {m.name for m in machines if m.file in current}
         gone = {m.name: m for m in machines if m.file not in current and m.name not in names}
         return [m for m in machines if m.file in current] + list(gone.values())
 
     def exit_status(self) -> int:
-        """The worst of the workers' (their last incarnations'): 78 when every worker's every
-        machine had an invalid configuration, 1 when a machine was lost (or a worker given
-        up), else 74 (also when a worker stalled: its machines' windows meanwhile were not
-        estimated) before 75 before 0."""
+        """The worst of the workers' last exit statuses; 1 when a worker was given up, 74 when
+        a worker stalled (its machines' windows meanwhile were not estimated)."""
         if any(w.given_up is not None for w in self.workers):
             return 1
         code = worst_exit(w.codes[-1] for w in self.workers if w.codes)
@@ -662,7 +634,6 @@ class ProcessHost(ServiceHost):
         return code
 
     def abandon(self) -> None:
-        """A second stop signal: each worker gets its second SIGTERM (it abandons its queued
-        windows)."""
+        """A second stop signal: each worker gets its second SIGTERM."""
         for w in self.workers:
             w.send(signal.SIGTERM)

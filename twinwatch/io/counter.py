@@ -10,8 +10,7 @@ reading:
 * ``"duplicate"``: the same value again (a repeated frame, a poll faster than the device
   samples): skip it;
 * ``"stale"``: a few steps back (at most :attr:`SampleCounter.reorder`): a frame that arrived
-  late, after a newer one (a gateway or a bus adapter reordered them): skip it, keeping the
-  count;
+  late, after a newer one: skip it, keeping the count;
 * ``"reset"``: further back, or stale readings several times in a row (:attr:`streak`): the
   device restarted; the count restarts from the new value.
 
@@ -36,8 +35,7 @@ class SampleCounter:
         modulus: the counter wraps modulo this (``2**bits``); None for a counter that does not
             wrap (a float or signed signal).
         reorder: the largest step back taken as a late frame (default 8 samples, at most a
-            quarter of the modulus: a gateway or an adapter reorders frames within a burst;
-            further back is a restart).
+            quarter of the modulus; further back is a restart).
         streak: stale readings in a row that mean a restart, not reordering (default 3).
 
     Attributes:

@@ -30,23 +30,19 @@ loop's output is the armature voltage; the current loop ticks every ``current_pe
 **Integrator and filter methods** (``integrator_method``, ``filter_method``; MATLAB's Discrete
 PID Controller block: ``C(z) = kp + ki*Fi(z) + kd*N/(1 + N*Fd(z))``, each formula ``Fi``, ``Fd``
 one of forward Euler ``T/(z - 1)``, backward Euler ``T*z/(z - 1)`` or trapezoidal
-``(T/2)*(z + 1)/(z - 1)``; the Discrete-Time Integrator's realisations ``y(n) = x(n) +
-c*K*T*u(n)``, ``x(n+1) = x(n) + K*T*u(n)``). In the update above ``c_i`` (the integrator's)
-and ``c_d`` (the derivative filter's) are 0 for ``forward_euler`` (the output uses the state
-before this tick's error: today's default), 1 for ``backward_euler`` (it includes this tick's
-error: a firmware that integrates before it computes its output, ``u = kp*e + ki*T*sum of e``
-up to and including this tick) and 1/2 for ``trapezoidal``; the state update is the same for
-all three. With "clamping" the decision uses ``u_pid`` as computed (this tick's increment
-included) and a clamped tick adds nothing to the state.
+``(T/2)*(z + 1)/(z - 1)``). In the update above ``c_i`` (the integrator's)
+and ``c_d`` (the derivative filter's) are 0 for ``forward_euler`` (the default), 1 for
+``backward_euler`` (a firmware that integrates before it computes its output) and 1/2 for
+``trapezoidal``; the state update is the same for all three. With "clamping" the decision uses
+``u_pid`` as computed and a clamped tick adds nothing to the state.
 
 **Initial state of a window.** A twin starts every window from the measured state; the controller's
 integrator is recovered from the measured output of the window's first tick (``I = u - kp*e -
 c_i*ki*T*e - kff*r - d``; exact when a tick falls on the sample, which ``phase`` aligns).
-While the output sits at a limit the integrator cannot be recovered from it: the twin then
-drives the plant with the measured (limited) output until the first sample whose output is
-inside the limits, and restarts from the measured state there. The derivative filter starts at
-rest (``f = kd*e``); with a current loop the speed loop's integrator is recovered from the
-channel ``current_reference``.
+While the output sits at a limit, the twin drives the plant with the measured output until the
+first sample inside the limits, and restarts from the measured state there. The derivative
+filter starts at rest (``f = kd*e``); with a current loop the speed loop's integrator is
+recovered from the channel ``current_reference``.
 """
 
 from __future__ import annotations
@@ -90,10 +86,8 @@ class LoopConfig(StrictTable):
         feedforward: reference feed-forward gain kff [output unit per reference unit] (e.g. the
             back-EMF constant for a speed loop driving a voltage).
         action: ``reverse`` (e = r - y) or ``direct`` (e = y - r).
-        integrator_method: how the integral is discretised (MATLAB's "Integrator method"):
-            ``forward_euler`` (default: the output uses the integral up to the previous tick),
-            ``backward_euler`` (up to and including this tick) or ``trapezoidal``.
-        filter_method: the same for the derivative's filter (MATLAB's "Filter method").
+        integrator_method, filter_method: how the integral and the derivative's filter are
+            discretised (MATLAB's "Integrator method", "Filter method"; module docstring).
     """
 
     kp: StrictFloat = Field(0.0, allow_inf_nan=False)
@@ -144,11 +138,10 @@ class DriveConfig(StrictTable):
     """A DC motor drive: speed loop, optional inner current loop, update period.
 
     Attributes:
-        period: controller update period [s]: a whole number of integration sub-steps; the
-            output is held between updates. None: every sub-step (an ideal fast drive: the
-            paper's plant).
+        period: controller update period [s]: a whole number of integration sub-steps. None:
+            every sub-step (an ideal fast drive: the paper's plant).
         phase: time of the first update after t = 0 [s], in [0, period) (the drive's clock
-            against the acquisition's; 0 when they are aligned).
+            against the acquisition's).
         speed: the speed loop (reference: the set-point [rad/s]; feedback: omega [rad/s];
             output: Va [V], or the current reference [A] with a current loop). Default: the
             paper's PI, Kp 0.3, Ki 0.1, unlimited.
@@ -216,17 +209,15 @@ class ValveDriveConfig(StrictTable):
     """The valve controller as it runs (table ``drive``; :mod:`twinwatch.io.drive` semantics).
 
     One update every ``period`` from the position ``x`` [m] (feedback) and the reference
-    ``x_ref`` [m]; the area [m^2] it computes is held until the next update (zero-order hold)
-    and clamped to the loop's limits, by default the valve's own range [0, A_max].
+    ``x_ref`` [m]; the area [m^2] it computes is held until the next update and clamped to the
+    loop's limits, by default the valve's own range [0, A_max].
 
     Attributes:
         period: update period [s], a whole number of integration steps; None: every step (the
             paper's plant, Eq. 17 with Ts the integration step).
         phase: time of the first update after t = 0 [s], in [0, period).
-        valve: the PID (:class:`~twinwatch.io.drive.LoopConfig`); the keys a table leaves
-            out take the paper's values (:data:`PAPER_VALVE_LOOP`: Kp 0.000346, Ki 3.513406,
-            Kd 0.000119, N 2.076743, clamping, action ``direct``); ``output_min`` None: 0,
-            ``output_max`` None: A_max (the valve's largest area).
+        valve: the PID (:class:`LoopConfig`); the keys a table leaves out take
+            :data:`PAPER_VALVE_LOOP`'s values.
     """
 
     period: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)
@@ -265,8 +256,8 @@ class ValveDriveConfig(StrictTable):
                 a_max if v.output_max is None else v.output_max)
 
     def pack(self, a_max: float) -> FloatArray:
-        """The loop for a compiled kernel (:data:`twinwatch.io.drive.PACKED` order), its
-        limits resolved with :meth:`limits`."""
+        """The loop for a compiled kernel (:data:`PACKED` order), its limits resolved with
+        :meth:`limits`."""
         packed = self.valve.pack()
         packed[4], packed[5] = self.limits(a_max)
         return packed

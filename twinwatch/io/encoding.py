@@ -38,8 +38,7 @@ def to_jsonable(value: Any) -> Any:
     if isinstance(value, Mapping):
         return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, np.ndarray):
-        # numbers all finite (the saved twin's fusion mean and covariance, every window):
-        # ``tolist`` is already plain JSON, 110 recursive calls less for a 10 x 10 covariance
+        # numbers all finite (the saved twin's covariance, every window): ``tolist`` suffices
         if value.dtype.kind in "biu" or (value.dtype.kind == "f"
                                          and bool(np.isfinite(value).all())):
             return value.tolist()

@@ -2,10 +2,7 @@
 (:mod:`twinwatch.drivers.modbus`, which reads registers) and the simulated Modbus plant
 (:mod:`twinwatch.plant.modbus_server`, which serves them).
 
-A value lives at a 0-based protocol address (the PDU address) of the input (function code 4)
-or holding (function code 3) table, as ``int16``/``uint16`` (one register) or
-``int32``/``uint32``/``float32`` (two registers, ``word_order`` big = high word first); bytes
-inside a register are big-endian. The conversion is pymodbus' own
+Bytes inside a register are big-endian. The conversion is pymodbus' own
 :meth:`~pymodbus.client.mixin.ModbusClientMixin.convert_from_registers` /
 ``convert_to_registers``, imported on first use (so loading a configuration does not load
 pymodbus).
@@ -128,10 +125,8 @@ class ModbusRegister(StrictTable):
         return float(value)
 
     def encode(self, raw: float) -> tuple[list[int], bool]:
-        """Encode the raw number into :attr:`count` registers.
-
-        Integer types round to the nearest integer and saturate at the type's range; NaN
-        becomes 0 for them. float32 keeps NaN and infinities.
+        """Encode the raw number into :attr:`count` registers (integer types round and saturate;
+        NaN becomes 0).
 
         Returns:
             (registers, exact): ``exact`` is False when the value had to be saturated or was
@@ -205,7 +200,6 @@ def plan_blocks(
     exceed :data:`MAX_READ_REGISTERS` (a value is never split across two blocks).
 
     Args:
-        registers: the registers to read (overlaps allowed).
         first: put the block holding this register first (the counter in lock-step).
 
     Returns:
