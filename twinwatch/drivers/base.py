@@ -66,8 +66,7 @@ __all__ = [
 PACKAGE_PREFIX = "twinwatch:"
 """A ``dbc``, ``eds``, ``log_file`` (any of :attr:`DriverConfig.file_keys`) written
 ``twinwatch:plant/odrive-axis0.log.gz`` is a file shipped inside the installed twinwatch
-package (``twinwatch/plant/...``): found wherever the configuration file is copied (a gateway's
-directory, /etc/twinwatch), unlike a path relative to the file."""
+package (``twinwatch/plant/...``), found wherever the configuration file is copied."""
 
 
 def resolve_path(path: Path, base_dir: Path | None) -> Path:
@@ -119,12 +118,10 @@ def validated_config(model: type[ConfigT], config: ConfigT | Mapping[str, Any],
     one, validated when it is a raw ``[driver]`` table.
 
     Args:
-        model: the driver's pydantic config class.
-        config: a ``model`` instance or the raw table.
         what: the driver's name for the message, e.g. ``"CAN"``.
 
     Raises:
-        DriverInitializationError: the table does not validate (the message names the keys).
+        DriverConfigError: the table does not validate (the message names the keys).
     """
     if isinstance(config, model):
         return config
@@ -194,8 +191,7 @@ class Driver(Closeable, abc.ABC):
     @classmethod
     def from_config(cls, config: Any, *, base_dir: Path | None = None) -> Driver:
         """Open a driver from its configuration (a driver may take further keyword-only
-        arguments, e.g. an open ``bus=`` for CAN). Default: ``cls(config, base_dir=base_dir)``
-        with ``config`` validated (:func:`validated_config`).
+        arguments, e.g. an open ``bus=`` for CAN).
 
         Args:
             config: a :attr:`config_class` instance or the raw ``[driver]`` table.
@@ -226,8 +222,8 @@ class Driver(Closeable, abc.ABC):
     @classmethod
     def safe_to_probe(cls, config: DriverConfig) -> bool:
         """Whether ``check-config`` may open (and close, without reading) the configured
-        driver to check what only opening can (a file's columns, a DBC's names). True only
-        where opening cannot touch a device: a file, a log replay. Default: False."""
+        driver to check what only opening can (a file's columns, a DBC's names): only where
+        opening cannot touch a device (a file, a log replay)."""
         return False
 
     @classmethod
@@ -250,10 +246,9 @@ class Driver(Closeable, abc.ABC):
     @classmethod
     def reopens(cls, config: DriverConfig) -> bool:
         """Whether the configured source is *live* and may come and go (a bus, a device, a
-        gateway): the daemon then waits for it at start and opens it again when the driver
-        gives up (:class:`~twinwatch.errors.DriverOperationError`), with a capped backoff
-        (:mod:`twinwatch.daemon.source`). False (default) for a finite source (a file, a log
-        replay, a simulation): a failure to open it fails at once."""
+        gateway): the daemon then waits for it at start and reopens it, with a capped backoff,
+        when the driver raises :class:`~twinwatch.errors.DriverOperationError`
+        (:mod:`twinwatch.daemon.source`). False for a finite source: a failure to open fails."""
         return False
 
     @classmethod
@@ -265,11 +260,9 @@ class Driver(Closeable, abc.ABC):
     @classmethod
     def time_starts_over(cls, config: DriverConfig) -> bool:
         """Whether the configured source's time starts over each time it is opened (a
-        simulated plant from t = 0, a recording or log replayed from its start): a new
-        ``twinwatch run`` on it is then a new run of the machine, not the continuation of the
-        one in the state database, and starts from the nameplate twin and normal alarm levels
-        unless asked to resume (``twinwatch run --resume``). Default: False (a bus, a device:
-        the machine goes on, a restart resumes)."""
+        simulated plant, a recording or log replayed): ``twinwatch run`` on it then starts a
+        new run from the nameplate twin and normal alarm levels unless ``--resume`` is given.
+        False for a bus or a device: a restart resumes."""
         return False
 
     @classmethod
@@ -317,31 +310,28 @@ class Driver(Closeable, abc.ABC):
     @property
     def waiting(self) -> str | None:
         """What the source is waiting for, for a person (``"Modbus device tcp 10.0.0.5:502
-        device 1 not answering for 12 s: connection refused"``), while it cannot deliver and
-        the driver is recovering it; None while it delivers (default). The daemon shows it in
-        systemd's STATUS and the health message, and keeps the watchdog fed meanwhile: the
-        driver is at work. Thread-safe to read."""
+        device 1 not answering for 12 s: connection refused"``), while the driver is
+        recovering it; None while it delivers. Shown in systemd's STATUS and the health
+        message; the watchdog stays fed meanwhile. Thread-safe to read."""
         return None
 
     @property
     def silent(self) -> tuple[str, ...]:
         """The parts of the source that went silent while the rest delivers (a bus message
         and the channels it carries: ``"TW_Motor_Electrical (Va, ia) for 3.1 s"``), for the
-        health message and systemd's STATUS; empty by default. Thread-safe to read."""
+        health message and systemd's STATUS. Thread-safe to read."""
         return ()
 
     @property
     def device_faults(self) -> tuple[str, ...]:
-        """What the device reports wrong with itself while it delivers (a drive in fault: its
-        EMCY, its CiA 402 statusword's fault bit; an NMT state other than operational), for
-        the health message (``source.device_faults``) and systemd's STATUS; empty by default.
-        Thread-safe to read."""
+        """What the device reports wrong with itself while it delivers (a drive's EMCY, its
+        CiA 402 statusword's fault bit, an NMT state other than operational), for the health
+        message (``source.device_faults``) and systemd's STATUS. Thread-safe to read."""
         return ()
 
     def log_once(self, key: str, msg: str, *args: object, level: int = logging.WARNING) -> None:
-        """Log ``msg`` at ``level`` the first time ``key`` is seen, at DEBUG afterwards.
-
-        Logs through the driver module's logger (``twinwatch.drivers.can``, ...)."""
+        """Log ``msg`` at ``level`` the first time ``key`` is seen, at DEBUG afterwards, on
+        the driver module's logger."""
         log = logging.getLogger(type(self).__module__)
         if key in self._logged_once:
             log.debug(msg, *args)
@@ -502,8 +492,7 @@ class PlantDriver(Driver):
         self._buses: list[Any] = []  # the virtual buses opened (shut down on close)
 
     def _open_inner(self, open_inner: Callable[[], InnerT], failure: str) -> InnerT:
-        """Open the real driver that reads the plant and take over its channels and counters
-        (one set of counters: the inner driver's).
+        """Open the real driver that reads the plant and take over its channels and counters.
 
         Args:
             open_inner: opens what serves the plant and the driver reading it; returns the

@@ -1,15 +1,12 @@
 """CAN bus driver: decode DBC signals from a live bus or a log file into twin samples.
 
-The driver listens to a python-can bus (``socketcan``, ``pcan``, ``virtual``, ...) or replays a
-log file through :func:`can.LogReader` (candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ...),
+The driver listens to a python-can bus or replays a log file through :func:`can.LogReader`,
 decodes the frames it needs with a DBC loaded by cantools, and emits one :class:`Sample` each
 time the configured *sync message* arrives. The sample holds the latest value of every mapped
-signal (sample-and-hold: signals sent at a lower rate than the sync message keep their last
-value), converted to the twin's unit as ``value_twin = value_dbc * scale + offset``.
+signal (sample-and-hold), converted to the twin's unit as ``value_dbc * scale + offset``.
 
-The driver never transmits: it does not even call ``send``. It shuts down a bus it opened
-itself and leaves alone a bus it was given (``CanDriver(config, bus=...)``), so a simulated
-plant can share an in-process ``virtual`` bus with it.
+The driver never transmits. It shuts down a bus it opened itself and leaves alone a bus it was
+given (``CanDriver(config, bus=...)``), so a simulated plant can share a ``virtual`` bus.
 
 Bad input is counted, logged once, and skipped (see :class:`~twinwatch.drivers.base.DriverStats`):
 
@@ -18,32 +15,16 @@ Bad input is counted, logged once, and skipped (see :class:`~twinwatch.drivers.b
   count in ``stats.bad_frames``; frames *longer* than the DBC says are decoded (padding is
   common) and logged once;
 * NaN or infinite decoded values count in ``stats.bad_values`` and are delivered as they are;
-* the sample counter (:class:`~twinwatch.io.counter.SampleCounter`, unwrapped): a jump of
-  ``n > 1`` adds ``n - 1`` to ``stats.gaps``; a repeated value (a duplicated frame) or one a
-  few steps back (a late frame a gateway reordered) skips that sample without losing the count
-  (``stats.extra["duplicates"]``, ``["reordered"]``); a counter that goes further back (the
-  source restarted) counts in ``stats.extra["counter_resets"]`` and its clock restarts;
+* the sample counter's jumps, repeats, late frames and restarts: as
+  :meth:`~twinwatch.drivers.base.Driver._count` counts them;
 * error frames and remote (RTR) frames count in ``stats.extra["error_frames"]`` /
   ``stats.extra["remote_frames"]`` (ODrive masters poll with RTR frames: they are normal);
-* a sync message that arrives before every mapped signal has been seen once produces no sample
-  and counts in ``stats.extra["incomplete_syncs"]`` (the start-up transient);
-* a malformed line of a text log (candump ``.log``, ``.asc``, ``.csv``, ``.trc``) is skipped
-  and counts in ``stats.frames`` and ``stats.bad_frames``; the replay goes on.
+* a sync message before every mapped signal has been seen once gives no sample
+  (``stats.extra["incomplete_syncs"]``);
+* a malformed line of a text log is skipped and counts in ``stats.bad_frames``.
 
-Example configuration (TOML, the ``[driver]`` table of a machine config)::
-
-    [driver]
-    type = "can"
-    interface = "socketcan"
-    channel = "can0"
-    dbc = "dcmotor.dbc"                   # relative to the config file's directory
-    sync_message = "TW_Motor_Sample"
-    time_source = "counter"               # t = sample_counter * sample_period
-    counter_signal = "TW_Motor_Sample.sample_counter"
-    sample_period = 0.01
-    [driver.signals]
-    Va = { message = "TW_Motor_Electrical", signal = "Va", unit = "V" }
-    omega = { message = "TW_Motor_Mechanical", signal = "omega", unit = "rad/s" }
+A commented ``[driver]`` table: ``twinwatch/config/samples/driver_can.toml``
+(``twinwatch sample-config --driver can``).
 """
 
 from __future__ import annotations
@@ -93,8 +74,7 @@ def _split_signal_ref(ref: str) -> tuple[str, str]:
 class CanSignalMap(ScaledChannel):
     """Where one twin channel comes from: ``value_twin = value_dbc * scale + offset``.
 
-    ``value_dbc`` is the physical value cantools decodes (DBC factor and offset applied), in the
-    DBC's unit; ``unit`` documents the twin-side unit and is not used for computation.
+    ``value_dbc`` is the physical value cantools decodes (DBC factor and offset applied).
     """
 
     message: str = Field(min_length=1)
@@ -105,38 +85,34 @@ class CanDriverConfig(BusDriverConfig):
     """Configuration of :class:`CanDriver` (the ``[driver]`` table with ``type = "can"``).
 
     Attributes:
-        type: always ``"can"``.
-        interface: python-can interface name (``"socketcan"``, ``"pcan"``, ``"virtual"``, ...).
-            Required for a live bus; ignored with ``log_file`` or when a bus is passed in.
+        interface: python-can interface name (``"socketcan"``, ``"pcan"``, ``"virtual"``, ...);
+            for a live bus.
         channel: python-can channel (``"can0"``, ``"PCAN_USBBUS1"``, ``0``, ...).
         bitrate: bus bit rate [bit/s]; None leaves the interface's setting alone.
         bus_options: extra keyword arguments for :class:`can.Bus` (e.g. ``fd = true``).
-        dbc: path of the CAN database (DBC, or any format cantools loads); a relative path is
-            resolved against the configuration file's directory (``base_dir``).
+        dbc: path of the CAN database (DBC, or any format cantools loads), relative to the
+            configuration file's directory or ``twinwatch:<path>``
+            (:data:`~twinwatch.drivers.base.PACKAGE_PREFIX`).
         log_file: replay this log (any suffix :func:`can.LogReader` knows) instead of a live
-            bus; relative to ``base_dir`` like ``dbc`` (either may be ``twinwatch:<path>``, a
-            file shipped in the package: :data:`~twinwatch.drivers.base.PACKAGE_PREFIX`). The
-            end of the log raises :class:`~twinwatch.drivers.base.EndOfStream`.
+            bus; a path as ``dbc``. The end of the log raises
+            :class:`~twinwatch.drivers.base.EndOfStream`.
         realtime: for ``log_file`` only: pace the replay by the log's time stamps (as
             :class:`can.MessageSync` does); False replays as fast as the caller reads.
         sync_message: DBC message whose arrival emits one sample.
         time_source: ``"frame"``: t [s] is the sync frame's time stamp (bus or log clock);
             ``"counter"``: t = ``counter_signal`` * ``sample_period`` (the plant's clock);
             ``"signal:MESSAGE.SIGNAL"``: t is that signal's latest value, in seconds.
-        counter_signal: ``"MESSAGE.SIGNAL"`` of a sample counter (+1 per sample). Optional;
-            when given, counter jumps are counted in ``stats.gaps``.
-        sample_period: nominal sample period [s] (> 0).
+        counter_signal: ``"MESSAGE.SIGNAL"`` of a sample counter (+1 per sample), optional.
+        sample_period: nominal sample period [s].
         signals: twin channel name -> :class:`CanSignalMap`, at least one. The order of the
             table is the order of :attr:`CanDriver.channels`.
         reopen_after: a live bus the driver opened that delivers no frame at all for this many
-            seconds [s, wall] is given up (:class:`DriverOperationError`), so the daemon
-            closes it and opens it again with backoff (a gateway that dropped the connection,
-            an interface gone bus-off or down); None: never. Default 2 s.
+            seconds [s, wall] is given up (:class:`DriverOperationError`) and the daemon
+            reopens it with backoff (a dropped gateway, an interface bus-off); None: never.
         silent_after: a mapped message not received for this many seconds of the frames' own
-            time [s] while the sync message goes on is *silent* (the node that sends it is
-            down): it is named (:attr:`CanDriver.silent`, STATUS, the health message) and its
-            channels are left out of the samples until it is back, never held. Default 1 s;
-            raise it for a message sent more slowly than that.
+            time [s] while the sync message goes on is *silent*: it is named
+            (:attr:`CanDriver.silent`) and its channels are left out of the samples until it is
+            back, never held. Raise it for a message sent more slowly than that.
     """
 
     file_keys: ClassVar[tuple[str, ...]] = ("dbc", "log_file")

@@ -1,17 +1,11 @@
 """The frame plumbing the CAN bus drivers share (DBC-decoded CAN, CANopen): where frames come
 from, how a read waits for them, and what a sample counter or a silent message means.
 
-* :class:`BusDriverConfig`: the keys of a python-can bus or a log replay (``interface``,
-  ``channel``, ``bitrate``, ``bus_options``, ``log_file``, ``realtime``, ``sample_period``,
-  ``reopen_after``, ``silent_after``), common to both drivers' ``[driver]`` tables;
-* :class:`BusSource` (a live or shared python-can bus, given up when it spins on a closed
-  connection) and :class:`LogSource` (a log file replayed, paced or not, surviving malformed
-  lines of a text log);
-* :class:`BusDriver`: opening the source (receive-only where the interface allows it, a TCP
-  gateway reached first), the read loop with its deadline, the bus given up after
-  ``reopen_after`` seconds without a frame, the sample counter's gaps, repeats, late frames and
-  restarts, and the messages not received for ``silent_after`` seconds. A driver adds what its
-  frames mean (:meth:`BusDriver._setup`, :meth:`BusDriver._on_frame`).
+:class:`BusDriverConfig` holds the keys both drivers' tables share; :class:`BusSource` and
+:class:`LogSource` deliver frames; :class:`BusDriver` opens the source, reads within a
+deadline, gives up a live bus without a frame for ``reopen_after`` seconds and names the
+messages not received for ``silent_after`` seconds. A driver adds what its frames mean
+(:meth:`BusDriver._setup`, :meth:`BusDriver._on_frame`).
 
 Nothing here sends: a driver builds no network object and never calls ``send`` on its bus.
 """
@@ -120,8 +114,7 @@ class BusSource:
             ) from exc
         if frame is None and timeout and self.owned:
             # A bus whose connection is closed may spin instead of waiting (python-can's
-            # socketcand bus reads an empty string from the closed socket in a loop until the
-            # timeout: a full core): a wait that burnt the processor is given up.
+            # socketcand bus, a full core): a wait that burnt the processor is given up.
             wall = time.monotonic() - start
             if wall >= 0.04 and time.thread_time() - cpu > _SPIN_CPU * wall:
                 raise DriverOperationError(
@@ -170,8 +163,8 @@ class _Lines:
 class LogSource:
     """Frames of a log file, optionally paced by their time stamps (see can.MessageSync).
 
-    The pacing is done here rather than with :class:`can.MessageSync` because MessageSync
-    sleeps inside its iterator and so cannot honour ``read(timeout)``.
+    The pacing is done here: :class:`can.MessageSync` sleeps inside its iterator and so cannot
+    honour ``read(timeout)``.
 
     A malformed line of a text log (candump ``.log``, ``.asc``, ``.csv``, ``.trc``) is skipped
     and reported through ``on_bad(line, error)``: python-can's readers are generators that end
@@ -298,8 +291,7 @@ def gateway_address(config: BusDriverConfig) -> tuple[str, int] | None:
 
 def _reach_gateway(config: BusDriverConfig, timeout: float = 2.0) -> None:
     """Fail at once, with one line, when a TCP gateway does not accept a connection: python-
-    can's socketcand bus would retry for 10 s in a loop without a pause, logging each attempt
-    (213,729 lines, a full core) before it fails.
+    can's socketcand bus would retry for 10 s in a busy loop, logging each attempt.
 
     Raises:
         DriverInitializationError: the gateway refused or did not answer.
@@ -341,8 +333,7 @@ class BusDriver(Driver):
         bus: an already open python-can bus to listen on (a simulated plant's ``virtual``
             bus); the driver never shuts it down. When given, ``interface``, ``channel``,
             ``bitrate`` and ``bus_options`` are ignored.
-        base_dir: directory relative paths are resolved against (the configuration file's
-            directory); None: the current directory.
+        base_dir: as for :meth:`Driver.from_config`.
         listen_only: put a live interface in receive-only mode (``check-config``).
 
     A subclass sets :attr:`~Driver.driver_name`, implements :meth:`_setup` (what to decode),
@@ -471,10 +462,8 @@ class BusDriver(Driver):
         source = self._source
         if source is None:  # pragma: no cover - only after a failed construction
             raise DriverOperationError(f"{self.driver_name} driver has no frame source")
-        # Frames already received are processed even when the timeout has run out (so that
-        # read(0) returns a sample that is complete in the queue), but at most
-        # _MAX_OVERTIME_FRAMES of them, so that a flood without samples cannot hold the
-        # caller beyond its timeout.
+        # Frames already received are processed even once the timeout has run out (read(0)
+        # returns a sample complete in the queue), but at most _MAX_OVERTIME_FRAMES of them.
         deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
         overtime = 0
         while True:

@@ -9,20 +9,8 @@ allows it. Samples (``sample_on = "sync"`` or ``"TPDO1"``), the drive's state fr
 statusword 0x6041 and the heartbeat (:attr:`CanopenDriver.device_faults`,
 :attr:`CanopenDriver.silent`) and the counters of bad input: docs/canopen.md.
 
-Example (TOML, the ``[driver]`` table of a machine config)::
-
-    [driver]
-    type = "canopen"
-    interface = "socketcan"
-    channel = "can0"
-    node_id = 5
-    eds = "drive.eds"                     # or the DCF; relative to this file
-    sample_period = 0.01                  # the SYNC period
-    [driver.channels]
-    omega = { object = "0x606C", factor = "0.001rpm", unit = "rad/s" }
-    ia = { object = "0x6078", factor = "per_mille_rated_current", unit = "A" }
-    Va = { object = "0x2100", factor = "mV", unit = "V" }
-    setpoint = { object = "0x60FF", factor = "0.001rpm", unit = "rad/s" }
+A commented ``[driver]`` table: ``twinwatch/config/samples/driver_canopen.toml``
+(``twinwatch sample-config --driver canopen``).
 """
 from __future__ import annotations
 
@@ -120,11 +108,9 @@ class CanopenDriverConfig(BusDriverConfig):
     """Configuration of :class:`CanopenDriver` (the ``[driver]`` table, ``type = "canopen"``).
 
     Attributes:
-        type: always ``"canopen"``.
         interface, channel, bitrate, bus_options: the python-can bus, as for the CAN driver
             (``socketcan``/``can0``, ``pcan``/``PCAN_USBBUS1``, ...).
-        log_file: replay a candump ``.log`` / ``.asc`` / ``.blf`` ... instead of a live bus.
-        realtime: pace a log replay by its time stamps.
+        log_file, realtime: a log replayed instead of a live bus, as for the CAN driver.
         node_id: the drive's node id, 1-127 (its PDO, EMCY and heartbeat COB-IDs).
         eds: the drive's EDS or DCF (relative to the configuration file's directory, or
             ``twinwatch:plant/dcmotor-cia402.eds``): its PDO mapping is read from it.
@@ -134,9 +120,8 @@ class CanopenDriverConfig(BusDriverConfig):
             0: not watched.
         heartbeat_margin: the heartbeat is missing after this many producer times.
         channels: twin channel -> :class:`CanopenChannel`, at least one.
-        reopen_after, silent_after: as the CAN driver's (a live bus with no frame at all for
-            ``reopen_after`` s is reopened; a held PDO not received for ``silent_after`` s of
-            frame time leaves its channels out).
+        reopen_after, silent_after: as the CAN driver's
+            (:class:`~twinwatch.drivers.can.CanDriverConfig`); a silent PDO is a held one.
     """
 
     file_keys: ClassVar[tuple[str, ...]] = ("eds", "log_file")

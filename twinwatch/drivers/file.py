@@ -8,10 +8,8 @@ raises :class:`~twinwatch.drivers.base.EndOfStream`.
 Time stamps: ``t = k * sample_period`` where ``k`` is the row's index in the file (0-based,
 counted before ``start`` is applied, so a cut recording keeps its own clock), or, with
 ``time_column``, ``t = value * time_scale`` read from that column. Rows are delivered as the
-logger wrote them: an exact duplicate (a logger's retry) is dropped and counted by the ring
-buffer, a stamp repeated with other values abandons only the window it falls in, and a
-capture that restarts its clock (two files concatenated) costs at most the window at the seam
-(a real-time replay is paced from the seam on).
+logger wrote them (the ring buffer drops an exact duplicate and abandons the window of a
+repeated stamp or of a clock restart, e.g. two files concatenated).
 
 Formats:
 
@@ -23,29 +21,18 @@ Formats:
   mapped "column" is a numeric variable holding a vector (N x 1, 1 x N or N), all of the same
   length N. MAT files usually hold no time vector, hence ``sample_period``.
 
-A CSV still being written (a logger's file): ``follow = true`` reads it as ``tail -f`` does.
-The rows there at open are replayed as usual, then each line appended is read once it is
-complete (polled every :data:`FOLLOW_POLL` s), until no row came for ``idle_timeout`` seconds
-(then :class:`~twinwatch.drivers.base.EndOfStream`, as at the end of a file), the file was
-truncated or replaced (said once, the end too), or ``stop`` rows were read. A file opened
-without ``follow`` that has grown by the time its last row is replayed says so once (the rows
-written since are not replayed, and how to read them).
+A CSV still being written (a logger's file): ``follow = true`` reads it as ``tail -f`` does,
+each appended line once it is complete, until ``idle_timeout`` without a row, a truncated or
+replaced file, or ``stop`` rows (:meth:`FileDriver._wait_for_rows`). A file opened without
+``follow`` that has grown by the time its last row is replayed says so once.
 
 Bad input is counted, logged once, and the driver goes on (see
 :class:`~twinwatch.drivers.base.DriverStats`): NaN or infinite values count in
 ``stats.bad_values`` and are delivered as they are; a row whose time stamp is not a number is
 skipped and counts in ``stats.bad_frames``.
 
-Example configuration (TOML) for the MotoShield recording::
-
-    [driver]
-    type = "file"
-    path = "../../shared/data/motoshield/aprbsResult.mat"  # relative to the config file
-    sample_period = 0.02
-    [driver.columns]
-    Va = { column = "u" }
-    omega = { column = "y" }
-    ia = { column = "ifltr" }
+A commented ``[driver]`` table: ``twinwatch/config/samples/driver_file.toml``; a MAT
+recording: ``config/dc-motor-motoshield.toml``.
 """
 
 from __future__ import annotations
@@ -87,15 +74,13 @@ FloatArray = npt.NDArray[np.float64]
 
 #: A real-time replay delivers a row at most this late [s]: it sleeps until the next row is
 #: due plus this, and the rows due by then follow at once (one wake-up per 0.2 s, not one a
-#: row, each 70-190 us of CPU; 0.2 s is the acquisition loop's read timeout, which caps a
-#: sleep anyway; a window is seconds long and stamped by the file's clock).
+#: row; the acquisition loop's read timeout caps a sleep at 0.2 s anyway).
 PACE_SLACK = 0.2
 
 #: Rows converted to Python floats at once (:meth:`FileDriver._read_internal`).
 _CHUNK_ROWS = 256
 
-#: How often a followed file (``follow = true``) is looked at for new rows once its rows are
-#: replayed [s]: a window of the daemon is seconds long, a stat every 0.1 s costs nothing.
+#: How often a followed file (``follow = true``) is looked at for new rows [s].
 FOLLOW_POLL = 0.1
 
 
@@ -112,9 +97,7 @@ class FileDriverConfig(DriverConfig):
     """Configuration of :class:`FileDriver` (the ``[driver]`` table with ``type = "file"``).
 
     Attributes:
-        type: always ``"file"``.
-        path: the recording; a relative path is resolved against the configuration file's
-            directory (``base_dir``).
+        path: the recording (relative to the configuration file's directory).
         format: ``"csv"``, ``"mat"`` or ``"auto"`` (by suffix: ``.csv``, ``.txt``, ``.tsv``
             are CSV, ``.mat`` is MAT).
         sample_period: sample period [s] (> 0). Required unless ``time_column`` is given;
@@ -127,7 +110,7 @@ class FileDriverConfig(DriverConfig):
             table is the order of :attr:`FileDriver.channels`.
         realtime: False replays as fast as the caller reads; True delivers each row when its
             time stamp is due on the wall clock (relative to the first row delivered), never
-            early and at most 0.1 s late (:data:`PACE_SLACK`: one wake-up per 0.1 s).
+            early and at most :data:`PACE_SLACK` late.
         speed: with ``realtime``: the replay's speed over the recording's own (10: ten times
             faster, a 2 s window every 0.2 s; > 0, default 1).
         start: index of the first row to replay (0-based, like a Python slice; default 0).
@@ -195,10 +178,7 @@ def _available(name: str, names: Iterable[str]) -> str:
 class FileDriver(Driver):
     """Replay a recorded CSV or MAT file as twin samples.
 
-    Args:
-        config: the validated configuration (see :class:`FileDriverConfig`).
-        base_dir: directory that a relative ``path`` is resolved against (the configuration
-            file's directory); None means the current directory.
+    Args: as :meth:`~twinwatch.drivers.base.Driver.from_config`'s.
 
     Attributes:
         sample_period: ``config.sample_period`` [s], or the median time step of
@@ -509,9 +489,8 @@ class FileDriver(Driver):
                 )
                 continue
             if not self._chunk_lo <= k < self._chunk_lo + len(self._chunk):
-                # rows as Python floats a chunk at a time: a dict from a list of floats costs
-                # 0.3 us, from a numpy row 1.1 us; the whole file as lists would take five
-                # times its array's memory
+                # rows as Python floats a chunk at a time: a dict from floats is ~4x faster
+                # than from a numpy row; the whole file as lists would take 5x the memory
                 self._chunk_lo = k
                 self._chunk = self._values[k:k + _CHUNK_ROWS].tolist()
             values = dict(zip(self.channels, self._chunk[k - self._chunk_lo], strict=True))
@@ -528,8 +507,7 @@ class FileDriver(Driver):
             return Sample(t, values)
 
     def _say_grown(self) -> None:
-        """Once, at the end of a file opened without ``follow``: it grew since it was opened
-        (a logger still writing it), so the rows written since were not replayed."""
+        """Once, at the end of a file opened without ``follow``: say that it grew since."""
         size = _size(self.config.path)
         if size > self._size_at_open and "grown" not in self._logged_once:
             self.log_once(
@@ -668,8 +646,6 @@ class _Tail:
     """A CSV followed as it is written: where its complete lines end, which file it is.
 
     Attributes:
-        path: the file.
-        delimiter: its field separator.
         offset: bytes read so far (the end of the last complete line read).
         inode: the file's (device, inode) at open: another file under its name is a
             replacement (a logger's rotation).

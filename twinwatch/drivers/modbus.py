@@ -21,53 +21,33 @@ Time source (``time_source``)
     (the acquisition computer's clock); a poll that falls more than one period behind its
     schedule counts the missed polls in ``stats.gaps``. ``"counter"``: t = counter *
     ``sample_period`` where ``counter`` is a uint16/uint32 register the device increments once
-    per sample, i.e. the device's own clock. A configured counter (with either time source) is
-    unwrapped by :class:`~twinwatch.io.counter.SampleCounter`: a duplicate poll or a stale
-    answer is skipped (``stats.extra["duplicates"]``, ``["reordered"]``), a jump of ``n > 1``
-    adds ``n - 1`` to ``stats.gaps``, a restart counts in ``stats.extra["counter_resets"]``.
+    per sample, i.e. the device's own clock. A configured counter (with either time source)
+    counts duplicate polls, stale answers, gaps and restarts as
+    :meth:`~twinwatch.drivers.base.Driver._count` says.
 
 Lock-step (``lockstep = true``)
     For a simulated device that advances one sample each time its counter block is read
     (:class:`~twinwatch.plant.modbus_server.PlantModbusServer` with ``pacing="lockstep"``): the
-    driver polls as fast as the caller consumes (one sample queued), so acquisition and
-    simulation move together and nothing is lost; ``live`` is then False (the daemon waits
-    instead of dropping windows). Needs ``time_source = "counter"``. Otherwise ``live`` is True.
+    driver polls as fast as the caller consumes (one sample queued) and nothing is lost;
+    ``live`` is then False. Needs ``time_source = "counter"``.
 
 Failures
     A request that times out, a refused or dropped connection, and an exception response a
-    device gives for a while (02 ILLEGAL DATA ADDRESS: a PLC being reprogrammed answers it for
-    its registers; 04 device failure, 05, 06 busy, 0A/0B gateway) count in ``stats.errors`` (and
-    ``stats.extra``: ``timeouts``, ``connect_failures``, ``exception_responses``). The client is
-    then closed and reopened after a jittered exponential backoff (0.1 s doubling up to
-    ``backoff_max``). An outage is logged at ERROR once, at DEBUG while it lasts, and at WARNING
-    on recovery with its duration (``stats.extra["outages"]``, ``["reconnects"]``); pymodbus'
-    own error messages from the polling thread are demoted to DEBUG meanwhile. While the device
-    is down, ``read(timeout)`` returns None after ``timeout`` and :attr:`ModbusDriver.waiting`
-    says since when and why (the daemon's STATUS). An exception response ILLEGAL FUNCTION or
-    ILLEGAL DATA VALUE means the register map does not match the device: the polling stops and
-    ``read`` raises :class:`~twinwatch.drivers.base.DriverOperationError` (the daemon opens the
-    driver again with a longer backoff, :mod:`twinwatch.daemon.source`: the unit stays up and
-    STATUS says why). A decoded NaN or infinite value counts in ``stats.bad_values`` and is
-    delivered as it is; a response with the wrong number of registers counts in
-    ``stats.bad_frames``.
+    device gives for a while (02, 04, 05, 06, 0A/0B: :data:`_TRANSIENT_EXCEPTION_CODES`) count
+    in ``stats.errors`` (and ``stats.extra``: ``timeouts``, ``connect_failures``,
+    ``exception_responses``). The client is then reopened after a jittered exponential backoff
+    (0.1 s doubling up to ``backoff_max``), the outage logged as
+    :class:`~twinwatch.drivers.base.QueuedDriver` does; :attr:`ModbusDriver.waiting` says since
+    when and why. An exception response ILLEGAL FUNCTION or ILLEGAL DATA VALUE means the
+    register map does not match the device: the polling stops and ``read`` raises
+    :class:`~twinwatch.drivers.base.DriverOperationError` (the daemon reopens the driver with a
+    longer backoff). A decoded NaN or infinite value counts in ``stats.bad_values`` and is
+    delivered as it is; a response with the wrong number of registers in ``stats.bad_frames``.
 
 Monitoring only: the driver sends read requests (function codes 3 and 4) and nothing else.
 
-Example configuration (TOML, the ``[driver]`` table of a machine config)::
-
-    [driver]
-    type = "modbus"
-    transport = "tcp"                 # or "rtu" with serial_port, baudrate, parity, ...
-    host = "127.0.0.1"
-    port = 5020
-    device_id = 1
-    timeout = 0.5                     # per request [s]
-    sample_period = 0.01
-    time_source = "counter"
-    counter = { address = 0, table = "input", type = "uint32" }
-    [driver.registers]
-    x = { address = 2, table = "input", type = "float32", unit = "m" }
-    p = { address = 4, table = "input", type = "float32", word_order = "little", unit = "Pa" }
+A commented ``[driver]`` table: ``twinwatch/config/samples/driver_modbus.toml``
+(``twinwatch sample-config --driver modbus``).
 """
 
 from __future__ import annotations
@@ -124,7 +104,6 @@ class ModbusDriverConfig(DriverConfig):
     """Configuration of :class:`ModbusDriver` (the ``[driver]`` table with ``type = "modbus"``).
 
     Attributes:
-        type: always ``"modbus"``.
         transport: ``"tcp"`` (Modbus TCP) or ``"rtu"`` (Modbus RTU on a serial line).
         host: TCP: the device's address (default the loopback 127.0.0.1).
         port: TCP: the device's port (default 502).
@@ -137,15 +116,15 @@ class ModbusDriverConfig(DriverConfig):
         timeout: seconds to wait for one response (and for a TCP connect).
         retries: times pymodbus re-sends a request that timed out (0: the next poll retries).
         backoff_max: cap [s] of the reconnect delay (starts at 0.1 s, doubles, jittered).
-        sample_period: nominal sample period [s] of the device's data (> 0).
+        sample_period: nominal sample period [s] of the device's data.
         poll_period: seconds between polls; default ``sample_period``. With a counter, polling
             faster than the device samples (e.g. half the period) catches every sample; the
             extra polls are skipped as duplicates.
         time_source: ``"clock"`` or ``"counter"`` (see the module docstring).
         counter: the sample-counter register (uint16 or uint32); required by
             ``time_source = "counter"`` and by ``lockstep``.
-        lockstep: poll only when the caller has taken the previous sample, as fast as it reads
-            (for a simulated device that advances on each read of its counter block).
+        lockstep: poll only when the caller has taken the previous sample (see the module
+            docstring).
         registers: twin channel -> :class:`ModbusChannelMap`, at least one; the table order is
             the order of :attr:`ModbusDriver.channels`.
     """
@@ -252,7 +231,6 @@ class ModbusDriver(QueuedDriver):
     """Twin samples polled from a Modbus TCP or RTU device; read requests only.
 
     Args:
-        config: the validated configuration (see :class:`ModbusDriverConfig`).
         base_dir: accepted for the driver contract; no path in this config is relative.
 
     Attributes:

@@ -7,15 +7,8 @@ values are joined into samples by source-time slot ``k = round(t / sample_period
 codes, reconnects, security and the one-line refusals (:class:`DriverConfigError`, ``run``
 exits 78): docs/opcua-input.md.
 
-Example configuration (TOML)::
-
-    [driver]
-    type = "opcua"
-    endpoint = "opc.tcp://127.0.0.1:4840"
-    sample_period = 0.01
-    [driver.channels]
-    Va = { node = "ns=2;s=Motor.Va", unit = "V" }
-    ia = { browse_path = "0:Objects/2:Motor/2:ia", unit = "A" }
+A commented ``[driver]`` table: ``twinwatch/config/samples/driver_opcua.toml``
+(``twinwatch sample-config --driver opcua``).
 """
 
 from __future__ import annotations
@@ -236,16 +229,12 @@ class OpcUaDriver(QueuedDriver):
     """Twin samples from an OPC UA server's variables through one subscription; never writes.
 
     Args:
-        config: the validated configuration (see :class:`OpcUaDriverConfig`).
-        base_dir: directory relative file paths are resolved against.
         time_origin: POSIX seconds subtracted from every sample time (0: ``t`` is POSIX
             seconds; the simulated plant gives its start, so that ``t`` is plant time).
         on_take: called (in the caller's thread) with the number of samples each read took
             from the queue (the simulated plant paces itself on it).
 
     Attributes:
-        channels: twin channel names, in the order of ``config.channels``.
-        live: True (a server does not wait for its clients).
         cpu_seconds: CPU time [s] the client's thread has used since it subscribed (asyncua's
             decoding and the joining; updated after each batch of notifications).
 

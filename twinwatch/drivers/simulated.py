@@ -76,9 +76,6 @@ class SimulatedDriverConfig(DriverConfig):
 class SimulatedDriver(PlantDriver):
     """Simulated plant -> DBC-encoded frames -> virtual CAN bus -> :class:`CanDriver`.
 
-    Args:
-        config: the driver configuration.
-
     Raises:
         DriverInitializationError: the packaged DBC or the virtual bus cannot be opened.
         EndOfStream: from :meth:`read` once the plant reaches its duration.

@@ -6,9 +6,6 @@ The plant (:mod:`twinwatch.plant.hydraulic`, paper Section 4.2 and 5.3) is serve
 real hydraulic controller, so every sample travels the real Modbus data path (register
 encoding, float32 word order, scaled integers, the sample counter, timeouts, reconnects).
 
-``pacing``: ``"lockstep"`` (default; the driver is not ``live``) or ``"realtime"`` (the driver
-polls twice per sample period and is ``live``), as
-:class:`~twinwatch.plant.modbus_server.PlantModbusServer` paces the plant.
 
 The default register map (input registers, function code 4; 0-based PDU addresses; 32-bit
 values high word first, i.e. ``word_order = "big"``; ``twin value = raw * scale + offset``):
@@ -86,7 +83,8 @@ class SimulatedModbusDriverConfig(DriverConfig):
 
     Attributes:
         plant: the hydraulic plant's scenario, duration, noise, ... (``[driver.plant]``).
-        pacing: ``"lockstep"`` (as fast as possible, nothing lost) or ``"realtime"``.
+        pacing: ``"lockstep"`` (as fast as possible, nothing lost; not ``live``) or
+            ``"realtime"`` (``live``): how :class:`PlantModbusServer` paces the plant.
         timeout: the driver's per-request timeout [s].
         backoff_max: cap of the driver's reconnect delay [s].
         registers: plant channel -> register (default :data:`DEFAULT_REGISTERS`); the twin
@@ -150,9 +148,6 @@ class SimulatedModbusDriverConfig(DriverConfig):
 
 class SimulatedModbusDriver(PlantDriver):
     """Hydraulic plant -> :class:`PlantModbusServer` (TCP, loopback) -> :class:`ModbusDriver`.
-
-    Args:
-        config: the driver configuration.
 
     Attributes:
         plant: the simulated plant (its :meth:`~HydraulicPlant.truth` gives the true D and C).

@@ -4,10 +4,8 @@ A ``canopen`` :class:`~canopen.LocalNode` holds the drive's object dictionary, r
 EDS shipped beside this module (``dcmotor-cia402.eds``: see its ``[Comments]``), and its PDO
 mappings. Each :meth:`CiA402Drive.step` advances the plant
 (:class:`~twinwatch.plant.dcmotor.DCMotorPlant`) one sample and puts on the bus what a real cell
-would: the master's SYNC (0x80, counter 1..240 as 0x1019 says) and RPDO1 (controlword 0x000F,
-target velocity 0x60FF), the drive's TPDO1-3 (statusword 0x6041, velocity actual 0x606C,
-current actual 0x6078, armature voltage 0x2100; DC-link voltage 0x6079 every 10th SYNC) and
-its heartbeat every producer time (0x1017); the frames and units: docs/canopen.md.
+would: the master's SYNC and RPDO1, the drive's TPDO1-3 and its heartbeat every producer time
+(0x1017); the frames and units: docs/canopen.md.
 
 Every frame is stamped with plant time (the bus must keep the stamps it is given: a
 ``virtual`` bus with ``preserve_timestamps=True``). For tests,

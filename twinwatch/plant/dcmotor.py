@@ -11,21 +11,17 @@ steps among 0-20 rad/s, load torque Tload = 0.006*omega, and the paper's fault s
 * ``unbalanced_shaft``: omega gets + dt*5*sin(10*t) every step (Eq. 13: the paper fixes the
   frequency at 10 rad/s whatever the shaft's speed). With ``unbalance_follows_shaft`` the
   forcing follows the shaft instead: + dt*5*sin(angle), the angle the shaft has turned (a real
-  unbalance: a mass off the axis, gravity's torque on it once per turn, at 1x the shaft speed;
-  ISO 21940-11 for unbalance at 1x); ``unbalance_frequency`` is then unused.
+  unbalance, at 1x the shaft speed: ISO 21940-11); ``unbalance_frequency`` is then unused.
 * ``dead_zone`` (not in the paper: a change its twin has no term for): from ``fault_start`` the
-  drive's power stage has a dead zone of ``dead_zone_threshold`` b [V] (default 2 V): the
-  armature receives ``dz(Va) = 0`` while ``|Va| <= b`` and ``Va - b*sign(Va)`` beyond, the
-  standard dead-zone nonlinearity of an actuator (G. Tao and P. V. Kokotovic, *Adaptive
-  Control of Systems with Actuator and Sensor Nonlinearities*, Wiley 1996; "Adaptive control
-  of plants with unknown dead-zones", IEEE Trans. Automatic Control 39(1), 1994). The reported
-  Va stays the drive's command (what a drive reports); the motor receives less: a gate drive
-  that needs a minimum duty, a converter's blanking time, a worn power stage.
+  drive's power stage has a dead zone of ``dead_zone_threshold`` b [V]: the armature receives
+  ``dz(Va) = 0`` while ``|Va| <= b`` and ``Va - b*sign(Va)`` beyond (G. Tao and P. V.
+  Kokotovic, *Adaptive Control of Systems with Actuator and Sensor Nonlinearities*, Wiley
+  1996). The reported Va stays the drive's command; the motor receives less.
 
 With ``fault_period`` the degradation restarts every ``fault_period`` seconds after its onset
-(the part is replaced at each maintenance: Ra or D back to nominal, then the same law), so runs
-of hours (the soak benchmark) stay within the law's physical range. The paper's Ra law reaches
-0 ohm 1667 s after onset; a run whose resistance would fall below 10 % of nominal is refused.
+(the part is replaced at each maintenance), so long runs stay within the law's physical range.
+The paper's Ra law reaches 0 ohm 1667 s after onset; a run whose resistance would fall below
+10 % of nominal is refused.
 
 One plant step (dt = 1e-4 s), in this order::
 
@@ -42,26 +38,22 @@ One plant step (dt = 1e-4 s), in this order::
     angle += dt*omega
 
 **Injected faults** (for the diagnosis's fault-matrix benchmark, benchmarks/bench_diagnosis.py;
-the time profile of each, step, drift, repair or intermittent: :mod:`twinwatch.plant.faults`):
-``[[driver.plant.parameter_faults]]`` moves Ra, La, J, Ke (with Kt: the field), D, Tc, the load
-coefficient or the amplitudes a1 (``unbalance``, 1x the shaft speed: ISO 21940-11) and a2
-(``misalignment``, 2x: Bloch and Budris, *Pump User's Handbook*), evaluated every acquisition
-sample and held over its integration steps; ``[driver.plant.supply_fault]`` scales the voltage
-the motor receives, s(t), while the reported Va stays the drive's command; ``sensor_faults``
-of kind ``gain`` and ``offset`` change a reported channel only. The numba kernel reads the
-parameters from the array it is handed each sample: no recompilation, the same speed.
+their time profiles: :mod:`twinwatch.plant.faults`): ``[[driver.plant.parameter_faults]]``
+moves a parameter of :data:`DC_FAULT_PARAMETERS` (a1: ``unbalance``, 1x the shaft speed: ISO
+21940-11; a2: ``misalignment``, 2x: Bloch and Budris, *Pump User's Handbook*), evaluated every
+acquisition sample and held over its integration steps; ``[driver.plant.supply_fault]`` scales
+the voltage the motor receives, s(t), while the reported Va stays the drive's command. The
+numba kernel reads the parameters from the array it is handed: no recompilation.
 
 The drive (:class:`~twinwatch.io.drive.DriveConfig`, ``[driver.plant.drive]``) updates every
 ``period`` and holds its output in between, clamped with anti-windup, with an optional inner
-current loop; without a ``drive`` table it is the paper's PI (``kp``, ``ki``) every step. The
-other variants of a real drive (``coulomb_friction``, ``power_stage``, ``current_filter``,
-``speed_filter``, ``encoder_cpr``): :class:`DCMotorPlantConfig`.
+current loop; without a ``drive`` table it is the paper's PI (``kp``, ``ki``) every step.
 
 A sample at t_k reports the state reached at t_k (through the sensor filters), the voltage the
 drive applies from t_k on (after an update at t_k), the set-point in force from t_k on and Tload
 = c_load*omega. Measurement noise (percent of reading, Gaussian) and quantisation are applied to
 the reported values only, never to the plant state or the drive's feedback. The loop over plant
-steps is compiled with numba (120 000 samples of 100 steps take ~0.1 s).
+steps is compiled with numba.
 """
 
 from __future__ import annotations
@@ -149,8 +141,7 @@ class SetpointSchedule(StrictTable):
 
 class SensorFaultConfig(StrictTable):
     """A sensor fault of the simulated plant (``[[driver.plant.sensor_faults]]``): from
-    ``start`` for ``duration`` seconds (to the end of the run without one) the reported
-    ``channel`` is
+    ``start`` for ``duration`` seconds the reported ``channel`` is
 
     * ``frozen``: it repeats its reading at the onset;
     * ``saturated``: clipped at ``level``, from above with ``side = "high"``, from below with
@@ -223,10 +214,9 @@ class SensorFaultConfig(StrictTable):
 
 #: Parameters a ``[[driver.plant.parameter_faults]]`` entry of the DC motor may move, with
 #: their unit: ``Ke`` moves Ke and Kt together (the field: in SI units Kt = Ke), ``load`` the
-#: load coefficient c_load, ``Tc`` the Coulomb friction torque (nominal ``coulomb_friction``,
-#: usually 0: give ``absolute``), ``unbalance`` and ``misalignment`` the amplitude of a
-#: periodic forcing on d(omega)/dt following the shaft's angle at 1x and 2x its speed
-#: (nominal 0: give ``absolute``).
+#: load coefficient c_load, ``Tc`` the Coulomb friction torque, ``unbalance`` and
+#: ``misalignment`` a forcing on d(omega)/dt at 1x and 2x the shaft's angle (these three
+#: usually 0 at nominal: give ``absolute``).
 DC_FAULT_PARAMETERS: dict[str, str] = {
     "Ra": "ohm", "La": "H", "J": "kg m^2", "Ke": "V s/rad (and Kt, N m/A)", "D": "N m s/rad",
     "Tc": "N m", "load": "N m s/rad", "unbalance": "rad/s^2", "misalignment": "rad/s^2"}
@@ -459,9 +449,6 @@ class PlantTruth:
 class DCMotorPlant(SimulatedPlant):
     """The simulated DC motor plant; one call to :meth:`next_sample` per acquisition sample.
 
-    Args:
-        config: plant configuration.
-
     Raises:
         EndOfStream: from :meth:`next_sample` after ``config.duration`` seconds.
     """
@@ -492,8 +479,7 @@ class DCMotorPlant(SimulatedPlant):
         return float(self._sp_values[max(idx, 0)])
 
     def truth(self, t: float) -> PlantTruth:
-        """The plant's true parameters at plant time ``t`` [s]: the scenario's law (Ra, D) and
-        the parameter and supply faults (:class:`PlantTruth`)."""
+        """The plant's true parameters at plant time ``t`` [s], faults and scenario included."""
         c = self.config
         age = t - c.fault_start
         if c.fault_period is not None and age > 0:

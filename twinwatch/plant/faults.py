@@ -14,13 +14,11 @@ A parameter fault moves its parameter from the nominal value ``p0`` to ``p0 * (1
 change / 100)`` (``change`` in percent at full size) or ``p0 + f * absolute`` (``absolute`` in
 the parameter's unit: for a parameter whose nominal is 0, e.g. the DC motor's Coulomb friction
 Tc). Several faults on one parameter add their changes. The plants evaluate the profile once
-per acquisition sample (every ``sample_period``: 10 ms by default) and hold it over the sample's
-integration steps: a ramp is a staircase of 10 ms steps, which the 2 s windows cannot tell from
-a line.
+per acquisition sample and hold it over the sample's integration steps: a ramp is a staircase
+of ``sample_period`` steps, which a window of seconds cannot tell from a line.
 
-These are test injections, not laws from a reference: they are what a maintenance engineer
-calls a step (a part replaced or broken), a drift (wear) and an intermittent fault (a load that
-comes and goes); the sizes are the configuration's.
+These are test injections (a part replaced or broken, wear, a load that comes and goes), not
+laws from a reference.
 """
 
 from __future__ import annotations

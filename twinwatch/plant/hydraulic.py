@@ -14,19 +14,15 @@ plant step j -> j+1 of dt = 1e-4 s::
 ``v_{j+1}`` is the velocity over the step (the paper's ``v_{k-1}`` of Eq. 14); the same value
 enters the damping force of Eq. 16. ``C`` is 0 except in the internal-leak scenario (or an
 injected ``leak``). ``F_c`` is an injected Coulomb (dry) friction force on the rod, 0 unless a
-``friction`` parameter fault sets it (the standard Coulomb model: a force of constant size
-opposing the motion; B. Armstrong-Helouvry, P. Dupont, C. Canudas de Wit, "A survey of models,
-analysis tools and compensation methods for the control of machines with friction", Automatica
-30(7), 1994).
+``friction`` parameter fault sets it (the standard Coulomb model; B. Armstrong-Helouvry et
+al., "A survey of models, analysis tools and compensation methods for the control of machines
+with friction", Automatica 30(7), 1994).
 
 **Injected faults** (for the diagnosis's fault-matrix benchmark, benchmarks/bench_diagnosis.py;
 their time profile: :mod:`twinwatch.plant.faults`): ``[[driver.plant.parameter_faults]]``
-moves D, q_pump (the pump's delivery: a worn pump), k_spring, mass (the load: the reported
-F_load follows it, as a load cell's would), F_resist [N] (an unmeasured force on the rod), the
-leak coefficient C (``leak``, Eq. 18) or the Coulomb friction F_c (``friction`` [N]), evaluated
-every acquisition sample and held over its integration steps; ``sensor_faults`` make a reported
-channel frozen, saturated, off by a gain or an offset (the DC motor's
-:class:`~twinwatch.plant.dcmotor.SensorFaultConfig`).
+moves a parameter of :data:`HYD_FAULT_PARAMETERS` (a changed mass moves the reported F_load,
+as a load cell's would), evaluated every acquisition sample and held over its integration
+steps; ``sensor_faults`` are the DC motor's (:class:`~twinwatch.plant.dcmotor.SensorFaultConfig`).
 
 **Valve controller (Eq. 17).** A discrete PID with a filtered derivative, forward-Euler form
 ``A = e*(Kp + Ki*Ts/(z-1) + Kd*N/(1 + N*Ts/(z-1)))``::
@@ -41,12 +37,10 @@ channel frozen, saturated, off by a gain or an offset (the DC motor's
 **Where the PID runs: every plant step (Ts = 1e-4 s).** The paper calls Ts in Eq. 17 "the
 integration time step", and with these gains the loop is only stable at that rate: the plant
 gain is dv/dA = -sqrt(2p)/A_piston ~ -1620 m/s per m^2, so the integral loop oscillates at
-sqrt(1620*Ki) ~ 75 rad/s with damping ratio ~ 0.006. Run every 10 ms (0.75 rad per period) the
-forward-Euler integral makes it unstable: measured, a limit cycle of +-3.9 mm with the valve
-slamming between 0 and A_max. At 1e-4 s it tracks within 8e-8 m. Consequence for the twin: the
-valve area changes within a sample, so an open-loop twin holding the sampled area is slightly
-biased; :class:`twinwatch.twin.models.hydraulic.HydraulicActuatorTwin` interpolates it linearly
-between samples by default (see there for the measured effect).
+sqrt(1620*Ki) ~ 75 rad/s with damping ratio ~ 0.006; run every 10 ms (0.75 rad per period)
+the forward-Euler integral is unstable. Consequence for the twin: the valve area changes
+within a sample, so :class:`twinwatch.twin.models.hydraulic.HydraulicActuatorTwin`
+interpolates it linearly between samples by default.
 
 **The controller as a drive runs it** (``drive``, ``[driver.plant.drive]``,
 :class:`~twinwatch.twin.models.hydraulic.ValveDriveConfig`; the update of :mod:`twinwatch.io.drive`
@@ -65,10 +59,6 @@ steady tracking: x_0 = x_ref(0), the integrator holding the area that gives v = 
   N/(m/s) at 600 s; NOTES.md's reading of the paper's ramp).
 * ``internal_leak``: C = ``leak_coefficient`` (0.2) for t >= 160 s (Eq. 18).
 
-Measured figures (nominal, 200 s, tested in tests/test_twin_hydraulic.py): tracking error below
-8e-8 m, pressure 50.01-50.93 kPa, valve area 5.4e-5-7.2e-5 m^2 (NOTES.md: 1.4e-6 m, 50.0-50.9
-kPa, 0-7.2e-5 m^2); the leak lifts the pressure by 20 % (ratio 1.2000000 once the onset
-transient, 1.2e-4 m of tracking error at 160 s, has decayed by ~190 s).
 
 A sample at t_k reports the state reached at t_k (x, p), the valve area the controller applies
 from t_k on, F_load and x_ref(t_k). Measurement noise (percent of reading, Gaussian) is applied
@@ -317,8 +307,7 @@ class HydraulicPlant(SimulatedPlant):
         return c.ref_offset + c.ref_amplitude * math.sin(2.0 * math.pi * c.ref_frequency * t)
 
     def truth(self, t: float) -> HydraulicTruth:
-        """The plant's true parameters at plant time ``t`` [s]: the scenario's law (D, C) and
-        the parameter faults (:class:`HydraulicTruth`)."""
+        """The plant's true parameters at plant time ``t`` [s], faults and scenario included."""
         c = self.config
         on = t >= c.fault_start
         ramp = math.exp(DEGRADATION_RATE * (t - c.fault_start)) - 1.0 if on else 0.0
@@ -345,9 +334,6 @@ class HydraulicPlant(SimulatedPlant):
         Returns:
             A sample with x [m], p [Pa], A_valve [m^2] (applied from this sample on),
             F_load [N] and x_ref [m].
-
-        Raises:
-            EndOfStream: after ``config.duration`` seconds.
         """
         c = self.config
         self._check_end()

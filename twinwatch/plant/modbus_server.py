@@ -19,8 +19,7 @@ Pacing:
   that holds (part of) the counter, and that read already returns the new sample (the first
   such read returns sample 0). A client that reads the counter block first in every poll
   (as :class:`~twinwatch.drivers.modbus.ModbusDriver` does) sees every sample exactly once,
-  however fast or slow it polls. It is built on pymodbus' ``SimDevice(action=...)`` hook, which
-  is awaited before every request is answered.
+  however fast or slow it polls (:meth:`PlantModbusServer._on_request`).
 
 When the plant raises :class:`~twinwatch.drivers.base.EndOfStream` the server keeps serving
 the last sample (the counter stops; :attr:`PlantModbusServer.finished` becomes True).
@@ -78,7 +77,7 @@ class PlantModbusServer(ServerThread):
         counter: the sample-counter register; None serves no counter (then ``"lockstep"``
             is not possible).
         pacing: ``"realtime"`` or ``"lockstep"`` (see the module docstring).
-        host: TCP address to listen on (loopback by default).
+        host: TCP address to listen on.
         port: TCP port; 0 picks a free one (read it from :attr:`port` after :meth:`start`;
             a restart reuses it).
         serial_port: serve Modbus RTU on this serial device instead of TCP.
