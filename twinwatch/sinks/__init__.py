@@ -1,14 +1,10 @@
 """Outputs: where every processed window goes (state database, Zenoh, Rerun, plug-ins).
 
-One contract (:class:`~twinwatch.sinks.base.Sink`, :mod:`twinwatch.sinks.base`) and one
-registry, :data:`SINKS` (a :class:`twinwatch.plugins.Registry`, like the drivers'): a table maps
-an output's name to ``"module:Class"``, extended by the entry-point group ``twinwatch.sinks``
-(``name = "package.module:Class"`` in another package's metadata); a sink's module is imported
-only when a configuration uses it. The configuration learns the output tables from here: the
-built-ins keep their historic top-level tables (``[state]``, ``[zenoh]``, ``[recording]``), every
-other output is configured under ``[outputs.<name>]`` and validated by its own
-:attr:`~twinwatch.sinks.base.Sink.config_class`. Adding an output is one module plus one line
-here (or one entry point).
+One contract (:class:`~twinwatch.sinks.base.Sink`) and one registry, :data:`SINKS`: a table maps
+an output's name to ``"module:Class"``, extended by the entry-point group ``twinwatch.sinks``; a
+sink's module is imported only when a configuration uses it. The built-ins keep their historic
+top-level tables (``[state]``, ``[zenoh]``, ``[recording]``), every other output is configured
+under ``[outputs.<name>]``.
 
 May import :mod:`twinwatch.io`, the twin's top (:mod:`twinwatch.twin.model`,
 :mod:`twinwatch.twin.health`, :mod:`twinwatch.twin.adaptation`: the message and the window) and
@@ -43,8 +39,7 @@ BUILTIN_SINKS: Mapping[str, str] = {
 }
 
 
-#: The built-ins configured in their historic top-level tables; every other output (a future
-#: built-in, a plug-in) is configured under ``[outputs.<name>]``.
+#: The built-ins configured in their historic top-level tables.
 HISTORIC_TABLES: Mapping[str, str] = {"store": "state", "zenoh": "zenoh", "rerun": "recording"}
 
 

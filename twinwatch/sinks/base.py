@@ -1,18 +1,12 @@
 """The sink contract: what every output receives for each processed window, and what the daemon
 asks of it.
 
-Modelled on python-can's ``BusABC`` (as :class:`twinwatch.drivers.Driver` is): one abstract base,
-:class:`Sink`, that every output subclasses, the built-ins as well as a plug-in registered
-through the entry-point group ``twinwatch.sinks``. A sink declares its table
-(:attr:`Sink.config_class`, a :class:`SinkConfig`: ``[outputs.<name>]``, or the built-ins'
-:data:`twinwatch.sinks.HISTORIC_TABLES`), how it opens (:meth:`Sink.from_config`, with a
-:class:`SinkContext`), its :attr:`Sink.role` (the ``gate``, a ``publisher`` or a
-``recorder``), what it does with a window (:meth:`Sink.write`, a :class:`ProcessedWindow`),
-what it reports (:meth:`Sink.counters`, :attr:`Sink.lost`, :attr:`Sink.problem`,
-:attr:`Sink.status`, :meth:`Sink.summary`), whether a reload keeps it open
-(:meth:`Sink.reload_key`, :meth:`Sink.attach`), its sample (:meth:`Sink.sample`) and
-:meth:`Sink.close`. A new output, step by step: docs/extending.md ("Where a new output plugs
-in").
+Modelled on python-can's ``BusABC``: one abstract base, :class:`Sink`, that every output
+subclasses, built-in or a plug-in of the entry-point group ``twinwatch.sinks``. A sink declares
+its table (:attr:`Sink.config_class`, a :class:`SinkConfig`), how it opens
+(:meth:`Sink.from_config`), its :attr:`Sink.role` and what it does with a window
+(:meth:`Sink.write`); the reporting and reload hooks default to nothing. A new output, step by
+step: docs/extending.md ("Where a new output plugs in").
 """
 
 from __future__ import annotations
@@ -62,14 +56,12 @@ class ProcessedWindow:
     Attributes:
         window: the acquisition window (times, channels, index).
         result: what adaptation did (estimate, terms, residuals, discovery).
-        health: the window's typed health message (README "The health message"), ``alarms``
-            included.
-        health_json: ``health`` encoded, once, by the one encoder
+        health: the window's typed health message, ``alarms`` included.
+        health_json: ``health`` encoded once
             (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): the text every sink writes.
         events: alarm-state changes this window caused (published on ``<machine>/alarm``).
-        twin_state: the accepted twin to persist (``TwinAdapter.state()``, with the diagnosis'
-            when there is a diagnoser) when this window was trusted or a diagnoser runs, else
-            None (the stored twin is kept).
+        twin_state: the accepted twin to persist (``TwinAdapter.state()``) when this window
+            was trusted or a diagnoser runs, else None (the stored twin is kept).
     """
 
     window: WindowData
@@ -82,9 +74,8 @@ class ProcessedWindow:
 
 class HistoryPage(list["HealthView"]):
     """One page of stored health messages (a list, oldest first) and the cursor of the next
-    page: ``next_after``, the ``after`` to ask next in the time the page was asked by (by
-    plant time the last window's ``t_end``; by wall time the stamp the gate saved it with,
-    which the message does not carry), None when the page is empty."""
+    page: ``next_after``, the ``after`` to ask next (by wall time the stamp the gate saved the
+    last window with, which the message does not carry), None when the page is empty."""
 
     def __init__(self, windows: Iterable[HealthView] = (), *,
                  next_after: float | None = None) -> None:
@@ -94,9 +85,8 @@ class HistoryPage(list["HealthView"]):
 
 class HistoryQuery(Protocol):
     """The stored health messages of the running machine in a time range, oldest first (the
-    gate's :meth:`Gate.history`, bound to the machine by the daemon); ``run`` keeps one run's
-    (a run id, or ``"current"``: the running daemon's), None every run's; ``after`` the
-    paging cursor (windows ending strictly after it)."""
+    gate's :meth:`Gate.history`, bound to the machine); ``run``: one run's, None every run's;
+    ``after``: the paging cursor."""
 
     def __call__(self, t_from: float | None, t_to: float | None, limit: int | None,
                  by: Literal["plant", "wall"], run: str | None = None,
@@ -135,9 +125,9 @@ class OutboxRow:
 
 class Outbox(Protocol):
     """The gate's record of which stored windows one output has delivered (store-and-forward:
-    the state database is the outbox). Bound to one output name and one machine; every method
-    may be called from the output's own thread (the gate gives each thread its own
-    connection) and raises :class:`~twinwatch.errors.StoreError` when the gate cannot answer.
+    the state database is the outbox). Bound to one output name and one machine; its methods
+    may be called from the output's own thread and raise
+    :class:`~twinwatch.errors.StoreError` when the gate cannot answer.
 
     A window is *delivered* once :meth:`ack` recorded it. ``position`` is a row id such that
     every stored window of the machine at or below it is delivered (or was stored before the
@@ -150,8 +140,8 @@ class Outbox(Protocol):
         ...
 
     def start(self) -> int:
-        """The delivered position (created at the newest stored window when the output
-        opens for the first time: the history before it is not sent)."""
+        """The delivered position (at first open: the newest stored window; older history is
+        not sent)."""
         ...
 
     def pending(self, after: int, limit: int) -> list[OutboxRow]:
@@ -181,32 +171,24 @@ class SinkContext:
     """What a sink needs from the daemon that opens it (not the whole configuration).
 
     Attributes:
-        machine: the machine name (``[machine] name``: one Zenoh key chunk).
+        machine: the machine name (one Zenoh key chunk).
         model: the twin model's registry name (``dc_motor``, ...).
         outputs: the twin's outputs, in order (``("ia", "omega", "Va")``).
         parameters: parameter name -> SI unit, in the twin's order.
         base_dir: the configuration file's directory (files the configuration names).
-        cwd: the working directory (files the daemon creates: the state database, the
-            recording; the unit's ``StateDirectory``).
-        history: the stored windows (the gate's history for this machine), or None when no
-            gate is open; a publisher may serve it (the Zenoh history query).
-        recent_windows: the windows the daemon keeps in memory (``[acquisition] history``):
-            the gate keeps as many of those it wrote, to write them again to a database file
-            deleted or replaced under it.
+        cwd: the working directory (files the daemon creates).
+        history: the gate's history for this machine, or None when no gate is open.
+        recent_windows: ``[acquisition] history``: the gate keeps as many written windows in
+            memory, to write them again to a database file deleted or replaced under it.
         output_units: output -> SI unit (``{"ia": "A", "omega": "rad/s"}``).
         nominal: parameter -> the nominal value the deviations are measured from [SI].
-        estimated: the parameters the twin estimates (``[estimation] estimate``), in
-            priority order; the others are tied or fixed.
-        alarm_bands: parameter -> its ``[alarms]`` thresholds, for an output that draws them
-            (empty when alarms are off).
-        run: the run id every health message of the daemon carries (one per start of the
-            daemon, kept across a reload; empty outside a daemon).
+        estimated: the parameters the twin estimates, in priority order.
+        alarm_bands: parameter -> its ``[alarms]`` thresholds (empty when alarms are off).
+        run: the run id of the daemon's health messages (kept across a reload).
         outbox: the gate's :class:`Outbox` for an output name (``outbox("mqtt")``), or None
-            when no gate is open or it keeps none: a publisher that delivers every stored
-            window (store-and-forward) asks it again after a reload.
-        shared: what the daemons of one process share (a gateway: one Zenoh session for every
-            machine whose ``[zenoh]`` session settings are the same), or None (one daemon per
-            process: every output opens its own).
+            when the gate keeps none; asked again after a reload.
+        shared: the :class:`SharedResources` of the process, or None: every output opens its
+            own.
     """
 
     machine: str
@@ -230,17 +212,15 @@ class SharedResources:
     """Connections the daemons of one process share (``twinwatch run DIR``, the gateway): one
     object per key, opened by the first output that asks for it and closed when the last one
     releases it (reference-counted). An output keys it by the settings that make it (a Zenoh
-    session: mode, endpoints, TLS, authentication), so machines configured alike share one and
-    machines configured apart do not.
+    session: mode, endpoints, TLS, authentication).
 
-    Thread-safe: daemons open and close their outputs from their own threads. Opening holds
-    the lock (a second machine asking for the same session waits for the first to open it,
-    instead of opening a second one on the same port).
+    Thread-safe. Opening holds the lock: a second machine asking for the same session waits
+    for the first to open it instead of opening a second one on the same port.
 
     Args:
-        directory: the process's working root (the gateway's ``--work-root``, a fleet of
-            one's working directory): where a shared object keeps its own small files (the
-            Sparkplug edge node's ``bdSeq``); None: each output's ``SinkContext.cwd``.
+        directory: the process's working root (the gateway's ``--work-root``): where a shared
+            object keeps its own small files (the Sparkplug edge node's ``bdSeq``); None: each
+            output's ``SinkContext.cwd``.
     """
 
     def __init__(self, directory: Path | None = None) -> None:
@@ -359,20 +339,18 @@ class Sink(Closeable, abc.ABC):
 
     Subclasses set :attr:`config_class` (and :attr:`role`, :attr:`counter_prefix`,
     :attr:`open_order` where the defaults do not fit) and implement :meth:`from_config`,
-    :meth:`write` and :meth:`close` (as every :class:`~twinwatch._lifecycle.Closeable`: set
-    ``self._closed = False`` once open, so an output never closed warns); the reporting hooks
-    default to "nothing to report".
+    :meth:`write` and :meth:`close` (and set ``self._closed = False`` once open, so an output
+    never closed warns).
 
     Attributes:
         name: the registry name it was opened as (set by :meth:`open`).
         context: the daemon's :class:`SinkContext` (set by :meth:`open`, re-bound by
-            :meth:`attach` when a reload hands the sink to a new daemon).
+            :meth:`attach`).
     """
 
     #: The pydantic model of this output's table.
     config_class: ClassVar[type[SinkConfig]]
-    #: What the sink is to the pipeline (see :data:`Role`). A plug-in publishes by default:
-    #: it gets only the windows the state store has stored.
+    #: What the sink is to the pipeline (see :data:`Role`).
     role: ClassVar[Role] = "publisher"
     #: Prefix of its health counters (``<prefix>_<counter>``); None: the registry name.
     counter_prefix: ClassVar[str | None] = None
@@ -383,8 +361,8 @@ class Sink(Closeable, abc.ABC):
     name: str = ""
     context: SinkContext | None = None
     _reload_key: Hashable | None = None
-    #: Windows given to it that it lost for good (never stored, not recorded, ...): a nonzero
-    #: value makes ``twinwatch run`` exit 74 (a subclass counts them in this attribute).
+    #: Windows given to it that it lost for good: a nonzero value makes ``twinwatch run``
+    #: exit 74.
     lost: int = 0
 
     @property
@@ -403,9 +381,8 @@ class Sink(Closeable, abc.ABC):
             context: what it needs from the daemon.
 
         Raises:
-            twinwatch.errors.SinkError: it cannot open (a port in use, a file locked or not
-                writable, a broker absent); the message says what to change. ``twinwatch
-                run`` exits 1 with that one line.
+            twinwatch.errors.SinkError: it cannot open (a port in use, a file locked, a broker
+                absent); the message says what to change (``twinwatch run`` exits 1 with it).
         """
 
     @classmethod
@@ -420,9 +397,8 @@ class Sink(Closeable, abc.ABC):
 
     @classmethod
     def reload_key(cls, config: Any, context: SinkContext) -> Hashable:
-        """What the open sink depends on: a reload whose key is equal keeps it open (the Zenoh
-        session, the Rerun file, the state database stay), another closes and reopens it.
-        Default: the machine name and the table's values."""
+        """What the open sink depends on: a reload whose key is equal keeps it open, another
+        closes and reopens it. Default: the machine name and the table's values."""
         return (context.machine, _frozen(config.model_dump()))
 
     def keeps(self, config: Any, context: SinkContext) -> bool:
@@ -489,18 +465,14 @@ class Sink(Closeable, abc.ABC):
 
     @classmethod
     def sample(cls, table: str) -> str:
-        """The commented sample of its table for ``twinwatch sample-config`` (every key with
-        its default and description, commented out: the output stays off until configured).
-        Default: generated from :attr:`config_class`."""
+        """The commented-out sample of its table for ``twinwatch sample-config``. Default:
+        generated from :attr:`config_class`."""
         return commented_table(cls.config_class, table, commented=True)
 
 
 class Gate(Sink):
     """The gate role: the sink that must take a window before the publishers get it (the
-    state store), and what the daemon resumes from at start.
-
-    Subclasses implement the reads below on what they stored.
-    """
+    state store), and what the daemon resumes from at start."""
 
     role: ClassVar[Role] = "gate"
 
@@ -511,9 +483,8 @@ class Gate(Sink):
     #: How many times a corrupt store was moved aside (nothing is resumed from it).
     recovered: int = 0
 
-    #: The last write failed because another process holds the database's write lock (a
-    #: backup tool): the pipeline's outputs' thread then keeps the windows in memory and
-    #: publishes them once :meth:`retry` has stored them, instead of not publishing them.
+    #: The last write failed because another process holds the write lock (a backup tool):
+    #: the pipeline then holds the windows and publishes them once :meth:`retry` stored them.
     locked: bool = False
 
     @abc.abstractmethod
@@ -536,9 +507,8 @@ class Gate(Sink):
 
     @abc.abstractmethod
     def latest_health(self, machine: str | None = None) -> HealthView | None:
-        """The last stored health message of ``machine``, read through its typed view
-        (:func:`~twinwatch.twin.health.read_health`: a field an older daemon did not store is
-        None), or None."""
+        """The last stored health message of ``machine`` through its typed view
+        (:func:`~twinwatch.twin.health.read_health`), or None."""
 
     @abc.abstractmethod
     def history(self, t_from: float | None = None, t_to: float | None = None,
@@ -552,9 +522,8 @@ class Gate(Sink):
     def timeline(self, machine: str, t_from: float | None = None) -> list[HealthView]:
         """``machine``'s stored messages on the time line that ends with its last one, from
         ``t_from`` [s, plant time] on, oldest first: what a restart resumes the trends from.
-        Default: the last stored run's windows (paged through :meth:`history`); a gate that
-        can follow the line across restarts overrides it
-        (:meth:`twinwatch.sinks.store.StateStore.timeline`)."""
+        Default: the last stored run's windows (the state store follows the line across
+        restarts)."""
         last = self.latest_health(machine)
         if last is None or last.t_end is None:
             return []

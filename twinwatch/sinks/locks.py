@@ -1,19 +1,14 @@
 """Exclusive locks on the files one daemon owns (the state database, the recording).
 
 A second ``twinwatch run`` in the same working directory must fail before it touches a file the
-first one writes: the recorder truncates its ``.rrd`` when it opens it, and two writers of one
-state database would interleave their windows. Each owner takes an advisory ``flock(2)`` on the
-file itself, opened without truncating it (created empty if absent), before anything else, and
-holds it until it closes. The lock goes with the process: SIGKILL or a crash releases it.
+first one writes. Each owner takes an advisory ``flock(2)`` on the file itself, opened without
+truncating it, before anything else, and holds it until it closes; a crash releases it.
 
-``flock`` locks are independent of the POSIX record locks SQLite uses on the same file, but
-closing any descriptor of a file drops the process's POSIX locks on it: the store therefore
-releases its lock only after its SQLite connections are closed.
+Closing any descriptor of a file drops the process's POSIX locks on it (SQLite's): the store
+therefore releases its lock only after its SQLite connections are closed.
 
 The lock's descriptor also tells whether the path still names the file being written
-(:meth:`FileLock.changed`): a file deleted, replaced or moved away under a running daemon (a
-cleanup script, an operator) is noticed within one window by comparing the descriptor's
-``st_dev``/``st_ino`` with the path's.
+(:meth:`FileLock.changed`).
 """
 
 from __future__ import annotations
@@ -80,8 +75,7 @@ class FileLock:
         self._fd: int | None = fd
 
     def changed(self) -> str | None:
-        """Whether :attr:`path` still names the locked file: one ``fstat`` and one ``stat``,
-        cheap enough for every window.
+        """Whether :attr:`path` still names the locked file (one ``fstat`` and one ``stat``).
 
         Returns:
             None while it does (or once released); ``"deleted"``: nothing at the path and the

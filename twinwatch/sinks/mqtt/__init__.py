@@ -1,19 +1,14 @@
 """Publishing machine health to an MQTT broker, store-and-forward (paho-mqtt 2.x).
 
-The built-in output ``mqtt`` (table ``[outputs.mqtt]``, a publisher: it gets only the windows
-the state database stored). With ``P = {topic_prefix}/{machine}``: ``P/health`` (the stored
-text, byte for byte), ``P/parameters/<name>/...`` (retained plain values), ``P/alarm`` (alarm
-events), ``P/availability`` (with the last will) and optional Home Assistant discovery; every
-topic and the delivery contract (the state database is the outbox,
-:class:`~twinwatch.sinks.base.Outbox`: exactly once when nothing fails, at least once across a
-crash or a lost connection): docs/mqtt.md.
+The built-in output ``mqtt`` (table ``[outputs.mqtt]``). With ``P = {topic_prefix}/{machine}``:
+``P/health`` (the stored text, byte for byte), ``P/parameters/<name>/...`` (retained plain
+values), ``P/alarm``, ``P/availability`` (with the last will) and optional Home Assistant
+discovery. The state database is the outbox: exactly once when nothing fails, at least once
+across a crash or a lost connection (docs/mqtt.md).
 
-Threads: one thread, ``twinwatch-mqtt``, owns the paho client and the outbox's reads and writes;
-:meth:`MqttPublisher.write` only notes the window's alarm events and wakes it. paho keeps at
-most ``inflight`` windows in memory, the rest stay in the state database (paho's own queue
-ignores its inflight limit after a reconnect: eclipse-paho/paho.mqtt.python#223, #698).
-Without a state database the outbox is in memory (:class:`.outbox.MemoryOutbox`, the last
-``memory_outbox``).
+Threads: one thread owns the paho client and the outbox's reads and writes. paho keeps at most
+``inflight`` windows in memory, the rest stay in the state database (paho's own queue ignores
+its inflight limit after a reconnect: eclipse-paho/paho.mqtt.python#223, #698).
 """
 
 from twinwatch.sinks.mqtt.config import MqttConfig

@@ -19,8 +19,7 @@ _LEVEL_RE = re.compile(r"^[^#+\x00/]+$")
 
 def check_topic(value: str, what: str) -> str:
     """A topic (prefix) by MQTT's rules (MQTT 3.1.1 Section 4.7): non-empty levels, no
-    wildcards, no NUL, at most 65535 bytes of UTF-8, and not a ``$`` topic (``$SYS/...`` is the
-    broker's own: a subscriber's ``#`` never receives it)."""
+    wildcards, no NUL, at most 65535 bytes of UTF-8, and not a ``$`` topic."""
     if not value or any(_LEVEL_RE.match(level) is None for level in value.split("/")):
         raise ValueError(f"{what} {value!r} must be non-empty topic levels separated by '/', "
                          f"without the wildcards '+' and '#', NUL (and no leading or trailing "
@@ -36,8 +35,8 @@ def check_topic(value: str, what: str) -> str:
 
 class MqttTlsConfig(StrictTable):
     """``[outputs.mqtt.tls]``: TLS to the broker (``port`` is then usually 8883). Paths are
-    relative to the configuration file's directory; the private key is a secret (refused when
-    others can read it: install it ``0640 root:twinwatch``).
+    relative to the configuration file's directory; the private key is refused when others
+    can read it.
     """
 
     ca_certs: str | None = Field(None,
@@ -155,7 +154,7 @@ class MqttConnectionConfig(SinkConfig):
 
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The client id at the broker (a second connection with it would take the session
-        over): a reload that keeps it waits for the running output to disconnect."""
+        over)."""
         return {f"mqtt://{self.host}:{self.port}/{self.client_id or ''}"}
 
 

@@ -1,8 +1,7 @@
 """An MQTT output's delivery over its outbox, as the MQTT and the Sparkplug B outputs both keep
 it: which stored windows were handed to the broker, which it acknowledged, which are pending,
-at most ``inflight`` unacknowledged and ``rate`` a second (the delivery contract:
-docs/architecture.md). The output says how a window is sent (``send``) and whether its session
-may send now (``ready``); everything here runs in the output's thread.
+at most ``inflight`` unacknowledged and ``rate`` a second (docs/architecture.md). Everything
+here runs in the output's thread.
 """
 
 from __future__ import annotations
@@ -94,8 +93,7 @@ class Delivery:
         return self.dropped + (self.pending if self.memory is not None and closed else 0)
 
     def bind(self, context: SinkContext) -> None:
-        """Deliver from ``context``'s outbox (at open, and when a reload's daemon adopts the
-        output); the thread binds it (:meth:`rebind_outbox`)."""
+        """Deliver from ``context``'s outbox; the thread binds it (:meth:`rebind_outbox`)."""
         self.context = context
         if context.outbox is not None:
             # The delivered position exists before the output's thread first runs (created
@@ -260,12 +258,9 @@ class Delivery:
             self.pending = self.memory.count(self.position_now())
 
     def file_changed(self) -> bool:
-        """The state database's file was deleted, replaced or moved away and the store has
-        opened the one at the path (noticed by the store at the next window or read): the
-        outbox's row ids are stale. The windows in flight and delivered but not yet recorded
-        are forgotten (sent again from the new file: at least once), the outbox is bound
-        again: the windows the store wrote to the new file and this output had not
-        delivered are pending there."""
+        """The store has opened a new database file: the outbox's row ids are stale. The
+        windows in flight and delivered but not yet recorded are forgotten (sent again from
+        the new file: at least once), and the outbox is bound again."""
         box = self.outbox
         if box is None or not getattr(box, "changed", False):
             return False
@@ -292,8 +287,7 @@ class Delivery:
 
     def unacknowledged(self, broker: str, connected: bool) -> str | None:
         """Connected, but the oldest window handed to the broker waits for its
-        acknowledgement longer than ``ack_timeout``: a broker that accepts and never
-        acknowledges. Logged once per episode."""
+        acknowledgement longer than ``ack_timeout``. Logged once per episode."""
         if not connected:
             self._unacked_logged = False
             return None
@@ -313,9 +307,8 @@ class Delivery:
 
 class DeliveringSink(Sink):
     """What an output that delivers through a :class:`Delivery` answers (the MQTT and the
-    Sparkplug B outputs): its counts, its reload key, its outbox unbound by a reload. A
-    subclass sets :attr:`delivery`, ``_closed`` and :attr:`wake` (its thread's); its close sets
-    :attr:`leave_by`."""
+    Sparkplug B outputs). A subclass sets :attr:`delivery`, ``_closed`` and :attr:`wake`; its
+    close sets :attr:`leave_by`."""
 
     delivery: Delivery
     _closed: bool
@@ -323,14 +316,14 @@ class DeliveringSink(Sink):
     leave_by: float | None = None  # closing: deliver until then (monotonic)
 
     def attach(self, context: SinkContext) -> None:
-        """Deliver from ``context``'s outbox (at open; a reload's daemon adopts the output)."""
+        """Deliver from ``context``'s outbox."""
         super().attach(context)
         self.delivery.bind(context)
         self.wake.set()
 
     def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's call (a stored window): kept in memory when there is no
-        state database, the thread woken. Never blocks on the broker."""
+        """Wake the thread (keep the window in memory without a state database). Never
+        blocks on the broker."""
         if self._closed:
             return
         if self.delivery.memory is not None:
@@ -348,9 +341,8 @@ class DeliveringSink(Sink):
 
     @classmethod
     def reload_key(cls, config: Any, context: SinkContext) -> Hashable:
-        """The table's values and what its files hold now (the password file, the TLS
-        certificates and key): a SIGHUP after a password or a certificate was renewed opens
-        the output again with them; the same table and files keep it connected."""
+        """The table's values and what its files hold now: a SIGHUP after a password or a
+        certificate was renewed opens the output again with them."""
         files = []
         for key, path in sorted(config.input_files().items()):
             try:
@@ -360,8 +352,7 @@ class DeliveringSink(Sink):
         return (super().reload_key(config, context), tuple(files))
 
     def detach(self) -> None:
-        """The daemon that opened it stops (a reload): nothing new is read from its outbox
-        until :meth:`attach`."""
+        """Nothing new is read from the outbox until :meth:`attach`."""
         super().detach()
         self.delivery.rebind.set()
 
@@ -382,6 +373,5 @@ class DeliveringSink(Sink):
 
     @property
     def lost(self) -> int:  # type: ignore[override]
-        """Windows that will never be delivered: dropped, and without a state database the
-        windows still pending when it closed."""
+        """:meth:`Delivery.lost`."""
         return self.delivery.lost(self._closed)

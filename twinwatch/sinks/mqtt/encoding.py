@@ -1,8 +1,7 @@
 """What the MQTT output publishes for a window, from its typed health message: the retained
-plain values (:func:`flat_values`), the diagnosis' values, the alarm events read back from two
-stored messages (:func:`reconstructed_events`) and Home Assistant's discovery payload
-(:func:`discovery_payload`). No broker, no state: the readers of the message (tests/
-test_health_readers.py).
+plain values (:func:`flat_values`), the alarm events read back from two stored messages
+(:func:`reconstructed_events`) and Home Assistant's discovery payload
+(:func:`discovery_payload`). No broker, no state.
 """
 
 from __future__ import annotations
@@ -44,9 +43,8 @@ def _std(value: Any, rel_std_pct: Any) -> float | None:
 def _rounded(value: Any, std: float | None, *, floor: float | None = None,
              digits: int = 6) -> Any:
     """``value`` rounded to what its interval supports: two significant digits of its
-    standard error ``std`` (Ra 6.16593 +- 0.0006: 6.16593), never finer than ``floor``;
-    without one, ``digits`` significant digits. A deviation of 4.440892098500626e-14 %
-    (a float's rounding) is published as 0.0."""
+    standard error ``std``, never finer than ``floor``; without one, ``digits`` significant
+    digits (so a float's rounding noise is published as 0.0)."""
     if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
         return value
     step = std if std is not None and std > 0 else None
@@ -79,8 +77,7 @@ def known_parameters(parameters: Mapping[str, str], view: HealthView | None
 
 
 def health_view(doc: HealthView | Mapping[str, Any] | str | bytes) -> HealthView:
-    """``doc`` (a typed view, the decoded message or its JSON text) as the health message's
-    typed view (parsed once).
+    """``doc`` (a typed view, the decoded message or its JSON text) as a typed view.
 
     Raises:
         ValueError: text that is not a health message (:func:`~twinwatch.twin.health.read_health`).
@@ -91,14 +88,12 @@ def health_view(doc: HealthView | Mapping[str, Any] | str | bytes) -> HealthView
 
 
 def flat_values(doc: HealthView | Mapping[str, Any]) -> dict[str, str]:
-    """The retained flat topics of one health message (its typed view,
-    :func:`~twinwatch.twin.health.read_health`, or the decoded message): suffix
-    (``parameters/Ra/value``) -> plain-text payload.
+    """The retained flat topics of one health message: suffix (``parameters/Ra/value``) ->
+    plain-text payload.
 
-    Per parameter: ``value``, ``deviation_pct`` (numbers; ``null`` when there is none),
-    ``status``; ``rul`` and ``rul_warning`` (median seconds to the alarm / warning threshold,
-    ``parameters.<name>.rul.<level>.rul_s``) when the message has a ``rul`` field (the
-    prognostics); ``alarm`` (the level) when the parameter has an alarm rule (``alarms``).
+    Per parameter: ``value``, ``deviation_pct`` (``null`` when there is none), ``status``;
+    ``rul`` and ``rul_warning`` (median seconds to the threshold) when the message has a
+    ``rul`` field; ``alarm`` (the level) when the parameter has an alarm rule.
     """
     from twinwatch.twin.health import sent
 
@@ -136,9 +131,8 @@ _NO_ACTION = {"no_fault": "none",
 
 def diagnosis_values(diag: DiagnosisView) -> dict[str, str]:
     """The diagnosis' flat topics: ``diagnosis/fault`` (the most probable fault's id, or
-    ``no_fault`` / ``unknown`` / ``check_function``), ``diagnosis/probability`` (its
-    probability [%], one decimal), ``diagnosis/action`` (the fault's maintenance action, or
-    what to do without one; never empty: an empty retained payload deletes the topic; at most
+    ``no_fault`` / ``unknown`` / ``check_function``), ``diagnosis/probability`` [%],
+    ``diagnosis/action`` (never empty: an empty retained payload deletes the topic; at most
     255 characters, Home Assistant's limit of a state)."""
     status = str(diag.status or "no_fault")
     faults = diag.faults or []
@@ -161,9 +155,8 @@ def levels(doc: HealthView | None) -> dict[str, str]:
 
 def reconstructed_events(doc: HealthView | None, previous: dict[str, str]
                          ) -> list[dict[str, Any]]:
-    """Alarm-level changes between the previous stored message's levels and ``doc``'s (its
-    typed view; None: an unreadable message, no change), as events (the evaluator's keys it
-    can give, ``"reconstructed": true``)."""
+    """Alarm-level changes between the previous stored message's levels and ``doc``'s (None:
+    an unreadable message, no change), as events marked ``"reconstructed": true``."""
     events: list[dict[str, Any]] = []
     if doc is None:
         return events
@@ -202,32 +195,26 @@ def discovery_payload(machine: str, model: str, base: str,
                       device_name: str | None = None,
                       rules: Collection[str] | None = None,
                       nominal: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """Home Assistant's device-based discovery payload for one machine (abbreviated keys, as
-    Home Assistant's MQTT documentation lists them).
+    """Home Assistant's device-based discovery payload for one machine (abbreviated keys).
 
     Args:
         machine: the machine name.
         model: the twin model (the device's model).
         base: the machine's topic base ``<prefix>/<machine>``.
-        doc: the newest health message (its typed view, or decoded), or None: which
-            parameters have an alarm rule (``alarms``) and a ``rul`` field; without it, every
-            parameter of ``parameters`` gets its value, deviation and status only.
+        doc: the newest health message, or None: which parameters have an alarm rule and a
+            ``rul`` field.
         parameters: parameter name -> SI unit (the twin's, in order).
         qos: the QoS Home Assistant subscribes with.
         device_name: the device's name (default: the machine name).
-        rules: the parameters with an ``[alarms]`` rule (the configuration's): their alarm
-            and RUL entities, and only theirs, are announced in the first message, before
-            any health message.
+        rules: the parameters with an ``[alarms]`` rule: their alarm and RUL entities are
+            announced before any health message.
         nominal: parameter -> nominal value, for each value entity's display precision.
 
     Returns:
-        The payload: ``dev`` (ids, name, mf, mdl, sw), ``o`` (name, sw, url), ``avty_t``,
-        ``qos`` and ``cmps``: per parameter a ``sensor`` for its value (unit,
-        ``state_class: measurement``), its deviation [%] and its status; a ``binary_sensor``
-        ``device_class: problem`` per alarm rule (on while the level is not ``normal``); a
-        ``sensor`` ``device_class: duration`` [s] for the RUL where the message has one; the
-        diagnosis' most probable fault, its probability [%] and the maintenance action
-        (unless the message has no ``diagnosis``: ``[diagnosis] enabled = false``).
+        The payload: ``dev``, ``o``, ``avty_t``, ``qos`` and ``cmps``: per parameter sensors
+        for its value, deviation [%] and status; a ``binary_sensor`` per alarm rule; a
+        duration sensor [s] for the RUL where the message has one; the diagnosis' sensors
+        unless the message has no ``diagnosis``.
     """
     from twinwatch.twin.health import sent
 

@@ -1,6 +1,5 @@
 """The MQTT output itself: the paho client in its own thread (an :class:`MqttSession`),
-connecting and reconnecting, delivering the outbox's windows oldest first and recording their
-acknowledgements (a :class:`Delivery`; the delivery contract: docs/architecture.md).
+delivering the outbox's windows oldest first (a :class:`Delivery`).
 """
 
 from __future__ import annotations
@@ -29,7 +28,7 @@ from twinwatch.sinks.mqtt.session import MqttSession, SessionThread, mqtt, read_
 if TYPE_CHECKING:
     from twinwatch.twin.health import HealthView
 
-logger = logging.getLogger(__package__)  # the output's name in its log lines: twinwatch.sinks.mqtt
+logger = logging.getLogger(__package__)  # twinwatch.sinks.mqtt
 
 
 class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
@@ -44,9 +43,8 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
         delivery: the windows delivered and pending (:class:`Delivery`).
 
     Raises:
-        PublisherError: a TLS or password file cannot be read, or the TLS setup fails. An
-            unreachable broker is not an error: it is tried again in the background while
-            the windows wait in the outbox.
+        PublisherError: a TLS or password file cannot be read, or the TLS setup fails (an
+            unreachable broker is not an error: it is tried again in the background).
     """
 
     config_class: ClassVar[type[MqttConfig]] = MqttConfig
@@ -126,8 +124,7 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
 
     # -- the sink contract --------------------------------------------------------------------
     def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's call (a stored window): its alarm events remembered, then as
-        :meth:`DeliveringSink.write`. Never blocks on the broker."""
+        """Remember the window's alarm events, then :meth:`DeliveringSink.write`."""
         if out.events and not self._closed:
             with self._events_lock:
                 self._events[out.health_json] = list(out.events)
@@ -136,10 +133,8 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
         super().write(out)
 
     def counters(self) -> dict[str, int]:
-        """``delivered`` (windows acknowledged by the broker), ``pending`` (stored, not yet
-        delivered), ``dropped`` (deleted by the retention, or pushed out of the memory outbox,
-        before delivery), ``connects``, ``disconnects``, ``errors`` (publishes refused,
-        outbox reads or writes that failed)."""
+        """``delivered``, ``pending``, ``dropped`` (as :class:`Delivery`), ``connects``,
+        ``disconnects``, ``errors``."""
         d, s = self.delivery, self.mqtt
         return {"delivered": int(d.delivered), "pending": int(d.pending),
                 "dropped": d.dropped, "connects": int(s.connects),
@@ -242,8 +237,7 @@ class MqttPublisher(DeliveringSink, SessionThread["MqttPublisher"]):
     def _messages(self, row: OutboxRow, doc: HealthView | None, newest: bool
                   ) -> list[tuple[str, str | bytes, bool]]:
         """A window's messages, ``(topic, payload, retain)``: the health message, its alarm
-        events (the evaluator's, else read from two stored messages), and for the newest
-        window the retained plain values."""
+        events, and for the newest window the retained plain values."""
         messages: list[tuple[str, str | bytes, bool]] = [(self.health_topic, row.doc, False)]
         with self._events_lock:
             events = self._events.pop(row.doc, None)

@@ -1,12 +1,10 @@
 """One MQTT session with a broker, as the MQTT output and a Sparkplug B edge node both hold it:
-the paho client (credentials, TLS, its will), one connection attempt at a time with a capped,
-jittered backoff between them, the CONNACK, the connection lost, another client taking the
-client id over, and what is wrong with the session for STATUS.
+the paho client, connection attempts with a capped, jittered backoff, the connection lost,
+another client taking the client id over, and what is wrong with the session for STATUS.
 
 The owner (:class:`~twinwatch.sinks.mqtt.publisher.MqttPublisher`, the Sparkplug
-:class:`~twinwatch.sinks.sparkplug.node.EdgeNode`) drives the session from its thread, one
-:class:`SessionThread` loop for both, and says, through the thread's session calls, what
-it publishes when connected and what its messages are.
+:class:`~twinwatch.sinks.sparkplug.node.EdgeNode`) drives the session from one
+:class:`SessionThread` loop.
 """
 
 from __future__ import annotations
@@ -29,8 +27,7 @@ if TYPE_CHECKING:
 
     from twinwatch.sinks.mqtt.config import MqttConnectionConfig
     from twinwatch.sinks.mqtt.delivery import DeliveringSink
-else:  # imported when the output opens: loading a configuration does not load paho (the MQTT
-    # and Sparkplug publishers take mqtt from here)
+else:  # imported when the output opens: loading a configuration does not load paho
     mqtt = lazy_module("paho.mqtt.client")
 
 __all__ = ["CLOSE_RETRY_S", "TAKEOVERS", "TAKEOVER_S", "MqttSession",
@@ -107,8 +104,8 @@ class MqttSession:
         return f"{self.config.host}:{self.config.port}"
 
     def new_client(self) -> mqtt.Client:
-        """A paho client with the credentials, the TLS setup and the will; the owner's
-        callbacks set. (The thread's :meth:`attempt` connects it.)
+        """A paho client with the credentials, the TLS setup, the will and the owner's
+        callbacks (:meth:`attempt` connects it).
 
         Raises:
             PublisherError: the TLS setup fails.
@@ -154,9 +151,8 @@ class MqttSession:
         self._delay = min(2 * self._delay, self.config.reconnect_max)
 
     def attempt(self) -> None:
-        """One connection attempt: TCP (and TLS), CONNECT, then wait for the CONNACK (not
-        past a refusal: its socket is closed, and polling it made paho log an error on every
-        retry)."""
+        """One connection attempt: connect, then wait for the CONNACK (not past a refusal:
+        its socket is closed, and polling it makes paho log an error)."""
         self.refused = False
         try:
             self.client.reconnect()
@@ -214,10 +210,8 @@ class MqttSession:
     def _taken_over(self, lasted: float) -> None:
         """A connection lost ``lasted`` seconds after it was made. The broker closes a
         session when another client connects with the same client id (MQTT 3.1.1: no reason
-        given); two daemons with one id take it from each other in turn. :data:`TAKEOVERS`
-        such losses in a row, each within
-        :data:`TAKEOVER_S` of the connection: named once, and the next attempts wait longer
-        (doubling from 5 s to 60 s); a connection that lasts resets it."""
+        given). :data:`TAKEOVERS` such losses in a row: named once, and the next attempts
+        wait longer (doubling from 5 s to 60 s); a connection that lasts resets it."""
         if lasted > TAKEOVER_S:
             if self.takeovers >= TAKEOVERS:
                 self._log.warning("MQTT client id %r: the connection has lasted %.0f s, no "
@@ -249,9 +243,7 @@ class MqttSession:
 
     # -- for STATUS ---------------------------------------------------------------------------
     def problems(self, pending: int) -> list[str]:
-        """The session's part of the output's problem line, with ``pending`` windows: the
-        broker unreachable (past twice ``connect_timeout``, or after a connection), the client
-        id taken over."""
+        """The session's part of the output's problem line, with ``pending`` windows."""
         out = []
         if not self.connected and self.down_since is not None and not self._stopping():
             since = time.monotonic() - self.down_since
@@ -290,13 +282,10 @@ M = TypeVar("M", bound="DeliveringSink")
 
 class SessionThread(Generic[M]):
     """The thread that drives an :class:`MqttSession` and the deliveries of its members (the
-    MQTT output: itself; a Sparkplug edge node: its devices), as both outputs run it
-    (:meth:`_run`, :meth:`_offline`, :meth:`_online`); once stopped and every member retired,
-    :meth:`_finish`.
+    MQTT output: itself; a Sparkplug edge node: its devices).
 
     A subclass sets :attr:`mqtt`, :attr:`wake`, ``_stop`` and ``_thread`` (``target``
-    :meth:`_run`) and says who its members are, what a member's turn and a connected turn add
-    and how a member is retired.
+    :meth:`_run`) and implements the hooks below.
     """
 
     mqtt: MqttSession
@@ -370,8 +359,8 @@ class SessionThread(Generic[M]):
         return not self._thread.is_alive()
 
     def _run(self) -> None:
-        """The thread: :meth:`_loop`, restarted after an unexpected error 1 s later (logged,
-        counted: the output must not die silently); stopped meanwhile, the members retired."""
+        """The thread: :meth:`_loop`, restarted 1 s after an unexpected error (the output
+        must not die silently)."""
         while True:
             try:
                 self._loop()
@@ -409,10 +398,9 @@ class SessionThread(Generic[M]):
         self._finish()
 
     def _offline(self, now: float, members: Sequence[M]) -> None:
-        """A turn without a connection: closing members retired when delivered or past their
-        ``leave_by``, a connection attempted when due (the capped backoff; while a closing
-        member's windows wait, every :data:`CLOSE_RETRY_S`), the deliveries recorded and
-        counted; waits for a window stored or the next attempt."""
+        """A turn without a connection: closing members retired when done, a connection
+        attempted when due (while a closing member's windows wait, every
+        :data:`CLOSE_RETRY_S`); waits for a window stored or the next attempt."""
         waiting = [m for m in members if not self._left(m, now) and m.leave_by is not None]
         closing = self._stop.is_set()  # the whole session closes: only the closing attempts
         if waiting and now >= self._close_attempt:
@@ -435,8 +423,7 @@ class SessionThread(Generic[M]):
 
     def _online(self, now: float, members: Sequence[M]) -> None:
         """A connected turn: each member fed (on a wake-up, every 0.5 s, while it leaves),
-        retired once delivered or past its ``leave_by``, its acknowledgements recorded; the
-        deliveries counted."""
+        retired when done, its acknowledgements recorded."""
         woken = self.wake.is_set()
         self.wake.clear()
         poll = woken or now - self._last_poll > 0.5

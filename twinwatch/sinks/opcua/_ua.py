@@ -1,11 +1,9 @@
 """asyncua, imported when the output opens: loading a configuration does not load it.
 
-The modules of this package that use ``asyncua`` or ``ua`` hold them as module globals, lazy
-modules until :func:`bind` (called when a server opens) rebinds them, in every such module
-(:func:`rebinds`), to the real ones: every ``ua.X`` through the lazy module costs an
-import-system lookup (a sixth of a window's writing, measured). Typed Any: asyncua annotates
-its protocol types as NewTypes (``ua.Int16``, ``ua.String``, ...), which every literal would
-have to be wrapped in to satisfy mypy.
+The modules of this package hold ``asyncua`` and ``ua`` as module globals, lazy modules until
+:func:`bind` (called when a server opens) rebinds them to the real ones (:func:`rebinds`):
+every ``ua.X`` through the lazy module costs an import-system lookup. Typed Any: asyncua
+annotates its protocol types as NewTypes, which every literal would have to be wrapped in.
 """
 
 from __future__ import annotations

@@ -1,8 +1,7 @@
 """The OPC UA information model of one machine and the encoding of a window into it: the NE 107
 device health (:func:`device_health`), the window's values by node path (:func:`flat_values`),
-the nodes of a machine (:class:`_Builder`, one AddNodes call) with their engineering units
-(UN/CEFACT) and ranges, and the window's source time stamps. The server
-(:mod:`~twinwatch.sinks.opcua.server`) creates the nodes and writes the values.
+the nodes of a machine (:class:`_Builder`) with their engineering units and ranges, and the
+window's source time stamps.
 """
 
 from __future__ import annotations
@@ -49,20 +48,17 @@ _UNITS_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
 
 
 def device_health(health: HealthMessage) -> tuple[int, str]:
-    """The window's DeviceHealth (OPC UA Part 100, NAMUR NE 107) and why, for a person: by
-    what the operator must do, the first that applies (the rules and why: docs/opcua-output.md's
-    table, a test per row): ``FAILURE`` (a deviation alarm), ``CHECK_FUNCTION`` (the
-    diagnosis' check function, a silent source), ``OFF_SPEC`` (a deviation warning),
-    ``MAINTENANCE_REQUIRED`` (a RUL level raised, a raised fault alarm whatever its urgency),
+    """The window's DeviceHealth (OPC UA Part 100, NAMUR NE 107) and why, for a person: the
+    first that applies (docs/opcua-output.md's table): ``FAILURE`` (a deviation alarm),
+    ``CHECK_FUNCTION`` (the diagnosis' check function, a silent source), ``OFF_SPEC`` (a
+    deviation warning), ``MAINTENANCE_REQUIRED`` (a RUL level raised, a raised fault alarm),
     else ``NORMAL``.
 
     Args:
-        health: the window's typed health message (its ``alarms``, ``diagnosis``,
-            ``source``).
+        health: the window's typed health message.
 
     Returns:
-        ``(value, reason)``: a :data:`DEVICE_HEALTH` value and one line. The source lost (no
-        window for ``stale_after``) is the publisher's, not the message's.
+        ``(value, reason)``: a :data:`DEVICE_HEALTH` value and one line.
     """
     alarms = health.alarms
     diag = health.diagnosis
@@ -200,8 +196,7 @@ class _Builder:
 
 def _var_attrs(name: str, value: Any, datatype: Any, *, history: bool = False) -> Any:
     """A read-only variable's attributes: ``AccessLevel`` ``CurrentRead``, with ``HistoryRead``
-    (and ``Historizing``) only where ``history`` is kept (``[outputs.opcua] history`` > 0, the
-    parameters' ``Value``)."""
+    (and ``Historizing``) only where ``history`` is kept."""
     attrs = ua.VariableAttributes()
     attrs.DisplayName = ua.LocalizedText(name)
     attrs.Description = ua.LocalizedText(name)

@@ -1,6 +1,5 @@
 """The OPC UA output as a sink (:class:`OpcUaPublisher`): one machine's share of its
-endpoint's server (:class:`~twinwatch.sinks.base.SharedResources`: the first machine opens
-it, the last closes it); each stored window handed to the server's loop, never waiting for a
+endpoint's server; each stored window handed to the server's loop, never waiting for a
 client."""
 
 from __future__ import annotations
@@ -22,8 +21,7 @@ class OpcUaPublisher(Sink):
 
     Args:
         config: the validated table.
-        context: the daemon's context (machine, model, parameters and their units, nominal
-            values, alarm bands; ``shared``: the process's shared servers).
+        context: the daemon's context (``shared``: the process's shared servers).
 
     Raises:
         PublisherError: the port is taken, a certificate or key cannot be loaded, the machine
@@ -65,16 +63,15 @@ class OpcUaPublisher(Sink):
 
     @classmethod
     def reload_key(cls, config: OpcUaConfig, context: SinkContext) -> Hashable:
-        """The table, and the machine's model, parameters, nominal values and alarm bands
-        (what its nodes are made of): a reload that changes them makes the object anew."""
+        """The table, and what the machine's nodes are made of: a reload that changes them
+        makes the object anew."""
         bands = tuple(sorted((k, (b.warning_high, b.warning_low, b.alarm_high, b.alarm_low))
                              for k, b in context.alarm_bands.items()))
         return (super().reload_key(config, context), context.model,
                 tuple(context.parameters.items()), tuple(sorted(context.nominal.items())), bands)
 
     def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's call (a stored window): hand its values and alarm events to
-        the server's loop; never waits for a client."""
+        """Hand the window's values and alarm events to the server's loop."""
         if self._closed:
             return
         self.server.publish(self.machine, out.health, list(out.events))

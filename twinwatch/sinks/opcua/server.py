@@ -1,8 +1,6 @@
 """The OPC UA server of one endpoint (:class:`OpcUaServer`): asyncua's server in its own
-thread, ``twinwatch-opcua``, on its own asyncio loop; the machines' objects created and deleted
-as their outputs open and close, each window's values written and its alarm events raised
-there, a machine without a window for ``stale_after`` marked CHECK_FUNCTION (see the package's
-docstring).
+thread on its own asyncio loop, where the machines' objects are created and deleted, each
+window's values written and its alarm events raised.
 """
 
 from __future__ import annotations
@@ -54,8 +52,7 @@ __all__ = ["OpcUaServer"]
 class _ReadOnly:
     """asyncua permission rule set: every user may read, browse, subscribe, read history and
     call the server's standard methods (ConditionRefresh); nobody may write or change the
-    address space. (asyncua answers RegisterServer and RegisterServer2 before any session,
-    without consulting it: :func:`_refuse_register` closes those.)"""
+    address space (RegisterServer: :func:`_refuse_register`)."""
 
     DENIED: ClassVar[tuple[str, ...]] = (
         "WriteRequest", "AddNodesRequest", "DeleteNodesRequest", "AddReferencesRequest",
@@ -71,13 +68,10 @@ class _ReadOnly:
 
 
 def _refuse_register(iserver: Any) -> None:
-    """Refuse RegisterServer and RegisterServer2 to every client, anonymous or not: asyncua's
-    message processor hands them to the internal server before any session exists and without
-    the permission rule set (asyncua 2.1, ``server/uaprocessor.py``), so any client could add
-    an entry to ``FindServers`` pointing discovery at an address of its choosing. twinwatch is
-    no discovery server: the call is answered ``Bad_UserAccessDenied`` (a ServiceFault) and
-    ``FindServers`` lists twinwatch only. Logged once per server at WARNING (the client's
-    address is not known there)."""
+    """Refuse RegisterServer and RegisterServer2 to every client (``Bad_UserAccessDenied``):
+    asyncua hands them to the internal server before any session exists and without the
+    permission rule set (asyncua 2.1, ``server/uaprocessor.py``), so any client could point
+    ``FindServers`` at an address of its choosing. Logged once per server."""
     said = False
 
     def refuse(*_args: Any) -> None:
@@ -209,12 +203,9 @@ class OpcUaServer:
 
     # -- machines ---------------------------------------------------------------------------
     def add_machine(self, context: SinkContext, stale_after: float) -> None:
-        """Create ``context.machine``'s object (its parameters from the context: units,
-        nominal values, alarm bands) and its alarm event generators, on the server's loop,
-        without waiting for it: a gateway's machines start at once instead of one after the
-        other (some 47 ms of CPU a machine's 220 nodes; 200 machines started 10 s later), and
-        whatever is handed to the loop after this call (the machine's windows, a client's
-        request, :meth:`flush`) comes after its nodes. Nodes that cannot be made (a bug) are
+        """Create ``context.machine``'s object and its alarm event generators on the server's
+        loop, without waiting for it (a gateway's machines start at once); whatever is handed
+        to the loop after this call comes after its nodes. Nodes that cannot be made are
         logged and counted in :attr:`errors`.
 
         Raises:
@@ -258,7 +249,7 @@ class OpcUaServer:
         self._loop.call_soon_threadsafe(self._schedule, self._publish, machine, health, events)
 
     def flush(self, timeout: float = 30.0) -> None:
-        """Wait until what :meth:`publish` handed over is written (tests, the benchmark)."""
+        """Wait until what :meth:`publish` handed over is written."""
         if not self._closed:
             self._call(self._drain(), timeout)
 
@@ -398,8 +389,8 @@ class OpcUaServer:
         m.stale = False
         ts = _source_time(m, h.run, h.t_end, now)
         m.health = device_health(h)
-        # the counters (some 40 a machine) at most every COUNTERS_EVERY_S of plant time: half
-        # the writes of a window, and a SCADA trends them at that pace anyway
+        # the counters at most every COUNTERS_EVERY_S of plant time: half the writes of a
+        # window, and a SCADA trends them at that pace anyway
         counters_due = (m.counters_t is None or h.t_end < m.counters_t
                         or h.t_end - m.counters_t >= COUNTERS_EVERY_S)
         if counters_due:

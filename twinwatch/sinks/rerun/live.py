@@ -1,13 +1,11 @@
 """The recording's live view (:class:`LiveServer`): a second recording stream, with the same
-recording id and blueprint as the file's, whose only sink is Rerun's gRPC server on
-``[recording] serve_bind:serve_port``. The file's stream never touches it: a file rotated,
-reopened or deleted never disturbs the viewers, and a server that fails stops only the live
-view (logged once). A gRPC server does not stop while a viewer is connected (Rerun SDK 0.41),
-so a closed recorder parks its server (:data:`_LIVE`) for the next recorder on the same address
-(a reload keeps the viewers and the history); it ends with the process.
+recording id and blueprint as the file's, whose only sink is Rerun's gRPC server. The file's
+stream never touches it: the file's faults never disturb the viewers, and a server that fails
+stops only the live view. A gRPC server does not stop while a viewer is connected (Rerun SDK
+0.41), so a closed recorder parks its server (:data:`_LIVE`) for the next recorder on the same
+address; it ends with the process.
 
-Also here, the streams whose file writer died (:func:`bury`): kept referenced for the life of
-the process, their helpers disabled.
+Also here, the streams whose file writer died (:func:`bury`).
 """
 
 from __future__ import annotations
@@ -29,8 +27,7 @@ logger = logging.getLogger(__package__)  # the log lines name the package
 __all__ = ["LiveServer", "bury"]
 
 _LIVE: dict[tuple[str, int], tuple[Any, str]] = {}
-"""Live servers of closed recorders, by address, with their URL: a gRPC server stays up while a
-viewer is connected, so it is kept, and taken over by the next recorder on that address."""
+"""Live servers of closed recorders, by address, with their URL."""
 _LIVE_LOCK = threading.Lock()
 
 _GRAVEYARD: list[Any] = []
@@ -39,11 +36,9 @@ _GRAVEYARD: list[Any] = []
 
 def bury(rec: rr.RecordingStream) -> None:
     """Abandon a stream whose file writer died. With the Rerun SDK 0.41 every later flush,
-    disconnect or new file on it, its ``__del__`` (a sweep of orphaned recordings) and the
-    SDK's exit hook wait forever for the dead writer: disable the instance's helpers, keep it
-    referenced for the life of the process, and unregister the exit hook (each recorder
-    disconnects its own stream in :meth:`RerunRecorder.close
-    <twinwatch.sinks.rerun.recorder.RerunRecorder.close>`)."""
+    disconnect or new file on it, its ``__del__`` and the SDK's exit hook wait forever for the
+    dead writer: disable the instance's helpers, keep it referenced for the life of the
+    process, and unregister the exit hook (each recorder disconnects its own stream)."""
     rec._flush = lambda *args, **kwargs: None
     rec._disconnect_orphaned_recordings = lambda *args, **kwargs: None
     _GRAVEYARD.append((rec, getattr(rec, "inner", None)))
@@ -97,10 +92,8 @@ class LiveServer:
 
     def open(self, application_id: str, recording_id: uuid.UUID, blueprint: rrb.Blueprint,
              log_static: Callable[[rr.RecordingStream], None], timeout: float) -> None:
-        """Open :attr:`stream`, a second recording stream whose only sink is Rerun's gRPC
-        server on ``bind:port``, with the blueprint and what ``log_static`` sends once; the
-        server a recorder closed before parked (:meth:`park`) is taken over, with its viewers
-        and its history.
+        """Open :attr:`stream` with the blueprint and what ``log_static`` sends once; a server
+        parked by a closed recorder (:meth:`park`) is taken over, with its viewers.
 
         Raises:
             RecorderError: the server does not listen within ``timeout`` [s].
@@ -139,8 +132,7 @@ class LiveServer:
         self.stream = live
 
     def emit(self, ops: list[Op]) -> None:
-        """Send one window to the live server; a failure stops the live view only (logged
-        once)."""
+        """Send one window to the live server; a failure stops the live view only."""
         live = self.stream
         if live is None:
             return

@@ -28,16 +28,14 @@ if TYPE_CHECKING:
 
 
 HISTORY = 1000
-"""Deviations kept per parameter for its projection view (the last 1000 windows at most)."""
+"""Deviations kept per parameter for its projection view."""
 BOX = (240.0, 100.0)
-"""The projection view's drawing [view units]: width, height (about the view's shape at
-1600x1000, y down); the view's bounds (:meth:`RecordingViews.blueprint`)."""
+"""The projection view's drawing [view units]: width, height (y down); the view's bounds."""
 _MARGIN = (2.0, 2.0, 15.0, 15.0)
 """Room kept in the drawing for the labels: left, right, top, bottom [view units]."""
 _CHAR_W, _LABEL_PAD = 6.5, 5.0
-"""A label's character width and its box's padding in the drawing's units (the viewer's text
-is about 12 px high, the drawing about 270 px wide at 1600x1000, seen): labels are kept inside
-the view."""
+"""A label's character width and its box's padding in the drawing's units (to keep labels
+inside the view)."""
 _UNDER, _OVER = 0.0, 17.0
 """Where a label's anchor goes to write it under a line, or over it (the viewer writes a
 label in a box under its point)."""
@@ -59,14 +57,11 @@ class _Label(NamedTuple):
 def draw_projection(p: str, ph: ParameterView, t: float, history: Sequence[tuple[float, float]],
                 limits: Sequence[tuple[str, float, tuple[int, ...]]],
                 ) -> tuple[list[_Strip], list[_Label]] | None:
-    """What ``p``'s projection view draws at plant time ``t`` (:meth:`RecordingViews.
-    _projection_ops`), in the view's units (``BOX``): None without a trend level and a
-    predicted alarm crossing. The time axis runs from as far before now as the interval's end
-    is after it (the recent deviations) to the interval's end (twice the median's distance when
-    some draws never cross); the value axis spans what is drawn and the alarm threshold.
-    The steps: what the message predicts (:func:`_predicted_crossing`), the curves, the frame
-    (:class:`_Frame`), the strips (:func:`_projection_strips`) and the labels
-    (:func:`_projection_labels`)."""
+    """What ``p``'s projection view draws at plant time ``t``, in the view's units (``BOX``):
+    None without a trend level and a predicted alarm crossing. The time axis runs from as far
+    before now as the interval's end is after it to the interval's end (twice the median's
+    distance when some draws never cross); the value axis spans what is drawn and the alarm
+    threshold."""
     predicted = _predicted_crossing(ph, t)
     if predicted is None:
         return None
@@ -171,10 +166,8 @@ def _projection_strips(frame: _Frame, t: float, th_pct: float,
 def _projection_labels(frame: _Frame, t: float, level_pct: float, th_pct: float,
                        times: tuple[float, float, float],
                        others: Sequence[tuple[str, float, tuple[int, ...]]]) -> list[_Label]:
-    """The projection's points and texts: the level now, the crossing, each threshold's
-    value, now and the crossing's plant time with its interval (``times``: the crossing, the
-    interval's ends, nan where open), written under or over their lines and kept inside the
-    view."""
+    """The projection's points and texts (``times``: the crossing, the interval's ends, nan
+    where open), written under or over their lines and kept inside the view."""
     w = BOX[0]
     t_cross, t_low, t_high = times
     below = th_pct < level_pct  # the threshold under the trend: its labels under it
@@ -262,8 +255,8 @@ def rul_text(ph: ParameterView, at: bool = False) -> str:
 
 
 def rul_short(ph: ParameterView) -> str:
-    """``RUL alarm 3m 32s`` (the median to the nearest threshold not crossed yet; the
-    interval is on the parameter's panel), else ``alarm crossed``, or empty."""
+    """``RUL alarm 3m 32s`` (the median to the nearest threshold not crossed yet), else
+    ``alarm crossed``, or empty."""
     crossed = ""
     for level, c in _crossings(ph.rul):
         if c.status == "crossed":

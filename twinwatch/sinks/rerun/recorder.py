@@ -2,32 +2,26 @@
 
 One :class:`RerunRecorder` per monitored machine, each with its own
 :class:`rerun.RecordingStream` (never the global one, so several recorders coexist in one
-process). What it logs and the default blueprint are
-:class:`~twinwatch.sinks.rerun.views.RecordingViews`; this package keeps the files, the live
-server and the faults. The operator's side (one file per run behind the link ``path``, live
-viewing, ``rerun rrd optimize`` for a file without footer): docs/operating.md; the rotation,
-the dead file writer, a file deleted under the daemon: docs/runtime.md.
+process). What it logs is :class:`~twinwatch.sinks.rerun.views.RecordingViews`; this module
+keeps the files, the live server and the faults (operator's side: docs/operating.md,
+docs/runtime.md).
 
-Durability: the recording is flushed to the file after every window. The RRD *footer* is written
-by :meth:`RerunRecorder.close`, and by the Rerun SDK when the interpreter exits normally; a hard
-stop (SIGKILL, ``os._exit``, SIGTERM with its default action, power loss) leaves a file without
-footer: the daemon must therefore turn SIGTERM into a normal shutdown.
+Durability: the recording is flushed after every window. The RRD *footer* is written by
+:meth:`RerunRecorder.close` or at a normal interpreter exit; a hard stop leaves a file without
+footer, so the daemon turns SIGTERM into a normal shutdown.
 
 Faults: the run's file is locked (``flock``) while it is written. Below ``RerunRecorder.min_free``
-bytes free (64 MiB) the recording pauses (windows counted in :attr:`RerunRecorder.lost`). A dead
-file writer (the disk filled at once, a flush that times out) is reported (:attr:`problem`), its
-file kept under a rotated name, and a new file opened on a *new* stream after ``reopen_after``
-seconds (doubling); the dead stream is never touched again (in the Rerun SDK 0.41 a flush, a new
-file or a disconnect on it, and its exit hook, wait forever). The run's file deleted, replaced or
-moved away is noticed before the next window (:meth:`~twinwatch.sinks.locks.FileLock.changed`):
-the windows lost with it are counted in :attr:`RerunRecorder.lost` and the same stream goes on in
-a new file of the same name.
+bytes free the recording pauses. A dead file writer (a full disk, a flush that times out) is
+reported, its file kept under a rotated name, and a new file opened on a *new* stream after
+``reopen_after`` seconds (doubling); the dead stream is never touched again (in the Rerun SDK
+0.41 a flush, a new file or a disconnect on it, and its exit hook, wait forever). The run's file
+deleted, replaced or moved away is noticed before the next window and the same stream goes on
+in a new file of the same name.
 
 Rotation: the SDK keeps every chunk's manifest entry in memory for the life of a file, so after
 ``[recording] rotate_windows`` windows the run's file is renamed to
 ``<run file stem>.<UTC time>.<n>.rrd`` (finalised) and the same stream goes on in a new file of
-the run's name; the newest ``keep_files`` older files of ``path`` are kept. ``<stem>.rbl`` holds
-the viewer layout for files opened together (``rerun twinwatch-*.rrd twinwatch.rbl``).
+the run's name; the newest ``keep_files`` older files of ``path`` are kept.
 """
 
 from __future__ import annotations
@@ -118,9 +112,8 @@ class RerunRecorder(Sink):
     of its own per run (and serves them live when configured): the built-in output ``rerun``
     (table ``[recording]``, a recorder: it gets every window).
 
-    :meth:`log_window` may be called from a worker thread while :meth:`close` is called from
-    another; calls after :meth:`close` are ignored. With ``config.enabled`` false nothing is
-    written and :meth:`log_window` only validates its arguments.
+    Thread-safe against :meth:`close`; calls after it are ignored. With ``config.enabled``
+    false nothing is written and :meth:`log_window` only validates its arguments.
 
     Args:
         config: the ``[recording]`` configuration.
@@ -138,9 +131,9 @@ class RerunRecorder(Sink):
 
     Raises:
         ValueError: empty ``machine``, empty or duplicate ``outputs``.
-        RecorderError: the file cannot be created or written (missing or read-only directory,
-            path is a directory), the recording at ``path`` is in use by another process, the
-            live server's port is taken, or Rerun refused to open the file.
+        RecorderError: the file cannot be created or written, the recording at ``path`` is in
+            use by another process, the live server's port is taken, or Rerun refused to open
+            the file.
     """
 
     config_class: ClassVar[type[RecordingConfig]] = RecordingConfig
@@ -202,7 +195,7 @@ class RerunRecorder(Sink):
         self.rotations = 0
         self._file_windows = 0
         self._rotated: dict[Path, int] = {}  # files kept aside -> windows recorded in each
-        self._kept_aside: Path | None = None  # an earlier version's file found at the link
+        self._kept_aside: Path | None = None  # a regular file found at the link, renamed
         self._file_gone: str | None = None  # what happened to the file, until a new one
         self._file_gone_lost = 0
         self._no_new_file: str | None = None  # why no new file could be started yet
@@ -231,8 +224,8 @@ class RerunRecorder(Sink):
         logger.info("recording %s to %s (%s)", machine, self.path, self.link)
 
     def _open_stream(self) -> rr.RecordingStream:
-        """The recorder's one recording stream, saving to :attr:`path` with the default
-        blueprint; the blueprint is also written once to :attr:`blueprint_path`."""
+        """A recording stream saving to :attr:`path`; the blueprint also goes to
+        :attr:`blueprint_path`."""
         rec = rr.RecordingStream(self.config.application_id, recording_id=self._recording_id)
         blueprint = self.views.blueprint()
         self._attach_file(rec, blueprint=blueprint)
@@ -251,9 +244,8 @@ class RerunRecorder(Sink):
 
     def _attach_file(self, rec: rr.RecordingStream, *,
                      blueprint: rrb.Blueprint | None = None) -> None:
-        """Point ``rec`` at a new file at :attr:`path` (the previous file sink, if any, is
-        finalised: footer written) and send what each file needs on its own (recording name,
-        series styles; the default blueprint when given)."""
+        """Point ``rec`` at a new file at :attr:`path` (the previous one is finalised) and send
+        what each file needs on its own."""
         try:
             rec.save(self.path, default_blueprint=blueprint)
         except (OSError, RuntimeError, ValueError) as exc:
@@ -261,8 +253,7 @@ class RerunRecorder(Sink):
         self._log_static(rec)
 
     def _log_static(self, rec: rr.RecordingStream) -> None:
-        """What every file and the live stream need once: the recording's name, the key and
-        the series' styles."""
+        """What every file and the live stream need once (name, key, series styles)."""
         rec.send_recording_name(f"{self.machine} twin")
         emit(rec, self.views.static_ops())
 
@@ -276,8 +267,7 @@ class RerunRecorder(Sink):
     # -- the sink contract ---------------------------------------------------------------------
     @classmethod
     def from_config(cls, config: RecordingConfig, context: SinkContext) -> Self:
-        """Record the twin's outputs and health to a new file beside ``[recording] path``
-        (relative to the working directory), which links to it.
+        """Record to a new file beside ``[recording] path``, which links to it.
 
         Raises:
             RecorderError: the file cannot be created, written or locked, or the live server
@@ -293,9 +283,8 @@ class RerunRecorder(Sink):
 
     @classmethod
     def reload_key(cls, config: RecordingConfig, context: SinkContext) -> Hashable:
-        """The machine, the entities and views it declares (the twin's outputs and their units,
-        parameters, the estimated ones) and the table; not the alarm thresholds (a reload that
-        changes them keeps the file and draws the new ones from then on)."""
+        """The machine, the entities and views it declares and the table; not the alarm
+        thresholds (a reload that changes them keeps the file, :meth:`attach`)."""
         return (context.machine, tuple(context.outputs), _frozen(dict(context.parameters)),
                 _frozen(dict(context.output_units)), _frozen(dict(context.nominal)),
                 tuple(context.estimated), _frozen(config.model_dump()))
@@ -346,8 +335,7 @@ class RerunRecorder(Sink):
 
     @property
     def problem(self) -> str | None:
-        """Why windows are not being recorded right now, or how many were not (None while
-        every window was recorded and the live server, if any, runs)."""
+        """Why windows are not being recorded right now, or how many were not."""
         if self._broken is not None:
             return f"{self._broken}; {self.lost} windows not recorded"
         if self._no_new_file is not None:
@@ -358,13 +346,12 @@ class RerunRecorder(Sink):
             return (f"recording to {self.path} stopped (the file writer died: disk full?); "
                     f"{self.lost} windows not recorded")
         if self.lost:
-            # what was lost stays reported (as the state database's lost windows do)
             return f"recording: {self.lost} windows not recorded"
         return self._live.problem if self._live is not None else None
 
     def _writer_died(self, rec: rr.RecordingStream, exc: BaseException) -> None:
-        """The file sink is gone: abandon the stream (see the module docstring), keep the
-        broken file under a rotated name, and schedule a new file. Called with the lock held."""
+        """The file sink is gone: abandon the stream, keep the broken file under a rotated
+        name, and schedule a new file. Called with the lock held."""
         now = time.monotonic()
         bury(rec)
         self._rec = None
@@ -413,9 +400,8 @@ class RerunRecorder(Sink):
 
     # -- the files (with the lock held, but _claim at open) -----------------------------------
     def _claim(self, run: str | None) -> FileLock:
-        """Make sure no other process records at :attr:`link`, keep a regular file found there
-        (an earlier version's recording), create and lock this run's file, and point the link
-        at it.
+        """Make sure no other process records at :attr:`link`, keep aside a regular file found
+        there, create and lock this run's file, and point the link at it.
 
         Raises:
             RecorderError: the directory is missing or read-only, the link names a file another
@@ -492,7 +478,7 @@ class RerunRecorder(Sink):
 
     @property
     def blueprint_path(self) -> Path:
-        """``<stem>.rbl`` beside :attr:`link`: the viewer layout, for files opened together
+        """``<stem>.rbl`` beside :attr:`link`: the viewer layout for files opened together
         (``rerun twinwatch-*.rrd twinwatch.rbl``)."""
         return self.link.with_suffix(".rbl")
 
@@ -511,14 +497,12 @@ class RerunRecorder(Sink):
 
     def _rotate(self) -> None:
         """Rename the run's file with the UTC time, point the recording stream at a new file of
-        the run's name (the renamed file's footer is written and its manifest memory freed),
-        and delete the older files of the link beyond ``keep_files``. Called with the lock held.
-        A failure stops the recording (logged once).
+        the run's name, and delete the older files of the link beyond ``keep_files``. Called
+        with the lock held. A failure stops the recording.
 
         The stream is kept, not replaced (the Rerun SDK 0.41 never frees a Python recording
-        stream: rerun-io/rerun#2116, docs/runtime.md), so every file of one run shares one
-        recording id (opened together: one recording). The blueprint is sent to the first
-        file only (each send is a new stream); the others use :attr:`blueprint_path`."""
+        stream: rerun-io/rerun#2116), so every file of one run shares one recording id. The
+        blueprint is sent to the first file only; the others use :attr:`blueprint_path`."""
         rec = self._rec
         assert rec is not None
         if not self._flush(rec):
@@ -554,19 +538,16 @@ class RerunRecorder(Sink):
                     logger.warning("cannot delete old recording %s: %s", old, exc)
 
     def _aside_name(self) -> Path:
-        """The name the run's file is rotated (or kept aside) to:
-        ``<run file stem>.<UTC time>.<n>.rrd``."""
+        """``<run file stem>.<UTC time>.<n>.rrd``: the run's file rotated or kept aside."""
         stamp = time.strftime(RUN_STAMP, time.gmtime())
         return self.path.with_name(f"{self.path.stem}.{stamp}.{self.rotations:04d}"
                                    f"{self.path.suffix}")
 
     def _check_file(self, window: Any) -> bool:
-        """The file at :attr:`path` is still the one being written (called with the lock held,
-        before each window). Deleted, replaced or moved away: count the windows lost with it
-        (and with the rotated files that went with its directory), and go on in a new file at
-        the path, its directory created again (one level) if it was removed, the link made
-        again. Returns False while no new file can be started (the window is then not
-        recorded)."""
+        """If the file at :attr:`path` was deleted, replaced or moved away, count the windows
+        lost with it and go on in a new file at the path (its directory created again, one
+        level). Called with the lock held, before each window. Returns False while no new
+        file can be started."""
         rec = self._rec
         if rec is None:  # its file writer died: a new stream and file come with _reopen
             return True
@@ -676,8 +657,7 @@ class RerunRecorder(Sink):
                    health: HealthMessage | Mapping[str, Any], terms_changed: bool = False,
                    health_json: str | None = None,
                    events: Sequence[Mapping[str, Any]] = ()) -> None:
-        """Record one acquisition window, then flush it to the file (and send it to the live
-        server when serving).
+        """Record one acquisition window, flush it, and send it to the live server if serving.
 
         Args:
             t: shape (N,), sample times [s] on the plant clock, finite.
@@ -687,24 +667,19 @@ class RerunRecorder(Sink):
             parameters: parameter name -> estimate at ``t[-1]`` (unit as declared); every key
                 must be one of the declared ``parameters``.
             health: the window's health message (typed), or any JSON-serialisable health
-                document (see :func:`twinwatch.io.encoding.to_json`); what it holds of the
-                health message's fields (README "The health message") is drawn.
-            terms_changed: the twin's meta-model terms changed in this window (its log row is
-                a warning).
-            health_json: ``health`` already encoded (the pipeline's one encoding), shown in
-                the health document; None: encoded here.
+                document; the fields it holds are drawn.
+            terms_changed: the twin's meta-model terms changed in this window.
+            health_json: ``health`` already encoded; None: encoded here.
             events: the alarm changes of this window (:meth:`AlarmEvaluator.update
-                <twinwatch.daemon.alarms.AlarmEvaluator.update>`: ``parameter``, ``level``,
-                ``previous``, ``deviation_pct``, ``t``, ``message``): each a log row (ERROR for
-                an alarm, WARN for a warning or a clear) and a marker on the parameter's view.
+                <twinwatch.daemon.alarms.AlarmEvaluator.update>`): each a log row and a marker
+                on the parameter's view.
 
         Raises:
             ValueError: a shape, name or value that does not fit the above (nothing recorded).
             TypeError: ``health`` is not JSON-serialisable (nothing recorded).
 
-        A flush that fails or times out means the file writer died (a full disk): it is
-        logged once, counted in :attr:`errors`, never raised; the windows that follow are
-        counted in :attr:`lost` until the file is reopened (see the module docstring).
+        A failed flush is never raised: it is counted in :attr:`errors`, and the windows that
+        follow in :attr:`lost` until the file is reopened.
         """
         from twinwatch.twin.health import read_health
 
@@ -744,8 +719,7 @@ class RerunRecorder(Sink):
             self._recorded()
 
     def _recorded(self) -> None:
-        """A window is in the file: the writer is back if it was dead (said once, with the
-        windows lost meanwhile), counted, the file rotated every ``rotate_windows``."""
+        """A window is in the file: count it, note a dead writer back, rotate when due."""
         if self._dead_since is not None:
             logger.warning("recording to %s works again after %.0f s: %d windows were "
                            "not recorded", self.path, time.monotonic() - self._dead_since,
@@ -758,9 +732,7 @@ class RerunRecorder(Sink):
             self._rotate()
 
     def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's sink call: :meth:`log_window` with the window's measured and
-        twin outputs, estimates, its typed health message (and that message's one encoding)
-        and its alarm changes."""
+        """:meth:`log_window` with the processed window."""
         est = out.result.estimate
         self.log_window(t=out.window.t, measured={o: out.window[o] for o in self.outputs},
                         simulated={o: est.simulated[:, j] for j, o in enumerate(self.outputs)},
@@ -769,23 +741,19 @@ class RerunRecorder(Sink):
                         events=out.events)
 
     def _flush(self, rec: rr.RecordingStream) -> bool:
-        """Flush to the file; False (logged once, counted) if it failed. A file writer that
-        died is detected here (:meth:`_writer_died`)."""
+        """Flush to the file; False if it failed (the writer died: :meth:`_writer_died`)."""
         try:
             rec.flush(timeout_sec=self.flush_timeout)
         except Exception as exc:  # noqa: BLE001 - rerun raises plain exceptions on timeout
-            # "File-writer thread shut down prematurely", or, when it died during this
-            # flush, "Flush timed out": either way the file sink is gone (flushing it again
-            # would block every window for flush_timeout)
+            # the file sink is gone: flushing it again would block every window
             self.errors += 1
             self._writer_died(rec, exc)
             return False
         return True
 
     def close(self) -> None:
-        """Flush, write the footer and close the file; the live server, flushed, is kept for
-        the next recorder on its address (it ends with the process). Idempotent; the file is
-        then complete."""
+        """Flush, write the footer and close the file; the live server is kept for the next
+        recorder on its address. Idempotent."""
         with self._lock:
             if self._closed:
                 return

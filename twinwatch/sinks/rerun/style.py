@@ -20,8 +20,7 @@ if TYPE_CHECKING:
     import rerun.blueprint as rrb
 
     from twinwatch.twin.health import HealthView, ParameterView
-else:  # imported when a recording opens: loading a configuration does not load rerun (the
-    # recording's other modules take rr and rrb from here)
+else:  # imported when a recording opens: loading a configuration does not load rerun
     rr = lazy_module("rerun")
     rrb = lazy_module("rerun.blueprint")
 
@@ -32,9 +31,7 @@ timeline when the source's clock is the wall clock (times past ``WALL_CLOCK_AFTE
 
 WALL_CLOCK_AFTER = 1e9
 """Plant times from this many seconds on (2001-09-09) are the source's wall clock, seconds
-since the epoch (a recorded log with its time stamps, a drive's clock): the timeline is then a
-timestamp (the viewer shows the date and time of day, not ``+490000h``) and the text says the
-UTC time of day (``14:38:05Z``)."""
+since the epoch: the timeline is then a timestamp and the text says the UTC time of day."""
 
 # Colours for the viewer's dark theme, each meaning one thing everywhere.
 MEASURED = (86, 164, 255)
@@ -74,28 +71,25 @@ QUALITY_COLORS = (
     (90, 205, 100), (230, 120, 200), (160, 160, 160), (40, 200, 200), (190, 190, 60),
 )
 SCALE_PCT = 10.0
-"""Half-height of the scale drawn for a parameter without an alarm rule [%] (its axis never
-zooms in on the noise of a held value)."""
+"""Half-height of the scale drawn for a parameter without an alarm rule [%]."""
 HEADROOM = 1.6
 """The axis of a parameter's view reaches at least this many times its outermost threshold (or
 scale) on each side that has one: the lines never sit on its edge."""
 SCALE_HEADROOM = 1.15
-"""The same for the +-10 % scale of a parameter without a rule: its small panel then labels
-the ticks -10, 0, 10."""
+"""The same for the +-10 % scale of a parameter without a rule."""
 _TICK_ROOM = 0.12
 """The least room between an axis' outermost labelled tick and its edge, as a share of the
 axis (:func:`tick_room`): half a label's height on a small panel at 1600x1000."""
 _VIEWER_MARGIN = 0.06
 """How far beyond the data, as a share of the axis, the viewer may still draw a labelled tick
-(its own margin is 5 %: a stroke ending at 0.8999 m was labelled 0.9 on the plot's edge)."""
+(its own margin is 5 %)."""
 BAND_CLIP = 1.5
-"""The 2-sigma band is drawn at most this many times the outer threshold (or scale) away from
-nominal: a parameter the data do not determine (+-400 %) does not flatten its plot, and the
-panel's summary says so (``2-sigma band from -420 to +420 %, drawn to +-15 %``; within
-``SCALE_HEADROOM`` for a parameter without a rule)."""
+"""The 2-sigma band is drawn at most this many times the outer threshold away from nominal
+(within ``SCALE_HEADROOM`` without a rule): a parameter the data do not determine does not
+flatten its plot, and the panel's summary says so."""
 PPM = 1e6
-"""The fit panel shows the nRMSE in parts per million (ppm) of the output's scale: 1.6e-4 and
-3e-7 have readable ticks (160 and 0.3), the bare fraction's ticks read ``0``."""
+"""The fit panel shows the nRMSE in parts per million (ppm) of the output's scale: the bare
+fraction's ticks read ``0``."""
 PROBLEM_COUNTER = re.compile(
     r"abandon|overrun|lost|gap|bad|error|fail|silent|stall|jitter|missing|dropped|timeout|"
     r"not_stored|not_connected|waiting")
@@ -145,11 +139,10 @@ def residual_rmse(doc: HealthView) -> dict[str, Mapping[str, float | None]]:
 
 def axis_frame(values: np.ndarray, room: bool = True) -> list[float] | None:
     """Two transparent values that give an axis two labelled ticks. The viewer labels ticks at
-    powers of ten only, and only when at most about four of them span the axis (seen at
-    1600x1000): a pressure of 50 380-50 425 Pa gets one label (50 400). The frame is the range,
-    widened on its nearer side to the next multiple of that power of ten when fewer than two
-    lie inside (50 380-50 500 Pa: 50 400 and 50 500); with ``room``, then widened so its
-    outermost labels are not cut (:func:`tick_room`). None without finite values."""
+    powers of ten only, and only when at most about four of them span the axis. The frame is
+    the range, widened on its nearer side to the next multiple of that power of ten when fewer
+    than two lie inside; with ``room``, then widened so its outermost labels are not cut
+    (:func:`tick_room`). None without finite values."""
     finite = values[np.isfinite(values)]
     if finite.size == 0:
         return None
@@ -170,12 +163,10 @@ def axis_frame(values: np.ndarray, room: bool = True) -> list[float] | None:
 
 
 def sparse_frame(high: float) -> list[float]:
-    """The axis frame ``[0, top]`` (the unit of ``high``) of a small panel of positive values
-    up to ``high`` (the estimation time [ms]); ``[0, 1]`` when ``high`` is not positive. From 0
-    to ``high`` when at most 2.3 steps of its power of ten span it (0, 100, 200 for 220 ms),
-    else to the next power of ten (0, 1000 for 322 ms: the viewer's labels are at least about
-    19 px apart in the strip's 55 px), and ``_TICK_ROOM`` above for the top label (0 sits on
-    the viewer's own margin)."""
+    """The axis frame ``[0, top]`` of a small panel of positive values up to ``high`` (the
+    estimation time [ms]); ``[0, 1]`` when ``high`` is not positive. To ``high`` when at most
+    2.3 steps of its power of ten span it, else to the next power of ten (the strip is too
+    short for more labels), and ``_TICK_ROOM`` above for the top label."""
     if not math.isfinite(high) or high <= 0.0:
         return [0.0, 1.0]
     step = 10.0 ** math.floor(math.log10(high))
@@ -186,12 +177,8 @@ def sparse_frame(high: float) -> list[float]:
 def tick_room(low: float, high: float, scale: float | None = None) -> list[float]:
     """``[low, high]`` widened on a side whose outermost labelled tick lies within
     ``_TICK_ROOM`` of the axis' height from its edge: the viewer centres a label on its tick
-    and clips what leaves the plot (the fit strip's ``100``, the outputs' outer labels were
-    cut in half at 1600x1000). The viewer labels ticks at least about 22 px apart: a
-    parameter's +-10 panel needs about 70 px of plot for the widened axis (the layout gives it
-    about 100: its summary beside the plot, :meth:`RecordingViews.blueprint`). ``scale``: the
-    width of the range the view shows when it is wider than ``[low, high]`` (its ticks and
-    room are the view's)."""
+    and clips what leaves the plot. ``scale``: the width of the range the view shows when it
+    is wider than ``[low, high]``."""
     width = high - low
     if width <= 0.0:
         width = abs(high) * 1e-3 or 1.0

@@ -76,10 +76,9 @@ def _fault_lines(d: DiagnosisView, f: Any) -> list[str]:
 
 
 def parameter_table(doc: HealthView) -> str:
-    """Every parameter at the window as markdown (the model panel's neighbour): a table of the
-    parameters not fixed (value and status; each estimated one's deviation from nominal is on
-    its panel), the fixed ones in a line under it, then why the held ones are held. Empty
-    without parameters."""
+    """Every parameter at the window as markdown: a table of the parameters not fixed, the
+    fixed ones in a line under it, then why the held ones are held. Empty without
+    parameters."""
     table = doc.parameters or {}
     if not table:
         return ""
@@ -115,9 +114,8 @@ table says "held" already."""
 
 
 def model_document(machine: str, t: float, doc: HealthView) -> str:
-    """The twin DT'' as markdown: the diagnosis first (the most probable fault, its action and
-    evidence), each meta-model term (equation, meaning, evidence), then the fit (every
-    parameter's value is beside it: :func:`parameter_table`)."""
+    """The twin DT'' as markdown: the diagnosis first, each meta-model term (equation,
+    meaning, evidence), then the fit."""
     terms = doc.terms or []
     model = doc.model
     twin = f"`{model}`" if model else "the physical twin"
@@ -165,10 +163,9 @@ def model_document(machine: str, t: float, doc: HealthView) -> str:
 
 def event_row(ev: Mapping[str, Any], t: float, rule: str, raised: bool,
                params: Mapping[str, ParameterView]) -> str:
-    """An alarm change as one short log row (the event's full ``message`` is in the health
-    message): ``15:08 ALARM raised: Ra -10.02 % of nominal``, ``16:20 Ra alarm cleared to
-    warning (-8.00 %)``, ``8:08 RUL WARNING raised: Ra, alarm in 7m 12s``, ``4:46 fault cleared:
-    unbalance (probability 0.12)``."""
+    """An alarm change as one short log row: ``15:08 ALARM raised: Ra -10.02 % of nominal``,
+    ``16:20 Ra alarm cleared to warning (-8.00 %)``, ``4:46 fault cleared: unbalance
+    (probability 0.12)``."""
     p, level, previous = str(ev.get("parameter", "")), ev.get("level"), ev.get("previous")
     when = clock(t)
     if ev.get("kind") == "diagnosis":
@@ -192,16 +189,11 @@ def event_row(ev: Mapping[str, Any], t: float, rule: str, raised: bool,
 
 def log_row(t_end: float, doc: HealthView, terms_changed: bool, grew: Mapping[str, int],
             health_json: str = "{}") -> tuple[str, rr.TextLogLevel]:
-    """One short line for the window (a Rerun log row is not wrapped: about 85 characters fit
-    the log panel at 1600x1000), and its level, the machine's state: ERROR while a parameter is
-    in deviation alarm, WARN while one is in warning or has a RUL level raised, the model check
-    fails, the structure changed or data were lost, else INFO.
-    The window and the plant time of its end; each parameter with an alarm rule: its
-    deviation [% of nominal], value, status when not ``estimated``, its deviation and RUL
-    levels when raised (else the RUL's median); then what went wrong (model check, DT''
-    changed, data lost). The other parameters and the fit are in the table and panels at the
-    cursor, the whole message in its tab. A document that is no health message
-    (``health_json``, as logged) shows its top-level scalars."""
+    """One short line for the window (a Rerun log row is not wrapped), and its level, the
+    machine's state: ERROR while a parameter is in deviation alarm, WARN while one is in
+    warning or has a RUL level raised, the model check fails, the structure changed or data
+    were lost, else INFO. A document that is no health message (``health_json``) shows its
+    top-level scalars."""
     parts = [f"window {as_text(doc.window, '?')} {clock(t_end)}"]
     alarms = doc.alarms or {}
     params = doc.parameters or {}
@@ -230,10 +222,9 @@ def log_row(t_end: float, doc: HealthView, terms_changed: bool, grew: Mapping[st
 def _ruled_parts(alarms: Mapping[str, AlarmView],
                  params: Mapping[str, ParameterView]) -> tuple[list[str], int]:
     """The log row's part for each parameter with an alarm rule (tied and fixed ones left
-    out): ``Ra -5.14 % (6.16593 ohm) WARNING, RUL ALARM``; and the machine's state as the
-    row's level (0 normal, 1 warning, 2 alarm, :data:`RANK`): 2 only for a deviation alarm
-    (the one level that says inspect now, NE 107 FAILURE); a deviation warning or any RUL
-    level raised is 1 (the OPC UA output's OFF_SPEC and MAINTENANCE_REQUIRED)."""
+    out): ``Ra -5.14 % (6.16593 ohm) WARNING, RUL ALARM``; and the row's level (:data:`RANK`):
+    2 only for a deviation alarm (NE 107 FAILURE); a deviation warning or any RUL level
+    raised is 1."""
     worst = 0
     ruled = []
     for name, a in alarms.items():
@@ -249,8 +240,7 @@ def _ruled_parts(alarms: Mapping[str, AlarmView],
             words.append(level.upper())
         rul_level = str(a.rul.level if a.rul is not None else None)
         if RANK.get(rul_level, 0) > 0:
-            # a RUL level asks to plan the maintenance (NE 107 MAINTENANCE_REQUIRED): WARN,
-            # whatever its level; only a deviation alarm (stop now) is ERROR
+            # a RUL level asks to plan the maintenance (NE 107 MAINTENANCE_REQUIRED): WARN
             worst = max(worst, 1)
             words.append(f"RUL {rul_level.upper()}")
         elif ph is not None and (rul := rul_short(ph)):
@@ -265,9 +255,8 @@ def _ruled_parts(alarms: Mapping[str, AlarmView],
 
 def _wrong_parts(doc: HealthView, terms_changed: bool,
                  grew: Mapping[str, int]) -> tuple[list[str], bool, bool]:
-    """What went wrong in the window, for the log row: a failed model check with its
-    reasons, DT'' changed (the terms added and dropped), the counters of lost data that grew;
-    and whether the check failed and whether the structure changed."""
+    """What went wrong in the window, for the log row; and whether the check failed and
+    whether the structure changed."""
     wrong = []
     check = doc.model_check
     failed = check is not None and check.passed is False

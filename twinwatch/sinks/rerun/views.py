@@ -3,39 +3,22 @@
 :class:`RecordingViews` turns one window (its samples, estimates, health message and alarm
 changes) into what :class:`~twinwatch.sinks.rerun.RerunRecorder` logs, and describes the layout
 an operator opens. Entity paths, with ``M`` the machine name and ``plant_time`` the timeline
-[s] (docs/operating.md tabulates them for the operator):
+[s] (docs/operating.md tabulates them):
 
-* ``M/outputs/<output>/measured``, ``.../twin`` (every sample, the output's unit, one
-  ``send_columns`` per series and window), ``M/residual/<output>`` (measured - twin),
-  ``M/residual_rmse/dt_prime``, ``.../dt_second`` (per window, one series per output); each
-  output's and residual's ``.../frame``: two transparent values per window that give the axis
-  two labelled ticks (:func:`axis_frame`, :meth:`RecordingViews._output_frame`);
-* ``M/parameters``: every parameter's estimate [SI], one series per parameter, per window;
-* ``M/health/<name>/...`` per estimated parameter, in % of nominal: ``deviation`` (in drawing
-  order: the 2-sigma band's ends, 0, the ``[alarms]`` thresholds or a scale, two transparent
-  headroom series, the deviation), ``frame``, ``estimated`` / ``fused`` / ``held`` (the
-  deviation on the entity of the window's status), ``events/{warning, alarm, cleared,
-  rul_warning, rul_alarm}``, ``trend`` (low, high, level), ``projection/lines`` and
-  ``.../labels`` (:func:`~twinwatch.sinks.rerun.projection.draw_projection`, 2-D, cleared when
-  no crossing is predicted), ``summary`` (markdown: deviation, status, trend, RUL, the alarms'
-  moments, a band beyond the view);
-* ``M/quality/{nrmse, nrmse_dt_prime, nrmse_dt_second, model_check_failed}`` [ppm],
-  ``elapsed_ms`` [ms], ``problems`` (the cumulative counters of lost or bad data, one series
-  each), and their ``frame`` (:func:`sparse_frame` for ``elapsed_ms``);
-* ``M/model`` (the twin DT'' as markdown), ``M/parameter_table``, ``M/health`` (the message,
-  JSON), ``M/log`` (one :class:`rerun.TextLog` row of at most about 80 characters per window,
-  INFO / WARN / ERROR by the machine's state, and one per alarm change: ERROR for a deviation
-  alarm raised, WARN otherwise), ``M/key`` (what the colours mean, static).
-
-The default blueprint (:meth:`RecordingViews.blueprint`): the time panel follows the newest
-data; the parameters' health and the data quality show the whole run, the outputs and residuals
-the last ``recent_s`` seconds before the time cursor, the model, the table, the log and the
-projections the state at the cursor; no legend covers a trace, no axis zooms in on noise.
+* ``M/outputs/<output>/measured``, ``.../twin`` (every sample), ``M/residual/<output>``,
+  ``M/residual_rmse/dt_prime``, ``.../dt_second``; each output's and residual's ``.../frame``:
+  two transparent values per window that give the axis two labelled ticks;
+* ``M/parameters``: every parameter's estimate [SI];
+* ``M/health/<name>/...`` per estimated parameter, in % of nominal: ``deviation``, ``frame``,
+  ``estimated`` / ``fused`` / ``held``, ``events/...``, ``trend``, ``projection/...``,
+  ``summary``;
+* ``M/quality/...`` [ppm], ``elapsed_ms`` [ms], ``problems`` (counters of lost or bad data);
+* ``M/model``, ``M/parameter_table``, ``M/health`` (the message, JSON), ``M/log``, ``M/key``.
 
 The projection is a 2-D view beside the panel, not in the time-series view: Rerun (0.41) draws
-every row ever logged at a time of a time-series view's range (each window's projection would
-stay beside the next), and points at future plant times move the following time cursor past
-the last window. A 2-D view shows what is latest at the cursor.
+every row ever logged at a time of a time-series view's range, and points at future plant times
+move the following time cursor past the last window. A 2-D view shows what is latest at the
+cursor.
 """
 
 from __future__ import annotations
@@ -135,8 +118,7 @@ class RecordingViews:
         self._recent: dict[str, collections.deque[tuple[float, float, float]]] = {}
         """output -> (window end [s], frame low, frame high) of the windows its view shows."""
         self._frames: dict[str, list[float]] = {}
-        """view -> the axis frame last logged (logged again only when it changes, and in
-        every new file: :meth:`static_ops` forgets them)."""
+        """view -> the axis frame last logged (:meth:`static_ops` forgets them)."""
         self._moments: dict[str, dict[tuple[str, str], tuple[str, float]]] = {}
         """parameter -> (rule kind, level) -> (raised or cleared, plant time [s]): the alarm
         changes seen, for the parameter's summary."""
@@ -174,10 +156,8 @@ class RecordingViews:
 
     def blueprint(self) -> rrb.Blueprint:
         """The default layout: the parameters' health and the data quality over the whole run
-        (left), each output measured vs twin and its residual over the last ``recent_s``
-        seconds (right), the model DT'', the parameters' table and the log (bottom, side by
-        side: each whole at 1600x1000), a one-line key on top; the time panel follows the
-        newest data."""
+        (left), the outputs and residuals over the last ``recent_s`` seconds (right), the
+        model, the parameters' table and the log (bottom), a key on top."""
         m = self.machine
         inf = rrb.TimeRangeBoundary.infinite()
         back = rrb.TimeRangeBoundary.cursor_relative(seconds=-self.recent_s)
@@ -198,12 +178,8 @@ class RecordingViews:
             return "/" + entity(m, *parts)
 
         def panel(p: str, beside: bool = False) -> rrb.Container:
-            """A parameter's panel: its summary written under its plot (the RUL, the moments
-            its alarms were raised, a band beyond the view); beside them, for a parameter
-            with an alarm rule, its projection to the alarm threshold at the cursor. With
-            ``beside`` (a parameter without a rule whose grid shares the column with ruled
-            ones), the summary beside the plot, which keeps the row's height for its +-10
-            labels."""
+            """A parameter's panel: its plot with its summary under it (``beside``: beside
+            it, in a short row), and for a parameter with an alarm rule its projection."""
             series = rrb.TimeSeriesView(origin=origin("health", p), name=self._health_title(p),
                                         contents=["$origin/**", "- $origin/summary",
                                                   "- $origin/projection/**"], **whole())
@@ -225,8 +201,7 @@ class RecordingViews:
         health: list[rrb.Container | rrb.View] = [panel(p) for p in ruled]
         shares = [2.0] * len(ruled)
         if others:
-            # beside the ruled panels, the grid's rows are short (1.4 to their 2.0): each
-            # summary beside its plot; alone in the column, under it (its axis keeps its labels)
+            # beside the ruled panels the grid's rows are short: each summary beside its plot
             views = [panel(p, beside=bool(ruled)) for p in others]
             columns = 1 if len(others) == 1 else 2
             health.append(rrb.Grid(*views, grid_columns=columns, name="other parameters"))
@@ -293,8 +268,7 @@ class RecordingViews:
                 "UTC time of day).")
 
     def static_ops(self) -> list[Op]:
-        """What every file and the live stream need once: the key and every series' style
-        (and the whole-run views' axis frames are logged again with the next window)."""
+        """What every file and the live stream need once: the key and every series' style."""
         m = self.machine
         self._frames.clear()
 
@@ -355,14 +329,13 @@ class RecordingViews:
 
     def _band_clip(self, p: str) -> float:
         """How far from nominal ``p``'s 2-sigma band is drawn at most [%]: ``BAND_CLIP`` times
-        its outer threshold, or within the headroom of its scale when it has no rule (a small
-        panel then keeps its ticks -10, 0, 10)."""
+        its outer threshold, or within its scale's headroom when it has no rule."""
         outer = max(abs(value) for _, value, _ in self._limits(p))
         return (BAND_CLIP if p in self.alarm_bands else SCALE_HEADROOM) * outer
 
     def _series(self, p: str) -> list[tuple[str, tuple[int, ...], float]]:
         """The series of ``health/<p>/deviation``, in drawing order: name, colour, width (the
-        two headroom series are transparent: the axis keeps the thresholds off its edges)."""
+        transparent headroom series keep the thresholds off the axis' edges)."""
         return [("2-sigma low", BAND, 1.0), ("2-sigma high", BAND, 1.0),
                 ("nominal", NOMINAL, 1.0),
                 *((name, color, 1.5) for name, _, color in self._limits(p)),
@@ -456,9 +429,8 @@ class RecordingViews:
                     sim: Mapping[str, np.ndarray], estimates: Mapping[str, float],
                     doc: HealthView, health_json: str, terms_changed: bool,
                     events: list[Mapping[str, Any]]) -> list[Op]:
-        """Everything one window logs, in order (called with the lock held). ``doc`` is the
-        health message's typed view (:func:`~twinwatch.twin.health.read_health` of
-        ``health_json``)."""
+        """Everything one window logs, in order (called with the lock held). ``doc`` is
+        ``health_json``'s typed view."""
         m = self.machine
         t_end = float(times[-1])
         ops = self._output_ops(times, meas, sim)
@@ -517,11 +489,9 @@ class RecordingViews:
         return ops
 
     def _projection_ops(self, p: str, ph: ParameterView, t: float) -> list[Op]:
-        """``p``'s projection view (``health/<p>/projection``, a 2-D view: latest at the
-        cursor, so only the window's own projection is on screen): the recent deviations, the
-        trend from its level now to the alarm threshold at the median crossing and at both
-        ends of the 95 % interval, the thresholds, the moment now and the crossing, written.
-        Cleared while the message predicts no crossing (none yet, crossed, not degrading)."""
+        """``p``'s projection view (2-D): the recent deviations, the trend to the alarm
+        threshold at the median crossing and at both ends of the 95 % interval, the
+        thresholds. Cleared while the message predicts no crossing."""
         m = self.machine
         path = entity(m, "health", p, "projection")
         dev = as_number(ph.deviation_pct)
@@ -549,9 +519,8 @@ class RecordingViews:
 
     def _event_ops(self, ev: Mapping[str, Any], t_end: float,
                    params: Mapping[str, ParameterView]) -> list[Op]:
-        """An alarm change: its message in the log, a marker on its parameter's view (a
-        deviation rule's at the event's deviation, a RUL rule's at the parameter's deviation in
-        this window), its moment kept for the parameter's summary."""
+        """An alarm change: its message in the log, a marker on its parameter's view, its
+        moment kept for the parameter's summary."""
         m = self.machine
         p = str(ev.get("parameter", ""))
         level, previous = ev.get("level"), ev.get("previous")
@@ -579,10 +548,8 @@ class RecordingViews:
         return ops
 
     def _summary(self, p: str, ph: ParameterView, alarm: AlarmView | None) -> str:
-        """What ``p``'s panel says in words (markdown, two to four short lines): its deviation
-        and status, its trend, the RUL to each threshold of its rule (median and 95 %
-        interval, and the plant time of the crossing), the moments its deviation and RUL alarms
-        were raised or cleared, and its 2-sigma band when that leaves the view."""
+        """What ``p``'s panel says in words (markdown, two to four short lines): deviation,
+        status, trend, RUL, the alarms' moments, a 2-sigma band beyond the view."""
         lines = [_summary_head(p, ph)]
         rul = ph.rul
         if p in self.alarm_bands:
@@ -597,15 +564,13 @@ class RecordingViews:
         low, high = band_pct(ph)
         clip = self._band_clip(p)
         if any(math.isfinite(v) and abs(v) > clip for v in (low, high)):
-            # words between the numbers, and no exponent below 10^5 %: a narrow summary wraps
-            # at the spaces
+            # words between the numbers: a narrow summary wraps at the spaces
             lines.append(f"2-sigma band from {pct_text(low)} to {pct_text(high)} %, "
                          f"drawn to +-{clip:g} %")
         return "  \n".join(lines) + "\n"
 
     def _moments_said(self, p: str, alarm: AlarmView | None) -> str:
-        """When ``p``'s deviation and RUL alarms were raised or cleared (those raised before
-        this recording began at their ``since_t``): ``deviation warning raised at 14:38``."""
+        """When ``p``'s alarms were raised or cleared: ``deviation warning raised at 14:38``."""
         moments = dict(self._moments.get(p, {}))
         for rule, state in (("deviation", alarm), ("rul", alarm.rul if alarm else None)):
             level = as_text(state.level, "normal") if state is not None else "normal"
@@ -652,7 +617,6 @@ class RecordingViews:
         elapsed = as_number(doc.elapsed_s)
         if math.isfinite(elapsed):
             ops.append(Op(entity(m, "quality", "elapsed_ms"), rr.Scalars(elapsed * 1e3), t))
-            # its axis frame over the run (logged when it changes, and in every new file)
             view = "quality/elapsed_ms"
             high = max(self._ranges.get(view, (0.0, 0.0))[1], elapsed * 1e3)
             self._ranges[view] = (0.0, high)
@@ -685,11 +649,9 @@ class RecordingViews:
 
     def _output_frame(self, output: str, t_end: float, values: np.ndarray,
                       two_ticks: bool = True) -> list[float] | None:
-        """The axis frame (:func:`axis_frame`; without ``two_ticks`` the window's range: a
-        residual keeps its scale) of an output's window, its labels' room
-        (:func:`tick_room`) at the scale of the windows its view shows (those ending in the
-        last ``recent_s``): the viewer labels the view's range, and room at the window's own
-        scale left the view's outer labels cut (``0.9`` over a 0.78-0.9 m stroke)."""
+        """The axis frame (:func:`axis_frame`; without ``two_ticks`` the window's range) of an
+        output's window, its labels' room (:func:`tick_room`) at the scale of the windows its
+        view shows: the viewer labels the view's range, not the window's."""
         finite = values[np.isfinite(values)]
         if not finite.size:
             return None
@@ -750,8 +712,7 @@ def emit(rec: rr.RecordingStream, ops: Sequence[Op]) -> None:
 
 
 def _summary_head(p: str, ph: ParameterView) -> str:
-    """A parameter panel's first line: its deviation [%], status (and 2-sigma band when
-    estimated or fused) and trend: ``**Ra -5.14 %** estimated +- 0.066 % (2 sigma); trend
+    """A parameter panel's first line: ``**Ra -5.14 %** estimated +- 0.066 % (2 sigma); trend
     exponential -1.2 %/h``."""
     dev = as_number(ph.deviation_pct)
     status = as_text(ph.status)

@@ -1,16 +1,12 @@
 """Machine health as Sparkplug B (Eclipse Sparkplug 3.0) for a SCADA such as Ignition.
 
-The built-in output ``sparkplug`` (table ``[outputs.sparkplug]``, a publisher: it gets only the
-windows the state database stored). The process is an edge node (``edge_node_id``) of the group
-``group_id``, each machine one of its devices (``device_id``): one MQTT session for every
-machine of the process naming the same broker, group and edge node
-(:class:`~twinwatch.sinks.base.SharedResources`), each machine's windows delivered from its own
-store-and-forward outbox. Topics (NBIRTH, DBIRTH, DDATA, DDEATH, NDEATH), ``seq`` and ``bdSeq``,
-rebirth commands, the primary host and QoS: docs/sparkplug.md.
+The built-in output ``sparkplug`` (table ``[outputs.sparkplug]``). The process is an edge node
+(``edge_node_id``) of the group ``group_id``, each machine one of its devices (``device_id``):
+one MQTT session for every machine of the process naming the same broker, group and edge node,
+each machine's windows delivered from its own store-and-forward outbox (docs/sparkplug.md).
 
-Parts: :mod:`.config` (the table), :mod:`.metrics` (a message's metrics), :mod:`.session` (the
-payloads, ``seq``, ``bdSeq`` and its file; no I/O), :mod:`.node` (the edge node: the client and
-its thread), :mod:`.publisher` (a machine's output: its device and outbox).
+Parts: :mod:`.config`, :mod:`.metrics`, :mod:`.session` (the payloads, no I/O), :mod:`.node`
+(the edge node: the client and its thread), :mod:`.publisher` (a machine's device).
 """
 
 from twinwatch.sinks.sparkplug.config import SparkplugConfig

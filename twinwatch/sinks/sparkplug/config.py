@@ -20,9 +20,7 @@ NODE_KEYS = ("host", "port", "client_id", "username", "password_file", "password
              "keepalive", "qos", "reconnect_min", "reconnect_max", "connect_timeout",
              "primary_host_id")
 """The keys of the edge node's one MQTT session: every machine that is a device of one edge
-node (same broker, ``group_id`` and ``edge_node_id``) must set them alike (the others,
-``device_id``, ``inflight``, ``rate``, ``ack_timeout``, ``close_timeout``, ``memory_outbox``,
-are the device's own)."""
+node must set them alike (the others are the device's own)."""
 
 
 def check_id(value: str, what: str) -> str:
@@ -103,8 +101,7 @@ def key_clash(key: str, machine: str, where: str, first: str) -> str:
 def node_clashes(tables: list[tuple[str, str, SparkplugConfig]]) -> list[str]:
     """What a gateway's machines' ``[outputs.sparkplug]`` tables would be refused for when the
     gateway starts them (:meth:`~twinwatch.sinks.sparkplug.node.EdgeNode.join`), for
-    ``check-config`` on a directory: machines that are devices of one edge node with a session
-    key (:data:`NODE_KEYS`) set otherwise than the first of them, or with one device id.
+    ``check-config`` on a directory.
 
     Args:
         tables: (file name, machine name, its validated table) of each machine in the order

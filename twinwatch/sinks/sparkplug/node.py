@@ -1,13 +1,11 @@
 """The edge node's transport: one paho client and one thread for every machine (device) of the
 process that names the same broker, ``group_id`` and ``edge_node_id``.
 
-The node connects (a fresh client and a new ``bdSeq`` in its NDEATH will at each CONNECT),
-publishes NBIRTH, then each device's DBIRTH and DDATA from the device's own outbox (the
-:class:`~twinwatch.sinks.sparkplug.publisher.SparkplugPublisher` of each machine keeps its
-delivery state; the node's thread drives it), answers NCMD and DCMD rebirths, honours the
-primary host's STATE, publishes a device's DDEATH when its machine's output closes and, when
-the last one has left, NDEATH and disconnects. Every message goes out from the node's thread,
-so ``seq`` (one count per edge node) is in the order the broker receives them.
+The node publishes NBIRTH, then each device's DBIRTH and DDATA from the device's own outbox
+(each machine's :class:`~twinwatch.sinks.sparkplug.publisher.SparkplugPublisher` keeps its
+delivery state), answers rebirths, honours the primary host's STATE, and publishes DDEATH and
+NDEATH as devices leave. Every message goes out from the node's thread, so ``seq`` (one count
+per edge node) is in the order the broker receives them.
 """
 
 from __future__ import annotations
@@ -49,7 +47,7 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
 
     Args:
         config: the first device's table (its :data:`~twinwatch.sinks.sparkplug.config.NODE_KEYS`
-            are the session's; a device that sets one differently is refused by :meth:`join`).
+            are the session's).
         edge_node_id: the edge node id.
         password: the password read from ``password_file`` (or ``password``), or None.
         directory: where ``bdSeq`` is kept across restarts (:class:`BdSeqFile`); None: not kept.
@@ -107,8 +105,7 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
 
     # -- the devices ------------------------------------------------------------------------
     def join(self, device: SparkplugPublisher, config: SparkplugConfig, machine: str) -> None:
-        """Add ``device`` (its DBIRTH follows with its first window, or at once when one is
-        stored).
+        """Add ``device`` (its DBIRTH follows with its first stored window).
 
         Raises:
             PublisherError: one line naming ``outputs.sparkplug.<key>``: a session key set
@@ -161,10 +158,9 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
     # -- the client -------------------------------------------------------------------------
     def _connect(self) -> None:
         """A new CONNECT: a new ``bdSeq`` (kept in its file first) in a new client's will. A
-        fresh client, not paho's reconnection: paho sends the previous connection's
-        unacknowledged messages again after the CONNACK, after our NBIRTH, with their old
-        ``seq`` (a host would see the sequence broken); those windows are sent again from the
-        devices' outboxes instead, after the births."""
+        fresh client, not paho's reconnection: paho would send the previous connection's
+        unacknowledged messages after our NBIRTH with their old ``seq``; those windows are
+        sent again from the devices' outboxes instead, after the births."""
         for d in self._members():
             d.reset_connection()
         self._mid_owner.clear()
@@ -214,7 +210,7 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
 
     def session_down(self) -> bool:
         """The connection is gone: nothing is born; True when we closed it ourselves (the
-        primary host went offline): quiet, not a take-over."""
+        primary host went offline)."""
         self.born = False
         for d in self._members():
             d.device_born = False
@@ -239,7 +235,7 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
     # -- births, commands, the primary host -------------------------------------------------
     def _births(self, client: mqtt.Client) -> None:
         """NBIRTH, then the DBIRTH of every device with a stored window (the others' comes
-        with their first: its metrics and values, not a birth of nulls)."""
+        with their first, not a birth of nulls)."""
         client.publish(self.session.nbirth_topic, self.session.nbirth(now_ms()),
                        qos=self.config.qos)
         if self._birth_at is None and self._unheard is None:
@@ -290,10 +286,8 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
         self._refuse_writes(topic, "DCMD", cmd, DEVICE_REBIRTH)
 
     def _refuse_writes(self, topic: str, kind: str, cmd: Any, rebirth: str) -> None:
-        """A command's metrics other than the rebirth are a write attempt (a SCADA setting a
-        value, a tag written by mistake): nothing is written (twinwatch only monitors),
-        counted in ``commands_refused``, logged at WARNING once per topic naming the metrics
-        (later ones at DEBUG)."""
+        """A command's metrics other than the rebirth are a write attempt: nothing is written
+        (twinwatch only monitors), counted in ``commands_refused``, logged once per topic."""
         writes = [m.name or f"alias {m.alias}" for m in cmd.metrics if m.name != rebirth]
         if not writes:
             return
@@ -341,10 +335,9 @@ class EdgeNode(SessionThread["SparkplugPublisher"]):
             self._host_online = online
 
     def _turn_done(self, now: float) -> None:
-        """A connected turn's end: a broker may accept the connection and acknowledge every
-        publish while its ACL drops them (Mosquitto 2.0 does, MQTT 3.1.1 has no refusal for a
-        publish nor for a will): our NBIRTH, subscribed to, not heard back within 5 s is said
-        once, naming the key (the will is then dropped too, most likely)."""
+        """A connected turn's end: a broker may acknowledge every publish while its ACL drops
+        them (MQTT 3.1.1 has no refusal for a publish): our NBIRTH, subscribed to, not heard
+        back within 5 s is said once."""
         if self._birth_at is None or self._unheard is not None:
             return
         if time.monotonic() - self._birth_at < 5.0:

@@ -1,11 +1,9 @@
 """The Sparkplug B output of one machine: a device of its edge node.
 
 Each machine's output keeps its delivery over its own outbox (a
-:class:`~twinwatch.sinks.mqtt.delivery.Delivery`, as the MQTT output does: which stored windows
-this output has delivered) and its device's metrics and aliases; the
+:class:`~twinwatch.sinks.mqtt.delivery.Delivery`) and its device's metrics and aliases; the
 :class:`~twinwatch.sinks.sparkplug.node.EdgeNode` it joins (one per broker, group and edge node
-id in the process, shared through :class:`~twinwatch.sinks.base.SharedResources`) holds the one
-MQTT session and the thread that drives every device's delivery.
+id in the process) holds the MQTT session and the thread that drives every device's delivery.
 """
 
 from __future__ import annotations
@@ -40,14 +38,13 @@ class SparkplugPublisher(DeliveringSink):
 
     Args:
         config: the validated table.
-        context: the daemon's context (machine, parameters, alarm rules; the gate's outbox;
-            ``shared``: the process's edge nodes).
+        context: the daemon's context (``shared``: the process's edge nodes).
 
     Raises:
         PublisherError: one line naming ``outputs.sparkplug.<key>``: the machine name is no
-            Sparkplug id (and ``device_id`` or ``edge_node_id`` is unset), two metrics differ
-            only in case, a TLS or password file cannot be read, the edge node's other
-            devices set a session key otherwise, the device id is taken.
+            Sparkplug id, two metrics differ only in case, a TLS or password file cannot be
+            read, the edge node's other devices set a session key otherwise, the device id is
+            taken.
     """
 
     config_class: ClassVar[type[SparkplugConfig]] = SparkplugConfig
@@ -112,8 +109,7 @@ class SparkplugPublisher(DeliveringSink):
     @property
     def latest_doc(self) -> HealthView | None:
         """The newest stored window of this run's typed message (a DBIRTH's values), or None:
-        a new run births with its first window, never with the previous run's last (its run
-        id, its alarms, its diagnosis), which the outbox holds at a restart."""
+        a new run never births with the previous run's last window."""
         doc = self.delivery.latest_doc
         return doc if doc is not None and self._this_run(doc) else None
 
@@ -122,15 +118,14 @@ class SparkplugPublisher(DeliveringSink):
         return not run or getattr(doc, "run", None) == run
 
     def reset_connection(self) -> None:
-        """A new connection: the windows in flight are sent again from the outbox, after the
-        births, with the new connection's ``seq``."""
+        """A new connection: the windows in flight are sent again from the outbox."""
         self.delivery.reset_connection()
         self.device_born = False
 
     # -- the device's messages (in the node's thread) ----------------------------------------
     def device_birth(self) -> None:
         """DBIRTH: every metric with the newest stored window of this run's values (none yet:
-        nulls, e.g. before a previous run's windows the outbox still holds are replayed)."""
+        nulls)."""
         doc = self.latest_doc
         values: dict[str, Any] = {}
         if doc is not None:
@@ -143,9 +138,8 @@ class SparkplugPublisher(DeliveringSink):
         self.device_births += 1
 
     def _send(self, row: OutboxRow, newest: bool) -> bool:
-        """One window's DDATA (historical when it was stored before this connection's births:
-        a replay from the outbox); a metric the birth did not announce (a counter, a RUL
-        appearing) makes a new DBIRTH of the device first."""
+        """One window's DDATA (historical when stored before this connection's births); a
+        metric the birth did not announce makes a new DBIRTH of the device first."""
         delivery = self.delivery
         try:
             doc = health_view(row.doc)
@@ -181,8 +175,8 @@ class SparkplugPublisher(DeliveringSink):
 
     # -- the sink contract ------------------------------------------------------------------
     def close(self) -> None:
-        """Deliver what is pending for up to ``close_timeout`` s, DDEATH, leave the edge node
-        (the last device to leave: NDEATH, disconnect). Idempotent."""
+        """Deliver what is pending for up to ``close_timeout`` s, DDEATH, leave the edge node.
+        Idempotent."""
         if self._closed:
             return
         self._closed = True
@@ -196,10 +190,8 @@ class SparkplugPublisher(DeliveringSink):
                     self.machine, self.delivered, self.pending)
 
     def counters(self) -> dict[str, int]:
-        """The MQTT output's (``delivered``, ``pending``, ``dropped``, ``errors``; the edge
-        node's ``connects``, ``disconnects``) and ``births`` (the node's NBIRTHs),
-        ``device_births`` (this device's DBIRTHs), ``rebirths`` (asked by NCMD or DCMD),
-        ``commands_refused`` (the node's NCMD and DCMD that tried to write a metric)."""
+        """The MQTT output's, and ``births`` (NBIRTHs), ``device_births``, ``rebirths``,
+        ``commands_refused`` (commands that tried to write a metric)."""
         node = self._node
         return {"delivered": int(self.delivered), "pending": int(self.pending),
                 "dropped": self.dropped, "connects": int(node.connects),

@@ -3,15 +3,11 @@
 The protobuf schema is Eclipse Tahu's ``sparkplug_b/sparkplug_b.proto`` (proto2, package
 ``org.eclipse.tahu.protobuf``; Copyright (c) 2015, 2018 Cirrus Link Solutions and others,
 EPL-2.0), shipped beside this module unchanged (see README.md: source, commit, licence).
-:data:`FILE_DESCRIPTOR` is that file compiled by ``protoc`` (a serialised
-``FileDescriptorProto``: ``protoc --descriptor_set_out``, file 0); the message classes are
-made from it with protobuf's runtime API (``DescriptorPool.AddSerializedFile`` and
-``message_factory.GetMessageClass``, protobuf >= 4.22) in a pool of their own, so no generated
-``*_pb2.py`` is checked in: generated code is bound to the protoc version that wrote it
-(``ValidateProtobufRuntimeVersion`` refuses an older runtime), the descriptor is not; and a
-process that also loads another copy of Tahu's ``sparkplug_b_pb2`` (into protobuf's default
-pool) gets no duplicate-file error. ``tests/test_sparkplug.py`` checks these bytes against the
-shipped ``.proto`` (every message, field name, number and label).
+:data:`FILE_DESCRIPTOR` is that file compiled by ``protoc``; the message classes are made from
+it with protobuf's runtime API (protobuf >= 4.22) in a pool of their own, so no generated
+``*_pb2.py`` is checked in: generated code is bound to the protoc version that wrote it, the
+descriptor is not, and a process that also loads Tahu's ``sparkplug_b_pb2`` gets no
+duplicate-file error. ``tests/test_sparkplug.py`` checks these bytes against the ``.proto``.
 """
 
 from __future__ import annotations
@@ -116,8 +112,7 @@ def payload_class() -> Any:
     """``org.eclipse.tahu.protobuf.Payload``: the message class (built once per process).
 
     Returns:
-        The protobuf message class (``Payload()``, ``Payload.FromString(b)``); typed ``Any``:
-        its fields exist only at run time.
+        The protobuf message class; typed ``Any``: its fields exist only at run time.
     """
     from google.protobuf import descriptor_pool, message_factory
 

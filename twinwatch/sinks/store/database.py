@@ -4,25 +4,19 @@ twin and a subscriber that was away can catch up on the history.
 
 Durability. WAL mode; each window is one transaction (its health row and, when trusted, the
 twin), so after any crash the database holds a prefix of the windows, never half of one.
-``synchronous=FULL`` (default) fsyncs every commit: a committed window survives SIGKILL, a
-kernel panic and power loss. ``synchronous=NORMAL`` survives SIGKILL and any crash of the
-process; on power loss the last windows since the last checkpoint may be rolled back (the
-database stays consistent).
+``synchronous=FULL`` (default) survives power loss; ``NORMAL`` survives any crash of the
+process, and on power loss may roll back the windows since the last checkpoint.
 
-Threads. The adaptation worker writes (:meth:`StateStore.save_window`), a Zenoh queryable thread
-reads (:meth:`StateStore.history`). Each thread gets its own connection (``threading.local``):
-in WAL mode readers never block the writer nor see a half-written window. The connection of a
-thread that has ended is closed when the next thread connects; all by :meth:`StateStore.close`.
+Threads. Each thread gets its own connection (``threading.local``): in WAL mode readers never
+block the writer nor see a half-written window.
 
 Faults. A database that is not SQLite or is corrupt raises :class:`StoreError` with what to do
 (or, with ``recover_corrupt=True``, is moved aside to ``<name>.corrupt-<time>`` and a new one
-started, logged as an ERROR), wherever SQLite reports it: at open, in a read or in a write. A
-locked or full database at save time does not stop the daemon: the window stays in a bounded
-in-memory backlog, is written with the next successful save, and the failure is logged once at
-ERROR (then DEBUG until it recovers). The file deleted, replaced or moved away while the daemon
-runs is noticed before the next window and before any read (the lock's descriptor,
-:meth:`~twinwatch.sinks.locks.FileLock.changed`) and handled as docs/runtime.md describes: the
-windows of this run lost with it are counted in :attr:`StateStore.history_lost`.
+started), wherever SQLite reports it. A locked or full database at save time does not stop the
+daemon: the window stays in a bounded in-memory backlog until the next successful save. The
+file deleted, replaced or moved away while the daemon runs is noticed before the next window
+and before any read (:meth:`~twinwatch.sinks.locks.FileLock.changed`) and handled as
+docs/runtime.md describes.
 
 Size: a DC-motor health message is about 2 kB of JSON, so one machine writes about 85 MB a day;
 the defaults keep 30 days or 1,000,000 windows (about 2 GB), whichever is less, pruned in batches.
@@ -70,36 +64,31 @@ class StateStore(Gate):
 
     Args:
         path: database file (created with its tables if absent; the directory must exist).
-            Under systemd: ``$STATE_DIRECTORY/state.sqlite``.
         synchronous: ``"FULL"`` (survives power loss) or ``"NORMAL"`` (survives SIGKILL).
         keep_days: delete health rows older than this (wall time); None keeps them.
         keep_rows: keep at most this many health rows; None for no limit.
         prune_every: prune after this many saved windows.
-        prune_batch: rows deleted per pruning transaction (short transactions keep readers and
-            the writer moving).
+        prune_batch: rows deleted per pruning transaction.
         busy_timeout: seconds a statement waits for a lock held by another connection.
         backlog: windows kept in memory while the database cannot be written.
         recover_corrupt: move a corrupt database aside and start a new one instead of raising.
         check: run ``PRAGMA quick_check`` at open (reads the whole file).
         recent: windows kept in memory once written, to write them again to a database file
             that was deleted or replaced (``[acquisition] history``).
-        run: the run id of the windows it stores (the daemon's, :class:`SinkContext` ``run``;
-            a health message that carries its own ``run`` is stored under it); None: a new
-            one.
+        run: the run id of the windows it stores (a health message that carries its own
+            ``run`` is stored under it); None: a new one.
 
     Attributes:
-        run_id: the run whose windows it stores (the ``run`` column; "this run" below).
-        lost: windows lost for good: never stored (:attr:`never_stored`) or
-            :attr:`history_lost`.
+        run_id: the run whose windows it stores ("this run" below).
+        lost: windows lost for good: :attr:`never_stored` or :attr:`history_lost`.
         history_lost: windows of this run that were stored, then lost with a deleted or
             replaced database file (not in memory to write again).
         file_event: what happened to the file last (None: nothing), for the status.
 
     Raises:
-        StoreError: the file is in use by another process (an exclusive ``flock`` is taken on
-            it before SQLite opens it, and held until :meth:`close`), is not a database, is
-            corrupt, is locked, or was written by a newer twinwatch (schema version above
-            :data:`SCHEMA_VERSION`).
+        StoreError: the file is in use by another process (an exclusive ``flock`` is held
+            until :meth:`close`), is not a database, is corrupt, is locked, or has a schema
+            version above :data:`SCHEMA_VERSION`.
     """
 
     config_class: ClassVar[type[StateConfig]] = StateConfig
@@ -247,8 +236,7 @@ class StateStore(Gate):
 
     def _recover(self, exc: BaseException) -> None:
         """Move the corrupt database (and its WAL and shared-memory files) aside to
-        ``<name>.corrupt-<time>`` and start a new one; the windows waiting to be written stay
-        pending. Every thread's connection is closed (each reconnects on its next use).
+        ``<name>.corrupt-<time>`` and start a new one; the windows waiting stay pending.
 
         Raises:
             StoreError: the file cannot be moved or the new database cannot be created.
@@ -354,10 +342,9 @@ class StateStore(Gate):
 
     # -- the file deleted, replaced or moved away under the running daemon ---------------------
     def _check_file(self, window: int | None = None) -> None:
-        """The database file at :attr:`path` is still the one this store has open; if it was
-        deleted, replaced or moved away, open (create) the one at the path now and write to it
-        what it should hold (see the module docstring). Called with the write lock held, before
-        each window is written and before each read.
+        """If the file at :attr:`path` is no longer the one this store has open (deleted,
+        replaced or moved away), open (create) the one at the path and write to it what it
+        should hold. Called with the write lock held, before each write and each read.
 
         Args:
             window: the window about to be written (for the log), None for a read.
@@ -373,8 +360,7 @@ class StateStore(Gate):
 
     def _leave_old_file(self, why: str, window: int | None) -> None:
         """Read what this run stored in the file the store has open (still readable through
-        its connections whatever happened to its name), checkpoint it, close it, and remove
-        its ``-wal`` and ``-shm`` from beside the path."""
+        its connections), checkpoint it, close it, and remove its ``-wal`` and ``-shm``."""
         self._file_gone = why
         stored: set[tuple[str, int]] | None = None
         earlier = 0
@@ -475,12 +461,10 @@ class StateStore(Gate):
                        self.file_event)
 
     def _carry_outboxes(self, conn: sqlite3.Connection, top: int) -> None:
-        """The outboxes of the file left behind, in the file at the path (in the caller's
-        transaction): an output without a position there gets one at ``top`` (the rows the
-        file held before this run's windows were written again to it: history, not sent, as
-        at an output's first open), and this run's windows it had delivered are marked
-        delivered; the others are pending, so they are delivered from the new file, also
-        after a restart."""
+        """Carry the outboxes of the file left behind into the file at the path (in the
+        caller's transaction): an output without a position there gets one at ``top`` (the
+        older rows are history, not sent), and this run's windows it had delivered are marked
+        delivered; the others stay pending."""
         wall = time.time()
         for (output, machine), done in self._old_delivered.items():
             conn.execute("INSERT OR IGNORE INTO outbox_position (output, machine, health_id, "
@@ -497,7 +481,7 @@ class StateStore(Gate):
         """Open ``[state] path`` (relative to the working directory).
 
         Raises:
-            StoreError: see the class docstring.
+            StoreError: as the class.
         """
         return cls(config.output_files(context.cwd)["path"], synchronous=config.synchronous,
                    keep_days=config.keep_days, keep_rows=config.keep_rows,
@@ -545,8 +529,7 @@ class StateStore(Gate):
         return f"state {self.path}"
 
     def summary(self) -> list[str]:
-        """The windows that could not be stored when they were estimated, and those lost with
-        a deleted or replaced database file, if any."""
+        """The windows not stored when estimated, and those lost with the file, if any."""
         out = []
         if self.not_stored:
             late = self.not_stored - self.never_stored - self.waiting
@@ -560,13 +543,11 @@ class StateStore(Gate):
         return out
 
     def write(self, out: ProcessedWindow) -> bool:
-        """The window pipeline's sink call: the window's health message (its one encoding,
-        stored byte for byte as published) and, when it was trusted, the twin, in one
-        transaction.
+        """:meth:`save_window` with the processed window.
 
         Returns:
-            True if the window is stored; False if it waits in memory (the pipeline then does
-            not publish it: stored before published; counted in :attr:`not_stored`).
+            True if the window is stored; False if it waits in memory (it is then not
+            published; counted in :attr:`not_stored`).
         """
         ok = self._save(out)
         self.not_stored += not ok
@@ -574,9 +555,8 @@ class StateStore(Gate):
 
     def hold(self, out: ProcessedWindow) -> None:
         """Keep the window in memory without trying to write it (the database is
-        :attr:`locked`: a try would wait the busy timeout); written by :meth:`retry` or the
-        next successful write. Not counted in :attr:`not_stored` (the pipeline counts it if
-        it is not published)."""
+        :attr:`locked`: a try would wait the busy timeout). Not counted in :attr:`not_stored`
+        (the pipeline counts it if it is not published)."""
         self._save(out, flush=False)
 
     def _save(self, out: ProcessedWindow, flush: bool = True) -> bool:
@@ -600,26 +580,22 @@ class StateStore(Gate):
                     *, wall: float | None = None, doc: str | None = None,
                     flush: bool = True) -> bool:
         """Store one window's health message and, if given, the latest accepted twin, in one
-        transaction (call from the adaptation worker after each window).
+        transaction.
 
         Args:
             health: the health message (``machine``, ``run``, ``window``, ``t_start``,
-                ``t_end`` are indexed; the whole message is stored as JSON; without ``run`` it
-                is stored under the store's :attr:`run_id`).
-            twin_state: the twin to resume from (parameters, held flags, trusted vector,
-                discovered meta-model terms; any JSON-serialisable mapping, numpy allowed), or
-                None when this window was not trusted (the stored twin is kept).
+                ``t_end`` are indexed; without ``run`` it is stored under :attr:`run_id`).
+            twin_state: the twin to resume from (any JSON-serialisable mapping, numpy
+                allowed), or None when this window was not trusted (the stored twin is kept).
             wall: wall-clock time [s since the epoch] of the window (default now).
-            doc: the message already encoded (the pipeline's one encoding, stored byte for
-                byte as published); ``health`` then needs only the indexed keys. None: the
-                message is ``health`` encoded here.
+            doc: the message already encoded, stored byte for byte; ``health`` then needs
+                only the indexed keys. None: ``health`` is encoded here.
             flush: False: only keep the window in memory, written with the next successful
-                save or :meth:`retry` (the database is :attr:`locked`: trying now would wait
-                the busy timeout again).
+                save or :meth:`retry`.
 
         Returns:
-            True if committed; False if the database could not be written (the window is
-            kept in memory and written with the next successful save).
+            True if committed; False if the database could not be written (the window waits
+            in memory).
         """
         w = time.time() if wall is None else float(wall)
         machine = str(health["machine"])
@@ -749,9 +725,9 @@ class StateStore(Gate):
                 return total
 
     def _outbox_prune(self, conn: sqlite3.Connection, batch: str, args: tuple[Any, ...]) -> None:
-        """Before a batch of health rows is deleted (retention): count, per output's outbox,
-        the rows it had not delivered (:attr:`outbox_dropped`), move its position past the
-        batch and forget its delivery marks there (in the caller's transaction)."""
+        """Before a batch of health rows is deleted: count per outbox the rows it had not
+        delivered (:attr:`outbox_dropped`), move its position past the batch and forget its
+        delivery marks there (in the caller's transaction)."""
         positions = conn.execute("SELECT output, machine, health_id FROM outbox_position"
                                  ).fetchall()
         if not positions:
@@ -797,24 +773,17 @@ class StateStore(Gate):
             t_from, t_to: range [s]; None leaves that end open. By plant time a window is
                 returned if it overlaps the range (``t_end >= t_from`` and
                 ``t_start <= t_to``); by wall time if it was saved inside it.
-            limit: at most this many (page on with ``after`` = the last one's ``t_end``),
-                None for all.
+            limit: at most this many (page on with ``after``), None for all.
             by: ``"plant"`` (the source's time, as in the health message) or ``"wall"``
-                (seconds since the epoch when the window was saved; plant time restarts with
-                every run of the simulated plant or of a file replay).
+                (seconds since the epoch when the window was saved).
             machine: only this machine.
-            run: only this run's windows (a run id, as in the messages' ``run``): plant time
-                and window numbers start over with every run of a simulated plant or a
-                replay, so a range by plant time is one run's only with it.
-            after: only windows ending strictly after this time [s] (by plant time:
-                ``t_end > after``; by wall time: saved after it): the paging cursor
+            run: only this run's windows (plant time starts over with every run of a replay).
+            after: only windows ending strictly after this time [s]: the paging cursor
                 (``t_from`` is inclusive: it would return the last window again).
 
         Returns:
-            The stored health messages, each through its typed view
-            (:func:`~twinwatch.twin.health.read_health`), as a :class:`HistoryPage` whose
-            ``next_after`` is the cursor of the next page (by wall time the last one's
-            stored wall stamp, which the message does not carry).
+            The stored health messages through their typed views
+            (:func:`~twinwatch.twin.health.read_health`), as a :class:`HistoryPage`.
         """
         sql, args = queries.history_query(t_from, t_to, limit, by=by, machine=machine, run=run,
                                           after=after)
@@ -824,28 +793,24 @@ class StateStore(Gate):
 
     def timeline(self, machine: str, t_from: float | None = None) -> list[HealthView]:
         """The machine's health messages on the time line that ends with its last stored
-        window, oldest first: read back from the last one across runs while each window ends
-        before the one saved after it starts (where the clock went back, a replay or a
-        simulated plant started over, the reading stops) and ends at or after ``t_from`` [s,
-        plant time]. What a restart resumes the trends from (:meth:`twinwatch.twin.
-        prognostics.Prognostics.replay`), across several restarts."""
+        window, oldest first: read back across runs while each window ends before the one
+        saved after it starts (the reading stops where the clock went back) and ends at or
+        after ``t_from`` [s, plant time]. What a restart resumes the trends from."""
         lower = float(t_from) if t_from is not None and math.isfinite(t_from) else -math.inf
         docs = self._read("cannot read the history",
                           lambda conn: queries.timeline_docs(conn, machine, lower))
         return [read_health(d) for d in reversed(docs)]
 
     def latest_health(self, machine: str | None = None) -> HealthView | None:
-        """The last health message saved, through its typed view (e.g. to restore the alarm
-        state at start)."""
+        """The last health message saved, through its typed view."""
         doc = self._read("cannot read the history",
                          lambda conn: queries.latest_doc(conn, machine))
         return None if doc is None else read_health(doc)
 
     def last_docs(self, machine: str, run: str, limit: int) -> list[str]:
         """The last ``limit`` health messages of ``machine``'s run ``run``, as saved (JSON
-        text), oldest first: the in-memory history's older part
-        (:meth:`twinwatch.daemon.pipeline.WindowPipeline.recent`). Read from the file after
-        :meth:`close` too (read-only: a run's history is asked for after its daemon stopped).
+        text), oldest first (:meth:`twinwatch.daemon.pipeline.WindowPipeline.recent`). Also
+        after :meth:`close`, read-only: a run's history is asked for after its daemon stopped.
 
         Raises:
             StoreError: the database cannot be read (the message says why).
@@ -874,8 +839,7 @@ class StateStore(Gate):
         return StoreOutbox(self, output, machine)
 
     def _write(self, what: str, fn: Any) -> None:
-        """Run ``fn(connection)`` in one write transaction of the calling thread's connection,
-        under the write lock (the worker's windows and the pruning take it too).
+        """Run ``fn(connection)`` in one write transaction, under the write lock.
 
         Raises:
             StoreError: the database cannot be written (nothing of ``fn`` is committed).
@@ -906,8 +870,7 @@ class StateStore(Gate):
         self._local = threading.local()
 
     def close(self) -> None:
-        """Write any delayed windows (one last try), then close every thread's connection.
-        Idempotent."""
+        """Write any delayed windows (one last try), then close every connection. Idempotent."""
         if self._closed:
             return
         with self._write_lock:
@@ -925,9 +888,8 @@ class StateStore(Gate):
 
 
 def _packed(row: tuple[Any, ...]) -> tuple[Any, ...]:
-    """A saved ``health`` row as kept in memory (``_recent``, to write again into a database
-    file replaced while running): its message compressed (zlib level 1, 90 us: 9 KB of JSON
-    -> about 2.8 KB; the last ``[acquisition] history`` of them per machine)."""
+    """A saved ``health`` row as kept in ``_recent``: its message zlib-compressed (level 1:
+    9 KB of JSON -> about 2.8 KB)."""
     return (*row[:6], zlib.compress(row[6].encode(), 1))
 
 
@@ -936,8 +898,7 @@ def _unpacked(row: tuple[Any, ...]) -> tuple[Any, ...]:
 
 
 def _rollback(conn: sqlite3.Connection) -> None:
-    """Roll back the transaction a failure left open (a rollback that fails too, the
-    connection broken, leaves nothing to undo)."""
+    """Roll back the transaction a failure left open (a failing rollback is ignored)."""
     if conn.in_transaction:
         with contextlib.suppress(sqlite3.Error):
             conn.execute("ROLLBACK")

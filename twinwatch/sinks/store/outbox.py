@@ -20,12 +20,10 @@ class StoreOutbox:
     """One output's outbox in the state database (:class:`~twinwatch.sinks.base.Outbox`): the
     ``health`` table holds the windows, this records which of them the output has delivered.
 
-    Two small tables, written through the store's rules (the calling thread's own connection,
-    the store's write lock, one transaction per call): ``outbox_position`` (output, machine ->
-    a ``health`` row id at or below which every window is delivered) and ``outbox_ack``
-    (output, machine, run, window -> delivered, for the windows above the position, e.g.
-    acknowledged while an older one was still in flight). The retention's pruning counts the
-    windows it deletes undelivered (:attr:`dropped`) and moves the position past them.
+    Two tables, one transaction per call under the store's write lock: ``outbox_position``
+    (output, machine -> a ``health`` row id at or below which every window is delivered) and
+    ``outbox_ack`` (output, machine, run, window -> delivered, for the windows above the
+    position).
 
     Args:
         store: the open state store.
@@ -37,7 +35,7 @@ class StoreOutbox:
     """
 
     # The queries read the health table by row id ranges (``+machine``: not through the
-    # machine's time indexes, which would visit every row of the machine, up to a million).
+    # machine's time indexes, which would visit every row of the machine).
 
     def __init__(self, store: StateStore, output: str, machine: str) -> None:
         self.store = store
@@ -47,14 +45,12 @@ class StoreOutbox:
 
     @property
     def changed(self) -> bool:
-        """The store has opened another database file since this outbox was made (deleted,
-        replaced or moved away): its row ids and position are stale; ask the gate for a new
-        outbox."""
+        """The store has opened another database file since this outbox was made: its row
+        ids and position are stale; ask the gate for a new outbox."""
         return self.store.generation != self.generation
 
     def _same_file(self, conn: sqlite3.Connection) -> sqlite3.Connection:
-        """``conn`` if the store still writes the file of this outbox (checked under the
-        store's lock, after it looked at the path); else raises (nothing read or written)."""
+        """``conn`` if the store still writes the file of this outbox; else raises."""
         if self.changed:
             raise sqlite3.OperationalError("the state database file changed: its outbox is "
                                            "read again")
@@ -66,8 +62,7 @@ class StoreOutbox:
 
     @property
     def dropped(self) -> int:
-        """Windows deleted by the retention before they were delivered (since the store
-        opened)."""
+        """Windows deleted by the retention before they were delivered."""
         return self.store.outbox_dropped.get((self.output, self.machine), 0)
 
     def start(self) -> int:

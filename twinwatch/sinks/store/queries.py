@@ -1,8 +1,6 @@
-"""The state database's read side, as functions over one :mod:`sqlite3` connection: the
-history's SQL and its paging cursor, the time line's walk back, the latest message, a run's
-last messages, the saved twin. :class:`~twinwatch.sinks.store.database.StateStore` runs them
-on the calling thread's connection, behind its file checks and corruption recovery
-(``StateStore._read``); nothing here writes, locks or recovers.
+"""The state database's read side, as functions over one :mod:`sqlite3` connection.
+:class:`~twinwatch.sinks.store.database.StateStore` runs them behind its file checks and
+corruption recovery; nothing here writes, locks or recovers.
 """
 
 from __future__ import annotations
@@ -52,17 +50,15 @@ def history_query(t_from: float | None, t_to: float | None, limit: int | None, *
 
 def history_page(rows: Sequence[tuple[str, float]]) -> HistoryPage:
     """The rows of :func:`history_query` as a page of typed views, with the cursor of the next
-    page in the time asked: by wall time the stamp the store keeps (the messages carry plant
-    time only, a caller could not page on them)."""
+    page in the time asked (by wall time the stamp the store keeps)."""
     return HistoryPage((read_health(r[0]) for r in rows),
                        next_after=float(rows[-1][1]) if rows else None)
 
 
 def timeline_docs(conn: sqlite3.Connection, machine: str, lower: float) -> list[str]:
     """The messages (JSON text) of ``machine``'s time line that ends with its last stored
-    window, newest first: read back in the order they were saved while each window ends
-    before the one saved after it starts, and ends at or after ``lower`` [s, plant time]
-    (see :meth:`StateStore.timeline <twinwatch.sinks.store.database.StateStore.timeline>`)."""
+    window, newest first, ending at or after ``lower`` [s, plant time]
+    (:meth:`StateStore.timeline <twinwatch.sinks.store.database.StateStore.timeline>`)."""
     docs: list[str] = []
     after: float | None = None  # t_start of the window saved after this one
     cur = conn.execute("SELECT doc, t_start, t_end FROM health WHERE machine = ? "

@@ -15,9 +15,8 @@ __all__ = ["CACHE_KIB", "SCHEMA", "SCHEMA_VERSION", "StateConfig", "is_corrupt"]
 
 SCHEMA_VERSION = 1
 
-#: SQLite page cache per connection [KiB] (``PRAGMA cache_size``; SQLite's default is 2000):
-#: the writer appends and the readers page, neither rereads much, and in a fleet every machine
-#: has two or three connections
+#: SQLite page cache per connection [KiB] (``PRAGMA cache_size``): the writer appends and the
+#: readers page, neither rereads much, and in a fleet every machine has several connections
 CACHE_KIB = 256
 
 SCHEMA = """

@@ -32,17 +32,15 @@ logger = logging.getLogger(__package__)
 
 UNRULED_THRESHOLD_PCT = 5.0
 """A parameter without an alarm rule is measured against this deviation [% of nominal] for
-the fleet summary's ``worst`` (:func:`worst_parameter`): the examples' warning threshold."""
+the fleet summary's ``worst`` (:func:`worst_parameter`)."""
 
 
 class HealthPublisher(Sink):
     """Publishes one machine's health (and other JSON topics) on zenoh: the built-in output
     ``zenoh`` (table ``[zenoh]``, a publisher: it gets only the windows the state store stored).
 
-    :meth:`publish` and :meth:`publish_json` may be called from a worker thread while
-    :meth:`close` is called from another; a failing put is logged once (then at DEBUG until a
-    put succeeds again), counted in :attr:`errors`, and never raised. After :meth:`close`,
-    publishing is a silent no-op. With ``config.enabled`` false nothing is opened and
+    Thread-safe against :meth:`close`; a failing put is logged once, counted in
+    :attr:`errors`, and never raised. After :meth:`close`, or with ``config.enabled`` false,
     publishing is a no-op.
 
     Args:
@@ -120,8 +118,7 @@ class HealthPublisher(Sink):
 
     def _open_session(self) -> zenoh.Session:
         """This publisher's session: its own (:func:`open_session`), or in a gateway the one
-        every machine with the same session settings shares (:attr:`SinkContext.shared`,
-        keyed by :func:`session_key`; the last machine to let it go closes it). Let go with
+        shared by every machine with the same :func:`session_key`. Let go with
         ``_release_session``.
 
         Raises:
@@ -191,8 +188,7 @@ class HealthPublisher(Sink):
     # -- the sink contract ---------------------------------------------------------------------
     @classmethod
     def from_config(cls, config: ZenohConfig, context: SinkContext) -> Self:
-        """The daemon's publisher: a router unreachable at start is retried in the background;
-        with a state store (``context.history``) the history query is served.
+        """The daemon's publisher: a router unreachable at start is retried in the background.
 
         Raises:
             PublisherError: the session or a declaration could not be created.
@@ -216,8 +212,8 @@ class HealthPublisher(Sink):
 
     def _on_history_query(self, query: Any) -> dict[str, Any]:
         """``get("P/history?t_from=..;t_to=..;by=plant|wall;limit=..;run=..")`` (zenoh
-        thread): one reply ``{"count", "more", "windows": [health, ...]}``, oldest first (one
-        run's with ``run``: a run id, or ``current``, the running daemon's).
+        thread): one reply ``{"count", "more", "windows": [health, ...]}``, oldest first
+        (``run``: a run id, or ``current``).
 
         Raises:
             ValueError: a bad parameter (replied as an error naming it), or no history to
@@ -233,26 +229,22 @@ class HealthPublisher(Sink):
             run = self.context.run if self.context is not None and self.context.run else None
             if run is None:
                 raise ValueError("run='current': this daemon has no run id")
-        # ``after`` only when asked: a HistoryQuery written before it existed still serves
+        # ``after`` only when asked: a HistoryQuery without it still serves
         windows = (history(t_from, t_to, limit, by, run) if after is None
                    else history(t_from, t_to, limit, by, run, after))
         more = len(windows) == limit
-        # the cursor of the next page in the time asked: the gate's (by wall time the stamp it
-        # saved the window with: the messages carry plant time only), else by plant time the
-        # last window's end
+        # the cursor of the next page: the gate's, else by plant time the last window's end
         nxt = getattr(windows, "next_after", None) if more and windows else None
         if nxt is None and more and windows and by == "plant":
             nxt = windows[-1].t_end
         return {"machine": self.machine, "by": by, "t_from": t_from, "t_to": t_to, "run": run,
                 "after": after, "count": len(windows), "more": more, "next_after": nxt,
-                # each stored message as it was stored (the fields it carries, no others)
+                # each message with the fields it was stored with, no others
                 "windows": [w.model_dump(by_alias=True, exclude_unset=True) for w in windows]}
 
     def counters(self) -> dict[str, int]:
-        """``published`` (the windows' and events' puts), ``summaries`` (the fleet summaries
-        sent, :meth:`publish_summary`), ``summaries_resent`` (the latest summary sent again
-        when a subscriber became reachable again), ``errors`` (failed puts), ``not_connected``
-        (windows before the router was reached)."""
+        """``published`` (puts), ``summaries``, ``summaries_resent``, ``errors`` (failed
+        puts), ``not_connected`` (windows before the router was reached)."""
         return {"published": int(self.published), "summaries": int(self.summaries),
                 "summaries_resent": int(self.summaries_resent),
                 "errors": int(self.errors), "not_connected": int(self.not_connected)}
@@ -314,11 +306,8 @@ class HealthPublisher(Sink):
         self._put(f"{self.base_key}/{key_suffix}", payload)
 
     def write(self, out: ProcessedWindow) -> None:
-        """The window pipeline's sink call: the window's health on ``P/health`` (its one
-        encoding, :attr:`~twinwatch.sinks.base.ProcessedWindow.health_json`), then its alarm
-        events on ``P/alarm``, then its fleet summary on ``P/summary`` when it changed or
-        ``[zenoh] summary_interval`` passed (:meth:`publish_summary`), with the machine's
-        worst parameter by its own threshold (:func:`worst_parameter`) as ``worst``."""
+        """The window's health on ``P/health``, its alarm events on ``P/alarm``, then its
+        fleet summary (:meth:`publish_summary`) with :func:`worst_parameter` as ``worst``."""
         self._put(self.health_key, out.health_json)
         for event in out.events:
             self.publish_json("alarm", event)
@@ -332,9 +321,8 @@ class HealthPublisher(Sink):
         """Publish a fleet summary (:func:`~twinwatch.twin.summary.fleet_summary`) on
         ``P/summary`` if it changed since the last one published
         (:func:`~twinwatch.twin.summary.summary_changed`) or ``[zenoh] summary_interval``
-        seconds passed since; it is kept as the latest: a get on ``P/summary`` (or
-        ``<prefix>/*/summary`` for the fleet) returns it, which is how a late joiner or a
-        watcher back from a router outage gets it (the summary's publisher is a plain one).
+        seconds passed since; kept as the latest, which a get returns to a late joiner (the
+        summary's publisher is a plain one).
 
         Args:
             summary: the summary (plain JSON types).
@@ -368,7 +356,7 @@ class HealthPublisher(Sink):
                 publisher = self._publishers.get(key)
                 if publisher is None:
                     # the summary's publisher is a plain one: its latest is this queryable's
-                    # (advanced ones did not scale: benchmarks/bench_fleet.py, docs/fleet.md)
+                    # (an advanced one per machine does not scale: docs/fleet.md)
                     cfg = (self.config if key != self.summary_key else self.config.model_copy(
                         update={"cache": 0}))
                     publisher = declare_publisher(self._session, key, cfg)
@@ -395,10 +383,9 @@ class HealthPublisher(Sink):
                 self._failing = False
 
     def _on_summary_matching(self, status: zenoh.MatchingStatus) -> None:
-        """The summary publisher's matching listener, a machine of its own session (on a
-        zenoh thread, never under the lock: it may run inside the declaration): when a
-        subscriber becomes reachable again, the latest summary is sent again
-        (:meth:`resend_summary`): at a failover it reaches the watcher before a get would."""
+        """When a subscriber of the summary becomes reachable again, send the latest summary
+        again (:meth:`resend_summary`): at a failover it reaches the watcher before a get
+        would. On a zenoh thread, never under the lock (it may run inside the declaration)."""
         matching = bool(status.matching)
         was, self._summary_matching = self._summary_matching, matching
         if matching and not was:
@@ -507,12 +494,11 @@ class HealthPublisher(Sink):
 
 def worst_parameter(health: Any, bands: Mapping[str, AlarmBands]) -> dict[str, Any] | None:
     """The parameter furthest off nominal by its own threshold, for the fleet summary's
-    ``worst`` (the fleet view's deviation column leads with it).
+    ``worst``.
 
-    Each parameter with a finite deviation (not ``tied`` nor ``fixed``: those are not
-    estimated) is measured as ``|deviation| / threshold``: its alarm rule's warning threshold
-    on the side it deviates to (the alarm threshold when the rule has no warning there; 0 when
-    the rule has no threshold on that side: a side the rule does not watch), or
+    Each parameter with a finite deviation (not ``tied`` nor ``fixed``) is measured as
+    ``|deviation| / threshold``: its alarm rule's warning threshold on the side it deviates to
+    (else the alarm threshold; share 0 when the rule does not watch that side), or
     :data:`UNRULED_THRESHOLD_PCT` without a rule.
 
     Args:
@@ -549,8 +535,7 @@ def worst_parameter(health: Any, bands: Mapping[str, AlarmBands]) -> dict[str, A
 
 
 def _worst_changed(old: Mapping[str, Any] | None, new: Mapping[str, Any]) -> bool:
-    """The worst parameter (:func:`worst_parameter`) is another one than in the summary
-    published last: a change, published at once."""
+    """The worst parameter is another one than in the summary published last."""
     def name(doc: Mapping[str, Any] | None) -> Any:
         worst = doc.get("worst") if doc is not None else None
         return worst.get("parameter") if isinstance(worst, Mapping) else None

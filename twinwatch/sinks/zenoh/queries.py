@@ -27,7 +27,7 @@ QUERY_LOG_INTERVAL = 60.0
 
 class RateLimitedLog:
     """At most one log line per key every ``interval`` seconds; the next line says how many
-    were suppressed (any peer on the network can send queries: it must not flood the journal).
+    were suppressed (any peer on the network can send queries).
 
     Args:
         log: the logger to write to.
@@ -76,8 +76,7 @@ def client_name(query: zenoh.Query) -> str:
 @dataclasses.dataclass
 class _BoxPresence:
     """A box's presence in :class:`QueryDispatch` (``[zenoh] presence = "box"``): its name, the
-    key of its token and queryable (:func:`~twinwatch.io.keys.box_token_key`), the two
-    entities, and the machines it stands for."""
+    key of its token and queryable, the two entities, and the machines it stands for."""
 
     name: str
     key: str
@@ -88,22 +87,18 @@ class _BoxPresence:
 
 class QueryDispatch:
     """One queryable on ``<key_prefix>/**`` answering the gets of every machine that shares a
-    session in a gateway (:class:`~twinwatch.sinks.base.SharedResources`), each asked only
-    when the get's key expression reaches its ``<key_prefix>/<machine>/**`` (a get sees no
-    difference: each machine replies on its own keys); one per box instead of one per machine
-    keeps the routers' key matching small (the figures: docs/fleet.md,
-    benchmarks/bench_router_keys.py).
+    session in a gateway, each asked only when the get's key expression reaches its
+    ``<key_prefix>/<machine>/**``; one per box instead of one per machine keeps the routers'
+    key matching small (docs/fleet.md).
 
-    One matching listener for the session, not one per machine: a publisher that never puts,
-    declared on the first machine's summary key, whose matching status turning true again (a
-    failover, a restarted router) sends every machine's latest summary again
-    (:meth:`HealthPublisher.resend_summary`).
+    One matching listener for the session: a publisher that never puts, on the first
+    machine's summary key, whose matching status turning true again (a failover) sends every
+    machine's latest summary again.
 
     With ``[zenoh] presence = "box"`` it also holds the box's presence: one liveliness token
-    on :func:`~twinwatch.io.keys.box_token_key` (``<prefix>/@box/<box>/<session zid>``),
-    declared with the box's first machine added with ``box`` and undeclared with its last,
-    and a queryable on the same key answering ``{"box": <name>, "machines": [<machine>,
-    ...]}`` (what ``twinwatch watch`` reads to show those machines alive, or gone).
+    on :func:`~twinwatch.io.keys.box_token_key`, declared with the box's first machine and
+    undeclared with its last, and a queryable on the same key answering ``{"box": <name>,
+    "machines": [<machine>, ...]}`` (what ``twinwatch watch`` reads).
 
     Args:
         session: the shared session.
@@ -128,9 +123,8 @@ class QueryDispatch:
     def add(self, machine: str, answer: Callable[[zenoh.Query], None],
             resend: Callable[[], None] | None = None, *, box: str | None = None) -> None:
         """Answer the gets reaching ``<prefix>/<machine>/**`` with ``answer(query)`` (which
-        replies and does not drop the query); call ``resend()`` (which sends the machine's
-        latest summary again) when a subscriber of the summaries is reachable again; with
-        ``box`` (``[zenoh] presence = "box"``), the machine's presence is that box's token.
+        does not drop the query); call ``resend()`` when a subscriber of the summaries is
+        reachable again; with ``box``, the machine's presence is that box's token.
 
         Raises:
             zenoh.ZError: the first machine's probe, or its box's token, could not be declared.
@@ -257,10 +251,8 @@ def history_parameters(params: Any) -> tuple[float | None, float | None, int,
                                               float | None]:
     """The history query's parameters, checked: ``t_from`` and ``t_to`` finite seconds (either
     may be absent), ``t_from <= t_to``, ``by`` ``plant`` or ``wall``, ``limit`` a whole number
-    from 1 (at most :data:`HISTORY_LIMIT` are returned), ``run`` a run id (the health
-    message's ``run``: letters, digits, ``_.:-``) or ``current`` (absent: every run),
-    ``after`` finite seconds (only windows ending strictly after it: the paging cursor, the
-    previous reply's ``next_after``; ``t_from`` is inclusive and would repeat the last window).
+    from 1 (at most :data:`HISTORY_LIMIT`), ``run`` a run id or ``current`` (absent: every
+    run), ``after`` finite seconds (the paging cursor, the previous reply's ``next_after``).
 
     Args:
         params: the selector's parameters (a mapping with ``get``, zenoh's ``Parameters``).

@@ -18,7 +18,6 @@ def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
     """Build the :class:`zenoh.Config` for ``cfg``.
 
     Multicast and gossip scouting are always off: the session only uses the endpoints given.
-    In client mode no listen endpoint is set.
 
     Raises:
         PublisherError: zenoh rejected a value (should not happen for a validated ``cfg``).
@@ -47,13 +46,11 @@ def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
 
 
 def open_session(cfg: ZenohConfig) -> zenoh.Session:
-    """Open a zenoh session for ``cfg`` (see :func:`to_zenoh_config`).
-
-    The caller owns the session and must ``close()`` it (or use it as a context manager).
+    """Open a zenoh session for ``cfg``; the caller owns it and must ``close()`` it.
 
     Raises:
         PublisherError: the session could not open; the message says which endpoint failed
-            and what to change (port already in use, nothing listening, unknown host).
+            and what to change.
     """
     for key, path in cfg.input_files().items():
         try:
@@ -80,9 +77,8 @@ machines that differ only in them share one session in a gateway."""
 
 
 def session_key(cfg: ZenohConfig) -> str:
-    """What makes a session (mode, endpoints, TLS, authentication, access control), as one
-    string: in a gateway, machines whose ``[zenoh]`` gives the same key share one session
-    (:class:`~twinwatch.sinks.base.SharedResources`)."""
+    """What makes a session, as one string: in a gateway, machines whose ``[zenoh]`` gives the
+    same key share one session (:class:`~twinwatch.sinks.base.SharedResources`)."""
     data = cfg.model_dump(mode="json", exclude=set(SESSION_FIELDS_NOT_SHARED))
     return "zenoh:" + json.dumps(data, sort_keys=True, default=str)
 
@@ -90,12 +86,9 @@ def session_key(cfg: ZenohConfig) -> str:
 def declare_publisher(session: zenoh.Session, key: str, cfg: ZenohConfig
                       ) -> zenoh.Publisher | zenoh_ext.AdvancedPublisher:
     """Declare the publisher of one topic (``P/health``, ``P/alarm``) on ``session``: with
-    ``cfg.cache`` > 0 a ``zenoh.ext`` advanced publisher (a cache of the last ``cache`` samples
-    for late joiners and recovery, sequence numbers and a sporadic heartbeat every
-    ``cfg.heartbeat`` s for sample-miss detection, publisher detection so a subscriber that
-    is there first asks a publisher that comes later for its cache); else a plain publisher.
-    JSON encoding either way. The one place a topic's publisher is made (a session shared by
-    several machines declares each machine's here too).
+    ``cfg.cache`` > 0 a ``zenoh.ext`` advanced publisher (cache, sample-miss detection with a
+    sporadic heartbeat, publisher detection so an earlier subscriber asks for its cache);
+    else a plain publisher. JSON encoding either way.
 
     Raises:
         zenoh.ZError: the declaration failed (the session closed).
