@@ -88,9 +88,8 @@ def _check_one(config: Path, names: dict[str, Path] | None = None, *,
         if other != config:
             return False, (f"{config}: machine.name {cfg.machine.name!r} is already used by "
                            f"{other.name}: each machine of a gateway needs a name of its own")
-    # Drivers validate what only they can check (DBC names, files, columns) at open time:
-    # open the source without starting acquisition and without sending (a live interface
-    # receive-only where it allows), and say if it cannot be opened.
+    # Drivers check what only they can (DBC names, files, columns) when the source opens:
+    # open it without acquiring or sending (a live interface receive-only where it allows).
     from twinwatch.drivers import DriverConfigError, DriverError, get_driver_class
 
     try:

@@ -1,8 +1,7 @@
 """``twinwatch identify``: read a whole recording through the configured driver, identify the
-baseline on its training range (:mod:`~twinwatch.commissioning.identify`: the fit, what the
-recording determines, the re-fit with the rest held), for the configured structure and every
-candidate ``[identify.candidates]`` lists, pick the winner, score it on the validation range,
-record it in a Rerun file and hand back the ``[machine.parameters]`` block.
+baseline on its training range (:mod:`~twinwatch.commissioning.identify`) for the configured
+structure and every candidate ``[identify.candidates]`` lists, pick the winner, score it on the
+validation range, record it in a Rerun file and hand back the ``[machine.parameters]`` block.
 
 Any driver works: a file (CSV, .mat), a CAN log, the simulated plants, or a live bus for
 ``duration`` seconds. Samples that lack a channel the twin needs or hold NaN/inf are counted

@@ -2,20 +2,17 @@
 and what the recording can and cannot tell about them (docs/drives.md, "Commissioning").
 
 :func:`identify` fits the twin to a training stretch in one free run (output error; PSO over
-the ln-parameters, then bounded least squares with the initial state, ``[identify] starts``
-swarms), analyses identifiability at the optimum (Ljung, *System Identification*, 2nd ed.,
-ch. 4.6 and 9; MATLAB's ``getcov``/``getpvec``), holds the undetermined parameters at stated
-values (``[identify.fixed]``, else ``[machine.parameters]``; a stated 1-sigma propagated as
-``S diag(sigma^2) S^T``) and re-fits the rest, scores both fits on a validation stretch
-(``fit % = 100 * (1 - ||y - y_hat|| / ||y - mean(y)||)``, MATLAB ``compare``; negative fails
-the model check), and gives AIC/BIC (MATLAB ``aic``) by which :func:`compare_structures` ranks
-``[identify.candidates]``. :func:`parameters_block` writes the ``[machine.parameters]`` lines
-to paste: only the determined parameters; the held ones commented out with the reason.
+the ln-parameters, then bounded least squares with the initial state), analyses
+identifiability at the optimum (Ljung, *System Identification*, 2nd ed., ch. 4.6 and 9;
+MATLAB's ``getcov``/``getpvec``), holds the undetermined parameters at stated values
+(``[identify.fixed]``, else ``[machine.parameters]``) and re-fits the rest, scores both fits
+on a validation stretch (:func:`fit_percent`, MATLAB ``compare``), and gives AIC/BIC (MATLAB
+``aic``) by which :func:`compare_structures` ranks ``[identify.candidates]``.
+:func:`parameters_block` writes the ``[machine.parameters]`` lines to paste.
 
-The covariance is the monitoring's
-(:func:`~twinwatch.twin.estimation.fit.parameter_covariance`: the sandwich
-``A^-1 (J^T W J) A^-1``, ``A = J^T J``); the information matrix analysed is its inverse over
-the parameters (the initial-state offsets profiled out).
+The covariance is the monitoring's sandwich (:func:`least_squares_covariance`); the
+information matrix analysed is its inverse over the parameters (the initial-state offsets
+profiled out).
 """
 
 from __future__ import annotations
@@ -63,9 +60,8 @@ class StretchScore:
     """The identified twin on one stretch of the recording.
 
     Attributes:
-        start, end: first and last time [s].
-        samples: samples.
-        fit_pct: output -> fit % (MATLAB ``compare``).
+        start, end: first and last time [s]; samples: their count.
+        fit_pct: output -> fit % (:func:`fit_percent`).
         rmse: output -> RMSE [output unit].
         check: the model check of the stretch's residual; an output whose fit % is negative
             fails it (reason given), whatever the residual tests say.
@@ -159,8 +155,8 @@ class HeldParameter:
 
     Attributes:
         value: the value held [SI].
-        source: ``[identify.fixed]``, ``[machine.parameters]`` or ``best fit`` (no stated
-            value: the full fit's, which the data do not support).
+        source: ``[identify.fixed]``, ``[machine.parameters]`` or ``bound`` (where the
+            search left it).
         stated: what the source says about the value (the configured reason).
         why: why the parameter is not determined (the combination it is in, its 1-sigma;
             or the bound it sits at).
@@ -222,8 +218,7 @@ class Identification:
     Attributes:
         values: every model parameter -> value [SI]: the determined ones as re-fitted, the
             held ones at their held value, the others as configured.
-        rel_std: free parameter -> relative standard error (1 sigma), given the held values
-            (the determined ones within ``max_rel_std``).
+        rel_std: free parameter -> relative standard error (1 sigma), given the held values.
         bounds: estimated parameter -> the [low, high] the search used [SI].
         estimated: the parameters identify was asked for (``estimate``), in order.
         determined: those the recording determines (each within ``max_rel_std``).
@@ -269,7 +264,7 @@ class Identification:
     def pasted(self) -> list[str]:
         """The parameters :func:`parameters_block` pastes: the determined ones, none when the
         validation range fails the model check (a twin that does not describe the machine
-        gives biased values, and the monitoring would not trust its windows either)."""
+        gives biased values)."""
         return list(self.determined) if self.validation.check.passed else []
 
     @property
@@ -361,9 +356,6 @@ def analyse(names: Sequence[str], cov: FloatArray, values: Mapping[str, float],
         null: (n, q) directions the outputs do not respond to at all
             (:func:`least_squares_covariance`), each an undetermined combination of infinite
             1-sigma.
-
-    Returns:
-        The analysis (:class:`Identifiability`).
     """
     n = len(names)
     names = list(names)
@@ -486,13 +478,12 @@ NULL_COMPONENT = 1e-3
 def least_squares_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: float
                              ) -> tuple[FloatArray, FloatArray]:
     """The least-squares covariance of the search variables at an optimum, in the sandwich
-    form ``A^+ (J^T W J) A^+`` (``A = J^T J``; W each output's residual variance, AR(1)-
-    inflated and floored: :func:`~twinwatch.twin.estimation.fit.residual_variances`, as the
-    monitoring), on the Jacobian's numerical range: directions the outputs do not respond to
-    at all (singular values below :data:`NULL_TOL` of the largest, columns equilibrated) are
-    returned apart, and every variable with a component in them gets an infinite variance.
-    (A pseudo-inverse that keeps such a direction at the finite difference's noise level
-    spreads its enormous variance over the others.)
+    form ``A^+ (J^T W J) A^+`` (``A = J^T J``; W each output's residual variance:
+    :func:`~twinwatch.twin.estimation.fit.residual_variances`, as the monitoring), on the
+    Jacobian's numerical range: directions the outputs do not respond to at all (singular
+    values below :data:`NULL_TOL` of the largest, columns equilibrated) are returned apart,
+    and every variable with a component in them gets an infinite variance (a pseudo-inverse
+    would spread their enormous variance over the others).
 
     Args:
         jac: (M, n) Jacobian of the normalised residuals.
@@ -606,9 +597,8 @@ class _Problem:
                ) -> tuple[StretchScore, StretchScore]:
         """The twin with ``theta`` on the training stretch (from ``v``'s initial state) and
         on the validation stretch; ``r``, ``jac``: the fit's residuals and Jacobian."""
-        # per output, the residual RMS (normalised) that the white noise's effect on the
-        # estimates explains (as the monitoring's model check: a noise-free output, such as a
-        # closed loop's voltage, carries the trace of the other outputs' noise)
+        # per output, the residual RMS the noise's effect on the estimates explains (as the
+        # monitoring's model check: a noise-free output carries the others' noise's trace)
         n_out = self.fit.n_out
         white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
         explained = explained_rms(jac, parameter_covariance(jac, r, n_out, self.floor, white),
@@ -645,9 +635,6 @@ def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyCon
         start: parameter values [SI] to place as one more particle of every swarm (another
             structure's result: a warm start).
         structure, options: the structure's name and its options, for the report.
-
-    Returns:
-        The identification.
 
     Raises:
         ValueError: a stretch lacks a channel, holds non-finite values or is too short.
@@ -745,8 +732,6 @@ def _search(prob: _Problem, start: Mapping[str, float] | None, structure: str
     t_global = time.perf_counter()
     every = list(range(prob.n_est))
     for k in range(config.starts):
-        # Each start: a swarm of its own (the configured values one of its particles), then
-        # the local polish; the best training fit of all starts is kept.
         left = config.time_budget - (time.perf_counter() - t_global)
         sw = pso_minimize(cost, prob.xl, prob.xu, config.pso, rng=rng,
                           time_budget=max(left / (config.starts - k), 1e-3),
@@ -845,9 +830,9 @@ def _hold_and_refit(prob: _Problem, holds: _Holds, analysis: Identifiability, r:
     """:func:`identify`'s hold-and-re-fit: the parameters the full fit left at a bound held
     there; then, until every free one is determined or none can be held, the weakest
     combination's main parameter with a stated value held at it (:func:`_weakest_stated`) and
-    the rest re-fitted (a re-fit that pushes one to a bound holds it there too). ``holds``
-    (the full fit's search vector, nothing held) is updated in place; returns the last
-    re-fit's residuals and Jacobian (``r``, ``jac``, the full fit's, when nothing was held).
+    the rest re-fitted (a re-fit that pushes one to a bound holds it there too). ``holds`` is
+    updated in place; returns the last re-fit's residuals and Jacobian (the full fit's
+    ``r``, ``jac`` when nothing was held).
     """
     config, names_est, bounds = holds.config, holds.names, holds.bounds
     for name, side in analysis.at_bound.items():
@@ -883,8 +868,8 @@ def _hold_and_refit(prob: _Problem, holds: _Holds, analysis: Identifiability, r:
 
 def _weakest_stated(a: Identifiability, holds: _Holds) -> tuple[str, str] | None:
     """The parameter to hold next and why: the weakest combination that a stated value can
-    resolve, its main parameter with a stated value (the largest share, then
-    ``[identify.fixed]`` before the configured values, then the lowest priority); None when
+    resolve, its main parameter with a stated value (``[identify.fixed]`` before the
+    configured values, then the largest share, then the lowest priority); None when
     every undetermined combination is of parameters nobody stated (they stay free, and
     undetermined)."""
     names_est = holds.names
@@ -941,9 +926,8 @@ class Comparison:
         results: every candidate's identification, in the order given.
         winner: index of the winner in ``results``.
         rule: how it was chosen, in words.
-        criteria: each result's AIC/BIC as compared (on the outputs every structure has:
-            a structure that adds an output, such as a closed loop's voltage, is scored on
-            the same data as the others).
+        criteria: each result's AIC/BIC on the outputs every structure has (a structure
+            that adds an output is scored on the same data as the others).
         outputs: those outputs.
     """
 
@@ -968,9 +952,6 @@ def compare_structures(results: Sequence[Identification]) -> Comparison:
 
     Args:
         results: one :class:`Identification` per structure (its ``full`` fit is compared).
-
-    Returns:
-        The comparison.
 
     Raises:
         ValueError: no results.

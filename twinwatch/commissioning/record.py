@@ -117,11 +117,9 @@ def _esc(name: str) -> str:
 def identify_blueprint(machine: str, result: Identification,
                        comparison: Comparison | None = None) -> rrb.Blueprint:
     """The layout of :func:`record_fit`'s file: per output, measured and twin over both
-    ranges (the fit % in the title, the x axis the whole recording whatever the time
-    cursor); below them, per output, the residual's autocorrelation and its cross-correlation
-    with each input, the 99 % band shaded; on the right the parameter and fit tables, and in
-    tabs the identifiability analysis with the structures, why each parameter not pasted is
-    not, the console report and the residuals."""
+    ranges (the x axis the whole recording whatever the time cursor), below them the
+    residual's correlation plots; on the right the parameter and fit tables, and in tabs the
+    other reports and the residuals."""
     tr, va = result.train, result.validation
     t0, t1 = float(min(tr.t[0], va.t[0])), float(max(tr.t[-1], va.t[-1]))
     fit_views = []
@@ -168,11 +166,10 @@ def record_fit(path: Path, machine: str, result: Identification,
 
     * ``identify/fit/<output>/{measured,twin}``: both ranges, one plot per output, the fit %
       of each range in its title (MATLAB ``compare``);
-    * ``acf/<output>/{training,validation}``: the residual's autocorrelation at lags
-      0..L (bar charts over the lag in samples), with ``acf/<output>/band_pm<b>``, the 99 %
-      band +-2.58/sqrt(N) of a white residual, shaded; ``xcorr/<output>_<input>/validation``:
-      the cross-correlation of the residual e(t) and the input u(t - tau), tau = 0..L (the
-      lags the model check tests) and its band (MATLAB ``resid``; :func:`residual_tests`);
+    * ``acf/<output>/{training,validation}``: the residual's autocorrelation at lags 0..L
+      (bar charts over the lag in samples), its 99 % band ``acf/<output>/band_pm<b>`` shaded;
+      ``xcorr/<output>_<input>/validation``: its cross-correlation with the input, and its
+      band (MATLAB ``resid``; :class:`ResidualTests`);
     * ``identify/residual/<output>/<range>``: the residuals;
     * ``identify/report/{parameters,analysis,reasons}``: the parameter and fit tables, the
       identifiability analysis and the structures compared, why each parameter not pasted

@@ -1,8 +1,6 @@
 """The commissioning's report: the identification (:mod:`~twinwatch.commissioning.identify`)
-as the text ``twinwatch identify`` prints (:func:`report`: the structures compared, the
-identifiability analysis, every parameter determined or held with the reason, fit % per output
-on both ranges, the model checks) and as the Markdown tables of the Rerun file
-(:func:`markdown_parameters`, :func:`markdown_analysis`, :func:`markdown_reasons`).
+as the text ``twinwatch identify`` prints (:func:`report`) and as the Markdown tables of the
+Rerun file (:func:`markdown_parameters`, :func:`markdown_analysis`, :func:`markdown_reasons`).
 """
 
 from __future__ import annotations

@@ -8,10 +8,6 @@ driver's module), the output tables by the sink registry (:data:`twinwatch.sinks
 ``[state]``, ``[zenoh]``, ``[recording]`` and ``[outputs.<name>]``), the estimation table by the
 estimator, the plant by its simulated driver. Importing this module loads none of the backends
 nor the outputs' modules.
-
-Layout: ``[machine]``, ``[acquisition]`` (and ``[acquisition.adaptive]``), ``[estimation]``,
-``[discovery]``, ``[prognostics]``, ``[diagnosis]``, ``[identify]``, ``[driver]``,
-``[zenoh]``, ``[recording]``, ``[alarms]``, ``[state]``, ``[outputs.<name>]``.
 """
 
 from __future__ import annotations
@@ -81,8 +77,7 @@ _identify_config = _table_model("twinwatch.config.identify:IdentifyConfig")
 
 
 def _twin_table(model: Callable[[], type[Any]]) -> Any:
-    """A table whose model the twin owns, imported when a configuration is validated rather
-    than when this module is (the twin's modules load pymoo, scipy and numba); errors keep
+    """A table whose model the twin owns (imported late: :func:`_table_model`); errors keep
     their location in the table."""
 
     def validate(value: Any) -> Any:

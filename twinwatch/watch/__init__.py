@@ -13,9 +13,9 @@ one summary every view reads (``watch --once --json``, the rich table: :func:`re
 health message is read as JSON, not through the typed model, so a watcher shows daemons of
 other versions: an unknown field is ignored, a missing one shown as absent.
 
-Modules: ``session`` (the Zenoh session, payloads decoded), ``fleet`` (the machines' state),
-``subscription`` (:class:`FleetWatcher`), ``view`` (a machine's state and summary in the
-snapshot), ``render`` (the rich table), ``tail`` (one line per health message).
+Modules: ``session`` (the Zenoh session), ``fleet`` and ``view`` (the machines' state),
+``subscription``, ``render``, ``tail``; for the fleet summaries (``watch --fleet``, ``fleet
+report``): ``summaries``, ``ranking``, ``render_fleet``.
 
 This room imports the ground floor only (zenoh through :mod:`twinwatch._lazy`, rich inside
 :func:`render`) and the message's typed view (:mod:`twinwatch.twin.health`): never the

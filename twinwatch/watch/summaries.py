@@ -39,7 +39,7 @@ logger = logging.getLogger(__name__)
 
 LATEST_TIMEOUT_S = 20.0
 """How long one ask of every machine's latest summary may take [s] (10 000 replies through
-routers on a loaded box took about 2 s: docs/fleet.md)."""
+routers on a loaded box take about 2 s: docs/fleet.md)."""
 
 REASK_TIMEOUT_S = 5.0
 """How long an ask of machines back may take [s]; those that did not answer by then are asked
@@ -50,8 +50,7 @@ REASK_QUIET_S = 0.5
 long [s], then the latest summaries are asked once."""
 
 REASK_ONE_BY_ONE = 20
-"""At most this many machines back at once are asked one by one; more: one get per box
-(:data:`REASK_BOXES`) or for all."""
+"""At most this many machines back at once are asked one by one (:data:`REASK_BOXES`)."""
 
 REASK_BOXES = 100
 """More machines back at once under a prefix with ``*`` are asked one get per box (the chunks
@@ -63,15 +62,13 @@ after the other: after a router restart its token may reach the watcher before t
 know its queryable (docs/fleet.md)."""
 
 SWEEP_AFTER_S = 10.0
-"""After machines' tokens came back (a router died or restarted), every machine's latest summary
-is asked once more this long [s] after the last of them came (a sweep): the summaries the mesh
-lost while it recomputed its routes are otherwise held only at their next periodic summary. Not
-sooner: the sweep's replies would cross the mesh while it is still busy (docs/fleet.md)."""
+"""A sweep asks every machine's latest summary again this long [s] after the last token of a
+burst came back (a router died or restarted): it recovers the summaries the mesh lost while
+recomputing its routes. Not sooner: the replies would cross a mesh still busy (docs/fleet.md)."""
 
 SWEEP_MIN_MACHINES = 20
-"""A sweep (:data:`SWEEP_AFTER_S`) follows a burst of at least this many machines back (a
-router's boxes moving, a router back): one daemon restarted is asked for its own latest only,
-not every machine of a fleet again."""
+"""A sweep (:data:`SWEEP_AFTER_S`) follows a burst of at least this many machines back; one
+daemon restarted is asked for its own latest only."""
 
 SETTLE_QUIET_S = 1.0
 """:meth:`SummaryWatcher.settle`: the fleet counts as complete once no new machine came for
@@ -116,8 +113,8 @@ class SummaryWatcher:
         exact: declare a do-nothing subscriber on each machine's own summary key
             (:meth:`_declare_exact`): fewer route computations at the router delivering to
             this watcher, one more declaration per machine for every router. None (default):
-            only when the prefix has no ``*`` (machines all children of one key chunk; under
-            their boxes' chunks such subscribers starved the far client: docs/fleet.md).
+            only when the prefix has no ``*`` (under boxes' chunks they starve a far client:
+            docs/fleet.md).
 
     Thread-safe; use as a context manager (the subscriber is undeclared on exit).
 
@@ -160,13 +157,9 @@ class SummaryWatcher:
         self.swept = 0  # asks of every machine's latest after machines came back (sweeps)
 
     def start(self) -> SummaryWatcher:
-        """Declare the subscriber (live summaries) and the liveliness subscriber on the
-        machines' ``alive`` tokens and the boxes' tokens, then ask every machine's latest
-        summary once (target ALL) in a thread of its own (``twinwatch-watch-summaries``);
-        :attr:`queried` is set once it ended. Machines whose tokens appear again are asked
-        again once the tokens stopped coming for :data:`REASK_QUIET_S` (:meth:`_reask_keys`),
-        and after a burst of :data:`SWEEP_MIN_MACHINES` or more every machine once more
-        (:meth:`_sweep`)."""
+        """Declare the subscribers (live summaries; the machines' and the boxes' liveliness
+        tokens) and start the asking thread (``twinwatch-watch-summaries``: :meth:`_ask_loop`),
+        which first asks every machine's latest summary; :attr:`queried` is set once it ended."""
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
         live = self.session.liveliness()
@@ -183,9 +176,8 @@ class SummaryWatcher:
     def _on_token(self, sample: zenoh.Sample) -> None:
         """A machine's token: one this watcher holds a summary of that appears again (its
         daemon reached anew: a router back, a restart) is asked for its latest; a new machine's
-        first summary comes live. A token that goes (its daemon stopped, killed, or cut off)
-        marks the machine gone at once (:meth:`_gone`): shown stale, not after the summaries'
-        ``stale_after``."""
+        first summary comes live. A token that goes marks the machine gone at once
+        (:meth:`_gone`): shown stale, not after the summaries' ``stale_after``."""
         machine = str(sample.key_expr)[len(self.base) + 1:-len("/alive")]
         if sample.kind != zenoh.SampleKind.PUT:
             self._gone({machine})
@@ -221,11 +213,9 @@ class SummaryWatcher:
 
     def _on_box_token(self, sample: zenoh.Sample) -> None:
         """A box's token (``<base>/<chunks>/@box/<box>/<zid>``, ``[zenoh] presence =
-        "box"``) appearing: every machine held under those chunks whose summary names that
-        box counts as a machine's token back (:meth:`_on_token`), asked again together
-        (:meth:`_reask_keys`: one get per box under a prefix with ``*``) and counted toward a
-        sweep's burst as that many tokens. A box this watcher holds no machine of is new:
-        its machines' first summaries come live."""
+        "box"``): the machines held under those chunks whose summary names that box are back
+        (:meth:`_back`) when it appears, gone when it goes. A new box's machines' first
+        summaries come live."""
         chunks = str(sample.key_expr)[len(self.base) + 1:].split("/")
         if len(chunks) < 3 or chunks[-3] != BOX_TOKENS:
             return
@@ -385,9 +375,8 @@ class SummaryWatcher:
         return machine
 
     def put(self, machine: str, summary: dict[str, Any]) -> bool:
-        """Hold ``summary`` as ``machine``'s latest unless it is older than the one held (the
-        same run, an earlier window) or the same; its ``machine`` is the name its key gives
-        (``gw-line1/m17`` under a prefix with ``*``).
+        """Hold ``summary`` as ``machine``'s latest (``machine`` the name its key gives) unless
+        it is older than the one held (the same run, an earlier window) or the same.
 
         Returns:
             True if it is now the machine's latest.
