@@ -60,8 +60,9 @@ class StretchScore:
     """The identified twin on one stretch of the recording.
 
     Attributes:
-        start, end: first and last time [s]; samples: their count.
-        fit_pct: output -> fit % (:func:`fit_percent`).
+        start, end: first and last time [s].
+        samples: samples.
+        fit_pct: output -> fit % (MATLAB ``compare``).
         rmse: output -> RMSE [output unit].
         check: the model check of the stretch's residual; an output whose fit % is negative
             fails it (reason given), whatever the residual tests say.
@@ -155,8 +156,8 @@ class HeldParameter:
 
     Attributes:
         value: the value held [SI].
-        source: ``[identify.fixed]``, ``[machine.parameters]`` or ``bound`` (where the
-            search left it).
+        source: ``[identify.fixed]``, ``[machine.parameters]`` or ``best fit`` (no stated
+            value: the full fit's, which the data do not support).
         stated: what the source says about the value (the configured reason).
         why: why the parameter is not determined (the combination it is in, its 1-sigma;
             or the bound it sits at).
@@ -218,7 +219,8 @@ class Identification:
     Attributes:
         values: every model parameter -> value [SI]: the determined ones as re-fitted, the
             held ones at their held value, the others as configured.
-        rel_std: free parameter -> relative standard error (1 sigma), given the held values.
+        rel_std: free parameter -> relative standard error (1 sigma), given the held values
+            (the determined ones within ``max_rel_std``).
         bounds: estimated parameter -> the [low, high] the search used [SI].
         estimated: the parameters identify was asked for (``estimate``), in order.
         determined: those the recording determines (each within ``max_rel_std``).
@@ -926,8 +928,9 @@ class Comparison:
         results: every candidate's identification, in the order given.
         winner: index of the winner in ``results``.
         rule: how it was chosen, in words.
-        criteria: each result's AIC/BIC on the outputs every structure has (a structure
-            that adds an output is scored on the same data as the others).
+        criteria: each result's AIC/BIC as compared (on the outputs every structure has:
+            a structure that adds an output, such as a closed loop's voltage, is scored on
+            the same data as the others).
         outputs: those outputs.
     """
 

@@ -131,6 +131,7 @@ class Progress:
     """A fleet of one's progress, for a bar at the terminal.
 
     Attributes:
+        name: the machine's name.
         total: the source time the run covers [s] (None: open-ended).
         add_callback: registers a function called with each window's typed message (in the
             machine's worker thread).

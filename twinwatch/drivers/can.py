@@ -74,7 +74,8 @@ def _split_signal_ref(ref: str) -> tuple[str, str]:
 class CanSignalMap(ScaledChannel):
     """Where one twin channel comes from: ``value_twin = value_dbc * scale + offset``.
 
-    ``value_dbc`` is the physical value cantools decodes (DBC factor and offset applied).
+    ``value_dbc`` is the physical value cantools decodes (DBC factor and offset applied), in the
+    DBC's unit; ``unit`` documents the twin-side unit and is not used for computation.
     """
 
     message: str = Field(min_length=1)
@@ -85,34 +86,38 @@ class CanDriverConfig(BusDriverConfig):
     """Configuration of :class:`CanDriver` (the ``[driver]`` table with ``type = "can"``).
 
     Attributes:
-        interface: python-can interface name (``"socketcan"``, ``"pcan"``, ``"virtual"``, ...);
-            for a live bus.
+        type: always ``"can"``.
+        interface: python-can interface name (``"socketcan"``, ``"pcan"``, ``"virtual"``, ...).
+            Required for a live bus; ignored with ``log_file`` or when a bus is passed in.
         channel: python-can channel (``"can0"``, ``"PCAN_USBBUS1"``, ``0``, ...).
         bitrate: bus bit rate [bit/s]; None leaves the interface's setting alone.
         bus_options: extra keyword arguments for :class:`can.Bus` (e.g. ``fd = true``).
-        dbc: path of the CAN database (DBC, or any format cantools loads), relative to the
-            configuration file's directory or ``twinwatch:<path>``
-            (:data:`~twinwatch.drivers.base.PACKAGE_PREFIX`).
+        dbc: path of the CAN database (DBC, or any format cantools loads); a relative path is
+            resolved against the configuration file's directory (``base_dir``).
         log_file: replay this log (any suffix :func:`can.LogReader` knows) instead of a live
-            bus; a path as ``dbc``. The end of the log raises
-            :class:`~twinwatch.drivers.base.EndOfStream`.
+            bus; relative to ``base_dir`` like ``dbc`` (either may be ``twinwatch:<path>``, a
+            file shipped in the package: :data:`~twinwatch.drivers.base.PACKAGE_PREFIX`). The
+            end of the log raises :class:`~twinwatch.drivers.base.EndOfStream`.
         realtime: for ``log_file`` only: pace the replay by the log's time stamps (as
             :class:`can.MessageSync` does); False replays as fast as the caller reads.
         sync_message: DBC message whose arrival emits one sample.
         time_source: ``"frame"``: t [s] is the sync frame's time stamp (bus or log clock);
             ``"counter"``: t = ``counter_signal`` * ``sample_period`` (the plant's clock);
             ``"signal:MESSAGE.SIGNAL"``: t is that signal's latest value, in seconds.
-        counter_signal: ``"MESSAGE.SIGNAL"`` of a sample counter (+1 per sample), optional.
-        sample_period: nominal sample period [s].
+        counter_signal: ``"MESSAGE.SIGNAL"`` of a sample counter (+1 per sample). Optional;
+            when given, counter jumps are counted in ``stats.gaps``.
+        sample_period: nominal sample period [s] (> 0).
         signals: twin channel name -> :class:`CanSignalMap`, at least one. The order of the
             table is the order of :attr:`CanDriver.channels`.
         reopen_after: a live bus the driver opened that delivers no frame at all for this many
-            seconds [s, wall] is given up (:class:`DriverOperationError`) and the daemon
-            reopens it with backoff (a dropped gateway, an interface bus-off); None: never.
+            seconds [s, wall] is given up (:class:`DriverOperationError`), so the daemon
+            closes it and opens it again with backoff (a gateway that dropped the connection,
+            an interface gone bus-off or down); None: never. Default 2 s.
         silent_after: a mapped message not received for this many seconds of the frames' own
-            time [s] while the sync message goes on is *silent*: it is named
-            (:attr:`CanDriver.silent`) and its channels are left out of the samples until it is
-            back, never held. Raise it for a message sent more slowly than that.
+            time [s] while the sync message goes on is *silent* (the node that sends it is
+            down): it is named (:attr:`CanDriver.silent`, STATUS, the health message) and its
+            channels are left out of the samples until it is back, never held. Default 1 s;
+            raise it for a message sent more slowly than that.
     """
 
     file_keys: ClassVar[tuple[str, ...]] = ("dbc", "log_file")

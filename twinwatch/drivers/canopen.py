@@ -108,9 +108,11 @@ class CanopenDriverConfig(BusDriverConfig):
     """Configuration of :class:`CanopenDriver` (the ``[driver]`` table, ``type = "canopen"``).
 
     Attributes:
+        type: always ``"canopen"``.
         interface, channel, bitrate, bus_options: the python-can bus, as for the CAN driver
             (``socketcan``/``can0``, ``pcan``/``PCAN_USBBUS1``, ...).
-        log_file, realtime: a log replayed instead of a live bus, as for the CAN driver.
+        log_file: replay a candump ``.log`` / ``.asc`` / ``.blf`` ... instead of a live bus.
+        realtime: pace a log replay by its time stamps.
         node_id: the drive's node id, 1-127 (its PDO, EMCY and heartbeat COB-IDs).
         eds: the drive's EDS or DCF (relative to the configuration file's directory, or
             ``twinwatch:plant/dcmotor-cia402.eds``): its PDO mapping is read from it.
@@ -120,8 +122,9 @@ class CanopenDriverConfig(BusDriverConfig):
             0: not watched.
         heartbeat_margin: the heartbeat is missing after this many producer times.
         channels: twin channel -> :class:`CanopenChannel`, at least one.
-        reopen_after, silent_after: as the CAN driver's
-            (:class:`~twinwatch.drivers.can.CanDriverConfig`); a silent PDO is a held one.
+        reopen_after, silent_after: as the CAN driver's (a live bus with no frame at all for
+            ``reopen_after`` s is reopened; a held PDO not received for ``silent_after`` s of
+            frame time leaves its channels out).
     """
 
     file_keys: ClassVar[tuple[str, ...]] = ("eds", "log_file")

@@ -104,6 +104,7 @@ class ModbusDriverConfig(DriverConfig):
     """Configuration of :class:`ModbusDriver` (the ``[driver]`` table with ``type = "modbus"``).
 
     Attributes:
+        type: always ``"modbus"``.
         transport: ``"tcp"`` (Modbus TCP) or ``"rtu"`` (Modbus RTU on a serial line).
         host: TCP: the device's address (default the loopback 127.0.0.1).
         port: TCP: the device's port (default 502).
@@ -116,15 +117,15 @@ class ModbusDriverConfig(DriverConfig):
         timeout: seconds to wait for one response (and for a TCP connect).
         retries: times pymodbus re-sends a request that timed out (0: the next poll retries).
         backoff_max: cap [s] of the reconnect delay (starts at 0.1 s, doubles, jittered).
-        sample_period: nominal sample period [s] of the device's data.
+        sample_period: nominal sample period [s] of the device's data (> 0).
         poll_period: seconds between polls; default ``sample_period``. With a counter, polling
             faster than the device samples (e.g. half the period) catches every sample; the
             extra polls are skipped as duplicates.
         time_source: ``"clock"`` or ``"counter"`` (see the module docstring).
         counter: the sample-counter register (uint16 or uint32); required by
             ``time_source = "counter"`` and by ``lockstep``.
-        lockstep: poll only when the caller has taken the previous sample (see the module
-            docstring).
+        lockstep: poll only when the caller has taken the previous sample, as fast as it reads
+            (for a simulated device that advances on each read of its counter block).
         registers: twin channel -> :class:`ModbusChannelMap`, at least one; the table order is
             the order of :attr:`ModbusDriver.channels`.
     """

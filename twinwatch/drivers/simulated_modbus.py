@@ -83,8 +83,7 @@ class SimulatedModbusDriverConfig(DriverConfig):
 
     Attributes:
         plant: the hydraulic plant's scenario, duration, noise, ... (``[driver.plant]``).
-        pacing: ``"lockstep"`` (as fast as possible, nothing lost; not ``live``) or
-            ``"realtime"`` (``live``): how :class:`PlantModbusServer` paces the plant.
+        pacing: ``"lockstep"`` (as fast as possible, nothing lost) or ``"realtime"``.
         timeout: the driver's per-request timeout [s].
         backoff_max: cap of the driver's reconnect delay [s].
         registers: plant channel -> register (default :data:`DEFAULT_REGISTERS`); the twin

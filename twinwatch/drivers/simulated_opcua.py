@@ -58,7 +58,9 @@ class SimulatedOpcUaDriverConfig(DriverConfig):
     """The ``[driver]`` table with ``type = "simulated_opcua"``.
 
     Attributes:
-        machine: ``"dc_motor"`` (object ``Motor``) or ``"hydraulic_actuator"`` (``Actuator``).
+        machine: ``"dc_motor"`` (object ``Motor``) or ``"hydraulic_actuator"`` (object
+            ``Actuator``: ``x`` [m], ``p`` [Pa], ``A_valve`` [m^2], ``F_load`` [N], ``x_ref``
+            [m]).
         plant: the plant's scenario, duration, noise, ... (``[driver.plant]``: the DC
             motor's or the hydraulic actuator's keys, by ``machine``).
         pacing: ``"lockstep"`` (as fast as the consumer, nothing lost) or ``"realtime"``.

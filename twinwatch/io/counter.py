@@ -35,7 +35,8 @@ class SampleCounter:
         modulus: the counter wraps modulo this (``2**bits``); None for a counter that does not
             wrap (a float or signed signal).
         reorder: the largest step back taken as a late frame (default 8 samples, at most a
-            quarter of the modulus; further back is a restart).
+            quarter of the modulus: a gateway or an adapter reorders frames within a burst;
+            further back is a restart).
         streak: stale readings in a row that mean a restart, not reordering (default 3).
 
     Attributes:

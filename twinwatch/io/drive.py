@@ -86,8 +86,10 @@ class LoopConfig(StrictTable):
         feedforward: reference feed-forward gain kff [output unit per reference unit] (e.g. the
             back-EMF constant for a speed loop driving a voltage).
         action: ``reverse`` (e = r - y) or ``direct`` (e = y - r).
-        integrator_method, filter_method: how the integral and the derivative's filter are
-            discretised (MATLAB's "Integrator method", "Filter method"; module docstring).
+        integrator_method: how the integral is discretised (MATLAB's "Integrator method"):
+            ``forward_euler`` (default: the output uses the integral up to the previous tick),
+            ``backward_euler`` (up to and including this tick) or ``trapezoidal``.
+        filter_method: the same for the derivative's filter (MATLAB's "Filter method").
     """
 
     kp: StrictFloat = Field(0.0, allow_inf_nan=False)
@@ -138,10 +140,11 @@ class DriveConfig(StrictTable):
     """A DC motor drive: speed loop, optional inner current loop, update period.
 
     Attributes:
-        period: controller update period [s]: a whole number of integration sub-steps. None:
-            every sub-step (an ideal fast drive: the paper's plant).
+        period: controller update period [s]: a whole number of integration sub-steps; the
+            output is held between updates. None: every sub-step (an ideal fast drive: the
+            paper's plant).
         phase: time of the first update after t = 0 [s], in [0, period) (the drive's clock
-            against the acquisition's).
+            against the acquisition's; 0 when they are aligned).
         speed: the speed loop (reference: the set-point [rad/s]; feedback: omega [rad/s];
             output: Va [V], or the current reference [A] with a current loop). Default: the
             paper's PI, Kp 0.3, Ki 0.1, unlimited.
@@ -209,15 +212,17 @@ class ValveDriveConfig(StrictTable):
     """The valve controller as it runs (table ``drive``; :mod:`twinwatch.io.drive` semantics).
 
     One update every ``period`` from the position ``x`` [m] (feedback) and the reference
-    ``x_ref`` [m]; the area [m^2] it computes is held until the next update and clamped to the
-    loop's limits, by default the valve's own range [0, A_max].
+    ``x_ref`` [m]; the area [m^2] it computes is held until the next update (zero-order hold)
+    and clamped to the loop's limits, by default the valve's own range [0, A_max].
 
     Attributes:
         period: update period [s], a whole number of integration steps; None: every step (the
             paper's plant, Eq. 17 with Ts the integration step).
         phase: time of the first update after t = 0 [s], in [0, period).
-        valve: the PID (:class:`LoopConfig`); the keys a table leaves out take
-            :data:`PAPER_VALVE_LOOP`'s values.
+        valve: the PID (:class:`~twinwatch.io.drive.LoopConfig`); the keys a table leaves
+            out take the paper's values (:data:`PAPER_VALVE_LOOP`: Kp 0.000346, Ki 3.513406,
+            Kd 0.000119, N 2.076743, clamping, action ``direct``); ``output_min`` None: 0,
+            ``output_max`` None: A_max (the valve's largest area).
     """
 
     period: StrictFloat | None = Field(None, gt=0, allow_inf_nan=False)

@@ -141,7 +141,8 @@ class SetpointSchedule(StrictTable):
 
 class SensorFaultConfig(StrictTable):
     """A sensor fault of the simulated plant (``[[driver.plant.sensor_faults]]``): from
-    ``start`` for ``duration`` seconds the reported ``channel`` is
+    ``start`` for ``duration`` seconds (to the end of the run without one) the reported
+    ``channel`` is
 
     * ``frozen``: it repeats its reading at the onset;
     * ``saturated``: clipped at ``level``, from above with ``side = "high"``, from below with

@@ -56,12 +56,14 @@ class ProcessedWindow:
     Attributes:
         window: the acquisition window (times, channels, index).
         result: what adaptation did (estimate, terms, residuals, discovery).
-        health: the window's typed health message, ``alarms`` included.
-        health_json: ``health`` encoded once
+        health: the window's typed health message (README "The health message"), ``alarms``
+            included.
+        health_json: ``health`` encoded, once, by the one encoder
             (:meth:`~twinwatch.twin.health.HealthMessage.to_json`): the text every sink writes.
         events: alarm-state changes this window caused (published on ``<machine>/alarm``).
-        twin_state: the accepted twin to persist (``TwinAdapter.state()``) when this window
-            was trusted or a diagnoser runs, else None (the stored twin is kept).
+        twin_state: the accepted twin to persist (``TwinAdapter.state()``, with the diagnosis'
+            when there is a diagnoser) when this window was trusted or a diagnoser runs, else
+            None (the stored twin is kept).
     """
 
     window: WindowData
@@ -171,24 +173,32 @@ class SinkContext:
     """What a sink needs from the daemon that opens it (not the whole configuration).
 
     Attributes:
-        machine: the machine name (one Zenoh key chunk).
+        machine: the machine name (``[machine] name``: one Zenoh key chunk).
         model: the twin model's registry name (``dc_motor``, ...).
         outputs: the twin's outputs, in order (``("ia", "omega", "Va")``).
         parameters: parameter name -> SI unit, in the twin's order.
         base_dir: the configuration file's directory (files the configuration names).
-        cwd: the working directory (files the daemon creates).
-        history: the gate's history for this machine, or None when no gate is open.
-        recent_windows: ``[acquisition] history``: the gate keeps as many written windows in
-            memory, to write them again to a database file deleted or replaced under it.
+        cwd: the working directory (files the daemon creates: the state database, the
+            recording; the unit's ``StateDirectory``).
+        history: the stored windows (the gate's history for this machine), or None when no
+            gate is open; a publisher may serve it (the Zenoh history query).
+        recent_windows: the windows the daemon keeps in memory (``[acquisition] history``):
+            the gate keeps as many of those it wrote, to write them again to a database file
+            deleted or replaced under it.
         output_units: output -> SI unit (``{"ia": "A", "omega": "rad/s"}``).
         nominal: parameter -> the nominal value the deviations are measured from [SI].
-        estimated: the parameters the twin estimates, in priority order.
-        alarm_bands: parameter -> its ``[alarms]`` thresholds (empty when alarms are off).
-        run: the run id of the daemon's health messages (kept across a reload).
+        estimated: the parameters the twin estimates (``[estimation] estimate``), in
+            priority order; the others are tied or fixed.
+        alarm_bands: parameter -> its ``[alarms]`` thresholds, for an output that draws them
+            (empty when alarms are off).
+        run: the run id every health message of the daemon carries (one per start of the
+            daemon, kept across a reload; empty outside a daemon).
         outbox: the gate's :class:`Outbox` for an output name (``outbox("mqtt")``), or None
-            when the gate keeps none; asked again after a reload.
-        shared: the :class:`SharedResources` of the process, or None: every output opens its
-            own.
+            when no gate is open or it keeps none: a publisher that delivers every stored
+            window (store-and-forward) asks it again after a reload.
+        shared: what the daemons of one process share (a gateway: one Zenoh session for every
+            machine whose ``[zenoh]`` session settings are the same), or None (one daemon per
+            process: every output opens its own).
     """
 
     machine: str

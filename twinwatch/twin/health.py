@@ -449,7 +449,8 @@ class HealthMessage(_Part):
     """One window's health: the message on ``twinwatch/<machine>/health`` (its reference:
     docs/health-message.md). Build it with :func:`build_health`, once, from everything it
     carries; serialise it with :meth:`to_json`. Frozen: assigning a field raises a
-    :class:`pydantic.ValidationError` (a variant is a new message: ``model_copy(update=...)``)."""
+    :class:`pydantic.ValidationError` (a message is never edited after it is built; a variant
+    is :meth:`~pydantic.BaseModel.model_copy` with ``update``, a new message)."""
 
     schema_: int = Field(SCHEMA_VERSION, alias="schema", description="layout version")
     machine: str = Field(description="machine name from the config")

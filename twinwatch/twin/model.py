@@ -94,8 +94,8 @@ class OutputSpec:
     Attributes:
         name: channel name (``ia``, ``omega``, ...).
         unit: SI unit as text.
-        scale: typical magnitude: the floor of a residual's normalisation (so a near-zero
-            signal does not dominate the RMSE).
+        scale: typical magnitude used to normalise residuals when a window's own RMS is
+            smaller (a floor that keeps a near-zero signal from dominating the RMSE).
     """
 
     name: str
@@ -118,9 +118,10 @@ class AttachPoint:
             step k -> k+1); ``multiplicative``: the equation's value at sample k is multiplied
             by ``1 + U[k]`` (U dimensionless).
         unit: unit of an additive term (``rad/s^2``); ``1`` for a multiplicative one.
-        quantity: what the equation governs, in words (``shaft speed``, ``pressure``).
+        quantity: what the equation governs, in words (``shaft speed``, ``pressure``): the
+            interpretation says where the unknown component acts.
         scale: largest plausible magnitude of a term here, in :attr:`unit` (the discovery's
-            default search bound).
+            default search bound; configurable per candidate).
     """
 
     name: str

@@ -35,8 +35,8 @@ def check_topic(value: str, what: str) -> str:
 
 class MqttTlsConfig(StrictTable):
     """``[outputs.mqtt.tls]``: TLS to the broker (``port`` is then usually 8883). Paths are
-    relative to the configuration file's directory; the private key is refused when others
-    can read it.
+    relative to the configuration file's directory; the private key is a secret (refused when
+    others can read it: install it ``0640 root:twinwatch``).
     """
 
     ca_certs: str | None = Field(None,

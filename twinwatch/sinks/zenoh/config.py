@@ -36,8 +36,9 @@ class ZenohTlsConfig(StrictTable):
     """``[zenoh.tls]``: TLS for ``tls/`` endpoints, mutual TLS with ``enable_mtls`` (zenoh's
     ``transport/link/tls``). Paths are relative to the configuration file's directory.
 
-    Private keys are secrets: a key file, or a configuration holding a key inline
-    (``*_private_key_base64``), that others can read is refused at load.
+    Private keys are secrets: a key file that others can read (mode ``o+r``) is refused at
+    load, and a configuration holding a key inline (``*_private_key_base64``) must not be
+    readable by others either (install it ``0640 root:twinwatch``).
     """
 
     root_ca_certificate: str | None = Field(
@@ -96,8 +97,9 @@ class ZenohConfig(SinkConfig):
 
     Attributes:
         mode: zenoh node kind. ``"peer"`` (default) listens on :attr:`listen` and may also
-            connect to :attr:`connect`; ``"client"`` only connects; ``"router"`` listens and
-            routes for clients, standing in for a ``zenohd``.
+            connect to :attr:`connect`; ``"client"`` only connects (``connect`` must be set,
+            ``listen`` must not); ``"router"`` listens and routes for clients, standing in for a
+            ``zenohd`` when there is none.
         listen: endpoints ``proto/host:port`` to listen on, e.g. ``"tcp/127.0.0.1:7447"``.
         connect: endpoints to connect to (a router or another peer).
         key_prefix: first chunk(s) of every key, ``"twinwatch"`` gives
@@ -105,20 +107,29 @@ class ZenohConfig(SinkConfig):
         enabled: when false, :class:`HealthPublisher` opens no session and publishing is a no-op.
         retry_max: longest delay [s] between attempts to reach an unreachable router at start.
         cache: samples each publisher keeps for late joiners and for subscribers recovering
-            what they missed (zenoh.ext ``AdvancedPublisher`` cache); 0: plain publishers (a
-            subscriber catches up with the history query only).
+            what they missed (zenoh.ext ``AdvancedPublisher`` cache): the last ``cache``
+            windows on ``P/health``, alarm events on ``P/alarm``; 0: plain publishers (no
+            cache, no miss detection: a subscriber catches up with the history query only).
         heartbeat: period [s] of the sporadic heartbeat that lets a subscriber notice a lost
-            *last* sample; 0: a loss is noticed at the next sample only.
+            *last* sample (sent only when something was published since the last one); 0: a
+            loss is noticed at the next sample only.
         summary_interval: longest time [s, wall] between two fleet summaries of a machine on
-            ``P/summary``: one goes out at once when it changed, else at least this often.
-        box: what identifies this daemon's host in the fleet summaries; None: the host name.
+            ``P/summary`` (:mod:`twinwatch.twin.summary`): one goes out at once when it
+            changed, else at least this often.
+        box: what identifies this daemon's host in the fleet summaries (the fleet view groups
+            machines by it); None: the host name.
         presence: how the network sees that a machine is there. ``"machine"`` (default): a
-            liveliness token ``P/alive`` per machine. ``"box"``: in a gateway one token per box
-            stands for all its machines (:class:`QueryDispatch`): a router's death moves one
-            declaration per box, not one per machine.
+            liveliness token ``P/alive`` per machine. ``"box"``: in a gateway (machines sharing
+            a session) one token per box, ``<key_prefix>/@box/<box>/<session id>``, stands for
+            all its machines (:class:`QueryDispatch`; a get on it answers their names), and
+            its machines declare none: a router's death moves one declaration per box, not one
+            per machine. A daemon with a session of its own keeps its machine's token.
         tls: ``[zenoh.tls]`` (:class:`ZenohTlsConfig`), needed by ``tls/`` endpoints.
         auth: ``[zenoh.auth]`` (:class:`ZenohAuthConfig`).
-        access_control: zenoh's ``access_control`` table verbatim, validated by zenoh.
+        access_control: zenoh's ``access_control`` table verbatim (``enabled``,
+            ``default_permission``, ``rules``, ``subjects``, ``policies``), validated by zenoh.
+
+    Unknown keys are an error (``extra="forbid"``).
     """
 
     mode: Literal["peer", "client", "router"] = "peer"

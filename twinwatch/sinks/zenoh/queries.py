@@ -76,7 +76,8 @@ def client_name(query: zenoh.Query) -> str:
 @dataclasses.dataclass
 class _BoxPresence:
     """A box's presence in :class:`QueryDispatch` (``[zenoh] presence = "box"``): its name, the
-    key of its token and queryable, the two entities, and the machines it stands for."""
+    key of its token and queryable (:func:`~twinwatch.io.keys.box_token_key`), the two
+    entities, and the machines it stands for."""
 
     name: str
     key: str

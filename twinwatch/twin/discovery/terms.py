@@ -64,8 +64,8 @@ class Refinement:
         t: time of the last update (the window's centre) [s].
         windows: effective number of windows combined (each older one weighs ``lambda`` less).
         index: the last window whose evidence is in.
-        prior: the state before that window's evidence (a second polish of the same window
-            replaces its evidence rather than counting it twice).
+        prior: the state before that window's evidence (a second polish of the same window,
+            after a discovery, replaces its evidence rather than counting it twice).
         pending: the last window's estimate if it was held out (it disagreed with the rest).
     """
 

@@ -62,7 +62,7 @@ class OutputStructure:
     """One output's residual in one window.
 
     Attributes:
-        ratio: its normalised RMSE over its white-noise level (for the log).
+        ratio: its normalised RMSE over its white-noise level (the former criterion).
         structured_nrmse: RMS of the part of the residual that is not white noise, over the
             output's scale.
         q: the Ljung-Box statistic over ``lags`` lags.

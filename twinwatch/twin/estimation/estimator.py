@@ -246,15 +246,21 @@ class WindowEstimate:
         trusted: whether this window updated the trusted parameters.
         initial: the window's estimated initial-state offsets (``model.initial_states``, in
             their units), or None.
-        model_check: the window's model validation (None when disabled).
-        status: every model parameter -> its :data:`ParameterStatus` (``estimated``,
-            ``fused``, ``suspect``, ``held``, ``tied``, ``fixed``; defined in
-            :mod:`~twinwatch.twin.estimation.publish`).
+        model_check: the window's model validation (None when disabled); a window that fails
+            it does not update the trusted values and its standard errors are widened.
+        status: every model parameter -> ``estimated`` (determined by this window, whose
+            model check passed and whose sensors are sound), ``fused`` (not by this window
+            alone, but by the evidence of the windows so far: the fused value, :attr:`fused`),
+            ``suspect`` (the estimate of a window that is not sound, or a held value the fused
+            evidence contradicts: treat like held), ``held`` (its last trusted value, reason
+            in :attr:`held`), ``tied`` (equals another parameter) or ``fixed`` (nameplate,
+            not estimated); :mod:`~twinwatch.twin.estimation.publish`.
         fused: estimated parameter -> (fused value [SI], relative standard error) after this
             window (:mod:`twinwatch.twin.estimation.fusion`); empty when fusion is off.
         fusion_jump: the window's estimate was a sudden change for the fusion (it followed).
-        fitted: every model parameter -> the value the window's twin ran with [SI] (what
-            ``simulated`` is; ``values`` may publish a fused value instead).
+        fitted: every model parameter -> the value the window's twin ran with [SI] (the
+            estimates and the held values it was fitted with; ``values`` may publish a fused
+            value instead): what ``simulated`` is, and what meta-models are fitted beside.
         sensors: the window's frozen or saturated sensors
             (:mod:`~twinwatch.twin.estimation.quality`); such a window is not sound.
         search: ``swarm`` (the global search ran: ``generations`` > 0) or ``local`` (polished

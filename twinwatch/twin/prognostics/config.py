@@ -59,8 +59,11 @@ class AdaptiveWindowConfig(BaseModel):
     a fixed window averages a parameter that changes quickly).
 
     Off by default. When on, the window's length aims at a drift within it of ``drift_ratio``
-    standard errors, within ``[min_window, max_window]`` samples
-    (:mod:`~twinwatch.twin.prognostics.window` says how each key acts).
+    standard errors: it shortens (by at most ``shrink``) when a parameter's drift within a
+    window exceeds that or the residual grows with the window (its normalised RMSE above
+    ``residual_ratio`` times its white-noise level), and lengthens back (by at most ``grow``)
+    after ``quiet_windows`` quiet windows in a row, within ``[min_window, max_window]``
+    samples (:class:`~twinwatch.twin.prognostics.window.WindowController`).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)

@@ -135,7 +135,8 @@ class DegradationFit:
         n: evidence points; ``k`` free parameters.
         scale: the factor the covariance was multiplied by (>= 1): ``max(chi2 / (n - k), 1)``
             times ``long_run``.
-        long_run: the residuals' long-run variance factor (Newey-West, >= 1).
+        long_run: the residuals' long-run variance factor (Newey-West, >= 1) of the last
+            fit to the evidence (:meth:`advance` keeps it).
         bic: the Bayesian information criterion (smaller is better): degrading or not.
         aicc: the corrected Akaike criterion: which degradation model predicts best.
         rms_norm: RMS of the normalised residuals (1: the scatter the published
