@@ -23,7 +23,9 @@ reported):
   (:meth:`~twinwatch.twin.diagnosis.Diagnoser.update`: the fault library's hypothesis twins
   fitted on the window, as the daemon's pipeline runs it). The outputs'
   own writes (SQLite, Zenoh, MQTT) are not included: they belong to the sinks, measured by
-  ``bench_density.py`` in a running host.
+  ``bench_density.py`` in a running host; printed after it, the saved twin the state store
+  writes each window (the adapter's and the diagnosis's state, built and encoded: what a
+  restart resumes from).
 * ``floor``: what a window's twin costs at its least, on the last timed window: one
   simulation of the window through the twin's exact step matrices (``model.simulate``, one
   parameter vector), and a Gauss-Newton fit of the parameters the window's gate admitted,
@@ -44,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import itertools
 import logging
 import os
@@ -64,6 +67,7 @@ from twinwatch.config.loader import default_config, load_config  # noqa: E402
 from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
 from twinwatch.daemon.window_worker import make_diagnoser  # noqa: E402
 from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
+from twinwatch.io.encoding import to_json  # noqa: E402
 from twinwatch.plant.dcmotor import DCMotorPlant  # noqa: E402
 from twinwatch.twin.adaptation import TwinAdapter  # noqa: E402
 from twinwatch.twin.health import build_health, complete_health  # noqa: E402
@@ -132,12 +136,12 @@ def _until_end(next_sample: Callable[[], Any]) -> Any:
 def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
                 keep: dict[str, Any] | None = None, machine: str = "dc") -> tuple[list, Any]:
     """Per window from ``t_from`` [s] on, CPU [s]: (whole, estimation, prognostics, ring
-    buffer, diagnosis); and the samples. The windows before are processed (the trends' evidence, the
-    fusion's history), not reported. ``machine``: a key of :data:`MACHINES`. ``noise``
-    (the default machine's only): the plant's measurement noise on ia and omega
-    [% of their scale] (the density benchmark's plants have 0.5). ``keep``: given, receives the
-    twin (``model``), its nameplate (``nominal``), the last window (``window``) and its
-    estimate (``estimate``)."""
+    buffer, diagnosis, the saved twin); and the samples. The windows before are processed
+    (the trends' evidence, the fusion's history), not reported. ``machine``: a key of
+    :data:`MACHINES`. ``noise`` (the default machine's only): the plant's measurement noise on
+    ia and omega [% of their scale] (the density benchmark's plants have 0.5). ``keep``: given,
+    receives the twin (``model``), its nameplate (``nominal``), the last window (``window``)
+    and its estimate (``estimate``)."""
     cfg, source = _machine(machine, noise)
     model = create_model(cfg.machine.model, cfg.machine.options)
     nominal = {p.name: cfg.machine.parameters.get(p.name, p.nominal) for p in model.parameters}
@@ -179,8 +183,18 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
             diagnosis = diagnoser.update(health, result.fit, e.simulated, free, e.initial)
         diag_cpu = time.process_time() - d
         complete_health(health, diagnosis=diagnosis, alarms={}).to_json()
+        whole = time.process_time() - c
+        # the state store's resume point, as the pipeline saves it (every window with a
+        # diagnoser: its evidence since the change point; else after a trusted window)
+        s = time.process_time()
+        if diagnoser is not None or result.estimate.trusted:
+            state = adapter.state()
+            if diagnoser is not None:
+                state = dataclasses.replace(state, diagnosis=diagnoser.state())
+            to_json(state.as_dict())
+        saved = time.process_time() - s
         if win.t[0] >= t_from and win.index > 0:
-            rows.append((time.process_time() - c, est.spent, prog.spent, ring_cpu, diag_cpu))
+            rows.append((whole, est.spent, prog.spent, ring_cpu, diag_cpu, saved))
             if keep is not None:
                 keep.update(model=model, nominal=nominal, window=win, estimate=result.estimate)
         ring_cpu = 0.0
@@ -336,6 +350,7 @@ def main() -> None:
     print(f"    diagnosis (the fault library's twins):              {_stats(list(a[:, 4]))}")
     print(f"    the rest (discovery check, health, JSON):            "
           f"{_stats(list(a[:, 0] - a[:, 1] - a[:, 2] - a[:, 4]))}")
+    print(f"  after it, the saved twin (state store's resume point): {_stats(list(a[:, 5]))}")
     e = kept["estimate"]
     estimated = [n for n, st in e.status.items() if st == "estimated"]
     sim, gn, iterations, values = floor_cost(kept["model"], kept["window"], estimated,

@@ -279,7 +279,9 @@ def test_a_restart_mid_fault_resumes_the_evidence(tmp_path: Path) -> None:
                                     daemon.pipeline.adapter.estimator.nominal, strict=True)))
     assert fresh is not None
     import json
-    fresh.restore(json.loads(json.dumps(state)))      # through JSON, as the store keeps it
+
+    from twinwatch.io.encoding import to_json
+    fresh.restore(json.loads(to_json(state)))      # through JSON, as the store keeps it
     again = fresh.update(health, fit, *args)
     last = history_last = daemon.pipeline.latest
     assert last is not None and history_last.diagnosis is not None

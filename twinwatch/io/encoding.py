@@ -3,7 +3,10 @@ state store, the Rerun recording), alarm events, history replies, the saved twin
 
 Strict JSON: NaN and infinities become ``null`` (JSON has no NaN, and a bare ``NaN`` token
 breaks most readers); numpy scalars and arrays become numbers and lists, pydantic models their
-fields, enums their value, dates ISO 8601 strings, paths strings. Compact (no spaces).
+fields, enums their value, dates ISO 8601 strings, paths strings. Compact (no spaces), UTF-8
+text (no ``\\u`` escapes). Encoded by orjson (the saved twin, ~200 kB with the diagnosis's
+evidence of every window kept, in about 0.3 ms of CPU); a value orjson refuses (an integer
+beyond 64 bits, bytes) goes through :func:`to_jsonable` and the standard library's encoder.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import PurePath
 from typing import Any
 
 import numpy as np
+import orjson
 from pydantic import BaseModel
 
 __all__ = ["to_json", "to_jsonable"]
@@ -56,10 +60,36 @@ def to_jsonable(value: Any) -> Any:
     raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
 
 
+#: orjson's options: numpy arrays and scalars as numbers and lists, keys that are not strings
+#: (an int, an enum) as their text.
+_OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS
+
+
+def _default(value: Any) -> Any:
+    """What orjson does not encode itself, as something it does (its ``default``)."""
+    if isinstance(value, BaseModel):
+        return value.model_dump()
+    if isinstance(value, np.ndarray):  # not C-contiguous, or a dtype orjson does not take
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, PurePath):
+        return str(value)
+    if isinstance(value, Mapping):
+        return dict(value)
+    if isinstance(value, Sequence | set | frozenset) and not isinstance(value, bytes | bytearray):
+        return list(value)
+    raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
+
+
 def to_json(payload: Mapping[str, Any] | BaseModel) -> str:
     """Serialise ``payload`` to compact, strictly valid JSON (see the module docstring).
 
     Raises:
         TypeError: a value of a type JSON cannot hold.
     """
-    return json.dumps(to_jsonable(payload), separators=(",", ":"), allow_nan=False)
+    try:
+        return orjson.dumps(payload, default=_default, option=_OPTIONS).decode()
+    except orjson.JSONEncodeError:
+        return json.dumps(to_jsonable(payload), separators=(",", ":"), allow_nan=False,
+                          ensure_ascii=False)

@@ -437,11 +437,13 @@ class Track:
         return self.m
 
     def as_dict(self) -> dict[str, Any]:
-        m = self.m
-        return {"q": self.q, "gain": self.gain[:m].tolist(), "half": self.half[:m].tolist(),
-                "ln_n": self.ln_n[:m].tolist(), "t": self.t[:m].tolist(),
-                "info": self.info[:m].tolist(), "phi": self.phi[:m].tolist(),
-                "std": self.std[:m].tolist()}
+        """The windows kept, as ``q`` and one array (a copy) per field, (m,) or (m, q):
+        :func:`~twinwatch.io.encoding.to_json` writes them as lists, :meth:`from_dict` reads
+        either."""
+        out: dict[str, Any] = {"q": self.q}
+        for name, i in self.FIELDS.items():
+            out[name] = self._buf[i][self._start:self._start + self.m].copy()
+        return out
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], keep: int) -> Track:
