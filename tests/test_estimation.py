@@ -341,3 +341,34 @@ def test_a_terms_sensitivity_column_is_the_residuals_change_with_its_scale():
     np.testing.assert_allclose(0.1 * col[:, 0], change, rtol=1e-3, atol=1e-9)
     bare = est.problem(window, None)
     assert bare.local.term_sensitivity(v).shape[1] == 0
+
+
+def test_a_retry_that_raises_leaves_the_trusted_values_as_they_were(monkeypatch) -> None:
+    """The retry of a failed model check holds the latest sound estimates by swapping them
+    into the trusted values; a failure inside it must not leave them swapped (every later
+    window would hold the machine at values no window confirmed)."""
+    from types import SimpleNamespace
+
+    from twinwatch.twin.estimation.search import warm_start
+
+    est = Estimator(DCMotorTwin(), EstimationConfig())
+    win = _step_window()
+    trusted, trusted_std = est.trusted.copy(), est.trusted_std.copy()
+    failed = SimpleNamespace(passed=False, reasons=["residual of ia not white"])
+    calls: list[int] = []
+
+    def gate_and_check(problem, polished, window, admitted=None):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        if len(calls) > 1:
+            raise FloatingPointError("the retry's fit blew up")
+        twin = SimpleNamespace(residual=SimpleNamespace(nrmse=1.0))
+        return SimpleNamespace(selected=[]), None, twin, failed
+
+    monkeypatch.setattr(est, "_gate_and_check", gate_and_check)
+    monkeypatch.setattr(est, "_unconfirmed", lambda: (trusted * 1.1, trusted_std))
+    problem = est.problem(win)
+    with pytest.raises(FloatingPointError):
+        est._fit(problem, win, warm_start(problem), None, local=False)
+    assert len(calls) == 2  # the retry ran
+    np.testing.assert_array_equal(est.trusted, trusted)
+    np.testing.assert_array_equal(est.trusted_std, trusted_std)

@@ -579,3 +579,14 @@ def test_the_configured_endpoints_are_read_from_the_zenoh_tables(tmp_path: Any) 
         config_endpoints(bad)
     r = _twinwatch("watch", "--config", str(bad), "--once")
     assert r.returncode == 2 and "zenoh.listn" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize(("kwargs", "named"), [({"history": 0}, "history 0"),
+                                               ({"alarm_history": -1}, "alarm_history -1")])
+def test_a_bad_history_request_is_refused_naming_it(kwargs: dict[str, int], named: str) -> None:
+    """Each of the two counts is refused under its own name (a bad alarm_history was once
+    reported as history), before any subscriber is declared."""
+    from twinwatch.watch.subscription import WatchError
+
+    with pytest.raises(WatchError, match=named):
+        FleetWatcher(None, Fleet(), **kwargs)  # type: ignore[arg-type]

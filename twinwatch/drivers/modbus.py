@@ -209,7 +209,7 @@ class _DeviceFailure(Exception):
 
 
 class _FatalConfigError(Exception):
-    """The device refused the register map (illegal function / address / value)."""
+    """The device refused the register map (ILLEGAL FUNCTION or ILLEGAL DATA VALUE)."""
 
 
 _EXTRA_COUNTERS = (

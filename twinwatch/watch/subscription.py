@@ -125,7 +125,8 @@ class FleetWatcher:
     Callbacks run on Zenoh's threads or the watcher's (never two at once for health).
 
     Raises:
-        WatchError: the prefix or the machine name is malformed, or ``history`` < 1.
+        WatchError: the prefix or the machine name is malformed, ``history`` < 1 or
+            ``alarm_history`` < 0.
 
     Use as a context manager (the subscribers are undeclared on exit).
     """
@@ -146,8 +147,10 @@ class FleetWatcher:
         if machine != "*" and (CHUNKS_RE.match(machine) is None or "/" in machine):
             raise WatchError(f"machine {machine!r}: give the daemon's [machine] name (letters, "
                              "digits, '_', '-', '.') or * for every machine")
-        if history < 1 or alarm_history < 0:
+        if history < 1:
             raise WatchError(f"history {history}: ask at least the latest window (1)")
+        if alarm_history < 0:
+            raise WatchError(f"alarm_history {alarm_history}: ask 0 (only new events) or more")
         self.machine = machine
         self.history = history
         self.alarm_history = alarm_history

@@ -795,8 +795,12 @@ class Estimator:
             if retry is not None:
                 saved = self.trusted.copy(), self.trusted_std.copy()
                 self.trusted[:], self.trusted_std[:] = retry
-                other = self.problem(window, terms, problem.fit)
-                second = self._gate_and_check(other, polished, window)
+                try:
+                    other = self.problem(window, terms, problem.fit)
+                    second = self._gate_and_check(other, polished, window)
+                except BaseException:  # the window fails; the trusted values stay the machine's
+                    self.trusted[:], self.trusted_std[:] = saved
+                    raise
                 # accepted only where the data contradict the nameplate plainly: the check
                 # passes and the fit explains the window at least twice as well (a check
                 # fails now and then by chance)
