@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import itertools
 import logging
 import os
@@ -64,6 +63,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from twinwatch.config.loader import default_config, load_config  # noqa: E402
+from twinwatch.daemon.pipeline import saved_twin  # noqa: E402
 from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
 from twinwatch.daemon.window_worker import make_diagnoser  # noqa: E402
 from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
@@ -184,13 +184,9 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
         diag_cpu = time.process_time() - d
         complete_health(health, diagnosis=diagnosis, alarms={}).to_json()
         whole = time.process_time() - c
-        # the state store's resume point, as the pipeline saves it (every window with a
-        # diagnoser: its evidence since the change point; else after a trusted window)
-        s = time.process_time()
-        if diagnoser is not None or result.estimate.trusted:
-            state = adapter.state()
-            if diagnoser is not None:
-                state = dataclasses.replace(state, diagnosis=diagnoser.state())
+        s = time.process_time()  # the state store's resume point, as the pipeline saves it
+        state = saved_twin(adapter, diagnoser, result.estimate.trusted)
+        if state is not None:
             to_json(state.as_dict())
         saved = time.process_time() - s
         if win.t[0] >= t_from and win.index > 0:

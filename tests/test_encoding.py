@@ -57,11 +57,12 @@ def test_the_same_values_as_the_standard_library(monkeypatch: pytest.MonkeyPatch
     expected = _reference(payload)
     import twinwatch.io.encoding as encoding
 
-    def refuse(value: object) -> object:
-        raise AssertionError("the orjson path should have encoded it all")
+    def refuse(*args: object, **kwargs: object) -> str:
+        raise AssertionError("orjson should have encoded it all, not the standard library")
 
-    monkeypatch.setattr(encoding, "to_jsonable", refuse)
+    monkeypatch.setattr(encoding.json, "dumps", refuse)
     text = to_json(payload)
+    monkeypatch.undo()
     assert json.loads(text) == expected
     assert " " not in to_json({"a": [1, 2]})  # compact
 

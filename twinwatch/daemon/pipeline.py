@@ -56,7 +56,19 @@ from twinwatch.twin.model import WindowData
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HELD_MAX", "HealthCallback", "ProcessedWindow", "WindowDigest", "WindowPipeline"]
+__all__ = ["HELD_MAX", "HealthCallback", "ProcessedWindow", "WindowDigest", "WindowPipeline",
+           "saved_twin"]
+
+def saved_twin(adapter: TwinAdapter, diagnoser: Diagnoser | None, trusted: bool
+               ) -> TwinState | None:
+    """What the state store saves for a restart to resume from after a window: the accepted
+    twin after a ``trusted`` window (None otherwise), with the diagnoser's baseline and
+    evidence every window while there is one (a fault's windows are often not trusted, and a
+    restart mid-fault must find its evidence)."""
+    if diagnoser is None:
+        return adapter.state() if trusted else None
+    return dataclasses.replace(adapter.state(), diagnosis=diagnoser.state())
+
 
 HealthCallback = Callable[[HealthMessage], None]
 """Called with each window's typed health message (worker thread)."""
@@ -317,14 +329,6 @@ class WindowPipeline:
             log("the diagnosis failed on window %d: published without one", window.index)
             return None
 
-    def _twin_state(self, result: AdaptationResult) -> TwinState | None:
-        """What a restart resumes from: the accepted twin after a trusted window, with the
-        diagnosis' state (every window while there is a diagnoser: a fault's windows are
-        often not trusted, and a restart mid-fault must find its evidence)."""
-        if self.diagnoser is None:
-            return self.adapter.state() if result.estimate.trusted else None
-        return dataclasses.replace(self.adapter.state(), diagnosis=self.diagnoser.state())
-
     def _source_health(self, window: WindowData) -> SourceHealth:
         """The window's ``source``: its stamps' jitter against the grid the ring buffer placed
         it on [us], and what the source waited for or lacked when its last sample was read."""
@@ -401,7 +405,8 @@ class WindowPipeline:
             for name, state in self.alarms.state().items()})
         out = ProcessedWindow(window=window, result=result, health=health,
                               health_json=health.to_json(), events=events,
-                              twin_state=self._twin_state(result))
+                              twin_state=saved_twin(self.adapter, self.diagnoser,
+                                                    result.estimate.trusted))
         check = health.model_check
         digest = WindowDigest(None if check is None else check.passed, health.elapsed_s,
                               health.source.jitter_rms_us, health.source.jitter_max_us)

@@ -65,31 +65,14 @@ def to_jsonable(value: Any) -> Any:
 _OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS
 
 
-def _default(value: Any) -> Any:
-    """What orjson does not encode itself, as something it does (its ``default``)."""
-    if isinstance(value, BaseModel):
-        return value.model_dump()
-    if isinstance(value, np.ndarray):  # not C-contiguous, or a dtype orjson does not take
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, PurePath):
-        return str(value)
-    if isinstance(value, Mapping):
-        return dict(value)
-    if isinstance(value, Sequence | set | frozenset) and not isinstance(value, bytes | bytearray):
-        return list(value)
-    raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
-
-
 def to_json(payload: Mapping[str, Any] | BaseModel) -> str:
     """Serialise ``payload`` to compact, strictly valid JSON (see the module docstring).
 
     Raises:
         TypeError: a value of a type JSON cannot hold.
     """
-    try:
-        return orjson.dumps(payload, default=_default, option=_OPTIONS).decode()
-    except orjson.JSONEncodeError:
+    try:  # what orjson does not encode itself (a pydantic model, a path) goes to to_jsonable
+        return orjson.dumps(payload, default=to_jsonable, option=_OPTIONS).decode()
+    except orjson.JSONEncodeError:  # an integer beyond 64 bits, or a type JSON cannot hold
         return json.dumps(to_jsonable(payload), separators=(",", ":"), allow_nan=False,
                           ensure_ascii=False)
