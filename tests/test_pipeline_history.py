@@ -1,7 +1,7 @@
 """The health history a daemon keeps (issue 22, memory per machine): with a state store only
-the last :data:`~twinwatch.daemon.pipeline.MEMORY_TAIL` messages stay in memory, the rest is
-read back from the store, so ``health_history`` is the same as when everything stayed in
-memory; the run's summary reads each window's digest, not the messages."""
+the messages not stored yet and :data:`~twinwatch.daemon.pipeline.MEMORY_TAIL` more stay in
+memory, the rest is read back from the store, so ``health_history`` is the same as when
+everything stayed in memory; the run's summary reads each window's digest, not the messages."""
 
 from __future__ import annotations
 

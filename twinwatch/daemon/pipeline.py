@@ -77,10 +77,11 @@ OUTPUT_QUEUE = 64
 """Processed windows waiting for the outputs' thread. Full only when an output is slower than
 the estimation; the estimation worker then waits (:meth:`WindowPipeline.backpressure`)."""
 
-MEMORY_TAIL = OUTPUT_QUEUE + 16
+MEMORY_TAIL = 16
 """With a state store that reads back (:meth:`~twinwatch.sinks.store.StateStore.last_docs`),
-the health messages kept in memory: the store holds the rest of ``[acquisition] history``
-(more than the outputs' queue holds, so a window leaves memory after it was stored)."""
+the health messages kept in memory besides those waiting for the outputs
+(:attr:`WindowPipeline.queued`): the store holds the rest of ``[acquisition] history``. At
+least 1: the window the outputs' thread is writing has left the queue."""
 
 
 class WindowDigest(NamedTuple):
@@ -137,7 +138,8 @@ class WindowPipeline:
         self.callbacks: list[HealthCallback] = []
         self.latest: HealthMessage | None = None
         #: the last ``history`` health messages as their JSON (a fraction of the typed
-        #: message's memory); with a gate that reads back, only the last :data:`MEMORY_TAIL`
+        #: message's memory); with a gate that reads back, only those not stored yet and
+        #: :data:`MEMORY_TAIL` more
         self.history: deque[str] = deque(maxlen=history)
         self.history_size = history
         #: the last ``history`` windows' :class:`WindowDigest` (the run's summary)
@@ -266,7 +268,18 @@ class WindowPipeline:
     def _deliver(self, out: ProcessedWindow) -> None:
         """Write one processed window to every output, the gate first."""
         stored = self.keeper.store(out, can_hold=self._thread is not None)
+        if stored:
+            self._trim_history()
         self._write_others(out, stored=stored)
+
+    def _trim_history(self) -> None:
+        """With a gate that reads back, drop the oldest messages in :attr:`history` beyond
+        the windows waiting for the outputs and :data:`MEMORY_TAIL` (those are stored)."""
+        if self._stored_docs() is None:
+            return
+        with self._lock:
+            while len(self.history) > self.queued + MEMORY_TAIL:
+                self.history.popleft()
 
     def _write_others(self, out: ProcessedWindow, *, stored: bool | None,
                       recorders: bool = True) -> None:
@@ -414,8 +427,7 @@ class WindowPipeline:
             self.latest = health
             self.history.append(out.health_json)
             self.digests.append(digest)
-            if len(self.history) > MEMORY_TAIL and self._stored_docs() is not None:
-                self.history.popleft()
+        self._trim_history()
         logger.info("%s", summary_line(health))
         q = self._queue
         if q is None:
