@@ -441,3 +441,84 @@ def test_a_stall_is_said_once_at_error_asking_the_driver_first(caplog, state, er
     said = [r.getMessage() for r in stall if r.levelno >= logging.ERROR]
     assert len(said) == len(errors) and all(e in m for e, m in zip(errors, said, strict=True))
     assert words in stall[0].getMessage()
+
+
+# -- blocks of samples (issue 58) ----------------------------------------------------------------
+def _ring_state(rb: RingBuffer) -> dict:
+    return {"lost": dict(rb.lost), "discarded": dict(rb.discarded), "causes": dict(rb.causes),
+            "samples": rb.samples, "bad": rb.bad_samples, "missing": rb.missing,
+            "filled": rb.windows_filled, "duplicates": rb.duplicates, "pending": rb.pending,
+            "windows": rb.windows, "window": rb.window}
+
+
+def _window_bits(win) -> tuple:
+    jitter = None if win.stamp_jitter is None else win.stamp_jitter.tobytes()
+    return (win.index, win.t.tobytes(), jitter,
+            tuple((c, v.tobytes()) for c, v in sorted(win.channels.items())))
+
+
+def _rough_stream(rng: np.random.Generator, n: int, channels: int) -> tuple:
+    """Stamps with jitter, gaps of one to twenty samples, exact and inexact repeats, stamps
+    going back, a clock drifting for a while, NaN and inf values and stamps."""
+    t, rows = [], []
+    clock = 10.0
+    drift = 0.0
+    for _ in range(n):
+        r = rng.random()
+        if r < 0.004:
+            clock += T * int(rng.integers(1, 20))  # a gap
+        elif r < 0.005:
+            clock -= T * float(rng.uniform(0.1, 3))  # back
+        elif r < 0.006:
+            drift = float(rng.choice([0.0, 0.02 * T, -0.03 * T]))
+        clock += T + drift
+        stamp = clock + float(rng.uniform(0, 0.3 * T))
+        row = rng.normal(size=channels)
+        if rng.random() < 0.002:
+            row[rng.integers(channels)] = rng.choice([np.nan, np.inf])
+        if rng.random() < 0.0005:
+            stamp = float(rng.choice([np.nan, np.inf]))
+        if rows and rng.random() < 0.003:  # a repeat: exact, or with other values
+            stamp = t[-1]
+            row = rows[-1].copy() if rng.random() < 0.5 else row
+        t.append(stamp)
+        rows.append(row)
+    return np.array(t), np.array(rows)
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("fill", [(0.0, 0), (0.05, 3)])
+def test_append_block_gives_the_windows_and_counters_append_gives(seed: int, fill) -> None:
+    """A rough stream fed in blocks of random sizes and sample by sample: the same windows
+    (stamps, values, residuals, indices: to the bit) and the same counters after every
+    block, a window length requested on the way included."""
+    rng = np.random.default_rng(seed)
+    chans = ("a", "b", "c")
+    t, rows = _rough_stream(rng, 6000, len(chans))
+    kw = {"window": 50, "sample_period": T, "jitter_tolerance": float(rng.choice([0.5, 0.3])),
+          "max_missing": fill[0], "max_missing_run": fill[1]}
+    one, block = RingBuffer(chans, **kw), RingBuffer(chans, **kw)
+    i = 0
+    while i < len(t):
+        size = int(rng.choice([1, 2, 7, 50, 120, 400]))
+        if rng.random() < 0.05:
+            n = int(rng.integers(2, 120))
+            one.request_window(n)
+            block.request_window(n)
+        by_one = [w for k in range(i, min(i + size, len(t)))
+                  if (w := one.append(float(t[k]), dict(zip(chans, rows[k].tolist(),
+                                                                 strict=True))))
+                  is not None]
+        by_block = block.append_block(t[i:i + size], rows[i:i + size])
+        assert [_window_bits(w) for w in by_block] == [_window_bits(w) for w in by_one], i
+        assert _ring_state(block) == _ring_state(one), i
+        assert block._sums == one._sums and (block._lo, block._hi) == (one._lo, one._hi)
+        i += size
+    assert one.windows >= 10 and sum(one.causes.values()) > 10 and one.duplicates > 0
+    assert fill[1] == 0 or one.missing > 0
+
+
+def test_append_block_checks_the_shapes() -> None:
+    rb = RingBuffer(("a", "b"), window=10, sample_period=T)
+    with pytest.raises(ValueError, match=r"values \(N, 2\)"):
+        rb.append_block(np.zeros(3), np.zeros((3, 3)))

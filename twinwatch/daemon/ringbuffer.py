@@ -369,6 +369,90 @@ class RingBuffer:
             return None
         return self._complete()
 
+    def append_block(self, t: np.ndarray, values: np.ndarray) -> list[WindowData]:
+        """Add ``N`` samples at once; return the windows they complete, in order.
+
+        The same windows, counters, gaps, fills and drops as :meth:`append` called on each
+        sample in turn (``append(t[i], dict(zip(channels, values[i])))``): the stretches of
+        samples that fall in the partial window's band, in order, finite and not the
+        window's first are stored together (their stamps' offsets, the band and the drift
+        line's sums computed with numpy in the order :meth:`append` computes them); every
+        other sample goes through :meth:`append`.
+
+        Args:
+            t: (N,) time stamps [s] on the source's clock.
+            values: (N, C) the samples' values, the columns in the order of
+                :attr:`channels`.
+
+        Raises:
+            ValueError: ``t`` and ``values`` do not have these shapes.
+        """
+        t = np.asarray(t, dtype=np.float64)
+        values = np.asarray(values, dtype=np.float64)
+        n = t.shape[0]
+        if t.ndim != 1 or values.shape != (n, len(self.channels)):
+            raise ValueError(f"expected t (N,) and values (N, {len(self.channels)}), got "
+                             f"{t.shape} and {values.shape}")
+        ok = np.isfinite(t) & np.isfinite(values).all(axis=1)
+        windows: list[WindowData] = []
+        i = 0
+        while i < n:
+            m = self._plain_run(t, ok, i) if self._count else 0
+            if m == 0:
+                win = self.append(float(t[i]), dict(zip(self.channels, values[i].tolist(),
+                                                        strict=True)))
+                i += 1
+            else:
+                win = self._store_run(t[i:i + m], values[i:i + m])
+                i += m
+            if win is not None:
+                windows.append(win)
+        return windows
+
+    def _plain_run(self, t: np.ndarray, ok: np.ndarray, i: int) -> int:
+        """How many samples from ``t[i]`` on :meth:`append` would store without a second
+        look, up to the end of the partial window: finite, each stamp after the one before,
+        every offset within the band (:meth:`_check_time`'s first return)."""
+        assert self._last_t is not None
+        k0 = self._count
+        end = min(t.shape[0], i + self.window - k0)
+        stamps = t[i:end]
+        prev = np.concatenate(([self._last_t], stamps[:-1]))
+        k = np.arange(k0, k0 + stamps.shape[0])
+        offsets = (stamps - self._t_first) - k * self.sample_period
+        lo = np.minimum.accumulate(np.concatenate(([self._lo], offsets)))[1:]
+        hi = np.maximum.accumulate(np.concatenate(([self._hi], offsets)))[1:]
+        band = (2.0 * self.jitter_tolerance - _BAND_MARGIN) * self.sample_period
+        plain = ok[i:end] & (stamps > prev) & (hi - lo < band)
+        return int(stamps.shape[0] if plain.all() else np.argmin(plain))
+
+    def _store_run(self, t: np.ndarray, values: np.ndarray) -> WindowData | None:
+        """Store ``m`` samples :meth:`_plain_run` admitted, as :meth:`append` stores each;
+        the window they complete, if they do."""
+        m = t.shape[0]
+        k = np.arange(self._count, self._count + m)
+        offsets = (t - self._t_first) - k * self.sample_period
+        # min and max keep the first of equal values (0.0 and -0.0), as append's do
+        self._lo = min(self._lo, float(offsets[np.argmin(offsets)]))
+        self._hi = max(self._hi, float(offsets[np.argmax(offsets)]))
+        kf = k.astype(np.float64)
+        terms = np.stack((kf, (k * k).astype(np.float64), offsets, kf * offsets))
+        sums = np.add.accumulate(  # one addition after another, as append adds them
+            np.concatenate((np.array(self._sums)[:, None], terms), axis=1), axis=1)[:, -1]
+        self._sums = (float(sums[0]), float(sums[1]), float(sums[2]), float(sums[3]))
+        slots = (self._head + np.arange(m)) % self.capacity
+        self._t[slots] = t
+        self._v[slots] = values
+        self._filled[slots] = False
+        self._head = (self._head + m) % self.capacity
+        self._count += m
+        self.samples += m
+        self._last_t = float(t[-1])
+        self._last_row = values[-1].tolist()
+        if self._count < self.window:
+            return None
+        return self._complete()
+
     def _complete(self) -> WindowData:
         """The window of the last ``window`` slots; a fresh window starts."""
         if self._n_filled:
