@@ -249,8 +249,11 @@ def _write_csv(path: Path, samples: list) -> None:
             w.writerow([repr(s.t), *(repr(s.values[c]) for c in chans)])
 
 
-def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None) -> tuple[float, int]:
-    """CPU [s] and samples read by the file driver (``realtime`` as configured)."""
+def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None,
+              ring: RingBuffer | None = None, blocks: bool = False) -> tuple[float, int]:
+    """CPU [s] and samples read by the file driver (``realtime`` as configured), with
+    ``ring`` stored into it too, with ``blocks`` read a window's rest at a time
+    (``read_block``, ``append_block``) instead of sample by sample."""
     table = {"type": "file", "path": str(path), "time_column": "t", "realtime": realtime,
              "columns": {c: {"column": c} for c in chans}}
     if limit is not None:
@@ -260,8 +263,17 @@ def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None) -
         c = time.process_time()
         try:
             while True:
-                if drv.read(None) is not None:
+                if blocks:
+                    got = drv.read_block(None, 200 if ring is None else
+                                         ring.window - ring.pending)
+                    if got is not None:
+                        n += len(got[0])
+                        if ring is not None:
+                            ring.append_block(*got)
+                elif (s := drv.read(None)) is not None:
                     n += 1
+                    if ring is not None:
+                        ring.append(s.t, s.values)
         except EndOfStream:
             pass
         return time.process_time() - c, n
@@ -374,6 +386,18 @@ def main() -> None:
             cpu, n = file_cost(path, chans, True, args.realtime_windows * per)
             print(f"  file driver, real time ({n} samples):                "
                   f"{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a sample)")
+        print("  file driver -> ring buffer, as the acquisition loop runs it:")
+        for realtime in (False, True):
+            if realtime and args.realtime_windows <= 0:
+                continue
+            limit = args.realtime_windows * per if realtime else None
+            for blocks in (False, True):
+                cpu, n = file_cost(path, chans, realtime, limit, blocks=blocks, ring=RingBuffer(
+                    chans, window=per, sample_period=kept["window"].sample_period))
+                how = "in blocks (read_block, append_block)" if blocks else "sample by sample"
+                print(f"    {'real time' if realtime else 'as fast as read'}, {how}:"
+                      f"{' ' * (40 - len(how) - (9 if realtime else 15))}"
+                      f"{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a sample)")
     can = can_cost(min(60.0, len(samples) * 0.01))
     if can is None:
         print("  CAN driver (ASC log replay): skipped (needs the test extras)")

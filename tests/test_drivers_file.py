@@ -166,10 +166,21 @@ def _count_sleeps(monkeypatch: pytest.MonkeyPatch) -> list[float]:
     return sleeps
 
 
+def _stamps(driver: FileDriver, blocks: bool) -> list[float]:
+    """The time stamps of the next read's rows: one by one, or a block of up to 50 rows."""
+    if not blocks:
+        s = driver.read(None)
+        return [] if s is None else [s.t]
+    got = driver.read_block(None, 50)
+    return [] if got is None else got[0].tolist()
+
+
+@pytest.mark.parametrize("blocks", [False, True])
 def test_csv_realtime_wakes_once_per_pace_slack_never_early(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, blocks: bool) -> None:
     """A real-time replay of 10 ms rows sleeps about once per PACE_SLACK, not once a row (a
-    sleep a row cost 74 us of CPU a row), and delivers no row before it is due."""
+    sleep a row cost 74 us of CPU a row), and delivers no row before it is due, read one by
+    one or in blocks (:meth:`FileDriver.read_block`)."""
     import twinwatch.drivers.file as file_mod
 
     data = tmp_path / "fast.csv"
@@ -178,15 +189,16 @@ def test_csv_realtime_wakes_once_per_pace_slack_never_early(
     config = FileDriverConfig.model_validate({
         "type": "file", "path": str(data), "time_column": "t", "realtime": True,
         "columns": {"Va": {"column": "u"}}})
-    early = []
+    early, seen = [], []
     with FileDriver(config) as driver:
         start = time.monotonic()
         with pytest.raises(EndOfStream):
             while True:
-                s = driver.read(None)
-                if s is not None and time.monotonic() - start < s.t - 1e-3:
-                    early.append(s.t)
-    assert not early
+                stamps = _stamps(driver, blocks)
+                seen += stamps
+                early += [t for t in stamps if time.monotonic() - start < t - 1e-3]
+        assert driver.stats.samples == driver.stats.frames == 31
+    assert not early and seen == [k * 0.01 for k in range(31)]
     assert 1 <= len(sleeps) <= 0.3 / file_mod.PACE_SLACK + 2, sleeps  # 30 before
 
 

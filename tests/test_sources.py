@@ -522,3 +522,59 @@ def test_append_block_checks_the_shapes() -> None:
     rb = RingBuffer(("a", "b"), window=10, sample_period=T)
     with pytest.raises(ValueError, match=r"values \(N, 2\)"):
         rb.append_block(np.zeros(3), np.zeros((3, 3)))
+
+
+def _acquire(tmp_path: Path, csv: Path, blocks: bool, monkeypatch: pytest.MonkeyPatch,
+             duration: float | None) -> tuple:
+    """A daemon's acquisition of ``csv`` (as fast as read, a staggered first window), the
+    file driver reading blocks or sample by sample: its windows, ring and driver counters."""
+    from harness.daemon import with_driver
+    from harness.sources import FILE_DRIVER
+    from twinwatch.config.loader import load_config
+    from twinwatch.daemon.acquisition import Acquisition
+    from twinwatch.drivers.file import FileDriver
+    from twinwatch.twin.models import create_model
+
+    monkeypatch.setattr(FileDriver, "reads_blocks", blocks)
+    cfg = load_config(with_driver(tmp_path, FILE_DRIVER.format(path=csv)))
+    cfg.acquisition.window = 50
+    acq = Acquisition(cfg, create_model(cfg.machine.model, cfg.machine.options),
+                      own_driver=True)
+    acq.open(None, base_dir=tmp_path, wait=False)
+    assert acq.stagger("m-7") > 0
+    windows: list = []
+    try:
+        acq.run(duration, lambda w, _block: windows.append(w), lambda _n: None)
+    finally:
+        stats = acq.driver.stats.as_dict() if acq.driver is not None else {}
+        acq.release()
+    return [_window_bits(w) for w in windows], _ring_state(acq.ring), stats, acq.ended
+
+
+@pytest.mark.parametrize("duration", [None, 31.234])
+def test_a_file_read_in_blocks_gives_the_windows_and_counters_of_sample_by_sample(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, duration: float | None) -> None:
+    """The acquisition loop on a rough recording (jitter, gaps, repeats, stamps going back,
+    NaN and inf, a row without a time stamp), its columns in another order than the twin's
+    channels: the file driver's blocks (:meth:`FileDriver.read_block`, stored with
+    :meth:`RingBuffer.append_block`) give the windows to the bit, the ring's and the
+    driver's counters and the end that reading sample by sample gives."""
+    rng = np.random.default_rng(3)
+    names = ("setpoint", "omega", "Tload", "ia", "Va")
+    t, rows = _rough_stream(rng, 5000, len(names))
+    t[1234] = np.nan  # a row the driver skips (stats.bad_frames)
+    lines = ["t," + ",".join(names)] + [
+        f"{float(s)!r}," + ",".join(repr(float(v)) for v in row) for s, row in zip(t, rows,
+                                                                               strict=True)]
+    csv = tmp_path / "rough.csv"
+    csv.write_text("\n".join(lines) + "\n")
+    by_block = _acquire(tmp_path, csv, True, monkeypatch, duration)
+    by_one = _acquire(tmp_path, csv, False, monkeypatch, duration)
+    windows, ring, stats, ended = by_one
+    if duration is not None:  # the last block may read ahead to its window's end
+        read = by_block[2]["samples"] - stats["samples"]
+        assert 0 <= read < 50 and by_block[2]["frames"] - stats["frames"] == read
+        by_block = (*by_block[:2], stats, by_block[3])
+    assert by_block == by_one
+    assert len(windows) >= 20 and sum(ring["causes"].values()) > 3 and stats["bad_frames"] > 1
+    assert ended == ("end of the source" if duration is None else "duration reached")

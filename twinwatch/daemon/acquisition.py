@@ -17,6 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
 from twinwatch.drivers.base import Driver, DriverError, EndOfStream
@@ -113,6 +115,7 @@ class Acquisition:
         driver_said = False  # the driver said the stall's cause itself (at ERROR)
         next_tick = 0.0
         tick_s = TICK_S if live else 0.0
+        columns = self._block_columns()
         while not self.stopping.is_set():
             if self._stop_at_window is not None and (
                     self.ring.pending == 0 or time.monotonic() > self._stop_at_window):
@@ -124,7 +127,11 @@ class Acquisition:
                 for fn in self.ticks:
                     fn()
             try:
-                sample = self.driver.read(timeout=0.2)
+                if columns is not None and not self._phase_pending:  # up to the window's end
+                    sample, block = None, self.driver.read_block(
+                        0.2, self.ring.window - self.ring.pending)
+                else:
+                    sample, block = self.driver.read(timeout=0.2), None
             except EndOfStream as exc:
                 logger.info("source finished: %s", exc)
                 self.ended = "end of the source"
@@ -136,7 +143,7 @@ class Acquisition:
                 self.ended = "driver failure"
                 break
             now = time.monotonic()
-            if sample is None:
+            if sample is None and block is None:
                 next_tick = 0.0  # nothing came within the read's timeout: tick now
                 if not stalled and now - last_sample > stall_timeout:
                     stalled = True
@@ -147,22 +154,50 @@ class Acquisition:
                     "driver delivers samples again after a stall of %.1f s", now - last_sample)
                 stalled = False
             last_sample = now
-            if t_first is None:
-                t_first = sample.t
-            if duration is not None and sample.t - t_first >= duration:
-                self.ended = "duration reached"
-                break
-            window = self.ring.append(sample.t, sample.values)
-            if self._phase_pending and not self.ring.window_requested:
-                # the staggered first window has started: the next ones are of the usual length
-                self._phase_pending = False
-                self.ring.request_window(self.config.acquisition.window)
+            reached = False
+            if block is not None:
+                t, values = block
+                if t_first is None:
+                    t_first = float(t[0])
+                if duration is not None and t[-1] - t_first >= duration:
+                    keep = int(np.argmax(t - t_first >= duration))
+                    t, values, reached = t[:keep], values[:keep], True
+                windows = self.ring.append_block(t, values[:, columns])
+            else:
+                assert sample is not None
+                if t_first is None:
+                    t_first = sample.t
+                if duration is not None and sample.t - t_first >= duration:
+                    self.ended = "duration reached"
+                    break
+                window = self.ring.append(sample.t, sample.values)
+                windows = [] if window is None else [window]
+                if self._phase_pending and not self.ring.window_requested:
+                    # the staggered first window has started: the next ones are of the usual
+                    # length
+                    self._phase_pending = False
+                    self.ring.request_window(self.config.acquisition.window)
             n_abandoned = sum(self.ring.causes.values())
             if n_abandoned > self._abandoned_seen:
                 abandoned(n_abandoned - self._abandoned_seen)
                 self._abandoned_seen = n_abandoned
-            if window is not None:
+            for window in windows:
                 submit(window, not live)
+            if reached:
+                self.ended = "duration reached"
+                break
+
+    def _block_columns(self) -> list[int] | None:
+        """The driver's columns in the ring buffer's channel order when it reads blocks
+        (:attr:`~twinwatch.drivers.base.Driver.reads_blocks`) and delivers every channel the
+        twin needs; None: sample by sample (a block is stored as those samples would be,
+        :meth:`RingBuffer.append_block`)."""
+        driver = self.driver
+        if driver is None or not driver.reads_blocks:
+            return None
+        if not set(self.ring.channels) <= set(driver.channels):
+            return None
+        return [driver.channels.index(c) for c in self.ring.channels]
 
     def _say_stall(self, quiet: float) -> bool:
         """Say once that no sample came for ``quiet`` seconds, asking the driver what it knows

@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, ClassVar, Self, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Self, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
@@ -42,6 +42,12 @@ from twinwatch.errors import (
 from twinwatch.io.counter import SampleCounter
 from twinwatch.io.sample import Sample, ScaledChannel
 from twinwatch.plugins import commented_table
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+
+    FloatArray = npt.NDArray[np.float64]
 
 logger = logging.getLogger(__name__)
 
@@ -186,6 +192,9 @@ class Driver(Closeable, abc.ABC):
     sample_title: ClassVar[str | None] = None
     #: the driver in messages and in a validation error (``"CAN"``, ``"Modbus"``, ``"file"``)
     driver_name: ClassVar[str] = "acquisition"
+    #: The driver also delivers rows in blocks (:meth:`read_block`), which the acquisition
+    #: stores with :meth:`~twinwatch.daemon.ringbuffer.RingBuffer.append_block`.
+    reads_blocks: ClassVar[bool] = False
 
     # -- what a configuration says about the source ---------------------------------------
     @classmethod
@@ -296,6 +305,26 @@ class Driver(Closeable, abc.ABC):
             self.stats.samples += 1
         return sample
 
+    def read_block(self, timeout: float | None, limit: int
+                   ) -> tuple[FloatArray, FloatArray] | None:
+        """Return the next 1 to ``limit`` samples at once, as :meth:`read` would return them
+        one by one (the same counters), or None if none arrived within ``timeout`` seconds;
+        only where :attr:`reads_blocks`.
+
+        Returns:
+            ``(t (n,) [s], values (n, len(channels)))``, the columns in :attr:`channels`
+            order.
+
+        Raises:
+            EndOfStream, DriverOperationError: as :meth:`read`.
+        """
+        if self._closed:
+            raise DriverOperationError(f"{type(self).__name__} is closed")
+        block = self._read_block_internal(timeout, limit)
+        if block is not None:
+            self.stats.samples += len(block[0])
+        return block
+
     def close(self) -> None:
         """Release the driver's resources. Idempotent."""
         if self._closed:
@@ -381,6 +410,11 @@ class Driver(Closeable, abc.ABC):
     @abc.abstractmethod
     def _read_internal(self, timeout: float | None) -> Sample | None:
         """Read one sample; see :meth:`read`."""
+
+    def _read_block_internal(self, timeout: float | None, limit: int
+                             ) -> tuple[FloatArray, FloatArray] | None:
+        """Read up to ``limit`` samples; see :meth:`read_block`."""
+        raise NotImplementedError(f"{type(self).__name__} does not read blocks")
 
     def _close_internal(self) -> None:  # noqa: B027 - optional hook
         """Release resources; called once by :meth:`close`."""

@@ -508,6 +508,37 @@ class FileDriver(Driver):
                 )
             return Sample(t, values)
 
+    reads_blocks = True
+
+    def _read_block_internal(self, timeout: float | None, limit: int
+                             ) -> tuple[FloatArray, FloatArray] | None:
+        """The rows :meth:`_read_internal` would deliver next without a second look (a
+        finite stamp, not before the last one, finite values; in real time those due now),
+        up to ``limit``; any other row alone, through :meth:`_read_internal`."""
+        k = self._next
+        end = min(len(self._t), k + max(limit, 1))
+        t = self._t[k:end]
+        if t.size and np.isfinite(t[0]) and t[0] >= self._last_paced:
+            ok = np.isfinite(t) & np.isfinite(self._values[k:end]).all(axis=1)
+            ok[1:] &= t[1:] >= t[:-1]
+            n = t.size if ok.all() else int(np.argmin(ok))
+            if n:
+                if self.config.realtime:
+                    if not self._wait_until(float(t[0]), timeout):
+                        return None
+                    assert self._origin is not None
+                    due = self._origin[1] + (time.monotonic() - self._origin[0]) * self.config.speed
+                    n = max(1, int(np.searchsorted(t[:n], due, side="right")))
+                    self._last_paced = float(t[n - 1])
+                self._next = k + n
+                self.stats.frames += n
+                return t[:n], self._values[k:k + n]
+        sample = self._read_internal(timeout)
+        if sample is None:
+            return None
+        return (np.array([sample.t]),
+                np.array([[sample.values[c] for c in self.channels]], dtype=np.float64))
+
     def _say_grown(self) -> None:
         """Once, at the end of a file opened without ``follow``: say that it grew since."""
         size = _size(self.config.path)
