@@ -63,7 +63,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from twinwatch.config.loader import default_config, load_config  # noqa: E402
-from twinwatch.daemon.pipeline import saved_twin  # noqa: E402
+from twinwatch.daemon.pipeline import EVIDENCE_EVERY, saved_twin  # noqa: E402
 from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
 from twinwatch.daemon.window_worker import make_diagnoser  # noqa: E402
 from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
@@ -136,7 +136,8 @@ def _until_end(next_sample: Callable[[], Any]) -> Any:
 def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
                 keep: dict[str, Any] | None = None, machine: str = "dc") -> tuple[list, Any]:
     """Per window from ``t_from`` [s] on, CPU [s]: (whole, estimation, prognostics, ring
-    buffer, diagnosis, the saved twin); and the samples. The windows before are processed
+    buffer, diagnosis, the saved twin alone and with the diagnosis evidence); and the
+    samples. The windows before are processed
     (the trends' evidence, the fusion's history), not reported. ``machine``: a key of
     :data:`MACHINES`. ``noise`` (the default machine's only): the plant's measurement noise on
     ia and omega [% of their scale] (the density benchmark's plants have 0.5). ``keep``: given,
@@ -184,13 +185,15 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
         diag_cpu = time.process_time() - d
         complete_health(health, diagnosis=diagnosis, alarms={}).to_json()
         whole = time.process_time() - c
-        s = time.process_time()  # the state store's resume point, as the pipeline saves it
-        state = saved_twin(adapter, diagnoser, result.estimate.trusted)
-        if state is not None:
-            to_json(state.as_dict())
-        saved = time.process_time() - s
+        saved = []  # the state store's resume point, as the pipeline saves it: the twin
+        for evidence in (False, True):  # alone, and with the diagnoser's evidence
+            s = time.process_time()
+            state = saved_twin(adapter, diagnoser, result.estimate.trusted, evidence)
+            if state is not None:
+                to_json(state.as_dict())
+            saved.append(time.process_time() - s)
         if win.t[0] >= t_from and win.index > 0:
-            rows.append((whole, est.spent, prog.spent, ring_cpu, diag_cpu, saved))
+            rows.append((whole, est.spent, prog.spent, ring_cpu, diag_cpu, *saved))
             if keep is not None:
                 keep.update(model=model, nominal=nominal, window=win, estimate=result.estimate)
         ring_cpu = 0.0
@@ -358,7 +361,10 @@ def main() -> None:
     print(f"    diagnosis (the fault library's twins):              {_stats(list(a[:, 4]))}")
     print(f"    the rest (discovery check, health, JSON):            "
           f"{_stats(list(a[:, 0] - a[:, 1] - a[:, 2] - a[:, 4]))}")
-    print(f"  after it, the saved twin (state store's resume point): {_stats(list(a[:, 5]))}")
+    print("  after it, the saved twin (state store's resume point):")
+    print(f"    the twin, each trusted window:                      {_stats(list(a[:, 5]))}")
+    label = f"    with the diagnosis evidence, every {EVIDENCE_EVERY} windows:"
+    print(f"{label:<56}{_stats(list(a[:, 6]))}")
     e = kept["estimate"]
     estimated = [n for n, st in e.status.items() if st == "estimated"]
     sim, gn, iterations, values = floor_cost(kept["model"], kept["window"], estimated,

@@ -5,7 +5,9 @@ everything stayed in memory; the run's summary reads each window's digest, not t
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -58,3 +60,31 @@ def test_history_keeps_its_configured_length_from_the_store(
     daemon, seen = _run(tmp_path, store=True, history=5)
     assert [h.window for h in daemon.health_history] == [h.window for h in seen[-5:]]
     assert len(daemon.window_digests) == 5
+
+
+def test_the_diagnosis_evidence_is_saved_every_few_windows_and_at_the_stop(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The diagnoser's evidence (hundreds of kB) goes to the state database with the first
+    window, every :data:`~twinwatch.daemon.pipeline.EVIDENCE_EVERY` windows and at the stop,
+    not with every window; a restart resumes the last window's evidence."""
+    from twinwatch.io.encoding import to_json
+    from twinwatch.sinks.store import StateStore
+
+    monkeypatch.setattr(pipeline, "EVIDENCE_EVERY", 4)
+    saved: list[int] = []
+    keep = StateStore._keep_state
+
+    def spy(store: StateStore, machine: str, window: int, *args: Any) -> None:
+        if args[-1].get("diagnosis") is not None:
+            saved.append(window)
+        keep(store, machine, window, *args)
+
+    monkeypatch.setattr(StateStore, "_keep_state", spy)
+    daemon, seen = _run(tmp_path, store=True)
+    assert daemon.pipeline.diagnoser is not None and len(seen) >= 9
+    last = seen[-1].window
+    assert saved == [*range(0, last + 1, 4), *([last] if last % 4 else [])]
+    with StateStore(tmp_path / "state.sqlite") as st:
+        state = st.load_twin_state(seen[-1].machine)
+        now = json.loads(to_json(daemon.pipeline.diagnoser.state()))
+        assert state is not None and state["diagnosis"] == now

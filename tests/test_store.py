@@ -59,6 +59,37 @@ def test_round_trip_and_restart_restores(tmp_path: Path) -> None:
         assert latest is not None and latest.window == 4
 
 
+def test_the_diagnosis_evidence_is_kept_apart_and_joins_its_runs_twin(tmp_path: Path) -> None:
+    """A twin saved with its ``diagnosis`` (the diagnoser's evidence) is written as two rows:
+    a later twin saved without it (a trusted window between two checkpoints) keeps the
+    evidence on reading; another run's twin does not take it; a twin saved whole by an
+    earlier version keeps its own; :meth:`StateStore.save_state` saves without a window."""
+    db = tmp_path / "state.sqlite"
+    evidence = {"tracks": {"winding_short": [[0.1, 0.2], [0.3, 0.4]]}, "windows": 2}
+    with StateStore(db, run="r1") as st:
+        assert st.save_window(health(0), {**twin(6.5), "diagnosis": evidence})
+        assert st.save_window(health(1, ra=6.4), twin(6.4))
+        state = st.load_twin_state("m1")
+        assert state is not None and state["diagnosis"] == evidence
+        assert state["parameters"]["Ra"] == 6.4
+        with sqlite3.connect(db) as con:
+            row = con.execute("SELECT state FROM twin").fetchone()
+            assert "diagnosis" not in json.loads(row[0])
+        later = {**evidence, "windows": 3}
+        assert st.save_state("m1", 2, 6.0, {**twin(6.3), "diagnosis": later})
+        assert st.load_twin_state() == {**twin(6.3), "trusted": [6.3, 0.00143],
+                                        "diagnosis": later}
+    with StateStore(db, run="r2") as st:  # a fresh run's first twin: not the old evidence
+        assert st.save_window({**health(0, ra=6.5), "run": "r2"}, twin(6.5))
+        state = st.load_twin_state("m1")
+        assert state is not None and "diagnosis" not in state
+        whole = {**twin(6.5), "diagnosis": {"windows": 9}}
+        with sqlite3.connect(db) as con:  # as an earlier version saved it
+            con.execute("UPDATE twin SET state = ?", (json.dumps(whole, default=list),))
+        state = st.load_twin_state("m1")
+        assert state is not None and state["diagnosis"] == {"windows": 9}
+
+
 def test_history_by_plant_time_and_wall_time(tmp_path: Path) -> None:
     with StateStore(tmp_path / "s.sqlite") as st:
         for w in range(20):

@@ -414,6 +414,7 @@ class Daemon:
             self.worker.drain(timeout)
         finally:
             self.pipeline.stop(timeout)
+            self.pipeline.checkpoint()
 
     def process_window(self, window: WindowData) -> HealthMessage:
         """Process one window (:meth:`~twinwatch.daemon.pipeline.WindowPipeline.process`); with

@@ -511,6 +511,12 @@ class Gate(Sink):
         are all stored. Default: False (nothing to retry)."""
         return False
 
+    def save_state(self, machine: str, window: int, t_end: float,
+                   twin_state: Mapping[str, Any]) -> bool:
+        """Store the twin to resume from (as a window's, ``twin_state``) without a window: a
+        daemon's last, at its stop. True if stored. Default: False (nothing stored)."""
+        return False
+
     @abc.abstractmethod
     def load_twin_state(self, machine: str | None = None) -> dict[str, Any] | None:
         """The last accepted twin of ``machine``, as saved, or None."""

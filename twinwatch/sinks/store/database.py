@@ -55,6 +55,8 @@ _INSERT_HEALTH = ("INSERT INTO health (machine, run, window, t_start, t_end, wal
                   "VALUES (?, ?, ?, ?, ?, ?, ?)")
 _INSERT_TWIN = ("INSERT OR REPLACE INTO twin (machine, run, window, t_end, wall, state) "
                 "VALUES (?, ?, ?, ?, ?, ?)")
+_INSERT_DIAGNOSIS = ("INSERT OR REPLACE INTO diagnosis (machine, run, window, wall, state) "
+                     "VALUES (?, ?, ?, ?, ?)")
 
 
 class StateStore(Gate):
@@ -116,9 +118,10 @@ class StateStore(Gate):
         self._conns_lock = threading.Lock()
         self._write_lock = threading.Lock()
         self._pending: deque[tuple[Any, ...]] = deque(maxlen=backlog)
-        self._twin_pending: tuple[Any, ...] | None = None
+        #: the twin and the diagnosis evidence to write (their INSERT -> row)
+        self._state_pending: dict[str, tuple[Any, ...]] = {}
         self._recent: deque[tuple[Any, ...]] = deque(maxlen=max(recent, 0))
-        self._twin_saved: tuple[Any, ...] | None = None  # the twin row last committed
+        self._state_saved: dict[str, tuple[Any, ...]] = {}  # the rows last committed
         self._file_gone: str | None = None  # "deleted" / "replaced" / "moved", until reopened
         self._old_file: tuple[set[tuple[str, int]] | None, int] = (None, 0)
         # (output, machine) -> (run, window) delivered, read from the file left behind
@@ -421,8 +424,8 @@ class StateStore(Gate):
             top = int(conn.execute("SELECT COALESCE(MAX(id), 0) FROM health").fetchone()[0])
             try:
                 conn.executemany(_INSERT_HEALTH, rows)
-                if self._twin_saved is not None:
-                    conn.execute(_INSERT_TWIN, self._twin_saved)
+                for sql, saved in self._state_saved.items():
+                    conn.execute(sql, saved)
                 self._carry_outboxes(conn, top)
                 conn.execute("COMMIT")
             except sqlite3.Error:
@@ -447,7 +450,7 @@ class StateStore(Gate):
         self._file_gone = None
         event = (self.file_event or f"state database {self.path} was {why}").split(
             "; cannot be opened again")[0]
-        twin = "the saved twin and " if self._twin_saved is not None else ""
+        twin = "the saved twin and " if _INSERT_TWIN in self._state_saved else ""
         if why == "moved":
             self.file_event = (f"{event}: the windows stored until then stay in that file; a new "
                                f"one at the path holds {twin}the {len(rows)} windows in memory")
@@ -571,7 +574,7 @@ class StateStore(Gate):
         for another process's lock). True when nothing waits any more."""
         with self._write_lock:
             self._check_file()
-            if not self._pending and self._twin_pending is None:
+            if not self._pending and not self._state_pending:
                 return True
             return self._flush()
 
@@ -586,7 +589,9 @@ class StateStore(Gate):
             health: the health message (``machine``, ``run``, ``window``, ``t_start``,
                 ``t_end`` are indexed; without ``run`` it is stored under :attr:`run_id`).
             twin_state: the twin to resume from (any JSON-serialisable mapping, numpy
-                allowed), or None when this window was not trusted (the stored twin is kept).
+                allowed), or None when this window was not trusted (the stored twin is kept);
+                its ``diagnosis`` (the diagnoser's evidence), when there, is kept in a row of
+                its own (:meth:`_keep_state`).
             wall: wall-clock time [s since the epoch] of the window (default now).
             doc: the message already encoded, stored byte for byte; ``health`` then needs
                 only the indexed keys. None: ``health`` is encoded here.
@@ -612,8 +617,7 @@ class StateStore(Gate):
                              self._pending[0][2])
             self._pending.append(row)
             if twin_state is not None:
-                self._twin_pending = (machine, self.run_id, row[2], row[4], w,
-                                      to_json(twin_state))
+                self._keep_state(machine, row[2], row[4], w, twin_state)
             if not flush:
                 return False
             ok = self._flush()
@@ -623,6 +627,29 @@ class StateStore(Gate):
                 self._since_prune = 0
                 self.prune()
         return ok
+
+    def save_state(self, machine: str, window: int, t_end: float,
+                   twin_state: Mapping[str, Any]) -> bool:
+        """Store the twin to resume from, without a window (a daemon's last, at its stop):
+        :meth:`save_window`'s ``twin_state`` of window ``window`` ending at ``t_end`` [s].
+        Returns True if committed (else it waits in memory, as a window's twin does)."""
+        with self._write_lock:
+            self._check_file(window)
+            self._keep_state(machine, window, t_end, time.time(), twin_state)
+            return self._flush()
+
+    def _keep_state(self, machine: str, window: int, t_end: float, wall: float,
+                    twin_state: Mapping[str, Any]) -> None:
+        """Queue the twin's row and, when it carries one, the diagnosis evidence's: the
+        evidence (hundreds of kB) is written when the pipeline sends it, every few windows,
+        the twin (a few kB) with each trusted window. :meth:`load_twin_state` joins them."""
+        diagnosis = twin_state.get("diagnosis")
+        if diagnosis is not None:
+            twin_state = {k: v for k, v in twin_state.items() if k != "diagnosis"}
+            self._state_pending[_INSERT_DIAGNOSIS] = (machine, self.run_id, window, wall,
+                                                      to_json(diagnosis))
+        self._state_pending[_INSERT_TWIN] = (machine, self.run_id, window, t_end, wall,
+                                             to_json(twin_state))
 
     def _flush(self, retry: bool = True) -> bool:
         if self._file_gone is not None:  # no database file to write to yet: wait in memory
@@ -634,8 +661,8 @@ class StateStore(Gate):
         try:
             conn.execute("BEGIN IMMEDIATE")
             conn.executemany(_INSERT_HEALTH, list(self._pending))
-            if self._twin_pending is not None:
-                conn.execute(_INSERT_TWIN, self._twin_pending)
+            for sql, pending in self._state_pending.items():
+                conn.execute(sql, pending)
             conn.execute("COMMIT")
         except sqlite3.Error as exc:
             _rollback(conn)
@@ -657,9 +684,8 @@ class StateStore(Gate):
         if self._recent.maxlen:
             self._recent.extend(_packed(row) for row in self._pending)
         self._pending.clear()
-        if self._twin_pending is not None:
-            self._twin_saved = self._twin_pending
-        self._twin_pending = None
+        self._state_saved.update(self._state_pending)
+        self._state_pending.clear()
         return True
 
     def _flush_failed(self, exc: BaseException) -> bool:
@@ -754,14 +780,21 @@ class StateStore(Gate):
 
     # -- reading ------------------------------------------------------------------------------
     def load_twin_state(self, machine: str | None = None) -> dict[str, Any] | None:
-        """The last accepted twin, exactly as saved (None if none was saved).
+        """The last accepted twin, exactly as saved (None if none was saved), with the
+        diagnosis evidence its run saved last as ``diagnosis`` (a twin saved whole, by an
+        earlier version, keeps its own).
 
         Args:
             machine: whose twin (default: the most recently saved one).
         """
-        state = self._read("cannot read the twin state",
-                           lambda conn: queries.twin_state(conn, machine))
-        return None if state is None else dict(json.loads(state))
+        got = self._read("cannot read the twin state",
+                         lambda conn: queries.twin_state(conn, machine))
+        if got is None:
+            return None
+        state = dict(json.loads(got[0]))
+        if got[1] is not None and state.get("diagnosis") is None:
+            state["diagnosis"] = json.loads(got[1])
+        return state
 
     def history(self, t_from: float | None = None, t_to: float | None = None,
                 limit: int | None = 1000, *, by: Literal["plant", "wall"] = "plant",
@@ -875,7 +908,7 @@ class StateStore(Gate):
             return
         with self._write_lock:
             self._check_file()
-            if self._pending or self._twin_pending is not None:
+            if self._pending or self._state_pending:
                 if self._file_gone is not None or not self._flush():
                     self.lost += len(self._pending)
                     logger.error("state database %s: %d windows could not be written and are "

@@ -90,14 +90,21 @@ def last_docs(conn: sqlite3.Connection, machine: str, run: str, limit: int) -> l
     return [r[0] for r in reversed(rows)]
 
 
-def twin_state(conn: sqlite3.Connection, machine: str | None) -> str | None:
-    """The saved twin (JSON text) of ``machine`` (None: the most recently saved one), or
-    None."""
+def twin_state(conn: sqlite3.Connection, machine: str | None
+               ) -> tuple[str, str | None] | None:
+    """The saved twin (JSON text) of ``machine`` (None: the most recently saved one) and the
+    diagnosis evidence saved by the same run (JSON text, or None), or None."""
     if machine is None:
-        row = conn.execute("SELECT state FROM twin ORDER BY wall DESC LIMIT 1").fetchone()
+        row = conn.execute("SELECT machine, run, state FROM twin ORDER BY wall DESC "
+                           "LIMIT 1").fetchone()
     else:
-        row = conn.execute("SELECT state FROM twin WHERE machine = ?", (machine,)).fetchone()
-    return None if row is None else str(row[0])
+        row = conn.execute("SELECT machine, run, state FROM twin WHERE machine = ?",
+                           (machine,)).fetchone()
+    if row is None:
+        return None
+    diag = conn.execute("SELECT state FROM diagnosis WHERE machine = ? AND run = ?",
+                        (row[0], row[1])).fetchone()
+    return str(row[2]), None if diag is None else str(diag[0])
 
 
 def count(conn: sqlite3.Connection) -> int:

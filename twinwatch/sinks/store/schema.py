@@ -45,6 +45,13 @@ CREATE TABLE IF NOT EXISTS twin (
     wall REAL NOT NULL,
     state TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS diagnosis (
+    machine TEXT PRIMARY KEY,
+    run TEXT NOT NULL,
+    window INTEGER NOT NULL,
+    wall REAL NOT NULL,
+    state TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS outbox_position (
     output TEXT NOT NULL,
     machine TEXT NOT NULL,
