@@ -35,7 +35,11 @@ reported):
   window to the same answer.
 * ``acquisition``: the ring buffer's ``append`` for a window's 200 samples; the file driver
   reading them from a CSV as fast as it can (``realtime = false``) and replaying
-  ``--realtime-windows`` windows in real time (``realtime = true``: its waiting included); the
+  ``--realtime-windows`` windows in real time (``realtime = true``: its waiting included);
+  the file driver and the ring buffer together as the acquisition loop runs them, sample by
+  sample and in blocks (``read_block``, ``append_block``), and 50 real-time replays in
+  threads at once with the driver waking every 0.2 s (``PACE_SLACK``) and every 1 s (what a
+  machine's thread costs is mostly its wake-ups); the
   CAN driver replaying a Vector ASC log of the same plant (needs the test helpers; skipped
   without them), with the libraries' share of it: python-can's ``LogReader`` reading the log
   alone and cantools decoding each frame alone (the driver's floor while it uses them). The
@@ -253,7 +257,8 @@ def _write_csv(path: Path, samples: list) -> None:
 
 
 def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None,
-              ring: RingBuffer | None = None, blocks: bool = False) -> tuple[float, int]:
+              ring: RingBuffer | None = None, blocks: bool = False,
+              clock: Callable[[], float] = time.process_time) -> tuple[float, int]:
     """CPU [s] and samples read by the file driver (``realtime`` as configured), with
     ``ring`` stored into it too, with ``blocks`` read a window's rest at a time
     (``read_block``, ``append_block``) instead of sample by sample."""
@@ -263,7 +268,7 @@ def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None,
         table["stop"] = limit
     n = 0
     with create_driver(table, base_dir=None) as drv:
-        c = time.process_time()
+        c = clock()
         try:
             while True:
                 if blocks:
@@ -279,7 +284,35 @@ def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None,
                         ring.append(s.t, s.values)
         except EndOfStream:
             pass
-        return time.process_time() - c, n
+        return clock() - c, n
+
+
+def threads_cost(path: Path, chans: list[str], limit: int, machines: int, pace: float
+                 ) -> float:
+    """CPU [s] a sample of ``machines`` real-time replays in threads of one process at once,
+    each read in blocks into its ring buffer, the file driver waking every ``pace`` seconds
+    (its ``PACE_SLACK``): the threads' own CPU (``time.thread_time``), summed."""
+    import threading
+
+    import twinwatch.drivers.file as file_driver
+
+    spent: list[tuple[float, int]] = []
+    saved = file_driver.PACE_SLACK
+    file_driver.PACE_SLACK = pace
+
+    def one() -> None:
+        spent.append(file_cost(path, chans, True, limit, RingBuffer(
+            chans, window=200, sample_period=0.01), blocks=True, clock=time.thread_time))
+
+    try:
+        threads = [threading.Thread(target=one) for _ in range(machines)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        file_driver.PACE_SLACK = saved
+    return sum(c for c, _ in spent) / sum(n for _, n in spent)
 
 
 def can_cost(seconds: float) -> tuple[float, int, float, float, int] | None:
@@ -392,7 +425,8 @@ def main() -> None:
             cpu, n = file_cost(path, chans, True, args.realtime_windows * per)
             print(f"  file driver, real time ({n} samples):                "
                   f"{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a sample)")
-        print("  file driver -> ring buffer, as the acquisition loop runs it:")
+        print("  file driver -> ring buffer, as the acquisition loop runs it (blocks: "
+              "read_block, append_block):")
         for realtime in (False, True):
             if realtime and args.realtime_windows <= 0:
                 continue
@@ -400,10 +434,16 @@ def main() -> None:
             for blocks in (False, True):
                 cpu, n = file_cost(path, chans, realtime, limit, blocks=blocks, ring=RingBuffer(
                     chans, window=per, sample_period=kept["window"].sample_period))
-                how = "in blocks (read_block, append_block)" if blocks else "sample by sample"
-                print(f"    {'real time' if realtime else 'as fast as read'}, {how}:"
-                      f"{' ' * (40 - len(how) - (9 if realtime else 15))}"
-                      f"{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a sample)")
+                how = "in blocks" if blocks else "sample by sample"
+                label = f"    {'real time' if realtime else 'as fast as read'}, {how}:"
+                print(f"{label:<56}{cpu / n * per * 1e3:7.2f} ms ({cpu / n * 1e6:.1f} us a "
+                      "sample)")
+        if args.realtime_windows > 0:
+            print("    real time in blocks, 50 machines' threads at once, the driver waking")
+            for pace in (0.2, 1.0):
+                cpu = threads_cost(path, chans, args.realtime_windows * per, 50, pace)
+                label = f"      every {pace:g} s{' (PACE_SLACK)' if pace == 0.2 else ''}:"
+                print(f"{label:<56}{cpu * per * 1e3:7.2f} ms ({cpu * 1e6:.1f} us a sample)")
     can = can_cost(min(60.0, len(samples) * 0.01))
     if can is None:
         print("  CAN driver (ASC log replay): skipped (needs the test extras)")
