@@ -121,7 +121,9 @@ class StateStore(Gate):
         #: the twin and the diagnosis evidence to write (their INSERT -> row)
         self._state_pending: dict[str, tuple[Any, ...]] = {}
         self._recent: deque[tuple[Any, ...]] = deque(maxlen=max(recent, 0))
-        self._state_saved: dict[str, tuple[Any, ...]] = {}  # the rows last committed
+        #: the twin's row last committed, written again into a replaced file (the
+        #: diagnosis evidence, 400 kB, is not kept: the next checkpoint writes it)
+        self._twin_saved: tuple[Any, ...] | None = None
         self._file_gone: str | None = None  # "deleted" / "replaced" / "moved", until reopened
         self._old_file: tuple[set[tuple[str, int]] | None, int] = (None, 0)
         # (output, machine) -> (run, window) delivered, read from the file left behind
@@ -424,8 +426,8 @@ class StateStore(Gate):
             top = int(conn.execute("SELECT COALESCE(MAX(id), 0) FROM health").fetchone()[0])
             try:
                 conn.executemany(_INSERT_HEALTH, rows)
-                for sql, saved in self._state_saved.items():
-                    conn.execute(sql, saved)
+                if self._twin_saved is not None:
+                    conn.execute(_INSERT_TWIN, self._twin_saved)
                 self._carry_outboxes(conn, top)
                 conn.execute("COMMIT")
             except sqlite3.Error:
@@ -450,7 +452,7 @@ class StateStore(Gate):
         self._file_gone = None
         event = (self.file_event or f"state database {self.path} was {why}").split(
             "; cannot be opened again")[0]
-        twin = "the saved twin and " if _INSERT_TWIN in self._state_saved else ""
+        twin = "the saved twin and " if self._twin_saved is not None else ""
         if why == "moved":
             self.file_event = (f"{event}: the windows stored until then stay in that file; a new "
                                f"one at the path holds {twin}the {len(rows)} windows in memory")
@@ -684,7 +686,7 @@ class StateStore(Gate):
         if self._recent.maxlen:
             self._recent.extend(_packed(row) for row in self._pending)
         self._pending.clear()
-        self._state_saved.update(self._state_pending)
+        self._twin_saved = self._state_pending.get(_INSERT_TWIN, self._twin_saved)
         self._state_pending.clear()
         return True
 
