@@ -121,10 +121,8 @@ class WindowFit:
     def residuals_of(self, y: FloatArray) -> FloatArray:
         """Normalised residuals of simulated outputs ``y`` (P, N, n_out) or (N, n_out)."""
         y3 = y if y.ndim == 3 else y[None]
-        r = (y3[:, 1:, :] - self.meas[None, 1:, :]) * self._norm
-        r = r.reshape(r.shape[0], -1) / self._den
-        bad = ~np.all(np.isfinite(r), axis=1)
-        r[bad] = BAD_RESIDUAL
+        r = np.empty((y3.shape[0], (y3.shape[1] - 1) * y3.shape[2]))
+        _residuals_kernel(np.ascontiguousarray(y3), self.meas, self._norm, self._den, r)
         out: FloatArray = r if y.ndim == 3 else r[0]
         return out
 
@@ -149,6 +147,24 @@ class WindowFit:
             max_abs={o: float(np.max(np.abs(err[:, j]))) for j, o in enumerate(self.names)},
             nrmse=float(np.sqrt(np.mean(((err[1:]) * self._norm) ** 2))),
         )
+
+
+@njit(cache=True, nogil=True)
+def _residuals_kernel(y: FloatArray, meas: FloatArray, norm: FloatArray, den: float,
+                      r: FloatArray) -> None:  # pragma: no cover - compiled
+    """:meth:`WindowFit.residuals_of` into ``r`` (P, (N-1)*n_out): ``(y - meas)*norm/den``
+    from the second sample on, each step rounded as numpy's; a row with a non-finite entry
+    is :data:`BAD_RESIDUAL` everywhere."""
+    p, nk, n_out = y.shape
+    for q in range(p):
+        finite = True
+        for k in range(1, nk):
+            for j in range(n_out):
+                v = ((y[q, k, j] - meas[k, j]) * norm[j]) / den
+                r[q, (k - 1) * n_out + j] = v
+                finite = finite and np.isfinite(v)
+        if not finite:
+            r[q, :] = BAD_RESIDUAL
 
 
 class ParameterMap:
