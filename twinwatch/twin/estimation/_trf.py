@@ -56,7 +56,7 @@ def trust_region_reflective(fun: Callable[[FloatArray], FloatArray],
     x0 = make_strictly_feasible(x0, lb, ub)
     f0 = np.atleast_1d(fun(x0))
     j0 = np.atleast_2d(jac(x0))
-    if not np.all(np.isfinite(f0)):
+    if not np.isfinite(f0).all():
         raise ValueError("Residuals are not finite in the initial point.")
     scale = np.ones_like(x0)
     if np.all(lb == -np.inf) and np.all(ub == np.inf):

@@ -777,7 +777,8 @@ class Estimator:
             polished = polish(problem, found.q, enabled=cfg.polish,
                               model_error=cfg.model_error)
         if local:
-            rejected = self._residual_too_large(problem, polished.point.r)
+            # a confirmed point passed this test above
+            rejected = "" if admitted else self._residual_too_large(problem, polished.point.r)
             if rejected:
                 return _Fitted(problem, found, polished, GateDecision([], {}, {}),
                                polished.point, problem.twin_at(polished.point.v), None,

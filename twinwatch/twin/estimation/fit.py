@@ -461,7 +461,7 @@ def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
         (n, n) covariance; ``inf`` on the rows and columns of undetermined variables.
     """
     n = jac.shape[1]
-    if not np.all(np.isfinite(jac)):
+    if not np.isfinite(jac).all():
         return np.full((n, n), np.inf)
     col_norms = norms(jac, axis=0)
     safe = np.where(col_norms > 0, col_norms, 1.0)
@@ -535,8 +535,8 @@ def explained_rms(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
         (n_out,).
     """
     m = jac.shape[0]
-    finite = np.all(np.isfinite(cov), axis=0)
-    if not np.any(finite):
+    finite = np.isfinite(cov).all(axis=0)
+    if not finite.any():
         return np.zeros(n_out)
     j = jac[:, finite] * math.sqrt(m)
     c = cov[np.ix_(finite, finite)]
@@ -579,7 +579,7 @@ def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: floa
     res = r.reshape(-1, n_out)
     if levels is not None:
         var = np.maximum(np.asarray(levels, dtype=float) ** 2, floor**2)
-        cov = covariance(jac, np.tile(var / m, res.shape[0]))
+        cov = covariance(jac, _rows(var / m, res.shape[0]))
     else:
         cov = covariance(jac, residual_variances(r, n_out, floor, n, numerical))
     _COVARIANCES.put(key, cov.copy())
@@ -615,7 +615,7 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     m, n = jac.shape
     nt = m // n_out
     out = np.ones(n)
-    if n == 0 or nt < 4 or not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
+    if n == 0 or nt < 4 or not (np.isfinite(jac).all() and np.isfinite(r).all()):
         return out
     base = np.diag(parameter_covariance(jac, r, n_out, floor, numerical=numerical))
     g = (jac * r[:, None]).reshape(nt, n_out, n).sum(axis=1)
@@ -667,7 +667,15 @@ def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int,
         if rho is None:
             rho = rhos[j] = ar1(res[:, j], 1)
         var[j] = max(var[j], floor**2) * (1.0 + rho) / (1.0 - rho)
-    return np.tile(var / m, res.shape[0])
+    return _rows(var / m, res.shape[0])
+
+
+def _rows(per_output: FloatArray, nt: int) -> FloatArray:
+    """``np.tile(per_output, nt)``: each output's value on its rows of the interleaved
+    residual vector (nt * n_out,)."""
+    out = np.empty((nt, per_output.size))
+    out[:] = per_output
+    return out.reshape(-1)
 
 
 class _Recent:

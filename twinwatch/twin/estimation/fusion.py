@@ -300,7 +300,7 @@ class ParameterFusion:
                 gx = y_prior @ (x - mean) + h.T @ grad
                 hess_inv = _safe_inverse(hess)
                 dx = -hess_inv @ gx
-                if not np.all(np.isfinite(dx)):
+                if not np.isfinite(dx).all():
                     break
                 big_step = float(np.max(np.abs(dx[:n])))
                 if big_step > MAX_STEP:
@@ -466,7 +466,7 @@ def _first_held_step(problem: WindowProblem, polished: Polished, cols: np.ndarra
     step = -(inv @ (jac.T @ (w * r0)))[:cols.size]
     # a step beyond MAX_STEP is no Gauss-Newton step of a valid linearisation: the polish
     # moved a parameter outside ``cols`` that the filter holds at its trusted value
-    if not (np.all(np.isfinite(step)) and float(np.max(np.abs(step))) <= MAX_STEP):
+    if not (np.isfinite(step).all() and float(np.max(np.abs(step))) <= MAX_STEP):
         return None
     return step
 
@@ -476,7 +476,7 @@ def _safe_inverse(a: FloatArray) -> FloatArray:
     (near-zero ones treated as zero; non-finite entries as 0). Raises
     numpy.linalg.LinAlgError only if the eigen-decomposition does not converge."""
     a = np.asarray(a, dtype=float)
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         a = np.where(np.isfinite(a), a, 0.0)
     try:
         out: FloatArray = _safe_inverse_finite(np.ascontiguousarray(a))

@@ -131,7 +131,7 @@ def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int,
         if length < min_run:
             continue
         twin = y[k0:k0 + length, j]
-        if not np.all(np.isfinite(twin)):
+        if not np.isfinite(twin).all():
             continue
         value = float(meas[k0])
         if np.mean(np.abs(twin - value) <= 1e-9 * max(abs(value), 1.0)) > 0.5:
