@@ -620,10 +620,15 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     base = np.diag(parameter_covariance(jac, r, n_out, floor, numerical=numerical))
     g = (jac * r[:, None]).reshape(nt, n_out, n).sum(axis=1)
     big_l = max(1, min(lags if lags is not None else nt // 4, nt - 1))
-    s = g.T @ g
+    # s = g^T g + sum_l w_l (G_l + G_l^T), G_l = g[l:]^T g[:-l], summed lag after lag
+    terms = np.empty((big_l + 1, n, n))
+    terms[0] = g.T @ g
     for lag in range(1, big_l + 1):
-        gl = g[lag:].T @ g[:-lag]
-        s += (1.0 - lag / (big_l + 1.0)) * (gl + gl.T)
+        np.matmul(g[lag:].T, g[:-lag], out=terms[lag])
+    both = terms[1:] + terms[1:].transpose(0, 2, 1)
+    both *= (1.0 - np.arange(1, big_l + 1) / (big_l + 1.0))[:, None, None]
+    terms[1:] = both
+    s = np.add.accumulate(terms, axis=0)[-1]
     col_norms = norms(jac, axis=0)
     safe = np.where(col_norms > 0, col_norms, 1.0)
     js = jac / safe
