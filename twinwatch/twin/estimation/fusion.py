@@ -152,6 +152,9 @@ class ParameterFusion:
         self.last_outlier: tuple[str, float] | None = None
         # per parameter, its last windows' normalised innovations and innovations (ln)
         self._shift: dict[int, deque[tuple[float, float]]] = {}
+        #: the trend model's transition F and process noise Q of the last (dt, level_noise,
+        #: rate_noise) (:meth:`_predict`)
+        self._transition: tuple[Any, FloatArray, FloatArray] = (None, np.eye(0), np.eye(0))
         self.reset(start)
 
     @property
@@ -178,13 +181,17 @@ class ParameterFusion:
             return s.mean.copy(), s.cov.copy()
         if not self.trend:
             return s.mean.copy(), s.cov + np.eye(n) * c.level_noise**2 * dt
-        f = np.eye(2 * n)
-        f[:n, n:] = np.eye(n) * dt
-        ql, qr = c.level_noise**2, c.rate_noise**2
-        q = np.zeros((2 * n, 2 * n))
-        q[:n, :n] = np.eye(n) * (ql * dt + qr * dt**3 / 3.0)
-        q[:n, n:] = q[n:, :n] = np.eye(n) * (qr * dt**2 / 2.0)
-        q[n:, n:] = np.eye(n) * (qr * dt)
+        key = (dt, c.level_noise, c.rate_noise)
+        if self._transition[0] != key:  # the windows come at one spacing: built once
+            f = np.eye(2 * n)
+            f[:n, n:] = np.eye(n) * dt
+            ql, qr = c.level_noise**2, c.rate_noise**2
+            q = np.zeros((2 * n, 2 * n))
+            q[:n, :n] = np.eye(n) * (ql * dt + qr * dt**3 / 3.0)
+            q[:n, n:] = q[n:, :n] = np.eye(n) * (qr * dt**2 / 2.0)
+            q[n:, n:] = np.eye(n) * (qr * dt)
+            self._transition = (key, f, q)
+        _, f, q = self._transition
         return f @ s.mean, f @ s.cov @ f.T + q
 
     def predict(self, t: float) -> tuple[FloatArray, FloatArray]:
@@ -245,6 +252,7 @@ class ParameterFusion:
             w = 1.0 / np.maximum(row_var, 1e-300)
             h = np.zeros((n, self.n_state))
             h[:, :n] = np.eye(n)
+            at = np.ix_(sel, sel)
 
             def evidence(x: FloatArray) -> tuple[FloatArray, FloatArray]:
                 """The window's information (n, n) and gradient (n,) at ln-parameters x, its
@@ -259,7 +267,7 @@ class ParameterFusion:
                     gsub = gsub - big[:k, k:] @ inn @ g[k:]
                 info = np.zeros((n, n))
                 grad = np.zeros(n)
-                info[np.ix_(sel, sel)] = 0.5 * (sub + sub.T)
+                info[at] = 0.5 * (sub + sub.T)
                 grad[sel] = gsub
                 return info, grad
 
@@ -270,9 +278,11 @@ class ParameterFusion:
             step = -_safe_inverse(info) @ grad
             p_inv = _safe_inverse(cov[:n, :n])
             s_inv = info - info @ _safe_inverse(p_inv + info) @ info
-            rank = int(np.sum(np.linalg.eigvalsh(info)
-                              > 1e-12 * max(float(np.abs(info).max()), 1e-300)))
+            rank = int(np.count_nonzero(np.linalg.eigvalsh(info)
+                                        > 1e-12 * max(float(np.abs(info).max()), 1e-300)))
             nis = float(step @ s_inv @ step) / max(rank, 1)
+            # the window's own (marginal) covariance on the parameters it informs
+            r_sel = _safe_inverse(info[at]) if sel.size else np.zeros((0, 0))
             if math.isfinite(nis) and nis > self.config.jump_threshold:
                 # a sudden change is a step of the levels, not of their rates: each level's
                 # variance grows, the rates' and the cross terms stay; only the levels the
@@ -284,8 +294,8 @@ class ParameterFusion:
                 jump = True
                 self._shift = {}
             else:
-                jump = self._level_shift(step, info, cov, sel)
-            z2 = self._normalised_innovations(step, info, cov, sel)
+                jump = self._level_shift(step, r_sel, cov, sel)
+            z2 = self._normalised_innovations(step, r_sel, cov, sel)
             y_prior = _safe_inverse(cov)
             x = mean.copy()
             if start is not None:
@@ -347,15 +357,15 @@ class ParameterFusion:
         return sc.copy()
 
     @staticmethod
-    def _normalised_innovations(step: FloatArray, info: FloatArray, cov: FloatArray,
+    def _normalised_innovations(step: FloatArray, r: FloatArray, cov: FloatArray,
                                 sel: np.ndarray) -> dict[int, float]:
         """Per parameter the window informs, its squared normalised innovation: the window's
         own estimate against the prediction (``step``, ln), over the sum of the prediction's
-        variance (after a jump's or a level shift's inflation) and the window's marginal one;
-        about 1 on average when the windows' standard errors and the filter are right."""
+        variance (after a jump's or a level shift's inflation) and the window's marginal one
+        (the diagonal of ``r``, the inverse of its information on ``sel``); about 1 on average
+        when the windows' standard errors and the filter are right."""
         if sel.size == 0:
             return {}
-        r = _safe_inverse(info[np.ix_(sel, sel)])
         out = {}
         for j, i in enumerate(sel):
             var = float(cov[i, i]) + float(r[j, j])
@@ -364,19 +374,19 @@ class ParameterFusion:
                 out[int(i)] = d * d / var
         return out
 
-    def _level_shift(self, step: FloatArray, info: FloatArray, cov: FloatArray,
+    def _level_shift(self, step: FloatArray, r: FloatArray, cov: FloatArray,
                      sel: np.ndarray) -> bool:
         """The windowed test for a level shift (a generalised likelihood ratio over the last
         :data:`SHIFT_WINDOWS` windows; Basseville and Nikiforov, *Detection of Abrupt
         Changes*, 1993, Section 2.4): per parameter the window informs, its innovation ``d``
         (the window's own estimate against the prediction, ln) over its standard deviation
-        (the prediction's and the window's marginal variances) is kept; when, for the last m
+        (the prediction's and the window's marginal variances, ``r``'s diagonal as in
+        :meth:`_normalised_innovations`) is kept; when, for the last m
         windows, ``(sum z)^2 / m`` exceeds ``jump_threshold`` the level has moved by about the
         innovations' mean and the prediction's variance of that parameter (``cov``, changed in
         place) grows by its square, so the filter follows. Returns whether one did."""
         if sel.size == 0:
             return False
-        r = _safe_inverse(info[np.ix_(sel, sel)])
         shifted = False
         for j, i in enumerate(sel):
             r_ii = float(r[j, j])
