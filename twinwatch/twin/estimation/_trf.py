@@ -92,10 +92,9 @@ def _trf_bounds(fun: Callable[[FloatArray], FloatArray], jac: Callable[[FloatArr
 
     def scaling(x: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]:
         # scipy's CL_scaling_vector: v the distance to the bound the gradient points at
-        v = np.where((g < 0) & up, ub - x, 1.0)
-        dv = np.where((g < 0) & up, -1.0, 0.0)
-        mask = (g > 0) & low
-        return np.where(mask, x - lb, v), np.where(mask, 1.0, dv)
+        to_ub, to_lb = (g < 0) & up, (g > 0) & low
+        v = np.where(to_lb, x - lb, np.where(to_ub, ub - x, 1.0))
+        return v, np.where(to_lb, 1.0, np.where(to_ub, -1.0, 0.0))
 
     v, dv = scaling(x, g)
     delta = _norm(x0 / v**0.5)
@@ -117,7 +116,7 @@ def _trf_bounds(fun: Callable[[FloatArray], FloatArray], jac: Callable[[FloatArr
         diag_h = g * dv
         g_h = d * g
         f_aug[:m] = f
-        j_aug[:m] = jm * d
+        np.multiply(jm, d, out=j_aug[:m])
         j_h = j_aug[:m]
         j_aug[m:] = np.diag(diag_h**0.5)
         u, s, vt = svd(j_aug, full_matrices=False)
@@ -131,7 +130,7 @@ def _trf_bounds(fun: Callable[[FloatArray], FloatArray], jac: Callable[[FloatArr
             step, step_h, predicted = select_step(x, j_h, diag_h, g_h, p, p_h, d, delta, lb, ub,
                                                   theta)
             x_new = x + step
-            if np.any(x_new <= lb) or np.any(x_new >= ub):
+            if (x_new <= lb).any() or (x_new >= ub).any():
                 x_new = make_strictly_feasible(x_new, lb, ub, rstep=0)
             f_new = fun(x_new)
             nfev += 1

@@ -82,8 +82,9 @@ def autocorrelation(x: FloatArray, lags: int) -> FloatArray:
     out = np.zeros(lags + 1)
     if den <= 0:
         return out
-    for k in range(min(lags, n - 1) + 1):
-        out[k] = float(x[k:] @ x[:n - k]) / den
+    top = min(lags, n - 1) + 1
+    out[:top] = [x[k:] @ x[:n - k] for k in range(top)]
+    out[:top] /= den
     return out
 
 
@@ -222,7 +223,7 @@ def _cross_correlation(e: FloatArray, prepared: tuple[FloatArray, float, FloatAr
     se = float(np.sqrt(e @ e / n))
     if se == 0 or su == 0:
         return 0.0, 1.0
-    r = np.array([float(e[k:] @ u[:n - k]) / (n * se * su) for k in range(m + 1)])
+    r = np.array([e[k:] @ u[:n - k] for k in range(m + 1)]) / (n * se * su)
     proj = vt @ r
     s = float(n * np.sum(proj**2 / w))
     return s, _chi2_sf(s, int(w.size))
