@@ -252,7 +252,7 @@ class ParameterFusion:
             w = 1.0 / np.maximum(row_var, 1e-300)
             h = np.zeros((n, self.n_state))
             h[:, :n] = np.eye(n)
-            at = np.ix_(sel, sel)
+            sel_ix = np.ix_(sel, sel)
 
             def evidence(x: FloatArray) -> tuple[FloatArray, FloatArray]:
                 """The window's information (n, n) and gradient (n,) at ln-parameters x, its
@@ -267,7 +267,7 @@ class ParameterFusion:
                     gsub = gsub - big[:k, k:] @ inn @ g[k:]
                 info = np.zeros((n, n))
                 grad = np.zeros(n)
-                info[at] = 0.5 * (sub + sub.T)
+                info[sel_ix] = 0.5 * (sub + sub.T)
                 grad[sel] = gsub
                 return info, grad
 
@@ -282,7 +282,7 @@ class ParameterFusion:
                                         > 1e-12 * max(float(np.abs(info).max()), 1e-300)))
             nis = float(step @ s_inv @ step) / max(rank, 1)
             # the window's own (marginal) covariance on the parameters it informs
-            r_sel = _safe_inverse(info[at]) if sel.size else np.zeros((0, 0))
+            r_sel = _safe_inverse(info[sel_ix]) if sel.size else np.zeros((0, 0))
             if math.isfinite(nis) and nis > self.config.jump_threshold:
                 # a sudden change is a step of the levels, not of their rates: each level's
                 # variance grows, the rates' and the cross terms stay; only the levels the
@@ -303,6 +303,7 @@ class ParameterFusion:
                 if bounds is not None:
                     x[:n] = np.clip(x[:n], bounds[0], bounds[1])
                 info, grad = evidence(x[:n])
+            hess_inv = None
             for it in range(iterations):
                 if it:
                     info, grad = evidence(x[:n])
@@ -340,7 +341,9 @@ class ParameterFusion:
                         self.state = predicted
                         return False
             self._outlier_run = []
-            cov_post = _safe_inverse(y_prior + h.T @ info @ h)
+            # the last iteration's inverse Hessian is the posterior's (the same information)
+            cov_post = (_safe_inverse(y_prior + h.T @ info @ h) if hess_inv is None
+                        else hess_inv)
             mean = x
             cov = 0.5 * (cov_post + cov_post.T)
             for i, v in z2.items():
