@@ -191,7 +191,8 @@ class ParameterMap:
         """Full parameter vectors (P, n_params) from ln-parameter rows ``q`` (P, n_est), the
         others taken from ``base`` (n_params,), ties applied."""
         q = np.atleast_2d(q)
-        theta = np.repeat(np.asarray(base, dtype=float)[None, :], q.shape[0], axis=0)
+        theta = np.empty((q.shape[0], len(self.names)))
+        theta[:] = base
         theta[:, self.idx] = np.exp(q)
         self.apply_ties(theta)
         return theta
@@ -408,19 +409,21 @@ class LocalFit:
             last: dict[str, FloatArray] = {}
             k = active.size
             rows = np.repeat(v[None, :], k + 1, axis=0)
+            stepped = 1 + np.arange(k)
 
             def fun(x: FloatArray) -> FloatArray:
                 # The point and its forward differences (:meth:`jacobian`'s rows) in one twin
                 # call: least_squares asks for the Jacobian where it just evaluated fun.
                 rows[:, active] = x
-                rows[1 + np.arange(k), active] += 1e-6
+                rows[stepped, active] += 1e-6
                 r_all = self.residuals(rows)
                 last["x"], last["r"], last["d"] = x.copy(), r_all[0], r_all[1:]
                 r0: FloatArray = r_all[0]
                 return r0
 
             def jac(x: FloatArray) -> FloatArray:
-                if not ("x" in last and np.array_equal(last["x"], x)):
+                seen = last.get("x")
+                if seen is None or seen.shape != x.shape or not (seen == x).all():
                     fun(x)
                 return ((last["d"] - last["r"][None, :]) / 1e-6).T
 
