@@ -73,7 +73,7 @@ from twinwatch.twin.estimation.problem import FitPoint, TwinAt, WindowProblem, c
 from twinwatch.twin.estimation.publish import ParameterStatus, publish
 from twinwatch.twin.estimation.quality import SensorFault, live_outputs, sensor_faults
 from twinwatch.twin.estimation.search import PSOSettings, SearchResult, global_search, warm_start
-from twinwatch.twin.estimation.statistics import ModelCheck, noise_level
+from twinwatch.twin.estimation.statistics import ModelCheck, mean, noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
@@ -862,9 +862,9 @@ class Estimator:
         :func:`~twinwatch.twin.estimation.statistics.noise_level`, floored by
         ``model_error``) and the last swarm window's nRMSE."""
         n_out = problem.n_out
-        nrmse = float(np.sqrt(np.sum(r * r)))
+        nrmse = float(np.sqrt((r * r).sum()))
         white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
-        explained = float(np.sqrt(np.mean(np.maximum(white, self.config.model_error) ** 2)))
+        explained = float(np.sqrt(mean(np.maximum(white, self.config.model_error) ** 2)))
         limit = self.config.local_residual_ratio * max(explained, self._swarm_nrmse)
         if np.isfinite(nrmse) and nrmse <= limit:
             return ""

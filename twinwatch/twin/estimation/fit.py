@@ -143,9 +143,9 @@ class WindowFit:
         """RMSE, worst error (per output, in its unit) and nRMSE of one trajectory (N, n_out)."""
         err = y - self.meas
         return Residual(
-            rmse={o: float(np.sqrt(np.mean(err[:, j] ** 2))) for j, o in enumerate(self.names)},
-            max_abs={o: float(np.max(np.abs(err[:, j]))) for j, o in enumerate(self.names)},
-            nrmse=float(np.sqrt(np.mean(((err[1:]) * self._norm) ** 2))),
+            rmse={o: float(np.sqrt(mean(err[:, j] ** 2))) for j, o in enumerate(self.names)},
+            max_abs={o: float(np.abs(err[:, j]).max()) for j, o in enumerate(self.names)},
+            nrmse=float(np.sqrt(mean(((err[1:]) * self._norm) ** 2))),
         )
 
 

@@ -313,13 +313,13 @@ class ParameterFusion:
                 dx = -hess_inv @ gx
                 if not np.isfinite(dx).all():
                     break
-                big_step = float(np.max(np.abs(dx[:n])))
+                big_step = float(np.abs(dx[:n]).max())
                 if big_step > MAX_STEP:
                     dx = dx * (MAX_STEP / big_step)
                 x = x + dx
                 if bounds is not None:
                     x[:n] = np.clip(x[:n], bounds[0], bounds[1])
-                if float(np.max(np.abs(dx[:n]))) < 1e-9:
+                if float(np.abs(dx[:n]).max()) < 1e-9:
                     break
                 if step_tol > 0 and np.all(np.abs(dx[:n]) <= step_tol * np.sqrt(
                         np.maximum(np.diag(hess_inv)[:n], 0.0))):
@@ -479,7 +479,7 @@ def _first_held_step(problem: WindowProblem, polished: Polished, cols: np.ndarra
     step = -(inv @ (jac.T @ (w * r0)))[:cols.size]
     # a step beyond MAX_STEP is no Gauss-Newton step of a valid linearisation: the polish
     # moved a parameter outside ``cols`` that the filter holds at its trusted value
-    if not (np.isfinite(step).all() and float(np.max(np.abs(step))) <= MAX_STEP):
+    if not (np.isfinite(step).all() and float(np.abs(step).max()) <= MAX_STEP):
         return None
     return step
 

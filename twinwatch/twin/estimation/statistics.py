@@ -67,10 +67,10 @@ def ar1(r: FloatArray, n_out: int) -> float:
         n_out: number of outputs.
     """
     res = _matrix(r, n_out)
-    den = float(np.sum(res * res))
+    den = float((res * res).sum())
     if den <= 0:
         return 0.0
-    return min(max(float(np.sum(res[1:] * res[:-1])) / den, 0.0), 0.99)
+    return min(max(float((res[1:] * res[:-1]).sum()) / den, 0.0), 0.99)
 
 
 def autocorrelation(x: FloatArray, lags: int) -> FloatArray:
