@@ -49,6 +49,10 @@ def test_la_of_a_fast_motor_is_not_observable_at_10_ms() -> None:
         assert e.values["La"] == pytest.approx(0.013, rel=1e-12)  # its trusted value
     slow = Estimator(DCMotorTwin(structure="open_loop"), EstimationConfig())
     assert slow.unobservable(wins[0]) == {}
+    # the answer follows the trusted values: the same estimator with the paper's La observes it
+    assert "La" in est.unobservable(wins[0])
+    est.set_trusted({"La": 0.673})
+    assert est.unobservable(wins[0]) == {}
 
 
 def test_the_gate_skips_an_unobservable_parameter_without_holding_the_rest() -> None:

@@ -386,6 +386,8 @@ class Estimator:
         self._live: dict[str, bool] = {}
         #: Per output, the level it was last found saturated at.
         self._clips: dict[str, float] = {}
+        #: :meth:`unobservable`'s last answer and the (sample period, trusted vector) it is for
+        self._unobservable: tuple[Any, dict[str, str]] = (None, {})
         #: Per trusted parameter, the values it was fitted with held: name -> (d ln p / d ln q,
         #: q's trusted value then, q's :attr:`_anew` count then) (:meth:`_keep_consistent`).
         self._depends: dict[str, dict[str, tuple[float, float, int]]] = {}
@@ -990,13 +992,16 @@ class Estimator:
         period = window.sample_period
         if not (period > 0):
             return {}
-        out = {}
-        for name, (tau, what) in self.model.time_constants(self.trusted_values()).items():
-            if name in self.pmap.estimate and 0 < tau < period:
-                out[name] = (f"not observable at this sample rate ({what} = "
-                             f"{tau * 1e3:.3g} ms, below the {period * 1e3:.3g} ms sample "
-                             "period)")
-        return out
+        key = (period, self.trusted.tobytes())
+        if self._unobservable[0] != key:  # asked by each stage of a window: answered once
+            out = {}
+            for name, (tau, what) in self.model.time_constants(self.trusted_values()).items():
+                if name in self.pmap.estimate and 0 < tau < period:
+                    out[name] = (f"not observable at this sample rate ({what} = "
+                                 f"{tau * 1e3:.3g} ms, below the {period * 1e3:.3g} ms "
+                                 "sample period)")
+            self._unobservable = (key, out)
+        return dict(self._unobservable[1])
 
     def trusted_std_values(self) -> dict[str, float]:
         """Every parameter's trusted value's relative standard error (0: a nameplate or a
