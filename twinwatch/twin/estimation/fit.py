@@ -91,6 +91,12 @@ class WindowFit:
         """Samples in the window."""
         return int(self.meas.shape[0])
 
+    @functools.cached_property
+    def longest_runs(self) -> list[tuple[int, int]]:
+        """Per output, (first sample, length) of the longest run of exactly equal
+        consecutive readings (the sensor checks', :mod:`~twinwatch.twin.estimation.quality`)."""
+        return [_longest_run(self.meas[:, j]) for j in range(self.n_out)]
+
     def simulate(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None,
                  initial: FloatArray | None = None) -> FloatArray:
         """The twin's outputs (P, N, n_out) for parameter vectors ``theta`` (P, n_params);
@@ -165,6 +171,18 @@ def _residuals_kernel(y: FloatArray, meas: FloatArray, norm: FloatArray, den: fl
                 finite = finite and np.isfinite(v)
         if not finite:
             r[q, :] = BAD_RESIDUAL
+
+
+def _longest_run(x: FloatArray) -> tuple[int, int]:
+    """(first index, length) of the longest run of exactly equal consecutive values."""
+    if x.size == 0:
+        return 0, 0
+    change = np.flatnonzero(x[1:] != x[:-1]) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [x.size]])
+    lengths = ends - starts
+    i = int(np.argmax(lengths))
+    return int(starts[i]), int(lengths[i])
 
 
 class ParameterMap:
