@@ -84,6 +84,9 @@ class WindowData:
         self._period = (self.t, value)
         return value
 
+    def __getitem__(self, name: str) -> FloatArray:
+        return self.channels[name]
+
 
 def _median(x: FloatArray) -> float:
     """``float(np.median(x))`` of a 1-D float array (n >= 1): the middle of the partitioned
@@ -96,9 +99,6 @@ def _median(x: FloatArray) -> float:
         return float(np.partition(x, k // 2)[k // 2])
     part = np.partition(x, [k // 2 - 1, k // 2])
     return float(np.add.reduce(part[k // 2 - 1:k // 2 + 1]) / 2)
-
-    def __getitem__(self, name: str) -> FloatArray:
-        return self.channels[name]
 
 
 @dataclass(frozen=True, slots=True)
