@@ -561,7 +561,7 @@ class DCMotorTwin(SubStepTwin):
             theta = np.repeat(theta[:1], rows, axis=0)
         off = _zeros(2) if initial is None else np.atleast_2d(np.asarray(initial, dtype=float))
         if off.shape[0] not in (1, rows) or off.shape[1:] != (2,):
-            raise ValueError(f"initial: shape {np.shape(initial)}, expected (2,) or ({rows}, 2)")
+            raise ValueError(f"initial: shape {off.shape}, expected (2,) or ({rows}, 2)")
         if self._fast:
             return self._simulate_fast(theta, window, f_w, f_i, off)
         off = np.broadcast_to(off, (rows, 2))
