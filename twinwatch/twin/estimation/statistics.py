@@ -78,12 +78,12 @@ def autocorrelation(x: FloatArray, lags: int) -> FloatArray:
     offset is model error too), ``rho[0] = 1``; zeros for an all-zero series."""
     x = np.asarray(x, dtype=float)
     n = x.size
-    den = float(x @ x)
+    den = float(x.dot(x))
     out = np.zeros(lags + 1)
     if den <= 0:
         return out
     top = min(lags, n - 1) + 1
-    out[:top] = [x[k:] @ x[:n - k] for k in range(top)]
+    out[:top] = [x[k:].dot(x[:n - k]) for k in range(top)]  # ddot, as @, without matmul's dispatch
     out[:top] /= den
     return out
 
@@ -199,7 +199,7 @@ def _input_correlation(u: FloatArray, lags: int
     u = u - float(mean(u))
     n = u.size
     m = max(0, min(lags, n - 2))
-    su = float(np.sqrt(u @ u / n))
+    su = float(np.sqrt(u.dot(u) / n))
     if su == 0:
         return u, su, np.zeros(0), np.zeros((0, m + 1))
     ru = autocorrelation(u, m)
@@ -220,10 +220,10 @@ def _cross_correlation(e: FloatArray, prepared: tuple[FloatArray, float, FloatAr
     e = e - float(mean(e))
     n = e.size
     m = vt.shape[1] - 1
-    se = float(np.sqrt(e @ e / n))
+    se = float(np.sqrt(e.dot(e) / n))
     if se == 0 or su == 0:
         return 0.0, 1.0
-    r = np.array([e[k:] @ u[:n - k] for k in range(m + 1)]) / (n * se * su)
+    r = np.array([e[k:].dot(u[:n - k]) for k in range(m + 1)]) / (n * se * su)
     proj = vt @ r
     s = float(n * np.sum(proj**2 / w))
     return s, _chi2_sf(s, int(w.size))
