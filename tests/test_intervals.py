@@ -49,6 +49,10 @@ def test_la_of_a_fast_motor_is_not_observable_at_10_ms() -> None:
         assert e.values["La"] == pytest.approx(0.013, rel=1e-12)  # its trusted value
     slow = Estimator(DCMotorTwin(structure="open_loop"), EstimationConfig())
     assert slow.unobservable(wins[0]) == {}
+    # the answer follows the trusted values: the same estimator with the paper's La observes it
+    assert "La" in est.unobservable(wins[0])
+    est.set_trusted({"La": 0.673})
+    assert est.unobservable(wins[0]) == {}
 
 
 def test_the_gate_skips_an_unobservable_parameter_without_holding_the_rest() -> None:
@@ -171,3 +175,21 @@ def test_a_rolled_back_window_publishes_no_fused_value_that_took_its_evidence() 
             assert w.values[name] == pytest.approx(w.fused[name][0], rel=1e-12)
         elif e.status[name] == "fused":
             assert status == "held" and "rolled back" in w.held[name]
+
+
+def test_the_trend_prediction_follows_the_spacing_and_the_noise() -> None:
+    """The trend model's transition and process noise are built once per window spacing: a
+    prediction after one at another spacing, or with other noise levels, is a fresh filter's,
+    number for number."""
+    start = np.array([2.0, 3.0])
+    used = ParameterFusion(("a", "b"), start, FusionConfig())
+    used.state.t = 0.0
+    used.predict(2.0)
+    for t, config in ((5.0, used.config),
+                      (5.0, used.config.model_copy(update={"rate_noise": 3e-4})),
+                      (5.0, used.config.model_copy(update={"level_noise": 2e-3}))):
+        used.config = config
+        fresh = ParameterFusion(("a", "b"), start, config)
+        fresh.state.t = 0.0
+        for ours, ref in zip(used.predict(t), fresh.predict(t), strict=True):
+            np.testing.assert_array_equal(ours, ref)

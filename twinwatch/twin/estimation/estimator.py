@@ -73,7 +73,7 @@ from twinwatch.twin.estimation.problem import FitPoint, TwinAt, WindowProblem, c
 from twinwatch.twin.estimation.publish import ParameterStatus, publish
 from twinwatch.twin.estimation.quality import SensorFault, live_outputs, sensor_faults
 from twinwatch.twin.estimation.search import PSOSettings, SearchResult, global_search, warm_start
-from twinwatch.twin.estimation.statistics import ModelCheck, noise_level
+from twinwatch.twin.estimation.statistics import ModelCheck, mean, noise_level
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 logger = logging.getLogger(__name__)
@@ -386,6 +386,8 @@ class Estimator:
         self._live: dict[str, bool] = {}
         #: Per output, the level it was last found saturated at.
         self._clips: dict[str, float] = {}
+        #: :meth:`unobservable`'s last answer and the (sample period, trusted vector) it is for
+        self._unobservable: tuple[Any, dict[str, str]] = (None, {})
         #: Per trusted parameter, the values it was fitted with held: name -> (d ln p / d ln q,
         #: q's trusted value then, q's :attr:`_anew` count then) (:meth:`_keep_consistent`).
         self._depends: dict[str, dict[str, tuple[float, float, int]]] = {}
@@ -777,7 +779,8 @@ class Estimator:
             polished = polish(problem, found.q, enabled=cfg.polish,
                               model_error=cfg.model_error)
         if local:
-            rejected = self._residual_too_large(problem, polished.point.r)
+            # a confirmed point passed this test above
+            rejected = "" if admitted else self._residual_too_large(problem, polished.point.r)
             if rejected:
                 return _Fitted(problem, found, polished, GateDecision([], {}, {}),
                                polished.point, problem.twin_at(polished.point.v), None,
@@ -861,9 +864,9 @@ class Estimator:
         :func:`~twinwatch.twin.estimation.statistics.noise_level`, floored by
         ``model_error``) and the last swarm window's nRMSE."""
         n_out = problem.n_out
-        nrmse = float(np.sqrt(np.sum(r * r)))
+        nrmse = float(np.sqrt((r * r).sum()))
         white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
-        explained = float(np.sqrt(np.mean(np.maximum(white, self.config.model_error) ** 2)))
+        explained = float(np.sqrt(mean(np.maximum(white, self.config.model_error) ** 2)))
         limit = self.config.local_residual_ratio * max(explained, self._swarm_nrmse)
         if np.isfinite(nrmse) and nrmse <= limit:
             return ""
@@ -989,13 +992,16 @@ class Estimator:
         period = window.sample_period
         if not (period > 0):
             return {}
-        out = {}
-        for name, (tau, what) in self.model.time_constants(self.trusted_values()).items():
-            if name in self.pmap.estimate and 0 < tau < period:
-                out[name] = (f"not observable at this sample rate ({what} = "
-                             f"{tau * 1e3:.3g} ms, below the {period * 1e3:.3g} ms sample "
-                             "period)")
-        return out
+        key = (period, self.trusted.tobytes())
+        if self._unobservable[0] != key:  # asked by each stage of a window: answered once
+            out = {}
+            for name, (tau, what) in self.model.time_constants(self.trusted_values()).items():
+                if name in self.pmap.estimate and 0 < tau < period:
+                    out[name] = (f"not observable at this sample rate ({what} = "
+                                 f"{tau * 1e3:.3g} ms, below the {period * 1e3:.3g} ms "
+                                 "sample period)")
+            self._unobservable = (key, out)
+        return dict(self._unobservable[1])
 
     def trusted_std_values(self) -> dict[str, float]:
         """Every parameter's trusted value's relative standard error (0: a nameplate or a

@@ -91,6 +91,12 @@ class WindowFit:
         """Samples in the window."""
         return int(self.meas.shape[0])
 
+    @functools.cached_property
+    def longest_runs(self) -> list[tuple[int, int]]:
+        """Per output, (first sample, length) of the longest run of exactly equal
+        consecutive readings (the sensor checks', :mod:`~twinwatch.twin.estimation.quality`)."""
+        return [_longest_run(self.meas[:, j]) for j in range(self.n_out)]
+
     def simulate(self, theta: FloatArray, terms: Mapping[str, FloatArray] | None = None,
                  initial: FloatArray | None = None) -> FloatArray:
         """The twin's outputs (P, N, n_out) for parameter vectors ``theta`` (P, n_params);
@@ -121,10 +127,8 @@ class WindowFit:
     def residuals_of(self, y: FloatArray) -> FloatArray:
         """Normalised residuals of simulated outputs ``y`` (P, N, n_out) or (N, n_out)."""
         y3 = y if y.ndim == 3 else y[None]
-        r = (y3[:, 1:, :] - self.meas[None, 1:, :]) * self._norm
-        r = r.reshape(r.shape[0], -1) / self._den
-        bad = ~np.all(np.isfinite(r), axis=1)
-        r[bad] = BAD_RESIDUAL
+        r = np.empty((y3.shape[0], (y3.shape[1] - 1) * y3.shape[2]))
+        _residuals_kernel(np.ascontiguousarray(y3), self.meas, self._norm, self._den, r)
         out: FloatArray = r if y.ndim == 3 else r[0]
         return out
 
@@ -145,10 +149,40 @@ class WindowFit:
         """RMSE, worst error (per output, in its unit) and nRMSE of one trajectory (N, n_out)."""
         err = y - self.meas
         return Residual(
-            rmse={o: float(np.sqrt(np.mean(err[:, j] ** 2))) for j, o in enumerate(self.names)},
-            max_abs={o: float(np.max(np.abs(err[:, j]))) for j, o in enumerate(self.names)},
-            nrmse=float(np.sqrt(np.mean(((err[1:]) * self._norm) ** 2))),
+            rmse={o: float(np.sqrt(mean(err[:, j] ** 2))) for j, o in enumerate(self.names)},
+            max_abs={o: float(np.abs(err[:, j]).max()) for j, o in enumerate(self.names)},
+            nrmse=float(np.sqrt(mean(((err[1:]) * self._norm) ** 2))),
         )
+
+
+@njit(cache=True, nogil=True)
+def _residuals_kernel(y: FloatArray, meas: FloatArray, norm: FloatArray, den: float,
+                      r: FloatArray) -> None:  # pragma: no cover - compiled
+    """:meth:`WindowFit.residuals_of` into ``r`` (P, (N-1)*n_out): ``(y - meas)*norm/den``
+    from the second sample on, each step rounded as numpy's; a row with a non-finite entry
+    is :data:`BAD_RESIDUAL` everywhere."""
+    p, nk, n_out = y.shape
+    for q in range(p):
+        finite = True
+        for k in range(1, nk):
+            for j in range(n_out):
+                v = ((y[q, k, j] - meas[k, j]) * norm[j]) / den
+                r[q, (k - 1) * n_out + j] = v
+                finite = finite and np.isfinite(v)
+        if not finite:
+            r[q, :] = BAD_RESIDUAL
+
+
+def _longest_run(x: FloatArray) -> tuple[int, int]:
+    """(first index, length) of the longest run of exactly equal consecutive values."""
+    if x.size == 0:
+        return 0, 0
+    change = np.flatnonzero(x[1:] != x[:-1]) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [x.size]])
+    lengths = ends - starts
+    i = int(np.argmax(lengths))
+    return int(starts[i]), int(lengths[i])
 
 
 class ParameterMap:
@@ -175,7 +209,8 @@ class ParameterMap:
         """Full parameter vectors (P, n_params) from ln-parameter rows ``q`` (P, n_est), the
         others taken from ``base`` (n_params,), ties applied."""
         q = np.atleast_2d(q)
-        theta = np.repeat(np.asarray(base, dtype=float)[None, :], q.shape[0], axis=0)
+        theta = np.empty((q.shape[0], len(self.names)))
+        theta[:] = base
         theta[:, self.idx] = np.exp(q)
         self.apply_ties(theta)
         return theta
@@ -392,19 +427,21 @@ class LocalFit:
             last: dict[str, FloatArray] = {}
             k = active.size
             rows = np.repeat(v[None, :], k + 1, axis=0)
+            stepped = 1 + np.arange(k)
 
             def fun(x: FloatArray) -> FloatArray:
                 # The point and its forward differences (:meth:`jacobian`'s rows) in one twin
                 # call: least_squares asks for the Jacobian where it just evaluated fun.
                 rows[:, active] = x
-                rows[1 + np.arange(k), active] += 1e-6
+                rows[stepped, active] += 1e-6
                 r_all = self.residuals(rows)
                 last["x"], last["r"], last["d"] = x.copy(), r_all[0], r_all[1:]
                 r0: FloatArray = r_all[0]
                 return r0
 
             def jac(x: FloatArray) -> FloatArray:
-                if not ("x" in last and np.array_equal(last["x"], x)):
+                seen = last.get("x")
+                if seen is None or seen.shape != x.shape or not (seen == x).all():
                     fun(x)
                 return ((last["d"] - last["r"][None, :]) / 1e-6).T
 
@@ -445,7 +482,7 @@ def covariance(jac: FloatArray, weights: FloatArray) -> FloatArray:
         (n, n) covariance; ``inf`` on the rows and columns of undetermined variables.
     """
     n = jac.shape[1]
-    if not np.all(np.isfinite(jac)):
+    if not np.isfinite(jac).all():
         return np.full((n, n), np.inf)
     col_norms = norms(jac, axis=0)
     safe = np.where(col_norms > 0, col_norms, 1.0)
@@ -519,8 +556,8 @@ def explained_rms(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
         (n_out,).
     """
     m = jac.shape[0]
-    finite = np.all(np.isfinite(cov), axis=0)
-    if not np.any(finite):
+    finite = np.isfinite(cov).all(axis=0)
+    if not finite.any():
         return np.zeros(n_out)
     j = jac[:, finite] * math.sqrt(m)
     c = cov[np.ix_(finite, finite)]
@@ -563,7 +600,7 @@ def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: floa
     res = r.reshape(-1, n_out)
     if levels is not None:
         var = np.maximum(np.asarray(levels, dtype=float) ** 2, floor**2)
-        cov = covariance(jac, np.tile(var / m, res.shape[0]))
+        cov = covariance(jac, _rows(var / m, res.shape[0]))
     else:
         cov = covariance(jac, residual_variances(r, n_out, floor, n, numerical))
     _COVARIANCES.put(key, cov.copy())
@@ -599,15 +636,20 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     m, n = jac.shape
     nt = m // n_out
     out = np.ones(n)
-    if n == 0 or nt < 4 or not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
+    if n == 0 or nt < 4 or not (np.isfinite(jac).all() and np.isfinite(r).all()):
         return out
     base = np.diag(parameter_covariance(jac, r, n_out, floor, numerical=numerical))
     g = (jac * r[:, None]).reshape(nt, n_out, n).sum(axis=1)
     big_l = max(1, min(lags if lags is not None else nt // 4, nt - 1))
-    s = g.T @ g
+    # s = g^T g + sum_l w_l (G_l + G_l^T), G_l = g[l:]^T g[:-l], summed lag after lag
+    terms = np.empty((big_l + 1, n, n))
+    terms[0] = g.T @ g
     for lag in range(1, big_l + 1):
-        gl = g[lag:].T @ g[:-lag]
-        s += (1.0 - lag / (big_l + 1.0)) * (gl + gl.T)
+        np.matmul(g[lag:].T, g[:-lag], out=terms[lag])
+    both = terms[1:] + terms[1:].transpose(0, 2, 1)
+    both *= (1.0 - np.arange(1, big_l + 1) / (big_l + 1.0))[:, None, None]
+    terms[1:] = both
+    s = np.add.accumulate(terms, axis=0)[-1]
     col_norms = norms(jac, axis=0)
     safe = np.where(col_norms > 0, col_norms, 1.0)
     js = jac / safe
@@ -651,7 +693,15 @@ def residual_variances(r: FloatArray, n_out: int, floor: float, n_fitted: int,
         if rho is None:
             rho = rhos[j] = ar1(res[:, j], 1)
         var[j] = max(var[j], floor**2) * (1.0 + rho) / (1.0 - rho)
-    return np.tile(var / m, res.shape[0])
+    return _rows(var / m, res.shape[0])
+
+
+def _rows(per_output: FloatArray, nt: int) -> FloatArray:
+    """``np.tile(per_output, nt)``: each output's value on its rows of the interleaved
+    residual vector (nt * n_out,)."""
+    out = np.empty((nt, per_output.size))
+    out[:] = per_output
+    return out.reshape(-1)
 
 
 class _Recent:

@@ -152,6 +152,9 @@ class ParameterFusion:
         self.last_outlier: tuple[str, float] | None = None
         # per parameter, its last windows' normalised innovations and innovations (ln)
         self._shift: dict[int, deque[tuple[float, float]]] = {}
+        #: the trend model's transition F and process noise Q of the last (dt, level_noise,
+        #: rate_noise) (:meth:`_predict`)
+        self._transition: tuple[Any, FloatArray, FloatArray] = (None, np.eye(0), np.eye(0))
         self.reset(start)
 
     @property
@@ -178,13 +181,17 @@ class ParameterFusion:
             return s.mean.copy(), s.cov.copy()
         if not self.trend:
             return s.mean.copy(), s.cov + np.eye(n) * c.level_noise**2 * dt
-        f = np.eye(2 * n)
-        f[:n, n:] = np.eye(n) * dt
-        ql, qr = c.level_noise**2, c.rate_noise**2
-        q = np.zeros((2 * n, 2 * n))
-        q[:n, :n] = np.eye(n) * (ql * dt + qr * dt**3 / 3.0)
-        q[:n, n:] = q[n:, :n] = np.eye(n) * (qr * dt**2 / 2.0)
-        q[n:, n:] = np.eye(n) * (qr * dt)
+        key = (dt, c.level_noise, c.rate_noise)
+        if self._transition[0] != key:  # the windows come at one spacing: built once
+            f = np.eye(2 * n)
+            f[:n, n:] = np.eye(n) * dt
+            ql, qr = c.level_noise**2, c.rate_noise**2
+            q = np.zeros((2 * n, 2 * n))
+            q[:n, :n] = np.eye(n) * (ql * dt + qr * dt**3 / 3.0)
+            q[:n, n:] = q[n:, :n] = np.eye(n) * (qr * dt**2 / 2.0)
+            q[n:, n:] = np.eye(n) * (qr * dt)
+            self._transition = (key, f, q)
+        _, f, q = self._transition
         return f @ s.mean, f @ s.cov @ f.T + q
 
     def predict(self, t: float) -> tuple[FloatArray, FloatArray]:
@@ -245,6 +252,7 @@ class ParameterFusion:
             w = 1.0 / np.maximum(row_var, 1e-300)
             h = np.zeros((n, self.n_state))
             h[:, :n] = np.eye(n)
+            sel_ix = np.ix_(sel, sel)
 
             def evidence(x: FloatArray) -> tuple[FloatArray, FloatArray]:
                 """The window's information (n, n) and gradient (n,) at ln-parameters x, its
@@ -259,7 +267,7 @@ class ParameterFusion:
                     gsub = gsub - big[:k, k:] @ inn @ g[k:]
                 info = np.zeros((n, n))
                 grad = np.zeros(n)
-                info[np.ix_(sel, sel)] = 0.5 * (sub + sub.T)
+                info[sel_ix] = 0.5 * (sub + sub.T)
                 grad[sel] = gsub
                 return info, grad
 
@@ -270,9 +278,11 @@ class ParameterFusion:
             step = -_safe_inverse(info) @ grad
             p_inv = _safe_inverse(cov[:n, :n])
             s_inv = info - info @ _safe_inverse(p_inv + info) @ info
-            rank = int(np.sum(np.linalg.eigvalsh(info)
-                              > 1e-12 * max(float(np.abs(info).max()), 1e-300)))
+            rank = int(np.count_nonzero(np.linalg.eigvalsh(info)
+                                        > 1e-12 * max(float(np.abs(info).max()), 1e-300)))
             nis = float(step @ s_inv @ step) / max(rank, 1)
+            # the window's own (marginal) covariance on the parameters it informs
+            r_sel = _safe_inverse(info[sel_ix]) if sel.size else np.zeros((0, 0))
             if math.isfinite(nis) and nis > self.config.jump_threshold:
                 # a sudden change is a step of the levels, not of their rates: each level's
                 # variance grows, the rates' and the cross terms stay; only the levels the
@@ -284,8 +294,8 @@ class ParameterFusion:
                 jump = True
                 self._shift = {}
             else:
-                jump = self._level_shift(step, info, cov, sel)
-            z2 = self._normalised_innovations(step, info, cov, sel)
+                jump = self._level_shift(step, r_sel, cov, sel)
+            z2 = self._normalised_innovations(step, r_sel, cov, sel)
             y_prior = _safe_inverse(cov)
             x = mean.copy()
             if start is not None:
@@ -293,6 +303,7 @@ class ParameterFusion:
                 if bounds is not None:
                     x[:n] = np.clip(x[:n], bounds[0], bounds[1])
                 info, grad = evidence(x[:n])
+            hess_inv = None
             for it in range(iterations):
                 if it:
                     info, grad = evidence(x[:n])
@@ -300,15 +311,15 @@ class ParameterFusion:
                 gx = y_prior @ (x - mean) + h.T @ grad
                 hess_inv = _safe_inverse(hess)
                 dx = -hess_inv @ gx
-                if not np.all(np.isfinite(dx)):
+                if not np.isfinite(dx).all():
                     break
-                big_step = float(np.max(np.abs(dx[:n])))
+                big_step = float(np.abs(dx[:n]).max())
                 if big_step > MAX_STEP:
                     dx = dx * (MAX_STEP / big_step)
                 x = x + dx
                 if bounds is not None:
                     x[:n] = np.clip(x[:n], bounds[0], bounds[1])
-                if float(np.max(np.abs(dx[:n]))) < 1e-9:
+                if float(np.abs(dx[:n]).max()) < 1e-9:
                     break
                 if step_tol > 0 and np.all(np.abs(dx[:n]) <= step_tol * np.sqrt(
                         np.maximum(np.diag(hess_inv)[:n], 0.0))):
@@ -330,7 +341,9 @@ class ParameterFusion:
                         self.state = predicted
                         return False
             self._outlier_run = []
-            cov_post = _safe_inverse(y_prior + h.T @ info @ h)
+            # the last iteration's inverse Hessian is the posterior's (the same information)
+            cov_post = (_safe_inverse(y_prior + h.T @ info @ h) if hess_inv is None
+                        else hess_inv)
             mean = x
             cov = 0.5 * (cov_post + cov_post.T)
             for i, v in z2.items():
@@ -347,15 +360,15 @@ class ParameterFusion:
         return sc.copy()
 
     @staticmethod
-    def _normalised_innovations(step: FloatArray, info: FloatArray, cov: FloatArray,
+    def _normalised_innovations(step: FloatArray, r: FloatArray, cov: FloatArray,
                                 sel: np.ndarray) -> dict[int, float]:
         """Per parameter the window informs, its squared normalised innovation: the window's
         own estimate against the prediction (``step``, ln), over the sum of the prediction's
-        variance (after a jump's or a level shift's inflation) and the window's marginal one;
-        about 1 on average when the windows' standard errors and the filter are right."""
+        variance (after a jump's or a level shift's inflation) and the window's marginal one
+        (the diagonal of ``r``, the inverse of its information on ``sel``); about 1 on average
+        when the windows' standard errors and the filter are right."""
         if sel.size == 0:
             return {}
-        r = _safe_inverse(info[np.ix_(sel, sel)])
         out = {}
         for j, i in enumerate(sel):
             var = float(cov[i, i]) + float(r[j, j])
@@ -364,19 +377,19 @@ class ParameterFusion:
                 out[int(i)] = d * d / var
         return out
 
-    def _level_shift(self, step: FloatArray, info: FloatArray, cov: FloatArray,
+    def _level_shift(self, step: FloatArray, r: FloatArray, cov: FloatArray,
                      sel: np.ndarray) -> bool:
         """The windowed test for a level shift (a generalised likelihood ratio over the last
         :data:`SHIFT_WINDOWS` windows; Basseville and Nikiforov, *Detection of Abrupt
         Changes*, 1993, Section 2.4): per parameter the window informs, its innovation ``d``
         (the window's own estimate against the prediction, ln) over its standard deviation
-        (the prediction's and the window's marginal variances) is kept; when, for the last m
+        (the prediction's and the window's marginal variances, ``r``'s diagonal as in
+        :meth:`_normalised_innovations`) is kept; when, for the last m
         windows, ``(sum z)^2 / m`` exceeds ``jump_threshold`` the level has moved by about the
         innovations' mean and the prediction's variance of that parameter (``cov``, changed in
         place) grows by its square, so the filter follows. Returns whether one did."""
         if sel.size == 0:
             return False
-        r = _safe_inverse(info[np.ix_(sel, sel)])
         shifted = False
         for j, i in enumerate(sel):
             r_ii = float(r[j, j])
@@ -466,7 +479,7 @@ def _first_held_step(problem: WindowProblem, polished: Polished, cols: np.ndarra
     step = -(inv @ (jac.T @ (w * r0)))[:cols.size]
     # a step beyond MAX_STEP is no Gauss-Newton step of a valid linearisation: the polish
     # moved a parameter outside ``cols`` that the filter holds at its trusted value
-    if not (np.all(np.isfinite(step)) and float(np.max(np.abs(step))) <= MAX_STEP):
+    if not (np.isfinite(step).all() and float(np.abs(step).max()) <= MAX_STEP):
         return None
     return step
 
@@ -476,7 +489,7 @@ def _safe_inverse(a: FloatArray) -> FloatArray:
     (near-zero ones treated as zero; non-finite entries as 0). Raises
     numpy.linalg.LinAlgError only if the eigen-decomposition does not converge."""
     a = np.asarray(a, dtype=float)
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         a = np.where(np.isfinite(a), a, 0.0)
     try:
         out: FloatArray = _safe_inverse_finite(np.ascontiguousarray(a))

@@ -28,7 +28,7 @@ def check_window(model: TwinModel, window: WindowData) -> None:
     for ch in model.required_channels():
         if ch not in window.channels:
             raise ValueError(f"window lacks channel {ch!r}")
-        if not np.all(np.isfinite(window.channels[ch])):
+        if not np.isfinite(window.channels[ch]).all():
             raise ValueError(f"window channel {ch!r} holds NaN or inf")
 
 

@@ -56,18 +56,6 @@ class SensorFault:
                 f"{self.duration_s:.2f} s from t = {self.t_start:.2f} s")
 
 
-def _longest_run(x: FloatArray) -> tuple[int, int]:
-    """(first index, length) of the longest run of exactly equal consecutive values."""
-    if x.size == 0:
-        return 0, 0
-    change = np.flatnonzero(x[1:] != x[:-1]) + 1
-    starts = np.concatenate([[0], change])
-    ends = np.concatenate([change, [x.size]])
-    lengths = ends - starts
-    i = int(np.argmax(lengths))
-    return int(starts[i]), int(lengths[i])
-
-
 def live_outputs(fit: WindowFit, min_run: int) -> dict[str, bool]:
     """Per output, whether its readings are live noise in this window: no value repeats for
     even a fifth of ``min_run`` samples, its second differences are larger than its first ones
@@ -87,7 +75,7 @@ def live_outputs(fit: WindowFit, min_run: int) -> dict[str, bool]:
         rms1 = float(np.sqrt(mean(d1 * d1)))
         out[name] = (float(np.sqrt(mean(d2 * d2))) > rms1
                      and rms1 / math.sqrt(2.0) > 3.0 * quantum
-                     and _longest_run(meas)[1] < max(min_run // 5, 2))
+                     and fit.longest_runs[j][1] < max(min_run // 5, 2))
     return out
 
 
@@ -127,11 +115,11 @@ def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int,
     out: list[SensorFault] = []
     for j, name in enumerate(fit.names):
         meas = fit.meas[:, j]
-        k0, length = _longest_run(meas)
+        k0, length = fit.longest_runs[j]
         if length < min_run:
             continue
         twin = y[k0:k0 + length, j]
-        if not np.all(np.isfinite(twin)):
+        if not np.isfinite(twin).all():
             continue
         value = float(meas[k0])
         if np.mean(np.abs(twin - value) <= 1e-9 * max(abs(value), 1.0)) > 0.5:

@@ -67,10 +67,10 @@ def ar1(r: FloatArray, n_out: int) -> float:
         n_out: number of outputs.
     """
     res = _matrix(r, n_out)
-    den = float(np.sum(res * res))
+    den = float((res * res).sum())
     if den <= 0:
         return 0.0
-    return min(max(float(np.sum(res[1:] * res[:-1])) / den, 0.0), 0.99)
+    return min(max(float((res[1:] * res[:-1]).sum()) / den, 0.0), 0.99)
 
 
 def autocorrelation(x: FloatArray, lags: int) -> FloatArray:
@@ -78,12 +78,13 @@ def autocorrelation(x: FloatArray, lags: int) -> FloatArray:
     offset is model error too), ``rho[0] = 1``; zeros for an all-zero series."""
     x = np.asarray(x, dtype=float)
     n = x.size
-    den = float(x @ x)
+    den = float(x.dot(x))
     out = np.zeros(lags + 1)
     if den <= 0:
         return out
-    for k in range(min(lags, n - 1) + 1):
-        out[k] = float(x[k:] @ x[:n - k]) / den
+    top = min(lags, n - 1) + 1
+    out[:top] = [x[k:].dot(x[:n - k]) for k in range(top)]  # ddot, as @, without matmul's dispatch
+    out[:top] /= den
     return out
 
 
@@ -186,25 +187,46 @@ def cross_correlation_test(e: FloatArray, u: FloatArray, lags: int) -> tuple[flo
     Returns:
         (S, p-value); (0, 1) when either series is constant.
     """
-    e = np.asarray(e, dtype=float)
+    return _cross_correlation(e, _input_correlation(u, lags))
+
+
+def _input_correlation(u: FloatArray, lags: int
+                       ) -> tuple[FloatArray, float, FloatArray, FloatArray]:
+    """:func:`cross_correlation_test`'s part that depends on the input alone (the same for
+    every output's residual): the input with its mean removed, its RMS, and the eigenvalues
+    (k,) and eigenvectors (k, m + 1) of its autocorrelation matrix that are kept."""
     u = np.asarray(u, dtype=float)
-    e = e - float(mean(e))
     u = u - float(mean(u))
-    n = e.size
+    n = u.size
     m = max(0, min(lags, n - 2))
-    se, su = float(np.sqrt(e @ e / n)), float(np.sqrt(u @ u / n))
-    if se == 0 or su == 0:
-        return 0.0, 1.0
-    r = np.array([float(e[k:] @ u[:n - k]) / (n * se * su) for k in range(m + 1)])
+    su = float(np.sqrt(u.dot(u) / n))
+    if su == 0:
+        return u, su, np.zeros(0), np.zeros((0, m + 1))
     ru = autocorrelation(u, m)
     toe = ru[np.abs(np.subtract.outer(np.arange(m + 1), np.arange(m + 1)))]
     # The input's correlation matrix is nearly singular for a step set-point; its pseudo-inverse
     # counts only the independent directions, and so do the degrees of freedom.
     w, v = np.linalg.eigh(toe)
     keep = w > 1e-6 * max(float(w.max()), 1e-300)
-    proj = v[:, keep].T @ r
-    s = float(n * np.sum(proj**2 / w[keep]))
-    return s, _chi2_sf(s, int(keep.sum()))
+    return u, su, w[keep], v[:, keep].T
+
+
+def _cross_correlation(e: FloatArray, prepared: tuple[FloatArray, float, FloatArray,
+                                                      FloatArray]) -> tuple[float, float]:
+    """:func:`cross_correlation_test` of ``e`` against the input :func:`_input_correlation`
+    prepared."""
+    u, su, w, vt = prepared
+    e = np.asarray(e, dtype=float)
+    e = e - float(mean(e))
+    n = e.size
+    m = vt.shape[1] - 1
+    se = float(np.sqrt(e.dot(e) / n))
+    if se == 0 or su == 0:
+        return 0.0, 1.0
+    r = np.array([e[k:].dot(u[:n - k]) for k in range(m + 1)]) / (n * se * su)
+    proj = vt @ r
+    s = float(n * np.sum(proj**2 / w))
+    return s, _chi2_sf(s, int(w.size))
 
 
 __all__ = [
@@ -290,6 +312,8 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
     res = np.asarray(res, dtype=float)
     n = res.shape[0]
     lvl = noise_level(res)
+    exog = [] if inputs is None else [_input_correlation(inputs[:, col], lags)
+                                      for col in range(inputs.shape[1])]
     check = ModelCheck(passed=True)
     widen = 1.0
     for j, name in enumerate(names):
@@ -297,9 +321,8 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
         rms = float(np.sqrt(mean(e * e)))
         _, p_white = ljung_box(e, lags)
         p_cross = 1.0
-        if inputs is not None:
-            for col in range(inputs.shape[1]):
-                p_cross = min(p_cross, cross_correlation_test(e, inputs[:, col], lags)[1])
+        for prepared in exog:
+            p_cross = min(p_cross, _cross_correlation(e, prepared)[1])
         expected = math.hypot(float(lvl[j]), float(explained[j]) if explained is not None
                               else 0.0)
         material = rms > floor and rms > 2.0 * expected

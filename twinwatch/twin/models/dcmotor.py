@@ -88,9 +88,9 @@ from twinwatch.twin.model import (
     ParameterSpec,
     SubStepTwin,
     WindowData,
+    _zoh_propagate_kernel,
     composite_zoh,
     term_array,
-    zoh_propagate,
 )
 from twinwatch.twin.models._pid import pid_update
 
@@ -109,8 +109,19 @@ DC_MOTOR_PARAMETERS: tuple[ParameterSpec, ...] = (
 )
 
 
-#: Window length -> the (1, N) zeros that stand for no meta-model term (read-only, shared).
+#: Length -> the (1, N) zeros that stand for no meta-model term, no initial offset or no load
+#: (read-only, shared).
 _ZEROS: dict[int, FloatArray] = {}
+
+
+def _zeros(n: int) -> FloatArray:
+    """The shared read-only zeros (1, n)."""
+    zero = _ZEROS.get(n)
+    if zero is None:
+        zero = np.zeros((1, n))
+        zero.flags.writeable = False
+        _ZEROS[n] = zero
+    return zero
 
 _TAU_I = ParameterSpec("tau_i", "s", 0.05,
                        "time constant of the current measurement's low-pass filter",
@@ -176,6 +187,50 @@ def _step_kernel(theta: FloatArray, dt: float, c: float, kp: float, ki: float, c
             for col in range(4):
                 b[q, r, col] = gain * b[q, src, col]
             a[q, r, r] += 1.0 if which == 2 else 1.0 - gain
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fast_kernel(a: FloatArray, b: FloatArray, n_sub: int, ia: FloatArray, omega: FloatArray,
+                 va: FloatArray, drive: FloatArray, tl: FloatArray, f_w: FloatArray,
+                 f_i: FloatArray, off: FloatArray, pos: IntArray, kp: float, ki: float,
+                 average: bool, ts: float, y: FloatArray) -> None:  # pragma: no cover
+    """:meth:`DCMotorTwin._simulate_fast` after the step matrices ``a``, ``b`` (P, n, ...):
+    each particle's state at the first sample (the measurements plus the offsets ``off``
+    (1 or P, 2) on ia and omega; a filtered or averaged measurement stands in for the state
+    it filters; the ideal PI's integrator recovered from the measured Va), the exact map per
+    sample (:func:`~twinwatch.twin.model.zoh_propagate`), then the outputs ``y`` (P, N,
+    n_out): the (filtered) current, the (filtered or averaged) speed and, closed loop, the
+    PI's voltage ``kp*(set-point - omega) + ki*z``. ``pos``: :meth:`step_matrices`'s."""
+    p, nk, n_out = y.shape
+    pz, pfi, pfw, pang, pv = pos[0], pos[1], pos[2], pos[3], pos[4]
+    x = np.zeros((p, nk, a.shape[1]))
+    w0 = 0.5 * (omega[0] + omega[1]) if average and nk > 1 else omega[0]
+    for q in range(p):
+        o = 0 if off.shape[0] == 1 else q
+        x[q, 0, 0] = ia[0] + off[o, 0]
+        x[q, 0, 1] = w0 + off[o, 1]
+        if pfi >= 0:
+            x[q, 0, pfi] = ia[0] + off[o, 0]
+        if pfw >= 0:
+            x[q, 0, pfw] = omega[0] + off[o, 1]
+        if pv >= 0:
+            x[q, 0, pv] = va[0]
+        if pz >= 0:
+            x[q, 0, pz] = (va[0] - kp * (drive[0] - x[q, 0, 1])) / ki
+    _zoh_propagate_kernel(a, b, n_sub, x, drive, tl, f_w, f_i)
+    ci = pfi if pfi >= 0 else 0
+    cw = pfw if pfw >= 0 else 1
+    for q in range(p):
+        for k in range(nk):
+            y[q, k, 0] = x[q, k, ci]
+            if pang < 0:
+                y[q, k, 1] = x[q, k, cw]
+            elif k == 0:
+                y[q, k, 1] = omega[0]
+            else:
+                y[q, k, 1] = (x[q, k, pang] - x[q, k - 1, pang]) / ts
+            if n_out == 3:
+                y[q, k, 2] = kp * (drive[k] - x[q, k, 1]) + ki * x[q, k, pz]
 
 
 @njit(cache=True, nogil=True)
@@ -504,10 +559,12 @@ class DCMotorTwin(SubStepTwin):
         rows = max(p, f_w.shape[0])
         if rows > p:
             theta = np.repeat(theta[:1], rows, axis=0)
-        off = np.zeros((rows, 2)) if initial is None else np.broadcast_to(
-            np.atleast_2d(np.asarray(initial, dtype=float)), (rows, 2))
+        off = _zeros(2) if initial is None else np.atleast_2d(np.asarray(initial, dtype=float))
+        if off.shape[0] not in (1, rows) or off.shape[1:] != (2,):
+            raise ValueError(f"initial: shape {off.shape}, expected (2,) or ({rows}, 2)")
         if self._fast:
             return self._simulate_fast(theta, window, f_w, f_i, off)
+        off = np.broadcast_to(off, (rows, 2))
         if self.structure != "closed_loop":
             return self._simulate_events(theta, window, f_w, f_i, 0, 0, off)[:, :, :2]
         # A drive at a limit hides its integrator: the window is cut where the limits are left
@@ -565,13 +622,8 @@ class DCMotorTwin(SubStepTwin):
             if unknown:
                 raise KeyError(f"unknown attach point(s) {sorted(unknown)}; the DC motor "
                                "twin offers d(omega)/dt and d(ia)/dt")
-        if not terms:  # no meta-model: the same zeros every call (read-only)
-            zero = _ZEROS.get(n)
-            if zero is None:
-                zero = np.zeros((1, n))
-                zero.flags.writeable = False
-                _ZEROS[n] = zero
-            return zero, zero
+        if not terms:  # no meta-model: the same zeros every call
+            return _zeros(n), _zeros(n)
         out = []
         for name in ("d(omega)/dt", "d(ia)/dt"):
             out.append(term_array((terms or {}).get(name), p, n, name))
@@ -601,47 +653,32 @@ class DCMotorTwin(SubStepTwin):
             x0[:, pos["v"]] = window["Va"][k]
         return x0
 
-    def _outputs(self, x: FloatArray, pos: Mapping[str, int], ts: float, omega0: float
-                 ) -> tuple[FloatArray, FloatArray]:
-        """Measured-output views of a state trajectory (P, N, n): ia and omega."""
-        i_out = x[:, :, pos["fi"]] if "fi" in pos else x[:, :, 0]
-        if "angle" in pos:
-            ang = x[:, :, pos["angle"]]
-            w_out = np.empty_like(ang)
-            w_out[:, 1:] = np.diff(ang, axis=1) / ts
-            w_out[:, 0] = omega0
-        else:
-            w_out = x[:, :, pos["fw"]] if "fw" in pos else x[:, :, 1]
-        return i_out, w_out
-
     def _simulate_fast(self, theta: FloatArray, window: WindowData, f_w: FloatArray,
                        f_i: FloatArray, off: FloatArray) -> FloatArray:
-        """The exact linear map per sample, composed by matrix squaring (ideal drive)."""
+        """The exact linear map per sample, composed by matrix squaring (ideal drive), in one
+        compiled call (:func:`_fast_kernel`); ``off``: (1 or P, 2)."""
         ts = window.sample_period
         n_sub = self.n_sub(ts)
         closed = self.structure == "closed_loop"
-        pos = self._layout(closed)
         a, b = self.step_matrices(theta, self.sub_step, closed_pi=closed)
         ia = window["ia"]
-        tl = window["Tload"] if self.load == "measured" else np.zeros_like(ia)
-        x0 = self._initial_state(window, 0, pos, off)
+        tl = window["Tload"] if self.load == "measured" else _zeros(ia.size)[0]
+        va = window["Va"]
         if closed:
-            sp, va = window["setpoint"], window["Va"]
-            kp, ki = self._pi
-            x0[:, pos["z"]] = (va[0] - kp * (sp[0] - x0[:, 1])) / ki
-            drive = sp
-        elif "v" in pos:
-            va = window["Va"]
+            drive = window["setpoint"]
+        elif "v" in self._layout(False):
             drive = np.append(np.diff(va), 0.0) / n_sub
         else:
-            drive = window["Va"]
-        x = zoh_propagate(a, b, n_sub, x0, drive, tl, f_w, f_i)
-        i_out, w_out = self._outputs(x, pos, ts, float(window["omega"][0]))
-        y = np.empty(i_out.shape + (3 if closed else 2,))
-        y[:, :, 0] = i_out
-        y[:, :, 1] = w_out
-        if closed:
-            y[:, :, 2] = kp * (drive[None, :] - x[:, :, 1]) + ki * x[:, :, pos["z"]]
+            drive = va
+        kp, ki = self._pi
+        y = np.empty((a.shape[0], ia.size, 3 if closed else 2))
+        _fast_kernel(a, b, n_sub, np.ascontiguousarray(ia, dtype=float),
+                     np.ascontiguousarray(window["omega"], dtype=float),
+                     np.ascontiguousarray(va, dtype=float),
+                     np.ascontiguousarray(drive, dtype=float),
+                     np.ascontiguousarray(tl, dtype=float), f_w, f_i, off,
+                     self._positions[closed], kp, ki, self.speed_measurement == "average",
+                     ts, y)
         return y
 
     def _controller_state(self, window: WindowData, k: int, t_s: float, t_c: float,
