@@ -413,19 +413,24 @@ class HypothesisBank:
             phi, s_h, a = fitted[h.label]
             half = 0.5 * eta * (s0 - s_h) if math.isfinite(s_h) else -math.inf
             if h.closed_form is not None:
-                track.append(half - 0.5 * ln_n, np.zeros(1), np.ones(1), t_mid)
+                track.append(half - 0.5 * ln_n, (0.0,), (1.0,), t_mid)
                 continue
-            # the tempered likelihood's information: eta times the window's
-            a = eta * a
-            std = (np.array([1.0 / math.sqrt(a[0, 0])]) if a.shape == (1, 1)
-                   and a[0, 0] > 0 else np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0)))
             reach = self._reach.get(h.label)
             if reach is None:
                 lo, hi = self._bounds[h.label]
                 span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
                 reach = self._reach[h.label] = np.minimum(span, 1.0) ** 2
-            info = bool((a[0, 0] * reach[0] if a.shape == (1, 1)
-                         else np.max(np.diag(a) * reach)) > 1.0)
+            # the tempered likelihood's information: eta times the window's
+            if a.shape == (1, 1):
+                a00 = eta * float(a[0, 0])
+                std: Sequence[float] | FloatArray = (
+                    (1.0 / math.sqrt(a00),) if a00 > 0 else
+                    np.sqrt(np.maximum(np.diag(np.linalg.pinv(eta * a)), 0.0)))
+                info = a00 * float(reach[0]) > 1.0
+            else:
+                a = eta * a
+                std = np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0))
+                info = bool(np.max(np.diag(a) * reach) > 1.0)
             track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
 
     def _read_evidence(self, everyone: list[Hypothesis], reading: WindowReading) -> None:

@@ -396,41 +396,50 @@ class Track:
 
     def __init__(self, q: int, keep: int) -> None:
         self.q, self.keep, self.m = q, keep, 0
-        # twice the windows kept: a full track drops its oldest window by moving its start,
-        # and copies its windows back to the front once per ``keep`` windows
+        # one row a window (its fields side by side: :attr:`FIELDS`), a few rows beyond the
+        # windows kept: a full track drops its oldest window by moving its start, and copies
+        # its windows back to the front once the spare rows are used up
         self._start = 0
-        self._buf = (np.zeros(2 * keep), np.zeros(2 * keep), np.zeros(2 * keep),
-                     np.zeros(2 * keep), np.zeros(2 * keep, dtype=bool),
-                     np.zeros((2 * keep, q)), np.zeros((2 * keep, q)))
+        self._buf = np.zeros((keep + self.SPARE, 5 + 2 * q))
 
-    #: the buffers' order
+    #: rows beyond ``keep``: the copy back to the front happens once per SPARE windows
+    SPARE = 16
+
+    #: each field's columns of a row
     FIELDS = {"gain": 0, "half": 1, "ln_n": 2, "t": 3, "info": 4, "phi": 5, "std": 6}
 
-    def _view(self, i: int) -> np.ndarray:
-        return self._buf[i][self._start:self._start + self.keep]
+    def _cols(self, name: str) -> int | slice:
+        i = self.FIELDS[name]
+        return i if i < 5 else slice(5 + (i - 5) * self.q, 5 + (i - 4) * self.q)
 
-    gain = property(lambda self: self._view(0))
-    half = property(lambda self: self._view(1))
-    ln_n = property(lambda self: self._view(2))
-    t = property(lambda self: self._view(3))
-    info = property(lambda self: self._view(4))
-    phi = property(lambda self: self._view(5))
-    std = property(lambda self: self._view(6))
+    def _view(self, name: str) -> np.ndarray:
+        return self._buf[self._start:self._start + self.keep, self._cols(name)]
 
-    def append(self, gain: float, phi: FloatArray, std: FloatArray, t: float,
-               info: bool = True, half: float = 0.0, ln_n: float = 0.0) -> None:
+    gain = property(lambda self: self._view("gain"))
+    half = property(lambda self: self._view("half"))
+    ln_n = property(lambda self: self._view("ln_n"))
+    t = property(lambda self: self._view("t"))
+    info = property(lambda self: self._view("info") != 0)
+    phi = property(lambda self: self._view("phi"))
+    std = property(lambda self: self._view("std"))
+
+    def append(self, gain: float, phi: Sequence[float] | FloatArray,
+               std: Sequence[float] | FloatArray, t: float, info: bool = True,
+               half: float = 0.0, ln_n: float = 0.0) -> None:
+        """One window's row: its gain [nats], size (q,), standard error (q,), middle time
+        [s], whether it informs the size, its half log-likelihood ratio and ln n."""
         if self.m == self.keep:
             self._start += 1
             self.m -= 1
         k = self._start + self.m
-        if k == len(self._buf[0]):
-            for a in self._buf:
-                a[:self.m] = a[self._start:k]
-            self._start, k = 0, self.m
         b = self._buf
-        b[0][k], b[1][k], b[2][k], b[3][k], b[4][k] = gain, half, ln_n, t, info
-        b[5][k] = np.ravel(phi)[:self.q]
-        b[6][k] = np.ravel(std)[:self.q]
+        if k == b.shape[0]:
+            b[:self.m] = b[self._start:k]
+            self._start, k = 0, self.m
+        row = b[k]
+        row[0], row[1], row[2], row[3], row[4] = gain, half, ln_n, t, info
+        row[5:5 + self.q] = phi
+        row[5 + self.q:] = std
         self.m += 1
 
     def __len__(self) -> int:
@@ -441,8 +450,10 @@ class Track:
         :func:`~twinwatch.io.encoding.to_json` writes them as lists, :meth:`from_dict` reads
         either."""
         out: dict[str, Any] = {"q": self.q}
-        for name, i in self.FIELDS.items():
-            out[name] = self._buf[i][self._start:self._start + self.m].copy()
+        rows = self._buf[self._start:self._start + self.m]
+        for name in self.FIELDS:
+            out[name] = rows[:, self._cols(name)].copy()
+        out["info"] = out["info"] != 0
         return out
 
     @classmethod
@@ -456,11 +467,18 @@ class Track:
         return tr
 
 
-def _stacked(tracks: Sequence[Track], field: str, first: int, end: int) -> np.ndarray:
-    """The tracks' ``field`` (:attr:`Track.FIELDS`) over their windows ``first`` to ``end``,
-    stacked: (H, end - first) or (H, end - first, q)."""
-    i = Track.FIELDS[field]
-    return np.stack([t._buf[i][t._start + first:t._start + end] for t in tracks])
+def _stacked(tracks: Sequence[Track], first: int, end: int) -> np.ndarray:
+    """The tracks' rows (every field, :attr:`Track.FIELDS`) over their windows ``first`` to
+    ``end``, stacked: (H, end - first, 5 + 2q)."""
+    return np.stack([t._buf[t._start + first:t._start + end] for t in tracks])
+
+
+def _field(rows: np.ndarray, name: str, q: int) -> np.ndarray:
+    """One field of :func:`_stacked`'s rows as its own C-ordered array: (H, L) or (H, L, q)
+    (what each field's own stack was: the arithmetic on it is the same)."""
+    i = Track.FIELDS[name]
+    return np.ascontiguousarray(rows[..., i] if i < 5 else
+                                rows[..., 5 + (i - 5) * q:5 + (i - 4) * q])
 
 
 @dataclass
@@ -614,11 +632,12 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     m, q = tracks[0].m, tracks[0].q
     if m == 0:
         return [None] * len(tracks)
-    half = _stacked(tracks, "half", 0, m)                                # (H, m)
-    tt = _stacked(tracks, "t", 0, m) - tracks[0].t[m - 1]
-    phis = _stacked(tracks, "phi", 0, m)                                 # (H, m, q)
-    sds = _stacked(tracks, "std", 0, m)
-    n_eff = np.exp(_stacked(tracks, "ln_n", 0, m))
+    rows_all = _stacked(tracks, 0, m)                                    # (H, m, 5 + 2q)
+    half = _field(rows_all, "half", q)                                   # (H, m)
+    tt = _field(rows_all, "t", q) - tracks[0].t[m - 1]
+    phis = _field(rows_all, "phi", q)                                    # (H, m, q)
+    sds = _field(rows_all, "std", q)
+    n_eff = np.exp(_field(rows_all, "ln_n", q))
     # the weighted sums since each window (sa, sat, satt, sap, sapt, sapp: (6, H, m, q)) and
     # the line through them, in one compiled pass (numpy's arithmetic in numpy's order)
     sums, half_s, n_s, alpha, chi2, params = _suffix_lines(sds, tt, phis, half, n_eff)
@@ -636,8 +655,8 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     later = np.arange(m)[None, :] > ks[:, None]
     ended = np.max(np.where(later, ev_e, -np.inf), axis=1)
     since = np.arange(m)[None, :] >= ks[:, None]
-    positive = np.sum(since & (_stacked(tracks, "gain", 0, m) > 0), axis=1)
-    informative = np.any(_stacked(tracks, "info", max(0, m - recent), m), axis=1)
+    positive = np.sum(since & (rows_all[:, :, 0] > 0), axis=1)
+    informative = np.any(rows_all[:, max(0, m - recent):, 4] != 0, axis=1)
     std = 1.0 / np.sqrt(np.maximum(sums[0][rows, ks], 1e-300))
     # as Python numbers once (the same values as float() of each)
     top_h, spread_h, ended_h = top.tolist(), spread.tolist(), ended.tolist()
@@ -689,7 +708,9 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     m = tracks[0].m
     if m == 0:
         return [None] * len(tracks)
-    g = _stacked(tracks, "gain", 0, m)                                   # (H, m)
+    q = tracks[0].q
+    rows_all = _stacked(tracks, 0, m)                                    # (H, m, 5 + 2q)
+    g = _field(rows_all, "gain", q)                                      # (H, m)
     suffix_g = g[:, ::-1].cumsum(axis=1)[:, ::-1]
     ks = np.argmax(suffix_g, axis=1)
     rows = np.arange(len(tracks))
@@ -699,14 +720,14 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     since = np.arange(m)[None, :] >= ks[:, None]
     positive = np.sum(since & (g > 0), axis=1)
     last = max(0, m - recent)
-    informative = np.any(_stacked(tracks, "info", last, m), axis=1)
+    recent_rows = rows_all[:, last:]
+    informative = np.any(recent_rows[:, :, 4] != 0, axis=1)
     # each one's size: the inverse-variance mean over its last windows since its change point
     lo = np.maximum(ks, last)
     use = (np.arange(last, m)[None, :] >= lo[:, None])[..., None]        # (H, L, 1)
-    w = np.where(use, 1.0 / np.maximum(_stacked(tracks, "std", last, m),
-                                       1e-300) ** 2, 0.0)
+    w = np.where(use, 1.0 / np.maximum(_field(recent_rows, "std", q), 1e-300) ** 2, 0.0)
     wsum = np.sum(w, axis=1)
-    phis = _stacked(tracks, "phi", last, m)
+    phis = _field(recent_rows, "phi", q)
     phi = np.sum(np.where(use, w * phis, 0.0), axis=1) / wsum
     std = 1.0 / np.sqrt(wsum)
     out: list[Fitted | None] = []
