@@ -254,9 +254,7 @@ class HypothesisBank:
             self._learn_window(cols, proj, r0p, fit, initial)
             return WindowReading(baseline_nrmse, (self.learned, self.baseline_windows),
                                  sims=cols.sims)
-        dmat = np.stack([cols.cols[d] for d in self.directions]) if self.directions else \
-            np.zeros((0, *cols.r0.shape))
-        dp = proj.many(dmat)
+        dp = proj.many(cols.mat)
         first = self._fit_linear(dp, r0p)
         s0 = float(r0p @ r0p)
         n_eff = max(float(np.sum(kap) * m_rows), 2.0)

@@ -51,8 +51,8 @@ from numba import njit
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
-__all__ = ["LN_STEP", "Change", "basis", "Columns", "Fitted", "Hypothesis", "Track", "WindowTerms",
-           "bounded_solve", "columns", "design", "evidence_of", "periodic_angle", "window_basis"]
+__all__ = ["LN_STEP", "Change", "Columns", "Fitted", "Hypothesis", "Track", "WindowTerms",
+           "bounded_solve", "columns", "evidence_of", "periodic_angle", "window_basis"]
 
 #: Finite-difference step of a parameter's (or a gain's, a supply ratio's) logarithm. The
 #: twins are smooth in their parameters; 1e-4 keeps the truncation error (O(step)) far below
@@ -171,29 +171,29 @@ class WindowTerms:
     speed_channel: str = ""
 
 
-def basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms) -> FloatArray:
-    """A term direction's basis function over the window (N,): ``constant``, ``coulomb``
-    (``-sign`` of the speed), ``sin`` or ``cos`` of the harmonic's shaft angle."""
-    _, _, shape, harmonic = direction
-    n = window.n
-    if shape == "constant":
-        return np.ones(n)
-    if not terms.speed_channel:
-        raise ValueError(f"a {shape} term needs the library's speed_channel")
-    if shape == "coulomb":
-        out: FloatArray = -np.sign(np.asarray(window[terms.speed_channel], dtype=float))
-        return out
-    ang = periodic_angle(window, terms.speed_channel, float(harmonic))  # type: ignore[arg-type]
-    return np.sin(ang) if shape == "sin" else np.cos(ang)
-
-
 def window_basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms,
                  cache: dict[tuple[object, ...], FloatArray]) -> FloatArray:
-    """:func:`basis`, kept in ``cache`` (direction -> its values over this window) for the
-    window's other uses (its columns, each Gauss-Newton step's twins): computed once."""
+    """A term direction's basis function over the window (N,): ``constant``, ``coulomb``
+    (``-sign`` of the speed), ``sin`` or ``cos`` of the harmonic's shaft angle; kept in
+    ``cache`` (direction -> its values over this window, ``("angle",)`` the shaft angle) for
+    the window's other uses (its columns, each Gauss-Newton step's twins): computed once."""
     out = cache.get(direction)
-    if out is None:
-        out = cache[direction] = basis(window, direction, terms)
+    if out is not None:
+        return out
+    _, _, shape, harmonic = direction
+    if shape == "constant":
+        out = np.ones(window.n)
+    elif not terms.speed_channel:
+        raise ValueError(f"a {shape} term needs the library's speed_channel")
+    elif shape == "coulomb":
+        out = -np.sign(np.asarray(window[terms.speed_channel], dtype=float))
+    else:
+        ang = cache.get(("angle",))
+        if ang is None:
+            ang = cache[("angle",)] = periodic_angle(window, terms.speed_channel, 1.0)
+        ang = float(harmonic) * ang  # type: ignore[arg-type]
+        out = np.sin(ang) if shape == "sin" else np.cos(ang)
+    cache[direction] = out
     return out
 
 
@@ -206,7 +206,8 @@ class Columns:
         y0: the baseline twin's outputs (N, n_out).
         r0: measured minus baseline, normalised (N-1, n_out).
         cols: direction -> the outputs' change per unit of the direction's number, normalised
-            (N-1, n_out).
+            (N-1, n_out): the rows of ``mat``.
+        mat: the directions' columns in the order asked for (n_dir, N-1, n_out).
         nuisance: the initial-state offsets' columns (n_init, N-1, n_out).
         scale: each output's scale (n_out,).
     """
@@ -214,6 +215,7 @@ class Columns:
     y0: FloatArray
     r0: FloatArray
     cols: dict[tuple[object, ...], FloatArray]
+    mat: FloatArray
     nuisance: FloatArray
     scale: FloatArray
     sims: int = 0
@@ -258,58 +260,41 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
     names = model.parameter_names
     n_init = len(model.initial_states)
     init0 = np.zeros(n_init) if initial is None else np.asarray(initial, dtype=float)
-    rows_theta = [np.asarray(theta, dtype=float)]
-    rows_init = [init0]
-    keys: list[tuple[tuple[object, ...], float]] = []
-    term_rows: list[tuple[int, str, FloatArray]] = []
-    for d in directions:
-        if d[0] == "p":
-            th = rows_theta[0].copy()
-            th[names.index(str(d[1]))] *= math.exp(LN_STEP)
-            rows_theta.append(th)
-            rows_init.append(init0)
-            keys.append((d, LN_STEP))
-        elif d[0] == "term":
-            attach = model.attach_point(str(d[1]))
-            step = 1e-3 * (attach.scale if attach.mode == "additive" else 1.0)
-            rows_theta.append(rows_theta[0])
-            rows_init.append(init0)
-            term_rows.append((len(rows_theta) - 1, attach.name,
-                              step * window_basis(window, d, terms,
-                                                  {} if bases is None else bases)))
-            keys.append((d, step))
-    for i in range(n_init):
-        rows_theta.append(rows_theta[0])
-        e = init0.copy()
-        e[i] += fit.initial_scale[i] * 1e-3
-        rows_init.append(e)
-    p = len(rows_theta)
-    th = np.vstack(rows_theta)
+    # the rows simulated: the baseline, each parameter and term direction, each initial state
+    simulated = [i for i, d in enumerate(directions) if d[0] in ("p", "term")]
+    p = 1 + len(simulated) + n_init
+    th = np.repeat(np.asarray(theta, dtype=float)[None], p, axis=0)
+    inits = np.repeat(init0[None], p, axis=0)
+    steps = np.empty(len(simulated))
     tm: dict[str, FloatArray] = {}
-    for row, attach_name, values in term_rows:
-        arr = tm.setdefault(attach_name, np.zeros((p, window.n)))
-        arr[row] = values
-    inits = np.vstack(rows_init) if n_init else None
-    y = fit.simulate(th, tm or None, inits)
+    for row, i in enumerate(simulated, start=1):
+        d = directions[i]
+        if d[0] == "p":
+            th[row, names.index(str(d[1]))] *= math.exp(LN_STEP)
+            steps[row - 1] = LN_STEP
+        else:
+            attach = model.attach_point(str(d[1]))
+            step = steps[row - 1] = 1e-3 * (attach.scale if attach.mode == "additive" else 1.0)
+            arr = tm.setdefault(attach.name, np.zeros((p, window.n)))
+            arr[row] = step * window_basis(window, d, terms, {} if bases is None else bases)
+    for i in range(n_init):
+        inits[p - n_init + i, i] += fit.initial_scale[i] * 1e-3
+    y = fit.simulate(th, tm or None, inits if n_init else None)
     if not np.all(np.isfinite(y[0])):
         return None
     scale = fit.scale
     y0 = y[0]
     r0 = (fit.meas[1:] - y0[1:]) / scale
-    cols: dict[tuple[object, ...], FloatArray] = {}
-    for j, (d, step) in enumerate(keys, start=1):
-        cols[d] = (y[j, 1:] - y0[1:]) / (step * scale)
-    nuis = np.empty((n_init, y0.shape[0] - 1, y0.shape[1]))
-    for i in range(n_init):
-        row = p - n_init + i
-        nuis[i] = (y[row, 1:] - y0[1:]) / (fit.initial_scale[i] * 1e-3 * scale)
+    mat = np.zeros((len(directions), *r0.shape))
+    mat[simulated] = (y[1:1 + len(simulated), 1:] - y0[1:]) / (steps[:, None] * scale)[:, None]
+    nuis = (y[p - n_init:, 1:] - y0[1:]) / ((fit.initial_scale * 1e-3)[:, None] * scale)[:, None]
     sims = p
     outputs = model.output_names
-    for d in directions:
+    for i, d in enumerate(directions):
         if d[0] not in ("gain", "offset", "supply"):
             continue
         ch = str(d[1])
-        col = np.zeros_like(r0)
+        col = mat[i]
         if ch in outputs and d[0] != "supply":
             j = outputs.index(ch)
             # a gain per unit of (g - 1); an offset per unit of the output's scale (its RMS)
@@ -325,28 +310,12 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
             else:                     # the machine receives exp(phi) x the input
                 w2 = _transformed(window, ch, gain=math.exp(LN_STEP))
                 step = LN_STEP
-            y2 = model.simulate(th[:1], w2, None, inits[:1] if inits is not None else None)
+            y2 = model.simulate(th[:1], w2, None, inits[:1] if n_init else None)
             sims += 1
             if np.all(np.isfinite(y2)):
                 col += (y2[0, 1:] - y0[1:]) / (step * scale)
-        cols[d] = col
-    return Columns(y0=y0, r0=r0, cols=cols, nuisance=nuis, scale=scale, sims=sims)
-
-
-def design(cols: Columns, h: Hypothesis) -> FloatArray:
-    """The hypothesis's columns (q, N-1, n_out): each change's directions combined (a scale's
-    parameters weighed by their powers)."""
-    out = []
-    for c in h.changes:
-        if c.kind == "scale":
-            acc = np.zeros_like(cols.r0)
-            for name, power in c.powers:
-                acc = acc + power * cols.cols[("p", name)]
-            out.append(acc)
-        else:
-            for d in c.directions():
-                out.append(cols.cols[d])
-    return np.array(out) if out else np.zeros((0, *cols.r0.shape))
+    return Columns(y0=y0, r0=r0, cols=dict(zip(directions, mat, strict=True)), mat=mat,
+                   nuisance=nuis, scale=scale, sims=sims)
 
 
 def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
