@@ -165,6 +165,12 @@ class HypothesisBank:
         self._single: dict[str, int] = {
             lab: int(np.flatnonzero(c[0])[0]) for lab, c in self._combo.items()
             if c.shape[0] == 1 and np.count_nonzero(c[0]) == 1 and np.max(c[0]) == 1.0}
+        #: the hypotheses fitted on the columns, each as (label, its single direction's index
+        #: or -1, its bounds as numbers when it is single)
+        self._linear = [(h.label, self._single.get(h.label, -1),
+                         tuple(float(v) for v in self._bounds[h.label][0][:1]),
+                         tuple(float(v) for v in self._bounds[h.label][1][:1]))
+                        for h in self.hypotheses if h.closed_form is None]
         g = len(self.groups)
         self._prec = np.zeros((g, g))
         self._rhs = np.zeros(g)
@@ -244,7 +250,7 @@ class HypothesisBank:
             return None
         m_rows = cols.r0.shape[0]
         r_est = None
-        if est_simulated is not None and np.all(np.isfinite(est_simulated)):
+        if est_simulated is not None and np.isfinite(est_simulated).all():
             r_est = (fit.meas[1:] - est_simulated[1:]) / cols.scale
         sig2, kap = self._noise(cols, r_est)
         proj = _Projector(cols, kap, sig2)
@@ -264,9 +270,10 @@ class HypothesisBank:
         exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
         reading = WindowReading(baseline_nrmse, None, sims=cols.sims + sims)
         fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
+        ranges: dict[int, tuple[float, float, float]] = {}
         for h in everyone:
             if h.closed_form is not None:
-                fitted[h.label] = (np.zeros(1), self._closed_form(h, cols, fit, proj),
+                fitted[h.label] = (np.zeros(1), self._closed_form(h, cols, fit, proj, s0, ranges),
                                    np.zeros((1, 1)))
             else:
                 a, b, phi, s_h = first[h.label]
@@ -325,24 +332,23 @@ class HypothesisBank:
         # a hypothesis of one direction picks its entry of the information and the gradient:
         # exactly what the products with its combination give (1 x the entry plus zeros),
         # unless an entry is not finite (0 x inf is NaN): then the products are taken
-        pick = bool(np.all(np.isfinite(gram)) and np.all(np.isfinite(grad)))
+        pick = bool(np.isfinite(gram).all() and np.isfinite(grad).all())
+        diag, gradl = gram.diagonal().tolist(), grad.tolist()
         out = {}
-        for h in self.hypotheses:
-            if h.closed_form is not None:
+        for label, i, lo0, hi0 in self._linear:
+            if i >= 0 and pick:
+                # bounded_solve of one number (its arithmetic), and the squared residual below
+                # in the same order, on the numbers themselves
+                a0, b0 = diag[i], gradl[i]
+                p0 = min(max(b0 / a0 if a0 > 0 else 0.0, lo0[0]), hi0[0])
+                out[label] = (gram[i:i + 1, i:i + 1], grad[i:i + 1], np.array([p0]),
+                              s00 - 2 * b0 * p0 + p0 * a0 * p0)
                 continue
-            lo, hi = self._bounds[h.label]
-            i = self._single.get(h.label, -1) if pick else -1
-            if i >= 0:
-                a, b = gram[i:i + 1, i:i + 1], grad[i:i + 1]
-                phi = bounded_solve(a, b, lo, hi)
-                # the squared residual below in the same order, on the numbers themselves
-                a0, b0, p0 = float(a[0, 0]), float(b[0]), float(phi[0])
-                out[h.label] = (a, b, phi, s00 - 2 * b0 * p0 + p0 * a0 * p0)
-                continue
-            cmb = self._combo[h.label]
+            lo, hi = self._bounds[label]
+            cmb = self._combo[label]
             a, b = cmb @ gram @ cmb.T, cmb @ grad
             phi = bounded_solve(a, b, lo, hi)
-            out[h.label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
+            out[label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
         return out
 
     def _fit_pairs(self, dp: FloatArray, r0p: FloatArray,
@@ -394,7 +400,7 @@ class HypothesisBank:
                 if h.label not in step:
                     continue
                 exact[h.label] = step[h.label]
-                if float(np.max(np.abs(step[h.label][0] - phis[h.label]))) > 1e-4:
+                if _largest(step[h.label][0] - phis[h.label]) > 1e-4:
                     moved.append(h)
                 phis[h.label] = step[h.label][0]
             again = moved
@@ -439,7 +445,7 @@ class HypothesisBank:
         others: list[str] = []
         for h in everyone:
             tr = self.tracks[h.label]
-            consistent = self._consistent(h)
+            consistent = h.consistent
             groups.setdefault((consistent, tr.q, tr.m), []).append(h)
             if not consistent:
                 others.append(h.label)
@@ -470,13 +476,6 @@ class HypothesisBank:
     #: the noise with sizes that cancel (a winding's Ra down with a voltage reading's scale
     #: up), so it is not tried.
     PAIR_CORRELATION = 0.9
-
-    @staticmethod
-    def _consistent(h: Hypothesis) -> bool:
-        """A part's change (one size, or a steady drift, across the windows): every twin but
-        a periodic term (its phase is each window's own) and a stuck or clipped reading."""
-        return h.size > 0 and not any(c.kind == "term" and c.basis == "periodic"
-                                      for c in h.changes)
 
     def _pairs_now(self) -> list[Hypothesis]:
         return list(self._pairs.values())
@@ -592,7 +591,7 @@ class HypothesisBank:
         out = {}
         for h, start, n_fd in layout:
             block = y[start:start + 1 + n_fd]
-            if not np.all(np.isfinite(block)):
+            if not np.isfinite(block).all():
                 continue
             phi0 = phis[h.label]
             y1 = block[0]
@@ -629,8 +628,8 @@ class HypothesisBank:
             return 1e-3 * a
         return LN_STEP
 
-    def _closed_form(self, h: Hypothesis, cols: Columns, fit: WindowFit, proj: _Projector
-                     ) -> float:
+    def _closed_form(self, h: Hypothesis, cols: Columns, fit: WindowFit, proj: _Projector,
+                     s0: float, ranges: dict[int, tuple[float, float, float]]) -> float:
         """A stuck or clipped reading's weighted squared residual.
 
         A stuck reading repeats one value (to the :data:`RESOLUTION` of its scale): its own
@@ -640,25 +639,29 @@ class HypothesisBank:
         extreme (two samples or more at it within the resolution): the samples at it are
         explained by the clip, the others are the baseline's. A settled, noise-free drive whose
         readings repeat exactly gains nothing from either: its twin predicts the same constant.
+        ``s0`` is the baseline's weighted squared residual (what a reading that is not the
+        twin's output leaves); ``ranges``: each output's tolerance, largest and smallest
+        reading in this window, kept for the window's other closed forms.
         """
         c = h.closed_form
         assert c is not None
         names = fit.model.output_names
-        r = cols.r0.copy()
         if c.target not in names:
-            rp = proj(r)
-            return float(rp @ rp)
+            return s0
         j = names.index(c.target)
         meas = fit.meas[1:, j]
-        # a stuck register or a converter at its range's end repeats one code exactly
-        tol = EXACT * max(float(np.max(np.abs(meas))), float(cols.scale[j]))
+        if j not in ranges:
+            # a stuck register or a converter at its range's end repeats one code exactly
+            ranges[j] = (EXACT * max(float(np.abs(meas).max()), float(cols.scale[j])),
+                         float(meas.max()), float(meas.min()))
+        tol, hi, lo = ranges[j]
+        r = cols.r0.copy()
         if c.kind == "stuck":
-            if float(np.max(meas) - np.min(meas)) > tol:
+            if hi - lo > tol:
                 return math.inf
             r[:, j] = 0.0
         else:
             y = cols.y0[1:, j]
-            hi, lo = float(np.max(meas)), float(np.min(meas))
             at_hi = (np.abs(meas - hi) <= tol) & (y > hi)
             at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
             mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
@@ -666,8 +669,7 @@ class HypothesisBank:
                 # no sample at the range's end beyond the twin: the clip does not show in
                 # this window, which is the baseline's (a clipping sensor reads true below
                 # its range)
-                rp = proj(r)
-                return float(rp @ rp)
+                return s0
             r[mask, j] = 0.0
         rp = proj(r)
         return float(rp @ rp)
@@ -813,19 +815,20 @@ class _Projector:
         self.sw = np.sqrt(kappa / sigma2)
         n_init = cols.nuisance.shape[0]
         self.zw = (cols.nuisance * self.sw).reshape(n_init, -1)
+        self.zw_t = self.zw.T
         self.ginv = np.linalg.pinv(self.zw @ self.zw.T) if n_init else np.zeros((0, 0))
 
     def many(self, v: FloatArray) -> FloatArray:
         """:meth:`__call__` for a stack of residual-shaped arrays (k, N-1, n_out) -> (k, M)."""
         vw: FloatArray = (v * self.sw).reshape(v.shape[0], -1)
         if self.zw.shape[0]:
-            vw = vw - ((vw @ self.zw.T) @ self.ginv) @ self.zw
+            vw = vw - ((vw @ self.zw_t) @ self.ginv) @ self.zw
         return vw
 
     def __call__(self, v: FloatArray, profile: bool = True) -> FloatArray:
         vw: FloatArray = (v * self.sw).reshape(-1)
         if profile and self.zw.shape[0]:
-            vw = vw - self.zw.T @ (self.ginv @ (self.zw @ vw))
+            vw = vw - self.zw_t @ (self.ginv @ (self.zw @ vw))
         return vw
 
 

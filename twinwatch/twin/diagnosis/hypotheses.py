@@ -136,6 +136,13 @@ class Hypothesis:
         return any(c.kind in ("scale", "term") for c in self.changes)
 
     @cached_property
+    def consistent(self) -> bool:
+        """A part's change (one size, or a steady drift, across the windows): every twin but
+        a periodic term (its phase is each window's own) and a stuck or clipped reading."""
+        return self.size > 0 and not any(c.kind == "term" and c.basis == "periodic"
+                                         for c in self.changes)
+
+    @cached_property
     def closed_form(self) -> Change | None:
         """The stuck or clipped reading this hypothesis is (fitted without sensitivities)."""
         for c in self.changes:
@@ -413,6 +420,10 @@ class Track:
 
     def __len__(self) -> int:
         return self.m
+
+    def gains(self) -> FloatArray:
+        """The windows' gains (m,) [nats], oldest first (a view)."""
+        return self._buf[self._start:self._start + self.m, 0]
 
     def as_dict(self) -> dict[str, Any]:
         """The windows kept, as ``q`` and one array (a copy) per field, (m,) or (m, q):

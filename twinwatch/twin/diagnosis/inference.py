@@ -169,6 +169,12 @@ class Diagnoser:
         self.config = cfg
         self.source = source
         self.faults: dict[str, FaultMode] = {f.id: f for f in library.faults}
+        #: each mode's log prior, and the priors' sum with the unknown change's (the library
+        #: and the config are fixed for the diagnoser's life)
+        self._ln_prior = {fid: math.log(f.prior) for fid, f in self.faults.items()}
+        self._prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
+        #: twin label -> the mode (or the pair of modes) it stands for
+        self._mode_of: dict[str, str] = {}
         channels = [*model.output_names, *model.inputs]
         attach = [a.name for a in model.attach_points]
         self.hypotheses: list[Hypothesis] = []
@@ -249,7 +255,10 @@ class Diagnoser:
         p_none, p_unknown, post = self._posterior(best_twin, evidence, gains)
         _fold_pairs(best_twin)
         order = sorted(post, key=lambda k: -post[k])
-        listed = [self._fault(fid, post[fid], best_twin[fid], reading, order[0])
+        # the top mode's best twin's evidence (what each other listed mode is compared with)
+        best_top = max((v.evidence for k, v in reading.fits.items()
+                        if k.startswith(order[0] + "#")), default=0.0) if order else 0.0
+        listed = [self._fault(fid, post[fid], best_twin[fid], best_top, order[0])
                   for fid in order[:cfg.listed]]
         p_top = post[order[0]] if order else 0.0
         status, best = self._status(order, p_top, post, p_none, p_unknown, since, share)
@@ -296,8 +305,9 @@ class Diagnoser:
         estimate as ``unknown``."""
         by_fault: dict[str, list[tuple[str, Fitted]]] = {}
         for lab, f in reading.fits.items():
-            key = ("+".join(x.split("#")[0] for x in lab.split("+")) if "+" in lab
-                   else lab.split("#")[0])
+            key = self._mode_of.get(lab)
+            if key is None:
+                key = self._mode_of[lab] = "+".join(x.split("#")[0] for x in lab.split("+"))
             by_fault.setdefault(key, []).append((lab, f))
         evidence: dict[str, float] = {}
         gains: dict[str, np.ndarray] = {}
@@ -308,8 +318,7 @@ class Diagnoser:
             top = max(evs)
             evidence[fid] = (top + math.log(sum(math.exp(e - top) for e in evs) / len(evs))
                              if math.isfinite(top) else -math.inf)
-            tr = self.bank.tracks[best_twin[fid][0]]
-            gains[fid] = tr.gain[:tr.m]
+            gains[fid] = self.bank.tracks[best_twin[fid][0]].gains()
         evidence["unknown"] = reading.unknown
         gains["unknown"] = np.array(self.bank.unknown_gains())
         return best_twin, evidence, gains
@@ -322,19 +331,19 @@ class Diagnoser:
         baseline (nested: its size zero is the baseline) with its prior; which change: the
         twins against each other (not nested: Vuong's comparison, :func:`_vuong`)."""
         cfg = self.config
-        prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
+        ln_prior = self._ln_prior
 
         def log_prior(key: str) -> float:
             if key == "unknown":
                 return math.log(cfg.unknown_prior)
-            return sum(math.log(self.faults[f].prior) for f in key.split("+"))
+            return sum(ln_prior[f] for f in key.split("+"))
 
         # no change now: none ever, or one that ended (a repair: a second change, as likely as
         # the fault itself) and the windows since are the baseline's
-        terms_none = [math.log(max(1.0 - prior_sum, 1e-6))]
+        terms_none = [math.log(max(1.0 - self._prior_sum, 1e-6))]
         for key, (_, fitted) in best_twin.items():
             if "+" not in key and fitted.ended > -math.inf:
-                terms_none.append(2.0 * math.log(self.faults[key].prior) + fitted.ended)
+                terms_none.append(2.0 * ln_prior[key] + fitted.ended)
         log_none = _log_sum_exp(terms_none)
         log_change = _log_sum_exp([log_prior(k) + ev for k, ev in evidence.items()])
         p_change = 1.0 / (1.0 + math.exp(min(log_none - log_change, 700.0)))
@@ -429,7 +438,7 @@ class Diagnoser:
                 k += c.size
         return ", ".join(parts)
 
-    def _fault(self, fid: str, p: float, twin: tuple[str, Fitted], reading: WindowReading,
+    def _fault(self, fid: str, p: float, twin: tuple[str, Fitted], best_top: float,
                top: str) -> FaultHealth:
         mode = self.faults[fid]
         lab, f = twin
@@ -444,9 +453,6 @@ class Diagnoser:
             con.append(f"its twin ({self._size_text(fid, lab, f)}) fits the recent windows no "
                        f"better than the healthy baseline")
         if fid != top:
-            t_ev = reading.fits
-            best_top = max((v.evidence for k, v in t_ev.items() if k.startswith(top + "#")),
-                           default=0.0)
             if best_top - f.evidence > 1.0:
                 con.append(f"{top}'s twin fits the same windows better (log-evidence "
                            f"{best_top - f.evidence:.3g} more)")
