@@ -600,7 +600,7 @@ class HypothesisBank:
             # the reading changes' own effect at their size (at the baseline's slope), then the
             # exact scale and term part
             k, j = 0, 1
-            lin_shift = np.zeros(cols.shape[1])
+            lin_shift = None
             for c in h.changes:
                 if c.kind in ("scale", "term"):
                     for i in range(c.size):
@@ -608,13 +608,25 @@ class HypothesisBank:
                                            / (self._fd_step(c) * fit.scale))
                         j += 1
                 else:
+                    if lin_shift is None:
+                        lin_shift = np.zeros(cols.shape[1])
                     for i in range(k, k + c.size):
                         lin_shift += base_cols[i] * float(phi0[i])
                 k += c.size
-            r = proj((fit.meas[1:] - y1[1:]) / fit.scale) - lin_shift
+            r = proj((fit.meas[1:] - y1[1:]) / fit.scale)
+            if lin_shift is not None:
+                r = r - lin_shift
             a = cols @ cols.T
             b = cols @ r
             lo, hi = self._bounds[h.label]
+            if a.shape == (1, 1):
+                # bounded_solve of one number (its arithmetic) and the squared residual in the
+                # same order, on the numbers themselves
+                a0, b0, p0 = float(a[0, 0]), float(b[0]), float(phi0[0])
+                st = min(max(b0 / a0 if a0 > 0 else 0.0, float(lo[0]) - p0), float(hi[0]) - p0)
+                out[h.label] = (np.array([p0 + st]),
+                                float(r @ r) - 2 * b0 * st + st * a0 * st, a)
+                continue
             step = bounded_solve(a, b, lo - phi0, hi - phi0)
             s_val = float(r @ r - 2 * b @ step + step @ a @ step)
             out[h.label] = (phi0 + step, s_val, a)
@@ -790,14 +802,14 @@ class HypothesisBank:
         self.fits_window = deque((float(v) for v in state.get("fits_window", [])),
                                  maxlen=self.keep)
 
-    def unknown_gains(self) -> list[float]:
-        """The unknown change's per-window gains, oldest first (as a track's ``gain``)."""
-        return list(self._unknown)
+    def unknown_gains(self) -> FloatArray:
+        """The unknown change's per-window gains (m,), oldest first (as a track's ``gain``)."""
+        return np.fromiter(self._unknown, float, len(self._unknown))
 
     def _unknown_evidence(self) -> tuple[float, int]:
         if not self._unknown:
             return -math.inf, 0
-        u = np.array(self._unknown)
+        u = self.unknown_gains()
         suffix = np.flip(np.cumsum(np.flip(u)))
         top = float(np.max(suffix))
         start = int(np.argmax(suffix))

@@ -450,7 +450,7 @@ class Track:
 def _stacked(tracks: Sequence[Track], first: int, end: int) -> np.ndarray:
     """The tracks' rows (every field, :attr:`Track.FIELDS`) over their windows ``first`` to
     ``end``, stacked: (H, end - first, 5 + 2q)."""
-    return np.stack([t._buf[t._start + first:t._start + end] for t in tracks])
+    return np.array([t._buf[t._start + first:t._start + end] for t in tracks])
 
 
 def _field(rows: np.ndarray, name: str, q: int) -> np.ndarray:

@@ -110,7 +110,7 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[
             continue
         shared.setdefault(min(ref.size, other.size), []).append(k)
     for n, keys in shared.items():
-        d = ref[-n:] - np.stack([gains[k][-n:] for k in keys])
+        d = ref[-n:] - np.array([gains[k][-n:] for k in keys])
         # a twin impossible in a window (a moving reading is no stuck one): left as it is
         finite = np.all(np.isfinite(d), axis=1)
         d = d[:, max(0, start - (ref.size - n)):]
@@ -139,9 +139,12 @@ def shaft_speed(window: WindowData, channel: str) -> tuple[float, float] | None:
     if not channel or channel not in window.channels:
         return None
     w = np.abs(np.asarray(window[channel], dtype=float))
-    if w.size == 0 or not np.all(np.isfinite(w)):
+    if w.size == 0 or not np.isfinite(w).all():
         return None
-    return float(np.mean(w)), float(np.std(w))
+    # np.mean's and np.std's arithmetic, without their wrappers
+    mean = float(w.sum()) / w.size
+    dev = w - mean
+    return mean, math.sqrt(float((dev * dev).sum()) / w.size)
 
 
 class Diagnoser:
@@ -320,7 +323,7 @@ class Diagnoser:
                              if math.isfinite(top) else -math.inf)
             gains[fid] = self.bank.tracks[best_twin[fid][0]].gains()
         evidence["unknown"] = reading.unknown
-        gains["unknown"] = np.array(self.bank.unknown_gains())
+        gains["unknown"] = self.bank.unknown_gains()
         return best_twin, evidence, gains
 
     def _posterior(self, best_twin: Mapping[str, tuple[str, Fitted]],
