@@ -166,8 +166,11 @@ class HypothesisBank:
             lab: int(np.flatnonzero(c[0])[0]) for lab, c in self._combo.items()
             if c.shape[0] == 1 and np.count_nonzero(c[0]) == 1 and np.max(c[0]) == 1.0}
         #: the hypotheses fitted on the columns, each as (label, its single direction's index
-        #: or -1, its bounds as numbers when it is single)
+        #: or -1, its combination's index among the distinct ones (twins of one change with
+        #: other bounds share it), its bounds as numbers when it has one)
+        distinct: dict[bytes, int] = {}
         self._linear = [(h.label, self._single.get(h.label, -1),
+                         distinct.setdefault(self._combo[h.label].tobytes(), len(distinct)),
                          tuple(float(v) for v in self._bounds[h.label][0][:1]),
                          tuple(float(v) for v in self._bounds[h.label][1][:1]))
                         for h in self.hypotheses if h.closed_form is None]
@@ -197,13 +200,11 @@ class HypothesisBank:
 
     # -- baseline ---------------------------------------------------------------------------
     def _group_columns(self, cols: Columns) -> FloatArray:
-        out = []
-        for _, members in self.groups:
-            acc = np.zeros_like(cols.r0)
+        out = np.zeros((len(self.groups), *cols.r0.shape))
+        for acc, (_, members) in zip(out, self.groups, strict=True):
             for m in members:
-                acc = acc + cols.cols[("p", m)]
-            out.append(acc)
-        return np.array(out) if out else np.zeros((0, *cols.r0.shape))
+                acc += cols.cols[("p", m)]
+        return out
 
     def _ln_theta(self) -> FloatArray:
         out: FloatArray = np.log(np.array([self.theta[self.names.index(p)]
@@ -334,21 +335,27 @@ class HypothesisBank:
         # unless an entry is not finite (0 x inf is NaN): then the products are taken
         pick = bool(np.isfinite(gram).all() and np.isfinite(grad).all())
         diag, gradl = gram.diagonal().tolist(), grad.tolist()
+        ab: dict[int, tuple[FloatArray, FloatArray]] = {}    # each distinct combination's
         out = {}
-        for label, i, lo0, hi0 in self._linear:
+        for label, i, ci, lo0, hi0 in self._linear:
             if i >= 0 and pick:
-                # bounded_solve of one number (its arithmetic), and the squared residual below
-                # in the same order, on the numbers themselves
+                a, b = gram[i:i + 1, i:i + 1], grad[i:i + 1]
                 a0, b0 = diag[i], gradl[i]
-                p0 = min(max(b0 / a0 if a0 > 0 else 0.0, lo0[0]), hi0[0])
-                out[label] = (gram[i:i + 1, i:i + 1], grad[i:i + 1], np.array([p0]),
-                              s00 - 2 * b0 * p0 + p0 * a0 * p0)
-                continue
-            lo, hi = self._bounds[label]
-            cmb = self._combo[label]
-            a, b = cmb @ gram @ cmb.T, cmb @ grad
-            phi = bounded_solve(a, b, lo, hi)
-            out[label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
+            else:
+                if ci not in ab:
+                    cmb = self._combo[label]
+                    ab[ci] = (cmb @ gram @ cmb.T, cmb @ grad)
+                a, b = ab[ci]
+                if a.shape != (1, 1):
+                    lo, hi = self._bounds[label]
+                    phi = bounded_solve(a, b, lo, hi)
+                    out[label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
+                    continue
+                a0, b0 = float(a[0, 0]), float(b[0])
+            # bounded_solve of one number (its arithmetic), and the squared residual in the
+            # same order, on the numbers themselves
+            p0 = min(max(b0 / a0 if a0 > 0 else 0.0, lo0[0]), hi0[0])
+            out[label] = (a, b, np.array([p0]), s00 - 2 * b0 * p0 + p0 * a0 * p0)
         return out
 
     def _fit_pairs(self, dp: FloatArray, r0p: FloatArray,

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -232,8 +232,7 @@ def _transformed(window: WindowData, channel: str, gain: float = 1.0, offset: fl
                  ) -> WindowData:
     ch = dict(window.channels)
     ch[channel] = (np.asarray(window[channel], dtype=float) - offset) * gain
-    return WindowData(t=window.t, channels=ch, index=window.index,
-                      stamp_jitter=window.stamp_jitter)
+    return replace(window, channels=ch)     # the same times (and their sample period, kept)
 
 
 def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object, ...]],
@@ -334,23 +333,24 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
         a0 = float(a[0, 0])
         x1 = float(b[0]) / a0 if a0 > 0 else 0.0
         return np.array([min(max(x1, float(lo[0])), float(hi[0]))])
-    fixed = np.zeros(q, dtype=bool)
-    x = np.zeros(q)
-    for _ in range(q + 1):
-        free = ~fixed
-        if np.any(free):
-            if np.any(fixed):
+    # all free first (most solves end here)
+    reg = 1e-12 * max(1.0, float(a.trace())) * np.eye(q)
+    x = np.linalg.lstsq(a + reg, b, rcond=None)[0]
+    fixed = (x < lo) | (x > hi)
+    if fixed.any():
+        x = np.clip(x, lo, hi)
+        for _ in range(q):
+            free = ~fixed
+            if free.any():
                 af = a[np.ix_(free, free)]
                 bf = b[free] - a[np.ix_(free, fixed)] @ x[fixed]
-            else:       # all free: the blocks are ``a`` and ``b`` less nothing
-                af, bf = a, b
-            reg = 1e-12 * max(1.0, float(np.trace(af))) * np.eye(af.shape[0])
-            x[free] = np.linalg.lstsq(af + reg, bf, rcond=None)[0]
-        out = (x < lo) | (x > hi)
-        if not np.any(out & free):
-            break
-        x = np.clip(x, lo, hi)
-        fixed |= out
+                reg = 1e-12 * max(1.0, float(af.trace())) * np.eye(af.shape[0])
+                x[free] = np.linalg.lstsq(af + reg, bf, rcond=None)[0]
+            out = (x < lo) | (x > hi)
+            if not (out & free).any():
+                break
+            x = np.clip(x, lo, hi)
+            fixed |= out
     out_x: FloatArray = np.clip(x, lo, hi)
     return out_x
 
