@@ -292,7 +292,9 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
     y0 = y[0]
     r0 = (fit.meas[1:] - y0[1:]) / scale
     mat = np.zeros((len(directions), *r0.shape))
-    mat[simulated] = (y[1:1 + len(simulated), 1:] - y0[1:]) / (steps[:, None] * scale)[:, None]
+    k = len(simulated)      # the simulated directions: usually the first k (a slice)
+    mat[slice(0, k) if simulated == list(range(k)) else simulated] = (
+        (y[1:1 + k, 1:] - y0[1:]) / (steps[:, None] * scale)[:, None])
     nuis = (y[p - n_init:, 1:] - y0[1:]) / ((fit.initial_scale * 1e-3)[:, None] * scale)[:, None]
     sims = p
     outputs = model.output_names
@@ -412,10 +414,7 @@ class Track:
         if k == b.shape[0]:
             b[:self.m] = b[self._start:k]
             self._start, k = 0, self.m
-        row = b[k]
-        row[0], row[1], row[2], row[3], row[4] = gain, half, ln_n, t, info
-        row[5:5 + self.q] = phi
-        row[5 + self.q:] = std
+        b[k] = (gain, half, ln_n, t, info, *phi, *std)
         self.m += 1
 
     def __len__(self) -> int:

@@ -261,7 +261,14 @@ class Diagnoser:
         # the top mode's best twin's evidence (what each other listed mode is compared with)
         best_top = max((v.evidence for k, v in reading.fits.items()
                         if k.startswith(order[0] + "#")), default=0.0) if order else 0.0
-        listed = [self._fault(fid, post[fid], best_twin[fid], best_top, order[0])
+        texts: dict[str, str] = {}    # each mode's twin's fitted change for a person, once
+
+        def text(fid: str) -> str:
+            if fid not in texts:
+                texts[fid] = self._size_text(fid, *best_twin[fid])
+            return texts[fid]
+
+        listed = [self._fault(fid, post[fid], best_twin[fid], text(fid), best_top, order[0])
                   for fid in order[:cfg.listed]]
         p_top = post[order[0]] if order else 0.0
         status, best = self._status(order, p_top, post, p_none, p_unknown, since, share)
@@ -274,7 +281,8 @@ class Diagnoser:
                 f"{', the kept meta-model terms' if terms else ''}) fits the "
                 f"{reading.unknown_windows} windows since the change better than any fault "
                 f"mode's twin: a change the library does not know")
-        ruled_out = [self._why_not(fid, post[fid], best_twin[fid], order[0])
+        ruled_out = [f"{fid} ({post[fid]:.2f}): its twin ({text(fid)}) explains the windows "
+                     f"less well than {order[0]}'s"
                      for fid in order[1:] if post[fid] < 0.05
                      and best_twin[fid][1].evidence > 0][:cfg.listed]
         unobserved = [f"{fid}: its twin would not change these windows' data measurably "
@@ -441,19 +449,19 @@ class Diagnoser:
                 k += c.size
         return ", ".join(parts)
 
-    def _fault(self, fid: str, p: float, twin: tuple[str, Fitted], best_top: float,
-               top: str) -> FaultHealth:
+    def _fault(self, fid: str, p: float, twin: tuple[str, Fitted], text: str,
+               best_top: float, top: str) -> FaultHealth:
         mode = self.faults[fid]
         lab, f = twin
         pro: list[str] = []
         con: list[str] = []
         since = f"the {f.windows} windows since its change point"
         if f.evidence > 0:
-            pro.append(f"its twin ({self._size_text(fid, lab, f)}, 2 sigma) fits {since} "
+            pro.append(f"its twin ({text}, 2 sigma) fits {since} "
                        f"better than the healthy baseline (log-evidence {f.evidence:.3g}; "
                        f"better in {100 * f.share:.0f} % of them)")
         else:
-            con.append(f"its twin ({self._size_text(fid, lab, f)}) fits the recent windows no "
+            con.append(f"its twin ({text}) fits the recent windows no "
                        f"better than the healthy baseline")
         if fid != top:
             if best_top - f.evidence > 1.0:
@@ -469,11 +477,6 @@ class Diagnoser:
                            action=mode.action, urgency=mode.urgency, source=mode.source,
                            evidence_for=pro, evidence_against=con,
                            changes=list(dict.fromkeys(changed)))
-
-    def _why_not(self, fid: str, p: float, twin: tuple[str, Fitted], top: str) -> str:
-        lab, f = twin
-        return (f"{fid} ({p:.2f}): its twin ({self._size_text(fid, lab, f)}) explains the "
-                f"windows less well than {top}'s")
 
     # -- state (a restart resumes the baseline and the evidence since the change) -------------
     def state(self) -> dict[str, Any]:
