@@ -102,6 +102,25 @@ def test_twins_that_fit_alike_stay_split_and_a_consistently_better_one_is_not() 
     assert one["a"] == one["c"]
 
 
+def test_a_track_keeps_its_last_windows_in_order_through_its_copies_back() -> None:
+    """A track holds its last ``keep`` windows, oldest first, however many windows passed
+    (its rows are copied back to the front now and then), and reads back from its saved
+    form window for window."""
+    from twinwatch.twin.diagnosis.hypotheses import Track
+
+    tr = Track(2, 5)
+    for k in range(5 + 3 * Track.SPARE + 2):
+        tr.append(-k, np.array([k, 2.0 * k]), np.array([0.5, 1.5]), 2.0 * k, k % 3 == 0,
+                  0.5 * k, 1.0 + k)
+    last = np.arange(3 * Track.SPARE + 2, 5 + 3 * Track.SPARE + 2, dtype=float)
+    assert tr.m == 5 and list(tr.t[:5]) == list(2.0 * last)
+    assert list(tr.phi[:5, 1]) == list(2.0 * last) and list(tr.gain[:5]) == list(-last)
+    saved = tr.as_dict()
+    assert saved["info"].dtype == bool and list(saved["info"]) == [k % 3 == 0 for k in last]
+    back = Track.from_dict(saved, 5)
+    assert all(np.array_equal(back.as_dict()[f], saved[f]) for f in Track.FIELDS)
+
+
 def test_a_part_s_sizes_that_jump_from_window_to_window_are_not_a_part_s_change() -> None:
     """The line of sizes: the same windows' gains with sizes on a line (a drift) give the
     part's twin nearly all of their log-likelihood; sizes that jump between 0 and 10 % (an

@@ -165,6 +165,15 @@ class HypothesisBank:
         self._single: dict[str, int] = {
             lab: int(np.flatnonzero(c[0])[0]) for lab, c in self._combo.items()
             if c.shape[0] == 1 and np.count_nonzero(c[0]) == 1 and np.max(c[0]) == 1.0}
+        #: the hypotheses fitted on the columns, each as (label, its single direction's index
+        #: or -1, its combination's index among the distinct ones (twins of one change with
+        #: other bounds share it), its bounds as numbers when it has one)
+        distinct: dict[bytes, int] = {}
+        self._linear = [(h.label, self._single.get(h.label, -1),
+                         distinct.setdefault(self._combo[h.label].tobytes(), len(distinct)),
+                         tuple(float(v) for v in self._bounds[h.label][0][:1]),
+                         tuple(float(v) for v in self._bounds[h.label][1][:1]))
+                        for h in self.hypotheses if h.closed_form is None]
         g = len(self.groups)
         self._prec = np.zeros((g, g))
         self._rhs = np.zeros(g)
@@ -191,13 +200,11 @@ class HypothesisBank:
 
     # -- baseline ---------------------------------------------------------------------------
     def _group_columns(self, cols: Columns) -> FloatArray:
-        out = []
-        for _, members in self.groups:
-            acc = np.zeros_like(cols.r0)
+        out = np.zeros((len(self.groups), *cols.r0.shape))
+        for acc, (_, members) in zip(out, self.groups, strict=True):
             for m in members:
-                acc = acc + cols.cols[("p", m)]
-            out.append(acc)
-        return np.array(out) if out else np.zeros((0, *cols.r0.shape))
+                acc += cols.cols[("p", m)]
+        return out
 
     def _ln_theta(self) -> FloatArray:
         out: FloatArray = np.log(np.array([self.theta[self.names.index(p)]
@@ -244,7 +251,7 @@ class HypothesisBank:
             return None
         m_rows = cols.r0.shape[0]
         r_est = None
-        if est_simulated is not None and np.all(np.isfinite(est_simulated)):
+        if est_simulated is not None and np.isfinite(est_simulated).all():
             r_est = (fit.meas[1:] - est_simulated[1:]) / cols.scale
         sig2, kap = self._noise(cols, r_est)
         proj = _Projector(cols, kap, sig2)
@@ -254,9 +261,7 @@ class HypothesisBank:
             self._learn_window(cols, proj, r0p, fit, initial)
             return WindowReading(baseline_nrmse, (self.learned, self.baseline_windows),
                                  sims=cols.sims)
-        dmat = np.stack([cols.cols[d] for d in self.directions]) if self.directions else \
-            np.zeros((0, *cols.r0.shape))
-        dp = proj.many(dmat)
+        dp = proj.many(cols.mat)
         first = self._fit_linear(dp, r0p)
         s0 = float(r0p @ r0p)
         n_eff = max(float(np.sum(kap) * m_rows), 2.0)
@@ -266,9 +271,10 @@ class HypothesisBank:
         exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
         reading = WindowReading(baseline_nrmse, None, sims=cols.sims + sims)
         fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
+        ranges: dict[int, tuple[float, float, float]] = {}
         for h in everyone:
             if h.closed_form is not None:
-                fitted[h.label] = (np.zeros(1), self._closed_form(h, cols, fit, proj),
+                fitted[h.label] = (np.zeros(1), self._closed_form(h, cols, fit, proj, s0, ranges),
                                    np.zeros((1, 1)))
             else:
                 a, b, phi, s_h = first[h.label]
@@ -327,24 +333,29 @@ class HypothesisBank:
         # a hypothesis of one direction picks its entry of the information and the gradient:
         # exactly what the products with its combination give (1 x the entry plus zeros),
         # unless an entry is not finite (0 x inf is NaN): then the products are taken
-        pick = bool(np.all(np.isfinite(gram)) and np.all(np.isfinite(grad)))
+        pick = bool(np.isfinite(gram).all() and np.isfinite(grad).all())
+        diag, gradl = gram.diagonal().tolist(), grad.tolist()
+        ab: dict[int, tuple[FloatArray, FloatArray]] = {}    # each distinct combination's
         out = {}
-        for h in self.hypotheses:
-            if h.closed_form is not None:
-                continue
-            lo, hi = self._bounds[h.label]
-            i = self._single.get(h.label, -1) if pick else -1
-            if i >= 0:
+        for label, i, ci, lo0, hi0 in self._linear:
+            if i >= 0 and pick:
                 a, b = gram[i:i + 1, i:i + 1], grad[i:i + 1]
-                phi = bounded_solve(a, b, lo, hi)
-                # the squared residual below in the same order, on the numbers themselves
-                a0, b0, p0 = float(a[0, 0]), float(b[0]), float(phi[0])
-                out[h.label] = (a, b, phi, s00 - 2 * b0 * p0 + p0 * a0 * p0)
-                continue
-            cmb = self._combo[h.label]
-            a, b = cmb @ gram @ cmb.T, cmb @ grad
-            phi = bounded_solve(a, b, lo, hi)
-            out[h.label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
+                a0, b0 = diag[i], gradl[i]
+            else:
+                if ci not in ab:
+                    cmb = self._combo[label]
+                    ab[ci] = (cmb @ gram @ cmb.T, cmb @ grad)
+                a, b = ab[ci]
+                if a.shape != (1, 1):
+                    lo, hi = self._bounds[label]
+                    phi = bounded_solve(a, b, lo, hi)
+                    out[label] = (a, b, phi, float(s00 - 2 * b @ phi + phi @ a @ phi))
+                    continue
+                a0, b0 = float(a[0, 0]), float(b[0])
+            # bounded_solve of one number (its arithmetic), and the squared residual in the
+            # same order, on the numbers themselves
+            p0 = min(max(b0 / a0 if a0 > 0 else 0.0, lo0[0]), hi0[0])
+            out[label] = (a, b, np.array([p0]), s00 - 2 * b0 * p0 + p0 * a0 * p0)
         return out
 
     def _fit_pairs(self, dp: FloatArray, r0p: FloatArray,
@@ -396,7 +407,7 @@ class HypothesisBank:
                 if h.label not in step:
                     continue
                 exact[h.label] = step[h.label]
-                if float(np.max(np.abs(step[h.label][0] - phis[h.label]))) > 1e-4:
+                if _largest(step[h.label][0] - phis[h.label]) > 1e-4:
                     moved.append(h)
                 phis[h.label] = step[h.label][0]
             again = moved
@@ -413,19 +424,24 @@ class HypothesisBank:
             phi, s_h, a = fitted[h.label]
             half = 0.5 * eta * (s0 - s_h) if math.isfinite(s_h) else -math.inf
             if h.closed_form is not None:
-                track.append(half - 0.5 * ln_n, np.zeros(1), np.ones(1), t_mid)
+                track.append(half - 0.5 * ln_n, (0.0,), (1.0,), t_mid)
                 continue
-            # the tempered likelihood's information: eta times the window's
-            a = eta * a
-            std = (np.array([1.0 / math.sqrt(a[0, 0])]) if a.shape == (1, 1)
-                   and a[0, 0] > 0 else np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0)))
             reach = self._reach.get(h.label)
             if reach is None:
                 lo, hi = self._bounds[h.label]
                 span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
                 reach = self._reach[h.label] = np.minimum(span, 1.0) ** 2
-            info = bool((a[0, 0] * reach[0] if a.shape == (1, 1)
-                         else np.max(np.diag(a) * reach)) > 1.0)
+            # the tempered likelihood's information: eta times the window's
+            if a.shape == (1, 1):
+                a00 = eta * float(a[0, 0])
+                std: Sequence[float] | FloatArray = (
+                    (1.0 / math.sqrt(a00),) if a00 > 0 else
+                    np.sqrt(np.maximum(np.diag(np.linalg.pinv(eta * a)), 0.0)))
+                info = a00 * float(reach[0]) > 1.0
+            else:
+                a = eta * a
+                std = np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0))
+                info = bool(np.max(np.diag(a) * reach) > 1.0)
             track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
 
     def _read_evidence(self, everyone: list[Hypothesis], reading: WindowReading) -> None:
@@ -436,7 +452,7 @@ class HypothesisBank:
         others: list[str] = []
         for h in everyone:
             tr = self.tracks[h.label]
-            consistent = self._consistent(h)
+            consistent = h.consistent
             groups.setdefault((consistent, tr.q, tr.m), []).append(h)
             if not consistent:
                 others.append(h.label)
@@ -467,13 +483,6 @@ class HypothesisBank:
     #: the noise with sizes that cancel (a winding's Ra down with a voltage reading's scale
     #: up), so it is not tried.
     PAIR_CORRELATION = 0.9
-
-    @staticmethod
-    def _consistent(h: Hypothesis) -> bool:
-        """A part's change (one size, or a steady drift, across the windows): every twin but
-        a periodic term (its phase is each window's own) and a stuck or clipped reading."""
-        return h.size > 0 and not any(c.kind == "term" and c.basis == "periodic"
-                                      for c in h.changes)
 
     def _pairs_now(self) -> list[Hypothesis]:
         return list(self._pairs.values())
@@ -589,7 +598,7 @@ class HypothesisBank:
         out = {}
         for h, start, n_fd in layout:
             block = y[start:start + 1 + n_fd]
-            if not np.all(np.isfinite(block)):
+            if not np.isfinite(block).all():
                 continue
             phi0 = phis[h.label]
             y1 = block[0]
@@ -598,7 +607,7 @@ class HypothesisBank:
             # the reading changes' own effect at their size (at the baseline's slope), then the
             # exact scale and term part
             k, j = 0, 1
-            lin_shift = np.zeros(cols.shape[1])
+            lin_shift = None
             for c in h.changes:
                 if c.kind in ("scale", "term"):
                     for i in range(c.size):
@@ -606,13 +615,25 @@ class HypothesisBank:
                                            / (self._fd_step(c) * fit.scale))
                         j += 1
                 else:
+                    if lin_shift is None:
+                        lin_shift = np.zeros(cols.shape[1])
                     for i in range(k, k + c.size):
                         lin_shift += base_cols[i] * float(phi0[i])
                 k += c.size
-            r = proj((fit.meas[1:] - y1[1:]) / fit.scale) - lin_shift
+            r = proj((fit.meas[1:] - y1[1:]) / fit.scale)
+            if lin_shift is not None:
+                r = r - lin_shift
             a = cols @ cols.T
             b = cols @ r
             lo, hi = self._bounds[h.label]
+            if a.shape == (1, 1):
+                # bounded_solve of one number (its arithmetic) and the squared residual in the
+                # same order, on the numbers themselves
+                a0, b0, p0 = float(a[0, 0]), float(b[0]), float(phi0[0])
+                st = min(max(b0 / a0 if a0 > 0 else 0.0, float(lo[0]) - p0), float(hi[0]) - p0)
+                out[h.label] = (np.array([p0 + st]),
+                                float(r @ r) - 2 * b0 * st + st * a0 * st, a)
+                continue
             step = bounded_solve(a, b, lo - phi0, hi - phi0)
             s_val = float(r @ r - 2 * b @ step + step @ a @ step)
             out[h.label] = (phi0 + step, s_val, a)
@@ -626,8 +647,8 @@ class HypothesisBank:
             return 1e-3 * a
         return LN_STEP
 
-    def _closed_form(self, h: Hypothesis, cols: Columns, fit: WindowFit, proj: _Projector
-                     ) -> float:
+    def _closed_form(self, h: Hypothesis, cols: Columns, fit: WindowFit, proj: _Projector,
+                     s0: float, ranges: dict[int, tuple[float, float, float]]) -> float:
         """A stuck or clipped reading's weighted squared residual.
 
         A stuck reading repeats one value (to the :data:`RESOLUTION` of its scale): its own
@@ -637,25 +658,29 @@ class HypothesisBank:
         extreme (two samples or more at it within the resolution): the samples at it are
         explained by the clip, the others are the baseline's. A settled, noise-free drive whose
         readings repeat exactly gains nothing from either: its twin predicts the same constant.
+        ``s0`` is the baseline's weighted squared residual (what a reading that is not the
+        twin's output leaves); ``ranges``: each output's tolerance, largest and smallest
+        reading in this window, kept for the window's other closed forms.
         """
         c = h.closed_form
         assert c is not None
         names = fit.model.output_names
-        r = cols.r0.copy()
         if c.target not in names:
-            rp = proj(r)
-            return float(rp @ rp)
+            return s0
         j = names.index(c.target)
         meas = fit.meas[1:, j]
-        # a stuck register or a converter at its range's end repeats one code exactly
-        tol = EXACT * max(float(np.max(np.abs(meas))), float(cols.scale[j]))
+        if j not in ranges:
+            # a stuck register or a converter at its range's end repeats one code exactly
+            ranges[j] = (EXACT * max(float(np.abs(meas).max()), float(cols.scale[j])),
+                         float(meas.max()), float(meas.min()))
+        tol, hi, lo = ranges[j]
+        r = cols.r0.copy()
         if c.kind == "stuck":
-            if float(np.max(meas) - np.min(meas)) > tol:
+            if hi - lo > tol:
                 return math.inf
             r[:, j] = 0.0
         else:
             y = cols.y0[1:, j]
-            hi, lo = float(np.max(meas)), float(np.min(meas))
             at_hi = (np.abs(meas - hi) <= tol) & (y > hi)
             at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
             mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
@@ -663,8 +688,7 @@ class HypothesisBank:
                 # no sample at the range's end beyond the twin: the clip does not show in
                 # this window, which is the baseline's (a clipping sensor reads true below
                 # its range)
-                rp = proj(r)
-                return float(rp @ rp)
+                return s0
             r[mask, j] = 0.0
         rp = proj(r)
         return float(rp @ rp)
@@ -785,14 +809,14 @@ class HypothesisBank:
         self.fits_window = deque((float(v) for v in state.get("fits_window", [])),
                                  maxlen=self.keep)
 
-    def unknown_gains(self) -> list[float]:
-        """The unknown change's per-window gains, oldest first (as a track's ``gain``)."""
-        return list(self._unknown)
+    def unknown_gains(self) -> FloatArray:
+        """The unknown change's per-window gains (m,), oldest first (as a track's ``gain``)."""
+        return np.fromiter(self._unknown, float, len(self._unknown))
 
     def _unknown_evidence(self) -> tuple[float, int]:
         if not self._unknown:
             return -math.inf, 0
-        u = np.array(self._unknown)
+        u = self.unknown_gains()
         suffix = np.flip(np.cumsum(np.flip(u)))
         top = float(np.max(suffix))
         start = int(np.argmax(suffix))
@@ -810,19 +834,20 @@ class _Projector:
         self.sw = np.sqrt(kappa / sigma2)
         n_init = cols.nuisance.shape[0]
         self.zw = (cols.nuisance * self.sw).reshape(n_init, -1)
+        self.zw_t = self.zw.T
         self.ginv = np.linalg.pinv(self.zw @ self.zw.T) if n_init else np.zeros((0, 0))
 
     def many(self, v: FloatArray) -> FloatArray:
         """:meth:`__call__` for a stack of residual-shaped arrays (k, N-1, n_out) -> (k, M)."""
         vw: FloatArray = (v * self.sw).reshape(v.shape[0], -1)
         if self.zw.shape[0]:
-            vw = vw - ((vw @ self.zw.T) @ self.ginv) @ self.zw
+            vw = vw - ((vw @ self.zw_t) @ self.ginv) @ self.zw
         return vw
 
     def __call__(self, v: FloatArray, profile: bool = True) -> FloatArray:
         vw: FloatArray = (v * self.sw).reshape(-1)
         if profile and self.zw.shape[0]:
-            vw = vw - self.zw.T @ (self.ginv @ (self.zw @ vw))
+            vw = vw - self.zw_t @ (self.ginv @ (self.zw @ vw))
         return vw
 
 

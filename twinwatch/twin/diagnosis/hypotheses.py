@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -51,8 +51,8 @@ from numba import njit
 from twinwatch.twin.estimation.fit import WindowFit
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
-__all__ = ["LN_STEP", "Change", "basis", "Columns", "Fitted", "Hypothesis", "Track", "WindowTerms",
-           "bounded_solve", "columns", "design", "evidence_of", "periodic_angle", "window_basis"]
+__all__ = ["LN_STEP", "Change", "Columns", "Fitted", "Hypothesis", "Track", "WindowTerms",
+           "bounded_solve", "columns", "evidence_of", "periodic_angle", "window_basis"]
 
 #: Finite-difference step of a parameter's (or a gain's, a supply ratio's) logarithm. The
 #: twins are smooth in their parameters; 1e-4 keeps the truncation error (O(step)) far below
@@ -136,6 +136,13 @@ class Hypothesis:
         return any(c.kind in ("scale", "term") for c in self.changes)
 
     @cached_property
+    def consistent(self) -> bool:
+        """A part's change (one size, or a steady drift, across the windows): every twin but
+        a periodic term (its phase is each window's own) and a stuck or clipped reading."""
+        return self.size > 0 and not any(c.kind == "term" and c.basis == "periodic"
+                                         for c in self.changes)
+
+    @cached_property
     def closed_form(self) -> Change | None:
         """The stuck or clipped reading this hypothesis is (fitted without sensitivities)."""
         for c in self.changes:
@@ -171,29 +178,29 @@ class WindowTerms:
     speed_channel: str = ""
 
 
-def basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms) -> FloatArray:
-    """A term direction's basis function over the window (N,): ``constant``, ``coulomb``
-    (``-sign`` of the speed), ``sin`` or ``cos`` of the harmonic's shaft angle."""
-    _, _, shape, harmonic = direction
-    n = window.n
-    if shape == "constant":
-        return np.ones(n)
-    if not terms.speed_channel:
-        raise ValueError(f"a {shape} term needs the library's speed_channel")
-    if shape == "coulomb":
-        out: FloatArray = -np.sign(np.asarray(window[terms.speed_channel], dtype=float))
-        return out
-    ang = periodic_angle(window, terms.speed_channel, float(harmonic))  # type: ignore[arg-type]
-    return np.sin(ang) if shape == "sin" else np.cos(ang)
-
-
 def window_basis(window: WindowData, direction: tuple[object, ...], terms: WindowTerms,
                  cache: dict[tuple[object, ...], FloatArray]) -> FloatArray:
-    """:func:`basis`, kept in ``cache`` (direction -> its values over this window) for the
-    window's other uses (its columns, each Gauss-Newton step's twins): computed once."""
+    """A term direction's basis function over the window (N,): ``constant``, ``coulomb``
+    (``-sign`` of the speed), ``sin`` or ``cos`` of the harmonic's shaft angle; kept in
+    ``cache`` (direction -> its values over this window, ``("angle",)`` the shaft angle) for
+    the window's other uses (its columns, each Gauss-Newton step's twins): computed once."""
     out = cache.get(direction)
-    if out is None:
-        out = cache[direction] = basis(window, direction, terms)
+    if out is not None:
+        return out
+    _, _, shape, harmonic = direction
+    if shape == "constant":
+        out = np.ones(window.n)
+    elif not terms.speed_channel:
+        raise ValueError(f"a {shape} term needs the library's speed_channel")
+    elif shape == "coulomb":
+        out = -np.sign(np.asarray(window[terms.speed_channel], dtype=float))
+    else:
+        ang = cache.get(("angle",))
+        if ang is None:
+            ang = cache[("angle",)] = periodic_angle(window, terms.speed_channel, 1.0)
+        ang = float(harmonic) * ang  # type: ignore[arg-type]
+        out = np.sin(ang) if shape == "sin" else np.cos(ang)
+    cache[direction] = out
     return out
 
 
@@ -206,7 +213,8 @@ class Columns:
         y0: the baseline twin's outputs (N, n_out).
         r0: measured minus baseline, normalised (N-1, n_out).
         cols: direction -> the outputs' change per unit of the direction's number, normalised
-            (N-1, n_out).
+            (N-1, n_out): the rows of ``mat``.
+        mat: the directions' columns in the order asked for (n_dir, N-1, n_out).
         nuisance: the initial-state offsets' columns (n_init, N-1, n_out).
         scale: each output's scale (n_out,).
     """
@@ -214,6 +222,7 @@ class Columns:
     y0: FloatArray
     r0: FloatArray
     cols: dict[tuple[object, ...], FloatArray]
+    mat: FloatArray
     nuisance: FloatArray
     scale: FloatArray
     sims: int = 0
@@ -223,8 +232,7 @@ def _transformed(window: WindowData, channel: str, gain: float = 1.0, offset: fl
                  ) -> WindowData:
     ch = dict(window.channels)
     ch[channel] = (np.asarray(window[channel], dtype=float) - offset) * gain
-    return WindowData(t=window.t, channels=ch, index=window.index,
-                      stamp_jitter=window.stamp_jitter)
+    return replace(window, channels=ch)     # the same times (and their sample period, kept)
 
 
 def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object, ...]],
@@ -258,58 +266,43 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
     names = model.parameter_names
     n_init = len(model.initial_states)
     init0 = np.zeros(n_init) if initial is None else np.asarray(initial, dtype=float)
-    rows_theta = [np.asarray(theta, dtype=float)]
-    rows_init = [init0]
-    keys: list[tuple[tuple[object, ...], float]] = []
-    term_rows: list[tuple[int, str, FloatArray]] = []
-    for d in directions:
-        if d[0] == "p":
-            th = rows_theta[0].copy()
-            th[names.index(str(d[1]))] *= math.exp(LN_STEP)
-            rows_theta.append(th)
-            rows_init.append(init0)
-            keys.append((d, LN_STEP))
-        elif d[0] == "term":
-            attach = model.attach_point(str(d[1]))
-            step = 1e-3 * (attach.scale if attach.mode == "additive" else 1.0)
-            rows_theta.append(rows_theta[0])
-            rows_init.append(init0)
-            term_rows.append((len(rows_theta) - 1, attach.name,
-                              step * window_basis(window, d, terms,
-                                                  {} if bases is None else bases)))
-            keys.append((d, step))
-    for i in range(n_init):
-        rows_theta.append(rows_theta[0])
-        e = init0.copy()
-        e[i] += fit.initial_scale[i] * 1e-3
-        rows_init.append(e)
-    p = len(rows_theta)
-    th = np.vstack(rows_theta)
+    # the rows simulated: the baseline, each parameter and term direction, each initial state
+    simulated = [i for i, d in enumerate(directions) if d[0] in ("p", "term")]
+    p = 1 + len(simulated) + n_init
+    th = np.repeat(np.asarray(theta, dtype=float)[None], p, axis=0)
+    inits = np.repeat(init0[None], p, axis=0)
+    steps = np.empty(len(simulated))
     tm: dict[str, FloatArray] = {}
-    for row, attach_name, values in term_rows:
-        arr = tm.setdefault(attach_name, np.zeros((p, window.n)))
-        arr[row] = values
-    inits = np.vstack(rows_init) if n_init else None
-    y = fit.simulate(th, tm or None, inits)
+    for row, i in enumerate(simulated, start=1):
+        d = directions[i]
+        if d[0] == "p":
+            th[row, names.index(str(d[1]))] *= math.exp(LN_STEP)
+            steps[row - 1] = LN_STEP
+        else:
+            attach = model.attach_point(str(d[1]))
+            step = steps[row - 1] = 1e-3 * (attach.scale if attach.mode == "additive" else 1.0)
+            arr = tm.setdefault(attach.name, np.zeros((p, window.n)))
+            arr[row] = step * window_basis(window, d, terms, {} if bases is None else bases)
+    for i in range(n_init):
+        inits[p - n_init + i, i] += fit.initial_scale[i] * 1e-3
+    y = fit.simulate(th, tm or None, inits if n_init else None)
     if not np.all(np.isfinite(y[0])):
         return None
     scale = fit.scale
     y0 = y[0]
     r0 = (fit.meas[1:] - y0[1:]) / scale
-    cols: dict[tuple[object, ...], FloatArray] = {}
-    for j, (d, step) in enumerate(keys, start=1):
-        cols[d] = (y[j, 1:] - y0[1:]) / (step * scale)
-    nuis = np.empty((n_init, y0.shape[0] - 1, y0.shape[1]))
-    for i in range(n_init):
-        row = p - n_init + i
-        nuis[i] = (y[row, 1:] - y0[1:]) / (fit.initial_scale[i] * 1e-3 * scale)
+    mat = np.zeros((len(directions), *r0.shape))
+    k = len(simulated)      # the simulated directions: usually the first k (a slice)
+    mat[slice(0, k) if simulated == list(range(k)) else simulated] = (
+        (y[1:1 + k, 1:] - y0[1:]) / (steps[:, None] * scale)[:, None])
+    nuis = (y[p - n_init:, 1:] - y0[1:]) / ((fit.initial_scale * 1e-3)[:, None] * scale)[:, None]
     sims = p
     outputs = model.output_names
-    for d in directions:
+    for i, d in enumerate(directions):
         if d[0] not in ("gain", "offset", "supply"):
             continue
         ch = str(d[1])
-        col = np.zeros_like(r0)
+        col = mat[i]
         if ch in outputs and d[0] != "supply":
             j = outputs.index(ch)
             # a gain per unit of (g - 1); an offset per unit of the output's scale (its RMS)
@@ -325,28 +318,12 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
             else:                     # the machine receives exp(phi) x the input
                 w2 = _transformed(window, ch, gain=math.exp(LN_STEP))
                 step = LN_STEP
-            y2 = model.simulate(th[:1], w2, None, inits[:1] if inits is not None else None)
+            y2 = model.simulate(th[:1], w2, None, inits[:1] if n_init else None)
             sims += 1
             if np.all(np.isfinite(y2)):
                 col += (y2[0, 1:] - y0[1:]) / (step * scale)
-        cols[d] = col
-    return Columns(y0=y0, r0=r0, cols=cols, nuisance=nuis, scale=scale, sims=sims)
-
-
-def design(cols: Columns, h: Hypothesis) -> FloatArray:
-    """The hypothesis's columns (q, N-1, n_out): each change's directions combined (a scale's
-    parameters weighed by their powers)."""
-    out = []
-    for c in h.changes:
-        if c.kind == "scale":
-            acc = np.zeros_like(cols.r0)
-            for name, power in c.powers:
-                acc = acc + power * cols.cols[("p", name)]
-            out.append(acc)
-        else:
-            for d in c.directions():
-                out.append(cols.cols[d])
-    return np.array(out) if out else np.zeros((0, *cols.r0.shape))
+    return Columns(y0=y0, r0=r0, cols=dict(zip(directions, mat, strict=True)), mat=mat,
+                   nuisance=nuis, scale=scale, sims=sims)
 
 
 def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
@@ -358,23 +335,24 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
         a0 = float(a[0, 0])
         x1 = float(b[0]) / a0 if a0 > 0 else 0.0
         return np.array([min(max(x1, float(lo[0])), float(hi[0]))])
-    fixed = np.zeros(q, dtype=bool)
-    x = np.zeros(q)
-    for _ in range(q + 1):
-        free = ~fixed
-        if np.any(free):
-            if np.any(fixed):
+    # all free first (most solves end here)
+    reg = 1e-12 * max(1.0, float(a.trace())) * np.eye(q)
+    x = np.linalg.lstsq(a + reg, b, rcond=None)[0]
+    fixed = (x < lo) | (x > hi)
+    if fixed.any():
+        x = np.clip(x, lo, hi)
+        for _ in range(q):
+            free = ~fixed
+            if free.any():
                 af = a[np.ix_(free, free)]
                 bf = b[free] - a[np.ix_(free, fixed)] @ x[fixed]
-            else:       # all free: the blocks are ``a`` and ``b`` less nothing
-                af, bf = a, b
-            reg = 1e-12 * max(1.0, float(np.trace(af))) * np.eye(af.shape[0])
-            x[free] = np.linalg.lstsq(af + reg, bf, rcond=None)[0]
-        out = (x < lo) | (x > hi)
-        if not np.any(out & free):
-            break
-        x = np.clip(x, lo, hi)
-        fixed |= out
+                reg = 1e-12 * max(1.0, float(af.trace())) * np.eye(af.shape[0])
+                x[free] = np.linalg.lstsq(af + reg, bf, rcond=None)[0]
+            out = (x < lo) | (x > hi)
+            if not (out & free).any():
+                break
+            x = np.clip(x, lo, hi)
+            fixed |= out
     out_x: FloatArray = np.clip(x, lo, hi)
     return out_x
 
@@ -396,53 +374,65 @@ class Track:
 
     def __init__(self, q: int, keep: int) -> None:
         self.q, self.keep, self.m = q, keep, 0
-        # twice the windows kept: a full track drops its oldest window by moving its start,
-        # and copies its windows back to the front once per ``keep`` windows
+        # one row a window (its fields side by side: :attr:`FIELDS`), a few rows beyond the
+        # windows kept: a full track drops its oldest window by moving its start, and copies
+        # its windows back to the front once the spare rows are used up
         self._start = 0
-        self._buf = (np.zeros(2 * keep), np.zeros(2 * keep), np.zeros(2 * keep),
-                     np.zeros(2 * keep), np.zeros(2 * keep, dtype=bool),
-                     np.zeros((2 * keep, q)), np.zeros((2 * keep, q)))
+        self._buf = np.zeros((keep + self.SPARE, 5 + 2 * q))
 
-    #: the buffers' order
+    #: rows beyond ``keep``: the copy back to the front happens once per SPARE windows
+    SPARE = 16
+
+    #: each field's columns of a row
     FIELDS = {"gain": 0, "half": 1, "ln_n": 2, "t": 3, "info": 4, "phi": 5, "std": 6}
 
-    def _view(self, i: int) -> np.ndarray:
-        return self._buf[i][self._start:self._start + self.keep]
+    def _cols(self, name: str) -> int | slice:
+        i = self.FIELDS[name]
+        return i if i < 5 else slice(5 + (i - 5) * self.q, 5 + (i - 4) * self.q)
 
-    gain = property(lambda self: self._view(0))
-    half = property(lambda self: self._view(1))
-    ln_n = property(lambda self: self._view(2))
-    t = property(lambda self: self._view(3))
-    info = property(lambda self: self._view(4))
-    phi = property(lambda self: self._view(5))
-    std = property(lambda self: self._view(6))
+    def _view(self, name: str) -> np.ndarray:
+        return self._buf[self._start:self._start + self.keep, self._cols(name)]
 
-    def append(self, gain: float, phi: FloatArray, std: FloatArray, t: float,
-               info: bool = True, half: float = 0.0, ln_n: float = 0.0) -> None:
+    gain = property(lambda self: self._view("gain"))
+    half = property(lambda self: self._view("half"))
+    ln_n = property(lambda self: self._view("ln_n"))
+    t = property(lambda self: self._view("t"))
+    info = property(lambda self: self._view("info") != 0)
+    phi = property(lambda self: self._view("phi"))
+    std = property(lambda self: self._view("std"))
+
+    def append(self, gain: float, phi: Sequence[float] | FloatArray,
+               std: Sequence[float] | FloatArray, t: float, info: bool = True,
+               half: float = 0.0, ln_n: float = 0.0) -> None:
+        """One window's row: its gain [nats], size (q,), standard error (q,), middle time
+        [s], whether it informs the size, its half log-likelihood ratio and ln n."""
         if self.m == self.keep:
             self._start += 1
             self.m -= 1
         k = self._start + self.m
-        if k == len(self._buf[0]):
-            for a in self._buf:
-                a[:self.m] = a[self._start:k]
-            self._start, k = 0, self.m
         b = self._buf
-        b[0][k], b[1][k], b[2][k], b[3][k], b[4][k] = gain, half, ln_n, t, info
-        b[5][k] = np.ravel(phi)[:self.q]
-        b[6][k] = np.ravel(std)[:self.q]
+        if k == b.shape[0]:
+            b[:self.m] = b[self._start:k]
+            self._start, k = 0, self.m
+        b[k] = (gain, half, ln_n, t, info, *phi, *std)
         self.m += 1
 
     def __len__(self) -> int:
         return self.m
+
+    def gains(self) -> FloatArray:
+        """The windows' gains (m,) [nats], oldest first (a view)."""
+        return self._buf[self._start:self._start + self.m, 0]
 
     def as_dict(self) -> dict[str, Any]:
         """The windows kept, as ``q`` and one array (a copy) per field, (m,) or (m, q):
         :func:`~twinwatch.io.encoding.to_json` writes them as lists, :meth:`from_dict` reads
         either."""
         out: dict[str, Any] = {"q": self.q}
-        for name, i in self.FIELDS.items():
-            out[name] = self._buf[i][self._start:self._start + self.m].copy()
+        rows = self._buf[self._start:self._start + self.m]
+        for name in self.FIELDS:
+            out[name] = rows[:, self._cols(name)].copy()
+        out["info"] = out["info"] != 0
         return out
 
     @classmethod
@@ -456,11 +446,18 @@ class Track:
         return tr
 
 
-def _stacked(tracks: Sequence[Track], field: str, first: int, end: int) -> np.ndarray:
-    """The tracks' ``field`` (:attr:`Track.FIELDS`) over their windows ``first`` to ``end``,
-    stacked: (H, end - first) or (H, end - first, q)."""
-    i = Track.FIELDS[field]
-    return np.stack([t._buf[i][t._start + first:t._start + end] for t in tracks])
+def _stacked(tracks: Sequence[Track], first: int, end: int) -> np.ndarray:
+    """The tracks' rows (every field, :attr:`Track.FIELDS`) over their windows ``first`` to
+    ``end``, stacked: (H, end - first, 5 + 2q)."""
+    return np.array([t._buf[t._start + first:t._start + end] for t in tracks])
+
+
+def _field(rows: np.ndarray, name: str, q: int) -> np.ndarray:
+    """One field of :func:`_stacked`'s rows as its own C-ordered array: (H, L) or (H, L, q)
+    (what each field's own stack was: the arithmetic on it is the same)."""
+    i = Track.FIELDS[name]
+    return np.ascontiguousarray(rows[..., i] if i < 5 else
+                                rows[..., 5 + (i - 5) * q:5 + (i - 4) * q])
 
 
 @dataclass
@@ -614,11 +611,12 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     m, q = tracks[0].m, tracks[0].q
     if m == 0:
         return [None] * len(tracks)
-    half = _stacked(tracks, "half", 0, m)                                # (H, m)
-    tt = _stacked(tracks, "t", 0, m) - tracks[0].t[m - 1]
-    phis = _stacked(tracks, "phi", 0, m)                                 # (H, m, q)
-    sds = _stacked(tracks, "std", 0, m)
-    n_eff = np.exp(_stacked(tracks, "ln_n", 0, m))
+    rows_all = _stacked(tracks, 0, m)                                    # (H, m, 5 + 2q)
+    half = _field(rows_all, "half", q)                                   # (H, m)
+    tt = _field(rows_all, "t", q) - tracks[0].t[m - 1]
+    phis = _field(rows_all, "phi", q)                                    # (H, m, q)
+    sds = _field(rows_all, "std", q)
+    n_eff = np.exp(_field(rows_all, "ln_n", q))
     # the weighted sums since each window (sa, sat, satt, sap, sapt, sapp: (6, H, m, q)) and
     # the line through them, in one compiled pass (numpy's arithmetic in numpy's order)
     sums, half_s, n_s, alpha, chi2, params = _suffix_lines(sds, tt, phis, half, n_eff)
@@ -636,8 +634,8 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     later = np.arange(m)[None, :] > ks[:, None]
     ended = np.max(np.where(later, ev_e, -np.inf), axis=1)
     since = np.arange(m)[None, :] >= ks[:, None]
-    positive = np.sum(since & (_stacked(tracks, "gain", 0, m) > 0), axis=1)
-    informative = np.any(_stacked(tracks, "info", max(0, m - recent), m), axis=1)
+    positive = np.sum(since & (rows_all[:, :, 0] > 0), axis=1)
+    informative = np.any(rows_all[:, max(0, m - recent):, 4] != 0, axis=1)
     std = 1.0 / np.sqrt(np.maximum(sums[0][rows, ks], 1e-300))
     # as Python numbers once (the same values as float() of each)
     top_h, spread_h, ended_h = top.tolist(), spread.tolist(), ended.tolist()
@@ -689,7 +687,9 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     m = tracks[0].m
     if m == 0:
         return [None] * len(tracks)
-    g = _stacked(tracks, "gain", 0, m)                                   # (H, m)
+    q = tracks[0].q
+    rows_all = _stacked(tracks, 0, m)                                    # (H, m, 5 + 2q)
+    g = _field(rows_all, "gain", q)                                      # (H, m)
     suffix_g = g[:, ::-1].cumsum(axis=1)[:, ::-1]
     ks = np.argmax(suffix_g, axis=1)
     rows = np.arange(len(tracks))
@@ -699,14 +699,14 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     since = np.arange(m)[None, :] >= ks[:, None]
     positive = np.sum(since & (g > 0), axis=1)
     last = max(0, m - recent)
-    informative = np.any(_stacked(tracks, "info", last, m), axis=1)
+    recent_rows = rows_all[:, last:]
+    informative = np.any(recent_rows[:, :, 4] != 0, axis=1)
     # each one's size: the inverse-variance mean over its last windows since its change point
     lo = np.maximum(ks, last)
     use = (np.arange(last, m)[None, :] >= lo[:, None])[..., None]        # (H, L, 1)
-    w = np.where(use, 1.0 / np.maximum(_stacked(tracks, "std", last, m),
-                                       1e-300) ** 2, 0.0)
+    w = np.where(use, 1.0 / np.maximum(_field(recent_rows, "std", q), 1e-300) ** 2, 0.0)
     wsum = np.sum(w, axis=1)
-    phis = _stacked(tracks, "phi", last, m)
+    phis = _field(recent_rows, "phi", q)
     phi = np.sum(np.where(use, w * phis, 0.0), axis=1) / wsum
     std = 1.0 / np.sqrt(wsum)
     out: list[Fitted | None] = []

@@ -110,7 +110,7 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[
             continue
         shared.setdefault(min(ref.size, other.size), []).append(k)
     for n, keys in shared.items():
-        d = ref[-n:] - np.stack([gains[k][-n:] for k in keys])
+        d = ref[-n:] - np.array([gains[k][-n:] for k in keys])
         # a twin impossible in a window (a moving reading is no stuck one): left as it is
         finite = np.all(np.isfinite(d), axis=1)
         d = d[:, max(0, start - (ref.size - n)):]
@@ -139,9 +139,12 @@ def shaft_speed(window: WindowData, channel: str) -> tuple[float, float] | None:
     if not channel or channel not in window.channels:
         return None
     w = np.abs(np.asarray(window[channel], dtype=float))
-    if w.size == 0 or not np.all(np.isfinite(w)):
+    if w.size == 0 or not np.isfinite(w).all():
         return None
-    return float(np.mean(w)), float(np.std(w))
+    # np.mean's and np.std's arithmetic, without their wrappers
+    mean = float(w.sum()) / w.size
+    dev = w - mean
+    return mean, math.sqrt(float((dev * dev).sum()) / w.size)
 
 
 class Diagnoser:
@@ -169,6 +172,12 @@ class Diagnoser:
         self.config = cfg
         self.source = source
         self.faults: dict[str, FaultMode] = {f.id: f for f in library.faults}
+        #: each mode's log prior, and the priors' sum with the unknown change's (the library
+        #: and the config are fixed for the diagnoser's life)
+        self._ln_prior = {fid: math.log(f.prior) for fid, f in self.faults.items()}
+        self._prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
+        #: twin label -> the mode (or the pair of modes) it stands for
+        self._mode_of: dict[str, str] = {}
         channels = [*model.output_names, *model.inputs]
         attach = [a.name for a in model.attach_points]
         self.hypotheses: list[Hypothesis] = []
@@ -249,7 +258,17 @@ class Diagnoser:
         p_none, p_unknown, post = self._posterior(best_twin, evidence, gains)
         _fold_pairs(best_twin)
         order = sorted(post, key=lambda k: -post[k])
-        listed = [self._fault(fid, post[fid], best_twin[fid], reading, order[0])
+        # the top mode's best twin's evidence (what each other listed mode is compared with)
+        best_top = max((v.evidence for k, v in reading.fits.items()
+                        if k.startswith(order[0] + "#")), default=0.0) if order else 0.0
+        texts: dict[str, str] = {}    # each mode's twin's fitted change for a person, once
+
+        def text(fid: str) -> str:
+            if fid not in texts:
+                texts[fid] = self._size_text(fid, *best_twin[fid])
+            return texts[fid]
+
+        listed = [self._fault(fid, post[fid], best_twin[fid], text(fid), best_top, order[0])
                   for fid in order[:cfg.listed]]
         p_top = post[order[0]] if order else 0.0
         status, best = self._status(order, p_top, post, p_none, p_unknown, since, share)
@@ -262,7 +281,8 @@ class Diagnoser:
                 f"{', the kept meta-model terms' if terms else ''}) fits the "
                 f"{reading.unknown_windows} windows since the change better than any fault "
                 f"mode's twin: a change the library does not know")
-        ruled_out = [self._why_not(fid, post[fid], best_twin[fid], order[0])
+        ruled_out = [f"{fid} ({post[fid]:.2f}): its twin ({text(fid)}) explains the windows "
+                     f"less well than {order[0]}'s"
                      for fid in order[1:] if post[fid] < 0.05
                      and best_twin[fid][1].evidence > 0][:cfg.listed]
         unobserved = [f"{fid}: its twin would not change these windows' data measurably "
@@ -296,8 +316,9 @@ class Diagnoser:
         estimate as ``unknown``."""
         by_fault: dict[str, list[tuple[str, Fitted]]] = {}
         for lab, f in reading.fits.items():
-            key = ("+".join(x.split("#")[0] for x in lab.split("+")) if "+" in lab
-                   else lab.split("#")[0])
+            key = self._mode_of.get(lab)
+            if key is None:
+                key = self._mode_of[lab] = "+".join(x.split("#")[0] for x in lab.split("+"))
             by_fault.setdefault(key, []).append((lab, f))
         evidence: dict[str, float] = {}
         gains: dict[str, np.ndarray] = {}
@@ -308,10 +329,9 @@ class Diagnoser:
             top = max(evs)
             evidence[fid] = (top + math.log(sum(math.exp(e - top) for e in evs) / len(evs))
                              if math.isfinite(top) else -math.inf)
-            tr = self.bank.tracks[best_twin[fid][0]]
-            gains[fid] = tr.gain[:tr.m]
+            gains[fid] = self.bank.tracks[best_twin[fid][0]].gains()
         evidence["unknown"] = reading.unknown
-        gains["unknown"] = np.array(self.bank.unknown_gains())
+        gains["unknown"] = self.bank.unknown_gains()
         return best_twin, evidence, gains
 
     def _posterior(self, best_twin: Mapping[str, tuple[str, Fitted]],
@@ -322,19 +342,19 @@ class Diagnoser:
         baseline (nested: its size zero is the baseline) with its prior; which change: the
         twins against each other (not nested: Vuong's comparison, :func:`_vuong`)."""
         cfg = self.config
-        prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
+        ln_prior = self._ln_prior
 
         def log_prior(key: str) -> float:
             if key == "unknown":
                 return math.log(cfg.unknown_prior)
-            return sum(math.log(self.faults[f].prior) for f in key.split("+"))
+            return sum(ln_prior[f] for f in key.split("+"))
 
         # no change now: none ever, or one that ended (a repair: a second change, as likely as
         # the fault itself) and the windows since are the baseline's
-        terms_none = [math.log(max(1.0 - prior_sum, 1e-6))]
+        terms_none = [math.log(max(1.0 - self._prior_sum, 1e-6))]
         for key, (_, fitted) in best_twin.items():
             if "+" not in key and fitted.ended > -math.inf:
-                terms_none.append(2.0 * math.log(self.faults[key].prior) + fitted.ended)
+                terms_none.append(2.0 * ln_prior[key] + fitted.ended)
         log_none = _log_sum_exp(terms_none)
         log_change = _log_sum_exp([log_prior(k) + ev for k, ev in evidence.items()])
         p_change = 1.0 / (1.0 + math.exp(min(log_none - log_change, 700.0)))
@@ -429,24 +449,21 @@ class Diagnoser:
                 k += c.size
         return ", ".join(parts)
 
-    def _fault(self, fid: str, p: float, twin: tuple[str, Fitted], reading: WindowReading,
-               top: str) -> FaultHealth:
+    def _fault(self, fid: str, p: float, twin: tuple[str, Fitted], text: str,
+               best_top: float, top: str) -> FaultHealth:
         mode = self.faults[fid]
         lab, f = twin
         pro: list[str] = []
         con: list[str] = []
         since = f"the {f.windows} windows since its change point"
         if f.evidence > 0:
-            pro.append(f"its twin ({self._size_text(fid, lab, f)}, 2 sigma) fits {since} "
+            pro.append(f"its twin ({text}, 2 sigma) fits {since} "
                        f"better than the healthy baseline (log-evidence {f.evidence:.3g}; "
                        f"better in {100 * f.share:.0f} % of them)")
         else:
-            con.append(f"its twin ({self._size_text(fid, lab, f)}) fits the recent windows no "
+            con.append(f"its twin ({text}) fits the recent windows no "
                        f"better than the healthy baseline")
         if fid != top:
-            t_ev = reading.fits
-            best_top = max((v.evidence for k, v in t_ev.items() if k.startswith(top + "#")),
-                           default=0.0)
             if best_top - f.evidence > 1.0:
                 con.append(f"{top}'s twin fits the same windows better (log-evidence "
                            f"{best_top - f.evidence:.3g} more)")
@@ -460,11 +477,6 @@ class Diagnoser:
                            action=mode.action, urgency=mode.urgency, source=mode.source,
                            evidence_for=pro, evidence_against=con,
                            changes=list(dict.fromkeys(changed)))
-
-    def _why_not(self, fid: str, p: float, twin: tuple[str, Fitted], top: str) -> str:
-        lab, f = twin
-        return (f"{fid} ({p:.2f}): its twin ({self._size_text(fid, lab, f)}) explains the "
-                f"windows less well than {top}'s")
 
     # -- state (a restart resumes the baseline and the evidence since the change) -------------
     def state(self) -> dict[str, Any]:
