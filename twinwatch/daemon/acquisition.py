@@ -21,11 +21,12 @@ import numpy as np
 
 from twinwatch.daemon.ringbuffer import RingBuffer
 from twinwatch.daemon.source import open_source
-from twinwatch.drivers.base import Driver, DriverError, EndOfStream
+from twinwatch.drivers.base import Driver, DriverError, EndOfStream, Sample
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
     from twinwatch.daemon.systemd import Watchdog
+    from twinwatch.drivers.base import FloatArray
     from twinwatch.twin.model import TwinModel, WindowData
 
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
@@ -127,11 +128,7 @@ class Acquisition:
                 for fn in self.ticks:
                     fn()
             try:
-                if columns is not None and not self._phase_pending:  # up to the window's end
-                    sample, block = None, self.driver.read_block(
-                        0.2, self.ring.window - self.ring.pending)
-                else:
-                    sample, block = self.driver.read(timeout=0.2), None
+                got = self._read(columns)
             except EndOfStream as exc:
                 logger.info("source finished: %s", exc)
                 self.ended = "end of the source"
@@ -143,7 +140,7 @@ class Acquisition:
                 self.ended = "driver failure"
                 break
             now = time.monotonic()
-            if sample is None and block is None:
+            if got is None:
                 next_tick = 0.0  # nothing came within the read's timeout: tick now
                 if not stalled and now - last_sample > stall_timeout:
                     stalled = True
@@ -154,29 +151,9 @@ class Acquisition:
                     "driver delivers samples again after a stall of %.1f s", now - last_sample)
                 stalled = False
             last_sample = now
-            reached = False
-            if block is not None:
-                t, values = block
-                if t_first is None:
-                    t_first = float(t[0])
-                if duration is not None and t[-1] - t_first >= duration:
-                    keep = int(np.argmax(t - t_first >= duration))
-                    t, values, reached = t[:keep], values[:keep], True
-                windows = self.ring.append_block(t, values[:, columns])
-            else:
-                assert sample is not None
-                if t_first is None:
-                    t_first = sample.t
-                if duration is not None and sample.t - t_first >= duration:
-                    self.ended = "duration reached"
-                    break
-                window = self.ring.append(sample.t, sample.values)
-                windows = [] if window is None else [window]
-                if self._phase_pending and not self.ring.window_requested:
-                    # the staggered first window has started: the next ones are of the usual
-                    # length
-                    self._phase_pending = False
-                    self.ring.request_window(self.config.acquisition.window)
+            if t_first is None:
+                t_first = got.t if isinstance(got, Sample) else float(got[0][0])
+            windows, reached = self._store(got, columns, t_first, duration)
             n_abandoned = sum(self.ring.causes.values())
             if n_abandoned > self._abandoned_seen:
                 abandoned(n_abandoned - self._abandoned_seen)
@@ -186,6 +163,35 @@ class Acquisition:
             if reached:
                 self.ended = "duration reached"
                 break
+
+    def _read(self, columns: list[int] | None) -> Sample | tuple[FloatArray, FloatArray] | None:
+        """The driver's next rows: a block up to the window's end (``columns``:
+        :meth:`_block_columns`, once the staggered first window has started), else one
+        sample; None when none came within the read's timeout."""
+        assert self.driver is not None
+        if columns is not None and not self._phase_pending:
+            return self.driver.read_block(0.2, self.ring.window - self.ring.pending)
+        return self.driver.read(timeout=0.2)
+
+    def _store(self, got: Sample | tuple[FloatArray, FloatArray], columns: list[int] | None,
+               t_first: float, duration: float | None) -> tuple[list[WindowData], bool]:
+        """Put what :meth:`_read` returned into the ring buffer. Returns the windows it
+        completed and whether ``duration`` [s] after ``t_first`` was reached (the rows from
+        there on are not stored)."""
+        if isinstance(got, Sample):
+            if duration is not None and got.t - t_first >= duration:
+                return [], True
+            window = self.ring.append(got.t, got.values)
+            if self._phase_pending and not self.ring.window_requested:
+                # the staggered first window has started: the next ones are of the usual length
+                self._phase_pending = False
+                self.ring.request_window(self.config.acquisition.window)
+            return ([] if window is None else [window]), False
+        t, values = got
+        if duration is not None and t[-1] - t_first >= duration:
+            keep = int(np.argmax(t - t_first >= duration))
+            return self.ring.append_block(t[:keep], values[:keep, columns]), True
+        return self.ring.append_block(t, values[:, columns]), False
 
     def _block_columns(self) -> list[int] | None:
         """The driver's columns in the ring buffer's channel order when it reads blocks
