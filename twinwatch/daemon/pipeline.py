@@ -206,9 +206,9 @@ class WindowPipeline:
             assert state is not None
             return gate.save_state(self.machine, last.window, last.t_end, state.as_dict())
         except Exception:  # noqa: BLE001 - the stop goes on; the last checkpoint stays
-            logger.warning("%s: the diagnosis evidence could not be saved at the stop (a "
-                           "restart resumes it from window %d's or earlier)", self.machine,
-                           last.window, exc_info=True)
+            logger.warning("%s: the diagnosis evidence of window %d could not be saved at the "
+                           "stop; a restart resumes the last one saved, at most %d windows "
+                           "older", self.machine, last.window, EVIDENCE_EVERY, exc_info=True)
             return False
 
     @property
