@@ -138,6 +138,9 @@ class SummaryWatcher:
         self.changed = threading.Event()
         self.on_summary = on_summary
         self._sub: Any = None
+        #: start() began: a summary may come before declare_subscriber returns (a publisher's
+        #: matching listener republishes its latest at once), so this, not ``_sub``, says so
+        self._started = False
         self._live: Any = None
         self._boxes: Any = None  # the liveliness subscriber on the boxes' tokens
         #: machine -> a subscriber on its own summary key, which does nothing (:meth:`put`)
@@ -160,6 +163,7 @@ class SummaryWatcher:
         """Declare the subscribers (live summaries; the machines' and the boxes' liveliness
         tokens) and start the asking thread (``twinwatch-watch-summaries``: :meth:`_ask_loop`),
         which first asks every machine's latest summary; :attr:`queried` is set once it ended."""
+        self._started = True
         self._sub = self.session.declare_subscriber(self.key, self._on_sample)
         alive = self.key.removesuffix("/summary") + "/alive"
         live = self.session.liveliness()
@@ -396,7 +400,7 @@ class SummaryWatcher:
                 self._last_new = time.monotonic()
             self._received[machine] = Received(summary, now)
             self.delivered += 1
-            exact = (self.exact and old is None and self._sub is not None
+            exact = (self.exact and old is None and self._started
                      and machine not in self._exact
                      and not self._closing.is_set())
             if exact:
