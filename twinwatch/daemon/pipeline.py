@@ -74,8 +74,7 @@ EVIDENCE_EVERY = 30
 """The diagnoser's evidence (hundreds of kB: every hypothesis's last windows) is saved with
 the first window of a pipeline, then every this many windows (a minute of 2 s windows) and at
 its stop (:meth:`WindowPipeline.checkpoint`); the twin with each trusted window. A crash loses
-at most this many windows of evidence; saved with every window it was about 17 GB of JSON a
-day a machine."""
+at most this many windows of evidence (docs/diagnosis.md, "A restart resumes the evidence")."""
 
 
 HealthCallback = Callable[[HealthMessage], None]

@@ -112,7 +112,7 @@ class FileDriverConfig(DriverConfig):
             table is the order of :attr:`FileDriver.channels`.
         realtime: False replays as fast as the caller reads; True delivers each row when its
             time stamp is due on the wall clock (relative to the first row delivered), never
-            early and at most 0.1 s late (:data:`PACE_SLACK`: one wake-up per 0.1 s).
+            early and at most 0.2 s late (:data:`PACE_SLACK`: one wake-up per 0.2 s).
         speed: with ``realtime``: the replay's speed over the recording's own (10: ten times
             faster, a 2 s window every 0.2 s; > 0, default 1).
         start: index of the first row to replay (0-based, like a Python slice; default 0).
