@@ -18,7 +18,7 @@ import logging
 import math
 import re
 import struct
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
@@ -70,6 +70,10 @@ _INTEGER_TYPES = {0x2: True, 0x3: True, 0x4: True, 0x10: True, 0x12: True, 0x13:
                   0x14: True, 0x15: True, 0x5: False, 0x6: False, 0x7: False, 0x16: False,
                   0x18: False, 0x19: False, 0x1A: False, 0x1B: False, 0x1: False}
 _FLOAT_TYPES = {0x8: struct.Struct("<f"), 0x11: struct.Struct("<d")}
+#: struct codes of the entries a PDO's compiled layout unpacks: (bits, signed) / (type, bits)
+_INT_CODES = {(8, True): "b", (8, False): "B", (16, True): "h", (16, False): "H",
+              (32, True): "i", (32, False): "I"}
+_FLOAT_CODES = {(0x8, 32): "f", (0x11, 64): "d"}
 
 _NMT_STATES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
 
@@ -177,6 +181,42 @@ class _Pdo:
     #: (twin channel, entry, factor, offset) decoded from each frame
     channels: list[tuple[str, _Entry, float, float]] = field(default_factory=list)
     statusword: _Entry | None = None
+    #: a TPDO, the drive's own frame (an RPDO is the master's)
+    own: bool = False
+    #: compiled by :meth:`compile`: data -> the raw values of the entries used, in one call
+    unpack: Callable[[bytes], tuple[Any, ...]] | None = None
+    #: (twin channel, its raw value's place in ``unpack``'s tuple, factor, offset)
+    scaled: tuple[tuple[str, int, float, float], ...] = ()
+    #: the statusword's place in ``unpack``'s tuple
+    status_at: int | None = None
+
+    def compile(self) -> None:
+        """Precompile the decoding of the entries used (the channels' and the statusword):
+        one :class:`struct.Struct` for the frame where each sits on a byte boundary in a
+        standard width (8/16/32-bit integers, a REAL32/REAL64 of its own width), else
+        :func:`_decode` entry by entry. Either gives :func:`_decode`'s raw values, as int or
+        float: ``raw * factor`` is the same number."""
+        self.own = self.name.startswith("T")
+        used = {e.bit_offset: e for _, e, _, _ in self.channels}
+        if self.statusword is not None:
+            used[self.statusword.bit_offset] = self.statusword
+        entries = [used[offset] for offset in sorted(used)]
+        codes = [None if e.bit_offset % 8 else _FLOAT_CODES.get((e.data_type, e.bits))
+                 if e.data_type in _FLOAT_TYPES
+                 else _INT_CODES.get((e.bits, _INTEGER_TYPES[e.data_type])) for e in entries]
+        if None in codes:
+            self.unpack = lambda data: tuple(_decode(e, data) for e in entries)
+        else:
+            fmt, end = "<", 0
+            for e, code in zip(entries, codes, strict=True):
+                fmt += "x" * ((e.bit_offset - end) // 8) + str(code)
+                end = e.bit_offset + e.bits
+            self.unpack = struct.Struct(fmt).unpack_from
+        at = {e.bit_offset: n for n, e in enumerate(entries)}
+        self.scaled = tuple((ch, at[e.bit_offset], factor, offset)
+                            for ch, e, factor, offset in self.channels)
+        if self.statusword is not None:
+            self.status_at = at[self.statusword.bit_offset]
 
 
     @property
@@ -328,6 +368,8 @@ def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
                 f"sample_on: {config.sample_on!r} is not an enabled TPDO of {str(eds)!r}; "
                 f"its TPDOs: {', '.join(n for n in all_pdos if n.startswith('T')) or 'none'}")
         used[target.cob_id] = target
+    for pdo in used.values():
+        pdo.compile()
     sync_id, counter, heartbeat = _supervision(od, config.heartbeat_time)
     return CanopenPlan(pdos=used, all_pdos=all_pdos, sync_id=sync_id, sync_counter=counter,
                        heartbeat_s=heartbeat, channels=described)
@@ -508,8 +550,13 @@ class CanopenDriver(BusDriver):
         #: the PDOs whose channels hold their latest value: left out of the samples when silent
         self._held = {name: chans for name, chans in self._watched.items()
                       if self._holds(plan.all_pdos[name])}
+        #: COB-ID -> the PDO a frame of it is (a PDO on the SYNC's COB-ID is the SYNC)
+        self._pdos = {cob: pdo for cob, pdo in plan.pdos.items() if cob != self._sync_id}
+        #: the heartbeat is missing after this long [s] (0: not watched)
+        self._heartbeat_limit = plan.heartbeat_s * config.heartbeat_margin
         self._cycle_t: float | None = None  # the open SYNC cycle's stamp
         self._pending: set[int] = set()
+        self._in_order: dict[str, float] | None = None  # _latest, once in the channels' order
         self._skip_cycle = False
         self._counter = SampleCounter(plan.sync_counter if plan.sync_counter > 1 else None)
         # the drive's state
@@ -577,7 +624,7 @@ class CanopenDriver(BusDriver):
         since = self._last_heartbeat if self._last_heartbeat is not None else self._first_stamp
         assert since is not None
         age = now - since
-        missing = age > producer * self.config.heartbeat_margin
+        missing = age > self._heartbeat_limit
         if missing and not self._heartbeat_missing:
             self._heartbeat_missing = True
             self._bump("heartbeat_lost")
@@ -636,24 +683,27 @@ class CanopenDriver(BusDriver):
             self._bump("other_frames")
             return None
         cob = frame.arbitration_id
-        now = float(frame.timestamp)
+        self._now = now = float(frame.timestamp)
         if self._first_stamp is None:
             self._first_stamp = now
-        self._now = now
-        data = bytes(frame.data)
+        data = frame.data
         sample = None
         if cob == self._sync_id:
             sample = self._on_sync(now, data)
-        elif cob in self.plan.pdos:
-            sample = self._on_pdo(self.plan.pdos[cob], now, data)
+        elif (pdo := self._pdos.get(cob)) is not None:
+            sample = self._on_pdo(pdo, now, data)
         elif cob == self._emcy_id:
-            self._on_emcy(data, now)
+            self._on_emcy(bytes(data), now)
         elif cob == self._heartbeat_id:
             self._on_heartbeat(data, now)
         else:
             self._bump("other_frames")  # another node, or an object not needed
             self._other_node(cob)
-        self._check_heartbeat(now)
+        if self._heartbeat_limit:  # the heartbeat's state changes: _check_heartbeat's test
+            since = self._last_heartbeat
+            if (now - (self._first_stamp if since is None else since)
+                    > self._heartbeat_limit) != self._heartbeat_missing:
+                self._check_heartbeat(now)
         return sample
 
     def _on_sync(self, now: float, data: bytes) -> Sample | None:
@@ -678,7 +728,7 @@ class CanopenDriver(BusDriver):
         return None
 
     def _on_pdo(self, pdo: _Pdo, now: float, data: bytes) -> Sample | None:
-        if pdo.name.startswith("T"):
+        if pdo.own:
             self._own_heard = True  # the drive's own frame (an RPDO is the master's)
         if len(data) * 8 < pdo.bits:
             self.stats.bad_frames += 1
@@ -688,15 +738,19 @@ class CanopenDriver(BusDriver):
                           pdo.name, pdo.cob_id, len(data), pdo.bits)
             return None
         self._seen[pdo.name] = now
-        for ch, entry, factor, offset in pdo.channels:
-            value = _decode(entry, data) * factor + offset
+        assert pdo.unpack is not None
+        raw = pdo.unpack(data)
+        latest = self._latest
+        for ch, at, factor, offset in pdo.scaled:
+            value = raw[at] * factor + offset
             if not math.isfinite(value):
                 self.stats.bad_values += 1
+                name = next(e.name for c, e, *_ in pdo.channels if c == ch)
                 self.log_once(f"nonfinite:{ch}", "CANopen %s -> %s decoded to %s; counted in "
-                              "stats.bad_values", entry.name, ch, value)
-            self._latest[ch] = value
-        if pdo.statusword is not None:
-            fault = bool(int(_decode(pdo.statusword, data)) & 0x08)
+                              "stats.bad_values", name, ch, value)
+            latest[ch] = value
+        if pdo.status_at is not None:
+            fault = bool(int(raw[pdo.status_at]) & 0x08)
             if fault != self._status_fault:
                 self._status_fault = fault
                 if fault:
@@ -756,15 +810,20 @@ class CanopenDriver(BusDriver):
         self._cycle_t = None
         assert self._now is not None
         self._update_silent(self._now, self._heartbeat_age())
-        gone = {ch for name, chans in self._held.items() if name in self._silent_logged
-                for ch in chans}  # a PDO every SYNC waits for gives no sample while silent
-        missing = [ch for ch in self.channels if ch not in self._latest]
-        if missing:
+        latest = self._latest
+        if len(latest) < len(self.channels):
+            missing = [ch for ch in self.channels if ch not in latest]
             self._bump("incomplete_syncs")
             self.log_once("first", "CANopen sample at %.3f s before %s was received: no sample "
                           "yet", t, ", ".join(missing), level=logging.INFO)
             return None
-        return Sample(t, {ch: self._latest[ch] for ch in self.channels if ch not in gone})
+        if self._silent_logged:  # a PDO every SYNC waits for gives no sample while silent
+            gone = {ch for name, chans in self._held.items() if name in self._silent_logged
+                    for ch in chans}
+            return Sample(t, {ch: latest[ch] for ch in self.channels if ch not in gone})
+        if self._in_order is not latest:  # from now on in the channels' order: copied as is
+            self._latest = self._in_order = {ch: latest[ch] for ch in self.channels}
+        return Sample(t, self._latest.copy())
 
     def _heartbeat_age(self) -> float | None:
         if not self._heartbeat_missing or self._now is None:
