@@ -557,6 +557,9 @@ class CanopenDriver(BusDriver):
         self._cycle_t: float | None = None  # the open SYNC cycle's stamp
         self._pending: set[int] = set()
         self._in_order: dict[str, float] | None = None  # _latest, once in the channels' order
+        #: no PDO was last received before this frame time [s] (a bound: a watched PDO can be
+        #: silent only once ``now - _oldest_seen > silent_after``)
+        self._oldest_seen = -math.inf
         self._skip_cycle = False
         self._counter = SampleCounter(plan.sync_counter if plan.sync_counter > 1 else None)
         # the drive's state
@@ -648,6 +651,7 @@ class CanopenDriver(BusDriver):
                           f"(producer time {self.plan.heartbeat_s:g} s)")
         pdos, _ = self._silent_since(now, self._watched, what="CANopen", key="silent_pdos",
                                      quiet=self._say_not_heard)
+        self._oldest_seen = min(self._seen.get(name, -math.inf) for name in self._watched)
         self._silent = tuple(silent + pdos)
 
     def _heard_text(self) -> str:
@@ -738,6 +742,8 @@ class CanopenDriver(BusDriver):
                           pdo.name, pdo.cob_id, len(data), pdo.bits)
             return None
         self._seen[pdo.name] = now
+        if now < self._oldest_seen:  # a late frame
+            self._oldest_seen = now
         assert pdo.unpack is not None
         raw = pdo.unpack(data)
         latest = self._latest
@@ -808,8 +814,11 @@ class CanopenDriver(BusDriver):
     def _assemble(self, t: float) -> Sample | None:
         self._pending = set()
         self._cycle_t = None
-        assert self._now is not None
-        self._update_silent(self._now, self._heartbeat_age())
+        now = self._now
+        assert now is not None
+        if (self._silent or now - self._oldest_seen > self.config.silent_after
+                or (self._nodes_heard and not self._own_heard)):  # else nothing is silent
+            self._update_silent(now, self._heartbeat_age())
         latest = self._latest
         if len(latest) < len(self.channels):
             missing = [ch for ch in self.channels if ch not in latest]
