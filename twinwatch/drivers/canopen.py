@@ -184,7 +184,7 @@ class _Pdo:
     #: a TPDO, the drive's own frame (an RPDO is the master's)
     own: bool = False
     #: compiled by :meth:`compile`: data -> the raw values of the entries used, in one call
-    unpack: Callable[[bytes], tuple[Any, ...]] | None = None
+    unpack: Callable[[bytes | bytearray], tuple[Any, ...]] | None = None
     #: (twin channel, its raw value's place in ``unpack``'s tuple, factor, offset)
     scaled: tuple[tuple[str, int, float, float], ...] = ()
     #: the statusword's place in ``unpack``'s tuple
@@ -491,7 +491,7 @@ def _factor(od: Any, ch: str, factor: float | str, eds: Path) -> float:
     return 2.0 * math.pi * revolutions / increments  # inc/s -> rad/s, inc -> rad
 
 
-def _decode(entry: _Entry, data: bytes) -> float:
+def _decode(entry: _Entry, data: bytes | bytearray) -> float:
     """One mapped object's raw value from a PDO's data (little endian, bit offsets)."""
     if entry.data_type in _FLOAT_TYPES and entry.bit_offset % 8 == 0:
         start = entry.bit_offset // 8
@@ -566,7 +566,8 @@ class CanopenDriver(BusDriver):
         self._emcy: str | None = None
         self._status_fault = False
         self._nmt: int | None = None
-        self._last_heartbeat: float | None = None
+        #: the last heartbeat's stamp, else the first frame's (NaN before any frame)
+        self._heartbeat_since = math.nan
         self._heartbeat_missing = False
         self._now: float | None = None  # the last frame's stamp
         self._faults: tuple[str, ...] = ()
@@ -619,26 +620,19 @@ class CanopenDriver(BusDriver):
                           f"{_NMT_STATES.get(self._nmt, hex(self._nmt))}")
         self._faults = tuple(faults)
 
-    def _check_heartbeat(self, now: float) -> None:
-        """Whether the heartbeat is missing at frame time ``now`` [s]."""
-        producer = self.plan.heartbeat_s
-        if not producer:
-            return
-        since = self._last_heartbeat if self._last_heartbeat is not None else self._first_stamp
-        assert since is not None
-        age = now - since
-        missing = age > self._heartbeat_limit
-        if missing and not self._heartbeat_missing:
-            self._heartbeat_missing = True
+    def _heartbeat_changed(self, now: float) -> None:
+        """The heartbeat went missing, or came back, at frame time ``now`` [s] (as
+        :meth:`_on_frame` tests each frame)."""
+        age = now - self._heartbeat_since
+        self._heartbeat_missing = missing = not self._heartbeat_missing
+        if missing:
             self._bump("heartbeat_lost")
             log = logger.debug if self._say_not_heard(age) else logger.warning
             log("CANopen node %d: no heartbeat for %.2f s (producer time %g s): the drive may "
-                "be off the bus or its firmware stuck", self.config.node_id, age, producer)
-        elif not missing and self._heartbeat_missing:
-            self._heartbeat_missing = False
-            logger.warning("CANopen node %d: heartbeat received again", self.config.node_id)
+                "be off the bus or its firmware stuck", self.config.node_id, age,
+                self.plan.heartbeat_s)
         else:
-            return
+            logger.warning("CANopen node %d: heartbeat received again", self.config.node_id)
         self._update_silent(now, age if missing else None)
 
     def _update_silent(self, now: float, heartbeat_age: float | None) -> None:
@@ -689,7 +683,7 @@ class CanopenDriver(BusDriver):
         cob = frame.arbitration_id
         self._now = now = float(frame.timestamp)
         if self._first_stamp is None:
-            self._first_stamp = now
+            self._first_stamp = self._heartbeat_since = now
         data = frame.data
         sample = None
         if cob == self._sync_id:
@@ -703,14 +697,12 @@ class CanopenDriver(BusDriver):
         else:
             self._bump("other_frames")  # another node, or an object not needed
             self._other_node(cob)
-        if self._heartbeat_limit:  # the heartbeat's state changes: _check_heartbeat's test
-            since = self._last_heartbeat
-            if (now - (self._first_stamp if since is None else since)
-                    > self._heartbeat_limit) != self._heartbeat_missing:
-                self._check_heartbeat(now)
+        if self._heartbeat_limit and (now - self._heartbeat_since > self._heartbeat_limit
+                                      ) != self._heartbeat_missing:
+            self._heartbeat_changed(now)
         return sample
 
-    def _on_sync(self, now: float, data: bytes) -> Sample | None:
+    def _on_sync(self, now: float, data: bytes | bytearray) -> Sample | None:
         if self._cycle_t is not None and self._pending:
             self._bump("incomplete_syncs")
             names = [p.name for p in self.plan.pdos.values() if p.cob_id in self._pending]
@@ -731,7 +723,7 @@ class CanopenDriver(BusDriver):
             return self._assemble(now)
         return None
 
-    def _on_pdo(self, pdo: _Pdo, now: float, data: bytes) -> Sample | None:
+    def _on_pdo(self, pdo: _Pdo, now: float, data: bytes | bytearray) -> Sample | None:
         if pdo.own:
             self._own_heard = True  # the drive's own frame (an RPDO is the master's)
         if len(data) * 8 < pdo.bits:
@@ -796,7 +788,7 @@ class CanopenDriver(BusDriver):
             self._emcy = text
         self._update_faults()
 
-    def _on_heartbeat(self, data: bytes, now: float) -> None:
+    def _on_heartbeat(self, data: bytes | bytearray, now: float) -> None:
         self._own_heard = True
         if not data:
             self.stats.bad_frames += 1
@@ -806,7 +798,7 @@ class CanopenDriver(BusDriver):
             self._bump("boot_ups")
             logger.warning("CANopen node %d: boot-up message (the drive restarted)",
                            self.config.node_id)
-        self._last_heartbeat = now
+        self._heartbeat_since = now
         if state != self._nmt:
             self._nmt = state
             self._update_faults()
@@ -837,5 +829,4 @@ class CanopenDriver(BusDriver):
     def _heartbeat_age(self) -> float | None:
         if not self._heartbeat_missing or self._now is None:
             return None
-        since = self._last_heartbeat if self._last_heartbeat is not None else self._first_stamp
-        return None if since is None else self._now - since
+        return self._now - self._heartbeat_since
