@@ -71,8 +71,9 @@ _INTEGER_TYPES = {0x2: True, 0x3: True, 0x4: True, 0x10: True, 0x12: True, 0x13:
                   0x18: False, 0x19: False, 0x1A: False, 0x1B: False, 0x1: False}
 _FLOAT_TYPES = {0x8: struct.Struct("<f"), 0x11: struct.Struct("<d")}
 #: struct codes of the entries a PDO's compiled layout unpacks: (bits, signed) / (type, bits)
-_INT_CODES = {(8, True): "b", (8, False): "B", (16, True): "h", (16, False): "H",
-              (32, True): "i", (32, False): "I"}
+_INT_CODES: dict[tuple[int, bool | None], str] = {
+    (8, True): "b", (8, False): "B", (16, True): "h", (16, False): "H", (32, True): "i",
+    (32, False): "I"}
 _FLOAT_CODES = {(0x8, 32): "f", (0x11, 64): "d"}
 
 _NMT_STATES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
@@ -182,7 +183,7 @@ class _Pdo:
     channels: list[tuple[str, _Entry, float, float]] = field(default_factory=list)
     statusword: _Entry | None = None
     #: a TPDO, the drive's own frame (an RPDO is the master's)
-    own: bool = False
+    own: bool = field(init=False)
     #: compiled by :meth:`compile`: data -> the raw values of the entries used, in one call
     unpack: Callable[[bytes | bytearray], tuple[Any, ...]] | None = None
     #: (twin channel, its raw value's place in ``unpack``'s tuple, factor, offset)
@@ -196,14 +197,11 @@ class _Pdo:
         standard width (8/16/32-bit integers, a REAL32/REAL64 of its own width), else
         :func:`_decode` entry by entry. Either gives :func:`_decode`'s raw values, as int or
         float: ``raw * factor`` is the same number."""
-        self.own = self.name.startswith("T")
         used = {e.bit_offset: e for _, e, _, _ in self.channels}
         if self.statusword is not None:
             used[self.statusword.bit_offset] = self.statusword
         entries = [used[offset] for offset in sorted(used)]
-        codes = [None if e.bit_offset % 8 else _FLOAT_CODES.get((e.data_type, e.bits))
-                 if e.data_type in _FLOAT_TYPES
-                 else _INT_CODES.get((e.bits, _INTEGER_TYPES[e.data_type])) for e in entries]
+        codes = [_struct_code(e) for e in entries]
         if None in codes:
             self.unpack = lambda data: tuple(_decode(e, data) for e in entries)
         else:
@@ -218,11 +216,13 @@ class _Pdo:
         if self.statusword is not None:
             self.status_at = at[self.statusword.bit_offset]
 
+    def __post_init__(self) -> None:
+        self.own = self.name.startswith("T")
 
     @property
     def every_sync(self) -> bool:
         """Sent (TPDO) on every SYNC: a sample waits for it."""
-        return self.name.startswith("T") and self.trans_type == 1
+        return self.own and self.trans_type == 1
 
 
 @dataclass(slots=True)
@@ -489,6 +489,17 @@ def _factor(od: Any, ch: str, factor: float | str, eds: Path) -> float:
     increments = need(0x608F, 1, "position encoder increments")
     revolutions = need(0x608F, 2, "position encoder motor revolutions")
     return 2.0 * math.pi * revolutions / increments  # inc/s -> rad/s, inc -> rad
+
+
+def _struct_code(entry: _Entry) -> str | None:
+    """The :mod:`struct` code that unpacks ``entry`` as :func:`_decode` does, if it sits on a
+    byte boundary in a standard width (an 8/16/32-bit integer, a REAL32/REAL64 of its own
+    width); else None."""
+    if entry.bit_offset % 8:
+        return None
+    if entry.data_type in _FLOAT_TYPES:
+        return _FLOAT_CODES.get((entry.data_type, entry.bits))
+    return _INT_CODES.get((entry.bits, _INTEGER_TYPES.get(entry.data_type)))
 
 
 def _decode(entry: _Entry, data: bytes | bytearray) -> float:
