@@ -568,8 +568,8 @@ class CanopenDriver(BusDriver):
         self._cycle_t: float | None = None  # the open SYNC cycle's stamp
         self._pending: set[int] = set()
         self._in_order: dict[str, float] | None = None  # _latest, once in the channels' order
-        #: no PDO was last received before this frame time [s] (a bound: a watched PDO can be
-        #: silent only once ``now - _oldest_seen > silent_after``)
+        #: a lower bound of the watched PDOs' last frame times [s] (-inf: one not received
+        #: yet): none is silent while ``now - _oldest_seen <= silent_after``
         self._oldest_seen = -math.inf
         self._skip_cycle = False
         self._counter = SampleCounter(plan.sync_counter if plan.sync_counter > 1 else None)
