@@ -599,6 +599,38 @@ def test_bit_fields_and_floats_decode_as_the_mapping_says():
     assert _decode(_Entry(0x2001, 0, "y", 16, 32, 0x8), real) == 1.5  # REAL32 at byte 2
 
 
+@pytest.mark.parametrize("odd", [None, (36, 12, 0x3), (40, 24, 0x7)])
+def test_a_pdo_s_compiled_layout_decodes_as_each_entry_does(odd):
+    """Each PDO's layout is compiled once (one struct.Struct a frame, or entry by entry when an
+    entry is off a byte boundary or not its type's width): the raw values, and so the scaled
+    ones, are _decode's, NaN and infinities included."""
+    import random
+
+    from twinwatch.drivers.canopen import _decode, _Entry, _Pdo
+
+    entries = [_Entry(0x2001, 0, "f32", 0, 32, 0x8), _Entry(0x2002, 0, "u8", 32, 8, 0x5)]
+    if odd is None:  # a dummy byte, then a signed 16-bit and an unsigned 32-bit at bytes 6, 8
+        entries += [_Entry(0x2003, 0, "i16", 48, 16, 0x3), _Entry(0x2004, 0, "u32", 64, 32, 0x7)]
+    else:  # a signed 12-bit field at bit 36, or an UNSIGNED32 mapped with 24 bits at byte 5
+        entries += [_Entry(0x2003, 0, "odd", *odd)]
+    pdo = _Pdo("TPDO1", 0x185, 1, entries, 96 if odd is None else 64)
+    pdo.channels = [(e.name, e, 0.5, -1.25) for e in entries]
+    pdo.statusword = entries[1]
+    pdo.compile()
+    assert (type(pdo.unpack).__name__ == "builtin_function_or_method") == (odd is None)
+    rng = random.Random(58)
+    for k in range(2000):
+        data = bytes(rng.randrange(256) for _ in range(pdo.bits // 8))
+        if k % 50 == 0:  # NaN, inf in the REAL32
+            data = struct.pack("<f", [math.nan, math.inf, -math.inf][k // 50 % 3]) + data[4:]
+        raw = pdo.unpack(data)
+        for (ch, at, factor, offset), (_, entry, _, _) in zip(pdo.scaled, pdo.channels,
+                                                                 strict=True):
+            want, got = _decode(entry, data) * factor + offset, raw[at] * factor + offset
+            assert repr(got) == repr(want), (ch, data.hex())
+        assert int(raw[pdo.status_at]) == int(_decode(entries[1], data))
+
+
 def test_a_candump_log_of_the_simulated_drive_replays(tmp_path):
     """2 s of the simulated drive written as a candump log and replayed with ``log_file``:
     200 samples on the SYNC grid, the drive's fault in the log read as on a bus."""

@@ -105,16 +105,21 @@ class BusSource:
             DriverOperationError: the receive failed, or an owned bus returned nothing without
                 waiting (its connection is closed).
         """
-        start, cpu = time.monotonic(), time.thread_time()
+        watch = bool(timeout) and self.owned
         try:
+            # A bus whose connection is closed may spin instead of waiting (python-can's
+            # socketcand bus, a full core): a wait that burnt the processor is given up. Only
+            # a wait is timed (the clocks cost more than a frame): a frame queued comes first.
+            frame = self.bus.recv(0.0 if watch else timeout)
+            if frame is not None or not watch:
+                return frame
+            start, cpu = time.monotonic(), time.thread_time()
             frame = self.bus.recv(timeout)
         except self._errors as exc:
             raise DriverOperationError(
                 f"CAN receive failed on {self.bus.channel_info}: {exc}"
             ) from exc
-        if frame is None and timeout and self.owned:
-            # A bus whose connection is closed may spin instead of waiting (python-can's
-            # socketcand bus, a full core): a wait that burnt the processor is given up.
+        if frame is None:
             wall = time.monotonic() - start
             if wall >= 0.04 and time.thread_time() - cpu > _SPIN_CPU * wall:
                 raise DriverOperationError(

@@ -18,7 +18,7 @@ import logging
 import math
 import re
 import struct
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
@@ -70,6 +70,11 @@ _INTEGER_TYPES = {0x2: True, 0x3: True, 0x4: True, 0x10: True, 0x12: True, 0x13:
                   0x14: True, 0x15: True, 0x5: False, 0x6: False, 0x7: False, 0x16: False,
                   0x18: False, 0x19: False, 0x1A: False, 0x1B: False, 0x1: False}
 _FLOAT_TYPES = {0x8: struct.Struct("<f"), 0x11: struct.Struct("<d")}
+#: struct codes of the entries a PDO's compiled layout unpacks: (bits, signed) / (type, bits)
+_INT_CODES: dict[tuple[int, bool | None], str] = {
+    (8, True): "b", (8, False): "B", (16, True): "h", (16, False): "H", (32, True): "i",
+    (32, False): "I"}
+_FLOAT_CODES = {(0x8, 32): "f", (0x11, 64): "d"}
 
 _NMT_STATES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
 
@@ -177,12 +182,47 @@ class _Pdo:
     #: (twin channel, entry, factor, offset) decoded from each frame
     channels: list[tuple[str, _Entry, float, float]] = field(default_factory=list)
     statusword: _Entry | None = None
+    #: a TPDO, the drive's own frame (an RPDO is the master's)
+    own: bool = field(init=False)
+    #: compiled by :meth:`compile`: data -> the raw values of the entries used, in one call
+    unpack: Callable[[bytes | bytearray], tuple[Any, ...]] | None = None
+    #: (twin channel, its raw value's place in ``unpack``'s tuple, factor, offset)
+    scaled: tuple[tuple[str, int, float, float], ...] = ()
+    #: the statusword's place in ``unpack``'s tuple
+    status_at: int | None = None
 
+    def compile(self) -> None:
+        """Precompile the decoding of the entries used (the channels' and the statusword):
+        one :class:`struct.Struct` for the frame where each sits on a byte boundary in a
+        standard width (8/16/32-bit integers, a REAL32/REAL64 of its own width), else
+        :func:`_decode` entry by entry. Either gives :func:`_decode`'s raw values, as int or
+        float: ``raw * factor`` is the same number."""
+        used = {e.bit_offset: e for _, e, _, _ in self.channels}
+        if self.statusword is not None:
+            used[self.statusword.bit_offset] = self.statusword
+        entries = [used[offset] for offset in sorted(used)]
+        codes = [_struct_code(e) for e in entries]
+        if None in codes:
+            self.unpack = lambda data: tuple(_decode(e, data) for e in entries)
+        else:
+            fmt, end = "<", 0
+            for e, code in zip(entries, codes, strict=True):
+                fmt += "x" * ((e.bit_offset - end) // 8) + str(code)
+                end = e.bit_offset + e.bits
+            self.unpack = struct.Struct(fmt).unpack_from
+        at = {e.bit_offset: n for n, e in enumerate(entries)}
+        self.scaled = tuple((ch, at[e.bit_offset], factor, offset)
+                            for ch, e, factor, offset in self.channels)
+        if self.statusword is not None:
+            self.status_at = at[self.statusword.bit_offset]
+
+    def __post_init__(self) -> None:
+        self.own = self.name.startswith("T")
 
     @property
     def every_sync(self) -> bool:
         """Sent (TPDO) on every SYNC: a sample waits for it."""
-        return self.name.startswith("T") and self.trans_type == 1
+        return self.own and self.trans_type == 1
 
 
 @dataclass(slots=True)
@@ -328,6 +368,8 @@ def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
                 f"sample_on: {config.sample_on!r} is not an enabled TPDO of {str(eds)!r}; "
                 f"its TPDOs: {', '.join(n for n in all_pdos if n.startswith('T')) or 'none'}")
         used[target.cob_id] = target
+    for pdo in used.values():
+        pdo.compile()
     sync_id, counter, heartbeat = _supervision(od, config.heartbeat_time)
     return CanopenPlan(pdos=used, all_pdos=all_pdos, sync_id=sync_id, sync_counter=counter,
                        heartbeat_s=heartbeat, channels=described)
@@ -449,7 +491,18 @@ def _factor(od: Any, ch: str, factor: float | str, eds: Path) -> float:
     return 2.0 * math.pi * revolutions / increments  # inc/s -> rad/s, inc -> rad
 
 
-def _decode(entry: _Entry, data: bytes) -> float:
+def _struct_code(entry: _Entry) -> str | None:
+    """The :mod:`struct` code that unpacks ``entry`` as :func:`_decode` does, if it sits on a
+    byte boundary in a standard width (an 8/16/32-bit integer, a REAL32/REAL64 of its own
+    width); else None."""
+    if entry.bit_offset % 8:
+        return None
+    if entry.data_type in _FLOAT_TYPES:
+        return _FLOAT_CODES.get((entry.data_type, entry.bits))
+    return _INT_CODES.get((entry.bits, _INTEGER_TYPES.get(entry.data_type)))
+
+
+def _decode(entry: _Entry, data: bytes | bytearray) -> float:
     """One mapped object's raw value from a PDO's data (little endian, bit offsets)."""
     if entry.data_type in _FLOAT_TYPES and entry.bit_offset % 8 == 0:
         start = entry.bit_offset // 8
@@ -508,15 +561,24 @@ class CanopenDriver(BusDriver):
         #: the PDOs whose channels hold their latest value: left out of the samples when silent
         self._held = {name: chans for name, chans in self._watched.items()
                       if self._holds(plan.all_pdos[name])}
+        #: COB-ID -> the PDO a frame of it is (a PDO on the SYNC's COB-ID is the SYNC)
+        self._pdos = {cob: pdo for cob, pdo in plan.pdos.items() if cob != self._sync_id}
+        #: the heartbeat is missing after this long [s] (0: not watched)
+        self._heartbeat_limit = plan.heartbeat_s * config.heartbeat_margin
         self._cycle_t: float | None = None  # the open SYNC cycle's stamp
         self._pending: set[int] = set()
+        self._in_order: dict[str, float] | None = None  # _latest, once in the channels' order
+        #: a lower bound of the watched PDOs' last frame times [s] (-inf: one not received
+        #: yet): none is silent while ``now - _oldest_seen <= silent_after``
+        self._oldest_seen = -math.inf
         self._skip_cycle = False
         self._counter = SampleCounter(plan.sync_counter if plan.sync_counter > 1 else None)
         # the drive's state
         self._emcy: str | None = None
         self._status_fault = False
         self._nmt: int | None = None
-        self._last_heartbeat: float | None = None
+        #: the last heartbeat's stamp, else the first frame's (NaN before any frame)
+        self._heartbeat_since = math.nan
         self._heartbeat_missing = False
         self._now: float | None = None  # the last frame's stamp
         self._faults: tuple[str, ...] = ()
@@ -569,26 +631,19 @@ class CanopenDriver(BusDriver):
                           f"{_NMT_STATES.get(self._nmt, hex(self._nmt))}")
         self._faults = tuple(faults)
 
-    def _check_heartbeat(self, now: float) -> None:
-        """Whether the heartbeat is missing at frame time ``now`` [s]."""
-        producer = self.plan.heartbeat_s
-        if not producer:
-            return
-        since = self._last_heartbeat if self._last_heartbeat is not None else self._first_stamp
-        assert since is not None
-        age = now - since
-        missing = age > producer * self.config.heartbeat_margin
-        if missing and not self._heartbeat_missing:
-            self._heartbeat_missing = True
+    def _heartbeat_changed(self, now: float) -> None:
+        """The heartbeat went missing, or came back, at frame time ``now`` [s] (as
+        :meth:`_on_frame` tests each frame)."""
+        age = now - self._heartbeat_since
+        self._heartbeat_missing = missing = not self._heartbeat_missing
+        if missing:
             self._bump("heartbeat_lost")
             log = logger.debug if self._say_not_heard(age) else logger.warning
             log("CANopen node %d: no heartbeat for %.2f s (producer time %g s): the drive may "
-                "be off the bus or its firmware stuck", self.config.node_id, age, producer)
-        elif not missing and self._heartbeat_missing:
-            self._heartbeat_missing = False
-            logger.warning("CANopen node %d: heartbeat received again", self.config.node_id)
+                "be off the bus or its firmware stuck", self.config.node_id, age,
+                self.plan.heartbeat_s)
         else:
-            return
+            logger.warning("CANopen node %d: heartbeat received again", self.config.node_id)
         self._update_silent(now, age if missing else None)
 
     def _update_silent(self, now: float, heartbeat_age: float | None) -> None:
@@ -601,6 +656,7 @@ class CanopenDriver(BusDriver):
                           f"(producer time {self.plan.heartbeat_s:g} s)")
         pdos, _ = self._silent_since(now, self._watched, what="CANopen", key="silent_pdos",
                                      quiet=self._say_not_heard)
+        self._oldest_seen = min(self._seen.get(name, -math.inf) for name in self._watched)
         self._silent = tuple(silent + pdos)
 
     def _heard_text(self) -> str:
@@ -636,27 +692,28 @@ class CanopenDriver(BusDriver):
             self._bump("other_frames")
             return None
         cob = frame.arbitration_id
-        now = float(frame.timestamp)
+        self._now = now = float(frame.timestamp)
         if self._first_stamp is None:
-            self._first_stamp = now
-        self._now = now
-        data = bytes(frame.data)
+            self._first_stamp = self._heartbeat_since = now
+        data = frame.data
         sample = None
         if cob == self._sync_id:
             sample = self._on_sync(now, data)
-        elif cob in self.plan.pdos:
-            sample = self._on_pdo(self.plan.pdos[cob], now, data)
+        elif (pdo := self._pdos.get(cob)) is not None:
+            sample = self._on_pdo(pdo, now, data)
         elif cob == self._emcy_id:
-            self._on_emcy(data, now)
+            self._on_emcy(bytes(data), now)
         elif cob == self._heartbeat_id:
             self._on_heartbeat(data, now)
         else:
             self._bump("other_frames")  # another node, or an object not needed
             self._other_node(cob)
-        self._check_heartbeat(now)
+        if self._heartbeat_limit and (now - self._heartbeat_since > self._heartbeat_limit
+                                      ) != self._heartbeat_missing:
+            self._heartbeat_changed(now)
         return sample
 
-    def _on_sync(self, now: float, data: bytes) -> Sample | None:
+    def _on_sync(self, now: float, data: bytes | bytearray) -> Sample | None:
         if self._cycle_t is not None and self._pending:
             self._bump("incomplete_syncs")
             names = [p.name for p in self.plan.pdos.values() if p.cob_id in self._pending]
@@ -677,8 +734,8 @@ class CanopenDriver(BusDriver):
             return self._assemble(now)
         return None
 
-    def _on_pdo(self, pdo: _Pdo, now: float, data: bytes) -> Sample | None:
-        if pdo.name.startswith("T"):
+    def _on_pdo(self, pdo: _Pdo, now: float, data: bytes | bytearray) -> Sample | None:
+        if pdo.own:
             self._own_heard = True  # the drive's own frame (an RPDO is the master's)
         if len(data) * 8 < pdo.bits:
             self.stats.bad_frames += 1
@@ -688,15 +745,21 @@ class CanopenDriver(BusDriver):
                           pdo.name, pdo.cob_id, len(data), pdo.bits)
             return None
         self._seen[pdo.name] = now
-        for ch, entry, factor, offset in pdo.channels:
-            value = _decode(entry, data) * factor + offset
+        if now < self._oldest_seen:  # a late frame
+            self._oldest_seen = now
+        assert pdo.unpack is not None
+        raw = pdo.unpack(data)
+        latest = self._latest
+        for ch, at, factor, offset in pdo.scaled:
+            value = raw[at] * factor + offset
             if not math.isfinite(value):
                 self.stats.bad_values += 1
+                name = next(e.name for c, e, *_ in pdo.channels if c == ch)
                 self.log_once(f"nonfinite:{ch}", "CANopen %s -> %s decoded to %s; counted in "
-                              "stats.bad_values", entry.name, ch, value)
-            self._latest[ch] = value
-        if pdo.statusword is not None:
-            fault = bool(int(_decode(pdo.statusword, data)) & 0x08)
+                              "stats.bad_values", name, ch, value)
+            latest[ch] = value
+        if pdo.status_at is not None:
+            fault = bool(int(raw[pdo.status_at]) & 0x08)
             if fault != self._status_fault:
                 self._status_fault = fault
                 if fault:
@@ -736,7 +799,7 @@ class CanopenDriver(BusDriver):
             self._emcy = text
         self._update_faults()
 
-    def _on_heartbeat(self, data: bytes, now: float) -> None:
+    def _on_heartbeat(self, data: bytes | bytearray, now: float) -> None:
         self._own_heard = True
         if not data:
             self.stats.bad_frames += 1
@@ -746,7 +809,7 @@ class CanopenDriver(BusDriver):
             self._bump("boot_ups")
             logger.warning("CANopen node %d: boot-up message (the drive restarted)",
                            self.config.node_id)
-        self._last_heartbeat = now
+        self._heartbeat_since = now
         if state != self._nmt:
             self._nmt = state
             self._update_faults()
@@ -754,20 +817,27 @@ class CanopenDriver(BusDriver):
     def _assemble(self, t: float) -> Sample | None:
         self._pending = set()
         self._cycle_t = None
-        assert self._now is not None
-        self._update_silent(self._now, self._heartbeat_age())
-        gone = {ch for name, chans in self._held.items() if name in self._silent_logged
-                for ch in chans}  # a PDO every SYNC waits for gives no sample while silent
-        missing = [ch for ch in self.channels if ch not in self._latest]
-        if missing:
+        now = self._now
+        assert now is not None
+        if (self._silent or now - self._oldest_seen > self.config.silent_after
+                or (self._nodes_heard and not self._own_heard)):  # else nothing is silent
+            self._update_silent(now, self._heartbeat_age())
+        latest = self._latest
+        if len(latest) < len(self.channels):
+            missing = [ch for ch in self.channels if ch not in latest]
             self._bump("incomplete_syncs")
             self.log_once("first", "CANopen sample at %.3f s before %s was received: no sample "
                           "yet", t, ", ".join(missing), level=logging.INFO)
             return None
-        return Sample(t, {ch: self._latest[ch] for ch in self.channels if ch not in gone})
+        if self._silent_logged:  # a PDO every SYNC waits for gives no sample while silent
+            gone = {ch for name, chans in self._held.items() if name in self._silent_logged
+                    for ch in chans}
+            return Sample(t, {ch: latest[ch] for ch in self.channels if ch not in gone})
+        if self._in_order is not latest:  # from now on in the channels' order: copied as is
+            self._latest = self._in_order = {ch: latest[ch] for ch in self.channels}
+        return Sample(t, self._latest.copy())
 
     def _heartbeat_age(self) -> float | None:
         if not self._heartbeat_missing or self._now is None:
             return None
-        since = self._last_heartbeat if self._last_heartbeat is not None else self._first_stamp
-        return None if since is None else self._now - since
+        return self._now - self._heartbeat_since
