@@ -10,12 +10,16 @@ RPDO1, the drive's TPDO1-3, a heartbeat every 100 ms; about 4.1 frames per sampl
   bookkeeping): the driver's own CPU, no bus;
 * bus + decode: the frames sent again on a virtual bus and read through ``read()`` (python-can's
   receive queue as well): what a live bus costs the acquisition thread, less the kernel;
+* live bus: the frames sent by a thread each at its own time and read through ``read(0.2)``
+  as the acquisition loop reads, with the driver's batches (``BATCH_S``: a wake-up of the
+  reading thread about twice a batch) and without (a wake-up a frame): the reading thread's
+  CPU;
 * DBC: the simulated DC motor's three DBC frames a sample decoded by the CAN driver's frame
   handler (cantools), the same way.
 
 Usage::
 
-    python benchmarks/bench_canopen.py [--seconds 60]
+    python benchmarks/bench_canopen.py [--seconds 60] [--live 10]
 """
 
 from __future__ import annotations
@@ -61,9 +65,52 @@ def _driver(bus=None):
     return CanopenDriver.from_config(cfg, base_dir=ROOT, bus=bus)
 
 
+def _live(frames: list) -> tuple[float, float, int]:
+    """CPU [s] per window of the thread that reads the drive's ``frames`` through ``read()``
+    as the acquisition loop does (``read(0.2)``) while a thread sends each on a virtual bus
+    at its own time: with the driver's batches (:data:`~twinwatch.drivers.canbus.BATCH_S`)
+    and without (0: a wake-up a frame); and the samples read."""
+    import threading
+
+    import can
+
+    from twinwatch.drivers import canbus
+
+    result = []
+    saved = canbus.BATCH_S
+    for batch in (saved, 0.0):
+        canbus.BATCH_S = batch
+        rx = can.Bus(interface="virtual", channel=f"bench-canopen-live-{batch}")
+        tx = can.Bus(interface="virtual", channel=f"bench-canopen-live-{batch}")
+        driver = _driver(bus=rx)
+
+        def send(tx: can.BusABC = tx) -> None:
+            t0, f0 = time.monotonic(), frames[0].timestamp
+            for frame in frames:
+                wait = t0 + (frame.timestamp - f0) - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+                tx.send(frame)
+
+        sender = threading.Thread(target=send)
+        got, cpu = 0, time.thread_time()
+        sender.start()
+        while sender.is_alive() or not rx.queue.empty():
+            got += driver.read(timeout=0.2) is not None
+        result.append((time.thread_time() - cpu) / (got / WINDOW))
+        sender.join()
+        driver.close()
+        tx.shutdown()
+        rx.shutdown()
+    canbus.BATCH_S = saved
+    return result[0], result[1], got
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0, help="plant seconds")
+    ap.add_argument("--live", type=float, default=10.0,
+                    help="seconds of the frames sent in real time for the live-bus row")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     import can
@@ -104,6 +151,10 @@ def main() -> None:
     tx.shutdown()
     rx.shutdown()
     print(f"bus + decode: {cpu_bus / windows * 1e3:7.2f} ms CPU per window, {got} samples")
+    live = _live(frames[:int(len(frames) * min(args.live, args.seconds) / args.seconds)])
+    print(f"live bus:     {live[0] * 1e3:7.2f} ms CPU per window; read sample by sample, "
+          f"without waiting for a batch: {live[1] * 1e3:.2f} ms ({live[2]} samples, "
+          f"{args.live:.0f} s each)")
 
     # the DBC path, for comparison
     import cantools

@@ -155,6 +155,48 @@ def test_samples_are_scaled_to_si_and_stamped_by_sync_and_nothing_is_sent(cell):
     assert {m.arbitration_id for m in heard} == {0x80, 0x205, 0x185, 0x285, 0x705}
 
 
+def test_a_live_bus_is_read_in_batches_losing_and_reordering_nothing(cell, monkeypatch):
+    """Frames that come one by one at the drive's pace: once the read has caught up with the
+    bus it sleeps ``BATCH_S`` and takes the frames queued meanwhile (one wake-up a batch, not
+    one a frame); every sample comes, in order, with its own SYNC's time stamp."""
+    import threading
+    import time
+
+    from twinwatch.drivers import canbus
+
+    naps: list[float] = []
+    sleep = time.sleep
+
+    def nap(seconds: float) -> None:
+        if threading.current_thread() is threading.main_thread():
+            naps.append(seconds)
+        sleep(seconds)
+
+    monkeypatch.setattr(canbus.time, "sleep", nap)
+    n = 60
+
+    def drive() -> None:
+        for k in range(n):
+            cell.cycle(omega=10.0 + k)
+            sleep(0.01)
+
+    driver = CanopenDriver.from_config(_config(cell.channel), base_dir=Path("."))
+    sender = threading.Thread(target=drive)
+    try:
+        sender.start()
+        samples = _read(driver, n)
+    finally:
+        sender.join()
+        driver.close()
+    assert [round(s.t, 6) for s in samples] == [round(0.01 * k, 6) for k in range(n)]
+    assert [s.values["omega"] for s in samples] == pytest.approx(
+        [10.0 + k for k in range(n)], abs=MRPM)
+    assert driver.stats.as_dict()["gaps"] == 0
+    # about 0.6 s of frames (240) read in a few batches, not one wake-up a frame
+    assert naps and all(0 < s <= canbus.BATCH_S for s in naps)
+    assert len(naps) <= 0.6 / canbus.BATCH_S + 5, naps
+
+
 def test_a_node_id_that_never_speaks_while_another_does_is_one_line_naming_it(cell, caplog):
     """Issue 56: node_id = 6 on a bus where node 5 sends: one WARNING naming node 5 and the
     key (before: six warnings that node 6 was off the bus, none saying node 5 was on it);

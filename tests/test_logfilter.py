@@ -20,6 +20,10 @@ class Clock:
         return self.t
 
 
+NAMES = ("can.interfaces.socketcand", "can.interfaces.socketcand.socketcand",
+         "twinwatch.drivers.can", "pymodbus")
+
+
 @pytest.fixture
 def logged() -> Iterator[tuple[RepeatFilter, list[logging.LogRecord], Clock]]:
     """A handler collecting what passes a RepeatFilter (burst 3, interval 60 s, fake clock)."""
@@ -33,14 +37,14 @@ def logged() -> Iterator[tuple[RepeatFilter, list[logging.LogRecord], Clock]]:
     clock = Clock()
     f = RepeatFilter(burst=3, interval=60.0, clock=clock)
     handler.addFilter(f)
-    for name in ("can.interfaces.socketcand", "twinwatch.drivers.can", "pymodbus"):
+    for name in NAMES:
         log = logging.getLogger(name)
         log.addHandler(handler)
         log.propagate = False
         log.setLevel(logging.DEBUG)
     yield f, records, clock
     logfilter._FILTERS.discard(f)  # what it still counts must not reach the next test
-    for name in ("can.interfaces.socketcand", "twinwatch.drivers.can", "pymodbus"):
+    for name in NAMES:
         log = logging.getLogger(name)
         log.removeHandler(handler)
         log.propagate = True
@@ -102,6 +106,17 @@ def test_distinct_messages_and_twinwatch_own_lines_pass(logged):
     for _ in range(5):
         logging.getLogger("twinwatch.drivers.can").warning("ours: logged once per cause")
     assert len(records) == 10
+
+
+def test_python_can_s_warning_of_a_tcp_read_ending_inside_a_frame_is_dropped(logged):
+    """python-can's socketcand bus completes such a frame from its next read: nothing is
+    wrong, however often it says so; its other warnings are rate-limited as before."""
+    _, records, _ = logged
+    log = logging.getLogger("can.interfaces.socketcand.socketcand")
+    for _ in range(10):
+        log.warning("Got incomplete message => waiting for more data")
+    log.warning("Invalid Frame: < frame 12 >")
+    assert messages(records) == ["Invalid Frame: < frame 12 >"]
 
 
 def test_the_module_flush_reaches_every_installed_filter() -> None:

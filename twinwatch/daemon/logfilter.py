@@ -5,7 +5,8 @@ not answer) buries the journal; twinwatch's own modules log each cause once.
 :class:`RepeatFilter`, attached to the handlers the CLI logs through (:func:`install`), lets the
 first ``burst`` identical messages of a third-party logger (same logger, level and text) through
 in every ``interval`` and counts the others; once the interval is over, one line from the same
-logger says how many were suppressed. Records of ``twinwatch`` loggers pass untouched.
+logger says how many were suppressed. Records of ``twinwatch`` loggers pass untouched; the
+third-party records in :data:`BENIGN` are dropped.
 """
 
 from __future__ import annotations
@@ -18,12 +19,20 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["RepeatFilter", "flush", "install"]
+__all__ = ["BENIGN", "RepeatFilter", "flush", "install"]
 
 _SUMMARY = "_twinwatch_suppressed"
 """Attribute marking the filter's own summary records (they pass it)."""
 
 _FILTERS: weakref.WeakSet[RepeatFilter] = weakref.WeakSet()
+
+#: (logger, message) of third-party records that report nothing wrong at a level that says
+#: otherwise: dropped. python-can's socketcand bus warns whenever one TCP read ends inside a
+#: frame, which it completes from the next read (a busy bus, or frames taken in batches:
+#: :data:`~twinwatch.drivers.canbus.BATCH_S`).
+BENIGN = frozenset({
+    ("can.interfaces.socketcand.socketcand", "Got incomplete message => waiting for more data"),
+})
 
 
 @dataclass
@@ -69,6 +78,8 @@ class RepeatFilter(logging.Filter):
                 or name.startswith(self.own + "."):
             return True
         text = str(record.msg)
+        if (name, text) in BENIGN:
+            return False
         key = (name, record.levelno, text)
         now = self._clock()
         with self._lock:

@@ -40,6 +40,16 @@ __all__ = ["BusDriver", "BusDriverConfig", "BusSource", "FrameSource", "LogSourc
 
 #: frames read(timeout) still processes, without waiting, once its timeout has run out
 _MAX_OVERTIME_FRAMES = 1000
+
+#: Once a read has caught up with the bus (its frame came after a wait), the next read first
+#: sleeps this long [s] (at most its timeout) and then takes the frames queued meanwhile one
+#: after the other: the reading thread wakes about twice a batch, not once a frame (a wake-up
+#: costs more CPU than decoding a frame: benchmarks/bench_canopen.py, "live bus"). A frame
+#: keeps its own time stamp; a sample is delivered at most this much later. 0: no batches.
+BATCH_S = 0.1
+
+#: a receive that took longer than this [s] waited for its frame: the read had caught up
+_WAITED_S = 0.001
 #: share of a receive's wall time spent on the processor beyond which a bus that returned no
 #: frame counts as spinning on a closed connection
 _SPIN_CPU = 0.3
@@ -399,6 +409,7 @@ class BusDriver(Driver):
         self._first_stamp: float | None = None
         self._silent: tuple[str, ...] = ()
         self._silent_logged: set[str] = set()
+        self._caught_up = False  # the last frame came after a wait (:data:`BATCH_S`)
         try:
             self.config = config = config.resolved(base_dir)
             self.channels = config.twin_channels()
@@ -472,7 +483,13 @@ class BusDriver(Driver):
         deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
         overtime = 0
         while True:
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            start = time.monotonic()
+            remaining = None if deadline is None else max(0.0, deadline - start)
+            if self._caught_up and BATCH_S and remaining != 0.0:
+                self._caught_up = False  # let a batch of frames come (BATCH_S)
+                time.sleep(BATCH_S if remaining is None else min(BATCH_S, remaining))
+                start = time.monotonic()
+                remaining = None if deadline is None else max(0.0, deadline - start)
             if self._watch_silence and remaining is None:
                 remaining = 1.0  # a silent bus must not hold a read(None) beyond reopen_after
             frame = source.recv(remaining)
@@ -481,7 +498,8 @@ class BusDriver(Driver):
                 if deadline is None:
                     continue
                 return None
-            self._last_frame_wall = time.monotonic()
+            self._last_frame_wall = now = time.monotonic()
+            self._caught_up = now - start > _WAITED_S
             self.stats.frames += 1
             sample = self._on_frame(frame)
             if sample is not None:
