@@ -350,6 +350,9 @@ class BusDriver(Driver):
             ``bitrate`` and ``bus_options`` are ignored.
         base_dir: as for :meth:`Driver.from_config`.
         listen_only: put a live interface in receive-only mode (``check-config``).
+        batches: a read that has caught up with the bus sleeps :data:`BATCH_S` before it
+            takes the frames queued meanwhile (False: a driver that reads the frames it has
+            just sent, the simulated plants).
 
     A subclass sets :attr:`~Driver.driver_name`, implements :meth:`_setup` (what to decode),
     :meth:`_on_frame` (one frame, maybe a sample), :meth:`_can_filters` and :meth:`_ready`.
@@ -397,7 +400,8 @@ class BusDriver(Driver):
                    base_dir=base_dir)
 
     def __init__(self, config: BusDriverConfig, *, bus: can.BusABC | None = None,
-                 base_dir: Path | None = None, listen_only: bool = False) -> None:
+                 base_dir: Path | None = None, listen_only: bool = False,
+                 batches: bool = True) -> None:
         super().__init__()
         self._source: FrameSource | None = None
         self._listen_only = listen_only
@@ -409,6 +413,7 @@ class BusDriver(Driver):
         self._first_stamp: float | None = None
         self._silent: tuple[str, ...] = ()
         self._silent_logged: set[str] = set()
+        self._batches = batches  # a read caught up with the bus waits for a batch
         self._caught_up = False  # the last frame came after a wait (:data:`BATCH_S`)
         try:
             self.config = config = config.resolved(base_dir)
@@ -499,7 +504,7 @@ class BusDriver(Driver):
                     continue
                 return None
             self._last_frame_wall = now = time.monotonic()
-            self._caught_up = now - start > _WAITED_S
+            self._caught_up = self._batches and now - start > _WAITED_S
             self.stats.frames += 1
             sample = self._on_frame(frame)
             if sample is not None:
