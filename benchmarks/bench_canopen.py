@@ -68,7 +68,7 @@ def _driver(bus=None):
 def _live(frames: list) -> tuple[float, float, int]:
     """CPU [s] per window of the thread that reads the drive's ``frames`` through ``read()``
     as the acquisition loop does (``read(0.2)``) while a thread sends each on a virtual bus
-    at its own time: with the driver's batches (:data:`~twinwatch.drivers.canbus.BATCH_S`)
+    at its own time: with the driver's batches (:data:`~twinwatch.drivers.base.BATCH_S`)
     and without (0: a wake-up a frame); and the samples read."""
     import threading
 

@@ -578,3 +578,64 @@ def test_a_file_read_in_blocks_gives_the_windows_and_counters_of_sample_by_sampl
     assert by_block == by_one
     assert len(windows) >= 20 and sum(ring["causes"].values()) > 3 and stats["bad_frames"] > 1
     assert ended == ("end of the source" if duration is None else "duration reached")
+
+
+def test_a_live_queued_driver_is_read_in_batches_losing_and_reordering_nothing(monkeypatch):
+    """A driver whose own thread queues a sample every 10 ms (the Modbus and OPC UA drivers):
+    once a read has caught up with it, the next sleeps ``BATCH_S`` and takes what was queued
+    meanwhile; every sample comes, in order. Not when it is not live (lock step), nor when it
+    is a simulated plant's inner driver (``batches`` False)."""
+    import threading
+    import time
+
+    from twinwatch.drivers import base
+    from twinwatch.drivers.base import QueuedDriver, Sample
+
+    class Polled(QueuedDriver):
+        driver_name = "polled"
+        channels = ("x",)
+
+        def __init__(self, live: bool) -> None:
+            super().__init__()
+            self.live = live
+            self._init_queue(1000)
+
+        def _close_internal(self) -> None:
+            self._stop.set()
+
+    naps: list[float] = []
+
+    def read(driver: Polled, n: int) -> list[Sample]:
+        wait = driver._stop.wait
+
+        def nap(timeout: float | None = None) -> bool:
+            naps.append(timeout or 0.0)
+            return wait(timeout)
+
+        driver._stop.wait = nap  # type: ignore[method-assign]
+
+        def poll() -> None:
+            for k in range(n):
+                driver._put_dropping_oldest(Sample(0.01 * k, {"x": float(k)}))
+                time.sleep(0.01)
+
+        poller = threading.Thread(target=poll)
+        poller.start()
+        try:
+            got = [driver.read(timeout=0.5) for _ in range(n)]
+        finally:
+            poller.join()
+            driver.close()
+        assert all(s is not None for s in got)
+        return [s for s in got if s is not None]
+
+    samples = read(Polled(live=True), 60)
+    assert [s.values["x"] for s in samples] == [float(k) for k in range(60)]
+    assert naps and all(0 < s <= base.BATCH_S for s in naps)
+    assert len(naps) <= 0.6 / base.BATCH_S + 5, naps
+    for driver in (Polled(live=False), Polled(live=True)):
+        if driver.live:
+            driver.batches = False
+        naps.clear()
+        assert [s.values["x"] for s in read(driver, 20)] == [float(k) for k in range(20)]
+        assert naps == []

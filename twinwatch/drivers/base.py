@@ -180,6 +180,11 @@ class Driver(Closeable, abc.ABC):
     channels: tuple[str, ...] = ()
     #: Nominal sample period [s] (used by the daemon to detect gaps).
     sample_period: float = 0.01
+    #: A read caught up with a live source sleeps :data:`BATCH_S` for a batch (the bus and
+    #: queued drivers); False for a simulated plant's inner driver, which reads what the plant
+    #: has just served (:class:`PlantDriver`).
+    batches: bool = True
+
     #: The source cannot wait (a live bus, a real-time replay): when the estimation falls
     #: behind, the daemon drops windows and counts overruns instead of waiting.
     live: bool = False
@@ -420,6 +425,18 @@ class Driver(Closeable, abc.ABC):
         """Release resources; called once by :meth:`close`."""
 
 
+#: Once a read of a live source has caught up with it (its sample or frame came after a
+#: wait), the next read first sleeps this long [s] (at most its timeout) and then takes what
+#: was queued meanwhile one after the other: the acquisition thread wakes about twice a batch,
+#: not once a sample or frame (a wake-up costs more CPU than a frame's decoding:
+#: benchmarks/bench_canopen.py, "live bus"). Time stamps are the source's; a sample is
+#: delivered at most this much later. 0: no batches.
+BATCH_S = 0.1
+
+#: a receive that took longer than this [s] waited: the read had caught up with the source
+WAITED_S = 0.001
+
+
 class QueuedDriver(Driver):
     """A driver whose own thread hands complete samples to :meth:`read` through a queue (the
     Modbus and OPC UA drivers): the read with its deadline, the oldest sample dropped for a
@@ -437,9 +454,15 @@ class QueuedDriver(Driver):
         self._down_since: float | None = None
         self._last_error = ""
         self._rng = random.Random()
+        self._caught_up = False  # the last sample came after a wait (:data:`BATCH_S`)
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        start = time.monotonic()
+        deadline = None if timeout is None else start + max(timeout, 0.0)
+        if self._caught_up and BATCH_S and (timeout is None or timeout > 0):
+            self._caught_up = False  # a live source: let a batch come (BATCH_S)
+            self._stop.wait(BATCH_S if timeout is None else min(BATCH_S, timeout))
+            start = time.monotonic()
         while True:
             if self._fatal is not None:
                 raise DriverOperationError(self._fatal)
@@ -447,7 +470,10 @@ class QueuedDriver(Driver):
             try:
                 if remaining <= 0:
                     return self._queue.get_nowait()
-                return self._queue.get(timeout=remaining)
+                sample = self._queue.get(timeout=remaining)
+                self._caught_up = (self.batches and self.live
+                                   and time.monotonic() - start > WAITED_S)
+                return sample
             except queue.Empty:
                 if deadline is not None and time.monotonic() >= deadline:
                     if self._fatal is not None:
@@ -538,6 +564,7 @@ class PlantDriver(Driver):
         """
         try:
             inner = open_inner()
+            inner.batches = False  # it reads what the plant has just served
         except Exception as exc:
             self.close()
             if isinstance(exc, DriverInitializationError):

@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol, Self
 from pydantic import Field, StrictFloat, StrictInt, field_validator
 
 from twinwatch.drivers.base import (
+    BATCH_S,
+    WAITED_S,
     Driver,
     DriverConfig,
     DriverConfigError,
@@ -41,15 +43,6 @@ __all__ = ["BusDriver", "BusDriverConfig", "BusSource", "FrameSource", "LogSourc
 #: frames read(timeout) still processes, without waiting, once its timeout has run out
 _MAX_OVERTIME_FRAMES = 1000
 
-#: Once a read has caught up with the bus (its frame came after a wait), the next read first
-#: sleeps this long [s] (at most its timeout) and then takes the frames queued meanwhile one
-#: after the other: the reading thread wakes about twice a batch, not once a frame (a wake-up
-#: costs more CPU than decoding a frame: benchmarks/bench_canopen.py, "live bus"). A frame
-#: keeps its own time stamp; a sample is delivered at most this much later. 0: no batches.
-BATCH_S = 0.1
-
-#: a receive that took longer than this [s] waited for its frame: the read had caught up
-_WAITED_S = 0.001
 #: share of a receive's wall time spent on the processor beyond which a bus that returned no
 #: frame counts as spinning on a closed connection
 _SPIN_CPU = 0.3
@@ -350,9 +343,6 @@ class BusDriver(Driver):
             ``bitrate`` and ``bus_options`` are ignored.
         base_dir: as for :meth:`Driver.from_config`.
         listen_only: put a live interface in receive-only mode (``check-config``).
-        batches: a read that has caught up with the bus sleeps :data:`BATCH_S` before it
-            takes the frames queued meanwhile (False: a driver that reads the frames it has
-            just sent, the simulated plants).
 
     A subclass sets :attr:`~Driver.driver_name`, implements :meth:`_setup` (what to decode),
     :meth:`_on_frame` (one frame, maybe a sample), :meth:`_can_filters` and :meth:`_ready`.
@@ -400,8 +390,7 @@ class BusDriver(Driver):
                    base_dir=base_dir)
 
     def __init__(self, config: BusDriverConfig, *, bus: can.BusABC | None = None,
-                 base_dir: Path | None = None, listen_only: bool = False,
-                 batches: bool = True) -> None:
+                 base_dir: Path | None = None, listen_only: bool = False) -> None:
         super().__init__()
         self._source: FrameSource | None = None
         self._listen_only = listen_only
@@ -413,7 +402,6 @@ class BusDriver(Driver):
         self._first_stamp: float | None = None
         self._silent: tuple[str, ...] = ()
         self._silent_logged: set[str] = set()
-        self._batches = batches  # a read caught up with the bus waits for a batch
         self._caught_up = False  # the last frame came after a wait (:data:`BATCH_S`)
         try:
             self.config = config = config.resolved(base_dir)
@@ -504,7 +492,7 @@ class BusDriver(Driver):
                     continue
                 return None
             self._last_frame_wall = now = time.monotonic()
-            self._caught_up = self._batches and now - start > _WAITED_S
+            self._caught_up = self.batches and now - start > WAITED_S
             self.stats.frames += 1
             sample = self._on_frame(frame)
             if sample is not None:

@@ -115,7 +115,7 @@ class SimulatedDriver(PlantDriver):
                 signals={ch: CanSignalMap(message=m, signal=ch) for m, sigs in _MESSAGES
                          for ch in sigs},
             )
-            return CanDriver(can_cfg, bus=rx, batches=False)  # it reads what it just sent
+            return CanDriver(can_cfg, bus=rx)
 
         self._open_inner(open_inner, "simulated plant could not start: {exc}")
         logger.info("simulated %s plant, scenario %s, %.0f s, on virtual CAN channel %r",

@@ -148,7 +148,7 @@ class SimulatedCanopenDriver(PlantDriver):
             co_cfg = CanopenDriverConfig.model_validate({
                 "type": "canopen", "node_id": config.node_id, "eds": drive_eds_path(),
                 "sample_period": config.plant.sample_period, "channels": drive_channels()})
-            return CanopenDriver(co_cfg, bus=rx, batches=False)  # it reads what it just sent
+            return CanopenDriver(co_cfg, bus=rx)
 
         self.canopen = self._open_inner(open_inner,
                                         "simulated CANopen drive could not start: {exc}")
