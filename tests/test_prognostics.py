@@ -43,7 +43,14 @@ from twinwatch.twin.prognostics import (
 )
 from twinwatch.twin.prognostics.degradation import bin_evidence, fit_models, refit_models, select
 from twinwatch.twin.prognostics.metrics import alpha_lambda_pass, score_profile
-from twinwatch.twin.prognostics.rul import crossing_times, format_crossing, predict_crossing
+from twinwatch.twin.prognostics.rul import (
+    crossing_times,
+    draw_trajectories,
+    first_crossings,
+    format_crossing,
+    predict_crossing,
+    sort_order,
+)
 from twinwatch.twin.prognostics.trend import (
     ParameterTrend,
     TrendSettings,
@@ -130,6 +137,33 @@ def test_both_levels_read_one_sample_of_the_trajectories() -> None:
     with pytest.raises(ValueError, match="trajectories or a generator"):
         predict_crossing(prog.trends["Ra"].fit, "alarm", None, RA_ALARM, t_end=700.0,
                          interval=0.95, draws=2000)
+
+
+def test_the_quantiles_from_the_previous_windows_order_are_the_partitions() -> None:
+    """The RUL's median and interval read from the draws sorted through a hint (the previous
+    window's order, a stale one, none) are the partition's, bit for bit, with draws that
+    never cross (inf) among them; the hint only makes the sort cheaper."""
+    t = np.arange(1.0, 700.0, 2.0)
+    y = paper_ra(t) * (1 + 0.003 * np.random.default_rng(2).standard_normal(t.size))
+    best, pairs = select(fit_models(*bin_evidence(t, y, 0.003 * y, 120)))
+    assert best is not None
+    normals = np.random.default_rng(9).standard_normal((2000, 4))
+    times = first_crossings(draw_trajectories(best, pairs, 2000, normals=normals), 700.0,
+                            [(None, RA_ALARM), (None, 0.1 * RA_ALARM)])
+    times[1][::7] = np.inf  # some draws never get there
+    previous = sort_order(times[0])
+    assert np.all(times[0][previous][:-1] <= times[0][previous][1:])
+    for samples in times:
+        plain = predict_crossing(best, "alarm", None, RA_ALARM, t_end=700.0, interval=0.95,
+                                 draws=2000, times=samples)
+        for hint in (previous, np.arange(2000)[::-1].copy(), None, np.arange(3)):
+            ranked = samples[sort_order(samples, hint)]
+            assert np.all(ranked[:-1] <= ranked[1:])
+            cr = predict_crossing(best, "alarm", None, RA_ALARM, t_end=700.0, interval=0.95,
+                                  draws=2000, times=samples, order=sort_order(samples, hint))
+            assert (cr.t, cr.t_low, cr.t_high, cr.probability) == (
+                plain.t, plain.t_low, plain.t_high, plain.probability)
+    assert plain.t_high is None  # the far threshold's interval is open: a real inf case
 
 
 def test_a_warm_refit_finds_the_grid_searchs_fits() -> None:

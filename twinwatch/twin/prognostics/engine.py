@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, fields
 from typing import Literal, Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.config import PrognosticsConfig, Thresholds
@@ -28,6 +29,7 @@ from twinwatch.twin.prognostics.rul import (
     draw_trajectories,
     first_crossings,
     predict_crossing,
+    sort_order,
 )
 from twinwatch.twin.prognostics.trend import (
     Evidence,
@@ -212,6 +214,8 @@ class Prognostics:
         self.thresholds = dict(thresholds or {})
         self.trends = {n: ParameterTrend(n, self.settings) for n in self.names}
         self._pace = _Pace()
+        #: (parameter, level) -> the order of its last RUL draws (:func:`sort_order`'s hint)
+        self._orders: dict[tuple[str, str], npt.NDArray[np.intp]] = {}
         #: The last window's prognosis per parameter.
         self.latest: dict[str, Prognosis] = {}
 
@@ -327,9 +331,11 @@ class Prognostics:
                       if high is not None or low is not None]
             times = first_crossings(drawn, t_end, [(high, low) for _, high, low in levels])
             for (level, high, low), samples in zip(levels, times, strict=True):
+                order = self._orders[name, level] = sort_order(
+                    samples, self._orders.get((name, level)))
                 cr = predict_crossing(f, level, high, low, t_end=t_end, interval=c.interval,
                                       draws=c.draws, wall_end=wall, pace=self._pace.value(),
-                                      trajectories=drawn, times=samples)
+                                      trajectories=drawn, times=samples, order=order)
                 setattr(rul, level, cr)
         return Prognosis(report, rul)
 

@@ -29,13 +29,14 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+import numpy.typing as npt
 from numba import njit
 
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.degradation import DegradationFit
 
 __all__ = ["Crossing", "Trajectories", "crossing_times", "draw_trajectories", "first_crossings",
-           "format_crossing", "format_duration", "predict_crossing"]
+           "format_crossing", "format_duration", "predict_crossing", "sort_order"]
 
 #: Monte Carlo draws of the degradation models: each model with its share of ``c``, ``m``,
 #: ``r`` (arrays of the model's number of draws).
@@ -227,7 +228,8 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
                      wall_end: float | None = None, pace: float = 1.0,
                      mixture: Sequence[tuple[DegradationFit, float]] = (),
                      trajectories: Trajectories | None = None,
-                     times: FloatArray | None = None) -> Crossing:
+                     times: FloatArray | None = None,
+                     order: npt.NDArray[np.intp] | None = None) -> Crossing:
     """The crossing of a level's threshold(s) by the trend ``fit``.
 
     Args:
@@ -248,6 +250,8 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
             for every level of a window: each draw's warning comes before its alarm.
         times: the draws' crossing times of this level (:func:`first_crossings` of
             ``trajectories``, every level in one pass); computed here when None.
+        order: indices that sort ``times`` (:func:`sort_order`); None: the quantiles'
+            ranks are selected by a partition.
 
     Returns:
         The crossing; ``samples`` holds the draws' times from ``t_end`` [s] (inf: never).
@@ -273,8 +277,11 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
     a = 0.5 * (1.0 - interval)
     # the ranks the three quantiles read, in place of a sort of every draw
     qs = (0.5, a, 1.0 - a)
-    ranks = sorted({r for q in qs for r in _ranks(times.size, q)})
-    ranked = np.partition(times, ranks) if times.size else times
+    if order is not None:
+        ranked = times[order]
+    else:
+        ranks = sorted({r for q in qs for r in _ranks(times.size, q)})
+        ranked = np.partition(times, ranks) if times.size else times
     med, lo, hi = (_quantile(ranked, q) for q in qs)
     prob = float(np.count_nonzero(np.isfinite(times))) / times.size if times.size else \
         math.nan
@@ -290,6 +297,17 @@ def predict_crossing(fit: DegradationFit, level: str, high: float | None, low: f
     return Crossing(level, target, status, t=at(med), t_low=at(lo), t_high=at(hi), rul_s=med,
                     low_s=lo, high_s=hi, wall=wall(med), wall_low=wall(lo),
                     wall_high=wall(hi), probability=prob, samples=times)
+
+
+def sort_order(times: FloatArray, hint: npt.NDArray[np.intp] | None = None
+               ) -> npt.NDArray[np.intp]:
+    """Indices that sort ``times`` (n,), found from ``hint`` (n,), the order of a similar
+    set (the previous window's draws of the same level, which the common random numbers keep
+    nearly sorted: a stable sort of the nearly sorted times costs half a partition)."""
+    if hint is None or hint.size != times.size:
+        return np.argsort(times, kind="stable")
+    out: npt.NDArray[np.intp] = hint[np.argsort(times[hint], kind="stable")]
+    return out
 
 
 def _share(mixture: Sequence[tuple[DegradationFit, float]], draws: int

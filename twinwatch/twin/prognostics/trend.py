@@ -41,6 +41,7 @@ from numba import njit
 from twinwatch.twin.model import FloatArray
 from twinwatch.twin.prognostics.degradation import (
     DegradationFit,
+    _finite,
     bin_evidence,
     fit_models,
     refit_models,
@@ -162,6 +163,12 @@ def _trendability(t: FloatArray, x: FloatArray) -> float:
     if stt <= 0 or sxx <= 0:
         return math.nan
     return min(abs(stx) / math.sqrt(stt * sxx), 1.0)
+
+
+@njit(cache=True, nogil=True)
+def _scores(t: FloatArray, x: FloatArray, smooth: int) -> tuple[float, float]:
+    """:func:`monotonicity` and :func:`trendability` compiled, in one call (NaN for None)."""
+    return _monotonicity(x, smooth), _trendability(t, x)
 
 
 @dataclass
@@ -362,7 +369,7 @@ class ParameterTrend:
         regrid = not n % cfg.regrid_every
         if warm and not regrid and self._z <= cfg.skip_z and self._new == 1 \
                 and self.fit is not None and not (self._stale and not n % cfg.refit_every) \
-                and all(np.isfinite(f.cov).all() for f in self.fits):
+                and all(_finite(f.cov) for f in self.fits):
             self._dirty = False
             self._new = 0
             for f in self.fits:
@@ -408,9 +415,11 @@ class ParameterTrend:
         """(monotonicity, trendability) of the segment's evidence (computed again only when
         the evidence changed)."""
         if self._scores is None:
-            y = np.asarray(self.y)
-            self._scores = (monotonicity(y, self.settings.smooth),
-                            trendability(np.asarray(self.t), y))
+            n = len(self.t)  # fromiter with a count: a list's floats at half asarray's cost
+            mono, trd = _scores(np.fromiter(self.t, float, n), np.fromiter(self.y, float, n),
+                                self.settings.smooth)
+            self._scores = (None if math.isnan(mono) else mono,
+                            None if math.isnan(trd) else trd)
         return self._scores
 
     def model_weight(self) -> float | None:
