@@ -630,6 +630,30 @@ def test_a_dcf_s_values_win_over_the_eds_defaults(tmp_path):
     assert plan.channels["omega"] == "TPDO1 0x6079 DC link circuit voltage"
 
 
+def test_a_float_mapped_narrower_is_refused_and_a_float_statusword_is_not_watched(tmp_path):
+    """A DCF that maps TPDO1's velocity as a REAL32 in 16 bits is refused naming the channel
+    (its value would be read past the frame); one that declares the statusword a REAL32 keeps
+    the samples and does not watch a fault bit it cannot have."""
+    text = drive_eds_path().read_text()
+    velocity = "[606C]\nParameterName=Velocity actual value\nObjectType=0x7\nDataType=0x0004"
+    status = "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006"
+    assert velocity in text and status in text and "[1A00sub2]\n" in text
+    narrow = tmp_path / "narrow.dcf"
+    narrow.write_text(text.replace(velocity, velocity[:-4] + "0008")
+                      .replace("[1A00sub2]\n", "[1A00sub2]\nParameterValue=0x606C0010\n"))
+    with pytest.raises(DriverConfigError) as exc:
+        load_plan(CanopenDriverConfig.model_validate(_config("x", eds=str(narrow)))
+                  .resolved(tmp_path))
+    assert exc.value.keyed().startswith("driver.channels.omega.object:")
+    assert "REAL32 mapped in 16 bits" in str(exc.value)
+    real_status = tmp_path / "status.dcf"
+    real_status.write_text(text.replace(status, status[:-4] + "0008"))
+    plan = load_plan(CanopenDriverConfig.model_validate(_config("x", eds=str(real_status)))
+                     .resolved(tmp_path))
+    assert all(p.statusword is None for p in plan.pdos.values())
+    assert set(plan.channels) == set(CHANNELS)
+
+
 def test_bit_fields_and_floats_decode_as_the_mapping_says():
     from twinwatch.drivers.canopen import _decode, _Entry
 

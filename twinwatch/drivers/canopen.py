@@ -348,8 +348,10 @@ def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
     Raises:
         DriverConfigError: the EDS/DCF is missing or does not parse (``eds: ...``), a channel's
             object is not in it or mapped to no PDO (``channels.<ch>.object: ...``), its
-            factor needs an object the file lacks (``channels.<ch>.factor: ...``), or
-            ``sample_on`` names no enabled TPDO.
+            factor needs an object the file lacks (``channels.<ch>.factor: ...``), a channel's
+            REAL32/REAL64 is mapped in fewer or more bits than its width, or ``sample_on``
+            names no enabled TPDO. A statusword (0x6041) mapped as anything but an integer is
+            not watched for its fault bit.
     """
     eds = config.eds
     od = _import_od(eds, config.node_id)
@@ -358,7 +360,8 @@ def load_plan(config: CanopenDriverConfig) -> CanopenPlan:
     described = _map_channels(config, od, all_pdos, used)
     for pdo in all_pdos.values():  # the statusword's fault bit, wherever it is mapped
         for entry in pdo.entries:
-            if entry.index == 0x6041 and entry.subindex == 0 and pdo.name.startswith("T"):
+            if (entry.index == 0x6041 and entry.subindex == 0 and pdo.name.startswith("T")
+                    and entry.data_type in _INTEGER_TYPES):  # CiA 402: UNSIGNED16
                 pdo.statusword = entry
                 used[pdo.cob_id] = pdo
     if config.sample_on != "sync":
@@ -438,6 +441,11 @@ def _map_channels(config: CanopenDriverConfig, od: Any, all_pdos: dict[str, _Pdo
             raise DriverConfigError(
                 f"channels.{ch}.object: {var.name} has data type 0x{entry.data_type:X}, not a "
                 "number")
+        real = _FLOAT_TYPES.get(entry.data_type)
+        if real is not None and entry.bits != 8 * real.size:
+            raise DriverConfigError(
+                f"channels.{ch}.object: {var.name} is a REAL{8 * real.size} mapped in "
+                f"{entry.bits} bits of {pdo.name} in {str(eds)!r}: a float is mapped whole")
         factor = _factor(od, ch, spec.factor, eds)
         pdo.channels.append((ch, entry, factor, spec.offset))
         used[pdo.cob_id] = pdo
