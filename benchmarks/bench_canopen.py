@@ -74,12 +74,12 @@ def _live(frames: list) -> tuple[float, float, int]:
 
     import can
 
-    from twinwatch.drivers import canbus
+    from twinwatch.drivers import base
 
     result = []
-    saved = canbus.BATCH_S
+    saved = base.BATCH_S
     for batch in (saved, 0.0):
-        canbus.BATCH_S = batch
+        base.BATCH_S = batch
         rx = can.Bus(interface="virtual", channel=f"bench-canopen-live-{batch}")
         tx = can.Bus(interface="virtual", channel=f"bench-canopen-live-{batch}")
         driver = _driver(bus=rx)
@@ -102,7 +102,7 @@ def _live(frames: list) -> tuple[float, float, int]:
         driver.close()
         tx.shutdown()
         rx.shutdown()
-    canbus.BATCH_S = saved
+    base.BATCH_S = saved
     return result[0], result[1], got
 
 

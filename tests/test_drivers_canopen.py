@@ -162,7 +162,7 @@ def test_a_live_bus_is_read_in_batches_losing_and_reordering_nothing(cell, monke
     import threading
     import time
 
-    from twinwatch.drivers import canbus
+    from twinwatch.drivers import base, canbus
 
     naps: list[float] = []
     sleep = time.sleep
@@ -193,8 +193,8 @@ def test_a_live_bus_is_read_in_batches_losing_and_reordering_nothing(cell, monke
         [10.0 + k for k in range(n)], abs=MRPM)
     assert driver.stats.as_dict()["gaps"] == 0
     # about 0.6 s of frames (240) read in a few batches, not one wake-up a frame
-    assert naps and all(0 < s <= canbus.BATCH_S for s in naps)
-    assert len(naps) <= 0.6 / canbus.BATCH_S + 5, naps
+    assert naps and all(0 < s <= base.BATCH_S for s in naps)
+    assert len(naps) <= 0.6 / base.BATCH_S + 5, naps
 
 
 def test_a_node_id_that_never_speaks_while_another_does_is_one_line_naming_it(cell, caplog):

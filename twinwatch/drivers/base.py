@@ -184,6 +184,7 @@ class Driver(Closeable, abc.ABC):
     #: queued drivers); False for a simulated plant's inner driver, which reads what the plant
     #: has just served (:class:`PlantDriver`).
     batches: bool = True
+    _caught_up = False  # the last read's sample or frame came after a wait (:data:`BATCH_S`)
 
     #: The source cannot wait (a live bus, a real-time replay): when the estimation falls
     #: behind, the daemon drops windows and counts overruns instead of waiting.
@@ -424,6 +425,21 @@ class Driver(Closeable, abc.ABC):
     def _close_internal(self) -> None:  # noqa: B027 - optional hook
         """Release resources; called once by :meth:`close`."""
 
+    def _batch_nap(self, timeout: float | None, sleep: Callable[[float], object]) -> bool:
+        """Before a receive: when the last read caught up with a live source, ``sleep``
+        :data:`BATCH_S` (at most ``timeout`` [s]; not when it is 0) for a batch. True if it
+        slept."""
+        if not (self._caught_up and BATCH_S and (timeout is None or timeout > 0)):
+            return False
+        self._caught_up = False
+        sleep(BATCH_S if timeout is None else min(BATCH_S, timeout))
+        return True
+
+    def _waited_since(self, start: float) -> bool:
+        """The receive that began at monotonic ``start`` [s] waited (:data:`WAITED_S`), and
+        this driver takes batches."""
+        return self.batches and time.monotonic() - start > WAITED_S
+
 
 #: Once a read of a live source has caught up with it (its sample or frame came after a
 #: wait), the next read first sleeps this long [s] (at most its timeout) and then takes what
@@ -454,14 +470,11 @@ class QueuedDriver(Driver):
         self._down_since: float | None = None
         self._last_error = ""
         self._rng = random.Random()
-        self._caught_up = False  # the last sample came after a wait (:data:`BATCH_S`)
 
     def _read_internal(self, timeout: float | None) -> Sample | None:
         start = time.monotonic()
         deadline = None if timeout is None else start + max(timeout, 0.0)
-        if self._caught_up and BATCH_S and (timeout is None or timeout > 0):
-            self._caught_up = False  # a live source: let a batch come (BATCH_S)
-            self._stop.wait(BATCH_S if timeout is None else min(BATCH_S, timeout))
+        if self._batch_nap(timeout, self._stop.wait):
             start = time.monotonic()
         while True:
             if self._fatal is not None:
@@ -471,8 +484,7 @@ class QueuedDriver(Driver):
                 if remaining <= 0:
                     return self._queue.get_nowait()
                 sample = self._queue.get(timeout=remaining)
-                self._caught_up = (self.batches and self.live
-                                   and time.monotonic() - start > WAITED_S)
+                self._caught_up = self.live and self._waited_since(start)
                 return sample
             except queue.Empty:
                 if deadline is not None and time.monotonic() >= deadline:

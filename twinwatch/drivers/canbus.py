@@ -23,8 +23,6 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol, Self
 from pydantic import Field, StrictFloat, StrictInt, field_validator
 
 from twinwatch.drivers.base import (
-    BATCH_S,
-    WAITED_S,
     Driver,
     DriverConfig,
     DriverConfigError,
@@ -402,7 +400,6 @@ class BusDriver(Driver):
         self._first_stamp: float | None = None
         self._silent: tuple[str, ...] = ()
         self._silent_logged: set[str] = set()
-        self._caught_up = False  # the last frame came after a wait (:data:`BATCH_S`)
         try:
             self.config = config = config.resolved(base_dir)
             self.channels = config.twin_channels()
@@ -478,9 +475,7 @@ class BusDriver(Driver):
         while True:
             start = time.monotonic()
             remaining = None if deadline is None else max(0.0, deadline - start)
-            if self._caught_up and BATCH_S and remaining != 0.0:
-                self._caught_up = False  # let a batch of frames come (BATCH_S)
-                time.sleep(BATCH_S if remaining is None else min(BATCH_S, remaining))
+            if self._batch_nap(remaining, time.sleep):  # a batch of frames came meanwhile
                 start = time.monotonic()
                 remaining = None if deadline is None else max(0.0, deadline - start)
             if self._watch_silence and remaining is None:
@@ -491,8 +486,8 @@ class BusDriver(Driver):
                 if deadline is None:
                     continue
                 return None
-            self._last_frame_wall = now = time.monotonic()
-            self._caught_up = self.batches and now - start > WAITED_S
+            self._caught_up = self._waited_since(start)
+            self._last_frame_wall = time.monotonic()
             self.stats.frames += 1
             sample = self._on_frame(frame)
             if sample is not None:

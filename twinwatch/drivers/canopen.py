@@ -437,15 +437,7 @@ def _map_channels(config: CanopenDriverConfig, od: Any, all_pdos: dict[str, _Pdo
                 f"{var.name}) is mapped to no TPDO or RPDO of {str(eds)!r}: the drive does not "
                 f"send it; mapped: {', '.join(mapped) or 'nothing'}")
         pdo, entry = sorted(found, key=lambda pe: (pe[0].name[0] != "T", pe[0].name))[0]
-        if entry.data_type not in _INTEGER_TYPES and entry.data_type not in _FLOAT_TYPES:
-            raise DriverConfigError(
-                f"channels.{ch}.object: {var.name} has data type 0x{entry.data_type:X}, not a "
-                "number")
-        real = _FLOAT_TYPES.get(entry.data_type)
-        if real is not None and entry.bits != 8 * real.size:
-            raise DriverConfigError(
-                f"channels.{ch}.object: {var.name} is a REAL{8 * real.size} mapped in "
-                f"{entry.bits} bits of {pdo.name} in {str(eds)!r}: a float is mapped whole")
+        _check_number(ch, var.name, entry, pdo.name, eds)
         factor = _factor(od, ch, spec.factor, eds)
         pdo.channels.append((ch, entry, factor, spec.offset))
         used[pdo.cob_id] = pdo
@@ -497,6 +489,24 @@ def _factor(od: Any, ch: str, factor: float | str, eds: Path) -> float:
     increments = need(0x608F, 1, "position encoder increments")
     revolutions = need(0x608F, 2, "position encoder motor revolutions")
     return 2.0 * math.pi * revolutions / increments  # inc/s -> rad/s, inc -> rad
+
+
+def _check_number(ch: str, name: str, entry: _Entry, pdo: str, eds: Path) -> None:
+    """Channel ``ch``'s object ``name`` as ``pdo`` maps it: an integer, or a float mapped in its
+    whole width.
+
+    Raises:
+        DriverConfigError: ``channels.<ch>.object: ...``, another data type, or a
+            REAL32/REAL64 mapped in fewer or more bits.
+    """
+    if entry.data_type not in _INTEGER_TYPES and entry.data_type not in _FLOAT_TYPES:
+        raise DriverConfigError(
+            f"channels.{ch}.object: {name} has data type 0x{entry.data_type:X}, not a number")
+    real = _FLOAT_TYPES.get(entry.data_type)
+    if real is not None and entry.bits != 8 * real.size:
+        raise DriverConfigError(
+            f"channels.{ch}.object: {name} is a REAL{8 * real.size} mapped in {entry.bits} "
+            f"bits of {pdo} in {str(eds)!r}: a float is mapped whole")
 
 
 def _struct_code(entry: _Entry) -> str | None:
@@ -743,8 +753,7 @@ class CanopenDriver(BusDriver):
         return None
 
     def _on_pdo(self, pdo: _Pdo, now: float, data: bytes | bytearray) -> Sample | None:
-        if pdo.own:
-            self._own_heard = True  # the drive's own frame (an RPDO is the master's)
+        self._own_heard |= pdo.own  # the drive's own frame (an RPDO is the master's)
         if len(data) * 8 < pdo.bits:
             self.stats.bad_frames += 1
             self._bump("truncated_pdos")
@@ -767,14 +776,7 @@ class CanopenDriver(BusDriver):
                               "stats.bad_values", name, ch, value)
             latest[ch] = value
         if pdo.status_at is not None:
-            fault = bool(int(raw[pdo.status_at]) & 0x08)
-            if fault != self._status_fault:
-                self._status_fault = fault
-                if fault:
-                    self._bump("statusword_faults")
-                logger.warning("CANopen node %d: statusword fault bit %s", self.config.node_id,
-                               "set: the drive is in fault" if fault else "cleared")
-                self._update_faults()
+            self._on_statusword(int(raw[pdo.status_at]))
         if pdo.cob_id == self._sample_pdo:
             return self._assemble(now)
         if self._cycle_t is not None and pdo.cob_id in self._pending:
@@ -782,6 +784,18 @@ class CanopenDriver(BusDriver):
             if not self._pending and not self._skip_cycle:
                 return self._assemble(self._cycle_t)
         return None
+
+    def _on_statusword(self, word: int) -> None:
+        """The statusword's fault bit (bit 3): a change is logged, counted when set and
+        updates the drive's faults."""
+        fault = bool(word & 0x08)
+        if fault != self._status_fault:
+            self._status_fault = fault
+            if fault:
+                self._bump("statusword_faults")
+            logger.warning("CANopen node %d: statusword fault bit %s", self.config.node_id,
+                           "set: the drive is in fault" if fault else "cleared")
+            self._update_faults()
 
     def _on_emcy(self, data: bytes, now: float) -> None:
         self._own_heard = True
@@ -827,9 +841,7 @@ class CanopenDriver(BusDriver):
         self._cycle_t = None
         now = self._now
         assert now is not None
-        if (self._silent or now - self._oldest_seen > self.config.silent_after
-                or (self._nodes_heard and not self._own_heard)):  # else nothing is silent
-            self._update_silent(now, self._heartbeat_age())
+        self._look_for_silence(now)
         latest = self._latest
         if len(latest) < len(self.channels):
             missing = [ch for ch in self.channels if ch not in latest]
@@ -844,6 +856,14 @@ class CanopenDriver(BusDriver):
         if self._in_order is not latest:  # from now on in the channels' order: copied as is
             self._latest = self._in_order = {ch: latest[ch] for ch in self.channels}
         return Sample(t, self._latest.copy())
+
+    def _look_for_silence(self, now: float) -> None:
+        """At a sample: the silent PDOs and nodes looked for (:meth:`_update_silent`) only
+        when one can be (one is, the oldest PDO is older than ``silent_after``, or another
+        node speaks while this one does not)."""
+        if (self._silent or now - self._oldest_seen > self.config.silent_after
+                or (self._nodes_heard and not self._own_heard)):
+            self._update_silent(now, self._heartbeat_age())
 
     def _heartbeat_age(self) -> float | None:
         if not self._heartbeat_missing or self._now is None:
