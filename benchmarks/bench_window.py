@@ -42,8 +42,10 @@ reported):
   machine's thread costs is mostly its wake-ups); the
   CAN driver replaying a Vector ASC log of the same plant (needs the test helpers; skipped
   without them), with the libraries' share of it: python-can's ``LogReader`` reading the log
-  alone and cantools decoding each frame alone (the driver's floor while it uses them). The
-  Modbus driver needs a server on a port: ``bench_density.py`` measures it.
+  alone and cantools decoding each frame alone (the driver's floor while it uses them); the
+  reader of a queued driver (the Modbus and OPC UA drivers' base) while a thread queues a
+  sample every 10 ms, in batches (``BATCH_S``) and woken once a sample. The Modbus driver
+  itself needs a server on a port: ``bench_density.py`` measures it.
 """
 
 from __future__ import annotations
@@ -315,6 +317,50 @@ def threads_cost(path: Path, chans: list[str], limit: int, machines: int, pace: 
     return sum(c for c, _ in spent) / sum(n for _, n in spent)
 
 
+def queued_cost(samples: int, batch: float) -> float:
+    """CPU [s] a sample of the thread reading a queued driver (the Modbus and OPC UA drivers'
+    base: their own thread queues each sample) while a thread queues ``samples`` at 100 Hz in
+    real time, read as the acquisition loop reads (``read(0.2)``) with ``BATCH_S`` = ``batch``
+    (0: a wake-up a sample)."""
+    import threading
+
+    from twinwatch.drivers import base
+
+    class Polled(base.QueuedDriver):
+        driver_name = "polled"
+        channels = ("x",)
+        live = True
+
+        def __init__(self) -> None:
+            super().__init__()
+            self._init_queue(1000)
+
+        def _close_internal(self) -> None:
+            self._stop.set()
+
+    def poll(driver: Polled) -> None:
+        t0 = time.monotonic()
+        for k in range(samples):
+            driver._put_dropping_oldest(base.Sample(0.01 * k, {"x": float(k)}))
+            wait = t0 + 0.01 * (k + 1) - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+
+    saved, base.BATCH_S = base.BATCH_S, batch
+    try:
+        with Polled() as driver:
+            poller = threading.Thread(target=poll, args=(driver,))
+            poller.start()
+            cpu = time.thread_time()
+            for _ in range(samples):
+                driver.read(timeout=0.2)
+            cpu = time.thread_time() - cpu
+            poller.join()
+    finally:
+        base.BATCH_S = saved
+    return cpu / samples
+
+
 def can_cost(seconds: float) -> tuple[float, int, float, float, int] | None:
     """CPU [s] and samples of the CAN driver replaying an ASC log of the plant, then the
     libraries' share of it: CPU [s] of python-can's ``LogReader`` reading the log alone, of
@@ -455,6 +501,15 @@ def main() -> None:
               f"{read / n * per * 1e3:5.2f} ms ({read / n * 1e6:.1f} us a sample)")
         print(f"    and cantools decoding its frames alone:             "
               f"{decode / n * per * 1e3:7.2f} ms ({decode / n * 1e6:.1f} us a sample)")
+    if args.realtime_windows > 0:
+        n = args.realtime_windows * per
+        print(f"  a queued driver's reader (Modbus, OPC UA), a 100 Hz queue in real time ({n} "
+              "samples):")
+        for batch in (0.1, 0.0):
+            cpu = queued_cost(n, batch)
+            label = (f"    in batches (BATCH_S {batch:g} s):" if batch else
+                     "    woken once a sample:")
+            print(f"{label:<56}{cpu * per * 1e3:7.2f} ms ({cpu * 1e6:.1f} us a sample)")
     print("  Modbus driver: needs a server on a port (bench_density.py measures it in a host)")
 
 
