@@ -29,7 +29,7 @@ _FILTERS: weakref.WeakSet[RepeatFilter] = weakref.WeakSet()
 #: (logger, message) of third-party records that report nothing wrong at a level that says
 #: otherwise: dropped. python-can's socketcand bus warns whenever one TCP read ends inside a
 #: frame, which it completes from the next read (a busy bus, or frames taken in batches:
-#: :data:`~twinwatch.drivers.canbus.BATCH_S`).
+#: :data:`~twinwatch.drivers.base.BATCH_S`).
 BENIGN = frozenset({
     ("can.interfaces.socketcand.socketcand", "Got incomplete message => waiting for more data"),
 })

@@ -674,7 +674,8 @@ class CanopenDriver(BusDriver):
                           f"(producer time {self.plan.heartbeat_s:g} s)")
         pdos, _ = self._silent_since(now, self._watched, what="CANopen", key="silent_pdos",
                                      quiet=self._say_not_heard)
-        self._oldest_seen = min(self._seen.get(name, -math.inf) for name in self._watched)
+        self._oldest_seen = min((self._seen.get(name, -math.inf) for name in self._watched),
+                                default=math.inf)  # none watched: none can be silent
         self._silent = tuple(silent + pdos)
 
     def _heard_text(self) -> str:
