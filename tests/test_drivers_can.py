@@ -7,6 +7,7 @@ channel, the way the simulated plant or a real drive would put them on the wire.
 from __future__ import annotations
 
 import math
+import threading
 import time
 import tomllib
 import uuid
@@ -625,3 +626,81 @@ def test_two_percent_of_the_frames_lost_every_window_is_estimated(tmp_path, time
                       / truth.truth(0.5 * (h["t_start"] + h["t_end"])).Ra - 1.0
                       for h in hist]) * 100.0
     assert np.all(np.abs(err) <= 0.2), err
+
+
+# -- a live bus: delivered whatever the estimation does ----------------------------------------
+def test_a_live_bus_and_a_paced_log_are_live_sources_a_plant_s_bus_and_a_fast_log_are_not(
+        tmp_path: Path, channel: str, tx: can.BusABC, plant_db: Database) -> None:
+    """An interface the driver opens, and a log replayed in real time, deliver frames at the
+    bus's pace (:attr:`Driver.live`: the daemon drops a window it cannot take, it does not
+    stop reading); a bus passed in (a simulated plant's, stepped by the reads) and a log
+    replayed as fast as read wait for the estimation."""
+    log = tmp_path / "plant.log"
+    write_candump_log(log, plant_db, n=3, t0=0.0, period=TS)
+    fast = plant_config("unused", log_file=str(log), interface=None)
+    for config, bus, live in ((plant_config(channel), None, True),
+                              (plant_config(channel), tx, False),
+                              ({**fast, "realtime": True}, None, True),
+                              (fast, None, False)):
+        with CanDriver.from_config(config, base_dir=REPO, bus=bus) as driver:
+            assert driver.live is live, (config, bus)
+
+
+def test_a_live_bus_is_read_on_while_the_estimation_is_behind(
+        tmp_path: Path, channel: str, tx: can.BusABC, plant_db: Database,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The daemon on a live interface with a slow estimation (0.4 s a window) and 12 windows'
+    frames sent at once: the acquisition reads every frame as it comes (on a real interface a
+    reader that waited for the estimation would let the kernel's receive queue overflow),
+    the windows the worker's queue cannot take are dropped and counted as overruns, and the
+    windows taken are estimated."""
+    from harness.sources import CAN_DRIVER
+    from harness.sources import plant_frames as plant_stream
+    from twinwatch.config.loader import load_config
+    from twinwatch.daemon.runner import Daemon
+    from twinwatch.twin.estimation.estimator import Estimator
+
+    sim = (REPO / "config" / "dc-motor-sim.toml").read_text()
+    table = CAN_DRIVER.format(dbc=PLANT_DBC, log="x.log", time_source="counter").replace(
+        'log_file = "x.log"', f'interface = "virtual"\nchannel = "{channel}"')
+    text = (sim[:sim.index("[driver]")] + table.strip() + "\n\n" + sim[sim.index("[zenoh]"):])
+    text = text.replace("[zenoh]", "[zenoh]\nenabled = false").replace(
+        "[recording]", "[recording]\nenabled = false").replace(
+        'path = "state.sqlite"', f'path = "{tmp_path / "state.sqlite"}"')
+    (tmp_path / "m.toml").write_text(text)
+    cfg = load_config(tmp_path / "m.toml")
+    cfg.driver.reopen_after = None  # the bus goes quiet after the frames: not a failure here
+    estimate = Estimator.estimate
+
+    def slow(self: Estimator, *args: Any, **kwargs: Any) -> Any:
+        time.sleep(0.4)
+        return estimate(self, *args, **kwargs)
+
+    monkeypatch.setattr(Estimator, "estimate", slow)
+    frames = [can.Message(arbitration_id=i, data=d, is_extended_id=False)
+              for _, i, d in plant_stream(24.0)]
+    with create_any_driver(cfg.driver, base_dir=tmp_path) as driver:
+        assert driver.live
+        with Daemon(cfg, driver=driver, publish=False, record=False) as daemon:
+            runner = threading.Thread(target=daemon.run, name="test-live-can")
+            runner.start()
+            try:
+                for f in frames:
+                    tx.send(f)
+                start = time.monotonic()
+                deadline = start + 60.0
+                while driver.stats.frames < len(frames) and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                read_in = time.monotonic() - start
+                assert driver.stats.frames == len(frames), driver.stats
+                while (daemon.windows_estimated + daemon.counters()["overruns"] < 12
+                       and time.monotonic() < deadline):
+                    time.sleep(0.05)
+            finally:
+                daemon.stop()
+                runner.join(30.0)
+            c = daemon.counters()
+    # 12 windows at 0.4 s each would hold a waiting reader for 4.8 s
+    assert read_in < 4.0, read_in
+    assert c["windows_completed"] == 12 and c["overruns"] >= 4, c
+    assert daemon.windows_estimated + c["overruns"] == 12, c

@@ -406,9 +406,14 @@ class BusDriver(Driver):
             self.sample_period = config.sample_period
             self._setup(config)
             self._last_frame_wall = time.monotonic()
-            self._source = self._open_source(config, bus)
-            self._watch_silence = (isinstance(self._source, BusSource) and self._source.owned
-                                   and config.reopen_after is not None)
+            self._source = source = self._open_source(config, bus)
+            opened = isinstance(source, BusSource) and source.owned
+            self._watch_silence = opened and config.reopen_after is not None
+            # An interface the driver opened, or a log paced in real time, delivers frames
+            # whatever the estimation does: windows it delivers while the worker is behind
+            # are dropped and counted as overruns, not waited for (the interface's receive
+            # queue would overflow and lose frames). A bus passed in is a simulated plant's.
+            self.live = opened or (config.log_file is not None and config.realtime)
             self._ready()
         except BaseException:
             self.close()
