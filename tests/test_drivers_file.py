@@ -202,6 +202,30 @@ def test_csv_realtime_wakes_once_per_pace_slack_never_early(
     assert 1 <= len(sleeps) <= 0.3 / file_mod.PACE_SLACK + 2, sleeps  # 30 before
 
 
+def test_a_block_read_for_a_long_window_looks_at_a_bounded_stretch(tmp_path: Path) -> None:
+    """A block read asked for more rows than the file's rest (a window longer than the run:
+    ``bench_density.py --acquisition-only``) takes at most ``_BLOCK_ROWS`` of them, so each
+    read costs the same however long the file (it checked the whole rest before: quadratic
+    in the file's length); the blocks together are every row, in order."""
+    import twinwatch.drivers.file as file_mod
+
+    n = 2 * file_mod._BLOCK_ROWS + 7
+    data = tmp_path / "long.csv"
+    data.write_text("t,u\n" + "".join(f"{k * 0.01!r},{k}.0\n" for k in range(n)))
+    config = FileDriverConfig.model_validate({
+        "type": "file", "path": str(data), "time_column": "t",
+        "columns": {"Va": {"column": "u"}}})
+    sizes, values = [], []
+    with FileDriver(config) as driver, pytest.raises(EndOfStream):
+        while True:
+            got = driver.read_block(None, 100_000)
+            assert got is not None
+            sizes.append(len(got[0]))
+            values += got[1][:, 0].tolist()
+    assert sizes == [file_mod._BLOCK_ROWS, file_mod._BLOCK_ROWS, 7]
+    assert values == [float(k) for k in range(n)]
+
+
 def test_csv_realtime_at_speed_10_is_paced_ten_times_faster_never_early(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``speed = 10``: 201 rows of 10 ms (2 s) are replayed in about 0.2 s of wall time, no

@@ -79,6 +79,9 @@ PACE_SLACK = 0.2
 
 #: Rows converted to Python floats at once (:meth:`FileDriver._read_internal`).
 _CHUNK_ROWS = 256
+#: Rows a block read looks at, at most (:meth:`FileDriver._read_block_internal`): a read for a
+#: long window (``limit``) checks this many, not the rest of the file, each time.
+_BLOCK_ROWS = 4096
 
 #: How often a followed file (``follow = true``) is looked at for new rows [s].
 FOLLOW_POLL = 0.1
@@ -516,7 +519,7 @@ class FileDriver(Driver):
         finite stamp, not before the last one, finite values; in real time those due now),
         up to ``limit``; any other row alone, through :meth:`_read_internal`."""
         k = self._next
-        end = min(len(self._t), k + max(limit, 1))
+        end = min(len(self._t), k + max(min(limit, _BLOCK_ROWS), 1))
         t = self._t[k:end]
         if t.size and np.isfinite(t[0]) and t[0] >= self._last_paced:
             ok = np.isfinite(t) & np.isfinite(self._values[k:end]).all(axis=1)
