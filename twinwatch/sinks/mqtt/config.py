@@ -11,7 +11,7 @@ from typing import ClassVar, Literal, Self
 from pydantic import Field, StrictFloat, StrictInt, field_validator, model_validator
 
 from twinwatch._table import StrictTable
-from twinwatch.sinks.base import SinkConfig, resolve_input_files
+from twinwatch.sinks.base import SinkConfig
 
 # A topic level: no wildcards, no NUL; '/' separates levels.
 _LEVEL_RE = re.compile(r"^[^#+\x00/]+$")
@@ -148,9 +148,6 @@ class MqttConnectionConfig(SinkConfig):
     def inline_secret_keys(self) -> list[str]:
         """``password`` written in the configuration itself."""
         return ["password"] if self.password is not None else []
-
-    def resolve_paths(self, base_dir: Path) -> None:
-        resolve_input_files(self, base_dir)
 
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The client id at the broker (a second connection with it would take the session

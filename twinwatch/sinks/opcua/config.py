@@ -9,7 +9,7 @@ from typing import Literal, Self
 
 from pydantic import Field, StrictFloat, StrictInt, field_validator, model_validator
 
-from twinwatch.sinks.base import SinkConfig, resolve_input_files
+from twinwatch.sinks.base import SinkConfig
 
 __all__ = ["SECURITY", "OpcUaConfig"]
 
@@ -86,9 +86,6 @@ class OpcUaConfig(SinkConfig):
     def secret_input_files(self) -> dict[str, str]:
         """The private key: refused when others can read it."""
         return {"private_key": self.private_key} if self.private_key else {}
-
-    def resolve_paths(self, base_dir: Path) -> None:
-        resolve_input_files(self, base_dir)
 
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The port the server listens on."""

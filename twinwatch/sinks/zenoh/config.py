@@ -13,7 +13,7 @@ from pydantic import Field, StrictFloat, StrictInt, field_validator, model_valid
 
 from twinwatch._lazy import lazy_module
 from twinwatch._table import StrictTable
-from twinwatch.sinks.base import SinkConfig, resolve_input_files
+from twinwatch.sinks.base import SinkConfig
 
 if TYPE_CHECKING:
     import zenoh
@@ -191,9 +191,6 @@ class ZenohConfig(SinkConfig):
     def inline_secrets(self) -> list[str]:
         """Dotted keys (``zenoh.tls.*``) of secrets written in the configuration itself."""
         return [f"zenoh.{k}" for k in self.inline_secret_keys()]
-
-    def resolve_paths(self, base_dir: Path) -> None:
-        resolve_input_files(self, base_dir)
 
     @field_validator("listen", "connect")
     @classmethod
