@@ -16,6 +16,8 @@ from typing import Any
 
 import click
 
+from twinwatch.cli.app import fail
+
 CONNECT_HELP = ("Zenoh endpoint to connect to: a daemon (a peer) or a router the daemons "
                 "connect to (repeatable). Default: tcp/127.0.0.1:7447 only, where a daemon "
                 "listens unless its [zenoh] listen says otherwise. No scouting: only these are "
@@ -293,8 +295,7 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
             except KeyboardInterrupt:
                 return
     except WatchError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(1)
+        fail(exc)
 
 
 def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: float,
@@ -316,9 +317,8 @@ def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: flo
             if show:
                 doc = summaries.health(show, timeout=max(wait, 1.0))
                 if doc is None:
-                    click.echo(f"Error: {show}: no health answered within {max(wait, 1.0):g} s "
-                               "(not running, or not on this network)", err=True)
-                    sys.exit(1)
+                    fail(f"{show}: no health answered within {max(wait, 1.0):g} s (not "
+                         "running, or not on this network)")
                 if as_json:
                     click.echo(json.dumps(doc.model_dump(by_alias=True, exclude_unset=True),
                                           indent=2, allow_nan=False))
@@ -371,8 +371,7 @@ def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: flo
     except KeyboardInterrupt:  # while it waited for the network or the first summary
         return
     except WatchError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(1)
+        fail(exc)
 
 
 #: ``watch --fleet``: the first and the longest delay between attempts to reach the network
@@ -469,5 +468,4 @@ def tail(machine: str, connect: tuple[str, ...], mode: str, prefix: str, config:
             except KeyboardInterrupt:
                 return
     except WatchError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(1)
+        fail(exc)
