@@ -162,10 +162,7 @@ class ZenohConfig(SinkConfig):
         """Key in the table -> path of every file the session reads (certificates, keys)."""
         out: dict[str, str] = {}
         if self.tls is not None:
-            for k in ZenohTlsConfig.FILES:
-                v = getattr(self.tls, k)
-                if v:
-                    out[f"tls.{k}"] = v
+            out.update({f"tls.{k}": v for k in ZenohTlsConfig.FILES if (v := getattr(self.tls, k))})
         if self.auth is not None and self.auth.dictionary_file:
             out["auth.dictionary_file"] = self.auth.dictionary_file
         return out
