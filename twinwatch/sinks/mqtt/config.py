@@ -156,18 +156,8 @@ class MqttConnectionConfig(SinkConfig):
 
 
 class MqttConfig(MqttConnectionConfig):
-    """``[outputs.mqtt]``: the MQTT output (see the module docstring).
-
-    Example::
-
-        [outputs.mqtt]
-        host = "127.0.0.1"
-        port = 1883
-        topic_prefix = "twinwatch"       # twinwatch/<machine>/health
-        username = "twinwatch"
-        password_file = "/etc/twinwatch/mqtt.password"   # 0640 root:twinwatch
-        [outputs.mqtt.home_assistant]
-        discovery = true
+    """``[outputs.mqtt]``: the MQTT output (see the module docstring; docs/mqtt.md has an
+    example).
     """
 
     topic_prefix: str = Field("twinwatch",

@@ -19,16 +19,7 @@ _ENDPOINT_RE = re.compile(r"^opc\.tcp://(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9][
 
 
 class OpcUaConfig(SinkConfig):
-    """``[outputs.opcua]``: the OPC UA server output (see the module docstring).
-
-    Example::
-
-        [outputs.opcua]
-        endpoint = "opc.tcp://127.0.0.1:4840"
-        # security = ["Basic256Sha256_SignAndEncrypt"]
-        # certificate = "/etc/twinwatch/opcua-server.der"
-        # private_key = "/etc/twinwatch/opcua-server.pem"    # 0640 root:twinwatch
-    """
+    """``[outputs.opcua]``: the OPC UA server output (docs/opcua-output.md has an example)."""
 
     endpoint: str = Field("opc.tcp://127.0.0.1:4840",
                           description="opc.tcp://host:port the server listens on")
