@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 import click
 
@@ -46,6 +46,12 @@ def main() -> None:
 
 EX_CONFIG = 78
 """Exit status for an invalid configuration (sysexits.h); the unit does not restart on it."""
+
+
+def fail(message: object, status: int = 1) -> NoReturn:
+    """Say ``Error: <message>`` on stderr and exit with ``status``."""
+    click.echo(f"Error: {message}", err=True)
+    sys.exit(status)
 
 
 def load_runnable(config: Path | None, base_dir: Path,

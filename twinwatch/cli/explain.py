@@ -5,12 +5,12 @@ database or live from its daemon.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
 
+from twinwatch.cli.app import fail
 from twinwatch.cli.watch import zenoh_options
 
 if TYPE_CHECKING:
@@ -46,15 +46,12 @@ def explain(machine: str, db: Path | None, windows: int, connect: tuple[str, ...
         docs = (read_windows(db, machine, windows) if db is not None
                 else _live_windows(machine, windows, connect, mode, prefix))
     except (OSError, sqlite3.Error) as exc:
-        click.echo(f"Error: cannot read {db}: {exc}", err=True)
-        sys.exit(1)
+        fail(f"cannot read {db}: {exc}")
     except RuntimeError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(1)
+        fail(exc)
     if not docs:
         where = db if db is not None else f"the network at {', '.join(connect)}"
-        click.echo(f"Error: {where} holds no window of the machine {machine!r}", err=True)
-        sys.exit(1)
+        fail(f"{where} holds no window of the machine {machine!r}")
     for line in explain_lines(docs):
         click.echo(line)
 

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import csv
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import click
 
+from twinwatch.cli.app import fail
 from twinwatch.cli.watch import FLEET_PREFIX_HELP, config_option, reach, zenoh_options
 
 
@@ -76,8 +76,7 @@ def report(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None
             summaries.settle(wait, expected=expect)
             received = summaries.received
     except WatchError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(1)
+        fail(exc)
     now = time.time()
     rows = service_report(received, now, horizon)
     doc = {"t": now, "horizon_s": horizon, "machines": len(received), "due": len(rows),

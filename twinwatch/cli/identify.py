@@ -4,13 +4,12 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any
 
 import click
 
-from twinwatch.cli.app import EX_CONFIG, setup_logging
+from twinwatch.cli.app import EX_CONFIG, fail, setup_logging
 
 
 def _fraction_range(value: str | None) -> tuple[float, float] | None:
@@ -83,8 +82,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
                 if name not in _outputs(cfg):
                     raise ConfigError(f"--weight {name}: not an output of the twin")
     except ValueError as exc:  # a ConfigError, or a bad --train/--validate range
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(EX_CONFIG)
+        fail(exc, EX_CONFIG)
     from twinwatch.commissioning.commission import CommissionError, commission
     from twinwatch.commissioning.identify import parameters_block
     from twinwatch.commissioning.report import report
@@ -93,8 +91,7 @@ def identify(config: Path, train: str | None, validate: str | None, weights: tup
     try:
         found = commission(cfg, config.resolve().parent, duration=duration, record=record)
     except (CommissionError, DriverError) as exc:
-        click.echo(f"Error: cannot identify: {exc}", err=True)
-        sys.exit(1)
+        fail(f"cannot identify: {exc}")
     data, result = found.data, found.result
     click.echo(f"{data.t.size} samples from {data.source}"
                + (f" ({data.dropped} left out: a channel missing or not finite)"

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from twinwatch.cli.app import EX_CONFIG, load_runnable, setup_logging
+from twinwatch.cli.app import EX_CONFIG, fail, load_runnable, setup_logging
 
 if TYPE_CHECKING:
     from twinwatch.config.schema import TwinwatchConfig
@@ -152,8 +152,7 @@ def _run_host(host: ServiceHost, *, no_progress: bool, as_json: bool) -> None:
     try:
         host.start()
     except ConfigError as exc:  # a directory without machines
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(EX_CONFIG)
+        fail(exc, EX_CONFIG)
     for line in host.notices():
         click.echo(line, err=True)
     progress = None if no_progress else host.progress()
@@ -163,8 +162,7 @@ def _run_host(host: ServiceHost, *, no_progress: bool, as_json: bool) -> None:
             host.run()
     except Exception as exc:  # noqa: BLE001 - one line for the operator, the stack at DEBUG
         logger.debug("run failed", exc_info=True)
-        click.echo(f"Error: internal error: {type(exc).__name__}: {exc}", err=True)
-        sys.exit(1)
+        fail(f"internal error: {type(exc).__name__}: {exc}")
     finally:
         _ignore_late_stops()
         if bar is not None:

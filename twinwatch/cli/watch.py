@@ -16,6 +16,8 @@ from typing import Any
 
 import click
 
+from twinwatch.cli.app import fail
+
 CONNECT_HELP = ("Zenoh endpoint to connect to: a daemon (a peer) or a router the daemons "
                 "connect to (repeatable). Default: tcp/127.0.0.1:7447 only, where a daemon "
                 "listens unless its [zenoh] listen says otherwise. No scouting: only these are "
@@ -269,32 +271,17 @@ def watch(connect: tuple[str, ...], mode: str, prefix: str, config: Path | None,
 
                 with contextlib.suppress(ValueError):  # not the main thread (tests)
                     signal.signal(signal.SIGTERM, _stop)
-            try:
-                if as_json:
-                    while True:
-                        time.sleep(interval)
-                        click.echo(json.dumps(fleet.snapshot(), separators=(",", ":"),
-                                              allow_nan=False))
-                        sys.stdout.flush()
-                if not sys.stdout.isatty():
-                    out = console()
-                    while True:
-                        fleet.changed.wait(interval)
-                        fleet.changed.clear()
-                        out.print(render(fleet.snapshot(), title=title))
-                        sys.stdout.flush()
-                from rich.live import Live
 
-                with Live(render(fleet.snapshot(), title=title), auto_refresh=False) as live:
-                    while True:
-                        fleet.changed.wait(interval)
-                        fleet.changed.clear()
-                        live.update(render(fleet.snapshot(), title=title), refresh=True)
-            except KeyboardInterrupt:
-                return
+            def changed() -> None:
+                fleet.changed.wait(interval)
+                fleet.changed.clear()
+
+            _refresh((lambda: time.sleep(interval)) if as_json else changed,
+                     lambda: render(fleet.snapshot(), title=title),
+                     (lambda: json.dumps(fleet.snapshot(), separators=(",", ":"),
+                                         allow_nan=False)) if as_json else None)
     except WatchError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(1)
+        fail(exc)
 
 
 def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: float,
@@ -316,9 +303,8 @@ def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: flo
             if show:
                 doc = summaries.health(show, timeout=max(wait, 1.0))
                 if doc is None:
-                    click.echo(f"Error: {show}: no health answered within {max(wait, 1.0):g} s "
-                               "(not running, or not on this network)", err=True)
-                    sys.exit(1)
+                    fail(f"{show}: no health answered within {max(wait, 1.0):g} s (not "
+                         "running, or not on this network)")
                 if as_json:
                     click.echo(json.dumps(doc.model_dump(by_alias=True, exclude_unset=True),
                                           indent=2, allow_nan=False))
@@ -336,43 +322,50 @@ def watch_fleet(where: Reach, mode: str, *, once: bool, as_json: bool, wait: flo
                 return fleet_view(summaries.received, time.time(), states=states,
                                   models=models, limit=rows, stale_after=stale)
 
-            def show_view(live: Any = None) -> None:
-                v = view()
-                if as_json:
-                    click.echo(json.dumps(v, indent=2 if once else None, allow_nan=False,
-                                          separators=None if once else (",", ":")))
-                    sys.stdout.flush()
-                elif live is not None:
-                    live.update(render_fleet(v, title=title, by_box=by_box), refresh=True)
-                else:
-                    out.print(render_fleet(v, title=title, by_box=by_box))
-                    sys.stdout.flush()
-
             if once:
                 summaries.settle(wait)
-                show_view()
+                if as_json:
+                    click.echo(json.dumps(view(), indent=2, allow_nan=False))
+                else:
+                    out.print(render_fleet(view(), title=title, by_box=by_box))
                 return
-            try:
-                if as_json or not sys.stdout.isatty():
-                    while True:
-                        summaries.wait(interval)
-                        show_view()
-                        time.sleep(interval)
-                from rich.live import Live
-
-                with Live(render_fleet(view(), title=title, by_box=by_box),
-                          auto_refresh=False) as live:
-                    while True:
-                        summaries.wait(interval)
-                        show_view(live)
-                        time.sleep(interval)
-            except KeyboardInterrupt:
-                return
+            _refresh(lambda: summaries.wait(interval),
+                     lambda: render_fleet(view(), title=title, by_box=by_box),
+                     (lambda: json.dumps(view(), allow_nan=False, separators=(",", ":")))
+                     if as_json else None, rest=interval)
     except KeyboardInterrupt:  # while it waited for the network or the first summary
         return
     except WatchError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(1)
+        fail(exc)
+
+
+def _refresh(pause: Callable[[], None], table: Callable[[], Any],
+             line: Callable[[], str] | None = None, *, rest: float = 0.0) -> None:
+    """Until Ctrl-C, after each ``pause()``: ``line()`` (one line of JSON) when given, else
+    ``table()`` printed (into a file or a pipe, flushed) or drawn again in place (at a
+    terminal); then ``rest`` [s]."""
+    from twinwatch.watch import console
+
+    try:
+        if line is not None or not sys.stdout.isatty():
+            out = console()
+            while True:
+                pause()
+                if line is not None:
+                    click.echo(line())
+                else:
+                    out.print(table())
+                sys.stdout.flush()
+                time.sleep(rest)
+        from rich.live import Live
+
+        with Live(table(), auto_refresh=False) as live:
+            while True:
+                pause()
+                live.update(table(), refresh=True)
+                time.sleep(rest)
+    except KeyboardInterrupt:
+        return
 
 
 #: ``watch --fleet``: the first and the longest delay between attempts to reach the network
@@ -469,5 +462,4 @@ def tail(machine: str, connect: tuple[str, ...], mode: str, prefix: str, config:
             except KeyboardInterrupt:
                 return
     except WatchError as exc:
-        click.echo(f"Error: {exc}", err=True)
-        sys.exit(1)
+        fail(exc)

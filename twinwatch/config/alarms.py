@@ -137,17 +137,7 @@ class AlarmRule(StrictTable):
 
 
 class AlarmConfig(StrictTable):
-    """``[alarms]``: per-parameter alarm rules; published on ``twinwatch/<machine>/alarm``.
-
-    Example::
-
-        [alarms.parameters.Ra]
-        warning = 5.0          # % of nominal
-        alarm = 10.0
-        hysteresis = 1.0       # percentage points
-        raise_after_s = 10.0
-        clear_after_s = 30.0
-    """
+    """``[alarms]``: per-parameter alarm rules; published on ``twinwatch/<machine>/alarm``."""
 
     enabled: bool = Field(True, description="evaluate alarms and publish their changes")
     parameters: dict[str, AlarmRule] = Field(default_factory=dict,

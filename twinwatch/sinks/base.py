@@ -318,30 +318,26 @@ class SinkConfig(StrictTable):
 
     def resolve_paths(self, base_dir: Path) -> None:
         """Make the paths of :meth:`input_files` absolute against ``base_dir`` (the
-        configuration file's directory). Default: nothing to resolve."""
+        configuration file's directory; ``~`` expanded). Default: each key of
+        :meth:`input_files` read as the dotted key of its value (``tls.ca_certs``,
+        ``trusted_clients.0``)."""
+        for key, value in self.input_files().items():
+            *parents, last = key.split(".")
+            obj: Any = self
+            for part in parents:
+                obj = getattr(obj, part)
+            path = Path(value).expanduser()
+            resolved = str(path if path.is_absolute() else (base_dir / path).resolve())
+            if isinstance(obj, list):
+                obj[int(last)] = resolved
+            else:
+                setattr(obj, last, resolved)
 
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """What an output on this table holds exclusively while open (the files it locks, the
         endpoints it listens on): a reload that changes its table but not these must wait for
         the running output to release them. Default: the :meth:`output_files`, resolved."""
         return {str(p.resolve()) for p in self.output_files(cwd).values()}
-
-
-def resolve_input_files(config: SinkConfig, base_dir: Path) -> None:
-    """A :meth:`SinkConfig.resolve_paths` for a table whose :meth:`~SinkConfig.input_files`
-    keys are its dotted keys (``tls.ca_certs``, ``trusted_clients.0``): each path made
-    absolute against ``base_dir`` (``~`` expanded)."""
-    for key, value in config.input_files().items():
-        *parents, last = key.split(".")
-        obj: Any = config
-        for part in parents:
-            obj = getattr(obj, part)
-        path = Path(value).expanduser()
-        resolved = str(path if path.is_absolute() else (base_dir / path).resolve())
-        if isinstance(obj, list):
-            obj[int(last)] = resolved
-        else:
-            setattr(obj, last, resolved)
 
 
 class Sink(Closeable, abc.ABC):

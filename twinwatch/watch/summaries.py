@@ -479,15 +479,11 @@ class SummaryWatcher:
         """Undeclare the subscribers and stop asking (idempotent)."""
         self._closing.set()
         self._ask.set()
-        for attr in ("_boxes", "_live", "_sub"):
-            sub = getattr(self, attr)
-            setattr(self, attr, None)
-            if sub is not None:
-                with contextlib.suppress(zenoh.ZError):
-                    sub.undeclare()
+        subs = [self._boxes, self._live, self._sub]
+        self._boxes = self._live = self._sub = None
         with self._lock:
             exact, self._exact = self._exact, {}
-        for sub in exact.values():
+        for sub in [*subs, *exact.values()]:
             if sub is not None:
                 with contextlib.suppress(zenoh.ZError):
                     sub.undeclare()

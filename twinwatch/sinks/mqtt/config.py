@@ -11,7 +11,7 @@ from typing import ClassVar, Literal, Self
 from pydantic import Field, StrictFloat, StrictInt, field_validator, model_validator
 
 from twinwatch._table import StrictTable
-from twinwatch.sinks.base import SinkConfig, resolve_input_files
+from twinwatch.sinks.base import SinkConfig
 
 # A topic level: no wildcards, no NUL; '/' separates levels.
 _LEVEL_RE = re.compile(r"^[^#+\x00/]+$")
@@ -149,9 +149,6 @@ class MqttConnectionConfig(SinkConfig):
         """``password`` written in the configuration itself."""
         return ["password"] if self.password is not None else []
 
-    def resolve_paths(self, base_dir: Path) -> None:
-        resolve_input_files(self, base_dir)
-
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The client id at the broker (a second connection with it would take the session
         over)."""
@@ -159,18 +156,8 @@ class MqttConnectionConfig(SinkConfig):
 
 
 class MqttConfig(MqttConnectionConfig):
-    """``[outputs.mqtt]``: the MQTT output (see the module docstring).
-
-    Example::
-
-        [outputs.mqtt]
-        host = "127.0.0.1"
-        port = 1883
-        topic_prefix = "twinwatch"       # twinwatch/<machine>/health
-        username = "twinwatch"
-        password_file = "/etc/twinwatch/mqtt.password"   # 0640 root:twinwatch
-        [outputs.mqtt.home_assistant]
-        discovery = true
+    """``[outputs.mqtt]``: the MQTT output (see the module docstring; docs/mqtt.md has an
+    example).
     """
 
     topic_prefix: str = Field("twinwatch",

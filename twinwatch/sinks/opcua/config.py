@@ -9,7 +9,7 @@ from typing import Literal, Self
 
 from pydantic import Field, StrictFloat, StrictInt, field_validator, model_validator
 
-from twinwatch.sinks.base import SinkConfig, resolve_input_files
+from twinwatch.sinks.base import SinkConfig
 
 __all__ = ["SECURITY", "OpcUaConfig"]
 
@@ -19,16 +19,7 @@ _ENDPOINT_RE = re.compile(r"^opc\.tcp://(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9][
 
 
 class OpcUaConfig(SinkConfig):
-    """``[outputs.opcua]``: the OPC UA server output (see the module docstring).
-
-    Example::
-
-        [outputs.opcua]
-        endpoint = "opc.tcp://127.0.0.1:4840"
-        # security = ["Basic256Sha256_SignAndEncrypt"]
-        # certificate = "/etc/twinwatch/opcua-server.der"
-        # private_key = "/etc/twinwatch/opcua-server.pem"    # 0640 root:twinwatch
-    """
+    """``[outputs.opcua]``: the OPC UA server output (docs/opcua-output.md has an example)."""
 
     endpoint: str = Field("opc.tcp://127.0.0.1:4840",
                           description="opc.tcp://host:port the server listens on")
@@ -86,9 +77,6 @@ class OpcUaConfig(SinkConfig):
     def secret_input_files(self) -> dict[str, str]:
         """The private key: refused when others can read it."""
         return {"private_key": self.private_key} if self.private_key else {}
-
-    def resolve_paths(self, base_dir: Path) -> None:
-        resolve_input_files(self, base_dir)
 
     def exclusive_resources(self, cwd: Path) -> set[str]:
         """The port the server listens on."""

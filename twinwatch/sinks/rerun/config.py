@@ -24,16 +24,9 @@ class RecordingConfig(SinkConfig):
             the run being written, ``<stem>-<run id>.rrd`` beside it.
         enabled: when false, :class:`RerunRecorder` writes nothing and logging is a no-op.
         application_id: Rerun application id; the viewer groups recordings by it.
-        rotate_windows: windows per file before it is closed and renamed (0: one file).
-        keep_files: older files of ``path`` kept when a file is rotated (0: all).
-        recent_s: how much plant time before the cursor the outputs' views show [s].
-        serve: also serve the recording live over gRPC (Rerun's server).
-        serve_bind: the address the live server listens on (loopback by default).
-        serve_port: its TCP port.
-        server_memory_limit: the history the live server keeps for late viewers (``256MiB``,
-            ``2GB``, ``10%`` of the RAM): oldest dropped first.
+        server_memory_limit: as its field says; ``256MiB``, ``2GB`` or ``10%`` of the RAM.
 
-    Unknown keys are an error (``extra="forbid"``).
+    The other keys are described by their fields. Unknown keys are an error (``extra="forbid"``).
     """
 
     path: str = "twinwatch.rrd"

@@ -2,18 +2,8 @@
 
 :class:`RecordingViews` turns one window (its samples, estimates, health message and alarm
 changes) into what :class:`~twinwatch.sinks.rerun.RerunRecorder` logs, and describes the layout
-an operator opens. Entity paths, with ``M`` the machine name and ``plant_time`` the timeline
-[s] (docs/operating.md tabulates them):
-
-* ``M/outputs/<output>/measured``, ``.../twin`` (every sample), ``M/residual/<output>``,
-  ``M/residual_rmse/dt_prime``, ``.../dt_second``; each output's and residual's ``.../frame``:
-  two transparent values per window that give the axis two labelled ticks;
-* ``M/parameters``: every parameter's estimate [SI];
-* ``M/health/<name>/...`` per estimated parameter, in % of nominal: ``deviation``, ``frame``,
-  ``estimated`` / ``fused`` / ``held``, ``events/...``, ``trend``, ``projection/...``,
-  ``summary``;
-* ``M/quality/...`` [ppm], ``elapsed_ms`` [ms], ``problems`` (counters of lost or bad data);
-* ``M/model``, ``M/parameter_table``, ``M/health`` (the message, JSON), ``M/log``, ``M/key``.
+an operator opens. The entity paths (``M`` the machine name, ``plant_time`` the timeline [s])
+are tabulated in docs/operating.md ("What an operator sees: the recording").
 
 The projection is a 2-D view beside the panel, not in the time-series view: Rerun (0.41) draws
 every row ever logged at a time of a time-series view's range, and points at future plant times

@@ -41,17 +41,7 @@ def check_id(value: str, what: str) -> str:
 
 
 class SparkplugConfig(MqttConnectionConfig):
-    """``[outputs.sparkplug]``: the Sparkplug B output (docs/sparkplug.md).
-
-    Example::
-
-        [outputs.sparkplug]
-        host = "127.0.0.1"
-        port = 1883
-        group_id = "plant1"             # spBv1.0/plant1/DDATA/line3-edge/<machine>
-        edge_node_id = "line3-edge"     # every machine naming it: a device of this node
-        primary_host_id = "ignition"    # wait for spBv1.0/STATE/ignition online
-    """
+    """``[outputs.sparkplug]``: the Sparkplug B output (docs/sparkplug.md)."""
 
     client_id: str | None = Field(None, min_length=1, max_length=128,
                                   description="unique per broker; unset: "

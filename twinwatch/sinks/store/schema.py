@@ -72,16 +72,7 @@ CREATE TABLE IF NOT EXISTS outbox_ack (
 
 
 class StateConfig(SinkConfig):
-    """``[state]``: the state database (health history and last accepted twin).
-
-    Example::
-
-        [state]
-        path = "state.sqlite"      # relative to the working directory (the unit's StateDirectory)
-        synchronous = "FULL"       # FULL: survives power loss; NORMAL: survives SIGKILL only
-        keep_days = 30
-        keep_rows = 1000000
-    """
+    """``[state]``: the state database (health history and last accepted twin)."""
 
     enabled: bool = Field(True, description="keep the history and the twin; restore at start")
     path: str = Field("state.sqlite", min_length=1,

@@ -13,7 +13,7 @@ from pydantic import Field, StrictFloat, StrictInt, field_validator, model_valid
 
 from twinwatch._lazy import lazy_module
 from twinwatch._table import StrictTable
-from twinwatch.sinks.base import SinkConfig, resolve_input_files
+from twinwatch.sinks.base import SinkConfig
 
 if TYPE_CHECKING:
     import zenoh
@@ -162,10 +162,7 @@ class ZenohConfig(SinkConfig):
         """Key in the table -> path of every file the session reads (certificates, keys)."""
         out: dict[str, str] = {}
         if self.tls is not None:
-            for k in ZenohTlsConfig.FILES:
-                v = getattr(self.tls, k)
-                if v:
-                    out[f"tls.{k}"] = v
+            out.update({f"tls.{k}": v for k in ZenohTlsConfig.FILES if (v := getattr(self.tls, k))})
         if self.auth is not None and self.auth.dictionary_file:
             out["auth.dictionary_file"] = self.auth.dictionary_file
         return out
@@ -191,9 +188,6 @@ class ZenohConfig(SinkConfig):
     def inline_secrets(self) -> list[str]:
         """Dotted keys (``zenoh.tls.*``) of secrets written in the configuration itself."""
         return [f"zenoh.{k}" for k in self.inline_secret_keys()]
-
-    def resolve_paths(self, base_dir: Path) -> None:
-        resolve_input_files(self, base_dir)
 
     @field_validator("listen", "connect")
     @classmethod
