@@ -72,19 +72,16 @@ class WindowReading:
     """What one window told the bank.
 
     Attributes:
-        baseline_nrmse: the baseline twin's normalised RMSE on the window.
         learning: the baseline is still being learned (windows so far, of how many).
         fits: hypothesis label -> its fit over the windows since its change point.
         unknown: the unknown change's log-evidence [nats].
-        sims: twin simulations this window cost.
+        unknown_windows: the windows since the unknown change's most likely change point.
     """
 
-    baseline_nrmse: float
     learning: tuple[int, int] | None
     fits: dict[str, Fitted] = field(default_factory=dict)
     unknown: float = -math.inf
     unknown_windows: int = 0
-    sims: int = 0
 
 
 def _autocorr(r: FloatArray) -> float:
@@ -256,11 +253,9 @@ class HypothesisBank:
         sig2, kap = self._noise(cols, r_est)
         proj = _Projector(cols, kap, sig2)
         r0p = proj(cols.r0)
-        baseline_nrmse = float(np.sqrt(np.mean((cols.r0 * fit.weights) ** 2)))
         if self.learned < self.baseline_windows:
             self._learn_window(cols, proj, r0p, fit, initial)
-            return WindowReading(baseline_nrmse, (self.learned, self.baseline_windows),
-                                 sims=cols.sims)
+            return WindowReading((self.learned, self.baseline_windows))
         dp = proj.many(cols.mat)
         first = self._fit_linear(dp, r0p)
         s0 = float(r0p @ r0p)
@@ -268,8 +263,8 @@ class HypothesisBank:
         ln_n = math.log(n_eff)
         pairs = self._fit_pairs(dp, r0p, first)
         everyone = [*self.hypotheses, *pairs]
-        exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
-        reading = WindowReading(baseline_nrmse, None, sims=cols.sims + sims)
+        exact = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
+        reading = WindowReading(None)
         fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         ranges: dict[int, tuple[float, float, float]] = {}
         for h in everyone:
@@ -385,23 +380,19 @@ class HypothesisBank:
                       first: Mapping[str, tuple[FloatArray, FloatArray, FloatArray, float]],
                       dp: FloatArray, fit: WindowFit, initial: FloatArray | None,
                       proj: _Projector, bases: dict[tuple[object, ...], FloatArray]
-                      ) -> tuple[dict[str, tuple[FloatArray, float, FloatArray]], int]:
+                      ) -> dict[str, tuple[FloatArray, float, FloatArray]]:
         """The scale and term hypotheses (the twin is not linear in them) linearised again at
         their size: up to GN_STEPS Gauss-Newton steps from the exact twin there, stopping once
-        a size moves less than 1e-4. Returns label -> (size, squared residual, information)
-        and the simulations run."""
+        a size moves less than 1e-4. Returns label -> (size, squared residual, information)."""
         again = [h for h in everyone if h.label in first and h.nonlinear
                  and _largest(first[h.label][2]) > 1e-3]
         exact: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         phis = {h.label: first[h.label][2] for h in again}
         lin = {h.label: self._combo[h.label] @ dp for h in again}
-        sims = 0
         for _ in range(self.GN_STEPS):
             if not again:
                 break
             step = self._exact(again, phis, fit, initial, proj, lin, bases)
-            sims += sum(1 + sum(c.size for c in h.changes if c.kind in ("scale", "term"))
-                        for h in again)
             moved = []
             for h in again:
                 if h.label not in step:
@@ -411,7 +402,7 @@ class HypothesisBank:
                     moved.append(h)
                 phis[h.label] = step[h.label][0]
             again = moved
-        return exact, sims
+        return exact
 
     def _append_tracks(self, everyone: list[Hypothesis],
                        fitted: Mapping[str, tuple[FloatArray, float, FloatArray]], eta: float,
@@ -419,6 +410,10 @@ class HypothesisBank:
         """Each hypothesis's window joins its track: the tempered log-likelihood ratio with
         the baseline less its sizes' penalty (Schwarz), its size, the size's standard error
         from the tempered information, and whether the window informs the size at all."""
+        # the twins of two numbers or more: their tempered informations' pseudo-inverses, one
+        # call for those of one shape (:func:`_pinv`), their rows appended after
+        wide: dict[tuple[int, ...], list[tuple[Track, float, FloatArray, FloatArray, bool,
+                                               float]]] = {}
         for h in everyone:
             track = self.tracks[h.label]
             phi, s_h, a = fitted[h.label]
@@ -440,9 +435,16 @@ class HypothesisBank:
                 info = a00 * float(reach[0]) > 1.0
             else:
                 a = eta * a
-                std = np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0))
                 info = bool(np.max(np.diag(a) * reach) > 1.0)
+                wide.setdefault(a.shape, []).append(
+                    (track, half - 0.5 * h.size * ln_n, phi, a, info, half))
+                continue
             track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
+        for rows in wide.values():
+            inv = _pinv(np.array([row[3] for row in rows]))
+            stds = np.sqrt(np.maximum(np.diagonal(inv, axis1=1, axis2=2), 0.0))
+            for (track, gain, phi, _, info, half), std in zip(rows, stds, strict=True):
+                track.append(gain, phi, std, t_mid, info, half, ln_n)
 
     def _read_evidence(self, everyone: list[Hypothesis], reading: WindowReading) -> None:
         """The evidence of each hypothesis since its change point (into ``reading.fits``): a
@@ -583,8 +585,9 @@ class HypothesisBank:
                     for i in range(c.size):
                         e = np.zeros_like(phi0)
                         e[k + i] = self._fd_step(c)
-                        rows.append(self._theta_at(h, phi0 + e))
-                        row_terms.append(terms_at(h, phi0 + e))
+                        at = phi0 + e
+                        rows.append(self._theta_at(h, at))
+                        row_terms.append(terms_at(h, at))
                 k += c.size
             layout.append((h, start, len(rows) - start - 1))
         terms: dict[str, FloatArray] = {}
@@ -835,7 +838,7 @@ class _Projector:
         n_init = cols.nuisance.shape[0]
         self.zw = (cols.nuisance * self.sw).reshape(n_init, -1)
         self.zw_t = self.zw.T
-        self.ginv = np.linalg.pinv(self.zw @ self.zw.T) if n_init else np.zeros((0, 0))
+        self.ginv = _pinv(self.zw @ self.zw.T) if n_init else np.zeros((0, 0))
 
     def many(self, v: FloatArray) -> FloatArray:
         """:meth:`__call__` for a stack of residual-shaped arrays (k, N-1, n_out) -> (k, M)."""
@@ -849,6 +852,18 @@ class _Projector:
         if profile and self.zw.shape[0]:
             vw = vw - self.zw_t @ (self.ginv @ (self.zw @ vw))
         return vw
+
+
+def _pinv(a: FloatArray) -> FloatArray:
+    """``np.linalg.pinv(a)`` of a matrix (q, q) or a stack of them (k, q, q): its steps (the
+    SVD; the singular values above 1e-15 of the largest inverted, the others 0; V S+ U')
+    without its checks, each matrix of a stack as it would be alone: the same numbers."""
+    u, s, vt = np.linalg.svd(a, full_matrices=False)
+    large = s > 1e-15 * np.max(s, axis=-1, keepdims=True)
+    s = np.divide(1, s, where=large, out=s)
+    s[~large] = 0
+    out: FloatArray = np.matmul(np.swapaxes(vt, -1, -2), s[..., None] * np.swapaxes(u, -1, -2))
+    return out
 
 
 def _largest(phi: FloatArray) -> float:

@@ -225,7 +225,6 @@ class Columns:
     mat: FloatArray
     nuisance: FloatArray
     scale: FloatArray
-    sims: int = 0
 
 
 def _transformed(window: WindowData, channel: str, gain: float = 1.0, offset: float = 0.0
@@ -296,7 +295,6 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
     mat[slice(0, k) if simulated == list(range(k)) else simulated] = (
         (y[1:1 + k, 1:] - y0[1:]) / (steps[:, None] * scale)[:, None])
     nuis = (y[p - n_init:, 1:] - y0[1:]) / ((fit.initial_scale * 1e-3)[:, None] * scale)[:, None]
-    sims = p
     outputs = model.output_names
     for i, d in enumerate(directions):
         if d[0] not in ("gain", "offset", "supply"):
@@ -319,11 +317,10 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
                 w2 = _transformed(window, ch, gain=math.exp(LN_STEP))
                 step = LN_STEP
             y2 = model.simulate(th[:1], w2, None, inits[:1] if n_init else None)
-            sims += 1
             if np.all(np.isfinite(y2)):
                 col += (y2[0, 1:] - y0[1:]) / (step * scale)
     return Columns(y0=y0, r0=r0, cols=dict(zip(directions, mat, strict=True)), mat=mat,
-                   nuisance=nuis, scale=scale, sims=sims)
+                   nuisance=nuis, scale=scale)
 
 
 def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
