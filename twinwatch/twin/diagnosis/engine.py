@@ -257,11 +257,12 @@ class HypothesisBank:
             self._learn_window(cols, proj, r0p, fit, initial)
             return WindowReading((self.learned, self.baseline_windows))
         dp = proj.many(cols.mat)
-        first = self._fit_linear(dp, r0p)
-        s0 = float(r0p @ r0p)
+        # the window's information, gradient and squared residual on the projected columns
+        gram, grad, s0 = dp @ dp.T, dp @ r0p, float(r0p @ r0p)
+        first = self._fit_linear(gram, grad, s0)
         n_eff = max(float(np.sum(kap) * m_rows), 2.0)
         ln_n = math.log(n_eff)
-        pairs = self._fit_pairs(dp, r0p, first)
+        pairs = self._fit_pairs(gram, grad, s0, first)
         everyone = [*self.hypotheses, *pairs]
         exact = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
         reading = WindowReading(None)
@@ -319,12 +320,12 @@ class HypothesisBank:
         kap = np.array([_kappa(ref[:, j]) for j in range(ref.shape[1])])
         return sig2, kap
 
-    def _fit_linear(self, dp: FloatArray, rp: FloatArray
+    def _fit_linear(self, gram: FloatArray, grad: FloatArray, s00: float
                     ) -> dict[str, tuple[FloatArray, FloatArray, FloatArray, float]]:
         """Each open hypothesis's size on the window, linearised at the baseline (bounded
-        least squares on the projected columns ``dp``, (D, M), against the projected
-        residual ``rp``, (M,)): label -> (information, gradient, size, squared residual)."""
-        gram, grad, s00 = dp @ dp.T, dp @ rp, float(rp @ rp)
+        least squares on the projected columns: their information ``gram`` (D, D), gradient
+        ``grad`` (D,) and the projected residual's squared norm ``s00``): label ->
+        (information, gradient, size, squared residual)."""
         # a hypothesis of one direction picks its entry of the information and the gradient:
         # exactly what the products with its combination give (1 x the entry plus zeros),
         # unless an entry is not finite (0 x inf is NaN): then the products are taken
@@ -353,16 +354,17 @@ class HypothesisBank:
             out[label] = (a, b, np.array([p0]), s00 - 2 * b0 * p0 + p0 * a0 * p0)
         return out
 
-    def _fit_pairs(self, dp: FloatArray, r0p: FloatArray,
+    def _fit_pairs(self, gram: FloatArray, grad: FloatArray, s0: float,
                    first: dict[str, tuple[FloatArray, FloatArray, FloatArray, float]]
                    ) -> list[Hypothesis]:
-        """The pair twins of this window fitted linearised (into ``first``); a pair whose two
+        """The pair twins of this window fitted linearised (into ``first``; ``gram``, ``grad``
+        and ``s0`` as :meth:`_fit_linear`'s); a pair whose two
         twins change the window alike (correlation beyond PAIR_CORRELATION) is dropped for
         good. Returns the pairs kept."""
         pairs = self._pairs_now()
         for h in list(pairs):
             cmb = self._combo[h.label]
-            a_, b_ = cmb @ (dp @ dp.T) @ cmb.T, cmb @ (dp @ r0p)
+            a_, b_ = cmb @ gram @ cmb.T, cmb @ grad
             q1 = cmb.shape[0] // 2 or 1
             c11, c22 = np.diag(a_)[:q1].sum(), np.diag(a_)[q1:].sum()
             c12 = np.abs(a_[:q1, q1:]).sum()
@@ -373,7 +375,7 @@ class HypothesisBank:
                 continue
             lo_, hi_ = self._bounds[h.label]
             phi_ = bounded_solve(a_, b_, lo_, hi_)
-            first[h.label] = (a_, b_, phi_, float(r0p @ r0p - 2 * b_ @ phi_ + phi_ @ a_ @ phi_))
+            first[h.label] = (a_, b_, phi_, float(s0 - 2 * b_ @ phi_ + phi_ @ a_ @ phi_))
         return pairs
 
     def _gauss_newton(self, everyone: list[Hypothesis],
@@ -677,22 +679,23 @@ class HypothesisBank:
             ranges[j] = (EXACT * max(float(np.abs(meas).max()), float(cols.scale[j])),
                          float(meas.max()), float(meas.min()))
         tol, hi, lo = ranges[j]
-        r = cols.r0.copy()
+        mask: slice | np.ndarray = slice(None)      # the samples the reading explains
         if c.kind == "stuck":
             if hi - lo > tol:
                 return math.inf
-            r[:, j] = 0.0
         else:
             y = cols.y0[1:, j]
             at_hi = (np.abs(meas - hi) <= tol) & (y > hi)
             at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
-            mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
-            if mask.sum() < 2:
+            n_hi, n_lo = at_hi.sum(), at_lo.sum()
+            mask, n_at = (at_hi, n_hi) if n_hi >= n_lo else (at_lo, n_lo)
+            if n_at < 2:
                 # no sample at the range's end beyond the twin: the clip does not show in
                 # this window, which is the baseline's (a clipping sensor reads true below
                 # its range)
                 return s0
-            r[mask, j] = 0.0
+        r = cols.r0.copy()
+        r[mask, j] = 0.0
         rp = proj(r)
         return float(rp @ rp)
 
@@ -821,9 +824,10 @@ class HypothesisBank:
             return -math.inf, 0
         u = self.unknown_gains()
         suffix = np.flip(np.cumsum(np.flip(u)))
-        top = float(np.max(suffix))
-        start = int(np.argmax(suffix))
-        ev = top + math.log(float(np.mean(np.exp(suffix - top))))
+        # np.max's and np.mean's reductions without their wrappers
+        top = float(np.maximum.reduce(suffix))
+        start = int(suffix.argmax())
+        ev = top + math.log(float(np.add.reduce(np.exp(suffix - top)) / len(u)))
         return ev, len(u) - start
 
 

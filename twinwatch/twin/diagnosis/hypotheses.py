@@ -280,7 +280,9 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
         else:
             attach = model.attach_point(str(d[1]))
             step = steps[row - 1] = 1e-3 * (attach.scale if attach.mode == "additive" else 1.0)
-            arr = tm.setdefault(attach.name, np.zeros((p, window.n)))
+            arr = tm.get(attach.name)
+            if arr is None:
+                arr = tm[attach.name] = np.zeros((p, window.n))
             arr[row] = step * window_basis(window, d, terms, {} if bases is None else bases)
     for i in range(n_init):
         inits[p - n_init + i, i] += fit.initial_scale[i] * 1e-3
@@ -618,10 +620,11 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     # the line through them, in one compiled pass (numpy's arithmetic in numpy's order)
     sums, half_s, n_s, alpha, chi2, params = _suffix_lines(sds, tt, phis, half, n_eff)
     ev_c = half_s - 0.5 * chi2 - 0.5 * params * np.log(np.maximum(n_s, 2.0))   # (H, m)
-    ks = np.argmax(ev_c, axis=1)
+    # (np.mean's, np.max's, np.sum's and np.any's reductions below without their wrappers)
+    ks = ev_c.argmax(axis=1)
     rows = np.arange(len(tracks))
     top = ev_c[rows, ks]
-    spread = np.mean(np.exp(ev_c - top[:, None]), axis=1)
+    spread = np.add.reduce(np.exp(ev_c - top[:, None]), axis=1) / m
     # the change ended at a later window e > k: the line from k to e, the baseline since
     # (every e at once; those at or before k masked out)
     chi_e, par_e = _ended_lines(sums, ks)
@@ -629,10 +632,10 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
         ev_e = ((half_s[rows, ks][:, None] - half_s) - 0.5 * chi_e - 0.5 * par_e * np.log(
             np.maximum(n_s[rows, ks][:, None] - n_s, 2.0)))
     later = np.arange(m)[None, :] > ks[:, None]
-    ended = np.max(np.where(later, ev_e, -np.inf), axis=1)
+    ended = np.maximum.reduce(np.where(later, ev_e, -np.inf), axis=1)
     since = np.arange(m)[None, :] >= ks[:, None]
-    positive = np.sum(since & (rows_all[:, :, 0] > 0), axis=1)
-    informative = np.any(rows_all[:, max(0, m - recent):, 4] != 0, axis=1)
+    positive = np.add.reduce(since & (rows_all[:, :, 0] > 0), axis=1)
+    informative = np.logical_or.reduce(rows_all[:, max(0, m - recent):, 4] != 0, axis=1)
     std = 1.0 / np.sqrt(np.maximum(sums[0][rows, ks], 1e-300))
     # as Python numbers once (the same values as float() of each)
     top_h, spread_h, ended_h = top.tolist(), spread.tolist(), ended.tolist()
@@ -688,23 +691,24 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     rows_all = _stacked(tracks, 0, m)                                    # (H, m, 5 + 2q)
     g = _field(rows_all, "gain", q)                                      # (H, m)
     suffix_g = g[:, ::-1].cumsum(axis=1)[:, ::-1]
-    ks = np.argmax(suffix_g, axis=1)
+    # (np.mean's, np.sum's and np.any's reductions below without their wrappers)
+    ks = suffix_g.argmax(axis=1)
     rows = np.arange(len(tracks))
     top = suffix_g[rows, ks]
     with np.errstate(invalid="ignore"):   # a row at -inf: its evidence is -inf, as alone
-        spread = np.mean(np.exp(suffix_g - top[:, None]), axis=1)
+        spread = np.add.reduce(np.exp(suffix_g - top[:, None]), axis=1) / m
     since = np.arange(m)[None, :] >= ks[:, None]
-    positive = np.sum(since & (g > 0), axis=1)
+    positive = np.add.reduce(since & (g > 0), axis=1)
     last = max(0, m - recent)
     recent_rows = rows_all[:, last:]
-    informative = np.any(recent_rows[:, :, 4] != 0, axis=1)
+    informative = np.logical_or.reduce(recent_rows[:, :, 4] != 0, axis=1)
     # each one's size: the inverse-variance mean over its last windows since its change point
     lo = np.maximum(ks, last)
     use = (np.arange(last, m)[None, :] >= lo[:, None])[..., None]        # (H, L, 1)
     w = np.where(use, 1.0 / np.maximum(_field(recent_rows, "std", q), 1e-300) ** 2, 0.0)
-    wsum = np.sum(w, axis=1)
+    wsum = np.add.reduce(w, axis=1)
     phis = _field(recent_rows, "phi", q)
-    phi = np.sum(np.where(use, w * phis, 0.0), axis=1) / wsum
+    phi = np.add.reduce(np.where(use, w * phis, 0.0), axis=1) / wsum
     std = 1.0 / np.sqrt(wsum)
     out: list[Fitted | None] = []
     for h in range(len(tracks)):
