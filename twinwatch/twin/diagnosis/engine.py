@@ -127,6 +127,8 @@ class HypothesisBank:
         self.ties = dict(ties)
         self.groups = [(p, [p, *[d for d, s in ties.items() if s == p]])
                        for p in estimate if p in self.names and p not in ties]
+        #: each group's own parameter's index in the parameter vector
+        self._group_index = [self.names.index(p) for p, _ in self.groups]
         dirs: dict[tuple[object, ...], None] = {}
         for _, members in self.groups:
             for m in members:
@@ -204,8 +206,7 @@ class HypothesisBank:
         return out
 
     def _ln_theta(self) -> FloatArray:
-        out: FloatArray = np.log(np.array([self.theta[self.names.index(p)]
-                                           for p, _ in self.groups]))
+        out: FloatArray = np.log(self.theta[self._group_index])
         return out
 
     def _set_groups(self, x: FloatArray) -> None:

@@ -76,7 +76,7 @@ def _log_sum_exp(values: list[float]) -> float:
     return top + math.log(sum(math.exp(v - top) for v in values))
 
 
-def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[str, float]:
+def _vuong(evidence: Mapping[str, float], gains: Mapping[str, np.ndarray]) -> dict[str, float]:
     """Each candidate's evidence against the best one, less what the windows do not agree on.
 
     Two fault modes' twins are not nested (neither is the other with a size set to zero), so
@@ -356,7 +356,7 @@ class Diagnoser:
         log_none = _log_sum_exp(terms_none)
         log_change = _log_sum_exp([log_prior[k] + ev for k, ev in evidence.items()])
         p_change = 1.0 / (1.0 + math.exp(min(log_none - log_change, 700.0)))
-        between = _vuong(dict(evidence), dict(gains))
+        between = _vuong(evidence, gains)
         logs = {k: log_prior[k] + ev for k, ev in between.items() if math.isfinite(ev)}
         top_l = max(logs.values()) if logs else 0.0
         zz = sum(math.exp(v - top_l) for v in logs.values()) or 1.0
