@@ -261,7 +261,7 @@ class HypothesisBank:
         # the window's information, gradient and squared residual on the projected columns
         gram, grad, s0 = dp @ dp.T, dp @ r0p, float(r0p @ r0p)
         first = self._fit_linear(gram, grad, s0)
-        n_eff = max(float(np.sum(kap) * m_rows), 2.0)
+        n_eff = max(float(np.add.reduce(kap) * m_rows), 2.0)
         ln_n = math.log(n_eff)
         pairs = self._fit_pairs(gram, grad, s0, first)
         everyone = [*self.hypotheses, *pairs]
@@ -824,8 +824,8 @@ class HypothesisBank:
         if not self._unknown:
             return -math.inf, 0
         u = self.unknown_gains()
-        suffix = np.flip(np.cumsum(np.flip(u)))
-        # np.max's and np.mean's reductions without their wrappers
+        # np.flip's, np.cumsum's, np.max's and np.mean's arithmetic without their wrappers
+        suffix = u[::-1].cumsum()[::-1]
         top = float(np.maximum.reduce(suffix))
         start = int(suffix.argmax())
         ev = top + math.log(float(np.add.reduce(np.exp(suffix - top)) / len(u)))

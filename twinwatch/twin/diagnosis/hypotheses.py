@@ -287,7 +287,7 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
     for i in range(n_init):
         inits[p - n_init + i, i] += fit.initial_scale[i] * 1e-3
     y = fit.simulate(th, tm or None, inits if n_init else None)
-    if not np.all(np.isfinite(y[0])):
+    if not np.isfinite(y[0]).all():
         return None
     scale = fit.scale
     y0 = y[0]
@@ -319,7 +319,7 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
                 w2 = _transformed(window, ch, gain=math.exp(LN_STEP))
                 step = LN_STEP
             y2 = model.simulate(th[:1], w2, None, inits[:1] if n_init else None)
-            if np.all(np.isfinite(y2)):
+            if np.isfinite(y2).all():
                 col += (y2[0, 1:] - y0[1:]) / (step * scale)
     return Columns(y0=y0, r0=r0, cols=dict(zip(directions, mat, strict=True)), mat=mat,
                    nuisance=nuis, scale=scale)

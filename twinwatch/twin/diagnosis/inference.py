@@ -99,8 +99,8 @@ def _vuong(evidence: Mapping[str, float], gains: Mapping[str, np.ndarray]) -> di
     ref = gains.get(best)
     if ref is None or ref.size == 0:
         return out
-    suffix = np.flip(np.cumsum(np.flip(ref)))
-    start = int(np.argmax(suffix))
+    suffix = ref[::-1].cumsum()[::-1]       # np.flip, np.cumsum, np.argmax without wrappers
+    start = int(suffix.argmax())
     # the candidates by the windows they share with the best one (n): each group's
     # differences as the rows of one array, each row reduced as it would be alone
     shared: dict[int, list[str]] = {}
@@ -112,7 +112,7 @@ def _vuong(evidence: Mapping[str, float], gains: Mapping[str, np.ndarray]) -> di
     for n, keys in shared.items():
         d = ref[-n:] - np.array([gains[k][-n:] for k in keys])
         # a twin impossible in a window (a moving reading is no stuck one): left as it is
-        finite = np.all(np.isfinite(d), axis=1)
+        finite = np.logical_and.reduce(np.isfinite(d), axis=1)
         d = d[:, max(0, start - (ref.size - n)):]
         size = d.shape[1]
         # one window is no sample of the differences: no twin is preferred on it alone
