@@ -72,19 +72,16 @@ class WindowReading:
     """What one window told the bank.
 
     Attributes:
-        baseline_nrmse: the baseline twin's normalised RMSE on the window.
         learning: the baseline is still being learned (windows so far, of how many).
         fits: hypothesis label -> its fit over the windows since its change point.
         unknown: the unknown change's log-evidence [nats].
-        sims: twin simulations this window cost.
+        unknown_windows: the windows since the unknown change's most likely change point.
     """
 
-    baseline_nrmse: float
     learning: tuple[int, int] | None
     fits: dict[str, Fitted] = field(default_factory=dict)
     unknown: float = -math.inf
     unknown_windows: int = 0
-    sims: int = 0
 
 
 def _autocorr(r: FloatArray) -> float:
@@ -130,6 +127,8 @@ class HypothesisBank:
         self.ties = dict(ties)
         self.groups = [(p, [p, *[d for d, s in ties.items() if s == p]])
                        for p in estimate if p in self.names and p not in ties]
+        #: each group's own parameter's index in the parameter vector
+        self._group_index = [self.names.index(p) for p, _ in self.groups]
         dirs: dict[tuple[object, ...], None] = {}
         for _, members in self.groups:
             for m in members:
@@ -207,8 +206,7 @@ class HypothesisBank:
         return out
 
     def _ln_theta(self) -> FloatArray:
-        out: FloatArray = np.log(np.array([self.theta[self.names.index(p)]
-                                           for p, _ in self.groups]))
+        out: FloatArray = np.log(self.theta[self._group_index])
         return out
 
     def _set_groups(self, x: FloatArray) -> None:
@@ -256,20 +254,19 @@ class HypothesisBank:
         sig2, kap = self._noise(cols, r_est)
         proj = _Projector(cols, kap, sig2)
         r0p = proj(cols.r0)
-        baseline_nrmse = float(np.sqrt(np.mean((cols.r0 * fit.weights) ** 2)))
         if self.learned < self.baseline_windows:
             self._learn_window(cols, proj, r0p, fit, initial)
-            return WindowReading(baseline_nrmse, (self.learned, self.baseline_windows),
-                                 sims=cols.sims)
+            return WindowReading((self.learned, self.baseline_windows))
         dp = proj.many(cols.mat)
-        first = self._fit_linear(dp, r0p)
-        s0 = float(r0p @ r0p)
-        n_eff = max(float(np.sum(kap) * m_rows), 2.0)
+        # the window's information, gradient and squared residual on the projected columns
+        gram, grad, s0 = dp @ dp.T, dp @ r0p, float(r0p @ r0p)
+        first = self._fit_linear(gram, grad, s0)
+        n_eff = max(float(np.add.reduce(kap) * m_rows), 2.0)
         ln_n = math.log(n_eff)
-        pairs = self._fit_pairs(dp, r0p, first)
+        pairs = self._fit_pairs(gram, grad, s0, first)
         everyone = [*self.hypotheses, *pairs]
-        exact, sims = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
-        reading = WindowReading(baseline_nrmse, None, sims=cols.sims + sims)
+        exact = self._gauss_newton(everyone, first, dp, fit, initial, proj, bases)
+        reading = WindowReading(None)
         fitted: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         ranges: dict[int, tuple[float, float, float]] = {}
         for h in everyone:
@@ -324,12 +321,12 @@ class HypothesisBank:
         kap = np.array([_kappa(ref[:, j]) for j in range(ref.shape[1])])
         return sig2, kap
 
-    def _fit_linear(self, dp: FloatArray, rp: FloatArray
+    def _fit_linear(self, gram: FloatArray, grad: FloatArray, s00: float
                     ) -> dict[str, tuple[FloatArray, FloatArray, FloatArray, float]]:
         """Each open hypothesis's size on the window, linearised at the baseline (bounded
-        least squares on the projected columns ``dp``, (D, M), against the projected
-        residual ``rp``, (M,)): label -> (information, gradient, size, squared residual)."""
-        gram, grad, s00 = dp @ dp.T, dp @ rp, float(rp @ rp)
+        least squares on the projected columns: their information ``gram`` (D, D), gradient
+        ``grad`` (D,) and the projected residual's squared norm ``s00``): label ->
+        (information, gradient, size, squared residual)."""
         # a hypothesis of one direction picks its entry of the information and the gradient:
         # exactly what the products with its combination give (1 x the entry plus zeros),
         # unless an entry is not finite (0 x inf is NaN): then the products are taken
@@ -358,16 +355,17 @@ class HypothesisBank:
             out[label] = (a, b, np.array([p0]), s00 - 2 * b0 * p0 + p0 * a0 * p0)
         return out
 
-    def _fit_pairs(self, dp: FloatArray, r0p: FloatArray,
+    def _fit_pairs(self, gram: FloatArray, grad: FloatArray, s0: float,
                    first: dict[str, tuple[FloatArray, FloatArray, FloatArray, float]]
                    ) -> list[Hypothesis]:
-        """The pair twins of this window fitted linearised (into ``first``); a pair whose two
+        """The pair twins of this window fitted linearised (into ``first``; ``gram``, ``grad``
+        and ``s0`` as :meth:`_fit_linear`'s); a pair whose two
         twins change the window alike (correlation beyond PAIR_CORRELATION) is dropped for
         good. Returns the pairs kept."""
         pairs = self._pairs_now()
         for h in list(pairs):
             cmb = self._combo[h.label]
-            a_, b_ = cmb @ (dp @ dp.T) @ cmb.T, cmb @ (dp @ r0p)
+            a_, b_ = cmb @ gram @ cmb.T, cmb @ grad
             q1 = cmb.shape[0] // 2 or 1
             c11, c22 = np.diag(a_)[:q1].sum(), np.diag(a_)[q1:].sum()
             c12 = np.abs(a_[:q1, q1:]).sum()
@@ -378,30 +376,26 @@ class HypothesisBank:
                 continue
             lo_, hi_ = self._bounds[h.label]
             phi_ = bounded_solve(a_, b_, lo_, hi_)
-            first[h.label] = (a_, b_, phi_, float(r0p @ r0p - 2 * b_ @ phi_ + phi_ @ a_ @ phi_))
+            first[h.label] = (a_, b_, phi_, float(s0 - 2 * b_ @ phi_ + phi_ @ a_ @ phi_))
         return pairs
 
     def _gauss_newton(self, everyone: list[Hypothesis],
                       first: Mapping[str, tuple[FloatArray, FloatArray, FloatArray, float]],
                       dp: FloatArray, fit: WindowFit, initial: FloatArray | None,
                       proj: _Projector, bases: dict[tuple[object, ...], FloatArray]
-                      ) -> tuple[dict[str, tuple[FloatArray, float, FloatArray]], int]:
+                      ) -> dict[str, tuple[FloatArray, float, FloatArray]]:
         """The scale and term hypotheses (the twin is not linear in them) linearised again at
         their size: up to GN_STEPS Gauss-Newton steps from the exact twin there, stopping once
-        a size moves less than 1e-4. Returns label -> (size, squared residual, information)
-        and the simulations run."""
+        a size moves less than 1e-4. Returns label -> (size, squared residual, information)."""
         again = [h for h in everyone if h.label in first and h.nonlinear
                  and _largest(first[h.label][2]) > 1e-3]
         exact: dict[str, tuple[FloatArray, float, FloatArray]] = {}
         phis = {h.label: first[h.label][2] for h in again}
         lin = {h.label: self._combo[h.label] @ dp for h in again}
-        sims = 0
         for _ in range(self.GN_STEPS):
             if not again:
                 break
             step = self._exact(again, phis, fit, initial, proj, lin, bases)
-            sims += sum(1 + sum(c.size for c in h.changes if c.kind in ("scale", "term"))
-                        for h in again)
             moved = []
             for h in again:
                 if h.label not in step:
@@ -411,7 +405,7 @@ class HypothesisBank:
                     moved.append(h)
                 phis[h.label] = step[h.label][0]
             again = moved
-        return exact, sims
+        return exact
 
     def _append_tracks(self, everyone: list[Hypothesis],
                        fitted: Mapping[str, tuple[FloatArray, float, FloatArray]], eta: float,
@@ -419,6 +413,10 @@ class HypothesisBank:
         """Each hypothesis's window joins its track: the tempered log-likelihood ratio with
         the baseline less its sizes' penalty (Schwarz), its size, the size's standard error
         from the tempered information, and whether the window informs the size at all."""
+        # the twins of two numbers or more: their tempered informations' pseudo-inverses, one
+        # call for those of one shape (:func:`_pinv`), their rows appended after
+        wide: dict[tuple[int, ...], list[tuple[Track, float, FloatArray, FloatArray, bool,
+                                               float]]] = {}
         for h in everyone:
             track = self.tracks[h.label]
             phi, s_h, a = fitted[h.label]
@@ -440,9 +438,16 @@ class HypothesisBank:
                 info = a00 * float(reach[0]) > 1.0
             else:
                 a = eta * a
-                std = np.sqrt(np.maximum(np.diag(np.linalg.pinv(a)), 0.0))
                 info = bool(np.max(np.diag(a) * reach) > 1.0)
+                wide.setdefault(a.shape, []).append(
+                    (track, half - 0.5 * h.size * ln_n, phi, a, info, half))
+                continue
             track.append(half - 0.5 * h.size * ln_n, phi, std, t_mid, info, half, ln_n)
+        for rows in wide.values():
+            inv = _pinv(np.array([row[3] for row in rows]))
+            stds = np.sqrt(np.maximum(np.diagonal(inv, axis1=1, axis2=2), 0.0))
+            for (track, gain, phi, _, info, half), std in zip(rows, stds, strict=True):
+                track.append(gain, phi, std, t_mid, info, half, ln_n)
 
     def _read_evidence(self, everyone: list[Hypothesis], reading: WindowReading) -> None:
         """The evidence of each hypothesis since its change point (into ``reading.fits``): a
@@ -583,8 +588,9 @@ class HypothesisBank:
                     for i in range(c.size):
                         e = np.zeros_like(phi0)
                         e[k + i] = self._fd_step(c)
-                        rows.append(self._theta_at(h, phi0 + e))
-                        row_terms.append(terms_at(h, phi0 + e))
+                        at = phi0 + e
+                        rows.append(self._theta_at(h, at))
+                        row_terms.append(terms_at(h, at))
                 k += c.size
             layout.append((h, start, len(rows) - start - 1))
         terms: dict[str, FloatArray] = {}
@@ -674,22 +680,23 @@ class HypothesisBank:
             ranges[j] = (EXACT * max(float(np.abs(meas).max()), float(cols.scale[j])),
                          float(meas.max()), float(meas.min()))
         tol, hi, lo = ranges[j]
-        r = cols.r0.copy()
+        mask: slice | np.ndarray = slice(None)      # the samples the reading explains
         if c.kind == "stuck":
             if hi - lo > tol:
                 return math.inf
-            r[:, j] = 0.0
         else:
             y = cols.y0[1:, j]
             at_hi = (np.abs(meas - hi) <= tol) & (y > hi)
             at_lo = (np.abs(meas - lo) <= tol) & (y < lo)
-            mask = at_hi if at_hi.sum() >= at_lo.sum() else at_lo
-            if mask.sum() < 2:
+            n_hi, n_lo = at_hi.sum(), at_lo.sum()
+            mask, n_at = (at_hi, n_hi) if n_hi >= n_lo else (at_lo, n_lo)
+            if n_at < 2:
                 # no sample at the range's end beyond the twin: the clip does not show in
                 # this window, which is the baseline's (a clipping sensor reads true below
                 # its range)
                 return s0
-            r[mask, j] = 0.0
+        r = cols.r0.copy()
+        r[mask, j] = 0.0
         rp = proj(r)
         return float(rp @ rp)
 
@@ -817,10 +824,11 @@ class HypothesisBank:
         if not self._unknown:
             return -math.inf, 0
         u = self.unknown_gains()
-        suffix = np.flip(np.cumsum(np.flip(u)))
-        top = float(np.max(suffix))
-        start = int(np.argmax(suffix))
-        ev = top + math.log(float(np.mean(np.exp(suffix - top))))
+        # np.flip's, np.cumsum's, np.max's and np.mean's arithmetic without their wrappers
+        suffix = u[::-1].cumsum()[::-1]
+        top = float(np.maximum.reduce(suffix))
+        start = int(suffix.argmax())
+        ev = top + math.log(float(np.add.reduce(np.exp(suffix - top)) / len(u)))
         return ev, len(u) - start
 
 
@@ -835,7 +843,7 @@ class _Projector:
         n_init = cols.nuisance.shape[0]
         self.zw = (cols.nuisance * self.sw).reshape(n_init, -1)
         self.zw_t = self.zw.T
-        self.ginv = np.linalg.pinv(self.zw @ self.zw.T) if n_init else np.zeros((0, 0))
+        self.ginv = _pinv(self.zw @ self.zw.T) if n_init else np.zeros((0, 0))
 
     def many(self, v: FloatArray) -> FloatArray:
         """:meth:`__call__` for a stack of residual-shaped arrays (k, N-1, n_out) -> (k, M)."""
@@ -849,6 +857,18 @@ class _Projector:
         if profile and self.zw.shape[0]:
             vw = vw - self.zw_t @ (self.ginv @ (self.zw @ vw))
         return vw
+
+
+def _pinv(a: FloatArray) -> FloatArray:
+    """``np.linalg.pinv(a)`` of a matrix (q, q) or a stack of them (k, q, q): its steps (the
+    SVD; the singular values above 1e-15 of the largest inverted, the others 0; V S+ U')
+    without its checks, each matrix of a stack as it would be alone: the same numbers."""
+    u, s, vt = np.linalg.svd(a, full_matrices=False)
+    large = s > 1e-15 * np.max(s, axis=-1, keepdims=True)
+    s = np.divide(1, s, where=large, out=s)
+    s[~large] = 0
+    out: FloatArray = np.matmul(np.swapaxes(vt, -1, -2), s[..., None] * np.swapaxes(u, -1, -2))
+    return out
 
 
 def _largest(phi: FloatArray) -> float:

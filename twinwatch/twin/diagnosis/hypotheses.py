@@ -225,7 +225,6 @@ class Columns:
     mat: FloatArray
     nuisance: FloatArray
     scale: FloatArray
-    sims: int = 0
 
 
 def _transformed(window: WindowData, channel: str, gain: float = 1.0, offset: float = 0.0
@@ -281,12 +280,14 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
         else:
             attach = model.attach_point(str(d[1]))
             step = steps[row - 1] = 1e-3 * (attach.scale if attach.mode == "additive" else 1.0)
-            arr = tm.setdefault(attach.name, np.zeros((p, window.n)))
+            arr = tm.get(attach.name)
+            if arr is None:
+                arr = tm[attach.name] = np.zeros((p, window.n))
             arr[row] = step * window_basis(window, d, terms, {} if bases is None else bases)
     for i in range(n_init):
         inits[p - n_init + i, i] += fit.initial_scale[i] * 1e-3
     y = fit.simulate(th, tm or None, inits if n_init else None)
-    if not np.all(np.isfinite(y[0])):
+    if not np.isfinite(y[0]).all():
         return None
     scale = fit.scale
     y0 = y[0]
@@ -296,7 +297,6 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
     mat[slice(0, k) if simulated == list(range(k)) else simulated] = (
         (y[1:1 + k, 1:] - y0[1:]) / (steps[:, None] * scale)[:, None])
     nuis = (y[p - n_init:, 1:] - y0[1:]) / ((fit.initial_scale * 1e-3)[:, None] * scale)[:, None]
-    sims = p
     outputs = model.output_names
     for i, d in enumerate(directions):
         if d[0] not in ("gain", "offset", "supply"):
@@ -319,11 +319,10 @@ def columns(fit: WindowFit, theta: FloatArray, directions: Sequence[tuple[object
                 w2 = _transformed(window, ch, gain=math.exp(LN_STEP))
                 step = LN_STEP
             y2 = model.simulate(th[:1], w2, None, inits[:1] if n_init else None)
-            sims += 1
-            if np.all(np.isfinite(y2)):
+            if np.isfinite(y2).all():
                 col += (y2[0, 1:] - y0[1:]) / (step * scale)
     return Columns(y0=y0, r0=r0, cols=dict(zip(directions, mat, strict=True)), mat=mat,
-                   nuisance=nuis, scale=scale, sims=sims)
+                   nuisance=nuis, scale=scale)
 
 
 def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
@@ -414,7 +413,9 @@ class Track:
         if k == b.shape[0]:
             b[:self.m] = b[self._start:k]
             self._start, k = 0, self.m
-        b[k] = (gain, half, ln_n, t, info, *phi, *std)
+        row, q = b[k], self.q     # field by field (half the CPU of one tuple numpy converts)
+        row[0], row[1], row[2], row[3], row[4] = gain, half, ln_n, t, info
+        row[5:5 + q], row[5 + q:] = phi, std
         self.m += 1
 
     def __len__(self) -> int:
@@ -621,10 +622,11 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
     # the line through them, in one compiled pass (numpy's arithmetic in numpy's order)
     sums, half_s, n_s, alpha, chi2, params = _suffix_lines(sds, tt, phis, half, n_eff)
     ev_c = half_s - 0.5 * chi2 - 0.5 * params * np.log(np.maximum(n_s, 2.0))   # (H, m)
-    ks = np.argmax(ev_c, axis=1)
+    # (np.mean's, np.max's, np.sum's and np.any's reductions below without their wrappers)
+    ks = ev_c.argmax(axis=1)
     rows = np.arange(len(tracks))
     top = ev_c[rows, ks]
-    spread = np.mean(np.exp(ev_c - top[:, None]), axis=1)
+    spread = np.add.reduce(np.exp(ev_c - top[:, None]), axis=1) / m
     # the change ended at a later window e > k: the line from k to e, the baseline since
     # (every e at once; those at or before k masked out)
     chi_e, par_e = _ended_lines(sums, ks)
@@ -632,10 +634,10 @@ def evidence_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted | Non
         ev_e = ((half_s[rows, ks][:, None] - half_s) - 0.5 * chi_e - 0.5 * par_e * np.log(
             np.maximum(n_s[rows, ks][:, None] - n_s, 2.0)))
     later = np.arange(m)[None, :] > ks[:, None]
-    ended = np.max(np.where(later, ev_e, -np.inf), axis=1)
+    ended = np.maximum.reduce(np.where(later, ev_e, -np.inf), axis=1)
     since = np.arange(m)[None, :] >= ks[:, None]
-    positive = np.sum(since & (rows_all[:, :, 0] > 0), axis=1)
-    informative = np.any(rows_all[:, max(0, m - recent):, 4] != 0, axis=1)
+    positive = np.add.reduce(since & (rows_all[:, :, 0] > 0), axis=1)
+    informative = np.logical_or.reduce(rows_all[:, max(0, m - recent):, 4] != 0, axis=1)
     std = 1.0 / np.sqrt(np.maximum(sums[0][rows, ks], 1e-300))
     # as Python numbers once (the same values as float() of each)
     top_h, spread_h, ended_h = top.tolist(), spread.tolist(), ended.tolist()
@@ -691,23 +693,24 @@ def evidence_each_many(tracks: Sequence[Track], recent: int = 5) -> list[Fitted 
     rows_all = _stacked(tracks, 0, m)                                    # (H, m, 5 + 2q)
     g = _field(rows_all, "gain", q)                                      # (H, m)
     suffix_g = g[:, ::-1].cumsum(axis=1)[:, ::-1]
-    ks = np.argmax(suffix_g, axis=1)
+    # (np.mean's, np.sum's and np.any's reductions below without their wrappers)
+    ks = suffix_g.argmax(axis=1)
     rows = np.arange(len(tracks))
     top = suffix_g[rows, ks]
     with np.errstate(invalid="ignore"):   # a row at -inf: its evidence is -inf, as alone
-        spread = np.mean(np.exp(suffix_g - top[:, None]), axis=1)
+        spread = np.add.reduce(np.exp(suffix_g - top[:, None]), axis=1) / m
     since = np.arange(m)[None, :] >= ks[:, None]
-    positive = np.sum(since & (g > 0), axis=1)
+    positive = np.add.reduce(since & (g > 0), axis=1)
     last = max(0, m - recent)
     recent_rows = rows_all[:, last:]
-    informative = np.any(recent_rows[:, :, 4] != 0, axis=1)
+    informative = np.logical_or.reduce(recent_rows[:, :, 4] != 0, axis=1)
     # each one's size: the inverse-variance mean over its last windows since its change point
     lo = np.maximum(ks, last)
     use = (np.arange(last, m)[None, :] >= lo[:, None])[..., None]        # (H, L, 1)
     w = np.where(use, 1.0 / np.maximum(_field(recent_rows, "std", q), 1e-300) ** 2, 0.0)
-    wsum = np.sum(w, axis=1)
+    wsum = np.add.reduce(w, axis=1)
     phis = _field(recent_rows, "phi", q)
-    phi = np.sum(np.where(use, w * phis, 0.0), axis=1) / wsum
+    phi = np.add.reduce(np.where(use, w * phis, 0.0), axis=1) / wsum
     std = 1.0 / np.sqrt(wsum)
     out: list[Fitted | None] = []
     for h in range(len(tracks)):

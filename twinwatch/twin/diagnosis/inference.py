@@ -76,7 +76,7 @@ def _log_sum_exp(values: list[float]) -> float:
     return top + math.log(sum(math.exp(v - top) for v in values))
 
 
-def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[str, float]:
+def _vuong(evidence: Mapping[str, float], gains: Mapping[str, np.ndarray]) -> dict[str, float]:
     """Each candidate's evidence against the best one, less what the windows do not agree on.
 
     Two fault modes' twins are not nested (neither is the other with a size set to zero), so
@@ -99,8 +99,8 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[
     ref = gains.get(best)
     if ref is None or ref.size == 0:
         return out
-    suffix = np.flip(np.cumsum(np.flip(ref)))
-    start = int(np.argmax(suffix))
+    suffix = ref[::-1].cumsum()[::-1]       # np.flip, np.cumsum, np.argmax without wrappers
+    start = int(suffix.argmax())
     # the candidates by the windows they share with the best one (n): each group's
     # differences as the rows of one array, each row reduced as it would be alone
     shared: dict[int, list[str]] = {}
@@ -112,7 +112,7 @@ def _vuong(evidence: dict[str, float], gains: Mapping[str, np.ndarray]) -> dict[
     for n, keys in shared.items():
         d = ref[-n:] - np.array([gains[k][-n:] for k in keys])
         # a twin impossible in a window (a moving reading is no stuck one): left as it is
-        finite = np.all(np.isfinite(d), axis=1)
+        finite = np.logical_and.reduce(np.isfinite(d), axis=1)
         d = d[:, max(0, start - (ref.size - n)):]
         size = d.shape[1]
         # one window is no sample of the differences: no twin is preferred on it alone
@@ -175,6 +175,11 @@ class Diagnoser:
         #: each mode's log prior, and the priors' sum with the unknown change's (the library
         #: and the config are fixed for the diagnoser's life)
         self._ln_prior = {fid: math.log(f.prior) for fid, f in self.faults.items()}
+        #: the log prior of each answer a window's posterior weighs: a mode, a pair of modes
+        #: (``a+b``: the sum of theirs), the unknown change
+        self._log_prior = {key: sum(self._ln_prior[f] for f in key.split("+")) for key in [
+            *self.faults, *(f"{a}+{b}" for a in self.faults for b in self.faults)]}
+        self._log_prior["unknown"] = math.log(cfg.unknown_prior)
         self._prior_sum = sum(f.prior for f in self.faults.values()) + cfg.unknown_prior
         #: twin label -> the mode (or the pair of modes) it stands for
         self._mode_of: dict[str, str] = {}
@@ -341,14 +346,7 @@ class Diagnoser:
         (alone or in a pair). A change against none: each twin's likelihood ratio with the
         baseline (nested: its size zero is the baseline) with its prior; which change: the
         twins against each other (not nested: Vuong's comparison, :func:`_vuong`)."""
-        cfg = self.config
-        ln_prior = self._ln_prior
-
-        def log_prior(key: str) -> float:
-            if key == "unknown":
-                return math.log(cfg.unknown_prior)
-            return sum(ln_prior[f] for f in key.split("+"))
-
+        ln_prior, log_prior = self._ln_prior, self._log_prior
         # no change now: none ever, or one that ended (a repair: a second change, as likely as
         # the fault itself) and the windows since are the baseline's
         terms_none = [math.log(max(1.0 - self._prior_sum, 1e-6))]
@@ -356,10 +354,10 @@ class Diagnoser:
             if "+" not in key and fitted.ended > -math.inf:
                 terms_none.append(2.0 * ln_prior[key] + fitted.ended)
         log_none = _log_sum_exp(terms_none)
-        log_change = _log_sum_exp([log_prior(k) + ev for k, ev in evidence.items()])
+        log_change = _log_sum_exp([log_prior[k] + ev for k, ev in evidence.items()])
         p_change = 1.0 / (1.0 + math.exp(min(log_none - log_change, 700.0)))
-        between = _vuong(dict(evidence), dict(gains))
-        logs = {k: log_prior(k) + ev for k, ev in between.items() if math.isfinite(ev)}
+        between = _vuong(evidence, gains)
+        logs = {k: log_prior[k] + ev for k, ev in between.items() if math.isfinite(ev)}
         top_l = max(logs.values()) if logs else 0.0
         zz = sum(math.exp(v - top_l) for v in logs.values()) or 1.0
         joint = {k: p_change * math.exp(v - top_l) / zz for k, v in logs.items()}
