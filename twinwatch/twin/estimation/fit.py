@@ -647,9 +647,10 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     big_l = max(1, min(lags if lags is not None else nt // 4, nt - 1))
     # s = g^T g + sum_l w_l (G_l + G_l^T), G_l = g[l:]^T g[:-l], summed lag after lag
     terms = np.empty((big_l + 1, n, n))
-    terms[0] = g.T @ g
-    for lag in range(1, big_l + 1):
-        np.matmul(g[lag:].T, g[:-lag], out=terms[lag])
+    g_t = g.T
+    terms[0] = g_t @ g
+    for lag in range(1, big_l + 1):  # g_t[:, lag:] is the view g[lag:].T: the same gemm
+        np.matmul(g_t[:, lag:], g[:-lag], terms[lag])
     both = terms[1:] + terms[1:].transpose(0, 2, 1)
     both *= (1.0 - np.arange(1, big_l + 1) / (big_l + 1.0))[:, None, None]
     terms[1:] = both
