@@ -73,7 +73,7 @@ class WindowFit:
         self.n_out = len(self.names)
         self.meas = np.column_stack([window[o] for o in self.names])
         floors = np.array([o.scale for o in model.outputs])
-        self.scale = np.maximum(np.sqrt(np.mean(self.meas**2, axis=0)), floors)
+        self.scale = np.maximum(np.sqrt(mean(self.meas**2, axis=0)), floors)
         w = weights or {}
         self.weights = np.array([float(w.get(o, 1.0)) for o in self.names])
         self._norm = self.weights / self.scale
@@ -566,7 +566,7 @@ def explained_rms(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
     j = jac[:, finite] * math.sqrt(m)
     c = cov[np.ix_(finite, finite)]
     var = np.einsum("ij,jk,ik->i", j, c, j).reshape(-1, n_out)
-    out: FloatArray = np.sqrt(np.maximum(np.mean(var, axis=0), 0.0))
+    out: FloatArray = np.sqrt(np.maximum(mean(var, axis=0), 0.0))
     return out
 
 
