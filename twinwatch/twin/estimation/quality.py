@@ -70,11 +70,13 @@ def live_outputs(fit: WindowFit, min_run: int) -> dict[str, bool]:
         if d2.size == 0:
             out[name] = False
             continue
+        rms1 = float(np.sqrt(mean(d1 * d1)))
+        if not float(np.sqrt(mean(d2 * d2))) > rms1:  # smooth: no quantum needed
+            out[name] = False
+            continue
         steps = np.abs(d1[d1 != 0])
         quantum = float(steps.min()) if steps.size else math.inf
-        rms1 = float(np.sqrt(mean(d1 * d1)))
-        out[name] = (float(np.sqrt(mean(d2 * d2))) > rms1
-                     and rms1 / math.sqrt(2.0) > 3.0 * quantum
+        out[name] = (rms1 / math.sqrt(2.0) > 3.0 * quantum
                      and fit.longest_runs[j][1] < max(min_run // 5, 2))
     return out
 
