@@ -49,17 +49,17 @@ def trust_region_reflective(fun: Callable[[FloatArray], FloatArray],
     x0 = np.atleast_1d(x0).astype(float)
     lb = np.asarray(lower, dtype=float)
     ub = np.asarray(upper, dtype=float)
-    if np.any(lb >= ub):
+    if (lb >= ub).any():
         raise ValueError("Each lower bound must be strictly less than each upper bound.")
     if not in_bounds(x0, lb, ub):
         raise ValueError("Initial guess is outside of provided bounds")
     x0 = make_strictly_feasible(x0, lb, ub)
     f0 = np.atleast_1d(fun(x0))
     j0 = np.atleast_2d(jac(x0))
-    if not np.all(np.isfinite(f0)):
+    if not np.isfinite(f0).all():
         raise ValueError("Residuals are not finite in the initial point.")
     scale = np.ones_like(x0)
-    if np.all(lb == -np.inf) and np.all(ub == np.inf):
+    if (lb == -np.inf).all() and (ub == np.inf).all():
         sol = trf_no_bounds(fun, jac, x0, f0, j0, FTOL, XTOL, GTOL, MAX_NFEV, scale, None,
                             "exact", {}, 0)
     else:

@@ -963,7 +963,7 @@ class Estimator:
         if self.fusion is None or not self.fusion.trend:
             return {}
         f = self.fusion
-        sd = np.sqrt(np.maximum(np.diag(f.state.cov)[f.n:], 0.0))
+        sd = np.sqrt(np.maximum(f.state.cov.diagonal()[f.n:], 0.0))
         return {n: (float(f.state.mean[f.n + i]), float(sd[i]))
                 for i, n in enumerate(f.names)}
 

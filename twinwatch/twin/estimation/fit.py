@@ -73,7 +73,7 @@ class WindowFit:
         self.n_out = len(self.names)
         self.meas = np.column_stack([window[o] for o in self.names])
         floors = np.array([o.scale for o in model.outputs])
-        self.scale = np.maximum(np.sqrt(np.mean(self.meas**2, axis=0)), floors)
+        self.scale = np.maximum(np.sqrt(mean(self.meas**2, axis=0)), floors)
         w = weights or {}
         self.weights = np.array([float(w.get(o, 1.0)) for o in self.names])
         self._norm = self.weights / self.scale
@@ -177,7 +177,7 @@ def _longest_run(x: FloatArray) -> tuple[int, int]:
     """(first index, length) of the longest run of exactly equal consecutive values."""
     if x.size == 0:
         return 0, 0
-    change = np.flatnonzero(x[1:] != x[:-1]) + 1
+    change = (x[1:] != x[:-1]).nonzero()[0] + 1
     starts = np.concatenate([[0], change])
     ends = np.concatenate([change, [x.size]])
     lengths = ends - starts
@@ -388,23 +388,27 @@ class LocalFit:
             m = todo.size
             cols = active[todo]
             vs = np.repeat(v[None, :], 2 * m + (1 if r0 is None else 0), axis=0)
-            vs[np.arange(m), cols] += h
-            vs[m + np.arange(m), cols] -= h
+            for d, c in enumerate(cols.tolist()):  # each the same IEEE sum as numpy's
+                vs[d, c] += h
+                vs[m + d, c] -= h
             r = self.residuals(vs)
             if r0 is None:
                 r0 = r[-1]
                 out = np.empty((k, r0.size))  # returned transposed (the layout BLAS sees)
             assert out is not None
-            fwd = (r[:m] - r0[None, :]) / h
-            bwd = -(r[m:2 * m] - r0[None, :]) / h
+            # -(x)/h is x/(-h) to the bit (a negated operand negates the rounded quotient)
+            both = np.divide(r[:2 * m] - r0[None, :], np.repeat([h, -h], m)[:, None])
+            fwd, bwd = both[:m], both[m:]
             central = 0.5 * (fwd + bwd)
             gap = norms(fwd - bwd, axis=1)
-            size = np.maximum(norms(fwd, axis=1), norms(bwd, axis=1))
+            size = norms(both, axis=1)
+            size = np.maximum(size[:m], size[m:])
             agree = gap <= self.SENSITIVITY_AGREEMENT * np.maximum(size, 1e-300)
             done = agree if i < n_h - 1 else np.ones(m, dtype=bool)
             out[todo[done]] = central[done]
+            # the cache keeps rows of ``central`` (never written after)
             settled.extend((int(active[j]), i, central[d]) for d, j in
-                           zip(np.flatnonzero(done), todo[done], strict=True))
+                           zip(np.flatnonzero(done).tolist(), todo[done].tolist(), strict=True))
             todo = todo[~done]
         assert out is not None and r0 is not None
         if entry is None:
@@ -412,7 +416,7 @@ class LocalFit:
                 self._sens.pop(next(iter(self._sens)))
             entry = self._sens[key] = {"r0": r0, "cols": {}}
         for c, i, col in settled:
-            entry["cols"][c] = (hs, i, col.copy())
+            entry["cols"][c] = (hs, i, col)
         return out.T, r0
 
     def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True,
@@ -535,7 +539,7 @@ def relative_std(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     """Standard errors of the search variables at a least-squares optimum (relative for
     ln-parameters): the square roots of :func:`parameter_covariance`'s diagonal
     (``numerical``: :func:`residual_variances`')."""
-    d = np.diag(parameter_covariance(jac, r, n_out, floor, numerical=numerical))
+    d = parameter_covariance(jac, r, n_out, floor, numerical=numerical).diagonal()
     with np.errstate(invalid="ignore"):
         return np.sqrt(np.where(d > 0, d, np.inf))
 
@@ -562,7 +566,7 @@ def explained_rms(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
     j = jac[:, finite] * math.sqrt(m)
     c = cov[np.ix_(finite, finite)]
     var = np.einsum("ij,jk,ik->i", j, c, j).reshape(-1, n_out)
-    out: FloatArray = np.sqrt(np.maximum(np.mean(var, axis=0), 0.0))
+    out: FloatArray = np.sqrt(np.maximum(mean(var, axis=0), 0.0))
     return out
 
 
@@ -638,14 +642,15 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
     out = np.ones(n)
     if n == 0 or nt < 4 or not (np.isfinite(jac).all() and np.isfinite(r).all()):
         return out
-    base = np.diag(parameter_covariance(jac, r, n_out, floor, numerical=numerical))
+    base = parameter_covariance(jac, r, n_out, floor, numerical=numerical).diagonal()
     g = (jac * r[:, None]).reshape(nt, n_out, n).sum(axis=1)
     big_l = max(1, min(lags if lags is not None else nt // 4, nt - 1))
     # s = g^T g + sum_l w_l (G_l + G_l^T), G_l = g[l:]^T g[:-l], summed lag after lag
     terms = np.empty((big_l + 1, n, n))
-    terms[0] = g.T @ g
-    for lag in range(1, big_l + 1):
-        np.matmul(g[lag:].T, g[:-lag], out=terms[lag])
+    g_t = g.T
+    terms[0] = g_t @ g
+    for lag in range(1, big_l + 1):  # g_t[:, lag:] is the view g[lag:].T: the same gemm
+        np.matmul(g_t[:, lag:], g[:-lag], terms[lag])
     both = terms[1:] + terms[1:].transpose(0, 2, 1)
     both *= (1.0 - np.arange(1, big_l + 1) / (big_l + 1.0))[:, None, None]
     terms[1:] = both
@@ -657,7 +662,7 @@ def long_run_factors(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
         a_inv, _ = _equilibrated_inverse(js.T @ js)
     except ValueError as exc:  # numba's eigh did not converge: numpy's error, as before
         raise np.linalg.LinAlgError(str(exc)) from exc
-    hac = np.diag(a_inv @ (s / np.outer(safe, safe)) @ a_inv) / (safe * safe)
+    hac = (a_inv @ (s / np.outer(safe, safe)) @ a_inv).diagonal() / (safe * safe)
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = hac / base
     good = np.isfinite(ratio) & np.isfinite(base) & (base > 0)

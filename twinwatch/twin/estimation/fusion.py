@@ -321,8 +321,8 @@ class ParameterFusion:
                     x[:n] = np.clip(x[:n], bounds[0], bounds[1])
                 if float(np.abs(dx[:n]).max()) < 1e-9:
                     break
-                if step_tol > 0 and np.all(np.abs(dx[:n]) <= step_tol * np.sqrt(
-                        np.maximum(np.diag(hess_inv)[:n], 0.0))):
+                if step_tol > 0 and (np.abs(dx[:n]) <= step_tol * np.sqrt(
+                        np.maximum(hess_inv.diagonal()[:n], 0.0))).all():
                     break
             if jump:
                 at = np.asarray(sel if firm is None else firm, dtype=int)
@@ -417,7 +417,7 @@ class ParameterFusion:
 
     def rel_std(self) -> dict[str, float]:
         """Fused relative (ln) standard error of each parameter."""
-        d = np.diag(self.state.cov)[:self.n]
+        d = self.state.cov.diagonal()[:self.n]
         return {n: float(math.sqrt(max(d[i], 0.0))) for i, n in enumerate(self.names)}
 
     def birge(self) -> dict[str, float]:

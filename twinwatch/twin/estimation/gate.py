@@ -128,7 +128,7 @@ class IdentifiabilityGate:
                 continue
             cand = [*selected, k]
             sd = self.relative_std(jac[:, cand + nuis], r)[:len(cand)]
-            if np.all(sd <= self.limit):
+            if (sd <= self.limit).all():
                 selected = cand
                 rel = dict(zip(cand, sd, strict=True))
                 continue

@@ -65,16 +65,18 @@ def live_outputs(fit: WindowFit, min_run: int) -> dict[str, bool]:
     out = {}
     for j, name in enumerate(fit.names):
         meas = fit.meas[:, j]
-        d1 = np.diff(meas)
-        d2 = np.diff(d1)
+        d1 = meas[1:] - meas[:-1]  # np.diff's subtraction without its dispatch
+        d2 = d1[1:] - d1[:-1]
         if d2.size == 0:
+            out[name] = False
+            continue
+        rms1 = float(np.sqrt(mean(d1 * d1)))
+        if not float(np.sqrt(mean(d2 * d2))) > rms1:  # smooth: no quantum needed
             out[name] = False
             continue
         steps = np.abs(d1[d1 != 0])
         quantum = float(steps.min()) if steps.size else math.inf
-        rms1 = float(np.sqrt(mean(d1 * d1)))
-        out[name] = (float(np.sqrt(mean(d2 * d2))) > rms1
-                     and rms1 / math.sqrt(2.0) > 3.0 * quantum
+        out[name] = (rms1 / math.sqrt(2.0) > 3.0 * quantum
                      and fit.longest_runs[j][1] < max(min_run // 5, 2))
     return out
 
@@ -130,7 +132,7 @@ def sensor_faults(fit: WindowFit, y: FloatArray, min_run: int,
         bottom = value <= float(meas.min()) + tol and float(np.mean(twin)) < value - margin
         known = (clips or {}).get(name)
         at_clip = known is not None and abs(value - known) <= tol
-        steps = np.abs(np.diff(meas))
+        steps = np.abs(meas[1:] - meas[:-1])
         steps = steps[steps > 0]
         quantum = float(steps.min()) if steps.size else 0.0
         moves = float(np.ptp(twin)) > max(margin, 4.0 * quantum)

@@ -54,7 +54,8 @@ def noise_level(residual: FloatArray) -> FloatArray:
     Returns:
         Shape (n_out,), in the residual's unit.
     """
-    d = np.diff(np.asarray(residual, dtype=float), axis=0)
+    res = np.asarray(residual, dtype=float)
+    d = res[1:] - res[:-1]  # np.diff(res, axis=0) without its dispatch
     out: FloatArray = np.sqrt(mean(d * d, axis=0) / 2.0)
     return out
 
@@ -164,7 +165,7 @@ def ljung_box(e: FloatArray, lags: int) -> tuple[float, float]:
     if rho[0] == 0:
         return 0.0, 1.0
     k = np.arange(1, m + 1)
-    q = float(n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k)))
+    q = float(n * (n + 2) * np.add.reduce(rho[1:] ** 2 / (n - k)))
     return q, _chi2_sf(q, m)
 
 
@@ -225,7 +226,7 @@ def _cross_correlation(e: FloatArray, prepared: tuple[FloatArray, float, FloatAr
         return 0.0, 1.0
     r = np.array([e[k:].dot(u[:n - k]) for k in range(m + 1)]) / (n * se * su)
     proj = vt @ r
-    s = float(n * np.sum(proj**2 / w))
+    s = float(n * np.add.reduce(proj**2 / w))
     return s, _chi2_sf(s, int(w.size))
 
 
