@@ -469,3 +469,21 @@ def test_vuong_critical_values_are_student_t_without_scipy_stats() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == "False", out
+
+
+def test_the_stacked_pseudo_inverse_is_numpy_s_of_each_matrix_to_the_bit() -> None:
+    """The diagnosis inverts a stack of small information matrices in one call
+    (``engine._pinv``, numpy's pinv steps without its checks): each matrix's inverse must be
+    ``np.linalg.pinv`` of it alone, bit for bit, full rank or not (a numpy release that
+    changes pinv's steps fails here, not in the published numbers)."""
+    from twinwatch.twin.diagnosis.engine import _pinv
+
+    rng = np.random.default_rng(58)
+    for q in (1, 2, 3):
+        for rank in range(q + 1):
+            z = rng.standard_normal((40, q, max(rank, 1))) * 10.0 ** rng.uniform(-8, 3, (40, 1, 1))
+            stack = z @ z.transpose(0, 2, 1) if rank else np.zeros((40, q, q))
+            got = _pinv(stack)
+            for a, g in zip(stack, got, strict=True):
+                assert np.array_equal(g, np.linalg.pinv(a)), (q, rank, a)
+                assert np.array_equal(_pinv(a), np.linalg.pinv(a))
