@@ -16,6 +16,9 @@ the crossing until the crossing:
 * the error against remaining life: the median crossing's error [s] and relative to the true
   remaining life, by true remaining life.
 
+And before lambda 0.5, from the onset on: how many windows' 95 % intervals contain the true
+crossing, and how many end before it (a warning or an alarm raised too soon).
+
 Scenarios: the paper's resistance degradation (Ra, alarm -10 %: t_eol 1079.5 s), bearing wear
 (D, alarm +50 %: 1155.0 s) and the hydraulic fluid degradation (D, alarm +50 %: 447.6 s), each
 noise-free and with noise (1 % on ia and omega; for the hydraulic actuator 0.001 % on x and p,
@@ -177,7 +180,14 @@ def score(windows: list[Window], t_eol: float) -> dict[str, Any]:
                if w.t is not None and lo <= t_eol - w.t_end < hi and w.t_end >= ONSET]
         by_rul.append((lo, hi, len(errs), float(np.median(errs)) if errs else math.nan,
                        float(np.median(rel)) if rel else math.nan))
-    return {"score": asdict(sc), "by_rul": by_rul}
+    # before lambda 0.5: a prediction made soon after the onset must say how little it knows
+    early = [w for w in windows if ONSET <= w.t_end < ONSET + 0.5 * (t_eol - ONSET)
+             and w.t is not None]
+    covered = sum((w.t_low is None or w.t_low <= t_eol)
+                  and (w.t_high is None or t_eol <= w.t_high) for w in early)
+    too_soon = sum(w.t_high is not None and w.t_high < t_eol for w in early)
+    return {"score": asdict(sc), "by_rul": by_rul,
+            "early": {"windows": len(early), "covered": covered, "too_soon": too_soon}}
 
 
 def print_scenario(name: str, windows: list[Window], t_eol: float, wall: float) -> dict[str, Any]:
@@ -190,6 +200,10 @@ def print_scenario(name: str, windows: list[Window], t_eol: float, wall: float) 
           f"95 % interval covers {sc['coverage']:.0%}, median within 10 % of the crossing time "
           f"{sc['within']:.0%}; error vs remaining life median {sc['error_rul_median']:.1%}, "
           f"max {sc['error_rul_max']:.1%}")
+    e = s["early"]
+    print(f"  from the onset ({ONSET:.0f} s) to lambda = 0.5, {e['windows']} windows with a "
+          f"prediction: 95 % interval covers {e['covered']}, wholly before the crossing "
+          f"{e['too_soon']}")
     print("  error against remaining life:   true RUL [s]   windows   median |error| [s]   "
           "relative to RUL")
     for lo, hi, n, e, rel in s["by_rul"]:

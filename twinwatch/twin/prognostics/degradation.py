@@ -413,8 +413,15 @@ def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref:
         else:
             setattr(fit, p, float(x[i]))
     n = int(t.size)
+    # Equilibrated before the pseudo-inverse: the level [SI], the drift rate [SI/s], the growth
+    # rate [1/s] and the onset [s] differ by 10 orders of magnitude in the information, whose
+    # raw eigenvalues then span more than 1/rcond; the cut would drop a direction that is
+    # merely small in these units and give it zero variance (an onset "known" to 1e-4 s, a
+    # growth rate to a third of its real error, and a RUL interval that misses the crossing).
+    d = np.sqrt(np.abs(info.diagonal()))
+    d = np.where((d > 0) & np.isfinite(d), d, 1.0)
     try:
-        cov = pinv_sym(info, rcond=1e-12)
+        cov = pinv_sym(info / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
     except np.linalg.LinAlgError:
         cov = np.full((k, k), np.inf)
     dof = max(n - k, 1)
