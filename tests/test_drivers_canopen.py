@@ -566,7 +566,8 @@ def test_two_percent_of_the_frames_lost_every_window_is_estimated():
 def test_simulated_drive_ra_within_0p2_percent_after_160_s():
     """The issue's done-when: the example's run (1200 s, Ra degrading from 160 s) over the
     CANopen path: Ra within 0.2 % of the plant in every window after 160 s, as the DBC path;
-    no RUL level raised and cleared (issue 56)."""
+    no RUL level raised and cleared (issue 56); the model check passed in 95 % of the
+    windows."""
     from twinwatch.daemon.runner import Daemon
 
     cfg = _sim_config(1200.0)
@@ -582,6 +583,10 @@ def test_simulated_drive_ra_within_0p2_percent_after_160_s():
     levels = [(h["t_end"], rank[h["alarms"]["Ra"]["rul"]["level"]]) for h in hist]
     assert all(b >= a for (_, a), (_, b) in zip(levels, levels[1:], strict=False)), [
         (t, lv) for (t, lv), (_, prev) in zip(levels[1:], levels, strict=False) if lv < prev]
+    # the drive reports its current in per mille of 4 A: the reading's rounding is not model
+    # error (before: the check failed in about 30 % of the windows, "ia not white")
+    passed = sum(h["model_check"]["passed"] for h in hist)
+    assert passed >= 0.95 * len(hist), passed
     err = _ra_errors(driver.drive.plant, hist, since=160.0)
     print(f"\nover CANopen: Ra error after 160 s over {len(err)} windows: median "
           f"{np.median(np.abs(err)):.4f} %, max {np.max(np.abs(err)):.4f} %")

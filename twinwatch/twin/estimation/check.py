@@ -69,7 +69,7 @@ def check_twin(fit: WindowFit, y: FloatArray, exogenous: Sequence[str],
     res = fit.error_matrix(y) if drift is None else drift
     return check_model(res, fit.names, inputs, alpha=settings.alpha,
                        lags=min(settings.lags, max(1, win.n // 4)),
-                       floor=model_error, explained=explained)
+                       floor=model_error, explained=explained, quanta=fit.quanta)
 
 
 def drift_residual(fit: WindowFit, r: FloatArray, jac: FloatArray) -> FloatArray | None:

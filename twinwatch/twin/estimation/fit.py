@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from twinwatch.twin.estimation._trf import trust_region_reflective
-from twinwatch.twin.estimation.statistics import ar1, mean, norms
+from twinwatch.twin.estimation.statistics import ar1, mean, norms, quantum
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
 
 #: Residual given to every sample of a particle whose simulation blew up.
@@ -90,6 +90,15 @@ class WindowFit:
     def n(self) -> int:
         """Samples in the window."""
         return int(self.meas.shape[0])
+
+    @functools.cached_property
+    def quanta(self) -> FloatArray:
+        """Per output (n_out,), the step of its readings in the window over the output's scale
+        (:func:`~twinwatch.twin.estimation.statistics.quantum`; 0: continuous, or a single
+        value the window cannot tell the step of)."""
+        steps = np.array([quantum(self.meas[:, j]) for j in range(self.n_out)])
+        out: FloatArray = np.where(np.isnan(steps), 0.0, steps) / self.scale
+        return out
 
     @functools.cached_property
     def longest_runs(self) -> list[tuple[int, int]]:

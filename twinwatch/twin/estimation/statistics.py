@@ -60,6 +60,49 @@ def noise_level(residual: FloatArray) -> FloatArray:
     return out
 
 
+#: Largest span of a window's readings, in steps, for :func:`quantum` to call them quantised.
+QUANTUM_MAX_STEPS = 1e5
+#: How far a gap between two readings may be from a whole number of steps (share of a step).
+QUANTUM_TOLERANCE = 1e-3
+
+
+def quantum(values: FloatArray) -> float:
+    """The step of a reading that takes values on a grid only, in the reading's unit, or 0.
+
+    A drive's current in per mille of its rated current, an ADC's count, an encoder's count
+    per sample period: the reading is the quantity rounded to the grid, and the rounding
+    error, up to half a step, is part of every residual a correct twin leaves. Where the
+    quantity moves slowly against the step the error is not white (it follows the quantity
+    between two levels), so the model check must not count it as model error.
+
+    The step is the smallest gap between two distinct readings of the window when every gap
+    is a whole multiple of it (within :data:`QUANTUM_TOLERANCE` of a step) and the readings
+    span at most :data:`QUANTUM_MAX_STEPS` steps. A continuous reading fails that test (its
+    gaps are not multiples of its smallest); a reading with a single value cannot be told.
+
+    Args:
+        values: one channel's readings in a window (N,), finite.
+
+    Returns:
+        The step (> 0); 0 when the readings are not on a grid; NaN when they hold a single
+        value (on a grid or not: the window cannot tell).
+    """
+    v = np.sort(values)
+    gaps = v[1:] - v[:-1]
+    gaps = gaps[gaps > 0]
+    if not gaps.size:
+        return math.nan
+    step = float(gaps.min())
+    ratio = gaps / step
+    span = float(ratio.sum())
+    if not span <= QUANTUM_MAX_STEPS:
+        return 0.0
+    ratio -= np.rint(ratio)
+    if float(np.abs(ratio).max()) > QUANTUM_TOLERANCE:
+        return 0.0
+    return step
+
+
 def ar1(r: FloatArray, n_out: int) -> float:
     """Pooled lag-1 autocorrelation of residuals, clipped to [0, 0.99].
 
@@ -241,6 +284,7 @@ __all__ = [
     "ljung_box",
     "long_run_factor",
     "noise_level",
+    "quantum",
 ]
 
 
@@ -284,7 +328,8 @@ class ModelCheck:
 
 def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | None, *,
                 alpha: float, lags: int, floor: float,
-                explained: FloatArray | None = None) -> ModelCheck:
+                explained: FloatArray | None = None,
+                quanta: FloatArray | None = None) -> ModelCheck:
     """Validate a twin on one window from its residuals.
 
     An output fails when its residual is not white (Ljung-Box) or depends on an exogenous
@@ -293,7 +338,10 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
     rounding and a parameter drifting within the window are not evidence against the model)
     and above twice what the white noise and the estimates' own uncertainty explain
     (``sqrt(noise^2 + explained^2)``: a noise-free output, such as a closed-loop drive's
-    voltage, carries the smooth trace of the other outputs' noise on the estimates). A failing
+    voltage, carries the smooth trace of the other outputs' noise on the estimates). The noise
+    is at least a quantised reading's rounding error, ``step / sqrt(12)`` (:func:`quantum`):
+    a drive that reports its current in per mille of the rated current leaves a residual of
+    that size that follows the current, not white, where the twin is right. A failing
     window's standard errors are widened by ``sqrt(L) * rms / sqrt(noise^2 + explained^2)``
     of its worst output: ``L`` the long-run variance factor of the structured residual.
 
@@ -306,6 +354,8 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
         floor: normalised RMS below which an output passes.
         explained: per output, the residual RMS the estimates' uncertainty explains
             (:func:`twinwatch.twin.estimation.fit.explained_rms`); None: 0.
+        quanta: per output, the reading's step (:func:`quantum`) in the residual's unit
+            (over the output's scale); None or 0: a continuous reading.
 
     Returns:
         The window's check.
@@ -324,8 +374,11 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
         p_cross = 1.0
         for prepared in exog:
             p_cross = min(p_cross, _cross_correlation(e, prepared)[1])
-        expected = math.hypot(float(lvl[j]), float(explained[j]) if explained is not None
-                              else 0.0)
+        noise = float(lvl[j])
+        rounding = 0.0 if quanta is None else float(quanta[j]) / math.sqrt(12.0)
+        if rounding > noise:
+            noise = rounding
+        expected = math.hypot(noise, float(explained[j]) if explained is not None else 0.0)
         material = rms > floor and rms > 2.0 * expected
         ok = not material or (p_white >= alpha and p_cross >= alpha)
         check.outputs[name] = OutputCheck(rms, float(lvl[j]), p_white, p_cross, ok)
@@ -337,9 +390,11 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
             what.append(f"not white (Ljung-Box p = {p_white:.2g})")
         if p_cross < alpha:
             what.append(f"correlated with the input (p = {p_cross:.2g})")
+        by = ("noise, the reading's step and the estimates' uncertainty" if rounding > 0
+              else "noise and the estimates' uncertainty")
         check.reasons.append(f"residual of {name} {' and '.join(what)}, RMS {rms:.2g} of "
-                             f"its scale, {rms / max(expected, 1e-300):.3g} times what noise "
-                             "and the estimates' uncertainty explain")
+                             f"its scale, {rms / max(expected, 1e-300):.3g} times what {by} "
+                             "explain")
         big_l = long_run_factor(e, 1, lags=max(1, n // 4))
         widen = max(widen, math.sqrt(big_l) * max(1.0, rms / max(expected, floor)))
     check.widen = widen
