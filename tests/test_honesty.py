@@ -106,7 +106,7 @@ def test_a_quantised_readings_rounding_is_not_taken_for_model_error() -> None:
     assert check_model(res, ("ia",), None, alpha=0.01, lags=20, floor=1e-4, quanta=q).passed
     wrong = (((1.0 + 0.01 * np.sin(2 * np.pi * 0.2 * t)) * ia - meas) / scale)[1:, None]
     check = check_model(wrong, ("ia",), None, alpha=0.01, lags=20, floor=1e-4, quanta=q)
-    assert not check.passed and "the reading's step" in check.reasons[0]
+    assert not check.passed and "the reading's step" in check.reasons[0], check.reasons
 
 
 # -- configured for the variant: exact, and its intervals cover the truth ------------------------

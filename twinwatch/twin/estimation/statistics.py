@@ -376,7 +376,8 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
             p_cross = min(p_cross, _cross_correlation(e, prepared)[1])
         noise = float(lvl[j])
         rounding = 0.0 if quanta is None else float(quanta[j]) / math.sqrt(12.0)
-        if rounding > noise:
+        rounded = rounding > noise  # the reading's step, not its noise, sets the level
+        if rounded:
             noise = rounding
         expected = math.hypot(noise, float(explained[j]) if explained is not None else 0.0)
         material = rms > floor and rms > 2.0 * expected
@@ -390,7 +391,7 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
             what.append(f"not white (Ljung-Box p = {p_white:.2g})")
         if p_cross < alpha:
             what.append(f"correlated with the input (p = {p_cross:.2g})")
-        by = ("noise, the reading's step and the estimates' uncertainty" if rounding > 0
+        by = ("the reading's step and the estimates' uncertainty" if rounded
               else "noise and the estimates' uncertainty")
         check.reasons.append(f"residual of {name} {' and '.join(what)}, RMS {rms:.2g} of "
                              f"its scale, {rms / max(expected, 1e-300):.3g} times what {by} "
