@@ -110,10 +110,20 @@ def f32(x: float) -> float:
     return float(np.float32(x))
 
 
-def read_all(driver: Driver, timeout: float = 0.05) -> list[Sample]:
-    samples = []
-    while (sample := driver.read(timeout)) is not None:
-        samples.append(sample)
+def read_all(driver: Driver, timeout: float = 0.05, misses: int = 3) -> list[Sample]:
+    """Every sample the driver has queued: read until ``misses`` reads in a row return None.
+    One None is not the end: python-can's software filter spends a read's timeout on a frame
+    it drops, and after a batch nap (a receive that took over WAITED_S, as on a loaded box)
+    that timeout is 0, so a read can return None with frames still queued behind."""
+    samples: list[Sample] = []
+    missed = 0
+    while missed < misses:
+        sample = driver.read(timeout)
+        if sample is None:
+            missed += 1
+        else:
+            samples.append(sample)
+            missed = 0
     return samples
 
 
