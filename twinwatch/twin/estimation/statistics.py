@@ -60,9 +60,15 @@ def noise_level(residual: FloatArray) -> FloatArray:
     return out
 
 
-#: Largest span of a window's readings, in steps, for :func:`quantum` to call them quantised.
+#: Largest span of a window's readings, in steps, for :func:`quantum` to call them quantised:
+#: above a 16-bit register's or converter's 65,536 codes, so every such reading is found;
+#: a float32 signal (24-bit mantissa, e.g. a DBC's float) spans more and is taken as
+#: continuous, its rounding (6e-8 of the value) far below any sensor's noise.
 QUANTUM_MAX_STEPS = 1e5
-#: How far a gap between two readings may be from a whole number of steps (share of a step).
+#: How far a gap between two readings may be from a whole number of steps (share of a step):
+#: float64's rounding of a grid value leaves at most 1e-16 x QUANTUM_MAX_STEPS = 1e-11 of a
+#: step, while each gap of a continuous reading lands within it by chance with probability
+#: 2e-3, so the 199 gaps of a 200-sample window all do with probability 2e-3 ** 199.
 QUANTUM_TOLERANCE = 1e-3
 
 

@@ -420,8 +420,9 @@ def _finish(kind: ModelKind, t: FloatArray, y: FloatArray, s: FloatArray, t_ref:
     # growth rate to a third of its real error, and a RUL interval that misses the crossing).
     d = np.sqrt(np.abs(info.diagonal()))
     d = np.where((d > 0) & np.isfinite(d), d, 1.0)
+    dd = np.outer(d, d)
     try:
-        cov = pinv_sym(info / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
+        cov = pinv_sym(info / dd, rcond=1e-12) / dd
     except np.linalg.LinAlgError:
         cov = np.full((k, k), np.inf)
     dof = max(n - k, 1)
