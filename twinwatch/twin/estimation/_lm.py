@@ -19,9 +19,10 @@ step, and the trial point is clipped into the box (Kanzow, Yamashita and Fukushi
 Appl. Math. 172, 2004: the projected LM keeps its local quadratic convergence). It stops as
 ``least_squares`` does, with the same tolerances (:data:`~twinwatch.twin.estimation._trf.XTOL`,
 ``FTOL``, ``GTOL``, ``MAX_NFEV``): a step shorter than ``XTOL (XTOL + |x|)``, a cost falling
-by less than ``FTOL`` of itself in a step that did as predicted, or a projected gradient below
-``GTOL`` (scaled by the distance to the bounds, as there). Where the problem is determined (the gate's test) both loops reach the same optimum
-to those tolerances; ``tests/test_trf.py`` holds them to each other on real windows.
+by less than ``FTOL`` of itself in a step that did as predicted, or a projected gradient
+below ``GTOL`` (scaled by the distance to the bounds, as there). Where the problem is
+determined (the gate's test) both loops reach the same optimum to those tolerances;
+``tests/test_trf.py`` holds them to each other on real windows.
 
 Not used from the swarm's best (:func:`~twinwatch.twin.estimation.polish.polish`): that
 polish moves every estimated parameter, some along a valley the data do not determine, where

@@ -18,7 +18,6 @@ from twinwatch.twin.estimation.fit import residual_variances
 from twinwatch.twin.estimation.problem import FitPoint, WindowProblem
 from twinwatch.twin.model import FloatArray
 
-
 #: The admitted-only polish's loop (:meth:`~twinwatch.twin.estimation.fit.LocalFit.refine`'s
 #: ``method``): Levenberg-Marquardt, the parameters it moves being the ones the gate found
 #: determined (:mod:`~twinwatch.twin.estimation._lm`).
