@@ -35,12 +35,93 @@ import math
 from collections.abc import Callable
 
 import numpy as np
+from numba import njit
 
 from twinwatch.twin.estimation._trf import FTOL, GTOL, MAX_NFEV, XTOL
 from twinwatch.twin.model import FloatArray
 
 #: The first damping, a share of each variable's curvature (Nielsen, IMM-REP-1999-05, tau).
 MU_START = 1e-3
+
+
+@njit(cache=True, nogil=True)
+def _step(jt: FloatArray, r: FloatArray, x: FloatArray, lo: FloatArray, hi: FloatArray,
+          mu: float, out: FloatArray) -> tuple[float, float, bool]:  # pragma: no cover - compiled
+    """One damped step from ``x`` (n,) with residuals ``r`` (M,) and Jacobian transposed
+    ``jt`` (n, M), clipped into ``[lo, hi]``: written to ``out`` (n,). Returns (the largest
+    bound-scaled gradient of the free variables, the predicted fall of ``|r|^2``, whether
+    the damped normal matrix was positive definite)."""
+    n, m = jt.shape
+    a = np.zeros((n, n))
+    g = np.zeros(n)
+    for i in range(n):
+        gi = 0.0
+        for k in range(m):
+            gi += jt[i, k] * r[k]
+        g[i] = gi
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(m):
+                s += jt[i, k] * jt[j, k]
+            a[i, j] = s
+            a[j, i] = s
+    # a variable on its bound whose gradient points out of the box is held there; the
+    # gradient scaled by the distance to the bound it points to (1 with none), as
+    # ``least_squares``' trust-region reflective loop tests it (Coleman and Li's scaling)
+    free = np.ones(n, dtype=np.bool_)
+    gmax = 0.0
+    for i in range(n):
+        if (x[i] <= lo[i] and g[i] > 0) or (x[i] >= hi[i] and g[i] < 0):
+            free[i] = False
+            continue
+        reach = hi[i] - x[i] if g[i] < 0 else x[i] - lo[i]
+        if not np.isfinite(reach):
+            reach = 1.0
+        gmax = max(gmax, abs(g[i] * reach))
+    # (A + mu diag A) s = -g over the free variables, by Cholesky
+    c = np.zeros((n, n))
+    for i in range(n):
+        out[i] = 0.0
+        if not free[i]:
+            continue
+        for j in range(i + 1):
+            if not free[j]:
+                continue
+            s = a[i, j]
+            if i == j:
+                s += mu * (a[i, i] if a[i, i] > 0 else 1.0)
+            for k in range(j):
+                if free[k]:
+                    s -= c[i, k] * c[j, k]
+            if i == j:
+                if not s > 0:
+                    return gmax, 0.0, False
+                c[i, i] = np.sqrt(s)
+            else:
+                c[i, j] = s / c[j, j]
+    for i in range(n):          # forward: C y = -g
+        if free[i]:
+            s = -g[i]
+            for k in range(i):
+                if free[k]:
+                    s -= c[i, k] * out[k]
+            out[i] = s / c[i, i]
+    for i in range(n - 1, -1, -1):  # back: C^T s = y
+        if free[i]:
+            s = out[i]
+            for k in range(i + 1, n):
+                if free[k]:
+                    s -= c[k, i] * out[k]
+            out[i] = s / c[i, i]
+    for i in range(n):          # clipped into the box: the step actually taken
+        out[i] = min(max(x[i] + out[i], lo[i]), hi[i]) - x[i]
+    pred = 0.0
+    for i in range(n):
+        t = 2.0 * g[i]
+        for j in range(n):
+            t += a[i, j] * out[j]
+        pred -= t * out[i]
+    return gmax, pred, True
 
 
 def levenberg_marquardt(fun_jac: Callable[[FloatArray], tuple[FloatArray, FloatArray]],
@@ -70,34 +151,17 @@ def levenberg_marquardt(fun_jac: Callable[[FloatArray], tuple[FloatArray, FloatA
     cost = float(r @ r)
     if not math.isfinite(cost):
         raise ValueError("Residuals are not finite in the initial point.")
-    a = jt @ jt.T
-    g = jt @ r
+    step = np.empty_like(x)
     mu, nu = MU_START, 2.0
     while calls < MAX_NFEV:
-        # a variable on its bound whose gradient points out of the box is held there
-        held = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
-        free = ~held
-        # the gradient scaled by the distance to the bound it points to (1 with none), as
-        # ``least_squares``' trust-region reflective loop tests it (Coleman and Li's scaling)
-        reach = np.where(g < 0, hi - x, x - lo)
-        reach = np.where(np.isfinite(reach), reach, 1.0)
-        if not np.abs(g * reach)[free].max(initial=0.0) > GTOL:
+        gmax, predicted, definite = _step(jt, r, x, lo, hi, mu, step)
+        if not gmax > GTOL:
             break
-        d = a.diagonal()
-        af = a[np.ix_(free, free)] if held.any() else a.copy()
-        df = d[free]
-        af[np.diag_indices_from(af)] += mu * np.where(df > 0, df, 1.0)
-        try:
-            sf = np.linalg.solve(af, -g[free])
-        except np.linalg.LinAlgError:
+        if not definite:
             mu, nu = mu * nu, nu * 2.0
             continue
-        step = np.zeros_like(x)
-        step[free] = sf
-        trial = np.clip(x + step, lo, hi)
-        step = trial - x
+        trial = x + step
         short = math.sqrt(float(step @ step)) < XTOL * (XTOL + math.sqrt(float(x @ x)))
-        predicted = -float(2.0 * g @ step + step @ a @ step)
         r_new, jt_new = fun_jac(trial)
         calls += 1
         cost_new = float(r_new @ r_new)
@@ -105,7 +169,6 @@ def levenberg_marquardt(fun_jac: Callable[[FloatArray], tuple[FloatArray, FloatA
         rho = actual / predicted if predicted > 0 else -math.inf
         if actual > 0:
             x, r, jt = trial, r_new, jt_new
-            a, g = jt @ jt.T, jt @ r
             small_fall = actual < FTOL * cost and rho > 0.25
             cost = cost_new
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
