@@ -741,3 +741,32 @@ def test_a_minute_of_evidence_is_no_trend_however_steep() -> None:
         t = 2.0 * k + 1.0
         q = off.update({"Ra": Evidence(t, RA0 * (1.0 - 0.01 * t / 60.0), 1e-5)}, t_end=t + 1)
     assert q["Ra"].trend.degrading
+
+
+def test_a_degenerate_exponential_stepped_far_ahead_keeps_its_chi_square_at_least_zero() -> None:
+    """The state a PWM drive's trend reached on the fault matrix (pwm/load_inertia_change,
+    J+50 %, noise-free): an exponential of growth rate 6.5/s whose drift and growth rates are
+    perfectly anti-correlated, stepped 4 s ahead twice (exp(r tau) = 1.7e11). The predicted
+    level's variance, F P F^T, cancels below zero in floating point; the second step's
+    chi-square was then negative, ``rms_norm`` took its square root, and four windows'
+    processing raised. The step now reads a negative predicted variance as 0: the point's
+    chi-square is huge (the model does not predict it) and the model loses the comparison."""
+    from twinwatch.twin.prognostics.degradation import DegradationFit
+
+    fit = DegradationFit("exponential", 93.99000000000001, 4.918299606471166e-08,
+                         -0.2189958527031023, 6.460832309695061, 93.99000000000001,
+                         free=("c", "m", "r", "t0"))
+    fit.cov = np.array([
+        [5.624796665975771e-19, -2.0530507830811564e-18, 2.5199089063571454e-17,
+         2.2117600458083287e-14],
+        [-2.0530507830811564e-18, 0.00012982993857619697, -0.001831927668599472,
+         -2.342074004757557],
+        [2.5199089063571454e-17, -0.001831927668599472, 0.025848883699584404,
+         33.047144915248474],
+        [2.2117600458083287e-14, -2.342074004757557, 33.047144915248474,
+         129206.14427163341]])
+    fit.chi2, fit.n, fit.scale, fit.long_run = 41.50367382556392, 24, 2.075183691278196, 1.0
+    chi2 = [fit.advance(97.99000000000001, 4.9183369148312153e-08, 9.222454806192759e-10),
+            fit.advance(101.99000000000001, 4.918335988625797e-08, 9.825137533687872e-10)]
+    assert all(math.isfinite(c) and c >= 0.0 for c in chi2), chi2
+    assert math.isfinite(fit.rms_norm) and fit.rms_norm > 1e3    # it predicts nothing

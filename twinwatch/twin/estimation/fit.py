@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from twinwatch.twin.estimation._lm import levenberg_marquardt
 from twinwatch.twin.estimation._trf import trust_region_reflective
 from twinwatch.twin.estimation.statistics import ar1, mean, norms, quantum
 from twinwatch.twin.model import FloatArray, TwinModel, WindowData
@@ -429,18 +430,34 @@ class LocalFit:
         return out.T, r0
 
     def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True,
-               stats: np.ndarray | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Polish the ``active`` entries of ``v`` (bounded least squares, trust-region
-        reflective, forward-difference Jacobian from one batched twin call), then return
-        (v, residuals (M,), Jacobian (M, len(stats)) for the statistics, by
-        :meth:`sensitivity`) at the result; ``stats``: the Jacobian's columns (default
-        ``active``)."""
+               stats: np.ndarray | None = None, method: str = "trf"
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Polish the ``active`` entries of ``v`` (bounded least squares, forward-difference
+        Jacobian from one batched twin call), then return (v, residuals (M,), Jacobian
+        (M, len(stats)) for the statistics, by :meth:`sensitivity`) at the result;
+        ``stats``: the Jacobian's columns (default ``active``). ``method``: ``"trf"``
+        scipy's trust-region reflective loop (:mod:`~twinwatch.twin.estimation._trf`),
+        ``"lm"`` Levenberg-Marquardt (:mod:`~twinwatch.twin.estimation._lm`, for a
+        determined problem started near its optimum)."""
         v = np.array(v, dtype=float, copy=True)
         if polish and active.size:
             last: dict[str, FloatArray] = {}
             k = active.size
             rows = np.repeat(v[None, :], k + 1, axis=0)
             stepped = 1 + np.arange(k)
+            lo, hi = self.lower[active], self.upper[active]
+            x0 = np.clip(v[active], lo + 1e-12, hi - 1e-12)
+            if method == "lm":
+                def fun_jac(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+                    rows[:, active] = x
+                    rows[stepped, active] += 1e-6
+                    r_all = self.residuals(rows)
+                    return r_all[0], (r_all[1:] - r_all[0]) / 1e-6
+
+                v[active] = levenberg_marquardt(fun_jac, x0, lo, hi)[0]
+                jac_s, r = self.sensitivity_and_residuals(
+                    v, active if stats is None else stats)
+                return v, r, jac_s
 
             def fun(x: FloatArray) -> FloatArray:
                 # The point and its forward differences (:meth:`jacobian`'s rows) in one twin
@@ -458,8 +475,6 @@ class LocalFit:
                     fun(x)
                 return ((last["d"] - last["r"][None, :]) / 1e-6).T
 
-            lo, hi = self.lower[active], self.upper[active]
-            x0 = np.clip(v[active], lo + 1e-12, hi - 1e-12)
             v[active] = trust_region_reflective(fun, jac, x0, lo, hi)
         jac_s, r = self.sensitivity_and_residuals(v, active if stats is None else stats)
         return v, r, jac_s

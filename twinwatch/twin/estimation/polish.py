@@ -18,6 +18,11 @@ from twinwatch.twin.estimation.fit import residual_variances
 from twinwatch.twin.estimation.problem import FitPoint, WindowProblem
 from twinwatch.twin.model import FloatArray
 
+#: The admitted-only polish's loop (:meth:`~twinwatch.twin.estimation.fit.LocalFit.refine`'s
+#: ``method``): Levenberg-Marquardt, the parameters it moves being the ones the gate found
+#: determined (:mod:`~twinwatch.twin.estimation._lm`).
+POLISH_METHOD = "lm"
+
 
 @dataclass
 class Polished:
@@ -83,6 +88,6 @@ def polish_admitted(problem: WindowProblem, q: FloatArray, selected: list[int], 
     if held:
         v[held] = problem.trusted_ln(held)
     active = np.concatenate([np.asarray(selected, dtype=int), problem.nuisance])
-    v, r, jac = local.refine(v, active, stats=np.arange(n_free))
+    v, r, jac = local.refine(v, active, stats=np.arange(n_free), method=POLISH_METHOD)
     row_var = residual_variances(r, problem.n_out, model_error, n_free)
     return Polished(FitPoint(v, r, jac), row_var, v[n_est:].copy())

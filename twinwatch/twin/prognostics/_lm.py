@@ -342,7 +342,7 @@ def kalman_step(t_ref: float, base: np.ndarray, codes: np.ndarray, cov: np.ndarr
     parameters do not change in time: no process noise). The *measurement update* reads the
     level ``c'`` (``h = e_c``)::
 
-        e = y - c',   S = s^2 + P'_cc,   K = P'_{.c} / S,   x += K e,   P -= K K^T S
+        e = y - c',   S = s^2 + max(P'_cc, 0),   K = P'_{.c} / S,   x += K e,   P -= K K^T S
 
     For the line (and ``none``) this is the recursive form of the weighted least squares fit
     to the evidence and the new point (``P`` the unscaled ``(J^T W J)^-1``); for the
@@ -392,7 +392,11 @@ def kalman_step(t_ref: float, base: np.ndarray, codes: np.ndarray, cov: np.ndarr
     out[0] = c + m * g
     out[1] = m * ex
     e = y - out[0]
-    var = s * s + p[ic, ic]
+    # a predicted level's variance below 0 is the arithmetic's, not the model's: F P F^T of
+    # a fit whose drift rate and growth rate are perfectly anti-correlated cancels (an
+    # exponential of growth rate 6.5/s stepped 4 s ahead, exp(r tau) = 1.7e11, gave P'_cc
+    # of about -1e6: a negative chi-square, and the window's processing raised)
+    var = s * s + max(p[ic, ic], 0.0)
     gain = p[:, ic] / var
     for a in range(k):
         out[codes[a]] += gain[a] * e

@@ -242,7 +242,7 @@ class DegradationFit:
         self.n += 1
         self.scale = max(self.chi2 / max(self.n - self.k, 1), 1.0) * self.long_run
         self.cov = cov * self.scale
-        self.rms_norm = math.sqrt(self.chi2 / self.n)
+        self.rms_norm = math.sqrt(max(self.chi2, 0.0) / self.n)
         return chi2
 
     def _coded(self) -> tuple[npt.NDArray[np.int64], FloatArray]:
