@@ -3,6 +3,7 @@ bit for bit; the admitted-only polish's Levenberg-Marquardt at the same optimum.
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import numpy as np
@@ -199,3 +200,21 @@ def test_levenberg_marquardt_solves_a_curved_valley_and_refuses_a_step_that_does
     x, calls = _lm.levenberg_marquardt(fun_jac, np.array([-1.2, 1.0]), -inf, inf)
     assert x == pytest.approx([1.0, 1.0], abs=1e-9)
     assert calls < _trf.MAX_NFEV
+
+
+def test_levenberg_marquardt_stops_on_a_jacobian_it_cannot_factor() -> None:
+    """A Jacobian column of NaN (a twin whose difference row blew up) never factors: the loop
+    stops at the start instead of raising the damping for ever."""
+    def fun_jac(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([x[0] - 1.0, x[1]]), np.array([[1.0, 0.0], [np.nan, np.nan]])
+
+    inf = np.full(2, np.inf)
+    out: list[tuple[np.ndarray, int]] = []
+    # in a thread, so that a loop that never ends fails the test instead of hanging the suite
+    worker = threading.Thread(target=lambda: out.append(_lm.levenberg_marquardt(
+        fun_jac, np.array([0.5, 0.5]), -inf, inf)), daemon=True)
+    worker.start()
+    worker.join(30.0)
+    assert out, "the loop did not stop"
+    x, calls = out[0]
+    assert calls == 1 and np.array_equal(x, [0.5, 0.5])

@@ -42,6 +42,8 @@ from twinwatch.twin.model import FloatArray
 
 #: The first damping, a share of each variable's curvature (Nielsen, IMM-REP-1999-05, tau).
 MU_START = 1e-3
+#: A damping this large moves nothing (each step below 1e-16 of the gradient's): the loop stops.
+MU_GIVE_UP = 1e16
 
 
 @njit(cache=True, nogil=True)
@@ -157,8 +159,10 @@ def levenberg_marquardt(fun_jac: Callable[[FloatArray], tuple[FloatArray, FloatA
         gmax, predicted, definite = _step(jt, r, x, lo, hi, mu, step)
         if not gmax > GTOL:
             break
-        if not definite:
+        if not definite:          # a Jacobian with a non-finite entry never factors
             mu, nu = mu * nu, nu * 2.0
+            if not mu < MU_GIVE_UP:
+                break
             continue
         trial = x + step
         short = math.sqrt(float(step @ step)) < XTOL * (XTOL + math.sqrt(float(x @ x)))
