@@ -31,8 +31,10 @@ def _number(value: Any) -> str:
     return "null"
 
 
-def _std(value: Any, rel_std_pct: Any) -> float | None:
-    """The standard error of ``value`` from its relative one [%], or None."""
+def standard_error(value: Any, rel_std_pct: Any) -> float | None:
+    """The standard error of ``value`` [its unit] from its relative one ``rel_std_pct`` [%]:
+    ``|value| rel_std_pct / 100``; None when either is not a finite number or the relative
+    one is not positive. Shared by the MQTT and Sparkplug outputs."""
     if (isinstance(value, int | float) and isinstance(rel_std_pct, int | float)
             and not isinstance(rel_std_pct, bool) and math.isfinite(value)
             and math.isfinite(rel_std_pct) and rel_std_pct > 0):
@@ -58,8 +60,10 @@ def _rounded(value: Any, std: float | None, *, floor: float | None = None,
     return float(f"{value:.{digits}g}")
 
 
-def _rul_s(param: ParameterView, level: str) -> Any:
-    """The median time [s] to ``level``'s threshold (``rul.<level>.rul_s``), or None."""
+def rul_s(param: ParameterView, level: str) -> Any:
+    """The median time [s] to ``level``'s threshold (``rul.<level>.rul_s``; ``level``:
+    ``"alarm"`` or ``"warning"``), or None without one. Shared by the MQTT and Sparkplug
+    outputs."""
     rul = param.rul
     crossing = (rul.alarm if level == "alarm" else rul.warning) if rul is not None else None
     return crossing.rul_s if crossing is not None else None
@@ -103,7 +107,7 @@ def flat_values(doc: HealthView | Mapping[str, Any]) -> dict[str, str]:
     for name, p in (doc.parameters or {}).items():
         base = f"parameters/{name}"
         value, dev, rel = p.value, p.deviation_pct, p.rel_std_pct
-        std = _std(value, rel)
+        std = standard_error(value, rel)
         out[f"{base}/value"] = _number(_rounded(value, std))
         nom = p.nominal
         dev_std = (std / abs(nom) * 100.0
@@ -111,8 +115,8 @@ def flat_values(doc: HealthView | Mapping[str, Any]) -> dict[str, str]:
         out[f"{base}/deviation_pct"] = _number(_rounded(dev, dev_std, floor=1e-4))
         out[f"{base}/status"] = str(p.status or "")
         if sent(p, "rul"):
-            out[f"{base}/rul"] = _number(_rul_s(p, "alarm"))
-            out[f"{base}/rul_warning"] = _number(_rul_s(p, "warning"))
+            out[f"{base}/rul"] = _number(rul_s(p, "alarm"))
+            out[f"{base}/rul_warning"] = _number(rul_s(p, "warning"))
         alarm = alarms.get(name)
         if alarm is not None:
             out[f"{base}/alarm"] = str(alarm.level or "normal")

@@ -10,7 +10,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from twinwatch.sinks.mqtt.encoding import _rul_s, _std, diagnosis_values, known_parameters
+from twinwatch.sinks.mqtt.encoding import (
+    diagnosis_values,
+    known_parameters,
+    rul_s,
+    standard_error,
+)
 
 if TYPE_CHECKING:
     from twinwatch.twin.health import HealthView
@@ -98,7 +103,7 @@ def metric_values(doc: HealthView) -> dict[str, Any]:
     for name, p in (doc.parameters or {}).items():
         base = f"Parameters/{name}"
         value = _num(p.value)
-        std = _std(value, p.rel_std_pct)
+        std = standard_error(value, p.rel_std_pct)
         out[f"{base}/Value"] = value
         out[f"{base}/Low"] = value - 2 * std if value is not None and std else None
         out[f"{base}/High"] = value + 2 * std if value is not None and std else None
@@ -108,8 +113,8 @@ def metric_values(doc: HealthView) -> dict[str, Any]:
         level = str(a.level or "normal") if a is not None else None
         out[f"{base}/Alarm"] = level
         out[f"{base}/Alarm Level"] = _ALARM_LEVEL.get(level) if level is not None else None
-        out[f"{base}/RUL"] = _num(_rul_s(p, "alarm"))
-        out[f"{base}/RUL Warning"] = _num(_rul_s(p, "warning"))
+        out[f"{base}/RUL"] = _num(rul_s(p, "alarm"))
+        out[f"{base}/RUL Warning"] = _num(rul_s(p, "warning"))
     if doc.diagnosis is not None:
         flat = diagnosis_values(doc.diagnosis)
         out["Diagnosis/Status"] = str(doc.diagnosis.status or "no_fault")
