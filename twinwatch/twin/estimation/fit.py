@@ -23,7 +23,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numba import njit
@@ -430,7 +430,7 @@ class LocalFit:
         return out.T, r0
 
     def refine(self, v: FloatArray, active: np.ndarray, *, polish: bool = True,
-               stats: np.ndarray | None = None, method: str = "trf"
+               stats: np.ndarray | None = None, method: Literal["trf", "lm"] = "trf"
                ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Polish the ``active`` entries of ``v`` (bounded least squares, forward-difference
         Jacobian from one batched twin call), then return (v, residuals (M,), Jacobian
@@ -441,41 +441,42 @@ class LocalFit:
         determined problem started near its optimum)."""
         v = np.array(v, dtype=float, copy=True)
         if polish and active.size:
-            last: dict[str, FloatArray] = {}
             k = active.size
             rows = np.repeat(v[None, :], k + 1, axis=0)
             stepped = 1 + np.arange(k)
             lo, hi = self.lower[active], self.upper[active]
             x0 = np.clip(v[active], lo + 1e-12, hi - 1e-12)
+
+            def batch(x: FloatArray) -> FloatArray:
+                """The point and its forward differences (:meth:`jacobian`'s rows), one twin
+                call: residuals (k + 1, M), the point's first."""
+                rows[:, active] = x
+                rows[stepped, active] += 1e-6
+                return self.residuals(rows)
+
             if method == "lm":
                 def fun_jac(x: FloatArray) -> tuple[FloatArray, FloatArray]:
-                    rows[:, active] = x
-                    rows[stepped, active] += 1e-6
-                    r_all = self.residuals(rows)
+                    r_all = batch(x)
                     return r_all[0], (r_all[1:] - r_all[0]) / 1e-6
 
                 v[active] = levenberg_marquardt(fun_jac, x0, lo, hi)[0]
-                jac_s, r = self.sensitivity_and_residuals(
-                    v, active if stats is None else stats)
-                return v, r, jac_s
+            else:
+                last: dict[str, FloatArray] = {}
 
-            def fun(x: FloatArray) -> FloatArray:
-                # The point and its forward differences (:meth:`jacobian`'s rows) in one twin
-                # call: least_squares asks for the Jacobian where it just evaluated fun.
-                rows[:, active] = x
-                rows[stepped, active] += 1e-6
-                r_all = self.residuals(rows)
-                last["x"], last["r"], last["d"] = x.copy(), r_all[0], r_all[1:]
-                r0: FloatArray = r_all[0]
-                return r0
+                def fun(x: FloatArray) -> FloatArray:
+                    # least_squares asks for the Jacobian where it just evaluated fun
+                    r_all = batch(x)
+                    last["x"], last["r"], last["d"] = x.copy(), r_all[0], r_all[1:]
+                    r0: FloatArray = r_all[0]
+                    return r0
 
-            def jac(x: FloatArray) -> FloatArray:
-                seen = last.get("x")
-                if seen is None or seen.shape != x.shape or not (seen == x).all():
-                    fun(x)
-                return ((last["d"] - last["r"][None, :]) / 1e-6).T
+                def jac(x: FloatArray) -> FloatArray:
+                    seen = last.get("x")
+                    if seen is None or seen.shape != x.shape or not (seen == x).all():
+                        fun(x)
+                    return ((last["d"] - last["r"][None, :]) / 1e-6).T
 
-            v[active] = trust_region_reflective(fun, jac, x0, lo, hi)
+                v[active] = trust_region_reflective(fun, jac, x0, lo, hi)
         jac_s, r = self.sensitivity_and_residuals(v, active if stats is None else stats)
         return v, r, jac_s
 

@@ -11,6 +11,7 @@ optimum is what the identifiability gate and the fusion read.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from twinwatch.twin.model import FloatArray
 #: The admitted-only polish's loop (:meth:`~twinwatch.twin.estimation.fit.LocalFit.refine`'s
 #: ``method``): Levenberg-Marquardt, the parameters it moves being the ones the gate found
 #: determined (:mod:`~twinwatch.twin.estimation._lm`).
-POLISH_METHOD = "lm"
+POLISH_METHOD: Literal["trf", "lm"] = "lm"
 
 
 @dataclass
