@@ -19,7 +19,12 @@ import numpy as np
 from pydantic import Field, StrictFloat, StrictInt
 
 from twinwatch._table import StrictTable
-from twinwatch.twin.estimation.fit import WindowFit, explained_rms, parameter_covariance
+from twinwatch.twin.estimation.fit import (
+    WindowFit,
+    explained_dof,
+    explained_rms,
+    parameter_covariance,
+)
 from twinwatch.twin.estimation.problem import FitPoint, WindowProblem
 from twinwatch.twin.estimation.statistics import ModelCheck, check_model, noise_level
 from twinwatch.twin.model import FloatArray
@@ -42,8 +47,8 @@ class ValidationConfig(StrictTable):
 
 def check_twin(fit: WindowFit, y: FloatArray, exogenous: Sequence[str],
                settings: ValidationConfig, model_error: float,
-               explained: FloatArray | None = None, drift: FloatArray | None = None
-               ) -> ModelCheck:
+               explained: FloatArray | None = None, drift: FloatArray | None = None,
+               explained_dof: FloatArray | None = None) -> ModelCheck:
     """Validate the twin on a window from its simulated outputs.
 
     Args:
@@ -59,6 +64,8 @@ def check_twin(fit: WindowFit, y: FloatArray, exogenous: Sequence[str],
         drift: the residual matrix (N-1, n_out) to test instead of ``y``'s, with what a drift
             of the estimated parameters within the window explains removed
             (:func:`drift_residual`).
+        explained_dof: per output, the degrees of freedom of ``explained``'s square
+            (:func:`~twinwatch.twin.estimation.fit.explained_dof`).
 
     Returns:
         The check (:func:`~twinwatch.twin.estimation.statistics.check_model`).
@@ -69,7 +76,8 @@ def check_twin(fit: WindowFit, y: FloatArray, exogenous: Sequence[str],
     res = fit.error_matrix(y) if drift is None else drift
     return check_model(res, fit.names, inputs, alpha=settings.alpha,
                        lags=min(settings.lags, max(1, win.n // 4)),
-                       floor=model_error, explained=explained, quanta=fit.quanta)
+                       floor=model_error, explained=explained, quanta=fit.quanta,
+                       explained_dof=explained_dof)
 
 
 def drift_residual(fit: WindowFit, r: FloatArray, jac: FloatArray) -> FloatArray | None:
@@ -113,7 +121,8 @@ def model_check(problem: WindowProblem, point: FitPoint, y: FloatArray,
     residual, is computed from the white-noise level of the residual (its own level would
     count model error as noise): the covariance of the admitted parameters and the initial
     state (:func:`~twinwatch.twin.estimation.fit.parameter_covariance` with those levels), and
-    per output the residual RMS it explains.
+    per output the residual RMS it explains and that RMS's spread (its square's degrees of
+    freedom, :func:`~twinwatch.twin.estimation.fit.explained_dof`).
 
     Args:
         problem: the window's problem.
@@ -135,4 +144,5 @@ def model_check(problem: WindowProblem, point: FitPoint, y: FloatArray,
     n_par = jac.shape[1] - problem.nuisance.size
     return check_twin(problem.fit, y, exogenous, settings, model_error,
                       explained_rms(jac, cov, n_out),
-                      drift=drift_residual(problem.fit, r, jac[:, :n_par]))
+                      drift=drift_residual(problem.fit, r, jac[:, :n_par]),
+                      explained_dof=explained_dof(jac, cov, n_out))

@@ -595,6 +595,41 @@ def explained_rms(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
     return out
 
 
+def explained_dof(jac: FloatArray, cov: FloatArray, n_out: int) -> FloatArray:
+    """Per output, the degrees of freedom of the squared residual RMS that the search
+    variables' uncertainty ``cov`` explains (:func:`explained_rms`, its mean).
+
+    That share of an output's mean square is ``d^T A d`` over ``d ~ N(0, I)`` with
+    ``A = C^(1/2) J_o^T J_o C^(1/2) / N_o``: a sum of chi-squares of one degree weighted by
+    A's eigenvalues. Its Welch-Satterthwaite degrees, ``tr(A)^2 / tr(A^2)``, say how heavy
+    its tail is: near 1 when one direction of the estimates dominates (a drive's voltage
+    follows the one parameter combination the window determines least), up to the number of
+    search variables when all weigh alike (Satterthwaite, Biometrics Bulletin 2(6), 1946).
+
+    Args:
+        jac: (M, n) Jacobian of the normalised residuals, ``n_out`` outputs interleaved.
+        cov: (n, n) covariance of the search variables.
+        n_out: outputs.
+
+    Returns:
+        (n_out,): the degrees, 0 for an output the uncertainty does not reach.
+    """
+    finite = np.isfinite(cov).all(axis=0)
+    out = np.zeros(n_out)
+    if not finite.any():
+        return out
+    j = jac[:, finite]
+    c = cov[np.ix_(finite, finite)]
+    for o in range(n_out):
+        jo = j[o::n_out]
+        bc = (jo.T @ jo) @ c          # tr(A) = tr(B C), tr(A^2) = tr(B C B C), B = J_o^T J_o
+        tr1 = float(np.trace(bc))
+        tr2 = float(np.add.reduce(bc * bc.T, axis=None))
+        if tr1 > 0.0 and tr2 > 0.0:
+            out[o] = tr1 * tr1 / tr2
+    return out
+
+
 def parameter_covariance(jac: FloatArray, r: FloatArray, n_out: int, floor: float,
                          levels: FloatArray | None = None, *, numerical: float = 0.0
                          ) -> FloatArray:

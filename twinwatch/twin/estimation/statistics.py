@@ -193,6 +193,17 @@ def _chi2_sf(x: float, dof: int) -> float:
     return float(chdtrc(dof, x))
 
 
+def _uncertainty_quantile(dof: float, alpha: float) -> float:
+    """The factor on ``explained^2`` of :func:`check_model`'s bound: the ``1 - alpha``
+    quantile of a chi-square of ``dof`` degrees over its mean, at least 4 (the bound of many
+    degrees: twice the RMS); 4 when ``dof`` is 0 (no uncertainty reaches the output)."""
+    if not dof > 0.0:
+        return 4.0
+    from scipy.special import chdtri  # chi2.isf, without importing scipy.stats
+
+    return max(4.0, float(chdtri(dof, alpha)) / dof)
+
+
 def ljung_box(e: FloatArray, lags: int) -> tuple[float, float]:
     """Ljung-Box whiteness test of one residual series.
 
@@ -335,7 +346,8 @@ class ModelCheck:
 def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | None, *,
                 alpha: float, lags: int, floor: float,
                 explained: FloatArray | None = None,
-                quanta: FloatArray | None = None) -> ModelCheck:
+                quanta: FloatArray | None = None,
+                explained_dof: FloatArray | None = None) -> ModelCheck:
     """Validate a twin on one window from its residuals.
 
     An output fails when its residual is not white (Ljung-Box) or depends on an exogenous
@@ -344,7 +356,12 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
     rounding and a parameter drifting within the window are not evidence against the model)
     and above twice what the white noise and the estimates' own uncertainty explain
     (``sqrt(noise^2 + explained^2)``: a noise-free output, such as a closed-loop drive's
-    voltage, carries the smooth trace of the other outputs' noise on the estimates). The noise
+    voltage, carries the smooth trace of the other outputs' noise on the estimates). The
+    uncertainty's share is a chi-square of ``explained_dof`` degrees scaled to its mean, not a
+    sum of many: where its ``1 - alpha`` quantile lies beyond four times the mean (one or two
+    degrees: one direction of the estimates dominates that output), the bound is that
+    quantile, ``rms^2 > 4 noise^2 + max(4, q) explained^2`` (:func:`_uncertainty_quantile`);
+    else the rule is twice ``sqrt(noise^2 + explained^2)``. The noise
     is at least a quantised reading's rounding error, ``step / sqrt(12)`` (:func:`quantum`):
     a drive that reports its current in per mille of the rated current leaves a residual of
     that size that follows the current, not white, where the twin is right. A failing
@@ -362,6 +379,9 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
             (:func:`twinwatch.twin.estimation.fit.explained_rms`); None: 0.
         quanta: per output, the reading's step (:func:`quantum`) in the residual's unit
             (over the output's scale); None or 0: a continuous reading.
+        explained_dof: per output, the degrees of freedom of ``explained``'s square
+            (:func:`twinwatch.twin.estimation.fit.explained_dof`); None: many (the bound is
+            twice ``sqrt(noise^2 + explained^2)``).
 
     Returns:
         The window's check.
@@ -385,8 +405,12 @@ def check_model(res: FloatArray, names: tuple[str, ...], inputs: FloatArray | No
         rounded = rounding > noise  # the reading's step, not its noise, sets the level
         if rounded:
             noise = rounding
-        expected = math.hypot(noise, float(explained[j]) if explained is not None else 0.0)
-        material = rms > floor and rms > 2.0 * expected
+        spread = float(explained[j]) if explained is not None else 0.0
+        expected = math.hypot(noise, spread)
+        q = 4.0 if explained_dof is None else _uncertainty_quantile(float(explained_dof[j]),
+                                                                     alpha)
+        material = rms > floor and (rms > 2.0 * expected if q == 4.0 else
+                                    rms * rms > 4.0 * noise * noise + q * spread * spread)
         ok = not material or (p_white >= alpha and p_cross >= alpha)
         check.outputs[name] = OutputCheck(rms, float(lvl[j]), p_white, p_cross, ok)
         if ok:
