@@ -13,6 +13,7 @@ import pytest
 from twinwatch.io.drive import DriveConfig, LoopConfig
 from twinwatch.plant.dcmotor import DCMotorPlant, DCMotorPlantConfig
 from twinwatch.twin.estimation.estimator import EstimationConfig, Estimator
+from twinwatch.twin.estimation.fit import explained_dof, explained_rms
 from twinwatch.twin.estimation.fusion import FusionConfig, ParameterFusion
 from twinwatch.twin.estimation.statistics import (
     check_model,
@@ -107,6 +108,42 @@ def test_a_quantised_readings_rounding_is_not_taken_for_model_error() -> None:
     wrong = (((1.0 + 0.01 * np.sin(2 * np.pi * 0.2 * t)) * ia - meas) / scale)[1:, None]
     check = check_model(wrong, ("ia",), None, alpha=0.01, lags=20, floor=1e-4, quanta=q)
     assert not check.passed and "the reading's step" in check.reasons[0], check.reasons
+
+
+def test_a_noise_free_outputs_share_of_the_estimates_uncertainty_fails_alpha_of_windows() -> None:
+    """A closed-loop drive's voltage is measured without noise: its residual is the trace of
+    the other outputs' noise on the estimates, ``J d`` with ``d ~ N(0, C)``, smooth (never
+    white), and one direction of the estimates dominates it. Its mean square is then a
+    chi-square of about one degree, which exceeds four times its mean in 4.6 % of windows:
+    the bound of twice the mean RMS failed the default motor's check in 14 of 300 windows at
+    0.5 % noise (each then searched by the swarm). With the degrees the bound is the
+    chi-square's 1 - alpha quantile; with many degrees it stays twice the mean."""
+    n, rng = 200, np.random.default_rng(3)
+    t = np.linspace(0.0, 1.0, n)
+    shapes = np.column_stack([np.sin(2.0 * t), t * t, np.exp(-3.0 * t)])  # (N, 3) smooth
+    cov = np.diag([1.0, 1e-4, 1e-4]) * 1e-6  # one direction dominates
+    jac = shapes / math.sqrt(n)  # the normalised residuals' Jacobian, one output
+    explained = explained_rms(jac, cov, 1)
+    dof = explained_dof(jac, cov, 1)
+    assert 1.0 <= dof[0] < 1.05
+    drawn = rng.multivariate_normal(np.zeros(3), cov, size=2000)
+    old = new = 0
+    for d in drawn:
+        res = (shapes @ d)[:, None]
+        assert ljung_box(res[:, 0], 20)[1] < 0.01  # structured, as a drive's voltage
+        old += not check_model(res, ("Va",), None, alpha=0.01, lags=20, floor=1e-12,
+                               explained=explained).passed
+        new += not check_model(res, ("Va",), None, alpha=0.01, lags=20, floor=1e-12,
+                               explained=explained, explained_dof=dof).passed
+    assert 0.035 < old / drawn.shape[0] < 0.06  # P(chi2_1 > 4) = 0.0455
+    assert new / drawn.shape[0] < 0.015  # alpha
+    # a residual twice the quantile's size still fails
+    res = (shapes @ (3.0 * np.sqrt(np.diag(cov)) * np.array([1.0, 0.0, 0.0])))[:, None]
+    assert not check_model(res, ("Va",), None, alpha=0.01, lags=20, floor=1e-12,
+                           explained=explained, explained_dof=dof).passed
+    # many directions alike: the degrees are their number, the bound twice the mean RMS
+    q, _ = np.linalg.qr(shapes)
+    assert explained_dof(q, np.eye(3), 1)[0] == pytest.approx(3.0, rel=1e-9)
 
 
 # -- configured for the variant: exact, and its intervals cover the truth ------------------------

@@ -34,6 +34,7 @@ from twinwatch.twin.estimation.fit import (
     LocalFit,
     ParameterMap,
     WindowFit,
+    explained_dof,
     explained_rms,
     parameter_covariance,
     pso_minimize,
@@ -318,10 +319,12 @@ def _honest_check(check: ModelCheck, fit_pct: Mapping[str, float]) -> ModelCheck
 
 def _score(model: TwinModel, est: Estimator, window: WindowData, theta: FloatArray,
            weights: Mapping[str, float], initial: FloatArray | None,
-           explained: FloatArray | None = None) -> StretchScore:
+           explained: FloatArray | None = None, explained_dof: FloatArray | None = None
+           ) -> StretchScore:
     """The twin with parameters ``theta`` on a stretch; ``initial`` None: the initial-state
     offsets are estimated on the stretch with the parameters held (MATLAB ``compare``'s
-    default: a noisy first sample must not count as model error)."""
+    default: a noisy first sample must not count as model error); ``explained``,
+    ``explained_dof``: the model check's (:meth:`Estimator.check`)."""
     fit = WindowFit(model, window, weights)
     if initial is None and est.config.initial_state and model.initial_states:
         pmap = est.pmap
@@ -333,7 +336,7 @@ def _score(model: TwinModel, est: Estimator, window: WindowData, theta: FloatArr
     y = fit.simulate(theta[None, :])[0]
     names = model.output_names
     fit_pct = {o: fit_percent(fit.meas[1:, j], y[1:, j]) for j, o in enumerate(names)}
-    check = _honest_check(est.check(fit, y, explained), fit_pct)
+    check = _honest_check(est.check(fit, y, explained, explained_dof=explained_dof), fit_pct)
     return StretchScore(
         start=float(window.t[0]), end=float(window.t[-1]), samples=window.n,
         fit_pct=fit_pct,
@@ -603,13 +606,13 @@ class _Problem:
         # monitoring's model check: a noise-free output carries the others' noise's trace)
         n_out = self.fit.n_out
         white = noise_level(r.reshape(-1, n_out)) * math.sqrt(r.size)
-        explained = explained_rms(jac, parameter_covariance(jac, r, n_out, self.floor, white),
-                                  n_out)
+        cov = parameter_covariance(jac, r, n_out, self.floor, white)
+        spread = explained_rms(jac, cov, n_out), explained_dof(jac, cov, n_out)
         train, validation = self.stretches
         weights = self.config.weights
         return (_score(self.model, self.est, train, theta, weights, self.local.initial(v),
-                       explained),
-                _score(self.model, self.est, validation, theta, weights, None, explained))
+                       *spread),
+                _score(self.model, self.est, validation, theta, weights, None, *spread))
 
 
 def identify(model: TwinModel, estimation: EstimationConfig, config: IdentifyConfig,

@@ -1076,12 +1076,13 @@ class Estimator:
         self.pmap.apply_ties(self.trusted_std)
 
     def check(self, fit: WindowFit, y: FloatArray, explained: FloatArray | None = None,
-              drift: FloatArray | None = None) -> ModelCheck:
+              drift: FloatArray | None = None, *, explained_dof: FloatArray | None = None
+              ) -> ModelCheck:
         """Validate the twin on a window from its simulated outputs ``y`` (N, n_out) with
         this estimator's settings (:func:`~twinwatch.twin.estimation.check.check_twin`, whose
-        ``explained`` and ``drift`` these are)."""
+        ``explained``, ``drift`` and ``explained_dof`` these are)."""
         return check_twin(fit, y, self.model.exogenous, self.config.validation,
-                          self.config.model_error, explained, drift)
+                          self.config.model_error, explained, drift, explained_dof)
 
     def relative_std(self, jac: FloatArray, r: FloatArray) -> FloatArray:
         """Relative standard errors of ln-parameter columns of ``jac`` at residuals ``r``, as
