@@ -51,6 +51,7 @@ reported):
 from __future__ import annotations
 
 import argparse
+import collections
 import csv
 import itertools
 import logging
@@ -189,6 +190,12 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
                 0 if e.initial is None else int(np.size(e.initial)))
             diagnosis = diagnoser.update(health, result.fit, e.simulated, free, e.initial)
         diag_cpu = time.process_time() - d
+        if keep is not None:  # how each window was searched, every window processed
+            reason = result.estimate.search_reason
+            kind = ("the model check failed" if "model check" in reason
+                    else reason.split(":")[0])
+            keep.setdefault("searches", collections.Counter())[
+                (result.estimate.search, kind)] += 1
         complete_health(health, diagnosis=diagnosis, alarms={}).to_json()
         whole = time.process_time() - c
         saved = []  # the state store's resume point, as the pipeline saves it: the twin
@@ -444,6 +451,10 @@ def main() -> None:
     print(f"    the twin, each trusted window:                      {_stats(list(a[:, 5]))}")
     label = f"    with the diagnosis evidence, every {EVIDENCE_EVERY} windows:"
     print(f"{label:<56}{_stats(list(a[:, 6]))}")
+    searches = kept["searches"]
+    print(f"  searches over the {sum(searches.values())} windows processed (from 0 s): "
+          + ", ".join(f"{s}{f' ({why})' if why else ''} {k}"
+                      for (s, why), k in sorted(searches.items())))
     e = kept["estimate"]
     estimated = [n for n, st in e.status.items() if st == "estimated"]
     sim, gn, iterations, values = floor_cost(kept["model"], kept["window"], estimated,

@@ -37,7 +37,8 @@ class ValidationConfig(StrictTable):
 
     enabled: bool = Field(True, description="check every window's residuals")
     alpha: StrictFloat = Field(0.01, gt=0, lt=0.5, description="level of the whiteness and "
-                               "residual-input tests")
+                               "residual-input tests, and of the bound on the share of a "
+                               "residual the estimates' uncertainty explains")
     lags: StrictInt = Field(20, ge=1, le=1000, description="lags of both tests (samples)")
     sensor_run: StrictInt = Field(
         50, ge=0, le=100_000, description="a measured output that repeats one value exactly "
