@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twinwatch.twin.estimation import polish
 from twinwatch.twin.estimation.fit import NUMERICAL_SHARE, relative_std
 from twinwatch.twin.estimation.polish import Polished
 from twinwatch.twin.estimation.problem import FitPoint, WindowProblem
@@ -286,5 +287,7 @@ class IdentifiabilityGate:
             return FitPoint(v, point.r, point.jac), False
         # every column's sensitivity in the one call: propagate_held reads the held ones next
         every = np.arange(problem.n_est + problem.nuisance.size)
-        v, r, jac = problem.local.refine(v, active, stats=every)
+        # the parameters the gate selects are determined, as the ones it admitted last
+        # window: the same loop as their polish (polish.POLISH_METHOD)
+        v, r, jac = problem.local.refine(v, active, stats=every, method=polish.POLISH_METHOD)
         return FitPoint(v, r, jac[:, active]), True
