@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
+from twinwatch.config.loader import load_config
+from twinwatch.daemon.runner import Daemon
 from twinwatch.plant.dcmotor import DCMotorPlantConfig
 from twinwatch.plant.hydraulic import HydraulicPlant, HydraulicPlantConfig
 from twinwatch.twin.estimation import _lm, _trf, fit
@@ -18,6 +20,7 @@ from twinwatch.twin.model import WindowData
 from twinwatch.twin.models import create_model
 from twinwatch.twin.models.dcmotor import DCMotorTwin
 
+from .helpers.paths import ROOT, shared_path
 from .helpers.plant import plant_windows
 from .helpers.twin import HYDRAULIC_ESTIMATION
 
@@ -164,6 +167,19 @@ def test_the_hydraulic_actuators_admitted_polishes_reach_scipys_optimum(
     for w in _windows_hydraulic((100.0, 102.0, 104.0, 106.0, 300.0, 302.0)):
         est.estimate(w)
     _assert_same_optimum(both_lm, 3)
+
+
+def test_the_pwm_drives_admitted_polishes_and_gate_refits_reach_scipys_optimum(
+        both_lm: list[Any]) -> None:
+    """The MotoShield recording (../shared, real data) through its configuration: the PWM
+    drive's gate refits the parameters it selects with the others held at their trusted
+    values in most windows (the admitted set changes), by the same loop."""
+    shared_path("data", "motoshield", "aprbsResult.mat")
+    cfg_path = ROOT / "config" / "dc-motor-motoshield.toml"
+    cfg = load_config(cfg_path)
+    with Daemon(cfg, base_dir=cfg_path.parent, publish=False, record=False) as daemon:
+        daemon.run()
+    _assert_same_optimum(both_lm, 30)
 
 
 def test_levenberg_marquardt_stops_on_a_bound_where_scipy_does() -> None:
