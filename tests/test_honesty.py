@@ -115,7 +115,7 @@ def test_a_noise_free_outputs_share_of_the_estimates_uncertainty_fails_alpha_of_
     the other outputs' noise on the estimates, ``J d`` with ``d ~ N(0, C)``, smooth (never
     white), and one direction of the estimates dominates it. Its mean square is then a
     chi-square of about one degree, which exceeds four times its mean in 4.6 % of windows:
-    the bound of twice the mean RMS failed the default motor's check in 14 of 300 windows at
+    the bound of twice the mean RMS failed the default motor's check in 14 of 301 windows at
     0.5 % noise (each then searched by the swarm). With the degrees the bound is the
     chi-square's 1 - alpha quantile; with many degrees it stays twice the mean."""
     n, rng = 200, np.random.default_rng(3)
