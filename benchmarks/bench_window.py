@@ -38,7 +38,7 @@ reported):
   ``--realtime-windows`` windows in real time (``realtime = true``: its waiting included);
   the file driver and the ring buffer together as the acquisition loop runs them, sample by
   sample and in blocks (``read_block``, ``append_block``), and 50 real-time replays in
-  threads at once with the driver waking every 0.2 s (``PACE_SLACK``) and every 1 s (what a
+  threads at once with the driver waking every 0.2 s and every 1 s (``PACE_SLACK``: what a
   machine's thread costs is mostly its wake-ups); the
   CAN driver replaying a Vector ASC log of the same plant (needs the test helpers; skipped
   without them), with the libraries' share of it: python-can's ``LogReader`` reading the log
@@ -70,10 +70,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from twinwatch.config.loader import default_config, load_config  # noqa: E402
+from twinwatch.daemon.acquisition import READ_TIMEOUT_S  # noqa: E402
 from twinwatch.daemon.pipeline import EVIDENCE_EVERY, saved_twin  # noqa: E402
 from twinwatch.daemon.ringbuffer import RingBuffer  # noqa: E402
 from twinwatch.daemon.window_worker import make_diagnoser  # noqa: E402
 from twinwatch.drivers import EndOfStream, create_driver  # noqa: E402
+from twinwatch.drivers import file as file_driver  # noqa: E402
 from twinwatch.io.encoding import to_json  # noqa: E402
 from twinwatch.plant.dcmotor import DCMotorPlant  # noqa: E402
 from twinwatch.twin.adaptation import TwinAdapter  # noqa: E402
@@ -270,7 +272,8 @@ def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None,
               clock: Callable[[], float] = time.process_time) -> tuple[float, int]:
     """CPU [s] and samples read by the file driver (``realtime`` as configured), with
     ``ring`` stored into it too, with ``blocks`` read a window's rest at a time
-    (``read_block``, ``append_block``) instead of sample by sample."""
+    (``read_block``, ``append_block``) instead of sample by sample; each read with the
+    acquisition loop's timeout (:data:`~twinwatch.daemon.acquisition.READ_TIMEOUT_S`)."""
     table = {"type": "file", "path": str(path), "time_column": "t", "realtime": realtime,
              "columns": {c: {"column": c} for c in chans}}
     if limit is not None:
@@ -281,13 +284,13 @@ def file_cost(path: Path, chans: list[str], realtime: bool, limit: int | None,
         try:
             while True:
                 if blocks:
-                    got = drv.read_block(None, 200 if ring is None else
+                    got = drv.read_block(READ_TIMEOUT_S, 200 if ring is None else
                                          ring.window - ring.pending)
                     if got is not None:
                         n += len(got[0])
                         if ring is not None:
                             ring.append_block(*got)
-                elif (s := drv.read(None)) is not None:
+                elif (s := drv.read(READ_TIMEOUT_S)) is not None:
                     n += 1
                     if ring is not None:
                         ring.append(s.t, s.values)
@@ -302,8 +305,6 @@ def threads_cost(path: Path, chans: list[str], limit: int, machines: int, pace: 
     each read in blocks into its ring buffer, the file driver waking every ``pace`` seconds
     (its ``PACE_SLACK``): the threads' own CPU (``time.thread_time``), summed."""
     import threading
-
-    import twinwatch.drivers.file as file_driver
 
     spent: list[tuple[float, int]] = []
     saved = file_driver.PACE_SLACK
@@ -499,7 +500,8 @@ def main() -> None:
             print("    real time in blocks, 50 machines' threads at once, the driver waking")
             for pace in (0.2, 1.0):
                 cpu = threads_cost(path, chans, args.realtime_windows * per, 50, pace)
-                label = f"      every {pace:g} s{' (PACE_SLACK)' if pace == 0.2 else ''}:"
+                now = " (PACE_SLACK)" if pace == file_driver.PACE_SLACK else ""
+                label = f"      every {pace:g} s{now}:"
                 print(f"{label:<56}{cpu * per * 1e3:7.2f} ms ({cpu * 1e6:.1f} us a sample)")
     can = can_cost(min(60.0, len(samples) * 0.01))
     if can is None:

@@ -273,7 +273,12 @@ def test_a_silent_bus_is_one_error_line_however_often_it_is_reopened(cell, caplo
         until(lambda: "is open again" in caplog.text)
     finally:
         acq.stop()
-        runner.join(10)
+        # the loop sees the stop when its read returns (within its read timeout): the bus
+        # talks until then, or its silence would be a second outage
+        deadline = time.monotonic() + 10
+        while runner.is_alive() and time.monotonic() < deadline:
+            cell.cycle()
+            runner.join(0.01)
         keeper.close()
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1 and "is not available (no CAN frame for" in errors[0], errors

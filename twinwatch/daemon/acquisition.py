@@ -31,12 +31,20 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__.rsplit(".", 1)[0] + ".runner")
 
-__all__ = ["STOP_AT_WINDOW_S", "TICK_S", "Acquisition"]
+__all__ = ["READ_TIMEOUT_S", "STOP_AT_WINDOW_S", "TICK_S", "Acquisition"]
 
 TICK_S = 0.05
 """Seconds [wall] between the acquisition loop's ticks (the watchdog, the supervisor's reload
 and STATUS checks) while a live source's samples arrive, and after each read that had none. A
 source on a simulated clock ticks every sample (its 2 s windows may pass in milliseconds)."""
+
+READ_TIMEOUT_S = 1.0
+"""Longest one read of the driver waits [s, wall]: while no sample comes the loop ticks at
+least this often (and at least twice per watchdog interval, ``WatchdogSec=`` / 2, when systemd
+asks for pings), and it sees a stop within it. A real-time replay sleeps up to it
+(:data:`twinwatch.drivers.file.PACE_SLACK`), so its thread wakes about twice a 2 s window: each
+wake-up costs a few tenths of a millisecond of CPU on a shared box
+(``benchmarks/bench_window.py``, ``benchmarks/bench_density.py``)."""
 
 STOP_AT_WINDOW_S = 5.0
 """Longest wait [s, wall] beyond one window's length for the window being filled when a reload
@@ -116,6 +124,7 @@ class Acquisition:
         driver_said = False  # the driver said the stall's cause itself (at ERROR)
         next_tick = 0.0
         tick_s = TICK_S if live else 0.0
+        timeout = self.read_timeout()
         columns = self._block_columns()
         while not self.stopping.is_set():
             if self._stop_at_window is not None and (
@@ -128,7 +137,7 @@ class Acquisition:
                 for fn in self.ticks:
                     fn()
             try:
-                got = self._read(columns)
+                got = self._read(columns, timeout)
             except EndOfStream as exc:
                 logger.info("source finished: %s", exc)
                 self.ended = "end of the source"
@@ -164,14 +173,23 @@ class Acquisition:
                 self.ended = "duration reached"
                 break
 
-    def _read(self, columns: list[int] | None) -> Sample | tuple[FloatArray, FloatArray] | None:
+    def read_timeout(self) -> float:
+        """The loop's read timeout [s]: :data:`READ_TIMEOUT_S`, or half the watchdog's ping
+        interval when that is shorter (the pings ride on the loop's ticks)."""
+        wd = self.watchdog
+        if wd is None or wd.interval is None or not wd.enabled:
+            return READ_TIMEOUT_S
+        return min(READ_TIMEOUT_S, 0.5 * wd.interval)
+
+    def _read(self, columns: list[int] | None, timeout: float
+              ) -> Sample | tuple[FloatArray, FloatArray] | None:
         """The driver's next rows: a block up to the window's end (``columns``:
         :meth:`_block_columns`, once the staggered first window has started), else one
-        sample; None when none came within the read's timeout."""
+        sample; None when none came within ``timeout`` [s]."""
         assert self.driver is not None
         if columns is not None and not self._phase_pending:
-            return self.driver.read_block(0.2, self.ring.window - self.ring.pending)
-        return self.driver.read(timeout=0.2)
+            return self.driver.read_block(timeout, self.ring.window - self.ring.pending)
+        return self.driver.read(timeout=timeout)
 
     def _store(self, got: Sample | tuple[FloatArray, FloatArray], columns: list[int] | None,
                t_first: float, duration: float | None) -> tuple[list[WindowData], bool]:

@@ -555,7 +555,7 @@ class Host(ServiceHost):
 
     def reload(self) -> None:
         gc.unfreeze()  # the machines replaced are the collector's again (start)
-        if not self.fleet:  # its acquisition loop acts on it at its next tick, not in 0.2 s
+        if not self.fleet:  # its acquisition loop acts on it at its next tick
             for m in list(self.machines.values()):
                 m.supervisor.reload()
             return

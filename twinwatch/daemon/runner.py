@@ -298,7 +298,8 @@ class Daemon:
     # -- lifecycle --------------------------------------------------------------------------
     def add_tick(self, fn: Callable[[], None]) -> None:
         """Call ``fn()`` from the acquisition loop at each of its ticks
-        (:data:`~twinwatch.daemon.acquisition.TICK_S`; at least every 0.2 s)."""
+        (:data:`~twinwatch.daemon.acquisition.TICK_S`; at least every
+        :data:`~twinwatch.daemon.acquisition.READ_TIMEOUT_S`)."""
         self.acquisition.ticks.append(fn)
 
     def add_callback(self, fn: HealthCallback) -> None:

@@ -72,10 +72,12 @@ _MAT_SUFFIXES = {".mat"}
 FloatArray = npt.NDArray[np.float64]
 
 
-#: A real-time replay delivers a row at most this late [s]: it sleeps until the next row is
-#: due plus this, and the rows due by then follow at once (one wake-up per 0.2 s, not one a
-#: row; the acquisition loop's read timeout caps a sleep at 0.2 s anyway).
-PACE_SLACK = 0.2
+#: A real-time replay delivers a row at most this late [s of the recording's time, this over
+#: ``speed`` of wall time]: it sleeps until the next row is due plus that, and the rows due by
+#: then follow at once (one wake-up per second of the recording, not one a row: a wake-up
+#: costs a few tenths of a millisecond of CPU on a shared box; the acquisition loop's read
+#: timeout, :data:`twinwatch.daemon.acquisition.READ_TIMEOUT_S`, caps a sleep).
+PACE_SLACK = 1.0
 
 #: Rows converted to Python floats at once (:meth:`FileDriver._read_internal`).
 _CHUNK_ROWS = 256
@@ -115,7 +117,8 @@ class FileDriverConfig(DriverConfig):
             table is the order of :attr:`FileDriver.channels`.
         realtime: False replays as fast as the caller reads; True delivers each row when its
             time stamp is due on the wall clock (relative to the first row delivered), never
-            early and at most 0.2 s late (:data:`PACE_SLACK`: one wake-up per 0.2 s).
+            early and at most 1 s of the recording late (:data:`PACE_SLACK`: one wake-up
+            per second of the recording).
         speed: with ``realtime``: the replay's speed over the recording's own (10: ten times
             faster, a 2 s window every 0.2 s; > 0, default 1).
         start: index of the first row to replay (0-based, like a Python slice; default 0).
@@ -641,8 +644,9 @@ class FileDriver(Driver):
         if timeout is not None and wait > timeout:
             time.sleep(max(timeout, 0.0))
             return False
-        # never early; up to PACE_SLACK late, so the rows due meanwhile come in one wake-up
-        late = wait + PACE_SLACK
+        # never early; up to PACE_SLACK of the recording late, so the rows due meanwhile come
+        # in one wake-up
+        late = wait + PACE_SLACK / self.config.speed
         time.sleep(late if timeout is None else min(late, timeout))
         return True
 
