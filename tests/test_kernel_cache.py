@@ -50,3 +50,42 @@ def test_an_unwritable_cache_home_leaves_numba_alone(tmp_path: Path) -> None:
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          check=True).stdout.strip()
     assert out == "default"
+
+
+def test_the_twin_kernel_compiles_once_whatever_the_inputs_writability() -> None:
+    """numba types a read-only array apart from a writable one and compiles a kernel again
+    for each mix it meets: seconds each on a cold cache, in every worker process (issue 58).
+    The default twin hands its kernel read-only inputs only, so a window of writable arrays,
+    one of read-only arrays, the estimation's calls (no meta-model: the shared read-only
+    zeros, one initial offset) and the diagnosis' (writable terms and offsets per row) run
+    one compiled signature, and give the same numbers as before the arrays were frozen."""
+    import numpy as np
+
+    from twinwatch.plant.dcmotor import DCMotorPlantConfig
+    from twinwatch.twin.model import WindowData
+    from twinwatch.twin.models import dcmotor
+    from twinwatch.twin.models.dcmotor import DCMotorTwin
+
+    from .helpers.plant import plant_windows
+
+    window = plant_windows(DCMotorPlantConfig(scenario="nominal", duration=6), 1, skip=1)[1][0]
+    frozen = {k: v.copy() for k, v in window.channels.items()}
+    for v in frozen.values():
+        v.flags.writeable = False
+    frozen_window = WindowData(t=window.t, channels=frozen, index=window.index)
+    twin = DCMotorTwin()
+    theta = np.repeat(twin.nominal_vector()[None], 3, axis=0)
+    theta[1, 0] *= 1.1
+    n = window.n
+    writable_terms = {"d(omega)/dt": np.zeros((3, n)), "d(ia)/dt": np.full(n, 0.5)}
+    y0 = twin.simulate(theta, window)
+    calls = [
+        twin.simulate(theta, frozen_window),
+        twin.simulate(theta, window, initial=np.array([0.01, -0.2])),
+        twin.simulate(theta, window, writable_terms, initial=np.zeros((3, 2))),
+    ]
+    assert len(dcmotor._fast_kernel.signatures) == 1
+    np.testing.assert_array_equal(calls[0], y0)
+    assert np.isfinite(calls[1]).all() and np.isfinite(calls[2]).all()
+    assert not np.array_equal(calls[1], y0)  # the offsets reach the kernel
+    assert window.channels["ia"].flags.writeable  # the caller's arrays are left alone

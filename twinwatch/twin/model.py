@@ -337,6 +337,18 @@ def sub_steps(sample_period: float, sub_step: float) -> int:
     return n
 
 
+def readonly(values: FloatArray) -> FloatArray:
+    """``values`` as a C-contiguous float64 array that cannot be written (a view when it is
+    one already; a copy otherwise): what the twins pass their compiled kernels, whose every
+    mix of writable and read-only arrays numba would compile anew (seconds each on a cold
+    cache)."""
+    out = np.ascontiguousarray(values, dtype=float)
+    if out.flags.writeable:
+        out = out.view()
+        out.flags.writeable = False
+    return out
+
+
 def term_array(values: FloatArray | float | None, p: int, n: int, name: str) -> FloatArray:
     """A meta-model term's values (paper Eq. 3) as a C-contiguous array for a compiled kernel.
 
@@ -414,15 +426,15 @@ def _matrix_power(a: FloatArray, n: int) -> FloatArray:
 def _power_into(aug: FloatArray, n: int, out: FloatArray) -> None:  # pragma: no cover
     """``aug ** n`` (n >= 1) into ``out``: the products of :func:`_matrix_power` (and of
     ``np.linalg.matrix_power`` for n <= 3) in the same order through the same BLAS ``dgemm``,
-    so the same numbers."""
+    so the same numbers. Copied into ``out`` element by element (:func:`_copy_into`)."""
     if n == 1:
-        out[:] = aug
+        _copy_into(aug, out)
         return
     if n == 2:
-        out[:] = np.dot(aug, aug)
+        _copy_into(np.dot(aug, aug), out)
         return
     if n == 3:
-        out[:] = np.dot(np.dot(aug, aug), aug)
+        _copy_into(np.dot(np.dot(aug, aug), aug), out)
         return
     z = aug.copy()
     result = np.empty_like(aug)
@@ -439,7 +451,17 @@ def _power_into(aug: FloatArray, n: int, out: FloatArray) -> None:  # pragma: no
         if n == 0:
             break
         z = np.dot(z, z)
-    out[:] = result
+    _copy_into(result, out)
+
+
+@njit(cache=True, nogil=True)
+def _copy_into(src: FloatArray, out: FloatArray) -> None:  # pragma: no cover - compiled
+    """``out[:] = src`` for two (n, m) arrays of the same shape, as a loop: numba's slice
+    assignment compiles its shape-mismatch message (string formatting: seconds of a cold
+    start) into every kernel that uses it."""
+    for i in range(src.shape[0]):
+        for j in range(src.shape[1]):
+            out[i, j] = src[i, j]
 
 
 @njit(cache=True, nogil=True)

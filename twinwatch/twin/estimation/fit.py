@@ -532,9 +532,27 @@ def _equilibrated_inverse(a: FloatArray) -> tuple[FloatArray, FloatArray]:
     (eigenvalues above :data:`RCOND` of the largest), and per variable its load on the
     others: the sum of its squared components along them (n,)."""
     lam, vec = np.linalg.eigh(a)
-    keep = lam > RCOND * max(lam.max(), 1e-300)
-    kept = vec[:, keep]
-    a_inv = (kept / lam[keep]) @ kept.T
+    n = lam.size
+    top = lam[0]
+    for i in range(1, n):
+        top = max(top, lam[i])
+    keep = lam > RCOND * max(top, 1e-300)
+    # (kept / lam[keep]) @ kept.T, the columns gathered and scaled by loops: the same
+    # numbers, without compiling numba's boolean indexing and broadcasting for it
+    r = 0
+    for i in range(n):
+        if keep[i]:
+            r += 1
+    kept = np.empty((n, r))
+    scaled = np.empty((n, r))
+    c = 0
+    for i in range(n):
+        if keep[i]:
+            for k in range(n):
+                kept[k, c] = vec[k, i]
+                scaled[k, c] = vec[k, i] / lam[i]
+            c += 1
+    a_inv = scaled @ kept.T
     loads = np.zeros(lam.size)
     for k in range(lam.size):
         for i in range(lam.size):
@@ -551,7 +569,9 @@ def _sandwich(a: FloatArray, b: FloatArray, safe: FloatArray, norms: FloatArray
     of a zero column (``norms``) or one that loads on an undetermined direction."""
     a_inv, loads = _equilibrated_inverse(a)
     cov = a_inv @ b @ a_inv
-    cov = cov / np.outer(safe, safe)
+    for i in range(safe.size):  # cov / np.outer(safe, safe), the same numbers
+        for j in range(safe.size):
+            cov[i, j] = cov[i, j] / (safe[i] * safe[j])
     for k in range(safe.size):
         if norms[k] == 0 or loads[k] > 1e-12:
             cov[k, :] = np.inf

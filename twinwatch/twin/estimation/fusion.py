@@ -502,13 +502,24 @@ def _safe_inverse(a: FloatArray) -> FloatArray:
 def _safe_inverse_finite(a: FloatArray) -> FloatArray:
     """:func:`_safe_inverse` of a finite matrix, compiled (the same LAPACK ``syevd`` as
     numpy's, the same result to the bit)."""
-    w, v = np.linalg.eigh(0.5 * (a + a.T))
-    big = max(np.max(np.abs(w)), 1e-300)
-    inv = np.zeros_like(w)
-    for i in range(w.size):
+    n = a.shape[0]
+    sym = np.empty((n, n))      # 0.5 * (a + a.T), element by element (the same numbers:
+    for i in range(n):          # numba's array expressions cost seconds of a cold start)
+        for j in range(n):
+            sym[i, j] = 0.5 * (a[i, j] + a[j, i])
+    w, v = np.linalg.eigh(sym)
+    big = 1e-300
+    for i in range(n):
+        big = max(big, abs(w[i]))
+    inv = np.zeros(n)
+    for i in range(n):
         if w[i] > 1e-12 * big:
             inv[i] = 1.0 / w[i]
-    out: FloatArray = (v * inv) @ v.T
+    scaled = np.empty((n, n))   # v * inv
+    for i in range(n):
+        for j in range(n):
+            scaled[i, j] = v[i, j] * inv[j]
+    out: FloatArray = scaled @ v.T
     return out
 
 

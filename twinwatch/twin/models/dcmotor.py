@@ -90,6 +90,7 @@ from twinwatch.twin.model import (
     WindowData,
     _zoh_propagate_kernel,
     composite_zoh,
+    readonly,
     term_array,
 )
 from twinwatch.twin.models._pid import pid_update
@@ -672,13 +673,12 @@ class DCMotorTwin(SubStepTwin):
             drive = va
         kp, ki = self._pi
         y = np.empty((a.shape[0], ia.size, 3 if closed else 2))
-        _fast_kernel(a, b, n_sub, np.ascontiguousarray(ia, dtype=float),
-                     np.ascontiguousarray(window["omega"], dtype=float),
-                     np.ascontiguousarray(va, dtype=float),
-                     np.ascontiguousarray(drive, dtype=float),
-                     np.ascontiguousarray(tl, dtype=float), f_w, f_i, off,
-                     self._positions[closed], kp, ki, self.speed_measurement == "average",
-                     ts, y)
+        # every input read-only, whether the caller's array is or not: one compiled
+        # signature (numba compiles a kernel again for each mix of writable and read-only)
+        _fast_kernel(a, b, n_sub, readonly(ia), readonly(window["omega"]), readonly(va),
+                     readonly(drive), readonly(tl), readonly(f_w), readonly(f_i),
+                     readonly(off), self._positions[closed], kp, ki,
+                     self.speed_measurement == "average", ts, y)
         return y
 
     def _controller_state(self, window: WindowData, k: int, t_s: float, t_c: float,

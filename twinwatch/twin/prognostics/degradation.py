@@ -100,13 +100,20 @@ def _finite(a: FloatArray) -> bool:
 def _pinv_sym(a: FloatArray, rcond: float) -> FloatArray:
     """:func:`pinv_sym`'s arithmetic on a finite matrix, compiled."""
     w, v = np.linalg.eigh(a)
-    aw = np.abs(w)
-    cut = rcond * aw.max()
-    inv = np.zeros_like(w)
-    for i in range(w.size):
-        if aw[i] > cut:
+    n = w.size
+    top = abs(w[0])             # |w|.max() and v * inv by loops: the same numbers, without
+    for i in range(1, n):       # compiling numba's array expressions (a cold start's seconds)
+        top = max(top, abs(w[i]))
+    cut = rcond * top
+    inv = np.zeros(n)
+    for i in range(n):
+        if abs(w[i]) > cut:
             inv[i] = 1.0 / w[i]
-    out: FloatArray = (v * inv) @ v.T
+    scaled = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            scaled[i, j] = v[i, j] * inv[j]
+    out: FloatArray = scaled @ v.T
     return out
 
 
