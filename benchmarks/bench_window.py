@@ -25,7 +25,10 @@ reported):
   own writes (SQLite, Zenoh, MQTT) are not included: they belong to the sinks, measured by
   ``bench_density.py`` in a running host; printed after it, the saved twin the state store
   writes each window (the adapter's and the diagnosis's state, built and encoded: what a
-  restart resumes from).
+  restart resumes from); and the cold start: the CPU of a fresh process processing the
+  machine's first 3 windows on an empty numba cache and again on the cache it filled (their
+  difference: the kernels' compilation, which each worker process of a gateway pays on a
+  first start; ``--no-cold-start`` skips it).
 * ``floor``: what a window's twin costs at its least, on the last timed window: one
   simulation of the window through the twin's exact step matrices (``model.simulate``, one
   parameter vector), and a Gauss-Newton fit of the parameters the window's gate admitted,
@@ -57,6 +60,8 @@ import itertools
 import logging
 import os
 import platform
+import resource
+import subprocess
 import sys
 import tempfile
 import time
@@ -258,6 +263,27 @@ def floor_cost(model: Any, window: Any, estimated: list[str], nominal: dict[str,
             dict(zip(estimated, values.tolist(), strict=True)))
 
 
+def cold_start_cost(machine: str, windows: int = 3) -> tuple[float, float]:
+    """CPU [s] of a fresh process that builds ``machine``'s twin and processes its first
+    ``windows`` windows (:func:`window_cost`, the samples made first), on an empty numba cache
+    (every kernel compiled, as on a first start after an install, a worker process of a
+    gateway on a cold cache) and again with the cache it filled; their difference is the
+    compilation."""
+    code = ("import logging, sys; sys.path.insert(0, sys.argv[1]); "
+            "logging.disable(logging.WARNING); import bench_window as bw; "
+            "bw.window_cost(int(sys.argv[2]), 0.0, machine=sys.argv[3])")
+    out = []
+    with tempfile.TemporaryDirectory() as cache:
+        for _ in range(2):
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent),
+                            str(windows), machine], check=True,
+                           env=dict(os.environ, NUMBA_CACHE_DIR=cache))
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            out.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
+    return out[0], out[1]
+
+
 def _write_csv(path: Path, samples: list) -> None:
     chans = list(samples[0].values)
     with path.open("w", newline="") as fh:
@@ -429,6 +455,8 @@ def main() -> None:
                     "benchmark's plants: 0.5)")
     ap.add_argument("--realtime-windows", type=int, default=2,
                     help="windows the file driver replays in real time (2 s each)")
+    ap.add_argument("--no-cold-start", dest="cold_start", action="store_false",
+                    help="skip the cold start (two fresh processes, about 15 s)")
     args = ap.parse_args()
     logging.disable(logging.WARNING)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
@@ -452,6 +480,11 @@ def main() -> None:
     print(f"    the twin, each trusted window:                      {_stats(list(a[:, 5]))}")
     label = f"    with the diagnosis evidence, every {EVIDENCE_EVERY} windows:"
     print(f"{label:<56}{_stats(list(a[:, 6]))}")
+    if args.cold_start:
+        cold, warm = cold_start_cost(args.machine)
+        print(f"  cold start, a fresh process's first 3 windows: {cold:5.1f} s of CPU on an "
+              f"empty numba cache, {warm:.1f} s with it filled (the kernels compiled: "
+              f"{cold - warm:.1f} s)")
     searches = kept["searches"]
     print(f"  searches over the {sum(searches.values())} windows processed (from 0 s): "
           + ", ".join(f"{s}{f' ({why})' if why else ''} {k}"

@@ -89,3 +89,34 @@ def test_the_twin_kernel_compiles_once_whatever_the_inputs_writability() -> None
     assert np.isfinite(calls[1]).all() and np.isfinite(calls[2]).all()
     assert not np.array_equal(calls[1], y0)  # the offsets reach the kernel
     assert window.channels["ia"].flags.writeable  # the caller's arrays are left alone
+
+
+_TURN = """
+import os, sys, time
+from pathlib import Path
+import numpy as np
+from twinwatch.twin.estimation import fusion
+ready = Path(sys.argv[1])
+(ready / sys.argv[2]).touch()
+while len(list(ready.glob("p*"))) < 2:  # both processes ready: they ask at the same time
+    time.sleep(0.001)
+fusion._safe_inverse(np.eye(3))
+stats = fusion._safe_inverse_finite.stats
+print(sum(stats.cache_misses.values()), sum(stats.cache_hits.values()))
+"""
+
+
+def test_processes_on_one_cold_cache_compile_a_kernel_once(tmp_path: Path) -> None:
+    """Two processes that need the same kernel at the same moment on an empty cache (a
+    gateway's workers starting): one compiles it, the other waits for it and loads it from
+    the cache (issue 58: each worker compiled every kernel)."""
+    cache = tmp_path / "cache"
+    ready = tmp_path / "ready"
+    ready.mkdir()
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    env.pop("TWINWATCH_NUMBA_BASE", None)
+    procs = [subprocess.Popen([sys.executable, "-c", _TURN, str(ready), f"p{i}"], env=env,
+                              stdout=subprocess.PIPE, text=True) for i in range(2)]
+    outs = sorted(tuple(int(x) for x in p.communicate(timeout=120)[0].split())
+                  for p in procs)
+    assert outs == [(0, 1), (1, 0)]  # (compiled, loaded): one each

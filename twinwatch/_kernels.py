@@ -9,14 +9,25 @@ changes, and the twin silently simulates the old drive.
 change to any of them compiles everything afresh. ``<base>`` is ``NUMBA_CACHE_DIR`` when the
 user set it, else ``$XDG_CACHE_HOME/twinwatch/numba``; when neither can be written (a
 read-only home under systemd's ``ProtectHome``), numba's own default is left alone.
+
+numba compiles a kernel missing from its disk cache in every process that needs it: the
+worker processes of a gateway (one per core and per 50 machines), started together on a cold
+cache, each compiled every kernel (eight workers at 400 machines: eight times 10 s of CPU in
+the first minute). :func:`share_compilation` makes the processes on one cache directory take
+turns: while a process is inside numba's compiler lock it holds a lock file there, so a
+kernel is compiled by one process while the others wait, and they load it from the cache.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import sys
+import threading
+import time
 from pathlib import Path
+from typing import Any
 
 #: The packages whose modules define or call numba kernels.
 _KERNEL_DIRS = ("twin", "twin/models", "twin/prognostics", "twin/estimation", "plant")
@@ -64,3 +75,86 @@ def configure() -> Path | None:
     if numba is not None:  # imported before twinwatch: its config was read already
         numba.config.CACHE_DIR = str(target)
     return target
+
+
+#: The longest a process waits for another's compilation before compiling on its own [s]
+#: (a process stopped while it holds the lock file must not stop the others' windows).
+COMPILE_WAIT_S = 60.0
+#: The lock file in the cache directory (:func:`share_compilation`).
+LOCK_NAME = "compile.lock"
+
+_shared: Any = None
+
+
+def share_compilation() -> bool:
+    """Make the processes compiling into this cache directory take turns (module docstring):
+    a listener on numba's ``numba:compiler_lock`` event holds :data:`LOCK_NAME` (``flock``)
+    from the outermost acquisition of numba's compiler lock to its release. A process that
+    finds a kernel missing from the cache then waits for the one compiling it and loads it
+    (numba looks in the cache under its compiler lock, before it compiles). Waiting longer
+    than :data:`COMPILE_WAIT_S`, it compiles on its own. Idempotent; False (nothing done)
+    without a writable cache directory of ours. Never raises."""
+    global _shared
+    if _shared is not None:
+        return True
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    if not cache or not _writable(Path(cache)):
+        return False
+    try:
+        from numba.core import event
+
+        class _Turns(event.Listener):  # type: ignore[misc]  # numba is untyped
+            def __init__(self, path: Path) -> None:
+                self.path = path
+                self.depth = 0
+                self.fd: int | None = None
+                self.guard = threading.Lock()
+
+            def on_start(self, event: Any) -> None:
+                with self.guard:
+                    self.depth += 1
+                    if self.depth > 1:  # nested, or another thread of ours: held already
+                        return
+                fd = _lock_file(self.path)
+                with self.guard:
+                    self.fd = fd
+
+            def on_end(self, event: Any) -> None:
+                with self.guard:
+                    self.depth -= 1
+                    if self.depth > 0:
+                        return
+                    fd, self.fd = self.fd, None
+                if fd is not None:
+                    os.close(fd)  # closing the descriptor releases the flock
+
+        listener = _Turns(Path(cache) / LOCK_NAME)
+        event.register("numba:compiler_lock", listener)
+    except (ImportError, AttributeError, TypeError):  # another numba's event API: no turns
+        return False
+    _shared = listener
+    return True
+
+
+def _lock_file(path: Path) -> int | None:
+    """``path`` opened and locked exclusively (``flock``), waiting up to
+    :data:`COMPILE_WAIT_S`; None when it cannot be opened or the wait ran out."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    except OSError:
+        return None
+    deadline = time.monotonic() + COMPILE_WAIT_S
+    pause = 0.005
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return fd
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                os.close(fd)
+                return None
+            time.sleep(pause)
+            pause = min(pause * 2.0, 0.1)
+        except OSError:
+            os.close(fd)
+            return None

@@ -23,6 +23,11 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from twinwatch import _kernels
+
+# the processes on one kernel cache take turns compiling (a gateway's workers on a cold cache)
+_kernels.share_compilation()
+
 FloatArray = NDArray[np.float64]
 #: Index and count arrays (the compiled kernels' event plans, state positions).
 IntArray = NDArray[np.int64]
