@@ -274,11 +274,12 @@ def cold_start_cost(machine: str, windows: int = 3) -> tuple[float, float]:
             "bw.window_cost(int(sys.argv[2]), 0.0, machine=sys.argv[3])")
     out = []
     with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        env.pop("TWINWATCH_NUMBA_BASE", None)  # this process's, which twinwatch would read
         for _ in range(2):
             before = resource.getrusage(resource.RUSAGE_CHILDREN)
             subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent),
-                            str(windows), machine], check=True,
-                           env=dict(os.environ, NUMBA_CACHE_DIR=cache))
+                            str(windows), machine], check=True, env=env)
             after = resource.getrusage(resource.RUSAGE_CHILDREN)
             out.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
     return out[0], out[1]
