@@ -26,8 +26,9 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 #: The packages whose modules define or call numba kernels.
 _KERNEL_DIRS = ("twin", "twin/models", "twin/prognostics", "twin/estimation", "plant")
@@ -103,7 +104,7 @@ def share_compilation() -> bool:
     try:
         from numba.core import event
 
-        class _Turns(event.Listener):  # type: ignore[misc]  # numba is untyped
+        class _Turns(event.Listener):  # type: ignore[misc, unused-ignore]  # numba: untyped
             def __init__(self, path: Path) -> None:
                 self.path = path
                 self.depth = 0
@@ -129,7 +130,8 @@ def share_compilation() -> bool:
                     os.close(fd)  # closing the descriptor releases the flock
 
         listener = _Turns(Path(cache) / LOCK_NAME)
-        event.register("numba:compiler_lock", listener)
+        register = cast(Callable[[str, Any], None], event.register)  # numba is untyped
+        register("numba:compiler_lock", listener)
     except (ImportError, AttributeError, TypeError):  # another numba's event API: no turns
         return False
     _shared = listener
