@@ -120,3 +120,42 @@ def test_processes_on_one_cold_cache_compile_a_kernel_once(tmp_path: Path) -> No
     outs = sorted(tuple(int(x) for x in p.communicate(timeout=120)[0].split())
                   for p in procs)
     assert outs == [(0, 1), (1, 0)]  # (compiled, loaded): one each
+
+
+_GIVE_UP = """
+from twinwatch import _kernels
+_kernels.COMPILE_WAIT_S = 0.2
+calls = []
+real = _kernels._lock_file
+def counted(path):
+    calls.append(path)
+    return real(path)
+_kernels._lock_file = counted
+import numpy as np
+from twinwatch.twin.estimation import fit, fusion
+fusion._safe_inverse(np.eye(3))
+fit.covariance(np.eye(4)[:, :2], np.ones(4))
+print(len(calls), flush=True)
+"""
+
+
+def test_a_process_that_waited_too_long_compiles_without_waiting_after(tmp_path: Path) -> None:
+    """A process holding the lock file and never letting go (stopped while it compiles) costs
+    another process one wait of COMPILE_WAIT_S, not one per kernel: after it the other
+    compiles on its own, and says so once."""
+    import fcntl
+
+    cache = tmp_path / "cache"
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    env.pop("TWINWATCH_NUMBA_BASE", None)
+    probe = subprocess.run([sys.executable, "-c", "import os, twinwatch; "
+                            "print(os.environ['NUMBA_CACHE_DIR'])"], env=env,
+                           capture_output=True, text=True, check=True).stdout.strip()
+    lock = Path(probe) / _kernels.LOCK_NAME
+    with lock.open("w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        run = subprocess.run([sys.executable, "-c", _GIVE_UP], env=env, capture_output=True,
+                             text=True, timeout=300, check=True)
+    lines = run.stdout.split()
+    assert lines[-1] == "1"  # one wait; the later kernels did not ask for the lock
+    assert run.stderr.count("without waiting from now on") == 1
