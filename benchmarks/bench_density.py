@@ -60,6 +60,8 @@ import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 SIM = ROOT / "config" / "dc-motor-sim.toml"
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -221,6 +223,11 @@ class Run:
     #: the box's busy CPU over the run, every process (ours too), and the hypervisor's steal [s]
     box_s: float = 0.0
     steal_s: float = 0.0
+    #: every window's storing moment [s since the epoch] (the state databases' ``wall``)
+    walls: list[float] = field(default_factory=list)
+    #: the steady state (:func:`steady_state`): (from, to [s after launch], CPU per window
+    #: stored there [s], windows stored per second there); None when the run is too short
+    steady: tuple[float, float, float, float] | None = None
 
     def others(self) -> str:
         """The rest of the box's load during the run: a lateness figure depends on it (the two
@@ -299,6 +306,7 @@ def read_results(run: Run, dirs: list[Path], launched: float = 0.0) -> None:
                                       f"{worst:.0f} ms late, its estimation "
                                       f"{1e3 * float(docs[k]['elapsed_s']):.0f} ms, the one "
                                       f"before {1e3 * float(docs[k - 1]['elapsed_s']):.0f} ms")
+        run.walls += [float(wall) for _, wall in stamps]
         run.elapsed += [float(doc["elapsed_s"]) for doc in docs]
         run.first.append(float(docs[0]["elapsed_s"]))
         counters = docs[-1].get("counters", {})
@@ -306,14 +314,56 @@ def read_results(run: Run, dirs: list[Path], launched: float = 0.0) -> None:
         run.failures += int(counters.get("numeric_failures", 0))
 
 
+#: The steady state starts this long [s] after the last machine's first window: past each
+#: machine's start swarm and the first windows' one-off work (the diagnosis learns its baseline
+#: in the first 10 windows, a trend is first fitted after 10).
+STEADY_AFTER_S = 30.0
+#: A window every this many seconds per machine (200 samples at 10 ms, :data:`FILE_DRIVER`).
+WINDOW_S = 2.0
+
+
+def steady_state(series: list[tuple[float, float]], t_launch: float, walls: list[float],
+                 launched: float, start_s: float) -> tuple[float, float, float, float] | None:
+    """The fleet's CPU per window in the steady state: from :data:`STEADY_AFTER_S` after the
+    last machine's first window (``start_s`` after launch, less its 2 s of acquisition) to the
+    last window stored less 2 s, the processes' CPU over the windows stored in between.
+
+    Args:
+        series: (monotonic time, the processes' CPU seconds so far), from :func:`monitor`.
+        t_launch: the launch's monotonic time.
+        walls: every window's storing moment [s since the epoch].
+        launched: the launch [s since the epoch].
+        start_s: :attr:`Run.start_s`.
+
+    Returns:
+        (from, to [s after launch], CPU per window stored [s], windows stored per second), or
+        None when the span is shorter than 10 s or holds no window.
+    """
+    if len(series) < 2 or not walls:
+        return None
+    t_from = start_s + 2.0 + STEADY_AFTER_S
+    t_to = max(walls) - launched - 2.0
+    if t_to - t_from < 10.0:
+        return None
+    times = np.array([t - t_launch for t, _ in series])
+    cpu = np.array([c for _, c in series])
+    stored = sum(1 for w in walls if t_from <= w - launched <= t_to)
+    if not stored:
+        return None
+    used = float(np.interp(t_to, times, cpu) - np.interp(t_from, times, cpu))
+    return t_from, t_to, used / stored, stored / (t_to - t_from)
+
+
 WAIT_RE = re.compile(r"queue wait per window: median (\d+) ms, max (\d+) ms")
 
 
-def monitor(procs: list[subprocess.Popen[str]], timeout: float
+def monitor(procs: list[subprocess.Popen[str]], timeout: float,
+            series: list[tuple[float, float]] | None = None
             ) -> tuple[float, float, float, float, float, float]:
     """Sample CPU and memory of ``procs`` until they exit: (CPU seconds, wall seconds, the
     peak of the processes' summed RSS and of their summed PSS [MB], the box's busy CPU
-    seconds over the same span (every process, ours included), of which steal)."""
+    seconds over the same span (every process, ours included), of which steal). ``series``
+    gets (monotonic time, the processes' CPU seconds so far) at every sample."""
     t0 = time.monotonic()
     box0 = _box_ticks()
     last_ticks = {p.pid: 0 for p in procs}
@@ -349,6 +399,8 @@ def monitor(procs: list[subprocess.Popen[str]], timeout: float
             pss = [r for q in tree if (r := _pss_mb(q)) is not None] if slow else []
             if pss:
                 peak_pss[p.pid] = max(peak_pss[p.pid], sum(pss))
+        if series is not None:
+            series.append((time.monotonic(), sum(last_ticks.values()) / CLK_TCK))
         time.sleep(0.5)
     box1 = _box_ticks()
     return (sum(last_ticks.values()) / CLK_TCK, time.monotonic() - t0, sum(peak.values()),
@@ -421,8 +473,9 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
                    for p in procs]
         for t in readers:
             t.start()
+        series: list[tuple[float, float]] = []
         (run.cpu_s, run.wall_s, run.peak_rss_mb, run.peak_pss_mb, run.box_s,
-         run.steal_s) = monitor(procs, seconds + 150)
+         run.steal_s) = monitor(procs, seconds + 150, series)
         for t in readers:
             t.join()
         run.exit_codes = [p.returncode for p in procs]
@@ -447,7 +500,9 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
                     firsts.append(row[0])
         if firsts:
             run.start_s = max(firsts) - (time.time() - (time.monotonic() - t_start)) - 2.0
-        read_results(run, dirs, launched=time.time() - (time.monotonic() - t_start))
+        launched = time.time() - (time.monotonic() - t_start)
+        read_results(run, dirs, launched=launched)
+        run.steady = steady_state(series, t_start, run.walls, launched, run.start_s)
         if keep is not None:  # the databases and the processes' logs, for a closer look
             dest = keep / f"{n}-{run.mode.replace(' ', '')}"
             dest.mkdir(parents=True, exist_ok=True)
@@ -505,6 +560,13 @@ def main() -> None:
                          keep=args.keep, opcua=args.opcua, slots=args.slots)
             print(r.row(), flush=True)
             print(f"       {r.others()}", flush=True)
+            if r.steady is not None:
+                t0, t1, per_window, rate = r.steady
+                print(f"       steady state {t0:.0f}-{t1:.0f} s after launch: "
+                      f"{1e3 * per_window:.1f} ms of CPU per window stored, {rate:.1f} windows/s; "
+                      f"at that cost the box's {cores} cores hold at most "
+                      f"{cores * WINDOW_S / per_window:.0f} machines (a window each every "
+                      f"{WINDOW_S:g} s, nothing to spare)", flush=True)
             if r.late_where:
                 print(f"       late60: {r.late_where}", flush=True)
             if r.latest:
