@@ -40,7 +40,7 @@ FLEET_RE = re.compile(r"the fleet's CPU [\d.]+ s, ([\d.]+) ms per window estimat
 #: The run that fills each tree's numba cache first (machines, plant time [s]): past the
 #: diagnosis's baseline (10 windows) and the first trend fit, so the measured runs compile
 #: nothing.
-WARM_UP = (4, 40.0)
+WARM_UP = (4, 90.0)
 ROW_RE = re.compile(r"^\s*(\d+) gateway\s+(\d+)/(\d+)\s+(\d+)", re.MULTILINE)
 
 
