@@ -498,9 +498,9 @@ def run_once(n: int, mode: str, seconds: float, plants: Path, *, cold: bool, rec
                 con.close()
                 if row and row[0]:
                     firsts.append(row[0])
+        launched = time.time() - (time.monotonic() - t_start)  # the launch [s since the epoch]
         if firsts:
-            run.start_s = max(firsts) - (time.time() - (time.monotonic() - t_start)) - 2.0
-        launched = time.time() - (time.monotonic() - t_start)
+            run.start_s = max(firsts) - launched - 2.0
         read_results(run, dirs, launched=launched)
         run.steady = steady_state(series, t_start, run.walls, launched, run.start_s)
         if keep is not None:  # the databases and the processes' logs, for a closer look

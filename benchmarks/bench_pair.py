@@ -35,12 +35,13 @@ import tempfile
 from pathlib import Path
 
 DENSITY = Path(__file__).resolve().parent / "bench_density.py"
-STEADY_RE = re.compile(r"steady state .*?: ([\d.]+) ms of CPU per window stored")
-FLEET_RE = re.compile(r"the fleet's CPU [\d.]+ s, ([\d.]+) ms per window estimated")
 #: The run that fills each tree's numba cache first (machines, plant time [s]): past the
 #: diagnosis's baseline (10 windows) and the first trend fit, so the measured runs compile
 #: nothing.
 WARM_UP = (4, 90.0)
+# what bench_density.py prints: the steady state, the whole run, the row (windows, overruns)
+STEADY_RE = re.compile(r"steady state .*?: ([\d.]+) ms of CPU per window stored")
+FLEET_RE = re.compile(r"the fleet's CPU [\d.]+ s, ([\d.]+) ms per window estimated")
 ROW_RE = re.compile(r"^\s*(\d+) gateway\s+(\d+)/(\d+)\s+(\d+)", re.MULTILINE)
 
 
@@ -90,7 +91,7 @@ def main() -> None:
     ap.add_argument("head", type=Path, help="the checkout under test")
     ap.add_argument("--n", type=int, default=125, help="machines per tree")
     ap.add_argument("--seconds", type=float, default=80.0, help="plant time per machine [s]")
-    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--runs", type=int, default=3, help="paired runs (each both trees at once)")
     ap.add_argument("--cold", action="store_true", help="an empty numba cache every run")
     args = ap.parse_args()
     if os.geteuid() != 0:
