@@ -203,6 +203,8 @@ def window_cost(n_windows: int, t_from: float, noise: float = 0.0,
                     else reason.split(":")[0])
             keep.setdefault("searches", collections.Counter())[
                 (result.estimate.search, kind)] += 1
+            keep.setdefault("search_cpu", collections.defaultdict(list))[
+                (result.estimate.search, kind)].append(est.spent)
         complete_health(health, diagnosis=diagnosis, alarms={}).to_json()
         whole = time.process_time() - c
         saved = []  # the state store's resume point, as the pipeline saves it: the twin
@@ -490,6 +492,9 @@ def main() -> None:
     print(f"  searches over the {sum(searches.values())} windows processed (from 0 s): "
           + ", ".join(f"{s}{f' ({why})' if why else ''} {k}"
                       for (s, why), k in sorted(searches.items())))
+    print("    the estimation's CPU by search (median over those windows): " + ", ".join(
+        f"{s}{f' ({why})' if why else ''} {1e3 * float(np.median(cpu)):.2f} ms"
+        for (s, why), cpu in sorted(kept["search_cpu"].items())))
     e = kept["estimate"]
     estimated = [n for n, st in e.status.items() if st == "estimated"]
     sim, gn, iterations, values = floor_cost(kept["model"], kept["window"], estimated,
