@@ -691,7 +691,7 @@ class DCMotorTwin(SubStepTwin):
         ts = window.sample_period
         n_sub = self.n_sub(ts)
         if closed:
-            drive = src
+            drive = ch["setpoint"]
         elif "v" in self._layout(False):
             drive = np.append(np.diff(va), 0.0) / n_sub
         else:
