@@ -67,10 +67,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from twinwatch.config.loader import load_config
-from twinwatch.config.schema import TwinwatchConfig
-
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # this checkout's twinwatch, not an installed one (a worktree)
+    sys.path.insert(0, str(ROOT))
+
+from twinwatch.config.loader import load_config  # noqa: E402
+from twinwatch.config.schema import TwinwatchConfig  # noqa: E402
 
 #: Probability at which an answer counts as named (the default ``[diagnosis] alarm``).
 NAMED = 0.8
