@@ -119,7 +119,8 @@ def _quadratic(j_h: FloatArray, g_h: FloatArray, s: FloatArray, diag_h: FloatArr
     js = np.dot(j_h, s)
     q = np.dot(js, js)
     q += np.dot(s * diag_h, s)
-    return 0.5 * q + np.dot(s, g_h)
+    value: float = 0.5 * q + np.dot(s, g_h)
+    return value
 
 
 @njit(cache=True, nogil=True)

@@ -687,7 +687,9 @@ class DCMotorTwin(SubStepTwin):
         if (last is not None and last[0] is window and last[1] is window.t and last[2] is ia
                 and last[3] is omega and last[4] is va and last[5] is src and last[6] is load
                 and last[7] is closed):
-            return last[8]
+            kept: tuple[int, float, FloatArray, FloatArray, FloatArray, FloatArray,
+                        FloatArray] = last[8]
+            return kept
         ts = window.sample_period
         n_sub = self.n_sub(ts)
         if closed:
