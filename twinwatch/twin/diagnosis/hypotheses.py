@@ -334,11 +334,11 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
         a0 = float(a[0, 0])
         x1 = float(b[0]) / a0 if a0 > 0 else 0.0
         return np.array([min(max(x1, float(lo[0])), float(hi[0]))])
-    # all free first (most solves end here)
-    reg = 1e-12 * max(1.0, float(a.trace())) * np.eye(q)
-    x = np.linalg.lstsq(a + reg, b, rcond=None)[0]
+    # all free first (most solves end here): compiled, the same LAPACK call (gelsd)
+    x, outside = _free_solve(np.ascontiguousarray(a, dtype=float),
+                             np.ascontiguousarray(b, dtype=float), lo, hi)
     fixed = (x < lo) | (x > hi)
-    if fixed.any():
+    if outside:
         x = np.clip(x, lo, hi)
         for _ in range(q):
             free = ~fixed
@@ -354,6 +354,30 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
             fixed |= out
     out_x: FloatArray = np.clip(x, lo, hi)
     return out_x
+
+
+@njit(cache=True, nogil=True)
+def _free_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
+                ) -> tuple[FloatArray, bool]:  # pragma: no cover - compiled
+    """:func:`bounded_solve`'s first solve, every number free: ``lstsq(a + reg, b)`` with
+    ``reg = 1e-12 max(1, tr a) I`` and numpy's default ``rcond`` (eps x q), and whether a
+    number lies outside ``lo..hi``. numba's ``lstsq`` calls LAPACK's ``gelsd`` as numpy's does:
+    the same numbers (``tests/test_diagnosis_hypotheses.py``)."""
+    q = b.shape[0]
+    tr = a[0, 0]
+    for i in range(1, q):
+        tr += a[i, i]
+    r = 1e-12 * max(1.0, tr)
+    m = np.empty((q, q))
+    for i in range(q):
+        for j in range(q):
+            m[i, j] = a[i, j] + (r if i == j else 0.0)
+    x = np.linalg.lstsq(m, b, rcond=np.finfo(np.float64).eps * q)[0]
+    outside = False
+    for i in range(q):
+        if x[i] < lo[i] or x[i] > hi[i]:
+            outside = True
+    return x, outside
 
 
 class Track:
