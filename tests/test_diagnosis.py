@@ -534,6 +534,13 @@ def test_the_bounded_solve_is_numpy_s_lstsq_to_the_bit() -> None:
         half = np.abs(x) * rng.uniform(0.3, 3.0, q)      # bounds that bind about half the time
         lo, hi = -half, half * rng.uniform(0.5, 2.0, q)
         got, ref = bounded_solve(a, b, lo, hi), _bounded_solve_numpy(a, b, lo, hi)
-        assert np.array_equal(got, ref), (a, b, lo, hi, got, ref)
+        assert got.tobytes() == ref.tobytes(), (a, b, lo, hi, got, ref)   # zeros' signs too
         clipped += bool(np.any((got == lo) | (got == hi)))
     assert 500 < clipped < 2500, clipped    # both paths (free, active set) were taken
+    # a size of zero at a bound of zero (np.clip gives the bound's zero), NaN information
+    a = np.array([[2.0, 0.5], [0.5, 1.0]])
+    for b in (np.zeros(2), -np.zeros(2), np.array([np.nan, 1.0])):
+        for z in (0.0, -0.0):
+            lo, hi = np.array([z, -1.0]), np.array([1.0, z])
+            got, ref = bounded_solve(a, b, lo, hi), _bounded_solve_numpy(a, b, lo, hi)
+            assert got.tobytes() == ref.tobytes(), (b, z, got, ref)
