@@ -544,3 +544,25 @@ def test_the_bounded_solve_is_numpy_s_lstsq_to_the_bit() -> None:
             lo, hi = np.array([z, -1.0]), np.array([1.0, z])
             got, ref = bounded_solve(a, b, lo, hi), _bounded_solve_numpy(a, b, lo, hi)
             assert got.tobytes() == ref.tobytes(), (b, z, got, ref)
+
+
+def test_the_projection_of_a_stack_is_each_row_s_alone_to_the_bit() -> None:
+    """The Gauss-Newton step of the diagnosis projects every twin's columns and residual in
+    one call (``_Projector.each``): each row must be what projecting it alone gives, bit for
+    bit (numpy's stacked matmul makes the single product's ``gemv`` call per element; a numpy
+    release that batches them otherwise fails here, not in the published numbers)."""
+    from types import SimpleNamespace
+
+    from twinwatch.twin.diagnosis.engine import _Projector
+
+    rng = np.random.default_rng(58)
+    for n_init in (1, 2, 3):
+        for n_out in (2, 3):
+            n = int(rng.integers(50, 400))
+            nuisance = rng.standard_normal((n_init, n, n_out)) * 10.0 ** rng.uniform(-3, 3)
+            proj = _Projector(SimpleNamespace(nuisance=nuisance),
+                              rng.uniform(0.1, 1.0, n_out), rng.uniform(1e-4, 1.0, n_out))
+            stack = rng.standard_normal((7, n, n_out)) * 10.0 ** rng.uniform(-3, 3, (7, 1, 1))
+            got = proj.each(stack)
+            for row, v in zip(got, stack, strict=True):
+                assert row.tobytes() == proj(v).tobytes(), (n_init, n_out)

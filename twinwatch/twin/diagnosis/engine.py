@@ -601,32 +601,47 @@ class HypothesisBank:
                 terms[point][i] = values
         init = None if initial is None else np.repeat(np.asarray(initial)[None], len(rows), 0)
         y = fit.simulate(np.vstack(rows), terms or None, init)
-        out = {}
+        finite = np.logical_and.reduce(np.isfinite(y).reshape(len(rows), -1), axis=1)
+        # every twin's exact columns and residual, normalised, then projected in one call
+        # (:meth:`_Projector.each`: each row as alone)
+        raw: list[FloatArray] = []
+        where: list[tuple[Hypothesis, list[tuple[int, int]], int]] = []
         for h, start, n_fd in layout:
-            block = y[start:start + 1 + n_fd]
-            if not np.isfinite(block).all():
+            if not finite[start:start + 1 + n_fd].all():
                 continue
-            phi0 = phis[h.label]
+            block = y[start:start + 1 + n_fd]
             y1 = block[0]
+            k, j = 0, 1
+            fd = []
+            for c in h.changes:
+                if c.kind in ("scale", "term"):
+                    for i in range(c.size):
+                        fd.append((k + i, len(raw)))
+                        raw.append((block[j][1:] - y1[1:]) / (self._fd_step(c) * fit.scale))
+                        j += 1
+                k += c.size
+            where.append((h, fd, len(raw)))
+            raw.append((fit.meas[1:] - y1[1:]) / fit.scale)
+        projected = proj.each(np.array(raw)) if raw else np.zeros((0, 0))
+        out = {}
+        for h, fd, at in where:
+            phi0 = phis[h.label]
             base_cols = lin[h.label]
             cols = np.array(base_cols, copy=True)
             # the reading changes' own effect at their size (at the baseline's slope), then the
             # exact scale and term part
-            k, j = 0, 1
+            for row, i in fd:
+                cols[row] = projected[i]
+            k = 0
             lin_shift = None
             for c in h.changes:
-                if c.kind in ("scale", "term"):
-                    for i in range(c.size):
-                        cols[k + i] = proj((block[j][1:] - y1[1:])
-                                           / (self._fd_step(c) * fit.scale))
-                        j += 1
-                else:
+                if c.kind not in ("scale", "term"):
                     if lin_shift is None:
                         lin_shift = np.zeros(cols.shape[1])
                     for i in range(k, k + c.size):
                         lin_shift += base_cols[i] * float(phi0[i])
                 k += c.size
-            r = proj((fit.meas[1:] - y1[1:]) / fit.scale)
+            r = projected[at]
             if lin_shift is not None:
                 r = r - lin_shift
             a = cols @ cols.T
@@ -850,6 +865,17 @@ class _Projector:
         vw: FloatArray = (v * self.sw).reshape(v.shape[0], -1)
         if self.zw.shape[0]:
             vw = vw - ((vw @ self.zw_t) @ self.ginv) @ self.zw
+        return vw
+
+    def each(self, v: FloatArray) -> FloatArray:
+        """:meth:`__call__` of each of a stack (k, N-1, n_out) -> (k, M), in one call: numpy's
+        stacked matmul of a matrix by a stack of vectors makes each element's ``gemv`` call as
+        the single product does (the same numbers, ``tests/test_diagnosis.py``)."""
+        vw: FloatArray = (v * self.sw).reshape(v.shape[0], -1)
+        if self.zw.shape[0]:
+            out: FloatArray = vw - np.matmul(
+                self.zw_t, np.matmul(self.ginv, np.matmul(self.zw, vw[..., None])))[..., 0]
+            return out
         return vw
 
     def __call__(self, v: FloatArray, profile: bool = True) -> FloatArray:
