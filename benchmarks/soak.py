@@ -39,9 +39,12 @@ import tracemalloc
 from pathlib import Path
 from typing import Any
 
-from twinwatch.config.loader import default_config
-from twinwatch.daemon.runner import Daemon
-from twinwatch.twin.health import HealthMessage
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))   # this checkout's twinwatch, not an installed one
+
+from twinwatch.config.loader import default_config  # noqa: E402
+from twinwatch.daemon.runner import Daemon  # noqa: E402
+from twinwatch.twin.health import HealthMessage  # noqa: E402
 
 
 def rss_kib() -> int:
