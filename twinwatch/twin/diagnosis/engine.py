@@ -624,7 +624,7 @@ class HypothesisBank:
             raw.append((fit.meas[1:] - y1[1:]) / fit.scale)
         projected = proj.each(np.array(raw)) if raw else np.zeros((0, 0))
         out = {}
-        for h, fd, at in where:
+        for h, fd, last in where:
             phi0 = phis[h.label]
             base_cols = lin[h.label]
             cols = np.array(base_cols, copy=True)
@@ -641,7 +641,7 @@ class HypothesisBank:
                     for i in range(k, k + c.size):
                         lin_shift += base_cols[i] * float(phi0[i])
                 k += c.size
-            r = projected[at]
+            r = projected[last]
             if lin_shift is not None:
                 r = r - lin_shift
             a = cols @ cols.T

@@ -340,7 +340,7 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
                                  np.ascontiguousarray(b, dtype=float), lo, hi)
     except np.linalg.LinAlgError:   # numba refuses a NaN or an inf: numpy's call answers
         reg = 1e-12 * max(1.0, float(a.trace())) * np.eye(q)
-        x, outside = np.linalg.lstsq(a + reg, b, rcond=None)[0], True
+        x, outside = np.asarray(np.linalg.lstsq(a + reg, b, rcond=None)[0], dtype=float), True
     if not outside:
         return x            # already np.clip's (:func:`_free_solve`)
     fixed = (x < lo) | (x > hi)
@@ -367,8 +367,9 @@ def _free_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
                 ) -> tuple[FloatArray, bool]:  # pragma: no cover - compiled
     """:func:`bounded_solve`'s first solve, every number free: ``lstsq(a + reg, b)`` with
     ``reg = 1e-12 max(1, tr a) I`` and numpy's default ``rcond`` (eps x q), and whether a
-    number lies outside ``lo..hi`` (if not, the numbers as ``np.clip`` returns them). numba's ``lstsq`` calls LAPACK's ``gelsd`` as numpy's does:
-    the same numbers (``tests/test_diagnosis_hypotheses.py``)."""
+    number lies outside ``lo..hi`` (if not, the numbers as ``np.clip`` returns them).
+    numba's ``lstsq`` calls LAPACK's ``gelsd`` as numpy's does: the same numbers
+    (``tests/test_diagnosis.py``)."""
     q = b.shape[0]
     tr = a[0, 0]
     for i in range(1, q):
@@ -378,7 +379,8 @@ def _free_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
     for i in range(q):
         for j in range(q):
             m[i, j] = a[i, j] + (r if i == j else 0.0)
-    x = np.linalg.lstsq(m, b, rcond=np.finfo(np.float64).eps * q)[0]
+    x = np.empty(q)
+    x[:] = np.linalg.lstsq(m, b, rcond=np.finfo(np.float64).eps * q)[0]
     for i in range(q):
         if x[i] < lo[i] or x[i] > hi[i]:
             return x, True
