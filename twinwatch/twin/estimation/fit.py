@@ -31,7 +31,7 @@ from numba import njit
 from twinwatch.twin.estimation._lm import levenberg_marquardt
 from twinwatch.twin.estimation._trf import trust_region_reflective
 from twinwatch.twin.estimation.statistics import ar1, mean, norms, quantum
-from twinwatch.twin.model import FloatArray, TwinModel, WindowData
+from twinwatch.twin.model import FloatArray, TwinModel, WindowData, as_rows
 
 #: Residual given to every sample of a particle whose simulation blew up.
 BAD_RESIDUAL = 1e6
@@ -112,7 +112,7 @@ class WindowFit:
         """The twin's outputs (P, N, n_out) for parameter vectors ``theta`` (P, n_params);
         ``terms``: attach point -> values (N,) or (P, N) (DT'', paper Eq. 3); ``initial``:
         initial-state offsets (n_init,) or (P, n_init) (default :attr:`initial`)."""
-        theta = np.atleast_2d(np.asarray(theta, dtype=float))
+        theta = as_rows(theta)
         p = theta.shape[0]
         for v in (terms or {}).values():
             if np.ndim(v) == 2:
@@ -218,7 +218,7 @@ class ParameterMap:
     def full(self, q: FloatArray, base: FloatArray) -> FloatArray:
         """Full parameter vectors (P, n_params) from ln-parameter rows ``q`` (P, n_est), the
         others taken from ``base`` (n_params,), ties applied."""
-        q = np.atleast_2d(q)
+        q = as_rows(q)
         theta = np.empty((q.shape[0], len(self.names)))
         theta[:] = base
         theta[:, self.idx] = np.exp(q)
@@ -290,7 +290,7 @@ class LocalFit:
 
     def residuals(self, v: FloatArray) -> FloatArray:
         """Normalised residuals (P, M) for search-vector rows ``v`` (P, n_est + n_init)."""
-        v = np.atleast_2d(v)
+        v = as_rows(v)
         theta = self.pmap.full(v[:, :self.n_est], self.base)
         return self.fit.residuals(theta, self.terms,
                                   self.initial(v) if self.n_init else None)

@@ -89,6 +89,7 @@ from twinwatch.twin.model import (
     SubStepTwin,
     WindowData,
     _zoh_propagate_kernel,
+    as_rows,
     composite_zoh,
     readonly,
     term_array,
@@ -555,14 +556,14 @@ class DCMotorTwin(SubStepTwin):
         Returns:
             (P, N, n_outputs): ia [A], omega [rad/s] and, closed loop, Va [V].
         """
-        theta = np.atleast_2d(np.asarray(theta, dtype=float))
+        theta = as_rows(theta)
         n = window.n
         p = theta.shape[0]
         f_w, f_i = self._terms(terms, p, n)
         rows = max(p, f_w.shape[0])
         if rows > p:
             theta = np.repeat(theta[:1], rows, axis=0)
-        off = _zeros(2) if initial is None else np.atleast_2d(np.asarray(initial, dtype=float))
+        off = _zeros(2) if initial is None else as_rows(initial)
         if off.shape[0] not in (1, rows) or off.shape[1:] != (2,):
             raise ValueError(f"initial: shape {off.shape}, expected (2,) or ({rows}, 2)")
         if self._fast:
