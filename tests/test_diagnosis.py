@@ -489,63 +489,6 @@ def test_the_stacked_pseudo_inverse_is_numpy_s_of_each_matrix_to_the_bit() -> No
                 assert np.array_equal(_pinv(a), np.linalg.pinv(a))
 
 
-def _bounded_solve_numpy(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray
-                         ) -> np.ndarray:
-    """``bounded_solve`` written in numpy alone (its first solve uncompiled): the reference."""
-    q = b.shape[0]
-    reg = 1e-12 * max(1.0, float(a.trace())) * np.eye(q)
-    x = np.linalg.lstsq(a + reg, b, rcond=None)[0]
-    fixed = (x < lo) | (x > hi)
-    if fixed.any():
-        x = np.clip(x, lo, hi)
-        for _ in range(q):
-            free = ~fixed
-            if free.any():
-                af = a[np.ix_(free, free)]
-                bf = b[free] - a[np.ix_(free, fixed)] @ x[fixed]
-                reg = 1e-12 * max(1.0, float(af.trace())) * np.eye(af.shape[0])
-                x[free] = np.linalg.lstsq(af + reg, bf, rcond=None)[0]
-            out = (x < lo) | (x > hi)
-            if not (out & free).any():
-                break
-            x = np.clip(x, lo, hi)
-            fixed |= out
-    return np.clip(x, lo, hi)
-
-
-def test_the_bounded_solve_is_numpy_s_lstsq_to_the_bit() -> None:
-    """A hypothesis's size of two numbers or more (``bounded_solve``) solves its first, free
-    step compiled: the same numbers as numpy's ``lstsq`` on ``a + reg``, with its bounds or
-    without, full rank or not, scaled over many decades (a numpy or numba release whose
-    ``gelsd`` call differs fails here, not in the published numbers)."""
-    from twinwatch.twin.diagnosis.hypotheses import bounded_solve
-
-    rng = np.random.default_rng(58)
-    clipped = 0
-    for t in range(3000):
-        q = int(rng.integers(2, 5))
-        m = rng.standard_normal((q + int(rng.integers(0, 4)), q)) * 10.0 ** rng.uniform(-6, 6, q)
-        a = m.T @ m
-        if t % 5 == 0:                          # a direction the window does not inform
-            a[:, -1] = a[:, 0]
-            a[-1, :] = a[0, :]
-        b = rng.standard_normal(q) * 10.0 ** rng.uniform(-3, 3)
-        x = np.linalg.lstsq(a, b, rcond=None)[0]
-        half = np.abs(x) * rng.uniform(0.3, 3.0, q)      # bounds that bind about half the time
-        lo, hi = -half, half * rng.uniform(0.5, 2.0, q)
-        got, ref = bounded_solve(a, b, lo, hi), _bounded_solve_numpy(a, b, lo, hi)
-        assert got.tobytes() == ref.tobytes(), (a, b, lo, hi, got, ref)   # zeros' signs too
-        clipped += bool(np.any((got == lo) | (got == hi)))
-    assert 500 < clipped < 2500, clipped    # both paths (free, active set) were taken
-    # a size of zero at a bound of zero (np.clip gives the bound's zero), NaN information
-    a = np.array([[2.0, 0.5], [0.5, 1.0]])
-    for b in (np.zeros(2), -np.zeros(2), np.array([np.nan, 1.0])):
-        for z in (0.0, -0.0):
-            lo, hi = np.array([z, -1.0]), np.array([1.0, z])
-            got, ref = bounded_solve(a, b, lo, hi), _bounded_solve_numpy(a, b, lo, hi)
-            assert got.tobytes() == ref.tobytes(), (b, z, got, ref)
-
-
 def test_the_projection_of_a_stack_is_each_row_s_alone_to_the_bit() -> None:
     """The Gauss-Newton step of the diagnosis projects every twin's columns and residual in
     one call (``_Projector.each``): each row must be what projecting it alone gives, bit for

@@ -334,15 +334,9 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
         a0 = float(a[0, 0])
         x1 = float(b[0]) / a0 if a0 > 0 else 0.0
         return np.array([min(max(x1, float(lo[0])), float(hi[0]))])
-    # all free first (most solves end here): compiled, the same LAPACK call (gelsd)
-    try:
-        x, outside = _free_solve(np.ascontiguousarray(a, dtype=float),
-                                 np.ascontiguousarray(b, dtype=float), lo, hi)
-    except np.linalg.LinAlgError:   # numba refuses a NaN or an inf: numpy's call answers
-        reg = 1e-12 * max(1.0, float(a.trace())) * np.eye(q)
-        x, outside = np.asarray(np.linalg.lstsq(a + reg, b, rcond=None)[0], dtype=float), True
-    if not outside:
-        return x            # already np.clip's (:func:`_free_solve`)
+    # all free first (most solves end here)
+    reg = 1e-12 * max(1.0, float(a.trace())) * np.eye(q)
+    x = np.linalg.lstsq(a + reg, b, rcond=None)[0]
     fixed = (x < lo) | (x > hi)
     if fixed.any():
         x = np.clip(x, lo, hi)
@@ -360,34 +354,6 @@ def bounded_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
             fixed |= out
     out_x: FloatArray = np.clip(x, lo, hi)
     return out_x
-
-
-@njit(cache=True, nogil=True)
-def _free_solve(a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
-                ) -> tuple[FloatArray, bool]:  # pragma: no cover - compiled
-    """:func:`bounded_solve`'s first solve, every number free: ``lstsq(a + reg, b)`` with
-    ``reg = 1e-12 max(1, tr a) I`` and numpy's default ``rcond`` (eps x q), and whether a
-    number lies outside ``lo..hi`` (if not, the numbers as ``np.clip`` returns them).
-    numba's ``lstsq`` calls LAPACK's ``gelsd`` as numpy's does: the same numbers
-    (``tests/test_diagnosis.py``)."""
-    q = b.shape[0]
-    tr = a[0, 0]
-    for i in range(1, q):
-        tr += a[i, i]
-    r = 1e-12 * max(1.0, tr)
-    m = np.empty((q, q))
-    for i in range(q):
-        for j in range(q):
-            m[i, j] = a[i, j] + (r if i == j else 0.0)
-    x = np.empty(q)
-    x[:] = np.linalg.lstsq(m, b, rcond=np.finfo(np.float64).eps * q)[0]
-    for i in range(q):
-        if x[i] < lo[i] or x[i] > hi[i]:
-            return x, True
-    for i in range(q):     # np.clip's arithmetic: within the bounds only a zero's sign moves
-        v = x[i] if x[i] > lo[i] or np.isnan(x[i]) else lo[i]
-        x[i] = v if v < hi[i] or np.isnan(v) else hi[i]
-    return x, False
 
 
 class Track:
