@@ -643,11 +643,7 @@ class Discovery:
         if joint:
             scale[n_terms:] = 1e-3  # ln-parameters: a 0.1 % step is the natural unit
         try:
-            # scipy's trust-region reflective (numpy, unbounded here), not its "lm": scipy
-            # 1.17's compiled MINPACK gave a different polish from the same inputs in about
-            # half the processes (a held-out case's term and model checks changed run to run;
-            # the same in every run with MALLOC_PERTURB_ set, and with "trf")
-            sol = least_squares(fun, x, method="trf", x_scale=scale, diff_step=1e-7,
+            sol = least_squares(fun, x, method="lm", x_scale=scale, diff_step=1e-7,
                                 xtol=1e-12, ftol=1e-12, max_nfev=30 * (x.size + 1))
         except ValueError:
             return
